@@ -1,0 +1,360 @@
+//! Streaming import: slices in, brick octree out, in memory bounded by a budget.
+//!
+//! Slices of level 0 arrive one at a time (converted to stored values in parallel by rows). Each
+//! level keeps a window of its own slices: as soon as the slices a z-row of bricks needs (its 32
+//! core slices plus 2 apron slices on each side) are there, the row's bricks are cut, ranged and
+//! compressed on all cores and written to sled; pairs of slices are averaged into the next level's
+//! slice, which feeds that level's window the same way. So coarser levels are built as slabs
+//! complete, and peak memory is about 36 slices of level 0 plus a third of that for the coarser
+//! levels, whatever the volume's depth.
+
+use std::collections::VecDeque;
+use std::path::Path;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::time::Instant;
+
+use rayon::prelude::*;
+
+use crate::brick::{encode_brick, extract_brick, value_range};
+use crate::error::{Result, StorageError};
+use crate::geometry::Geometry;
+use crate::histogram::{Histogram, StoredValueCounts};
+use crate::octree::{downsample_slice_pair, BrickId, OctreeLayout, BRICK_APRON, BRICK_CORE, BRICK_EDGE, BRICK_VOXELS};
+use crate::quantize::{Quantizer, StoredScalar};
+use crate::source::{OpenedSource, RawVolume, SampleType, WindowPreset};
+use crate::store::{NodeInfo, Provenance, Skeleton, StoreHeader, StoreStats, StoreWriter, ValueMapping, STORE_FORMAT_VERSION};
+
+/// Source of level-0 slices already converted to stored values.
+pub trait SliceProducer: Sync {
+    fn dims(&self) -> [u64; 3];
+    /// Fills `out` (nx·ny values, x fastest) with slice `k`.
+    fn stored_slice(&self, k: u64, out: &mut [u16]) -> Result<()>;
+    /// Slice `k` will not be asked for again (lets a memory map drop its pages).
+    fn release_slice(&self, _k: u64) {}
+    /// Bytes of source data per slice, for progress and throughput.
+    fn source_bytes_per_slice(&self) -> u64;
+}
+
+/// Everything the header needs that is not derived from the voxels.
+#[derive(Clone, Debug)]
+pub struct VolumeMeta {
+    pub geometry: Geometry,
+    pub stored: StoredScalar,
+    pub value_mapping: ValueMapping,
+    pub source_sample_type: SampleType,
+    pub quantization_error: f64,
+    pub non_finite_samples: u64,
+    pub modality: String,
+    pub windows: Vec<WindowPreset>,
+    pub description: String,
+    pub inputs: Vec<String>,
+    pub source_format: String,
+}
+
+#[derive(Clone, Copy, Debug, Default)]
+pub struct ImportProgress {
+    pub source_bytes_done: u64,
+    pub source_bytes_total: u64,
+}
+
+pub struct ImportOptions<'a> {
+    /// Upper bound for the import's own buffers plus sled's cache.
+    pub memory_budget_bytes: u64,
+    pub cancel: Option<&'a AtomicBool>,
+    pub progress: Option<&'a (dyn Fn(ImportProgress) + Sync)>,
+}
+
+impl Default for ImportOptions<'_> {
+    fn default() -> Self {
+        ImportOptions { memory_budget_bytes: 1 << 30, cancel: None, progress: None }
+    }
+}
+
+#[derive(Clone, Debug)]
+pub struct ImportReport {
+    pub stats: StoreStats,
+    pub header: StoreHeader,
+}
+
+/// Adapts a reader's mapped raw data: converts slices with the quantiser, drops mapped pages
+/// once a slice is consumed so resident memory stays bounded on huge inputs.
+pub struct QuantizedSource {
+    pub data: RawVolume,
+    pub quantizer: Quantizer,
+}
+
+impl SliceProducer for QuantizedSource {
+    fn dims(&self) -> [u64; 3] {
+        self.data.dims
+    }
+    fn stored_slice(&self, k: u64, out: &mut [u16]) -> Result<()> {
+        self.quantizer.convert_slice(&self.data, k, out);
+        Ok(())
+    }
+    fn release_slice(&self, k: u64) {
+        self.data.release_slice(k);
+    }
+    fn source_bytes_per_slice(&self) -> u64 {
+        self.data.slice_bytes_len() as u64
+    }
+}
+
+/// Imports what a reader opened into a new store at `store_path`.
+pub fn import_source(opened: OpenedSource, store_path: &Path, options: &ImportOptions) -> Result<ImportReport> {
+    let info = opened.info;
+    let quantizer = Quantizer::plan(&opened.data, info.slope);
+    let (slope, intercept) = quantizer.physical_mapping(info.slope, info.intercept);
+    let meta = VolumeMeta {
+        geometry: info.geometry.clone(),
+        stored: quantizer.stored,
+        value_mapping: ValueMapping {
+            slope,
+            intercept,
+            unit: if info.modality.eq_ignore_ascii_case("CT") { "HU".into() } else { String::new() },
+        },
+        source_sample_type: info.sample_type,
+        quantization_error: quantizer.max_error_physical,
+        non_finite_samples: quantizer.non_finite_samples,
+        modality: info.modality.clone(),
+        windows: info.windows.clone(),
+        description: info.description.clone(),
+        inputs: info.inputs.iter().map(|p| p.display().to_string()).collect(),
+        source_format: info.format.clone(),
+    };
+    let producer = QuantizedSource { data: opened.data, quantizer };
+    import_slices(&producer, meta, store_path, options)
+}
+
+/// Bytes the importer's slice windows need for a volume of `dims` (all levels).
+pub fn window_bytes(dims: [u64; 3]) -> u64 {
+    let layout = OctreeLayout::new(dims);
+    // Per level: the row window (2 apron + 32 core + 2 apron) plus one slice awaiting its pair.
+    let per_level_slices = BRICK_EDGE + 1;
+    layout.level_dims.iter().map(|d| d[0] * d[1] * 2 * per_level_slices).sum()
+}
+
+pub fn import_slices(
+    producer: &dyn SliceProducer,
+    meta: VolumeMeta,
+    store_path: &Path,
+    options: &ImportOptions,
+) -> Result<ImportReport> {
+    let started = Instant::now();
+    let dims = producer.dims();
+    meta.geometry.validate(store_path)?;
+    if meta.geometry.dims != dims {
+        return Err(StorageError::invalid(store_path, format!("header dims {:?} differ from data dims {dims:?}", meta.geometry.dims)));
+    }
+    let layout = OctreeLayout::new(dims);
+    // Budget: slice windows, per-core brick buffers, sled's cache (at least 16 MiB, at most 1/4).
+    let per_core_buffers = rayon::current_num_threads() as u64 * (BRICK_VOXELS as u64 * 8);
+    let fixed = window_bytes(dims) + per_core_buffers;
+    let sled_cache = (options.memory_budget_bytes.saturating_sub(fixed) / 4).clamp(16 << 20, 256 << 20);
+    if fixed + sled_cache > options.memory_budget_bytes {
+        return Err(StorageError::invalid(
+            store_path,
+            format!(
+                "memory budget of {} MiB is too small for slices of {}×{}: the import needs about {} MiB",
+                options.memory_budget_bytes >> 20,
+                dims[0],
+                dims[1],
+                (fixed + sled_cache).div_ceil(1 << 20)
+            ),
+        ));
+    }
+    let writer = StoreWriter::create(store_path, sled_cache)?;
+    let narrow = meta.stored == StoredScalar::U8;
+    let sink = BrickSink { writer: &writer, narrow, compressed_bytes: AtomicU64::new(0) };
+    let mut levels: Vec<LevelBuilder> =
+        (0..layout.level_count()).map(|l| LevelBuilder::new(l, layout.level_dims[l], &layout)).collect();
+    let mut skeleton = Skeleton::new(&layout);
+    let mut counts = StoredValueCounts::default();
+    let slice_len = (dims[0] * dims[1]) as usize;
+    let total_source = producer.source_bytes_per_slice() * dims[2];
+    for k in 0..dims[2] {
+        if options.cancel.is_some_and(|c| c.load(Ordering::Relaxed)) {
+            return Err(StorageError::Cancelled { path: store_path.to_path_buf() });
+        }
+        let mut slice = vec![0u16; slice_len];
+        producer.stored_slice(k, &mut slice)?;
+        producer.release_slice(k);
+        counts.add_slice(&slice);
+        push_slice(&mut levels, 0, k, slice, &sink, &mut skeleton)?;
+        if let Some(progress) = options.progress {
+            progress(ImportProgress { source_bytes_done: producer.source_bytes_per_slice() * (k + 1), source_bytes_total: total_source });
+        }
+        if debug_slow_import() {
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+    }
+    for level in &levels {
+        if level.next_row != level.rows() {
+            return Err(StorageError::corrupted(store_path, format!("level {} ended with {} of {} brick rows", level.level, level.next_row, level.rows())));
+        }
+    }
+
+    let (stored_lo, stored_hi) = counts.stored_range().unwrap_or((0, 0));
+    let histogram = Histogram::from_stored(&counts, meta.value_mapping.slope, meta.value_mapping.intercept);
+    let header = StoreHeader {
+        format_version: STORE_FORMAT_VERSION,
+        geometry: meta.geometry,
+        stored: meta.stored,
+        value_mapping: meta.value_mapping,
+        source_sample_type: meta.source_sample_type,
+        quantization_error: meta.quantization_error,
+        non_finite_samples: meta.non_finite_samples,
+        modality: meta.modality,
+        windows: meta.windows,
+        description: meta.description,
+        provenance: Provenance {
+            inputs: meta.inputs,
+            source_format: meta.source_format,
+            imported_at_unix_seconds: std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0, |d| d.as_secs()),
+            tool_version: env!("CARGO_PKG_VERSION").to_string(),
+        },
+        layout: layout.clone(),
+        brick_core: BRICK_CORE,
+        brick_apron: BRICK_APRON,
+        stored_range: [stored_lo, stored_hi],
+    };
+    let bytes_per_voxel = if narrow { 1 } else { 2 };
+    let stats = StoreStats {
+        bricks_per_level: skeleton
+            .levels
+            .iter()
+            .map(|l| (l.len() as u64, l.iter().filter(|n| n.is_constant()).count() as u64))
+            .collect(),
+        compressed_bytes: sink.compressed_bytes.load(Ordering::Relaxed),
+        uncompressed_bytes: layout.total_bricks() * BRICK_VOXELS as u64 * bytes_per_voxel,
+        source_bytes: total_source,
+        import_seconds: started.elapsed().as_secs_f64(),
+    };
+    writer.finish(&header, &skeleton, &histogram, &stats)?;
+    Ok(ImportReport { stats, header })
+}
+
+/// Set `STRATA_DEBUG_SLOW_IMPORT=1` to sleep 20 ms per slice: lets tests kill an import midway.
+fn debug_slow_import() -> bool {
+    static SLOW: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *SLOW.get_or_init(|| std::env::var_os("STRATA_DEBUG_SLOW_IMPORT").is_some())
+}
+
+struct BrickSink<'a> {
+    writer: &'a StoreWriter,
+    narrow: bool,
+    compressed_bytes: AtomicU64,
+}
+
+/// One level's sliding window of slices.
+struct LevelBuilder {
+    level: usize,
+    dims: [u64; 3],
+    bricks: [u64; 3],
+    /// Contiguous slices, the first with index `first_slice`.
+    window: VecDeque<Vec<u16>>,
+    first_slice: u64,
+    next_row: u64,
+    is_top: bool,
+}
+
+impl LevelBuilder {
+    fn new(level: usize, dims: [u64; 3], layout: &OctreeLayout) -> Self {
+        LevelBuilder {
+            level,
+            dims,
+            bricks: layout.bricks_in_level(level),
+            window: VecDeque::new(),
+            first_slice: 0,
+            next_row: 0,
+            is_top: level + 1 == layout.level_count(),
+        }
+    }
+    fn rows(&self) -> u64 {
+        self.bricks[2]
+    }
+    fn last_index(&self) -> u64 {
+        self.first_slice + self.window.len() as u64 - 1
+    }
+    fn slice(&self, k: u64) -> &[u16] {
+        &self.window[(k - self.first_slice) as usize]
+    }
+    /// Last slice brick row `row` reads (apron included, clamped to the level).
+    fn last_slice_for_row(&self, row: u64) -> u64 {
+        ((row + 1) * BRICK_CORE + BRICK_APRON - 1).min(self.dims[2] - 1)
+    }
+}
+
+/// Adds slice `k` to `level`, emits the brick rows it completes and cascades the averaged slice
+/// to the next level.
+fn push_slice(
+    levels: &mut [LevelBuilder],
+    level: usize,
+    k: u64,
+    slice: Vec<u16>,
+    sink: &BrickSink,
+    skeleton: &mut Skeleton,
+) -> Result<()> {
+    let builder = &mut levels[level];
+    if builder.window.is_empty() {
+        builder.first_slice = k;
+    }
+    builder.window.push_back(slice);
+    let [nx, ny, nz] = builder.dims;
+    // Pair slices (2j, 2j+1) into slice j of the next level; an odd depth's last slice pairs with itself.
+    let coarser = if builder.is_top {
+        None
+    } else if k % 2 == 1 || k == nz - 1 {
+        let first = builder.slice(k - k % 2);
+        let next = if k % 2 == 1 { Some(builder.slice(k)) } else { None };
+        let mut out = vec![0u16; (nx.div_ceil(2) * ny.div_ceil(2)) as usize];
+        downsample_slice_pair(first, next, nx as usize, ny as usize, &mut out);
+        Some((k / 2, out))
+    } else {
+        None
+    };
+    while builder.next_row < builder.rows() && builder.last_index() >= builder.last_slice_for_row(builder.next_row) {
+        emit_row(builder, sink, skeleton)?;
+        builder.next_row += 1;
+        // The next row starts reading 2 slices below its core.
+        let keep_from = (builder.next_row * BRICK_CORE).saturating_sub(BRICK_APRON);
+        while builder.first_slice < keep_from && builder.window.len() > 1 {
+            builder.window.pop_front();
+            builder.first_slice += 1;
+        }
+    }
+    if let Some((j, out)) = coarser {
+        push_slice(levels, level + 1, j, out, sink, skeleton)?;
+    }
+    Ok(())
+}
+
+fn emit_row(builder: &LevelBuilder, sink: &BrickSink, skeleton: &mut Skeleton) -> Result<()> {
+    let bz = builder.next_row;
+    let [nbx, nby, _] = builder.bricks;
+    let slice_at = |z: u64| builder.slice(z);
+    let level = builder.level;
+    let nodes: Vec<Result<NodeInfo>> = (0..nbx * nby)
+        .into_par_iter()
+        .map_init(
+            || Vec::with_capacity(BRICK_VOXELS),
+            |voxels, i| {
+                let (bx, by) = (i % nbx, i / nbx);
+                extract_brick(bx, by, bz, builder.dims, &slice_at, voxels);
+                let range = value_range(voxels);
+                let id = BrickId::new(level as u8, [bx as u32, by as u32, bz as u32]);
+                let record = encode_brick(id, voxels, range, sink.narrow);
+                sink.compressed_bytes.fetch_add(record.len() as u64, Ordering::Relaxed);
+                sink.writer.put_brick(id, record)?;
+                let flags = if range.min == range.max { NodeInfo::CONSTANT } else { 0 };
+                Ok(NodeInfo { min: range.min, max: range.max, flags })
+            },
+        )
+        .collect();
+    let row_start = (bz * nbx * nby) as usize;
+    for (i, node) in nodes.into_iter().enumerate() {
+        skeleton.levels[level][row_start + i] = node?;
+    }
+    Ok(())
+}
