@@ -40,6 +40,15 @@ fn checksum(key: &[u8], body: &[u8]) -> u64 {
     h.digest()
 }
 
+/// The samples as little-endian bytes: a free view on little-endian machines, a copy elsewhere.
+fn u16_le_bytes(voxels: &[u16]) -> std::borrow::Cow<'_, [u8]> {
+    if cfg!(target_endian = "little") {
+        std::borrow::Cow::Borrowed(bytemuck::cast_slice(voxels))
+    } else {
+        std::borrow::Cow::Owned(voxels.iter().flat_map(|v| v.to_le_bytes()).collect())
+    }
+}
+
 /// Range of a brick's voxels (min, max over core and apron).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct ValueRange {
@@ -66,11 +75,7 @@ pub fn encode_brick(id: BrickId, voxels: &[u16], range: ValueRange, narrow: bool
         let bytes: Vec<u8> = voxels.iter().map(|&v| v as u8).collect();
         (KIND_U8, lz4_flex::block::compress_prepend_size(&bytes))
     } else {
-        let mut bytes = Vec::with_capacity(voxels.len() * 2);
-        for &v in voxels {
-            bytes.extend_from_slice(&v.to_le_bytes());
-        }
-        (KIND_U16, lz4_flex::block::compress_prepend_size(&bytes))
+        (KIND_U16, lz4_flex::block::compress_prepend_size(&u16_le_bytes(voxels)))
     };
     let mut out = Vec::with_capacity(HEADER_LEN + body.len());
     out.push(kind);
@@ -159,13 +164,19 @@ pub fn extract_brick<'a>(
     let (x0, y0, z0) = (origin(bx), origin(by), origin(bz));
     // Column indices are the same for every row of the brick; computing them once keeps the
     // hot loop a gather.
+    let x_interior = x0 >= 0 && x0 + BRICK_EDGE as i64 <= nx as i64;
+    // Column indices only matter at the volume's x edges; interior rows are one contiguous copy.
     let xs: Vec<usize> = (0..BRICK_EDGE as i64).map(|dx| clamp(x0 + dx, nx) as usize).collect();
     for dz in 0..BRICK_EDGE as i64 {
         let slice = slice_at(clamp(z0 + dz, nz));
         for dy in 0..BRICK_EDGE as i64 {
             let row = clamp(y0 + dy, ny) as usize * nx as usize;
             let row = &slice[row..row + nx as usize];
-            out.extend(xs.iter().map(|&x| row[x]));
+            if x_interior {
+                out.extend_from_slice(&row[x0 as usize..x0 as usize + BRICK_EDGE as usize]);
+            } else {
+                out.extend(xs.iter().map(|&x| row[x]));
+            }
         }
     }
 }

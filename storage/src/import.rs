@@ -164,28 +164,38 @@ pub fn import_slices(
     }
     let writer = StoreWriter::create(store_path, sled_cache)?;
     let narrow = meta.stored == StoredScalar::U8;
-    let sink = BrickSink { writer: &writer, narrow, compressed_bytes: AtomicU64::new(0) };
+    let sink = BrickSink { writer: &writer, narrow, compressed_bytes: AtomicU64::new(0), put_nanos: AtomicU64::new(0) };
     let mut levels: Vec<LevelBuilder> =
         (0..layout.level_count()).map(|l| LevelBuilder::new(l, layout.level_dims[l], &layout)).collect();
     let mut skeleton = Skeleton::new(&layout);
     let mut counts = StoredValueCounts::default();
     let slice_len = (dims[0] * dims[1]) as usize;
     let total_source = producer.source_bytes_per_slice() * dims[2];
+    let mut phase = [std::time::Duration::ZERO; 3];
     for k in 0..dims[2] {
         if options.cancel.is_some_and(|c| c.load(Ordering::Relaxed)) {
             return Err(StorageError::Cancelled { path: store_path.to_path_buf() });
         }
+        let t0 = Instant::now();
         let mut slice = vec![0u16; slice_len];
         producer.stored_slice(k, &mut slice)?;
         producer.release_slice(k);
+        let t1 = Instant::now();
         counts.add_slice(&slice);
+        let t2 = Instant::now();
         push_slice(&mut levels, 0, k, slice, &sink, &mut skeleton)?;
+        phase[0] += t1 - t0;
+        phase[1] += t2 - t1;
+        phase[2] += t2.elapsed();
         if let Some(progress) = options.progress {
             progress(ImportProgress { source_bytes_done: producer.source_bytes_per_slice() * (k + 1), source_bytes_total: total_source });
         }
         if debug_slow_import() {
             std::thread::sleep(std::time::Duration::from_millis(20));
         }
+    }
+    if std::env::var_os("STRATA_IMPORT_PROFILE").is_some() {
+        eprintln!("import phases: convert {:?}, histogram {:?}, bricks {:?}, sled put (summed over threads) {:?}", phase[0], phase[1], phase[2], std::time::Duration::from_nanos(sink.put_nanos.load(Ordering::Relaxed)));
     }
     for level in &levels {
         if level.next_row != level.rows() {
@@ -245,6 +255,7 @@ struct BrickSink<'a> {
     writer: &'a StoreWriter,
     narrow: bool,
     compressed_bytes: AtomicU64,
+    put_nanos: AtomicU64,
 }
 
 /// One level's sliding window of slices.
@@ -346,7 +357,9 @@ fn emit_row(builder: &LevelBuilder, sink: &BrickSink, skeleton: &mut Skeleton) -
                 let id = BrickId::new(level as u8, [bx as u32, by as u32, bz as u32]);
                 let record = encode_brick(id, voxels, range, sink.narrow);
                 sink.compressed_bytes.fetch_add(record.len() as u64, Ordering::Relaxed);
+                let t = Instant::now();
                 sink.writer.put_brick(id, record)?;
+                sink.put_nanos.fetch_add(t.elapsed().as_nanos() as u64, Ordering::Relaxed);
                 let flags = if range.min == range.max { NodeInfo::CONSTANT } else { 0 };
                 Ok(NodeInfo { min: range.min, max: range.max, flags })
             },

@@ -97,6 +97,38 @@ impl Quantizer {
         (source_slope / self.scale, source_slope * self.offset + source_intercept)
     }
 
+    /// Fast paths for the exact integer mappings (most scans): no float round trip per sample.
+    /// Returns false when the general path must run.
+    fn convert_integers_exactly(&self, data: &RawVolume, src: &[u8], dst: &mut [u16]) -> bool {
+        use crate::source::ByteOrder::{Big, Little};
+        if self.scale != 1.0 {
+            return false;
+        }
+        let offset = self.offset;
+        match (data.sample_type, data.byte_order) {
+            (SampleType::U8, _) if offset == 0.0 => dst.iter_mut().zip(src).for_each(|(d, &s)| *d = s as u16),
+            (SampleType::I8, _) if offset == -128.0 => {
+                dst.iter_mut().zip(src).for_each(|(d, &s)| *d = (s as i8 as i16 + 128) as u16)
+            }
+            (SampleType::U16, order) if offset == 0.0 => {
+                for (d, c) in dst.iter_mut().zip(src.chunks_exact(2)) {
+                    let b = [c[0], c[1]];
+                    *d = if order == Little { u16::from_le_bytes(b) } else { u16::from_be_bytes(b) };
+                }
+            }
+            (SampleType::I16, order) if offset == -32768.0 => {
+                for (d, c) in dst.iter_mut().zip(src.chunks_exact(2)) {
+                    let b = [c[0], c[1]];
+                    let v = if order == Big { i16::from_be_bytes(b) } else { i16::from_le_bytes(b) };
+                    // Flipping the sign bit adds 32768 in two's complement.
+                    *d = (v as u16) ^ 0x8000;
+                }
+            }
+            _ => return false,
+        }
+        true
+    }
+
     /// Converts slice `k` of `data` into stored values.
     pub fn convert_slice(&self, data: &RawVolume, k: u64, out: &mut [u16]) {
         let bytes = data.slice_bytes(k);
@@ -106,8 +138,7 @@ impl Quantizer {
         out.par_chunks_mut(data.dims[0] as usize)
             .zip(bytes.par_chunks(row_bytes))
             .for_each(|(dst, src)| {
-                if data.sample_type == SampleType::U8 && self.offset == 0.0 {
-                    dst.iter_mut().zip(src).for_each(|(d, &s)| *d = s as u16);
+                if self.convert_integers_exactly(data, src, dst) {
                     return;
                 }
                 let mut i = 0;

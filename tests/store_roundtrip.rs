@@ -2,76 +2,10 @@
 //! levels equal to the rounded 2×2×2 averages, aprons equal to the neighbouring (or replicated
 //! edge) voxels; and it refuses to be read when damaged or unfinished.
 
+use strata_e2e::{check_store_against, phantom_level0};
 use strata_storage::import::{import_slices, ImportOptions, SliceProducer, VolumeMeta};
 use strata_storage::phantom::Phantom;
-use strata_storage::{BrickId, Store, StorageError, BRICK_APRON, BRICK_CORE, BRICK_EDGE};
-
-/// Independent, in-memory construction of every level, written from the definition.
-fn expected_levels(dims: [u64; 3], level0: Vec<u16>, level_count: usize) -> Vec<(Vec<u16>, [u64; 3])> {
-    let mut levels = vec![(level0, dims)];
-    for _ in 1..level_count {
-        let (prev, d) = levels.last().unwrap();
-        let nd = [d[0].div_ceil(2), d[1].div_ceil(2), d[2].div_ceil(2)];
-        let at = |x: u64, y: u64, z: u64| prev[(x.min(d[0] - 1) + d[0] * (y.min(d[1] - 1) + d[1] * z.min(d[2] - 1))) as usize] as u32;
-        let mut next = Vec::with_capacity((nd[0] * nd[1] * nd[2]) as usize);
-        for z in 0..nd[2] {
-            for y in 0..nd[1] {
-                for x in 0..nd[0] {
-                    let mut sum = 0;
-                    for (dx, dy, dz) in [(0, 0, 0), (1, 0, 0), (0, 1, 0), (1, 1, 0), (0, 0, 1), (1, 0, 1), (0, 1, 1), (1, 1, 1)] {
-                        sum += at(2 * x + dx, 2 * y + dy, 2 * z + dz);
-                    }
-                    // Rounded to nearest, halves up.
-                    next.push(((sum + 4) / 8) as u16);
-                }
-            }
-        }
-        levels.push((next, nd));
-    }
-    levels
-}
-
-fn check_store_against(store: &Store, level0: Vec<u16>) {
-    let layout = store.layout().clone();
-    let dims = store.header().geometry.dims;
-    let levels = expected_levels(dims, level0, layout.level_count());
-    for (level, (data, d)) in levels.iter().enumerate() {
-        assert_eq!(*d, layout.level_dims[level]);
-        let nb = layout.bricks_in_level(level);
-        for bz in 0..nb[2] {
-            for by in 0..nb[1] {
-                for bx in 0..nb[0] {
-                    let id = BrickId::new(level as u8, [bx as u32, by as u32, bz as u32]);
-                    let brick = store.read_brick(id).unwrap();
-                    let node = store.node(id).unwrap();
-                    let (mut lo, mut hi) = (u16::MAX, 0u16);
-                    for (n, &v) in brick.iter().enumerate() {
-                        let n = n as u64;
-                        let (ex, ey, ez) = (n % BRICK_EDGE, (n / BRICK_EDGE) % BRICK_EDGE, n / (BRICK_EDGE * BRICK_EDGE));
-                        // Apron voxels outside the level replicate the edge voxel.
-                        let g = |b: u64, e: u64, n: u64| ((b * BRICK_CORE + e) as i64 - BRICK_APRON as i64).clamp(0, n as i64 - 1) as u64;
-                        let (x, y, z) = (g(bx, ex, d[0]), g(by, ey, d[1]), g(bz, ez, d[2]));
-                        let want = data[(x + d[0] * (y + d[1] * z)) as usize];
-                        assert_eq!(v, want, "level {level} brick {:?} voxel ({ex},{ey},{ez})", id.coords);
-                        lo = lo.min(v);
-                        hi = hi.max(v);
-                    }
-                    assert_eq!((node.min, node.max), (lo, hi), "skeleton range of {id:?}");
-                    assert_eq!(node.is_constant(), lo == hi);
-                }
-            }
-        }
-    }
-}
-
-fn phantom_level0(p: &Phantom) -> Vec<u16> {
-    let [nx, ny, nz] = p.size;
-    let mut all = vec![0u16; (nx * ny * nz) as usize];
-    for (k, chunk) in all.chunks_mut((nx * ny) as usize).enumerate() {
-        p.stored_slice(k as u64, chunk);
-    }
-    all
-}
+use strata_storage::{BrickId, Store, StorageError};
 
 #[test]
 fn phantom_round_trips_with_odd_sizes() {

@@ -1,0 +1,192 @@
+//! `strata bench ...`: the measurements behind the issue notes. Every figure is reported next to
+//! a baseline measured in the same run, because these machines are shared and noisy.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use clap::Subcommand;
+use rayon::prelude::*;
+use strata_storage::import::{import_source, ImportOptions};
+use strata_storage::phantom::Phantom;
+use strata_storage::readers::{open_source, ReadOptions};
+use strata_storage::{BrickId, Store, BRICK_VOXELS};
+
+#[derive(Subcommand)]
+pub enum BenchCommand {
+    /// Import throughput of a u16 phantom NRRD against read + lz4-on-all-cores; optional peak RSS
+    /// of a large import in a child process.
+    Import {
+        /// Edge of the phantom for the throughput run.
+        #[arg(long, default_value_t = 512)]
+        size: u64,
+        /// Edge of a second phantom imported in a child process to measure peak RSS (e.g. 1024).
+        #[arg(long)]
+        rss_size: Option<u64>,
+        /// Memory budget for the RSS run, MiB.
+        #[arg(long, default_value_t = 1024)]
+        memory_mib: u64,
+        /// Scratch folder for generated inputs and stores (kept between runs to save time).
+        #[arg(long, default_value = "target/bench-data")]
+        dir: PathBuf,
+    },
+    /// Random brick reads from a store: cold (fresh open, files evicted from the page cache) and warm.
+    Bricks {
+        store: PathBuf,
+        #[arg(long, default_value_t = 2000)]
+        count: usize,
+    },
+}
+
+pub fn run(cmd: BenchCommand) -> Result<()> {
+    match cmd {
+        BenchCommand::Import { size, rss_size, memory_mib, dir } => bench_import(size, rss_size, memory_mib, &dir),
+        BenchCommand::Bricks { store, count } => bench_bricks(&store, count),
+    }
+}
+
+fn ensure_phantom_nrrd(dir: &Path, size: u64) -> Result<PathBuf> {
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    let path = dir.join(format!("phantom-{size}.nrrd"));
+    let expected = size * size * size * 2;
+    if std::fs::metadata(&path).map(|m| m.len() > expected).unwrap_or(false) {
+        return Ok(path);
+    }
+    eprintln!("generating {}", path.display());
+    Phantom::cube(size).write_nrrd(&path, None)?;
+    Ok(path)
+}
+
+/// The ceiling for import: touch every source byte from the page cache and lz4-compress it in
+/// brick-sized chunks on all cores. An import cannot beat this; it also cuts bricks, averages
+/// levels and writes the database.
+fn read_and_compress_limit(nrrd: &Path, data_bytes: u64) -> Result<f64> {
+    let file = std::fs::File::open(nrrd)?;
+    // SAFETY: read-only map of a file this benchmark wrote and does not modify.
+    let map = unsafe { memmap2::Mmap::map(&file)? };
+    let data = &map[map.len() - data_bytes as usize..];
+    let chunk = BRICK_VOXELS * 2;
+    let mut best = f64::MAX;
+    for _ in 0..2 {
+        let t = Instant::now();
+        let compressed: usize = data.par_chunks(chunk).map(|c| lz4_flex::block::compress_prepend_size(c).len()).sum();
+        std::hint::black_box(compressed);
+        best = best.min(t.elapsed().as_secs_f64());
+    }
+    Ok(data_bytes as f64 / 1e6 / best)
+}
+
+fn bench_import(size: u64, rss_size: Option<u64>, memory_mib: u64, dir: &Path) -> Result<()> {
+    let nrrd = ensure_phantom_nrrd(dir, size)?;
+    let data_bytes = size * size * size * 2;
+    // Warm the page cache so both sides read from memory.
+    std::hint::black_box(std::fs::read(&nrrd)?.len());
+    let limit = read_and_compress_limit(&nrrd, data_bytes)?;
+    let store = dir.join(format!("phantom-{size}.strata"));
+    let mut best = f64::MAX;
+    let mut last = None;
+    for _ in 0..2 {
+        let opened = open_source(&nrrd, &ReadOptions::default())?;
+        let t = Instant::now();
+        let report = import_source(opened, &store, &ImportOptions::default())?;
+        best = best.min(t.elapsed().as_secs_f64());
+        last = Some(report);
+    }
+    let import_rate = data_bytes as f64 / 1e6 / best;
+    println!("import throughput, {size}^3 int16 phantom NRRD ({:.0} MB), {} threads", data_bytes as f64 / 1e6, rayon::current_num_threads());
+    println!("  limit (page-cache read + lz4 on all cores): {limit:8.0} MB/s");
+    println!("  strata import (best of 2):                 {import_rate:8.0} MB/s  = {:.0} % of the limit", 100.0 * import_rate / limit);
+    if let Some(r) = last {
+        println!(
+            "  stored {:.1} MB (compression ratio {:.2} over bricks with aprons)",
+            r.stats.compressed_bytes as f64 / 1e6,
+            r.stats.uncompressed_bytes as f64 / r.stats.compressed_bytes.max(1) as f64
+        );
+    }
+    if let Some(rss_size) = rss_size {
+        let big = ensure_phantom_nrrd(dir, rss_size)?;
+        let big_store = dir.join(format!("phantom-{rss_size}.strata"));
+        let exe = std::env::current_exe()?;
+        let t = Instant::now();
+        let status = std::process::Command::new(exe)
+            .arg("import")
+            .arg(&big)
+            .arg(&big_store)
+            .arg("--memory-mib")
+            .arg(memory_mib.to_string())
+            .stderr(std::process::Stdio::null())
+            .status()?;
+        anyhow::ensure!(status.success(), "child import failed");
+        let seconds = t.elapsed().as_secs_f64();
+        let peak = peak_child_rss_bytes();
+        let gb = (rss_size * rss_size * rss_size * 2) as f64 / 1e9;
+        println!(
+            "peak RSS importing {rss_size}^3 u16 ({gb:.2} GB) with a {memory_mib} MiB budget: {:.0} MiB ({}), {:.1} s, {:.0} MB/s",
+            peak as f64 / (1 << 20) as f64,
+            if peak <= memory_mib << 20 { "within budget" } else { "OVER BUDGET" },
+            seconds,
+            gb * 1e3 / seconds
+        );
+    }
+    Ok(())
+}
+
+fn peak_child_rss_bytes() -> u64 {
+    // SAFETY: getrusage only writes into the struct we pass.
+    let mut usage: libc::rusage = unsafe { std::mem::zeroed() };
+    unsafe { libc::getrusage(libc::RUSAGE_CHILDREN, &mut usage) };
+    usage.ru_maxrss as u64 * 1024
+}
+
+/// Asks the kernel to drop a store's files from the page cache, so the next reads are cold.
+fn evict_from_page_cache(dir: &Path) {
+    let Ok(entries) = std::fs::read_dir(dir) else { return };
+    for entry in entries.flatten() {
+        let p = entry.path();
+        if p.is_dir() {
+            evict_from_page_cache(&p);
+        } else if let Ok(f) = std::fs::File::open(&p) {
+            use std::os::fd::AsRawFd;
+            // SAFETY: advisory call on a valid descriptor.
+            unsafe { libc::posix_fadvise(f.as_raw_fd(), 0, 0, libc::POSIX_FADV_DONTNEED) };
+        }
+    }
+}
+
+fn bench_bricks(path: &Path, count: usize) -> Result<()> {
+    evict_from_page_cache(path);
+    let store = Store::open(path).with_context(|| format!("cannot open {}", path.display()))?;
+    let layout = store.layout().clone();
+    // Deterministic pseudo-random brick ids over all levels, weighted like the octree itself.
+    let total = layout.total_bricks();
+    let mut state = 0x2545_F491_4F6C_DD1Du64;
+    let ids: Vec<BrickId> = (0..count)
+        .map(|_| {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            let mut n = state % total;
+            let mut level = 0;
+            while n >= layout.brick_count_in_level(level) {
+                n -= layout.brick_count_in_level(level);
+                level += 1;
+            }
+            let b = layout.bricks_in_level(level);
+            BrickId::new(level as u8, [(n % b[0]) as u32, ((n / b[0]) % b[1]) as u32, (n / (b[0] * b[1])) as u32])
+        })
+        .collect();
+    let decompressed_mb = (count * BRICK_VOXELS * 2) as f64 / 1e6;
+    for label in ["cold", "warm"] {
+        let t = Instant::now();
+        for &id in &ids {
+            std::hint::black_box(store.read_brick(id)?);
+        }
+        let s = t.elapsed().as_secs_f64();
+        println!(
+            "{label}: {count} random bricks in {s:.3} s = {:.0} bricks/s, {:.0} MB/s decompressed (one thread)",
+            count as f64 / s,
+            decompressed_mb / s
+        );
+    }
+    Ok(())
+}

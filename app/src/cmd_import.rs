@@ -1,0 +1,111 @@
+use std::path::PathBuf;
+
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use strata_storage::import::{import_source, ImportOptions, ImportProgress};
+use strata_storage::readers::{open_source, RawSpec, ReadOptions};
+use strata_storage::{ByteOrder, SampleType};
+
+#[derive(Args)]
+pub struct ImportArgs {
+    /// DICOM folder or file, .nii/.nii.gz, .nrrd/.nhdr, .mha/.mhd, or raw (with --raw-*).
+    pub input: PathBuf,
+    /// Store directory to create (an existing store there is replaced).
+    pub store: PathBuf,
+    /// DICOM: the series to import when a folder holds several (SeriesInstanceUID or index).
+    #[arg(long)]
+    pub series: Option<String>,
+    /// Memory budget for the import in MiB (buffers plus database cache).
+    #[arg(long, default_value_t = 1024)]
+    pub memory_mib: u64,
+    /// Raw input: dimensions as X,Y,Z.
+    #[arg(long, value_delimiter = ',', num_args = 3)]
+    pub raw_dims: Option<Vec<u64>>,
+    /// Raw input: u8, i8, u16, i16, u32, i32, f32, f64.
+    #[arg(long)]
+    pub raw_type: Option<String>,
+    /// Raw input: voxel spacing in mm as X,Y,Z.
+    #[arg(long, value_delimiter = ',', num_args = 3, default_values_t = vec![1.0, 1.0, 1.0])]
+    pub raw_spacing: Vec<f64>,
+    /// Raw input: byte order, little or big.
+    #[arg(long, default_value = "little")]
+    pub raw_endian: String,
+    /// Raw input: bytes to skip before the voxels.
+    #[arg(long, default_value_t = 0)]
+    pub raw_header_bytes: u64,
+    /// Folder for temporary decompressed data (default: the system temp folder).
+    #[arg(long)]
+    pub staging_dir: Option<PathBuf>,
+}
+
+pub fn parse_sample_type(name: &str) -> Result<SampleType> {
+    Ok(match name.to_ascii_lowercase().as_str() {
+        "u8" | "uint8" => SampleType::U8,
+        "i8" | "int8" => SampleType::I8,
+        "u16" | "uint16" => SampleType::U16,
+        "i16" | "int16" => SampleType::I16,
+        "u32" | "uint32" => SampleType::U32,
+        "i32" | "int32" => SampleType::I32,
+        "f32" | "float32" | "float" => SampleType::F32,
+        "f64" | "float64" | "double" => SampleType::F64,
+        other => bail!("unknown raw sample type '{other}' (use u8, i8, u16, i16, u32, i32, f32 or f64)"),
+    })
+}
+
+pub fn run(args: ImportArgs) -> Result<()> {
+    let raw = match (&args.raw_dims, &args.raw_type) {
+        (Some(d), Some(t)) => Some(RawSpec {
+            dims: [d[0], d[1], d[2]],
+            sample_type: parse_sample_type(t)?,
+            spacing_mm: [args.raw_spacing[0], args.raw_spacing[1], args.raw_spacing[2]],
+            byte_order: match args.raw_endian.as_str() {
+                "little" => ByteOrder::Little,
+                "big" => ByteOrder::Big,
+                other => bail!("--raw-endian must be little or big, not '{other}'"),
+            },
+            header_bytes: args.raw_header_bytes,
+        }),
+        (None, None) => None,
+        _ => bail!("raw input needs both --raw-dims and --raw-type"),
+    };
+    let options = ReadOptions { dicom_series: args.series.clone(), raw, staging_dir: args.staging_dir.clone() };
+    let opened = open_source(&args.input, &options).with_context(|| format!("cannot read {}", args.input.display()))?;
+    let g = &opened.info.geometry;
+    eprintln!(
+        "{} {}: {}x{}x{} {} voxels, spacing {:.4}x{:.4}x{:.4} mm",
+        opened.info.format,
+        args.input.display(),
+        g.dims[0], g.dims[1], g.dims[2],
+        opened.info.sample_type.name(),
+        g.spacing_mm[0], g.spacing_mm[1], g.spacing_mm[2]
+    );
+    let total = opened.data.slice_bytes_len() as u64 * g.dims[2];
+    let bar = crate::progress::bytes_bar(total, "importing");
+    let progress = |p: ImportProgress| bar.set_position(p.source_bytes_done);
+    let import_options = ImportOptions { memory_budget_bytes: args.memory_mib << 20, cancel: None, progress: Some(&progress) };
+    let report = import_source(opened, &args.store, &import_options)
+        .with_context(|| format!("import of {} into {} failed", args.input.display(), args.store.display()))?;
+    bar.finish_and_clear();
+    let s = &report.stats;
+    println!(
+        "imported {} into {}: {:.1} MB source in {:.2} s ({:.0} MB/s), {} bricks, {:.1} MB stored (ratio {:.2})",
+        args.input.display(),
+        args.store.display(),
+        s.source_bytes as f64 / 1e6,
+        s.import_seconds,
+        s.source_bytes as f64 / 1e6 / s.import_seconds.max(1e-9),
+        s.bricks_per_level.iter().map(|l| l.0).sum::<u64>(),
+        s.compressed_bytes as f64 / 1e6,
+        s.uncompressed_bytes as f64 / s.compressed_bytes.max(1) as f64,
+    );
+    if report.header.quantization_error > 0.0 {
+        println!("note: the source was quantised to 16 bits; worst-case error {:.6} (physical units)", report.header.quantization_error);
+    }
+    if report.header.non_finite_samples > 0 {
+        println!(
+            "note: {} NaN/Inf samples were mapped to the range ends (NaN and -Inf to the lowest value, +Inf to the highest)",
+            report.header.non_finite_samples
+        );
+    }
+    Ok(())
+}

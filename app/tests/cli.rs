@@ -1,0 +1,109 @@
+//! The `strata` binary end to end: import, info, verify, sample, and what happens when an
+//! import is killed or a brick is damaged.
+
+use std::path::Path;
+use std::process::{Command, Output};
+use std::time::{Duration, Instant};
+
+use strata_storage::{BrickId, Store, StorageError};
+
+fn strata(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_strata")).args(args).output().expect("strata runs")
+}
+
+fn text(o: &Output) -> String {
+    format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr))
+}
+
+#[test]
+fn sample_nrrd_imports_and_reports() {
+    let dir = tempfile::tempdir().unwrap();
+    let nrrd = dir.path().join("p.nrrd");
+    let store = dir.path().join("p.strata");
+    let o = strata(&["sample", "--size", "40", "--out", nrrd.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    let o = strata(&["import", nrrd.to_str().unwrap(), store.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    let o = strata(&["info", store.to_str().unwrap()]);
+    let info = text(&o);
+    assert!(o.status.success(), "{info}");
+    assert!(info.contains("40 x 40 x 40 voxels"), "{info}");
+    assert!(info.contains("orientation  LPS"), "{info}");
+    assert!(info.contains("level 1"), "{info}");
+    let o = strata(&["verify", store.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("all 9 bricks verified"), "{}", text(&o));
+}
+
+#[test]
+fn bad_inputs_fail_with_the_file_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let missing = dir.path().join("nope.nii");
+    let store = dir.path().join("s.strata");
+    let o = strata(&["import", missing.to_str().unwrap(), store.to_str().unwrap()]);
+    assert!(!o.status.success());
+    assert!(text(&o).contains("nope.nii"), "{}", text(&o));
+    assert!(!text(&o).contains("panicked"), "{}", text(&o));
+
+    let truncated = dir.path().join("short.nrrd");
+    std::fs::write(&truncated, b"NRRD0004\ntype: uint16\ndimension: 3\nsizes: 10 10 10\nencoding: raw\nendian: little\n\n0123").unwrap();
+    let o = strata(&["import", truncated.to_str().unwrap(), store.to_str().unwrap()]);
+    assert!(!o.status.success());
+    assert!(text(&o).contains("short.nrrd"), "{}", text(&o));
+    assert!(!text(&o).contains("panicked"), "{}", text(&o));
+    // A failed import leaves nothing that opens as a store.
+    assert!(Store::open(&store).is_err());
+
+    let o = strata(&["info", dir.path().join("absent.strata").to_str().unwrap()]);
+    assert!(!o.status.success());
+    assert!(text(&o).contains("does not exist"), "{}", text(&o));
+}
+
+#[test]
+fn killed_import_leaves_an_incomplete_store_and_reimport_succeeds() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("killed.strata");
+    // Slowed down (20 ms per slice) so the kill lands mid-import deterministically.
+    let mut child = Command::new(env!("CARGO_BIN_EXE_strata"))
+        .args(["sample", "--size", "160", "--out", store.to_str().unwrap()])
+        .env("STRATA_DEBUG_SLOW_IMPORT", "1")
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let started = Instant::now();
+    // Wait until the database exists and has taken some writes, then kill without warning.
+    while !store.join("db").join("conf").exists() && started.elapsed() < Duration::from_secs(30) {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    std::thread::sleep(Duration::from_millis(1500));
+    assert!(child.try_wait().unwrap().is_none(), "import finished before it could be killed");
+    child.kill().unwrap();
+    child.wait().unwrap();
+
+    match Store::open(&store) {
+        Err(StorageError::IncompleteImport { path }) => assert_eq!(path, store),
+        Err(other) => panic!("expected the incomplete-import error, got {other}"),
+        Ok(_) => panic!("a killed import opened as a complete store"),
+    }
+    let o = strata(&["info", store.to_str().unwrap()]);
+    assert!(!o.status.success());
+    assert!(text(&o).contains("incomplete import"), "{}", text(&o));
+
+    let o = strata(&["sample", "--size", "48", "--out", store.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert_eq!(Store::open(&store).unwrap().header().geometry.dims, [48, 48, 48]);
+}
+
+#[test]
+fn verify_reports_a_flipped_byte() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("v.strata");
+    let o = strata(&["sample", "--size", "64", "--out", store.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    Store::corrupt_brick_for_tests(Path::new(&store), BrickId::new(1, [0, 0, 0]), 100).unwrap();
+    let o = strata(&["verify", store.to_str().unwrap()]);
+    assert!(!o.status.success(), "verify passed a corrupted store");
+    let out = text(&o);
+    assert!(out.contains("checksum mismatch") && out.contains("level 1"), "{out}");
+    assert!(out.contains("1 problem"), "{out}");
+}

@@ -1,0 +1,805 @@
+//! DICOM: a folder holding one or more series of single-frame slices, or one file (classic or
+//! enhanced multi-frame). Headers are read without pixel data first; the pixels are then decoded
+//! one slice (frame) at a time, in patient order, into a staging file.
+
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+
+use dicom_core::value::Value as DicomValue;
+use dicom_core::Tag;
+use dicom_dictionary_std::{tags, uids};
+use dicom_object::mem::InMemElement;
+use dicom_object::{DefaultDicomObject, InMemDicomObject, OpenFileOptions};
+use dicom_pixeldata::PixelDecoder;
+
+use crate::error::{Result, StorageError};
+use crate::geometry::Geometry;
+use crate::readers::common::{cross, dot, norm, split_axis};
+use crate::readers::staging::new_staging;
+use crate::readers::{has_dicom_preamble, ReadOptions};
+use crate::source::{ByteOrder, OpenedSource, RawVolume, SampleType, SourceInfo, WindowPreset};
+
+/// Folders nested deeper than this are not searched (exports are rarely more than a few deep).
+const MAX_DEPTH: usize = 8;
+/// Relative and absolute tolerance on slice gaps: scanners round positions to ~1e-5 mm, and a
+/// missing slice shows up as a 100 % jump, far outside this.
+const GAP_REL_TOL: f64 = 0.01;
+const GAP_ABS_TOL_MM: f64 = 1e-3;
+
+/// One series found in a folder.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DicomSeriesSummary {
+    pub uid: String,
+    pub series_number: Option<i64>,
+    pub description: String,
+    pub modality: String,
+    /// Image frames (slices) in the series.
+    pub slice_count: usize,
+}
+
+/// One 2-D image: a file's frame.
+#[derive(Clone, Debug)]
+struct FrameInfo {
+    /// Index into the header list.
+    file: usize,
+    frame: u32,
+    ipp: Option<[f64; 3]>,
+    iop: Option<[f64; 6]>,
+    pixel_spacing: Option<[f64; 2]>,
+    slope: f64,
+    intercept: f64,
+    instance: i64,
+}
+
+/// The header of one image file (pixel data not read).
+#[derive(Clone, Debug)]
+struct ImageHeader {
+    path: PathBuf,
+    series_uid: String,
+    series_number: Option<i64>,
+    series_description: String,
+    modality: String,
+    rows: u32,
+    cols: u32,
+    bits_allocated: u16,
+    bits_stored: u16,
+    signed: bool,
+    samples_per_pixel: u16,
+    photometric: String,
+    windows: Vec<WindowPreset>,
+    /// Slice thickness / spacing between slices, only used when positions cannot tell.
+    gap_hint: Option<f64>,
+    frames: Vec<FrameInfo>,
+    /// File offset of uncompressed little-endian pixel data, when found: frames are then read
+    /// straight from the file, so a multi-gigabyte multi-frame file never sits in memory.
+    native_offset: Option<u64>,
+}
+
+type Obj = InMemDicomObject;
+
+fn text(obj: &Obj, tag: Tag) -> Option<String> {
+    let s = obj.get(tag)?.to_str().ok()?;
+    let s = s.trim_matches(|c: char| c.is_whitespace() || c == '\0');
+    (!s.is_empty()).then(|| s.to_string())
+}
+
+fn floats(e: Option<&InMemElement>) -> Option<Vec<f64>> {
+    let v = e?.to_multi_float64().ok()?;
+    (!v.is_empty() && v.iter().all(|x| x.is_finite())).then_some(v)
+}
+
+fn int(obj: &Obj, tag: Tag) -> Option<i64> {
+    obj.get(tag)?.to_int::<i64>().ok()
+}
+
+/// First item of sequence `seq` in `obj`.
+fn seq_item(obj: &Obj, seq: Tag) -> Option<&Obj> {
+    obj.get(seq)?.items()?.first()
+}
+
+/// An attribute of a functional group macro: per-frame item first, then the shared one, then the
+/// top-level data set (classic images keep it there).
+fn fg_attr<'a>(top: &'a Obj, groups: &[Option<&'a Obj>], seq: Tag, attr: Tag) -> Option<&'a InMemElement> {
+    for g in groups.iter().flatten() {
+        if let Some(e) = seq_item(g, seq).and_then(|item| item.get(attr)) {
+            return Some(e);
+        }
+    }
+    top.get(attr)
+}
+
+fn windows_from(obj: &Obj) -> Vec<WindowPreset> {
+    let (Some(c), Some(w)) = (floats(obj.get(tags::WINDOW_CENTER)), floats(obj.get(tags::WINDOW_WIDTH))) else {
+        return Vec::new();
+    };
+    let names: Vec<String> = text(obj, tags::WINDOW_CENTER_WIDTH_EXPLANATION)
+        .map(|s| s.split('\\').map(|p| p.trim().to_string()).collect())
+        .unwrap_or_default();
+    c.iter()
+        .zip(w.iter())
+        .enumerate()
+        .filter(|(_, (_, &w))| w > 0.0)
+        .map(|(i, (&center, &width))| WindowPreset {
+            name: names.get(i).filter(|n| !n.is_empty()).cloned().unwrap_or_else(|| format!("DICOM window {}", i + 1)),
+            center,
+            width,
+        })
+        .collect()
+}
+
+fn open_header(path: &Path) -> Result<DefaultDicomObject> {
+    OpenFileOptions::new()
+        .read_until(tags::PIXEL_DATA)
+        .open_file(path)
+        .map_err(|e| StorageError::invalid(path, format!("unreadable DICOM file: {e}")))
+}
+
+/// Reads the image header of `path`; `Ok(None)` when the file holds no image (SR, DICOMDIR, ...).
+fn read_header(path: &Path) -> Result<Option<ImageHeader>> {
+    let obj = open_header(path)?;
+    let (Some(rows), Some(cols)) = (int(&obj, tags::ROWS), int(&obj, tags::COLUMNS)) else {
+        return Ok(None);
+    };
+    if rows <= 0 || cols <= 0 || rows > u32::MAX as i64 || cols > u32::MAX as i64 {
+        return Err(StorageError::invalid(path, format!("DICOM image size {cols}x{rows}")));
+    }
+    let bits_allocated = int(&obj, tags::BITS_ALLOCATED).unwrap_or(16);
+    let bits_stored = int(&obj, tags::BITS_STORED).unwrap_or(bits_allocated);
+    let n_frames = int(&obj, tags::NUMBER_OF_FRAMES).unwrap_or(1).max(1);
+    if n_frames as u64 > crate::geometry::MAX_AXIS_VOXELS {
+        return Err(StorageError::invalid(path, format!("absurd NumberOfFrames {n_frames}")));
+    }
+    let shared: Option<&Obj> = seq_item(&obj, tags::SHARED_FUNCTIONAL_GROUPS_SEQUENCE);
+    let per_frame: &[Obj] = obj
+        .get(tags::PER_FRAME_FUNCTIONAL_GROUPS_SEQUENCE)
+        .and_then(|e| e.items())
+        .unwrap_or(&[]);
+    let instance = int(&obj, tags::INSTANCE_NUMBER).unwrap_or(0);
+
+    let mut frames = Vec::with_capacity(n_frames as usize);
+    for f in 0..n_frames as usize {
+        let groups = [per_frame.get(f), shared];
+        let ipp = floats(fg_attr(&obj, &groups, tags::PLANE_POSITION_SEQUENCE, tags::IMAGE_POSITION_PATIENT))
+            .filter(|v| v.len() == 3)
+            .map(|v| [v[0], v[1], v[2]]);
+        let iop = floats(fg_attr(&obj, &groups, tags::PLANE_ORIENTATION_SEQUENCE, tags::IMAGE_ORIENTATION_PATIENT))
+            .filter(|v| v.len() == 6)
+            .map(|v| [v[0], v[1], v[2], v[3], v[4], v[5]]);
+        let pixel_spacing = floats(fg_attr(&obj, &groups, tags::PIXEL_MEASURES_SEQUENCE, tags::PIXEL_SPACING))
+            .filter(|v| v.len() == 2)
+            .map(|v| [v[0], v[1]]);
+        let slope = floats(fg_attr(&obj, &groups, tags::PIXEL_VALUE_TRANSFORMATION_SEQUENCE, tags::RESCALE_SLOPE))
+            .and_then(|v| v.first().copied())
+            .filter(|s| *s != 0.0)
+            .unwrap_or(1.0);
+        let intercept = floats(fg_attr(&obj, &groups, tags::PIXEL_VALUE_TRANSFORMATION_SEQUENCE, tags::RESCALE_INTERCEPT))
+            .and_then(|v| v.first().copied())
+            .unwrap_or(0.0);
+        frames.push(FrameInfo { file: 0, frame: f as u32, ipp, iop, pixel_spacing, slope, intercept, instance });
+    }
+    let groups0 = [per_frame.first(), shared];
+    let gap_hint = floats(fg_attr(&obj, &groups0, tags::PIXEL_MEASURES_SEQUENCE, tags::SPACING_BETWEEN_SLICES))
+        .or_else(|| floats(fg_attr(&obj, &groups0, tags::PIXEL_MEASURES_SEQUENCE, tags::SLICE_THICKNESS)))
+        .and_then(|v| v.first().copied())
+        .filter(|v| *v > 0.0);
+
+    // Classic multi-frame (NM, US, old MR) states one position for the whole stack; step along
+    // the slice normal by the slice gap so the frames still sort and space correctly.
+    if n_frames > 1 && per_frame.is_empty() {
+        if let (Some(ipp), Some(iop)) = (frames[0].ipp, frames[0].iop) {
+            let normal = cross([iop[0], iop[1], iop[2]], [iop[3], iop[4], iop[5]]);
+            let gap = gap_hint.unwrap_or(1.0);
+            for (k, fr) in frames.iter_mut().enumerate() {
+                let d = gap * k as f64;
+                fr.ipp = Some([ipp[0] + normal[0] * d, ipp[1] + normal[1] * d, ipp[2] + normal[2] * d]);
+            }
+        }
+    }
+
+    let mut windows = shared.and_then(|s| seq_item(s, tags::FRAME_VOILUT_SEQUENCE)).map(windows_from).unwrap_or_default();
+    if windows.is_empty() {
+        windows = per_frame.first().and_then(|s| seq_item(s, tags::FRAME_VOILUT_SEQUENCE)).map(windows_from).unwrap_or_default();
+    }
+    if windows.is_empty() {
+        windows = windows_from(&obj);
+    }
+
+    let bytes_per_sample = (bits_allocated.max(0) as u64).div_ceil(8);
+    let samples = int(&obj, tags::SAMPLES_PER_PIXEL).unwrap_or(1).max(1) as u64;
+    let native_offset = if matches!(bits_allocated, 8 | 16 | 32) {
+        (rows as u64)
+            .checked_mul(cols as u64)
+            .and_then(|n| n.checked_mul(bytes_per_sample * samples))
+            .and_then(|n| n.checked_mul(n_frames as u64))
+            .and_then(|len| locate_native_pixel_data(path, obj.meta().transfer_syntax(), len))
+    } else {
+        None
+    };
+
+    Ok(Some(ImageHeader {
+        native_offset,
+        path: path.to_path_buf(),
+        series_uid: text(&obj, tags::SERIES_INSTANCE_UID).unwrap_or_default(),
+        series_number: int(&obj, tags::SERIES_NUMBER),
+        series_description: text(&obj, tags::SERIES_DESCRIPTION).unwrap_or_default(),
+        modality: text(&obj, tags::MODALITY).unwrap_or_default(),
+        rows: rows as u32,
+        cols: cols as u32,
+        bits_allocated: bits_allocated.clamp(0, u16::MAX as i64) as u16,
+        bits_stored: bits_stored.clamp(0, u16::MAX as i64) as u16,
+        signed: int(&obj, tags::PIXEL_REPRESENTATION).unwrap_or(0) == 1,
+        samples_per_pixel: int(&obj, tags::SAMPLES_PER_PIXEL).unwrap_or(1).clamp(0, u16::MAX as i64) as u16,
+        photometric: text(&obj, tags::PHOTOMETRIC_INTERPRETATION).unwrap_or_default(),
+        windows,
+        gap_hint,
+        frames,
+    }))
+}
+
+/// Finds uncompressed pixel data by its element header at the end of the file, where Part 10
+/// writers put it. dicom-object exposes no byte offsets, and this check (tag, VR and exact
+/// length must all match) cannot mistake anything else for it; when it fails the file is
+/// simply read through dicom-object instead.
+fn locate_native_pixel_data(path: &Path, transfer_syntax: &str, len: u64) -> Option<u64> {
+    use std::io::{Read, Seek, SeekFrom};
+    let explicit = match transfer_syntax {
+        uids::IMPLICIT_VR_LITTLE_ENDIAN => false,
+        uids::EXPLICIT_VR_LITTLE_ENDIAN => true,
+        _ => return None,
+    };
+    let header_len: u64 = if explicit { 12 } else { 8 };
+    let file_len = std::fs::metadata(path).ok()?.len();
+    // An odd-length value is padded to even length; the element's length field says which.
+    for value_len in [len, len + 1] {
+        let Some(start) = file_len.checked_sub(value_len).filter(|s| *s >= header_len + 132) else { continue };
+        let mut f = std::fs::File::open(path).ok()?;
+        f.seek(SeekFrom::Start(start - header_len)).ok()?;
+        let mut h = [0u8; 12];
+        f.read_exact(&mut h[..header_len as usize]).ok()?;
+        let len_field = (value_len as u32).to_le_bytes();
+        let ok = if explicit {
+            h[..4] == [0xE0, 0x7F, 0x10, 0x00]
+                && (h[4..6] == *b"OW" || h[4..6] == *b"OB")
+                && h[6..8] == [0, 0]
+                && h[8..12] == len_field
+        } else {
+            h[..4] == [0xE0, 0x7F, 0x10, 0x00] && h[4..8] == len_field
+        };
+        if ok && u32::try_from(value_len).is_ok() {
+            return Some(start);
+        }
+    }
+    None
+}
+
+fn collect_files(dir: &Path, depth: usize, out: &mut Vec<PathBuf>) -> Result<()> {
+    let rd = std::fs::read_dir(dir).map_err(|e| StorageError::io(dir, e))?;
+    let mut entries: Vec<PathBuf> = rd.filter_map(|e| e.ok().map(|e| e.path())).collect();
+    entries.sort();
+    for p in entries {
+        if p.is_dir() {
+            if depth < MAX_DEPTH {
+                collect_files(&p, depth + 1, out)?;
+            }
+        } else {
+            out.push(p);
+        }
+    }
+    Ok(())
+}
+
+/// Scans a folder: image headers grouped by series, in listing order, plus counts for errors.
+fn scan_folder(dir: &Path) -> Result<Vec<Vec<ImageHeader>>> {
+    let mut files = Vec::new();
+    collect_files(dir, 0, &mut files)?;
+    let mut dicom_files = 0usize;
+    let mut headers = Vec::new();
+    let mut unreadable: Vec<StorageError> = Vec::new();
+    for f in &files {
+        // Anything without the Part 10 preamble (READMEs, thumbnails, .DS_Store) is not ours.
+        if !has_dicom_preamble(f) {
+            continue;
+        }
+        dicom_files += 1;
+        // A broken file is skipped rather than fatal: if it was a slice of the chosen series,
+        // the gap it leaves is reported when the series is assembled.
+        match read_header(f) {
+            Ok(Some(h)) => headers.push(h),
+            Ok(None) => {}
+            Err(e) => unreadable.push(e),
+        }
+    }
+    if headers.is_empty() {
+        let mut message = if dicom_files == 0 {
+            format!("no DICOM files in this folder ({} files checked)", files.len())
+        } else {
+            format!("none of the {dicom_files} DICOM files in this folder is an image")
+        };
+        if let Some(e) = unreadable.first() {
+            message.push_str(&format!("; {} could not be read, e.g. {e}", unreadable.len()));
+        }
+        return Err(StorageError::invalid(dir, message));
+    }
+    let mut series: Vec<Vec<ImageHeader>> = Vec::new();
+    for h in headers {
+        match series.iter_mut().find(|s| s[0].series_uid == h.series_uid) {
+            Some(s) => s.push(h),
+            None => series.push(vec![h]),
+        }
+    }
+    series.sort_by(|a, b| {
+        (a[0].series_number.unwrap_or(i64::MAX), &a[0].series_uid)
+            .cmp(&(b[0].series_number.unwrap_or(i64::MAX), &b[0].series_uid))
+    });
+    Ok(series)
+}
+
+fn summary(s: &[ImageHeader]) -> DicomSeriesSummary {
+    DicomSeriesSummary {
+        uid: s[0].series_uid.clone(),
+        series_number: s[0].series_number,
+        description: s[0].series_description.clone(),
+        modality: s[0].modality.clone(),
+        slice_count: s.iter().map(|h| h.frames.len()).sum(),
+    }
+}
+
+/// The image series in a DICOM folder, in the order `ReadOptions::dicom_series` indexes them.
+pub fn list_dicom_series(dir: &Path) -> Result<Vec<DicomSeriesSummary>> {
+    Ok(scan_folder(dir)?.iter().map(|s| summary(s)).collect())
+}
+
+pub(crate) fn open_series_dir(dir: &Path, options: &ReadOptions) -> Result<OpenedSource> {
+    let mut series = scan_folder(dir)?;
+    let chosen = if series.len() == 1 {
+        0
+    } else {
+        let listing = series
+            .iter()
+            .enumerate()
+            .map(|(i, s)| {
+                let m = summary(s);
+                format!("  [{i}] {} \"{}\" {} ({} slices)", m.uid, m.description, m.modality, m.slice_count)
+            })
+            .collect::<Vec<_>>()
+            .join("\n");
+        match &options.dicom_series {
+            None => {
+                return Err(StorageError::invalid(
+                    dir,
+                    format!("folder holds {} DICOM series; choose one by UID or index:\n{listing}", series.len()),
+                ))
+            }
+            Some(sel) => {
+                let sel = sel.trim();
+                match series.iter().position(|s| s[0].series_uid == sel) {
+                    Some(i) => i,
+                    None => match sel.parse::<usize>() {
+                        Ok(i) if i < series.len() => i,
+                        _ => {
+                            return Err(StorageError::invalid(
+                                dir,
+                                format!("no DICOM series '{sel}' in this folder; it holds:\n{listing}"),
+                            ))
+                        }
+                    },
+                }
+            }
+        }
+    };
+    let headers = series.swap_remove(chosen);
+    assemble(dir, headers, options)
+}
+
+pub(crate) fn open_dicom_file(path: &Path, options: &ReadOptions) -> Result<OpenedSource> {
+    match read_header(path)? {
+        Some(h) => assemble(path, vec![h], options),
+        None => {
+            let sop = open_header(path).ok().and_then(|o| text(&o, tags::SOP_CLASS_UID)).unwrap_or_default();
+            Err(StorageError::invalid(
+                path,
+                format!("DICOM file holds no image (no Rows/Columns/PixelData; SOP class {sop})"),
+            ))
+        }
+    }
+}
+
+/// The pixel source of the file being decoded.
+enum Loaded {
+    Native(std::fs::File, u64),
+    Object(Box<DefaultDicomObject>),
+}
+
+/// How the decoded samples are written to staging.
+#[derive(Clone, Copy)]
+enum Output {
+    /// Stored integers, little-endian, bits above BitsStored cleared (sign-extended if signed).
+    Stored(SampleType),
+    /// Rescale differs between slices: physical values as f32, so one slope/intercept fits all.
+    Physical,
+}
+
+fn sample_type_of(h: &ImageHeader) -> Result<SampleType> {
+    if h.samples_per_pixel != 1 {
+        return Err(StorageError::unsupported(
+            &h.path,
+            format!("colour DICOM ({} samples per pixel); only greyscale volumes", h.samples_per_pixel),
+        ));
+    }
+    Ok(match (h.bits_allocated, h.signed) {
+        (8, false) => SampleType::U8,
+        (8, true) => SampleType::I8,
+        (16, false) => SampleType::U16,
+        (16, true) => SampleType::I16,
+        (32, false) => SampleType::U32,
+        (32, true) => SampleType::I32,
+        (b, _) => {
+            return Err(StorageError::unsupported(&h.path, format!("DICOM BitsAllocated {b} (only 8, 16, 32)")))
+        }
+    })
+}
+
+fn assemble(display: &Path, headers: Vec<ImageHeader>, options: &ReadOptions) -> Result<OpenedSource> {
+    let first = &headers[0];
+    let sample_type = sample_type_of(first)?;
+    for h in &headers[1..] {
+        if (h.rows, h.cols, h.bits_allocated, h.signed, h.samples_per_pixel)
+            != (first.rows, first.cols, first.bits_allocated, first.signed, first.samples_per_pixel)
+        {
+            return Err(StorageError::invalid(
+                &h.path,
+                format!(
+                    "slice differs from the rest of its series: {}x{} {}-bit{} vs {}x{} {}-bit{} in {}",
+                    h.cols,
+                    h.rows,
+                    h.bits_allocated,
+                    if h.signed { " signed" } else { "" },
+                    first.cols,
+                    first.rows,
+                    first.bits_allocated,
+                    if first.signed { " signed" } else { "" },
+                    first.path.display()
+                ),
+            ));
+        }
+    }
+    let mut frames: Vec<FrameInfo> = Vec::new();
+    for (i, h) in headers.iter().enumerate() {
+        for f in &h.frames {
+            frames.push(FrameInfo { file: i, ..f.clone() });
+        }
+    }
+    let where_ = |f: &FrameInfo| -> String {
+        let p = headers[f.file].path.display();
+        if headers[f.file].frames.len() > 1 {
+            format!("{p} frame {}", f.frame + 1)
+        } else {
+            p.to_string()
+        }
+    };
+
+    let mut notes: Vec<String> = Vec::new();
+    if first.photometric.eq_ignore_ascii_case("MONOCHROME1") {
+        // Values are kept as stored; only the display convention (high = dark) differs.
+        notes.push("MONOCHROME1: low values are meant to display bright".to_string());
+    }
+    let pixel_spacing = frames[0].pixel_spacing.unwrap_or_else(|| {
+        notes.push("no PixelSpacing: 1 mm assumed".to_string());
+        [1.0, 1.0]
+    });
+    let positioned = frames.iter().all(|f| f.ipp.is_some() && f.iop.is_some());
+    let (direction, origin, slice_gap) = if positioned {
+        let iop0 = frames[0].iop.unwrap_or([1.0, 0.0, 0.0, 0.0, 1.0, 0.0]);
+        for f in &frames {
+            let iop = f.iop.unwrap_or(iop0);
+            if iop.iter().zip(iop0.iter()).any(|(a, b)| (a - b).abs() > 1e-3) {
+                return Err(StorageError::invalid(
+                    display,
+                    format!(
+                        "slices have different orientations ({} has {:?}, {} has {:?}); a localizer or several stacks in one series?",
+                        where_(&frames[0]),
+                        iop0,
+                        where_(f),
+                        iop
+                    ),
+                ));
+            }
+        }
+        let (row, _) = split_axis(display, "ImageOrientationPatient row", [iop0[0], iop0[1], iop0[2]])?;
+        let (col, _) = split_axis(display, "ImageOrientationPatient column", [iop0[3], iop0[4], iop0[5]])?;
+        let (normal, _) = split_axis(display, "slice normal", cross(row, col))?;
+        let pos = |f: &FrameInfo| f.ipp.map_or(0.0, |p| dot(p, normal));
+        frames.sort_by(|a, b| pos(a).total_cmp(&pos(b)));
+        let n = frames.len();
+        let p0 = frames[0].ipp.unwrap_or([0.0; 3]);
+        if n == 1 {
+            (
+                [row, col, normal],
+                p0,
+                first.gap_hint.unwrap_or(1.0),
+            )
+        } else {
+            for w in frames.windows(2) {
+                if (pos(&w[1]) - pos(&w[0])).abs() < 1e-4 {
+                    return Err(StorageError::invalid(
+                        display,
+                        format!(
+                            "two slices at the same position {:.3} mm along the normal ({} and {}); the series holds several stacks (echoes, phases, time points), which is not a single volume",
+                            pos(&w[0]),
+                            where_(&w[0]),
+                            where_(&w[1])
+                        ),
+                    ));
+                }
+            }
+            // Judge gaps against the median: a missing slice is then the odd one out and gets named.
+            let mut gaps: Vec<f64> = frames.windows(2).map(|w| pos(&w[1]) - pos(&w[0])).collect();
+            gaps.sort_by(f64::total_cmp);
+            let median = gaps[gaps.len() / 2];
+            let tol = GAP_REL_TOL * median + GAP_ABS_TOL_MM;
+            for w in frames.windows(2) {
+                let gap = pos(&w[1]) - pos(&w[0]);
+                if (gap - median).abs() > tol {
+                    return Err(StorageError::invalid(
+                        display,
+                        format!(
+                            "non-uniform slice spacing: gap of {gap:.4} mm between {} and {} while the other slices are {median:.4} mm apart (missing slice?)",
+                            where_(&w[0]),
+                            where_(&w[1])
+                        ),
+                    ));
+                }
+            }
+            // The stack axis runs from the first to the last position, which is the normal for
+            // ordinary series but tilted for gantry-tilt CT; using it keeps voxel centres exact.
+            let pl = frames[n - 1].ipp.unwrap_or(p0);
+            let stack = [pl[0] - p0[0], pl[1] - p0[1], pl[2] - p0[2]];
+            let (axis, len) = split_axis(display, "slice stack direction", stack)?;
+            // Evenly spaced along the normal is not enough: slices shifted in-plane (two stacks
+            // interleaved, a moved table) would still be rendered as one block, misplaced.
+            let step = len / (n - 1) as f64;
+            let tol = GAP_REL_TOL * step + 10.0 * GAP_ABS_TOL_MM;
+            for (k, f) in frames.iter().enumerate() {
+                let p = f.ipp.unwrap_or(p0);
+                let expected = [0, 1, 2].map(|c| p0[c] + axis[c] * step * k as f64);
+                let off = norm([p[0] - expected[0], p[1] - expected[1], p[2] - expected[2]]);
+                if off > tol {
+                    return Err(StorageError::invalid(
+                        display,
+                        format!(
+                            "slice {} ({}) lies {off:.3} mm off the line through the first and last slices; not one regular volume",
+                            k + 1,
+                            where_(f)
+                        ),
+                    ));
+                }
+            }
+            ([row, col, axis], p0, step)
+        }
+    } else {
+        // Without positions only the instance order and the stated thickness are left.
+        if frames.len() > 1 {
+            notes.push("no patient positions: slices ordered by InstanceNumber, orientation unknown".to_string());
+        }
+        frames.sort_by_key(|f| (f.instance, f.file, f.frame));
+        (
+            [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            frames[0].ipp.unwrap_or([0.0; 3]),
+            first.gap_hint.unwrap_or(1.0),
+        )
+    };
+    if norm(cross(direction[0], direction[1])) < 1e-3 {
+        return Err(StorageError::invalid(display, "ImageOrientationPatient row and column are parallel"));
+    }
+
+    let dims = [first.cols as u64, first.rows as u64, frames.len() as u64];
+    let geometry = Geometry {
+        dims,
+        // PixelSpacing is (row spacing, column spacing): the step along j, then along i.
+        spacing_mm: [pixel_spacing[1], pixel_spacing[0], slice_gap],
+        origin_lps_mm: origin,
+        direction,
+    };
+    geometry.validate(display)?;
+
+    let uniform = frames.iter().all(|f| {
+        (f.slope - frames[0].slope).abs() <= 1e-9 * frames[0].slope.abs()
+            && (f.intercept - frames[0].intercept).abs() <= 1e-9 * frames[0].intercept.abs().max(1.0)
+    });
+    let (output, out_type, slope, intercept) = if uniform {
+        (Output::Stored(sample_type), sample_type, frames[0].slope, frames[0].intercept)
+    } else {
+        (Output::Physical, SampleType::F32, 1.0, 0.0)
+    };
+
+    let mut staging = new_staging(display, options)?;
+    {
+        let mut out = BufWriter::with_capacity(1 << 20, staging.as_file_mut());
+        let mut cur: Option<(usize, Loaded)> = None;
+        let mut buf: Vec<u8> = Vec::new();
+        let mut raw: Vec<u8> = Vec::new();
+        for f in &frames {
+            let h = &headers[f.file];
+            if cur.as_ref().map(|c| c.0) != Some(f.file) {
+                // Release the previous file before loading the next: one slice in memory at a time.
+                drop(cur.take());
+                let loaded = match h.native_offset {
+                    Some(off) => Loaded::Native(std::fs::File::open(&h.path).map_err(|e| StorageError::io(&h.path, e))?, off),
+                    None => Loaded::Object(Box::new(
+                        dicom_object::open_file(&h.path)
+                            .map_err(|e| StorageError::invalid(&h.path, format!("unreadable DICOM file: {e}")))?,
+                    )),
+                };
+                cur = Some((f.file, loaded));
+            }
+            let Some((_, loaded)) = cur.as_mut() else { continue };
+            buf.clear();
+            match loaded {
+                Loaded::Native(file, off) => {
+                    use std::io::{Read, Seek, SeekFrom};
+                    let frame_len = h.rows as usize * h.cols as usize * (h.bits_allocated / 8) as usize;
+                    raw.resize(frame_len, 0);
+                    file.seek(SeekFrom::Start(*off + f.frame as u64 * frame_len as u64))
+                        .and_then(|_| file.read_exact(&mut raw))
+                        .map_err(|e| StorageError::invalid(&h.path, format!("reading frame {}: {e}", f.frame + 1)))?;
+                    convert(h, &raw, ByteOrder::Little, output, f.slope, f.intercept, &mut buf);
+                }
+                Loaded::Object(obj) => decode_frame(h, obj, f.frame, output, f.slope, f.intercept, &mut buf)?,
+            }
+            out.write_all(&buf).map_err(|e| StorageError::io(display, e))?;
+        }
+        out.flush().map_err(|e| StorageError::io(display, e))?;
+    }
+    let data = RawVolume::from_staging(staging, display, out_type, ByteOrder::Little, dims)?;
+
+    let mut description = first.series_description.clone();
+    for n in notes {
+        if !description.is_empty() {
+            description.push_str("; ");
+        }
+        description.push_str(&n);
+    }
+    Ok(OpenedSource {
+        info: SourceInfo {
+            path: display.to_path_buf(),
+            format: "dicom".into(),
+            geometry,
+            sample_type: out_type,
+            slope,
+            intercept,
+            modality: first.modality.clone(),
+            windows: first.windows.clone(),
+            description,
+            inputs: vec![display.to_path_buf()],
+        },
+        data,
+    })
+}
+
+/// Byte order of pixel data held by dicom-object (it stores values in host order).
+const NATIVE: ByteOrder = if cfg!(target_endian = "big") { ByteOrder::Big } else { ByteOrder::Little };
+
+/// Appends frame `frame` of `obj` to `out` in the staging layout.
+fn decode_frame(
+    h: &ImageHeader,
+    obj: &DefaultDicomObject,
+    frame: u32,
+    output: Output,
+    slope: f64,
+    intercept: f64,
+    out: &mut Vec<u8>,
+) -> Result<()> {
+    let bytes_per = (h.bits_allocated / 8) as usize;
+    let frame_len = h.rows as usize * h.cols as usize * bytes_per;
+    let pixel = obj.get(tags::PIXEL_DATA).ok_or_else(|| {
+        StorageError::invalid(&h.path, "DICOM image has no PixelData (float or double pixel data are not supported)")
+    })?;
+    // Native (uncompressed) pixel data is used as it is: dicom-object already holds it in native
+    // byte order, and decoding it through dicom-pixeldata would only add a copy and stricter checks.
+    let decoded;
+    let src: &[u8] = match pixel.value() {
+        DicomValue::Primitive(p) => {
+            let all = p.to_bytes();
+            let start = frame as usize * frame_len;
+            let Some(slice) = all.get(start..start + frame_len) else {
+                return Err(StorageError::invalid(
+                    &h.path,
+                    format!(
+                        "truncated data: PixelData has {} bytes, frame {} of {}x{} {}-bit needs bytes {start}..{}",
+                        all.len(),
+                        frame + 1,
+                        h.cols,
+                        h.rows,
+                        h.bits_allocated,
+                        start + frame_len
+                    ),
+                ));
+            };
+            convert(h, slice, NATIVE, output, slope, intercept, out);
+            return Ok(());
+        }
+        _ => {
+            let ts = obj.meta().transfer_syntax().to_string();
+            decoded = obj.decode_pixel_data_frame(frame).map_err(|e| {
+                StorageError::unsupported(&h.path, format!("cannot decode pixel data (transfer syntax {ts}): {e}"))
+            })?;
+            decoded.data()
+        }
+    };
+    if src.len() < frame_len {
+        return Err(StorageError::invalid(
+            &h.path,
+            format!("decoded frame {} has {} bytes, {} expected", frame + 1, src.len(), frame_len),
+        ));
+    }
+    convert(h, &src[..frame_len], NATIVE, output, slope, intercept, out);
+    Ok(())
+}
+
+/// Native-endian samples → staging bytes, masking bits above BitsStored (some scanners keep
+/// overlays there) and sign-extending signed values.
+fn convert(h: &ImageHeader, src: &[u8], order: ByteOrder, output: Output, slope: f64, intercept: f64, out: &mut Vec<u8>) {
+    let bits = h.bits_stored.clamp(1, h.bits_allocated.max(1)) as u32;
+    let signed = h.signed;
+    let fix = |v: u64, width: u32| -> i64 {
+        let bits = bits.min(width);
+        let mask = if bits >= 64 { u64::MAX } else { (1u64 << bits) - 1 };
+        let v = v & mask;
+        if signed && bits < 64 && v & (1u64 << (bits - 1)) != 0 {
+            (v | !mask) as i64
+        } else {
+            v as i64
+        }
+    };
+    let mut emit = |v: i64| match output {
+        Output::Stored(t) => match t {
+            SampleType::U8 | SampleType::I8 => out.push(v as u8),
+            SampleType::U16 | SampleType::I16 => out.extend_from_slice(&(v as u16).to_le_bytes()),
+            _ => out.extend_from_slice(&(v as u32).to_le_bytes()),
+        },
+        Output::Physical => out.extend_from_slice(&((v as f64 * slope + intercept) as f32).to_le_bytes()),
+    };
+    match h.bits_allocated {
+        8 => src.iter().for_each(|&b| emit(fix(b as u64, 8))),
+        16 => src.chunks_exact(2).for_each(|c| {
+            let a = [c[0], c[1]];
+            let v = if order == ByteOrder::Little { u16::from_le_bytes(a) } else { u16::from_be_bytes(a) };
+            emit(fix(v as u64, 16))
+        }),
+        _ => src.chunks_exact(4).for_each(|c| {
+            let a = [c[0], c[1], c[2], c[3]];
+            let v = if order == ByteOrder::Little { u32::from_le_bytes(a) } else { u32::from_be_bytes(a) };
+            emit(fix(v as u64, 32))
+        }),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Reading pixel data straight from the file must give exactly what dicom-object decodes.
+    #[test]
+    fn native_offset_path_matches_object_path() {
+        let d = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/niivue");
+        if !d.is_dir() {
+            eprintln!("SKIP: real test data not found at {}", d.display());
+            return;
+        }
+        for f in ["enh.dcm", "dicom-mr-3slices/1-001.dcm"] {
+            let p = d.join(f);
+            let h = read_header(&p).unwrap().unwrap();
+            assert!(h.native_offset.is_some(), "{f}: pixel data not located in the file");
+            let mut h2 = h.clone();
+            h2.native_offset = None;
+            let a = assemble(&p, vec![h], &ReadOptions::default()).unwrap();
+            let b = assemble(&p, vec![h2], &ReadOptions::default()).unwrap();
+            let (mut va, mut vb) = (Vec::new(), Vec::new());
+            for k in 0..a.data.dims[2] {
+                a.data.read_slice_f64(k, &mut va);
+                b.data.read_slice_f64(k, &mut vb);
+                assert_eq!(va, vb, "{f} slice {k}");
+            }
+        }
+    }
+}

@@ -1,0 +1,91 @@
+//! Format readers. Each turns an input path into an [`OpenedSource`](crate::source::OpenedSource).
+//!
+//! Readers never decode a whole volume into memory. Uncompressed inputs are mapped in place;
+//! compressed ones (gzip, zlib, DICOM pixel data) are streamed into a temporary raw file first,
+//! which is then mapped. Every geometry ends in LPS millimetres (see [`crate::geometry`]).
+
+mod common;
+mod dicom;
+mod metaimage;
+mod nifti;
+mod nrrd;
+mod raw;
+mod staging;
+
+use std::fs::File;
+use std::io::Read;
+use std::path::{Path, PathBuf};
+
+use crate::error::{Result, StorageError};
+use crate::source::{ByteOrder, OpenedSource, SampleType};
+
+pub use dicom::{list_dicom_series, DicomSeriesSummary};
+
+/// What the user told us beyond the path.
+#[derive(Default, Clone, Debug)]
+pub struct ReadOptions {
+    /// Which series of a multi-series DICOM folder to open: its SeriesInstanceUID, or its 0-based
+    /// index in the listing the "several series" error prints.
+    pub dicom_series: Option<String>,
+    /// How to read a headerless raw file; required for files with no recognised extension.
+    pub raw: Option<RawSpec>,
+    /// Where decompressed voxels are staged; the system temp dir when `None`.
+    pub staging_dir: Option<PathBuf>,
+}
+
+/// Layout of a headerless raw volume.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RawSpec {
+    pub dims: [u64; 3],
+    pub sample_type: SampleType,
+    pub spacing_mm: [f64; 3],
+    pub byte_order: ByteOrder,
+    /// Bytes to skip before the first voxel.
+    pub header_bytes: u64,
+}
+
+pub(crate) const SUPPORTED: &str = "DICOM (.dcm file or a folder of slices), NIfTI (.nii, .nii.gz, .hdr/.img), \
+NRRD (.nrrd, .nhdr), MetaImage (.mha, .mhd), or raw with explicit dimensions and type";
+
+/// Opens any supported volume; the format follows from the path (folder, extension, DICM magic).
+pub fn open_source(path: &Path, options: &ReadOptions) -> Result<OpenedSource> {
+    let meta = std::fs::metadata(path).map_err(|e| {
+        if e.kind() == std::io::ErrorKind::NotFound {
+            StorageError::invalid(path, "does not exist")
+        } else {
+            StorageError::io(path, e)
+        }
+    })?;
+    if meta.is_dir() {
+        return dicom::open_series_dir(path, options);
+    }
+    let name = path.file_name().map(|n| n.to_string_lossy().to_ascii_lowercase()).unwrap_or_default();
+    if name.ends_with(".nii") || name.ends_with(".nii.gz") || name.ends_with(".hdr") || name.ends_with(".hdr.gz") {
+        return nifti::open_nifti(path, options);
+    }
+    if name.ends_with(".nrrd") || name.ends_with(".nhdr") {
+        return nrrd::open_nrrd(path, options);
+    }
+    if name.ends_with(".mha") || name.ends_with(".mhd") {
+        return metaimage::open_metaimage(path, options);
+    }
+    if name.ends_with(".dcm") || name.ends_with(".dicom") || has_dicom_preamble(path) {
+        return dicom::open_dicom_file(path, options);
+    }
+    if let Some(spec) = &options.raw {
+        return raw::open_raw(path, spec);
+    }
+    Err(StorageError::unsupported(
+        path,
+        format!("unrecognised file type (no raw layout given); supported formats: {SUPPORTED}"),
+    ))
+}
+
+/// True when bytes 128..132 are "DICM" (the Part 10 preamble); any read failure means "no".
+pub(crate) fn has_dicom_preamble(path: &Path) -> bool {
+    let mut buf = [0u8; 132];
+    match File::open(path) {
+        Ok(mut f) => f.read_exact(&mut buf).is_ok() && &buf[128..132] == b"DICM",
+        Err(_) => false,
+    }
+}
