@@ -164,38 +164,49 @@ pub fn import_slices(
     }
     let writer = StoreWriter::create(store_path, sled_cache)?;
     let narrow = meta.stored == StoredScalar::U8;
-    let sink = BrickSink { writer: &writer, narrow, compressed_bytes: AtomicU64::new(0), put_nanos: AtomicU64::new(0) };
     let mut levels: Vec<LevelBuilder> =
         (0..layout.level_count()).map(|l| LevelBuilder::new(l, layout.level_dims[l], &layout)).collect();
     let mut skeleton = Skeleton::new(&layout);
     let mut counts = StoredValueCounts::default();
-    let slice_len = (dims[0] * dims[1]) as usize;
     let total_source = producer.source_bytes_per_slice() * dims[2];
-    let mut phase = [std::time::Duration::ZERO; 3];
-    for k in 0..dims[2] {
-        if options.cancel.is_some_and(|c| c.load(Ordering::Relaxed)) {
-            return Err(StorageError::Cancelled { path: store_path.to_path_buf() });
-        }
-        let t0 = Instant::now();
-        let mut slice = vec![0u16; slice_len];
-        producer.stored_slice(k, &mut slice)?;
-        producer.release_slice(k);
-        let t1 = Instant::now();
-        counts.add_slice(&slice);
-        let t2 = Instant::now();
-        push_slice(&mut levels, 0, k, slice, &sink, &mut skeleton)?;
-        phase[0] += t1 - t0;
-        phase[1] += t2 - t1;
-        phase[2] += t2.elapsed();
-        if let Some(progress) = options.progress {
-            progress(ImportProgress { source_bytes_done: producer.source_bytes_per_slice() * (k + 1), source_bytes_total: total_source });
-        }
-        if debug_slow_import() {
-            std::thread::sleep(std::time::Duration::from_millis(20));
-        }
-    }
+    // sled writes run on their own thread, overlapping the compression of the next batch; the
+    // channel holds two batches at most, so memory stays bounded when the disk is slow.
+    let (batches, batches_in) = crossbeam_channel::bounded::<Vec<(BrickId, Vec<u8>)>>(2);
+    let (built, written) = std::thread::scope(|scope| {
+        let writer = &writer;
+        let writer_thread = std::thread::Builder::new()
+            .name("strata-import-writer".into())
+            .spawn_scoped(scope, move || -> Result<std::time::Duration> {
+                let mut busy = std::time::Duration::ZERO;
+                for batch in batches_in {
+                    let t = Instant::now();
+                    writer.put_bricks(batch)?;
+                    busy += t.elapsed();
+                }
+                Ok(busy)
+            })
+            .map_err(|e| StorageError::io(store_path, e));
+        let built = match &writer_thread {
+            Ok(_) => {
+                let sink = BrickSink { store_path, batches, narrow, compressed_bytes: AtomicU64::new(0) };
+                build_levels(producer, &mut levels, &sink, &mut skeleton, &mut counts, options, store_path)
+                    .map(|phases| (phases, sink.compressed_bytes.load(Ordering::Relaxed)))
+            }
+            Err(_) => Err(StorageError::invalid(store_path, "could not start the writer thread")),
+        };
+        let written = writer_thread.and_then(|t| {
+            t.join().map_err(|_| StorageError::invalid(store_path, "the import's writer thread panicked"))?
+        });
+        (built, written)
+    });
+    // A writer failure explains a producer failure (its channel closed), so report it first.
+    let write_time = written?;
+    let (phase, compressed_bytes) = built?;
     if std::env::var_os("STRATA_IMPORT_PROFILE").is_some() {
-        eprintln!("import phases: convert {:?}, histogram {:?}, bricks {:?}, sled put (summed over threads) {:?}", phase[0], phase[1], phase[2], std::time::Duration::from_nanos(sink.put_nanos.load(Ordering::Relaxed)));
+        eprintln!(
+            "import phases: convert {:?}, histogram {:?}, bricks (cut + compress + hand-off) {:?}, sled writes (own thread) {write_time:?}",
+            phase[0], phase[1], phase[2]
+        );
     }
     for level in &levels {
         if level.next_row != level.rows() {
@@ -236,7 +247,7 @@ pub fn import_slices(
             .iter()
             .map(|l| (l.len() as u64, l.iter().filter(|n| n.is_constant()).count() as u64))
             .collect(),
-        compressed_bytes: sink.compressed_bytes.load(Ordering::Relaxed),
+        compressed_bytes,
         uncompressed_bytes: layout.total_bricks() * BRICK_VOXELS as u64 * bytes_per_voxel,
         source_bytes: total_source,
         import_seconds: started.elapsed().as_secs_f64(),
@@ -251,11 +262,51 @@ fn debug_slow_import() -> bool {
     *SLOW.get_or_init(|| std::env::var_os("STRATA_DEBUG_SLOW_IMPORT").is_some())
 }
 
+/// Streams level-0 slices through every level's window. Returns time spent converting,
+/// counting the histogram, and building bricks.
+fn build_levels(
+    producer: &dyn SliceProducer,
+    levels: &mut [LevelBuilder],
+    sink: &BrickSink,
+    skeleton: &mut Skeleton,
+    counts: &mut StoredValueCounts,
+    options: &ImportOptions,
+    store_path: &Path,
+) -> Result<[std::time::Duration; 3]> {
+    let dims = producer.dims();
+    let slice_len = (dims[0] * dims[1]) as usize;
+    let total_source = producer.source_bytes_per_slice() * dims[2];
+    let mut phase = [std::time::Duration::ZERO; 3];
+    for k in 0..dims[2] {
+        if options.cancel.is_some_and(|c| c.load(Ordering::Relaxed)) {
+            return Err(StorageError::Cancelled { path: store_path.to_path_buf() });
+        }
+        let t0 = Instant::now();
+        let mut slice = vec![0u16; slice_len];
+        producer.stored_slice(k, &mut slice)?;
+        producer.release_slice(k);
+        let t1 = Instant::now();
+        counts.add_slice(&slice);
+        let t2 = Instant::now();
+        push_slice(levels, 0, k, slice, sink, skeleton)?;
+        phase[0] += t1 - t0;
+        phase[1] += t2 - t1;
+        phase[2] += t2.elapsed();
+        if let Some(progress) = options.progress {
+            progress(ImportProgress { source_bytes_done: producer.source_bytes_per_slice() * (k + 1), source_bytes_total: total_source });
+        }
+        if debug_slow_import() {
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+    }
+    Ok(phase)
+}
+
 struct BrickSink<'a> {
-    writer: &'a StoreWriter,
+    store_path: &'a Path,
+    batches: crossbeam_channel::Sender<Vec<(BrickId, Vec<u8>)>>,
     narrow: bool,
     compressed_bytes: AtomicU64,
-    put_nanos: AtomicU64,
 }
 
 /// One level's sliding window of slices.
@@ -341,33 +392,47 @@ fn push_slice(
     Ok(())
 }
 
+/// Bricks compressed in parallel before one ordered batch write: bounded memory (≤ 128 records
+/// in flight, ~12 MB even when incompressible) and in-order appends, which sled handles with far
+/// less node rewriting than scattered concurrent inserts.
+const BRICKS_PER_BATCH: u64 = 128;
+
 fn emit_row(builder: &LevelBuilder, sink: &BrickSink, skeleton: &mut Skeleton) -> Result<()> {
     let bz = builder.next_row;
     let [nbx, nby, _] = builder.bricks;
     let slice_at = |z: u64| builder.slice(z);
     let level = builder.level;
-    let nodes: Vec<Result<NodeInfo>> = (0..nbx * nby)
-        .into_par_iter()
-        .map_init(
-            || Vec::with_capacity(BRICK_VOXELS),
-            |voxels, i| {
-                let (bx, by) = (i % nbx, i / nbx);
-                extract_brick(bx, by, bz, builder.dims, &slice_at, voxels);
-                let range = value_range(voxels);
-                let id = BrickId::new(level as u8, [bx as u32, by as u32, bz as u32]);
-                let record = encode_brick(id, voxels, range, sink.narrow);
-                sink.compressed_bytes.fetch_add(record.len() as u64, Ordering::Relaxed);
-                let t = Instant::now();
-                sink.writer.put_brick(id, record)?;
-                sink.put_nanos.fetch_add(t.elapsed().as_nanos() as u64, Ordering::Relaxed);
-                let flags = if range.min == range.max { NodeInfo::CONSTANT } else { 0 };
-                Ok(NodeInfo { min: range.min, max: range.max, flags })
-            },
-        )
-        .collect();
-    let row_start = (bz * nbx * nby) as usize;
-    for (i, node) in nodes.into_iter().enumerate() {
-        skeleton.levels[level][row_start + i] = node?;
+    let row_bricks = nbx * nby;
+    let row_start = (bz * row_bricks) as usize;
+    for batch_start in (0..row_bricks).step_by(BRICKS_PER_BATCH as usize) {
+        let batch_end = (batch_start + BRICKS_PER_BATCH).min(row_bricks);
+        let encoded: Vec<(BrickId, NodeInfo, Vec<u8>)> = (batch_start..batch_end)
+            .into_par_iter()
+            .map_init(
+                || Vec::with_capacity(BRICK_VOXELS),
+                |voxels, i| {
+                    let (bx, by) = (i % nbx, i / nbx);
+                    extract_brick(bx, by, bz, builder.dims, &slice_at, voxels);
+                    let range = value_range(voxels);
+                    let id = BrickId::new(level as u8, [bx as u32, by as u32, bz as u32]);
+                    let record = encode_brick(id, voxels, range, sink.narrow);
+                    let flags = if range.min == range.max { NodeInfo::CONSTANT } else { 0 };
+                    (id, NodeInfo { min: range.min, max: range.max, flags }, record)
+                },
+            )
+            .collect();
+        let mut bytes = 0;
+        let mut records = Vec::with_capacity(encoded.len());
+        for (offset, (id, node, record)) in encoded.into_iter().enumerate() {
+            skeleton.levels[level][row_start + batch_start as usize + offset] = node;
+            bytes += record.len() as u64;
+            records.push((id, record));
+        }
+        sink.compressed_bytes.fetch_add(bytes, Ordering::Relaxed);
+        // A closed channel means the writer failed; its error is reported by the caller.
+        if sink.batches.send(records).is_err() {
+            return Err(StorageError::invalid(sink.store_path, "brick writer stopped"));
+        }
     }
     Ok(())
 }

@@ -194,10 +194,7 @@ impl Store {
         if !path.join(MARKER_FILE).is_file() {
             return Err(StorageError::NotAStore { path: path.to_path_buf(), message: format!("no {MARKER_FILE} marker") });
         }
-        let db = sled::Config::new()
-            .path(path.join(DB_DIR))
-            .cache_capacity(sled_cache_bytes)
-            .open()
+        let db = open_db_when_unlocked(sled::Config::new().path(path.join(DB_DIR)).cache_capacity(sled_cache_bytes))
             .map_err(db_error(path))?;
         let meta = db.open_tree("meta").map_err(db_error(path))?;
         if meta.get(KEY_COMPLETE).map_err(db_error(path))?.is_none() {
@@ -312,7 +309,7 @@ impl Store {
     /// Overwrites one byte of a stored brick record. Only for tests of corruption handling.
     #[doc(hidden)]
     pub fn corrupt_brick_for_tests(path: &Path, id: BrickId, byte: usize) -> Result<()> {
-        let db = sled::Config::new().path(path.join(DB_DIR)).open().map_err(db_error(path))?;
+        let db = open_db_when_unlocked(sled::Config::new().path(path.join(DB_DIR))).map_err(db_error(path))?;
         let bricks = db.open_tree("bricks").map_err(db_error(path))?;
         let mut record = bricks
             .get(brick_key(id))
@@ -329,6 +326,21 @@ impl Store {
     pub fn close(self) -> Result<()> {
         self.db.flush().map_err(db_error(&self.path))?;
         Ok(())
+    }
+}
+
+/// sled releases its file lock from background threads a moment after the last handle drops, so
+/// opening a store right after writing it can briefly find it locked. Retry for a short while
+/// instead of failing; a store held by another live process still fails after the wait.
+fn open_db_when_unlocked(config: sled::Config) -> sled::Result<sled::Db> {
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(3);
+    loop {
+        match config.open() {
+            Err(sled::Error::Io(e)) if e.to_string().contains("acquire lock") && std::time::Instant::now() < deadline => {
+                std::thread::sleep(std::time::Duration::from_millis(20));
+            }
+            other => return other,
+        }
     }
 }
 
@@ -363,12 +375,10 @@ impl StoreWriter {
         std::fs::create_dir_all(path).map_err(|e| StorageError::io(path, e))?;
         std::fs::write(path.join(MARKER_FILE), format!("strata store format {STORE_FORMAT_VERSION}\n"))
             .map_err(|e| StorageError::io(path.join(MARKER_FILE), e))?;
-        let db = sled::Config::new()
-            .path(path.join(DB_DIR))
-            .cache_capacity(sled_cache_bytes)
-            .mode(sled::Mode::HighThroughput)
-            .open()
-            .map_err(db_error(path))?;
+        let db = open_db_when_unlocked(
+            sled::Config::new().path(path.join(DB_DIR)).cache_capacity(sled_cache_bytes).mode(sled::Mode::HighThroughput),
+        )
+        .map_err(db_error(path))?;
         let bricks = db.open_tree("bricks").map_err(db_error(path))?;
         Ok(StoreWriter { path: path.to_path_buf(), db, bricks })
     }
@@ -377,8 +387,13 @@ impl StoreWriter {
         &self.path
     }
 
-    pub fn put_brick(&self, id: BrickId, record: Vec<u8>) -> Result<()> {
-        self.bricks.insert(brick_key(id), record).map_err(db_error(&self.path))?;
+    /// Writes bricks in one sled batch (give them in key order).
+    pub fn put_bricks(&self, records: Vec<(BrickId, Vec<u8>)>) -> Result<()> {
+        let mut batch = sled::Batch::default();
+        for (id, record) in records {
+            batch.insert(&brick_key(id)[..], record);
+        }
+        self.bricks.apply_batch(batch).map_err(db_error(&self.path))?;
         Ok(())
     }
 

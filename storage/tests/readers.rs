@@ -12,7 +12,10 @@ fn data_dir() -> Option<PathBuf> {
     if d.is_dir() {
         Some(d)
     } else {
-        eprintln!("SKIP: real test data not found at {} (see shared/data/SOURCES.md)", d.display());
+        eprintln!(
+            "SKIP: real test data not found at {} (see shared/data/SOURCES.md)",
+            d.display()
+        );
         None
     }
 }
@@ -55,7 +58,14 @@ fn flair_nrrd_keeps_oblique_directions() {
     assert!(close(g.direction[0][0], -0.993592, 1e-5), "{:?}", g.direction);
     assert!(close(g.direction[0][1], 0.049705, 1e-5), "{:?}", g.direction);
     assert!(close(g.direction[2][1], -0.305367, 1e-5), "{:?}", g.direction);
-    assert!(g.direction.iter().flatten().filter(|v| v.abs() > 1e-3 && v.abs() < 0.999).count() >= 6);
+    assert!(
+        g.direction
+            .iter()
+            .flatten()
+            .filter(|v| v.abs() > 1e-3 && v.abs() < 0.999)
+            .count()
+            >= 6
+    );
     assert!(close(g.origin_lps_mm[0], 64.898239, 1e-4));
     assert!(close(g.spacing_mm[0], 1.0, 1e-3), "{:?}", g.spacing_mm);
     let v = all_values(&s);
@@ -70,7 +80,11 @@ fn mha_has_flipped_axis_and_anisotropic_spacing() {
     let g = &s.info.geometry;
     assert_eq!(g.dims, [64, 64, 37]);
     assert_eq!(s.info.sample_type, SampleType::I16);
-    assert!(close(g.spacing_mm[0], 3.4375, 1e-6) && close(g.spacing_mm[1], 3.4375, 1e-6) && close(g.spacing_mm[2], 3.8, 1e-6));
+    assert!(
+        close(g.spacing_mm[0], 3.4375, 1e-6)
+            && close(g.spacing_mm[1], 3.4375, 1e-6)
+            && close(g.spacing_mm[2], 3.8, 1e-6)
+    );
     assert_eq!(g.direction[0], [1.0, 0.0, 0.0]);
     assert_eq!(g.direction[1], [0.0, -1.0, 0.0]);
     assert_eq!(g.direction[2], [0.0, 0.0, 1.0]);
@@ -85,7 +99,11 @@ fn dicom_three_slice_series() {
     let g = &s.info.geometry;
     assert_eq!(g.dims, [512, 512, 3]);
     assert!(close(g.spacing_mm[2], 1.5, 1e-3), "{:?}", g.spacing_mm);
-    assert!(close(g.spacing_mm[0], 0.41, 0.005) && close(g.spacing_mm[1], 0.41, 0.005), "{:?}", g.spacing_mm);
+    assert!(
+        close(g.spacing_mm[0], 0.41, 0.005) && close(g.spacing_mm[1], 0.41, 0.005),
+        "{:?}",
+        g.spacing_mm
+    );
     assert_eq!(s.info.modality, "MR");
     assert!(matches!(s.info.sample_type, SampleType::U16 | SampleType::I16));
     let listing = strata_storage::readers::list_dicom_series(&d.join("dicom-mr-3slices")).unwrap();
@@ -96,7 +114,11 @@ fn dicom_three_slice_series() {
     let n = g.direction[2];
     let r = g.direction[0];
     let c = g.direction[1];
-    let cr = [r[1] * c[2] - r[2] * c[1], r[2] * c[0] - r[0] * c[2], r[0] * c[1] - r[1] * c[0]];
+    let cr = [
+        r[1] * c[2] - r[2] * c[1],
+        r[2] * c[0] - r[0] * c[2],
+        r[0] * c[1] - r[1] * c[0],
+    ];
     assert!(close(n[0] * cr[0] + n[1] * cr[1] + n[2] * cr[2], 1.0, 1e-4));
     // Single files of the same series open on their own, and the middle one is the middle slice.
     let one = open(&d.join("dicom-mr-3slices/1-002.dcm"));
@@ -125,7 +147,11 @@ fn enhanced_multiframe_dicom() {
     // Per-frame PlanePositionSequence: z from -5.40356 in steps of 2.4 mm.
     assert!(close(g.spacing_mm[2], 2.4, 1e-4), "{:?}", g.spacing_mm);
     assert!(close(g.spacing_mm[0], 3.375, 1e-6), "{:?}", g.spacing_mm);
-    assert!(close(g.origin_lps_mm[2], -5.40356, 1e-5) && close(g.origin_lps_mm[0], -109.79, 1e-5), "{:?}", g.origin_lps_mm);
+    assert!(
+        close(g.origin_lps_mm[2], -5.40356, 1e-5) && close(g.origin_lps_mm[0], -109.79, 1e-5),
+        "{:?}",
+        g.origin_lps_mm
+    );
     assert_eq!(s.info.modality, "MR");
     assert!(all_values(&s).iter().any(|&x| x != 0.0));
 }
@@ -188,7 +214,13 @@ fn nifti_space_files_agree_in_patient_space() {
                 mismatches += 1;
             }
         }
-        assert_eq!(mismatches, 0, "{}: {mismatches} of {} patient points differ", f.display(), points.len());
+        assert_eq!(
+            mismatches,
+            0,
+            "{}: {mismatches} of {} patient points differ",
+            f.display(),
+            points.len()
+        );
     }
 }
 
@@ -259,7 +291,10 @@ fn synthetic_nifti_sform_converts_ras_to_lps_and_maps_data() {
 
     // Staging goes to the requested folder and is removed with the volume.
     let stage = tempfile::tempdir().unwrap();
-    let opts = ReadOptions { staging_dir: Some(stage.path().to_path_buf()), ..Default::default() };
+    let opts = ReadOptions {
+        staging_dir: Some(stage.path().to_path_buf()),
+        ..Default::default()
+    };
     let staged = open_source(&pz, &opts).unwrap();
     assert_eq!(std::fs::read_dir(stage.path()).unwrap().count(), 1);
     drop(staged);
@@ -298,7 +333,13 @@ fn synthetic_nifti_qform_matches_equivalent_sform() {
     let s = open(&write(t.path(), "q2.nii", &h));
     let expected = [[-1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]];
     let got = s.info.geometry.direction;
-    assert!(got.iter().flatten().zip(expected.iter().flatten()).all(|(g, e)| close(*g, *e, 1e-6)), "{got:?}");
+    assert!(
+        got.iter()
+            .flatten()
+            .zip(expected.iter().flatten())
+            .all(|(g, e)| close(*g, *e, 1e-6)),
+        "{got:?}"
+    );
 }
 
 #[test]
@@ -320,7 +361,9 @@ space directions: (0,0,-2) (0,1.5,0) (3,0,0)\nspace origin: (1,2,3)\nencoding: r
     for v in 0i16..8 {
         body.extend_from_slice(&(v - 4).to_be_bytes());
     }
-    let mut f = b"NRRD0004\ntype: short\ndimension: 3\nsizes: 2 2 2\nspacings: 1 -2 0.5\nendian: big\nencoding: gzip\n\n".to_vec();
+    let mut f =
+        b"NRRD0004\ntype: short\ndimension: 3\nsizes: 2 2 2\nspacings: 1 -2 0.5\nendian: big\nencoding: gzip\n\n"
+            .to_vec();
     f.extend_from_slice(&gzip(&body));
     let s = open(&write(t.path(), "b.nrrd", &f));
     assert_eq!(s.info.geometry.spacing_mm, [1.0, 2.0, 0.5]);
@@ -386,12 +429,24 @@ fn raw_with_spec() {
         byte_order: ByteOrder::Big,
         header_bytes: 16,
     };
-    let opts = ReadOptions { raw: Some(spec.clone()), ..Default::default() };
+    let opts = ReadOptions {
+        raw: Some(spec.clone()),
+        ..Default::default()
+    };
     let s = open_source(&p, &opts).unwrap();
     assert_eq!(all_values(&s), (0..24).map(|x| x as f64).collect::<Vec<_>>());
-    let bad = ReadOptions { raw: Some(RawSpec { dims: [4, 3, 3], ..spec }), ..Default::default() };
+    let bad = ReadOptions {
+        raw: Some(RawSpec {
+            dims: [4, 3, 3],
+            ..spec
+        }),
+        ..Default::default()
+    };
     let e = err_of(&p, &bad);
-    assert!(e.contains("x.vol") && e.contains("size mismatch") && e.contains("88") && e.contains("64"), "{e}");
+    assert!(
+        e.contains("x.vol") && e.contains("size mismatch") && e.contains("88") && e.contains("64"),
+        "{e}"
+    );
 }
 
 #[test]
@@ -403,7 +458,10 @@ fn bad_inputs_fail_with_file_and_reason() {
         let e = err_of(p, &o);
         let name = p.file_name().unwrap().to_string_lossy().to_string();
         assert!(e.contains(&name), "error does not name {name}: {e}");
-        assert!(e.to_lowercase().contains(&needle.to_lowercase()), "error for {name} lacks '{needle}': {e}");
+        assert!(
+            e.to_lowercase().contains(&needle.to_lowercase()),
+            "error for {name} lacks '{needle}': {e}"
+        );
     };
 
     // NIfTI: truncated data, truncated gzip data, unknown type, zero and absurd dims, NaN spacing.
@@ -422,7 +480,10 @@ fn bad_inputs_fail_with_file_and_reason() {
         (x >> 24) as u8
     }));
     let gz = gzip(&big);
-    check(&write(d, "cutdata.nii.gz", &gz[..gz.len() / 2]), "truncated or corrupt after");
+    check(
+        &write(d, "cutdata.nii.gz", &gz[..gz.len() / 2]),
+        "truncated or corrupt after",
+    );
     check(&write(d, "short.nii", &good[..200]), "header");
     let mut unk = good.clone();
     unk[70..72].copy_from_slice(&32i16.to_le_bytes());
@@ -508,7 +569,11 @@ fn write_dicom_at(path: &Path, series_uid: &str, description: &str, pos: [f64; 3
     put(tags::SERIES_INSTANCE_UID, VR::UI, series_uid.into());
     put(tags::SERIES_DESCRIPTION, VR::LO, description.into());
     if with_pixels {
-        put(tags::IMAGE_POSITION_PATIENT, VR::DS, format!("{}\\{}\\{z}", pos[0], pos[1]).into());
+        put(
+            tags::IMAGE_POSITION_PATIENT,
+            VR::DS,
+            format!("{}\\{}\\{z}", pos[0], pos[1]).into(),
+        );
         put(tags::IMAGE_ORIENTATION_PATIENT, VR::DS, "1\\0\\0\\0\\1\\0".into());
         put(tags::PIXEL_SPACING, VR::DS, "0.5\\0.25".into());
         put(tags::ROWS, VR::US, PrimitiveValue::from(2u16));
@@ -524,7 +589,9 @@ fn write_dicom_at(path: &Path, series_uid: &str, description: &str, pos: [f64; 3
         put(tags::WINDOW_CENTER, VR::DS, "40\\400".into());
         put(tags::WINDOW_WIDTH, VR::DS, "80\\2000".into());
         // 12 bits stored, two's complement, with a stray bit above them (as overlays leave).
-        let px: Vec<u16> = (0..6).map(|i| ((z as i16 * 10 + i as i16 - 3) as u16) & 0x0fff | 0x2000).collect();
+        let px: Vec<u16> = (0..6)
+            .map(|i| ((z as i16 * 10 + i as i16 - 3) as u16) & 0x0fff | 0x2000)
+            .collect();
         put(tags::PIXEL_DATA, VR::OW, PrimitiveValue::U16(px.into()));
     }
     let file = obj
@@ -557,7 +624,11 @@ fn synthetic_dicom_series_sorting_selection_and_errors() {
     assert!(!s.info.description.contains("Secret"));
     let mut v = Vec::new();
     s.data.read_slice_f64(0, &mut v);
-    assert_eq!(v, vec![-3.0, -2.0, -1.0, 0.0, 1.0, 2.0], "12-bit signed values must be sign-extended");
+    assert_eq!(
+        v,
+        vec![-3.0, -2.0, -1.0, 0.0, 1.0, 2.0],
+        "12-bit signed values must be sign-extended"
+    );
     s.data.read_slice_f64(2, &mut v);
     assert_eq!(v[3], 40.0);
     assert_eq!((s.info.slope, s.info.intercept), (1.0, -10.0));
@@ -581,10 +652,20 @@ fn synthetic_dicom_series_sorting_selection_and_errors() {
     assert!(e.contains("same position") && e.contains("dup.dcm"), "{e}");
     std::fs::remove_file(d.join("dup.dcm")).unwrap();
 
+    // Without the 128-byte preamble (and without an extension) the file is still DICOM.
+    let bytes = std::fs::read(d.join("b.dcm")).unwrap();
+    let nopre = write(t.path(), "nopreamble", &bytes[128..]);
+    let one = open(&nopre);
+    assert_eq!(one.info.geometry.dims, [3, 2, 1]);
+    assert_eq!(all_values(&one), vec![-3.0, -2.0, -1.0, 0.0, 1.0, 2.0]);
+
     // A gap: remove the middle slice and add one further away.
     write_dicom(&d.join("d.dcm"), "1.2.840.1", "Axial T1", 10.0, true, 1.0);
     let e = err_of(&d, &ReadOptions::default());
-    assert!(e.contains("series") && e.contains("non-uniform") && e.contains("6.0000"), "{e}");
+    assert!(
+        e.contains("series") && e.contains("non-uniform") && e.contains("6.0000"),
+        "{e}"
+    );
     std::fs::remove_file(d.join("d.dcm")).unwrap();
 
     // Evenly spaced along the normal but shifted in-plane: not one block.
@@ -596,15 +677,51 @@ fn synthetic_dicom_series_sorting_selection_and_errors() {
     // A second series: listed in the error, selectable by UID or index.
     write_dicom(&d.join("e.dcm"), "1.2.840.2", "Localizer", 0.0, true, 1.0);
     let e = err_of(&d, &ReadOptions::default());
-    assert!(e.contains("1.2.840.1") && e.contains("1.2.840.2") && e.contains("Localizer") && e.contains("3 slices"), "{e}");
-    let by_uid = ReadOptions { dicom_series: Some("1.2.840.2".into()), ..Default::default() };
+    assert!(
+        e.contains("1.2.840.1") && e.contains("1.2.840.2") && e.contains("Localizer") && e.contains("3 slices"),
+        "{e}"
+    );
+    let by_uid = ReadOptions {
+        dicom_series: Some("1.2.840.2".into()),
+        ..Default::default()
+    };
     assert_eq!(open_source(&d, &by_uid).unwrap().info.geometry.dims, [3, 2, 1]);
     let listing = strata_storage::readers::list_dicom_series(&d).unwrap();
     let idx = listing.iter().position(|s| s.uid == "1.2.840.1").unwrap();
-    let by_idx = ReadOptions { dicom_series: Some(idx.to_string()), ..Default::default() };
+    let by_idx = ReadOptions {
+        dicom_series: Some(idx.to_string()),
+        ..Default::default()
+    };
     assert_eq!(open_source(&d, &by_idx).unwrap().info.geometry.dims, [3, 2, 3]);
-    let e = err_of(&d, &ReadOptions { dicom_series: Some("7".into()), ..Default::default() });
+    let e = err_of(
+        &d,
+        &ReadOptions {
+            dicom_series: Some("7".into()),
+            ..Default::default()
+        },
+    );
     assert!(e.contains("no DICOM series '7'"), "{e}");
+
+    // Gantry tilt: positions step along a line that is not the slice normal. Voxel (0,0,k) must
+    // still land on slice k's ImagePositionPatient.
+    let tilt = t.path().join("tilt");
+    std::fs::create_dir(&tilt).unwrap();
+    let positions: Vec<[f64; 3]> = (0..4).map(|k| [0.0, 0.5 * k as f64, 2.0 * k as f64]).collect();
+    for (k, p) in positions.iter().enumerate() {
+        write_dicom_at(
+            &tilt.join(format!("{}.dcm", 3 - k)),
+            "1.2.840.9",
+            "tilted",
+            *p,
+            true,
+            1.0,
+        );
+    }
+    let s = open(&tilt);
+    for (k, p) in positions.iter().enumerate() {
+        let q = s.info.geometry.patient_from_index([0.0, 0.0, k as f64]);
+        assert!((0..3).all(|c| close(p[c], q[c], 1e-9)), "slice {k}: {q:?} vs {p:?}");
+    }
 
     // Non-image DICOM: a file alone errors; a folder of only such files errors.
     let ni = t.path().join("noimg");
@@ -632,7 +749,7 @@ fn synthetic_nifti2_big_endian_4d() {
     h[176..184].copy_from_slice(&2f64.to_be_bytes()); // slope
     h[184..192].copy_from_slice(&(-1f64).to_be_bytes());
     h[348..352].copy_from_slice(&2i32.to_be_bytes()); // sform_code
-    // RAS: i → +y (anterior), j → −x (right), k → +z; 1, 2, 3 mm.
+                                                      // RAS: i → +y (anterior), j → −x (right), k → +z; 1, 2, 3 mm.
     let srow = [[0.0, -2.0, 0.0, 5.0], [1.0, 0.0, 0.0, 6.0], [0.0, 0.0, 3.0, 7.0]];
     for (r, row) in srow.iter().enumerate() {
         for (c, v) in row.iter().enumerate() {
@@ -717,4 +834,3 @@ fn synthetic_dicom_rle_lossless() {
     assert_eq!(s.info.sample_type, SampleType::U16);
     assert_eq!(all_values(&s), values.iter().map(|&v| v as f64).collect::<Vec<_>>());
 }
-

@@ -14,7 +14,11 @@ pub(crate) fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
 }
 
 pub(crate) fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
 }
 
 /// Splits a scaled axis vector into (unit direction, length). A zero or non-finite vector is an
@@ -22,7 +26,10 @@ pub(crate) fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
 pub(crate) fn split_axis(path: &Path, what: &str, v: [f64; 3]) -> Result<([f64; 3], f64)> {
     let n = norm(v);
     if !n.is_finite() || n <= 0.0 {
-        return Err(StorageError::invalid(path, format!("{what} {v:?} is zero or not finite")));
+        return Err(StorageError::invalid(
+            path,
+            format!("{what} {v:?} is zero or not finite"),
+        ));
     }
     Ok(([v[0] / n, v[1] / n, v[2] / n], n))
 }
@@ -47,7 +54,12 @@ pub(crate) fn geometry_from_axes(
         direction[a] = d;
         spacing[a] = s;
     }
-    Ok(Geometry { dims, spacing_mm: spacing, origin_lps_mm: origin, direction })
+    Ok(Geometry {
+        dims,
+        spacing_mm: spacing,
+        origin_lps_mm: origin,
+        direction,
+    })
 }
 
 /// Parses whitespace- (and comma-) separated numbers; `what` names the field for the error.
@@ -65,7 +77,10 @@ pub(crate) fn parse_u64s(path: &Path, what: &str, text: &str) -> Result<Vec<u64>
     text.split_whitespace()
         .map(|t| {
             t.parse::<u64>().map_err(|_| {
-                StorageError::invalid(path, format!("{what}: '{t}' is not a non-negative integer (in '{text}')"))
+                StorageError::invalid(
+                    path,
+                    format!("{what}: '{t}' is not a non-negative integer (in '{text}')"),
+                )
             })
         })
         .collect()

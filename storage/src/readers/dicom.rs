@@ -109,7 +109,10 @@ fn fg_attr<'a>(top: &'a Obj, groups: &[Option<&'a Obj>], seq: Tag, attr: Tag) ->
 }
 
 fn windows_from(obj: &Obj) -> Vec<WindowPreset> {
-    let (Some(c), Some(w)) = (floats(obj.get(tags::WINDOW_CENTER)), floats(obj.get(tags::WINDOW_WIDTH))) else {
+    let (Some(c), Some(w)) = (
+        floats(obj.get(tags::WINDOW_CENTER)),
+        floats(obj.get(tags::WINDOW_WIDTH)),
+    ) else {
         return Vec::new();
     };
     let names: Vec<String> = text(obj, tags::WINDOW_CENTER_WIDTH_EXPLANATION)
@@ -120,7 +123,11 @@ fn windows_from(obj: &Obj) -> Vec<WindowPreset> {
         .enumerate()
         .filter(|(_, (_, &w))| w > 0.0)
         .map(|(i, (&center, &width))| WindowPreset {
-            name: names.get(i).filter(|n| !n.is_empty()).cloned().unwrap_or_else(|| format!("DICOM window {}", i + 1)),
+            name: names
+                .get(i)
+                .filter(|n| !n.is_empty())
+                .cloned()
+                .unwrap_or_else(|| format!("DICOM window {}", i + 1)),
             center,
             width,
         })
@@ -159,29 +166,75 @@ fn read_header(path: &Path) -> Result<Option<ImageHeader>> {
     let mut frames = Vec::with_capacity(n_frames as usize);
     for f in 0..n_frames as usize {
         let groups = [per_frame.get(f), shared];
-        let ipp = floats(fg_attr(&obj, &groups, tags::PLANE_POSITION_SEQUENCE, tags::IMAGE_POSITION_PATIENT))
-            .filter(|v| v.len() == 3)
-            .map(|v| [v[0], v[1], v[2]]);
-        let iop = floats(fg_attr(&obj, &groups, tags::PLANE_ORIENTATION_SEQUENCE, tags::IMAGE_ORIENTATION_PATIENT))
-            .filter(|v| v.len() == 6)
-            .map(|v| [v[0], v[1], v[2], v[3], v[4], v[5]]);
-        let pixel_spacing = floats(fg_attr(&obj, &groups, tags::PIXEL_MEASURES_SEQUENCE, tags::PIXEL_SPACING))
-            .filter(|v| v.len() == 2)
-            .map(|v| [v[0], v[1]]);
-        let slope = floats(fg_attr(&obj, &groups, tags::PIXEL_VALUE_TRANSFORMATION_SEQUENCE, tags::RESCALE_SLOPE))
-            .and_then(|v| v.first().copied())
-            .filter(|s| *s != 0.0)
-            .unwrap_or(1.0);
-        let intercept = floats(fg_attr(&obj, &groups, tags::PIXEL_VALUE_TRANSFORMATION_SEQUENCE, tags::RESCALE_INTERCEPT))
-            .and_then(|v| v.first().copied())
-            .unwrap_or(0.0);
-        frames.push(FrameInfo { file: 0, frame: f as u32, ipp, iop, pixel_spacing, slope, intercept, instance });
+        let ipp = floats(fg_attr(
+            &obj,
+            &groups,
+            tags::PLANE_POSITION_SEQUENCE,
+            tags::IMAGE_POSITION_PATIENT,
+        ))
+        .filter(|v| v.len() == 3)
+        .map(|v| [v[0], v[1], v[2]]);
+        let iop = floats(fg_attr(
+            &obj,
+            &groups,
+            tags::PLANE_ORIENTATION_SEQUENCE,
+            tags::IMAGE_ORIENTATION_PATIENT,
+        ))
+        .filter(|v| v.len() == 6)
+        .map(|v| [v[0], v[1], v[2], v[3], v[4], v[5]]);
+        let pixel_spacing = floats(fg_attr(
+            &obj,
+            &groups,
+            tags::PIXEL_MEASURES_SEQUENCE,
+            tags::PIXEL_SPACING,
+        ))
+        .filter(|v| v.len() == 2)
+        .map(|v| [v[0], v[1]]);
+        let slope = floats(fg_attr(
+            &obj,
+            &groups,
+            tags::PIXEL_VALUE_TRANSFORMATION_SEQUENCE,
+            tags::RESCALE_SLOPE,
+        ))
+        .and_then(|v| v.first().copied())
+        .filter(|s| *s != 0.0)
+        .unwrap_or(1.0);
+        let intercept = floats(fg_attr(
+            &obj,
+            &groups,
+            tags::PIXEL_VALUE_TRANSFORMATION_SEQUENCE,
+            tags::RESCALE_INTERCEPT,
+        ))
+        .and_then(|v| v.first().copied())
+        .unwrap_or(0.0);
+        frames.push(FrameInfo {
+            file: 0,
+            frame: f as u32,
+            ipp,
+            iop,
+            pixel_spacing,
+            slope,
+            intercept,
+            instance,
+        });
     }
     let groups0 = [per_frame.first(), shared];
-    let gap_hint = floats(fg_attr(&obj, &groups0, tags::PIXEL_MEASURES_SEQUENCE, tags::SPACING_BETWEEN_SLICES))
-        .or_else(|| floats(fg_attr(&obj, &groups0, tags::PIXEL_MEASURES_SEQUENCE, tags::SLICE_THICKNESS)))
-        .and_then(|v| v.first().copied())
-        .filter(|v| *v > 0.0);
+    let gap_hint = floats(fg_attr(
+        &obj,
+        &groups0,
+        tags::PIXEL_MEASURES_SEQUENCE,
+        tags::SPACING_BETWEEN_SLICES,
+    ))
+    .or_else(|| {
+        floats(fg_attr(
+            &obj,
+            &groups0,
+            tags::PIXEL_MEASURES_SEQUENCE,
+            tags::SLICE_THICKNESS,
+        ))
+    })
+    .and_then(|v| v.first().copied())
+    .filter(|v| *v > 0.0);
 
     // Classic multi-frame (NM, US, old MR) states one position for the whole stack; step along
     // the slice normal by the slice gap so the frames still sort and space correctly.
@@ -196,9 +249,16 @@ fn read_header(path: &Path) -> Result<Option<ImageHeader>> {
         }
     }
 
-    let mut windows = shared.and_then(|s| seq_item(s, tags::FRAME_VOILUT_SEQUENCE)).map(windows_from).unwrap_or_default();
+    let mut windows = shared
+        .and_then(|s| seq_item(s, tags::FRAME_VOILUT_SEQUENCE))
+        .map(windows_from)
+        .unwrap_or_default();
     if windows.is_empty() {
-        windows = per_frame.first().and_then(|s| seq_item(s, tags::FRAME_VOILUT_SEQUENCE)).map(windows_from).unwrap_or_default();
+        windows = per_frame
+            .first()
+            .and_then(|s| seq_item(s, tags::FRAME_VOILUT_SEQUENCE))
+            .map(windows_from)
+            .unwrap_or_default();
     }
     if windows.is_empty() {
         windows = windows_from(&obj);
@@ -228,7 +288,9 @@ fn read_header(path: &Path) -> Result<Option<ImageHeader>> {
         bits_allocated: bits_allocated.clamp(0, u16::MAX as i64) as u16,
         bits_stored: bits_stored.clamp(0, u16::MAX as i64) as u16,
         signed: int(&obj, tags::PIXEL_REPRESENTATION).unwrap_or(0) == 1,
-        samples_per_pixel: int(&obj, tags::SAMPLES_PER_PIXEL).unwrap_or(1).clamp(0, u16::MAX as i64) as u16,
+        samples_per_pixel: int(&obj, tags::SAMPLES_PER_PIXEL)
+            .unwrap_or(1)
+            .clamp(0, u16::MAX as i64) as u16,
         photometric: text(&obj, tags::PHOTOMETRIC_INTERPRETATION).unwrap_or_default(),
         windows,
         gap_hint,
@@ -251,7 +313,9 @@ fn locate_native_pixel_data(path: &Path, transfer_syntax: &str, len: u64) -> Opt
     let file_len = std::fs::metadata(path).ok()?.len();
     // An odd-length value is padded to even length; the element's length field says which.
     for value_len in [len, len + 1] {
-        let Some(start) = file_len.checked_sub(value_len).filter(|s| *s >= header_len + 132) else { continue };
+        let Some(start) = file_len.checked_sub(value_len).filter(|s| *s >= header_len + 132) else {
+            continue;
+        };
         let mut f = std::fs::File::open(path).ok()?;
         f.seek(SeekFrom::Start(start - header_len)).ok()?;
         let mut h = [0u8; 12];
@@ -359,7 +423,10 @@ pub(crate) fn open_series_dir(dir: &Path, options: &ReadOptions) -> Result<Opene
             .enumerate()
             .map(|(i, s)| {
                 let m = summary(s);
-                format!("  [{i}] {} \"{}\" {} ({} slices)", m.uid, m.description, m.modality, m.slice_count)
+                format!(
+                    "  [{i}] {} \"{}\" {} ({} slices)",
+                    m.uid, m.description, m.modality, m.slice_count
+                )
             })
             .collect::<Vec<_>>()
             .join("\n");
@@ -367,7 +434,10 @@ pub(crate) fn open_series_dir(dir: &Path, options: &ReadOptions) -> Result<Opene
             None => {
                 return Err(StorageError::invalid(
                     dir,
-                    format!("folder holds {} DICOM series; choose one by UID or index:\n{listing}", series.len()),
+                    format!(
+                        "folder holds {} DICOM series; choose one by UID or index:\n{listing}",
+                        series.len()
+                    ),
                 ))
             }
             Some(sel) => {
@@ -395,7 +465,10 @@ pub(crate) fn open_dicom_file(path: &Path, options: &ReadOptions) -> Result<Open
     match read_header(path)? {
         Some(h) => assemble(path, vec![h], options),
         None => {
-            let sop = open_header(path).ok().and_then(|o| text(&o, tags::SOP_CLASS_UID)).unwrap_or_default();
+            let sop = open_header(path)
+                .ok()
+                .and_then(|o| text(&o, tags::SOP_CLASS_UID))
+                .unwrap_or_default();
             Err(StorageError::invalid(
                 path,
                 format!("DICOM file holds no image (no Rows/Columns/PixelData; SOP class {sop})"),
@@ -423,7 +496,10 @@ fn sample_type_of(h: &ImageHeader) -> Result<SampleType> {
     if h.samples_per_pixel != 1 {
         return Err(StorageError::unsupported(
             &h.path,
-            format!("colour DICOM ({} samples per pixel); only greyscale volumes", h.samples_per_pixel),
+            format!(
+                "colour DICOM ({} samples per pixel); only greyscale volumes",
+                h.samples_per_pixel
+            ),
         ));
     }
     Ok(match (h.bits_allocated, h.signed) {
@@ -434,7 +510,10 @@ fn sample_type_of(h: &ImageHeader) -> Result<SampleType> {
         (32, false) => SampleType::U32,
         (32, true) => SampleType::I32,
         (b, _) => {
-            return Err(StorageError::unsupported(&h.path, format!("DICOM BitsAllocated {b} (only 8, 16, 32)")))
+            return Err(StorageError::unsupported(
+                &h.path,
+                format!("DICOM BitsAllocated {b} (only 8, 16, 32)"),
+            ))
         }
     })
 }
@@ -444,7 +523,13 @@ fn assemble(display: &Path, headers: Vec<ImageHeader>, options: &ReadOptions) ->
     let sample_type = sample_type_of(first)?;
     for h in &headers[1..] {
         if (h.rows, h.cols, h.bits_allocated, h.signed, h.samples_per_pixel)
-            != (first.rows, first.cols, first.bits_allocated, first.signed, first.samples_per_pixel)
+            != (
+                first.rows,
+                first.cols,
+                first.bits_allocated,
+                first.signed,
+                first.samples_per_pixel,
+            )
         {
             return Err(StorageError::invalid(
                 &h.path,
@@ -513,11 +598,7 @@ fn assemble(display: &Path, headers: Vec<ImageHeader>, options: &ReadOptions) ->
         let n = frames.len();
         let p0 = frames[0].ipp.unwrap_or([0.0; 3]);
         if n == 1 {
-            (
-                [row, col, normal],
-                p0,
-                first.gap_hint.unwrap_or(1.0),
-            )
+            ([row, col, normal], p0, first.gap_hint.unwrap_or(1.0))
         } else {
             for w in frames.windows(2) {
                 if (pos(&w[1]) - pos(&w[0])).abs() < 1e-4 {
@@ -589,7 +670,10 @@ fn assemble(display: &Path, headers: Vec<ImageHeader>, options: &ReadOptions) ->
         )
     };
     if norm(cross(direction[0], direction[1])) < 1e-3 {
-        return Err(StorageError::invalid(display, "ImageOrientationPatient row and column are parallel"));
+        return Err(StorageError::invalid(
+            display,
+            "ImageOrientationPatient row and column are parallel",
+        ));
     }
 
     let dims = [first.cols as u64, first.rows as u64, frames.len() as u64];
@@ -607,7 +691,12 @@ fn assemble(display: &Path, headers: Vec<ImageHeader>, options: &ReadOptions) ->
             && (f.intercept - frames[0].intercept).abs() <= 1e-9 * frames[0].intercept.abs().max(1.0)
     });
     let (output, out_type, slope, intercept) = if uniform {
-        (Output::Stored(sample_type), sample_type, frames[0].slope, frames[0].intercept)
+        (
+            Output::Stored(sample_type),
+            sample_type,
+            frames[0].slope,
+            frames[0].intercept,
+        )
     } else {
         (Output::Physical, SampleType::F32, 1.0, 0.0)
     };
@@ -624,11 +713,15 @@ fn assemble(display: &Path, headers: Vec<ImageHeader>, options: &ReadOptions) ->
                 // Release the previous file before loading the next: one slice in memory at a time.
                 drop(cur.take());
                 let loaded = match h.native_offset {
-                    Some(off) => Loaded::Native(std::fs::File::open(&h.path).map_err(|e| StorageError::io(&h.path, e))?, off),
-                    None => Loaded::Object(Box::new(
-                        dicom_object::open_file(&h.path)
-                            .map_err(|e| StorageError::invalid(&h.path, format!("unreadable DICOM file: {e}")))?,
-                    )),
+                    Some(off) => Loaded::Native(
+                        std::fs::File::open(&h.path).map_err(|e| StorageError::io(&h.path, e))?,
+                        off,
+                    ),
+                    None => {
+                        Loaded::Object(Box::new(dicom_object::open_file(&h.path).map_err(|e| {
+                            StorageError::invalid(&h.path, format!("unreadable DICOM file: {e}"))
+                        })?))
+                    }
                 };
                 cur = Some((f.file, loaded));
             }
@@ -677,7 +770,11 @@ fn assemble(display: &Path, headers: Vec<ImageHeader>, options: &ReadOptions) ->
 }
 
 /// Byte order of pixel data held by dicom-object (it stores values in host order).
-const NATIVE: ByteOrder = if cfg!(target_endian = "big") { ByteOrder::Big } else { ByteOrder::Little };
+const NATIVE: ByteOrder = if cfg!(target_endian = "big") {
+    ByteOrder::Big
+} else {
+    ByteOrder::Little
+};
 
 /// Appends frame `frame` of `obj` to `out` in the staging layout.
 fn decode_frame(
@@ -692,7 +789,10 @@ fn decode_frame(
     let bytes_per = (h.bits_allocated / 8) as usize;
     let frame_len = h.rows as usize * h.cols as usize * bytes_per;
     let pixel = obj.get(tags::PIXEL_DATA).ok_or_else(|| {
-        StorageError::invalid(&h.path, "DICOM image has no PixelData (float or double pixel data are not supported)")
+        StorageError::invalid(
+            &h.path,
+            "DICOM image has no PixelData (float or double pixel data are not supported)",
+        )
     })?;
     // Native (uncompressed) pixel data is used as it is: dicom-object already holds it in native
     // byte order, and decoding it through dicom-pixeldata would only add a copy and stricter checks.
@@ -729,7 +829,12 @@ fn decode_frame(
     if src.len() < frame_len {
         return Err(StorageError::invalid(
             &h.path,
-            format!("decoded frame {} has {} bytes, {} expected", frame + 1, src.len(), frame_len),
+            format!(
+                "decoded frame {} has {} bytes, {} expected",
+                frame + 1,
+                src.len(),
+                frame_len
+            ),
         ));
     }
     convert(h, &src[..frame_len], NATIVE, output, slope, intercept, out);
@@ -738,7 +843,15 @@ fn decode_frame(
 
 /// Native-endian samples → staging bytes, masking bits above BitsStored (some scanners keep
 /// overlays there) and sign-extending signed values.
-fn convert(h: &ImageHeader, src: &[u8], order: ByteOrder, output: Output, slope: f64, intercept: f64, out: &mut Vec<u8>) {
+fn convert(
+    h: &ImageHeader,
+    src: &[u8],
+    order: ByteOrder,
+    output: Output,
+    slope: f64,
+    intercept: f64,
+    out: &mut Vec<u8>,
+) {
     let bits = h.bits_stored.clamp(1, h.bits_allocated.max(1)) as u32;
     let signed = h.signed;
     let fix = |v: u64, width: u32| -> i64 {
@@ -763,12 +876,20 @@ fn convert(h: &ImageHeader, src: &[u8], order: ByteOrder, output: Output, slope:
         8 => src.iter().for_each(|&b| emit(fix(b as u64, 8))),
         16 => src.chunks_exact(2).for_each(|c| {
             let a = [c[0], c[1]];
-            let v = if order == ByteOrder::Little { u16::from_le_bytes(a) } else { u16::from_be_bytes(a) };
+            let v = if order == ByteOrder::Little {
+                u16::from_le_bytes(a)
+            } else {
+                u16::from_be_bytes(a)
+            };
             emit(fix(v as u64, 16))
         }),
         _ => src.chunks_exact(4).for_each(|c| {
             let a = [c[0], c[1], c[2], c[3]];
-            let v = if order == ByteOrder::Little { u32::from_le_bytes(a) } else { u32::from_be_bytes(a) };
+            let v = if order == ByteOrder::Little {
+                u32::from_le_bytes(a)
+            } else {
+                u32::from_be_bytes(a)
+            };
             emit(fix(v as u64, 32))
         }),
     }

@@ -66,12 +66,18 @@ pub(crate) fn open_metaimage(path: &Path, options: &ReadOptions) -> Result<Opene
             .read_until(b'\n', &mut buf)
             .map_err(|e| StorageError::io(path, e))?;
         if n == 0 {
-            return Err(StorageError::invalid(path, "MetaImage header ends without an ElementDataFile line"));
+            return Err(StorageError::invalid(
+                path,
+                "MetaImage header ends without an ElementDataFile line",
+            ));
         }
         consumed += n as u64;
         lines += 1;
         if lines > MAX_HEADER_LINES || (n == MAX_HEADER_LINE && buf.last() != Some(&b'\n')) {
-            return Err(StorageError::invalid(path, "not a MetaImage header (no ElementDataFile in the first lines)"));
+            return Err(StorageError::invalid(
+                path,
+                "not a MetaImage header (no ElementDataFile in the first lines)",
+            ));
         }
         let line = String::from_utf8_lossy(&buf);
         let line = line.trim();
@@ -79,7 +85,13 @@ pub(crate) fn open_metaimage(path: &Path, options: &ReadOptions) -> Result<Opene
             continue;
         }
         let Some((k, v)) = line.split_once('=') else {
-            return Err(StorageError::invalid(path, format!("MetaImage header line without '=': '{}'", line.chars().take(60).collect::<String>())));
+            return Err(StorageError::invalid(
+                path,
+                format!(
+                    "MetaImage header line without '=': '{}'",
+                    line.chars().take(60).collect::<String>()
+                ),
+            ));
         };
         let key = k.trim().to_ascii_lowercase();
         let done = key == "elementdatafile";
@@ -91,15 +103,24 @@ pub(crate) fn open_metaimage(path: &Path, options: &ReadOptions) -> Result<Opene
     let get = |k: &str| fields.get(&k.to_ascii_lowercase()).map(String::as_str);
     let need = |k: &str| get(k).ok_or_else(|| StorageError::invalid(path, format!("MetaImage header lacks {k}")));
 
-    let ndims: usize = need("NDims")?
-        .parse()
-        .map_err(|_| StorageError::invalid(path, format!("MetaImage NDims '{}' is not a number", get("NDims").unwrap_or(""))))?;
+    let ndims: usize = need("NDims")?.parse().map_err(|_| {
+        StorageError::invalid(
+            path,
+            format!("MetaImage NDims '{}' is not a number", get("NDims").unwrap_or("")),
+        )
+    })?;
     if !(2..=3).contains(&ndims) {
-        return Err(StorageError::unsupported(path, format!("MetaImage NDims = {ndims} (only 2-D and 3-D images)")));
+        return Err(StorageError::unsupported(
+            path,
+            format!("MetaImage NDims = {ndims} (only 2-D and 3-D images)"),
+        ));
     }
     let sizes = parse_u64s(path, "DimSize", need("DimSize")?)?;
     if sizes.len() != ndims {
-        return Err(StorageError::invalid(path, format!("MetaImage DimSize {sizes:?} does not match NDims {ndims}")));
+        return Err(StorageError::invalid(
+            path,
+            format!("MetaImage DimSize {sizes:?} does not match NDims {ndims}"),
+        ));
     }
     let dims = dims3(path, "DimSize", &sizes)?;
     let et = need("ElementType")?;
@@ -108,10 +129,15 @@ pub(crate) fn open_metaimage(path: &Path, options: &ReadOptions) -> Result<Opene
     })?;
     if let Some(ch) = get("ElementNumberOfChannels") {
         if ch.trim() != "1" {
-            return Err(StorageError::unsupported(path, format!("MetaImage with {ch} channels (only scalar images)")));
+            return Err(StorageError::unsupported(
+                path,
+                format!("MetaImage with {ch} channels (only scalar images)"),
+            ));
         }
     }
-    let msb = get("BinaryDataByteOrderMSB").or(get("ElementByteOrderMSB")).is_some_and(parse_bool);
+    let msb = get("BinaryDataByteOrderMSB")
+        .or(get("ElementByteOrderMSB"))
+        .is_some_and(parse_bool);
     let byte_order = if msb { ByteOrder::Big } else { ByteOrder::Little };
     let compressed = get("CompressedData").is_some_and(parse_bool);
 
@@ -125,22 +151,33 @@ pub(crate) fn open_metaimage(path: &Path, options: &ReadOptions) -> Result<Opene
     } else if data_spec.to_ascii_uppercase().starts_with("LIST")
         || (data_spec.split_whitespace().count() > 1 && data_spec.contains('%'))
     {
-        return Err(StorageError::unsupported(path, format!("MetaImage multi-file ElementDataFile '{data_spec}'")));
+        return Err(StorageError::unsupported(
+            path,
+            format!("MetaImage multi-file ElementDataFile '{data_spec}'"),
+        ));
     } else {
         let p = PathBuf::from(&data_spec);
-        let full = if p.is_absolute() { p } else { path.parent().unwrap_or(Path::new(".")).join(p) };
+        let full = if p.is_absolute() {
+            p
+        } else {
+            path.parent().unwrap_or(Path::new(".")).join(p)
+        };
         (full, 0)
     };
     drop(r);
     let header_size: i64 = match get("HeaderSize") {
-        Some(v) => v.trim().parse().map_err(|_| StorageError::invalid(path, format!("MetaImage HeaderSize '{v}' is not a number")))?,
+        Some(v) => v
+            .trim()
+            .parse()
+            .map_err(|_| StorageError::invalid(path, format!("MetaImage HeaderSize '{v}' is not a number")))?,
         None => 0,
     };
 
     let data = if compressed {
         let f = File::open(&data_path).map_err(|e| StorageError::io(&data_path, e))?;
         let mut br = BufReader::new(f);
-        br.seek(SeekFrom::Start(base)).map_err(|e| StorageError::io(&data_path, e))?;
+        br.seek(SeekFrom::Start(base))
+            .map_err(|e| StorageError::io(&data_path, e))?;
         // ITK writes zlib streams; some tools write gzip. The first two bytes tell them apart.
         let head = br.fill_buf().map_err(|e| StorageError::io(&data_path, e))?;
         let is_gzip = head.len() >= 2 && head[0] == 0x1f && head[1] == 0x8b;
@@ -154,14 +191,22 @@ pub(crate) fn open_metaimage(path: &Path, options: &ReadOptions) -> Result<Opene
     } else {
         let start = if header_size == -1 {
             // -1: the data sits at the end of the file, after a header of unknown size.
-            let len = std::fs::metadata(&data_path).map_err(|e| StorageError::io(&data_path, e))?.len();
+            let len = std::fs::metadata(&data_path)
+                .map_err(|e| StorageError::io(&data_path, e))?
+                .len();
             len.checked_sub(needed).ok_or_else(|| {
-                StorageError::invalid(&data_path, format!("truncated data: {needed} bytes of voxels expected, file has {len}"))
+                StorageError::invalid(
+                    &data_path,
+                    format!("truncated data: {needed} bytes of voxels expected, file has {len}"),
+                )
             })?
         } else if header_size >= 0 {
             base + header_size as u64
         } else {
-            return Err(StorageError::invalid(path, format!("MetaImage HeaderSize {header_size}")));
+            return Err(StorageError::invalid(
+                path,
+                format!("MetaImage HeaderSize {header_size}"),
+            ));
         };
         RawVolume::map_file(&data_path, start, sample_type, byte_order, dims)?
     };
@@ -201,7 +246,10 @@ fn meta_geometry<'a>(
     if let Some(s) = get("ElementSpacing").or(get("ElementSize")) {
         let v = parse_f64s(path, "ElementSpacing", s)?;
         if v.len() != ndims {
-            return Err(StorageError::invalid(path, format!("MetaImage ElementSpacing {v:?} does not match NDims {ndims}")));
+            return Err(StorageError::invalid(
+                path,
+                format!("MetaImage ElementSpacing {v:?} does not match NDims {ndims}"),
+            ));
         }
         spacing[..ndims].copy_from_slice(&v);
     }
@@ -209,7 +257,10 @@ fn meta_geometry<'a>(
     if let Some(s) = get("Offset").or(get("Position")).or(get("Origin")) {
         let v = parse_f64s(path, "Offset", s)?;
         if v.len() != ndims {
-            return Err(StorageError::invalid(path, format!("MetaImage Offset {v:?} does not match NDims {ndims}")));
+            return Err(StorageError::invalid(
+                path,
+                format!("MetaImage Offset {v:?} does not match NDims {ndims}"),
+            ));
         }
         origin[..ndims].copy_from_slice(&v);
     }
@@ -217,7 +268,14 @@ fn meta_geometry<'a>(
     if let Some(s) = get("TransformMatrix").or(get("Rotation")).or(get("Orientation")) {
         let v = parse_f64s(path, "TransformMatrix", s)?;
         if v.len() != ndims * ndims {
-            return Err(StorageError::invalid(path, format!("MetaImage TransformMatrix has {} values, NDims {ndims} needs {}", v.len(), ndims * ndims)));
+            return Err(StorageError::invalid(
+                path,
+                format!(
+                    "MetaImage TransformMatrix has {} values, NDims {ndims} needs {}",
+                    v.len(),
+                    ndims * ndims
+                ),
+            ));
         }
         for a in 0..ndims {
             let mut col = [0.0; 3];
@@ -227,9 +285,11 @@ fn meta_geometry<'a>(
     } else if let Some(o) = get("AnatomicalOrientation") {
         let letters: Vec<char> = o.trim().chars().collect();
         if letters.len() == 3 {
-            if let (Some(a), Some(b), Some(c)) =
-                (orientation_letter(letters[0]), orientation_letter(letters[1]), orientation_letter(letters[2]))
-            {
+            if let (Some(a), Some(b), Some(c)) = (
+                orientation_letter(letters[0]),
+                orientation_letter(letters[1]),
+                orientation_letter(letters[2]),
+            ) {
                 direction = [a, b, c];
             }
         }
@@ -245,5 +305,10 @@ fn meta_geometry<'a>(
         let n = crate::readers::common::cross(direction[0], direction[1]);
         direction[2] = split_axis(path, "slice normal", n)?.0;
     }
-    Ok(Geometry { dims, spacing_mm: spacing, origin_lps_mm: origin, direction })
+    Ok(Geometry {
+        dims,
+        spacing_mm: spacing,
+        origin_lps_mm: origin,
+        direction,
+    })
 }

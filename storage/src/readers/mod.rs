@@ -1,4 +1,5 @@
-//! Format readers. Each turns an input path into an [`OpenedSource`](crate::source::OpenedSource).
+//! Format readers. Each turns an input path into an [`OpenedSource`]:
+//! DICOM (folder series, single and enhanced multi-frame files), NIfTI-1/2, NRRD, MetaImage, raw.
 //!
 //! Readers never decode a whole volume into memory. Uncompressed inputs are mapped in place;
 //! compressed ones (gzip, zlib, DICOM pixel data) are streamed into a temporary raw file first,
@@ -59,7 +60,10 @@ pub fn open_source(path: &Path, options: &ReadOptions) -> Result<OpenedSource> {
     if meta.is_dir() {
         return dicom::open_series_dir(path, options);
     }
-    let name = path.file_name().map(|n| n.to_string_lossy().to_ascii_lowercase()).unwrap_or_default();
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().to_ascii_lowercase())
+        .unwrap_or_default();
     if name.ends_with(".nii") || name.ends_with(".nii.gz") || name.ends_with(".hdr") || name.ends_with(".hdr.gz") {
         return nifti::open_nifti(path, options);
     }
@@ -81,11 +85,19 @@ pub fn open_source(path: &Path, options: &ReadOptions) -> Result<OpenedSource> {
     ))
 }
 
-/// True when bytes 128..132 are "DICM" (the Part 10 preamble); any read failure means "no".
+/// True when the file carries the Part 10 "DICM" magic: at byte 128 after the preamble, or at
+/// byte 0 where a writer dropped the preamble (dicom-object reads both). A read failure means "no".
 pub(crate) fn has_dicom_preamble(path: &Path) -> bool {
     let mut buf = [0u8; 132];
-    match File::open(path) {
-        Ok(mut f) => f.read_exact(&mut buf).is_ok() && &buf[128..132] == b"DICM",
-        Err(_) => false,
+    let Ok(mut f) = File::open(path) else { return false };
+    let mut n = 0;
+    while n < buf.len() {
+        match f.read(&mut buf[n..]) {
+            Ok(0) => break,
+            Ok(k) => n += k,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+            Err(_) => return false,
+        }
     }
+    (n >= 132 && &buf[128..132] == b"DICM") || (n >= 4 && &buf[0..4] == b"DICM")
 }

@@ -130,8 +130,12 @@ fn parse_header(path: &Path, r: &mut impl Read) -> Result<(Header, u64)> {
     };
     let mut consumed = NIFTI1_SIZE as u64;
     if version == 2 {
-        let more = read_full(r, &mut buf[NIFTI1_SIZE..])
-            .map_err(|e| StorageError::invalid(path, format!("reading NIfTI-2 header (truncated or corrupt file?): {e}")))?;
+        let more = read_full(r, &mut buf[NIFTI1_SIZE..]).map_err(|e| {
+            StorageError::invalid(
+                path,
+                format!("reading NIfTI-2 header (truncated or corrupt file?): {e}"),
+            )
+        })?;
         if more < NIFTI2_SIZE - NIFTI1_SIZE {
             return Err(StorageError::invalid(path, "truncated NIfTI-2 header"));
         }
@@ -274,14 +278,29 @@ fn geometry(path: &Path, h: &Header, dims: [u64; 3]) -> Result<Geometry> {
         } else {
             let n = sum.sqrt();
             if n.is_nan() || n <= 0.0 {
-                return Err(StorageError::invalid(path, format!("degenerate qform quaternion {:?}", h.quatern)));
+                return Err(StorageError::invalid(
+                    path,
+                    format!("degenerate qform quaternion {:?}", h.quatern),
+                ));
             }
             (0.0, b / n, c / n, d / n)
         };
         let r = [
-            [a * a + b * b - c * c - d * d, 2.0 * (b * c - a * d), 2.0 * (b * d + a * c)],
-            [2.0 * (b * c + a * d), a * a + c * c - b * b - d * d, 2.0 * (c * d - a * b)],
-            [2.0 * (b * d - a * c), 2.0 * (c * d + a * b), a * a + d * d - c * c - b * b],
+            [
+                a * a + b * b - c * c - d * d,
+                2.0 * (b * c - a * d),
+                2.0 * (b * d + a * c),
+            ],
+            [
+                2.0 * (b * c + a * d),
+                a * a + c * c - b * b - d * d,
+                2.0 * (c * d - a * b),
+            ],
+            [
+                2.0 * (b * d - a * c),
+                2.0 * (c * d + a * b),
+                a * a + d * d - c * c - b * b,
+            ],
         ];
         // qfac lives in pixdim[0]; anything but a negative value means +1 (the spec's rule).
         let qfac = if h.pixdim[0] < 0.0 { -1.0 } else { 1.0 };
@@ -290,7 +309,12 @@ fn geometry(path: &Path, h: &Header, dims: [u64; 3]) -> Result<Geometry> {
             let s = if a_idx == 2 { qfac } else { 1.0 };
             *dir = flip_xy([r[0][a_idx] * s, r[1][a_idx] * s, r[2][a_idx] * s]);
         }
-        return Ok(Geometry { dims, spacing_mm: spacing, origin_lps_mm: flip_xy(h.qoffset), direction });
+        return Ok(Geometry {
+            dims,
+            spacing_mm: spacing,
+            origin_lps_mm: flip_xy(h.qoffset),
+            direction,
+        });
     }
     Ok(Geometry {
         dims,
@@ -310,9 +334,16 @@ fn is_gz(path: &Path) -> bool {
 
 /// The .img that goes with a .hdr (or .hdr.gz): same stem, compressed if one exists that way.
 fn image_file_for(path: &Path) -> Result<PathBuf> {
-    let name = path.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().to_string())
+        .unwrap_or_default();
     let lower = name.to_ascii_lowercase();
-    let stem_len = if lower.ends_with(".hdr.gz") { name.len() - 7 } else { name.len() - 4 };
+    let stem_len = if lower.ends_with(".hdr.gz") {
+        name.len() - 7
+    } else {
+        name.len() - 4
+    };
     let stem = &name[..stem_len];
     for ext in [".img", ".IMG", ".img.gz", ".IMG.GZ"] {
         let candidate = path.with_file_name(format!("{stem}{ext}"));
@@ -320,7 +351,10 @@ fn image_file_for(path: &Path) -> Result<PathBuf> {
             return Ok(candidate);
         }
     }
-    Err(StorageError::invalid(path, format!("NIfTI/ANALYZE header without its image file {stem}.img")))
+    Err(StorageError::invalid(
+        path,
+        format!("NIfTI/ANALYZE header without its image file {stem}.img"),
+    ))
 }
 
 pub(crate) fn open_nifti(path: &Path, options: &ReadOptions) -> Result<OpenedSource> {
@@ -339,10 +373,13 @@ pub(crate) fn open_nifti(path: &Path, options: &ReadOptions) -> Result<OpenedSou
     }
     let raw_dims: Vec<i64> = h.dim[1..=ndim as usize].to_vec();
     if let Some(bad) = raw_dims.iter().find(|&&d| d <= 0) {
-        return Err(StorageError::invalid(path, format!("zero dimension: dim {raw_dims:?} contains {bad}")));
+        return Err(StorageError::invalid(
+            path,
+            format!("zero dimension: dim {raw_dims:?} contains {bad}"),
+        ));
     }
     // Only the first volume of a 4-D+ series is read: it is contiguous at the start of the data.
-    let extra_volumes: i64 = raw_dims.iter().skip(3).product();
+    let extra_volumes: i64 = raw_dims.iter().skip(3).fold(1i64, |acc, &d| acc.saturating_mul(d));
     let spatial: Vec<u64> = raw_dims.iter().take(3).map(|&d| d as u64).collect();
     let dims = dims3(path, "dim", &spatial)?;
     let sample_type = sample_type(path, h.datatype)?;
@@ -350,7 +387,11 @@ pub(crate) fn open_nifti(path: &Path, options: &ReadOptions) -> Result<OpenedSou
     geometry.validate(path)?;
     let needed = volume_bytes(path, dims, sample_type.size_bytes())?;
 
-    let slope = if h.scl_slope == 0.0 || !h.scl_slope.is_finite() { 1.0 } else { h.scl_slope };
+    let slope = if h.scl_slope == 0.0 || !h.scl_slope.is_finite() {
+        1.0
+    } else {
+        h.scl_slope
+    };
     let intercept = if h.scl_inter.is_finite() { h.scl_inter } else { 0.0 };
     let mut windows = Vec::new();
     if h.cal_max.is_finite() && h.cal_min.is_finite() && h.cal_max > h.cal_min {
@@ -385,7 +426,11 @@ pub(crate) fn open_nifti(path: &Path, options: &ReadOptions) -> Result<OpenedSou
         (path.to_path_buf(), h.vox_offset as u64, gz)
     } else {
         let img = image_file_for(path)?;
-        let off = if h.vox_offset.is_finite() && h.vox_offset > 0.0 { h.vox_offset as u64 } else { 0 };
+        let off = if h.vox_offset.is_finite() && h.vox_offset > 0.0 {
+            h.vox_offset as u64
+        } else {
+            0
+        };
         let img_gz = is_gz(&img);
         (img, off, img_gz)
     };

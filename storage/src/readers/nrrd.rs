@@ -45,7 +45,10 @@ fn read_line(path: &Path, r: &mut impl BufRead, consumed: &mut u64) -> Result<Op
         return Ok(None);
     }
     if n == MAX_HEADER_LINE && buf.last() != Some(&b'\n') {
-        return Err(StorageError::invalid(path, "NRRD header line too long (missing blank line before data?)"));
+        return Err(StorageError::invalid(
+            path,
+            "NRRD header line too long (missing blank line before data?)",
+        ));
     }
     *consumed += n as u64;
     while matches!(buf.last(), Some(b'\n') | Some(b'\r')) {
@@ -124,7 +127,13 @@ pub(crate) fn open_nrrd(path: &Path, options: &ReadOptions) -> Result<OpenedSour
     let mut consumed = 0u64;
     let magic = read_line(path, &mut r, &mut consumed)?.unwrap_or_default();
     if !magic.starts_with("NRRD000") {
-        return Err(StorageError::invalid(path, format!("not a NRRD file (first line '{}')", magic.chars().take(40).collect::<String>())));
+        return Err(StorageError::invalid(
+            path,
+            format!(
+                "not a NRRD file (first line '{}')",
+                magic.chars().take(40).collect::<String>()
+            ),
+        ));
     }
     let mut fields: HashMap<String, String> = HashMap::new();
     loop {
@@ -146,20 +155,35 @@ pub(crate) fn open_nrrd(path: &Path, options: &ReadOptions) -> Result<OpenedSour
         }
     }
     let get = |k: &str| fields.get(k).map(String::as_str);
-    let need = |k: &str| get(k).ok_or_else(|| StorageError::invalid(path, format!("NRRD header lacks the required '{k}' field")));
+    let need = |k: &str| {
+        get(k).ok_or_else(|| StorageError::invalid(path, format!("NRRD header lacks the required '{k}' field")))
+    };
 
     let type_name = need("type")?;
-    let sample_type = nrrd_type(type_name)
-        .ok_or_else(|| StorageError::unsupported(path, format!("NRRD type '{type_name}' (supported: 8/16/32-bit integers, float, double)")))?;
-    let dimension: usize = need("dimension")?
-        .parse()
-        .map_err(|_| StorageError::invalid(path, format!("NRRD dimension '{}' is not a number", get("dimension").unwrap_or(""))))?;
+    let sample_type = nrrd_type(type_name).ok_or_else(|| {
+        StorageError::unsupported(
+            path,
+            format!("NRRD type '{type_name}' (supported: 8/16/32-bit integers, float, double)"),
+        )
+    })?;
+    let dimension: usize = need("dimension")?.parse().map_err(|_| {
+        StorageError::invalid(
+            path,
+            format!("NRRD dimension '{}' is not a number", get("dimension").unwrap_or("")),
+        )
+    })?;
     let sizes = parse_u64s(path, "sizes", need("sizes")?)?;
     if sizes.len() != dimension {
-        return Err(StorageError::invalid(path, format!("NRRD sizes {sizes:?} do not match dimension {dimension}")));
+        return Err(StorageError::invalid(
+            path,
+            format!("NRRD sizes {sizes:?} do not match dimension {dimension}"),
+        ));
     }
     if dimension > 3 {
-        return Err(StorageError::unsupported(path, format!("{dimension}-D NRRD (only 3-D scalar volumes; sizes {sizes:?})")));
+        return Err(StorageError::unsupported(
+            path,
+            format!("{dimension}-D NRRD (only 3-D scalar volumes; sizes {sizes:?})"),
+        ));
     }
     let dims = dims3(path, "sizes", &sizes)?;
     if let Some(kinds) = get("kinds") {
@@ -179,7 +203,12 @@ pub(crate) fn open_nrrd(path: &Path, options: &ReadOptions) -> Result<OpenedSour
     let byte_order = match get("endian").map(|s| s.to_ascii_lowercase()) {
         Some(e) if e == "big" => ByteOrder::Big,
         Some(e) if e == "little" => ByteOrder::Little,
-        Some(e) => return Err(StorageError::invalid(path, format!("NRRD endian '{e}' (expected little or big)"))),
+        Some(e) => {
+            return Err(StorageError::invalid(
+                path,
+                format!("NRRD endian '{e}' (expected little or big)"),
+            ))
+        }
         // Only single-byte types may omit it; little is what every writer in practice uses.
         None => ByteOrder::Little,
     };
@@ -195,7 +224,10 @@ pub(crate) fn open_nrrd(path: &Path, options: &ReadOptions) -> Result<OpenedSour
         "gzip" | "gz" => Encoding::Gzip,
         "ascii" | "text" | "txt" => Encoding::Ascii,
         other => {
-            return Err(StorageError::unsupported(path, format!("NRRD encoding '{other}' (supported: raw, gzip, ascii)")))
+            return Err(StorageError::unsupported(
+                path,
+                format!("NRRD encoding '{other}' (supported: raw, gzip, ascii)"),
+            ))
         }
     };
 
@@ -204,15 +236,22 @@ pub(crate) fn open_nrrd(path: &Path, options: &ReadOptions) -> Result<OpenedSour
     let needed = volume_bytes(path, dims, sample_type.size_bytes())?;
 
     let line_skip: u64 = match get("line skip").or(get("lineskip")) {
-        Some(v) => v.parse().map_err(|_| StorageError::invalid(path, format!("NRRD line skip '{v}' is not a count")))?,
+        Some(v) => v
+            .parse()
+            .map_err(|_| StorageError::invalid(path, format!("NRRD line skip '{v}' is not a count")))?,
         None => 0,
     };
     let byte_skip: i64 = match get("byte skip").or(get("byteskip")) {
-        Some(v) => v.parse().map_err(|_| StorageError::invalid(path, format!("NRRD byte skip '{v}' is not a number")))?,
+        Some(v) => v
+            .parse()
+            .map_err(|_| StorageError::invalid(path, format!("NRRD byte skip '{v}' is not a number")))?,
         None => 0,
     };
     if byte_skip < -1 {
-        return Err(StorageError::invalid(path, format!("NRRD byte skip {byte_skip} (only -1 or a count is valid)")));
+        return Err(StorageError::invalid(
+            path,
+            format!("NRRD byte skip {byte_skip} (only -1 or a count is valid)"),
+        ));
     }
 
     let (data_path, base_offset) = match get("data file").or(get("datafile")) {
@@ -222,10 +261,17 @@ pub(crate) fn open_nrrd(path: &Path, options: &ReadOptions) -> Result<OpenedSour
             // name (even one with spaces) is a single file.
             let tokens: Vec<&str> = spec.split_whitespace().collect();
             if spec.starts_with("LIST") || (tokens.len() > 1 && tokens[0].contains('%')) {
-                return Err(StorageError::unsupported(path, format!("NRRD multi-file 'data file: {spec}'")));
+                return Err(StorageError::unsupported(
+                    path,
+                    format!("NRRD multi-file 'data file: {spec}'"),
+                ));
             }
             let p = PathBuf::from(spec);
-            let full = if p.is_absolute() { p } else { path.parent().unwrap_or(Path::new(".")).join(p) };
+            let full = if p.is_absolute() {
+                p
+            } else {
+                path.parent().unwrap_or(Path::new(".")).join(p)
+            };
             (full, 0)
         }
     };
@@ -233,11 +279,15 @@ pub(crate) fn open_nrrd(path: &Path, options: &ReadOptions) -> Result<OpenedSour
 
     let data_file = File::open(&data_path).map_err(|e| StorageError::io(&data_path, e))?;
     let mut dr = BufReader::new(data_file);
-    dr.seek(SeekFrom::Start(base_offset)).map_err(|e| StorageError::io(&data_path, e))?;
+    dr.seek(SeekFrom::Start(base_offset))
+        .map_err(|e| StorageError::io(&data_path, e))?;
     let mut offset = base_offset;
     for _ in 0..line_skip {
         if read_line(&data_path, &mut dr, &mut offset)?.is_none() {
-            return Err(StorageError::invalid(&data_path, format!("truncated data: fewer than {line_skip} lines to skip")));
+            return Err(StorageError::invalid(
+                &data_path,
+                format!("truncated data: fewer than {line_skip} lines to skip"),
+            ));
         }
     }
 
@@ -256,10 +306,15 @@ pub(crate) fn open_nrrd(path: &Path, options: &ReadOptions) -> Result<OpenedSour
         stream_into(&data_path, &mut z, &mut staging, needed)?;
         RawVolume::from_staging(staging, &data_path, sample_type, byte_order, dims)?
     } else {
-        let len = std::fs::metadata(&data_path).map_err(|e| StorageError::io(&data_path, e))?.len();
+        let len = std::fs::metadata(&data_path)
+            .map_err(|e| StorageError::io(&data_path, e))?
+            .len();
         let start = if byte_skip == -1 {
             len.checked_sub(needed).ok_or_else(|| {
-                StorageError::invalid(&data_path, format!("truncated data: {needed} bytes of voxels expected, file has {len}"))
+                StorageError::invalid(
+                    &data_path,
+                    format!("truncated data: {needed} bytes of voxels expected, file has {len}"),
+                )
             })?
         } else {
             offset + byte_skip as u64
@@ -303,9 +358,12 @@ fn stage_ascii(
     let mut count = 0u64;
     let mut emit = |tok: &[u8], count: &mut u64| -> Result<()> {
         let text = std::str::from_utf8(tok).unwrap_or("?");
-        let v: f64 = text
-            .parse()
-            .map_err(|_| StorageError::invalid(path, format!("ascii NRRD value {} is '{text}', not a number", *count + 1)))?;
+        let v: f64 = text.parse().map_err(|_| {
+            StorageError::invalid(
+                path,
+                format!("ascii NRRD value {} is '{text}', not a number", *count + 1),
+            )
+        })?;
         let bytes: Vec<u8> = match sample_type {
             SampleType::U8 => vec![v as u8],
             SampleType::I8 => vec![v as i8 as u8],
@@ -331,7 +389,10 @@ fn stage_ascii(
             }
             Some(Ok(b)) => {
                 if token.len() > 64 {
-                    return Err(StorageError::invalid(path, "ascii NRRD data holds a token too long to be a number"));
+                    return Err(StorageError::invalid(
+                        path,
+                        "ascii NRRD data holds a token too long to be a number",
+                    ));
                 }
                 token.push(b)
             }
@@ -364,7 +425,10 @@ fn nrrd_geometry(path: &Path, fields: &HashMap<String, String>, dimension: usize
     };
     let to_lps = |v: &[f64]| -> Result<[f64; 3]> {
         if v.len() != 3 {
-            return Err(StorageError::unsupported(path, format!("NRRD space vector {v:?} is not 3-D")));
+            return Err(StorageError::unsupported(
+                path,
+                format!("NRRD space vector {v:?} is not 3-D"),
+            ));
         }
         Ok([v[0] * space_sign[0], v[1] * space_sign[1], v[2] * space_sign[2]])
     };
@@ -380,7 +444,10 @@ fn nrrd_geometry(path: &Path, fields: &HashMap<String, String>, dimension: usize
         if parts.len() != dimension {
             return Err(StorageError::invalid(
                 path,
-                format!("NRRD space directions has {} entries for dimension {dimension}: '{sd}'", parts.len()),
+                format!(
+                    "NRRD space directions has {} entries for dimension {dimension}: '{sd}'",
+                    parts.len()
+                ),
             ));
         }
         let mut axes = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
@@ -408,7 +475,10 @@ fn nrrd_geometry(path: &Path, fields: &HashMap<String, String>, dimension: usize
     if let Some(s) = get("spacings") {
         let v = parse_f64s(path, "spacings", s)?;
         if v.len() != dimension {
-            return Err(StorageError::invalid(path, format!("NRRD spacings {v:?} do not match dimension {dimension}")));
+            return Err(StorageError::invalid(
+                path,
+                format!("NRRD spacings {v:?} do not match dimension {dimension}"),
+            ));
         }
         for (a, x) in v.into_iter().enumerate() {
             if x.is_nan() {

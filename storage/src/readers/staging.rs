@@ -17,7 +17,10 @@ pub(crate) fn new_staging(source: &Path, options: &ReadOptions) -> Result<NamedT
     match &options.staging_dir {
         Some(dir) => b.tempfile_in(dir).map_err(|e| StorageError::io(dir, e)),
         None => b.tempfile().map_err(|e| {
-            StorageError::io(source, std::io::Error::new(e.kind(), format!("creating staging file: {e}")))
+            StorageError::io(
+                source,
+                std::io::Error::new(e.kind(), format!("creating staging file: {e}")),
+            )
         }),
     }
 }
