@@ -119,3 +119,59 @@ impl<'a> VoxelReader<'a> {
         self.store.header().value_mapping.physical(s)
     }
 }
+
+/// GPU frame and f64 reference of the same cut of a store (uniform `level`), for image tests.
+pub mod render_pair {
+    use strata_loader::store_volume::{classify_empty, page_table_for_cut, GpuCut};
+    use strata_loader::{render_geometry, render_mapping, ResidentBricks};
+    use strata_render::reference::{render_reference, ReferenceOptions, ReferenceScene};
+    use strata_render::{Camera, GpuContext, RenderMode, RenderSettings, TransferFunction, VolumeGeometry};
+    use strata_storage::Store;
+
+    pub struct Pair {
+        pub gpu: Vec<u8>,
+        pub reference: Vec<u8>,
+    }
+
+    /// A headless device or a failed test carrying the install hint (never a silent pass).
+    pub fn gpu() -> GpuContext {
+        GpuContext::headless().unwrap_or_else(|e| panic!("{e}"))
+    }
+
+    /// Renders `store` at `level` with `tf` on the GPU and with the reference. `geometry_override`
+    /// replaces the store's geometry (to prove a test would notice geometry being ignored).
+    pub fn render(
+        ctx: &GpuContext,
+        store: &Store,
+        level: u8,
+        tf: &TransferFunction,
+        camera_of: impl Fn(&VolumeGeometry) -> Camera,
+        settings: &RenderSettings,
+        geometry_override: Option<VolumeGeometry>,
+    ) -> Pair {
+        let header = store.header();
+        let geometry = geometry_override.unwrap_or_else(|| render_geometry(header).unwrap());
+        let mapping = render_mapping(header);
+        let lo = mapping.physical(header.stored_range[0] as f64);
+        let hi = mapping.physical(header.stored_range[1] as f64);
+        let tf_table = tf.table(lo.min(hi), lo.max(hi));
+        let mut table = page_table_for_cut(store, &geometry, |_| level);
+        if settings.mode == RenderMode::Dvr {
+            classify_empty(store, &mut table, mapping, &tf_table);
+        }
+        let bricks = ResidentBricks::load(store, &table).unwrap();
+        let camera = camera_of(&geometry);
+        let mut cut = GpuCut::upload(ctx, &bricks, &table, geometry.page_dims(), &tf_table).unwrap();
+        let gpu = cut.render_blocking(ctx, &geometry, mapping, &camera, settings).unwrap().rgba;
+        let reference_scene = ReferenceScene {
+            source: &bricks,
+            page_table: &table,
+            geometry: &geometry,
+            mapping,
+            transfer_function: tf,
+            tf_range: (tf_table.lo, tf_table.hi),
+        };
+        let reference = render_reference(&reference_scene, &camera, settings, ReferenceOptions::default()).unwrap().rgba;
+        Pair { gpu, reference }
+    }
+}

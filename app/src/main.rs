@@ -3,6 +3,7 @@
 mod bench;
 mod cmd_import;
 mod cmd_info;
+mod cmd_render;
 mod cmd_sample;
 mod cmd_verify;
 mod progress;
@@ -31,6 +32,8 @@ enum Command {
     Verify {
         store: PathBuf,
     },
+    /// Render one frame of a store headless to PNG (GPU, or the f64 CPU reference).
+    Render(cmd_render::RenderArgs),
     /// Write the deterministic CT phantom as a store or as NRRD (by the extension of --out).
     Sample(cmd_sample::SampleArgs),
     /// Benchmarks (figures for the issue notes).
@@ -54,10 +57,35 @@ fn run(cli: Cli) -> Result<()> {
         Some(Command::Info { store }) => cmd_info::run(&store),
         Some(Command::Verify { store }) => cmd_verify::run(&store),
         Some(Command::Sample(args)) => cmd_sample::run(args),
+        Some(Command::Render(args)) => cmd_render::run(args),
         Some(Command::Bench(cmd)) => bench::run(cmd),
-        None => cmd_sample::ensure_demo_volume().map(|path| {
-            println!("Demo volume ready at {}", path.display());
-            println!("The interactive viewer arrives with the clinician-app issue; meanwhile try `strata info {}`.", path.display());
-        }),
+        None => demo(),
     }
+}
+
+/// The main job until the interactive viewer lands: make sure the demo volume exists, then
+/// render it headless on the GPU to a PNG beside it.
+fn demo() -> Result<()> {
+    let store = cmd_sample::ensure_demo_volume()?;
+    let out = store.with_extension("png");
+    cmd_render::run(cmd_render::RenderArgs {
+        store: store.clone(),
+        out: out.clone(),
+        size: "512x512".into(),
+        azimuth: 30.0,
+        elevation: 15.0,
+        zoom: 1.0,
+        mode: cmd_render::ModeArg::Dvr,
+        tf: Some("ct-bone".into()),
+        step: 0.5,
+        level: 0,
+        reference: false,
+        shading: true,
+        iso: 300.0,
+        orthographic: false,
+        no_jitter: false,
+    })?;
+    println!("The interactive viewer is not built yet (clinician-app issue); this run rendered {} headless.", out.display());
+    println!("Try: strata info {0} | strata render {0} --mode mip --out mip.png", store.display());
+    Ok(())
 }

@@ -1,2 +1,8 @@
-//! strata-loader: selects the octree cut per frame and streams bricks from storage to the GPU cache.
-//! (Filled in by the loader issue; the crate exists so its boundaries hold from day one.)
+//! strata-loader: sits between storage and render. For now it loads a fixed cut of the octree
+//! (one level per page position) from a store into memory and the GPU cache; the streaming
+//! working set (cut selection per frame, fetch threads, LRU caches, upload budget, visibility
+//! feedback) comes with the loader issue and will replace `load_cut` for interactive use.
+
+pub mod store_volume;
+
+pub use store_volume::{render_geometry, render_mapping, LoaderError, ResidentBricks};

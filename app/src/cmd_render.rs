@@ -1,0 +1,155 @@
+//! `strata render`: one headless frame of a store, on the GPU or with the f64 CPU reference.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use clap::{Args, ValueEnum};
+use strata_loader::store_volume::{classify_empty, page_table_for_cut, GpuCut};
+use strata_loader::{render_geometry, render_mapping, ResidentBricks};
+use strata_render::reference::{render_reference, ReferenceOptions, ReferenceScene};
+use strata_render::{Camera, GpuContext, Projection, RenderMode, RenderSettings, Shading, TransferFunction};
+use strata_storage::Store;
+
+#[derive(Clone, Copy, ValueEnum)]
+pub enum ModeArg {
+    Dvr,
+    Mip,
+    Iso,
+}
+
+#[derive(Args)]
+pub struct RenderArgs {
+    pub store: PathBuf,
+    /// Output PNG.
+    #[arg(long, default_value = "strata.png")]
+    pub out: PathBuf,
+    /// Image size WxH.
+    #[arg(long, default_value = "512x512")]
+    pub size: String,
+    /// Orbit angle around the patient's superior axis, degrees (0 = looking from anterior).
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    pub azimuth: f64,
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    pub elevation: f64,
+    #[arg(long, default_value_t = 1.0)]
+    pub zoom: f64,
+    #[arg(long, value_enum, default_value_t = ModeArg::Dvr)]
+    pub mode: ModeArg,
+    /// Preset (ct-bone, ct-soft-tissue, ct-lung, ct-vessels, mr-default) or a JSON file.
+    #[arg(long)]
+    pub tf: Option<String>,
+    /// Step length in finest voxels (quality factor).
+    #[arg(long, default_value_t = 0.5)]
+    pub step: f64,
+    /// Octree level to render (0 = full resolution; clamped to the root).
+    #[arg(long, default_value_t = 0)]
+    pub level: u8,
+    /// Render with the f64 CPU reference instead of the GPU.
+    #[arg(long)]
+    pub reference: bool,
+    /// Blinn-Phong shading (always on for isosurfaces).
+    #[arg(long)]
+    pub shading: bool,
+    /// Isosurface value in physical units.
+    #[arg(long, default_value_t = 300.0, allow_hyphen_values = true)]
+    pub iso: f64,
+    /// Orthographic instead of perspective projection.
+    #[arg(long)]
+    pub orthographic: bool,
+    /// Turn off ray-start jitter.
+    #[arg(long)]
+    pub no_jitter: bool,
+}
+
+fn parse_size(text: &str) -> Result<(u32, u32)> {
+    let (w, h) = text.split_once(['x', 'X']).with_context(|| format!("--size must look like 512x512, not '{text}'"))?;
+    let (w, h): (u32, u32) = (w.trim().parse()?, h.trim().parse()?);
+    if !(1..=8192).contains(&w) || !(1..=8192).contains(&h) {
+        bail!("--size {w}x{h} is outside 1..8192");
+    }
+    Ok((w, h))
+}
+
+/// The transfer function the user named, or a sensible default for the modality.
+pub fn choose_transfer_function(name: Option<&str>, modality: &str) -> Result<TransferFunction> {
+    let name = name.unwrap_or(if modality.eq_ignore_ascii_case("CT") { "ct-bone" } else { "mr-default" });
+    if let Some(tf) = TransferFunction::preset(name) {
+        return Ok(tf);
+    }
+    let path = Path::new(name);
+    if path.exists() {
+        return TransferFunction::load(path).with_context(|| format!("reading transfer function {}", path.display()));
+    }
+    bail!("unknown transfer function '{name}': use ct-bone, ct-soft-tissue, ct-lung, ct-vessels, mr-default or a JSON file")
+}
+
+pub fn run(args: RenderArgs) -> Result<()> {
+    let (width, height) = parse_size(&args.size)?;
+    let store = Store::open(&args.store).with_context(|| format!("cannot open store {}", args.store.display()))?;
+    let header = store.header().clone();
+    let geometry = render_geometry(&header)?;
+    let mapping = render_mapping(&header);
+    let tf = choose_transfer_function(args.tf.as_deref(), &header.modality)?;
+    let physical_range = (mapping.physical(header.stored_range[0] as f64), mapping.physical(header.stored_range[1] as f64));
+    let tf_table = tf.table(physical_range.0.min(physical_range.1), physical_range.0.max(physical_range.1));
+    let mut table = page_table_for_cut(&store, &geometry, |_| args.level);
+    let settings = RenderSettings {
+        width,
+        height,
+        mode: match args.mode {
+            ModeArg::Dvr => RenderMode::Dvr,
+            ModeArg::Mip => RenderMode::Mip,
+            ModeArg::Iso => RenderMode::Isosurface,
+        },
+        quality: args.step,
+        jitter: !args.no_jitter,
+        shading: (args.shading || matches!(args.mode, ModeArg::Iso)).then(Shading::default),
+        iso_value: args.iso,
+        ..RenderSettings::default()
+    };
+    if matches!(settings.mode, RenderMode::Dvr) {
+        classify_empty(&store, &mut table, mapping, &tf_table);
+    }
+    let projection = if args.orthographic {
+        Projection::Orthographic { height_mm: geometry.bounding_radius_mm() * 2.0 / args.zoom.max(1e-3) }
+    } else {
+        Projection::Perspective { fov_y_deg: 30.0 }
+    };
+    let camera = Camera::orbit(&geometry, args.azimuth, args.elevation, args.zoom, projection);
+    let t_load = Instant::now();
+    let bricks = ResidentBricks::load(&store, &table)?;
+    eprintln!("loaded {} bricks of level {} in {:.2} s", bricks.len(), args.level, t_load.elapsed().as_secs_f64());
+
+    let t = Instant::now();
+    let rgba = if args.reference {
+        let scene = ReferenceScene {
+            source: &bricks,
+            page_table: &table,
+            geometry: &geometry,
+            mapping,
+            transfer_function: &tf,
+            tf_range: (tf_table.lo, tf_table.hi),
+        };
+        render_reference(&scene, &camera, &settings, ReferenceOptions::default())?.rgba
+    } else {
+        let ctx = GpuContext::headless()?;
+        eprintln!("GPU: {}", ctx.adapter_name());
+        let mut cut = GpuCut::upload(&ctx, &bricks, &table, geometry.page_dims(), &tf_table)?;
+        cut.render_blocking(&ctx, &geometry, mapping, &camera, &settings)?.rgba
+    };
+    eprintln!("rendered {}x{} in {:.2} s ({})", width, height, t.elapsed().as_secs_f64(), if args.reference { "CPU reference" } else { "GPU" });
+    write_png(&args.out, width, height, &rgba)?;
+    println!("wrote {}", args.out.display());
+    Ok(())
+}
+
+/// Writes premultiplied RGBA over black (the usual background of medical viewers) as PNG.
+pub fn write_png(path: &Path, width: u32, height: u32, premultiplied_rgba: &[u8]) -> Result<()> {
+    let mut rgb = Vec::with_capacity((width * height * 3) as usize);
+    for px in premultiplied_rgba.chunks_exact(4) {
+        rgb.extend_from_slice(&px[..3]);
+    }
+    image::save_buffer(path, &rgb, width, height, image::ExtendedColorType::Rgb8)
+        .with_context(|| format!("writing {}", path.display()))
+}

@@ -1,0 +1,159 @@
+//! A fixed cut of a store held in memory: the bricks a page table references, read (and
+//! checksum-verified) from storage, served to the renderer through [`BrickSource`].
+
+use std::collections::HashMap;
+
+use rayon::prelude::*;
+use strata_render::{BrickCache, BrickSource, PageEntry, PageTable, TransferFunctionTable, ValueMapping, VolumeGeometry};
+use strata_storage::{BrickId, Store, StorageError, StoreHeader};
+
+#[derive(Debug, thiserror::Error)]
+pub enum LoaderError {
+    #[error(transparent)]
+    Storage(#[from] StorageError),
+    #[error(transparent)]
+    Render(#[from] strata_render::RenderError),
+    #[error("{0}")]
+    Unsupported(String),
+}
+
+/// The store's geometry in the renderer's terms (same fields; u32 extents).
+pub fn render_geometry(header: &StoreHeader) -> Result<VolumeGeometry, LoaderError> {
+    let g = &header.geometry;
+    let dims = g.dims.map(|d| u32::try_from(d).unwrap_or(u32::MAX));
+    if dims.contains(&u32::MAX) {
+        return Err(LoaderError::Unsupported(format!("volume extent {:?} exceeds the renderer's range", g.dims)));
+    }
+    Ok(VolumeGeometry { dims, spacing_mm: g.spacing_mm, origin_lps_mm: g.origin_lps_mm, direction: g.direction })
+}
+
+pub fn render_mapping(header: &StoreHeader) -> ValueMapping {
+    ValueMapping { slope: header.value_mapping.slope, intercept: header.value_mapping.intercept }
+}
+
+/// Bricks of one cut, keyed by (level, node).
+pub struct ResidentBricks {
+    bricks: HashMap<(u8, [u32; 3]), Vec<u16>>,
+}
+
+impl BrickSource for ResidentBricks {
+    fn brick(&self, level: u8, node: [u32; 3]) -> Option<&[u16]> {
+        self.bricks.get(&(level, node)).map(|b| b.as_slice())
+    }
+}
+
+impl ResidentBricks {
+    /// Reads every node `table` references, in parallel. A damaged brick is an error naming it.
+    pub fn load(store: &Store, table: &PageTable) -> Result<ResidentBricks, LoaderError> {
+        let mut nodes: Vec<(u8, [u32; 3])> = table
+            .entries
+            .iter()
+            .enumerate()
+            .filter(|(_, e)| e.resident)
+            .map(|(i, e)| (e.level, PageTable::node_of(table.page_of_linear(i), e.level)))
+            .collect();
+        nodes.sort_unstable();
+        nodes.dedup();
+        let bricks = nodes
+            .into_par_iter()
+            .map(|(level, node)| Ok(((level, node), store.read_brick(BrickId::new(level, node))?)))
+            .collect::<Result<HashMap<_, _>, StorageError>>()?;
+        Ok(ResidentBricks { bricks })
+    }
+
+    pub fn len(&self) -> usize {
+        self.bricks.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.bricks.is_empty()
+    }
+
+    /// Uploads the table's nodes into their slots.
+    pub fn upload(&self, cache: &BrickCache, queue: &wgpu::Queue, table: &PageTable) -> Result<(), LoaderError> {
+        let mut done = std::collections::HashSet::new();
+        for (i, e) in table.entries.iter().enumerate() {
+            if !e.resident || !done.insert(e.slot_in_cache) {
+                continue;
+            }
+            let node = PageTable::node_of(table.page_of_linear(i), e.level);
+            let payload = self
+                .brick(e.level, node)
+                .ok_or_else(|| LoaderError::Unsupported(format!("node {node:?} of level {} was not loaded", e.level)))?;
+            cache.upload_brick(queue, e.slot_in_cache, payload)?;
+        }
+        Ok(())
+    }
+}
+
+/// A page table whose position `page` is served by level `level_of(page)` (clamped to the
+/// root), with slots assigned densely in first-use order.
+pub fn page_table_for_cut(store: &Store, geometry: &VolumeGeometry, level_of: impl Fn([u32; 3]) -> u8) -> PageTable {
+    let root = (store.layout().level_count() - 1) as u8;
+    let mut table = PageTable::new(geometry.page_dims());
+    let mut slots: HashMap<(u8, [u32; 3]), u32> = HashMap::new();
+    for i in 0..table.entries.len() {
+        let page = table.page_of_linear(i);
+        let level = level_of(page).min(root);
+        let node = PageTable::node_of(page, level);
+        let next = slots.len() as u32;
+        let slot = *slots.entry((level, node)).or_insert(next);
+        table.entries[i] = PageEntry::resident(slot, level);
+    }
+    table
+}
+
+/// Flags positions whose node is transparent under the transfer function (skeleton ranges).
+pub fn classify_empty(store: &Store, table: &mut PageTable, mapping: ValueMapping, tf: &TransferFunctionTable) {
+    table.classify_empty(tf, mapping, |level, node| store.node(BrickId::new(level, node)).map(|n| (n.min, n.max)));
+}
+
+/// A fixed cut resident on the GPU: cache texture, page table, transfer function and raycaster,
+/// ready to render frames of it. (The streaming loader will keep these updated instead.)
+pub struct GpuCut {
+    pub cache: strata_render::BrickCache,
+    pub page_table: strata_render::GpuPageTable,
+    pub transfer_function: strata_render::GpuTransferFunction,
+    pub raycaster: strata_render::Raycaster,
+}
+
+impl GpuCut {
+    /// Uploads `bricks` into a cache with exactly as many slots as the cut needs.
+    pub fn upload(
+        ctx: &strata_render::GpuContext,
+        bricks: &ResidentBricks,
+        table: &PageTable,
+        page_dims: [u32; 3],
+        tf_table: &TransferFunctionTable,
+    ) -> Result<GpuCut, LoaderError> {
+        let config = strata_render::CacheConfig { max_slots: Some(bricks.len().max(1) as u32), ..Default::default() };
+        let cache = BrickCache::new(&ctx.device, config)?;
+        bricks.upload(&cache, &ctx.queue, table)?;
+        let page_table = strata_render::GpuPageTable::new(&ctx.device, page_dims, &cache);
+        page_table.update(&ctx.queue, table)?;
+        let transfer_function = strata_render::GpuTransferFunction::new(&ctx.device, &ctx.queue, tf_table);
+        let raycaster = strata_render::Raycaster::new(ctx, &cache);
+        Ok(GpuCut { cache, page_table, transfer_function, raycaster })
+    }
+
+    /// Renders one frame and waits for it (CLI, tests, benchmarks; the viewer reads back late).
+    pub fn render_blocking(
+        &mut self,
+        ctx: &strata_render::GpuContext,
+        geometry: &VolumeGeometry,
+        mapping: ValueMapping,
+        camera: &strata_render::Camera,
+        settings: &strata_render::RenderSettings,
+    ) -> Result<strata_render::FrameReadback, LoaderError> {
+        let scene = strata_render::Scene {
+            cache: &self.cache,
+            page_table: &self.page_table,
+            transfer_function: &self.transfer_function,
+            geometry,
+            mapping,
+            camera,
+            settings,
+        };
+        Ok(self.raycaster.render_blocking(ctx, &scene)?)
+    }
+}

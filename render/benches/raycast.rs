@@ -1,0 +1,213 @@
+//! Raycast benchmark on lavapipe (or whatever adapter is found), comparable with
+//! bench/peers/vtk_peer_bench.py: same 256³ u8 phantom, same transfer function, 512², step 0.5
+//! voxel, camera reset to the bounding sphere with a 30° view angle, azimuth +30° per frame.
+//!
+//! Run: CARGO_TARGET_DIR=/tmp/target-render cargo bench -p strata-render --bench raycast
+//! Env: STRATA_BENCH_SIZE (default 512), STRATA_BENCH_FRAMES (default 5),
+//!      STRATA_BENCH_VOLUME (default 256), STRATA_BENCH_REF_SIZE (default 128).
+//!
+//! Prints ms/frame (median), samples/s, the sampling-only kernel's samples/s measured in the
+//! same run (the ceiling: same texture, same fetch count, no page lookup, TF or compositing),
+//! and PSNR against the f64 CPU reference at a smaller image size.
+
+use std::time::Instant;
+use strata_render::reference::{render_reference, ReferenceOptions, ReferenceScene};
+use strata_render::*;
+
+fn env_u32(name: &str, default: u32) -> u32 {
+    std::env::var(name).ok().and_then(|v| v.parse().ok()).unwrap_or(default)
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(|a, b| a.total_cmp(b));
+    v[v.len() / 2]
+}
+
+const SAMPLING_ONLY: &str = r#"
+@group(0) @binding(0) var cache: texture_3d<f32>;
+@group(0) @binding(1) var cache_sampler: sampler;
+@group(0) @binding(2) var<storage, read_write> sink: array<f32>;
+@group(0) @binding(3) var<uniform> params: vec4<u32>; // width, height, samples per ray, 0
+@compute @workgroup_size(8, 8, 1)
+fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if gid.x >= params.x || gid.y >= params.y { return; }
+    let dims = vec3<f32>(textureDimensions(cache));
+    // A diagonal ray through the cache with half-texel steps, like a 0.5-voxel raycast.
+    var p = vec3<f32>(f32(gid.x) * dims.x / f32(params.x), f32(gid.y) * dims.y / f32(params.y), 0.5);
+    let d = normalize(vec3<f32>(0.3, 0.2, 1.0)) * 0.5;
+    var acc = 0.0;
+    for (var i = 0u; i < params.z; i++) {
+        acc += textureSampleLevel(cache, cache_sampler, fract(p / dims), 0.0).r;
+        p += d;
+    }
+    sink[gid.y * params.x + gid.x] = acc;
+}
+"#;
+
+/// Sampling-only kernel: the same cache texture and sampler, the same number of trilinear
+/// fetches per pixel, nothing else. Its rate is what the raycaster could reach if page lookup,
+/// transfer function, compositing and control flow were free.
+struct SamplingOnly {
+    pipeline: wgpu::ComputePipeline,
+    bind: wgpu::BindGroup,
+    size: u32,
+}
+
+impl SamplingOnly {
+    fn new(ctx: &GpuContext, cache: &BrickCache, size: u32, samples_per_ray: u32) -> Self {
+        let device = &ctx.device;
+        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor { label: Some("sampling only"), source: wgpu::ShaderSource::Wgsl(SAMPLING_ONLY.into()) });
+        let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+            label: Some("sampling only"),
+            layout: None,
+            module: &module,
+            entry_point: Some("main"),
+            compilation_options: Default::default(),
+            cache: None,
+        });
+        let sink = device.create_buffer(&wgpu::BufferDescriptor { label: None, size: size as u64 * size as u64 * 4, usage: wgpu::BufferUsages::STORAGE, mapped_at_creation: false });
+        let params = device.create_buffer(&wgpu::BufferDescriptor { label: None, size: 16, usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST, mapped_at_creation: false });
+        ctx.queue.write_buffer(&params, 0, bytemuck::cast_slice(&[size, size, samples_per_ray, 0u32]));
+        let filter = if cache.format.filterable() { wgpu::FilterMode::Linear } else { wgpu::FilterMode::Nearest };
+        let sampler = device.create_sampler(&wgpu::SamplerDescriptor { mag_filter: filter, min_filter: filter, ..Default::default() });
+        let bind = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: None,
+            layout: &pipeline.get_bind_group_layout(0),
+            entries: &[
+                wgpu::BindGroupEntry { binding: 0, resource: wgpu::BindingResource::TextureView(&cache.view) },
+                wgpu::BindGroupEntry { binding: 1, resource: wgpu::BindingResource::Sampler(&sampler) },
+                wgpu::BindGroupEntry { binding: 2, resource: sink.as_entire_binding() },
+                wgpu::BindGroupEntry { binding: 3, resource: params.as_entire_binding() },
+            ],
+        });
+        SamplingOnly { pipeline, bind, size }
+    }
+
+    fn run(&self, ctx: &GpuContext) {
+        let mut enc = ctx.device.create_command_encoder(&Default::default());
+        {
+            let mut pass = enc.begin_compute_pass(&Default::default());
+            pass.set_pipeline(&self.pipeline);
+            pass.set_bind_group(0, &self.bind, &[]);
+            pass.dispatch_workgroups(self.size.div_ceil(8), self.size.div_ceil(8), 1);
+        }
+        let idx = ctx.queue.submit(Some(enc.finish()));
+        ctx.device.poll(wgpu::PollType::Wait { submission_index: Some(idx), timeout: None }).expect("poll");
+    }
+}
+
+fn main() {
+    let ctx = match GpuContext::headless() {
+        Ok(c) => c,
+        Err(e) => {
+            eprintln!("{e}");
+            std::process::exit(1);
+        }
+    };
+    let n = env_u32("STRATA_BENCH_VOLUME", 256);
+    let size = env_u32("STRATA_BENCH_SIZE", 512);
+    let frames = env_u32("STRATA_BENCH_FRAMES", 5).max(1);
+    let ref_size = env_u32("STRATA_BENCH_REF_SIZE", 128);
+    println!("adapter: {}", ctx.adapter_name());
+    let t = Instant::now();
+    let volume = phantom::vtk_peer_phantom(n).expect("phantom");
+    println!("phantom {n}³ bricked in {:.0} ms ({} levels)", t.elapsed().as_secs_f64() * 1e3, volume.level_count());
+    let tf = phantom::vtk_peer_transfer_function();
+    let tf_table = tf.table(0.0, 255.0);
+    let mut page_table = volume.page_table_uniform(0);
+    volume.classify_empty(&mut page_table, &tf_table);
+    let nodes = BrickedVolume::resident_nodes(&page_table).len() as u32;
+    let cache = BrickCache::new(&ctx.device, CacheConfig { max_slots: Some(nodes), ..Default::default() }).expect("cache");
+    volume.upload(&cache, &ctx.queue, &page_table).expect("upload");
+    let gpu_table = GpuPageTable::new(&ctx.device, volume.geometry.page_dims(), &cache);
+    gpu_table.update(&ctx.queue, &page_table).expect("page table");
+    let gpu_tf = GpuTransferFunction::new(&ctx.device, &ctx.queue, &tf_table);
+    let mut raycaster = Raycaster::new(&ctx, &cache);
+    println!("cache {:?} ({} slots, {} used, {:?}), empty pages {}/{}", cache.texel_dims(), cache.slot_count(), nodes, cache.format,
+        page_table.entries.iter().filter(|e| e.empty).count(), page_table.entries.len());
+
+    // As vtkRenderer::ResetCamera then Azimuth(30) per frame: looking down -z with +y up,
+    // view angle 30°, distance = bounding-sphere radius / sin(15°), orbiting about +y.
+    let centre = volume.geometry.centre_patient();
+    let distance = volume.geometry.bounding_radius_mm() / 15f64.to_radians().sin();
+    let camera_at = |frame: u32| {
+        let az = (30.0 * frame as f64).to_radians();
+        let eye = centre + glam::DVec3::new(az.sin(), 0.0, az.cos()) * distance;
+        Camera::look_at(eye.into(), centre.into(), [0.0, 1.0, 0.0], Projection::Perspective { fov_y_deg: 30.0 })
+    };
+    let quick = std::env::var("STRATA_BENCH_QUICK").is_ok();
+    let configs = [("dvr", RenderMode::Dvr, true), ("mip", RenderMode::Mip, true), ("dvr no-skip", RenderMode::Dvr, false), ("mip no-skip", RenderMode::Mip, false)];
+    let configs = &configs[..if quick { 2 } else { 4 }];
+    let settings_for = |mode, skip| RenderSettings { width: size, height: size, mode, quality: 0.5, skip_empty: skip, ..Default::default() };
+
+    // Samples per ray first (one counting frame per config, untimed): the sampling-only kernel
+    // takes the DVR count so the ceiling does the same number of fetches.
+    let mut samples_per_frame = Vec::new();
+    for &(_, mode, skip) in configs {
+        let camera = camera_at(1);
+        let counting = RenderSettings { count_samples: true, ..settings_for(mode, skip) };
+        let scene = Scene { cache: &cache, page_table: &gpu_table, transfer_function: &gpu_tf, geometry: &volume.geometry, mapping: volume.mapping, camera: &camera, settings: &counting };
+        samples_per_frame.push(raycaster.render_blocking(&ctx, &scene).expect("render").samples.unwrap_or(0) as f64);
+    }
+    let ceiling_per_ray = ((samples_per_frame[0] / (size as f64 * size as f64)).round() as u32).max(16);
+    let ceiling = SamplingOnly::new(&ctx, &cache, size, ceiling_per_ray);
+
+    // Rounds interleave every configuration with the ceiling, so load changes on a shared
+    // machine hit all of them alike; medians over rounds. One warm-up round compiles pipelines.
+    let mut times: Vec<Vec<f64>> = vec![Vec::new(); configs.len() + 1];
+    for round in 0..=frames {
+        for (i, &(_, mode, skip)) in configs.iter().enumerate() {
+            let camera = camera_at(round + 1);
+            let settings = settings_for(mode, skip);
+            let scene = Scene { cache: &cache, page_table: &gpu_table, transfer_function: &gpu_tf, geometry: &volume.geometry, mapping: volume.mapping, camera: &camera, settings: &settings };
+            let t = Instant::now();
+            raycaster.render_and_wait(&ctx, &scene).expect("render");
+            if round > 0 {
+                times[i].push(t.elapsed().as_secs_f64() * 1e3);
+            }
+        }
+        let t = Instant::now();
+        ceiling.run(&ctx);
+        if round > 0 {
+            times[configs.len()].push(t.elapsed().as_secs_f64() * 1e3);
+        }
+    }
+    let ceiling_ms = median(times[configs.len()].clone());
+    let ceiling_samples = ceiling_per_ray as f64 * size as f64 * size as f64;
+    let ceiling_rate = ceiling_samples / ceiling_ms * 1e-3;
+    println!("\n{size}x{size}, step 0.5 voxel, median of {frames} interleaved rounds");
+    println!("{:<24} {:>10} {:>12} {:>12} {:>16}", "config", "ms/frame", "Msamples/s", "samples/ray", "rate vs ceiling");
+    for (i, &(name, _, _)) in configs.iter().enumerate() {
+        let ms = median(times[i].clone());
+        let rate = samples_per_frame[i] / ms * 1e-3;
+        println!("{:<24} {:>10.1} {:>12.1} {:>12.1} {:>15.3}x", name, ms, rate, samples_per_frame[i] / (size as f64 * size as f64), rate / ceiling_rate);
+    }
+    println!("{:<24} {:>10.1} {:>12.1} {:>12} {:>15.3}x", "sampling-only ceiling", ceiling_ms, ceiling_rate, ceiling_per_ray, 1.0);
+
+    if quick {
+        return;
+    }
+    // Accuracy against the f64 reference at a smaller image (the reference at 512² takes
+    // minutes on two cores). Jitter off for the comparison, as in the tests.
+    println!("\nPSNR vs f64 CPU reference at {ref_size}² (reference step = GPU step / 8):");
+    for (name, mode) in [("dvr", RenderMode::Dvr), ("mip", RenderMode::Mip)] {
+        let settings = RenderSettings { width: ref_size, height: ref_size, mode, quality: 0.5, jitter: false, ..Default::default() };
+        let camera = camera_at(1);
+        let scene = Scene { cache: &cache, page_table: &gpu_table, transfer_function: &gpu_tf, geometry: &volume.geometry, mapping: volume.mapping, camera: &camera, settings: &settings };
+        let gpu = raycaster.render_blocking(&ctx, &scene).expect("render");
+        let t = Instant::now();
+        let reference = render_reference(
+            &ReferenceScene { source: &volume, page_table: &page_table, geometry: &volume.geometry, mapping: volume.mapping, transfer_function: &tf, tf_range: (0.0, 255.0) },
+            &camera,
+            &settings,
+            ReferenceOptions { step_refinement: 8.0, ..Default::default() },
+        )
+        .expect("reference");
+        let c = compare_rgba8(&gpu.rgba, &reference.rgba).expect("compare");
+        println!("{name}: PSNR {:.1} dB, RMSE {:.3}, max abs {} (reference {:.1} s)", c.psnr_db, c.rmse, c.max_abs_error, t.elapsed().as_secs_f64());
+        if std::env::var("STRATA_BENCH_SAVE").is_ok() {
+            let _ = metrics::write_ppm(std::path::Path::new(&format!("/tmp/strata-bench-{name}-gpu.ppm")), ref_size, ref_size, &gpu.rgba);
+            let _ = metrics::write_ppm(std::path::Path::new(&format!("/tmp/strata-bench-{name}-ref.ppm")), ref_size, ref_size, &reference.rgba);
+        }
+    }
+}

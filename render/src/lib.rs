@@ -1,0 +1,42 @@
+//! strata-render: the wgpu raycaster and its f64 CPU reference. Knows nothing of sled or the loader.
+//!
+//! The sampled field is defined once, on the CPU side, by a [`PageTable`] plus bricks
+//! ([`BrickSource`]): the GPU raycaster (`raycast.rs` + `shaders/raycast.wgsl`) and the f64
+//! reference (`reference.rs`) both integrate exactly that field, so every GPU pixel can be
+//! checked against ground truth, including mixed-level cuts.
+
+pub mod bricked_volume;
+pub mod cache;
+pub mod camera;
+pub mod device;
+pub mod error;
+pub mod geometry;
+pub mod metrics;
+pub mod page_table;
+pub mod phantom;
+pub mod raycast;
+pub mod reference;
+pub mod settings;
+pub mod transfer_function;
+
+pub use bricked_volume::{BrickSource, BrickedVolume};
+pub use cache::{BrickCache, CacheConfig, CacheFormat};
+pub use camera::{Camera, Projection};
+pub use device::GpuContext;
+pub use error::RenderError;
+pub use geometry::{ValueMapping, VolumeGeometry};
+pub use metrics::{compare_rgba8, ImageComparison};
+pub use page_table::{PageEntry, PageTable};
+pub use raycast::{FrameReadback, GpuPageTable, GpuTransferFunction, Raycaster, Scene};
+pub use settings::{ClipPlane, CropBox, RenderMode, RenderSettings, Shading};
+pub use transfer_function::{TransferFunction, TransferFunctionTable};
+
+/// Core voxels per brick edge.
+pub const BRICK_CORE: u32 = 32;
+/// Replicated voxels on each side of the core: trilinear needs 1, central-difference gradients
+/// taken at ±1 voxel around a trilinear sample need 2.
+pub const BRICK_APRON: u32 = 2;
+/// Stored voxels per brick edge (core + both aprons).
+pub const BRICK_PAYLOAD: u32 = BRICK_CORE + 2 * BRICK_APRON;
+/// Voxels in one brick payload.
+pub const BRICK_PAYLOAD_VOXELS: usize = (BRICK_PAYLOAD * BRICK_PAYLOAD * BRICK_PAYLOAD) as usize;

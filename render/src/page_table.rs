@@ -1,0 +1,190 @@
+//! The layout ("page") table: one entry per level-0 brick position, pointing at the cache slot
+//! of whichever resident octree node covers it. This is Eq. 1-5 of the mixed-resolution paper
+//! generalised from two levels to an octree: instead of storing the translation t and scale
+//! t_w per entry, an entry stores (slot, level); the shader derives
+//! t_w = 2^-L, node = page >> L and the translation from the slot origin, which is the same
+//! affine map x' = x · bscale · t_w + t with fewer bits.
+
+use crate::error::RenderError;
+use crate::transfer_function::TransferFunctionTable;
+use crate::geometry::ValueMapping;
+
+/// GPU word layout: bits 0-7 / 8-15 / 16-23 the slot's x / y / z position in the cache's slot
+/// grid (the shader then needs no integer division), 24-28 level, bit 29 empty, bit 30 not
+/// resident. The CPU side speaks slot indices; the cache's grid converts.
+pub const MAX_SLOTS_PER_AXIS: u32 = 255;
+pub const MAX_SLOTS: u32 = MAX_SLOTS_PER_AXIS * MAX_SLOTS_PER_AXIS * MAX_SLOTS_PER_AXIS;
+pub const LEVEL_SHIFT: u32 = 24;
+pub const FLAG_EMPTY: u32 = 1 << 29;
+pub const FLAG_NOT_RESIDENT: u32 = 1 << 30;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct PageEntry {
+    /// Cache slot holding the covering node's 36³ payload.
+    pub slot_in_cache: u32,
+    /// Octree level of that node; it covers 2^level page positions per axis.
+    pub level: u8,
+    /// Transparent under the current transfer function: rays jump over this position.
+    pub empty: bool,
+    /// Nothing resident: rays treat the position as empty. The loader normally points at a
+    /// coarser resident ancestor instead (the root always is).
+    pub resident: bool,
+}
+
+impl PageEntry {
+    pub fn resident(slot_in_cache: u32, level: u8) -> Self {
+        PageEntry { slot_in_cache, level, empty: false, resident: true }
+    }
+
+    pub const NOT_RESIDENT: PageEntry = PageEntry { slot_in_cache: 0, level: 0, empty: false, resident: false };
+
+    /// GPU word for a cache whose slot grid is `slots_per_axis` (each ≤ 255).
+    pub fn encode(&self, slots_per_axis: [u32; 3]) -> u32 {
+        let [sx, sy, _] = slots_per_axis.map(|v| v.max(1));
+        let s = self.slot_in_cache;
+        let xyz = (s % sx) | (((s / sx) % sy) << 8) | ((s / (sx * sy)).min(255) << 16);
+        let mut word = xyz | ((self.level as u32 & 31) << LEVEL_SHIFT);
+        if self.empty {
+            word |= FLAG_EMPTY;
+        }
+        if !self.resident {
+            word |= FLAG_NOT_RESIDENT;
+        }
+        word
+    }
+
+    pub fn decode(word: u32, slots_per_axis: [u32; 3]) -> Self {
+        let [sx, sy, _] = slots_per_axis.map(|v| v.max(1));
+        let (x, y, z) = (word & 0xff, (word >> 8) & 0xff, (word >> 16) & 0xff);
+        PageEntry {
+            slot_in_cache: x + sx * (y + sy * z),
+            level: ((word >> LEVEL_SHIFT) & 31) as u8,
+            empty: word & FLAG_EMPTY != 0,
+            resident: word & FLAG_NOT_RESIDENT == 0,
+        }
+    }
+
+    /// Rays skip it: nothing to sample, or nothing visible.
+    pub fn skipped(&self) -> bool {
+        self.empty || !self.resident
+    }
+}
+
+/// CPU page table: x fastest, then y, then z over `page_dims` = ceil(dims / 32).
+#[derive(Clone, Debug, PartialEq)]
+pub struct PageTable {
+    pub page_dims: [u32; 3],
+    pub entries: Vec<PageEntry>,
+}
+
+impl PageTable {
+    pub fn new(page_dims: [u32; 3]) -> Self {
+        let n = page_dims.iter().map(|&d| d as usize).product();
+        PageTable { page_dims, entries: vec![PageEntry::NOT_RESIDENT; n] }
+    }
+
+    pub fn linear(&self, page: [u32; 3]) -> usize {
+        let [nx, ny, _] = self.page_dims;
+        page[0] as usize + nx as usize * (page[1] as usize + ny as usize * page[2] as usize)
+    }
+
+    pub fn get(&self, page: [u32; 3]) -> PageEntry {
+        self.entries[self.linear(page)]
+    }
+
+    pub fn set(&mut self, page: [u32; 3], entry: PageEntry) {
+        let i = self.linear(page);
+        self.entries[i] = entry;
+    }
+
+    pub fn page_of_linear(&self, linear: usize) -> [u32; 3] {
+        let [nx, ny, _] = self.page_dims;
+        let l = linear as u32;
+        [l % nx, (l / nx) % ny, l / (nx * ny)]
+    }
+
+    /// Octree node covering `page` at `level`.
+    pub fn node_of(page: [u32; 3], level: u8) -> [u32; 3] {
+        page.map(|p| p >> level)
+    }
+
+    pub fn encoded(&self, slots_per_axis: [u32; 3]) -> Vec<u32> {
+        self.entries.iter().map(|e| e.encode(slots_per_axis)).collect()
+    }
+
+    pub fn check_against(&self, page_dims: [u32; 3]) -> Result<(), RenderError> {
+        let n: usize = page_dims.iter().map(|&d| d as usize).product();
+        if self.page_dims != page_dims || self.entries.len() != n {
+            return Err(RenderError::PageTableMismatch(format!(
+                "table is {:?} with {} entries, volume needs {:?}",
+                self.page_dims,
+                self.entries.len(),
+                page_dims
+            )));
+        }
+        Ok(())
+    }
+
+    /// Sets each entry's empty flag from the covering node's stored [min, max] (which must
+    /// include the apron: trilinear samples near a page face read it). `range_of` returns None
+    /// when the range is unknown, which leaves the entry visible.
+    pub fn classify_empty(
+        &mut self,
+        table: &TransferFunctionTable,
+        mapping: ValueMapping,
+        mut range_of: impl FnMut(u8, [u32; 3]) -> Option<(u16, u16)>,
+    ) {
+        for i in 0..self.entries.len() {
+            let page = self.page_of_linear(i);
+            let e = self.entries[i];
+            if !e.resident {
+                continue;
+            }
+            let empty = match range_of(e.level, Self::node_of(page, e.level)) {
+                Some((lo, hi)) => {
+                    let (a, b) = (mapping.physical(lo as f64), mapping.physical(hi as f64));
+                    table.is_transparent(a.min(b), a.max(b))
+                }
+                None => false,
+            };
+            self.entries[i].empty = empty;
+        }
+    }
+
+    /// Isosurface variant: a node is empty when the iso value lies outside its [min, max]
+    /// (no crossing can start inside it from below... nor be entered from it).
+    pub fn classify_empty_for_iso(&mut self, iso_value: f64, mapping: ValueMapping, mut range_of: impl FnMut(u8, [u32; 3]) -> Option<(u16, u16)>) {
+        for i in 0..self.entries.len() {
+            let page = self.page_of_linear(i);
+            let e = self.entries[i];
+            if !e.resident {
+                continue;
+            }
+            self.entries[i].empty = match range_of(e.level, Self::node_of(page, e.level)) {
+                Some((lo, hi)) => {
+                    let (a, b) = (mapping.physical(lo as f64), mapping.physical(hi as f64));
+                    a.max(b) < iso_value
+                }
+                None => false,
+            };
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn entry_round_trips() {
+        let grid = [56, 40, 255];
+        for e in [
+            PageEntry::resident(0, 0),
+            PageEntry::resident(56 * 40 * 255 - 1, 31),
+            PageEntry { slot_in_cache: 77, level: 3, empty: true, resident: true },
+            PageEntry::NOT_RESIDENT,
+        ] {
+            assert_eq!(PageEntry::decode(e.encode(grid), grid), e);
+        }
+    }
+}

@@ -1,0 +1,636 @@
+//! The raycast pass: a compute shader (shaders/raycast.wgsl) writing an RGBA8 storage texture,
+//! a first-hit depth buffer, the per-page visibility buffer, and an optional sample counter.
+//! One pipeline per combination of used effects (override constants), compiled on first use.
+
+use glam::DVec3;
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicU8, Ordering};
+use std::sync::Arc;
+
+use crate::cache::BrickCache;
+use crate::camera::Camera;
+use crate::device::GpuContext;
+use crate::error::RenderError;
+use crate::geometry::{ValueMapping, VolumeGeometry};
+use crate::page_table::PageTable;
+use crate::settings::{RenderMode, RenderSettings};
+use crate::transfer_function::TransferFunctionTable;
+
+const SHADER: &str = include_str!("shaders/raycast.wgsl");
+const WORKGROUP: u32 = 8;
+/// Visibility staging ring: the loader reads a frame one or two frames late without stalling.
+const VISIBILITY_RING: usize = 3;
+
+/// The page table on the GPU: a storage buffer of encoded entries (see page_table.rs).
+pub struct GpuPageTable {
+    pub buffer: wgpu::Buffer,
+    pub page_dims: [u32; 3],
+    /// Slot grid of the cache the entries point into (entries store slot grid positions).
+    pub slots_per_axis: [u32; 3],
+}
+
+impl GpuPageTable {
+    pub fn new(device: &wgpu::Device, page_dims: [u32; 3], cache: &BrickCache) -> Self {
+        let n: u64 = page_dims.iter().map(|&d| d.max(1) as u64).product();
+        let buffer = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("page table"),
+            size: n * 4,
+            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        GpuPageTable { buffer, page_dims, slots_per_axis: cache.slots_per_axis }
+    }
+
+    pub fn entry_count(&self) -> usize {
+        self.page_dims.iter().map(|&d| d as usize).product()
+    }
+
+    /// Writes the whole table; takes effect for the next submitted frame.
+    pub fn update(&self, queue: &wgpu::Queue, table: &PageTable) -> Result<(), RenderError> {
+        table.check_against(self.page_dims)?;
+        let slots: u32 = self.slots_per_axis.iter().product();
+        if let Some(bad) = table.entries.iter().find(|e| e.resident && e.slot_in_cache >= slots) {
+            return Err(RenderError::SlotOutOfRange { slot: bad.slot_in_cache, slots });
+        }
+        queue.write_buffer(&self.buffer, 0, bytemuck::cast_slice(&table.encoded(self.slots_per_axis)));
+        Ok(())
+    }
+}
+
+/// The sampled transfer function (storage buffer of RGBA f32, linearly interpolated in the
+/// shader; a buffer rather than a 1D texture because Rgba32Float is not filterable everywhere
+/// and 8/16-bit texels would quantise opacity).
+pub struct GpuTransferFunction {
+    pub buffer: wgpu::Buffer,
+    pub lo: f64,
+    pub hi: f64,
+    pub entries: u32,
+    pub source: crate::TransferFunction,
+}
+
+impl GpuTransferFunction {
+    pub fn new(device: &wgpu::Device, queue: &wgpu::Queue, table: &TransferFunctionTable) -> Self {
+        let buffer = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("transfer function"),
+            size: (table.rgba.len() * 16) as u64,
+            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        queue.write_buffer(&buffer, 0, bytemuck::cast_slice(&table.rgba));
+        GpuTransferFunction { buffer, lo: table.lo, hi: table.hi, entries: table.rgba.len() as u32, source: table.source.clone() }
+    }
+
+    pub fn update(&mut self, queue: &wgpu::Queue, table: &TransferFunctionTable) {
+        queue.write_buffer(&self.buffer, 0, bytemuck::cast_slice(&table.rgba));
+        self.lo = table.lo;
+        self.hi = table.hi;
+        self.source = table.source.clone();
+    }
+}
+
+/// Everything one frame needs.
+pub struct Scene<'a> {
+    pub cache: &'a BrickCache,
+    pub page_table: &'a GpuPageTable,
+    pub transfer_function: &'a GpuTransferFunction,
+    pub geometry: &'a VolumeGeometry,
+    pub mapping: ValueMapping,
+    pub camera: &'a Camera,
+    pub settings: &'a RenderSettings,
+}
+
+#[derive(Clone, Debug)]
+pub struct FrameReadback {
+    pub width: u32,
+    pub height: u32,
+    /// Premultiplied RGBA8, row 0 at the top.
+    pub rgba: Vec<u8>,
+    /// Ray distance (mm) of the first contributing sample / iso hit / MIP maximum, or +inf.
+    pub depth: Vec<f32>,
+    /// Per page entry: 1 if a sample there contributed before the ray terminated.
+    pub visibility: Vec<u32>,
+    /// Samples taken, if `count_samples` was set.
+    pub samples: Option<u64>,
+}
+
+/// A visibility buffer read back without blocking, tagged with the frame it came from.
+#[derive(Clone, Debug)]
+pub struct VisibilityFrame {
+    pub frame_number: u64,
+    pub visibility: Vec<u32>,
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct Params {
+    eye_idx: [f32; 4],
+    right_idx: [f32; 4],
+    up_idx: [f32; 4],
+    forward_idx: [f32; 4],
+    a_row0: [f32; 4],
+    a_row1: [f32; 4],
+    a_row2: [f32; 4],
+    box_lo: [f32; 4],
+    box_hi: [f32; 4],
+    dims: [f32; 4],
+    clip: [f32; 4],
+    value_map: [f32; 4],
+    iso: [f32; 4],
+    shading: [f32; 4],
+    iso_color: [f32; 4],
+    cache_inv: [f32; 4],
+    image: [u32; 4],
+    pages: [u32; 4],
+    slots: [u32; 4],
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+struct PipelineKey {
+    mode: RenderMode,
+    manual_trilinear: bool,
+    shading: bool,
+    jitter: bool,
+    skip_empty: bool,
+    early_termination: bool,
+    clip_plane: bool,
+    count_samples: bool,
+}
+
+struct Targets {
+    width: u32,
+    height: u32,
+    color: wgpu::Texture,
+    color_view: wgpu::TextureView,
+    depth: wgpu::Buffer,
+    color_readback: wgpu::Buffer,
+    depth_readback: wgpu::Buffer,
+    padded_row_bytes: u32,
+}
+
+const SLOT_FREE: u8 = 0;
+const SLOT_PENDING: u8 = 1;
+const SLOT_READY: u8 = 2;
+const SLOT_FAILED: u8 = 3;
+
+struct VisibilityStaging {
+    buffer: wgpu::Buffer,
+    state: Arc<AtomicU8>,
+    frame_number: u64,
+}
+
+struct VisibilityBuffers {
+    entries: usize,
+    buffer: wgpu::Buffer,
+    blocking_readback: wgpu::Buffer,
+    ring: Vec<VisibilityStaging>,
+}
+
+pub struct Raycaster {
+    layout: wgpu::BindGroupLayout,
+    pipeline_layout: wgpu::PipelineLayout,
+    module: wgpu::ShaderModule,
+    pipelines: HashMap<PipelineKey, wgpu::ComputePipeline>,
+    params: wgpu::Buffer,
+    sampler: wgpu::Sampler,
+    filterable: bool,
+    counter: wgpu::Buffer,
+    counter_readback: wgpu::Buffer,
+    targets: Option<Targets>,
+    visibility: Option<VisibilityBuffers>,
+    frame_number: u64,
+    last_key: Option<PipelineKey>,
+}
+
+fn map_blocking(device: &wgpu::Device, buffer: &wgpu::Buffer) -> Result<(), RenderError> {
+    let (tx, rx) = std::sync::mpsc::channel();
+    buffer.map_async(wgpu::MapMode::Read, .., move |r| {
+        let _ = tx.send(r);
+    });
+    device.poll(wgpu::PollType::wait_indefinitely()).map_err(|e| RenderError::Readback(e.to_string()))?;
+    match rx.recv() {
+        Ok(Ok(())) => Ok(()),
+        Ok(Err(e)) => Err(RenderError::Readback(e.to_string())),
+        Err(e) => Err(RenderError::Readback(e.to_string())),
+    }
+}
+
+impl Raycaster {
+    pub fn new(ctx: &GpuContext, cache: &BrickCache) -> Self {
+        let device = &ctx.device;
+        let filterable = cache.format.filterable();
+        let storage = |binding: u32, read_only: bool| wgpu::BindGroupLayoutEntry {
+            binding,
+            visibility: wgpu::ShaderStages::COMPUTE,
+            ty: wgpu::BindingType::Buffer { ty: wgpu::BufferBindingType::Storage { read_only }, has_dynamic_offset: false, min_binding_size: None },
+            count: None,
+        };
+        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("raycast"),
+            entries: &[
+                wgpu::BindGroupLayoutEntry {
+                    binding: 0,
+                    visibility: wgpu::ShaderStages::COMPUTE,
+                    ty: wgpu::BindingType::Buffer { ty: wgpu::BufferBindingType::Uniform, has_dynamic_offset: false, min_binding_size: None },
+                    count: None,
+                },
+                wgpu::BindGroupLayoutEntry {
+                    binding: 1,
+                    visibility: wgpu::ShaderStages::COMPUTE,
+                    ty: wgpu::BindingType::Texture {
+                        sample_type: wgpu::TextureSampleType::Float { filterable },
+                        view_dimension: wgpu::TextureViewDimension::D3,
+                        multisampled: false,
+                    },
+                    count: None,
+                },
+                wgpu::BindGroupLayoutEntry {
+                    binding: 2,
+                    visibility: wgpu::ShaderStages::COMPUTE,
+                    ty: wgpu::BindingType::Sampler(if filterable { wgpu::SamplerBindingType::Filtering } else { wgpu::SamplerBindingType::NonFiltering }),
+                    count: None,
+                },
+                storage(3, true),
+                storage(4, true),
+                wgpu::BindGroupLayoutEntry {
+                    binding: 5,
+                    visibility: wgpu::ShaderStages::COMPUTE,
+                    ty: wgpu::BindingType::StorageTexture {
+                        access: wgpu::StorageTextureAccess::WriteOnly,
+                        format: wgpu::TextureFormat::Rgba8Unorm,
+                        view_dimension: wgpu::TextureViewDimension::D2,
+                    },
+                    count: None,
+                },
+                storage(6, false),
+                storage(7, false),
+                storage(8, false),
+            ],
+        });
+        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("raycast"),
+            bind_group_layouts: &[Some(&layout)],
+            immediate_size: 0,
+        });
+        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor { label: Some("raycast.wgsl"), source: wgpu::ShaderSource::Wgsl(SHADER.into()) });
+        let params = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("raycast params"),
+            size: std::mem::size_of::<Params>() as u64,
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let filter = if filterable { wgpu::FilterMode::Linear } else { wgpu::FilterMode::Nearest };
+        let sampler = device.create_sampler(&wgpu::SamplerDescriptor {
+            label: Some("brick cache"),
+            mag_filter: filter,
+            min_filter: filter,
+            ..Default::default()
+        });
+        let counter = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("sample counter"),
+            size: 8,
+            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let counter_readback = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("sample counter readback"),
+            size: 8,
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        Raycaster {
+            layout,
+            pipeline_layout,
+            module,
+            pipelines: HashMap::new(),
+            params,
+            sampler,
+            filterable,
+            counter,
+            counter_readback,
+            targets: None,
+            visibility: None,
+            frame_number: 0,
+            last_key: None,
+        }
+    }
+
+    fn pipeline(&mut self, device: &wgpu::Device, key: PipelineKey) -> &wgpu::ComputePipeline {
+        let (layout, module) = (&self.pipeline_layout, &self.module);
+        self.pipelines.entry(key).or_insert_with(|| {
+            let b = |v: bool| if v { 1.0 } else { 0.0 };
+            let mode = match key.mode {
+                RenderMode::Dvr => 0.0,
+                RenderMode::Mip => 1.0,
+                RenderMode::Isosurface => 2.0,
+            };
+            let constants = [
+                ("MODE", mode),
+                ("MANUAL_TRILINEAR", b(key.manual_trilinear)),
+                ("SHADING", b(key.shading)),
+                ("JITTER", b(key.jitter)),
+                ("SKIP_EMPTY", b(key.skip_empty)),
+                ("EARLY_TERMINATION", b(key.early_termination)),
+                ("CLIP_PLANE", b(key.clip_plane)),
+                ("COUNT_SAMPLES", b(key.count_samples)),
+            ];
+            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some("raycast"),
+                layout: Some(layout),
+                module,
+                entry_point: Some("main"),
+                compilation_options: wgpu::PipelineCompilationOptions { constants: &constants, zero_initialize_workgroup_memory: false },
+                cache: None,
+            })
+        })
+    }
+
+    fn ensure_targets(&mut self, device: &wgpu::Device, width: u32, height: u32) {
+        if self.targets.as_ref().is_some_and(|t| t.width == width && t.height == height) {
+            return;
+        }
+        let color = device.create_texture(&wgpu::TextureDescriptor {
+            label: Some("raycast colour"),
+            size: wgpu::Extent3d { width, height, depth_or_array_layers: 1 },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: wgpu::TextureFormat::Rgba8Unorm,
+            usage: wgpu::TextureUsages::STORAGE_BINDING | wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_SRC,
+            view_formats: &[],
+        });
+        let color_view = color.create_view(&wgpu::TextureViewDescriptor::default());
+        let pixels = width as u64 * height as u64;
+        let depth = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("raycast depth"),
+            size: pixels * 4,
+            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+            mapped_at_creation: false,
+        });
+        let padded_row_bytes = (width * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT) * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
+        let color_readback = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("raycast colour readback"),
+            size: padded_row_bytes as u64 * height as u64,
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let depth_readback = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("raycast depth readback"),
+            size: pixels * 4,
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        self.targets = Some(Targets { width, height, color, color_view, depth, color_readback, depth_readback, padded_row_bytes });
+    }
+
+    fn ensure_visibility(&mut self, device: &wgpu::Device, entries: usize) {
+        if self.visibility.as_ref().is_some_and(|v| v.entries == entries) {
+            return;
+        }
+        let size = (entries.max(1) * 4) as u64;
+        let make = |label: &str, usage| device.create_buffer(&wgpu::BufferDescriptor { label: Some(label), size, usage, mapped_at_creation: false });
+        let read = wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST;
+        self.visibility = Some(VisibilityBuffers {
+            entries,
+            buffer: make("visibility", wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST),
+            blocking_readback: make("visibility readback", read),
+            ring: (0..VISIBILITY_RING)
+                .map(|_| VisibilityStaging { buffer: make("visibility staging", read), state: Arc::new(AtomicU8::new(SLOT_FREE)), frame_number: 0 })
+                .collect(),
+        });
+    }
+
+    /// The colour target, for display by the app (valid after the first `render`).
+    pub fn output_view(&self) -> Option<&wgpu::TextureView> {
+        self.targets.as_ref().map(|t| &t.color_view)
+    }
+
+    pub fn output_texture(&self) -> Option<&wgpu::Texture> {
+        self.targets.as_ref().map(|t| &t.color)
+    }
+
+    /// Number of distinct pipelines compiled so far (one per used effect combination).
+    pub fn compiled_pipelines(&self) -> usize {
+        self.pipelines.len()
+    }
+
+    /// Encodes and submits one frame. Never waits for the GPU. Also queues a copy of this
+    /// frame's visibility into a free staging buffer for [`Raycaster::try_take_visibility`].
+    pub fn render(&mut self, ctx: &GpuContext, scene: &Scene) -> Result<wgpu::SubmissionIndex, RenderError> {
+        let settings = scene.settings;
+        settings.validate()?;
+        scene.geometry.validate()?;
+        let page_dims = scene.geometry.page_dims();
+        if scene.page_table.slots_per_axis != scene.cache.slots_per_axis {
+            return Err(RenderError::PageTableMismatch("GPU page table was made for a different cache".into()));
+        }
+        if scene.page_table.page_dims != page_dims {
+            return Err(RenderError::PageTableMismatch(format!("GPU page table is {:?}, volume needs {:?}", scene.page_table.page_dims, page_dims)));
+        }
+        let device = &ctx.device;
+        let limits = device.limits();
+        let max2d = limits.max_texture_dimension_2d;
+        if settings.width > max2d || settings.height > max2d {
+            return Err(RenderError::InvalidSettings(format!("image {}x{} exceeds device limit {max2d}", settings.width, settings.height)));
+        }
+        let key = PipelineKey {
+            mode: settings.mode,
+            manual_trilinear: settings.exact_trilinear || !self.filterable,
+            shading: settings.effective_shading().is_some(),
+            jitter: settings.jitter,
+            skip_empty: settings.skip_empty,
+            early_termination: settings.early_termination.is_some() && settings.mode == RenderMode::Dvr,
+            clip_plane: settings.clip_plane.is_some(),
+            count_samples: settings.count_samples,
+        };
+        self.last_key = Some(key);
+        self.ensure_targets(device, settings.width, settings.height);
+        self.ensure_visibility(device, page_dims.iter().map(|&d| d as usize).product());
+        let params = build_params(scene);
+        ctx.queue.write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
+        let _ = self.pipeline(device, key);
+        let (Some(targets), Some(vis), Some(pipeline)) = (self.targets.as_ref(), self.visibility.as_mut(), self.pipelines.get(&key)) else {
+            return Err(RenderError::Readback("render targets missing".into()));
+        };
+        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("raycast"),
+            layout: &self.layout,
+            entries: &[
+                wgpu::BindGroupEntry { binding: 0, resource: self.params.as_entire_binding() },
+                wgpu::BindGroupEntry { binding: 1, resource: wgpu::BindingResource::TextureView(&scene.cache.view) },
+                wgpu::BindGroupEntry { binding: 2, resource: wgpu::BindingResource::Sampler(&self.sampler) },
+                wgpu::BindGroupEntry { binding: 3, resource: scene.page_table.buffer.as_entire_binding() },
+                wgpu::BindGroupEntry { binding: 4, resource: scene.transfer_function.buffer.as_entire_binding() },
+                wgpu::BindGroupEntry { binding: 5, resource: wgpu::BindingResource::TextureView(&targets.color_view) },
+                wgpu::BindGroupEntry { binding: 6, resource: targets.depth.as_entire_binding() },
+                wgpu::BindGroupEntry { binding: 7, resource: vis.buffer.as_entire_binding() },
+                wgpu::BindGroupEntry { binding: 8, resource: self.counter.as_entire_binding() },
+            ],
+        });
+        let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("raycast") });
+        encoder.clear_buffer(&vis.buffer, 0, None);
+        encoder.clear_buffer(&self.counter, 0, None);
+        {
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("raycast"), timestamp_writes: None });
+            pass.set_pipeline(pipeline);
+            pass.set_bind_group(0, &bind_group, &[]);
+            pass.dispatch_workgroups(settings.width.div_ceil(WORKGROUP), settings.height.div_ceil(WORKGROUP), 1);
+        }
+        self.frame_number += 1;
+        // A busy ring (loader not reading) just drops this frame's visibility.
+        let size = (vis.entries.max(1) * 4) as u64;
+        let free = vis.ring.iter_mut().find(|s| s.state.load(Ordering::Acquire) == SLOT_FREE);
+        let mut queued = None;
+        if let Some(slot) = free {
+            encoder.copy_buffer_to_buffer(&vis.buffer, 0, &slot.buffer, 0, size);
+            slot.frame_number = self.frame_number;
+            slot.state.store(SLOT_PENDING, Ordering::Release);
+            queued = Some((slot.buffer.clone(), slot.state.clone()));
+        }
+        let index = ctx.queue.submit(Some(encoder.finish()));
+        if let Some((buffer, state)) = queued {
+            buffer.map_async(wgpu::MapMode::Read, .., move |r| {
+                state.store(if r.is_ok() { SLOT_READY } else { SLOT_FAILED }, Ordering::Release);
+            });
+        }
+        Ok(index)
+    }
+
+    /// Newest visibility buffer that finished copying, without blocking (typically one or two
+    /// frames late). Older ready ones are dropped.
+    pub fn try_take_visibility(&mut self, ctx: &GpuContext) -> Option<VisibilityFrame> {
+        let _ = ctx.device.poll(wgpu::PollType::Poll);
+        let vis = self.visibility.as_mut()?;
+        let mut newest: Option<VisibilityFrame> = None;
+        for slot in vis.ring.iter_mut() {
+            match slot.state.load(Ordering::Acquire) {
+                SLOT_READY => {
+                    if newest.as_ref().is_none_or(|n| n.frame_number < slot.frame_number) {
+                        if let Ok(view) = slot.buffer.get_mapped_range(..) {
+                            let data: Vec<u32> = bytemuck::cast_slice(&view)[..vis.entries].to_vec();
+                            drop(view);
+                            newest = Some(VisibilityFrame { frame_number: slot.frame_number, visibility: data });
+                        }
+                    }
+                    slot.buffer.unmap();
+                    slot.state.store(SLOT_FREE, Ordering::Release);
+                }
+                SLOT_FAILED => slot.state.store(SLOT_FREE, Ordering::Release),
+                _ => {}
+            }
+        }
+        newest
+    }
+
+    /// Copies the last rendered frame back and waits for it. For tests and the CLI.
+    pub fn read_frame_blocking(&mut self, ctx: &GpuContext) -> Result<FrameReadback, RenderError> {
+        let (Some(t), Some(vis)) = (self.targets.as_ref(), self.visibility.as_ref()) else {
+            return Err(RenderError::Readback("nothing rendered yet".into()));
+        };
+        let device = &ctx.device;
+        let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("readback") });
+        encoder.copy_texture_to_buffer(
+            wgpu::TexelCopyTextureInfo { texture: &t.color, mip_level: 0, origin: wgpu::Origin3d::ZERO, aspect: wgpu::TextureAspect::All },
+            wgpu::TexelCopyBufferInfo {
+                buffer: &t.color_readback,
+                layout: wgpu::TexelCopyBufferLayout { offset: 0, bytes_per_row: Some(t.padded_row_bytes), rows_per_image: Some(t.height) },
+            },
+            wgpu::Extent3d { width: t.width, height: t.height, depth_or_array_layers: 1 },
+        );
+        encoder.copy_buffer_to_buffer(&t.depth, 0, &t.depth_readback, 0, t.width as u64 * t.height as u64 * 4);
+        encoder.copy_buffer_to_buffer(&vis.buffer, 0, &vis.blocking_readback, 0, (vis.entries.max(1) * 4) as u64);
+        encoder.copy_buffer_to_buffer(&self.counter, 0, &self.counter_readback, 0, 8);
+        ctx.queue.submit(Some(encoder.finish()));
+        for b in [&t.color_readback, &t.depth_readback, &vis.blocking_readback, &self.counter_readback] {
+            map_blocking(device, b)?;
+        }
+        let read = |b: &wgpu::Buffer| -> Result<Vec<u8>, RenderError> {
+            let v = b.get_mapped_range(..).map_err(|e| RenderError::Readback(e.to_string()))?.to_vec();
+            b.unmap();
+            Ok(v)
+        };
+        let padded = read(&t.color_readback)?;
+        let row = (t.width * 4) as usize;
+        let mut rgba = Vec::with_capacity(row * t.height as usize);
+        for y in 0..t.height as usize {
+            let start = y * t.padded_row_bytes as usize;
+            rgba.extend_from_slice(&padded[start..start + row]);
+        }
+        let depth: Vec<f32> = bytemuck::pod_collect_to_vec(&read(&t.depth_readback)?);
+        let mut visibility: Vec<u32> = bytemuck::pod_collect_to_vec(&read(&vis.blocking_readback)?);
+        visibility.truncate(vis.entries);
+        let counter: Vec<u32> = bytemuck::pod_collect_to_vec(&read(&self.counter_readback)?);
+        let samples = self.last_key.filter(|k| k.count_samples).map(|_| counter[0] as u64 + ((counter[1] as u64) << 32));
+        Ok(FrameReadback { width: t.width, height: t.height, rgba, depth, visibility, samples })
+    }
+
+    /// Render, wait, read everything back.
+    pub fn render_blocking(&mut self, ctx: &GpuContext, scene: &Scene) -> Result<FrameReadback, RenderError> {
+        self.render(ctx, scene)?;
+        self.read_frame_blocking(ctx)
+    }
+
+    /// Submits and waits for a frame without reading it back (benchmarks).
+    pub fn render_and_wait(&mut self, ctx: &GpuContext, scene: &Scene) -> Result<(), RenderError> {
+        let index = self.render(ctx, scene)?;
+        ctx.device
+            .poll(wgpu::PollType::Wait { submission_index: Some(index), timeout: None })
+            .map_err(|e| RenderError::Readback(e.to_string()))?;
+        // Keep the ring draining so benchmarks measure steady state.
+        let _ = self.try_take_visibility(ctx);
+        Ok(())
+    }
+}
+
+fn v4(v: DVec3, w: f64) -> [f32; 4] {
+    [v.x as f32, v.y as f32, v.z as f32, w as f32]
+}
+
+/// Everything is converted from f64 here, once per frame, so the shader works in index space
+/// with well-conditioned f32 values.
+fn build_params(scene: &Scene) -> Params {
+    let g = scene.geometry;
+    let s = scene.settings;
+    let a = g.index_from_patient_linear();
+    let basis = scene.camera.basis();
+    let eye_idx = g.index_from_patient(basis.eye);
+    let aspect = s.width as f64 / s.height as f64;
+    let dims = DVec3::new(g.dims[0] as f64, g.dims[1] as f64, g.dims[2] as f64);
+    let lo = DVec3::from(s.crop.min.map(|v| v as f64)) * dims - 0.5;
+    let hi = DVec3::from(s.crop.max.map(|v| v as f64)) * dims - 0.5;
+    let unit = g.finest_spacing_mm();
+    let base_step = s.quality * unit;
+    let clip = match &s.clip_plane {
+        Some(p) => {
+            let n = DVec3::from(p.normal).normalize();
+            [n.dot(basis.forward) as f32, n.dot(basis.right) as f32, n.dot(basis.up) as f32, (p.offset_mm - n.dot(basis.eye)) as f32]
+        }
+        None => [0.0; 4],
+    };
+    let tf = scene.transfer_function;
+    let range = (tf.hi - tf.lo).max(1e-30);
+    let shading = s.effective_shading().unwrap_or_default();
+    let flatness = scene.mapping.slope.abs() * unit / range;
+    let texel = scene.cache.texel_dims();
+    let iso_color = tf.source.color_at(s.iso_value);
+    Params {
+        eye_idx: v4(eye_idx, basis.half_extent),
+        right_idx: v4(a * basis.right, aspect),
+        up_idx: v4(a * basis.up, if basis.orthographic { 1.0 } else { 0.0 }),
+        forward_idx: v4(a * basis.forward, 0.0),
+        a_row0: v4(a.row(0), 0.0),
+        a_row1: v4(a.row(1), 0.0),
+        a_row2: v4(a.row(2), 0.0),
+        box_lo: v4(lo, base_step),
+        box_hi: v4(hi, unit),
+        dims: v4(dims, s.early_termination.unwrap_or(1.0) as f64),
+        clip,
+        value_map: [(65535.0 * scene.mapping.slope) as f32, scene.mapping.intercept as f32, tf.lo as f32, ((tf.entries - 1) as f64 / range) as f32],
+        iso: [s.iso_value as f32, flatness as f32, 0.0, 0.0],
+        iso_color: [iso_color[0] as f32, iso_color[1] as f32, iso_color[2] as f32, 0.0],
+        shading: [shading.ambient, shading.diffuse, shading.specular, shading.shininess],
+        cache_inv: [1.0 / texel[0] as f32, 1.0 / texel[1] as f32, 1.0 / texel[2] as f32, 0.0],
+        image: [s.width, s.height, s.frame_index, tf.entries],
+        pages: [g.page_dims()[0], g.page_dims()[1], g.page_dims()[2], 0],
+        slots: [scene.cache.slots_per_axis[0], scene.cache.slots_per_axis[1], scene.cache.slots_per_axis[2], 0],
+    }
+}

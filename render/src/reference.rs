@@ -1,0 +1,338 @@
+//! The f64 CPU reference: ground truth for every image test. It integrates the trilinear field
+//! defined by the same page table and bricks the GPU sees (so mixed-level cuts match), with the
+//! same camera, transfer function, compositing and opacity correction, but with a much smaller
+//! step, no jitter, and without trusting the empty flags (it samples everything resident).
+//! Written to be obviously correct, not fast.
+
+use glam::{DMat3, DVec3};
+use rayon::prelude::*;
+
+use crate::bricked_volume::BrickSource;
+use crate::camera::Camera;
+use crate::error::RenderError;
+use crate::geometry::{ValueMapping, VolumeGeometry};
+use crate::page_table::PageTable;
+use crate::settings::{RenderMode, RenderSettings, Shading};
+use crate::transfer_function::TransferFunction;
+use crate::{BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
+
+/// Everything that defines the field and its optics, independent of any GPU object.
+pub struct ReferenceScene<'a, S: BrickSource> {
+    pub source: &'a S,
+    pub page_table: &'a PageTable,
+    pub geometry: &'a VolumeGeometry,
+    pub mapping: ValueMapping,
+    pub transfer_function: &'a TransferFunction,
+    /// Physical range the GPU table spans; the shading guard is relative to it.
+    pub tf_range: (f64, f64),
+}
+
+#[derive(Clone, Debug)]
+pub struct ReferenceImage {
+    pub width: u32,
+    pub height: u32,
+    /// Premultiplied RGBA over transparent black, rounded to 8 bits like the GPU's unorm store.
+    pub rgba: Vec<u8>,
+    pub rgba_f64: Vec<[f64; 4]>,
+    /// Ray distance (mm) of the first contributing sample / hit / maximum; +inf if none.
+    pub depth: Vec<f32>,
+}
+
+/// Gradient magnitudes below G0 (in TF-range fractions per finest voxel) count as flat and get
+/// unlit colour, above G1 fully lit, smooth in between: zero gradients cannot make NaNs, and
+/// f32 noise on a flat field cannot flicker the shading.
+pub const SHADING_FLAT_BELOW: f64 = 2e-4;
+pub const SHADING_LIT_ABOVE: f64 = 2e-3;
+
+/// [t_start, t_end] of the ray inside the (cropped) volume box and the clip plane's half space.
+pub fn ray_interval(geometry: &VolumeGeometry, settings: &RenderSettings, origin: DVec3, dir: DVec3) -> Option<(f64, f64)> {
+    let a = geometry.index_from_patient_linear();
+    let o = a * (origin - geometry.origin());
+    let d = a * dir;
+    let (mut t0, mut t1) = (0.0f64, f64::INFINITY);
+    for axis in 0..3 {
+        let n = geometry.dims[axis] as f64;
+        let lo = -0.5 + settings.crop.min[axis] as f64 * n;
+        let hi = -0.5 + settings.crop.max[axis] as f64 * n;
+        if d[axis].abs() < 1e-12 {
+            if o[axis] < lo || o[axis] > hi {
+                return None;
+            }
+        } else {
+            let (ta, tb) = ((lo - o[axis]) / d[axis], (hi - o[axis]) / d[axis]);
+            t0 = t0.max(ta.min(tb));
+            t1 = t1.min(ta.max(tb));
+        }
+    }
+    if let Some(p) = &settings.clip_plane {
+        let n = DVec3::from(p.normal).normalize();
+        let (no, nd) = (n.dot(origin), n.dot(dir));
+        if nd.abs() < 1e-12 {
+            if no < p.offset_mm {
+                return None;
+            }
+        } else {
+            let tc = (p.offset_mm - no) / nd;
+            if nd > 0.0 {
+                t0 = t0.max(tc);
+            } else {
+                t1 = t1.min(tc);
+            }
+        }
+    }
+    (t1 > t0).then_some((t0, t1))
+}
+
+/// Where a level-0 continuous index lands: the page entry and position inside its node payload.
+pub struct FieldLocation<'b> {
+    pub page_linear: usize,
+    pub level: u8,
+    pub brick: &'b [u16],
+    /// Payload-local continuous coordinates (voxel centres at integers).
+    pub local: DVec3,
+}
+
+pub fn locate<'b, S: BrickSource>(source: &'b S, table: &PageTable, dims: [u32; 3], p: DVec3) -> Option<FieldLocation<'b>> {
+    let mut page = [0u32; 3];
+    let mut pc = [0.0f64; 3];
+    for a in 0..3 {
+        pc[a] = p[a].clamp(-0.5, dims[a] as f64 - 0.5);
+        let cell = ((pc[a] + 0.5) / BRICK_CORE as f64).floor() as i64;
+        page[a] = cell.clamp(0, table.page_dims[a] as i64 - 1) as u32;
+    }
+    let page_linear = table.linear(page);
+    let entry = table.entries[page_linear];
+    if !entry.resident {
+        return None;
+    }
+    let level = entry.level;
+    let node = PageTable::node_of(page, level);
+    let brick = source.brick(level, node)?;
+    let scale = (1u64 << level) as f64;
+    let mut local = DVec3::ZERO;
+    for a in 0..3 {
+        let q = (pc[a] + 0.5) / scale - 0.5;
+        local[a] = q - (node[a] as f64 * BRICK_CORE as f64 - BRICK_APRON as f64);
+    }
+    Some(FieldLocation { page_linear, level, brick, local })
+}
+
+/// Trilinear over a 36³ payload in stored units.
+pub fn trilinear(brick: &[u16], local: DVec3) -> f64 {
+    let max = (BRICK_PAYLOAD - 1) as f64;
+    let p = local.clamp(DVec3::ZERO, DVec3::splat(max));
+    let i0 = p.floor();
+    let f = p - i0;
+    let n = BRICK_PAYLOAD as usize;
+    let idx = |x: f64, y: f64, z: f64| {
+        let (x, y, z) = ((x as usize).min(n - 1), (y as usize).min(n - 1), (z as usize).min(n - 1));
+        brick[x + n * (y + n * z)] as f64
+    };
+    let mut acc = 0.0;
+    for dz in 0..2 {
+        for dy in 0..2 {
+            for dx in 0..2 {
+                let w = (if dx == 1 { f.x } else { 1.0 - f.x }) * (if dy == 1 { f.y } else { 1.0 - f.y }) * (if dz == 1 { f.z } else { 1.0 - f.z });
+                if w != 0.0 {
+                    acc += w * idx(i0.x + dx as f64, i0.y + dy as f64, i0.z + dz as f64);
+                }
+            }
+        }
+    }
+    acc
+}
+
+/// Central-difference gradient in the node (the apron supplies the neighbours), in stored
+/// units per level-0 index step.
+pub fn gradient_index(loc: &FieldLocation) -> DVec3 {
+    let h = (1u64 << loc.level) as f64;
+    let mut g = DVec3::ZERO;
+    for a in 0..3 {
+        let mut e = DVec3::ZERO;
+        e[a] = 1.0;
+        g[a] = (trilinear(loc.brick, loc.local + e) - trilinear(loc.brick, loc.local - e)) / (2.0 * h);
+    }
+    g
+}
+
+/// Blinn-Phong with a headlight. `gradient_patient` in physical units per mm.
+pub fn shade(color: [f64; 3], gradient_patient: DVec3, dir: DVec3, shading: &Shading, flatness_scale: f64) -> [f64; 3] {
+    let mag = gradient_patient.length();
+    let w = smoothstep(SHADING_FLAT_BELOW, SHADING_LIT_ABOVE, mag * flatness_scale);
+    let (ndl, spec) = if mag > 0.0 {
+        let ndl = (gradient_patient / mag).dot(-dir).abs();
+        (ndl, ndl.powf(shading.shininess as f64))
+    } else {
+        (1.0, 0.0)
+    };
+    let unlit = shading.ambient as f64 + shading.diffuse as f64;
+    let lit_gain = shading.ambient as f64 + shading.diffuse as f64 * ndl;
+    let gain = unlit + (lit_gain - unlit) * w;
+    let highlight = shading.specular as f64 * spec * w;
+    color.map(|c| c * gain + highlight)
+}
+
+pub fn smoothstep(e0: f64, e1: f64, x: f64) -> f64 {
+    let t = ((x - e0) / (e1 - e0)).clamp(0.0, 1.0);
+    t * t * (3.0 - 2.0 * t)
+}
+
+/// Settings for the reference itself.
+#[derive(Clone, Copy, Debug)]
+pub struct ReferenceOptions {
+    /// Reference step = GPU base step / this.
+    pub step_refinement: f64,
+    /// Bisection iterations for the isosurface.
+    pub bisection_steps: u32,
+}
+
+impl Default for ReferenceOptions {
+    fn default() -> Self {
+        ReferenceOptions { step_refinement: 8.0, bisection_steps: 40 }
+    }
+}
+
+pub fn render_reference<S: BrickSource>(
+    scene: &ReferenceScene<S>,
+    camera: &Camera,
+    settings: &RenderSettings,
+    options: ReferenceOptions,
+) -> Result<ReferenceImage, RenderError> {
+    settings.validate()?;
+    scene.geometry.validate()?;
+    scene.page_table.check_against(scene.geometry.page_dims())?;
+    let basis = camera.basis();
+    let (w, h) = (settings.width, settings.height);
+    let pixels: Vec<([f64; 4], f32)> = (0..h)
+        .into_par_iter()
+        .flat_map_iter(|py| {
+            (0..w).map(move |px| {
+                let (origin, dir) = basis.ray(px, py, w, h);
+                trace(scene, settings, &options, origin, dir)
+            })
+        })
+        .collect();
+    let rgba = pixels.iter().flat_map(|(c, _)| c.map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)).collect();
+    Ok(ReferenceImage {
+        width: w,
+        height: h,
+        rgba,
+        rgba_f64: pixels.iter().map(|p| p.0).collect(),
+        depth: pixels.iter().map(|p| p.1).collect(),
+    })
+}
+
+fn trace<S: BrickSource>(scene: &ReferenceScene<S>, settings: &RenderSettings, options: &ReferenceOptions, origin: DVec3, dir: DVec3) -> ([f64; 4], f32) {
+    let Some((t0, t1)) = ray_interval(scene.geometry, settings, origin, dir) else {
+        return ([0.0; 4], f32::INFINITY);
+    };
+    let g = scene.geometry;
+    let a: DMat3 = g.index_from_patient_linear();
+    let o_idx = a * (origin - g.origin());
+    let d_idx = a * dir;
+    let unit = g.finest_spacing_mm();
+    let step = settings.quality * unit / options.step_refinement;
+    let tf = scene.transfer_function;
+    let mapping = scene.mapping;
+    let flatness_scale = mapping.slope.abs() * unit / (scene.tf_range.1 - scene.tf_range.0).max(1e-30);
+    let shading = settings.effective_shading();
+    let at = |t: f64| locate(scene.source, scene.page_table, g.dims, o_idx + d_idx * t);
+    // Physical gradient per mm: d(value)/d(patient) = A^T · d(value)/d(index).
+    let gradient_patient = |loc: &FieldLocation| a.transpose() * gradient_index(loc) * mapping.slope;
+    let n_steps = ((t1 - t0) / step).ceil() as u64;
+    match settings.mode {
+        RenderMode::Dvr => {
+            let (mut c, mut alpha, mut depth) = ([0.0f64; 3], 0.0f64, f32::INFINITY);
+            let exponent = step / unit;
+            for k in 0..n_steps {
+                let t = t0 + (k as f64 + 0.5) * step;
+                if t >= t1 {
+                    break;
+                }
+                let Some(loc) = at(t) else { continue };
+                let v = mapping.physical(trilinear(loc.brick, loc.local));
+                let op = tf.opacity_at(v);
+                if op <= 0.0 {
+                    continue;
+                }
+                let op = 1.0 - (1.0 - op).powf(exponent);
+                let mut col = tf.color_at(v);
+                if let Some(s) = &shading {
+                    col = shade(col, gradient_patient(&loc), dir, s, flatness_scale);
+                }
+                if depth.is_infinite() {
+                    depth = t as f32;
+                }
+                let wgt = (1.0 - alpha) * op;
+                for i in 0..3 {
+                    c[i] += wgt * col[i];
+                }
+                alpha += wgt;
+                if let Some(th) = settings.early_termination {
+                    if alpha >= th as f64 {
+                        break;
+                    }
+                }
+            }
+            ([c[0], c[1], c[2], alpha], depth)
+        }
+        RenderMode::Mip => {
+            let mut best: Option<(f64, f64)> = None;
+            for k in 0..n_steps {
+                let t = t0 + (k as f64 + 0.5) * step;
+                if t >= t1 {
+                    break;
+                }
+                let Some(loc) = at(t) else { continue };
+                let v = mapping.physical(trilinear(loc.brick, loc.local));
+                if best.is_none_or(|(bv, _)| v > bv) {
+                    best = Some((v, t));
+                }
+            }
+            match best {
+                Some((v, t)) => {
+                    let op = tf.opacity_at(v);
+                    let col = tf.color_at(v);
+                    let depth = if op > 0.0 { t as f32 } else { f32::INFINITY };
+                    ([col[0] * op, col[1] * op, col[2] * op, op], depth)
+                }
+                None => ([0.0; 4], f32::INFINITY),
+            }
+        }
+        RenderMode::Isosurface => {
+            let iso = settings.iso_value;
+            let value = |t: f64| at(t).map(|loc| mapping.physical(trilinear(loc.brick, loc.local)));
+            let mut prev: Option<f64> = None;
+            for k in 0..n_steps {
+                let t = t0 + (k as f64 + 0.5) * step;
+                if t >= t1 {
+                    break;
+                }
+                let Some(v) = value(t) else {
+                    prev = None;
+                    continue;
+                };
+                if v >= iso {
+                    let mut hit = t;
+                    if let Some(tp) = prev {
+                        let (mut lo, mut hi) = (tp, t);
+                        for _ in 0..options.bisection_steps {
+                            let mid = 0.5 * (lo + hi);
+                            if value(mid).is_some_and(|m| m >= iso) {
+                                hi = mid;
+                            } else {
+                                lo = mid;
+                            }
+                        }
+                        hit = hi;
+                    }
+                    let Some(loc) = at(hit) else { break };
+                    let col = shade(tf.color_at(iso), gradient_patient(&loc), dir, &shading.unwrap_or_default(), flatness_scale);
+                    return ([col[0], col[1], col[2], 1.0], hit as f32);
+                }
+                prev = Some(t);
+            }
+            ([0.0; 4], f32::INFINITY)
+        }
+    }
+}

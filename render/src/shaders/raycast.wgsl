@@ -1,0 +1,445 @@
+// Single-pass raycaster over the mixed-resolution brick cache (one invocation per pixel).
+// The field it integrates is defined in reference.rs; keep the two in step.
+//
+// Specialisation: every effect a scene may not use is an override constant, so the pipeline
+// compiled for a scene contains only what that scene needs.
+override MODE: u32 = 0u;              // 0 DVR, 1 MIP, 2 isosurface
+override MANUAL_TRILINEAR: bool = false;
+override SHADING: bool = false;
+override JITTER: bool = false;
+override SKIP_EMPTY: bool = true;
+override EARLY_TERMINATION: bool = true;
+override CLIP_PLANE: bool = false;
+override COUNT_SAMPLES: bool = false;
+
+const CORE: f32 = 32.0;
+const APRON: f32 = 2.0;
+const PAYLOAD: u32 = 36u;
+const FLAG_EMPTY: u32 = 0x20000000u;
+const FLAG_NOT_RESIDENT: u32 = 0x40000000u;
+const BISECTION_STEPS: u32 = 10u;
+// Below/above these gradient magnitudes (TF-range fractions per finest voxel) shading fades
+// from unlit to lit; same constants as reference.rs.
+const SHADING_FLAT_BELOW: f32 = 2e-4;
+const SHADING_LIT_ABOVE: f32 = 2e-3;
+const MAX_ITERATIONS: u32 = 1000000u;
+
+struct Params {
+    // Camera in volume index space (level-0 voxel centres at integers); t stays in patient mm
+    // because the vectors are images of unit patient vectors.
+    eye_idx: vec4<f32>,        // w: tan(fov/2) or ortho half height (mm)
+    right_idx: vec4<f32>,      // w: aspect
+    up_idx: vec4<f32>,         // w: 1 = orthographic
+    forward_idx: vec4<f32>,
+    // Rows of index_from_patient: the gradient in patient space is A^T g.
+    a_row0: vec4<f32>,
+    a_row1: vec4<f32>,
+    a_row2: vec4<f32>,
+    box_lo: vec4<f32>,         // w: base step (mm)
+    box_hi: vec4<f32>,         // w: opacity unit = finest spacing (mm)
+    dims: vec4<f32>,           // w: early termination threshold
+    // Clip plane as n·forward, n·right, n·up, offset - n·eye.
+    clip: vec4<f32>,
+    // x: physical per normalised sample (65535·slope), y: intercept,
+    // z: TF table low end, w: table entries per physical unit.
+    value_map: vec4<f32>,
+    // x: iso (physical), y: shading flatness scale (per physical gradient/mm).
+    iso: vec4<f32>,
+    shading: vec4<f32>,        // ambient, diffuse, specular, shininess
+    iso_color: vec4<f32>,      // TF colour at the iso value, evaluated exactly on the CPU
+    cache_inv: vec4<f32>,      // 1 / cache texel dims
+    image: vec4<u32>,          // width, height, frame index, TF table length
+    pages: vec4<u32>,          // page grid dims
+    slots: vec4<u32>,          // cache slots per axis
+};
+
+@group(0) @binding(0) var<uniform> P: Params;
+@group(0) @binding(1) var cache: texture_3d<f32>;
+@group(0) @binding(2) var cache_sampler: sampler;
+@group(0) @binding(3) var<storage, read> page_table: array<u32>;
+@group(0) @binding(4) var<storage, read> tf_table: array<vec4<f32>>;
+@group(0) @binding(5) var out_color: texture_storage_2d<rgba8unorm, write>;
+@group(0) @binding(6) var<storage, read_write> out_depth: array<f32>;
+@group(0) @binding(7) var<storage, read_write> visibility: array<u32>;
+@group(0) @binding(8) var<storage, read_write> sample_counter: array<atomic<u32>, 2>;
+
+// One page entry decoded into the affine map from level-0 index to cache texel coordinate
+// (Eq. 1 of the mixed-resolution paper: x' = x · t_w + t with t_w = 2^-L).
+struct Page {
+    resident: bool,
+    empty: bool,
+    linear: u32,
+    cell: vec3<i32>,
+    level: u32,
+    inv_scale: f32,
+    offset: vec3<f32>,
+    // Ray distance at which the ray leaves this page cell (cached lookups only).
+    t_exit: f32,
+};
+
+struct Location {
+    resident: bool,
+    empty: bool,
+    page: u32,
+    cell: vec3<f32>,
+    level: u32,
+    // Continuous texel coordinate in the cache, voxel centres at integers.
+    coord: vec3<f32>,
+};
+
+fn cell_of(pc: vec3<f32>) -> vec3<i32> {
+    let last = vec3<i32>(P.pages.xyz) - vec3<i32>(1);
+    return clamp(vec3<i32>(floor((pc + vec3<f32>(0.5)) * (1.0 / CORE))), vec3<i32>(0), last);
+}
+
+fn decode_page(cell: vec3<i32>) -> Page {
+    var pg: Page;
+    let c = vec3<u32>(cell);
+    pg.cell = cell;
+    pg.linear = c.x + P.pages.x * (c.y + P.pages.y * c.z);
+    let e = page_table[pg.linear];
+    pg.resident = (e & FLAG_NOT_RESIDENT) == 0u;
+    pg.empty = (e & FLAG_EMPTY) != 0u;
+    pg.level = (e >> 24u) & 31u;
+    pg.inv_scale = 1.0 / f32(1u << pg.level);
+    let node = c >> vec3<u32>(pg.level);
+    // The entry stores the slot's grid position (8 bits per axis), not its index: no integer
+    // division per lookup (scalarised and slow on CPU rasterisers such as lavapipe).
+    let slot_xyz = vec3<u32>(e & 0xffu, (e >> 8u) & 0xffu, (e >> 16u) & 0xffu);
+    // Level-L voxel i is centred at level-0 index (i + 0.5)·2^L - 0.5 (cell-centred octree):
+    // q = (p + 0.5)·2^-L - 0.5, local = q - (32·node - 2), coord = slot·36 + local.
+    pg.offset = vec3<f32>(slot_xyz * PAYLOAD) - (vec3<f32>(node) * CORE - vec3<f32>(APRON))
+        + vec3<f32>(0.5 * pg.inv_scale - 0.5);
+    return pg;
+}
+
+fn clamp_to_volume(p: vec3<f32>) -> vec3<f32> {
+    return clamp(p, vec3<f32>(-0.5), P.dims.xyz - vec3<f32>(0.5));
+}
+
+fn location_in(pg: Page, pc: vec3<f32>) -> Location {
+    var loc: Location;
+    loc.resident = pg.resident;
+    loc.empty = pg.empty;
+    loc.page = pg.linear;
+    loc.cell = vec3<f32>(pg.cell);
+    loc.level = pg.level;
+    loc.coord = pc * pg.inv_scale + pg.offset;
+    return loc;
+}
+
+fn locate(p: vec3<f32>) -> Location {
+    let pc = clamp_to_volume(p);
+    return location_in(decode_page(cell_of(pc)), pc);
+}
+
+// Same as locate for a ray marching forward: the decoded page is reused until the ray leaves
+// its cell, so a sample costs a compare and three FMAs instead of a page read and decode.
+// (A sample within rounding of a cell face may use the neighbour's payload; the apron makes
+// that the same value at equal levels.)
+fn locate_on_ray(o: vec3<f32>, d: vec3<f32>, t: f32, cached: ptr<function, Page>) -> Location {
+    let pc = clamp_to_volume(o + d * t);
+    if t >= (*cached).t_exit {
+        let cell = cell_of(pc);
+        *cached = decode_page(cell);
+        (*cached).t_exit = cell_exit(o, d, vec3<f32>(cell));
+    }
+    return location_in(*cached, pc);
+}
+
+// Normalised stored value (stored / 65535) at a cache texel coordinate.
+fn fetch(coord: vec3<f32>) -> f32 {
+    if MANUAL_TRILINEAR {
+        let i0f = floor(coord);
+        let f = coord - i0f;
+        let i0 = vec3<i32>(i0f);
+        let c000 = textureLoad(cache, i0, 0).r;
+        let c100 = textureLoad(cache, i0 + vec3<i32>(1, 0, 0), 0).r;
+        let c010 = textureLoad(cache, i0 + vec3<i32>(0, 1, 0), 0).r;
+        let c110 = textureLoad(cache, i0 + vec3<i32>(1, 1, 0), 0).r;
+        let c001 = textureLoad(cache, i0 + vec3<i32>(0, 0, 1), 0).r;
+        let c101 = textureLoad(cache, i0 + vec3<i32>(1, 0, 1), 0).r;
+        let c011 = textureLoad(cache, i0 + vec3<i32>(0, 1, 1), 0).r;
+        let c111 = textureLoad(cache, i0 + vec3<i32>(1, 1, 1), 0).r;
+        let x00 = mix(c000, c100, f.x);
+        let x10 = mix(c010, c110, f.x);
+        let x01 = mix(c001, c101, f.x);
+        let x11 = mix(c011, c111, f.x);
+        return mix(mix(x00, x10, f.y), mix(x01, x11, f.y), f.z);
+    } else {
+        return textureSampleLevel(cache, cache_sampler, (coord + vec3<f32>(0.5)) * P.cache_inv.xyz, 0.0).r;
+    }
+}
+
+fn physical(s: f32) -> f32 {
+    return s * P.value_map.x + P.value_map.y;
+}
+
+// Transfer function, linearly interpolated between table entries.
+fn transfer(v: f32) -> vec4<f32> {
+    let n = P.image.w;
+    let x = clamp((v - P.value_map.z) * P.value_map.w, 0.0, f32(n - 1u));
+    let i = min(u32(floor(x)), n - 1u);
+    let j = min(i + 1u, n - 1u);
+    return mix(tf_table[i], tf_table[j], x - f32(i));
+}
+
+// Blinn-Phong with a headlight; `d_idx` is the ray direction mapped into index space, so
+// g·d_idx = (A^T g)·d_patient without leaving index space.
+fn shade(color: vec3<f32>, loc: Location, d_idx: vec3<f32>) -> vec3<f32> {
+    let h = 2.0 * f32(1u << loc.level);
+    let ex = vec3<f32>(1.0, 0.0, 0.0);
+    let ey = vec3<f32>(0.0, 1.0, 0.0);
+    let ez = vec3<f32>(0.0, 0.0, 1.0);
+    let g_idx = vec3<f32>(
+        fetch(loc.coord + ex) - fetch(loc.coord - ex),
+        fetch(loc.coord + ey) - fetch(loc.coord - ey),
+        fetch(loc.coord + ez) - fetch(loc.coord - ez),
+    ) * (P.value_map.x / h);
+    let g_patient = g_idx.x * P.a_row0.xyz + g_idx.y * P.a_row1.xyz + g_idx.z * P.a_row2.xyz;
+    let mag = length(g_patient);
+    let w = smoothstep(SHADING_FLAT_BELOW, SHADING_LIT_ABOVE, mag * P.iso.y);
+    var ndl = 1.0;
+    if mag > 0.0 {
+        ndl = min(abs(dot(g_idx, d_idx)) / mag, 1.0);
+    }
+    var spec = 0.0;
+    if mag > 0.0 {
+        spec = pow(ndl, P.shading.w);
+    }
+    let unlit = P.shading.x + P.shading.y;
+    let lit = P.shading.x + P.shading.y * ndl;
+    let gain = unlit + (lit - unlit) * w;
+    return color * gain + vec3<f32>(P.shading.z * spec * w);
+}
+
+fn pcg(v: u32) -> u32 {
+    let state = v * 747796405u + 2891336453u;
+    let word = ((state >> ((state >> 28u) + 4u)) ^ state) * 277803737u;
+    return (word >> 22u) ^ word;
+}
+
+// Where the ray leaves page cell `cell` (index-space box of 32 voxel cells).
+fn cell_exit(o: vec3<f32>, d: vec3<f32>, cell: vec3<f32>) -> f32 {
+    let lo = cell * CORE - vec3<f32>(0.5);
+    let bound = select(lo, lo + vec3<f32>(CORE), d > vec3<f32>(0.0));
+    let t = select((bound - o) / d, vec3<f32>(3.0e38), abs(d) < vec3<f32>(1e-20));
+    return min(t.x, min(t.y, t.z));
+}
+
+// Marks a page visible once per visit: consecutive samples mostly share a page, and a
+// scattered store per sample is expensive (per-lane on CPU rasterisers). Racing stores from
+// different rays all write 1, so no atomics are needed.
+fn mark_visible(page: u32, last_marked: ptr<function, u32>) {
+    if page != *last_marked {
+        visibility[page] = 1u;
+        *last_marked = page;
+    }
+}
+
+@compute @workgroup_size(8, 8, 1)
+fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let width = P.image.x;
+    let height = P.image.y;
+    if gid.x >= width || gid.y >= height {
+        return;
+    }
+    let pixel = gid.y * width + gid.x;
+    let inf = bitcast<f32>(0x7f800000u);
+    let half_extent = P.eye_idx.w;
+    let sx = (2.0 * (f32(gid.x) + 0.5) / f32(width) - 1.0) * P.right_idx.w * half_extent;
+    let sy = (1.0 - 2.0 * (f32(gid.y) + 0.5) / f32(height)) * half_extent;
+    let orthographic = P.up_idx.w > 0.5;
+    var o = P.eye_idx.xyz;
+    var d = P.forward_idx.xyz;
+    var plane_nd = P.clip.x;
+    var plane_rhs = P.clip.w;
+    if orthographic {
+        o = o + sx * P.right_idx.xyz + sy * P.up_idx.xyz;
+        plane_rhs = plane_rhs - sx * P.clip.y - sy * P.clip.z;
+    } else {
+        let len = sqrt(1.0 + sx * sx + sy * sy);
+        d = (d + sx * P.right_idx.xyz + sy * P.up_idx.xyz) / len;
+        plane_nd = (plane_nd + sx * P.clip.y + sy * P.clip.z) / len;
+    }
+
+    // Ray interval inside the cropped box (index space) and the clip half-space.
+    var t0 = 0.0;
+    var t1 = inf;
+    var miss = false;
+    for (var a = 0u; a < 3u; a++) {
+        if abs(d[a]) < 1e-12 {
+            if o[a] < P.box_lo[a] || o[a] > P.box_hi[a] {
+                miss = true;
+            }
+        } else {
+            let ta = (P.box_lo[a] - o[a]) / d[a];
+            let tb = (P.box_hi[a] - o[a]) / d[a];
+            t0 = max(t0, min(ta, tb));
+            t1 = min(t1, max(ta, tb));
+        }
+    }
+    if CLIP_PLANE {
+        if abs(plane_nd) < 1e-12 {
+            if plane_rhs > 0.0 {
+                miss = true;
+            }
+        } else {
+            let tc = plane_rhs / plane_nd;
+            if plane_nd > 0.0 {
+                t0 = max(t0, tc);
+            } else {
+                t1 = min(t1, tc);
+            }
+        }
+    }
+    if miss || !(t1 > t0) {
+        textureStore(out_color, vec2<i32>(gid.xy), vec4<f32>(0.0));
+        out_depth[pixel] = inf;
+        return;
+    }
+
+    let base = P.box_lo.w;
+    let unit = P.box_hi.w;
+    var j = 0.5;
+    if JITTER {
+        j = min(f32(pcg(gid.x ^ pcg(gid.y ^ pcg(P.image.z)))) * 2.3283064e-10, 0.99999);
+    }
+    // Segment k spans [first + k·base, first + (k+1)·base): level-0 samples sit at
+    // t0 + (k + j)·base, the midpoints when jitter is off. Coarse nodes take 2^L segments at
+    // once, so every sample stays on one lattice and empty-space jumps cannot shift it.
+    let first = t0 + (j - 0.5) * base;
+
+    var acc = vec4<f32>(0.0);
+    var depth = inf;
+    var samples = 0u;
+    var best_value = -3.0e38;
+    var best_t = inf;
+    var best_page = 0u;
+    var have_best = false;
+    var prev_t = 0.0;
+    var prev_valid = false;
+    var hit = false;
+    var hit_loc: Location;
+    var k = 0u;
+    var last_marked = 0xffffffffu;
+    var page_cache: Page;
+    page_cache.t_exit = -3.0e38;
+    for (var iter = 0u; iter < MAX_ITERATIONS; iter++) {
+        let seg = first + f32(k) * base;
+        let probe_t = seg + 0.5 * base;
+        if probe_t >= t1 {
+            break;
+        }
+        let probe = locate_on_ray(o, d, probe_t, &page_cache);
+        if !probe.resident || (SKIP_EMPTY && probe.empty) {
+            if SKIP_EMPTY {
+                let t_exit = page_cache.t_exit;
+                let next = ceil((t_exit - first) / base - 0.5);
+                k = max(k + 1u, u32(clamp(next, 0.0, 4.0e9)));
+                prev_valid = false;
+                if MODE == 2u && probe.resident {
+                    // Empty for an isosurface means below the iso value: the crossing lies
+                    // after the cell face, so bisection may start there.
+                    prev_t = max(t_exit, t0);
+                    prev_valid = true;
+                }
+            } else {
+                k = k + 1u;
+                prev_valid = false;
+            }
+            continue;
+        }
+        let stride = 1u << probe.level;
+        let delta = base * f32(stride);
+        let t = seg + 0.5 * delta;
+        if t >= t1 {
+            break;
+        }
+        var loc = probe;
+        if probe.level != 0u {
+            loc = locate_on_ray(o, d, t, &page_cache);
+        }
+        k = k + stride;
+        if !loc.resident {
+            prev_valid = false;
+            continue;
+        }
+        samples = samples + 1u;
+        let v = physical(fetch(loc.coord));
+        if MODE == 0u {
+            let tf = transfer(v);
+            if tf.a > 0.0 {
+                let alpha = 1.0 - pow(1.0 - min(tf.a, 0.999999), delta / unit);
+                var color = tf.rgb;
+                if SHADING {
+                    color = shade(color, loc, d);
+                }
+                if depth == inf {
+                    depth = t;
+                }
+                mark_visible(loc.page, &last_marked);
+                let w = (1.0 - acc.a) * alpha;
+                acc = vec4<f32>(acc.rgb + w * color, acc.a + w);
+                if EARLY_TERMINATION && acc.a >= P.dims.w {
+                    break;
+                }
+            }
+        } else if MODE == 1u {
+            if v > best_value {
+                best_value = v;
+                best_t = t;
+                best_page = loc.page;
+                have_best = true;
+            }
+            if loc.page != last_marked && transfer(v).a > 0.0 {
+                mark_visible(loc.page, &last_marked);
+            }
+        } else {
+            if v >= P.iso.x {
+                var t_hit = t;
+                if prev_valid {
+                    var lo = prev_t;
+                    var hi = t;
+                    for (var b = 0u; b < BISECTION_STEPS; b++) {
+                        let mid = 0.5 * (lo + hi);
+                        let m = locate(o + d * mid);
+                        if m.resident && physical(fetch(m.coord)) >= P.iso.x {
+                            hi = mid;
+                        } else {
+                            lo = mid;
+                        }
+                    }
+                    t_hit = hi;
+                }
+                hit = true;
+                depth = t_hit;
+                hit_loc = locate(o + d * t_hit);
+                mark_visible(hit_loc.page, &last_marked);
+                break;
+            }
+            prev_t = t;
+            prev_valid = true;
+        }
+    }
+
+    if MODE == 1u && have_best {
+        let tf = transfer(best_value);
+        acc = vec4<f32>(tf.rgb * tf.a, tf.a);
+        if tf.a > 0.0 {
+            depth = best_t;
+        }
+    }
+    if MODE == 2u && hit {
+        let base_color = P.iso_color.rgb;
+        acc = vec4<f32>(shade(base_color, hit_loc, d), 1.0);
+    }
+    if COUNT_SAMPLES {
+        let old = atomicAdd(&sample_counter[0], samples);
+        if old > 0xffffffffu - samples {
+            atomicAdd(&sample_counter[1], 1u);
+        }
+    }
+    textureStore(out_color, vec2<i32>(gid.xy), clamp(acc, vec4<f32>(0.0), vec4<f32>(1.0)));
+    out_depth[pixel] = depth;
+}

@@ -1,0 +1,269 @@
+//! Geometry, mixed levels, acceleration invariants, degenerate inputs, visibility readback.
+mod common;
+use common::*;
+use glam::{DMat3, DVec3};
+use strata_render::*;
+
+const SIZE: u32 = 128;
+const REFINE: f64 = 8.0;
+
+fn dvr_tf_fixture(volume: BrickedVolume, table: PageTable) -> Fixture {
+    Fixture::new(volume, table, test_tf())
+}
+
+fn oblique_geometry() -> VolumeGeometry {
+    let rot = DMat3::from_rotation_z(20f64.to_radians()) * DMat3::from_rotation_x(15f64.to_radians());
+    VolumeGeometry {
+        dims: [80, 64, 40],
+        spacing_mm: [0.8, 1.1, 2.0],
+        origin_lps_mm: [-30.0, 10.0, 50.0],
+        direction: [rot.x_axis.into(), rot.y_axis.into(), rot.z_axis.into()],
+    }
+}
+
+fn phantom_on(geometry: VolumeGeometry, centre: DVec3, r: f64, edge: f64) -> BrickedVolume {
+    let g = geometry.clone();
+    BrickedVolume::from_fn(geometry, phantom::CT_MAPPING, move |x, y, z| {
+        let p = g.patient_from_index(DVec3::new(x as f64, y as f64, z as f64));
+        (phantom::ct_phantom_hu(p, centre, r, edge) + 1024.0).round().clamp(0.0, 4095.0) as u16
+    })
+    .unwrap()
+}
+
+#[test]
+fn anisotropic_oblique_geometry_matches_reference_and_patient_space() {
+    let ctx = gpu();
+    let geometry = oblique_geometry();
+    let centre = geometry.centre_patient();
+    // Edge 2.5 mm: wider than the coarsest spacing so both samplings represent the same object.
+    let volume = phantom_on(geometry, centre, 28.0, 2.5);
+    let table = volume.page_table_uniform(0);
+    let f = dvr_tf_fixture(volume, table);
+    let cam = Camera::look_at((centre + DVec3::new(90.0, -140.0, -60.0)).into(), centre.into(), [0.0, 0.0, -1.0], Projection::Perspective { fov_y_deg: 30.0 });
+    let s = RenderSettings { shading: Some(Shading::default()), ..compare_settings(RenderMode::Dvr, SIZE) };
+    let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
+    let oblique = g.render(&ctx, &f, &cam, &s);
+    // Same tolerance reasoning as gpu_vs_reference.rs.
+    assert_close("aniso-oblique", &oblique, &f.reference(&cam, &s, REFINE), 40.0, 24);
+
+    // Independently built: the same patient-space object on an isotropic, axis-aligned 1 mm
+    // grid. If direction/spacing/origin were mishandled anywhere, the object would move, tilt
+    // or stretch. Tolerance 28 dB: the two grids resample the object differently (2 mm vs 1 mm
+    // voxels across 2.5 mm edges), which no renderer can remove.
+    let iso_geometry = VolumeGeometry {
+        dims: [80, 80, 80],
+        spacing_mm: [1.0; 3],
+        origin_lps_mm: (centre - DVec3::splat(39.5)).into(),
+        direction: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+    };
+    let iso_volume = phantom_on(iso_geometry, centre, 28.0, 2.5);
+    let iso_table = iso_volume.page_table_uniform(0);
+    let fi = dvr_tf_fixture(iso_volume, iso_table);
+    let reference_iso = fi.reference(&cam, &s, 4.0);
+    save("aniso-vs-isotropic-ref", SIZE, SIZE, &reference_iso.rgba);
+    let c = compare_rgba8(&oblique.rgba, &reference_iso.rgba).unwrap();
+    eprintln!("oblique GPU vs isotropic reference: {c:?}");
+    assert!(c.psnr_db >= 28.0, "{c:?}");
+}
+
+#[test]
+fn mixed_levels_checkerboard_matches_reference() {
+    let ctx = gpu();
+    let volume = phantom::ct_phantom(VolumeGeometry::axis_aligned([128; 3], [1.0; 3]), None, None).unwrap();
+    let table = volume.page_table_with_levels(|p| ((p[0] + p[1] + p[2]) % 3) as u8);
+    let levels: std::collections::BTreeSet<u8> = table.entries.iter().map(|e| e.level).collect();
+    assert_eq!(levels.into_iter().collect::<Vec<_>>(), vec![0, 1, 2]);
+    let f = dvr_tf_fixture(volume, table);
+    let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
+    let cam = Camera::orbit(&f.volume.geometry, 40.0, 30.0, 1.5, Projection::Perspective { fov_y_deg: 35.0 });
+    // Same 40 dB bar: the GPU steps 2^L times longer in level-L nodes (octree paper §5), but a
+    // level-L field is 2^L times smoother, so the relative discretisation error is unchanged.
+    // MIP max error 32: MIP keeps the largest sample, and with 2-voxel steps in level-2 nodes
+    // the peak of a narrow feature can fall between samples (undersampled by up to half a
+    // step); the mean stays far above 40 dB.
+    for (name, mode, max_abs) in [("mixed-dvr", RenderMode::Dvr, 24), ("mixed-mip", RenderMode::Mip, 32)] {
+        let s = RenderSettings { shading: Some(Shading::default()), ..compare_settings(mode, SIZE) };
+        assert_close(name, &g.render(&ctx, &f, &cam, &s), &f.reference(&cam, &s, REFINE), 40.0, max_abs);
+    }
+}
+
+fn small_object_fixture() -> Fixture {
+    // Object radius 30 mm in a 128 mm cube: most of the 4×4×4 pages hold only air.
+    let volume = phantom::ct_phantom(VolumeGeometry::axis_aligned([128; 3], [1.0; 3]), None, Some(30.0)).unwrap();
+    let table = volume.page_table_uniform(0);
+    dvr_tf_fixture(volume, table)
+}
+
+#[test]
+fn empty_skipping_and_early_termination_keep_the_image_and_save_samples() {
+    let ctx = gpu();
+    let f = small_object_fixture();
+    let empty = f.page_table.entries.iter().filter(|e| e.empty).count();
+    assert!(empty > 10, "phantom should leave empty pages, got {empty}");
+    let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
+    let cam = Camera::orbit(&f.volume.geometry, 25.0, 15.0, 1.4, Projection::Perspective { fov_y_deg: 35.0 });
+    let plain = RenderSettings { skip_empty: false, early_termination: None, ..compare_settings(RenderMode::Dvr, SIZE) };
+    let base = g.render(&ctx, &f, &cam, &plain);
+
+    // Skipping jumps to the next sample on the same lattice, and skipped pages are transparent
+    // by construction: the image may differ only by f32 rounding of sample positions (1/255).
+    let skip = g.render(&ctx, &f, &cam, &RenderSettings { skip_empty: true, ..plain.clone() });
+    let c = compare_rgba8(&base.rgba, &skip.rgba).unwrap();
+    eprintln!("skip: {c:?}, samples {:?} -> {:?}", base.samples, skip.samples);
+    assert!(c.max_abs_error <= 1, "{c:?}");
+    assert!(skip.samples.unwrap() * 2 < base.samples.unwrap(), "skipping should at least halve samples");
+
+    // Early termination at threshold τ drops at most (1-τ) of the remaining light: with
+    // τ = 0.998 that is ≤ 0.51/255, plus rounding ≤ 1/255.
+    let ert = g.render(&ctx, &f, &cam, &RenderSettings { early_termination: Some(0.998), ..plain.clone() });
+    let c = compare_rgba8(&base.rgba, &ert.rgba).unwrap();
+    eprintln!("ert 0.998: {c:?}, samples {:?} -> {:?}", base.samples, ert.samples);
+    assert!(c.max_abs_error <= 1, "{c:?}");
+    assert!(ert.samples.unwrap() < base.samples.unwrap());
+    // The default τ = 0.99 may drop up to 2.55/255 of light, +1 for rounding.
+    let both = g.render(&ctx, &f, &cam, &RenderSettings { early_termination: Some(0.99), skip_empty: true, ..plain.clone() });
+    let c = compare_rgba8(&base.rgba, &both.rgba).unwrap();
+    eprintln!("skip + ert 0.99: {c:?}, samples {:?} -> {:?}", base.samples, both.samples);
+    assert!(c.max_abs_error <= 4, "{c:?}");
+}
+
+#[test]
+fn opacity_correction_makes_image_independent_of_step() {
+    let ctx = gpu();
+    let f = small_object_fixture();
+    let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
+    let cam = Camera::orbit(&f.volume.geometry, -30.0, 20.0, 1.4, Projection::Perspective { fov_y_deg: 35.0 });
+    let half = compare_settings(RenderMode::Dvr, SIZE);
+    let a = g.render(&ctx, &f, &cam, &RenderSettings { quality: 0.5, ..half.clone() });
+    let b = g.render(&ctx, &f, &cam, &RenderSettings { quality: 0.25, ..half.clone() });
+    let c = compare_rgba8(&a.rgba, &b.rgba).unwrap();
+    eprintln!("step 0.5 vs 0.25: {c:?}");
+    // Without correction, halving the step would double every sample's opacity contribution
+    // (tens of levels off). With it, only second-order discretisation error remains: ≥ 40 dB.
+    assert!(c.psnr_db >= 40.0 && c.max_abs_error <= 8, "{c:?}");
+    assert!(b.samples.unwrap() > a.samples.unwrap() * 3 / 2);
+}
+
+#[test]
+fn constant_volume_with_shading_has_no_nan_and_matches_reference() {
+    let ctx = gpu();
+    let volume = BrickedVolume::from_fn(VolumeGeometry::axis_aligned([40, 40, 40], [1.0; 3]), phantom::CT_MAPPING, |_, _, _| 1024 + 300).unwrap();
+    let table = volume.page_table_uniform(0);
+    // The TF table spans the volume's range, which is a single value: must not divide by zero.
+    let f = dvr_tf_fixture(volume, table);
+    let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
+    let cam = Camera::orbit(&f.volume.geometry, 30.0, 30.0, 1.2, Projection::Perspective { fov_y_deg: 40.0 });
+    for (name, mode) in [("const-dvr", RenderMode::Dvr), ("const-iso", RenderMode::Isosurface)] {
+        let s = RenderSettings { shading: Some(Shading::default()), iso_value: 250.0, ..compare_settings(mode, 96) };
+        let frame = g.render(&ctx, &f, &cam, &s);
+        // The isosurface of a constant block is its hard box face: silhouette rays that clip
+        // a corner shorter than half a GPU step hit only in the reference, so as in the
+        // oblique isosurface test bound the number of differing pixels, not their size.
+        // That also caps PSNR (a few dozen full-scale silhouette pixels alone give ~28 dB).
+        let (min_psnr, max_abs) = if mode == RenderMode::Isosurface { (25.0, 255) } else { (40.0, 24) };
+        let c = assert_close(name, &frame, &f.reference(&cam, &s, REFINE), min_psnr, max_abs);
+        if mode == RenderMode::Isosurface {
+            assert!(c.pixels_off_by_more_than_one * 100 <= 96 * 96, "{c:?}");
+        }
+    }
+}
+
+#[test]
+fn single_slice_volume_and_axis_parallel_rays() {
+    let ctx = gpu();
+    let volume = phantom::ct_phantom(VolumeGeometry::axis_aligned([64, 64, 1], [1.0, 1.0, 3.0]), None, Some(30.0)).unwrap();
+    let table = volume.page_table_uniform(0);
+    let f = dvr_tf_fixture(volume, table);
+    let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
+    let c = f.volume.geometry.centre_patient();
+    // Straight down the k axis (all rays parallel to it, through a 3 mm thick slab), then
+    // edge-on along i (rays inside the slab plane), then oblique.
+    let cams = [
+        Camera::look_at([c.x, c.y, c.z - 100.0], c.into(), [0.0, -1.0, 0.0], Projection::Orthographic { height_mm: 70.0 }),
+        Camera::look_at([c.x - 100.0, c.y, c.z], c.into(), [0.0, 0.0, -1.0], Projection::Orthographic { height_mm: 70.0 }),
+        Camera::look_at([c.x - 60.0, c.y + 40.0, c.z - 80.0], c.into(), [0.0, 0.0, -1.0], Projection::Perspective { fov_y_deg: 45.0 }),
+    ];
+    for (i, cam) in cams.iter().enumerate() {
+        let s = compare_settings(RenderMode::Mip, 96);
+        let frame = g.render(&ctx, &f, cam, &s);
+        let reference = f.reference(cam, &s, REFINE);
+        if i == 1 {
+            // Edge-on: the slab is 3 mm tall in a 70 mm view, only a few rows are covered, so
+            // only require equality within the usual max error (PSNR of an almost empty image
+            // is meaningless).
+            let cmp = compare_rgba8(&frame.rgba, &reference.rgba).unwrap();
+            eprintln!("slice edge-on: {cmp:?}");
+            assert!(cmp.max_abs_error <= 24 && cmp.psnr_db >= 40.0, "{cmp:?}");
+        } else {
+            assert_close(&format!("slice-{i}"), &frame, &reference, 40.0, 24);
+        }
+    }
+}
+
+#[test]
+fn visibility_marks_only_contributing_pages_and_arrives_without_blocking() {
+    let ctx = gpu();
+    let f = small_object_fixture();
+    let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
+    let cam = Camera::orbit(&f.volume.geometry, 10.0, 10.0, 1.4, Projection::Perspective { fov_y_deg: 35.0 });
+    let s = RenderSettings { jitter: true, ..compare_settings(RenderMode::Dvr, SIZE) };
+    let frame = g.render(&ctx, &f, &cam, &s);
+    assert_eq!(frame.visibility.len(), f.page_table.entries.len());
+    let visible = frame.visibility.iter().filter(|&&v| v == 1).count();
+    assert!(visible > 0);
+    for (v, e) in frame.visibility.iter().zip(&f.page_table.entries) {
+        assert!(*v == 0 || !e.empty, "an empty page was marked visible");
+    }
+    // Non-blocking path: a few frames later the ring hands back a frame's visibility.
+    let scene = Scene { cache: &g.cache, page_table: &g.page_table, transfer_function: &g.tf, geometry: &f.volume.geometry, mapping: f.volume.mapping, camera: &cam, settings: &s };
+    let mut got = None;
+    for _ in 0..200 {
+        g.raycaster.render(&ctx, &scene).unwrap();
+        if let Some(v) = g.raycaster.try_take_visibility(&ctx) {
+            got = Some(v);
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(5));
+    }
+    let got = got.expect("visibility never arrived");
+    assert_eq!(got.visibility, frame.visibility, "same view, same visible pages");
+}
+
+#[test]
+fn jitter_changes_samples_but_not_the_picture() {
+    let ctx = gpu();
+    let f = Fixture::ct(64);
+    let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
+    let cam = Camera::orbit(&f.volume.geometry, 60.0, 10.0, 1.5, Projection::Perspective { fov_y_deg: 35.0 });
+    let s = compare_settings(RenderMode::Dvr, SIZE);
+    let plain = g.render(&ctx, &f, &cam, &s);
+    let j0 = g.render(&ctx, &f, &cam, &RenderSettings { jitter: true, frame_index: 0, ..s.clone() });
+    let j0b = g.render(&ctx, &f, &cam, &RenderSettings { jitter: true, frame_index: 0, ..s.clone() });
+    let j1 = g.render(&ctx, &f, &cam, &RenderSettings { jitter: true, frame_index: 1, ..s.clone() });
+    assert_eq!(j0.rgba, j0b.rgba, "jitter hash must be deterministic");
+    assert_ne!(j0.rgba, j1.rgba, "frame index must reseed jitter");
+    // Jitter trades banding for noise of the order of the step's discretisation error.
+    let c = compare_rgba8(&plain.rgba, &j0.rgba).unwrap();
+    eprintln!("jitter vs none: {c:?}");
+    assert!(c.psnr_db >= 35.0, "{c:?}");
+}
+
+#[test]
+fn no_adapter_error_carries_install_hint() {
+    let e = RenderError::NoAdapter { details: "none".into() };
+    assert!(e.to_string().contains("apt-get install -y mesa-vulkan-drivers libvulkan1"));
+}
+
+#[test]
+fn bad_inputs_are_errors() {
+    let ctx = gpu();
+    let cache = BrickCache::new(&ctx.device, CacheConfig { max_slots: Some(2), ..Default::default() }).unwrap();
+    assert!(cache.upload_brick(&ctx.queue, 0, &[0u16; 10]).is_err());
+    assert!(cache.upload_brick(&ctx.queue, cache.slot_count(), &vec![0u16; BRICK_PAYLOAD_VOXELS]).is_err());
+    assert!(BrickCache::new(&ctx.device, CacheConfig { budget_bytes: 10, ..Default::default() }).is_err());
+    assert!(BrickedVolume::from_voxels(VolumeGeometry::axis_aligned([4, 4, 4], [1.0; 3]), ValueMapping::default(), vec![0; 3]).is_err());
+    assert!(BrickedVolume::from_voxels(VolumeGeometry::axis_aligned([4, 4, 4], [0.0, 1.0, 1.0]), ValueMapping::default(), vec![0; 64]).is_err());
+    let s = RenderSettings { quality: 0.0, ..Default::default() };
+    assert!(s.validate().is_err());
+}
+
