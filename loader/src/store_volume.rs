@@ -129,7 +129,7 @@ impl GpuCut {
         let config = strata_render::CacheConfig { max_slots: Some(bricks.len().max(1) as u32), ..Default::default() };
         let cache = BrickCache::new(&ctx.device, config)?;
         bricks.upload(&cache, &ctx.queue, table)?;
-        let page_table = strata_render::GpuPageTable::new(&ctx.device, page_dims, &cache);
+        let page_table = strata_render::GpuPageTable::new(&ctx.device, page_dims, &cache)?;
         page_table.update(&ctx.queue, table)?;
         let transfer_function = strata_render::GpuTransferFunction::new(&ctx.device, &ctx.queue, tf_table);
         let raycaster = strata_render::Raycaster::new(ctx, &cache);
