@@ -376,7 +376,7 @@ impl StoreWriter {
         std::fs::write(path.join(MARKER_FILE), format!("strata store format {STORE_FORMAT_VERSION}\n"))
             .map_err(|e| StorageError::io(path.join(MARKER_FILE), e))?;
         let db = open_db_when_unlocked(
-            sled::Config::new().path(path.join(DB_DIR)).cache_capacity(sled_cache_bytes).mode(sled::Mode::HighThroughput).flush_every_ms(None),
+            sled::Config::new().path(path.join(DB_DIR)).cache_capacity(sled_cache_bytes).mode(sled::Mode::HighThroughput),
         )
         .map_err(db_error(path))?;
         let bricks = db.open_tree("bricks").map_err(db_error(path))?;
