@@ -15,7 +15,10 @@ use strata_render::reference::{render_reference, ReferenceOptions, ReferenceScen
 use strata_render::*;
 
 fn env_u32(name: &str, default: u32) -> u32 {
-    std::env::var(name).ok().and_then(|v| v.parse().ok()).unwrap_or(default)
+    std::env::var(name)
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(default)
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -56,7 +59,10 @@ struct SamplingOnly {
 impl SamplingOnly {
     fn new(ctx: &GpuContext, cache: &BrickCache, size: u32, samples_per_ray: u32) -> Self {
         let device = &ctx.device;
-        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor { label: Some("sampling only"), source: wgpu::ShaderSource::Wgsl(SAMPLING_ONLY.into()) });
+        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("sampling only"),
+            source: wgpu::ShaderSource::Wgsl(SAMPLING_ONLY.into()),
+        });
         let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
             label: Some("sampling only"),
             layout: None,
@@ -65,22 +71,60 @@ impl SamplingOnly {
             compilation_options: Default::default(),
             cache: None,
         });
-        let sink = device.create_buffer(&wgpu::BufferDescriptor { label: None, size: size as u64 * size as u64 * 4, usage: wgpu::BufferUsages::STORAGE, mapped_at_creation: false });
-        let params = device.create_buffer(&wgpu::BufferDescriptor { label: None, size: 16, usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST, mapped_at_creation: false });
-        ctx.queue.write_buffer(&params, 0, bytemuck::cast_slice(&[size, size, samples_per_ray, 0u32]));
-        let filter = if cache.format.filterable() { wgpu::FilterMode::Linear } else { wgpu::FilterMode::Nearest };
-        let sampler = device.create_sampler(&wgpu::SamplerDescriptor { mag_filter: filter, min_filter: filter, ..Default::default() });
+        let sink = device.create_buffer(&wgpu::BufferDescriptor {
+            label: None,
+            size: size as u64 * size as u64 * 4,
+            usage: wgpu::BufferUsages::STORAGE,
+            mapped_at_creation: false,
+        });
+        let params = device.create_buffer(&wgpu::BufferDescriptor {
+            label: None,
+            size: 16,
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        ctx.queue.write_buffer(
+            &params,
+            0,
+            bytemuck::cast_slice(&[size, size, samples_per_ray, 0u32]),
+        );
+        let filter = if cache.format.filterable() {
+            wgpu::FilterMode::Linear
+        } else {
+            wgpu::FilterMode::Nearest
+        };
+        let sampler = device.create_sampler(&wgpu::SamplerDescriptor {
+            mag_filter: filter,
+            min_filter: filter,
+            ..Default::default()
+        });
         let bind = device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: None,
             layout: &pipeline.get_bind_group_layout(0),
             entries: &[
-                wgpu::BindGroupEntry { binding: 0, resource: wgpu::BindingResource::TextureView(&cache.view) },
-                wgpu::BindGroupEntry { binding: 1, resource: wgpu::BindingResource::Sampler(&sampler) },
-                wgpu::BindGroupEntry { binding: 2, resource: sink.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 3, resource: params.as_entire_binding() },
+                wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: wgpu::BindingResource::TextureView(&cache.view),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: wgpu::BindingResource::Sampler(&sampler),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 2,
+                    resource: sink.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 3,
+                    resource: params.as_entire_binding(),
+                },
             ],
         });
-        SamplingOnly { pipeline, bind, size }
+        SamplingOnly {
+            pipeline,
+            bind,
+            size,
+        }
     }
 
     fn run(&self, ctx: &GpuContext) {
@@ -92,7 +136,12 @@ impl SamplingOnly {
             pass.dispatch_workgroups(self.size.div_ceil(8), self.size.div_ceil(8), 1);
         }
         let idx = ctx.queue.submit(Some(enc.finish()));
-        ctx.device.poll(wgpu::PollType::Wait { submission_index: Some(idx), timeout: None }).expect("poll");
+        ctx.device
+            .poll(wgpu::PollType::Wait {
+                submission_index: Some(idx),
+                timeout: None,
+            })
+            .expect("poll");
     }
 }
 
@@ -111,20 +160,47 @@ fn main() {
     println!("adapter: {}", ctx.adapter_name());
     let t = Instant::now();
     let volume = phantom::vtk_peer_phantom(n).expect("phantom");
-    println!("phantom {n}³ bricked in {:.0} ms ({} levels)", t.elapsed().as_secs_f64() * 1e3, volume.level_count());
+    println!(
+        "phantom {n}³ bricked in {:.0} ms ({} levels)",
+        t.elapsed().as_secs_f64() * 1e3,
+        volume.level_count()
+    );
     let tf = phantom::vtk_peer_transfer_function();
     let tf_table = tf.table(0.0, 255.0);
     let mut page_table = volume.page_table_uniform(0);
     volume.classify_empty(&mut page_table, &tf_table);
     let nodes = BrickedVolume::resident_nodes(&page_table).len() as u32;
-    let cache = BrickCache::new(&ctx.device, CacheConfig { max_slots: Some(nodes), ..Default::default() }).expect("cache");
-    volume.upload(&cache, &ctx.queue, &page_table).expect("upload");
-    let gpu_table = GpuPageTable::new(&ctx.device, volume.geometry.page_dims(), &cache);
-    gpu_table.update(&ctx.queue, &page_table).expect("page table");
+    // R16Unorm by default; STRATA_BENCH_R8=1 uses the 8-bit cache (as VTK's 8-bit texture).
+    // On lavapipe it made no measurable difference: the raycast is compute-bound there.
+    let eight_bit = std::env::var("STRATA_BENCH_R8").is_ok();
+    let cache = BrickCache::new(
+        &ctx.device,
+        CacheConfig {
+            max_slots: Some(nodes),
+            eight_bit,
+            ..Default::default()
+        },
+    )
+    .expect("cache");
+    volume
+        .upload(&cache, &ctx.queue, &page_table)
+        .expect("upload");
+    let gpu_table =
+        GpuPageTable::new(&ctx.device, volume.geometry.page_dims(), &cache).expect("page table");
+    gpu_table
+        .update(&ctx.queue, &page_table)
+        .expect("page table");
     let gpu_tf = GpuTransferFunction::new(&ctx.device, &ctx.queue, &tf_table);
     let mut raycaster = Raycaster::new(&ctx, &cache);
-    println!("cache {:?} ({} slots, {} used, {:?}), empty pages {}/{}", cache.texel_dims(), cache.slot_count(), nodes, cache.format,
-        page_table.entries.iter().filter(|e| e.empty).count(), page_table.entries.len());
+    println!(
+        "cache {:?} ({} slots, {} used, {:?}), empty pages {}/{}",
+        cache.texel_dims(),
+        cache.slot_count(),
+        nodes,
+        cache.format,
+        page_table.entries.iter().filter(|e| e.empty).count(),
+        page_table.entries.len()
+    );
 
     // As vtkRenderer::ResetCamera then Azimuth(30) per frame: looking down -z with +y up,
     // view angle 30°, distance = bounding-sphere radius / sin(15°), orbiting about +y.
@@ -133,23 +209,58 @@ fn main() {
     let camera_at = |frame: u32| {
         let az = (30.0 * frame as f64).to_radians();
         let eye = centre + glam::DVec3::new(az.sin(), 0.0, az.cos()) * distance;
-        Camera::look_at(eye.into(), centre.into(), [0.0, 1.0, 0.0], Projection::Perspective { fov_y_deg: 30.0 })
+        Camera::look_at(
+            eye.into(),
+            centre.into(),
+            [0.0, 1.0, 0.0],
+            Projection::Perspective { fov_y_deg: 30.0 },
+        )
     };
     let quick = std::env::var("STRATA_BENCH_QUICK").is_ok();
-    let configs = [("dvr", RenderMode::Dvr, true), ("mip", RenderMode::Mip, true), ("dvr no-skip", RenderMode::Dvr, false), ("mip no-skip", RenderMode::Mip, false)];
+    let configs = [
+        ("dvr", RenderMode::Dvr, true),
+        ("mip", RenderMode::Mip, true),
+        ("dvr no-skip", RenderMode::Dvr, false),
+        ("mip no-skip", RenderMode::Mip, false),
+    ];
     let configs = &configs[..if quick { 2 } else { 4 }];
-    let settings_for = |mode, skip| RenderSettings { width: size, height: size, mode, quality: 0.5, skip_empty: skip, ..Default::default() };
+    let settings_for = |mode, skip| RenderSettings {
+        width: size,
+        height: size,
+        mode,
+        quality: 0.5,
+        skip_empty: skip,
+        ..Default::default()
+    };
 
     // Samples per ray first (one counting frame per config, untimed): the sampling-only kernel
     // takes the DVR count so the ceiling does the same number of fetches.
     let mut samples_per_frame = Vec::new();
     for &(_, mode, skip) in configs {
         let camera = camera_at(1);
-        let counting = RenderSettings { count_samples: true, ..settings_for(mode, skip) };
-        let scene = Scene { cache: &cache, page_table: &gpu_table, transfer_function: &gpu_tf, geometry: &volume.geometry, mapping: volume.mapping, camera: &camera, settings: &counting };
-        samples_per_frame.push(raycaster.render_blocking(&ctx, &scene).expect("render").samples.unwrap_or(0) as f64);
+        let counting = RenderSettings {
+            count_samples: true,
+            ..settings_for(mode, skip)
+        };
+        let scene = Scene {
+            cache: &cache,
+            page_table: &gpu_table,
+            transfer_function: &gpu_tf,
+            geometry: &volume.geometry,
+            mapping: volume.mapping,
+            camera: &camera,
+            settings: &counting,
+        };
+        samples_per_frame.push(
+            raycaster
+                .render_blocking(&ctx, &scene)
+                .expect("render")
+                .samples
+                .unwrap_or(0) as f64,
+        );
     }
-    let ceiling_per_ray = ((samples_per_frame[0] / (size as f64 * size as f64)).round() as u32).max(16);
+    let ceiling_per_ray =
+        ((samples_per_frame[0] / (size as f64 * size as f64)).round() as u32).max(16);
     let ceiling = SamplingOnly::new(&ctx, &cache, size, ceiling_per_ray);
 
     // Rounds interleave every configuration with the ceiling, so load changes on a shared
@@ -159,7 +270,15 @@ fn main() {
         for (i, &(_, mode, skip)) in configs.iter().enumerate() {
             let camera = camera_at(round + 1);
             let settings = settings_for(mode, skip);
-            let scene = Scene { cache: &cache, page_table: &gpu_table, transfer_function: &gpu_tf, geometry: &volume.geometry, mapping: volume.mapping, camera: &camera, settings: &settings };
+            let scene = Scene {
+                cache: &cache,
+                page_table: &gpu_table,
+                transfer_function: &gpu_tf,
+                geometry: &volume.geometry,
+                mapping: volume.mapping,
+                camera: &camera,
+                settings: &settings,
+            };
             let t = Instant::now();
             raycaster.render_and_wait(&ctx, &scene).expect("render");
             if round > 0 {
@@ -176,13 +295,26 @@ fn main() {
     let ceiling_samples = ceiling_per_ray as f64 * size as f64 * size as f64;
     let ceiling_rate = ceiling_samples / ceiling_ms * 1e-3;
     println!("\n{size}x{size}, step 0.5 voxel, median of {frames} interleaved rounds");
-    println!("{:<24} {:>10} {:>12} {:>12} {:>16}", "config", "ms/frame", "Msamples/s", "samples/ray", "rate vs ceiling");
+    println!(
+        "{:<24} {:>10} {:>12} {:>12} {:>16}",
+        "config", "ms/frame", "Msamples/s", "samples/ray", "rate vs ceiling"
+    );
     for (i, &(name, _, _)) in configs.iter().enumerate() {
         let ms = median(times[i].clone());
         let rate = samples_per_frame[i] / ms * 1e-3;
-        println!("{:<24} {:>10.1} {:>12.1} {:>12.1} {:>15.3}x", name, ms, rate, samples_per_frame[i] / (size as f64 * size as f64), rate / ceiling_rate);
+        println!(
+            "{:<24} {:>10.1} {:>12.1} {:>12.1} {:>15.3}x",
+            name,
+            ms,
+            rate,
+            samples_per_frame[i] / (size as f64 * size as f64),
+            rate / ceiling_rate
+        );
     }
-    println!("{:<24} {:>10.1} {:>12.1} {:>12} {:>15.3}x", "sampling-only ceiling", ceiling_ms, ceiling_rate, ceiling_per_ray, 1.0);
+    println!(
+        "{:<24} {:>10.1} {:>12.1} {:>12} {:>15.3}x",
+        "sampling-only ceiling", ceiling_ms, ceiling_rate, ceiling_per_ray, 1.0
+    );
 
     if quick {
         return;
@@ -191,23 +323,64 @@ fn main() {
     // minutes on two cores). Jitter off for the comparison, as in the tests.
     println!("\nPSNR vs f64 CPU reference at {ref_size}² (reference step = GPU step / 8):");
     for (name, mode) in [("dvr", RenderMode::Dvr), ("mip", RenderMode::Mip)] {
-        let settings = RenderSettings { width: ref_size, height: ref_size, mode, quality: 0.5, jitter: false, ..Default::default() };
+        let settings = RenderSettings {
+            width: ref_size,
+            height: ref_size,
+            mode,
+            quality: 0.5,
+            jitter: false,
+            ..Default::default()
+        };
         let camera = camera_at(1);
-        let scene = Scene { cache: &cache, page_table: &gpu_table, transfer_function: &gpu_tf, geometry: &volume.geometry, mapping: volume.mapping, camera: &camera, settings: &settings };
+        let scene = Scene {
+            cache: &cache,
+            page_table: &gpu_table,
+            transfer_function: &gpu_tf,
+            geometry: &volume.geometry,
+            mapping: volume.mapping,
+            camera: &camera,
+            settings: &settings,
+        };
         let gpu = raycaster.render_blocking(&ctx, &scene).expect("render");
         let t = Instant::now();
         let reference = render_reference(
-            &ReferenceScene { source: &volume, page_table: &page_table, geometry: &volume.geometry, mapping: volume.mapping, transfer_function: &tf, tf_range: (0.0, 255.0) },
+            &ReferenceScene {
+                source: &volume,
+                page_table: &page_table,
+                geometry: &volume.geometry,
+                mapping: volume.mapping,
+                transfer_function: &tf,
+                tf_range: (0.0, 255.0),
+            },
             &camera,
             &settings,
-            ReferenceOptions { step_refinement: 8.0, ..Default::default() },
+            ReferenceOptions {
+                step_refinement: 8.0,
+                ..Default::default()
+            },
         )
         .expect("reference");
         let c = compare_rgba8(&gpu.rgba, &reference.rgba).expect("compare");
-        println!("{name}: PSNR {:.1} dB, RMSE {:.3}, max abs {} (reference {:.1} s)", c.psnr_db, c.rmse, c.max_abs_error, t.elapsed().as_secs_f64());
+        println!(
+            "{name}: PSNR {:.1} dB, RMSE {:.3}, max abs {} (reference {:.1} s)",
+            c.psnr_db,
+            c.rmse,
+            c.max_abs_error,
+            t.elapsed().as_secs_f64()
+        );
         if std::env::var("STRATA_BENCH_SAVE").is_ok() {
-            let _ = metrics::write_ppm(std::path::Path::new(&format!("/tmp/strata-bench-{name}-gpu.ppm")), ref_size, ref_size, &gpu.rgba);
-            let _ = metrics::write_ppm(std::path::Path::new(&format!("/tmp/strata-bench-{name}-ref.ppm")), ref_size, ref_size, &reference.rgba);
+            let _ = metrics::write_ppm(
+                std::path::Path::new(&format!("/tmp/strata-bench-{name}-gpu.ppm")),
+                ref_size,
+                ref_size,
+                &gpu.rgba,
+            );
+            let _ = metrics::write_ppm(
+                std::path::Path::new(&format!("/tmp/strata-bench-{name}-ref.ppm")),
+                ref_size,
+                ref_size,
+                &reference.rgba,
+            );
         }
     }
 }

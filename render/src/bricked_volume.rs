@@ -51,25 +51,27 @@ fn downsample(src: &[u16], dims: [u32; 3]) -> (Vec<u16>, [u32; 3]) {
     let [nx, ny, nz] = dims.map(|d| d as usize);
     let [ox, oy, _] = out_dims.map(|d| d as usize);
     let mut out = vec![0u16; out_dims.iter().map(|&d| d as usize).product()];
-    out.par_chunks_mut(ox * oy).enumerate().for_each(|(z, plane)| {
-        // Odd sizes: the missing neighbour replicates the last voxel.
-        let zs = [(2 * z).min(nz - 1), (2 * z + 1).min(nz - 1)];
-        for y in 0..oy {
-            let ys = [(2 * y).min(ny - 1), (2 * y + 1).min(ny - 1)];
-            for x in 0..ox {
-                let xs = [(2 * x).min(nx - 1), (2 * x + 1).min(nx - 1)];
-                let mut sum = 0u32;
-                for &zz in &zs {
-                    for &yy in &ys {
-                        for &xx in &xs {
-                            sum += src[xx + nx * (yy + ny * zz)] as u32;
+    out.par_chunks_mut(ox * oy)
+        .enumerate()
+        .for_each(|(z, plane)| {
+            // Odd sizes: the missing neighbour replicates the last voxel.
+            let zs = [(2 * z).min(nz - 1), (2 * z + 1).min(nz - 1)];
+            for y in 0..oy {
+                let ys = [(2 * y).min(ny - 1), (2 * y + 1).min(ny - 1)];
+                for x in 0..ox {
+                    let xs = [(2 * x).min(nx - 1), (2 * x + 1).min(nx - 1)];
+                    let mut sum = 0u32;
+                    for &zz in &zs {
+                        for &yy in &ys {
+                            for &xx in &xs {
+                                sum += src[xx + nx * (yy + ny * zz)] as u32;
+                            }
                         }
                     }
+                    plane[x + ox * y] = ((sum + 4) / 8) as u16;
                 }
-                plane[x + ox * y] = ((sum + 4) / 8) as u16;
             }
-        }
-    });
+        });
     (out, out_dims)
 }
 
@@ -103,24 +105,37 @@ impl BrickedVolume {
         geometry.validate()?;
         let [nx, ny, nz] = geometry.dims;
         let mut voxels = vec![0u16; nx as usize * ny as usize * nz as usize];
-        voxels.par_chunks_mut(nx as usize * ny as usize).enumerate().for_each(|(z, plane)| {
-            for y in 0..ny {
-                for x in 0..nx {
-                    plane[(x + nx * y) as usize] = f(x, y, z as u32);
+        voxels
+            .par_chunks_mut(nx as usize * ny as usize)
+            .enumerate()
+            .for_each(|(z, plane)| {
+                for y in 0..ny {
+                    for x in 0..nx {
+                        plane[(x + nx * y) as usize] = f(x, y, z as u32);
+                    }
                 }
-            }
-        });
+            });
         Self::from_voxels(geometry, mapping, voxels)
     }
 
     /// Builds from level-0 voxels, x fastest.
-    pub fn from_voxels(geometry: VolumeGeometry, mapping: ValueMapping, voxels: Vec<u16>) -> Result<Self, RenderError> {
+    pub fn from_voxels(
+        geometry: VolumeGeometry,
+        mapping: ValueMapping,
+        voxels: Vec<u16>,
+    ) -> Result<Self, RenderError> {
         geometry.validate()?;
         let expected: usize = geometry.dims.iter().map(|&d| d as usize).product();
         if voxels.len() != expected {
-            return Err(RenderError::InvalidVolume(format!("{} voxels for dims {:?} ({expected} expected)", voxels.len(), geometry.dims)));
+            return Err(RenderError::InvalidVolume(format!(
+                "{} voxels for dims {:?} ({expected} expected)",
+                voxels.len(),
+                geometry.dims
+            )));
         }
-        let stored_range = voxels.par_iter().fold(|| (u16::MAX, 0u16), |(lo, hi), &v| (lo.min(v), hi.max(v)))
+        let stored_range = voxels
+            .par_iter()
+            .fold(|| (u16::MAX, 0u16), |(lo, hi), &v| (lo.min(v), hi.max(v)))
             .reduce(|| (u16::MAX, 0u16), |a, b| (a.0.min(b.0), a.1.max(b.1)));
         let count = level_count(geometry.dims);
         let mut levels = Vec::with_capacity(count as usize);
@@ -133,22 +148,39 @@ impl BrickedVolume {
                 .into_par_iter()
                 .map(|i| {
                     let i = i as u32;
-                    let node = [i % bricks_per_axis[0], (i / bricks_per_axis[0]) % bricks_per_axis[1], i / (bricks_per_axis[0] * bricks_per_axis[1])];
+                    let node = [
+                        i % bricks_per_axis[0],
+                        (i / bricks_per_axis[0]) % bricks_per_axis[1],
+                        i / (bricks_per_axis[0] * bricks_per_axis[1]),
+                    ];
                     extract_payload(&current, dims, node)
                 })
                 .collect();
             let ranges = bricks
                 .iter()
-                .map(|b| b.iter().fold((u16::MAX, 0u16), |(lo, hi), &v| (lo.min(v), hi.max(v))))
+                .map(|b| {
+                    b.iter()
+                        .fold((u16::MAX, 0u16), |(lo, hi), &v| (lo.min(v), hi.max(v)))
+                })
                 .collect();
-            levels.push(Level { dims, bricks_per_axis, bricks, ranges });
+            levels.push(Level {
+                dims,
+                bricks_per_axis,
+                bricks,
+                ranges,
+            });
             if level + 1 < count {
                 let (next, next_dims) = downsample(&current, dims);
                 current = next;
                 dims = next_dims;
             }
         }
-        Ok(BrickedVolume { geometry, mapping, levels, stored_range })
+        Ok(BrickedVolume {
+            geometry,
+            mapping,
+            levels,
+            stored_range,
+        })
     }
 
     pub fn level_count(&self) -> u8 {
@@ -208,7 +240,10 @@ impl BrickedVolume {
         let mut seen = HashMap::new();
         for (i, e) in table.entries.iter().enumerate() {
             if e.resident {
-                seen.entry(e.slot_in_cache).or_insert((e.level, PageTable::node_of(table.page_of_linear(i), e.level)));
+                seen.entry(e.slot_in_cache).or_insert((
+                    e.level,
+                    PageTable::node_of(table.page_of_linear(i), e.level),
+                ));
             }
         }
         let mut out: Vec<_> = seen.into_iter().map(|(s, (l, n))| (s, l, n)).collect();
@@ -217,18 +252,27 @@ impl BrickedVolume {
     }
 
     /// Uploads every node the table references into its slot.
-    pub fn upload(&self, cache: &BrickCache, queue: &wgpu::Queue, table: &PageTable) -> Result<(), RenderError> {
+    pub fn upload(
+        &self,
+        cache: &BrickCache,
+        queue: &wgpu::Queue,
+        table: &PageTable,
+    ) -> Result<(), RenderError> {
         for (slot, level, node) in Self::resident_nodes(table) {
-            let payload = self
-                .brick(level, node)
-                .ok_or_else(|| RenderError::PageTableMismatch(format!("no node {node:?} at level {level}")))?;
+            let payload = self.brick(level, node).ok_or_else(|| {
+                RenderError::PageTableMismatch(format!("no node {node:?} at level {level}"))
+            })?;
             cache.upload_brick(queue, slot, payload)?;
         }
         Ok(())
     }
 
     /// Marks entries transparent under `table` (TF) as empty.
-    pub fn classify_empty(&self, page_table: &mut PageTable, tf_table: &crate::TransferFunctionTable) {
+    pub fn classify_empty(
+        &self,
+        page_table: &mut PageTable,
+        tf_table: &crate::TransferFunctionTable,
+    ) {
         page_table.classify_empty(tf_table, self.mapping, |l, n| self.node_range(l, n));
     }
 }
@@ -247,7 +291,10 @@ mod tests {
     #[test]
     fn levels_follow_the_storage_rules() {
         let g = VolumeGeometry::axis_aligned([70, 33, 5], [1.0; 3]);
-        let v = BrickedVolume::from_fn(g, ValueMapping::default(), |x, y, z| (x * 7 + y * 3 + z * 100) as u16).unwrap();
+        let v = BrickedVolume::from_fn(g, ValueMapping::default(), |x, y, z| {
+            (x * 7 + y * 3 + z * 100) as u16
+        })
+        .unwrap();
         assert_eq!(v.level_count(), 3); // 70 -> 35 -> 18
         assert_eq!(v.level_dims(1), Some([35, 17, 3]));
         // Level-1 voxel (34, 16, 2): x pair (68, 69), y pair (32, 32 replicated), z (4, 4).

@@ -8,9 +8,13 @@ use crate::geometry::VolumeGeometry;
 
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub enum Projection {
-    Perspective { fov_y_deg: f64 },
+    Perspective {
+        fov_y_deg: f64,
+    },
     /// `height_mm`: extent of the view vertically.
-    Orthographic { height_mm: f64 },
+    Orthographic {
+        height_mm: f64,
+    },
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -35,31 +39,61 @@ pub struct CameraBasis {
 
 impl Camera {
     pub fn look_at(eye: [f64; 3], target: [f64; 3], up: [f64; 3], projection: Projection) -> Self {
-        Camera { eye, target, up, projection }
+        Camera {
+            eye,
+            target,
+            up,
+            projection,
+        }
     }
 
     /// Orbit around the volume centre. Azimuth turns about patient superior (+S = -z in LPS
     /// is "up" in radiology views; we use -z as up so heads point up), elevation tilts towards
     /// it. `zoom` 1 frames the bounding sphere; 2 is twice as close/large.
-    pub fn orbit(geometry: &VolumeGeometry, azimuth_deg: f64, elevation_deg: f64, zoom: f64, projection: Projection) -> Self {
+    pub fn orbit(
+        geometry: &VolumeGeometry,
+        azimuth_deg: f64,
+        elevation_deg: f64,
+        zoom: f64,
+        projection: Projection,
+    ) -> Self {
         let centre = geometry.centre_patient();
         let radius = geometry.bounding_radius_mm().max(1e-6);
-        let zoom = if zoom.is_finite() && zoom > 1e-6 { zoom } else { 1.0 };
+        let zoom = if zoom.is_finite() && zoom > 1e-6 {
+            zoom
+        } else {
+            1.0
+        };
         let (az, el) = (azimuth_deg.to_radians(), elevation_deg.to_radians());
         let up_axis = DVec3::new(0.0, 0.0, -1.0);
         // Azimuth 0 looks from anterior (-y in LPS) towards posterior, as a frontal view.
-        let dir_from_centre = DVec3::new(az.sin() * el.cos(), -az.cos() * el.cos(), 0.0) + up_axis * el.sin();
+        let dir_from_centre =
+            DVec3::new(az.sin() * el.cos(), -az.cos() * el.cos(), 0.0) + up_axis * el.sin();
         let (distance, projection) = match projection {
             Projection::Perspective { fov_y_deg } => {
                 let half = (fov_y_deg.to_radians() * 0.5).max(1e-3);
                 (radius / half.sin() / zoom, projection)
             }
-            Projection::Orthographic { .. } => (radius * 3.0, Projection::Orthographic { height_mm: 2.0 * radius / zoom }),
+            Projection::Orthographic { .. } => (
+                radius * 3.0,
+                Projection::Orthographic {
+                    height_mm: 2.0 * radius / zoom,
+                },
+            ),
         };
         let eye = centre + dir_from_centre * distance;
         // Straight up/down: fall back to anterior as up so the frame stays defined.
-        let up = if dir_from_centre.cross(up_axis).length() < 1e-9 { DVec3::new(0.0, -1.0, 0.0) } else { up_axis };
-        Camera { eye: eye.into(), target: centre.into(), up: up.into(), projection }
+        let up = if dir_from_centre.cross(up_axis).length() < 1e-9 {
+            DVec3::new(0.0, -1.0, 0.0)
+        } else {
+            up_axis
+        };
+        Camera {
+            eye: eye.into(),
+            target: centre.into(),
+            up: up.into(),
+            projection,
+        }
     }
 
     pub fn basis(&self) -> CameraBasis {
@@ -77,7 +111,14 @@ impl Camera {
             Projection::Perspective { fov_y_deg } => (false, (fov_y_deg.to_radians() * 0.5).tan()),
             Projection::Orthographic { height_mm } => (true, height_mm * 0.5),
         };
-        CameraBasis { eye, right, up, forward, orthographic, half_extent }
+        CameraBasis {
+            eye,
+            right,
+            up,
+            forward,
+            orthographic,
+            half_extent,
+        }
     }
 }
 
@@ -90,7 +131,10 @@ impl CameraBasis {
         if self.orthographic {
             (self.eye + self.right * sx + self.up * sy, self.forward)
         } else {
-            (self.eye, (self.forward + self.right * sx + self.up * sy).normalize())
+            (
+                self.eye,
+                (self.forward + self.right * sx + self.up * sy).normalize(),
+            )
         }
     }
 }

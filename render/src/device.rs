@@ -17,7 +17,8 @@ impl GpuContext {
     }
 
     pub async fn headless_async() -> Result<Self, RenderError> {
-        let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+        let instance =
+            wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
         let adapter = instance
             .request_adapter(&wgpu::RequestAdapterOptions {
                 power_preference: wgpu::PowerPreference::HighPerformance,
@@ -26,7 +27,9 @@ impl GpuContext {
                 ..Default::default()
             })
             .await
-            .map_err(|e| RenderError::NoAdapter { details: e.to_string() })?;
+            .map_err(|e| RenderError::NoAdapter {
+                details: e.to_string(),
+            })?;
         let wanted = wgpu::Features::TEXTURE_FORMAT_16BIT_NORM;
         let features = adapter.features() & wanted;
         let (device, queue) = adapter
@@ -38,16 +41,26 @@ impl GpuContext {
             })
             .await
             .map_err(|e| RenderError::RequestDevice(e.to_string()))?;
-        Ok(GpuContext { device, queue, adapter_info: Some(adapter.get_info()) })
+        Ok(GpuContext {
+            device,
+            queue,
+            adapter_info: Some(adapter.get_info()),
+        })
     }
 
     /// Adopts a device created elsewhere (eframe). Features and limits are read from it.
     pub fn from_device(device: wgpu::Device, queue: wgpu::Queue) -> Self {
-        GpuContext { device, queue, adapter_info: None }
+        GpuContext {
+            device,
+            queue,
+            adapter_info: None,
+        }
     }
 
     pub fn supports_r16_unorm(&self) -> bool {
-        self.device.features().contains(wgpu::Features::TEXTURE_FORMAT_16BIT_NORM)
+        self.device
+            .features()
+            .contains(wgpu::Features::TEXTURE_FORMAT_16BIT_NORM)
     }
 
     pub fn limits(&self) -> wgpu::Limits {
@@ -55,6 +68,9 @@ impl GpuContext {
     }
 
     pub fn adapter_name(&self) -> String {
-        self.adapter_info.as_ref().map(|i| format!("{} ({:?})", i.name, i.backend)).unwrap_or_else(|| "external device".into())
+        self.adapter_info
+            .as_ref()
+            .map(|i| format!("{} ({:?})", i.name, i.backend))
+            .unwrap_or_else(|| "external device".into())
     }
 }

@@ -32,5 +32,8 @@ pub enum RenderError {
     #[error("image comparison: {0}")]
     ImageMismatch(String),
     #[error("{path}: {source}")]
-    Io { path: String, source: std::io::Error },
+    Io {
+        path: String,
+        source: std::io::Error,
+    },
 }

@@ -27,7 +27,10 @@ pub struct ValueMapping {
 
 impl Default for ValueMapping {
     fn default() -> Self {
-        ValueMapping { slope: 1.0, intercept: 0.0 }
+        ValueMapping {
+            slope: 1.0,
+            intercept: 0.0,
+        }
     }
 }
 
@@ -49,14 +52,22 @@ impl VolumeGeometry {
 
     pub fn validate(&self) -> Result<(), RenderError> {
         if self.dims.contains(&0) {
-            return Err(RenderError::InvalidVolume(format!("zero extent in dims {:?}", self.dims)));
+            return Err(RenderError::InvalidVolume(format!(
+                "zero extent in dims {:?}",
+                self.dims
+            )));
         }
         if self.spacing_mm.iter().any(|&s| !(s.is_finite() && s > 0.0)) {
-            return Err(RenderError::InvalidVolume(format!("spacing must be positive, got {:?}", self.spacing_mm)));
+            return Err(RenderError::InvalidVolume(format!(
+                "spacing must be positive, got {:?}",
+                self.spacing_mm
+            )));
         }
         let det = self.patient_from_index_linear().determinant();
         if !det.is_finite() || det.abs() < 1e-12 {
-            return Err(RenderError::InvalidVolume("direction cosines are degenerate".into()));
+            return Err(RenderError::InvalidVolume(
+                "direction cosines are degenerate".into(),
+            ));
         }
         Ok(())
     }
@@ -85,22 +96,35 @@ impl VolumeGeometry {
 
     /// Centre of the voxel-cell box [-0.5, dims-0.5] in patient space.
     pub fn centre_patient(&self) -> DVec3 {
-        let c = DVec3::new(self.dims[0] as f64, self.dims[1] as f64, self.dims[2] as f64) * 0.5 - 0.5;
+        let c = DVec3::new(
+            self.dims[0] as f64,
+            self.dims[1] as f64,
+            self.dims[2] as f64,
+        ) * 0.5
+            - 0.5;
         self.patient_from_index(c)
     }
 
     /// Radius of the sphere around the centre that encloses the whole voxel-cell box.
     pub fn bounding_radius_mm(&self) -> f64 {
-        let half = DVec3::new(self.dims[0] as f64, self.dims[1] as f64, self.dims[2] as f64) * 0.5;
-        (self.patient_from_index_linear() * half).length().max(
-            (self.patient_from_index_linear() * DVec3::new(half.x, -half.y, half.z)).length(),
-        ).max((self.patient_from_index_linear() * DVec3::new(half.x, half.y, -half.z)).length())
-        .max((self.patient_from_index_linear() * DVec3::new(-half.x, half.y, half.z)).length())
+        let half = DVec3::new(
+            self.dims[0] as f64,
+            self.dims[1] as f64,
+            self.dims[2] as f64,
+        ) * 0.5;
+        (self.patient_from_index_linear() * half)
+            .length()
+            .max((self.patient_from_index_linear() * DVec3::new(half.x, -half.y, half.z)).length())
+            .max((self.patient_from_index_linear() * DVec3::new(half.x, half.y, -half.z)).length())
+            .max((self.patient_from_index_linear() * DVec3::new(-half.x, half.y, half.z)).length())
     }
 
     /// Finest voxel edge in mm: the unit of the base step and of opacity.
     pub fn finest_spacing_mm(&self) -> f64 {
-        self.spacing_mm.iter().cloned().fold(f64::INFINITY, f64::min)
+        self.spacing_mm
+            .iter()
+            .cloned()
+            .fold(f64::INFINITY, f64::min)
     }
 
     /// Level-0 brick positions per axis (the page grid).

@@ -12,6 +12,7 @@ pub mod device;
 pub mod error;
 pub mod geometry;
 pub mod metrics;
+pub mod offscreen;
 pub mod page_table;
 pub mod phantom;
 pub mod raycast;
@@ -26,8 +27,12 @@ pub use device::GpuContext;
 pub use error::RenderError;
 pub use geometry::{ValueMapping, VolumeGeometry};
 pub use metrics::{compare_rgba8, ImageComparison};
+pub use offscreen::OffscreenRenderer;
 pub use page_table::{PageEntry, PageTable};
-pub use raycast::{FrameReadback, GpuPageTable, GpuTransferFunction, Raycaster, Scene};
+pub use raycast::{
+    FrameReadback, GpuPageTable, GpuTransferFunction, Raycaster, Scene, VisibilityFrame,
+};
+pub use reference::{render_reference, ReferenceImage, ReferenceOptions, ReferenceScene};
 pub use settings::{ClipPlane, CropBox, RenderMode, RenderSettings, Shading};
 pub use transfer_function::{TransferFunction, TransferFunctionTable};
 

@@ -6,8 +6,8 @@
 //! affine map x' = x · bscale · t_w + t with fewer bits.
 
 use crate::error::RenderError;
-use crate::transfer_function::TransferFunctionTable;
 use crate::geometry::ValueMapping;
+use crate::transfer_function::TransferFunctionTable;
 
 /// GPU word layout: bits 0-7 / 8-15 / 16-23 the slot's x / y / z position in the cache's slot
 /// grid (the shader then needs no integer division), 24-28 level, bit 29 empty, bit 30 not
@@ -33,10 +33,20 @@ pub struct PageEntry {
 
 impl PageEntry {
     pub fn resident(slot_in_cache: u32, level: u8) -> Self {
-        PageEntry { slot_in_cache, level, empty: false, resident: true }
+        PageEntry {
+            slot_in_cache,
+            level,
+            empty: false,
+            resident: true,
+        }
     }
 
-    pub const NOT_RESIDENT: PageEntry = PageEntry { slot_in_cache: 0, level: 0, empty: false, resident: false };
+    pub const NOT_RESIDENT: PageEntry = PageEntry {
+        slot_in_cache: 0,
+        level: 0,
+        empty: false,
+        resident: false,
+    };
 
     /// GPU word for a cache whose slot grid is `slots_per_axis` (each ≤ 255).
     pub fn encode(&self, slots_per_axis: [u32; 3]) -> u32 {
@@ -80,7 +90,10 @@ pub struct PageTable {
 impl PageTable {
     pub fn new(page_dims: [u32; 3]) -> Self {
         let n = page_dims.iter().map(|&d| d as usize).product();
-        PageTable { page_dims, entries: vec![PageEntry::NOT_RESIDENT; n] }
+        PageTable {
+            page_dims,
+            entries: vec![PageEntry::NOT_RESIDENT; n],
+        }
     }
 
     pub fn linear(&self, page: [u32; 3]) -> usize {
@@ -109,7 +122,10 @@ impl PageTable {
     }
 
     pub fn encoded(&self, slots_per_axis: [u32; 3]) -> Vec<u32> {
-        self.entries.iter().map(|e| e.encode(slots_per_axis)).collect()
+        self.entries
+            .iter()
+            .map(|e| e.encode(slots_per_axis))
+            .collect()
     }
 
     pub fn check_against(&self, page_dims: [u32; 3]) -> Result<(), RenderError> {
@@ -153,7 +169,12 @@ impl PageTable {
 
     /// Isosurface variant: a node is empty when the iso value lies outside its [min, max]
     /// (no crossing can start inside it from below... nor be entered from it).
-    pub fn classify_empty_for_iso(&mut self, iso_value: f64, mapping: ValueMapping, mut range_of: impl FnMut(u8, [u32; 3]) -> Option<(u16, u16)>) {
+    pub fn classify_empty_for_iso(
+        &mut self,
+        iso_value: f64,
+        mapping: ValueMapping,
+        mut range_of: impl FnMut(u8, [u32; 3]) -> Option<(u16, u16)>,
+    ) {
         for i in 0..self.entries.len() {
             let page = self.page_of_linear(i);
             let e = self.entries[i];
@@ -181,7 +202,12 @@ mod tests {
         for e in [
             PageEntry::resident(0, 0),
             PageEntry::resident(56 * 40 * 255 - 1, 31),
-            PageEntry { slot_in_cache: 77, level: 3, empty: true, resident: true },
+            PageEntry {
+                slot_in_cache: 77,
+                level: 3,
+                empty: true,
+                resident: true,
+            },
             PageEntry::NOT_RESIDENT,
         ] {
             assert_eq!(PageEntry::decode(e.encode(grid), grid), e);

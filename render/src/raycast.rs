@@ -30,38 +30,99 @@ pub struct GpuPageTable {
 }
 
 impl GpuPageTable {
-    pub fn new(device: &wgpu::Device, page_dims: [u32; 3], cache: &BrickCache) -> Self {
+    /// Fails if the table would exceed the device's storage-buffer binding limit.
+    pub fn new(
+        device: &wgpu::Device,
+        page_dims: [u32; 3],
+        cache: &BrickCache,
+    ) -> Result<Self, RenderError> {
         let n: u64 = page_dims.iter().map(|&d| d.max(1) as u64).product();
+        let limit = device.limits().max_storage_buffer_binding_size;
+        if n * 4 > limit {
+            return Err(RenderError::PageTableMismatch(format!(
+                "{n} page entries exceed the device's storage buffer limit of {limit} bytes"
+            )));
+        }
         let buffer = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("page table"),
             size: n * 4,
             usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
-        GpuPageTable { buffer, page_dims, slots_per_axis: cache.slots_per_axis }
+        Ok(GpuPageTable {
+            buffer,
+            page_dims,
+            slots_per_axis: cache.slots_per_axis,
+        })
     }
 
     pub fn entry_count(&self) -> usize {
         self.page_dims.iter().map(|&d| d as usize).product()
     }
 
+    /// Writes `entries` starting at linear index `first` (x fastest, then y, z): for loaders
+    /// that change a few entries per frame. Takes effect for the next submitted frame.
+    pub fn write_entries(
+        &self,
+        queue: &wgpu::Queue,
+        first: usize,
+        entries: &[crate::PageEntry],
+    ) -> Result<(), RenderError> {
+        let slots: u32 = self.slots_per_axis.iter().product();
+        if first + entries.len() > self.entry_count() {
+            return Err(RenderError::PageTableMismatch(format!(
+                "entries {first}..{} beyond {} page entries",
+                first + entries.len(),
+                self.entry_count()
+            )));
+        }
+        if let Some(bad) = entries
+            .iter()
+            .find(|e| e.resident && e.slot_in_cache >= slots)
+        {
+            return Err(RenderError::SlotOutOfRange {
+                slot: bad.slot_in_cache,
+                slots,
+            });
+        }
+        let words: Vec<u32> = entries
+            .iter()
+            .map(|e| e.encode(self.slots_per_axis))
+            .collect();
+        queue.write_buffer(&self.buffer, first as u64 * 4, bytemuck::cast_slice(&words));
+        Ok(())
+    }
+
     /// Writes the whole table; takes effect for the next submitted frame.
     pub fn update(&self, queue: &wgpu::Queue, table: &PageTable) -> Result<(), RenderError> {
         table.check_against(self.page_dims)?;
         let slots: u32 = self.slots_per_axis.iter().product();
-        if let Some(bad) = table.entries.iter().find(|e| e.resident && e.slot_in_cache >= slots) {
-            return Err(RenderError::SlotOutOfRange { slot: bad.slot_in_cache, slots });
+        if let Some(bad) = table
+            .entries
+            .iter()
+            .find(|e| e.resident && e.slot_in_cache >= slots)
+        {
+            return Err(RenderError::SlotOutOfRange {
+                slot: bad.slot_in_cache,
+                slots,
+            });
         }
-        queue.write_buffer(&self.buffer, 0, bytemuck::cast_slice(&table.encoded(self.slots_per_axis)));
+        queue.write_buffer(
+            &self.buffer,
+            0,
+            bytemuck::cast_slice(&table.encoded(self.slots_per_axis)),
+        );
         Ok(())
     }
 }
 
-/// The sampled transfer function (storage buffer of RGBA f32, linearly interpolated in the
-/// shader; a buffer rather than a 1D texture because Rgba32Float is not filterable everywhere
-/// and 8/16-bit texels would quantise opacity).
+/// The sampled transfer function: a 1D Rgba32Float texture read with two textureLoads and
+/// interpolated in the shader (exact f32, needs no float-filtering feature). A texture rather
+/// than a storage buffer because lavapipe gathers buffers lane by lane: as a buffer the TF
+/// lookup was about half of a DVR sample's cost.
 pub struct GpuTransferFunction {
-    pub buffer: wgpu::Buffer,
+    pub texture: wgpu::Texture,
+    pub view: wgpu::TextureView,
     pub lo: f64,
     pub hi: f64,
     pub entries: u32,
@@ -70,18 +131,55 @@ pub struct GpuTransferFunction {
 
 impl GpuTransferFunction {
     pub fn new(device: &wgpu::Device, queue: &wgpu::Queue, table: &TransferFunctionTable) -> Self {
-        let buffer = device.create_buffer(&wgpu::BufferDescriptor {
+        let texture = device.create_texture(&wgpu::TextureDescriptor {
             label: Some("transfer function"),
-            size: (table.rgba.len() * 16) as u64,
-            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
+            size: wgpu::Extent3d {
+                width: table.rgba.len() as u32,
+                height: 1,
+                depth_or_array_layers: 1,
+            },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D1,
+            format: wgpu::TextureFormat::Rgba32Float,
+            usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+            view_formats: &[],
         });
-        queue.write_buffer(&buffer, 0, bytemuck::cast_slice(&table.rgba));
-        GpuTransferFunction { buffer, lo: table.lo, hi: table.hi, entries: table.rgba.len() as u32, source: table.source.clone() }
+        let view = texture.create_view(&wgpu::TextureViewDescriptor::default());
+        let mut tf = GpuTransferFunction {
+            texture,
+            view,
+            lo: table.lo,
+            hi: table.hi,
+            entries: table.rgba.len() as u32,
+            source: table.source.clone(),
+        };
+        tf.update(queue, table);
+        tf
     }
 
+    /// Replaces the table (same entry count, as produced by `TransferFunction::table`).
     pub fn update(&mut self, queue: &wgpu::Queue, table: &TransferFunctionTable) {
-        queue.write_buffer(&self.buffer, 0, bytemuck::cast_slice(&table.rgba));
+        let n = (table.rgba.len() as u32).min(self.entries);
+        queue.write_texture(
+            wgpu::TexelCopyTextureInfo {
+                texture: &self.texture,
+                mip_level: 0,
+                origin: wgpu::Origin3d::ZERO,
+                aspect: wgpu::TextureAspect::All,
+            },
+            bytemuck::cast_slice(&table.rgba[..n as usize]),
+            wgpu::TexelCopyBufferLayout {
+                offset: 0,
+                bytes_per_row: Some(n * 16),
+                rows_per_image: None,
+            },
+            wgpu::Extent3d {
+                width: n,
+                height: 1,
+                depth_or_array_layers: 1,
+            },
+        );
         self.lo = table.lo;
         self.hi = table.hi;
         self.source = table.source.clone();
@@ -206,7 +304,9 @@ fn map_blocking(device: &wgpu::Device, buffer: &wgpu::Buffer) -> Result<(), Rend
     buffer.map_async(wgpu::MapMode::Read, .., move |r| {
         let _ = tx.send(r);
     });
-    device.poll(wgpu::PollType::wait_indefinitely()).map_err(|e| RenderError::Readback(e.to_string()))?;
+    device
+        .poll(wgpu::PollType::wait_indefinitely())
+        .map_err(|e| RenderError::Readback(e.to_string()))?;
     match rx.recv() {
         Ok(Ok(())) => Ok(()),
         Ok(Err(e)) => Err(RenderError::Readback(e.to_string())),
@@ -221,7 +321,11 @@ impl Raycaster {
         let storage = |binding: u32, read_only: bool| wgpu::BindGroupLayoutEntry {
             binding,
             visibility: wgpu::ShaderStages::COMPUTE,
-            ty: wgpu::BindingType::Buffer { ty: wgpu::BufferBindingType::Storage { read_only }, has_dynamic_offset: false, min_binding_size: None },
+            ty: wgpu::BindingType::Buffer {
+                ty: wgpu::BufferBindingType::Storage { read_only },
+                has_dynamic_offset: false,
+                min_binding_size: None,
+            },
             count: None,
         };
         let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
@@ -230,7 +334,11 @@ impl Raycaster {
                 wgpu::BindGroupLayoutEntry {
                     binding: 0,
                     visibility: wgpu::ShaderStages::COMPUTE,
-                    ty: wgpu::BindingType::Buffer { ty: wgpu::BufferBindingType::Uniform, has_dynamic_offset: false, min_binding_size: None },
+                    ty: wgpu::BindingType::Buffer {
+                        ty: wgpu::BufferBindingType::Uniform,
+                        has_dynamic_offset: false,
+                        min_binding_size: None,
+                    },
                     count: None,
                 },
                 wgpu::BindGroupLayoutEntry {
@@ -246,11 +354,24 @@ impl Raycaster {
                 wgpu::BindGroupLayoutEntry {
                     binding: 2,
                     visibility: wgpu::ShaderStages::COMPUTE,
-                    ty: wgpu::BindingType::Sampler(if filterable { wgpu::SamplerBindingType::Filtering } else { wgpu::SamplerBindingType::NonFiltering }),
+                    ty: wgpu::BindingType::Sampler(if filterable {
+                        wgpu::SamplerBindingType::Filtering
+                    } else {
+                        wgpu::SamplerBindingType::NonFiltering
+                    }),
                     count: None,
                 },
                 storage(3, true),
-                storage(4, true),
+                wgpu::BindGroupLayoutEntry {
+                    binding: 4,
+                    visibility: wgpu::ShaderStages::COMPUTE,
+                    ty: wgpu::BindingType::Texture {
+                        sample_type: wgpu::TextureSampleType::Float { filterable: false },
+                        view_dimension: wgpu::TextureViewDimension::D1,
+                        multisampled: false,
+                    },
+                    count: None,
+                },
                 wgpu::BindGroupLayoutEntry {
                     binding: 5,
                     visibility: wgpu::ShaderStages::COMPUTE,
@@ -271,14 +392,21 @@ impl Raycaster {
             bind_group_layouts: &[Some(&layout)],
             immediate_size: 0,
         });
-        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor { label: Some("raycast.wgsl"), source: wgpu::ShaderSource::Wgsl(SHADER.into()) });
+        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("raycast.wgsl"),
+            source: wgpu::ShaderSource::Wgsl(SHADER.into()),
+        });
         let params = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("raycast params"),
             size: std::mem::size_of::<Params>() as u64,
             usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
-        let filter = if filterable { wgpu::FilterMode::Linear } else { wgpu::FilterMode::Nearest };
+        let filter = if filterable {
+            wgpu::FilterMode::Linear
+        } else {
+            wgpu::FilterMode::Nearest
+        };
         let sampler = device.create_sampler(&wgpu::SamplerDescriptor {
             label: Some("brick cache"),
             mag_filter: filter,
@@ -288,7 +416,9 @@ impl Raycaster {
         let counter = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("sample counter"),
             size: 8,
-            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST,
+            usage: wgpu::BufferUsages::STORAGE
+                | wgpu::BufferUsages::COPY_SRC
+                | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
         let counter_readback = device.create_buffer(&wgpu::BufferDescriptor {
@@ -338,24 +468,37 @@ impl Raycaster {
                 layout: Some(layout),
                 module,
                 entry_point: Some("main"),
-                compilation_options: wgpu::PipelineCompilationOptions { constants: &constants, zero_initialize_workgroup_memory: false },
+                compilation_options: wgpu::PipelineCompilationOptions {
+                    constants: &constants,
+                    zero_initialize_workgroup_memory: false,
+                },
                 cache: None,
             })
         })
     }
 
     fn ensure_targets(&mut self, device: &wgpu::Device, width: u32, height: u32) {
-        if self.targets.as_ref().is_some_and(|t| t.width == width && t.height == height) {
+        if self
+            .targets
+            .as_ref()
+            .is_some_and(|t| t.width == width && t.height == height)
+        {
             return;
         }
         let color = device.create_texture(&wgpu::TextureDescriptor {
             label: Some("raycast colour"),
-            size: wgpu::Extent3d { width, height, depth_or_array_layers: 1 },
+            size: wgpu::Extent3d {
+                width,
+                height,
+                depth_or_array_layers: 1,
+            },
             mip_level_count: 1,
             sample_count: 1,
             dimension: wgpu::TextureDimension::D2,
             format: wgpu::TextureFormat::Rgba8Unorm,
-            usage: wgpu::TextureUsages::STORAGE_BINDING | wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_SRC,
+            usage: wgpu::TextureUsages::STORAGE_BINDING
+                | wgpu::TextureUsages::TEXTURE_BINDING
+                | wgpu::TextureUsages::COPY_SRC,
             view_formats: &[],
         });
         let color_view = color.create_view(&wgpu::TextureViewDescriptor::default());
@@ -366,7 +509,8 @@ impl Raycaster {
             usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
             mapped_at_creation: false,
         });
-        let padded_row_bytes = (width * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT) * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
+        let padded_row_bytes = (width * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT)
+            * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
         let color_readback = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("raycast colour readback"),
             size: padded_row_bytes as u64 * height as u64,
@@ -379,22 +523,51 @@ impl Raycaster {
             usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
-        self.targets = Some(Targets { width, height, color, color_view, depth, color_readback, depth_readback, padded_row_bytes });
+        self.targets = Some(Targets {
+            width,
+            height,
+            color,
+            color_view,
+            depth,
+            color_readback,
+            depth_readback,
+            padded_row_bytes,
+        });
     }
 
     fn ensure_visibility(&mut self, device: &wgpu::Device, entries: usize) {
-        if self.visibility.as_ref().is_some_and(|v| v.entries == entries) {
+        if self
+            .visibility
+            .as_ref()
+            .is_some_and(|v| v.entries == entries)
+        {
             return;
         }
         let size = (entries.max(1) * 4) as u64;
-        let make = |label: &str, usage| device.create_buffer(&wgpu::BufferDescriptor { label: Some(label), size, usage, mapped_at_creation: false });
+        let make = |label: &str, usage| {
+            device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size,
+                usage,
+                mapped_at_creation: false,
+            })
+        };
         let read = wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST;
         self.visibility = Some(VisibilityBuffers {
             entries,
-            buffer: make("visibility", wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST),
+            buffer: make(
+                "visibility",
+                wgpu::BufferUsages::STORAGE
+                    | wgpu::BufferUsages::COPY_SRC
+                    | wgpu::BufferUsages::COPY_DST,
+            ),
             blocking_readback: make("visibility readback", read),
             ring: (0..VISIBILITY_RING)
-                .map(|_| VisibilityStaging { buffer: make("visibility staging", read), state: Arc::new(AtomicU8::new(SLOT_FREE)), frame_number: 0 })
+                .map(|_| VisibilityStaging {
+                    buffer: make("visibility staging", read),
+                    state: Arc::new(AtomicU8::new(SLOT_FREE)),
+                    frame_number: 0,
+                })
                 .collect(),
         });
     }
@@ -413,72 +586,147 @@ impl Raycaster {
         self.pipelines.len()
     }
 
-    /// Encodes and submits one frame. Never waits for the GPU. Also queues a copy of this
-    /// frame's visibility into a free staging buffer for [`Raycaster::try_take_visibility`].
-    pub fn render(&mut self, ctx: &GpuContext, scene: &Scene) -> Result<wgpu::SubmissionIndex, RenderError> {
-        let settings = scene.settings;
-        settings.validate()?;
-        scene.geometry.validate()?;
-        let page_dims = scene.geometry.page_dims();
-        if scene.page_table.slots_per_axis != scene.cache.slots_per_axis {
-            return Err(RenderError::PageTableMismatch("GPU page table was made for a different cache".into()));
-        }
-        if scene.page_table.page_dims != page_dims {
-            return Err(RenderError::PageTableMismatch(format!("GPU page table is {:?}, volume needs {:?}", scene.page_table.page_dims, page_dims)));
-        }
-        let device = &ctx.device;
-        let limits = device.limits();
-        let max2d = limits.max_texture_dimension_2d;
-        if settings.width > max2d || settings.height > max2d {
-            return Err(RenderError::InvalidSettings(format!("image {}x{} exceeds device limit {max2d}", settings.width, settings.height)));
-        }
-        let key = PipelineKey {
+    /// Compiles the pipeline `settings` need ahead of the first frame that uses it (a few
+    /// hundred ms on lavapipe), e.g. when the user switches mode.
+    pub fn prepare(&mut self, ctx: &GpuContext, settings: &RenderSettings) {
+        let key = self.key_for(settings);
+        let _ = self.pipeline(&ctx.device, key);
+    }
+
+    fn key_for(&self, settings: &RenderSettings) -> PipelineKey {
+        PipelineKey {
             mode: settings.mode,
             manual_trilinear: settings.exact_trilinear || !self.filterable,
             shading: settings.effective_shading().is_some(),
             jitter: settings.jitter,
             skip_empty: settings.skip_empty,
-            early_termination: settings.early_termination.is_some() && settings.mode == RenderMode::Dvr,
+            early_termination: settings.early_termination.is_some()
+                && settings.mode == RenderMode::Dvr,
             clip_plane: settings.clip_plane.is_some(),
             count_samples: settings.count_samples,
-        };
+        }
+    }
+
+    /// Encodes and submits one frame. Never waits for the GPU. Also queues a copy of this
+    /// frame's visibility into a free staging buffer for [`Raycaster::try_take_visibility`].
+    pub fn render(
+        &mut self,
+        ctx: &GpuContext,
+        scene: &Scene,
+    ) -> Result<wgpu::SubmissionIndex, RenderError> {
+        let settings = scene.settings;
+        settings.validate()?;
+        scene.geometry.validate()?;
+        let page_dims = scene.geometry.page_dims();
+        if scene.page_table.slots_per_axis != scene.cache.slots_per_axis {
+            return Err(RenderError::PageTableMismatch(
+                "GPU page table was made for a different cache".into(),
+            ));
+        }
+        if scene.page_table.page_dims != page_dims {
+            return Err(RenderError::PageTableMismatch(format!(
+                "GPU page table is {:?}, volume needs {:?}",
+                scene.page_table.page_dims, page_dims
+            )));
+        }
+        let device = &ctx.device;
+        let limits = device.limits();
+        let max2d = limits.max_texture_dimension_2d;
+        if settings.width > max2d || settings.height > max2d {
+            return Err(RenderError::InvalidSettings(format!(
+                "image {}x{} exceeds device limit {max2d}",
+                settings.width, settings.height
+            )));
+        }
+        let depth_bytes = settings.width as u64 * settings.height as u64 * 4;
+        if depth_bytes > limits.max_storage_buffer_binding_size {
+            return Err(RenderError::InvalidSettings(format!(
+                "image {}x{} needs a {depth_bytes}-byte depth buffer, over the device limit {}",
+                settings.width, settings.height, limits.max_storage_buffer_binding_size
+            )));
+        }
+        let key = self.key_for(settings);
         self.last_key = Some(key);
         self.ensure_targets(device, settings.width, settings.height);
         self.ensure_visibility(device, page_dims.iter().map(|&d| d as usize).product());
         let params = build_params(scene);
-        ctx.queue.write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
+        ctx.queue
+            .write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
         let _ = self.pipeline(device, key);
-        let (Some(targets), Some(vis), Some(pipeline)) = (self.targets.as_ref(), self.visibility.as_mut(), self.pipelines.get(&key)) else {
+        let (Some(targets), Some(vis), Some(pipeline)) = (
+            self.targets.as_ref(),
+            self.visibility.as_mut(),
+            self.pipelines.get(&key),
+        ) else {
             return Err(RenderError::Readback("render targets missing".into()));
         };
         let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("raycast"),
             layout: &self.layout,
             entries: &[
-                wgpu::BindGroupEntry { binding: 0, resource: self.params.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 1, resource: wgpu::BindingResource::TextureView(&scene.cache.view) },
-                wgpu::BindGroupEntry { binding: 2, resource: wgpu::BindingResource::Sampler(&self.sampler) },
-                wgpu::BindGroupEntry { binding: 3, resource: scene.page_table.buffer.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 4, resource: scene.transfer_function.buffer.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 5, resource: wgpu::BindingResource::TextureView(&targets.color_view) },
-                wgpu::BindGroupEntry { binding: 6, resource: targets.depth.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 7, resource: vis.buffer.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 8, resource: self.counter.as_entire_binding() },
+                wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: self.params.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: wgpu::BindingResource::TextureView(&scene.cache.view),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 2,
+                    resource: wgpu::BindingResource::Sampler(&self.sampler),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 3,
+                    resource: scene.page_table.buffer.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 4,
+                    resource: wgpu::BindingResource::TextureView(&scene.transfer_function.view),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 5,
+                    resource: wgpu::BindingResource::TextureView(&targets.color_view),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 6,
+                    resource: targets.depth.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 7,
+                    resource: vis.buffer.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 8,
+                    resource: self.counter.as_entire_binding(),
+                },
             ],
         });
-        let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("raycast") });
+        let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some("raycast"),
+        });
         encoder.clear_buffer(&vis.buffer, 0, None);
         encoder.clear_buffer(&self.counter, 0, None);
         {
-            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("raycast"), timestamp_writes: None });
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("raycast"),
+                timestamp_writes: None,
+            });
             pass.set_pipeline(pipeline);
             pass.set_bind_group(0, &bind_group, &[]);
-            pass.dispatch_workgroups(settings.width.div_ceil(WORKGROUP), settings.height.div_ceil(WORKGROUP), 1);
+            pass.dispatch_workgroups(
+                settings.width.div_ceil(WORKGROUP),
+                settings.height.div_ceil(WORKGROUP),
+                1,
+            );
         }
         self.frame_number += 1;
         // A busy ring (loader not reading) just drops this frame's visibility.
         let size = (vis.entries.max(1) * 4) as u64;
-        let free = vis.ring.iter_mut().find(|s| s.state.load(Ordering::Acquire) == SLOT_FREE);
+        let free = vis
+            .ring
+            .iter_mut()
+            .find(|s| s.state.load(Ordering::Acquire) == SLOT_FREE);
         let mut queued = None;
         if let Some(slot) = free {
             encoder.copy_buffer_to_buffer(&vis.buffer, 0, &slot.buffer, 0, size);
@@ -489,7 +737,10 @@ impl Raycaster {
         let index = ctx.queue.submit(Some(encoder.finish()));
         if let Some((buffer, state)) = queued {
             buffer.map_async(wgpu::MapMode::Read, .., move |r| {
-                state.store(if r.is_ok() { SLOT_READY } else { SLOT_FAILED }, Ordering::Release);
+                state.store(
+                    if r.is_ok() { SLOT_READY } else { SLOT_FAILED },
+                    Ordering::Release,
+                );
             });
         }
         Ok(index)
@@ -504,11 +755,18 @@ impl Raycaster {
         for slot in vis.ring.iter_mut() {
             match slot.state.load(Ordering::Acquire) {
                 SLOT_READY => {
-                    if newest.as_ref().is_none_or(|n| n.frame_number < slot.frame_number) {
+                    if newest
+                        .as_ref()
+                        .is_none_or(|n| n.frame_number < slot.frame_number)
+                    {
                         if let Ok(view) = slot.buffer.get_mapped_range(..) {
-                            let data: Vec<u32> = bytemuck::cast_slice(&view)[..vis.entries].to_vec();
+                            let data: Vec<u32> =
+                                bytemuck::cast_slice(&view)[..vis.entries].to_vec();
                             drop(view);
-                            newest = Some(VisibilityFrame { frame_number: slot.frame_number, visibility: data });
+                            newest = Some(VisibilityFrame {
+                                frame_number: slot.frame_number,
+                                visibility: data,
+                            });
                         }
                     }
                     slot.buffer.unmap();
@@ -527,24 +785,59 @@ impl Raycaster {
             return Err(RenderError::Readback("nothing rendered yet".into()));
         };
         let device = &ctx.device;
-        let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("readback") });
+        let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some("readback"),
+        });
         encoder.copy_texture_to_buffer(
-            wgpu::TexelCopyTextureInfo { texture: &t.color, mip_level: 0, origin: wgpu::Origin3d::ZERO, aspect: wgpu::TextureAspect::All },
+            wgpu::TexelCopyTextureInfo {
+                texture: &t.color,
+                mip_level: 0,
+                origin: wgpu::Origin3d::ZERO,
+                aspect: wgpu::TextureAspect::All,
+            },
             wgpu::TexelCopyBufferInfo {
                 buffer: &t.color_readback,
-                layout: wgpu::TexelCopyBufferLayout { offset: 0, bytes_per_row: Some(t.padded_row_bytes), rows_per_image: Some(t.height) },
+                layout: wgpu::TexelCopyBufferLayout {
+                    offset: 0,
+                    bytes_per_row: Some(t.padded_row_bytes),
+                    rows_per_image: Some(t.height),
+                },
             },
-            wgpu::Extent3d { width: t.width, height: t.height, depth_or_array_layers: 1 },
+            wgpu::Extent3d {
+                width: t.width,
+                height: t.height,
+                depth_or_array_layers: 1,
+            },
         );
-        encoder.copy_buffer_to_buffer(&t.depth, 0, &t.depth_readback, 0, t.width as u64 * t.height as u64 * 4);
-        encoder.copy_buffer_to_buffer(&vis.buffer, 0, &vis.blocking_readback, 0, (vis.entries.max(1) * 4) as u64);
+        encoder.copy_buffer_to_buffer(
+            &t.depth,
+            0,
+            &t.depth_readback,
+            0,
+            t.width as u64 * t.height as u64 * 4,
+        );
+        encoder.copy_buffer_to_buffer(
+            &vis.buffer,
+            0,
+            &vis.blocking_readback,
+            0,
+            (vis.entries.max(1) * 4) as u64,
+        );
         encoder.copy_buffer_to_buffer(&self.counter, 0, &self.counter_readback, 0, 8);
         ctx.queue.submit(Some(encoder.finish()));
-        for b in [&t.color_readback, &t.depth_readback, &vis.blocking_readback, &self.counter_readback] {
+        for b in [
+            &t.color_readback,
+            &t.depth_readback,
+            &vis.blocking_readback,
+            &self.counter_readback,
+        ] {
             map_blocking(device, b)?;
         }
         let read = |b: &wgpu::Buffer| -> Result<Vec<u8>, RenderError> {
-            let v = b.get_mapped_range(..).map_err(|e| RenderError::Readback(e.to_string()))?.to_vec();
+            let v = b
+                .get_mapped_range(..)
+                .map_err(|e| RenderError::Readback(e.to_string()))?
+                .to_vec();
             b.unmap();
             Ok(v)
         };
@@ -559,12 +852,26 @@ impl Raycaster {
         let mut visibility: Vec<u32> = bytemuck::pod_collect_to_vec(&read(&vis.blocking_readback)?);
         visibility.truncate(vis.entries);
         let counter: Vec<u32> = bytemuck::pod_collect_to_vec(&read(&self.counter_readback)?);
-        let samples = self.last_key.filter(|k| k.count_samples).map(|_| counter[0] as u64 + ((counter[1] as u64) << 32));
-        Ok(FrameReadback { width: t.width, height: t.height, rgba, depth, visibility, samples })
+        let samples = self
+            .last_key
+            .filter(|k| k.count_samples)
+            .map(|_| counter[0] as u64 + ((counter[1] as u64) << 32));
+        Ok(FrameReadback {
+            width: t.width,
+            height: t.height,
+            rgba,
+            depth,
+            visibility,
+            samples,
+        })
     }
 
     /// Render, wait, read everything back.
-    pub fn render_blocking(&mut self, ctx: &GpuContext, scene: &Scene) -> Result<FrameReadback, RenderError> {
+    pub fn render_blocking(
+        &mut self,
+        ctx: &GpuContext,
+        scene: &Scene,
+    ) -> Result<FrameReadback, RenderError> {
         self.render(ctx, scene)?;
         self.read_frame_blocking(ctx)
     }
@@ -573,7 +880,10 @@ impl Raycaster {
     pub fn render_and_wait(&mut self, ctx: &GpuContext, scene: &Scene) -> Result<(), RenderError> {
         let index = self.render(ctx, scene)?;
         ctx.device
-            .poll(wgpu::PollType::Wait { submission_index: Some(index), timeout: None })
+            .poll(wgpu::PollType::Wait {
+                submission_index: Some(index),
+                timeout: None,
+            })
             .map_err(|e| RenderError::Readback(e.to_string()))?;
         // Keep the ring draining so benchmarks measure steady state.
         let _ = self.try_take_visibility(ctx);
@@ -602,7 +912,12 @@ fn build_params(scene: &Scene) -> Params {
     let clip = match &s.clip_plane {
         Some(p) => {
             let n = DVec3::from(p.normal).normalize();
-            [n.dot(basis.forward) as f32, n.dot(basis.right) as f32, n.dot(basis.up) as f32, (p.offset_mm - n.dot(basis.eye)) as f32]
+            [
+                n.dot(basis.forward) as f32,
+                n.dot(basis.right) as f32,
+                n.dot(basis.up) as f32,
+                (p.offset_mm - n.dot(basis.eye)) as f32,
+            ]
         }
         None => [0.0; 4],
     };
@@ -624,13 +939,38 @@ fn build_params(scene: &Scene) -> Params {
         box_hi: v4(hi, unit),
         dims: v4(dims, s.early_termination.unwrap_or(1.0) as f64),
         clip,
-        value_map: [(65535.0 * scene.mapping.slope) as f32, scene.mapping.intercept as f32, tf.lo as f32, ((tf.entries - 1) as f64 / range) as f32],
+        value_map: [
+            (scene.cache.format.stored_at_one() * scene.mapping.slope) as f32,
+            scene.mapping.intercept as f32,
+            tf.lo as f32,
+            ((tf.entries - 1) as f64 / range) as f32,
+        ],
         iso: [s.iso_value as f32, flatness as f32, 0.0, 0.0],
-        iso_color: [iso_color[0] as f32, iso_color[1] as f32, iso_color[2] as f32, 0.0],
-        shading: [shading.ambient, shading.diffuse, shading.specular, shading.shininess],
-        cache_inv: [1.0 / texel[0] as f32, 1.0 / texel[1] as f32, 1.0 / texel[2] as f32, 0.0],
+        iso_color: [
+            iso_color[0] as f32,
+            iso_color[1] as f32,
+            iso_color[2] as f32,
+            0.0,
+        ],
+        shading: [
+            shading.ambient,
+            shading.diffuse,
+            shading.specular,
+            shading.shininess,
+        ],
+        cache_inv: [
+            1.0 / texel[0] as f32,
+            1.0 / texel[1] as f32,
+            1.0 / texel[2] as f32,
+            0.0,
+        ],
         image: [s.width, s.height, s.frame_index, tf.entries],
         pages: [g.page_dims()[0], g.page_dims()[1], g.page_dims()[2], 0],
-        slots: [scene.cache.slots_per_axis[0], scene.cache.slots_per_axis[1], scene.cache.slots_per_axis[2], 0],
+        slots: [
+            scene.cache.slots_per_axis[0],
+            scene.cache.slots_per_axis[1],
+            scene.cache.slots_per_axis[2],
+            0,
+        ],
     }
 }

@@ -45,7 +45,12 @@ pub const SHADING_FLAT_BELOW: f64 = 2e-4;
 pub const SHADING_LIT_ABOVE: f64 = 2e-3;
 
 /// [t_start, t_end] of the ray inside the (cropped) volume box and the clip plane's half space.
-pub fn ray_interval(geometry: &VolumeGeometry, settings: &RenderSettings, origin: DVec3, dir: DVec3) -> Option<(f64, f64)> {
+pub fn ray_interval(
+    geometry: &VolumeGeometry,
+    settings: &RenderSettings,
+    origin: DVec3,
+    dir: DVec3,
+) -> Option<(f64, f64)> {
     let a = geometry.index_from_patient_linear();
     let o = a * (origin - geometry.origin());
     let d = a * dir;
@@ -92,7 +97,12 @@ pub struct FieldLocation<'b> {
     pub local: DVec3,
 }
 
-pub fn locate<'b, S: BrickSource>(source: &'b S, table: &PageTable, dims: [u32; 3], p: DVec3) -> Option<FieldLocation<'b>> {
+pub fn locate<'b, S: BrickSource>(
+    source: &'b S,
+    table: &PageTable,
+    dims: [u32; 3],
+    p: DVec3,
+) -> Option<FieldLocation<'b>> {
     let mut page = [0u32; 3];
     let mut pc = [0.0f64; 3];
     for a in 0..3 {
@@ -114,7 +124,12 @@ pub fn locate<'b, S: BrickSource>(source: &'b S, table: &PageTable, dims: [u32; 
         let q = (pc[a] + 0.5) / scale - 0.5;
         local[a] = q - (node[a] as f64 * BRICK_CORE as f64 - BRICK_APRON as f64);
     }
-    Some(FieldLocation { page_linear, level, brick, local })
+    Some(FieldLocation {
+        page_linear,
+        level,
+        brick,
+        local,
+    })
 }
 
 /// Trilinear over a 36³ payload in stored units.
@@ -125,14 +140,20 @@ pub fn trilinear(brick: &[u16], local: DVec3) -> f64 {
     let f = p - i0;
     let n = BRICK_PAYLOAD as usize;
     let idx = |x: f64, y: f64, z: f64| {
-        let (x, y, z) = ((x as usize).min(n - 1), (y as usize).min(n - 1), (z as usize).min(n - 1));
+        let (x, y, z) = (
+            (x as usize).min(n - 1),
+            (y as usize).min(n - 1),
+            (z as usize).min(n - 1),
+        );
         brick[x + n * (y + n * z)] as f64
     };
     let mut acc = 0.0;
     for dz in 0..2 {
         for dy in 0..2 {
             for dx in 0..2 {
-                let w = (if dx == 1 { f.x } else { 1.0 - f.x }) * (if dy == 1 { f.y } else { 1.0 - f.y }) * (if dz == 1 { f.z } else { 1.0 - f.z });
+                let w = (if dx == 1 { f.x } else { 1.0 - f.x })
+                    * (if dy == 1 { f.y } else { 1.0 - f.y })
+                    * (if dz == 1 { f.z } else { 1.0 - f.z });
                 if w != 0.0 {
                     acc += w * idx(i0.x + dx as f64, i0.y + dy as f64, i0.z + dz as f64);
                 }
@@ -150,13 +171,20 @@ pub fn gradient_index(loc: &FieldLocation) -> DVec3 {
     for a in 0..3 {
         let mut e = DVec3::ZERO;
         e[a] = 1.0;
-        g[a] = (trilinear(loc.brick, loc.local + e) - trilinear(loc.brick, loc.local - e)) / (2.0 * h);
+        g[a] =
+            (trilinear(loc.brick, loc.local + e) - trilinear(loc.brick, loc.local - e)) / (2.0 * h);
     }
     g
 }
 
 /// Blinn-Phong with a headlight. `gradient_patient` in physical units per mm.
-pub fn shade(color: [f64; 3], gradient_patient: DVec3, dir: DVec3, shading: &Shading, flatness_scale: f64) -> [f64; 3] {
+pub fn shade(
+    color: [f64; 3],
+    gradient_patient: DVec3,
+    dir: DVec3,
+    shading: &Shading,
+    flatness_scale: f64,
+) -> [f64; 3] {
     let mag = gradient_patient.length();
     let w = smoothstep(SHADING_FLAT_BELOW, SHADING_LIT_ABOVE, mag * flatness_scale);
     let (ndl, spec) = if mag > 0.0 {
@@ -188,7 +216,10 @@ pub struct ReferenceOptions {
 
 impl Default for ReferenceOptions {
     fn default() -> Self {
-        ReferenceOptions { step_refinement: 8.0, bisection_steps: 40 }
+        ReferenceOptions {
+            step_refinement: 8.0,
+            bisection_steps: 40,
+        }
     }
 }
 
@@ -212,7 +243,10 @@ pub fn render_reference<S: BrickSource>(
             })
         })
         .collect();
-    let rgba = pixels.iter().flat_map(|(c, _)| c.map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)).collect();
+    let rgba = pixels
+        .iter()
+        .flat_map(|(c, _)| c.map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8))
+        .collect();
     Ok(ReferenceImage {
         width: w,
         height: h,
@@ -222,7 +256,13 @@ pub fn render_reference<S: BrickSource>(
     })
 }
 
-fn trace<S: BrickSource>(scene: &ReferenceScene<S>, settings: &RenderSettings, options: &ReferenceOptions, origin: DVec3, dir: DVec3) -> ([f64; 4], f32) {
+fn trace<S: BrickSource>(
+    scene: &ReferenceScene<S>,
+    settings: &RenderSettings,
+    options: &ReferenceOptions,
+    origin: DVec3,
+    dir: DVec3,
+) -> ([f64; 4], f32) {
     let Some((t0, t1)) = ray_interval(scene.geometry, settings, origin, dir) else {
         return ([0.0; 4], f32::INFINITY);
     };
@@ -234,11 +274,13 @@ fn trace<S: BrickSource>(scene: &ReferenceScene<S>, settings: &RenderSettings, o
     let step = settings.quality * unit / options.step_refinement;
     let tf = scene.transfer_function;
     let mapping = scene.mapping;
-    let flatness_scale = mapping.slope.abs() * unit / (scene.tf_range.1 - scene.tf_range.0).max(1e-30);
+    let flatness_scale =
+        mapping.slope.abs() * unit / (scene.tf_range.1 - scene.tf_range.0).max(1e-30);
     let shading = settings.effective_shading();
     let at = |t: f64| locate(scene.source, scene.page_table, g.dims, o_idx + d_idx * t);
     // Physical gradient per mm: d(value)/d(patient) = A^T · d(value)/d(index).
-    let gradient_patient = |loc: &FieldLocation| a.transpose() * gradient_index(loc) * mapping.slope;
+    let gradient_patient =
+        |loc: &FieldLocation| a.transpose() * gradient_index(loc) * mapping.slope;
     let n_steps = ((t1 - t0) / step).ceil() as u64;
     match settings.mode {
         RenderMode::Dvr => {
@@ -327,7 +369,13 @@ fn trace<S: BrickSource>(scene: &ReferenceScene<S>, settings: &RenderSettings, o
                         hit = hi;
                     }
                     let Some(loc) = at(hit) else { break };
-                    let col = shade(tf.color_at(iso), gradient_patient(&loc), dir, &shading.unwrap_or_default(), flatness_scale);
+                    let col = shade(
+                        tf.color_at(iso),
+                        gradient_patient(&loc),
+                        dir,
+                        &shading.unwrap_or_default(),
+                        flatness_scale,
+                    );
                     return ([col[0], col[1], col[2], 1.0], hit as f32);
                 }
                 prev = Some(t);

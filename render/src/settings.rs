@@ -27,7 +27,12 @@ pub struct Shading {
 
 impl Default for Shading {
     fn default() -> Self {
-        Shading { ambient: 0.3, diffuse: 0.7, specular: 0.2, shininess: 32.0 }
+        Shading {
+            ambient: 0.3,
+            diffuse: 0.7,
+            specular: 0.2,
+            shininess: 32.0,
+        }
     }
 }
 
@@ -41,7 +46,10 @@ pub struct CropBox {
 
 impl Default for CropBox {
     fn default() -> Self {
-        CropBox { min: [0.0; 3], max: [1.0; 3] }
+        CropBox {
+            min: [0.0; 3],
+            max: [1.0; 3],
+        }
     }
 }
 
@@ -106,20 +114,30 @@ impl Default for RenderSettings {
 impl RenderSettings {
     pub fn validate(&self) -> Result<(), RenderError> {
         if self.width == 0 || self.height == 0 {
-            return Err(RenderError::InvalidSettings(format!("image size {}x{}", self.width, self.height)));
+            return Err(RenderError::InvalidSettings(format!(
+                "image size {}x{}",
+                self.width, self.height
+            )));
         }
         if !(self.quality.is_finite() && self.quality > 1e-4) {
-            return Err(RenderError::InvalidSettings(format!("quality must be > 0, got {}", self.quality)));
+            return Err(RenderError::InvalidSettings(format!(
+                "quality must be > 0, got {}",
+                self.quality
+            )));
         }
         if let Some(t) = self.early_termination {
             if !(t > 0.0 && t <= 1.0) {
-                return Err(RenderError::InvalidSettings(format!("early termination threshold {t} not in (0,1]")));
+                return Err(RenderError::InvalidSettings(format!(
+                    "early termination threshold {t} not in (0,1]"
+                )));
             }
         }
         if let Some(p) = &self.clip_plane {
             let n = glam::DVec3::from(p.normal);
             if n.length().is_nan() || n.length() <= 1e-12 || !p.offset_mm.is_finite() {
-                return Err(RenderError::InvalidSettings("clip plane normal must be non-zero".into()));
+                return Err(RenderError::InvalidSettings(
+                    "clip plane normal must be non-zero".into(),
+                ));
             }
         }
         Ok(())

@@ -32,7 +32,13 @@ pub struct TransferFunction {
 }
 
 /// Piecewise-linear interpolation over sorted stops, constant beyond the ends.
-fn lerp_stops<T: Copy>(n: usize, key: impl Fn(usize) -> (f64, T), v: f64, mix: impl Fn(T, T, f64) -> T, empty: T) -> T {
+fn lerp_stops<T: Copy>(
+    n: usize,
+    key: impl Fn(usize) -> (f64, T),
+    v: f64,
+    mix: impl Fn(T, T, f64) -> T,
+    empty: T,
+) -> T {
     if n == 0 {
         return empty;
     }
@@ -60,34 +66,76 @@ impl TransferFunction {
     pub fn new(name: &str, opacity: &[(f64, f64)], color: &[(f64, [f64; 3])]) -> Self {
         TransferFunction {
             name: name.to_string(),
-            opacity: opacity.iter().map(|&(value, opacity)| OpacityStop { value, opacity }).collect(),
-            color: color.iter().map(|&(value, rgb)| ColorStop { value, rgb }).collect(),
+            opacity: opacity
+                .iter()
+                .map(|&(value, opacity)| OpacityStop { value, opacity })
+                .collect(),
+            color: color
+                .iter()
+                .map(|&(value, rgb)| ColorStop { value, rgb })
+                .collect(),
         }
     }
 
     pub fn validate(&self) -> Result<(), RenderError> {
         if self.opacity.is_empty() {
-            return Err(RenderError::InvalidTransferFunction(format!("'{}' has no opacity stops", self.name)));
+            return Err(RenderError::InvalidTransferFunction(format!(
+                "'{}' has no opacity stops",
+                self.name
+            )));
         }
-        let sorted = |vals: Vec<f64>| vals.windows(2).all(|w| w[0] <= w[1]) && vals.iter().all(|v| v.is_finite());
-        if !sorted(self.opacity.iter().map(|s| s.value).collect()) || !sorted(self.color.iter().map(|s| s.value).collect()) {
-            return Err(RenderError::InvalidTransferFunction(format!("'{}': stop values must be finite and ascending", self.name)));
+        let sorted = |vals: Vec<f64>| {
+            vals.windows(2).all(|w| w[0] <= w[1]) && vals.iter().all(|v| v.is_finite())
+        };
+        if !sorted(self.opacity.iter().map(|s| s.value).collect())
+            || !sorted(self.color.iter().map(|s| s.value).collect())
+        {
+            return Err(RenderError::InvalidTransferFunction(format!(
+                "'{}': stop values must be finite and ascending",
+                self.name
+            )));
         }
-        if self.opacity.iter().any(|s| !(0.0..=1.0).contains(&s.opacity)) {
-            return Err(RenderError::InvalidTransferFunction(format!("'{}': opacity outside [0,1]", self.name)));
+        if self
+            .opacity
+            .iter()
+            .any(|s| !(0.0..=1.0).contains(&s.opacity))
+        {
+            return Err(RenderError::InvalidTransferFunction(format!(
+                "'{}': opacity outside [0,1]",
+                self.name
+            )));
         }
-        if self.color.iter().any(|s| s.rgb.iter().any(|c| !(0.0..=1.0).contains(c))) {
-            return Err(RenderError::InvalidTransferFunction(format!("'{}': colour outside [0,1]", self.name)));
+        if self
+            .color
+            .iter()
+            .any(|s| s.rgb.iter().any(|c| !(0.0..=1.0).contains(c)))
+        {
+            return Err(RenderError::InvalidTransferFunction(format!(
+                "'{}': colour outside [0,1]",
+                self.name
+            )));
         }
         Ok(())
     }
 
     pub fn opacity_at(&self, value: f64) -> f64 {
-        lerp_stops(self.opacity.len(), |i| (self.opacity[i].value, self.opacity[i].opacity), value, |a, b, t| a + (b - a) * t, 0.0)
+        lerp_stops(
+            self.opacity.len(),
+            |i| (self.opacity[i].value, self.opacity[i].opacity),
+            value,
+            |a, b, t| a + (b - a) * t,
+            0.0,
+        )
     }
 
     pub fn color_at(&self, value: f64) -> [f64; 3] {
-        lerp_stops(self.color.len(), |i| (self.color[i].value, self.color[i].rgb), value, |a, b, t| [0, 1, 2].map(|i| a[i] + (b[i] - a[i]) * t), [1.0; 3])
+        lerp_stops(
+            self.color.len(),
+            |i| (self.color[i].value, self.color[i].rgb),
+            value,
+            |a, b, t| [0, 1, 2].map(|i| a[i] + (b[i] - a[i]) * t),
+            [1.0; 3],
+        )
     }
 
     /// Largest opacity over [lo, hi]: piecewise linear, so the max is at an end or a stop.
@@ -112,17 +160,30 @@ impl TransferFunction {
     }
 
     pub fn load(path: &Path) -> Result<Self, RenderError> {
-        let text = std::fs::read_to_string(path).map_err(|source| RenderError::Io { path: path.display().to_string(), source })?;
-        Self::from_json(&text).map_err(|e| RenderError::InvalidTransferFunction(format!("{}: {e}", path.display())))
+        let text = std::fs::read_to_string(path).map_err(|source| RenderError::Io {
+            path: path.display().to_string(),
+            source,
+        })?;
+        Self::from_json(&text)
+            .map_err(|e| RenderError::InvalidTransferFunction(format!("{}: {e}", path.display())))
     }
 
     pub fn save(&self, path: &Path) -> Result<(), RenderError> {
         let text = self.to_json()?;
-        std::fs::write(path, text).map_err(|source| RenderError::Io { path: path.display().to_string(), source })
+        std::fs::write(path, text).map_err(|source| RenderError::Io {
+            path: path.display().to_string(),
+            source,
+        })
     }
 
     /// Names accepted by [`TransferFunction::preset`].
-    pub const PRESETS: [&'static str; 5] = ["ct-bone", "ct-soft-tissue", "ct-lung", "ct-vessels", "mr-default"];
+    pub const PRESETS: [&'static str; 5] = [
+        "ct-bone",
+        "ct-soft-tissue",
+        "ct-lung",
+        "ct-vessels",
+        "mr-default",
+    ];
 
     /// Presets in the spirit of 3D Slicer's volume-rendering presets. CT values are HU; the MR
     /// preset assumes intensities normalised to roughly [0, 1000].
@@ -130,28 +191,77 @@ impl TransferFunction {
         let tf = match name {
             "ct-bone" => Self::new(
                 "ct-bone",
-                &[(-1000.0, 0.0), (150.0, 0.0), (300.0, 0.15), (700.0, 0.6), (3000.0, 0.8)],
-                &[(-1000.0, [0.0, 0.0, 0.0]), (150.0, [0.55, 0.25, 0.15]), (300.0, [0.9, 0.82, 0.65]), (3000.0, [1.0, 1.0, 0.95])],
+                &[
+                    (-1000.0, 0.0),
+                    (150.0, 0.0),
+                    (300.0, 0.15),
+                    (700.0, 0.6),
+                    (3000.0, 0.8),
+                ],
+                &[
+                    (-1000.0, [0.0, 0.0, 0.0]),
+                    (150.0, [0.55, 0.25, 0.15]),
+                    (300.0, [0.9, 0.82, 0.65]),
+                    (3000.0, [1.0, 1.0, 0.95]),
+                ],
             ),
             "ct-soft-tissue" => Self::new(
                 "ct-soft-tissue",
-                &[(-1000.0, 0.0), (-200.0, 0.0), (-50.0, 0.02), (60.0, 0.08), (300.0, 0.3), (3000.0, 0.5)],
-                &[(-1000.0, [0.0, 0.0, 0.0]), (-100.0, [0.7, 0.45, 0.35]), (60.0, [0.85, 0.35, 0.3]), (300.0, [1.0, 0.95, 0.85])],
+                &[
+                    (-1000.0, 0.0),
+                    (-200.0, 0.0),
+                    (-50.0, 0.02),
+                    (60.0, 0.08),
+                    (300.0, 0.3),
+                    (3000.0, 0.5),
+                ],
+                &[
+                    (-1000.0, [0.0, 0.0, 0.0]),
+                    (-100.0, [0.7, 0.45, 0.35]),
+                    (60.0, [0.85, 0.35, 0.3]),
+                    (300.0, [1.0, 0.95, 0.85]),
+                ],
             ),
             "ct-lung" => Self::new(
                 "ct-lung",
-                &[(-1000.0, 0.0), (-900.0, 0.0), (-750.0, 0.06), (-500.0, 0.1), (-300.0, 0.0), (3000.0, 0.0)],
-                &[(-1000.0, [0.3, 0.5, 0.8]), (-750.0, [0.75, 0.85, 1.0]), (-300.0, [1.0, 1.0, 1.0])],
+                &[
+                    (-1000.0, 0.0),
+                    (-900.0, 0.0),
+                    (-750.0, 0.06),
+                    (-500.0, 0.1),
+                    (-300.0, 0.0),
+                    (3000.0, 0.0),
+                ],
+                &[
+                    (-1000.0, [0.3, 0.5, 0.8]),
+                    (-750.0, [0.75, 0.85, 1.0]),
+                    (-300.0, [1.0, 1.0, 1.0]),
+                ],
             ),
             "ct-vessels" => Self::new(
                 "ct-vessels",
-                &[(-1000.0, 0.0), (120.0, 0.0), (200.0, 0.3), (400.0, 0.7), (3000.0, 0.8)],
-                &[(-1000.0, [0.0, 0.0, 0.0]), (120.0, [0.6, 0.05, 0.05]), (250.0, [0.95, 0.3, 0.25]), (600.0, [1.0, 0.95, 0.9])],
+                &[
+                    (-1000.0, 0.0),
+                    (120.0, 0.0),
+                    (200.0, 0.3),
+                    (400.0, 0.7),
+                    (3000.0, 0.8),
+                ],
+                &[
+                    (-1000.0, [0.0, 0.0, 0.0]),
+                    (120.0, [0.6, 0.05, 0.05]),
+                    (250.0, [0.95, 0.3, 0.25]),
+                    (600.0, [1.0, 0.95, 0.9]),
+                ],
             ),
             "mr-default" => Self::new(
                 "mr-default",
                 &[(0.0, 0.0), (100.0, 0.0), (400.0, 0.1), (1000.0, 0.4)],
-                &[(0.0, [0.0, 0.0, 0.0]), (300.0, [0.8, 0.7, 0.6]), (1000.0, [1.0, 1.0, 1.0])],
+                &[
+                    (0.0, [0.0, 0.0, 0.0]),
+                    (300.0, [0.8, 0.7, 0.6]),
+                    (1000.0, [1.0, 1.0, 1.0]),
+                ],
             ),
             _ => return None,
         };
@@ -168,7 +278,12 @@ impl TransferFunction {
             .map(|i| {
                 let v = value_at(i);
                 let c = self.color_at(v);
-                [c[0] as f32, c[1] as f32, c[2] as f32, self.opacity_at(v) as f32]
+                [
+                    c[0] as f32,
+                    c[1] as f32,
+                    c[2] as f32,
+                    self.opacity_at(v) as f32,
+                ]
             })
             .collect();
         // Bin i spans table entries i and i+1; its max opacity is conservative for any value
@@ -177,11 +292,21 @@ impl TransferFunction {
         opacity_prefix.push(0.0);
         let mut acc = 0.0;
         for i in 0..n {
-            let bin_max = if i + 1 < n { self.max_opacity_in(value_at(i), value_at(i + 1)) } else { self.opacity_at(value_at(i)) };
+            let bin_max = if i + 1 < n {
+                self.max_opacity_in(value_at(i), value_at(i + 1))
+            } else {
+                self.opacity_at(value_at(i))
+            };
             acc += bin_max;
             opacity_prefix.push(acc);
         }
-        TransferFunctionTable { lo, hi, rgba, opacity_prefix, source: self.clone() }
+        TransferFunctionTable {
+            lo,
+            hi,
+            rgba,
+            opacity_prefix,
+            source: self.clone(),
+        }
     }
 }
 
@@ -201,7 +326,8 @@ pub struct TransferFunctionTable {
 
 impl TransferFunctionTable {
     fn position(&self, value: f64) -> f64 {
-        ((value - self.lo) / (self.hi - self.lo) * (self.rgba.len() - 1) as f64).clamp(0.0, (self.rgba.len() - 1) as f64)
+        ((value - self.lo) / (self.hi - self.lo) * (self.rgba.len() - 1) as f64)
+            .clamp(0.0, (self.rgba.len() - 1) as f64)
     }
 
     /// True if no value in [min, max] (physical) can get non-zero opacity. O(1).
@@ -246,7 +372,11 @@ mod tests {
         assert!(!table.is_transparent(-1000.0, 200.0));
         assert!(!table.is_transparent(400.0, 400.0));
         // Narrow spike between two table entries must still count as visible.
-        let spike = TransferFunction::new("spike", &[(0.0, 0.0), (100.0, 0.0), (100.01, 1.0), (100.02, 0.0)], &[]);
+        let spike = TransferFunction::new(
+            "spike",
+            &[(0.0, 0.0), (100.0, 0.0), (100.01, 1.0), (100.02, 0.0)],
+            &[],
+        );
         let t = spike.table(0.0, 4095.0);
         assert!(!t.is_transparent(99.0, 101.0));
         assert!(t.is_transparent(0.0, 99.0));

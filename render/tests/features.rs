@@ -12,7 +12,8 @@ fn dvr_tf_fixture(volume: BrickedVolume, table: PageTable) -> Fixture {
 }
 
 fn oblique_geometry() -> VolumeGeometry {
-    let rot = DMat3::from_rotation_z(20f64.to_radians()) * DMat3::from_rotation_x(15f64.to_radians());
+    let rot =
+        DMat3::from_rotation_z(20f64.to_radians()) * DMat3::from_rotation_x(15f64.to_radians());
     VolumeGeometry {
         dims: [80, 64, 40],
         spacing_mm: [0.8, 1.1, 2.0],
@@ -25,7 +26,9 @@ fn phantom_on(geometry: VolumeGeometry, centre: DVec3, r: f64, edge: f64) -> Bri
     let g = geometry.clone();
     BrickedVolume::from_fn(geometry, phantom::CT_MAPPING, move |x, y, z| {
         let p = g.patient_from_index(DVec3::new(x as f64, y as f64, z as f64));
-        (phantom::ct_phantom_hu(p, centre, r, edge) + 1024.0).round().clamp(0.0, 4095.0) as u16
+        (phantom::ct_phantom_hu(p, centre, r, edge) + 1024.0)
+            .round()
+            .clamp(0.0, 4095.0) as u16
     })
     .unwrap()
 }
@@ -39,12 +42,26 @@ fn anisotropic_oblique_geometry_matches_reference_and_patient_space() {
     let volume = phantom_on(geometry, centre, 28.0, 2.5);
     let table = volume.page_table_uniform(0);
     let f = dvr_tf_fixture(volume, table);
-    let cam = Camera::look_at((centre + DVec3::new(90.0, -140.0, -60.0)).into(), centre.into(), [0.0, 0.0, -1.0], Projection::Perspective { fov_y_deg: 30.0 });
-    let s = RenderSettings { shading: Some(Shading::default()), ..compare_settings(RenderMode::Dvr, SIZE) };
+    let cam = Camera::look_at(
+        (centre + DVec3::new(90.0, -140.0, -60.0)).into(),
+        centre.into(),
+        [0.0, 0.0, -1.0],
+        Projection::Perspective { fov_y_deg: 30.0 },
+    );
+    let s = RenderSettings {
+        shading: Some(Shading::default()),
+        ..compare_settings(RenderMode::Dvr, SIZE)
+    };
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
     let oblique = g.render(&ctx, &f, &cam, &s);
     // Same tolerance reasoning as gpu_vs_reference.rs.
-    assert_close("aniso-oblique", &oblique, &f.reference(&cam, &s, REFINE), 40.0, 24);
+    assert_close(
+        "aniso-oblique",
+        &oblique,
+        &f.reference(&cam, &s, REFINE),
+        40.0,
+        24,
+    );
 
     // Independently built: the same patient-space object on an isotropic, axis-aligned 1 mm
     // grid. If direction/spacing/origin were mishandled anywhere, the object would move, tilt
@@ -69,27 +86,51 @@ fn anisotropic_oblique_geometry_matches_reference_and_patient_space() {
 #[test]
 fn mixed_levels_checkerboard_matches_reference() {
     let ctx = gpu();
-    let volume = phantom::ct_phantom(VolumeGeometry::axis_aligned([128; 3], [1.0; 3]), None, None).unwrap();
+    let volume =
+        phantom::ct_phantom(VolumeGeometry::axis_aligned([128; 3], [1.0; 3]), None, None).unwrap();
     let table = volume.page_table_with_levels(|p| ((p[0] + p[1] + p[2]) % 3) as u8);
     let levels: std::collections::BTreeSet<u8> = table.entries.iter().map(|e| e.level).collect();
     assert_eq!(levels.into_iter().collect::<Vec<_>>(), vec![0, 1, 2]);
     let f = dvr_tf_fixture(volume, table);
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let cam = Camera::orbit(&f.volume.geometry, 40.0, 30.0, 1.5, Projection::Perspective { fov_y_deg: 35.0 });
+    let cam = Camera::orbit(
+        &f.volume.geometry,
+        40.0,
+        30.0,
+        1.5,
+        Projection::Perspective { fov_y_deg: 35.0 },
+    );
     // Same 40 dB bar: the GPU steps 2^L times longer in level-L nodes (octree paper §5), but a
     // level-L field is 2^L times smoother, so the relative discretisation error is unchanged.
     // MIP max error 32: MIP keeps the largest sample, and with 2-voxel steps in level-2 nodes
     // the peak of a narrow feature can fall between samples (undersampled by up to half a
     // step); the mean stays far above 40 dB.
-    for (name, mode, max_abs) in [("mixed-dvr", RenderMode::Dvr, 24), ("mixed-mip", RenderMode::Mip, 32)] {
-        let s = RenderSettings { shading: Some(Shading::default()), ..compare_settings(mode, SIZE) };
-        assert_close(name, &g.render(&ctx, &f, &cam, &s), &f.reference(&cam, &s, REFINE), 40.0, max_abs);
+    for (name, mode, max_abs) in [
+        ("mixed-dvr", RenderMode::Dvr, 24),
+        ("mixed-mip", RenderMode::Mip, 32),
+    ] {
+        let s = RenderSettings {
+            shading: Some(Shading::default()),
+            ..compare_settings(mode, SIZE)
+        };
+        assert_close(
+            name,
+            &g.render(&ctx, &f, &cam, &s),
+            &f.reference(&cam, &s, REFINE),
+            40.0,
+            max_abs,
+        );
     }
 }
 
 fn small_object_fixture() -> Fixture {
     // Object radius 30 mm in a 128 mm cube: most of the 4×4×4 pages hold only air.
-    let volume = phantom::ct_phantom(VolumeGeometry::axis_aligned([128; 3], [1.0; 3]), None, Some(30.0)).unwrap();
+    let volume = phantom::ct_phantom(
+        VolumeGeometry::axis_aligned([128; 3], [1.0; 3]),
+        None,
+        Some(30.0),
+    )
+    .unwrap();
     let table = volume.page_table_uniform(0);
     dvr_tf_fixture(volume, table)
 }
@@ -101,29 +142,76 @@ fn empty_skipping_and_early_termination_keep_the_image_and_save_samples() {
     let empty = f.page_table.entries.iter().filter(|e| e.empty).count();
     assert!(empty > 10, "phantom should leave empty pages, got {empty}");
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let cam = Camera::orbit(&f.volume.geometry, 25.0, 15.0, 1.4, Projection::Perspective { fov_y_deg: 35.0 });
-    let plain = RenderSettings { skip_empty: false, early_termination: None, ..compare_settings(RenderMode::Dvr, SIZE) };
+    let cam = Camera::orbit(
+        &f.volume.geometry,
+        25.0,
+        15.0,
+        1.4,
+        Projection::Perspective { fov_y_deg: 35.0 },
+    );
+    let plain = RenderSettings {
+        skip_empty: false,
+        early_termination: None,
+        ..compare_settings(RenderMode::Dvr, SIZE)
+    };
     let base = g.render(&ctx, &f, &cam, &plain);
 
     // Skipping jumps to the next sample on the same lattice, and skipped pages are transparent
     // by construction: the image may differ only by f32 rounding of sample positions (1/255).
-    let skip = g.render(&ctx, &f, &cam, &RenderSettings { skip_empty: true, ..plain.clone() });
+    let skip = g.render(
+        &ctx,
+        &f,
+        &cam,
+        &RenderSettings {
+            skip_empty: true,
+            ..plain.clone()
+        },
+    );
     let c = compare_rgba8(&base.rgba, &skip.rgba).unwrap();
-    eprintln!("skip: {c:?}, samples {:?} -> {:?}", base.samples, skip.samples);
+    eprintln!(
+        "skip: {c:?}, samples {:?} -> {:?}",
+        base.samples, skip.samples
+    );
     assert!(c.max_abs_error <= 1, "{c:?}");
-    assert!(skip.samples.unwrap() * 2 < base.samples.unwrap(), "skipping should at least halve samples");
+    assert!(
+        skip.samples.unwrap() * 2 < base.samples.unwrap(),
+        "skipping should at least halve samples"
+    );
 
     // Early termination at threshold τ drops at most (1-τ) of the remaining light: with
     // τ = 0.998 that is ≤ 0.51/255, plus rounding ≤ 1/255.
-    let ert = g.render(&ctx, &f, &cam, &RenderSettings { early_termination: Some(0.998), ..plain.clone() });
+    let ert = g.render(
+        &ctx,
+        &f,
+        &cam,
+        &RenderSettings {
+            early_termination: Some(0.998),
+            ..plain.clone()
+        },
+    );
     let c = compare_rgba8(&base.rgba, &ert.rgba).unwrap();
-    eprintln!("ert 0.998: {c:?}, samples {:?} -> {:?}", base.samples, ert.samples);
+    eprintln!(
+        "ert 0.998: {c:?}, samples {:?} -> {:?}",
+        base.samples, ert.samples
+    );
     assert!(c.max_abs_error <= 1, "{c:?}");
     assert!(ert.samples.unwrap() < base.samples.unwrap());
     // The default τ = 0.99 may drop up to 2.55/255 of light, +1 for rounding.
-    let both = g.render(&ctx, &f, &cam, &RenderSettings { early_termination: Some(0.99), skip_empty: true, ..plain.clone() });
+    let both = g.render(
+        &ctx,
+        &f,
+        &cam,
+        &RenderSettings {
+            early_termination: Some(0.99),
+            skip_empty: true,
+            ..plain.clone()
+        },
+    );
     let c = compare_rgba8(&base.rgba, &both.rgba).unwrap();
-    eprintln!("skip + ert 0.99: {c:?}, samples {:?} -> {:?}", base.samples, both.samples);
+    eprintln!(
+        "skip + ert 0.99: {c:?}, samples {:?} -> {:?}",
+        base.samples, both.samples
+    );
     assert!(c.max_abs_error <= 4, "{c:?}");
 }
 
@@ -132,10 +220,32 @@ fn opacity_correction_makes_image_independent_of_step() {
     let ctx = gpu();
     let f = small_object_fixture();
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let cam = Camera::orbit(&f.volume.geometry, -30.0, 20.0, 1.4, Projection::Perspective { fov_y_deg: 35.0 });
+    let cam = Camera::orbit(
+        &f.volume.geometry,
+        -30.0,
+        20.0,
+        1.4,
+        Projection::Perspective { fov_y_deg: 35.0 },
+    );
     let half = compare_settings(RenderMode::Dvr, SIZE);
-    let a = g.render(&ctx, &f, &cam, &RenderSettings { quality: 0.5, ..half.clone() });
-    let b = g.render(&ctx, &f, &cam, &RenderSettings { quality: 0.25, ..half.clone() });
+    let a = g.render(
+        &ctx,
+        &f,
+        &cam,
+        &RenderSettings {
+            quality: 0.5,
+            ..half.clone()
+        },
+    );
+    let b = g.render(
+        &ctx,
+        &f,
+        &cam,
+        &RenderSettings {
+            quality: 0.25,
+            ..half.clone()
+        },
+    );
     let c = compare_rgba8(&a.rgba, &b.rgba).unwrap();
     eprintln!("step 0.5 vs 0.25: {c:?}");
     // Without correction, halving the step would double every sample's opacity contribution
@@ -147,21 +257,49 @@ fn opacity_correction_makes_image_independent_of_step() {
 #[test]
 fn constant_volume_with_shading_has_no_nan_and_matches_reference() {
     let ctx = gpu();
-    let volume = BrickedVolume::from_fn(VolumeGeometry::axis_aligned([40, 40, 40], [1.0; 3]), phantom::CT_MAPPING, |_, _, _| 1024 + 300).unwrap();
+    let volume = BrickedVolume::from_fn(
+        VolumeGeometry::axis_aligned([40, 40, 40], [1.0; 3]),
+        phantom::CT_MAPPING,
+        |_, _, _| 1024 + 300,
+    )
+    .unwrap();
     let table = volume.page_table_uniform(0);
     // The TF table spans the volume's range, which is a single value: must not divide by zero.
     let f = dvr_tf_fixture(volume, table);
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let cam = Camera::orbit(&f.volume.geometry, 30.0, 30.0, 1.2, Projection::Perspective { fov_y_deg: 40.0 });
-    for (name, mode) in [("const-dvr", RenderMode::Dvr), ("const-iso", RenderMode::Isosurface)] {
-        let s = RenderSettings { shading: Some(Shading::default()), iso_value: 250.0, ..compare_settings(mode, 96) };
+    let cam = Camera::orbit(
+        &f.volume.geometry,
+        30.0,
+        30.0,
+        1.2,
+        Projection::Perspective { fov_y_deg: 40.0 },
+    );
+    for (name, mode) in [
+        ("const-dvr", RenderMode::Dvr),
+        ("const-iso", RenderMode::Isosurface),
+    ] {
+        let s = RenderSettings {
+            shading: Some(Shading::default()),
+            iso_value: 250.0,
+            ..compare_settings(mode, 96)
+        };
         let frame = g.render(&ctx, &f, &cam, &s);
         // The isosurface of a constant block is its hard box face: silhouette rays that clip
         // a corner shorter than half a GPU step hit only in the reference, so as in the
         // oblique isosurface test bound the number of differing pixels, not their size.
         // That also caps PSNR (a few dozen full-scale silhouette pixels alone give ~28 dB).
-        let (min_psnr, max_abs) = if mode == RenderMode::Isosurface { (25.0, 255) } else { (40.0, 24) };
-        let c = assert_close(name, &frame, &f.reference(&cam, &s, REFINE), min_psnr, max_abs);
+        let (min_psnr, max_abs) = if mode == RenderMode::Isosurface {
+            (25.0, 255)
+        } else {
+            (40.0, 24)
+        };
+        let c = assert_close(
+            name,
+            &frame,
+            &f.reference(&cam, &s, REFINE),
+            min_psnr,
+            max_abs,
+        );
         if mode == RenderMode::Isosurface {
             assert!(c.pixels_off_by_more_than_one * 100 <= 96 * 96, "{c:?}");
         }
@@ -171,7 +309,12 @@ fn constant_volume_with_shading_has_no_nan_and_matches_reference() {
 #[test]
 fn single_slice_volume_and_axis_parallel_rays() {
     let ctx = gpu();
-    let volume = phantom::ct_phantom(VolumeGeometry::axis_aligned([64, 64, 1], [1.0, 1.0, 3.0]), None, Some(30.0)).unwrap();
+    let volume = phantom::ct_phantom(
+        VolumeGeometry::axis_aligned([64, 64, 1], [1.0, 1.0, 3.0]),
+        None,
+        Some(30.0),
+    )
+    .unwrap();
     let table = volume.page_table_uniform(0);
     let f = dvr_tf_fixture(volume, table);
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
@@ -179,9 +322,24 @@ fn single_slice_volume_and_axis_parallel_rays() {
     // Straight down the k axis (all rays parallel to it, through a 3 mm thick slab), then
     // edge-on along i (rays inside the slab plane), then oblique.
     let cams = [
-        Camera::look_at([c.x, c.y, c.z - 100.0], c.into(), [0.0, -1.0, 0.0], Projection::Orthographic { height_mm: 70.0 }),
-        Camera::look_at([c.x - 100.0, c.y, c.z], c.into(), [0.0, 0.0, -1.0], Projection::Orthographic { height_mm: 70.0 }),
-        Camera::look_at([c.x - 60.0, c.y + 40.0, c.z - 80.0], c.into(), [0.0, 0.0, -1.0], Projection::Perspective { fov_y_deg: 45.0 }),
+        Camera::look_at(
+            [c.x, c.y, c.z - 100.0],
+            c.into(),
+            [0.0, -1.0, 0.0],
+            Projection::Orthographic { height_mm: 70.0 },
+        ),
+        Camera::look_at(
+            [c.x - 100.0, c.y, c.z],
+            c.into(),
+            [0.0, 0.0, -1.0],
+            Projection::Orthographic { height_mm: 70.0 },
+        ),
+        Camera::look_at(
+            [c.x - 60.0, c.y + 40.0, c.z - 80.0],
+            c.into(),
+            [0.0, 0.0, -1.0],
+            Projection::Perspective { fov_y_deg: 45.0 },
+        ),
     ];
     for (i, cam) in cams.iter().enumerate() {
         let s = compare_settings(RenderMode::Mip, 96);
@@ -205,8 +363,17 @@ fn visibility_marks_only_contributing_pages_and_arrives_without_blocking() {
     let ctx = gpu();
     let f = small_object_fixture();
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let cam = Camera::orbit(&f.volume.geometry, 10.0, 10.0, 1.4, Projection::Perspective { fov_y_deg: 35.0 });
-    let s = RenderSettings { jitter: true, ..compare_settings(RenderMode::Dvr, SIZE) };
+    let cam = Camera::orbit(
+        &f.volume.geometry,
+        10.0,
+        10.0,
+        1.4,
+        Projection::Perspective { fov_y_deg: 35.0 },
+    );
+    let s = RenderSettings {
+        jitter: true,
+        ..compare_settings(RenderMode::Dvr, SIZE)
+    };
     let frame = g.render(&ctx, &f, &cam, &s);
     assert_eq!(frame.visibility.len(), f.page_table.entries.len());
     let visible = frame.visibility.iter().filter(|&&v| v == 1).count();
@@ -215,7 +382,15 @@ fn visibility_marks_only_contributing_pages_and_arrives_without_blocking() {
         assert!(*v == 0 || !e.empty, "an empty page was marked visible");
     }
     // Non-blocking path: a few frames later the ring hands back a frame's visibility.
-    let scene = Scene { cache: &g.cache, page_table: &g.page_table, transfer_function: &g.tf, geometry: &f.volume.geometry, mapping: f.volume.mapping, camera: &cam, settings: &s };
+    let scene = Scene {
+        cache: &g.cache,
+        page_table: &g.page_table,
+        transfer_function: &g.tf,
+        geometry: &f.volume.geometry,
+        mapping: f.volume.mapping,
+        camera: &cam,
+        settings: &s,
+    };
     let mut got = None;
     for _ in 0..200 {
         g.raycaster.render(&ctx, &scene).unwrap();
@@ -226,7 +401,10 @@ fn visibility_marks_only_contributing_pages_and_arrives_without_blocking() {
         std::thread::sleep(std::time::Duration::from_millis(5));
     }
     let got = got.expect("visibility never arrived");
-    assert_eq!(got.visibility, frame.visibility, "same view, same visible pages");
+    assert_eq!(
+        got.visibility, frame.visibility,
+        "same view, same visible pages"
+    );
 }
 
 #[test]
@@ -234,12 +412,45 @@ fn jitter_changes_samples_but_not_the_picture() {
     let ctx = gpu();
     let f = Fixture::ct(64);
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let cam = Camera::orbit(&f.volume.geometry, 60.0, 10.0, 1.5, Projection::Perspective { fov_y_deg: 35.0 });
+    let cam = Camera::orbit(
+        &f.volume.geometry,
+        60.0,
+        10.0,
+        1.5,
+        Projection::Perspective { fov_y_deg: 35.0 },
+    );
     let s = compare_settings(RenderMode::Dvr, SIZE);
     let plain = g.render(&ctx, &f, &cam, &s);
-    let j0 = g.render(&ctx, &f, &cam, &RenderSettings { jitter: true, frame_index: 0, ..s.clone() });
-    let j0b = g.render(&ctx, &f, &cam, &RenderSettings { jitter: true, frame_index: 0, ..s.clone() });
-    let j1 = g.render(&ctx, &f, &cam, &RenderSettings { jitter: true, frame_index: 1, ..s.clone() });
+    let j0 = g.render(
+        &ctx,
+        &f,
+        &cam,
+        &RenderSettings {
+            jitter: true,
+            frame_index: 0,
+            ..s.clone()
+        },
+    );
+    let j0b = g.render(
+        &ctx,
+        &f,
+        &cam,
+        &RenderSettings {
+            jitter: true,
+            frame_index: 0,
+            ..s.clone()
+        },
+    );
+    let j1 = g.render(
+        &ctx,
+        &f,
+        &cam,
+        &RenderSettings {
+            jitter: true,
+            frame_index: 1,
+            ..s.clone()
+        },
+    );
     assert_eq!(j0.rgba, j0b.rgba, "jitter hash must be deterministic");
     assert_ne!(j0.rgba, j1.rgba, "frame index must reseed jitter");
     // Jitter trades banding for noise of the order of the step's discretisation error.
@@ -250,20 +461,193 @@ fn jitter_changes_samples_but_not_the_picture() {
 
 #[test]
 fn no_adapter_error_carries_install_hint() {
-    let e = RenderError::NoAdapter { details: "none".into() };
-    assert!(e.to_string().contains("apt-get install -y mesa-vulkan-drivers libvulkan1"));
+    let e = RenderError::NoAdapter {
+        details: "none".into(),
+    };
+    assert!(e
+        .to_string()
+        .contains("apt-get install -y mesa-vulkan-drivers libvulkan1"));
 }
 
 #[test]
 fn bad_inputs_are_errors() {
     let ctx = gpu();
-    let cache = BrickCache::new(&ctx.device, CacheConfig { max_slots: Some(2), ..Default::default() }).unwrap();
+    let cache = BrickCache::new(
+        &ctx.device,
+        CacheConfig {
+            max_slots: Some(2),
+            ..Default::default()
+        },
+    )
+    .unwrap();
     assert!(cache.upload_brick(&ctx.queue, 0, &[0u16; 10]).is_err());
-    assert!(cache.upload_brick(&ctx.queue, cache.slot_count(), &vec![0u16; BRICK_PAYLOAD_VOXELS]).is_err());
-    assert!(BrickCache::new(&ctx.device, CacheConfig { budget_bytes: 10, ..Default::default() }).is_err());
-    assert!(BrickedVolume::from_voxels(VolumeGeometry::axis_aligned([4, 4, 4], [1.0; 3]), ValueMapping::default(), vec![0; 3]).is_err());
-    assert!(BrickedVolume::from_voxels(VolumeGeometry::axis_aligned([4, 4, 4], [0.0, 1.0, 1.0]), ValueMapping::default(), vec![0; 64]).is_err());
-    let s = RenderSettings { quality: 0.0, ..Default::default() };
+    assert!(cache
+        .upload_brick(
+            &ctx.queue,
+            cache.slot_count(),
+            &vec![0u16; BRICK_PAYLOAD_VOXELS]
+        )
+        .is_err());
+    assert!(BrickCache::new(
+        &ctx.device,
+        CacheConfig {
+            budget_bytes: 10,
+            ..Default::default()
+        }
+    )
+    .is_err());
+    assert!(BrickedVolume::from_voxels(
+        VolumeGeometry::axis_aligned([4, 4, 4], [1.0; 3]),
+        ValueMapping::default(),
+        vec![0; 3]
+    )
+    .is_err());
+    assert!(BrickedVolume::from_voxels(
+        VolumeGeometry::axis_aligned([4, 4, 4], [0.0, 1.0, 1.0]),
+        ValueMapping::default(),
+        vec![0; 64]
+    )
+    .is_err());
+    let s = RenderSettings {
+        quality: 0.0,
+        ..Default::default()
+    };
     assert!(s.validate().is_err());
 }
 
+#[test]
+fn adopted_device_renders_like_headless() {
+    let ctx = gpu();
+    let adopted = GpuContext::from_device(ctx.device.clone(), ctx.queue.clone());
+    let f = Fixture::ct(64);
+    let mut g = GpuScene::new(&adopted, &f, CacheConfig::default());
+    let cam = Camera::orbit(
+        &f.volume.geometry,
+        15.0,
+        5.0,
+        1.5,
+        Projection::Orthographic { height_mm: 0.0 },
+    );
+    let s = compare_settings(RenderMode::Dvr, 96);
+    assert_close(
+        "adopted-ortho-orbit",
+        &g.render(&adopted, &f, &cam, &s),
+        &f.reference(&cam, &s, REFINE),
+        40.0,
+        24,
+    );
+}
+
+#[test]
+fn orbit_camera_centres_the_volume() {
+    let g = oblique_geometry();
+    for proj in [
+        Projection::Perspective { fov_y_deg: 30.0 },
+        Projection::Orthographic { height_mm: 1.0 },
+    ] {
+        for (az, el) in [(0.0, 0.0), (45.0, 30.0), (180.0, -89.0), (10.0, 90.0)] {
+            let cam = Camera::orbit(&g, az, el, 1.0, proj);
+            let basis = cam.basis();
+            // The ray through the image centre (even size: between the 4 middle pixels) passes
+            // through the volume centre.
+            let (o, dir) = basis.ray(0, 0, 1, 1);
+            let c = g.centre_patient();
+            let to_centre = c - o;
+            let miss = (to_centre - dir * to_centre.dot(dir)).length();
+            assert!(miss < 1e-6, "az {az} el {el}: miss {miss}");
+            assert!(basis.right.is_finite() && (basis.right.length() - 1.0).abs() < 1e-9);
+        }
+    }
+}
+
+#[test]
+fn partial_page_table_writes_equal_full_writes() {
+    let ctx = gpu();
+    let f = Fixture::ct(64);
+    let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
+    let cam = Camera::orbit(
+        &f.volume.geometry,
+        40.0,
+        20.0,
+        1.5,
+        Projection::Perspective { fov_y_deg: 35.0 },
+    );
+    let s = compare_settings(RenderMode::Dvr, 64);
+    let full = g.render(&ctx, &f, &cam, &s);
+    // Mark everything not resident, then restore entry by entry: same picture as before.
+    let mut hidden = f.page_table.clone();
+    hidden.entries.iter_mut().for_each(|e| e.resident = false);
+    g.page_table.update(&ctx.queue, &hidden).unwrap();
+    let blank = g.render(&ctx, &f, &cam, &s);
+    assert!(
+        blank.rgba.iter().all(|&v| v == 0),
+        "non-resident pages must render nothing"
+    );
+    for (i, e) in f.page_table.entries.iter().enumerate() {
+        g.page_table
+            .write_entries(&ctx.queue, i, std::slice::from_ref(e))
+            .unwrap();
+    }
+    let restored = g.render(&ctx, &f, &cam, &s);
+    assert_eq!(full.rgba, restored.rgba);
+    assert!(g
+        .page_table
+        .write_entries(
+            &ctx.queue,
+            f.page_table.entries.len(),
+            &[PageEntry::NOT_RESIDENT]
+        )
+        .is_err());
+}
+
+#[test]
+fn offscreen_renderer_handles_iso_classification() {
+    let ctx = gpu();
+    let volume = phantom::ct_phantom(
+        VolumeGeometry::axis_aligned([96; 3], [1.0; 3]),
+        None,
+        Some(30.0),
+    )
+    .unwrap();
+    let tf = test_tf();
+    let mut r = OffscreenRenderer::new(&ctx, &volume, &tf, 0, CacheConfig::default()).unwrap();
+    let cam = Camera::orbit(
+        &volume.geometry,
+        20.0,
+        20.0,
+        1.5,
+        Projection::Perspective { fov_y_deg: 35.0 },
+    );
+    // Iso value below the TF's first visible value: TF-empty pages hold this surface, so the
+    // renderer must reclassify or the surface would vanish.
+    let s = RenderSettings {
+        iso_value: -500.0,
+        ..compare_settings(RenderMode::Isosurface, 64)
+    };
+    let with_skip = r.render(&ctx, &volume, &cam, &s).unwrap();
+    let without = r
+        .render(
+            &ctx,
+            &volume,
+            &cam,
+            &RenderSettings {
+                skip_empty: false,
+                ..s.clone()
+            },
+        )
+        .unwrap();
+    let c = compare_rgba8(&with_skip.rgba, &without.rgba).unwrap();
+    assert!(c.max_abs_error <= 1, "{c:?}");
+    assert!(
+        with_skip
+            .rgba
+            .chunks_exact(4)
+            .filter(|p| p[3] == 255)
+            .count()
+            > 200
+    );
+    let dvr = r
+        .render(&ctx, &volume, &cam, &compare_settings(RenderMode::Dvr, 64))
+        .unwrap();
+    assert!(dvr.rgba.chunks_exact(4).any(|p| p[3] > 0));
+}

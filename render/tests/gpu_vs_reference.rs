@@ -18,7 +18,13 @@ const MIN_PSNR: f64 = 40.0;
 const MAX_ABS: u8 = 24;
 
 fn orbit(f: &Fixture, az: f64, el: f64) -> Camera {
-    Camera::orbit(&f.volume.geometry, az, el, 1.5, Projection::Perspective { fov_y_deg: 35.0 })
+    Camera::orbit(
+        &f.volume.geometry,
+        az,
+        el,
+        1.5,
+        Projection::Perspective { fov_y_deg: 35.0 },
+    )
 }
 
 #[test]
@@ -28,7 +34,13 @@ fn dvr_axis_aligned_matches_reference() {
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
     let cam = orbit(&f, 0.0, 0.0);
     let s = compare_settings(RenderMode::Dvr, SIZE);
-    assert_close("dvr-axis", &g.render(&ctx, &f, &cam, &s), &f.reference(&cam, &s, REFINE), MIN_PSNR, MAX_ABS);
+    assert_close(
+        "dvr-axis",
+        &g.render(&ctx, &f, &cam, &s),
+        &f.reference(&cam, &s, REFINE),
+        MIN_PSNR,
+        MAX_ABS,
+    );
 }
 
 #[test]
@@ -37,8 +49,17 @@ fn dvr_oblique_shaded_matches_reference() {
     let f = Fixture::ct(96);
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
     let cam = orbit(&f, 35.0, 25.0);
-    let s = RenderSettings { shading: Some(Shading::default()), ..compare_settings(RenderMode::Dvr, SIZE) };
-    assert_close("dvr-oblique-shaded", &g.render(&ctx, &f, &cam, &s), &f.reference(&cam, &s, REFINE), MIN_PSNR, MAX_ABS);
+    let s = RenderSettings {
+        shading: Some(Shading::default()),
+        ..compare_settings(RenderMode::Dvr, SIZE)
+    };
+    assert_close(
+        "dvr-oblique-shaded",
+        &g.render(&ctx, &f, &cam, &s),
+        &f.reference(&cam, &s, REFINE),
+        MIN_PSNR,
+        MAX_ABS,
+    );
 }
 
 #[test]
@@ -48,7 +69,13 @@ fn mip_oblique_matches_reference() {
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
     let cam = orbit(&f, -50.0, 15.0);
     let s = compare_settings(RenderMode::Mip, SIZE);
-    assert_close("mip-oblique", &g.render(&ctx, &f, &cam, &s), &f.reference(&cam, &s, REFINE), MIN_PSNR, MAX_ABS);
+    assert_close(
+        "mip-oblique",
+        &g.render(&ctx, &f, &cam, &s),
+        &f.reference(&cam, &s, REFINE),
+        MIN_PSNR,
+        MAX_ABS,
+    );
 }
 
 #[test]
@@ -57,14 +84,20 @@ fn isosurface_oblique_matches_reference() {
     let f = Fixture::ct(96);
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
     let cam = orbit(&f, 120.0, -20.0);
-    let s = RenderSettings { iso_value: 400.0, ..compare_settings(RenderMode::Isosurface, SIZE) };
+    let s = RenderSettings {
+        iso_value: 400.0,
+        ..compare_settings(RenderMode::Isosurface, SIZE)
+    };
     // Isosurface pixels are opaque and shaded, so a silhouette pixel the two renderers
     // classify differently is off by the full surface colour: bound the count instead of
     // the max, and keep PSNR at the common 40 dB bar.
     let gpu_frame = g.render(&ctx, &f, &cam, &s);
     let reference = f.reference(&cam, &s, REFINE);
     let c = assert_close("iso-oblique", &gpu_frame, &reference, MIN_PSNR, 255);
-    assert!(c.pixels_off_by_more_than_one * 100 <= (SIZE * SIZE) as usize, "more than 1% of pixels off: {c:?}");
+    assert!(
+        c.pixels_off_by_more_than_one * 100 <= (SIZE * SIZE) as usize,
+        "more than 1% of pixels off: {c:?}"
+    );
     // Depth of hits agrees within a tenth of a voxel where both hit.
     let mut worst = 0.0f32;
     for (a, b) in gpu_frame.depth.iter().zip(&reference.depth) {
@@ -85,9 +118,20 @@ fn orthographic_rays_parallel_to_axes_graze_brick_boundary() {
     // at index 31.5 (pixel centre 31.5 lands exactly on it). Grazing rays must not flicker
     // between bricks.
     let c = f.volume.geometry.centre_patient();
-    let cam = Camera::look_at([c.x - 300.0, c.y, c.z], c.into(), [0.0, 0.0, -1.0], Projection::Orthographic { height_mm: 96.0 });
+    let cam = Camera::look_at(
+        [c.x - 300.0, c.y, c.z],
+        c.into(),
+        [0.0, 0.0, -1.0],
+        Projection::Orthographic { height_mm: 96.0 },
+    );
     let s = compare_settings(RenderMode::Dvr, 96);
-    assert_close("ortho-axis-grazing", &g.render(&ctx, &f, &cam, &s), &f.reference(&cam, &s, REFINE), MIN_PSNR, MAX_ABS);
+    assert_close(
+        "ortho-axis-grazing",
+        &g.render(&ctx, &f, &cam, &s),
+        &f.reference(&cam, &s, REFINE),
+        MIN_PSNR,
+        MAX_ABS,
+    );
 }
 
 #[test]
@@ -96,9 +140,20 @@ fn camera_inside_volume_matches_reference() {
     let f = Fixture::ct(96);
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
     let c = f.volume.geometry.centre_patient();
-    let cam = Camera::look_at([c.x + 5.0, c.y - 3.0, c.z + 2.0], [c.x + 60.0, c.y + 30.0, c.z - 10.0], [0.0, 0.0, -1.0], Projection::Perspective { fov_y_deg: 70.0 });
+    let cam = Camera::look_at(
+        [c.x + 5.0, c.y - 3.0, c.z + 2.0],
+        [c.x + 60.0, c.y + 30.0, c.z - 10.0],
+        [0.0, 0.0, -1.0],
+        Projection::Perspective { fov_y_deg: 70.0 },
+    );
     let s = compare_settings(RenderMode::Dvr, SIZE);
-    assert_close("inside", &g.render(&ctx, &f, &cam, &s), &f.reference(&cam, &s, REFINE), MIN_PSNR, MAX_ABS);
+    assert_close(
+        "inside",
+        &g.render(&ctx, &f, &cam, &s),
+        &f.reference(&cam, &s, REFINE),
+        MIN_PSNR,
+        MAX_ABS,
+    );
 }
 
 #[test]
@@ -110,21 +165,92 @@ fn crop_box_and_clip_plane_match_reference() {
     let c = f.volume.geometry.centre_patient();
     let n = glam::DVec3::new(1.0, 0.3, -0.2).normalize();
     let s = RenderSettings {
-        crop: CropBox { min: [0.1, 0.0, 0.2], max: [0.9, 0.8, 1.0] },
-        clip_plane: Some(ClipPlane { normal: n.into(), offset_mm: n.dot(c) - 5.0 }),
+        crop: CropBox {
+            min: [0.1, 0.0, 0.2],
+            max: [0.9, 0.8, 1.0],
+        },
+        clip_plane: Some(ClipPlane {
+            normal: n.into(),
+            offset_mm: n.dot(c) - 5.0,
+        }),
         shading: Some(Shading::default()),
         ..compare_settings(RenderMode::Dvr, SIZE)
     };
-    assert_close("clipped", &g.render(&ctx, &f, &cam, &s), &f.reference(&cam, &s, REFINE), MIN_PSNR, MAX_ABS);
+    assert_close(
+        "clipped",
+        &g.render(&ctx, &f, &cam, &s),
+        &f.reference(&cam, &s, REFINE),
+        MIN_PSNR,
+        MAX_ABS,
+    );
 }
 
 #[test]
 fn r32float_fallback_cache_matches_reference() {
     let ctx = gpu();
     let f = Fixture::ct(64);
-    let mut g = GpuScene::new(&ctx, &f, CacheConfig { force_fallback_format: true, ..Default::default() });
+    let mut g = GpuScene::new(
+        &ctx,
+        &f,
+        CacheConfig {
+            force_fallback_format: true,
+            ..Default::default()
+        },
+    );
     assert_eq!(g.cache.format, CacheFormat::R32Float);
     let cam = orbit(&f, 20.0, 10.0);
     let s = compare_settings(RenderMode::Dvr, SIZE);
-    assert_close("fallback-r32f", &g.render(&ctx, &f, &cam, &s), &f.reference(&cam, &s, REFINE), MIN_PSNR, MAX_ABS);
+    assert_close(
+        "fallback-r32f",
+        &g.render(&ctx, &f, &cam, &s),
+        &f.reference(&cam, &s, REFINE),
+        MIN_PSNR,
+        MAX_ABS,
+    );
+}
+
+#[test]
+fn r8unorm_cache_for_8bit_data_matches_reference() {
+    let ctx = gpu();
+    // The CT phantom squeezed into 8 bits (16 HU per step, slope 16), as an 8-bit source would be.
+    let geometry = VolumeGeometry::axis_aligned([80; 3], [1.0; 3]);
+    let (c, g2) = (geometry.centre_patient(), geometry.clone());
+    let mapping = ValueMapping {
+        slope: 16.0,
+        intercept: -1024.0,
+    };
+    let volume = BrickedVolume::from_fn(geometry, mapping, move |x, y, z| {
+        let p = g2.patient_from_index(glam::DVec3::new(x as f64, y as f64, z as f64));
+        ((phantom::ct_phantom_hu(p, c, 40.0, 1.0) + 1024.0) / 16.0)
+            .round()
+            .clamp(0.0, 255.0) as u16
+    })
+    .unwrap();
+    let table = volume.page_table_uniform(0);
+    let f = Fixture::new(volume, table, test_tf());
+    let mut g = GpuScene::new(
+        &ctx,
+        &f,
+        CacheConfig {
+            eight_bit: true,
+            ..Default::default()
+        },
+    );
+    assert_eq!(g.cache.format, CacheFormat::R8Unorm);
+    let cam = orbit(&f, 30.0, 20.0);
+    for mode in [RenderMode::Dvr, RenderMode::Mip] {
+        let s = compare_settings(mode, SIZE);
+        assert_close(
+            &format!("r8-{mode:?}"),
+            &g.render(&ctx, &f, &cam, &s),
+            &f.reference(&cam, &s, REFINE),
+            MIN_PSNR,
+            MAX_ABS,
+        );
+    }
+    // Values that do not fit are refused, not truncated.
+    assert!(g
+        .cache
+        .upload_brick(&ctx.queue, 0, &vec![256u16; BRICK_PAYLOAD_VOXELS])
+        .is_err());
 }

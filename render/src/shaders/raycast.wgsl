@@ -40,7 +40,7 @@ struct Params {
     dims: vec4<f32>,           // w: early termination threshold
     // Clip plane as n·forward, n·right, n·up, offset - n·eye.
     clip: vec4<f32>,
-    // x: physical per normalised sample (65535·slope), y: intercept,
+    // x: physical per normalised sample (255 or 65535 · slope), y: intercept,
     // z: TF table low end, w: table entries per physical unit.
     value_map: vec4<f32>,
     // x: iso (physical), y: shading flatness scale (per physical gradient/mm).
@@ -57,7 +57,7 @@ struct Params {
 @group(0) @binding(1) var cache: texture_3d<f32>;
 @group(0) @binding(2) var cache_sampler: sampler;
 @group(0) @binding(3) var<storage, read> page_table: array<u32>;
-@group(0) @binding(4) var<storage, read> tf_table: array<vec4<f32>>;
+@group(0) @binding(4) var tf_table: texture_1d<f32>;
 @group(0) @binding(5) var out_color: texture_storage_2d<rgba8unorm, write>;
 @group(0) @binding(6) var<storage, read_write> out_depth: array<f32>;
 @group(0) @binding(7) var<storage, read_write> visibility: array<u32>;
@@ -147,7 +147,7 @@ fn locate_on_ray(o: vec3<f32>, d: vec3<f32>, t: f32, cached: ptr<function, Page>
     return location_in(*cached, pc);
 }
 
-// Normalised stored value (stored / 65535) at a cache texel coordinate.
+// Normalised stored value (stored / 255 or / 65535, see cache.rs) at a cache texel coordinate.
 fn fetch(coord: vec3<f32>) -> f32 {
     if MANUAL_TRILINEAR {
         let i0f = floor(coord);
@@ -181,7 +181,7 @@ fn transfer(v: f32) -> vec4<f32> {
     let x = clamp((v - P.value_map.z) * P.value_map.w, 0.0, f32(n - 1u));
     let i = min(u32(floor(x)), n - 1u);
     let j = min(i + 1u, n - 1u);
-    return mix(tf_table[i], tf_table[j], x - f32(i));
+    return mix(textureLoad(tf_table, i32(i), 0), textureLoad(tf_table, i32(j), 0), x - f32(i));
 }
 
 // Blinn-Phong with a headlight; `d_idx` is the ray direction mapped into index space, so
@@ -227,13 +227,89 @@ fn cell_exit(o: vec3<f32>, d: vec3<f32>, cell: vec3<f32>) -> f32 {
     return min(t.x, min(t.y, t.z));
 }
 
+// Everything a ray accumulates; one struct so the sample step can be shared by the general
+// and the fast path of the march.
+struct RayState {
+    acc: vec4<f32>,
+    depth: f32,
+    samples: u32,
+    best_value: f32,
+    best_t: f32,
+    have_best: bool,
+    prev_t: f32,
+    prev_valid: bool,
+    hit: bool,
+    last_marked: u32,
+    done: bool,
+};
+
 // Marks a page visible once per visit: consecutive samples mostly share a page, and a
 // scattered store per sample is expensive (per-lane on CPU rasterisers). Racing stores from
 // different rays all write 1, so no atomics are needed.
-fn mark_visible(page: u32, last_marked: ptr<function, u32>) {
-    if page != *last_marked {
+fn mark_visible_in(st: ptr<function, RayState>, page: u32) {
+    if page != (*st).last_marked {
         visibility[page] = 1u;
-        *last_marked = page;
+        (*st).last_marked = page;
+    }
+}
+
+fn take_sample(st: ptr<function, RayState>, loc: Location, t: f32, delta: f32, o: vec3<f32>, d: vec3<f32>) {
+    (*st).samples = (*st).samples + 1u;
+    let v = physical(fetch(loc.coord));
+    if MODE == 0u {
+        let tf = transfer(v);
+        if tf.a > 0.0 {
+            // Opacity correction: opacity is defined per finest voxel; a step of `delta` mm
+            // must absorb as much as delta/unit such steps would.
+            let alpha = 1.0 - pow(1.0 - min(tf.a, 0.999999), delta / P.box_hi.w);
+            var color = tf.rgb;
+            if SHADING {
+                color = shade(color, loc, d);
+            }
+            if (*st).depth == bitcast<f32>(0x7f800000u) {
+                (*st).depth = t;
+            }
+            mark_visible_in(st, loc.page);
+            let w = (1.0 - (*st).acc.a) * alpha;
+            (*st).acc = vec4<f32>((*st).acc.rgb + w * color, (*st).acc.a + w);
+            if EARLY_TERMINATION && (*st).acc.a >= P.dims.w {
+                (*st).done = true;
+            }
+        }
+    } else if MODE == 1u {
+        if v > (*st).best_value {
+            (*st).best_value = v;
+            (*st).best_t = t;
+            (*st).have_best = true;
+        }
+        if loc.page != (*st).last_marked && transfer(v).a > 0.0 {
+            mark_visible_in(st, loc.page);
+        }
+    } else {
+        if v >= P.iso.x {
+            var t_hit = t;
+            if (*st).prev_valid {
+                var lo = (*st).prev_t;
+                var hi = t;
+                for (var b = 0u; b < BISECTION_STEPS; b++) {
+                    let mid = 0.5 * (lo + hi);
+                    let m = locate(o + d * mid);
+                    if m.resident && physical(fetch(m.coord)) >= P.iso.x {
+                        hi = mid;
+                    } else {
+                        lo = mid;
+                    }
+                }
+                t_hit = hi;
+            }
+            (*st).hit = true;
+            (*st).depth = t_hit;
+            mark_visible_in(st, locate(o + d * t_hit).page);
+            (*st).done = true;
+        } else {
+            (*st).prev_t = t;
+            (*st).prev_valid = true;
+        }
     }
 }
 
@@ -310,19 +386,13 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     // once, so every sample stays on one lattice and empty-space jumps cannot shift it.
     let first = t0 + (j - 0.5) * base;
 
-    var acc = vec4<f32>(0.0);
-    var depth = inf;
-    var samples = 0u;
-    var best_value = -3.0e38;
-    var best_t = inf;
-    var best_page = 0u;
-    var have_best = false;
-    var prev_t = 0.0;
-    var prev_valid = false;
-    var hit = false;
-    var hit_loc: Location;
+    var st: RayState;
+    st.acc = vec4<f32>(0.0);
+    st.depth = inf;
+    st.best_value = -3.0e38;
+    st.best_t = inf;
+    st.last_marked = 0xffffffffu;
     var k = 0u;
-    var last_marked = 0xffffffffu;
     var page_cache: Page;
     page_cache.t_exit = -3.0e38;
     for (var iter = 0u; iter < MAX_ITERATIONS; iter++) {
@@ -337,90 +407,68 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
                 let t_exit = page_cache.t_exit;
                 let next = ceil((t_exit - first) / base - 0.5);
                 k = max(k + 1u, u32(clamp(next, 0.0, 4.0e9)));
-                prev_valid = false;
+                st.prev_valid = false;
                 if MODE == 2u && probe.resident {
                     // Empty for an isosurface means below the iso value: the crossing lies
                     // after the cell face, so bisection may start there.
-                    prev_t = max(t_exit, t0);
-                    prev_valid = true;
+                    st.prev_t = max(t_exit, t0);
+                    st.prev_valid = true;
                 }
             } else {
                 k = k + 1u;
-                prev_valid = false;
+                st.prev_valid = false;
             }
             continue;
         }
-        let stride = 1u << probe.level;
+        let level = probe.level;
+        let stride = 1u << level;
         let delta = base * f32(stride);
         let t = seg + 0.5 * delta;
         if t >= t1 {
             break;
         }
         var loc = probe;
-        if probe.level != 0u {
+        if level != 0u {
             loc = locate_on_ray(o, d, t, &page_cache);
         }
         k = k + stride;
         if !loc.resident {
-            prev_valid = false;
+            st.prev_valid = false;
             continue;
         }
-        samples = samples + 1u;
-        let v = physical(fetch(loc.coord));
-        if MODE == 0u {
-            let tf = transfer(v);
-            if tf.a > 0.0 {
-                let alpha = 1.0 - pow(1.0 - min(tf.a, 0.999999), delta / unit);
-                var color = tf.rgb;
-                if SHADING {
-                    color = shade(color, loc, d);
+        take_sample(&st, loc, t, delta, o, d);
+        if st.done {
+            break;
+        }
+        // Fast path: while the next sample stays in the decoded page at the same level, march
+        // with nothing but position, fetch and compositing (the common case by far).
+        if page_cache.level == level && page_cache.resident {
+            for (var inner = 0u; inner < MAX_ITERATIONS; inner++) {
+                let t_next = first + (f32(k) + 0.5 * f32(stride)) * base;
+                if t_next >= t1 || t_next >= page_cache.t_exit {
+                    break;
                 }
-                if depth == inf {
-                    depth = t;
-                }
-                mark_visible(loc.page, &last_marked);
-                let w = (1.0 - acc.a) * alpha;
-                acc = vec4<f32>(acc.rgb + w * color, acc.a + w);
-                if EARLY_TERMINATION && acc.a >= P.dims.w {
+                k = k + stride;
+                take_sample(&st, location_in(page_cache, clamp_to_volume(o + d * t_next)), t_next, delta, o, d);
+                if st.done {
                     break;
                 }
             }
-        } else if MODE == 1u {
-            if v > best_value {
-                best_value = v;
-                best_t = t;
-                best_page = loc.page;
-                have_best = true;
-            }
-            if loc.page != last_marked && transfer(v).a > 0.0 {
-                mark_visible(loc.page, &last_marked);
-            }
-        } else {
-            if v >= P.iso.x {
-                var t_hit = t;
-                if prev_valid {
-                    var lo = prev_t;
-                    var hi = t;
-                    for (var b = 0u; b < BISECTION_STEPS; b++) {
-                        let mid = 0.5 * (lo + hi);
-                        let m = locate(o + d * mid);
-                        if m.resident && physical(fetch(m.coord)) >= P.iso.x {
-                            hi = mid;
-                        } else {
-                            lo = mid;
-                        }
-                    }
-                    t_hit = hi;
-                }
-                hit = true;
-                depth = t_hit;
-                hit_loc = locate(o + d * t_hit);
-                mark_visible(hit_loc.page, &last_marked);
+            if st.done {
                 break;
             }
-            prev_t = t;
-            prev_valid = true;
         }
+    }
+    var acc = st.acc;
+    var depth = st.depth;
+    let samples = st.samples;
+    let have_best = st.have_best;
+    let best_value = st.best_value;
+    let best_t = st.best_t;
+    let hit = st.hit;
+    var hit_loc: Location;
+    if hit {
+        hit_loc = locate(o + d * depth);
     }
 
     if MODE == 1u && have_best {

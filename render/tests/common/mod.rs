@@ -2,7 +2,9 @@
 //! "render on GPU and CPU, compare" in one call.
 #![allow(dead_code)]
 
-use strata_render::reference::{render_reference, ReferenceImage, ReferenceOptions, ReferenceScene};
+use strata_render::reference::{
+    render_reference, ReferenceImage, ReferenceOptions, ReferenceScene,
+};
 use strata_render::*;
 
 /// A test that needs an adapter and finds none fails with the install hint; never skips.
@@ -25,8 +27,20 @@ pub struct Fixture {
 pub fn test_tf() -> TransferFunction {
     TransferFunction::new(
         "test",
-        &[(-1000.0, 0.0), (-300.0, 0.0), (0.0, 0.03), (200.0, 0.08), (700.0, 0.45), (3000.0, 0.7)],
-        &[(-1000.0, [0.1, 0.2, 0.6]), (0.0, [0.8, 0.4, 0.3]), (300.0, [0.95, 0.2, 0.15]), (800.0, [1.0, 0.95, 0.85])],
+        &[
+            (-1000.0, 0.0),
+            (-300.0, 0.0),
+            (0.0, 0.03),
+            (200.0, 0.08),
+            (700.0, 0.45),
+            (3000.0, 0.7),
+        ],
+        &[
+            (-1000.0, [0.1, 0.2, 0.6]),
+            (0.0, [0.8, 0.4, 0.3]),
+            (300.0, [0.95, 0.2, 0.15]),
+            (800.0, [1.0, 0.95, 0.85]),
+        ],
     )
 }
 
@@ -36,16 +50,28 @@ impl Fixture {
         let tf_table = tf.table(lo, hi);
         let mut page_table = page_table;
         volume.classify_empty(&mut page_table, &tf_table);
-        Fixture { volume, page_table, tf, tf_table }
+        Fixture {
+            volume,
+            page_table,
+            tf,
+            tf_table,
+        }
     }
 
     pub fn ct(n: u32) -> Self {
-        let volume = phantom::ct_phantom(VolumeGeometry::axis_aligned([n; 3], [1.0; 3]), None, None).unwrap();
+        let volume =
+            phantom::ct_phantom(VolumeGeometry::axis_aligned([n; 3], [1.0; 3]), None, None)
+                .unwrap();
         let table = volume.page_table_uniform(0);
         Fixture::new(volume, table, test_tf())
     }
 
-    pub fn reference(&self, camera: &Camera, settings: &RenderSettings, refinement: f64) -> ReferenceImage {
+    pub fn reference(
+        &self,
+        camera: &Camera,
+        settings: &RenderSettings,
+        refinement: f64,
+    ) -> ReferenceImage {
         let scene = ReferenceScene {
             source: &self.volume,
             page_table: &self.page_table,
@@ -54,7 +80,16 @@ impl Fixture {
             transfer_function: &self.tf,
             tf_range: (self.tf_table.lo, self.tf_table.hi),
         };
-        render_reference(&scene, camera, settings, ReferenceOptions { step_refinement: refinement, ..Default::default() }).unwrap()
+        render_reference(
+            &scene,
+            camera,
+            settings,
+            ReferenceOptions {
+                step_refinement: refinement,
+                ..Default::default()
+            },
+        )
+        .unwrap()
     }
 }
 
@@ -69,17 +104,36 @@ pub struct GpuScene {
 impl GpuScene {
     pub fn new(ctx: &GpuContext, f: &Fixture, config: CacheConfig) -> Self {
         let nodes = BrickedVolume::resident_nodes(&f.page_table).len() as u32;
-        let cache = BrickCache::new(&ctx.device, CacheConfig { max_slots: Some(nodes.max(1)), ..config }).unwrap();
+        let cache = BrickCache::new(
+            &ctx.device,
+            CacheConfig {
+                max_slots: Some(nodes.max(1)),
+                ..config
+            },
+        )
+        .unwrap();
         assert!(cache.slot_count() >= nodes, "cache too small for the test");
         f.volume.upload(&cache, &ctx.queue, &f.page_table).unwrap();
-        let page_table = GpuPageTable::new(&ctx.device, f.volume.geometry.page_dims(), &cache);
+        let page_table =
+            GpuPageTable::new(&ctx.device, f.volume.geometry.page_dims(), &cache).unwrap();
         page_table.update(&ctx.queue, &f.page_table).unwrap();
         let tf = GpuTransferFunction::new(&ctx.device, &ctx.queue, &f.tf_table);
         let raycaster = Raycaster::new(ctx, &cache);
-        GpuScene { cache, page_table, tf, raycaster }
+        GpuScene {
+            cache,
+            page_table,
+            tf,
+            raycaster,
+        }
     }
 
-    pub fn render(&mut self, ctx: &GpuContext, f: &Fixture, camera: &Camera, settings: &RenderSettings) -> FrameReadback {
+    pub fn render(
+        &mut self,
+        ctx: &GpuContext,
+        f: &Fixture,
+        camera: &Camera,
+        settings: &RenderSettings,
+    ) -> FrameReadback {
         let scene = Scene {
             cache: &self.cache,
             page_table: &self.page_table,
@@ -98,7 +152,14 @@ impl GpuScene {
 /// Settings for image comparisons: jitter off (the reference has none and noise would eat the
 /// tolerance), small image.
 pub fn compare_settings(mode: RenderMode, size: u32) -> RenderSettings {
-    RenderSettings { width: size, height: size, mode, jitter: false, count_samples: true, ..Default::default() }
+    RenderSettings {
+        width: size,
+        height: size,
+        mode,
+        jitter: false,
+        count_samples: true,
+        ..Default::default()
+    }
 }
 
 /// No NaN/garbage: depth is finite and non-negative or +inf; premultiplied colour ≤ alpha
@@ -116,16 +177,33 @@ pub fn save(name: &str, width: u32, height: u32, rgba: &[u8]) {
 }
 
 /// Compares and reports; panics with the figures if PSNR or max error is out of bounds.
-pub fn assert_close(name: &str, gpu: &FrameReadback, reference: &ReferenceImage, min_psnr_db: f64, max_abs: u8) -> ImageComparison {
+pub fn assert_close(
+    name: &str,
+    gpu: &FrameReadback,
+    reference: &ReferenceImage,
+    min_psnr_db: f64,
+    max_abs: u8,
+) -> ImageComparison {
     save(&format!("{name}-gpu"), gpu.width, gpu.height, &gpu.rgba);
-    save(&format!("{name}-ref"), reference.width, reference.height, &reference.rgba);
+    save(
+        &format!("{name}-ref"),
+        reference.width,
+        reference.height,
+        &reference.rgba,
+    );
     let c = compare_rgba8(&gpu.rgba, &reference.rgba).unwrap();
     let covered = reference.rgba.chunks_exact(4).filter(|p| p[3] > 0).count();
     eprintln!(
         "{name}: PSNR {:.1} dB, RMSE {:.3}, max abs {}, pixels off >1: {}, covered pixels {covered}, samples {:?}",
         c.psnr_db, c.rmse, c.max_abs_error, c.pixels_off_by_more_than_one, gpu.samples
     );
-    assert!(covered > (gpu.width * gpu.height / 20) as usize, "{name}: image nearly empty, test proves nothing");
-    assert!(c.psnr_db >= min_psnr_db && c.max_abs_error <= max_abs, "{name}: {c:?} (need PSNR ≥ {min_psnr_db}, max ≤ {max_abs})");
+    assert!(
+        covered > (gpu.width * gpu.height / 20) as usize,
+        "{name}: image nearly empty, test proves nothing"
+    );
+    assert!(
+        c.psnr_db >= min_psnr_db && c.max_abs_error <= max_abs,
+        "{name}: {c:?} (need PSNR ≥ {min_psnr_db}, max ≤ {max_abs})"
+    );
     c
 }

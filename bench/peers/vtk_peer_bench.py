@@ -1,0 +1,62 @@
+#!/usr/bin/env python3
+# Peer measurement for strata-render: VTK's GPU raycaster (vtkGPUVolumeRayCastMapper) offscreen
+# on Mesa llvmpipe, on the same volume, transfer function, view and step as
+# render/benches/raycast.rs. Adapted from /work/shared/tools/vtk_peer_bench.py.
+#
+# Setup (Debian): apt-get install -y libegl1 libgl1 libosmesa6 && pip install vtk numpy
+# Run:            python3 bench/peers/vtk_peer_bench.py [--size 512] [--frames 5] [--n 256]
+# Compare with:   CARGO_TARGET_DIR=/tmp/target-render cargo bench -p strata-render --bench raycast
+# Run both in one session: these machines are shared and noisy, only ratios mean much.
+#
+# Phantom: identical formula to strata_render::phantom::vtk_peer_phantom. The original script's
+# float32 -> uint8 cast is undefined for negative values in C; on x86 it truncates and wraps, so
+# here the cast is spelled out (truncate toward zero, wrap mod 256) and both sides see the same
+# bytes on any platform.
+import argparse, time, statistics
+import numpy as np
+import vtk
+from vtk.util import numpy_support
+
+ap = argparse.ArgumentParser()
+ap.add_argument("--n", type=int, default=256)
+ap.add_argument("--size", type=int, default=512)
+ap.add_argument("--frames", type=int, default=5)
+ap.add_argument("--save", help="write a PNG of the first DVR frame at sd 0.5 to this path")
+args = ap.parse_args()
+
+n = args.n
+z, y, x = np.mgrid[0:n, 0:n, 0:n].astype(np.float32) / n - 0.5
+r = np.sqrt(x * x + y * y * 1.3 + z * z * 0.8)
+v = np.clip(1 - r * 2, 0, 1) * 200 + (r < 0.2) * 50 + 20 * np.sin(x * 40) * np.cos(y * 30)
+vol = (v.astype(np.int32) % 256).astype(np.uint8)
+img = vtk.vtkImageData()
+img.SetDimensions(n, n, n)
+img.GetPointData().SetScalars(numpy_support.numpy_to_vtk(vol.ravel(), deep=True, array_type=vtk.VTK_UNSIGNED_CHAR))
+
+print("renderer", "mode", "sample_distance", "ms/frame(median)", sep="\t")
+for mode in ["dvr", "mip"]:
+    for sd in [1.0, 0.5, 0.25]:
+        m = vtk.vtkGPUVolumeRayCastMapper()
+        m.SetInputData(img)
+        m.SetSampleDistance(sd)
+        m.SetAutoAdjustSampleDistances(False)
+        if mode == "mip":
+            m.SetBlendModeToMaximumIntensity()
+        ctf = vtk.vtkColorTransferFunction()
+        ctf.AddRGBPoint(0, 0, 0, 0); ctf.AddRGBPoint(100, 1, 0.5, 0.3); ctf.AddRGBPoint(255, 1, 1, 1)
+        otf = vtk.vtkPiecewiseFunction()
+        otf.AddPoint(0, 0); otf.AddPoint(60, 0); otf.AddPoint(120, 0.05); otf.AddPoint(255, 0.4)
+        p = vtk.vtkVolumeProperty()
+        p.SetColor(ctf); p.SetScalarOpacity(otf); p.SetInterpolationTypeToLinear()
+        vol_actor = vtk.vtkVolume(); vol_actor.SetMapper(m); vol_actor.SetProperty(p)
+        ren = vtk.vtkRenderer(); ren.AddVolume(vol_actor)
+        rw = vtk.vtkRenderWindow(); rw.SetOffScreenRendering(1); rw.AddRenderer(ren); rw.SetSize(args.size, args.size)
+        ren.ResetCamera(); rw.Render(); rw.Render()
+        times = []
+        for i in range(args.frames):
+            ren.GetActiveCamera().Azimuth(30)
+            t = time.time(); rw.Render(); times.append((time.time() - t) * 1000)
+        print("vtk-gpu-raycast", mode, sd, "%.0f" % statistics.median(times), sep="\t", flush=True)
+        if args.save and mode == "dvr" and sd == 0.5:
+            w2i = vtk.vtkWindowToImageFilter(); w2i.SetInput(rw); w2i.Update()
+            wr = vtk.vtkPNGWriter(); wr.SetFileName(args.save); wr.SetInputConnection(w2i.GetOutputPort()); wr.Write()

@@ -1,0 +1,101 @@
+//! One-call rendering of an in-memory volume: what `strata render` and small-volume views need
+//! without a loader. Everything resident at one level, empty pages classified for the TF.
+
+use crate::bricked_volume::BrickedVolume;
+use crate::cache::{BrickCache, CacheConfig};
+use crate::camera::Camera;
+use crate::device::GpuContext;
+use crate::error::RenderError;
+use crate::page_table::PageTable;
+use crate::raycast::{FrameReadback, GpuPageTable, GpuTransferFunction, Raycaster, Scene};
+use crate::settings::{RenderMode, RenderSettings};
+use crate::transfer_function::TransferFunction;
+
+pub struct OffscreenRenderer {
+    pub cache: BrickCache,
+    pub page_table: PageTable,
+    pub gpu_page_table: GpuPageTable,
+    pub transfer_function: GpuTransferFunction,
+    pub raycaster: Raycaster,
+    /// Iso value the empty flags were computed for (None: classified by the TF).
+    classified_for_iso: Option<f64>,
+}
+
+impl OffscreenRenderer {
+    /// Uploads every node of `level` (clamped to the coarsest) of `volume`.
+    pub fn new(
+        ctx: &GpuContext,
+        volume: &BrickedVolume,
+        tf: &TransferFunction,
+        level: u8,
+        config: CacheConfig,
+    ) -> Result<Self, RenderError> {
+        tf.validate()?;
+        let mut page_table = volume.page_table_uniform(level);
+        let nodes = BrickedVolume::resident_nodes(&page_table).len() as u32;
+        let cache = BrickCache::new(
+            &ctx.device,
+            CacheConfig {
+                max_slots: Some(config.max_slots.unwrap_or(nodes).min(nodes.max(1))),
+                ..config
+            },
+        )?;
+        if cache.slot_count() < nodes {
+            return Err(RenderError::CacheTooSmall {
+                budget_bytes: config.budget_bytes,
+            });
+        }
+        volume.upload(&cache, &ctx.queue, &page_table)?;
+        let (lo, hi) = volume.physical_range();
+        let table = tf.table(lo, hi);
+        volume.classify_empty(&mut page_table, &table);
+        let gpu_page_table = GpuPageTable::new(&ctx.device, volume.geometry.page_dims(), &cache)?;
+        gpu_page_table.update(&ctx.queue, &page_table)?;
+        let transfer_function = GpuTransferFunction::new(&ctx.device, &ctx.queue, &table);
+        let raycaster = Raycaster::new(ctx, &cache);
+        Ok(OffscreenRenderer {
+            cache,
+            page_table,
+            gpu_page_table,
+            transfer_function,
+            raycaster,
+            classified_for_iso: None,
+        })
+    }
+
+    /// Renders and reads back. Re-classifies empty pages when switching to or between
+    /// isosurface values, since "empty" means "below the iso value" there.
+    pub fn render(
+        &mut self,
+        ctx: &GpuContext,
+        volume: &BrickedVolume,
+        camera: &Camera,
+        settings: &RenderSettings,
+    ) -> Result<FrameReadback, RenderError> {
+        let want_iso = (settings.mode == RenderMode::Isosurface).then_some(settings.iso_value);
+        if want_iso != self.classified_for_iso {
+            match want_iso {
+                Some(iso) => self
+                    .page_table
+                    .classify_empty_for_iso(iso, volume.mapping, |l, n| volume.node_range(l, n)),
+                None => {
+                    let (lo, hi) = volume.physical_range();
+                    let table = self.transfer_function.source.table(lo, hi);
+                    volume.classify_empty(&mut self.page_table, &table);
+                }
+            }
+            self.gpu_page_table.update(&ctx.queue, &self.page_table)?;
+            self.classified_for_iso = want_iso;
+        }
+        let scene = Scene {
+            cache: &self.cache,
+            page_table: &self.gpu_page_table,
+            transfer_function: &self.transfer_function,
+            geometry: &volume.geometry,
+            mapping: volume.mapping,
+            camera,
+            settings,
+        };
+        self.raycaster.render_blocking(ctx, &scene)
+    }
+}
