@@ -10,8 +10,9 @@ pub struct GpuContext {
 }
 
 impl GpuContext {
-    /// Headless device on the best adapter (lavapipe on CI). Requests R16Unorm textures when
-    /// available and the adapter's full limits, so cache sizing can use what is really there.
+    /// Headless device on the best adapter (lavapipe on CI). Requests R16Unorm textures and
+    /// timestamp queries when available and the adapter's full limits, so cache sizing can use
+    /// what is really there.
     pub fn headless() -> Result<Self, RenderError> {
         pollster::block_on(Self::headless_async())
     }
@@ -30,7 +31,8 @@ impl GpuContext {
             .map_err(|e| RenderError::NoAdapter {
                 details: e.to_string(),
             })?;
-        let wanted = wgpu::Features::TEXTURE_FORMAT_16BIT_NORM;
+        // Timestamps time the raycast pass for the time-critical controller (gpu_timing.rs).
+        let wanted = wgpu::Features::TEXTURE_FORMAT_16BIT_NORM | wgpu::Features::TIMESTAMP_QUERY;
         let features = adapter.features() & wanted;
         let (device, queue) = adapter
             .request_device(&wgpu::DeviceDescriptor {
@@ -61,6 +63,12 @@ impl GpuContext {
         self.device
             .features()
             .contains(wgpu::Features::TEXTURE_FORMAT_16BIT_NORM)
+    }
+
+    pub fn supports_timestamps(&self) -> bool {
+        self.device
+            .features()
+            .contains(wgpu::Features::TIMESTAMP_QUERY)
     }
 
     pub fn limits(&self) -> wgpu::Limits {

@@ -11,6 +11,7 @@ pub mod camera;
 pub mod device;
 pub mod error;
 pub mod geometry;
+pub mod gpu_timing;
 pub mod metrics;
 pub mod offscreen;
 pub mod page_table;
@@ -18,6 +19,7 @@ pub mod phantom;
 pub mod raycast;
 pub mod reference;
 pub mod settings;
+pub mod time_critical;
 pub mod transfer_function;
 
 pub use bricked_volume::{BrickSource, BrickedVolume};
@@ -26,6 +28,7 @@ pub use camera::{Camera, Projection};
 pub use device::GpuContext;
 pub use error::RenderError;
 pub use geometry::{ValueMapping, VolumeGeometry};
+pub use gpu_timing::{FrameTiming, FrameTimingSource};
 pub use metrics::{compare_rgba8, ImageComparison};
 pub use offscreen::OffscreenRenderer;
 pub use page_table::{PageEntry, PageTable};
@@ -34,6 +37,10 @@ pub use raycast::{
 };
 pub use reference::{render_reference, ReferenceImage, ReferenceOptions, ReferenceScene};
 pub use settings::{ClipPlane, CropBox, RenderMode, RenderSettings, Shading};
+pub use time_critical::{
+    ControllerConfig, FrameQuality, LodConfig, Observation, SamplingRateController,
+    TimeCriticalConfig, TimeCriticalController,
+};
 pub use transfer_function::{TransferFunction, TransferFunctionTable};
 
 /// Core voxels per brick edge.

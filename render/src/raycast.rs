@@ -12,6 +12,7 @@ use crate::camera::Camera;
 use crate::device::GpuContext;
 use crate::error::RenderError;
 use crate::geometry::{ValueMapping, VolumeGeometry};
+use crate::gpu_timing::{FrameTiming, FrameTimingSource, PassTimestamps};
 use crate::page_table::PageTable;
 use crate::settings::{RenderMode, RenderSettings};
 use crate::transfer_function::TransferFunctionTable;
@@ -297,6 +298,10 @@ pub struct Raycaster {
     visibility: Option<VisibilityBuffers>,
     frame_number: u64,
     last_key: Option<PipelineKey>,
+    /// None when the device has no `TIMESTAMP_QUERY`: then `render_measured` times on the CPU.
+    timestamps: Option<PassTimestamps>,
+    last_submit_at: Option<std::time::Instant>,
+    submit_to_done_timings: Vec<FrameTiming>,
 }
 
 fn map_blocking(device: &wgpu::Device, buffer: &wgpu::Buffer) -> Result<(), RenderError> {
@@ -441,6 +446,9 @@ impl Raycaster {
             visibility: None,
             frame_number: 0,
             last_key: None,
+            timestamps: PassTimestamps::new(device, &ctx.queue),
+            last_submit_at: None,
+            submit_to_done_timings: Vec::new(),
         }
     }
 
@@ -707,10 +715,13 @@ impl Raycaster {
         });
         encoder.clear_buffer(&vis.buffer, 0, None);
         encoder.clear_buffer(&self.counter, 0, None);
+        if let Some(timestamps) = self.timestamps.as_mut() {
+            timestamps.begin_frame();
+        }
         {
             let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("raycast"),
-                timestamp_writes: None,
+                timestamp_writes: self.timestamps.as_ref().and_then(|t| t.pass_writes()),
             });
             pass.set_pipeline(pipeline);
             pass.set_bind_group(0, &bind_group, &[]);
@@ -721,6 +732,9 @@ impl Raycaster {
             );
         }
         self.frame_number += 1;
+        if let Some(timestamps) = self.timestamps.as_mut() {
+            timestamps.encode_resolve(&mut encoder, self.frame_number);
+        }
         // A busy ring (loader not reading) just drops this frame's visibility.
         let size = (vis.entries.max(1) * 4) as u64;
         let free = vis
@@ -734,7 +748,11 @@ impl Raycaster {
             slot.state.store(SLOT_PENDING, Ordering::Release);
             queued = Some((slot.buffer.clone(), slot.state.clone()));
         }
+        self.last_submit_at = Some(std::time::Instant::now());
         let index = ctx.queue.submit(Some(encoder.finish()));
+        if let Some(timestamps) = self.timestamps.as_mut() {
+            timestamps.after_submit();
+        }
         if let Some((buffer, state)) = queued {
             buffer.map_async(wgpu::MapMode::Read, .., move |r| {
                 state.store(
@@ -874,6 +892,64 @@ impl Raycaster {
     ) -> Result<FrameReadback, RenderError> {
         self.render(ctx, scene)?;
         self.read_frame_blocking(ctx)
+    }
+
+    /// Number of the last submitted frame (1 for the first); frame timings carry it.
+    pub fn frame_number(&self) -> u64 {
+        self.frame_number
+    }
+
+    /// Where [`Raycaster::render_measured`] gets its figure from on this device.
+    pub fn frame_timing_source(&self) -> FrameTimingSource {
+        if self.timestamps.is_some() {
+            FrameTimingSource::GpuTimestamps
+        } else {
+            FrameTimingSource::SubmitToDone
+        }
+    }
+
+    /// [`Raycaster::render`] for a loop that wants to know how long the raycast took (the
+    /// time-critical controller). With GPU timestamps it never waits and the timing arrives a
+    /// frame or two later through [`Raycaster::try_take_frame_timings`]. Without, it waits: first
+    /// for earlier work (a UI pass is not ours to time), then for this submission, timing
+    /// submit → done on the CPU clock.
+    pub fn render_measured(
+        &mut self,
+        ctx: &GpuContext,
+        scene: &Scene,
+    ) -> Result<wgpu::SubmissionIndex, RenderError> {
+        if self.timestamps.is_some() {
+            return self.render(ctx, scene);
+        }
+        ctx.device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| RenderError::Readback(e.to_string()))?;
+        let index = self.render(ctx, scene)?;
+        ctx.device
+            .poll(wgpu::PollType::Wait {
+                submission_index: Some(index.clone()),
+                timeout: None,
+            })
+            .map_err(|e| RenderError::Readback(e.to_string()))?;
+        if let Some(submitted) = self.last_submit_at {
+            self.submit_to_done_timings.push(FrameTiming {
+                frame_number: self.frame_number,
+                milliseconds: submitted.elapsed().as_secs_f64() * 1e3,
+                source: FrameTimingSource::SubmitToDone,
+            });
+        }
+        Ok(index)
+    }
+
+    /// Timings of frames that finished since the last call, oldest first. Never blocks; frames
+    /// submitted with plain [`Raycaster::render`] are included when timestamps are available.
+    pub fn try_take_frame_timings(&mut self, ctx: &GpuContext) -> Vec<FrameTiming> {
+        let mut timings = std::mem::take(&mut self.submit_to_done_timings);
+        if let Some(timestamps) = self.timestamps.as_mut() {
+            let _ = ctx.device.poll(wgpu::PollType::Poll);
+            timings.extend(timestamps.take_ready());
+        }
+        timings
     }
 
     /// Submits and waits for a frame without reading it back (benchmarks).
