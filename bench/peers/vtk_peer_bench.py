@@ -22,6 +22,10 @@ ap.add_argument("--n", type=int, default=256)
 ap.add_argument("--size", type=int, default=512)
 ap.add_argument("--frames", type=int, default=5)
 ap.add_argument("--save", help="write a PNG of the first DVR frame at sd 0.5 to this path")
+ap.add_argument("--reference-dir", help="folder with strata-bench-{dvr,mip}-ref.ppm written by the "
+                "Rust bench (STRATA_BENCH_SAVE=DIR): VTK's frame at the same view is compared with "
+                "that f64 reference and its PSNR printed")
+ap.add_argument("--ref-size", type=int, default=128, help="image edge of the reference PPMs")
 args = ap.parse_args()
 
 n = args.n
@@ -33,25 +37,75 @@ img = vtk.vtkImageData()
 img.SetDimensions(n, n, n)
 img.GetPointData().SetScalars(numpy_support.numpy_to_vtk(vol.ravel(), deep=True, array_type=vtk.VTK_UNSIGNED_CHAR))
 
+
+
+def make_pipeline(mode, sd, size):
+    m = vtk.vtkGPUVolumeRayCastMapper()
+    m.SetInputData(img)
+    m.SetSampleDistance(sd)
+    m.SetAutoAdjustSampleDistances(False)
+    if mode == "mip":
+        m.SetBlendModeToMaximumIntensity()
+    ctf = vtk.vtkColorTransferFunction()
+    ctf.AddRGBPoint(0, 0, 0, 0); ctf.AddRGBPoint(100, 1, 0.5, 0.3); ctf.AddRGBPoint(255, 1, 1, 1)
+    otf = vtk.vtkPiecewiseFunction()
+    otf.AddPoint(0, 0); otf.AddPoint(60, 0); otf.AddPoint(120, 0.05); otf.AddPoint(255, 0.4)
+    p = vtk.vtkVolumeProperty()
+    p.SetColor(ctf); p.SetScalarOpacity(otf); p.SetInterpolationTypeToLinear()
+    vol_actor = vtk.vtkVolume(); vol_actor.SetMapper(m); vol_actor.SetProperty(p)
+    ren = vtk.vtkRenderer(); ren.AddVolume(vol_actor)
+    rw = vtk.vtkRenderWindow(); rw.SetOffScreenRendering(1); rw.AddRenderer(ren); rw.SetSize(size, size)
+    ren.ResetCamera()
+    return ren, rw
+
+
+def read_ppm(path):
+    with open(path, "rb") as f:
+        data = f.read()
+    parts = data.split(maxsplit=4)
+    if parts[0] != b"P6":
+        raise SystemExit(f"{path}: not a binary PPM")
+    w, h = int(parts[1]), int(parts[2])
+    return np.frombuffer(parts[4][: w * h * 3], dtype=np.uint8).reshape(h, w, 3)
+
+
+def window_rgb(rw):
+    w2i = vtk.vtkWindowToImageFilter(); w2i.SetInput(rw); w2i.SetInputBufferTypeToRGB(); w2i.Update()
+    out = w2i.GetOutput()
+    w, h, _ = out.GetDimensions()
+    rgb = numpy_support.vtk_to_numpy(out.GetPointData().GetScalars()).reshape(h, w, 3)
+    return rgb[::-1]  # VTK's row 0 is the bottom
+
+
+if args.reference_dir:
+    # Same view as the Rust bench's camera_at(1): ResetCamera, then one Azimuth(30). VTK
+    # composites over a black background, which equals the reference's premultiplied RGB.
+    # Strata's own frames (saved by the bench) are scored here too, with this same RGB metric,
+    # so both PSNRs mean the same thing (the Rust bench's figure also counts alpha).
+    import glob, os, re
+    def score(got, ref):
+        err = got - ref
+        rmse = np.sqrt(np.mean(err ** 2))
+        return 20 * np.log10(255.0 / max(rmse, 1e-12)), rmse, np.abs(err).max()
+    print("image", "PSNR_dB(RGB vs f64 ref)", "RMSE", "max_abs", sep="\t")
+    for mode in ["dvr", "mip"]:
+        ref = read_ppm(f"{args.reference_dir}/strata-bench-{mode}-ref.ppm").astype(np.float64)
+        ren, rw = make_pipeline(mode, 0.5, args.ref_size)
+        ren.GetActiveCamera().Azimuth(30)
+        rw.Render()
+        psnr, rmse, mx = score(window_rgb(rw).astype(np.float64), ref)
+        print(f"vtk-{mode}", "%.1f" % psnr, "%.3f" % rmse, "%d" % mx, sep="\t", flush=True)
+        for path in sorted(glob.glob(f"{args.reference_dir}/strata-bench-{mode}-gpu-step*.ppm")):
+            step = re.search(r"step([\d.]+)\.ppm$", path).group(1)
+            psnr, rmse, mx = score(read_ppm(path).astype(np.float64), ref)
+            print(f"strata-{mode}-step{step}", "%.1f" % psnr, "%.3f" % rmse, "%d" % mx, sep="\t", flush=True)
+    raise SystemExit(0)
+
 print("renderer", "mode", "sample_distance", "ms/frame(median)", sep="\t")
 for mode in ["dvr", "mip"]:
     for sd in [1.0, 0.5, 0.25]:
-        m = vtk.vtkGPUVolumeRayCastMapper()
-        m.SetInputData(img)
-        m.SetSampleDistance(sd)
-        m.SetAutoAdjustSampleDistances(False)
-        if mode == "mip":
-            m.SetBlendModeToMaximumIntensity()
-        ctf = vtk.vtkColorTransferFunction()
-        ctf.AddRGBPoint(0, 0, 0, 0); ctf.AddRGBPoint(100, 1, 0.5, 0.3); ctf.AddRGBPoint(255, 1, 1, 1)
-        otf = vtk.vtkPiecewiseFunction()
-        otf.AddPoint(0, 0); otf.AddPoint(60, 0); otf.AddPoint(120, 0.05); otf.AddPoint(255, 0.4)
-        p = vtk.vtkVolumeProperty()
-        p.SetColor(ctf); p.SetScalarOpacity(otf); p.SetInterpolationTypeToLinear()
-        vol_actor = vtk.vtkVolume(); vol_actor.SetMapper(m); vol_actor.SetProperty(p)
-        ren = vtk.vtkRenderer(); ren.AddVolume(vol_actor)
-        rw = vtk.vtkRenderWindow(); rw.SetOffScreenRendering(1); rw.AddRenderer(ren); rw.SetSize(args.size, args.size)
-        ren.ResetCamera(); rw.Render(); rw.Render()
+        ren, rw = make_pipeline(mode, sd, args.size)
+        rw.Render(); rw.Render()
         times = []
         for i in range(args.frames):
             ren.GetActiveCamera().Azimuth(30)

@@ -2,9 +2,11 @@
 //! bench/peers/vtk_peer_bench.py: same 256³ u8 phantom, same transfer function, 512², step 0.5
 //! voxel, camera reset to the bounding sphere with a 30° view angle, azimuth +30° per frame.
 //!
-//! Run: CARGO_TARGET_DIR=/tmp/target-render cargo bench -p strata-render --bench raycast
+//! Run: cargo bench -p strata-render --bench raycast   (or bench/peers/compare_with_vtk.sh,
+//!      which runs this and VTK in one session and prints the ratios)
 //! Env: STRATA_BENCH_SIZE (default 512), STRATA_BENCH_FRAMES (default 5),
-//!      STRATA_BENCH_VOLUME (default 256), STRATA_BENCH_REF_SIZE (default 128).
+//!      STRATA_BENCH_VOLUME (default 256), STRATA_BENCH_REF_SIZE (default 128),
+//!      STRATA_BENCH_SAVE=DIR (keep the PSNR images as PPM in DIR).
 //!
 //! Prints ms/frame (median), samples/s, the sampling-only kernel's samples/s measured in the
 //! same run (the ceiling: same texture, same fetch count, no page lookup, TF or compositing),
@@ -217,18 +219,28 @@ fn main() {
         )
     };
     let quick = std::env::var("STRATA_BENCH_QUICK").is_ok();
-    let configs = [
-        ("dvr", RenderMode::Dvr, true),
-        ("mip", RenderMode::Mip, true),
-        ("dvr no-skip", RenderMode::Dvr, false),
-        ("mip no-skip", RenderMode::Mip, false),
-    ];
-    let configs = &configs[..if quick { 2 } else { 4 }];
-    let settings_for = |mode, skip| RenderSettings {
+    // Steps in finest voxels. 0.5 is the peer's setting; coarser steps show what the same
+    // accuracy as the peer costs here (the goal is "at equal or better PSNR").
+    let steps: Vec<f64> = std::env::var("STRATA_BENCH_STEPS")
+        .ok()
+        .map(|v| v.split(',').filter_map(|s| s.trim().parse().ok()).collect())
+        .filter(|v: &Vec<f64>| !v.is_empty())
+        .unwrap_or_else(|| if quick { vec![0.5] } else { vec![0.5, 1.0, 2.0] });
+    // (name, mode, skip empty pages, step); the no-skip rows show what empty-space skipping saves.
+    let mut configs: Vec<(String, RenderMode, bool, f64)> = Vec::new();
+    for &step in &steps {
+        configs.push((format!("dvr step {step}"), RenderMode::Dvr, true, step));
+        configs.push((format!("mip step {step}"), RenderMode::Mip, true, step));
+    }
+    if !quick {
+        configs.push(("dvr step 0.5 no-skip".into(), RenderMode::Dvr, false, 0.5));
+        configs.push(("mip step 0.5 no-skip".into(), RenderMode::Mip, false, 0.5));
+    }
+    let settings_for = |mode, skip, step| RenderSettings {
         width: size,
         height: size,
         mode,
-        quality: 0.5,
+        quality: step,
         skip_empty: skip,
         ..Default::default()
     };
@@ -236,11 +248,11 @@ fn main() {
     // Samples per ray first (one counting frame per config, untimed): the sampling-only kernel
     // takes the DVR count so the ceiling does the same number of fetches.
     let mut samples_per_frame = Vec::new();
-    for &(_, mode, skip) in configs {
+    for &(_, mode, skip, step) in &configs {
         let camera = camera_at(1);
         let counting = RenderSettings {
             count_samples: true,
-            ..settings_for(mode, skip)
+            ..settings_for(mode, skip, step)
         };
         let scene = Scene {
             cache: &cache,
@@ -267,9 +279,9 @@ fn main() {
     // machine hit all of them alike; medians over rounds. One warm-up round compiles pipelines.
     let mut times: Vec<Vec<f64>> = vec![Vec::new(); configs.len() + 1];
     for round in 0..=frames {
-        for (i, &(_, mode, skip)) in configs.iter().enumerate() {
+        for (i, &(_, mode, skip, step)) in configs.iter().enumerate() {
             let camera = camera_at(round + 1);
-            let settings = settings_for(mode, skip);
+            let settings = settings_for(mode, skip, step);
             let scene = Scene {
                 cache: &cache,
                 page_table: &gpu_table,
@@ -294,12 +306,12 @@ fn main() {
     let ceiling_ms = median(times[configs.len()].clone());
     let ceiling_samples = ceiling_per_ray as f64 * size as f64 * size as f64;
     let ceiling_rate = ceiling_samples / ceiling_ms * 1e-3;
-    println!("\n{size}x{size}, step 0.5 voxel, median of {frames} interleaved rounds");
+    println!("\n{size}x{size}, median of {frames} interleaved rounds");
     println!(
         "{:<24} {:>10} {:>12} {:>12} {:>16}",
         "config", "ms/frame", "Msamples/s", "samples/ray", "rate vs ceiling"
     );
-    for (i, &(name, _, _)) in configs.iter().enumerate() {
+    for (i, (name, _, _, _)) in configs.iter().enumerate() {
         let ms = median(times[i].clone());
         let rate = samples_per_frame[i] / ms * 1e-3;
         println!(
@@ -320,28 +332,20 @@ fn main() {
         return;
     }
     // Accuracy against the f64 reference at a smaller image (the reference at 512² takes
-    // minutes on two cores). Jitter off for the comparison, as in the tests.
-    println!("\nPSNR vs f64 CPU reference at {ref_size}² (reference step = GPU step / 8):");
+    // minutes on two cores). One reference per mode at a 1/16-voxel step: opacity correction
+    // makes the integral independent of the step, so every GPU step is scored against the same
+    // ground truth. Jitter off for the comparison, as in the tests.
+    println!("\nPSNR vs f64 CPU reference at {ref_size}² (reference step 1/16 voxel):");
+    let camera = camera_at(1);
     for (name, mode) in [("dvr", RenderMode::Dvr), ("mip", RenderMode::Mip)] {
-        let settings = RenderSettings {
+        let settings_at = |step: f64| RenderSettings {
             width: ref_size,
             height: ref_size,
             mode,
-            quality: 0.5,
+            quality: step,
             jitter: false,
             ..Default::default()
         };
-        let camera = camera_at(1);
-        let scene = Scene {
-            cache: &cache,
-            page_table: &gpu_table,
-            transfer_function: &gpu_tf,
-            geometry: &volume.geometry,
-            mapping: volume.mapping,
-            camera: &camera,
-            settings: &settings,
-        };
-        let gpu = raycaster.render_blocking(&ctx, &scene).expect("render");
         let t = Instant::now();
         let reference = render_reference(
             &ReferenceScene {
@@ -353,34 +357,47 @@ fn main() {
                 tf_range: (0.0, 255.0),
             },
             &camera,
-            &settings,
+            &settings_at(0.5),
             ReferenceOptions {
                 step_refinement: 8.0,
                 ..Default::default()
             },
         )
         .expect("reference");
-        let c = compare_rgba8(&gpu.rgba, &reference.rgba).expect("compare");
-        println!(
-            "{name}: PSNR {:.1} dB, RMSE {:.3}, max abs {} (reference {:.1} s)",
-            c.psnr_db,
-            c.rmse,
-            c.max_abs_error,
-            t.elapsed().as_secs_f64()
-        );
-        if std::env::var("STRATA_BENCH_SAVE").is_ok() {
-            let _ = metrics::write_ppm(
-                std::path::Path::new(&format!("/tmp/strata-bench-{name}-gpu.ppm")),
-                ref_size,
-                ref_size,
-                &gpu.rgba,
+        let reference_s = t.elapsed().as_secs_f64();
+        for &step in &steps {
+            let settings = settings_at(step);
+            let scene = Scene {
+                cache: &cache,
+                page_table: &gpu_table,
+                transfer_function: &gpu_tf,
+                geometry: &volume.geometry,
+                mapping: volume.mapping,
+                camera: &camera,
+                settings: &settings,
+            };
+            let gpu = raycaster.render_blocking(&ctx, &scene).expect("render");
+            let c = compare_rgba8(&gpu.rgba, &reference.rgba).expect("compare");
+            println!(
+                "{name} step {step}: PSNR {:.1} dB, RMSE {:.3}, max abs {} (reference {reference_s:.1} s)",
+                c.psnr_db, c.rmse, c.max_abs_error,
             );
-            let _ = metrics::write_ppm(
-                std::path::Path::new(&format!("/tmp/strata-bench-{name}-ref.ppm")),
-                ref_size,
-                ref_size,
-                &reference.rgba,
-            );
+            // STRATA_BENCH_SAVE=DIR keeps the images, so bench/peers/vtk_peer_bench.py
+            // --reference-dir DIR can score VTK's frame of the same view against this reference.
+            if let Ok(dir) = std::env::var("STRATA_BENCH_SAVE") {
+                let dir = std::path::Path::new(&dir);
+                let _ = std::fs::create_dir_all(dir);
+                let mut images = vec![(format!("gpu-step{step}"), &gpu.rgba)];
+                if step == steps[0] {
+                    images.push(("ref".to_string(), &reference.rgba));
+                }
+                for (kind, rgba) in images {
+                    let path = dir.join(format!("strata-bench-{name}-{kind}.ppm"));
+                    if let Err(e) = metrics::write_ppm(&path, ref_size, ref_size, rgba) {
+                        eprintln!("{e}");
+                    }
+                }
+            }
         }
     }
 }
