@@ -12,6 +12,8 @@ use strata_storage::phantom::Phantom;
 use strata_storage::readers::{open_source, ReadOptions};
 use strata_storage::{BrickId, Store, BRICK_VOXELS};
 
+mod time_critical;
+
 #[derive(Subcommand)]
 pub enum BenchCommand {
     /// Import throughput of a u16 phantom NRRD against read + lz4-on-all-cores; optional peak RSS
@@ -36,12 +38,43 @@ pub enum BenchCommand {
         #[arg(long, default_value_t = 2000)]
         count: usize,
     },
+    /// The time-critical paper's Table 2: a 360° orbit at a fixed sampling rate and under the
+    /// frame-rate controller; mean fps and σ of the measured GPU frame time for both.
+    Timecritical {
+        store: PathBuf,
+        /// Frame rate the controller holds.
+        #[arg(long)]
+        target: f64,
+        /// Frames per orbit (each run).
+        #[arg(long, default_value_t = 360)]
+        frames: usize,
+        /// Per-frame CSV of both runs.
+        #[arg(long)]
+        csv: Option<PathBuf>,
+        /// Image size WxH.
+        #[arg(long, default_value = "512x512")]
+        size: String,
+        /// Step in finest voxels of the fixed-rate run; also where the controller starts.
+        #[arg(long, default_value_t = 0.5)]
+        step: f64,
+        /// Transfer function preset or JSON file (default by modality).
+        #[arg(long)]
+        tf: Option<String>,
+        /// Finest octree level rendered (0 = full resolution).
+        #[arg(long, default_value_t = 0)]
+        level: u8,
+        #[arg(long, default_value_t = 20.0, allow_hyphen_values = true)]
+        elevation: f64,
+    },
 }
 
 pub fn run(cmd: BenchCommand) -> Result<()> {
     match cmd {
         BenchCommand::Import { size, rss_size, memory_mib, dir } => bench_import(size, rss_size, memory_mib, &dir),
         BenchCommand::Bricks { store, count } => bench_bricks(&store, count),
+        BenchCommand::Timecritical { store, target, frames, csv, size, step, tf, level, elevation } => {
+            time_critical::run(time_critical::Options { store, target_fps: target, frames, csv, size, step, tf, level, elevation })
+        }
     }
 }
 

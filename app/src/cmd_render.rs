@@ -62,7 +62,7 @@ pub struct RenderArgs {
     pub no_jitter: bool,
 }
 
-fn parse_size(text: &str) -> Result<(u32, u32)> {
+pub fn parse_size(text: &str) -> Result<(u32, u32)> {
     let (w, h) = text.split_once(['x', 'X']).with_context(|| format!("--size must look like 512x512, not '{text}'"))?;
     let (w, h): (u32, u32) = (w.trim().parse()?, h.trim().parse()?);
     if !(1..=8192).contains(&w) || !(1..=8192).contains(&h) {
