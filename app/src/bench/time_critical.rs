@@ -79,6 +79,9 @@ struct FrameRecord {
     frame: usize,
     azimuth_deg: f64,
     quality: FrameQuality,
+    /// Jitter as rendered: the controller forces it below one sample per voxel, the default
+    /// settings have it on anyway.
+    jitter: bool,
     gpu_ms: Option<f64>,
 }
 
@@ -202,7 +205,7 @@ pub fn run(options: Options) -> Result<()> {
             }
             if i >= LEAD_IN_FRAMES {
                 frame_of.insert(frame_number, records.len());
-                records.push(FrameRecord { frame: orbit_frame, azimuth_deg, quality, gpu_ms: None });
+                records.push(FrameRecord { frame: orbit_frame, azimuth_deg, quality, jitter: settings.jitter, gpu_ms: None });
             }
             if in_flight.len() > FRAMES_IN_FLIGHT {
                 if let Some(oldest) = in_flight.pop_front() {
@@ -290,7 +293,7 @@ fn write_csv(path: &Path, runs: &[(&str, &Vec<FrameRecord>)]) -> Result<()> {
                 r.quality.sampling_rate,
                 r.quality.step_factor(),
                 r.quality.lod_factor,
-                r.quality.jitter
+                r.jitter
             )?;
         }
     }
