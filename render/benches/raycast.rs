@@ -192,6 +192,12 @@ fn main() {
     gpu_table
         .update(&ctx.queue, &page_table)
         .expect("page table");
+    gpu_table
+        .update_value_max(
+            &ctx.queue,
+            &page_table.value_max_physical(volume.mapping, |l, n| volume.node_range(l, n)),
+        )
+        .expect("page value bounds");
     let gpu_tf = GpuTransferFunction::new(&ctx.device, &ctx.queue, &tf_table);
     let mut raycaster = Raycaster::new(&ctx, &cache);
     println!(

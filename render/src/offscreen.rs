@@ -51,6 +51,10 @@ impl OffscreenRenderer {
         volume.classify_empty(&mut page_table, &table);
         let gpu_page_table = GpuPageTable::new(&ctx.device, volume.geometry.page_dims(), &cache)?;
         gpu_page_table.update(&ctx.queue, &page_table)?;
+        gpu_page_table.update_value_max(
+            &ctx.queue,
+            &page_table.value_max_physical(volume.mapping, |l, n| volume.node_range(l, n)),
+        )?;
         let transfer_function = GpuTransferFunction::new(&ctx.device, &ctx.queue, &table);
         let raycaster = Raycaster::new(ctx, &cache);
         Ok(OffscreenRenderer {

@@ -167,6 +167,38 @@ impl PageTable {
         }
     }
 
+    /// Per entry, the largest physical value any sample there can take: the covering node's
+    /// stored max (core and apron, so trilinear samples near a face are bounded too) mapped to
+    /// physical units. MIP rays skip an entry whose bound cannot beat their running maximum.
+    /// Unknown ranges and non-resident entries give +inf, which never skips.
+    pub fn value_max_physical(
+        &self,
+        mapping: ValueMapping,
+        mut range_of: impl FnMut(u8, [u32; 3]) -> Option<(u16, u16)>,
+    ) -> Vec<f32> {
+        (0..self.entries.len())
+            .map(|i| {
+                let e = self.entries[i];
+                if !e.resident {
+                    return f32::INFINITY;
+                }
+                match range_of(e.level, Self::node_of(self.page_of_linear(i), e.level)) {
+                    Some((lo, hi)) => {
+                        let (a, b) = (mapping.physical(lo as f64), mapping.physical(hi as f64));
+                        // Rounded up so f32 never makes the bound smaller than a real sample.
+                        let bound = a.max(b) as f32;
+                        if (bound as f64) < a.max(b) {
+                            bound.next_up()
+                        } else {
+                            bound
+                        }
+                    }
+                    None => f32::INFINITY,
+                }
+            })
+            .collect()
+    }
+
     /// Isosurface variant: a node is empty when the iso value lies outside its [min, max]
     /// (no crossing can start inside it from below... nor be entered from it).
     pub fn classify_empty_for_iso(

@@ -25,6 +25,9 @@ const VISIBILITY_RING: usize = 3;
 /// The page table on the GPU: a storage buffer of encoded entries (see page_table.rs).
 pub struct GpuPageTable {
     pub buffer: wgpu::Buffer,
+    /// Per entry, the physical value bound MIP rays use to skip it (+inf: never skip);
+    /// see [`PageTable::value_max_physical`].
+    pub value_max: wgpu::Buffer,
     pub page_dims: [u32; 3],
     /// Slot grid of the cache the entries point into (entries store slot grid positions).
     pub slots_per_axis: [u32; 3],
@@ -50,8 +53,18 @@ impl GpuPageTable {
             usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
+        // Starts at +inf so a caller that never writes bounds gets correct, unskipped MIP.
+        let value_max = wgpu::util::DeviceExt::create_buffer_init(
+            device,
+            &wgpu::util::BufferInitDescriptor {
+                label: Some("page value max"),
+                contents: bytemuck::cast_slice(&vec![f32::INFINITY; n as usize]),
+                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+            },
+        );
         Ok(GpuPageTable {
             buffer,
+            value_max,
             page_dims,
             slots_per_axis: cache.slots_per_axis,
         })
@@ -91,6 +104,20 @@ impl GpuPageTable {
             .map(|e| e.encode(self.slots_per_axis))
             .collect();
         queue.write_buffer(&self.buffer, first as u64 * 4, bytemuck::cast_slice(&words));
+        Ok(())
+    }
+
+    /// Writes the per-entry MIP bounds (from [`PageTable::value_max_physical`]); takes
+    /// effect for the next submitted frame.
+    pub fn update_value_max(&self, queue: &wgpu::Queue, bounds: &[f32]) -> Result<(), RenderError> {
+        if bounds.len() != self.entry_count() {
+            return Err(RenderError::PageTableMismatch(format!(
+                "{} value bounds for {} page entries",
+                bounds.len(),
+                self.entry_count()
+            )));
+        }
+        queue.write_buffer(&self.value_max, 0, bytemuck::cast_slice(bounds));
         Ok(())
     }
 
@@ -390,6 +417,7 @@ impl Raycaster {
                 storage(6, false),
                 storage(7, false),
                 storage(8, false),
+                storage(9, true),
             ],
         });
         let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
@@ -707,6 +735,10 @@ impl Raycaster {
                 wgpu::BindGroupEntry {
                     binding: 8,
                     resource: self.counter.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 9,
+                    resource: scene.page_table.value_max.as_entire_binding(),
                 },
             ],
         });

@@ -216,6 +216,59 @@ fn empty_skipping_and_early_termination_keep_the_image_and_save_samples() {
 }
 
 #[test]
+fn mip_skips_pages_that_cannot_beat_the_running_maximum() {
+    let ctx = gpu();
+    // The CT phantom is brightest in its bones and vessels: once a ray has passed one, most
+    // later pages (soft tissue, air) are bounded below its maximum.
+    let f = Fixture::ct(96);
+    let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
+    let cam = Camera::orbit(
+        &f.volume.geometry,
+        35.0,
+        20.0,
+        1.2,
+        Projection::Perspective { fov_y_deg: 35.0 },
+    );
+    let plain = RenderSettings {
+        skip_empty: false,
+        ..compare_settings(RenderMode::Mip, SIZE)
+    };
+    let base = g.render(&ctx, &f, &cam, &plain);
+    let skip = g.render(
+        &ctx,
+        &f,
+        &cam,
+        &RenderSettings {
+            skip_empty: true,
+            ..plain.clone()
+        },
+    );
+    // A skipped page holds no sample above the running maximum (node bounds cover the apron)
+    // and ties keep the first maximum, so the picture may differ only by f32 rounding of
+    // sample positions at page faces (1/255).
+    let c = compare_rgba8(&base.rgba, &skip.rgba).unwrap();
+    let (before, after) = (base.samples.unwrap(), skip.samples.unwrap());
+    eprintln!("mip skip: {c:?}, samples {before} -> {after}");
+    assert!(c.max_abs_error <= 1, "{c:?}");
+    // Measured: 1 456 022 -> 1 164 419 samples (-20 %) with only 27 pages to skip at 96³.
+    assert!(
+        (after as f64) < 0.9 * before as f64,
+        "skipping pages bounded by the running maximum should save samples: {before} -> {after}"
+    );
+    // Depth is the distance of the (first) maximum; skipping must not move it.
+    let moved = base
+        .depth
+        .iter()
+        .zip(&skip.depth)
+        .filter(|(a, b)| (a.is_finite() || b.is_finite()) && (**a - **b).abs() > 1e-3)
+        .count();
+    assert!(
+        moved * 100 <= base.depth.len(),
+        "{moved} MIP depths moved by skipping"
+    );
+}
+
+#[test]
 fn opacity_correction_makes_image_independent_of_step() {
     let ctx = gpu();
     let f = small_object_fixture();

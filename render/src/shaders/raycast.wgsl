@@ -62,6 +62,8 @@ struct Params {
 @group(0) @binding(6) var<storage, read_write> out_depth: array<f32>;
 @group(0) @binding(7) var<storage, read_write> visibility: array<u32>;
 @group(0) @binding(8) var<storage, read_write> sample_counter: array<atomic<u32>, 2>;
+// Per page entry: no sample there exceeds this physical value (+inf when unknown).
+@group(0) @binding(9) var<storage, read> page_value_max: array<f32>;
 
 // One page entry decoded into the affine map from level-0 index to cache texel coordinate
 // (Eq. 1 of the mixed-resolution paper: x' = x · t_w + t with t_w = 2^-L).
@@ -402,7 +404,11 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             break;
         }
         let probe = locate_on_ray(o, d, probe_t, &page_cache);
-        if !probe.resident || (SKIP_EMPTY && probe.empty) {
+        // MIP: a page whose bound cannot beat the running maximum cannot change the pixel
+        // (ties keep the first maximum), so it is skipped like an empty one.
+        let mip_cannot_win = MODE == 1u && SKIP_EMPTY && st.have_best
+            && page_value_max[probe.page] <= st.best_value;
+        if !probe.resident || (SKIP_EMPTY && probe.empty) || mip_cannot_win {
             if SKIP_EMPTY {
                 let t_exit = page_cache.t_exit;
                 let next = ceil((t_exit - first) / base - 0.5);
@@ -443,7 +449,16 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         // Fast path: while the next sample stays in the decoded page at the same level, march
         // with nothing but position, fetch and compositing (the common case by far).
         if page_cache.level == level && page_cache.resident {
+            var page_bound = bitcast<f32>(0x7f800000u);
+            if MODE == 1u && SKIP_EMPTY {
+                page_bound = page_value_max[page_cache.linear];
+            }
             for (var inner = 0u; inner < MAX_ITERATIONS; inner++) {
+                // MIP reached this page's bound: the rest of the page cannot win; the outer
+                // loop skips it.
+                if MODE == 1u && SKIP_EMPTY && st.best_value >= page_bound {
+                    break;
+                }
                 let t_next = first + (f32(k) + 0.5 * f32(stride)) * base;
                 if t_next >= t1 || t_next >= page_cache.t_exit {
                     break;

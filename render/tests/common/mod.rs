@@ -117,6 +117,13 @@ impl GpuScene {
         let page_table =
             GpuPageTable::new(&ctx.device, f.volume.geometry.page_dims(), &cache).unwrap();
         page_table.update(&ctx.queue, &f.page_table).unwrap();
+        page_table
+            .update_value_max(
+                &ctx.queue,
+                &f.page_table
+                    .value_max_physical(f.volume.mapping, |l, n| f.volume.node_range(l, n)),
+            )
+            .unwrap();
         let tf = GpuTransferFunction::new(&ctx.device, &ctx.queue, &f.tf_table);
         let raycaster = Raycaster::new(ctx, &cache);
         GpuScene {
