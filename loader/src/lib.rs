@@ -1,8 +1,22 @@
-//! strata-loader: sits between storage and render. For now it loads a fixed cut of the octree
-//! (one level per page position) from a store into memory and the GPU cache; the streaming
-//! working set (cut selection per frame, fetch threads, LRU caches, upload budget, visibility
-//! feedback) comes with the loader issue and will replace `load_cut` for interactive use.
+//! strata-loader: sits between storage and render. `streaming` keeps the view's working set of
+//! octree bricks on the GPU, refining over frames without ever waiting for a read; one module
+//! per technique (see ARCHITECTURE.md's code map). `store_volume` loads a fixed cut up front,
+//! which tests and benches use as the in-core baseline.
 
+pub mod cpu_cache;
+pub mod cut_selection;
+pub mod error;
+pub mod fetch_workers;
+pub mod gpu_slots;
+pub mod metrics;
+pub mod octree_ranges;
+pub mod prefetch;
 pub mod store_volume;
+pub mod streaming;
+pub mod visibility;
 
-pub use store_volume::{render_geometry, render_mapping, LoaderError, ResidentBricks};
+pub use error::LoaderError;
+pub use fetch_workers::{BrickReader, SlowReader};
+pub use metrics::{Distribution, FrameStats};
+pub use store_volume::{render_geometry, render_mapping, ResidentBricks};
+pub use streaming::{BrickFailure, StreamingConfig, StreamingVolume};

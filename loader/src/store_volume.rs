@@ -7,15 +7,7 @@ use rayon::prelude::*;
 use strata_render::{BrickCache, BrickSource, PageEntry, PageTable, TransferFunctionTable, ValueMapping, VolumeGeometry};
 use strata_storage::{BrickId, Store, StorageError, StoreHeader};
 
-#[derive(Debug, thiserror::Error)]
-pub enum LoaderError {
-    #[error(transparent)]
-    Storage(#[from] StorageError),
-    #[error(transparent)]
-    Render(#[from] strata_render::RenderError),
-    #[error("{0}")]
-    Unsupported(String),
-}
+pub use crate::error::LoaderError;
 
 /// The store's geometry in the renderer's terms (same fields; u32 extents).
 pub fn render_geometry(header: &StoreHeader) -> Result<VolumeGeometry, LoaderError> {

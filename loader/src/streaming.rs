@@ -1,0 +1,558 @@
+//! The streaming working set: each frame, take what the fetch workers delivered, read the
+//! visibility feedback without waiting, select the cut, upload within the frame's budget into
+//! GPU slots, rewrite the page table if the cut changed, hand the missing bricks to the
+//! workers, and submit the raycast. Nothing here waits for a read: the root is read once at
+//! open and stays pinned, so every frame draws the whole volume and refines over frames.
+
+use std::collections::{HashMap, HashSet, VecDeque};
+use std::sync::Arc;
+use std::time::Instant;
+
+use strata_render::{
+    BrickCache, CacheConfig, Camera, FrameReadback, GpuContext, GpuPageTable, GpuTransferFunction, PageEntry, PageTable,
+    Raycaster, RenderMode, RenderSettings, Scene, TransferFunction, TransferFunctionTable, ValueMapping, VolumeGeometry,
+    BRICK_PAYLOAD_VOXELS,
+};
+use strata_storage::{BrickId, Store};
+
+use crate::cpu_cache::CpuBrickCache;
+use crate::cut_selection::{select_cut, Cut, CutLimits, LeafKind, Residency, ViewSetup};
+use crate::error::LoaderError;
+use crate::fetch_workers::{BrickReader, FetchWorkers};
+use crate::gpu_slots::GpuSlots;
+use crate::metrics::FrameStats;
+use crate::octree_ranges::{Emptiness, OctreeRanges};
+use crate::prefetch::MotionPredictor;
+use crate::store_volume::{render_geometry, render_mapping};
+use crate::visibility::PageVisibility;
+
+/// Bytes of one decompressed brick as the loader holds it (u16 samples).
+pub const BRICK_BYTES: u64 = (BRICK_PAYLOAD_VOXELS * 2) as u64;
+
+#[derive(Clone, Debug)]
+pub struct StreamingConfig {
+    /// GPU memory for the brick cache texture.
+    pub gpu_budget_bytes: u64,
+    /// Cap on cache slots (tests use tiny caches).
+    pub max_gpu_slots: Option<u32>,
+    /// System memory for bricks, sled's page cache included.
+    pub cpu_budget_bytes: u64,
+    /// sled's cache of compressed pages, carved out of `cpu_budget_bytes`. Our decompressed
+    /// LRU already keeps hot bricks, so this stays small: it mostly holds B-tree index pages.
+    pub sled_cache_bytes: u64,
+    /// Bricks uploaded per frame at most (octree paper §7: 200 ms stalls without a budget).
+    pub uploads_per_frame: usize,
+    /// Quality factor: refine while one voxel projects to more than this many pixels.
+    pub max_voxel_pixels: f64,
+    pub fetch_threads: usize,
+    /// Bound on queued requests (stale ones are dropped each frame anyway).
+    pub max_queued_requests: usize,
+    pub visibility_feedback: bool,
+    /// Feedback frames a page stays visible after it was last seen contributing.
+    pub visibility_memory_frames: u64,
+    pub prefetch: bool,
+    /// Prefetch requests queued per frame at most.
+    pub prefetch_per_frame: usize,
+}
+
+impl Default for StreamingConfig {
+    fn default() -> Self {
+        StreamingConfig {
+            gpu_budget_bytes: 256 << 20,
+            max_gpu_slots: None,
+            cpu_budget_bytes: 512 << 20,
+            sled_cache_bytes: 16 << 20,
+            uploads_per_frame: 32,
+            max_voxel_pixels: 1.0,
+            fetch_threads: 2,
+            max_queued_requests: 64,
+            visibility_feedback: true,
+            visibility_memory_frames: 3,
+            prefetch: true,
+            prefetch_per_frame: 16,
+        }
+    }
+}
+
+impl StreamingConfig {
+    /// Bricks that may sit between a worker and the CPU cache (being read, or in the result
+    /// channel): counted against the CPU budget.
+    fn in_transit_bytes(&self) -> u64 {
+        let threads = self.fetch_threads.max(1) as u64;
+        3 * threads * BRICK_BYTES
+    }
+
+    fn cpu_cache_budget(&self) -> Result<u64, LoaderError> {
+        let reserved = self.sled_cache_bytes + self.in_transit_bytes();
+        self.cpu_budget_bytes.checked_sub(reserved).filter(|&b| b >= BRICK_BYTES).ok_or_else(|| {
+            LoaderError::Unsupported(format!(
+                "CPU budget of {} bytes leaves no room for a brick after sled's cache ({} bytes) and bricks in transit",
+                self.cpu_budget_bytes, reserved
+            ))
+        })
+    }
+}
+
+/// A brick that could not be read, reported once.
+#[derive(Clone, Debug, PartialEq)]
+pub struct BrickFailure {
+    pub id: BrickId,
+    pub message: String,
+}
+
+struct ResidencyView<'a> {
+    slots: &'a GpuSlots,
+    cpu: &'a CpuBrickCache,
+    failed: &'a HashSet<BrickId>,
+}
+
+impl Residency for ResidencyView<'_> {
+    fn on_gpu(&self, id: BrickId) -> bool {
+        self.slots.contains(id)
+    }
+    fn in_cpu(&self, id: BrickId) -> bool {
+        self.cpu.contains(id)
+    }
+    fn failed(&self, id: BrickId) -> bool {
+        self.failed.contains(&id)
+    }
+}
+
+/// For predicting a future cut: as if everything were loaded, so the prediction says what
+/// the view will want rather than what it can show now.
+struct EverythingLoaded<'a> {
+    failed: &'a HashSet<BrickId>,
+}
+
+impl Residency for EverythingLoaded<'_> {
+    fn on_gpu(&self, _: BrickId) -> bool {
+        true
+    }
+    fn in_cpu(&self, _: BrickId) -> bool {
+        true
+    }
+    fn failed(&self, id: BrickId) -> bool {
+        self.failed.contains(&id)
+    }
+}
+
+pub struct StreamingVolume {
+    config: StreamingConfig,
+    geometry: VolumeGeometry,
+    mapping: ValueMapping,
+    octree: OctreeRanges,
+    root: BrickId,
+    tf_table: TransferFunctionTable,
+    cache: BrickCache,
+    gpu_page_table: GpuPageTable,
+    transfer_function: GpuTransferFunction,
+    raycaster: Raycaster,
+    page_table: PageTable,
+    slots: GpuSlots,
+    cpu: CpuBrickCache,
+    workers: FetchWorkers,
+    visibility: PageVisibility,
+    motion: MotionPredictor,
+    failed: HashSet<BrickId>,
+    new_failures: Vec<BrickFailure>,
+    frame: u64,
+    renders: u64,
+    cut_changed_at_render: u64,
+    bricks_read: u64,
+    stored_bytes_read: u64,
+    read_history: VecDeque<(Instant, u64)>,
+    last_stats: FrameStats,
+}
+
+impl StreamingVolume {
+    /// Opens `path` with sled's cache sized from `config` and streams from it.
+    pub fn open(ctx: &GpuContext, path: &std::path::Path, tf: &TransferFunction, config: StreamingConfig) -> Result<Self, LoaderError> {
+        let store = Arc::new(Store::open_with_cache(path, config.sled_cache_bytes)?);
+        Self::new(ctx, store.clone(), store, tf, config)
+    }
+
+    /// Streams `store`'s octree, reading bricks through `reader` (the store itself, or a
+    /// wrapper). Reads the root synchronously: one brick, before the first frame.
+    pub fn new(
+        ctx: &GpuContext,
+        store: Arc<Store>,
+        reader: Arc<dyn BrickReader>,
+        tf: &TransferFunction,
+        config: StreamingConfig,
+    ) -> Result<Self, LoaderError> {
+        tf.validate()?;
+        let header = store.header();
+        let geometry = render_geometry(header)?;
+        let mapping = render_mapping(header);
+        let octree = OctreeRanges::from_store(&store);
+        let root = BrickId::new(octree.root_level(), [0, 0, 0]);
+        let tf_table = tf_table_for(tf, mapping, header.stored_range);
+        let cpu = CpuBrickCache::new(config.cpu_cache_budget()?);
+        let cache = BrickCache::new(
+            &ctx.device,
+            CacheConfig { budget_bytes: config.gpu_budget_bytes, max_slots: config.max_gpu_slots, ..Default::default() },
+        )?;
+        let mut slots = GpuSlots::new(cache.slot_count());
+        let root_brick = reader.read_brick(root)?;
+        let root_slot = slots
+            .allocate(root, 0, true)
+            .ok_or_else(|| LoaderError::Inconsistent("no slot for the root".into()))?;
+        cache.upload_brick(&ctx.queue, root_slot, &root_brick)?;
+        let page_dims = geometry.page_dims();
+        let mut page_table = PageTable::new(page_dims);
+        page_table.entries.fill(PageEntry::resident(root_slot, root.level));
+        let gpu_page_table = GpuPageTable::new(&ctx.device, page_dims, &cache)?;
+        gpu_page_table.update(&ctx.queue, &page_table)?;
+        let transfer_function = GpuTransferFunction::new(&ctx.device, &ctx.queue, &tf_table);
+        let raycaster = Raycaster::new(ctx, &cache);
+        let workers = FetchWorkers::start(reader.clone(), config.fetch_threads, config.max_queued_requests)?;
+        let visibility = PageVisibility::new(&octree, config.visibility_memory_frames);
+        Ok(StreamingVolume {
+            geometry,
+            mapping,
+            octree,
+            root,
+            tf_table,
+            cache,
+            gpu_page_table,
+            transfer_function,
+            raycaster,
+            page_table,
+            slots,
+            cpu,
+            workers,
+            visibility,
+            motion: MotionPredictor::new(4.0),
+            failed: HashSet::new(),
+            new_failures: Vec::new(),
+            frame: 0,
+            renders: 0,
+            cut_changed_at_render: 1,
+            bricks_read: 1,
+            stored_bytes_read: reader.stored_brick_bytes(root),
+            read_history: VecDeque::new(),
+            last_stats: FrameStats::default(),
+            config,
+        })
+    }
+
+    pub fn geometry(&self) -> &VolumeGeometry {
+        &self.geometry
+    }
+
+    pub fn mapping(&self) -> ValueMapping {
+        self.mapping
+    }
+
+    pub fn transfer_function_table(&self) -> &TransferFunctionTable {
+        &self.tf_table
+    }
+
+    pub fn config(&self) -> &StreamingConfig {
+        &self.config
+    }
+
+    /// The quality factor; takes effect next frame.
+    pub fn set_max_voxel_pixels(&mut self, pixels: f64) {
+        if pixels.is_finite() && pixels > 0.0 {
+            self.config.max_voxel_pixels = pixels;
+        }
+    }
+
+    /// New transfer function: emptiness and the cut follow on the next frame.
+    pub fn set_transfer_function(&mut self, ctx: &GpuContext, tf: &TransferFunction) -> Result<(), LoaderError> {
+        tf.validate()?;
+        self.tf_table = tf_table_for_range(tf, self.tf_table.lo, self.tf_table.hi);
+        self.transfer_function.update(&ctx.queue, &self.tf_table);
+        Ok(())
+    }
+
+    /// The page table of the last frame.
+    pub fn page_table(&self) -> &PageTable {
+        &self.page_table
+    }
+
+    pub fn last_stats(&self) -> &FrameStats {
+        &self.last_stats
+    }
+
+    /// Bricks that failed to read since the last call; each failure is reported once.
+    pub fn take_failures(&mut self) -> Vec<BrickFailure> {
+        std::mem::take(&mut self.new_failures)
+    }
+
+    /// Runs the loader for one frame and submits it. Never waits for a read or for the GPU.
+    pub fn frame(&mut self, ctx: &GpuContext, camera: &Camera, settings: &RenderSettings) -> Result<FrameStats, LoaderError> {
+        let started = Instant::now();
+        self.frame += 1;
+        let frame = self.frame;
+        let fetched = self.take_fetched();
+        if self.config.visibility_feedback {
+            if let Some(v) = self.raycaster.try_take_visibility(ctx) {
+                self.visibility.record(v.frame_number, &v.visibility);
+            }
+        }
+        let view = ViewSetup::new(&self.geometry, camera, settings);
+        let emptiness = emptiness_for(settings, &self.tf_table, self.mapping);
+        let limits = CutLimits {
+            max_voxel_pixels: self.config.max_voxel_pixels,
+            gpu_slots: self.slots.capacity(),
+            uploads: self.config.uploads_per_frame,
+            prefetch_candidates: self.config.prefetch_per_frame,
+        };
+        let visibility = self.config.visibility_feedback.then_some(&self.visibility);
+        let cut = {
+            let residency = ResidencyView { slots: &self.slots, cpu: &self.cpu, failed: &self.failed };
+            select_cut(&self.octree, &view, emptiness, visibility, &residency, limits)
+        };
+
+        // Everything this cut shows is protected before any slot is reused.
+        self.slots.touch(self.root, frame);
+        for id in cut.data_leaves().chain(cut.resident_inner.iter().copied()) {
+            self.slots.touch(id, frame);
+        }
+        for _ in &cut.demand {
+            self.cpu.note_miss();
+        }
+        for &id in &cut.uploads {
+            let brick = self
+                .cpu
+                .get_for_use(id)
+                .ok_or_else(|| LoaderError::Inconsistent(format!("brick {id:?} chosen for upload is not in CPU memory")))?;
+            let slot = self
+                .slots
+                .allocate(id, frame, false)
+                .ok_or_else(|| LoaderError::Inconsistent("every GPU slot is in use by this frame".into()))?;
+            self.cache.upload_brick(&ctx.queue, slot, &brick)?;
+        }
+
+        let table = build_page_table(&self.octree, &self.slots, &cut, &emptiness)?;
+        let rewritten = table != self.page_table;
+        if rewritten {
+            self.gpu_page_table.update(&ctx.queue, &table)?;
+            self.page_table = table;
+            self.cut_changed_at_render = self.renders + 1;
+        }
+
+        // Ask for no more than half the CPU cache holds: bricks read faster than uploads and
+        // refinement can use them would evict each other before use and be read again.
+        let demand_limit = ((self.cpu.budget_bytes() / BRICK_BYTES) as usize / 2).max(1);
+        let demand: Vec<(BrickId, f64)> = cut.demand.iter().take(demand_limit).map(|r| (r.id, r.priority)).collect();
+        let mut prefetch: Vec<(BrickId, f64)> = Vec::new();
+        if self.config.prefetch {
+            prefetch.extend(cut.refine_next.iter().map(|r| (r.id, r.priority)));
+            if let Some(predicted) = self.motion.observe(camera) {
+                prefetch.extend(self.predicted_misses(&predicted, settings, limits));
+            }
+            prefetch.retain(|(id, _)| !self.cpu.contains(*id) && !self.slots.contains(*id));
+            prefetch.truncate(self.config.prefetch_per_frame);
+        }
+        self.workers.set_requests(&demand, &prefetch);
+
+        let scene = Scene {
+            cache: &self.cache,
+            page_table: &self.gpu_page_table,
+            transfer_function: &self.transfer_function,
+            geometry: &self.geometry,
+            mapping: self.mapping,
+            camera,
+            settings,
+        };
+        self.raycaster.render(ctx, &scene)?;
+        self.renders += 1;
+
+        let visibility_seen = !self.config.visibility_feedback || self.visibility.newest_render_frame() >= self.cut_changed_at_render;
+        let converged = cut.complete() && cut.uploads.is_empty() && !rewritten && visibility_seen;
+        let stats = self.stats(&cut, fetched, rewritten, converged, started);
+        self.last_stats = stats.clone();
+        Ok(stats)
+    }
+
+    /// Reads the last submitted frame back, waiting for the GPU (CLI, tests, benchmarks).
+    pub fn read_frame_blocking(&mut self, ctx: &GpuContext) -> Result<FrameReadback, LoaderError> {
+        Ok(self.raycaster.read_frame_blocking(ctx)?)
+    }
+
+    /// Frames until converged (or `max_frames`), each read back; returns the last image and
+    /// the stats of every frame. The loop itself never waits for I/O: a frame whose bricks are
+    /// not there yet is drawn with what is.
+    pub fn render_until_converged(
+        &mut self,
+        ctx: &GpuContext,
+        camera: &Camera,
+        settings: &RenderSettings,
+        max_frames: usize,
+    ) -> Result<(FrameReadback, Vec<FrameStats>), LoaderError> {
+        let mut history = Vec::new();
+        loop {
+            let stats = self.frame(ctx, camera, settings)?;
+            let image = self.read_frame_blocking(ctx)?;
+            let done = stats.converged || history.len() + 1 >= max_frames;
+            history.push(stats);
+            if done {
+                return Ok((image, history));
+            }
+            if self.workers.in_flight() > 0 && self.last_stats.uploads == 0 && !self.last_stats.page_table_rewritten {
+                // Nothing changed on screen this frame; give the workers a moment rather than
+                // spinning the GPU on identical frames.
+                std::thread::sleep(std::time::Duration::from_millis(2));
+            }
+        }
+    }
+
+    fn take_fetched(&mut self) -> u64 {
+        let mut fetched = 0;
+        for result in self.workers.try_results() {
+            self.workers.complete(result.id);
+            match result.outcome {
+                Ok(brick) => {
+                    fetched += result.stored_bytes;
+                    self.bricks_read += 1;
+                    self.cpu.insert(result.id, brick, result.class == crate::fetch_workers::RequestClass::Prefetch);
+                }
+                Err(e) => {
+                    if self.failed.insert(result.id) {
+                        self.new_failures.push(BrickFailure { id: result.id, message: e.to_string() });
+                    }
+                }
+            }
+        }
+        self.stored_bytes_read += fetched;
+        fetched
+    }
+
+    fn predicted_misses(&self, predicted: &Camera, settings: &RenderSettings, limits: CutLimits) -> Vec<(BrickId, f64)> {
+        let view = ViewSetup::new(&self.geometry, predicted, settings);
+        let emptiness = emptiness_for(settings, &self.tf_table, self.mapping);
+        let everything = EverythingLoaded { failed: &self.failed };
+        let cut = select_cut(&self.octree, &view, emptiness, None, &everything, CutLimits { uploads: usize::MAX, ..limits });
+        cut.leaves
+            .iter()
+            .filter(|l| l.kind == LeafKind::Data && !self.slots.contains(l.id) && !self.cpu.contains(l.id))
+            .map(|l| (l.id, l.priority))
+            .collect()
+    }
+
+    fn stats(&mut self, cut: &Cut, fetched: u64, rewritten: bool, converged: bool, started: Instant) -> FrameStats {
+        let now = Instant::now();
+        self.read_history.push_back((now, fetched));
+        while self.read_history.front().is_some_and(|(t, _)| now.duration_since(*t).as_secs_f64() > 1.0) {
+            self.read_history.pop_front();
+        }
+        let window = self.read_history.front().map_or(0.0, |(t, _)| now.duration_since(*t).as_secs_f64()).max(1e-3);
+        let window_bytes: u64 = self.read_history.iter().map(|(_, b)| b).sum();
+        let data_leaves = cut.data_leaves().count();
+        let slot_bytes = BRICK_PAYLOAD_VOXELS as u64 * self.cache.format.bytes_per_voxel();
+        let cpu_counters = self.cpu.counters();
+        let queue = self.workers.counters();
+        let (queued, in_flight) = (self.workers.queued(), self.workers.in_flight());
+        FrameStats {
+            frame: self.frame,
+            loader_seconds: started.elapsed().as_secs_f64(),
+            leaves: cut.leaves.len(),
+            data_leaves,
+            data_leaves_per_level: {
+                let mut per_level = vec![0; self.octree.level_count() as usize];
+                for id in cut.data_leaves() {
+                    per_level[id.level as usize] += 1;
+                }
+                per_level
+            },
+            gpu_resident_per_level: self.slots.per_level(self.octree.level_count() as usize),
+            gpu_slots_used: self.slots.occupied(),
+            gpu_slots_capacity: self.slots.capacity(),
+            gpu_bytes: self.slots.occupied() as u64 * slot_bytes,
+            gpu_budget_bytes: self.slots.capacity() as u64 * slot_bytes,
+            working_set_bricks: cut.slots_needed,
+            working_set_bytes: cut.slots_needed as u64 * BRICK_BYTES,
+            cpu_cache_bytes: self.cpu.bytes(),
+            cpu_bytes: self.cpu.bytes() + self.config.sled_cache_bytes + self.config.in_transit_bytes(),
+            cpu_budget_bytes: self.config.cpu_budget_bytes,
+            cpu_hit_rate: ratio(cpu_counters.hits, cpu_counters.lookups),
+            gpu_hit_rate: ratio(cut.data_leaves_on_gpu as u64, data_leaves as u64),
+            pending: queued + in_flight,
+            queued,
+            in_flight,
+            queue_capacity: self.workers.capacity(),
+            stale_dropped_total: queue.stale_dropped,
+            overflow_dropped_total: queue.overflow_dropped,
+            bricks_read_total: self.bricks_read,
+            stored_bytes_read_total: self.stored_bytes_read,
+            brick_bytes_read_total: self.bricks_read * BRICK_BYTES,
+            bytes_read_per_second: window_bytes as f64 / window,
+            uploads: cut.uploads.len(),
+            upload_bytes: cut.uploads.len() as u64 * slot_bytes,
+            prefetch_loaded_total: cpu_counters.prefetch_loaded,
+            prefetch_used_total: cpu_counters.prefetch_used,
+            prefetch_hit_rate: ratio(cpu_counters.prefetch_used, cpu_counters.prefetch_loaded),
+            failed_bricks: self.failed.len(),
+            page_table_rewritten: rewritten,
+            blocked: [cut.blocked_by_data, cut.blocked_by_uploads, cut.blocked_by_gpu_slots, cut.blocked_by_balance],
+            gpu_budget_limited: cut.blocked_by_gpu_slots > 0,
+            converged,
+        }
+    }
+}
+
+fn ratio(a: u64, b: u64) -> f64 {
+    if b == 0 {
+        1.0
+    } else {
+        a as f64 / b as f64
+    }
+}
+
+/// The TF sampled over the store's physical value range (what the GPU table and the
+/// emptiness prefix sum both use).
+pub fn tf_table_for(tf: &TransferFunction, mapping: ValueMapping, stored_range: [u16; 2]) -> TransferFunctionTable {
+    let (a, b) = (mapping.physical(stored_range[0] as f64), mapping.physical(stored_range[1] as f64));
+    tf_table_for_range(tf, a.min(b), a.max(b))
+}
+
+fn tf_table_for_range(tf: &TransferFunction, lo: f64, hi: f64) -> TransferFunctionTable {
+    tf.table(lo, hi)
+}
+
+fn emptiness_for<'a>(settings: &RenderSettings, table: &'a TransferFunctionTable, mapping: ValueMapping) -> Emptiness<'a> {
+    match settings.mode {
+        RenderMode::Isosurface => Emptiness::Iso { value: settings.iso_value, mapping },
+        RenderMode::Dvr | RenderMode::Mip => Emptiness::TransferFunction { table, mapping },
+    }
+}
+
+/// Page entries of a cut: data leaves point at their slot; transparent and empty leaves are
+/// skipped by rays; culled leaves are never sampled; a failed or pending leaf shows its parent.
+fn build_page_table(octree: &OctreeRanges, slots: &GpuSlots, cut: &Cut, emptiness: &Emptiness) -> Result<PageTable, LoaderError> {
+    let mut table = PageTable::new(octree.page_dims());
+    let skipped = |level: u8| PageEntry { slot_in_cache: 0, level, empty: true, resident: true };
+    let own_empty = |id: BrickId| octree.own_range(id).is_some_and(|r| emptiness.is_empty(r));
+    let mut memo: HashMap<BrickId, PageEntry> = HashMap::new();
+    for leaf in &cut.leaves {
+        let entry = match leaf.kind {
+            LeafKind::Data => {
+                let slot = slots
+                    .slot_of(leaf.id)
+                    .ok_or_else(|| LoaderError::Inconsistent(format!("data leaf {:?} has no GPU slot", leaf.id)))?;
+                PageEntry { slot_in_cache: slot, level: leaf.id.level, empty: own_empty(leaf.id), resident: true }
+            }
+            LeafKind::Transparent | LeafKind::Empty => skipped(leaf.id.level),
+            LeafKind::Culled => PageEntry::NOT_RESIDENT,
+            LeafKind::Failed | LeafKind::Pending => {
+                let parent = leaf.id.parent();
+                *memo.entry(parent).or_insert_with(|| match slots.slot_of(parent) {
+                    Some(slot) if !own_empty(parent) => PageEntry::resident(slot, parent.level),
+                    _ => skipped(parent.level),
+                })
+            }
+        };
+        let (lo, hi) = octree.page_span(leaf.id);
+        for z in lo[2]..hi[2] {
+            for y in lo[1]..hi[1] {
+                for x in lo[0]..hi[0] {
+                    table.set([x, y, z], entry);
+                }
+            }
+        }
+    }
+    Ok(table)
+}
