@@ -7,6 +7,7 @@ mod cmd_render;
 mod cmd_sample;
 mod cmd_verify;
 mod progress;
+mod viewer;
 
 use std::path::PathBuf;
 
@@ -36,6 +37,8 @@ enum Command {
     Render(cmd_render::RenderArgs),
     /// Write the deterministic CT phantom as a store or as NRRD (by the extension of --out).
     Sample(cmd_sample::SampleArgs),
+    /// Open the viewer on a store, or on a scan (imported into your data folder first).
+    View(ViewArgs),
     /// Benchmarks (figures for the issue notes).
     #[command(subcommand)]
     Bench(bench::BenchCommand),
@@ -59,33 +62,58 @@ fn run(cli: Cli) -> Result<()> {
         Some(Command::Sample(args)) => cmd_sample::run(args),
         Some(Command::Render(args)) => cmd_render::run(args),
         Some(Command::Bench(cmd)) => bench::run(cmd),
-        None => demo(),
+        Some(Command::View(args)) => view(args),
+        None => viewer::run(viewer::ViewerOptions::new(viewer::demo_source())),
     }
 }
 
-/// The main job until the interactive viewer lands: make sure the demo volume exists, then
-/// render it headless on the GPU to a PNG beside it.
-fn demo() -> Result<()> {
-    let store = cmd_sample::ensure_demo_volume()?;
-    let out = store.with_extension("png");
-    cmd_render::run(cmd_render::RenderArgs {
-        store: store.clone(),
-        out: out.clone(),
-        size: "512x512".into(),
-        azimuth: 30.0,
-        elevation: 15.0,
-        zoom: 1.0,
-        mode: cmd_render::ModeArg::Dvr,
-        tf: Some("ct-bone".into()),
-        step: 0.5,
-        level: 0,
-        reference: false,
-        shading: true,
-        iso: 300.0,
-        orthographic: false,
-        no_jitter: false,
-    })?;
-    println!("The interactive viewer is not built yet (clinician-app issue); this run rendered {} headless.", out.display());
-    println!("Try: strata info {0} | strata render {0} --mode mip --out mip.png", store.display());
-    Ok(())
+#[derive(clap::Args)]
+struct ViewArgs {
+    /// A store, or a scan to import first (DICOM folder or file, NIfTI, NRRD, MetaImage).
+    /// Without it, the demo phantom.
+    path: Option<PathBuf>,
+    /// DICOM: the series to open when a folder holds several (SeriesInstanceUID or index).
+    #[arg(long)]
+    series: Option<String>,
+    /// Close after this many seconds (smoke tests, measurements).
+    #[arg(long)]
+    exit_after: Option<f64>,
+    /// Orbit the 3D view continuously at this many degrees per second (measurements).
+    #[arg(long)]
+    orbit: Option<f64>,
+    /// Write UI and volume frame times as CSV on exit.
+    #[arg(long)]
+    frame_log: Option<PathBuf>,
+    /// Window size WxH in points.
+    #[arg(long, default_value = "1360x860")]
+    window: String,
+    /// Layout to start with: single, conventional (3D over three slices) or four-up.
+    #[arg(long)]
+    layout: Option<String>,
+    /// Start from default settings and do not remember them.
+    #[arg(long)]
+    fresh: bool,
+}
+
+fn view(args: ViewArgs) -> Result<()> {
+    let source = match args.path {
+        Some(path) => viewer::path_source(path),
+        None => viewer::demo_source(),
+    };
+    let (width, height) = cmd_render::parse_size(&args.window)?;
+    let mut options = viewer::ViewerOptions::new(source);
+    options.dicom_series = args.series;
+    options.exit_after_seconds = args.exit_after;
+    options.auto_orbit_deg_per_second = args.orbit;
+    options.frame_log = args.frame_log;
+    options.window_size = [width as f32, height as f32];
+    options.persist_settings = !args.fresh;
+    options.initial_layout = match args.layout.as_deref() {
+        None => None,
+        Some("single") => Some(viewer::app::Layout::Single),
+        Some("conventional") => Some(viewer::app::Layout::ThreeDOverSlices),
+        Some("four-up") => Some(viewer::app::Layout::TwoByTwo),
+        Some(other) => anyhow::bail!("--layout must be single, conventional or four-up, not '{other}'"),
+    };
+    viewer::run(options)
 }

@@ -1,0 +1,60 @@
+//! The interactive viewer (`strata`, `strata view`): eframe window, layouts of the 3D view and
+//! three slice views, transfer-function editor, performance panel. Not for diagnostic use.
+//!
+//! Threads: the UI thread only draws and turns input into requests. The render thread
+//! (`volume_session`), the slice reader (`slices`) and store preparation (`jobs`) do all GPU
+//! work, disk reads and imports, and wake the UI when they have something new.
+
+pub mod app;
+pub mod jobs;
+pub mod orientation;
+pub mod slices;
+pub mod tf_editor;
+pub mod view3d;
+pub mod volume_session;
+
+#[cfg(test)]
+mod ui_tests;
+
+use std::path::PathBuf;
+
+use anyhow::Result;
+
+pub use app::{Preferences, StrataApp, ViewerOptions};
+pub use jobs::VolumeSource;
+
+/// Opens the viewer window and runs until it is closed.
+pub fn run(options: ViewerOptions) -> Result<()> {
+    let native = eframe::NativeOptions {
+        viewport: egui::ViewportBuilder::default()
+            .with_title("Strata — not for diagnostic use")
+            .with_inner_size([options.window_size[0], options.window_size[1]])
+            .with_min_inner_size([640.0, 420.0]),
+        // The volume renders on its own device (see volume_session.rs); eframe's only draws the UI.
+        ..Default::default()
+    };
+    let persist = options.persist_settings;
+    eframe::run_native(
+        "strata",
+        native,
+        Box::new(move |cc| {
+            let preferences: Preferences = if persist {
+                cc.storage.and_then(|s| eframe::get_value(s, eframe::APP_KEY)).unwrap_or_default()
+            } else {
+                Preferences::default()
+            };
+            Ok(Box::new(app::EframeApp { app: StrataApp::new(cc.egui_ctx.clone(), preferences, options), persist }))
+        }),
+    )
+    .map_err(|e| anyhow::anyhow!("the viewer window could not start: {e} (is a display available? `strata render` works headless)"))
+}
+
+/// The demo volume the viewer opens with no arguments.
+pub fn demo_source() -> VolumeSource {
+    VolumeSource::Demo { path: crate::cmd_sample::demo_store_path(), size: crate::cmd_sample::DEMO_SIZE }
+}
+
+/// A path given on the command line.
+pub fn path_source(path: PathBuf) -> VolumeSource {
+    VolumeSource::Path(path)
+}

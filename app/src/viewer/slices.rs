@@ -1,0 +1,251 @@
+//! Slice images read straight from the store on a named thread, at the octree level that
+//! matches the view's pixel size, through a bounded LRU of decompressed bricks: only the
+//! bricks a slice crosses are read, so volumes far larger than memory page smoothly (the 32
+//! neighbouring slices of a brick row come from the cache).
+
+use std::collections::{HashMap, VecDeque};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+
+use strata_storage::{BrickId, Store, BRICK_APRON, BRICK_CORE, BRICK_EDGE};
+
+use super::orientation::{SliceFrame, SliceView};
+use super::volume_session::Repaint;
+
+/// Decompressed bricks kept for paging (bytes).
+pub const SLICE_CACHE_BYTES: usize = 192 << 20;
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SliceRequest {
+    pub view: SliceView,
+    pub frame: SliceFrame,
+    /// Level-0 continuous index along the view's normal axis.
+    pub position: f64,
+    pub level: u8,
+}
+
+/// Stored values of one slice in index order: `across` fastest, then `down` (flips are applied
+/// at display time through texture coordinates).
+#[derive(Clone, Debug)]
+pub struct SliceImage {
+    pub request: SliceRequest,
+    /// Slice number at `request.level` along the normal axis.
+    pub slice_at_level: u32,
+    pub width: usize,
+    pub height: usize,
+    pub values: Arc<Vec<u16>>,
+    /// Level-L voxels cover `2^L` level-0 voxels, so the level grid can overhang the volume:
+    /// the fraction of the image that lies inside it, across and down.
+    pub inside_fraction: (f64, f64),
+}
+
+struct Shared {
+    pending: Mutex<[Option<SliceRequest>; 3]>,
+    results: Mutex<[Option<SliceImage>; 3]>,
+    error: Mutex<Option<String>>,
+    wake: std::sync::Condvar,
+    stop: AtomicBool,
+}
+
+pub struct SliceReader {
+    shared: Arc<Shared>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// The level whose voxels are about one screen pixel: coarser only when a level-0 voxel would
+/// be smaller than half a pixel.
+pub fn level_for_pixels(voxels_across: f64, pixels_across: f64, level_count: usize) -> u8 {
+    if !(pixels_across > 0.0) || !(voxels_across > 0.0) {
+        return 0;
+    }
+    let voxels_per_pixel = voxels_across / pixels_across;
+    let level = voxels_per_pixel.log2().floor().max(0.0) as usize;
+    level.min(level_count.saturating_sub(1)) as u8
+}
+
+impl SliceReader {
+    pub fn start(store: Arc<Store>, repaint: Repaint) -> anyhow::Result<Self> {
+        let shared = Arc::new(Shared {
+            pending: Mutex::new([None; 3]),
+            results: Mutex::new([None, None, None]),
+            error: Mutex::new(None),
+            wake: std::sync::Condvar::new(),
+            stop: AtomicBool::new(false),
+        });
+        let thread_shared = shared.clone();
+        let thread = std::thread::Builder::new().name("strata-slice-reader".into()).spawn(move || {
+            let mut cache = BrickLru::new(SLICE_CACHE_BYTES);
+            loop {
+                let next = {
+                    let mut pending = lock(&thread_shared.pending);
+                    loop {
+                        if thread_shared.stop.load(Ordering::Acquire) {
+                            return;
+                        }
+                        if let Some(r) = pending.iter_mut().find_map(|p| p.take()) {
+                            break r;
+                        }
+                        pending = thread_shared.wake.wait(pending).unwrap_or_else(|e| e.into_inner());
+                    }
+                };
+                match read_slice(&store, &mut cache, next) {
+                    Ok(image) => {
+                        lock(&thread_shared.results)[next.view.index()] = Some(image);
+                        *lock(&thread_shared.error) = None;
+                    }
+                    Err(e) => *lock(&thread_shared.error) = Some(format!("{e:#}")),
+                }
+                repaint();
+            }
+        })?;
+        Ok(SliceReader { shared, thread: Some(thread) })
+    }
+
+    /// Asks for a slice; a newer request for the same view replaces an unread older one.
+    pub fn request(&self, request: SliceRequest) {
+        lock(&self.shared.pending)[request.view.index()] = Some(request);
+        self.shared.wake.notify_all();
+    }
+
+    pub fn latest(&self, view: SliceView) -> Option<SliceImage> {
+        lock(&self.shared.results)[view.index()].clone()
+    }
+
+    pub fn error(&self) -> Option<String> {
+        lock(&self.shared.error).clone()
+    }
+}
+
+impl Drop for SliceReader {
+    fn drop(&mut self) {
+        self.shared.stop.store(true, Ordering::Release);
+        self.shared.wake.notify_all();
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+struct BrickLru {
+    budget_bricks: usize,
+    bricks: HashMap<BrickId, Arc<Vec<u16>>>,
+    order: VecDeque<BrickId>,
+}
+
+impl BrickLru {
+    fn new(budget_bytes: usize) -> Self {
+        BrickLru { budget_bricks: (budget_bytes / (strata_storage::BRICK_VOXELS * 2)).max(8), bricks: HashMap::new(), order: VecDeque::new() }
+    }
+
+    fn get(&mut self, store: &Store, id: BrickId) -> anyhow::Result<Arc<Vec<u16>>> {
+        if let Some(b) = self.bricks.get(&id) {
+            let b = b.clone();
+            if let Some(pos) = self.order.iter().position(|x| *x == id) {
+                self.order.remove(pos);
+            }
+            self.order.push_back(id);
+            return Ok(b);
+        }
+        let brick = Arc::new(store.read_brick(id)?);
+        while self.bricks.len() >= self.budget_bricks {
+            match self.order.pop_front() {
+                Some(old) => {
+                    self.bricks.remove(&old);
+                }
+                None => break,
+            }
+        }
+        self.bricks.insert(id, brick.clone());
+        self.order.push_back(id);
+        Ok(brick)
+    }
+}
+
+fn read_slice(store: &Store, cache: &mut BrickLru, request: SliceRequest) -> anyhow::Result<SliceImage> {
+    let layout = store.layout();
+    let level = (request.level as usize).min(layout.level_count() - 1);
+    let dims = layout.level_dims[level];
+    let scale = (1u64 << level) as f64;
+    let frame = request.frame;
+    let (n, a, d) = (frame.normal_axis, frame.across_axis, frame.down_axis);
+    let slice = ((request.position + 0.5) / scale - 0.5).round().clamp(0.0, dims[n] as f64 - 1.0) as u64;
+    let (width, height) = (dims[a] as usize, dims[d] as usize);
+    let mut values = vec![0u16; width * height];
+    let bricks = layout.bricks_in_level(level);
+    let core = BRICK_CORE;
+    let edge = BRICK_EDGE as usize;
+    let brick_n = slice / core;
+    for bd in 0..bricks[d] {
+        for ba in 0..bricks[a] {
+            let mut coords = [0u32; 3];
+            coords[n] = brick_n as u32;
+            coords[a] = ba as u32;
+            coords[d] = bd as u32;
+            let brick = cache.get(store, BrickId::new(level as u8, coords))?;
+            let mut local = [0usize; 3];
+            local[n] = (slice - brick_n * core + BRICK_APRON) as usize;
+            let a_end = ((ba + 1) * core).min(dims[a]);
+            let d_end = ((bd + 1) * core).min(dims[d]);
+            for y in bd * core..d_end {
+                local[d] = (y - bd * core + BRICK_APRON) as usize;
+                for x in ba * core..a_end {
+                    local[a] = (x - ba * core + BRICK_APRON) as usize;
+                    values[y as usize * width + x as usize] = brick[(local[2] * edge + local[1]) * edge + local[0]];
+                }
+            }
+        }
+    }
+    let level0 = layout.level_dims[0];
+    let inside = |axis: usize| (level0[axis] as f64 / (dims[axis] as f64 * scale)).min(1.0);
+    Ok(SliceImage {
+        request,
+        slice_at_level: slice as u32,
+        width,
+        height,
+        values: Arc::new(values),
+        inside_fraction: (inside(a), inside(d)),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use strata_render::VolumeGeometry;
+
+    #[test]
+    fn level_follows_voxels_per_pixel() {
+        assert_eq!(level_for_pixels(512.0, 600.0, 5), 0);
+        assert_eq!(level_for_pixels(512.0, 256.0, 5), 1);
+        assert_eq!(level_for_pixels(4096.0, 300.0, 8), 3);
+        assert_eq!(level_for_pixels(4096.0, 1.0, 3), 2);
+    }
+
+    #[test]
+    fn slice_values_match_the_level_zero_bricks() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let path = dir.path().join("p.strata");
+        strata_storage::phantom::Phantom::cube(40).write_store(&path, &Default::default()).expect("phantom");
+        let store = Store::open(&path).expect("open");
+        let g = store.header().geometry.clone();
+        let geometry = VolumeGeometry {
+            dims: g.dims.map(|d| d as u32),
+            spacing_mm: g.spacing_mm,
+            origin_lps_mm: g.origin_lps_mm,
+            direction: g.direction,
+        };
+        let frame = SliceFrame::for_view(SliceView::Coronal, &geometry);
+        let mut cache = BrickLru::new(1 << 20);
+        let request = SliceRequest { view: SliceView::Coronal, frame, position: 35.0, level: 0 };
+        let image = read_slice(&store, &mut cache, request).expect("slice");
+        assert_eq!((image.width, image.height), (40, 40));
+        // Voxel (x=33, y=35, z=38) lives in brick (1,1,1) at local (1+2, 3+2, 6+2).
+        let brick = store.read_brick(BrickId::new(0, [1, 1, 1])).expect("brick");
+        let e = BRICK_EDGE as usize;
+        let expected = brick[(8 * e + 5) * e + 3];
+        assert_eq!(image.values[38 * 40 + 33], expected);
+    }
+}
