@@ -38,10 +38,12 @@ fn orbit_summary_and_csv_for_both_runs() {
     assert!(out.contains("fixed rate (2.00 samples/voxel)"), "{out}");
     assert!(out.contains("time-critical (mean"), "{out}");
     assert!(out.contains("mean fps"), "{out}");
+    assert!(out.contains("noise floor"), "{out}");
     let rows = std::fs::read_to_string(&csv).unwrap();
     let lines: Vec<&str> = rows.lines().collect();
     assert_eq!(lines[0], "run,frame,azimuth_deg,gpu_ms,fps,sampling_rate,step_voxels,lod_factor,jitter");
     assert_eq!(lines.iter().filter(|l| l.starts_with("fixed,")).count(), 8);
+    assert_eq!(lines.iter().filter(|l| l.starts_with("noise-floor,")).count(), 8);
     let controlled: Vec<Vec<&str>> =
         lines.iter().filter(|l| l.starts_with("time-critical,")).map(|l| l.split(',').collect()).collect();
     assert_eq!(controlled.len(), 8);

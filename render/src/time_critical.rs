@@ -6,7 +6,7 @@
 //! ```text
 //! let quality = controller.plan_frame(camera_moving);   // rate, jitter, lod factor
 //! quality.apply_to(&mut settings);                       // step = 1 / rate
-//! loader.set_quality_factor(quality.lod_factor);         // a voxel may cover this many pixels
+//! streaming.set_max_voxel_pixels(base_pixels * quality.lod_factor); // the loader's quality factor
 //! raycaster.render_measured(&ctx, &scene)?;
 //! controller.submitted(raycaster.frame_number(), quality);
 //! for timing in raycaster.try_take_frame_timings(&ctx) { controller.observe(timing); }
@@ -50,7 +50,8 @@ pub struct ControllerConfig {
     /// Samples per finest voxel. 1/8: below this wood-grain is beyond what jitter can hide;
     /// the level of detail takes over.
     pub min_rate: f64,
-    /// 4 samples per voxel: twice Nyquist for trilinear data; more no longer changes the image.
+    /// 8 samples per voxel: beyond this the image no longer changes visibly; below it, spare
+    /// time on cheap views buys quality (the paper's Figure 2).
     pub max_rate: f64,
     /// Gain for errors inside the noise band (0 < min_gain ≤ 1); 1 is the paper's equation.
     pub min_gain: f64,
@@ -66,7 +67,7 @@ impl Default for ControllerConfig {
         ControllerConfig {
             target_fps: 20.0,
             min_rate: 0.125,
-            max_rate: 4.0,
+            max_rate: 8.0,
             min_gain: 0.3,
             full_gain_error: 1.4,
             warmup_frames: 2,
@@ -261,8 +262,9 @@ pub struct TimeCriticalConfig {
 pub struct FrameQuality {
     /// Samples per finest voxel.
     pub sampling_rate: f64,
-    /// The loader's quality factor: a voxel may project to up to this many pixels before its
-    /// node is refined. 1 = full quality, 2 = one octree level coarser, ...
+    /// Multiplier of the loader's quality factor (`StreamingConfig::max_voxel_pixels`: refine
+    /// while a voxel projects to more than that many pixels). 1 = the user's quality, 2 = one
+    /// octree level coarser, ... Render does not depend on the loader; the app passes it on.
     pub lod_factor: f64,
     /// Ray-start jitter is required (rate below one sample per voxel).
     pub jitter: bool,

@@ -15,7 +15,9 @@ const FRAMES_IN_FLIGHT: usize = 2;
 static ONE_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
 fn exclusive() -> std::sync::MutexGuard<'static, ()> {
-    ONE_AT_A_TIME.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
+    ONE_AT_A_TIME
+        .lock()
+        .unwrap_or_else(|poisoned| poisoned.into_inner())
 }
 
 fn orbit_camera(f: &Fixture, azimuth_deg: f64) -> Camera {
@@ -303,7 +305,7 @@ fn orbit_holds_target(ctx: GpuContext) {
         );
     }
     // Target: what this machine does at one sample per voxel, so the controller has room both
-    // ways (its range is 1/8 .. 4).
+    // ways (its range is 1/8 .. 8).
     let target_fps = 1000.0 / median_ms_at(&ctx, &mut g, &f, 1.0, 6);
     let config = TimeCriticalConfig {
         controller: ControllerConfig {

@@ -4,6 +4,10 @@
 //! printed. The frame rate is the one the controller sees: the GPU time of the raycast pass
 //! (timestamps where the adapter has them, else submit → done). Both runs start from a viewer
 //! that has been showing the first view for a few frames, as a user's rotation would.
+//!
+//! A third run renders the first view over and over at the fixed rate: the frame-to-frame
+//! noise of this machine at that moment (on lavapipe frame time is CPU time, shared with
+//! whatever else runs). No controller can make an orbit steadier than that floor.
 
 use std::collections::{HashMap, VecDeque};
 use std::io::Write;
@@ -26,6 +30,8 @@ const FRAMES_IN_FLIGHT: usize = 2;
 /// Frames on the first view before the orbit starts (pipeline warm-up; the controller settles,
 /// as it would have while the user looked before rotating). Not in the statistics.
 const LEAD_IN_FRAMES: usize = 12;
+/// Frames of the noise-floor run at most (it only needs enough for a stable σ).
+const NOISE_FLOOR_FRAMES: usize = 120;
 /// How long to wait for the last frames' timings after the orbit.
 const DRAIN_ATTEMPTS: usize = 200;
 
@@ -168,18 +174,19 @@ pub fn run(options: Options) -> Result<()> {
     let mut controlled = TimeCriticalController::new(config, fixed_rate);
 
     // `controller` None: the standard rendering at the fixed rate.
-    let mut orbit = |label: &str, mut controller: Option<&mut TimeCriticalController>| -> Result<(Vec<FrameRecord>, f64)> {
+    // `degrees` 0: the noise-floor run on the first view.
+    let mut orbit = |label: &str, mut controller: Option<&mut TimeCriticalController>, frames: usize, degrees: f64| -> Result<(Vec<FrameRecord>, f64)> {
         let mut records: Vec<FrameRecord> = Vec::new();
         let mut frame_of: HashMap<u64, usize> = HashMap::new();
         let mut in_flight = VecDeque::new();
         let mut started = None;
-        let total = LEAD_IN_FRAMES + options.frames;
+        let total = LEAD_IN_FRAMES + frames;
         for i in 0..total {
             if i == LEAD_IN_FRAMES {
                 started = Some(Instant::now());
             }
             let orbit_frame = i.saturating_sub(LEAD_IN_FRAMES);
-            let azimuth_deg = 360.0 * orbit_frame as f64 / options.frames as f64;
+            let azimuth_deg = degrees * orbit_frame as f64 / frames as f64;
             let camera = Camera::orbit(&geometry, azimuth_deg, options.elevation, 1.0, Projection::Perspective { fov_y_deg: 30.0 });
             let quality = match controller.as_deref_mut() {
                 Some(c) => c.plan_frame(true),
@@ -238,8 +245,10 @@ pub fn run(options: Options) -> Result<()> {
         Ok((records, wall_seconds))
     };
 
-    let (fixed_records, fixed_wall) = orbit("fixed rate", None)?;
-    let (tc_records, tc_wall) = orbit("time-critical", Some(&mut controlled))?;
+    let (floor_records, floor_wall) = orbit("noise floor", None, options.frames.min(NOISE_FLOOR_FRAMES), 0.0)?;
+    let (fixed_records, fixed_wall) = orbit("fixed rate", None, options.frames, 360.0)?;
+    let (tc_records, tc_wall) = orbit("time-critical", Some(&mut controlled), options.frames, 360.0)?;
+    let floor_summary = summarize(&floor_records, floor_wall)?;
     let fixed_summary = summarize(&fixed_records, fixed_wall)?;
     let tc_summary = summarize(&tc_records, tc_wall)?;
 
@@ -248,6 +257,7 @@ pub fn run(options: Options) -> Result<()> {
     println!();
     println!("{:<34} {:>9} {:>8} {:>8} {:>8} {:>8} {:>9}", "", "mean fps", "σ", "σ/mean", "min", "max", "wall fps");
     for (name, s) in [
+        ("noise floor (first view, fixed)".to_string(), &floor_summary),
         (format!("fixed rate ({fixed_rate:.2} samples/voxel)"), &fixed_summary),
         (format!("time-critical (mean {mean_rate:.2} s/v)"), &tc_summary),
     ] {
@@ -269,7 +279,7 @@ pub fn run(options: Options) -> Result<()> {
         tc_records.len()
     );
     if let Some(path) = &options.csv {
-        write_csv(path, &[("fixed", &fixed_records), ("time-critical", &tc_records)])?;
+        write_csv(path, &[("noise-floor", &floor_records), ("fixed", &fixed_records), ("time-critical", &tc_records)])?;
         println!("per-frame CSV: {}", path.display());
     }
     Ok(())
