@@ -311,6 +311,21 @@ fn constant_volume_with_shading_has_no_nan() {
         SMOOTH,
     );
     assert!(opaque_pixels(&rgba) > 0);
+    // Pre-integration on a constant field: every segment has s_front = s_back, the table's
+    // diagonal, which must equal the classic sample.
+    let pre = RenderSettings {
+        preintegrated: true,
+        shading: Some(Shading::default()),
+        ..settings(RenderMode::Dvr)
+    };
+    check(
+        "constant pre-integrated",
+        &volume,
+        &tf,
+        &orbit(&volume, 30.0, 20.0, 1.0),
+        &pre,
+        SMOOTH,
+    );
     // Isosurface exactly at the constant value: every sample is ">= iso", gradient zero.
     let s = RenderSettings {
         iso_value: 2000.0,
@@ -438,6 +453,12 @@ fn tiny_and_huge_steps_with_opacity_correction() {
         ..settings(RenderMode::Dvr)
     };
     check("step 0.02", &volume, &tf, &camera, &tiny, SMOOTH);
+    // Pre-integration with d -> 0: table entries shrink continuously to zero, no 0/0.
+    let tiny_pre = RenderSettings {
+        preintegrated: true,
+        ..tiny.clone()
+    };
+    check("step 0.02 pre-integrated", &volume, &tf, &camera, &tiny_pre, SMOOTH);
     // 8 voxels per step: a coarse but finite integral. The reference integrates the true
     // field (at 1 voxel here), so the bound is loose and stated: the opacity correction keeps
     // the overall opacity right (PSNR >= 20 dB), no sample can blow up.

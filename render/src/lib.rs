@@ -16,6 +16,7 @@ pub mod metrics;
 pub mod offscreen;
 pub mod page_table;
 pub mod phantom;
+pub mod preintegration;
 pub mod raycast;
 pub mod reference;
 pub mod settings;
@@ -32,7 +33,9 @@ pub use gpu_timing::{FrameTiming, FrameTimingSource};
 pub use metrics::{compare_rgba8, ImageComparison};
 pub use offscreen::OffscreenRenderer;
 pub use page_table::{PageEntry, PageTable};
+pub use preintegration::PreintegrationTable;
 pub use raycast::{
+    PipelineKey,
     FrameReadback, GpuPageTable, GpuTransferFunction, Raycaster, Scene, VisibilityFrame,
 };
 pub use reference::{render_reference, ReferenceImage, ReferenceOptions, ReferenceScene};

@@ -270,16 +270,34 @@ struct Params {
     slots: [u32; 4],
 }
 
+/// The effects compiled into one raycast pipeline (override constants): a scene's pipeline
+/// contains only what its settings use.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-struct PipelineKey {
-    mode: RenderMode,
-    manual_trilinear: bool,
-    shading: bool,
-    jitter: bool,
-    skip_empty: bool,
-    early_termination: bool,
-    clip_plane: bool,
-    count_samples: bool,
+pub struct PipelineKey {
+    pub mode: RenderMode,
+    pub manual_trilinear: bool,
+    pub shading: bool,
+    pub jitter: bool,
+    pub skip_empty: bool,
+    pub early_termination: bool,
+    pub clip_plane: bool,
+    pub count_samples: bool,
+    pub preintegrated: bool,
+}
+
+/// What a pre-integration table was built for; a change of any part rebuilds it.
+#[derive(Clone, Debug, PartialEq)]
+struct PreintegrationKey {
+    transfer_function: crate::TransferFunction,
+    lo: f64,
+    hi: f64,
+    segment_mm: f64,
+    unit_mm: f64,
+}
+
+struct PreintegrationTexture {
+    key: PreintegrationKey,
+    view: wgpu::TextureView,
 }
 
 struct Targets {
@@ -325,6 +343,10 @@ pub struct Raycaster {
     visibility: Option<VisibilityBuffers>,
     frame_number: u64,
     last_key: Option<PipelineKey>,
+    /// The pre-integrated TF table of the last pre-integrated frame (rebuilt when the TF, its
+    /// range or the step changes), and a 1×1 stand-in bound when a pipeline does not use it.
+    preintegration: Option<PreintegrationTexture>,
+    preintegration_unused: wgpu::TextureView,
     /// None when the device has no `TIMESTAMP_QUERY`: then `render_measured` times on the CPU.
     timestamps: Option<PassTimestamps>,
     last_submit_at: Option<std::time::Instant>,
@@ -418,6 +440,16 @@ impl Raycaster {
                 storage(7, false),
                 storage(8, false),
                 storage(9, true),
+                wgpu::BindGroupLayoutEntry {
+                    binding: 10,
+                    visibility: wgpu::ShaderStages::COMPUTE,
+                    ty: wgpu::BindingType::Texture {
+                        sample_type: wgpu::TextureSampleType::Float { filterable: false },
+                        view_dimension: wgpu::TextureViewDimension::D2,
+                        multisampled: false,
+                    },
+                    count: None,
+                },
             ],
         });
         let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
@@ -474,6 +506,8 @@ impl Raycaster {
             visibility: None,
             frame_number: 0,
             last_key: None,
+            preintegration: None,
+            preintegration_unused: table_texture(device, &ctx.queue, 1, &[[0.0; 4]]),
             timestamps: PassTimestamps::new(device, &ctx.queue),
             last_submit_at: None,
             submit_to_done_timings: Vec::new(),
@@ -498,6 +532,7 @@ impl Raycaster {
                 ("EARLY_TERMINATION", b(key.early_termination)),
                 ("CLIP_PLANE", b(key.clip_plane)),
                 ("COUNT_SAMPLES", b(key.count_samples)),
+                ("PREINTEGRATED", b(key.preintegrated)),
             ];
             device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
                 label: Some("raycast"),
@@ -629,7 +664,8 @@ impl Raycaster {
         let _ = self.pipeline(&ctx.device, key);
     }
 
-    fn key_for(&self, settings: &RenderSettings) -> PipelineKey {
+    /// The effects a frame with `settings` compiles in (see [`PipelineKey`]).
+    pub fn key_for(&self, settings: &RenderSettings) -> PipelineKey {
         PipelineKey {
             mode: settings.mode,
             manual_trilinear: settings.exact_trilinear || !self.filterable,
@@ -640,7 +676,36 @@ impl Raycaster {
                 && settings.mode == RenderMode::Dvr,
             clip_plane: settings.clip_plane.is_some(),
             count_samples: settings.count_samples,
+            preintegrated: settings.preintegrated && settings.mode == RenderMode::Dvr,
         }
+    }
+
+    /// Builds the pre-integration table for this scene's TF and base step unless the last one
+    /// still fits. Integrating 256² segments takes tens of milliseconds on two cores, so it
+    /// happens only when the TF, its range or the step changes, not per frame.
+    fn ensure_preintegration(&mut self, ctx: &GpuContext, scene: &Scene) {
+        let unit_mm = scene.geometry.finest_spacing_mm();
+        let tf = scene.transfer_function;
+        let key = PreintegrationKey {
+            transfer_function: tf.source.clone(),
+            lo: tf.lo,
+            hi: tf.hi,
+            segment_mm: scene.settings.quality * unit_mm,
+            unit_mm,
+        };
+        if self.preintegration.as_ref().is_some_and(|p| p.key == key) {
+            return;
+        }
+        let table = crate::preintegration::PreintegrationTable::build(
+            &key.transfer_function,
+            key.lo,
+            key.hi,
+            key.segment_mm,
+            key.unit_mm,
+            crate::preintegration::PREINTEGRATION_SIZE,
+        );
+        let view = table_texture(&ctx.device, &ctx.queue, table.size, &table.rgba);
+        self.preintegration = Some(PreintegrationTexture { key, view });
     }
 
     /// Encodes and submits one frame. Never waits for the GPU. Also queues a copy of this
@@ -683,6 +748,9 @@ impl Raycaster {
         }
         let key = self.key_for(settings);
         self.last_key = Some(key);
+        if key.preintegrated {
+            self.ensure_preintegration(ctx, scene);
+        }
         self.ensure_targets(device, settings.width, settings.height);
         self.ensure_visibility(device, page_dims.iter().map(|&d| d as usize).product());
         let params = build_params(scene);
@@ -739,6 +807,15 @@ impl Raycaster {
                 wgpu::BindGroupEntry {
                     binding: 9,
                     resource: scene.page_table.value_max.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 10,
+                    resource: wgpu::BindingResource::TextureView(
+                        match (&self.preintegration, key.preintegrated) {
+                            (Some(table), true) => &table.view,
+                            _ => &self.preintegration_unused,
+                        },
+                    ),
                 },
             ],
         });
@@ -1081,4 +1158,45 @@ fn build_params(scene: &Scene) -> Params {
             0,
         ],
     }
+}
+
+/// A square Rgba32Float texture of `size`² entries (row = back value, column = front value),
+/// read with textureLoad: exact f32 and no float-filtering feature needed.
+fn table_texture(
+    device: &wgpu::Device,
+    queue: &wgpu::Queue,
+    size: u32,
+    rgba: &[[f32; 4]],
+) -> wgpu::TextureView {
+    let extent = wgpu::Extent3d {
+        width: size,
+        height: size,
+        depth_or_array_layers: 1,
+    };
+    let texture = device.create_texture(&wgpu::TextureDescriptor {
+        label: Some("pre-integrated transfer function"),
+        size: extent,
+        mip_level_count: 1,
+        sample_count: 1,
+        dimension: wgpu::TextureDimension::D2,
+        format: wgpu::TextureFormat::Rgba32Float,
+        usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+        view_formats: &[],
+    });
+    queue.write_texture(
+        wgpu::TexelCopyTextureInfo {
+            texture: &texture,
+            mip_level: 0,
+            origin: wgpu::Origin3d::ZERO,
+            aspect: wgpu::TextureAspect::All,
+        },
+        bytemuck::cast_slice(rgba),
+        wgpu::TexelCopyBufferLayout {
+            offset: 0,
+            bytes_per_row: Some(size * 16),
+            rows_per_image: None,
+        },
+        extent,
+    );
+    texture.create_view(&wgpu::TextureViewDescriptor::default())
 }

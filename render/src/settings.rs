@@ -88,6 +88,10 @@ pub struct RenderSettings {
     /// Trilinear by 8 textureLoads in f32 instead of the sampler. Lavapipe's sampler uses
     /// 8-bit interpolation weights; exact mode isolates that error in tests.
     pub exact_trilinear: bool,
+    /// DVR integrates each segment between two samples through a pre-integrated TF table
+    /// (preintegration.rs) instead of classifying the sample alone: narrow or step-shaped TFs
+    /// no longer need tiny steps.
+    pub preintegrated: bool,
 }
 
 impl Default for RenderSettings {
@@ -107,6 +111,7 @@ impl Default for RenderSettings {
             clip_plane: None,
             count_samples: false,
             exact_trilinear: false,
+            preintegrated: false,
         }
     }
 }

@@ -11,6 +11,7 @@ override SKIP_EMPTY: bool = true;
 override EARLY_TERMINATION: bool = true;
 override CLIP_PLANE: bool = false;
 override COUNT_SAMPLES: bool = false;
+override PREINTEGRATED: bool = false;
 
 const CORE: f32 = 32.0;
 const APRON: f32 = 2.0;
@@ -64,6 +65,9 @@ struct Params {
 @group(0) @binding(8) var<storage, read_write> sample_counter: array<atomic<u32>, 2>;
 // Per page entry: no sample there exceeds this physical value (+inf when unknown).
 @group(0) @binding(9) var<storage, read> page_value_max: array<f32>;
+// Pre-integrated TF (preintegration.rs): texel (front, back) = premultiplied colour and opacity
+// of a base-step segment whose value runs from front to back. 1×1 when unused.
+@group(0) @binding(10) var preintegration_table: texture_2d<f32>;
 
 // One page entry decoded into the affine map from level-0 index to cache texel coordinate
 // (Eq. 1 of the mixed-resolution paper: x' = x · t_w + t with t_w = 2^-L).
@@ -186,6 +190,23 @@ fn transfer(v: f32) -> vec4<f32> {
     return mix(textureLoad(tf_table, i32(i), 0), textureLoad(tf_table, i32(j), 0), x - f32(i));
 }
 
+// Segment colour and opacity between two physical values, bilinear in the table, which spans
+// the same value range as the TF texture.
+fn preintegrated(front: f32, back: f32) -> vec4<f32> {
+    let last = f32(textureDimensions(preintegration_table).x - 1u);
+    let per_value = P.value_map.w * last / f32(P.image.w - 1u);
+    let x = clamp((front - P.value_map.z) * per_value, 0.0, last);
+    let y = clamp((back - P.value_map.z) * per_value, 0.0, last);
+    let i0 = vec2<i32>(i32(floor(x)), i32(floor(y)));
+    let i1 = min(i0 + vec2<i32>(1), vec2<i32>(i32(last)));
+    let f = vec2<f32>(x, y) - floor(vec2<f32>(x, y));
+    let c00 = textureLoad(preintegration_table, i0, 0);
+    let c10 = textureLoad(preintegration_table, vec2<i32>(i1.x, i0.y), 0);
+    let c01 = textureLoad(preintegration_table, vec2<i32>(i0.x, i1.y), 0);
+    let c11 = textureLoad(preintegration_table, i1, 0);
+    return mix(mix(c00, c10, f.x), mix(c01, c11, f.x), f.y);
+}
+
 // Blinn-Phong with a headlight; `d_idx` is the ray direction mapped into index space, so
 // g·d_idx = (A^T g)·d_patient without leaving index space.
 fn shade(color: vec3<f32>, loc: Location, d_idx: vec3<f32>) -> vec3<f32> {
@@ -243,6 +264,9 @@ struct RayState {
     hit: bool,
     last_marked: u32,
     done: bool,
+    // Pre-integration: the value at the previous sample, the front of the next segment.
+    prev_value: f32,
+    has_prev_value: bool,
 };
 
 // Marks a page visible once per visit: consecutive samples mostly share a page, and a
@@ -258,7 +282,38 @@ fn mark_visible_in(st: ptr<function, RayState>, page: u32) {
 fn take_sample(st: ptr<function, RayState>, loc: Location, t: f32, delta: f32, o: vec3<f32>, d: vec3<f32>) {
     (*st).samples = (*st).samples + 1u;
     let v = physical(fetch(loc.coord));
-    if MODE == 0u {
+    if MODE == 0u && PREINTEGRATED {
+        // The segment from the previous sample to this one; after a skip or at the ray start
+        // there is none, and a constant segment equals the classic sample.
+        var front = v;
+        if (*st).has_prev_value {
+            front = (*st).prev_value;
+        }
+        (*st).prev_value = v;
+        (*st).has_prev_value = true;
+        var seg = preintegrated(front, v);
+        // The table is for the base step; coarse nodes step 2^L times as far.
+        let ratio = delta / P.box_lo.w;
+        if ratio != 1.0 && seg.a > 0.0 {
+            let a = 1.0 - pow(1.0 - min(seg.a, 0.999999), ratio);
+            seg = vec4<f32>(seg.rgb * (a / seg.a), a);
+        }
+        if seg.a > 0.0 {
+            var color = seg.rgb;
+            if SHADING {
+                color = shade(seg.rgb / seg.a, loc, d) * seg.a;
+            }
+            if (*st).depth == bitcast<f32>(0x7f800000u) {
+                (*st).depth = t;
+            }
+            mark_visible_in(st, loc.page);
+            let w = 1.0 - (*st).acc.a;
+            (*st).acc = vec4<f32>((*st).acc.rgb + w * color, (*st).acc.a + w * seg.a);
+            if EARLY_TERMINATION && (*st).acc.a >= P.dims.w {
+                (*st).done = true;
+            }
+        }
+    } else if MODE == 0u {
         let tf = transfer(v);
         if tf.a > 0.0 {
             // Opacity correction: opacity is defined per finest voxel; a step of `delta` mm
@@ -414,6 +469,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
                 let next = ceil((t_exit - first) / base - 0.5);
                 k = max(k + 1u, u32(clamp(next, 0.0, 4.0e9)));
                 st.prev_valid = false;
+                st.has_prev_value = false;
                 if MODE == 2u && probe.resident {
                     // Empty for an isosurface means below the iso value: the crossing lies
                     // after the cell face, so bisection may start there.
@@ -423,6 +479,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             } else {
                 k = k + 1u;
                 st.prev_valid = false;
+                st.has_prev_value = false;
             }
             continue;
         }
@@ -440,6 +497,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         k = k + stride;
         if !loc.resident {
             st.prev_valid = false;
+            st.has_prev_value = false;
             continue;
         }
         take_sample(&st, loc, t, delta, o, d);
