@@ -6,7 +6,7 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};
 use strata_loader::store_volume::{classify_empty, page_table_for_cut, GpuCut};
-use strata_loader::{render_geometry, render_mapping, ResidentBricks};
+use strata_loader::{render_geometry, render_mapping, ResidentBricks, StreamingConfig, StreamingVolume};
 use strata_render::reference::{render_reference, ReferenceOptions, ReferenceScene};
 use strata_render::{Camera, GpuContext, Projection, RenderMode, RenderSettings, Shading, TransferFunction};
 use strata_storage::Store;
@@ -42,9 +42,19 @@ pub struct RenderArgs {
     /// Step length in finest voxels (quality factor).
     #[arg(long, default_value_t = 0.5)]
     pub step: f64,
-    /// Octree level to render (0 = full resolution; clamped to the root).
+    /// Octree level to render with --up-front or --reference (0 = full resolution; clamped
+    /// to the root).
     #[arg(long, default_value_t = 0)]
     pub level: u8,
+    /// Load every brick of --level before the first frame instead of streaming.
+    #[arg(long)]
+    pub up_front: bool,
+    /// Streaming: stop after this many frames if not converged by then.
+    #[arg(long, default_value_t = 400)]
+    pub max_frames: usize,
+    /// Streaming quality factor: refine while a voxel covers more than this many pixels.
+    #[arg(long, default_value_t = 1.0)]
+    pub quality: f64,
     /// Render with the f64 CPU reference instead of the GPU.
     #[arg(long)]
     pub reference: bool,
@@ -85,6 +95,9 @@ pub fn choose_transfer_function(name: Option<&str>, modality: &str) -> Result<Tr
 }
 
 pub fn run(args: RenderArgs) -> Result<()> {
+    if !args.up_front && !args.reference {
+        return run_streaming(&args);
+    }
     let (width, height) = parse_size(&args.size)?;
     let store = Store::open(&args.store).with_context(|| format!("cannot open store {}", args.store.display()))?;
     let header = store.header().clone();
@@ -140,6 +153,68 @@ pub fn run(args: RenderArgs) -> Result<()> {
     };
     eprintln!("rendered {}x{} in {:.2} s ({})", width, height, t.elapsed().as_secs_f64(), if args.reference { "CPU reference" } else { "GPU" });
     write_png(&args.out, width, height, &rgba)?;
+    println!("wrote {}", args.out.display());
+    Ok(())
+}
+
+fn settings_of(args: &RenderArgs) -> Result<RenderSettings> {
+    let (width, height) = parse_size(&args.size)?;
+    Ok(RenderSettings {
+        width,
+        height,
+        mode: match args.mode {
+            ModeArg::Dvr => RenderMode::Dvr,
+            ModeArg::Mip => RenderMode::Mip,
+            ModeArg::Iso => RenderMode::Isosurface,
+        },
+        quality: args.step,
+        jitter: !args.no_jitter,
+        shading: (args.shading || matches!(args.mode, ModeArg::Iso)).then(Shading::default),
+        iso_value: args.iso,
+        ..RenderSettings::default()
+    })
+}
+
+/// The default: stream the store, frame after frame, until the image converges (or
+/// --max-frames), and write the last frame.
+fn run_streaming(args: &RenderArgs) -> Result<()> {
+    let settings = settings_of(args)?;
+    let started = Instant::now();
+    let ctx = GpuContext::headless()?;
+    eprintln!("GPU: {}", ctx.adapter_name());
+    let config = StreamingConfig { max_voxel_pixels: args.quality, ..StreamingConfig::default() };
+    anyhow::ensure!(args.quality.is_finite() && args.quality > 0.0, "--quality must be positive, got {}", args.quality);
+    let store = std::sync::Arc::new(
+        Store::open_with_cache(&args.store, config.sled_cache_bytes)
+            .with_context(|| format!("cannot open store {}", args.store.display()))?,
+    );
+    let tf = choose_transfer_function(args.tf.as_deref(), &store.header().modality)?;
+    let mut volume = StreamingVolume::new(&ctx, store.clone(), store, &tf, config)
+        .with_context(|| format!("cannot stream store {}", args.store.display()))?;
+    let opened = Instant::now();
+    let geometry = volume.geometry().clone();
+    let projection = if args.orthographic {
+        Projection::Orthographic { height_mm: geometry.bounding_radius_mm() * 2.0 / args.zoom.max(1e-3) }
+    } else {
+        Projection::Perspective { fov_y_deg: 30.0 }
+    };
+    let camera = Camera::orbit(&geometry, args.azimuth, args.elevation, args.zoom, projection);
+    let (frame, history) = volume.render_until_converged(&ctx, &camera, &settings, args.max_frames.max(1))?;
+    for failure in volume.take_failures() {
+        eprintln!("warning: {}; its parent is shown there instead", failure.message);
+    }
+    let Some(last) = history.last() else { bail!("no frame was rendered") };
+    eprintln!(
+        "{} after {} frames in {:.2} s (open {:.2} s): {} bricks on the GPU per level {:?}, {:.1} MB read",
+        if last.converged { "converged" } else { "not converged (raise --max-frames)" },
+        history.len(),
+        opened.elapsed().as_secs_f64(),
+        (opened - started).as_secs_f64(),
+        last.gpu_slots_used,
+        last.gpu_resident_per_level,
+        last.stored_bytes_read_total as f64 / 1e6
+    );
+    write_png(&args.out, settings.width, settings.height, &frame.rgba)?;
     println!("wrote {}", args.out.display());
     Ok(())
 }

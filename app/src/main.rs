@@ -1,6 +1,7 @@
 //! `strata`: the viewer and its command line. Not for diagnostic use.
 
 mod bench;
+mod cmd_flythrough;
 mod cmd_import;
 mod cmd_info;
 mod cmd_render;
@@ -39,6 +40,8 @@ enum Command {
     Sample(cmd_sample::SampleArgs),
     /// Open the viewer on a store, or on a scan (imported into your data folder first).
     View(ViewArgs),
+    /// Replay a scripted camera path with the streaming loader; per-frame stats to CSV.
+    Flythrough(cmd_flythrough::FlythroughArgs),
     /// Benchmarks (figures for the issue notes).
     #[command(subcommand)]
     Bench(bench::BenchCommand),
@@ -62,6 +65,7 @@ fn run(cli: Cli) -> Result<()> {
         Some(Command::Sample(args)) => cmd_sample::run(args),
         Some(Command::Render(args)) => cmd_render::run(args),
         Some(Command::Bench(cmd)) => bench::run(cmd),
+        Some(Command::Flythrough(args)) => cmd_flythrough::run(args),
         Some(Command::View(args)) => view(args),
         None => viewer::run(viewer::ViewerOptions::new(viewer::demo_source())),
     }

@@ -357,10 +357,17 @@ impl<R: Residency> Selection<'_, R> {
         LeafKind::Data
     }
 
-    /// Transparent nodes never show up in feedback (nothing there contributes at their level),
-    /// so they count as visible; otherwise a thin structure hidden by averaging would never load.
+    /// The feedback marks pages where a sample contributed, so it cannot see what averaging
+    /// hid: transparent nodes, and nodes whose subtree holds clearly more opacity than their
+    /// own values, count as visible; otherwise a thin structure would never load.
     fn visible(&self, id: BrickId, kind: LeafKind) -> bool {
-        kind == LeafKind::Transparent || self.visibility.is_none_or(|v| v.is_visible(id))
+        if kind == LeafKind::Transparent || self.visibility.is_none_or(|v| v.is_visible(id)) {
+            return true;
+        }
+        match (self.octree.own_range(id), self.octree.subtree_range(id)) {
+            (Some(own), Some(subtree)) => self.emptiness.hides_detail(own, subtree),
+            _ => true,
+        }
     }
 
     fn note_refine_next(&mut self, id: BrickId, priority: f64) {

@@ -164,6 +164,24 @@ impl Emptiness<'_> {
     }
 }
 
+impl Emptiness<'_> {
+    /// The subtree reaches clearly more opacity than the node's own (averaged) values: a thin
+    /// bright structure is blurred away at this level, so the node's pages may show nothing in
+    /// the visibility feedback although its children would.
+    pub fn hides_detail(&self, own: StoredRange, subtree: StoredRange) -> bool {
+        match *self {
+            Emptiness::TransferFunction { table, mapping } => {
+                let opacity = |r: StoredRange| {
+                    let (a, b) = (mapping.physical(r.min as f64), mapping.physical(r.max as f64));
+                    table.source.max_opacity_in(a.min(b), a.max(b))
+                };
+                opacity(subtree) > opacity(own) + 0.05
+            }
+            Emptiness::Iso { .. } => false,
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -149,3 +149,20 @@ impl GpuCut {
         Ok(self.raycaster.render_blocking(ctx, &scene)?)
     }
 }
+
+/// The same field as `table` with only its sampled entries (resident, not empty) and slots
+/// renumbered densely: what `ResidentBricks::load` + `GpuCut::upload` need to render a
+/// streamed cut in core. Skipped entries stay skipped (not resident), so nothing else loads.
+pub fn sampled_entries_only(table: &PageTable) -> PageTable {
+    let mut out = PageTable::new(table.page_dims);
+    let mut slots: HashMap<(u8, [u32; 3]), u32> = HashMap::new();
+    for (i, e) in table.entries.iter().enumerate() {
+        if e.resident && !e.empty {
+            let node = PageTable::node_of(table.page_of_linear(i), e.level);
+            let next = slots.len() as u32;
+            let slot = *slots.entry((e.level, node)).or_insert(next);
+            out.entries[i] = PageEntry::resident(slot, e.level);
+        }
+    }
+    out
+}

@@ -162,6 +162,7 @@ pub struct StreamingVolume {
     stored_bytes_read: u64,
     read_history: VecDeque<(Instant, u64)>,
     last_stats: FrameStats,
+    working_set: Vec<BrickId>,
 }
 
 impl StreamingVolume {
@@ -232,6 +233,7 @@ impl StreamingVolume {
             stored_bytes_read: reader.stored_brick_bytes(root),
             read_history: VecDeque::new(),
             last_stats: FrameStats::default(),
+            working_set: vec![root],
             config,
         })
     }
@@ -336,6 +338,9 @@ impl StreamingVolume {
 
         // Ask for no more than half the CPU cache holds: bricks read faster than uploads and
         // refinement can use them would evict each other before use and be read again.
+        self.working_set.clear();
+        self.working_set.push(self.root);
+        self.working_set.extend(cut.data_leaves().chain(cut.resident_inner.iter().copied()).filter(|&id| id != self.root));
         let demand_limit = ((self.cpu.budget_bytes() / BRICK_BYTES) as usize / 2).max(1);
         let demand: Vec<(BrickId, f64)> = cut.demand.iter().take(demand_limit).map(|r| (r.id, r.priority)).collect();
         let mut prefetch: Vec<(BrickId, f64)> = Vec::new();
@@ -349,6 +354,7 @@ impl StreamingVolume {
         }
         self.workers.set_requests(&demand, &prefetch);
 
+        let loader_seconds = started.elapsed().as_secs_f64();
         let scene = Scene {
             cache: &self.cache,
             page_table: &self.gpu_page_table,
@@ -363,9 +369,22 @@ impl StreamingVolume {
 
         let visibility_seen = !self.config.visibility_feedback || self.visibility.newest_render_frame() >= self.cut_changed_at_render;
         let converged = cut.complete() && cut.uploads.is_empty() && !rewritten && visibility_seen;
-        let stats = self.stats(&cut, fetched, rewritten, converged, started);
+        let stats = self.stats(&cut, fetched, rewritten, converged, loader_seconds);
         self.last_stats = stats.clone();
         Ok(stats)
+    }
+
+    /// Waits until the GPU finished everything submitted (frame timing in benchmarks).
+    pub fn wait_for_gpu(&self, ctx: &GpuContext) -> Result<(), LoaderError> {
+        ctx.device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map(|_| ())
+            .map_err(|e| LoaderError::Render(strata_render::RenderError::Readback(e.to_string())))
+    }
+
+    /// Bricks the last frame's cut kept on the GPU (data leaves, resident ancestors, root).
+    pub fn working_set(&self) -> &[BrickId] {
+        &self.working_set
     }
 
     /// Reads the last submitted frame back, waiting for the GPU (CLI, tests, benchmarks).
@@ -433,7 +452,7 @@ impl StreamingVolume {
             .collect()
     }
 
-    fn stats(&mut self, cut: &Cut, fetched: u64, rewritten: bool, converged: bool, started: Instant) -> FrameStats {
+    fn stats(&mut self, cut: &Cut, fetched: u64, rewritten: bool, converged: bool, loader_seconds: f64) -> FrameStats {
         let now = Instant::now();
         self.read_history.push_back((now, fetched));
         while self.read_history.front().is_some_and(|(t, _)| now.duration_since(*t).as_secs_f64() > 1.0) {
@@ -448,7 +467,7 @@ impl StreamingVolume {
         let (queued, in_flight) = (self.workers.queued(), self.workers.in_flight());
         FrameStats {
             frame: self.frame,
-            loader_seconds: started.elapsed().as_secs_f64(),
+            loader_seconds,
             leaves: cut.leaves.len(),
             data_leaves,
             data_leaves_per_level: {
