@@ -121,7 +121,7 @@ fn visibility_feedback_shrinks_the_opaque_working_set() {
     let tf = opaque();
     let s = settings(192);
     // From the side at mid-height: the body's cut ends (the volume's top and bottom) are edge-on.
-    let camera = orbit(&store, 20.0, 0.0, 1.0);
+    let camera = orbit(&store, 0.0, 0.0, 1.0);
     let run = |feedback: bool| {
         let config = StreamingConfig { visibility_feedback: feedback, max_voxel_pixels: 0.25, ..config() };
         let mut volume = stream(&ctx, &store, &tf, config);
