@@ -4,7 +4,6 @@ use anyhow::{Context, Result};
 use clap::Args;
 use strata_storage::import::{ImportOptions, ImportProgress};
 use strata_storage::phantom::Phantom;
-use strata_storage::Store;
 
 #[derive(Args)]
 pub struct SampleArgs {
@@ -24,16 +23,6 @@ pub fn demo_store_path() -> PathBuf {
     let workspace = Path::new(env!("CARGO_MANIFEST_DIR")).join("..").join("sample-data");
     let base = if workspace.is_dir() { workspace } else { PathBuf::from("sample-data") };
     base.join(format!("demo-phantom-{DEMO_SIZE}.strata"))
-}
-
-pub fn ensure_demo_volume() -> Result<PathBuf> {
-    let path = demo_store_path();
-    if Store::open(&path).is_ok() {
-        return Ok(path);
-    }
-    eprintln!("generating the demo phantom ({DEMO_SIZE}^3) into {} (first run only)", path.display());
-    write_store(&Phantom::cube(DEMO_SIZE), &path)?;
-    Ok(path)
 }
 
 fn write_store(phantom: &Phantom, out: &Path) -> Result<()> {

@@ -17,7 +17,7 @@ use super::orientation::{SliceFrame, SliceView};
 use super::slices::{level_for_pixels, SliceImage, SliceReader, SliceRequest};
 use super::tf_editor::{self, TfEditorState};
 use super::view3d::{paint_orientation_marker, OrbitCamera, StandardView};
-use super::volume_session::{RenderRequest, RenderedFrame, ScreenshotRequest, VolumeInfo, VolumeSession, DEFAULT_GPU_BUDGET_BYTES};
+use super::volume_session::{RenderRequest, ScreenshotRequest, VolumeInfo, VolumeSession, DEFAULT_GPU_BUDGET_BYTES};
 
 const NOT_FOR_DIAGNOSIS: &str = "NOT FOR DIAGNOSTIC USE";
 const WARNING_COLOUR: Color32 = Color32::from_rgb(255, 170, 40);
@@ -111,7 +111,7 @@ impl Default for Preferences {
             target_fps_enabled: true,
             target_fps: 10.0,
             step_voxels: 0.5,
-            render_scale: 0.75,
+            render_scale: 0.6,
             show_identifiers: false,
             show_side_panel: true,
             screenshot_folder: PathBuf::from("."),
@@ -234,17 +234,14 @@ impl StrataApp {
         }
     }
 
-    /// True while a store is being generated, imported or opened.
-    pub fn is_preparing(&self) -> bool {
-        self.job.is_some()
-    }
-
+    #[cfg(test)]
     pub fn job_error(&self) -> Option<&str> {
         self.job_error.as_deref()
     }
 
+    #[cfg(test)]
     /// The newest 3D frame (tests, measurements).
-    pub fn volume_frame(&self) -> Option<RenderedFrame> {
+    pub fn volume_frame(&self) -> Option<super::volume_session::RenderedFrame> {
         self.volume.as_ref().and_then(|v| v.session.latest_frame())
     }
 
@@ -252,16 +249,19 @@ impl StrataApp {
         self.volume.as_ref().map(|v| v.session.status())
     }
 
+    #[cfg(test)]
     pub fn slice_image(&self, view: SliceView) -> Option<SliceImage> {
         self.volume.as_ref().and_then(|v| v.slices.latest(view))
     }
 
+    #[cfg(test)]
     /// The displayed (window-levelled) slice texture's source values and window, for tests.
     pub fn slice_display(&self, view: SliceView) -> Option<(Arc<Vec<u16>>, (f64, f64))> {
         let v = self.volume.as_ref()?;
         v.slice_textures[view.index()].as_ref().map(|t| (t.values.clone(), t.window))
     }
 
+    #[cfg(test)]
     pub fn view_rect(&self, slot: ViewSlot) -> Option<Rect> {
         self.volume.as_ref()?.view_rects.iter().find(|(s, _)| *s == slot).map(|(_, r)| *r)
     }
@@ -952,8 +952,8 @@ impl StrataApp {
         } else if status.refining {
             right_lines.push("refining…".to_string());
         }
-        if let Some(level) = status.shown_level {
-            right_lines.push(format!("level {level}"));
+        if let Some(level) = status.finest_resident_level {
+            right_lines.push(format!("finest level {level}"));
         }
         for (i, line) in right_lines.iter().enumerate() {
             painter.text(Pos2::new(rect.right() - 8.0, rect.top() + 4.0 + 15.0 * i as f32), egui::Align2::RIGHT_TOP, line, egui::FontId::proportional(12.0), Color32::LIGHT_GRAY);
@@ -1181,6 +1181,8 @@ pub fn window_level_image(image: &SliceImage, window: (f64, f64), mapping: strat
     egui::ColorImage::new([image.width, image.height], pixels)
 }
 
+const MIB: f64 = (1u64 << 20) as f64;
+
 fn performance_panel(ui: &mut egui::Ui, prefs: &mut Preferences, v: &mut OpenVolume, clock: &FrameClock) {
     let status = v.session.status();
     ui.horizontal(|ui| {
@@ -1222,19 +1224,32 @@ fn performance_panel(ui: &mut egui::Ui, prefs: &mut Preferences, v: &mut OpenVol
         ui.label("Quality (lod) factor");
         ui.label(format!("{:.1}", status.lod_factor));
         ui.end_row();
-        ui.label("Resident level");
-        ui.label(match status.shown_level {
-            Some(l) => format!("{l} of {} (target {})", status.level_count.saturating_sub(1), status.target_level),
-            None => "—".into(),
-        });
-        ui.end_row();
-        ui.label("GPU bricks");
-        ui.label(format!(
-            "{} · {:.0} / {:.0} MiB",
-            status.resident_bricks,
-            status.gpu_cache_bytes as f64 / (1 << 20) as f64,
-            status.gpu_budget_bytes as f64 / (1 << 20) as f64
-        ));
+        if let Some(l) = &status.loader {
+            ui.label("GPU bricks per level");
+            let per_level: Vec<String> = l.gpu_resident_per_level.iter().enumerate().filter(|(_, n)| **n > 0).map(|(level, n)| format!("L{level}: {n}")).collect();
+            ui.label(per_level.join("  "));
+            ui.end_row();
+            ui.label("GPU cache");
+            ui.label(format!(
+                "{} / {} slots · {:.0} / {:.0} MiB",
+                l.gpu_slots_used,
+                l.gpu_slots_capacity,
+                l.gpu_bytes as f64 / MIB,
+                l.gpu_budget_bytes as f64 / MIB
+            ));
+            ui.end_row();
+            ui.label("CPU cache");
+            ui.label(format!("{:.0} / {:.0} MiB · hit {:.0}%", l.cpu_bytes as f64 / MIB, l.cpu_budget_bytes as f64 / MIB, l.cpu_hit_rate * 100.0));
+            ui.end_row();
+            ui.label("Pending loads");
+            ui.label(format!("{} ({} reading)", l.pending, l.in_flight));
+            ui.end_row();
+            ui.label("I/O");
+            ui.label(format!("{:.1} MB/s · {} bricks read", l.bytes_read_per_second / 1e6, l.bricks_read_total));
+            ui.end_row();
+        }
+        ui.label("Finest level on GPU");
+        ui.label(status.finest_resident_level.map_or("—".into(), |l| format!("{l} (0 = full resolution; root {})", status.level_count.saturating_sub(1))));
         ui.end_row();
         ui.label("Volume frames");
         ui.label(status.frames_rendered.to_string());

@@ -29,8 +29,6 @@ pub struct SliceRequest {
 #[derive(Clone, Debug)]
 pub struct SliceImage {
     pub request: SliceRequest,
-    /// Slice number at `request.level` along the normal axis.
-    pub slice_at_level: u32,
     pub width: usize,
     pub height: usize,
     pub values: Arc<Vec<u16>>,
@@ -203,7 +201,6 @@ fn read_slice(store: &Store, cache: &mut BrickLru, request: SliceRequest) -> any
     let inside = |axis: usize| (level0[axis] as f64 / (dims[axis] as f64 * scale)).min(1.0);
     Ok(SliceImage {
         request,
-        slice_at_level: slice as u32,
         width,
         height,
         values: Arc::new(values),

@@ -73,7 +73,7 @@ fn step_until(h: &mut Harness<'static, Option<StrataApp>>, what: &str, done: imp
 }
 
 fn fully_loaded(app: &StrataApp) -> bool {
-    app.volume_status().is_some_and(|s| s.loading.is_none() && s.shown_level == Some(s.target_level)) && app.volume_frame().is_some()
+    app.volume_status().is_some_and(|s| !s.refining && s.loader.as_ref().is_some_and(|l| l.converged)) && app.volume_frame().is_some()
 }
 
 fn lit_fraction(rgba: &[u8]) -> f64 {
@@ -107,7 +107,7 @@ fn the_phantom_opens_and_the_3d_view_is_not_blank_then_a_preset_changes_it() {
     let dir = tempfile::tempdir().expect("temp dir");
     let store = phantom_store(dir.path());
     let mut h = harness(&store, true);
-    step_until(&mut h, "the phantom at its finest level", fully_loaded);
+    step_until(&mut h, "the phantom streamed in (loader converged)", fully_loaded);
     let bone = wait_for_frame_with_tf(&mut h, "ct-bone", 0);
     // The phantom's bone shell fills a good part of the view; a blank or failed frame is ~0.
     let lit = lit_fraction(&bone);
