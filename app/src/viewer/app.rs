@@ -38,6 +38,8 @@ pub struct ViewerOptions {
     pub max_render_pixels: u32,
     pub gpu_budget_bytes: u64,
     pub persist_settings: bool,
+    /// Where scans are imported to (the user's data folder unless a test says otherwise).
+    pub import_folder: PathBuf,
     /// Overrides the remembered layout.
     pub initial_layout: Option<Layout>,
 }
@@ -54,6 +56,7 @@ impl ViewerOptions {
             max_render_pixels: 1024,
             gpu_budget_bytes: DEFAULT_GPU_BUDGET_BYTES,
             persist_settings: true,
+            import_folder: super::jobs::data_folder(),
             initial_layout: None,
         }
     }
@@ -228,7 +231,7 @@ impl StrataApp {
 
     fn start_job(&mut self, source: VolumeSource, dicom_series: Option<String>) {
         self.job_error = None;
-        match PrepareJob::start(source, dicom_series, lock_free_repaint(&self.ctx)) {
+        match PrepareJob::start(source, dicom_series, self.options.import_folder.clone(), lock_free_repaint(&self.ctx)) {
             Ok(job) => self.job = Some(job),
             Err(e) => self.job_error = Some(format!("could not start: {e:#}")),
         }
@@ -237,6 +240,17 @@ impl StrataApp {
     #[cfg(test)]
     pub fn job_error(&self) -> Option<&str> {
         self.job_error.as_deref()
+    }
+
+    /// (done, total, stage) of the running preparation, for tests.
+    #[cfg(test)]
+    pub fn job_progress(&self) -> Option<(u64, u64, String)> {
+        self.job.as_ref().map(|j| j.progress())
+    }
+
+    #[cfg(test)]
+    pub fn last_screenshot(&self) -> Option<Result<PathBuf, String>> {
+        self.volume_status().and_then(|s| s.last_screenshot)
     }
 
     #[cfg(test)]

@@ -54,7 +54,7 @@ pub fn data_folder() -> PathBuf {
 
 /// Where a scan's store goes: named after the input, keyed by its full path, size and
 /// modification time so a changed file is imported again and an unchanged one is reused.
-pub fn store_path_for_input(input: &Path) -> PathBuf {
+pub fn store_path_for_input(input: &Path, folder: &Path) -> PathBuf {
     let absolute = std::fs::canonicalize(input).unwrap_or_else(|_| input.to_path_buf());
     let meta = std::fs::metadata(&absolute).ok();
     let stamp = meta
@@ -64,7 +64,7 @@ pub fn store_path_for_input(input: &Path) -> PathBuf {
     let key = xxhash_of(format!("{}|{}|{}", absolute.display(), stamp.0, stamp.1).as_bytes());
     let name = absolute.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "scan".into());
     let stem: String = name.chars().map(|c| if c.is_ascii_alphanumeric() || c == '-' || c == '_' || c == '.' { c } else { '_' }).collect();
-    data_folder().join(format!("{stem}-{key:016x}.strata"))
+    folder.join(format!("{stem}-{key:016x}.strata"))
 }
 
 /// FNV-1a: a stable name key, not a checksum.
@@ -73,7 +73,8 @@ fn xxhash_of(bytes: &[u8]) -> u64 {
 }
 
 impl PrepareJob {
-    pub fn start(source: VolumeSource, dicom_series: Option<String>, repaint: Repaint) -> anyhow::Result<PrepareJob> {
+    /// Scans are imported into `import_folder` (normally [`data_folder`]).
+    pub fn start(source: VolumeSource, dicom_series: Option<String>, import_folder: PathBuf, repaint: Repaint) -> anyhow::Result<PrepareJob> {
         let title = match &source {
             VolumeSource::Demo { size, .. } => format!("Preparing the {size}³ demo phantom"),
             VolumeSource::Path(p) => format!("Opening {}", p.display()),
@@ -98,7 +99,7 @@ impl PrepareJob {
                 *lock(&stage) = s;
                 repaint();
             };
-            let outcome = prepare(&source, dicom_series, &progress, &set_stage, &cancel).map(Arc::new).map_err(|e| format!("{e:#}"));
+            let outcome = prepare(&source, dicom_series, &import_folder, &progress, &set_stage, &cancel).map(Arc::new).map_err(|e| format!("{e:#}"));
             *lock(&result) = Some(outcome);
             repaint();
         })?;
@@ -122,6 +123,7 @@ impl PrepareJob {
 fn prepare(
     source: &VolumeSource,
     dicom_series: Option<String>,
+    import_folder: &Path,
     progress: &(dyn Fn(ImportProgress) + Sync),
     set_stage: &dyn Fn(String),
     cancel: &AtomicBool,
@@ -148,7 +150,7 @@ fn prepare(
             if !input.exists() {
                 anyhow::bail!("{} does not exist", input.display());
             }
-            let store_path = store_path_for_input(input);
+            let store_path = store_path_for_input(input, import_folder);
             if let Ok(store) = Store::open(&store_path) {
                 set_stage(format!("opening the earlier import {}", store_path.display()));
                 return Ok(store);

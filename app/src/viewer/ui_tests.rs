@@ -28,16 +28,20 @@ fn phantom_store(dir: &Path) -> std::path::PathBuf {
 
 fn harness(store: &Path, side_panel: bool) -> Harness<'static, Option<StrataApp>> {
     let mut options = ViewerOptions::new(VolumeSource::Path(store.to_path_buf()));
-    options.max_render_pixels = 96;
-    options.persist_settings = false;
+    options.import_folder = store.parent().unwrap_or(Path::new(".")).join("imported");
     let preferences = Preferences {
         layout: Layout::TwoByTwo,
         show_side_panel: side_panel,
-        // Fixed sampling: frames differ only by what the test changes.
-        target_fps_enabled: false,
-        step_voxels: 1.0,
         ..Preferences::default()
     };
+    harness_with(options, preferences)
+}
+
+fn harness_with(mut options: ViewerOptions, preferences: Preferences) -> Harness<'static, Option<StrataApp>> {
+    options.max_render_pixels = 96;
+    options.persist_settings = false;
+    // Fixed sampling: frames differ only by what the test changes.
+    let preferences = Preferences { target_fps_enabled: false, step_voxels: 1.0, ..preferences };
     Harness::builder()
         .with_size(Vec2::new(560.0, 380.0))
         .wgpu()
@@ -181,4 +185,38 @@ fn right_drag_in_a_slice_changes_window_level_and_the_image_and_the_wheel_pages(
     let after = app(&h).volume.as_ref().expect("volume").cursor[normal];
     assert_eq!(after, before.round() + 1.0, "one wheel line pages one slice");
     step_until(&mut h, "the next slice read", |a| a.slice_image(SliceView::Axial).is_some_and(|i| i.request.position == after));
+}
+
+#[test]
+fn a_scan_imports_with_progress_then_shows_and_f12_writes_a_screenshot() {
+    let scan = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/niivue/chris_t1.nii.gz");
+    if !scan.exists() {
+        eprintln!("SKIP: {} is absent (see ../shared/data/SOURCES.md)", scan.display());
+        return;
+    }
+    let dir = tempfile::tempdir().expect("temp dir");
+    let mut options = ViewerOptions::new(VolumeSource::Path(scan.clone()));
+    options.import_folder = dir.path().join("imported");
+    let preferences = Preferences { show_side_panel: false, screenshot_folder: dir.path().to_path_buf(), ..Preferences::default() };
+    let mut h = harness_with(options, preferences);
+    // The import runs on its own thread and names its stage; the first frame follows.
+    let saw_stage = std::cell::Cell::new(false);
+    step_until(&mut h, "the imported scan's first 3D frame", |a| {
+        if a.job_progress().is_some_and(|(_, _, stage)| !stage.is_empty()) {
+            saw_stage.set(true);
+        }
+        a.volume_frame().is_some()
+    });
+    assert!(saw_stage.get(), "no progress was shown while preparing the scan");
+    let imported: Vec<_> = std::fs::read_dir(dir.path().join("imported")).expect("import folder").flatten().collect();
+    assert_eq!(imported.len(), 1, "one store imported into the import folder");
+    h.key_press(egui::Key::F12);
+    step_until(&mut h, "the screenshot", |a| a.last_screenshot().is_some());
+    match app(&h).last_screenshot() {
+        Some(Ok(path)) => {
+            let image = image::open(&path).expect("screenshot is a PNG");
+            assert!(image.width() >= 16 && image.height() >= 16, "screenshot {}x{}", image.width(), image.height());
+        }
+        other => panic!("screenshot failed: {other:?}"),
+    }
 }
