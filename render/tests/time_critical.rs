@@ -9,6 +9,8 @@ use strata_render::*;
 const SIZE: u32 = 128;
 /// Frames the CPU may run ahead of the GPU, as a swapchain would allow.
 const FRAMES_IN_FLIGHT: usize = 2;
+/// Frames of the orbit left out of the verdict: warm-up, convergence and timing latency.
+const CONVERGENCE_FRAMES: u64 = 16;
 
 /// Frame times on lavapipe are CPU time: tests of this file running side by side would time
 /// each other. One at a time.
@@ -342,21 +344,24 @@ fn orbit_holds_target(ctx: GpuContext) {
         }
     }
     let first = g.raycaster.frame_number() - frames as u64;
-    // Judge the second half of the orbit: the first frames are the convergence the unit tests
-    // bound (six frames plus the timing latency).
+    // The first frames are the convergence the unit tests bound (six frames plus the timing
+    // latency); judge the rest.
     let settled: Vec<f64> = measured
         .iter()
-        .filter(|(n, _)| *n > first + frames as u64 / 2)
-        .map(|(_, ms)| 1000.0 / ms)
+        .filter(|(n, _)| *n > first + CONVERGENCE_FRAMES)
+        .map(|(_, ms)| *ms)
         .collect();
     assert!(
-        settled.len() >= frames / 3,
+        settled.len() >= frames / 2,
         "only {} timings",
         settled.len()
     );
-    let mean = settled.iter().sum::<f64>() / settled.len() as f64;
+    // Frames per second as a user counts them: frames over the time they took. (The mean of
+    // per-frame rates would read high by about σ²/2 of the frame noise, which on a busy
+    // two-core lavapipe is several percent.)
+    let mean = settled.len() as f64 * 1000.0 / settled.iter().sum::<f64>();
     eprintln!(
-        "{:?}: target {target_fps:.1} fps; second half of the orbit: mean {mean:.1} fps over {} frames; rate {:.3}",
+        "{:?}: target {target_fps:.1} fps; after convergence {mean:.1} fps over {} frames; rate {:.3}",
         g.raycaster.frame_timing_source(),
         settled.len(),
         controller.sampling_rate_controller().rate()
