@@ -12,6 +12,7 @@ use strata_storage::phantom::Phantom;
 use strata_storage::readers::{open_source, ReadOptions};
 use strata_storage::{BrickId, Store, BRICK_VOXELS};
 
+mod accuracy;
 mod time_critical;
 
 #[derive(Subcommand)]
@@ -37,6 +38,28 @@ pub enum BenchCommand {
         store: PathBuf,
         #[arg(long, default_value_t = 2000)]
         count: usize,
+    },
+    /// What accuracy costs in time: sweeps step, pre-integration, level, jitter and shading on
+    /// one view and writes error vs the f64 reference against frame time (CSV, markdown, PNG
+    /// plot with the Pareto front).
+    Accuracy {
+        /// A store, or `phantom` for a generated CT phantom.
+        input: String,
+        /// Edge of the generated phantom.
+        #[arg(long, default_value_t = 192)]
+        phantom_size: u64,
+        /// Image size WxH (the f64 reference is rendered at the same size).
+        #[arg(long, default_value = "256x256")]
+        size: String,
+        /// Timed frames per setting (median reported).
+        #[arg(long, default_value_t = 5)]
+        frames: usize,
+        /// Transfer function preset or JSON file (default by modality).
+        #[arg(long)]
+        tf: Option<String>,
+        /// Where the CSV, markdown table and plot go.
+        #[arg(long, default_value = "target/bench-accuracy")]
+        out_dir: std::path::PathBuf,
     },
     /// The time-critical paper's Table 2: a 360° orbit at a fixed sampling rate and under the
     /// frame-rate controller; mean fps and σ of the measured GPU frame time for both.
@@ -72,6 +95,9 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
     match cmd {
         BenchCommand::Import { size, rss_size, memory_mib, dir } => bench_import(size, rss_size, memory_mib, &dir),
         BenchCommand::Bricks { store, count } => bench_bricks(&store, count),
+        BenchCommand::Accuracy { input, phantom_size, size, frames, tf, out_dir } => {
+            accuracy::run(accuracy::Options { input, phantom_size, size, frames, tf, out_dir })
+        }
         BenchCommand::Timecritical { store, target, frames, csv, size, step, tf, level, elevation } => {
             time_critical::run(time_critical::Options { store, target_fps: target, frames, csv, size, step, tf, level, elevation })
         }

@@ -264,9 +264,13 @@ struct RayState {
     hit: bool,
     last_marked: u32,
     done: bool,
-    // Pre-integration: the value at the previous sample, the front of the next segment.
-    prev_value: f32,
-    has_prev_value: bool,
+    // Pre-integration: the previous sample (value, distance, step, location), the front of
+    // the next segment; cleared where a run of samples ends (skip, not resident, ray end).
+    run_value: f32,
+    run_t: f32,
+    run_delta: f32,
+    run_loc: Location,
+    run_open: bool,
 };
 
 // Marks a page visible once per visit: consecutive samples mostly share a page, and a
@@ -279,40 +283,64 @@ fn mark_visible_in(st: ptr<function, RayState>, page: u32) {
     }
 }
 
+// Composites the pre-integrated segment of `length` (mm) from value `front` to `back`. The
+// table is for the base step; other lengths (half segments, coarse levels, level changes)
+// rescale opacity by the same power law as the classic opacity correction.
+fn composite_segment(st: ptr<function, RayState>, front: f32, back: f32, length: f32,
+                     front_loc: Location, back_loc: Location, t: f32, d: vec3<f32>) {
+    var seg = preintegrated(front, back);
+    let ratio = length / P.box_lo.w;
+    if ratio != 1.0 && seg.a > 0.0 {
+        let a = 1.0 - pow(1.0 - min(seg.a, 0.999999), ratio);
+        seg = vec4<f32>(seg.rgb * (a / seg.a), a);
+    }
+    if seg.a <= 0.0 {
+        return;
+    }
+    var color = seg.rgb;
+    if SHADING {
+        // Lit at the segment's nearer sample: the gradient is only known at samples.
+        color = shade(seg.rgb / seg.a, back_loc, d) * seg.a;
+    }
+    if (*st).depth == bitcast<f32>(0x7f800000u) {
+        (*st).depth = t;
+    }
+    mark_visible_in(st, back_loc.page);
+    let w = 1.0 - (*st).acc.a;
+    (*st).acc = vec4<f32>((*st).acc.rgb + w * color, (*st).acc.a + w * seg.a);
+    if EARLY_TERMINATION && (*st).acc.a >= P.dims.w {
+        (*st).done = true;
+    }
+}
+
+// The constant half segment after the last sample of a run (see take_sample).
+fn close_preintegrated_run(st: ptr<function, RayState>, d: vec3<f32>) {
+    if MODE == 0u && PREINTEGRATED && (*st).run_open && !(*st).done {
+        let v = (*st).run_value;
+        composite_segment(st, v, v, 0.5 * (*st).run_delta, (*st).run_loc, (*st).run_loc,
+                          (*st).run_t, d);
+    }
+    (*st).run_open = false;
+}
+
 fn take_sample(st: ptr<function, RayState>, loc: Location, t: f32, delta: f32, o: vec3<f32>, d: vec3<f32>) {
     (*st).samples = (*st).samples + 1u;
     let v = physical(fetch(loc.coord));
     if MODE == 0u && PREINTEGRATED {
-        // The segment from the previous sample to this one; after a skip or at the ray start
-        // there is none, and a constant segment equals the classic sample.
-        var front = v;
-        if (*st).has_prev_value {
-            front = (*st).prev_value;
+        // Segments join consecutive samples, which sit at segment midpoints; a run of samples
+        // therefore starts with a constant half segment before its first sample and ends with
+        // one after its last (close_preintegrated_run), so the integrated interval is the one
+        // the classic path covers.
+        if (*st).run_open {
+            composite_segment(st, (*st).run_value, v, t - (*st).run_t, (*st).run_loc, loc, t, d);
+        } else {
+            composite_segment(st, v, v, 0.5 * delta, loc, loc, t, d);
         }
-        (*st).prev_value = v;
-        (*st).has_prev_value = true;
-        var seg = preintegrated(front, v);
-        // The table is for the base step; coarse nodes step 2^L times as far.
-        let ratio = delta / P.box_lo.w;
-        if ratio != 1.0 && seg.a > 0.0 {
-            let a = 1.0 - pow(1.0 - min(seg.a, 0.999999), ratio);
-            seg = vec4<f32>(seg.rgb * (a / seg.a), a);
-        }
-        if seg.a > 0.0 {
-            var color = seg.rgb;
-            if SHADING {
-                color = shade(seg.rgb / seg.a, loc, d) * seg.a;
-            }
-            if (*st).depth == bitcast<f32>(0x7f800000u) {
-                (*st).depth = t;
-            }
-            mark_visible_in(st, loc.page);
-            let w = 1.0 - (*st).acc.a;
-            (*st).acc = vec4<f32>((*st).acc.rgb + w * color, (*st).acc.a + w * seg.a);
-            if EARLY_TERMINATION && (*st).acc.a >= P.dims.w {
-                (*st).done = true;
-            }
-        }
+        (*st).run_value = v;
+        (*st).run_t = t;
+        (*st).run_delta = delta;
+        (*st).run_loc = loc;
+        (*st).run_open = true;
     } else if MODE == 0u {
         let tf = transfer(v);
         if tf.a > 0.0 {
@@ -469,7 +497,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
                 let next = ceil((t_exit - first) / base - 0.5);
                 k = max(k + 1u, u32(clamp(next, 0.0, 4.0e9)));
                 st.prev_valid = false;
-                st.has_prev_value = false;
+                close_preintegrated_run(&st, d);
                 if MODE == 2u && probe.resident {
                     // Empty for an isosurface means below the iso value: the crossing lies
                     // after the cell face, so bisection may start there.
@@ -479,7 +507,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             } else {
                 k = k + 1u;
                 st.prev_valid = false;
-                st.has_prev_value = false;
+                close_preintegrated_run(&st, d);
             }
             continue;
         }
@@ -497,7 +525,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         k = k + stride;
         if !loc.resident {
             st.prev_valid = false;
-            st.has_prev_value = false;
+            close_preintegrated_run(&st, d);
             continue;
         }
         take_sample(&st, loc, t, delta, o, d);
@@ -532,6 +560,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             }
         }
     }
+    close_preintegrated_run(&st, d);
     var acc = st.acc;
     var depth = st.depth;
     let samples = st.samples;

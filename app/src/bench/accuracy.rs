@@ -1,0 +1,401 @@
+//! `strata bench accuracy`: what accuracy costs in time. Sweeps the quality knobs of one view
+//! (step length, pre-integration, octree level as the loader's quality factor picks it,
+//! jitter, shading), and for each setting measures the frame time (median of N, render and
+//! wait, on whatever adapter is found) and the error against the f64 CPU reference of the
+//! same view at full resolution (RMSE, PSNR, max abs error over RGBA8). Writes a CSV, a
+//! markdown table and a PNG plot of error against time with the Pareto front marked.
+//!
+//! All settings render the same camera, so the only differences are the knobs. The
+//! reference integrates level 0 at 1/16 voxel; shaded settings are compared with a shaded
+//! reference.
+
+use std::collections::HashMap;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use strata_loader::store_volume::{classify_empty, page_table_for_cut, GpuCut};
+use strata_loader::{render_geometry, render_mapping, ResidentBricks};
+use strata_render::reference::{render_reference, ReferenceOptions, ReferenceScene};
+use strata_render::{
+    compare_rgba8, Camera, GpuContext, PageTable, Projection, RenderMode, RenderSettings, Shading,
+    TransferFunction, TransferFunctionTable, ValueMapping, VolumeGeometry,
+};
+use strata_storage::Store;
+
+use crate::cmd_render::{choose_transfer_function, parse_size};
+
+pub struct Options {
+    /// A store, or the word `phantom` for a generated CT phantom of `phantom_size`³.
+    pub input: String,
+    pub phantom_size: u64,
+    pub size: String,
+    pub frames: usize,
+    pub tf: Option<String>,
+    pub out_dir: PathBuf,
+}
+
+/// One point of the sweep.
+#[derive(Clone, Debug)]
+struct Knobs {
+    family: &'static str,
+    step: f64,
+    preintegrated: bool,
+    level: u8,
+    jitter: bool,
+    shading: bool,
+}
+
+impl Knobs {
+    fn label(&self) -> String {
+        let mut s = format!("step {}", self.step);
+        if self.preintegrated {
+            s += " preint";
+        }
+        if self.level > 0 {
+            let _ = write!(s, " level {}", self.level);
+        }
+        if self.jitter {
+            s += " jitter";
+        }
+        if self.shading {
+            s += " shaded";
+        }
+        s
+    }
+}
+
+struct Row {
+    knobs: Knobs,
+    median_ms: f64,
+    rmse: f64,
+    psnr_db: f64,
+    max_abs: u8,
+    pareto: bool,
+}
+
+fn sweep() -> Vec<Knobs> {
+    let base = Knobs {
+        family: "step",
+        step: 0.5,
+        preintegrated: false,
+        level: 0,
+        jitter: false,
+        shading: false,
+    };
+    let mut knobs = Vec::new();
+    for &step in &[0.125, 0.25, 0.5, 1.0, 2.0, 4.0] {
+        knobs.push(Knobs { step, ..base.clone() });
+        knobs.push(Knobs { family: "step + pre-integration", step, preintegrated: true, ..base.clone() });
+    }
+    for level in [1, 2] {
+        knobs.push(Knobs { family: "coarser level (LOD factor)", level, ..base.clone() });
+        knobs.push(Knobs { family: "coarser level (LOD factor)", level, step: 1.0, ..base.clone() });
+    }
+    for &step in &[1.0, 2.0, 4.0] {
+        knobs.push(Knobs { family: "jitter", step, jitter: true, ..base.clone() });
+    }
+    for &step in &[0.25, 0.5, 1.0, 2.0] {
+        knobs.push(Knobs { family: "shaded", step, shading: true, ..base.clone() });
+    }
+    knobs
+}
+
+/// A point is on the Pareto front when no other point is at least as fast and at least as
+/// accurate, and strictly better in one of the two.
+fn mark_pareto(rows: &mut [Row]) {
+    let points: Vec<(f64, f64)> = rows.iter().map(|r| (r.median_ms, r.rmse)).collect();
+    for (i, row) in rows.iter_mut().enumerate() {
+        let (t, e) = points[i];
+        row.pareto = !points
+            .iter()
+            .enumerate()
+            .any(|(j, &(tj, ej))| j != i && tj <= t && ej <= e && (tj < t || ej < e));
+    }
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(|a, b| a.total_cmp(b));
+    v[v.len() / 2]
+}
+
+struct Volume {
+    store: Store,
+    geometry: VolumeGeometry,
+    mapping: ValueMapping,
+    tf: TransferFunction,
+    tf_table: TransferFunctionTable,
+    name: String,
+    _scratch: Option<tempfile::TempDir>,
+}
+
+fn open_input(options: &Options) -> Result<Volume> {
+    let (store, name, scratch) = if options.input == "phantom" {
+        let dir = tempfile::tempdir().context("creating a scratch folder for the phantom store")?;
+        let path = dir.path().join("phantom.strata");
+        eprintln!("generating a {}³ CT phantom store", options.phantom_size);
+        strata_storage::phantom::Phantom::cube(options.phantom_size)
+            .write_store(&path, &strata_storage::import::ImportOptions::default())
+            .with_context(|| format!("writing phantom store {}", path.display()))?;
+        let store = Store::open(&path).with_context(|| format!("opening {}", path.display()))?;
+        (store, format!("phantom{}", options.phantom_size), Some(dir))
+    } else {
+        let path = Path::new(&options.input);
+        let store = Store::open(path).with_context(|| format!("cannot open store {}", path.display()))?;
+        let name = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "store".into());
+        (store, name, None)
+    };
+    let header = store.header().clone();
+    let geometry = render_geometry(&header)?;
+    let mapping = render_mapping(&header);
+    let tf = choose_transfer_function(options.tf.as_deref(), &header.modality)?;
+    let (a, b) = (mapping.physical(header.stored_range[0] as f64), mapping.physical(header.stored_range[1] as f64));
+    let tf_table = tf.table(a.min(b), a.max(b));
+    Ok(Volume { store, geometry, mapping, tf, tf_table, name, _scratch: scratch })
+}
+
+/// The cut of one uniform level, its bricks and GPU resources.
+struct LevelCut {
+    table: PageTable,
+    bricks: ResidentBricks,
+    gpu: GpuCut,
+}
+
+fn load_level(ctx: &GpuContext, v: &Volume, level: u8) -> Result<LevelCut> {
+    let mut table = page_table_for_cut(&v.store, &v.geometry, |_| level);
+    classify_empty(&v.store, &mut table, v.mapping, &v.tf_table);
+    let bricks = ResidentBricks::load(&v.store, &table)?;
+    let gpu = GpuCut::upload(ctx, &bricks, &table, v.geometry.page_dims(), &v.tf_table)?;
+    Ok(LevelCut { table, bricks, gpu })
+}
+
+pub fn run(options: Options) -> Result<()> {
+    if options.frames == 0 {
+        bail!("--frames must be at least 1");
+    }
+    let (width, height) = parse_size(&options.size)?;
+    let v = open_input(&options)?;
+    let ctx = GpuContext::headless()?;
+    eprintln!("GPU: {}", ctx.adapter_name());
+    let camera = Camera::orbit(&v.geometry, 30.0, 20.0, 1.0, Projection::Perspective { fov_y_deg: 30.0 });
+    let settings_of = |k: &Knobs| RenderSettings {
+        width,
+        height,
+        mode: RenderMode::Dvr,
+        quality: k.step,
+        jitter: k.jitter,
+        preintegrated: k.preintegrated,
+        shading: k.shading.then(Shading::default),
+        ..RenderSettings::default()
+    };
+
+    let knobs = sweep();
+    let mut cuts: HashMap<u8, LevelCut> = HashMap::new();
+    let root = (v.store.layout().level_count() - 1) as u8;
+    for k in &knobs {
+        let level = k.level.min(root);
+        if let std::collections::hash_map::Entry::Vacant(e) = cuts.entry(level) {
+            e.insert(load_level(&ctx, &v, level)?);
+        }
+    }
+
+    // Ground truth, unshaded and shaded: level 0 at 1/16 voxel in f64.
+    let mut references = HashMap::new();
+    let finest = cuts.get(&0).context("level 0 cut missing")?;
+    for shading in [false, true] {
+        let t = Instant::now();
+        let settings = RenderSettings { jitter: false, ..settings_of(&Knobs { step: 0.5, shading, ..knobs[0].clone() }) };
+        let reference = render_reference(
+            &ReferenceScene {
+                source: &finest.bricks,
+                page_table: &finest.table,
+                geometry: &v.geometry,
+                mapping: v.mapping,
+                transfer_function: &v.tf,
+                tf_range: (v.tf_table.lo, v.tf_table.hi),
+            },
+            &camera,
+            &settings,
+            ReferenceOptions { step_refinement: 8.0, ..Default::default() },
+        )?;
+        eprintln!("reference ({}) in {:.1} s", if shading { "shaded" } else { "unshaded" }, t.elapsed().as_secs_f64());
+        references.insert(shading, reference.rgba);
+    }
+
+    let mut rows = Vec::new();
+    for k in &knobs {
+        let cut = cuts.get_mut(&k.level.min(root)).context("cut missing")?;
+        let settings = settings_of(k);
+        // Error from one frame (jittered frames differ; frame 0's pattern stands for all).
+        let frame = cut.gpu.render_blocking(&ctx, &v.geometry, v.mapping, &camera, &settings)?;
+        let reference = references.get(&k.shading).context("reference missing")?;
+        let c = compare_rgba8(&frame.rgba, reference)?;
+        let mut times = Vec::with_capacity(options.frames);
+        for i in 0..options.frames {
+            let settings = RenderSettings { frame_index: i as u32, ..settings.clone() };
+            let scene = strata_render::Scene {
+                cache: &cut.gpu.cache,
+                page_table: &cut.gpu.page_table,
+                transfer_function: &cut.gpu.transfer_function,
+                geometry: &v.geometry,
+                mapping: v.mapping,
+                camera: &camera,
+                settings: &settings,
+            };
+            let t = Instant::now();
+            cut.gpu.raycaster.render_and_wait(&ctx, &scene)?;
+            times.push(t.elapsed().as_secs_f64() * 1e3);
+        }
+        let row = Row { knobs: k.clone(), median_ms: median(times), rmse: c.rmse, psnr_db: c.psnr_db, max_abs: c.max_abs_error, pareto: false };
+        eprintln!("{:<28} {:>8.1} ms  PSNR {:>5.1} dB  RMSE {:>6.3}  max {:>3}", row.knobs.label(), row.median_ms, row.psnr_db, row.rmse, row.max_abs);
+        rows.push(row);
+    }
+    mark_pareto(&mut rows);
+
+    std::fs::create_dir_all(&options.out_dir).with_context(|| format!("creating {}", options.out_dir.display()))?;
+    let stem = options.out_dir.join(format!("accuracy-{}", v.name));
+    let csv = stem.with_extension("csv");
+    let md = stem.with_extension("md");
+    let png = stem.with_extension("png");
+    write_csv(&csv, &rows)?;
+    let table = markdown(&rows, &v.name, width, height, options.frames, &ctx.adapter_name());
+    std::fs::write(&md, &table).with_context(|| format!("writing {}", md.display()))?;
+    plot(&png, &rows, &v.name)?;
+    println!("{table}");
+    println!("wrote {}, {}, {}", csv.display(), md.display(), png.display());
+    Ok(())
+}
+
+fn write_csv(path: &Path, rows: &[Row]) -> Result<()> {
+    let mut out = String::from("family,setting,step_voxels,preintegrated,level,jitter,shading,median_ms,rmse,psnr_db,max_abs,pareto\n");
+    for r in rows {
+        let k = &r.knobs;
+        let _ = writeln!(
+            out,
+            "{},{},{},{},{},{},{},{:.3},{:.4},{:.2},{},{}",
+            k.family, k.label(), k.step, k.preintegrated, k.level, k.jitter, k.shading, r.median_ms, r.rmse, r.psnr_db, r.max_abs, r.pareto
+        );
+    }
+    std::fs::write(path, out).with_context(|| format!("writing {}", path.display()))
+}
+
+fn markdown(rows: &[Row], name: &str, width: u32, height: u32, frames: usize, adapter: &str) -> String {
+    let mut out = format!(
+        "Accuracy vs time, {name}, {width}×{height} DVR, median of {frames} frames on {adapter}; \
+         error against the f64 reference (level 0, 1/16 voxel). ★ = Pareto front.\n\n\
+         | setting | family | ms/frame | PSNR dB | RMSE | max abs | front |\n| --- | --- | ---: | ---: | ---: | ---: | :---: |\n"
+    );
+    for r in rows {
+        let _ = writeln!(
+            out,
+            "| {} | {} | {:.1} | {:.1} | {:.3} | {} | {} |",
+            r.knobs.label(),
+            r.knobs.family,
+            r.median_ms,
+            r.psnr_db,
+            r.rmse,
+            r.max_abs,
+            if r.pareto { "★" } else { "" }
+        );
+    }
+    out
+}
+
+fn plot(path: &Path, rows: &[Row], name: &str) -> Result<()> {
+    use plotters::prelude::*;
+    plotters::style::register_font("sans-serif", FontStyle::Normal, epaint_default_fonts::UBUNTU_LIGHT)
+        .map_err(|_| anyhow::anyhow!("the bundled plot font did not load"))?;
+    let draw_error = |e: DrawingAreaErrorKind<_>| anyhow::anyhow!("plotting {}: {e:?}", path.display());
+    let root = BitMapBackend::new(path, (900, 600)).into_drawing_area();
+    root.fill(&WHITE).map_err(draw_error)?;
+    let positive = |x: f64| x.max(1e-3);
+    let (t_lo, t_hi) = rows.iter().fold((f64::INFINITY, 0.0f64), |(lo, hi), r| (lo.min(r.median_ms), hi.max(r.median_ms)));
+    let (e_lo, e_hi) = rows.iter().fold((f64::INFINITY, 0.0f64), |(lo, hi), r| (lo.min(positive(r.rmse)), hi.max(positive(r.rmse))));
+    let mut chart = ChartBuilder::on(&root)
+        .caption(format!("{name}: error vs frame time (DVR)"), ("sans-serif", 24))
+        .margin(16)
+        .x_label_area_size(48)
+        .y_label_area_size(64)
+        .build_cartesian_2d((t_lo * 0.8..t_hi * 1.25).log_scale(), (e_lo * 0.8..e_hi * 1.25).log_scale())
+        .map_err(draw_error)?;
+    chart
+        .configure_mesh()
+        .x_desc("ms per frame (median)")
+        .x_labels(8)
+        .x_label_formatter(&|v| format!("{v:.0}"))
+        .y_label_formatter(&|v| format!("{v}"))
+        .y_desc("RMSE vs f64 reference (0-255)")
+        .label_style(("sans-serif", 15))
+        .draw()
+        .map_err(draw_error)?;
+    let families = ["step", "step + pre-integration", "coarser level (LOD factor)", "jitter", "shaded"];
+    let colors = [BLUE, RED, GREEN, MAGENTA, BLACK];
+    for (family, color) in families.iter().zip(colors) {
+        let points: Vec<(f64, f64)> = rows.iter().filter(|r| r.knobs.family == *family).map(|r| (r.median_ms, positive(r.rmse))).collect();
+        chart
+            .draw_series(points.iter().map(|&p| Circle::new(p, 5, color.filled())))
+            .map_err(draw_error)?
+            .label(*family)
+            .legend(move |(x, y)| Circle::new((x + 8, y), 5, color.filled()));
+    }
+    let mut front: Vec<(f64, f64)> = rows.iter().filter(|r| r.pareto).map(|r| (r.median_ms, positive(r.rmse))).collect();
+    front.sort_by(|a, b| a.0.total_cmp(&b.0));
+    chart
+        .draw_series(LineSeries::new(front.clone(), ShapeStyle::from(&BLACK.mix(0.6)).stroke_width(2)))
+        .map_err(draw_error)?
+        .label("Pareto front")
+        .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], BLACK.stroke_width(2)));
+    chart
+        .draw_series(front.iter().map(|&p| Circle::new(p, 9, BLACK.stroke_width(2))))
+        .map_err(draw_error)?;
+    chart
+        .configure_series_labels()
+        .position(SeriesLabelPosition::UpperRight)
+        .background_style(WHITE.mix(0.9))
+        .border_style(BLACK)
+        .label_font(("sans-serif", 15))
+        .draw()
+        .map_err(draw_error)?;
+    root.present().map_err(draw_error)?;
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn row(ms: f64, rmse: f64) -> Row {
+        Row {
+            knobs: Knobs { family: "step", step: 1.0, preintegrated: false, level: 0, jitter: false, shading: false },
+            median_ms: ms,
+            rmse,
+            psnr_db: 0.0,
+            max_abs: 0,
+            pareto: false,
+        }
+    }
+
+    #[test]
+    fn pareto_front_keeps_only_undominated_points() {
+        let mut rows = vec![row(10.0, 5.0), row(20.0, 2.0), row(15.0, 6.0), row(30.0, 2.0), row(5.0, 9.0)];
+        mark_pareto(&mut rows);
+        let front: Vec<bool> = rows.iter().map(|r| r.pareto).collect();
+        // (15, 6) is slower and worse than (10, 5); (30, 2) is slower than (20, 2) at equal error.
+        assert_eq!(front, vec![true, true, false, false, true]);
+    }
+
+    #[test]
+    fn plot_writes_a_png() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("p.png");
+        let mut rows = vec![row(10.0, 5.0), row(20.0, 2.0), row(5.0, 0.0)];
+        mark_pareto(&mut rows);
+        plot(&path, &rows, "test").unwrap();
+        let img = image::open(&path).unwrap().to_rgb8();
+        assert_eq!(img.dimensions(), (900, 600));
+        // Not blank: the axes, labels and points draw dark pixels on the white background.
+        let dark = img.pixels().filter(|p| p.0.iter().all(|&c| c < 100)).count();
+        assert!(dark > 1000, "{dark} dark pixels");
+    }
+}
