@@ -94,6 +94,12 @@ struct ViewArgs {
     /// Layout to start with: single, conventional (3D over three slices) or four-up.
     #[arg(long)]
     layout: Option<String>,
+    /// Start the 3D view from this side: A, P, L, R, S or I.
+    #[arg(long)]
+    view: Option<String>,
+    /// Transfer-function preset to start with (ct-bone, ct-soft-tissue, ct-lung, ct-vessels, mr-default).
+    #[arg(long)]
+    preset: Option<String>,
     /// Start from default settings and do not remember them.
     #[arg(long)]
     fresh: bool,
@@ -119,5 +125,15 @@ fn view(args: ViewArgs) -> Result<()> {
         Some("four-up") => Some(viewer::app::Layout::TwoByTwo),
         Some(other) => anyhow::bail!("--layout must be single, conventional or four-up, not '{other}'"),
     };
+    options.initial_view = match args.view.as_deref() {
+        None => None,
+        Some(letter) => Some(
+            viewer::view3d::StandardView::ALL
+                .into_iter()
+                .find(|v| v.letter().eq_ignore_ascii_case(letter))
+                .ok_or_else(|| anyhow::anyhow!("--view must be one of A, P, L, R, S, I, not '{letter}'"))?,
+        ),
+    };
+    options.initial_preset = args.preset;
     viewer::run(options)
 }

@@ -42,6 +42,10 @@ pub struct ViewerOptions {
     pub import_folder: PathBuf,
     /// Overrides the remembered layout.
     pub initial_layout: Option<Layout>,
+    /// Start the 3D view from this side instead of the default oblique view.
+    pub initial_view: Option<StandardView>,
+    /// Overrides the remembered transfer-function preset.
+    pub initial_preset: Option<String>,
 }
 
 impl ViewerOptions {
@@ -58,6 +62,8 @@ impl ViewerOptions {
             persist_settings: true,
             import_folder: super::jobs::data_folder(),
             initial_layout: None,
+            initial_view: None,
+            initial_preset: None,
         }
     }
 }
@@ -163,6 +169,9 @@ pub struct OpenVolume {
     last_slice_requests: [Option<SliceRequest>; 3],
     interacting_until: Option<Instant>,
     pub view_rects: Vec<(ViewSlot, Rect)>,
+    /// Per slice view: magnification over fit-to-view, and pan in points.
+    slice_zoom: [f32; 3],
+    slice_pan: [Vec2; 3],
 }
 
 /// Frame-time history for the performance panel and the frame log.
@@ -222,6 +231,9 @@ impl StrataApp {
         };
         if let Some(layout) = app.options.initial_layout {
             app.preferences.layout = layout;
+        }
+        if let Some(preset) = app.options.initial_preset.clone() {
+            app.preferences.preset = preset;
         }
         let source = app.options.source.clone();
         let series = app.options.dicom_series.clone();
@@ -309,7 +321,8 @@ impl StrataApp {
         let info = session.info().clone();
         let header = &info.header;
         let is_ct = header.modality.eq_ignore_ascii_case("CT") || header.value_mapping.unit.eq_ignore_ascii_case("HU");
-        if !PRESETS.iter().any(|(p, _)| *p == self.preferences.preset) || (!is_ct && self.preferences.preset.starts_with("ct-")) || (is_ct && self.preferences.preset.starts_with("mr")) {
+        let asked = self.options.initial_preset.is_some();
+        if !PRESETS.iter().any(|(p, _)| *p == self.preferences.preset) || (!asked && ((!is_ct && self.preferences.preset.starts_with("ct-")) || (is_ct && self.preferences.preset.starts_with("mr")))) {
             self.preferences.preset = if is_ct { "ct-bone" } else { "mr-default" }.into();
         }
         let transfer_function = preset_for(&self.preferences.preset, &info);
@@ -328,7 +341,10 @@ impl StrataApp {
             slices,
             transfer_function,
             tf_state: TfEditorState::default(),
-            orbit: OrbitCamera { orthographic: self.preferences.orthographic, ..OrbitCamera::default() },
+            orbit: match self.options.initial_view {
+                Some(view) => OrbitCamera::standard(view, self.preferences.orthographic),
+                None => OrbitCamera { orthographic: self.preferences.orthographic, ..OrbitCamera::default() },
+            },
             cursor: dims.map(|d| (d as f64 - 1.0) * 0.5),
             window,
             iso_value: if is_ct { 300.0f64.clamp(lo, hi) } else { lo + 0.35 * (hi - lo) },
@@ -343,6 +359,8 @@ impl StrataApp {
             last_slice_requests: [None; 3],
             interacting_until: None,
             view_rects: Vec::new(),
+            slice_zoom: [1.0; 3],
+            slice_pan: [Vec2::ZERO; 3],
             info,
         });
         Ok(())
@@ -675,6 +693,7 @@ impl StrataApp {
                     ("Left click / drag (slice)", "move the linked crosshair"),
                     ("Wheel, Up/Down, PgUp/PgDn (slice)", "page slices"),
                     ("Right drag (slice)", "window (sideways) / level (up-down)"),
+                    ("Ctrl+wheel, middle drag (slice)", "zoom, pan; double-click resets"),
                     ("Double-click view title", "focus the view (1×1)"),
                     ("1 2 3", "layouts 1×1, 3D + 1×3, 2×2"),
                     ("M", "cycle DVR / MIP / isosurface"),
@@ -935,17 +954,15 @@ impl StrataApp {
         });
 
         if let Some(frame) = v.session.latest_frame() {
-            let image = egui::ColorImage::from_rgba_premultiplied([frame.width as usize, frame.height as usize], &frame.rgba);
-            match &mut v.volume_texture {
-                Some((texture, serial)) if *serial == frame.serial => {
-                    let _ = texture;
-                }
-                Some((texture, serial)) => {
-                    texture.set(image, TextureOptions::LINEAR);
-                    *serial = frame.serial;
-                }
-                None => {
-                    v.volume_texture = Some((ui.ctx().load_texture("volume", image, TextureOptions::LINEAR), frame.serial));
+            let fresh = v.volume_texture.as_ref().is_none_or(|(_, serial)| *serial != frame.serial);
+            if fresh {
+                let image = egui::ColorImage::from_rgba_premultiplied([frame.width as usize, frame.height as usize], &frame.rgba);
+                match &mut v.volume_texture {
+                    Some((texture, serial)) => {
+                        texture.set(image, TextureOptions::LINEAR);
+                        *serial = frame.serial;
+                    }
+                    None => v.volume_texture = Some((ui.ctx().load_texture("volume", image, TextureOptions::LINEAR), frame.serial)),
                 }
             }
             if let Some((texture, _)) = &v.volume_texture {
@@ -996,9 +1013,33 @@ impl StrataApp {
         let (w_mm, h_mm) = frame.extent_mm(geometry);
         let inner = rect.shrink(18.0);
         let fit = (inner.width() as f64 / w_mm).min(inner.height() as f64 / h_mm).max(1e-6);
-        let image_rect = Rect::from_center_size(inner.center(), Vec2::new((w_mm * fit) as f32, (h_mm * fit) as f32));
+        let k = view.index();
+        let response = ui.interact(rect, ui.scope_id().with(("slice", k)), Sense::click_and_drag());
+        if response.hovered() {
+            // Ctrl+wheel (or pinch) zooms about the pointer; plain wheel pages (below).
+            let zoom = ui.input(|i| i.zoom_delta());
+            if zoom != 1.0 {
+                let old = v.slice_zoom[k];
+                v.slice_zoom[k] = (old * zoom).clamp(1.0, 32.0);
+                if let Some(pointer) = response.hover_pos() {
+                    let from_centre = pointer - inner.center() - v.slice_pan[k];
+                    v.slice_pan[k] -= from_centre * (v.slice_zoom[k] / old - 1.0);
+                }
+            }
+        }
+        if response.dragged_by(egui::PointerButton::Middle) {
+            v.slice_pan[k] += ui.input(|i| i.pointer.delta());
+        }
+        if response.double_clicked() {
+            v.slice_zoom[k] = 1.0;
+            v.slice_pan[k] = Vec2::ZERO;
+        }
+        if v.slice_zoom[k] <= 1.0 {
+            v.slice_pan[k] = Vec2::ZERO;
+        }
+        let scale = v.slice_zoom[k];
+        let image_rect = Rect::from_center_size(inner.center() + v.slice_pan[k], Vec2::new((w_mm * fit) as f32 * scale, (h_mm * fit) as f32 * scale));
 
-        let response = ui.interact(rect, ui.scope_id().with(("slice", view.index())), Sense::click_and_drag());
         if let Some(pos) = response.interact_pointer_pos() {
             if (response.clicked() || response.dragged_by(egui::PointerButton::Primary)) && image_rect.contains(pos) {
                 let u = ((pos.x - image_rect.left()) / image_rect.width()) as f64;
@@ -1015,7 +1056,7 @@ impl StrataApp {
             let (centre, width) = v.window;
             v.window = (centre - delta.y as f64 * per_point, (width + delta.x as f64 * per_point * 2.0).max(per_point));
         }
-        if response.hovered() {
+        if response.hovered() && !ui.input(|i| i.modifiers.command || i.modifiers.ctrl) {
             let lines = ui.input(|i| {
                 i.events
                     .iter()
