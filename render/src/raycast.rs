@@ -300,6 +300,49 @@ struct PreintegrationTexture {
     view: wgpu::TextureView,
 }
 
+struct BackgroundCompiler {
+    requests: std::sync::mpsc::Sender<PipelineKey>,
+    results: std::sync::mpsc::Receiver<(PipelineKey, wgpu::ComputePipeline)>,
+    pending: std::collections::HashSet<PipelineKey>,
+}
+
+/// One raycast pipeline with the effects of `key` as override constants.
+fn build_pipeline(
+    device: &wgpu::Device,
+    layout: &wgpu::PipelineLayout,
+    module: &wgpu::ShaderModule,
+    key: PipelineKey,
+) -> wgpu::ComputePipeline {
+    let b = |v: bool| if v { 1.0 } else { 0.0 };
+    let mode = match key.mode {
+        RenderMode::Dvr => 0.0,
+        RenderMode::Mip => 1.0,
+        RenderMode::Isosurface => 2.0,
+    };
+    let constants = [
+        ("MODE", mode),
+        ("MANUAL_TRILINEAR", b(key.manual_trilinear)),
+        ("SHADING", b(key.shading)),
+        ("JITTER", b(key.jitter)),
+        ("SKIP_EMPTY", b(key.skip_empty)),
+        ("EARLY_TERMINATION", b(key.early_termination)),
+        ("CLIP_PLANE", b(key.clip_plane)),
+        ("COUNT_SAMPLES", b(key.count_samples)),
+        ("PREINTEGRATED", b(key.preintegrated)),
+    ];
+    device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+        label: Some("raycast"),
+        layout: Some(layout),
+        module,
+        entry_point: Some("main"),
+        compilation_options: wgpu::PipelineCompilationOptions {
+            constants: &constants,
+            zero_initialize_workgroup_memory: false,
+        },
+        cache: None,
+    })
+}
+
 struct Targets {
     width: u32,
     height: u32,
@@ -343,6 +386,11 @@ pub struct Raycaster {
     visibility: Option<VisibilityBuffers>,
     frame_number: u64,
     last_key: Option<PipelineKey>,
+    /// Interactive callers (the viewer) set this: a frame whose pipeline is not compiled yet
+    /// draws with the previous frame's while a thread compiles it. Off by default, so tests,
+    /// the CLI and benchmarks always get exactly the pipeline their settings ask for.
+    pub compile_in_background: bool,
+    compiler: Option<BackgroundCompiler>,
     /// The pre-integrated TF table of the last pre-integrated frame (rebuilt when the TF, its
     /// range or the step changes), and a 1×1 stand-in bound when a pipeline does not use it.
     preintegration: Option<PreintegrationTexture>,
@@ -506,6 +554,8 @@ impl Raycaster {
             visibility: None,
             frame_number: 0,
             last_key: None,
+            compile_in_background: false,
+            compiler: None,
             preintegration: None,
             preintegration_unused: table_texture(device, &ctx.queue, 1, &[[0.0; 4]]),
             timestamps: PassTimestamps::new(device, &ctx.queue),
@@ -516,36 +566,87 @@ impl Raycaster {
 
     fn pipeline(&mut self, device: &wgpu::Device, key: PipelineKey) -> &wgpu::ComputePipeline {
         let (layout, module) = (&self.pipeline_layout, &self.module);
-        self.pipelines.entry(key).or_insert_with(|| {
-            let b = |v: bool| if v { 1.0 } else { 0.0 };
-            let mode = match key.mode {
-                RenderMode::Dvr => 0.0,
-                RenderMode::Mip => 1.0,
-                RenderMode::Isosurface => 2.0,
-            };
-            let constants = [
-                ("MODE", mode),
-                ("MANUAL_TRILINEAR", b(key.manual_trilinear)),
-                ("SHADING", b(key.shading)),
-                ("JITTER", b(key.jitter)),
-                ("SKIP_EMPTY", b(key.skip_empty)),
-                ("EARLY_TERMINATION", b(key.early_termination)),
-                ("CLIP_PLANE", b(key.clip_plane)),
-                ("COUNT_SAMPLES", b(key.count_samples)),
-                ("PREINTEGRATED", b(key.preintegrated)),
-            ];
-            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                label: Some("raycast"),
-                layout: Some(layout),
-                module,
-                entry_point: Some("main"),
-                compilation_options: wgpu::PipelineCompilationOptions {
-                    constants: &constants,
-                    zero_initialize_workgroup_memory: false,
-                },
-                cache: None,
-            })
-        })
+        self.pipelines
+            .entry(key)
+            .or_insert_with(|| build_pipeline(device, layout, module, key))
+    }
+
+    /// The pipeline this frame draws with: the wanted one if compiled; otherwise, when
+    /// `compile_in_background` is set and an earlier frame drew, that frame's pipeline while a
+    /// named thread compiles the wanted one (a compile takes long enough on CPU drivers to
+    /// drop frames); otherwise the wanted one, compiled now.
+    fn choose_pipeline(&mut self, device: &wgpu::Device, wanted: PipelineKey) -> PipelineKey {
+        if let Some(compiler) = self.compiler.as_mut() {
+            while let Ok((key, pipeline)) = compiler.results.try_recv() {
+                compiler.pending.remove(&key);
+                self.pipelines.entry(key).or_insert(pipeline);
+            }
+        }
+        if self.pipelines.contains_key(&wanted) {
+            return wanted;
+        }
+        if self.compile_in_background {
+            let previous = self.last_key.filter(|k| self.pipelines.contains_key(k));
+            if let Some(previous) = previous {
+                if self.request_background_compile(device, wanted) {
+                    return previous;
+                }
+            }
+        }
+        let _ = self.pipeline(device, wanted);
+        wanted
+    }
+
+    /// Queues `key` on the compiler thread (started on first use). False if the thread
+    /// cannot be started, in which case the caller compiles in place.
+    fn request_background_compile(&mut self, device: &wgpu::Device, key: PipelineKey) -> bool {
+        if self.compiler.is_none() {
+            let (requests, requests_in) = std::sync::mpsc::channel::<PipelineKey>();
+            let (results_out, results) = std::sync::mpsc::channel();
+            let (device, layout, module) =
+                (device.clone(), self.pipeline_layout.clone(), self.module.clone());
+            let spawned = std::thread::Builder::new()
+                .name("strata-pipeline-compiler".into())
+                .spawn(move || {
+                    // Ends when the raycaster (the sender) is dropped.
+                    for key in requests_in {
+                        let pipeline = build_pipeline(&device, &layout, &module, key);
+                        if results_out.send((key, pipeline)).is_err() {
+                            break;
+                        }
+                    }
+                });
+            if spawned.is_err() {
+                return false;
+            }
+            self.compiler = Some(BackgroundCompiler {
+                requests,
+                results,
+                pending: std::collections::HashSet::new(),
+            });
+        }
+        let Some(compiler) = self.compiler.as_mut() else {
+            return false;
+        };
+        if compiler.pending.contains(&key) {
+            return true;
+        }
+        if compiler.requests.send(key).is_err() {
+            return false;
+        }
+        compiler.pending.insert(key);
+        true
+    }
+
+    /// True while a background compile is outstanding (the UI can say "compiling…").
+    pub fn compiling_in_background(&self) -> bool {
+        self.compiler.as_ref().is_some_and(|c| !c.pending.is_empty())
+    }
+
+    /// The effects of the pipeline the last frame was drawn with (with background compiling,
+    /// possibly not yet the one its settings asked for).
+    pub fn last_pipeline_key(&self) -> Option<PipelineKey> {
+        self.last_key
     }
 
     fn ensure_targets(&mut self, device: &wgpu::Device, width: u32, height: u32) {
@@ -746,7 +847,7 @@ impl Raycaster {
                 settings.width, settings.height, limits.max_storage_buffer_binding_size
             )));
         }
-        let key = self.key_for(settings);
+        let key = self.choose_pipeline(device, self.key_for(settings));
         self.last_key = Some(key);
         if key.preintegrated {
             self.ensure_preintegration(ctx, scene);
@@ -756,7 +857,6 @@ impl Raycaster {
         let params = build_params(scene);
         ctx.queue
             .write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
-        let _ = self.pipeline(device, key);
         let (Some(targets), Some(vis), Some(pipeline)) = (
             self.targets.as_ref(),
             self.visibility.as_mut(),

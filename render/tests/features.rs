@@ -406,6 +406,65 @@ fn pipelines_hold_only_the_effects_a_scene_uses_and_are_reused() {
 }
 
 #[test]
+fn a_new_effect_compiles_in_the_background_while_the_previous_pipeline_draws() {
+    let ctx = gpu();
+    let f = Fixture::ct(48);
+    let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
+    g.raycaster.compile_in_background = true;
+    let cam = Camera::orbit(
+        &f.volume.geometry,
+        20.0,
+        10.0,
+        1.0,
+        Projection::Perspective { fov_y_deg: 30.0 },
+    );
+    let unshaded = RenderSettings {
+        jitter: false,
+        ..compare_settings(RenderMode::Dvr, 48)
+    };
+    let shaded = RenderSettings {
+        shading: Some(Shading::default()),
+        ..unshaded.clone()
+    };
+    // No earlier frame: the first pipeline is compiled in place (nothing else to show).
+    let first = g.render(&ctx, &f, &cam, &unshaded);
+    let unshaded_key = g.raycaster.key_for(&unshaded);
+    let shaded_key = g.raycaster.key_for(&shaded);
+    assert_eq!(g.raycaster.last_pipeline_key(), Some(unshaded_key));
+
+    // Turning shading on: this frame is drawn at once with the previous pipeline...
+    let during = g.render(&ctx, &f, &cam, &shaded);
+    assert_eq!(g.raycaster.last_pipeline_key(), Some(unshaded_key));
+    assert!(g.raycaster.compiling_in_background());
+    assert_eq!(during.rgba, first.rgba, "the stand-in frame is the previous pipeline's image");
+
+    // ...and a later frame switches to the shaded pipeline once its thread has built it.
+    let started = std::time::Instant::now();
+    let mut frames = 0;
+    while g.raycaster.last_pipeline_key() != Some(shaded_key) {
+        assert!(
+            started.elapsed().as_secs() < 120,
+            "the shaded pipeline never arrived ({frames} frames)"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(20));
+        g.render(&ctx, &f, &cam, &shaded);
+        frames += 1;
+    }
+    assert!(!g.raycaster.compiling_in_background());
+    let after = g.render(&ctx, &f, &cam, &shaded);
+    assert_ne!(after.rgba, first.rgba, "shading must change the picture");
+
+    // Without the flag (tests, CLI, benchmarks) a frame always uses its own pipeline.
+    g.raycaster.compile_in_background = false;
+    let iso = RenderSettings {
+        mode: RenderMode::Isosurface,
+        ..unshaded.clone()
+    };
+    g.render(&ctx, &f, &cam, &iso);
+    assert_eq!(g.raycaster.last_pipeline_key(), Some(g.raycaster.key_for(&iso)));
+}
+
+#[test]
 fn opacity_correction_makes_image_independent_of_step() {
     let ctx = gpu();
     let f = small_object_fixture();
