@@ -137,6 +137,10 @@ const PRESETS: [(&str, &str); 5] = [
     ("mr-default", "MR"),
 ];
 
+/// The stored values behind a slice texture and the window they were shown with.
+#[cfg(test)]
+pub type SliceShown = (Arc<Vec<u16>>, (f64, f64));
+
 /// A slice texture and what it was made from (so it is rebuilt only when one of them changes).
 struct SliceTexture {
     texture: TextureHandle,
@@ -282,7 +286,7 @@ impl StrataApp {
 
     #[cfg(test)]
     /// The displayed (window-levelled) slice texture's source values and window, for tests.
-    pub fn slice_display(&self, view: SliceView) -> Option<(Arc<Vec<u16>>, (f64, f64))> {
+    pub fn slice_display(&self, view: SliceView) -> Option<SliceShown> {
         let v = self.volume.as_ref()?;
         v.slice_textures[view.index()].as_ref().map(|t| (t.values.clone(), t.window))
     }

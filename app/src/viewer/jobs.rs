@@ -23,13 +23,16 @@ pub enum VolumeSource {
     Path(PathBuf),
 }
 
+/// The prepared store, or why it could not be prepared; None while the job runs.
+type PrepareOutcome = Arc<Mutex<Option<Result<Arc<Store>, String>>>>;
+
 pub struct PrepareJob {
     pub title: String,
     done: Arc<AtomicU64>,
     total: Arc<AtomicU64>,
     stage: Arc<Mutex<String>>,
     cancel: Arc<AtomicBool>,
-    result: Arc<Mutex<Option<Result<Arc<Store>, String>>>>,
+    result: PrepareOutcome,
 }
 
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {

@@ -57,7 +57,8 @@ fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
 /// The level whose voxels are about one screen pixel: coarser only when a level-0 voxel would
 /// be smaller than half a pixel.
 pub fn level_for_pixels(voxels_across: f64, pixels_across: f64, level_count: usize) -> u8 {
-    if !(pixels_across > 0.0) || !(voxels_across > 0.0) {
+    // Written to also catch NaN: only positive, finite sizes pick a level.
+    if !(pixels_across.is_finite() && voxels_across.is_finite() && pixels_across > 0.0 && voxels_across > 0.0) {
         return 0;
     }
     let voxels_per_pixel = voxels_across / pixels_across;
