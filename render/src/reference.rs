@@ -282,22 +282,28 @@ fn trace<S: BrickSource>(
     let gradient_patient =
         |loc: &FieldLocation| a.transpose() * gradient_index(loc) * mapping.slope;
     let n_steps = ((t1 - t0) / step).ceil() as u64;
+    // Segment k is [t0 + k·step, t0 + (k+1)·step) cut at t1, sampled at its midpoint; the
+    // last one is usually shorter and absorbs only for its own length (a grazing ray through
+    // a box corner still sees what it passes).
+    let segment = |k: u64| -> Option<(f64, f64)> {
+        let start = t0 + k as f64 * step;
+        (start < t1).then(|| {
+            let length = step.min(t1 - start);
+            (start + 0.5 * length, length)
+        })
+    };
     match settings.mode {
         RenderMode::Dvr => {
             let (mut c, mut alpha, mut depth) = ([0.0f64; 3], 0.0f64, f32::INFINITY);
-            let exponent = step / unit;
             for k in 0..n_steps {
-                let t = t0 + (k as f64 + 0.5) * step;
-                if t >= t1 {
-                    break;
-                }
+                let Some((t, length)) = segment(k) else { break };
                 let Some(loc) = at(t) else { continue };
                 let v = mapping.physical(trilinear(loc.brick, loc.local));
                 let op = tf.opacity_at(v);
                 if op <= 0.0 {
                     continue;
                 }
-                let op = 1.0 - (1.0 - op).powf(exponent);
+                let op = 1.0 - (1.0 - op).powf(length / unit);
                 let mut col = tf.color_at(v);
                 if let Some(s) = &shading {
                     col = shade(col, gradient_patient(&loc), dir, s, flatness_scale);
@@ -321,10 +327,7 @@ fn trace<S: BrickSource>(
         RenderMode::Mip => {
             let mut best: Option<(f64, f64)> = None;
             for k in 0..n_steps {
-                let t = t0 + (k as f64 + 0.5) * step;
-                if t >= t1 {
-                    break;
-                }
+                let Some((t, _)) = segment(k) else { break };
                 let Some(loc) = at(t) else { continue };
                 let v = mapping.physical(trilinear(loc.brick, loc.local));
                 if best.is_none_or(|(bv, _)| v > bv) {
@@ -346,10 +349,7 @@ fn trace<S: BrickSource>(
             let value = |t: f64| at(t).map(|loc| mapping.physical(trilinear(loc.brick, loc.local)));
             let mut prev: Option<f64> = None;
             for k in 0..n_steps {
-                let t = t0 + (k as f64 + 0.5) * step;
-                if t >= t1 {
-                    break;
-                }
+                let Some((t, _)) = segment(k) else { break };
                 let Some(v) = value(t) else {
                     prev = None;
                     continue;

@@ -478,12 +478,15 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     st.best_t = inf;
     st.last_marked = 0xffffffffu;
     var k = 0u;
+    // Start of the segment cut short by the ray's exit (none: +inf).
+    var partial_start = inf;
     var page_cache: Page;
     page_cache.t_exit = -3.0e38;
     for (var iter = 0u; iter < MAX_ITERATIONS; iter++) {
         let seg = first + f32(k) * base;
         let probe_t = seg + 0.5 * base;
         if probe_t >= t1 {
+            partial_start = seg;
             break;
         }
         let probe = locate_on_ray(o, d, probe_t, &page_cache);
@@ -516,6 +519,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         let delta = base * f32(stride);
         let t = seg + 0.5 * delta;
         if t >= t1 {
+            partial_start = seg;
             break;
         }
         var loc = probe;
@@ -558,6 +562,17 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             if st.done {
                 break;
             }
+        }
+    }
+    // The last segment, cut at the exit, is sampled at its own midpoint and absorbs only for
+    // its own length, as in the reference: a ray grazing a corner of the box still sees what
+    // it passes, however short its path.
+    if partial_start < t1 && !st.done {
+        let length = t1 - partial_start;
+        let t = partial_start + 0.5 * length;
+        let loc = locate(o + d * t);
+        if loc.resident && !(SKIP_EMPTY && loc.empty) {
+            take_sample(&st, loc, t, length, o, d);
         }
     }
     close_preintegrated_run(&st, d);
