@@ -35,7 +35,7 @@ pub struct FlythroughArgs {
     #[arg(long, default_value_t = 512)]
     pub cpu_mib: u64,
     /// Bricks uploaded per frame at most.
-    #[arg(long, default_value_t = 32)]
+    #[arg(long, default_value_t = 64)]
     pub uploads: usize,
     /// Quality factor: refine while a voxel covers more than this many pixels.
     #[arg(long, default_value_t = 1.0)]

@@ -2,11 +2,11 @@
 //!
 //! Starting from the root, leaves are refined in order of decreasing projected voxel size.
 //! A leaf stays a leaf when its voxels already project to at most `max_voxel_pixels` pixels,
-//! when it is not visible in the last feedback, or when refining it would need a child that is
-//! neither on the GPU nor in CPU memory (the child is requested; the parent keeps serving), or
-//! more uploads than this frame's budget, or more GPU slots than exist. Children whose subtree
-//! is transparent under the transfer function, or that lie outside the frustum, crop box or
-//! clip plane, become leaves that need no data at all.
+//! when it is not visible in the last feedback, or when its children with data would not fit
+//! the GPU slots. A child that is neither on the GPU nor in CPU memory is requested, and one
+//! over this frame's upload budget waits: both become `Pending` leaves that the parent keeps
+//! drawing. Children whose subtree is transparent under the transfer function, or that lie
+//! outside the frustum, crop box or clip plane, become leaves that need no data at all.
 //!
 //! Neighbouring data leaves are kept within one level of each other (2:1 balance, over all 26
 //! neighbours, as the smooth level transitions of the mixed-resolution paper need): before a
@@ -241,7 +241,7 @@ impl ViewSetup {
 #[derive(Clone, Copy, Debug, PartialEq)]
 enum NodeState {
     Leaf(LeafKind, f64),
-    /// Refined; `keeps_slot` when it stays on the GPU (pinned root, or parent of a failed child).
+    /// Refined; `keeps_slot` when its brick stays on the GPU (every refined node with data).
     Inner { keeps_slot: bool },
 }
 
@@ -336,7 +336,7 @@ pub fn select_cut<R: Residency>(
             Err(Block::Balance) => s.cut.blocked_by_balance += 1,
         }
     }
-    s.finish(root)
+    s.finish()
 }
 
 impl<R: Residency> Selection<'_, R> {
@@ -504,7 +504,7 @@ impl<R: Residency> Selection<'_, R> {
         }
     }
 
-    fn finish(mut self, root: BrickId) -> Cut {
+    fn finish(mut self) -> Cut {
         let mut leaves: Vec<CutLeaf> = self
             .nodes
             .iter()
@@ -526,7 +526,6 @@ impl<R: Residency> Selection<'_, R> {
         self.cut.refine_next.sort_by(|a, b| b.priority.total_cmp(&a.priority));
         self.cut.refine_next.truncate(self.limits.prefetch_candidates);
         self.cut.slots_needed = self.slots_used;
-        let _ = root;
         self.cut
     }
 }

@@ -118,8 +118,8 @@ pub struct FetchWorkers {
 
 impl FetchWorkers {
     /// Starts `workers` threads named `strata-fetch-N`. The result channel holds at most
-    /// `2 × workers` bricks, which bounds the memory between a read and the CPU cache.
-    pub fn start(reader: Arc<dyn BrickReader>, workers: usize, capacity: usize) -> Result<Self, LoaderError> {
+    /// `in_transit` bricks, which bounds the memory between a read and the CPU cache.
+    pub fn start(reader: Arc<dyn BrickReader>, workers: usize, capacity: usize, in_transit: usize) -> Result<Self, LoaderError> {
         let workers = workers.max(1);
         let shared = Arc::new(Shared {
             state: Mutex::new(QueueState {
@@ -132,7 +132,7 @@ impl FetchWorkers {
             capacity: capacity.max(1),
             busy_workers: AtomicU64::new(0),
         });
-        let (tx, rx) = crossbeam_channel::bounded(2 * workers);
+        let (tx, rx) = crossbeam_channel::bounded(in_transit.max(1));
         let mut threads = Vec::with_capacity(workers);
         for i in 0..workers {
             let shared = shared.clone();
@@ -286,7 +286,7 @@ mod tests {
     #[test]
     fn stale_requests_are_dropped_and_the_queue_stays_bounded() {
         let reader = Arc::new(Counting(Mutex::new(Vec::new())));
-        let workers = FetchWorkers::start(reader.clone(), 1, 8).unwrap();
+        let workers = FetchWorkers::start(reader.clone(), 1, 8, 2).unwrap();
         let ids: Vec<(BrickId, f64)> = (0..100).map(|i| (BrickId::new(0, [i, 0, 0]), i as f64)).collect();
         assert_eq!(workers.set_requests(&ids, &[]), 8, "capacity bounds the queue");
         assert!(workers.counters().overflow_dropped >= 92);
@@ -312,7 +312,7 @@ mod tests {
     #[test]
     fn demand_overtakes_prefetch() {
         let reader = Arc::new(Counting(Mutex::new(Vec::new())));
-        let workers = FetchWorkers::start(reader.clone(), 1, 16).unwrap();
+        let workers = FetchWorkers::start(reader.clone(), 1, 16, 2).unwrap();
         let prefetch: Vec<(BrickId, f64)> = (0..4).map(|i| (BrickId::new(0, [i, 0, 0]), 100.0)).collect();
         let demand = [(BrickId::new(0, [9, 0, 0]), 0.1)];
         // Occupy the worker first so ordering is decided from a full queue.

@@ -118,8 +118,14 @@ impl GpuCut {
         page_dims: [u32; 3],
         tf_table: &TransferFunctionTable,
     ) -> Result<GpuCut, LoaderError> {
-        let config = strata_render::CacheConfig { max_slots: Some(bricks.len().max(1) as u32), ..Default::default() };
+        // The cache shapes its slots into a 3D grid and may round a count down by up to 3 %;
+        // ask for a little more so every brick has a slot.
+        let needed = table.entries.iter().filter(|e| e.resident).map(|e| e.slot_in_cache + 1).max().unwrap_or(1);
+        let config = strata_render::CacheConfig { max_slots: Some(needed + needed / 32 + 8), ..Default::default() };
         let cache = BrickCache::new(&ctx.device, config)?;
+        if cache.slot_count() < needed {
+            return Err(LoaderError::Render(strata_render::RenderError::CacheTooSmall { budget_bytes: config.budget_bytes }));
+        }
         bricks.upload(&cache, &ctx.queue, table)?;
         let page_table = strata_render::GpuPageTable::new(&ctx.device, page_dims, &cache)?;
         page_table.update(&ctx.queue, table)?;

@@ -45,6 +45,10 @@ pub struct StreamingConfig {
     /// Quality factor: refine while one voxel projects to more than this many pixels.
     pub max_voxel_pixels: f64,
     pub fetch_threads: usize,
+    /// Bricks read but not yet taken into the CPU cache (the frame loop takes them once per
+    /// frame): bounds the result channel, counted in the CPU budget. Too small a bound caps
+    /// reads per frame, which on slow frames throttles loading.
+    pub bricks_in_transit: usize,
     /// Bound on queued requests (stale ones are dropped each frame anyway).
     pub max_queued_requests: usize,
     pub visibility_feedback: bool,
@@ -65,7 +69,8 @@ impl Default for StreamingConfig {
             uploads_per_frame: 32,
             max_voxel_pixels: 1.0,
             fetch_threads: 2,
-            max_queued_requests: 64,
+            bricks_in_transit: 128,
+            max_queued_requests: 256,
             visibility_feedback: true,
             visibility_memory_frames: 3,
             prefetch: true,
@@ -78,8 +83,7 @@ impl StreamingConfig {
     /// Bricks that may sit between a worker and the CPU cache (being read, or in the result
     /// channel): counted against the CPU budget.
     fn in_transit_bytes(&self) -> u64 {
-        let threads = self.fetch_threads.max(1) as u64;
-        3 * threads * BRICK_BYTES
+        (self.fetch_threads.max(1) + self.bricks_in_transit.max(1)) as u64 * BRICK_BYTES
     }
 
     fn cpu_cache_budget(&self) -> Result<u64, LoaderError> {
@@ -206,7 +210,7 @@ impl StreamingVolume {
         gpu_page_table.update(&ctx.queue, &page_table)?;
         let transfer_function = GpuTransferFunction::new(&ctx.device, &ctx.queue, &tf_table);
         let raycaster = Raycaster::new(ctx, &cache);
-        let workers = FetchWorkers::start(reader.clone(), config.fetch_threads, config.max_queued_requests)?;
+        let workers = FetchWorkers::start(reader.clone(), config.fetch_threads, config.max_queued_requests, config.bricks_in_transit)?;
         let visibility = PageVisibility::new(&octree, config.visibility_memory_frames);
         Ok(StreamingVolume {
             geometry,
@@ -387,6 +391,34 @@ impl StreamingVolume {
         &self.working_set
     }
 
+    /// Checks that every sampled page entry points at a slot holding the node it names
+    /// (for tests: a broken slot map shows up as wrong voxels, not as an error).
+    pub fn check_slot_map(&self) -> Result<(), String> {
+        for (i, e) in self.page_table.entries.iter().enumerate() {
+            if e.resident && !e.empty {
+                let node = BrickId::new(e.level, PageTable::node_of(self.page_table.page_of_linear(i), e.level));
+                if self.slots.slot_of(node) != Some(e.slot_in_cache) {
+                    return Err(format!("page {i} names {node:?} in slot {}, slot map says {:?}", e.slot_in_cache, self.slots.slot_of(node)));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Re-reads every brick the page table samples from `store` and uploads it into its slot
+    /// again (for tests: separates wrong cache contents from a wrong cut).
+    #[doc(hidden)]
+    pub fn reupload_for_tests(&self, ctx: &GpuContext, store: &Store) -> Result<(), LoaderError> {
+        for (i, e) in self.page_table.entries.iter().enumerate() {
+            if e.resident && !e.empty {
+                let node = BrickId::new(e.level, PageTable::node_of(self.page_table.page_of_linear(i), e.level));
+                self.cache.upload_brick(&ctx.queue, e.slot_in_cache, &store.read_brick(node)?)?;
+            }
+        }
+        self.gpu_page_table.update(&ctx.queue, &self.page_table)?;
+        Ok(())
+    }
+
     /// Reads the last submitted frame back, waiting for the GPU (CLI, tests, benchmarks).
     pub fn read_frame_blocking(&mut self, ctx: &GpuContext) -> Result<FrameReadback, LoaderError> {
         Ok(self.raycaster.read_frame_blocking(ctx)?)
@@ -539,11 +571,14 @@ fn emptiness_for<'a>(settings: &RenderSettings, table: &'a TransferFunctionTable
     }
 }
 
-/// Page entries of a cut: data leaves point at their slot; transparent and empty leaves are
-/// skipped by rays; culled leaves are never sampled; a failed or pending leaf shows its parent.
+/// Page entries of a cut: data leaves point at their slot; transparent, empty and culled
+/// leaves are not resident (rays skip them); a failed or pending leaf shows its parent.
 fn build_page_table(octree: &OctreeRanges, slots: &GpuSlots, cut: &Cut, emptiness: &Emptiness) -> Result<PageTable, LoaderError> {
     let mut table = PageTable::new(octree.page_dims());
-    let skipped = |level: u8| PageEntry { slot_in_cache: 0, level, empty: true, resident: true };
+    // Leaves without data are "not resident", never "empty" with a borrowed slot: the
+    // raycaster may still sample a page flagged empty (a coarse step landing in it), which is
+    // harmless only when the slot holds that node's own transparent voxels.
+    let skipped = |_level: u8| PageEntry::NOT_RESIDENT;
     let own_empty = |id: BrickId| octree.own_range(id).is_some_and(|r| emptiness.is_empty(r));
     let mut memo: HashMap<BrickId, PageEntry> = HashMap::new();
     for leaf in &cut.leaves {
