@@ -337,6 +337,80 @@ fn main() {
     if quick {
         return;
     }
+
+    // What an effect costs, and what it costs when off. "never" is a raycaster built from the
+    // shader with that effect's override turned into `const false`, i.e. a build that never had
+    // the effect: the specialised pipeline with the effect off should take the same time.
+    // DVR at step 0.5 with every effect off is the base; rounds interleave all variants.
+    let base = RenderSettings {
+        jitter: false,
+        early_termination: None,
+        skip_empty: false,
+        ..settings_for(RenderMode::Dvr, false, 0.5)
+    };
+    let clip = ClipPlane {
+        normal: [0.0, 0.0, 1.0],
+        offset_mm: volume.geometry.centre_patient().z - 40.0,
+    };
+    let effects: Vec<(&str, &str, RenderSettings)> = vec![
+        ("shading", "SHADING", RenderSettings { shading: Some(Shading::default()), ..base.clone() }),
+        ("jitter", "JITTER", RenderSettings { jitter: true, ..base.clone() }),
+        ("clip plane", "CLIP_PLANE", RenderSettings { clip_plane: Some(clip), ..base.clone() }),
+        ("pre-integration", "PREINTEGRATED", RenderSettings { preintegrated: true, ..base.clone() }),
+        ("sample counter", "COUNT_SAMPLES", RenderSettings { count_samples: true, ..base.clone() }),
+        ("early termination", "EARLY_TERMINATION", RenderSettings { early_termination: Some(0.99), ..base.clone() }),
+        ("empty skipping", "SKIP_EMPTY", RenderSettings { skip_empty: true, ..base.clone() }),
+    ];
+    let mut never_had: Vec<Raycaster> = effects
+        .iter()
+        .map(|(_, name, _)| {
+            let declared = ["false", "true"]
+                .map(|default| format!("override {name}: bool = {default};"))
+                .into_iter()
+                .find(|d| Raycaster::SHADER_SOURCE.contains(d))
+                .unwrap_or_else(|| panic!("override {name} not in the shader"));
+            let variant =
+                Raycaster::SHADER_SOURCE.replace(&declared, &format!("const {name}: bool = false;"));
+            Raycaster::with_shader_source(&ctx, &cache, &variant)
+        })
+        .collect();
+    let camera = camera_at(1);
+    let mut effect_times = vec![[Vec::new(), Vec::new(), Vec::new()]; effects.len()];
+    for round in 0..=frames {
+        for (i, (_, _, on)) in effects.iter().enumerate() {
+            for (variant, settings) in [(0, &base), (1, &base), (2, on)] {
+                let scene = Scene {
+                    cache: &cache,
+                    page_table: &gpu_table,
+                    transfer_function: &gpu_tf,
+                    geometry: &volume.geometry,
+                    mapping: volume.mapping,
+                    camera: &camera,
+                    settings,
+                };
+                let rc = if variant == 1 { &mut never_had[i] } else { &mut raycaster };
+                let t = Instant::now();
+                rc.render_and_wait(&ctx, &scene).expect("render");
+                if round > 0 {
+                    effect_times[i][variant].push(t.elapsed().as_secs_f64() * 1e3);
+                }
+            }
+        }
+    }
+    println!("\nEffect cost, DVR step 0.5 at {size}², median of {frames} interleaved rounds (ms):");
+    println!(
+        "{:<20} {:>10} {:>14} {:>12} {:>10} {:>10}",
+        "effect", "off", "never built", "never/off", "on", "on/off"
+    );
+    for (i, (name, _, _)) in effects.iter().enumerate() {
+        let [off, never, on] = effect_times[i].clone().map(median);
+        println!(
+            "{name:<20} {off:>10.1} {never:>14.1} {:>12.3} {on:>10.1} {:>10.3}",
+            never / off,
+            on / off
+        );
+    }
+
     // Accuracy against the f64 reference at a smaller image (the reference at 512² takes
     // minutes on two cores). One reference per mode at a 1/16-voxel step: opacity correction
     // makes the integral independent of the step, so every GPU step is scored against the same

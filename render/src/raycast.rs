@@ -306,11 +306,26 @@ struct BackgroundCompiler {
     pending: std::collections::HashSet<PipelineKey>,
 }
 
-/// One raycast pipeline with the effects of `key` as override constants.
+/// The shader's effect overrides, as named in raycast.wgsl.
+const OVERRIDE_NAMES: [&str; 9] = [
+    "MODE",
+    "MANUAL_TRILINEAR",
+    "SHADING",
+    "JITTER",
+    "SKIP_EMPTY",
+    "EARLY_TERMINATION",
+    "CLIP_PLANE",
+    "COUNT_SAMPLES",
+    "PREINTEGRATED",
+];
+
+/// One raycast pipeline with the effects of `key` as override constants (those of
+/// `declared` that the module still has).
 fn build_pipeline(
     device: &wgpu::Device,
     layout: &wgpu::PipelineLayout,
     module: &wgpu::ShaderModule,
+    declared: &[&'static str],
     key: PipelineKey,
 ) -> wgpu::ComputePipeline {
     let b = |v: bool| if v { 1.0 } else { 0.0 };
@@ -330,6 +345,10 @@ fn build_pipeline(
         ("COUNT_SAMPLES", b(key.count_samples)),
         ("PREINTEGRATED", b(key.preintegrated)),
     ];
+    let constants: Vec<(&str, f64)> = constants
+        .into_iter()
+        .filter(|(name, _)| declared.contains(name))
+        .collect();
     device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
         label: Some("raycast"),
         layout: Some(layout),
@@ -386,6 +405,8 @@ pub struct Raycaster {
     visibility: Option<VisibilityBuffers>,
     frame_number: u64,
     last_key: Option<PipelineKey>,
+    /// The effect overrides this raycaster's shader declares (all of them but in variants).
+    declared_overrides: Vec<&'static str>,
     /// Interactive callers (the viewer) set this: a frame whose pipeline is not compiled yet
     /// draws with the previous frame's while a thread compiles it. Off by default, so tests,
     /// the CLI and benchmarks always get exactly the pipeline their settings ask for.
@@ -418,6 +439,17 @@ fn map_blocking(device: &wgpu::Device, buffer: &wgpu::Buffer) -> Result<(), Rend
 
 impl Raycaster {
     pub fn new(ctx: &GpuContext, cache: &BrickCache) -> Self {
+        Self::with_shader_source(ctx, cache, SHADER)
+    }
+
+    /// The raycast shader's source, for benchmarks that build variants of it.
+    pub const SHADER_SOURCE: &'static str = SHADER;
+
+    /// A raycaster compiled from a variant of [`Raycaster::SHADER_SOURCE`], e.g. with an effect's
+    /// `override` turned into a `const false` ("a build that never had it") to show that the
+    /// specialised pipeline without the effect costs the same. Only the overrides the variant
+    /// still declares are passed to its pipelines.
+    pub fn with_shader_source(ctx: &GpuContext, cache: &BrickCache, wgsl: &str) -> Self {
         let device = &ctx.device;
         let filterable = cache.format.filterable();
         let storage = |binding: u32, read_only: bool| wgpu::BindGroupLayoutEntry {
@@ -507,7 +539,7 @@ impl Raycaster {
         });
         let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some("raycast.wgsl"),
-            source: wgpu::ShaderSource::Wgsl(SHADER.into()),
+            source: wgpu::ShaderSource::Wgsl(wgsl.to_owned().into()),
         });
         let params = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("raycast params"),
@@ -554,6 +586,11 @@ impl Raycaster {
             visibility: None,
             frame_number: 0,
             last_key: None,
+            declared_overrides: OVERRIDE_NAMES
+                .iter()
+                .copied()
+                .filter(|name| wgsl.contains(&format!("override {name}:")))
+                .collect(),
             compile_in_background: false,
             compiler: None,
             preintegration: None,
@@ -565,10 +602,11 @@ impl Raycaster {
     }
 
     fn pipeline(&mut self, device: &wgpu::Device, key: PipelineKey) -> &wgpu::ComputePipeline {
-        let (layout, module) = (&self.pipeline_layout, &self.module);
+        let (layout, module, declared) =
+            (&self.pipeline_layout, &self.module, &self.declared_overrides);
         self.pipelines
             .entry(key)
-            .or_insert_with(|| build_pipeline(device, layout, module, key))
+            .or_insert_with(|| build_pipeline(device, layout, module, declared, key))
     }
 
     /// The pipeline this frame draws with: the wanted one if compiled; otherwise, when
@@ -603,14 +641,18 @@ impl Raycaster {
         if self.compiler.is_none() {
             let (requests, requests_in) = std::sync::mpsc::channel::<PipelineKey>();
             let (results_out, results) = std::sync::mpsc::channel();
-            let (device, layout, module) =
-                (device.clone(), self.pipeline_layout.clone(), self.module.clone());
+            let (device, layout, module, declared) = (
+                device.clone(),
+                self.pipeline_layout.clone(),
+                self.module.clone(),
+                self.declared_overrides.clone(),
+            );
             let spawned = std::thread::Builder::new()
                 .name("strata-pipeline-compiler".into())
                 .spawn(move || {
                     // Ends when the raycaster (the sender) is dropped.
                     for key in requests_in {
-                        let pipeline = build_pipeline(&device, &layout, &module, key);
+                        let pipeline = build_pipeline(&device, &layout, &module, &declared, key);
                         if results_out.send((key, pipeline)).is_err() {
                             break;
                         }
