@@ -155,7 +155,7 @@ pub struct OpenVolume {
     pub info: VolumeInfo,
     histogram: Histogram,
     pub transfer_function: TransferFunction,
-    tf_state: TfEditorState,
+    pub tf_state: TfEditorState,
     pub orbit: OrbitCamera,
     /// Linked crosshair, level-0 continuous index.
     pub cursor: [f64; 3],

@@ -20,6 +20,8 @@ pub enum Selection {
 pub struct TfEditorState {
     pub selection: Selection,
     dragging: Option<Selection>,
+    /// Where the opacity plot was drawn last frame (tests click into it).
+    pub plot_rect: Option<Rect>,
 }
 
 const POINT_RADIUS: f32 = 5.0;
@@ -35,6 +37,7 @@ pub fn show(ui: &mut egui::Ui, state: &mut TfEditorState, tf: &mut TransferFunct
     let (lo, hi) = if range.1 > range.0 { range } else { (range.0, range.0 + 1.0) };
     let (plot_response, painter) = ui.allocate_painter(Vec2::new(width, 130.0), Sense::click_and_drag());
     let plot = plot_response.rect.shrink2(Vec2::new(POINT_RADIUS, POINT_RADIUS));
+    state.plot_rect = Some(plot);
     let x_of = |v: f64| plot.left() + ((v - lo) / (hi - lo)) as f32 * plot.width();
     let v_of = |x: f32| lo + ((x - plot.left()) / plot.width()).clamp(0.0, 1.0) as f64 * (hi - lo);
     let y_of = |o: f64| plot.bottom() - o.clamp(0.0, 1.0) as f32 * plot.height();

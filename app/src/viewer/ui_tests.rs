@@ -220,3 +220,40 @@ fn a_scan_imports_with_progress_then_shows_and_f12_writes_a_screenshot() {
         other => panic!("screenshot failed: {other:?}"),
     }
 }
+
+#[test]
+fn a_click_in_the_transfer_function_editor_adds_a_point_that_the_next_frame_uses() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let store = phantom_store(dir.path());
+    let mut h = harness(&store, true);
+    step_until(&mut h, "the first frame and the editor", |a| {
+        a.volume_frame().is_some() && a.volume.as_ref().is_some_and(|v| v.tf_state.plot_rect.is_some())
+    });
+    let (plot, points_before) = {
+        let v = app(&h).volume.as_ref().expect("volume");
+        (v.tf_state.plot_rect.expect("plot drawn"), v.transfer_function.opacity.len())
+    };
+    // Left of the middle, a third of the way down: high opacity where the bone preset has none,
+    // away from its existing points.
+    let at = plot.left_top() + Vec2::new(plot.width() * 0.42, plot.height() * 0.3);
+    let serial_at_edit = app(&h).volume_frame().map_or(0, |f| f.serial);
+    h.event(Event::PointerMoved(at));
+    h.event(Event::PointerButton { pos: at, button: PointerButton::Primary, pressed: true, modifiers: Modifiers::NONE });
+    h.event(Event::PointerButton { pos: at, button: PointerButton::Primary, pressed: false, modifiers: Modifiers::NONE });
+    h.step();
+    let edited = app(&h).volume.as_ref().expect("volume").transfer_function.clone();
+    assert_eq!(edited.opacity.len(), points_before + 1, "a click on empty plot adds one opacity point");
+    // The frame in flight when the click came may predate it; every later one must show it.
+    let start = Instant::now();
+    loop {
+        h.step();
+        if let Some(frame) = app(&h).volume_frame() {
+            if frame.serial >= serial_at_edit + 2 || frame.request.transfer_function == edited {
+                assert_eq!(frame.request.transfer_function, edited, "frame {} (edit at {serial_at_edit}) ignores the edit", frame.serial);
+                break;
+            }
+        }
+        assert!(start.elapsed() < WAIT, "no frame after the edit");
+        std::thread::sleep(Duration::from_millis(10));
+    }
+}
