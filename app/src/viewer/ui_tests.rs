@@ -236,14 +236,15 @@ fn a_click_in_the_transfer_function_editor_adds_a_point_that_the_next_frame_uses
     // Left of the middle, a third of the way down: high opacity where the bone preset has none,
     // away from its existing points.
     let at = plot.left_top() + Vec2::new(plot.width() * 0.42, plot.height() * 0.3);
-    let serial_at_edit = app(&h).volume_frame().map_or(0, |f| f.serial);
     h.event(Event::PointerMoved(at));
     h.event(Event::PointerButton { pos: at, button: PointerButton::Primary, pressed: true, modifiers: Modifiers::NONE });
     h.event(Event::PointerButton { pos: at, button: PointerButton::Primary, pressed: false, modifiers: Modifiers::NONE });
     h.step();
+    // Read after the step that applied the click (and sent the new request): the newest frame
+    // then, or the one in flight, may predate the edit; any frame after those cannot.
+    let serial_at_edit = app(&h).volume_frame().map_or(0, |f| f.serial);
     let edited = app(&h).volume.as_ref().expect("volume").transfer_function.clone();
     assert_eq!(edited.opacity.len(), points_before + 1, "a click on empty plot adds one opacity point");
-    // The frame in flight when the click came may predate it; every later one must show it.
     let start = Instant::now();
     loop {
         h.step();
