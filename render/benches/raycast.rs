@@ -147,6 +147,28 @@ impl SamplingOnly {
     }
 }
 
+/// What every frame of this bench draws; only camera and settings vary.
+struct Drawn<'a> {
+    cache: &'a BrickCache,
+    page_table: &'a GpuPageTable,
+    transfer_function: &'a GpuTransferFunction,
+    volume: &'a BrickedVolume,
+}
+
+impl Drawn<'_> {
+    fn scene<'s>(&'s self, camera: &'s Camera, settings: &'s RenderSettings) -> Scene<'s> {
+        Scene {
+            cache: self.cache,
+            page_table: self.page_table,
+            transfer_function: self.transfer_function,
+            geometry: &self.volume.geometry,
+            mapping: self.volume.mapping,
+            camera,
+            settings,
+        }
+    }
+}
+
 fn main() {
     let ctx = match GpuContext::headless() {
         Ok(c) => c,
@@ -200,6 +222,12 @@ fn main() {
         .expect("page value bounds");
     let gpu_tf = GpuTransferFunction::new(&ctx.device, &ctx.queue, &tf_table);
     let mut raycaster = Raycaster::new(&ctx, &cache);
+    let drawn = Drawn {
+        cache: &cache,
+        page_table: &gpu_table,
+        transfer_function: &gpu_tf,
+        volume: &volume,
+    };
     println!(
         "cache {:?} ({} slots, {} used, {:?}), empty pages {}/{}",
         cache.texel_dims(),
@@ -260,15 +288,7 @@ fn main() {
             count_samples: true,
             ..settings_for(mode, skip, step)
         };
-        let scene = Scene {
-            cache: &cache,
-            page_table: &gpu_table,
-            transfer_function: &gpu_tf,
-            geometry: &volume.geometry,
-            mapping: volume.mapping,
-            camera: &camera,
-            settings: &counting,
-        };
+        let scene = drawn.scene(&camera, &counting);
         samples_per_frame.push(
             raycaster
                 .render_blocking(&ctx, &scene)
@@ -288,15 +308,7 @@ fn main() {
         for (i, &(_, mode, skip, step)) in configs.iter().enumerate() {
             let camera = camera_at(round + 1);
             let settings = settings_for(mode, skip, step);
-            let scene = Scene {
-                cache: &cache,
-                page_table: &gpu_table,
-                transfer_function: &gpu_tf,
-                geometry: &volume.geometry,
-                mapping: volume.mapping,
-                camera: &camera,
-                settings: &settings,
-            };
+            let scene = drawn.scene(&camera, &settings);
             let t = Instant::now();
             raycaster.render_and_wait(&ctx, &scene).expect("render");
             if round > 0 {
@@ -379,15 +391,7 @@ fn main() {
     for round in 0..=frames {
         for (i, (_, _, on)) in effects.iter().enumerate() {
             for (variant, settings) in [(0, &base), (1, &base), (2, on)] {
-                let scene = Scene {
-                    cache: &cache,
-                    page_table: &gpu_table,
-                    transfer_function: &gpu_tf,
-                    geometry: &volume.geometry,
-                    mapping: volume.mapping,
-                    camera: &camera,
-                    settings,
-                };
+                let scene = drawn.scene(&camera, settings);
                 let rc = if variant == 1 { &mut never_had[i] } else { &mut raycaster };
                 let t = Instant::now();
                 rc.render_and_wait(&ctx, &scene).expect("render");
@@ -447,15 +451,7 @@ fn main() {
         let reference_s = t.elapsed().as_secs_f64();
         for &step in &steps {
             let settings = settings_at(step);
-            let scene = Scene {
-                cache: &cache,
-                page_table: &gpu_table,
-                transfer_function: &gpu_tf,
-                geometry: &volume.geometry,
-                mapping: volume.mapping,
-                camera: &camera,
-                settings: &settings,
-            };
+            let scene = drawn.scene(&camera, &settings);
             let gpu = raycaster.render_blocking(&ctx, &scene).expect("render");
             let c = compare_rgba8(&gpu.rgba, &reference.rgba).expect("compare");
             println!(
