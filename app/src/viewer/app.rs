@@ -103,6 +103,8 @@ pub struct Preferences {
     pub render_scale: f32,
     pub show_identifiers: bool,
     pub show_side_panel: bool,
+    /// Outline the three slice planes in the 3D view.
+    pub show_planes_in_3d: bool,
     pub screenshot_folder: PathBuf,
     pub screenshot_scale: u32,
 }
@@ -123,6 +125,7 @@ impl Default for Preferences {
             render_scale: 0.6,
             show_identifiers: false,
             show_side_panel: true,
+            show_planes_in_3d: true,
             screenshot_folder: PathBuf::from("."),
             screenshot_scale: 1,
         }
@@ -766,6 +769,7 @@ impl StrataApp {
                 ui.add(egui::Slider::new(&mut v.iso_value, lo..=hi).text(format!("iso value {unit}")));
             }
             ui.checkbox(&mut prefs.shading, "Shading (DVR)");
+            ui.checkbox(&mut prefs.show_planes_in_3d, "Slice planes in the 3D view");
             if ui.checkbox(&mut prefs.orthographic, "Orthographic projection").changed() {
                 v.orbit.orthographic = prefs.orthographic;
             }
@@ -973,6 +977,9 @@ impl StrataApp {
                 painter.image(texture.id(), rect, Rect::from_min_max(Pos2::ZERO, Pos2::new(1.0, 1.0)), Color32::WHITE);
             }
         }
+        if prefs.show_planes_in_3d {
+            paint_slice_planes(&painter, rect, &camera, v);
+        }
         paint_orientation_marker(&painter, rect, &camera);
         let status = v.session.status();
         let mode = match prefs.mode {
@@ -1007,15 +1014,12 @@ impl StrataApp {
         let dims = geometry.dims;
         let painter = ui.painter_at(rect);
         painter.rect_filled(rect, 0.0, Color32::BLACK);
-        let colour = match view {
-            SliceView::Axial => Color32::from_rgb(240, 90, 90),
-            SliceView::Coronal => Color32::from_rgb(110, 200, 110),
-            SliceView::Sagittal => Color32::from_rgb(230, 210, 90),
-        };
+        let colour = slice_colour(view);
         painter.rect_stroke(rect.shrink(0.5), 0.0, Stroke::new(1.0, colour.gamma_multiply(0.6)), egui::StrokeKind::Inside);
         // The image keeps the patient's proportions, centred with room for labels.
         let (w_mm, h_mm) = frame.extent_mm(geometry);
-        let inner = rect.shrink(18.0);
+        // Room for the title line above, the W/L line below and the side labels.
+        let inner = Rect::from_min_max(rect.min + Vec2::new(18.0, 38.0), rect.max - Vec2::new(18.0, 36.0));
         let fit = (inner.width() as f64 / w_mm).min(inner.height() as f64 / h_mm).max(1e-6);
         let k = view.index();
         let response = ui.interact(rect, ui.scope_id().with(("slice", k)), Sense::click_and_drag());
@@ -1146,8 +1150,8 @@ impl StrataApp {
         let [left, right, top, bottom] = frame.labels;
         painter.text(Pos2::new(rect.left() + 5.0, rect.center().y), egui::Align2::LEFT_CENTER, left, font.clone(), label_colour);
         painter.text(Pos2::new(rect.right() - 5.0, rect.center().y), egui::Align2::RIGHT_CENTER, right, font.clone(), label_colour);
-        painter.text(Pos2::new(rect.center().x, rect.top() + 3.0), egui::Align2::CENTER_TOP, top, font.clone(), label_colour);
-        painter.text(Pos2::new(rect.center().x, rect.bottom() - 3.0), egui::Align2::CENTER_BOTTOM, bottom, font, label_colour);
+        painter.text(Pos2::new(rect.center().x, rect.top() + 21.0), egui::Align2::CENTER_TOP, top, font.clone(), label_colour);
+        painter.text(Pos2::new(rect.center().x, rect.bottom() - 19.0), egui::Align2::CENTER_BOTTOM, bottom, font, label_colour);
         let n = frame.normal_axis;
         let slice_number = v.cursor[n].round() as i64 + 1;
         let title = format!("{} {}/{}", view.name(), slice_number, dims[n]);
@@ -1156,6 +1160,54 @@ impl StrataApp {
         let info = format!("W {:.0} L {:.0}{}", v.window.1, v.window.0, shown_level.filter(|l| *l > 0).map(|l| format!(" · level {l}")).unwrap_or_default());
         painter.text(rect.left_bottom() + Vec2::new(8.0, -4.0), egui::Align2::LEFT_BOTTOM, info, egui::FontId::proportional(11.0), Color32::LIGHT_GRAY);
         toggled
+    }
+}
+
+fn slice_colour(view: SliceView) -> Color32 {
+    match view {
+        SliceView::Axial => Color32::from_rgb(240, 90, 90),
+        SliceView::Coronal => Color32::from_rgb(110, 200, 110),
+        SliceView::Sagittal => Color32::from_rgb(230, 210, 90),
+    }
+}
+
+/// Outlines where the three slice views cut the volume, projected with the 3D view's camera
+/// (the frame fills `rect`, rendered at its aspect).
+fn paint_slice_planes(painter: &egui::Painter, rect: Rect, camera: &strata_render::Camera, v: &OpenVolume) {
+    let basis = camera.basis();
+    let aspect = (rect.width() / rect.height().max(1.0)) as f64;
+    let g = &v.info.geometry;
+    let project = |index: glam::DVec3| -> Option<Pos2> {
+        let d = g.patient_from_index(index) - basis.eye;
+        let depth = d.dot(basis.forward);
+        let (sx, sy) = if basis.orthographic {
+            (d.dot(basis.right), d.dot(basis.up))
+        } else if depth > 1e-6 {
+            (d.dot(basis.right) / depth, d.dot(basis.up) / depth)
+        } else {
+            return None;
+        };
+        let u = (sx / (aspect * basis.half_extent) + 1.0) * 0.5;
+        let w = (1.0 - sy / basis.half_extent) * 0.5;
+        Some(Pos2::new(rect.left() + u as f32 * rect.width(), rect.top() + w as f32 * rect.height()))
+    };
+    for view in SliceView::ALL {
+        let frame = v.frames[view.index()];
+        let (n, a, b) = (frame.normal_axis, frame.across_axis, frame.down_axis);
+        let (lo_a, hi_a) = (-0.5, g.dims[a] as f64 - 0.5);
+        let (lo_b, hi_b) = (-0.5, g.dims[b] as f64 - 0.5);
+        let corner = |ca: f64, cb: f64| {
+            let mut i = [0.0; 3];
+            i[n] = v.cursor[n];
+            i[a] = ca;
+            i[b] = cb;
+            project(glam::DVec3::from(i))
+        };
+        let corners = [corner(lo_a, lo_b), corner(hi_a, lo_b), corner(hi_a, hi_b), corner(lo_a, hi_b)];
+        if let [Some(p0), Some(p1), Some(p2), Some(p3)] = corners {
+            let stroke = Stroke::new(1.5, slice_colour(view).gamma_multiply(0.8));
+            painter.add(egui::Shape::closed_line(vec![p0, p1, p2, p3], stroke));
+        }
     }
 }
 

@@ -30,6 +30,8 @@ pub fn run(options: ViewerOptions) -> Result<()> {
             .with_title("Strata — not for diagnostic use")
             .with_inner_size([options.window_size[0], options.window_size[1]])
             .with_min_inner_size([640.0, 420.0]),
+        // --fresh: the window size asked for, not the one remembered.
+        persist_window: options.persist_settings,
         // The volume renders on its own device (see volume_session.rs); eframe's only draws the UI.
         ..Default::default()
     };
