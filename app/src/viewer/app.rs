@@ -1000,6 +1000,9 @@ impl StrataApp {
         for (i, line) in right_lines.iter().enumerate() {
             painter.text(Pos2::new(rect.right() - 8.0, rect.top() + 4.0 + 15.0 * i as f32), egui::Align2::RIGHT_TOP, line, egui::FontId::proportional(12.0), Color32::LIGHT_GRAY);
         }
+        if let Some(error) = &status.error {
+            painter.text(rect.center(), egui::Align2::CENTER_CENTER, error, egui::FontId::proportional(13.0), Color32::LIGHT_RED);
+        }
         painter.text(rect.right_bottom() + Vec2::new(-8.0, -6.0), egui::Align2::RIGHT_BOTTOM, NOT_FOR_DIAGNOSIS, egui::FontId::proportional(11.0), WARNING_COLOUR);
         if response.clicked() || response.drag_started() {
             self.preferences.focused = ViewSlot::ThreeD;

@@ -137,8 +137,22 @@ impl VolumeSession {
         let thread_shared = shared.clone();
         let thread = std::thread::Builder::new().name("strata-volume-render".into()).spawn(move || {
             let mut worker = RenderWorker::new(store, thread_shared.clone(), repaint.clone(), gpu_budget_bytes);
-            if let Err(e) = worker.run() {
-                lock(&thread_shared.status).error = Some(format!("{e:#}"));
+            // A panic here must not leave the UI waiting for frames that never come: say so.
+            let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| worker.run()));
+            let message = match outcome {
+                Ok(Ok(())) => None,
+                Ok(Err(e)) => Some(format!("{e:#}")),
+                Err(panic) => Some(format!(
+                    "the volume renderer stopped: {}",
+                    panic.downcast_ref::<String>().map(String::as_str).or_else(|| panic.downcast_ref::<&str>().copied()).unwrap_or("panic")
+                )),
+            };
+            if let Some(message) = message {
+                let mut status = lock(&thread_shared.status);
+                status.error = Some(message);
+                status.refining = false;
+                status.loading = None;
+                drop(status);
                 repaint();
             }
         })?;
