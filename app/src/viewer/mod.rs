@@ -30,8 +30,10 @@ pub fn run(options: ViewerOptions) -> Result<()> {
             .with_title("Strata — not for diagnostic use")
             .with_inner_size([options.window_size[0], options.window_size[1]])
             .with_min_inner_size([640.0, 420.0]),
-        // --fresh: the window size asked for, not the one remembered.
+        // --fresh: eframe restores window geometry from its store whatever `persist_window`
+        // says, so a fresh run gets a store of its own that starts empty.
         persist_window: options.persist_settings,
+        persistence_path: (!options.persist_settings).then(|| std::env::temp_dir().join(format!("strata-fresh-{}", std::process::id()))),
         // The volume renders on its own device (see volume_session.rs); eframe's only draws the UI.
         ..Default::default()
     };
