@@ -6,6 +6,7 @@
 //!      which runs this and VTK in one session and prints the ratios)
 //! Env: STRATA_BENCH_SIZE (default 512), STRATA_BENCH_FRAMES (default 5),
 //!      STRATA_BENCH_VOLUME (default 256), STRATA_BENCH_REF_SIZE (default 128),
+//!      STRATA_BENCH_STEPS (default 0.5,1,2,3: the peer runs at 0.5; the rest find equal PSNR),
 //!      STRATA_BENCH_SAVE=DIR (keep the PSNR images as PPM in DIR).
 //!
 //! Prints ms/frame (median), samples/s, the sampling-only kernel's samples/s measured in the
@@ -259,7 +260,7 @@ fn main() {
         .ok()
         .map(|v| v.split(',').filter_map(|s| s.trim().parse().ok()).collect())
         .filter(|v: &Vec<f64>| !v.is_empty())
-        .unwrap_or_else(|| if quick { vec![0.5] } else { vec![0.5, 1.0, 2.0] });
+        .unwrap_or_else(|| if quick { vec![0.5] } else { vec![0.5, 1.0, 2.0, 3.0] });
     // (name, mode, skip empty pages, step); the no-skip rows show what empty-space skipping saves.
     let mut configs: Vec<(String, RenderMode, bool, f64)> = Vec::new();
     for &step in &steps {
