@@ -5,7 +5,7 @@
 #
 # Setup (Debian): apt-get install -y libegl1 libgl1 libosmesa6 && pip install vtk numpy
 # Run:            python3 bench/peers/vtk_peer_bench.py [--size 512] [--frames 5] [--n 256]
-# Compare with:   CARGO_TARGET_DIR=/tmp/target-render cargo bench -p strata-render --bench raycast
+# Compare with:   cargo bench -p strata-render --bench raycast (bench/peers/compare_with_vtk.sh runs both)
 # Run both in one session: these machines are shared and noisy, only ratios mean much.
 #
 # Phantom: identical formula to strata_render::phantom::vtk_peer_phantom. The original script's
