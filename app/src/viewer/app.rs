@@ -200,6 +200,9 @@ pub struct StrataApp {
     open_dialog: bool,
     open_path: String,
     open_series: String,
+    /// A native file dialog running on its own thread: None while open, then what it chose.
+    file_dialog: Option<Arc<std::sync::Mutex<Option<Option<PathBuf>>>>>,
+    file_dialog_note: Option<String>,
     tf_path: String,
     tf_message: Option<String>,
     show_help: bool,
@@ -224,6 +227,8 @@ impl StrataApp {
             open_dialog: false,
             open_path: String::new(),
             open_series: String::new(),
+            file_dialog: None,
+            file_dialog_note: None,
             tf_path: "transfer-function.json".into(),
             tf_message: None,
             show_help: false,
@@ -642,6 +647,22 @@ impl StrataApp {
                 ui.add(egui::TextEdit::singleline(&mut self.open_path).desired_width(340.0).hint_text("/path/to/scan.nii.gz"));
             });
             ui.horizontal(|ui| {
+                let idle = self.file_dialog.is_none();
+                if ui.add_enabled(idle, egui::Button::new("Choose file…")).clicked() {
+                    self.start_file_dialog(false);
+                }
+                if ui.add_enabled(idle, egui::Button::new("Choose folder…")).on_hover_text("A DICOM series folder, or a store").clicked() {
+                    self.start_file_dialog(true);
+                }
+                if !idle {
+                    ui.spinner();
+                }
+            });
+            self.poll_file_dialog();
+            if let Some(note) = &self.file_dialog_note {
+                ui.weak(note);
+            }
+            ui.horizontal(|ui| {
                 ui.label("DICOM series (optional)");
                 ui.add(egui::TextEdit::singleline(&mut self.open_series).desired_width(200.0).hint_text("index or UID"));
             });
@@ -682,6 +703,44 @@ impl StrataApp {
         }
         if !open {
             self.open_dialog = false;
+        }
+    }
+
+    /// The system dialog blocks whoever calls it, so it runs on its own thread; without a
+    /// desktop portal it returns nothing and the typed path still works.
+    fn start_file_dialog(&mut self, folder: bool) {
+        let slot = Arc::new(std::sync::Mutex::new(None));
+        let thread_slot = slot.clone();
+        let ctx = self.ctx.clone();
+        let start = PathBuf::from(self.open_path.trim());
+        let spawned = std::thread::Builder::new().name("strata-file-dialog".into()).spawn(move || {
+            let mut dialog = rfd::FileDialog::new().set_title(if folder { "Open a DICOM folder or store" } else { "Open a scan" });
+            if let Some(dir) = start.parent().filter(|d| d.is_dir()) {
+                dialog = dialog.set_directory(dir);
+            }
+            let chosen = if folder { dialog.pick_folder() } else { dialog.pick_file() };
+            *thread_slot.lock().unwrap_or_else(|e| e.into_inner()) = Some(chosen);
+            ctx.request_repaint();
+        });
+        match spawned {
+            Ok(_) => {
+                self.file_dialog = Some(slot);
+                self.file_dialog_note = None;
+            }
+            Err(e) => self.file_dialog_note = Some(format!("no file dialog: {e}; type the path")),
+        }
+    }
+
+    fn poll_file_dialog(&mut self) {
+        let Some(slot) = &self.file_dialog else { return };
+        let Some(chosen) = slot.lock().unwrap_or_else(|e| e.into_inner()).take() else { return };
+        self.file_dialog = None;
+        match chosen {
+            Some(path) => {
+                self.open_path = path.display().to_string();
+                self.file_dialog_note = None;
+            }
+            None => self.file_dialog_note = Some("Nothing chosen (the dialog needs a desktop portal); you can type the path.".into()),
         }
     }
 
