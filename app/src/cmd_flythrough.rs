@@ -188,7 +188,8 @@ pub fn run(args: FlythroughArgs) -> Result<()> {
     if let Some(mut file) = csv {
         file.flush()?;
     }
-    summary(&args, &volume, open_seconds, first_frame_seconds, &frame_seconds, &loader_seconds, &stops, &ever_in_working_set);
+    let record = RunRecord { open_seconds, first_frame_seconds, frame_seconds, loader_seconds, stops, ever_in_working_set };
+    summary(&args, &volume, &record);
     Ok(())
 }
 
@@ -258,16 +259,18 @@ fn print_stop(r: &StopResult) {
     }
 }
 
-fn summary(
-    args: &FlythroughArgs,
-    volume: &StreamingVolume,
+/// What one run measured, for the summary.
+struct RunRecord {
     open_seconds: f64,
     first_frame_seconds: Option<f64>,
-    frame_seconds: &[f64],
-    loader_seconds: &[f64],
-    stops: &[StopResult],
-    ever_in_working_set: &HashSet<BrickId>,
-) {
+    frame_seconds: Vec<f64>,
+    loader_seconds: Vec<f64>,
+    stops: Vec<StopResult>,
+    ever_in_working_set: HashSet<BrickId>,
+}
+
+fn summary(args: &FlythroughArgs, volume: &StreamingVolume, record: &RunRecord) {
+    let RunRecord { open_seconds, first_frame_seconds, frame_seconds, loader_seconds, stops, ever_in_working_set } = record;
     let last = volume.last_stats();
     let frames = Distribution::of(frame_seconds);
     let loader = Distribution::of(loader_seconds);

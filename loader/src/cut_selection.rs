@@ -468,8 +468,7 @@ impl<R: Residency> Selection<'_, R> {
                         continue;
                     }
                     let neighbour = BrickId::new(id.level, c.map(|v| v as u32));
-                    loop {
-                        let Some((leaf, kind)) = self.covering_leaf(neighbour) else { break };
+                    while let Some((leaf, kind)) = self.covering_leaf(neighbour) {
                         match kind {
                             // A pending leaf is drawn by its parent, one level coarser, and
                             // cannot refine before its brick arrives.
