@@ -1506,3 +1506,35 @@ impl eframe::App for EframeApp {
         self.app.write_frame_log();
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn preferences_survive_a_round_trip_and_old_files_fill_in_defaults() {
+        let mut p = Preferences { layout: Layout::TwoByTwo, preset: "ct-lung".into(), target_fps: 24.0, show_identifiers: true, ..Preferences::default() };
+        p.focused = ViewSlot::Slice(SliceView::Sagittal);
+        let text = serde_json::to_string(&p).expect("serialise");
+        assert_eq!(serde_json::from_str::<Preferences>(&text).expect("parse"), p);
+        // A file written by an older version lacks newer fields: they take their defaults.
+        let old: Preferences = serde_json::from_str(r#"{"layout":"Single","preset":"mr-default"}"#).expect("parse old");
+        assert_eq!(old.layout, Layout::Single);
+        assert_eq!(old.preset, "mr-default");
+        assert_eq!(old.target_fps, Preferences::default().target_fps);
+        assert!(!old.show_identifiers, "identifiers stay hidden unless the user showed them");
+    }
+
+    #[test]
+    fn percentile_window_spans_the_bulk_of_the_histogram() {
+        let mut counts = vec![0u64; 100];
+        counts[10] = 1; // an outlier below
+        for c in counts.iter_mut().take(80).skip(20) {
+            *c = 100;
+        }
+        counts[99] = 1; // an outlier above
+        let h = Histogram { physical_min: 0.0, physical_max: 100.0, counts };
+        let (centre, width) = percentile_window(&h);
+        assert!((centre - 50.0).abs() < 2.0 && (width - 60.0).abs() < 3.0, "window {centre} / {width}");
+    }
+}
