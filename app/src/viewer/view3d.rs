@@ -188,7 +188,7 @@ mod tests {
     }
 
     #[test]
-    fn superior_is_up_on_screen_and_the_patients_left_on_the_right_in_a_posterior_view() {
+    fn superior_is_up_on_screen_and_the_patients_left_on_the_right_in_an_anterior_view() {
         let g = geometry();
         let basis = OrbitCamera::standard(StandardView::Anterior, false).camera(&g).basis();
         assert!(basis.up.dot(DVec3::Z) > 0.99, "superior at the top");
