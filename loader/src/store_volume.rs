@@ -107,6 +107,10 @@ pub struct GpuCut {
     pub page_table: strata_render::GpuPageTable,
     pub transfer_function: strata_render::GpuTransferFunction,
     pub raycaster: strata_render::Raycaster,
+    table: PageTable,
+    node_ranges: HashMap<(u8, [u32; 3]), (u16, u16)>,
+    /// The mapping the MIP value bounds on the GPU were computed with.
+    bounds_for: Option<ValueMapping>,
 }
 
 impl GpuCut {
@@ -129,9 +133,20 @@ impl GpuCut {
         bricks.upload(&cache, &ctx.queue, table)?;
         let page_table = strata_render::GpuPageTable::new(&ctx.device, page_dims, &cache)?;
         page_table.update(&ctx.queue, table)?;
+        // Stored ranges of the cut's nodes, from the bricks themselves (all in memory here);
+        // the MIP bounds are written once the value mapping is known (first render).
+        let mut node_ranges = HashMap::new();
+        for (i, e) in table.entries.iter().enumerate() {
+            let node = PageTable::node_of(table.page_of_linear(i), e.level);
+            if let Some(brick) = bricks.brick(e.level, node).filter(|_| e.resident) {
+                if let (Some(lo), Some(hi)) = (brick.iter().min(), brick.iter().max()) {
+                    node_ranges.insert((e.level, node), (*lo, *hi));
+                }
+            }
+        }
         let transfer_function = strata_render::GpuTransferFunction::new(&ctx.device, &ctx.queue, tf_table);
         let raycaster = strata_render::Raycaster::new(ctx, &cache);
-        Ok(GpuCut { cache, page_table, transfer_function, raycaster })
+        Ok(GpuCut { cache, page_table, transfer_function, raycaster, table: table.clone(), node_ranges, bounds_for: None })
     }
 
     /// Renders one frame and waits for it (CLI, tests, benchmarks; the viewer reads back late).
@@ -143,6 +158,11 @@ impl GpuCut {
         camera: &strata_render::Camera,
         settings: &strata_render::RenderSettings,
     ) -> Result<strata_render::FrameReadback, LoaderError> {
+        if self.bounds_for != Some(mapping) {
+            let bounds = self.table.value_max_physical(mapping, |level, node| self.node_ranges.get(&(level, node)).copied());
+            self.page_table.update_value_max(&ctx.queue, &bounds)?;
+            self.bounds_for = Some(mapping);
+        }
         let scene = strata_render::Scene {
             cache: &self.cache,
             page_table: &self.page_table,

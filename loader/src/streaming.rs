@@ -336,6 +336,7 @@ impl StreamingVolume {
         let rewritten = table != self.page_table;
         if rewritten {
             self.gpu_page_table.update(&ctx.queue, &table)?;
+            self.write_mip_bounds(ctx, &table)?;
             self.page_table = table;
             self.cut_changed_at_render = self.renders + 1;
         }
@@ -376,6 +377,33 @@ impl StreamingVolume {
         let stats = self.stats(&cut, fetched, rewritten, converged, loader_seconds);
         self.last_stats = stats.clone();
         Ok(stats)
+    }
+
+    /// Per page entry, the largest value its node holds (skeleton range incl. apron), so MIP
+    /// rays skip pages that cannot beat their running maximum.
+    fn write_mip_bounds(&self, ctx: &GpuContext, table: &PageTable) -> Result<(), LoaderError> {
+        let bounds = table.value_max_physical(self.mapping, |level, node| {
+            self.octree.own_range(BrickId::new(level, node)).map(|r| (r.min, r.max))
+        });
+        Ok(self.gpu_page_table.update_value_max(&ctx.queue, &bounds)?)
+    }
+
+    /// The raycaster's number of the frame the last [`StreamingVolume::frame`] submitted; GPU
+    /// timings from [`StreamingVolume::take_frame_timings`] carry it.
+    pub fn last_frame_number(&self) -> u64 {
+        self.raycaster.frame_number()
+    }
+
+    /// GPU time of the raycast pass of recent frames, read back a frame or two late without
+    /// waiting. Empty on devices without timestamp queries.
+    pub fn take_frame_timings(&mut self, ctx: &GpuContext) -> Vec<strata_render::FrameTiming> {
+        self.raycaster.try_take_frame_timings(ctx)
+    }
+
+    /// Interactive use: a frame that needs a pipeline not compiled yet draws with the previous
+    /// one while a thread compiles it (see `Raycaster::compile_in_background`).
+    pub fn set_compile_in_background(&mut self, on: bool) {
+        self.raycaster.compile_in_background = on;
     }
 
     /// Waits until the GPU finished everything submitted (frame timing in benchmarks).
