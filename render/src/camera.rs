@@ -47,9 +47,9 @@ impl Camera {
         }
     }
 
-    /// Orbit around the volume centre. Azimuth turns about patient superior (+S = -z in LPS
-    /// is "up" in radiology views; we use -z as up so heads point up), elevation tilts towards
-    /// it. `zoom` 1 frames the bounding sphere; 2 is twice as close/large.
+    /// Orbit around the volume centre. Azimuth turns about patient superior (+z in LPS), which
+    /// is "up" on screen so heads point up; positive elevation looks from above. `zoom` 1
+    /// frames the bounding sphere; 2 is twice as close/large.
     pub fn orbit(
         geometry: &VolumeGeometry,
         azimuth_deg: f64,
@@ -65,7 +65,7 @@ impl Camera {
             1.0
         };
         let (az, el) = (azimuth_deg.to_radians(), elevation_deg.to_radians());
-        let up_axis = DVec3::new(0.0, 0.0, -1.0);
+        let up_axis = DVec3::new(0.0, 0.0, 1.0);
         // Azimuth 0 looks from anterior (-y in LPS) towards posterior, as a frontal view.
         let dir_from_centre =
             DVec3::new(az.sin() * el.cos(), -az.cos() * el.cos(), 0.0) + up_axis * el.sin();

@@ -810,6 +810,23 @@ fn orbit_camera_centres_the_volume() {
 }
 
 #[test]
+fn orbit_camera_shows_the_patient_upright_from_the_front() {
+    // LPS: +x patient left, +y posterior, +z superior.
+    let g = VolumeGeometry::axis_aligned([40, 50, 60], [1.0, 1.0, 2.0]);
+    let c = g.centre_patient();
+    let front = Camera::orbit(&g, 0.0, 0.0, 1.0, Projection::Perspective { fov_y_deg: 30.0 });
+    let basis = front.basis();
+    assert!(front.eye[1] < c.y, "azimuth 0 looks from anterior (-y)");
+    assert!(basis.up.z > 0.999, "superior is up on screen: {:?}", basis.up);
+    // Facing the patient, the patient's left is on the viewer's right (radiological frontal).
+    assert!(basis.right.x > 0.999, "patient left on screen right: {:?}", basis.right);
+    let above = Camera::orbit(&g, 0.0, 30.0, 1.0, Projection::Perspective { fov_y_deg: 30.0 });
+    assert!(above.eye[2] > c.z, "positive elevation looks from above");
+    let side = Camera::orbit(&g, 90.0, 0.0, 1.0, Projection::Perspective { fov_y_deg: 30.0 });
+    assert!(side.eye[0] > c.x, "azimuth 90 looks from the patient's left");
+}
+
+#[test]
 fn partial_page_table_writes_equal_full_writes() {
     let ctx = gpu();
     let f = Fixture::ct(64);
