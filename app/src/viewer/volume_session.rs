@@ -270,6 +270,10 @@ impl RenderWorker {
         let config = StreamingConfig { gpu_budget_bytes: self.gpu_budget_bytes, ..StreamingConfig::default() };
         let reader: Arc<dyn BrickReader> = self.store.clone();
         let mut volume = StreamingVolume::new(&ctx, self.store.clone(), reader, &initial_tf, config)?;
+        // Toggling shading, a mode or pre-integration must not stall the volume view while
+        // lavapipe compiles the new pipeline: the previous one draws meanwhile.
+        volume.set_compile_in_background(true);
+        let gpu_timestamps = ctx.supports_timestamps();
         let mut current_tf = initial_tf;
         self.set_status(|s| s.loading = None);
 
@@ -329,13 +333,25 @@ impl RenderWorker {
             settings.frame_index = self.serial as u32;
             let started = Instant::now();
             let stats = volume.frame(&ctx, &request.camera, &settings)?;
-            let frame = volume.read_frame_blocking(&ctx)?;
-            // Submit → pixels back: what this frame cost, loader work and readback included (the
-            // loader does not expose the pass's GPU timestamps).
-            let frame_ms = started.elapsed().as_secs_f64() * 1e3;
             if let Some(q) = quality {
-                // Still-refinement frames are ignored by the controller (q.interactive false).
-                self.controller.observe_ms(frame_ms, q);
+                self.controller.submitted(volume.last_frame_number(), q);
+            }
+            let frame = volume.read_frame_blocking(&ctx)?;
+            let frame_ms = started.elapsed().as_secs_f64() * 1e3;
+            // The controller learns from the raycast pass's GPU time (timestamps, read a frame
+            // or two late), not from request-to-pixels time, which includes loader work and the
+            // readback: measuring those is what makes other viewers' adaptive modes misbehave.
+            // Still-refinement frames are ignored by the controller (q.interactive false).
+            let gpu_timings = volume.take_frame_timings(&ctx);
+            if let Some(q) = quality {
+                if gpu_timestamps {
+                    for timing in gpu_timings {
+                        self.controller.observe(timing);
+                    }
+                } else {
+                    // No timestamp queries on this device: submit-to-pixels is all there is.
+                    self.controller.observe_ms(frame_ms, q);
+                }
             }
             frame_ms_history.push((Instant::now(), frame_ms));
             if frame_ms_history.len() > 240 {
