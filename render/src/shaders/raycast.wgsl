@@ -286,8 +286,22 @@ fn mark_visible_in(st: ptr<function, RayState>, page: u32) {
 // Composites the pre-integrated segment of `length` (mm) from value `front` to `back`. The
 // table is for the base step; other lengths (half segments, coarse levels, level changes)
 // rescale opacity by the same power law as the classic opacity correction.
+// Front-to-back "over" of a premultiplied colour and its opacity at ray distance t; the first
+// contribution sets the depth, its page is marked visible, early termination is checked.
+fn composite(st: ptr<function, RayState>, premultiplied: vec3<f32>, alpha: f32, page: u32, t: f32) {
+    if (*st).depth == bitcast<f32>(0x7f800000u) {
+        (*st).depth = t;
+    }
+    mark_visible_in(st, page);
+    let w = 1.0 - (*st).acc.a;
+    (*st).acc = vec4<f32>((*st).acc.rgb + w * premultiplied, (*st).acc.a + w * alpha);
+    if EARLY_TERMINATION && (*st).acc.a >= P.dims.w {
+        (*st).done = true;
+    }
+}
+
 fn composite_segment(st: ptr<function, RayState>, front: f32, back: f32, length: f32,
-                     front_loc: Location, back_loc: Location, t: f32, d: vec3<f32>) {
+                     back_loc: Location, t: f32, d: vec3<f32>) {
     var seg = preintegrated(front, back);
     let ratio = length / P.box_lo.w;
     if ratio != 1.0 && seg.a > 0.0 {
@@ -302,23 +316,14 @@ fn composite_segment(st: ptr<function, RayState>, front: f32, back: f32, length:
         // Lit at the segment's nearer sample: the gradient is only known at samples.
         color = shade(seg.rgb / seg.a, back_loc, d) * seg.a;
     }
-    if (*st).depth == bitcast<f32>(0x7f800000u) {
-        (*st).depth = t;
-    }
-    mark_visible_in(st, back_loc.page);
-    let w = 1.0 - (*st).acc.a;
-    (*st).acc = vec4<f32>((*st).acc.rgb + w * color, (*st).acc.a + w * seg.a);
-    if EARLY_TERMINATION && (*st).acc.a >= P.dims.w {
-        (*st).done = true;
-    }
+    composite(st, color, seg.a, back_loc.page, t);
 }
 
 // The constant half segment after the last sample of a run (see take_sample).
 fn close_preintegrated_run(st: ptr<function, RayState>, d: vec3<f32>) {
     if MODE == 0u && PREINTEGRATED && (*st).run_open && !(*st).done {
         let v = (*st).run_value;
-        composite_segment(st, v, v, 0.5 * (*st).run_delta, (*st).run_loc, (*st).run_loc,
-                          (*st).run_t, d);
+        composite_segment(st, v, v, 0.5 * (*st).run_delta, (*st).run_loc, (*st).run_t, d);
     }
     (*st).run_open = false;
 }
@@ -332,9 +337,9 @@ fn take_sample(st: ptr<function, RayState>, loc: Location, t: f32, delta: f32, o
         // one after its last (close_preintegrated_run), so the integrated interval is the one
         // the classic path covers.
         if (*st).run_open {
-            composite_segment(st, (*st).run_value, v, t - (*st).run_t, (*st).run_loc, loc, t, d);
+            composite_segment(st, (*st).run_value, v, t - (*st).run_t, loc, t, d);
         } else {
-            composite_segment(st, v, v, 0.5 * delta, loc, loc, t, d);
+            composite_segment(st, v, v, 0.5 * delta, loc, t, d);
         }
         (*st).run_value = v;
         (*st).run_t = t;
@@ -351,15 +356,7 @@ fn take_sample(st: ptr<function, RayState>, loc: Location, t: f32, delta: f32, o
             if SHADING {
                 color = shade(color, loc, d);
             }
-            if (*st).depth == bitcast<f32>(0x7f800000u) {
-                (*st).depth = t;
-            }
-            mark_visible_in(st, loc.page);
-            let w = (1.0 - (*st).acc.a) * alpha;
-            (*st).acc = vec4<f32>((*st).acc.rgb + w * color, (*st).acc.a + w);
-            if EARLY_TERMINATION && (*st).acc.a >= P.dims.w {
-                (*st).done = true;
-            }
+            composite(st, color * alpha, alpha, loc.page, t);
         }
     } else if MODE == 1u {
         if v > (*st).best_value {
