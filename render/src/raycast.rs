@@ -286,7 +286,7 @@ pub struct PipelineKey {
 }
 
 /// What a pre-integration table was built for; a change of any part rebuilds it.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug)]
 struct PreintegrationKey {
     transfer_function: crate::TransferFunction,
     lo: f64,
@@ -829,16 +829,24 @@ impl Raycaster {
     fn ensure_preintegration(&mut self, ctx: &GpuContext, scene: &Scene) {
         let unit_mm = scene.geometry.finest_spacing_mm();
         let tf = scene.transfer_function;
+        let segment_mm = scene.settings.quality * unit_mm;
+        // Compared field by field so a frame that reuses the table clones nothing.
+        if self.preintegration.as_ref().is_some_and(|p| {
+            p.key.transfer_function == tf.source
+                && p.key.lo == tf.lo
+                && p.key.hi == tf.hi
+                && p.key.segment_mm == segment_mm
+                && p.key.unit_mm == unit_mm
+        }) {
+            return;
+        }
         let key = PreintegrationKey {
             transfer_function: tf.source.clone(),
             lo: tf.lo,
             hi: tf.hi,
-            segment_mm: scene.settings.quality * unit_mm,
+            segment_mm,
             unit_mm,
         };
-        if self.preintegration.as_ref().is_some_and(|p| p.key == key) {
-            return;
-        }
         let table = crate::preintegration::PreintegrationTable::build(
             &key.transfer_function,
             key.lo,
