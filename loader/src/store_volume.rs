@@ -95,6 +95,22 @@ pub fn page_table_for_cut(store: &Store, geometry: &VolumeGeometry, level_of: im
     table
 }
 
+/// Every page position served by `level` (clamped to the root), empty pages flagged for
+/// `tf_table`, and the bricks that cut needs, read and verified: what `GpuCut::upload` and the
+/// CPU reference take for an in-core render of one level.
+pub fn load_uniform_cut(
+    store: &Store,
+    geometry: &VolumeGeometry,
+    mapping: ValueMapping,
+    tf_table: &TransferFunctionTable,
+    level: u8,
+) -> Result<(PageTable, ResidentBricks), LoaderError> {
+    let mut table = page_table_for_cut(store, geometry, |_| level);
+    classify_empty(store, &mut table, mapping, tf_table);
+    let bricks = ResidentBricks::load(store, &table)?;
+    Ok((table, bricks))
+}
+
 /// Flags positions whose node is transparent under the transfer function (skeleton ranges).
 pub fn classify_empty(store: &Store, table: &mut PageTable, mapping: ValueMapping, tf: &TransferFunctionTable) {
     table.classify_empty(tf, mapping, |level, node| store.node(BrickId::new(level, node)).map(|n| (n.min, n.max)));

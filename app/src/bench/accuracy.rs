@@ -15,7 +15,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
-use strata_loader::store_volume::{classify_empty, page_table_for_cut, GpuCut};
+use strata_loader::store_volume::{load_uniform_cut, GpuCut};
 use strata_loader::{render_geometry, render_mapping, ResidentBricks};
 use strata_render::reference::{render_reference, ReferenceOptions, ReferenceScene};
 use strata_render::{
@@ -163,9 +163,7 @@ struct LevelCut {
 }
 
 fn load_level(ctx: &GpuContext, v: &Volume, level: u8) -> Result<LevelCut> {
-    let mut table = page_table_for_cut(&v.store, &v.geometry, |_| level);
-    classify_empty(&v.store, &mut table, v.mapping, &v.tf_table);
-    let bricks = ResidentBricks::load(&v.store, &table)?;
+    let (table, bricks) = load_uniform_cut(&v.store, &v.geometry, v.mapping, &v.tf_table, level)?;
     let gpu = GpuCut::upload(ctx, &bricks, &table, v.geometry.page_dims(), &v.tf_table)?;
     Ok(LevelCut { table, bricks, gpu })
 }

@@ -15,8 +15,8 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
-use strata_loader::store_volume::{classify_empty, page_table_for_cut, GpuCut};
-use strata_loader::{render_geometry, render_mapping, ResidentBricks};
+use strata_loader::store_volume::{load_uniform_cut, GpuCut};
+use strata_loader::{render_geometry, render_mapping};
 use strata_render::{
     Camera, ControllerConfig, FrameQuality, GpuContext, Projection, RenderSettings, Scene, Shading,
     TimeCriticalConfig, TimeCriticalController, TransferFunctionTable, ValueMapping, VolumeGeometry,
@@ -68,9 +68,7 @@ impl Cuts<'_> {
 
     fn get(&mut self, ctx: &GpuContext, level: u8) -> Result<&GpuCut> {
         if !self.by_level.contains_key(&level) {
-            let mut table = page_table_for_cut(self.store, self.geometry, |_| level);
-            classify_empty(self.store, &mut table, self.mapping, self.tf_table);
-            let bricks = ResidentBricks::load(self.store, &table)?;
+            let (table, bricks) = load_uniform_cut(self.store, self.geometry, self.mapping, self.tf_table, level)?;
             let cut = GpuCut::upload(ctx, &bricks, &table, self.geometry.page_dims(), self.tf_table)?;
             eprintln!("  (level {level}: {} bricks resident)", bricks.len());
             self.by_level.insert(level, cut);
