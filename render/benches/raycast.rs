@@ -260,7 +260,13 @@ fn main() {
         .ok()
         .map(|v| v.split(',').filter_map(|s| s.trim().parse().ok()).collect())
         .filter(|v: &Vec<f64>| !v.is_empty())
-        .unwrap_or_else(|| if quick { vec![0.5] } else { vec![0.5, 1.0, 2.0, 3.0] });
+        .unwrap_or_else(|| {
+            if quick {
+                vec![0.5]
+            } else {
+                vec![0.5, 1.0, 2.0, 3.0]
+            }
+        });
     // (name, mode, skip empty pages, step); the no-skip rows show what empty-space skipping saves.
     let mut configs: Vec<(String, RenderMode, bool, f64)> = Vec::new();
     for &step in &steps {
@@ -366,13 +372,62 @@ fn main() {
         offset_mm: volume.geometry.centre_patient().z - 40.0,
     };
     let effects: Vec<(&str, &str, RenderSettings)> = vec![
-        ("shading", "SHADING", RenderSettings { shading: Some(Shading::default()), ..base.clone() }),
-        ("jitter", "JITTER", RenderSettings { jitter: true, ..base.clone() }),
-        ("clip plane", "CLIP_PLANE", RenderSettings { clip_plane: Some(clip), ..base.clone() }),
-        ("pre-integration", "PREINTEGRATED", RenderSettings { preintegrated: true, ..base.clone() }),
-        ("sample counter", "COUNT_SAMPLES", RenderSettings { count_samples: true, ..base.clone() }),
-        ("early termination", "EARLY_TERMINATION", RenderSettings { early_termination: Some(0.99), ..base.clone() }),
-        ("empty skipping", "SKIP_EMPTY", RenderSettings { skip_empty: true, ..base.clone() }),
+        (
+            "shading",
+            "SHADING",
+            RenderSettings {
+                shading: Some(Shading::default()),
+                ..base.clone()
+            },
+        ),
+        (
+            "jitter",
+            "JITTER",
+            RenderSettings {
+                jitter: true,
+                ..base.clone()
+            },
+        ),
+        (
+            "clip plane",
+            "CLIP_PLANE",
+            RenderSettings {
+                clip_plane: Some(clip),
+                ..base.clone()
+            },
+        ),
+        (
+            "pre-integration",
+            "PREINTEGRATED",
+            RenderSettings {
+                preintegrated: true,
+                ..base.clone()
+            },
+        ),
+        (
+            "sample counter",
+            "COUNT_SAMPLES",
+            RenderSettings {
+                count_samples: true,
+                ..base.clone()
+            },
+        ),
+        (
+            "early termination",
+            "EARLY_TERMINATION",
+            RenderSettings {
+                early_termination: Some(0.99),
+                ..base.clone()
+            },
+        ),
+        (
+            "empty skipping",
+            "SKIP_EMPTY",
+            RenderSettings {
+                skip_empty: true,
+                ..base.clone()
+            },
+        ),
     ];
     let mut never_had: Vec<Raycaster> = effects
         .iter()
@@ -382,8 +437,8 @@ fn main() {
                 .into_iter()
                 .find(|d| Raycaster::SHADER_SOURCE.contains(d))
                 .unwrap_or_else(|| panic!("override {name} not in the shader"));
-            let variant =
-                Raycaster::SHADER_SOURCE.replace(&declared, &format!("const {name}: bool = false;"));
+            let variant = Raycaster::SHADER_SOURCE
+                .replace(&declared, &format!("const {name}: bool = false;"));
             Raycaster::with_shader_source(&ctx, &cache, &variant)
         })
         .collect();
@@ -393,7 +448,11 @@ fn main() {
         for (i, (_, _, on)) in effects.iter().enumerate() {
             for (variant, settings) in [(0, &base), (1, &base), (2, on)] {
                 let scene = drawn.scene(&camera, settings);
-                let rc = if variant == 1 { &mut never_had[i] } else { &mut raycaster };
+                let rc = if variant == 1 {
+                    &mut never_had[i]
+                } else {
+                    &mut raycaster
+                };
                 let t = Instant::now();
                 rc.render_and_wait(&ctx, &scene).expect("render");
                 if round > 0 {

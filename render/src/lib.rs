@@ -20,6 +20,7 @@ pub mod preintegration;
 pub mod raycast;
 pub mod reference;
 pub mod settings;
+pub mod smooth_transitions;
 pub mod time_critical;
 pub mod transfer_function;
 
@@ -35,8 +36,8 @@ pub use offscreen::OffscreenRenderer;
 pub use page_table::{PageEntry, PageTable};
 pub use preintegration::PreintegrationTable;
 pub use raycast::{
-    PipelineKey,
-    FrameReadback, GpuPageTable, GpuTransferFunction, Raycaster, Scene, VisibilityFrame,
+    FrameReadback, GpuPageTable, GpuTransferFunction, PipelineKey, Raycaster, Scene,
+    VisibilityFrame,
 };
 pub use reference::{render_reference, ReferenceImage, ReferenceOptions, ReferenceScene};
 pub use settings::{ClipPlane, CropBox, RenderMode, RenderSettings, Shading};

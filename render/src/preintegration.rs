@@ -57,35 +57,65 @@ impl PreintegrationTable {
         use rayon::prelude::*;
         let size = size.max(2);
         let hi = if hi > lo { hi } else { lo + 1.0 };
-        let segment_mm = if segment_mm.is_finite() { segment_mm.max(0.0) } else { 0.0 };
-        let unit_mm = if unit_mm.is_finite() && unit_mm > 0.0 { unit_mm } else { 1.0 };
+        let segment_mm = if segment_mm.is_finite() {
+            segment_mm.max(0.0)
+        } else {
+            0.0
+        };
+        let unit_mm = if unit_mm.is_finite() && unit_mm > 0.0 {
+            unit_mm
+        } else {
+            1.0
+        };
         let n = size as usize;
         let value_at = |i: usize| lo + (hi - lo) * i as f64 / (n - 1) as f64;
         // TF table entries per table cell: how finely a segment must be sub-sampled.
-        let tf_entries_per_cell = (crate::transfer_function::TABLE_ENTRIES as f64 / n as f64).max(1.0);
+        let tf_entries_per_cell =
+            (crate::transfer_function::TABLE_ENTRIES as f64 / n as f64).max(1.0);
         let rgba: Vec<SegmentRgba> = (0..n * n)
             .into_par_iter()
             .map(|k| {
                 let (front, back) = (k % n, k / n);
                 let cells = front.abs_diff(back) as f64;
-                let substeps = ((cells * tf_entries_per_cell).ceil() as usize).clamp(1, MAX_SUBSTEPS);
-                integrate_segment(tf, value_at(front), value_at(back), segment_mm, unit_mm, substeps)
+                let substeps =
+                    ((cells * tf_entries_per_cell).ceil() as usize).clamp(1, MAX_SUBSTEPS);
+                integrate_segment(
+                    tf,
+                    value_at(front),
+                    value_at(back),
+                    segment_mm,
+                    unit_mm,
+                    substeps,
+                )
             })
             .collect();
-        PreintegrationTable { lo, hi, segment_mm, unit_mm, size, rgba }
+        PreintegrationTable {
+            lo,
+            hi,
+            segment_mm,
+            unit_mm,
+            size,
+            rgba,
+        }
     }
 
     /// Bilinear lookup, as the shader does it (for tests and the CPU side).
     pub fn lookup(&self, s_front: f64, s_back: f64) -> [f64; 4] {
         let n = self.size as usize;
-        let coord = |s: f64| ((s - self.lo) / (self.hi - self.lo) * (n - 1) as f64).clamp(0.0, (n - 1) as f64);
+        let coord = |s: f64| {
+            ((s - self.lo) / (self.hi - self.lo) * (n - 1) as f64).clamp(0.0, (n - 1) as f64)
+        };
         let (x, y) = (coord(s_front), coord(s_back));
         let (x0, y0) = (x.floor() as usize, y.floor() as usize);
         let (x1, y1) = ((x0 + 1).min(n - 1), (y0 + 1).min(n - 1));
         let (fx, fy) = (x - x0 as f64, y - y0 as f64);
         let at = |i: usize, j: usize| self.rgba[j * n + i].map(|c| c as f64);
         let mix = |a: [f64; 4], b: [f64; 4], t: f64| [0, 1, 2, 3].map(|c| a[c] + (b[c] - a[c]) * t);
-        mix(mix(at(x0, y0), at(x1, y0), fx), mix(at(x0, y1), at(x1, y1), fx), fy)
+        mix(
+            mix(at(x0, y0), at(x1, y0), fx),
+            mix(at(x0, y1), at(x1, y1), fx),
+            fy,
+        )
     }
 }
 
@@ -118,7 +148,12 @@ pub fn integrate_segment(
         }
         alpha += w;
     }
-    [color[0] as f32, color[1] as f32, color[2] as f32, alpha as f32]
+    [
+        color[0] as f32,
+        color[1] as f32,
+        color[2] as f32,
+        alpha as f32,
+    ]
 }
 
 #[cfg(test)]
@@ -142,7 +177,10 @@ mod tests {
             let a = tf.opacity_at(s).min(0.999_999);
             let expected_alpha = 1.0 - (1.0 - a).powf(0.5);
             let got = table.rgba[i * 256 + i];
-            assert!((got[3] as f64 - expected_alpha).abs() < 1e-6, "s {s}: {got:?}");
+            assert!(
+                (got[3] as f64 - expected_alpha).abs() < 1e-6,
+                "s {s}: {got:?}"
+            );
             let c = tf.color_at(s);
             for k in 0..3 {
                 assert!((got[k] as f64 - c[k] * expected_alpha).abs() < 1e-6);
@@ -158,8 +196,14 @@ mod tests {
         let forward = table.rgba[b * n + f];
         let backward = table.rgba[f * n + b];
         // Total absorption does not depend on the direction; what is seen first does.
-        assert!((forward[3] - backward[3]).abs() < 1e-5, "{forward:?} {backward:?}");
-        assert!((forward[0] - backward[0]).abs() > 1e-3, "colour should depend on order");
+        assert!(
+            (forward[3] - backward[3]).abs() < 1e-5,
+            "{forward:?} {backward:?}"
+        );
+        assert!(
+            (forward[0] - backward[0]).abs() > 1e-3,
+            "colour should depend on order"
+        );
     }
 
     #[test]
@@ -183,7 +227,14 @@ mod tests {
         // the segment from 100 to 140 crosses the band and must absorb.
         let band = TransferFunction::new(
             "band",
-            &[(0.0, 0.0), (119.9, 0.0), (120.0, 0.9), (122.0, 0.9), (122.1, 0.0), (255.0, 0.0)],
+            &[
+                (0.0, 0.0),
+                (119.9, 0.0),
+                (120.0, 0.9),
+                (122.0, 0.9),
+                (122.1, 0.0),
+                (255.0, 0.0),
+            ],
             &[(0.0, [1.0, 1.0, 1.0]), (255.0, [1.0, 1.0, 1.0])],
         );
         let table = PreintegrationTable::build(&band, 0.0, 255.0, 1.0, 1.0, 256);
@@ -194,7 +245,10 @@ mod tests {
         assert!((seg[3] - 0.109).abs() < 0.02, "{seg:?}");
         // Sub-segments at every TF entry keep a finer step from changing the answer.
         let fine = integrate_segment(&band, 100.0, 140.0, 1.0, 1.0, 4096);
-        assert!((seg[3] - fine[3] as f64).abs() < 0.01, "{seg:?} vs {fine:?}");
+        assert!(
+            (seg[3] - fine[3] as f64).abs() < 0.01,
+            "{seg:?} vs {fine:?}"
+        );
     }
 
     #[test]
@@ -207,7 +261,11 @@ mod tests {
             (0.0, 255.0, 1e6, 1.0),
         ] {
             let t = PreintegrationTable::build(&tf, lo, hi, seg, unit, 8);
-            assert!(t.rgba.iter().flatten().all(|c| c.is_finite() && (0.0..=1.0).contains(c)));
+            assert!(t
+                .rgba
+                .iter()
+                .flatten()
+                .all(|c| c.is_finite() && (0.0..=1.0).contains(c)));
         }
     }
 }

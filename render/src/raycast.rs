@@ -31,6 +31,12 @@ pub struct GpuPageTable {
     pub page_dims: [u32; 3],
     /// Slot grid of the cache the entries point into (entries store slot grid positions).
     pub slots_per_axis: [u32; 3],
+    /// Per entry, the covering node's 26-neighbour mask of coarser neighbours
+    /// (smooth_transitions.rs), written by [`GpuPageTable::update`].
+    pub transitions: wgpu::Buffer,
+    /// Share of resident nodes with a coarser neighbour in the last table written; 0 means
+    /// frames need no transition code at all.
+    transition_fraction: std::sync::Mutex<f64>,
 }
 
 impl GpuPageTable {
@@ -62,11 +68,19 @@ impl GpuPageTable {
                 usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
             },
         );
+        let transitions = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("page transitions"),
+            size: n * 4,
+            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
         Ok(GpuPageTable {
             buffer,
             value_max,
             page_dims,
             slots_per_axis: cache.slots_per_axis,
+            transitions,
+            transition_fraction: std::sync::Mutex::new(0.0),
         })
     }
 
@@ -75,7 +89,8 @@ impl GpuPageTable {
     }
 
     /// Writes `entries` starting at linear index `first` (x fastest, then y, z): for loaders
-    /// that change a few entries per frame. Takes effect for the next submitted frame.
+    /// that change a few entries per frame. Takes effect for the next submitted frame. The
+    /// transition masks are not touched: a change of levels needs [`GpuPageTable::update`].
     pub fn write_entries(
         &self,
         queue: &wgpu::Queue,
@@ -140,7 +155,19 @@ impl GpuPageTable {
             0,
             bytemuck::cast_slice(&table.encoded(self.slots_per_axis)),
         );
+        let masks = crate::smooth_transitions::transition_masks(table);
+        queue.write_buffer(&self.transitions, 0, bytemuck::cast_slice(&masks));
+        let fraction = crate::smooth_transitions::transition_node_fraction(table, &masks);
+        if let Ok(mut f) = self.transition_fraction.lock() {
+            *f = fraction;
+        }
         Ok(())
+    }
+
+    /// Share of resident nodes next to a coarser node in the last table written by
+    /// [`GpuPageTable::update`] (the paper's "transition bricks").
+    pub fn transition_fraction(&self) -> f64 {
+        self.transition_fraction.lock().map(|f| *f).unwrap_or(1.0)
     }
 }
 
@@ -283,6 +310,7 @@ pub struct PipelineKey {
     pub clip_plane: bool,
     pub count_samples: bool,
     pub preintegrated: bool,
+    pub smooth_transitions: bool,
 }
 
 /// What a pre-integration table was built for; a change of any part rebuilds it.
@@ -307,7 +335,7 @@ struct BackgroundCompiler {
 }
 
 /// The shader's effect overrides, as named in raycast.wgsl.
-const OVERRIDE_NAMES: [&str; 9] = [
+const OVERRIDE_NAMES: [&str; 10] = [
     "MODE",
     "MANUAL_TRILINEAR",
     "SHADING",
@@ -317,6 +345,7 @@ const OVERRIDE_NAMES: [&str; 9] = [
     "CLIP_PLANE",
     "COUNT_SAMPLES",
     "PREINTEGRATED",
+    "SMOOTH_TRANSITIONS",
 ];
 
 /// One raycast pipeline with the effects of `key` as override constants (those of
@@ -344,6 +373,7 @@ fn build_pipeline(
         ("CLIP_PLANE", b(key.clip_plane)),
         ("COUNT_SAMPLES", b(key.count_samples)),
         ("PREINTEGRATED", b(key.preintegrated)),
+        ("SMOOTH_TRANSITIONS", b(key.smooth_transitions)),
     ];
     let constants: Vec<(&str, f64)> = constants
         .into_iter()
@@ -520,6 +550,7 @@ impl Raycaster {
                 storage(7, false),
                 storage(8, false),
                 storage(9, true),
+                storage(11, true),
                 wgpu::BindGroupLayoutEntry {
                     binding: 10,
                     visibility: wgpu::ShaderStages::COMPUTE,
@@ -602,8 +633,11 @@ impl Raycaster {
     }
 
     fn pipeline(&mut self, device: &wgpu::Device, key: PipelineKey) -> &wgpu::ComputePipeline {
-        let (layout, module, declared) =
-            (&self.pipeline_layout, &self.module, &self.declared_overrides);
+        let (layout, module, declared) = (
+            &self.pipeline_layout,
+            &self.module,
+            &self.declared_overrides,
+        );
         self.pipelines
             .entry(key)
             .or_insert_with(|| build_pipeline(device, layout, module, declared, key))
@@ -682,7 +716,9 @@ impl Raycaster {
 
     /// True while a background compile is outstanding (the UI can say "compiling…").
     pub fn compiling_in_background(&self) -> bool {
-        self.compiler.as_ref().is_some_and(|c| !c.pending.is_empty())
+        self.compiler
+            .as_ref()
+            .is_some_and(|c| !c.pending.is_empty())
     }
 
     /// The effects of the pipeline the last frame was drawn with (with background compiling,
@@ -802,9 +838,18 @@ impl Raycaster {
 
     /// Compiles the pipeline `settings` need ahead of the first frame that uses it (a few
     /// hundred ms on lavapipe), e.g. when the user switches mode.
+    /// Whether transition code is needed depends on the cut, so with smoothing on both
+    /// variants are compiled.
     pub fn prepare(&mut self, ctx: &GpuContext, settings: &RenderSettings) {
         let key = self.key_for(settings);
         let _ = self.pipeline(&ctx.device, key);
+        if key.smooth_transitions {
+            let without = PipelineKey {
+                smooth_transitions: false,
+                ..key
+            };
+            let _ = self.pipeline(&ctx.device, without);
+        }
     }
 
     /// The effects a frame with `settings` compiles in (see [`PipelineKey`]).
@@ -820,7 +865,183 @@ impl Raycaster {
             clip_plane: settings.clip_plane.is_some(),
             count_samples: settings.count_samples,
             preintegrated: settings.preintegrated && settings.mode == RenderMode::Dvr,
+            smooth_transitions: settings.smooth_transitions,
         }
+    }
+
+    /// The field the raycaster samples, read back at level-0 index `points` (physical units;
+    /// NaN where nothing is resident): the same `field()` of raycast.wgsl, run by a small
+    /// compute entry point. For tests of continuity and of GPU-vs-reference sampling.
+    pub fn probe_field(
+        &mut self,
+        ctx: &GpuContext,
+        scene: &Scene,
+        points: &[[f32; 3]],
+    ) -> Result<Vec<f32>, RenderError> {
+        if points.is_empty() {
+            return Ok(Vec::new());
+        }
+        let device = &ctx.device;
+        let key = self.key_for_scene(scene);
+        let entry = |binding: u32, ty: wgpu::BindingType| wgpu::BindGroupLayoutEntry {
+            binding,
+            visibility: wgpu::ShaderStages::COMPUTE,
+            ty,
+            count: None,
+        };
+        let storage = |read_only: bool| wgpu::BindingType::Buffer {
+            ty: wgpu::BufferBindingType::Storage { read_only },
+            has_dynamic_offset: false,
+            min_binding_size: None,
+        };
+        let filterable = self.filterable;
+        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("field probe"),
+            entries: &[
+                entry(
+                    0,
+                    wgpu::BindingType::Buffer {
+                        ty: wgpu::BufferBindingType::Uniform,
+                        has_dynamic_offset: false,
+                        min_binding_size: None,
+                    },
+                ),
+                entry(
+                    1,
+                    wgpu::BindingType::Texture {
+                        sample_type: wgpu::TextureSampleType::Float { filterable },
+                        view_dimension: wgpu::TextureViewDimension::D3,
+                        multisampled: false,
+                    },
+                ),
+                entry(
+                    2,
+                    wgpu::BindingType::Sampler(if filterable {
+                        wgpu::SamplerBindingType::Filtering
+                    } else {
+                        wgpu::SamplerBindingType::NonFiltering
+                    }),
+                ),
+                entry(3, storage(true)),
+                entry(11, storage(true)),
+                entry(12, storage(true)),
+                entry(13, storage(false)),
+            ],
+        });
+        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("field probe"),
+            bind_group_layouts: &[Some(&layout)],
+            immediate_size: 0,
+        });
+        let b = |v: bool| if v { 1.0 } else { 0.0 };
+        let constants: Vec<(&str, f64)> = [
+            ("MANUAL_TRILINEAR", b(key.manual_trilinear)),
+            ("SMOOTH_TRANSITIONS", b(key.smooth_transitions)),
+        ]
+        .into_iter()
+        .filter(|(name, _)| self.declared_overrides.contains(name))
+        .collect();
+        let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+            label: Some("field probe"),
+            layout: Some(&pipeline_layout),
+            module: &self.module,
+            entry_point: Some("probe"),
+            compilation_options: wgpu::PipelineCompilationOptions {
+                constants: &constants,
+                zero_initialize_workgroup_memory: false,
+            },
+            cache: None,
+        });
+        let params = build_params(scene);
+        ctx.queue
+            .write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
+        let padded: Vec<[f32; 4]> = points.iter().map(|p| [p[0], p[1], p[2], 0.0]).collect();
+        let points_buffer = wgpu::util::DeviceExt::create_buffer_init(
+            device,
+            &wgpu::util::BufferInitDescriptor {
+                label: Some("probe points"),
+                contents: bytemuck::cast_slice(&padded),
+                usage: wgpu::BufferUsages::STORAGE,
+            },
+        );
+        let bytes = points.len() as u64 * 4;
+        let values = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("probe values"),
+            size: bytes,
+            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+            mapped_at_creation: false,
+        });
+        let readback = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("probe readback"),
+            size: bytes,
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("field probe"),
+            layout: &layout,
+            entries: &[
+                wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: self.params.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: wgpu::BindingResource::TextureView(&scene.cache.view),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 2,
+                    resource: wgpu::BindingResource::Sampler(&self.sampler),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 3,
+                    resource: scene.page_table.buffer.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 11,
+                    resource: scene.page_table.transitions.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 12,
+                    resource: points_buffer.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 13,
+                    resource: values.as_entire_binding(),
+                },
+            ],
+        });
+        let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some("field probe"),
+        });
+        {
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("field probe"),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(&pipeline);
+            pass.set_bind_group(0, &bind_group, &[]);
+            pass.dispatch_workgroups((points.len() as u32).div_ceil(64), 1, 1);
+        }
+        encoder.copy_buffer_to_buffer(&values, 0, &readback, 0, bytes);
+        ctx.queue.submit([encoder.finish()]);
+        map_blocking(device, &readback)?;
+        let out = {
+            let view = readback
+                .get_mapped_range(..)
+                .map_err(|e| RenderError::Readback(e.to_string()))?;
+            bytemuck::cast_slice::<u8, f32>(&view).to_vec()
+        };
+        readback.unmap();
+        Ok(out)
+    }
+
+    /// The effects a frame of `scene` compiles in: [`Raycaster::key_for`] its settings, with
+    /// the transition code left out when no node of the cut has a coarser neighbour.
+    pub fn key_for_scene(&self, scene: &Scene) -> PipelineKey {
+        let mut key = self.key_for(scene.settings);
+        key.smooth_transitions &= scene.page_table.transition_fraction() > 0.0;
+        key
     }
 
     /// Builds the pre-integration table for this scene's TF and base step unless the last one
@@ -897,7 +1118,7 @@ impl Raycaster {
                 settings.width, settings.height, limits.max_storage_buffer_binding_size
             )));
         }
-        let key = self.choose_pipeline(device, self.key_for(settings));
+        let key = self.choose_pipeline(device, self.key_for_scene(scene));
         self.last_key = Some(key);
         if key.preintegrated {
             self.ensure_preintegration(ctx, scene);
@@ -957,6 +1178,10 @@ impl Raycaster {
                 wgpu::BindGroupEntry {
                     binding: 9,
                     resource: scene.page_table.value_max.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 11,
+                    resource: scene.page_table.transitions.as_entire_binding(),
                 },
                 wgpu::BindGroupEntry {
                     binding: 10,

@@ -13,6 +13,7 @@ use crate::error::RenderError;
 use crate::geometry::{ValueMapping, VolumeGeometry};
 use crate::page_table::PageTable;
 use crate::settings::{RenderMode, RenderSettings, Shading};
+use crate::smooth_transitions::{sample_field, transition_masks, FieldSample};
 use crate::transfer_function::TransferFunction;
 use crate::{BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
 
@@ -234,12 +235,16 @@ pub fn render_reference<S: BrickSource>(
     scene.page_table.check_against(scene.geometry.page_dims())?;
     let basis = camera.basis();
     let (w, h) = (settings.width, settings.height);
+    let masks = settings
+        .smooth_transitions
+        .then(|| transition_masks(scene.page_table));
+    let masks = masks.as_deref();
     let pixels: Vec<([f64; 4], f32)> = (0..h)
         .into_par_iter()
         .flat_map_iter(|py| {
             (0..w).map(move |px| {
                 let (origin, dir) = basis.ray(px, py, w, h);
-                trace(scene, settings, &options, origin, dir)
+                trace(scene, masks, settings, &options, origin, dir)
             })
         })
         .collect();
@@ -258,6 +263,7 @@ pub fn render_reference<S: BrickSource>(
 
 fn trace<S: BrickSource>(
     scene: &ReferenceScene<S>,
+    masks: Option<&[u32]>,
     settings: &RenderSettings,
     options: &ReferenceOptions,
     origin: DVec3,
@@ -277,10 +283,17 @@ fn trace<S: BrickSource>(
     let flatness_scale =
         mapping.slope.abs() * unit / (scene.tf_range.1 - scene.tf_range.0).max(1e-30);
     let shading = settings.effective_shading();
-    let at = |t: f64| locate(scene.source, scene.page_table, g.dims, o_idx + d_idx * t);
+    let at = |t: f64| {
+        sample_field(
+            scene.source,
+            scene.page_table,
+            masks,
+            g.dims,
+            o_idx + d_idx * t,
+        )
+    };
     // Physical gradient per mm: d(value)/d(patient) = A^T · d(value)/d(index).
-    let gradient_patient =
-        |loc: &FieldLocation| a.transpose() * gradient_index(loc) * mapping.slope;
+    let gradient_patient = |s: &FieldSample| a.transpose() * s.gradient_index() * mapping.slope;
     let n_steps = ((t1 - t0) / step).ceil() as u64;
     // Segment k is [t0 + k·step, t0 + (k+1)·step) cut at t1, sampled at its midpoint; the
     // last one is usually shorter and absorbs only for its own length (a grazing ray through
@@ -298,7 +311,7 @@ fn trace<S: BrickSource>(
             for k in 0..n_steps {
                 let Some((t, length)) = segment(k) else { break };
                 let Some(loc) = at(t) else { continue };
-                let v = mapping.physical(trilinear(loc.brick, loc.local));
+                let v = mapping.physical(loc.value);
                 let op = tf.opacity_at(v);
                 if op <= 0.0 {
                     continue;
@@ -329,7 +342,7 @@ fn trace<S: BrickSource>(
             for k in 0..n_steps {
                 let Some((t, _)) = segment(k) else { break };
                 let Some(loc) = at(t) else { continue };
-                let v = mapping.physical(trilinear(loc.brick, loc.local));
+                let v = mapping.physical(loc.value);
                 if best.is_none_or(|(bv, _)| v > bv) {
                     best = Some((v, t));
                 }
@@ -346,7 +359,7 @@ fn trace<S: BrickSource>(
         }
         RenderMode::Isosurface => {
             let iso = settings.iso_value;
-            let value = |t: f64| at(t).map(|loc| mapping.physical(trilinear(loc.brick, loc.local)));
+            let value = |t: f64| at(t).map(|loc| mapping.physical(loc.value));
             let mut prev: Option<f64> = None;
             for k in 0..n_steps {
                 let Some((t, _)) = segment(k) else { break };

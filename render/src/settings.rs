@@ -92,6 +92,15 @@ pub struct RenderSettings {
     /// (preintegration.rs) instead of classifying the sample alone: narrow or step-shaped TFs
     /// no longer need tiny steps.
     pub preintegrated: bool,
+    /// C0-continuous field where nodes of different levels meet (smooth_transitions.rs):
+    /// off reproduces the discontinuous baseline. Compiled in only when the cut has a node
+    /// next to a coarser one.
+    #[serde(default = "default_true")]
+    pub smooth_transitions: bool,
+}
+
+fn default_true() -> bool {
+    true
 }
 
 impl Default for RenderSettings {
@@ -112,6 +121,7 @@ impl Default for RenderSettings {
             count_samples: false,
             exact_trilinear: false,
             preintegrated: false,
+            smooth_transitions: true,
         }
     }
 }

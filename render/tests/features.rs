@@ -286,8 +286,9 @@ fn preintegration_catches_a_narrow_band_that_samples_miss() {
         &[(-1000.0, [1.0, 0.9, 0.8]), (3000.0, [1.0, 0.9, 0.8])],
     );
     let f = {
-        let volume = phantom::ct_phantom(VolumeGeometry::axis_aligned([64; 3], [1.0; 3]), None, None)
-            .unwrap();
+        let volume =
+            phantom::ct_phantom(VolumeGeometry::axis_aligned([64; 3], [1.0; 3]), None, None)
+                .unwrap();
         let table = volume.page_table_uniform(0);
         Fixture::new(volume, table, band)
     };
@@ -338,10 +339,18 @@ fn pipelines_hold_only_the_effects_a_scene_uses_and_are_reused() {
         skip_empty: false,
         ..RenderSettings::default()
     };
-    let key = g.raycaster.key_for(&plain_dvr);
+    let cam = Camera::orbit(
+        &f.volume.geometry,
+        10.0,
+        10.0,
+        1.0,
+        Projection::Perspective { fov_y_deg: 30.0 },
+    );
+    let key = g.key(&f, &cam, &plain_dvr);
     assert_eq!(key.mode, RenderMode::Dvr);
     assert!(
-        !(key.shading
+        !(key.smooth_transitions
+            || key.shading
             || key.jitter
             || key.skip_empty
             || key.early_termination
@@ -357,7 +366,10 @@ fn pipelines_hold_only_the_effects_a_scene_uses_and_are_reused() {
         preintegrated: true,
         ..RenderSettings::default()
     });
-    assert!(!mip.shading && !mip.early_termination && !mip.preintegrated, "{mip:?}");
+    assert!(
+        !mip.shading && !mip.early_termination && !mip.preintegrated,
+        "{mip:?}"
+    );
     // Isosurfaces always shade.
     let iso = g.raycaster.key_for(&RenderSettings {
         mode: RenderMode::Isosurface,
@@ -365,13 +377,17 @@ fn pipelines_hold_only_the_effects_a_scene_uses_and_are_reused() {
     });
     assert!(iso.shading && !iso.preintegrated, "{iso:?}");
     // A clip plane turns on exactly the clip code.
-    let clipped = g.raycaster.key_for(&RenderSettings {
-        clip_plane: Some(ClipPlane {
-            normal: [1.0, 0.0, 0.0],
-            offset_mm: 10.0,
-        }),
-        ..plain_dvr.clone()
-    });
+    let clipped = g.key(
+        &f,
+        &cam,
+        &RenderSettings {
+            clip_plane: Some(ClipPlane {
+                normal: [1.0, 0.0, 0.0],
+                offset_mm: 10.0,
+            }),
+            ..plain_dvr.clone()
+        },
+    );
     assert_eq!(
         clipped,
         PipelineKey {
@@ -381,13 +397,6 @@ fn pipelines_hold_only_the_effects_a_scene_uses_and_are_reused() {
     );
 
     // Toggling an effect compiles each variant once, then reuses it.
-    let cam = Camera::orbit(
-        &f.volume.geometry,
-        10.0,
-        10.0,
-        1.0,
-        Projection::Perspective { fov_y_deg: 30.0 },
-    );
     let small = |s: RenderSettings| RenderSettings {
         width: 32,
         height: 32,
@@ -428,15 +437,18 @@ fn a_new_effect_compiles_in_the_background_while_the_previous_pipeline_draws() {
     };
     // No earlier frame: the first pipeline is compiled in place (nothing else to show).
     let first = g.render(&ctx, &f, &cam, &unshaded);
-    let unshaded_key = g.raycaster.key_for(&unshaded);
-    let shaded_key = g.raycaster.key_for(&shaded);
+    let unshaded_key = g.key(&f, &cam, &unshaded);
+    let shaded_key = g.key(&f, &cam, &shaded);
     assert_eq!(g.raycaster.last_pipeline_key(), Some(unshaded_key));
 
     // Turning shading on: this frame is drawn at once with the previous pipeline...
     let during = g.render(&ctx, &f, &cam, &shaded);
     assert_eq!(g.raycaster.last_pipeline_key(), Some(unshaded_key));
     assert!(g.raycaster.compiling_in_background());
-    assert_eq!(during.rgba, first.rgba, "the stand-in frame is the previous pipeline's image");
+    assert_eq!(
+        during.rgba, first.rgba,
+        "the stand-in frame is the previous pipeline's image"
+    );
 
     // ...and a later frame switches to the shaded pipeline once its thread has built it.
     let started = std::time::Instant::now();
@@ -461,7 +473,7 @@ fn a_new_effect_compiles_in_the_background_while_the_previous_pipeline_draws() {
         ..unshaded.clone()
     };
     g.render(&ctx, &f, &cam, &iso);
-    assert_eq!(g.raycaster.last_pipeline_key(), Some(g.raycaster.key_for(&iso)));
+    assert_eq!(g.raycaster.last_pipeline_key(), Some(g.key(&f, &cam, &iso)));
 }
 
 #[test]
@@ -814,16 +826,45 @@ fn orbit_camera_shows_the_patient_upright_from_the_front() {
     // LPS: +x patient left, +y posterior, +z superior.
     let g = VolumeGeometry::axis_aligned([40, 50, 60], [1.0, 1.0, 2.0]);
     let c = g.centre_patient();
-    let front = Camera::orbit(&g, 0.0, 0.0, 1.0, Projection::Perspective { fov_y_deg: 30.0 });
+    let front = Camera::orbit(
+        &g,
+        0.0,
+        0.0,
+        1.0,
+        Projection::Perspective { fov_y_deg: 30.0 },
+    );
     let basis = front.basis();
     assert!(front.eye[1] < c.y, "azimuth 0 looks from anterior (-y)");
-    assert!(basis.up.z > 0.999, "superior is up on screen: {:?}", basis.up);
+    assert!(
+        basis.up.z > 0.999,
+        "superior is up on screen: {:?}",
+        basis.up
+    );
     // Facing the patient, the patient's left is on the viewer's right (radiological frontal).
-    assert!(basis.right.x > 0.999, "patient left on screen right: {:?}", basis.right);
-    let above = Camera::orbit(&g, 0.0, 30.0, 1.0, Projection::Perspective { fov_y_deg: 30.0 });
+    assert!(
+        basis.right.x > 0.999,
+        "patient left on screen right: {:?}",
+        basis.right
+    );
+    let above = Camera::orbit(
+        &g,
+        0.0,
+        30.0,
+        1.0,
+        Projection::Perspective { fov_y_deg: 30.0 },
+    );
     assert!(above.eye[2] > c.z, "positive elevation looks from above");
-    let side = Camera::orbit(&g, 90.0, 0.0, 1.0, Projection::Perspective { fov_y_deg: 30.0 });
-    assert!(side.eye[0] > c.x, "azimuth 90 looks from the patient's left");
+    let side = Camera::orbit(
+        &g,
+        90.0,
+        0.0,
+        1.0,
+        Projection::Perspective { fov_y_deg: 30.0 },
+    );
+    assert!(
+        side.eye[0] > c.x,
+        "azimuth 90 looks from the patient's left"
+    );
 }
 
 #[test]

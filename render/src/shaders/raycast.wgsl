@@ -12,6 +12,8 @@ override EARLY_TERMINATION: bool = true;
 override CLIP_PLANE: bool = false;
 override COUNT_SAMPLES: bool = false;
 override PREINTEGRATED: bool = false;
+// C0 blend into coarser neighbours (smooth_transitions.rs); on only when the cut has transitions.
+override SMOOTH_TRANSITIONS: bool = false;
 
 const CORE: f32 = 32.0;
 const APRON: f32 = 2.0;
@@ -68,6 +70,9 @@ struct Params {
 // Pre-integrated TF (preintegration.rs): texel (front, back) = premultiplied colour and opacity
 // of a base-step segment whose value runs from front to back. 1×1 when unused.
 @group(0) @binding(10) var preintegration_table: texture_2d<f32>;
+// Per page entry: 26-neighbour mask of the covering node, bit (x+1)+3(y+1)+9(z+1) set where
+// that neighbour is coarser (smooth_transitions.rs).
+@group(0) @binding(11) var<storage, read> page_transitions: array<u32>;
 
 // One page entry decoded into the affine map from level-0 index to cache texel coordinate
 // (Eq. 1 of the mixed-resolution paper: x' = x · t_w + t with t_w = 2^-L).
@@ -79,6 +84,7 @@ struct Page {
     level: u32,
     inv_scale: f32,
     offset: vec3<f32>,
+    transition: u32,
     // Ray distance at which the ray leaves this page cell (cached lookups only).
     t_exit: f32,
 };
@@ -91,6 +97,9 @@ struct Location {
     level: u32,
     // Continuous texel coordinate in the cache, voxel centres at integers.
     coord: vec3<f32>,
+    // Level-0 index position (clamped to the volume) and the node's transition mask.
+    pos: vec3<f32>,
+    transition: u32,
 };
 
 fn cell_of(pc: vec3<f32>) -> vec3<i32> {
@@ -116,6 +125,10 @@ fn decode_page(cell: vec3<i32>) -> Page {
     // q = (p + 0.5)·2^-L - 0.5, local = q - (32·node - 2), coord = slot·36 + local.
     pg.offset = vec3<f32>(slot_xyz * PAYLOAD) - (vec3<f32>(node) * CORE - vec3<f32>(APRON))
         + vec3<f32>(0.5 * pg.inv_scale - 0.5);
+    pg.transition = 0u;
+    if SMOOTH_TRANSITIONS {
+        pg.transition = page_transitions[pg.linear];
+    }
     return pg;
 }
 
@@ -131,6 +144,8 @@ fn location_in(pg: Page, pc: vec3<f32>) -> Location {
     loc.cell = vec3<f32>(pg.cell);
     loc.level = pg.level;
     loc.coord = pc * pg.inv_scale + pg.offset;
+    loc.pos = pc;
+    loc.transition = pg.transition;
     return loc;
 }
 
@@ -177,6 +192,93 @@ fn fetch(coord: vec3<f32>) -> f32 {
     }
 }
 
+// The coarser neighbour a sample blends towards, and how much (smooth_transitions.rs):
+// w = 1 - 2·(L∞ distance in node voxels to the nearest coarser face, edge or corner region).
+struct Blend {
+    w: f32,
+    coord: vec3<f32>,
+    level: u32,
+};
+
+fn transition_blend(loc: Location) -> Blend {
+    var b: Blend;
+    b.w = 0.0;
+    let inv_scale = 1.0 / f32(1u << loc.level);
+    let cell = vec3<i32>(loc.cell);
+    let node = vec3<f32>(vec3<u32>(cell) >> vec3<u32>(loc.level));
+    let q = (loc.pos + vec3<f32>(0.5)) * inv_scale - vec3<f32>(0.5);
+    let d_lo = q - (node * CORE - vec3<f32>(0.5));
+    let d_hi = (node * CORE + vec3<f32>(CORE - 0.5)) - q;
+    let nearest_face = min(d_lo, d_hi);
+    // Most samples of a transition node are farther than half a voxel from every face.
+    if min(nearest_face.x, min(nearest_face.y, nearest_face.z)) >= 0.5 {
+        return b;
+    }
+    var best = 0.5;
+    var bits = loc.transition;
+    while bits != 0u {
+        let n = countTrailingZeros(bits);
+        bits = bits & (bits - 1u);
+        let o = vec3<i32>(i32(n % 3u) - 1, i32((n / 3u) % 3u) - 1, i32(n / 9u) - 1);
+        let per_axis = select(select(vec3<f32>(-3.0e38), d_hi, o > vec3<i32>(0)), d_lo, o < vec3<i32>(0));
+        let d = max(per_axis.x, max(per_axis.y, per_axis.z));
+        if d >= best {
+            continue;
+        }
+        let neighbour = cell + o;
+        if any(neighbour < vec3<i32>(0)) || any(neighbour >= vec3<i32>(P.pages.xyz)) {
+            continue;
+        }
+        let pg = decode_page(neighbour);
+        if !pg.resident || pg.level <= loc.level {
+            continue;
+        }
+        best = d;
+        b.w = clamp(1.0 - 2.0 * d, 0.0, 1.0);
+        b.coord = loc.pos * pg.inv_scale + pg.offset;
+        b.level = pg.level;
+    }
+    return b;
+}
+
+// The sampled field at a location: the node's trilinear value, blended with its coarser
+// neighbour inside a transition band.
+fn field(loc: Location) -> f32 {
+    let v = fetch(loc.coord);
+    if SMOOTH_TRANSITIONS && loc.transition != 0u {
+        let b = transition_blend(loc);
+        if b.w > 0.0 {
+            return mix(v, fetch(b.coord), b.w);
+        }
+    }
+    return v;
+}
+
+// Central differences in the payload around `coord` (one voxel of `level` each way), in
+// physical units per level-0 index step.
+fn payload_gradient(coord: vec3<f32>, level: u32) -> vec3<f32> {
+    let h = 2.0 * f32(1u << level);
+    let ex = vec3<f32>(1.0, 0.0, 0.0);
+    let ey = vec3<f32>(0.0, 1.0, 0.0);
+    let ez = vec3<f32>(0.0, 0.0, 1.0);
+    return vec3<f32>(
+        fetch(coord + ex) - fetch(coord - ex),
+        fetch(coord + ey) - fetch(coord - ey),
+        fetch(coord + ez) - fetch(coord - ez),
+    ) * (P.value_map.x / h);
+}
+
+fn field_gradient(loc: Location) -> vec3<f32> {
+    let g = payload_gradient(loc.coord, loc.level);
+    if SMOOTH_TRANSITIONS && loc.transition != 0u {
+        let b = transition_blend(loc);
+        if b.w > 0.0 {
+            return mix(g, payload_gradient(b.coord, b.level), b.w);
+        }
+    }
+    return g;
+}
+
 fn physical(s: f32) -> f32 {
     return s * P.value_map.x + P.value_map.y;
 }
@@ -210,15 +312,7 @@ fn preintegrated(front: f32, back: f32) -> vec4<f32> {
 // Blinn-Phong with a headlight; `d_idx` is the ray direction mapped into index space, so
 // g·d_idx = (A^T g)·d_patient without leaving index space.
 fn shade(color: vec3<f32>, loc: Location, d_idx: vec3<f32>) -> vec3<f32> {
-    let h = 2.0 * f32(1u << loc.level);
-    let ex = vec3<f32>(1.0, 0.0, 0.0);
-    let ey = vec3<f32>(0.0, 1.0, 0.0);
-    let ez = vec3<f32>(0.0, 0.0, 1.0);
-    let g_idx = vec3<f32>(
-        fetch(loc.coord + ex) - fetch(loc.coord - ex),
-        fetch(loc.coord + ey) - fetch(loc.coord - ey),
-        fetch(loc.coord + ez) - fetch(loc.coord - ez),
-    ) * (P.value_map.x / h);
+    let g_idx = field_gradient(loc);
     let g_patient = g_idx.x * P.a_row0.xyz + g_idx.y * P.a_row1.xyz + g_idx.z * P.a_row2.xyz;
     let mag = length(g_patient);
     let w = smoothstep(SHADING_FLAT_BELOW, SHADING_LIT_ABOVE, mag * P.iso.y);
@@ -330,7 +424,7 @@ fn close_preintegrated_run(st: ptr<function, RayState>, d: vec3<f32>) {
 
 fn take_sample(st: ptr<function, RayState>, loc: Location, t: f32, delta: f32, o: vec3<f32>, d: vec3<f32>) {
     (*st).samples = (*st).samples + 1u;
-    let v = physical(fetch(loc.coord));
+    let v = physical(field(loc));
     if MODE == 0u && PREINTEGRATED {
         // Segments join consecutive samples, which sit at segment midpoints; a run of samples
         // therefore starts with a constant half segment before its first sample and ends with
@@ -376,7 +470,7 @@ fn take_sample(st: ptr<function, RayState>, loc: Location, t: f32, delta: f32, o
                 for (var b = 0u; b < BISECTION_STEPS; b++) {
                     let mid = 0.5 * (lo + hi);
                     let m = locate(o + d * mid);
-                    if m.resident && physical(fetch(m.coord)) >= P.iso.x {
+                    if m.resident && physical(field(m)) >= P.iso.x {
                         hi = mid;
                     } else {
                         lo = mid;
@@ -489,9 +583,12 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         let probe = locate_on_ray(o, d, probe_t, &page_cache);
         // MIP: a page whose bound cannot beat the running maximum cannot change the pixel
         // (ties keep the first maximum), so it is skipped like an empty one.
-        let mip_cannot_win = MODE == 1u && SKIP_EMPTY && st.have_best
+        // A node next to a coarser one also shows the coarser field in its band, which its
+        // own value range (empty flag, MIP bound) does not cover: it is never skipped.
+        let blends = SMOOTH_TRANSITIONS && probe.transition != 0u;
+        let mip_cannot_win = MODE == 1u && SKIP_EMPTY && st.have_best && !blends
             && page_value_max[probe.page] <= st.best_value;
-        if !probe.resident || (SKIP_EMPTY && probe.empty) || mip_cannot_win {
+        if !probe.resident || (SKIP_EMPTY && probe.empty && !blends) || mip_cannot_win {
             if SKIP_EMPTY {
                 let t_exit = page_cache.t_exit;
                 let next = ceil((t_exit - first) / base - 0.5);
@@ -537,7 +634,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         // with nothing but position, fetch and compositing (the common case by far).
         if page_cache.level == level && page_cache.resident {
             var page_bound = bitcast<f32>(0x7f800000u);
-            if MODE == 1u && SKIP_EMPTY {
+            if MODE == 1u && SKIP_EMPTY && !(SMOOTH_TRANSITIONS && page_cache.transition != 0u) {
                 page_bound = page_value_max[page_cache.linear];
             }
             for (var inner = 0u; inner < MAX_ITERATIONS; inner++) {
@@ -568,7 +665,8 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         let length = t1 - partial_start;
         let t = partial_start + 0.5 * length;
         let loc = locate(o + d * t);
-        if loc.resident && !(SKIP_EMPTY && loc.empty) {
+        let blends = SMOOTH_TRANSITIONS && loc.transition != 0u;
+        if loc.resident && !(SKIP_EMPTY && loc.empty && !blends) {
             take_sample(&st, loc, t, length, o, d);
         }
     }
@@ -604,4 +702,23 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     textureStore(out_color, vec2<i32>(gid.xy), clamp(acc, vec4<f32>(0.0), vec4<f32>(1.0)));
     out_depth[pixel] = depth;
+}
+
+// Field probe for tests: physical value of the field at level-0 index points (w ignored);
+// NaN where nothing is resident. Uses the same field() as the raycaster.
+@group(0) @binding(12) var<storage, read> probe_points: array<vec4<f32>>;
+@group(0) @binding(13) var<storage, read_write> probe_values: array<f32>;
+
+@compute @workgroup_size(64, 1, 1)
+fn probe(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let i = gid.x;
+    if i >= arrayLength(&probe_values) {
+        return;
+    }
+    let loc = locate(probe_points[i].xyz);
+    if loc.resident {
+        probe_values[i] = physical(field(loc));
+    } else {
+        probe_values[i] = bitcast<f32>(0x7fc00000u);
+    }
 }

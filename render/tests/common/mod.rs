@@ -134,6 +134,20 @@ impl GpuScene {
         }
     }
 
+    /// The pipeline key a frame of this scene with `settings` uses (the cut decides whether
+    /// transition code is in).
+    pub fn key(&self, f: &Fixture, camera: &Camera, settings: &RenderSettings) -> PipelineKey {
+        self.raycaster.key_for_scene(&Scene {
+            cache: &self.cache,
+            page_table: &self.page_table,
+            transfer_function: &self.tf,
+            geometry: &f.volume.geometry,
+            mapping: f.volume.mapping,
+            camera,
+            settings,
+        })
+    }
+
     pub fn render(
         &mut self,
         ctx: &GpuContext,
