@@ -71,8 +71,29 @@ fn check(
     settings: &RenderSettings,
     bound: Bound,
 ) -> Vec<u8> {
+    check_cut(
+        name,
+        volume,
+        volume.page_table_uniform(0),
+        tf,
+        camera,
+        settings,
+        bound,
+    )
+}
+
+/// [`check`] on a cut of mixed levels.
+fn check_cut(
+    name: &str,
+    volume: &BrickedVolume,
+    cut: strata_render::PageTable,
+    tf: &TransferFunction,
+    camera: &Camera,
+    settings: &RenderSettings,
+    bound: Bound,
+) -> Vec<u8> {
     let ctx = gpu();
-    let mut renderer = OffscreenRenderer::new(&ctx, volume, tf, 0, CacheConfig::default())
+    let mut renderer = OffscreenRenderer::with_cut(&ctx, volume, tf, cut, CacheConfig::default())
         .unwrap_or_else(|e| panic!("{name}: {e}"));
     let frame = renderer
         .render(&ctx, volume, camera, settings)
@@ -108,7 +129,11 @@ fn check(
         .rgba
         .chunks_exact(4)
         .zip(reference.rgba.chunks_exact(4))
-        .filter(|(a, b)| a.iter().zip(b.iter()).any(|(x, y)| x.abs_diff(*y) > SMOOTH.max_abs))
+        .filter(|(a, b)| {
+            a.iter()
+                .zip(b.iter())
+                .any(|(x, y)| x.abs_diff(*y) > SMOOTH.max_abs)
+        })
         .count();
     let fraction_off = off as f64 / (frame.rgba.len() / 4) as f64;
     assert!(
@@ -206,6 +231,44 @@ fn rays_parallel_to_axes_along_brick_faces_and_through_brick_corners() {
 }
 
 #[test]
+fn smooth_transitions_with_rays_exactly_on_level_faces_edges_and_corners() {
+    // 128³ in a 3D checkerboard of level-1 and level-0 octants: every level face, edge and
+    // corner of the 2×2×2 level-1 grid lies on x, y or z = 63.5, the volume's centre. An
+    // orthographic view 129 mm high on 129 px puts pixel centres on every half-integer, so
+    // rays run exactly along those faces and down the edges where the blend weight is 1 on one
+    // side and the distance to two coarser regions is equal (the analogue of the paper's
+    // singular v = 0.5 case), and through the band's inner edge half a voxel in.
+    let volume = ball([128; 3], [1.0; 3]);
+    let cut = volume
+        .page_table_with_levels(|p| (((p[0] >> 1) + (p[1] >> 1) + (p[2] >> 1)) % 2 == 0) as u8);
+    let tf = ramp_tf(4000.0);
+    let centre = volume.geometry.centre_patient();
+    for (axis, up) in [(DVec3::Z, DVec3::Y), (DVec3::X, DVec3::Z)] {
+        let camera = Camera::look_at(
+            (centre - axis * 300.0).into(),
+            centre.into(),
+            up.into(),
+            Projection::Orthographic { height_mm: 129.0 },
+        );
+        for (mode, shading) in [
+            (RenderMode::Dvr, None),
+            (RenderMode::Dvr, Some(Shading::default())),
+            (RenderMode::Mip, None),
+        ] {
+            let s = RenderSettings {
+                width: 129,
+                height: 129,
+                shading,
+                ..settings(mode)
+            };
+            assert!(s.smooth_transitions);
+            let name = format!("level faces {axis} {mode:?} shaded {}", shading.is_some());
+            check_cut(&name, &volume, cut.clone(), &tf, &camera, &s, SMOOTH);
+        }
+    }
+}
+
+#[test]
 fn camera_inside_and_exactly_on_the_boundary() {
     let volume = ball([48; 3], [1.0; 3]);
     let tf = ramp_tf(4000.0);
@@ -257,7 +320,10 @@ fn extreme_zoom_in_and_out() {
         &settings(RenderMode::Dvr),
         EDGY,
     );
-    assert!(opaque_pixels(&rgba) <= 4, "a sub-pixel volume covers at most a few pixels");
+    assert!(
+        opaque_pixels(&rgba) <= 4,
+        "a sub-pixel volume covers at most a few pixels"
+    );
 }
 
 #[test]
@@ -415,7 +481,14 @@ fn step_and_binary_transfer_functions() {
         &[(0.0, 0.0), (2000.0, 0.0), (2000.0, 0.8), (4000.0, 0.8)],
         &[(0.0, [1.0, 1.0, 1.0]), (4000.0, [1.0, 1.0, 1.0])],
     );
-    check("step TF", &volume, &step, &camera, &settings(RenderMode::Dvr), EDGY);
+    check(
+        "step TF",
+        &volume,
+        &step,
+        &camera,
+        &settings(RenderMode::Dvr),
+        EDGY,
+    );
 
     // Opacity exactly 0 everywhere: nothing at all, on both sides, and every page is skipped.
     let zero = TransferFunction::new(
@@ -423,7 +496,14 @@ fn step_and_binary_transfer_functions() {
         &[(0.0, 0.0), (4000.0, 0.0)],
         &[(0.0, [1.0, 1.0, 1.0]), (4000.0, [1.0, 1.0, 1.0])],
     );
-    let rgba = check("zero TF", &volume, &zero, &camera, &settings(RenderMode::Dvr), SMOOTH);
+    let rgba = check(
+        "zero TF",
+        &volume,
+        &zero,
+        &camera,
+        &settings(RenderMode::Dvr),
+        SMOOTH,
+    );
     assert!(rgba.iter().all(|&b| b == 0), "opacity 0 must draw nothing");
 
     // Opacity exactly 1 everywhere (the air included): the first sample saturates; the image
@@ -434,10 +514,20 @@ fn step_and_binary_transfer_functions() {
         &[(0.0, [0.2, 0.6, 1.0]), (4000.0, [0.2, 0.6, 1.0])],
     );
     // Opaque air makes the box silhouette an edge (see EDGY).
-    let rgba = check("opaque TF", &volume, &one, &camera, &settings(RenderMode::Dvr), EDGY);
+    let rgba = check(
+        "opaque TF",
+        &volume,
+        &one,
+        &camera,
+        &settings(RenderMode::Dvr),
+        EDGY,
+    );
     for p in rgba.chunks_exact(4).filter(|p| p[3] > 0) {
         if p[3] == 255 {
-            assert!(p[0].abs_diff(51) <= 1 && p[1].abs_diff(153) <= 1 && p[2] == 255, "{p:?}");
+            assert!(
+                p[0].abs_diff(51) <= 1 && p[1].abs_diff(153) <= 1 && p[2] == 255,
+                "{p:?}"
+            );
         }
     }
 }
@@ -459,7 +549,14 @@ fn tiny_and_huge_steps_with_opacity_correction() {
         preintegrated: true,
         ..tiny.clone()
     };
-    check("step 0.02 pre-integrated", &volume, &tf, &camera, &tiny_pre, SMOOTH);
+    check(
+        "step 0.02 pre-integrated",
+        &volume,
+        &tf,
+        &camera,
+        &tiny_pre,
+        SMOOTH,
+    );
     // 8 voxels per step: a coarse but finite integral. The reference integrates the true
     // field (at 1 voxel here), so the bound is loose and stated: the opacity correction keeps
     // the overall opacity right (PSNR >= 20 dB), no sample can blow up.
@@ -571,9 +668,21 @@ fn float_source_with_nan_and_infinities_imports_by_policy_and_renders() {
     let mut voxels = strata_e2e::VoxelReader::new(&store);
     let index = |i: usize| [(i % n) as u64, ((i / n) % n) as u64, (i / (n * n)) as u64];
     let [lo, hi] = store.header().stored_range;
-    assert_eq!(voxels.stored(index(nan_at)), lo, "NaN reads as the lowest value");
-    assert_eq!(voxels.stored(index(neg_inf_at)), lo, "-Inf reads as the lowest value");
-    assert_eq!(voxels.stored(index(inf_at)), hi, "+Inf reads as the highest value");
+    assert_eq!(
+        voxels.stored(index(nan_at)),
+        lo,
+        "NaN reads as the lowest value"
+    );
+    assert_eq!(
+        voxels.stored(index(neg_inf_at)),
+        lo,
+        "-Inf reads as the lowest value"
+    );
+    assert_eq!(
+        voxels.stored(index(inf_at)),
+        hi,
+        "+Inf reads as the highest value"
+    );
     // Finite samples keep their value within the stated quantisation error.
     let q = store.header().quantization_error;
     let finite_at = 11 + n * (11 + n * 11);
@@ -590,7 +699,15 @@ fn float_source_with_nan_and_infinities_imports_by_policy_and_renders() {
         &store,
         0,
         &tf,
-        |g| Camera::orbit(g, 30.0, 20.0, 1.0, Projection::Perspective { fov_y_deg: 30.0 }),
+        |g| {
+            Camera::orbit(
+                g,
+                30.0,
+                20.0,
+                1.0,
+                Projection::Perspective { fov_y_deg: 30.0 },
+            )
+        },
         &settings(RenderMode::Dvr),
         None,
     );

@@ -6,9 +6,13 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};
 use strata_loader::store_volume::{classify_empty, page_table_for_cut, GpuCut};
-use strata_loader::{render_geometry, render_mapping, ResidentBricks, StreamingConfig, StreamingVolume};
+use strata_loader::{
+    render_geometry, render_mapping, ResidentBricks, StreamingConfig, StreamingVolume,
+};
 use strata_render::reference::{render_reference, ReferenceOptions, ReferenceScene};
-use strata_render::{Camera, GpuContext, Projection, RenderMode, RenderSettings, Shading, TransferFunction};
+use strata_render::{
+    Camera, GpuContext, Projection, RenderMode, RenderSettings, Shading, TransferFunction,
+};
 use strata_storage::Store;
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -70,10 +74,15 @@ pub struct RenderArgs {
     /// Turn off ray-start jitter.
     #[arg(long)]
     pub no_jitter: bool,
+    /// Show the seams where bricks of different levels meet (no smooth transitions).
+    #[arg(long)]
+    pub no_smooth: bool,
 }
 
 pub fn parse_size(text: &str) -> Result<(u32, u32)> {
-    let (w, h) = text.split_once(['x', 'X']).with_context(|| format!("--size must look like 512x512, not '{text}'"))?;
+    let (w, h) = text
+        .split_once(['x', 'X'])
+        .with_context(|| format!("--size must look like 512x512, not '{text}'"))?;
     let (w, h): (u32, u32) = (w.trim().parse()?, h.trim().parse()?);
     if !(1..=8192).contains(&w) || !(1..=8192).contains(&h) {
         bail!("--size {w}x{h} is outside 1..8192");
@@ -83,13 +92,18 @@ pub fn parse_size(text: &str) -> Result<(u32, u32)> {
 
 /// The transfer function the user named, or a sensible default for the modality.
 pub fn choose_transfer_function(name: Option<&str>, modality: &str) -> Result<TransferFunction> {
-    let name = name.unwrap_or(if modality.eq_ignore_ascii_case("CT") { "ct-bone" } else { "mr-default" });
+    let name = name.unwrap_or(if modality.eq_ignore_ascii_case("CT") {
+        "ct-bone"
+    } else {
+        "mr-default"
+    });
     if let Some(tf) = TransferFunction::preset(name) {
         return Ok(tf);
     }
     let path = Path::new(name);
     if path.exists() {
-        return TransferFunction::load(path).with_context(|| format!("reading transfer function {}", path.display()));
+        return TransferFunction::load(path)
+            .with_context(|| format!("reading transfer function {}", path.display()));
     }
     bail!("unknown transfer function '{name}': use ct-bone, ct-soft-tissue, ct-lung, ct-vessels, mr-default or a JSON file")
 }
@@ -99,40 +113,47 @@ pub fn run(args: RenderArgs) -> Result<()> {
         return run_streaming(&args);
     }
     let (width, height) = parse_size(&args.size)?;
-    let store = Store::open(&args.store).with_context(|| format!("cannot open store {}", args.store.display()))?;
+    let store = Store::open(&args.store)
+        .with_context(|| format!("cannot open store {}", args.store.display()))?;
     let header = store.header().clone();
     let geometry = render_geometry(&header)?;
     let mapping = render_mapping(&header);
     let tf = choose_transfer_function(args.tf.as_deref(), &header.modality)?;
-    let physical_range = (mapping.physical(header.stored_range[0] as f64), mapping.physical(header.stored_range[1] as f64));
-    let tf_table = tf.table(physical_range.0.min(physical_range.1), physical_range.0.max(physical_range.1));
+    let physical_range = (
+        mapping.physical(header.stored_range[0] as f64),
+        mapping.physical(header.stored_range[1] as f64),
+    );
+    let tf_table = tf.table(
+        physical_range.0.min(physical_range.1),
+        physical_range.0.max(physical_range.1),
+    );
     let mut table = page_table_for_cut(&store, &geometry, |_| args.level);
-    let settings = RenderSettings {
-        width,
-        height,
-        mode: match args.mode {
-            ModeArg::Dvr => RenderMode::Dvr,
-            ModeArg::Mip => RenderMode::Mip,
-            ModeArg::Iso => RenderMode::Isosurface,
-        },
-        quality: args.step,
-        jitter: !args.no_jitter,
-        shading: (args.shading || matches!(args.mode, ModeArg::Iso)).then(Shading::default),
-        iso_value: args.iso,
-        ..RenderSettings::default()
-    };
+    let settings = settings_of(&args)?;
     if matches!(settings.mode, RenderMode::Dvr) {
         classify_empty(&store, &mut table, mapping, &tf_table);
     }
     let projection = if args.orthographic {
-        Projection::Orthographic { height_mm: geometry.bounding_radius_mm() * 2.0 / args.zoom.max(1e-3) }
+        Projection::Orthographic {
+            height_mm: geometry.bounding_radius_mm() * 2.0 / args.zoom.max(1e-3),
+        }
     } else {
         Projection::Perspective { fov_y_deg: 30.0 }
     };
-    let camera = Camera::orbit(&geometry, args.azimuth, args.elevation, args.zoom, projection);
+    let camera = Camera::orbit(
+        &geometry,
+        args.azimuth,
+        args.elevation,
+        args.zoom,
+        projection,
+    );
     let t_load = Instant::now();
     let bricks = ResidentBricks::load(&store, &table)?;
-    eprintln!("loaded {} bricks of level {} in {:.2} s", bricks.len(), args.level, t_load.elapsed().as_secs_f64());
+    eprintln!(
+        "loaded {} bricks of level {} in {:.2} s",
+        bricks.len(),
+        args.level,
+        t_load.elapsed().as_secs_f64()
+    );
 
     let t = Instant::now();
     let rgba = if args.reference {
@@ -149,9 +170,20 @@ pub fn run(args: RenderArgs) -> Result<()> {
         let ctx = GpuContext::headless()?;
         eprintln!("GPU: {}", ctx.adapter_name());
         let mut cut = GpuCut::upload(&ctx, &bricks, &table, geometry.page_dims(), &tf_table)?;
-        cut.render_blocking(&ctx, &geometry, mapping, &camera, &settings)?.rgba
+        cut.render_blocking(&ctx, &geometry, mapping, &camera, &settings)?
+            .rgba
     };
-    eprintln!("rendered {}x{} in {:.2} s ({})", width, height, t.elapsed().as_secs_f64(), if args.reference { "CPU reference" } else { "GPU" });
+    eprintln!(
+        "rendered {}x{} in {:.2} s ({})",
+        width,
+        height,
+        t.elapsed().as_secs_f64(),
+        if args.reference {
+            "CPU reference"
+        } else {
+            "GPU"
+        }
+    );
     write_png(&args.out, width, height, &rgba)?;
     println!("wrote {}", args.out.display());
     Ok(())
@@ -170,6 +202,7 @@ fn settings_of(args: &RenderArgs) -> Result<RenderSettings> {
         quality: args.step,
         jitter: !args.no_jitter,
         shading: (args.shading || matches!(args.mode, ModeArg::Iso)).then(Shading::default),
+        smooth_transitions: !args.no_smooth,
         iso_value: args.iso,
         ..RenderSettings::default()
     })
@@ -182,8 +215,15 @@ fn run_streaming(args: &RenderArgs) -> Result<()> {
     let started = Instant::now();
     let ctx = GpuContext::headless()?;
     eprintln!("GPU: {}", ctx.adapter_name());
-    let config = StreamingConfig { max_voxel_pixels: args.quality, ..StreamingConfig::default() };
-    anyhow::ensure!(args.quality.is_finite() && args.quality > 0.0, "--quality must be positive, got {}", args.quality);
+    let config = StreamingConfig {
+        max_voxel_pixels: args.quality,
+        ..StreamingConfig::default()
+    };
+    anyhow::ensure!(
+        args.quality.is_finite() && args.quality > 0.0,
+        "--quality must be positive, got {}",
+        args.quality
+    );
     let store = std::sync::Arc::new(
         Store::open_with_cache(&args.store, config.sled_cache_bytes)
             .with_context(|| format!("cannot open store {}", args.store.display()))?,
@@ -194,16 +234,30 @@ fn run_streaming(args: &RenderArgs) -> Result<()> {
     let opened = Instant::now();
     let geometry = volume.geometry().clone();
     let projection = if args.orthographic {
-        Projection::Orthographic { height_mm: geometry.bounding_radius_mm() * 2.0 / args.zoom.max(1e-3) }
+        Projection::Orthographic {
+            height_mm: geometry.bounding_radius_mm() * 2.0 / args.zoom.max(1e-3),
+        }
     } else {
         Projection::Perspective { fov_y_deg: 30.0 }
     };
-    let camera = Camera::orbit(&geometry, args.azimuth, args.elevation, args.zoom, projection);
-    let (frame, history) = volume.render_until_converged(&ctx, &camera, &settings, args.max_frames.max(1))?;
+    let camera = Camera::orbit(
+        &geometry,
+        args.azimuth,
+        args.elevation,
+        args.zoom,
+        projection,
+    );
+    let (frame, history) =
+        volume.render_until_converged(&ctx, &camera, &settings, args.max_frames.max(1))?;
     for failure in volume.take_failures() {
-        eprintln!("warning: {}; its parent is shown there instead", failure.message);
+        eprintln!(
+            "warning: {}; its parent is shown there instead",
+            failure.message
+        );
     }
-    let Some(last) = history.last() else { bail!("no frame was rendered") };
+    let Some(last) = history.last() else {
+        bail!("no frame was rendered")
+    };
     eprintln!(
         "{} after {} frames in {:.2} s (open {:.2} s): {} bricks on the GPU per level {:?}, {:.1} MB read",
         if last.converged { "converged" } else { "not converged (raise --max-frames)" },

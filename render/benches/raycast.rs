@@ -365,6 +365,7 @@ fn main() {
         jitter: false,
         early_termination: None,
         skip_empty: false,
+        smooth_transitions: false,
         ..settings_for(RenderMode::Dvr, false, 0.5)
     };
     let clip = ClipPlane {
@@ -425,6 +426,16 @@ fn main() {
             "SKIP_EMPTY",
             RenderSettings {
                 skip_empty: true,
+                ..base.clone()
+            },
+        ),
+        // This cut is uniform, so "on" asks for smoothing and gets the same pipeline as "off"
+        // (the cut decides); what smoothing costs on a mixed cut is `strata bench transitions`.
+        (
+            "smooth transitions",
+            "SMOOTH_TRANSITIONS",
+            RenderSettings {
+                smooth_transitions: true,
                 ..base.clone()
             },
         ),

@@ -30,8 +30,21 @@ impl OffscreenRenderer {
         level: u8,
         config: CacheConfig,
     ) -> Result<Self, RenderError> {
+        Self::with_cut(ctx, volume, tf, volume.page_table_uniform(level), config)
+    }
+
+    /// Uploads the nodes `page_table` references (any mix of levels, e.g. from
+    /// [`BrickedVolume::page_table_with_levels`]).
+    pub fn with_cut(
+        ctx: &GpuContext,
+        volume: &BrickedVolume,
+        tf: &TransferFunction,
+        page_table: PageTable,
+        config: CacheConfig,
+    ) -> Result<Self, RenderError> {
         tf.validate()?;
-        let mut page_table = volume.page_table_uniform(level);
+        page_table.check_against(volume.geometry.page_dims())?;
+        let mut page_table = page_table;
         let nodes = BrickedVolume::resident_nodes(&page_table).len() as u32;
         let cache = BrickCache::new(
             &ctx.device,

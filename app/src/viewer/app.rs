@@ -6,7 +6,9 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use egui::{Color32, Key, Pos2, Rect, RichText, Sense, Stroke, TextureHandle, TextureOptions, Vec2};
+use egui::{
+    Color32, Key, Pos2, Rect, RichText, Sense, Stroke, TextureHandle, TextureOptions, Vec2,
+};
 use serde::{Deserialize, Serialize};
 use strata_render::{ClipPlane, CropBox, RenderMode, RenderSettings, Shading, TransferFunction};
 use strata_storage::histogram::Histogram;
@@ -17,7 +19,9 @@ use super::orientation::{SliceFrame, SliceView};
 use super::slices::{level_for_pixels, SliceImage, SliceReader, SliceRequest};
 use super::tf_editor::{self, TfEditorState};
 use super::view3d::{paint_orientation_marker, OrbitCamera, StandardView};
-use super::volume_session::{RenderRequest, ScreenshotRequest, VolumeInfo, VolumeSession, DEFAULT_GPU_BUDGET_BYTES};
+use super::volume_session::{
+    RenderRequest, ScreenshotRequest, VolumeInfo, VolumeSession, DEFAULT_GPU_BUDGET_BYTES,
+};
 
 const NOT_FOR_DIAGNOSIS: &str = "NOT FOR DIAGNOSTIC USE";
 const WARNING_COLOUR: Color32 = Color32::from_rgb(255, 170, 40);
@@ -94,6 +98,8 @@ pub struct Preferences {
     pub preset: String,
     pub mode: RenderMode,
     pub shading: bool,
+    /// Continuous field where bricks of different resolution meet (off: visible seams).
+    pub smooth_transitions: bool,
     pub orthographic: bool,
     pub target_fps_enabled: bool,
     pub target_fps: f64,
@@ -118,6 +124,7 @@ impl Default for Preferences {
             preset: "ct-bone".into(),
             mode: RenderMode::Dvr,
             shading: true,
+            smooth_transitions: true,
             orthographic: false,
             target_fps_enabled: true,
             target_fps: 10.0,
@@ -239,7 +246,12 @@ impl StrataApp {
         };
         app.open_path = match &app.options.source {
             VolumeSource::Path(p) => p.display().to_string(),
-            VolumeSource::Demo { .. } => app.preferences.last_opened.as_ref().map(|p| p.display().to_string()).unwrap_or_default(),
+            VolumeSource::Demo { .. } => app
+                .preferences
+                .last_opened
+                .as_ref()
+                .map(|p| p.display().to_string())
+                .unwrap_or_default(),
         };
         if let Some(layout) = app.options.initial_layout {
             app.preferences.layout = layout;
@@ -255,7 +267,12 @@ impl StrataApp {
 
     fn start_job(&mut self, source: VolumeSource, dicom_series: Option<String>) {
         self.job_error = None;
-        match PrepareJob::start(source, dicom_series, self.options.import_folder.clone(), lock_free_repaint(&self.ctx)) {
+        match PrepareJob::start(
+            source,
+            dicom_series,
+            self.options.import_folder.clone(),
+            lock_free_repaint(&self.ctx),
+        ) {
             Ok(job) => self.job = Some(job),
             Err(e) => self.job_error = Some(format!("could not start: {e:#}")),
         }
@@ -296,17 +313,26 @@ impl StrataApp {
     /// The displayed (window-levelled) slice texture's source values and window, for tests.
     pub fn slice_display(&self, view: SliceView) -> Option<SliceShown> {
         let v = self.volume.as_ref()?;
-        v.slice_textures[view.index()].as_ref().map(|t| (t.values.clone(), t.window))
+        v.slice_textures[view.index()]
+            .as_ref()
+            .map(|t| (t.values.clone(), t.window))
     }
 
     #[cfg(test)]
     pub fn view_rect(&self, slot: ViewSlot) -> Option<Rect> {
-        self.volume.as_ref()?.view_rects.iter().find(|(s, _)| *s == slot).map(|(_, r)| *r)
+        self.volume
+            .as_ref()?
+            .view_rects
+            .iter()
+            .find(|(s, _)| *s == slot)
+            .map(|(_, r)| *r)
     }
 
     fn poll_job(&mut self) {
         let Some(job) = &self.job else { return };
-        let Some(result) = job.take_result() else { return };
+        let Some(result) = job.take_result() else {
+            return;
+        };
         self.job = None;
         match result {
             Ok(store) => match self.open_store(store) {
@@ -328,13 +354,22 @@ impl StrataApp {
         // Drop the old volume first: its threads and GPU memory go before the new ones start.
         self.volume = None;
         let repaint = lock_free_repaint(&self.ctx);
-        let session = VolumeSession::start(store.clone(), self.options.gpu_budget_bytes, repaint.clone())?;
+        let session = VolumeSession::start(
+            store.clone(),
+            self.options.gpu_budget_bytes,
+            repaint.clone(),
+        )?;
         let slices = SliceReader::start(store.clone(), repaint)?;
         let info = session.info().clone();
         let header = &info.header;
-        let is_ct = header.modality.eq_ignore_ascii_case("CT") || header.value_mapping.unit.eq_ignore_ascii_case("HU");
+        let is_ct = header.modality.eq_ignore_ascii_case("CT")
+            || header.value_mapping.unit.eq_ignore_ascii_case("HU");
         let asked = self.options.initial_preset.is_some();
-        if !PRESETS.iter().any(|(p, _)| *p == self.preferences.preset) || (!asked && ((!is_ct && self.preferences.preset.starts_with("ct-")) || (is_ct && self.preferences.preset.starts_with("mr")))) {
+        if !PRESETS.iter().any(|(p, _)| *p == self.preferences.preset)
+            || (!asked
+                && ((!is_ct && self.preferences.preset.starts_with("ct-"))
+                    || (is_ct && self.preferences.preset.starts_with("mr"))))
+        {
             self.preferences.preset = if is_ct { "ct-bone" } else { "mr-default" }.into();
         }
         let transfer_function = preset_for(&self.preferences.preset, &info);
@@ -355,11 +390,18 @@ impl StrataApp {
             tf_state: TfEditorState::default(),
             orbit: match self.options.initial_view {
                 Some(view) => OrbitCamera::standard(view, self.preferences.orthographic),
-                None => OrbitCamera { orthographic: self.preferences.orthographic, ..OrbitCamera::default() },
+                None => OrbitCamera {
+                    orthographic: self.preferences.orthographic,
+                    ..OrbitCamera::default()
+                },
             },
             cursor: dims.map(|d| (d as f64 - 1.0) * 0.5),
             window,
-            iso_value: if is_ct { 300.0f64.clamp(lo, hi) } else { lo + 0.35 * (hi - lo) },
+            iso_value: if is_ct {
+                300.0f64.clamp(lo, hi)
+            } else {
+                lo + 0.35 * (hi - lo)
+            },
             crop: CropBox::default(),
             clip_enabled: false,
             clip_axis: 1,
@@ -383,7 +425,8 @@ impl StrataApp {
         let ui_started = Instant::now();
         self.poll_job();
         self.handle_shortcuts(ui.ctx());
-        if let (Some(deg), Some(v)) = (self.options.auto_orbit_deg_per_second, self.volume.as_mut()) {
+        if let (Some(deg), Some(v)) = (self.options.auto_orbit_deg_per_second, self.volume.as_mut())
+        {
             let dt = ui.ctx().input(|i| i.stable_dt).min(0.1) as f64;
             v.orbit.azimuth_deg = (v.orbit.azimuth_deg + deg * dt).rem_euclid(360.0);
             v.interacting_until = Some(Instant::now() + Duration::from_millis(200));
@@ -393,17 +436,23 @@ impl StrataApp {
         egui::Panel::top("toolbar").show(ui, |ui| self.toolbar(ui));
         egui::Panel::bottom("status").show(ui, |ui| self.status_bar(ui));
         if self.preferences.show_side_panel && self.volume.is_some() {
-            egui::Panel::right("side").resizable(true).default_size(340.0).min_size(260.0).show(ui, |ui| {
-                egui::ScrollArea::vertical().show(ui, |ui| self.side_panel(ui));
-            });
+            egui::Panel::right("side")
+                .resizable(true)
+                .default_size(340.0)
+                .min_size(260.0)
+                .show(ui, |ui| {
+                    egui::ScrollArea::vertical().show(ui, |ui| self.side_panel(ui));
+                });
         }
-        egui::CentralPanel::default().frame(egui::Frame::NONE.fill(Color32::BLACK)).show(ui, |ui| {
-            if self.volume.is_some() {
-                self.views(ui);
-            } else {
-                self.waiting_screen(ui);
-            }
-        });
+        egui::CentralPanel::default()
+            .frame(egui::Frame::NONE.fill(Color32::BLACK))
+            .show(ui, |ui| {
+                if self.volume.is_some() {
+                    self.views(ui);
+                } else {
+                    self.waiting_screen(ui);
+                }
+            });
         self.open_window(ui.ctx());
         self.help_window(ui.ctx());
 
@@ -425,11 +474,19 @@ impl StrataApp {
 
     fn record_frame(&mut self, ui_started: Instant) {
         let now = Instant::now();
-        let interval = self.clock.last_frame_at.map_or(0.0, |t| (now - t).as_secs_f64() * 1e3);
+        let interval = self
+            .clock
+            .last_frame_at
+            .map_or(0.0, |t| (now - t).as_secs_f64() * 1e3);
         self.clock.last_frame_at = Some(now);
         let cpu = (now - ui_started).as_secs_f64() * 1e3;
         let volume_frames = self.volume_status().map_or(0, |s| s.frames_rendered);
-        let sample = (self.started_at.elapsed().as_secs_f64(), interval, cpu, volume_frames);
+        let sample = (
+            self.started_at.elapsed().as_secs_f64(),
+            interval,
+            cpu,
+            volume_frames,
+        );
         self.clock.samples.push_back(sample);
         while self.clock.samples.len() > 300 {
             self.clock.samples.pop_front();
@@ -440,7 +497,9 @@ impl StrataApp {
     }
 
     pub fn write_frame_log(&mut self) {
-        let Some(path) = self.options.frame_log.clone() else { return };
+        let Some(path) = self.options.frame_log.clone() else {
+            return;
+        };
         let mut text = String::from("seconds,ui_interval_ms,ui_cpu_ms,volume_frames\n");
         for (t, interval, cpu, frames) in &self.clock.log {
             text.push_str(&format!("{t:.4},{interval:.3},{cpu:.3},{frames}\n"));
@@ -454,7 +513,8 @@ impl StrataApp {
         if ctx.egui_wants_keyboard_input() {
             return;
         }
-        let pressed = |k: Key| ctx.input(|i| i.key_pressed(k) && !i.modifiers.ctrl && !i.modifiers.command);
+        let pressed =
+            |k: Key| ctx.input(|i| i.key_pressed(k) && !i.modifiers.ctrl && !i.modifiers.command);
         if pressed(Key::F1) || pressed(Key::H) || ctx.input(|i| i.key_pressed(Key::Questionmark)) {
             self.show_help = !self.show_help;
         }
@@ -491,11 +551,15 @@ impl StrataApp {
                 }
             }
             if pressed(Key::Home) || pressed(Key::Num0) {
-                v.orbit = OrbitCamera { orthographic, ..OrbitCamera::default() };
+                v.orbit = OrbitCamera {
+                    orthographic,
+                    ..OrbitCamera::default()
+                };
             }
             // Arrow keys / page keys page the focused (or axial) slice.
             let step = ctx.input(|i| {
-                (i.key_pressed(Key::ArrowUp) as i32 + i.key_pressed(Key::PageUp) as i32) - (i.key_pressed(Key::ArrowDown) as i32 + i.key_pressed(Key::PageDown) as i32)
+                (i.key_pressed(Key::ArrowUp) as i32 + i.key_pressed(Key::PageUp) as i32)
+                    - (i.key_pressed(Key::ArrowDown) as i32 + i.key_pressed(Key::PageDown) as i32)
             });
             if step != 0 {
                 let view = match self.preferences.focused {
@@ -509,23 +573,45 @@ impl StrataApp {
 
     fn take_screenshot(&mut self) {
         let Some(v) = &self.volume else { return };
-        let stamp = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_secs());
-        let path = self.preferences.screenshot_folder.join(format!("strata-{stamp}.png"));
-        v.session.request_screenshot(ScreenshotRequest { path: path.clone(), scale: self.preferences.screenshot_scale });
-        self.toast = Some((format!("Saving screenshot to {}…", path.display()), Instant::now()));
+        let stamp = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_secs());
+        let path = self
+            .preferences
+            .screenshot_folder
+            .join(format!("strata-{stamp}.png"));
+        v.session.request_screenshot(ScreenshotRequest {
+            path: path.clone(),
+            scale: self.preferences.screenshot_scale,
+        });
+        self.toast = Some((
+            format!("Saving screenshot to {}…", path.display()),
+            Instant::now(),
+        ));
     }
 
     fn toolbar(&mut self, ui: &mut egui::Ui) {
         ui.horizontal_wrapped(|ui| {
             ui.strong("Strata");
-            if ui.button("Open…").on_hover_text("Open a store, or import a scan (Ctrl+O)").clicked() {
+            if ui
+                .button("Open…")
+                .on_hover_text("Open a store, or import a scan (Ctrl+O)")
+                .clicked()
+            {
                 self.open_dialog = true;
             }
             ui.separator();
             ui.label("Layout");
-            ui.selectable_value(&mut self.preferences.layout, Layout::Single, "1×1").on_hover_text("One view (1); double-click a view title to focus it");
-            ui.selectable_value(&mut self.preferences.layout, Layout::ThreeDOverSlices, "3D + 1×3").on_hover_text("3D over axial, coronal, sagittal (2)");
-            ui.selectable_value(&mut self.preferences.layout, Layout::TwoByTwo, "2×2").on_hover_text("Four-up (3)");
+            ui.selectable_value(&mut self.preferences.layout, Layout::Single, "1×1")
+                .on_hover_text("One view (1); double-click a view title to focus it");
+            ui.selectable_value(
+                &mut self.preferences.layout,
+                Layout::ThreeDOverSlices,
+                "3D + 1×3",
+            )
+            .on_hover_text("3D over axial, coronal, sagittal (2)");
+            ui.selectable_value(&mut self.preferences.layout, Layout::TwoByTwo, "2×2")
+                .on_hover_text("Four-up (3)");
             ui.separator();
             ui.selectable_value(&mut self.preferences.mode, RenderMode::Dvr, "DVR");
             ui.selectable_value(&mut self.preferences.mode, RenderMode::Mip, "MIP");
@@ -535,24 +621,47 @@ impl StrataApp {
             let orthographic = self.preferences.orthographic;
             if let Some(v) = self.volume.as_mut() {
                 for view in StandardView::ALL {
-                    if ui.button(view.letter()).on_hover_text(format!("View {} ({})", view.description(), view.letter())).clicked() {
+                    if ui
+                        .button(view.letter())
+                        .on_hover_text(format!("View {} ({})", view.description(), view.letter()))
+                        .clicked()
+                    {
                         v.orbit = OrbitCamera::standard(view, orthographic);
                     }
                 }
-                if ui.button("Reset").on_hover_text("Reset the 3D view (Home)").clicked() {
-                    v.orbit = OrbitCamera { orthographic, ..OrbitCamera::default() };
+                if ui
+                    .button("Reset")
+                    .on_hover_text("Reset the 3D view (Home)")
+                    .clicked()
+                {
+                    v.orbit = OrbitCamera {
+                        orthographic,
+                        ..OrbitCamera::default()
+                    };
                 }
             }
             ui.separator();
-            if ui.button("Screenshot").on_hover_text("Save the 3D view as PNG (F12)").clicked() {
+            if ui
+                .button("Screenshot")
+                .on_hover_text("Save the 3D view as PNG (F12)")
+                .clicked()
+            {
                 self.take_screenshot();
             }
             ui.toggle_value(&mut self.preferences.show_side_panel, "Panels");
-            if ui.button("?").on_hover_text("Keyboard and mouse (F1)").clicked() {
+            if ui
+                .button("?")
+                .on_hover_text("Keyboard and mouse (F1)")
+                .clicked()
+            {
                 self.show_help = !self.show_help;
             }
             ui.with_layout(egui::Layout::right_to_left(egui::Align::Center), |ui| {
-                ui.label(RichText::new(NOT_FOR_DIAGNOSIS).strong().color(WARNING_COLOUR));
+                ui.label(
+                    RichText::new(NOT_FOR_DIAGNOSIS)
+                        .strong()
+                        .color(WARNING_COLOUR),
+                );
             });
         });
     }
@@ -561,9 +670,14 @@ impl StrataApp {
         ui.horizontal(|ui| {
             if let Some(v) = &self.volume {
                 let status = v.session.status();
-                let p = v.info.geometry.patient_from_index(glam::DVec3::from(v.cursor));
+                let p = v
+                    .info
+                    .geometry
+                    .patient_from_index(glam::DVec3::from(v.cursor));
                 // LPS → the signed R/L, A/P, S/I a radiologist reads.
-                let side = |value: f64, pos: &str, neg: &str| format!("{}{:.1}", if value >= 0.0 { pos } else { neg }, value.abs());
+                let side = |value: f64, pos: &str, neg: &str| {
+                    format!("{}{:.1}", if value >= 0.0 { pos } else { neg }, value.abs())
+                };
                 ui.label(format!(
                     "Cursor {} {} {} mm  ·  voxel ({:.0}, {:.0}, {:.0})",
                     side(p.x, "L", "R"),
@@ -618,8 +732,16 @@ impl StrataApp {
                 let (done, total, stage) = job.progress();
                 ui.heading(RichText::new(&job.title).color(Color32::WHITE));
                 ui.label(RichText::new(stage).color(Color32::LIGHT_GRAY));
-                let fraction = if total > 0 { done as f32 / total as f32 } else { 0.0 };
-                ui.add(egui::ProgressBar::new(fraction).show_percentage().desired_width(360.0));
+                let fraction = if total > 0 {
+                    done as f32 / total as f32
+                } else {
+                    0.0
+                };
+                ui.add(
+                    egui::ProgressBar::new(fraction)
+                        .show_percentage()
+                        .desired_width(360.0),
+                );
                 if ui.button("Cancel").clicked() {
                     job.cancel();
                 }
@@ -713,15 +835,25 @@ impl StrataApp {
         let thread_slot = slot.clone();
         let ctx = self.ctx.clone();
         let start = PathBuf::from(self.open_path.trim());
-        let spawned = std::thread::Builder::new().name("strata-file-dialog".into()).spawn(move || {
-            let mut dialog = rfd::FileDialog::new().set_title(if folder { "Open a DICOM folder or store" } else { "Open a scan" });
-            if let Some(dir) = start.parent().filter(|d| d.is_dir()) {
-                dialog = dialog.set_directory(dir);
-            }
-            let chosen = if folder { dialog.pick_folder() } else { dialog.pick_file() };
-            *thread_slot.lock().unwrap_or_else(|e| e.into_inner()) = Some(chosen);
-            ctx.request_repaint();
-        });
+        let spawned = std::thread::Builder::new()
+            .name("strata-file-dialog".into())
+            .spawn(move || {
+                let mut dialog = rfd::FileDialog::new().set_title(if folder {
+                    "Open a DICOM folder or store"
+                } else {
+                    "Open a scan"
+                });
+                if let Some(dir) = start.parent().filter(|d| d.is_dir()) {
+                    dialog = dialog.set_directory(dir);
+                }
+                let chosen = if folder {
+                    dialog.pick_folder()
+                } else {
+                    dialog.pick_file()
+                };
+                *thread_slot.lock().unwrap_or_else(|e| e.into_inner()) = Some(chosen);
+                ctx.request_repaint();
+            });
         match spawned {
             Ok(_) => {
                 self.file_dialog = Some(slot);
@@ -732,15 +864,24 @@ impl StrataApp {
     }
 
     fn poll_file_dialog(&mut self) {
-        let Some(slot) = &self.file_dialog else { return };
-        let Some(chosen) = slot.lock().unwrap_or_else(|e| e.into_inner()).take() else { return };
+        let Some(slot) = &self.file_dialog else {
+            return;
+        };
+        let Some(chosen) = slot.lock().unwrap_or_else(|e| e.into_inner()).take() else {
+            return;
+        };
         self.file_dialog = None;
         match chosen {
             Some(path) => {
                 self.open_path = path.display().to_string();
                 self.file_dialog_note = None;
             }
-            None => self.file_dialog_note = Some("Nothing chosen (the dialog needs a desktop portal); you can type the path.".into()),
+            None => {
+                self.file_dialog_note = Some(
+                    "Nothing chosen (the dialog needs a desktop portal); you can type the path."
+                        .into(),
+                )
+            }
         }
     }
 
@@ -781,107 +922,146 @@ impl StrataApp {
 
     fn side_panel(&mut self, ui: &mut egui::Ui) {
         let prefs = &mut self.preferences;
-        let Some(v) = self.volume.as_mut() else { return };
+        let Some(v) = self.volume.as_mut() else {
+            return;
+        };
         let unit = v.info.header.value_mapping.unit.clone();
-        egui::CollapsingHeader::new("Transfer function").default_open(true).show(ui, |ui| {
-            ui.horizontal_wrapped(|ui| {
-                for (name, label) in PRESETS {
-                    if ui.selectable_label(prefs.preset == name, label).clicked() {
-                        prefs.preset = name.into();
-                        v.transfer_function = preset_for(name, &v.info);
-                        v.tf_state = TfEditorState::default();
-                    }
-                }
-            });
-            tf_editor::show(ui, &mut v.tf_state, &mut v.transfer_function, &v.histogram, v.info.physical_range, &unit);
-            ui.horizontal(|ui| {
-                ui.add(egui::TextEdit::singleline(&mut self.tf_path).desired_width(150.0));
-                if ui.button("Save").clicked() {
-                    self.tf_message = Some(match v.transfer_function.save(std::path::Path::new(&self.tf_path)) {
-                        Ok(()) => format!("saved {}", self.tf_path),
-                        Err(e) => format!("could not save: {e}"),
-                    });
-                }
-                if ui.button("Load").clicked() {
-                    self.tf_message = Some(match TransferFunction::load(std::path::Path::new(&self.tf_path)) {
-                        Ok(tf) => {
-                            v.transfer_function = tf;
+        egui::CollapsingHeader::new("Transfer function")
+            .default_open(true)
+            .show(ui, |ui| {
+                ui.horizontal_wrapped(|ui| {
+                    for (name, label) in PRESETS {
+                        if ui.selectable_label(prefs.preset == name, label).clicked() {
+                            prefs.preset = name.into();
+                            v.transfer_function = preset_for(name, &v.info);
                             v.tf_state = TfEditorState::default();
-                            format!("loaded {}", self.tf_path)
                         }
-                        Err(e) => format!("could not load: {e}"),
+                    }
+                });
+                tf_editor::show(
+                    ui,
+                    &mut v.tf_state,
+                    &mut v.transfer_function,
+                    &v.histogram,
+                    v.info.physical_range,
+                    &unit,
+                );
+                ui.horizontal(|ui| {
+                    ui.add(egui::TextEdit::singleline(&mut self.tf_path).desired_width(150.0));
+                    if ui.button("Save").clicked() {
+                        self.tf_message = Some(
+                            match v
+                                .transfer_function
+                                .save(std::path::Path::new(&self.tf_path))
+                            {
+                                Ok(()) => format!("saved {}", self.tf_path),
+                                Err(e) => format!("could not save: {e}"),
+                            },
+                        );
+                    }
+                    if ui.button("Load").clicked() {
+                        self.tf_message = Some(
+                            match TransferFunction::load(std::path::Path::new(&self.tf_path)) {
+                                Ok(tf) => {
+                                    v.transfer_function = tf;
+                                    v.tf_state = TfEditorState::default();
+                                    format!("loaded {}", self.tf_path)
+                                }
+                                Err(e) => format!("could not load: {e}"),
+                            },
+                        );
+                    }
+                });
+                if let Some(m) = &self.tf_message {
+                    ui.weak(m);
+                }
+            });
+        egui::CollapsingHeader::new("Rendering")
+            .default_open(true)
+            .show(ui, |ui| {
+                ui.horizontal(|ui| {
+                    ui.radio_value(&mut prefs.mode, RenderMode::Dvr, "DVR");
+                    ui.radio_value(&mut prefs.mode, RenderMode::Mip, "MIP");
+                    ui.radio_value(&mut prefs.mode, RenderMode::Isosurface, "Isosurface");
+                });
+                if prefs.mode == RenderMode::Isosurface {
+                    let (lo, hi) = v.info.physical_range;
+                    ui.add(
+                        egui::Slider::new(&mut v.iso_value, lo..=hi)
+                            .text(format!("iso value {unit}")),
+                    );
+                }
+                ui.checkbox(&mut prefs.shading, "Shading (DVR)");
+                ui.checkbox(&mut prefs.smooth_transitions, "Smooth level transitions")
+                    .on_hover_text(
+                        "Blend across the half voxel where bricks of different resolution meet, \
+                         so coarse and fine bricks join without seams. Off shows the seams.",
+                    );
+                ui.checkbox(&mut prefs.show_planes_in_3d, "Slice planes in the 3D view");
+                if ui
+                    .checkbox(&mut prefs.orthographic, "Orthographic projection")
+                    .changed()
+                {
+                    v.orbit.orthographic = prefs.orthographic;
+                }
+                ui.label("Crop box (fraction of each index axis)");
+                for (axis, name) in ["i", "j", "k"].iter().enumerate() {
+                    ui.horizontal(|ui| {
+                        ui.label(*name);
+                        let mut min = v.crop.min[axis];
+                        let mut max = v.crop.max[axis];
+                        ui.add(egui::DragValue::new(&mut min).speed(0.005).range(0.0..=1.0));
+                        ui.add(egui::DragValue::new(&mut max).speed(0.005).range(0.0..=1.0));
+                        v.crop.min[axis] = min.min(max - 0.01).max(0.0);
+                        v.crop.max[axis] = max.max(min + 0.01).min(1.0);
                     });
                 }
-            });
-            if let Some(m) = &self.tf_message {
-                ui.weak(m);
-            }
-        });
-        egui::CollapsingHeader::new("Rendering").default_open(true).show(ui, |ui| {
-            ui.horizontal(|ui| {
-                ui.radio_value(&mut prefs.mode, RenderMode::Dvr, "DVR");
-                ui.radio_value(&mut prefs.mode, RenderMode::Mip, "MIP");
-                ui.radio_value(&mut prefs.mode, RenderMode::Isosurface, "Isosurface");
-            });
-            if prefs.mode == RenderMode::Isosurface {
-                let (lo, hi) = v.info.physical_range;
-                ui.add(egui::Slider::new(&mut v.iso_value, lo..=hi).text(format!("iso value {unit}")));
-            }
-            ui.checkbox(&mut prefs.shading, "Shading (DVR)");
-            ui.checkbox(&mut prefs.show_planes_in_3d, "Slice planes in the 3D view");
-            if ui.checkbox(&mut prefs.orthographic, "Orthographic projection").changed() {
-                v.orbit.orthographic = prefs.orthographic;
-            }
-            ui.label("Crop box (fraction of each index axis)");
-            for (axis, name) in ["i", "j", "k"].iter().enumerate() {
                 ui.horizontal(|ui| {
-                    ui.label(*name);
-                    let mut min = v.crop.min[axis];
-                    let mut max = v.crop.max[axis];
-                    ui.add(egui::DragValue::new(&mut min).speed(0.005).range(0.0..=1.0));
-                    ui.add(egui::DragValue::new(&mut max).speed(0.005).range(0.0..=1.0));
-                    v.crop.min[axis] = min.min(max - 0.01).max(0.0);
-                    v.crop.max[axis] = max.max(min + 0.01).min(1.0);
+                    ui.checkbox(&mut v.clip_enabled, "Clip plane");
+                    egui::ComboBox::from_id_salt("clip axis")
+                        .selected_text(["L–R", "A–P", "S–I"][v.clip_axis])
+                        .show_ui(ui, |ui| {
+                            ui.selectable_value(&mut v.clip_axis, 0, "L–R (sagittal)");
+                            ui.selectable_value(&mut v.clip_axis, 1, "A–P (coronal)");
+                            ui.selectable_value(&mut v.clip_axis, 2, "S–I (axial)");
+                        });
+                    ui.checkbox(&mut v.clip_flip, "flip");
                 });
-            }
-            ui.horizontal(|ui| {
-                ui.checkbox(&mut v.clip_enabled, "Clip plane");
-                egui::ComboBox::from_id_salt("clip axis").selected_text(["L–R", "A–P", "S–I"][v.clip_axis]).show_ui(ui, |ui| {
-                    ui.selectable_value(&mut v.clip_axis, 0, "L–R (sagittal)");
-                    ui.selectable_value(&mut v.clip_axis, 1, "A–P (coronal)");
-                    ui.selectable_value(&mut v.clip_axis, 2, "S–I (axial)");
-                });
-                ui.checkbox(&mut v.clip_flip, "flip");
-            });
-            if v.clip_enabled {
-                ui.add(egui::Slider::new(&mut v.clip_fraction, 0.0..=1.0).text("position"));
-            }
-            if ui.button("Reset crop and clip").clicked() {
-                v.crop = CropBox::default();
-                v.clip_enabled = false;
-            }
-        });
-        egui::CollapsingHeader::new("Performance").default_open(true).show(ui, |ui| {
-            performance_panel(ui, prefs, v, &self.clock);
-        });
-        egui::CollapsingHeader::new("Screenshot").default_open(false).show(ui, |ui| {
-            ui.horizontal(|ui| {
-                ui.label("Folder");
-                let mut folder = prefs.screenshot_folder.display().to_string();
-                if ui.text_edit_singleline(&mut folder).changed() {
-                    prefs.screenshot_folder = PathBuf::from(folder);
+                if v.clip_enabled {
+                    ui.add(egui::Slider::new(&mut v.clip_fraction, 0.0..=1.0).text("position"));
+                }
+                if ui.button("Reset crop and clip").clicked() {
+                    v.crop = CropBox::default();
+                    v.clip_enabled = false;
                 }
             });
-            ui.horizontal(|ui| {
-                ui.label("Resolution");
-                for s in [1, 2, 4] {
-                    ui.selectable_value(&mut prefs.screenshot_scale, s, format!("{s}×"));
-                }
+        egui::CollapsingHeader::new("Performance")
+            .default_open(true)
+            .show(ui, |ui| {
+                performance_panel(ui, prefs, v, &self.clock);
             });
-        });
-        egui::CollapsingHeader::new("Volume information").default_open(false).show(ui, |ui| {
-            info_panel(ui, prefs, v);
-        });
+        egui::CollapsingHeader::new("Screenshot")
+            .default_open(false)
+            .show(ui, |ui| {
+                ui.horizontal(|ui| {
+                    ui.label("Folder");
+                    let mut folder = prefs.screenshot_folder.display().to_string();
+                    if ui.text_edit_singleline(&mut folder).changed() {
+                        prefs.screenshot_folder = PathBuf::from(folder);
+                    }
+                });
+                ui.horizontal(|ui| {
+                    ui.label("Resolution");
+                    for s in [1, 2, 4] {
+                        ui.selectable_value(&mut prefs.screenshot_scale, s, format!("{s}×"));
+                    }
+                });
+            });
+        egui::CollapsingHeader::new("Volume information")
+            .default_open(false)
+            .show(ui, |ui| {
+                info_panel(ui, prefs, v);
+            });
     }
 
     fn views(&mut self, ui: &mut egui::Ui) {
@@ -897,13 +1077,24 @@ impl StrataApp {
                 let mut slots = vec![(ViewSlot::ThreeD, top)];
                 for (i, view) in SliceView::ALL.iter().enumerate() {
                     let left = area.left() + i as f32 * (w + gap);
-                    slots.push((ViewSlot::Slice(*view), Rect::from_min_max(Pos2::new(left, split), Pos2::new(left + w, area.bottom()))));
+                    slots.push((
+                        ViewSlot::Slice(*view),
+                        Rect::from_min_max(
+                            Pos2::new(left, split),
+                            Pos2::new(left + w, area.bottom()),
+                        ),
+                    ));
                 }
                 slots
             }
             Layout::TwoByTwo => {
                 let (w, h) = ((area.width() - gap) / 2.0, (area.height() - gap) / 2.0);
-                let cell = |c: f32, r: f32| Rect::from_min_size(Pos2::new(area.left() + c * (w + gap), area.top() + r * (h + gap)), Vec2::new(w, h));
+                let cell = |c: f32, r: f32| {
+                    Rect::from_min_size(
+                        Pos2::new(area.left() + c * (w + gap), area.top() + r * (h + gap)),
+                        Vec2::new(w, h),
+                    )
+                };
                 vec![
                     (ViewSlot::Slice(SliceView::Axial), cell(0.0, 0.0)),
                     (ViewSlot::ThreeD, cell(1.0, 0.0)),
@@ -938,16 +1129,33 @@ impl StrataApp {
 
     /// Paints a view's title; returns true when it was double-clicked (focus toggle).
     fn view_title(ui: &mut egui::Ui, rect: Rect, id: &str, title: &str, colour: Color32) -> bool {
-        let galley_rect = Rect::from_min_size(rect.min + Vec2::new(6.0, 4.0), Vec2::new(title.len() as f32 * 7.5 + 8.0, 16.0));
-        let response = ui.interact(galley_rect, ui.scope_id().with(("title", id)), Sense::click());
-        ui.painter_at(rect).text(rect.min + Vec2::new(8.0, 4.0), egui::Align2::LEFT_TOP, title, egui::FontId::proportional(13.0), colour);
-        response.on_hover_text("Double-click to focus / unfocus this view").double_clicked()
+        let galley_rect = Rect::from_min_size(
+            rect.min + Vec2::new(6.0, 4.0),
+            Vec2::new(title.len() as f32 * 7.5 + 8.0, 16.0),
+        );
+        let response = ui.interact(
+            galley_rect,
+            ui.scope_id().with(("title", id)),
+            Sense::click(),
+        );
+        ui.painter_at(rect).text(
+            rect.min + Vec2::new(8.0, 4.0),
+            egui::Align2::LEFT_TOP,
+            title,
+            egui::FontId::proportional(13.0),
+            colour,
+        );
+        response
+            .on_hover_text("Double-click to focus / unfocus this view")
+            .double_clicked()
     }
 
     fn view_3d(&mut self, ui: &mut egui::Ui, rect: Rect) -> bool {
         let prefs = &self.preferences;
         let max_pixels = self.options.max_render_pixels;
-        let Some(v) = self.volume.as_mut() else { return false };
+        let Some(v) = self.volume.as_mut() else {
+            return false;
+        };
         let painter = ui.painter_at(rect);
         painter.rect_filled(rect, 0.0, Color32::BLACK);
         let response = ui.interact(rect, ui.scope_id().with("3d view"), Sense::click_and_drag());
@@ -957,7 +1165,9 @@ impl StrataApp {
             v.orbit.orbit_by(pointer_delta, rect.size());
             moved = true;
         }
-        if response.dragged_by(egui::PointerButton::Middle) || (response.dragged_by(egui::PointerButton::Primary) && shift) {
+        if response.dragged_by(egui::PointerButton::Middle)
+            || (response.dragged_by(egui::PointerButton::Primary) && shift)
+        {
             v.orbit.pan_by(pointer_delta, rect.size());
             moved = true;
         }
@@ -976,7 +1186,10 @@ impl StrataApp {
             }
         }
         if response.double_clicked() {
-            v.orbit = OrbitCamera { orthographic: prefs.orthographic, ..OrbitCamera::default() };
+            v.orbit = OrbitCamera {
+                orthographic: prefs.orthographic,
+                ..OrbitCamera::default()
+            };
         }
         if moved {
             v.interacting_until = Some(Instant::now() + Duration::from_millis(150));
@@ -1007,6 +1220,7 @@ impl StrataApp {
             mode: prefs.mode,
             quality: prefs.step_voxels,
             shading: prefs.shading.then(Shading::default),
+            smooth_transitions: prefs.smooth_transitions,
             iso_value: v.iso_value,
             crop: v.crop,
             clip_plane,
@@ -1021,19 +1235,36 @@ impl StrataApp {
         });
 
         if let Some(frame) = v.session.latest_frame() {
-            let fresh = v.volume_texture.as_ref().is_none_or(|(_, serial)| *serial != frame.serial);
+            let fresh = v
+                .volume_texture
+                .as_ref()
+                .is_none_or(|(_, serial)| *serial != frame.serial);
             if fresh {
-                let image = egui::ColorImage::from_rgba_premultiplied([frame.width as usize, frame.height as usize], &frame.rgba);
+                let image = egui::ColorImage::from_rgba_premultiplied(
+                    [frame.width as usize, frame.height as usize],
+                    &frame.rgba,
+                );
                 match &mut v.volume_texture {
                     Some((texture, serial)) => {
                         texture.set(image, TextureOptions::LINEAR);
                         *serial = frame.serial;
                     }
-                    None => v.volume_texture = Some((ui.ctx().load_texture("volume", image, TextureOptions::LINEAR), frame.serial)),
+                    None => {
+                        v.volume_texture = Some((
+                            ui.ctx()
+                                .load_texture("volume", image, TextureOptions::LINEAR),
+                            frame.serial,
+                        ))
+                    }
                 }
             }
             if let Some((texture, _)) = &v.volume_texture {
-                painter.image(texture.id(), rect, Rect::from_min_max(Pos2::ZERO, Pos2::new(1.0, 1.0)), Color32::WHITE);
+                painter.image(
+                    texture.id(),
+                    rect,
+                    Rect::from_min_max(Pos2::ZERO, Pos2::new(1.0, 1.0)),
+                    Color32::WHITE,
+                );
             }
         }
         if prefs.show_planes_in_3d {
@@ -1046,7 +1277,13 @@ impl StrataApp {
             RenderMode::Mip => "MIP",
             RenderMode::Isosurface => "Isosurface",
         };
-        let toggled = Self::view_title(ui, rect, "3d", &format!("3D · {mode} · {}", v.transfer_function.name), Color32::from_rgb(200, 200, 255));
+        let toggled = Self::view_title(
+            ui,
+            rect,
+            "3d",
+            &format!("3D · {mode} · {}", v.transfer_function.name),
+            Color32::from_rgb(200, 200, 255),
+        );
         let mut right_lines = Vec::new();
         if let Some(loading) = &status.loading {
             right_lines.push(loading.clone());
@@ -1057,12 +1294,30 @@ impl StrataApp {
             right_lines.push(format!("finest level {level}"));
         }
         for (i, line) in right_lines.iter().enumerate() {
-            painter.text(Pos2::new(rect.right() - 8.0, rect.top() + 4.0 + 15.0 * i as f32), egui::Align2::RIGHT_TOP, line, egui::FontId::proportional(12.0), Color32::LIGHT_GRAY);
+            painter.text(
+                Pos2::new(rect.right() - 8.0, rect.top() + 4.0 + 15.0 * i as f32),
+                egui::Align2::RIGHT_TOP,
+                line,
+                egui::FontId::proportional(12.0),
+                Color32::LIGHT_GRAY,
+            );
         }
         if let Some(error) = &status.error {
-            painter.text(rect.center(), egui::Align2::CENTER_CENTER, error, egui::FontId::proportional(13.0), Color32::LIGHT_RED);
+            painter.text(
+                rect.center(),
+                egui::Align2::CENTER_CENTER,
+                error,
+                egui::FontId::proportional(13.0),
+                Color32::LIGHT_RED,
+            );
         }
-        painter.text(rect.right_bottom() + Vec2::new(-8.0, -6.0), egui::Align2::RIGHT_BOTTOM, NOT_FOR_DIAGNOSIS, egui::FontId::proportional(11.0), WARNING_COLOUR);
+        painter.text(
+            rect.right_bottom() + Vec2::new(-8.0, -6.0),
+            egui::Align2::RIGHT_BOTTOM,
+            NOT_FOR_DIAGNOSIS,
+            egui::FontId::proportional(11.0),
+            WARNING_COLOUR,
+        );
         if response.clicked() || response.drag_started() {
             self.preferences.focused = ViewSlot::ThreeD;
         }
@@ -1070,21 +1325,37 @@ impl StrataApp {
     }
 
     fn slice_view(&mut self, ui: &mut egui::Ui, view: SliceView, rect: Rect) -> bool {
-        let Some(v) = self.volume.as_mut() else { return false };
+        let Some(v) = self.volume.as_mut() else {
+            return false;
+        };
         let frame = v.frames[view.index()];
         let geometry = &v.info.geometry;
         let dims = geometry.dims;
         let painter = ui.painter_at(rect);
         painter.rect_filled(rect, 0.0, Color32::BLACK);
         let colour = slice_colour(view);
-        painter.rect_stroke(rect.shrink(0.5), 0.0, Stroke::new(1.0, colour.gamma_multiply(0.6)), egui::StrokeKind::Inside);
+        painter.rect_stroke(
+            rect.shrink(0.5),
+            0.0,
+            Stroke::new(1.0, colour.gamma_multiply(0.6)),
+            egui::StrokeKind::Inside,
+        );
         // The image keeps the patient's proportions, centred with room for labels.
         let (w_mm, h_mm) = frame.extent_mm(geometry);
         // Room for the title line above, the W/L line below and the side labels.
-        let inner = Rect::from_min_max(rect.min + Vec2::new(18.0, 38.0), rect.max - Vec2::new(18.0, 36.0));
-        let fit = (inner.width() as f64 / w_mm).min(inner.height() as f64 / h_mm).max(1e-6);
+        let inner = Rect::from_min_max(
+            rect.min + Vec2::new(18.0, 38.0),
+            rect.max - Vec2::new(18.0, 36.0),
+        );
+        let fit = (inner.width() as f64 / w_mm)
+            .min(inner.height() as f64 / h_mm)
+            .max(1e-6);
         let k = view.index();
-        let response = ui.interact(rect, ui.scope_id().with(("slice", k)), Sense::click_and_drag());
+        let response = ui.interact(
+            rect,
+            ui.scope_id().with(("slice", k)),
+            Sense::click_and_drag(),
+        );
         if response.hovered() {
             // Ctrl+wheel (or pinch) zooms about the pointer; plain wheel pages (below).
             let zoom = ui.input(|i| i.zoom_delta());
@@ -1108,10 +1379,15 @@ impl StrataApp {
             v.slice_pan[k] = Vec2::ZERO;
         }
         let scale = v.slice_zoom[k];
-        let image_rect = Rect::from_center_size(inner.center() + v.slice_pan[k], Vec2::new((w_mm * fit) as f32 * scale, (h_mm * fit) as f32 * scale));
+        let image_rect = Rect::from_center_size(
+            inner.center() + v.slice_pan[k],
+            Vec2::new((w_mm * fit) as f32 * scale, (h_mm * fit) as f32 * scale),
+        );
 
         if let Some(pos) = response.interact_pointer_pos() {
-            if (response.clicked() || response.dragged_by(egui::PointerButton::Primary)) && image_rect.contains(pos) {
+            if (response.clicked() || response.dragged_by(egui::PointerButton::Primary))
+                && image_rect.contains(pos)
+            {
                 let u = ((pos.x - image_rect.left()) / image_rect.width()) as f64;
                 let w = ((pos.y - image_rect.top()) / image_rect.height()) as f64;
                 let (a, d) = frame.index_at(dims, u, w);
@@ -1124,7 +1400,10 @@ impl StrataApp {
             let (lo, hi) = v.info.physical_range;
             let per_point = (hi - lo).max(1e-6) / rect.width().max(100.0) as f64;
             let (centre, width) = v.window;
-            v.window = (centre - delta.y as f64 * per_point, (width + delta.x as f64 * per_point * 2.0).max(per_point));
+            v.window = (
+                centre - delta.y as f64 * per_point,
+                (width + delta.x as f64 * per_point * 2.0).max(per_point),
+            );
         }
         if response.hovered() && !ui.input(|i| i.modifiers.command || i.modifiers.ctrl) {
             let lines = ui.input(|i| {
@@ -1145,24 +1424,40 @@ impl StrataApp {
                 page_slice(v, view, lines.signum() * lines.abs().round().max(1.0));
             }
         }
-        if response.clicked() || response.drag_started() || response.hovered() && ui.input(|i| i.pointer.any_pressed()) {
+        if response.clicked()
+            || response.drag_started()
+            || response.hovered() && ui.input(|i| i.pointer.any_pressed())
+        {
             self.preferences.focused = ViewSlot::Slice(view);
         }
-        let Some(v) = self.volume.as_mut() else { return false };
+        let Some(v) = self.volume.as_mut() else {
+            return false;
+        };
 
         // Ask for the slice at the level matching this view's pixels.
         let ppp = ui.ctx().pixels_per_point();
         let voxels_across = dims[frame.across_axis] as f64;
         let level_count = v.info.header.layout.level_count();
-        let level = level_for_pixels(voxels_across, (image_rect.width() * ppp) as f64, level_count);
-        let request = SliceRequest { view, frame, position: v.cursor[frame.normal_axis], level };
+        let level = level_for_pixels(
+            voxels_across,
+            (image_rect.width() * ppp) as f64,
+            level_count,
+        );
+        let request = SliceRequest {
+            view,
+            frame,
+            position: v.cursor[frame.normal_axis],
+            level,
+        };
         if v.last_slice_requests[view.index()] != Some(request) {
             v.slices.request(request);
             v.last_slice_requests[view.index()] = Some(request);
         }
         if let Some(image) = v.slices.latest(view) {
             let slot = &mut v.slice_textures[view.index()];
-            let stale = slot.as_ref().is_none_or(|t| !Arc::ptr_eq(&t.values, &image.values) || t.window != v.window);
+            let stale = slot
+                .as_ref()
+                .is_none_or(|t| !Arc::ptr_eq(&t.values, &image.values) || t.window != v.window);
             if stale {
                 let grey = window_level_image(&image, v.window, v.info.mapping);
                 match slot {
@@ -1173,7 +1468,11 @@ impl StrataApp {
                     }
                     None => {
                         *slot = Some(SliceTexture {
-                            texture: ui.ctx().load_texture(format!("slice {}", view.name()), grey, TextureOptions::LINEAR),
+                            texture: ui.ctx().load_texture(
+                                format!("slice {}", view.name()),
+                                grey,
+                                TextureOptions::LINEAR,
+                            ),
                             values: image.values.clone(),
                             window: v.window,
                         })
@@ -1182,10 +1481,22 @@ impl StrataApp {
             }
             if let Some(t) = slot {
                 let (fu, fv) = image.inside_fraction;
-                let (u0, u1) = if frame.across_flipped { (fu as f32, 0.0) } else { (0.0, fu as f32) };
-                let (v0, v1) = if frame.down_flipped { (fv as f32, 0.0) } else { (0.0, fv as f32) };
+                let (u0, u1) = if frame.across_flipped {
+                    (fu as f32, 0.0)
+                } else {
+                    (0.0, fu as f32)
+                };
+                let (v0, v1) = if frame.down_flipped {
+                    (fv as f32, 0.0)
+                } else {
+                    (0.0, fv as f32)
+                };
                 let mut mesh = egui::Mesh::with_texture(t.texture.id());
-                mesh.add_rect_with_uv(image_rect, Rect::from_min_max(Pos2::new(u0, v0), Pos2::new(u1, v1)), Color32::WHITE);
+                mesh.add_rect_with_uv(
+                    image_rect,
+                    Rect::from_min_max(Pos2::new(u0, v0), Pos2::new(u1, v1)),
+                    Color32::WHITE,
+                );
                 // add_rect_with_uv orders uv corners by min/max; flip by swapping vertex uvs.
                 if u0 > u1 || v0 > v1 {
                     for vertex in &mut mesh.vertices {
@@ -1198,29 +1509,80 @@ impl StrataApp {
             }
         }
         // Crosshair.
-        let (cu, cv) = frame.fraction_of(dims, v.cursor[frame.across_axis], v.cursor[frame.down_axis]);
+        let (cu, cv) =
+            frame.fraction_of(dims, v.cursor[frame.across_axis], v.cursor[frame.down_axis]);
         let cx = image_rect.left() + cu as f32 * image_rect.width();
         let cy = image_rect.top() + cv as f32 * image_rect.height();
         let hair = Stroke::new(1.0, Color32::from_rgba_unmultiplied(120, 220, 255, 150));
-        painter.line_segment([Pos2::new(image_rect.left(), cy), Pos2::new(cx - 8.0, cy)], hair);
-        painter.line_segment([Pos2::new(cx + 8.0, cy), Pos2::new(image_rect.right(), cy)], hair);
-        painter.line_segment([Pos2::new(cx, image_rect.top()), Pos2::new(cx, cy - 8.0)], hair);
-        painter.line_segment([Pos2::new(cx, cy + 8.0), Pos2::new(cx, image_rect.bottom())], hair);
+        painter.line_segment(
+            [Pos2::new(image_rect.left(), cy), Pos2::new(cx - 8.0, cy)],
+            hair,
+        );
+        painter.line_segment(
+            [Pos2::new(cx + 8.0, cy), Pos2::new(image_rect.right(), cy)],
+            hair,
+        );
+        painter.line_segment(
+            [Pos2::new(cx, image_rect.top()), Pos2::new(cx, cy - 8.0)],
+            hair,
+        );
+        painter.line_segment(
+            [Pos2::new(cx, cy + 8.0), Pos2::new(cx, image_rect.bottom())],
+            hair,
+        );
         // Orientation labels.
         let font = egui::FontId::proportional(14.0);
         let label_colour = Color32::from_rgb(255, 220, 120);
         let [left, right, top, bottom] = frame.labels;
-        painter.text(Pos2::new(rect.left() + 5.0, rect.center().y), egui::Align2::LEFT_CENTER, left, font.clone(), label_colour);
-        painter.text(Pos2::new(rect.right() - 5.0, rect.center().y), egui::Align2::RIGHT_CENTER, right, font.clone(), label_colour);
-        painter.text(Pos2::new(rect.center().x, rect.top() + 21.0), egui::Align2::CENTER_TOP, top, font.clone(), label_colour);
-        painter.text(Pos2::new(rect.center().x, rect.bottom() - 19.0), egui::Align2::CENTER_BOTTOM, bottom, font, label_colour);
+        painter.text(
+            Pos2::new(rect.left() + 5.0, rect.center().y),
+            egui::Align2::LEFT_CENTER,
+            left,
+            font.clone(),
+            label_colour,
+        );
+        painter.text(
+            Pos2::new(rect.right() - 5.0, rect.center().y),
+            egui::Align2::RIGHT_CENTER,
+            right,
+            font.clone(),
+            label_colour,
+        );
+        painter.text(
+            Pos2::new(rect.center().x, rect.top() + 21.0),
+            egui::Align2::CENTER_TOP,
+            top,
+            font.clone(),
+            label_colour,
+        );
+        painter.text(
+            Pos2::new(rect.center().x, rect.bottom() - 19.0),
+            egui::Align2::CENTER_BOTTOM,
+            bottom,
+            font,
+            label_colour,
+        );
         let n = frame.normal_axis;
         let slice_number = v.cursor[n].round() as i64 + 1;
         let title = format!("{} {}/{}", view.name(), slice_number, dims[n]);
         let toggled = Self::view_title(ui, rect, view.name(), &title, colour);
         let shown_level = v.slices.latest(view).map(|i| i.request.level);
-        let info = format!("W {:.0} L {:.0}{}", v.window.1, v.window.0, shown_level.filter(|l| *l > 0).map(|l| format!(" · level {l}")).unwrap_or_default());
-        painter.text(rect.left_bottom() + Vec2::new(8.0, -4.0), egui::Align2::LEFT_BOTTOM, info, egui::FontId::proportional(11.0), Color32::LIGHT_GRAY);
+        let info = format!(
+            "W {:.0} L {:.0}{}",
+            v.window.1,
+            v.window.0,
+            shown_level
+                .filter(|l| *l > 0)
+                .map(|l| format!(" · level {l}"))
+                .unwrap_or_default()
+        );
+        painter.text(
+            rect.left_bottom() + Vec2::new(8.0, -4.0),
+            egui::Align2::LEFT_BOTTOM,
+            info,
+            egui::FontId::proportional(11.0),
+            Color32::LIGHT_GRAY,
+        );
         toggled
     }
 }
@@ -1235,7 +1597,12 @@ fn slice_colour(view: SliceView) -> Color32 {
 
 /// Outlines where the three slice views cut the volume, projected with the 3D view's camera
 /// (the frame fills `rect`, rendered at its aspect).
-fn paint_slice_planes(painter: &egui::Painter, rect: Rect, camera: &strata_render::Camera, v: &OpenVolume) {
+fn paint_slice_planes(
+    painter: &egui::Painter,
+    rect: Rect,
+    camera: &strata_render::Camera,
+    v: &OpenVolume,
+) {
     let basis = camera.basis();
     let aspect = (rect.width() / rect.height().max(1.0)) as f64;
     let g = &v.info.geometry;
@@ -1251,7 +1618,10 @@ fn paint_slice_planes(painter: &egui::Painter, rect: Rect, camera: &strata_rende
         };
         let u = (sx / (aspect * basis.half_extent) + 1.0) * 0.5;
         let w = (1.0 - sy / basis.half_extent) * 0.5;
-        Some(Pos2::new(rect.left() + u as f32 * rect.width(), rect.top() + w as f32 * rect.height()))
+        Some(Pos2::new(
+            rect.left() + u as f32 * rect.width(),
+            rect.top() + w as f32 * rect.height(),
+        ))
     };
     for view in SliceView::ALL {
         let frame = v.frames[view.index()];
@@ -1265,7 +1635,12 @@ fn paint_slice_planes(painter: &egui::Painter, rect: Rect, camera: &strata_rende
             i[b] = cb;
             project(glam::DVec3::from(i))
         };
-        let corners = [corner(lo_a, lo_b), corner(hi_a, lo_b), corner(hi_a, hi_b), corner(lo_a, hi_b)];
+        let corners = [
+            corner(lo_a, lo_b),
+            corner(hi_a, lo_b),
+            corner(hi_a, hi_b),
+            corner(lo_a, hi_b),
+        ];
         if let [Some(p0), Some(p1), Some(p2), Some(p3)] = corners {
             let stroke = Stroke::new(1.5, slice_colour(view).gamma_multiply(0.8));
             painter.add(egui::Shape::closed_line(vec![p0, p1, p2, p3], stroke));
@@ -1291,18 +1666,37 @@ fn clip_plane_for(v: &OpenVolume) -> ClipPlane {
     // Offset from the fraction of the volume's extent along the plane's normal.
     let corners = (0..8).map(|c| {
         let idx = glam::DVec3::new(
-            if c & 1 == 0 { -0.5 } else { g.dims[0] as f64 - 0.5 },
-            if c & 2 == 0 { -0.5 } else { g.dims[1] as f64 - 0.5 },
-            if c & 4 == 0 { -0.5 } else { g.dims[2] as f64 - 0.5 },
+            if c & 1 == 0 {
+                -0.5
+            } else {
+                g.dims[0] as f64 - 0.5
+            },
+            if c & 2 == 0 {
+                -0.5
+            } else {
+                g.dims[1] as f64 - 0.5
+            },
+            if c & 4 == 0 {
+                -0.5
+            } else {
+                g.dims[2] as f64 - 0.5
+            },
         );
         g.patient_from_index(idx).dot(n)
     });
-    let (lo, hi) = corners.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), x| (a.min(x), b.max(x)));
-    ClipPlane { normal, offset_mm: lo + (hi - lo) * v.clip_fraction }
+    let (lo, hi) = corners.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), x| {
+        (a.min(x), b.max(x))
+    });
+    ClipPlane {
+        normal,
+        offset_mm: lo + (hi - lo) * v.clip_fraction,
+    }
 }
 
 fn preset_for(name: &str, info: &VolumeInfo) -> TransferFunction {
-    let mut tf = TransferFunction::preset(name).unwrap_or_else(|| TransferFunction::new(name, &[(0.0, 0.0), (1.0, 1.0)], &[(0.0, [1.0; 3])]));
+    let mut tf = TransferFunction::preset(name).unwrap_or_else(|| {
+        TransferFunction::new(name, &[(0.0, 0.0), (1.0, 1.0)], &[(0.0, [1.0; 3])])
+    });
     // The MR preset assumes intensities near 0..1000; stretch it onto this scan's range.
     if name.starts_with("mr") {
         let (lo, hi) = info.physical_range;
@@ -1339,7 +1733,11 @@ fn percentile_window(h: &Histogram) -> (f64, f64) {
 }
 
 /// Stored values → grey through the window (physical units), as a texture image.
-pub fn window_level_image(image: &SliceImage, window: (f64, f64), mapping: strata_render::ValueMapping) -> egui::ColorImage {
+pub fn window_level_image(
+    image: &SliceImage,
+    window: (f64, f64),
+    mapping: strata_render::ValueMapping,
+) -> egui::ColorImage {
     let (centre, width) = window;
     let lo = centre - width * 0.5;
     let scale = 255.0 / width.max(1e-9);
@@ -1356,21 +1754,55 @@ pub fn window_level_image(image: &SliceImage, window: (f64, f64), mapping: strat
 
 const MIB: f64 = (1u64 << 20) as f64;
 
-fn performance_panel(ui: &mut egui::Ui, prefs: &mut Preferences, v: &mut OpenVolume, clock: &FrameClock) {
+fn performance_panel(
+    ui: &mut egui::Ui,
+    prefs: &mut Preferences,
+    v: &mut OpenVolume,
+    clock: &FrameClock,
+) {
     let status = v.session.status();
     ui.horizontal(|ui| {
         ui.checkbox(&mut prefs.target_fps_enabled, "Target frame rate");
-        ui.add_enabled(prefs.target_fps_enabled, egui::Slider::new(&mut prefs.target_fps, 2.0..=60.0).suffix(" fps").logarithmic(true));
+        ui.add_enabled(
+            prefs.target_fps_enabled,
+            egui::Slider::new(&mut prefs.target_fps, 2.0..=60.0)
+                .suffix(" fps")
+                .logarithmic(true),
+        );
     });
     if !prefs.target_fps_enabled {
-        ui.add(egui::Slider::new(&mut prefs.step_voxels, 0.125..=4.0).logarithmic(true).text("step (voxels)"));
+        ui.add(
+            egui::Slider::new(&mut prefs.step_voxels, 0.125..=4.0)
+                .logarithmic(true)
+                .text("step (voxels)"),
+        );
     }
     ui.add(egui::Slider::new(&mut prefs.render_scale, 0.25..=1.0).text("resolution"));
     let now = Instant::now();
-    let ui_ms: Vec<[f64; 2]> = clock.samples.iter().filter(|s| s.1 > 0.0).map(|s| [s.0, s.1]).collect();
+    let ui_ms: Vec<[f64; 2]> = clock
+        .samples
+        .iter()
+        .filter(|s| s.1 > 0.0)
+        .map(|s| [s.0, s.1])
+        .collect();
     let t_now = clock.samples.back().map_or(0.0, |s| s.0);
-    let volume_ms: Vec<[f64; 2]> = status.volume_frame_ms.iter().map(|(at, ms)| [t_now - now.saturating_duration_since(*at).as_secs_f64(), *ms]).collect();
-    let mean = |xs: &[[f64; 2]]| if xs.is_empty() { f64::NAN } else { xs.iter().map(|p| p[1]).sum::<f64>() / xs.len() as f64 };
+    let volume_ms: Vec<[f64; 2]> = status
+        .volume_frame_ms
+        .iter()
+        .map(|(at, ms)| {
+            [
+                t_now - now.saturating_duration_since(*at).as_secs_f64(),
+                *ms,
+            ]
+        })
+        .collect();
+    let mean = |xs: &[[f64; 2]]| {
+        if xs.is_empty() {
+            f64::NAN
+        } else {
+            xs.iter().map(|p| p[1]).sum::<f64>() / xs.len() as f64
+        }
+    };
     ui.label(format!(
         "UI frame {:.1} ms · volume frame {:.1} ms",
         mean(&ui_ms[ui_ms.len().saturating_sub(30)..]),
@@ -1387,47 +1819,75 @@ fn performance_panel(ui: &mut egui::Ui, prefs: &mut Preferences, v: &mut OpenVol
         .x_axis_label("s")
         .y_axis_label("ms")
         .show(ui, |plot| {
-            plot.line(egui_plot::Line::new("UI frame", egui_plot::PlotPoints::from(ui_ms)));
-            plot.line(egui_plot::Line::new("volume frame", egui_plot::PlotPoints::from(volume_ms)));
-        });
-    egui::Grid::new("perf figures").num_columns(2).show(ui, |ui| {
-        ui.label("Sampling rate");
-        ui.label(format!("{:.2} samples/voxel", status.sampling_rate));
-        ui.end_row();
-        ui.label("Quality (lod) factor");
-        ui.label(format!("{:.1}", status.lod_factor));
-        ui.end_row();
-        if let Some(l) = &status.loader {
-            ui.label("GPU bricks per level");
-            let per_level: Vec<String> = l.gpu_resident_per_level.iter().enumerate().filter(|(_, n)| **n > 0).map(|(level, n)| format!("L{level}: {n}")).collect();
-            ui.label(per_level.join("  "));
-            ui.end_row();
-            ui.label("GPU cache");
-            ui.label(format!(
-                "{} / {} slots · {:.0} / {:.0} MiB",
-                l.gpu_slots_used,
-                l.gpu_slots_capacity,
-                l.gpu_bytes as f64 / MIB,
-                l.gpu_budget_bytes as f64 / MIB
+            plot.line(egui_plot::Line::new(
+                "UI frame",
+                egui_plot::PlotPoints::from(ui_ms),
             ));
+            plot.line(egui_plot::Line::new(
+                "volume frame",
+                egui_plot::PlotPoints::from(volume_ms),
+            ));
+        });
+    egui::Grid::new("perf figures")
+        .num_columns(2)
+        .show(ui, |ui| {
+            ui.label("Sampling rate");
+            ui.label(format!("{:.2} samples/voxel", status.sampling_rate));
             ui.end_row();
-            ui.label("CPU cache");
-            ui.label(format!("{:.0} / {:.0} MiB · hit {:.0}%", l.cpu_bytes as f64 / MIB, l.cpu_budget_bytes as f64 / MIB, l.cpu_hit_rate * 100.0));
+            ui.label("Quality (lod) factor");
+            ui.label(format!("{:.1}", status.lod_factor));
             ui.end_row();
-            ui.label("Pending loads");
-            ui.label(format!("{} ({} reading)", l.pending, l.in_flight));
+            if let Some(l) = &status.loader {
+                ui.label("GPU bricks per level");
+                let per_level: Vec<String> = l
+                    .gpu_resident_per_level
+                    .iter()
+                    .enumerate()
+                    .filter(|(_, n)| **n > 0)
+                    .map(|(level, n)| format!("L{level}: {n}"))
+                    .collect();
+                ui.label(per_level.join("  "));
+                ui.end_row();
+                ui.label("GPU cache");
+                ui.label(format!(
+                    "{} / {} slots · {:.0} / {:.0} MiB",
+                    l.gpu_slots_used,
+                    l.gpu_slots_capacity,
+                    l.gpu_bytes as f64 / MIB,
+                    l.gpu_budget_bytes as f64 / MIB
+                ));
+                ui.end_row();
+                ui.label("CPU cache");
+                ui.label(format!(
+                    "{:.0} / {:.0} MiB · hit {:.0}%",
+                    l.cpu_bytes as f64 / MIB,
+                    l.cpu_budget_bytes as f64 / MIB,
+                    l.cpu_hit_rate * 100.0
+                ));
+                ui.end_row();
+                ui.label("Pending loads");
+                ui.label(format!("{} ({} reading)", l.pending, l.in_flight));
+                ui.end_row();
+                ui.label("I/O");
+                ui.label(format!(
+                    "{:.1} MB/s · {} bricks read",
+                    l.bytes_read_per_second / 1e6,
+                    l.bricks_read_total
+                ));
+                ui.end_row();
+            }
+            ui.label("Finest level on GPU");
+            ui.label(status.finest_resident_level.map_or("—".into(), |l| {
+                format!(
+                    "{l} (0 = full resolution; root {})",
+                    status.level_count.saturating_sub(1)
+                )
+            }));
             ui.end_row();
-            ui.label("I/O");
-            ui.label(format!("{:.1} MB/s · {} bricks read", l.bytes_read_per_second / 1e6, l.bricks_read_total));
+            ui.label("Volume frames");
+            ui.label(status.frames_rendered.to_string());
             ui.end_row();
-        }
-        ui.label("Finest level on GPU");
-        ui.label(status.finest_resident_level.map_or("—".into(), |l| format!("{l} (0 = full resolution; root {})", status.level_count.saturating_sub(1))));
-        ui.end_row();
-        ui.label("Volume frames");
-        ui.label(status.frames_rendered.to_string());
-        ui.end_row();
-    });
+        });
     if status.loading.is_some() || status.refining {
         ui.horizontal(|ui| {
             ui.spinner();
@@ -1441,27 +1901,78 @@ fn performance_panel(ui: &mut egui::Ui, prefs: &mut Preferences, v: &mut OpenVol
 fn info_panel(ui: &mut egui::Ui, prefs: &mut Preferences, v: &OpenVolume) {
     let h = &v.info.header;
     let g = &h.geometry;
-    egui::Grid::new("info").num_columns(2).striped(true).show(ui, |ui| {
-        let mut row = |k: &str, val: String| {
-            ui.label(k);
-            ui.label(val);
-            ui.end_row();
-        };
-        row("Modality", if h.modality.is_empty() { "(unknown)".into() } else { h.modality.clone() });
-        row("Dimensions", format!("{} × {} × {}", g.dims[0], g.dims[1], g.dims[2]));
-        row("Spacing", format!("{:.3} × {:.3} × {:.3} mm", g.spacing_mm[0], g.spacing_mm[1], g.spacing_mm[2]));
-        row("Extent", format!("{:.0} × {:.0} × {:.0} mm", g.dims[0] as f64 * g.spacing_mm[0], g.dims[1] as f64 * g.spacing_mm[1], g.dims[2] as f64 * g.spacing_mm[2]));
-        row("Origin (LPS)", format!("{:.1}, {:.1}, {:.1} mm", g.origin_lps_mm[0], g.origin_lps_mm[1], g.origin_lps_mm[2]));
-        let code: String = g.direction.iter().map(|d| orientation_letter(*d)).collect();
-        row("Orientation", format!("{code} (index axes point towards)"));
-        row("Values", format!("{:.1} … {:.1} {}", v.info.physical_range.0, v.info.physical_range.1, h.value_mapping.unit));
-        row("Stored as", format!("{:?}, physical = {} × stored + {}", h.stored, h.value_mapping.slope, h.value_mapping.intercept));
-        row("Levels", h.layout.level_count().to_string());
-        for w in &h.windows {
-            row("Window", format!("{}: W {:.0} / L {:.0}", w.name, w.width, w.center));
-        }
-    });
-    ui.checkbox(&mut prefs.show_identifiers, "Show identifiers (description, source file names)");
+    egui::Grid::new("info")
+        .num_columns(2)
+        .striped(true)
+        .show(ui, |ui| {
+            let mut row = |k: &str, val: String| {
+                ui.label(k);
+                ui.label(val);
+                ui.end_row();
+            };
+            row(
+                "Modality",
+                if h.modality.is_empty() {
+                    "(unknown)".into()
+                } else {
+                    h.modality.clone()
+                },
+            );
+            row(
+                "Dimensions",
+                format!("{} × {} × {}", g.dims[0], g.dims[1], g.dims[2]),
+            );
+            row(
+                "Spacing",
+                format!(
+                    "{:.3} × {:.3} × {:.3} mm",
+                    g.spacing_mm[0], g.spacing_mm[1], g.spacing_mm[2]
+                ),
+            );
+            row(
+                "Extent",
+                format!(
+                    "{:.0} × {:.0} × {:.0} mm",
+                    g.dims[0] as f64 * g.spacing_mm[0],
+                    g.dims[1] as f64 * g.spacing_mm[1],
+                    g.dims[2] as f64 * g.spacing_mm[2]
+                ),
+            );
+            row(
+                "Origin (LPS)",
+                format!(
+                    "{:.1}, {:.1}, {:.1} mm",
+                    g.origin_lps_mm[0], g.origin_lps_mm[1], g.origin_lps_mm[2]
+                ),
+            );
+            let code: String = g.direction.iter().map(|d| orientation_letter(*d)).collect();
+            row("Orientation", format!("{code} (index axes point towards)"));
+            row(
+                "Values",
+                format!(
+                    "{:.1} … {:.1} {}",
+                    v.info.physical_range.0, v.info.physical_range.1, h.value_mapping.unit
+                ),
+            );
+            row(
+                "Stored as",
+                format!(
+                    "{:?}, physical = {} × stored + {}",
+                    h.stored, h.value_mapping.slope, h.value_mapping.intercept
+                ),
+            );
+            row("Levels", h.layout.level_count().to_string());
+            for w in &h.windows {
+                row(
+                    "Window",
+                    format!("{}: W {:.0} / L {:.0}", w.name, w.width, w.center),
+                );
+            }
+        });
+    ui.checkbox(
+        &mut prefs.show_identifiers,
+        "Show identifiers (description, source file names)",
+    );
     if prefs.show_identifiers {
         ui.label(format!("Description: {}", h.description));
         for input in &h.provenance.inputs {
@@ -1475,9 +1986,17 @@ fn info_panel(ui: &mut egui::Ui, prefs: &mut Preferences, v: &OpenVolume) {
 fn orientation_letter(direction: [f64; 3]) -> char {
     let a = direction.map(f64::abs);
     if a[0] >= a[1] && a[0] >= a[2] {
-        if direction[0] > 0.0 { 'L' } else { 'R' }
+        if direction[0] > 0.0 {
+            'L'
+        } else {
+            'R'
+        }
     } else if a[1] >= a[2] {
-        if direction[1] > 0.0 { 'P' } else { 'A' }
+        if direction[1] > 0.0 {
+            'P'
+        } else {
+            'A'
+        }
     } else if direction[2] > 0.0 {
         'S'
     } else {
@@ -1513,16 +2032,29 @@ mod tests {
 
     #[test]
     fn preferences_survive_a_round_trip_and_old_files_fill_in_defaults() {
-        let mut p = Preferences { layout: Layout::TwoByTwo, preset: "ct-lung".into(), target_fps: 24.0, show_identifiers: true, ..Preferences::default() };
+        let mut p = Preferences {
+            layout: Layout::TwoByTwo,
+            preset: "ct-lung".into(),
+            target_fps: 24.0,
+            show_identifiers: true,
+            ..Preferences::default()
+        };
         p.focused = ViewSlot::Slice(SliceView::Sagittal);
         let text = serde_json::to_string(&p).expect("serialise");
-        assert_eq!(serde_json::from_str::<Preferences>(&text).expect("parse"), p);
+        assert_eq!(
+            serde_json::from_str::<Preferences>(&text).expect("parse"),
+            p
+        );
         // A file written by an older version lacks newer fields: they take their defaults.
-        let old: Preferences = serde_json::from_str(r#"{"layout":"Single","preset":"mr-default"}"#).expect("parse old");
+        let old: Preferences = serde_json::from_str(r#"{"layout":"Single","preset":"mr-default"}"#)
+            .expect("parse old");
         assert_eq!(old.layout, Layout::Single);
         assert_eq!(old.preset, "mr-default");
         assert_eq!(old.target_fps, Preferences::default().target_fps);
-        assert!(!old.show_identifiers, "identifiers stay hidden unless the user showed them");
+        assert!(
+            !old.show_identifiers,
+            "identifiers stay hidden unless the user showed them"
+        );
     }
 
     #[test]
@@ -1533,8 +2065,15 @@ mod tests {
             *c = 100;
         }
         counts[99] = 1; // an outlier above
-        let h = Histogram { physical_min: 0.0, physical_max: 100.0, counts };
+        let h = Histogram {
+            physical_min: 0.0,
+            physical_max: 100.0,
+            counts,
+        };
         let (centre, width) = percentile_window(&h);
-        assert!((centre - 50.0).abs() < 2.0 && (width - 60.0).abs() < 3.0, "window {centre} / {width}");
+        assert!(
+            (centre - 50.0).abs() < 2.0 && (width - 60.0).abs() < 3.0,
+            "window {centre} / {width}"
+        );
     }
 }
