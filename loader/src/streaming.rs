@@ -369,6 +369,12 @@ impl StreamingVolume {
             camera,
             settings,
         };
+        // A streamed cut turns mixed as it refines. Without the background compiler, the
+        // variant with transition code is built with the first frame (which compiles anyway),
+        // so no later frame stalls on it when the first coarser neighbour appears.
+        if !self.raycaster.compile_in_background {
+            self.raycaster.prepare(ctx, settings);
+        }
         self.raycaster.render(ctx, &scene)?;
         self.renders += 1;
 
