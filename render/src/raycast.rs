@@ -869,6 +869,37 @@ impl Raycaster {
         }
     }
 
+    /// The bindings that define the sampled field (parameters, cache, sampler, page table,
+    /// transition masks): shared by the raycast pass and the field probe.
+    fn field_entries<'a>(
+        params: &'a wgpu::Buffer,
+        sampler: &'a wgpu::Sampler,
+        scene: &'a Scene,
+    ) -> [wgpu::BindGroupEntry<'a>; 5] {
+        [
+            wgpu::BindGroupEntry {
+                binding: 0,
+                resource: params.as_entire_binding(),
+            },
+            wgpu::BindGroupEntry {
+                binding: 1,
+                resource: wgpu::BindingResource::TextureView(&scene.cache.view),
+            },
+            wgpu::BindGroupEntry {
+                binding: 2,
+                resource: wgpu::BindingResource::Sampler(sampler),
+            },
+            wgpu::BindGroupEntry {
+                binding: 3,
+                resource: scene.page_table.buffer.as_entire_binding(),
+            },
+            wgpu::BindGroupEntry {
+                binding: 11,
+                resource: scene.page_table.transitions.as_entire_binding(),
+            },
+        ]
+    }
+
     /// The field the raycaster samples, read back at level-0 index `points` (physical units;
     /// NaN where nothing is resident): the same `field()` of raycast.wgsl, run by a small
     /// compute entry point. For tests of continuity and of GPU-vs-reference sampling.
@@ -980,36 +1011,19 @@ impl Raycaster {
         let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("field probe"),
             layout: &layout,
-            entries: &[
-                wgpu::BindGroupEntry {
-                    binding: 0,
-                    resource: self.params.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 1,
-                    resource: wgpu::BindingResource::TextureView(&scene.cache.view),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 2,
-                    resource: wgpu::BindingResource::Sampler(&self.sampler),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 3,
-                    resource: scene.page_table.buffer.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 11,
-                    resource: scene.page_table.transitions.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 12,
-                    resource: points_buffer.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 13,
-                    resource: values.as_entire_binding(),
-                },
-            ],
+            entries: &Self::field_entries(&self.params, &self.sampler, scene)
+                .into_iter()
+                .chain([
+                    wgpu::BindGroupEntry {
+                        binding: 12,
+                        resource: points_buffer.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 13,
+                        resource: values.as_entire_binding(),
+                    },
+                ])
+                .collect::<Vec<_>>(),
         });
         let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
             label: Some("field probe"),
@@ -1138,61 +1152,44 @@ impl Raycaster {
         let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("raycast"),
             layout: &self.layout,
-            entries: &[
-                wgpu::BindGroupEntry {
-                    binding: 0,
-                    resource: self.params.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 1,
-                    resource: wgpu::BindingResource::TextureView(&scene.cache.view),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 2,
-                    resource: wgpu::BindingResource::Sampler(&self.sampler),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 3,
-                    resource: scene.page_table.buffer.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 4,
-                    resource: wgpu::BindingResource::TextureView(&scene.transfer_function.view),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 5,
-                    resource: wgpu::BindingResource::TextureView(&targets.color_view),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 6,
-                    resource: targets.depth.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 7,
-                    resource: vis.buffer.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 8,
-                    resource: self.counter.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 9,
-                    resource: scene.page_table.value_max.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 11,
-                    resource: scene.page_table.transitions.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 10,
-                    resource: wgpu::BindingResource::TextureView(
-                        match (&self.preintegration, key.preintegrated) {
-                            (Some(table), true) => &table.view,
-                            _ => &self.preintegration_unused,
-                        },
-                    ),
-                },
-            ],
+            entries: &Self::field_entries(&self.params, &self.sampler, scene)
+                .into_iter()
+                .chain([
+                    wgpu::BindGroupEntry {
+                        binding: 4,
+                        resource: wgpu::BindingResource::TextureView(&scene.transfer_function.view),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 5,
+                        resource: wgpu::BindingResource::TextureView(&targets.color_view),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 6,
+                        resource: targets.depth.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 7,
+                        resource: vis.buffer.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 8,
+                        resource: self.counter.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 9,
+                        resource: scene.page_table.value_max.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 10,
+                        resource: wgpu::BindingResource::TextureView(
+                            match (&self.preintegration, key.preintegrated) {
+                                (Some(table), true) => &table.view,
+                                _ => &self.preintegration_unused,
+                            },
+                        ),
+                    },
+                ])
+                .collect::<Vec<_>>(),
         });
         let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
             label: Some("raycast"),

@@ -105,12 +105,23 @@ pub fn locate<'b, S: BrickSource>(
     p: DVec3,
 ) -> Option<FieldLocation<'b>> {
     let mut page = [0u32; 3];
-    let mut pc = [0.0f64; 3];
+    let mut pc = DVec3::ZERO;
     for a in 0..3 {
         pc[a] = p[a].clamp(-0.5, dims[a] as f64 - 0.5);
         let cell = ((pc[a] + 0.5) / BRICK_CORE as f64).floor() as i64;
         page[a] = cell.clamp(0, table.page_dims[a] as i64 - 1) as u32;
     }
+    locate_in_page(source, table, page, pc)
+}
+
+/// Position `pc` (level-0 index, inside the volume) in the payload of the node serving
+/// `page`; `pc` may lie outside the page, within the node's apron.
+pub fn locate_in_page<'b, S: BrickSource>(
+    source: &'b S,
+    table: &PageTable,
+    page: [u32; 3],
+    pc: DVec3,
+) -> Option<FieldLocation<'b>> {
     let page_linear = table.linear(page);
     let entry = table.entries[page_linear];
     if !entry.resident {

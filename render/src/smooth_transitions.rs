@@ -42,7 +42,7 @@ use glam::DVec3;
 
 use crate::bricked_volume::BrickSource;
 use crate::page_table::PageTable;
-use crate::reference::{gradient_index, locate, trilinear, FieldLocation};
+use crate::reference::{gradient_index, locate, locate_in_page, trilinear, FieldLocation};
 use crate::BRICK_CORE;
 
 /// Bit of neighbour offset `o` ∈ {−1, 0, 1}³ in a transition mask: `(x+1) + 3(y+1) + 9(z+1)`.
@@ -263,36 +263,6 @@ fn nearest_coarser<'b, S: BrickSource>(
     }
     let coarse = locate_in_page(source, table, neighbour, pc)?;
     Some((coarse, w))
-}
-
-/// Like [`locate`], but in a given page's node (the point may lie just outside it, in the
-/// node's apron).
-fn locate_in_page<'b, S: BrickSource>(
-    source: &'b S,
-    table: &PageTable,
-    page: [u32; 3],
-    pc: DVec3,
-) -> Option<FieldLocation<'b>> {
-    let page_linear = table.linear(page);
-    let entry = table.entries[page_linear];
-    if !entry.resident {
-        return None;
-    }
-    let level = entry.level;
-    let node = PageTable::node_of(page, level);
-    let brick = source.brick(level, node)?;
-    let scale = (1u64 << level) as f64;
-    let mut local = DVec3::ZERO;
-    for a in 0..3 {
-        let q = (pc[a] + 0.5) / scale - 0.5;
-        local[a] = q - (node[a] as f64 * BRICK_CORE as f64 - crate::BRICK_APRON as f64);
-    }
-    Some(FieldLocation {
-        page_linear,
-        level,
-        brick,
-        local,
-    })
 }
 
 #[cfg(test)]
