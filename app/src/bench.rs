@@ -14,6 +14,7 @@ use strata_storage::{BrickId, Store, BRICK_VOXELS};
 
 mod accuracy;
 mod time_critical;
+mod transitions;
 
 #[derive(Subcommand)]
 pub enum BenchCommand {
@@ -89,6 +90,10 @@ pub enum BenchCommand {
         #[arg(long, default_value_t = 20.0, allow_hyphen_values = true)]
         elevation: f64,
     },
+    /// The mixed-resolution paper's Table 1: a level-0/level-1 cut with about 25 % transition
+    /// bricks, frame time with smoothing off/on × unshaded/shaded, and the error of each image
+    /// against the f64 reference of the full-resolution cut and of the same cut.
+    Transitions(transitions::Options),
 }
 
 pub fn run(cmd: BenchCommand) -> Result<()> {
@@ -101,6 +106,7 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
         BenchCommand::Timecritical { store, target, frames, csv, size, step, tf, level, elevation } => {
             time_critical::run(time_critical::Options { store, target_fps: target, frames, csv, size, step, tf, level, elevation })
         }
+        BenchCommand::Transitions(options) => transitions::run(options),
     }
 }
 

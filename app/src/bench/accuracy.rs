@@ -115,22 +115,22 @@ fn mark_pareto(rows: &mut [Row]) {
     }
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
+pub(crate) fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(|a, b| a.total_cmp(b));
     v[v.len() / 2]
 }
 
-struct Volume {
-    store: Store,
-    geometry: VolumeGeometry,
-    mapping: ValueMapping,
-    tf: TransferFunction,
-    tf_table: TransferFunctionTable,
-    name: String,
+pub(crate) struct Volume {
+    pub(crate) store: Store,
+    pub(crate) geometry: VolumeGeometry,
+    pub(crate) mapping: ValueMapping,
+    pub(crate) tf: TransferFunction,
+    pub(crate) tf_table: TransferFunctionTable,
+    pub(crate) name: String,
     _scratch: Option<tempfile::TempDir>,
 }
 
-fn open_input(options: &Options) -> Result<Volume> {
+pub(crate) fn open_input(options: &Options) -> Result<Volume> {
     let (store, name, scratch) = if options.input == "phantom" {
         let dir = tempfile::tempdir().context("creating a scratch folder for the phantom store")?;
         let path = dir.path().join("phantom.strata");
@@ -155,6 +155,46 @@ fn open_input(options: &Options) -> Result<Volume> {
     Ok(Volume { store, geometry, mapping, tf, tf_table, name, _scratch: scratch })
 }
 
+/// The view every setting of the accuracy-type benches renders: an oblique orbit framing the
+/// whole volume.
+pub(crate) fn bench_camera(geometry: &VolumeGeometry) -> Camera {
+    Camera::orbit(
+        geometry,
+        30.0,
+        20.0,
+        1.0,
+        Projection::Perspective { fov_y_deg: 30.0 },
+    )
+}
+
+/// The f64 CPU reference of `table` (with `bricks`) at 1/16 voxel for a base step of 1/2:
+/// ground truth for the GPU frames of the same settings (shading and smoothing included).
+pub(crate) fn reference_rgba(
+    v: &Volume,
+    bricks: &ResidentBricks,
+    table: &PageTable,
+    camera: &Camera,
+    settings: &RenderSettings,
+) -> Result<Vec<u8>> {
+    let reference = render_reference(
+        &ReferenceScene {
+            source: bricks,
+            page_table: table,
+            geometry: &v.geometry,
+            mapping: v.mapping,
+            transfer_function: &v.tf,
+            tf_range: (v.tf_table.lo, v.tf_table.hi),
+        },
+        camera,
+        settings,
+        ReferenceOptions {
+            step_refinement: 8.0,
+            ..Default::default()
+        },
+    )?;
+    Ok(reference.rgba)
+}
+
 /// The cut of one uniform level, its bricks and GPU resources.
 struct LevelCut {
     table: PageTable,
@@ -176,7 +216,7 @@ pub fn run(options: Options) -> Result<()> {
     let v = open_input(&options)?;
     let ctx = GpuContext::headless()?;
     eprintln!("GPU: {}", ctx.adapter_name());
-    let camera = Camera::orbit(&v.geometry, 30.0, 20.0, 1.0, Projection::Perspective { fov_y_deg: 30.0 });
+    let camera = bench_camera(&v.geometry);
     let settings_of = |k: &Knobs| RenderSettings {
         width,
         height,
@@ -204,21 +244,9 @@ pub fn run(options: Options) -> Result<()> {
     for shading in [false, true] {
         let t = Instant::now();
         let settings = RenderSettings { jitter: false, ..settings_of(&Knobs { step: 0.5, shading, ..knobs[0].clone() }) };
-        let reference = render_reference(
-            &ReferenceScene {
-                source: &finest.bricks,
-                page_table: &finest.table,
-                geometry: &v.geometry,
-                mapping: v.mapping,
-                transfer_function: &v.tf,
-                tf_range: (v.tf_table.lo, v.tf_table.hi),
-            },
-            &camera,
-            &settings,
-            ReferenceOptions { step_refinement: 8.0, ..Default::default() },
-        )?;
+        let reference = reference_rgba(&v, &finest.bricks, &finest.table, &camera, &settings)?;
         eprintln!("reference ({}) in {:.1} s", if shading { "shaded" } else { "unshaded" }, t.elapsed().as_secs_f64());
-        references.insert(shading, reference.rgba);
+        references.insert(shading, reference);
     }
 
     let mut rows = Vec::new();
