@@ -21,7 +21,7 @@ use crate::error::LoaderError;
 use crate::fetch_workers::{BrickReader, FetchWorkers};
 use crate::gpu_slots::GpuSlots;
 use crate::metrics::FrameStats;
-use crate::octree_ranges::{Emptiness, OctreeRanges};
+use crate::octree_ranges::{Emptiness, OctreeRanges, StoredRange};
 use crate::prefetch::MotionPredictor;
 use crate::store_volume::{render_geometry, render_mapping};
 use crate::visibility::PageVisibility;
@@ -640,6 +640,16 @@ fn build_page_table(octree: &OctreeRanges, slots: &GpuSlots, cut: &Cut, emptines
                     table.set([x, y, z], entry);
                 }
             }
+        }
+    }
+    // Rays skip an empty entry, so it must be empty over every value sampled there, which
+    // includes the coarser neighbours' field blended into its transition bands.
+    let sampled = table.sampled_ranges(|level, node| {
+        octree.own_range(BrickId::new(level, node)).map(|r| (r.min, r.max))
+    });
+    for (entry, range) in table.entries.iter_mut().zip(sampled) {
+        if entry.resident && entry.empty {
+            entry.empty = range.is_some_and(|(min, max)| emptiness.is_empty(StoredRange { min, max }));
         }
     }
     Ok(table)

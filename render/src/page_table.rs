@@ -141,6 +141,48 @@ impl PageTable {
         Ok(())
     }
 
+    /// Per entry, the stored [min, max] of every value a sample there can take: the covering
+    /// node's range (core and apron), widened by the ranges of its coarser neighbours, whose
+    /// field smooth transitions blend in within half a voxel of the shared face
+    /// (smooth_transitions.rs). None where any of them is unknown.
+    pub fn sampled_ranges(
+        &self,
+        mut range_of: impl FnMut(u8, [u32; 3]) -> Option<(u16, u16)>,
+    ) -> Vec<Option<(u16, u16)>> {
+        let mut cache: std::collections::HashMap<(u8, [u32; 3]), Option<(u16, u16)>> =
+            Default::default();
+        let mut range = |level: u8, node: [u32; 3]| {
+            *cache
+                .entry((level, node))
+                .or_insert_with(|| range_of(level, node))
+        };
+        let mut hulls: std::collections::HashMap<(u8, [u32; 3]), Option<(u16, u16)>> =
+            Default::default();
+        (0..self.entries.len())
+            .map(|i| {
+                let e = self.entries[i];
+                if !e.resident {
+                    return None;
+                }
+                let node = Self::node_of(self.page_of_linear(i), e.level);
+                *hulls.entry((e.level, node)).or_insert_with(|| {
+                    let (_, coarser) = crate::smooth_transitions::coarser_neighbours(
+                        self,
+                        self.page_dims,
+                        e.level,
+                        node,
+                    );
+                    let mut hull = range(e.level, node)?;
+                    for (level, n) in coarser {
+                        let (lo, hi) = range(level, n)?;
+                        hull = (hull.0.min(lo), hull.1.max(hi));
+                    }
+                    Some(hull)
+                })
+            })
+            .collect()
+    }
+
     /// Sets each entry's empty flag from the covering node's stored [min, max] (which must
     /// include the apron: trilinear samples near a page face read it). `range_of` returns None
     /// when the range is unknown, which leaves the entry visible.
@@ -148,15 +190,15 @@ impl PageTable {
         &mut self,
         table: &TransferFunctionTable,
         mapping: ValueMapping,
-        mut range_of: impl FnMut(u8, [u32; 3]) -> Option<(u16, u16)>,
+        range_of: impl FnMut(u8, [u32; 3]) -> Option<(u16, u16)>,
     ) {
+        let ranges = self.sampled_ranges(range_of);
         for i in 0..self.entries.len() {
-            let page = self.page_of_linear(i);
             let e = self.entries[i];
             if !e.resident {
                 continue;
             }
-            let empty = match range_of(e.level, Self::node_of(page, e.level)) {
+            let empty = match ranges[i] {
                 Some((lo, hi)) => {
                     let (a, b) = (mapping.physical(lo as f64), mapping.physical(hi as f64));
                     table.is_transparent(a.min(b), a.max(b))
@@ -174,15 +216,16 @@ impl PageTable {
     pub fn value_max_physical(
         &self,
         mapping: ValueMapping,
-        mut range_of: impl FnMut(u8, [u32; 3]) -> Option<(u16, u16)>,
+        range_of: impl FnMut(u8, [u32; 3]) -> Option<(u16, u16)>,
     ) -> Vec<f32> {
+        let ranges = self.sampled_ranges(range_of);
         (0..self.entries.len())
             .map(|i| {
                 let e = self.entries[i];
                 if !e.resident {
                     return f32::INFINITY;
                 }
-                match range_of(e.level, Self::node_of(self.page_of_linear(i), e.level)) {
+                match ranges[i] {
                     Some((lo, hi)) => {
                         let (a, b) = (mapping.physical(lo as f64), mapping.physical(hi as f64));
                         // Rounded up so f32 never makes the bound smaller than a real sample.
@@ -205,15 +248,15 @@ impl PageTable {
         &mut self,
         iso_value: f64,
         mapping: ValueMapping,
-        mut range_of: impl FnMut(u8, [u32; 3]) -> Option<(u16, u16)>,
+        range_of: impl FnMut(u8, [u32; 3]) -> Option<(u16, u16)>,
     ) {
+        let ranges = self.sampled_ranges(range_of);
         for i in 0..self.entries.len() {
-            let page = self.page_of_linear(i);
             let e = self.entries[i];
             if !e.resident {
                 continue;
             }
-            self.entries[i].empty = match range_of(e.level, Self::node_of(page, e.level)) {
+            self.entries[i].empty = match ranges[i] {
                 Some((lo, hi)) => {
                     let (a, b) = (mapping.physical(lo as f64), mapping.physical(hi as f64));
                     a.max(b) < iso_value
@@ -227,6 +270,29 @@ impl PageTable {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn sampled_ranges_widen_by_the_coarser_neighbours_only() {
+        // Pages x = 0, 1: level-0 nodes; x = 2, 3: one level-1 node. The x = 1 nodes blend the
+        // level-1 field into their +x band; the x = 0 nodes and the coarse node do not.
+        let mut t = PageTable::new([4, 1, 1]);
+        t.set([0, 0, 0], PageEntry::resident(0, 0));
+        t.set([1, 0, 0], PageEntry::resident(1, 0));
+        t.set([2, 0, 0], PageEntry::resident(2, 1));
+        t.set([3, 0, 0], PageEntry::resident(2, 1));
+        let range = |level: u8, node: [u32; 3]| match (level, node[0]) {
+            (0, 0) => Some((0, 10)),
+            (0, 1) => Some((5, 20)),
+            (1, 1) => Some((100, 200)),
+            _ => None,
+        };
+        let r = t.sampled_ranges(range);
+        assert_eq!(r, vec![Some((0, 10)), Some((5, 200)), Some((100, 200)), Some((100, 200))]);
+        // Unknown neighbour range: unknown, so never classified empty.
+        let r = t.sampled_ranges(|level, node| (level == 0).then_some((0, node[0] as u16)));
+        assert_eq!(r[0], Some((0, 0)));
+        assert_eq!(r[1], None);
+    }
 
     #[test]
     fn entry_round_trips() {

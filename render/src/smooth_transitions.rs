@@ -85,8 +85,21 @@ pub fn transition_masks(table: &PageTable) -> Vec<u32> {
 }
 
 fn node_transition_mask(table: &PageTable, dims: [u32; 3], level: u8, node: [u32; 3]) -> u32 {
+    coarser_neighbours(table, dims, level, node).0
+}
+
+/// The 26-neighbour mask of the level-`level` node `node` and the distinct coarser nodes
+/// (level, node) it touches by a face, an edge or a corner: the nodes whose field its
+/// transition bands blend in.
+pub fn coarser_neighbours(
+    table: &PageTable,
+    dims: [u32; 3],
+    level: u8,
+    node: [u32; 3],
+) -> (u32, Vec<(u8, [u32; 3])>) {
     let side = 1i64 << level;
     let mut mask = 0;
+    let mut nodes = Vec::new();
     for o in neighbour_offsets() {
         // Page range of the adjacent region along each axis, clipped to the grid.
         let mut lo = [0i64; 3];
@@ -106,19 +119,23 @@ fn node_transition_mask(table: &PageTable, dims: [u32; 3], level: u8, node: [u32
         if outside {
             continue;
         }
-        let coarser = (lo[2]..=hi[2]).any(|z| {
-            (lo[1]..=hi[1]).any(|y| {
-                (lo[0]..=hi[0]).any(|x| {
-                    let e = table.get([x as u32, y as u32, z as u32]);
-                    e.resident && e.level > level
-                })
-            })
-        });
-        if coarser {
-            mask |= 1 << neighbour_bit(o);
+        for z in lo[2]..=hi[2] {
+            for y in lo[1]..=hi[1] {
+                for x in lo[0]..=hi[0] {
+                    let page = [x as u32, y as u32, z as u32];
+                    let e = table.get(page);
+                    if e.resident && e.level > level {
+                        mask |= 1 << neighbour_bit(o);
+                        let key = (e.level, PageTable::node_of(page, e.level));
+                        if !nodes.contains(&key) {
+                            nodes.push(key);
+                        }
+                    }
+                }
+            }
         }
     }
-    mask
+    (mask, nodes)
 }
 
 /// Share of resident nodes that have at least one coarser neighbour (the paper's "transition

@@ -583,12 +583,11 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         let probe = locate_on_ray(o, d, probe_t, &page_cache);
         // MIP: a page whose bound cannot beat the running maximum cannot change the pixel
         // (ties keep the first maximum), so it is skipped like an empty one.
-        // A node next to a coarser one also shows the coarser field in its band, which its
-        // own value range (empty flag, MIP bound) does not cover: it is never skipped.
-        let blends = SMOOTH_TRANSITIONS && probe.transition != 0u;
-        let mip_cannot_win = MODE == 1u && SKIP_EMPTY && st.have_best && !blends
+        // (Empty flags and MIP bounds cover the coarser field a transition band blends in:
+        // PageTable::sampled_ranges.)
+        let mip_cannot_win = MODE == 1u && SKIP_EMPTY && st.have_best
             && page_value_max[probe.page] <= st.best_value;
-        if !probe.resident || (SKIP_EMPTY && probe.empty && !blends) || mip_cannot_win {
+        if !probe.resident || (SKIP_EMPTY && probe.empty) || mip_cannot_win {
             if SKIP_EMPTY {
                 let t_exit = page_cache.t_exit;
                 let next = ceil((t_exit - first) / base - 0.5);
@@ -634,7 +633,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         // with nothing but position, fetch and compositing (the common case by far).
         if page_cache.level == level && page_cache.resident {
             var page_bound = bitcast<f32>(0x7f800000u);
-            if MODE == 1u && SKIP_EMPTY && !(SMOOTH_TRANSITIONS && page_cache.transition != 0u) {
+            if MODE == 1u && SKIP_EMPTY {
                 page_bound = page_value_max[page_cache.linear];
             }
             for (var inner = 0u; inner < MAX_ITERATIONS; inner++) {
@@ -665,8 +664,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         let length = t1 - partial_start;
         let t = partial_start + 0.5 * length;
         let loc = locate(o + d * t);
-        let blends = SMOOTH_TRANSITIONS && loc.transition != 0u;
-        if loc.resident && !(SKIP_EMPTY && loc.empty && !blends) {
+        if loc.resident && !(SKIP_EMPTY && loc.empty) {
             take_sample(&st, loc, t, length, o, d);
         }
     }
