@@ -85,6 +85,10 @@ struct Page {
     inv_scale: f32,
     offset: vec3<f32>,
     transition: u32,
+    // Level-0 index box of the node minus half a voxel on every side with a coarser neighbour:
+    // samples inside it cannot be in a transition band (one compare instead of the distances).
+    band_free_lo: vec3<f32>,
+    band_free_hi: vec3<f32>,
     // Ray distance at which the ray leaves this page cell (cached lookups only).
     t_exit: f32,
 };
@@ -100,6 +104,8 @@ struct Location {
     // Level-0 index position (clamped to the volume) and the node's transition mask.
     pos: vec3<f32>,
     transition: u32,
+    // Outside the node's band-free box: transition_blend must look.
+    maybe_band: bool,
 };
 
 fn cell_of(pc: vec3<f32>) -> vec3<i32> {
@@ -107,7 +113,37 @@ fn cell_of(pc: vec3<f32>) -> vec3<i32> {
     return clamp(vec3<i32>(floor((pc + vec3<f32>(0.5)) * (1.0 / CORE))), vec3<i32>(0), last);
 }
 
+// Mask bits of the neighbours on each side (bit (x+1) + 3(y+1) + 9(z+1)).
+const SIDE_X_LO: u32 = 0x1249249u;
+const SIDE_X_HI: u32 = 0x4924924u;
+const SIDE_Y_LO: u32 = 0x1C0E07u;
+const SIDE_Y_HI: u32 = 0x70381C0u;
+const SIDE_Z_LO: u32 = 0x1FFu;
+const SIDE_Z_HI: u32 = 0x7FC0000u;
+
 fn decode_page(cell: vec3<i32>) -> Page {
+    var pg = decode_entry(cell);
+    pg.transition = 0u;
+    pg.band_free_lo = vec3<f32>(-3.0e38);
+    pg.band_free_hi = vec3<f32>(3.0e38);
+    if SMOOTH_TRANSITIONS {
+        pg.transition = page_transitions[pg.linear];
+        if pg.transition != 0u {
+            let size = CORE * f32(1u << pg.level);
+            let lo = vec3<f32>(vec3<u32>(cell) >> vec3<u32>(pg.level)) * size - vec3<f32>(0.5);
+            let half = 0.5 * f32(1u << pg.level);
+            let m = pg.transition;
+            let shrink_lo = vec3<bool>((m & SIDE_X_LO) != 0u, (m & SIDE_Y_LO) != 0u, (m & SIDE_Z_LO) != 0u);
+            let shrink_hi = vec3<bool>((m & SIDE_X_HI) != 0u, (m & SIDE_Y_HI) != 0u, (m & SIDE_Z_HI) != 0u);
+            pg.band_free_lo = select(vec3<f32>(-3.0e38), lo + vec3<f32>(half), shrink_lo);
+            pg.band_free_hi = select(vec3<f32>(3.0e38), lo + vec3<f32>(size - half), shrink_hi);
+        }
+    }
+    return pg;
+}
+
+// The page entry alone: where its node's payload sits (no transition data).
+fn decode_entry(cell: vec3<i32>) -> Page {
     var pg: Page;
     let c = vec3<u32>(cell);
     pg.cell = cell;
@@ -125,10 +161,6 @@ fn decode_page(cell: vec3<i32>) -> Page {
     // q = (p + 0.5)·2^-L - 0.5, local = q - (32·node - 2), coord = slot·36 + local.
     pg.offset = vec3<f32>(slot_xyz * PAYLOAD) - (vec3<f32>(node) * CORE - vec3<f32>(APRON))
         + vec3<f32>(0.5 * pg.inv_scale - 0.5);
-    pg.transition = 0u;
-    if SMOOTH_TRANSITIONS {
-        pg.transition = page_transitions[pg.linear];
-    }
     return pg;
 }
 
@@ -146,6 +178,8 @@ fn location_in(pg: Page, pc: vec3<f32>) -> Location {
     loc.coord = pc * pg.inv_scale + pg.offset;
     loc.pos = pc;
     loc.transition = pg.transition;
+    loc.maybe_band = SMOOTH_TRANSITIONS
+        && (any(pc < pg.band_free_lo) || any(pc > pg.band_free_hi));
     return loc;
 }
 
@@ -214,13 +248,23 @@ fn transition_blend(loc: Location) -> Blend {
     if min(nearest_face.x, min(nearest_face.y, nearest_face.z)) >= 0.5 {
         return b;
     }
+    // Only the sides within half a voxel can hold the nearest coarser neighbour: walk the
+    // non-empty subsets of those sides (1 for a face band, up to 7 in a corner), no integer
+    // division (scalarised on CPU rasterisers).
+    let side = select(select(vec3<i32>(0), vec3<i32>(1), d_hi < vec3<f32>(0.5)), vec3<i32>(-1), d_lo < vec3<f32>(0.5));
+    let side_d = select(d_hi, d_lo, side < vec3<i32>(0));
     var best = 0.5;
-    var bits = loc.transition;
-    while bits != 0u {
-        let n = countTrailingZeros(bits);
-        bits = bits & (bits - 1u);
-        let o = vec3<i32>(i32(n % 3u) - 1, i32((n / 3u) % 3u) - 1, i32(n / 9u) - 1);
-        let per_axis = select(select(vec3<f32>(-3.0e38), d_hi, o > vec3<i32>(0)), d_lo, o < vec3<i32>(0));
+    for (var subset = 1u; subset < 8u; subset++) {
+        let pick = vec3<bool>((subset & 1u) != 0u, (subset & 2u) != 0u, (subset & 4u) != 0u);
+        if any(pick & (side == vec3<i32>(0))) {
+            continue;
+        }
+        let o = select(vec3<i32>(0), side, pick);
+        let bit = u32((o.x + 1) + 3 * (o.y + 1) + 9 * (o.z + 1));
+        if (loc.transition & (1u << bit)) == 0u {
+            continue;
+        }
+        let per_axis = select(vec3<f32>(-3.0e38), side_d, pick);
         let d = max(per_axis.x, max(per_axis.y, per_axis.z));
         if d >= best {
             continue;
@@ -229,7 +273,7 @@ fn transition_blend(loc: Location) -> Blend {
         if any(neighbour < vec3<i32>(0)) || any(neighbour >= vec3<i32>(P.pages.xyz)) {
             continue;
         }
-        let pg = decode_page(neighbour);
+        let pg = decode_entry(neighbour);
         if !pg.resident || pg.level <= loc.level {
             continue;
         }
@@ -244,14 +288,29 @@ fn transition_blend(loc: Location) -> Blend {
 // The sampled field at a location: the node's trilinear value, blended with its coarser
 // neighbour inside a transition band.
 fn field(loc: Location) -> f32 {
-    let v = fetch(loc.coord);
-    if SMOOTH_TRANSITIONS && loc.transition != 0u {
-        let b = transition_blend(loc);
-        if b.w > 0.0 {
-            return mix(v, fetch(b.coord), b.w);
-        }
+    if !SMOOTH_TRANSITIONS {
+        return fetch(loc.coord);
     }
-    return v;
+    var b: Blend;
+    b.w = 0.0;
+    if loc.maybe_band {
+        b = transition_blend(loc);
+    }
+    // One fetch site, run twice by band samples only: a second fetch in a branch of its own
+    // made every sample of the pipeline slower on lavapipe (its sampler is inlined code).
+    var value = 0.0;
+    var coord = loc.coord;
+    var weight = 1.0 - b.w;
+    for (var k = 0u; k < 2u; k++) {
+        value += weight * fetch(coord);
+        if b.w <= 0.0 {
+            break;
+        }
+        coord = b.coord;
+        weight = b.w;
+        b.w = 0.0;
+    }
+    return value;
 }
 
 // Central differences in the payload around `coord` (one voxel of `level` each way), in
@@ -270,7 +329,7 @@ fn payload_gradient(coord: vec3<f32>, level: u32) -> vec3<f32> {
 
 fn field_gradient(loc: Location) -> vec3<f32> {
     let g = payload_gradient(loc.coord, loc.level);
-    if SMOOTH_TRANSITIONS && loc.transition != 0u {
+    if SMOOTH_TRANSITIONS && loc.maybe_band {
         let b = transition_blend(loc);
         if b.w > 0.0 {
             return mix(g, payload_gradient(b.coord, b.level), b.w);
