@@ -150,12 +150,14 @@ impl GpuPageTable {
                 slots,
             });
         }
-        queue.write_buffer(
-            &self.buffer,
-            0,
-            bytemuck::cast_slice(&table.encoded(self.slots_per_axis)),
-        );
         let masks = crate::smooth_transitions::transition_masks(table);
+        let mut words = table.encoded(self.slots_per_axis);
+        for (word, mask) in words.iter_mut().zip(&masks) {
+            if *mask != 0 {
+                *word |= crate::page_table::FLAG_TRANSITION;
+            }
+        }
+        queue.write_buffer(&self.buffer, 0, bytemuck::cast_slice(&words));
         queue.write_buffer(&self.transitions, 0, bytemuck::cast_slice(&masks));
         let fraction = crate::smooth_transitions::transition_node_fraction(table, &masks);
         if let Ok(mut f) = self.transition_fraction.lock() {

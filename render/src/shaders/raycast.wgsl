@@ -20,6 +20,7 @@ const APRON: f32 = 2.0;
 const PAYLOAD: u32 = 36u;
 const FLAG_EMPTY: u32 = 0x20000000u;
 const FLAG_NOT_RESIDENT: u32 = 0x40000000u;
+const FLAG_TRANSITION: u32 = 0x80000000u;
 const BISECTION_STEPS: u32 = 10u;
 // Below/above these gradient magnitudes (TF-range fractions per finest voxel) shading fades
 // from unlit to lit; same constants as reference.rs.
@@ -84,6 +85,8 @@ struct Page {
     level: u32,
     inv_scale: f32,
     offset: vec3<f32>,
+    // The node has a coarser neighbour (entry bit 31); its mask is read only then.
+    has_transition: bool,
     transition: u32,
     // Level-0 index box of the node minus half a voxel on every side with a coarser neighbour:
     // samples inside it cannot be in a transition band (one compare instead of the distances).
@@ -126,9 +129,9 @@ fn decode_page(cell: vec3<i32>) -> Page {
     pg.transition = 0u;
     pg.band_free_lo = vec3<f32>(-3.0e38);
     pg.band_free_hi = vec3<f32>(3.0e38);
-    if SMOOTH_TRANSITIONS {
+    if SMOOTH_TRANSITIONS && pg.has_transition {
         pg.transition = page_transitions[pg.linear];
-        if pg.transition != 0u {
+        {
             let size = CORE * f32(1u << pg.level);
             let lo = vec3<f32>(vec3<u32>(cell) >> vec3<u32>(pg.level)) * size - vec3<f32>(0.5);
             let half = 0.5 * f32(1u << pg.level);
@@ -151,6 +154,7 @@ fn decode_entry(cell: vec3<i32>) -> Page {
     let e = page_table[pg.linear];
     pg.resident = (e & FLAG_NOT_RESIDENT) == 0u;
     pg.empty = (e & FLAG_EMPTY) != 0u;
+    pg.has_transition = (e & FLAG_TRANSITION) != 0u;
     pg.level = (e >> 24u) & 31u;
     pg.inv_scale = 1.0 / f32(1u << pg.level);
     let node = c >> vec3<u32>(pg.level);
@@ -328,12 +332,28 @@ fn payload_gradient(coord: vec3<f32>, level: u32) -> vec3<f32> {
 }
 
 fn field_gradient(loc: Location) -> vec3<f32> {
-    let g = payload_gradient(loc.coord, loc.level);
-    if SMOOTH_TRANSITIONS && loc.maybe_band {
-        let b = transition_blend(loc);
-        if b.w > 0.0 {
-            return mix(g, payload_gradient(b.coord, b.level), b.w);
+    if !SMOOTH_TRANSITIONS {
+        return payload_gradient(loc.coord, loc.level);
+    }
+    var b: Blend;
+    b.w = 0.0;
+    if loc.maybe_band {
+        b = transition_blend(loc);
+    }
+    // One call site for the six fetches, as in field().
+    var g = vec3<f32>(0.0);
+    var coord = loc.coord;
+    var level = loc.level;
+    var weight = 1.0 - b.w;
+    for (var k = 0u; k < 2u; k++) {
+        g += weight * payload_gradient(coord, level);
+        if b.w <= 0.0 {
+            break;
         }
+        coord = b.coord;
+        level = b.level;
+        weight = b.w;
+        b.w = 0.0;
     }
     return g;
 }
