@@ -15,7 +15,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
-use strata_loader::store_volume::{load_uniform_cut, GpuCut};
+use strata_loader::store_volume::{classify_empty, load_uniform_cut, page_table_for_cut, GpuCut};
 use strata_loader::{render_geometry, render_mapping, ResidentBricks};
 use strata_render::reference::{render_reference, ReferenceOptions, ReferenceScene};
 use strata_render::{
@@ -43,8 +43,14 @@ struct Knobs {
     step: f64,
     preintegrated: bool,
     level: u8,
+    /// The mixed level-0/1 cut of `strata bench transitions` (about 25 % transition nodes)
+    /// instead of a uniform level.
+    mixed: bool,
+    smooth: bool,
     jitter: bool,
     shading: bool,
+    /// Step chosen by the time-critical controller for this frame time.
+    target_ms: Option<f64>,
 }
 
 impl Knobs {
@@ -53,8 +59,13 @@ impl Knobs {
         if self.preintegrated {
             s += " preint";
         }
-        if self.level > 0 {
+        if self.mixed {
+            s += if self.smooth { " mixed 0/1 smooth" } else { " mixed 0/1 seams" };
+        } else if self.level > 0 {
             let _ = write!(s, " level {}", self.level);
+        }
+        if let Some(ms) = self.target_ms {
+            let _ = write!(s, " (target {ms:.0} ms)");
         }
         if self.jitter {
             s += " jitter";
@@ -81,8 +92,11 @@ fn sweep() -> Vec<Knobs> {
         step: 0.5,
         preintegrated: false,
         level: 0,
+        mixed: false,
+        smooth: true,
         jitter: false,
         shading: false,
+        target_ms: None,
     };
     let mut knobs = Vec::new();
     for &step in &[0.125, 0.25, 0.5, 1.0, 2.0, 4.0] {
@@ -92,6 +106,11 @@ fn sweep() -> Vec<Knobs> {
     for level in [1, 2] {
         knobs.push(Knobs { family: "coarser level (LOD factor)", level, ..base.clone() });
         knobs.push(Knobs { family: "coarser level (LOD factor)", level, step: 1.0, ..base.clone() });
+    }
+    for smooth in [false, true] {
+        for shading in [false, true] {
+            knobs.push(Knobs { family: "mixed levels: smooth transitions", mixed: true, smooth, shading, ..base.clone() });
+        }
     }
     for &step in &[1.0, 2.0, 4.0] {
         knobs.push(Knobs { family: "jitter", step, jitter: true, ..base.clone() });
@@ -208,6 +227,58 @@ fn load_level(ctx: &GpuContext, v: &Volume, level: u8) -> Result<LevelCut> {
     Ok(LevelCut { table, bricks, gpu })
 }
 
+/// The mixed cut of `strata bench transitions` for this view.
+fn load_mixed(ctx: &GpuContext, v: &Volume, camera: &Camera) -> Result<LevelCut> {
+    let split = super::transitions::view_split(v, camera, 0.25);
+    let mut table = page_table_for_cut(&v.store, &v.geometry, |p| split.level_of(p));
+    classify_empty(&v.store, &mut table, v.mapping, &v.tf_table);
+    let bricks = ResidentBricks::load(&v.store, &table)?;
+    let gpu = GpuCut::upload(ctx, &bricks, &table, v.geometry.page_dims(), &v.tf_table)?;
+    Ok(LevelCut { table, bricks, gpu })
+}
+
+/// One frame of `cut`, waited for but not read back: what the frame-time columns measure.
+fn render_and_wait(
+    ctx: &GpuContext,
+    cut: &mut LevelCut,
+    v: &Volume,
+    camera: &Camera,
+    settings: &RenderSettings,
+) -> Result<()> {
+    let scene = strata_render::Scene {
+        cache: &cut.gpu.cache,
+        page_table: &cut.gpu.page_table,
+        transfer_function: &cut.gpu.transfer_function,
+        geometry: &v.geometry,
+        mapping: v.mapping,
+        camera,
+        settings,
+    };
+    Ok(cut.gpu.raycaster.render_and_wait(ctx, &scene)?)
+}
+
+/// Lets the time-critical sampling-rate controller (time-critical paper Eq. 1) settle on this
+/// view for `target_ms` per frame; returns the rate (samples per finest voxel) it chose.
+fn controller_rate(
+    ctx: &GpuContext,
+    v: &Volume,
+    camera: &Camera,
+    cut: &mut LevelCut,
+    target_ms: f64,
+    settings_for_rate: impl Fn(f64) -> RenderSettings,
+) -> Result<f64> {
+    let config = strata_render::ControllerConfig { target_fps: 1000.0 / target_ms, ..Default::default() };
+    let mut controller = strata_render::SamplingRateController::new(config, 2.0);
+    for _ in 0..16 {
+        let rate = controller.rate();
+        let settings = settings_for_rate(rate);
+        let t = Instant::now();
+        render_and_wait(ctx, cut, v, camera, &settings)?;
+        controller.observe(t.elapsed().as_secs_f64() * 1e3, rate);
+    }
+    Ok(controller.rate())
+}
+
 pub fn run(options: Options) -> Result<()> {
     if options.frames == 0 {
         bail!("--frames must be at least 1");
@@ -225,22 +296,26 @@ pub fn run(options: Options) -> Result<()> {
         jitter: k.jitter,
         preintegrated: k.preintegrated,
         shading: k.shading.then(Shading::default),
+        smooth_transitions: k.smooth,
         ..RenderSettings::default()
     };
 
-    let knobs = sweep();
-    let mut cuts: HashMap<u8, LevelCut> = HashMap::new();
+    let mut knobs = sweep();
+    let mut cuts: HashMap<(u8, bool), LevelCut> = HashMap::new();
     let root = (v.store.layout().level_count() - 1) as u8;
+    if root == 0 {
+        knobs.retain(|k| !k.mixed);
+    }
     for k in &knobs {
-        let level = k.level.min(root);
-        if let std::collections::hash_map::Entry::Vacant(e) = cuts.entry(level) {
-            e.insert(load_level(&ctx, &v, level)?);
+        let key = (k.level.min(root), k.mixed);
+        if let std::collections::hash_map::Entry::Vacant(e) = cuts.entry(key) {
+            e.insert(if k.mixed { load_mixed(&ctx, &v, &camera)? } else { load_level(&ctx, &v, key.0)? });
         }
     }
 
     // Ground truth, unshaded and shaded: level 0 at 1/16 voxel in f64.
     let mut references = HashMap::new();
-    let finest = cuts.get(&0).context("level 0 cut missing")?;
+    let finest = cuts.get(&(0, false)).context("level 0 cut missing")?;
     for shading in [false, true] {
         let t = Instant::now();
         let settings = RenderSettings { jitter: false, ..settings_of(&Knobs { step: 0.5, shading, ..knobs[0].clone() }) };
@@ -249,9 +324,7 @@ pub fn run(options: Options) -> Result<()> {
         references.insert(shading, reference);
     }
 
-    let mut rows = Vec::new();
-    for k in &knobs {
-        let cut = cuts.get_mut(&k.level.min(root)).context("cut missing")?;
+    let measure = |cut: &mut LevelCut, k: &Knobs| -> Result<Row> {
         let settings = settings_of(k);
         // Error from one frame (jittered frames differ; frame 0's pattern stands for all).
         let frame = cut.gpu.render_blocking(&ctx, &v.geometry, v.mapping, &camera, &settings)?;
@@ -260,22 +333,36 @@ pub fn run(options: Options) -> Result<()> {
         let mut times = Vec::with_capacity(options.frames);
         for i in 0..options.frames {
             let settings = RenderSettings { frame_index: i as u32, ..settings.clone() };
-            let scene = strata_render::Scene {
-                cache: &cut.gpu.cache,
-                page_table: &cut.gpu.page_table,
-                transfer_function: &cut.gpu.transfer_function,
-                geometry: &v.geometry,
-                mapping: v.mapping,
-                camera: &camera,
-                settings: &settings,
-            };
             let t = Instant::now();
-            cut.gpu.raycaster.render_and_wait(&ctx, &scene)?;
+            render_and_wait(&ctx, cut, &v, &camera, &settings)?;
             times.push(t.elapsed().as_secs_f64() * 1e3);
         }
         let row = Row { knobs: k.clone(), median_ms: median(times), rmse: c.rmse, psnr_db: c.psnr_db, max_abs: c.max_abs_error, pareto: false };
         eprintln!("{:<28} {:>8.1} ms  PSNR {:>5.1} dB  RMSE {:>6.3}  max {:>3}", row.knobs.label(), row.median_ms, row.psnr_db, row.rmse, row.max_abs);
-        rows.push(row);
+        Ok(row)
+    };
+    let mut rows = Vec::new();
+    for k in &knobs {
+        let cut = cuts.get_mut(&(k.level.min(root), k.mixed)).context("cut missing")?;
+        rows.push(measure(cut, k)?);
+    }
+    // The time-critical controller's choice for two frame budgets, three quarters and half of
+    // the step-0.5 frame measured above: its rows show where on the error/time curve it lands.
+    let base_ms = rows[knobs.iter().position(|k| k.family == "step" && k.step == 0.5).context("step 0.5 row missing")?].median_ms;
+    for fraction in [0.75, 0.5] {
+        let target_ms = base_ms * fraction;
+        let cut = cuts.get_mut(&(0, false)).context("level 0 cut missing")?;
+        let rate = controller_rate(&ctx, &v, &camera, cut, target_ms, |rate| {
+            settings_of(&Knobs { step: 1.0 / rate, jitter: rate < 1.0, ..knobs[0].clone() })
+        })?;
+        let k = Knobs {
+            family: "time-critical target",
+            step: (1.0 / rate * 1000.0).round() / 1000.0,
+            jitter: rate < 1.0,
+            target_ms: Some(target_ms),
+            ..knobs[0].clone()
+        };
+        rows.push(measure(cut, &k)?);
     }
     mark_pareto(&mut rows);
 
@@ -355,8 +442,16 @@ fn plot(path: &Path, rows: &[Row], name: &str) -> Result<()> {
         .label_style(("sans-serif", 15))
         .draw()
         .map_err(draw_error)?;
-    let families = ["step", "step + pre-integration", "coarser level (LOD factor)", "jitter", "shaded"];
-    let colors = [BLUE, RED, GREEN, MAGENTA, BLACK];
+    let families = [
+        "step",
+        "step + pre-integration",
+        "coarser level (LOD factor)",
+        "mixed levels: smooth transitions",
+        "jitter",
+        "shaded",
+        "time-critical target",
+    ];
+    let colors = [BLUE, RED, GREEN, CYAN, MAGENTA, BLACK, RGBColor(230, 130, 0)];
     for (family, color) in families.iter().zip(colors) {
         let points: Vec<(f64, f64)> = rows.iter().filter(|r| r.knobs.family == *family).map(|r| (r.median_ms, positive(r.rmse))).collect();
         chart
@@ -393,7 +488,17 @@ mod tests {
 
     fn row(ms: f64, rmse: f64) -> Row {
         Row {
-            knobs: Knobs { family: "step", step: 1.0, preintegrated: false, level: 0, jitter: false, shading: false },
+            knobs: Knobs {
+                family: "step",
+                step: 1.0,
+                preintegrated: false,
+                level: 0,
+                mixed: false,
+                smooth: true,
+                jitter: false,
+                shading: false,
+                target_ms: None,
+            },
             median_ms: ms,
             rmse,
             psnr_db: 0.0,

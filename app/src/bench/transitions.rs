@@ -98,6 +98,17 @@ fn table_of(page_dims: [u32; 3], level_of: impl Fn([u32; 3]) -> u8) -> PageTable
 /// The split plane (perpendicular to `forward`, at a level-1 node boundary) whose cut has the
 /// transition-node share closest to `target`. Candidates are the distinct depths of level-1
 /// node centres, except the farthest (all level 0, no transitions); at most 256 are tried.
+/// The split for `camera`: the plane is perpendicular to the view direction in patient space;
+/// in index space a point's depth is (Mᵀ·forward)·index with M = patient_from_index.
+pub(crate) fn view_split(v: &accuracy::Volume, camera: &strata_render::Camera, target: f64) -> Split {
+    let m: DMat3 = v.geometry.patient_from_index_linear();
+    choose_split(
+        v.geometry.page_dims(),
+        m.transpose() * camera.basis().forward,
+        target,
+    )
+}
+
 pub(crate) fn choose_split(page_dims: [u32; 3], forward: DVec3, target: f64) -> Split {
     let forward = forward.normalize_or_zero();
     let n1 = page_dims.map(|d| d.div_ceil(2));
@@ -222,16 +233,8 @@ pub fn run(options: Options) -> Result<()> {
     }
     let camera = bench_camera(&v.geometry);
 
-    // The split plane is perpendicular to the view direction in patient space; in index space
-    // a point's depth is (Mᵀ·forward)·index with M = patient_from_index.
-    let forward_patient = camera.basis().forward;
-    let m: DMat3 = v.geometry.patient_from_index_linear();
     let page_dims = v.geometry.page_dims();
-    let split = choose_split(
-        page_dims,
-        m.transpose() * forward_patient,
-        options.target_fraction,
-    );
+    let split = view_split(&v, &camera, options.target_fraction);
     let mut table = page_table_for_cut(&v.store, &v.geometry, |p| split.level_of(p));
     classify_empty(&v.store, &mut table, v.mapping, &v.tf_table);
     let fraction = transition_node_fraction(&table, &transition_masks(&table));
