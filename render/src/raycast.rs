@@ -31,8 +31,8 @@ pub struct GpuPageTable {
     pub page_dims: [u32; 3],
     /// Slot grid of the cache the entries point into (entries store slot grid positions).
     pub slots_per_axis: [u32; 3],
-    /// Per entry, the covering node's 26-neighbour mask of coarser neighbours
-    /// (smooth_transitions.rs), written by [`GpuPageTable::update`].
+    /// Per entry, the covering node's 26-neighbour mask of coarser neighbours and its
+    /// near-side closure (smooth_transitions.rs), written by [`GpuPageTable::update`].
     pub transitions: wgpu::Buffer,
     /// Share of resident nodes with a coarser neighbour in the last table written; 0 means
     /// frames need no transition code at all.
@@ -48,7 +48,7 @@ impl GpuPageTable {
     ) -> Result<Self, RenderError> {
         let n: u64 = page_dims.iter().map(|&d| d.max(1) as u64).product();
         let limit = device.limits().max_storage_buffer_binding_size;
-        if n * 4 > limit {
+        if n * 8 > limit {
             return Err(RenderError::PageTableMismatch(format!(
                 "{n} page entries exceed the device's storage buffer limit of {limit} bytes"
             )));
@@ -70,7 +70,7 @@ impl GpuPageTable {
         );
         let transitions = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("page transitions"),
-            size: n * 4,
+            size: n * 8,
             usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
@@ -158,7 +158,11 @@ impl GpuPageTable {
             }
         }
         queue.write_buffer(&self.buffer, 0, bytemuck::cast_slice(&words));
-        queue.write_buffer(&self.transitions, 0, bytemuck::cast_slice(&masks));
+        let transitions: Vec<[u32; 2]> = masks
+            .iter()
+            .map(|&m| [m, crate::smooth_transitions::near_side_closure(m)])
+            .collect();
+        queue.write_buffer(&self.transitions, 0, bytemuck::cast_slice(&transitions));
         let fraction = crate::smooth_transitions::transition_node_fraction(table, &masks);
         if let Ok(mut f) = self.transition_fraction.lock() {
             *f = fraction;

@@ -138,6 +138,31 @@ pub fn coarser_neighbours(
     (mask, nodes)
 }
 
+/// For each side code `s` ∈ {−1, 0, 1}³ (per axis: within half a voxel of the low face, of
+/// neither, of the high face), bit [`neighbour_bit`]`(s)` is set when a coarser neighbour lies
+/// across one of those sides, i.e. across a non-empty subset `o` of them (a face, edge or
+/// corner region). A sample can be in a transition band only where this bit is set, so the
+/// shader tests one bit per sample instead of searching the mask.
+pub fn near_side_closure(mask: u32) -> u32 {
+    let mut closure = 0;
+    for s in neighbour_offsets() {
+        let axes: Vec<usize> = (0..3).filter(|&a| s[a] != 0).collect();
+        let hit = (1u32..(1 << axes.len())).any(|subset| {
+            let mut o = [0i32; 3];
+            for (k, &a) in axes.iter().enumerate() {
+                if subset & (1 << k) != 0 {
+                    o[a] = s[a];
+                }
+            }
+            mask & (1 << neighbour_bit(o)) != 0
+        });
+        if hit {
+            closure |= 1 << neighbour_bit(s);
+        }
+    }
+    closure
+}
+
 /// Share of resident nodes that have at least one coarser neighbour (the paper's "transition
 /// bricks" column of Table 1).
 pub fn transition_node_fraction(table: &PageTable, masks: &[u32]) -> f64 {
@@ -329,6 +354,23 @@ mod tests {
             assert_eq!(m1 & (1 << neighbour_bit(o)) != 0, expected, "offset {o:?}");
         }
         assert!((transition_node_fraction(&t, &m) - 4.0 / 9.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn near_side_closure_sets_exactly_the_side_codes_that_reach_a_coarser_neighbour() {
+        // Coarser across the +x face only: every side code with x = +1 reaches it.
+        let face = 1 << neighbour_bit([1, 0, 0]);
+        let c = near_side_closure(face);
+        for s in neighbour_offsets() {
+            assert_eq!(c & (1 << neighbour_bit(s)) != 0, s[0] == 1, "{s:?}");
+        }
+        // Coarser across the (−x, +y) edge only: only codes near both of those faces.
+        let edge = 1 << neighbour_bit([-1, 1, 0]);
+        let c = near_side_closure(edge);
+        for s in neighbour_offsets() {
+            assert_eq!(c & (1 << neighbour_bit(s)) != 0, s[0] == -1 && s[1] == 1, "{s:?}");
+        }
+        assert_eq!(near_side_closure(0), 0);
     }
 
     #[test]

@@ -71,9 +71,10 @@ struct Params {
 // Pre-integrated TF (preintegration.rs): texel (front, back) = premultiplied colour and opacity
 // of a base-step segment whose value runs from front to back. 1×1 when unused.
 @group(0) @binding(10) var preintegration_table: texture_2d<f32>;
-// Per page entry: 26-neighbour mask of the covering node, bit (x+1)+3(y+1)+9(z+1) set where
-// that neighbour is coarser (smooth_transitions.rs).
-@group(0) @binding(11) var<storage, read> page_transitions: array<u32>;
+// Per page entry: x = 26-neighbour mask of the covering node, bit (x+1)+3(y+1)+9(z+1) set where
+// that neighbour is coarser; y = its near-side closure: bit (s+1)·(1,3,9) set where a sample
+// within half a voxel of the sides s can be in a band (smooth_transitions.rs).
+@group(0) @binding(11) var<storage, read> page_transitions: array<vec2<u32>>;
 
 // One page entry decoded into the affine map from level-0 index to cache texel coordinate
 // (Eq. 1 of the mixed-resolution paper: x' = x · t_w + t with t_w = 2^-L).
@@ -88,10 +89,11 @@ struct Page {
     // The node has a coarser neighbour (entry bit 31); its mask is read only then.
     has_transition: bool,
     transition: u32,
-    // Level-0 index box of the node minus half a voxel on every side with a coarser neighbour:
-    // samples inside it cannot be in a transition band (one compare instead of the distances).
-    band_free_lo: vec3<f32>,
-    band_free_hi: vec3<f32>,
+    near_side_closure: u32,
+    // Level-0 index box of the node minus half a voxel on every side: a sample's side code is
+    // where it leaves this box.
+    inner_lo: vec3<f32>,
+    inner_hi: vec3<f32>,
     // Ray distance at which the ray leaves this page cell (cached lookups only).
     t_exit: f32,
 };
@@ -116,31 +118,19 @@ fn cell_of(pc: vec3<f32>) -> vec3<i32> {
     return clamp(vec3<i32>(floor((pc + vec3<f32>(0.5)) * (1.0 / CORE))), vec3<i32>(0), last);
 }
 
-// Mask bits of the neighbours on each side (bit (x+1) + 3(y+1) + 9(z+1)).
-const SIDE_X_LO: u32 = 0x1249249u;
-const SIDE_X_HI: u32 = 0x4924924u;
-const SIDE_Y_LO: u32 = 0x1C0E07u;
-const SIDE_Y_HI: u32 = 0x70381C0u;
-const SIDE_Z_LO: u32 = 0x1FFu;
-const SIDE_Z_HI: u32 = 0x7FC0000u;
-
 fn decode_page(cell: vec3<i32>) -> Page {
     var pg = decode_entry(cell);
     pg.transition = 0u;
-    pg.band_free_lo = vec3<f32>(-3.0e38);
-    pg.band_free_hi = vec3<f32>(3.0e38);
+    pg.near_side_closure = 0u;
     if SMOOTH_TRANSITIONS && pg.has_transition {
-        pg.transition = page_transitions[pg.linear];
-        {
-            let size = CORE * f32(1u << pg.level);
-            let lo = vec3<f32>(vec3<u32>(cell) >> vec3<u32>(pg.level)) * size - vec3<f32>(0.5);
-            let half = 0.5 * f32(1u << pg.level);
-            let m = pg.transition;
-            let shrink_lo = vec3<bool>((m & SIDE_X_LO) != 0u, (m & SIDE_Y_LO) != 0u, (m & SIDE_Z_LO) != 0u);
-            let shrink_hi = vec3<bool>((m & SIDE_X_HI) != 0u, (m & SIDE_Y_HI) != 0u, (m & SIDE_Z_HI) != 0u);
-            pg.band_free_lo = select(vec3<f32>(-3.0e38), lo + vec3<f32>(half), shrink_lo);
-            pg.band_free_hi = select(vec3<f32>(3.0e38), lo + vec3<f32>(size - half), shrink_hi);
-        }
+        let t = page_transitions[pg.linear];
+        pg.transition = t.x;
+        pg.near_side_closure = t.y;
+        let size = CORE * f32(1u << pg.level);
+        let lo = vec3<f32>(vec3<u32>(cell) >> vec3<u32>(pg.level)) * size - vec3<f32>(0.5);
+        let half = 0.5 * f32(1u << pg.level);
+        pg.inner_lo = lo + vec3<f32>(half);
+        pg.inner_hi = lo + vec3<f32>(size - half);
     }
     return pg;
 }
@@ -182,8 +172,12 @@ fn location_in(pg: Page, pc: vec3<f32>) -> Location {
     loc.coord = pc * pg.inv_scale + pg.offset;
     loc.pos = pc;
     loc.transition = pg.transition;
-    loc.maybe_band = SMOOTH_TRANSITIONS
-        && (any(pc < pg.band_free_lo) || any(pc > pg.band_free_hi));
+    loc.maybe_band = false;
+    if SMOOTH_TRANSITIONS && pg.near_side_closure != 0u {
+        let side = select(select(vec3<u32>(1u), vec3<u32>(2u), pc > pg.inner_hi), vec3<u32>(0u), pc < pg.inner_lo);
+        let bit = side.x + 3u * side.y + 9u * side.z;
+        loc.maybe_band = ((pg.near_side_closure >> bit) & 1u) != 0u;
+    }
     return loc;
 }
 
