@@ -132,20 +132,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
     if matches!(settings.mode, RenderMode::Dvr) {
         classify_empty(&store, &mut table, mapping, &tf_table);
     }
-    let projection = if args.orthographic {
-        Projection::Orthographic {
-            height_mm: geometry.bounding_radius_mm() * 2.0 / args.zoom.max(1e-3),
-        }
-    } else {
-        Projection::Perspective { fov_y_deg: 30.0 }
-    };
-    let camera = Camera::orbit(
-        &geometry,
-        args.azimuth,
-        args.elevation,
-        args.zoom,
-        projection,
-    );
+    let camera = camera_of(&args, &geometry);
     let t_load = Instant::now();
     let bricks = ResidentBricks::load(&store, &table)?;
     eprintln!(
@@ -187,6 +174,24 @@ pub fn run(args: RenderArgs) -> Result<()> {
     write_png(&args.out, width, height, &rgba)?;
     println!("wrote {}", args.out.display());
     Ok(())
+}
+
+/// The orbit camera the arguments ask for.
+fn camera_of(args: &RenderArgs, geometry: &strata_render::VolumeGeometry) -> Camera {
+    let projection = if args.orthographic {
+        Projection::Orthographic {
+            height_mm: geometry.bounding_radius_mm() * 2.0 / args.zoom.max(1e-3),
+        }
+    } else {
+        Projection::Perspective { fov_y_deg: 30.0 }
+    };
+    Camera::orbit(
+        geometry,
+        args.azimuth,
+        args.elevation,
+        args.zoom,
+        projection,
+    )
 }
 
 fn settings_of(args: &RenderArgs) -> Result<RenderSettings> {
@@ -233,20 +238,7 @@ fn run_streaming(args: &RenderArgs) -> Result<()> {
         .with_context(|| format!("cannot stream store {}", args.store.display()))?;
     let opened = Instant::now();
     let geometry = volume.geometry().clone();
-    let projection = if args.orthographic {
-        Projection::Orthographic {
-            height_mm: geometry.bounding_radius_mm() * 2.0 / args.zoom.max(1e-3),
-        }
-    } else {
-        Projection::Perspective { fov_y_deg: 30.0 }
-    };
-    let camera = Camera::orbit(
-        &geometry,
-        args.azimuth,
-        args.elevation,
-        args.zoom,
-        projection,
-    );
+    let camera = camera_of(&args, &geometry);
     let (frame, history) =
         volume.render_until_converged(&ctx, &camera, &settings, args.max_frames.max(1))?;
     for failure in volume.take_failures() {
