@@ -79,13 +79,9 @@ pub fn transition_masks(table: &PageTable) -> Vec<u32> {
         let node = PageTable::node_of(page, level);
         masks[i] = *node_mask
             .entry((level, node))
-            .or_insert_with(|| node_transition_mask(table, dims, level, node));
+            .or_insert_with(|| coarser_neighbours(table, dims, level, node).0);
     }
     masks
-}
-
-fn node_transition_mask(table: &PageTable, dims: [u32; 3], level: u8, node: [u32; 3]) -> u32 {
-    coarser_neighbours(table, dims, level, node).0
 }
 
 /// The 26-neighbour mask of the level-`level` node `node` and the distinct coarser nodes
