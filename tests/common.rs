@@ -13,20 +13,28 @@ pub fn shared_data(test: &str) -> Option<PathBuf> {
     if dir.is_dir() {
         Some(dir)
     } else {
-        println!("SKIP {test}: {} is absent (a fresh clone has no ../shared); real-scan checks not run", dir.display());
+        println!(
+            "SKIP {test}: {} is absent (a fresh clone has no ../shared); real-scan checks not run",
+            dir.display()
+        );
         None
     }
 }
 
 /// Every level built in memory straight from the definition: level L+1 voxel = rounded
 /// (halves up) mean of the 2×2×2 level-L voxels at 2i, 2i+1, indices clamped to the level.
-pub fn expected_levels(dims: [u64; 3], level0: Vec<u16>, level_count: usize) -> Vec<(Vec<u16>, [u64; 3])> {
+pub fn expected_levels(
+    dims: [u64; 3],
+    level0: Vec<u16>,
+    level_count: usize,
+) -> Vec<(Vec<u16>, [u64; 3])> {
     let mut levels = vec![(level0, dims)];
     for _ in 1..level_count {
         let (prev, d) = levels.last().expect("level 0 is there");
         let nd = [d[0].div_ceil(2), d[1].div_ceil(2), d[2].div_ceil(2)];
         let at = |x: u64, y: u64, z: u64| {
-            prev[(x.min(d[0] - 1) + d[0] * (y.min(d[1] - 1) + d[1] * z.min(d[2] - 1))) as usize] as u32
+            prev[(x.min(d[0] - 1) + d[0] * (y.min(d[1] - 1) + d[1] * z.min(d[2] - 1))) as usize]
+                as u32
         };
         let mut next = Vec::with_capacity((nd[0] * nd[1] * nd[2]) as usize);
         for z in 0..nd[2] {
@@ -67,14 +75,23 @@ pub fn check_store_against(store: &Store, level0: Vec<u16>) {
                     let (mut lo, mut hi) = (u16::MAX, 0u16);
                     for (n, &v) in brick.iter().enumerate() {
                         let n = n as u64;
-                        let (ex, ey, ez) = (n % BRICK_EDGE, (n / BRICK_EDGE) % BRICK_EDGE, n / (BRICK_EDGE * BRICK_EDGE));
+                        let (ex, ey, ez) = (
+                            n % BRICK_EDGE,
+                            (n / BRICK_EDGE) % BRICK_EDGE,
+                            n / (BRICK_EDGE * BRICK_EDGE),
+                        );
                         // Apron voxels outside the level replicate the edge voxel.
                         let g = |b: u64, e: u64, n: u64| {
-                            ((b * BRICK_CORE + e) as i64 - BRICK_APRON as i64).clamp(0, n as i64 - 1) as u64
+                            ((b * BRICK_CORE + e) as i64 - BRICK_APRON as i64)
+                                .clamp(0, n as i64 - 1) as u64
                         };
                         let (x, y, z) = (g(bx, ex, d[0]), g(by, ey, d[1]), g(bz, ez, d[2]));
                         let want = data[(x + d[0] * (y + d[1] * z)) as usize];
-                        assert_eq!(v, want, "level {level} brick {:?} voxel ({ex},{ey},{ez})", id.coords);
+                        assert_eq!(
+                            v, want,
+                            "level {level} brick {:?} voxel ({ex},{ey},{ez})",
+                            id.coords
+                        );
                         lo = lo.min(v);
                         hi = hi.max(v);
                     }
@@ -103,13 +120,19 @@ pub struct VoxelReader<'a> {
 
 impl<'a> VoxelReader<'a> {
     pub fn new(store: &'a Store) -> Self {
-        VoxelReader { store, cache: HashMap::new() }
+        VoxelReader {
+            store,
+            cache: HashMap::new(),
+        }
     }
 
     pub fn stored(&mut self, index: [u64; 3]) -> u16 {
         let coords = index.map(|i| (i / BRICK_CORE) as u32);
         let id = BrickId::new(0, coords);
-        let brick = self.cache.entry(id).or_insert_with(|| self.store.read_brick(id).expect("brick reads"));
+        let brick = self
+            .cache
+            .entry(id)
+            .or_insert_with(|| self.store.read_brick(id).expect("brick reads"));
         let local = index.map(|i| i % BRICK_CORE + BRICK_APRON);
         brick[(local[0] + BRICK_EDGE * (local[1] + BRICK_EDGE * local[2])) as usize]
     }
@@ -125,7 +148,9 @@ pub mod render_pair {
     use strata_loader::store_volume::{classify_empty, page_table_for_cut, GpuCut};
     use strata_loader::{render_geometry, render_mapping, ResidentBricks};
     use strata_render::reference::{render_reference, ReferenceOptions, ReferenceScene};
-    use strata_render::{Camera, GpuContext, RenderMode, RenderSettings, TransferFunction, VolumeGeometry};
+    use strata_render::{
+        Camera, GpuContext, RenderMode, RenderSettings, TransferFunction, VolumeGeometry,
+    };
     use strata_storage::Store;
 
     pub struct Pair {
@@ -161,8 +186,12 @@ pub mod render_pair {
         }
         let bricks = ResidentBricks::load(store, &table).unwrap();
         let camera = camera_of(&geometry);
-        let mut cut = GpuCut::upload(ctx, &bricks, &table, geometry.page_dims(), &tf_table).unwrap();
-        let gpu = cut.render_blocking(ctx, &geometry, mapping, &camera, settings).unwrap().rgba;
+        let mut cut =
+            GpuCut::upload(ctx, &bricks, &table, geometry.page_dims(), &tf_table).unwrap();
+        let gpu = cut
+            .render_blocking(ctx, &geometry, mapping, &camera, settings)
+            .unwrap()
+            .rgba;
         let reference_scene = ReferenceScene {
             source: &bricks,
             page_table: &table,
@@ -171,7 +200,14 @@ pub mod render_pair {
             transfer_function: tf,
             tf_range: (tf_table.lo, tf_table.hi),
         };
-        let reference = render_reference(&reference_scene, &camera, settings, ReferenceOptions::default()).unwrap().rgba;
+        let reference = render_reference(
+            &reference_scene,
+            &camera,
+            settings,
+            ReferenceOptions::default(),
+        )
+        .unwrap()
+        .rgba;
         Pair { gpu, reference }
     }
 }

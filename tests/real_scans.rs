@@ -12,7 +12,10 @@ use strata_storage::Store;
 
 fn import(input: &Path, dir: &Path) -> Store {
     let opened = open_source(input, &ReadOptions::default()).unwrap_or_else(|e| panic!("{e}"));
-    let store_path = dir.join(format!("{}.strata", input.file_name().unwrap().to_string_lossy()));
+    let store_path = dir.join(format!(
+        "{}.strata",
+        input.file_name().unwrap().to_string_lossy()
+    ));
     import_source(opened, &store_path, &ImportOptions::default()).unwrap_or_else(|e| panic!("{e}"));
     Store::open(&store_path).unwrap()
 }
@@ -34,7 +37,8 @@ fn round_trip(input: &Path) {
         opened.data.read_slice_f64(k, &mut slice);
         for j in 0..ny {
             for i in 0..nx {
-                let source = opened.info.slope * slice[(i + nx * j) as usize] + opened.info.intercept;
+                let source =
+                    opened.info.slope * slice[(i + nx * j) as usize] + opened.info.intercept;
                 let stored = reader.stored([i, j, k]);
                 let physical = h.value_mapping.physical(stored);
                 assert!(
@@ -52,9 +56,18 @@ fn round_trip(input: &Path) {
 
 #[test]
 fn every_real_file_round_trips() {
-    let Some(data) = shared_data("every_real_file_round_trips") else { return };
+    let Some(data) = shared_data("every_real_file_round_trips") else {
+        return;
+    };
     let n = data.join("niivue");
-    for file in ["FLAIR.nrrd", "mha.mha", "chris_t1.nii.gz", "enh.dcm", "dicom-mr-3slices", "nifti_space/RAS.nii.gz"] {
+    for file in [
+        "FLAIR.nrrd",
+        "mha.mha",
+        "chris_t1.nii.gz",
+        "enh.dcm",
+        "dicom-mr-3slices",
+        "nifti_space/RAS.nii.gz",
+    ] {
         let path = n.join(file);
         if !path.exists() {
             // nifti_space names are checked by the orientation test; take any one of them here.
@@ -70,7 +83,9 @@ fn first_nifti_space(niivue: &Path) -> Vec<PathBuf> {
     let mut files: Vec<PathBuf> = std::fs::read_dir(niivue.join("nifti_space"))
         .unwrap()
         .map(|e| e.unwrap().path())
-        .filter(|p| p.to_string_lossy().ends_with(".nii.gz") || p.to_string_lossy().ends_with(".nii"))
+        .filter(|p| {
+            p.to_string_lossy().ends_with(".nii.gz") || p.to_string_lossy().ends_with(".nii")
+        })
         .collect();
     files.sort();
     files
@@ -81,7 +96,9 @@ fn first_nifti_space(niivue: &Path) -> Vec<PathBuf> {
 /// file's store, is identical.
 #[test]
 fn nifti_axis_orders_agree_in_patient_space() {
-    let Some(data) = shared_data("nifti_axis_orders_agree_in_patient_space") else { return };
+    let Some(data) = shared_data("nifti_axis_orders_agree_in_patient_space") else {
+        return;
+    };
     let files = first_nifti_space(&data.join("niivue"));
     assert_eq!(files.len(), 48, "expected the 48 orientations");
     let dir = tempfile::tempdir().unwrap();
@@ -100,11 +117,25 @@ fn nifti_axis_orders_agree_in_patient_space() {
                     let idx = g.index_from_patient(p);
                     let rounded = idx.map(|v| v.round());
                     for a in 0..3 {
-                        assert!((idx[a] - rounded[a]).abs() < 1e-3, "{}: voxel centres do not line up: {idx:?}", files[f].display());
-                        assert!(rounded[a] >= 0.0 && (rounded[a] as u64) < g.dims[a], "{}: point outside", files[f].display());
+                        assert!(
+                            (idx[a] - rounded[a]).abs() < 1e-3,
+                            "{}: voxel centres do not line up: {idx:?}",
+                            files[f].display()
+                        );
+                        assert!(
+                            rounded[a] >= 0.0 && (rounded[a] as u64) < g.dims[a],
+                            "{}: point outside",
+                            files[f].display()
+                        );
                     }
                     let got = reader.physical(rounded.map(|v| v as u64));
-                    assert_eq!(got, want, "{} differs from {} at patient {p:?}", files[f].display(), files[0].display());
+                    assert_eq!(
+                        got,
+                        want,
+                        "{} differs from {} at patient {p:?}",
+                        files[f].display(),
+                        files[0].display()
+                    );
                     compared += 1;
                 }
             }
@@ -115,28 +146,51 @@ fn nifti_axis_orders_agree_in_patient_space() {
 
 #[test]
 fn headers_keep_geometry_through_the_store() {
-    let Some(data) = shared_data("headers_keep_geometry_through_the_store") else { return };
+    let Some(data) = shared_data("headers_keep_geometry_through_the_store") else {
+        return;
+    };
     let n = data.join("niivue");
     let dir = tempfile::tempdir().unwrap();
 
     let flair = import(&n.join("FLAIR.nrrd"), dir.path());
     let g = &flair.header().geometry;
     assert_eq!(g.dims, [124, 160, 140]);
-    let off_axis = g.direction.iter().flatten().filter(|v| v.abs() > 1e-3 && (v.abs() - 1.0).abs() > 1e-3).count();
-    assert!(off_axis >= 2, "FLAIR's oblique directions were lost: {:?}", g.direction);
+    let off_axis = g
+        .direction
+        .iter()
+        .flatten()
+        .filter(|v| v.abs() > 1e-3 && (v.abs() - 1.0).abs() > 1e-3)
+        .count();
+    assert!(
+        off_axis >= 2,
+        "FLAIR's oblique directions were lost: {:?}",
+        g.direction
+    );
 
     let mha = import(&n.join("mha.mha"), dir.path());
     let g = &mha.header().geometry;
     assert_eq!(g.dims, [64, 64, 37]);
     for (a, s) in [3.4375, 3.4375, 3.8].iter().enumerate() {
-        assert!((g.spacing_mm[a] - s).abs() < 1e-6, "spacing {:?}", g.spacing_mm);
+        assert!(
+            (g.spacing_mm[a] - s).abs() < 1e-6,
+            "spacing {:?}",
+            g.spacing_mm
+        );
     }
-    assert!(g.direction.iter().any(|d| d.iter().any(|&v| v < -0.5)), "mha's flipped axis lost: {:?}", g.direction);
+    assert!(
+        g.direction.iter().any(|d| d.iter().any(|&v| v < -0.5)),
+        "mha's flipped axis lost: {:?}",
+        g.direction
+    );
 
     let dicom = import(&n.join("dicom-mr-3slices"), dir.path());
     let g = &dicom.header().geometry;
     assert_eq!(g.dims, [512, 512, 3]);
-    assert!((g.spacing_mm[2] - 1.5).abs() < 1e-3, "slice spacing from positions: {:?}", g.spacing_mm);
+    assert!(
+        (g.spacing_mm[2] - 1.5).abs() < 1e-3,
+        "slice spacing from positions: {:?}",
+        g.spacing_mm
+    );
 
     let enh = import(&n.join("enh.dcm"), dir.path());
     assert_eq!(enh.header().geometry.dims[2], 6, "enhanced DICOM frames");

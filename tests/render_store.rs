@@ -34,7 +34,9 @@ fn assert_close(what: &str, mode: RenderMode, gpu: &[u8], reference: &[u8]) {
 
 use strata_e2e::render_pair::{gpu, render};
 use strata_e2e::shared_data;
-use strata_render::{compare_rgba8, Camera, Projection, RenderMode, RenderSettings, Shading, TransferFunction};
+use strata_render::{
+    compare_rgba8, Camera, Projection, RenderMode, RenderSettings, Shading, TransferFunction,
+};
 use strata_storage::import::{import_source, ImportOptions};
 use strata_storage::phantom::Phantom;
 use strata_storage::readers::{open_source, ReadOptions};
@@ -61,7 +63,12 @@ fn orbit(az: f64, el: f64) -> impl Fn(&strata_render::VolumeGeometry) -> Camera 
 
 fn import(path: &std::path::Path, dir: &std::path::Path) -> Store {
     let out = dir.join("s.strata");
-    import_source(open_source(path, &ReadOptions::default()).unwrap(), &out, &ImportOptions::default()).unwrap();
+    import_source(
+        open_source(path, &ReadOptions::default()).unwrap(),
+        &out,
+        &ImportOptions::default(),
+    )
+    .unwrap();
     Store::open(&out).unwrap()
 }
 
@@ -69,25 +76,53 @@ fn import(path: &std::path::Path, dir: &std::path::Path) -> Store {
 fn phantom_store_renders_like_the_reference() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("p.strata");
-    Phantom::cube(96).write_store(&path, &ImportOptions::default()).unwrap();
+    Phantom::cube(96)
+        .write_store(&path, &ImportOptions::default())
+        .unwrap();
     let store = Store::open(&path).unwrap();
     let ctx = gpu();
     let bone = TransferFunction::preset("ct-bone").unwrap();
-    for (mode, level) in [(RenderMode::Dvr, 0), (RenderMode::Mip, 0), (RenderMode::Dvr, 1)] {
-        let pair = render(&ctx, &store, level, &bone, orbit(35.0, 20.0), &settings(mode, 128), None);
-        assert_close(&format!("phantom level {level}"), mode, &pair.gpu, &pair.reference);
-        assert!(pair.gpu.chunks_exact(4).filter(|p| p[3] > 0).count() > 500, "{mode:?}: image nearly empty");
+    for (mode, level) in [
+        (RenderMode::Dvr, 0),
+        (RenderMode::Mip, 0),
+        (RenderMode::Dvr, 1),
+    ] {
+        let pair = render(
+            &ctx,
+            &store,
+            level,
+            &bone,
+            orbit(35.0, 20.0),
+            &settings(mode, 128),
+            None,
+        );
+        assert_close(
+            &format!("phantom level {level}"),
+            mode,
+            &pair.gpu,
+            &pair.reference,
+        );
+        assert!(
+            pair.gpu.chunks_exact(4).filter(|p| p[3] > 0).count() > 500,
+            "{mode:?}: image nearly empty"
+        );
     }
 }
 
 #[test]
 fn chris_t1_renders_like_the_reference() {
-    let Some(data) = shared_data("chris_t1_renders_like_the_reference") else { return };
+    let Some(data) = shared_data("chris_t1_renders_like_the_reference") else {
+        return;
+    };
     let dir = tempfile::tempdir().unwrap();
     let store = import(&data.join("niivue/chris_t1.nii.gz"), dir.path());
     let ctx = gpu();
     let mr = TransferFunction::preset("mr-default").unwrap();
-    for (mode, az, el) in [(RenderMode::Dvr, 20.0, 10.0), (RenderMode::Mip, 90.0, 0.0), (RenderMode::Isosurface, -40.0, 25.0)] {
+    for (mode, az, el) in [
+        (RenderMode::Dvr, 20.0, 10.0),
+        (RenderMode::Mip, 90.0, 0.0),
+        (RenderMode::Isosurface, -40.0, 25.0),
+    ] {
         let mut s = settings(mode, 128);
         s.iso_value = 60.0;
         let pair = render(&ctx, &store, 0, &mr, orbit(az, el), &s, None);
@@ -100,7 +135,9 @@ fn chris_t1_renders_like_the_reference() {
 /// replaced by unit spacing and identity directions — so spacing and orientation are applied.
 #[test]
 fn anisotropic_and_oblique_scans_follow_their_headers() {
-    let Some(data) = shared_data("anisotropic_and_oblique_scans_follow_their_headers") else { return };
+    let Some(data) = shared_data("anisotropic_and_oblique_scans_follow_their_headers") else {
+        return;
+    };
     let ctx = gpu();
     let mr = TransferFunction::preset("mr-default").unwrap();
     for file in ["mha.mha", "FLAIR.nrrd"] {
@@ -122,14 +159,20 @@ fn anisotropic_and_oblique_scans_follow_their_headers() {
         let pair = render(&ctx, &store, 0, &mr, camera, &s, None);
         assert_close(file, RenderMode::Dvr, &pair.gpu, &pair.reference);
         let covered = pair.gpu.chunks_exact(4).filter(|p| p[3] > 20).count();
-        assert!(covered > 128 * 128 / 20, "{file}: only {covered} pixels show the head");
+        assert!(
+            covered > 128 * 128 / 20,
+            "{file}: only {covered} pixels show the head"
+        );
 
         let mut naive = header_geometry.clone();
         naive.spacing_mm = [1.0; 3];
         naive.direction = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
         let wrong = render(&ctx, &store, 0, &mr, camera, &s, Some(naive));
         let d = compare_rgba8(&pair.gpu, &wrong.gpu).unwrap();
-        assert!(d.psnr_db < 25.0, "{file}: ignoring the header's geometry barely changed the image: {d:?}");
+        assert!(
+            d.psnr_db < 25.0,
+            "{file}: ignoring the header's geometry barely changed the image: {d:?}"
+        );
     }
 }
 
@@ -140,7 +183,9 @@ fn storage_and_render_agree_on_every_brick() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("q.strata");
     let phantom = Phantom { size: [70, 45, 33] };
-    phantom.write_store(&path, &ImportOptions::default()).unwrap();
+    phantom
+        .write_store(&path, &ImportOptions::default())
+        .unwrap();
     let store = Store::open(&path).unwrap();
     let geometry = strata_loader::render_geometry(store.header()).unwrap();
     let volume = strata_render::BrickedVolume::from_voxels(
@@ -157,9 +202,14 @@ fn storage_and_render_agree_on_every_brick() {
         for z in 0..n[2] as u32 {
             for y in 0..n[1] as u32 {
                 for x in 0..n[0] as u32 {
-                    let from_store = store.read_brick(strata_storage::BrickId::new(level as u8, [x, y, z])).unwrap();
+                    let from_store = store
+                        .read_brick(strata_storage::BrickId::new(level as u8, [x, y, z]))
+                        .unwrap();
                     let in_memory = volume.brick(level as u8, [x, y, z]).unwrap();
-                    assert!(from_store == in_memory, "level {level} brick [{x},{y},{z}] differs");
+                    assert!(
+                        from_store == in_memory,
+                        "level {level} brick [{x},{y},{z}] differs"
+                    );
                 }
             }
         }

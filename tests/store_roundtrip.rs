@@ -5,7 +5,7 @@
 use strata_e2e::{check_store_against, phantom_level0};
 use strata_storage::import::{import_slices, ImportOptions, SliceProducer, VolumeMeta};
 use strata_storage::phantom::Phantom;
-use strata_storage::{BrickId, Store, StorageError};
+use strata_storage::{BrickId, StorageError, Store};
 
 #[test]
 fn phantom_round_trips_with_odd_sizes() {
@@ -14,7 +14,10 @@ fn phantom_round_trips_with_odd_sizes() {
     let p = Phantom { size: [75, 41, 67] };
     let path = dir.path().join("odd.strata");
     let report = p.write_store(&path, &ImportOptions::default()).unwrap();
-    assert_eq!(report.header.layout.level_dims, vec![[75, 41, 67], [38, 21, 34], [19, 11, 17]]);
+    assert_eq!(
+        report.header.layout.level_dims,
+        vec![[75, 41, 67], [38, 21, 34], [19, 11, 17]]
+    );
     let store = Store::open(&path).unwrap();
     check_store_against(&store, phantom_level0(&p));
     assert_eq!(store.histogram().total(), 75 * 41 * 67);
@@ -51,7 +54,9 @@ impl SliceProducer for Pattern {
 #[test]
 fn full_range_pattern_and_constant_bricks_round_trip() {
     let dir = tempfile::tempdir().unwrap();
-    let src = Pattern { dims: [33, 64, 130] };
+    let src = Pattern {
+        dims: [33, 64, 130],
+    };
     let mut meta: VolumeMeta = Phantom { size: src.dims }.meta();
     meta.description = "pattern".into();
     let path = dir.path().join("pattern.strata");
@@ -84,7 +89,9 @@ fn tiny_volumes_round_trip() {
 fn flipped_byte_is_reported_by_read_and_verify() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("c.strata");
-    Phantom::cube(64).write_store(&path, &ImportOptions::default()).unwrap();
+    Phantom::cube(64)
+        .write_store(&path, &ImportOptions::default())
+        .unwrap();
     let victim = BrickId::new(0, [1, 0, 1]);
     Store::corrupt_brick_for_tests(&path, victim, 40).unwrap();
     let store = Store::open(&path).unwrap();
@@ -102,16 +109,28 @@ fn flipped_byte_is_reported_by_read_and_verify() {
 fn reimport_starts_clean_and_foreign_dirs_are_left_alone() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("s.strata");
-    Phantom::cube(48).write_store(&path, &ImportOptions::default()).unwrap();
-    Phantom { size: [20, 20, 20] }.write_store(&path, &ImportOptions::default()).unwrap();
-    assert_eq!(Store::open(&path).unwrap().header().geometry.dims, [20, 20, 20]);
+    Phantom::cube(48)
+        .write_store(&path, &ImportOptions::default())
+        .unwrap();
+    Phantom { size: [20, 20, 20] }
+        .write_store(&path, &ImportOptions::default())
+        .unwrap();
+    assert_eq!(
+        Store::open(&path).unwrap().header().geometry.dims,
+        [20, 20, 20]
+    );
 
     let foreign = dir.path().join("photos");
     std::fs::create_dir(&foreign).unwrap();
     std::fs::write(foreign.join("holiday.jpg"), b"precious").unwrap();
-    let err = Phantom::cube(8).write_store(&foreign, &ImportOptions::default()).unwrap_err();
+    let err = Phantom::cube(8)
+        .write_store(&foreign, &ImportOptions::default())
+        .unwrap_err();
     assert!(err.to_string().contains("refusing to overwrite"), "{err}");
-    assert_eq!(std::fs::read(foreign.join("holiday.jpg")).unwrap(), b"precious");
+    assert_eq!(
+        std::fs::read(foreign.join("holiday.jpg")).unwrap(),
+        b"precious"
+    );
 
     let err = Store::open(&dir.path().join("missing")).err().unwrap();
     assert!(err.to_string().contains("does not exist"), "{err}");
@@ -129,20 +148,34 @@ fn cancelled_import_leaves_an_incomplete_store() {
             cancel.store(true, std::sync::atomic::Ordering::Relaxed);
         }
     };
-    let options = ImportOptions { cancel: Some(&cancel), progress: Some(&progress), ..Default::default() };
+    let options = ImportOptions {
+        cancel: Some(&cancel),
+        progress: Some(&progress),
+        ..Default::default()
+    };
     let err = Phantom::cube(96).write_store(&path, &options).unwrap_err();
     assert!(matches!(err, StorageError::Cancelled { .. }), "{err}");
     let err = Store::open(&path).err().unwrap();
-    assert!(matches!(err, StorageError::IncompleteImport { .. }), "{err}");
+    assert!(
+        matches!(err, StorageError::IncompleteImport { .. }),
+        "{err}"
+    );
     assert!(err.to_string().contains("incomplete import"), "{err}");
-    Phantom::cube(40).write_store(&path, &ImportOptions::default()).unwrap();
+    Phantom::cube(40)
+        .write_store(&path, &ImportOptions::default())
+        .unwrap();
     Store::open(&path).unwrap();
 }
 
 #[test]
 fn memory_budget_too_small_is_a_clear_error() {
     let dir = tempfile::tempdir().unwrap();
-    let options = ImportOptions { memory_budget_bytes: 8 << 20, ..Default::default() };
-    let err = Phantom::cube(512).write_store(&dir.path().join("b.strata"), &options).unwrap_err();
+    let options = ImportOptions {
+        memory_budget_bytes: 8 << 20,
+        ..Default::default()
+    };
+    let err = Phantom::cube(512)
+        .write_store(&dir.path().join("b.strata"), &options)
+        .unwrap_err();
     assert!(err.to_string().contains("memory budget"), "{err}");
 }

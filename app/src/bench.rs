@@ -98,14 +98,49 @@ pub enum BenchCommand {
 
 pub fn run(cmd: BenchCommand) -> Result<()> {
     match cmd {
-        BenchCommand::Import { size, rss_size, memory_mib, dir } => bench_import(size, rss_size, memory_mib, &dir),
+        BenchCommand::Import {
+            size,
+            rss_size,
+            memory_mib,
+            dir,
+        } => bench_import(size, rss_size, memory_mib, &dir),
         BenchCommand::Bricks { store, count } => bench_bricks(&store, count),
-        BenchCommand::Accuracy { input, phantom_size, size, frames, tf, out_dir } => {
-            accuracy::run(accuracy::Options { input, phantom_size, size, frames, tf, out_dir })
-        }
-        BenchCommand::Timecritical { store, target, frames, csv, size, step, tf, level, elevation } => {
-            time_critical::run(time_critical::Options { store, target_fps: target, frames, csv, size, step, tf, level, elevation })
-        }
+        BenchCommand::Accuracy {
+            input,
+            phantom_size,
+            size,
+            frames,
+            tf,
+            out_dir,
+        } => accuracy::run(accuracy::Options {
+            input,
+            phantom_size,
+            size,
+            frames,
+            tf,
+            out_dir,
+        }),
+        BenchCommand::Timecritical {
+            store,
+            target,
+            frames,
+            csv,
+            size,
+            step,
+            tf,
+            level,
+            elevation,
+        } => time_critical::run(time_critical::Options {
+            store,
+            target_fps: target,
+            frames,
+            csv,
+            size,
+            step,
+            tf,
+            level,
+            elevation,
+        }),
         BenchCommand::Transitions(options) => transitions::run(options),
     }
 }
@@ -114,7 +149,10 @@ fn ensure_phantom_nrrd(dir: &Path, size: u64) -> Result<PathBuf> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     let path = dir.join(format!("phantom-{size}.nrrd"));
     let expected = size * size * size * 2;
-    if std::fs::metadata(&path).map(|m| m.len() > expected).unwrap_or(false) {
+    if std::fs::metadata(&path)
+        .map(|m| m.len() > expected)
+        .unwrap_or(false)
+    {
         return Ok(path);
     }
     eprintln!("generating {}", path.display());
@@ -134,7 +172,10 @@ fn read_and_compress_limit(nrrd: &Path, data_bytes: u64) -> Result<f64> {
     let mut best = f64::MAX;
     for _ in 0..2 {
         let t = Instant::now();
-        let compressed: usize = data.par_chunks(chunk).map(|c| lz4_flex::block::compress_prepend_size(c).len()).sum();
+        let compressed: usize = data
+            .par_chunks(chunk)
+            .map(|c| lz4_flex::block::compress_prepend_size(c).len())
+            .sum();
         std::hint::black_box(compressed);
         best = best.min(t.elapsed().as_secs_f64());
     }
@@ -158,7 +199,11 @@ fn bench_import(size: u64, rss_size: Option<u64>, memory_mib: u64, dir: &Path) -
         last = Some(report);
     }
     let import_rate = data_bytes as f64 / 1e6 / best;
-    println!("import throughput, {size}^3 int16 phantom NRRD ({:.0} MB), {} threads", data_bytes as f64 / 1e6, rayon::current_num_threads());
+    println!(
+        "import throughput, {size}^3 int16 phantom NRRD ({:.0} MB), {} threads",
+        data_bytes as f64 / 1e6,
+        rayon::current_num_threads()
+    );
     println!("  limit (page-cache read + lz4 on all cores): {limit:8.0} MB/s");
     println!("  strata import (best of 2):                 {import_rate:8.0} MB/s  = {:.0} % of the limit", 100.0 * import_rate / limit);
     if let Some(r) = last {
@@ -205,7 +250,9 @@ fn peak_child_rss_bytes() -> u64 {
 
 /// Asks the kernel to drop a store's files from the page cache, so the next reads are cold.
 fn evict_from_page_cache(dir: &Path) {
-    let Ok(entries) = std::fs::read_dir(dir) else { return };
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
     for entry in entries.flatten() {
         let p = entry.path();
         if p.is_dir() {
@@ -237,7 +284,14 @@ fn bench_bricks(path: &Path, count: usize) -> Result<()> {
                 level += 1;
             }
             let b = layout.bricks_in_level(level);
-            BrickId::new(level as u8, [(n % b[0]) as u32, ((n / b[0]) % b[1]) as u32, (n / (b[0] * b[1])) as u32])
+            BrickId::new(
+                level as u8,
+                [
+                    (n % b[0]) as u32,
+                    ((n / b[0]) % b[1]) as u32,
+                    (n / (b[0] * b[1])) as u32,
+                ],
+            )
         })
         .collect();
     let decompressed_mb = (count * BRICK_VOXELS * 2) as f64 / 1e6;

@@ -13,7 +13,9 @@ use anyhow::{Context, Result};
 use clap::Args;
 use strata_loader::store_volume::{sampled_entries_only, GpuCut};
 use strata_loader::{Distribution, FrameStats, ResidentBricks, StreamingConfig, StreamingVolume};
-use strata_render::{compare_rgba8, Camera, GpuContext, Projection, RenderSettings, VolumeGeometry};
+use strata_render::{
+    compare_rgba8, Camera, GpuContext, Projection, RenderSettings, VolumeGeometry,
+};
 use strata_storage::{BrickId, Store};
 
 use crate::cmd_render::{choose_transfer_function, parse_size};
@@ -66,7 +68,13 @@ pub struct FlythroughArgs {
 /// outline where the finest level is needed.
 fn viewpoint(geometry: &VolumeGeometry, k: f64, n: usize) -> Camera {
     let t = k / (n.max(2) - 1) as f64;
-    Camera::orbit(geometry, -50.0 + 140.0 * t, 25.0 - 30.0 * t, 1.0 + 2.5 * t * t, Projection::Perspective { fov_y_deg: 30.0 })
+    Camera::orbit(
+        geometry,
+        -50.0 + 140.0 * t,
+        25.0 - 30.0 * t,
+        1.0 + 2.5 * t * t,
+        Projection::Perspective { fov_y_deg: 30.0 },
+    )
 }
 
 struct StopResult {
@@ -88,8 +96,15 @@ struct InCore {
 
 pub fn run(args: FlythroughArgs) -> Result<()> {
     let (width, height) = parse_size(&args.size)?;
-    anyhow::ensure!(args.quality.is_finite() && args.quality > 0.0, "--quality must be positive");
-    let settings = RenderSettings { width, height, ..RenderSettings::default() };
+    anyhow::ensure!(
+        args.quality.is_finite() && args.quality > 0.0,
+        "--quality must be positive"
+    );
+    let settings = RenderSettings {
+        width,
+        height,
+        ..RenderSettings::default()
+    };
     let ctx = GpuContext::headless()?;
     eprintln!("GPU: {}", ctx.adapter_name());
     let config = StreamingConfig {
@@ -104,7 +119,8 @@ pub fn run(args: FlythroughArgs) -> Result<()> {
     let mut csv = match &args.csv {
         Some(path) => {
             let mut file = std::io::BufWriter::new(
-                std::fs::File::create(path).with_context(|| format!("creating {}", path.display()))?,
+                std::fs::File::create(path)
+                    .with_context(|| format!("creating {}", path.display()))?,
             );
             writeln!(file, "{}", CSV_HEADER)?;
             Some(file)
@@ -137,7 +153,11 @@ pub fn run(args: FlythroughArgs) -> Result<()> {
             if total_frames >= args.frames {
                 break 'path;
             }
-            let camera = viewpoint(&geometry, stop as f64 - 1.0 + g as f64 / glide as f64, args.stops);
+            let camera = viewpoint(
+                &geometry,
+                stop as f64 - 1.0 + g as f64 / glide as f64,
+                args.stops,
+            );
             let (stats, seconds) = timed_frame(&ctx, &mut volume, &camera, &settings)?;
             record(&mut csv, total_frames, stop, "glide", seconds, &stats)?;
             frame_seconds.push(seconds);
@@ -188,12 +208,24 @@ pub fn run(args: FlythroughArgs) -> Result<()> {
     if let Some(mut file) = csv {
         file.flush()?;
     }
-    let record = RunRecord { open_seconds, first_frame_seconds, frame_seconds, loader_seconds, stops, ever_in_working_set };
+    let record = RunRecord {
+        open_seconds,
+        first_frame_seconds,
+        frame_seconds,
+        loader_seconds,
+        stops,
+        ever_in_working_set,
+    };
     summary(&args, &volume, &record);
     Ok(())
 }
 
-fn timed_frame(ctx: &GpuContext, volume: &mut StreamingVolume, camera: &Camera, settings: &RenderSettings) -> Result<(FrameStats, f64)> {
+fn timed_frame(
+    ctx: &GpuContext,
+    volume: &mut StreamingVolume,
+    camera: &Camera,
+    settings: &RenderSettings,
+) -> Result<(FrameStats, f64)> {
     let t = Instant::now();
     let stats = volume.frame(ctx, camera, settings)?;
     volume.wait_for_gpu(ctx)?;
@@ -218,7 +250,13 @@ fn in_core(
     let table = sampled_entries_only(volume.page_table());
     let load = Instant::now();
     let bricks = ResidentBricks::load(store, &table)?;
-    let mut cut = GpuCut::upload(ctx, &bricks, &table, table.page_dims, volume.transfer_function_table())?;
+    let mut cut = GpuCut::upload(
+        ctx,
+        &bricks,
+        &table,
+        table.page_dims,
+        volume.transfer_function_table(),
+    )?;
     let load_seconds = load.elapsed().as_secs_f64();
     let geometry = volume.geometry().clone();
     let mapping = volume.mapping();
@@ -241,7 +279,10 @@ fn in_core(
 
 fn print_stop(r: &StopResult) {
     let converge = if r.converged {
-        format!("converged in {:.2} s ({} frames), working set {} bricks", r.seconds_to_converge, r.frames_to_converge, r.working_set_bricks)
+        format!(
+            "converged in {:.2} s ({} frames), working set {} bricks",
+            r.seconds_to_converge, r.frames_to_converge, r.working_set_bricks
+        )
     } else {
         "did not converge within --settle-frames".to_string()
     };
@@ -270,11 +311,23 @@ struct RunRecord {
 }
 
 fn summary(args: &FlythroughArgs, volume: &StreamingVolume, record: &RunRecord) {
-    let RunRecord { open_seconds, first_frame_seconds, frame_seconds, loader_seconds, stops, ever_in_working_set } = record;
+    let RunRecord {
+        open_seconds,
+        first_frame_seconds,
+        frame_seconds,
+        loader_seconds,
+        stops,
+        ever_in_working_set,
+    } = record;
     let last = volume.last_stats();
     let frames = Distribution::of(frame_seconds);
     let loader = Distribution::of(loader_seconds);
-    println!("flythrough of {} ({} frames, {} viewpoints)", args.store.display(), frames.count, stops.len());
+    println!(
+        "flythrough of {} ({} frames, {} viewpoints)",
+        args.store.display(),
+        frames.count,
+        stops.len()
+    );
     println!(
         "  time to first frame (open + first frame on the GPU): {:.3} s, of which opening the store and reading the root {:.3} s",
         first_frame_seconds.unwrap_or(f64::NAN),
@@ -284,7 +337,14 @@ fn summary(args: &FlythroughArgs, volume: &StreamingVolume, record: &RunRecord) 
         println!(
             "  viewpoint {}: {}",
             r.stop,
-            if r.converged { format!("converged in {:.2} s / {} frames", r.seconds_to_converge, r.frames_to_converge) } else { "not converged".into() }
+            if r.converged {
+                format!(
+                    "converged in {:.2} s / {} frames",
+                    r.seconds_to_converge, r.frames_to_converge
+                )
+            } else {
+                "not converged".into()
+            }
         );
     }
     println!(
@@ -295,7 +355,12 @@ fn summary(args: &FlythroughArgs, volume: &StreamingVolume, record: &RunRecord) 
         frames.max * 1e3,
         frames.mean * 1e3
     );
-    println!("  loader share per frame ms: p50 {:.2} p95 {:.2} max {:.2} (never a read)", loader.p50 * 1e3, loader.p95 * 1e3, loader.max * 1e3);
+    println!(
+        "  loader share per frame ms: p50 {:.2} p95 {:.2} max {:.2} (never a read)",
+        loader.p50 * 1e3,
+        loader.p95 * 1e3,
+        loader.max * 1e3
+    );
     let distinct = ever_in_working_set.len().max(1) as u64;
     println!(
         "  I/O: {} bricks read ({:.1} MB decompressed, {:.1} MB from the store) for {} distinct working-set bricks: amplification {:.2} (bricks read / working-set bricks)",
@@ -321,8 +386,14 @@ fn summary(args: &FlythroughArgs, volume: &StreamingVolume, record: &RunRecord) 
     );
     let in_core: Vec<&InCore> = stops.iter().filter_map(|s| s.in_core.as_ref()).collect();
     if !in_core.is_empty() {
-        let ratio: Vec<f64> = in_core.iter().map(|c| c.streamed_frame_seconds / c.frame_seconds.max(1e-9)).collect();
-        let psnr = in_core.iter().map(|c| c.psnr_db).fold(f64::INFINITY, f64::min);
+        let ratio: Vec<f64> = in_core
+            .iter()
+            .map(|c| c.streamed_frame_seconds / c.frame_seconds.max(1e-9))
+            .collect();
+        let psnr = in_core
+            .iter()
+            .map(|c| c.psnr_db)
+            .fold(f64::INFINITY, f64::min);
         println!(
             "  in core (converged cut loaded up front, same views): streamed/in-core frame time p50 ratio {:.2}, min PSNR streamed vs in-core {:.1} dB, up-front load {:.2}-{:.2} s",
             Distribution::of(&ratio).p50,
@@ -335,9 +406,21 @@ fn summary(args: &FlythroughArgs, volume: &StreamingVolume, record: &RunRecord) 
 
 const CSV_HEADER: &str = "frame,viewpoint,phase,frame_ms,loader_ms,converged,leaves,data_leaves,working_set_bricks,gpu_slots_used,gpu_mib,cpu_mib,cpu_hit_rate,gpu_hit_rate,pending,queued,in_flight,stale_dropped_total,uploads,upload_mib,bricks_read_total,stored_mb_read_total,read_mb_per_s,prefetch_loaded_total,prefetch_used_total,prefetch_hit_rate,failed_bricks,gpu_budget_limited,gpu_resident_per_level,blocked_data_upload_slots_balance";
 
-fn record(csv: &mut Option<std::io::BufWriter<std::fs::File>>, frame: usize, stop: usize, phase: &str, seconds: f64, s: &FrameStats) -> Result<()> {
+fn record(
+    csv: &mut Option<std::io::BufWriter<std::fs::File>>,
+    frame: usize,
+    stop: usize,
+    phase: &str,
+    seconds: f64,
+    s: &FrameStats,
+) -> Result<()> {
     let Some(file) = csv else { return Ok(()) };
-    let join = |v: &[usize]| v.iter().map(|x| x.to_string()).collect::<Vec<_>>().join(";");
+    let join = |v: &[usize]| {
+        v.iter()
+            .map(|x| x.to_string())
+            .collect::<Vec<_>>()
+            .join(";")
+    };
     writeln!(
         file,
         "{frame},{stop},{phase},{:.3},{:.3},{},{},{},{},{},{:.2},{:.2},{:.4},{:.4},{},{},{},{},{},{:.3},{},{:.3},{:.3},{},{},{:.4},{},{},{},{}",

@@ -48,7 +48,9 @@ pub fn parse_sample_type(name: &str) -> Result<SampleType> {
         "i32" | "int32" => SampleType::I32,
         "f32" | "float32" | "float" => SampleType::F32,
         "f64" | "float64" | "double" => SampleType::F64,
-        other => bail!("unknown raw sample type '{other}' (use u8, i8, u16, i16, u32, i32, f32 or f64)"),
+        other => {
+            bail!("unknown raw sample type '{other}' (use u8, i8, u16, i16, u32, i32, f32 or f64)")
+        }
     })
 }
 
@@ -57,7 +59,11 @@ pub fn run(args: ImportArgs) -> Result<()> {
         (Some(d), Some(t)) => Some(RawSpec {
             dims: [d[0], d[1], d[2]],
             sample_type: parse_sample_type(t)?,
-            spacing_mm: [args.raw_spacing[0], args.raw_spacing[1], args.raw_spacing[2]],
+            spacing_mm: [
+                args.raw_spacing[0],
+                args.raw_spacing[1],
+                args.raw_spacing[2],
+            ],
             byte_order: match args.raw_endian.as_str() {
                 "little" => ByteOrder::Little,
                 "big" => ByteOrder::Big,
@@ -68,23 +74,41 @@ pub fn run(args: ImportArgs) -> Result<()> {
         (None, None) => None,
         _ => bail!("raw input needs both --raw-dims and --raw-type"),
     };
-    let options = ReadOptions { dicom_series: args.series.clone(), raw, staging_dir: args.staging_dir.clone() };
-    let opened = open_source(&args.input, &options).with_context(|| format!("cannot read {}", args.input.display()))?;
+    let options = ReadOptions {
+        dicom_series: args.series.clone(),
+        raw,
+        staging_dir: args.staging_dir.clone(),
+    };
+    let opened = open_source(&args.input, &options)
+        .with_context(|| format!("cannot read {}", args.input.display()))?;
     let g = &opened.info.geometry;
     eprintln!(
         "{} {}: {}x{}x{} {} voxels, spacing {:.4}x{:.4}x{:.4} mm",
         opened.info.format,
         args.input.display(),
-        g.dims[0], g.dims[1], g.dims[2],
+        g.dims[0],
+        g.dims[1],
+        g.dims[2],
         opened.info.sample_type.name(),
-        g.spacing_mm[0], g.spacing_mm[1], g.spacing_mm[2]
+        g.spacing_mm[0],
+        g.spacing_mm[1],
+        g.spacing_mm[2]
     );
     let total = opened.data.slice_bytes_len() as u64 * g.dims[2];
     let bar = crate::progress::bytes_bar(total, "importing");
     let progress = |p: ImportProgress| bar.set_position(p.source_bytes_done);
-    let import_options = ImportOptions { memory_budget_bytes: args.memory_mib << 20, cancel: None, progress: Some(&progress) };
-    let report = import_source(opened, &args.store, &import_options)
-        .with_context(|| format!("import of {} into {} failed", args.input.display(), args.store.display()))?;
+    let import_options = ImportOptions {
+        memory_budget_bytes: args.memory_mib << 20,
+        cancel: None,
+        progress: Some(&progress),
+    };
+    let report = import_source(opened, &args.store, &import_options).with_context(|| {
+        format!(
+            "import of {} into {} failed",
+            args.input.display(),
+            args.store.display()
+        )
+    })?;
     bar.finish_and_clear();
     let s = &report.stats;
     println!(
@@ -99,7 +123,10 @@ pub fn run(args: ImportArgs) -> Result<()> {
         s.uncompressed_bytes as f64 / s.compressed_bytes.max(1) as f64,
     );
     if report.header.quantization_error > 0.0 {
-        println!("note: the source was quantised to 16 bits; worst-case error {:.6} (physical units)", report.header.quantization_error);
+        println!(
+            "note: the source was quantised to 16 bits; worst-case error {:.6} (physical units)",
+            report.header.quantization_error
+        );
     }
     if report.header.non_finite_samples > 0 {
         println!(

@@ -8,7 +8,13 @@ pub fn orientation_letter(direction: [f64; 3]) -> char {
     let (axis, value) = direction
         .iter()
         .enumerate()
-        .fold((0, 0.0f64), |best, (a, &v)| if v.abs() > best.1.abs() { (a, v) } else { best });
+        .fold((0, 0.0f64), |best, (a, &v)| {
+            if v.abs() > best.1.abs() {
+                (a, v)
+            } else {
+                best
+            }
+        });
     match (axis, value >= 0.0) {
         (0, true) => 'L',
         (0, false) => 'R',
@@ -20,7 +26,8 @@ pub fn orientation_letter(direction: [f64; 3]) -> char {
 }
 
 pub fn run(path: &Path) -> Result<()> {
-    let store = Store::open(path).with_context(|| format!("cannot open store {}", path.display()))?;
+    let store =
+        Store::open(path).with_context(|| format!("cannot open store {}", path.display()))?;
     let h = store.header();
     let g = &h.geometry;
     let code: String = g.direction.iter().map(|d| orientation_letter(*d)).collect();
@@ -28,29 +35,70 @@ pub fn run(path: &Path) -> Result<()> {
     let (lo, hi) = (m.physical(h.stored_range[0]), m.physical(h.stored_range[1]));
     println!("store        {}", path.display());
     println!("description  {}", h.description);
-    println!("modality     {}", if h.modality.is_empty() { "(unknown)" } else { &h.modality });
-    println!("source       {} ({}), imported by strata {}", h.provenance.source_format, h.source_sample_type.name(), h.provenance.tool_version);
-    println!("dimensions   {} x {} x {} voxels", g.dims[0], g.dims[1], g.dims[2]);
-    println!("spacing      {:.4} x {:.4} x {:.4} mm", g.spacing_mm[0], g.spacing_mm[1], g.spacing_mm[2]);
-    println!("origin       ({:.3}, {:.3}, {:.3}) mm LPS", g.origin_lps_mm[0], g.origin_lps_mm[1], g.origin_lps_mm[2]);
+    println!(
+        "modality     {}",
+        if h.modality.is_empty() {
+            "(unknown)"
+        } else {
+            &h.modality
+        }
+    );
+    println!(
+        "source       {} ({}), imported by strata {}",
+        h.provenance.source_format,
+        h.source_sample_type.name(),
+        h.provenance.tool_version
+    );
+    println!(
+        "dimensions   {} x {} x {} voxels",
+        g.dims[0], g.dims[1], g.dims[2]
+    );
+    println!(
+        "spacing      {:.4} x {:.4} x {:.4} mm",
+        g.spacing_mm[0], g.spacing_mm[1], g.spacing_mm[2]
+    );
+    println!(
+        "origin       ({:.3}, {:.3}, {:.3}) mm LPS",
+        g.origin_lps_mm[0], g.origin_lps_mm[1], g.origin_lps_mm[2]
+    );
     println!("orientation  {code} (index axes i, j, k point towards these patient sides)");
     for (a, d) in g.direction.iter().enumerate() {
-        println!("  axis {}    ({:+.5}, {:+.5}, {:+.5})", ['i', 'j', 'k'][a], d[0], d[1], d[2]);
+        println!(
+            "  axis {}    ({:+.5}, {:+.5}, {:+.5})",
+            ['i', 'j', 'k'][a],
+            d[0],
+            d[1],
+            d[2]
+        );
     }
-    println!("stored       {:?}, physical = {} * stored + {} {}", h.stored, m.slope, m.intercept, m.unit);
+    println!(
+        "stored       {:?}, physical = {} * stored + {} {}",
+        h.stored, m.slope, m.intercept, m.unit
+    );
     println!("value range  {lo} .. {hi} {}", m.unit);
     if h.quantization_error > 0.0 {
         println!("quantised    worst-case error {:.6}", h.quantization_error);
     }
     if h.non_finite_samples > 0 {
-        println!("non-finite   {} NaN/Inf samples clamped to the range ends", h.non_finite_samples);
+        println!(
+            "non-finite   {} NaN/Inf samples clamped to the range ends",
+            h.non_finite_samples
+        );
     }
     for w in &h.windows {
-        println!("window       {}: centre {} width {}", w.name, w.center, w.width);
+        println!(
+            "window       {}: centre {} width {}",
+            w.name, w.center, w.width
+        );
     }
     let s = store.stats();
     println!("levels       {}", h.layout.level_count());
-    for (level, ((count, constant), dims)) in s.bricks_per_level.iter().zip(&h.layout.level_dims).enumerate() {
+    for (level, ((count, constant), dims)) in s
+        .bricks_per_level
+        .iter()
+        .zip(&h.layout.level_dims)
+        .enumerate()
+    {
         let nb = h.layout.bricks_in_level(level);
         println!(
             "  level {level}    {}x{}x{} voxels, {}x{}x{} bricks: {count} ({constant} constant, {} stored)",

@@ -16,7 +16,11 @@ use anyhow::Result;
 use clap::{Parser, Subcommand};
 
 #[derive(Parser)]
-#[command(name = "strata", version, about = "Out-of-core viewer for large medical volumes (not for diagnostic use)")]
+#[command(
+    name = "strata",
+    version,
+    about = "Out-of-core viewer for large medical volumes (not for diagnostic use)"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Option<Command>,
@@ -27,13 +31,9 @@ enum Command {
     /// Import a scan (DICOM folder or file, NIfTI, NRRD, MetaImage, raw) into a brick store.
     Import(cmd_import::ImportArgs),
     /// Print a store's geometry, orientation, value range, levels and sizes.
-    Info {
-        store: PathBuf,
-    },
+    Info { store: PathBuf },
     /// Read and check every brick of a store (checksums, decompression, ranges).
-    Verify {
-        store: PathBuf,
-    },
+    Verify { store: PathBuf },
     /// Render one frame of a store headless to PNG (GPU, or the f64 CPU reference).
     Render(cmd_render::RenderArgs),
     /// Write the deterministic CT phantom as a store or as NRRD (by the extension of --out).
@@ -123,7 +123,9 @@ fn view(args: ViewArgs) -> Result<()> {
         Some("single") => Some(viewer::app::Layout::Single),
         Some("conventional") => Some(viewer::app::Layout::ThreeDOverSlices),
         Some("four-up") => Some(viewer::app::Layout::TwoByTwo),
-        Some(other) => anyhow::bail!("--layout must be single, conventional or four-up, not '{other}'"),
+        Some(other) => {
+            anyhow::bail!("--layout must be single, conventional or four-up, not '{other}'")
+        }
     };
     options.initial_view = match args.view.as_deref() {
         None => None,
@@ -131,7 +133,9 @@ fn view(args: ViewArgs) -> Result<()> {
             viewer::view3d::StandardView::ALL
                 .into_iter()
                 .find(|v| v.letter().eq_ignore_ascii_case(letter))
-                .ok_or_else(|| anyhow::anyhow!("--view must be one of A, P, L, R, S, I, not '{letter}'"))?,
+                .ok_or_else(|| {
+                    anyhow::anyhow!("--view must be one of A, P, L, R, S, I, not '{letter}'")
+                })?,
         ),
     };
     options.initial_preset = args.preset;

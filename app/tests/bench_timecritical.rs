@@ -4,11 +4,18 @@
 use std::process::{Command, Output};
 
 fn strata(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_strata")).args(args).output().expect("strata runs")
+    Command::new(env!("CARGO_BIN_EXE_strata"))
+        .args(args)
+        .output()
+        .expect("strata runs")
 }
 
 fn text(o: &Output) -> String {
-    format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr))
+    format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    )
 }
 
 #[test]
@@ -41,18 +48,33 @@ fn orbit_summary_and_csv_for_both_runs() {
     assert!(out.contains("noise floor"), "{out}");
     let rows = std::fs::read_to_string(&csv).unwrap();
     let lines: Vec<&str> = rows.lines().collect();
-    assert_eq!(lines[0], "run,frame,azimuth_deg,gpu_ms,fps,sampling_rate,step_voxels,lod_factor,jitter");
+    assert_eq!(
+        lines[0],
+        "run,frame,azimuth_deg,gpu_ms,fps,sampling_rate,step_voxels,lod_factor,jitter"
+    );
     assert_eq!(lines.iter().filter(|l| l.starts_with("fixed,")).count(), 8);
-    assert_eq!(lines.iter().filter(|l| l.starts_with("noise-floor,")).count(), 8);
-    let controlled: Vec<Vec<&str>> =
-        lines.iter().filter(|l| l.starts_with("time-critical,")).map(|l| l.split(',').collect()).collect();
+    assert_eq!(
+        lines
+            .iter()
+            .filter(|l| l.starts_with("noise-floor,"))
+            .count(),
+        8
+    );
+    let controlled: Vec<Vec<&str>> = lines
+        .iter()
+        .filter(|l| l.starts_with("time-critical,"))
+        .map(|l| l.split(',').collect())
+        .collect();
     assert_eq!(controlled.len(), 8);
     // After the lead-in the controller sits at its floor with jitter on, and the lod factor
     // has started to coarsen.
     let last = &controlled[7];
     assert_eq!(last[5], "0.12500", "{last:?}");
     assert_eq!(last[8], "true", "{last:?}");
-    let max_lod = controlled.iter().map(|r| r[7].parse::<f64>().unwrap()).fold(1.0, f64::max);
+    let max_lod = controlled
+        .iter()
+        .map(|r| r[7].parse::<f64>().unwrap())
+        .fold(1.0, f64::max);
     assert!(max_lod > 1.0, "lod never coarsened: {rows}");
 }
 
@@ -60,11 +82,28 @@ fn orbit_summary_and_csv_for_both_runs() {
 fn bad_arguments_are_refused_with_a_reason() {
     let dir = tempfile::tempdir().unwrap();
     let missing = dir.path().join("missing.strata");
-    let o = strata(&["bench", "timecritical", missing.to_str().unwrap(), "--target", "10"]);
+    let o = strata(&[
+        "bench",
+        "timecritical",
+        missing.to_str().unwrap(),
+        "--target",
+        "10",
+    ]);
     assert!(!o.status.success());
     assert!(text(&o).contains("missing.strata"), "{}", text(&o));
-    for (flag, value) in [("--target", "0"), ("--target", "NaN"), ("--frames", "0"), ("--step", "-1")] {
-        let mut args = vec!["bench", "timecritical", missing.to_str().unwrap(), flag, value];
+    for (flag, value) in [
+        ("--target", "0"),
+        ("--target", "NaN"),
+        ("--frames", "0"),
+        ("--step", "-1"),
+    ] {
+        let mut args = vec![
+            "bench",
+            "timecritical",
+            missing.to_str().unwrap(),
+            flag,
+            value,
+        ];
         if flag != "--target" {
             args.extend(["--target", "10"]);
         }

@@ -5,14 +5,21 @@ use std::path::Path;
 use std::process::{Command, Output};
 use std::time::{Duration, Instant};
 
-use strata_storage::{BrickId, Store, StorageError};
+use strata_storage::{BrickId, StorageError, Store};
 
 fn strata(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_strata")).args(args).output().expect("strata runs")
+    Command::new(env!("CARGO_BIN_EXE_strata"))
+        .args(args)
+        .output()
+        .expect("strata runs")
 }
 
 fn text(o: &Output) -> String {
-    format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr))
+    format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    )
 }
 
 #[test]
@@ -47,7 +54,11 @@ fn bad_inputs_fail_with_the_file_named() {
 
     let truncated = dir.path().join("short.nrrd");
     std::fs::write(&truncated, b"NRRD0004\ntype: uint16\ndimension: 3\nsizes: 10 10 10\nencoding: raw\nendian: little\n\n0123").unwrap();
-    let o = strata(&["import", truncated.to_str().unwrap(), store.to_str().unwrap()]);
+    let o = strata(&[
+        "import",
+        truncated.to_str().unwrap(),
+        store.to_str().unwrap(),
+    ]);
     assert!(!o.status.success());
     assert!(text(&o).contains("short.nrrd"), "{}", text(&o));
     assert!(!text(&o).contains("panicked"), "{}", text(&o));
@@ -76,7 +87,10 @@ fn killed_import_leaves_an_incomplete_store_and_reimport_succeeds() {
         std::thread::sleep(Duration::from_millis(20));
     }
     std::thread::sleep(Duration::from_millis(1500));
-    assert!(child.try_wait().unwrap().is_none(), "import finished before it could be killed");
+    assert!(
+        child.try_wait().unwrap().is_none(),
+        "import finished before it could be killed"
+    );
     child.kill().unwrap();
     child.wait().unwrap();
 
@@ -91,7 +105,10 @@ fn killed_import_leaves_an_incomplete_store_and_reimport_succeeds() {
 
     let o = strata(&["sample", "--size", "48", "--out", store.to_str().unwrap()]);
     assert!(o.status.success(), "{}", text(&o));
-    assert_eq!(Store::open(&store).unwrap().header().geometry.dims, [48, 48, 48]);
+    assert_eq!(
+        Store::open(&store).unwrap().header().geometry.dims,
+        [48, 48, 48]
+    );
 }
 
 #[test]
@@ -104,6 +121,9 @@ fn verify_reports_a_flipped_byte() {
     let o = strata(&["verify", store.to_str().unwrap()]);
     assert!(!o.status.success(), "verify passed a corrupted store");
     let out = text(&o);
-    assert!(out.contains("checksum mismatch") && out.contains("level 1"), "{out}");
+    assert!(
+        out.contains("checksum mismatch") && out.contains("level 1"),
+        "{out}"
+    );
     assert!(out.contains("1 problem"), "{out}");
 }

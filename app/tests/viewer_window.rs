@@ -40,13 +40,23 @@ impl Drop for KillOnDrop {
 /// Starts Xvfb on a display it picks itself (`-displayfd`), so parallel runs never share one.
 fn start_xvfb() -> (KillOnDrop, String) {
     let child = match Command::new("Xvfb")
-        .args(["-displayfd", "1", "-screen", "0", &format!("{}x{}x24", SCREEN.0, SCREEN.1), "-nolisten", "tcp"])
+        .args([
+            "-displayfd",
+            "1",
+            "-screen",
+            "0",
+            &format!("{}x{}x24", SCREEN.0, SCREEN.1),
+            "-nolisten",
+            "tcp",
+        ])
         .stdout(Stdio::piped())
         .stderr(Stdio::null())
         .spawn()
     {
         Ok(c) => c,
-        Err(e) => panic!("cannot start Xvfb ({e}): install it with `apt-get install -y xvfb` (.ci/run does)"),
+        Err(e) => panic!(
+            "cannot start Xvfb ({e}): install it with `apt-get install -y xvfb` (.ci/run does)"
+        ),
     };
     let mut guard = KillOnDrop(child);
     let stdout = guard.0.stdout.take().expect("piped stdout");
@@ -61,9 +71,15 @@ fn start_xvfb() -> (KillOnDrop, String) {
         })
         .expect("reader thread");
     let line = rx.recv_timeout(Duration::from_secs(20)).unwrap_or_default();
-    let number: u32 = line.trim().parse().unwrap_or_else(|_| panic!("Xvfb did not report a display (got {line:?})"));
+    let number: u32 = line
+        .trim()
+        .parse()
+        .unwrap_or_else(|_| panic!("Xvfb did not report a display (got {line:?})"));
     let display = format!(":{number}");
-    assert!(x11rb::connect(Some(&display)).is_ok(), "cannot connect to Xvfb on {display}");
+    assert!(
+        x11rb::connect(Some(&display)).is_ok(),
+        "cannot connect to Xvfb on {display}"
+    );
     (guard, display)
 }
 
@@ -72,15 +88,29 @@ fn screenshot(display: &str) -> Option<(usize, usize, Vec<[u8; 3]>)> {
     let (conn, screen_num) = x11rb::connect(Some(display)).ok()?;
     let screen = &conn.setup().roots[screen_num];
     let (w, h) = (screen.width_in_pixels, screen.height_in_pixels);
-    let reply = conn.get_image(ImageFormat::Z_PIXMAP, screen.root, 0, 0, w, h, !0).ok()?.reply().ok()?;
+    let reply = conn
+        .get_image(ImageFormat::Z_PIXMAP, screen.root, 0, 0, w, h, !0)
+        .ok()?
+        .reply()
+        .ok()?;
     // Depth 24 in a 32-bit little-endian pixel: B, G, R, unused.
-    let pixels = reply.data.chunks_exact(4).map(|p| [p[2], p[1], p[0]]).collect::<Vec<_>>();
+    let pixels = reply
+        .data
+        .chunks_exact(4)
+        .map(|p| [p[2], p[1], p[0]])
+        .collect::<Vec<_>>();
     (pixels.len() == w as usize * h as usize).then_some((w as usize, h as usize, pixels))
 }
 
 fn save_png(path: &Path, w: usize, h: usize, pixels: &[[u8; 3]]) {
     let flat: Vec<u8> = pixels.iter().flatten().copied().collect();
-    let _ = image::save_buffer(path, &flat, w as u32, h as u32, image::ExtendedColorType::Rgb8);
+    let _ = image::save_buffer(
+        path,
+        &flat,
+        w as u32,
+        h as u32,
+        image::ExtendedColorType::Rgb8,
+    );
 }
 
 /// Lit pixels inside the 3D view of the default layout (3D over three slices, side panel on
@@ -103,7 +133,15 @@ fn lit_fraction_in_3d_view(w: usize, h: usize, pixels: &[[u8; 3]]) -> f64 {
 
 fn launch_viewer(store: &Path, display: &str, dir: &Path, runtime_dir: &Path) -> Child {
     Command::new(env!("CARGO_BIN_EXE_strata"))
-        .args(["view", &store.display().to_string(), "--fresh", "--exit-after", "150", "--layout", "conventional"])
+        .args([
+            "view",
+            &store.display().to_string(),
+            "--fresh",
+            "--exit-after",
+            "150",
+            "--layout",
+            "conventional",
+        ])
         .arg("--window")
         .arg(format!("{}x{}", SCREEN.0, SCREEN.1))
         .env("DISPLAY", display)
@@ -122,14 +160,20 @@ fn read_stderr(child: &mut Child) -> String {
         let _ = std::io::Read::read_to_string(&mut e, &mut stderr);
     }
     // Lavapipe repeats a harmless warning about XDG_RUNTIME_DIR; keep the rest.
-    stderr.lines().filter(|l| !l.contains("XDG_RUNTIME_DIR")).collect::<Vec<_>>().join("\n")
+    stderr
+        .lines()
+        .filter(|l| !l.contains("XDG_RUNTIME_DIR"))
+        .collect::<Vec<_>>()
+        .join("\n")
 }
 
 #[test]
 fn the_viewer_window_shows_the_volume_and_keeps_running() {
     let dir = tempfile::tempdir().expect("temp dir");
     let store = dir.path().join("phantom.strata");
-    strata_storage::phantom::Phantom::cube(64).write_store(&store, &Default::default()).expect("phantom store");
+    strata_storage::phantom::Phantom::cube(64)
+        .write_store(&store, &Default::default())
+        .expect("phantom store");
     let runtime_dir = dir.path().join("runtime");
     std::fs::create_dir_all(&runtime_dir).expect("runtime dir");
 
@@ -158,7 +202,10 @@ fn the_viewer_window_shows_the_volume_and_keeps_running() {
     let mut last_lit = 0.0;
     loop {
         if let Ok(Some(status)) = viewer.0.try_wait() {
-            panic!("strata exited before showing the volume ({status}):\n{}", read_stderr(&mut viewer.0));
+            panic!(
+                "strata exited before showing the volume ({status}):\n{}",
+                read_stderr(&mut viewer.0)
+            );
         }
         if let Some((w, h, pixels)) = screenshot(&display) {
             last_lit = lit_fraction_in_3d_view(w, h, &pixels);
@@ -167,7 +214,11 @@ fn the_viewer_window_shows_the_volume_and_keeps_running() {
             if last_lit > 0.05 {
                 save_png(&shot_path, w, h, &pixels);
                 let distinct: std::collections::HashSet<[u8; 3]> = pixels.iter().copied().collect();
-                assert!(distinct.len() > 50, "screen has only {} colours", distinct.len());
+                assert!(
+                    distinct.len() > 50,
+                    "screen has only {} colours",
+                    distinct.len()
+                );
                 break;
             }
             if start.elapsed() > Duration::from_secs(120) {
@@ -183,6 +234,13 @@ fn the_viewer_window_shows_the_volume_and_keeps_running() {
     }
     // Still alive after drawing: no crash on the first frames.
     std::thread::sleep(Duration::from_secs(1));
-    assert!(matches!(viewer.0.try_wait(), Ok(None)), "strata died right after its first frames");
-    eprintln!("viewer window screenshot: {} ({:.0}% of the 3D region lit)", shot_path.display(), last_lit * 100.0);
+    assert!(
+        matches!(viewer.0.try_wait(), Ok(None)),
+        "strata died right after its first frames"
+    );
+    eprintln!(
+        "viewer window screenshot: {} ({:.0}% of the 3D region lit)",
+        shot_path.display(),
+        last_lit * 100.0
+    );
 }

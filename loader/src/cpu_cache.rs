@@ -104,12 +104,22 @@ impl CpuBrickCache {
             }
         }
         while self.bytes + bytes > self.budget_bytes {
-            let Some((&tick, _)) = self.by_age.first_key_value() else { break };
+            let Some((&tick, _)) = self.by_age.first_key_value() else {
+                break;
+            };
             self.evict(tick);
         }
         self.tick += 1;
         self.by_age.insert(self.tick, id);
-        self.entries.insert(id, Entry { brick, bytes, tick: self.tick, unused_prefetch: prefetched });
+        self.entries.insert(
+            id,
+            Entry {
+                brick,
+                bytes,
+                tick: self.tick,
+                unused_prefetch: prefetched,
+            },
+        );
         self.bytes += bytes;
         if prefetched {
             self.counters.prefetch_loaded += 1;
@@ -177,6 +187,9 @@ mod tests {
         assert!(!cache.contains(ids[2]) && cache.contains(ids[0]) && cache.contains(ids[1]));
         cache.insert(ids[0], brick(0), true);
         cache.insert(ids[3], brick(3), true);
-        assert!(cache.contains(ids[3]) && !cache.contains(ids[0]), "an unused guess makes room for a newer one");
+        assert!(
+            cache.contains(ids[3]) && !cache.contains(ids[0]),
+            "an unused guess makes room for a newer one"
+        );
     }
 }

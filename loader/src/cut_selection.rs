@@ -103,12 +103,18 @@ pub struct Cut {
 
 impl Cut {
     pub fn data_leaves(&self) -> impl Iterator<Item = BrickId> + '_ {
-        self.leaves.iter().filter(|l| l.kind == LeafKind::Data).map(|l| l.id)
+        self.leaves
+            .iter()
+            .filter(|l| l.kind == LeafKind::Data)
+            .map(|l| l.id)
     }
 
     /// Everything the quality factor asked for is there (GPU slot limits aside).
     pub fn complete(&self) -> bool {
-        self.blocked_by_data == 0 && self.blocked_by_uploads == 0 && self.blocked_by_balance == 0 && self.demand.is_empty()
+        self.blocked_by_data == 0
+            && self.blocked_by_uploads == 0
+            && self.blocked_by_balance == 0
+            && self.demand.is_empty()
     }
 }
 
@@ -137,7 +143,11 @@ impl ViewSetup {
     pub fn new(geometry: &VolumeGeometry, camera: &Camera, settings: &RenderSettings) -> Self {
         let basis = camera.basis();
         let m = geometry.patient_from_index_linear();
-        let dims = DVec3::new(geometry.dims[0] as f64, geometry.dims[1] as f64, geometry.dims[2] as f64);
+        let dims = DVec3::new(
+            geometry.dims[0] as f64,
+            geometry.dims[1] as f64,
+            geometry.dims[2] as f64,
+        );
         let crop_lo = DVec3::from(settings.crop.min.map(|v| v as f64)) * dims - 0.5;
         let crop_hi = DVec3::from(settings.crop.max.map(|v| v as f64)) * dims - 0.5;
         // dot(n, patient(index)) ≥ offset  ⇔  dot(Mᵀn, index) ≥ offset − dot(n, origin).
@@ -171,7 +181,12 @@ impl ViewSetup {
     /// Level-0 index-space box of a node (voxel-cell faces), clipped to the volume.
     pub fn node_box(&self, id: BrickId) -> (DVec3, DVec3) {
         let edge = (BRICK_CORE as f64) * (1u64 << id.level) as f64;
-        let lo = DVec3::new(id.coords[0] as f64, id.coords[1] as f64, id.coords[2] as f64) * edge - 0.5;
+        let lo = DVec3::new(
+            id.coords[0] as f64,
+            id.coords[1] as f64,
+            id.coords[2] as f64,
+        ) * edge
+            - 0.5;
         let hi = (lo + 0.5 + edge).min(self.dims) - 0.5;
         (lo, hi)
     }
@@ -216,7 +231,11 @@ impl ViewSetup {
         let cam: Vec<DVec3> = corners
             .map(|c| {
                 let d = c - self.eye_index;
-                DVec3::new(self.right_row.dot(d), self.up_row.dot(d), self.forward_row.dot(d))
+                DVec3::new(
+                    self.right_row.dot(d),
+                    self.up_row.dot(d),
+                    self.forward_row.dot(d),
+                )
             })
             .collect();
         let outside = |f: &dyn Fn(&DVec3) -> bool| cam.iter().all(f);
@@ -242,7 +261,9 @@ impl ViewSetup {
 enum NodeState {
     Leaf(LeafKind, f64),
     /// Refined; `keeps_slot` when its brick stays on the GPU (every refined node with data).
-    Inner { keeps_slot: bool },
+    Inner {
+        keeps_slot: bool,
+    },
 }
 
 /// Why a refinement did not (fully) happen.
@@ -265,7 +286,9 @@ impl PartialOrd for Queued {
 }
 impl Ord for Queued {
     fn cmp(&self, other: &Self) -> Ordering {
-        self.0.total_cmp(&other.0).then_with(|| other.1.cmp(&self.1))
+        self.0
+            .total_cmp(&other.0)
+            .then_with(|| other.1.cmp(&self.1))
     }
 }
 
@@ -309,13 +332,20 @@ pub fn select_cut<R: Residency>(
     let root_kind = s.classify(root);
     // The pinned root is drawn even when culled or transparent, so the first frame is never
     // blank for the wrong reason; only a wholly empty volume is drawn as empty.
-    let root_kind = if root_kind == LeafKind::Empty { LeafKind::Empty } else { LeafKind::Data };
-    s.nodes.insert(root, NodeState::Leaf(root_kind, root_priority));
+    let root_kind = if root_kind == LeafKind::Empty {
+        LeafKind::Empty
+    } else {
+        LeafKind::Data
+    };
+    s.nodes
+        .insert(root, NodeState::Leaf(root_kind, root_priority));
     if root_kind == LeafKind::Data {
         s.heap.push(Queued(root_priority, root));
     }
     while let Some(Queued(priority, id)) = s.heap.pop() {
-        let Some(NodeState::Leaf(kind, _)) = s.nodes.get(&id).copied() else { continue };
+        let Some(NodeState::Leaf(kind, _)) = s.nodes.get(&id).copied() else {
+            continue;
+        };
         if !matches!(kind, LeafKind::Data | LeafKind::Transparent) || id.level == 0 {
             continue;
         }
@@ -351,7 +381,11 @@ impl<R: Residency> Selection<'_, R> {
         if self.view.is_culled(id) {
             return LeafKind::Culled;
         }
-        if self.octree.own_range(id).is_some_and(|r| self.emptiness.is_empty(r)) {
+        if self
+            .octree
+            .own_range(id)
+            .is_some_and(|r| self.emptiness.is_empty(r))
+        {
             return LeafKind::Transparent;
         }
         LeafKind::Data
@@ -372,8 +406,14 @@ impl<R: Residency> Selection<'_, R> {
 
     fn note_refine_next(&mut self, id: BrickId, priority: f64) {
         for child in self.octree.children(id) {
-            if self.classify(child) == LeafKind::Data && !self.residency.on_gpu(child) && !self.residency.in_cpu(child) {
-                self.cut.refine_next.push(Request { id: child, priority });
+            if self.classify(child) == LeafKind::Data
+                && !self.residency.on_gpu(child)
+                && !self.residency.in_cpu(child)
+            {
+                self.cut.refine_next.push(Request {
+                    id: child,
+                    priority,
+                });
             }
         }
     }
@@ -386,12 +426,21 @@ impl<R: Residency> Selection<'_, R> {
         if id.level == 0 || depth > 2 * self.octree.level_count() {
             return Err(Block::Finest);
         }
-        let Some(NodeState::Leaf(kind, _)) = self.nodes.get(&id).copied() else { return Err(Block::Finest) };
+        let Some(NodeState::Leaf(kind, _)) = self.nodes.get(&id).copied() else {
+            return Err(Block::Finest);
+        };
         // Balance first: children fetched for a refinement that cannot happen yet would only
         // sit in CPU memory and push out bricks that can be used.
         self.balance_neighbours(id, priority, depth)?;
-        let children: Vec<(BrickId, LeafKind)> = self.octree.children(id).map(|c| (c, self.classify(c))).collect();
-        let data_children = children.iter().filter(|(_, k)| *k == LeafKind::Data).count();
+        let children: Vec<(BrickId, LeafKind)> = self
+            .octree
+            .children(id)
+            .map(|c| (c, self.classify(c)))
+            .collect();
+        let data_children = children
+            .iter()
+            .filter(|(_, k)| *k == LeafKind::Data)
+            .count();
         // Refine only if every child with data fits: a half-refined node would hold slots
         // that the next frame's more urgent refinements need.
         if self.slots_used + data_children > self.limits.gpu_slots {
@@ -415,7 +464,10 @@ impl<R: Residency> Selection<'_, R> {
                     }
                     over_upload_budget = true;
                 } else {
-                    self.cut.demand.push(Request { id: child, priority });
+                    self.cut.demand.push(Request {
+                        id: child,
+                        priority,
+                    });
                     missing = true;
                 }
                 (child, LeafKind::Pending)
@@ -463,7 +515,11 @@ impl<R: Residency> Selection<'_, R> {
                     if (dx, dy, dz) == (0, 0, 0) {
                         continue;
                     }
-                    let c = [id.coords[0] as i64 + dx, id.coords[1] as i64 + dy, id.coords[2] as i64 + dz];
+                    let c = [
+                        id.coords[0] as i64 + dx,
+                        id.coords[1] as i64 + dy,
+                        id.coords[2] as i64 + dz,
+                    ];
                     if (0..3).any(|a| c[a] < 0 || c[a] >= n[a] as i64) {
                         continue;
                     }
@@ -472,12 +528,16 @@ impl<R: Residency> Selection<'_, R> {
                         match kind {
                             // A pending leaf is drawn by its parent, one level coarser, and
                             // cannot refine before its brick arrives.
-                            LeafKind::Pending if leaf.level + 1 > id.level => return Err(Block::Balance),
-                            LeafKind::Data if leaf.level > id.level => match self.try_refine(leaf, priority, depth + 1) {
-                                Ok(()) => {}
-                                Err(Block::GpuSlots) => return Err(Block::GpuSlots),
-                                Err(_) => return Err(Block::Balance),
-                            },
+                            LeafKind::Pending if leaf.level + 1 > id.level => {
+                                return Err(Block::Balance)
+                            }
+                            LeafKind::Data if leaf.level > id.level => {
+                                match self.try_refine(leaf, priority, depth + 1) {
+                                    Ok(()) => {}
+                                    Err(Block::GpuSlots) => return Err(Block::GpuSlots),
+                                    Err(_) => return Err(Block::Balance),
+                                }
+                            }
                             // Only sampled leaves need matching levels; a failed brick's
                             // region is allowed to stay coarse next to finer neighbours.
                             _ => break,
@@ -513,17 +573,28 @@ impl<R: Residency> Selection<'_, R> {
             })
             .collect();
         leaves.sort_by(|a, b| b.priority.total_cmp(&a.priority).then(a.id.cmp(&b.id)));
-        self.cut.data_leaves_on_gpu =
-            leaves.iter().filter(|l| l.kind == LeafKind::Data && self.residency.on_gpu(l.id)).count();
+        self.cut.data_leaves_on_gpu = leaves
+            .iter()
+            .filter(|l| l.kind == LeafKind::Data && self.residency.on_gpu(l.id))
+            .count();
         self.cut.leaves = leaves;
 
         let mut seen = HashMap::new();
         self.cut.demand.retain(|r| seen.insert(r.id, ()).is_none());
-        self.cut.demand.sort_by(|a, b| b.priority.total_cmp(&a.priority));
-        let demanded: std::collections::HashSet<BrickId> = self.cut.demand.iter().map(|r| r.id).collect();
-        self.cut.refine_next.retain(|r| !demanded.contains(&r.id) && seen.insert(r.id, ()).is_none());
-        self.cut.refine_next.sort_by(|a, b| b.priority.total_cmp(&a.priority));
-        self.cut.refine_next.truncate(self.limits.prefetch_candidates);
+        self.cut
+            .demand
+            .sort_by(|a, b| b.priority.total_cmp(&a.priority));
+        let demanded: std::collections::HashSet<BrickId> =
+            self.cut.demand.iter().map(|r| r.id).collect();
+        self.cut
+            .refine_next
+            .retain(|r| !demanded.contains(&r.id) && seen.insert(r.id, ()).is_none());
+        self.cut
+            .refine_next
+            .sort_by(|a, b| b.priority.total_cmp(&a.priority));
+        self.cut
+            .refine_next
+            .truncate(self.limits.prefetch_candidates);
         self.cut.slots_needed = self.slots_used;
         self.cut
     }

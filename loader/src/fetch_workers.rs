@@ -119,7 +119,12 @@ pub struct FetchWorkers {
 impl FetchWorkers {
     /// Starts `workers` threads named `strata-fetch-N`. The result channel holds at most
     /// `in_transit` bricks, which bounds the memory between a read and the CPU cache.
-    pub fn start(reader: Arc<dyn BrickReader>, workers: usize, capacity: usize, in_transit: usize) -> Result<Self, LoaderError> {
+    pub fn start(
+        reader: Arc<dyn BrickReader>,
+        workers: usize,
+        capacity: usize,
+        in_transit: usize,
+    ) -> Result<Self, LoaderError> {
         let workers = workers.max(1);
         let shared = Arc::new(Shared {
             state: Mutex::new(QueueState {
@@ -144,7 +149,11 @@ impl FetchWorkers {
                 .map_err(|e| LoaderError::Worker(format!("cannot start fetch thread: {e}")))?;
             threads.push(handle);
         }
-        Ok(FetchWorkers { shared, results: rx, threads })
+        Ok(FetchWorkers {
+            shared,
+            results: rx,
+            threads,
+        })
     }
 
     /// Replaces the queue with this frame's wishes (demand first, then prefetch, each in
@@ -155,7 +164,11 @@ impl FetchWorkers {
         let candidates = demand
             .iter()
             .map(|&(id, p)| (id, RequestClass::Demand, p))
-            .chain(prefetch.iter().map(|&(id, p)| (id, RequestClass::Prefetch, p)));
+            .chain(
+                prefetch
+                    .iter()
+                    .map(|&(id, p)| (id, RequestClass::Prefetch, p)),
+            );
         let mut overflow = 0;
         for (id, class, priority) in candidates {
             if state.in_flight.contains(&id) || wanted.contains_key(&id) {
@@ -167,7 +180,11 @@ impl FetchWorkers {
             }
             wanted.insert(id, (class, priority));
         }
-        let stale = state.queued.keys().filter(|id| !wanted.contains_key(id)).count() as u64;
+        let stale = state
+            .queued
+            .keys()
+            .filter(|id| !wanted.contains_key(id))
+            .count() as u64;
         state.counters.stale_dropped += stale;
         state.counters.overflow_dropped += overflow;
         state.queued = wanted;
@@ -242,7 +259,11 @@ fn worker_loop(shared: &Shared, reader: &dyn BrickReader, results: &Sender<Fetch
                 let best = state
                     .queued
                     .iter()
-                    .max_by(|a, b| (a.1 .0, a.1 .1).partial_cmp(&(b.1 .0, b.1 .1)).unwrap_or(std::cmp::Ordering::Equal))
+                    .max_by(|a, b| {
+                        (a.1 .0, a.1 .1)
+                            .partial_cmp(&(b.1 .0, b.1 .1))
+                            .unwrap_or(std::cmp::Ordering::Equal)
+                    })
                     .map(|(&id, &(class, _))| (id, class));
                 if let Some((id, class)) = best {
                     state.queued.remove(&id);
@@ -258,9 +279,21 @@ fn worker_loop(shared: &Shared, reader: &dyn BrickReader, results: &Sender<Fetch
         };
         shared.busy_workers.fetch_add(1, Ordering::Relaxed);
         let outcome = reader.read_brick(id).map(Arc::new);
-        let stored_bytes = if outcome.is_ok() { reader.stored_brick_bytes(id) } else { 0 };
+        let stored_bytes = if outcome.is_ok() {
+            reader.stored_brick_bytes(id)
+        } else {
+            0
+        };
         shared.busy_workers.fetch_sub(1, Ordering::Relaxed);
-        if results.send(FetchResult { id, class, outcome, stored_bytes }).is_err() {
+        if results
+            .send(FetchResult {
+                id,
+                class,
+                outcome,
+                stored_bytes,
+            })
+            .is_err()
+        {
             return;
         }
     }
@@ -287,8 +320,14 @@ mod tests {
     fn stale_requests_are_dropped_and_the_queue_stays_bounded() {
         let reader = Arc::new(Counting(Mutex::new(Vec::new())));
         let workers = FetchWorkers::start(reader.clone(), 1, 8, 2).unwrap();
-        let ids: Vec<(BrickId, f64)> = (0..100).map(|i| (BrickId::new(0, [i, 0, 0]), i as f64)).collect();
-        assert_eq!(workers.set_requests(&ids, &[]), 8, "capacity bounds the queue");
+        let ids: Vec<(BrickId, f64)> = (0..100)
+            .map(|i| (BrickId::new(0, [i, 0, 0]), i as f64))
+            .collect();
+        assert_eq!(
+            workers.set_requests(&ids, &[]),
+            8,
+            "capacity bounds the queue"
+        );
         assert!(workers.counters().overflow_dropped >= 92);
         // A new view wants something else: the old requests go.
         let other = [(BrickId::new(1, [0, 0, 0]), 1.0)];
@@ -313,7 +352,9 @@ mod tests {
     fn demand_overtakes_prefetch() {
         let reader = Arc::new(Counting(Mutex::new(Vec::new())));
         let workers = FetchWorkers::start(reader.clone(), 1, 16, 2).unwrap();
-        let prefetch: Vec<(BrickId, f64)> = (0..4).map(|i| (BrickId::new(0, [i, 0, 0]), 100.0)).collect();
+        let prefetch: Vec<(BrickId, f64)> = (0..4)
+            .map(|i| (BrickId::new(0, [i, 0, 0]), 100.0))
+            .collect();
         let demand = [(BrickId::new(0, [9, 0, 0]), 0.1)];
         // Occupy the worker first so ordering is decided from a full queue.
         workers.set_requests(&[(BrickId::new(0, [50, 0, 0]), 1.0)], &[]);
@@ -327,6 +368,10 @@ mod tests {
             std::thread::sleep(Duration::from_millis(5));
         }
         let read = reader.0.lock().unwrap().clone();
-        assert_eq!(read.get(1), Some(&BrickId::new(0, [9, 0, 0])), "demand first: {read:?}");
+        assert_eq!(
+            read.get(1),
+            Some(&BrickId::new(0, [9, 0, 0])),
+            "demand first: {read:?}"
+        );
     }
 }

@@ -107,7 +107,11 @@ mod tests {
         slots.touch(id(2), 3);
         assert_eq!(slots.allocate(id(3), 3, false), Some(1));
         assert!(!slots.contains(id(1)) && slots.contains(root));
-        assert_eq!(slots.allocate(id(4), 3, false), None, "all slots in use this frame");
+        assert_eq!(
+            slots.allocate(id(4), 3, false),
+            None,
+            "all slots in use this frame"
+        );
         assert_eq!(slots.per_level(3), vec![2, 0, 1]);
     }
 }

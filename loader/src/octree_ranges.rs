@@ -18,7 +18,10 @@ pub struct StoredRange {
 
 impl StoredRange {
     fn union(self, other: StoredRange) -> StoredRange {
-        StoredRange { min: self.min.min(other.min), max: self.max.max(other.max) }
+        StoredRange {
+            min: self.min.min(other.min),
+            max: self.max.max(other.max),
+        }
     }
 }
 
@@ -36,7 +39,10 @@ pub struct OctreeRanges {
 
 impl OctreeRanges {
     /// `own_range(level, coords)` for every node of a layout with `bricks_per_level[l]` bricks.
-    pub fn from_fn(bricks_per_level: &[[u32; 3]], mut own_range: impl FnMut(u8, [u32; 3]) -> StoredRange) -> Self {
+    pub fn from_fn(
+        bricks_per_level: &[[u32; 3]],
+        mut own_range: impl FnMut(u8, [u32; 3]) -> StoredRange,
+    ) -> Self {
         let mut levels: Vec<LevelRanges> = bricks_per_level
             .iter()
             .enumerate()
@@ -50,7 +56,11 @@ impl OctreeRanges {
                         }
                     }
                 }
-                LevelRanges { bricks, subtree: own.clone(), own }
+                LevelRanges {
+                    bricks,
+                    subtree: own.clone(),
+                    own,
+                }
             })
             .collect();
         for level in 1..levels.len() {
@@ -80,9 +90,16 @@ impl OctreeRanges {
         Self::from_fn(&bricks, |level, coords| {
             // A node missing from the skeleton cannot happen in an opened store; treating it as
             // full-range keeps it visible rather than silently culled.
-            store
-                .node(BrickId::new(level, coords))
-                .map_or(StoredRange { min: 0, max: u16::MAX }, |n| StoredRange { min: n.min, max: n.max })
+            store.node(BrickId::new(level, coords)).map_or(
+                StoredRange {
+                    min: 0,
+                    max: u16::MAX,
+                },
+                |n| StoredRange {
+                    min: n.min,
+                    max: n.max,
+                },
+            )
         })
     }
 
@@ -144,7 +161,10 @@ impl OctreeRanges {
 #[derive(Clone, Copy)]
 pub enum Emptiness<'a> {
     /// DVR and MIP: zero opacity over the whole range.
-    TransferFunction { table: &'a TransferFunctionTable, mapping: ValueMapping },
+    TransferFunction {
+        table: &'a TransferFunctionTable,
+        mapping: ValueMapping,
+    },
     /// Isosurface: the range stays below the iso value.
     Iso { value: f64, mapping: ValueMapping },
 }
@@ -153,11 +173,17 @@ impl Emptiness<'_> {
     pub fn is_empty(&self, range: StoredRange) -> bool {
         match *self {
             Emptiness::TransferFunction { table, mapping } => {
-                let (a, b) = (mapping.physical(range.min as f64), mapping.physical(range.max as f64));
+                let (a, b) = (
+                    mapping.physical(range.min as f64),
+                    mapping.physical(range.max as f64),
+                );
                 table.is_transparent(a.min(b), a.max(b))
             }
             Emptiness::Iso { value, mapping } => {
-                let (a, b) = (mapping.physical(range.min as f64), mapping.physical(range.max as f64));
+                let (a, b) = (
+                    mapping.physical(range.min as f64),
+                    mapping.physical(range.max as f64),
+                );
                 a.max(b) < value
             }
         }
@@ -172,7 +198,10 @@ impl Emptiness<'_> {
         match *self {
             Emptiness::TransferFunction { table, mapping } => {
                 let opacity = |r: StoredRange| {
-                    let (a, b) = (mapping.physical(r.min as f64), mapping.physical(r.max as f64));
+                    let (a, b) = (
+                        mapping.physical(r.min as f64),
+                        mapping.physical(r.max as f64),
+                    );
                     table.source.max_opacity_in(a.min(b), a.max(b))
                 };
                 opacity(subtree) > opacity(own) + 0.05
@@ -190,14 +219,21 @@ mod tests {
     fn subtree_range_keeps_a_peak_that_averaging_hid() {
         // Two levels: 2x1x1 bricks at level 0, one root. The root's own range is narrow, but
         // brick [1,0,0] holds a bright voxel.
-        let ranges = OctreeRanges::from_fn(&[[2, 1, 1], [1, 1, 1]], |level, c| match (level, c[0]) {
-            (1, _) => StoredRange { min: 10, max: 20 },
-            (0, 1) => StoredRange { min: 5, max: 900 },
-            _ => StoredRange { min: 10, max: 12 },
-        });
+        let ranges =
+            OctreeRanges::from_fn(&[[2, 1, 1], [1, 1, 1]], |level, c| match (level, c[0]) {
+                (1, _) => StoredRange { min: 10, max: 20 },
+                (0, 1) => StoredRange { min: 5, max: 900 },
+                _ => StoredRange { min: 10, max: 12 },
+            });
         let root = BrickId::new(1, [0, 0, 0]);
-        assert_eq!(ranges.own_range(root), Some(StoredRange { min: 10, max: 20 }));
-        assert_eq!(ranges.subtree_range(root), Some(StoredRange { min: 5, max: 900 }));
+        assert_eq!(
+            ranges.own_range(root),
+            Some(StoredRange { min: 10, max: 20 })
+        );
+        assert_eq!(
+            ranges.subtree_range(root),
+            Some(StoredRange { min: 5, max: 900 })
+        );
         assert_eq!(ranges.children(root).count(), 2);
         assert_eq!(ranges.page_span(root), ([0, 0, 0], [2, 1, 1]));
     }

@@ -14,7 +14,10 @@ pub struct MotionPredictor {
 
 impl MotionPredictor {
     pub fn new(lookahead_frames: f64) -> Self {
-        MotionPredictor { previous: None, lookahead_frames }
+        MotionPredictor {
+            previous: None,
+            lookahead_frames,
+        }
     }
 
     /// Records this frame's camera; returns where it will be in `lookahead_frames` frames if it
@@ -29,16 +32,24 @@ impl MotionPredictor {
         let (eye, eye_moved) = extrapolate(camera.eye, previous.eye);
         let (target, target_moved) = extrapolate(camera.target, previous.target);
         let projection = match (camera.projection, previous.projection) {
-            (Projection::Orthographic { height_mm: now }, Projection::Orthographic { height_mm: before }) => {
-                Projection::Orthographic { height_mm: (now + (now - before) * k).max(now * 0.25) }
-            }
+            (
+                Projection::Orthographic { height_mm: now },
+                Projection::Orthographic { height_mm: before },
+            ) => Projection::Orthographic {
+                height_mm: (now + (now - before) * k).max(now * 0.25),
+            },
             (p, _) => p,
         };
         let zoomed = projection != camera.projection;
         if eye_moved < 1e-9 && target_moved < 1e-9 && !zoomed {
             return None;
         }
-        Some(Camera { eye: eye.into(), target: target.into(), up: camera.up, projection })
+        Some(Camera {
+            eye: eye.into(),
+            target: target.into(),
+            up: camera.up,
+            projection,
+        })
     }
 }
 
@@ -49,7 +60,14 @@ mod tests {
     #[test]
     fn extrapolates_linear_motion_and_ignores_a_still_camera() {
         let mut p = MotionPredictor::new(4.0);
-        let cam = |x: f64| Camera::look_at([x, 0.0, 0.0], [0.0, 0.0, 100.0], [0.0, 1.0, 0.0], Projection::Perspective { fov_y_deg: 30.0 });
+        let cam = |x: f64| {
+            Camera::look_at(
+                [x, 0.0, 0.0],
+                [0.0, 0.0, 100.0],
+                [0.0, 1.0, 0.0],
+                Projection::Perspective { fov_y_deg: 30.0 },
+            )
+        };
         assert!(p.observe(&cam(0.0)).is_none());
         let predicted = p.observe(&cam(1.0)).expect("moving");
         assert!((predicted.eye[0] - 5.0).abs() < 1e-12);

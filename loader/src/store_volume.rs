@@ -4,8 +4,11 @@
 use std::collections::HashMap;
 
 use rayon::prelude::*;
-use strata_render::{BrickCache, BrickSource, PageEntry, PageTable, TransferFunctionTable, ValueMapping, VolumeGeometry};
-use strata_storage::{BrickId, Store, StorageError, StoreHeader};
+use strata_render::{
+    BrickCache, BrickSource, PageEntry, PageTable, TransferFunctionTable, ValueMapping,
+    VolumeGeometry,
+};
+use strata_storage::{BrickId, StorageError, Store, StoreHeader};
 
 pub use crate::error::LoaderError;
 
@@ -14,13 +17,24 @@ pub fn render_geometry(header: &StoreHeader) -> Result<VolumeGeometry, LoaderErr
     let g = &header.geometry;
     let dims = g.dims.map(|d| u32::try_from(d).unwrap_or(u32::MAX));
     if dims.contains(&u32::MAX) {
-        return Err(LoaderError::Unsupported(format!("volume extent {:?} exceeds the renderer's range", g.dims)));
+        return Err(LoaderError::Unsupported(format!(
+            "volume extent {:?} exceeds the renderer's range",
+            g.dims
+        )));
     }
-    Ok(VolumeGeometry { dims, spacing_mm: g.spacing_mm, origin_lps_mm: g.origin_lps_mm, direction: g.direction })
+    Ok(VolumeGeometry {
+        dims,
+        spacing_mm: g.spacing_mm,
+        origin_lps_mm: g.origin_lps_mm,
+        direction: g.direction,
+    })
 }
 
 pub fn render_mapping(header: &StoreHeader) -> ValueMapping {
-    ValueMapping { slope: header.value_mapping.slope, intercept: header.value_mapping.intercept }
+    ValueMapping {
+        slope: header.value_mapping.slope,
+        intercept: header.value_mapping.intercept,
+    }
 }
 
 /// Bricks of one cut, keyed by (level, node).
@@ -42,7 +56,12 @@ impl ResidentBricks {
             .iter()
             .enumerate()
             .filter(|(_, e)| e.resident)
-            .map(|(i, e)| (e.level, PageTable::node_of(table.page_of_linear(i), e.level)))
+            .map(|(i, e)| {
+                (
+                    e.level,
+                    PageTable::node_of(table.page_of_linear(i), e.level),
+                )
+            })
             .collect();
         nodes.sort_unstable();
         nodes.dedup();
@@ -62,16 +81,24 @@ impl ResidentBricks {
     }
 
     /// Uploads the table's nodes into their slots.
-    pub fn upload(&self, cache: &BrickCache, queue: &wgpu::Queue, table: &PageTable) -> Result<(), LoaderError> {
+    pub fn upload(
+        &self,
+        cache: &BrickCache,
+        queue: &wgpu::Queue,
+        table: &PageTable,
+    ) -> Result<(), LoaderError> {
         let mut done = std::collections::HashSet::new();
         for (i, e) in table.entries.iter().enumerate() {
             if !e.resident || !done.insert(e.slot_in_cache) {
                 continue;
             }
             let node = PageTable::node_of(table.page_of_linear(i), e.level);
-            let payload = self
-                .brick(e.level, node)
-                .ok_or_else(|| LoaderError::Unsupported(format!("node {node:?} of level {} was not loaded", e.level)))?;
+            let payload = self.brick(e.level, node).ok_or_else(|| {
+                LoaderError::Unsupported(format!(
+                    "node {node:?} of level {} was not loaded",
+                    e.level
+                ))
+            })?;
             cache.upload_brick(queue, e.slot_in_cache, payload)?;
         }
         Ok(())
@@ -80,7 +107,11 @@ impl ResidentBricks {
 
 /// A page table whose position `page` is served by level `level_of(page)` (clamped to the
 /// root), with slots assigned densely in first-use order.
-pub fn page_table_for_cut(store: &Store, geometry: &VolumeGeometry, level_of: impl Fn([u32; 3]) -> u8) -> PageTable {
+pub fn page_table_for_cut(
+    store: &Store,
+    geometry: &VolumeGeometry,
+    level_of: impl Fn([u32; 3]) -> u8,
+) -> PageTable {
     let root = (store.layout().level_count() - 1) as u8;
     let mut table = PageTable::new(geometry.page_dims());
     let mut slots: HashMap<(u8, [u32; 3]), u32> = HashMap::new();
@@ -112,8 +143,17 @@ pub fn load_uniform_cut(
 }
 
 /// Flags positions whose node is transparent under the transfer function (skeleton ranges).
-pub fn classify_empty(store: &Store, table: &mut PageTable, mapping: ValueMapping, tf: &TransferFunctionTable) {
-    table.classify_empty(tf, mapping, |level, node| store.node(BrickId::new(level, node)).map(|n| (n.min, n.max)));
+pub fn classify_empty(
+    store: &Store,
+    table: &mut PageTable,
+    mapping: ValueMapping,
+    tf: &TransferFunctionTable,
+) {
+    table.classify_empty(tf, mapping, |level, node| {
+        store
+            .node(BrickId::new(level, node))
+            .map(|n| (n.min, n.max))
+    });
 }
 
 /// A fixed cut resident on the GPU: cache texture, page table, transfer function and raycaster,
@@ -140,11 +180,24 @@ impl GpuCut {
     ) -> Result<GpuCut, LoaderError> {
         // The cache shapes its slots into a 3D grid and may round a count down by up to 3 %;
         // ask for a little more so every brick has a slot.
-        let needed = table.entries.iter().filter(|e| e.resident).map(|e| e.slot_in_cache + 1).max().unwrap_or(1);
-        let config = strata_render::CacheConfig { max_slots: Some(needed + needed / 32 + 8), ..Default::default() };
+        let needed = table
+            .entries
+            .iter()
+            .filter(|e| e.resident)
+            .map(|e| e.slot_in_cache + 1)
+            .max()
+            .unwrap_or(1);
+        let config = strata_render::CacheConfig {
+            max_slots: Some(needed + needed / 32 + 8),
+            ..Default::default()
+        };
         let cache = BrickCache::new(&ctx.device, config)?;
         if cache.slot_count() < needed {
-            return Err(LoaderError::Render(strata_render::RenderError::CacheTooSmall { budget_bytes: config.budget_bytes }));
+            return Err(LoaderError::Render(
+                strata_render::RenderError::CacheTooSmall {
+                    budget_bytes: config.budget_bytes,
+                },
+            ));
         }
         bricks.upload(&cache, &ctx.queue, table)?;
         let page_table = strata_render::GpuPageTable::new(&ctx.device, page_dims, &cache)?;
@@ -160,9 +213,18 @@ impl GpuCut {
                 }
             }
         }
-        let transfer_function = strata_render::GpuTransferFunction::new(&ctx.device, &ctx.queue, tf_table);
+        let transfer_function =
+            strata_render::GpuTransferFunction::new(&ctx.device, &ctx.queue, tf_table);
         let raycaster = strata_render::Raycaster::new(ctx, &cache);
-        Ok(GpuCut { cache, page_table, transfer_function, raycaster, table: table.clone(), node_ranges, bounds_for: None })
+        Ok(GpuCut {
+            cache,
+            page_table,
+            transfer_function,
+            raycaster,
+            table: table.clone(),
+            node_ranges,
+            bounds_for: None,
+        })
     }
 
     /// Renders one frame and waits for it (CLI, tests, benchmarks; the viewer reads back late).
@@ -175,7 +237,9 @@ impl GpuCut {
         settings: &strata_render::RenderSettings,
     ) -> Result<strata_render::FrameReadback, LoaderError> {
         if self.bounds_for != Some(mapping) {
-            let bounds = self.table.value_max_physical(mapping, |level, node| self.node_ranges.get(&(level, node)).copied());
+            let bounds = self.table.value_max_physical(mapping, |level, node| {
+                self.node_ranges.get(&(level, node)).copied()
+            });
             self.page_table.update_value_max(&ctx.queue, &bounds)?;
             self.bounds_for = Some(mapping);
         }

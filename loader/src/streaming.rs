@@ -9,9 +9,9 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use strata_render::{
-    BrickCache, CacheConfig, Camera, FrameReadback, GpuContext, GpuPageTable, GpuTransferFunction, PageEntry, PageTable,
-    Raycaster, RenderMode, RenderSettings, Scene, TransferFunction, TransferFunctionTable, ValueMapping, VolumeGeometry,
-    BRICK_PAYLOAD_VOXELS,
+    BrickCache, CacheConfig, Camera, FrameReadback, GpuContext, GpuPageTable, GpuTransferFunction,
+    PageEntry, PageTable, Raycaster, RenderMode, RenderSettings, Scene, TransferFunction,
+    TransferFunctionTable, ValueMapping, VolumeGeometry, BRICK_PAYLOAD_VOXELS,
 };
 use strata_storage::{BrickId, Store};
 
@@ -171,7 +171,12 @@ pub struct StreamingVolume {
 
 impl StreamingVolume {
     /// Opens `path` with sled's cache sized from `config` and streams from it.
-    pub fn open(ctx: &GpuContext, path: &std::path::Path, tf: &TransferFunction, config: StreamingConfig) -> Result<Self, LoaderError> {
+    pub fn open(
+        ctx: &GpuContext,
+        path: &std::path::Path,
+        tf: &TransferFunction,
+        config: StreamingConfig,
+    ) -> Result<Self, LoaderError> {
         let store = Arc::new(Store::open_with_cache(path, config.sled_cache_bytes)?);
         Self::new(ctx, store.clone(), store, tf, config)
     }
@@ -195,7 +200,11 @@ impl StreamingVolume {
         let cpu = CpuBrickCache::new(config.cpu_cache_budget()?);
         let cache = BrickCache::new(
             &ctx.device,
-            CacheConfig { budget_bytes: config.gpu_budget_bytes, max_slots: config.max_gpu_slots, ..Default::default() },
+            CacheConfig {
+                budget_bytes: config.gpu_budget_bytes,
+                max_slots: config.max_gpu_slots,
+                ..Default::default()
+            },
         )?;
         let mut slots = GpuSlots::new(cache.slot_count());
         let root_brick = reader.read_brick(root)?;
@@ -205,12 +214,19 @@ impl StreamingVolume {
         cache.upload_brick(&ctx.queue, root_slot, &root_brick)?;
         let page_dims = geometry.page_dims();
         let mut page_table = PageTable::new(page_dims);
-        page_table.entries.fill(PageEntry::resident(root_slot, root.level));
+        page_table
+            .entries
+            .fill(PageEntry::resident(root_slot, root.level));
         let gpu_page_table = GpuPageTable::new(&ctx.device, page_dims, &cache)?;
         gpu_page_table.update(&ctx.queue, &page_table)?;
         let transfer_function = GpuTransferFunction::new(&ctx.device, &ctx.queue, &tf_table);
         let raycaster = Raycaster::new(ctx, &cache);
-        let workers = FetchWorkers::start(reader.clone(), config.fetch_threads, config.max_queued_requests, config.bricks_in_transit)?;
+        let workers = FetchWorkers::start(
+            reader.clone(),
+            config.fetch_threads,
+            config.max_queued_requests,
+            config.bricks_in_transit,
+        )?;
         let visibility = PageVisibility::new(&octree, config.visibility_memory_frames);
         Ok(StreamingVolume {
             geometry,
@@ -266,7 +282,11 @@ impl StreamingVolume {
     }
 
     /// New transfer function: emptiness and the cut follow on the next frame.
-    pub fn set_transfer_function(&mut self, ctx: &GpuContext, tf: &TransferFunction) -> Result<(), LoaderError> {
+    pub fn set_transfer_function(
+        &mut self,
+        ctx: &GpuContext,
+        tf: &TransferFunction,
+    ) -> Result<(), LoaderError> {
         tf.validate()?;
         self.tf_table = tf_table_for_range(tf, self.tf_table.lo, self.tf_table.hi);
         self.transfer_function.update(&ctx.queue, &self.tf_table);
@@ -288,7 +308,12 @@ impl StreamingVolume {
     }
 
     /// Runs the loader for one frame and submits it. Never waits for a read or for the GPU.
-    pub fn frame(&mut self, ctx: &GpuContext, camera: &Camera, settings: &RenderSettings) -> Result<FrameStats, LoaderError> {
+    pub fn frame(
+        &mut self,
+        ctx: &GpuContext,
+        camera: &Camera,
+        settings: &RenderSettings,
+    ) -> Result<FrameStats, LoaderError> {
         let started = Instant::now();
         self.frame += 1;
         let frame = self.frame;
@@ -308,8 +333,19 @@ impl StreamingVolume {
         };
         let visibility = self.config.visibility_feedback.then_some(&self.visibility);
         let cut = {
-            let residency = ResidencyView { slots: &self.slots, cpu: &self.cpu, failed: &self.failed };
-            select_cut(&self.octree, &view, emptiness, visibility, &residency, limits)
+            let residency = ResidencyView {
+                slots: &self.slots,
+                cpu: &self.cpu,
+                failed: &self.failed,
+            };
+            select_cut(
+                &self.octree,
+                &view,
+                emptiness,
+                visibility,
+                &residency,
+                limits,
+            )
         };
 
         // Everything this cut shows is protected before any slot is reused.
@@ -321,14 +357,14 @@ impl StreamingVolume {
             self.cpu.note_miss();
         }
         for &id in &cut.uploads {
-            let brick = self
-                .cpu
-                .get_for_use(id)
-                .ok_or_else(|| LoaderError::Inconsistent(format!("brick {id:?} chosen for upload is not in CPU memory")))?;
-            let slot = self
-                .slots
-                .allocate(id, frame, false)
-                .ok_or_else(|| LoaderError::Inconsistent("every GPU slot is in use by this frame".into()))?;
+            let brick = self.cpu.get_for_use(id).ok_or_else(|| {
+                LoaderError::Inconsistent(format!(
+                    "brick {id:?} chosen for upload is not in CPU memory"
+                ))
+            })?;
+            let slot = self.slots.allocate(id, frame, false).ok_or_else(|| {
+                LoaderError::Inconsistent("every GPU slot is in use by this frame".into())
+            })?;
             self.cache.upload_brick(&ctx.queue, slot, &brick)?;
         }
 
@@ -345,9 +381,18 @@ impl StreamingVolume {
         // refinement can use them would evict each other before use and be read again.
         self.working_set.clear();
         self.working_set.push(self.root);
-        self.working_set.extend(cut.data_leaves().chain(cut.resident_inner.iter().copied()).filter(|&id| id != self.root));
+        self.working_set.extend(
+            cut.data_leaves()
+                .chain(cut.resident_inner.iter().copied())
+                .filter(|&id| id != self.root),
+        );
         let demand_limit = ((self.cpu.budget_bytes() / BRICK_BYTES) as usize / 2).max(1);
-        let demand: Vec<(BrickId, f64)> = cut.demand.iter().take(demand_limit).map(|r| (r.id, r.priority)).collect();
+        let demand: Vec<(BrickId, f64)> = cut
+            .demand
+            .iter()
+            .take(demand_limit)
+            .map(|r| (r.id, r.priority))
+            .collect();
         let mut prefetch: Vec<(BrickId, f64)> = Vec::new();
         if self.config.prefetch {
             prefetch.extend(cut.refine_next.iter().map(|r| (r.id, r.priority)));
@@ -378,7 +423,8 @@ impl StreamingVolume {
         self.raycaster.render(ctx, &scene)?;
         self.renders += 1;
 
-        let visibility_seen = !self.config.visibility_feedback || self.visibility.newest_render_frame() >= self.cut_changed_at_render;
+        let visibility_seen = !self.config.visibility_feedback
+            || self.visibility.newest_render_frame() >= self.cut_changed_at_render;
         let converged = cut.complete() && cut.uploads.is_empty() && !rewritten && visibility_seen;
         let stats = self.stats(&cut, fetched, rewritten, converged, loader_seconds);
         self.last_stats = stats.clone();
@@ -389,7 +435,9 @@ impl StreamingVolume {
     /// rays skip pages that cannot beat their running maximum.
     fn write_mip_bounds(&self, ctx: &GpuContext, table: &PageTable) -> Result<(), LoaderError> {
         let bounds = table.value_max_physical(self.mapping, |level, node| {
-            self.octree.own_range(BrickId::new(level, node)).map(|r| (r.min, r.max))
+            self.octree
+                .own_range(BrickId::new(level, node))
+                .map(|r| (r.min, r.max))
         });
         Ok(self.gpu_page_table.update_value_max(&ctx.queue, &bounds)?)
     }
@@ -430,9 +478,16 @@ impl StreamingVolume {
     pub fn check_slot_map(&self) -> Result<(), String> {
         for (i, e) in self.page_table.entries.iter().enumerate() {
             if e.resident && !e.empty {
-                let node = BrickId::new(e.level, PageTable::node_of(self.page_table.page_of_linear(i), e.level));
+                let node = BrickId::new(
+                    e.level,
+                    PageTable::node_of(self.page_table.page_of_linear(i), e.level),
+                );
                 if self.slots.slot_of(node) != Some(e.slot_in_cache) {
-                    return Err(format!("page {i} names {node:?} in slot {}, slot map says {:?}", e.slot_in_cache, self.slots.slot_of(node)));
+                    return Err(format!(
+                        "page {i} names {node:?} in slot {}, slot map says {:?}",
+                        e.slot_in_cache,
+                        self.slots.slot_of(node)
+                    ));
                 }
             }
         }
@@ -445,8 +500,12 @@ impl StreamingVolume {
     pub fn reupload_for_tests(&self, ctx: &GpuContext, store: &Store) -> Result<(), LoaderError> {
         for (i, e) in self.page_table.entries.iter().enumerate() {
             if e.resident && !e.empty {
-                let node = BrickId::new(e.level, PageTable::node_of(self.page_table.page_of_linear(i), e.level));
-                self.cache.upload_brick(&ctx.queue, e.slot_in_cache, &store.read_brick(node)?)?;
+                let node = BrickId::new(
+                    e.level,
+                    PageTable::node_of(self.page_table.page_of_linear(i), e.level),
+                );
+                self.cache
+                    .upload_brick(&ctx.queue, e.slot_in_cache, &store.read_brick(node)?)?;
             }
         }
         self.gpu_page_table.update(&ctx.queue, &self.page_table)?;
@@ -477,7 +536,10 @@ impl StreamingVolume {
             if done {
                 return Ok((image, history));
             }
-            if self.workers.in_flight() > 0 && self.last_stats.uploads == 0 && !self.last_stats.page_table_rewritten {
+            if self.workers.in_flight() > 0
+                && self.last_stats.uploads == 0
+                && !self.last_stats.page_table_rewritten
+            {
                 // Nothing changed on screen this frame; give the workers a moment rather than
                 // spinning the GPU on identical frames.
                 std::thread::sleep(std::time::Duration::from_millis(2));
@@ -493,11 +555,18 @@ impl StreamingVolume {
                 Ok(brick) => {
                     fetched += result.stored_bytes;
                     self.bricks_read += 1;
-                    self.cpu.insert(result.id, brick, result.class == crate::fetch_workers::RequestClass::Prefetch);
+                    self.cpu.insert(
+                        result.id,
+                        brick,
+                        result.class == crate::fetch_workers::RequestClass::Prefetch,
+                    );
                 }
                 Err(e) => {
                     if self.failed.insert(result.id) {
-                        self.new_failures.push(BrickFailure { id: result.id, message: e.to_string() });
+                        self.new_failures.push(BrickFailure {
+                            id: result.id,
+                            message: e.to_string(),
+                        });
                     }
                 }
             }
@@ -506,25 +575,59 @@ impl StreamingVolume {
         fetched
     }
 
-    fn predicted_misses(&self, predicted: &Camera, settings: &RenderSettings, limits: CutLimits) -> Vec<(BrickId, f64)> {
+    fn predicted_misses(
+        &self,
+        predicted: &Camera,
+        settings: &RenderSettings,
+        limits: CutLimits,
+    ) -> Vec<(BrickId, f64)> {
         let view = ViewSetup::new(&self.geometry, predicted, settings);
         let emptiness = emptiness_for(settings, &self.tf_table, self.mapping);
-        let everything = EverythingLoaded { failed: &self.failed };
-        let cut = select_cut(&self.octree, &view, emptiness, None, &everything, CutLimits { uploads: usize::MAX, ..limits });
+        let everything = EverythingLoaded {
+            failed: &self.failed,
+        };
+        let cut = select_cut(
+            &self.octree,
+            &view,
+            emptiness,
+            None,
+            &everything,
+            CutLimits {
+                uploads: usize::MAX,
+                ..limits
+            },
+        );
         cut.leaves
             .iter()
-            .filter(|l| l.kind == LeafKind::Data && !self.slots.contains(l.id) && !self.cpu.contains(l.id))
+            .filter(|l| {
+                l.kind == LeafKind::Data && !self.slots.contains(l.id) && !self.cpu.contains(l.id)
+            })
             .map(|l| (l.id, l.priority))
             .collect()
     }
 
-    fn stats(&mut self, cut: &Cut, fetched: u64, rewritten: bool, converged: bool, loader_seconds: f64) -> FrameStats {
+    fn stats(
+        &mut self,
+        cut: &Cut,
+        fetched: u64,
+        rewritten: bool,
+        converged: bool,
+        loader_seconds: f64,
+    ) -> FrameStats {
         let now = Instant::now();
         self.read_history.push_back((now, fetched));
-        while self.read_history.front().is_some_and(|(t, _)| now.duration_since(*t).as_secs_f64() > 1.0) {
+        while self
+            .read_history
+            .front()
+            .is_some_and(|(t, _)| now.duration_since(*t).as_secs_f64() > 1.0)
+        {
             self.read_history.pop_front();
         }
-        let window = self.read_history.front().map_or(0.0, |(t, _)| now.duration_since(*t).as_secs_f64()).max(1e-3);
+        let window = self
+            .read_history
+            .front()
+            .map_or(0.0, |(t, _)| now.duration_since(*t).as_secs_f64())
+            .max(1e-3);
         let window_bytes: u64 = self.read_history.iter().map(|(_, b)| b).sum();
         let data_leaves = cut.data_leaves().count();
         let slot_bytes = BRICK_PAYLOAD_VOXELS as u64 * self.cache.format.bytes_per_voxel();
@@ -551,7 +654,9 @@ impl StreamingVolume {
             working_set_bricks: cut.slots_needed,
             working_set_bytes: cut.slots_needed as u64 * BRICK_BYTES,
             cpu_cache_bytes: self.cpu.bytes(),
-            cpu_bytes: self.cpu.bytes() + self.config.sled_cache_bytes + self.config.in_transit_bytes(),
+            cpu_bytes: self.cpu.bytes()
+                + self.config.sled_cache_bytes
+                + self.config.in_transit_bytes(),
             cpu_budget_bytes: self.config.cpu_budget_bytes,
             cpu_hit_rate: ratio(cpu_counters.hits, cpu_counters.lookups),
             gpu_hit_rate: ratio(cut.data_leaves_on_gpu as u64, data_leaves as u64),
@@ -572,7 +677,12 @@ impl StreamingVolume {
             prefetch_hit_rate: ratio(cpu_counters.prefetch_used, cpu_counters.prefetch_loaded),
             failed_bricks: self.failed.len(),
             page_table_rewritten: rewritten,
-            blocked: [cut.blocked_by_data, cut.blocked_by_uploads, cut.blocked_by_gpu_slots, cut.blocked_by_balance],
+            blocked: [
+                cut.blocked_by_data,
+                cut.blocked_by_uploads,
+                cut.blocked_by_gpu_slots,
+                cut.blocked_by_balance,
+            ],
             gpu_budget_limited: cut.blocked_by_gpu_slots > 0,
             converged,
         }
@@ -589,8 +699,15 @@ fn ratio(a: u64, b: u64) -> f64 {
 
 /// The TF sampled over the store's physical value range (what the GPU table and the
 /// emptiness prefix sum both use).
-pub fn tf_table_for(tf: &TransferFunction, mapping: ValueMapping, stored_range: [u16; 2]) -> TransferFunctionTable {
-    let (a, b) = (mapping.physical(stored_range[0] as f64), mapping.physical(stored_range[1] as f64));
+pub fn tf_table_for(
+    tf: &TransferFunction,
+    mapping: ValueMapping,
+    stored_range: [u16; 2],
+) -> TransferFunctionTable {
+    let (a, b) = (
+        mapping.physical(stored_range[0] as f64),
+        mapping.physical(stored_range[1] as f64),
+    );
     tf_table_for_range(tf, a.min(b), a.max(b))
 }
 
@@ -598,16 +715,28 @@ fn tf_table_for_range(tf: &TransferFunction, lo: f64, hi: f64) -> TransferFuncti
     tf.table(lo, hi)
 }
 
-fn emptiness_for<'a>(settings: &RenderSettings, table: &'a TransferFunctionTable, mapping: ValueMapping) -> Emptiness<'a> {
+fn emptiness_for<'a>(
+    settings: &RenderSettings,
+    table: &'a TransferFunctionTable,
+    mapping: ValueMapping,
+) -> Emptiness<'a> {
     match settings.mode {
-        RenderMode::Isosurface => Emptiness::Iso { value: settings.iso_value, mapping },
+        RenderMode::Isosurface => Emptiness::Iso {
+            value: settings.iso_value,
+            mapping,
+        },
         RenderMode::Dvr | RenderMode::Mip => Emptiness::TransferFunction { table, mapping },
     }
 }
 
 /// Page entries of a cut: data leaves point at their slot; transparent, empty and culled
 /// leaves are not resident (rays skip them); a failed or pending leaf shows its parent.
-fn build_page_table(octree: &OctreeRanges, slots: &GpuSlots, cut: &Cut, emptiness: &Emptiness) -> Result<PageTable, LoaderError> {
+fn build_page_table(
+    octree: &OctreeRanges,
+    slots: &GpuSlots,
+    cut: &Cut,
+    emptiness: &Emptiness,
+) -> Result<PageTable, LoaderError> {
     let mut table = PageTable::new(octree.page_dims());
     // Leaves without data are "not resident", never "empty" with a borrowed slot: the
     // raycaster may still sample a page flagged empty (a coarse step landing in it), which is
@@ -618,19 +747,26 @@ fn build_page_table(octree: &OctreeRanges, slots: &GpuSlots, cut: &Cut, emptines
     for leaf in &cut.leaves {
         let entry = match leaf.kind {
             LeafKind::Data => {
-                let slot = slots
-                    .slot_of(leaf.id)
-                    .ok_or_else(|| LoaderError::Inconsistent(format!("data leaf {:?} has no GPU slot", leaf.id)))?;
-                PageEntry { slot_in_cache: slot, level: leaf.id.level, empty: own_empty(leaf.id), resident: true }
+                let slot = slots.slot_of(leaf.id).ok_or_else(|| {
+                    LoaderError::Inconsistent(format!("data leaf {:?} has no GPU slot", leaf.id))
+                })?;
+                PageEntry {
+                    slot_in_cache: slot,
+                    level: leaf.id.level,
+                    empty: own_empty(leaf.id),
+                    resident: true,
+                }
             }
             LeafKind::Transparent | LeafKind::Empty => skipped(leaf.id.level),
             LeafKind::Culled => PageEntry::NOT_RESIDENT,
             LeafKind::Failed | LeafKind::Pending => {
                 let parent = leaf.id.parent();
-                *memo.entry(parent).or_insert_with(|| match slots.slot_of(parent) {
-                    Some(slot) if !own_empty(parent) => PageEntry::resident(slot, parent.level),
-                    _ => skipped(parent.level),
-                })
+                *memo
+                    .entry(parent)
+                    .or_insert_with(|| match slots.slot_of(parent) {
+                        Some(slot) if !own_empty(parent) => PageEntry::resident(slot, parent.level),
+                        _ => skipped(parent.level),
+                    })
             }
         };
         let (lo, hi) = octree.page_span(leaf.id);
@@ -645,11 +781,14 @@ fn build_page_table(octree: &OctreeRanges, slots: &GpuSlots, cut: &Cut, emptines
     // Rays skip an empty entry, so it must be empty over every value sampled there, which
     // includes the coarser neighbours' field blended into its transition bands.
     let sampled = table.sampled_ranges(|level, node| {
-        octree.own_range(BrickId::new(level, node)).map(|r| (r.min, r.max))
+        octree
+            .own_range(BrickId::new(level, node))
+            .map(|r| (r.min, r.max))
     });
     for (entry, range) in table.entries.iter_mut().zip(sampled) {
         if entry.resident && entry.empty {
-            entry.empty = range.is_some_and(|(min, max)| emptiness.is_empty(StoredRange { min, max }));
+            entry.empty =
+                range.is_some_and(|(min, max)| emptiness.is_empty(StoredRange { min, max }));
         }
     }
     Ok(table)

@@ -28,7 +28,9 @@ impl PageVisibility {
     pub fn new(octree: &OctreeRanges, memory_frames: u64) -> Self {
         let page_dims = octree.page_dims();
         let pages = page_dims.iter().map(|&d| d as usize).product();
-        let level_bricks: Vec<[u32; 3]> = (0..octree.level_count()).map(|l| octree.bricks_in_level(l)).collect();
+        let level_bricks: Vec<[u32; 3]> = (0..octree.level_count())
+            .map(|l| octree.bricks_in_level(l))
+            .collect();
         PageVisibility {
             page_dims,
             last_visible: vec![0; pages],
@@ -67,7 +69,11 @@ impl PageVisibility {
     fn rebuild_pyramid(&mut self) {
         let now = self.frames_received;
         let memory = self.memory_frames;
-        let level0: Vec<bool> = self.last_visible.iter().map(|&t| t > 0 && now - t < memory).collect();
+        let level0: Vec<bool> = self
+            .last_visible
+            .iter()
+            .map(|&t| t > 0 && now - t < memory)
+            .collect();
         let mut pyramid = vec![level0];
         for level in 1..self.level_bricks.len() {
             let [cx, cy, cz] = self.level_bricks[level - 1];
@@ -90,14 +96,21 @@ impl PageVisibility {
 
     /// Before any feedback everything counts as visible, so the first frames refine normally.
     pub fn is_visible(&self, id: BrickId) -> bool {
-        let Some(level) = self.pyramid.get(id.level as usize) else { return true };
+        let Some(level) = self.pyramid.get(id.level as usize) else {
+            return true;
+        };
         let [bx, by, _] = self.level_bricks[id.level as usize];
         let [x, y, z] = id.coords;
-        level.get((x + bx * (y + by * z)) as usize).copied().unwrap_or(true)
+        level
+            .get((x + bx * (y + by * z)) as usize)
+            .copied()
+            .unwrap_or(true)
     }
 
     pub fn visible_pages(&self) -> usize {
-        self.pyramid.first().map_or(0, |p| p.iter().filter(|&&v| v).count())
+        self.pyramid
+            .first()
+            .map_or(0, |p| p.iter().filter(|&&v| v).count())
     }
 
     pub fn page_dims(&self) -> [u32; 3] {
@@ -112,7 +125,10 @@ mod tests {
 
     #[test]
     fn marks_propagate_up_and_age_out() {
-        let octree = OctreeRanges::from_fn(&[[2, 2, 2], [1, 1, 1]], |_, _| StoredRange { min: 0, max: 1 });
+        let octree = OctreeRanges::from_fn(&[[2, 2, 2], [1, 1, 1]], |_, _| StoredRange {
+            min: 0,
+            max: 1,
+        });
         let mut vis = PageVisibility::new(&octree, 2);
         let leaf = BrickId::new(0, [1, 0, 0]);
         let other = BrickId::new(0, [0, 1, 0]);
@@ -121,12 +137,18 @@ mod tests {
         marks[1] = 1;
         vis.record(1, &marks);
         assert!(vis.is_visible(leaf) && !vis.is_visible(other));
-        assert!(vis.is_visible(BrickId::new(1, [0, 0, 0])), "parent of a visible page is visible");
+        assert!(
+            vis.is_visible(BrickId::new(1, [0, 0, 0])),
+            "parent of a visible page is visible"
+        );
         vis.record(2, &[0; 8]);
         assert!(vis.is_visible(leaf), "remembered for memory_frames");
         vis.record(3, &[0; 8]);
         assert!(!vis.is_visible(leaf), "aged out");
         vis.record(3, &marks);
-        assert!(!vis.is_visible(leaf), "an older or repeated frame is ignored");
+        assert!(
+            !vis.is_visible(leaf),
+            "an older or repeated frame is ignored"
+        );
     }
 }

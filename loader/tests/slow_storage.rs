@@ -18,7 +18,10 @@ fn slow_storage_does_not_slow_frames_and_still_converges() {
     let tf = bone();
     let s = settings(128);
     let camera = orbit(&store, 30.0, 20.0, 1.0);
-    let config = StreamingConfig { max_voxel_pixels: 0.25, ..config() };
+    let config = StreamingConfig {
+        max_voxel_pixels: 0.25,
+        ..config()
+    };
 
     // Baseline: the same view from fast storage, converged, then timed on a still cut.
     let mut fast = stream(&ctx, &store, &tf, config.clone());
@@ -32,7 +35,10 @@ fn slow_storage_does_not_slow_frames_and_still_converges() {
     }
 
     let delay = Duration::from_millis(50);
-    let reader = Arc::new(SlowReader { inner: store.clone(), delay });
+    let reader = Arc::new(SlowReader {
+        inner: store.clone(),
+        delay,
+    });
     let mut slow = StreamingVolume::new(&ctx, store.clone(), reader, &tf, config).unwrap();
     let started = Instant::now();
     let mut slow_frames = Vec::new();
@@ -51,18 +57,36 @@ fn slow_storage_does_not_slow_frames_and_still_converges() {
             break;
         }
     }
-    let converged_image = converged_image.unwrap_or_else(|| panic!("did not converge in 60 s: {:#?}", slow.last_stats()));
+    let converged_image = converged_image
+        .unwrap_or_else(|| panic!("did not converge in 60 s: {:#?}", slow.last_stats()));
     // No frame's loader work came near one read: it never waited for storage.
-    assert!(loader_max < delay.as_secs_f64() / 2.0, "loader took {loader_max:.4} s in a frame");
+    assert!(
+        loader_max < delay.as_secs_f64() / 2.0,
+        "loader took {loader_max:.4} s in a frame"
+    );
     // Frame times stay those of fast storage: the median within 1.5× (+3 ms of scheduling
     // noise) and no frame as long as two reads.
     let fast_median = strata_loader::Distribution::of(&fast_frames).p50;
     // The first frame of a new volume compiles its raycast pipeline; that is not I/O.
     let slow_dist = strata_loader::Distribution::of(&slow_frames[1..]);
-    assert!(slow_dist.p50 <= 1.5 * fast_median + 0.003, "median frame {:.4} s vs {fast_median:.4} s", slow_dist.p50);
-    assert!(slow_dist.max < fast_median + 2.0 * delay.as_secs_f64(), "{slow_dist:?} vs {fast_median:.4} s");
+    assert!(
+        slow_dist.p50 <= 1.5 * fast_median + 0.003,
+        "median frame {:.4} s vs {fast_median:.4} s",
+        slow_dist.p50
+    );
+    assert!(
+        slow_dist.max < fast_median + 2.0 * delay.as_secs_f64(),
+        "{slow_dist:?} vs {fast_median:.4} s"
+    );
     // It refined over many frames (reads arrive one by one) and ended at the same image.
-    assert!(frames_with_new_data >= 3 && slow_frames.len() > 10, "{frames_with_new_data} refinements in {} frames", slow_frames.len());
+    assert!(
+        frames_with_new_data >= 3 && slow_frames.len() > 10,
+        "{frames_with_new_data} refinements in {} frames",
+        slow_frames.len()
+    );
     let c = compare_rgba8(&converged_image, &fast_image).unwrap();
-    assert!(c.psnr_db >= 45.0, "slow-storage image differs from fast: {c:?}");
+    assert!(
+        c.psnr_db >= 45.0,
+        "slow-storage image differs from fast: {c:?}"
+    );
 }

@@ -22,17 +22,30 @@ fn converged_image_equals_everything_loaded_up_front() {
     let s = settings(256);
     let camera = orbit(&store, 30.0, 20.0, 1.0);
     // A quality factor that asks for level 0 wherever something is visible.
-    let config = StreamingConfig { max_voxel_pixels: 0.25, ..config() };
+    let config = StreamingConfig {
+        max_voxel_pixels: 0.25,
+        ..config()
+    };
     let mut volume = stream(&ctx, &store, &tf, config.clone());
     let (streamed, history) = converge(&ctx, &mut volume, &camera, &s, 300);
     let reference = up_front(&ctx, &store, 0, &tf, &camera, &s);
     let c = compare_rgba8(&streamed, &reference).unwrap();
     assert!(c.psnr_db >= 45.0, "streamed vs up-front: {c:?}");
-    assert!(covered_pixels(&streamed) > 256 * 256 / 20, "image nearly empty");
+    assert!(
+        covered_pixels(&streamed) > 256 * 256 / 20,
+        "image nearly empty"
+    );
     let last = history.last().unwrap();
-    assert!(last.gpu_resident_per_level[0] > 0, "level 0 never loaded: {last:#?}");
+    assert!(
+        last.gpu_resident_per_level[0] > 0,
+        "level 0 never loaded: {last:#?}"
+    );
     // Emptiness culling: the air around the body is never loaded at level 0.
-    assert!(last.data_leaves < 64, "{} data leaves of 64 level-0 bricks", last.data_leaves);
+    assert!(
+        last.data_leaves < 64,
+        "{} data leaves of 64 level-0 bricks",
+        last.data_leaves
+    );
     // Close up from the side: thin ribs and the wire at the image edge, where averaging blurs
     // them out of coarse levels and the feedback alone would never ask for level 0.
     let close = orbit(&store, 90.0, -5.0, 3.5);
@@ -70,7 +83,9 @@ fn budgets_hold_along_a_scripted_camera_path() {
         max_gpu_slots: Some(slots),
         // sled 1 MiB, 2 bricks being read + 4 in transit, and room for 64 decompressed bricks.
         bricks_in_transit: 4,
-        cpu_budget_bytes: (1 << 20) + 6 * strata_loader::streaming::BRICK_BYTES + 64 * strata_loader::streaming::BRICK_BYTES,
+        cpu_budget_bytes: (1 << 20)
+            + 6 * strata_loader::streaming::BRICK_BYTES
+            + 64 * strata_loader::streaming::BRICK_BYTES,
         sled_cache_bytes: 1 << 20,
         uploads_per_frame: uploads,
         max_voxel_pixels: 0.5,
@@ -87,23 +102,39 @@ fn budgets_hold_along_a_scripted_camera_path() {
         let t = (stop + glide) / 4.0;
         let camera = orbit(&store, -40.0 + 120.0 * t, 10.0 + 20.0 * t, 1.0 + 2.0 * t);
         let stats = volume.frame(&ctx, &camera, &s).unwrap();
-        assert!(stats.gpu_slots_used <= slots as usize && stats.gpu_slots_capacity == slots as usize, "{stats:#?}");
+        assert!(
+            stats.gpu_slots_used <= slots as usize && stats.gpu_slots_capacity == slots as usize,
+            "{stats:#?}"
+        );
         assert!(stats.data_leaves <= slots as usize, "{stats:#?}");
         assert!(stats.cpu_bytes <= stats.cpu_budget_bytes, "{stats:#?}");
         assert!(stats.uploads <= uploads, "{stats:#?}");
         // Queued requests are bounded by the queue; in flight: one per worker being read plus
         // the result channel.
-        assert!(stats.queued <= stats.queue_capacity && stats.in_flight <= 2 + 4, "{stats:#?}");
+        assert!(
+            stats.queued <= stats.queue_capacity && stats.in_flight <= 2 + 4,
+            "{stats:#?}"
+        );
         check_page_table_points_at_resident_slots(volume.page_table(), slots);
-        volume.check_slot_map().unwrap_or_else(|e| panic!("frame {frame}: {e}"));
+        volume
+            .check_slot_map()
+            .unwrap_or_else(|e| panic!("frame {frame}: {e}"));
         let image = volume.read_frame_blocking(&ctx).unwrap();
-        assert!(covered_pixels(&image.rgba) > 100, "frame {frame} nearly empty");
-        if frame % 10 == 0 { eprintln!("frame {frame}: {:?} conv {} slots {} data {} blocked {} pending {} cpu {} read {} per-level {:?}", stats.blocked, stats.converged, stats.gpu_slots_used, stats.data_leaves, stats.gpu_budget_limited, stats.pending, stats.cpu_bytes, stats.bricks_read_total, stats.gpu_resident_per_level); }
+        assert!(
+            covered_pixels(&image.rgba) > 100,
+            "frame {frame} nearly empty"
+        );
+        if frame % 10 == 0 {
+            eprintln!("frame {frame}: {:?} conv {} slots {} data {} blocked {} pending {} cpu {} read {} per-level {:?}", stats.blocked, stats.converged, stats.gpu_slots_used, stats.data_leaves, stats.gpu_budget_limited, stats.pending, stats.cpu_bytes, stats.bricks_read_total, stats.gpu_resident_per_level);
+        }
         limited |= stats.gpu_budget_limited;
         max_level0 = max_level0.max(stats.gpu_resident_per_level[0]);
         std::thread::sleep(std::time::Duration::from_millis(5));
     }
-    assert!(limited, "the path never hit the GPU slot budget; the test would not notice a leak");
+    assert!(
+        limited,
+        "the path never hit the GPU slot budget; the test would not notice a leak"
+    );
     assert!(max_level0 > 0, "never refined to level 0");
 }
 
@@ -125,11 +156,20 @@ fn visibility_feedback_shrinks_the_opaque_working_set() {
     // From the side at mid-height: the body's cut ends (the volume's top and bottom) are edge-on.
     let camera = orbit(&store, 0.0, 0.0, 1.0);
     let run = |feedback: bool| {
-        let config = StreamingConfig { visibility_feedback: feedback, max_voxel_pixels: 0.25, ..config() };
+        let config = StreamingConfig {
+            visibility_feedback: feedback,
+            max_voxel_pixels: 0.25,
+            ..config()
+        };
         let mut volume = stream(&ctx, &store, &tf, config);
         let (image, history) = converge(&ctx, &mut volume, &camera, &s, 300);
         let last = history.last().unwrap();
-        eprintln!("feedback {feedback}: leaves per level {:?}, working set {} bricks, {} frames", last.data_leaves_per_level, last.working_set_bricks, history.len());
+        eprintln!(
+            "feedback {feedback}: leaves per level {:?}, working set {} bricks, {} frames",
+            last.data_leaves_per_level,
+            last.working_set_bricks,
+            history.len()
+        );
         (image, last.working_set_bricks)
     };
     let (without_image, without) = run(false);
@@ -152,19 +192,37 @@ fn rapid_view_changes_keep_the_queue_bounded_and_drop_stale_requests() {
     let tf = bone();
     let s = settings(128);
     let capacity = 8;
-    let reader = std::sync::Arc::new(strata_loader::SlowReader { inner: store.clone(), delay: std::time::Duration::from_millis(20) });
-    let config = StreamingConfig { max_queued_requests: capacity, max_voxel_pixels: 0.25, fetch_threads: 1, bricks_in_transit: 2, ..config() };
-    let mut volume = strata_loader::StreamingVolume::new(&ctx, store.clone(), reader, &tf, config).unwrap();
+    let reader = std::sync::Arc::new(strata_loader::SlowReader {
+        inner: store.clone(),
+        delay: std::time::Duration::from_millis(20),
+    });
+    let config = StreamingConfig {
+        max_queued_requests: capacity,
+        max_voxel_pixels: 0.25,
+        fetch_threads: 1,
+        bricks_in_transit: 2,
+        ..config()
+    };
+    let mut volume =
+        strata_loader::StreamingVolume::new(&ctx, store.clone(), reader, &tf, config).unwrap();
     // Jump around the volume every frame: each view wants different bricks.
     for frame in 0..40 {
-        let camera = orbit(&store, (frame * 97 % 360) as f64, ((frame * 37) % 120) as f64 - 60.0, 1.0 + (frame % 3) as f64);
+        let camera = orbit(
+            &store,
+            (frame * 97 % 360) as f64,
+            ((frame * 37) % 120) as f64 - 60.0,
+            1.0 + (frame % 3) as f64,
+        );
         let stats = volume.frame(&ctx, &camera, &s).unwrap();
         assert!(stats.queued <= capacity, "{stats:#?}");
         assert!(stats.in_flight <= 1 + 2, "{stats:#?}");
         volume.read_frame_blocking(&ctx).unwrap();
     }
     let stats = volume.last_stats().clone();
-    assert!(stats.stale_dropped_total > 0, "no stale request was dropped: {stats:#?}");
+    assert!(
+        stats.stale_dropped_total > 0,
+        "no stale request was dropped: {stats:#?}"
+    );
     // Every read is one the loader still wanted when it started: far fewer than were asked for.
     assert!(stats.bricks_read_total < 40 * capacity as u64, "{stats:#?}");
     // Holding still converges.
@@ -185,7 +243,11 @@ fn corrupted_brick_is_reported_once_and_its_parent_keeps_serving() {
     let tf = bone();
     let s = settings(128);
     let camera = orbit(&store, 30.0, 20.0, 1.5);
-    let config = StreamingConfig { max_voxel_pixels: 0.1, visibility_feedback: false, ..config() };
+    let config = StreamingConfig {
+        max_voxel_pixels: 0.1,
+        visibility_feedback: false,
+        ..config()
+    };
     let mut volume = stream(&ctx, &store, &tf, config);
     let mut failures = Vec::new();
     let mut converged = false;
@@ -207,10 +269,20 @@ fn corrupted_brick_is_reported_once_and_its_parent_keeps_serving() {
     }
     assert_eq!(failures.len(), 1, "{failures:?}");
     assert_eq!(failures[0].id, broken);
-    assert!(failures[0].message.contains("brick"), "{}", failures[0].message);
+    assert!(
+        failures[0].message.contains("brick"),
+        "{}",
+        failures[0].message
+    );
     let table = volume.page_table();
     let served = table.get([1, 1, 1]);
-    assert!(served.resident && served.level == 1, "broken page served by {served:?}");
+    assert!(
+        served.resident && served.level == 1,
+        "broken page served by {served:?}"
+    );
     let neighbour = table.get([1, 1, 0]);
-    assert!(!neighbour.resident || neighbour.empty || neighbour.level == 0, "neighbour at {neighbour:?}");
+    assert!(
+        !neighbour.resident || neighbour.empty || neighbour.level == 0,
+        "neighbour at {neighbour:?}"
+    );
 }

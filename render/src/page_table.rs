@@ -290,7 +290,15 @@ mod tests {
             _ => None,
         };
         let r = t.sampled_ranges(range);
-        assert_eq!(r, vec![Some((0, 10)), Some((5, 200)), Some((100, 200)), Some((100, 200))]);
+        assert_eq!(
+            r,
+            vec![
+                Some((0, 10)),
+                Some((5, 200)),
+                Some((100, 200)),
+                Some((100, 200))
+            ]
+        );
         // Unknown neighbour range: unknown, so never classified empty.
         let r = t.sampled_ranges(|level, node| (level == 0).then_some((0, node[0] as u16)));
         assert_eq!(r[0], Some((0, 0)));

@@ -364,7 +364,11 @@ mod tests {
         let edge = 1 << neighbour_bit([-1, 1, 0]);
         let c = near_side_closure(edge);
         for s in neighbour_offsets() {
-            assert_eq!(c & (1 << neighbour_bit(s)) != 0, s[0] == -1 && s[1] == 1, "{s:?}");
+            assert_eq!(
+                c & (1 << neighbour_bit(s)) != 0,
+                s[0] == -1 && s[1] == 1,
+                "{s:?}"
+            );
         }
         assert_eq!(near_side_closure(0), 0);
     }

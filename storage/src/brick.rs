@@ -29,8 +29,13 @@ pub fn brick_id_from_key(key: &[u8]) -> Option<BrickId> {
     if key.len() != 13 {
         return None;
     }
-    let be = |r: std::ops::Range<usize>| -> Option<u32> { Some(u32::from_be_bytes(key[r].try_into().ok()?)) };
-    Some(BrickId { level: key[0], coords: [be(9..13)?, be(5..9)?, be(1..5)?] })
+    let be = |r: std::ops::Range<usize>| -> Option<u32> {
+        Some(u32::from_be_bytes(key[r].try_into().ok()?))
+    };
+    Some(BrickId {
+        level: key[0],
+        coords: [be(9..13)?, be(5..9)?, be(1..5)?],
+    })
 }
 
 fn checksum(key: &[u8], body: &[u8]) -> u64 {
@@ -75,7 +80,10 @@ pub fn encode_brick(id: BrickId, voxels: &[u16], range: ValueRange, narrow: bool
         let bytes: Vec<u8> = voxels.iter().map(|&v| v as u8).collect();
         (KIND_U8, lz4_flex::block::compress_prepend_size(&bytes))
     } else {
-        (KIND_U16, lz4_flex::block::compress_prepend_size(&u16_le_bytes(voxels)))
+        (
+            KIND_U16,
+            lz4_flex::block::compress_prepend_size(&u16_le_bytes(voxels)),
+        )
     };
     let mut out = Vec::with_capacity(HEADER_LEN + body.len());
     out.push(kind);
@@ -99,11 +107,16 @@ impl std::fmt::Display for BrickDecodeError {
         match self {
             BrickDecodeError::TooShort => write!(f, "record too short"),
             BrickDecodeError::ChecksumMismatch { expected, actual } => {
-                write!(f, "checksum mismatch (stored {expected:016x}, computed {actual:016x})")
+                write!(
+                    f,
+                    "checksum mismatch (stored {expected:016x}, computed {actual:016x})"
+                )
             }
             BrickDecodeError::UnknownKind(k) => write!(f, "unknown brick kind {k}"),
             BrickDecodeError::Decompress(e) => write!(f, "lz4 decompression failed: {e}"),
-            BrickDecodeError::WrongSize(n) => write!(f, "decoded {n} voxels, expected {BRICK_VOXELS}"),
+            BrickDecodeError::WrongSize(n) => {
+                write!(f, "decoded {n} voxels, expected {BRICK_VOXELS}")
+            }
         }
     }
 }
@@ -141,7 +154,10 @@ pub fn decode_brick(id: BrickId, record: &[u8]) -> Result<Vec<u16>, BrickDecodeE
             if bytes.len() != BRICK_VOXELS * 2 {
                 return Err(BrickDecodeError::WrongSize(bytes.len() / 2));
             }
-            Ok(bytes.chunks_exact(2).map(|c| u16::from_le_bytes([c[0], c[1]])).collect())
+            Ok(bytes
+                .chunks_exact(2)
+                .map(|c| u16::from_le_bytes([c[0], c[1]]))
+                .collect())
         }
         other => Err(BrickDecodeError::UnknownKind(other)),
     }
@@ -166,7 +182,9 @@ pub fn extract_brick<'a>(
     // hot loop a gather.
     let x_interior = x0 >= 0 && x0 + BRICK_EDGE as i64 <= nx as i64;
     // Column indices only matter at the volume's x edges; interior rows are one contiguous copy.
-    let xs: Vec<usize> = (0..BRICK_EDGE as i64).map(|dx| clamp(x0 + dx, nx) as usize).collect();
+    let xs: Vec<usize> = (0..BRICK_EDGE as i64)
+        .map(|dx| clamp(x0 + dx, nx) as usize)
+        .collect();
     for dz in 0..BRICK_EDGE as i64 {
         let slice = slice_at(clamp(z0 + dz, nz));
         for dy in 0..BRICK_EDGE as i64 {
@@ -199,7 +217,10 @@ mod tests {
         for pos in [0usize, 3, 9, rec.len() / 2, rec.len() - 1] {
             let mut bad = rec.clone();
             bad[pos] ^= 0x10;
-            assert!(decode_brick(id, &bad).is_err(), "flip at {pos} not detected");
+            assert!(
+                decode_brick(id, &bad).is_err(),
+                "flip at {pos} not detected"
+            );
         }
         // The same record under another key is caught too.
         assert!(matches!(
@@ -213,7 +234,11 @@ mod tests {
         let id = BrickId::new(0, [0, 0, 0]);
         let c = vec![77u16; BRICK_VOXELS];
         let rec = encode_brick(id, &c, value_range(&c), false);
-        assert!(rec.len() < 16, "constant brick stored as marker, got {} bytes", rec.len());
+        assert!(
+            rec.len() < 16,
+            "constant brick stored as marker, got {} bytes",
+            rec.len()
+        );
         assert_eq!(decode_brick(id, &rec).unwrap(), c);
         let n: Vec<u16> = (0..BRICK_VOXELS).map(|i| (i % 251) as u16).collect();
         let rec = encode_brick(id, &n, value_range(&n), true);

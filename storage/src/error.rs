@@ -6,7 +6,10 @@ pub type Result<T, E = StorageError> = std::result::Result<T, E>;
 #[derive(Debug, thiserror::Error)]
 pub enum StorageError {
     #[error("{path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
 
     #[error("{path}: {message}")]
     InvalidInput { path: PathBuf, message: String },
@@ -32,18 +35,33 @@ pub enum StorageError {
 
 impl StorageError {
     pub fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
-        StorageError::Io { path: path.into(), source }
+        StorageError::Io {
+            path: path.into(),
+            source,
+        }
     }
     pub fn invalid(path: impl Into<PathBuf>, message: impl Into<String>) -> Self {
-        StorageError::InvalidInput { path: path.into(), message: message.into() }
+        StorageError::InvalidInput {
+            path: path.into(),
+            message: message.into(),
+        }
     }
     pub fn unsupported(path: impl Into<PathBuf>, message: impl Into<String>) -> Self {
-        StorageError::Unsupported { path: path.into(), message: message.into() }
+        StorageError::Unsupported {
+            path: path.into(),
+            message: message.into(),
+        }
     }
     pub fn corrupted(path: impl Into<PathBuf>, message: impl Into<String>) -> Self {
-        StorageError::Corrupted { path: path.into(), message: message.into() }
+        StorageError::Corrupted {
+            path: path.into(),
+            message: message.into(),
+        }
     }
     pub fn db(path: impl Into<PathBuf>, source: sled::Error) -> Self {
-        StorageError::Database { path: path.into(), source }
+        StorageError::Database {
+            path: path.into(),
+            source,
+        }
     }
 }

@@ -81,38 +81,61 @@ impl Geometry {
     /// degenerate direction cosines. `path` names the file in the error.
     pub fn validate(&self, path: &Path) -> Result<()> {
         if self.dims.iter().any(|&d| d == 0) {
-            return Err(StorageError::invalid(path, format!("zero dimension in {:?}", self.dims)));
+            return Err(StorageError::invalid(
+                path,
+                format!("zero dimension in {:?}", self.dims),
+            ));
         }
         if self.dims.iter().any(|&d| d > MAX_AXIS_VOXELS)
-            || self.dims.iter().try_fold(1u64, |acc, &d| acc.checked_mul(d)).map_or(true, |n| n > MAX_TOTAL_VOXELS)
+            || self
+                .dims
+                .iter()
+                .try_fold(1u64, |acc, &d| acc.checked_mul(d))
+                .map_or(true, |n| n > MAX_TOTAL_VOXELS)
         {
-            return Err(StorageError::invalid(path, format!("absurd dimensions {:?}", self.dims)));
+            return Err(StorageError::invalid(
+                path,
+                format!("absurd dimensions {:?}", self.dims),
+            ));
         }
         if self.spacing_mm.iter().any(|s| !s.is_finite() || *s <= 0.0) {
             return Err(StorageError::invalid(
                 path,
-                format!("voxel spacing must be finite and positive, got {:?}", self.spacing_mm),
+                format!(
+                    "voxel spacing must be finite and positive, got {:?}",
+                    self.spacing_mm
+                ),
             ));
         }
         if self.origin_lps_mm.iter().any(|v| !v.is_finite()) {
-            return Err(StorageError::invalid(path, format!("non-finite origin {:?}", self.origin_lps_mm)));
+            return Err(StorageError::invalid(
+                path,
+                format!("non-finite origin {:?}", self.origin_lps_mm),
+            ));
         }
         for axis in &self.direction {
             let norm = (axis[0] * axis[0] + axis[1] * axis[1] + axis[2] * axis[2]).sqrt();
             if !norm.is_finite() || (norm - 1.0).abs() > 1e-3 {
-                return Err(StorageError::invalid(path, format!("direction cosines not unit length: {:?}", self.direction)));
+                return Err(StorageError::invalid(
+                    path,
+                    format!("direction cosines not unit length: {:?}", self.direction),
+                ));
             }
         }
         let det = det3(&self.direction);
         if !det.is_finite() || det.abs() < 1e-3 {
-            return Err(StorageError::invalid(path, format!("degenerate direction cosines: {:?}", self.direction)));
+            return Err(StorageError::invalid(
+                path,
+                format!("degenerate direction cosines: {:?}", self.direction),
+            ));
         }
         Ok(())
     }
 }
 
 fn det3(m: &[[f64; 3]; 3]) -> f64 {
-    m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+    m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
+        - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
         + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
 }
 
@@ -164,7 +187,11 @@ mod tests {
         g.spacing_mm[1] = f64::NAN;
         assert!(g.validate(p).unwrap_err().to_string().contains("bad.nrrd"));
         let g = Geometry::axis_aligned([0, 4, 4], [1.0; 3]);
-        assert!(g.validate(p).unwrap_err().to_string().contains("zero dimension"));
+        assert!(g
+            .validate(p)
+            .unwrap_err()
+            .to_string()
+            .contains("zero dimension"));
         let g = Geometry::axis_aligned([1 << 21, 4, 4], [1.0; 3]);
         assert!(g.validate(p).unwrap_err().to_string().contains("absurd"));
     }

@@ -10,7 +10,9 @@ pub struct StoredValueCounts {
 
 impl Default for StoredValueCounts {
     fn default() -> Self {
-        StoredValueCounts { counts: vec![0; 1 << 16] }
+        StoredValueCounts {
+            counts: vec![0; 1 << 16],
+        }
     }
 }
 
@@ -49,10 +51,18 @@ impl Histogram {
     /// bin, so the total equals the voxel count.
     pub fn from_stored(stored: &StoredValueCounts, slope: f64, intercept: f64) -> Histogram {
         let Some((lo, hi)) = stored.stored_range() else {
-            return Histogram { physical_min: intercept, physical_max: intercept, counts: vec![0; HISTOGRAM_BINS] };
+            return Histogram {
+                physical_min: intercept,
+                physical_max: intercept,
+                counts: vec![0; HISTOGRAM_BINS],
+            };
         };
         let p = |s: u16| slope * s as f64 + intercept;
-        let (pmin, pmax) = if p(lo) <= p(hi) { (p(lo), p(hi)) } else { (p(hi), p(lo)) };
+        let (pmin, pmax) = if p(lo) <= p(hi) {
+            (p(lo), p(hi))
+        } else {
+            (p(hi), p(lo))
+        };
         let mut counts = vec![0u64; HISTOGRAM_BINS];
         let width = (pmax - pmin).max(f64::MIN_POSITIVE);
         for s in lo..=hi {
@@ -63,7 +73,11 @@ impl Histogram {
             let bin = (((p(s) - pmin) / width) * HISTOGRAM_BINS as f64) as usize;
             counts[bin.min(HISTOGRAM_BINS - 1)] += c;
         }
-        Histogram { physical_min: pmin, physical_max: pmax, counts }
+        Histogram {
+            physical_min: pmin,
+            physical_max: pmax,
+            counts,
+        }
     }
 
     pub fn total(&self) -> u64 {

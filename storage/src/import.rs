@@ -19,10 +19,15 @@ use crate::brick::{encode_brick, extract_brick, value_range};
 use crate::error::{Result, StorageError};
 use crate::geometry::Geometry;
 use crate::histogram::{Histogram, StoredValueCounts};
-use crate::octree::{downsample_slice_pair, BrickId, OctreeLayout, BRICK_APRON, BRICK_CORE, BRICK_EDGE, BRICK_VOXELS};
+use crate::octree::{
+    downsample_slice_pair, BrickId, OctreeLayout, BRICK_APRON, BRICK_CORE, BRICK_EDGE, BRICK_VOXELS,
+};
 use crate::quantize::{Quantizer, StoredScalar};
 use crate::source::{OpenedSource, RawVolume, SampleType, WindowPreset};
-use crate::store::{NodeInfo, Provenance, Skeleton, StoreHeader, StoreStats, StoreWriter, ValueMapping, STORE_FORMAT_VERSION};
+use crate::store::{
+    NodeInfo, Provenance, Skeleton, StoreHeader, StoreStats, StoreWriter, ValueMapping,
+    STORE_FORMAT_VERSION,
+};
 
 /// Source of level-0 slices already converted to stored values.
 pub trait SliceProducer: Sync {
@@ -66,7 +71,11 @@ pub struct ImportOptions<'a> {
 
 impl Default for ImportOptions<'_> {
     fn default() -> Self {
-        ImportOptions { memory_budget_bytes: 1 << 30, cancel: None, progress: None }
+        ImportOptions {
+            memory_budget_bytes: 1 << 30,
+            cancel: None,
+            progress: None,
+        }
     }
 }
 
@@ -100,7 +109,11 @@ impl SliceProducer for QuantizedSource {
 }
 
 /// Imports what a reader opened into a new store at `store_path`.
-pub fn import_source(opened: OpenedSource, store_path: &Path, options: &ImportOptions) -> Result<ImportReport> {
+pub fn import_source(
+    opened: OpenedSource,
+    store_path: &Path,
+    options: &ImportOptions,
+) -> Result<ImportReport> {
     let info = opened.info;
     let quantizer = Quantizer::plan(&opened.data, info.slope);
     let (slope, intercept) = quantizer.physical_mapping(info.slope, info.intercept);
@@ -110,7 +123,11 @@ pub fn import_source(opened: OpenedSource, store_path: &Path, options: &ImportOp
         value_mapping: ValueMapping {
             slope,
             intercept,
-            unit: if info.modality.eq_ignore_ascii_case("CT") { "HU".into() } else { String::new() },
+            unit: if info.modality.eq_ignore_ascii_case("CT") {
+                "HU".into()
+            } else {
+                String::new()
+            },
         },
         source_sample_type: info.sample_type,
         quantization_error: quantizer.max_error_physical,
@@ -118,10 +135,17 @@ pub fn import_source(opened: OpenedSource, store_path: &Path, options: &ImportOp
         modality: info.modality.clone(),
         windows: info.windows.clone(),
         description: info.description.clone(),
-        inputs: info.inputs.iter().map(|p| p.display().to_string()).collect(),
+        inputs: info
+            .inputs
+            .iter()
+            .map(|p| p.display().to_string())
+            .collect(),
         source_format: info.format.clone(),
     };
-    let producer = QuantizedSource { data: opened.data, quantizer };
+    let producer = QuantizedSource {
+        data: opened.data,
+        quantizer,
+    };
     import_slices(&producer, meta, store_path, options)
 }
 
@@ -130,7 +154,11 @@ pub fn window_bytes(dims: [u64; 3]) -> u64 {
     let layout = OctreeLayout::new(dims);
     // Per level: the row window (2 apron + 32 core + 2 apron) plus one slice awaiting its pair.
     let per_level_slices = BRICK_EDGE + 1;
-    layout.level_dims.iter().map(|d| d[0] * d[1] * 2 * per_level_slices).sum()
+    layout
+        .level_dims
+        .iter()
+        .map(|d| d[0] * d[1] * 2 * per_level_slices)
+        .sum()
 }
 
 pub fn import_slices(
@@ -143,13 +171,20 @@ pub fn import_slices(
     let dims = producer.dims();
     meta.geometry.validate(store_path)?;
     if meta.geometry.dims != dims {
-        return Err(StorageError::invalid(store_path, format!("header dims {:?} differ from data dims {dims:?}", meta.geometry.dims)));
+        return Err(StorageError::invalid(
+            store_path,
+            format!(
+                "header dims {:?} differ from data dims {dims:?}",
+                meta.geometry.dims
+            ),
+        ));
     }
     let layout = OctreeLayout::new(dims);
     // Budget: slice windows, per-core brick buffers, sled's cache (at least 16 MiB, at most 1/4).
     let per_core_buffers = rayon::current_num_threads() as u64 * (BRICK_VOXELS as u64 * 8);
     let fixed = window_bytes(dims) + per_core_buffers;
-    let sled_cache = (options.memory_budget_bytes.saturating_sub(fixed) / 4).clamp(16 << 20, 256 << 20);
+    let sled_cache =
+        (options.memory_budget_bytes.saturating_sub(fixed) / 4).clamp(16 << 20, 256 << 20);
     if fixed + sled_cache > options.memory_budget_bytes {
         return Err(StorageError::invalid(
             store_path,
@@ -164,8 +199,9 @@ pub fn import_slices(
     }
     let writer = StoreWriter::create(store_path, sled_cache)?;
     let narrow = meta.stored == StoredScalar::U8;
-    let mut levels: Vec<LevelBuilder> =
-        (0..layout.level_count()).map(|l| LevelBuilder::new(l, layout.level_dims[l], &layout)).collect();
+    let mut levels: Vec<LevelBuilder> = (0..layout.level_count())
+        .map(|l| LevelBuilder::new(l, layout.level_dims[l], &layout))
+        .collect();
     let mut skeleton = Skeleton::new(&layout);
     let mut counts = StoredValueCounts::default();
     let total_source = producer.source_bytes_per_slice() * dims[2];
@@ -188,14 +224,32 @@ pub fn import_slices(
             .map_err(|e| StorageError::io(store_path, e));
         let built = match &writer_thread {
             Ok(_) => {
-                let sink = BrickSink { store_path, batches, narrow, compressed_bytes: AtomicU64::new(0) };
-                build_levels(producer, &mut levels, &sink, &mut skeleton, &mut counts, options, store_path)
-                    .map(|phases| (phases, sink.compressed_bytes.load(Ordering::Relaxed)))
+                let sink = BrickSink {
+                    store_path,
+                    batches,
+                    narrow,
+                    compressed_bytes: AtomicU64::new(0),
+                };
+                build_levels(
+                    producer,
+                    &mut levels,
+                    &sink,
+                    &mut skeleton,
+                    &mut counts,
+                    options,
+                    store_path,
+                )
+                .map(|phases| (phases, sink.compressed_bytes.load(Ordering::Relaxed)))
             }
-            Err(_) => Err(StorageError::invalid(store_path, "could not start the writer thread")),
+            Err(_) => Err(StorageError::invalid(
+                store_path,
+                "could not start the writer thread",
+            )),
         };
         let written = writer_thread.and_then(|t| {
-            t.join().map_err(|_| StorageError::invalid(store_path, "the import's writer thread panicked"))?
+            t.join().map_err(|_| {
+                StorageError::invalid(store_path, "the import's writer thread panicked")
+            })?
         });
         (built, written)
     });
@@ -210,12 +264,24 @@ pub fn import_slices(
     }
     for level in &levels {
         if level.next_row != level.rows() {
-            return Err(StorageError::corrupted(store_path, format!("level {} ended with {} of {} brick rows", level.level, level.next_row, level.rows())));
+            return Err(StorageError::corrupted(
+                store_path,
+                format!(
+                    "level {} ended with {} of {} brick rows",
+                    level.level,
+                    level.next_row,
+                    level.rows()
+                ),
+            ));
         }
     }
 
     let (stored_lo, stored_hi) = counts.stored_range().unwrap_or((0, 0));
-    let histogram = Histogram::from_stored(&counts, meta.value_mapping.slope, meta.value_mapping.intercept);
+    let histogram = Histogram::from_stored(
+        &counts,
+        meta.value_mapping.slope,
+        meta.value_mapping.intercept,
+    );
     let header = StoreHeader {
         format_version: STORE_FORMAT_VERSION,
         geometry: meta.geometry,
@@ -245,7 +311,12 @@ pub fn import_slices(
         bricks_per_level: skeleton
             .levels
             .iter()
-            .map(|l| (l.len() as u64, l.iter().filter(|n| n.is_constant()).count() as u64))
+            .map(|l| {
+                (
+                    l.len() as u64,
+                    l.iter().filter(|n| n.is_constant()).count() as u64,
+                )
+            })
             .collect(),
         compressed_bytes,
         uncompressed_bytes: layout.total_bricks() * BRICK_VOXELS as u64 * bytes_per_voxel,
@@ -279,7 +350,9 @@ fn build_levels(
     let mut phase = [std::time::Duration::ZERO; 3];
     for k in 0..dims[2] {
         if options.cancel.is_some_and(|c| c.load(Ordering::Relaxed)) {
-            return Err(StorageError::Cancelled { path: store_path.to_path_buf() });
+            return Err(StorageError::Cancelled {
+                path: store_path.to_path_buf(),
+            });
         }
         let t0 = Instant::now();
         let mut slice = vec![0u16; slice_len];
@@ -293,7 +366,10 @@ fn build_levels(
         phase[1] += t2 - t1;
         phase[2] += t2.elapsed();
         if let Some(progress) = options.progress {
-            progress(ImportProgress { source_bytes_done: producer.source_bytes_per_slice() * (k + 1), source_bytes_total: total_source });
+            progress(ImportProgress {
+                source_bytes_done: producer.source_bytes_per_slice() * (k + 1),
+                source_bytes_total: total_source,
+            });
         }
         if debug_slow_import() {
             std::thread::sleep(std::time::Duration::from_millis(20));
@@ -369,14 +445,20 @@ fn push_slice(
         None
     } else if k % 2 == 1 || k == nz - 1 {
         let first = builder.slice(k - k % 2);
-        let next = if k % 2 == 1 { Some(builder.slice(k)) } else { None };
+        let next = if k % 2 == 1 {
+            Some(builder.slice(k))
+        } else {
+            None
+        };
         let mut out = vec![0u16; (nx.div_ceil(2) * ny.div_ceil(2)) as usize];
         downsample_slice_pair(first, next, nx as usize, ny as usize, &mut out);
         Some((k / 2, out))
     } else {
         None
     };
-    while builder.next_row < builder.rows() && builder.last_index() >= builder.last_slice_for_row(builder.next_row) {
+    while builder.next_row < builder.rows()
+        && builder.last_index() >= builder.last_slice_for_row(builder.next_row)
+    {
         emit_row(builder, sink, skeleton)?;
         builder.next_row += 1;
         // The next row starts reading 2 slices below its core.
@@ -416,8 +498,20 @@ fn emit_row(builder: &LevelBuilder, sink: &BrickSink, skeleton: &mut Skeleton) -
                     let range = value_range(voxels);
                     let id = BrickId::new(level as u8, [bx as u32, by as u32, bz as u32]);
                     let record = encode_brick(id, voxels, range, sink.narrow);
-                    let flags = if range.min == range.max { NodeInfo::CONSTANT } else { 0 };
-                    (id, NodeInfo { min: range.min, max: range.max, flags }, record)
+                    let flags = if range.min == range.max {
+                        NodeInfo::CONSTANT
+                    } else {
+                        0
+                    };
+                    (
+                        id,
+                        NodeInfo {
+                            min: range.min,
+                            max: range.max,
+                            flags,
+                        },
+                        record,
+                    )
                 },
             )
             .collect();
@@ -431,7 +525,10 @@ fn emit_row(builder: &LevelBuilder, sink: &BrickSink, skeleton: &mut Skeleton) -
         sink.compressed_bytes.fetch_add(bytes, Ordering::Relaxed);
         // A closed channel means the writer failed; its error is reported by the caller.
         if sink.batches.send(records).is_err() {
-            return Err(StorageError::invalid(sink.store_path, "brick writer stopped"));
+            return Err(StorageError::invalid(
+                sink.store_path,
+                "brick writer stopped",
+            ));
         }
     }
     Ok(())

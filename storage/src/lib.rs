@@ -2,20 +2,20 @@
 //!
 //! Knows nothing of GPUs. See ARCHITECTURE.md for the store layout and its invariants.
 
+pub mod brick;
 pub mod error;
 pub mod geometry;
-pub mod source;
-pub mod readers;
-pub mod quantize;
-pub mod octree;
-pub mod brick;
-pub mod store;
-pub mod import;
-pub mod phantom;
 pub mod histogram;
+pub mod import;
+pub mod octree;
+pub mod phantom;
+pub mod quantize;
+pub mod readers;
+pub mod source;
+pub mod store;
 
-pub use error::{StorageError, Result};
+pub use error::{Result, StorageError};
 pub use geometry::Geometry;
-pub use source::{ByteOrder, OpenedSource, RawVolume, SampleType, SourceInfo, WindowPreset};
 pub use octree::{BrickId, OctreeLayout, BRICK_APRON, BRICK_CORE, BRICK_EDGE, BRICK_VOXELS};
+pub use source::{ByteOrder, OpenedSource, RawVolume, SampleType, SourceInfo, WindowPreset};
 pub use store::{Store, StoreHeader, StoredScalar, ValueMapping};

@@ -33,7 +33,10 @@ impl BrickId {
     }
     /// The parent node one level up.
     pub fn parent(self) -> BrickId {
-        BrickId { level: self.level + 1, coords: [self.coords[0] / 2, self.coords[1] / 2, self.coords[2] / 2] }
+        BrickId {
+            level: self.level + 1,
+            coords: [self.coords[0] / 2, self.coords[1] / 2, self.coords[2] / 2],
+        }
     }
 }
 
@@ -60,7 +63,11 @@ impl OctreeLayout {
 
     pub fn bricks_in_level(&self, level: usize) -> [u64; 3] {
         let d = self.level_dims[level];
-        [d[0].div_ceil(BRICK_CORE), d[1].div_ceil(BRICK_CORE), d[2].div_ceil(BRICK_CORE)]
+        [
+            d[0].div_ceil(BRICK_CORE),
+            d[1].div_ceil(BRICK_CORE),
+            d[2].div_ceil(BRICK_CORE),
+        ]
     }
 
     pub fn brick_count_in_level(&self, level: usize) -> u64 {
@@ -68,7 +75,9 @@ impl OctreeLayout {
     }
 
     pub fn total_bricks(&self) -> u64 {
-        (0..self.level_count()).map(|l| self.brick_count_in_level(l)).sum()
+        (0..self.level_count())
+            .map(|l| self.brick_count_in_level(l))
+            .sum()
     }
 
     /// Position of `id` in the level's row-major (x fastest) brick order.
@@ -116,7 +125,10 @@ pub fn downsample_slice_pair(
             let x1 = (x0 + 1).min(nx - 1);
             let mut sum = 0u32;
             for s in [first, second] {
-                sum += s[y0 * nx + x0] as u32 + s[y0 * nx + x1] as u32 + s[y1 * nx + x0] as u32 + s[y1 * nx + x1] as u32;
+                sum += s[y0 * nx + x0] as u32
+                    + s[y0 * nx + x1] as u32
+                    + s[y1 * nx + x0] as u32
+                    + s[y1 * nx + x1] as u32;
             }
             *v = average8(sum);
         }

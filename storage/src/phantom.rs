@@ -48,17 +48,36 @@ impl Phantom {
         VolumeMeta {
             geometry: self.geometry(),
             stored: StoredScalar::U16,
-            value_mapping: ValueMapping { slope: 1.0, intercept: PHANTOM_INTERCEPT, unit: "HU".into() },
+            value_mapping: ValueMapping {
+                slope: 1.0,
+                intercept: PHANTOM_INTERCEPT,
+                unit: "HU".into(),
+            },
             source_sample_type: SampleType::I16,
             quantization_error: 0.0,
             non_finite_samples: 0,
             modality: "CT".into(),
             windows: vec![
-                WindowPreset { name: "Soft tissue".into(), center: 40.0, width: 400.0 },
-                WindowPreset { name: "Bone".into(), center: 400.0, width: 1800.0 },
-                WindowPreset { name: "Lung".into(), center: -600.0, width: 1500.0 },
+                WindowPreset {
+                    name: "Soft tissue".into(),
+                    center: 40.0,
+                    width: 400.0,
+                },
+                WindowPreset {
+                    name: "Bone".into(),
+                    center: 400.0,
+                    width: 1800.0,
+                },
+                WindowPreset {
+                    name: "Lung".into(),
+                    center: -600.0,
+                    width: 1500.0,
+                },
             ],
-            description: format!("Strata synthetic CT phantom {}x{}x{}", self.size[0], self.size[1], self.size[2]),
+            description: format!(
+                "Strata synthetic CT phantom {}x{}x{}",
+                self.size[0], self.size[1], self.size[2]
+            ),
             inputs: vec![],
             source_format: "phantom".into(),
         }
@@ -120,7 +139,9 @@ impl Phantom {
             self.stored_slice(k, &mut slice);
             bytes.clear();
             for &s in &slice {
-                bytes.extend_from_slice(&((s as i32 + PHANTOM_INTERCEPT as i32) as i16).to_le_bytes());
+                bytes.extend_from_slice(
+                    &((s as i32 + PHANTOM_INTERCEPT as i32) as i16).to_le_bytes(),
+                );
             }
             out.write_all(&bytes).map_err(io)?;
             if let Some(p) = progress {
@@ -162,7 +183,13 @@ fn anatomy(x: f64, y: f64, z: f64) -> f64 {
     let r_spine = (sx * sx + sy * sy).sqrt();
     let disc = ((z * 12.0).fract().abs() - 0.5).abs() < 0.06;
     if r_spine < 0.055 {
-        return if disc { 80.0 } else if r_spine > 0.045 { 1200.0 } else { 250.0 };
+        return if disc {
+            80.0
+        } else if r_spine > 0.045 {
+            1200.0
+        } else {
+            250.0
+        };
     }
     // Ribs: thin arcs near the body wall at regular heights.
     let rib_phase = ((z + 0.5) * 10.0).fract();
@@ -183,7 +210,8 @@ fn anatomy(x: f64, y: f64, z: f64) -> f64 {
     for side in [-1.0, 1.0] {
         let (lx, ly, lz) = (x - side * 0.19, y + 0.02, z - 0.12);
         if (lx / 0.14).powi(2) + (ly / 0.2).powi(2) + (lz / 0.33).powi(2) <= 1.0 {
-            let vessel = ((lx * 60.0).sin() * (lz * 45.0).cos()).abs() < 0.08 && (ly * 50.0).sin() > 0.6;
+            let vessel =
+                ((lx * 60.0).sin() * (lz * 45.0).cos()).abs() < 0.08 && (ly * 50.0).sin() > 0.6;
             return if vessel { 200.0 } else { -850.0 };
         }
     }
@@ -201,7 +229,9 @@ fn anatomy(x: f64, y: f64, z: f64) -> f64 {
 
 /// Deterministic ±10 HU noise from a hash of the voxel index.
 fn noise(i: u64, j: u64, k: u64) -> f64 {
-    let mut h = i.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ j.wrapping_mul(0xC2B2_AE3D_27D4_EB4F) ^ k.wrapping_mul(0x1656_67B1_9E37_79F9);
+    let mut h = i.wrapping_mul(0x9E37_79B9_7F4A_7C15)
+        ^ j.wrapping_mul(0xC2B2_AE3D_27D4_EB4F)
+        ^ k.wrapping_mul(0x1656_67B1_9E37_79F9);
     h ^= h >> 29;
     h = h.wrapping_mul(0xBF58_476D_1CE4_E5B9);
     h ^= h >> 32;

@@ -45,7 +45,13 @@ pub struct Quantizer {
 impl Quantizer {
     /// Chooses the mapping for `data`. Reads the whole source once only for wide/float types.
     pub fn plan(data: &RawVolume, source_slope: f64) -> Quantizer {
-        let exact = |stored, offset| Quantizer { stored, offset, scale: 1.0, max_error_physical: 0.0, non_finite_samples: 0 };
+        let exact = |stored, offset| Quantizer {
+            stored,
+            offset,
+            scale: 1.0,
+            max_error_physical: 0.0,
+            non_finite_samples: 0,
+        };
         match data.sample_type {
             SampleType::U8 => exact(StoredScalar::U8, 0.0),
             SampleType::I8 => exact(StoredScalar::U8, -128.0),
@@ -56,7 +62,12 @@ impl Quantizer {
                     .into_par_iter()
                     .map(|k| {
                         let mut s = RangeStats::default();
-                        decode_samples(data.slice_bytes(k), data.sample_type, data.byte_order, |v| s.add(v));
+                        decode_samples(
+                            data.slice_bytes(k),
+                            data.sample_type,
+                            data.byte_order,
+                            |v| s.add(v),
+                        );
                         s
                     })
                     .reduce(RangeStats::default, RangeStats::merge);
@@ -66,10 +77,20 @@ impl Quantizer {
     }
 
     fn for_range(stats: RangeStats, source_slope: f64) -> Quantizer {
-        let (lo, hi) = if stats.min <= stats.max { (stats.min, stats.max) } else { (0.0, 0.0) };
+        let (lo, hi) = if stats.min <= stats.max {
+            (stats.min, stats.max)
+        } else {
+            (0.0, 0.0)
+        };
         let span = hi - lo;
         if stats.all_integer && span <= 65535.0 {
-            return Quantizer { stored: StoredScalar::U16, offset: lo, scale: 1.0, max_error_physical: 0.0, non_finite_samples: stats.non_finite };
+            return Quantizer {
+                stored: StoredScalar::U16,
+                offset: lo,
+                scale: 1.0,
+                max_error_physical: 0.0,
+                non_finite_samples: stats.non_finite,
+            };
         }
         let scale = if span > 0.0 { 65535.0 / span } else { 1.0 };
         Quantizer {
@@ -94,7 +115,10 @@ impl Quantizer {
     /// Converts the source's (slope, intercept) into the stored values' mapping.
     pub fn physical_mapping(&self, source_slope: f64, source_intercept: f64) -> (f64, f64) {
         // physical = s·sample + b, sample = stored/scale + offset
-        (source_slope / self.scale, source_slope * self.offset + source_intercept)
+        (
+            source_slope / self.scale,
+            source_slope * self.offset + source_intercept,
+        )
     }
 
     /// Fast paths for the exact integer mappings (most scans): no float round trip per sample.
@@ -106,20 +130,31 @@ impl Quantizer {
         }
         let offset = self.offset;
         match (data.sample_type, data.byte_order) {
-            (SampleType::U8, _) if offset == 0.0 => dst.iter_mut().zip(src).for_each(|(d, &s)| *d = s as u16),
-            (SampleType::I8, _) if offset == -128.0 => {
-                dst.iter_mut().zip(src).for_each(|(d, &s)| *d = (s as i8 as i16 + 128) as u16)
+            (SampleType::U8, _) if offset == 0.0 => {
+                dst.iter_mut().zip(src).for_each(|(d, &s)| *d = s as u16)
             }
+            (SampleType::I8, _) if offset == -128.0 => dst
+                .iter_mut()
+                .zip(src)
+                .for_each(|(d, &s)| *d = (s as i8 as i16 + 128) as u16),
             (SampleType::U16, order) if offset == 0.0 => {
                 for (d, c) in dst.iter_mut().zip(src.chunks_exact(2)) {
                     let b = [c[0], c[1]];
-                    *d = if order == Little { u16::from_le_bytes(b) } else { u16::from_be_bytes(b) };
+                    *d = if order == Little {
+                        u16::from_le_bytes(b)
+                    } else {
+                        u16::from_be_bytes(b)
+                    };
                 }
             }
             (SampleType::I16, order) if offset == -32768.0 => {
                 for (d, c) in dst.iter_mut().zip(src.chunks_exact(2)) {
                     let b = [c[0], c[1]];
-                    let v = if order == Big { i16::from_be_bytes(b) } else { i16::from_le_bytes(b) };
+                    let v = if order == Big {
+                        i16::from_be_bytes(b)
+                    } else {
+                        i16::from_le_bytes(b)
+                    };
                     // Flipping the sign bit adds 32768 in two's complement.
                     *d = (v as u16) ^ 0x8000;
                 }
@@ -160,7 +195,12 @@ struct RangeStats {
 
 impl Default for RangeStats {
     fn default() -> Self {
-        RangeStats { min: f64::INFINITY, max: f64::NEG_INFINITY, all_integer: true, non_finite: 0 }
+        RangeStats {
+            min: f64::INFINITY,
+            max: f64::NEG_INFINITY,
+            all_integer: true,
+            non_finite: 0,
+        }
     }
 }
 
@@ -205,7 +245,10 @@ mod tests {
         let (slope, icpt) = q.physical_mapping(1.0, 0.0);
         for v in [-1.5, 0.25, 500.0, 1000.75] {
             let back = slope * q.to_stored(v) as f64 + icpt;
-            assert!((back - v).abs() <= q.max_error_physical + 1e-9, "{v} -> {back}");
+            assert!(
+                (back - v).abs() <= q.max_error_physical + 1e-9,
+                "{v} -> {back}"
+            );
         }
     }
 

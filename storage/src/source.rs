@@ -121,8 +121,18 @@ impl RawVolume {
         byte_order: ByteOrder,
         dims: [u64; 3],
     ) -> Result<Self> {
-        let file = staging.reopen().map_err(|e| StorageError::io(staging.path(), e))?;
-        Self::from_file(file, source_path, 0, sample_type, byte_order, dims, Some(staging))
+        let file = staging
+            .reopen()
+            .map_err(|e| StorageError::io(staging.path(), e))?;
+        Self::from_file(
+            file,
+            source_path,
+            0,
+            sample_type,
+            byte_order,
+            dims,
+            Some(staging),
+        )
     }
 
     fn from_file(
@@ -134,10 +144,15 @@ impl RawVolume {
         dims: [u64; 3],
         staging: Option<tempfile::NamedTempFile>,
     ) -> Result<Self> {
-        let len = file.metadata().map_err(|e| StorageError::io(path, e))?.len();
+        let len = file
+            .metadata()
+            .map_err(|e| StorageError::io(path, e))?
+            .len();
         let needed = dims
             .iter()
-            .try_fold(sample_type.size_bytes() as u64, |acc, &d| acc.checked_mul(d))
+            .try_fold(sample_type.size_bytes() as u64, |acc, &d| {
+                acc.checked_mul(d)
+            })
             .ok_or_else(|| StorageError::invalid(path, format!("dimensions {dims:?} overflow")))?;
         let end = offset
             .checked_add(needed)
@@ -153,7 +168,10 @@ impl RawVolume {
             ));
         }
         if needed == 0 {
-            return Err(StorageError::invalid(path, format!("zero dimension in {dims:?}")));
+            return Err(StorageError::invalid(
+                path,
+                format!("zero dimension in {dims:?}"),
+            ));
         }
         // SAFETY: the file is opened read-only; Strata never writes to its inputs. Another process
         // truncating the file during import could fault, which is the same contract every
@@ -194,7 +212,13 @@ impl RawVolume {
         if end > first {
             // SAFETY: DontNeed on a read-only shared file mapping only discards our page-table
             // entries; later reads fault the same bytes back in from the file.
-            let _ = unsafe { self.map.unchecked_advise_range(memmap2::UncheckedAdvice::DontNeed, first, end - first) };
+            let _ = unsafe {
+                self.map.unchecked_advise_range(
+                    memmap2::UncheckedAdvice::DontNeed,
+                    first,
+                    end - first,
+                )
+            };
         }
     }
 
@@ -209,7 +233,12 @@ impl RawVolume {
 
 /// Calls `sink` with each sample of `bytes` as f64, honouring type and byte order.
 #[inline]
-pub fn decode_samples(bytes: &[u8], sample_type: SampleType, order: ByteOrder, mut sink: impl FnMut(f64)) {
+pub fn decode_samples(
+    bytes: &[u8],
+    sample_type: SampleType,
+    order: ByteOrder,
+    mut sink: impl FnMut(f64),
+) {
     macro_rules! each {
         ($t:ty, $n:expr) => {{
             for c in bytes.chunks_exact($n) {

@@ -192,38 +192,65 @@ impl Store {
             return Err(StorageError::invalid(path, "store does not exist"));
         }
         if !path.join(MARKER_FILE).is_file() {
-            return Err(StorageError::NotAStore { path: path.to_path_buf(), message: format!("no {MARKER_FILE} marker") });
+            return Err(StorageError::NotAStore {
+                path: path.to_path_buf(),
+                message: format!("no {MARKER_FILE} marker"),
+            });
         }
-        let db = open_db_when_unlocked(sled::Config::new().path(path.join(DB_DIR)).cache_capacity(sled_cache_bytes))
-            .map_err(db_error(path))?;
+        let db = open_db_when_unlocked(
+            sled::Config::new()
+                .path(path.join(DB_DIR))
+                .cache_capacity(sled_cache_bytes),
+        )
+        .map_err(db_error(path))?;
         let meta = db.open_tree("meta").map_err(db_error(path))?;
         if meta.get(KEY_COMPLETE).map_err(db_error(path))?.is_none() {
-            return Err(StorageError::IncompleteImport { path: path.to_path_buf() });
+            return Err(StorageError::IncompleteImport {
+                path: path.to_path_buf(),
+            });
         }
         let get = |key: &[u8]| -> Result<sled::IVec> {
-            meta.get(key)
-                .map_err(db_error(path))?
-                .ok_or_else(|| StorageError::corrupted(path, format!("missing {}", String::from_utf8_lossy(key))))
+            meta.get(key).map_err(db_error(path))?.ok_or_else(|| {
+                StorageError::corrupted(path, format!("missing {}", String::from_utf8_lossy(key)))
+            })
         };
         let json = |key: &[u8]| -> Result<sled::IVec> { get(key) };
         let header: StoreHeader = serde_json::from_slice(&json(KEY_HEADER)?)
             .map_err(|e| StorageError::corrupted(path, format!("header: {e}")))?;
         if header.format_version != STORE_FORMAT_VERSION {
-            return Err(StorageError::unsupported(path, format!("store format version {}", header.format_version)));
+            return Err(StorageError::unsupported(
+                path,
+                format!("store format version {}", header.format_version),
+            ));
         }
         let skeleton = Skeleton::decode(&get(KEY_SKELETON)?)
             .ok_or_else(|| StorageError::corrupted(path, "octree skeleton fails its checksum"))?;
         if skeleton.levels.len() != header.layout.level_count()
-            || skeleton.levels.iter().enumerate().any(|(l, v)| v.len() as u64 != header.layout.brick_count_in_level(l))
+            || skeleton
+                .levels
+                .iter()
+                .enumerate()
+                .any(|(l, v)| v.len() as u64 != header.layout.brick_count_in_level(l))
         {
-            return Err(StorageError::corrupted(path, "octree skeleton does not match the header's layout"));
+            return Err(StorageError::corrupted(
+                path,
+                "octree skeleton does not match the header's layout",
+            ));
         }
         let histogram: Histogram = serde_json::from_slice(&json(KEY_HISTOGRAM)?)
             .map_err(|e| StorageError::corrupted(path, format!("histogram: {e}")))?;
         let stats: StoreStats = serde_json::from_slice(&json(KEY_STATS)?)
             .map_err(|e| StorageError::corrupted(path, format!("stats: {e}")))?;
         let bricks = db.open_tree("bricks").map_err(db_error(path))?;
-        Ok(Store { path: path.to_path_buf(), db, bricks, header, skeleton, histogram, stats })
+        Ok(Store {
+            path: path.to_path_buf(),
+            db,
+            bricks,
+            header,
+            skeleton,
+            histogram,
+            stats,
+        })
     }
 
     pub fn path(&self) -> &Path {
@@ -253,19 +280,28 @@ impl Store {
     /// Reads, verifies and decompresses one brick: 36³ stored values, x fastest.
     pub fn read_brick(&self, id: BrickId) -> Result<Vec<u16>> {
         if !self.header.layout.contains(id) {
-            return Err(StorageError::invalid(&self.path, format!("brick {id:?} is outside the octree")));
+            return Err(StorageError::invalid(
+                &self.path,
+                format!("brick {id:?} is outside the octree"),
+            ));
         }
         let record = self
             .bricks
             .get(brick_key(id))
             .map_err(db_error(&self.path))?
-            .ok_or_else(|| StorageError::corrupted(&self.path, format!("brick {id:?} is missing")))?;
+            .ok_or_else(|| {
+                StorageError::corrupted(&self.path, format!("brick {id:?} is missing"))
+            })?;
         decode_brick(id, &record).map_err(|e| brick_error(&self.path, id, e))
     }
 
     /// Size of the stored record of a brick (compressed), for I/O accounting.
     pub fn stored_brick_bytes(&self, id: BrickId) -> Result<u64> {
-        Ok(self.bricks.get(brick_key(id)).map_err(db_error(&self.path))?.map_or(0, |r| r.len() as u64))
+        Ok(self
+            .bricks
+            .get(brick_key(id))
+            .map_err(db_error(&self.path))?
+            .map_or(0, |r| r.len() as u64))
     }
 
     /// Checks every brick: present, checksum, decompression, and range equal to the skeleton's.
@@ -301,7 +337,10 @@ impl Store {
         }
         let stored = self.bricks.len() as u64;
         if stored != total {
-            problems.push(format!("{}: {stored} brick records for {total} octree nodes", self.path.display()));
+            problems.push(format!(
+                "{}: {stored} brick records for {total} octree nodes",
+                self.path.display()
+            ));
         }
         Ok(problems)
     }
@@ -309,7 +348,8 @@ impl Store {
     /// Overwrites one byte of a stored brick record. Only for tests of corruption handling.
     #[doc(hidden)]
     pub fn corrupt_brick_for_tests(path: &Path, id: BrickId, byte: usize) -> Result<()> {
-        let db = open_db_when_unlocked(sled::Config::new().path(path.join(DB_DIR))).map_err(db_error(path))?;
+        let db = open_db_when_unlocked(sled::Config::new().path(path.join(DB_DIR)))
+            .map_err(db_error(path))?;
         let bricks = db.open_tree("bricks").map_err(db_error(path))?;
         let mut record = bricks
             .get(brick_key(id))
@@ -318,7 +358,9 @@ impl Store {
             .to_vec();
         let at = byte.min(record.len() - 1);
         record[at] ^= 0x01;
-        bricks.insert(brick_key(id), record).map_err(db_error(path))?;
+        bricks
+            .insert(brick_key(id), record)
+            .map_err(db_error(path))?;
         db.flush().map_err(db_error(path))?;
         Ok(())
     }
@@ -336,7 +378,10 @@ fn open_db_when_unlocked(config: sled::Config) -> sled::Result<sled::Db> {
     let deadline = std::time::Instant::now() + std::time::Duration::from_secs(3);
     loop {
         match config.open() {
-            Err(sled::Error::Io(e)) if e.to_string().contains("acquire lock") && std::time::Instant::now() < deadline => {
+            Err(sled::Error::Io(e))
+                if e.to_string().contains("acquire lock")
+                    && std::time::Instant::now() < deadline =>
+            {
                 std::thread::sleep(std::time::Duration::from_millis(20));
             }
             other => return other,
@@ -345,7 +390,10 @@ fn open_db_when_unlocked(config: sled::Config) -> sled::Result<sled::Db> {
 }
 
 fn brick_error(path: &Path, id: BrickId, e: BrickDecodeError) -> StorageError {
-    StorageError::corrupted(path, format!("brick level {} at {:?}: {e}", id.level, id.coords))
+    StorageError::corrupted(
+        path,
+        format!("brick level {} at {:?}: {e}", id.level, id.coords),
+    )
 }
 
 /// Writes a new store. Nothing it writes is visible as complete until [`StoreWriter::finish`].
@@ -362,7 +410,10 @@ impl StoreWriter {
         if path.exists() {
             let is_store = path.join(MARKER_FILE).is_file();
             let is_empty_dir = path.is_dir()
-                && std::fs::read_dir(path).map_err(|e| StorageError::io(path, e))?.next().is_none();
+                && std::fs::read_dir(path)
+                    .map_err(|e| StorageError::io(path, e))?
+                    .next()
+                    .is_none();
             if is_store {
                 std::fs::remove_dir_all(path).map_err(|e| StorageError::io(path, e))?;
             } else if !is_empty_dir {
@@ -373,14 +424,24 @@ impl StoreWriter {
             }
         }
         std::fs::create_dir_all(path).map_err(|e| StorageError::io(path, e))?;
-        std::fs::write(path.join(MARKER_FILE), format!("strata store format {STORE_FORMAT_VERSION}\n"))
-            .map_err(|e| StorageError::io(path.join(MARKER_FILE), e))?;
+        std::fs::write(
+            path.join(MARKER_FILE),
+            format!("strata store format {STORE_FORMAT_VERSION}\n"),
+        )
+        .map_err(|e| StorageError::io(path.join(MARKER_FILE), e))?;
         let db = open_db_when_unlocked(
-            sled::Config::new().path(path.join(DB_DIR)).cache_capacity(sled_cache_bytes).mode(sled::Mode::HighThroughput),
+            sled::Config::new()
+                .path(path.join(DB_DIR))
+                .cache_capacity(sled_cache_bytes)
+                .mode(sled::Mode::HighThroughput),
         )
         .map_err(db_error(path))?;
         let bricks = db.open_tree("bricks").map_err(db_error(path))?;
-        Ok(StoreWriter { path: path.to_path_buf(), db, bricks })
+        Ok(StoreWriter {
+            path: path.to_path_buf(),
+            db,
+            bricks,
+        })
     }
 
     pub fn path(&self) -> &Path {
@@ -393,22 +454,38 @@ impl StoreWriter {
         for (id, record) in records {
             batch.insert(&brick_key(id)[..], record);
         }
-        self.bricks.apply_batch(batch).map_err(db_error(&self.path))?;
+        self.bricks
+            .apply_batch(batch)
+            .map_err(db_error(&self.path))?;
         Ok(())
     }
 
     /// Writes the metadata, flushes everything, then marks the store complete and flushes again:
     /// a crash at any point before the last flush leaves a store that opens as incomplete.
-    pub fn finish(self, header: &StoreHeader, skeleton: &Skeleton, histogram: &Histogram, stats: &StoreStats) -> Result<()> {
+    pub fn finish(
+        self,
+        header: &StoreHeader,
+        skeleton: &Skeleton,
+        histogram: &Histogram,
+        stats: &StoreStats,
+    ) -> Result<()> {
         let path = &self.path;
         let meta = self.db.open_tree("meta").map_err(db_error(path))?;
-        let to_json = |v: &dyn erased::Json| v.json().map_err(|e| StorageError::corrupted(path, e.to_string()));
-        meta.insert(KEY_HEADER, to_json(header)?).map_err(db_error(path))?;
-        meta.insert(KEY_SKELETON, skeleton.encode()).map_err(db_error(path))?;
-        meta.insert(KEY_HISTOGRAM, to_json(histogram)?).map_err(db_error(path))?;
-        meta.insert(KEY_STATS, to_json(stats)?).map_err(db_error(path))?;
+        let to_json = |v: &dyn erased::Json| {
+            v.json()
+                .map_err(|e| StorageError::corrupted(path, e.to_string()))
+        };
+        meta.insert(KEY_HEADER, to_json(header)?)
+            .map_err(db_error(path))?;
+        meta.insert(KEY_SKELETON, skeleton.encode())
+            .map_err(db_error(path))?;
+        meta.insert(KEY_HISTOGRAM, to_json(histogram)?)
+            .map_err(db_error(path))?;
+        meta.insert(KEY_STATS, to_json(stats)?)
+            .map_err(db_error(path))?;
         self.db.flush().map_err(db_error(path))?;
-        meta.insert(KEY_COMPLETE, &b"1"[..]).map_err(db_error(path))?;
+        meta.insert(KEY_COMPLETE, &b"1"[..])
+            .map_err(db_error(path))?;
         self.db.flush().map_err(db_error(path))?;
         Ok(())
     }

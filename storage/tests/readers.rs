@@ -55,9 +55,21 @@ fn flair_nrrd_keeps_oblique_directions() {
     assert_eq!(s.info.sample_type, SampleType::U8);
     assert_eq!(s.info.format, "nrrd");
     // space is LPS, so the header's first direction vector is kept as written.
-    assert!(close(g.direction[0][0], -0.993592, 1e-5), "{:?}", g.direction);
-    assert!(close(g.direction[0][1], 0.049705, 1e-5), "{:?}", g.direction);
-    assert!(close(g.direction[2][1], -0.305367, 1e-5), "{:?}", g.direction);
+    assert!(
+        close(g.direction[0][0], -0.993592, 1e-5),
+        "{:?}",
+        g.direction
+    );
+    assert!(
+        close(g.direction[0][1], 0.049705, 1e-5),
+        "{:?}",
+        g.direction
+    );
+    assert!(
+        close(g.direction[2][1], -0.305367, 1e-5),
+        "{:?}",
+        g.direction
+    );
     assert!(
         g.direction
             .iter()
@@ -105,7 +117,10 @@ fn dicom_three_slice_series() {
         g.spacing_mm
     );
     assert_eq!(s.info.modality, "MR");
-    assert!(matches!(s.info.sample_type, SampleType::U16 | SampleType::I16));
+    assert!(matches!(
+        s.info.sample_type,
+        SampleType::U16 | SampleType::I16
+    ));
     let listing = strata_storage::readers::list_dicom_series(&d.join("dicom-mr-3slices")).unwrap();
     assert_eq!(listing.len(), 1);
     assert_eq!(listing[0].slice_count, 3);
@@ -133,7 +148,10 @@ fn dicom_three_slice_series() {
         })
         .expect("slice of 1-002.dcm not found in the series");
     let p = one.info.geometry.origin_lps_mm;
-    let q = s.info.geometry.patient_from_index([0.0, 0.0, sorted_mid as f64]);
+    let q = s
+        .info
+        .geometry
+        .patient_from_index([0.0, 0.0, sorted_mid as f64]);
     assert!((0..3).all(|i| close(p[i], q[i], 1e-3)), "{p:?} vs {q:?}");
     assert!(a.iter().any(|&x| x != 0.0));
 }
@@ -191,7 +209,10 @@ fn nifti_space_files_agree_in_patient_space() {
         for j in (0..rg.dims[1]).step_by(3) {
             for i in (0..rg.dims[0]).step_by(3) {
                 let idx = (i + rg.dims[0] * (j + rg.dims[1] * k)) as usize;
-                points.push((rg.patient_from_index([i as f64, j as f64, k as f64]), rv[idx]));
+                points.push((
+                    rg.patient_from_index([i as f64, j as f64, k as f64]),
+                    rv[idx],
+                ));
             }
         }
     }
@@ -205,7 +226,9 @@ fn nifti_space_files_agree_in_patient_space() {
             let idx = g.index_from_patient(*p);
             let r: Vec<i64> = idx.iter().map(|x| x.round() as i64).collect();
             assert!(
-                (0..3).all(|a| r[a] >= 0 && (r[a] as u64) < g.dims[a] && (idx[a] - r[a] as f64).abs() < 1e-3),
+                (0..3).all(|a| r[a] >= 0
+                    && (r[a] as u64) < g.dims[a]
+                    && (idx[a] - r[a] as f64).abs() < 1e-3),
                 "{}: point {p:?} lands at index {idx:?}",
                 f.display()
             );
@@ -263,7 +286,11 @@ fn nifti1_header(dims: [i16; 3], datatype: i16, bitpix: i16, srow: [[f32; 4]; 3]
     h
 }
 
-const RAS_2MM: [[f32; 4]; 3] = [[2.0, 0.0, 0.0, 10.0], [0.0, 2.0, 0.0, 20.0], [0.0, 0.0, 2.0, 30.0]];
+const RAS_2MM: [[f32; 4]; 3] = [
+    [2.0, 0.0, 0.0, 10.0],
+    [0.0, 2.0, 0.0, 20.0],
+    [0.0, 0.0, 2.0, 30.0],
+];
 
 #[test]
 fn synthetic_nifti_sform_converts_ras_to_lps_and_maps_data() {
@@ -279,7 +306,10 @@ fn synthetic_nifti_sform_converts_ras_to_lps_and_maps_data() {
     assert_eq!(s.info.sample_type, SampleType::U16);
     assert_eq!(g.spacing_mm, [2.0, 2.0, 2.0]);
     assert_eq!(g.origin_lps_mm, [-10.0, -20.0, 30.0]);
-    assert_eq!(g.direction, [[-1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]]);
+    assert_eq!(
+        g.direction,
+        [[-1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]]
+    );
     let mut v = Vec::new();
     s.data.read_slice_f64(1, &mut v);
     assert_eq!(v, (12..24).map(|x| x as f64).collect::<Vec<_>>());
@@ -319,7 +349,11 @@ fn synthetic_nifti_qform_matches_equivalent_sform() {
     for a in 0..3 {
         for c in 0..3 {
             let expected = if a == c { 1.0 } else { 0.0 };
-            assert!(close(g.direction[a][c], expected, 1e-6), "{:?}", g.direction);
+            assert!(
+                close(g.direction[a][c], expected, 1e-6),
+                "{:?}",
+                g.direction
+            );
         }
     }
     assert_eq!(g.spacing_mm, [1.5, 1.5, 1.5]);
@@ -352,9 +386,15 @@ space directions: (0,0,-2) (0,1.5,0) (3,0,0)\nspace origin: (1,2,3)\nencoding: r
     let s = open(&p);
     let g = &s.info.geometry;
     assert_eq!(g.spacing_mm, [2.0, 1.5, 3.0]);
-    assert_eq!(g.direction, [[-0.0, -0.0, -1.0], [-0.0, -1.0, 0.0], [-1.0, -0.0, 0.0]]);
+    assert_eq!(
+        g.direction,
+        [[-0.0, -0.0, -1.0], [-0.0, -1.0, 0.0], [-1.0, -0.0, 0.0]]
+    );
     assert_eq!(g.origin_lps_mm, [-1.0, -2.0, 3.0]);
-    assert_eq!(all_values(&s), (0..24).map(|x| x as f64).collect::<Vec<_>>());
+    assert_eq!(
+        all_values(&s),
+        (0..24).map(|x| x as f64).collect::<Vec<_>>()
+    );
 
     // Attached, gzip, big-endian shorts, spacings only.
     let mut body = Vec::new();
@@ -368,7 +408,10 @@ space directions: (0,0,-2) (0,1.5,0) (3,0,0)\nspace origin: (1,2,3)\nencoding: r
     let s = open(&write(t.path(), "b.nrrd", &f));
     assert_eq!(s.info.geometry.spacing_mm, [1.0, 2.0, 0.5]);
     assert_eq!(s.info.geometry.direction[1], [0.0, -1.0, 0.0]);
-    assert_eq!(all_values(&s), (-4..4).map(|x| x as f64).collect::<Vec<_>>());
+    assert_eq!(
+        all_values(&s),
+        (-4..4).map(|x| x as f64).collect::<Vec<_>>()
+    );
 
     // Detached data behind two text lines and a byte skip; and data at the end (byte skip -1).
     let mut data = b"line one\nline two\n???".to_vec();
@@ -382,11 +425,15 @@ space directions: (0,0,-2) (0,1.5,0) (3,0,0)\nspace origin: (1,2,3)\nencoding: r
     assert_eq!(all_values(&s), (0..8).map(|x| x as f64).collect::<Vec<_>>());
 
     // ascii encoding, staged as little-endian samples; too few values is an error.
-    let f = "NRRD0004\ntype: float\ndimension: 3\nsizes: 2 2 1\nencoding: ascii\n\n1.5 -2\n3e2,\t4\n";
+    let f =
+        "NRRD0004\ntype: float\ndimension: 3\nsizes: 2 2 1\nencoding: ascii\n\n1.5 -2\n3e2,\t4\n";
     let s = open(&write(t.path(), "text.nrrd", f.as_bytes()));
     assert_eq!(all_values(&s), vec![1.5, -2.0, 300.0, 4.0]);
     let f = "NRRD0004\ntype: float\ndimension: 3\nsizes: 2 2 2\nencoding: ascii\n\n1 2 3\n";
-    let e = err_of(&write(t.path(), "short.nrrd", f.as_bytes()), &ReadOptions::default());
+    let e = err_of(
+        &write(t.path(), "short.nrrd", f.as_bytes()),
+        &ReadOptions::default(),
+    );
     assert!(e.contains("short.nrrd") && e.contains("truncated"), "{e}");
 }
 
@@ -402,7 +449,10 @@ fn synthetic_metaimage_mhd_and_compressed_mha() {
 Offset = 1 2 3\nTransformMatrix = 0 1 0 -1 0 0 0 0 1\nElementDataFile = v.raw\n";
     let s = open(&write(t.path(), "v.mhd", hdr.as_bytes()));
     let g = &s.info.geometry;
-    assert_eq!(g.direction, [[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]);
+    assert_eq!(
+        g.direction,
+        [[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+    );
     assert_eq!(g.origin_lps_mm, [1.0, 2.0, 3.0]);
     assert_eq!(all_values(&s)[7], 700.0);
 
@@ -434,7 +484,10 @@ fn raw_with_spec() {
         ..Default::default()
     };
     let s = open_source(&p, &opts).unwrap();
-    assert_eq!(all_values(&s), (0..24).map(|x| x as f64).collect::<Vec<_>>());
+    assert_eq!(
+        all_values(&s),
+        (0..24).map(|x| x as f64).collect::<Vec<_>>()
+    );
     let bad = ReadOptions {
         raw: Some(RawSpec {
             dims: [4, 3, 3],
@@ -468,7 +521,10 @@ fn bad_inputs_fail_with_file_and_reason() {
     let mut good = nifti1_header([4, 4, 4], 2, 8, RAS_2MM);
     good.extend_from_slice(&[1u8; 64]);
     check(&write(d, "trunc.nii", &good[..352 + 30]), "truncated");
-    check(&write(d, "trunc.nii.gz", &gzip(&good[..352 + 30])), "truncated");
+    check(
+        &write(d, "trunc.nii.gz", &gzip(&good[..352 + 30])),
+        "truncated",
+    );
     let mut gz = gzip(&good);
     gz.truncate(gz.len() - 20);
     check(&write(d, "cut.nii.gz", &gz), "truncated");
@@ -511,7 +567,8 @@ fn bad_inputs_fail_with_file_and_reason() {
     f.extend_from_slice(&[0u8; 8]);
     check(&write(d, "type.nrrd", &f), "quaternion");
     write(d, "small.raw", &[0u8; 7]);
-    let h = "NRRD0004\ntype: uint8\ndimension: 3\nsizes: 2 2 2\nencoding: raw\ndata file: small.raw\n";
+    let h =
+        "NRRD0004\ntype: uint8\ndimension: 3\nsizes: 2 2 2\nencoding: raw\ndata file: small.raw\n";
     let e = err_of(&write(d, "mismatch.nhdr", h.as_bytes()), &o);
     assert!(e.contains("small.raw") && e.contains("truncated"), "{e}");
     let mut f = nrrd("type: uint8\nsizes: 3 2 2\nkinds: RGB-color domain domain").into_bytes();
@@ -520,14 +577,17 @@ fn bad_inputs_fail_with_file_and_reason() {
     let mut f = nrrd("type: uint8\nsizes: 0 2 2").into_bytes();
     f.extend_from_slice(&[0u8; 8]);
     check(&write(d, "zero.nrrd", &f), "zero");
-    let mut f = b"NRRD0004\ntype: uint16\ndimension: 3\nsizes: 8 8 8\nendian: little\nencoding: gzip\n\n".to_vec();
+    let mut f =
+        b"NRRD0004\ntype: uint16\ndimension: 3\nsizes: 8 8 8\nendian: little\nencoding: gzip\n\n"
+            .to_vec();
     f.extend_from_slice(&gzip(&[0u8; 100]));
     check(&write(d, "short.nrrd", &f), "truncated");
 
     // MetaImage: unknown type, size mismatch.
     let m = "NDims = 3\nDimSize = 4 4 4\nElementType = MET_FANCY\nElementDataFile = LOCAL\n";
     check(&write(d, "type.mha", m.as_bytes()), "MET_FANCY");
-    let mut m = b"NDims = 3\nDimSize = 4 4 4\nElementType = MET_SHORT\nElementDataFile = LOCAL\n".to_vec();
+    let mut m =
+        b"NDims = 3\nDimSize = 4 4 4\nElementType = MET_SHORT\nElementDataFile = LOCAL\n".to_vec();
     m.extend_from_slice(&[0u8; 100]);
     check(&write(d, "trunc.mha", &m), "truncated");
     let m = "NDims = 3\nDimSize = 4 4 4\nElementSpacing = 1 NaN 1\nElementType = MET_UCHAR\nElementDataFile = LOCAL\n";
@@ -550,11 +610,32 @@ fn bad_inputs_fail_with_file_and_reason() {
 }
 
 /// Builds a minimal DICOM file in memory via dicom-object.
-fn write_dicom(path: &Path, series_uid: &str, description: &str, z: f64, with_pixels: bool, slope: f64) {
-    write_dicom_at(path, series_uid, description, [0.0, 0.0, z], with_pixels, slope)
+fn write_dicom(
+    path: &Path,
+    series_uid: &str,
+    description: &str,
+    z: f64,
+    with_pixels: bool,
+    slope: f64,
+) {
+    write_dicom_at(
+        path,
+        series_uid,
+        description,
+        [0.0, 0.0, z],
+        with_pixels,
+        slope,
+    )
 }
 
-fn write_dicom_at(path: &Path, series_uid: &str, description: &str, pos: [f64; 3], with_pixels: bool, slope: f64) {
+fn write_dicom_at(
+    path: &Path,
+    series_uid: &str,
+    description: &str,
+    pos: [f64; 3],
+    with_pixels: bool,
+    slope: f64,
+) {
     let z = pos[2];
     use dicom_core::{DataElement, PrimitiveValue, VR};
     use dicom_dictionary_std::{tags, uids};
@@ -574,16 +655,28 @@ fn write_dicom_at(path: &Path, series_uid: &str, description: &str, pos: [f64; 3
             VR::DS,
             format!("{}\\{}\\{z}", pos[0], pos[1]).into(),
         );
-        put(tags::IMAGE_ORIENTATION_PATIENT, VR::DS, "1\\0\\0\\0\\1\\0".into());
+        put(
+            tags::IMAGE_ORIENTATION_PATIENT,
+            VR::DS,
+            "1\\0\\0\\0\\1\\0".into(),
+        );
         put(tags::PIXEL_SPACING, VR::DS, "0.5\\0.25".into());
         put(tags::ROWS, VR::US, PrimitiveValue::from(2u16));
         put(tags::COLUMNS, VR::US, PrimitiveValue::from(3u16));
         put(tags::SAMPLES_PER_PIXEL, VR::US, PrimitiveValue::from(1u16));
-        put(tags::PHOTOMETRIC_INTERPRETATION, VR::CS, "MONOCHROME2".into());
+        put(
+            tags::PHOTOMETRIC_INTERPRETATION,
+            VR::CS,
+            "MONOCHROME2".into(),
+        );
         put(tags::BITS_ALLOCATED, VR::US, PrimitiveValue::from(16u16));
         put(tags::BITS_STORED, VR::US, PrimitiveValue::from(12u16));
         put(tags::HIGH_BIT, VR::US, PrimitiveValue::from(11u16));
-        put(tags::PIXEL_REPRESENTATION, VR::US, PrimitiveValue::from(1u16));
+        put(
+            tags::PIXEL_REPRESENTATION,
+            VR::US,
+            PrimitiveValue::from(1u16),
+        );
         put(tags::RESCALE_SLOPE, VR::DS, format!("{slope}").into());
         put(tags::RESCALE_INTERCEPT, VR::DS, "-10".into());
         put(tags::WINDOW_CENTER, VR::DS, "40\\400".into());
@@ -633,7 +726,10 @@ fn synthetic_dicom_series_sorting_selection_and_errors() {
     assert_eq!(v[3], 40.0);
     assert_eq!((s.info.slope, s.info.intercept), (1.0, -10.0));
     assert_eq!(s.info.windows.len(), 2);
-    assert_eq!((s.info.windows[1].center, s.info.windows[1].width), (400.0, 2000.0));
+    assert_eq!(
+        (s.info.windows[1].center, s.info.windows[1].width),
+        (400.0, 2000.0)
+    );
 
     // Per-slice rescale: stored as physical f32 values with an identity mapping.
     write_dicom(&d.join("a.dcm"), "1.2.840.1", "Axial T1", 4.0, true, 2.0);
@@ -647,7 +743,14 @@ fn synthetic_dicom_series_sorting_selection_and_errors() {
     write_dicom(&d.join("a.dcm"), "1.2.840.1", "Axial T1", 4.0, true, 1.0);
 
     // Two slices at one position: several stacks, not a volume.
-    write_dicom(&d.join("dup.dcm"), "1.2.840.1", "Axial T1", 2.00001, true, 1.0);
+    write_dicom(
+        &d.join("dup.dcm"),
+        "1.2.840.1",
+        "Axial T1",
+        2.00001,
+        true,
+        1.0,
+    );
     let e = err_of(&d, &ReadOptions::default());
     assert!(e.contains("same position") && e.contains("dup.dcm"), "{e}");
     std::fs::remove_file(d.join("dup.dcm")).unwrap();
@@ -669,7 +772,14 @@ fn synthetic_dicom_series_sorting_selection_and_errors() {
     std::fs::remove_file(d.join("d.dcm")).unwrap();
 
     // Evenly spaced along the normal but shifted in-plane: not one block.
-    write_dicom_at(&d.join("c.dcm"), "1.2.840.1", "Axial T1", [5.0, 0.0, 2.0], true, 1.0);
+    write_dicom_at(
+        &d.join("c.dcm"),
+        "1.2.840.1",
+        "Axial T1",
+        [5.0, 0.0, 2.0],
+        true,
+        1.0,
+    );
     let e = err_of(&d, &ReadOptions::default());
     assert!(e.contains("off the line") && e.contains("c.dcm"), "{e}");
     write_dicom(&d.join("c.dcm"), "1.2.840.1", "Axial T1", 2.0, true, 1.0);
@@ -678,21 +788,30 @@ fn synthetic_dicom_series_sorting_selection_and_errors() {
     write_dicom(&d.join("e.dcm"), "1.2.840.2", "Localizer", 0.0, true, 1.0);
     let e = err_of(&d, &ReadOptions::default());
     assert!(
-        e.contains("1.2.840.1") && e.contains("1.2.840.2") && e.contains("Localizer") && e.contains("3 slices"),
+        e.contains("1.2.840.1")
+            && e.contains("1.2.840.2")
+            && e.contains("Localizer")
+            && e.contains("3 slices"),
         "{e}"
     );
     let by_uid = ReadOptions {
         dicom_series: Some("1.2.840.2".into()),
         ..Default::default()
     };
-    assert_eq!(open_source(&d, &by_uid).unwrap().info.geometry.dims, [3, 2, 1]);
+    assert_eq!(
+        open_source(&d, &by_uid).unwrap().info.geometry.dims,
+        [3, 2, 1]
+    );
     let listing = strata_storage::readers::list_dicom_series(&d).unwrap();
     let idx = listing.iter().position(|s| s.uid == "1.2.840.1").unwrap();
     let by_idx = ReadOptions {
         dicom_series: Some(idx.to_string()),
         ..Default::default()
     };
-    assert_eq!(open_source(&d, &by_idx).unwrap().info.geometry.dims, [3, 2, 3]);
+    assert_eq!(
+        open_source(&d, &by_idx).unwrap().info.geometry.dims,
+        [3, 2, 3]
+    );
     let e = err_of(
         &d,
         &ReadOptions {
@@ -706,7 +825,9 @@ fn synthetic_dicom_series_sorting_selection_and_errors() {
     // still land on slice k's ImagePositionPatient.
     let tilt = t.path().join("tilt");
     std::fs::create_dir(&tilt).unwrap();
-    let positions: Vec<[f64; 3]> = (0..4).map(|k| [0.0, 0.5 * k as f64, 2.0 * k as f64]).collect();
+    let positions: Vec<[f64; 3]> = (0..4)
+        .map(|k| [0.0, 0.5 * k as f64, 2.0 * k as f64])
+        .collect();
     for (k, p) in positions.iter().enumerate() {
         write_dicom_at(
             &tilt.join(format!("{}.dcm", 3 - k)),
@@ -720,7 +841,10 @@ fn synthetic_dicom_series_sorting_selection_and_errors() {
     let s = open(&tilt);
     for (k, p) in positions.iter().enumerate() {
         let q = s.info.geometry.patient_from_index([0.0, 0.0, k as f64]);
-        assert!((0..3).all(|c| close(p[c], q[c], 1e-9)), "slice {k}: {q:?} vs {p:?}");
+        assert!(
+            (0..3).all(|c| close(p[c], q[c], 1e-9)),
+            "slice {k}: {q:?} vs {p:?}"
+        );
     }
 
     // Non-image DICOM: a file alone errors; a folder of only such files errors.
@@ -730,7 +854,10 @@ fn synthetic_dicom_series_sorting_selection_and_errors() {
     let e = err_of(&ni.join("sr.dcm"), &ReadOptions::default());
     assert!(e.contains("sr.dcm") && e.contains("no image"), "{e}");
     let e = err_of(&ni, &ReadOptions::default());
-    assert!(e.contains("noimg") && e.contains("none of the 1 DICOM files"), "{e}");
+    assert!(
+        e.contains("noimg") && e.contains("none of the 1 DICOM files"),
+        "{e}"
+    );
 }
 
 /// NIfTI-2, big-endian, with an sform rotated 90° about z, and a 4-D series (first volume read).
@@ -750,7 +877,11 @@ fn synthetic_nifti2_big_endian_4d() {
     h[184..192].copy_from_slice(&(-1f64).to_be_bytes());
     h[348..352].copy_from_slice(&2i32.to_be_bytes()); // sform_code
                                                       // RAS: i → +y (anterior), j → −x (right), k → +z; 1, 2, 3 mm.
-    let srow = [[0.0, -2.0, 0.0, 5.0], [1.0, 0.0, 0.0, 6.0], [0.0, 0.0, 3.0, 7.0]];
+    let srow = [
+        [0.0, -2.0, 0.0, 5.0],
+        [1.0, 0.0, 0.0, 6.0],
+        [0.0, 0.0, 3.0, 7.0],
+    ];
     for (r, row) in srow.iter().enumerate() {
         for (c, v) in row.iter().enumerate() {
             h[400 + 32 * r + 8 * c..408 + 32 * r + 8 * c].copy_from_slice(&f64::to_be_bytes(*v));
@@ -764,11 +895,17 @@ fn synthetic_nifti2_big_endian_4d() {
     assert_eq!(s.info.format, "nifti-2");
     assert_eq!(g.dims, [4, 3, 2]);
     assert_eq!(g.spacing_mm, [1.0, 2.0, 3.0]);
-    assert_eq!(g.direction, [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]);
+    assert_eq!(
+        g.direction,
+        [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+    );
     assert_eq!(g.origin_lps_mm, [-5.0, -6.0, 7.0]);
     assert_eq!((s.info.slope, s.info.intercept), (2.0, -1.0));
     assert!(s.info.description.contains("first of 2 volumes"));
-    assert_eq!(all_values(&s), (-24..0).map(|x| x as f64).collect::<Vec<_>>());
+    assert_eq!(
+        all_values(&s),
+        (-24..0).map(|x| x as f64).collect::<Vec<_>>()
+    );
 
     // The same header as a .hdr/.img pair (magic ni2, data from offset 0 of the .img).
     let mut hdr = h[..540].to_vec();
@@ -810,11 +947,19 @@ fn synthetic_dicom_rle_lossless() {
     put(tags::ROWS, VR::US, PrimitiveValue::from(2u16));
     put(tags::COLUMNS, VR::US, PrimitiveValue::from(3u16));
     put(tags::SAMPLES_PER_PIXEL, VR::US, PrimitiveValue::from(1u16));
-    put(tags::PHOTOMETRIC_INTERPRETATION, VR::CS, "MONOCHROME2".into());
+    put(
+        tags::PHOTOMETRIC_INTERPRETATION,
+        VR::CS,
+        "MONOCHROME2".into(),
+    );
     put(tags::BITS_ALLOCATED, VR::US, PrimitiveValue::from(16u16));
     put(tags::BITS_STORED, VR::US, PrimitiveValue::from(16u16));
     put(tags::HIGH_BIT, VR::US, PrimitiveValue::from(15u16));
-    put(tags::PIXEL_REPRESENTATION, VR::US, PrimitiveValue::from(0u16));
+    put(
+        tags::PIXEL_REPRESENTATION,
+        VR::US,
+        PrimitiveValue::from(0u16),
+    );
     obj.put(DataElement::new(
         tags::PIXEL_DATA,
         VR::OB,
@@ -832,5 +977,8 @@ fn synthetic_dicom_rle_lossless() {
     file.write_to_file(&p).unwrap();
     let s = open(&p);
     assert_eq!(s.info.sample_type, SampleType::U16);
-    assert_eq!(all_values(&s), values.iter().map(|&v| v as f64).collect::<Vec<_>>());
+    assert_eq!(
+        all_values(&s),
+        values.iter().map(|&v| v as f64).collect::<Vec<_>>()
+    );
 }

@@ -60,7 +60,11 @@ impl Knobs {
             s += " preint";
         }
         if self.mixed {
-            s += if self.smooth { " mixed 0/1 smooth" } else { " mixed 0/1 seams" };
+            s += if self.smooth {
+                " mixed 0/1 smooth"
+            } else {
+                " mixed 0/1 seams"
+            };
         } else if self.level > 0 {
             let _ = write!(s, " level {}", self.level);
         }
@@ -100,23 +104,56 @@ fn sweep() -> Vec<Knobs> {
     };
     let mut knobs = Vec::new();
     for &step in &[0.125, 0.25, 0.5, 1.0, 2.0, 4.0] {
-        knobs.push(Knobs { step, ..base.clone() });
-        knobs.push(Knobs { family: "step + pre-integration", step, preintegrated: true, ..base.clone() });
+        knobs.push(Knobs {
+            step,
+            ..base.clone()
+        });
+        knobs.push(Knobs {
+            family: "step + pre-integration",
+            step,
+            preintegrated: true,
+            ..base.clone()
+        });
     }
     for level in [1, 2] {
-        knobs.push(Knobs { family: "coarser level (LOD factor)", level, ..base.clone() });
-        knobs.push(Knobs { family: "coarser level (LOD factor)", level, step: 1.0, ..base.clone() });
+        knobs.push(Knobs {
+            family: "coarser level (LOD factor)",
+            level,
+            ..base.clone()
+        });
+        knobs.push(Knobs {
+            family: "coarser level (LOD factor)",
+            level,
+            step: 1.0,
+            ..base.clone()
+        });
     }
     for smooth in [false, true] {
         for shading in [false, true] {
-            knobs.push(Knobs { family: "mixed levels: smooth transitions", mixed: true, smooth, shading, ..base.clone() });
+            knobs.push(Knobs {
+                family: "mixed levels: smooth transitions",
+                mixed: true,
+                smooth,
+                shading,
+                ..base.clone()
+            });
         }
     }
     for &step in &[1.0, 2.0, 4.0] {
-        knobs.push(Knobs { family: "jitter", step, jitter: true, ..base.clone() });
+        knobs.push(Knobs {
+            family: "jitter",
+            step,
+            jitter: true,
+            ..base.clone()
+        });
     }
     for &step in &[0.25, 0.5, 1.0, 2.0] {
-        knobs.push(Knobs { family: "shaded", step, shading: true, ..base.clone() });
+        knobs.push(Knobs {
+            family: "shaded",
+            step,
+            shading: true,
+            ..base.clone()
+        });
     }
     knobs
 }
@@ -161,17 +198,32 @@ pub(crate) fn open_input(options: &Options) -> Result<Volume> {
         (store, format!("phantom{}", options.phantom_size), Some(dir))
     } else {
         let path = Path::new(&options.input);
-        let store = Store::open(path).with_context(|| format!("cannot open store {}", path.display()))?;
-        let name = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "store".into());
+        let store =
+            Store::open(path).with_context(|| format!("cannot open store {}", path.display()))?;
+        let name = path
+            .file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_else(|| "store".into());
         (store, name, None)
     };
     let header = store.header().clone();
     let geometry = render_geometry(&header)?;
     let mapping = render_mapping(&header);
     let tf = choose_transfer_function(options.tf.as_deref(), &header.modality)?;
-    let (a, b) = (mapping.physical(header.stored_range[0] as f64), mapping.physical(header.stored_range[1] as f64));
+    let (a, b) = (
+        mapping.physical(header.stored_range[0] as f64),
+        mapping.physical(header.stored_range[1] as f64),
+    );
     let tf_table = tf.table(a.min(b), a.max(b));
-    Ok(Volume { store, geometry, mapping, tf, tf_table, name, _scratch: scratch })
+    Ok(Volume {
+        store,
+        geometry,
+        mapping,
+        tf,
+        tf_table,
+        name,
+        _scratch: scratch,
+    })
 }
 
 /// The view every setting of the accuracy-type benches renders: an oblique orbit framing the
@@ -267,7 +319,10 @@ fn controller_rate(
     target_ms: f64,
     settings_for_rate: impl Fn(f64) -> RenderSettings,
 ) -> Result<f64> {
-    let config = strata_render::ControllerConfig { target_fps: 1000.0 / target_ms, ..Default::default() };
+    let config = strata_render::ControllerConfig {
+        target_fps: 1000.0 / target_ms,
+        ..Default::default()
+    };
     let mut controller = strata_render::SamplingRateController::new(config, 2.0);
     for _ in 0..16 {
         let rate = controller.rate();
@@ -309,7 +364,11 @@ pub fn run(options: Options) -> Result<()> {
     for k in &knobs {
         let key = (k.level.min(root), k.mixed);
         if let std::collections::hash_map::Entry::Vacant(e) = cuts.entry(key) {
-            e.insert(if k.mixed { load_mixed(&ctx, &v, &camera)? } else { load_level(&ctx, &v, key.0)? });
+            e.insert(if k.mixed {
+                load_mixed(&ctx, &v, &camera)?
+            } else {
+                load_level(&ctx, &v, key.0)?
+            });
         }
     }
 
@@ -318,42 +377,82 @@ pub fn run(options: Options) -> Result<()> {
     let finest = cuts.get(&(0, false)).context("level 0 cut missing")?;
     for shading in [false, true] {
         let t = Instant::now();
-        let settings = RenderSettings { jitter: false, ..settings_of(&Knobs { step: 0.5, shading, ..knobs[0].clone() }) };
+        let settings = RenderSettings {
+            jitter: false,
+            ..settings_of(&Knobs {
+                step: 0.5,
+                shading,
+                ..knobs[0].clone()
+            })
+        };
         let reference = reference_rgba(&v, &finest.bricks, &finest.table, &camera, &settings)?;
-        eprintln!("reference ({}) in {:.1} s", if shading { "shaded" } else { "unshaded" }, t.elapsed().as_secs_f64());
+        eprintln!(
+            "reference ({}) in {:.1} s",
+            if shading { "shaded" } else { "unshaded" },
+            t.elapsed().as_secs_f64()
+        );
         references.insert(shading, reference);
     }
 
     let measure = |cut: &mut LevelCut, k: &Knobs| -> Result<Row> {
         let settings = settings_of(k);
         // Error from one frame (jittered frames differ; frame 0's pattern stands for all).
-        let frame = cut.gpu.render_blocking(&ctx, &v.geometry, v.mapping, &camera, &settings)?;
+        let frame = cut
+            .gpu
+            .render_blocking(&ctx, &v.geometry, v.mapping, &camera, &settings)?;
         let reference = references.get(&k.shading).context("reference missing")?;
         let c = compare_rgba8(&frame.rgba, reference)?;
         let mut times = Vec::with_capacity(options.frames);
         for i in 0..options.frames {
-            let settings = RenderSettings { frame_index: i as u32, ..settings.clone() };
+            let settings = RenderSettings {
+                frame_index: i as u32,
+                ..settings.clone()
+            };
             let t = Instant::now();
             render_and_wait(&ctx, cut, &v, &camera, &settings)?;
             times.push(t.elapsed().as_secs_f64() * 1e3);
         }
-        let row = Row { knobs: k.clone(), median_ms: median(times), rmse: c.rmse, psnr_db: c.psnr_db, max_abs: c.max_abs_error, pareto: false };
-        eprintln!("{:<28} {:>8.1} ms  PSNR {:>5.1} dB  RMSE {:>6.3}  max {:>3}", row.knobs.label(), row.median_ms, row.psnr_db, row.rmse, row.max_abs);
+        let row = Row {
+            knobs: k.clone(),
+            median_ms: median(times),
+            rmse: c.rmse,
+            psnr_db: c.psnr_db,
+            max_abs: c.max_abs_error,
+            pareto: false,
+        };
+        eprintln!(
+            "{:<28} {:>8.1} ms  PSNR {:>5.1} dB  RMSE {:>6.3}  max {:>3}",
+            row.knobs.label(),
+            row.median_ms,
+            row.psnr_db,
+            row.rmse,
+            row.max_abs
+        );
         Ok(row)
     };
     let mut rows = Vec::new();
     for k in &knobs {
-        let cut = cuts.get_mut(&(k.level.min(root), k.mixed)).context("cut missing")?;
+        let cut = cuts
+            .get_mut(&(k.level.min(root), k.mixed))
+            .context("cut missing")?;
         rows.push(measure(cut, k)?);
     }
     // The time-critical controller's choice for two frame budgets, three quarters and half of
     // the step-0.5 frame measured above: its rows show where on the error/time curve it lands.
-    let base_ms = rows[knobs.iter().position(|k| k.family == "step" && k.step == 0.5).context("step 0.5 row missing")?].median_ms;
+    let base_ms = rows[knobs
+        .iter()
+        .position(|k| k.family == "step" && k.step == 0.5)
+        .context("step 0.5 row missing")?]
+    .median_ms;
     for fraction in [0.75, 0.5] {
         let target_ms = base_ms * fraction;
         let cut = cuts.get_mut(&(0, false)).context("level 0 cut missing")?;
         let rate = controller_rate(&ctx, &v, &camera, cut, target_ms, |rate| {
-            settings_of(&Knobs { step: 1.0 / rate, jitter: rate < 1.0, ..knobs[0].clone() })
+            settings_of(&Knobs {
+                step: 1.0 / rate,
+                jitter: rate < 1.0,
+                ..knobs[0].clone()
+            })
         })?;
         let k = Knobs {
             family: "time-critical target",
@@ -366,17 +465,30 @@ pub fn run(options: Options) -> Result<()> {
     }
     mark_pareto(&mut rows);
 
-    std::fs::create_dir_all(&options.out_dir).with_context(|| format!("creating {}", options.out_dir.display()))?;
+    std::fs::create_dir_all(&options.out_dir)
+        .with_context(|| format!("creating {}", options.out_dir.display()))?;
     let stem = options.out_dir.join(format!("accuracy-{}", v.name));
     let csv = stem.with_extension("csv");
     let md = stem.with_extension("md");
     let png = stem.with_extension("png");
     write_csv(&csv, &rows)?;
-    let table = markdown(&rows, &v.name, width, height, options.frames, &ctx.adapter_name());
+    let table = markdown(
+        &rows,
+        &v.name,
+        width,
+        height,
+        options.frames,
+        &ctx.adapter_name(),
+    );
     std::fs::write(&md, &table).with_context(|| format!("writing {}", md.display()))?;
     plot(&png, &rows, &v.name)?;
     println!("{table}");
-    println!("wrote {}, {}, {}", csv.display(), md.display(), png.display());
+    println!(
+        "wrote {}, {}, {}",
+        csv.display(),
+        md.display(),
+        png.display()
+    );
     Ok(())
 }
 
@@ -387,13 +499,31 @@ fn write_csv(path: &Path, rows: &[Row]) -> Result<()> {
         let _ = writeln!(
             out,
             "{},{},{},{},{},{},{},{:.3},{:.4},{:.2},{},{}",
-            k.family, k.label(), k.step, k.preintegrated, k.level, k.jitter, k.shading, r.median_ms, r.rmse, r.psnr_db, r.max_abs, r.pareto
+            k.family,
+            k.label(),
+            k.step,
+            k.preintegrated,
+            k.level,
+            k.jitter,
+            k.shading,
+            r.median_ms,
+            r.rmse,
+            r.psnr_db,
+            r.max_abs,
+            r.pareto
         );
     }
     std::fs::write(path, out).with_context(|| format!("writing {}", path.display()))
 }
 
-fn markdown(rows: &[Row], name: &str, width: u32, height: u32, frames: usize, adapter: &str) -> String {
+fn markdown(
+    rows: &[Row],
+    name: &str,
+    width: u32,
+    height: u32,
+    frames: usize,
+    adapter: &str,
+) -> String {
     let mut out = format!(
         "Accuracy vs time, {name}, {width}×{height} DVR, median of {frames} frames on {adapter}; \
          error against the f64 reference (level 0, 1/16 voxel). ★ = Pareto front.\n\n\
@@ -417,20 +547,35 @@ fn markdown(rows: &[Row], name: &str, width: u32, height: u32, frames: usize, ad
 
 fn plot(path: &Path, rows: &[Row], name: &str) -> Result<()> {
     use plotters::prelude::*;
-    plotters::style::register_font("sans-serif", FontStyle::Normal, epaint_default_fonts::UBUNTU_LIGHT)
-        .map_err(|_| anyhow::anyhow!("the bundled plot font did not load"))?;
-    let draw_error = |e: DrawingAreaErrorKind<_>| anyhow::anyhow!("plotting {}: {e:?}", path.display());
+    plotters::style::register_font(
+        "sans-serif",
+        FontStyle::Normal,
+        epaint_default_fonts::UBUNTU_LIGHT,
+    )
+    .map_err(|_| anyhow::anyhow!("the bundled plot font did not load"))?;
+    let draw_error =
+        |e: DrawingAreaErrorKind<_>| anyhow::anyhow!("plotting {}: {e:?}", path.display());
     let root = BitMapBackend::new(path, (900, 600)).into_drawing_area();
     root.fill(&WHITE).map_err(draw_error)?;
     let positive = |x: f64| x.max(1e-3);
-    let (t_lo, t_hi) = rows.iter().fold((f64::INFINITY, 0.0f64), |(lo, hi), r| (lo.min(r.median_ms), hi.max(r.median_ms)));
-    let (e_lo, e_hi) = rows.iter().fold((f64::INFINITY, 0.0f64), |(lo, hi), r| (lo.min(positive(r.rmse)), hi.max(positive(r.rmse))));
+    let (t_lo, t_hi) = rows.iter().fold((f64::INFINITY, 0.0f64), |(lo, hi), r| {
+        (lo.min(r.median_ms), hi.max(r.median_ms))
+    });
+    let (e_lo, e_hi) = rows.iter().fold((f64::INFINITY, 0.0f64), |(lo, hi), r| {
+        (lo.min(positive(r.rmse)), hi.max(positive(r.rmse)))
+    });
     let mut chart = ChartBuilder::on(&root)
-        .caption(format!("{name}: error vs frame time (DVR)"), ("sans-serif", 24))
+        .caption(
+            format!("{name}: error vs frame time (DVR)"),
+            ("sans-serif", 24),
+        )
         .margin(16)
         .x_label_area_size(48)
         .y_label_area_size(64)
-        .build_cartesian_2d((t_lo * 0.8..t_hi * 1.25).log_scale(), (e_lo * 0.8..e_hi * 1.25).log_scale())
+        .build_cartesian_2d(
+            (t_lo * 0.8..t_hi * 1.25).log_scale(),
+            (e_lo * 0.8..e_hi * 1.25).log_scale(),
+        )
         .map_err(draw_error)?;
     chart
         .configure_mesh()
@@ -451,24 +596,47 @@ fn plot(path: &Path, rows: &[Row], name: &str) -> Result<()> {
         "shaded",
         "time-critical target",
     ];
-    let colors = [BLUE, RED, GREEN, CYAN, MAGENTA, BLACK, RGBColor(230, 130, 0)];
+    let colors = [
+        BLUE,
+        RED,
+        GREEN,
+        CYAN,
+        MAGENTA,
+        BLACK,
+        RGBColor(230, 130, 0),
+    ];
     for (family, color) in families.iter().zip(colors) {
-        let points: Vec<(f64, f64)> = rows.iter().filter(|r| r.knobs.family == *family).map(|r| (r.median_ms, positive(r.rmse))).collect();
+        let points: Vec<(f64, f64)> = rows
+            .iter()
+            .filter(|r| r.knobs.family == *family)
+            .map(|r| (r.median_ms, positive(r.rmse)))
+            .collect();
         chart
             .draw_series(points.iter().map(|&p| Circle::new(p, 5, color.filled())))
             .map_err(draw_error)?
             .label(*family)
             .legend(move |(x, y)| Circle::new((x + 8, y), 5, color.filled()));
     }
-    let mut front: Vec<(f64, f64)> = rows.iter().filter(|r| r.pareto).map(|r| (r.median_ms, positive(r.rmse))).collect();
+    let mut front: Vec<(f64, f64)> = rows
+        .iter()
+        .filter(|r| r.pareto)
+        .map(|r| (r.median_ms, positive(r.rmse)))
+        .collect();
     front.sort_by(|a, b| a.0.total_cmp(&b.0));
     chart
-        .draw_series(LineSeries::new(front.clone(), ShapeStyle::from(&BLACK.mix(0.6)).stroke_width(2)))
+        .draw_series(LineSeries::new(
+            front.clone(),
+            ShapeStyle::from(&BLACK.mix(0.6)).stroke_width(2),
+        ))
         .map_err(draw_error)?
         .label("Pareto front")
         .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], BLACK.stroke_width(2)));
     chart
-        .draw_series(front.iter().map(|&p| Circle::new(p, 9, BLACK.stroke_width(2))))
+        .draw_series(
+            front
+                .iter()
+                .map(|&p| Circle::new(p, 9, BLACK.stroke_width(2))),
+        )
         .map_err(draw_error)?;
     chart
         .configure_series_labels()
@@ -509,7 +677,13 @@ mod tests {
 
     #[test]
     fn pareto_front_keeps_only_undominated_points() {
-        let mut rows = vec![row(10.0, 5.0), row(20.0, 2.0), row(15.0, 6.0), row(30.0, 2.0), row(5.0, 9.0)];
+        let mut rows = vec![
+            row(10.0, 5.0),
+            row(20.0, 2.0),
+            row(15.0, 6.0),
+            row(30.0, 2.0),
+            row(5.0, 9.0),
+        ];
         mark_pareto(&mut rows);
         let front: Vec<bool> = rows.iter().map(|r| r.pareto).collect();
         // (15, 6) is slower and worse than (10, 5); (30, 2) is slower than (20, 2) at equal error.
@@ -526,7 +700,10 @@ mod tests {
         let img = image::open(&path).unwrap().to_rgb8();
         assert_eq!(img.dimensions(), (900, 600));
         // Not blank: the axes, labels and points draw dark pixels on the white background.
-        let dark = img.pixels().filter(|p| p.0.iter().all(|&c| c < 100)).count();
+        let dark = img
+            .pixels()
+            .filter(|p| p.0.iter().all(|&c| c < 100))
+            .count();
         assert!(dark > 1000, "{dark} dark pixels");
     }
 }

@@ -19,7 +19,8 @@ use strata_loader::store_volume::{load_uniform_cut, GpuCut};
 use strata_loader::{render_geometry, render_mapping};
 use strata_render::{
     Camera, ControllerConfig, FrameQuality, GpuContext, Projection, RenderSettings, Scene, Shading,
-    TimeCriticalConfig, TimeCriticalController, TransferFunctionTable, ValueMapping, VolumeGeometry,
+    TimeCriticalConfig, TimeCriticalController, TransferFunctionTable, ValueMapping,
+    VolumeGeometry,
 };
 use strata_storage::Store;
 
@@ -63,13 +64,27 @@ impl Cuts<'_> {
     fn level_for(&self, lod_factor: f64) -> u8 {
         // A factor of 2^k lets a voxel cover 2^k pixels: k levels coarser than the finest.
         let coarser = lod_factor.max(1.0).log2().round().clamp(0.0, 32.0) as u8;
-        self.finest_level.saturating_add(coarser).min(self.root_level)
+        self.finest_level
+            .saturating_add(coarser)
+            .min(self.root_level)
     }
 
     fn get(&mut self, ctx: &GpuContext, level: u8) -> Result<&GpuCut> {
         if !self.by_level.contains_key(&level) {
-            let (table, bricks) = load_uniform_cut(self.store, self.geometry, self.mapping, self.tf_table, level)?;
-            let cut = GpuCut::upload(ctx, &bricks, &table, self.geometry.page_dims(), self.tf_table)?;
+            let (table, bricks) = load_uniform_cut(
+                self.store,
+                self.geometry,
+                self.mapping,
+                self.tf_table,
+                level,
+            )?;
+            let cut = GpuCut::upload(
+                ctx,
+                &bricks,
+                &table,
+                self.geometry.page_dims(),
+                self.tf_table,
+            )?;
             eprintln!("  (level {level}: {} bricks resident)", bricks.len());
             self.by_level.insert(level, cut);
         }
@@ -102,7 +117,11 @@ struct RunSummary {
 }
 
 fn summarize(records: &[FrameRecord], wall_seconds: f64) -> Result<RunSummary> {
-    let fps: Vec<f64> = records.iter().filter_map(|r| r.gpu_ms).map(|ms| 1000.0 / ms).collect();
+    let fps: Vec<f64> = records
+        .iter()
+        .filter_map(|r| r.gpu_ms)
+        .map(|ms| 1000.0 / ms)
+        .collect();
     if fps.is_empty() {
         bail!("no frame timings arrived; the GPU reported nothing");
     }
@@ -121,21 +140,31 @@ fn summarize(records: &[FrameRecord], wall_seconds: f64) -> Result<RunSummary> {
 
 pub fn run(options: Options) -> Result<()> {
     if !(options.target_fps.is_finite() && options.target_fps > 0.0) {
-        bail!("--target must be a positive frame rate, not {}", options.target_fps);
+        bail!(
+            "--target must be a positive frame rate, not {}",
+            options.target_fps
+        );
     }
     if options.frames == 0 {
         bail!("--frames must be at least 1");
     }
     if !(options.step.is_finite() && options.step > 0.0) {
-        bail!("--step must be a positive number of voxels, not {}", options.step);
+        bail!(
+            "--step must be a positive number of voxels, not {}",
+            options.step
+        );
     }
     let (width, height) = crate::cmd_render::parse_size(&options.size)?;
-    let store = Store::open(&options.store).with_context(|| format!("cannot open store {}", options.store.display()))?;
+    let store = Store::open(&options.store)
+        .with_context(|| format!("cannot open store {}", options.store.display()))?;
     let header = store.header().clone();
     let geometry = render_geometry(&header)?;
     let mapping = render_mapping(&header);
     let tf = choose_transfer_function(options.tf.as_deref(), &header.modality)?;
-    let physical = (mapping.physical(header.stored_range[0] as f64), mapping.physical(header.stored_range[1] as f64));
+    let physical = (
+        mapping.physical(header.stored_range[0] as f64),
+        mapping.physical(header.stored_range[1] as f64),
+    );
     let tf_table = tf.table(physical.0.min(physical.1), physical.0.max(physical.1));
     let ctx = GpuContext::headless()?;
     let root_level = (store.layout().level_count() - 1) as u8;
@@ -148,7 +177,12 @@ pub fn run(options: Options) -> Result<()> {
         root_level,
         by_level: HashMap::new(),
     };
-    let base_settings = RenderSettings { width, height, shading: Some(Shading::default()), ..RenderSettings::default() };
+    let base_settings = RenderSettings {
+        width,
+        height,
+        shading: Some(Shading::default()),
+        ..RenderSettings::default()
+    };
     let finest = cuts.finest_level;
     let mut raycaster = {
         let cut = cuts.get(&ctx, finest)?;
@@ -156,7 +190,13 @@ pub fn run(options: Options) -> Result<()> {
     };
     // Both jitter variants compiled before the first timed frame.
     for jitter in [false, true] {
-        raycaster.prepare(&ctx, &RenderSettings { jitter, ..base_settings.clone() });
+        raycaster.prepare(
+            &ctx,
+            &RenderSettings {
+                jitter,
+                ..base_settings.clone()
+            },
+        );
     }
     println!(
         "time-critical bench: {} ({:?}), {width}x{height}, {} frames per 360° orbit, target {:.1} fps",
@@ -165,19 +205,35 @@ pub fn run(options: Options) -> Result<()> {
         options.frames,
         options.target_fps
     );
-    println!("GPU: {}; frame time from {:?}", ctx.adapter_name(), raycaster.frame_timing_source());
+    println!(
+        "GPU: {}; frame time from {:?}",
+        ctx.adapter_name(),
+        raycaster.frame_timing_source()
+    );
 
     let fixed_rate = 1.0 / options.step;
-    let fixed_quality = FrameQuality { sampling_rate: fixed_rate, lod_factor: 1.0, jitter: false, interactive: true };
+    let fixed_quality = FrameQuality {
+        sampling_rate: fixed_rate,
+        lod_factor: 1.0,
+        jitter: false,
+        interactive: true,
+    };
     let config = TimeCriticalConfig {
-        controller: ControllerConfig { target_fps: options.target_fps, ..Default::default() },
+        controller: ControllerConfig {
+            target_fps: options.target_fps,
+            ..Default::default()
+        },
         ..Default::default()
     };
     let mut controlled = TimeCriticalController::new(config, fixed_rate);
 
     // `controller` None: the standard rendering at the fixed rate.
     // `degrees` 0: the noise-floor run on the first view.
-    let mut orbit = |label: &str, mut controller: Option<&mut TimeCriticalController>, frames: usize, degrees: f64| -> Result<(Vec<FrameRecord>, f64)> {
+    let mut orbit = |label: &str,
+                     mut controller: Option<&mut TimeCriticalController>,
+                     frames: usize,
+                     degrees: f64|
+     -> Result<(Vec<FrameRecord>, f64)> {
         let mut records: Vec<FrameRecord> = Vec::new();
         let mut frame_of: HashMap<u64, usize> = HashMap::new();
         let mut in_flight = VecDeque::new();
@@ -189,7 +245,13 @@ pub fn run(options: Options) -> Result<()> {
             }
             let orbit_frame = i.saturating_sub(LEAD_IN_FRAMES);
             let azimuth_deg = degrees * orbit_frame as f64 / frames as f64;
-            let camera = Camera::orbit(&geometry, azimuth_deg, options.elevation, 1.0, Projection::Perspective { fov_y_deg: 30.0 });
+            let camera = Camera::orbit(
+                &geometry,
+                azimuth_deg,
+                options.elevation,
+                1.0,
+                Projection::Perspective { fov_y_deg: 30.0 },
+            );
             let quality = match controller.as_deref_mut() {
                 Some(c) => c.plan_frame(true),
                 None => fixed_quality,
@@ -214,7 +276,13 @@ pub fn run(options: Options) -> Result<()> {
             }
             if i >= LEAD_IN_FRAMES {
                 frame_of.insert(frame_number, records.len());
-                records.push(FrameRecord { frame: orbit_frame, azimuth_deg, quality, jitter: settings.jitter, gpu_ms: None });
+                records.push(FrameRecord {
+                    frame: orbit_frame,
+                    azimuth_deg,
+                    quality,
+                    jitter: settings.jitter,
+                    gpu_ms: None,
+                });
             }
             if in_flight.len() > FRAMES_IN_FLIGHT {
                 if let Some(oldest) = in_flight.pop_front() {
@@ -247,21 +315,50 @@ pub fn run(options: Options) -> Result<()> {
         Ok((records, wall_seconds))
     };
 
-    let (floor_records, floor_wall) = orbit("noise floor", None, options.frames.min(NOISE_FLOOR_FRAMES), 0.0)?;
+    let (floor_records, floor_wall) = orbit(
+        "noise floor",
+        None,
+        options.frames.min(NOISE_FLOOR_FRAMES),
+        0.0,
+    )?;
     let (fixed_records, fixed_wall) = orbit("fixed rate", None, options.frames, 360.0)?;
-    let (tc_records, tc_wall) = orbit("time-critical", Some(&mut controlled), options.frames, 360.0)?;
+    let (tc_records, tc_wall) = orbit(
+        "time-critical",
+        Some(&mut controlled),
+        options.frames,
+        360.0,
+    )?;
     let floor_summary = summarize(&floor_records, floor_wall)?;
     let fixed_summary = summarize(&fixed_records, fixed_wall)?;
     let tc_summary = summarize(&tc_records, tc_wall)?;
 
-    let mean_rate = tc_records.iter().map(|r| r.quality.sampling_rate).sum::<f64>() / tc_records.len() as f64;
-    let max_lod = tc_records.iter().map(|r| r.quality.lod_factor).fold(1.0, f64::max);
+    let mean_rate = tc_records
+        .iter()
+        .map(|r| r.quality.sampling_rate)
+        .sum::<f64>()
+        / tc_records.len() as f64;
+    let max_lod = tc_records
+        .iter()
+        .map(|r| r.quality.lod_factor)
+        .fold(1.0, f64::max);
     println!();
-    println!("{:<34} {:>9} {:>8} {:>8} {:>8} {:>8} {:>11} {:>9}", "", "mean fps", "σ", "σ/mean", "min", "max", "frames/GPUs", "wall fps");
+    println!(
+        "{:<34} {:>9} {:>8} {:>8} {:>8} {:>8} {:>11} {:>9}",
+        "", "mean fps", "σ", "σ/mean", "min", "max", "frames/GPUs", "wall fps"
+    );
     for (name, s) in [
-        ("noise floor (first view, fixed)".to_string(), &floor_summary),
-        (format!("fixed rate ({fixed_rate:.2} samples/voxel)"), &fixed_summary),
-        (format!("time-critical (mean {mean_rate:.2} s/v)"), &tc_summary),
+        (
+            "noise floor (first view, fixed)".to_string(),
+            &floor_summary,
+        ),
+        (
+            format!("fixed rate ({fixed_rate:.2} samples/voxel)"),
+            &fixed_summary,
+        ),
+        (
+            format!("time-critical (mean {mean_rate:.2} s/v)"),
+            &tc_summary,
+        ),
     ] {
         println!(
             "{name:<34} {:>9.2} {:>8.3} {:>7.2}% {:>8.2} {:>8.2} {:>11.2} {:>9.2}",
@@ -283,16 +380,27 @@ pub fn run(options: Options) -> Result<()> {
         tc_records.len()
     );
     if let Some(path) = &options.csv {
-        write_csv(path, &[("noise-floor", &floor_records), ("fixed", &fixed_records), ("time-critical", &tc_records)])?;
+        write_csv(
+            path,
+            &[
+                ("noise-floor", &floor_records),
+                ("fixed", &fixed_records),
+                ("time-critical", &tc_records),
+            ],
+        )?;
         println!("per-frame CSV: {}", path.display());
     }
     Ok(())
 }
 
 fn write_csv(path: &Path, runs: &[(&str, &Vec<FrameRecord>)]) -> Result<()> {
-    let file = std::fs::File::create(path).with_context(|| format!("creating {}", path.display()))?;
+    let file =
+        std::fs::File::create(path).with_context(|| format!("creating {}", path.display()))?;
     let mut out = std::io::BufWriter::new(file);
-    writeln!(out, "run,frame,azimuth_deg,gpu_ms,fps,sampling_rate,step_voxels,lod_factor,jitter")?;
+    writeln!(
+        out,
+        "run,frame,azimuth_deg,gpu_ms,fps,sampling_rate,step_voxels,lod_factor,jitter"
+    )?;
     for (run, records) in runs {
         for r in records.iter() {
             let (ms, fps) = match r.gpu_ms {
@@ -311,6 +419,7 @@ fn write_csv(path: &Path, runs: &[(&str, &Vec<FrameRecord>)]) -> Result<()> {
             )?;
         }
     }
-    out.flush().with_context(|| format!("writing {}", path.display()))?;
+    out.flush()
+        .with_context(|| format!("writing {}", path.display()))?;
     Ok(())
 }

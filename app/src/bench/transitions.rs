@@ -100,7 +100,11 @@ fn table_of(page_dims: [u32; 3], level_of: impl Fn([u32; 3]) -> u8) -> PageTable
 /// node centres, except the farthest (all level 0, no transitions); at most 256 are tried.
 /// The split for `camera`: the plane is perpendicular to the view direction in patient space;
 /// in index space a point's depth is (Mᵀ·forward)·index with M = patient_from_index.
-pub(crate) fn view_split(v: &accuracy::Volume, camera: &strata_render::Camera, target: f64) -> Split {
+pub(crate) fn view_split(
+    v: &accuracy::Volume,
+    camera: &strata_render::Camera,
+    target: f64,
+) -> Split {
     let m: DMat3 = v.geometry.patient_from_index_linear();
     choose_split(
         v.geometry.page_dims(),
@@ -668,7 +672,10 @@ mod tests {
             rows,
             seam_jump: (312.5, 1e-4),
         });
-        assert!(md.contains("312.500 discontinuous and 1.0e-4 smooth"), "{md}");
+        assert!(
+            md.contains("312.500 discontinuous and 1.0e-4 smooth"),
+            "{md}"
+        );
         assert!(
             md.contains("| x | 8 × 8 × 8 | 25 % | 10.0 | 10.0 | 20.0 | 20.0 | 2.00 | 2.00 |"),
             "{md}"

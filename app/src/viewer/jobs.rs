@@ -50,7 +50,11 @@ pub fn data_folder() -> PathBuf {
         return PathBuf::from(d).join("strata").join("stores");
     }
     if let Some(h) = std::env::var_os("HOME").filter(|h| !h.is_empty()) {
-        return PathBuf::from(h).join(".local").join("share").join("strata").join("stores");
+        return PathBuf::from(h)
+            .join(".local")
+            .join("share")
+            .join("strata")
+            .join("stores");
     }
     PathBuf::from("strata-stores")
 }
@@ -62,22 +66,49 @@ pub fn store_path_for_input(input: &Path, folder: &Path) -> PathBuf {
     let meta = std::fs::metadata(&absolute).ok();
     let stamp = meta
         .as_ref()
-        .map(|m| (m.len(), m.modified().ok().and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok()).map_or(0, |d| d.as_secs())))
+        .map(|m| {
+            (
+                m.len(),
+                m.modified()
+                    .ok()
+                    .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
+                    .map_or(0, |d| d.as_secs()),
+            )
+        })
         .unwrap_or((0, 0));
     let key = xxhash_of(format!("{}|{}|{}", absolute.display(), stamp.0, stamp.1).as_bytes());
-    let name = absolute.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "scan".into());
-    let stem: String = name.chars().map(|c| if c.is_ascii_alphanumeric() || c == '-' || c == '_' || c == '.' { c } else { '_' }).collect();
+    let name = absolute
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "scan".into());
+    let stem: String = name
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '-' || c == '_' || c == '.' {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect();
     folder.join(format!("{stem}-{key:016x}.strata"))
 }
 
 /// FNV-1a: a stable name key, not a checksum.
 fn xxhash_of(bytes: &[u8]) -> u64 {
-    bytes.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &b| (h ^ b as u64).wrapping_mul(0x100_0000_01b3))
+    bytes.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &b| {
+        (h ^ b as u64).wrapping_mul(0x100_0000_01b3)
+    })
 }
 
 impl PrepareJob {
     /// Scans are imported into `import_folder` (normally [`data_folder`]).
-    pub fn start(source: VolumeSource, dicom_series: Option<String>, import_folder: PathBuf, repaint: Repaint) -> anyhow::Result<PrepareJob> {
+    pub fn start(
+        source: VolumeSource,
+        dicom_series: Option<String>,
+        import_folder: PathBuf,
+        repaint: Repaint,
+    ) -> anyhow::Result<PrepareJob> {
         let title = match &source {
             VolumeSource::Demo { size, .. } => format!("Preparing the {size}³ demo phantom"),
             VolumeSource::Path(p) => format!("Opening {}", p.display()),
@@ -90,28 +121,48 @@ impl PrepareJob {
             cancel: Arc::new(AtomicBool::new(false)),
             result: Arc::new(Mutex::new(None)),
         };
-        let (done, total, stage, cancel, result) =
-            (job.done.clone(), job.total.clone(), job.stage.clone(), job.cancel.clone(), job.result.clone());
-        std::thread::Builder::new().name("strata-prepare".into()).spawn(move || {
-            let progress = |p: ImportProgress| {
-                done.store(p.source_bytes_done, Ordering::Relaxed);
-                total.store(p.source_bytes_total, Ordering::Relaxed);
+        let (done, total, stage, cancel, result) = (
+            job.done.clone(),
+            job.total.clone(),
+            job.stage.clone(),
+            job.cancel.clone(),
+            job.result.clone(),
+        );
+        std::thread::Builder::new()
+            .name("strata-prepare".into())
+            .spawn(move || {
+                let progress = |p: ImportProgress| {
+                    done.store(p.source_bytes_done, Ordering::Relaxed);
+                    total.store(p.source_bytes_total, Ordering::Relaxed);
+                    repaint();
+                };
+                let set_stage = |s: String| {
+                    *lock(&stage) = s;
+                    repaint();
+                };
+                let outcome = prepare(
+                    &source,
+                    dicom_series,
+                    &import_folder,
+                    &progress,
+                    &set_stage,
+                    &cancel,
+                )
+                .map(Arc::new)
+                .map_err(|e| format!("{e:#}"));
+                *lock(&result) = Some(outcome);
                 repaint();
-            };
-            let set_stage = |s: String| {
-                *lock(&stage) = s;
-                repaint();
-            };
-            let outcome = prepare(&source, dicom_series, &import_folder, &progress, &set_stage, &cancel).map(Arc::new).map_err(|e| format!("{e:#}"));
-            *lock(&result) = Some(outcome);
-            repaint();
-        })?;
+            })?;
         Ok(job)
     }
 
     /// (done, total) source bytes, and what is happening.
     pub fn progress(&self) -> (u64, u64, String) {
-        (self.done.load(Ordering::Relaxed), self.total.load(Ordering::Relaxed), lock(&self.stage).clone())
+        (
+            self.done.load(Ordering::Relaxed),
+            self.total.load(Ordering::Relaxed),
+            lock(&self.stage).clone(),
+        )
     }
 
     pub fn cancel(&self) {
@@ -131,42 +182,70 @@ fn prepare(
     set_stage: &dyn Fn(String),
     cancel: &AtomicBool,
 ) -> anyhow::Result<Store> {
-    let options = ImportOptions { progress: Some(progress), cancel: Some(cancel), ..Default::default() };
+    let options = ImportOptions {
+        progress: Some(progress),
+        cancel: Some(cancel),
+        ..Default::default()
+    };
     match source {
         VolumeSource::Demo { path, size } => {
             if let Ok(store) = Store::open(path) {
                 return Ok(store);
             }
-            set_stage(format!("generating the demo phantom into {} (first run only)", path.display()));
+            set_stage(format!(
+                "generating the demo phantom into {} (first run only)",
+                path.display()
+            ));
             if let Some(parent) = path.parent() {
-                std::fs::create_dir_all(parent).with_context(|| format!("creating {}", parent.display()))?;
+                std::fs::create_dir_all(parent)
+                    .with_context(|| format!("creating {}", parent.display()))?;
             }
-            Phantom::cube(*size).write_store(path, &options).with_context(|| format!("writing {}", path.display()))?;
+            Phantom::cube(*size)
+                .write_store(path, &options)
+                .with_context(|| format!("writing {}", path.display()))?;
             set_stage("opening".into());
             Ok(Store::open(path)?)
         }
         VolumeSource::Path(input) => {
             if is_store(input) {
                 set_stage(format!("opening store {}", input.display()));
-                return Store::open(input).with_context(|| format!("cannot open store {}", input.display()));
+                return Store::open(input)
+                    .with_context(|| format!("cannot open store {}", input.display()));
             }
             if !input.exists() {
                 anyhow::bail!("{} does not exist", input.display());
             }
             let store_path = store_path_for_input(input, import_folder);
             if let Ok(store) = Store::open(&store_path) {
-                set_stage(format!("opening the earlier import {}", store_path.display()));
+                set_stage(format!(
+                    "opening the earlier import {}",
+                    store_path.display()
+                ));
                 return Ok(store);
             }
             set_stage(format!("reading {}", input.display()));
-            let read_options = ReadOptions { dicom_series, ..Default::default() };
-            let opened = open_source(input, &read_options).with_context(|| format!("cannot read {}", input.display()))?;
+            let read_options = ReadOptions {
+                dicom_series,
+                ..Default::default()
+            };
+            let opened = open_source(input, &read_options)
+                .with_context(|| format!("cannot read {}", input.display()))?;
             if let Some(parent) = store_path.parent() {
-                std::fs::create_dir_all(parent).with_context(|| format!("creating {}", parent.display()))?;
+                std::fs::create_dir_all(parent)
+                    .with_context(|| format!("creating {}", parent.display()))?;
             }
-            set_stage(format!("importing {} into {}", input.display(), store_path.display()));
-            import_source(opened, &store_path, &options)
-                .with_context(|| format!("import of {} into {} failed", input.display(), store_path.display()))?;
+            set_stage(format!(
+                "importing {} into {}",
+                input.display(),
+                store_path.display()
+            ));
+            import_source(opened, &store_path, &options).with_context(|| {
+                format!(
+                    "import of {} into {} failed",
+                    input.display(),
+                    store_path.display()
+                )
+            })?;
             set_stage("opening".into());
             Ok(Store::open(&store_path)?)
         }

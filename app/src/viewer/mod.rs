@@ -33,7 +33,8 @@ pub fn run(options: ViewerOptions) -> Result<()> {
         // --fresh: eframe restores window geometry from its store whatever `persist_window`
         // says, so a fresh run gets a store of its own that starts empty.
         persist_window: options.persist_settings,
-        persistence_path: (!options.persist_settings).then(|| std::env::temp_dir().join(format!("strata-fresh-{}", std::process::id()))),
+        persistence_path: (!options.persist_settings)
+            .then(|| std::env::temp_dir().join(format!("strata-fresh-{}", std::process::id()))),
         // The volume renders on its own device (see volume_session.rs); eframe's only draws the UI.
         ..Default::default()
     };
@@ -55,7 +56,10 @@ pub fn run(options: ViewerOptions) -> Result<()> {
 
 /// The demo volume the viewer opens with no arguments.
 pub fn demo_source() -> VolumeSource {
-    VolumeSource::Demo { path: crate::cmd_sample::demo_store_path(), size: crate::cmd_sample::DEMO_SIZE }
+    VolumeSource::Demo {
+        path: crate::cmd_sample::demo_store_path(),
+        size: crate::cmd_sample::DEMO_SIZE,
+    }
 }
 
 /// A path given on the command line.

@@ -65,7 +65,14 @@ pub struct SliceFrame {
 /// For each LPS axis, the index axis most aligned with it: the permutation maximising the
 /// summed alignment, so two patient axes never claim the same index axis.
 pub fn index_axis_of_patient_axes(geometry: &VolumeGeometry) -> [usize; 3] {
-    const PERMUTATIONS: [[usize; 3]; 6] = [[0, 1, 2], [0, 2, 1], [1, 0, 2], [1, 2, 0], [2, 0, 1], [2, 1, 0]];
+    const PERMUTATIONS: [[usize; 3]; 6] = [
+        [0, 1, 2],
+        [0, 2, 1],
+        [1, 0, 2],
+        [1, 2, 0],
+        [2, 0, 1],
+        [2, 1, 0],
+    ];
     let alignment = |patient: usize, index: usize| geometry.direction[index][patient].abs();
     let mut best = PERMUTATIONS[0];
     let mut best_score = f64::NEG_INFINITY;
@@ -82,9 +89,17 @@ pub fn index_axis_of_patient_axes(geometry: &VolumeGeometry) -> [usize; 3] {
 fn label_of(direction: DVec3) -> &'static str {
     let a = direction.abs();
     if a.x >= a.y && a.x >= a.z {
-        if direction.x > 0.0 { "L" } else { "R" }
+        if direction.x > 0.0 {
+            "L"
+        } else {
+            "R"
+        }
     } else if a.y >= a.z {
-        if direction.y > 0.0 { "P" } else { "A" }
+        if direction.y > 0.0 {
+            "P"
+        } else {
+            "A"
+        }
     } else if direction.z > 0.0 {
         "S"
     } else {
@@ -114,15 +129,28 @@ impl SliceFrame {
         let across_flipped = dir(across_axis).dot(right) < 0.0;
         let down_flipped = dir(down_axis).dot(down) < 0.0;
         // Labels name where the index axes really point, so an oblique scan is labelled honestly.
-        let screen_right = if across_flipped { -dir(across_axis) } else { dir(across_axis) };
-        let screen_down = if down_flipped { -dir(down_axis) } else { dir(down_axis) };
+        let screen_right = if across_flipped {
+            -dir(across_axis)
+        } else {
+            dir(across_axis)
+        };
+        let screen_down = if down_flipped {
+            -dir(down_axis)
+        } else {
+            dir(down_axis)
+        };
         SliceFrame {
             normal_axis,
             across_axis,
             across_flipped,
             down_axis,
             down_flipped,
-            labels: [label_of(-screen_right), label_of(screen_right), label_of(-screen_down), label_of(screen_down)],
+            labels: [
+                label_of(-screen_right),
+                label_of(screen_right),
+                label_of(-screen_down),
+                label_of(screen_down),
+            ],
         }
     }
 
@@ -131,14 +159,20 @@ impl SliceFrame {
     pub fn index_at(&self, dims: [u32; 3], u: f64, v: f64) -> (f64, f64) {
         let u = if self.across_flipped { 1.0 - u } else { u };
         let v = if self.down_flipped { 1.0 - v } else { v };
-        (u * dims[self.across_axis] as f64 - 0.5, v * dims[self.down_axis] as f64 - 0.5)
+        (
+            u * dims[self.across_axis] as f64 - 0.5,
+            v * dims[self.down_axis] as f64 - 0.5,
+        )
     }
 
     /// Inverse of [`SliceFrame::index_at`].
     pub fn fraction_of(&self, dims: [u32; 3], across_index: f64, down_index: f64) -> (f64, f64) {
         let u = (across_index + 0.5) / dims[self.across_axis] as f64;
         let v = (down_index + 0.5) / dims[self.down_axis] as f64;
-        (if self.across_flipped { 1.0 - u } else { u }, if self.down_flipped { 1.0 - v } else { v })
+        (
+            if self.across_flipped { 1.0 - u } else { u },
+            if self.down_flipped { 1.0 - v } else { v },
+        )
     }
 
     /// Millimetres the view spans across and down (the displayed aspect ratio).
@@ -155,22 +189,40 @@ mod tests {
     use super::*;
 
     fn geometry(direction: [[f64; 3]; 3]) -> VolumeGeometry {
-        VolumeGeometry { dims: [10, 20, 30], spacing_mm: [1.0, 1.0, 1.0], origin_lps_mm: [0.0; 3], direction }
+        VolumeGeometry {
+            dims: [10, 20, 30],
+            spacing_mm: [1.0, 1.0, 1.0],
+            origin_lps_mm: [0.0; 3],
+            direction,
+        }
     }
 
     #[test]
     fn lps_stored_scan_shows_radiological_convention() {
         let g = geometry([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]);
         let axial = SliceFrame::for_view(SliceView::Axial, &g);
-        assert_eq!((axial.normal_axis, axial.across_axis, axial.down_axis), (2, 0, 1));
+        assert_eq!(
+            (axial.normal_axis, axial.across_axis, axial.down_axis),
+            (2, 0, 1)
+        );
         assert!(!axial.across_flipped && !axial.down_flipped);
         assert_eq!(axial.labels, ["R", "L", "A", "P"]);
         let coronal = SliceFrame::for_view(SliceView::Coronal, &g);
-        assert_eq!((coronal.normal_axis, coronal.across_axis, coronal.down_axis), (1, 0, 2));
+        assert_eq!(
+            (coronal.normal_axis, coronal.across_axis, coronal.down_axis),
+            (1, 0, 2)
+        );
         assert!(coronal.down_flipped, "superior (+z) must be up");
         assert_eq!(coronal.labels, ["R", "L", "S", "I"]);
         let sagittal = SliceFrame::for_view(SliceView::Sagittal, &g);
-        assert_eq!((sagittal.normal_axis, sagittal.across_axis, sagittal.down_axis), (0, 1, 2));
+        assert_eq!(
+            (
+                sagittal.normal_axis,
+                sagittal.across_axis,
+                sagittal.down_axis
+            ),
+            (0, 1, 2)
+        );
         assert_eq!(sagittal.labels, ["A", "P", "S", "I"]);
     }
 
@@ -184,7 +236,10 @@ mod tests {
         // Sagittal acquisition: i → A→P... stored as i = -y (anterior), j = -z, k = x.
         let permuted = geometry([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]]);
         let axial = SliceFrame::for_view(SliceView::Axial, &permuted);
-        assert_eq!((axial.normal_axis, axial.across_axis, axial.down_axis), (1, 2, 0));
+        assert_eq!(
+            (axial.normal_axis, axial.across_axis, axial.down_axis),
+            (1, 2, 0)
+        );
         assert_eq!(axial.labels, ["R", "L", "A", "P"]);
         let sagittal = SliceFrame::for_view(SliceView::Sagittal, &permuted);
         assert_eq!(sagittal.normal_axis, 2);

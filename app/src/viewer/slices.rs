@@ -58,7 +58,11 @@ fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
 /// be smaller than half a pixel.
 pub fn level_for_pixels(voxels_across: f64, pixels_across: f64, level_count: usize) -> u8 {
     // Written to also catch NaN: only positive, finite sizes pick a level.
-    if !(pixels_across.is_finite() && voxels_across.is_finite() && pixels_across > 0.0 && voxels_across > 0.0) {
+    if !(pixels_across.is_finite()
+        && voxels_across.is_finite()
+        && pixels_across > 0.0
+        && voxels_across > 0.0)
+    {
         return 0;
     }
     let voxels_per_pixel = voxels_across / pixels_across;
@@ -76,32 +80,40 @@ impl SliceReader {
             stop: AtomicBool::new(false),
         });
         let thread_shared = shared.clone();
-        let thread = std::thread::Builder::new().name("strata-slice-reader".into()).spawn(move || {
-            let mut cache = BrickLru::new(SLICE_CACHE_BYTES);
-            loop {
-                let next = {
-                    let mut pending = lock(&thread_shared.pending);
-                    loop {
-                        if thread_shared.stop.load(Ordering::Acquire) {
-                            return;
+        let thread = std::thread::Builder::new()
+            .name("strata-slice-reader".into())
+            .spawn(move || {
+                let mut cache = BrickLru::new(SLICE_CACHE_BYTES);
+                loop {
+                    let next = {
+                        let mut pending = lock(&thread_shared.pending);
+                        loop {
+                            if thread_shared.stop.load(Ordering::Acquire) {
+                                return;
+                            }
+                            if let Some(r) = pending.iter_mut().find_map(|p| p.take()) {
+                                break r;
+                            }
+                            pending = thread_shared
+                                .wake
+                                .wait(pending)
+                                .unwrap_or_else(|e| e.into_inner());
                         }
-                        if let Some(r) = pending.iter_mut().find_map(|p| p.take()) {
-                            break r;
+                    };
+                    match read_slice(&store, &mut cache, next) {
+                        Ok(image) => {
+                            lock(&thread_shared.results)[next.view.index()] = Some(image);
+                            *lock(&thread_shared.error) = None;
                         }
-                        pending = thread_shared.wake.wait(pending).unwrap_or_else(|e| e.into_inner());
+                        Err(e) => *lock(&thread_shared.error) = Some(format!("{e:#}")),
                     }
-                };
-                match read_slice(&store, &mut cache, next) {
-                    Ok(image) => {
-                        lock(&thread_shared.results)[next.view.index()] = Some(image);
-                        *lock(&thread_shared.error) = None;
-                    }
-                    Err(e) => *lock(&thread_shared.error) = Some(format!("{e:#}")),
+                    repaint();
                 }
-                repaint();
-            }
-        })?;
-        Ok(SliceReader { shared, thread: Some(thread) })
+            })?;
+        Ok(SliceReader {
+            shared,
+            thread: Some(thread),
+        })
     }
 
     /// Asks for a slice; a newer request for the same view replaces an unread older one.
@@ -137,7 +149,11 @@ struct BrickLru {
 
 impl BrickLru {
     fn new(budget_bytes: usize) -> Self {
-        BrickLru { budget_bricks: (budget_bytes / (strata_storage::BRICK_VOXELS * 2)).max(8), bricks: HashMap::new(), order: VecDeque::new() }
+        BrickLru {
+            budget_bricks: (budget_bytes / (strata_storage::BRICK_VOXELS * 2)).max(8),
+            bricks: HashMap::new(),
+            order: VecDeque::new(),
+        }
     }
 
     fn get(&mut self, store: &Store, id: BrickId) -> anyhow::Result<Arc<Vec<u16>>> {
@@ -164,14 +180,20 @@ impl BrickLru {
     }
 }
 
-fn read_slice(store: &Store, cache: &mut BrickLru, request: SliceRequest) -> anyhow::Result<SliceImage> {
+fn read_slice(
+    store: &Store,
+    cache: &mut BrickLru,
+    request: SliceRequest,
+) -> anyhow::Result<SliceImage> {
     let layout = store.layout();
     let level = (request.level as usize).min(layout.level_count() - 1);
     let dims = layout.level_dims[level];
     let scale = (1u64 << level) as f64;
     let frame = request.frame;
     let (n, a, d) = (frame.normal_axis, frame.across_axis, frame.down_axis);
-    let slice = ((request.position + 0.5) / scale - 0.5).round().clamp(0.0, dims[n] as f64 - 1.0) as u64;
+    let slice = ((request.position + 0.5) / scale - 0.5)
+        .round()
+        .clamp(0.0, dims[n] as f64 - 1.0) as u64;
     let (width, height) = (dims[a] as usize, dims[d] as usize);
     let mut values = vec![0u16; width * height];
     let bricks = layout.bricks_in_level(level);
@@ -193,7 +215,8 @@ fn read_slice(store: &Store, cache: &mut BrickLru, request: SliceRequest) -> any
                 local[d] = (y - bd * core + BRICK_APRON) as usize;
                 for x in ba * core..a_end {
                     local[a] = (x - ba * core + BRICK_APRON) as usize;
-                    values[y as usize * width + x as usize] = brick[(local[2] * edge + local[1]) * edge + local[0]];
+                    values[y as usize * width + x as usize] =
+                        brick[(local[2] * edge + local[1]) * edge + local[0]];
                 }
             }
         }
@@ -226,7 +249,9 @@ mod tests {
     fn slice_values_match_the_level_zero_bricks() {
         let dir = tempfile::tempdir().expect("temp dir");
         let path = dir.path().join("p.strata");
-        strata_storage::phantom::Phantom::cube(40).write_store(&path, &Default::default()).expect("phantom");
+        strata_storage::phantom::Phantom::cube(40)
+            .write_store(&path, &Default::default())
+            .expect("phantom");
         let store = Store::open(&path).expect("open");
         let g = store.header().geometry.clone();
         let geometry = VolumeGeometry {
@@ -237,7 +262,12 @@ mod tests {
         };
         let frame = SliceFrame::for_view(SliceView::Coronal, &geometry);
         let mut cache = BrickLru::new(1 << 20);
-        let request = SliceRequest { view: SliceView::Coronal, frame, position: 35.0, level: 0 };
+        let request = SliceRequest {
+            view: SliceView::Coronal,
+            frame,
+            position: 35.0,
+            level: 0,
+        };
         let image = read_slice(&store, &mut cache, request).expect("slice");
         assert_eq!((image.width, image.height), (40, 40));
         // Voxel (x=33, y=35, z=38) lives in brick (1,1,1) at local (1+2, 3+2, 6+2).

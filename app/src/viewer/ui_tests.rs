@@ -22,7 +22,9 @@ const WAIT: Duration = Duration::from_secs(180);
 
 fn phantom_store(dir: &Path) -> std::path::PathBuf {
     let path = dir.join("phantom.strata");
-    Phantom::cube(48).write_store(&path, &Default::default()).expect("writing the test phantom");
+    Phantom::cube(48)
+        .write_store(&path, &Default::default())
+        .expect("writing the test phantom");
     path
 }
 
@@ -37,28 +39,45 @@ fn harness(store: &Path, side_panel: bool) -> Harness<'static, Option<StrataApp>
     harness_with(options, preferences)
 }
 
-fn harness_with(mut options: ViewerOptions, preferences: Preferences) -> Harness<'static, Option<StrataApp>> {
+fn harness_with(
+    mut options: ViewerOptions,
+    preferences: Preferences,
+) -> Harness<'static, Option<StrataApp>> {
     options.max_render_pixels = 96;
     options.persist_settings = false;
     // Fixed sampling: frames differ only by what the test changes.
-    let preferences = Preferences { target_fps_enabled: false, step_voxels: 1.0, ..preferences };
+    let preferences = Preferences {
+        target_fps_enabled: false,
+        step_voxels: 1.0,
+        ..preferences
+    };
     Harness::builder()
         .with_size(Vec2::new(560.0, 380.0))
         .wgpu()
         .build_ui_state(
             move |ui, state: &mut Option<StrataApp>| {
-                state.get_or_insert_with(|| StrataApp::new(ui.ctx().clone(), preferences.clone(), options.clone())).ui(ui);
+                state
+                    .get_or_insert_with(|| {
+                        StrataApp::new(ui.ctx().clone(), preferences.clone(), options.clone())
+                    })
+                    .ui(ui);
             },
             None,
         )
 }
 
 fn app<'h>(h: &'h Harness<'static, Option<StrataApp>>) -> &'h StrataApp {
-    h.state().as_ref().expect("the app is created on the first step")
+    h.state()
+        .as_ref()
+        .expect("the app is created on the first step")
 }
 
 /// Steps the UI until `done` holds, failing with `what` after [`WAIT`].
-fn step_until(h: &mut Harness<'static, Option<StrataApp>>, what: &str, done: impl Fn(&StrataApp) -> bool) {
+fn step_until(
+    h: &mut Harness<'static, Option<StrataApp>>,
+    what: &str,
+    done: impl Fn(&StrataApp) -> bool,
+) {
     let start = Instant::now();
     loop {
         h.step();
@@ -77,17 +96,26 @@ fn step_until(h: &mut Harness<'static, Option<StrataApp>>, what: &str, done: imp
 }
 
 fn fully_loaded(app: &StrataApp) -> bool {
-    app.volume_status().is_some_and(|s| !s.refining && s.loader.as_ref().is_some_and(|l| l.converged)) && app.volume_frame().is_some()
+    app.volume_status()
+        .is_some_and(|s| !s.refining && s.loader.as_ref().is_some_and(|l| l.converged))
+        && app.volume_frame().is_some()
 }
 
 fn lit_fraction(rgba: &[u8]) -> f64 {
-    let lit = rgba.chunks_exact(4).filter(|p| p[0].max(p[1]).max(p[2]) > 16).count();
+    let lit = rgba
+        .chunks_exact(4)
+        .filter(|p| p[0].max(p[1]).max(p[2]) > 16)
+        .count();
     lit as f64 / (rgba.len() / 4).max(1) as f64
 }
 
 fn mean_abs_difference(a: &[u8], b: &[u8]) -> f64 {
     assert_eq!(a.len(), b.len());
-    a.iter().zip(b).map(|(x, y)| (*x as f64 - *y as f64).abs()).sum::<f64>() / a.len().max(1) as f64
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (*x as f64 - *y as f64).abs())
+        .sum::<f64>()
+        / a.len().max(1) as f64
 }
 
 fn region_pixels(image: &image::RgbaImage, rect: egui::Rect) -> Vec<u8> {
@@ -101,9 +129,19 @@ fn region_pixels(image: &image::RgbaImage, rect: egui::Rect) -> Vec<u8> {
 }
 
 /// The first frame after `after` whose transfer function is named `name`.
-fn wait_for_frame_with_tf(h: &mut Harness<'static, Option<StrataApp>>, name: &str, after: u64) -> Vec<u8> {
-    step_until(h, &format!("a frame with {name}"), |a| a.volume_frame().is_some_and(|f| f.serial > after && f.request.transfer_function.name == name));
-    app(h).volume_frame().map(|f| f.rgba.to_vec()).unwrap_or_default()
+fn wait_for_frame_with_tf(
+    h: &mut Harness<'static, Option<StrataApp>>,
+    name: &str,
+    after: u64,
+) -> Vec<u8> {
+    step_until(h, &format!("a frame with {name}"), |a| {
+        a.volume_frame()
+            .is_some_and(|f| f.serial > after && f.request.transfer_function.name == name)
+    });
+    app(h)
+        .volume_frame()
+        .map(|f| f.rgba.to_vec())
+        .unwrap_or_default()
 }
 
 #[test]
@@ -111,18 +149,32 @@ fn the_phantom_opens_and_the_3d_view_is_not_blank_then_a_preset_changes_it() {
     let dir = tempfile::tempdir().expect("temp dir");
     let store = phantom_store(dir.path());
     let mut h = harness(&store, true);
-    step_until(&mut h, "the phantom streamed in (loader converged)", fully_loaded);
+    step_until(
+        &mut h,
+        "the phantom streamed in (loader converged)",
+        fully_loaded,
+    );
     let bone = wait_for_frame_with_tf(&mut h, "ct-bone", 0);
     // The phantom's bone shell fills a good part of the view; a blank or failed frame is ~0.
     let lit = lit_fraction(&bone);
-    assert!(lit > 0.05, "3D view is (nearly) blank: {:.1}% lit pixels", lit * 100.0);
+    assert!(
+        lit > 0.05,
+        "3D view is (nearly) blank: {:.1}% lit pixels",
+        lit * 100.0
+    );
 
     // The same frame on screen, drawn by egui's wgpu renderer: the 3D view rect is lit too.
-    let rect = app(&h).view_rect(ViewSlot::ThreeD).expect("3D view laid out");
+    let rect = app(&h)
+        .view_rect(ViewSlot::ThreeD)
+        .expect("3D view laid out");
     h.step();
     let screen = h.render().expect("wgpu render of the UI");
     let on_screen = lit_fraction(&region_pixels(&screen, rect.shrink(20.0)));
-    assert!(on_screen > 0.03, "3D view on screen is blank: {:.1}% lit", on_screen * 100.0);
+    assert!(
+        on_screen > 0.03,
+        "3D view on screen is blank: {:.1}% lit",
+        on_screen * 100.0
+    );
 
     let serial = app(&h).volume_frame().map_or(0, |f| f.serial);
     h.get_by_label("Soft tissue").click();
@@ -130,7 +182,10 @@ fn the_phantom_opens_and_the_3d_view_is_not_blank_then_a_preset_changes_it() {
     // Jitter noise between two frames of one preset is well under 1 level of 255 on average;
     // bone → soft tissue changes colour and opacity over most of the object.
     let difference = mean_abs_difference(&bone, &soft);
-    assert!(difference > 3.0, "soft-tissue preset left the image almost unchanged (mean |Δ| {difference:.2})");
+    assert!(
+        difference > 3.0,
+        "soft-tissue preset left the image almost unchanged (mean |Δ| {difference:.2})"
+    );
 }
 
 #[test]
@@ -138,34 +193,69 @@ fn right_drag_in_a_slice_changes_window_level_and_the_image_and_the_wheel_pages(
     let dir = tempfile::tempdir().expect("temp dir");
     let store = phantom_store(dir.path());
     let mut h = harness(&store, false);
-    step_until(&mut h, "the axial slice on screen", |a| a.slice_display(SliceView::Axial).is_some());
-    let rect = app(&h).view_rect(ViewSlot::Slice(SliceView::Axial)).expect("axial view laid out");
-    let (values_before, window_before) = app(&h).slice_display(SliceView::Axial).expect("slice shown");
+    step_until(&mut h, "the axial slice on screen", |a| {
+        a.slice_display(SliceView::Axial).is_some()
+    });
+    let rect = app(&h)
+        .view_rect(ViewSlot::Slice(SliceView::Axial))
+        .expect("axial view laid out");
+    let (values_before, window_before) = app(&h)
+        .slice_display(SliceView::Axial)
+        .expect("slice shown");
     h.step();
     let screen_before = region_pixels(&h.render().expect("render"), rect.shrink(20.0));
 
     // Right-drag: 60 points right (wider window) and 30 up (higher level).
     let start = rect.center();
     h.event(Event::PointerMoved(start));
-    h.event(Event::PointerButton { pos: start, button: PointerButton::Secondary, pressed: true, modifiers: Modifiers::NONE });
+    h.event(Event::PointerButton {
+        pos: start,
+        button: PointerButton::Secondary,
+        pressed: true,
+        modifiers: Modifiers::NONE,
+    });
     for i in 1..=6 {
-        h.event(Event::PointerMoved(start + Vec2::new(10.0 * i as f32, -5.0 * i as f32)));
+        h.event(Event::PointerMoved(
+            start + Vec2::new(10.0 * i as f32, -5.0 * i as f32),
+        ));
     }
     let end = start + Vec2::new(60.0, -30.0);
-    h.event(Event::PointerButton { pos: end, button: PointerButton::Secondary, pressed: false, modifiers: Modifiers::NONE });
+    h.event(Event::PointerButton {
+        pos: end,
+        button: PointerButton::Secondary,
+        pressed: false,
+        modifiers: Modifiers::NONE,
+    });
     h.step();
     let window_after = app(&h).volume.as_ref().expect("volume").window;
-    assert!(window_after.1 > window_before.1, "window width did not grow: {window_before:?} → {window_after:?}");
-    assert!(window_after.0 > window_before.0, "level did not rise: {window_before:?} → {window_after:?}");
-    step_until(&mut h, "the re-windowed slice", |a| a.slice_display(SliceView::Axial).is_some_and(|(_, w)| w == window_after));
-    let (values_after, _) = app(&h).slice_display(SliceView::Axial).expect("slice shown");
-    assert!(std::sync::Arc::ptr_eq(&values_before, &values_after), "a window change must not re-read the slice");
+    assert!(
+        window_after.1 > window_before.1,
+        "window width did not grow: {window_before:?} → {window_after:?}"
+    );
+    assert!(
+        window_after.0 > window_before.0,
+        "level did not rise: {window_before:?} → {window_after:?}"
+    );
+    step_until(&mut h, "the re-windowed slice", |a| {
+        a.slice_display(SliceView::Axial)
+            .is_some_and(|(_, w)| w == window_after)
+    });
+    let (values_after, _) = app(&h)
+        .slice_display(SliceView::Axial)
+        .expect("slice shown");
+    assert!(
+        std::sync::Arc::ptr_eq(&values_before, &values_after),
+        "a window change must not re-read the slice"
+    );
     h.step();
     let screen_after = region_pixels(&h.render().expect("render"), rect.shrink(20.0));
     // Grey levels move by tens of steps where the phantom has structure; noise-free rendering
     // of the same texture would give exactly 0.
     let difference = mean_abs_difference(&screen_before, &screen_after);
-    assert!(difference > 0.5, "slice image unchanged after W/L drag (mean |Δ| {difference:.3})");
+    assert!(
+        difference > 0.5,
+        "slice image unchanged after W/L drag (mean |Δ| {difference:.3})"
+    );
 
     // Wheel: one line up pages one slice along the axial normal.
     let normal = {
@@ -183,39 +273,71 @@ fn right_drag_in_a_slice_changes_window_level_and_the_image_and_the_wheel_pages(
     });
     h.step();
     let after = app(&h).volume.as_ref().expect("volume").cursor[normal];
-    assert_eq!(after, before.round() + 1.0, "one wheel line pages one slice");
-    step_until(&mut h, "the next slice read", |a| a.slice_image(SliceView::Axial).is_some_and(|i| i.request.position == after));
+    assert_eq!(
+        after,
+        before.round() + 1.0,
+        "one wheel line pages one slice"
+    );
+    step_until(&mut h, "the next slice read", |a| {
+        a.slice_image(SliceView::Axial)
+            .is_some_and(|i| i.request.position == after)
+    });
 }
 
 #[test]
 fn a_scan_imports_with_progress_then_shows_and_f12_writes_a_screenshot() {
-    let scan = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/niivue/chris_t1.nii.gz");
+    let scan =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/niivue/chris_t1.nii.gz");
     if !scan.exists() {
-        eprintln!("SKIP: {} is absent (see ../shared/data/SOURCES.md)", scan.display());
+        eprintln!(
+            "SKIP: {} is absent (see ../shared/data/SOURCES.md)",
+            scan.display()
+        );
         return;
     }
     let dir = tempfile::tempdir().expect("temp dir");
     let mut options = ViewerOptions::new(VolumeSource::Path(scan.clone()));
     options.import_folder = dir.path().join("imported");
-    let preferences = Preferences { show_side_panel: false, screenshot_folder: dir.path().to_path_buf(), ..Preferences::default() };
+    let preferences = Preferences {
+        show_side_panel: false,
+        screenshot_folder: dir.path().to_path_buf(),
+        ..Preferences::default()
+    };
     let mut h = harness_with(options, preferences);
     // The import runs on its own thread and names its stage; the first frame follows.
     let saw_stage = std::cell::Cell::new(false);
     step_until(&mut h, "the imported scan's first 3D frame", |a| {
-        if a.job_progress().is_some_and(|(_, _, stage)| !stage.is_empty()) {
+        if a.job_progress()
+            .is_some_and(|(_, _, stage)| !stage.is_empty())
+        {
             saw_stage.set(true);
         }
         a.volume_frame().is_some()
     });
-    assert!(saw_stage.get(), "no progress was shown while preparing the scan");
-    let imported: Vec<_> = std::fs::read_dir(dir.path().join("imported")).expect("import folder").flatten().collect();
-    assert_eq!(imported.len(), 1, "one store imported into the import folder");
+    assert!(
+        saw_stage.get(),
+        "no progress was shown while preparing the scan"
+    );
+    let imported: Vec<_> = std::fs::read_dir(dir.path().join("imported"))
+        .expect("import folder")
+        .flatten()
+        .collect();
+    assert_eq!(
+        imported.len(),
+        1,
+        "one store imported into the import folder"
+    );
     h.key_press(egui::Key::F12);
     step_until(&mut h, "the screenshot", |a| a.last_screenshot().is_some());
     match app(&h).last_screenshot() {
         Some(Ok(path)) => {
             let image = image::open(&path).expect("screenshot is a PNG");
-            assert!(image.width() >= 16 && image.height() >= 16, "screenshot {}x{}", image.width(), image.height());
+            assert!(
+                image.width() >= 16 && image.height() >= 16,
+                "screenshot {}x{}",
+                image.width(),
+                image.height()
+            );
         }
         other => panic!("screenshot failed: {other:?}"),
     }
@@ -227,30 +349,59 @@ fn a_click_in_the_transfer_function_editor_adds_a_point_that_the_next_frame_uses
     let store = phantom_store(dir.path());
     let mut h = harness(&store, true);
     step_until(&mut h, "the first frame and the editor", |a| {
-        a.volume_frame().is_some() && a.volume.as_ref().is_some_and(|v| v.tf_state.plot_rect.is_some())
+        a.volume_frame().is_some()
+            && a.volume
+                .as_ref()
+                .is_some_and(|v| v.tf_state.plot_rect.is_some())
     });
     let (plot, points_before) = {
         let v = app(&h).volume.as_ref().expect("volume");
-        (v.tf_state.plot_rect.expect("plot drawn"), v.transfer_function.opacity.len())
+        (
+            v.tf_state.plot_rect.expect("plot drawn"),
+            v.transfer_function.opacity.len(),
+        )
     };
     // Left of the middle, a third of the way down: high opacity where the bone preset has none,
     // away from its existing points.
     let at = plot.left_top() + Vec2::new(plot.width() * 0.42, plot.height() * 0.3);
     h.event(Event::PointerMoved(at));
-    h.event(Event::PointerButton { pos: at, button: PointerButton::Primary, pressed: true, modifiers: Modifiers::NONE });
-    h.event(Event::PointerButton { pos: at, button: PointerButton::Primary, pressed: false, modifiers: Modifiers::NONE });
+    h.event(Event::PointerButton {
+        pos: at,
+        button: PointerButton::Primary,
+        pressed: true,
+        modifiers: Modifiers::NONE,
+    });
+    h.event(Event::PointerButton {
+        pos: at,
+        button: PointerButton::Primary,
+        pressed: false,
+        modifiers: Modifiers::NONE,
+    });
     h.step();
     // Read after the step that applied the click (and sent the new request): the newest frame
     // then, or the one in flight, may predate the edit; any frame after those cannot.
     let serial_at_edit = app(&h).volume_frame().map_or(0, |f| f.serial);
-    let edited = app(&h).volume.as_ref().expect("volume").transfer_function.clone();
-    assert_eq!(edited.opacity.len(), points_before + 1, "a click on empty plot adds one opacity point");
+    let edited = app(&h)
+        .volume
+        .as_ref()
+        .expect("volume")
+        .transfer_function
+        .clone();
+    assert_eq!(
+        edited.opacity.len(),
+        points_before + 1,
+        "a click on empty plot adds one opacity point"
+    );
     let start = Instant::now();
     loop {
         h.step();
         if let Some(frame) = app(&h).volume_frame() {
             if frame.serial >= serial_at_edit + 2 || frame.request.transfer_function == edited {
-                assert_eq!(frame.request.transfer_function, edited, "frame {} (edit at {serial_at_edit}) ignores the edit", frame.serial);
+                assert_eq!(
+                    frame.request.transfer_function, edited,
+                    "frame {} (edit at {serial_at_edit}) ignores the edit",
+                    frame.serial
+                );
                 break;
             }
         }

@@ -21,7 +21,13 @@ pub struct OrbitCamera {
 
 impl Default for OrbitCamera {
     fn default() -> Self {
-        OrbitCamera { azimuth_deg: 30.0, elevation_deg: 15.0, zoom: 1.0, pan: [0.0, 0.0], orthographic: false }
+        OrbitCamera {
+            azimuth_deg: 30.0,
+            elevation_deg: 15.0,
+            zoom: 1.0,
+            pan: [0.0, 0.0],
+            orthographic: false,
+        }
     }
 }
 
@@ -91,25 +97,50 @@ impl OrbitCamera {
             StandardView::Superior => (0.0, 90.0),
             StandardView::Inferior => (0.0, -90.0),
         };
-        OrbitCamera { azimuth_deg, elevation_deg, zoom: 1.0, pan: [0.0, 0.0], orthographic }
+        OrbitCamera {
+            azimuth_deg,
+            elevation_deg,
+            zoom: 1.0,
+            pan: [0.0, 0.0],
+            orthographic,
+        }
     }
 
     /// Built here rather than with `Camera::orbit`, which takes -z (inferior in LPS) as up and
     /// so shows heads upside down; a radiologist expects superior at the top.
     pub fn camera(&self, geometry: &VolumeGeometry) -> Camera {
         let radius = geometry.bounding_radius_mm().max(1e-6);
-        let zoom = if self.zoom.is_finite() && self.zoom > 1e-6 { self.zoom } else { 1.0 };
-        let (az, el) = (self.azimuth_deg.to_radians(), self.elevation_deg.to_radians());
+        let zoom = if self.zoom.is_finite() && self.zoom > 1e-6 {
+            self.zoom
+        } else {
+            1.0
+        };
+        let (az, el) = (
+            self.azimuth_deg.to_radians(),
+            self.elevation_deg.to_radians(),
+        );
         let superior = DVec3::Z;
         let from_centre = DVec3::new(az.sin() * el.cos(), -az.cos() * el.cos(), el.sin());
         let fov_y_deg = 30.0f64;
         let (distance, projection) = if self.orthographic {
-            (radius * 3.0, Projection::Orthographic { height_mm: 2.0 * radius / zoom })
+            (
+                radius * 3.0,
+                Projection::Orthographic {
+                    height_mm: 2.0 * radius / zoom,
+                },
+            )
         } else {
-            (radius / (fov_y_deg.to_radians() * 0.5).sin() / zoom, Projection::Perspective { fov_y_deg })
+            (
+                radius / (fov_y_deg.to_radians() * 0.5).sin() / zoom,
+                Projection::Perspective { fov_y_deg },
+            )
         };
         // Looking straight down or up the superior axis: keep anterior at the top of the screen.
-        let up = if from_centre.cross(superior).length() < 1e-6 { -DVec3::Y } else { superior };
+        let up = if from_centre.cross(superior).length() < 1e-6 {
+            -DVec3::Y
+        } else {
+            superior
+        };
         let (right, screen_up) = {
             let forward = -from_centre;
             let right = forward.cross(up).normalize_or_zero();
@@ -124,8 +155,10 @@ impl OrbitCamera {
     /// Orbit by a drag of `delta` points in a view `size` points tall.
     pub fn orbit_by(&mut self, delta: Vec2, size: Vec2) {
         let degrees_per_point = 180.0 / size.y.max(100.0) as f64;
-        self.azimuth_deg = (self.azimuth_deg - delta.x as f64 * degrees_per_point).rem_euclid(360.0);
-        self.elevation_deg = (self.elevation_deg + delta.y as f64 * degrees_per_point).clamp(-90.0, 90.0);
+        self.azimuth_deg =
+            (self.azimuth_deg - delta.x as f64 * degrees_per_point).rem_euclid(360.0);
+        self.elevation_deg =
+            (self.elevation_deg + delta.y as f64 * degrees_per_point).clamp(-90.0, 90.0);
     }
 
     pub fn pan_by(&mut self, delta: Vec2, size: Vec2) {
@@ -146,7 +179,10 @@ impl OrbitCamera {
 pub fn paint_orientation_marker(painter: &egui::Painter, view_rect: Rect, camera: &Camera) {
     let basis = camera.basis();
     let radius = (view_rect.width().min(view_rect.height()) * 0.08).clamp(22.0, 48.0);
-    let centre = Pos2::new(view_rect.left() + radius + 14.0, view_rect.bottom() - radius - 14.0);
+    let centre = Pos2::new(
+        view_rect.left() + radius + 14.0,
+        view_rect.bottom() - radius - 14.0,
+    );
     painter.circle_filled(centre, radius + 10.0, Color32::from_black_alpha(120));
     let axes = [
         (DVec3::X, "L", "R", Color32::from_rgb(230, 80, 80)),
@@ -158,11 +194,26 @@ pub fn paint_orientation_marker(painter: &egui::Painter, view_rect: Rect, camera
     order.sort_by(|a, b| b.0.dot(basis.forward).total_cmp(&a.0.dot(basis.forward)));
     for (axis, positive, negative, colour) in order {
         let screen = Vec2::new(axis.dot(basis.right) as f32, -axis.dot(basis.up) as f32) * radius;
-        painter.line_segment([centre - screen, centre + screen], Stroke::new(2.0, colour.gamma_multiply(0.5)));
+        painter.line_segment(
+            [centre - screen, centre + screen],
+            Stroke::new(2.0, colour.gamma_multiply(0.5)),
+        );
         painter.line_segment([centre, centre + screen], Stroke::new(3.0, *colour));
         let font = egui::FontId::proportional(12.0);
-        painter.text(centre + screen * 1.22, egui::Align2::CENTER_CENTER, *positive, font.clone(), *colour);
-        painter.text(centre - screen * 1.22, egui::Align2::CENTER_CENTER, *negative, font, colour.gamma_multiply(0.7));
+        painter.text(
+            centre + screen * 1.22,
+            egui::Align2::CENTER_CENTER,
+            *positive,
+            font.clone(),
+            *colour,
+        );
+        painter.text(
+            centre - screen * 1.22,
+            egui::Align2::CENTER_CENTER,
+            *negative,
+            font,
+            colour.gamma_multiply(0.7),
+        );
     }
 }
 
@@ -178,24 +229,42 @@ mod tests {
     fn standard_views_look_from_the_named_side() {
         let g = geometry();
         let centre = g.centre_patient();
-        let from = |v: StandardView| (DVec3::from(OrbitCamera::standard(v, false).camera(&g).eye) - centre).normalize();
-        assert!(from(StandardView::Anterior).dot(-DVec3::Y) > 0.99, "anterior is -y in LPS");
+        let from = |v: StandardView| {
+            (DVec3::from(OrbitCamera::standard(v, false).camera(&g).eye) - centre).normalize()
+        };
+        assert!(
+            from(StandardView::Anterior).dot(-DVec3::Y) > 0.99,
+            "anterior is -y in LPS"
+        );
         assert!(from(StandardView::Posterior).dot(DVec3::Y) > 0.99);
-        assert!(from(StandardView::Left).dot(DVec3::X) > 0.99, "patient left is +x in LPS");
+        assert!(
+            from(StandardView::Left).dot(DVec3::X) > 0.99,
+            "patient left is +x in LPS"
+        );
         assert!(from(StandardView::Right).dot(-DVec3::X) > 0.99);
-        assert!(from(StandardView::Superior).dot(DVec3::Z) > 0.99, "superior is +z in LPS");
+        assert!(
+            from(StandardView::Superior).dot(DVec3::Z) > 0.99,
+            "superior is +z in LPS"
+        );
         assert!(from(StandardView::Inferior).dot(-DVec3::Z) > 0.99);
     }
 
     #[test]
     fn superior_is_up_on_screen_and_the_patients_left_on_the_right_in_an_anterior_view() {
         let g = geometry();
-        let basis = OrbitCamera::standard(StandardView::Anterior, false).camera(&g).basis();
+        let basis = OrbitCamera::standard(StandardView::Anterior, false)
+            .camera(&g)
+            .basis();
         assert!(basis.up.dot(DVec3::Z) > 0.99, "superior at the top");
         // Facing the patient, their left (+x) is on the viewer's right.
         assert!(basis.right.dot(DVec3::X) > 0.99);
-        let basis = OrbitCamera::standard(StandardView::Superior, false).camera(&g).basis();
-        assert!(basis.up.dot(-DVec3::Y) > 0.99, "anterior at the top when looking down");
+        let basis = OrbitCamera::standard(StandardView::Superior, false)
+            .camera(&g)
+            .basis();
+        assert!(
+            basis.up.dot(-DVec3::Y) > 0.99,
+            "anterior at the top when looking down"
+        );
     }
 
     #[test]

@@ -17,8 +17,13 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 
-use strata_loader::{render_geometry, render_mapping, BrickReader, FrameStats, StreamingConfig, StreamingVolume};
-use strata_render::{Camera, GpuContext, RenderSettings, TimeCriticalConfig, TimeCriticalController, TransferFunction, ValueMapping, VolumeGeometry};
+use strata_loader::{
+    render_geometry, render_mapping, BrickReader, FrameStats, StreamingConfig, StreamingVolume,
+};
+use strata_render::{
+    Camera, GpuContext, RenderSettings, TimeCriticalConfig, TimeCriticalController,
+    TransferFunction, ValueMapping, VolumeGeometry,
+};
 use strata_storage::{Store, StoreHeader};
 
 /// GPU memory for the brick cache.
@@ -94,7 +99,12 @@ impl VolumeInfo {
         let mapping = render_mapping(&header);
         let a = mapping.physical(header.stored_range[0] as f64);
         let b = mapping.physical(header.stored_range[1] as f64);
-        Ok(VolumeInfo { header, geometry, mapping, physical_range: (a.min(b), a.max(b)) })
+        Ok(VolumeInfo {
+            header,
+            geometry,
+            mapping,
+            physical_range: (a.min(b), a.max(b)),
+        })
     }
 }
 
@@ -118,7 +128,11 @@ pub type Repaint = Arc<dyn Fn() + Send + Sync>;
 
 impl VolumeSession {
     /// Starts the render thread on an opened store. Never blocks on the GPU or the disk.
-    pub fn start(store: Arc<Store>, gpu_budget_bytes: u64, repaint: Repaint) -> anyhow::Result<Self> {
+    pub fn start(
+        store: Arc<Store>,
+        gpu_budget_bytes: u64,
+        repaint: Repaint,
+    ) -> anyhow::Result<Self> {
         let info = VolumeInfo::of(&store)?;
         let shared = Arc::new(Shared {
             request: Mutex::new(None),
@@ -135,28 +149,44 @@ impl VolumeSession {
             stop: AtomicBool::new(false),
         });
         let thread_shared = shared.clone();
-        let thread = std::thread::Builder::new().name("strata-volume-render".into()).spawn(move || {
-            let mut worker = RenderWorker::new(store, thread_shared.clone(), repaint.clone(), gpu_budget_bytes);
-            // A panic here must not leave the UI waiting for frames that never come: say so.
-            let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| worker.run()));
-            let message = match outcome {
-                Ok(Ok(())) => None,
-                Ok(Err(e)) => Some(format!("{e:#}")),
-                Err(panic) => Some(format!(
-                    "the volume renderer stopped: {}",
-                    panic.downcast_ref::<String>().map(String::as_str).or_else(|| panic.downcast_ref::<&str>().copied()).unwrap_or("panic")
-                )),
-            };
-            if let Some(message) = message {
-                let mut status = lock(&thread_shared.status);
-                status.error = Some(message);
-                status.refining = false;
-                status.loading = None;
-                drop(status);
-                repaint();
-            }
-        })?;
-        Ok(VolumeSession { shared, info, thread: Some(thread) })
+        let thread = std::thread::Builder::new()
+            .name("strata-volume-render".into())
+            .spawn(move || {
+                let mut worker = RenderWorker::new(
+                    store,
+                    thread_shared.clone(),
+                    repaint.clone(),
+                    gpu_budget_bytes,
+                );
+                // A panic here must not leave the UI waiting for frames that never come: say so.
+                let outcome =
+                    std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| worker.run()));
+                let message = match outcome {
+                    Ok(Ok(())) => None,
+                    Ok(Err(e)) => Some(format!("{e:#}")),
+                    Err(panic) => Some(format!(
+                        "the volume renderer stopped: {}",
+                        panic
+                            .downcast_ref::<String>()
+                            .map(String::as_str)
+                            .or_else(|| panic.downcast_ref::<&str>().copied())
+                            .unwrap_or("panic")
+                    )),
+                };
+                if let Some(message) = message {
+                    let mut status = lock(&thread_shared.status);
+                    status.error = Some(message);
+                    status.refining = false;
+                    status.loading = None;
+                    drop(status);
+                    repaint();
+                }
+            })?;
+        Ok(VolumeSession {
+            shared,
+            info,
+            thread: Some(thread),
+        })
     }
 
     pub fn info(&self) -> &VolumeInfo {
@@ -210,7 +240,11 @@ fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
 /// `STRATA_RENDER_NICE` (0..19, default 5) overrides the value. Measured on 2 shared cores
 /// under load: nice 10 slowed volume frames 4.7x against nice 5 for no UI gain, so 5.
 fn lower_this_threads_priority() {
-    let nice: libc::c_int = std::env::var("STRATA_RENDER_NICE").ok().and_then(|v| v.parse().ok()).unwrap_or(5).clamp(0, 19);
+    let nice: libc::c_int = std::env::var("STRATA_RENDER_NICE")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(5)
+        .clamp(0, 19);
     #[cfg(target_os = "linux")]
     // SAFETY: plain syscalls on the calling thread's id; failure only leaves the priority as is.
     unsafe {
@@ -231,7 +265,12 @@ struct RenderWorker {
 }
 
 impl RenderWorker {
-    fn new(store: Arc<Store>, shared: Arc<Shared>, repaint: Repaint, gpu_budget_bytes: u64) -> Self {
+    fn new(
+        store: Arc<Store>,
+        shared: Arc<Shared>,
+        repaint: Repaint,
+        gpu_budget_bytes: u64,
+    ) -> Self {
         RenderWorker {
             store,
             shared,
@@ -251,7 +290,11 @@ impl RenderWorker {
         lower_this_threads_priority();
         let ctx = GpuContext::headless()?;
         let adapter = ctx.adapter_name();
-        if ctx.adapter_info.as_ref().is_some_and(|i| i.device_type == wgpu::DeviceType::Cpu) {
+        if ctx
+            .adapter_info
+            .as_ref()
+            .is_some_and(|i| i.device_type == wgpu::DeviceType::Cpu)
+        {
             // On a CPU rasteriser a still frame at 2 samples per voxel takes seconds, and a new
             // request waits for the frame in progress: refine to 1 sample per voxel there.
             let mut config = *self.controller.config();
@@ -267,9 +310,13 @@ impl RenderWorker {
             .map(|r| r.transfer_function.clone())
             .or_else(|| TransferFunction::preset("ct-bone"))
             .ok_or_else(|| anyhow::anyhow!("no transfer function"))?;
-        let config = StreamingConfig { gpu_budget_bytes: self.gpu_budget_bytes, ..StreamingConfig::default() };
+        let config = StreamingConfig {
+            gpu_budget_bytes: self.gpu_budget_bytes,
+            ..StreamingConfig::default()
+        };
         let reader: Arc<dyn BrickReader> = self.store.clone();
-        let mut volume = StreamingVolume::new(&ctx, self.store.clone(), reader, &initial_tf, config)?;
+        let mut volume =
+            StreamingVolume::new(&ctx, self.store.clone(), reader, &initial_tf, config)?;
         // Toggling shading, a mode or pre-integration must not stall the volume view while
         // lavapipe compiles the new pipeline: the previous one draws meanwhile.
         volume.set_compile_in_background(true);
@@ -291,7 +338,13 @@ impl RenderWorker {
                     Some(request) => self.screenshot(&ctx, &mut volume, &request, &shot),
                     None => Err(anyhow::anyhow!("nothing rendered yet")),
                 };
-                self.set_status(|s| s.last_screenshot = Some(result.map(|_| shot.path.clone()).map_err(|e| format!("{e:#}"))));
+                self.set_status(|s| {
+                    s.last_screenshot = Some(
+                        result
+                            .map(|_| shot.path.clone())
+                            .map_err(|e| format!("{e:#}")),
+                    )
+                });
                 // The screenshot changed the cut and the raycaster's size: render the view again.
                 last_rendered = None;
             }
@@ -301,7 +354,9 @@ impl RenderWorker {
                 continue;
             };
             let new_request = last_rendered.as_ref() != Some(&request);
-            let still_refining = request.target_fps.is_some() && !request.interacting && !self.controller.still_refinement_done();
+            let still_refining = request.target_fps.is_some()
+                && !request.interacting
+                && !self.controller.still_refinement_done();
             if !(new_request || !converged || still_refining) {
                 self.set_status(|s| s.refining = false);
                 self.wait(Duration::from_millis(100));
@@ -322,7 +377,9 @@ impl RenderWorker {
                 if (self.controller.config().controller.target_fps - fps).abs() > 1e-9 {
                     self.controller.set_target_fps(fps);
                 }
-                let q = self.controller.plan_frame(request.interacting || streaming_still);
+                let q = self
+                    .controller
+                    .plan_frame(request.interacting || streaming_still);
                 q.apply_to(&mut settings);
                 q
             });
@@ -369,17 +426,29 @@ impl RenderWorker {
                 failures.push(format!("brick {:?}: {}", failure.id, failure.message));
             }
             converged = stats.converged;
-            let refining = !converged || (request.target_fps.is_some() && !request.interacting && !self.controller.still_refinement_done());
+            let refining = !converged
+                || (request.target_fps.is_some()
+                    && !request.interacting
+                    && !self.controller.still_refinement_done());
             let history = frame_ms_history.clone();
-            let error = failures.last().map(|f| format!("{} bricks failed to read; last: {f}", failures.len()));
-            let idle_frame = new_request_is_same(&last_rendered, &request) && stats.uploads == 0 && !stats.page_table_rewritten;
+            let error = failures
+                .last()
+                .map(|f| format!("{} bricks failed to read; last: {f}", failures.len()));
+            let idle_frame = new_request_is_same(&last_rendered, &request)
+                && stats.uploads == 0
+                && !stats.page_table_rewritten;
             self.set_status(|s| {
                 s.frames_rendered += 1;
                 s.volume_frame_ms = history;
                 s.refining = refining;
-                s.sampling_rate = quality.map_or(1.0 / request.settings.quality, |q| q.sampling_rate);
+                s.sampling_rate =
+                    quality.map_or(1.0 / request.settings.quality, |q| q.sampling_rate);
                 s.lod_factor = quality.map_or(1.0, |q| q.lod_factor);
-                s.finest_resident_level = stats.gpu_resident_per_level.iter().position(|&n| n > 0).map(|l| l as u8);
+                s.finest_resident_level = stats
+                    .gpu_resident_per_level
+                    .iter()
+                    .position(|&n| n > 0)
+                    .map(|l| l as u8);
                 s.loader = Some(stats);
                 if error.is_some() {
                     s.error = error;
@@ -401,7 +470,13 @@ impl RenderWorker {
 
     /// Renders the last request at `scale` × its size, lets the loader converge for that size
     /// (bounded), and writes a PNG.
-    fn screenshot(&mut self, ctx: &GpuContext, volume: &mut StreamingVolume, request: &RenderRequest, shot: &ScreenshotRequest) -> anyhow::Result<()> {
+    fn screenshot(
+        &mut self,
+        ctx: &GpuContext,
+        volume: &mut StreamingVolume,
+        request: &RenderRequest,
+        shot: &ScreenshotRequest,
+    ) -> anyhow::Result<()> {
         let scale = shot.scale.clamp(1, 4);
         let mut settings = request.settings.clone();
         settings.width = (settings.width * scale).min(4096);
@@ -436,13 +511,20 @@ mod tests {
     fn a_session_streams_to_convergence_and_publishes_frames() {
         let dir = tempfile::tempdir().expect("temp dir");
         let path = dir.path().join("p.strata");
-        strata_storage::phantom::Phantom::cube(70).write_store(&path, &Default::default()).expect("phantom store");
+        strata_storage::phantom::Phantom::cube(70)
+            .write_store(&path, &Default::default())
+            .expect("phantom store");
         let store = Arc::new(Store::open(&path).expect("open"));
-        let session = VolumeSession::start(store, DEFAULT_GPU_BUDGET_BYTES, Arc::new(|| {})).expect("session");
+        let session = VolumeSession::start(store, DEFAULT_GPU_BUDGET_BYTES, Arc::new(|| {}))
+            .expect("session");
         let info = session.info().clone();
         let request = RenderRequest {
             camera: crate::viewer::view3d::OrbitCamera::default().camera(&info.geometry),
-            settings: RenderSettings { width: 64, height: 64, ..RenderSettings::default() },
+            settings: RenderSettings {
+                width: 64,
+                height: 64,
+                ..RenderSettings::default()
+            },
             transfer_function: TransferFunction::preset("ct-bone").expect("preset"),
             target_fps: None,
             interacting: false,
@@ -454,15 +536,24 @@ mod tests {
             if let Some(e) = status.error {
                 panic!("render thread failed: {e}");
             }
-            if !status.refining && status.loader.as_ref().is_some_and(|l| l.converged) && session.latest_frame().is_some() {
+            if !status.refining
+                && status.loader.as_ref().is_some_and(|l| l.converged)
+                && session.latest_frame().is_some()
+            {
                 // At 64 px a level-0 voxel is smaller than a pixel, so the cut may stop coarser;
                 // what matters here is that streaming converges and the frame shows the volume.
                 let frame = session.latest_frame().expect("frame");
                 assert_eq!((frame.width, frame.height), (64, 64));
-                assert!(frame.rgba.chunks_exact(4).any(|p| p[3] > 0), "converged frame is empty");
+                assert!(
+                    frame.rgba.chunks_exact(4).any(|p| p[3] > 0),
+                    "converged frame is empty"
+                );
                 break;
             }
-            assert!(start.elapsed() < Duration::from_secs(120), "no convergence: {status:?}");
+            assert!(
+                start.elapsed() < Duration::from_secs(120),
+                "no convergence: {status:?}"
+            );
             std::thread::sleep(Duration::from_millis(20));
         }
     }

@@ -7,7 +7,9 @@ use std::sync::Arc;
 
 use strata_loader::store_volume::{classify_empty, page_table_for_cut, GpuCut};
 use strata_loader::streaming::tf_table_for;
-use strata_loader::{render_geometry, render_mapping, FrameStats, ResidentBricks, StreamingConfig, StreamingVolume};
+use strata_loader::{
+    render_geometry, render_mapping, FrameStats, ResidentBricks, StreamingConfig, StreamingVolume,
+};
 use strata_render::{Camera, GpuContext, Projection, RenderMode, RenderSettings, TransferFunction};
 use strata_storage::import::ImportOptions;
 use strata_storage::phantom::Phantom;
@@ -21,7 +23,9 @@ pub fn gpu() -> GpuContext {
 
 pub fn phantom_store(dir: &Path, size: u64) -> std::path::PathBuf {
     let path = dir.join(format!("phantom-{size}.strata"));
-    Phantom::cube(size).write_store(&path, &ImportOptions::default()).expect("phantom store");
+    Phantom::cube(size)
+        .write_store(&path, &ImportOptions::default())
+        .expect("phantom store");
     path
 }
 
@@ -31,12 +35,24 @@ pub fn open(path: &Path) -> Arc<Store> {
 
 /// Jitter off: comparisons need both renders to take the same samples.
 pub fn settings(size: u32) -> RenderSettings {
-    RenderSettings { width: size, height: size, jitter: false, mode: RenderMode::Dvr, ..RenderSettings::default() }
+    RenderSettings {
+        width: size,
+        height: size,
+        jitter: false,
+        mode: RenderMode::Dvr,
+        ..RenderSettings::default()
+    }
 }
 
 pub fn orbit(store: &Store, azimuth: f64, elevation: f64, zoom: f64) -> Camera {
     let geometry = render_geometry(store.header()).expect("geometry");
-    Camera::orbit(&geometry, azimuth, elevation, zoom, Projection::Perspective { fov_y_deg: 30.0 })
+    Camera::orbit(
+        &geometry,
+        azimuth,
+        elevation,
+        zoom,
+        Projection::Perspective { fov_y_deg: 30.0 },
+    )
 }
 
 pub fn bone() -> TransferFunction {
@@ -62,7 +78,12 @@ pub fn config() -> StreamingConfig {
     }
 }
 
-pub fn stream(ctx: &GpuContext, store: &Arc<Store>, tf: &TransferFunction, config: StreamingConfig) -> StreamingVolume {
+pub fn stream(
+    ctx: &GpuContext,
+    store: &Arc<Store>,
+    tf: &TransferFunction,
+    config: StreamingConfig,
+) -> StreamingVolume {
     StreamingVolume::new(ctx, store.clone(), store.clone(), tf, config).expect("streaming volume")
 }
 
@@ -74,15 +95,28 @@ pub fn converge(
     settings: &RenderSettings,
     max_frames: usize,
 ) -> (Vec<u8>, Vec<FrameStats>) {
-    let (image, history) = volume.render_until_converged(ctx, camera, settings, max_frames).expect("frames render");
+    let (image, history) = volume
+        .render_until_converged(ctx, camera, settings, max_frames)
+        .expect("frames render");
     let last = history.last().expect("at least one frame");
-    assert!(last.converged, "not converged after {} frames: {last:#?}", history.len());
+    assert!(
+        last.converged,
+        "not converged after {} frames: {last:#?}",
+        history.len()
+    );
     (image.rgba, history)
 }
 
 /// Every brick of `level` read up front, empty pages classified, rendered in one go: what the
 /// streaming image must converge to when the quality factor asks for `level` everywhere.
-pub fn up_front(ctx: &GpuContext, store: &Store, level: u8, tf: &TransferFunction, camera: &Camera, settings: &RenderSettings) -> Vec<u8> {
+pub fn up_front(
+    ctx: &GpuContext,
+    store: &Store,
+    level: u8,
+    tf: &TransferFunction,
+    camera: &Camera,
+    settings: &RenderSettings,
+) -> Vec<u8> {
     let header = store.header();
     let geometry = render_geometry(header).expect("geometry");
     let mapping = render_mapping(header);
@@ -90,8 +124,11 @@ pub fn up_front(ctx: &GpuContext, store: &Store, level: u8, tf: &TransferFunctio
     let mut table = page_table_for_cut(store, &geometry, |_| level);
     classify_empty(store, &mut table, mapping, &table_tf);
     let bricks = ResidentBricks::load(store, &table).expect("bricks load");
-    let mut cut = GpuCut::upload(ctx, &bricks, &table, geometry.page_dims(), &table_tf).expect("upload");
-    cut.render_blocking(ctx, &geometry, mapping, camera, settings).expect("render").rgba
+    let mut cut =
+        GpuCut::upload(ctx, &bricks, &table, geometry.page_dims(), &table_tf).expect("upload");
+    cut.render_blocking(ctx, &geometry, mapping, camera, settings)
+        .expect("render")
+        .rgba
 }
 
 pub fn covered_pixels(rgba: &[u8]) -> usize {

@@ -67,8 +67,9 @@ pub(crate) fn parse_f64s(path: &Path, what: &str, text: &str) -> Result<Vec<f64>
     text.split(|c: char| c.is_whitespace() || c == ',')
         .filter(|t| !t.is_empty())
         .map(|t| {
-            t.parse::<f64>()
-                .map_err(|_| StorageError::invalid(path, format!("{what}: '{t}' is not a number (in '{text}')")))
+            t.parse::<f64>().map_err(|_| {
+                StorageError::invalid(path, format!("{what}: '{t}' is not a number (in '{text}')"))
+            })
         })
         .collect()
 }

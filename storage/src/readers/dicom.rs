@@ -99,7 +99,12 @@ fn seq_item(obj: &Obj, seq: Tag) -> Option<&Obj> {
 
 /// An attribute of a functional group macro: per-frame item first, then the shared one, then the
 /// top-level data set (classic images keep it there).
-fn fg_attr<'a>(top: &'a Obj, groups: &[Option<&'a Obj>], seq: Tag, attr: Tag) -> Option<&'a InMemElement> {
+fn fg_attr<'a>(
+    top: &'a Obj,
+    groups: &[Option<&'a Obj>],
+    seq: Tag,
+    attr: Tag,
+) -> Option<&'a InMemElement> {
     for g in groups.iter().flatten() {
         if let Some(e) = seq_item(g, seq).and_then(|item| item.get(attr)) {
             return Some(e);
@@ -148,13 +153,19 @@ fn read_header(path: &Path) -> Result<Option<ImageHeader>> {
         return Ok(None);
     };
     if rows <= 0 || cols <= 0 || rows > u32::MAX as i64 || cols > u32::MAX as i64 {
-        return Err(StorageError::invalid(path, format!("DICOM image size {cols}x{rows}")));
+        return Err(StorageError::invalid(
+            path,
+            format!("DICOM image size {cols}x{rows}"),
+        ));
     }
     let bits_allocated = int(&obj, tags::BITS_ALLOCATED).unwrap_or(16);
     let bits_stored = int(&obj, tags::BITS_STORED).unwrap_or(bits_allocated);
     let n_frames = int(&obj, tags::NUMBER_OF_FRAMES).unwrap_or(1).max(1);
     if n_frames as u64 > crate::geometry::MAX_AXIS_VOXELS {
-        return Err(StorageError::invalid(path, format!("absurd NumberOfFrames {n_frames}")));
+        return Err(StorageError::invalid(
+            path,
+            format!("absurd NumberOfFrames {n_frames}"),
+        ));
     }
     let shared: Option<&Obj> = seq_item(&obj, tags::SHARED_FUNCTIONAL_GROUPS_SEQUENCE);
     let per_frame: &[Obj] = obj
@@ -244,7 +255,11 @@ fn read_header(path: &Path) -> Result<Option<ImageHeader>> {
             let gap = gap_hint.unwrap_or(1.0);
             for (k, fr) in frames.iter_mut().enumerate() {
                 let d = gap * k as f64;
-                fr.ipp = Some([ipp[0] + normal[0] * d, ipp[1] + normal[1] * d, ipp[2] + normal[2] * d]);
+                fr.ipp = Some([
+                    ipp[0] + normal[0] * d,
+                    ipp[1] + normal[1] * d,
+                    ipp[2] + normal[2] * d,
+                ]);
             }
         }
     }
@@ -313,7 +328,10 @@ fn locate_native_pixel_data(path: &Path, transfer_syntax: &str, len: u64) -> Opt
     let file_len = std::fs::metadata(path).ok()?.len();
     // An odd-length value is padded to even length; the element's length field says which.
     for value_len in [len, len + 1] {
-        let Some(start) = file_len.checked_sub(value_len).filter(|s| *s >= header_len + 132) else {
+        let Some(start) = file_len
+            .checked_sub(value_len)
+            .filter(|s| *s >= header_len + 132)
+        else {
             continue;
         };
         let mut f = std::fs::File::open(path).ok()?;
@@ -375,12 +393,18 @@ fn scan_folder(dir: &Path) -> Result<Vec<Vec<ImageHeader>>> {
     }
     if headers.is_empty() {
         let mut message = if dicom_files == 0 {
-            format!("no DICOM files in this folder ({} files checked)", files.len())
+            format!(
+                "no DICOM files in this folder ({} files checked)",
+                files.len()
+            )
         } else {
             format!("none of the {dicom_files} DICOM files in this folder is an image")
         };
         if let Some(e) = unreadable.first() {
-            message.push_str(&format!("; {} could not be read, e.g. {e}", unreadable.len()));
+            message.push_str(&format!(
+                "; {} could not be read, e.g. {e}",
+                unreadable.len()
+            ));
         }
         return Err(StorageError::invalid(dir, message));
     }
@@ -415,48 +439,49 @@ pub fn list_dicom_series(dir: &Path) -> Result<Vec<DicomSeriesSummary>> {
 
 pub(crate) fn open_series_dir(dir: &Path, options: &ReadOptions) -> Result<OpenedSource> {
     let mut series = scan_folder(dir)?;
-    let chosen = if series.len() == 1 {
-        0
-    } else {
-        let listing = series
-            .iter()
-            .enumerate()
-            .map(|(i, s)| {
-                let m = summary(s);
-                format!(
-                    "  [{i}] {} \"{}\" {} ({} slices)",
-                    m.uid, m.description, m.modality, m.slice_count
-                )
-            })
-            .collect::<Vec<_>>()
-            .join("\n");
-        match &options.dicom_series {
-            None => {
-                return Err(StorageError::invalid(
-                    dir,
+    let chosen =
+        if series.len() == 1 {
+            0
+        } else {
+            let listing = series
+                .iter()
+                .enumerate()
+                .map(|(i, s)| {
+                    let m = summary(s);
                     format!(
-                        "folder holds {} DICOM series; choose one by UID or index:\n{listing}",
-                        series.len()
-                    ),
-                ))
-            }
-            Some(sel) => {
-                let sel = sel.trim();
-                match series.iter().position(|s| s[0].series_uid == sel) {
-                    Some(i) => i,
-                    None => match sel.parse::<usize>() {
-                        Ok(i) if i < series.len() => i,
-                        _ => {
-                            return Err(StorageError::invalid(
+                        "  [{i}] {} \"{}\" {} ({} slices)",
+                        m.uid, m.description, m.modality, m.slice_count
+                    )
+                })
+                .collect::<Vec<_>>()
+                .join("\n");
+            match &options.dicom_series {
+                None => {
+                    return Err(StorageError::invalid(
+                        dir,
+                        format!(
+                            "folder holds {} DICOM series; choose one by UID or index:\n{listing}",
+                            series.len()
+                        ),
+                    ))
+                }
+                Some(sel) => {
+                    let sel = sel.trim();
+                    match series.iter().position(|s| s[0].series_uid == sel) {
+                        Some(i) => i,
+                        None => match sel.parse::<usize>() {
+                            Ok(i) if i < series.len() => i,
+                            _ => return Err(StorageError::invalid(
                                 dir,
-                                format!("no DICOM series '{sel}' in this folder; it holds:\n{listing}"),
-                            ))
-                        }
-                    },
+                                format!(
+                                    "no DICOM series '{sel}' in this folder; it holds:\n{listing}"
+                                ),
+                            )),
+                        },
+                    }
                 }
             }
-        }
-    };
+        };
     let headers = series.swap_remove(chosen);
     assemble(dir, headers, options)
 }
@@ -518,19 +543,27 @@ fn sample_type_of(h: &ImageHeader) -> Result<SampleType> {
     })
 }
 
-fn assemble(display: &Path, headers: Vec<ImageHeader>, options: &ReadOptions) -> Result<OpenedSource> {
+fn assemble(
+    display: &Path,
+    headers: Vec<ImageHeader>,
+    options: &ReadOptions,
+) -> Result<OpenedSource> {
     let first = &headers[0];
     let sample_type = sample_type_of(first)?;
     for h in &headers[1..] {
-        if (h.rows, h.cols, h.bits_allocated, h.signed, h.samples_per_pixel)
-            != (
-                first.rows,
-                first.cols,
-                first.bits_allocated,
-                first.signed,
-                first.samples_per_pixel,
-            )
-        {
+        if (
+            h.rows,
+            h.cols,
+            h.bits_allocated,
+            h.signed,
+            h.samples_per_pixel,
+        ) != (
+            first.rows,
+            first.cols,
+            first.bits_allocated,
+            first.signed,
+            first.samples_per_pixel,
+        ) {
             return Err(StorageError::invalid(
                 &h.path,
                 format!(
@@ -551,7 +584,10 @@ fn assemble(display: &Path, headers: Vec<ImageHeader>, options: &ReadOptions) ->
     let mut frames: Vec<FrameInfo> = Vec::new();
     for (i, h) in headers.iter().enumerate() {
         for f in &h.frames {
-            frames.push(FrameInfo { file: i, ..f.clone() });
+            frames.push(FrameInfo {
+                file: i,
+                ..f.clone()
+            });
         }
     }
     let where_ = |f: &FrameInfo| -> String {
@@ -577,7 +613,11 @@ fn assemble(display: &Path, headers: Vec<ImageHeader>, options: &ReadOptions) ->
         let iop0 = frames[0].iop.unwrap_or([1.0, 0.0, 0.0, 0.0, 1.0, 0.0]);
         for f in &frames {
             let iop = f.iop.unwrap_or(iop0);
-            if iop.iter().zip(iop0.iter()).any(|(a, b)| (a - b).abs() > 1e-3) {
+            if iop
+                .iter()
+                .zip(iop0.iter())
+                .any(|(a, b)| (a - b).abs() > 1e-3)
+            {
                 return Err(StorageError::invalid(
                     display,
                     format!(
@@ -590,8 +630,16 @@ fn assemble(display: &Path, headers: Vec<ImageHeader>, options: &ReadOptions) ->
                 ));
             }
         }
-        let (row, _) = split_axis(display, "ImageOrientationPatient row", [iop0[0], iop0[1], iop0[2]])?;
-        let (col, _) = split_axis(display, "ImageOrientationPatient column", [iop0[3], iop0[4], iop0[5]])?;
+        let (row, _) = split_axis(
+            display,
+            "ImageOrientationPatient row",
+            [iop0[0], iop0[1], iop0[2]],
+        )?;
+        let (col, _) = split_axis(
+            display,
+            "ImageOrientationPatient column",
+            [iop0[3], iop0[4], iop0[5]],
+        )?;
         let (normal, _) = split_axis(display, "slice normal", cross(row, col))?;
         let pos = |f: &FrameInfo| f.ipp.map_or(0.0, |p| dot(p, normal));
         frames.sort_by(|a, b| pos(a).total_cmp(&pos(b)));
@@ -660,7 +708,10 @@ fn assemble(display: &Path, headers: Vec<ImageHeader>, options: &ReadOptions) ->
     } else {
         // Without positions only the instance order and the stated thickness are left.
         if frames.len() > 1 {
-            notes.push("no patient positions: slices ordered by InstanceNumber, orientation unknown".to_string());
+            notes.push(
+                "no patient positions: slices ordered by InstanceNumber, orientation unknown"
+                    .to_string(),
+            );
         }
         frames.sort_by_key(|f| (f.instance, f.file, f.frame));
         (
@@ -688,7 +739,8 @@ fn assemble(display: &Path, headers: Vec<ImageHeader>, options: &ReadOptions) ->
 
     let uniform = frames.iter().all(|f| {
         (f.slope - frames[0].slope).abs() <= 1e-9 * frames[0].slope.abs()
-            && (f.intercept - frames[0].intercept).abs() <= 1e-9 * frames[0].intercept.abs().max(1.0)
+            && (f.intercept - frames[0].intercept).abs()
+                <= 1e-9 * frames[0].intercept.abs().max(1.0)
     });
     let (output, out_type, slope, intercept) = if uniform {
         (
@@ -725,21 +777,40 @@ fn assemble(display: &Path, headers: Vec<ImageHeader>, options: &ReadOptions) ->
                 };
                 cur = Some((f.file, loaded));
             }
-            let Some((_, loaded)) = cur.as_mut() else { continue };
+            let Some((_, loaded)) = cur.as_mut() else {
+                continue;
+            };
             buf.clear();
             match loaded {
                 Loaded::Native(file, off) => {
                     use std::io::{Read, Seek, SeekFrom};
-                    let frame_len = h.rows as usize * h.cols as usize * (h.bits_allocated / 8) as usize;
+                    let frame_len =
+                        h.rows as usize * h.cols as usize * (h.bits_allocated / 8) as usize;
                     raw.resize(frame_len, 0);
                     file.seek(SeekFrom::Start(*off + f.frame as u64 * frame_len as u64))
                         .and_then(|_| file.read_exact(&mut raw))
-                        .map_err(|e| StorageError::invalid(&h.path, format!("reading frame {}: {e}", f.frame + 1)))?;
-                    convert(h, &raw, ByteOrder::Little, output, f.slope, f.intercept, &mut buf);
+                        .map_err(|e| {
+                            StorageError::invalid(
+                                &h.path,
+                                format!("reading frame {}: {e}", f.frame + 1),
+                            )
+                        })?;
+                    convert(
+                        h,
+                        &raw,
+                        ByteOrder::Little,
+                        output,
+                        f.slope,
+                        f.intercept,
+                        &mut buf,
+                    );
                 }
-                Loaded::Object(obj) => decode_frame(h, obj, f.frame, output, f.slope, f.intercept, &mut buf)?,
+                Loaded::Object(obj) => {
+                    decode_frame(h, obj, f.frame, output, f.slope, f.intercept, &mut buf)?
+                }
             }
-            out.write_all(&buf).map_err(|e| StorageError::io(display, e))?;
+            out.write_all(&buf)
+                .map_err(|e| StorageError::io(display, e))?;
         }
         out.flush().map_err(|e| StorageError::io(display, e))?;
     }
@@ -821,7 +892,10 @@ fn decode_frame(
         _ => {
             let ts = obj.meta().transfer_syntax().to_string();
             decoded = obj.decode_pixel_data_frame(frame).map_err(|e| {
-                StorageError::unsupported(&h.path, format!("cannot decode pixel data (transfer syntax {ts}): {e}"))
+                StorageError::unsupported(
+                    &h.path,
+                    format!("cannot decode pixel data (transfer syntax {ts}): {e}"),
+                )
             })?;
             decoded.data()
         }
@@ -856,7 +930,11 @@ fn convert(
     let signed = h.signed;
     let fix = |v: u64, width: u32| -> i64 {
         let bits = bits.min(width);
-        let mask = if bits >= 64 { u64::MAX } else { (1u64 << bits) - 1 };
+        let mask = if bits >= 64 {
+            u64::MAX
+        } else {
+            (1u64 << bits) - 1
+        };
         let v = v & mask;
         if signed && bits < 64 && v & (1u64 << (bits - 1)) != 0 {
             (v | !mask) as i64
@@ -870,7 +948,9 @@ fn convert(
             SampleType::U16 | SampleType::I16 => out.extend_from_slice(&(v as u16).to_le_bytes()),
             _ => out.extend_from_slice(&(v as u32).to_le_bytes()),
         },
-        Output::Physical => out.extend_from_slice(&((v as f64 * slope + intercept) as f32).to_le_bytes()),
+        Output::Physical => {
+            out.extend_from_slice(&((v as f64 * slope + intercept) as f32).to_le_bytes())
+        }
     };
     match h.bits_allocated {
         8 => src.iter().for_each(|&b| emit(fix(b as u64, 8))),
@@ -910,7 +990,10 @@ mod tests {
         for f in ["enh.dcm", "dicom-mr-3slices/1-001.dcm"] {
             let p = d.join(f);
             let h = read_header(&p).unwrap().unwrap();
-            assert!(h.native_offset.is_some(), "{f}: pixel data not located in the file");
+            assert!(
+                h.native_offset.is_some(),
+                "{f}: pixel data not located in the file"
+            );
             let mut h2 = h.clone();
             h2.native_offset = None;
             let a = assemble(&p, vec![h], &ReadOptions::default()).unwrap();

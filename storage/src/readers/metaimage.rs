@@ -101,12 +101,17 @@ pub(crate) fn open_metaimage(path: &Path, options: &ReadOptions) -> Result<Opene
         }
     }
     let get = |k: &str| fields.get(&k.to_ascii_lowercase()).map(String::as_str);
-    let need = |k: &str| get(k).ok_or_else(|| StorageError::invalid(path, format!("MetaImage header lacks {k}")));
+    let need = |k: &str| {
+        get(k).ok_or_else(|| StorageError::invalid(path, format!("MetaImage header lacks {k}")))
+    };
 
     let ndims: usize = need("NDims")?.parse().map_err(|_| {
         StorageError::invalid(
             path,
-            format!("MetaImage NDims '{}' is not a number", get("NDims").unwrap_or("")),
+            format!(
+                "MetaImage NDims '{}' is not a number",
+                get("NDims").unwrap_or("")
+            ),
         )
     })?;
     if !(2..=3).contains(&ndims) {
@@ -138,7 +143,11 @@ pub(crate) fn open_metaimage(path: &Path, options: &ReadOptions) -> Result<Opene
     let msb = get("BinaryDataByteOrderMSB")
         .or(get("ElementByteOrderMSB"))
         .is_some_and(parse_bool);
-    let byte_order = if msb { ByteOrder::Big } else { ByteOrder::Little };
+    let byte_order = if msb {
+        ByteOrder::Big
+    } else {
+        ByteOrder::Little
+    };
     let compressed = get("CompressedData").is_some_and(parse_bool);
 
     let geometry = meta_geometry(path, &get, ndims, dims)?;
@@ -166,10 +175,9 @@ pub(crate) fn open_metaimage(path: &Path, options: &ReadOptions) -> Result<Opene
     };
     drop(r);
     let header_size: i64 = match get("HeaderSize") {
-        Some(v) => v
-            .trim()
-            .parse()
-            .map_err(|_| StorageError::invalid(path, format!("MetaImage HeaderSize '{v}' is not a number")))?,
+        Some(v) => v.trim().parse().map_err(|_| {
+            StorageError::invalid(path, format!("MetaImage HeaderSize '{v}' is not a number"))
+        })?,
         None => 0,
     };
 
@@ -183,7 +191,12 @@ pub(crate) fn open_metaimage(path: &Path, options: &ReadOptions) -> Result<Opene
         let is_gzip = head.len() >= 2 && head[0] == 0x1f && head[1] == 0x8b;
         let mut staging = new_staging(path, options)?;
         if is_gzip {
-            stream_into(&data_path, &mut MultiGzDecoder::new(br), &mut staging, needed)?;
+            stream_into(
+                &data_path,
+                &mut MultiGzDecoder::new(br),
+                &mut staging,
+                needed,
+            )?;
         } else {
             stream_into(&data_path, &mut ZlibDecoder::new(br), &mut staging, needed)?;
         }
@@ -265,7 +278,10 @@ fn meta_geometry<'a>(
         origin[..ndims].copy_from_slice(&v);
     }
     let mut direction = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
-    if let Some(s) = get("TransformMatrix").or(get("Rotation")).or(get("Orientation")) {
+    if let Some(s) = get("TransformMatrix")
+        .or(get("Rotation"))
+        .or(get("Orientation"))
+    {
         let v = parse_f64s(path, "TransformMatrix", s)?;
         if v.len() != ndims * ndims {
             return Err(StorageError::invalid(

@@ -45,7 +45,8 @@ pub struct RawSpec {
     pub header_bytes: u64,
 }
 
-pub(crate) const SUPPORTED: &str = "DICOM (.dcm file or a folder of slices), NIfTI (.nii, .nii.gz, .hdr/.img), \
+pub(crate) const SUPPORTED: &str =
+    "DICOM (.dcm file or a folder of slices), NIfTI (.nii, .nii.gz, .hdr/.img), \
 NRRD (.nrrd, .nhdr), MetaImage (.mha, .mhd), or raw with explicit dimensions and type";
 
 /// Opens any supported volume; the format follows from the path (folder, extension, DICM magic).
@@ -64,7 +65,11 @@ pub fn open_source(path: &Path, options: &ReadOptions) -> Result<OpenedSource> {
         .file_name()
         .map(|n| n.to_string_lossy().to_ascii_lowercase())
         .unwrap_or_default();
-    if name.ends_with(".nii") || name.ends_with(".nii.gz") || name.ends_with(".hdr") || name.ends_with(".hdr.gz") {
+    if name.ends_with(".nii")
+        || name.ends_with(".nii.gz")
+        || name.ends_with(".hdr")
+        || name.ends_with(".hdr.gz")
+    {
         return nifti::open_nifti(path, options);
     }
     if name.ends_with(".nrrd") || name.ends_with(".nhdr") {
@@ -89,7 +94,9 @@ pub fn open_source(path: &Path, options: &ReadOptions) -> Result<OpenedSource> {
 /// byte 0 where a writer dropped the preamble (dicom-object reads both). A read failure means "no".
 pub(crate) fn has_dicom_preamble(path: &Path) -> bool {
     let mut buf = [0u8; 132];
-    let Ok(mut f) = File::open(path) else { return false };
+    let Ok(mut f) = File::open(path) else {
+        return false;
+    };
     let mut n = 0;
     while n < buf.len() {
         match f.read(&mut buf[n..]) {

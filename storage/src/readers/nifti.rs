@@ -106,8 +106,12 @@ fn read_full(r: &mut impl Read, buf: &mut [u8]) -> std::io::Result<usize> {
 /// (returned as the second value).
 fn parse_header(path: &Path, r: &mut impl Read) -> Result<(Header, u64)> {
     let mut buf = vec![0u8; NIFTI2_SIZE];
-    let got = read_full(r, &mut buf[..NIFTI1_SIZE])
-        .map_err(|e| StorageError::invalid(path, format!("reading NIfTI header (truncated or corrupt file?): {e}")))?;
+    let got = read_full(r, &mut buf[..NIFTI1_SIZE]).map_err(|e| {
+        StorageError::invalid(
+            path,
+            format!("reading NIfTI header (truncated or corrupt file?): {e}"),
+        )
+    })?;
     if got < NIFTI1_SIZE {
         return Err(StorageError::invalid(
             path,
@@ -184,7 +188,10 @@ fn parse_header(path: &Path, r: &mut impl Read) -> Result<(Header, u64)> {
     } else {
         let magic = &buf[4..12];
         if &magic[..3] != b"n+2" && &magic[..3] != b"ni2" {
-            return Err(StorageError::invalid(path, format!("bad NIfTI-2 magic {magic:?}")));
+            return Err(StorageError::invalid(
+                path,
+                format!("bad NIfTI-2 magic {magic:?}"),
+            ));
         }
         let mut dim = [0i64; 8];
         let mut pixdim = [0f64; 8];
@@ -329,7 +336,10 @@ fn geometry(path: &Path, h: &Header, dims: [u64; 3]) -> Result<Geometry> {
 /// the reverse often enough.
 fn is_gz(path: &Path) -> bool {
     let mut magic = [0u8; 2];
-    File::open(path).and_then(|mut f| f.read_exact(&mut magic)).is_ok() && magic == [0x1f, 0x8b]
+    File::open(path)
+        .and_then(|mut f| f.read_exact(&mut magic))
+        .is_ok()
+        && magic == [0x1f, 0x8b]
 }
 
 /// The .img that goes with a .hdr (or .hdr.gz): same stem, compressed if one exists that way.
@@ -369,7 +379,10 @@ pub(crate) fn open_nifti(path: &Path, options: &ReadOptions) -> Result<OpenedSou
 
     let ndim = h.dim[0];
     if !(1..=7).contains(&ndim) {
-        return Err(StorageError::invalid(path, format!("dim[0] = {ndim} (must be 1..7)")));
+        return Err(StorageError::invalid(
+            path,
+            format!("dim[0] = {ndim} (must be 1..7)"),
+        ));
     }
     let raw_dims: Vec<i64> = h.dim[1..=ndim as usize].to_vec();
     if let Some(bad) = raw_dims.iter().find(|&&d| d <= 0) {
@@ -379,7 +392,10 @@ pub(crate) fn open_nifti(path: &Path, options: &ReadOptions) -> Result<OpenedSou
         ));
     }
     // Only the first volume of a 4-D+ series is read: it is contiguous at the start of the data.
-    let extra_volumes: i64 = raw_dims.iter().skip(3).fold(1i64, |acc, &d| acc.saturating_mul(d));
+    let extra_volumes: i64 = raw_dims
+        .iter()
+        .skip(3)
+        .fold(1i64, |acc, &d| acc.saturating_mul(d));
     let spatial: Vec<u64> = raw_dims.iter().take(3).map(|&d| d as u64).collect();
     let dims = dims3(path, "dim", &spatial)?;
     let sample_type = sample_type(path, h.datatype)?;
@@ -392,7 +408,11 @@ pub(crate) fn open_nifti(path: &Path, options: &ReadOptions) -> Result<OpenedSou
     } else {
         h.scl_slope
     };
-    let intercept = if h.scl_inter.is_finite() { h.scl_inter } else { 0.0 };
+    let intercept = if h.scl_inter.is_finite() {
+        h.scl_inter
+    } else {
+        0.0
+    };
     let mut windows = Vec::new();
     if h.cal_max.is_finite() && h.cal_min.is_finite() && h.cal_max > h.cal_min {
         windows.push(WindowPreset {
@@ -420,7 +440,10 @@ pub(crate) fn open_nifti(path: &Path, options: &ReadOptions) -> Result<OpenedSou
         if !(h.vox_offset.is_finite() && h.vox_offset >= consumed as f64) {
             return Err(StorageError::invalid(
                 path,
-                format!("vox_offset {} lies inside the {consumed}-byte header", h.vox_offset),
+                format!(
+                    "vox_offset {} lies inside the {consumed}-byte header",
+                    h.vox_offset
+                ),
             ));
         }
         (path.to_path_buf(), h.vox_offset as u64, gz)
@@ -437,7 +460,12 @@ pub(crate) fn open_nifti(path: &Path, options: &ReadOptions) -> Result<OpenedSou
 
     let data = if data_gz {
         let mut reader: Box<dyn Read> = if data_path == path {
-            skip_bytes(path, &mut reader, data_offset - consumed, "NIfTI extensions")?;
+            skip_bytes(
+                path,
+                &mut reader,
+                data_offset - consumed,
+                "NIfTI extensions",
+            )?;
             reader
         } else {
             let f = File::open(&data_path).map_err(|e| StorageError::io(&data_path, e))?;

@@ -23,8 +23,12 @@ pub(crate) fn nrrd_type(name: &str) -> Option<SampleType> {
     Some(match n.as_str() {
         "signed char" | "int8" | "int8_t" => SampleType::I8,
         "uchar" | "unsigned char" | "uint8" | "uint8_t" => SampleType::U8,
-        "short" | "short int" | "signed short" | "signed short int" | "int16" | "int16_t" => SampleType::I16,
-        "ushort" | "unsigned short" | "unsigned short int" | "uint16" | "uint16_t" => SampleType::U16,
+        "short" | "short int" | "signed short" | "signed short int" | "int16" | "int16_t" => {
+            SampleType::I16
+        }
+        "ushort" | "unsigned short" | "unsigned short int" | "uint16" | "uint16_t" => {
+            SampleType::U16
+        }
         "int" | "signed int" | "int32" | "int32_t" => SampleType::I32,
         "uint" | "unsigned int" | "uint32" | "uint32_t" => SampleType::U32,
         "float" => SampleType::F32,
@@ -66,7 +70,9 @@ fn parse_vector(path: &Path, what: &str, text: &str) -> Result<Option<Vec<f64>>>
     let inner = t
         .strip_prefix('(')
         .and_then(|s| s.strip_suffix(')'))
-        .ok_or_else(|| StorageError::invalid(path, format!("{what}: expected '(x,y,z)', got '{t}'")))?;
+        .ok_or_else(|| {
+            StorageError::invalid(path, format!("{what}: expected '(x,y,z)', got '{t}'"))
+        })?;
     parse_f64s(path, what, inner).map(Some)
 }
 
@@ -156,7 +162,9 @@ pub(crate) fn open_nrrd(path: &Path, options: &ReadOptions) -> Result<OpenedSour
     }
     let get = |k: &str| fields.get(k).map(String::as_str);
     let need = |k: &str| {
-        get(k).ok_or_else(|| StorageError::invalid(path, format!("NRRD header lacks the required '{k}' field")))
+        get(k).ok_or_else(|| {
+            StorageError::invalid(path, format!("NRRD header lacks the required '{k}' field"))
+        })
     };
 
     let type_name = need("type")?;
@@ -169,7 +177,10 @@ pub(crate) fn open_nrrd(path: &Path, options: &ReadOptions) -> Result<OpenedSour
     let dimension: usize = need("dimension")?.parse().map_err(|_| {
         StorageError::invalid(
             path,
-            format!("NRRD dimension '{}' is not a number", get("dimension").unwrap_or("")),
+            format!(
+                "NRRD dimension '{}' is not a number",
+                get("dimension").unwrap_or("")
+            ),
         )
     })?;
     let sizes = parse_u64s(path, "sizes", need("sizes")?)?;
@@ -236,15 +247,15 @@ pub(crate) fn open_nrrd(path: &Path, options: &ReadOptions) -> Result<OpenedSour
     let needed = volume_bytes(path, dims, sample_type.size_bytes())?;
 
     let line_skip: u64 = match get("line skip").or(get("lineskip")) {
-        Some(v) => v
-            .parse()
-            .map_err(|_| StorageError::invalid(path, format!("NRRD line skip '{v}' is not a count")))?,
+        Some(v) => v.parse().map_err(|_| {
+            StorageError::invalid(path, format!("NRRD line skip '{v}' is not a count"))
+        })?,
         None => 0,
     };
     let byte_skip: i64 = match get("byte skip").or(get("byteskip")) {
-        Some(v) => v
-            .parse()
-            .map_err(|_| StorageError::invalid(path, format!("NRRD byte skip '{v}' is not a number")))?,
+        Some(v) => v.parse().map_err(|_| {
+            StorageError::invalid(path, format!("NRRD byte skip '{v}' is not a number"))
+        })?,
         None => 0,
     };
     if byte_skip < -1 {
@@ -297,7 +308,10 @@ pub(crate) fn open_nrrd(path: &Path, options: &ReadOptions) -> Result<OpenedSour
         RawVolume::from_staging(staging, &data_path, sample_type, ByteOrder::Little, dims)?
     } else if enc == Encoding::Gzip {
         if byte_skip == -1 {
-            return Err(StorageError::unsupported(path, "NRRD byte skip -1 with gzip encoding"));
+            return Err(StorageError::unsupported(
+                path,
+                "NRRD byte skip -1 with gzip encoding",
+            ));
         }
         let mut z = MultiGzDecoder::new(dr);
         // For compressed encodings the byte skip counts decompressed bytes (NRRD spec).
@@ -374,7 +388,8 @@ fn stage_ascii(
             SampleType::F32 => (v as f32).to_le_bytes().to_vec(),
             SampleType::F64 => v.to_le_bytes().to_vec(),
         };
-        out.write_all(&bytes).map_err(|e| StorageError::io(path, e))?;
+        out.write_all(&bytes)
+            .map_err(|e| StorageError::io(path, e))?;
         *count += 1;
         Ok(())
     };
@@ -416,7 +431,12 @@ fn stage_ascii(
     Ok(())
 }
 
-fn nrrd_geometry(path: &Path, fields: &HashMap<String, String>, dimension: usize, dims: [u64; 3]) -> Result<Geometry> {
+fn nrrd_geometry(
+    path: &Path,
+    fields: &HashMap<String, String>,
+    dimension: usize,
+    dims: [u64; 3],
+) -> Result<Geometry> {
     let get = |k: &str| fields.get(k).map(String::as_str);
     let space_sign = match get("space") {
         Some(s) => space_to_lps(path, s)?,
@@ -430,7 +450,11 @@ fn nrrd_geometry(path: &Path, fields: &HashMap<String, String>, dimension: usize
                 format!("NRRD space vector {v:?} is not 3-D"),
             ));
         }
-        Ok([v[0] * space_sign[0], v[1] * space_sign[1], v[2] * space_sign[2]])
+        Ok([
+            v[0] * space_sign[0],
+            v[1] * space_sign[1],
+            v[2] * space_sign[2],
+        ])
     };
     let origin = match get("space origin") {
         Some(o) => match parse_vector(path, "space origin", o)? {
@@ -482,7 +506,10 @@ fn nrrd_geometry(path: &Path, fields: &HashMap<String, String>, dimension: usize
         }
         for (a, x) in v.into_iter().enumerate() {
             if x.is_nan() {
-                return Err(StorageError::invalid(path, format!("NRRD spacings '{s}' contain NaN")));
+                return Err(StorageError::invalid(
+                    path,
+                    format!("NRRD spacings '{s}' contain NaN"),
+                ));
             }
             // A negative spacing is a flip: it belongs in the direction, spacing stays positive.
             spacing[a] = x.abs();

@@ -15,7 +15,9 @@ pub(crate) fn open_raw(path: &Path, spec: &RawSpec) -> Result<OpenedSource> {
     let expected = needed
         .checked_add(spec.header_bytes)
         .ok_or_else(|| StorageError::invalid(path, "header size overflows"))?;
-    let actual = std::fs::metadata(path).map_err(|e| StorageError::io(path, e))?.len();
+    let actual = std::fs::metadata(path)
+        .map_err(|e| StorageError::io(path, e))?
+        .len();
     // Exact match: with no header to cross-check, a size mismatch is the only sign that the
     // dimensions or type the user typed are wrong, and a wrong guess renders as noise.
     if actual != expected {
@@ -29,7 +31,13 @@ pub(crate) fn open_raw(path: &Path, spec: &RawSpec) -> Result<OpenedSource> {
             ),
         ));
     }
-    let data = RawVolume::map_file(path, spec.header_bytes, spec.sample_type, spec.byte_order, spec.dims)?;
+    let data = RawVolume::map_file(
+        path,
+        spec.header_bytes,
+        spec.sample_type,
+        spec.byte_order,
+        spec.dims,
+    )?;
     Ok(OpenedSource {
         info: SourceInfo {
             path: path.to_path_buf(),

@@ -62,7 +62,8 @@ pub(crate) fn stream_into(
                 ))
             }
         };
-        out.write_all(&buf[..n]).map_err(|e| StorageError::io(path, e))?;
+        out.write_all(&buf[..n])
+            .map_err(|e| StorageError::io(path, e))?;
         done += n as u64;
     }
     out.flush().map_err(|e| StorageError::io(path, e))?;
