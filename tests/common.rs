@@ -5,7 +5,12 @@ use std::collections::HashMap;
 use std::path::PathBuf;
 
 use strata_storage::phantom::Phantom;
-use strata_storage::{BrickId, Store, BRICK_APRON, BRICK_CORE, BRICK_EDGE};
+use strata_storage::{BrickId, Store, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
+
+// The brick constants at the width this checker's index arithmetic uses.
+const CORE: u64 = BRICK_CORE as u64;
+const APRON: u64 = BRICK_APRON as u64;
+const PAYLOAD: u64 = BRICK_PAYLOAD as u64;
 
 /// `../shared/data` beside the project, or `None` after printing why the caller skips.
 pub fn shared_data(test: &str) -> Option<PathBuf> {
@@ -61,11 +66,11 @@ pub fn expected_levels(
 /// and the skeleton's ranges and constant flags match the bricks.
 pub fn check_store_against(store: &Store, level0: Vec<u16>) {
     let layout = store.layout().clone();
-    let dims = store.header().geometry.dims;
+    let dims = store.header().geometry.dims_u64();
     let levels = expected_levels(dims, level0, layout.level_count());
     for (level, (data, d)) in levels.iter().enumerate() {
-        assert_eq!(*d, layout.level_dims[level]);
-        let nb = layout.bricks_in_level(level);
+        assert_eq!(*d, layout.level_dims[level].map(u64::from));
+        let nb = layout.bricks_in_level(level).map(u64::from);
         for bz in 0..nb[2] {
             for by in 0..nb[1] {
                 for bx in 0..nb[0] {
@@ -76,14 +81,13 @@ pub fn check_store_against(store: &Store, level0: Vec<u16>) {
                     for (n, &v) in brick.iter().enumerate() {
                         let n = n as u64;
                         let (ex, ey, ez) = (
-                            n % BRICK_EDGE,
-                            (n / BRICK_EDGE) % BRICK_EDGE,
-                            n / (BRICK_EDGE * BRICK_EDGE),
+                            n % PAYLOAD,
+                            (n / PAYLOAD) % PAYLOAD,
+                            n / (PAYLOAD * PAYLOAD),
                         );
                         // Apron voxels outside the level replicate the edge voxel.
                         let g = |b: u64, e: u64, n: u64| {
-                            ((b * BRICK_CORE + e) as i64 - BRICK_APRON as i64)
-                                .clamp(0, n as i64 - 1) as u64
+                            ((b * CORE + e) as i64 - APRON as i64).clamp(0, n as i64 - 1) as u64
                         };
                         let (x, y, z) = (g(bx, ex, d[0]), g(by, ey, d[1]), g(bz, ez, d[2]));
                         let want = data[(x + d[0] * (y + d[1] * z)) as usize];
@@ -127,14 +131,14 @@ impl<'a> VoxelReader<'a> {
     }
 
     pub fn stored(&mut self, index: [u64; 3]) -> u16 {
-        let coords = index.map(|i| (i / BRICK_CORE) as u32);
+        let coords = index.map(|i| (i / CORE) as u32);
         let id = BrickId::new(0, coords);
         let brick = self
             .cache
             .entry(id)
             .or_insert_with(|| self.store.read_brick(id).expect("brick reads"));
-        let local = index.map(|i| i % BRICK_CORE + BRICK_APRON);
-        brick[(local[0] + BRICK_EDGE * (local[1] + BRICK_EDGE * local[2])) as usize]
+        let local = index.map(|i| i % CORE + APRON);
+        brick[(local[0] + PAYLOAD * (local[1] + PAYLOAD * local[2])) as usize]
     }
 
     pub fn physical(&mut self, index: [u64; 3]) -> f64 {

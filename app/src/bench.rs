@@ -10,7 +10,7 @@ use rayon::prelude::*;
 use strata_storage::import::{import_source, ImportOptions};
 use strata_storage::phantom::Phantom;
 use strata_storage::readers::{open_source, ReadOptions};
-use strata_storage::{BrickId, Store, BRICK_VOXELS};
+use strata_storage::{BrickId, Store, BRICK_PAYLOAD_VOXELS};
 
 mod accuracy;
 mod time_critical;
@@ -168,7 +168,7 @@ fn read_and_compress_limit(nrrd: &Path, data_bytes: u64) -> Result<f64> {
     // SAFETY: read-only map of a file this benchmark wrote and does not modify.
     let map = unsafe { memmap2::Mmap::map(&file)? };
     let data = &map[map.len() - data_bytes as usize..];
-    let chunk = BRICK_VOXELS * 2;
+    let chunk = BRICK_PAYLOAD_VOXELS * 2;
     let mut best = f64::MAX;
     for _ in 0..2 {
         let t = Instant::now();
@@ -283,7 +283,7 @@ fn bench_bricks(path: &Path, count: usize) -> Result<()> {
                 n -= layout.brick_count_in_level(level);
                 level += 1;
             }
-            let b = layout.bricks_in_level(level);
+            let b = layout.bricks_in_level(level).map(u64::from);
             BrickId::new(
                 level as u8,
                 [
@@ -294,7 +294,7 @@ fn bench_bricks(path: &Path, count: usize) -> Result<()> {
             )
         })
         .collect();
-    let decompressed_mb = (count * BRICK_VOXELS * 2) as f64 / 1e6;
+    let decompressed_mb = (count * BRICK_PAYLOAD_VOXELS * 2) as f64 / 1e6;
     for label in ["cold", "warm"] {
         let t = Instant::now();
         for &id in &ids {

@@ -94,7 +94,7 @@ pub fn run(args: ImportArgs) -> Result<()> {
         g.spacing_mm[1],
         g.spacing_mm[2]
     );
-    let total = opened.data.slice_bytes_len() as u64 * g.dims[2];
+    let total = opened.data.slice_bytes_len() as u64 * u64::from(g.dims[2]);
     let bar = crate::progress::bytes_bar(total, "importing");
     let progress = |p: ImportProgress| bar.set_position(p.source_bytes_done);
     let import_options = ImportOptions {

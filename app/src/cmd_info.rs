@@ -73,7 +73,7 @@ pub fn run(path: &Path) -> Result<()> {
     }
     println!(
         "stored       {:?}, physical = {} * stored + {} {}",
-        h.stored, m.slope, m.intercept, m.unit
+        h.stored, m.mapping.slope, m.mapping.intercept, m.unit
     );
     println!("value range  {lo} .. {hi} {}", m.unit);
     if h.quantization_error > 0.0 {

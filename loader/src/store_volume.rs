@@ -12,29 +12,13 @@ use strata_storage::{BrickId, StorageError, Store, StoreHeader};
 
 pub use crate::error::LoaderError;
 
-/// The store's geometry in the renderer's terms (same fields; u32 extents).
+/// The store's geometry: the renderer speaks the same strata-types geometry.
 pub fn render_geometry(header: &StoreHeader) -> Result<VolumeGeometry, LoaderError> {
-    let g = &header.geometry;
-    let dims = g.dims.map(|d| u32::try_from(d).unwrap_or(u32::MAX));
-    if dims.contains(&u32::MAX) {
-        return Err(LoaderError::Unsupported(format!(
-            "volume extent {:?} exceeds the renderer's range",
-            g.dims
-        )));
-    }
-    Ok(VolumeGeometry {
-        dims,
-        spacing_mm: g.spacing_mm,
-        origin_lps_mm: g.origin_lps_mm,
-        direction: g.direction,
-    })
+    Ok(header.geometry.clone())
 }
 
 pub fn render_mapping(header: &StoreHeader) -> ValueMapping {
-    ValueMapping {
-        slope: header.value_mapping.slope,
-        intercept: header.value_mapping.intercept,
-    }
+    header.value_mapping.mapping
 }
 
 /// Bricks of one cut, keyed by (level, node).

@@ -6,28 +6,16 @@ use std::collections::HashMap;
 
 use crate::cache::BrickCache;
 use crate::error::RenderError;
-use crate::geometry::{ValueMapping, VolumeGeometry};
 use crate::page_table::{PageEntry, PageTable, MAX_SLOTS};
 use crate::{BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD, BRICK_PAYLOAD_VOXELS};
+use strata_types::{ValueMapping, VolumeGeometry};
 
 /// Where the reference renderer (and uploads) get node payloads: 36³ u16, x fastest.
 pub trait BrickSource: Sync {
     fn brick(&self, level: u8, node: [u32; 3]) -> Option<&[u16]>;
 }
 
-/// Dimensions of octree level `level`: ceil(dims / 2^level).
-pub fn level_dims(dims: [u32; 3], level: u8) -> [u32; 3] {
-    dims.map(|d| d.div_ceil(1 << level))
-}
-
-/// Number of levels: halve until one brick covers the volume.
-pub fn level_count(dims: [u32; 3]) -> u8 {
-    let mut level = 0u8;
-    while level_dims(dims, level).iter().any(|&d| d > BRICK_CORE) {
-        level += 1;
-    }
-    level + 1
-}
+pub use strata_types::{level_count, level_dims};
 
 struct Level {
     dims: [u32; 3],

@@ -19,6 +19,8 @@ pub enum RenderError {
     CacheTooSmall { budget_bytes: u64 },
     #[error("invalid volume: {0}")]
     InvalidVolume(String),
+    #[error("invalid volume geometry: {0}")]
+    InvalidGeometry(#[from] strata_types::GeometryError),
     #[error("invalid transfer function: {0}")]
     InvalidTransferFunction(String),
     #[error("transfer function JSON: {0}")]

@@ -10,7 +10,6 @@ pub mod cache;
 pub mod camera;
 pub mod device;
 pub mod error;
-pub mod geometry;
 pub mod gpu_timing;
 pub mod metrics;
 pub mod offscreen;
@@ -29,7 +28,6 @@ pub use cache::{BrickCache, CacheConfig, CacheFormat};
 pub use camera::{Camera, Projection};
 pub use device::GpuContext;
 pub use error::RenderError;
-pub use geometry::{ValueMapping, VolumeGeometry};
 pub use gpu_timing::{FrameTiming, FrameTimingSource};
 pub use metrics::{compare_rgba8, ImageComparison};
 pub use offscreen::OffscreenRenderer;
@@ -41,18 +39,12 @@ pub use raycast::{
 };
 pub use reference::{render_reference, ReferenceImage, ReferenceOptions, ReferenceScene};
 pub use settings::{ClipPlane, CropBox, RenderMode, RenderSettings, Shading};
+pub use strata_types::{ValueMapping, VolumeGeometry};
 pub use time_critical::{
     ControllerConfig, FrameQuality, LodConfig, Observation, SamplingRateController,
     TimeCriticalConfig, TimeCriticalController,
 };
 pub use transfer_function::{TransferFunction, TransferFunctionTable};
 
-/// Core voxels per brick edge.
-pub const BRICK_CORE: u32 = 32;
-/// Replicated voxels on each side of the core: trilinear needs 1, central-difference gradients
-/// taken at ±1 voxel around a trilinear sample need 2.
-pub const BRICK_APRON: u32 = 2;
-/// Stored voxels per brick edge (core + both aprons).
-pub const BRICK_PAYLOAD: u32 = BRICK_CORE + 2 * BRICK_APRON;
-/// Voxels in one brick payload.
-pub const BRICK_PAYLOAD_VOXELS: usize = (BRICK_PAYLOAD * BRICK_PAYLOAD * BRICK_PAYLOAD) as usize;
+/// The brick constants are the store's (one definition in strata-types).
+pub use strata_types::{BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD, BRICK_PAYLOAD_VOXELS};

@@ -6,8 +6,8 @@
 //! affine map x' = x · bscale · t_w + t with fewer bits.
 
 use crate::error::RenderError;
-use crate::geometry::ValueMapping;
 use crate::transfer_function::TransferFunctionTable;
+use strata_types::ValueMapping;
 
 /// GPU word layout: bits 0-7 / 8-15 / 16-23 the slot's x / y / z position in the cache's slot
 /// grid (the shader then needs no integer division), 24-28 level, bit 29 empty, bit 30 not

@@ -5,7 +5,7 @@ use glam::DVec3;
 
 use crate::bricked_volume::BrickedVolume;
 use crate::error::RenderError;
-use crate::geometry::{ValueMapping, VolumeGeometry};
+use strata_types::{ValueMapping, VolumeGeometry};
 
 /// CT stored values are HU + 1024 (slope 1, intercept -1024), as in most DICOM CT.
 pub const CT_MAPPING: ValueMapping = ValueMapping {

@@ -11,11 +11,11 @@ use crate::cache::BrickCache;
 use crate::camera::Camera;
 use crate::device::GpuContext;
 use crate::error::RenderError;
-use crate::geometry::{ValueMapping, VolumeGeometry};
 use crate::gpu_timing::{FrameTiming, FrameTimingSource, PassTimestamps};
 use crate::page_table::PageTable;
 use crate::settings::{RenderMode, RenderSettings};
 use crate::transfer_function::TransferFunctionTable;
+use strata_types::{ValueMapping, VolumeGeometry};
 
 const SHADER: &str = include_str!("shaders/raycast.wgsl");
 const WORKGROUP: u32 = 8;

@@ -10,12 +10,12 @@ use rayon::prelude::*;
 use crate::bricked_volume::BrickSource;
 use crate::camera::Camera;
 use crate::error::RenderError;
-use crate::geometry::{ValueMapping, VolumeGeometry};
 use crate::page_table::PageTable;
 use crate::settings::{RenderMode, RenderSettings, Shading};
 use crate::smooth_transitions::{sample_field, transition_masks, FieldSample};
 use crate::transfer_function::TransferFunction;
 use crate::{BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
+use strata_types::{ValueMapping, VolumeGeometry};
 
 /// Everything that defines the field and its optics, independent of any GPU object.
 pub struct ReferenceScene<'a, S: BrickSource> {

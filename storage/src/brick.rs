@@ -7,7 +7,7 @@
 
 use xxhash_rust::xxh3::Xxh3;
 
-use crate::octree::{BrickId, BRICK_APRON, BRICK_CORE, BRICK_EDGE, BRICK_VOXELS};
+use crate::octree::{BrickId, APRON, BRICK_PAYLOAD, BRICK_PAYLOAD_VOXELS, CORE};
 
 const KIND_U16: u8 = 0;
 const KIND_U8: u8 = 1;
@@ -72,7 +72,7 @@ pub fn value_range(voxels: &[u16]) -> ValueRange {
 
 /// Encodes a 36³ brick. `narrow` stores u8 samples (the store's scalar type is u8).
 pub fn encode_brick(id: BrickId, voxels: &[u16], range: ValueRange, narrow: bool) -> Vec<u8> {
-    debug_assert_eq!(voxels.len(), BRICK_VOXELS);
+    debug_assert_eq!(voxels.len(), BRICK_PAYLOAD_VOXELS);
     let key = brick_key(id);
     let (kind, body) = if range.min == range.max {
         (KIND_CONSTANT, range.min.to_le_bytes().to_vec())
@@ -115,7 +115,7 @@ impl std::fmt::Display for BrickDecodeError {
             BrickDecodeError::UnknownKind(k) => write!(f, "unknown brick kind {k}"),
             BrickDecodeError::Decompress(e) => write!(f, "lz4 decompression failed: {e}"),
             BrickDecodeError::WrongSize(n) => {
-                write!(f, "decoded {n} voxels, expected {BRICK_VOXELS}")
+                write!(f, "decoded {n} voxels, expected {BRICK_PAYLOAD_VOXELS}")
             }
         }
     }
@@ -138,12 +138,12 @@ pub fn decode_brick(id: BrickId, record: &[u8]) -> Result<Vec<u16>, BrickDecodeE
     match kind {
         KIND_CONSTANT => {
             let v = body.get(0..2).ok_or(BrickDecodeError::TooShort)?;
-            Ok(vec![u16::from_le_bytes([v[0], v[1]]); BRICK_VOXELS])
+            Ok(vec![u16::from_le_bytes([v[0], v[1]]); BRICK_PAYLOAD_VOXELS])
         }
         KIND_U8 => {
             let bytes = lz4_flex::block::decompress_size_prepended(body)
                 .map_err(|e| BrickDecodeError::Decompress(e.to_string()))?;
-            if bytes.len() != BRICK_VOXELS {
+            if bytes.len() != BRICK_PAYLOAD_VOXELS {
                 return Err(BrickDecodeError::WrongSize(bytes.len()));
             }
             Ok(bytes.into_iter().map(u16::from).collect())
@@ -151,7 +151,7 @@ pub fn decode_brick(id: BrickId, record: &[u8]) -> Result<Vec<u16>, BrickDecodeE
         KIND_U16 => {
             let bytes = lz4_flex::block::decompress_size_prepended(body)
                 .map_err(|e| BrickDecodeError::Decompress(e.to_string()))?;
-            if bytes.len() != BRICK_VOXELS * 2 {
+            if bytes.len() != BRICK_PAYLOAD_VOXELS * 2 {
                 return Err(BrickDecodeError::WrongSize(bytes.len() / 2));
             }
             Ok(bytes
@@ -176,22 +176,22 @@ pub fn extract_brick<'a>(
     out.clear();
     let [nx, ny, nz] = level_dims;
     let clamp = |v: i64, n: u64| v.clamp(0, n as i64 - 1) as u64;
-    let origin = |b: u64| (b * BRICK_CORE) as i64 - BRICK_APRON as i64;
+    let origin = |b: u64| (b * CORE) as i64 - APRON as i64;
     let (x0, y0, z0) = (origin(bx), origin(by), origin(bz));
     // Column indices are the same for every row of the brick; computing them once keeps the
     // hot loop a gather.
-    let x_interior = x0 >= 0 && x0 + BRICK_EDGE as i64 <= nx as i64;
+    let x_interior = x0 >= 0 && x0 + BRICK_PAYLOAD as i64 <= nx as i64;
     // Column indices only matter at the volume's x edges; interior rows are one contiguous copy.
-    let xs: Vec<usize> = (0..BRICK_EDGE as i64)
+    let xs: Vec<usize> = (0..BRICK_PAYLOAD as i64)
         .map(|dx| clamp(x0 + dx, nx) as usize)
         .collect();
-    for dz in 0..BRICK_EDGE as i64 {
+    for dz in 0..BRICK_PAYLOAD as i64 {
         let slice = slice_at(clamp(z0 + dz, nz));
-        for dy in 0..BRICK_EDGE as i64 {
+        for dy in 0..BRICK_PAYLOAD as i64 {
             let row = clamp(y0 + dy, ny) as usize * nx as usize;
             let row = &slice[row..row + nx as usize];
             if x_interior {
-                out.extend_from_slice(&row[x0 as usize..x0 as usize + BRICK_EDGE as usize]);
+                out.extend_from_slice(&row[x0 as usize..x0 as usize + BRICK_PAYLOAD as usize]);
             } else {
                 out.extend(xs.iter().map(|&x| row[x]));
             }
@@ -204,7 +204,9 @@ mod tests {
     use super::*;
 
     fn sample_brick() -> Vec<u16> {
-        (0..BRICK_VOXELS).map(|i| (i * 7 % 5000) as u16).collect()
+        (0..BRICK_PAYLOAD_VOXELS)
+            .map(|i| (i * 7 % 5000) as u16)
+            .collect()
     }
 
     #[test]
@@ -232,7 +234,7 @@ mod tests {
     #[test]
     fn constant_and_narrow_bricks() {
         let id = BrickId::new(0, [0, 0, 0]);
-        let c = vec![77u16; BRICK_VOXELS];
+        let c = vec![77u16; BRICK_PAYLOAD_VOXELS];
         let rec = encode_brick(id, &c, value_range(&c), false);
         assert!(
             rec.len() < 16,
@@ -240,7 +242,9 @@ mod tests {
             rec.len()
         );
         assert_eq!(decode_brick(id, &rec).unwrap(), c);
-        let n: Vec<u16> = (0..BRICK_VOXELS).map(|i| (i % 251) as u16).collect();
+        let n: Vec<u16> = (0..BRICK_PAYLOAD_VOXELS)
+            .map(|i| (i % 251) as u16)
+            .collect();
         let rec = encode_brick(id, &n, value_range(&n), true);
         assert_eq!(decode_brick(id, &rec).unwrap(), n);
     }

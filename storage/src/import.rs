@@ -17,16 +17,16 @@ use rayon::prelude::*;
 
 use crate::brick::{encode_brick, extract_brick, value_range};
 use crate::error::{Result, StorageError};
-use crate::geometry::Geometry;
+use crate::geometry::VolumeGeometry;
 use crate::histogram::{Histogram, StoredValueCounts};
 use crate::octree::{
-    downsample_slice_pair, BrickId, OctreeLayout, BRICK_APRON, BRICK_CORE, BRICK_EDGE, BRICK_VOXELS,
+    downsample_slice_pair, BrickId, OctreeLayout, APRON, BRICK_PAYLOAD_VOXELS, CORE, PAYLOAD,
 };
 use crate::quantize::{Quantizer, StoredScalar};
 use crate::source::{OpenedSource, RawVolume, SampleType, WindowPreset};
 use crate::store::{
     NodeInfo, Provenance, Skeleton, StoreHeader, StoreStats, StoreWriter, ValueMapping,
-    STORE_FORMAT_VERSION,
+    ValueMappingWithUnit, STORE_FORMAT_VERSION,
 };
 
 /// Source of level-0 slices already converted to stored values.
@@ -43,9 +43,9 @@ pub trait SliceProducer: Sync {
 /// Everything the header needs that is not derived from the voxels.
 #[derive(Clone, Debug)]
 pub struct VolumeMeta {
-    pub geometry: Geometry,
+    pub geometry: VolumeGeometry,
     pub stored: StoredScalar,
-    pub value_mapping: ValueMapping,
+    pub value_mapping: ValueMappingWithUnit,
     pub source_sample_type: SampleType,
     pub quantization_error: f64,
     pub non_finite_samples: u64,
@@ -120,9 +120,8 @@ pub fn import_source(
     let meta = VolumeMeta {
         geometry: info.geometry.clone(),
         stored: quantizer.stored,
-        value_mapping: ValueMapping {
-            slope,
-            intercept,
+        value_mapping: ValueMappingWithUnit {
+            mapping: ValueMapping { slope, intercept },
             unit: if info.modality.eq_ignore_ascii_case("CT") {
                 "HU".into()
             } else {
@@ -150,14 +149,14 @@ pub fn import_source(
 }
 
 /// Bytes the importer's slice windows need for a volume of `dims` (all levels).
-pub fn window_bytes(dims: [u64; 3]) -> u64 {
+pub fn window_bytes(dims: [u32; 3]) -> u64 {
     let layout = OctreeLayout::new(dims);
     // Per level: the row window (2 apron + 32 core + 2 apron) plus one slice awaiting its pair.
-    let per_level_slices = BRICK_EDGE + 1;
+    let per_level_slices = PAYLOAD + 1;
     layout
         .level_dims
         .iter()
-        .map(|d| d[0] * d[1] * 2 * per_level_slices)
+        .map(|d| u64::from(d[0]) * u64::from(d[1]) * 2 * per_level_slices)
         .sum()
 }
 
@@ -169,8 +168,8 @@ pub fn import_slices(
 ) -> Result<ImportReport> {
     let started = Instant::now();
     let dims = producer.dims();
-    meta.geometry.validate(store_path)?;
-    if meta.geometry.dims != dims {
+    crate::geometry::validate(&meta.geometry, store_path)?;
+    if meta.geometry.dims_u64() != dims {
         return Err(StorageError::invalid(
             store_path,
             format!(
@@ -179,10 +178,11 @@ pub fn import_slices(
             ),
         ));
     }
-    let layout = OctreeLayout::new(dims);
+    // Validated above, and equal to the data's extents.
+    let layout = OctreeLayout::new(meta.geometry.dims);
     // Budget: slice windows, per-core brick buffers, sled's cache (at least 16 MiB, at most 1/4).
-    let per_core_buffers = rayon::current_num_threads() as u64 * (BRICK_VOXELS as u64 * 8);
-    let fixed = window_bytes(dims) + per_core_buffers;
+    let per_core_buffers = rayon::current_num_threads() as u64 * (BRICK_PAYLOAD_VOXELS as u64 * 8);
+    let fixed = window_bytes(meta.geometry.dims) + per_core_buffers;
     let sled_cache =
         (options.memory_budget_bytes.saturating_sub(fixed) / 4).clamp(16 << 20, 256 << 20);
     if fixed + sled_cache > options.memory_budget_bytes {
@@ -200,7 +200,7 @@ pub fn import_slices(
     let writer = StoreWriter::create(store_path, sled_cache)?;
     let narrow = meta.stored == StoredScalar::U8;
     let mut levels: Vec<LevelBuilder> = (0..layout.level_count())
-        .map(|l| LevelBuilder::new(l, layout.level_dims[l], &layout))
+        .map(|l| LevelBuilder::new(l, layout.level_dims[l].map(u64::from), &layout))
         .collect();
     let mut skeleton = Skeleton::new(&layout);
     let mut counts = StoredValueCounts::default();
@@ -279,8 +279,8 @@ pub fn import_slices(
     let (stored_lo, stored_hi) = counts.stored_range().unwrap_or((0, 0));
     let histogram = Histogram::from_stored(
         &counts,
-        meta.value_mapping.slope,
-        meta.value_mapping.intercept,
+        meta.value_mapping.mapping.slope,
+        meta.value_mapping.mapping.intercept,
     );
     let header = StoreHeader {
         format_version: STORE_FORMAT_VERSION,
@@ -302,8 +302,8 @@ pub fn import_slices(
             tool_version: env!("CARGO_PKG_VERSION").to_string(),
         },
         layout: layout.clone(),
-        brick_core: BRICK_CORE,
-        brick_apron: BRICK_APRON,
+        brick_core: CORE,
+        brick_apron: APRON,
         stored_range: [stored_lo, stored_hi],
     };
     let bytes_per_voxel = if narrow { 1 } else { 2 };
@@ -319,7 +319,7 @@ pub fn import_slices(
             })
             .collect(),
         compressed_bytes,
-        uncompressed_bytes: layout.total_bricks() * BRICK_VOXELS as u64 * bytes_per_voxel,
+        uncompressed_bytes: layout.total_bricks() * BRICK_PAYLOAD_VOXELS as u64 * bytes_per_voxel,
         source_bytes: total_source,
         import_seconds: started.elapsed().as_secs_f64(),
     };
@@ -402,7 +402,7 @@ impl LevelBuilder {
         LevelBuilder {
             level,
             dims,
-            bricks: layout.bricks_in_level(level),
+            bricks: layout.bricks_in_level(level).map(u64::from),
             window: VecDeque::new(),
             first_slice: 0,
             next_row: 0,
@@ -420,7 +420,7 @@ impl LevelBuilder {
     }
     /// Last slice brick row `row` reads (apron included, clamped to the level).
     fn last_slice_for_row(&self, row: u64) -> u64 {
-        ((row + 1) * BRICK_CORE + BRICK_APRON - 1).min(self.dims[2] - 1)
+        ((row + 1) * CORE + APRON - 1).min(self.dims[2] - 1)
     }
 }
 
@@ -462,7 +462,7 @@ fn push_slice(
         emit_row(builder, sink, skeleton)?;
         builder.next_row += 1;
         // The next row starts reading 2 slices below its core.
-        let keep_from = (builder.next_row * BRICK_CORE).saturating_sub(BRICK_APRON);
+        let keep_from = (builder.next_row * CORE).saturating_sub(APRON);
         while builder.first_slice < keep_from && builder.window.len() > 1 {
             builder.window.pop_front();
             builder.first_slice += 1;
@@ -491,7 +491,7 @@ fn emit_row(builder: &LevelBuilder, sink: &BrickSink, skeleton: &mut Skeleton) -
         let encoded: Vec<(BrickId, NodeInfo, Vec<u8>)> = (batch_start..batch_end)
             .into_par_iter()
             .map_init(
-                || Vec::with_capacity(BRICK_VOXELS),
+                || Vec::with_capacity(BRICK_PAYLOAD_VOXELS),
                 |voxels, i| {
                     let (bx, by) = (i % nbx, i / nbx);
                     extract_brick(bx, by, bz, builder.dims, &slice_at, voxels);

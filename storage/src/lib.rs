@@ -15,7 +15,9 @@ pub mod source;
 pub mod store;
 
 pub use error::{Result, StorageError};
-pub use geometry::Geometry;
-pub use octree::{BrickId, OctreeLayout, BRICK_APRON, BRICK_CORE, BRICK_EDGE, BRICK_VOXELS};
+pub use geometry::VolumeGeometry;
+pub use octree::{
+    BrickId, OctreeLayout, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD, BRICK_PAYLOAD_VOXELS,
+};
 pub use source::{ByteOrder, OpenedSource, RawVolume, SampleType, SourceInfo, WindowPreset};
-pub use store::{Store, StoreHeader, StoredScalar, ValueMapping};
+pub use store::{Store, StoreHeader, StoredScalar, ValueMapping, ValueMappingWithUnit};

@@ -12,92 +12,15 @@
 //! filtering and central differences never need a neighbouring brick. Apron voxels outside the
 //! level replicate the edge voxel. Levels are added until one brick covers the whole volume.
 
-use serde::{Deserialize, Serialize};
+pub use strata_types::{
+    BrickId, OctreeLayout, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD, BRICK_PAYLOAD_VOXELS,
+};
 
-pub const BRICK_CORE: u64 = 32;
-pub const BRICK_APRON: u64 = 2;
-pub const BRICK_EDGE: u64 = BRICK_CORE + 2 * BRICK_APRON;
-pub const BRICK_VOXELS: usize = (BRICK_EDGE * BRICK_EDGE * BRICK_EDGE) as usize;
-
-/// One node of the octree: a brick at a level.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
-pub struct BrickId {
-    pub level: u8,
-    /// Brick coordinates within the level (x, y, z).
-    pub coords: [u32; 3],
-}
-
-impl BrickId {
-    pub fn new(level: u8, coords: [u32; 3]) -> Self {
-        BrickId { level, coords }
-    }
-    /// The parent node one level up.
-    pub fn parent(self) -> BrickId {
-        BrickId {
-            level: self.level + 1,
-            coords: [self.coords[0] / 2, self.coords[1] / 2, self.coords[2] / 2],
-        }
-    }
-}
-
-/// Dimensions of every level, in voxels and bricks.
-#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
-pub struct OctreeLayout {
-    pub level_dims: Vec<[u64; 3]>,
-}
-
-impl OctreeLayout {
-    pub fn new(dims: [u64; 3]) -> Self {
-        let mut level_dims = vec![dims];
-        let mut d = dims;
-        while d.iter().any(|&n| n > BRICK_CORE) {
-            d = [d[0].div_ceil(2), d[1].div_ceil(2), d[2].div_ceil(2)];
-            level_dims.push(d);
-        }
-        OctreeLayout { level_dims }
-    }
-
-    pub fn level_count(&self) -> usize {
-        self.level_dims.len()
-    }
-
-    pub fn bricks_in_level(&self, level: usize) -> [u64; 3] {
-        let d = self.level_dims[level];
-        [
-            d[0].div_ceil(BRICK_CORE),
-            d[1].div_ceil(BRICK_CORE),
-            d[2].div_ceil(BRICK_CORE),
-        ]
-    }
-
-    pub fn brick_count_in_level(&self, level: usize) -> u64 {
-        self.bricks_in_level(level).iter().product()
-    }
-
-    pub fn total_bricks(&self) -> u64 {
-        (0..self.level_count())
-            .map(|l| self.brick_count_in_level(l))
-            .sum()
-    }
-
-    /// Position of `id` in the level's row-major (x fastest) brick order.
-    pub fn index_in_level(&self, id: BrickId) -> Option<usize> {
-        let level = id.level as usize;
-        if level >= self.level_count() {
-            return None;
-        }
-        let n = self.bricks_in_level(level);
-        let c = id.coords.map(u64::from);
-        if c[0] >= n[0] || c[1] >= n[1] || c[2] >= n[2] {
-            return None;
-        }
-        Some((c[0] + n[0] * (c[1] + n[1] * c[2])) as usize)
-    }
-
-    pub fn contains(&self, id: BrickId) -> bool {
-        self.index_in_level(id).is_some()
-    }
-}
+/// The brick constants at the width storage's index arithmetic uses (u64: slice indices and
+/// byte offsets of many-GB volumes). Derived from strata-types' definitions, not new ones.
+pub(crate) const CORE: u64 = BRICK_CORE as u64;
+pub(crate) const APRON: u64 = BRICK_APRON as u64;
+pub(crate) const PAYLOAD: u64 = BRICK_PAYLOAD as u64;
 
 /// Rounded mean of 8 values, halves rounded up: what every coarser voxel is.
 #[inline]
@@ -138,19 +61,6 @@ pub fn downsample_slice_pair(
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn levels_stop_when_one_brick_covers() {
-        let l = OctreeLayout::new([512, 512, 512]);
-        assert_eq!(l.level_count(), 5);
-        assert_eq!(l.level_dims[4], [32, 32, 32]);
-        let l = OctreeLayout::new([188, 256, 190]);
-        assert_eq!(l.level_dims.last(), Some(&[24, 32, 24]));
-        let l = OctreeLayout::new([33, 1, 1]);
-        assert_eq!(l.level_dims, vec![[33, 1, 1], [17, 1, 1]]);
-        let l = OctreeLayout::new([1, 1, 1]);
-        assert_eq!(l.level_count(), 1);
-    }
 
     #[test]
     fn odd_axis_replicates_edge_voxel() {

@@ -14,11 +14,11 @@ use std::path::Path;
 use rayon::prelude::*;
 
 use crate::error::{Result, StorageError};
-use crate::geometry::Geometry;
+use crate::geometry::VolumeGeometry;
 use crate::import::{import_slices, ImportOptions, ImportReport, SliceProducer, VolumeMeta};
 use crate::quantize::StoredScalar;
 use crate::source::{SampleType, WindowPreset};
-use crate::store::ValueMapping;
+use crate::store::{ValueMapping, ValueMappingWithUnit};
 
 /// Stored value = HU + 1024 (the usual CT offset), so −1024 HU is stored as 0.
 pub const PHANTOM_INTERCEPT: f64 = -1024.0;
@@ -32,10 +32,12 @@ impl Phantom {
         Phantom { size: [n, n, n] }
     }
 
-    pub fn geometry(&self) -> Geometry {
+    pub fn geometry(&self) -> VolumeGeometry {
         // A 400 mm field of view, like an abdominal CT, whatever the voxel count.
         let spacing = 400.0 / self.size[0].max(self.size[1]) as f64;
-        let mut g = Geometry::axis_aligned(self.size, [spacing, spacing, spacing]);
+        // An absurd size saturates and is refused by the importer's geometry check.
+        let dims = self.size.map(|d| u32::try_from(d).unwrap_or(u32::MAX));
+        let mut g = VolumeGeometry::axis_aligned(dims, [spacing, spacing, spacing]);
         g.origin_lps_mm = [
             -0.5 * spacing * (self.size[0] - 1) as f64,
             -0.5 * spacing * (self.size[1] - 1) as f64,
@@ -48,9 +50,11 @@ impl Phantom {
         VolumeMeta {
             geometry: self.geometry(),
             stored: StoredScalar::U16,
-            value_mapping: ValueMapping {
-                slope: 1.0,
-                intercept: PHANTOM_INTERCEPT,
+            value_mapping: ValueMappingWithUnit {
+                mapping: ValueMapping {
+                    slope: 1.0,
+                    intercept: PHANTOM_INTERCEPT,
+                },
                 unit: "HU".into(),
             },
             source_sample_type: SampleType::I16,

@@ -12,7 +12,7 @@ use memmap2::Mmap;
 use serde::{Deserialize, Serialize};
 
 use crate::error::{Result, StorageError};
-use crate::geometry::Geometry;
+use crate::geometry::VolumeGeometry;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub enum SampleType {
@@ -74,7 +74,7 @@ pub struct SourceInfo {
     pub path: PathBuf,
     /// Short format name: "nifti-1", "nrrd", "metaimage", "dicom", "raw", "phantom".
     pub format: String,
-    pub geometry: Geometry,
+    pub geometry: VolumeGeometry,
     pub sample_type: SampleType,
     /// physical = slope · sample + intercept (DICOM RescaleSlope/Intercept, NIfTI scl_*).
     pub slope: f64,

@@ -11,11 +11,12 @@
 use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
+pub use strata_types::ValueMapping;
 use xxhash_rust::xxh3::xxh3_64;
 
 use crate::brick::{brick_key, decode_brick, BrickDecodeError};
 use crate::error::{Result, StorageError};
-use crate::geometry::Geometry;
+use crate::geometry::VolumeGeometry;
 use crate::histogram::Histogram;
 use crate::octree::{BrickId, OctreeLayout};
 use crate::source::{SampleType, WindowPreset};
@@ -33,18 +34,19 @@ const KEY_COMPLETE: &[u8] = b"complete";
 /// sled's page cache when reading; counted by the loader in its CPU budget.
 pub const DEFAULT_READ_CACHE_BYTES: u64 = 64 << 20;
 
-/// physical = slope · stored + intercept.
+/// The header's value mapping: physical = slope · stored + intercept (strata-types'
+/// [`ValueMapping`], flattened so the header JSON keeps its shape) and the unit it yields.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct ValueMapping {
-    pub slope: f64,
-    pub intercept: f64,
+pub struct ValueMappingWithUnit {
+    #[serde(flatten)]
+    pub mapping: ValueMapping,
     /// "HU" for CT, empty when the unit is arbitrary (MR).
     pub unit: String,
 }
 
-impl ValueMapping {
+impl ValueMappingWithUnit {
     pub fn physical(&self, stored: u16) -> f64 {
-        self.slope * stored as f64 + self.intercept
+        self.mapping.physical(f64::from(stored))
     }
 }
 
@@ -59,9 +61,9 @@ pub struct Provenance {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct StoreHeader {
     pub format_version: u32,
-    pub geometry: Geometry,
+    pub geometry: VolumeGeometry,
     pub stored: StoredScalar,
-    pub value_mapping: ValueMapping,
+    pub value_mapping: ValueMappingWithUnit,
     pub source_sample_type: SampleType,
     /// Worst-case physical error from quantising the source (0 for exact imports).
     pub quantization_error: f64,

@@ -221,18 +221,19 @@ fn nifti_space_files_agree_in_patient_space() {
         let g = &s.info.geometry;
         assert_eq!(g.voxel_count(), rg.voxel_count(), "{}", f.display());
         let v = all_values(&s);
+        let dims = g.dims_u64();
         let mut mismatches = 0;
         for (p, expected) in &points {
             let idx = g.index_from_patient(*p);
-            let r: Vec<i64> = idx.iter().map(|x| x.round() as i64).collect();
+            let r: Vec<i64> = idx.to_array().iter().map(|x| x.round() as i64).collect();
             assert!(
                 (0..3).all(|a| r[a] >= 0
-                    && (r[a] as u64) < g.dims[a]
+                    && (r[a] as u64) < dims[a]
                     && (idx[a] - r[a] as f64).abs() < 1e-3),
                 "{}: point {p:?} lands at index {idx:?}",
                 f.display()
             );
-            let lin = (r[0] as u64 + g.dims[0] * (r[1] as u64 + g.dims[1] * r[2] as u64)) as usize;
+            let lin = (r[0] as u64 + dims[0] * (r[1] as u64 + dims[1] * r[2] as u64)) as usize;
             if v[lin] != *expected {
                 mismatches += 1;
             }

@@ -1958,7 +1958,7 @@ fn info_panel(ui: &mut egui::Ui, prefs: &mut Preferences, v: &OpenVolume) {
                 "Stored as",
                 format!(
                     "{:?}, physical = {} × stored + {}",
-                    h.stored, h.value_mapping.slope, h.value_mapping.intercept
+                    h.stored, h.value_mapping.mapping.slope, h.value_mapping.mapping.intercept
                 ),
             );
             row("Levels", h.layout.level_count().to_string());

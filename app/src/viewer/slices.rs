@@ -7,7 +7,7 @@ use std::collections::{HashMap, VecDeque};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 
-use strata_storage::{BrickId, Store, BRICK_APRON, BRICK_CORE, BRICK_EDGE};
+use strata_storage::{BrickId, Store, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
 
 use super::orientation::{SliceFrame, SliceView};
 use super::volume_session::Repaint;
@@ -150,7 +150,7 @@ struct BrickLru {
 impl BrickLru {
     fn new(budget_bytes: usize) -> Self {
         BrickLru {
-            budget_bricks: (budget_bytes / (strata_storage::BRICK_VOXELS * 2)).max(8),
+            budget_bricks: (budget_bytes / (strata_storage::BRICK_PAYLOAD_VOXELS * 2)).max(8),
             bricks: HashMap::new(),
             order: VecDeque::new(),
         }
@@ -193,12 +193,12 @@ fn read_slice(
     let (n, a, d) = (frame.normal_axis, frame.across_axis, frame.down_axis);
     let slice = ((request.position + 0.5) / scale - 0.5)
         .round()
-        .clamp(0.0, dims[n] as f64 - 1.0) as u64;
+        .clamp(0.0, dims[n] as f64 - 1.0) as u32;
     let (width, height) = (dims[a] as usize, dims[d] as usize);
     let mut values = vec![0u16; width * height];
     let bricks = layout.bricks_in_level(level);
     let core = BRICK_CORE;
-    let edge = BRICK_EDGE as usize;
+    let edge = BRICK_PAYLOAD as usize;
     let brick_n = slice / core;
     for bd in 0..bricks[d] {
         for ba in 0..bricks[a] {
@@ -272,7 +272,7 @@ mod tests {
         assert_eq!((image.width, image.height), (40, 40));
         // Voxel (x=33, y=35, z=38) lives in brick (1,1,1) at local (1+2, 3+2, 6+2).
         let brick = store.read_brick(BrickId::new(0, [1, 1, 1])).expect("brick");
-        let e = BRICK_EDGE as usize;
+        let e = BRICK_PAYLOAD as usize;
         let expected = brick[(8 * e + 5) * e + 3];
         assert_eq!(image.values[38 * 40 + 33], expected);
     }

@@ -3,7 +3,7 @@
 use std::path::Path;
 
 use crate::error::{Result, StorageError};
-use crate::geometry::Geometry;
+use crate::geometry::VolumeGeometry;
 
 pub(crate) fn norm(v: [f64; 3]) -> f64 {
     (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt()
@@ -46,7 +46,7 @@ pub(crate) fn geometry_from_axes(
     dims: [u64; 3],
     axes: [[f64; 3]; 3],
     origin: [f64; 3],
-) -> Result<Geometry> {
+) -> Result<VolumeGeometry> {
     let mut direction = [[0.0; 3]; 3];
     let mut spacing = [0.0; 3];
     for a in 0..3 {
@@ -54,8 +54,8 @@ pub(crate) fn geometry_from_axes(
         direction[a] = d;
         spacing[a] = s;
     }
-    Ok(Geometry {
-        dims,
+    Ok(VolumeGeometry {
+        dims: crate::geometry::checked_dims(dims, path)?,
         spacing_mm: spacing,
         origin_lps_mm: origin,
         direction,

@@ -13,7 +13,7 @@ use dicom_object::{DefaultDicomObject, InMemDicomObject, OpenFileOptions};
 use dicom_pixeldata::PixelDecoder;
 
 use crate::error::{Result, StorageError};
-use crate::geometry::Geometry;
+use crate::geometry::VolumeGeometry;
 use crate::readers::common::{cross, dot, norm, split_axis};
 use crate::readers::staging::new_staging;
 use crate::readers::{has_dicom_preamble, ReadOptions};
@@ -439,49 +439,50 @@ pub fn list_dicom_series(dir: &Path) -> Result<Vec<DicomSeriesSummary>> {
 
 pub(crate) fn open_series_dir(dir: &Path, options: &ReadOptions) -> Result<OpenedSource> {
     let mut series = scan_folder(dir)?;
-    let chosen =
-        if series.len() == 1 {
-            0
-        } else {
-            let listing = series
-                .iter()
-                .enumerate()
-                .map(|(i, s)| {
-                    let m = summary(s);
+    let chosen = if series.len() == 1 {
+        0
+    } else {
+        let listing = series
+            .iter()
+            .enumerate()
+            .map(|(i, s)| {
+                let m = summary(s);
+                format!(
+                    "  [{i}] {} \"{}\" {} ({} slices)",
+                    m.uid, m.description, m.modality, m.slice_count
+                )
+            })
+            .collect::<Vec<_>>()
+            .join("\n");
+        match &options.dicom_series {
+            None => {
+                return Err(StorageError::invalid(
+                    dir,
                     format!(
-                        "  [{i}] {} \"{}\" {} ({} slices)",
-                        m.uid, m.description, m.modality, m.slice_count
-                    )
-                })
-                .collect::<Vec<_>>()
-                .join("\n");
-            match &options.dicom_series {
-                None => {
-                    return Err(StorageError::invalid(
-                        dir,
-                        format!(
-                            "folder holds {} DICOM series; choose one by UID or index:\n{listing}",
-                            series.len()
-                        ),
-                    ))
-                }
-                Some(sel) => {
-                    let sel = sel.trim();
-                    match series.iter().position(|s| s[0].series_uid == sel) {
-                        Some(i) => i,
-                        None => match sel.parse::<usize>() {
-                            Ok(i) if i < series.len() => i,
-                            _ => return Err(StorageError::invalid(
+                        "folder holds {} DICOM series; choose one by UID or index:\n{listing}",
+                        series.len()
+                    ),
+                ))
+            }
+            Some(sel) => {
+                let sel = sel.trim();
+                match series.iter().position(|s| s[0].series_uid == sel) {
+                    Some(i) => i,
+                    None => match sel.parse::<usize>() {
+                        Ok(i) if i < series.len() => i,
+                        _ => {
+                            return Err(StorageError::invalid(
                                 dir,
                                 format!(
                                     "no DICOM series '{sel}' in this folder; it holds:\n{listing}"
                                 ),
-                            )),
-                        },
-                    }
+                            ))
+                        }
+                    },
                 }
             }
-        };
+        }
+    };
     let headers = series.swap_remove(chosen);
     assemble(dir, headers, options)
 }
@@ -728,14 +729,14 @@ fn assemble(
     }
 
     let dims = [first.cols as u64, first.rows as u64, frames.len() as u64];
-    let geometry = Geometry {
-        dims,
+    let geometry = VolumeGeometry {
+        dims: crate::geometry::checked_dims(dims, display)?,
         // PixelSpacing is (row spacing, column spacing): the step along j, then along i.
         spacing_mm: [pixel_spacing[1], pixel_spacing[0], slice_gap],
         origin_lps_mm: origin,
         direction,
     };
-    geometry.validate(display)?;
+    crate::geometry::validate(&geometry, display)?;
 
     let uniform = frames.iter().all(|f| {
         (f.slope - frames[0].slope).abs() <= 1e-9 * frames[0].slope.abs()

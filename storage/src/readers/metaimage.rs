@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 use flate2::read::{MultiGzDecoder, ZlibDecoder};
 
 use crate::error::{Result, StorageError};
-use crate::geometry::Geometry;
+use crate::geometry::VolumeGeometry;
 use crate::readers::common::{dims3, parse_f64s, parse_u64s, split_axis, volume_bytes};
 use crate::readers::staging::{new_staging, stream_into};
 use crate::readers::ReadOptions;
@@ -151,7 +151,7 @@ pub(crate) fn open_metaimage(path: &Path, options: &ReadOptions) -> Result<Opene
     let compressed = get("CompressedData").is_some_and(parse_bool);
 
     let geometry = meta_geometry(path, &get, ndims, dims)?;
-    geometry.validate(path)?;
+    crate::geometry::validate(&geometry, path)?;
     let needed = volume_bytes(path, dims, sample_type.size_bytes())?;
 
     let data_spec = need("ElementDataFile")?.to_string();
@@ -254,7 +254,7 @@ fn meta_geometry<'a>(
     get: &impl Fn(&str) -> Option<&'a str>,
     ndims: usize,
     dims: [u64; 3],
-) -> Result<Geometry> {
+) -> Result<VolumeGeometry> {
     let mut spacing = [1.0; 3];
     if let Some(s) = get("ElementSpacing").or(get("ElementSize")) {
         let v = parse_f64s(path, "ElementSpacing", s)?;
@@ -321,8 +321,8 @@ fn meta_geometry<'a>(
         let n = crate::readers::common::cross(direction[0], direction[1]);
         direction[2] = split_axis(path, "slice normal", n)?.0;
     }
-    Ok(Geometry {
-        dims,
+    Ok(VolumeGeometry {
+        dims: crate::geometry::checked_dims(dims, path)?,
         spacing_mm: spacing,
         origin_lps_mm: origin,
         direction,

@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use flate2::read::MultiGzDecoder;
 
 use crate::error::{Result, StorageError};
-use crate::geometry::Geometry;
+use crate::geometry::VolumeGeometry;
 use crate::readers::common::{dims3, flip_xy, geometry_from_axes, volume_bytes};
 use crate::readers::staging::{new_staging, skip_bytes, stream_into};
 use crate::readers::ReadOptions;
@@ -260,7 +260,7 @@ fn sample_type(path: &Path, datatype: i16) -> Result<SampleType> {
 }
 
 /// Index→patient geometry in LPS: sform if set, else qform, else pixdim only (NIfTI "method 1").
-fn geometry(path: &Path, h: &Header, dims: [u64; 3]) -> Result<Geometry> {
+fn geometry(path: &Path, h: &Header, dims: [u64; 3]) -> Result<VolumeGeometry> {
     if h.sform_code > 0 {
         let mut axes = [[0.0; 3]; 3];
         for (a, axis) in axes.iter_mut().enumerate() {
@@ -316,15 +316,15 @@ fn geometry(path: &Path, h: &Header, dims: [u64; 3]) -> Result<Geometry> {
             let s = if a_idx == 2 { qfac } else { 1.0 };
             *dir = flip_xy([r[0][a_idx] * s, r[1][a_idx] * s, r[2][a_idx] * s]);
         }
-        return Ok(Geometry {
-            dims,
+        return Ok(VolumeGeometry {
+            dims: crate::geometry::checked_dims(dims, path)?,
             spacing_mm: spacing,
             origin_lps_mm: flip_xy(h.qoffset),
             direction,
         });
     }
-    Ok(Geometry {
-        dims,
+    Ok(VolumeGeometry {
+        dims: crate::geometry::checked_dims(dims, path)?,
         spacing_mm: spacing,
         origin_lps_mm: [0.0; 3],
         // Method 1 puts index axes along RAS x, y, z; in LPS that flips the first two.
@@ -400,7 +400,7 @@ pub(crate) fn open_nifti(path: &Path, options: &ReadOptions) -> Result<OpenedSou
     let dims = dims3(path, "dim", &spatial)?;
     let sample_type = sample_type(path, h.datatype)?;
     let geometry = geometry(path, &h, dims)?;
-    geometry.validate(path)?;
+    crate::geometry::validate(&geometry, path)?;
     let needed = volume_bytes(path, dims, sample_type.size_bytes())?;
 
     let slope = if h.scl_slope == 0.0 || !h.scl_slope.is_finite() {

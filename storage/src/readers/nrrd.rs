@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use flate2::read::MultiGzDecoder;
 
 use crate::error::{Result, StorageError};
-use crate::geometry::Geometry;
+use crate::geometry::VolumeGeometry;
 use crate::readers::common::{dims3, geometry_from_axes, parse_f64s, parse_u64s, volume_bytes};
 use crate::readers::staging::{new_staging, skip_bytes, stream_into};
 use crate::readers::ReadOptions;
@@ -243,7 +243,7 @@ pub(crate) fn open_nrrd(path: &Path, options: &ReadOptions) -> Result<OpenedSour
     };
 
     let geometry = nrrd_geometry(path, &fields, dimension, dims)?;
-    geometry.validate(path)?;
+    crate::geometry::validate(&geometry, path)?;
     let needed = volume_bytes(path, dims, sample_type.size_bytes())?;
 
     let line_skip: u64 = match get("line skip").or(get("lineskip")) {
@@ -436,7 +436,7 @@ fn nrrd_geometry(
     fields: &HashMap<String, String>,
     dimension: usize,
     dims: [u64; 3],
-) -> Result<Geometry> {
+) -> Result<VolumeGeometry> {
     let get = |k: &str| fields.get(k).map(String::as_str);
     let space_sign = match get("space") {
         Some(s) => space_to_lps(path, s)?,
@@ -518,7 +518,7 @@ fn nrrd_geometry(
             }
         }
     }
-    let mut g = Geometry::axis_aligned(dims, spacing);
+    let mut g = VolumeGeometry::axis_aligned(crate::geometry::checked_dims(dims, path)?, spacing);
     g.direction = g_dirs;
     g.origin_lps_mm = origin;
     Ok(g)

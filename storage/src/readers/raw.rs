@@ -3,14 +3,17 @@
 use std::path::Path;
 
 use crate::error::{Result, StorageError};
-use crate::geometry::Geometry;
+use crate::geometry::VolumeGeometry;
 use crate::readers::common::volume_bytes;
 use crate::readers::RawSpec;
 use crate::source::{OpenedSource, RawVolume, SourceInfo};
 
 pub(crate) fn open_raw(path: &Path, spec: &RawSpec) -> Result<OpenedSource> {
-    let geometry = Geometry::axis_aligned(spec.dims, spec.spacing_mm);
-    geometry.validate(path)?;
+    let geometry = VolumeGeometry::axis_aligned(
+        crate::geometry::checked_dims(spec.dims, path)?,
+        spec.spacing_mm,
+    );
+    crate::geometry::validate(&geometry, path)?;
     let needed = volume_bytes(path, spec.dims, spec.sample_type.size_bytes())?;
     let expected = needed
         .checked_add(spec.header_bytes)
