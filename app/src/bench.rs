@@ -13,6 +13,7 @@ use strata_storage::readers::{open_source, ReadOptions};
 use strata_storage::{BrickId, Store, BRICK_PAYLOAD_VOXELS};
 
 mod accuracy;
+mod common;
 mod time_critical;
 mod transitions;
 

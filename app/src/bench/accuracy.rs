@@ -16,15 +16,13 @@ use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 use strata_loader::store_volume::{classify_empty, load_uniform_cut, page_table_for_cut, GpuCut};
-use strata_loader::{render_geometry, render_mapping, ResidentBricks};
-use strata_render::reference::{render_reference, ReferenceOptions, ReferenceScene};
+use strata_loader::ResidentBricks;
 use strata_render::{
-    compare_rgba8, Camera, GpuContext, PageTable, Projection, RenderMode, RenderSettings, Shading,
-    TransferFunction, TransferFunctionTable, ValueMapping, VolumeGeometry,
+    compare_rgba8, Camera, GpuContext, PageTable, RenderMode, RenderSettings, Shading,
 };
-use strata_storage::Store;
 
-use crate::cmd_render::{choose_transfer_function, parse_size};
+use super::common::{bench_camera, median, open_input, reference_rgba, view_split, Volume};
+use crate::cmd_render::parse_size;
 
 pub struct Options {
     /// A store, or the word `phantom` for a generated CT phantom of `phantom_size`³.
@@ -171,101 +169,6 @@ fn mark_pareto(rows: &mut [Row]) {
     }
 }
 
-pub(crate) fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(|a, b| a.total_cmp(b));
-    v[v.len() / 2]
-}
-
-pub(crate) struct Volume {
-    pub(crate) store: Store,
-    pub(crate) geometry: VolumeGeometry,
-    pub(crate) mapping: ValueMapping,
-    pub(crate) tf: TransferFunction,
-    pub(crate) tf_table: TransferFunctionTable,
-    pub(crate) name: String,
-    _scratch: Option<tempfile::TempDir>,
-}
-
-pub(crate) fn open_input(options: &Options) -> Result<Volume> {
-    let (store, name, scratch) = if options.input == "phantom" {
-        let dir = tempfile::tempdir().context("creating a scratch folder for the phantom store")?;
-        let path = dir.path().join("phantom.strata");
-        eprintln!("generating a {}³ CT phantom store", options.phantom_size);
-        strata_storage::phantom::Phantom::cube(options.phantom_size)
-            .write_store(&path, &strata_storage::import::ImportOptions::default())
-            .with_context(|| format!("writing phantom store {}", path.display()))?;
-        let store = Store::open(&path).with_context(|| format!("opening {}", path.display()))?;
-        (store, format!("phantom{}", options.phantom_size), Some(dir))
-    } else {
-        let path = Path::new(&options.input);
-        let store =
-            Store::open(path).with_context(|| format!("cannot open store {}", path.display()))?;
-        let name = path
-            .file_stem()
-            .map(|s| s.to_string_lossy().into_owned())
-            .unwrap_or_else(|| "store".into());
-        (store, name, None)
-    };
-    let header = store.header().clone();
-    let geometry = render_geometry(&header)?;
-    let mapping = render_mapping(&header);
-    let tf = choose_transfer_function(options.tf.as_deref(), &header.modality)?;
-    let (a, b) = (
-        mapping.physical(header.stored_range[0] as f64),
-        mapping.physical(header.stored_range[1] as f64),
-    );
-    let tf_table = tf.table(a.min(b), a.max(b));
-    Ok(Volume {
-        store,
-        geometry,
-        mapping,
-        tf,
-        tf_table,
-        name,
-        _scratch: scratch,
-    })
-}
-
-/// The view every setting of the accuracy-type benches renders: an oblique orbit framing the
-/// whole volume.
-pub(crate) fn bench_camera(geometry: &VolumeGeometry) -> Camera {
-    Camera::orbit(
-        geometry,
-        30.0,
-        20.0,
-        1.0,
-        Projection::Perspective { fov_y_deg: 30.0 },
-    )
-}
-
-/// The f64 CPU reference of `table` (with `bricks`) at 1/16 voxel for a base step of 1/2:
-/// ground truth for the GPU frames of the same settings (shading and smoothing included).
-pub(crate) fn reference_rgba(
-    v: &Volume,
-    bricks: &ResidentBricks,
-    table: &PageTable,
-    camera: &Camera,
-    settings: &RenderSettings,
-) -> Result<Vec<u8>> {
-    let reference = render_reference(
-        &ReferenceScene {
-            source: bricks,
-            page_table: table,
-            geometry: &v.geometry,
-            mapping: v.mapping,
-            transfer_function: &v.tf,
-            tf_range: (v.tf_table.lo, v.tf_table.hi),
-        },
-        camera,
-        settings,
-        ReferenceOptions {
-            step_refinement: 8.0,
-            ..Default::default()
-        },
-    )?;
-    Ok(reference.rgba)
-}
-
 /// The cut of one uniform level, its bricks and GPU resources.
 struct LevelCut {
     table: PageTable,
@@ -281,7 +184,7 @@ fn load_level(ctx: &GpuContext, v: &Volume, level: u8) -> Result<LevelCut> {
 
 /// The mixed cut of `strata bench transitions` for this view.
 fn load_mixed(ctx: &GpuContext, v: &Volume, camera: &Camera) -> Result<LevelCut> {
-    let split = super::transitions::view_split(v, camera, 0.25);
+    let split = view_split(v, camera, 0.25);
     let mut table = page_table_for_cut(&v.store, &v.geometry, |p| split.level_of(p));
     classify_empty(&v.store, &mut table, v.mapping, &v.tf_table);
     let bricks = ResidentBricks::load(&v.store, &table)?;
@@ -339,7 +242,7 @@ pub fn run(options: Options) -> Result<()> {
         bail!("--frames must be at least 1");
     }
     let (width, height) = parse_size(&options.size)?;
-    let v = open_input(&options)?;
+    let v = open_input(&options.input, options.phantom_size, options.tf.as_deref())?;
     let ctx = GpuContext::headless()?;
     eprintln!("GPU: {}", ctx.adapter_name());
     let camera = bench_camera(&v.geometry);

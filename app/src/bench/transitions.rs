@@ -22,16 +22,16 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
-use glam::{DMat3, DVec3};
+use glam::DVec3;
 use strata_loader::store_volume::{classify_empty, load_uniform_cut, page_table_for_cut, GpuCut};
 use strata_loader::ResidentBricks;
 use strata_render::smooth_transitions::{transition_masks, transition_node_fraction};
 use strata_render::{
-    compare_rgba8, GpuContext, ImageComparison, PageEntry, PageTable, RenderMode, RenderSettings,
-    Scene, Shading,
+    compare_rgba8, GpuContext, ImageComparison, PageTable, RenderMode, RenderSettings, Scene,
+    Shading,
 };
 
-use super::accuracy::{self, bench_camera, median, open_input, reference_rgba};
+use super::common::{bench_camera, median, open_input, reference_rgba, view_split, Volume};
 use crate::cmd_render::parse_size;
 
 #[derive(clap::Args)]
@@ -56,98 +56,6 @@ pub struct Options {
     /// Markdown table (default `transitions-<name>.md`); the CSV goes next to it.
     #[arg(long)]
     pub out: Option<PathBuf>,
-}
-
-/// A near-fine / far-coarse cut: level-1 nodes whose centre lies at depth ≤ `threshold` along
-/// `forward` (page units) are split into level-0 nodes.
-#[derive(Clone, Debug)]
-pub(crate) struct Split {
-    forward: DVec3,
-    threshold: f64,
-    /// Transition-node share of the cut (over all resident nodes).
-    pub(crate) fraction: f64,
-}
-
-/// Depth of a level-1 node's centre along `forward`, in page units.
-fn level1_depth(node: [u32; 3], forward: DVec3) -> f64 {
-    let centre = DVec3::new(node[0] as f64, node[1] as f64, node[2] as f64) * 2.0 + 1.0;
-    centre.dot(forward)
-}
-
-impl Split {
-    pub(crate) fn level_of(&self, page: [u32; 3]) -> u8 {
-        if level1_depth(PageTable::node_of(page, 1), self.forward) <= self.threshold {
-            0
-        } else {
-            1
-        }
-    }
-}
-
-/// A page table of `page_dims` whose position `page` is served by `level_of(page)` (slots are
-/// irrelevant to the transition masks).
-fn table_of(page_dims: [u32; 3], level_of: impl Fn([u32; 3]) -> u8) -> PageTable {
-    let mut table = PageTable::new(page_dims);
-    for i in 0..table.entries.len() {
-        let level = level_of(table.page_of_linear(i));
-        table.entries[i] = PageEntry::resident(0, level);
-    }
-    table
-}
-
-/// The split plane (perpendicular to `forward`, at a level-1 node boundary) whose cut has the
-/// transition-node share closest to `target`. Candidates are the distinct depths of level-1
-/// node centres, except the farthest (all level 0, no transitions); at most 256 are tried.
-/// The split for `camera`: the plane is perpendicular to the view direction in patient space;
-/// in index space a point's depth is (Mᵀ·forward)·index with M = patient_from_index.
-pub(crate) fn view_split(
-    v: &accuracy::Volume,
-    camera: &strata_render::Camera,
-    target: f64,
-) -> Split {
-    let m: DMat3 = v.geometry.patient_from_index_linear();
-    choose_split(
-        v.geometry.page_dims(),
-        m.transpose() * camera.basis().forward,
-        target,
-    )
-}
-
-pub(crate) fn choose_split(page_dims: [u32; 3], forward: DVec3, target: f64) -> Split {
-    let forward = forward.normalize_or_zero();
-    let n1 = page_dims.map(|d| d.div_ceil(2));
-    let mut depths = Vec::new();
-    for z in 0..n1[2] {
-        for y in 0..n1[1] {
-            for x in 0..n1[0] {
-                depths.push(level1_depth([x, y, z], forward));
-            }
-        }
-    }
-    depths.sort_by(|a, b| a.total_cmp(b));
-    depths.dedup_by(|a, b| (*a - *b).abs() < 1e-9);
-    depths.pop();
-    let stride = depths.len().div_ceil(256).max(1);
-    let mut best = Split {
-        forward,
-        threshold: f64::NEG_INFINITY,
-        fraction: 0.0,
-    };
-    for &threshold in depths.iter().step_by(stride) {
-        let split = Split {
-            forward,
-            threshold,
-            fraction: 0.0,
-        };
-        let table = table_of(page_dims, |p| split.level_of(p));
-        let fraction = transition_node_fraction(&table, &transition_masks(&table));
-        if best.threshold == f64::NEG_INFINITY
-            || (fraction - target).abs() < (best.fraction - target).abs()
-        {
-            best = Split { fraction, ..split };
-        }
-    }
-    best
 }
 
 /// One of the four measured settings.
@@ -221,14 +129,7 @@ pub fn run(options: Options) -> Result<()> {
         bail!("--frames must be at least 1");
     }
     let (width, height) = parse_size(&options.size)?;
-    let v = open_input(&accuracy::Options {
-        input: options.input.clone(),
-        phantom_size: options.phantom_size,
-        size: options.size.clone(),
-        frames: options.frames,
-        tf: options.tf.clone(),
-        out_dir: PathBuf::new(),
-    })?;
+    let v = open_input(&options.input, options.phantom_size, options.tf.as_deref())?;
     if v.store.layout().level_count() < 2 {
         bail!(
             "{} has a single octree level: no mixed cut to measure",
@@ -396,7 +297,7 @@ struct Timings {
 fn time_frames(
     ctx: &GpuContext,
     cut: &mut GpuCut,
-    v: &accuracy::Volume,
+    v: &Volume,
     camera: &strata_render::Camera,
     settings_of: &dyn Fn(Variant) -> RenderSettings,
     frames: usize,
@@ -522,7 +423,7 @@ fn markdown(r: &Report) -> String {
 fn max_level_face_jump(
     bricks: &ResidentBricks,
     table: &PageTable,
-    v: &accuracy::Volume,
+    v: &Volume,
     smooth: bool,
 ) -> f64 {
     let masks = smooth.then(|| transition_masks(table));
@@ -604,46 +505,6 @@ fn write_csv(path: &Path, r: &Report) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn check(page_dims: [u32; 3], forward: DVec3, tolerance: f64) -> Split {
-        let split = choose_split(page_dims, forward, 0.25);
-        let table = table_of(page_dims, |p| split.level_of(p));
-        let levels: std::collections::BTreeSet<u8> =
-            table.entries.iter().map(|e| e.level).collect();
-        assert_eq!(levels, [0, 1].into_iter().collect(), "{forward:?}");
-        // Level 0 in front: the nearest page corner is fine, the farthest coarse.
-        let depth = |p: [u32; 3]| DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64).dot(forward);
-        let pages: Vec<[u32; 3]> = (0..table.entries.len())
-            .map(|i| table.page_of_linear(i))
-            .collect();
-        let nearest = pages
-            .iter()
-            .min_by(|a, b| depth(**a).total_cmp(&depth(**b)));
-        let farthest = pages
-            .iter()
-            .max_by(|a, b| depth(**a).total_cmp(&depth(**b)));
-        assert_eq!(split.level_of(*nearest.unwrap()), 0);
-        assert_eq!(split.level_of(*farthest.unwrap()), 1);
-        let fraction = transition_node_fraction(&table, &transition_masks(&table));
-        assert!((fraction - split.fraction).abs() < 1e-12);
-        assert!(
-            (fraction - 0.25).abs() <= tolerance,
-            "{forward:?}: fraction {fraction}"
-        );
-        split
-    }
-
-    #[test]
-    fn split_of_an_8_cubed_grid_has_about_a_quarter_transition_nodes() {
-        // Oblique, like the bench's orbit view, and both signs of each axis.
-        check([8, 8, 8], DVec3::new(0.6, -0.7, -0.35), 0.03);
-        check([8, 8, 8], DVec3::new(-0.3, 0.5, 0.8), 0.03);
-        // Axis-aligned: whole slabs of level-1 nodes; 2 of 4 slabs fine gives 64/288 = 22 %.
-        let split = check([8, 8, 8], DVec3::Z, 0.05);
-        assert!((split.fraction - 64.0 / 288.0).abs() < 1e-12);
-        // Odd page counts (partial level-1 nodes at the far faces).
-        check([7, 9, 5], DVec3::new(1.0, 0.2, 0.4), 0.06);
-    }
 
     #[test]
     fn markdown_has_the_paper_columns() {
