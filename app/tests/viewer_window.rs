@@ -13,12 +13,13 @@ use x11rb::protocol::xproto::{ConnectionExt, ImageFormat};
 
 const SCREEN: (u16, u16) = (1000, 680);
 
-/// Stops what it holds when the test ends, pass or fail: SIGTERM first, so Xvfb removes its
-/// socket and lock files, then SIGKILL for anything that ignores it.
+/// Stops what it holds when the test ends, pass or fail: SIGTERM first (Unix), so Xvfb removes
+/// its socket and lock files, then SIGKILL for anything that ignores it.
 struct KillOnDrop(Child);
 
 impl Drop for KillOnDrop {
     fn drop(&mut self) {
+        #[cfg(unix)]
         if let Ok(pid) = libc::pid_t::try_from(self.0.id()) {
             // SAFETY: signalling our own child by its pid.
             unsafe {

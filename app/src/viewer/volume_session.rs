@@ -240,7 +240,8 @@ fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
 /// `STRATA_RENDER_NICE` (0..19, default 5) overrides the value. Measured on 2 shared cores
 /// under load: nice 10 slowed volume frames 4.7x against nice 5 for no UI gain, so 5.
 fn lower_this_threads_priority() {
-    let nice: libc::c_int = std::env::var("STRATA_RENDER_NICE")
+    // i32 is `libc::c_int` wherever setpriority is called; libc is a Unix-only dependency.
+    let nice: i32 = std::env::var("STRATA_RENDER_NICE")
         .ok()
         .and_then(|v| v.parse().ok())
         .unwrap_or(5)
