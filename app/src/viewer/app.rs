@@ -17,6 +17,7 @@ use strata_storage::Store;
 use super::jobs::{PrepareJob, VolumeSource};
 use super::orientation::{SliceFrame, SliceView};
 use super::slices::{level_for_pixels, SliceImage, SliceReader, SliceRequest};
+use super::sync::lock_ignoring_poison;
 use super::tf_editor::{self, TfEditorState};
 use super::view3d::{paint_orientation_marker, OrbitCamera, StandardView};
 use super::volume_session::{
@@ -851,7 +852,7 @@ impl StrataApp {
                 } else {
                     dialog.pick_file()
                 };
-                *thread_slot.lock().unwrap_or_else(|e| e.into_inner()) = Some(chosen);
+                *lock_ignoring_poison(&thread_slot) = Some(chosen);
                 ctx.request_repaint();
             });
         match spawned {
@@ -867,7 +868,7 @@ impl StrataApp {
         let Some(slot) = &self.file_dialog else {
             return;
         };
-        let Some(chosen) = slot.lock().unwrap_or_else(|e| e.into_inner()).take() else {
+        let Some(chosen) = lock_ignoring_poison(slot).take() else {
             return;
         };
         self.file_dialog = None;

@@ -12,6 +12,7 @@ use strata_storage::phantom::Phantom;
 use strata_storage::readers::{open_source, ReadOptions};
 use strata_storage::Store;
 
+use super::sync::lock_ignoring_poison;
 use super::volume_session::Repaint;
 
 /// What the user asked to look at.
@@ -33,10 +34,6 @@ pub struct PrepareJob {
     stage: Arc<Mutex<String>>,
     cancel: Arc<AtomicBool>,
     result: PrepareOutcome,
-}
-
-fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
 pub fn is_store(path: &Path) -> bool {
@@ -137,7 +134,7 @@ impl PrepareJob {
                     repaint();
                 };
                 let set_stage = |s: String| {
-                    *lock(&stage) = s;
+                    *lock_ignoring_poison(&stage) = s;
                     repaint();
                 };
                 let outcome = prepare(
@@ -150,7 +147,7 @@ impl PrepareJob {
                 )
                 .map(Arc::new)
                 .map_err(|e| format!("{e:#}"));
-                *lock(&result) = Some(outcome);
+                *lock_ignoring_poison(&result) = Some(outcome);
                 repaint();
             })?;
         Ok(job)
@@ -161,7 +158,7 @@ impl PrepareJob {
         (
             self.done.load(Ordering::Relaxed),
             self.total.load(Ordering::Relaxed),
-            lock(&self.stage).clone(),
+            lock_ignoring_poison(&self.stage).clone(),
         )
     }
 
@@ -170,7 +167,7 @@ impl PrepareJob {
     }
 
     pub fn take_result(&self) -> Option<Result<Arc<Store>, String>> {
-        lock(&self.result).take()
+        lock_ignoring_poison(&self.result).take()
     }
 }
 

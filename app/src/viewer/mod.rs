@@ -9,6 +9,7 @@ pub mod app;
 pub mod jobs;
 pub mod orientation;
 pub mod slices;
+mod sync;
 pub mod tf_editor;
 pub mod view3d;
 pub mod volume_session;

@@ -10,6 +10,7 @@ use std::sync::{Arc, Mutex};
 use strata_storage::{BrickId, Store, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
 
 use super::orientation::{SliceFrame, SliceView};
+use super::sync::{lock_ignoring_poison, wait_ignoring_poison};
 use super::volume_session::Repaint;
 
 /// Decompressed bricks kept for paging (bytes).
@@ -50,10 +51,6 @@ pub struct SliceReader {
     thread: Option<std::thread::JoinHandle<()>>,
 }
 
-fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|e| e.into_inner())
-}
-
 /// The level whose voxels are about one screen pixel: coarser only when a level-0 voxel would
 /// be smaller than half a pixel.
 pub fn level_for_pixels(voxels_across: f64, pixels_across: f64, level_count: usize) -> u8 {
@@ -86,7 +83,7 @@ impl SliceReader {
                 let mut cache = BrickLru::new(SLICE_CACHE_BYTES);
                 loop {
                     let next = {
-                        let mut pending = lock(&thread_shared.pending);
+                        let mut pending = lock_ignoring_poison(&thread_shared.pending);
                         loop {
                             if thread_shared.stop.load(Ordering::Acquire) {
                                 return;
@@ -94,18 +91,18 @@ impl SliceReader {
                             if let Some(r) = pending.iter_mut().find_map(|p| p.take()) {
                                 break r;
                             }
-                            pending = thread_shared
-                                .wake
-                                .wait(pending)
-                                .unwrap_or_else(|e| e.into_inner());
+                            pending = wait_ignoring_poison(&thread_shared.wake, pending);
                         }
                     };
                     match read_slice(&store, &mut cache, next) {
                         Ok(image) => {
-                            lock(&thread_shared.results)[next.view.index()] = Some(image);
-                            *lock(&thread_shared.error) = None;
+                            lock_ignoring_poison(&thread_shared.results)[next.view.index()] =
+                                Some(image);
+                            *lock_ignoring_poison(&thread_shared.error) = None;
                         }
-                        Err(e) => *lock(&thread_shared.error) = Some(format!("{e:#}")),
+                        Err(e) => {
+                            *lock_ignoring_poison(&thread_shared.error) = Some(format!("{e:#}"))
+                        }
                     }
                     repaint();
                 }
@@ -118,16 +115,16 @@ impl SliceReader {
 
     /// Asks for a slice; a newer request for the same view replaces an unread older one.
     pub fn request(&self, request: SliceRequest) {
-        lock(&self.shared.pending)[request.view.index()] = Some(request);
+        lock_ignoring_poison(&self.shared.pending)[request.view.index()] = Some(request);
         self.shared.wake.notify_all();
     }
 
     pub fn latest(&self, view: SliceView) -> Option<SliceImage> {
-        lock(&self.shared.results)[view.index()].clone()
+        lock_ignoring_poison(&self.shared.results)[view.index()].clone()
     }
 
     pub fn error(&self) -> Option<String> {
-        lock(&self.shared.error).clone()
+        lock_ignoring_poison(&self.shared.error).clone()
     }
 }
 

@@ -26,6 +26,8 @@ use strata_render::{
 };
 use strata_storage::{Store, StoreHeader};
 
+use super::sync::lock_ignoring_poison;
+
 /// GPU memory for the brick cache.
 pub const DEFAULT_GPU_BUDGET_BYTES: u64 = 384 << 20;
 
@@ -174,7 +176,7 @@ impl VolumeSession {
                     )),
                 };
                 if let Some(message) = message {
-                    let mut status = lock(&thread_shared.status);
+                    let mut status = lock_ignoring_poison(&thread_shared.status);
                     status.error = Some(message);
                     status.refining = false;
                     status.loading = None;
@@ -195,7 +197,7 @@ impl VolumeSession {
 
     /// Replaces the pending request (older ones are never rendered).
     pub fn request(&self, request: RenderRequest) {
-        let mut slot = lock(&self.shared.request);
+        let mut slot = lock_ignoring_poison(&self.shared.request);
         if slot.as_ref() != Some(&request) {
             *slot = Some(request);
             self.shared.wake.notify_all();
@@ -203,17 +205,17 @@ impl VolumeSession {
     }
 
     pub fn request_screenshot(&self, request: ScreenshotRequest) {
-        *lock(&self.shared.screenshot) = Some(request);
+        *lock_ignoring_poison(&self.shared.screenshot) = Some(request);
         self.shared.wake.notify_all();
     }
 
     /// The newest finished frame.
     pub fn latest_frame(&self) -> Option<RenderedFrame> {
-        lock(&self.shared.frame).clone()
+        lock_ignoring_poison(&self.shared.frame).clone()
     }
 
     pub fn status(&self) -> SessionStatus {
-        lock(&self.shared.status).clone()
+        lock_ignoring_poison(&self.shared.status).clone()
     }
 }
 
@@ -225,12 +227,6 @@ impl Drop for VolumeSession {
             let _ = thread.join();
         }
     }
-}
-
-/// A poisoned lock only means another thread panicked mid-update of plain data; the data is
-/// still usable for display, so keep going rather than take the UI down too.
-fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
 /// Without a GPU the raycast runs on lavapipe's CPU threads, which would starve the UI of the
@@ -283,7 +279,7 @@ impl RenderWorker {
     }
 
     fn set_status(&self, f: impl FnOnce(&mut SessionStatus)) {
-        f(&mut lock(&self.shared.status));
+        f(&mut lock_ignoring_poison(&self.shared.status));
         (self.repaint)();
     }
 
@@ -306,7 +302,7 @@ impl RenderWorker {
             s.adapter = adapter;
             s.loading = Some("reading the coarsest level".into());
         });
-        let initial_tf = lock(&self.shared.request)
+        let initial_tf = lock_ignoring_poison(&self.shared.request)
             .as_ref()
             .map(|r| r.transfer_function.clone())
             .or_else(|| TransferFunction::preset("ct-bone"))
@@ -333,7 +329,7 @@ impl RenderWorker {
             if self.shared.stop.load(Ordering::Acquire) {
                 return Ok(());
             }
-            let screenshot = lock(&self.shared.screenshot).take();
+            let screenshot = lock_ignoring_poison(&self.shared.screenshot).take();
             if let Some(shot) = screenshot {
                 let result = match last_rendered.clone() {
                     Some(request) => self.screenshot(&ctx, &mut volume, &request, &shot),
@@ -349,7 +345,7 @@ impl RenderWorker {
                 // The screenshot changed the cut and the raycaster's size: render the view again.
                 last_rendered = None;
             }
-            let request = lock(&self.shared.request).clone();
+            let request = lock_ignoring_poison(&self.shared.request).clone();
             let Some(request) = request else {
                 self.wait(Duration::from_millis(50));
                 continue;
@@ -416,7 +412,7 @@ impl RenderWorker {
                 frame_ms_history.drain(..frame_ms_history.len() - 240);
             }
             self.serial += 1;
-            *lock(&self.shared.frame) = Some(RenderedFrame {
+            *lock_ignoring_poison(&self.shared.frame) = Some(RenderedFrame {
                 width: frame.width,
                 height: frame.height,
                 rgba: Arc::new(frame.rgba),
@@ -465,7 +461,7 @@ impl RenderWorker {
     }
 
     fn wait(&self, timeout: Duration) {
-        let guard = lock(&self.shared.request);
+        let guard = lock_ignoring_poison(&self.shared.request);
         let _ = self.shared.wake.wait_timeout(guard, timeout);
     }
 
