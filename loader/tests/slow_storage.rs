@@ -1,5 +1,7 @@
 //! Injected slow storage (50 ms per brick read): frames must not wait for it. In its own test
 //! binary so no other test competes for the two CPU cores while frame times are measured.
+//! The frame-time comparisons with fast storage run only with `STRATA_TIMING_TESTS=1`; the
+//! loader's per-frame time, the refinement count and the converged image are always checked.
 
 mod common;
 
@@ -65,19 +67,21 @@ fn slow_storage_does_not_slow_frames_and_still_converges() {
         "loader took {loader_max:.4} s in a frame"
     );
     // Frame times stay those of fast storage: the median within 1.5× (+3 ms of scheduling
-    // noise) and no frame as long as two reads.
-    let fast_median = strata_loader::Distribution::of(&fast_frames).p50;
-    // The first frame of a new volume compiles its raycast pipeline; that is not I/O.
-    let slow_dist = strata_loader::Distribution::of(&slow_frames[1..]);
-    assert!(
-        slow_dist.p50 <= 1.5 * fast_median + 0.003,
-        "median frame {:.4} s vs {fast_median:.4} s",
-        slow_dist.p50
-    );
-    assert!(
-        slow_dist.max < fast_median + 2.0 * delay.as_secs_f64(),
-        "{slow_dist:?} vs {fast_median:.4} s"
-    );
+    // noise) and no frame as long as two reads. Wall clock: opt-in.
+    if timing_assertions_enabled() {
+        let fast_median = strata_loader::Distribution::of(&fast_frames).p50;
+        // The first frame of a new volume compiles its raycast pipeline; that is not I/O.
+        let slow_dist = strata_loader::Distribution::of(&slow_frames[1..]);
+        assert!(
+            slow_dist.p50 <= 1.5 * fast_median + 0.003,
+            "median frame {:.4} s vs {fast_median:.4} s",
+            slow_dist.p50
+        );
+        assert!(
+            slow_dist.max < fast_median + 2.0 * delay.as_secs_f64(),
+            "{slow_dist:?} vs {fast_median:.4} s"
+        );
+    }
     // It refined over many frames (reads arrive one by one) and ended at the same image.
     assert!(
         frames_with_new_data >= 3 && slow_frames.len() > 10,

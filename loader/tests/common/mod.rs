@@ -134,3 +134,15 @@ pub fn up_front(
 pub fn covered_pixels(rgba: &[u8]) -> usize {
     rgba.chunks_exact(4).filter(|p| p[3] > 8).count()
 }
+
+/// Whether to run wall-clock assertions (frame times against a baseline, fps against a
+/// target): only with `STRATA_TIMING_TESTS=1`, because on a loaded shared CPU they fail for
+/// reasons outside the code. Without it the caller runs only its deterministic checks, and
+/// this prints one line saying the timing ones were skipped.
+pub fn timing_assertions_enabled() -> bool {
+    let enabled = std::env::var("STRATA_TIMING_TESTS").is_ok_and(|v| v == "1");
+    if !enabled {
+        eprintln!("timing assertions skipped (set STRATA_TIMING_TESTS=1 to run them)");
+    }
+    enabled
+}
