@@ -33,7 +33,7 @@ impl Pattern {
         if k >= 40 {
             return 1234; // constant slab → constant bricks
         }
-        ((i * 2654435761 ^ j * 40503 ^ k * 977) % 65536) as u16
+        (((i * 2654435761) ^ (j * 40503) ^ (k * 977)) % 65536) as u16
     }
 }
 impl SliceProducer for Pattern {

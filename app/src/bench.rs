@@ -62,7 +62,7 @@ pub enum BenchCommand {
         tf: Option<String>,
         /// Where the CSV, markdown table and plot go.
         #[arg(long, default_value = "target/bench-accuracy")]
-        out_dir: std::path::PathBuf,
+        out_dir: PathBuf,
     },
     /// The time-critical paper's Table 2: a 360° orbit at a fixed sampling rate and under the
     /// frame-rate controller; mean fps and σ of the measured GPU frame time for both.
@@ -257,8 +257,9 @@ fn bench_import(size: u64, rss_size: Option<u64>, memory_mib: u64, dir: &Path) -
 fn peak_child_rss_bytes() -> Option<u64> {
     #[cfg(unix)]
     {
-        // SAFETY: getrusage only writes into the struct we pass.
+        // SAFETY: rusage is a plain C struct of integers, for which all-zero bytes are valid.
         let mut usage: libc::rusage = unsafe { std::mem::zeroed() };
+        // SAFETY: getrusage only writes into the struct we pass, which outlives the call.
         if unsafe { libc::getrusage(libc::RUSAGE_CHILDREN, &mut usage) } != 0 {
             return None;
         }

@@ -238,7 +238,7 @@ fn run_streaming(args: &RenderArgs) -> Result<()> {
         .with_context(|| format!("cannot stream store {}", args.store.display()))?;
     let opened = Instant::now();
     let geometry = volume.geometry().clone();
-    let camera = camera_of(&args, &geometry);
+    let camera = camera_of(args, &geometry);
     let (frame, history) =
         volume.render_until_converged(&ctx, &camera, &settings, args.max_frames.max(1))?;
     for failure in volume.take_failures() {

@@ -74,7 +74,7 @@ impl CpuBrickCache {
     /// Inserts (or refreshes) a brick, evicting least recently used ones to stay in budget.
     /// A brick larger than the whole budget is not kept.
     pub fn insert(&mut self, id: BrickId, brick: Brick, prefetched: bool) {
-        let bytes = (brick.len() * std::mem::size_of::<u16>()) as u64;
+        let bytes = (brick.len() * size_of::<u16>()) as u64;
         if let Some(old) = self.entries.remove(&id) {
             self.by_age.remove(&old.tick);
             self.bytes -= old.bytes;

@@ -85,7 +85,7 @@ impl OctreeRanges {
     pub fn from_store(store: &Store) -> Self {
         let layout = store.layout();
         let bricks: Vec<[u32; 3]> = (0..layout.level_count())
-            .map(|l| layout.bricks_in_level(l).map(|b| b as u32))
+            .map(|l| layout.bricks_in_level(l).map(|b| b))
             .collect();
         Self::from_fn(&bricks, |level, coords| {
             // A node missing from the skeleton cannot happen in an opened store; treating it as

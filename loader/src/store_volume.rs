@@ -143,7 +143,7 @@ pub fn classify_empty(
 /// A fixed cut resident on the GPU: cache texture, page table, transfer function and raycaster,
 /// ready to render frames of it. (The streaming loader will keep these updated instead.)
 pub struct GpuCut {
-    pub cache: strata_render::BrickCache,
+    pub cache: BrickCache,
     pub page_table: strata_render::GpuPageTable,
     pub transfer_function: strata_render::GpuTransferFunction,
     pub raycaster: strata_render::Raycaster,

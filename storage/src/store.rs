@@ -317,7 +317,7 @@ impl Store {
             for z in 0..n[2] {
                 for y in 0..n[1] {
                     for x in 0..n[0] {
-                        let id = BrickId::new(level as u8, [x as u32, y as u32, z as u32]);
+                        let id = BrickId::new(level as u8, [x, y, z]);
                         seen += 1;
                         match self.read_brick(id) {
                             Err(e) => problems.push(e.to_string()),

@@ -209,7 +209,8 @@ pub struct StrataApp {
     open_path: String,
     open_series: String,
     /// A native file dialog running on its own thread: None while open, then what it chose.
-    file_dialog: Option<Arc<std::sync::Mutex<Option<Option<PathBuf>>>>>,
+    /// Filled by the dialog's thread when it closes; `None` while it is open.
+    file_dialog: Option<Arc<std::sync::Mutex<Option<DialogOutcome>>>>,
     file_dialog_note: Option<String>,
     tf_path: String,
     tf_message: Option<String>,
@@ -217,6 +218,13 @@ pub struct StrataApp {
     started_at: Instant,
     clock: FrameClock,
     toast: Option<(String, Instant)>,
+}
+
+/// How a closed file dialog ended.
+enum DialogOutcome {
+    Chosen(PathBuf),
+    /// Cancelled, or no desktop portal answered.
+    NothingChosen,
 }
 
 fn lock_free_repaint(ctx: &egui::Context) -> super::volume_session::Repaint {
@@ -852,7 +860,8 @@ impl StrataApp {
                 } else {
                     dialog.pick_file()
                 };
-                *lock_ignoring_poison(&thread_slot) = Some(chosen);
+                let outcome = chosen.map_or(DialogOutcome::NothingChosen, DialogOutcome::Chosen);
+                *lock_ignoring_poison(&thread_slot) = Some(outcome);
                 ctx.request_repaint();
             });
         match spawned {
@@ -873,11 +882,11 @@ impl StrataApp {
         };
         self.file_dialog = None;
         match chosen {
-            Some(path) => {
+            DialogOutcome::Chosen(path) => {
                 self.open_path = path.display().to_string();
                 self.file_dialog_note = None;
             }
-            None => {
+            DialogOutcome::NothingChosen => {
                 self.file_dialog_note = Some(
                     "Nothing chosen (the dialog needs a desktop portal); you can type the path."
                         .into(),

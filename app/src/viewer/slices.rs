@@ -200,9 +200,9 @@ fn read_slice(
     for bd in 0..bricks[d] {
         for ba in 0..bricks[a] {
             let mut coords = [0u32; 3];
-            coords[n] = brick_n as u32;
-            coords[a] = ba as u32;
-            coords[d] = bd as u32;
+            coords[n] = brick_n;
+            coords[a] = ba;
+            coords[d] = bd;
             let brick = cache.get(store, BrickId::new(level as u8, coords))?;
             let mut local = [0usize; 3];
             local[n] = (slice - brick_n * core + BRICK_APRON) as usize;
@@ -252,7 +252,7 @@ mod tests {
         let store = Store::open(&path).expect("open");
         let g = store.header().geometry.clone();
         let geometry = VolumeGeometry {
-            dims: g.dims.map(|d| d as u32),
+            dims: g.dims.map(|d| d),
             spacing_mm: g.spacing_mm,
             origin_lps_mm: g.origin_lps_mm,
             direction: g.direction,

@@ -34,12 +34,15 @@ mod tests {
     fn a_lock_poisoned_by_a_panicking_thread_still_locks() {
         let m = std::sync::Arc::new(Mutex::new(1));
         let held = m.clone();
-        let _ = std::thread::spawn(move || {
-            let mut g = held.lock().unwrap();
-            *g = 2;
-            panic!("poisoning the lock on purpose");
-        })
-        .join();
+        let poisoner = std::thread::Builder::new()
+            .name("strata-test-poisoner".into())
+            .spawn(move || {
+                let mut g = held.lock().unwrap();
+                *g = 2;
+                panic!("poisoning the lock on purpose");
+            })
+            .unwrap();
+        let _ = poisoner.join();
         assert!(m.is_poisoned());
         assert_eq!(*lock_ignoring_poison(&m), 2);
     }
