@@ -150,7 +150,7 @@ impl<'a> VoxelReader<'a> {
 /// GPU frame and f64 reference of the same cut of a store (uniform `level`), for image tests.
 pub mod render_pair {
     use strata_loader::store_volume::{classify_empty, page_table_for_cut, GpuCut};
-    use strata_loader::{render_geometry, render_mapping, ResidentBricks};
+    use strata_loader::ResidentBricks;
     use strata_render::reference::{render_reference, ReferenceOptions, ReferenceScene};
     use strata_render::{
         Camera, GpuContext, RenderMode, RenderSettings, TransferFunction, VolumeGeometry,
@@ -179,8 +179,8 @@ pub mod render_pair {
         geometry_override: Option<VolumeGeometry>,
     ) -> Pair {
         let header = store.header();
-        let geometry = geometry_override.unwrap_or_else(|| render_geometry(header).unwrap());
-        let mapping = render_mapping(header);
+        let geometry = geometry_override.unwrap_or_else(|| header.geometry.clone());
+        let mapping = header.value_mapping.mapping;
         let lo = mapping.physical(header.stored_range[0] as f64);
         let hi = mapping.physical(header.stored_range[1] as f64);
         let tf_table = tf.table(lo.min(hi), lo.max(hi));

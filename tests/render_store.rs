@@ -145,7 +145,7 @@ fn anisotropic_and_oblique_scans_follow_their_headers() {
         let store = import(&data.join("niivue").join(file), dir.path());
         let s = settings(RenderMode::Dvr, 128);
         // A fixed patient-space camera, so both geometries are seen from the same place.
-        let header_geometry = strata_loader::render_geometry(store.header()).unwrap();
+        let header_geometry = store.header().geometry.clone();
         let centre = header_geometry.centre_patient();
         let r = header_geometry.bounding_radius_mm();
         let camera = move |_: &strata_render::VolumeGeometry| {
@@ -187,10 +187,10 @@ fn storage_and_render_agree_on_every_brick() {
         .write_store(&path, &ImportOptions::default())
         .unwrap();
     let store = Store::open(&path).unwrap();
-    let geometry = strata_loader::render_geometry(store.header()).unwrap();
+    let geometry = store.header().geometry.clone();
     let volume = strata_render::BrickedVolume::from_voxels(
         geometry,
-        strata_loader::render_mapping(store.header()),
+        store.header().value_mapping.mapping,
         strata_e2e::phantom_level0(&phantom),
     )
     .unwrap();

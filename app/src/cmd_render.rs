@@ -6,9 +6,7 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};
 use strata_loader::store_volume::{classify_empty, page_table_for_cut, GpuCut};
-use strata_loader::{
-    render_geometry, render_mapping, ResidentBricks, StreamingConfig, StreamingVolume,
-};
+use strata_loader::{ResidentBricks, StreamingConfig, StreamingVolume};
 use strata_render::reference::{render_reference, ReferenceOptions, ReferenceScene};
 use strata_render::{
     Camera, GpuContext, Projection, RenderMode, RenderSettings, Shading, TransferFunction,
@@ -116,8 +114,8 @@ pub fn run(args: RenderArgs) -> Result<()> {
     let store = Store::open(&args.store)
         .with_context(|| format!("cannot open store {}", args.store.display()))?;
     let header = store.header().clone();
-    let geometry = render_geometry(&header)?;
-    let mapping = render_mapping(&header);
+    let geometry = header.geometry.clone();
+    let mapping = header.value_mapping.mapping;
     let tf = choose_transfer_function(args.tf.as_deref(), &header.modality)?;
     let physical_range = (
         mapping.physical(header.stored_range[0] as f64),

@@ -18,5 +18,5 @@ pub mod visibility;
 pub use error::LoaderError;
 pub use fetch_workers::{BrickReader, SlowReader};
 pub use metrics::{Distribution, FrameStats};
-pub use store_volume::{render_geometry, render_mapping, ResidentBricks};
+pub use store_volume::ResidentBricks;
 pub use streaming::{BrickFailure, StreamingConfig, StreamingVolume};

@@ -8,18 +8,9 @@ use strata_render::{
     BrickCache, BrickSource, PageEntry, PageTable, TransferFunctionTable, ValueMapping,
     VolumeGeometry,
 };
-use strata_storage::{BrickId, StorageError, Store, StoreHeader};
+use strata_storage::{BrickId, StorageError, Store};
 
 pub use crate::error::LoaderError;
-
-/// The store's geometry: the renderer speaks the same strata-types geometry.
-pub fn render_geometry(header: &StoreHeader) -> Result<VolumeGeometry, LoaderError> {
-    Ok(header.geometry.clone())
-}
-
-pub fn render_mapping(header: &StoreHeader) -> ValueMapping {
-    header.value_mapping.mapping
-}
 
 /// Bricks of one cut, keyed by (level, node).
 pub struct ResidentBricks {

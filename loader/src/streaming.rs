@@ -23,7 +23,6 @@ use crate::gpu_slots::GpuSlots;
 use crate::metrics::FrameStats;
 use crate::octree_ranges::{Emptiness, OctreeRanges, StoredRange};
 use crate::prefetch::MotionPredictor;
-use crate::store_volume::{render_geometry, render_mapping};
 use crate::visibility::PageVisibility;
 
 /// Bytes of one decompressed brick as the loader holds it (u16 samples).
@@ -192,8 +191,8 @@ impl StreamingVolume {
     ) -> Result<Self, LoaderError> {
         tf.validate()?;
         let header = store.header();
-        let geometry = render_geometry(header)?;
-        let mapping = render_mapping(header);
+        let geometry = header.geometry.clone();
+        let mapping = header.value_mapping.mapping;
         let octree = OctreeRanges::from_store(&store);
         let root = BrickId::new(octree.root_level(), [0, 0, 0]);
         let tf_table = tf_table_for(tf, mapping, header.stored_range);

@@ -8,7 +8,7 @@ use std::path::Path;
 
 use anyhow::{Context, Result};
 use glam::{DMat3, DVec3};
-use strata_loader::{render_geometry, render_mapping, ResidentBricks};
+use strata_loader::ResidentBricks;
 use strata_render::reference::{render_reference, ReferenceOptions, ReferenceScene};
 use strata_render::smooth_transitions::{transition_masks, transition_node_fraction};
 use strata_render::{
@@ -61,8 +61,8 @@ pub(crate) fn open_input(input: &str, phantom_size: u64, tf: Option<&str>) -> Re
         (store, name, None)
     };
     let header = store.header().clone();
-    let geometry = render_geometry(&header)?;
-    let mapping = render_mapping(&header);
+    let geometry = header.geometry.clone();
+    let mapping = header.value_mapping.mapping;
     let tf = choose_transfer_function(tf, &header.modality)?;
     let (a, b) = (
         mapping.physical(header.stored_range[0] as f64),

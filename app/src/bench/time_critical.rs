@@ -16,7 +16,6 @@ use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 use strata_loader::store_volume::{load_uniform_cut, GpuCut};
-use strata_loader::{render_geometry, render_mapping};
 use strata_render::{
     Camera, ControllerConfig, FrameQuality, GpuContext, Projection, RenderSettings, Scene, Shading,
     TimeCriticalConfig, TimeCriticalController, TransferFunctionTable, ValueMapping,
@@ -158,8 +157,8 @@ pub fn run(options: Options) -> Result<()> {
     let store = Store::open(&options.store)
         .with_context(|| format!("cannot open store {}", options.store.display()))?;
     let header = store.header().clone();
-    let geometry = render_geometry(&header)?;
-    let mapping = render_mapping(&header);
+    let geometry = header.geometry.clone();
+    let mapping = header.value_mapping.mapping;
     let tf = choose_transfer_function(options.tf.as_deref(), &header.modality)?;
     let physical = (
         mapping.physical(header.stored_range[0] as f64),

@@ -17,9 +17,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 
-use strata_loader::{
-    render_geometry, render_mapping, BrickReader, FrameStats, StreamingConfig, StreamingVolume,
-};
+use strata_loader::{BrickReader, FrameStats, StreamingConfig, StreamingVolume};
 use strata_render::{
     Camera, GpuContext, RenderSettings, TimeCriticalConfig, TimeCriticalController,
     TransferFunction, ValueMapping, VolumeGeometry,
@@ -97,8 +95,8 @@ pub struct VolumeInfo {
 impl VolumeInfo {
     pub fn of(store: &Store) -> anyhow::Result<Self> {
         let header = store.header().clone();
-        let geometry = render_geometry(&header)?;
-        let mapping = render_mapping(&header);
+        let geometry = header.geometry.clone();
+        let mapping = header.value_mapping.mapping;
         let a = mapping.physical(header.stored_range[0] as f64);
         let b = mapping.physical(header.stored_range[1] as f64);
         Ok(VolumeInfo {

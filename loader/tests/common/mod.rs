@@ -7,9 +7,7 @@ use std::sync::Arc;
 
 use strata_loader::store_volume::{classify_empty, page_table_for_cut, GpuCut};
 use strata_loader::streaming::tf_table_for;
-use strata_loader::{
-    render_geometry, render_mapping, FrameStats, ResidentBricks, StreamingConfig, StreamingVolume,
-};
+use strata_loader::{FrameStats, ResidentBricks, StreamingConfig, StreamingVolume};
 use strata_render::{Camera, GpuContext, Projection, RenderMode, RenderSettings, TransferFunction};
 use strata_storage::import::ImportOptions;
 use strata_storage::phantom::Phantom;
@@ -45,7 +43,7 @@ pub fn settings(size: u32) -> RenderSettings {
 }
 
 pub fn orbit(store: &Store, azimuth: f64, elevation: f64, zoom: f64) -> Camera {
-    let geometry = render_geometry(store.header()).expect("geometry");
+    let geometry = store.header().geometry.clone();
     Camera::orbit(
         &geometry,
         azimuth,
@@ -118,8 +116,8 @@ pub fn up_front(
     settings: &RenderSettings,
 ) -> Vec<u8> {
     let header = store.header();
-    let geometry = render_geometry(header).expect("geometry");
-    let mapping = render_mapping(header);
+    let geometry = header.geometry.clone();
+    let mapping = header.value_mapping.mapping;
     let table_tf = tf_table_for(tf, mapping, header.stored_range);
     let mut table = page_table_for_cut(store, &geometry, |_| level);
     classify_empty(store, &mut table, mapping, &table_tf);
