@@ -201,8 +201,17 @@ impl RawVolume {
 
     /// Tells the kernel slice `k`'s pages may be dropped from this process. Page cache keeps
     /// them; only our resident set shrinks, so a 2 GiB input does not count 2 GiB against the
-    /// import's memory budget.
+    /// import's memory budget. Unix only (madvise); elsewhere the OS trims the mapping's pages
+    /// under memory pressure by itself, and the resident set may show the whole input.
     pub fn release_slice(&self, k: u64) {
+        #[cfg(not(unix))]
+        let _ = k;
+        #[cfg(unix)]
+        self.advise_dont_need(k);
+    }
+
+    #[cfg(unix)]
+    fn advise_dont_need(&self, k: u64) {
         const PAGE: usize = 4096;
         let len = self.slice_bytes_len();
         let start = self.offset + k as usize * len;
