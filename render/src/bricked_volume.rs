@@ -6,14 +6,13 @@ use std::collections::HashMap;
 
 use crate::cache::BrickCache;
 use crate::error::RenderError;
-use crate::page_table::{PageEntry, PageTable, MAX_SLOTS};
-use crate::{BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD, BRICK_PAYLOAD_VOXELS};
+use crate::layout::{BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD, BRICK_PAYLOAD_VOXELS, MAX_SLOTS};
+use crate::page_table::{PageEntry, PageTable};
 use strata_types::{ValueMapping, VolumeGeometry};
 
-/// Where the reference renderer (and uploads) get node payloads: 36³ u16, x fastest.
-pub trait BrickSource: Sync {
-    fn brick(&self, level: u8, node: [u32; 3]) -> Option<&[u16]>;
-}
+/// Defined in layout.rs (the seam every CPU-side reader uses); kept here so existing paths
+/// resolve.
+pub use crate::layout::BrickSource;
 
 pub use strata_types::{level_count, level_dims};
 

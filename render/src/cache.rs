@@ -9,7 +9,7 @@
 //! unchanged values (slope/intercept apply to the stored integer).
 
 use crate::error::RenderError;
-use crate::{BRICK_PAYLOAD, BRICK_PAYLOAD_VOXELS};
+use crate::layout::{BRICK_PAYLOAD, BRICK_PAYLOAD_VOXELS, MAX_SLOTS, MAX_SLOTS_PER_AXIS};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum CacheFormat {
@@ -121,14 +121,14 @@ impl BrickCache {
         if let Some(m) = config.max_slots {
             slots = slots.min(m as u64);
         }
-        slots = slots.min(crate::page_table::MAX_SLOTS as u64);
+        slots = slots.min(MAX_SLOTS as u64);
         if slots == 0 {
             return Err(RenderError::CacheTooSmall {
                 budget_bytes: config.budget_bytes,
             });
         }
-        let per_axis_max = (limits.max_texture_dimension_3d / BRICK_PAYLOAD)
-            .min(crate::page_table::MAX_SLOTS_PER_AXIS);
+        let per_axis_max =
+            (limits.max_texture_dimension_3d / BRICK_PAYLOAD).min(MAX_SLOTS_PER_AXIS);
         if per_axis_max == 0 {
             return Err(RenderError::CacheTooSmall {
                 budget_bytes: config.budget_bytes,

@@ -11,6 +11,7 @@ pub mod camera;
 pub mod device;
 pub mod error;
 pub mod gpu_timing;
+pub mod layout;
 pub mod metrics;
 pub mod offscreen;
 pub mod page_table;
@@ -23,12 +24,13 @@ pub mod smooth_transitions;
 pub mod time_critical;
 pub mod transfer_function;
 
-pub use bricked_volume::{BrickSource, BrickedVolume};
+pub use bricked_volume::BrickedVolume;
 pub use cache::{BrickCache, CacheConfig, CacheFormat};
 pub use camera::{Camera, Projection};
 pub use device::GpuContext;
 pub use error::RenderError;
 pub use gpu_timing::{FrameTiming, FrameTimingSource};
+pub use layout::BrickSource;
 pub use metrics::{compare_rgba8, ImageComparison};
 pub use offscreen::OffscreenRenderer;
 pub use page_table::{PageEntry, PageTable};
@@ -46,5 +48,5 @@ pub use time_critical::{
 };
 pub use transfer_function::{TransferFunction, TransferFunctionTable};
 
-/// The brick constants are the store's (one definition in strata-types).
-pub use strata_types::{BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD, BRICK_PAYLOAD_VOXELS};
+/// The brick constants are the store's (one definition in strata-types, through layout.rs).
+pub use layout::{BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD, BRICK_PAYLOAD_VOXELS};

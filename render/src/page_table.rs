@@ -9,17 +9,11 @@ use crate::error::RenderError;
 use crate::transfer_function::TransferFunctionTable;
 use strata_types::ValueMapping;
 
-/// GPU word layout: bits 0-7 / 8-15 / 16-23 the slot's x / y / z position in the cache's slot
-/// grid (the shader then needs no integer division), 24-28 level, bit 29 empty, bit 30 not
-/// resident, bit 31 has a coarser neighbour (smooth transitions). The CPU side speaks slot indices; the cache's grid converts.
-pub const MAX_SLOTS_PER_AXIS: u32 = 255;
-pub const MAX_SLOTS: u32 = MAX_SLOTS_PER_AXIS * MAX_SLOTS_PER_AXIS * MAX_SLOTS_PER_AXIS;
-pub const LEVEL_SHIFT: u32 = 24;
-pub const FLAG_EMPTY: u32 = 1 << 29;
-pub const FLAG_NOT_RESIDENT: u32 = 1 << 30;
-/// Set by [`crate::GpuPageTable::update`] where the node has a coarser neighbour: the shader
-/// reads the transition mask only for those entries (one gather less per page elsewhere).
-pub const FLAG_TRANSITION: u32 = 1 << 31;
+/// The page word's bits and the slot limits (moved to layout.rs; kept here so existing paths
+/// resolve).
+pub use crate::layout::{
+    FLAG_EMPTY, FLAG_NOT_RESIDENT, FLAG_TRANSITION, LEVEL_SHIFT, MAX_SLOTS, MAX_SLOTS_PER_AXIS,
+};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct PageEntry {

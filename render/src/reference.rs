@@ -7,14 +7,13 @@
 use glam::{DMat3, DVec3};
 use rayon::prelude::*;
 
-use crate::bricked_volume::BrickSource;
 use crate::camera::Camera;
 use crate::error::RenderError;
+use crate::layout::{BrickSource, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
 use crate::page_table::PageTable;
 use crate::settings::{RenderMode, RenderSettings, Shading};
 use crate::smooth_transitions::{sample_field, transition_masks, FieldSample};
 use crate::transfer_function::TransferFunction;
-use crate::{BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
 use strata_types::{ValueMapping, VolumeGeometry};
 
 /// Everything that defines the field and its optics, independent of any GPU object.
@@ -39,11 +38,8 @@ pub struct ReferenceImage {
     pub depth: Vec<f32>,
 }
 
-/// Gradient magnitudes below G0 (in TF-range fractions per finest voxel) count as flat and get
-/// unlit colour, above G1 fully lit, smooth in between: zero gradients cannot make NaNs, and
-/// f32 noise on a flat field cannot flicker the shading.
-pub const SHADING_FLAT_BELOW: f64 = 2e-4;
-pub const SHADING_LIT_ABOVE: f64 = 2e-3;
+/// The shading thresholds (defined once in layout.rs, shared with the shader's prelude).
+pub use crate::layout::{SHADING_FLAT_BELOW, SHADING_LIT_ABOVE};
 
 /// [t_start, t_end] of the ray inside the (cropped) volume box and the clip plane's half space.
 pub fn ray_interval(

@@ -40,27 +40,12 @@
 
 use glam::DVec3;
 
-use crate::bricked_volume::BrickSource;
+use crate::layout::{BrickSource, BRICK_CORE};
 use crate::page_table::PageTable;
 use crate::reference::{gradient_index, locate, locate_in_page, trilinear, FieldLocation};
-use crate::BRICK_CORE;
 
-/// Bit of neighbour offset `o` ∈ {−1, 0, 1}³ in a transition mask: `(x+1) + 3(y+1) + 9(z+1)`.
-/// Bit 13 (the node itself) is never set.
-pub fn neighbour_bit(o: [i32; 3]) -> u32 {
-    ((o[0] + 1) + 3 * (o[1] + 1) + 9 * (o[2] + 1)) as u32
-}
-
-/// The offset of mask bit `bit` (inverse of [`neighbour_bit`]).
-pub fn neighbour_offset(bit: u32) -> [i32; 3] {
-    let b = bit as i32;
-    [b % 3 - 1, (b / 3) % 3 - 1, b / 9 - 1]
-}
-
-/// All 26 neighbour offsets (faces, edges, corners).
-pub fn neighbour_offsets() -> impl Iterator<Item = [i32; 3]> {
-    (0..27).filter(|&b| b != 13).map(neighbour_offset)
-}
+/// The mask's bit layout (layout.rs: the shader reads the same bits).
+pub use crate::layout::{neighbour_bit, neighbour_offset, neighbour_offsets};
 
 /// Per page entry, the 26-neighbour mask of the node covering it: bit set where the region
 /// adjacent to the node across that face, edge or corner contains a resident page of a coarser

@@ -1,0 +1,53 @@
+//! The numbers everything else is laid out by, and the seam bricks come in through. Nothing
+//! here depends on another module of the crate.
+//!
+//! - Brick sizes: the store's, from strata-types (32³ core, 2-voxel apron, 36³ payload).
+//! - The GPU page word (page_table.rs, GpuPageTable): slot grid position, level, flags.
+//! - The 26-neighbour mask bit of a face/edge/corner offset (smooth_transitions.rs).
+//! - Shading thresholds shared by the reference and the shader.
+//! - [`BrickSource`]: where the CPU side reads node payloads.
+//!
+//! Every constant the shader uses is written into its prelude from here (shaders.rs), so the
+//! WGSL cannot drift from these definitions.
+
+pub use strata_types::{BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD, BRICK_PAYLOAD_VOXELS};
+
+/// GPU word layout: bits 0-7 / 8-15 / 16-23 the slot's x / y / z position in the cache's slot
+/// grid (the shader then needs no integer division), 24-28 level, bit 29 empty, bit 30 not
+/// resident, bit 31 has a coarser neighbour (smooth transitions). The CPU side speaks slot indices; the cache's grid converts.
+pub const MAX_SLOTS_PER_AXIS: u32 = 255;
+pub const MAX_SLOTS: u32 = MAX_SLOTS_PER_AXIS * MAX_SLOTS_PER_AXIS * MAX_SLOTS_PER_AXIS;
+pub const LEVEL_SHIFT: u32 = 24;
+pub const FLAG_EMPTY: u32 = 1 << 29;
+pub const FLAG_NOT_RESIDENT: u32 = 1 << 30;
+/// Set by [`crate::GpuPageTable::update`] where the node has a coarser neighbour: the shader
+/// reads the transition mask only for those entries (one gather less per page elsewhere).
+pub const FLAG_TRANSITION: u32 = 1 << 31;
+
+/// Bit of neighbour offset `o` ∈ {−1, 0, 1}³ in a transition mask: `(x+1) + 3(y+1) + 9(z+1)`.
+/// Bit 13 (the node itself) is never set.
+pub fn neighbour_bit(o: [i32; 3]) -> u32 {
+    ((o[0] + 1) + 3 * (o[1] + 1) + 9 * (o[2] + 1)) as u32
+}
+
+/// The offset of mask bit `bit` (inverse of [`neighbour_bit`]).
+pub fn neighbour_offset(bit: u32) -> [i32; 3] {
+    let b = bit as i32;
+    [b % 3 - 1, (b / 3) % 3 - 1, b / 9 - 1]
+}
+
+/// All 26 neighbour offsets (faces, edges, corners).
+pub fn neighbour_offsets() -> impl Iterator<Item = [i32; 3]> {
+    (0..27).filter(|&b| b != 13).map(neighbour_offset)
+}
+
+/// Gradient magnitudes below G0 (in TF-range fractions per finest voxel) count as flat and get
+/// unlit colour, above G1 fully lit, smooth in between: zero gradients cannot make NaNs, and
+/// f32 noise on a flat field cannot flicker the shading.
+pub const SHADING_FLAT_BELOW: f64 = 2e-4;
+pub const SHADING_LIT_ABOVE: f64 = 2e-3;
+
+/// Where the reference renderer (and uploads) get node payloads: 36³ u16, x fastest.
+pub trait BrickSource: Sync {
+    fn brick(&self, level: u8, node: [u32; 3]) -> Option<&[u16]>;
+}
