@@ -9,6 +9,7 @@ use crate::error::RenderError;
 use crate::transfer_function::TransferFunctionTable;
 use strata_types::ValueMapping;
 
+use crate::layout::{neighbour_bit, neighbour_offsets};
 /// The page word's bits and the slot limits (moved to layout.rs; kept here so existing paths
 /// resolve).
 pub use crate::layout::{
@@ -163,12 +164,7 @@ impl PageTable {
                 }
                 let node = Self::node_of(self.page_of_linear(i), e.level);
                 *hulls.entry((e.level, node)).or_insert_with(|| {
-                    let (_, coarser) = crate::smooth_transitions::coarser_neighbours(
-                        self,
-                        self.page_dims,
-                        e.level,
-                        node,
-                    );
+                    let (_, coarser) = coarser_neighbours(self, self.page_dims, e.level, node);
                     let mut hull = range(e.level, node)?;
                     for (level, n) in coarser {
                         let (lo, hi) = range(level, n)?;
@@ -262,6 +258,56 @@ impl PageTable {
             };
         }
     }
+}
+
+/// The 26-neighbour mask of the level-`level` node `node` and the distinct coarser nodes
+/// (level, node) it touches by a face, an edge or a corner: the nodes whose field its
+/// transition bands blend in.
+pub fn coarser_neighbours(
+    table: &PageTable,
+    dims: [u32; 3],
+    level: u8,
+    node: [u32; 3],
+) -> (u32, Vec<(u8, [u32; 3])>) {
+    let side = 1i64 << level;
+    let mut mask = 0;
+    let mut nodes = Vec::new();
+    for o in neighbour_offsets() {
+        // Page range of the adjacent region along each axis, clipped to the grid.
+        let mut lo = [0i64; 3];
+        let mut hi = [0i64; 3];
+        let mut outside = false;
+        for a in 0..3 {
+            let first = node[a] as i64 * side;
+            let (l, h) = match o[a] {
+                -1 => (first - 1, first - 1),
+                1 => (first + side, first + side),
+                _ => (first, first + side - 1),
+            };
+            lo[a] = l.max(0);
+            hi[a] = h.min(dims[a] as i64 - 1);
+            outside |= lo[a] > hi[a];
+        }
+        if outside {
+            continue;
+        }
+        for z in lo[2]..=hi[2] {
+            for y in lo[1]..=hi[1] {
+                for x in lo[0]..=hi[0] {
+                    let page = [x as u32, y as u32, z as u32];
+                    let e = table.get(page);
+                    if e.resident && e.level > level {
+                        mask |= 1 << neighbour_bit(o);
+                        let key = (e.level, PageTable::node_of(page, e.level));
+                        if !nodes.contains(&key) {
+                            nodes.push(key);
+                        }
+                    }
+                }
+            }
+        }
+    }
+    (mask, nodes)
 }
 
 #[cfg(test)]

@@ -46,6 +46,8 @@ use crate::reference::{gradient_index, locate, locate_in_page, trilinear, FieldL
 
 /// The mask's bit layout (layout.rs: the shader reads the same bits).
 pub use crate::layout::{neighbour_bit, neighbour_offset, neighbour_offsets};
+/// The coarser-neighbour query is topology (page_table.rs); kept here so existing paths resolve.
+pub use crate::page_table::coarser_neighbours;
 
 /// Per page entry, the 26-neighbour mask of the node covering it: bit set where the region
 /// adjacent to the node across that face, edge or corner contains a resident page of a coarser
@@ -67,56 +69,6 @@ pub fn transition_masks(table: &PageTable) -> Vec<u32> {
             .or_insert_with(|| coarser_neighbours(table, dims, level, node).0);
     }
     masks
-}
-
-/// The 26-neighbour mask of the level-`level` node `node` and the distinct coarser nodes
-/// (level, node) it touches by a face, an edge or a corner: the nodes whose field its
-/// transition bands blend in.
-pub fn coarser_neighbours(
-    table: &PageTable,
-    dims: [u32; 3],
-    level: u8,
-    node: [u32; 3],
-) -> (u32, Vec<(u8, [u32; 3])>) {
-    let side = 1i64 << level;
-    let mut mask = 0;
-    let mut nodes = Vec::new();
-    for o in neighbour_offsets() {
-        // Page range of the adjacent region along each axis, clipped to the grid.
-        let mut lo = [0i64; 3];
-        let mut hi = [0i64; 3];
-        let mut outside = false;
-        for a in 0..3 {
-            let first = node[a] as i64 * side;
-            let (l, h) = match o[a] {
-                -1 => (first - 1, first - 1),
-                1 => (first + side, first + side),
-                _ => (first, first + side - 1),
-            };
-            lo[a] = l.max(0);
-            hi[a] = h.min(dims[a] as i64 - 1);
-            outside |= lo[a] > hi[a];
-        }
-        if outside {
-            continue;
-        }
-        for z in lo[2]..=hi[2] {
-            for y in lo[1]..=hi[1] {
-                for x in lo[0]..=hi[0] {
-                    let page = [x as u32, y as u32, z as u32];
-                    let e = table.get(page);
-                    if e.resident && e.level > level {
-                        mask |= 1 << neighbour_bit(o);
-                        let key = (e.level, PageTable::node_of(page, e.level));
-                        if !nodes.contains(&key) {
-                            nodes.push(key);
-                        }
-                    }
-                }
-            }
-        }
-    }
-    (mask, nodes)
 }
 
 /// For each side code `s` ∈ {−1, 0, 1}³ (per axis: within half a voxel of the low face, of
