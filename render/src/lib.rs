@@ -10,6 +10,7 @@ pub mod cache;
 pub mod camera;
 pub mod device;
 pub mod error;
+pub mod field;
 pub mod gpu_timing;
 pub mod layout;
 pub mod metrics;

@@ -1,5 +1,5 @@
-//! The f64 CPU reference: ground truth for every image test. It integrates the trilinear field
-//! defined by the same page table and bricks the GPU sees (so mixed-level cuts match), with the
+//! The f64 CPU reference: ground truth for every image test. It integrates the field of
+//! field.rs over the same page table and bricks the GPU sees (so mixed-level cuts match), with the
 //! same camera, transfer function, compositing and opacity correction, but with a much smaller
 //! step, no jitter, and without trusting the empty flags (it samples everything resident).
 //! Written to be obviously correct, not fast.
@@ -9,10 +9,11 @@ use rayon::prelude::*;
 
 use crate::camera::Camera;
 use crate::error::RenderError;
-use crate::layout::{BrickSource, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
+use crate::field::{sample_field, FieldSample};
+use crate::layout::BrickSource;
 use crate::page_table::PageTable;
 use crate::settings::{RenderMode, RenderSettings, Shading};
-use crate::smooth_transitions::{sample_field, transition_masks, FieldSample};
+use crate::smooth_transitions::transition_masks;
 use crate::transfer_function::TransferFunction;
 use strata_types::{ValueMapping, VolumeGeometry};
 
@@ -38,6 +39,8 @@ pub struct ReferenceImage {
     pub depth: Vec<f32>,
 }
 
+/// The field's pieces live in field.rs; kept here so existing paths resolve.
+pub use crate::field::{gradient_index, locate, locate_in_page, trilinear, FieldLocation};
 /// The shading thresholds (defined once in layout.rs, shared with the shader's prelude).
 pub use crate::layout::{SHADING_FLAT_BELOW, SHADING_LIT_ABOVE};
 
@@ -83,106 +86,6 @@ pub fn ray_interval(
         }
     }
     (t1 > t0).then_some((t0, t1))
-}
-
-/// Where a level-0 continuous index lands: the page entry and position inside its node payload.
-pub struct FieldLocation<'b> {
-    pub page_linear: usize,
-    pub level: u8,
-    pub brick: &'b [u16],
-    /// Payload-local continuous coordinates (voxel centres at integers).
-    pub local: DVec3,
-}
-
-pub fn locate<'b, S: BrickSource>(
-    source: &'b S,
-    table: &PageTable,
-    dims: [u32; 3],
-    p: DVec3,
-) -> Option<FieldLocation<'b>> {
-    let mut page = [0u32; 3];
-    let mut pc = DVec3::ZERO;
-    for a in 0..3 {
-        pc[a] = p[a].clamp(-0.5, dims[a] as f64 - 0.5);
-        let cell = ((pc[a] + 0.5) / BRICK_CORE as f64).floor() as i64;
-        page[a] = cell.clamp(0, table.page_dims[a] as i64 - 1) as u32;
-    }
-    locate_in_page(source, table, page, pc)
-}
-
-/// Position `pc` (level-0 index, inside the volume) in the payload of the node serving
-/// `page`; `pc` may lie outside the page, within the node's apron.
-pub fn locate_in_page<'b, S: BrickSource>(
-    source: &'b S,
-    table: &PageTable,
-    page: [u32; 3],
-    pc: DVec3,
-) -> Option<FieldLocation<'b>> {
-    let page_linear = table.linear(page);
-    let entry = table.entries[page_linear];
-    if !entry.resident {
-        return None;
-    }
-    let level = entry.level;
-    let node = PageTable::node_of(page, level);
-    let brick = source.brick(level, node)?;
-    let scale = (1u64 << level) as f64;
-    let mut local = DVec3::ZERO;
-    for a in 0..3 {
-        let q = (pc[a] + 0.5) / scale - 0.5;
-        local[a] = q - (node[a] as f64 * BRICK_CORE as f64 - BRICK_APRON as f64);
-    }
-    Some(FieldLocation {
-        page_linear,
-        level,
-        brick,
-        local,
-    })
-}
-
-/// Trilinear over a 36³ payload in stored units.
-pub fn trilinear(brick: &[u16], local: DVec3) -> f64 {
-    let max = (BRICK_PAYLOAD - 1) as f64;
-    let p = local.clamp(DVec3::ZERO, DVec3::splat(max));
-    let i0 = p.floor();
-    let f = p - i0;
-    let n = BRICK_PAYLOAD as usize;
-    let idx = |x: f64, y: f64, z: f64| {
-        let (x, y, z) = (
-            (x as usize).min(n - 1),
-            (y as usize).min(n - 1),
-            (z as usize).min(n - 1),
-        );
-        brick[x + n * (y + n * z)] as f64
-    };
-    let mut acc = 0.0;
-    for dz in 0..2 {
-        for dy in 0..2 {
-            for dx in 0..2 {
-                let w = (if dx == 1 { f.x } else { 1.0 - f.x })
-                    * (if dy == 1 { f.y } else { 1.0 - f.y })
-                    * (if dz == 1 { f.z } else { 1.0 - f.z });
-                if w != 0.0 {
-                    acc += w * idx(i0.x + dx as f64, i0.y + dy as f64, i0.z + dz as f64);
-                }
-            }
-        }
-    }
-    acc
-}
-
-/// Central-difference gradient in the node (the apron supplies the neighbours), in stored
-/// units per level-0 index step.
-pub fn gradient_index(loc: &FieldLocation) -> DVec3 {
-    let h = (1u64 << loc.level) as f64;
-    let mut g = DVec3::ZERO;
-    for a in 0..3 {
-        let mut e = DVec3::ZERO;
-        e[a] = 1.0;
-        g[a] =
-            (trilinear(loc.brick, loc.local + e) - trilinear(loc.brick, loc.local - e)) / (2.0 * h);
-    }
-    g
 }
 
 /// Blinn-Phong with a headlight. `gradient_patient` in physical units per mm.

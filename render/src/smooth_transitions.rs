@@ -35,15 +35,20 @@
 //! and apron voxels are always the stored ones.
 //!
 //! Shading uses the same blend of the two fields' central-difference gradients, so normals are
-//! continuous across level boundaries too. The shader (`transition_blend` in raycast.wgsl) and
-//! the reference ([`sample_field`]) implement the same definition.
+//! continuous across level boundaries too. The blend is part of the field's one definition
+//! ([`sample_field`] in field.rs; its WGSL twin is `transition_blend`).
+//!
+//! # What this module holds
+//! The masks: per page entry the 26-neighbour mask of coarser neighbours
+//! ([`transition_masks`], bit layout [`neighbour_bit`] from layout.rs), its near-side closure
+//! ([`near_side_closure`], which lets the shader test one bit per sample), and the share of
+//! transition nodes ([`transition_node_fraction`]). `GpuPageTable::update` writes the first
+//! two to binding 11.
 
-use glam::DVec3;
-
-use crate::layout::{BrickSource, BRICK_CORE};
 use crate::page_table::PageTable;
-use crate::reference::{gradient_index, locate, locate_in_page, trilinear, FieldLocation};
 
+/// The blend itself is part of the field (field.rs); kept here so existing paths resolve.
+pub use crate::field::{band_weight, distance_to_neighbour, sample_field, FieldSample};
 /// The mask's bit layout (layout.rs: the shader reads the same bits).
 pub use crate::layout::{neighbour_bit, neighbour_offset, neighbour_offsets};
 /// The coarser-neighbour query is topology (page_table.rs); kept here so existing paths resolve.
@@ -121,125 +126,6 @@ pub fn transition_node_fraction(table: &PageTable, masks: &[u32]) -> f64 {
     }
 }
 
-/// Blend weight from the L∞ distance to the nearest coarser neighbour, in the node's voxels:
-/// 1 on the shared face, 0 from half a voxel inward.
-pub fn band_weight(distance_voxels: f64) -> f64 {
-    (1.0 - 2.0 * distance_voxels).clamp(0.0, 1.0)
-}
-
-/// Distance (node voxels) from `p` (level-0 index) to the region across neighbour offset `o`
-/// of the level-`level` node `node`: the largest of the distances to the faces `o` points at.
-pub fn distance_to_neighbour(p: DVec3, level: u8, node: [u32; 3], o: [i32; 3]) -> f64 {
-    let scale = (1u64 << level) as f64;
-    let core = BRICK_CORE as f64;
-    let mut d = f64::NEG_INFINITY;
-    for a in 0..3 {
-        let q = (p[a] + 0.5) / scale - 0.5;
-        let lo = node[a] as f64 * core - 0.5;
-        match o[a] {
-            -1 => d = d.max(q - lo),
-            1 => d = d.max(lo + core - q),
-            _ => {}
-        }
-    }
-    d
-}
-
-/// One sample of the (optionally smoothed) field.
-pub struct FieldSample<'b> {
-    /// Stored units (not physical).
-    pub value: f64,
-    pub location: FieldLocation<'b>,
-    /// The coarser neighbour blended in and its weight, when inside a transition band.
-    pub coarse: Option<(FieldLocation<'b>, f64)>,
-}
-
-impl FieldSample<'_> {
-    /// Gradient in stored units per level-0 index step, blended like the value.
-    pub fn gradient_index(&self) -> DVec3 {
-        let fine = gradient_index(&self.location);
-        match &self.coarse {
-            Some((c, w)) => fine * (1.0 - w) + gradient_index(c) * *w,
-            None => fine,
-        }
-    }
-}
-
-/// The field at level-0 index `p`: the covering node's trilinear value, blended with its nearest
-/// coarser neighbour inside the half-voxel band when `masks` (from [`transition_masks`]) is given.
-/// None where nothing is resident.
-pub fn sample_field<'b, S: BrickSource>(
-    source: &'b S,
-    table: &PageTable,
-    masks: Option<&[u32]>,
-    dims: [u32; 3],
-    p: DVec3,
-) -> Option<FieldSample<'b>> {
-    let location = locate(source, table, dims, p)?;
-    let fine = trilinear(location.brick, location.local);
-    let mask = masks.map_or(0, |m| m[location.page_linear]);
-    let coarse = if mask != 0 {
-        nearest_coarser(source, table, dims, p, &location, mask)
-    } else {
-        None
-    };
-    let value = match &coarse {
-        Some((c, w)) => fine * (1.0 - w) + trilinear(c.brick, c.local) * w,
-        None => fine,
-    };
-    Some(FieldSample {
-        value,
-        location,
-        coarse,
-    })
-}
-
-fn nearest_coarser<'b, S: BrickSource>(
-    source: &'b S,
-    table: &PageTable,
-    dims: [u32; 3],
-    p: DVec3,
-    location: &FieldLocation<'b>,
-    mask: u32,
-) -> Option<(FieldLocation<'b>, f64)> {
-    let pc = DVec3::new(
-        p.x.clamp(-0.5, dims[0] as f64 - 0.5),
-        p.y.clamp(-0.5, dims[1] as f64 - 0.5),
-        p.z.clamp(-0.5, dims[2] as f64 - 0.5),
-    );
-    let page = table.page_of_linear(location.page_linear);
-    let node = PageTable::node_of(page, location.level);
-    let mut best: Option<(f64, [u32; 3])> = None;
-    for bit in (0..27).filter(|b| mask & (1 << b) != 0) {
-        let o = neighbour_offset(bit);
-        let d = distance_to_neighbour(pc, location.level, node, o);
-        if d >= 0.5 || best.is_some_and(|(bd, _)| d >= bd) {
-            continue;
-        }
-        let mut neighbour = [0u32; 3];
-        let mut inside = true;
-        for a in 0..3 {
-            let n = page[a] as i64 + o[a] as i64;
-            inside &= n >= 0 && n < table.page_dims[a] as i64;
-            neighbour[a] = n.max(0) as u32;
-        }
-        if !inside {
-            continue;
-        }
-        let e = table.get(neighbour);
-        if e.resident && e.level > location.level {
-            best = Some((d, neighbour));
-        }
-    }
-    let (d, neighbour) = best?;
-    let w = band_weight(d);
-    if w <= 0.0 {
-        return None;
-    }
-    let coarse = locate_in_page(source, table, neighbour, pc)?;
-    Some((coarse, w))
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -308,23 +194,5 @@ mod tests {
             );
         }
         assert_eq!(near_side_closure(0), 0);
-    }
-
-    #[test]
-    fn band_weight_is_one_on_the_face_and_zero_half_a_voxel_in() {
-        assert_eq!(band_weight(0.0), 1.0);
-        assert_eq!(band_weight(0.25), 0.5);
-        assert_eq!(band_weight(0.5), 0.0);
-        assert_eq!(band_weight(3.0), 0.0);
-        assert_eq!(band_weight(-0.1), 1.0);
-        // Node 1 at level 0 spans level-0 indices [31.5, 63.5); its +x face is at 63.5.
-        let d = distance_to_neighbour(DVec3::new(63.25, 40.0, 40.0), 0, [1, 1, 1], [1, 0, 0]);
-        assert!((d - 0.25).abs() < 1e-12);
-        // An edge neighbour is as far as the farther of its two faces.
-        let d = distance_to_neighbour(DVec3::new(63.25, 63.0, 40.0), 0, [1, 1, 1], [1, 1, 0]);
-        assert!((d - 0.5).abs() < 1e-12);
-        // Level 1: voxels are two level-0 indices wide.
-        let d = distance_to_neighbour(DVec3::new(-0.5 + 0.5, 10.0, 10.0), 1, [0, 0, 0], [-1, 0, 0]);
-        assert!((d - 0.25).abs() < 1e-12);
     }
 }
