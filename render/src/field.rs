@@ -167,8 +167,8 @@ impl FieldSample<'_> {
 }
 
 /// The field at level-0 index `p`: the covering node's trilinear value, blended with its nearest
-/// coarser neighbour inside the half-voxel band when `masks` (`smooth_transitions::transition_masks`) is given.
-/// None where nothing is resident.
+/// coarser neighbour inside the half-voxel band when `masks` (from
+/// `smooth_transitions::transition_masks`) is given. None where nothing is resident.
 pub fn sample_field<'b, S: BrickSource>(
     source: &'b S,
     table: &PageTable,

@@ -11,7 +11,9 @@ pub mod camera;
 pub mod device;
 pub mod error;
 pub mod field;
+pub mod gpu_page_table;
 pub mod gpu_timing;
+pub mod gpu_transfer_function;
 pub mod layout;
 pub mod metrics;
 pub mod offscreen;
@@ -30,16 +32,15 @@ pub use cache::{BrickCache, CacheConfig, CacheFormat};
 pub use camera::{Camera, Projection};
 pub use device::GpuContext;
 pub use error::RenderError;
+pub use gpu_page_table::GpuPageTable;
 pub use gpu_timing::{FrameTiming, FrameTimingSource};
+pub use gpu_transfer_function::GpuTransferFunction;
 pub use layout::BrickSource;
 pub use metrics::{compare_rgba8, ImageComparison};
 pub use offscreen::OffscreenRenderer;
 pub use page_table::{PageEntry, PageTable};
 pub use preintegration::PreintegrationTable;
-pub use raycast::{
-    FrameReadback, GpuPageTable, GpuTransferFunction, PipelineKey, Raycaster, Scene,
-    VisibilityFrame,
-};
+pub use raycast::{FrameReadback, PipelineKey, Raycaster, Scene, VisibilityFrame};
 pub use reference::{render_reference, ReferenceImage, ReferenceOptions, ReferenceScene};
 pub use settings::{ClipPlane, CropBox, RenderMode, RenderSettings, Shading};
 pub use strata_types::{ValueMapping, VolumeGeometry};

@@ -6,8 +6,10 @@ use crate::cache::{BrickCache, CacheConfig};
 use crate::camera::Camera;
 use crate::device::GpuContext;
 use crate::error::RenderError;
+use crate::gpu_page_table::GpuPageTable;
+use crate::gpu_transfer_function::GpuTransferFunction;
 use crate::page_table::PageTable;
-use crate::raycast::{FrameReadback, GpuPageTable, GpuTransferFunction, Raycaster, Scene};
+use crate::raycast::{FrameReadback, Raycaster, Scene};
 use crate::settings::{RenderMode, RenderSettings};
 use crate::transfer_function::TransferFunction;
 

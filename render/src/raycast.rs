@@ -12,240 +12,18 @@ use crate::camera::Camera;
 use crate::device::GpuContext;
 use crate::error::RenderError;
 use crate::gpu_timing::{FrameTiming, FrameTimingSource, PassTimestamps};
-use crate::page_table::PageTable;
 use crate::settings::{RenderMode, RenderSettings};
-use crate::transfer_function::TransferFunctionTable;
+use crate::transfer_function::TransferFunction;
 use strata_types::{ValueMapping, VolumeGeometry};
+
+/// The GPU resources a [`Scene`] points at (own modules; kept here so existing paths resolve).
+pub use crate::gpu_page_table::GpuPageTable;
+pub use crate::gpu_transfer_function::GpuTransferFunction;
 
 const SHADER: &str = include_str!("shaders/raycast.wgsl");
 const WORKGROUP: u32 = 8;
 /// Visibility staging ring: the loader reads a frame one or two frames late without stalling.
 const VISIBILITY_RING: usize = 3;
-
-/// The page table on the GPU: a storage buffer of encoded entries (see page_table.rs).
-pub struct GpuPageTable {
-    pub buffer: wgpu::Buffer,
-    /// Per entry, the physical value bound MIP rays use to skip it (+inf: never skip);
-    /// see [`PageTable::value_max_physical`].
-    pub value_max: wgpu::Buffer,
-    pub page_dims: [u32; 3],
-    /// Slot grid of the cache the entries point into (entries store slot grid positions).
-    pub slots_per_axis: [u32; 3],
-    /// Per entry, the covering node's 26-neighbour mask of coarser neighbours and its
-    /// near-side closure (smooth_transitions.rs), written by [`GpuPageTable::update`].
-    pub transitions: wgpu::Buffer,
-    /// Share of resident nodes with a coarser neighbour in the last table written; 0 means
-    /// frames need no transition code at all.
-    transition_fraction: std::sync::Mutex<f64>,
-}
-
-impl GpuPageTable {
-    /// Fails if the table would exceed the device's storage-buffer binding limit.
-    pub fn new(
-        device: &wgpu::Device,
-        page_dims: [u32; 3],
-        cache: &BrickCache,
-    ) -> Result<Self, RenderError> {
-        let n: u64 = page_dims.iter().map(|&d| d.max(1) as u64).product();
-        let limit = device.limits().max_storage_buffer_binding_size;
-        if n * 8 > limit {
-            return Err(RenderError::PageTableMismatch(format!(
-                "{n} page entries exceed the device's storage buffer limit of {limit} bytes"
-            )));
-        }
-        let buffer = device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("page table"),
-            size: n * 4,
-            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
-        // Starts at +inf so a caller that never writes bounds gets correct, unskipped MIP.
-        let value_max = wgpu::util::DeviceExt::create_buffer_init(
-            device,
-            &wgpu::util::BufferInitDescriptor {
-                label: Some("page value max"),
-                contents: bytemuck::cast_slice(&vec![f32::INFINITY; n as usize]),
-                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
-            },
-        );
-        let transitions = device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("page transitions"),
-            size: n * 8,
-            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
-        Ok(GpuPageTable {
-            buffer,
-            value_max,
-            page_dims,
-            slots_per_axis: cache.slots_per_axis,
-            transitions,
-            transition_fraction: std::sync::Mutex::new(0.0),
-        })
-    }
-
-    pub fn entry_count(&self) -> usize {
-        self.page_dims.iter().map(|&d| d as usize).product()
-    }
-
-    /// Writes `entries` starting at linear index `first` (x fastest, then y, z): for loaders
-    /// that change a few entries per frame. Takes effect for the next submitted frame. The
-    /// transition masks are not touched: a change of levels needs [`GpuPageTable::update`].
-    pub fn write_entries(
-        &self,
-        queue: &wgpu::Queue,
-        first: usize,
-        entries: &[crate::PageEntry],
-    ) -> Result<(), RenderError> {
-        let slots: u32 = self.slots_per_axis.iter().product();
-        if first + entries.len() > self.entry_count() {
-            return Err(RenderError::PageTableMismatch(format!(
-                "entries {first}..{} beyond {} page entries",
-                first + entries.len(),
-                self.entry_count()
-            )));
-        }
-        if let Some(bad) = entries
-            .iter()
-            .find(|e| e.resident && e.slot_in_cache >= slots)
-        {
-            return Err(RenderError::SlotOutOfRange {
-                slot: bad.slot_in_cache,
-                slots,
-            });
-        }
-        let words: Vec<u32> = entries
-            .iter()
-            .map(|e| e.encode(self.slots_per_axis))
-            .collect();
-        queue.write_buffer(&self.buffer, first as u64 * 4, bytemuck::cast_slice(&words));
-        Ok(())
-    }
-
-    /// Writes the per-entry MIP bounds (from [`PageTable::value_max_physical`]); takes
-    /// effect for the next submitted frame.
-    pub fn update_value_max(&self, queue: &wgpu::Queue, bounds: &[f32]) -> Result<(), RenderError> {
-        if bounds.len() != self.entry_count() {
-            return Err(RenderError::PageTableMismatch(format!(
-                "{} value bounds for {} page entries",
-                bounds.len(),
-                self.entry_count()
-            )));
-        }
-        queue.write_buffer(&self.value_max, 0, bytemuck::cast_slice(bounds));
-        Ok(())
-    }
-
-    /// Writes the whole table; takes effect for the next submitted frame.
-    pub fn update(&self, queue: &wgpu::Queue, table: &PageTable) -> Result<(), RenderError> {
-        table.check_against(self.page_dims)?;
-        let slots: u32 = self.slots_per_axis.iter().product();
-        if let Some(bad) = table
-            .entries
-            .iter()
-            .find(|e| e.resident && e.slot_in_cache >= slots)
-        {
-            return Err(RenderError::SlotOutOfRange {
-                slot: bad.slot_in_cache,
-                slots,
-            });
-        }
-        let masks = crate::smooth_transitions::transition_masks(table);
-        let mut words = table.encoded(self.slots_per_axis);
-        for (word, mask) in words.iter_mut().zip(&masks) {
-            if *mask != 0 {
-                *word |= crate::page_table::FLAG_TRANSITION;
-            }
-        }
-        queue.write_buffer(&self.buffer, 0, bytemuck::cast_slice(&words));
-        let transitions: Vec<[u32; 2]> = masks
-            .iter()
-            .map(|&m| [m, crate::smooth_transitions::near_side_closure(m)])
-            .collect();
-        queue.write_buffer(&self.transitions, 0, bytemuck::cast_slice(&transitions));
-        let fraction = crate::smooth_transitions::transition_node_fraction(table, &masks);
-        if let Ok(mut f) = self.transition_fraction.lock() {
-            *f = fraction;
-        }
-        Ok(())
-    }
-
-    /// Share of resident nodes next to a coarser node in the last table written by
-    /// [`GpuPageTable::update`] (the paper's "transition bricks").
-    pub fn transition_fraction(&self) -> f64 {
-        self.transition_fraction.lock().map(|f| *f).unwrap_or(1.0)
-    }
-}
-
-/// The sampled transfer function: a 1D Rgba32Float texture read with two textureLoads and
-/// interpolated in the shader (exact f32, needs no float-filtering feature). A texture rather
-/// than a storage buffer because lavapipe gathers buffers lane by lane: as a buffer the TF
-/// lookup was about half of a DVR sample's cost.
-pub struct GpuTransferFunction {
-    pub texture: wgpu::Texture,
-    pub view: wgpu::TextureView,
-    pub lo: f64,
-    pub hi: f64,
-    pub entries: u32,
-    pub source: crate::TransferFunction,
-}
-
-impl GpuTransferFunction {
-    pub fn new(device: &wgpu::Device, queue: &wgpu::Queue, table: &TransferFunctionTable) -> Self {
-        let texture = device.create_texture(&wgpu::TextureDescriptor {
-            label: Some("transfer function"),
-            size: wgpu::Extent3d {
-                width: table.rgba.len() as u32,
-                height: 1,
-                depth_or_array_layers: 1,
-            },
-            mip_level_count: 1,
-            sample_count: 1,
-            dimension: wgpu::TextureDimension::D1,
-            format: wgpu::TextureFormat::Rgba32Float,
-            usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
-            view_formats: &[],
-        });
-        let view = texture.create_view(&wgpu::TextureViewDescriptor::default());
-        let mut tf = GpuTransferFunction {
-            texture,
-            view,
-            lo: table.lo,
-            hi: table.hi,
-            entries: table.rgba.len() as u32,
-            source: table.source.clone(),
-        };
-        tf.update(queue, table);
-        tf
-    }
-
-    /// Replaces the table (same entry count, as produced by `TransferFunction::table`).
-    pub fn update(&mut self, queue: &wgpu::Queue, table: &TransferFunctionTable) {
-        let n = (table.rgba.len() as u32).min(self.entries);
-        queue.write_texture(
-            wgpu::TexelCopyTextureInfo {
-                texture: &self.texture,
-                mip_level: 0,
-                origin: wgpu::Origin3d::ZERO,
-                aspect: wgpu::TextureAspect::All,
-            },
-            bytemuck::cast_slice(&table.rgba[..n as usize]),
-            wgpu::TexelCopyBufferLayout {
-                offset: 0,
-                bytes_per_row: Some(n * 16),
-                rows_per_image: None,
-            },
-            wgpu::Extent3d {
-                width: n,
-                height: 1,
-                depth_or_array_layers: 1,
-            },
-        );
-        self.lo = table.lo;
-        self.hi = table.hi;
-        self.source = table.source.clone();
-    }
-}
 
 /// Everything one frame needs.
 pub struct Scene<'a> {
@@ -322,7 +100,7 @@ pub struct PipelineKey {
 /// What a pre-integration table was built for; a change of any part rebuilds it.
 #[derive(Clone, Debug)]
 struct PreintegrationKey {
-    transfer_function: crate::TransferFunction,
+    transfer_function: TransferFunction,
     lo: f64,
     hi: f64,
     segment_mm: f64,

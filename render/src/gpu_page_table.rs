@@ -1,0 +1,161 @@
+//! The page table on the GPU (binding 3), the per-entry MIP bounds (binding 9) and the
+//! per-entry transition masks with their near-side closures (binding 11), as the raycast
+//! shader's page lookups read them.
+
+use crate::cache::BrickCache;
+use crate::error::RenderError;
+use crate::layout::FLAG_TRANSITION;
+use crate::page_table::{PageEntry, PageTable};
+use crate::smooth_transitions::{near_side_closure, transition_masks, transition_node_fraction};
+
+/// The page table on the GPU: a storage buffer of encoded entries (see page_table.rs).
+pub struct GpuPageTable {
+    pub buffer: wgpu::Buffer,
+    /// Per entry, the physical value bound MIP rays use to skip it (+inf: never skip);
+    /// see [`PageTable::value_max_physical`].
+    pub value_max: wgpu::Buffer,
+    pub page_dims: [u32; 3],
+    /// Slot grid of the cache the entries point into (entries store slot grid positions).
+    pub slots_per_axis: [u32; 3],
+    /// Per entry, the covering node's 26-neighbour mask of coarser neighbours and its
+    /// near-side closure (smooth_transitions.rs), written by [`GpuPageTable::update`].
+    pub transitions: wgpu::Buffer,
+    /// Share of resident nodes with a coarser neighbour in the last table written; 0 means
+    /// frames need no transition code at all.
+    transition_fraction: std::sync::Mutex<f64>,
+}
+
+impl GpuPageTable {
+    /// Fails if the table would exceed the device's storage-buffer binding limit.
+    pub fn new(
+        device: &wgpu::Device,
+        page_dims: [u32; 3],
+        cache: &BrickCache,
+    ) -> Result<Self, RenderError> {
+        let n: u64 = page_dims.iter().map(|&d| d.max(1) as u64).product();
+        let limit = device.limits().max_storage_buffer_binding_size;
+        if n * 8 > limit {
+            return Err(RenderError::PageTableMismatch(format!(
+                "{n} page entries exceed the device's storage buffer limit of {limit} bytes"
+            )));
+        }
+        let buffer = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("page table"),
+            size: n * 4,
+            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        // Starts at +inf so a caller that never writes bounds gets correct, unskipped MIP.
+        let value_max = wgpu::util::DeviceExt::create_buffer_init(
+            device,
+            &wgpu::util::BufferInitDescriptor {
+                label: Some("page value max"),
+                contents: bytemuck::cast_slice(&vec![f32::INFINITY; n as usize]),
+                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+            },
+        );
+        let transitions = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("page transitions"),
+            size: n * 8,
+            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        Ok(GpuPageTable {
+            buffer,
+            value_max,
+            page_dims,
+            slots_per_axis: cache.slots_per_axis,
+            transitions,
+            transition_fraction: std::sync::Mutex::new(0.0),
+        })
+    }
+
+    pub fn entry_count(&self) -> usize {
+        self.page_dims.iter().map(|&d| d as usize).product()
+    }
+
+    /// Writes `entries` starting at linear index `first` (x fastest, then y, z): for loaders
+    /// that change a few entries per frame. Takes effect for the next submitted frame. The
+    /// transition masks are not touched: a change of levels needs [`GpuPageTable::update`].
+    pub fn write_entries(
+        &self,
+        queue: &wgpu::Queue,
+        first: usize,
+        entries: &[PageEntry],
+    ) -> Result<(), RenderError> {
+        let slots: u32 = self.slots_per_axis.iter().product();
+        if first + entries.len() > self.entry_count() {
+            return Err(RenderError::PageTableMismatch(format!(
+                "entries {first}..{} beyond {} page entries",
+                first + entries.len(),
+                self.entry_count()
+            )));
+        }
+        if let Some(bad) = entries
+            .iter()
+            .find(|e| e.resident && e.slot_in_cache >= slots)
+        {
+            return Err(RenderError::SlotOutOfRange {
+                slot: bad.slot_in_cache,
+                slots,
+            });
+        }
+        let words: Vec<u32> = entries
+            .iter()
+            .map(|e| e.encode(self.slots_per_axis))
+            .collect();
+        queue.write_buffer(&self.buffer, first as u64 * 4, bytemuck::cast_slice(&words));
+        Ok(())
+    }
+
+    /// Writes the per-entry MIP bounds (from [`PageTable::value_max_physical`]); takes
+    /// effect for the next submitted frame.
+    pub fn update_value_max(&self, queue: &wgpu::Queue, bounds: &[f32]) -> Result<(), RenderError> {
+        if bounds.len() != self.entry_count() {
+            return Err(RenderError::PageTableMismatch(format!(
+                "{} value bounds for {} page entries",
+                bounds.len(),
+                self.entry_count()
+            )));
+        }
+        queue.write_buffer(&self.value_max, 0, bytemuck::cast_slice(bounds));
+        Ok(())
+    }
+
+    /// Writes the whole table; takes effect for the next submitted frame.
+    pub fn update(&self, queue: &wgpu::Queue, table: &PageTable) -> Result<(), RenderError> {
+        table.check_against(self.page_dims)?;
+        let slots: u32 = self.slots_per_axis.iter().product();
+        if let Some(bad) = table
+            .entries
+            .iter()
+            .find(|e| e.resident && e.slot_in_cache >= slots)
+        {
+            return Err(RenderError::SlotOutOfRange {
+                slot: bad.slot_in_cache,
+                slots,
+            });
+        }
+        let masks = transition_masks(table);
+        let mut words = table.encoded(self.slots_per_axis);
+        for (word, mask) in words.iter_mut().zip(&masks) {
+            if *mask != 0 {
+                *word |= FLAG_TRANSITION;
+            }
+        }
+        queue.write_buffer(&self.buffer, 0, bytemuck::cast_slice(&words));
+        let transitions: Vec<[u32; 2]> = masks.iter().map(|&m| [m, near_side_closure(m)]).collect();
+        queue.write_buffer(&self.transitions, 0, bytemuck::cast_slice(&transitions));
+        let fraction = transition_node_fraction(table, &masks);
+        if let Ok(mut f) = self.transition_fraction.lock() {
+            *f = fraction;
+        }
+        Ok(())
+    }
+
+    /// Share of resident nodes next to a coarser node in the last table written by
+    /// [`GpuPageTable::update`] (the paper's "transition bricks").
+    pub fn transition_fraction(&self) -> f64 {
+        self.transition_fraction.lock().map(|f| *f).unwrap_or(1.0)
+    }
+}
