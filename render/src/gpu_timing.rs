@@ -6,25 +6,20 @@
 //!
 //! - [`FrameTimingSource::GpuTimestamps`]: the compute pass writes begin/end timestamps into a
 //!   query set; each frame resolves into its own slot of a small ring of staging buffers that is
-//!   mapped asynchronously, so a frame's time arrives one or two frames later and nothing waits.
+//!   mapped asynchronously (readback_ring.rs, the ring the visibility readback uses too), so a
+//!   frame's time arrives one or two frames later and nothing waits.
 //!   Lavapipe exposes `TIMESTAMP_QUERY` (Vulkan `timestampValidBits` = 64).
 //! - [`FrameTimingSource::SubmitToDone`]: adapters without timestamps. Only the measuring path
 //!   ([`crate::Raycaster::render_measured`]) waits: it lets earlier work drain, then times
 //!   submit → completion of the raycast submission on the CPU clock. UI drawing is submitted
 //!   later and is never inside the interval.
 
-use std::sync::atomic::{AtomicU8, Ordering};
-use std::sync::Arc;
+use crate::readback_ring::ReadbackRing;
 
 /// Timestamp slots in flight. Three frames of latency cover lavapipe and discrete GPUs; a
 /// frame that finds the ring full is simply not timed.
 const TIMESTAMP_RING: usize = 4;
 const SLOT_BYTES: u64 = 2 * wgpu::QUERY_SIZE as u64;
-
-const SLOT_FREE: u8 = 0;
-const SLOT_PENDING: u8 = 1;
-const SLOT_READY: u8 = 2;
-const SLOT_FAILED: u8 = 3;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum FrameTimingSource {
@@ -43,17 +38,11 @@ pub struct FrameTiming {
     pub source: FrameTimingSource,
 }
 
-struct TimestampSlot {
-    staging: wgpu::Buffer,
-    state: Arc<AtomicU8>,
-    frame_number: u64,
-}
-
 /// Query set + resolve buffer + a ring of mappable staging buffers.
 pub(crate) struct PassTimestamps {
     query_set: wgpu::QuerySet,
     resolve: wgpu::Buffer,
-    ring: Vec<TimestampSlot>,
+    ring: ReadbackRing,
     nanoseconds_per_tick: f64,
     /// Slot the pass being encoded writes into, chosen by `begin_frame`.
     current: Option<usize>,
@@ -77,18 +66,12 @@ impl PassTimestamps {
             usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
             mapped_at_creation: false,
         });
-        let ring = (0..TIMESTAMP_RING)
-            .map(|_| TimestampSlot {
-                staging: device.create_buffer(&wgpu::BufferDescriptor {
-                    label: Some("raycast timestamps staging"),
-                    size: SLOT_BYTES,
-                    usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-                    mapped_at_creation: false,
-                }),
-                state: Arc::new(AtomicU8::new(SLOT_FREE)),
-                frame_number: 0,
-            })
-            .collect();
+        let ring = ReadbackRing::new(
+            device,
+            "raycast timestamps staging",
+            TIMESTAMP_RING,
+            SLOT_BYTES,
+        );
         Some(PassTimestamps {
             query_set,
             resolve,
@@ -101,10 +84,7 @@ impl PassTimestamps {
     /// Picks a free slot for the frame about to be encoded; a reader that fell behind leaves
     /// none, and that frame goes untimed.
     pub(crate) fn begin_frame(&mut self) {
-        self.current = self
-            .ring
-            .iter()
-            .position(|s| s.state.load(Ordering::Acquire) == SLOT_FREE);
+        self.current = self.ring.free_slot();
     }
 
     /// The pass's timestamp writes for the slot `begin_frame` chose.
@@ -123,58 +103,32 @@ impl PassTimestamps {
         let offset = wgpu::QUERY_RESOLVE_BUFFER_ALIGNMENT * i as u64;
         let first = 2 * i as u32;
         encoder.resolve_query_set(&self.query_set, first..first + 2, &self.resolve, offset);
-        let slot = &mut self.ring[i];
-        encoder.copy_buffer_to_buffer(&self.resolve, offset, &slot.staging, 0, SLOT_BYTES);
-        slot.frame_number = frame_number;
-        slot.state.store(SLOT_PENDING, Ordering::Release);
+        self.ring
+            .encode_copy(encoder, i, &self.resolve, offset, SLOT_BYTES, frame_number);
     }
 
     /// After submit: map this frame's staging buffer; the callback fires once the GPU is done.
     pub(crate) fn after_submit(&mut self) {
         let Some(i) = self.current.take() else { return };
-        let slot = &self.ring[i];
-        let state = slot.state.clone();
-        slot.staging
-            .map_async(wgpu::MapMode::Read, .., move |result| {
-                state.store(
-                    if result.is_ok() {
-                        SLOT_READY
-                    } else {
-                        SLOT_FAILED
-                    },
-                    Ordering::Release,
-                );
-            });
+        self.ring.map_after_submit(i);
     }
 
     /// Every finished frame's pass duration, oldest first. Never blocks (the caller polls).
     pub(crate) fn take_ready(&mut self) -> Vec<FrameTiming> {
         let mut ready = Vec::new();
-        for slot in self.ring.iter_mut() {
-            match slot.state.load(Ordering::Acquire) {
-                SLOT_READY => {
-                    if let Ok(view) = slot.staging.get_mapped_range(..) {
-                        let ticks: [u64; 2] = bytemuck::pod_read_unaligned(&view[..16]);
-                        drop(view);
-                        // A pass whose end precedes its begin (a wrapped or reset counter)
-                        // has no meaningful duration; the controller is better off without it.
-                        if ticks[1] > ticks[0] {
-                            ready.push(FrameTiming {
-                                frame_number: slot.frame_number,
-                                milliseconds: (ticks[1] - ticks[0]) as f64
-                                    * self.nanoseconds_per_tick
-                                    / 1e6,
-                                source: FrameTimingSource::GpuTimestamps,
-                            });
-                        }
-                    }
-                    slot.staging.unmap();
-                    slot.state.store(SLOT_FREE, Ordering::Release);
-                }
-                SLOT_FAILED => slot.state.store(SLOT_FREE, Ordering::Release),
-                _ => {}
+        let nanoseconds_per_tick = self.nanoseconds_per_tick;
+        self.ring.drain(|frame_number, view| {
+            let ticks: [u64; 2] = bytemuck::pod_read_unaligned(&view[..16]);
+            // A pass whose end precedes its begin (a wrapped or reset counter)
+            // has no meaningful duration; the controller is better off without it.
+            if ticks[1] > ticks[0] {
+                ready.push(FrameTiming {
+                    frame_number,
+                    milliseconds: (ticks[1] - ticks[0]) as f64 * nanoseconds_per_tick / 1e6,
+                    source: FrameTimingSource::GpuTimestamps,
+                });
             }
-        }
+        });
         ready.sort_by_key(|t| t.frame_number);
         ready
     }

@@ -21,6 +21,7 @@ pub mod page_table;
 pub mod phantom;
 pub mod preintegration;
 pub mod raycast;
+mod readback_ring;
 pub mod reference;
 pub mod settings;
 pub mod smooth_transitions;

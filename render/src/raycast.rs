@@ -4,14 +4,13 @@
 
 use glam::DVec3;
 use std::collections::HashMap;
-use std::sync::atomic::{AtomicU8, Ordering};
-use std::sync::Arc;
 
 use crate::cache::BrickCache;
 use crate::camera::Camera;
 use crate::device::GpuContext;
 use crate::error::RenderError;
 use crate::gpu_timing::{FrameTiming, FrameTimingSource, PassTimestamps};
+use crate::readback_ring::ReadbackRing;
 use crate::settings::{RenderMode, RenderSettings};
 use crate::transfer_function::TransferFunction;
 use strata_types::{ValueMapping, VolumeGeometry};
@@ -187,22 +186,11 @@ struct Targets {
     padded_row_bytes: u32,
 }
 
-const SLOT_FREE: u8 = 0;
-const SLOT_PENDING: u8 = 1;
-const SLOT_READY: u8 = 2;
-const SLOT_FAILED: u8 = 3;
-
-struct VisibilityStaging {
-    buffer: wgpu::Buffer,
-    state: Arc<AtomicU8>,
-    frame_number: u64,
-}
-
 struct VisibilityBuffers {
     entries: usize,
     buffer: wgpu::Buffer,
     blocking_readback: wgpu::Buffer,
-    ring: Vec<VisibilityStaging>,
+    ring: ReadbackRing,
 }
 
 pub struct Raycaster {
@@ -596,13 +584,7 @@ impl Raycaster {
                     | wgpu::BufferUsages::COPY_DST,
             ),
             blocking_readback: make("visibility readback", read),
-            ring: (0..VISIBILITY_RING)
-                .map(|_| VisibilityStaging {
-                    buffer: make("visibility staging", read),
-                    state: Arc::new(AtomicU8::new(SLOT_FREE)),
-                    frame_number: 0,
-                })
-                .collect(),
+            ring: ReadbackRing::new(device, "visibility staging", VISIBILITY_RING, size),
         });
     }
 
@@ -1002,29 +984,18 @@ impl Raycaster {
         }
         // A busy ring (loader not reading) just drops this frame's visibility.
         let size = (vis.entries.max(1) * 4) as u64;
-        let free = vis
-            .ring
-            .iter_mut()
-            .find(|s| s.state.load(Ordering::Acquire) == SLOT_FREE);
-        let mut queued = None;
-        if let Some(slot) = free {
-            encoder.copy_buffer_to_buffer(&vis.buffer, 0, &slot.buffer, 0, size);
-            slot.frame_number = self.frame_number;
-            slot.state.store(SLOT_PENDING, Ordering::Release);
-            queued = Some((slot.buffer.clone(), slot.state.clone()));
+        let queued = vis.ring.free_slot();
+        if let Some(slot) = queued {
+            vis.ring
+                .encode_copy(&mut encoder, slot, &vis.buffer, 0, size, self.frame_number);
         }
         self.last_submit_at = Some(std::time::Instant::now());
         let index = ctx.queue.submit(Some(encoder.finish()));
         if let Some(timestamps) = self.timestamps.as_mut() {
             timestamps.after_submit();
         }
-        if let Some((buffer, state)) = queued {
-            buffer.map_async(wgpu::MapMode::Read, .., move |r| {
-                state.store(
-                    if r.is_ok() { SLOT_READY } else { SLOT_FAILED },
-                    Ordering::Release,
-                );
-            });
+        if let Some(slot) = queued {
+            vis.ring.map_after_submit(slot);
         }
         Ok(index)
     }
@@ -1034,31 +1005,19 @@ impl Raycaster {
     pub fn try_take_visibility(&mut self, ctx: &GpuContext) -> Option<VisibilityFrame> {
         let _ = ctx.device.poll(wgpu::PollType::Poll);
         let vis = self.visibility.as_mut()?;
+        let entries = vis.entries;
         let mut newest: Option<VisibilityFrame> = None;
-        for slot in vis.ring.iter_mut() {
-            match slot.state.load(Ordering::Acquire) {
-                SLOT_READY => {
-                    if newest
-                        .as_ref()
-                        .is_none_or(|n| n.frame_number < slot.frame_number)
-                    {
-                        if let Ok(view) = slot.buffer.get_mapped_range(..) {
-                            let data: Vec<u32> =
-                                bytemuck::cast_slice(&view)[..vis.entries].to_vec();
-                            drop(view);
-                            newest = Some(VisibilityFrame {
-                                frame_number: slot.frame_number,
-                                visibility: data,
-                            });
-                        }
-                    }
-                    slot.buffer.unmap();
-                    slot.state.store(SLOT_FREE, Ordering::Release);
-                }
-                SLOT_FAILED => slot.state.store(SLOT_FREE, Ordering::Release),
-                _ => {}
+        vis.ring.drain(|frame_number, view| {
+            if newest
+                .as_ref()
+                .is_none_or(|n| n.frame_number < frame_number)
+            {
+                newest = Some(VisibilityFrame {
+                    frame_number,
+                    visibility: bytemuck::cast_slice(view)[..entries].to_vec(),
+                });
             }
-        }
+        });
         newest
     }
 
