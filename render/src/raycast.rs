@@ -3,13 +3,13 @@
 //! One pipeline per combination of used effects (override constants), compiled on first use.
 
 use glam::DVec3;
-use std::collections::HashMap;
 
 use crate::cache::BrickCache;
 use crate::camera::Camera;
 use crate::device::GpuContext;
 use crate::error::RenderError;
 use crate::gpu_timing::{FrameTiming, FrameTimingSource, PassTimestamps};
+use crate::pipelines::Pipelines;
 use crate::readback_ring::ReadbackRing;
 use crate::settings::{RenderMode, RenderSettings};
 use crate::transfer_function::TransferFunction;
@@ -18,6 +18,8 @@ use strata_types::{ValueMapping, VolumeGeometry};
 /// The GPU resources a [`Scene`] points at (own modules; kept here so existing paths resolve).
 pub use crate::gpu_page_table::GpuPageTable;
 pub use crate::gpu_transfer_function::GpuTransferFunction;
+/// The effects of one pipeline (pipelines.rs; kept here so existing paths resolve).
+pub use crate::pipelines::PipelineKey;
 
 const SHADER: &str = include_str!("shaders/raycast.wgsl");
 const WORKGROUP: u32 = 8;
@@ -80,22 +82,6 @@ struct Params {
     slots: [u32; 4],
 }
 
-/// The effects compiled into one raycast pipeline (override constants): a scene's pipeline
-/// contains only what its settings use.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-pub struct PipelineKey {
-    pub mode: RenderMode,
-    pub manual_trilinear: bool,
-    pub shading: bool,
-    pub jitter: bool,
-    pub skip_empty: bool,
-    pub early_termination: bool,
-    pub clip_plane: bool,
-    pub count_samples: bool,
-    pub preintegrated: bool,
-    pub smooth_transitions: bool,
-}
-
 /// What a pre-integration table was built for; a change of any part rebuilds it.
 #[derive(Clone, Debug)]
 struct PreintegrationKey {
@@ -109,70 +95,6 @@ struct PreintegrationKey {
 struct PreintegrationTexture {
     key: PreintegrationKey,
     view: wgpu::TextureView,
-}
-
-struct BackgroundCompiler {
-    requests: std::sync::mpsc::Sender<PipelineKey>,
-    results: std::sync::mpsc::Receiver<(PipelineKey, wgpu::ComputePipeline)>,
-    pending: std::collections::HashSet<PipelineKey>,
-}
-
-/// The shader's effect overrides, as named in raycast.wgsl.
-const OVERRIDE_NAMES: [&str; 10] = [
-    "MODE",
-    "MANUAL_TRILINEAR",
-    "SHADING",
-    "JITTER",
-    "SKIP_EMPTY",
-    "EARLY_TERMINATION",
-    "CLIP_PLANE",
-    "COUNT_SAMPLES",
-    "PREINTEGRATED",
-    "SMOOTH_TRANSITIONS",
-];
-
-/// One raycast pipeline with the effects of `key` as override constants (those of
-/// `declared` that the module still has).
-fn build_pipeline(
-    device: &wgpu::Device,
-    layout: &wgpu::PipelineLayout,
-    module: &wgpu::ShaderModule,
-    declared: &[&'static str],
-    key: PipelineKey,
-) -> wgpu::ComputePipeline {
-    let b = |v: bool| if v { 1.0 } else { 0.0 };
-    let mode = match key.mode {
-        RenderMode::Dvr => 0.0,
-        RenderMode::Mip => 1.0,
-        RenderMode::Isosurface => 2.0,
-    };
-    let constants = [
-        ("MODE", mode),
-        ("MANUAL_TRILINEAR", b(key.manual_trilinear)),
-        ("SHADING", b(key.shading)),
-        ("JITTER", b(key.jitter)),
-        ("SKIP_EMPTY", b(key.skip_empty)),
-        ("EARLY_TERMINATION", b(key.early_termination)),
-        ("CLIP_PLANE", b(key.clip_plane)),
-        ("COUNT_SAMPLES", b(key.count_samples)),
-        ("PREINTEGRATED", b(key.preintegrated)),
-        ("SMOOTH_TRANSITIONS", b(key.smooth_transitions)),
-    ];
-    let constants: Vec<(&str, f64)> = constants
-        .into_iter()
-        .filter(|(name, _)| declared.contains(name))
-        .collect();
-    device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-        label: Some("raycast"),
-        layout: Some(layout),
-        module,
-        entry_point: Some("main"),
-        compilation_options: wgpu::PipelineCompilationOptions {
-            constants: &constants,
-            zero_initialize_workgroup_memory: false,
-        },
-        cache: None,
-    })
 }
 
 struct Targets {
@@ -194,10 +116,8 @@ struct VisibilityBuffers {
 }
 
 pub struct Raycaster {
-    layout: wgpu::BindGroupLayout,
-    pipeline_layout: wgpu::PipelineLayout,
-    module: wgpu::ShaderModule,
-    pipelines: HashMap<PipelineKey, wgpu::ComputePipeline>,
+    /// The compiled effect combinations, their layout and shader module.
+    pipelines: Pipelines,
     params: wgpu::Buffer,
     sampler: wgpu::Sampler,
     filterable: bool,
@@ -207,13 +127,10 @@ pub struct Raycaster {
     visibility: Option<VisibilityBuffers>,
     frame_number: u64,
     last_key: Option<PipelineKey>,
-    /// The effect overrides this raycaster's shader declares (all of them but in variants).
-    declared_overrides: Vec<&'static str>,
     /// Interactive callers (the viewer) set this: a frame whose pipeline is not compiled yet
     /// draws with the previous frame's while a thread compiles it. Off by default, so tests,
     /// the CLI and benchmarks always get exactly the pipeline their settings ask for.
     pub compile_in_background: bool,
-    compiler: Option<BackgroundCompiler>,
     /// The pre-integrated TF table of the last pre-integrated frame (rebuilt when the TF, its
     /// range or the step changes), and a 1×1 stand-in bound when a pipeline does not use it.
     preintegration: Option<PreintegrationTexture>,
@@ -254,96 +171,7 @@ impl Raycaster {
     pub fn with_shader_source(ctx: &GpuContext, cache: &BrickCache, wgsl: &str) -> Self {
         let device = &ctx.device;
         let filterable = cache.format.filterable();
-        let storage = |binding: u32, read_only: bool| wgpu::BindGroupLayoutEntry {
-            binding,
-            visibility: wgpu::ShaderStages::COMPUTE,
-            ty: wgpu::BindingType::Buffer {
-                ty: wgpu::BufferBindingType::Storage { read_only },
-                has_dynamic_offset: false,
-                min_binding_size: None,
-            },
-            count: None,
-        };
-        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("raycast"),
-            entries: &[
-                wgpu::BindGroupLayoutEntry {
-                    binding: 0,
-                    visibility: wgpu::ShaderStages::COMPUTE,
-                    ty: wgpu::BindingType::Buffer {
-                        ty: wgpu::BufferBindingType::Uniform,
-                        has_dynamic_offset: false,
-                        min_binding_size: None,
-                    },
-                    count: None,
-                },
-                wgpu::BindGroupLayoutEntry {
-                    binding: 1,
-                    visibility: wgpu::ShaderStages::COMPUTE,
-                    ty: wgpu::BindingType::Texture {
-                        sample_type: wgpu::TextureSampleType::Float { filterable },
-                        view_dimension: wgpu::TextureViewDimension::D3,
-                        multisampled: false,
-                    },
-                    count: None,
-                },
-                wgpu::BindGroupLayoutEntry {
-                    binding: 2,
-                    visibility: wgpu::ShaderStages::COMPUTE,
-                    ty: wgpu::BindingType::Sampler(if filterable {
-                        wgpu::SamplerBindingType::Filtering
-                    } else {
-                        wgpu::SamplerBindingType::NonFiltering
-                    }),
-                    count: None,
-                },
-                storage(3, true),
-                wgpu::BindGroupLayoutEntry {
-                    binding: 4,
-                    visibility: wgpu::ShaderStages::COMPUTE,
-                    ty: wgpu::BindingType::Texture {
-                        sample_type: wgpu::TextureSampleType::Float { filterable: false },
-                        view_dimension: wgpu::TextureViewDimension::D1,
-                        multisampled: false,
-                    },
-                    count: None,
-                },
-                wgpu::BindGroupLayoutEntry {
-                    binding: 5,
-                    visibility: wgpu::ShaderStages::COMPUTE,
-                    ty: wgpu::BindingType::StorageTexture {
-                        access: wgpu::StorageTextureAccess::WriteOnly,
-                        format: wgpu::TextureFormat::Rgba8Unorm,
-                        view_dimension: wgpu::TextureViewDimension::D2,
-                    },
-                    count: None,
-                },
-                storage(6, false),
-                storage(7, false),
-                storage(8, false),
-                storage(9, true),
-                storage(11, true),
-                wgpu::BindGroupLayoutEntry {
-                    binding: 10,
-                    visibility: wgpu::ShaderStages::COMPUTE,
-                    ty: wgpu::BindingType::Texture {
-                        sample_type: wgpu::TextureSampleType::Float { filterable: false },
-                        view_dimension: wgpu::TextureViewDimension::D2,
-                        multisampled: false,
-                    },
-                    count: None,
-                },
-            ],
-        });
-        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-            label: Some("raycast"),
-            bind_group_layouts: &[Some(&layout)],
-            immediate_size: 0,
-        });
-        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("raycast.wgsl"),
-            source: wgpu::ShaderSource::Wgsl(wgsl.to_owned().into()),
-        });
+        let pipelines = Pipelines::new(device, filterable, wgsl);
         let params = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("raycast params"),
             size: std::mem::size_of::<Params>() as u64,
@@ -376,10 +204,7 @@ impl Raycaster {
             mapped_at_creation: false,
         });
         Raycaster {
-            layout,
-            pipeline_layout,
-            module,
-            pipelines: HashMap::new(),
+            pipelines,
             params,
             sampler,
             filterable,
@@ -389,13 +214,7 @@ impl Raycaster {
             visibility: None,
             frame_number: 0,
             last_key: None,
-            declared_overrides: OVERRIDE_NAMES
-                .iter()
-                .copied()
-                .filter(|name| wgsl.contains(&format!("override {name}:")))
-                .collect(),
             compile_in_background: false,
-            compiler: None,
             preintegration: None,
             preintegration_unused: table_texture(device, &ctx.queue, 1, &[[0.0; 4]]),
             timestamps: PassTimestamps::new(device, &ctx.queue),
@@ -404,93 +223,9 @@ impl Raycaster {
         }
     }
 
-    fn pipeline(&mut self, device: &wgpu::Device, key: PipelineKey) -> &wgpu::ComputePipeline {
-        let (layout, module, declared) = (
-            &self.pipeline_layout,
-            &self.module,
-            &self.declared_overrides,
-        );
-        self.pipelines
-            .entry(key)
-            .or_insert_with(|| build_pipeline(device, layout, module, declared, key))
-    }
-
-    /// The pipeline this frame draws with: the wanted one if compiled; otherwise, when
-    /// `compile_in_background` is set and an earlier frame drew, that frame's pipeline while a
-    /// named thread compiles the wanted one (a compile takes long enough on CPU drivers to
-    /// drop frames); otherwise the wanted one, compiled now.
-    fn choose_pipeline(&mut self, device: &wgpu::Device, wanted: PipelineKey) -> PipelineKey {
-        if let Some(compiler) = self.compiler.as_mut() {
-            while let Ok((key, pipeline)) = compiler.results.try_recv() {
-                compiler.pending.remove(&key);
-                self.pipelines.entry(key).or_insert(pipeline);
-            }
-        }
-        if self.pipelines.contains_key(&wanted) {
-            return wanted;
-        }
-        if self.compile_in_background {
-            let previous = self.last_key.filter(|k| self.pipelines.contains_key(k));
-            if let Some(previous) = previous {
-                if self.request_background_compile(device, wanted) {
-                    return previous;
-                }
-            }
-        }
-        let _ = self.pipeline(device, wanted);
-        wanted
-    }
-
-    /// Queues `key` on the compiler thread (started on first use). False if the thread
-    /// cannot be started, in which case the caller compiles in place.
-    fn request_background_compile(&mut self, device: &wgpu::Device, key: PipelineKey) -> bool {
-        if self.compiler.is_none() {
-            let (requests, requests_in) = std::sync::mpsc::channel::<PipelineKey>();
-            let (results_out, results) = std::sync::mpsc::channel();
-            let (device, layout, module, declared) = (
-                device.clone(),
-                self.pipeline_layout.clone(),
-                self.module.clone(),
-                self.declared_overrides.clone(),
-            );
-            let spawned = std::thread::Builder::new()
-                .name("strata-pipeline-compiler".into())
-                .spawn(move || {
-                    // Ends when the raycaster (the sender) is dropped.
-                    for key in requests_in {
-                        let pipeline = build_pipeline(&device, &layout, &module, &declared, key);
-                        if results_out.send((key, pipeline)).is_err() {
-                            break;
-                        }
-                    }
-                });
-            if spawned.is_err() {
-                return false;
-            }
-            self.compiler = Some(BackgroundCompiler {
-                requests,
-                results,
-                pending: std::collections::HashSet::new(),
-            });
-        }
-        let Some(compiler) = self.compiler.as_mut() else {
-            return false;
-        };
-        if compiler.pending.contains(&key) {
-            return true;
-        }
-        if compiler.requests.send(key).is_err() {
-            return false;
-        }
-        compiler.pending.insert(key);
-        true
-    }
-
     /// True while a background compile is outstanding (the UI can say "compiling…").
     pub fn compiling_in_background(&self) -> bool {
-        self.compiler
-            .as_ref()
-            .is_some_and(|c| !c.pending.is_empty())
+        self.pipelines.compiling_in_background()
     }
 
     /// The effects of the pipeline the last frame was drawn with (with background compiling,
@@ -608,13 +343,13 @@ impl Raycaster {
     /// variants are compiled.
     pub fn prepare(&mut self, ctx: &GpuContext, settings: &RenderSettings) {
         let key = self.key_for(settings);
-        let _ = self.pipeline(&ctx.device, key);
+        let _ = self.pipelines.get_or_build(&ctx.device, key);
         if key.smooth_transitions {
             let without = PipelineKey {
                 smooth_transitions: false,
                 ..key
             };
-            let _ = self.pipeline(&ctx.device, without);
+            let _ = self.pipelines.get_or_build(&ctx.device, without);
         }
     }
 
@@ -736,12 +471,12 @@ impl Raycaster {
             ("SMOOTH_TRANSITIONS", b(key.smooth_transitions)),
         ]
         .into_iter()
-        .filter(|(name, _)| self.declared_overrides.contains(name))
+        .filter(|(name, _)| self.pipelines.declared_overrides.contains(name))
         .collect();
         let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
             label: Some("field probe"),
             layout: Some(&pipeline_layout),
-            module: &self.module,
+            module: &self.pipelines.module,
             entry_point: Some("probe"),
             compilation_options: wgpu::PipelineCompilationOptions {
                 constants: &constants,
@@ -898,7 +633,10 @@ impl Raycaster {
                 settings.width, settings.height, limits.max_storage_buffer_binding_size
             )));
         }
-        let key = self.choose_pipeline(device, self.key_for_scene(scene));
+        let wanted = self.key_for_scene(scene);
+        let key = self
+            .pipelines
+            .choose(device, wanted, self.compile_in_background, self.last_key);
         self.last_key = Some(key);
         if key.preintegrated {
             self.ensure_preintegration(ctx, scene);
@@ -917,7 +655,7 @@ impl Raycaster {
         };
         let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("raycast"),
-            layout: &self.layout,
+            layout: &self.pipelines.layout,
             entries: &Self::field_entries(&self.params, &self.sampler, scene)
                 .into_iter()
                 .chain([

@@ -1,0 +1,325 @@
+//! The raycast pipelines: one per combination of effects a scene uses ([`PipelineKey`], WGSL
+//! override constants), all on one bind-group layout, built on first use and cached; for
+//! interactive callers a named thread compiles new combinations while frames keep drawing
+//! with the previous one.
+
+use std::collections::{HashMap, HashSet};
+
+use crate::settings::RenderMode;
+
+/// The effects compiled into one raycast pipeline (override constants): a scene's pipeline
+/// contains only what its settings use.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct PipelineKey {
+    pub mode: RenderMode,
+    pub manual_trilinear: bool,
+    pub shading: bool,
+    pub jitter: bool,
+    pub skip_empty: bool,
+    pub early_termination: bool,
+    pub clip_plane: bool,
+    pub count_samples: bool,
+    pub preintegrated: bool,
+    pub smooth_transitions: bool,
+}
+
+/// The raycast pass's bind-group layout: parameters (0), brick cache and its sampler (1, 2),
+/// page table (3), TF table (4), colour target (5), depth (6), visibility (7), sample counter
+/// (8), MIP page bounds (9), pre-integration table (10), transition masks (11).
+fn bind_group_layout(device: &wgpu::Device, filterable: bool) -> wgpu::BindGroupLayout {
+    let storage = |binding: u32, read_only: bool| wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::COMPUTE,
+        ty: wgpu::BindingType::Buffer {
+            ty: wgpu::BufferBindingType::Storage { read_only },
+            has_dynamic_offset: false,
+            min_binding_size: None,
+        },
+        count: None,
+    };
+    device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+        label: Some("raycast"),
+        entries: &[
+            wgpu::BindGroupLayoutEntry {
+                binding: 0,
+                visibility: wgpu::ShaderStages::COMPUTE,
+                ty: wgpu::BindingType::Buffer {
+                    ty: wgpu::BufferBindingType::Uniform,
+                    has_dynamic_offset: false,
+                    min_binding_size: None,
+                },
+                count: None,
+            },
+            wgpu::BindGroupLayoutEntry {
+                binding: 1,
+                visibility: wgpu::ShaderStages::COMPUTE,
+                ty: wgpu::BindingType::Texture {
+                    sample_type: wgpu::TextureSampleType::Float { filterable },
+                    view_dimension: wgpu::TextureViewDimension::D3,
+                    multisampled: false,
+                },
+                count: None,
+            },
+            wgpu::BindGroupLayoutEntry {
+                binding: 2,
+                visibility: wgpu::ShaderStages::COMPUTE,
+                ty: wgpu::BindingType::Sampler(if filterable {
+                    wgpu::SamplerBindingType::Filtering
+                } else {
+                    wgpu::SamplerBindingType::NonFiltering
+                }),
+                count: None,
+            },
+            storage(3, true),
+            wgpu::BindGroupLayoutEntry {
+                binding: 4,
+                visibility: wgpu::ShaderStages::COMPUTE,
+                ty: wgpu::BindingType::Texture {
+                    sample_type: wgpu::TextureSampleType::Float { filterable: false },
+                    view_dimension: wgpu::TextureViewDimension::D1,
+                    multisampled: false,
+                },
+                count: None,
+            },
+            wgpu::BindGroupLayoutEntry {
+                binding: 5,
+                visibility: wgpu::ShaderStages::COMPUTE,
+                ty: wgpu::BindingType::StorageTexture {
+                    access: wgpu::StorageTextureAccess::WriteOnly,
+                    format: wgpu::TextureFormat::Rgba8Unorm,
+                    view_dimension: wgpu::TextureViewDimension::D2,
+                },
+                count: None,
+            },
+            storage(6, false),
+            storage(7, false),
+            storage(8, false),
+            storage(9, true),
+            storage(11, true),
+            wgpu::BindGroupLayoutEntry {
+                binding: 10,
+                visibility: wgpu::ShaderStages::COMPUTE,
+                ty: wgpu::BindingType::Texture {
+                    sample_type: wgpu::TextureSampleType::Float { filterable: false },
+                    view_dimension: wgpu::TextureViewDimension::D2,
+                    multisampled: false,
+                },
+                count: None,
+            },
+        ],
+    })
+}
+
+struct BackgroundCompiler {
+    requests: std::sync::mpsc::Sender<PipelineKey>,
+    results: std::sync::mpsc::Receiver<(PipelineKey, wgpu::ComputePipeline)>,
+    pending: HashSet<PipelineKey>,
+}
+
+/// The shader's effect overrides, as named in raycast.wgsl.
+pub(crate) const OVERRIDE_NAMES: [&str; 10] = [
+    "MODE",
+    "MANUAL_TRILINEAR",
+    "SHADING",
+    "JITTER",
+    "SKIP_EMPTY",
+    "EARLY_TERMINATION",
+    "CLIP_PLANE",
+    "COUNT_SAMPLES",
+    "PREINTEGRATED",
+    "SMOOTH_TRANSITIONS",
+];
+
+/// One raycast pipeline with the effects of `key` as override constants (those of
+/// `declared` that the module still has).
+fn build_pipeline(
+    device: &wgpu::Device,
+    layout: &wgpu::PipelineLayout,
+    module: &wgpu::ShaderModule,
+    declared: &[&'static str],
+    key: PipelineKey,
+) -> wgpu::ComputePipeline {
+    let b = |v: bool| if v { 1.0 } else { 0.0 };
+    let mode = match key.mode {
+        RenderMode::Dvr => 0.0,
+        RenderMode::Mip => 1.0,
+        RenderMode::Isosurface => 2.0,
+    };
+    let constants = [
+        ("MODE", mode),
+        ("MANUAL_TRILINEAR", b(key.manual_trilinear)),
+        ("SHADING", b(key.shading)),
+        ("JITTER", b(key.jitter)),
+        ("SKIP_EMPTY", b(key.skip_empty)),
+        ("EARLY_TERMINATION", b(key.early_termination)),
+        ("CLIP_PLANE", b(key.clip_plane)),
+        ("COUNT_SAMPLES", b(key.count_samples)),
+        ("PREINTEGRATED", b(key.preintegrated)),
+        ("SMOOTH_TRANSITIONS", b(key.smooth_transitions)),
+    ];
+    let constants: Vec<(&str, f64)> = constants
+        .into_iter()
+        .filter(|(name, _)| declared.contains(name))
+        .collect();
+    device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+        label: Some("raycast"),
+        layout: Some(layout),
+        module,
+        entry_point: Some("main"),
+        compilation_options: wgpu::PipelineCompilationOptions {
+            constants: &constants,
+            zero_initialize_workgroup_memory: false,
+        },
+        cache: None,
+    })
+}
+
+/// One raycaster's pipelines: the shader module, the layout they share, every effect
+/// combination compiled so far, and the background compiler once an interactive caller needs
+/// it.
+pub(crate) struct Pipelines {
+    pub(crate) layout: wgpu::BindGroupLayout,
+    pipeline_layout: wgpu::PipelineLayout,
+    pub(crate) module: wgpu::ShaderModule,
+    /// The effect overrides this raycaster's shader declares (all of them but in variants).
+    pub(crate) declared_overrides: Vec<&'static str>,
+    compiled: HashMap<PipelineKey, wgpu::ComputePipeline>,
+    compiler: Option<BackgroundCompiler>,
+}
+
+impl Pipelines {
+    /// The layout and module for `wgsl` (the composed raycast shader or a variant of it).
+    pub(crate) fn new(device: &wgpu::Device, filterable: bool, wgsl: &str) -> Self {
+        let layout = bind_group_layout(device, filterable);
+        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("raycast"),
+            bind_group_layouts: &[Some(&layout)],
+            immediate_size: 0,
+        });
+        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("raycast.wgsl"),
+            source: wgpu::ShaderSource::Wgsl(wgsl.to_owned().into()),
+        });
+        Pipelines {
+            layout,
+            pipeline_layout,
+            module,
+            declared_overrides: OVERRIDE_NAMES
+                .iter()
+                .copied()
+                .filter(|name| wgsl.contains(&format!("override {name}:")))
+                .collect(),
+            compiled: HashMap::new(),
+            compiler: None,
+        }
+    }
+
+    /// Number of distinct pipelines compiled so far.
+    pub(crate) fn len(&self) -> usize {
+        self.compiled.len()
+    }
+
+    pub(crate) fn get(&self, key: &PipelineKey) -> Option<&wgpu::ComputePipeline> {
+        self.compiled.get(key)
+    }
+
+    /// The pipeline for `key`, compiled now if it is not yet.
+    pub(crate) fn get_or_build(
+        &mut self,
+        device: &wgpu::Device,
+        key: PipelineKey,
+    ) -> &wgpu::ComputePipeline {
+        let (layout, module, declared) = (
+            &self.pipeline_layout,
+            &self.module,
+            &self.declared_overrides,
+        );
+        self.compiled
+            .entry(key)
+            .or_insert_with(|| build_pipeline(device, layout, module, declared, key))
+    }
+
+    /// The pipeline this frame draws with: the wanted one if compiled; otherwise, when
+    /// `in_background` is set and the previous frame's pipeline (`previous`) is compiled, that
+    /// one while a named thread compiles the wanted one (a compile takes long enough on CPU
+    /// drivers to drop frames); otherwise the wanted one, compiled now.
+    pub(crate) fn choose(
+        &mut self,
+        device: &wgpu::Device,
+        wanted: PipelineKey,
+        in_background: bool,
+        previous: Option<PipelineKey>,
+    ) -> PipelineKey {
+        if let Some(compiler) = self.compiler.as_mut() {
+            while let Ok((key, pipeline)) = compiler.results.try_recv() {
+                compiler.pending.remove(&key);
+                self.compiled.entry(key).or_insert(pipeline);
+            }
+        }
+        if self.compiled.contains_key(&wanted) {
+            return wanted;
+        }
+        if in_background {
+            let previous = previous.filter(|k| self.compiled.contains_key(k));
+            if let Some(previous) = previous {
+                if self.request_background_compile(device, wanted) {
+                    return previous;
+                }
+            }
+        }
+        let _ = self.get_or_build(device, wanted);
+        wanted
+    }
+
+    /// Queues `key` on the compiler thread (started on first use). False if the thread
+    /// cannot be started, in which case the caller compiles in place.
+    fn request_background_compile(&mut self, device: &wgpu::Device, key: PipelineKey) -> bool {
+        if self.compiler.is_none() {
+            let (requests, requests_in) = std::sync::mpsc::channel::<PipelineKey>();
+            let (results_out, results) = std::sync::mpsc::channel();
+            let (device, layout, module, declared) = (
+                device.clone(),
+                self.pipeline_layout.clone(),
+                self.module.clone(),
+                self.declared_overrides.clone(),
+            );
+            let spawned = std::thread::Builder::new()
+                .name("strata-pipeline-compiler".into())
+                .spawn(move || {
+                    // Ends when the raycaster (the sender) is dropped.
+                    for key in requests_in {
+                        let pipeline = build_pipeline(&device, &layout, &module, &declared, key);
+                        if results_out.send((key, pipeline)).is_err() {
+                            break;
+                        }
+                    }
+                });
+            if spawned.is_err() {
+                return false;
+            }
+            self.compiler = Some(BackgroundCompiler {
+                requests,
+                results,
+                pending: HashSet::new(),
+            });
+        }
+        let Some(compiler) = self.compiler.as_mut() else {
+            return false;
+        };
+        if compiler.pending.contains(&key) {
+            return true;
+        }
+        if compiler.requests.send(key).is_err() {
+            return false;
+        }
+        compiler.pending.insert(key);
+        true
+    }
+
+    /// True while a background compile is outstanding.
+    pub(crate) fn compiling_in_background(&self) -> bool {
+        self.compiler
+            .as_ref()
+            .is_some_and(|c| !c.pending.is_empty())
+    }
+}
