@@ -446,9 +446,9 @@ fn main() {
             let declared = ["false", "true"]
                 .map(|default| format!("override {name}: bool = {default};"))
                 .into_iter()
-                .find(|d| Raycaster::SHADER_SOURCE.contains(d))
+                .find(|d| Raycaster::shader_source().contains(d))
                 .unwrap_or_else(|| panic!("override {name} not in the shader"));
-            let variant = Raycaster::SHADER_SOURCE
+            let variant = Raycaster::shader_source()
                 .replace(&declared, &format!("const {name}: bool = false;"));
             Raycaster::with_shader_source(&ctx, &cache, &variant)
         })

@@ -4,7 +4,7 @@
 //! - Brick sizes: the store's, from strata-types (32³ core, 2-voxel apron, 36³ payload).
 //! - The GPU page word (page_table.rs, GpuPageTable): slot grid position, level, flags.
 //! - The 26-neighbour mask bit of a face/edge/corner offset (smooth_transitions.rs).
-//! - Shading thresholds shared by the reference and the shader.
+//! - Shading thresholds shared by the reference and the shader; the raycast workgroup size.
 //! - [`BrickSource`]: where the CPU side reads node payloads.
 //!
 //! Every constant the shader uses is written into its prelude from here (shaders.rs), so the
@@ -40,6 +40,9 @@ pub fn neighbour_offset(bit: u32) -> [i32; 3] {
 pub fn neighbour_offsets() -> impl Iterator<Item = [i32; 3]> {
     (0..27).filter(|&b| b != 13).map(neighbour_offset)
 }
+
+/// The raycast pass's workgroup edge: one invocation per pixel, in 8×8 tiles.
+pub const WORKGROUP_SIZE: u32 = 8;
 
 /// Gradient magnitudes below G0 (in TF-range fractions per finest voxel) count as flat and get
 /// unlit colour, above G1 fully lit, smooth in between: zero gradients cannot make NaNs, and

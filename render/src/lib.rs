@@ -25,6 +25,7 @@ pub mod raycast;
 mod readback_ring;
 pub mod reference;
 pub mod settings;
+pub mod shaders;
 pub mod smooth_transitions;
 pub mod time_critical;
 pub mod transfer_function;

@@ -116,7 +116,8 @@ struct BackgroundCompiler {
     pending: HashSet<PipelineKey>,
 }
 
-/// The shader's effect overrides, as named in raycast.wgsl.
+/// The shader's effect overrides, as named in the WGSL (raycast.wgsl, field.wgsl,
+/// smooth_transitions.wgsl).
 pub(crate) const OVERRIDE_NAMES: [&str; 10] = [
     "MODE",
     "MANUAL_TRILINEAR",
@@ -188,8 +189,14 @@ pub(crate) struct Pipelines {
 }
 
 impl Pipelines {
-    /// The layout and module for `wgsl` (the composed raycast shader or a variant of it).
-    pub(crate) fn new(device: &wgpu::Device, filterable: bool, wgsl: &str) -> Self {
+    /// The layout and module for `wgsl` (the composed raycast shader or a variant of it), whose
+    /// IR declares the overrides `declared` (shaders.rs reads them).
+    pub(crate) fn new(
+        device: &wgpu::Device,
+        filterable: bool,
+        wgsl: &str,
+        declared: &[String],
+    ) -> Self {
         let layout = bind_group_layout(device, filterable);
         let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
             label: Some("raycast"),
@@ -207,7 +214,7 @@ impl Pipelines {
             declared_overrides: OVERRIDE_NAMES
                 .iter()
                 .copied()
-                .filter(|name| wgsl.contains(&format!("override {name}:")))
+                .filter(|name| declared.iter().any(|d| d == name))
                 .collect(),
             compiled: HashMap::new(),
             compiler: None,
@@ -321,5 +328,27 @@ impl Pipelines {
         self.compiler
             .as_ref()
             .is_some_and(|c| !c.pending.is_empty())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_effect_override_is_declared_and_read_from_the_ir() {
+        let declared = crate::shaders::raycast_overrides();
+        for name in OVERRIDE_NAMES {
+            assert!(declared.iter().any(|d| d == name), "{name} not declared");
+        }
+        assert_eq!(declared.len(), OVERRIDE_NAMES.len());
+        // A variant with an effect compiled out ("a build that never had it") declares one less.
+        let variant = crate::shaders::raycast_source().replace(
+            "override SKIP_EMPTY: bool = true;",
+            "const SKIP_EMPTY: bool = false;",
+        );
+        let declared = crate::shaders::declared_overrides(&variant).unwrap();
+        assert!(!declared.iter().any(|d| d == "SKIP_EMPTY"));
+        assert_eq!(declared.len(), OVERRIDE_NAMES.len() - 1);
     }
 }

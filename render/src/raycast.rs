@@ -1,4 +1,4 @@
-//! The raycast pass: a compute shader (shaders/raycast.wgsl) writing an RGBA8 storage texture,
+//! The raycast pass: a compute shader (shaders/raycast.wgsl, composed by shaders.rs) writing an RGBA8 storage texture,
 //! a first-hit depth buffer, the per-page visibility buffer, and an optional sample counter.
 //! One pipeline per combination of used effects (override constants), compiled on first use.
 
@@ -9,9 +9,11 @@ use crate::camera::Camera;
 use crate::device::GpuContext;
 use crate::error::RenderError;
 use crate::gpu_timing::{FrameTiming, FrameTimingSource, PassTimestamps};
+use crate::layout::WORKGROUP_SIZE;
 use crate::pipelines::Pipelines;
 use crate::readback_ring::ReadbackRing;
 use crate::settings::{RenderMode, RenderSettings};
+use crate::shaders;
 use crate::transfer_function::TransferFunction;
 use strata_types::{ValueMapping, VolumeGeometry};
 
@@ -21,8 +23,6 @@ pub use crate::gpu_transfer_function::GpuTransferFunction;
 /// The effects of one pipeline (pipelines.rs; kept here so existing paths resolve).
 pub use crate::pipelines::PipelineKey;
 
-const SHADER: &str = include_str!("shaders/raycast.wgsl");
-const WORKGROUP: u32 = 8;
 /// Visibility staging ring: the loader reads a frame one or two frames late without stalling.
 const VISIBILITY_RING: usize = 3;
 
@@ -158,20 +158,33 @@ fn map_blocking(device: &wgpu::Device, buffer: &wgpu::Buffer) -> Result<(), Rend
 
 impl Raycaster {
     pub fn new(ctx: &GpuContext, cache: &BrickCache) -> Self {
-        Self::with_shader_source(ctx, cache, SHADER)
+        Self::build(
+            ctx,
+            cache,
+            shaders::raycast_source(),
+            shaders::raycast_overrides(),
+        )
     }
 
-    /// The raycast shader's source, for benchmarks that build variants of it.
-    pub const SHADER_SOURCE: &'static str = SHADER;
+    /// The raycast shader's source as composed (shaders.rs: generated constants prelude, then
+    /// the WGSL files), for benchmarks that build variants of it.
+    pub fn shader_source() -> &'static str {
+        shaders::raycast_source()
+    }
 
-    /// A raycaster compiled from a variant of [`Raycaster::SHADER_SOURCE`], e.g. with an effect's
+    /// A raycaster compiled from a variant of [`Raycaster::shader_source`], e.g. with an effect's
     /// `override` turned into a `const false` ("a build that never had it") to show that the
     /// specialised pipeline without the effect costs the same. Only the overrides the variant
-    /// still declares are passed to its pipelines.
+    /// still declares (read from naga's IR of it, once, here) are passed to its pipelines.
     pub fn with_shader_source(ctx: &GpuContext, cache: &BrickCache, wgsl: &str) -> Self {
+        let declared = shaders::declared_overrides(wgsl).unwrap_or_default();
+        Self::build(ctx, cache, wgsl, &declared)
+    }
+
+    fn build(ctx: &GpuContext, cache: &BrickCache, wgsl: &str, declared: &[String]) -> Self {
         let device = &ctx.device;
         let filterable = cache.format.filterable();
-        let pipelines = Pipelines::new(device, filterable, wgsl);
+        let pipelines = Pipelines::new(device, filterable, wgsl, declared);
         let params = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("raycast params"),
             size: std::mem::size_of::<Params>() as u64,
@@ -711,8 +724,8 @@ impl Raycaster {
             pass.set_pipeline(pipeline);
             pass.set_bind_group(0, &bind_group, &[]);
             pass.dispatch_workgroups(
-                settings.width.div_ceil(WORKGROUP),
-                settings.height.div_ceil(WORKGROUP),
+                settings.width.div_ceil(WORKGROUP_SIZE),
+                settings.height.div_ceil(WORKGROUP_SIZE),
                 1,
             );
         }

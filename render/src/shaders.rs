@@ -1,0 +1,165 @@
+//! The WGSL program, composed at load time: a prelude of constants generated from the Rust
+//! definitions (layout.rs), then the shader files in a fixed order. WGSL module-scope
+//! declarations are order-independent, so the split into files changes nothing the compiler
+//! sees; the prelude means no constant the shader shares with Rust is written by hand.
+//!
+//! Each file is the twin of a Rust module: `params.wgsl` ↔ `Params` in raycast.rs,
+//! `page_table.wgsl` ↔ page_table.rs, `smooth_transitions.wgsl` ↔ smooth_transitions.rs,
+//! `field.wgsl` ↔ field.rs, `transfer_function.wgsl` ↔ transfer_function.rs,
+//! `preintegration.wgsl` ↔ preintegration.rs, `raycast.wgsl` (entry point and ray loop) ↔
+//! raycast.rs.
+//!
+//! The effect overrides a source declares are read from naga's IR of it
+//! ([`declared_overrides`]); the default source is composed and parsed once per process.
+
+use std::sync::OnceLock;
+
+use crate::layout::{
+    BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD, FLAG_EMPTY, FLAG_NOT_RESIDENT, FLAG_TRANSITION,
+    SHADING_FLAT_BELOW, SHADING_LIT_ABOVE, WORKGROUP_SIZE,
+};
+
+/// The files that define the sampled field and its lookups, in composition order.
+const FIELD_FILES: [(&str, &str); 4] = [
+    ("params.wgsl", include_str!("shaders/params.wgsl")),
+    ("page_table.wgsl", include_str!("shaders/page_table.wgsl")),
+    (
+        "smooth_transitions.wgsl",
+        include_str!("shaders/smooth_transitions.wgsl"),
+    ),
+    ("field.wgsl", include_str!("shaders/field.wgsl")),
+];
+
+/// The raycast pass's own files, after [`FIELD_FILES`].
+const RAYCAST_FILES: [(&str, &str); 4] = [
+    (
+        "transfer_function.wgsl",
+        include_str!("shaders/transfer_function.wgsl"),
+    ),
+    (
+        "preintegration.wgsl",
+        include_str!("shaders/preintegration.wgsl"),
+    ),
+    ("raycast.wgsl", include_str!("shaders/raycast.wgsl")),
+    ("probe.wgsl", include_str!("shaders/probe.wgsl")),
+];
+
+/// A prelude constant's WGSL type and value.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) enum PreludeValue {
+    /// An f32 constant, written from its f64 definition (as a WGSL literal would be).
+    F32(f64),
+    U32(u32),
+    /// A u32 bit mask, written in hex.
+    Bits(u32),
+}
+
+/// Every constant the shader shares with Rust, by its WGSL name.
+pub(crate) fn prelude_constants() -> [(&'static str, PreludeValue); 9] {
+    use PreludeValue::*;
+    [
+        ("CORE", F32(BRICK_CORE as f64)),
+        ("APRON", F32(BRICK_APRON as f64)),
+        ("PAYLOAD", U32(BRICK_PAYLOAD)),
+        ("FLAG_EMPTY", Bits(FLAG_EMPTY)),
+        ("FLAG_NOT_RESIDENT", Bits(FLAG_NOT_RESIDENT)),
+        ("FLAG_TRANSITION", Bits(FLAG_TRANSITION)),
+        // Below/above these gradient magnitudes (TF-range fractions per finest voxel) shading
+        // fades from unlit to lit.
+        ("SHADING_FLAT_BELOW", F32(SHADING_FLAT_BELOW)),
+        ("SHADING_LIT_ABOVE", F32(SHADING_LIT_ABOVE)),
+        ("WORKGROUP_SIZE", U32(WORKGROUP_SIZE)),
+    ]
+}
+
+/// The WGSL declarations of [`prelude_constants`].
+pub fn prelude() -> String {
+    let mut out = String::from("// Generated from the Rust constants (render/src/shaders.rs).\n");
+    for (name, value) in prelude_constants() {
+        let line = match value {
+            // `{:?}` writes an integral f64 as `32.0`; `{:e}` writes `2e-4`: both are WGSL
+            // float literals of exactly the Rust value.
+            PreludeValue::F32(v) if v.fract() == 0.0 => format!("const {name}: f32 = {v:?};\n"),
+            PreludeValue::F32(v) => format!("const {name}: f32 = {v:e};\n"),
+            PreludeValue::U32(v) => format!("const {name}: u32 = {v}u;\n"),
+            PreludeValue::Bits(v) => format!("const {name}: u32 = {v:#010x}u;\n"),
+        };
+        out.push_str(&line);
+    }
+    out
+}
+
+fn compose(files: &[(&str, &str)]) -> String {
+    let mut out = prelude();
+    for (name, source) in files {
+        out.push_str(&format!("\n// ---- {name} ----\n"));
+        out.push_str(source);
+    }
+    out
+}
+
+/// The composed raycast shader: prelude, field files, the pass's files.
+pub fn raycast_source() -> &'static str {
+    static SOURCE: OnceLock<String> = OnceLock::new();
+    SOURCE.get_or_init(|| {
+        let files: Vec<(&str, &str)> = FIELD_FILES.iter().chain(&RAYCAST_FILES).copied().collect();
+        compose(&files)
+    })
+}
+
+/// Names of the `override` declarations of `wgsl`, from naga's IR; None if it does not parse
+/// (creating the module then reports the error).
+pub(crate) fn declared_overrides(wgsl: &str) -> Option<Vec<String>> {
+    let module = naga::front::wgsl::parse_str(wgsl).ok()?;
+    Some(
+        module
+            .overrides
+            .iter()
+            .filter_map(|(_, o)| o.name.clone())
+            .collect(),
+    )
+}
+
+/// [`declared_overrides`] of [`raycast_source`], parsed once.
+pub(crate) fn raycast_overrides() -> &'static [String] {
+    static OVERRIDES: OnceLock<Vec<String>> = OnceLock::new();
+    OVERRIDES.get_or_init(|| declared_overrides(raycast_source()).unwrap_or_default())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn parse_and_validate(wgsl: &str) -> naga::Module {
+        let module = naga::front::wgsl::parse_str(wgsl)
+            .unwrap_or_else(|e| panic!("{}", e.emit_to_string(wgsl)));
+        naga::valid::Validator::new(
+            naga::valid::ValidationFlags::all(),
+            naga::valid::Capabilities::default(),
+        )
+        .validate(&module)
+        .unwrap_or_else(|e| panic!("{}", e.emit_to_string(wgsl)));
+        module
+    }
+
+    #[test]
+    fn composed_shader_validates_and_its_prelude_has_the_rust_values() {
+        let module = parse_and_validate(raycast_source());
+        for (name, value) in prelude_constants() {
+            let (_, constant) = module
+                .constants
+                .iter()
+                .find(|(_, c)| c.name.as_deref() == Some(name))
+                .unwrap_or_else(|| panic!("{name} not in the composed shader"));
+            let literal = match module.global_expressions[constant.init] {
+                naga::Expression::Literal(l) => l,
+                ref e => panic!("{name} is {e:?}, not a literal"),
+            };
+            let expected = match value {
+                PreludeValue::F32(v) => naga::Literal::F32(v as f32),
+                PreludeValue::U32(v) | PreludeValue::Bits(v) => naga::Literal::U32(v),
+            };
+            assert_eq!(literal, expected, "{name}");
+        }
+    }
+}

@@ -1,0 +1,55 @@
+// The page table (page_table.rs; GpuPageTable writes binding 3): one u32 per level-0 brick
+// position, decoded into the covering node's level and its payload's place in the cache.
+// Bit layout (slot grid x | y << 8 | z << 16, level << 24, FLAG_*) as in PageEntry::encode.
+
+@group(0) @binding(3) var<storage, read> page_table: array<u32>;
+
+// One page entry decoded into the affine map from level-0 index to cache texel coordinate
+// (Eq. 1 of the mixed-resolution paper: x' = x · t_w + t with t_w = 2^-L).
+struct Page {
+    resident: bool,
+    empty: bool,
+    linear: u32,
+    cell: vec3<i32>,
+    level: u32,
+    inv_scale: f32,
+    offset: vec3<f32>,
+    // The node has a coarser neighbour (entry bit 31); its mask is read only then.
+    has_transition: bool,
+    transition: u32,
+    near_side_closure: u32,
+    // Level-0 index box of the node minus half a voxel on every side: a sample's side code is
+    // where it leaves this box.
+    inner_lo: vec3<f32>,
+    inner_hi: vec3<f32>,
+    // Ray distance at which the ray leaves this page cell (cached lookups only).
+    t_exit: f32,
+};
+
+fn cell_of(pc: vec3<f32>) -> vec3<i32> {
+    let last = vec3<i32>(P.pages.xyz) - vec3<i32>(1);
+    return clamp(vec3<i32>(floor((pc + vec3<f32>(0.5)) * (1.0 / CORE))), vec3<i32>(0), last);
+}
+
+// The page entry alone: where its node's payload sits (no transition data).
+fn decode_entry(cell: vec3<i32>) -> Page {
+    var pg: Page;
+    let c = vec3<u32>(cell);
+    pg.cell = cell;
+    pg.linear = c.x + P.pages.x * (c.y + P.pages.y * c.z);
+    let e = page_table[pg.linear];
+    pg.resident = (e & FLAG_NOT_RESIDENT) == 0u;
+    pg.empty = (e & FLAG_EMPTY) != 0u;
+    pg.has_transition = (e & FLAG_TRANSITION) != 0u;
+    pg.level = (e >> 24u) & 31u;
+    pg.inv_scale = 1.0 / f32(1u << pg.level);
+    let node = c >> vec3<u32>(pg.level);
+    // The entry stores the slot's grid position (8 bits per axis), not its index: no integer
+    // division per lookup (scalarised and slow on CPU rasterisers such as lavapipe).
+    let slot_xyz = vec3<u32>(e & 0xffu, (e >> 8u) & 0xffu, (e >> 16u) & 0xffu);
+    // Level-L voxel i is centred at level-0 index (i + 0.5)·2^L - 0.5 (cell-centred octree):
+    // q = (p + 0.5)·2^-L - 0.5, local = q - (32·node - 2), coord = slot·36 + local.
+    pg.offset = vec3<f32>(slot_xyz * PAYLOAD) - (vec3<f32>(node) * CORE - vec3<f32>(APRON))
+        + vec3<f32>(0.5 * pg.inv_scale - 0.5);
+    return pg;
+}
