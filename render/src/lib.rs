@@ -21,6 +21,8 @@ pub mod page_table;
 pub mod phantom;
 pub mod pipelines;
 pub mod preintegration;
+#[cfg(feature = "test-probe")]
+pub mod probe;
 pub mod raycast;
 mod readback_ring;
 pub mod reference;

@@ -60,7 +60,7 @@ pub struct VisibilityFrame {
 
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct Params {
+pub(crate) struct Params {
     eye_idx: [f32; 4],
     right_idx: [f32; 4],
     up_idx: [f32; 4],
@@ -118,9 +118,9 @@ struct VisibilityBuffers {
 pub struct Raycaster {
     /// The compiled effect combinations, their layout and shader module.
     pipelines: Pipelines,
-    params: wgpu::Buffer,
-    sampler: wgpu::Sampler,
-    filterable: bool,
+    pub(crate) params: wgpu::Buffer,
+    pub(crate) sampler: wgpu::Sampler,
+    pub(crate) filterable: bool,
     counter: wgpu::Buffer,
     counter_readback: wgpu::Buffer,
     targets: Option<Targets>,
@@ -141,7 +141,10 @@ pub struct Raycaster {
     submit_to_done_timings: Vec<FrameTiming>,
 }
 
-fn map_blocking(device: &wgpu::Device, buffer: &wgpu::Buffer) -> Result<(), RenderError> {
+pub(crate) fn map_blocking(
+    device: &wgpu::Device,
+    buffer: &wgpu::Buffer,
+) -> Result<(), RenderError> {
     let (tx, rx) = std::sync::mpsc::channel();
     buffer.map_async(wgpu::MapMode::Read, .., move |r| {
         let _ = tx.send(r);
@@ -385,7 +388,7 @@ impl Raycaster {
 
     /// The bindings that define the sampled field (parameters, cache, sampler, page table,
     /// transition masks): shared by the raycast pass and the field probe.
-    fn field_entries<'a>(
+    pub(crate) fn field_entries<'a>(
         params: &'a wgpu::Buffer,
         sampler: &'a wgpu::Sampler,
         scene: &'a Scene,
@@ -412,156 +415,6 @@ impl Raycaster {
                 resource: scene.page_table.transitions.as_entire_binding(),
             },
         ]
-    }
-
-    /// The field the raycaster samples, read back at level-0 index `points` (physical units;
-    /// NaN where nothing is resident): the same `field()` of raycast.wgsl, run by a small
-    /// compute entry point. For tests of continuity and of GPU-vs-reference sampling.
-    pub fn probe_field(
-        &mut self,
-        ctx: &GpuContext,
-        scene: &Scene,
-        points: &[[f32; 3]],
-    ) -> Result<Vec<f32>, RenderError> {
-        if points.is_empty() {
-            return Ok(Vec::new());
-        }
-        let device = &ctx.device;
-        let key = self.key_for_scene(scene);
-        let entry = |binding: u32, ty: wgpu::BindingType| wgpu::BindGroupLayoutEntry {
-            binding,
-            visibility: wgpu::ShaderStages::COMPUTE,
-            ty,
-            count: None,
-        };
-        let storage = |read_only: bool| wgpu::BindingType::Buffer {
-            ty: wgpu::BufferBindingType::Storage { read_only },
-            has_dynamic_offset: false,
-            min_binding_size: None,
-        };
-        let filterable = self.filterable;
-        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("field probe"),
-            entries: &[
-                entry(
-                    0,
-                    wgpu::BindingType::Buffer {
-                        ty: wgpu::BufferBindingType::Uniform,
-                        has_dynamic_offset: false,
-                        min_binding_size: None,
-                    },
-                ),
-                entry(
-                    1,
-                    wgpu::BindingType::Texture {
-                        sample_type: wgpu::TextureSampleType::Float { filterable },
-                        view_dimension: wgpu::TextureViewDimension::D3,
-                        multisampled: false,
-                    },
-                ),
-                entry(
-                    2,
-                    wgpu::BindingType::Sampler(if filterable {
-                        wgpu::SamplerBindingType::Filtering
-                    } else {
-                        wgpu::SamplerBindingType::NonFiltering
-                    }),
-                ),
-                entry(3, storage(true)),
-                entry(11, storage(true)),
-                entry(12, storage(true)),
-                entry(13, storage(false)),
-            ],
-        });
-        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-            label: Some("field probe"),
-            bind_group_layouts: &[Some(&layout)],
-            immediate_size: 0,
-        });
-        let b = |v: bool| if v { 1.0 } else { 0.0 };
-        let constants: Vec<(&str, f64)> = [
-            ("MANUAL_TRILINEAR", b(key.manual_trilinear)),
-            ("SMOOTH_TRANSITIONS", b(key.smooth_transitions)),
-        ]
-        .into_iter()
-        .filter(|(name, _)| self.pipelines.declared_overrides.contains(name))
-        .collect();
-        let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-            label: Some("field probe"),
-            layout: Some(&pipeline_layout),
-            module: &self.pipelines.module,
-            entry_point: Some("probe"),
-            compilation_options: wgpu::PipelineCompilationOptions {
-                constants: &constants,
-                zero_initialize_workgroup_memory: false,
-            },
-            cache: None,
-        });
-        let params = build_params(scene);
-        ctx.queue
-            .write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
-        let padded: Vec<[f32; 4]> = points.iter().map(|p| [p[0], p[1], p[2], 0.0]).collect();
-        let points_buffer = wgpu::util::DeviceExt::create_buffer_init(
-            device,
-            &wgpu::util::BufferInitDescriptor {
-                label: Some("probe points"),
-                contents: bytemuck::cast_slice(&padded),
-                usage: wgpu::BufferUsages::STORAGE,
-            },
-        );
-        let bytes = points.len() as u64 * 4;
-        let values = device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("probe values"),
-            size: bytes,
-            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
-            mapped_at_creation: false,
-        });
-        let readback = device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("probe readback"),
-            size: bytes,
-            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
-        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("field probe"),
-            layout: &layout,
-            entries: &Self::field_entries(&self.params, &self.sampler, scene)
-                .into_iter()
-                .chain([
-                    wgpu::BindGroupEntry {
-                        binding: 12,
-                        resource: points_buffer.as_entire_binding(),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 13,
-                        resource: values.as_entire_binding(),
-                    },
-                ])
-                .collect::<Vec<_>>(),
-        });
-        let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
-            label: Some("field probe"),
-        });
-        {
-            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: Some("field probe"),
-                timestamp_writes: None,
-            });
-            pass.set_pipeline(&pipeline);
-            pass.set_bind_group(0, &bind_group, &[]);
-            pass.dispatch_workgroups((points.len() as u32).div_ceil(64), 1, 1);
-        }
-        encoder.copy_buffer_to_buffer(&values, 0, &readback, 0, bytes);
-        ctx.queue.submit([encoder.finish()]);
-        map_blocking(device, &readback)?;
-        let out = {
-            let view = readback
-                .get_mapped_range(..)
-                .map_err(|e| RenderError::Readback(e.to_string()))?;
-            bytemuck::cast_slice::<u8, f32>(&view).to_vec()
-        };
-        readback.unmap();
-        Ok(out)
     }
 
     /// The effects a frame of `scene` compiles in: [`Raycaster::key_for`] its settings, with
@@ -948,7 +801,7 @@ fn v4(v: DVec3, w: f64) -> [f32; 4] {
 
 /// Everything is converted from f64 here, once per frame, so the shader works in index space
 /// with well-conditioned f32 values.
-fn build_params(scene: &Scene) -> Params {
+pub(crate) fn build_params(scene: &Scene) -> Params {
     let g = scene.geometry;
     let s = scene.settings;
     let a = g.index_from_patient_linear();

@@ -7,7 +7,7 @@
 //! `page_table.wgsl` ↔ page_table.rs, `smooth_transitions.wgsl` ↔ smooth_transitions.rs,
 //! `field.wgsl` ↔ field.rs, `transfer_function.wgsl` ↔ transfer_function.rs,
 //! `preintegration.wgsl` ↔ preintegration.rs, `raycast.wgsl` (entry point and ray loop) ↔
-//! raycast.rs.
+//! raycast.rs; `probe.wgsl` ↔ probe.rs, composed into a test-only module of its own.
 //!
 //! The effect overrides a source declares are read from naga's IR of it
 //! ([`declared_overrides`]); the default source is composed and parsed once per process.
@@ -31,7 +31,7 @@ const FIELD_FILES: [(&str, &str); 4] = [
 ];
 
 /// The raycast pass's own files, after [`FIELD_FILES`].
-const RAYCAST_FILES: [(&str, &str); 4] = [
+const RAYCAST_FILES: [(&str, &str); 3] = [
     (
         "transfer_function.wgsl",
         include_str!("shaders/transfer_function.wgsl"),
@@ -41,7 +41,6 @@ const RAYCAST_FILES: [(&str, &str); 4] = [
         include_str!("shaders/preintegration.wgsl"),
     ),
     ("raycast.wgsl", include_str!("shaders/raycast.wgsl")),
-    ("probe.wgsl", include_str!("shaders/probe.wgsl")),
 ];
 
 /// A prelude constant's WGSL type and value.
@@ -98,13 +97,17 @@ fn compose(files: &[(&str, &str)]) -> String {
     out
 }
 
-/// The composed raycast shader: prelude, field files, the pass's files.
+/// A shader that samples the field: prelude, field files, then `files`.
+pub(crate) fn compose_with_field(files: &[(&str, &str)]) -> String {
+    let all: Vec<(&str, &str)> = FIELD_FILES.iter().chain(files).copied().collect();
+    compose(&all)
+}
+
+/// The composed raycast shader: prelude, field files, the pass's files. The test probe
+/// (probe.rs) is a module of its own and not in here.
 pub fn raycast_source() -> &'static str {
     static SOURCE: OnceLock<String> = OnceLock::new();
-    SOURCE.get_or_init(|| {
-        let files: Vec<(&str, &str)> = FIELD_FILES.iter().chain(&RAYCAST_FILES).copied().collect();
-        compose(&files)
-    })
+    SOURCE.get_or_init(|| compose_with_field(&RAYCAST_FILES))
 }
 
 /// Names of the `override` declarations of `wgsl`, from naga's IR; None if it does not parse
@@ -161,5 +164,12 @@ mod tests {
             };
             assert_eq!(literal, expected, "{name}");
         }
+        // The production shader has the raycast entry point only (the probe is test-only).
+        let entry_points: Vec<&str> = module
+            .entry_points
+            .iter()
+            .map(|e| e.name.as_str())
+            .collect();
+        assert_eq!(entry_points, ["main"]);
     }
 }
