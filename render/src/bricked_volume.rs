@@ -8,6 +8,7 @@ use crate::cache::BrickCache;
 use crate::error::RenderError;
 use crate::layout::{BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD, BRICK_PAYLOAD_VOXELS, MAX_SLOTS};
 use crate::page_table::{PageEntry, PageTable};
+use crate::transfer_function::TransferFunctionTable;
 use strata_types::{ValueMapping, VolumeGeometry};
 
 /// Defined in layout.rs (the seam every CPU-side reader uses); kept here so existing paths
@@ -255,11 +256,7 @@ impl BrickedVolume {
     }
 
     /// Marks entries transparent under `table` (TF) as empty.
-    pub fn classify_empty(
-        &self,
-        page_table: &mut PageTable,
-        tf_table: &crate::TransferFunctionTable,
-    ) {
+    pub fn classify_empty(&self, page_table: &mut PageTable, tf_table: &TransferFunctionTable) {
         page_table.classify_empty(tf_table, self.mapping, |l, n| self.node_range(l, n));
     }
 }

@@ -12,6 +12,7 @@ pub mod device;
 pub mod error;
 pub mod field;
 pub mod gpu_page_table;
+mod gpu_preintegration;
 pub mod gpu_timing;
 pub mod gpu_transfer_function;
 pub mod layout;

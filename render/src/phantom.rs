@@ -5,6 +5,7 @@ use glam::DVec3;
 
 use crate::bricked_volume::BrickedVolume;
 use crate::error::RenderError;
+use crate::transfer_function::TransferFunction;
 use strata_types::{ValueMapping, VolumeGeometry};
 
 /// CT stored values are HU + 1024 (slope 1, intercept -1024), as in most DICOM CT.
@@ -100,8 +101,8 @@ pub fn vtk_peer_phantom(n: u32) -> Result<BrickedVolume, RenderError> {
 }
 
 /// The peer benchmark's transfer function (vtkColorTransferFunction + vtkPiecewiseFunction).
-pub fn vtk_peer_transfer_function() -> crate::TransferFunction {
-    crate::TransferFunction::new(
+pub fn vtk_peer_transfer_function() -> TransferFunction {
+    TransferFunction::new(
         "vtk-peer",
         &[(0.0, 0.0), (60.0, 0.0), (120.0, 0.05), (255.0, 0.4)],
         &[

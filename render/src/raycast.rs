@@ -1,6 +1,11 @@
-//! The raycast pass: a compute shader (shaders/raycast.wgsl, composed by shaders.rs) writing an RGBA8 storage texture,
-//! a first-hit depth buffer, the per-page visibility buffer, and an optional sample counter.
-//! One pipeline per combination of used effects (override constants), compiled on first use.
+//! The raycast pass: one compute dispatch of the composed raycast shader (shaders.rs;
+//! entry point and ray loop in shaders/raycast.wgsl) writing an RGBA8 storage texture, a
+//! first-hit depth buffer, the per-page visibility buffer and an optional sample counter.
+//! [`Raycaster`] holds the pass: parameters ([`Scene`] → `Params`), bind group, dispatch, and
+//! the readbacks (blocking for tests and the CLI; visibility and timings through the readback
+//! ring, 1-2 frames late). Pipelines per effect combination are pipelines.rs; the GPU
+//! resources a scene points at are gpu_page_table.rs, gpu_transfer_function.rs and
+//! gpu_preintegration.rs.
 
 use glam::DVec3;
 
@@ -8,13 +13,13 @@ use crate::cache::BrickCache;
 use crate::camera::Camera;
 use crate::device::GpuContext;
 use crate::error::RenderError;
+use crate::gpu_preintegration::GpuPreintegration;
 use crate::gpu_timing::{FrameTiming, FrameTimingSource, PassTimestamps};
 use crate::layout::WORKGROUP_SIZE;
 use crate::pipelines::Pipelines;
 use crate::readback_ring::ReadbackRing;
 use crate::settings::{RenderMode, RenderSettings};
 use crate::shaders;
-use crate::transfer_function::TransferFunction;
 use strata_types::{ValueMapping, VolumeGeometry};
 
 /// The GPU resources a [`Scene`] points at (own modules; kept here so existing paths resolve).
@@ -82,21 +87,6 @@ pub(crate) struct Params {
     slots: [u32; 4],
 }
 
-/// What a pre-integration table was built for; a change of any part rebuilds it.
-#[derive(Clone, Debug)]
-struct PreintegrationKey {
-    transfer_function: TransferFunction,
-    lo: f64,
-    hi: f64,
-    segment_mm: f64,
-    unit_mm: f64,
-}
-
-struct PreintegrationTexture {
-    key: PreintegrationKey,
-    view: wgpu::TextureView,
-}
-
 struct Targets {
     width: u32,
     height: u32,
@@ -133,8 +123,7 @@ pub struct Raycaster {
     pub compile_in_background: bool,
     /// The pre-integrated TF table of the last pre-integrated frame (rebuilt when the TF, its
     /// range or the step changes), and a 1×1 stand-in bound when a pipeline does not use it.
-    preintegration: Option<PreintegrationTexture>,
-    preintegration_unused: wgpu::TextureView,
+    preintegration: GpuPreintegration,
     /// None when the device has no `TIMESTAMP_QUERY`: then `render_measured` times on the CPU.
     timestamps: Option<PassTimestamps>,
     last_submit_at: Option<std::time::Instant>,
@@ -231,8 +220,7 @@ impl Raycaster {
             frame_number: 0,
             last_key: None,
             compile_in_background: false,
-            preintegration: None,
-            preintegration_unused: table_texture(device, &ctx.queue, 1, &[[0.0; 4]]),
+            preintegration: GpuPreintegration::new(device, &ctx.queue),
             timestamps: PassTimestamps::new(device, &ctx.queue),
             last_submit_at: None,
             submit_to_done_timings: Vec::new(),
@@ -426,39 +414,17 @@ impl Raycaster {
     }
 
     /// Builds the pre-integration table for this scene's TF and base step unless the last one
-    /// still fits. Integrating 256² segments takes tens of milliseconds on two cores, so it
-    /// happens only when the TF, its range or the step changes, not per frame.
+    /// still fits (gpu_preintegration.rs).
     fn ensure_preintegration(&mut self, ctx: &GpuContext, scene: &Scene) {
         let unit_mm = scene.geometry.finest_spacing_mm();
-        let tf = scene.transfer_function;
         let segment_mm = scene.settings.quality * unit_mm;
-        // Compared field by field so a frame that reuses the table clones nothing.
-        if self.preintegration.as_ref().is_some_and(|p| {
-            p.key.transfer_function == tf.source
-                && p.key.lo == tf.lo
-                && p.key.hi == tf.hi
-                && p.key.segment_mm == segment_mm
-                && p.key.unit_mm == unit_mm
-        }) {
-            return;
-        }
-        let key = PreintegrationKey {
-            transfer_function: tf.source.clone(),
-            lo: tf.lo,
-            hi: tf.hi,
+        self.preintegration.ensure(
+            &ctx.device,
+            &ctx.queue,
+            scene.transfer_function,
             segment_mm,
             unit_mm,
-        };
-        let table = crate::preintegration::PreintegrationTable::build(
-            &key.transfer_function,
-            key.lo,
-            key.hi,
-            key.segment_mm,
-            key.unit_mm,
-            crate::preintegration::PREINTEGRATION_SIZE,
         );
-        let view = table_texture(&ctx.device, &ctx.queue, table.size, &table.rgba);
-        self.preintegration = Some(PreintegrationTexture { key, view });
     }
 
     /// Encodes and submits one frame. Never waits for the GPU. Also queues a copy of this
@@ -552,10 +518,7 @@ impl Raycaster {
                     wgpu::BindGroupEntry {
                         binding: 10,
                         resource: wgpu::BindingResource::TextureView(
-                            match (&self.preintegration, key.preintegrated) {
-                                (Some(table), true) => &table.view,
-                                _ => &self.preintegration_unused,
-                            },
+                            self.preintegration.view(key.preintegrated),
                         ),
                     },
                 ])
@@ -877,45 +840,4 @@ pub(crate) fn build_params(scene: &Scene) -> Params {
             0,
         ],
     }
-}
-
-/// A square Rgba32Float texture of `size`² entries (row = back value, column = front value),
-/// read with textureLoad: exact f32 and no float-filtering feature needed.
-fn table_texture(
-    device: &wgpu::Device,
-    queue: &wgpu::Queue,
-    size: u32,
-    rgba: &[[f32; 4]],
-) -> wgpu::TextureView {
-    let extent = wgpu::Extent3d {
-        width: size,
-        height: size,
-        depth_or_array_layers: 1,
-    };
-    let texture = device.create_texture(&wgpu::TextureDescriptor {
-        label: Some("pre-integrated transfer function"),
-        size: extent,
-        mip_level_count: 1,
-        sample_count: 1,
-        dimension: wgpu::TextureDimension::D2,
-        format: wgpu::TextureFormat::Rgba32Float,
-        usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
-        view_formats: &[],
-    });
-    queue.write_texture(
-        wgpu::TexelCopyTextureInfo {
-            texture: &texture,
-            mip_level: 0,
-            origin: wgpu::Origin3d::ZERO,
-            aspect: wgpu::TextureAspect::All,
-        },
-        bytemuck::cast_slice(rgba),
-        wgpu::TexelCopyBufferLayout {
-            offset: 0,
-            bytes_per_row: Some(size * 16),
-            rows_per_image: None,
-        },
-        extent,
-    );
-    texture.create_view(&wgpu::TextureViewDescriptor::default())
 }

@@ -10,7 +10,7 @@
 //! raycast.rs; `probe.wgsl` ↔ probe.rs, composed into a test-only module of its own.
 //!
 //! The effect overrides a source declares are read from naga's IR of it
-//! ([`declared_overrides`]); the default source is composed and parsed once per process.
+//! (`declared_overrides`); the default source is composed and parsed once per process.
 
 use std::sync::OnceLock;
 
@@ -71,7 +71,7 @@ pub(crate) fn prelude_constants() -> [(&'static str, PreludeValue); 9] {
     ]
 }
 
-/// The WGSL declarations of [`prelude_constants`].
+/// The WGSL declarations of every constant the shader shares with Rust (`prelude_constants`).
 pub fn prelude() -> String {
     let mut out = String::from("// Generated from the Rust constants (render/src/shaders.rs).\n");
     for (name, value) in prelude_constants() {
