@@ -1,9 +1,49 @@
 //! strata-render: the wgpu raycaster and its f64 CPU reference. Knows nothing of sled or the loader.
 //!
-//! The sampled field is defined once, on the CPU side, by a [`PageTable`] plus bricks
-//! ([`BrickSource`]): the GPU raycaster (`raycast.rs` + `shaders/raycast.wgsl`) and the f64
-//! reference (`reference.rs`) both integrate exactly that field, so every GPU pixel can be
-//! checked against ground truth, including mixed-level cuts.
+//! The sampled field is defined once ([`field`]) over a [`PageTable`] plus bricks
+//! ([`BrickSource`]): the GPU raycaster (its WGSL twin `shaders/field.wgsl`, composed by
+//! [`shaders`]) and the f64 reference ([`mod@reference`]) both integrate exactly that field, so
+//! every GPU pixel can be checked against ground truth, mixed-level cuts and smooth
+//! transitions included.
+//!
+//! # Modules, as a DAG
+//! Each module uses only modules on earlier lines (via `crate::`); no cycles.
+//!
+//! ```text
+//! error, camera, layout          (layout: brick sizes, page-word bits, slot limits,
+//!                                 neighbour-mask bits, shading thresholds, BrickSource)
+//! settings, transfer_function, metrics, device       → error
+//! CPU side
+//!   page_table          → layout, transfer_function, error      (topology, coarser neighbours)
+//!   smooth_transitions  → page_table, layout                    (masks, near-side closure)
+//!   field               → page_table, layout                    (the one field definition)
+//!   reference           → field, smooth_transitions, page_table, layout, camera, settings,
+//!                         transfer_function, error              (f64 renderer)
+//!   preintegration      → transfer_function
+//!   cache               → layout, error
+//!   bricked_volume      → cache, page_table, layout, transfer_function, error
+//!   phantom             → bricked_volume, transfer_function, error
+//! GPU side
+//!   shaders             → layout       (composed WGSL, generated constants prelude, naga)
+//!   pipelines           → settings     (PipelineKey, bind-group layout, cache, compiler)
+//!   readback_ring                      (staging ring read 1-2 frames late)
+//!   gpu_timing          → readback_ring
+//!   gpu_page_table      → page_table, smooth_transitions, cache, layout, error
+//!   gpu_transfer_function → transfer_function
+//!   gpu_preintegration  → gpu_transfer_function, preintegration, transfer_function
+//!   raycast             → shaders, pipelines, gpu_page_table, gpu_transfer_function,
+//!                         gpu_preintegration, gpu_timing, readback_ring, cache, camera,
+//!                         device, layout, settings, error       (the pass)
+//!   probe               → raycast, shaders, device, error       (feature test-probe)
+//!   offscreen           → raycast, gpu_page_table, gpu_transfer_function, bricked_volume,
+//!                         cache, page_table, camera, device, settings, transfer_function, error
+//!   time_critical       → gpu_timing, settings
+//! ```
+//!
+//! Older paths stay valid through re-exports that add no dependency of their own except one:
+//! `smooth_transitions` re-exports the blend and `sample_field` from `field` (which does not
+//! use `smooth_transitions`), so `smooth_transitions::sample_field` still resolves. Tests add
+//! `pipelines` → `shaders`.
 
 pub mod bricked_volume;
 pub mod cache;
