@@ -1,0 +1,391 @@
+//! Tidy checks in the spirit of rust-analyzer's: the architecture's invariants as tests that
+//! read the repository itself, so a change that breaks one fails CI instead of a review.
+//!
+//! - Dependency lists: render depends on neither storage nor loader (nor on sled, or anything
+//!   else that does I/O on the store); storage and the shared types know nothing of GPUs; the
+//!   shared types crate stays small.
+//! - Module graphs: no module cycle inside any crate (a module and its own ancestors excepted:
+//!   a parent declares its children and a child may use what its parent defines).
+//!
+//! `cargo test -p strata-e2e --test tidy -- --nocapture` prints each crate's module graph.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::fs;
+use std::path::{Path, PathBuf};
+
+fn repo_root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .expect("tests/ sits inside the workspace")
+        .to_path_buf()
+}
+
+/// Names of every dependency a manifest lists under `[dependencies]` or a
+/// `[target.'…'.dependencies]` table (not dev- or build-dependencies). Enough TOML for our
+/// manifests: one `name = …` or `name.workspace = true` per line.
+fn normal_dependencies(manifest: &Path) -> BTreeSet<String> {
+    let text =
+        fs::read_to_string(manifest).unwrap_or_else(|e| panic!("{}: {e}", manifest.display()));
+    let mut in_deps = false;
+    let mut deps = BTreeSet::new();
+    for line in text.lines() {
+        let line = line.trim();
+        if line.starts_with('[') {
+            let table = line.trim_matches(|c| c == '[' || c == ']');
+            in_deps = table == "dependencies"
+                || (table.starts_with("target.") && table.ends_with(".dependencies"));
+            continue;
+        }
+        if !in_deps || line.is_empty() || line.starts_with('#') {
+            continue;
+        }
+        let key = line.split(['=', '.']).next().unwrap_or("").trim();
+        if !key.is_empty() {
+            deps.insert(key.to_string());
+        }
+    }
+    deps
+}
+
+/// Every workspace crate a crate reaches through normal dependencies, itself excluded.
+fn workspace_closure(dir: &str) -> BTreeSet<String> {
+    let crate_dirs: BTreeMap<&str, &str> = [
+        ("strata-types", "types"),
+        ("strata-storage", "storage"),
+        ("strata-loader", "loader"),
+        ("strata-render", "render"),
+        ("strata-app", "app"),
+    ]
+    .into_iter()
+    .collect();
+    let mut seen = BTreeSet::new();
+    let mut stack = vec![dir.to_string()];
+    while let Some(d) = stack.pop() {
+        for dep in normal_dependencies(&repo_root().join(&d).join("Cargo.toml")) {
+            if let Some(dep_dir) = crate_dirs.get(dep.as_str()) {
+                if seen.insert(dep.clone()) {
+                    stack.push(dep_dir.to_string());
+                }
+            }
+        }
+    }
+    seen
+}
+
+fn assert_none_of(crate_dir: &str, direct: &BTreeSet<String>, forbidden: &[&str], why: &str) {
+    let found: Vec<_> = forbidden.iter().filter(|f| direct.contains(**f)).collect();
+    assert!(
+        found.is_empty(),
+        "{crate_dir}/Cargo.toml depends on {found:?}: {why} (ARCHITECTURE.md, Invariants)"
+    );
+}
+
+#[test]
+fn render_depends_on_neither_storage_nor_loader() {
+    let closure = workspace_closure("render");
+    for forbidden in ["strata-storage", "strata-loader", "strata-app"] {
+        assert!(
+            !closure.contains(forbidden),
+            "strata-render reaches {forbidden} (through {closure:?}): render takes bricks as \
+             &[u16] and geometry from strata-types, never from the store"
+        );
+    }
+    let direct = normal_dependencies(&repo_root().join("render/Cargo.toml"));
+    assert_none_of(
+        "render",
+        &direct,
+        &[
+            "sled",
+            "lz4_flex",
+            "memmap2",
+            "dicom-object",
+            "eframe",
+            "egui",
+        ],
+        "render knows nothing of the store's format or the UI",
+    );
+}
+
+#[test]
+fn storage_and_types_know_nothing_of_gpus() {
+    for dir in ["storage", "types"] {
+        let closure = workspace_closure(dir);
+        for forbidden in ["strata-render", "strata-loader", "strata-app"] {
+            assert!(
+                !closure.contains(forbidden),
+                "{dir} reaches {forbidden}: storage and the shared types have no GPU side"
+            );
+        }
+        let direct = normal_dependencies(&repo_root().join(dir).join("Cargo.toml"));
+        assert_none_of(
+            dir,
+            &direct,
+            &["wgpu", "naga", "eframe", "egui", "pollster"],
+            "no GPU or UI dependency below the loader",
+        );
+    }
+}
+
+#[test]
+fn shared_types_stay_small() {
+    let direct = normal_dependencies(&repo_root().join("types/Cargo.toml"));
+    let allowed: BTreeSet<String> = ["glam", "serde", "thiserror"]
+        .into_iter()
+        .map(String::from)
+        .collect();
+    let extra: Vec<_> = direct.difference(&allowed).collect();
+    assert!(
+        extra.is_empty(),
+        "types/Cargo.toml gained {extra:?}: every crate builds on strata-types, so each \
+         dependency there is paid everywhere; put it in the crate that needs it"
+    );
+}
+
+/// Module path of a source file: `src/lib.rs` → "", `src/bench/accuracy.rs` → "bench::accuracy",
+/// `src/viewer/mod.rs` → "viewer".
+fn module_of(src: &Path, file: &Path) -> String {
+    let rel = file
+        .strip_prefix(src)
+        .expect("file under src")
+        .with_extension("");
+    let parts: Vec<String> = rel
+        .components()
+        .map(|c| c.as_os_str().to_string_lossy().into_owned())
+        .collect();
+    let parts: Vec<&str> = match parts.as_slice() {
+        [only] if only == "lib" || only == "main" => vec![],
+        [rest @ .., last] if last == "mod" => rest.iter().map(String::as_str).collect(),
+        all => all.iter().map(String::as_str).collect(),
+    };
+    parts.join("::")
+}
+
+fn rust_files(dir: &Path, out: &mut Vec<PathBuf>) {
+    let Ok(entries) = fs::read_dir(dir) else {
+        return;
+    };
+    for entry in entries.flatten() {
+        let path = entry.path();
+        if path.is_dir() {
+            rust_files(&path, out);
+        } else if path.extension().is_some_and(|e| e == "rs") {
+            out.push(path);
+        }
+    }
+}
+
+/// Paths a file names from `crate::` or `super::`, as module-path segment lists (grouped
+/// imports `crate::{a::X, b}` yield `a::X` and `b`). Comments are skipped.
+fn referenced_paths(module: &str, text: &str) -> Vec<Vec<String>> {
+    let mut out = Vec::new();
+    let code: String = text
+        .lines()
+        .map(|l| match l.find("//") {
+            Some(i) => &l[..i],
+            None => l,
+        })
+        .collect::<Vec<_>>()
+        .join("\n");
+    let bytes = code.as_bytes();
+    let ident_end = |mut i: usize| {
+        while i < bytes.len() && (bytes[i].is_ascii_alphanumeric() || bytes[i] == b'_') {
+            i += 1;
+        }
+        i
+    };
+    let parent: Vec<String> = {
+        let mut p: Vec<String> = module
+            .split("::")
+            .filter(|s| !s.is_empty())
+            .map(String::from)
+            .collect();
+        p.pop();
+        p
+    };
+    for (root, base) in [("crate::", Vec::new()), ("super::", parent)] {
+        let mut from = 0;
+        while let Some(pos) = code[from..].find(root) {
+            let start = from + pos;
+            from = start + root.len();
+            if start > 0 && (bytes[start - 1].is_ascii_alphanumeric() || bytes[start - 1] == b'_') {
+                continue;
+            }
+            // One path, or a `{…}` group of paths one level deep.
+            let mut heads = Vec::new();
+            if bytes.get(from) == Some(&b'{') {
+                let mut depth = 0;
+                let mut i = from;
+                let mut item_start = from + 1;
+                while i < bytes.len() {
+                    match bytes[i] {
+                        b'{' => depth += 1,
+                        b'}' => {
+                            depth -= 1;
+                            if depth == 0 {
+                                heads.push(item_start);
+                                break;
+                            }
+                        }
+                        b',' if depth == 1 => {
+                            heads.push(item_start);
+                            item_start = i + 1;
+                        }
+                        _ => {}
+                    }
+                    i += 1;
+                }
+            } else {
+                heads.push(from);
+            }
+            for head in heads {
+                let mut segments = base.clone();
+                let mut i = head;
+                while i < bytes.len() && bytes[i].is_ascii_whitespace() {
+                    i += 1;
+                }
+                loop {
+                    let end = ident_end(i);
+                    if end == i {
+                        break;
+                    }
+                    segments.push(code[i..end].to_string());
+                    if code[end..].starts_with("::") {
+                        i = end + 2;
+                    } else {
+                        break;
+                    }
+                }
+                if segments.len() > base.len() {
+                    out.push(segments);
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Module → modules it uses, for one crate's `src/`.
+fn module_graph(crate_dir: &str) -> BTreeMap<String, BTreeSet<String>> {
+    let src = repo_root().join(crate_dir).join("src");
+    let mut files = Vec::new();
+    rust_files(&src, &mut files);
+    let modules: BTreeSet<String> = files.iter().map(|f| module_of(&src, f)).collect();
+    let is_ancestor = |a: &str, b: &str| a.is_empty() || b.starts_with(&format!("{a}::"));
+    let mut graph = BTreeMap::new();
+    for file in &files {
+        let module = module_of(&src, file);
+        let text = fs::read_to_string(file).unwrap_or_else(|e| panic!("{}: {e}", file.display()));
+        let mut uses = BTreeSet::new();
+        for path in referenced_paths(&module, &text) {
+            // The longest prefix that is a module of this crate.
+            let target = (1..=path.len())
+                .rev()
+                .map(|n| path[..n].join("::"))
+                .find(|p| modules.contains(p));
+            if let Some(target) = target {
+                if target != module
+                    && !is_ancestor(&target, &module)
+                    && !is_ancestor(&module, &target)
+                {
+                    uses.insert(target);
+                }
+            }
+        }
+        graph.insert(module, uses);
+    }
+    graph
+}
+
+/// A cycle in the graph, if any, as the modules along it.
+fn find_cycle(graph: &BTreeMap<String, BTreeSet<String>>) -> Option<Vec<String>> {
+    fn visit(
+        node: &str,
+        graph: &BTreeMap<String, BTreeSet<String>>,
+        state: &mut BTreeMap<String, u8>,
+        stack: &mut Vec<String>,
+    ) -> Option<Vec<String>> {
+        state.insert(node.to_string(), 1);
+        stack.push(node.to_string());
+        for next in graph.get(node).into_iter().flatten() {
+            match state.get(next.as_str()).copied().unwrap_or(0) {
+                1 => {
+                    let from = stack.iter().position(|s| s == next).unwrap_or(0);
+                    let mut cycle = stack[from..].to_vec();
+                    cycle.push(next.clone());
+                    return Some(cycle);
+                }
+                0 => {
+                    if let Some(c) = visit(next, graph, state, stack) {
+                        return Some(c);
+                    }
+                }
+                _ => {}
+            }
+        }
+        stack.pop();
+        state.insert(node.to_string(), 2);
+        None
+    }
+    let mut state = BTreeMap::new();
+    for node in graph.keys() {
+        if state.get(node.as_str()).copied().unwrap_or(0) == 0 {
+            let mut stack = Vec::new();
+            if let Some(c) = visit(node, graph, &mut state, &mut stack) {
+                return Some(c);
+            }
+        }
+    }
+    None
+}
+
+#[test]
+fn no_module_cycles_in_any_crate() {
+    let mut cycles = Vec::new();
+    for crate_dir in ["types", "storage", "loader", "render", "app"] {
+        let graph = module_graph(crate_dir);
+        println!("{crate_dir}:");
+        for (module, uses) in &graph {
+            let name = if module.is_empty() { "(root)" } else { module };
+            let uses: Vec<&str> = uses.iter().map(String::as_str).collect();
+            println!("  {name} -> {}", uses.join(", "));
+        }
+        if let Some(cycle) = find_cycle(&graph) {
+            cycles.push(format!("{crate_dir}: {}", cycle.join(" -> ")));
+        }
+    }
+    assert!(
+        cycles.is_empty(),
+        "module cycles ({}); move what both sides need into a module of its own",
+        cycles.join("; ")
+    );
+}
+
+#[test]
+fn the_cycle_finder_finds_cycles_and_reads_grouped_imports() {
+    // The checker itself must be able to fail.
+    let paths = referenced_paths(
+        "bench::transitions",
+        "use super::accuracy::{self, median};\nuse crate::{cmd_render::parse_size, bench};\n// crate::ignored\n",
+    );
+    let strings = |p: &[&str]| p.iter().map(|s| s.to_string()).collect::<Vec<_>>();
+    assert!(
+        paths.contains(&strings(&["bench", "accuracy"])),
+        "{paths:?}"
+    );
+    assert!(
+        paths.contains(&strings(&["cmd_render", "parse_size"])),
+        "{paths:?}"
+    );
+    assert!(paths.contains(&strings(&["bench"])), "{paths:?}");
+    assert!(
+        !paths.iter().any(|p| p.contains(&"ignored".to_string())),
+        "{paths:?}"
+    );
+    let mut graph = BTreeMap::new();
+    graph.insert("a".to_string(), BTreeSet::from(["b".to_string()]));
+    graph.insert("b".to_string(), BTreeSet::from(["c".to_string()]));
+    graph.insert("c".to_string(), BTreeSet::from(["a".to_string()]));
+    assert_eq!(find_cycle(&graph).map(|c| c.len()), Some(4));
+    graph.insert("c".to_string(), BTreeSet::new());
+    assert_eq!(find_cycle(&graph), None);
+}
