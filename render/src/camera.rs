@@ -133,7 +133,8 @@ impl CameraBasis {
         } else {
             (
                 self.eye,
-                (self.forward + self.right * sx + self.up * sy).normalize(),
+                // Never zero: forward is a unit vector orthogonal to right and up.
+                (self.forward + self.right * sx + self.up * sy).normalize_or_zero(),
             )
         }
     }

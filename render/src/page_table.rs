@@ -5,11 +5,17 @@
 //! t_w = 2^-L, node = page >> L and the translation from the slot origin, which is the same
 //! affine map x' = x · bscale · t_w + t with fewer bits.
 
+use std::collections::HashMap;
+
 use crate::error::RenderError;
 use crate::transfer_function::TransferFunctionTable;
 use strata_types::ValueMapping;
 
 use crate::layout::{neighbour_bit, neighbour_offsets};
+
+/// An octree node: (level, node coordinates within the level).
+type NodeKey = (u8, [u32; 3]);
+
 /// The page word's bits and the slot limits (moved to layout.rs; kept here so existing paths
 /// resolve).
 pub use crate::layout::{
@@ -147,15 +153,13 @@ impl PageTable {
         &self,
         mut range_of: impl FnMut(u8, [u32; 3]) -> Option<(u16, u16)>,
     ) -> Vec<Option<(u16, u16)>> {
-        let mut cache: std::collections::HashMap<(u8, [u32; 3]), Option<(u16, u16)>> =
-            Default::default();
+        let mut cache: HashMap<NodeKey, Option<(u16, u16)>> = HashMap::new();
         let mut range = |level: u8, node: [u32; 3]| {
             *cache
                 .entry((level, node))
                 .or_insert_with(|| range_of(level, node))
         };
-        let mut hulls: std::collections::HashMap<(u8, [u32; 3]), Option<(u16, u16)>> =
-            Default::default();
+        let mut hulls: HashMap<NodeKey, Option<(u16, u16)>> = HashMap::new();
         (0..self.entries.len())
             .map(|i| {
                 let e = self.entries[i];
@@ -186,12 +190,12 @@ impl PageTable {
         range_of: impl FnMut(u8, [u32; 3]) -> Option<(u16, u16)>,
     ) {
         let ranges = self.sampled_ranges(range_of);
-        for i in 0..self.entries.len() {
+        for (i, range) in ranges.iter().enumerate() {
             let e = self.entries[i];
             if !e.resident {
                 continue;
             }
-            let empty = match ranges[i] {
+            let empty = match *range {
                 Some((lo, hi)) => {
                     let (a, b) = (mapping.physical(lo as f64), mapping.physical(hi as f64));
                     table.is_transparent(a.min(b), a.max(b))
@@ -244,12 +248,12 @@ impl PageTable {
         range_of: impl FnMut(u8, [u32; 3]) -> Option<(u16, u16)>,
     ) {
         let ranges = self.sampled_ranges(range_of);
-        for i in 0..self.entries.len() {
+        for (i, range) in ranges.iter().enumerate() {
             let e = self.entries[i];
             if !e.resident {
                 continue;
             }
-            self.entries[i].empty = match ranges[i] {
+            self.entries[i].empty = match *range {
                 Some((lo, hi)) => {
                     let (a, b) = (mapping.physical(lo as f64), mapping.physical(hi as f64));
                     a.max(b) < iso_value

@@ -179,7 +179,7 @@ impl Raycaster {
         let pipelines = Pipelines::new(device, filterable, wgsl, declared);
         let params = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("raycast params"),
-            size: std::mem::size_of::<Params>() as u64,
+            size: size_of::<Params>() as u64,
             usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
@@ -778,7 +778,8 @@ pub(crate) fn build_params(scene: &Scene) -> Params {
     let base_step = s.quality * unit;
     let clip = match &s.clip_plane {
         Some(p) => {
-            let n = DVec3::from(p.normal).normalize();
+            // Non-zero: RenderSettings::validate refuses a zero clip normal.
+            let n = DVec3::from(p.normal).normalize_or_zero();
             [
                 n.dot(basis.forward) as f32,
                 n.dot(basis.right) as f32,

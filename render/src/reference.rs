@@ -70,7 +70,8 @@ pub fn ray_interval(
         }
     }
     if let Some(p) = &settings.clip_plane {
-        let n = DVec3::from(p.normal).normalize();
+        // Non-zero: RenderSettings::validate refuses a zero clip normal.
+        let n = DVec3::from(p.normal).normalize_or_zero();
         let (no, nd) = (n.dot(origin), n.dot(dir));
         if nd.abs() < 1e-12 {
             if no < p.offset_mm {

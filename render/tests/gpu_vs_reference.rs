@@ -163,7 +163,7 @@ fn crop_box_and_clip_plane_match_reference() {
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
     let cam = orbit(&f, 30.0, 20.0);
     let c = f.volume.geometry.centre_patient();
-    let n = glam::DVec3::new(1.0, 0.3, -0.2).normalize();
+    let n = glam::DVec3::new(1.0, 0.3, -0.2).normalize_or_zero();
     let s = RenderSettings {
         crop: CropBox {
             min: [0.1, 0.0, 0.2],

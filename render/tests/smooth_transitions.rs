@@ -17,7 +17,7 @@ fn phantom_128() -> BrickedVolume {
 /// Level-1 nodes in a 3D checkerboard of the 2×2×2 level-1 grid, level 0 elsewhere: every fine
 /// node has coarse faces, edges and corners in all the combinations of the paper's Fig. 6.
 fn checker_levels(p: [u32; 3]) -> u8 {
-    (((p[0] >> 1) + (p[1] >> 1) + (p[2] >> 1)) % 2 == 0) as u8
+    ((p[0] >> 1) + (p[1] >> 1) + (p[2] >> 1)).is_multiple_of(2) as u8
 }
 
 /// One coarse level-1 node in a corner of the volume: fine nodes touch it by a face only, by an
