@@ -14,10 +14,16 @@ pub use strata_types::{BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD, BRICK_PAYLOAD_VOX
 
 /// GPU word layout: bits 0-7 / 8-15 / 16-23 the slot's x / y / z position in the cache's slot
 /// grid (the shader then needs no integer division), 24-28 level, bit 29 empty, bit 30 not
-/// resident, bit 31 has a coarser neighbour (smooth transitions). The CPU side speaks slot indices; the cache's grid converts.
+/// resident, bit 31 has a coarser neighbour (smooth transitions). The CPU side speaks slot
+/// indices; the cache's grid converts.
 pub const MAX_SLOTS_PER_AXIS: u32 = 255;
 pub const MAX_SLOTS: u32 = MAX_SLOTS_PER_AXIS * MAX_SLOTS_PER_AXIS * MAX_SLOTS_PER_AXIS;
+/// Bits per axis of the slot's grid position, and their mask (holds MAX_SLOTS_PER_AXIS).
+pub const SLOT_AXIS_BITS: u32 = 8;
+pub const SLOT_AXIS_MASK: u32 = (1 << SLOT_AXIS_BITS) - 1;
 pub const LEVEL_SHIFT: u32 = 24;
+/// The level field's mask after the shift (5 bits: levels 0-31).
+pub const LEVEL_MASK: u32 = 31;
 pub const FLAG_EMPTY: u32 = 1 << 29;
 pub const FLAG_NOT_RESIDENT: u32 = 1 << 30;
 /// Set by [`crate::GpuPageTable::update`] where the node has a coarser neighbour: the shader

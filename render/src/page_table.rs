@@ -19,7 +19,8 @@ type NodeKey = (u8, [u32; 3]);
 /// The page word's bits and the slot limits (moved to layout.rs; kept here so existing paths
 /// resolve).
 pub use crate::layout::{
-    FLAG_EMPTY, FLAG_NOT_RESIDENT, FLAG_TRANSITION, LEVEL_SHIFT, MAX_SLOTS, MAX_SLOTS_PER_AXIS,
+    FLAG_EMPTY, FLAG_NOT_RESIDENT, FLAG_TRANSITION, LEVEL_MASK, LEVEL_SHIFT, MAX_SLOTS,
+    MAX_SLOTS_PER_AXIS, SLOT_AXIS_BITS, SLOT_AXIS_MASK,
 };
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -56,8 +57,10 @@ impl PageEntry {
     pub fn encode(&self, slots_per_axis: [u32; 3]) -> u32 {
         let [sx, sy, _] = slots_per_axis.map(|v| v.max(1));
         let s = self.slot_in_cache;
-        let xyz = (s % sx) | (((s / sx) % sy) << 8) | ((s / (sx * sy)).min(255) << 16);
-        let mut word = xyz | ((self.level as u32 & 31) << LEVEL_SHIFT);
+        let xyz = (s % sx)
+            | (((s / sx) % sy) << SLOT_AXIS_BITS)
+            | ((s / (sx * sy)).min(SLOT_AXIS_MASK) << (2 * SLOT_AXIS_BITS));
+        let mut word = xyz | ((self.level as u32 & LEVEL_MASK) << LEVEL_SHIFT);
         if self.empty {
             word |= FLAG_EMPTY;
         }
@@ -69,10 +72,11 @@ impl PageEntry {
 
     pub fn decode(word: u32, slots_per_axis: [u32; 3]) -> Self {
         let [sx, sy, _] = slots_per_axis.map(|v| v.max(1));
-        let (x, y, z) = (word & 0xff, (word >> 8) & 0xff, (word >> 16) & 0xff);
+        let axis = |a: u32| (word >> (a * SLOT_AXIS_BITS)) & SLOT_AXIS_MASK;
+        let (x, y, z) = (axis(0), axis(1), axis(2));
         PageEntry {
             slot_in_cache: x + sx * (y + sy * z),
-            level: ((word >> LEVEL_SHIFT) & 31) as u8,
+            level: ((word >> LEVEL_SHIFT) & LEVEL_MASK) as u8,
             empty: word & FLAG_EMPTY != 0,
             resident: word & FLAG_NOT_RESIDENT == 0,
         }

@@ -16,7 +16,8 @@ use std::sync::OnceLock;
 
 use crate::layout::{
     BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD, FLAG_EMPTY, FLAG_NOT_RESIDENT, FLAG_TRANSITION,
-    SHADING_FLAT_BELOW, SHADING_LIT_ABOVE, WORKGROUP_SIZE,
+    LEVEL_MASK, LEVEL_SHIFT, SHADING_FLAT_BELOW, SHADING_LIT_ABOVE, SLOT_AXIS_BITS, SLOT_AXIS_MASK,
+    WORKGROUP_SIZE,
 };
 
 /// The files that define the sampled field and its lookups, in composition order.
@@ -54,7 +55,7 @@ pub(crate) enum PreludeValue {
 }
 
 /// Every constant the shader shares with Rust, by its WGSL name.
-pub(crate) fn prelude_constants() -> [(&'static str, PreludeValue); 9] {
+pub(crate) fn prelude_constants() -> [(&'static str, PreludeValue); 13] {
     use PreludeValue::*;
     [
         ("CORE", F32(BRICK_CORE as f64)),
@@ -63,6 +64,10 @@ pub(crate) fn prelude_constants() -> [(&'static str, PreludeValue); 9] {
         ("FLAG_EMPTY", Bits(FLAG_EMPTY)),
         ("FLAG_NOT_RESIDENT", Bits(FLAG_NOT_RESIDENT)),
         ("FLAG_TRANSITION", Bits(FLAG_TRANSITION)),
+        ("LEVEL_SHIFT", U32(LEVEL_SHIFT)),
+        ("LEVEL_MASK", Bits(LEVEL_MASK)),
+        ("SLOT_AXIS_BITS", U32(SLOT_AXIS_BITS)),
+        ("SLOT_AXIS_MASK", Bits(SLOT_AXIS_MASK)),
         // Below/above these gradient magnitudes (TF-range fractions per finest voxel) shading
         // fades from unlit to lit.
         ("SHADING_FLAT_BELOW", F32(SHADING_FLAT_BELOW)),

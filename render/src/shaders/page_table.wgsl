@@ -41,12 +41,13 @@ fn decode_entry(cell: vec3<i32>) -> Page {
     pg.resident = (e & FLAG_NOT_RESIDENT) == 0u;
     pg.empty = (e & FLAG_EMPTY) != 0u;
     pg.has_transition = (e & FLAG_TRANSITION) != 0u;
-    pg.level = (e >> 24u) & 31u;
+    pg.level = (e >> LEVEL_SHIFT) & LEVEL_MASK;
     pg.inv_scale = 1.0 / f32(1u << pg.level);
     let node = c >> vec3<u32>(pg.level);
     // The entry stores the slot's grid position (8 bits per axis), not its index: no integer
     // division per lookup (scalarised and slow on CPU rasterisers such as lavapipe).
-    let slot_xyz = vec3<u32>(e & 0xffu, (e >> 8u) & 0xffu, (e >> 16u) & 0xffu);
+    let slot_xyz = vec3<u32>(e & SLOT_AXIS_MASK, (e >> SLOT_AXIS_BITS) & SLOT_AXIS_MASK,
+                             (e >> (2u * SLOT_AXIS_BITS)) & SLOT_AXIS_MASK);
     // Level-L voxel i is centred at level-0 index (i + 0.5)·2^L - 0.5 (cell-centred octree):
     // q = (p + 0.5)·2^-L - 0.5, local = q - (32·node - 2), coord = slot·36 + local.
     pg.offset = vec3<f32>(slot_xyz * PAYLOAD) - (vec3<f32>(node) * CORE - vec3<f32>(APRON))
