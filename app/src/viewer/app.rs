@@ -309,6 +309,14 @@ impl StrataApp {
         self.volume.as_ref().and_then(|v| v.session.latest_frame())
     }
 
+    #[cfg(test)]
+    /// The 3D request the UI sent last (tests wait for the frame that answers it).
+    pub fn volume_request(&self) -> Option<RenderRequest> {
+        self.volume
+            .as_ref()
+            .and_then(|v| v.session.current_request())
+    }
+
     pub fn volume_status(&self) -> Option<super::volume_session::SessionStatus> {
         self.volume.as_ref().map(|v| v.session.status())
     }
@@ -957,7 +965,8 @@ impl StrataApp {
                     &unit,
                 );
                 ui.horizontal(|ui| {
-                    ui.add(egui::TextEdit::singleline(&mut self.tf_path).desired_width(150.0));
+                    ui.add(egui::TextEdit::singleline(&mut self.tf_path).desired_width(150.0))
+                        .accessible_name("Transfer function file");
                     if ui.button("Save").clicked() {
                         self.tf_message = Some(
                             match v
@@ -1020,8 +1029,10 @@ impl StrataApp {
                         ui.label(*name);
                         let mut min = v.crop.min[axis];
                         let mut max = v.crop.max[axis];
-                        ui.add(egui::DragValue::new(&mut min).speed(0.005).range(0.0..=1.0));
-                        ui.add(egui::DragValue::new(&mut max).speed(0.005).range(0.0..=1.0));
+                        ui.add(egui::DragValue::new(&mut min).speed(0.005).range(0.0..=1.0))
+                            .accessible_name(format!("Crop {name} from"));
+                        ui.add(egui::DragValue::new(&mut max).speed(0.005).range(0.0..=1.0))
+                            .accessible_name(format!("Crop {name} to"));
                         v.crop.min[axis] = min.min(max - 0.01).max(0.0);
                         v.crop.max[axis] = max.max(min + 0.01).min(1.0);
                     });
@@ -1034,7 +1045,9 @@ impl StrataApp {
                             ui.selectable_value(&mut v.clip_axis, 0, "L–R (sagittal)");
                             ui.selectable_value(&mut v.clip_axis, 1, "A–P (coronal)");
                             ui.selectable_value(&mut v.clip_axis, 2, "S–I (axial)");
-                        });
+                        })
+                        .response
+                        .accessible_name("Clip plane axis");
                     ui.checkbox(&mut v.clip_flip, "flip");
                 });
                 if v.clip_enabled {
@@ -1056,7 +1069,11 @@ impl StrataApp {
                 ui.horizontal(|ui| {
                     ui.label("Folder");
                     let mut folder = prefs.screenshot_folder.display().to_string();
-                    if ui.text_edit_singleline(&mut folder).changed() {
+                    if ui
+                        .text_edit_singleline(&mut folder)
+                        .accessible_name("Screenshot folder")
+                        .changed()
+                    {
                         prefs.screenshot_folder = PathBuf::from(folder);
                     }
                 });
@@ -1772,13 +1789,14 @@ fn performance_panel(
 ) {
     let status = v.session.status();
     ui.horizontal(|ui| {
-        ui.checkbox(&mut prefs.target_fps_enabled, "Target frame rate");
+        let enabled = ui.checkbox(&mut prefs.target_fps_enabled, "Target frame rate");
         ui.add_enabled(
             prefs.target_fps_enabled,
             egui::Slider::new(&mut prefs.target_fps, 2.0..=60.0)
                 .suffix(" fps")
                 .logarithmic(true),
-        );
+        )
+        .labelled_by(enabled.id);
     });
     if !prefs.target_fps_enabled {
         ui.add(

@@ -320,21 +320,23 @@ pub fn show(
         Selection::Opacity(i) if i < tf.opacity.len() => {
             ui.horizontal(|ui| {
                 let p = &mut tf.opacity[i];
-                ui.label("Point");
+                let label = ui.label("Point");
                 changed |= ui
                     .add(
                         egui::DragValue::new(&mut p.value)
                             .speed((hi - lo) / 500.0)
                             .suffix(format!(" {unit}")),
                     )
+                    .labelled_by(label.id)
                     .changed();
-                ui.label("opacity");
+                let label = ui.label("opacity");
                 changed |= ui
                     .add(
                         egui::DragValue::new(&mut p.opacity)
                             .speed(0.005)
                             .range(0.0..=1.0),
                     )
+                    .labelled_by(label.id)
                     .changed();
                 if ui.button("Delete").clicked() && tf.opacity.len() > 2 {
                     tf.opacity.remove(i);
@@ -345,7 +347,7 @@ pub fn show(
         }
         Selection::Color(i) if i < tf.color.len() => {
             ui.horizontal(|ui| {
-                ui.label("Colour stop");
+                let label = ui.label("Colour stop");
                 let stop = &mut tf.color[i];
                 changed |= ui
                     .add(
@@ -353,6 +355,7 @@ pub fn show(
                             .speed((hi - lo) / 500.0)
                             .suffix(format!(" {unit}")),
                     )
+                    .labelled_by(label.id)
                     .changed();
                 let mut rgb = stop.rgb.map(|c| c as f32);
                 if egui::color_picker::color_edit_button_rgb(ui, &mut rgb).changed() {

@@ -16,6 +16,7 @@ use strata_storage::phantom::Phantom;
 use super::app::{Layout, Preferences, StrataApp, ViewSlot, ViewerOptions};
 use super::jobs::VolumeSource;
 use super::orientation::SliceView;
+use super::volume_session::RenderedFrame;
 
 /// Generous: lavapipe on two shared cores compiles the raycast pipeline in seconds.
 const WAIT: Duration = Duration::from_secs(180);
@@ -72,12 +73,12 @@ fn app<'h>(h: &'h Harness<'static, Option<StrataApp>>) -> &'h StrataApp {
         .expect("the app is created on the first step")
 }
 
-/// Steps the UI until `done` holds, failing with `what` after [`WAIT`].
-fn step_until(
+/// Steps the UI until `found` gives a value and returns it, failing with `what` after [`WAIT`].
+fn step_until_some<T>(
     h: &mut Harness<'static, Option<StrataApp>>,
     what: &str,
-    done: impl Fn(&StrataApp) -> bool,
-) {
+    found: impl Fn(&StrataApp) -> Option<T>,
+) -> T {
     let start = Instant::now();
     loop {
         h.step();
@@ -87,18 +88,42 @@ fn step_until(
         if let Some(e) = app(h).volume_status().and_then(|s| s.error) {
             panic!("the renderer failed: {e} (needs a Vulkan driver: apt-get install mesa-vulkan-drivers libvulkan1)");
         }
-        if done(app(h)) {
-            return;
+        if let Some(value) = found(app(h)) {
+            return value;
         }
         assert!(start.elapsed() < WAIT, "timed out waiting for {what}");
         std::thread::sleep(Duration::from_millis(20));
     }
 }
 
-fn fully_loaded(app: &StrataApp) -> bool {
-    app.volume_status()
-        .is_some_and(|s| !s.refining && s.loader.as_ref().is_some_and(|l| l.converged))
-        && app.volume_frame().is_some()
+/// Steps the UI until `done` holds, failing with `what` after [`WAIT`].
+fn step_until(
+    h: &mut Harness<'static, Option<StrataApp>>,
+    what: &str,
+    done: impl Fn(&StrataApp) -> bool,
+) {
+    step_until_some(h, what, |a| done(a).then_some(()));
+}
+
+/// The newest 3D frame if it is the final one for the request the UI sends now: rendered for
+/// exactly that request (view size, camera, transfer function, settings) and converged. A frame
+/// of an earlier request, or one of this request drawn while bricks were still streaming in,
+/// is not. The frame carries its own convergence: the session status is published separately
+/// and after the frame, so pairing the two can match a frame with another frame's status.
+/// Requests only change in `h.step()`, on this thread, so the comparison cannot race the UI.
+fn settled_frame(app: &StrataApp) -> Option<RenderedFrame> {
+    let frame = app.volume_frame()?;
+    (frame.converged && app.volume_request().as_ref() == Some(&frame.request)).then_some(frame)
+}
+
+/// Steps until [`settled_frame`] gives a frame newer than serial `after`, and returns that
+/// frame (not whatever is newest by the time the caller looks again).
+fn wait_for_settled_frame(
+    h: &mut Harness<'static, Option<StrataApp>>,
+    what: &str,
+    after: u64,
+) -> RenderedFrame {
+    step_until_some(h, what, |a| settled_frame(a).filter(|f| f.serial > after))
 }
 
 fn lit_fraction(rgba: &[u8]) -> f64 {
@@ -128,35 +153,25 @@ fn region_pixels(image: &image::RgbaImage, rect: egui::Rect) -> Vec<u8> {
     out
 }
 
-/// The first frame after `after` whose transfer function is named `name`.
-fn wait_for_frame_with_tf(
-    h: &mut Harness<'static, Option<StrataApp>>,
-    name: &str,
-    after: u64,
-) -> Vec<u8> {
-    step_until(h, &format!("a frame with {name}"), |a| {
-        a.volume_frame()
-            .is_some_and(|f| f.serial > after && f.request.transfer_function.name == name)
-    });
-    app(h)
-        .volume_frame()
-        .map(|f| f.rgba.to_vec())
-        .unwrap_or_default()
-}
-
 #[test]
 fn the_phantom_opens_and_the_3d_view_is_not_blank_then_a_preset_changes_it() {
     let dir = tempfile::tempdir().expect("temp dir");
     let store = phantom_store(dir.path());
     let mut h = harness(&store, true);
-    step_until(
+    let bone = wait_for_settled_frame(
         &mut h,
-        "the phantom streamed in (loader converged)",
-        fully_loaded,
+        "the phantom streamed in (converged frame for the current request)",
+        0,
     );
-    let bone = wait_for_frame_with_tf(&mut h, "ct-bone", 0);
+    assert_eq!(
+        bone.request.transfer_function.name, "ct-bone",
+        "a CT opens with the bone preset"
+    );
+    // The harness checked accessibility when it first settled, with or without the volume
+    // (which opens on a thread); check the loaded UI, side panel included, every time.
+    h.check_accessibility();
     // The phantom's bone shell fills a good part of the view; a blank or failed frame is ~0.
-    let lit = lit_fraction(&bone);
+    let lit = lit_fraction(&bone.rgba);
     assert!(
         lit > 0.05,
         "3D view is (nearly) blank: {:.1}% lit pixels",
@@ -176,12 +191,16 @@ fn the_phantom_opens_and_the_3d_view_is_not_blank_then_a_preset_changes_it() {
         on_screen * 100.0
     );
 
-    let serial = app(&h).volume_frame().map_or(0, |f| f.serial);
     h.get_by_label("Soft tissue").click();
-    let soft = wait_for_frame_with_tf(&mut h, "ct-soft-tissue", serial);
+    step_until(&mut h, "the soft-tissue request after the click", |a| {
+        a.volume_request()
+            .is_some_and(|r| r.transfer_function.name == "ct-soft-tissue")
+    });
+    let soft = wait_for_settled_frame(&mut h, "the converged soft-tissue frame", bone.serial);
+    assert_eq!(soft.request.transfer_function.name, "ct-soft-tissue");
     // Jitter noise between two frames of one preset is well under 1 level of 255 on average;
     // bone → soft tissue changes colour and opacity over most of the object.
-    let difference = mean_abs_difference(&bone, &soft);
+    let difference = mean_abs_difference(&bone.rgba, &soft.rgba);
     assert!(
         difference > 3.0,
         "soft-tissue preset left the image almost unchanged (mean |Δ| {difference:.2})"
@@ -348,12 +367,13 @@ fn a_click_in_the_transfer_function_editor_adds_a_point_that_the_next_frame_uses
     let dir = tempfile::tempdir().expect("temp dir");
     let store = phantom_store(dir.path());
     let mut h = harness(&store, true);
-    step_until(&mut h, "the first frame and the editor", |a| {
-        a.volume_frame().is_some()
+    step_until(&mut h, "the converged first frame and the editor", |a| {
+        settled_frame(a).is_some()
             && a.volume
                 .as_ref()
                 .is_some_and(|v| v.tf_state.plot_rect.is_some())
     });
+    h.check_accessibility();
     let (plot, points_before) = {
         let v = app(&h).volume.as_ref().expect("volume");
         (
@@ -392,20 +412,26 @@ fn a_click_in_the_transfer_function_editor_adds_a_point_that_the_next_frame_uses
         points_before + 1,
         "a click on empty plot adds one opacity point"
     );
-    let start = Instant::now();
-    loop {
-        h.step();
-        if let Some(frame) = app(&h).volume_frame() {
-            if frame.serial >= serial_at_edit + 2 || frame.request.transfer_function == edited {
-                assert_eq!(
-                    frame.request.transfer_function, edited,
-                    "frame {} (edit at {serial_at_edit}) ignores the edit",
-                    frame.serial
-                );
-                break;
-            }
+    assert_eq!(
+        app(&h).volume_request().map(|r| r.transfer_function),
+        Some(edited.clone()),
+        "the edit goes out with the render request of the step that made it"
+    );
+    // The render thread takes the newest request each frame, so only the frame in flight at
+    // the edit may answer an older one: from serial_at_edit + 2 on, every frame shows the edit.
+    let settled = step_until_some(&mut h, "the converged frame after the edit", |a| {
+        let frame = a.volume_frame()?;
+        if frame.serial >= serial_at_edit + 2 {
+            assert_eq!(
+                frame.request.transfer_function, edited,
+                "frame {} (edit at {serial_at_edit}) ignores the edit",
+                frame.serial
+            );
         }
-        assert!(start.elapsed() < WAIT, "no frame after the edit");
-        std::thread::sleep(Duration::from_millis(10));
-    }
+        settled_frame(a).filter(|f| f.serial > serial_at_edit)
+    });
+    assert_eq!(
+        settled.request.transfer_function, edited,
+        "the converged frame after the edit is drawn with it"
+    );
 }

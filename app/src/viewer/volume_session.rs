@@ -52,6 +52,12 @@ pub struct RenderedFrame {
     /// The request this frame answers (tests tie a frame to what was asked).
     #[cfg_attr(not(test), allow(dead_code))]
     pub request: RenderRequest,
+    /// The last frame for its request unless something changes: the loader had converged and
+    /// still refinement was done. Carried by the frame, not only by [`SessionStatus`], which is
+    /// updated under a different lock after the frame and says nothing about which request
+    /// converged: a reader of both can pair one frame with another frame's status.
+    #[cfg_attr(not(test), allow(dead_code))]
+    pub converged: bool,
 }
 
 /// Figures for the performance panel.
@@ -205,6 +211,12 @@ impl VolumeSession {
     pub fn request_screenshot(&self, request: ScreenshotRequest) {
         *lock_ignoring_poison(&self.shared.screenshot) = Some(request);
         self.shared.wake.notify_all();
+    }
+
+    /// The newest request, the one the next frame answers (tests compare frames with it).
+    #[cfg(test)]
+    pub fn current_request(&self) -> Option<RenderRequest> {
+        lock_ignoring_poison(&self.shared.request).clone()
     }
 
     /// The newest finished frame.
@@ -409,6 +421,11 @@ impl RenderWorker {
             if frame_ms_history.len() > 240 {
                 frame_ms_history.drain(..frame_ms_history.len() - 240);
             }
+            converged = stats.converged;
+            let refining = !converged
+                || (request.target_fps.is_some()
+                    && !request.interacting
+                    && !self.controller.still_refinement_done());
             self.serial += 1;
             *lock_ignoring_poison(&self.shared.frame) = Some(RenderedFrame {
                 width: frame.width,
@@ -416,15 +433,11 @@ impl RenderWorker {
                 rgba: Arc::new(frame.rgba),
                 serial: self.serial,
                 request: request.clone(),
+                converged: !refining,
             });
             for failure in volume.take_failures() {
                 failures.push(format!("brick {:?}: {}", failure.id, failure.message));
             }
-            converged = stats.converged;
-            let refining = !converged
-                || (request.target_fps.is_some()
-                    && !request.interacting
-                    && !self.controller.still_refinement_done());
             let history = frame_ms_history.clone();
             let error = failures
                 .last()
@@ -531,13 +544,14 @@ mod tests {
             if let Some(e) = status.error {
                 panic!("render thread failed: {e}");
             }
-            if !status.refining
-                && status.loader.as_ref().is_some_and(|l| l.converged)
-                && session.latest_frame().is_some()
-            {
+            if let Some(frame) = session.latest_frame().filter(|f| f.converged) {
                 // At 64 px a level-0 voxel is smaller than a pixel, so the cut may stop coarser;
                 // what matters here is that streaming converges and the frame shows the volume.
-                let frame = session.latest_frame().expect("frame");
+                assert_eq!(
+                    Some(&frame.request),
+                    session.current_request().as_ref(),
+                    "the converged frame answers the only request"
+                );
                 assert_eq!((frame.width, frame.height), (64, 64));
                 assert!(
                     frame.rgba.chunks_exact(4).any(|p| p[3] > 0),
