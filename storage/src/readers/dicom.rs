@@ -754,7 +754,10 @@ fn assemble(
         (Output::Physical, SampleType::F32, 1.0, 0.0)
     };
 
-    let mut staging = new_staging(display, options)?;
+    let staging_bytes = dims.iter().fold(out_type.size_bytes() as u64, |acc, &d| {
+        acc.saturating_mul(d)
+    });
+    let mut staging = new_staging(display, options, staging_bytes)?;
     {
         let mut out = BufWriter::with_capacity(1 << 20, staging.as_file_mut());
         let mut cur: Option<(usize, Loaded)> = None;

@@ -21,6 +21,7 @@ use crate::error::{Result, StorageError};
 use crate::source::{ByteOrder, OpenedSource, SampleType};
 
 pub use dicom::{list_dicom_series, DicomSeriesSummary};
+pub use staging::{remove_live_staging_files, remove_stale_staging_files, StagingFile};
 
 /// What the user told us beyond the path.
 #[derive(Default, Clone, Debug)]
