@@ -555,3 +555,54 @@ fn stale_staging_files_of_dead_processes_are_removed_and_live_ones_kept() {
     assert!(!stale.exists() && live.exists() && other.exists());
     drop(held);
 }
+
+/// A DICOM folder with link cycles, a FIFO and a damaged slice: the scan ends at once (no
+/// exponential fan-out, no blocking read) and the damaged slice is an error, never a gap.
+#[cfg(unix)]
+#[test]
+fn dicom_folder_hazards_end_quickly_and_loudly() {
+    let dir = tempfile::tempdir().unwrap();
+    let series = dir.path().join("series");
+    std::fs::create_dir_all(&series).unwrap();
+    for k in 0..DIMS[2] {
+        std::fs::write(series.join(format!("s{k}.dcm")), dicom_slice(k)).unwrap();
+    }
+    // Five links back to the folder itself: followed naively that is 5^depth folders.
+    for i in 0..5 {
+        std::os::unix::fs::symlink(&series, series.join(format!("loop{i}"))).unwrap();
+    }
+    let fifo = series.join("pipe.dcm");
+    let made = std::process::Command::new("mkfifo").arg(&fifo).status();
+    assert!(
+        made.is_ok_and(|s| s.success()),
+        "mkfifo (coreutils) is needed for this test"
+    );
+    let options = ReadOptions::default();
+    match run_case(&series, &options, dir.path()) {
+        Ok(Outcome::Opened { values, .. }) => {
+            assert_eq!(values.len(), DIMS.iter().product::<usize>())
+        }
+        Ok(Outcome::Failed(e)) => panic!("the series should open: {e}"),
+        Err(e) => panic!("{e}"),
+    }
+    // A FIFO given as the input itself.
+    match run_case(&fifo, &options, dir.path()) {
+        Ok(Outcome::Failed(e)) => assert!(
+            e.contains("pipe.dcm") && e.contains("not a regular file"),
+            "{e}"
+        ),
+        Ok(Outcome::Opened { .. }) => panic!("a FIFO opened as a volume"),
+        Err(e) => panic!("{e}"),
+    }
+    // One damaged slice: an error that names it, not a volume with a slice missing.
+    let mut damaged = dicom_slice(DIMS[2] - 1);
+    damaged.truncate(200);
+    std::fs::write(series.join(format!("s{}.dcm", DIMS[2] - 1)), damaged).unwrap();
+    match run_case(&series, &options, dir.path()) {
+        Ok(Outcome::Failed(e)) => {
+            assert!(e.contains("cannot be read") && e.contains("s4.dcm"), "{e}")
+        }
+        Ok(Outcome::Opened { .. }) => panic!("a series with a damaged slice imported silently"),
+        Err(e) => panic!("{e}"),
+    }
+}

@@ -12,8 +12,8 @@ pub mod value_mapping;
 
 pub use brick::{BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD, BRICK_PAYLOAD_VOXELS};
 pub use geometry::{
-    GeometryError, VolumeGeometry, MAX_AXIS_VOXELS, MAX_ORIGIN_MM, MAX_SPACING_MM, MAX_TOTAL_VOXELS,
-    MIN_SPACING_MM,
+    GeometryError, VolumeGeometry, MAX_AXIS_VOXELS, MAX_ORIGIN_MM, MAX_SPACING_MM,
+    MAX_TOTAL_VOXELS, MIN_SPACING_MM,
 };
 pub use octree::{level_count, level_dims, BrickId, OctreeLayout};
 pub use value_mapping::ValueMapping;

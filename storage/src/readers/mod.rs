@@ -62,6 +62,13 @@ pub fn open_source(path: &Path, options: &ReadOptions) -> Result<OpenedSource> {
     if meta.is_dir() {
         return dicom::open_series_dir(path, options);
     }
+    if !meta.is_file() {
+        // Reading a FIFO blocks until a writer comes, possibly forever; devices never end.
+        return Err(StorageError::invalid(
+            path,
+            "not a regular file (a FIFO, socket or device): give the scan's file or folder",
+        ));
+    }
     let name = path
         .file_name()
         .map(|n| n.to_string_lossy().to_ascii_lowercase())
