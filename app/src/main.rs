@@ -1,6 +1,7 @@
 //! `strata`: the viewer and its command line. Not for diagnostic use.
 
 mod bench;
+mod cli_checks;
 mod cmd_flythrough;
 mod cmd_import;
 mod cmd_info;
