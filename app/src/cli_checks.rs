@@ -86,7 +86,9 @@ mod tests {
     fn non_finite_and_out_of_range_values_name_the_flag() {
         let e = check_finite("azimuth", f64::NAN).unwrap_err().to_string();
         assert!(e.contains("--azimuth") && e.contains("NaN"), "{e}");
-        let e = check_range("step", 1e9, STEP_RANGE).unwrap_err().to_string();
+        let e = check_range("step", 1e9, STEP_RANGE)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("--step") && e.contains("64"), "{e}");
         assert!(check_range("step", 1e-9, STEP_RANGE).is_err());
         assert!(check_range("step", 0.5, STEP_RANGE).is_ok());

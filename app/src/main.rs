@@ -8,6 +8,7 @@ mod cmd_info;
 mod cmd_render;
 mod cmd_sample;
 mod cmd_verify;
+mod error_report;
 mod progress;
 mod viewer;
 
@@ -53,7 +54,7 @@ fn main() -> std::process::ExitCode {
     match run(Cli::parse()) {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            eprintln!("error: {}", error_report::describe(&e));
             std::process::ExitCode::FAILURE
         }
     }
