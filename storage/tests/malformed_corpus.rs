@@ -129,6 +129,11 @@ fn nifti1(data: &[u8]) -> Vec<u8> {
 }
 
 fn dicom_slice(k: usize) -> Vec<u8> {
+    dicom_slice_edited(k, |_| {})
+}
+
+/// One CT slice of the test volume, with `edit` applied to its data set before writing.
+fn dicom_slice_edited(k: usize, edit: impl FnOnce(&mut dicom_object::InMemDicomObject)) -> Vec<u8> {
     use dicom_core::{DataElement, PrimitiveValue, VR};
     use dicom_dictionary_std::{tags, uids};
     use dicom_object::{FileMetaTableBuilder, InMemDicomObject};
@@ -172,6 +177,7 @@ fn dicom_slice(k: usize) -> Vec<u8> {
         .flat_map(|j| (0..DIMS[0]).map(move |i| voxel(i, j, k) as u16))
         .collect();
     put(tags::PIXEL_DATA, VR::OW, PrimitiveValue::U16(px.into()));
+    edit(&mut obj);
     let file = obj
         .with_meta(
             FileMetaTableBuilder::new()
@@ -604,5 +610,69 @@ fn dicom_folder_hazards_end_quickly_and_loudly() {
         }
         Ok(Outcome::Opened { .. }) => panic!("a series with a damaged slice imported silently"),
         Err(e) => panic!("{e}"),
+    }
+}
+
+/// Header values that used to be accepted silently (one frame of six, 16-bit data read as
+/// 8-bit, voxels read one byte shifted) are errors that say what is wrong.
+#[test]
+fn inconsistent_headers_are_errors_not_guesses() {
+    use dicom_core::{DataElement, PrimitiveValue, VR};
+    use dicom_dictionary_std::tags;
+    let dir = tempfile::tempdir().unwrap();
+    let options = ReadOptions::default();
+    let expect_error = |name: &str, bytes: Vec<u8>, needle: &str| {
+        let path = dir.path().join(name);
+        std::fs::write(&path, bytes).unwrap();
+        match run_case(&path, &options, dir.path()) {
+            Ok(Outcome::Failed(e)) => {
+                assert!(e.contains(name) && e.contains(needle), "{name}: {e}")
+            }
+            Ok(Outcome::Opened { .. }) => panic!("{name} was accepted"),
+            Err(e) => panic!("{name}: {e}"),
+        }
+    };
+    for frames in ["0", "-1", "abc"] {
+        let bytes = dicom_slice_edited(0, |o| {
+            o.put(DataElement::new(
+                tags::NUMBER_OF_FRAMES,
+                VR::IS,
+                PrimitiveValue::from(frames),
+            ));
+        });
+        expect_error("frames.dcm", bytes, "NumberOfFrames");
+    }
+    let bytes = dicom_slice_edited(0, |o| {
+        o.put(DataElement::new(
+            tags::BITS_ALLOCATED,
+            VR::US,
+            PrimitiveValue::from(8u16),
+        ));
+        o.put(DataElement::new(
+            tags::BITS_STORED,
+            VR::US,
+            PrimitiveValue::from(8u16),
+        ));
+        o.put(DataElement::new(
+            tags::HIGH_BIT,
+            VR::US,
+            PrimitiveValue::from(7u16),
+        ));
+    });
+    expect_error("bits8.dcm", bytes, "PixelData holds");
+    for stored in [0u16, 255] {
+        let bytes = dicom_slice_edited(0, |o| {
+            o.put(DataElement::new(
+                tags::BITS_STORED,
+                VR::US,
+                PrimitiveValue::from(stored),
+            ));
+        });
+        expect_error("stored.dcm", bytes, "BitsStored");
+    }
+    for offset in [348.0f32, 349.0, 351.0, 352.5] {
+        let mut bytes = nifti1(&voxels_le());
+        bytes[108..112].copy_from_slice(&offset.to_le_bytes());
+        expect_error("offset.nii", bytes, "vox_offset");
     }
 }

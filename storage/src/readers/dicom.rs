@@ -160,7 +160,29 @@ fn read_header(path: &Path) -> Result<Option<ImageHeader>> {
     }
     let bits_allocated = int(&obj, tags::BITS_ALLOCATED).unwrap_or(16);
     let bits_stored = int(&obj, tags::BITS_STORED).unwrap_or(bits_allocated);
-    let n_frames = int(&obj, tags::NUMBER_OF_FRAMES).unwrap_or(1).max(1);
+    if !(1..=bits_allocated).contains(&bits_stored) {
+        return Err(StorageError::invalid(
+            path,
+            format!("BitsStored {bits_stored} must lie in 1..=BitsAllocated ({bits_allocated})"),
+        ));
+    }
+    // Absent means one frame; present, it must be a positive number (0, -1 or text is damage,
+    // and guessing "1" would import one frame of many).
+    let n_frames = match obj.get(tags::NUMBER_OF_FRAMES) {
+        None => 1,
+        Some(e) => match e.to_int::<i64>() {
+            Ok(n) if n >= 1 => n,
+            _ => {
+                return Err(StorageError::invalid(
+                    path,
+                    format!(
+                        "NumberOfFrames {:?} is not a positive number",
+                        e.to_str().map(|t| t.trim().to_string()).unwrap_or_default()
+                    ),
+                ))
+            }
+        },
+    };
     if n_frames as u64 > crate::geometry::MAX_AXIS_VOXELS {
         return Err(StorageError::invalid(
             path,
@@ -913,6 +935,23 @@ fn decode_frame(
     let src: &[u8] = match pixel.value() {
         DicomValue::Primitive(p) => {
             let all = p.to_bytes();
+            // The whole element must be the frames the header describes (plus one pad byte for
+            // an odd length): 16-bit data read with BitsAllocated 8, or frames missing from
+            // NumberOfFrames, would otherwise import as plausible garbage.
+            let expected = h.frames.len() * frame_len;
+            if all.len() != expected && all.len() != expected + (expected & 1) {
+                return Err(StorageError::invalid(
+                    &h.path,
+                    format!(
+                        "PixelData holds {} bytes, but {} frame(s) of {}x{} at BitsAllocated {} need {expected}: BitsAllocated, Rows, Columns or NumberOfFrames is wrong",
+                        all.len(),
+                        h.frames.len(),
+                        h.cols,
+                        h.rows,
+                        h.bits_allocated
+                    ),
+                ));
+            }
             let start = frame as usize * frame_len;
             let Some(slice) = all.get(start..start + frame_len) else {
                 return Err(StorageError::invalid(

@@ -437,11 +437,15 @@ pub(crate) fn open_nifti(path: &Path, options: &ReadOptions) -> Result<OpenedSou
         ));
     }
     let (data_path, data_offset, data_gz) = if h.single_file {
-        if !(h.vox_offset.is_finite() && h.vox_offset >= consumed as f64) {
+        // A single file holds the header, then 4 extension-flag bytes, then any extensions:
+        // voxels start at 352 (NIfTI-1) or 544 (NIfTI-2) at the earliest. An offset inside
+        // that, or a fractional one, would read the voxels shifted.
+        let earliest = consumed as f64 + 4.0;
+        if !(h.vox_offset.is_finite() && h.vox_offset >= earliest && h.vox_offset.fract() == 0.0) {
             return Err(StorageError::invalid(
                 path,
                 format!(
-                    "vox_offset {} lies inside the {consumed}-byte header",
+                    "vox_offset {} must be a whole number of bytes at or after {earliest} (the header and its extension flag)",
                     h.vox_offset
                 ),
             ));
