@@ -140,6 +140,8 @@ fn windows_from(obj: &Obj) -> Vec<WindowPreset> {
 }
 
 fn open_header(path: &Path) -> Result<DefaultDicomObject> {
+    // Before dicom-rs, which would allocate whatever a damaged length field claims.
+    crate::readers::dicom_bounds::check_element_lengths(path)?;
     OpenFileOptions::new()
         .read_until(tags::PIXEL_DATA)
         .open_file(path)

@@ -7,6 +7,7 @@
 
 mod common;
 mod dicom;
+mod dicom_bounds;
 mod metaimage;
 mod nifti;
 mod nrrd;
