@@ -15,9 +15,9 @@ use dicom_pixeldata::PixelDecoder;
 use crate::error::{Result, StorageError};
 use crate::geometry::VolumeGeometry;
 use crate::readers::common::{cross, dot, norm, split_axis};
-use crate::readers::staging::new_staging;
 use crate::readers::{has_dicom_preamble, ReadOptions};
 use crate::source::{ByteOrder, OpenedSource, RawVolume, SampleType, SourceInfo, WindowPreset};
+use crate::staging::new_staging;
 
 /// Folders nested deeper than this are not searched (exports are rarely more than a few deep).
 const MAX_DEPTH: usize = 8;
@@ -819,7 +819,7 @@ fn assemble(
     let staging_bytes = dims.iter().fold(out_type.size_bytes() as u64, |acc, &d| {
         acc.saturating_mul(d)
     });
-    let mut staging = new_staging(display, options, staging_bytes)?;
+    let mut staging = new_staging(display, options.staging_dir.as_deref(), staging_bytes)?;
     {
         let mut out = BufWriter::with_capacity(1 << 20, staging.as_file_mut());
         let mut cur: Option<(usize, Loaded)> = None;

@@ -10,9 +10,9 @@ use flate2::read::MultiGzDecoder;
 use crate::error::{Result, StorageError};
 use crate::geometry::VolumeGeometry;
 use crate::readers::common::{dims3, flip_xy, geometry_from_axes, volume_bytes};
-use crate::readers::staging::{new_staging, skip_bytes, stream_into};
 use crate::readers::ReadOptions;
 use crate::source::{ByteOrder, OpenedSource, RawVolume, SampleType, SourceInfo, WindowPreset};
+use crate::staging::{new_staging, skip_bytes, stream_into};
 
 const NIFTI1_SIZE: usize = 348;
 const NIFTI2_SIZE: usize = 540;
@@ -478,7 +478,7 @@ pub(crate) fn open_nifti(path: &Path, options: &ReadOptions) -> Result<OpenedSou
             skip_bytes(&data_path, &mut r, data_offset, "image header bytes")?;
             r
         };
-        let mut staging = new_staging(path, options, needed)?;
+        let mut staging = new_staging(path, options.staging_dir.as_deref(), needed)?;
         stream_into(&data_path, &mut reader, &mut staging, needed)?;
         RawVolume::from_staging(staging, &data_path, sample_type, h.order, dims)?
     } else {
