@@ -416,7 +416,7 @@ impl Store {
                     }
                 }
             }
-            if seen % 64 == 0 || seen == total {
+            if seen.is_multiple_of(64) || seen == total {
                 on_progress(seen, total);
             }
         }
