@@ -17,7 +17,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 
-use strata_loader::{BrickReader, FrameStats, StreamingConfig, StreamingVolume};
+use strata_loader::{FrameStats, StreamingConfig, StreamingVolume};
 use strata_render::{
     Camera, GpuContext, RenderSettings, TimeCriticalConfig, TimeCriticalController,
     TransferFunction, ValueMapping, VolumeGeometry,
@@ -321,9 +321,7 @@ impl RenderWorker {
             gpu_budget_bytes: self.gpu_budget_bytes,
             ..StreamingConfig::default()
         };
-        let reader: Arc<dyn BrickReader> = self.store.clone();
-        let mut volume =
-            StreamingVolume::new(&ctx, self.store.clone(), reader, &initial_tf, config)?;
+        let mut volume = StreamingVolume::new(&ctx, self.store.clone(), &initial_tf, config)?;
         // Toggling shading, a mode or pre-integration must not stall the volume view while
         // lavapipe compiles the new pipeline: the previous one draws meanwhile.
         volume.set_compile_in_background(true);
