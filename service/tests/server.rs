@@ -92,7 +92,10 @@ fn endpoints_serve_records_as_stored_with_immutable_caching() {
     let path = phantom(dir.path(), "chest", 80);
     let want = expected(&path);
     let server = serve(&path, ServeOptions::default());
-    assert!(server.addr().ip().is_loopback(), "binds loopback by default");
+    assert!(
+        server.addr().ip().is_loopback(),
+        "binds loopback by default"
+    );
     let base = server.base_url();
     let rt = runtime();
     let http = client();
@@ -111,16 +114,15 @@ fn endpoints_serve_records_as_stored_with_immutable_caching() {
         assert_eq!(list["stores"][0]["generation"], want.generation.as_str());
 
         // The open document: the header without identifiers, the skeleton intact.
-        let open = http
-            .get(server.store_url("chest"))
-            .send()
-            .await
-            .unwrap();
+        let open = http.get(server.store_url("chest")).send().await.unwrap();
         assert_eq!(open.status(), 200);
         let etag = open.headers()["etag"].to_str().unwrap().to_string();
         let (doc, skeleton) = decode_open_document(&open.bytes().await.unwrap()).unwrap();
         assert!(doc.identifiers_withheld);
-        assert_eq!(doc.header.description, "", "description withheld by default");
+        assert_eq!(
+            doc.header.description, "",
+            "description withheld by default"
+        );
         assert!(doc.header.provenance.inputs.is_empty());
         assert_eq!(doc.header.geometry, want.header.geometry);
         assert_eq!(doc.header.layout, want.header.layout);
@@ -159,14 +161,24 @@ fn endpoints_serve_records_as_stored_with_immutable_caching() {
         assert_eq!(r.status(), 304);
         assert!(r.bytes().await.unwrap().is_empty());
         // Ranges: a prefix, a suffix, beyond the end.
-        let r = http.get(&url).header("range", "bytes=0-8").send().await.unwrap();
+        let r = http
+            .get(&url)
+            .header("range", "bytes=0-8")
+            .send()
+            .await
+            .unwrap();
         assert_eq!(r.status(), 206);
         assert_eq!(
             r.headers()["content-range"],
             format!("bytes 0-8/{}", record.len()).as_str()
         );
         assert_eq!(&r.bytes().await.unwrap()[..], &record[..9]);
-        let r = http.get(&url).header("range", "bytes=-4").send().await.unwrap();
+        let r = http
+            .get(&url)
+            .header("range", "bytes=-4")
+            .send()
+            .await
+            .unwrap();
         assert_eq!(r.status(), 206);
         assert_eq!(&r.bytes().await.unwrap()[..], &record[record.len() - 4..]);
         let r = http
@@ -190,7 +202,10 @@ fn endpoints_serve_records_as_stored_with_immutable_caching() {
             .request(reqwest::Method::OPTIONS, &url)
             .header("origin", "https://viewer.example")
             .header("access-control-request-method", "GET")
-            .header("access-control-request-headers", "range,if-none-match,authorization")
+            .header(
+                "access-control-request-headers",
+                "range,if-none-match,authorization",
+            )
             .send()
             .await
             .unwrap();
@@ -258,7 +273,10 @@ fn expose_identifiers_serves_the_description() {
     let remote = RemoteSource::open(&server.store_url("named"), RemoteOptions::default()).unwrap();
     assert!(!remote.identifiers_withheld());
     assert!(
-        remote.header().description.starts_with("Strata synthetic CT phantom"),
+        remote
+            .header()
+            .description
+            .starts_with("Strata synthetic CT phantom"),
         "{}",
         remote.header().description
     );
@@ -289,7 +307,10 @@ fn traversal_and_unknown_stores_get_a_bare_404() {
         );
         let status = answer.split(' ').nth(1).unwrap_or("");
         assert!(status == "404" || status == "400", "{target}: {answer}");
-        assert!(!answer.contains(&dir_text), "{target} leaked a path: {answer}");
+        assert!(
+            !answer.contains(&dir_text),
+            "{target} leaked a path: {answer}"
+        );
         assert!(!answer.contains("root:"), "{target}: {answer}");
     }
 }
@@ -310,11 +331,23 @@ fn a_token_is_required_when_configured_and_checked() {
     let rt = runtime();
     let http = client();
     let (id, _) = want.records[0].clone();
-    let url = format!("{}{}", server.base_url(), brick_path("chest", &want.generation, id));
+    let url = format!(
+        "{}{}",
+        server.base_url(),
+        brick_path("chest", &want.generation, id)
+    );
     rt.block_on(async {
-        for auth in [None, Some("Bearer wrong"), Some("Bearer "), Some(&*format!("Bearer {TOKEN}x"))]
-        {
-            for u in [&url, &server.store_url("chest"), &format!("{}/v1/stores", server.base_url())] {
+        for auth in [
+            None,
+            Some("Bearer wrong"),
+            Some("Bearer "),
+            Some(&*format!("Bearer {TOKEN}x")),
+        ] {
+            for u in [
+                &url,
+                &server.store_url("chest"),
+                &format!("{}/v1/stores", server.base_url()),
+            ] {
                 let mut request = http.get(u.as_str());
                 if let Some(a) = auth {
                     request = request.header("authorization", a);
@@ -332,7 +365,10 @@ fn a_token_is_required_when_configured_and_checked() {
             .await
             .unwrap();
         assert_eq!(r.status(), 200);
-        assert_eq!(r.headers()["cache-control"], "private, max-age=31536000, immutable");
+        assert_eq!(
+            r.headers()["cache-control"],
+            "private, max-age=31536000, immutable"
+        );
     });
     let without = RemoteSource::open(&server.store_url("chest"), RemoteOptions::default());
     let err = without.err().unwrap().to_string();
@@ -372,7 +408,10 @@ fn incomplete_or_damaged_stores_are_refused_at_start() {
     let not_a_store = dir.path().join("empty");
     std::fs::create_dir(&not_a_store).unwrap();
     let err = find_stores(&[not_a_store]).err().unwrap().to_string();
-    assert!(err.contains("neither a store nor a folder holding stores"), "{err}");
+    assert!(
+        err.contains("neither a store nor a folder holding stores"),
+        "{err}"
+    );
 
     let path = phantom(dir.path(), "damaged", 40);
     let layout = Store::open(&path).unwrap().layout().clone();
@@ -382,7 +421,10 @@ fn incomplete_or_damaged_stores_are_refused_at_start() {
         .err()
         .unwrap()
         .to_string();
-    assert!(err.contains("damaged.strata") && err.contains("checksum"), "{err}");
+    assert!(
+        err.contains("damaged.strata") && err.contains("checksum"),
+        "{err}"
+    );
 }
 
 #[test]
@@ -393,7 +435,11 @@ fn a_brick_damaged_on_the_server_is_a_500_with_the_reason() {
     let id = BrickId::new(0, [1, 0, 0]);
     Store::corrupt_brick_for_tests(&path, id, 40).unwrap();
     let server = serve(&path, ServeOptions::default());
-    let url = format!("{}{}", server.base_url(), brick_path("chest", &want.generation, id));
+    let url = format!(
+        "{}{}",
+        server.base_url(),
+        brick_path("chest", &want.generation, id)
+    );
     let rt = runtime();
     let (status, body) = rt.block_on(async {
         let r = client().get(&url).send().await.unwrap();
@@ -432,7 +478,8 @@ fn oversized_headers_and_slow_clients_are_dropped() {
 
     // Slow loris: a header line every 200 ms, never finishing. The server must hang up.
     let mut s = TcpStream::connect(server.addr()).unwrap();
-    s.write_all(b"GET /v1/stores HTTP/1.1\r\nHost: x\r\n").unwrap();
+    s.write_all(b"GET /v1/stores HTTP/1.1\r\nHost: x\r\n")
+        .unwrap();
     let mut dropped = false;
     for i in 0..50 {
         std::thread::sleep(Duration::from_millis(200));
@@ -452,8 +499,9 @@ fn oversized_headers_and_slow_clients_are_dropped() {
                 dropped = true;
                 break;
             }
-            Err(e) if e.kind() == std::io::ErrorKind::WouldBlock
-                || e.kind() == std::io::ErrorKind::TimedOut => {}
+            Err(e)
+                if e.kind() == std::io::ErrorKind::WouldBlock
+                    || e.kind() == std::io::ErrorKind::TimedOut => {}
             Err(_) => {
                 dropped = true;
                 break;
@@ -462,7 +510,10 @@ fn oversized_headers_and_slow_clients_are_dropped() {
     }
     assert!(dropped, "a client trickling headers for 10 s was kept");
     // The server still answers others.
-    let answer = raw(&server, b"GET /v1/stores HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n");
+    let answer = raw(
+        &server,
+        b"GET /v1/stores HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n",
+    );
     assert!(answer.starts_with("HTTP/1.1 200"), "{answer}");
 }
 
@@ -487,11 +538,17 @@ fn connections_beyond_the_limit_are_closed() {
         .collect();
     std::thread::sleep(Duration::from_millis(200));
     // ... so a fifth is closed without an answer.
-    let answer = raw(&server, b"GET /v1/stores HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n");
+    let answer = raw(
+        &server,
+        b"GET /v1/stores HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n",
+    );
     assert!(answer.is_empty(), "{answer}");
     drop(held);
     std::thread::sleep(Duration::from_millis(300));
-    let answer = raw(&server, b"GET /v1/stores HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n");
+    let answer = raw(
+        &server,
+        b"GET /v1/stores HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n",
+    );
     assert!(answer.starts_with("HTTP/1.1 200"), "{answer}");
     assert!(
         server
