@@ -52,12 +52,32 @@ enum Command {
 }
 
 fn main() -> std::process::ExitCode {
+    install_interrupt_cleanup();
     match run(Cli::parse()) {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("error: {e:#}");
             std::process::ExitCode::FAILURE
         }
+    }
+}
+
+/// Ctrl-C and SIGTERM end the process without running destructors, which would leave the
+/// decompressed staging copy of a compressed input behind (gigabytes for a large scan): delete
+/// it first. (SIGKILL cannot be caught: the next run removes such files, see
+/// `remove_stale_staging_files`.)
+fn install_interrupt_cleanup() {
+    let installed = ctrlc::set_handler(|| {
+        let removed = strata_storage::readers::remove_live_staging_files();
+        if removed > 0 {
+            eprintln!("interrupted: removed {removed} temporary staging file(s)");
+        } else {
+            eprintln!("interrupted");
+        }
+        std::process::exit(130);
+    });
+    if let Err(e) = installed {
+        eprintln!("warning: cannot install the interrupt handler ({e}); an interrupted import may leave its staging file in the temp folder");
     }
 }
 

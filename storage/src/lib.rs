@@ -3,10 +3,12 @@
 //! Knows nothing of GPUs. See ARCHITECTURE.md for the store layout and its invariants.
 
 pub mod brick;
+mod contained_db;
 pub mod error;
 pub mod geometry;
 pub mod histogram;
 pub mod import;
+pub mod lock;
 pub mod octree;
 pub mod phantom;
 pub mod quantize;

@@ -354,26 +354,53 @@ fn locate_native_pixel_data(path: &Path, transfer_syntax: &str, len: u64) -> Opt
     None
 }
 
-fn collect_files(dir: &Path, depth: usize, out: &mut Vec<PathBuf>) -> Result<()> {
+/// Most files a folder scan looks at: a whole study is a few thousand; beyond this the folder is
+/// not a series (a home directory, a symlink farm) and the scan stops with an error.
+const MAX_SCANNED_FILES: usize = 200_000;
+
+/// Lists the regular files under `dir` (sorted, at most [`MAX_DEPTH`] deep). Follows a symlink
+/// to a folder only once per real folder, so link cycles and fan-outs cost nothing; FIFOs,
+/// sockets and devices are never opened (reading a FIFO blocks forever).
+fn collect_files(
+    dir: &Path,
+    depth: usize,
+    seen_dirs: &mut std::collections::HashSet<PathBuf>,
+    out: &mut Vec<PathBuf>,
+) -> Result<()> {
+    let real = std::fs::canonicalize(dir).map_err(|e| StorageError::io(dir, e))?;
+    if !seen_dirs.insert(real) {
+        return Ok(());
+    }
     let rd = std::fs::read_dir(dir).map_err(|e| StorageError::io(dir, e))?;
     let mut entries: Vec<PathBuf> = rd.filter_map(|e| e.ok().map(|e| e.path())).collect();
     entries.sort();
     for p in entries {
-        if p.is_dir() {
+        // Follows symlinks: a link to a slice is a slice; a dangling link is skipped.
+        let Ok(meta) = std::fs::metadata(&p) else {
+            continue;
+        };
+        if meta.is_dir() {
             if depth < MAX_DEPTH {
-                collect_files(&p, depth + 1, out)?;
+                collect_files(&p, depth + 1, seen_dirs, out)?;
             }
-        } else {
+        } else if meta.is_file() {
+            if out.len() >= MAX_SCANNED_FILES {
+                return Err(StorageError::invalid(
+                    dir,
+                    format!("more than {MAX_SCANNED_FILES} files under this folder: point the import at the series' own folder"),
+                ));
+            }
             out.push(p);
         }
     }
     Ok(())
 }
 
-/// Scans a folder: image headers grouped by series, in listing order, plus counts for errors.
-fn scan_folder(dir: &Path) -> Result<Vec<Vec<ImageHeader>>> {
+/// Scans a folder: image headers grouped by series, in listing order, and the errors of the
+/// DICOM files that could not be read.
+fn scan_folder(dir: &Path) -> Result<(Vec<Vec<ImageHeader>>, Vec<StorageError>)> {
     let mut files = Vec::new();
-    collect_files(dir, 0, &mut files)?;
+    collect_files(dir, 0, &mut Default::default(), &mut files)?;
     let mut dicom_files = 0usize;
     let mut headers = Vec::new();
     let mut unreadable: Vec<StorageError> = Vec::new();
@@ -419,7 +446,7 @@ fn scan_folder(dir: &Path) -> Result<Vec<Vec<ImageHeader>>> {
         (a[0].series_number.unwrap_or(i64::MAX), &a[0].series_uid)
             .cmp(&(b[0].series_number.unwrap_or(i64::MAX), &b[0].series_uid))
     });
-    Ok(series)
+    Ok((series, unreadable))
 }
 
 fn summary(s: &[ImageHeader]) -> DicomSeriesSummary {
@@ -434,11 +461,22 @@ fn summary(s: &[ImageHeader]) -> DicomSeriesSummary {
 
 /// The image series in a DICOM folder, in the order `ReadOptions::dicom_series` indexes them.
 pub fn list_dicom_series(dir: &Path) -> Result<Vec<DicomSeriesSummary>> {
-    Ok(scan_folder(dir)?.iter().map(|s| summary(s)).collect())
+    Ok(scan_folder(dir)?.0.iter().map(|s| summary(s)).collect())
 }
 
 pub(crate) fn open_series_dir(dir: &Path, options: &ReadOptions) -> Result<OpenedSource> {
-    let mut series = scan_folder(dir)?;
+    let (mut series, unreadable) = scan_folder(dir)?;
+    // Which series an unreadable file belonged to is unknown, so any of them may be a missing
+    // slice (a gap at either end of a series is invisible): never import around it silently.
+    if let Some(first) = unreadable.first() {
+        return Err(StorageError::invalid(
+            dir,
+            format!(
+                "{} DICOM file(s) in this folder cannot be read, and may be slices of the series: {first}; repair or move them out of the folder to import the rest",
+                unreadable.len()
+            ),
+        ));
+    }
     let chosen = if series.len() == 1 {
         0
     } else {
@@ -754,7 +792,10 @@ fn assemble(
         (Output::Physical, SampleType::F32, 1.0, 0.0)
     };
 
-    let mut staging = new_staging(display, options)?;
+    let staging_bytes = dims.iter().fold(out_type.size_bytes() as u64, |acc, &d| {
+        acc.saturating_mul(d)
+    });
+    let mut staging = new_staging(display, options, staging_bytes)?;
     {
         let mut out = BufWriter::with_capacity(1 << 20, staging.as_file_mut());
         let mut cur: Option<(usize, Loaded)> = None;

@@ -21,6 +21,7 @@ use crate::error::{Result, StorageError};
 use crate::source::{ByteOrder, OpenedSource, SampleType};
 
 pub use dicom::{list_dicom_series, DicomSeriesSummary};
+pub use staging::{remove_live_staging_files, remove_stale_staging_files, StagingFile};
 
 /// What the user told us beyond the path.
 #[derive(Default, Clone, Debug)]
@@ -60,6 +61,13 @@ pub fn open_source(path: &Path, options: &ReadOptions) -> Result<OpenedSource> {
     })?;
     if meta.is_dir() {
         return dicom::open_series_dir(path, options);
+    }
+    if !meta.is_file() {
+        // Reading a FIFO blocks until a writer comes, possibly forever; devices never end.
+        return Err(StorageError::invalid(
+            path,
+            "not a regular file (a FIFO, socket or device): give the scan's file or folder",
+        ));
     }
     let name = path
         .file_name()

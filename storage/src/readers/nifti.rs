@@ -458,6 +458,7 @@ pub(crate) fn open_nifti(path: &Path, options: &ReadOptions) -> Result<OpenedSou
         (img, off, img_gz)
     };
 
+    crate::readers::common::check_data_file(path, &data_path)?;
     let data = if data_gz {
         let mut reader: Box<dyn Read> = if data_path == path {
             skip_bytes(
@@ -473,7 +474,7 @@ pub(crate) fn open_nifti(path: &Path, options: &ReadOptions) -> Result<OpenedSou
             skip_bytes(&data_path, &mut r, data_offset, "image header bytes")?;
             r
         };
-        let mut staging = new_staging(path, options)?;
+        let mut staging = new_staging(path, options, needed)?;
         stream_into(&data_path, &mut reader, &mut staging, needed)?;
         RawVolume::from_staging(staging, &data_path, sample_type, h.order, dims)?
     } else {
