@@ -9,7 +9,8 @@ use std::sync::Arc;
 use anyhow::{Context, Result};
 use strata_service::{RemoteOptions, RemoteSource};
 use strata_source::VolumeSource;
-use strata_storage::Store;
+use strata_storage::lock::LockHolder;
+use strata_storage::{StorageError, Store};
 
 pub fn is_url(location: &str) -> bool {
     location.starts_with("http://") || location.starts_with("https://")
@@ -59,9 +60,27 @@ pub fn open(location: &str, token_file: Option<&Path>, sled_cache_bytes: u64) ->
         return Ok(Opened::Remote(open_remote(location, token_file)?));
     }
     let path = Path::new(location);
-    let store = Store::open_with_cache(path, sled_cache_bytes)
-        .with_context(|| format!("cannot open store {}", path.display()))?;
-    Ok(Opened::Local(Arc::new(store)))
+    match Store::open_with_cache(path, sled_cache_bytes) {
+        Ok(store) => Ok(Opened::Local(Arc::new(store))),
+        // sled lets one process open a store; while `strata serve` holds it, stream from the
+        // server instead of waiting or failing.
+        Err(StorageError::InUse {
+            holder:
+                LockHolder {
+                    pid,
+                    url: Some(url),
+                    ..
+                },
+            ..
+        }) => {
+            eprintln!(
+                "{}: served by strata serve (pid {pid}); streaming from {url}",
+                path.display()
+            );
+            Ok(Opened::Remote(open_remote(&url, token_file)?))
+        }
+        Err(e) => Err(e).with_context(|| format!("cannot open store {}", path.display())),
+    }
 }
 
 /// [`open`] as a volume source.

@@ -147,7 +147,26 @@ fn local_equals_remote(store: &Path, dir: &Path, views: &[&[&str]]) {
             "view {view:?}: the served store's image differs from the local one"
         );
         assert!(remote.iter().any(|&v| v > 0), "view {view:?} is black");
+        // The store's own path while the server holds it: told at once, streamed from there.
+        let out = dir.join(format!("redirected-{i}.png"));
+        let log = render(store.to_str().unwrap(), &out, view);
+        assert!(
+            log.contains("served by strata serve") && log.contains(&served.url),
+            "{log}"
+        );
+        assert!(
+            png_pixels(&out) == local[i],
+            "view {view:?} via the lock's URL differs"
+        );
     }
+    let info = strata(&["info", store.to_str().unwrap()]);
+    assert!(info.status.success(), "{}", stderr(&info));
+    assert!(
+        stderr(&info).contains("streaming from"),
+        "{}",
+        stderr(&info)
+    );
+    assert!(String::from_utf8_lossy(&info.stdout).contains("withheld by the server"));
 }
 
 #[test]

@@ -206,8 +206,12 @@ fn open_served(
     name: String,
     path: &Path,
     expose_identifiers: bool,
+    base_url: &str,
 ) -> Result<ServedStore, ServeError> {
-    let store = Store::open(path)?;
+    let mut store = Store::open(path)?;
+    // The store's lock names this server, so `strata render|info|view` of the same folder is
+    // told at once to stream from here (sled lets one process open it).
+    store.advertise_url(&format!("{base_url}{API_PREFIX}/stores/{name}"))?;
     // Opening checked completeness, the header and the skeleton's checksum; the root brick is
     // read and verified too, so a store damaged where every client starts is refused here.
     let layout = store.layout().clone();
@@ -336,16 +340,6 @@ pub fn start(
     if stores.is_empty() {
         return Err(ServeError::Config("no store to serve".into()));
     }
-    let mut served = HashMap::new();
-    for (name, path) in stores {
-        let s = open_served(name.clone(), &path, options.expose_identifiers)?;
-        served.insert(name, Arc::new(s));
-    }
-    let mut listing: Vec<(String, PathBuf, String)> = served
-        .values()
-        .map(|s| (s.name.clone(), s.path.clone(), s.generation.clone()))
-        .collect();
-    listing.sort();
     let listener =
         std::net::TcpListener::bind(options.bind).map_err(|source| ServeError::Bind {
             addr: options.bind,
@@ -355,6 +349,21 @@ pub fn start(
         .set_nonblocking(true)
         .map_err(ServeError::Runtime)?;
     let addr = listener.local_addr().map_err(ServeError::Runtime)?;
+    let mut served = HashMap::new();
+    for (name, path) in stores {
+        let s = open_served(
+            name.clone(),
+            &path,
+            options.expose_identifiers,
+            &format!("http://{addr}"),
+        )?;
+        served.insert(name, Arc::new(s));
+    }
+    let mut listing: Vec<(String, PathBuf, String)> = served
+        .values()
+        .map(|s| (s.name.clone(), s.path.clone(), s.generation.clone()))
+        .collect();
+    listing.sort();
     let counters = Arc::new(ServerCounters::default());
     let state = Arc::new(AppState {
         stores: served,

@@ -377,12 +377,22 @@ impl Store {
                 format!("brick {id:?} is outside the octree"),
             ));
         }
-        Ok(self
-            .bricks
-            .get(brick_key(id))
-            .map_err(db_error(&self.path))?
-            .ok_or_else(|| StorageError::corrupted(&self.path, format!("brick {id:?} is missing")))?
-            .to_vec())
+        let record = contained(&self.path, "reading a brick", || {
+            self.bricks.get(brick_key(id))
+        })?
+        .ok_or_else(|| {
+            StorageError::corrupted(
+                &self.path,
+                format!("brick level {} at {:?} is missing", id.level, id.coords),
+            )
+        })?;
+        Ok(record.to_vec())
+    }
+
+    /// Records in this store's lock where `strata serve` streams it, so a local open of the
+    /// same folder is refused at once with the URL to use instead.
+    pub fn advertise_url(&mut self, url: &str) -> Result<()> {
+        self._lock.advertise_url(url)
     }
 
     /// Size of the stored record of a brick (compressed), for I/O accounting.
