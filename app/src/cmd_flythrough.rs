@@ -71,7 +71,7 @@ pub struct FlythroughArgs {
 
 /// Viewpoint `k` of `n`: an orbit that swings around and closes in, ending inside the body's
 /// outline where the finest level is needed.
-fn viewpoint(geometry: &VolumeGeometry, k: f64, n: usize) -> Camera {
+pub(crate) fn viewpoint(geometry: &VolumeGeometry, k: f64, n: usize) -> Camera {
     let t = k / (n.max(2) - 1) as f64;
     Camera::orbit(
         geometry,

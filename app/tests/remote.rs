@@ -477,12 +477,12 @@ fn two_hundred_clients_get_verified_bricks_or_clean_errors_with_bounded_memory()
         return;
     };
     // Bound: the 64 MiB sled page cache, at most 64 requests × one ~100 KB record, the runtime,
-    // and per-connection buffers (≤ 256 × (16 KiB + HTTP/2 windows)): 256 MiB is several
-    // times what this needs and far below what unbounded buffering of 200 clients would take.
+    // and per-connection buffers (≤ 256 × (16 KiB + HTTP/2 windows)): 128 MiB is over twice
+    // what this needs and far below what unbounded buffering of 200 clients would take.
     println!(
         "server RSS idle {:?} MB, peak {:.1} MB; {ok} verified bricks, {busy} refused",
         idle.map(|(r, _)| r as f64 / 1e6),
         peak as f64 / 1e6
     );
-    assert!(peak < 256 << 20, "server peak RSS {} MB", peak >> 20);
+    assert!(peak < 128 << 20, "server peak RSS {} MB", peak >> 20);
 }
