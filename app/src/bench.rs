@@ -14,6 +14,7 @@ use strata_storage::{BrickId, Store, BRICK_PAYLOAD_VOXELS};
 
 mod accuracy;
 mod common;
+mod remote;
 mod time_critical;
 mod transitions;
 
@@ -96,10 +97,14 @@ pub enum BenchCommand {
     /// bricks, frame time with smoothing off/on × unshaded/shaded, and the error of each image
     /// against the f64 reference of the full-resolution cut and of the same cut.
     Transitions(transitions::Options),
+    /// The flythrough from a local store and through `strata serve` on loopback with added
+    /// round-trip delays: convergence time, bytes and requests in flight, remote vs local.
+    Remote(remote::Options),
 }
 
 pub fn run(cmd: BenchCommand) -> Result<()> {
     match cmd {
+        BenchCommand::Remote(options) => remote::run(options),
         BenchCommand::Import {
             size,
             rss_size,

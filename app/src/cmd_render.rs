@@ -11,7 +11,6 @@ use strata_render::reference::{render_reference, ReferenceOptions, ReferenceScen
 use strata_render::{
     Camera, GpuContext, Projection, RenderMode, RenderSettings, Shading, TransferFunction,
 };
-use strata_storage::Store;
 
 #[derive(Clone, Copy, ValueEnum)]
 pub enum ModeArg {
@@ -22,7 +21,11 @@ pub enum ModeArg {
 
 #[derive(Args)]
 pub struct RenderArgs {
-    pub store: PathBuf,
+    /// A store directory, or http://HOST:PORT/v1/stores/NAME served by `strata serve`.
+    pub store: String,
+    /// Bearer token for a server that requires one.
+    #[arg(long)]
+    pub token_file: Option<PathBuf>,
     /// Output PNG.
     #[arg(long, default_value = "strata.png")]
     pub out: PathBuf,
@@ -132,8 +135,12 @@ pub fn run(args: RenderArgs) -> Result<()> {
         return run_streaming(&args);
     }
     let (width, height) = parse_size(&args.size)?;
-    let store = Store::open(&args.store)
-        .with_context(|| format!("cannot open store {}", args.store.display()))?;
+    let store = crate::volume_location::open_source(
+        &args.store,
+        args.token_file.as_deref(),
+        strata_storage::store::DEFAULT_READ_CACHE_BYTES,
+    )?;
+    let store = store.as_ref();
     let header = store.header().clone();
     let geometry = header.geometry.clone();
     let mapping = header.value_mapping.mapping;
@@ -146,14 +153,14 @@ pub fn run(args: RenderArgs) -> Result<()> {
         physical_range.0.min(physical_range.1),
         physical_range.0.max(physical_range.1),
     );
-    let mut table = page_table_for_cut(&store, &geometry, |_| args.level);
+    let mut table = page_table_for_cut(store, &geometry, |_| args.level);
     let settings = settings_of(&args)?;
     if matches!(settings.mode, RenderMode::Dvr) {
-        classify_empty(&store, &mut table, mapping, &tf_table);
+        classify_empty(store, &mut table, mapping, &tf_table);
     }
     let camera = camera_of(&args, &geometry);
     let t_load = Instant::now();
-    let bricks = ResidentBricks::load(&store, &table)?;
+    let bricks = ResidentBricks::load(store, &table)?;
     eprintln!(
         "loaded {} bricks of level {} in {:.2} s",
         bricks.len(),
@@ -248,13 +255,14 @@ fn run_streaming(args: &RenderArgs) -> Result<()> {
         "--quality must be positive, got {}",
         args.quality
     );
-    let store = std::sync::Arc::new(
-        Store::open_with_cache(&args.store, config.sled_cache_bytes)
-            .with_context(|| format!("cannot open store {}", args.store.display()))?,
-    );
+    let store = crate::volume_location::open_source(
+        &args.store,
+        args.token_file.as_deref(),
+        config.sled_cache_bytes,
+    )?;
     let tf = choose_transfer_function(args.tf.as_deref(), &store.header().modality)?;
-    let mut volume = StreamingVolume::new(&ctx, store.clone(), store, &tf, config)
-        .with_context(|| format!("cannot stream store {}", args.store.display()))?;
+    let mut volume = StreamingVolume::new(&ctx, store, &tf, config)
+        .with_context(|| format!("cannot stream store {}", args.store))?;
     let opened = Instant::now();
     let geometry = volume.geometry().clone();
     let camera = camera_of(args, &geometry);
@@ -269,6 +277,21 @@ fn run_streaming(args: &RenderArgs) -> Result<()> {
     let Some(last) = history.last() else {
         bail!("no frame was rendered")
     };
+    if let Some(lost) = history.iter().find(|s| s.source_status.is_retrying()) {
+        eprintln!(
+            "warning: connection to the source was lost during the render ({:?}); requests were retried",
+            lost.source_status
+        );
+    }
+    if last.retried_total > 0 || last.cancelled_in_flight_total > 0 {
+        eprintln!(
+            "remote: {} requests retried ({} records damaged in transit), {} stale requests cancelled in flight, at most {} in flight",
+            last.retried_total,
+            last.checksum_failures_total,
+            last.cancelled_in_flight_total,
+            last.max_in_flight
+        );
+    }
     eprintln!(
         "{} after {} frames in {:.2} s (open {:.2} s): {} bricks on the GPU per level {:?}, {:.1} MB read",
         if last.converged { "converged" } else { "not converged (raise --max-frames)" },

@@ -321,6 +321,7 @@ pub fn import_slices(
         brick_core: CORE,
         brick_apron: APRON,
         stored_range: [stored_lo, stored_hi],
+        generation: crate::store::new_generation_id(),
     };
     let bytes_per_voxel = if narrow { 1 } else { 2 };
     let stats = StoreStats {

@@ -84,6 +84,39 @@ pub struct StoreHeader {
     pub brick_apron: u64,
     /// Lowest and highest stored value at level 0.
     pub stored_range: [u16; 2],
+    /// Identifies this import: written once when the store is created, different for every
+    /// import of the same name, so a served brick URL that carries it can be cached for ever.
+    /// Empty for stores written before it existed (see [`StoreHeader::generation_id`]).
+    #[serde(default)]
+    pub generation: String,
+}
+
+impl StoreHeader {
+    /// The import's generation; for stores written before generations existed, one derived
+    /// from what differs between two imports (import time, layout, value range, source).
+    pub fn generation_id(&self) -> String {
+        if !self.generation.is_empty() {
+            return self.generation.clone();
+        }
+        let derived = serde_json::to_vec(self).map_or(0, |json| xxh3_64(&json));
+        format!("h{derived:016x}")
+    }
+}
+
+/// A fresh 128-bit generation id (hex): time, process and a per-process random hasher key,
+/// so two imports of the same name (even in the same second) never share one.
+pub fn new_generation_id() -> String {
+    use std::hash::{BuildHasher, Hasher};
+    let now = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos());
+    let mut hi = std::collections::hash_map::RandomState::new().build_hasher();
+    hi.write_u128(now);
+    hi.write_u32(std::process::id());
+    let mut lo = std::collections::hash_map::RandomState::new().build_hasher();
+    lo.write_u64(hi.finish());
+    lo.write_u128(now);
+    format!("{:016x}{:016x}", hi.finish(), lo.finish())
 }
 
 /// Per-node range and flags, kept for the whole octree in memory.
@@ -116,7 +149,8 @@ impl Skeleton {
         }
     }
 
-    fn encode(&self) -> Vec<u8> {
+    /// The skeleton as stored (and served): levels, per node min/max/flags, an xxh3 checksum.
+    pub fn encode(&self) -> Vec<u8> {
         let mut out = Vec::new();
         out.extend_from_slice(&(self.levels.len() as u32).to_le_bytes());
         for level in &self.levels {
@@ -132,7 +166,8 @@ impl Skeleton {
         out
     }
 
-    fn decode(bytes: &[u8]) -> Option<Skeleton> {
+    /// Parses [`Skeleton::encode`]'s bytes; `None` when the checksum or the framing is wrong.
+    pub fn decode(bytes: &[u8]) -> Option<Skeleton> {
         let (body, sum) = bytes.split_at(bytes.len().checked_sub(8)?);
         if xxh3_64(body) != u64::from_le_bytes(sum.try_into().ok()?) {
             return None;
@@ -341,6 +376,33 @@ impl Store {
             ));
         }
         read_brick_record(&self.path, &self.bricks, id)
+    }
+
+    /// One brick's record exactly as stored (kind, checksum, compressed body): what the data
+    /// service sends, so nothing is decoded or re-encoded on the way. Not verified here.
+    pub fn read_brick_record(&self, id: BrickId) -> Result<Vec<u8>> {
+        if !self.header.layout.contains(id) {
+            return Err(StorageError::invalid(
+                &self.path,
+                format!("brick {id:?} is outside the octree"),
+            ));
+        }
+        let record = contained(&self.path, "reading a brick", || {
+            self.bricks.get(brick_key(id))
+        })?
+        .ok_or_else(|| {
+            StorageError::corrupted(
+                &self.path,
+                format!("brick level {} at {:?} is missing", id.level, id.coords),
+            )
+        })?;
+        Ok(record.to_vec())
+    }
+
+    /// Records in this store's lock where `strata serve` streams it, so a local open of the
+    /// same folder is refused at once with the URL to use instead.
+    pub fn advertise_url(&mut self, url: &str) -> Result<()> {
+        self._lock.advertise_url(url)
     }
 
     /// Size of the stored record of a brick (compressed), for I/O accounting.

@@ -7,7 +7,8 @@ use std::collections::{HashMap, VecDeque};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 
-use strata_storage::{BrickId, Store, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
+use strata_source::VolumeSource;
+use strata_storage::{BrickId, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
 
 use super::orientation::{SliceFrame, SliceView};
 use super::sync::{lock_ignoring_poison, wait_ignoring_poison};
@@ -68,7 +69,7 @@ pub fn level_for_pixels(voxels_across: f64, pixels_across: f64, level_count: usi
 }
 
 impl SliceReader {
-    pub fn start(store: Arc<Store>, repaint: Repaint) -> anyhow::Result<Self> {
+    pub fn start(store: Arc<dyn VolumeSource>, repaint: Repaint) -> anyhow::Result<Self> {
         let shared = Arc::new(Shared {
             pending: Mutex::new([None; 3]),
             results: Mutex::new([None, None, None]),
@@ -153,7 +154,7 @@ impl BrickLru {
         }
     }
 
-    fn get(&mut self, store: &Store, id: BrickId) -> anyhow::Result<Arc<Vec<u16>>> {
+    fn get(&mut self, store: &dyn VolumeSource, id: BrickId) -> anyhow::Result<Arc<Vec<u16>>> {
         if let Some(b) = self.bricks.get(&id) {
             let b = b.clone();
             if let Some(pos) = self.order.iter().position(|x| *x == id) {
@@ -178,7 +179,7 @@ impl BrickLru {
 }
 
 fn read_slice(
-    store: &Store,
+    store: &dyn VolumeSource,
     cache: &mut BrickLru,
     request: SliceRequest,
 ) -> anyhow::Result<SliceImage> {
@@ -249,7 +250,7 @@ mod tests {
         strata_storage::phantom::Phantom::cube(40)
             .write_store(&path, &Default::default())
             .expect("phantom");
-        let store = Store::open(&path).expect("open");
+        let store = strata_storage::Store::open(&path).expect("open");
         let g = store.header().geometry.clone();
         let geometry = VolumeGeometry {
             dims: g.dims.map(|d| d),

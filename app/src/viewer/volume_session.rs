@@ -17,12 +17,13 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 
-use strata_loader::{BrickReader, FrameStats, StreamingConfig, StreamingVolume};
+use strata_loader::{FrameStats, StreamingConfig, StreamingVolume};
 use strata_render::{
     Camera, GpuContext, RenderSettings, TimeCriticalConfig, TimeCriticalController,
     TransferFunction, ValueMapping, VolumeGeometry,
 };
-use strata_storage::{Store, StoreHeader};
+use strata_source::VolumeSource;
+use strata_storage::StoreHeader;
 
 use super::sync::lock_ignoring_poison;
 
@@ -99,7 +100,7 @@ pub struct VolumeInfo {
 }
 
 impl VolumeInfo {
-    pub fn of(store: &Store) -> anyhow::Result<Self> {
+    pub fn of(store: &dyn VolumeSource) -> anyhow::Result<Self> {
         let header = store.header().clone();
         let geometry = header.geometry.clone();
         let mapping = header.value_mapping.mapping;
@@ -135,11 +136,11 @@ pub type Repaint = Arc<dyn Fn() + Send + Sync>;
 impl VolumeSession {
     /// Starts the render thread on an opened store. Never blocks on the GPU or the disk.
     pub fn start(
-        store: Arc<Store>,
+        store: Arc<dyn VolumeSource>,
         gpu_budget_bytes: u64,
         repaint: Repaint,
     ) -> anyhow::Result<Self> {
-        let info = VolumeInfo::of(&store)?;
+        let info = VolumeInfo::of(store.as_ref())?;
         let shared = Arc::new(Shared {
             request: Mutex::new(None),
             wake: Condvar::new(),
@@ -263,7 +264,7 @@ fn lower_this_threads_priority() {
 }
 
 struct RenderWorker {
-    store: Arc<Store>,
+    store: Arc<dyn VolumeSource>,
     shared: Arc<Shared>,
     repaint: Repaint,
     gpu_budget_bytes: u64,
@@ -273,7 +274,7 @@ struct RenderWorker {
 
 impl RenderWorker {
     fn new(
-        store: Arc<Store>,
+        store: Arc<dyn VolumeSource>,
         shared: Arc<Shared>,
         repaint: Repaint,
         gpu_budget_bytes: u64,
@@ -321,9 +322,7 @@ impl RenderWorker {
             gpu_budget_bytes: self.gpu_budget_bytes,
             ..StreamingConfig::default()
         };
-        let reader: Arc<dyn BrickReader> = self.store.clone();
-        let mut volume =
-            StreamingVolume::new(&ctx, self.store.clone(), reader, &initial_tf, config)?;
+        let mut volume = StreamingVolume::new(&ctx, self.store.clone(), &initial_tf, config)?;
         // Toggling shading, a mode or pre-integration must not stall the volume view while
         // lavapipe compiles the new pipeline: the previous one draws meanwhile.
         volume.set_compile_in_background(true);
@@ -522,7 +521,7 @@ mod tests {
         strata_storage::phantom::Phantom::cube(70)
             .write_store(&path, &Default::default())
             .expect("phantom store");
-        let store = Arc::new(Store::open(&path).expect("open"));
+        let store = Arc::new(strata_storage::Store::open(&path).expect("open"));
         let session = VolumeSession::start(store, DEFAULT_GPU_BUDGET_BYTES, Arc::new(|| {}))
             .expect("session");
         let info = session.info().clone();
