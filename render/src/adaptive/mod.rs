@@ -22,7 +22,7 @@ pub mod transcription;
 pub use frame::SliceFrame;
 pub use gpu::{AdaptiveFrame, AdaptivePass};
 pub use oracle::{oracle_distances, OracleKind};
-pub use scene::{render_adaptive_reference, AdaptiveReference};
+pub use scene::{render_adaptive_reference, slice_sample, AdaptiveOptics, AdaptiveReference};
 pub use transcription::{l_slice, project_volume, PyramidDims, Transcription};
 
 /// The adaptive pass's own settings (the rest comes from [`crate::RenderSettings`]).

@@ -51,41 +51,55 @@ struct SceneProbe<'a, S: BrickSource> {
     oracle_table: &'a [f32],
 }
 
+/// The value (physical) and page entry SAMPLE reads at level-0 pixel coordinates (u, v) on
+/// slice `i_slice`: the field where the slice's point lies in the ray's box-and-clip
+/// interval and something is resident there, else the default value, the low end of the TF
+/// range (which the TF maps to transparent for the CT and MR presets, §3.1), and no entry.
+pub fn slice_sample<S: BrickSource>(
+    scene: &ReferenceScene<S>,
+    settings: &RenderSettings,
+    frame: &SliceFrame,
+    masks: Option<&[u32]>,
+    (u, v): (f64, f64),
+    i_slice: u32,
+) -> (f64, Option<usize>) {
+    let (o, d) = frame.ray(u, v);
+    let t = frame.slice_t(i_slice);
+    let g = scene.geometry;
+    let inside = ray_interval(g, settings, o, d).is_some_and(|(t0, t1)| t >= t0 && t <= t1);
+    let located = inside
+        .then(|| {
+            let a = g.index_from_patient_linear();
+            let p: DVec3 = a * (o + d * t - g.origin());
+            sample_field(scene.source, scene.page_table, masks, g.dims, p)
+        })
+        .flatten();
+    match located {
+        Some(s) => (
+            scene.mapping.physical(s.value),
+            Some(s.location.page_linear),
+        ),
+        None => (scene.tf_range.0, None),
+    }
+}
+
 impl<S: BrickSource> AdaptiveProbe for SceneProbe<'_, S> {
     fn probe(&self, level: u32, x: u32, y: u32, i_slice: u32) -> (f64, f64) {
         let l_max = self.config.l_max;
         let coarsest = (1u32 << l_max) as f64;
-        let (o, d) = self
-            .frame
-            .ray(level0_coordinate(level, x), level0_coordinate(level, y));
-        let t = self.frame.slice_t(i_slice);
-        let g = self.scene.geometry;
-        let inside =
-            ray_interval(g, self.settings, o, d).is_some_and(|(t0, t1)| t >= t0 && t <= t1);
-        let located = inside
-            .then(|| {
-                let a = g.index_from_patient_linear();
-                let p: DVec3 = a * (o + d * t - g.origin());
-                sample_field(
-                    self.scene.source,
-                    self.scene.page_table,
-                    self.masks.as_deref(),
-                    g.dims,
-                    p,
-                )
-            })
-            .flatten();
-        // Outside the box (or nothing resident): the default value, the low end of the TF
-        // range, which the TF maps to transparent for CT and MR presets (§3.1).
-        let value = located.as_ref().map_or(self.scene.tf_range.0, |s| {
-            self.scene.mapping.physical(s.value)
-        });
+        let (value, page) = slice_sample(
+            self.scene,
+            self.settings,
+            self.frame,
+            self.masks.as_deref(),
+            (level0_coordinate(level, x), level0_coordinate(level, y)),
+            i_slice,
+        );
         let distance = match self.config.oracle {
             OracleKind::Constant(c) => c as f64,
             OracleKind::Hash(seed) => hash_distance(level, x, y, i_slice, seed, l_max),
-            OracleKind::PerNode => located
-                .as_ref()
-                .and_then(|s| self.oracle_table.get(s.location.page_linear))
+            OracleKind::PerNode => page
+                .and_then(|p| self.oracle_table.get(p))
                 .map_or(coarsest, |&d| d as f64),
         };
         (value, distance)
