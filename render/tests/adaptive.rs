@@ -9,7 +9,7 @@ mod common;
 use common::*;
 use strata_render::adaptive::scene::AdaptiveOptics;
 use strata_render::adaptive::{
-    oracle_distances, render_adaptive_reference, slice_sample, AdaptiveConfig, AdaptiveFrame,
+    oracle_for_cut, render_adaptive_reference, slice_sample, AdaptiveConfig, AdaptiveFrame,
     AdaptivePass, OracleKind, SliceFrame,
 };
 use strata_render::reference::ReferenceScene;
@@ -328,25 +328,19 @@ fn the_oracle_frame_is_close_to_the_full_rate_reference_with_far_fewer_samples()
         Projection::Perspective { fov_y_deg: 30.0 },
     );
     let s = settings(128, 128, 0.5);
-    let ranges: Vec<Option<(f64, f64)>> = f
-        .page_table
-        .sampled_ranges(|l, n| f.volume.node_range(l, n))
-        .into_iter()
-        .map(|r| {
-            r.map(|(lo, hi)| {
-                let (a, b) = (
-                    f.volume.mapping.physical(lo as f64),
-                    f.volume.mapping.physical(hi as f64),
-                );
-                (a.min(b), a.max(b))
-            })
-        })
-        .collect();
     let epsilon: f64 = std::env::var("STRATA_TEST_EPSILON")
         .ok()
         .and_then(|v| v.parse().ok())
         .unwrap_or(0.005);
-    let distances = oracle_distances(&f.page_table, &ranges, &f.tf, epsilon, 3, s.quality);
+    let distances = oracle_for_cut(
+        &f.page_table,
+        f.volume.mapping,
+        |l, n| f.volume.node_range(l, n),
+        &f.tf,
+        epsilon,
+        3,
+        s.quality,
+    );
     pass.set_oracle(&ctx, &distances);
     let oracle = AdaptiveConfig {
         l_max: 3,
@@ -387,5 +381,5 @@ fn the_oracle_frame_is_close_to_the_full_rate_reference_with_far_fewer_samples()
         full_rate.total_samples()
     );
     // Visibility words: pages the frame saw through the TF.
-    assert!(adaptive.visibility.iter().any(|&v| v == 1));
+    assert!(adaptive.visibility.contains(&1));
 }

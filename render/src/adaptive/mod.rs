@@ -21,7 +21,7 @@ pub mod transcription;
 
 pub use frame::SliceFrame;
 pub use gpu::{AdaptiveFrame, AdaptivePass};
-pub use oracle::{oracle_distances, OracleKind};
+pub use oracle::{oracle_distances, oracle_for_cut, OracleKind};
 pub use scene::{render_adaptive_reference, slice_sample, AdaptiveOptics, AdaptiveReference};
 pub use transcription::{l_slice, project_volume, PyramidDims, Transcription};
 

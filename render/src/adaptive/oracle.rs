@@ -109,6 +109,31 @@ pub fn oracle_distances(
         .collect()
 }
 
+/// [`oracle_distances`] for a cut whose node ranges are known in stored units (a store's node
+/// headers, a volume's node ranges): widened over transition bands (PageTable::sampled_ranges)
+/// and mapped to physical units first.
+pub fn oracle_for_cut(
+    table: &PageTable,
+    mapping: strata_types::ValueMapping,
+    range_of: impl FnMut(u8, [u32; 3]) -> Option<(u16, u16)>,
+    tf: &TransferFunction,
+    epsilon: f64,
+    l_max: u32,
+    quality: f64,
+) -> Vec<f32> {
+    let ranges: Vec<Option<(f64, f64)>> = table
+        .sampled_ranges(range_of)
+        .into_iter()
+        .map(|r| {
+            r.map(|(lo, hi)| {
+                let (a, b) = (mapping.physical(lo as f64), mapping.physical(hi as f64));
+                (a.min(b), a.max(b))
+            })
+        })
+        .collect();
+    oracle_distances(table, &ranges, tf, epsilon, l_max, quality)
+}
+
 /// The test oracle [`OracleKind::Hash`]: an integer in 1..=2^(l_max+1) from (level, x, y,
 /// slice, seed), with the same integer hash as the shader (`adaptive_hash` in adaptive.wgsl).
 pub fn hash_distance(level: u32, x: u32, y: u32, i_slice: u32, seed: u32, l_max: u32) -> f64 {
