@@ -39,6 +39,7 @@ struct AdaptiveKey {
     tile: u32,
     l_max: u32,
     oracle: u32,
+    early_termination: bool,
     manual_trilinear: bool,
     smooth_transitions: bool,
 }
@@ -359,6 +360,7 @@ impl AdaptivePass {
                 ("TILE", key.tile as f64),
                 ("L_MAX", key.l_max as f64),
                 ("ORACLE", key.oracle as f64),
+                ("EARLY_TERMINATION", b(key.early_termination)),
                 ("MANUAL_TRILINEAR", b(key.manual_trilinear)),
                 ("SMOOTH_TRANSITIONS", b(key.smooth_transitions)),
             ];
@@ -376,8 +378,10 @@ impl AdaptivePass {
         })
     }
 
-    /// Encodes and submits one adaptive frame (DVR, unshaded, pre-integrated; jitter and early
-    /// termination do not apply). Never waits.
+    /// Encodes and submits one adaptive frame (DVR, unshaded, pre-integrated; no jitter).
+    /// With the per-node oracle, tiles whose rays miss the box are skipped and
+    /// `settings.early_termination` stops a tile once all its pixels reach it (the other
+    /// oracles follow the transcription sample for sample). Never waits.
     pub fn render(
         &mut self,
         ctx: &GpuContext,
@@ -412,6 +416,7 @@ impl AdaptivePass {
             tile: config.tile,
             l_max: config.l_max,
             oracle,
+            early_termination: oracle == 0 && settings.early_termination.is_some(),
             manual_trilinear: settings.exact_trilinear || !self.filterable,
             smooth_transitions: settings.smooth_transitions
                 && scene.page_table.transition_fraction() > 0.0,

@@ -13,6 +13,11 @@
 override TILE: u32 = 16u;
 override L_MAX: u32 = 3u;
 override ORACLE: u32 = 0u;       // 0 per page entry, 1 constant, 2 hash (tests)
+// Per-node oracle frames only (the others must match the transcription sample for sample):
+// a tile none of whose rays meets the box is written transparent without marching, and a
+// tile stops once all its pixels reach the early-termination opacity (checked every 2^L_MAX
+// slices, where every pixel has just accumulated).
+override EARLY_TERMINATION: bool = false;
 
 const THREADS: u32 = 64u;
 const MAX_OWNED: u32 = 16u;      // 32² / 64
@@ -36,6 +41,8 @@ struct AdaptiveParams {
 @group(0) @binding(19) var<storage, read_write> counters: array<atomic<u32>, 16>;
 
 var<workgroup> pyramid_s: array<f32, PYRAMID_CAP>;
+var<workgroup> tile_vote: atomic<u32>;
+var<workgroup> tile_decision: u32;
 var<workgroup> pyramid_d: array<f32, PYRAMID_CAP>;
 
 // Edge of level l's tile with its apron, and where level l starts in the pyramid arrays.
@@ -71,40 +78,44 @@ struct Probe {
     hit: bool,
 };
 
-// SAMPLE and ORACLE (Fig. 5) of level-l pixel (x, y) on slice `slice`: the ray through
-// level-0 pixel coordinates 2^l(x + ½) − ½ (frame.rs), at the slice's distance.
-fn probe(level: u32, x: u32, y: u32, slice: u32) -> Probe {
-    let scale = f32(1u << level);
-    let u = scale * (f32(x) + 0.5) - 0.5;
-    let v = scale * (f32(y) + 0.5) - 0.5;
+struct PixelRay {
+    o: vec3<f32>,
+    d: vec3<f32>,
+    // The ray's interval in the cropped box and the clip half-space; t1 < t0 if it misses.
+    t0: f32,
+    t1: f32,
+};
+
+// The ray through level-0 pixel coordinates (u, v) (frame.rs SliceFrame::ray) and its
+// interval, as reference.rs ray_interval (a zero clip row when there is none changes nothing).
+fn pixel_ray(u: f32, v: f32) -> PixelRay {
     let half_extent = P.eye_idx.w;
     let sx = (2.0 * (u + 0.5) / f32(A.viewport.x) - 1.0) * P.right_idx.w * half_extent;
     let sy = (1.0 - 2.0 * (v + 0.5) / f32(A.viewport.y)) * half_extent;
-    var o = P.eye_idx.xyz;
-    var d = P.forward_idx.xyz;
+    var r: PixelRay;
+    r.o = P.eye_idx.xyz;
+    r.d = P.forward_idx.xyz;
     var plane_nd = P.clip.x;
     var plane_rhs = P.clip.w;
     if P.up_idx.w > 0.5 {
-        o = o + sx * P.right_idx.xyz + sy * P.up_idx.xyz;
+        r.o = r.o + sx * P.right_idx.xyz + sy * P.up_idx.xyz;
         plane_rhs = plane_rhs - sx * P.clip.y - sy * P.clip.z;
     } else {
         let len = sqrt(1.0 + sx * sx + sy * sy);
-        d = (d + sx * P.right_idx.xyz + sy * P.up_idx.xyz) / len;
+        r.d = (r.d + sx * P.right_idx.xyz + sy * P.up_idx.xyz) / len;
         plane_nd = (plane_nd + sx * P.clip.y + sy * P.clip.z) / len;
     }
-    // The ray's interval in the cropped box and the clip half-space (a zero clip row when
-    // there is none leaves it unchanged), as reference.rs ray_interval.
     var t0 = 0.0;
     var t1 = 3.0e38;
     var miss = false;
     for (var a = 0u; a < 3u; a++) {
-        if abs(d[a]) < 1e-12 {
-            if o[a] < P.box_lo[a] || o[a] > P.box_hi[a] {
+        if abs(r.d[a]) < 1e-12 {
+            if r.o[a] < P.box_lo[a] || r.o[a] > P.box_hi[a] {
                 miss = true;
             }
         } else {
-            let ta = (P.box_lo[a] - o[a]) / d[a];
-            let tb = (P.box_hi[a] - o[a]) / d[a];
+            let ta = (P.box_lo[a] - r.o[a]) / r.d[a];
+            let tb = (P.box_hi[a] - r.o[a]) / r.d[a];
             t0 = max(t0, min(ta, tb));
             t1 = min(t1, max(ta, tb));
         }
@@ -121,13 +132,30 @@ fn probe(level: u32, x: u32, y: u32, slice: u32) -> Probe {
             t1 = min(t1, tc);
         }
     }
+    r.t0 = t0;
+    r.t1 = select(t1, -1.0, miss);
+    return r;
+}
+
+fn level_coordinate(level: u32, x: u32) -> f32 {
+    return f32(1u << level) * (f32(x) + 0.5) - 0.5;
+}
+
+// SAMPLE and ORACLE (Fig. 5) of level-l pixel (x, y) on slice `slice`: the ray through
+// level-0 pixel coordinates 2^l(x + ½) − ½ (frame.rs), at the slice's distance.
+fn probe(level: u32, x: u32, y: u32, slice: u32) -> Probe {
+    let ray = pixel_ray(level_coordinate(level, x), level_coordinate(level, y));
+    let o = ray.o;
+    let d = ray.d;
+    let t0 = ray.t0;
+    let t1 = ray.t1;
     let t = A.frame.x + f32(slice) * A.frame.y;
     var r: Probe;
     r.value = A.frame.z;
     r.distance = f32(1u << L_MAX);
     r.page = 0u;
     r.hit = false;
-    if !miss && t >= t0 && t <= t1 {
+    if t >= t0 && t <= t1 {
         let loc = locate(o + d * t);
         if loc.resident {
             r.value = physical(field(loc));
@@ -202,6 +230,54 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
         d0[j] = 0.0;
         s_prev[j] = 0.0;
         i_prev[j] = 0u;
+    }
+    // Per-node oracle: does any ray this tile samples (level-0 pixels and every coarser
+    // level's, apron included) meet the box in front of the last slice? If not, every sample
+    // would be the default value: the tile is transparent.
+    if ORACLE == 0u {
+        if lid == 0u {
+            atomicStore(&tile_vote, 0u);
+        }
+        workgroupBarrier();
+        let t_last = A.frame.x + f32(A.pyramid.z) * A.frame.y;
+        var hit = false;
+        for (var j = 0u; j < owned; j++) {
+            let idx = lid + j * THREADS;
+            let r = pixel_ray(f32(tile_x + idx % TILE), f32(tile_y + idx / TILE));
+            hit = hit || (r.t1 >= r.t0 && r.t0 <= t_last);
+        }
+        for (var l = 1u; l <= L_MAX; l++) {
+            let e = extent(l);
+            for (var idx = lid; idx < e * e; idx += THREADS) {
+                let gx = i32(tile_x >> l) - 1 + i32(idx % e);
+                let gy = i32(tile_y >> l) - 1 + i32(idx / e);
+                let u = f32(1u << l) * (f32(gx) + 0.5) - 0.5;
+                let v = f32(1u << l) * (f32(gy) + 0.5) - 0.5;
+                let r = pixel_ray(u, v);
+                hit = hit || (r.t1 >= r.t0 && r.t0 <= t_last);
+            }
+        }
+        if hit {
+            atomicOr(&tile_vote, 1u);
+        }
+        workgroupBarrier();
+        if lid == 0u {
+            tile_decision = atomicLoad(&tile_vote);
+        }
+        if workgroupUniformLoad(&tile_decision) == 0u {
+            for (var j = 0u; j < owned; j++) {
+                let idx = lid + j * THREADS;
+                let gx = tile_x + idx % TILE;
+                let gy = tile_y + idx / TILE;
+                if gx < A.viewport.x && gy < A.viewport.y {
+                    let pixel = gy * A.viewport.x + gx;
+                    out_rgba[pixel] = vec4<f32>(0.0);
+                    out_depth[pixel] = inf;
+                    textureStore(out_color, vec2<i32>(i32(gx), i32(gy)), vec4<f32>(0.0));
+                }
+            }
+            return;
+        }
     }
     var n_samples = array<u32, 4>(0u, 0u, 0u, 0u);
     var n_synth = array<u32, 4>(0u, 0u, 0u, 0u);
@@ -292,6 +368,29 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
             }
         }
         workgroupBarrier();
+        if EARLY_TERMINATION && ORACLE == 0u && ls == L_MAX && i > 0u {
+            if lid == 0u {
+                atomicStore(&tile_vote, 0u);
+            }
+            workgroupBarrier();
+            var open = false;
+            for (var j = 0u; j < owned; j++) {
+                let idx = lid + j * THREADS;
+                if tile_x + idx % TILE < width && tile_y + idx / TILE < height {
+                    open = open || acc[j].a < P.dims.w;
+                }
+            }
+            if open {
+                atomicOr(&tile_vote, 1u);
+            }
+            workgroupBarrier();
+            if lid == 0u {
+                tile_decision = atomicLoad(&tile_vote);
+            }
+            if workgroupUniformLoad(&tile_decision) == 0u {
+                break;
+            }
+        }
     }
     for (var j = 0u; j < owned; j++) {
         let idx = lid + j * THREADS;
