@@ -383,6 +383,7 @@ pub fn run(options: Options) -> Result<()> {
                 family: "adaptive sampling (3D)",
                 adaptive_epsilon: Some(epsilon),
                 preintegrated: true,
+                step: 0.5,
                 ..knobs[0].clone()
             };
             let settings = settings_of(&k);

@@ -40,6 +40,7 @@ struct AdaptiveKey {
     l_max: u32,
     oracle: u32,
     early_termination: bool,
+    clipped: bool,
     manual_trilinear: bool,
     smooth_transitions: bool,
 }
@@ -361,6 +362,7 @@ impl AdaptivePass {
                 ("L_MAX", key.l_max as f64),
                 ("ORACLE", key.oracle as f64),
                 ("EARLY_TERMINATION", b(key.early_termination)),
+                ("CLIPPED", b(key.clipped)),
                 ("MANUAL_TRILINEAR", b(key.manual_trilinear)),
                 ("SMOOTH_TRANSITIONS", b(key.smooth_transitions)),
             ];
@@ -417,6 +419,7 @@ impl AdaptivePass {
             l_max: config.l_max,
             oracle,
             early_termination: oracle == 0 && settings.early_termination.is_some(),
+            clipped: settings.clip_plane.is_some(),
             manual_trilinear: settings.exact_trilinear || !self.filterable,
             smooth_transitions: settings.smooth_transitions
                 && scene.page_table.transition_fraction() > 0.0,

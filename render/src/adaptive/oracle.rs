@@ -134,6 +134,42 @@ pub fn oracle_for_cut(
     oracle_distances(table, &ranges, tf, epsilon, l_max, quality)
 }
 
+/// The per-node oracle where a sample has no page entry (outside the cropped box or the clip
+/// half-space): the largest power of two of slices not longer than a lower bound of the
+/// distance to them (the larger of the distance to the box, in finest voxels, and to the
+/// plane). Returning 2^l_max there would let a ray arrive with d = 2^l_max and skip up to
+/// 2^l_max − 1 slices into the volume (measured: −14 dB on the phantom); this is 1-Lipschitz,
+/// so it has fallen to 1 by the box face.
+pub fn outside_distance(
+    geometry: &strata_types::VolumeGeometry,
+    settings: &crate::settings::RenderSettings,
+    point_patient: glam::DVec3,
+    spacing_mm: f64,
+    l_max: u32,
+) -> f64 {
+    let a = geometry.index_from_patient_linear();
+    let p = a * (point_patient - geometry.origin());
+    let mut box_sq = 0.0;
+    for axis in 0..3 {
+        let n = geometry.dims[axis] as f64;
+        let lo = -0.5 + settings.crop.min[axis] as f64 * n;
+        let hi = -0.5 + settings.crop.max[axis] as f64 * n;
+        let out = (lo - p[axis]).max(0.0) + (p[axis] - hi).max(0.0);
+        box_sq += out * out;
+    }
+    let box_mm = box_sq.sqrt() * geometry.finest_spacing_mm();
+    let plane_mm = settings.clip_plane.as_ref().map_or(0.0, |c| {
+        let n = glam::DVec3::from(c.normal).normalize_or_zero();
+        (c.offset_mm - n.dot(point_patient)).max(0.0)
+    });
+    let slices = box_mm.max(plane_mm) / spacing_mm.max(1e-12);
+    let mut d = 1.0;
+    while d * 2.0 <= slices && d * 2.0 <= (1u32 << l_max) as f64 {
+        d *= 2.0;
+    }
+    d
+}
+
 /// The test oracle [`OracleKind::Hash`]: an integer in 1..=2^(l_max+1) from (level, x, y,
 /// slice, seed), with the same integer hash as the shader (`adaptive_hash` in adaptive.wgsl).
 pub fn hash_distance(level: u32, x: u32, y: u32, i_slice: u32, seed: u32, l_max: u32) -> f64 {
@@ -183,6 +219,28 @@ mod tests {
         let d = oracle_distances(&coarse, &ranges, &tf, 0.0, 3, 0.5);
         assert_eq!(d[3], 2.0);
         assert_eq!(d[0], 8.0);
+    }
+
+    #[test]
+    fn outside_the_box_the_distance_falls_to_one_at_the_face() {
+        let g = strata_types::VolumeGeometry::axis_aligned([10, 10, 10], [1.0; 3]);
+        let s = crate::settings::RenderSettings::default();
+        let at = |x: f64| outside_distance(&g, &s, glam::DVec3::new(x, 4.5, 4.5), 0.5, 3);
+        // The face is at index -0.5 (patient x = -0.5 here); slices of 0.5 mm.
+        assert_eq!(at(-10.0), 8.0);
+        assert_eq!(at(-2.0), 2.0); // 1.5 mm = 3 slices
+        assert_eq!(at(-0.6), 1.0);
+        assert_eq!(at(3.0), 1.0); // inside
+        let clipped = crate::settings::RenderSettings {
+            clip_plane: Some(crate::settings::ClipPlane {
+                normal: [1.0, 0.0, 0.0],
+                offset_mm: 6.0,
+            }),
+            ..s.clone()
+        };
+        // Inside the box but 4 mm on the clipped side: 8 slices.
+        let d = outside_distance(&g, &clipped, glam::DVec3::new(2.0, 4.5, 4.5), 0.5, 3);
+        assert_eq!(d, 8.0);
     }
 
     #[test]

@@ -7,7 +7,7 @@
 use glam::DVec3;
 
 use super::frame::SliceFrame;
-use super::oracle::{hash_distance, OracleKind};
+use super::oracle::{hash_distance, outside_distance, OracleKind};
 use super::transcription::{
     level0_coordinate, project_volume, AdaptiveProbe, SegmentOptics, Transcription,
 };
@@ -98,9 +98,21 @@ impl<S: BrickSource> AdaptiveProbe for SceneProbe<'_, S> {
         let distance = match self.config.oracle {
             OracleKind::Constant(c) => c as f64,
             OracleKind::Hash(seed) => hash_distance(level, x, y, i_slice, seed, l_max),
-            OracleKind::PerNode => page
-                .and_then(|p| self.oracle_table.get(p))
-                .map_or(coarsest, |&d| d as f64),
+            OracleKind::PerNode => match page {
+                Some(p) => self.oracle_table.get(p).map_or(coarsest, |&d| d as f64),
+                None => {
+                    let (o, d) = self
+                        .frame
+                        .ray(level0_coordinate(level, x), level0_coordinate(level, y));
+                    outside_distance(
+                        self.scene.geometry,
+                        self.settings,
+                        o + d * self.frame.slice_t(i_slice),
+                        self.frame.spacing_mm,
+                        l_max,
+                    )
+                }
+            },
         };
         (value, distance)
     }

@@ -18,6 +18,8 @@ override ORACLE: u32 = 0u;       // 0 per page entry, 1 constant, 2 hash (tests)
 // tile stops once all its pixels reach the early-termination opacity (checked every 2^L_MAX
 // slices, where every pixel has just accumulated).
 override EARLY_TERMINATION: bool = false;
+// A clip plane is set (the outside distance then includes the plane's).
+override CLIPPED: bool = false;
 
 const THREADS: u32 = 64u;
 const MAX_OWNED: u32 = 16u;      // 32² / 64
@@ -84,6 +86,9 @@ struct PixelRay {
     // The ray's interval in the cropped box and the clip half-space; t1 < t0 if it misses.
     t0: f32,
     t1: f32,
+    // Clip plane along this ray: a point at t is on the clipped side by rhs − t·nd (mm).
+    plane_nd: f32,
+    plane_rhs: f32,
 };
 
 // The ray through level-0 pixel coordinates (u, v) (frame.rs SliceFrame::ray) and its
@@ -134,7 +139,24 @@ fn pixel_ray(u: f32, v: f32) -> PixelRay {
     }
     r.t0 = t0;
     r.t1 = select(t1, -1.0, miss);
+    r.plane_nd = plane_nd;
+    r.plane_rhs = plane_rhs;
     return r;
+}
+
+// The per-node oracle outside the cropped box and clip half-space: the largest power of two
+// of slices not longer than a lower bound of the distance to them (the larger of the distance
+// to the box, in finest voxels, and to the plane), so a ray arriving from outside has slowed
+// down to d = 1 when it enters (oracle.rs outside_distance).
+fn outside_distance(ray: PixelRay, t: f32) -> f32 {
+    let p = ray.o + ray.d * t;
+    let box_mm = length(max(P.box_lo.xyz - p, vec3<f32>(0.0)) + max(p - P.box_hi.xyz, vec3<f32>(0.0))) * P.box_hi.w;
+    var plane_mm = 0.0;
+    if CLIPPED {
+        plane_mm = max(ray.plane_rhs - t * ray.plane_nd, 0.0);
+    }
+    let slices = max(box_mm, plane_mm) / A.frame.y;
+    return clamp(exp2(floor(log2(max(slices, 1.0)))), 1.0, f32(1u << L_MAX));
 }
 
 fn level_coordinate(level: u32, x: u32) -> f32 {
@@ -155,8 +177,10 @@ fn probe(level: u32, x: u32, y: u32, slice: u32) -> Probe {
     r.distance = f32(1u << L_MAX);
     r.page = 0u;
     r.hit = false;
+    var inside = false;
     if t >= t0 && t <= t1 {
         let loc = locate(o + d * t);
+        inside = true;
         if loc.resident {
             r.value = physical(field(loc));
             r.page = loc.page;
@@ -165,6 +189,9 @@ fn probe(level: u32, x: u32, y: u32, slice: u32) -> Probe {
                 r.distance = oracle_distance[loc.page];
             }
         }
+    }
+    if ORACLE == 0u && !inside {
+        r.distance = outside_distance(ray, t);
     }
     if ORACLE == 1u {
         r.distance = A.frame.w;
