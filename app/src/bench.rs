@@ -115,7 +115,7 @@ pub enum BenchCommand {
         #[arg(long, default_value_t = 0.5)]
         step: f64,
         /// Oracle ε values, comma-separated.
-        #[arg(long, default_value = "0.002,0.005,0.01,0.02,0.05")]
+        #[arg(long, default_value = "0.0005,0.001,0.002,0.005,0.01,0.02,0.05")]
         epsilons: String,
         /// Coarsest pyramid level (largest sampling distance 2^l_max slices).
         #[arg(long, default_value_t = 3)]

@@ -84,8 +84,9 @@ pub struct RenderArgs {
     #[arg(long)]
     pub no_smooth: bool,
     /// --mode adaptive: the oracle's ε (opacity change per slice a node may have and still
-    /// be sampled coarsely; larger = fewer samples).
-    #[arg(long, default_value_t = 0.01)]
+    /// be sampled coarsely; larger = fewer samples). 0.001 matches the raycaster's image on
+    /// chris_t1 (53 dB against the f64 reference); 0.01 is a fast preview.
+    #[arg(long, default_value_t = 0.001)]
     pub oracle_epsilon: f64,
 }
 
