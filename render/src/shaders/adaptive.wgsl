@@ -260,8 +260,9 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
     }
     // Per-node oracle: does any ray this tile samples (level-0 pixels and every coarser
     // level's, apron included) meet the box in front of the last slice? If not, every sample
-    // would be the default value: the tile is transparent.
-    if ORACLE == 0u {
+    // would be the default value: the tile is transparent (if the TF is there; a uniform
+    // condition: the value is a frame parameter).
+    if ORACLE == 0u && extinction_at(A.frame.z) <= 0.0 {
         if lid == 0u {
             atomicStore(&tile_vote, 0u);
         }
