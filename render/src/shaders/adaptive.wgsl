@@ -395,7 +395,12 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
                 i_prev[j] = i;
             }
         }
-        workgroupBarrier();
+        // Level 0 read level 1; the next slice writes level 1 first only if its l_slice is 1
+        // (a higher l_slice writes level l_slice first and barriers before reaching level 1,
+        // l_slice 0 writes no shared level at all), so only then must it wait here.
+        if min(countTrailingZeros(i + 1u), L_MAX) == 1u {
+            workgroupBarrier();
+        }
         if EARLY_TERMINATION && ORACLE == 0u && ls == L_MAX && i > 0u {
             if lid == 0u {
                 atomicStore(&tile_vote, 0u);
