@@ -91,15 +91,15 @@ fn loader_soak_random_views_tfs_and_budgets() {
         volumes += 1;
         let mut settings = settings(128);
         for _ in 0..(100 + rng.next() % 300) {
-            if rng.next() % 16 == 0 {
+            if rng.next().is_multiple_of(16) {
                 let name = presets[(rng.next() % presets.len() as u64) as usize];
                 volume
                     .set_transfer_function(&ctx, &TransferFunction::preset(name).unwrap())
                     .unwrap();
             }
-            if rng.next() % 32 == 0 {
+            if rng.next().is_multiple_of(32) {
                 volume.set_max_voxel_pixels(0.5 + 3.0 * rng.unit());
-                settings.mode = if rng.next() % 3 == 0 {
+                settings.mode = if rng.next().is_multiple_of(3) {
                     RenderMode::Mip
                 } else {
                     RenderMode::Dvr
@@ -128,7 +128,7 @@ fn loader_soak_random_views_tfs_and_budgets() {
                 stats.gpu_bytes,
                 config.gpu_budget_bytes
             );
-            if frames % 8 == 0 {
+            if frames.is_multiple_of(8) {
                 ctx.wait_idle().unwrap();
             }
             if let Some(rss) = resident_bytes() {
