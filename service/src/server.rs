@@ -71,9 +71,9 @@ pub struct ServeOptions {
     /// Added before every brick answer: a round-trip delay for benchmarks and tests on
     /// loopback (injected here, not with tc netem).
     pub added_delay: Duration,
-    /// Test hook: flip one byte of this brick's first answer after the server verified it
+    /// Test hook: flip one byte of this brick's next N answers after the server verified them
     /// (corruption in transit).
-    pub corrupt_once: Option<BrickId>,
+    pub corrupt_answers: Option<(BrickId, u32)>,
 }
 
 impl Default for ServeOptions {
@@ -89,7 +89,7 @@ impl Default for ServeOptions {
             request_timeout: Duration::from_secs(30),
             max_streams_per_connection: 256,
             added_delay: Duration::ZERO,
-            corrupt_once: None,
+            corrupt_answers: None,
         }
     }
 }
@@ -124,7 +124,7 @@ struct AppState {
     counters: Arc<ServerCounters>,
     requests: Arc<Semaphore>,
     added_delay: Duration,
-    corrupt_once: std::sync::Mutex<Option<BrickId>>,
+    corrupt_answers: std::sync::Mutex<Option<(BrickId, u32)>>,
 }
 
 /// A store found on the command line: its name in URLs and its directory.
@@ -376,7 +376,7 @@ pub fn start(
         counters: counters.clone(),
         requests: Arc::new(Semaphore::new(options.max_concurrent_requests.max(1))),
         added_delay: options.added_delay,
-        corrupt_once: std::sync::Mutex::new(options.corrupt_once),
+        corrupt_answers: std::sync::Mutex::new(options.corrupt_answers),
     });
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
@@ -712,9 +712,12 @@ async fn brick(
     }
     let mut body = record;
     {
-        let mut corrupt = state.corrupt_once.lock().unwrap_or_else(|p| p.into_inner());
-        if *corrupt == Some(id) {
-            *corrupt = None;
+        let mut corrupt = state
+            .corrupt_answers
+            .lock()
+            .unwrap_or_else(|p| p.into_inner());
+        if let Some((_, left)) = corrupt.as_mut().filter(|(t, n)| *t == id && *n > 0) {
+            *left -= 1;
             let at = body.len() - 1;
             body[at] ^= 0x40;
             tracing::warn!("strata serve: test hook flipped a byte of brick {id:?} in transit");
