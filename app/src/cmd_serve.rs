@@ -25,6 +25,12 @@ pub struct ServeArgs {
     /// Generate a 128-bit token and print it once.
     #[arg(long)]
     pub generate_token: bool,
+    /// Serve HTTPS with this PEM certificate chain (with --tls-key).
+    #[arg(long, requires = "tls_key")]
+    pub tls_cert: Option<PathBuf>,
+    /// The PEM private key of --tls-cert.
+    #[arg(long, requires = "tls_cert")]
+    pub tls_key: Option<PathBuf>,
     /// Serve the header's description and provenance (source paths often hold patient names).
     #[arg(long)]
     pub expose_identifiers: bool,
@@ -85,6 +91,10 @@ pub fn run(args: ServeArgs) -> Result<()> {
         header_read_timeout: Duration::from_secs_f64(args.header_timeout),
         added_delay: Duration::from_millis(args.added_delay_ms),
         corrupt_answers,
+        tls: match (args.tls_cert, args.tls_key) {
+            (Some(cert), Some(key)) => Some(strata_service::server::TlsFiles { cert, key }),
+            _ => None,
+        },
         ..ServeOptions::default()
     };
     let stores = find_stores(&args.stores)?;
