@@ -395,7 +395,11 @@ pub fn start(
         .map_err(ServeError::Runtime)?;
     let addr = listener.local_addr().map_err(ServeError::Runtime)?;
     let tls_acceptor = options.tls.as_ref().map(tls_acceptor).transpose()?;
-    let scheme = if tls_acceptor.is_some() { "https" } else { "http" };
+    let scheme = if tls_acceptor.is_some() {
+        "https"
+    } else {
+        "http"
+    };
     let mut served = HashMap::new();
     for (name, path) in stores {
         let s = open_served(
@@ -436,7 +440,11 @@ pub fn start(
     let names: Vec<String> = listing.iter().map(|(n, _, _)| n.clone()).collect();
     tracing::info!(
         "strata serve: listening on {scheme}://{addr} ({}), token {}, stores: {}",
-        if scheme == "https" { "HTTP/1.1 and HTTP/2 over TLS" } else { "HTTP/1.1 and h2c" },
+        if scheme == "https" {
+            "HTTP/1.1 and HTTP/2 over TLS"
+        } else {
+            "HTTP/1.1 and h2c"
+        },
         if options.token.is_some() {
             "required"
         } else {

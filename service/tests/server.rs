@@ -577,16 +577,58 @@ fn test_certificates(dir: &Path) -> Option<(PathBuf, PathBuf, PathBuf)> {
     )
     .ok()?;
     let ok = run(&[
-        "req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes",
-        "-keyout", "ca.key", "-out", "ca.pem", "-days", "2", "-subj", "/CN=strata test CA",
+        "req",
+        "-x509",
+        "-newkey",
+        "ec",
+        "-pkeyopt",
+        "ec_paramgen_curve:prime256v1",
+        "-nodes",
+        "-keyout",
+        "ca.key",
+        "-out",
+        "ca.pem",
+        "-days",
+        "2",
+        "-subj",
+        "/CN=strata test CA",
     ]) && run(&[
-        "req", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes", "-keyout",
-        "leaf.key", "-out", "leaf.csr", "-subj", "/CN=127.0.0.1",
+        "req",
+        "-newkey",
+        "ec",
+        "-pkeyopt",
+        "ec_paramgen_curve:prime256v1",
+        "-nodes",
+        "-keyout",
+        "leaf.key",
+        "-out",
+        "leaf.csr",
+        "-subj",
+        "/CN=127.0.0.1",
     ]) && run(&[
-        "x509", "-req", "-in", "leaf.csr", "-CA", "ca.pem", "-CAkey", "ca.key",
-        "-CAcreateserial", "-out", "leaf.pem", "-days", "2", "-extfile", "leaf.ext",
+        "x509",
+        "-req",
+        "-in",
+        "leaf.csr",
+        "-CA",
+        "ca.pem",
+        "-CAkey",
+        "ca.key",
+        "-CAcreateserial",
+        "-out",
+        "leaf.pem",
+        "-days",
+        "2",
+        "-extfile",
+        "leaf.ext",
     ]);
-    ok.then(|| (dir.join("ca.pem"), dir.join("leaf.pem"), dir.join("leaf.key")))
+    ok.then(|| {
+        (
+            dir.join("ca.pem"),
+            dir.join("leaf.pem"),
+            dir.join("leaf.key"),
+        )
+    })
 }
 
 #[test]
@@ -631,6 +673,9 @@ fn tls_serves_the_same_bricks_over_https() {
     );
     assert!(untrusted.is_err());
     // Plain HTTP to the TLS port gets no answer.
-    let answer = raw(&server, b"GET /v1/stores HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n");
+    let answer = raw(
+        &server,
+        b"GET /v1/stores HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n",
+    );
     assert!(!answer.starts_with("HTTP/1.1 200"), "{answer}");
 }
