@@ -37,9 +37,9 @@ pub struct FlythroughArgs {
     /// Image size WxH.
     #[arg(long, default_value = "512x512")]
     pub size: String,
-    #[arg(long, default_value_t = 256)]
+    #[arg(long, default_value_t = 256, value_parser = crate::cli_checks::budget_mib)]
     pub gpu_mib: u64,
-    #[arg(long, default_value_t = 512)]
+    #[arg(long, default_value_t = 512, value_parser = crate::cli_checks::budget_mib)]
     pub cpu_mib: u64,
     /// Bricks uploaded per frame at most.
     #[arg(long, default_value_t = 64)]

@@ -106,10 +106,31 @@ pub fn choose_transfer_function(name: Option<&str>, modality: &str) -> Result<Tr
         return TransferFunction::load(path)
             .with_context(|| format!("reading transfer function {}", path.display()));
     }
+    let looks_like_a_file = name.to_ascii_lowercase().ends_with(".json")
+        || name.contains(std::path::MAIN_SEPARATOR)
+        || name.contains('/');
+    if looks_like_a_file {
+        bail!("transfer function file {} does not exist", path.display());
+    }
     bail!("unknown transfer function '{name}': use ct-bone, ct-soft-tissue, ct-lung, ct-vessels, mr-default or a JSON file")
 }
 
+/// Refuses values that would render a black image or nothing at all.
+fn check_args(args: &RenderArgs) -> Result<()> {
+    use crate::cli_checks::{check_finite, check_png_output, check_range, STEP_RANGE};
+    check_finite("azimuth", args.azimuth)?;
+    check_finite("elevation", args.elevation)?;
+    check_range("zoom", args.zoom, 0.01..=1000.0)?;
+    check_range("step", args.step, STEP_RANGE)?;
+    check_range("quality", args.quality, 0.01..=1000.0)?;
+    check_finite("iso", args.iso)?;
+    check_png_output("out", &args.out)?;
+    parse_size(&args.size)?;
+    Ok(())
+}
+
 pub fn run(args: RenderArgs) -> Result<()> {
+    check_args(&args)?;
     if !args.up_front && !args.reference {
         return run_streaming(&args);
     }

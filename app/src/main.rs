@@ -1,6 +1,7 @@
 //! `strata`: the viewer and its command line. Not for diagnostic use.
 
 mod bench;
+mod cli_checks;
 mod cmd_flythrough;
 mod cmd_import;
 mod cmd_info;
@@ -8,6 +9,7 @@ mod cmd_render;
 mod cmd_sample;
 mod cmd_serve;
 mod cmd_verify;
+mod error_report;
 mod progress;
 mod viewer;
 mod volume_location;
@@ -56,7 +58,7 @@ fn main() -> std::process::ExitCode {
     match run(Cli::parse()) {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            eprintln!("error: {}", error_report::describe(&e));
             std::process::ExitCode::FAILURE
         }
     }

@@ -38,7 +38,7 @@ pub enum StorageError {
     #[error("{path}: {holder}")]
     InUse {
         path: PathBuf,
-        holder: crate::lock::LockHolder,
+        holder: crate::lock_holder::LockHolder,
     },
 
     /// The store folder cannot be written, and sled 0.34 opens every database read-write.

@@ -9,11 +9,13 @@ pub mod geometry;
 pub mod histogram;
 pub mod import;
 pub mod lock;
+mod lock_holder;
 pub mod octree;
 pub mod phantom;
 pub mod quantize;
 pub mod readers;
 pub mod source;
+pub mod staging;
 pub mod store;
 
 pub use error::{Result, StorageError};

@@ -29,6 +29,8 @@ pub use crate::quantize::StoredScalar;
 
 pub const STORE_FORMAT_VERSION: u32 = 1;
 const MARKER_FILE: &str = "STRATA-STORE";
+/// The marker file's line that [`StoreWriter::finish`] adds last.
+const MARKER_COMPLETE_LINE: &str = "complete";
 const DB_DIR: &str = "db";
 const KEY_HEADER: &[u8] = b"header";
 const KEY_SKELETON: &[u8] = b"skeleton";
@@ -271,9 +273,17 @@ impl Store {
             })
         };
         if get(KEY_COMPLETE)?.is_none() {
-            // An interrupted import wrote bricks but no metadata yet; a store whose metadata
-            // exists without the final mark lost it to damage.
-            return Err(if get(KEY_HEADER)?.is_some() && get(KEY_STATS)?.is_some() {
+            // An interrupted import wrote bricks but no metadata yet. The marker file says
+            // "complete" once the import finished (stores of older versions lack that line, so
+            // metadata without the final record counts as damage too).
+            let marked_complete = std::fs::read_to_string(path.join(MARKER_FILE))
+                .is_ok_and(|m| m.lines().any(|l| l.trim() == MARKER_COMPLETE_LINE));
+            return Err(if marked_complete {
+                StorageError::corrupted(
+                    path,
+                    "the import finished, but the database lost its records (damaged database files)",
+                )
+            } else if get(KEY_HEADER)?.is_some() && get(KEY_STATS)?.is_some() {
                 StorageError::corrupted(path, "its completion record is missing")
             } else {
                 StorageError::IncompleteImport {
@@ -468,7 +478,7 @@ impl Store {
                     }
                 }
             }
-            if seen % 64 == 0 || seen == total {
+            if seen.is_multiple_of(64) || seen == total {
                 on_progress(seen, total);
             }
         }
@@ -659,6 +669,16 @@ impl StoreWriter {
         self.db.flush(FLUSH_LIMIT)?;
         put(KEY_COMPLETE, b"1".to_vec())?;
         self.db.flush(FLUSH_LIMIT)?;
+        // Beside the database, so that damage which loses the database's records can be told
+        // from an import that never finished. Written by rename: whole or not at all.
+        let marker = self.path.join(MARKER_FILE);
+        let staged = self.path.join(format!("{MARKER_FILE}.new"));
+        std::fs::write(
+            &staged,
+            format!("strata store format {STORE_FORMAT_VERSION}\n{MARKER_COMPLETE_LINE}\n"),
+        )
+        .and_then(|()| std::fs::rename(&staged, &marker))
+        .map_err(|e| StorageError::io(&marker, e))?;
         self.finished = true;
         Ok(())
     }

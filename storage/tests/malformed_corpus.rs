@@ -129,6 +129,11 @@ fn nifti1(data: &[u8]) -> Vec<u8> {
 }
 
 fn dicom_slice(k: usize) -> Vec<u8> {
+    dicom_slice_edited(k, |_| {})
+}
+
+/// One CT slice of the test volume, with `edit` applied to its data set before writing.
+fn dicom_slice_edited(k: usize, edit: impl FnOnce(&mut dicom_object::InMemDicomObject)) -> Vec<u8> {
     use dicom_core::{DataElement, PrimitiveValue, VR};
     use dicom_dictionary_std::{tags, uids};
     use dicom_object::{FileMetaTableBuilder, InMemDicomObject};
@@ -172,6 +177,7 @@ fn dicom_slice(k: usize) -> Vec<u8> {
         .flat_map(|j| (0..DIMS[0]).map(move |i| voxel(i, j, k) as u16))
         .collect();
     put(tags::PIXEL_DATA, VR::OW, PrimitiveValue::U16(px.into()));
+    edit(&mut obj);
     let file = obj
         .with_meta(
             FileMetaTableBuilder::new()
@@ -320,7 +326,7 @@ fn mutations(base: &Base, seed: u64) -> Vec<(String, Vec<u8>)> {
     let text = String::from_utf8_lossy(&base.bytes).into_owned();
     for key in base.text_keys {
         for value in absurd {
-            let Some(start) = text.find(&format!("{key}")) else {
+            let Some(start) = text.find(key) else {
                 continue;
             };
             let Some(line_end) = text[start..].find('\n') else {
@@ -396,6 +402,21 @@ fn run_case(path: &Path, options: &ReadOptions, store_dir: &Path) -> Result<Outc
 
 #[test]
 fn every_malformed_input_ends_in_a_clean_error_or_the_right_voxels() {
+    let cases = run_corpus(1);
+    assert!(cases > 500, "the corpus shrank to {cases} cases");
+}
+
+/// The long campaign: the corpus with 100 seeds per reader (about 90 000 cases, minutes).
+/// `cargo test -p strata-storage --test malformed_corpus -- --ignored`
+#[test]
+#[ignore = "long campaign: run with --ignored"]
+fn the_corpus_times_one_hundred() {
+    let cases = run_corpus(100);
+    assert!(cases > 50_000, "{cases}");
+}
+
+/// Runs the corpus with `rounds` seeds per base file; panics listing every failed case.
+fn run_corpus(rounds: u64) -> usize {
     let dir = tempfile::tempdir().unwrap();
     let staging = dir.path().join("staging");
     std::fs::create_dir_all(&staging).unwrap();
@@ -429,7 +450,9 @@ fn every_malformed_input_ends_in_a_clean_error_or_the_right_voxels() {
             expected.len()
         };
         assert_eq!(reference, expected[..whole], "{}", base.name);
-        for (what, bytes) in mutations(base, 0x5eed_0000 + b as u64) {
+        let seeded =
+            (0..rounds).flat_map(|round| mutations(base, 0x5eed_0000 + b as u64 + (round << 32)));
+        for (what, bytes) in seeded {
             cases += 1;
             std::fs::write(&path, &bytes).unwrap();
             let first_difference = bytes
@@ -478,13 +501,13 @@ fn every_malformed_input_ends_in_a_clean_error_or_the_right_voxels() {
         leaked.iter().map(|e| e.path()).collect::<Vec<PathBuf>>()
     );
     println!("{cases} malformed inputs, {errors} refused with an error naming the file");
-    assert!(cases > 500, "the corpus shrank to {cases} cases");
     assert!(
         failures.is_empty(),
         "{} of {cases} cases failed:\n{}",
         failures.len(),
         failures.join("\n")
     );
+    cases
 }
 
 #[test]
@@ -518,10 +541,8 @@ fn compression_bombs_and_absurd_claims_are_refused_quickly() {
     }
     // A header that claims petabytes of gzip data: refused before staging (free space), naming
     // the staging folder and the input.
-    let claim = format!(
-        "NRRD0004\ntype: int16\ndimension: 3\nsizes: 60000 60000 60000\nencoding: gzip\n\n"
-    );
-    let mut bytes = claim.into_bytes();
+    let claim = "NRRD0004\ntype: int16\ndimension: 3\nsizes: 60000 60000 60000\nencoding: gzip\n\n";
+    let mut bytes = claim.as_bytes().to_vec();
     bytes.extend_from_slice(&gzip(&[0u8; 1024]));
     let path = dir.path().join("claims.nrrd");
     std::fs::write(&path, bytes).unwrap();
@@ -604,5 +625,69 @@ fn dicom_folder_hazards_end_quickly_and_loudly() {
         }
         Ok(Outcome::Opened { .. }) => panic!("a series with a damaged slice imported silently"),
         Err(e) => panic!("{e}"),
+    }
+}
+
+/// Header values that used to be accepted silently (one frame of six, 16-bit data read as
+/// 8-bit, voxels read one byte shifted) are errors that say what is wrong.
+#[test]
+fn inconsistent_headers_are_errors_not_guesses() {
+    use dicom_core::{DataElement, PrimitiveValue, VR};
+    use dicom_dictionary_std::tags;
+    let dir = tempfile::tempdir().unwrap();
+    let options = ReadOptions::default();
+    let expect_error = |name: &str, bytes: Vec<u8>, needle: &str| {
+        let path = dir.path().join(name);
+        std::fs::write(&path, bytes).unwrap();
+        match run_case(&path, &options, dir.path()) {
+            Ok(Outcome::Failed(e)) => {
+                assert!(e.contains(name) && e.contains(needle), "{name}: {e}")
+            }
+            Ok(Outcome::Opened { .. }) => panic!("{name} was accepted"),
+            Err(e) => panic!("{name}: {e}"),
+        }
+    };
+    for frames in ["0", "-1", "abc"] {
+        let bytes = dicom_slice_edited(0, |o| {
+            o.put(DataElement::new(
+                tags::NUMBER_OF_FRAMES,
+                VR::IS,
+                PrimitiveValue::from(frames),
+            ));
+        });
+        expect_error("frames.dcm", bytes, "NumberOfFrames");
+    }
+    let bytes = dicom_slice_edited(0, |o| {
+        o.put(DataElement::new(
+            tags::BITS_ALLOCATED,
+            VR::US,
+            PrimitiveValue::from(8u16),
+        ));
+        o.put(DataElement::new(
+            tags::BITS_STORED,
+            VR::US,
+            PrimitiveValue::from(8u16),
+        ));
+        o.put(DataElement::new(
+            tags::HIGH_BIT,
+            VR::US,
+            PrimitiveValue::from(7u16),
+        ));
+    });
+    expect_error("bits8.dcm", bytes, "PixelData holds");
+    for stored in [0u16, 255] {
+        let bytes = dicom_slice_edited(0, |o| {
+            o.put(DataElement::new(
+                tags::BITS_STORED,
+                VR::US,
+                PrimitiveValue::from(stored),
+            ));
+        });
+        expect_error("stored.dcm", bytes, "BitsStored");
+    }
+    for offset in [348.0f32, 349.0, 351.0, 352.5] {
+        let mut bytes = nifti1(&voxels_le());
+        bytes[108..112].copy_from_slice(&offset.to_le_bytes());
+        expect_error("offset.nii", bytes, "vox_offset");
     }
 }

@@ -15,9 +15,9 @@ use dicom_pixeldata::PixelDecoder;
 use crate::error::{Result, StorageError};
 use crate::geometry::VolumeGeometry;
 use crate::readers::common::{cross, dot, norm, split_axis};
-use crate::readers::staging::new_staging;
 use crate::readers::{has_dicom_preamble, ReadOptions};
 use crate::source::{ByteOrder, OpenedSource, RawVolume, SampleType, SourceInfo, WindowPreset};
+use crate::staging::new_staging;
 
 /// Folders nested deeper than this are not searched (exports are rarely more than a few deep).
 const MAX_DEPTH: usize = 8;
@@ -140,6 +140,8 @@ fn windows_from(obj: &Obj) -> Vec<WindowPreset> {
 }
 
 fn open_header(path: &Path) -> Result<DefaultDicomObject> {
+    // Before dicom-rs, which would allocate whatever a damaged length field claims.
+    crate::readers::dicom_bounds::check_element_lengths(path)?;
     OpenFileOptions::new()
         .read_until(tags::PIXEL_DATA)
         .open_file(path)
@@ -160,7 +162,29 @@ fn read_header(path: &Path) -> Result<Option<ImageHeader>> {
     }
     let bits_allocated = int(&obj, tags::BITS_ALLOCATED).unwrap_or(16);
     let bits_stored = int(&obj, tags::BITS_STORED).unwrap_or(bits_allocated);
-    let n_frames = int(&obj, tags::NUMBER_OF_FRAMES).unwrap_or(1).max(1);
+    if !(1..=bits_allocated).contains(&bits_stored) {
+        return Err(StorageError::invalid(
+            path,
+            format!("BitsStored {bits_stored} must lie in 1..=BitsAllocated ({bits_allocated})"),
+        ));
+    }
+    // Absent means one frame; present, it must be a positive number (0, -1 or text is damage,
+    // and guessing "1" would import one frame of many).
+    let n_frames = match obj.get(tags::NUMBER_OF_FRAMES) {
+        None => 1,
+        Some(e) => match e.to_int::<i64>() {
+            Ok(n) if n >= 1 => n,
+            _ => {
+                return Err(StorageError::invalid(
+                    path,
+                    format!(
+                        "NumberOfFrames {:?} is not a positive number",
+                        e.to_str().map(|t| t.trim().to_string()).unwrap_or_default()
+                    ),
+                ))
+            }
+        },
+    };
     if n_frames as u64 > crate::geometry::MAX_AXIS_VOXELS {
         return Err(StorageError::invalid(
             path,
@@ -795,7 +819,7 @@ fn assemble(
     let staging_bytes = dims.iter().fold(out_type.size_bytes() as u64, |acc, &d| {
         acc.saturating_mul(d)
     });
-    let mut staging = new_staging(display, options, staging_bytes)?;
+    let mut staging = new_staging(display, options.staging_dir.as_deref(), staging_bytes)?;
     {
         let mut out = BufWriter::with_capacity(1 << 20, staging.as_file_mut());
         let mut cur: Option<(usize, Loaded)> = None;
@@ -913,6 +937,23 @@ fn decode_frame(
     let src: &[u8] = match pixel.value() {
         DicomValue::Primitive(p) => {
             let all = p.to_bytes();
+            // The whole element must be the frames the header describes (plus one pad byte for
+            // an odd length): 16-bit data read with BitsAllocated 8, or frames missing from
+            // NumberOfFrames, would otherwise import as plausible garbage.
+            let expected = h.frames.len() * frame_len;
+            if all.len() != expected && all.len() != expected + (expected & 1) {
+                return Err(StorageError::invalid(
+                    &h.path,
+                    format!(
+                        "PixelData holds {} bytes, but {} frame(s) of {}x{} at BitsAllocated {} need {expected}: BitsAllocated, Rows, Columns or NumberOfFrames is wrong",
+                        all.len(),
+                        h.frames.len(),
+                        h.cols,
+                        h.rows,
+                        h.bits_allocated
+                    ),
+                ));
+            }
             let start = frame as usize * frame_len;
             let Some(slice) = all.get(start..start + frame_len) else {
                 return Err(StorageError::invalid(

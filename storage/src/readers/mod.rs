@@ -7,11 +7,11 @@
 
 mod common;
 mod dicom;
+mod dicom_bounds;
 mod metaimage;
 mod nifti;
 mod nrrd;
 mod raw;
-mod staging;
 
 use std::fs::File;
 use std::io::Read;
@@ -20,8 +20,8 @@ use std::path::{Path, PathBuf};
 use crate::error::{Result, StorageError};
 use crate::source::{ByteOrder, OpenedSource, SampleType};
 
+pub use crate::staging::{remove_live_staging_files, remove_stale_staging_files, StagingFile};
 pub use dicom::{list_dicom_series, DicomSeriesSummary};
-pub use staging::{remove_live_staging_files, remove_stale_staging_files, StagingFile};
 
 /// What the user told us beyond the path.
 #[derive(Default, Clone, Debug)]

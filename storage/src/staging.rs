@@ -6,7 +6,6 @@ use std::path::{Path, PathBuf};
 use tempfile::NamedTempFile;
 
 use crate::error::{Result, StorageError};
-use crate::readers::ReadOptions;
 
 /// Bounded buffer for every staging copy: large enough to amortise syscalls, small next to a volume.
 const CHUNK: usize = 1 << 20;
@@ -96,11 +95,12 @@ pub fn remove_stale_staging_files(dir: &Path) -> usize {
 /// Creates a staging file for `bytes` of decompressed voxels from `source`. Removes stale
 /// staging files first, and refuses (naming the staging folder, not the input) when the folder's
 /// disk cannot hold the data: a header may claim terabytes.
-pub(crate) fn new_staging(source: &Path, options: &ReadOptions, bytes: u64) -> Result<StagingFile> {
-    let dir = options
-        .staging_dir
-        .clone()
-        .unwrap_or_else(std::env::temp_dir);
+pub(crate) fn new_staging(
+    source: &Path,
+    staging_dir: Option<&Path>,
+    bytes: u64,
+) -> Result<StagingFile> {
+    let dir = staging_dir.map_or_else(std::env::temp_dir, Path::to_path_buf);
     remove_stale_staging_files(&dir);
     if let Ok(free) = fs2::available_space(&dir) {
         if free < bytes.saturating_add(STAGING_FREE_MARGIN) {
