@@ -25,6 +25,12 @@ pub struct ServeArgs {
     /// Generate a 128-bit token and print it once.
     #[arg(long)]
     pub generate_token: bool,
+    /// Serve HTTPS with this PEM certificate chain (with --tls-key).
+    #[arg(long, requires = "tls_key")]
+    pub tls_cert: Option<PathBuf>,
+    /// The PEM private key of --tls-cert.
+    #[arg(long, requires = "tls_cert")]
+    pub tls_key: Option<PathBuf>,
     /// Serve the header's description and provenance (source paths often hold patient names).
     #[arg(long)]
     pub expose_identifiers: bool,
@@ -42,6 +48,9 @@ pub struct ServeArgs {
     /// Test hook: corrupt the first answer for this brick (LEVEL/Z/Y/X) after verifying it.
     #[arg(long, hide = true)]
     pub test_corrupt_brick: Option<String>,
+    /// Test hook: how many answers for --test-corrupt-brick to corrupt.
+    #[arg(long, hide = true, default_value_t = 1)]
+    pub test_corrupt_times: u32,
 }
 
 pub fn run(args: ServeArgs) -> Result<()> {
@@ -61,11 +70,12 @@ pub fn run(args: ServeArgs) -> Result<()> {
         }
         (None, false) => None,
     };
-    let corrupt_once = args
+    let corrupt_answers = args
         .test_corrupt_brick
         .as_deref()
         .map(parse_brick)
-        .transpose()?;
+        .transpose()?
+        .map(|id| (id, args.test_corrupt_times));
     anyhow::ensure!(
         args.header_timeout.is_finite() && args.header_timeout > 0.0,
         "--header-timeout must be positive"
@@ -80,7 +90,11 @@ pub fn run(args: ServeArgs) -> Result<()> {
         max_concurrent_requests: args.max_requests,
         header_read_timeout: Duration::from_secs_f64(args.header_timeout),
         added_delay: Duration::from_millis(args.added_delay_ms),
-        corrupt_once,
+        corrupt_answers,
+        tls: match (args.tls_cert, args.tls_key) {
+            (Some(cert), Some(key)) => Some(strata_service::server::TlsFiles { cert, key }),
+            _ => None,
+        },
         ..ServeOptions::default()
     };
     let stores = find_stores(&args.stores)?;

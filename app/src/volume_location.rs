@@ -44,9 +44,23 @@ impl Opened {
     }
 }
 
+/// `STRATA_TLS_CA`: a PEM certificate an https server's chain may end at, besides the
+/// system's roots (a lab's own CA, or a test's).
+const TLS_CA_VARIABLE: &str = "STRATA_TLS_CA";
+
 pub fn open_remote(url: &str, token_file: Option<&Path>) -> Result<Arc<RemoteSource>> {
+    let tls_ca_pem = match std::env::var_os(TLS_CA_VARIABLE) {
+        Some(path) => Some(std::fs::read(&path).with_context(|| {
+            format!(
+                "cannot read {TLS_CA_VARIABLE}={}",
+                Path::new(&path).display()
+            )
+        })?),
+        None => None,
+    };
     let options = RemoteOptions {
         token: token_file.map(read_token).transpose()?,
+        tls_ca_pem,
         ..RemoteOptions::default()
     };
     Ok(Arc::new(

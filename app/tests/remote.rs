@@ -409,6 +409,7 @@ fn two_hundred_clients_get_verified_bricks_or_clean_errors_with_bounded_memory()
         })
         .collect();
     let ids = Arc::new(ids);
+    strata_service::install_tls_provider();
     let until = Instant::now() + Duration::from_secs(3);
     let (ok, busy, other) = rt.block_on(async {
         let mut tasks = Vec::new();

@@ -9,3 +9,10 @@ pub mod wire;
 
 pub use client::{RemoteOptions, RemoteSource};
 pub use server::{ServeError, ServeOptions};
+
+/// Makes ring the process's rustls crypto provider (once; later calls do nothing). reqwest's
+/// TLS needs one before any client is built; `RemoteSource::open` calls this itself, other
+/// code that builds a reqwest client (tests, tools) calls it first.
+pub fn install_tls_provider() {
+    let _ = rustls::crypto::ring::default_provider().install_default();
+}

@@ -71,9 +71,11 @@ pub struct ServeOptions {
     /// Added before every brick answer: a round-trip delay for benchmarks and tests on
     /// loopback (injected here, not with tc netem).
     pub added_delay: Duration,
-    /// Test hook: flip one byte of this brick's first answer after the server verified it
+    /// Serve HTTPS (HTTP/1.1 and HTTP/2 by ALPN) with this PEM certificate chain and key.
+    pub tls: Option<TlsFiles>,
+    /// Test hook: flip one byte of this brick's next N answers after the server verified them
     /// (corruption in transit).
-    pub corrupt_once: Option<BrickId>,
+    pub corrupt_answers: Option<(BrickId, u32)>,
 }
 
 impl Default for ServeOptions {
@@ -89,9 +91,51 @@ impl Default for ServeOptions {
             request_timeout: Duration::from_secs(30),
             max_streams_per_connection: 256,
             added_delay: Duration::ZERO,
-            corrupt_once: None,
+            corrupt_answers: None,
+            tls: None,
         }
     }
+}
+
+/// PEM files of a TLS server: the certificate chain (leaf first) and its private key.
+#[derive(Clone, Debug)]
+pub struct TlsFiles {
+    pub cert: PathBuf,
+    pub key: PathBuf,
+}
+
+/// A rustls acceptor (ring provider) offering h2 and http/1.1 by ALPN.
+fn tls_acceptor(files: &TlsFiles) -> Result<tokio_rustls::TlsAcceptor, ServeError> {
+    use rustls::pki_types::pem::PemObject;
+    use rustls::pki_types::{CertificateDer, PrivateKeyDer};
+    let read = |path: &Path| {
+        std::fs::read(path).map_err(|e| ServeError::Refused {
+            path: path.to_path_buf(),
+            message: format!("cannot read it: {e}"),
+        })
+    };
+    let bad = |path: &Path, message: String| ServeError::Refused {
+        path: path.to_path_buf(),
+        message,
+    };
+    let cert_pem = read(&files.cert)?;
+    let certs = CertificateDer::pem_slice_iter(&cert_pem)
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|e| bad(&files.cert, format!("not a PEM certificate chain: {e}")))?;
+    if certs.is_empty() {
+        return Err(bad(&files.cert, "holds no certificate".into()));
+    }
+    let key = PrivateKeyDer::from_pem_slice(&read(&files.key)?)
+        .map_err(|e| bad(&files.key, format!("not a PEM private key: {e}")))?;
+    let provider = Arc::new(rustls::crypto::ring::default_provider());
+    let mut config = rustls::ServerConfig::builder_with_provider(provider)
+        .with_safe_default_protocol_versions()
+        .map_err(|e| ServeError::Config(format!("TLS: {e}")))?
+        .with_no_client_auth()
+        .with_single_cert(certs, key)
+        .map_err(|e| bad(&files.key, format!("does not fit the certificate: {e}")))?;
+    config.alpn_protocols = vec![b"h2".to_vec(), b"http/1.1".to_vec()];
+    Ok(tokio_rustls::TlsAcceptor::from(Arc::new(config)))
 }
 
 /// One served store.
@@ -124,7 +168,7 @@ struct AppState {
     counters: Arc<ServerCounters>,
     requests: Arc<Semaphore>,
     added_delay: Duration,
-    corrupt_once: std::sync::Mutex<Option<BrickId>>,
+    corrupt_answers: std::sync::Mutex<Option<(BrickId, u32)>>,
 }
 
 /// A store found on the command line: its name in URLs and its directory.
@@ -269,6 +313,7 @@ fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
 
 /// A running server.
 pub struct RunningServer {
+    scheme: &'static str,
     addr: SocketAddr,
     stores: Vec<(String, PathBuf, String)>,
     counters: Arc<ServerCounters>,
@@ -280,9 +325,9 @@ impl RunningServer {
     pub fn addr(&self) -> SocketAddr {
         self.addr
     }
-    /// `http://ADDR` (no trailing slash).
+    /// `http://ADDR` or `https://ADDR` (no trailing slash).
     pub fn base_url(&self) -> String {
-        format!("http://{}", self.addr)
+        format!("{}://{}", self.scheme, self.addr)
     }
     /// Served stores: (name, directory, generation).
     pub fn stores(&self) -> &[(String, PathBuf, String)] {
@@ -349,13 +394,19 @@ pub fn start(
         .set_nonblocking(true)
         .map_err(ServeError::Runtime)?;
     let addr = listener.local_addr().map_err(ServeError::Runtime)?;
+    let tls_acceptor = options.tls.as_ref().map(tls_acceptor).transpose()?;
+    let scheme = if tls_acceptor.is_some() {
+        "https"
+    } else {
+        "http"
+    };
     let mut served = HashMap::new();
     for (name, path) in stores {
         let s = open_served(
             name.clone(),
             &path,
             options.expose_identifiers,
-            &format!("http://{addr}"),
+            &format!("{scheme}://{addr}"),
         )?;
         served.insert(name, Arc::new(s));
     }
@@ -376,7 +427,7 @@ pub fn start(
         counters: counters.clone(),
         requests: Arc::new(Semaphore::new(options.max_concurrent_requests.max(1))),
         added_delay: options.added_delay,
-        corrupt_once: std::sync::Mutex::new(options.corrupt_once),
+        corrupt_answers: std::sync::Mutex::new(options.corrupt_answers),
     });
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
@@ -388,7 +439,12 @@ pub fn start(
     let (tx, rx) = tokio::sync::oneshot::channel();
     let names: Vec<String> = listing.iter().map(|(n, _, _)| n.clone()).collect();
     tracing::info!(
-        "strata serve: listening on http://{addr} (HTTP/1.1 and h2c), token {}, stores: {}",
+        "strata serve: listening on {scheme}://{addr} ({}), token {}, stores: {}",
+        if scheme == "https" {
+            "HTTP/1.1 and HTTP/2 over TLS"
+        } else {
+            "HTTP/1.1 and h2c"
+        },
         if options.token.is_some() {
             "required"
         } else {
@@ -399,12 +455,13 @@ pub fn start(
     let thread = std::thread::Builder::new()
         .name("strata-serve".into())
         .spawn(move || {
-            runtime.block_on(serve(listener, state, options, rx));
+            runtime.block_on(serve(listener, state, tls_acceptor, options, rx));
             // Connections still open are dropped with the runtime.
             runtime.shutdown_timeout(Duration::from_millis(100));
         })
         .map_err(ServeError::Runtime)?;
     Ok(RunningServer {
+        scheme,
         addr,
         stores: listing,
         counters,
@@ -447,6 +504,7 @@ fn router(state: Arc<AppState>, options: &ServeOptions) -> Router {
 async fn serve(
     listener: std::net::TcpListener,
     state: Arc<AppState>,
+    tls_acceptor: Option<tokio_rustls::TlsAcceptor>,
     options: ServeOptions,
     mut shutdown: tokio::sync::oneshot::Receiver<()>,
 ) {
@@ -458,6 +516,7 @@ async fn serve(
         }
     };
     let app = router(state.clone(), &options);
+    let tls = tls_acceptor.map(Arc::new);
     let mut builder = hyper_util::server::conn::auto::Builder::new(TokioExecutor::new());
     builder
         .http1()
@@ -498,12 +557,28 @@ async fn serve(
                 let _ = stream.set_nodelay(true);
                 let builder = builder.clone();
                 let app = app.clone();
+                let tls = tls.clone();
+                let handshake_timeout = options.header_read_timeout;
                 tasks.spawn(async move {
                     let service = hyper::service::service_fn(move |req: hyper::Request<hyper::body::Incoming>| {
                         let mut app = app.clone();
                         async move { tower_service::Service::call(&mut app, req).await }
                     });
-                    if let Err(e) = builder.serve_connection(TokioIo::new(stream), service).await {
+                    let served = match tls {
+                        None => builder.serve_connection(TokioIo::new(stream), service).await,
+                        Some(acceptor) => {
+                            // The handshake is bounded like the headers: a client that stalls
+                            // in it is dropped.
+                            match tokio::time::timeout(handshake_timeout, acceptor.accept(stream)).await {
+                                Ok(Ok(tls_stream)) => {
+                                    builder.serve_connection(TokioIo::new(tls_stream), service).await
+                                }
+                                Ok(Err(e)) => Err(e.into()),
+                                Err(_) => Err("TLS handshake timed out".into()),
+                            }
+                        }
+                    };
+                    if let Err(e) = served {
                         tracing::debug!("strata serve: connection from {peer} ended: {e}");
                     }
                     drop(permit);
@@ -712,9 +787,12 @@ async fn brick(
     }
     let mut body = record;
     {
-        let mut corrupt = state.corrupt_once.lock().unwrap_or_else(|p| p.into_inner());
-        if *corrupt == Some(id) {
-            *corrupt = None;
+        let mut corrupt = state
+            .corrupt_answers
+            .lock()
+            .unwrap_or_else(|p| p.into_inner());
+        if let Some((_, left)) = corrupt.as_mut().filter(|(t, n)| *t == id && *n > 0) {
+            *left -= 1;
             let at = body.len() - 1;
             body[at] ^= 0x40;
             tracing::warn!("strata serve: test hook flipped a byte of brick {id:?} in transit");

@@ -69,6 +69,7 @@ fn runtime() -> tokio::runtime::Runtime {
 }
 
 fn client() -> reqwest::Client {
+    strata_service::install_tls_provider();
     reqwest::Client::builder()
         .no_proxy()
         .timeout(Duration::from_secs(20))
@@ -557,4 +558,124 @@ fn connections_beyond_the_limit_are_closed() {
             .load(std::sync::atomic::Ordering::Relaxed)
             >= 1
     );
+}
+
+/// A CA and a leaf for 127.0.0.1 signed by it, made with the openssl tool (None when absent).
+fn test_certificates(dir: &Path) -> Option<(PathBuf, PathBuf, PathBuf)> {
+    let run = |args: &[&str]| {
+        std::process::Command::new("openssl")
+            .args(args)
+            .current_dir(dir)
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .status()
+            .is_ok_and(|s| s.success())
+    };
+    std::fs::write(
+        dir.join("leaf.ext"),
+        "subjectAltName=IP:127.0.0.1\nbasicConstraints=CA:FALSE\n",
+    )
+    .ok()?;
+    let ok = run(&[
+        "req",
+        "-x509",
+        "-newkey",
+        "ec",
+        "-pkeyopt",
+        "ec_paramgen_curve:prime256v1",
+        "-nodes",
+        "-keyout",
+        "ca.key",
+        "-out",
+        "ca.pem",
+        "-days",
+        "2",
+        "-subj",
+        "/CN=strata test CA",
+    ]) && run(&[
+        "req",
+        "-newkey",
+        "ec",
+        "-pkeyopt",
+        "ec_paramgen_curve:prime256v1",
+        "-nodes",
+        "-keyout",
+        "leaf.key",
+        "-out",
+        "leaf.csr",
+        "-subj",
+        "/CN=127.0.0.1",
+    ]) && run(&[
+        "x509",
+        "-req",
+        "-in",
+        "leaf.csr",
+        "-CA",
+        "ca.pem",
+        "-CAkey",
+        "ca.key",
+        "-CAcreateserial",
+        "-out",
+        "leaf.pem",
+        "-days",
+        "2",
+        "-extfile",
+        "leaf.ext",
+    ]);
+    ok.then(|| {
+        (
+            dir.join("ca.pem"),
+            dir.join("leaf.pem"),
+            dir.join("leaf.key"),
+        )
+    })
+}
+
+#[test]
+fn tls_serves_the_same_bricks_over_https() {
+    let dir = tempfile::tempdir().unwrap();
+    let Some((ca, cert, key)) = test_certificates(dir.path()) else {
+        println!("skipped: the openssl tool is not installed to make test certificates");
+        return;
+    };
+    let path = phantom(dir.path(), "chest", 64);
+    let want = expected(&path);
+    let server = serve(
+        &path,
+        ServeOptions {
+            tls: Some(strata_service::server::TlsFiles { cert, key }),
+            ..ServeOptions::default()
+        },
+    );
+    let url = server.store_url("chest");
+    assert!(url.starts_with("https://127.0.0.1:"), "{url}");
+    for http1 in [false, true] {
+        let remote = RemoteSource::open(
+            &url,
+            RemoteOptions {
+                tls_ca_pem: Some(std::fs::read(&ca).unwrap()),
+                http1,
+                ..RemoteOptions::default()
+            },
+        )
+        .unwrap();
+        for (id, record) in want.records.iter().take(8) {
+            assert_eq!(&remote.read_brick_record(*id).unwrap(), record);
+        }
+    }
+    // Without the CA the server's certificate is not trusted.
+    let untrusted = RemoteSource::open(
+        &url,
+        RemoteOptions {
+            blocking_attempts: 1,
+            ..RemoteOptions::default()
+        },
+    );
+    assert!(untrusted.is_err());
+    // Plain HTTP to the TLS port gets no answer.
+    let answer = raw(
+        &server,
+        b"GET /v1/stores HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n",
+    );
+    assert!(!answer.starts_with("HTTP/1.1 200"), "{answer}");
 }

@@ -244,8 +244,14 @@ fn print_report(options: &Options, local: &Run, runs: &[Run]) {
         if options.http1 { "HTTP/1.1 pool" } else { "one HTTP/2 connection" }
     );
     println!(
-        "local: open {:.3} s; per viewpoint first frame / converge: {}",
+        "local: open {:.3} s; largest loader time of a frame {:.1} ms (the same CPU noise the remote runs see); per viewpoint first frame / converge: {}",
         local.open_seconds,
+        local
+            .stops
+            .iter()
+            .map(|s| s.max_loader_seconds)
+            .fold(0.0, f64::max)
+            * 1e3,
         local
             .stops
             .iter()

@@ -82,6 +82,23 @@ pub struct SessionStatus {
     pub last_screenshot: Option<Result<PathBuf, String>>,
 }
 
+impl SessionStatus {
+    /// What the status bar should show about the volume's source: "connection lost, retrying"
+    /// while a remote store cannot be reached (the view keeps what it has), nothing otherwise.
+    #[cfg_attr(not(test), allow(dead_code))]
+    pub fn source_line(&self) -> Option<String> {
+        match &self.loader.as_ref()?.source_status {
+            strata_source::SourceStatus::Available => None,
+            strata_source::SourceStatus::Retrying {
+                since_seconds,
+                message,
+            } => Some(format!(
+                "connection lost, retrying ({since_seconds:.0} s): {message}"
+            )),
+        }
+    }
+}
+
 /// A request to write the 3D view to PNG at `scale` × the on-screen size.
 #[derive(Clone, Debug)]
 pub struct ScreenshotRequest {
@@ -513,6 +530,24 @@ fn new_request_is_same(last: &Option<RenderRequest>, request: &RenderRequest) ->
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_status_line_says_when_the_connection_is_lost() {
+        let mut status = SessionStatus {
+            loader: Some(FrameStats::default()),
+            ..SessionStatus::default()
+        };
+        assert_eq!(status.source_line(), None);
+        if let Some(stats) = status.loader.as_mut() {
+            stats.source_status = strata_source::SourceStatus::Retrying {
+                since_seconds: 3.2,
+                message: "connection refused".into(),
+            };
+        }
+        let line = status.source_line().unwrap_or_default();
+        assert!(line.starts_with("connection lost, retrying"), "{line}");
+        assert!(line.contains("connection refused"), "{line}");
+    }
 
     #[test]
     fn a_session_streams_to_convergence_and_publishes_frames() {
