@@ -422,6 +422,16 @@ fn a_killed_compressed_import_leaves_no_staging_file_after_the_next_run() {
         1,
         "the killed import should have left exactly its staging file"
     );
+    // Age the leftover as time would (the cleanup leaves files younger than 30 s alone, since
+    // a live import may not have locked its new file yet).
+    for e in std::fs::read_dir(&staging).unwrap().flatten() {
+        std::fs::File::options()
+            .write(true)
+            .open(e.path())
+            .unwrap()
+            .set_modified(std::time::SystemTime::now() - Duration::from_secs(3600))
+            .unwrap();
+    }
     let info = run_limited(strata(&["info", s(&store)]), "info of the killed store");
     assert_eq!(info.code, Some(1), "{}", info.text);
     assert!(info.text.contains("incomplete import"), "{}", info.text);

@@ -15,6 +15,9 @@ const CHUNK: usize = 1 << 20;
 const STAGING_PREFIX: &str = "strata-staging-";
 const STAGING_SUFFIX: &str = ".raw";
 
+/// A staging file unchanged for this long and unlocked belongs to a dead process.
+const STALE_AFTER: std::time::Duration = std::time::Duration::from_secs(30);
+
 /// Slack kept free on the staging disk beyond the decompressed volume, so staging never takes
 /// the last bytes another program needs.
 const STAGING_FREE_MARGIN: u64 = 64 << 20;
@@ -62,7 +65,9 @@ pub fn remove_live_staging_files() -> usize {
 }
 
 /// Deletes staging files in `dir` left by processes that died (SIGKILL, power loss): a live
-/// owner holds its file's lock, a dead one does not. Returns how many were deleted.
+/// owner holds its file's lock, a dead one does not, and the file has not changed for
+/// [`STALE_AFTER`] (so one being created right now is never taken). Returns how many were
+/// deleted.
 pub fn remove_stale_staging_files(dir: &Path) -> usize {
     let Ok(entries) = std::fs::read_dir(dir) else {
         return 0;
@@ -75,6 +80,17 @@ pub fn remove_stale_staging_files(dir: &Path) -> usize {
             continue;
         }
         if !entry.file_type().is_ok_and(|t| t.is_file()) {
+            continue;
+        }
+        // A file created a moment ago may not be locked yet by its (live) owner: only files
+        // untouched for a while are candidates. A live owner writes or holds the lock.
+        let recent = entry
+            .metadata()
+            .and_then(|m| m.modified())
+            .ok()
+            .and_then(|t| t.elapsed().ok())
+            .is_none_or(|age| age < STALE_AFTER);
+        if recent {
             continue;
         }
         let path = entry.path();

@@ -571,9 +571,21 @@ fn stale_staging_files_of_dead_processes_are_removed_and_live_ones_kept() {
     // Unrelated files are never touched.
     let other = dir.path().join("notes.raw");
     std::fs::write(&other, b"mine").unwrap();
+    // Just created (its owner may be about to lock it): left alone until it has aged.
+    let fresh = dir.path().join("strata-staging-fresh999.raw");
+    std::fs::write(&fresh, b"being created").unwrap();
+    let an_hour_ago = std::time::SystemTime::now() - Duration::from_secs(3600);
+    for old in [&stale, &live] {
+        std::fs::File::options()
+            .write(true)
+            .open(old)
+            .unwrap()
+            .set_modified(an_hour_ago)
+            .unwrap();
+    }
     let removed = strata_storage::readers::remove_stale_staging_files(dir.path());
     assert_eq!(removed, 1);
-    assert!(!stale.exists() && live.exists() && other.exists());
+    assert!(!stale.exists() && live.exists() && other.exists() && fresh.exists());
     drop(held);
 }
 
