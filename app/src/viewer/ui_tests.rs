@@ -218,9 +218,10 @@ fn right_drag_in_a_slice_changes_window_level_and_the_image_and_the_wheel_pages(
     let rect = app(&h)
         .view_rect(ViewSlot::Slice(SliceView::Axial))
         .expect("axial view laid out");
-    let (values_before, window_before) = app(&h)
+    let shown = app(&h)
         .slice_display(SliceView::Axial)
         .expect("slice shown");
+    let (values_before, window_before) = (shown.values, shown.window);
     h.step();
     let screen_before = region_pixels(&h.render().expect("render"), rect.shrink(20.0));
 
@@ -246,22 +247,23 @@ fn right_drag_in_a_slice_changes_window_level_and_the_image_and_the_wheel_pages(
         modifiers: Modifiers::NONE,
     });
     h.step();
-    let window_after = app(&h).volume.as_ref().expect("volume").window;
+    let window_after = app(&h).volume.as_ref().expect("volume").scene.window;
     assert!(
-        window_after.1 > window_before.1,
+        window_after.width > window_before.width,
         "window width did not grow: {window_before:?} → {window_after:?}"
     );
     assert!(
-        window_after.0 > window_before.0,
+        window_after.centre > window_before.centre,
         "level did not rise: {window_before:?} → {window_after:?}"
     );
     step_until(&mut h, "the re-windowed slice", |a| {
         a.slice_display(SliceView::Axial)
-            .is_some_and(|(_, w)| w == window_after)
+            .is_some_and(|s| s.window == window_after)
     });
-    let (values_after, _) = app(&h)
+    let values_after = app(&h)
         .slice_display(SliceView::Axial)
-        .expect("slice shown");
+        .expect("slice shown")
+        .values;
     assert!(
         std::sync::Arc::ptr_eq(&values_before, &values_after),
         "a window change must not re-read the slice"
@@ -279,9 +281,10 @@ fn right_drag_in_a_slice_changes_window_level_and_the_image_and_the_wheel_pages(
     // Wheel: one line up pages one slice along the axial normal.
     let normal = {
         let v = app(&h).volume.as_ref().expect("volume");
-        super::orientation::SliceFrame::for_view(SliceView::Axial, &v.info.geometry).normal_axis
+        super::orientation::SliceFrame::for_view(SliceView::Axial, &v.data.info.geometry)
+            .normal_axis
     };
-    let before = app(&h).volume.as_ref().expect("volume").cursor[normal];
+    let before = app(&h).volume.as_ref().expect("volume").scene.cursor[normal];
     h.event(Event::PointerMoved(rect.center() + Vec2::new(3.0, 3.0)));
     h.event(Event::MouseWheel {
         unit: egui::MouseWheelUnit::Line,
@@ -291,7 +294,7 @@ fn right_drag_in_a_slice_changes_window_level_and_the_image_and_the_wheel_pages(
         modifiers: Modifiers::NONE,
     });
     h.step();
-    let after = app(&h).volume.as_ref().expect("volume").cursor[normal];
+    let after = app(&h).volume.as_ref().expect("volume").scene.cursor[normal];
     assert_eq!(
         after,
         before.round() + 1.0,
@@ -369,16 +372,20 @@ fn a_click_in_the_transfer_function_editor_adds_a_point_that_the_next_frame_uses
     let mut h = harness(&store, true);
     step_until(&mut h, "the converged first frame and the editor", |a| {
         settled_frame(a).is_some()
-            && a.volume
-                .as_ref()
-                .is_some_and(|v| v.tf_state.plot_rect.is_some())
+            && a.volume.is_some()
+            && a.panels.transfer_function.editor.plot_rect.is_some()
     });
     h.check_accessibility();
     let (plot, points_before) = {
         let v = app(&h).volume.as_ref().expect("volume");
         (
-            v.tf_state.plot_rect.expect("plot drawn"),
-            v.transfer_function.opacity.len(),
+            app(&h)
+                .panels
+                .transfer_function
+                .editor
+                .plot_rect
+                .expect("plot drawn"),
+            v.scene.transfer_function.opacity.len(),
         )
     };
     // Left of the middle, a third of the way down: high opacity where the bone preset has none,
@@ -405,6 +412,7 @@ fn a_click_in_the_transfer_function_editor_adds_a_point_that_the_next_frame_uses
         .volume
         .as_ref()
         .expect("volume")
+        .scene
         .transfer_function
         .clone();
     assert_eq!(

@@ -1,10 +1,20 @@
-//! The 3D view's camera and mouse handling: orbit (left drag), pan (middle or shift+left),
-//! zoom (wheel), the six standard views, and the orientation marker.
+//! The 3D view: its camera and mouse handling (orbit: left drag; pan: middle or shift+left;
+//! zoom: wheel; TF shift/widen: right drag), the six standard views, the render request it
+//! sends, the frame it shows, the slice-plane outlines and the orientation marker.
 
-use egui::{Color32, Pos2, Rect, Stroke, Vec2};
+use std::time::{Duration, Instant};
+
+use egui::{Color32, Pos2, Rect, Sense, Stroke, TextureHandle, TextureOptions, Vec2};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
-use strata_render::{Camera, Projection, VolumeGeometry};
+use strata_render::{Camera, Projection, RenderMode, RenderSettings, Shading, VolumeGeometry};
+
+use super::app::{view_title, Preferences, ViewResponse, NOT_FOR_DIAGNOSIS, WARNING_COLOUR};
+use super::orientation::SliceView;
+use super::scene::{Scene, VolumeData};
+use super::slice_view::slice_colour;
+use super::tf_editor;
+use super::volume_session::RenderRequest;
 
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct OrbitCamera {
@@ -214,6 +224,277 @@ pub fn paint_orientation_marker(painter: &egui::Painter, view_rect: Rect, camera
             font,
             colour.gamma_multiply(0.7),
         );
+    }
+}
+
+/// The texture showing the newest volume frame and the frame's serial (re-uploaded only when
+/// a newer frame arrives).
+struct FrameTexture {
+    texture: TextureHandle,
+    serial: u64,
+}
+
+/// The 3D view's own state.
+pub struct View3d {
+    pub orbit: OrbitCamera,
+    texture: Option<FrameTexture>,
+    /// Until when input counts as interaction (lower resolution, target frame rate held).
+    pub interacting_until: Option<Instant>,
+}
+
+/// A short name of the render mode for titles (new modes add a line here).
+pub fn mode_name(mode: RenderMode) -> &'static str {
+    match mode {
+        RenderMode::Dvr => "DVR",
+        RenderMode::Mip => "MIP",
+        RenderMode::Isosurface => "Isosurface",
+    }
+}
+
+impl View3d {
+    pub fn new(orbit: OrbitCamera) -> Self {
+        View3d {
+            orbit,
+            texture: None,
+            interacting_until: None,
+        }
+    }
+
+    pub fn reset(&mut self, orthographic: bool) {
+        self.orbit = OrbitCamera {
+            orthographic,
+            ..OrbitCamera::default()
+        };
+    }
+
+    /// Draws the view into `rect`, turns input into camera and TF changes and sends the render
+    /// request for this frame.
+    pub fn ui(
+        &mut self,
+        ui: &mut egui::Ui,
+        rect: Rect,
+        data: &VolumeData,
+        scene: &mut Scene,
+        prefs: &Preferences,
+        max_pixels: u32,
+    ) -> ViewResponse {
+        let painter = ui.painter_at(rect);
+        painter.rect_filled(rect, 0.0, Color32::BLACK);
+        let response = ui.interact(rect, ui.scope_id().with("3d view"), Sense::click_and_drag());
+        let (shift, pointer_delta) = ui.input(|i| (i.modifiers.shift, i.pointer.delta()));
+        let mut moved = false;
+        if response.dragged_by(egui::PointerButton::Primary) && !shift {
+            self.orbit.orbit_by(pointer_delta, rect.size());
+            moved = true;
+        }
+        if response.dragged_by(egui::PointerButton::Middle)
+            || (response.dragged_by(egui::PointerButton::Primary) && shift)
+        {
+            self.orbit.pan_by(pointer_delta, rect.size());
+            moved = true;
+        }
+        if response.dragged_by(egui::PointerButton::Secondary) {
+            let (lo, hi) = data.info.physical_range;
+            let shift_value = pointer_delta.x as f64 / rect.width().max(1.0) as f64 * (hi - lo);
+            let scale = (-pointer_delta.y as f64 / rect.height().max(1.0) as f64 * 2.0).exp();
+            tf_editor::shift_and_scale(&mut scene.transfer_function, shift_value, scale);
+            moved = true;
+        }
+        if response.hovered() {
+            let scroll = ui.input(|i| i.smooth_scroll_delta.y);
+            if scroll != 0.0 {
+                self.orbit.zoom_by(scroll);
+                moved = true;
+            }
+        }
+        if response.double_clicked() {
+            self.reset(prefs.orthographic);
+        }
+        if moved {
+            self.interacting_until = Some(Instant::now() + Duration::from_millis(150));
+        }
+        let interacting = self.interacting_until.is_some_and(|t| t > Instant::now());
+        if interacting {
+            ui.ctx().request_repaint_after(Duration::from_millis(160));
+        }
+
+        // Request a frame at the view's aspect.
+        let ppp = ui.ctx().pixels_per_point();
+        let mut scale = prefs.render_scale.clamp(0.2, 1.0) * ppp;
+        if interacting && prefs.target_fps_enabled {
+            // While dragging, fewer pixels: the controller then keeps a higher sampling rate.
+            scale *= 0.5;
+        }
+        let longest = rect.width().max(rect.height()) * scale;
+        if longest > max_pixels as f32 {
+            scale *= max_pixels as f32 / longest;
+        }
+        let width = ((rect.width() * scale).round() as u32).max(16);
+        let height = ((rect.height() * scale).round() as u32).max(16);
+        let camera = self.orbit.camera(&data.info.geometry);
+        let clip_plane = scene.clip.enabled.then(|| data.clip_plane(&scene.clip));
+        let settings = RenderSettings {
+            width,
+            height,
+            mode: prefs.mode,
+            quality: prefs.step_voxels,
+            shading: prefs.shading.then(Shading::default),
+            smooth_transitions: prefs.smooth_transitions,
+            iso_value: scene.iso_value,
+            crop: scene.crop,
+            clip_plane,
+            ..RenderSettings::default()
+        };
+        data.session.request(RenderRequest {
+            camera,
+            settings,
+            transfer_function: scene.transfer_function.clone(),
+            target_fps: prefs.target_fps_enabled.then_some(prefs.target_fps),
+            interacting,
+        });
+
+        if let Some(frame) = data.session.latest_frame() {
+            let fresh = self
+                .texture
+                .as_ref()
+                .is_none_or(|t| t.serial != frame.serial);
+            if fresh {
+                let image = egui::ColorImage::from_rgba_premultiplied(
+                    [frame.width as usize, frame.height as usize],
+                    &frame.rgba,
+                );
+                match &mut self.texture {
+                    Some(t) => {
+                        t.texture.set(image, TextureOptions::LINEAR);
+                        t.serial = frame.serial;
+                    }
+                    None => {
+                        self.texture = Some(FrameTexture {
+                            texture: ui
+                                .ctx()
+                                .load_texture("volume", image, TextureOptions::LINEAR),
+                            serial: frame.serial,
+                        })
+                    }
+                }
+            }
+            if let Some(t) = &self.texture {
+                painter.image(
+                    t.texture.id(),
+                    rect,
+                    Rect::from_min_max(Pos2::ZERO, Pos2::new(1.0, 1.0)),
+                    Color32::WHITE,
+                );
+            }
+        }
+        if prefs.show_planes_in_3d {
+            paint_slice_planes(&painter, rect, &camera, data, scene);
+        }
+        paint_orientation_marker(&painter, rect, &camera);
+        let status = data.session.status();
+        let toggled = view_title(
+            ui,
+            rect,
+            "3d",
+            &format!(
+                "3D · {} · {}",
+                mode_name(prefs.mode),
+                scene.transfer_function.name
+            ),
+            Color32::from_rgb(200, 200, 255),
+        );
+        let mut right_lines = Vec::new();
+        if let Some(loading) = &status.loading {
+            right_lines.push(loading.clone());
+        } else if status.refining {
+            right_lines.push("refining…".to_string());
+        }
+        if let Some(level) = status.finest_resident_level {
+            right_lines.push(format!("finest level {level}"));
+        }
+        for (i, line) in right_lines.iter().enumerate() {
+            painter.text(
+                Pos2::new(rect.right() - 8.0, rect.top() + 4.0 + 15.0 * i as f32),
+                egui::Align2::RIGHT_TOP,
+                line,
+                egui::FontId::proportional(12.0),
+                Color32::LIGHT_GRAY,
+            );
+        }
+        if let Some(error) = &status.error {
+            painter.text(
+                rect.center(),
+                egui::Align2::CENTER_CENTER,
+                error,
+                egui::FontId::proportional(13.0),
+                Color32::LIGHT_RED,
+            );
+        }
+        painter.text(
+            rect.right_bottom() + Vec2::new(-8.0, -6.0),
+            egui::Align2::RIGHT_BOTTOM,
+            NOT_FOR_DIAGNOSIS,
+            egui::FontId::proportional(11.0),
+            WARNING_COLOUR,
+        );
+        ViewResponse {
+            toggle_focus: toggled,
+            focused: response.clicked() || response.drag_started(),
+        }
+    }
+}
+
+/// Outlines where the three slice views cut the volume, projected with the 3D view's camera
+/// (the frame fills `rect`, rendered at its aspect).
+fn paint_slice_planes(
+    painter: &egui::Painter,
+    rect: Rect,
+    camera: &Camera,
+    data: &VolumeData,
+    scene: &Scene,
+) {
+    let basis = camera.basis();
+    let aspect = (rect.width() / rect.height().max(1.0)) as f64;
+    let g = &data.info.geometry;
+    let project = |index: DVec3| -> Option<Pos2> {
+        let d = g.patient_from_index(index) - basis.eye;
+        let depth = d.dot(basis.forward);
+        let (sx, sy) = if basis.orthographic {
+            (d.dot(basis.right), d.dot(basis.up))
+        } else if depth > 1e-6 {
+            (d.dot(basis.right) / depth, d.dot(basis.up) / depth)
+        } else {
+            return None;
+        };
+        let u = (sx / (aspect * basis.half_extent) + 1.0) * 0.5;
+        let w = (1.0 - sy / basis.half_extent) * 0.5;
+        Some(Pos2::new(
+            rect.left() + u as f32 * rect.width(),
+            rect.top() + w as f32 * rect.height(),
+        ))
+    };
+    for view in SliceView::ALL {
+        let frame = data.frame(view);
+        let (n, a, b) = (frame.normal_axis, frame.across_axis, frame.down_axis);
+        let (lo_a, hi_a) = (-0.5, g.dims[a] as f64 - 0.5);
+        let (lo_b, hi_b) = (-0.5, g.dims[b] as f64 - 0.5);
+        let corner = |ca: f64, cb: f64| {
+            let mut i = [0.0; 3];
+            i[n] = scene.cursor[n];
+            i[a] = ca;
+            i[b] = cb;
+            project(DVec3::from(i))
+        };
+        let corners = [
+            corner(lo_a, lo_b),
+            corner(hi_a, lo_b),
+            corner(hi_a, hi_b),
+            corner(lo_a, hi_b),
+        ];
+        if let [Some(p0), Some(p1), Some(p2), Some(p3)] = corners {
+            let stroke = Stroke::new(1.5, slice_colour(view).gamma_multiply(0.8));
+            painter.add(egui::Shape::closed_line(vec![p0, p1, p2, p3], stroke));
+        }
     }
 }
 

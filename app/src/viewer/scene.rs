@@ -1,0 +1,201 @@
+//! The opened volume and what every view shares: the data handles (render session, slice
+//! reader, header facts, histogram) and the scene the user adjusts (crosshair, slice window,
+//! transfer function, iso value, crop and clip). Views and panels own their own state; they
+//! read [`VolumeData`] and change [`Scene`].
+
+use serde::{Deserialize, Serialize};
+use strata_render::{ClipPlane, CropBox, TransferFunction};
+use strata_storage::histogram::Histogram;
+
+use super::orientation::{SliceFrame, SliceView};
+use super::slices::SliceReader;
+use super::volume_session::{VolumeInfo, VolumeSession};
+
+/// A slice window in physical units (HU for CT): values from `centre - width/2` (black) to
+/// `centre + width/2` (white).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Window {
+    pub centre: f64,
+    pub width: f64,
+}
+
+impl Window {
+    pub fn new(centre: f64, width: f64) -> Self {
+        Window { centre, width }
+    }
+
+    pub fn low(&self) -> f64 {
+        self.centre - self.width * 0.5
+    }
+}
+
+/// The clip plane as the user sets it: an LPS axis, which side is cut, and where.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ClipSettings {
+    pub enabled: bool,
+    /// LPS axis of the plane's normal: 0 L–R, 1 A–P, 2 S–I.
+    pub axis: usize,
+    pub flip: bool,
+    /// Position as a fraction of the volume's extent along the normal.
+    pub fraction: f64,
+}
+
+impl Default for ClipSettings {
+    fn default() -> Self {
+        ClipSettings {
+            enabled: false,
+            axis: 1,
+            flip: false,
+            fraction: 0.5,
+        }
+    }
+}
+
+/// What the views read and never change: the render session, the slice reader and facts of
+/// the store.
+pub struct VolumeData {
+    pub session: VolumeSession,
+    pub slices: SliceReader,
+    pub info: VolumeInfo,
+    pub histogram: Histogram,
+    /// How each slice view maps index axes to the screen (fixed by the geometry).
+    pub frames: [SliceFrame; 3],
+}
+
+/// What the user adjusts and every view shows.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Scene {
+    /// Linked crosshair, level-0 continuous index.
+    pub cursor: [f64; 3],
+    pub window: Window,
+    pub transfer_function: TransferFunction,
+    pub iso_value: f64,
+    pub crop: CropBox,
+    pub clip: ClipSettings,
+}
+
+impl VolumeData {
+    pub fn frame(&self, view: SliceView) -> SliceFrame {
+        self.frames[view.index()]
+    }
+
+    /// The clip plane in patient space for the user's clip settings.
+    pub fn clip_plane(&self, clip: &ClipSettings) -> ClipPlane {
+        let g = &self.info.geometry;
+        let mut normal = [0.0; 3];
+        normal[clip.axis] = if clip.flip { -1.0 } else { 1.0 };
+        let n = glam::DVec3::from(normal);
+        // Offset from the fraction of the volume's extent along the plane's normal.
+        let corners = (0..8).map(|c| {
+            let idx = glam::DVec3::new(
+                if c & 1 == 0 {
+                    -0.5
+                } else {
+                    g.dims[0] as f64 - 0.5
+                },
+                if c & 2 == 0 {
+                    -0.5
+                } else {
+                    g.dims[1] as f64 - 0.5
+                },
+                if c & 4 == 0 {
+                    -0.5
+                } else {
+                    g.dims[2] as f64 - 0.5
+                },
+            );
+            g.patient_from_index(idx).dot(n)
+        });
+        let (lo, hi) = corners.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), x| {
+            (a.min(x), b.max(x))
+        });
+        ClipPlane {
+            normal,
+            offset_mm: lo + (hi - lo) * clip.fraction,
+        }
+    }
+
+    /// Moves the crosshair `step` displayed slices along `view`'s normal.
+    pub fn page_slice(&self, scene: &mut Scene, view: SliceView, step: f64) {
+        let frame = self.frame(view);
+        let n = frame.normal_axis;
+        let max = self.info.geometry.dims[n] as f64 - 1.0;
+        // One displayed slice: a voxel of the level shown.
+        let level = self.slices.latest(view).map_or(0, |i| i.request.level);
+        let voxel = (1u64 << level) as f64;
+        scene.cursor[n] = (scene.cursor[n].round() + step * voxel).clamp(0.0, max);
+    }
+}
+
+/// The named presets in the transfer-function panel: (preset name, button label).
+pub const PRESETS: [(&str, &str); 5] = [
+    ("ct-bone", "Bone"),
+    ("ct-soft-tissue", "Soft tissue"),
+    ("ct-lung", "Lung"),
+    ("ct-vessels", "Vessels"),
+    ("mr-default", "MR"),
+];
+
+pub fn preset_for(name: &str, info: &VolumeInfo) -> TransferFunction {
+    let mut tf = TransferFunction::preset(name).unwrap_or_else(|| {
+        TransferFunction::new(name, &[(0.0, 0.0), (1.0, 1.0)], &[(0.0, [1.0; 3])])
+    });
+    // The MR preset assumes intensities near 0..1000; stretch it onto this scan's range.
+    if name.starts_with("mr") {
+        let (lo, hi) = info.physical_range;
+        let scale = (hi - lo).max(1e-6) / 1000.0;
+        for p in &mut tf.opacity {
+            p.value = lo + p.value * scale;
+        }
+        for c in &mut tf.color {
+            c.value = lo + c.value * scale;
+        }
+    }
+    tf
+}
+
+/// A window from the histogram's 1st to 99th percentile, for scans without presets.
+pub fn percentile_window(h: &Histogram) -> Window {
+    let total = h.total().max(1) as f64;
+    let bin = (h.physical_max - h.physical_min) / h.counts.len().max(1) as f64;
+    let mut seen = 0.0;
+    let (mut lo, mut hi) = (h.physical_min, h.physical_max);
+    let mut lo_set = false;
+    for (i, &c) in h.counts.iter().enumerate() {
+        seen += c as f64;
+        if !lo_set && seen >= 0.01 * total {
+            lo = h.physical_min + i as f64 * bin;
+            lo_set = true;
+        }
+        if seen >= 0.99 * total {
+            hi = h.physical_min + (i + 1) as f64 * bin;
+            break;
+        }
+    }
+    Window::new((lo + hi) * 0.5, (hi - lo).max(1e-6))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn percentile_window_spans_the_bulk_of_the_histogram() {
+        let mut counts = vec![0u64; 100];
+        counts[10] = 1; // an outlier below
+        for c in counts.iter_mut().take(80).skip(20) {
+            *c = 100;
+        }
+        counts[99] = 1; // an outlier above
+        let h = Histogram {
+            physical_min: 0.0,
+            physical_max: 100.0,
+            counts,
+        };
+        let w = percentile_window(&h);
+        assert!(
+            (w.centre - 50.0).abs() < 2.0 && (w.width - 60.0).abs() < 3.0,
+            "window {w:?}"
+        );
+    }
+}

@@ -1,0 +1,352 @@
+//! One slice view (axial, coronal or sagittal): the slice read at the level matching its
+//! pixels, window-levelled into a texture, the crosshair, orientation labels and the W/L line.
+//! Left click/drag moves the linked crosshair, right drag windows, the wheel pages, Ctrl+wheel
+//! zooms about the pointer, middle drag pans, a double-click resets zoom and pan.
+
+use std::sync::Arc;
+
+use egui::{Color32, Pos2, Rect, Sense, Stroke, TextureHandle, TextureOptions, Vec2};
+
+use super::app::{view_title, ViewResponse};
+use super::orientation::SliceView;
+use super::scene::{Scene, VolumeData, Window};
+use super::slices::{level_for_pixels, SliceImage, SliceRequest};
+
+/// A slice texture and what it was made from (so it is rebuilt only when one of them changes).
+struct SliceTexture {
+    texture: TextureHandle,
+    values: Arc<Vec<u16>>,
+    window: Window,
+}
+
+/// The stored values behind a slice texture and the window they were shown with (tests).
+#[cfg(test)]
+pub struct SliceShown {
+    pub values: Arc<Vec<u16>>,
+    pub window: Window,
+}
+
+/// One slice view's own state.
+pub struct SliceViewer {
+    pub view: SliceView,
+    /// Magnification over fit-to-view, and pan in points.
+    zoom: f32,
+    pan: Vec2,
+    texture: Option<SliceTexture>,
+    last_request: Option<SliceRequest>,
+}
+
+pub fn slice_colour(view: SliceView) -> Color32 {
+    match view {
+        SliceView::Axial => Color32::from_rgb(240, 90, 90),
+        SliceView::Coronal => Color32::from_rgb(110, 200, 110),
+        SliceView::Sagittal => Color32::from_rgb(230, 210, 90),
+    }
+}
+
+impl SliceViewer {
+    pub fn new(view: SliceView) -> Self {
+        SliceViewer {
+            view,
+            zoom: 1.0,
+            pan: Vec2::ZERO,
+            texture: None,
+            last_request: None,
+        }
+    }
+
+    #[cfg(test)]
+    pub fn shown(&self) -> Option<SliceShown> {
+        self.texture.as_ref().map(|t| SliceShown {
+            values: t.values.clone(),
+            window: t.window,
+        })
+    }
+
+    pub fn ui(
+        &mut self,
+        ui: &mut egui::Ui,
+        rect: Rect,
+        data: &VolumeData,
+        scene: &mut Scene,
+    ) -> ViewResponse {
+        let view = self.view;
+        let frame = data.frame(view);
+        let geometry = &data.info.geometry;
+        let dims = geometry.dims;
+        let painter = ui.painter_at(rect);
+        painter.rect_filled(rect, 0.0, Color32::BLACK);
+        let colour = slice_colour(view);
+        painter.rect_stroke(
+            rect.shrink(0.5),
+            0.0,
+            Stroke::new(1.0, colour.gamma_multiply(0.6)),
+            egui::StrokeKind::Inside,
+        );
+        // The image keeps the patient's proportions, centred with room for labels.
+        let (w_mm, h_mm) = frame.extent_mm(geometry);
+        // Room for the title line above, the W/L line below and the side labels.
+        let inner = Rect::from_min_max(
+            rect.min + Vec2::new(18.0, 38.0),
+            rect.max - Vec2::new(18.0, 36.0),
+        );
+        let fit = (inner.width() as f64 / w_mm)
+            .min(inner.height() as f64 / h_mm)
+            .max(1e-6);
+        let response = ui.interact(
+            rect,
+            ui.scope_id().with(("slice", view.index())),
+            Sense::click_and_drag(),
+        );
+        if response.hovered() {
+            // Ctrl+wheel (or pinch) zooms about the pointer; plain wheel pages (below).
+            let zoom = ui.input(|i| i.zoom_delta());
+            if zoom != 1.0 {
+                let old = self.zoom;
+                self.zoom = (old * zoom).clamp(1.0, 32.0);
+                if let Some(pointer) = response.hover_pos() {
+                    let from_centre = pointer - inner.center() - self.pan;
+                    self.pan -= from_centre * (self.zoom / old - 1.0);
+                }
+            }
+        }
+        if response.dragged_by(egui::PointerButton::Middle) {
+            self.pan += ui.input(|i| i.pointer.delta());
+        }
+        if response.double_clicked() {
+            self.zoom = 1.0;
+            self.pan = Vec2::ZERO;
+        }
+        if self.zoom <= 1.0 {
+            self.pan = Vec2::ZERO;
+        }
+        let image_rect = Rect::from_center_size(
+            inner.center() + self.pan,
+            Vec2::new(
+                (w_mm * fit) as f32 * self.zoom,
+                (h_mm * fit) as f32 * self.zoom,
+            ),
+        );
+
+        if let Some(pos) = response.interact_pointer_pos() {
+            if (response.clicked() || response.dragged_by(egui::PointerButton::Primary))
+                && image_rect.contains(pos)
+            {
+                let u = ((pos.x - image_rect.left()) / image_rect.width()) as f64;
+                let w = ((pos.y - image_rect.top()) / image_rect.height()) as f64;
+                let (a, d) = frame.index_at(dims, u, w);
+                scene.cursor[frame.across_axis] =
+                    a.clamp(0.0, dims[frame.across_axis] as f64 - 1.0);
+                scene.cursor[frame.down_axis] = d.clamp(0.0, dims[frame.down_axis] as f64 - 1.0);
+            }
+        }
+        if response.dragged_by(egui::PointerButton::Secondary) {
+            let delta = ui.input(|i| i.pointer.delta());
+            let (lo, hi) = data.info.physical_range;
+            let per_point = (hi - lo).max(1e-6) / rect.width().max(100.0) as f64;
+            let w = scene.window;
+            scene.window = Window::new(
+                w.centre - delta.y as f64 * per_point,
+                (w.width + delta.x as f64 * per_point * 2.0).max(per_point),
+            );
+        }
+        if response.hovered() && !ui.input(|i| i.modifiers.command || i.modifiers.ctrl) {
+            let lines = ui.input(|i| {
+                i.events
+                    .iter()
+                    .map(|e| match e {
+                        egui::Event::MouseWheel { unit, delta, .. } => match unit {
+                            egui::MouseWheelUnit::Point => delta.y as f64 / 40.0,
+                            egui::MouseWheelUnit::Line => delta.y as f64,
+                            egui::MouseWheelUnit::Page => delta.y as f64 * 10.0,
+                        },
+                        _ => 0.0,
+                    })
+                    .sum::<f64>()
+            });
+            if lines != 0.0 {
+                // Wheel up (content moves down) goes towards higher slice numbers, as in Slicer.
+                data.page_slice(scene, view, lines.signum() * lines.abs().round().max(1.0));
+            }
+        }
+        let focused = response.clicked()
+            || response.drag_started()
+            || response.hovered() && ui.input(|i| i.pointer.any_pressed());
+
+        // Ask for the slice at the level matching this view's pixels.
+        let ppp = ui.ctx().pixels_per_point();
+        let voxels_across = dims[frame.across_axis] as f64;
+        let level_count = data.info.header.layout.level_count();
+        let level = level_for_pixels(
+            voxels_across,
+            (image_rect.width() * ppp) as f64,
+            level_count,
+        );
+        let request = SliceRequest {
+            view,
+            frame,
+            position: scene.cursor[frame.normal_axis],
+            level,
+        };
+        if self.last_request != Some(request) {
+            data.slices.request(request);
+            self.last_request = Some(request);
+        }
+        if let Some(image) = data.slices.latest(view) {
+            let stale = self
+                .texture
+                .as_ref()
+                .is_none_or(|t| !Arc::ptr_eq(&t.values, &image.values) || t.window != scene.window);
+            if stale {
+                let grey = window_level_image(&image, scene.window, data.info.mapping);
+                match &mut self.texture {
+                    Some(t) => {
+                        t.texture.set(grey, TextureOptions::LINEAR);
+                        t.values = image.values.clone();
+                        t.window = scene.window;
+                    }
+                    None => {
+                        self.texture = Some(SliceTexture {
+                            texture: ui.ctx().load_texture(
+                                format!("slice {}", view.name()),
+                                grey,
+                                TextureOptions::LINEAR,
+                            ),
+                            values: image.values.clone(),
+                            window: scene.window,
+                        })
+                    }
+                }
+            }
+            if let Some(t) = &self.texture {
+                let (fu, fv) = image.inside_fraction;
+                let (u0, u1) = if frame.across_flipped {
+                    (fu as f32, 0.0)
+                } else {
+                    (0.0, fu as f32)
+                };
+                let (v0, v1) = if frame.down_flipped {
+                    (fv as f32, 0.0)
+                } else {
+                    (0.0, fv as f32)
+                };
+                let mut mesh = egui::Mesh::with_texture(t.texture.id());
+                mesh.add_rect_with_uv(
+                    image_rect,
+                    Rect::from_min_max(Pos2::new(u0, v0), Pos2::new(u1, v1)),
+                    Color32::WHITE,
+                );
+                // add_rect_with_uv orders uv corners by min/max; flip by swapping vertex uvs.
+                if u0 > u1 || v0 > v1 {
+                    for vertex in &mut mesh.vertices {
+                        let fx = (vertex.pos.x - image_rect.left()) / image_rect.width();
+                        let fy = (vertex.pos.y - image_rect.top()) / image_rect.height();
+                        vertex.uv = Pos2::new(u0 + (u1 - u0) * fx, v0 + (v1 - v0) * fy);
+                    }
+                }
+                painter.add(egui::Shape::mesh(mesh));
+            }
+        }
+        // Crosshair.
+        let (cu, cv) = frame.fraction_of(
+            dims,
+            scene.cursor[frame.across_axis],
+            scene.cursor[frame.down_axis],
+        );
+        let cx = image_rect.left() + cu as f32 * image_rect.width();
+        let cy = image_rect.top() + cv as f32 * image_rect.height();
+        let hair = Stroke::new(1.0, Color32::from_rgba_unmultiplied(120, 220, 255, 150));
+        painter.line_segment(
+            [Pos2::new(image_rect.left(), cy), Pos2::new(cx - 8.0, cy)],
+            hair,
+        );
+        painter.line_segment(
+            [Pos2::new(cx + 8.0, cy), Pos2::new(image_rect.right(), cy)],
+            hair,
+        );
+        painter.line_segment(
+            [Pos2::new(cx, image_rect.top()), Pos2::new(cx, cy - 8.0)],
+            hair,
+        );
+        painter.line_segment(
+            [Pos2::new(cx, cy + 8.0), Pos2::new(cx, image_rect.bottom())],
+            hair,
+        );
+        // Orientation labels.
+        let font = egui::FontId::proportional(14.0);
+        let label_colour = Color32::from_rgb(255, 220, 120);
+        let [left, right, top, bottom] = frame.labels;
+        painter.text(
+            Pos2::new(rect.left() + 5.0, rect.center().y),
+            egui::Align2::LEFT_CENTER,
+            left,
+            font.clone(),
+            label_colour,
+        );
+        painter.text(
+            Pos2::new(rect.right() - 5.0, rect.center().y),
+            egui::Align2::RIGHT_CENTER,
+            right,
+            font.clone(),
+            label_colour,
+        );
+        painter.text(
+            Pos2::new(rect.center().x, rect.top() + 21.0),
+            egui::Align2::CENTER_TOP,
+            top,
+            font.clone(),
+            label_colour,
+        );
+        painter.text(
+            Pos2::new(rect.center().x, rect.bottom() - 19.0),
+            egui::Align2::CENTER_BOTTOM,
+            bottom,
+            font,
+            label_colour,
+        );
+        let n = frame.normal_axis;
+        let slice_number = scene.cursor[n].round() as i64 + 1;
+        let title = format!("{} {}/{}", view.name(), slice_number, dims[n]);
+        let toggled = view_title(ui, rect, view.name(), &title, colour);
+        let shown_level = data.slices.latest(view).map(|i| i.request.level);
+        let info = format!(
+            "W {:.0} L {:.0}{}",
+            scene.window.width,
+            scene.window.centre,
+            shown_level
+                .filter(|l| *l > 0)
+                .map(|l| format!(" · level {l}"))
+                .unwrap_or_default()
+        );
+        painter.text(
+            rect.left_bottom() + Vec2::new(8.0, -4.0),
+            egui::Align2::LEFT_BOTTOM,
+            info,
+            egui::FontId::proportional(11.0),
+            Color32::LIGHT_GRAY,
+        );
+        ViewResponse {
+            toggle_focus: toggled,
+            focused,
+        }
+    }
+}
+
+/// Stored values → grey through the window (physical units), as a texture image.
+pub fn window_level_image(
+    image: &SliceImage,
+    window: Window,
+    mapping: strata_render::ValueMapping,
+) -> egui::ColorImage {
+    let lo = window.low();
+    let scale = 255.0 / window.width.max(1e-9);
+    let pixels = image
+        .values
+        .iter()
+        .map(|&s| {
+            let g = ((mapping.physical(s as f64) - lo) * scale).clamp(0.0, 255.0) as u8;
+            Color32::from_gray(g)
+        })
+        .collect();
+    egui::ColorImage::new([image.width, image.height], pixels)
+}
