@@ -17,7 +17,8 @@ use super::jobs::{PrepareJob, VolumeSource};
 use super::orientation::{SliceFrame, SliceView};
 use super::panels::{FrameClock, PanelContext, Panels};
 use super::scene::{
-    percentile_window, preset_for, ClipSettings, Scene, VolumeData, Window, PRESETS,
+    looks_like_ct, percentile_window, preset_for, start_cursor, voxel_index, ClipSettings, Scene,
+    VolumeData, Window, PRESETS,
 };
 use super::slice_view::SliceViewer;
 use super::slices::SliceReader;
@@ -192,6 +193,24 @@ fn lock_free_repaint(ctx: &egui::Context) -> super::volume_session::Repaint {
     Arc::new(move || ctx.request_repaint())
 }
 
+/// Wheel movement this frame in lines (up positive), whatever unit the platform reports it in.
+pub fn wheel_lines(ui: &egui::Ui) -> f64 {
+    ui.input(|i| {
+        i.events
+            .iter()
+            .map(|e| match e {
+                egui::Event::MouseWheel { unit, delta, .. } => match unit {
+                    // egui-winit reports a wheel click as 40 points on most platforms.
+                    egui::MouseWheelUnit::Point => delta.y as f64 / 40.0,
+                    egui::MouseWheelUnit::Line => delta.y as f64,
+                    egui::MouseWheelUnit::Page => delta.y as f64 * 10.0,
+                },
+                _ => 0.0,
+            })
+            .sum::<f64>()
+    })
+}
+
 /// Paints a view's title; returns true when it was double-clicked (focus toggle).
 pub fn view_title(ui: &mut egui::Ui, rect: Rect, id: &str, title: &str, colour: Color32) -> bool {
     let galley_rect = Rect::from_min_size(
@@ -334,11 +353,14 @@ impl StrataApp {
                 // The dialog has done its job.
                 Ok(()) => self.open_dialog.open = false,
                 Err(e) => {
+                    eprintln!("strata: {e:#}");
                     self.job_error = Some(format!("{e:#}"));
                     self.open_dialog.open = true;
                 }
             },
             Err(e) => {
+                // Also on the terminal: `strata view bad.nii` must not fail silently there.
+                eprintln!("strata: {e}");
                 self.job_error = Some(e);
                 self.open_dialog.open = true;
             }
@@ -357,8 +379,11 @@ impl StrataApp {
         let slices = SliceReader::start(store.clone(), repaint)?;
         let info = session.info().clone();
         let header = &info.header;
-        let is_ct = header.modality.eq_ignore_ascii_case("CT")
-            || header.value_mapping.unit.eq_ignore_ascii_case("HU");
+        let is_ct = looks_like_ct(
+            &header.modality,
+            &header.value_mapping.unit,
+            info.physical_range,
+        );
         let asked = self.options.initial_preset.is_some();
         if !PRESETS.iter().any(|(p, _)| *p == self.preferences.preset)
             || (!asked
@@ -386,8 +411,9 @@ impl StrataApp {
             },
         };
         let scene = Scene {
-            cursor: dims.map(|d| (d as f64 - 1.0) * 0.5),
+            cursor: start_cursor(dims),
             window,
+            tf_source: transfer_function.clone(),
             transfer_function,
             iso_value: if is_ct {
                 300.0f64.clamp(lo, hi)
@@ -662,14 +688,12 @@ impl StrataApp {
                 let side = |value: f64, pos: &str, neg: &str| {
                     format!("{}{:.1}", if value >= 0.0 { pos } else { neg }, value.abs())
                 };
+                let [i, j, k] = voxel_index(cursor);
                 ui.label(format!(
-                    "Cursor {} {} {} mm  ·  voxel ({:.0}, {:.0}, {:.0})",
+                    "Cursor {} {} {} mm  ·  voxel ({i}, {j}, {k})",
                     side(p.x, "L", "R"),
                     side(p.y, "P", "A"),
                     side(p.z, "S", "I"),
-                    cursor[0],
-                    cursor[1],
-                    cursor[2]
                 ));
                 ui.separator();
                 ui.label(format!(
@@ -733,7 +757,14 @@ impl StrataApp {
                     job.cancel();
                 }
             } else if let Some(e) = &self.job_error {
-                ui.colored_label(Color32::LIGHT_RED, e);
+                // The open dialog shows the error when it is open; once is enough.
+                if self.open_dialog.open {
+                    ui.label(
+                        RichText::new("Could not open (see the dialog).").color(Color32::LIGHT_RED),
+                    );
+                } else {
+                    ui.colored_label(Color32::LIGHT_RED, e);
+                }
             } else {
                 ui.label("Open a store or a scan to begin.");
             }

@@ -69,9 +69,38 @@ pub struct Scene {
     pub cursor: [f64; 3],
     pub window: Window,
     pub transfer_function: TransferFunction,
+    /// The preset or file the transfer function came from: an edit is a difference from it.
+    pub tf_source: TransferFunction,
     pub iso_value: f64,
     pub crop: CropBox,
     pub clip: ClipSettings,
+}
+
+impl Scene {
+    /// Sets a new transfer function from a preset or a file.
+    pub fn set_transfer_function(&mut self, tf: TransferFunction) {
+        self.tf_source = tf.clone();
+        self.transfer_function = tf;
+    }
+
+    /// The transfer function differs from its preset or file.
+    pub fn tf_edited(&self) -> bool {
+        self.transfer_function.opacity != self.tf_source.opacity
+            || self.transfer_function.color != self.tf_source.color
+    }
+
+    /// Names an edited transfer function "<source> (edited)" (and a restored one by its source
+    /// again), so titles and the preset buttons never claim an edited function is the preset.
+    pub fn name_tf_edits(&mut self) {
+        let name = if self.tf_edited() {
+            format!("{} (edited)", self.tf_source.name)
+        } else {
+            self.tf_source.name.clone()
+        };
+        if self.transfer_function.name != name {
+            self.transfer_function.name = name;
+        }
+    }
 }
 
 impl VolumeData {
@@ -127,6 +156,30 @@ impl VolumeData {
     }
 }
 
+/// The voxel a level-0 continuous index lies in (what the slice reader shows at level 0, the
+/// slice header counts from and the status bar prints: one rounding for all three).
+pub fn voxel_index(cursor: [f64; 3]) -> [i64; 3] {
+    cursor.map(|c| c.round() as i64)
+}
+
+/// The crosshair a volume opens with: the centre voxel (a voxel centre, never between two
+/// slices, so every readout names the same voxel).
+pub fn start_cursor(dims: [u32; 3]) -> [f64; 3] {
+    dims.map(|d| ((d as f64 - 1.0) * 0.5).floor().max(0.0))
+}
+
+/// CT by its header (modality tag, HU unit), or, with no modality, by its values: air near
+/// -1000 and dense tissue above +300 in one scan is how a CT in HU looks (an MR's intensities
+/// are non-negative).
+pub fn looks_like_ct(modality: &str, unit: &str, physical_range: (f64, f64)) -> bool {
+    if modality.eq_ignore_ascii_case("CT") || unit.eq_ignore_ascii_case("HU") {
+        return true;
+    }
+    let untagged = modality.trim().is_empty() || modality.eq_ignore_ascii_case("OT");
+    let (lo, hi) = physical_range;
+    untagged && (-1100.0..=-700.0).contains(&lo) && hi >= 300.0
+}
+
 /// The named presets in the transfer-function panel: (preset name, button label).
 pub const PRESETS: [(&str, &str); 5] = [
     ("ct-bone", "Bone"),
@@ -178,6 +231,37 @@ pub fn percentile_window(h: &Histogram) -> Window {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_start_cursor_is_a_voxel_centre_every_readout_agrees_on() {
+        for dims in [[6, 6, 6], [188, 256, 190], [1, 2, 3], [48, 48, 48]] {
+            let c = start_cursor(dims);
+            assert!(c.iter().all(|x| x.fract() == 0.0), "{dims:?} → {c:?}");
+            let k = voxel_index(c);
+            for axis in 0..3 {
+                assert!(k[axis] >= 0 && k[axis] < dims[axis] as i64);
+                // The slice reader's level-0 slice for this position.
+                let read = ((c[axis] + 0.5) - 0.5).round() as i64;
+                assert_eq!(read, k[axis], "{dims:?} axis {axis}");
+            }
+        }
+        // enh.dcm's 6 slices: the header said 4/6 while the status bar said k=2.
+        assert_eq!(voxel_index(start_cursor([6, 6, 6]))[2] + 1, 3);
+    }
+
+    #[test]
+    fn a_ct_without_a_modality_tag_is_recognised_by_its_values() {
+        assert!(looks_like_ct("CT", "", (0.0, 100.0)));
+        assert!(looks_like_ct("", "HU", (0.0, 100.0)));
+        // Strata's own int16 HU phantom written as NRRD: no tag, no unit.
+        assert!(looks_like_ct("", "", (-1000.0, 1900.0)));
+        assert!(looks_like_ct("", "", (-1024.0, 3071.0)));
+        // MR: non-negative intensities, tagged or not.
+        assert!(!looks_like_ct("", "", (0.0, 1200.0)));
+        assert!(!looks_like_ct("MR", "", (-1000.0, 2000.0)));
+        // A signed statistic map is not a CT.
+        assert!(!looks_like_ct("", "", (-8.0, 8.0)));
+    }
 
     #[test]
     fn percentile_window_spans_the_bulk_of_the_histogram() {

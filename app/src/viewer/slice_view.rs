@@ -7,9 +7,9 @@ use std::sync::Arc;
 
 use egui::{Color32, Pos2, Rect, Sense, Stroke, TextureHandle, TextureOptions, Vec2};
 
-use super::app::{view_title, ViewResponse};
+use super::app::{view_title, wheel_lines, ViewResponse};
 use super::orientation::SliceView;
-use super::scene::{Scene, VolumeData, Window};
+use super::scene::{voxel_index, Scene, VolumeData, Window};
 use super::slices::{level_for_pixels, SliceImage, SliceRequest};
 
 /// A slice texture and what it was made from (so it is rebuilt only when one of them changes).
@@ -34,6 +34,8 @@ pub struct SliceViewer {
     pan: Vec2,
     texture: Option<SliceTexture>,
     last_request: Option<SliceRequest>,
+    /// Wheel movement not yet paged (fractions of a line).
+    wheel_lines: f64,
 }
 
 pub fn slice_colour(view: SliceView) -> Color32 {
@@ -52,6 +54,7 @@ impl SliceViewer {
             pan: Vec2::ZERO,
             texture: None,
             last_request: None,
+            wheel_lines: 0.0,
         }
     }
 
@@ -142,32 +145,20 @@ impl SliceViewer {
         }
         if response.dragged_by(egui::PointerButton::Secondary) {
             let delta = ui.input(|i| i.pointer.delta());
-            let (lo, hi) = data.info.physical_range;
-            let per_point = (hi - lo).max(1e-6) / rect.width().max(100.0) as f64;
-            let w = scene.window;
-            scene.window = Window::new(
-                w.centre - delta.y as f64 * per_point,
-                (w.width + delta.x as f64 * per_point * 2.0).max(per_point),
-            );
+            scene.window = drag_window(scene.window, delta, data.info.physical_range);
         }
         if response.hovered() && !ui.input(|i| i.modifiers.command || i.modifiers.ctrl) {
-            let lines = ui.input(|i| {
-                i.events
-                    .iter()
-                    .map(|e| match e {
-                        egui::Event::MouseWheel { unit, delta, .. } => match unit {
-                            egui::MouseWheelUnit::Point => delta.y as f64 / 40.0,
-                            egui::MouseWheelUnit::Line => delta.y as f64,
-                            egui::MouseWheelUnit::Page => delta.y as f64 * 10.0,
-                        },
-                        _ => 0.0,
-                    })
-                    .sum::<f64>()
-            });
-            if lines != 0.0 {
+            // Whole lines page; fractions (touchpads, pixel-precise wheels) add up, so every
+            // wheel click pages the same one slice however the events are split.
+            self.wheel_lines += wheel_lines(ui);
+            let step = self.wheel_lines.trunc();
+            if step != 0.0 {
+                self.wheel_lines -= step;
                 // Wheel up (content moves down) goes towards higher slice numbers, as in Slicer.
-                data.page_slice(scene, view, lines.signum() * lines.abs().round().max(1.0));
+                data.page_slice(scene, view, step);
             }
+        } else {
+            self.wheel_lines = 0.0;
         }
         let focused = response.clicked()
             || response.drag_started()
@@ -305,7 +296,7 @@ impl SliceViewer {
             label_colour,
         );
         let n = frame.normal_axis;
-        let slice_number = scene.cursor[n].round() as i64 + 1;
+        let slice_number = voxel_index(scene.cursor)[n] + 1;
         let title = format!("{} {}/{}", view.name(), slice_number, dims[n]);
         let toggled = view_title(ui, rect, view.name(), &title, colour);
         let shown_level = data.slices.latest(view).map(|i| i.request.level);
@@ -332,6 +323,20 @@ impl SliceViewer {
     }
 }
 
+/// Right drag: sideways widens (right) or narrows the window, up raises the level. The gain
+/// follows the window itself (a drag across 300 points multiplies the width by e, moves the
+/// level by one width), so a narrow brain window and a wide bone window feel the same; a floor
+/// of 1/500 of the scan's range keeps a collapsed window recoverable.
+pub fn drag_window(window: Window, delta: Vec2, physical_range: (f64, f64)) -> Window {
+    let (lo, hi) = physical_range;
+    let floor = ((hi - lo).abs() / 500.0).max(1e-6);
+    let width = window.width.max(floor);
+    Window::new(
+        window.centre - delta.y as f64 * width / 300.0,
+        (width * (delta.x as f64 / 300.0).exp()).max(floor),
+    )
+}
+
 /// Stored values → grey through the window (physical units), as a texture image.
 pub fn window_level_image(
     image: &SliceImage,
@@ -349,4 +354,34 @@ pub fn window_level_image(
         })
         .collect();
     egui::ColorImage::new([image.width, image.height], pixels)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn window_drag_gain_follows_the_window_not_the_scan_range() {
+        let ct_range = (-1024.0, 3071.0);
+        // 100 points right: the same factor for a brain and a bone window (e^(1/3) ≈ 1.40),
+        // where the old gain added ~1300 HU to either.
+        for width in [80.0, 2000.0] {
+            let w = drag_window(Window::new(40.0, width), Vec2::new(100.0, 0.0), ct_range);
+            let factor = w.width / width;
+            assert!(
+                (factor - (1.0f64 / 3.0).exp()).abs() < 1e-9,
+                "{width}: ×{factor}"
+            );
+            assert_eq!(w.centre, 40.0);
+        }
+        // 30 points up raises the level by a tenth of the width.
+        let w = drag_window(Window::new(40.0, 400.0), Vec2::new(0.0, -30.0), ct_range);
+        assert!((w.centre - 80.0).abs() < 1e-9 && w.width == 400.0);
+        // Dragging left for ever never collapses the window below the floor.
+        let mut w = Window::new(0.0, 10.0);
+        for _ in 0..100 {
+            w = drag_window(w, Vec2::new(-300.0, 0.0), ct_range);
+        }
+        assert!(w.width >= 4095.0 / 500.0 - 1e-9);
+    }
 }

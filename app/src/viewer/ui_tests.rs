@@ -442,4 +442,31 @@ fn a_click_in_the_transfer_function_editor_adds_a_point_that_the_next_frame_uses
         settled.request.transfer_function, edited,
         "the converged frame after the edit is drawn with it"
     );
+    // The edited function no longer claims to be the preset (titles, preset buttons).
+    assert_eq!(edited.name, "ct-bone (edited)");
+    assert!(app(&h).volume.as_ref().is_some_and(|v| v.scene.tf_edited()));
+}
+
+#[test]
+fn a_file_that_cannot_be_opened_shows_its_error_once() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let bad = dir.path().join("broken.nii");
+    std::fs::write(&bad, b"this is not a NIfTI file at all, just some bytes").expect("write");
+    let mut options = ViewerOptions::new(VolumeSource::Path(bad));
+    options.import_folder = dir.path().join("imported");
+    let mut h = harness_with(options, Preferences::default());
+    let start = Instant::now();
+    let error = loop {
+        h.step();
+        if let Some(e) = app(&h).job_error() {
+            break e.to_string();
+        }
+        assert!(start.elapsed() < WAIT, "no error for a broken file");
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    h.step();
+    h.step();
+    // Dialog and waiting screen used to show the same text, one behind the other.
+    let shown = h.query_all_by_label(&error).count();
+    assert_eq!(shown, 1, "the error {error:?} is shown {shown} times");
 }

@@ -421,7 +421,10 @@ impl RenderWorker {
             if frame_ms_history.len() > 240 {
                 frame_ms_history.drain(..frame_ms_history.len() - 240);
             }
-            converged = stats.converged;
+            // A frame drawn with a stand-in pipeline (the mode's own still compiling) is not the
+            // frame asked for: keep rendering until the right pipeline draws, or a DVR image
+            // stays up under a "MIP" title.
+            converged = stats.converged && !volume.compiling_in_background();
             let refining = !converged
                 || (request.target_fps.is_some()
                     && !request.interacting
@@ -514,6 +517,80 @@ fn new_request_is_same(last: &Option<RenderRequest>, request: &RenderRequest) ->
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn wait_converged(session: &VolumeSession, request: &RenderRequest) -> RenderedFrame {
+        let start = Instant::now();
+        loop {
+            if let Some(e) = session.status().error {
+                panic!("render thread failed: {e}");
+            }
+            if let Some(frame) = session
+                .latest_frame()
+                .filter(|f| f.converged && &f.request == request)
+            {
+                return frame;
+            }
+            assert!(
+                start.elapsed() < Duration::from_secs(120),
+                "no converged frame for {:?}",
+                request.settings.mode
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    /// The bug seen: DVR → MIP showed the DVR image as the "converged" MIP frame, because the
+    /// MIP pipeline compiled in the background while the DVR one drew a stand-in frame that
+    /// the converged cut made final.
+    #[test]
+    fn after_a_mode_switch_the_converged_frame_is_drawn_in_the_new_mode() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let path = dir.path().join("p.strata");
+        strata_storage::phantom::Phantom::cube(48)
+            .write_store(&path, &Default::default())
+            .expect("phantom store");
+        let store = Arc::new(Store::open(&path).expect("open"));
+        let session = VolumeSession::start(store, DEFAULT_GPU_BUDGET_BYTES, Arc::new(|| {}))
+            .expect("session");
+        let info = session.info().clone();
+        let dvr = RenderRequest {
+            camera: crate::viewer::view3d::OrbitCamera::default().camera(&info.geometry),
+            settings: RenderSettings {
+                width: 48,
+                height: 48,
+                jitter: false,
+                ..RenderSettings::default()
+            },
+            transfer_function: TransferFunction::preset("ct-bone").expect("preset"),
+            target_fps: None,
+            interacting: false,
+        };
+        session.request(dvr.clone());
+        let dvr_frame = wait_converged(&session, &dvr);
+        let mip = RenderRequest {
+            settings: RenderSettings {
+                mode: strata_render::RenderMode::Mip,
+                ..dvr.settings.clone()
+            },
+            ..dvr.clone()
+        };
+        session.request(mip.clone());
+        let mip_frame = wait_converged(&session, &mip);
+        // DVR of the bone preset composites a shaded, partly transparent shell; MIP shows the
+        // maximum's TF colour unlit: the images differ over most of the object. A stand-in
+        // DVR frame would match the DVR one up to nothing (jitter off, same camera).
+        let difference = mip_frame
+            .rgba
+            .iter()
+            .zip(dvr_frame.rgba.iter())
+            .map(|(a, b)| (*a as f64 - *b as f64).abs())
+            .sum::<f64>()
+            / dvr_frame.rgba.len() as f64;
+        assert!(
+            difference > 1.0,
+            "the converged MIP frame looks like the DVR frame (mean |Δ| {difference:.3})"
+        );
+    }
 
     #[test]
     fn a_session_streams_to_convergence_and_publishes_frames() {

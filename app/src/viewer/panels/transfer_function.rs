@@ -33,13 +33,17 @@ impl TfPanel {
         let unit = data.info.header.value_mapping.unit.clone();
         ui.horizontal_wrapped(|ui| {
             for (name, label) in PRESETS {
-                if ui.selectable_label(*preset == name, label).clicked() {
+                let current = *preset == name && !scene.tf_edited();
+                if ui.selectable_label(current, label).clicked() {
                     *preset = name.into();
-                    scene.transfer_function = preset_for(name, &data.info);
+                    scene.set_transfer_function(preset_for(name, &data.info));
                     self.editor = TfEditorState::default();
                 }
             }
         });
+        if scene.tf_edited() {
+            ui.weak(format!("{} — edited", scene.tf_source.name));
+        }
         tf_editor::show(
             ui,
             &mut self.editor,
@@ -66,7 +70,7 @@ impl TfPanel {
                 self.message = Some(
                     match TransferFunction::load(std::path::Path::new(&self.path)) {
                         Ok(tf) => {
-                            scene.transfer_function = tf;
+                            scene.set_transfer_function(tf);
                             self.editor = TfEditorState::default();
                             format!("loaded {}", self.path)
                         }
