@@ -17,7 +17,7 @@ use super::jobs::{PrepareJob, VolumeSource};
 use super::orientation::{SliceFrame, SliceView};
 use super::panels::{FrameClock, PanelContext, Panels};
 use super::scene::{
-    looks_like_ct, percentile_window, preset_for, start_cursor, voxel_index, ClipSettings, Scene,
+    looks_like_ct, percentile_window, preset_for, start_cursor, ClipSettings, Readout, Scene,
     VolumeData, Window, PRESETS,
 };
 use super::slice_view::SliceViewer;
@@ -149,6 +149,9 @@ pub struct ViewResponse {
     pub toggle_focus: bool,
     /// It was clicked or dragged: it becomes the focused view (keys page it).
     pub focused: bool,
+    /// The level-0 continuous index under the pointer (slices: on the slice; 3D: at the pick
+    /// depth), for the readout.
+    pub hover: Option<[f64; 3]>,
 }
 
 /// Where a view was laid out this frame.
@@ -186,6 +189,10 @@ pub struct StrataApp {
     started_at: Instant,
     clock: FrameClock,
     toast: Option<Toast>,
+    /// What the views reported under the pointer last frame.
+    hover: Option<[f64; 3]>,
+    /// The readout in the status bar this frame (tests read it).
+    pub readout: Option<Readout>,
 }
 
 fn lock_free_repaint(ctx: &egui::Context) -> super::volume_session::Repaint {
@@ -256,6 +263,8 @@ impl StrataApp {
             started_at: Instant::now(),
             clock: FrameClock::default(),
             toast: None,
+            hover: None,
+            readout: None,
             options,
         };
         if let Some(layout) = app.options.initial_layout {
@@ -678,23 +687,16 @@ impl StrataApp {
         ui.horizontal(|ui| {
             if let Some(v) = &self.volume {
                 let status = v.data.session.status();
-                let cursor = v.scene.cursor;
-                let p = v
-                    .data
-                    .info
-                    .geometry
-                    .patient_from_index(glam::DVec3::from(cursor));
-                // LPS → the signed R/L, A/P, S/I a radiologist reads.
-                let side = |value: f64, pos: &str, neg: &str| {
-                    format!("{}{:.1}", if value >= 0.0 { pos } else { neg }, value.abs())
+                // Under the pointer when it is over a view, else at the crosshair.
+                let readout = match self.hover {
+                    Some(at) => v.data.readout(at, true),
+                    None => v.data.readout(v.scene.cursor, false),
                 };
-                let [i, j, k] = voxel_index(cursor);
-                ui.label(format!(
-                    "Cursor {} {} {} mm  ·  voxel ({i}, {j}, {k})",
-                    side(p.x, "L", "R"),
-                    side(p.y, "P", "A"),
-                    side(p.z, "S", "I"),
-                ));
+                ui.label(readout.text()).on_hover_text(
+                    "Value, voxel index and patient position (mm) under the pointer, or at \
+                     the crosshair when the pointer is off the views",
+                );
+                self.readout = Some(readout);
                 ui.separator();
                 ui.label(format!(
                     "W {:.0} / L {:.0}",
@@ -834,6 +836,7 @@ impl StrataApp {
         let Some(v) = self.volume.as_mut() else {
             return;
         };
+        self.hover = None;
         for (slot, rect) in &slots {
             let response = match slot {
                 ViewSlot::ThreeD => v.view_3d.ui(
@@ -853,6 +856,9 @@ impl StrataApp {
             }
             if response.toggle_focus {
                 focus_request = Some(*slot);
+            }
+            if response.hover.is_some() {
+                self.hover = response.hover;
             }
         }
         v.view_rects = slots

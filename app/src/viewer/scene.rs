@@ -103,9 +103,90 @@ impl Scene {
     }
 }
 
+/// The value readout: a voxel, where it is in the patient, and its physical value once the
+/// slice reader has read it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Readout {
+    /// Under the pointer (true) or at the crosshair.
+    pub under_pointer: bool,
+    pub index: [u32; 3],
+    /// LPS millimetres of the voxel centre.
+    pub patient_mm: [f64; 3],
+    pub value: Option<f64>,
+    pub unit: String,
+}
+
+impl Readout {
+    /// "Pointer 40 HU · voxel (23, 23, 23) · R0.0 A8.3 S0.0 mm": value, index, and the patient
+    /// position in the signed R/L, A/P, S/I a radiologist reads (LPS positive = L, P, S).
+    pub fn text(&self) -> String {
+        let side = |value: f64, pos: &str, neg: &str| {
+            format!("{}{:.1}", if value >= 0.0 { pos } else { neg }, value.abs())
+        };
+        let [x, y, z] = self.patient_mm;
+        let value = match self.value {
+            Some(v) if self.unit == "HU" => format!("{v:.0} HU"),
+            Some(v) if v.abs() >= 100.0 => format!("{v:.1} {}", self.unit),
+            Some(v) => format!("{v:.4} {}", self.unit),
+            None => "…".into(),
+        };
+        format!(
+            "{} {} · voxel ({}, {}, {}) · {} {} {} mm",
+            if self.under_pointer {
+                "Pointer"
+            } else {
+                "Crosshair"
+            },
+            value.trim_end(),
+            self.index[0],
+            self.index[1],
+            self.index[2],
+            side(x, "L", "R"),
+            side(y, "P", "A"),
+            side(z, "S", "I"),
+        )
+    }
+}
+
 impl VolumeData {
     pub fn frame(&self, view: SliceView) -> SliceFrame {
         self.frames[view.index()]
+    }
+
+    /// The unit values are shown in: the header's, or HU for a CT that does not say.
+    pub fn unit(&self) -> String {
+        let h = &self.info.header;
+        let unit = h.value_mapping.unit.trim();
+        if unit.is_empty() && looks_like_ct(&h.modality, unit, self.info.physical_range) {
+            "HU".into()
+        } else {
+            unit.to_string()
+        }
+    }
+
+    /// The readout of the voxel at level-0 continuous index `at`; asks the slice reader for
+    /// its value if it does not have it yet (the value arrives a frame or two later).
+    pub fn readout(&self, at: [f64; 3], under_pointer: bool) -> Readout {
+        let dims = self.info.geometry.dims;
+        let k = voxel_index(at);
+        let index = [0, 1, 2].map(|a| k[a].clamp(0, dims[a] as i64 - 1) as u32);
+        self.slices.probe(index);
+        let value = self
+            .slices
+            .probed()
+            .filter(|p| p.index == index)
+            .map(|p| self.info.mapping.physical(p.stored as f64));
+        let p = self
+            .info
+            .geometry
+            .patient_from_index(glam::DVec3::from(index.map(|i| i as f64)));
+        Readout {
+            under_pointer,
+            index,
+            patient_mm: p.into(),
+            value,
+            unit: self.unit(),
+        }
     }
 
     /// The clip plane in patient space for the user's clip settings.

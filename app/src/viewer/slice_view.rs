@@ -36,6 +36,8 @@ pub struct SliceViewer {
     last_request: Option<SliceRequest>,
     /// Wheel movement not yet paged (fractions of a line).
     wheel_lines: f64,
+    /// Where the slice image was drawn last frame (tests point at voxels through it).
+    pub image_rect: Option<Rect>,
 }
 
 pub fn slice_colour(view: SliceView) -> Color32 {
@@ -55,6 +57,7 @@ impl SliceViewer {
             texture: None,
             last_request: None,
             wheel_lines: 0.0,
+            image_rect: None,
         }
     }
 
@@ -64,6 +67,42 @@ impl SliceViewer {
             values: t.values.clone(),
             window: t.window,
         })
+    }
+
+    /// The level-0 continuous index at screen point `pos` of an image drawn in `image_rect`:
+    /// on this view's slice (the crosshair's position along its normal).
+    pub fn index_at(
+        &self,
+        pos: Pos2,
+        image_rect: Rect,
+        data: &VolumeData,
+        scene: &Scene,
+    ) -> [f64; 3] {
+        let frame = data.frame(self.view);
+        let u = ((pos.x - image_rect.left()) / image_rect.width()) as f64;
+        let w = ((pos.y - image_rect.top()) / image_rect.height()) as f64;
+        let (a, d) = frame.index_at(data.info.geometry.dims, u, w);
+        let mut index = scene.cursor;
+        index[frame.across_axis] = a;
+        index[frame.down_axis] = d;
+        index
+    }
+
+    /// The screen point of level-0 index `index` (its across and down components) in the
+    /// image as drawn last frame.
+    #[cfg_attr(not(test), allow(dead_code))]
+    pub fn screen_of(&self, index: [f64; 3], data: &VolumeData) -> Option<Pos2> {
+        let rect = self.image_rect?;
+        let frame = data.frame(self.view);
+        let (u, v) = frame.fraction_of(
+            data.info.geometry.dims,
+            index[frame.across_axis],
+            index[frame.down_axis],
+        );
+        Some(Pos2::new(
+            rect.left() + u as f32 * rect.width(),
+            rect.top() + v as f32 * rect.height(),
+        ))
     }
 
     pub fn ui(
@@ -316,9 +355,15 @@ impl SliceViewer {
             egui::FontId::proportional(11.0),
             Color32::LIGHT_GRAY,
         );
+        let hover = response
+            .hover_pos()
+            .filter(|p| image_rect.contains(*p))
+            .map(|p| self.index_at(p, image_rect, data, scene));
+        self.image_rect = Some(image_rect);
         ViewResponse {
             toggle_focus: toggled,
             focused,
+            hover,
         }
     }
 }

@@ -16,7 +16,7 @@ use super::orientation::SliceView;
 use super::scene::{Scene, VolumeData};
 use super::slice_view::slice_colour;
 use super::tf_editor;
-use super::volume_session::RenderRequest;
+use super::volume_session::{RenderRequest, RenderedFrame};
 
 /// Zoom factor per wheel click in the 3D view.
 pub const ZOOM_PER_WHEEL_LINE: f64 = 1.1;
@@ -244,6 +244,8 @@ struct FrameTexture {
 pub struct View3d {
     pub orbit: OrbitCamera,
     texture: Option<FrameTexture>,
+    /// The frame on screen (its depth and camera turn a pixel into a picked point).
+    shown: Option<RenderedFrame>,
     /// Until when input counts as interaction (lower resolution, target frame rate held).
     pub interacting_until: Option<Instant>,
 }
@@ -262,6 +264,7 @@ impl View3d {
         View3d {
             orbit,
             texture: None,
+            shown: None,
             interacting_until: None,
         }
     }
@@ -271,6 +274,34 @@ impl View3d {
             orthographic,
             ..OrbitCamera::default()
         };
+    }
+
+    /// What the user sees at screen point `pos` of the view drawn in `rect`: the level-0
+    /// continuous index at the frame's pick depth (DVR: where the accumulated opacity reaches
+    /// render's `DEPTH_OPACITY`; MIP: the maximum; iso: the surface), or None where the ray
+    /// meets nothing. Uses the frame on screen and the camera it was rendered with, so a
+    /// click picks what is shown even while a newer frame renders.
+    pub fn pick(&self, pos: Pos2, rect: Rect, data: &VolumeData) -> Option<[f64; 3]> {
+        let frame = self.shown.as_ref()?;
+        let fx = (pos.x - rect.left()) / rect.width().max(1.0);
+        let fy = (pos.y - rect.top()) / rect.height().max(1.0);
+        if !(0.0..1.0).contains(&fx) || !(0.0..1.0).contains(&fy) {
+            return None;
+        }
+        let px = ((fx * frame.width as f32) as u32).min(frame.width.saturating_sub(1));
+        let py = ((fy * frame.height as f32) as u32).min(frame.height.saturating_sub(1));
+        let t = *frame.depth.get((py * frame.width + px) as usize)?;
+        if !t.is_finite() {
+            return None;
+        }
+        let (origin, dir) = frame
+            .request
+            .camera
+            .basis()
+            .ray(px, py, frame.width, frame.height);
+        let g = &data.info.geometry;
+        let index = g.index_from_patient(origin + dir * t as f64);
+        Some([0, 1, 2].map(|a| index[a].clamp(0.0, g.dims[a] as f64 - 1.0)))
     }
 
     /// Draws the view into `rect`, turns input into camera and TF changes and sends the render
@@ -366,6 +397,9 @@ impl View3d {
                 .as_ref()
                 .is_none_or(|t| t.serial != frame.serial);
             if fresh {
+                self.shown = Some(frame.clone());
+            }
+            if fresh {
                 let image = egui::ColorImage::from_rgba_premultiplied(
                     [frame.width as usize, frame.height as usize],
                     &frame.rgba,
@@ -444,9 +478,20 @@ impl View3d {
             egui::FontId::proportional(11.0),
             WARNING_COLOUR,
         );
+        // A click (no drag) moves the linked crosshair to what is seen there.
+        if response.clicked() {
+            if let Some(index) = response
+                .interact_pointer_pos()
+                .and_then(|p| self.pick(p, rect, data))
+            {
+                scene.cursor = index;
+            }
+        }
+        let hover = response.hover_pos().and_then(|p| self.pick(p, rect, data));
         ViewResponse {
             toggle_focus: toggled,
             focused: response.clicked() || response.drag_started(),
+            hover,
         }
     }
 }

@@ -47,10 +47,13 @@ pub struct RenderedFrame {
     pub width: u32,
     pub height: u32,
     pub rgba: Arc<Vec<u8>>,
+    /// Pick depth per pixel, mm along the pixel's camera ray (render's `DEPTH_OPACITY`: DVR
+    /// where accumulated opacity reaches it, the MIP maximum, the iso hit), +inf where none.
+    pub depth: Arc<Vec<f32>>,
     /// Increments with every published frame, so the UI re-uploads only new ones.
     pub serial: u64,
-    /// The request this frame answers (tests tie a frame to what was asked).
-    #[cfg_attr(not(test), allow(dead_code))]
+    /// The request this frame answers (its camera turns a pixel's depth into a point; tests
+    /// tie a frame to what was asked).
     pub request: RenderRequest,
     /// The last frame for its request unless something changes: the loader had converged and
     /// still refinement was done. Carried by the frame, not only by [`SessionStatus`], which is
@@ -434,6 +437,7 @@ impl RenderWorker {
                 width: frame.width,
                 height: frame.height,
                 rgba: Arc::new(frame.rgba),
+                depth: Arc::new(frame.depth),
                 serial: self.serial,
                 request: request.clone(),
                 converged: !refining,
