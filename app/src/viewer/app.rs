@@ -422,6 +422,7 @@ impl StrataApp {
         let scene = Scene {
             cursor: start_cursor(dims),
             window,
+            colour_map: Default::default(),
             tf_source: transfer_function.clone(),
             transfer_function,
             iso_value: if is_ct {

@@ -12,6 +12,7 @@
 //! work, disk reads and imports, and wake the UI when they have something new.
 
 pub mod app;
+pub mod colour_maps;
 pub mod dialogs;
 pub mod jobs;
 pub mod orientation;

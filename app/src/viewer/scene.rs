@@ -7,6 +7,7 @@ use serde::{Deserialize, Serialize};
 use strata_render::{ClipPlane, CropBox, TransferFunction};
 use strata_storage::histogram::Histogram;
 
+use super::colour_maps::ColourMap;
 use super::orientation::{SliceFrame, SliceView};
 use super::slices::SliceReader;
 use super::volume_session::{VolumeInfo, VolumeSession};
@@ -68,6 +69,8 @@ pub struct Scene {
     /// Linked crosshair, level-0 continuous index.
     pub cursor: [f64; 3],
     pub window: Window,
+    /// How slices colour values through the window.
+    pub colour_map: ColourMap,
     pub transfer_function: TransferFunction,
     /// The preset or file the transfer function came from: an edit is a difference from it.
     pub tf_source: TransferFunction,
@@ -261,6 +264,54 @@ pub fn looks_like_ct(modality: &str, unit: &str, physical_range: (f64, f64)) -> 
     untagged && (-1100.0..=-700.0).contains(&lo) && hi >= 300.0
 }
 
+/// A named slice window.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct WindowPreset {
+    pub name: &'static str,
+    pub window: Window,
+}
+
+const fn preset(name: &'static str, centre: f64, width: f64) -> WindowPreset {
+    WindowPreset {
+        name,
+        window: Window { centre, width },
+    }
+}
+
+/// The usual CT windows (HU), as radiology departments and Slicer name them.
+pub const CT_WINDOWS: [WindowPreset; 8] = [
+    preset("Brain", 40.0, 80.0),
+    preset("Subdural", 75.0, 215.0),
+    preset("Stroke", 40.0, 40.0),
+    preset("Bone", 400.0, 1800.0),
+    preset("Lung", -600.0, 1500.0),
+    preset("Abdomen", 40.0, 400.0),
+    preset("Liver", 60.0, 160.0),
+    preset("Mediastinum", 50.0, 350.0),
+];
+
+/// A window from the `low`..`high` quantiles of the histogram (MR's "auto": MR has no
+/// absolute scale, so the window follows the scan's own distribution).
+pub fn quantile_window(h: &Histogram, low: f64, high: f64) -> Window {
+    let total = h.total().max(1) as f64;
+    let bin = (h.physical_max - h.physical_min) / h.counts.len().max(1) as f64;
+    let mut seen = 0.0;
+    let (mut lo, mut hi) = (h.physical_min, h.physical_max);
+    let mut lo_set = false;
+    for (i, &c) in h.counts.iter().enumerate() {
+        seen += c as f64;
+        if !lo_set && seen >= low * total {
+            lo = h.physical_min + i as f64 * bin;
+            lo_set = true;
+        }
+        if seen >= high * total {
+            hi = h.physical_min + (i + 1) as f64 * bin;
+            break;
+        }
+    }
+    Window::new((lo + hi) * 0.5, (hi - lo).max(1e-6))
+}
+
 /// The named presets in the transfer-function panel: (preset name, button label).
 pub const PRESETS: [(&str, &str); 5] = [
     ("ct-bone", "Bone"),
@@ -290,23 +341,7 @@ pub fn preset_for(name: &str, info: &VolumeInfo) -> TransferFunction {
 
 /// A window from the histogram's 1st to 99th percentile, for scans without presets.
 pub fn percentile_window(h: &Histogram) -> Window {
-    let total = h.total().max(1) as f64;
-    let bin = (h.physical_max - h.physical_min) / h.counts.len().max(1) as f64;
-    let mut seen = 0.0;
-    let (mut lo, mut hi) = (h.physical_min, h.physical_max);
-    let mut lo_set = false;
-    for (i, &c) in h.counts.iter().enumerate() {
-        seen += c as f64;
-        if !lo_set && seen >= 0.01 * total {
-            lo = h.physical_min + i as f64 * bin;
-            lo_set = true;
-        }
-        if seen >= 0.99 * total {
-            hi = h.physical_min + (i + 1) as f64 * bin;
-            break;
-        }
-    }
-    Window::new((lo + hi) * 0.5, (hi - lo).max(1e-6))
+    quantile_window(h, 0.01, 0.99)
 }
 
 #[cfg(test)]

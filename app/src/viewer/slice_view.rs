@@ -8,6 +8,7 @@ use std::sync::Arc;
 use egui::{Color32, Pos2, Rect, Sense, Stroke, TextureHandle, TextureOptions, Vec2};
 
 use super::app::{view_title, wheel_lines, ViewResponse};
+use super::colour_maps::ColourMap;
 use super::orientation::SliceView;
 use super::scene::{voxel_index, Scene, VolumeData, Window};
 use super::slices::{level_for_pixels, SliceImage, SliceRequest};
@@ -17,6 +18,7 @@ struct SliceTexture {
     texture: TextureHandle,
     values: Arc<Vec<u16>>,
     window: Window,
+    colour_map: ColourMap,
 }
 
 /// The stored values behind a slice texture and the window they were shown with (tests).
@@ -24,6 +26,7 @@ struct SliceTexture {
 pub struct SliceShown {
     pub values: Arc<Vec<u16>>,
     pub window: Window,
+    pub colour_map: ColourMap,
 }
 
 /// One slice view's own state.
@@ -66,6 +69,7 @@ impl SliceViewer {
         self.texture.as_ref().map(|t| SliceShown {
             values: t.values.clone(),
             window: t.window,
+            colour_map: t.colour_map,
         })
     }
 
@@ -223,17 +227,20 @@ impl SliceViewer {
             self.last_request = Some(request);
         }
         if let Some(image) = data.slices.latest(view) {
-            let stale = self
-                .texture
-                .as_ref()
-                .is_none_or(|t| !Arc::ptr_eq(&t.values, &image.values) || t.window != scene.window);
+            let stale = self.texture.as_ref().is_none_or(|t| {
+                !Arc::ptr_eq(&t.values, &image.values)
+                    || t.window != scene.window
+                    || t.colour_map != scene.colour_map
+            });
             if stale {
-                let grey = window_level_image(&image, scene.window, data.info.mapping);
+                let grey =
+                    window_level_image(&image, scene.window, scene.colour_map, data.info.mapping);
                 match &mut self.texture {
                     Some(t) => {
                         t.texture.set(grey, TextureOptions::LINEAR);
                         t.values = image.values.clone();
                         t.window = scene.window;
+                        t.colour_map = scene.colour_map;
                     }
                     None => {
                         self.texture = Some(SliceTexture {
@@ -244,6 +251,7 @@ impl SliceViewer {
                             ),
                             values: image.values.clone(),
                             window: scene.window,
+                            colour_map: scene.colour_map,
                         })
                     }
                 }
@@ -382,20 +390,24 @@ pub fn drag_window(window: Window, delta: Vec2, physical_range: (f64, f64)) -> W
     )
 }
 
-/// Stored values → grey through the window (physical units), as a texture image.
+/// Stored values → colours through the window (physical units) and the colour map, as a
+/// texture image.
 pub fn window_level_image(
     image: &SliceImage,
     window: Window,
+    colour_map: ColourMap,
     mapping: strata_render::ValueMapping,
 ) -> egui::ColorImage {
     let lo = window.low();
     let scale = 255.0 / window.width.max(1e-9);
+    let table = colour_map.table();
     let pixels = image
         .values
         .iter()
         .map(|&s| {
-            let g = ((mapping.physical(s as f64) - lo) * scale).clamp(0.0, 255.0) as u8;
-            Color32::from_gray(g)
+            let g = ((mapping.physical(s as f64) - lo) * scale).clamp(0.0, 255.0) as usize;
+            let [r, g, b] = table[g];
+            Color32::from_rgb(r, g, b)
         })
         .collect();
     egui::ColorImage::new([image.width, image.height], pixels)

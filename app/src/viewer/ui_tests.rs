@@ -41,8 +41,17 @@ fn harness(store: &Path, side_panel: bool) -> Harness<'static, Option<StrataApp>
 }
 
 fn harness_with(
+    options: ViewerOptions,
+    preferences: Preferences,
+) -> Harness<'static, Option<StrataApp>> {
+    harness_sized(options, preferences, Vec2::new(560.0, 380.0))
+}
+
+/// A harness with a window of `size` points (taller where a test needs lower side panels).
+fn harness_sized(
     mut options: ViewerOptions,
     preferences: Preferences,
+    size: Vec2,
 ) -> Harness<'static, Option<StrataApp>> {
     options.max_render_pixels = 96;
     options.persist_settings = false;
@@ -52,19 +61,16 @@ fn harness_with(
         step_voxels: 1.0,
         ..preferences
     };
-    Harness::builder()
-        .with_size(Vec2::new(560.0, 380.0))
-        .wgpu()
-        .build_ui_state(
-            move |ui, state: &mut Option<StrataApp>| {
-                state
-                    .get_or_insert_with(|| {
-                        StrataApp::new(ui.ctx().clone(), preferences.clone(), options.clone())
-                    })
-                    .ui(ui);
-            },
-            None,
-        )
+    Harness::builder().with_size(size).wgpu().build_ui_state(
+        move |ui, state: &mut Option<StrataApp>| {
+            state
+                .get_or_insert_with(|| {
+                    StrataApp::new(ui.ctx().clone(), preferences.clone(), options.clone())
+                })
+                .ui(ui);
+        },
+        None,
+    )
 }
 
 fn app<'h>(h: &'h Harness<'static, Option<StrataApp>>) -> &'h StrataApp {
@@ -655,4 +661,73 @@ fn a_click_in_the_3d_view_picks_the_bone_surface_it_shows() {
         readout.index,
         super::scene::voxel_index(picked).map(|i| i as u32)
     );
+}
+
+/// Mean of the 5×5 screen pixels around `at` (one channel).
+fn screen_patch(image: &image::RgbaImage, at: egui::Pos2, channel: usize) -> f64 {
+    let rect = egui::Rect::from_center_size(at, Vec2::splat(5.0));
+    let pixels = region_pixels(image, rect);
+    let n = pixels.len() / 4;
+    pixels
+        .chunks_exact(4)
+        .map(|p| p[channel] as f64)
+        .sum::<f64>()
+        / n.max(1) as f64
+}
+
+#[test]
+fn a_window_preset_and_the_inverted_colour_map_reach_the_screen() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let store = phantom_store(dir.path());
+    let mut options = ViewerOptions::new(VolumeSource::Path(store.clone()));
+    options.import_folder = dir.path().join("imported");
+    let preferences = Preferences {
+        layout: Layout::TwoByTwo,
+        ..Preferences::default()
+    };
+    // Tall enough for the slices panel below the transfer-function editor.
+    let mut h = harness_sized(options, preferences, Vec2::new(720.0, 900.0));
+    step_until(&mut h, "the axial slice drawn", |a| {
+        a.slice_display(SliceView::Axial).is_some()
+    });
+    h.get_by_label("Mediastinum").click();
+    h.step();
+    let mediastinum = super::scene::Window::new(50.0, 350.0);
+    assert_eq!(
+        app(&h).volume.as_ref().expect("volume").scene.window,
+        mediastinum
+    );
+    step_until(&mut h, "the slice in the mediastinal window", |a| {
+        a.slice_display(SliceView::Axial)
+            .is_some_and(|s| s.window == mediastinum)
+    });
+    h.step();
+    // Air outside the body (-1000 HU) is below the window: black in grey, white inverted.
+    let air_at = |h: &Harness<'static, Option<StrataApp>>| {
+        let v = app(h).volume.as_ref().expect("volume");
+        let k = v.scene.cursor[2];
+        v.slice_views[SliceView::Axial.index()]
+            .screen_of([3.0, 3.0, k], &v.data)
+            .expect("axial image on screen")
+    };
+    let at = air_at(&h);
+    let grey = screen_patch(&h.render().expect("render"), at, 0);
+    h.state_mut()
+        .as_mut()
+        .and_then(|a| a.volume.as_mut())
+        .expect("volume")
+        .scene
+        .colour_map = super::colour_maps::ColourMap::Inverted;
+    step_until(&mut h, "the inverted slice", |a| {
+        a.slice_display(SliceView::Axial)
+            .is_some_and(|s| s.colour_map == super::colour_maps::ColourMap::Inverted)
+    });
+    h.step();
+    let inverted = screen_patch(&h.render().expect("render"), air_at(&h), 0);
+    // Exact 0 and 255 in the texture; a few levels for the UI's blending and sRGB rounding.
+    assert!(
+        grey < 8.0,
+        "air in the mediastinal window is not black: {grey}"
+    );
+    assert!(inverted > 247.0, "air inverted is not white: {inverted}");
 }

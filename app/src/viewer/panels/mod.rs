@@ -1,10 +1,12 @@
-//! The side panels, each a type owning its state with a `ui()`: transfer function, rendering,
+//! The side panels, each a type owning its state with a `ui()`: transfer function, slices,
+//! rendering,
 //! performance, screenshot, volume information. [`Panels::ui`] stacks them in the side bar.
 
 pub mod info;
 pub mod performance;
 pub mod rendering;
 pub mod screenshot;
+pub mod slices;
 pub mod transfer_function;
 
 use super::app::Preferences;
@@ -43,6 +45,11 @@ impl Panels {
             .show(ui, |ui| {
                 self.transfer_function
                     .ui(ui, &mut prefs.preset, data, scene);
+            });
+        egui::CollapsingHeader::new("Slices")
+            .default_open(true)
+            .show(ui, |ui| {
+                slices::ui(ui, data, scene);
             });
         egui::CollapsingHeader::new("Rendering")
             .default_open(true)
