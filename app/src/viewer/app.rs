@@ -13,7 +13,9 @@ use strata_render::{CropBox, RenderMode};
 use strata_storage::Store;
 
 use super::dialogs::{HelpWindow, OpenDialog};
+use super::history::History;
 use super::jobs::{PrepareJob, VolumeSource};
+use super::measurements::{Measurement, Measurements};
 use super::orientation::{SliceFrame, SliceView};
 use super::panels::{FrameClock, PanelContext, Panels};
 use super::scene::{
@@ -116,6 +118,8 @@ pub struct Preferences {
     pub show_planes_in_3d: bool,
     pub screenshot_folder: PathBuf,
     pub screenshot_scale: u32,
+    /// Measurements per store (its path), restored when it is opened again.
+    pub measurements: std::collections::BTreeMap<String, Vec<Measurement>>,
 }
 
 impl Default for Preferences {
@@ -138,6 +142,7 @@ impl Default for Preferences {
             show_planes_in_3d: true,
             screenshot_folder: PathBuf::from("."),
             screenshot_scale: 1,
+            measurements: Default::default(),
         }
     }
 }
@@ -165,6 +170,7 @@ pub struct PlacedView {
 pub struct OpenVolume {
     pub data: VolumeData,
     pub scene: Scene,
+    pub history: History,
     pub view_3d: View3d,
     pub slice_views: [SliceViewer; 3],
     pub view_rects: Vec<PlacedView>,
@@ -432,14 +438,24 @@ impl StrataApp {
             },
             crop: CropBox::default(),
             clip: ClipSettings::default(),
+            measurements: Measurements::with_items(
+                self.preferences
+                    .measurements
+                    .get(&store.path().display().to_string())
+                    .cloned()
+                    .unwrap_or_default(),
+            ),
         };
+        let history = History::new(&scene);
         self.volume = Some(OpenVolume {
+            history,
             data: VolumeData {
                 histogram: store.histogram().clone(),
                 session,
                 slices,
                 info,
                 frames,
+                store_path: store.path().to_path_buf(),
             },
             scene,
             view_3d: View3d::new(orbit),
@@ -498,6 +514,11 @@ impl StrataApp {
         {
             self.toast = None;
         }
+        if let Some(v) = self.volume.as_mut() {
+            let gesture = ui.ctx().input(|i| i.pointer.any_down());
+            v.history.observe(&v.scene, gesture);
+        }
+        self.remember_measurements();
         self.record_frame(ui_started);
         if let Some(limit) = self.options.exit_after_seconds {
             if self.started_at.elapsed().as_secs_f64() >= limit {
@@ -505,6 +526,21 @@ impl StrataApp {
                 ui.ctx().send_viewport_cmd(egui::ViewportCommand::Close);
             } else {
                 ui.ctx().request_repaint_after(Duration::from_millis(100));
+            }
+        }
+    }
+
+    /// Keeps the preferences' copy of this store's measurements current (eframe saves them).
+    fn remember_measurements(&mut self) {
+        let Some(v) = &self.volume else { return };
+        let key = v.data.store_path.display().to_string();
+        let items = &v.scene.measurements.items;
+        let remembered = self.preferences.measurements.get(&key);
+        if remembered.map_or(!items.is_empty(), |r| r != items) {
+            if items.is_empty() {
+                self.preferences.measurements.remove(&key);
+            } else {
+                self.preferences.measurements.insert(key, items.clone());
             }
         }
     }
@@ -561,6 +597,21 @@ impl StrataApp {
         }
         if pressed(Key::F12) {
             self.take_screenshot();
+        }
+        let (undo, redo) = ctx.input(|i| {
+            let command = i.modifiers.command || i.modifiers.ctrl;
+            (
+                command && !i.modifiers.shift && i.key_pressed(Key::Z),
+                command && (i.modifiers.shift && i.key_pressed(Key::Z) || i.key_pressed(Key::Y)),
+            )
+        });
+        if let Some(v) = self.volume.as_mut() {
+            if undo {
+                v.history.undo(&mut v.scene);
+            }
+            if redo {
+                v.history.redo(&mut v.scene);
+            }
         }
         let orthographic = self.preferences.orthographic;
         if let Some(v) = self.volume.as_mut() {
@@ -665,6 +716,23 @@ impl StrataApp {
                 .clicked()
             {
                 self.take_screenshot();
+            }
+            if let Some(v) = self.volume.as_mut() {
+                let (can_undo, can_redo) = (v.history.can_undo(), v.history.can_redo());
+                if ui
+                    .add_enabled(can_undo, egui::Button::new("Undo"))
+                    .on_hover_text("Undo the last TF, window, crop or measurement change (Ctrl+Z)")
+                    .clicked()
+                {
+                    v.history.undo(&mut v.scene);
+                }
+                if ui
+                    .add_enabled(can_redo, egui::Button::new("Redo"))
+                    .on_hover_text("Redo (Ctrl+Shift+Z, Ctrl+Y)")
+                    .clicked()
+                {
+                    v.history.redo(&mut v.scene);
+                }
             }
             ui.toggle_value(&mut self.preferences.show_side_panel, "Panels");
             if ui

@@ -207,6 +207,9 @@ impl HelpWindow {
                     ("M", "cycle DVR / MIP / isosurface"),
                     ("T", "target frame rate on/off"),
                     ("F12", "screenshot of the 3D view"),
+                    ("Ctrl+Z, Ctrl+Shift+Z / Ctrl+Y", "undo, redo (TF, window, crop, measurements)"),
+                    ("Click (3D)", "move the crosshair to what is seen there (pick)"),
+                    ("Ruler / Angle / ROI tools", "measure on slices (drag, clicks) and in 3D (clicks)"),
                     ("Ctrl+O", "open or import"),
                     ("F1, H", "this help"),
                 ] {

@@ -14,7 +14,9 @@
 pub mod app;
 pub mod colour_maps;
 pub mod dialogs;
+pub mod history;
 pub mod jobs;
+pub mod measurements;
 pub mod orientation;
 pub mod panels;
 pub mod scene;

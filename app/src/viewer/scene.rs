@@ -8,6 +8,7 @@ use strata_render::{ClipPlane, CropBox, TransferFunction};
 use strata_storage::histogram::Histogram;
 
 use super::colour_maps::ColourMap;
+use super::measurements::Measurements;
 use super::orientation::{SliceFrame, SliceView};
 use super::slices::SliceReader;
 use super::volume_session::{VolumeInfo, VolumeSession};
@@ -61,6 +62,8 @@ pub struct VolumeData {
     pub histogram: Histogram,
     /// How each slice view maps index axes to the screen (fixed by the geometry).
     pub frames: [SliceFrame; 3],
+    /// The store's path (measurements are remembered per store).
+    pub store_path: std::path::PathBuf,
 }
 
 /// What the user adjusts and every view shows.
@@ -77,6 +80,7 @@ pub struct Scene {
     pub iso_value: f64,
     pub crop: CropBox,
     pub clip: ClipSettings,
+    pub measurements: Measurements,
 }
 
 impl Scene {

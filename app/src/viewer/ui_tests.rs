@@ -731,3 +731,205 @@ fn a_window_preset_and_the_inverted_colour_map_reach_the_screen() {
     );
     assert!(inverted > 247.0, "air inverted is not white: {inverted}");
 }
+
+/// Left-drags from `from` to `to` in steps, as a user would.
+fn drag(h: &mut Harness<'static, Option<StrataApp>>, from: egui::Pos2, to: egui::Pos2) {
+    h.event(Event::PointerMoved(from));
+    h.event(Event::PointerButton {
+        pos: from,
+        button: PointerButton::Primary,
+        pressed: true,
+        modifiers: Modifiers::NONE,
+    });
+    h.step();
+    for i in 1..=8 {
+        h.event(Event::PointerMoved(from + (to - from) * (i as f32 / 8.0)));
+        h.step();
+    }
+    h.event(Event::PointerButton {
+        pos: to,
+        button: PointerButton::Primary,
+        pressed: false,
+        modifiers: Modifiers::NONE,
+    });
+    h.step();
+}
+
+fn set_tool(h: &mut Harness<'static, Option<StrataApp>>, tool: super::measurements::Tool) {
+    h.state_mut()
+        .as_mut()
+        .and_then(|a| a.volume.as_mut())
+        .expect("volume")
+        .scene
+        .measurements
+        .tool = tool;
+}
+
+fn axial_point(h: &Harness<'static, Option<StrataApp>>, i: f64, j: f64) -> egui::Pos2 {
+    let v = app(h).volume.as_ref().expect("volume");
+    let k = v.scene.cursor[2];
+    v.slice_views[SliceView::Axial.index()]
+        .screen_of([i, j, k], &v.data)
+        .expect("axial image on screen")
+}
+
+#[test]
+fn a_ruler_reads_the_millimetres_and_a_box_roi_the_phantoms_statistics_and_undo_removes_them() {
+    use super::measurements::{Shape, Tool};
+    let dir = tempfile::tempdir().expect("temp dir");
+    let store = phantom_store(dir.path());
+    let mut h = harness(&store, false);
+    step_until(&mut h, "the axial slice at full resolution", |a| {
+        a.slice_image(SliceView::Axial)
+            .is_some_and(|i| i.request.level == 0)
+            && a.volume
+                .as_ref()
+                .is_some_and(|v| v.slice_views[SliceView::Axial.index()].image_rect.is_some())
+    });
+    let phantom = Phantom::cube(48);
+    let spacing = phantom.geometry().spacing_mm[0];
+
+    set_tool(&mut h, Tool::Distance);
+    let (from, to) = (axial_point(&h, 10.0, 10.0), axial_point(&h, 30.0, 25.0));
+    drag(&mut h, from, to);
+    let (length, text) = {
+        let v = app(&h).volume.as_ref().expect("volume");
+        let items = &v.scene.measurements.items;
+        assert_eq!(items.len(), 1, "one ruler");
+        let Shape::Distance { a, b } = items[0].shape else {
+            panic!("not a ruler: {:?}", items[0]);
+        };
+        (
+            super::measurements::distance_mm(&v.data.info.geometry, a, b),
+            items[0].describe(&v.data.info.geometry, "HU"),
+        )
+    };
+    // 20 voxels across and 15 down: 25 voxels of 400/48 mm. The pointer lands within a
+    // hundredth of a screen point of the voxel centres (f32 positions).
+    let expected = 25.0 * spacing;
+    assert!(
+        (length - expected).abs() < 0.05,
+        "ruler {length:.3} mm, expected {expected:.3}"
+    );
+    assert!(text.contains(&format!("{expected:.1} mm")), "{text}");
+
+    set_tool(&mut h, Tool::BoxRoi);
+    let (from, to) = (axial_point(&h, 14.0, 16.0), axial_point(&h, 21.0, 26.0));
+    drag(&mut h, from, to);
+    let stats = {
+        let v = app(&h).volume.as_ref().expect("volume");
+        let items = &v.scene.measurements.items;
+        assert_eq!(items.len(), 2, "a ruler and a box");
+        let Shape::Roi { stats, .. } = &items[1].shape else {
+            panic!("not a region: {:?}", items[1]);
+        };
+        stats.expect("statistics of the box")
+    };
+    // The phantom's own HU over the voxels whose centres lie in the box: i 14..=21, j 16..=26
+    // (corners on voxel centres count as inside, up to the pointer's f32 rounding).
+    let k = app(&h).volume.as_ref().expect("volume").scene.cursor[2] as u64;
+    let values: Vec<f64> = (16..=26)
+        .flat_map(|j| (14..=21).map(move |i| (i, j)))
+        .map(|(i, j)| phantom.hu(i, j, k) as f64)
+        .collect();
+    let n = values.len() as f64;
+    let mean = values.iter().sum::<f64>() / n;
+    let sd = (values.iter().map(|v| (v - mean) * (v - mean)).sum::<f64>() / n).sqrt();
+    let close = |a: f64, b: f64| (a - b).abs() <= 1e-6 * (1.0 + b.abs());
+    // Corners exactly on voxel centres may fall either side by f32 rounding: allow the edge
+    // rows/columns to be in or out by checking the count and mean against both.
+    if stats.voxels == values.len() as u64 {
+        assert!(
+            close(stats.mean, mean) && close(stats.sd, sd),
+            "{stats:?} vs mean {mean} sd {sd}"
+        );
+        assert_eq!(
+            stats.min,
+            values.iter().cloned().fold(f64::INFINITY, f64::min)
+        );
+        assert_eq!(
+            stats.max,
+            values.iter().cloned().fold(f64::NEG_INFINITY, f64::max)
+        );
+    } else {
+        assert!(
+            stats.voxels >= 6 * 9 && stats.voxels < values.len() as u64,
+            "{} voxels (expected {} or a trimmed edge)",
+            stats.voxels,
+            values.len()
+        );
+    }
+    let area = 7.0 * spacing * 10.0 * spacing;
+    assert!(
+        (stats.area_mm2 - area).abs() < 0.5,
+        "area {} vs {area}",
+        stats.area_mm2
+    );
+
+    // Undo takes the box away, then the ruler; redo brings the ruler back.
+    h.key_press_modifiers(Modifiers::COMMAND, egui::Key::Z);
+    h.step();
+    let count = |h: &Harness<'static, Option<StrataApp>>| {
+        app(h)
+            .volume
+            .as_ref()
+            .expect("volume")
+            .scene
+            .measurements
+            .items
+            .len()
+    };
+    assert_eq!(count(&h), 1);
+    h.key_press_modifiers(Modifiers::COMMAND, egui::Key::Z);
+    h.step();
+    assert_eq!(count(&h), 0);
+    h.key_press_modifiers(Modifiers::COMMAND | Modifiers::SHIFT, egui::Key::Z);
+    h.step();
+    assert_eq!(count(&h), 1);
+}
+
+#[test]
+fn undo_restores_the_transfer_function_exactly_and_redo_the_edit() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let store = phantom_store(dir.path());
+    let mut h = harness(&store, true);
+    step_until(&mut h, "the editor", |a| {
+        a.volume.is_some() && a.panels.transfer_function.editor.plot_rect.is_some()
+    });
+    h.step();
+    let tf = |h: &Harness<'static, Option<StrataApp>>| {
+        app(h)
+            .volume
+            .as_ref()
+            .expect("volume")
+            .scene
+            .transfer_function
+            .clone()
+    };
+    let original = tf(&h);
+    let plot = app(&h)
+        .panels
+        .transfer_function
+        .editor
+        .plot_rect
+        .expect("plot");
+    click(
+        &mut h,
+        plot.left_top() + Vec2::new(plot.width() * 0.42, plot.height() * 0.3),
+        PointerButton::Primary,
+    );
+    h.step();
+    let edited = tf(&h);
+    assert_ne!(edited, original, "the click edited the function");
+    h.key_press_modifiers(Modifiers::COMMAND, egui::Key::Z);
+    h.step();
+    assert_eq!(tf(&h), original, "undo restores the function exactly");
+    assert_eq!(
+        app(&h).volume_request().map(|r| r.transfer_function),
+        Some(original),
+        "and the renderer is asked for it"
+    );
+    h.key_press_modifiers(Modifiers::COMMAND | Modifiers::SHIFT, egui::Key::Z);
+    h.step();
+    assert_eq!(tf(&h), edited, "redo brings the edit back");
+}

@@ -12,6 +12,7 @@ use strata_render::{Camera, Projection, RenderMode, RenderSettings, Shading, Vol
 use super::app::{
     view_title, wheel_lines, Preferences, ViewResponse, NOT_FOR_DIAGNOSIS, WARNING_COLOUR,
 };
+use super::measurements::{Shape, Tool};
 use super::orientation::SliceView;
 use super::scene::{Scene, VolumeData};
 use super::slice_view::slice_colour;
@@ -431,6 +432,7 @@ impl View3d {
         if prefs.show_planes_in_3d {
             paint_slice_planes(&painter, rect, &camera, data, scene);
         }
+        paint_measurements_3d(&painter, rect, &camera, data, scene);
         paint_orientation_marker(&painter, rect, &camera);
         let status = data.session.status();
         let toggled = view_title(
@@ -478,13 +480,17 @@ impl View3d {
             egui::FontId::proportional(11.0),
             WARNING_COLOUR,
         );
-        // A click (no drag) moves the linked crosshair to what is seen there.
+        // A click (no drag) moves the linked crosshair to what is seen there, or adds a ruler
+        // or angle point there with a measuring tool.
         if response.clicked() {
             if let Some(index) = response
                 .interact_pointer_pos()
                 .and_then(|p| self.pick(p, rect, data))
             {
-                scene.cursor = index;
+                match scene.measurements.tool {
+                    Tool::Distance | Tool::Angle => scene.measurements.click(index),
+                    _ => scene.cursor = index,
+                }
             }
         }
         let hover = response.hover_pos().and_then(|p| self.pick(p, rect, data));
@@ -493,6 +499,74 @@ impl View3d {
             focused: response.clicked() || response.drag_started(),
             hover,
         }
+    }
+}
+
+/// The screen point of a level-0 index, projected with `camera` into a frame filling `rect`
+/// (rendered at its aspect); None behind the eye.
+pub fn project_to_view(
+    camera: &Camera,
+    rect: Rect,
+    g: &VolumeGeometry,
+    index: DVec3,
+) -> Option<Pos2> {
+    let basis = camera.basis();
+    let aspect = (rect.width() / rect.height().max(1.0)) as f64;
+    let d = g.patient_from_index(index) - basis.eye;
+    let depth = d.dot(basis.forward);
+    let (sx, sy) = if basis.orthographic {
+        (d.dot(basis.right), d.dot(basis.up))
+    } else if depth > 1e-6 {
+        (d.dot(basis.right) / depth, d.dot(basis.up) / depth)
+    } else {
+        return None;
+    };
+    let u = (sx / (aspect * basis.half_extent) + 1.0) * 0.5;
+    let w = (1.0 - sy / basis.half_extent) * 0.5;
+    Some(Pos2::new(
+        rect.left() + u as f32 * rect.width(),
+        rect.top() + w as f32 * rect.height(),
+    ))
+}
+
+/// Rulers and angles (and the points of one being drawn) over the 3D view.
+fn paint_measurements_3d(
+    painter: &egui::Painter,
+    rect: Rect,
+    camera: &Camera,
+    data: &VolumeData,
+    scene: &Scene,
+) {
+    let g = &data.info.geometry;
+    let project = |p: [f64; 3]| project_to_view(camera, rect, g, DVec3::from(p));
+    let colour = Color32::from_rgb(255, 230, 80);
+    let stroke = Stroke::new(1.5, colour);
+    let unit = data.unit();
+    for m in &scene.measurements.items {
+        let points: Option<Vec<Pos2>> = match &m.shape {
+            Shape::Roi { .. } => None,
+            _ => m.points().into_iter().map(project).collect(),
+        };
+        let Some(points) = points else { continue };
+        painter.add(egui::Shape::line(points.clone(), stroke));
+        if let Some(last) = points.last() {
+            painter.text(
+                *last + Vec2::new(4.0, -4.0),
+                egui::Align2::LEFT_BOTTOM,
+                m.describe(g, &unit),
+                egui::FontId::proportional(12.0),
+                colour,
+            );
+        }
+    }
+    for p in scene
+        .measurements
+        .draft
+        .points
+        .iter()
+        .filter_map(|p| project(*p))
+    {
+        painter.circle_filled(p, 3.0, colour);
     }
 }
 
@@ -505,26 +579,8 @@ fn paint_slice_planes(
     data: &VolumeData,
     scene: &Scene,
 ) {
-    let basis = camera.basis();
-    let aspect = (rect.width() / rect.height().max(1.0)) as f64;
     let g = &data.info.geometry;
-    let project = |index: DVec3| -> Option<Pos2> {
-        let d = g.patient_from_index(index) - basis.eye;
-        let depth = d.dot(basis.forward);
-        let (sx, sy) = if basis.orthographic {
-            (d.dot(basis.right), d.dot(basis.up))
-        } else if depth > 1e-6 {
-            (d.dot(basis.right) / depth, d.dot(basis.up) / depth)
-        } else {
-            return None;
-        };
-        let u = (sx / (aspect * basis.half_extent) + 1.0) * 0.5;
-        let w = (1.0 - sy / basis.half_extent) * 0.5;
-        Some(Pos2::new(
-            rect.left() + u as f32 * rect.width(),
-            rect.top() + w as f32 * rect.height(),
-        ))
-    };
+    let project = |index: DVec3| project_to_view(camera, rect, g, index);
     for view in SliceView::ALL {
         let frame = data.frame(view);
         let (n, a, b) = (frame.normal_axis, frame.across_axis, frame.down_axis);

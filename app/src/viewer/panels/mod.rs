@@ -1,8 +1,9 @@
 //! The side panels, each a type owning its state with a `ui()`: transfer function, slices,
-//! rendering,
+//! measurements, rendering,
 //! performance, screenshot, volume information. [`Panels::ui`] stacks them in the side bar.
 
 pub mod info;
+pub mod measurements;
 pub mod performance;
 pub mod rendering;
 pub mod screenshot;
@@ -50,6 +51,11 @@ impl Panels {
             .default_open(true)
             .show(ui, |ui| {
                 slices::ui(ui, data, scene);
+            });
+        egui::CollapsingHeader::new("Measurements")
+            .default_open(true)
+            .show(ui, |ui| {
+                measurements::ui(ui, data, scene);
             });
         egui::CollapsingHeader::new("Rendering")
             .default_open(true)
