@@ -22,6 +22,7 @@ use super::scene::{
     looks_like_ct, percentile_window, preset_for, start_cursor, ClipSettings, Readout, Scene,
     VolumeData, Window, PRESETS,
 };
+use super::screenshots::{ScreenshotJob, ShotTarget};
 use super::slice_view::SliceViewer;
 use super::slices::SliceReader;
 use super::tf_editor::TfEditorState;
@@ -93,6 +94,16 @@ pub enum ViewSlot {
     Slice(SliceView),
 }
 
+/// ~/Pictures/Strata where there is a Pictures folder, else the data folder's "screenshots"
+/// (never the working folder, which is wherever the viewer happened to start).
+pub fn default_screenshot_folder() -> PathBuf {
+    let pictures = std::env::var_os("HOME").map(|h| PathBuf::from(h).join("Pictures"));
+    match pictures.filter(|p| p.is_dir()) {
+        Some(p) => p.join("Strata"),
+        None => super::jobs::data_folder().join("screenshots"),
+    }
+}
+
 /// Remembered between runs (eframe persistence).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
@@ -140,7 +151,7 @@ impl Default for Preferences {
             show_identifiers: false,
             show_side_panel: true,
             show_planes_in_3d: true,
-            screenshot_folder: PathBuf::from("."),
+            screenshot_folder: default_screenshot_folder(),
             screenshot_scale: 1,
             measurements: Default::default(),
         }
@@ -199,6 +210,9 @@ pub struct StrataApp {
     hover: Option<[f64; 3]>,
     /// The readout in the status bar this frame (tests read it).
     pub readout: Option<Readout>,
+    screenshot: Option<ScreenshotJob>,
+    /// The last screenshot's file (or error), shown until dismissed.
+    saved_screenshot: Option<Result<PathBuf, String>>,
 }
 
 fn lock_free_repaint(ctx: &egui::Context) -> super::volume_session::Repaint {
@@ -271,6 +285,8 @@ impl StrataApp {
             toast: None,
             hover: None,
             readout: None,
+            screenshot: None,
+            saved_screenshot: None,
             options,
         };
         if let Some(layout) = app.options.initial_layout {
@@ -311,7 +327,9 @@ impl StrataApp {
 
     #[cfg(test)]
     pub fn last_screenshot(&self) -> Option<Result<PathBuf, String>> {
-        self.volume_status().and_then(|s| s.last_screenshot)
+        self.saved_screenshot
+            .clone()
+            .or_else(|| self.volume_status().and_then(|s| s.last_screenshot))
     }
 
     #[cfg(test)]
@@ -514,6 +532,7 @@ impl StrataApp {
         {
             self.toast = None;
         }
+        self.step_screenshot(ui.ctx());
         if let Some(v) = self.volume.as_mut() {
             let gesture = ui.ctx().input(|i| i.pointer.any_down());
             v.history.observe(&v.scene, gesture);
@@ -596,7 +615,7 @@ impl StrataApp {
             };
         }
         if pressed(Key::F12) {
-            self.take_screenshot();
+            self.take_screenshot(ShotTarget::View(self.preferences.focused));
         }
         let (undo, redo) = ctx.input(|i| {
             let command = i.modifiers.command || i.modifiers.ctrl;
@@ -638,23 +657,85 @@ impl StrataApp {
         }
     }
 
-    fn take_screenshot(&mut self) {
+    /// Screenshot of the focused view (F12, the toolbar) or the layout: at 1× the view as seen,
+    /// annotations included; at 2×/4× the 3D image alone from the render thread.
+    fn take_screenshot(&mut self, target: ShotTarget) {
         let Some(v) = &self.volume else { return };
+        let folder = self.preferences.screenshot_folder.clone();
+        self.saved_screenshot = None;
+        let scale = self.preferences.screenshot_scale.clamp(1, 4);
+        if scale == 1 {
+            let job = ScreenshotJob::new(target, &folder);
+            self.toast = Some(Toast {
+                text: format!("Saving screenshot to {}…", job.path.display()),
+                shown_at: Instant::now(),
+            });
+            self.screenshot = Some(job);
+            return;
+        }
+        let Some(rect) = v
+            .view_rects
+            .iter()
+            .find(|p| p.slot == ViewSlot::ThreeD)
+            .map(|p| p.rect)
+        else {
+            self.saved_screenshot = Some(Err("no 3D view is shown to capture at 2×/4×".into()));
+            return;
+        };
+        let size =
+            View3d::full_resolution_size(rect, self.ctx.pixels_per_point()).map(|s| s * scale);
         let stamp = std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
-            .map_or(0, |d| d.as_secs());
-        let path = self
-            .preferences
-            .screenshot_folder
-            .join(format!("strata-{stamp}.png"));
+            .map_or(0, |d| d.as_millis());
+        let path = folder.join(format!("strata-3d-{scale}x-{stamp}.png"));
+        if let Err(e) = std::fs::create_dir_all(&folder) {
+            self.saved_screenshot = Some(Err(format!(
+                "cannot create the folder {}: {e}",
+                folder.display()
+            )));
+            return;
+        }
         v.data.session.request_screenshot(ScreenshotRequest {
             path: path.clone(),
-            scale: self.preferences.screenshot_scale,
+            size,
         });
         self.toast = Some(Toast {
             text: format!("Saving screenshot to {}…", path.display()),
             shown_at: Instant::now(),
         });
+    }
+
+    /// Moves a running screenshot on: full-resolution 3D frame, window capture, PNG.
+    fn step_screenshot(&mut self, ctx: &egui::Context) {
+        let (Some(job), Some(v)) = (self.screenshot.as_mut(), self.volume.as_mut()) else {
+            return;
+        };
+        let rect_of = |slot: ViewSlot| v.view_rects.iter().find(|p| p.slot == slot).map(|p| p.rect);
+        let (rect, has_3d) = match job.target {
+            ShotTarget::View(slot) => (rect_of(slot), slot == ViewSlot::ThreeD),
+            ShotTarget::Layout => (
+                v.view_rects
+                    .iter()
+                    .map(|p| p.rect)
+                    .reduce(|a, b| a.union(b)),
+                v.view_rects.iter().any(|p| p.slot == ViewSlot::ThreeD),
+            ),
+        };
+        let ready = !has_3d || v.view_3d.shows_converged_frame();
+        if let Some(outcome) = job.step(ctx, ready, rect) {
+            if let Err(e) = &outcome {
+                eprintln!("strata: screenshot failed: {e}");
+            }
+            self.saved_screenshot = Some(outcome);
+            self.screenshot = None;
+            self.toast = None;
+        }
+        if let Some(v) = self.volume.as_mut() {
+            v.view_3d.full_resolution = self
+                .screenshot
+                .as_ref()
+                .is_some_and(|j| j.wants_full_resolution());
+        }
     }
 
     fn toolbar(&mut self, ui: &mut egui::Ui) {
@@ -710,12 +791,22 @@ impl StrataApp {
                 }
             }
             ui.separator();
+            let busy = self.screenshot.is_some();
             if ui
-                .button("Screenshot")
-                .on_hover_text("Save the 3D view as PNG (F12)")
+                .add_enabled(!busy, egui::Button::new("Screenshot"))
+                .on_hover_text(
+                    "Save the focused view as PNG at full resolution, with its annotations (F12)",
+                )
                 .clicked()
             {
-                self.take_screenshot();
+                self.take_screenshot(ShotTarget::View(self.preferences.focused));
+            }
+            if ui
+                .add_enabled(!busy, egui::Button::new("Layout"))
+                .on_hover_text("Save all views as laid out, as PNG")
+                .clicked()
+            {
+                self.take_screenshot(ShotTarget::Layout);
             }
             if let Some(v) = self.volume.as_mut() {
                 let (can_undo, can_redo) = (v.history.can_undo(), v.history.can_redo());
@@ -792,6 +883,23 @@ impl StrataApp {
             if let Some(toast) = &self.toast {
                 ui.separator();
                 ui.label(&toast.text);
+            }
+            let mut dismiss = false;
+            match &self.saved_screenshot {
+                Some(Ok(path)) => {
+                    ui.separator();
+                    ui.label(format!("Saved {}", path.display()));
+                    dismiss = ui.small_button("Dismiss").clicked();
+                }
+                Some(Err(e)) => {
+                    ui.separator();
+                    ui.colored_label(Color32::LIGHT_RED, format!("screenshot failed: {e}"));
+                    dismiss = ui.small_button("Dismiss").clicked();
+                }
+                None => {}
+            }
+            if dismiss {
+                self.saved_screenshot = None;
             }
             ui.with_layout(egui::Layout::right_to_left(egui::Align::Center), |ui| {
                 ui.label(RichText::new(NOT_FOR_DIAGNOSIS).color(WARNING_COLOUR));

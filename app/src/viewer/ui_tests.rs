@@ -933,3 +933,67 @@ fn undo_restores_the_transfer_function_exactly_and_redo_the_edit() {
     h.step();
     assert_eq!(tf(&h), edited, "redo brings the edit back");
 }
+
+#[test]
+fn a_screenshot_has_the_views_full_pixel_size_and_its_annotations() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let store = phantom_store(dir.path());
+    let mut options = ViewerOptions::new(VolumeSource::Path(store.clone()));
+    options.import_folder = dir.path().join("imported");
+    let shots = dir.path().join("shots (picked folder)");
+    let preferences = Preferences {
+        layout: Layout::TwoByTwo,
+        show_side_panel: false,
+        screenshot_folder: shots.clone(),
+        // The interactive render is at 60 % of the view's pixels; the screenshot must not be.
+        render_scale: 0.6,
+        ..Preferences::default()
+    };
+    let mut h = harness_with(options, preferences);
+    wait_for_settled_frame(&mut h, "the first converged frame", 0);
+    let interactive = app(&h).volume_frame().expect("frame");
+    h.key_press(egui::Key::F12);
+    let path = step_until_some(&mut h, "the screenshot written", |a| {
+        a.last_screenshot()
+            .map(|r| r.unwrap_or_else(|e| panic!("screenshot failed: {e}")))
+    });
+    assert!(
+        path.starts_with(&shots),
+        "{} is not in the picked folder",
+        path.display()
+    );
+    let rect = app(&h).view_rect(ViewSlot::ThreeD).expect("3D view");
+    let ppp = h.ctx.pixels_per_point();
+    let expected = super::view3d::View3d::full_resolution_size(rect, ppp);
+    let image = image::open(&path).expect("a PNG").to_rgb8();
+    assert_eq!(
+        [image.width(), image.height()],
+        expected,
+        "the screenshot is the view's pixel size (the interactive frame was {}x{})",
+        interactive.width,
+        interactive.height
+    );
+    assert!(
+        interactive.width < expected[0],
+        "the test needs a reduced interactive frame"
+    );
+    // The orange not-for-diagnosis label is in the bottom-right corner of the image.
+    let corner = image
+        .enumerate_pixels()
+        .filter(|(x, y, _)| *x > image.width() * 2 / 3 && *y > image.height() - 20)
+        .filter(|(_, _, p)| p[0] > 200 && (120..220).contains(&p[1]) && p[2] < 110)
+        .count();
+    assert!(
+        corner > 5,
+        "no warning label in the screenshot ({corner} orange pixels)"
+    );
+    // And the volume itself.
+    let lit = image
+        .pixels()
+        .filter(|p| p.0.iter().any(|c| *c > 16))
+        .count();
+    assert!(
+        lit * 20 > (image.width() * image.height()) as usize,
+        "screenshot nearly blank"
+    );
+}

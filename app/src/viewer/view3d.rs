@@ -249,6 +249,10 @@ pub struct View3d {
     shown: Option<RenderedFrame>,
     /// Until when input counts as interaction (lower resolution, target frame rate held).
     pub interacting_until: Option<Instant>,
+    /// Render at the screen's full pixel density (a screenshot is being taken).
+    pub full_resolution: bool,
+    /// The frame size asked for last.
+    requested_size: [u32; 2],
 }
 
 /// A short name of the render mode for titles (new modes add a line here).
@@ -267,6 +271,8 @@ impl View3d {
             texture: None,
             shown: None,
             interacting_until: None,
+            full_resolution: false,
+            requested_size: [0, 0],
         }
     }
 
@@ -275,6 +281,23 @@ impl View3d {
             orthographic,
             ..OrbitCamera::default()
         };
+    }
+
+    /// The view shows the converged frame of the size it asks for now (a screenshot may go).
+    pub fn shows_converged_frame(&self) -> bool {
+        self.shown.as_ref().is_some_and(|f| {
+            f.converged
+                && [f.width, f.height] == self.requested_size
+                && [f.request.settings.width, f.request.settings.height] == self.requested_size
+        })
+    }
+
+    /// The pixel size of the frames this view asks for at full resolution.
+    pub fn full_resolution_size(rect: Rect, pixels_per_point: f32) -> [u32; 2] {
+        [
+            ((rect.width() * pixels_per_point).round() as u32).max(16),
+            ((rect.height() * pixels_per_point).round() as u32).max(16),
+        ]
     }
 
     /// What the user sees at screen point `pos` of the view drawn in `rect`: the level-0
@@ -360,16 +383,22 @@ impl View3d {
         // Request a frame at the view's aspect.
         let ppp = ui.ctx().pixels_per_point();
         let mut scale = prefs.render_scale.clamp(0.2, 1.0) * ppp;
-        if interacting && prefs.target_fps_enabled {
-            // While dragging, fewer pixels: the controller then keeps a higher sampling rate.
-            scale *= 0.5;
-        }
-        let longest = rect.width().max(rect.height()) * scale;
-        if longest > max_pixels as f32 {
-            scale *= max_pixels as f32 / longest;
+        if self.full_resolution {
+            // A screenshot: one ray per screen pixel, whatever the interactive settings.
+            scale = ppp;
+        } else {
+            if interacting && prefs.target_fps_enabled {
+                // While dragging, fewer pixels: the controller then keeps a higher sampling rate.
+                scale *= 0.5;
+            }
+            let longest = rect.width().max(rect.height()) * scale;
+            if longest > max_pixels as f32 {
+                scale *= max_pixels as f32 / longest;
+            }
         }
         let width = ((rect.width() * scale).round() as u32).max(16);
         let height = ((rect.height() * scale).round() as u32).max(16);
+        self.requested_size = [width, height];
         let camera = self.orbit.camera(&data.info.geometry);
         let clip_plane = scene.clip.enabled.then(|| data.clip_plane(&scene.clip));
         let settings = RenderSettings {

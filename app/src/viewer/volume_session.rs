@@ -84,11 +84,12 @@ pub struct SessionStatus {
     pub last_screenshot: Option<Result<PathBuf, String>>,
 }
 
-/// A request to write the 3D view to PNG at `scale` × the on-screen size.
+/// A request to write the 3D view to PNG at `size` pixels (the view's full resolution times
+/// the chosen scale; the aspect of the last request).
 #[derive(Clone, Debug)]
 pub struct ScreenshotRequest {
     pub path: PathBuf,
-    pub scale: u32,
+    pub size: [u32; 2],
 }
 
 /// Static facts of the opened volume, for the UI.
@@ -483,7 +484,7 @@ impl RenderWorker {
         let _ = self.shared.wake.wait_timeout(guard, timeout);
     }
 
-    /// Renders the last request at `scale` × its size, lets the loader converge for that size
+    /// Renders the last request at the shot's size, lets the loader converge for that size
     /// (bounded), and writes a PNG.
     fn screenshot(
         &mut self,
@@ -492,10 +493,9 @@ impl RenderWorker {
         request: &RenderRequest,
         shot: &ScreenshotRequest,
     ) -> anyhow::Result<()> {
-        let scale = shot.scale.clamp(1, 4);
         let mut settings = request.settings.clone();
-        settings.width = (settings.width * scale).min(4096);
-        settings.height = (settings.height * scale).min(4096);
+        settings.width = shot.size[0].clamp(16, 4096);
+        settings.height = shot.size[1].clamp(16, 4096);
         settings.quality = settings.quality.min(0.5);
         volume.set_max_voxel_pixels(1.0);
         let started = Instant::now();

@@ -21,6 +21,7 @@ pub use performance::FrameClock;
 pub struct Panels {
     pub transfer_function: transfer_function::TfPanel,
     pub performance: performance::PerformancePanel,
+    pub screenshot: screenshot::ScreenshotPanel,
 }
 
 /// What the side panels work on.
@@ -70,7 +71,7 @@ impl Panels {
         egui::CollapsingHeader::new("Screenshot")
             .default_open(false)
             .show(ui, |ui| {
-                screenshot::ui(ui, prefs);
+                self.screenshot.ui(ui, prefs);
             });
         egui::CollapsingHeader::new("Volume information")
             .default_open(false)
