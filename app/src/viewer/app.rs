@@ -127,6 +127,8 @@ pub struct Preferences {
     pub show_side_panel: bool,
     /// Outline the three slice planes in the 3D view.
     pub show_planes_in_3d: bool,
+    /// Draw the crop box in the 3D view, with a handle on each face to drag it.
+    pub show_crop_box: bool,
     pub screenshot_folder: PathBuf,
     pub screenshot_scale: u32,
     /// Measurements per store (its path), restored when it is opened again.
@@ -151,6 +153,7 @@ impl Default for Preferences {
             show_identifiers: false,
             show_side_panel: true,
             show_planes_in_3d: true,
+            show_crop_box: false,
             screenshot_folder: default_screenshot_folder(),
             screenshot_scale: 1,
             measurements: Default::default(),

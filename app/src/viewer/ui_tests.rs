@@ -997,3 +997,59 @@ fn a_screenshot_has_the_views_full_pixel_size_and_its_annotations() {
         "screenshot nearly blank"
     );
 }
+
+#[test]
+fn the_crop_box_is_drawn_in_3d_and_dragging_its_superior_handle_lowers_the_top() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let store = phantom_store(dir.path());
+    let mut options = ViewerOptions::new(VolumeSource::Path(store.clone()));
+    options.import_folder = dir.path().join("imported");
+    options.initial_view = Some(super::view3d::StandardView::Anterior);
+    let preferences = Preferences {
+        layout: Layout::TwoByTwo,
+        show_side_panel: false,
+        show_crop_box: true,
+        ..Preferences::default()
+    };
+    let mut h = harness_with(options, preferences);
+    wait_for_settled_frame(&mut h, "the first converged frame", 0);
+    let rect = app(&h).view_rect(ViewSlot::ThreeD).expect("3D view");
+    let handles = {
+        let v = app(&h).volume.as_ref().expect("volume");
+        let camera = v.view_3d.orbit.camera(&v.data.info.geometry);
+        super::view3d::crop_handles(rect, &camera, &v.data, &v.scene)
+    };
+    let labels: Vec<&str> = handles.iter().map(|h| h.label).collect();
+    for face in ["R", "L", "A", "P", "S", "I"] {
+        assert!(labels.contains(&face), "no {face} handle: {labels:?}");
+    }
+    let top = *handles.iter().find(|h| h.label == "S").expect("S handle");
+    assert_eq!(
+        (top.axis, top.max_side),
+        (2, true),
+        "the phantom's +k is superior"
+    );
+    // Seen from the front, superior is up: dragging the S handle 20 points down lowers the top.
+    drag(&mut h, top.at, top.at + Vec2::new(0.0, 20.0));
+    let crop = app(&h).volume.as_ref().expect("volume").scene.crop;
+    assert!(
+        crop.max[2] < 0.95 && crop.max[2] > 0.5,
+        "crop top {} after the drag",
+        crop.max[2]
+    );
+    assert_eq!(crop.min, [0.0; 3]);
+    assert_eq!(&crop.max[..2], &[1.0, 1.0]);
+    h.step();
+    assert_eq!(
+        app(&h).volume_request().map(|r| r.settings.crop),
+        Some(crop),
+        "the renderer is asked for the new crop"
+    );
+    // One undo step for the whole drag.
+    h.key_press_modifiers(Modifiers::COMMAND, egui::Key::Z);
+    h.step();
+    assert_eq!(
+        app(&h).volume.as_ref().expect("volume").scene.crop,
+        strata_render::CropBox::default()
+    );
+}

@@ -462,6 +462,11 @@ impl View3d {
             paint_slice_planes(&painter, rect, &camera, data, scene);
         }
         paint_measurements_3d(&painter, rect, &camera, data, scene);
+        if prefs.show_crop_box {
+            if crop_box_ui(ui, &painter, rect, &camera, data, scene) {
+                self.interacting_until = Some(Instant::now() + Duration::from_millis(150));
+            }
+        }
         paint_orientation_marker(&painter, rect, &camera);
         let status = data.session.status();
         let toggled = view_title(
@@ -556,6 +561,153 @@ pub fn project_to_view(
         rect.left() + u as f32 * rect.width(),
         rect.top() + w as f32 * rect.height(),
     ))
+}
+
+/// A crop-box face handle: the index axis it moves, which end, and where it is drawn.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CropHandle {
+    pub axis: usize,
+    pub max_side: bool,
+    /// The face's anatomical direction (R/L, A/P, S/I).
+    pub label: &'static str,
+    pub at: Pos2,
+}
+
+/// The crop box's corners in level-0 index space (voxel faces, not centres).
+fn crop_bounds(data: &VolumeData, scene: &Scene) -> ([f64; 3], [f64; 3]) {
+    let dims = data.info.geometry.dims;
+    let lo = [0, 1, 2].map(|a| scene.crop.min[a] as f64 * dims[a] as f64 - 0.5);
+    let hi = [0, 1, 2].map(|a| scene.crop.max[a] as f64 * dims[a] as f64 - 0.5);
+    (lo, hi)
+}
+
+/// The six face handles of the crop box on screen (None behind the eye).
+pub fn crop_handles(
+    rect: Rect,
+    camera: &Camera,
+    data: &VolumeData,
+    scene: &Scene,
+) -> Vec<CropHandle> {
+    let g = &data.info.geometry;
+    let (lo, hi) = crop_bounds(data, scene);
+    let mut handles = Vec::new();
+    for axis in 0..3 {
+        for max_side in [false, true] {
+            let mut centre = [0.0; 3];
+            for a in 0..3 {
+                centre[a] = (lo[a] + hi[a]) * 0.5;
+            }
+            centre[axis] = if max_side { hi[axis] } else { lo[axis] };
+            let outward = DVec3::from(g.direction[axis]) * if max_side { 1.0 } else { -1.0 };
+            if let Some(at) = project_to_view(camera, rect, g, DVec3::from(centre)) {
+                handles.push(CropHandle {
+                    axis,
+                    max_side,
+                    label: super::orientation::label_of(outward),
+                    at,
+                });
+            }
+        }
+    }
+    handles
+}
+
+/// Draws the crop box (12 edges) and its face handles; dragging a handle moves that face
+/// along its axis by the pointer's motion along the axis's screen direction. True while a
+/// handle is dragged.
+fn crop_box_ui(
+    ui: &mut egui::Ui,
+    painter: &egui::Painter,
+    rect: Rect,
+    camera: &Camera,
+    data: &VolumeData,
+    scene: &mut Scene,
+) -> bool {
+    let g = &data.info.geometry;
+    let (lo, hi) = crop_bounds(data, scene);
+    let corner = |c: usize| {
+        DVec3::new(
+            if c & 1 == 0 { lo[0] } else { hi[0] },
+            if c & 2 == 0 { lo[1] } else { hi[1] },
+            if c & 4 == 0 { lo[2] } else { hi[2] },
+        )
+    };
+    let colour = Color32::from_rgb(120, 220, 255);
+    let stroke = Stroke::new(1.2, colour.gamma_multiply(0.8));
+    for c in 0..8usize {
+        for bit in [1usize, 2, 4] {
+            if c & bit == 0 {
+                if let (Some(a), Some(b)) = (
+                    project_to_view(camera, rect, g, corner(c)),
+                    project_to_view(camera, rect, g, corner(c | bit)),
+                ) {
+                    painter.line_segment([a, b], stroke);
+                }
+            }
+        }
+    }
+    let mut dragging = false;
+    let dims = g.dims;
+    for handle in crop_handles(rect, camera, data, scene) {
+        let id = ui
+            .scope_id()
+            .with(("crop handle", handle.axis, handle.max_side));
+        let response = ui.interact(
+            Rect::from_center_size(handle.at, Vec2::splat(14.0)),
+            id,
+            Sense::drag(),
+        );
+        let radius = if response.hovered() || response.dragged() {
+            7.0
+        } else {
+            5.0
+        };
+        painter.circle_filled(handle.at, radius, colour);
+        painter.text(
+            handle.at + Vec2::new(8.0, -8.0),
+            egui::Align2::LEFT_BOTTOM,
+            handle.label,
+            egui::FontId::proportional(12.0),
+            colour,
+        );
+        if response.dragged() {
+            dragging = true;
+            // The screen motion of one voxel along the axis, from this face's centre.
+            let mut centre = [0.0; 3];
+            for a in 0..3 {
+                centre[a] = (lo[a] + hi[a]) * 0.5;
+            }
+            centre[handle.axis] = if handle.max_side {
+                hi[handle.axis]
+            } else {
+                lo[handle.axis]
+            };
+            let mut next = centre;
+            next[handle.axis] += 1.0;
+            let (Some(p0), Some(p1)) = (
+                project_to_view(camera, rect, g, DVec3::from(centre)),
+                project_to_view(camera, rect, g, DVec3::from(next)),
+            ) else {
+                continue;
+            };
+            let per_voxel = p1 - p0;
+            if per_voxel.length_sq() < 1e-6 {
+                continue; // looking straight along the axis: no sensible motion
+            }
+            let voxels = response.drag_delta().dot(per_voxel) / per_voxel.length_sq();
+            let fraction = voxels as f64 / dims[handle.axis] as f64;
+            let (min, max) = (
+                &mut scene.crop.min[handle.axis],
+                &mut scene.crop.max[handle.axis],
+            );
+            if handle.max_side {
+                *max = (*max as f64 + fraction).clamp(*min as f64 + 0.01, 1.0) as f32;
+            } else {
+                *min = (*min as f64 + fraction).clamp(0.0, *max as f64 - 0.01) as f32;
+            }
+        }
+    }
+    dragging
 }
 
 /// Rulers and angles (and the points of one being drawn) over the 3D view.

@@ -44,6 +44,10 @@ pub fn ui(
     {
         view_3d.orbit.orthographic = prefs.orthographic;
     }
+    ui.checkbox(
+        &mut prefs.show_crop_box,
+        "Show the crop box in 3D (drag its face handles)",
+    );
     ui.label("Crop box (fraction of each index axis)");
     for (axis, name) in ["i", "j", "k"].iter().enumerate() {
         ui.horizontal(|ui| {
