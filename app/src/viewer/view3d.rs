@@ -462,10 +462,8 @@ impl View3d {
             paint_slice_planes(&painter, rect, &camera, data, scene);
         }
         paint_measurements_3d(&painter, rect, &camera, data, scene);
-        if prefs.show_crop_box {
-            if crop_box_ui(ui, &painter, rect, &camera, data, scene) {
-                self.interacting_until = Some(Instant::now() + Duration::from_millis(150));
-            }
+        if prefs.show_crop_box && crop_box_ui(ui, &painter, rect, &camera, data, scene) {
+            self.interacting_until = Some(Instant::now() + Duration::from_millis(150));
         }
         paint_orientation_marker(&painter, rect, &camera);
         let status = data.session.status();
