@@ -94,13 +94,16 @@ pub enum ViewSlot {
     Slice(SliceView),
 }
 
-/// ~/Pictures/Strata where there is a Pictures folder, else the data folder's "screenshots"
+/// ~/Pictures/Strata where there is a Pictures folder, else "screenshots" beside the stores
 /// (never the working folder, which is wherever the viewer happened to start).
 pub fn default_screenshot_folder() -> PathBuf {
     let pictures = std::env::var_os("HOME").map(|h| PathBuf::from(h).join("Pictures"));
     match pictures.filter(|p| p.is_dir()) {
         Some(p) => p.join("Strata"),
-        None => super::jobs::data_folder().join("screenshots"),
+        None => {
+            let stores = super::jobs::data_folder();
+            stores.parent().unwrap_or(&stores).join("screenshots")
+        }
     }
 }
 
