@@ -8,16 +8,16 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use egui::{Color32, Key, Pos2, Rect, RichText, Sense, Vec2};
-use serde::{Deserialize, Serialize};
 use strata_render::{CropBox, RenderMode};
 use strata_storage::Store;
 
 use super::dialogs::{HelpWindow, OpenDialog};
 use super::history::History;
 use super::jobs::{PrepareJob, VolumeSource};
-use super::measurements::{Measurement, Measurements};
+use super::measurements::Measurements;
 use super::orientation::{SliceFrame, SliceView};
 use super::panels::{FrameClock, PanelContext, Panels};
+pub use super::preferences::{Layout, Preferences, ViewSlot};
 use super::scene::{
     looks_like_ct, percentile_window, preset_for, start_cursor, ClipSettings, Readout, Scene,
     VolumeData, Window, PRESETS,
@@ -28,9 +28,7 @@ use super::slices::SliceReader;
 use super::tf_editor::TfEditorState;
 use super::view3d::{OrbitCamera, StandardView, View3d};
 use super::volume_session::{ScreenshotRequest, VolumeSession, DEFAULT_GPU_BUDGET_BYTES};
-
-pub const NOT_FOR_DIAGNOSIS: &str = "NOT FOR DIAGNOSTIC USE";
-pub const WARNING_COLOUR: Color32 = Color32::from_rgb(255, 170, 40);
+use super::widgets::{NOT_FOR_DIAGNOSIS, WARNING_COLOUR};
 
 /// How the viewer was started (command line, tests).
 #[derive(Clone, Debug)]
@@ -76,104 +74,6 @@ impl ViewerOptions {
             initial_preset: None,
         }
     }
-}
-
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-pub enum Layout {
-    /// One view filling the area (the focused one).
-    Single,
-    /// 3D on top, the three slices in a row below (Slicer's "conventional").
-    ThreeDOverSlices,
-    /// Axial, 3D / sagittal, coronal (Slicer's "four-up").
-    TwoByTwo,
-}
-
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-pub enum ViewSlot {
-    ThreeD,
-    Slice(SliceView),
-}
-
-/// ~/Pictures/Strata where there is a Pictures folder, else "screenshots" beside the stores
-/// (never the working folder, which is wherever the viewer happened to start).
-pub fn default_screenshot_folder() -> PathBuf {
-    let pictures = std::env::var_os("HOME").map(|h| PathBuf::from(h).join("Pictures"));
-    match pictures.filter(|p| p.is_dir()) {
-        Some(p) => p.join("Strata"),
-        None => {
-            let stores = super::jobs::data_folder();
-            stores.parent().unwrap_or(&stores).join("screenshots")
-        }
-    }
-}
-
-/// Remembered between runs (eframe persistence).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
-pub struct Preferences {
-    pub layout: Layout,
-    pub focused: ViewSlot,
-    pub last_opened: Option<PathBuf>,
-    pub preset: String,
-    pub mode: RenderMode,
-    pub shading: bool,
-    /// Continuous field where bricks of different resolution meet (off: visible seams).
-    pub smooth_transitions: bool,
-    pub orthographic: bool,
-    pub target_fps_enabled: bool,
-    pub target_fps: f64,
-    /// Step in finest voxels when the target frame rate is off.
-    pub step_voxels: f64,
-    /// Fraction of the view's pixels the volume is rendered at.
-    pub render_scale: f32,
-    pub show_identifiers: bool,
-    pub show_side_panel: bool,
-    /// Outline the three slice planes in the 3D view.
-    pub show_planes_in_3d: bool,
-    /// Draw the crop box in the 3D view, with a handle on each face to drag it.
-    pub show_crop_box: bool,
-    pub screenshot_folder: PathBuf,
-    pub screenshot_scale: u32,
-    /// Measurements per store (its path), restored when it is opened again.
-    pub measurements: std::collections::BTreeMap<String, Vec<Measurement>>,
-}
-
-impl Default for Preferences {
-    fn default() -> Self {
-        Preferences {
-            layout: Layout::ThreeDOverSlices,
-            focused: ViewSlot::ThreeD,
-            last_opened: None,
-            preset: "ct-bone".into(),
-            mode: RenderMode::Dvr,
-            shading: true,
-            smooth_transitions: true,
-            orthographic: false,
-            target_fps_enabled: true,
-            target_fps: 10.0,
-            step_voxels: 0.5,
-            render_scale: 0.6,
-            show_identifiers: false,
-            show_side_panel: true,
-            show_planes_in_3d: true,
-            show_crop_box: false,
-            screenshot_folder: default_screenshot_folder(),
-            screenshot_scale: 1,
-            measurements: Default::default(),
-        }
-    }
-}
-
-/// What a view reports after drawing itself.
-#[derive(Clone, Copy, Debug, Default)]
-pub struct ViewResponse {
-    /// Its title was double-clicked: focus (1×1) or unfocus it.
-    pub toggle_focus: bool,
-    /// It was clicked or dragged: it becomes the focused view (keys page it).
-    pub focused: bool,
-    /// The level-0 continuous index under the pointer (slices: on the slice; 3D: at the pick
-    /// depth), for the readout.
-    pub hover: Option<[f64; 3]>,
 }
 
 /// Where a view was laid out this frame.
@@ -224,47 +124,6 @@ pub struct StrataApp {
 fn lock_free_repaint(ctx: &egui::Context) -> super::volume_session::Repaint {
     let ctx = ctx.clone();
     Arc::new(move || ctx.request_repaint())
-}
-
-/// Wheel movement this frame in lines (up positive), whatever unit the platform reports it in.
-pub fn wheel_lines(ui: &egui::Ui) -> f64 {
-    ui.input(|i| {
-        i.events
-            .iter()
-            .map(|e| match e {
-                egui::Event::MouseWheel { unit, delta, .. } => match unit {
-                    // egui-winit reports a wheel click as 40 points on most platforms.
-                    egui::MouseWheelUnit::Point => delta.y as f64 / 40.0,
-                    egui::MouseWheelUnit::Line => delta.y as f64,
-                    egui::MouseWheelUnit::Page => delta.y as f64 * 10.0,
-                },
-                _ => 0.0,
-            })
-            .sum::<f64>()
-    })
-}
-
-/// Paints a view's title; returns true when it was double-clicked (focus toggle).
-pub fn view_title(ui: &mut egui::Ui, rect: Rect, id: &str, title: &str, colour: Color32) -> bool {
-    let galley_rect = Rect::from_min_size(
-        rect.min + Vec2::new(6.0, 4.0),
-        Vec2::new(title.len() as f32 * 7.5 + 8.0, 16.0),
-    );
-    let response = ui.interact(
-        galley_rect,
-        ui.scope_id().with(("title", id)),
-        Sense::click(),
-    );
-    ui.painter_at(rect).text(
-        rect.min + Vec2::new(8.0, 4.0),
-        egui::Align2::LEFT_TOP,
-        title,
-        egui::FontId::proportional(13.0),
-        colour,
-    );
-    response
-        .on_hover_text("Double-click to focus / unfocus this view")
-        .double_clicked()
 }
 
 impl StrataApp {

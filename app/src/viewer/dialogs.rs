@@ -6,9 +6,9 @@ use std::sync::Arc;
 
 use egui::{Color32, RichText};
 
-use super::app::{NOT_FOR_DIAGNOSIS, WARNING_COLOUR};
 use super::jobs::{PrepareJob, VolumeSource};
 use super::sync::lock_ignoring_poison;
+use super::widgets::{NOT_FOR_DIAGNOSIS, WARNING_COLOUR};
 
 /// How a closed file dialog ended.
 enum DialogOutcome {

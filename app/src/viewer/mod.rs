@@ -19,6 +19,7 @@ pub mod jobs;
 pub mod measurements;
 pub mod orientation;
 pub mod panels;
+pub mod preferences;
 pub mod scene;
 pub mod screenshots;
 pub mod slice_view;
@@ -27,6 +28,7 @@ pub(crate) mod sync;
 pub mod tf_editor;
 pub mod view3d;
 pub mod volume_session;
+pub mod widgets;
 
 #[cfg(test)]
 mod ui_tests;

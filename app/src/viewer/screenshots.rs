@@ -14,7 +14,7 @@ use std::time::{Duration, Instant};
 
 use egui::{ColorImage, Rect};
 
-use super::app::ViewSlot;
+use super::preferences::ViewSlot;
 use super::sync::lock_ignoring_poison;
 
 /// What to capture.

@@ -7,12 +7,12 @@ use std::sync::Arc;
 
 use egui::{Color32, Pos2, Rect, Sense, Stroke, TextureHandle, TextureOptions, Vec2};
 
-use super::app::{view_title, wheel_lines, ViewResponse};
 use super::colour_maps::ColourMap;
 use super::measurements::{distance_mm, roi_stats, Shape, Tool};
 use super::orientation::SliceView;
 use super::scene::{voxel_index, Scene, VolumeData, Window};
 use super::slices::{level_for_pixels, SliceImage, SliceRequest};
+use super::widgets::{view_title, wheel_lines, ViewResponse};
 
 /// A slice texture and what it was made from (so it is rebuilt only when one of them changes).
 struct SliceTexture {

@@ -10,8 +10,7 @@ use std::sync::{Arc, Mutex};
 use strata_storage::{BrickId, Store, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
 
 use super::orientation::{SliceFrame, SliceView};
-use super::sync::{lock_ignoring_poison, wait_ignoring_poison};
-use super::volume_session::Repaint;
+use super::sync::{lock_ignoring_poison, wait_ignoring_poison, Repaint};
 
 /// Decompressed bricks kept for paging (bytes).
 pub const SLICE_CACHE_BYTES: usize = 192 << 20;

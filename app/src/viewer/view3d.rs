@@ -9,15 +9,14 @@ use glam::DVec3;
 use serde::{Deserialize, Serialize};
 use strata_render::{Camera, Projection, RenderMode, RenderSettings, Shading, VolumeGeometry};
 
-use super::app::{
-    view_title, wheel_lines, Preferences, ViewResponse, NOT_FOR_DIAGNOSIS, WARNING_COLOUR,
-};
 use super::measurements::{Shape, Tool};
 use super::orientation::SliceView;
+use super::preferences::Preferences;
 use super::scene::{Scene, VolumeData};
 use super::slice_view::slice_colour;
 use super::tf_editor;
 use super::volume_session::{RenderRequest, RenderedFrame};
+use super::widgets::{view_title, wheel_lines, ViewResponse, NOT_FOR_DIAGNOSIS, WARNING_COLOUR};
 
 /// Zoom factor per wheel click in the 3D view.
 pub const ZOOM_PER_WHEEL_LINE: f64 = 1.1;

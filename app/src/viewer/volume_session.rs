@@ -134,7 +134,7 @@ pub struct VolumeSession {
     thread: Option<std::thread::JoinHandle<()>>,
 }
 
-pub type Repaint = Arc<dyn Fn() + Send + Sync>;
+pub use super::sync::Repaint;
 
 impl VolumeSession {
     /// Starts the render thread on an opened store. Never blocks on the GPU or the disk.
@@ -558,7 +558,13 @@ mod tests {
             .expect("session");
         let info = session.info().clone();
         let dvr = RenderRequest {
-            camera: crate::viewer::view3d::OrbitCamera::default().camera(&info.geometry),
+            camera: Camera::orbit(
+                &info.geometry,
+                30.0,
+                15.0,
+                1.5,
+                strata_render::Projection::Perspective { fov_y_deg: 30.0 },
+            ),
             settings: RenderSettings {
                 width: 48,
                 height: 48,
@@ -608,7 +614,13 @@ mod tests {
             .expect("session");
         let info = session.info().clone();
         let request = RenderRequest {
-            camera: crate::viewer::view3d::OrbitCamera::default().camera(&info.geometry),
+            camera: Camera::orbit(
+                &info.geometry,
+                30.0,
+                15.0,
+                1.5,
+                strata_render::Projection::Perspective { fov_y_deg: 30.0 },
+            ),
             settings: RenderSettings {
                 width: 64,
                 height: 64,

@@ -1,7 +1,7 @@
 //! The volume information panel: modality, geometry, values, storage, levels, the scan's
 //! windows; identifiers only when the user asks.
 
-use crate::viewer::app::Preferences;
+use crate::viewer::preferences::Preferences;
 use crate::viewer::scene::VolumeData;
 
 pub fn ui(ui: &mut egui::Ui, prefs: &mut Preferences, data: &VolumeData) {

@@ -10,7 +10,7 @@ pub mod screenshot;
 pub mod slices;
 pub mod transfer_function;
 
-use super::app::Preferences;
+use super::preferences::Preferences;
 use super::scene::{Scene, VolumeData};
 use super::view3d::View3d;
 

@@ -5,7 +5,7 @@
 use std::collections::VecDeque;
 use std::time::Instant;
 
-use crate::viewer::app::Preferences;
+use crate::viewer::preferences::Preferences;
 use crate::viewer::scene::VolumeData;
 
 const MIB: f64 = (1u64 << 20) as f64;

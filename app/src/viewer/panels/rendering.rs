@@ -3,7 +3,7 @@
 
 use strata_render::{CropBox, RenderMode};
 
-use crate::viewer::app::Preferences;
+use crate::viewer::preferences::Preferences;
 use crate::viewer::scene::{Scene, VolumeData};
 use crate::viewer::view3d::View3d;
 

@@ -4,7 +4,7 @@
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 
-use crate::viewer::app::Preferences;
+use crate::viewer::preferences::Preferences;
 use crate::viewer::sync::lock_ignoring_poison;
 
 /// How a closed folder dialog ended.
