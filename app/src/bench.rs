@@ -13,7 +13,9 @@ use strata_storage::readers::{open_source, ReadOptions};
 use strata_storage::{BrickId, Store, BRICK_PAYLOAD_VOXELS};
 
 mod accuracy;
+mod adaptive;
 mod common;
+mod remote;
 mod time_critical;
 mod transitions;
 
@@ -92,14 +94,51 @@ pub enum BenchCommand {
         #[arg(long, default_value_t = 20.0, allow_hyphen_values = true)]
         elevation: f64,
     },
+    /// The adaptive-sampling paper's Tables 2 and 3: sampling operations, synthesis
+    /// operations and frame time of the raycaster, adaptive sampling with d ≡ 1 and with the
+    /// oracle at a sweep of ε, with PSNR against the f64 reference (CSV, markdown, PNG plot).
+    Adaptive {
+        /// A store, or `phantom` for a generated CT phantom.
+        input: String,
+        /// Edge of the generated phantom.
+        #[arg(long, default_value_t = 192)]
+        phantom_size: u64,
+        /// Image size WxH (the f64 reference is rendered at the same size).
+        #[arg(long, default_value = "512x512")]
+        size: String,
+        /// Timed frames per setting (median reported).
+        #[arg(long, default_value_t = 3)]
+        frames: usize,
+        /// Transfer function preset or JSON file (default by modality).
+        #[arg(long)]
+        tf: Option<String>,
+        /// Base step (slice spacing) in finest voxels.
+        #[arg(long, default_value_t = 0.5)]
+        step: f64,
+        /// Oracle ε values, comma-separated.
+        #[arg(long, default_value = "0.0005,0.001,0.002,0.005,0.01,0.02,0.05")]
+        epsilons: String,
+        /// Coarsest pyramid level (largest sampling distance 2^l_max slices).
+        #[arg(long, default_value_t = 3)]
+        l_max: u32,
+        /// Screen tile of one workgroup: 8, 16 or 32.
+        #[arg(long, default_value_t = 16)]
+        tile: u32,
+        #[arg(long, default_value = "target/bench-adaptive")]
+        out_dir: PathBuf,
+    },
     /// The mixed-resolution paper's Table 1: a level-0/level-1 cut with about 25 % transition
     /// bricks, frame time with smoothing off/on × unshaded/shaded, and the error of each image
     /// against the f64 reference of the full-resolution cut and of the same cut.
     Transitions(transitions::Options),
+    /// The flythrough from a local store and through `strata serve` on loopback with added
+    /// round-trip delays: convergence time, bytes and requests in flight, remote vs local.
+    Remote(remote::Options),
 }
 
 pub fn run(cmd: BenchCommand) -> Result<()> {
     match cmd {
+        BenchCommand::Remote(options) => remote::run(options),
         BenchCommand::Import {
             size,
             rss_size,
@@ -144,6 +183,37 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
             elevation,
         }),
         BenchCommand::Transitions(options) => transitions::run(options),
+        BenchCommand::Adaptive {
+            input,
+            phantom_size,
+            size,
+            frames,
+            tf,
+            step,
+            epsilons,
+            l_max,
+            tile,
+            out_dir,
+        } => adaptive::run(adaptive::Options {
+            input,
+            phantom_size,
+            size,
+            frames,
+            tf,
+            step,
+            epsilons: epsilons
+                .split(',')
+                .filter(|e| !e.trim().is_empty())
+                .map(|e| {
+                    e.trim()
+                        .parse::<f64>()
+                        .with_context(|| format!("--epsilons: '{e}' is not a number"))
+                })
+                .collect::<Result<Vec<_>>>()?,
+            l_max,
+            tile,
+            out_dir,
+        }),
     }
 }
 

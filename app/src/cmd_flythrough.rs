@@ -16,13 +16,18 @@ use strata_loader::{Distribution, FrameStats, ResidentBricks, StreamingConfig, S
 use strata_render::{
     compare_rgba8, Camera, GpuContext, Projection, RenderSettings, VolumeGeometry,
 };
-use strata_storage::{BrickId, Store};
+use strata_source::VolumeSource;
+use strata_storage::BrickId;
 
 use crate::cmd_render::{choose_transfer_function, parse_size};
 
 #[derive(Args)]
 pub struct FlythroughArgs {
-    pub store: PathBuf,
+    /// A store directory, or http://HOST:PORT/v1/stores/NAME served by `strata serve`.
+    pub store: String,
+    /// Bearer token for a server that requires one.
+    #[arg(long)]
+    pub token_file: Option<PathBuf>,
     /// Frames to render at most over the whole path.
     #[arg(long, default_value_t = 600)]
     pub frames: usize,
@@ -32,9 +37,9 @@ pub struct FlythroughArgs {
     /// Image size WxH.
     #[arg(long, default_value = "512x512")]
     pub size: String,
-    #[arg(long, default_value_t = 256)]
+    #[arg(long, default_value_t = 256, value_parser = crate::cli_checks::budget_mib)]
     pub gpu_mib: u64,
-    #[arg(long, default_value_t = 512)]
+    #[arg(long, default_value_t = 512, value_parser = crate::cli_checks::budget_mib)]
     pub cpu_mib: u64,
     /// Bricks uploaded per frame at most.
     #[arg(long, default_value_t = 64)]
@@ -66,7 +71,7 @@ pub struct FlythroughArgs {
 
 /// Viewpoint `k` of `n`: an orbit that swings around and closes in, ending inside the body's
 /// outline where the finest level is needed.
-fn viewpoint(geometry: &VolumeGeometry, k: f64, n: usize) -> Camera {
+pub(crate) fn viewpoint(geometry: &VolumeGeometry, k: f64, n: usize) -> Camera {
     let t = k / (n.max(2) - 1) as f64;
     Camera::orbit(
         geometry,
@@ -130,13 +135,14 @@ pub fn run(args: FlythroughArgs) -> Result<()> {
 
     // Time to first frame: open the store, stream it, draw one frame, wait for the GPU.
     let opening = Instant::now();
-    let store = Arc::new(
-        Store::open_with_cache(&args.store, config.sled_cache_bytes)
-            .with_context(|| format!("cannot open store {}", args.store.display()))?,
-    );
+    let store: Arc<dyn VolumeSource> = crate::volume_location::open_source(
+        &args.store,
+        args.token_file.as_deref(),
+        config.sled_cache_bytes,
+    )?;
     let tf = choose_transfer_function(args.tf.as_deref(), &store.header().modality)?;
-    let mut volume = StreamingVolume::new(&ctx, store.clone(), store.clone(), &tf, config.clone())
-        .with_context(|| format!("cannot stream store {}", args.store.display()))?;
+    let mut volume = StreamingVolume::new(&ctx, store.clone(), &tf, config.clone())
+        .with_context(|| format!("cannot stream store {}", args.store))?;
     let open_seconds = opening.elapsed().as_secs_f64();
     let geometry = volume.geometry().clone();
 
@@ -196,7 +202,13 @@ pub fn run(args: FlythroughArgs) -> Result<()> {
             }
         }
         if result.converged && !args.no_in_core {
-            result.in_core = Some(in_core(&ctx, &store, &mut volume, &camera, &settings)?);
+            result.in_core = Some(in_core(
+                &ctx,
+                store.as_ref(),
+                &mut volume,
+                &camera,
+                &settings,
+            )?);
         }
         print_stop(&result);
         stops.push(result);
@@ -236,7 +248,7 @@ fn timed_frame(
 /// field, no streaming. Also checks the streamed image equals it.
 fn in_core(
     ctx: &GpuContext,
-    store: &Store,
+    store: &dyn VolumeSource,
     volume: &mut StreamingVolume,
     camera: &Camera,
     settings: &RenderSettings,
@@ -324,7 +336,7 @@ fn summary(args: &FlythroughArgs, volume: &StreamingVolume, record: &RunRecord) 
     let loader = Distribution::of(loader_seconds);
     println!(
         "flythrough of {} ({} frames, {} viewpoints)",
-        args.store.display(),
+        args.store,
         frames.count,
         stops.len()
     );

@@ -16,16 +16,16 @@ pub struct ImportArgs {
     #[arg(long)]
     pub series: Option<String>,
     /// Memory budget for the import in MiB (buffers plus database cache).
-    #[arg(long, default_value_t = 1024)]
+    #[arg(long, default_value_t = 1024, value_parser = crate::cli_checks::budget_mib)]
     pub memory_mib: u64,
-    /// Raw input: dimensions as X,Y,Z.
-    #[arg(long, value_delimiter = ',', num_args = 3)]
+    /// Raw input: dimensions as X,Y,Z (512,512,300 or 512 512 300).
+    #[arg(long, value_delimiter = ',', num_args = 1..=3)]
     pub raw_dims: Option<Vec<u64>>,
     /// Raw input: u8, i8, u16, i16, u32, i32, f32, f64.
     #[arg(long)]
     pub raw_type: Option<String>,
-    /// Raw input: voxel spacing in mm as X,Y,Z.
-    #[arg(long, value_delimiter = ',', num_args = 3, default_values_t = vec![1.0, 1.0, 1.0])]
+    /// Raw input: voxel spacing in mm as X,Y,Z (0.5,0.5,1 or 0.5 0.5 1).
+    #[arg(long, value_delimiter = ',', num_args = 1..=3, default_values_t = vec![1.0, 1.0, 1.0])]
     pub raw_spacing: Vec<f64>,
     /// Raw input: byte order, little or big.
     #[arg(long, default_value = "little")]
@@ -54,16 +54,27 @@ pub fn parse_sample_type(name: &str) -> Result<SampleType> {
     })
 }
 
+/// Three values of a comma- or space-separated `--flag X,Y,Z`.
+fn three<T: Copy + std::fmt::Display>(flag: &str, values: &[T]) -> Result<[T; 3]> {
+    match values {
+        [x, y, z] => Ok([*x, *y, *z]),
+        _ => bail!(
+            "--{flag} needs three values as X,Y,Z (or X Y Z), got {}",
+            values
+                .iter()
+                .map(|v| v.to_string())
+                .collect::<Vec<_>>()
+                .join(",")
+        ),
+    }
+}
+
 pub fn run(args: ImportArgs) -> Result<()> {
     let raw = match (&args.raw_dims, &args.raw_type) {
         (Some(d), Some(t)) => Some(RawSpec {
-            dims: [d[0], d[1], d[2]],
+            dims: three("raw-dims", d)?,
             sample_type: parse_sample_type(t)?,
-            spacing_mm: [
-                args.raw_spacing[0],
-                args.raw_spacing[1],
-                args.raw_spacing[2],
-            ],
+            spacing_mm: three("raw-spacing", &args.raw_spacing)?,
             byte_order: match args.raw_endian.as_str() {
                 "little" => ByteOrder::Little,
                 "big" => ByteOrder::Big,

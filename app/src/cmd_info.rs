@@ -1,7 +1,8 @@
 use std::path::Path;
 
-use anyhow::{Context, Result};
-use strata_storage::Store;
+use anyhow::Result;
+
+use crate::volume_location::{open, Opened};
 
 /// Anatomical label of a direction: the LPS axis it mostly points along.
 pub fn orientation_letter(direction: [f64; 3]) -> char {
@@ -25,16 +26,25 @@ pub fn orientation_letter(direction: [f64; 3]) -> char {
     }
 }
 
-pub fn run(path: &Path) -> Result<()> {
-    let store =
-        Store::open(path).with_context(|| format!("cannot open store {}", path.display()))?;
+pub fn run(location: &str, token_file: Option<&Path>) -> Result<()> {
+    let opened = open(
+        location,
+        token_file,
+        strata_storage::store::DEFAULT_READ_CACHE_BYTES,
+    )?;
+    let withheld = matches!(&opened, Opened::Remote(r) if r.identifiers_withheld());
+    let store = opened.source();
     let h = store.header();
     let g = &h.geometry;
     let code: String = g.direction.iter().map(|d| orientation_letter(*d)).collect();
     let m = &h.value_mapping;
     let (lo, hi) = (m.physical(h.stored_range[0]), m.physical(h.stored_range[1]));
-    println!("store        {}", path.display());
-    println!("description  {}", h.description);
+    println!("store        {location}");
+    if withheld {
+        println!("description  (withheld by the server; it runs without --expose-identifiers)");
+    } else {
+        println!("description  {}", h.description);
+    }
     println!(
         "modality     {}",
         if h.modality.is_empty() {

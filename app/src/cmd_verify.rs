@@ -1,27 +1,42 @@
 use std::path::Path;
 
 use anyhow::{bail, Context, Result};
-use strata_storage::Store;
 
-pub fn run(path: &Path) -> Result<()> {
-    let store =
-        Store::open(path).with_context(|| format!("cannot open store {}", path.display()))?;
-    let total = store.layout().total_bricks();
+use crate::volume_location::{open, Opened};
+
+/// Requests in flight while verifying a remote store (each a blocking read on its thread).
+const REMOTE_VERIFY_THREADS: usize = 32;
+
+pub fn run(location: &str, token_file: Option<&Path>) -> Result<()> {
+    let opened = open(
+        location,
+        token_file,
+        strata_storage::store::DEFAULT_READ_CACHE_BYTES,
+    )?;
+    let source = opened.source();
+    let total = source.layout().total_bricks();
     let bar = crate::progress::count_bar(total, "verifying");
-    let problems = store
-        .verify(|done, _| bar.set_position(done))
-        .with_context(|| format!("verifying {}", path.display()))?;
+    let problems = match &opened {
+        // The store's own check also counts the records against the octree.
+        Opened::Local(store) => store
+            .verify(|done, _| bar.set_position(done))
+            .with_context(|| format!("verifying {location}"))?,
+        Opened::Remote(_) => {
+            strata_source::verify_source(source.as_ref(), REMOTE_VERIFY_THREADS, &|done, _| {
+                bar.set_position(done)
+            })
+        }
+    };
     bar.finish_and_clear();
     if problems.is_empty() {
-        println!("{}: all {total} bricks verified", path.display());
+        println!("{location}: all {total} bricks verified");
         return Ok(());
     }
     for p in &problems {
         eprintln!("{p}");
     }
     bail!(
-        "{}: {} problem(s) found in {total} bricks",
-        path.display(),
+        "{location}: {} problem(s) found in {total} bricks",
         problems.len()
     )
 }

@@ -1,14 +1,18 @@
 //! `strata`: the viewer and its command line. Not for diagnostic use.
 
 mod bench;
+mod cli_checks;
 mod cmd_flythrough;
 mod cmd_import;
 mod cmd_info;
 mod cmd_render;
 mod cmd_sample;
+mod cmd_serve;
 mod cmd_verify;
+mod error_report;
 mod progress;
 mod viewer;
+mod volume_location;
 
 use std::path::PathBuf;
 
@@ -31,9 +35,11 @@ enum Command {
     /// Import a scan (DICOM folder or file, NIfTI, NRRD, MetaImage, raw) into a brick store.
     Import(cmd_import::ImportArgs),
     /// Print a store's geometry, orientation, value range, levels and sizes.
-    Info { store: PathBuf },
+    Info(StoreArg),
     /// Read and check every brick of a store (checksums, decompression, ranges).
-    Verify { store: PathBuf },
+    Verify(StoreArg),
+    /// Serve stores read-only over HTTP/1.1 and HTTP/2 (loopback unless told otherwise).
+    Serve(cmd_serve::ServeArgs),
     /// Render one frame of a store headless to PNG (GPU, or the f64 CPU reference).
     Render(cmd_render::RenderArgs),
     /// Write the deterministic CT phantom as a store or as NRRD (by the extension of --out).
@@ -48,20 +54,41 @@ enum Command {
 }
 
 fn main() -> std::process::ExitCode {
+    install_interrupt_cleanup();
     match run(Cli::parse()) {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            eprintln!("error: {}", error_report::describe(&e));
             std::process::ExitCode::FAILURE
         }
+    }
+}
+
+/// Ctrl-C and SIGTERM end the process without running destructors, which would leave the
+/// decompressed staging copy of a compressed input behind (gigabytes for a large scan): delete
+/// it first. (SIGKILL cannot be caught: the next run removes such files, see
+/// `remove_stale_staging_files`.)
+fn install_interrupt_cleanup() {
+    let installed = ctrlc::set_handler(|| {
+        let removed = strata_storage::readers::remove_live_staging_files();
+        if removed > 0 {
+            eprintln!("interrupted: removed {removed} temporary staging file(s)");
+        } else {
+            eprintln!("interrupted");
+        }
+        std::process::exit(130);
+    });
+    if let Err(e) = installed {
+        eprintln!("warning: cannot install the interrupt handler ({e}); an interrupted import may leave its staging file in the temp folder");
     }
 }
 
 fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Some(Command::Import(args)) => cmd_import::run(args),
-        Some(Command::Info { store }) => cmd_info::run(&store),
-        Some(Command::Verify { store }) => cmd_verify::run(&store),
+        Some(Command::Info(a)) => cmd_info::run(&a.store, a.token_file.as_deref()),
+        Some(Command::Verify(a)) => cmd_verify::run(&a.store, a.token_file.as_deref()),
+        Some(Command::Serve(args)) => cmd_serve::run(args),
         Some(Command::Sample(args)) => cmd_sample::run(args),
         Some(Command::Render(args)) => cmd_render::run(args),
         Some(Command::Bench(cmd)) => bench::run(cmd),
@@ -69,6 +96,15 @@ fn run(cli: Cli) -> Result<()> {
         Some(Command::View(args)) => view(args),
         None => viewer::run(viewer::ViewerOptions::new(viewer::demo_source())),
     }
+}
+
+#[derive(clap::Args)]
+struct StoreArg {
+    /// A store directory, or http://HOST:PORT/v1/stores/NAME served by `strata serve`.
+    store: String,
+    /// Bearer token for a server that requires one.
+    #[arg(long)]
+    token_file: Option<PathBuf>,
 }
 
 #[derive(clap::Args)]

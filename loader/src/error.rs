@@ -7,6 +7,8 @@ pub enum LoaderError {
     #[error(transparent)]
     Storage(#[from] StorageError),
     #[error(transparent)]
+    Source(#[from] strata_source::SourceError),
+    #[error(transparent)]
     Render(#[from] strata_render::RenderError),
     #[error("{0}")]
     Unsupported(String),

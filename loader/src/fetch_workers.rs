@@ -16,76 +16,43 @@ use std::thread::JoinHandle;
 use std::time::Duration;
 
 use crossbeam_channel::{Receiver, Sender};
-use strata_storage::{BrickId, StorageError, Store};
+use strata_source::{BrickFetcher, FetchResult, SourceError, VolumeSource};
+use strata_storage::BrickId;
 
-use crate::cpu_cache::Brick;
 use crate::error::LoaderError;
 
-/// Where bricks come from. `Store` is the real one; tests wrap it to inject latency.
-pub trait BrickReader: Send + Sync {
-    /// Reads, verifies and decompresses one 36³ brick.
-    fn read_brick(&self, id: BrickId) -> Result<Vec<u16>, StorageError>;
-    /// Compressed bytes the read took from the store (I/O accounting).
-    fn stored_brick_bytes(&self, id: BrickId) -> u64;
-}
+pub use strata_source::{QueueCounters, RequestClass};
 
-impl BrickReader for Store {
-    fn read_brick(&self, id: BrickId) -> Result<Vec<u16>, StorageError> {
-        Store::read_brick(self, id)
-    }
-    fn stored_brick_bytes(&self, id: BrickId) -> u64 {
-        Store::stored_brick_bytes(self, id).unwrap_or(0)
-    }
-}
-
-/// A reader that sleeps before every read: slow disks and network storage in tests.
+/// A source that sleeps before every brick read: slow disks and network storage in tests.
 pub struct SlowReader<R> {
     pub inner: R,
     pub delay: Duration,
 }
 
-impl<R: BrickReader> BrickReader for SlowReader<R> {
-    fn read_brick(&self, id: BrickId) -> Result<Vec<u16>, StorageError> {
+impl<R: VolumeSource> VolumeSource for SlowReader<R> {
+    fn location(&self) -> String {
+        self.inner.location()
+    }
+    fn header(&self) -> &strata_storage::StoreHeader {
+        self.inner.header()
+    }
+    fn skeleton(&self) -> &strata_storage::store::Skeleton {
+        self.inner.skeleton()
+    }
+    fn histogram(&self) -> &strata_storage::histogram::Histogram {
+        self.inner.histogram()
+    }
+    fn stats(&self) -> &strata_storage::store::StoreStats {
+        self.inner.stats()
+    }
+    fn read_brick_record(&self, id: BrickId) -> Result<Vec<u8>, SourceError> {
+        std::thread::sleep(self.delay);
+        self.inner.read_brick_record(id)
+    }
+    fn read_brick(&self, id: BrickId) -> Result<Vec<u16>, SourceError> {
         std::thread::sleep(self.delay);
         self.inner.read_brick(id)
     }
-    fn stored_brick_bytes(&self, id: BrickId) -> u64 {
-        self.inner.stored_brick_bytes(id)
-    }
-}
-
-impl<R: BrickReader + ?Sized> BrickReader for Arc<R> {
-    fn read_brick(&self, id: BrickId) -> Result<Vec<u16>, StorageError> {
-        (**self).read_brick(id)
-    }
-    fn stored_brick_bytes(&self, id: BrickId) -> u64 {
-        (**self).stored_brick_bytes(id)
-    }
-}
-
-#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
-pub enum RequestClass {
-    /// Speculative; any demand request overtakes it.
-    Prefetch,
-    /// The current cut is waiting for it.
-    Demand,
-}
-
-pub struct FetchResult {
-    pub id: BrickId,
-    pub class: RequestClass,
-    pub outcome: Result<Brick, StorageError>,
-    pub stored_bytes: u64,
-}
-
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct QueueCounters {
-    /// Requests removed because a newer view no longer wanted them.
-    pub stale_dropped: u64,
-    /// Requests not queued because the queue was full (asked again next frame if still wanted).
-    pub overflow_dropped: u64,
-    pub demand_started: u64,
-    pub prefetch_started: u64,
 }
 
 struct QueueState {
@@ -120,7 +87,7 @@ impl FetchWorkers {
     /// Starts `workers` threads named `strata-fetch-N`. The result channel holds at most
     /// `in_transit` bricks, which bounds the memory between a read and the CPU cache.
     pub fn start(
-        reader: Arc<dyn BrickReader>,
+        reader: Arc<dyn VolumeSource>,
         workers: usize,
         capacity: usize,
         in_transit: usize,
@@ -248,7 +215,7 @@ impl Drop for FetchWorkers {
     }
 }
 
-fn worker_loop(shared: &Shared, reader: &dyn BrickReader, results: &Sender<FetchResult>) {
+fn worker_loop(shared: &Shared, reader: &dyn VolumeSource, results: &Sender<FetchResult>) {
     loop {
         let (id, class) = {
             let mut state = shared.lock();
@@ -268,6 +235,10 @@ fn worker_loop(shared: &Shared, reader: &dyn BrickReader, results: &Sender<Fetch
                 if let Some((id, class)) = best {
                     state.queued.remove(&id);
                     state.in_flight.insert(id);
+                    state.counters.max_in_flight = state
+                        .counters
+                        .max_in_flight
+                        .max(state.in_flight.len() as u64);
                     match class {
                         RequestClass::Demand => state.counters.demand_started += 1,
                         RequestClass::Prefetch => state.counters.prefetch_started += 1,
@@ -278,12 +249,12 @@ fn worker_loop(shared: &Shared, reader: &dyn BrickReader, results: &Sender<Fetch
             }
         };
         shared.busy_workers.fetch_add(1, Ordering::Relaxed);
-        let outcome = reader.read_brick(id).map(Arc::new);
-        let stored_bytes = if outcome.is_ok() {
-            reader.stored_brick_bytes(id)
-        } else {
-            0
-        };
+        // Record and decode separately (same checks as `read_brick`) to count the bytes read.
+        let mut stored_bytes = 0;
+        let outcome = reader.read_brick_record(id).and_then(|record| {
+            stored_bytes = record.len() as u64;
+            decode_record(reader, id, &record)
+        });
         shared.busy_workers.fetch_sub(1, Ordering::Relaxed);
         if results
             .send(FetchResult {
@@ -299,26 +270,96 @@ fn worker_loop(shared: &Shared, reader: &dyn BrickReader, results: &Sender<Fetch
     }
 }
 
+/// Decodes a record the way the source's own `read_brick` does (its error wording).
+fn decode_record(
+    reader: &dyn VolumeSource,
+    id: BrickId,
+    record: &[u8],
+) -> Result<strata_source::Brick, SourceError> {
+    match strata_storage::brick::decode_brick(id, record) {
+        Ok(voxels) => Ok(Arc::new(voxels)),
+        // Let the source word the error (a store names its file and the brick).
+        Err(_) => reader.read_brick(id).map(Arc::new),
+    }
+}
+
+impl BrickFetcher for FetchWorkers {
+    fn set_requests(&self, demand: &[(BrickId, f64)], prefetch: &[(BrickId, f64)]) -> usize {
+        FetchWorkers::set_requests(self, demand, prefetch)
+    }
+    fn try_results(&self) -> Vec<FetchResult> {
+        FetchWorkers::try_results(self)
+    }
+    fn complete(&self, id: BrickId) {
+        FetchWorkers::complete(self, id)
+    }
+    fn queued(&self) -> usize {
+        FetchWorkers::queued(self)
+    }
+    fn in_flight(&self) -> usize {
+        FetchWorkers::in_flight(self)
+    }
+    fn capacity(&self) -> usize {
+        FetchWorkers::capacity(self)
+    }
+    fn counters(&self) -> QueueCounters {
+        FetchWorkers::counters(self)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use std::time::Instant;
 
-    struct Counting(Mutex<Vec<BrickId>>);
-    impl BrickReader for Counting {
-        fn read_brick(&self, id: BrickId) -> Result<Vec<u16>, StorageError> {
-            self.0.lock().unwrap_or_else(|p| p.into_inner()).push(id);
-            std::thread::sleep(Duration::from_millis(20));
-            Ok(vec![id.coords[0] as u16; 4])
+    /// A real (small) store that logs which bricks were read and takes 20 ms per read.
+    struct Counting {
+        log: Mutex<Vec<BrickId>>,
+        store: strata_storage::Store,
+        _dir: tempfile::TempDir,
+    }
+    impl Counting {
+        fn new() -> Self {
+            let dir = tempfile::tempdir().unwrap();
+            let path = dir.path().join("p.strata");
+            strata_storage::phantom::Phantom::cube(40)
+                .write_store(&path, &strata_storage::import::ImportOptions::default())
+                .unwrap();
+            let store = strata_storage::Store::open(&path).unwrap();
+            Counting {
+                log: Mutex::new(Vec::new()),
+                store,
+                _dir: dir,
+            }
         }
-        fn stored_brick_bytes(&self, _: BrickId) -> u64 {
-            8
+    }
+    impl VolumeSource for Counting {
+        fn location(&self) -> String {
+            self.store.location()
+        }
+        fn header(&self) -> &strata_storage::StoreHeader {
+            self.store.header()
+        }
+        fn skeleton(&self) -> &strata_storage::store::Skeleton {
+            self.store.skeleton()
+        }
+        fn histogram(&self) -> &strata_storage::histogram::Histogram {
+            self.store.histogram()
+        }
+        fn stats(&self) -> &strata_storage::store::StoreStats {
+            self.store.stats()
+        }
+        fn read_brick_record(&self, id: BrickId) -> Result<Vec<u8>, SourceError> {
+            self.log.lock().unwrap_or_else(|p| p.into_inner()).push(id);
+            std::thread::sleep(Duration::from_millis(20));
+            // Ids outside the phantom's octree come back as errors: still a result.
+            VolumeSource::read_brick_record(&self.store, id)
         }
     }
 
     #[test]
     fn stale_requests_are_dropped_and_the_queue_stays_bounded() {
-        let reader = Arc::new(Counting(Mutex::new(Vec::new())));
+        let reader = Arc::new(Counting::new());
         let workers = FetchWorkers::start(reader.clone(), 1, 8, 2).unwrap();
         let ids: Vec<(BrickId, f64)> = (0..100)
             .map(|i| (BrickId::new(0, [i, 0, 0]), i as f64))
@@ -344,13 +385,13 @@ mod tests {
             std::thread::sleep(Duration::from_millis(5));
         }
         assert!(got.contains(&BrickId::new(1, [0, 0, 0])));
-        let read = reader.0.lock().unwrap().clone();
+        let read = reader.log.lock().unwrap().clone();
         assert!(read.len() <= 3, "stale requests were read anyway: {read:?}");
     }
 
     #[test]
     fn demand_overtakes_prefetch() {
-        let reader = Arc::new(Counting(Mutex::new(Vec::new())));
+        let reader = Arc::new(Counting::new());
         let workers = FetchWorkers::start(reader.clone(), 1, 16, 2).unwrap();
         let prefetch: Vec<(BrickId, f64)> = (0..4)
             .map(|i| (BrickId::new(0, [i, 0, 0]), 100.0))
@@ -361,13 +402,13 @@ mod tests {
         std::thread::sleep(Duration::from_millis(5));
         workers.set_requests(&demand, &prefetch);
         let deadline = Instant::now() + Duration::from_secs(5);
-        while reader.0.lock().unwrap().len() < 3 && Instant::now() < deadline {
+        while reader.log.lock().unwrap().len() < 3 && Instant::now() < deadline {
             for r in workers.try_results() {
                 workers.complete(r.id);
             }
             std::thread::sleep(Duration::from_millis(5));
         }
-        let read = reader.0.lock().unwrap().clone();
+        let read = reader.log.lock().unwrap().clone();
         assert_eq!(
             read.get(1),
             Some(&BrickId::new(0, [9, 0, 0])),

@@ -16,7 +16,8 @@ pub mod streaming;
 pub mod visibility;
 
 pub use error::LoaderError;
-pub use fetch_workers::{BrickReader, SlowReader};
+pub use fetch_workers::SlowReader;
 pub use metrics::{Distribution, FrameStats};
 pub use store_volume::ResidentBricks;
+pub use strata_source::{SourceStatus, VolumeSource};
 pub use streaming::{BrickFailure, StreamingConfig, StreamingVolume};

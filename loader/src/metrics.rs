@@ -37,6 +37,17 @@ pub struct FrameStats {
     pub queue_capacity: usize,
     pub stale_dropped_total: u64,
     pub overflow_dropped_total: u64,
+    /// Requests already on their way (a remote source's) aborted because the view moved on.
+    pub cancelled_in_flight_total: u64,
+    /// Requests sent again (connection errors, 429/503, a record that failed its checksum).
+    pub retried_total: u64,
+    /// Records that arrived damaged (each re-requested once, then reported as failed).
+    pub checksum_failures_total: u64,
+    /// Most requests in flight at once since open.
+    pub max_in_flight: u64,
+    /// The source's state: `Retrying` while a remote source cannot be reached ("connection
+    /// lost, retrying"); the frame keeps showing what is loaded.
+    pub source_status: strata_source::SourceStatus,
     pub bricks_read_total: u64,
     /// Compressed bytes read from the store.
     pub stored_bytes_read_total: u64,

@@ -8,7 +8,8 @@
 //! not; only the subtree range may end refinement, or that wire would never load.
 
 use strata_render::{TransferFunctionTable, ValueMapping};
-use strata_storage::{BrickId, Store};
+use strata_source::VolumeSource;
+use strata_storage::BrickId;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct StoredRange {
@@ -82,7 +83,8 @@ impl OctreeRanges {
         OctreeRanges { levels, page_dims }
     }
 
-    pub fn from_store(store: &Store) -> Self {
+    /// From a source's skeleton (a local store, or one opened over the network).
+    pub fn from_source(store: &dyn VolumeSource) -> Self {
         let layout = store.layout();
         let bricks: Vec<[u32; 3]> = (0..layout.level_count())
             .map(|l| layout.bricks_in_level(l).map(|b| b))

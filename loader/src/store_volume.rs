@@ -8,7 +8,8 @@ use strata_render::{
     BrickCache, BrickSource, PageEntry, PageTable, TransferFunctionTable, ValueMapping,
     VolumeGeometry,
 };
-use strata_storage::{BrickId, StorageError, Store};
+use strata_source::{SourceError, VolumeSource};
+use strata_storage::BrickId;
 
 pub use crate::error::LoaderError;
 
@@ -25,7 +26,10 @@ impl BrickSource for ResidentBricks {
 
 impl ResidentBricks {
     /// Reads every node `table` references, in parallel. A damaged brick is an error naming it.
-    pub fn load(store: &Store, table: &PageTable) -> Result<ResidentBricks, LoaderError> {
+    pub fn load(
+        store: &dyn VolumeSource,
+        table: &PageTable,
+    ) -> Result<ResidentBricks, LoaderError> {
         let mut nodes: Vec<(u8, [u32; 3])> = table
             .entries
             .iter()
@@ -43,7 +47,7 @@ impl ResidentBricks {
         let bricks = nodes
             .into_par_iter()
             .map(|(level, node)| Ok(((level, node), store.read_brick(BrickId::new(level, node))?)))
-            .collect::<Result<HashMap<_, _>, StorageError>>()?;
+            .collect::<Result<HashMap<_, _>, SourceError>>()?;
         Ok(ResidentBricks { bricks })
     }
 
@@ -83,7 +87,7 @@ impl ResidentBricks {
 /// A page table whose position `page` is served by level `level_of(page)` (clamped to the
 /// root), with slots assigned densely in first-use order.
 pub fn page_table_for_cut(
-    store: &Store,
+    store: &dyn VolumeSource,
     geometry: &VolumeGeometry,
     level_of: impl Fn([u32; 3]) -> u8,
 ) -> PageTable {
@@ -105,7 +109,7 @@ pub fn page_table_for_cut(
 /// `tf_table`, and the bricks that cut needs, read and verified: what `GpuCut::upload` and the
 /// CPU reference take for an in-core render of one level.
 pub fn load_uniform_cut(
-    store: &Store,
+    store: &dyn VolumeSource,
     geometry: &VolumeGeometry,
     mapping: ValueMapping,
     tf_table: &TransferFunctionTable,
@@ -119,7 +123,7 @@ pub fn load_uniform_cut(
 
 /// Flags positions whose node is transparent under the transfer function (skeleton ranges).
 pub fn classify_empty(
-    store: &Store,
+    store: &dyn VolumeSource,
     table: &mut PageTable,
     mapping: ValueMapping,
     tf: &TransferFunctionTable,

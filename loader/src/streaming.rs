@@ -13,12 +13,13 @@ use strata_render::{
     PageEntry, PageTable, Raycaster, RenderMode, RenderSettings, Scene, TransferFunction,
     TransferFunctionTable, ValueMapping, VolumeGeometry, BRICK_PAYLOAD_VOXELS,
 };
+use strata_source::{BrickFetcher, FetchOptions, SourceStatus, VolumeSource};
 use strata_storage::{BrickId, Store};
 
 use crate::cpu_cache::CpuBrickCache;
 use crate::cut_selection::{select_cut, Cut, CutLimits, LeafKind, Residency, ViewSetup};
 use crate::error::LoaderError;
-use crate::fetch_workers::{BrickReader, FetchWorkers};
+use crate::fetch_workers::FetchWorkers;
 use crate::gpu_slots::GpuSlots;
 use crate::metrics::FrameStats;
 use crate::octree_ranges::{Emptiness, OctreeRanges, StoredRange};
@@ -153,7 +154,8 @@ pub struct StreamingVolume {
     page_table: PageTable,
     slots: GpuSlots,
     cpu: CpuBrickCache,
-    workers: FetchWorkers,
+    workers: Box<dyn BrickFetcher>,
+    source: Arc<dyn VolumeSource>,
     visibility: PageVisibility,
     motion: MotionPredictor,
     failed: HashSet<BrickId>,
@@ -177,23 +179,24 @@ impl StreamingVolume {
         config: StreamingConfig,
     ) -> Result<Self, LoaderError> {
         let store = Arc::new(Store::open_with_cache(path, config.sled_cache_bytes)?);
-        Self::new(ctx, store.clone(), store, tf, config)
+        Self::new(ctx, store, tf, config)
     }
 
-    /// Streams `store`'s octree, reading bricks through `reader` (the store itself, or a
-    /// wrapper). Reads the root synchronously: one brick, before the first frame.
+    /// Streams `source`'s octree (a local store, a remote one, or a wrapper), through the
+    /// source's own asynchronous request path or else reader threads. Reads the root
+    /// synchronously: one brick, before the first frame.
     pub fn new(
         ctx: &GpuContext,
-        store: Arc<Store>,
-        reader: Arc<dyn BrickReader>,
+        source: Arc<dyn VolumeSource>,
         tf: &TransferFunction,
         config: StreamingConfig,
     ) -> Result<Self, LoaderError> {
         tf.validate()?;
-        let header = store.header();
+        let reader = source.clone();
+        let header = source.header();
         let geometry = header.geometry.clone();
         let mapping = header.value_mapping.mapping;
-        let octree = OctreeRanges::from_store(&store);
+        let octree = OctreeRanges::from_source(source.as_ref());
         let root = BrickId::new(octree.root_level(), [0, 0, 0]);
         let tf_table = tf_table_for(tf, mapping, header.stored_range);
         let cpu = CpuBrickCache::new(config.cpu_cache_budget()?);
@@ -206,7 +209,10 @@ impl StreamingVolume {
             },
         )?;
         let mut slots = GpuSlots::new(cache.slot_count());
-        let root_brick = reader.read_brick(root)?;
+        let root_record = reader.read_brick_record(root)?;
+        let root_bytes = root_record.len() as u64;
+        let root_brick = strata_storage::brick::decode_brick(root, &root_record)
+            .map_err(|e| strata_source::SourceError::damaged(&reader.location(), root, e))?;
         let root_slot = slots
             .allocate(root, 0, true)
             .ok_or_else(|| LoaderError::Inconsistent("no slot for the root".into()))?;
@@ -220,12 +226,20 @@ impl StreamingVolume {
         gpu_page_table.update(&ctx.queue, &page_table)?;
         let transfer_function = GpuTransferFunction::new(&ctx.device, &ctx.queue, &tf_table);
         let raycaster = Raycaster::new(ctx, &cache);
-        let workers = FetchWorkers::start(
-            reader.clone(),
-            config.fetch_threads,
-            config.max_queued_requests,
-            config.bricks_in_transit,
-        )?;
+        let options = FetchOptions {
+            max_queued: config.max_queued_requests,
+            max_in_transit: config.bricks_in_transit,
+            threads: config.fetch_threads,
+        };
+        let workers: Box<dyn BrickFetcher> = match source.start_fetching(options) {
+            Some(fetcher) => fetcher?,
+            None => Box::new(FetchWorkers::start(
+                reader.clone(),
+                config.fetch_threads,
+                config.max_queued_requests,
+                config.bricks_in_transit,
+            )?),
+        };
         let visibility = PageVisibility::new(&octree, config.visibility_memory_frames);
         Ok(StreamingVolume {
             geometry,
@@ -241,6 +255,7 @@ impl StreamingVolume {
             slots,
             cpu,
             workers,
+            source,
             visibility,
             motion: MotionPredictor::new(4.0),
             failed: HashSet::new(),
@@ -249,7 +264,7 @@ impl StreamingVolume {
             renders: 0,
             cut_changed_at_render: 1,
             bricks_read: 1,
-            stored_bytes_read: reader.stored_brick_bytes(root),
+            stored_bytes_read: root_bytes,
             read_history: VecDeque::new(),
             last_stats: FrameStats::default(),
             working_set: vec![root],
@@ -500,10 +515,25 @@ impl StreamingVolume {
         Ok(())
     }
 
+    /// The source's state ("connection lost, retrying" for a remote one that cannot be
+    /// reached); the frame loop keeps drawing what it has either way.
+    pub fn source_status(&self) -> SourceStatus {
+        self.workers.status()
+    }
+
+    /// Where the volume comes from (path or URL).
+    pub fn source(&self) -> &Arc<dyn VolumeSource> {
+        &self.source
+    }
+
     /// Re-reads every brick the page table samples from `store` and uploads it into its slot
     /// again (for tests: separates wrong cache contents from a wrong cut).
     #[doc(hidden)]
-    pub fn reupload_for_tests(&self, ctx: &GpuContext, store: &Store) -> Result<(), LoaderError> {
+    pub fn reupload_for_tests(
+        &self,
+        ctx: &GpuContext,
+        store: &dyn VolumeSource,
+    ) -> Result<(), LoaderError> {
         for (i, e) in self.page_table.entries.iter().enumerate() {
             if e.resident && !e.empty {
                 let node = BrickId::new(
@@ -564,7 +594,7 @@ impl StreamingVolume {
                     self.cpu.insert(
                         result.id,
                         brick,
-                        result.class == crate::fetch_workers::RequestClass::Prefetch,
+                        result.class == strata_source::RequestClass::Prefetch,
                     );
                 }
                 Err(e) => {
@@ -672,6 +702,11 @@ impl StreamingVolume {
             queue_capacity: self.workers.capacity(),
             stale_dropped_total: queue.stale_dropped,
             overflow_dropped_total: queue.overflow_dropped,
+            cancelled_in_flight_total: queue.cancelled_in_flight,
+            retried_total: queue.retried,
+            checksum_failures_total: queue.checksum_failures,
+            max_in_flight: queue.max_in_flight,
+            source_status: self.workers.status(),
             bricks_read_total: self.bricks_read,
             stored_bytes_read_total: self.stored_bytes_read,
             brick_bytes_read_total: self.bricks_read * BRICK_BYTES,

@@ -41,7 +41,7 @@ fn slow_storage_does_not_slow_frames_and_still_converges() {
         inner: store.clone(),
         delay,
     });
-    let mut slow = StreamingVolume::new(&ctx, store.clone(), reader, &tf, config).unwrap();
+    let mut slow = StreamingVolume::new(&ctx, reader, &tf, config).unwrap();
     let started = Instant::now();
     let mut slow_frames = Vec::new();
     let mut loader_max: f64 = 0.0;

@@ -203,8 +203,7 @@ fn rapid_view_changes_keep_the_queue_bounded_and_drop_stale_requests() {
         bricks_in_transit: 2,
         ..config()
     };
-    let mut volume =
-        strata_loader::StreamingVolume::new(&ctx, store.clone(), reader, &tf, config).unwrap();
+    let mut volume = strata_loader::StreamingVolume::new(&ctx, reader, &tf, config).unwrap();
     // Jump around the volume every frame: each view wants different bricks.
     for frame in 0..40 {
         let camera = orbit(

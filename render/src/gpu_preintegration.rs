@@ -1,18 +1,19 @@
-//! The pre-integrated transfer function on the GPU (binding 10): the table of the last
-//! pre-integrated frame, rebuilt only when the TF, its range or the step changes, and a 1×1
-//! stand-in bound when a pipeline does not use it.
+//! The length-free pre-integration table on the GPU (binding 10; segment_integral.rs): the
+//! table of the last pre-integrated frame, rebuilt only when the TF, its range or the opacity
+//! unit changes (never with the step: it holds for every segment length), and a 1×3 stand-in
+//! bound when a pipeline does not use it. The adaptive pass (adaptive/gpu.rs) binds it too.
 
 use crate::gpu_transfer_function::GpuTransferFunction;
-use crate::preintegration::{PreintegrationTable, PREINTEGRATION_SIZE};
+use crate::segment_integral::{SegmentIntegralTable, INTEGRAL_ROWS};
 use crate::transfer_function::TransferFunction;
 
-/// What a pre-integration table was built for; a change of any part rebuilds it.
+/// What a table was built for; a change of any part rebuilds it.
 #[derive(Clone, Debug)]
 struct PreintegrationKey {
     transfer_function: TransferFunction,
     lo: f64,
     hi: f64,
-    segment_mm: f64,
+    entries: u32,
     unit_mm: f64,
 }
 
@@ -30,7 +31,7 @@ impl GpuPreintegration {
     pub(crate) fn new(device: &wgpu::Device, queue: &wgpu::Queue) -> Self {
         GpuPreintegration {
             table: None,
-            unused: table_texture(device, queue, 1, &[[0.0; 4]]),
+            unused: table_texture(device, queue, 1, &[[0.0; 4]; INTEGRAL_ROWS as usize]),
         }
     }
 
@@ -43,15 +44,13 @@ impl GpuPreintegration {
         }
     }
 
-    /// Builds the table for `tf` and a base step of `segment_mm` (opacity unit `unit_mm`)
-    /// unless the last one still fits. Integrating 256² segments takes tens of milliseconds on
-    /// two cores, so it happens only when the TF, its range or the step changes, not per frame.
+    /// Builds the table for `tf` (same range and entries as its GPU TF table, so the shader
+    /// indexes both alike) with opacity unit `unit_mm`, unless the last one still fits.
     pub(crate) fn ensure(
         &mut self,
         device: &wgpu::Device,
         queue: &wgpu::Queue,
         tf: &GpuTransferFunction,
-        segment_mm: f64,
         unit_mm: f64,
     ) {
         // Compared field by field so a frame that reuses the table clones nothing.
@@ -59,7 +58,7 @@ impl GpuPreintegration {
             p.key.transfer_function == tf.source
                 && p.key.lo == tf.lo
                 && p.key.hi == tf.hi
-                && p.key.segment_mm == segment_mm
+                && p.key.entries == tf.entries
                 && p.key.unit_mm == unit_mm
         }) {
             return;
@@ -68,33 +67,32 @@ impl GpuPreintegration {
             transfer_function: tf.source.clone(),
             lo: tf.lo,
             hi: tf.hi,
-            segment_mm,
+            entries: tf.entries,
             unit_mm,
         };
-        let table = PreintegrationTable::build(
+        let table = SegmentIntegralTable::with_entries(
             &key.transfer_function,
             key.lo,
             key.hi,
-            key.segment_mm,
             key.unit_mm,
-            PREINTEGRATION_SIZE,
+            key.entries,
         );
-        let view = table_texture(device, queue, table.size, &table.rgba);
+        let view = table_texture(device, queue, table.entries, &table.texels());
         self.table = Some(PreintegrationTexture { key, view });
     }
 }
 
-/// A square Rgba32Float texture of `size`² entries (row = back value, column = front value),
-/// read with textureLoad: exact f32 and no float-filtering feature needed.
+/// An Rgba32Float texture `entries` wide and INTEGRAL_ROWS high, read with textureLoad: exact
+/// f32 and no float-filtering feature needed.
 fn table_texture(
     device: &wgpu::Device,
     queue: &wgpu::Queue,
-    size: u32,
-    rgba: &[[f32; 4]],
+    entries: u32,
+    texels: &[[f32; 4]],
 ) -> wgpu::TextureView {
     let extent = wgpu::Extent3d {
-        width: size,
-        height: size,
+        width: entries,
+        height: INTEGRAL_ROWS,
         depth_or_array_layers: 1,
     };
     let texture = device.create_texture(&wgpu::TextureDescriptor {
@@ -114,10 +112,10 @@ fn table_texture(
             origin: wgpu::Origin3d::ZERO,
             aspect: wgpu::TextureAspect::All,
         },
-        bytemuck::cast_slice(rgba),
+        bytemuck::cast_slice(texels),
         wgpu::TexelCopyBufferLayout {
             offset: 0,
-            bytes_per_row: Some(size * 16),
+            bytes_per_row: Some(entries * 16),
             rows_per_image: None,
         },
         extent,

@@ -19,7 +19,8 @@
 //!   field               → page_table, layout                    (the one field definition)
 //!   reference           → field, smooth_transitions, page_table, layout, camera, settings,
 //!                         transfer_function, error              (f64 renderer)
-//!   preintegration      → transfer_function
+//!   preintegration      → transfer_function             (the former 2D table; f64 segments)
+//!   segment_integral    → transfer_function             (length-free pre-integration)
 //!   cache               → layout, error
 //!   bricked_volume      → cache, page_table, layout, transfer_function, error
 //!   phantom             → bricked_volume, transfer_function, error
@@ -30,7 +31,7 @@
 //!   gpu_timing          → readback_ring
 //!   gpu_page_table      → page_table, smooth_transitions, cache, layout, error
 //!   gpu_transfer_function → transfer_function
-//!   gpu_preintegration  → gpu_transfer_function, preintegration, transfer_function
+//!   gpu_preintegration  → gpu_transfer_function, segment_integral, transfer_function
 //!   raycast             → shaders, pipelines, gpu_page_table, gpu_transfer_function,
 //!                         gpu_preintegration, gpu_timing, readback_ring, cache, camera,
 //!                         device, layout, settings, error       (the pass)
@@ -38,6 +39,14 @@
 //!   offscreen           → raycast, gpu_page_table, gpu_transfer_function, bricked_volume,
 //!                         cache, page_table, camera, device, settings, transfer_function, error
 //!   time_critical       → gpu_timing, settings
+//! adaptive (adaptive sampling in 3D, its own pass beside the raycaster)
+//!   adaptive::transcription                 (Figs. 3, 5, 6 in f64)
+//!   adaptive::frame     → transcription, camera, settings          (slices, pixel rays)
+//!   adaptive::oracle    → page_table, layout, transfer_function     (distance per entry)
+//!   adaptive::scene     → transcription, frame, oracle, field, reference, preintegration,
+//!                         segment_integral, smooth_transitions, settings   (CPU twin)
+//!   adaptive::gpu       → frame, oracle, shaders, raycast, gpu_preintegration, cache,
+//!                         device, settings, error                  (the tiled pass)
 //! ```
 //!
 //! Older paths stay valid through re-exports that add no dependency of their own except one:
@@ -45,6 +54,7 @@
 //! use `smooth_transitions`), so `smooth_transitions::sample_field` still resolves. Tests add
 //! `pipelines` → `shaders`.
 
+pub mod adaptive;
 pub mod bricked_volume;
 pub mod cache;
 pub mod camera;
@@ -52,7 +62,7 @@ pub mod device;
 pub mod error;
 pub mod field;
 pub mod gpu_page_table;
-mod gpu_preintegration;
+pub(crate) mod gpu_preintegration;
 pub mod gpu_timing;
 pub mod gpu_transfer_function;
 pub mod layout;
@@ -67,6 +77,7 @@ pub mod probe;
 pub mod raycast;
 mod readback_ring;
 pub mod reference;
+pub mod segment_integral;
 pub mod settings;
 pub mod shaders;
 pub mod smooth_transitions;
@@ -89,6 +100,7 @@ pub use pipelines::PipelineKey;
 pub use preintegration::PreintegrationTable;
 pub use raycast::{FrameReadback, Raycaster, Scene, VisibilityFrame};
 pub use reference::{render_reference, ReferenceImage, ReferenceOptions, ReferenceScene};
+pub use segment_integral::SegmentIntegralTable;
 pub use settings::{ClipPlane, CropBox, RenderMode, RenderSettings, Shading};
 pub use strata_types::{ValueMapping, VolumeGeometry};
 pub use time_critical::{

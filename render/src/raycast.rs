@@ -414,18 +414,12 @@ impl Raycaster {
         key
     }
 
-    /// Builds the pre-integration table for this scene's TF and base step unless the last one
-    /// still fits (gpu_preintegration.rs).
+    /// Builds the pre-integration table for this scene's TF unless the last one still fits
+    /// (gpu_preintegration.rs; it holds for every step).
     fn ensure_preintegration(&mut self, ctx: &GpuContext, scene: &Scene) {
         let unit_mm = scene.geometry.finest_spacing_mm();
-        let segment_mm = scene.settings.quality * unit_mm;
-        self.preintegration.ensure(
-            &ctx.device,
-            &ctx.queue,
-            scene.transfer_function,
-            segment_mm,
-            unit_mm,
-        );
+        self.preintegration
+            .ensure(&ctx.device, &ctx.queue, scene.transfer_function, unit_mm);
     }
 
     /// Encodes and submits one frame. Never waits for the GPU. Also queues a copy of this

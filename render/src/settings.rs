@@ -89,8 +89,8 @@ pub struct RenderSettings {
     /// 8-bit interpolation weights; exact mode isolates that error in tests.
     pub exact_trilinear: bool,
     /// DVR integrates each segment between two samples through a pre-integrated TF table
-    /// (preintegration.rs) instead of classifying the sample alone: narrow or step-shaped TFs
-    /// no longer need tiny steps.
+    /// (segment_integral.rs, length-free) instead of classifying the sample alone: narrow or
+    /// step-shaped TFs no longer need tiny steps.
     pub preintegrated: bool,
     /// C0-continuous field where nodes of different levels meet (smooth_transitions.rs):
     /// off reproduces the discontinuous baseline. Compiled in only when the cut has a node

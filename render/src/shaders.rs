@@ -7,7 +7,9 @@
 //! `page_table.wgsl` ↔ page_table.rs, `smooth_transitions.wgsl` ↔ smooth_transitions.rs,
 //! `field.wgsl` ↔ field.rs, `transfer_function.wgsl` ↔ transfer_function.rs,
 //! `preintegration.wgsl` ↔ preintegration.rs, `raycast.wgsl` (entry point and ray loop) ↔
-//! raycast.rs; `probe.wgsl` ↔ probe.rs, composed into a test-only module of its own.
+//! raycast.rs; `probe.wgsl` ↔ probe.rs, composed into a test-only module of its own;
+//! `adaptive.wgsl` ↔ adaptive/gpu.rs (and adaptive/transcription.rs), composed with the field
+//! files and `preintegration.wgsl` into the adaptive pass's module.
 //!
 //! The effect overrides a source declares are read from naga's IR of it
 //! (`declared_overrides`); the default source is composed and parsed once per process.
@@ -117,6 +119,21 @@ pub fn raycast_source() -> &'static str {
     SOURCE.get_or_init(|| compose_with_field(&RAYCAST_FILES))
 }
 
+/// The adaptive pass's own files, after [`FIELD_FILES`] (adaptive/gpu.rs).
+const ADAPTIVE_FILES: [(&str, &str); 2] = [
+    (
+        "preintegration.wgsl",
+        include_str!("shaders/preintegration.wgsl"),
+    ),
+    ("adaptive.wgsl", include_str!("shaders/adaptive.wgsl")),
+];
+
+/// The composed adaptive shader: prelude, field files, pre-integration, the pass.
+pub fn adaptive_source() -> &'static str {
+    static SOURCE: OnceLock<String> = OnceLock::new();
+    SOURCE.get_or_init(|| compose_with_field(&ADAPTIVE_FILES))
+}
+
 /// Names of the `override` declarations of `wgsl`, from naga's IR; None if it does not parse
 /// (creating the module then reports the error).
 pub(crate) fn declared_overrides(wgsl: &str) -> Option<Vec<String>> {
@@ -178,5 +195,21 @@ mod tests {
             .map(|e| e.name.as_str())
             .collect();
         assert_eq!(entry_points, ["main"]);
+    }
+
+    #[test]
+    fn adaptive_shader_validates() {
+        let module = parse_and_validate(adaptive_source());
+        let overrides = declared_overrides(adaptive_source()).unwrap();
+        for name in [
+            "TILE",
+            "L_MAX",
+            "ORACLE",
+            "MANUAL_TRILINEAR",
+            "SMOOTH_TRANSITIONS",
+        ] {
+            assert!(overrides.iter().any(|o| o == name), "{name}");
+        }
+        assert_eq!(module.entry_points.len(), 1);
     }
 }

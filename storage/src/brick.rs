@@ -121,6 +121,22 @@ impl std::fmt::Display for BrickDecodeError {
     }
 }
 
+/// Checks a stored record's checksum without decompressing it; returns the checksum (what the
+/// data service puts in its ETag). A record that fails here is never served as valid bytes.
+pub fn verify_record(id: BrickId, record: &[u8]) -> Result<u64, BrickDecodeError> {
+    if record.len() < HEADER_LEN {
+        return Err(BrickDecodeError::TooShort);
+    }
+    let mut sum = [0u8; 8];
+    sum.copy_from_slice(&record[1..9]);
+    let expected = u64::from_le_bytes(sum);
+    let actual = checksum(&brick_key(id), &record[HEADER_LEN..]);
+    if actual != expected {
+        return Err(BrickDecodeError::ChecksumMismatch { expected, actual });
+    }
+    Ok(expected)
+}
+
 /// Decodes and verifies a stored brick into its 36³ voxels.
 pub fn decode_brick(id: BrickId, record: &[u8]) -> Result<Vec<u16>, BrickDecodeError> {
     if record.len() < HEADER_LEN {

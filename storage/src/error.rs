@@ -26,8 +26,24 @@ pub enum StorageError {
     #[error("{path}: corrupted data: {message}")]
     Corrupted { path: PathBuf, message: String },
 
-    #[error("{path}: database error: {source}")]
-    Database { path: PathBuf, source: sled::Error },
+    /// The store's database failed in a way that is neither damage nor a full disk.
+    #[error("{path}: database error: {message}")]
+    Database { path: PathBuf, message: String },
+
+    /// The disk (or the process's file-size limit) ran out while writing.
+    #[error("{path}: {message}")]
+    DiskFull { path: PathBuf, message: String },
+
+    /// Another live process holds the store (see [`crate::lock`]).
+    #[error("{path}: {holder}")]
+    InUse {
+        path: PathBuf,
+        holder: crate::lock_holder::LockHolder,
+    },
+
+    /// The store folder cannot be written, and sled 0.34 opens every database read-write.
+    #[error("{path}: the store is on read-only media or not writable ({reason}); sled opens stores read-write, so copy the store to a writable disk, or run `strata serve` where it can be written and open its URL")]
+    ReadOnly { path: PathBuf, reason: String },
 
     #[error("{path}: import cancelled")]
     Cancelled { path: PathBuf },
@@ -58,10 +74,72 @@ impl StorageError {
             message: message.into(),
         }
     }
+    /// Classifies a sled error: a full disk, damage, or other database failure. The message
+    /// is sled's text once (its `Io` variant repeats the OS error when chained).
     pub fn db(path: impl Into<PathBuf>, source: sled::Error) -> Self {
-        StorageError::Database {
-            path: path.into(),
-            source,
+        let path = path.into();
+        match source {
+            sled::Error::Io(e) if is_disk_full(&e) => StorageError::DiskFull {
+                path,
+                // sled's text for it varies (sometimes the OS error's Debug form).
+                message:
+                    "the disk is full, or the file-size limit was reached, while writing the store"
+                        .into(),
+            },
+            sled::Error::Io(e) => StorageError::Database {
+                path,
+                message: e.to_string(),
+            },
+            sled::Error::Corruption { at, .. } => StorageError::Corrupted {
+                path,
+                message: match at {
+                    Some(at) => format!("the database is damaged (at {at:?})"),
+                    None => "the database is damaged".into(),
+                },
+            },
+            sled::Error::ReportableBug(m) => StorageError::Corrupted {
+                path,
+                message: format!("the database is damaged or inconsistent ({m})"),
+            },
+            other => StorageError::Database {
+                path,
+                message: other.to_string(),
+            },
         }
     }
+
+    /// True for damage to a store (as opposed to a bad input or a busy store).
+    pub fn is_damage(&self) -> bool {
+        matches!(self, StorageError::Corrupted { .. })
+    }
+}
+
+/// ENOSPC, EDQUOT, or EFBIG from a file-size limit: all mean "the bytes did not fit".
+/// sled wraps the OS error in errors of its own, so the kind is looked for along the chain.
+pub fn is_disk_full(e: &std::io::Error) -> bool {
+    use std::io::ErrorKind;
+    let full = |e: &std::io::Error| {
+        matches!(
+            e.kind(),
+            ErrorKind::StorageFull | ErrorKind::QuotaExceeded | ErrorKind::FileTooLarge
+        )
+    };
+    if full(e) {
+        return true;
+    }
+    let mut inner: Option<&(dyn std::error::Error + 'static)> = e.get_ref().map(|i| i as _);
+    while let Some(cause) = inner {
+        if cause.downcast_ref::<std::io::Error>().is_some_and(full) {
+            return true;
+        }
+        if let Some(sled::Error::Io(io)) = cause.downcast_ref::<sled::Error>() {
+            if is_disk_full(io) {
+                return true;
+            }
+        }
+        inner = cause.source();
+    }
+    // Last resort for errors that were flattened to text on the way (sled's `Io(format!(..))`).
+    let text = e.to_string();
+    text.contains("StorageFull") || text.contains("FileTooLarge") || text.contains("(os error 28)")
 }

@@ -169,6 +169,22 @@ pub fn import_slices(
     let started = Instant::now();
     let dims = producer.dims();
     crate::geometry::validate(&meta.geometry, store_path)?;
+    // The header is JSON, which has no infinities: a mapping that overflowed would be written
+    // as null and the store would never open again. Refuse it before writing anything.
+    let mapping = meta.value_mapping.mapping;
+    if !(mapping.slope.is_finite()
+        && mapping.slope != 0.0
+        && mapping.intercept.is_finite()
+        && meta.quantization_error.is_finite())
+    {
+        return Err(StorageError::invalid(
+            store_path,
+            format!(
+                "the source's values cannot be mapped to stored integers with a finite scale (slope {}, intercept {}): its scaling or value range is not finite",
+                mapping.slope, mapping.intercept
+            ),
+        ));
+    }
     if meta.geometry.dims_u64() != dims {
         return Err(StorageError::invalid(
             store_path,
@@ -305,6 +321,7 @@ pub fn import_slices(
         brick_core: CORE,
         brick_apron: APRON,
         stored_range: [stored_lo, stored_hi],
+        generation: crate::store::new_generation_id(),
     };
     let bytes_per_voxel = if narrow { 1 } else { 2 };
     let stats = StoreStats {

@@ -3,15 +3,19 @@
 //! Knows nothing of GPUs. See ARCHITECTURE.md for the store layout and its invariants.
 
 pub mod brick;
+mod contained_db;
 pub mod error;
 pub mod geometry;
 pub mod histogram;
 pub mod import;
+pub mod lock;
+mod lock_holder;
 pub mod octree;
 pub mod phantom;
 pub mod quantize;
 pub mod readers;
 pub mod source;
+pub mod staging;
 pub mod store;
 
 pub use error::{Result, StorageError};

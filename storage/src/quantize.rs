@@ -92,12 +92,20 @@ impl Quantizer {
                 non_finite_samples: stats.non_finite,
             };
         }
-        let scale = if span > 0.0 { 65535.0 / span } else { 1.0 };
+        // Halves, so that a range such as ±1e308 (f64 noise, damaged files) does not overflow to
+        // an infinite span and a zero scale: the mapping written to the header stays finite.
+        let half_span = hi / 2.0 - lo / 2.0;
+        let scale = if half_span > 0.0 {
+            (65535.0 / 2.0) / half_span
+        } else {
+            1.0
+        };
+        let step_physical = (half_span / (65535.0 / 2.0)) * source_slope.abs();
         Quantizer {
             stored: StoredScalar::U16,
             offset: lo,
             scale,
-            max_error_physical: 0.5 / scale * source_slope.abs(),
+            max_error_physical: (0.5 * step_physical).min(f64::MAX),
             non_finite_samples: stats.non_finite,
         }
     }
@@ -263,5 +271,22 @@ mod tests {
         let (slope, icpt) = q.physical_mapping(2.0, 5.0);
         let back = slope * q.to_stored(-33333.0) as f64 + icpt;
         assert_eq!(back, -33333.0 * 2.0 + 5.0);
+    }
+
+    #[test]
+    fn the_widest_f64_range_keeps_a_finite_mapping() {
+        // ±1e308 (random bits, damaged files): hi − lo overflows to infinity.
+        let mut s = RangeStats::default();
+        for v in [-1e308, 0.0, 1.7e308] {
+            s.add(v);
+        }
+        let q = Quantizer::for_range(s, 1.0);
+        let (slope, icpt) = q.physical_mapping(1.0, 0.0);
+        assert!(q.scale.is_finite() && q.scale > 0.0, "{q:?}");
+        assert!(slope.is_finite() && icpt.is_finite() && q.max_error_physical.is_finite());
+        assert_eq!(q.to_stored(-1e308), 0);
+        assert_eq!(q.to_stored(1.7e308), 65535);
+        let back = slope * q.to_stored(0.0) as f64 + icpt;
+        assert!(back.abs() <= q.max_error_physical * 1.000001, "{back}");
     }
 }

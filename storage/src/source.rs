@@ -95,7 +95,7 @@ pub struct RawVolume {
     pub byte_order: ByteOrder,
     pub dims: [u64; 3],
     /// Keeps a staging file alive (and deletes it on drop) when the data had to be decompressed.
-    _staging: Option<tempfile::NamedTempFile>,
+    _staging: Option<crate::staging::StagingFile>,
     /// The file the bytes came from, for error messages.
     pub path: PathBuf,
 }
@@ -115,7 +115,7 @@ impl RawVolume {
 
     /// Maps a staging file that a reader has filled with decompressed voxels.
     pub fn from_staging(
-        staging: tempfile::NamedTempFile,
+        staging: crate::staging::StagingFile,
         source_path: &Path,
         sample_type: SampleType,
         byte_order: ByteOrder,
@@ -142,7 +142,7 @@ impl RawVolume {
         sample_type: SampleType,
         byte_order: ByteOrder,
         dims: [u64; 3],
-        staging: Option<tempfile::NamedTempFile>,
+        staging: Option<crate::staging::StagingFile>,
     ) -> Result<Self> {
         let len = file
             .metadata()

@@ -10,14 +10,18 @@
 
 use std::path::{Path, PathBuf};
 
+use std::time::Duration;
+
 use serde::{Deserialize, Serialize};
 pub use strata_types::ValueMapping;
 use xxhash_rust::xxh3::xxh3_64;
 
 use crate::brick::{brick_key, decode_brick, BrickDecodeError};
+use crate::contained_db::{contained, SledHandles};
 use crate::error::{Result, StorageError};
 use crate::geometry::VolumeGeometry;
 use crate::histogram::Histogram;
+use crate::lock::{LockPurpose, StoreLock, LOCK_FILE};
 use crate::octree::{BrickId, OctreeLayout};
 use crate::source::{SampleType, WindowPreset};
 
@@ -25,6 +29,8 @@ pub use crate::quantize::StoredScalar;
 
 pub const STORE_FORMAT_VERSION: u32 = 1;
 const MARKER_FILE: &str = "STRATA-STORE";
+/// The marker file's line that [`StoreWriter::finish`] adds last.
+const MARKER_COMPLETE_LINE: &str = "complete";
 const DB_DIR: &str = "db";
 const KEY_HEADER: &[u8] = b"header";
 const KEY_SKELETON: &[u8] = b"skeleton";
@@ -78,6 +84,39 @@ pub struct StoreHeader {
     pub brick_apron: u64,
     /// Lowest and highest stored value at level 0.
     pub stored_range: [u16; 2],
+    /// Identifies this import: written once when the store is created, different for every
+    /// import of the same name, so a served brick URL that carries it can be cached for ever.
+    /// Empty for stores written before it existed (see [`StoreHeader::generation_id`]).
+    #[serde(default)]
+    pub generation: String,
+}
+
+impl StoreHeader {
+    /// The import's generation; for stores written before generations existed, one derived
+    /// from what differs between two imports (import time, layout, value range, source).
+    pub fn generation_id(&self) -> String {
+        if !self.generation.is_empty() {
+            return self.generation.clone();
+        }
+        let derived = serde_json::to_vec(self).map_or(0, |json| xxh3_64(&json));
+        format!("h{derived:016x}")
+    }
+}
+
+/// A fresh 128-bit generation id (hex): time, process and a per-process random hasher key,
+/// so two imports of the same name (even in the same second) never share one.
+pub fn new_generation_id() -> String {
+    use std::hash::{BuildHasher, Hasher};
+    let now = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos());
+    let mut hi = std::collections::hash_map::RandomState::new().build_hasher();
+    hi.write_u128(now);
+    hi.write_u32(std::process::id());
+    let mut lo = std::collections::hash_map::RandomState::new().build_hasher();
+    lo.write_u64(hi.finish());
+    lo.write_u128(now);
+    format!("{:016x}{:016x}", hi.finish(), lo.finish())
 }
 
 /// Per-node range and flags, kept for the whole octree in memory.
@@ -110,7 +149,8 @@ impl Skeleton {
         }
     }
 
-    fn encode(&self) -> Vec<u8> {
+    /// The skeleton as stored (and served): levels, per node min/max/flags, an xxh3 checksum.
+    pub fn encode(&self) -> Vec<u8> {
         let mut out = Vec::new();
         out.extend_from_slice(&(self.levels.len() as u32).to_le_bytes());
         for level in &self.levels {
@@ -126,7 +166,8 @@ impl Skeleton {
         out
     }
 
-    fn decode(bytes: &[u8]) -> Option<Skeleton> {
+    /// Parses [`Skeleton::encode`]'s bytes; `None` when the checksum or the framing is wrong.
+    pub fn decode(bytes: &[u8]) -> Option<Skeleton> {
         let (body, sum) = bytes.split_at(bytes.len().checked_sub(8)?);
         if xxh3_64(body) != u64::from_le_bytes(sum.try_into().ok()?) {
             return None;
@@ -168,19 +209,21 @@ pub struct StoreStats {
     pub import_seconds: f64,
 }
 
-fn db_error(path: &Path) -> impl Fn(sled::Error) -> StorageError + '_ {
-    move |e| StorageError::db(path, e)
-}
+/// How long an explicit flush may take before it is called a failure (a full disk makes sled
+/// wait forever; a healthy disk writes sled's whole cache in far less).
+const FLUSH_LIMIT: Duration = Duration::from_secs(60);
 
 /// A complete, read-only store.
 pub struct Store {
     path: PathBuf,
-    db: sled::Db,
     bricks: sled::Tree,
     header: StoreHeader,
     skeleton: Skeleton,
     histogram: Histogram,
     stats: StoreStats,
+    // Dropped after the trees above: the database closes (bounded), then the lock goes.
+    db: SledHandles,
+    _lock: StoreLock,
 }
 
 impl Store {
@@ -189,6 +232,11 @@ impl Store {
     }
 
     /// Opens with an explicit sled page-cache size (part of the caller's memory budget).
+    ///
+    /// Fails at once, naming the store: when another process holds it ([`StorageError::InUse`],
+    /// with the URL of the `strata serve` that streams it), on read-only media
+    /// ([`StorageError::ReadOnly`]), for an interrupted import, and for damage (a panic inside
+    /// sled is contained and reported as [`StorageError::Corrupted`]).
     pub fn open_with_cache(path: &Path, sled_cache_bytes: u64) -> Result<Store> {
         if !path.exists() {
             return Err(StorageError::invalid(path, "store does not exist"));
@@ -199,33 +247,69 @@ impl Store {
                 message: format!("no {MARKER_FILE} marker"),
             });
         }
-        let db = open_db_when_unlocked(
-            sled::Config::new()
-                .path(path.join(DB_DIR))
-                .cache_capacity(sled_cache_bytes),
-        )
-        .map_err(db_error(path))?;
-        let meta = db.open_tree("meta").map_err(db_error(path))?;
-        if meta.get(KEY_COMPLETE).map_err(db_error(path))?.is_none() {
-            return Err(StorageError::IncompleteImport {
-                path: path.to_path_buf(),
-            });
+        if !path.join(DB_DIR).is_dir() {
+            return Err(StorageError::corrupted(
+                path,
+                format!("its database folder {DB_DIR}/ is missing"),
+            ));
         }
-        let get = |key: &[u8]| -> Result<sled::IVec> {
-            meta.get(key).map_err(db_error(path))?.ok_or_else(|| {
-                StorageError::corrupted(path, format!("missing {}", String::from_utf8_lossy(key)))
+        let lock = StoreLock::acquire(path, LockPurpose::Read)?;
+        let config = sled::Config::new()
+            .path(path.join(DB_DIR))
+            .cache_capacity(sled_cache_bytes);
+        let db = contained(path, "opening the database", || {
+            open_db_when_unlocked(config)
+        })?;
+        let meta = contained(path, "opening the metadata", || db.open_tree("meta"))?;
+        let get = |key: &[u8]| -> Result<Option<sled::IVec>> {
+            contained(path, "reading the metadata", || meta.get(key))
+        };
+        let require = |key: &[u8]| -> Result<sled::IVec> {
+            get(key)?.ok_or_else(|| {
+                StorageError::corrupted(
+                    path,
+                    format!("its {} record is missing", String::from_utf8_lossy(key)),
+                )
             })
         };
-        let json = |key: &[u8]| -> Result<sled::IVec> { get(key) };
-        let header: StoreHeader = serde_json::from_slice(&json(KEY_HEADER)?)
-            .map_err(|e| StorageError::corrupted(path, format!("header: {e}")))?;
+        if get(KEY_COMPLETE)?.is_none() {
+            // An interrupted import wrote bricks but no metadata yet. The marker file says
+            // "complete" once the import finished (stores of older versions lack that line, so
+            // metadata without the final record counts as damage too).
+            let marked_complete = std::fs::read_to_string(path.join(MARKER_FILE))
+                .is_ok_and(|m| m.lines().any(|l| l.trim() == MARKER_COMPLETE_LINE));
+            return Err(if marked_complete {
+                StorageError::corrupted(
+                    path,
+                    "the import finished, but the database lost its records (damaged database files)",
+                )
+            } else if get(KEY_HEADER)?.is_some() && get(KEY_STATS)?.is_some() {
+                StorageError::corrupted(path, "its completion record is missing")
+            } else {
+                StorageError::IncompleteImport {
+                    path: path.to_path_buf(),
+                }
+            });
+        }
+        let header: StoreHeader = serde_json::from_slice(&require(KEY_HEADER)?)
+            .map_err(|e| StorageError::corrupted(path, format!("its header is unreadable: {e}")))?;
         if header.format_version != STORE_FORMAT_VERSION {
             return Err(StorageError::unsupported(
                 path,
                 format!("store format version {}", header.format_version),
             ));
         }
-        let skeleton = Skeleton::decode(&get(KEY_SKELETON)?)
+        header
+            .geometry
+            .validate()
+            .map_err(|e| StorageError::corrupted(path, format!("its header's geometry: {e}")))?;
+        if header.layout != OctreeLayout::new(header.geometry.dims) {
+            return Err(StorageError::corrupted(
+                path,
+                "its header's octree layout does not match its dimensions",
+            ));
+        }
+        let skeleton = Skeleton::decode(&require(KEY_SKELETON)?)
             .ok_or_else(|| StorageError::corrupted(path, "octree skeleton fails its checksum"))?;
         if skeleton.levels.len() != header.layout.level_count()
             || skeleton
@@ -239,19 +323,23 @@ impl Store {
                 "octree skeleton does not match the header's layout",
             ));
         }
-        let histogram: Histogram = serde_json::from_slice(&json(KEY_HISTOGRAM)?)
-            .map_err(|e| StorageError::corrupted(path, format!("histogram: {e}")))?;
-        let stats: StoreStats = serde_json::from_slice(&json(KEY_STATS)?)
-            .map_err(|e| StorageError::corrupted(path, format!("stats: {e}")))?;
-        let bricks = db.open_tree("bricks").map_err(db_error(path))?;
+        let histogram: Histogram =
+            serde_json::from_slice(&require(KEY_HISTOGRAM)?).map_err(|e| {
+                StorageError::corrupted(path, format!("its histogram is unreadable: {e}"))
+            })?;
+        let stats: StoreStats = serde_json::from_slice(&require(KEY_STATS)?).map_err(|e| {
+            StorageError::corrupted(path, format!("its statistics are unreadable: {e}"))
+        })?;
+        let bricks = contained(path, "opening the bricks", || db.open_tree("bricks"))?;
         Ok(Store {
             path: path.to_path_buf(),
-            db,
+            db: SledHandles::new(path, db, vec![meta, bricks.clone()]),
             bricks,
             header,
             skeleton,
             histogram,
             stats,
+            _lock: lock,
         })
     }
 
@@ -287,62 +375,125 @@ impl Store {
                 format!("brick {id:?} is outside the octree"),
             ));
         }
-        let record = self
-            .bricks
-            .get(brick_key(id))
-            .map_err(db_error(&self.path))?
-            .ok_or_else(|| {
-                StorageError::corrupted(&self.path, format!("brick {id:?} is missing"))
-            })?;
-        decode_brick(id, &record).map_err(|e| brick_error(&self.path, id, e))
+        read_brick_record(&self.path, &self.bricks, id)
+    }
+
+    /// One brick's record exactly as stored (kind, checksum, compressed body): what the data
+    /// service sends, so nothing is decoded or re-encoded on the way. Not verified here.
+    pub fn read_brick_record(&self, id: BrickId) -> Result<Vec<u8>> {
+        if !self.header.layout.contains(id) {
+            return Err(StorageError::invalid(
+                &self.path,
+                format!("brick {id:?} is outside the octree"),
+            ));
+        }
+        let record = contained(&self.path, "reading a brick", || {
+            self.bricks.get(brick_key(id))
+        })?
+        .ok_or_else(|| {
+            StorageError::corrupted(
+                &self.path,
+                format!("brick level {} at {:?} is missing", id.level, id.coords),
+            )
+        })?;
+        Ok(record.to_vec())
+    }
+
+    /// Records in this store's lock where `strata serve` streams it, so a local open of the
+    /// same folder is refused at once with the URL to use instead.
+    pub fn advertise_url(&mut self, url: &str) -> Result<()> {
+        self._lock.advertise_url(url)
     }
 
     /// Size of the stored record of a brick (compressed), for I/O accounting.
     pub fn stored_brick_bytes(&self, id: BrickId) -> Result<u64> {
-        Ok(self
-            .bricks
-            .get(brick_key(id))
-            .map_err(db_error(&self.path))?
-            .map_or(0, |r| r.len() as u64))
+        Ok(contained(&self.path, "reading a brick", || {
+            self.bricks.get(brick_key(id))
+        })?
+        .map_or(0, |r| r.len() as u64))
     }
 
     /// Checks every brick: present, checksum, decompression, and range equal to the skeleton's.
     /// Returns one message per problem found (empty when the store is sound).
+    ///
+    /// Terminates on any damage: the bricks are read on a named thread of their own and each read
+    /// may take at most [`VERIFY_READ_LIMIT`]; a read that hangs inside sled (as on a damaged blob
+    /// file) ends the check with a problem naming the brick, because the database is then stuck.
     pub fn verify(&self, mut on_progress: impl FnMut(u64, u64)) -> Result<Vec<String>> {
-        let mut problems = Vec::new();
-        let total = self.header.layout.total_bricks();
-        let mut seen = 0u64;
-        for level in 0..self.header.layout.level_count() {
-            let n = self.header.layout.bricks_in_level(level);
-            for z in 0..n[2] {
-                for y in 0..n[1] {
-                    for x in 0..n[0] {
-                        let id = BrickId::new(level as u8, [x, y, z]);
-                        seen += 1;
-                        match self.read_brick(id) {
-                            Err(e) => problems.push(e.to_string()),
-                            Ok(voxels) => {
-                                let r = crate::brick::value_range(&voxels);
-                                let node = self.node(id).unwrap_or_default();
-                                if (r.min, r.max) != (node.min, node.max) {
-                                    problems.push(format!(
-                                        "{}: brick {id:?} range {}..{} differs from the skeleton's {}..{}",
-                                        self.path.display(), r.min, r.max, node.min, node.max
-                                    ));
+        let layout = self.header.layout.clone();
+        let total = layout.total_bricks();
+        let (results, received) = crossbeam_channel::bounded::<(BrickId, Result<Vec<u16>>)>(4);
+        let (tree, path) = (self.bricks.clone(), self.path.clone());
+        let (count_sender, counted) = crossbeam_channel::bounded::<Result<usize>>(1);
+        let reader = std::thread::Builder::new()
+            .name("strata-verify-reader".into())
+            .spawn(move || {
+                for level in 0..layout.level_count() {
+                    let n = layout.bricks_in_level(level);
+                    for z in 0..n[2] {
+                        for y in 0..n[1] {
+                            for x in 0..n[0] {
+                                let id = BrickId::new(level as u8, [x, y, z]);
+                                let voxels = read_brick_record(&path, &tree, id);
+                                if results.send((id, voxels)).is_err() {
+                                    return;
                                 }
                             }
                         }
                     }
                 }
+                drop(results);
+                let _ =
+                    count_sender.send(contained(&path, "counting the bricks", || Ok(tree.len())));
+            });
+        if let Err(e) = reader {
+            return Err(StorageError::io(&self.path, e));
+        }
+        let mut problems = Vec::new();
+        let mut seen = 0u64;
+        while seen < total {
+            let (id, voxels) = match received.recv_timeout(VERIFY_READ_LIMIT) {
+                Ok(r) => r,
+                Err(_) => {
+                    problems.push(format!(
+                        "{}: reading brick {} of {total} did not finish within {} s: the database is damaged (blob or segment files); the rest was not checked",
+                        self.path.display(),
+                        seen + 1,
+                        VERIFY_READ_LIMIT.as_secs()
+                    ));
+                    return Ok(problems);
+                }
+            };
+            seen += 1;
+            match voxels {
+                Err(e) => problems.push(e.to_string()),
+                Ok(voxels) => {
+                    let r = crate::brick::value_range(&voxels);
+                    let node = self.node(id).unwrap_or_default();
+                    if (r.min, r.max) != (node.min, node.max) {
+                        problems.push(format!(
+                            "{}: brick level {} at {:?}: range {}..{} differs from the skeleton's {}..{}",
+                            self.path.display(), id.level, id.coords, r.min, r.max, node.min, node.max
+                        ));
+                    }
+                }
+            }
+            if seen.is_multiple_of(64) || seen == total {
                 on_progress(seen, total);
             }
         }
-        let stored = self.bricks.len() as u64;
-        if stored != total {
-            problems.push(format!(
+        match counted.recv_timeout(VERIFY_READ_LIMIT) {
+            Ok(Ok(stored)) if stored as u64 == total => {}
+            Ok(Ok(stored)) => problems.push(format!(
                 "{}: {stored} brick records for {total} octree nodes",
                 self.path.display()
-            ));
+            )),
+            Ok(Err(e)) => problems.push(e.to_string()),
+            Err(_) => problems.push(format!(
+                "{}: counting the brick records did not finish within {} s: the database is damaged",
+                self.path.display(),
+                VERIFY_READ_LIMIT.as_secs()
+            )),
         }
         Ok(problems)
     }
@@ -350,41 +501,59 @@ impl Store {
     /// Overwrites one byte of a stored brick record. Only for tests of corruption handling.
     #[doc(hidden)]
     pub fn corrupt_brick_for_tests(path: &Path, id: BrickId, byte: usize) -> Result<()> {
-        let db = open_db_when_unlocked(sled::Config::new().path(path.join(DB_DIR)))
-            .map_err(db_error(path))?;
-        let bricks = db.open_tree("bricks").map_err(db_error(path))?;
-        let mut record = bricks
-            .get(brick_key(id))
-            .map_err(db_error(path))?
+        let _lock = StoreLock::acquire(path, LockPurpose::Import)?;
+        let db = contained(path, "opening the database", || {
+            open_db_when_unlocked(sled::Config::new().path(path.join(DB_DIR)))
+        })?;
+        let bricks = contained(path, "opening the bricks", || db.open_tree("bricks"))?;
+        let mut record = contained(path, "reading a brick", || bricks.get(brick_key(id)))?
             .ok_or_else(|| StorageError::corrupted(path, "no such brick"))?
             .to_vec();
-        let at = byte.min(record.len() - 1);
-        record[at] ^= 0x01;
-        bricks
-            .insert(brick_key(id), record)
-            .map_err(db_error(path))?;
-        db.flush().map_err(db_error(path))?;
-        Ok(())
+        let at = byte.min(record.len().saturating_sub(1));
+        if let Some(b) = record.get_mut(at) {
+            *b ^= 0x01;
+        }
+        contained(path, "writing a brick", || {
+            bricks.insert(brick_key(id), record)
+        })?;
+        let db = SledHandles::new(path, db, vec![bricks]);
+        db.flush(FLUSH_LIMIT)
     }
 
+    /// Closes the store, reporting a failure to close (instead of hiding it in a drop).
     pub fn close(self) -> Result<()> {
-        self.db.flush().map_err(db_error(&self.path))?;
-        Ok(())
+        self.db.flush(FLUSH_LIMIT)
     }
+}
+
+/// Per-brick time limit of [`Store::verify`]: a brick is at most a few hundred KB; seconds mean
+/// sled is stuck, not slow.
+pub const VERIFY_READ_LIMIT: Duration = Duration::from_secs(20);
+
+/// Reads, verifies and decompresses brick `id` from the bricks tree of the store at `path`.
+fn read_brick_record(path: &Path, bricks: &sled::Tree, id: BrickId) -> Result<Vec<u16>> {
+    let record =
+        contained(path, "reading a brick", || bricks.get(brick_key(id)))?.ok_or_else(|| {
+            StorageError::corrupted(
+                path,
+                format!("brick level {} at {:?} is missing", id.level, id.coords),
+            )
+        })?;
+    decode_brick(id, &record).map_err(|e| brick_error(path, id, e))
 }
 
 /// sled releases its file lock from background threads a moment after the last handle drops, so
 /// opening a store right after writing it can briefly find it locked. Retry for a short while
 /// instead of failing; a store held by another live process still fails after the wait.
 fn open_db_when_unlocked(config: sled::Config) -> sled::Result<sled::Db> {
-    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(3);
+    let deadline = std::time::Instant::now() + Duration::from_secs(3);
     loop {
         match config.open() {
             Err(sled::Error::Io(e))
                 if e.to_string().contains("acquire lock")
                     && std::time::Instant::now() < deadline =>
             {
-                std::thread::sleep(std::time::Duration::from_millis(20));
+                std::thread::sleep(Duration::from_millis(20));
             }
             other => return other,
         }
@@ -399,50 +568,62 @@ fn brick_error(path: &Path, id: BrickId, e: BrickDecodeError) -> StorageError {
 }
 
 /// Writes a new store. Nothing it writes is visible as complete until [`StoreWriter::finish`].
+///
+/// Holds the store's lock from before it touches the folder until it is dropped, so a second
+/// writer (or a reader) is refused with "in use by pid N" instead of deleting this one's files.
+/// A writer dropped without `finish` (an error, a cancel) removes what it wrote: a failed import
+/// leaves nothing that could be taken for a store, and frees the disk it filled.
 pub struct StoreWriter {
     path: PathBuf,
-    db: sled::Db,
     bricks: sled::Tree,
+    db: SledHandles,
+    finished: bool,
+    lock: Option<StoreLock>,
 }
 
 impl StoreWriter {
     /// Prepares `path` for a fresh import: deletes a previous store there (complete or not),
-    /// refuses to touch a non-empty directory or file that is not a store.
+    /// refuses to touch a non-empty directory or file that is not a store, or a store another
+    /// process holds.
     pub fn create(path: &Path, sled_cache_bytes: u64) -> Result<StoreWriter> {
-        if path.exists() {
+        let lock = if path.exists() {
             let is_store = path.join(MARKER_FILE).is_file();
             let is_empty_dir = path.is_dir()
                 && std::fs::read_dir(path)
                     .map_err(|e| StorageError::io(path, e))?
-                    .next()
-                    .is_none();
-            if is_store {
-                std::fs::remove_dir_all(path).map_err(|e| StorageError::io(path, e))?;
-            } else if !is_empty_dir {
+                    .all(|entry| entry.is_ok_and(|e| e.file_name() == LOCK_FILE));
+            if !is_store && !is_empty_dir {
                 return Err(StorageError::NotAStore {
                     path: path.to_path_buf(),
                     message: "refusing to overwrite a file or non-empty directory that is not a Strata store".into(),
                 });
             }
-        }
-        std::fs::create_dir_all(path).map_err(|e| StorageError::io(path, e))?;
+            let lock = StoreLock::acquire(path, LockPurpose::Import)?;
+            remove_all_but_lock(path)?;
+            lock
+        } else {
+            std::fs::create_dir_all(path).map_err(|e| StorageError::io(path, e))?;
+            StoreLock::acquire(path, LockPurpose::Import)?
+        };
         std::fs::write(
             path.join(MARKER_FILE),
             format!("strata store format {STORE_FORMAT_VERSION}\n"),
         )
         .map_err(|e| StorageError::io(path.join(MARKER_FILE), e))?;
-        let db = open_db_when_unlocked(
-            sled::Config::new()
-                .path(path.join(DB_DIR))
-                .cache_capacity(sled_cache_bytes)
-                .mode(sled::Mode::HighThroughput),
-        )
-        .map_err(db_error(path))?;
-        let bricks = db.open_tree("bricks").map_err(db_error(path))?;
+        let config = sled::Config::new()
+            .path(path.join(DB_DIR))
+            .cache_capacity(sled_cache_bytes)
+            .mode(sled::Mode::HighThroughput);
+        let db = contained(path, "creating the database", || {
+            open_db_when_unlocked(config)
+        })?;
+        let bricks = contained(path, "creating the bricks", || db.open_tree("bricks"))?;
         Ok(StoreWriter {
             path: path.to_path_buf(),
-            db,
+            db: SledHandles::new(path, db, vec![bricks.clone()]),
             bricks,
+            finished: false,
+            lock: Some(lock),
         })
     }
 
@@ -456,41 +637,86 @@ impl StoreWriter {
         for (id, record) in records {
             batch.insert(&brick_key(id)[..], record);
         }
-        self.bricks
-            .apply_batch(batch)
-            .map_err(db_error(&self.path))?;
-        Ok(())
+        contained(&self.path, "writing bricks", || {
+            self.bricks.apply_batch(batch)
+        })
     }
 
     /// Writes the metadata, flushes everything, then marks the store complete and flushes again:
-    /// a crash at any point before the last flush leaves a store that opens as incomplete.
+    /// a crash at any point before the last flush leaves a store that opens as incomplete. Every
+    /// flush is bounded: a disk that fills up is an error, never a wait.
     pub fn finish(
-        self,
+        mut self,
         header: &StoreHeader,
         skeleton: &Skeleton,
         histogram: &Histogram,
         stats: &StoreStats,
     ) -> Result<()> {
-        let path = &self.path;
-        let meta = self.db.open_tree("meta").map_err(db_error(path))?;
+        let path = self.path.clone();
+        let path = &path;
+        let meta = contained(path, "creating the metadata", || self.db.open_tree("meta"))?;
         let to_json = |v: &dyn erased::Json| {
             v.json()
-                .map_err(|e| StorageError::corrupted(path, e.to_string()))
+                .map_err(|e| StorageError::invalid(path, format!("encoding the header: {e}")))
         };
-        meta.insert(KEY_HEADER, to_json(header)?)
-            .map_err(db_error(path))?;
-        meta.insert(KEY_SKELETON, skeleton.encode())
-            .map_err(db_error(path))?;
-        meta.insert(KEY_HISTOGRAM, to_json(histogram)?)
-            .map_err(db_error(path))?;
-        meta.insert(KEY_STATS, to_json(stats)?)
-            .map_err(db_error(path))?;
-        self.db.flush().map_err(db_error(path))?;
-        meta.insert(KEY_COMPLETE, &b"1"[..])
-            .map_err(db_error(path))?;
-        self.db.flush().map_err(db_error(path))?;
+        let put = |key: &[u8], value: Vec<u8>| {
+            contained(path, "writing the metadata", || meta.insert(key, value)).map(|_| ())
+        };
+        put(KEY_HEADER, to_json(header)?)?;
+        put(KEY_SKELETON, skeleton.encode())?;
+        put(KEY_HISTOGRAM, to_json(histogram)?)?;
+        put(KEY_STATS, to_json(stats)?)?;
+        self.db.flush(FLUSH_LIMIT)?;
+        put(KEY_COMPLETE, b"1".to_vec())?;
+        self.db.flush(FLUSH_LIMIT)?;
+        // Beside the database, so that damage which loses the database's records can be told
+        // from an import that never finished. Written by rename: whole or not at all.
+        let marker = self.path.join(MARKER_FILE);
+        let staged = self.path.join(format!("{MARKER_FILE}.new"));
+        std::fs::write(
+            &staged,
+            format!("strata store format {STORE_FORMAT_VERSION}\n{MARKER_COMPLETE_LINE}\n"),
+        )
+        .and_then(|()| std::fs::rename(&staged, &marker))
+        .map_err(|e| StorageError::io(&marker, e))?;
+        self.finished = true;
         Ok(())
     }
+}
+
+impl Drop for StoreWriter {
+    fn drop(&mut self) {
+        if self.finished {
+            return;
+        }
+        // Close sled first (bounded: after a full disk its close never returns), then remove the
+        // partial store while still holding the lock, then the folder with its lock file.
+        let db = std::mem::replace(&mut self.db, SledHandles::closed(&self.path));
+        drop(db);
+        let _ = remove_all_but_lock(&self.path);
+        let lock = self.lock.take();
+        let _ = std::fs::remove_dir_all(&self.path);
+        drop(lock);
+    }
+}
+
+/// Deletes every entry of a store folder except its lock file (which a waiting process may be
+/// about to lock).
+fn remove_all_but_lock(path: &Path) -> Result<()> {
+    for entry in std::fs::read_dir(path).map_err(|e| StorageError::io(path, e))? {
+        let entry = entry.map_err(|e| StorageError::io(path, e))?;
+        if entry.file_name() == LOCK_FILE {
+            continue;
+        }
+        let p = entry.path();
+        let removed = if entry.file_type().is_ok_and(|t| t.is_dir()) {
+            std::fs::remove_dir_all(&p)
+        } else {
+            std::fs::remove_file(&p)
+        };
+        removed.map_err(|e| StorageError::io(&p, e))?;
+    }
+    Ok(())
 }
 
 /// Lets `finish` serialise its differently typed parts through one closure.

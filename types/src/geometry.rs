@@ -13,15 +13,22 @@ pub const MAX_AXIS_VOXELS: u64 = 1 << 20;
 pub const MAX_TOTAL_VOXELS: u64 = 1 << 40;
 
 /// What is wrong with a geometry. Callers add the file (storage) or the scene (render).
+/// Smallest voxel spacing accepted: 1 nm.
+pub const MIN_SPACING_MM: f64 = 1e-6;
+/// Largest voxel spacing accepted: 100 m.
+pub const MAX_SPACING_MM: f64 = 1e5;
+/// Largest origin coordinate accepted: 1000 km.
+pub const MAX_ORIGIN_MM: f64 = 1e9;
+
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum GeometryError {
     #[error("zero dimension in {0:?}")]
     ZeroDimension([u64; 3]),
     #[error("absurd dimensions {0:?}")]
     AbsurdDimensions([u64; 3]),
-    #[error("voxel spacing must be finite and positive, got {0:?}")]
+    #[error("voxel spacing must be between 1 nm and 100 m (0.000001 to 100000 mm), got {0:?} mm")]
     BadSpacing([f64; 3]),
-    #[error("non-finite origin {0:?}")]
+    #[error("origin must be finite and within 1000 km, got {0:?} mm")]
     NonFiniteOrigin([f64; 3]),
     #[error("direction cosines not unit length: {0:?}")]
     NonUnitDirection([[f64; 3]; 3]),
@@ -76,12 +83,24 @@ impl VolumeGeometry {
 
     /// Rejects what no real scan has: zero or absurd sizes, non-finite or non-positive spacing,
     /// a non-finite origin, non-unit or degenerate direction cosines.
+    /// Rejects what no real scan has: zero or absurd extents, spacings outside
+    /// [`MIN_SPACING_MM`]..[`MAX_SPACING_MM`], origins beyond [`MAX_ORIGIN_MM`], degenerate axes.
     pub fn validate(&self) -> Result<(), GeometryError> {
         Self::checked_dims(self.dims_u64())?;
-        if self.spacing_mm.iter().any(|s| !s.is_finite() || *s <= 0.0) {
+        // Electron microscopy is at nanometres, a whole-body CT at a few millimetres: spacings
+        // outside 1 nm..100 m are header damage, and render as nothing (f32 positions).
+        if self
+            .spacing_mm
+            .iter()
+            .any(|s| !s.is_finite() || !(MIN_SPACING_MM..=MAX_SPACING_MM).contains(s))
+        {
             return Err(GeometryError::BadSpacing(self.spacing_mm));
         }
-        if self.origin_lps_mm.iter().any(|v| !v.is_finite()) {
+        if self
+            .origin_lps_mm
+            .iter()
+            .any(|v| !v.is_finite() || v.abs() > MAX_ORIGIN_MM)
+        {
             return Err(GeometryError::NonFiniteOrigin(self.origin_lps_mm));
         }
         for axis in &self.direction {

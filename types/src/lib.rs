@@ -11,6 +11,9 @@ pub mod octree;
 pub mod value_mapping;
 
 pub use brick::{BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD, BRICK_PAYLOAD_VOXELS};
-pub use geometry::{GeometryError, VolumeGeometry, MAX_AXIS_VOXELS, MAX_TOTAL_VOXELS};
+pub use geometry::{
+    GeometryError, VolumeGeometry, MAX_AXIS_VOXELS, MAX_ORIGIN_MM, MAX_SPACING_MM,
+    MAX_TOTAL_VOXELS, MIN_SPACING_MM,
+};
 pub use octree::{level_count, level_dims, BrickId, OctreeLayout};
 pub use value_mapping::ValueMapping;

@@ -17,6 +17,7 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 use strata_loader::store_volume::{classify_empty, load_uniform_cut, page_table_for_cut, GpuCut};
 use strata_loader::ResidentBricks;
+use strata_render::adaptive::{oracle_for_cut, AdaptiveConfig, AdaptivePass};
 use strata_render::{
     compare_rgba8, Camera, GpuContext, PageTable, RenderMode, RenderSettings, Shading,
 };
@@ -49,6 +50,8 @@ struct Knobs {
     shading: bool,
     /// Step chosen by the time-critical controller for this frame time.
     target_ms: Option<f64>,
+    /// The adaptive pass (adaptive sampling in 3D) with its per-node oracle at this ε.
+    adaptive_epsilon: Option<f64>,
 }
 
 impl Knobs {
@@ -68,6 +71,9 @@ impl Knobs {
         }
         if let Some(ms) = self.target_ms {
             let _ = write!(s, " (target {ms:.0} ms)");
+        }
+        if let Some(e) = self.adaptive_epsilon {
+            let _ = write!(s, " adaptive ε {e}");
         }
         if self.jitter {
             s += " jitter";
@@ -99,6 +105,7 @@ fn sweep() -> Vec<Knobs> {
         jitter: false,
         shading: false,
         target_ms: None,
+        adaptive_epsilon: None,
     };
     let mut knobs = Vec::new();
     for &step in &[0.125, 0.25, 0.5, 1.0, 2.0, 4.0] {
@@ -366,6 +373,74 @@ pub fn run(options: Options) -> Result<()> {
         };
         rows.push(measure(cut, &k)?);
     }
+    // Adaptive sampling in 3D (its own pass, pre-integrated, l_max 3) at the base step on the
+    // finest cut, at two oracle ε: where it lands on the same error/time plane.
+    {
+        let cut = cuts.get_mut(&(0, false)).context("level 0 cut missing")?;
+        let mut pass = AdaptivePass::new(&ctx, &cut.gpu.cache);
+        for epsilon in [0.005, 0.02] {
+            let k = Knobs {
+                family: "adaptive sampling (3D)",
+                adaptive_epsilon: Some(epsilon),
+                preintegrated: true,
+                step: 0.5,
+                ..knobs[0].clone()
+            };
+            let settings = settings_of(&k);
+            let config = AdaptiveConfig::default();
+            pass.set_oracle(
+                &ctx,
+                &oracle_for_cut(
+                    &cut.table,
+                    v.mapping,
+                    |level, node| {
+                        v.store
+                            .node(strata_storage::BrickId::new(level, node))
+                            .map(|n| (n.min, n.max))
+                    },
+                    &v.tf,
+                    epsilon,
+                    config.l_max,
+                    settings.quality,
+                ),
+            );
+            let scene = strata_render::Scene {
+                cache: &cut.gpu.cache,
+                page_table: &cut.gpu.page_table,
+                transfer_function: &cut.gpu.transfer_function,
+                geometry: &v.geometry,
+                mapping: v.mapping,
+                camera: &camera,
+                settings: &settings,
+            };
+            let frame = pass.render_blocking(&ctx, &scene, &config)?;
+            let reference = references.get(&false).context("reference missing")?;
+            let c = compare_rgba8(&frame.rgba, reference)?;
+            let mut times = Vec::with_capacity(options.frames);
+            for _ in 0..options.frames {
+                let t = Instant::now();
+                pass.render_and_wait(&ctx, &scene, &config)?;
+                times.push(t.elapsed().as_secs_f64() * 1e3);
+            }
+            let row = Row {
+                knobs: k,
+                median_ms: median(times),
+                rmse: c.rmse,
+                psnr_db: c.psnr_db,
+                max_abs: c.max_abs_error,
+                pareto: false,
+            };
+            eprintln!(
+                "{:<28} {:>8.1} ms  PSNR {:>5.1} dB  RMSE {:>6.3}  max {:>3}",
+                row.knobs.label(),
+                row.median_ms,
+                row.psnr_db,
+                row.rmse,
+                row.max_abs
+            );
+            rows.push(row);
+        }
+    }
     mark_pareto(&mut rows);
 
     std::fs::create_dir_all(&options.out_dir)
@@ -498,6 +573,7 @@ fn plot(path: &Path, rows: &[Row], name: &str) -> Result<()> {
         "jitter",
         "shaded",
         "time-critical target",
+        "adaptive sampling (3D)",
     ];
     let colors = [
         BLUE,
@@ -507,6 +583,7 @@ fn plot(path: &Path, rows: &[Row], name: &str) -> Result<()> {
         MAGENTA,
         BLACK,
         RGBColor(230, 130, 0),
+        RGBColor(120, 60, 0),
     ];
     for (family, color) in families.iter().zip(colors) {
         let points: Vec<(f64, f64)> = rows
@@ -569,6 +646,7 @@ mod tests {
                 jitter: false,
                 shading: false,
                 target_ms: None,
+                adaptive_epsilon: None,
             },
             median_ms: ms,
             rmse,

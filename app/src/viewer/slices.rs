@@ -7,7 +7,8 @@ use std::collections::{HashMap, VecDeque};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 
-use strata_storage::{BrickId, Store, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
+use strata_source::VolumeSource;
+use strata_storage::{BrickId, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
 
 use super::orientation::{SliceFrame, SliceView};
 use super::sync::{lock_ignoring_poison, wait_ignoring_poison, Repaint};
@@ -77,7 +78,7 @@ pub fn level_for_pixels(voxels_across: f64, pixels_across: f64, level_count: usi
 }
 
 impl SliceReader {
-    pub fn start(store: Arc<Store>, repaint: Repaint) -> anyhow::Result<Self> {
+    pub fn start(store: Arc<dyn VolumeSource>, repaint: Repaint) -> anyhow::Result<Self> {
         let shared = Arc::new(Shared {
             pending: Mutex::new([None; 3]),
             results: Mutex::new([None, None, None]),
@@ -202,7 +203,7 @@ impl BrickLru {
         }
     }
 
-    fn get(&mut self, store: &Store, id: BrickId) -> anyhow::Result<Arc<Vec<u16>>> {
+    fn get(&mut self, store: &dyn VolumeSource, id: BrickId) -> anyhow::Result<Arc<Vec<u16>>> {
         if let Some(b) = self.bricks.get(&id) {
             let b = b.clone();
             if let Some(pos) = self.order.iter().position(|x| *x == id) {
@@ -227,7 +228,11 @@ impl BrickLru {
 }
 
 /// One level-0 voxel's stored value, through the brick cache.
-fn read_voxel(store: &Store, cache: &mut BrickLru, index: [u32; 3]) -> anyhow::Result<u16> {
+fn read_voxel(
+    store: &dyn VolumeSource,
+    cache: &mut BrickLru,
+    index: [u32; 3],
+) -> anyhow::Result<u16> {
     let dims = store.layout().level_dims[0];
     if (0..3).any(|a| index[a] >= dims[a]) {
         anyhow::bail!("voxel {index:?} is outside the volume {dims:?}");
@@ -239,7 +244,7 @@ fn read_voxel(store: &Store, cache: &mut BrickLru, index: [u32; 3]) -> anyhow::R
 }
 
 fn read_slice(
-    store: &Store,
+    store: &dyn VolumeSource,
     cache: &mut BrickLru,
     request: SliceRequest,
 ) -> anyhow::Result<SliceImage> {
@@ -310,7 +315,7 @@ mod tests {
         strata_storage::phantom::Phantom::cube(40)
             .write_store(&path, &Default::default())
             .expect("phantom");
-        let store = Store::open(&path).expect("open");
+        let store = strata_storage::Store::open(&path).expect("open");
         let g = store.header().geometry.clone();
         let geometry = VolumeGeometry {
             dims: g.dims.map(|d| d),

@@ -17,12 +17,13 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 
-use strata_loader::{BrickReader, FrameStats, StreamingConfig, StreamingVolume};
+use strata_loader::{FrameStats, StreamingConfig, StreamingVolume};
 use strata_render::{
     Camera, GpuContext, RenderSettings, TimeCriticalConfig, TimeCriticalController,
     TransferFunction, ValueMapping, VolumeGeometry,
 };
-use strata_storage::{Store, StoreHeader};
+use strata_source::VolumeSource;
+use strata_storage::StoreHeader;
 
 use super::sync::lock_ignoring_poison;
 
@@ -84,6 +85,23 @@ pub struct SessionStatus {
     pub last_screenshot: Option<Result<PathBuf, String>>,
 }
 
+impl SessionStatus {
+    /// What the status bar should show about the volume's source: "connection lost, retrying"
+    /// while a remote store cannot be reached (the view keeps what it has), nothing otherwise.
+    #[cfg_attr(not(test), allow(dead_code))]
+    pub fn source_line(&self) -> Option<String> {
+        match &self.loader.as_ref()?.source_status {
+            strata_source::SourceStatus::Available => None,
+            strata_source::SourceStatus::Retrying {
+                since_seconds,
+                message,
+            } => Some(format!(
+                "connection lost, retrying ({since_seconds:.0} s): {message}"
+            )),
+        }
+    }
+}
+
 /// A request to write the 3D view to PNG at `size` pixels (the view's full resolution times
 /// the chosen scale; the aspect of the last request).
 #[derive(Clone, Debug)]
@@ -103,7 +121,7 @@ pub struct VolumeInfo {
 }
 
 impl VolumeInfo {
-    pub fn of(store: &Store) -> anyhow::Result<Self> {
+    pub fn of(store: &dyn VolumeSource) -> anyhow::Result<Self> {
         let header = store.header().clone();
         let geometry = header.geometry.clone();
         let mapping = header.value_mapping.mapping;
@@ -139,11 +157,11 @@ pub use super::sync::Repaint;
 impl VolumeSession {
     /// Starts the render thread on an opened store. Never blocks on the GPU or the disk.
     pub fn start(
-        store: Arc<Store>,
+        store: Arc<dyn VolumeSource>,
         gpu_budget_bytes: u64,
         repaint: Repaint,
     ) -> anyhow::Result<Self> {
-        let info = VolumeInfo::of(&store)?;
+        let info = VolumeInfo::of(store.as_ref())?;
         let shared = Arc::new(Shared {
             request: Mutex::new(None),
             wake: Condvar::new(),
@@ -267,7 +285,7 @@ fn lower_this_threads_priority() {
 }
 
 struct RenderWorker {
-    store: Arc<Store>,
+    store: Arc<dyn VolumeSource>,
     shared: Arc<Shared>,
     repaint: Repaint,
     gpu_budget_bytes: u64,
@@ -277,7 +295,7 @@ struct RenderWorker {
 
 impl RenderWorker {
     fn new(
-        store: Arc<Store>,
+        store: Arc<dyn VolumeSource>,
         shared: Arc<Shared>,
         repaint: Repaint,
         gpu_budget_bytes: u64,
@@ -325,9 +343,7 @@ impl RenderWorker {
             gpu_budget_bytes: self.gpu_budget_bytes,
             ..StreamingConfig::default()
         };
-        let reader: Arc<dyn BrickReader> = self.store.clone();
-        let mut volume =
-            StreamingVolume::new(&ctx, self.store.clone(), reader, &initial_tf, config)?;
+        let mut volume = StreamingVolume::new(&ctx, self.store.clone(), &initial_tf, config)?;
         // Toggling shading, a mode or pre-integration must not stall the volume view while
         // lavapipe compiles the new pipeline: the previous one draws meanwhile.
         volume.set_compile_in_background(true);
@@ -553,7 +569,7 @@ mod tests {
         strata_storage::phantom::Phantom::cube(48)
             .write_store(&path, &Default::default())
             .expect("phantom store");
-        let store = Arc::new(Store::open(&path).expect("open"));
+        let store = Arc::new(strata_storage::Store::open(&path).expect("open"));
         let session = VolumeSession::start(store, DEFAULT_GPU_BUDGET_BYTES, Arc::new(|| {}))
             .expect("session");
         let info = session.info().clone();
@@ -603,13 +619,31 @@ mod tests {
     }
 
     #[test]
+    fn the_status_line_says_when_the_connection_is_lost() {
+        let mut status = SessionStatus {
+            loader: Some(FrameStats::default()),
+            ..SessionStatus::default()
+        };
+        assert_eq!(status.source_line(), None);
+        if let Some(stats) = status.loader.as_mut() {
+            stats.source_status = strata_source::SourceStatus::Retrying {
+                since_seconds: 3.2,
+                message: "connection refused".into(),
+            };
+        }
+        let line = status.source_line().unwrap_or_default();
+        assert!(line.starts_with("connection lost, retrying"), "{line}");
+        assert!(line.contains("connection refused"), "{line}");
+    }
+
+    #[test]
     fn a_session_streams_to_convergence_and_publishes_frames() {
         let dir = tempfile::tempdir().expect("temp dir");
         let path = dir.path().join("p.strata");
         strata_storage::phantom::Phantom::cube(70)
             .write_store(&path, &Default::default())
             .expect("phantom store");
-        let store = Arc::new(Store::open(&path).expect("open"));
+        let store = Arc::new(strata_storage::Store::open(&path).expect("open"));
         let session = VolumeSession::start(store, DEFAULT_GPU_BUDGET_BYTES, Arc::new(|| {}))
             .expect("session");
         let info = session.info().clone();

@@ -82,7 +82,7 @@ pub fn stream(
     tf: &TransferFunction,
     config: StreamingConfig,
 ) -> StreamingVolume {
-    StreamingVolume::new(ctx, store.clone(), store.clone(), tf, config).expect("streaming volume")
+    StreamingVolume::new(ctx, store.clone(), tf, config).expect("streaming volume")
 }
 
 /// Frames until converged; panics with the last stats if it does not within `max_frames`.

@@ -122,17 +122,11 @@ fn composite(st: ptr<function, RayState>, premultiplied: vec3<f32>, alpha: f32, 
     }
 }
 
-// Composites the pre-integrated segment of `length` (mm) from value `front` to `back`. The
-// table is for the base step; other lengths (half segments, coarse levels, level changes)
-// rescale opacity by the same power law as the classic opacity correction.
+// Composites the pre-integrated segment of `length` (mm) from value `front` to `back`
+// (length-free: half segments, coarse levels and level changes are exact too).
 fn composite_segment(st: ptr<function, RayState>, front: f32, back: f32, length: f32,
                      back_loc: Location, t: f32, d: vec3<f32>) {
-    var seg = preintegrated(front, back);
-    let ratio = length / P.box_lo.w;
-    if ratio != 1.0 && seg.a > 0.0 {
-        let a = 1.0 - pow(1.0 - min(seg.a, 0.999999), ratio);
-        seg = vec4<f32>(seg.rgb * (a / seg.a), a);
-    }
+    let seg = preintegrated_segment(front, back, length);
     if seg.a <= 0.0 {
         return;
     }

@@ -5,6 +5,25 @@ use std::path::Path;
 use crate::error::{Result, StorageError};
 use crate::geometry::VolumeGeometry;
 
+/// Checks that the data file a header names (`data`) is a readable regular file; the error
+/// names the header too, since that is the file the user gave.
+pub(crate) fn check_data_file(header: &Path, data: &Path) -> Result<()> {
+    if header == data {
+        return Ok(());
+    }
+    match std::fs::metadata(data) {
+        Ok(m) if m.is_file() => Ok(()),
+        Ok(_) => Err(StorageError::invalid(
+            header,
+            format!("its data file {} is not a regular file", data.display()),
+        )),
+        Err(e) => Err(StorageError::invalid(
+            header,
+            format!("cannot open its data file {}: {e}", data.display()),
+        )),
+    }
+}
+
 pub(crate) fn norm(v: [f64; 3]) -> f64 {
     (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt()
 }

@@ -15,9 +15,9 @@ use dicom_pixeldata::PixelDecoder;
 use crate::error::{Result, StorageError};
 use crate::geometry::VolumeGeometry;
 use crate::readers::common::{cross, dot, norm, split_axis};
-use crate::readers::staging::new_staging;
 use crate::readers::{has_dicom_preamble, ReadOptions};
 use crate::source::{ByteOrder, OpenedSource, RawVolume, SampleType, SourceInfo, WindowPreset};
+use crate::staging::new_staging;
 
 /// Folders nested deeper than this are not searched (exports are rarely more than a few deep).
 const MAX_DEPTH: usize = 8;
@@ -140,6 +140,8 @@ fn windows_from(obj: &Obj) -> Vec<WindowPreset> {
 }
 
 fn open_header(path: &Path) -> Result<DefaultDicomObject> {
+    // Before dicom-rs, which would allocate whatever a damaged length field claims.
+    crate::readers::dicom_bounds::check_element_lengths(path)?;
     OpenFileOptions::new()
         .read_until(tags::PIXEL_DATA)
         .open_file(path)
@@ -160,7 +162,29 @@ fn read_header(path: &Path) -> Result<Option<ImageHeader>> {
     }
     let bits_allocated = int(&obj, tags::BITS_ALLOCATED).unwrap_or(16);
     let bits_stored = int(&obj, tags::BITS_STORED).unwrap_or(bits_allocated);
-    let n_frames = int(&obj, tags::NUMBER_OF_FRAMES).unwrap_or(1).max(1);
+    if !(1..=bits_allocated).contains(&bits_stored) {
+        return Err(StorageError::invalid(
+            path,
+            format!("BitsStored {bits_stored} must lie in 1..=BitsAllocated ({bits_allocated})"),
+        ));
+    }
+    // Absent means one frame; present, it must be a positive number (0, -1 or text is damage,
+    // and guessing "1" would import one frame of many).
+    let n_frames = match obj.get(tags::NUMBER_OF_FRAMES) {
+        None => 1,
+        Some(e) => match e.to_int::<i64>() {
+            Ok(n) if n >= 1 => n,
+            _ => {
+                return Err(StorageError::invalid(
+                    path,
+                    format!(
+                        "NumberOfFrames {:?} is not a positive number",
+                        e.to_str().map(|t| t.trim().to_string()).unwrap_or_default()
+                    ),
+                ))
+            }
+        },
+    };
     if n_frames as u64 > crate::geometry::MAX_AXIS_VOXELS {
         return Err(StorageError::invalid(
             path,
@@ -354,26 +378,53 @@ fn locate_native_pixel_data(path: &Path, transfer_syntax: &str, len: u64) -> Opt
     None
 }
 
-fn collect_files(dir: &Path, depth: usize, out: &mut Vec<PathBuf>) -> Result<()> {
+/// Most files a folder scan looks at: a whole study is a few thousand; beyond this the folder is
+/// not a series (a home directory, a symlink farm) and the scan stops with an error.
+const MAX_SCANNED_FILES: usize = 200_000;
+
+/// Lists the regular files under `dir` (sorted, at most [`MAX_DEPTH`] deep). Follows a symlink
+/// to a folder only once per real folder, so link cycles and fan-outs cost nothing; FIFOs,
+/// sockets and devices are never opened (reading a FIFO blocks forever).
+fn collect_files(
+    dir: &Path,
+    depth: usize,
+    seen_dirs: &mut std::collections::HashSet<PathBuf>,
+    out: &mut Vec<PathBuf>,
+) -> Result<()> {
+    let real = std::fs::canonicalize(dir).map_err(|e| StorageError::io(dir, e))?;
+    if !seen_dirs.insert(real) {
+        return Ok(());
+    }
     let rd = std::fs::read_dir(dir).map_err(|e| StorageError::io(dir, e))?;
     let mut entries: Vec<PathBuf> = rd.filter_map(|e| e.ok().map(|e| e.path())).collect();
     entries.sort();
     for p in entries {
-        if p.is_dir() {
+        // Follows symlinks: a link to a slice is a slice; a dangling link is skipped.
+        let Ok(meta) = std::fs::metadata(&p) else {
+            continue;
+        };
+        if meta.is_dir() {
             if depth < MAX_DEPTH {
-                collect_files(&p, depth + 1, out)?;
+                collect_files(&p, depth + 1, seen_dirs, out)?;
             }
-        } else {
+        } else if meta.is_file() {
+            if out.len() >= MAX_SCANNED_FILES {
+                return Err(StorageError::invalid(
+                    dir,
+                    format!("more than {MAX_SCANNED_FILES} files under this folder: point the import at the series' own folder"),
+                ));
+            }
             out.push(p);
         }
     }
     Ok(())
 }
 
-/// Scans a folder: image headers grouped by series, in listing order, plus counts for errors.
-fn scan_folder(dir: &Path) -> Result<Vec<Vec<ImageHeader>>> {
+/// Scans a folder: image headers grouped by series, in listing order, and the errors of the
+/// DICOM files that could not be read.
+fn scan_folder(dir: &Path) -> Result<(Vec<Vec<ImageHeader>>, Vec<StorageError>)> {
     let mut files = Vec::new();
-    collect_files(dir, 0, &mut files)?;
+    collect_files(dir, 0, &mut Default::default(), &mut files)?;
     let mut dicom_files = 0usize;
     let mut headers = Vec::new();
     let mut unreadable: Vec<StorageError> = Vec::new();
@@ -419,7 +470,7 @@ fn scan_folder(dir: &Path) -> Result<Vec<Vec<ImageHeader>>> {
         (a[0].series_number.unwrap_or(i64::MAX), &a[0].series_uid)
             .cmp(&(b[0].series_number.unwrap_or(i64::MAX), &b[0].series_uid))
     });
-    Ok(series)
+    Ok((series, unreadable))
 }
 
 fn summary(s: &[ImageHeader]) -> DicomSeriesSummary {
@@ -434,11 +485,22 @@ fn summary(s: &[ImageHeader]) -> DicomSeriesSummary {
 
 /// The image series in a DICOM folder, in the order `ReadOptions::dicom_series` indexes them.
 pub fn list_dicom_series(dir: &Path) -> Result<Vec<DicomSeriesSummary>> {
-    Ok(scan_folder(dir)?.iter().map(|s| summary(s)).collect())
+    Ok(scan_folder(dir)?.0.iter().map(|s| summary(s)).collect())
 }
 
 pub(crate) fn open_series_dir(dir: &Path, options: &ReadOptions) -> Result<OpenedSource> {
-    let mut series = scan_folder(dir)?;
+    let (mut series, unreadable) = scan_folder(dir)?;
+    // Which series an unreadable file belonged to is unknown, so any of them may be a missing
+    // slice (a gap at either end of a series is invisible): never import around it silently.
+    if let Some(first) = unreadable.first() {
+        return Err(StorageError::invalid(
+            dir,
+            format!(
+                "{} DICOM file(s) in this folder cannot be read, and may be slices of the series: {first}; repair or move them out of the folder to import the rest",
+                unreadable.len()
+            ),
+        ));
+    }
     let chosen = if series.len() == 1 {
         0
     } else {
@@ -754,7 +816,10 @@ fn assemble(
         (Output::Physical, SampleType::F32, 1.0, 0.0)
     };
 
-    let mut staging = new_staging(display, options)?;
+    let staging_bytes = dims.iter().fold(out_type.size_bytes() as u64, |acc, &d| {
+        acc.saturating_mul(d)
+    });
+    let mut staging = new_staging(display, options.staging_dir.as_deref(), staging_bytes)?;
     {
         let mut out = BufWriter::with_capacity(1 << 20, staging.as_file_mut());
         let mut cur: Option<(usize, Loaded)> = None;
@@ -872,6 +937,23 @@ fn decode_frame(
     let src: &[u8] = match pixel.value() {
         DicomValue::Primitive(p) => {
             let all = p.to_bytes();
+            // The whole element must be the frames the header describes (plus one pad byte for
+            // an odd length): 16-bit data read with BitsAllocated 8, or frames missing from
+            // NumberOfFrames, would otherwise import as plausible garbage.
+            let expected = h.frames.len() * frame_len;
+            if all.len() != expected && all.len() != expected + (expected & 1) {
+                return Err(StorageError::invalid(
+                    &h.path,
+                    format!(
+                        "PixelData holds {} bytes, but {} frame(s) of {}x{} at BitsAllocated {} need {expected}: BitsAllocated, Rows, Columns or NumberOfFrames is wrong",
+                        all.len(),
+                        h.frames.len(),
+                        h.cols,
+                        h.rows,
+                        h.bits_allocated
+                    ),
+                ));
+            }
             let start = frame as usize * frame_len;
             let Some(slice) = all.get(start..start + frame_len) else {
                 return Err(StorageError::invalid(

@@ -12,9 +12,9 @@ use flate2::read::{MultiGzDecoder, ZlibDecoder};
 use crate::error::{Result, StorageError};
 use crate::geometry::VolumeGeometry;
 use crate::readers::common::{dims3, parse_f64s, parse_u64s, split_axis, volume_bytes};
-use crate::readers::staging::{new_staging, stream_into};
 use crate::readers::ReadOptions;
 use crate::source::{ByteOrder, OpenedSource, RawVolume, SampleType, SourceInfo};
+use crate::staging::{new_staging, stream_into};
 
 const MAX_HEADER_LINE: usize = 64 * 1024;
 const MAX_HEADER_LINES: usize = 1000;
@@ -181,6 +181,7 @@ pub(crate) fn open_metaimage(path: &Path, options: &ReadOptions) -> Result<Opene
         None => 0,
     };
 
+    crate::readers::common::check_data_file(path, &data_path)?;
     let data = if compressed {
         let f = File::open(&data_path).map_err(|e| StorageError::io(&data_path, e))?;
         let mut br = BufReader::new(f);
@@ -189,7 +190,7 @@ pub(crate) fn open_metaimage(path: &Path, options: &ReadOptions) -> Result<Opene
         // ITK writes zlib streams; some tools write gzip. The first two bytes tell them apart.
         let head = br.fill_buf().map_err(|e| StorageError::io(&data_path, e))?;
         let is_gzip = head.len() >= 2 && head[0] == 0x1f && head[1] == 0x8b;
-        let mut staging = new_staging(path, options)?;
+        let mut staging = new_staging(path, options.staging_dir.as_deref(), needed)?;
         if is_gzip {
             stream_into(
                 &data_path,

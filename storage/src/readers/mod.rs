@@ -7,11 +7,11 @@
 
 mod common;
 mod dicom;
+mod dicom_bounds;
 mod metaimage;
 mod nifti;
 mod nrrd;
 mod raw;
-mod staging;
 
 use std::fs::File;
 use std::io::Read;
@@ -20,6 +20,7 @@ use std::path::{Path, PathBuf};
 use crate::error::{Result, StorageError};
 use crate::source::{ByteOrder, OpenedSource, SampleType};
 
+pub use crate::staging::{remove_live_staging_files, remove_stale_staging_files, StagingFile};
 pub use dicom::{list_dicom_series, DicomSeriesSummary};
 
 /// What the user told us beyond the path.
@@ -60,6 +61,13 @@ pub fn open_source(path: &Path, options: &ReadOptions) -> Result<OpenedSource> {
     })?;
     if meta.is_dir() {
         return dicom::open_series_dir(path, options);
+    }
+    if !meta.is_file() {
+        // Reading a FIFO blocks until a writer comes, possibly forever; devices never end.
+        return Err(StorageError::invalid(
+            path,
+            "not a regular file (a FIFO, socket or device): give the scan's file or folder",
+        ));
     }
     let name = path
         .file_name()

@@ -10,9 +10,9 @@ use flate2::read::MultiGzDecoder;
 use crate::error::{Result, StorageError};
 use crate::geometry::VolumeGeometry;
 use crate::readers::common::{dims3, flip_xy, geometry_from_axes, volume_bytes};
-use crate::readers::staging::{new_staging, skip_bytes, stream_into};
 use crate::readers::ReadOptions;
 use crate::source::{ByteOrder, OpenedSource, RawVolume, SampleType, SourceInfo, WindowPreset};
+use crate::staging::{new_staging, skip_bytes, stream_into};
 
 const NIFTI1_SIZE: usize = 348;
 const NIFTI2_SIZE: usize = 540;
@@ -437,11 +437,15 @@ pub(crate) fn open_nifti(path: &Path, options: &ReadOptions) -> Result<OpenedSou
         ));
     }
     let (data_path, data_offset, data_gz) = if h.single_file {
-        if !(h.vox_offset.is_finite() && h.vox_offset >= consumed as f64) {
+        // A single file holds the header, then 4 extension-flag bytes, then any extensions:
+        // voxels start at 352 (NIfTI-1) or 544 (NIfTI-2) at the earliest. An offset inside
+        // that, or a fractional one, would read the voxels shifted.
+        let earliest = consumed as f64 + 4.0;
+        if !(h.vox_offset.is_finite() && h.vox_offset >= earliest && h.vox_offset.fract() == 0.0) {
             return Err(StorageError::invalid(
                 path,
                 format!(
-                    "vox_offset {} lies inside the {consumed}-byte header",
+                    "vox_offset {} must be a whole number of bytes at or after {earliest} (the header and its extension flag)",
                     h.vox_offset
                 ),
             ));
@@ -458,6 +462,7 @@ pub(crate) fn open_nifti(path: &Path, options: &ReadOptions) -> Result<OpenedSou
         (img, off, img_gz)
     };
 
+    crate::readers::common::check_data_file(path, &data_path)?;
     let data = if data_gz {
         let mut reader: Box<dyn Read> = if data_path == path {
             skip_bytes(
@@ -473,7 +478,7 @@ pub(crate) fn open_nifti(path: &Path, options: &ReadOptions) -> Result<OpenedSou
             skip_bytes(&data_path, &mut r, data_offset, "image header bytes")?;
             r
         };
-        let mut staging = new_staging(path, options)?;
+        let mut staging = new_staging(path, options.staging_dir.as_deref(), needed)?;
         stream_into(&data_path, &mut reader, &mut staging, needed)?;
         RawVolume::from_staging(staging, &data_path, sample_type, h.order, dims)?
     } else {

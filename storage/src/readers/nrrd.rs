@@ -10,9 +10,9 @@ use flate2::read::MultiGzDecoder;
 use crate::error::{Result, StorageError};
 use crate::geometry::VolumeGeometry;
 use crate::readers::common::{dims3, geometry_from_axes, parse_f64s, parse_u64s, volume_bytes};
-use crate::readers::staging::{new_staging, skip_bytes, stream_into};
 use crate::readers::ReadOptions;
 use crate::source::{ByteOrder, OpenedSource, RawVolume, SampleType, SourceInfo};
+use crate::staging::{new_staging, skip_bytes, stream_into};
 
 /// Header lines longer than this mean we are reading binary data, not a header.
 const MAX_HEADER_LINE: usize = 64 * 1024;
@@ -288,6 +288,7 @@ pub(crate) fn open_nrrd(path: &Path, options: &ReadOptions) -> Result<OpenedSour
     };
     drop(r);
 
+    crate::readers::common::check_data_file(path, &data_path)?;
     let data_file = File::open(&data_path).map_err(|e| StorageError::io(&data_path, e))?;
     let mut dr = BufReader::new(data_file);
     dr.seek(SeekFrom::Start(base_offset))
@@ -303,7 +304,7 @@ pub(crate) fn open_nrrd(path: &Path, options: &ReadOptions) -> Result<OpenedSour
     }
 
     let data = if enc == Encoding::Ascii {
-        let mut staging = new_staging(path, options)?;
+        let mut staging = new_staging(path, options.staging_dir.as_deref(), needed)?;
         stage_ascii(&data_path, &mut dr, &mut staging, sample_type, dims)?;
         RawVolume::from_staging(staging, &data_path, sample_type, ByteOrder::Little, dims)?
     } else if enc == Encoding::Gzip {
@@ -316,7 +317,7 @@ pub(crate) fn open_nrrd(path: &Path, options: &ReadOptions) -> Result<OpenedSour
         let mut z = MultiGzDecoder::new(dr);
         // For compressed encodings the byte skip counts decompressed bytes (NRRD spec).
         skip_bytes(&data_path, &mut z, byte_skip as u64, "byte skip")?;
-        let mut staging = new_staging(path, options)?;
+        let mut staging = new_staging(path, options.staging_dir.as_deref(), needed)?;
         stream_into(&data_path, &mut z, &mut staging, needed)?;
         RawVolume::from_staging(staging, &data_path, sample_type, byte_order, dims)?
     } else {
@@ -361,7 +362,7 @@ pub(crate) fn open_nrrd(path: &Path, options: &ReadOptions) -> Result<OpenedSour
 fn stage_ascii(
     path: &Path,
     r: &mut impl BufRead,
-    staging: &mut tempfile::NamedTempFile,
+    staging: &mut crate::staging::StagingFile,
     sample_type: SampleType,
     dims: [u64; 3],
 ) -> Result<()> {

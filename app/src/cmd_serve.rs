@@ -1,0 +1,121 @@
+//! `strata serve`: stores, read-only, over HTTP/1.1 and h2c (see strata-service's server).
+
+use std::io::Write;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::{Context, Result};
+use clap::Args;
+use strata_service::server::{find_stores, generate_token, start, ServeOptions};
+use strata_storage::BrickId;
+
+#[derive(Args)]
+pub struct ServeArgs {
+    /// Stores, or folders of stores, to serve.
+    #[arg(required = true)]
+    pub stores: Vec<PathBuf>,
+    /// Address to listen on. Default: 127.0.0.1 on an ephemeral port. Any address that is not
+    /// loopback needs --token-file or --generate-token.
+    #[arg(long)]
+    pub bind: Option<SocketAddr>,
+    /// File holding the bearer token clients must send (at least 16 characters).
+    #[arg(long)]
+    pub token_file: Option<PathBuf>,
+    /// Generate a 128-bit token and print it once.
+    #[arg(long)]
+    pub generate_token: bool,
+    /// Serve HTTPS with this PEM certificate chain (with --tls-key).
+    #[arg(long, requires = "tls_key")]
+    pub tls_cert: Option<PathBuf>,
+    /// The PEM private key of --tls-cert.
+    #[arg(long, requires = "tls_cert")]
+    pub tls_key: Option<PathBuf>,
+    /// Serve the header's description and provenance (source paths often hold patient names).
+    #[arg(long)]
+    pub expose_identifiers: bool,
+    #[arg(long, default_value_t = 256)]
+    pub max_connections: usize,
+    #[arg(long, default_value_t = 512)]
+    pub max_requests: usize,
+    /// Seconds a client may take to send a request's headers before it is disconnected.
+    #[arg(long, default_value_t = 10.0)]
+    pub header_timeout: f64,
+    /// Milliseconds added before every brick answer: a round-trip delay for benchmarks on
+    /// loopback.
+    #[arg(long, default_value_t = 0, hide = true)]
+    pub added_delay_ms: u64,
+    /// Test hook: corrupt the first answer for this brick (LEVEL/Z/Y/X) after verifying it.
+    #[arg(long, hide = true)]
+    pub test_corrupt_brick: Option<String>,
+    /// Test hook: how many answers for --test-corrupt-brick to corrupt.
+    #[arg(long, hide = true, default_value_t = 1)]
+    pub test_corrupt_times: u32,
+}
+
+pub fn run(args: ServeArgs) -> Result<()> {
+    let _ = tracing_subscriber::fmt()
+        .with_writer(std::io::stderr)
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
+        )
+        .try_init();
+    let token = match (&args.token_file, args.generate_token) {
+        (Some(path), _) => Some(crate::volume_location::read_token(path)?),
+        (None, true) => {
+            let token = generate_token()?;
+            println!("token {token}");
+            Some(token)
+        }
+        (None, false) => None,
+    };
+    let corrupt_answers = args
+        .test_corrupt_brick
+        .as_deref()
+        .map(parse_brick)
+        .transpose()?
+        .map(|id| (id, args.test_corrupt_times));
+    anyhow::ensure!(
+        args.header_timeout.is_finite() && args.header_timeout > 0.0,
+        "--header-timeout must be positive"
+    );
+    let options = ServeOptions {
+        bind: args
+            .bind
+            .unwrap_or_else(|| SocketAddr::from(([127, 0, 0, 1], 0))),
+        token,
+        expose_identifiers: args.expose_identifiers,
+        max_connections: args.max_connections,
+        max_concurrent_requests: args.max_requests,
+        header_read_timeout: Duration::from_secs_f64(args.header_timeout),
+        added_delay: Duration::from_millis(args.added_delay_ms),
+        corrupt_answers,
+        tls: match (args.tls_cert, args.tls_key) {
+            (Some(cert), Some(key)) => Some(strata_service::server::TlsFiles { cert, key }),
+            _ => None,
+        },
+        ..ServeOptions::default()
+    };
+    let stores = find_stores(&args.stores)?;
+    let server = start(stores, options).context("strata serve")?;
+    println!("serving on {}", server.base_url());
+    for (name, path, _) in server.stores() {
+        println!("  {}  ({})", server.store_url(name), path.display());
+    }
+    std::io::stdout().flush()?;
+    server.wait();
+    Ok(())
+}
+
+fn parse_brick(text: &str) -> Result<BrickId> {
+    let parts: Vec<u32> = text
+        .split('/')
+        .map(|p| p.parse::<u32>())
+        .collect::<Result<_, _>>()
+        .with_context(|| format!("brick must be LEVEL/Z/Y/X, not '{text}'"))?;
+    let [level, z, y, x] = parts[..] else {
+        anyhow::bail!("brick must be LEVEL/Z/Y/X, not '{text}'");
+    };
+    Ok(BrickId::new(u8::try_from(level)?, [x, y, z]))
+}

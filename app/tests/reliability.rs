@@ -1,0 +1,500 @@
+//! The store's part of the reliability campaign, against the real binary: damaged copies of a
+//! store, a full disk, two writers, a store held by another process, read-only media, and an
+//! import killed with SIGKILL. Every case must end within a time bound in a clean error that
+//! names the store (or a sound result); never a panic, a hang, or a store that looks complete
+//! and is not.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+const STRATA: &str = env!("CARGO_BIN_EXE_strata");
+
+/// Bound for one command on a small store; a hang is what this suite exists to catch, so the
+/// limit is generous for a loaded 2-core machine and still far below "forever".
+const COMMAND_LIMIT: Duration = Duration::from_secs(90);
+
+struct Ran {
+    code: Option<i32>,
+    text: String,
+}
+
+/// Runs `strata args` (optionally through `bash -c` for ulimits), killing it at the limit.
+fn run_limited(mut command: Command, what: &str) -> Ran {
+    let mut child = command
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap_or_else(|e| panic!("{what}: cannot start: {e}"));
+    let started = Instant::now();
+    loop {
+        match child.try_wait() {
+            Ok(Some(_)) => break,
+            Ok(None) if started.elapsed() > COMMAND_LIMIT => {
+                let _ = child.kill();
+                let out = child.wait_with_output().unwrap();
+                panic!(
+                    "{what}: HANG, killed after {COMMAND_LIMIT:?}; output so far: {}{}",
+                    String::from_utf8_lossy(&out.stdout),
+                    String::from_utf8_lossy(&out.stderr)
+                );
+            }
+            Ok(None) => std::thread::sleep(Duration::from_millis(20)),
+            Err(e) => panic!("{what}: {e}"),
+        }
+    }
+    let out = child.wait_with_output().unwrap();
+    Ran {
+        code: out.status.code(),
+        text: format!(
+            "{}{}",
+            String::from_utf8_lossy(&out.stdout),
+            String::from_utf8_lossy(&out.stderr)
+        ),
+    }
+}
+
+fn strata(args: &[&str]) -> Command {
+    let mut c = Command::new(STRATA);
+    c.args(args);
+    c
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+/// A 100³ u16 volume of deterministic noise: incompressible bricks make sled keep blob files
+/// beside its main file, so every kind of database file gets damaged below.
+fn noise_raw(dir: &Path) -> PathBuf {
+    let mut state = 0x9e37_79b9_7f4a_7c15u64;
+    let bytes: Vec<u8> = (0..100 * 100 * 100)
+        .flat_map(|_| {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            ((state >> 20) as u16).to_le_bytes()
+        })
+        .collect();
+    let path = dir.join("noise.raw");
+    std::fs::write(&path, bytes).unwrap();
+    path
+}
+
+fn import_noise(dir: &Path, store: &Path) {
+    let raw = noise_raw(dir);
+    let r = run_limited(
+        strata(&[
+            "import",
+            s(&raw),
+            s(store),
+            "--raw-dims",
+            "100,100,100",
+            "--raw-type",
+            "u16",
+        ]),
+        "import noise",
+    );
+    assert_eq!(r.code, Some(0), "{}", r.text);
+}
+
+fn files_under(dir: &Path) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).unwrap().flatten() {
+            if e.file_type().unwrap().is_dir() {
+                stack.push(e.path());
+            } else {
+                out.push(e.path());
+            }
+        }
+    }
+    out.sort();
+    out
+}
+
+fn copy_dir(from: &Path, to: &Path) {
+    for f in files_under(from) {
+        let target = to.join(f.strip_prefix(from).unwrap());
+        std::fs::create_dir_all(target.parent().unwrap()).unwrap();
+        std::fs::copy(&f, &target).unwrap();
+    }
+}
+
+/// Every file of a store deleted, truncated, or with one byte flipped: `info` and then
+/// `verify` (the store opened once, as in the campaign) end in an error naming the store or in
+/// a sound result; none panics, none hangs, and damage is never called an "incomplete import"
+/// unless the completion record itself is what was lost.
+#[test]
+fn damaged_store_copies_give_errors_not_panics_or_hangs() {
+    let dir = tempfile::tempdir().unwrap();
+    let pristine = dir.path().join("pristine.strata");
+    import_noise(dir.path(), &pristine);
+    let files = files_under(&pristine);
+    assert!(
+        files.iter().any(|f| f.to_string_lossy().contains("blobs")),
+        "the test store has no blob files: {files:?}"
+    );
+    let mut cases = 0;
+    let mut failures = Vec::new();
+    for (n, file) in files.iter().enumerate() {
+        let rel = file.strip_prefix(&pristine).unwrap().to_path_buf();
+        if rel.to_string_lossy() == "strata.lock" {
+            continue;
+        }
+        for damage in ["delete", "truncate", "flip"] {
+            cases += 1;
+            let copy = dir.path().join(format!("copy-{n}-{damage}.strata"));
+            copy_dir(&pristine, &copy);
+            let target = copy.join(&rel);
+            match damage {
+                "delete" => std::fs::remove_file(&target).unwrap(),
+                "truncate" => {
+                    let len = std::fs::metadata(&target).unwrap().len();
+                    let f = std::fs::OpenOptions::new()
+                        .write(true)
+                        .open(&target)
+                        .unwrap();
+                    f.set_len(len / 2).unwrap();
+                }
+                _ => {
+                    let mut bytes = std::fs::read(&target).unwrap();
+                    if bytes.is_empty() {
+                        continue;
+                    }
+                    let at = bytes.len() / 2;
+                    bytes[at] ^= 0x5a;
+                    std::fs::write(&target, bytes).unwrap();
+                }
+            }
+            let case = format!("{} {damage}", rel.display());
+            for command in ["info", "verify"] {
+                let r = run_limited(strata(&[command, s(&copy)]), &format!("{command} ({case})"));
+                let panicked = r.text.contains("panicked") || r.code == Some(101);
+                let named = r.text.contains(s(&copy));
+                match r.code {
+                    Some(0) | Some(1) if !panicked => {}
+                    other => {
+                        failures.push(format!("{command} ({case}): exit {other:?}: {}", r.text))
+                    }
+                }
+                // Only the marker's own damage can hide that the import had finished.
+                let marker_damaged = rel.to_string_lossy() == "STRATA-STORE";
+                if r.text.contains("incomplete import") && !marker_damaged {
+                    failures.push(format!(
+                        "{command} ({case}): damage reported as an incomplete import: {}",
+                        r.text
+                    ));
+                }
+                if r.code == Some(1) && !named {
+                    failures.push(format!(
+                        "{command} ({case}): the error does not name the store: {}",
+                        r.text
+                    ));
+                }
+            }
+            std::fs::remove_dir_all(&copy).unwrap();
+        }
+    }
+    println!("{cases} damaged copies checked with info and verify");
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
+
+/// Import under a small file-size limit (what a full disk does to the writes; works without
+/// root, in CI): a clean, quick error that says the disk is full, and no store left behind.
+#[cfg(unix)]
+#[test]
+fn import_onto_a_full_disk_ends_with_a_clear_error_and_no_store() {
+    let dir = tempfile::tempdir().unwrap();
+    let raw = noise_raw(dir.path());
+    for attempt in 0..3 {
+        let store = dir.path().join(format!("full-{attempt}.strata"));
+        // 1 MiB limit for a 3 MB store. SIGXFSZ is ignored (inherited across exec), so the
+        // writes fail with EFBIG as they would with ENOSPC, instead of killing the process.
+        let script = format!(
+            "ulimit -f 1024; trap '' XFSZ; exec {STRATA} import {} {} --raw-dims 100,100,100 --raw-type u16",
+            s(&raw),
+            s(&store)
+        );
+        let mut c = Command::new("bash");
+        c.args(["-c", &script]);
+        let r = run_limited(c, "import under RLIMIT_FSIZE");
+        assert_eq!(r.code, Some(1), "{}", r.text);
+        assert!(r.text.contains("disk is full"), "{}", r.text);
+        assert!(!r.text.contains("panicked"), "{}", r.text);
+        assert!(!store.exists(), "a failed import left {}", store.display());
+    }
+}
+
+/// The same on a real full filesystem: a 2 MiB tmpfs, where the test can mount one (root).
+#[cfg(target_os = "linux")]
+#[test]
+fn import_onto_a_full_tmpfs_ends_with_a_clear_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let mount = dir.path().join("small");
+    std::fs::create_dir_all(&mount).unwrap();
+    let mounted = Command::new("mount")
+        .args(["-t", "tmpfs", "-o", "size=2m", "tmpfs", s(&mount)])
+        .stderr(Stdio::null())
+        .status()
+        .is_ok_and(|st| st.success());
+    if !mounted {
+        println!("skipped: cannot mount a tmpfs here (needs root); the RLIMIT_FSIZE test covers the writes");
+        return;
+    }
+    let raw = noise_raw(dir.path());
+    let store = mount.join("s.strata");
+    let r = run_limited(
+        strata(&[
+            "import",
+            s(&raw),
+            s(&store),
+            "--raw-dims",
+            "100,100,100",
+            "--raw-type",
+            "u16",
+        ]),
+        "import onto a full tmpfs",
+    );
+    let _ = Command::new("umount").arg(&mount).status();
+    assert_eq!(r.code, Some(1), "{}", r.text);
+    assert!(r.text.contains("disk is full"), "{}", r.text);
+}
+
+/// A second import into a store being written is refused at once with the first one's pid; the
+/// first finishes and its store opens.
+#[test]
+fn a_second_writer_is_refused_and_the_first_store_survives() {
+    let dir = tempfile::tempdir().unwrap();
+    let nrrd = dir.path().join("p.nrrd");
+    let r = run_limited(
+        strata(&["sample", "--size", "96", "--out", s(&nrrd)]),
+        "sample",
+    );
+    assert_eq!(r.code, Some(0), "{}", r.text);
+    let store = dir.path().join("shared.strata");
+    let mut first = Command::new(STRATA)
+        .args(["import", s(&nrrd), s(&store)])
+        .env("STRATA_DEBUG_SLOW_IMPORT", "1")
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    // Wait until the first import holds the store.
+    let deadline = Instant::now() + COMMAND_LIMIT;
+    while !store.join("strata.lock").exists() && Instant::now() < deadline {
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    std::thread::sleep(Duration::from_millis(200));
+    let started = Instant::now();
+    let second = run_limited(strata(&["import", s(&nrrd), s(&store)]), "second import");
+    assert_eq!(second.code, Some(1), "{}", second.text);
+    assert!(
+        second
+            .text
+            .contains(&format!("in use by pid {}", first.id())),
+        "{}",
+        second.text
+    );
+    // "At once": the refusal does not wait for the lock (generous bound, not a benchmark).
+    assert!(started.elapsed() < Duration::from_secs(30));
+    let status = first.wait().unwrap();
+    assert!(status.success(), "the first import failed");
+    let info = run_limited(strata(&["info", s(&store)]), "info after both");
+    assert_eq!(info.code, Some(0), "{}", info.text);
+}
+
+/// A store another process has open: a local command says who holds it at once, never a
+/// database error after a wait.
+#[test]
+fn a_store_held_by_another_process_is_reported_at_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("held.strata");
+    let r = run_limited(
+        strata(&["sample", "--size", "40", "--out", s(&store)]),
+        "sample",
+    );
+    assert_eq!(r.code, Some(0), "{}", r.text);
+    let held = strata_storage::Store::open(&store).unwrap();
+    for command in ["info", "verify"] {
+        let r = run_limited(strata(&[command, s(&store)]), command);
+        assert_eq!(r.code, Some(1), "{}", r.text);
+        assert!(
+            r.text
+                .contains(&format!("in use by pid {}", std::process::id())),
+            "{}",
+            r.text
+        );
+        assert!(!r.text.contains("database error"), "{}", r.text);
+    }
+    drop(held);
+    let r = run_limited(strata(&["info", s(&store)]), "info after release");
+    assert_eq!(r.code, Some(0), "{}", r.text);
+}
+
+/// A store on read-only media: the message says so with the remedy, where the test can mount a
+/// read-only filesystem (root).
+#[cfg(target_os = "linux")]
+#[test]
+fn a_store_on_read_only_media_says_so_with_the_remedy() {
+    let dir = tempfile::tempdir().unwrap();
+    let mount = dir.path().join("ro");
+    std::fs::create_dir_all(&mount).unwrap();
+    let mounted = Command::new("mount")
+        .args(["-t", "tmpfs", "-o", "size=16m", "tmpfs", s(&mount)])
+        .stderr(Stdio::null())
+        .status()
+        .is_ok_and(|st| st.success());
+    if !mounted {
+        println!("skipped: cannot mount a tmpfs here (needs root)");
+        return;
+    }
+    let store = mount.join("ro.strata");
+    let r = run_limited(
+        strata(&["sample", "--size", "40", "--out", s(&store)]),
+        "sample",
+    );
+    let remounted = Command::new("mount")
+        .args(["-o", "remount,ro", s(&mount)])
+        .status()
+        .is_ok_and(|st| st.success());
+    let r2 = run_limited(strata(&["info", s(&store)]), "info on read-only media");
+    let _ = Command::new("umount").arg(&mount).status();
+    assert_eq!(r.code, Some(0), "{}", r.text);
+    assert!(remounted, "remount read-only failed");
+    assert_eq!(r2.code, Some(1), "{}", r2.text);
+    assert!(r2.text.contains("read-only"), "{}", r2.text);
+    assert!(r2.text.contains("copy the store"), "{}", r2.text);
+}
+
+/// SIGKILL during a compressed import leaves its staging file (nothing can run on SIGKILL);
+/// the next import removes it, and the killed store reads as incomplete, never complete.
+#[cfg(unix)]
+#[test]
+fn a_killed_compressed_import_leaves_no_staging_file_after_the_next_run() {
+    use std::io::Write;
+    let dir = tempfile::tempdir().unwrap();
+    let staging = dir.path().join("staging");
+    std::fs::create_dir_all(&staging).unwrap();
+    let nrrd = dir.path().join("p.nrrd");
+    let r = run_limited(
+        strata(&["sample", "--size", "96", "--out", s(&nrrd)]),
+        "sample",
+    );
+    assert_eq!(r.code, Some(0), "{}", r.text);
+    // The sample is a raw NRRD; gzip its data to make a compressed input.
+    let bytes = std::fs::read(&nrrd).unwrap();
+    let split = bytes.windows(2).position(|w| w == b"\n\n").unwrap() + 2;
+    let header =
+        String::from_utf8_lossy(&bytes[..split]).replace("encoding: raw", "encoding: gzip");
+    let mut gz = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::fast());
+    gz.write_all(&bytes[split..]).unwrap();
+    let mut out = header.into_bytes();
+    out.extend_from_slice(&gz.finish().unwrap());
+    let packed = dir.path().join("packed.nrrd");
+    std::fs::write(&packed, out).unwrap();
+
+    let store = dir.path().join("killed.strata");
+    let mut child = Command::new(STRATA)
+        .args([
+            "import",
+            s(&packed),
+            s(&store),
+            "--staging-dir",
+            s(&staging),
+        ])
+        .env("STRATA_DEBUG_SLOW_IMPORT", "1")
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let deadline = Instant::now() + COMMAND_LIMIT;
+    while !store.join("db").exists() && Instant::now() < deadline {
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    std::thread::sleep(Duration::from_millis(300));
+    child.kill().unwrap();
+    child.wait().unwrap();
+    assert_eq!(
+        std::fs::read_dir(&staging).unwrap().count(),
+        1,
+        "the killed import should have left exactly its staging file"
+    );
+    let info = run_limited(strata(&["info", s(&store)]), "info of the killed store");
+    assert_eq!(info.code, Some(1), "{}", info.text);
+    assert!(info.text.contains("incomplete import"), "{}", info.text);
+    // The next import (of anything, with the same staging folder) removes the dead file.
+    let again = dir.path().join("again.strata");
+    let r = run_limited(
+        strata(&[
+            "import",
+            s(&packed),
+            s(&again),
+            "--staging-dir",
+            s(&staging),
+        ]),
+        "next import",
+    );
+    assert_eq!(r.code, Some(0), "{}", r.text);
+    assert_eq!(
+        std::fs::read_dir(&staging).unwrap().count(),
+        0,
+        "stale staging file not removed"
+    );
+}
+
+/// Ctrl-C (SIGINT) and SIGTERM during a compressed import remove its staging file at once.
+#[cfg(unix)]
+#[test]
+fn an_interrupted_import_removes_its_staging_file() {
+    use std::io::Write;
+    let dir = tempfile::tempdir().unwrap();
+    let staging = dir.path().join("staging");
+    std::fs::create_dir_all(&staging).unwrap();
+    let raw = noise_raw(dir.path());
+    let header = "NRRD0004\ntype: uint16\ndimension: 3\nsizes: 100 100 100\nendian: little\nencoding: gzip\n\n";
+    let mut gz = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::fast());
+    gz.write_all(&std::fs::read(&raw).unwrap()).unwrap();
+    let mut bytes = header.as_bytes().to_vec();
+    bytes.extend_from_slice(&gz.finish().unwrap());
+    let packed = dir.path().join("noise.nrrd");
+    std::fs::write(&packed, bytes).unwrap();
+    let store = dir.path().join("int.strata");
+    let child = Command::new(STRATA)
+        .args([
+            "import",
+            s(&packed),
+            s(&store),
+            "--staging-dir",
+            s(&staging),
+        ])
+        .env("STRATA_DEBUG_SLOW_IMPORT", "1")
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let deadline = Instant::now() + COMMAND_LIMIT;
+    while !store.join("db").exists() && Instant::now() < deadline {
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    std::thread::sleep(Duration::from_millis(200));
+    let term = Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(term.success());
+    let out = child.wait_with_output().unwrap();
+    assert_eq!(
+        out.status.code(),
+        Some(130),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert_eq!(
+        std::fs::read_dir(&staging).unwrap().count(),
+        0,
+        "SIGTERM left the staging file"
+    );
+}

@@ -1,0 +1,155 @@
+//! The loader soak of the reliability campaign: random cameras, transfer functions, quality
+//! factors and budgets for a long time (30 minutes by default), checking on every frame that
+//! the caches stay within their budgets (+10 %), that the process's memory stays bounded, and
+//! that frames keep coming (a watchdog fails the test after 60 s without one: a deadlock).
+//!
+//! `STRATA_SOAK_SECONDS=1800 cargo test -p strata-loader --test soak -- --ignored --nocapture`
+
+mod common;
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use common::*;
+use strata_loader::StreamingConfig;
+use strata_render::{Camera, Projection, RenderMode, TransferFunction};
+
+/// Frames may be slow on lavapipe; a minute without one is a hang.
+const WATCHDOG: Duration = Duration::from_secs(60);
+
+struct Rng(u64);
+impl Rng {
+    fn next(&mut self) -> u64 {
+        self.0 ^= self.0 << 13;
+        self.0 ^= self.0 >> 7;
+        self.0 ^= self.0 << 17;
+        self.0
+    }
+    fn unit(&mut self) -> f64 {
+        (self.next() >> 11) as f64 / (1u64 << 53) as f64
+    }
+}
+
+fn resident_bytes() -> Option<u64> {
+    let statm = std::fs::read_to_string("/proc/self/statm").ok()?;
+    let pages: u64 = statm.split_whitespace().nth(1)?.parse().ok()?;
+    Some(pages * 4096)
+}
+
+#[test]
+#[ignore = "soak: 30 minutes by default; run with --ignored (STRATA_SOAK_SECONDS to shorten)"]
+fn loader_soak_random_views_tfs_and_budgets() {
+    let seconds: u64 = std::env::var("STRATA_SOAK_SECONDS")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(1800);
+    let ctx = gpu();
+    let dir = tempfile::tempdir().unwrap();
+    let store = open(&phantom_store(dir.path(), 160));
+    let geometry = store.header().geometry.clone();
+    let presets = ["ct-bone", "ct-soft-tissue", "ct-lung", "ct-vessels"];
+    let heartbeat = Arc::new(AtomicU64::new(0));
+    let beat = heartbeat.clone();
+    let watched = std::thread::Builder::new()
+        .name("soak-watchdog".into())
+        .spawn(move || {
+            let mut last = (0, Instant::now());
+            loop {
+                std::thread::sleep(Duration::from_secs(1));
+                let now = beat.load(Ordering::Relaxed);
+                if now == u64::MAX {
+                    return;
+                }
+                if now != last.0 {
+                    last = (now, Instant::now());
+                } else if last.1.elapsed() > WATCHDOG {
+                    // The frame loop is stuck and cannot be joined: end the test process.
+                    eprintln!("soak: no frame for {WATCHDOG:?} after frame {now}: deadlock");
+                    std::process::exit(1);
+                }
+            }
+        })
+        .unwrap();
+    let mut rng = Rng(0x50a6_50a6);
+    let started = Instant::now();
+    let rss_at_start = resident_bytes().unwrap_or(0);
+    let mut frames = 0u64;
+    let mut volumes = 0u64;
+    let mut worst_rss_over = i64::MIN;
+    while started.elapsed() < Duration::from_secs(seconds) {
+        // A new volume with random budgets every few hundred frames.
+        let config = StreamingConfig {
+            gpu_budget_bytes: (8 + rng.next() % 120) << 20,
+            cpu_budget_bytes: (8 + rng.next() % 248) << 20,
+            sled_cache_bytes: 1 << 20,
+            uploads_per_frame: 1 + (rng.next() % 64) as usize,
+            ..StreamingConfig::default()
+        };
+        let tf = TransferFunction::preset(presets[0]).unwrap();
+        let mut volume = stream(&ctx, &store, &tf, config.clone());
+        volumes += 1;
+        let mut settings = settings(128);
+        for _ in 0..(100 + rng.next() % 300) {
+            if rng.next().is_multiple_of(16) {
+                let name = presets[(rng.next() % presets.len() as u64) as usize];
+                volume
+                    .set_transfer_function(&ctx, &TransferFunction::preset(name).unwrap())
+                    .unwrap();
+            }
+            if rng.next().is_multiple_of(32) {
+                volume.set_max_voxel_pixels(0.5 + 3.0 * rng.unit());
+                settings.mode = if rng.next().is_multiple_of(3) {
+                    RenderMode::Mip
+                } else {
+                    RenderMode::Dvr
+                };
+            }
+            let camera = Camera::orbit(
+                &geometry,
+                360.0 * rng.unit(),
+                -80.0 + 160.0 * rng.unit(),
+                0.5 + 4.0 * rng.unit(),
+                Projection::Perspective { fov_y_deg: 30.0 },
+            );
+            let stats = volume.frame(&ctx, &camera, &settings).unwrap();
+            frames += 1;
+            heartbeat.store(frames, Ordering::Relaxed);
+            let slack = |budget: u64| budget + budget / 10;
+            assert!(
+                stats.cpu_bytes <= slack(config.cpu_budget_bytes),
+                "frame {frames}: CPU cache {} over its budget {}",
+                stats.cpu_bytes,
+                config.cpu_budget_bytes
+            );
+            assert!(
+                stats.gpu_bytes <= slack(config.gpu_budget_bytes),
+                "frame {frames}: GPU cache {} over its budget {}",
+                stats.gpu_bytes,
+                config.gpu_budget_bytes
+            );
+            if frames.is_multiple_of(8) {
+                ctx.wait_idle().unwrap();
+            }
+            if let Some(rss) = resident_bytes() {
+                // The process beyond its start: both caches plus a fixed allowance for the
+                // device's own buffers (page table, readback ring, pipelines).
+                let allowed =
+                    slack(config.cpu_budget_bytes + config.gpu_budget_bytes) + (256 << 20);
+                let over = rss as i64 - rss_at_start as i64 - allowed as i64;
+                worst_rss_over = worst_rss_over.max(over);
+                assert!(
+                    over <= 0,
+                    "frame {frames}: RSS {rss} B grew beyond the budgets by {over} B"
+                );
+            }
+        }
+    }
+    heartbeat.store(u64::MAX, Ordering::Relaxed);
+    watched.join().unwrap();
+    println!(
+        "soak: {frames} frames over {volumes} volumes in {:.0} s; worst RSS margin {} MiB below the bound",
+        started.elapsed().as_secs_f64(),
+        (-worst_rss_over) >> 20
+    );
+}

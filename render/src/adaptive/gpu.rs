@@ -1,0 +1,660 @@
+//! The adaptive pass (shaders/adaptive.wgsl): one dispatch per frame, one workgroup per
+//! screen tile, writing colour (RGBA8 for display and f32 for tests), the pick depth (ray
+//! distance where accumulated opacity reaches ½), the per-page visibility words the loader
+//! refines by, and sample / synthesis counters per pyramid level.
+//!
+//! Bindings: the field's (0-3, 11, as the raycaster: `Raycaster::field_entries`), the
+//! length-free pre-integration table (10), then its own: parameters (12), the oracle's
+//! distance per page entry (14), RGBA8 colour (15), f32 colour (16), depth (17), visibility
+//! (18), counters (19).
+
+use std::collections::HashMap;
+
+use super::frame::SliceFrame;
+use super::oracle::OracleKind;
+use super::AdaptiveConfig;
+use crate::cache::BrickCache;
+use crate::device::GpuContext;
+use crate::error::RenderError;
+use crate::gpu_preintegration::GpuPreintegration;
+use crate::raycast::{build_params, map_blocking, Params, Raycaster, Scene};
+use crate::settings::RenderMode;
+use crate::shaders;
+
+/// Counter words: samples per level 0..3, syntheses per level 4..7, segments 8, apron samples
+/// per level 9..12.
+const COUNTERS: usize = 16;
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct AdaptiveParams {
+    frame: [f32; 4],
+    pyramid: [u32; 4],
+    viewport: [u32; 4],
+}
+
+/// The effects one adaptive pipeline is specialised for.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+struct AdaptiveKey {
+    tile: u32,
+    l_max: u32,
+    oracle: u32,
+    early_termination: bool,
+    clipped: bool,
+    manual_trilinear: bool,
+    smooth_transitions: bool,
+}
+
+/// One frame read back.
+#[derive(Clone, Debug)]
+pub struct AdaptiveFrame {
+    pub width: u32,
+    pub height: u32,
+    /// Premultiplied RGBA8, row 0 at the top.
+    pub rgba: Vec<u8>,
+    /// The same in f32 (tests compare it with the transcription).
+    pub rgba_f32: Vec<[f32; 4]>,
+    /// Pick depth (mm): where accumulated opacity reaches ½, +inf if never.
+    pub depth: Vec<f32>,
+    /// Per page entry: 1 if a sample there was not transparent.
+    pub visibility: Vec<u32>,
+    /// Sampling operations per level (each tile's own pixels: the global algorithm's count).
+    pub samples_per_level: [u64; 4],
+    /// Synthesis operations per level (own pixels).
+    pub syntheses_per_level: [u64; 4],
+    /// Samples of apron pixels (the tiling's extra work, not in the global algorithm).
+    pub apron_samples_per_level: [u64; 4],
+    /// Segments composited.
+    pub segments: u64,
+    /// The frame's slices.
+    pub last_slice: u32,
+}
+
+impl AdaptiveFrame {
+    pub fn total_samples(&self) -> u64 {
+        self.samples_per_level.iter().sum()
+    }
+
+    pub fn total_apron_samples(&self) -> u64 {
+        self.apron_samples_per_level.iter().sum()
+    }
+
+    pub fn total_syntheses(&self) -> u64 {
+        self.syntheses_per_level.iter().sum()
+    }
+}
+
+struct Targets {
+    width: u32,
+    height: u32,
+    color: wgpu::Texture,
+    color_view: wgpu::TextureView,
+    rgba: wgpu::Buffer,
+    depth: wgpu::Buffer,
+    color_readback: wgpu::Buffer,
+    rgba_readback: wgpu::Buffer,
+    depth_readback: wgpu::Buffer,
+    padded_row_bytes: u32,
+}
+
+pub struct AdaptivePass {
+    layout: wgpu::BindGroupLayout,
+    pipeline_layout: wgpu::PipelineLayout,
+    module: wgpu::ShaderModule,
+    pipelines: HashMap<AdaptiveKey, wgpu::ComputePipeline>,
+    params: wgpu::Buffer,
+    adaptive_params: wgpu::Buffer,
+    sampler: wgpu::Sampler,
+    filterable: bool,
+    preintegration: GpuPreintegration,
+    oracle: wgpu::Buffer,
+    oracle_entries: usize,
+    visibility: Option<(usize, wgpu::Buffer, wgpu::Buffer)>,
+    counters: wgpu::Buffer,
+    counters_readback: wgpu::Buffer,
+    targets: Option<Targets>,
+    last_slice: u32,
+}
+
+fn storage_entry(binding: u32, read_only: bool) -> wgpu::BindGroupLayoutEntry {
+    wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::COMPUTE,
+        ty: wgpu::BindingType::Buffer {
+            ty: wgpu::BufferBindingType::Storage { read_only },
+            has_dynamic_offset: false,
+            min_binding_size: None,
+        },
+        count: None,
+    }
+}
+
+fn uniform_entry(binding: u32) -> wgpu::BindGroupLayoutEntry {
+    wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::COMPUTE,
+        ty: wgpu::BindingType::Buffer {
+            ty: wgpu::BufferBindingType::Uniform,
+            has_dynamic_offset: false,
+            min_binding_size: None,
+        },
+        count: None,
+    }
+}
+
+fn texture_entry(
+    binding: u32,
+    sample_type: wgpu::TextureSampleType,
+    view_dimension: wgpu::TextureViewDimension,
+) -> wgpu::BindGroupLayoutEntry {
+    wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::COMPUTE,
+        ty: wgpu::BindingType::Texture {
+            sample_type,
+            view_dimension,
+            multisampled: false,
+        },
+        count: None,
+    }
+}
+
+impl AdaptivePass {
+    pub fn new(ctx: &GpuContext, cache: &BrickCache) -> Self {
+        let device = &ctx.device;
+        let filterable = cache.format.filterable();
+        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("adaptive"),
+            entries: &[
+                uniform_entry(0),
+                texture_entry(
+                    1,
+                    wgpu::TextureSampleType::Float { filterable },
+                    wgpu::TextureViewDimension::D3,
+                ),
+                wgpu::BindGroupLayoutEntry {
+                    binding: 2,
+                    visibility: wgpu::ShaderStages::COMPUTE,
+                    ty: wgpu::BindingType::Sampler(if filterable {
+                        wgpu::SamplerBindingType::Filtering
+                    } else {
+                        wgpu::SamplerBindingType::NonFiltering
+                    }),
+                    count: None,
+                },
+                storage_entry(3, true),
+                texture_entry(
+                    10,
+                    wgpu::TextureSampleType::Float { filterable: false },
+                    wgpu::TextureViewDimension::D2,
+                ),
+                storage_entry(11, true),
+                uniform_entry(12),
+                storage_entry(14, true),
+                wgpu::BindGroupLayoutEntry {
+                    binding: 15,
+                    visibility: wgpu::ShaderStages::COMPUTE,
+                    ty: wgpu::BindingType::StorageTexture {
+                        access: wgpu::StorageTextureAccess::WriteOnly,
+                        format: wgpu::TextureFormat::Rgba8Unorm,
+                        view_dimension: wgpu::TextureViewDimension::D2,
+                    },
+                    count: None,
+                },
+                storage_entry(16, false),
+                storage_entry(17, false),
+                storage_entry(18, false),
+                storage_entry(19, false),
+            ],
+        });
+        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("adaptive"),
+            bind_group_layouts: &[Some(&layout)],
+            immediate_size: 0,
+        });
+        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("adaptive.wgsl"),
+            source: wgpu::ShaderSource::Wgsl(shaders::adaptive_source().into()),
+        });
+        let buffer = |label: &str, size: u64, usage| {
+            device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size,
+                usage,
+                mapped_at_creation: false,
+            })
+        };
+        let uniform = wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST;
+        let filter = if filterable {
+            wgpu::FilterMode::Linear
+        } else {
+            wgpu::FilterMode::Nearest
+        };
+        AdaptivePass {
+            params: buffer("adaptive field params", size_of::<Params>() as u64, uniform),
+            adaptive_params: buffer(
+                "adaptive params",
+                size_of::<AdaptiveParams>() as u64,
+                uniform,
+            ),
+            sampler: device.create_sampler(&wgpu::SamplerDescriptor {
+                label: Some("adaptive brick cache"),
+                mag_filter: filter,
+                min_filter: filter,
+                ..Default::default()
+            }),
+            filterable,
+            preintegration: GpuPreintegration::new(device, &ctx.queue),
+            oracle: buffer(
+                "adaptive oracle",
+                4,
+                wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+            ),
+            oracle_entries: 0,
+            visibility: None,
+            counters: buffer(
+                "adaptive counters",
+                (COUNTERS * 4) as u64,
+                wgpu::BufferUsages::STORAGE
+                    | wgpu::BufferUsages::COPY_SRC
+                    | wgpu::BufferUsages::COPY_DST,
+            ),
+            counters_readback: buffer(
+                "adaptive counters readback",
+                (COUNTERS * 4) as u64,
+                wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            ),
+            targets: None,
+            layout,
+            pipeline_layout,
+            module,
+            pipelines: HashMap::new(),
+            last_slice: 0,
+        }
+    }
+
+    /// The oracle's sampling distance per page entry (oracle.rs `oracle_distances`), read by
+    /// [`OracleKind::PerNode`] frames.
+    pub fn set_oracle(&mut self, ctx: &GpuContext, distances: &[f32]) {
+        let bytes = (distances.len().max(1) * 4) as u64;
+        if self.oracle.size() < bytes {
+            self.oracle = ctx.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("adaptive oracle"),
+                size: bytes,
+                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            });
+        }
+        if !distances.is_empty() {
+            ctx.queue
+                .write_buffer(&self.oracle, 0, bytemuck::cast_slice(distances));
+        }
+        self.oracle_entries = distances.len();
+    }
+
+    /// The RGBA8 colour target, for display (valid after the first frame).
+    pub fn output_view(&self) -> Option<&wgpu::TextureView> {
+        self.targets.as_ref().map(|t| &t.color_view)
+    }
+
+    fn ensure_targets(&mut self, device: &wgpu::Device, width: u32, height: u32) {
+        if self
+            .targets
+            .as_ref()
+            .is_some_and(|t| t.width == width && t.height == height)
+        {
+            return;
+        }
+        let color = device.create_texture(&wgpu::TextureDescriptor {
+            label: Some("adaptive colour"),
+            size: wgpu::Extent3d {
+                width,
+                height,
+                depth_or_array_layers: 1,
+            },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: wgpu::TextureFormat::Rgba8Unorm,
+            usage: wgpu::TextureUsages::STORAGE_BINDING
+                | wgpu::TextureUsages::TEXTURE_BINDING
+                | wgpu::TextureUsages::COPY_SRC,
+            view_formats: &[],
+        });
+        let color_view = color.create_view(&wgpu::TextureViewDescriptor::default());
+        let pixels = width as u64 * height as u64;
+        let buffer = |label: &str, size: u64, usage| {
+            device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size,
+                usage,
+                mapped_at_creation: false,
+            })
+        };
+        let storage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC;
+        let read = wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST;
+        let padded_row_bytes = (width * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT)
+            * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
+        self.targets = Some(Targets {
+            width,
+            height,
+            color,
+            color_view,
+            rgba: buffer("adaptive rgba f32", pixels * 16, storage),
+            depth: buffer("adaptive depth", pixels * 4, storage),
+            color_readback: buffer(
+                "adaptive colour readback",
+                padded_row_bytes as u64 * height as u64,
+                read,
+            ),
+            rgba_readback: buffer("adaptive rgba readback", pixels * 16, read),
+            depth_readback: buffer("adaptive depth readback", pixels * 4, read),
+            padded_row_bytes,
+        });
+    }
+
+    fn pipeline(&mut self, device: &wgpu::Device, key: AdaptiveKey) -> &wgpu::ComputePipeline {
+        let (layout, module) = (&self.pipeline_layout, &self.module);
+        self.pipelines.entry(key).or_insert_with(|| {
+            let b = |v: bool| if v { 1.0 } else { 0.0 };
+            let constants = [
+                ("TILE", key.tile as f64),
+                ("L_MAX", key.l_max as f64),
+                ("ORACLE", key.oracle as f64),
+                ("EARLY_TERMINATION", b(key.early_termination)),
+                ("CLIPPED", b(key.clipped)),
+                ("MANUAL_TRILINEAR", b(key.manual_trilinear)),
+                ("SMOOTH_TRANSITIONS", b(key.smooth_transitions)),
+            ];
+            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some("adaptive"),
+                layout: Some(layout),
+                module,
+                entry_point: Some("main"),
+                compilation_options: wgpu::PipelineCompilationOptions {
+                    constants: &constants,
+                    zero_initialize_workgroup_memory: false,
+                },
+                cache: None,
+            })
+        })
+    }
+
+    /// Encodes and submits one adaptive frame (DVR, unshaded, pre-integrated; no jitter).
+    /// With the per-node oracle, tiles whose rays miss the box are skipped and
+    /// `settings.early_termination` stops a tile once all its pixels reach it (the other
+    /// oracles follow the transcription sample for sample). Never waits.
+    pub fn render(
+        &mut self,
+        ctx: &GpuContext,
+        scene: &Scene,
+        config: &AdaptiveConfig,
+    ) -> Result<wgpu::SubmissionIndex, RenderError> {
+        let settings = scene.settings;
+        settings.validate()?;
+        config.validate()?;
+        scene.geometry.validate()?;
+        if settings.mode != RenderMode::Dvr {
+            return Err(RenderError::InvalidSettings(
+                "the adaptive pass renders DVR only".into(),
+            ));
+        }
+        let page_dims = scene.geometry.page_dims();
+        let entries: usize = page_dims.iter().map(|&d| d as usize).product();
+        if config.oracle == OracleKind::PerNode && self.oracle_entries != entries {
+            return Err(RenderError::InvalidSettings(format!(
+                "adaptive oracle has {} entries, the page table {entries}: call set_oracle",
+                self.oracle_entries
+            )));
+        }
+        let device = &ctx.device;
+        let frame = SliceFrame::new(scene.geometry, settings, scene.camera, config.l_max);
+        let (constant, seed, oracle) = match config.oracle {
+            OracleKind::PerNode => (0.0, 0, 0),
+            OracleKind::Constant(c) => (c, 0, 1),
+            OracleKind::Hash(seed) => (0.0, seed, 2),
+        };
+        let key = AdaptiveKey {
+            tile: config.tile,
+            l_max: config.l_max,
+            oracle,
+            early_termination: oracle == 0 && settings.early_termination.is_some(),
+            clipped: settings.clip_plane.is_some(),
+            manual_trilinear: settings.exact_trilinear || !self.filterable,
+            smooth_transitions: settings.smooth_transitions
+                && scene.page_table.transition_fraction() > 0.0,
+        };
+        self.preintegration.ensure(
+            device,
+            &ctx.queue,
+            scene.transfer_function,
+            scene.geometry.finest_spacing_mm(),
+        );
+        self.ensure_targets(device, settings.width, settings.height);
+        if self.visibility.as_ref().is_none_or(|v| v.0 != entries) {
+            let size = (entries.max(1) * 4) as u64;
+            let make = |label: &str, usage| {
+                device.create_buffer(&wgpu::BufferDescriptor {
+                    label: Some(label),
+                    size,
+                    usage,
+                    mapped_at_creation: false,
+                })
+            };
+            self.visibility = Some((
+                entries,
+                make(
+                    "adaptive visibility",
+                    wgpu::BufferUsages::STORAGE
+                        | wgpu::BufferUsages::COPY_SRC
+                        | wgpu::BufferUsages::COPY_DST,
+                ),
+                make(
+                    "adaptive visibility readback",
+                    wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                ),
+            ));
+        }
+        ctx.queue
+            .write_buffer(&self.params, 0, bytemuck::bytes_of(&build_params(scene)));
+        let params = AdaptiveParams {
+            frame: [
+                frame.t_front as f32,
+                frame.spacing_mm as f32,
+                scene.transfer_function.lo as f32,
+                constant,
+            ],
+            pyramid: [frame.dims.width, frame.dims.height, frame.last_slice, seed],
+            viewport: [settings.width, settings.height, 0, 0],
+        };
+        ctx.queue
+            .write_buffer(&self.adaptive_params, 0, bytemuck::bytes_of(&params));
+        self.last_slice = frame.last_slice;
+        self.pipeline(device, key);
+        let (Some(targets), Some(vis), Some(pipeline)) = (
+            self.targets.as_ref(),
+            self.visibility.as_ref(),
+            self.pipelines.get(&key),
+        ) else {
+            return Err(RenderError::Readback("adaptive targets missing".into()));
+        };
+        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("adaptive"),
+            layout: &self.layout,
+            entries: &Raycaster::field_entries(&self.params, &self.sampler, scene)
+                .into_iter()
+                .chain([
+                    wgpu::BindGroupEntry {
+                        binding: 10,
+                        resource: wgpu::BindingResource::TextureView(
+                            self.preintegration.view(true),
+                        ),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 12,
+                        resource: self.adaptive_params.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 14,
+                        resource: self.oracle.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 15,
+                        resource: wgpu::BindingResource::TextureView(&targets.color_view),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 16,
+                        resource: targets.rgba.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 17,
+                        resource: targets.depth.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 18,
+                        resource: vis.1.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 19,
+                        resource: self.counters.as_entire_binding(),
+                    },
+                ])
+                .collect::<Vec<_>>(),
+        });
+        let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some("adaptive"),
+        });
+        encoder.clear_buffer(&vis.1, 0, None);
+        encoder.clear_buffer(&self.counters, 0, None);
+        {
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("adaptive"),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(pipeline);
+            pass.set_bind_group(0, &bind_group, &[]);
+            pass.dispatch_workgroups(
+                frame.dims.width.div_ceil(config.tile),
+                frame.dims.height.div_ceil(config.tile),
+                1,
+            );
+        }
+        Ok(ctx.queue.submit(Some(encoder.finish())))
+    }
+
+    /// Submits a frame and waits for it without reading back (benchmarks).
+    pub fn render_and_wait(
+        &mut self,
+        ctx: &GpuContext,
+        scene: &Scene,
+        config: &AdaptiveConfig,
+    ) -> Result<(), RenderError> {
+        let index = self.render(ctx, scene, config)?;
+        ctx.device
+            .poll(wgpu::PollType::Wait {
+                submission_index: Some(index),
+                timeout: None,
+            })
+            .map_err(|e| RenderError::Readback(e.to_string()))?;
+        Ok(())
+    }
+
+    /// Render, wait, read everything back.
+    pub fn render_blocking(
+        &mut self,
+        ctx: &GpuContext,
+        scene: &Scene,
+        config: &AdaptiveConfig,
+    ) -> Result<AdaptiveFrame, RenderError> {
+        self.render(ctx, scene, config)?;
+        self.read_frame_blocking(ctx)
+    }
+
+    /// Copies the last frame back and waits for it.
+    pub fn read_frame_blocking(&mut self, ctx: &GpuContext) -> Result<AdaptiveFrame, RenderError> {
+        let (Some(t), Some(vis)) = (self.targets.as_ref(), self.visibility.as_ref()) else {
+            return Err(RenderError::Readback("nothing rendered yet".into()));
+        };
+        let device = &ctx.device;
+        let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some("adaptive readback"),
+        });
+        encoder.copy_texture_to_buffer(
+            wgpu::TexelCopyTextureInfo {
+                texture: &t.color,
+                mip_level: 0,
+                origin: wgpu::Origin3d::ZERO,
+                aspect: wgpu::TextureAspect::All,
+            },
+            wgpu::TexelCopyBufferInfo {
+                buffer: &t.color_readback,
+                layout: wgpu::TexelCopyBufferLayout {
+                    offset: 0,
+                    bytes_per_row: Some(t.padded_row_bytes),
+                    rows_per_image: Some(t.height),
+                },
+            },
+            wgpu::Extent3d {
+                width: t.width,
+                height: t.height,
+                depth_or_array_layers: 1,
+            },
+        );
+        let pixels = t.width as u64 * t.height as u64;
+        encoder.copy_buffer_to_buffer(&t.rgba, 0, &t.rgba_readback, 0, pixels * 16);
+        encoder.copy_buffer_to_buffer(&t.depth, 0, &t.depth_readback, 0, pixels * 4);
+        encoder.copy_buffer_to_buffer(&vis.1, 0, &vis.2, 0, (vis.0.max(1) * 4) as u64);
+        encoder.copy_buffer_to_buffer(
+            &self.counters,
+            0,
+            &self.counters_readback,
+            0,
+            (COUNTERS * 4) as u64,
+        );
+        ctx.queue.submit(Some(encoder.finish()));
+        let buffers = [
+            &t.color_readback,
+            &t.rgba_readback,
+            &t.depth_readback,
+            &vis.2,
+            &self.counters_readback,
+        ];
+        for b in buffers {
+            map_blocking(device, b)?;
+        }
+        let read = |b: &wgpu::Buffer| -> Result<Vec<u8>, RenderError> {
+            let v = b
+                .get_mapped_range(..)
+                .map_err(|e| RenderError::Readback(e.to_string()))?
+                .to_vec();
+            b.unmap();
+            Ok(v)
+        };
+        let padded = read(&t.color_readback)?;
+        let row = (t.width * 4) as usize;
+        let mut rgba = Vec::with_capacity(row * t.height as usize);
+        for y in 0..t.height as usize {
+            let start = y * t.padded_row_bytes as usize;
+            rgba.extend_from_slice(&padded[start..start + row]);
+        }
+        let rgba_f32: Vec<[f32; 4]> = bytemuck::pod_collect_to_vec(&read(&t.rgba_readback)?);
+        let depth: Vec<f32> = bytemuck::pod_collect_to_vec(&read(&t.depth_readback)?);
+        let mut visibility: Vec<u32> = bytemuck::pod_collect_to_vec(&read(&vis.2)?);
+        visibility.truncate(vis.0);
+        let c: Vec<u32> = bytemuck::pod_collect_to_vec(&read(&self.counters_readback)?);
+        let level = |base: usize| [0, 1, 2, 3].map(|l| c[base + l] as u64);
+        Ok(AdaptiveFrame {
+            width: t.width,
+            height: t.height,
+            rgba,
+            rgba_f32,
+            depth,
+            visibility,
+            samples_per_level: level(0),
+            syntheses_per_level: level(4),
+            apron_samples_per_level: level(9),
+            segments: c[8] as u64,
+            last_slice: self.last_slice,
+        })
+    }
+}

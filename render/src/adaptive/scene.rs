@@ -1,0 +1,205 @@
+//! The transcription (transcription.rs) over a real volume: SAMPLE is the field of field.rs
+//! on the frame's slices (frame.rs), ORACLE one of [`OracleKind`], and a segment is integrated
+//! either exactly in f64 or from the length-free pre-integration table the GPU reads
+//! (segment_integral.rs). The CPU twin of the GPU pass, and with exact optics and d ≡ 1 the
+//! slice-aligned full-rate image that adaptive frames are measured against.
+
+use glam::DVec3;
+
+use super::frame::SliceFrame;
+use super::oracle::{hash_distance, outside_distance, OracleKind};
+use super::transcription::{
+    level0_coordinate, project_volume, AdaptiveProbe, SegmentOptics, Transcription,
+};
+use super::AdaptiveConfig;
+use crate::error::RenderError;
+use crate::field::sample_field;
+use crate::layout::BrickSource;
+use crate::preintegration::integrate_segment;
+use crate::reference::{ray_interval, ReferenceScene};
+use crate::segment_integral::SegmentIntegralTable;
+use crate::settings::RenderSettings;
+use crate::smooth_transitions::transition_masks;
+
+/// How the CPU side integrates a segment.
+#[derive(Clone, Copy, Debug)]
+pub enum AdaptiveOptics<'a> {
+    /// f64 integration of the exact TF with this many sub-steps per slice of length.
+    Exact { substeps_per_slice: usize },
+    /// The GPU's table, evaluated in f64.
+    Table(&'a SegmentIntegralTable),
+}
+
+#[derive(Clone, Debug)]
+pub struct AdaptiveReference {
+    pub frame: SliceFrame,
+    pub transcription: Transcription,
+    /// Viewport pixels only (padding cropped), premultiplied RGBA.
+    pub rgba_f64: Vec<[f64; 4]>,
+    /// As the GPU's unorm store rounds it.
+    pub rgba: Vec<u8>,
+    /// Pick depth (mm): ray distance where accumulated opacity reaches ½, +inf if never.
+    pub depth: Vec<f32>,
+}
+
+struct SceneProbe<'a, S: BrickSource> {
+    scene: &'a ReferenceScene<'a, S>,
+    settings: &'a RenderSettings,
+    frame: &'a SliceFrame,
+    masks: Option<Vec<u32>>,
+    config: AdaptiveConfig,
+    oracle_table: &'a [f32],
+}
+
+/// The value (physical) and page entry SAMPLE reads at level-0 pixel coordinates (u, v) on
+/// slice `i_slice`: the field where the slice's point lies in the ray's box-and-clip
+/// interval and something is resident there, else the default value, the low end of the TF
+/// range (which the TF maps to transparent for the CT and MR presets, §3.1), and no entry.
+pub fn slice_sample<S: BrickSource>(
+    scene: &ReferenceScene<S>,
+    settings: &RenderSettings,
+    frame: &SliceFrame,
+    masks: Option<&[u32]>,
+    (u, v): (f64, f64),
+    i_slice: u32,
+) -> (f64, Option<usize>) {
+    let (o, d) = frame.ray(u, v);
+    let t = frame.slice_t(i_slice);
+    let g = scene.geometry;
+    let inside = ray_interval(g, settings, o, d).is_some_and(|(t0, t1)| t >= t0 && t <= t1);
+    let located = inside
+        .then(|| {
+            let a = g.index_from_patient_linear();
+            let p: DVec3 = a * (o + d * t - g.origin());
+            sample_field(scene.source, scene.page_table, masks, g.dims, p)
+        })
+        .flatten();
+    match located {
+        Some(s) => (
+            scene.mapping.physical(s.value),
+            Some(s.location.page_linear),
+        ),
+        None => (scene.tf_range.0, None),
+    }
+}
+
+impl<S: BrickSource> AdaptiveProbe for SceneProbe<'_, S> {
+    fn probe(&self, level: u32, x: u32, y: u32, i_slice: u32) -> (f64, f64) {
+        let l_max = self.config.l_max;
+        let coarsest = (1u32 << l_max) as f64;
+        let (value, page) = slice_sample(
+            self.scene,
+            self.settings,
+            self.frame,
+            self.masks.as_deref(),
+            (level0_coordinate(level, x), level0_coordinate(level, y)),
+            i_slice,
+        );
+        let distance = match self.config.oracle {
+            OracleKind::Constant(c) => c as f64,
+            OracleKind::Hash(seed) => hash_distance(level, x, y, i_slice, seed, l_max),
+            OracleKind::PerNode => match page {
+                Some(p) => self.oracle_table.get(p).map_or(coarsest, |&d| d as f64),
+                None => {
+                    let (o, d) = self
+                        .frame
+                        .ray(level0_coordinate(level, x), level0_coordinate(level, y));
+                    outside_distance(
+                        self.scene.geometry,
+                        self.settings,
+                        o + d * self.frame.slice_t(i_slice),
+                        self.frame.spacing_mm,
+                        l_max,
+                    )
+                }
+            },
+        };
+        (value, distance)
+    }
+}
+
+struct Optics<'a> {
+    kind: AdaptiveOptics<'a>,
+    tf: &'a crate::transfer_function::TransferFunction,
+    spacing_mm: f64,
+    unit_mm: f64,
+}
+
+impl SegmentOptics for Optics<'_> {
+    fn segment(&self, s_front: f64, s_back: f64, slices: u32) -> [f64; 4] {
+        let length = slices as f64 * self.spacing_mm;
+        match self.kind {
+            AdaptiveOptics::Exact { substeps_per_slice } => integrate_segment(
+                self.tf,
+                s_front,
+                s_back,
+                length,
+                self.unit_mm,
+                substeps_per_slice.max(1) * slices as usize,
+            )
+            .map(|c| c as f64),
+            AdaptiveOptics::Table(table) => table.segment(s_front, s_back, length),
+        }
+    }
+}
+
+/// The adaptive frame of `settings` on the CPU (DVR, unshaded). `oracle_table` is per page
+/// entry (oracle.rs) and read only with [`OracleKind::PerNode`].
+pub fn render_adaptive_reference<S: BrickSource>(
+    scene: &ReferenceScene<S>,
+    camera: &crate::camera::Camera,
+    settings: &RenderSettings,
+    config: &AdaptiveConfig,
+    oracle_table: &[f32],
+    optics: AdaptiveOptics,
+) -> Result<AdaptiveReference, RenderError> {
+    settings.validate()?;
+    config.validate()?;
+    scene.geometry.validate()?;
+    scene.page_table.check_against(scene.geometry.page_dims())?;
+    let frame = SliceFrame::new(scene.geometry, settings, camera, config.l_max);
+    let probe = SceneProbe {
+        scene,
+        settings,
+        frame: &frame,
+        masks: settings
+            .smooth_transitions
+            .then(|| transition_masks(scene.page_table)),
+        config: *config,
+        oracle_table,
+    };
+    let optics = Optics {
+        kind: optics,
+        tf: scene.transfer_function,
+        spacing_mm: frame.spacing_mm,
+        unit_mm: scene.geometry.finest_spacing_mm(),
+    };
+    let transcription = project_volume(frame.dims, frame.last_slice, &probe, &optics);
+    let (w, h) = frame.viewport;
+    let pw = frame.dims.width as usize;
+    let mut rgba_f64 = Vec::with_capacity((w * h) as usize);
+    let mut depth = Vec::with_capacity((w * h) as usize);
+    for y in 0..h as usize {
+        for x in 0..w as usize {
+            let k = y * pw + x;
+            rgba_f64.push(transcription.rgba[k]);
+            let slices = transcription.depth_slices[k];
+            depth.push(if slices.is_finite() {
+                (frame.t_front + slices * frame.spacing_mm) as f32
+            } else {
+                f32::INFINITY
+            });
+        }
+    }
+    let rgba = rgba_f64
+        .iter()
+        .flat_map(|c| c.map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8))
+        .collect();
+    Ok(AdaptiveReference {
+        frame,
+        transcription,
+        rgba_f64,
+        rgba,
+        depth,
+    })
+}

@@ -1,0 +1,453 @@
+// Adaptive sampling in three dimensions (adaptive-sampling-3d §3.1-3.4) as one compute pass:
+// the tiled twin of adaptive/transcription.rs (Figs. 3, 5, 6), composed after the field files
+// and preintegration.wgsl by shaders.rs.
+//
+// One workgroup per TILE² screen tile of level-0 pixels. Levels 1..L_MAX of the image pyramid
+// live in workgroup memory with a one-pixel apron per level: a pixel's state depends only on
+// its own history and its 2×2 parents, so the tile, apron included, evolves exactly as the
+// same pixels of the global algorithm, and the tiled image equals the global one. Level-0
+// pixels belong to one invocation each (TILE²/64 per invocation) and live in its registers.
+// All loops around barriers run over the frame's slices and the levels l_slice..1, which are
+// the same for the whole workgroup (WGSL requires barriers in uniform control flow).
+
+override TILE: u32 = 16u;
+override L_MAX: u32 = 3u;
+override ORACLE: u32 = 0u;       // 0 per page entry, 1 constant, 2 hash (tests)
+// Per-node oracle frames only (the others must match the transcription sample for sample):
+// a tile none of whose rays meets the box is written transparent without marching, and a
+// tile stops once all its pixels reach the early-termination opacity (checked every 2^L_MAX
+// slices, where every pixel has just accumulated).
+override EARLY_TERMINATION: bool = false;
+// A clip plane is set (the outside distance then includes the plane's).
+override CLIPPED: bool = false;
+
+const THREADS: u32 = 64u;
+const MAX_OWNED: u32 = 16u;      // 32² / 64
+// Levels 1..3 with apron at TILE 32: 18² + 10² + 6².
+const PYRAMID_CAP: u32 = 460u;
+
+struct AdaptiveParams {
+    frame: vec4<f32>,      // t_front (mm), slice spacing (mm), default value, constant distance
+    pyramid: vec4<u32>,    // padded width, padded height, last slice, hash seed
+    viewport: vec4<u32>,   // width, height
+};
+
+@group(0) @binding(12) var<uniform> A: AdaptiveParams;
+@group(0) @binding(14) var<storage, read> oracle_distance: array<f32>;
+@group(0) @binding(15) var out_color: texture_storage_2d<rgba8unorm, write>;
+@group(0) @binding(16) var<storage, read_write> out_rgba: array<vec4<f32>>;
+@group(0) @binding(17) var<storage, read_write> out_depth: array<f32>;
+@group(0) @binding(18) var<storage, read_write> visibility: array<u32>;
+// 0..3 samples per level (owned pixels), 4..7 syntheses per level (owned), 8 segments,
+// 9..12 apron samples per level (the tiling's overhead).
+@group(0) @binding(19) var<storage, read_write> counters: array<atomic<u32>, 16>;
+
+var<workgroup> pyramid_s: array<f32, PYRAMID_CAP>;
+var<workgroup> tile_vote: atomic<u32>;
+var<workgroup> tile_decision: u32;
+var<workgroup> pyramid_d: array<f32, PYRAMID_CAP>;
+
+// Edge of level l's tile with its apron, and where level l starts in the pyramid arrays.
+fn extent(l: u32) -> u32 {
+    return (TILE >> l) + 2u;
+}
+
+fn level_offset(l: u32) -> u32 {
+    var o = 0u;
+    for (var k = 1u; k < l; k++) {
+        let e = extent(k);
+        o += e * e;
+    }
+    return o;
+}
+
+fn adaptive_pcg(v: u32) -> u32 {
+    let state = v * 747796405u + 2891336453u;
+    let word = ((state >> ((state >> 28u) + 4u)) ^ state) * 277803737u;
+    return (word >> 22u) ^ word;
+}
+
+// oracle.rs hash_distance.
+fn adaptive_hash(level: u32, x: u32, y: u32, slice: u32) -> f32 {
+    let h = adaptive_pcg(x ^ adaptive_pcg(y ^ adaptive_pcg(slice ^ adaptive_pcg(level ^ adaptive_pcg(A.pyramid.w)))));
+    return f32(1u + h % (2u << L_MAX));
+}
+
+struct Probe {
+    value: f32,
+    distance: f32,
+    page: u32,
+    hit: bool,
+};
+
+struct PixelRay {
+    o: vec3<f32>,
+    d: vec3<f32>,
+    // The ray's interval in the cropped box and the clip half-space; t1 < t0 if it misses.
+    t0: f32,
+    t1: f32,
+    // Clip plane along this ray: a point at t is on the clipped side by rhs − t·nd (mm).
+    plane_nd: f32,
+    plane_rhs: f32,
+};
+
+// The ray through level-0 pixel coordinates (u, v) (frame.rs SliceFrame::ray) and its
+// interval, as reference.rs ray_interval (a zero clip row when there is none changes nothing).
+fn pixel_ray(u: f32, v: f32) -> PixelRay {
+    let half_extent = P.eye_idx.w;
+    let sx = (2.0 * (u + 0.5) / f32(A.viewport.x) - 1.0) * P.right_idx.w * half_extent;
+    let sy = (1.0 - 2.0 * (v + 0.5) / f32(A.viewport.y)) * half_extent;
+    var r: PixelRay;
+    r.o = P.eye_idx.xyz;
+    r.d = P.forward_idx.xyz;
+    var plane_nd = P.clip.x;
+    var plane_rhs = P.clip.w;
+    if P.up_idx.w > 0.5 {
+        r.o = r.o + sx * P.right_idx.xyz + sy * P.up_idx.xyz;
+        plane_rhs = plane_rhs - sx * P.clip.y - sy * P.clip.z;
+    } else {
+        let len = sqrt(1.0 + sx * sx + sy * sy);
+        r.d = (r.d + sx * P.right_idx.xyz + sy * P.up_idx.xyz) / len;
+        plane_nd = (plane_nd + sx * P.clip.y + sy * P.clip.z) / len;
+    }
+    var t0 = 0.0;
+    var t1 = 3.0e38;
+    var miss = false;
+    for (var a = 0u; a < 3u; a++) {
+        if abs(r.d[a]) < 1e-12 {
+            if r.o[a] < P.box_lo[a] || r.o[a] > P.box_hi[a] {
+                miss = true;
+            }
+        } else {
+            let ta = (P.box_lo[a] - r.o[a]) / r.d[a];
+            let tb = (P.box_hi[a] - r.o[a]) / r.d[a];
+            t0 = max(t0, min(ta, tb));
+            t1 = min(t1, max(ta, tb));
+        }
+    }
+    if abs(plane_nd) < 1e-12 {
+        if plane_rhs > 0.0 {
+            miss = true;
+        }
+    } else {
+        let tc = plane_rhs / plane_nd;
+        if plane_nd > 0.0 {
+            t0 = max(t0, tc);
+        } else {
+            t1 = min(t1, tc);
+        }
+    }
+    r.t0 = t0;
+    r.t1 = select(t1, -1.0, miss);
+    r.plane_nd = plane_nd;
+    r.plane_rhs = plane_rhs;
+    return r;
+}
+
+// The per-node oracle outside the cropped box and clip half-space: the largest power of two
+// of slices not longer than a lower bound of the distance to them (the larger of the distance
+// to the box, in finest voxels, and to the plane), so a ray arriving from outside has slowed
+// down to d = 1 when it enters (oracle.rs outside_distance).
+fn outside_distance(ray: PixelRay, t: f32) -> f32 {
+    let p = ray.o + ray.d * t;
+    let box_mm = length(max(P.box_lo.xyz - p, vec3<f32>(0.0)) + max(p - P.box_hi.xyz, vec3<f32>(0.0))) * P.box_hi.w;
+    var plane_mm = 0.0;
+    if CLIPPED {
+        plane_mm = max(ray.plane_rhs - t * ray.plane_nd, 0.0);
+    }
+    let slices = max(box_mm, plane_mm) / A.frame.y;
+    return clamp(exp2(floor(log2(max(slices, 1.0)))), 1.0, f32(1u << L_MAX));
+}
+
+fn level_coordinate(level: u32, x: u32) -> f32 {
+    return f32(1u << level) * (f32(x) + 0.5) - 0.5;
+}
+
+// SAMPLE and ORACLE (Fig. 5) of level-l pixel (x, y) on slice `slice`: the ray through
+// level-0 pixel coordinates 2^l(x + ½) − ½ (frame.rs), at the slice's distance.
+fn probe(level: u32, x: u32, y: u32, slice: u32) -> Probe {
+    let ray = pixel_ray(level_coordinate(level, x), level_coordinate(level, y));
+    let o = ray.o;
+    let d = ray.d;
+    let t0 = ray.t0;
+    let t1 = ray.t1;
+    let t = A.frame.x + f32(slice) * A.frame.y;
+    var r: Probe;
+    r.value = A.frame.z;
+    r.distance = f32(1u << L_MAX);
+    r.page = 0u;
+    r.hit = false;
+    var inside = false;
+    if t >= t0 && t <= t1 {
+        let loc = locate(o + d * t);
+        inside = true;
+        if loc.resident {
+            r.value = physical(field(loc));
+            r.page = loc.page;
+            r.hit = true;
+            if ORACLE == 0u {
+                r.distance = oracle_distance[loc.page];
+            }
+        }
+    }
+    if ORACLE == 0u && !inside {
+        r.distance = outside_distance(ray, t);
+    }
+    if ORACLE == 1u {
+        r.distance = A.frame.w;
+    } else if ORACLE == 2u {
+        r.distance = adaptive_hash(level, x, y, slice);
+    }
+    return r;
+}
+
+// Pages whose samples the TF does not hide are visible (the loader refines by these words).
+fn mark_visible(p: Probe) {
+    if p.hit && extinction_at(p.value) > 0.0 {
+        visibility[p.page] = 1u;
+    }
+}
+
+// SYNTHESIZE (Fig. 5) of level-l pixel (gx, gy) from level l+1 in workgroup memory: (s, d).
+// Parents outside the image are clamped to its edge, as in transcription.rs.
+fn synthesize(l: u32, gx: u32, gy: u32, tile_x: u32, tile_y: u32) -> vec2<f32> {
+    let pl = l + 1u;
+    let pw = i32(A.pyramid.x >> pl);
+    let ph = i32(A.pyramid.y >> pl);
+    let e = i32(extent(pl));
+    let off = level_offset(pl);
+    let ox = i32(tile_x >> pl) - 1;
+    let oy = i32(tile_y >> pl) - 1;
+    let hx = i32((gx + 1u) / 2u);
+    let hy = i32((gy + 1u) / 2u);
+    let fx = select(0.0, 0.5, (gx & 1u) == 1u);
+    let fy = select(0.0, 0.5, (gy & 1u) == 1u);
+    let xs = array<i32, 2>(clamp(hx - 1, 0, pw - 1) - ox, clamp(hx, 0, pw - 1) - ox);
+    let ys = array<i32, 2>(clamp(hy - 1, 0, ph - 1) - oy, clamp(hy, 0, ph - 1) - oy);
+    let wx = array<f32, 2>(0.25 + fx, 0.75 - fx);
+    let wy = array<f32, 2>(0.25 + fy, 0.75 - fy);
+    var sum = vec2<f32>(0.0);
+    for (var j = 0u; j < 2u; j++) {
+        for (var i = 0u; i < 2u; i++) {
+            let k = off + u32(ys[j] * e + xs[i]);
+            sum += wx[i] * wy[j] * vec2<f32>(pyramid_s[k], pyramid_d[k]);
+        }
+    }
+    return sum;
+}
+
+@compute @workgroup_size(8, 8, 1)
+fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
+    let tile_x = wid.x * TILE;
+    let tile_y = wid.y * TILE;
+    let owned = (TILE * TILE) / THREADS;
+    let width = A.pyramid.x;
+    let height = A.pyramid.y;
+    let inf = bitcast<f32>(0x7f800000u);
+    var s0: array<f32, MAX_OWNED>;
+    var d0: array<f32, MAX_OWNED>;
+    var s_prev: array<f32, MAX_OWNED>;
+    var i_prev: array<u32, MAX_OWNED>;
+    var acc: array<vec4<f32>, MAX_OWNED>;
+    var depth: array<f32, MAX_OWNED>;
+    for (var j = 0u; j < MAX_OWNED; j++) {
+        acc[j] = vec4<f32>(0.0);
+        depth[j] = inf;
+        s0[j] = 0.0;
+        d0[j] = 0.0;
+        s_prev[j] = 0.0;
+        i_prev[j] = 0u;
+    }
+    // Per-node oracle: does any ray this tile samples (level-0 pixels and every coarser
+    // level's, apron included) meet the box in front of the last slice? If not, every sample
+    // would be the default value: the tile is transparent (if the TF is there; a uniform
+    // condition: the value is a frame parameter).
+    if ORACLE == 0u && extinction_at(A.frame.z) <= 0.0 {
+        if lid == 0u {
+            atomicStore(&tile_vote, 0u);
+        }
+        workgroupBarrier();
+        let t_last = A.frame.x + f32(A.pyramid.z) * A.frame.y;
+        var hit = false;
+        for (var j = 0u; j < owned; j++) {
+            let idx = lid + j * THREADS;
+            let r = pixel_ray(f32(tile_x + idx % TILE), f32(tile_y + idx / TILE));
+            hit = hit || (r.t1 >= r.t0 && r.t0 <= t_last);
+        }
+        for (var l = 1u; l <= L_MAX; l++) {
+            let e = extent(l);
+            for (var idx = lid; idx < e * e; idx += THREADS) {
+                let gx = i32(tile_x >> l) - 1 + i32(idx % e);
+                let gy = i32(tile_y >> l) - 1 + i32(idx / e);
+                let u = f32(1u << l) * (f32(gx) + 0.5) - 0.5;
+                let v = f32(1u << l) * (f32(gy) + 0.5) - 0.5;
+                let r = pixel_ray(u, v);
+                hit = hit || (r.t1 >= r.t0 && r.t0 <= t_last);
+            }
+        }
+        if hit {
+            atomicOr(&tile_vote, 1u);
+        }
+        workgroupBarrier();
+        if lid == 0u {
+            tile_decision = atomicLoad(&tile_vote);
+        }
+        if workgroupUniformLoad(&tile_decision) == 0u {
+            for (var j = 0u; j < owned; j++) {
+                let idx = lid + j * THREADS;
+                let gx = tile_x + idx % TILE;
+                let gy = tile_y + idx / TILE;
+                if gx < A.viewport.x && gy < A.viewport.y {
+                    let pixel = gy * A.viewport.x + gx;
+                    out_rgba[pixel] = vec4<f32>(0.0);
+                    out_depth[pixel] = inf;
+                    textureStore(out_color, vec2<i32>(i32(gx), i32(gy)), vec4<f32>(0.0));
+                }
+            }
+            return;
+        }
+    }
+    var n_samples = array<u32, 4>(0u, 0u, 0u, 0u);
+    var n_synth = array<u32, 4>(0u, 0u, 0u, 0u);
+    var n_apron = array<u32, 4>(0u, 0u, 0u, 0u);
+    var n_segments = 0u;
+    let last_slice = A.pyramid.z;
+    for (var i = 0u; i <= last_slice; i++) {
+        var ls = L_MAX;
+        if i != 0u {
+            ls = min(countTrailingZeros(i), L_MAX);
+        }
+        let skip_bound = f32(2u << ls);
+        // Levels l_slice..1 of Fig. 3, apron included.
+        for (var l = ls; l >= 1u; l--) {
+            let e = extent(l);
+            let off = level_offset(l);
+            let ox = i32(tile_x >> l) - 1;
+            let oy = i32(tile_y >> l) - 1;
+            let wl = i32(width >> l);
+            let hl = i32(height >> l);
+            for (var idx = lid; idx < e * e; idx += THREADS) {
+                let lx = idx % e;
+                let ly = idx / e;
+                let gx = ox + i32(lx);
+                let gy = oy + i32(ly);
+                if gx < 0 || gy < 0 || gx >= wl || gy >= hl {
+                    continue;
+                }
+                let k = off + idx;
+                let is_owned = lx >= 1u && ly >= 1u && lx + 2u <= e && ly + 2u <= e;
+                if l < ls && (ls == L_MAX || pyramid_d[k] < skip_bound) {
+                    let syn = synthesize(l, u32(gx), u32(gy), tile_x, tile_y);
+                    pyramid_d[k] = syn.y;
+                    pyramid_s[k] = syn.x;
+                    if is_owned {
+                        n_synth[l] += 1u;
+                    }
+                }
+                if l == L_MAX || pyramid_d[k] < f32(2u << l) {
+                    let p = probe(l, u32(gx), u32(gy), i);
+                    pyramid_d[k] = p.distance;
+                    pyramid_s[k] = p.value;
+                    mark_visible(p);
+                    if is_owned {
+                        n_samples[l] += 1u;
+                    } else {
+                        n_apron[l] += 1u;
+                    }
+                }
+            }
+            workgroupBarrier();
+        }
+        // Level 0: this invocation's own pixels, with ACCUMULATECOLOR (Fig. 6).
+        for (var j = 0u; j < owned; j++) {
+            let idx = lid + j * THREADS;
+            let gx = tile_x + idx % TILE;
+            let gy = tile_y + idx / TILE;
+            if gx >= width || gy >= height {
+                continue;
+            }
+            if 0u < ls && (ls == L_MAX || d0[j] < skip_bound) {
+                let syn = synthesize(0u, gx, gy, tile_x, tile_y);
+                d0[j] = syn.y;
+                s0[j] = syn.x;
+                n_synth[0] += 1u;
+            }
+            if d0[j] < 2.0 {
+                let p = probe(0u, gx, gy, i);
+                d0[j] = p.distance;
+                s0[j] = p.value;
+                mark_visible(p);
+                n_samples[0] += 1u;
+            }
+            if ls == L_MAX || d0[j] < skip_bound {
+                if i > 0u {
+                    let slices = i - i_prev[j];
+                    let seg = preintegrated_segment(s_prev[j], s0[j], f32(slices) * A.frame.y);
+                    let before = acc[j].a;
+                    acc[j] = acc[j] + (1.0 - acc[j].a) * seg;
+                    if depth[j] == inf && before < 0.5 && acc[j].a >= 0.5 {
+                        let f = (0.5 - before) / (acc[j].a - before);
+                        depth[j] = A.frame.x + (f32(i_prev[j]) + f * f32(slices)) * A.frame.y;
+                    }
+                    n_segments += 1u;
+                }
+                s_prev[j] = s0[j];
+                i_prev[j] = i;
+            }
+        }
+        // Level 0 read level 1; the next slice writes level 1 first only if its l_slice is 1
+        // (a higher l_slice writes level l_slice first and barriers before reaching level 1,
+        // l_slice 0 writes no shared level at all), so only then must it wait here.
+        if min(countTrailingZeros(i + 1u), L_MAX) == 1u {
+            workgroupBarrier();
+        }
+        if EARLY_TERMINATION && ORACLE == 0u && ls == L_MAX && i > 0u {
+            if lid == 0u {
+                atomicStore(&tile_vote, 0u);
+            }
+            workgroupBarrier();
+            var open = false;
+            for (var j = 0u; j < owned; j++) {
+                let idx = lid + j * THREADS;
+                if tile_x + idx % TILE < width && tile_y + idx / TILE < height {
+                    open = open || acc[j].a < P.dims.w;
+                }
+            }
+            if open {
+                atomicOr(&tile_vote, 1u);
+            }
+            workgroupBarrier();
+            if lid == 0u {
+                tile_decision = atomicLoad(&tile_vote);
+            }
+            if workgroupUniformLoad(&tile_decision) == 0u {
+                break;
+            }
+        }
+    }
+    for (var j = 0u; j < owned; j++) {
+        let idx = lid + j * THREADS;
+        let gx = tile_x + idx % TILE;
+        let gy = tile_y + idx / TILE;
+        if gx < A.viewport.x && gy < A.viewport.y {
+            let pixel = gy * A.viewport.x + gx;
+            out_rgba[pixel] = acc[j];
+            out_depth[pixel] = depth[j];
+            textureStore(out_color, vec2<i32>(i32(gx), i32(gy)), clamp(acc[j], vec4<f32>(0.0), vec4<f32>(1.0)));
+        }
+    }
+    for (var l = 0u; l < 4u; l++) {
+        if n_samples[l] > 0u {
+            atomicAdd(&counters[l], n_samples[l]);
+        }
+        if n_synth[l] > 0u {
+            atomicAdd(&counters[4u + l], n_synth[l]);
+        }
+        if n_apron[l] > 0u {
+            atomicAdd(&counters[9u + l], n_apron[l]);
+        }
+    }
+    if n_segments > 0u {
+        atomicAdd(&counters[8], n_segments);
+    }
+}

@@ -1,0 +1,706 @@
+//! The remote store: a [`VolumeSource`] over `strata serve`.
+//!
+//! Opening fetches the open document (header, histogram, stats, skeleton) in one request.
+//! Bricks are fetched asynchronously on a small tokio runtime of the source's own, many at a
+//! time over one HTTP/2 connection (h2c; `http1` uses a small pool of HTTP/1.1 connections
+//! instead): [`RemoteFetcher`] keeps the loader's priority order (demand before prefetch, then
+//! the loader's priority: coarse before fine, centre of the view first), aborts requests on the
+//! wire that two successive views no longer name (the HTTP/2 stream is reset), retries with
+//! backoff on connection errors, 429 and 503 (reporting "connection lost, retrying" meanwhile),
+//! and verifies every record's checksum on arrival, re-requesting a damaged one once before
+//! reporting it. Decoded bricks go to the loader's CPU cache; there is no second cache here.
+
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
+
+use crossbeam_channel::{Receiver, Sender};
+use strata_source::{
+    Brick, BrickFetcher, FetchOptions, FetchResult, QueueCounters, RequestClass, SourceError,
+    SourceStatus, VolumeSource,
+};
+use strata_storage::brick::decode_brick;
+use strata_storage::histogram::Histogram;
+use strata_storage::store::{Skeleton, StoreStats};
+use strata_storage::{BrickId, StoreHeader};
+
+use crate::wire::{
+    brick_path, decode_open_document, is_valid_store_name, OpenDocument, API_PREFIX,
+};
+
+/// How to reach a server.
+#[derive(Clone, Debug)]
+pub struct RemoteOptions {
+    pub token: Option<String>,
+    /// HTTP/1.1 with a small connection pool instead of one HTTP/2 connection.
+    pub http1: bool,
+    /// Requests in flight at most (HTTP/2 streams, or pooled HTTP/1.1 requests).
+    pub max_in_flight: usize,
+    pub connect_timeout: Duration,
+    pub request_timeout: Duration,
+    /// Attempts of a blocking read (`read_brick_record`, opening) before giving up.
+    pub blocking_attempts: u32,
+    /// For https: a PEM certificate to trust besides the system's (a lab's own CA).
+    pub tls_ca_pem: Option<Vec<u8>>,
+}
+
+impl Default for RemoteOptions {
+    fn default() -> Self {
+        RemoteOptions {
+            token: None,
+            http1: false,
+            max_in_flight: 64,
+            connect_timeout: Duration::from_secs(3),
+            request_timeout: Duration::from_secs(30),
+            blocking_attempts: 4,
+            tls_ca_pem: None,
+        }
+    }
+}
+
+/// `http://host:port/v1/stores/NAME` split into the server's base and the store's name.
+pub fn parse_store_url(url: &str) -> Result<(String, String), String> {
+    let (scheme, rest) = if let Some(rest) = url.strip_prefix("http://") {
+        ("http", rest)
+    } else if let Some(rest) = url.strip_prefix("https://") {
+        ("https", rest)
+    } else {
+        return Err(format!("{url}: not an http:// or https:// URL"));
+    };
+    let (authority, path) = rest
+        .split_once('/')
+        .ok_or_else(|| format!("{url}: expected http://HOST:PORT{API_PREFIX}/stores/NAME"))?;
+    let name = path
+        .trim_end_matches('/')
+        .strip_prefix("v1/stores/")
+        .ok_or_else(|| format!("{url}: expected http://HOST:PORT{API_PREFIX}/stores/NAME"))?;
+    if authority.is_empty() || !is_valid_store_name(name) {
+        return Err(format!(
+            "{url}: expected http://HOST:PORT{API_PREFIX}/stores/NAME"
+        ));
+    }
+    Ok((format!("{scheme}://{authority}"), name.to_string()))
+}
+
+/// Shared by the source and its fetchers.
+struct Connection {
+    location: String,
+    base: String,
+    name: String,
+    generation: String,
+    http: reqwest::Client,
+    auth: Option<String>,
+    /// When requests started failing to reach the server, and why; `None` while they succeed.
+    lost: Mutex<Option<(Instant, String)>>,
+}
+
+impl Connection {
+    fn lost(&self) -> MutexGuard<'_, Option<(Instant, String)>> {
+        self.lost.lock().unwrap_or_else(|p| p.into_inner())
+    }
+    fn mark_reachable(&self) {
+        let mut lost = self.lost();
+        if lost.is_some() {
+            tracing::info!("{}: connection restored", self.location);
+            *lost = None;
+        }
+    }
+    fn mark_lost(&self, why: String) {
+        let mut lost = self.lost();
+        if lost.is_none() {
+            tracing::warn!("{}: connection lost ({why}), retrying", self.location);
+            *lost = Some((Instant::now(), why));
+        }
+    }
+    fn status(&self) -> SourceStatus {
+        match &*self.lost() {
+            None => SourceStatus::Available,
+            Some((since, message)) => SourceStatus::Retrying {
+                since_seconds: since.elapsed().as_secs_f64(),
+                message: message.clone(),
+            },
+        }
+    }
+    fn brick_url(&self, id: BrickId) -> String {
+        format!(
+            "{}{}",
+            self.base,
+            brick_path(&self.name, &self.generation, id)
+        )
+    }
+    fn get(&self, url: &str) -> reqwest::RequestBuilder {
+        let request = self.http.get(url);
+        match &self.auth {
+            Some(a) => request.header(reqwest::header::AUTHORIZATION, a),
+            None => request,
+        }
+    }
+}
+
+/// What one attempt at a brick came to.
+enum Attempt {
+    Record(Vec<u8>),
+    /// Worth trying again (connection error, 429, 503, a body cut short).
+    Retry(String),
+    /// The server answered no (404, 401, 500 with its reason).
+    Refused(String),
+}
+
+async fn attempt(conn: &Connection, id: BrickId) -> Attempt {
+    let response = match conn.get(&conn.brick_url(id)).send().await {
+        Ok(r) => r,
+        Err(e) => {
+            let why = describe(&e);
+            conn.mark_lost(why.clone());
+            return Attempt::Retry(why);
+        }
+    };
+    let status = response.status();
+    if status == reqwest::StatusCode::OK {
+        return match response.bytes().await {
+            Ok(body) => {
+                conn.mark_reachable();
+                Attempt::Record(body.to_vec())
+            }
+            Err(e) => {
+                let why = describe(&e);
+                conn.mark_lost(why.clone());
+                Attempt::Retry(why)
+            }
+        };
+    }
+    conn.mark_reachable();
+    let text = response.text().await.unwrap_or_default();
+    let text = text.trim().chars().take(300).collect::<String>();
+    match status {
+        reqwest::StatusCode::TOO_MANY_REQUESTS | reqwest::StatusCode::SERVICE_UNAVAILABLE => {
+            Attempt::Retry(format!("server busy ({status})"))
+        }
+        reqwest::StatusCode::UNAUTHORIZED => {
+            Attempt::Refused("the server refused the token (401): check --token-file".into())
+        }
+        _ => Attempt::Refused(format!("server answered {status}: {text}")),
+    }
+}
+
+fn describe(e: &reqwest::Error) -> String {
+    let mut s = e.to_string();
+    let mut source = std::error::Error::source(e);
+    while let Some(inner) = source {
+        s = format!("{s}: {inner}");
+        source = inner.source();
+    }
+    s
+}
+
+fn backoff(attempt: u32) -> Duration {
+    Duration::from_millis(50u64 << attempt.min(5)).min(Duration::from_secs(2))
+}
+
+/// A store served by `strata serve`.
+pub struct RemoteSource {
+    /// Owned here and by the fetchers, never by a task: a runtime must not be dropped on one
+    /// of its own threads.
+    runtime: Arc<tokio::runtime::Runtime>,
+    conn: Arc<Connection>,
+    doc: OpenDocument,
+    skeleton: Skeleton,
+    options: RemoteOptions,
+}
+
+impl RemoteSource {
+    /// Opens `http://host:port/v1/stores/NAME`: one request for everything but the bricks.
+    pub fn open(url: &str, options: RemoteOptions) -> Result<RemoteSource, SourceError> {
+        let refused = |message: String| SourceError::Refused {
+            location: url.to_string(),
+            message,
+        };
+        let (base, name) = parse_store_url(url).map_err(|m| SourceError::Refused {
+            location: url.to_string(),
+            message: m,
+        })?;
+        let runtime = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(2)
+            .thread_name("strata-remote-io")
+            .enable_all()
+            .build()
+            .map_err(|e| refused(format!("cannot start the client's runtime: {e}")))?;
+        // reqwest's rustls verifies with the platform's roots through the process's default
+        // crypto provider: ring (no cmake, no OpenSSL).
+        crate::install_tls_provider();
+        let mut builder = reqwest::Client::builder()
+            .connect_timeout(options.connect_timeout)
+            .timeout(options.request_timeout)
+            .tcp_nodelay(true)
+            .no_proxy();
+        builder = if options.http1 {
+            builder.http1_only().pool_max_idle_per_host(8)
+        } else {
+            builder
+                .http2_prior_knowledge()
+                .http2_keep_alive_interval(Duration::from_secs(15))
+                .http2_keep_alive_while_idle(true)
+        };
+        if let Some(pem) = &options.tls_ca_pem {
+            let ca = reqwest::Certificate::from_pem(pem)
+                .map_err(|e| refused(format!("the CA certificate is not PEM: {e}")))?;
+            builder = builder.add_root_certificate(ca);
+        }
+        let http = builder
+            .build()
+            .map_err(|e| refused(format!("cannot build the HTTP client: {e}")))?;
+        let auth = options
+            .token
+            .as_ref()
+            .map(|t| format!("Bearer {}", t.trim()));
+        let mut conn = Connection {
+            location: url.to_string(),
+            base: base.clone(),
+            name: name.clone(),
+            generation: String::new(),
+            http,
+            auth,
+            lost: Mutex::new(None),
+        };
+        let open_url = format!("{base}{API_PREFIX}/stores/{name}");
+        let bytes = {
+            let c = &conn;
+            let attempts = options.blocking_attempts.max(1);
+            runtime.block_on(async {
+                let mut last = String::new();
+                for n in 0..attempts {
+                    match c.get(&open_url).send().await {
+                        Ok(r) if r.status().is_success() => match r.bytes().await {
+                            Ok(b) => return Ok(b.to_vec()),
+                            Err(e) => last = describe(&e),
+                        },
+                        Ok(r) if r.status() == reqwest::StatusCode::UNAUTHORIZED => {
+                            return Err(if c.auth.is_some() {
+                                "the server refused the token (401): check --token-file".to_string()
+                            } else {
+                                "the server requires a token (401): pass --token-file".to_string()
+                            })
+                        }
+                        Ok(r) if r.status() == reqwest::StatusCode::NOT_FOUND => {
+                            return Err(format!("the server has no store named '{name}'"))
+                        }
+                        Ok(r)
+                            if r.status().is_server_error()
+                                || r.status() == reqwest::StatusCode::TOO_MANY_REQUESTS =>
+                        {
+                            last = format!("server answered {}", r.status());
+                        }
+                        Ok(r) => return Err(format!("server answered {}", r.status())),
+                        Err(e) => last = describe(&e),
+                    }
+                    tokio::time::sleep(backoff(n)).await;
+                }
+                Err(format!("cannot reach the server: {last}"))
+            })
+        }
+        .map_err(refused)?;
+        let (doc, skeleton) = decode_open_document(&bytes).map_err(refused)?;
+        conn.generation = doc.generation.clone();
+        Ok(RemoteSource {
+            runtime: Arc::new(runtime),
+            conn: Arc::new(conn),
+            doc,
+            skeleton,
+            options,
+        })
+    }
+
+    /// Whether the server withheld description and provenance (without --expose-identifiers).
+    pub fn identifiers_withheld(&self) -> bool {
+        self.doc.identifiers_withheld
+    }
+    pub fn generation(&self) -> &str {
+        &self.doc.generation
+    }
+}
+
+impl VolumeSource for RemoteSource {
+    fn location(&self) -> String {
+        self.conn.location.clone()
+    }
+    fn header(&self) -> &StoreHeader {
+        &self.doc.header
+    }
+    fn skeleton(&self) -> &Skeleton {
+        &self.skeleton
+    }
+    fn histogram(&self) -> &Histogram {
+        &self.doc.histogram
+    }
+    fn stats(&self) -> &StoreStats {
+        &self.doc.stats
+    }
+    /// Blocking, with a few retries; verified (a damaged record is fetched once more).
+    fn read_brick_record(&self, id: BrickId) -> Result<Vec<u8>, SourceError> {
+        if !self.layout().contains(id) {
+            return Err(SourceError::Refused {
+                location: self.location(),
+                message: format!("brick {id:?} is outside the octree"),
+            });
+        }
+        let conn = &self.conn;
+        let attempts = self.options.blocking_attempts.max(1);
+        self.runtime.block_on(async {
+            let mut last = String::new();
+            let mut damaged = 0;
+            let mut n = 0;
+            while n < attempts {
+                match attempt(conn, id).await {
+                    Attempt::Record(record) => match decode_brick(id, &record) {
+                        Ok(_) => return Ok(record),
+                        Err(e) if damaged == 0 => {
+                            damaged += 1;
+                            last = e.to_string();
+                            continue;
+                        }
+                        Err(e) => return Err(SourceError::damaged(&conn.location, id, e)),
+                    },
+                    Attempt::Retry(why) => last = why,
+                    Attempt::Refused(why) => {
+                        return Err(SourceError::Refused {
+                            location: conn.location.clone(),
+                            message: format!("brick level {} at {:?}: {why}", id.level, id.coords),
+                        })
+                    }
+                }
+                tokio::time::sleep(backoff(n)).await;
+                n += 1;
+            }
+            Err(SourceError::Unavailable {
+                location: conn.location.clone(),
+                message: format!("brick level {} at {:?}: {last}", id.level, id.coords),
+            })
+        })
+    }
+    fn start_fetching(
+        &self,
+        options: FetchOptions,
+    ) -> Option<Result<Box<dyn BrickFetcher>, SourceError>> {
+        let max_in_flight = self
+            .options
+            .max_in_flight
+            .min(options.max_in_transit.max(1))
+            .max(1);
+        Some(Ok(Box::new(RemoteFetcher::start(
+            self.runtime.clone(),
+            self.conn.clone(),
+            options.max_queued.max(1),
+            max_in_flight,
+        ))))
+    }
+    fn status(&self) -> SourceStatus {
+        self.conn.status()
+    }
+}
+
+struct InFlight {
+    /// `set_requests` call that last named it.
+    named_at: u64,
+    /// The result is in the channel; only `complete` ends it now.
+    delivered: bool,
+    abort: Option<tokio::task::AbortHandle>,
+}
+
+struct FetchState {
+    queued: HashMap<BrickId, (RequestClass, f64)>,
+    in_flight: HashMap<BrickId, InFlight>,
+    counters: QueueCounters,
+    calls: u64,
+}
+
+struct FetchShared {
+    state: Mutex<FetchState>,
+    wake: tokio::sync::Notify,
+    results: Sender<FetchResult>,
+    capacity: usize,
+    max_in_flight: usize,
+    retried: AtomicU64,
+    checksum_failures: AtomicU64,
+}
+
+impl FetchShared {
+    fn lock(&self) -> MutexGuard<'_, FetchState> {
+        self.state.lock().unwrap_or_else(|p| p.into_inner())
+    }
+}
+
+/// The asynchronous request queue of a [`RemoteSource`].
+pub struct RemoteFetcher {
+    runtime: Arc<tokio::runtime::Runtime>,
+    conn: Arc<Connection>,
+    shared: Arc<FetchShared>,
+    results: Receiver<FetchResult>,
+    dispatcher: tokio::task::AbortHandle,
+}
+
+impl RemoteFetcher {
+    fn start(
+        runtime: Arc<tokio::runtime::Runtime>,
+        conn: Arc<Connection>,
+        capacity: usize,
+        max_in_flight: usize,
+    ) -> Self {
+        // Unbounded in type, bounded in fact: at most `max_in_flight` requests exist between
+        // dispatch and `complete`, and each sends one result.
+        let (tx, rx) = crossbeam_channel::unbounded();
+        let shared = Arc::new(FetchShared {
+            state: Mutex::new(FetchState {
+                queued: HashMap::new(),
+                in_flight: HashMap::new(),
+                counters: QueueCounters::default(),
+                calls: 0,
+            }),
+            wake: tokio::sync::Notify::new(),
+            results: tx,
+            capacity,
+            max_in_flight,
+            retried: AtomicU64::new(0),
+            checksum_failures: AtomicU64::new(0),
+        });
+        let dispatcher = runtime
+            .spawn(dispatch(conn.clone(), shared.clone()))
+            .abort_handle();
+        RemoteFetcher {
+            runtime,
+            conn,
+            shared,
+            results: rx,
+            dispatcher,
+        }
+    }
+}
+
+/// Starts the most urgent queued requests while fewer than `max_in_flight` are out.
+async fn dispatch(conn: Arc<Connection>, shared: Arc<FetchShared>) {
+    loop {
+        {
+            let mut state = shared.lock();
+            while state.in_flight.len() < shared.max_in_flight {
+                let best = state
+                    .queued
+                    .iter()
+                    .max_by(|a, b| {
+                        (a.1 .0, a.1 .1)
+                            .partial_cmp(&(b.1 .0, b.1 .1))
+                            .unwrap_or(std::cmp::Ordering::Equal)
+                    })
+                    .map(|(&id, &(class, _))| (id, class));
+                let Some((id, class)) = best else { break };
+                state.queued.remove(&id);
+                match class {
+                    RequestClass::Demand => state.counters.demand_started += 1,
+                    RequestClass::Prefetch => state.counters.prefetch_started += 1,
+                }
+                let task = tokio::spawn(fetch_one(conn.clone(), shared.clone(), id, class));
+                let named_at = state.calls;
+                state.in_flight.insert(
+                    id,
+                    InFlight {
+                        named_at,
+                        delivered: false,
+                        abort: Some(task.abort_handle()),
+                    },
+                );
+                let n = state.in_flight.len() as u64;
+                state.counters.max_in_flight = state.counters.max_in_flight.max(n);
+            }
+        }
+        shared.wake.notified().await;
+    }
+}
+
+/// One brick: retried until it arrives verified, the server refuses it, or it is cancelled.
+async fn fetch_one(
+    conn: Arc<Connection>,
+    shared: Arc<FetchShared>,
+    id: BrickId,
+    class: RequestClass,
+) {
+    let mut retries = 0u32;
+    let mut damaged = 0u32;
+    let outcome: Result<(Brick, u64), SourceError> = loop {
+        match attempt(&conn, id).await {
+            Attempt::Record(record) => match decode_brick(id, &record) {
+                Ok(voxels) => break Ok((Arc::new(voxels), record.len() as u64)),
+                Err(e) => {
+                    shared.checksum_failures.fetch_add(1, Ordering::Relaxed);
+                    damaged += 1;
+                    if damaged >= 2 {
+                        break Err(SourceError::damaged(&conn.location, id, e));
+                    }
+                    tracing::warn!(
+                        "{}: brick level {} at {:?} arrived damaged ({e}); requesting it again",
+                        conn.location,
+                        id.level,
+                        id.coords
+                    );
+                    shared.retried.fetch_add(1, Ordering::Relaxed);
+                    continue;
+                }
+            },
+            Attempt::Retry(_) => {
+                shared.retried.fetch_add(1, Ordering::Relaxed);
+                tokio::time::sleep(backoff(retries)).await;
+                retries += 1;
+            }
+            Attempt::Refused(why) => {
+                break Err(SourceError::Refused {
+                    location: conn.location.clone(),
+                    message: format!("brick level {} at {:?}: {why}", id.level, id.coords),
+                })
+            }
+        }
+    };
+    let mut state = shared.lock();
+    let Some(entry) = state.in_flight.get_mut(&id) else {
+        return; // cancelled meanwhile
+    };
+    entry.delivered = true;
+    entry.abort = None;
+    let (outcome, stored_bytes) = match outcome {
+        Ok((brick, bytes)) => (Ok(brick), bytes),
+        Err(e) => (Err(e), 0),
+    };
+    let _ = shared.results.send(FetchResult {
+        id,
+        class,
+        outcome,
+        stored_bytes,
+    });
+}
+
+impl BrickFetcher for RemoteFetcher {
+    fn set_requests(&self, demand: &[(BrickId, f64)], prefetch: &[(BrickId, f64)]) -> usize {
+        let mut state = self.shared.lock();
+        state.calls += 1;
+        let call = state.calls;
+        let mut wanted: HashMap<BrickId, (RequestClass, f64)> = HashMap::new();
+        let mut overflow = 0;
+        let candidates = demand
+            .iter()
+            .map(|&(id, p)| (id, RequestClass::Demand, p))
+            .chain(
+                prefetch
+                    .iter()
+                    .map(|&(id, p)| (id, RequestClass::Prefetch, p)),
+            );
+        for (id, class, priority) in candidates {
+            if let Some(f) = state.in_flight.get_mut(&id) {
+                f.named_at = call;
+                continue;
+            }
+            if wanted.contains_key(&id) {
+                continue;
+            }
+            if wanted.len() >= self.shared.capacity {
+                overflow += 1;
+                continue;
+            }
+            wanted.insert(id, (class, priority));
+        }
+        let stale = state
+            .queued
+            .keys()
+            .filter(|id| !wanted.contains_key(id))
+            .count() as u64;
+        state.counters.stale_dropped += stale;
+        state.counters.overflow_dropped += overflow;
+        state.queued = wanted;
+        // On the wire but named by neither this view nor the previous one: abort (the
+        // HTTP/2 stream is reset), freeing the slot for what the view wants now. One view of
+        // grace keeps a request that flickers at the edge of the wish list from being
+        // cancelled and asked for again.
+        let cancel: Vec<BrickId> = state
+            .in_flight
+            .iter()
+            .filter(|(_, f)| !f.delivered && f.named_at + 1 < call)
+            .map(|(&id, _)| id)
+            .collect();
+        for id in &cancel {
+            if let Some(f) = state.in_flight.remove(id) {
+                if let Some(abort) = f.abort {
+                    abort.abort();
+                }
+            }
+        }
+        state.counters.cancelled_in_flight += cancel.len() as u64;
+        let n = state.queued.len();
+        drop(state);
+        self.shared.wake.notify_one();
+        n
+    }
+    fn try_results(&self) -> Vec<FetchResult> {
+        self.results.try_iter().collect()
+    }
+    fn complete(&self, id: BrickId) {
+        let removed = {
+            let mut state = self.shared.lock();
+            match state.in_flight.get(&id) {
+                Some(f) if f.delivered => state.in_flight.remove(&id).is_some(),
+                _ => false,
+            }
+        };
+        if removed {
+            self.shared.wake.notify_one();
+        }
+    }
+    fn queued(&self) -> usize {
+        self.shared.lock().queued.len()
+    }
+    fn in_flight(&self) -> usize {
+        self.shared.lock().in_flight.len()
+    }
+    fn capacity(&self) -> usize {
+        self.shared.capacity
+    }
+    fn counters(&self) -> QueueCounters {
+        let mut c = self.shared.lock().counters;
+        c.retried = self.shared.retried.load(Ordering::Relaxed);
+        c.checksum_failures = self.shared.checksum_failures.load(Ordering::Relaxed);
+        c
+    }
+    fn status(&self) -> SourceStatus {
+        self.conn.status()
+    }
+}
+
+impl Drop for RemoteFetcher {
+    fn drop(&mut self) {
+        self.dispatcher.abort();
+        let mut state = self.shared.lock();
+        for (_, f) in state.in_flight.drain() {
+            if let Some(abort) = f.abort {
+                abort.abort();
+            }
+        }
+        drop(state);
+        // Keeps the runtime alive until the tasks above are told to stop.
+        let _ = &self.runtime;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn store_urls() {
+        assert_eq!(
+            parse_store_url("http://127.0.0.1:8080/v1/stores/chest").unwrap(),
+            ("http://127.0.0.1:8080".to_string(), "chest".to_string())
+        );
+        assert!(parse_store_url("http://h:1/v1/stores/../etc").is_err());
+        assert!(parse_store_url("ftp://h/v1/stores/a").is_err());
+        assert!(parse_store_url("http://h:1/other/a").is_err());
+        assert_eq!(
+            parse_store_url("https://h:1/v1/stores/a").unwrap().0,
+            "https://h:1"
+        );
+    }
+}

@@ -1,0 +1,927 @@
+//! `strata serve`: stores, read-only, over HTTP/1.1 and HTTP/2 (h2c), on tokio + hyper with an
+//! axum router and tower-http's CORS and timeouts.
+//!
+//! Safe by default: 127.0.0.1 on an ephemeral port; another address needs a bearer token,
+//! compared in constant time, and a request without it gets a bare 401. Store names are looked
+//! up in the table of what is served, never joined to a path. Description and provenance are
+//! withheld unless asked for. Bounded: connections (excess ones are closed at accept),
+//! concurrent requests (excess ones get 503 + Retry-After), header bytes (HTTP/1 buffer, HTTP/2
+//! header list), time to send the headers (slow-loris clients are dropped), time per request.
+//! Memory does not grow with the number of clients: each connection has a bounded buffer and
+//! each request holds at most one brick record.
+
+use std::collections::HashMap;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+use axum::body::Body;
+use axum::extract::{Path as UrlPath, Request, State};
+use axum::http::{header, HeaderMap, HeaderValue, Method, StatusCode};
+use axum::middleware::Next;
+use axum::response::{IntoResponse, Response};
+use axum::routing::get;
+use axum::Router;
+use hyper_util::rt::{TokioExecutor, TokioIo, TokioTimer};
+use strata_storage::brick::verify_record;
+use strata_storage::{BrickId, StorageError, Store};
+use tokio::sync::Semaphore;
+
+use crate::wire::{
+    brick_etag, encode_open_document, is_valid_store_name, OpenDocument, StoreList, StoreListing,
+    API_PREFIX, OPEN_DOCUMENT_TYPE,
+};
+
+#[derive(Debug, thiserror::Error)]
+pub enum ServeError {
+    #[error(transparent)]
+    Storage(#[from] StorageError),
+    #[error("{path}: {message}")]
+    Refused { path: PathBuf, message: String },
+    #[error("{0}")]
+    Config(String),
+    #[error("cannot bind {addr}: {source}")]
+    Bind {
+        addr: SocketAddr,
+        source: std::io::Error,
+    },
+    #[error("cannot start the server's runtime: {0}")]
+    Runtime(std::io::Error),
+}
+
+/// Limits and switches of a server. `Default` is the safe configuration.
+#[derive(Clone, Debug)]
+pub struct ServeOptions {
+    pub bind: SocketAddr,
+    /// Bearer token; required when `bind` is not a loopback address.
+    pub token: Option<String>,
+    pub expose_identifiers: bool,
+    pub max_connections: usize,
+    pub max_concurrent_requests: usize,
+    /// HTTP/1 read buffer (bounds the request line and headers) and HTTP/2 header list size.
+    pub max_header_bytes: usize,
+    /// A client that has not sent a request's headers within this time is disconnected.
+    pub header_read_timeout: Duration,
+    /// A request not answered within this time gets 408.
+    pub request_timeout: Duration,
+    /// HTTP/2 streams per connection.
+    pub max_streams_per_connection: u32,
+    /// Added before every brick answer: a round-trip delay for benchmarks and tests on
+    /// loopback (injected here, not with tc netem).
+    pub added_delay: Duration,
+    /// Serve HTTPS (HTTP/1.1 and HTTP/2 by ALPN) with this PEM certificate chain and key.
+    pub tls: Option<TlsFiles>,
+    /// Test hook: flip one byte of this brick's next N answers after the server verified them
+    /// (corruption in transit).
+    pub corrupt_answers: Option<(BrickId, u32)>,
+}
+
+impl Default for ServeOptions {
+    fn default() -> Self {
+        ServeOptions {
+            bind: SocketAddr::from(([127, 0, 0, 1], 0)),
+            token: None,
+            expose_identifiers: false,
+            max_connections: 256,
+            max_concurrent_requests: 512,
+            max_header_bytes: 16 << 10,
+            header_read_timeout: Duration::from_secs(10),
+            request_timeout: Duration::from_secs(30),
+            max_streams_per_connection: 256,
+            added_delay: Duration::ZERO,
+            corrupt_answers: None,
+            tls: None,
+        }
+    }
+}
+
+/// PEM files of a TLS server: the certificate chain (leaf first) and its private key.
+#[derive(Clone, Debug)]
+pub struct TlsFiles {
+    pub cert: PathBuf,
+    pub key: PathBuf,
+}
+
+/// A rustls acceptor (ring provider) offering h2 and http/1.1 by ALPN.
+fn tls_acceptor(files: &TlsFiles) -> Result<tokio_rustls::TlsAcceptor, ServeError> {
+    use rustls::pki_types::pem::PemObject;
+    use rustls::pki_types::{CertificateDer, PrivateKeyDer};
+    let read = |path: &Path| {
+        std::fs::read(path).map_err(|e| ServeError::Refused {
+            path: path.to_path_buf(),
+            message: format!("cannot read it: {e}"),
+        })
+    };
+    let bad = |path: &Path, message: String| ServeError::Refused {
+        path: path.to_path_buf(),
+        message,
+    };
+    let cert_pem = read(&files.cert)?;
+    let certs = CertificateDer::pem_slice_iter(&cert_pem)
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|e| bad(&files.cert, format!("not a PEM certificate chain: {e}")))?;
+    if certs.is_empty() {
+        return Err(bad(&files.cert, "holds no certificate".into()));
+    }
+    let key = PrivateKeyDer::from_pem_slice(&read(&files.key)?)
+        .map_err(|e| bad(&files.key, format!("not a PEM private key: {e}")))?;
+    let provider = Arc::new(rustls::crypto::ring::default_provider());
+    let mut config = rustls::ServerConfig::builder_with_provider(provider)
+        .with_safe_default_protocol_versions()
+        .map_err(|e| ServeError::Config(format!("TLS: {e}")))?
+        .with_no_client_auth()
+        .with_single_cert(certs, key)
+        .map_err(|e| bad(&files.key, format!("does not fit the certificate: {e}")))?;
+    config.alpn_protocols = vec![b"h2".to_vec(), b"http/1.1".to_vec()];
+    Ok(tokio_rustls::TlsAcceptor::from(Arc::new(config)))
+}
+
+/// One served store.
+struct ServedStore {
+    name: String,
+    path: PathBuf,
+    generation: String,
+    store: Store,
+    open_document: axum::body::Bytes,
+    listing: StoreListing,
+}
+
+/// Counters, logged once a minute and readable by tests.
+#[derive(Default, Debug)]
+pub struct ServerCounters {
+    pub requests: AtomicU64,
+    pub bricks: AtomicU64,
+    pub bytes: AtomicU64,
+    pub not_modified: AtomicU64,
+    pub errors: AtomicU64,
+    pub unauthorized: AtomicU64,
+    pub rejected_busy: AtomicU64,
+    pub connections_refused: AtomicU64,
+}
+
+struct AppState {
+    stores: HashMap<String, Arc<ServedStore>>,
+    token: Option<Vec<u8>>,
+    cache_control: HeaderValue,
+    counters: Arc<ServerCounters>,
+    requests: Arc<Semaphore>,
+    added_delay: Duration,
+    corrupt_answers: std::sync::Mutex<Option<(BrickId, u32)>>,
+}
+
+/// A store found on the command line: its name in URLs and its directory.
+pub fn name_for_store(path: &Path) -> String {
+    let file = path
+        .file_name()
+        .map_or_else(|| "store".to_string(), |n| n.to_string_lossy().into_owned());
+    let stem = file.strip_suffix(".strata").unwrap_or(&file);
+    let cleaned: String = stem
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '-' || c == '_' || c == '.' {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect();
+    cleaned.trim_start_matches('.').to_string()
+}
+
+/// Expands the command line: a store is served as itself; a folder that is not a store serves
+/// every store directly inside it. An incomplete or damaged store is an error with the reason.
+pub fn find_stores(inputs: &[PathBuf]) -> Result<Vec<(String, PathBuf)>, ServeError> {
+    let mut found = Vec::new();
+    for input in inputs {
+        match Store::open_with_cache(input, 1 << 20) {
+            Ok(store) => {
+                drop(store);
+                found.push((name_for_store(input), input.clone()));
+            }
+            Err(StorageError::NotAStore { .. }) if input.is_dir() => {
+                let mut entries: Vec<PathBuf> = std::fs::read_dir(input)
+                    .map_err(|e| StorageError::io(input, e))?
+                    .filter_map(|e| e.ok().map(|e| e.path()))
+                    .filter(|p| p.is_dir())
+                    .collect();
+                entries.sort();
+                let before = found.len();
+                for entry in entries {
+                    match Store::open_with_cache(&entry, 1 << 20) {
+                        Ok(store) => {
+                            drop(store);
+                            found.push((name_for_store(&entry), entry));
+                        }
+                        Err(StorageError::NotAStore { .. }) => {}
+                        Err(e) => return Err(e.into()),
+                    }
+                }
+                if found.len() == before {
+                    return Err(ServeError::Refused {
+                        path: input.clone(),
+                        message: "neither a store nor a folder holding stores".into(),
+                    });
+                }
+            }
+            Err(e) => return Err(e.into()),
+        }
+    }
+    let mut seen = std::collections::HashSet::new();
+    for (name, path) in &found {
+        if !is_valid_store_name(name) {
+            return Err(ServeError::Refused {
+                path: path.clone(),
+                message: format!("cannot serve it under the name '{name}'"),
+            });
+        }
+        if !seen.insert(name.clone()) {
+            return Err(ServeError::Refused {
+                path: path.clone(),
+                message: format!("a second store would be served as '{name}'; rename one"),
+            });
+        }
+    }
+    Ok(found)
+}
+
+fn open_served(
+    name: String,
+    path: &Path,
+    expose_identifiers: bool,
+    base_url: &str,
+) -> Result<ServedStore, ServeError> {
+    let mut store = Store::open(path)?;
+    // The store's lock names this server, so `strata render|info|view` of the same folder is
+    // told at once to stream from here (sled lets one process open it).
+    store.advertise_url(&format!("{base_url}{API_PREFIX}/stores/{name}"))?;
+    // Opening checked completeness, the header and the skeleton's checksum; the root brick is
+    // read and verified too, so a store damaged where every client starts is refused here.
+    let layout = store.layout().clone();
+    let root = BrickId::new((layout.level_count() - 1) as u8, [0, 0, 0]);
+    store.read_brick(root)?;
+    let mut header = store.header().clone();
+    let generation = header.generation_id();
+    if !expose_identifiers {
+        header.description = String::new();
+        header.provenance.inputs = Vec::new();
+    }
+    let doc = OpenDocument {
+        name: name.clone(),
+        generation: generation.clone(),
+        identifiers_withheld: !expose_identifiers,
+        header,
+        histogram: store.histogram().clone(),
+        stats: store.stats().clone(),
+    };
+    let open_document = encode_open_document(&doc, store.skeleton())
+        .map_err(|e| ServeError::Config(format!("cannot encode {}: {e}", path.display())))?;
+    let listing = StoreListing {
+        name: name.clone(),
+        generation: generation.clone(),
+        dims: store.header().geometry.dims,
+        levels: layout.level_count(),
+    };
+    Ok(ServedStore {
+        name,
+        path: path.to_path_buf(),
+        generation,
+        store,
+        open_document: open_document.into(),
+        listing,
+    })
+}
+
+/// A 128-bit random token, hex.
+pub fn generate_token() -> Result<String, ServeError> {
+    let mut bytes = [0u8; 16];
+    getrandom::fill(&mut bytes)
+        .map_err(|e| ServeError::Config(format!("no random source for a token: {e}")))?;
+    Ok(bytes.iter().map(|b| format!("{b:02x}")).collect())
+}
+
+/// Equal in time that does not depend on where the inputs differ (only on the length of the
+/// presented value).
+fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
+    let mut diff = (a.len() ^ b.len()) as u8 | u8::from(a.len() != b.len());
+    for (i, &x) in a.iter().enumerate() {
+        diff |= x ^ b.get(i).copied().unwrap_or(0);
+    }
+    diff == 0
+}
+
+/// A running server.
+pub struct RunningServer {
+    scheme: &'static str,
+    addr: SocketAddr,
+    stores: Vec<(String, PathBuf, String)>,
+    counters: Arc<ServerCounters>,
+    shutdown: Option<tokio::sync::oneshot::Sender<()>>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl RunningServer {
+    pub fn addr(&self) -> SocketAddr {
+        self.addr
+    }
+    /// `http://ADDR` or `https://ADDR` (no trailing slash).
+    pub fn base_url(&self) -> String {
+        format!("{}://{}", self.scheme, self.addr)
+    }
+    /// Served stores: (name, directory, generation).
+    pub fn stores(&self) -> &[(String, PathBuf, String)] {
+        &self.stores
+    }
+    pub fn store_url(&self, name: &str) -> String {
+        format!("{}{API_PREFIX}/stores/{name}", self.base_url())
+    }
+    pub fn counters(&self) -> &ServerCounters {
+        &self.counters
+    }
+    /// Blocks until the server stops (ctrl-c ends the process).
+    pub fn wait(mut self) {
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+    /// Stops at once: the listener closes and every connection is dropped.
+    pub fn stop(mut self) {
+        self.stop_now();
+    }
+    fn stop_now(&mut self) {
+        if let Some(tx) = self.shutdown.take() {
+            let _ = tx.send(());
+        }
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+impl Drop for RunningServer {
+    fn drop(&mut self) {
+        self.stop_now();
+    }
+}
+
+/// Opens the stores, binds, and serves on a thread of its own (`strata-serve`).
+pub fn start(
+    stores: Vec<(String, PathBuf)>,
+    options: ServeOptions,
+) -> Result<RunningServer, ServeError> {
+    let loopback = options.bind.ip().is_loopback();
+    if !loopback && options.token.is_none() {
+        return Err(ServeError::Config(format!(
+            "binding {} (not loopback) needs a token: pass --token-file, or --generate-token to print a new one",
+            options.bind
+        )));
+    }
+    if options.token.as_ref().is_some_and(|t| t.len() < 16) {
+        return Err(ServeError::Config(
+            "the token is shorter than 16 characters".into(),
+        ));
+    }
+    if stores.is_empty() {
+        return Err(ServeError::Config("no store to serve".into()));
+    }
+    let listener =
+        std::net::TcpListener::bind(options.bind).map_err(|source| ServeError::Bind {
+            addr: options.bind,
+            source,
+        })?;
+    listener
+        .set_nonblocking(true)
+        .map_err(ServeError::Runtime)?;
+    let addr = listener.local_addr().map_err(ServeError::Runtime)?;
+    let tls_acceptor = options.tls.as_ref().map(tls_acceptor).transpose()?;
+    let scheme = if tls_acceptor.is_some() {
+        "https"
+    } else {
+        "http"
+    };
+    let mut served = HashMap::new();
+    for (name, path) in stores {
+        let s = open_served(
+            name.clone(),
+            &path,
+            options.expose_identifiers,
+            &format!("{scheme}://{addr}"),
+        )?;
+        served.insert(name, Arc::new(s));
+    }
+    let mut listing: Vec<(String, PathBuf, String)> = served
+        .values()
+        .map(|s| (s.name.clone(), s.path.clone(), s.generation.clone()))
+        .collect();
+    listing.sort();
+    let counters = Arc::new(ServerCounters::default());
+    let state = Arc::new(AppState {
+        stores: served,
+        token: options.token.as_ref().map(|t| t.as_bytes().to_vec()),
+        cache_control: HeaderValue::from_static(if options.token.is_some() {
+            "private, max-age=31536000, immutable"
+        } else {
+            "public, max-age=31536000, immutable"
+        }),
+        counters: counters.clone(),
+        requests: Arc::new(Semaphore::new(options.max_concurrent_requests.max(1))),
+        added_delay: options.added_delay,
+        corrupt_answers: std::sync::Mutex::new(options.corrupt_answers),
+    });
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .max_blocking_threads(16)
+        .thread_name("strata-serve-io")
+        .enable_all()
+        .build()
+        .map_err(ServeError::Runtime)?;
+    let (tx, rx) = tokio::sync::oneshot::channel();
+    let names: Vec<String> = listing.iter().map(|(n, _, _)| n.clone()).collect();
+    tracing::info!(
+        "strata serve: listening on {scheme}://{addr} ({}), token {}, stores: {}",
+        if scheme == "https" {
+            "HTTP/1.1 and HTTP/2 over TLS"
+        } else {
+            "HTTP/1.1 and h2c"
+        },
+        if options.token.is_some() {
+            "required"
+        } else {
+            "not required (loopback)"
+        },
+        names.join(", ")
+    );
+    let thread = std::thread::Builder::new()
+        .name("strata-serve".into())
+        .spawn(move || {
+            runtime.block_on(serve(listener, state, tls_acceptor, options, rx));
+            // Connections still open are dropped with the runtime.
+            runtime.shutdown_timeout(Duration::from_millis(100));
+        })
+        .map_err(ServeError::Runtime)?;
+    Ok(RunningServer {
+        scheme,
+        addr,
+        stores: listing,
+        counters,
+        shutdown: Some(tx),
+        thread: Some(thread),
+    })
+}
+
+fn router(state: Arc<AppState>, options: &ServeOptions) -> Router {
+    let cors = tower_http::cors::CorsLayer::new()
+        .allow_origin(tower_http::cors::Any)
+        .allow_methods([Method::GET, Method::HEAD])
+        .allow_headers([header::AUTHORIZATION, header::RANGE, header::IF_NONE_MATCH])
+        .expose_headers([
+            header::CONTENT_RANGE,
+            header::CONTENT_LENGTH,
+            header::ETAG,
+            header::ACCEPT_RANGES,
+        ])
+        .max_age(Duration::from_secs(3600));
+    Router::new()
+        .route("/v1/stores", get(list_stores))
+        .route("/v1/stores/{name}", get(open_store))
+        .route(
+            "/v1/stores/{name}/g/{generation}/bricks/{level}/{z}/{y}/{x}",
+            get(brick),
+        )
+        .fallback(not_found)
+        .layer(axum::middleware::from_fn_with_state(state.clone(), guard))
+        .layer(tower_http::timeout::TimeoutLayer::with_status_code(
+            StatusCode::REQUEST_TIMEOUT,
+            options.request_timeout,
+        ))
+        // Outermost: preflights are answered before authentication (browsers send no
+        // Authorization header with them).
+        .layer(cors)
+        .with_state(state)
+}
+
+async fn serve(
+    listener: std::net::TcpListener,
+    state: Arc<AppState>,
+    tls_acceptor: Option<tokio_rustls::TlsAcceptor>,
+    options: ServeOptions,
+    mut shutdown: tokio::sync::oneshot::Receiver<()>,
+) {
+    let listener = match tokio::net::TcpListener::from_std(listener) {
+        Ok(l) => l,
+        Err(e) => {
+            tracing::error!("strata serve: cannot listen: {e}");
+            return;
+        }
+    };
+    let app = router(state.clone(), &options);
+    let tls = tls_acceptor.map(Arc::new);
+    let mut builder = hyper_util::server::conn::auto::Builder::new(TokioExecutor::new());
+    builder
+        .http1()
+        .timer(TokioTimer::new())
+        .header_read_timeout(options.header_read_timeout)
+        .max_buf_size(options.max_header_bytes.max(8192))
+        .keep_alive(true);
+    builder
+        .http2()
+        .timer(TokioTimer::new())
+        .max_concurrent_streams(options.max_streams_per_connection)
+        .max_header_list_size(options.max_header_bytes as u32)
+        .max_pending_accept_reset_streams(Some(64))
+        .keep_alive_interval(Some(Duration::from_secs(20)))
+        .keep_alive_timeout(Duration::from_secs(20));
+    let connections = Arc::new(Semaphore::new(options.max_connections.max(1)));
+    let mut tasks = tokio::task::JoinSet::new();
+    let mut minute = tokio::time::interval(Duration::from_secs(60));
+    minute.tick().await;
+    loop {
+        tokio::select! {
+            _ = &mut shutdown => break,
+            _ = minute.tick() => log_counters(&state.counters),
+            accepted = listener.accept() => {
+                let (stream, peer) = match accepted {
+                    Ok(a) => a,
+                    Err(e) => {
+                        tracing::warn!("strata serve: accept failed: {e}");
+                        tokio::time::sleep(Duration::from_millis(50)).await;
+                        continue;
+                    }
+                };
+                let Ok(permit) = connections.clone().try_acquire_owned() else {
+                    state.counters.connections_refused.fetch_add(1, Ordering::Relaxed);
+                    drop(stream);
+                    continue;
+                };
+                let _ = stream.set_nodelay(true);
+                let builder = builder.clone();
+                let app = app.clone();
+                let tls = tls.clone();
+                let handshake_timeout = options.header_read_timeout;
+                tasks.spawn(async move {
+                    let service = hyper::service::service_fn(move |req: hyper::Request<hyper::body::Incoming>| {
+                        let mut app = app.clone();
+                        async move { tower_service::Service::call(&mut app, req).await }
+                    });
+                    let served = match tls {
+                        None => builder.serve_connection(TokioIo::new(stream), service).await,
+                        Some(acceptor) => {
+                            // The handshake is bounded like the headers: a client that stalls
+                            // in it is dropped.
+                            match tokio::time::timeout(handshake_timeout, acceptor.accept(stream)).await {
+                                Ok(Ok(tls_stream)) => {
+                                    builder.serve_connection(TokioIo::new(tls_stream), service).await
+                                }
+                                Ok(Err(e)) => Err(e.into()),
+                                Err(_) => Err("TLS handshake timed out".into()),
+                            }
+                        }
+                    };
+                    if let Err(e) = served {
+                        tracing::debug!("strata serve: connection from {peer} ended: {e}");
+                    }
+                    drop(permit);
+                });
+                // Reap finished connection tasks so the set does not grow.
+                while tasks.try_join_next().is_some() {}
+            }
+        }
+    }
+    tasks.shutdown().await;
+    log_counters(&state.counters);
+}
+
+fn log_counters(c: &ServerCounters) {
+    tracing::info!(
+        "strata serve: {} requests, {} bricks, {:.1} MB sent, {} not modified (304), {} errors, {} unauthorized, {} busy (503), {} connections refused",
+        c.requests.load(Ordering::Relaxed),
+        c.bricks.load(Ordering::Relaxed),
+        c.bytes.load(Ordering::Relaxed) as f64 / 1e6,
+        c.not_modified.load(Ordering::Relaxed),
+        c.errors.load(Ordering::Relaxed),
+        c.unauthorized.load(Ordering::Relaxed),
+        c.rejected_busy.load(Ordering::Relaxed),
+        c.connections_refused.load(Ordering::Relaxed),
+    );
+}
+
+/// Authentication and the concurrent-request bound, before any handler runs.
+async fn guard(State(state): State<Arc<AppState>>, request: Request, next: Next) -> Response {
+    state.counters.requests.fetch_add(1, Ordering::Relaxed);
+    if let Some(token) = &state.token {
+        let presented = request
+            .headers()
+            .get(header::AUTHORIZATION)
+            .and_then(|v| v.as_bytes().strip_prefix(b"Bearer "))
+            .unwrap_or(b"");
+        if !constant_time_eq(presented, token) {
+            state.counters.unauthorized.fetch_add(1, Ordering::Relaxed);
+            return (
+                StatusCode::UNAUTHORIZED,
+                [(header::WWW_AUTHENTICATE, "Bearer")],
+                "unauthorized\n",
+            )
+                .into_response();
+        }
+    }
+    let Ok(_permit) = state.requests.clone().try_acquire_owned() else {
+        state.counters.rejected_busy.fetch_add(1, Ordering::Relaxed);
+        return (
+            StatusCode::SERVICE_UNAVAILABLE,
+            [(header::RETRY_AFTER, "1")],
+            "busy, retry\n",
+        )
+            .into_response();
+    };
+    let response = next.run(request).await;
+    if response.status().is_server_error() || response.status().is_client_error() {
+        state.counters.errors.fetch_add(1, Ordering::Relaxed);
+    }
+    response
+}
+
+async fn not_found() -> Response {
+    (StatusCode::NOT_FOUND, "not found\n").into_response()
+}
+
+async fn list_stores(State(state): State<Arc<AppState>>) -> Response {
+    let mut stores: Vec<StoreListing> = state.stores.values().map(|s| s.listing.clone()).collect();
+    stores.sort_by(|a, b| a.name.cmp(&b.name));
+    match serde_json::to_vec(&StoreList { stores }) {
+        Ok(json) => (
+            [
+                (header::CONTENT_TYPE, "application/json"),
+                (header::CACHE_CONTROL, "no-cache"),
+            ],
+            json,
+        )
+            .into_response(),
+        Err(e) => (StatusCode::INTERNAL_SERVER_ERROR, format!("{e}\n")).into_response(),
+    }
+}
+
+async fn open_store(
+    State(state): State<Arc<AppState>>,
+    UrlPath(name): UrlPath<String>,
+    headers: HeaderMap,
+) -> Response {
+    let Some(store) = state.stores.get(&name) else {
+        return not_found().await;
+    };
+    // The name can be re-imported and served again: revalidate, keyed by the generation.
+    let etag = format!("\"{}-open\"", store.generation);
+    if if_none_match(&headers, &etag) {
+        state.counters.not_modified.fetch_add(1, Ordering::Relaxed);
+        return (StatusCode::NOT_MODIFIED, [(header::ETAG, etag)]).into_response();
+    }
+    state
+        .counters
+        .bytes
+        .fetch_add(store.open_document.len() as u64, Ordering::Relaxed);
+    (
+        [
+            (header::CONTENT_TYPE, OPEN_DOCUMENT_TYPE.to_string()),
+            (header::CACHE_CONTROL, "no-cache".to_string()),
+            (header::ETAG, etag),
+        ],
+        store.open_document.clone(),
+    )
+        .into_response()
+}
+
+fn if_none_match(headers: &HeaderMap, etag: &str) -> bool {
+    headers
+        .get_all(header::IF_NONE_MATCH)
+        .iter()
+        .filter_map(|v| v.to_str().ok())
+        .flat_map(|v| v.split(','))
+        .any(|t| {
+            let t = t.trim();
+            t == "*" || t == etag || t.strip_prefix("W/") == Some(etag)
+        })
+}
+
+type BrickPath = (String, String, String, String, String, String);
+
+async fn brick(
+    State(state): State<Arc<AppState>>,
+    UrlPath((name, generation, level, z, y, x)): UrlPath<BrickPath>,
+    headers: HeaderMap,
+) -> Response {
+    let Some(store) = state.stores.get(&name).cloned() else {
+        return not_found().await;
+    };
+    if generation != store.generation {
+        return (
+            StatusCode::NOT_FOUND,
+            "this generation of the store is not served (it was re-imported): open the store again\n",
+        )
+            .into_response();
+    }
+    let id = match (
+        level.parse::<u8>(),
+        z.parse::<u32>(),
+        y.parse::<u32>(),
+        x.parse::<u32>(),
+    ) {
+        (Ok(level), Ok(z), Ok(y), Ok(x)) => BrickId::new(level, [x, y, z]),
+        _ => return (StatusCode::BAD_REQUEST, "bad brick coordinates\n").into_response(),
+    };
+    if !store.store.layout().contains(id) {
+        return not_found().await;
+    }
+    if !state.added_delay.is_zero() {
+        tokio::time::sleep(state.added_delay).await;
+    }
+    let reader = store.clone();
+    let record = match tokio::task::spawn_blocking(move || reader.store.read_brick_record(id)).await
+    {
+        Ok(Ok(record)) => record,
+        Ok(Err(e)) => {
+            tracing::error!("strata serve: {e}");
+            return (StatusCode::INTERNAL_SERVER_ERROR, format!("{e}\n")).into_response();
+        }
+        Err(e) => {
+            return (
+                StatusCode::INTERNAL_SERVER_ERROR,
+                format!("read failed: {e}\n"),
+            )
+                .into_response()
+        }
+    };
+    let checksum = match verify_record(id, &record) {
+        Ok(c) => c,
+        Err(e) => {
+            let message = format!(
+                "{}: brick level {} at {:?} fails its check on the server: {e}",
+                store.path.display(),
+                id.level,
+                id.coords
+            );
+            tracing::error!("strata serve: {message}");
+            return (StatusCode::INTERNAL_SERVER_ERROR, format!("{message}\n")).into_response();
+        }
+    };
+    let etag = brick_etag(&store.generation, checksum);
+    let common = [
+        (header::ETAG, HeaderValue::from_str(&etag).ok()),
+        (header::CACHE_CONTROL, Some(state.cache_control.clone())),
+        (
+            header::ACCEPT_RANGES,
+            Some(HeaderValue::from_static("bytes")),
+        ),
+    ];
+    let mut builder = Response::builder();
+    for (k, v) in common.iter() {
+        if let Some(v) = v {
+            builder = builder.header(k, v);
+        }
+    }
+    if if_none_match(&headers, &etag) {
+        state.counters.not_modified.fetch_add(1, Ordering::Relaxed);
+        return builder
+            .status(StatusCode::NOT_MODIFIED)
+            .body(Body::empty())
+            .unwrap_or_else(|_| StatusCode::INTERNAL_SERVER_ERROR.into_response());
+    }
+    let mut body = record;
+    {
+        let mut corrupt = state
+            .corrupt_answers
+            .lock()
+            .unwrap_or_else(|p| p.into_inner());
+        if let Some((_, left)) = corrupt.as_mut().filter(|(t, n)| *t == id && *n > 0) {
+            *left -= 1;
+            let at = body.len() - 1;
+            body[at] ^= 0x40;
+            tracing::warn!("strata serve: test hook flipped a byte of brick {id:?} in transit");
+        }
+    }
+    let total = body.len() as u64;
+    let range = match headers.get(header::RANGE).map(|v| parse_range(v, total)) {
+        None => None,
+        Some(RangeAsk::Ignore) => None,
+        Some(RangeAsk::Unsatisfiable) => {
+            return builder
+                .status(StatusCode::RANGE_NOT_SATISFIABLE)
+                .header(header::CONTENT_RANGE, format!("bytes */{total}"))
+                .body(Body::empty())
+                .unwrap_or_else(|_| StatusCode::INTERNAL_SERVER_ERROR.into_response());
+        }
+        Some(RangeAsk::Bytes(a, b)) => Some((a, b)),
+    };
+    state.counters.bricks.fetch_add(1, Ordering::Relaxed);
+    let builder = builder.header(header::CONTENT_TYPE, "application/octet-stream");
+    let response = match range {
+        Some((a, b)) => {
+            let part = body[a as usize..=b as usize].to_vec();
+            state
+                .counters
+                .bytes
+                .fetch_add(part.len() as u64, Ordering::Relaxed);
+            builder
+                .status(StatusCode::PARTIAL_CONTENT)
+                .header(header::CONTENT_RANGE, format!("bytes {a}-{b}/{total}"))
+                .body(Body::from(part))
+        }
+        None => {
+            state.counters.bytes.fetch_add(total, Ordering::Relaxed);
+            builder.status(StatusCode::OK).body(Body::from(body))
+        }
+    };
+    response.unwrap_or_else(|_| StatusCode::INTERNAL_SERVER_ERROR.into_response())
+}
+
+enum RangeAsk {
+    /// Absent, multiple ranges or not bytes: the whole record (RFC 9110 allows ignoring).
+    Ignore,
+    Unsatisfiable,
+    /// Inclusive byte positions.
+    Bytes(u64, u64),
+}
+
+fn parse_range(value: &HeaderValue, total: u64) -> RangeAsk {
+    let Some(spec) = value
+        .to_str()
+        .ok()
+        .and_then(|v| v.trim().strip_prefix("bytes="))
+    else {
+        return RangeAsk::Ignore;
+    };
+    if spec.contains(',') {
+        return RangeAsk::Ignore;
+    }
+    let Some((a, b)) = spec.trim().split_once('-') else {
+        return RangeAsk::Ignore;
+    };
+    let (a, b) = (a.trim(), b.trim());
+    if total == 0 {
+        return RangeAsk::Unsatisfiable;
+    }
+    let last = total - 1;
+    match (a.parse::<u64>(), b.parse::<u64>()) {
+        (Ok(a), Ok(b)) if a <= b && a <= last => RangeAsk::Bytes(a, b.min(last)),
+        (Ok(a), Err(_)) if b.is_empty() && a <= last => RangeAsk::Bytes(a, last),
+        (Err(_), Ok(n)) if a.is_empty() && n > 0 => RangeAsk::Bytes(total - n.min(total), last),
+        (Ok(_), _) | (_, Ok(_)) => RangeAsk::Unsatisfiable,
+        _ => RangeAsk::Ignore,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn constant_time_comparison_is_equality() {
+        assert!(constant_time_eq(b"abcdef0123456789", b"abcdef0123456789"));
+        assert!(!constant_time_eq(b"abcdef0123456789", b"abcdef012345678"));
+        assert!(!constant_time_eq(b"", b"abcdef0123456789"));
+        assert!(!constant_time_eq(b"abcdef0123456788", b"abcdef0123456789"));
+        // A longer value that starts with the token is not the token.
+        assert!(!constant_time_eq(b"abcdef0123456789x", b"abcdef0123456789"));
+    }
+
+    #[test]
+    fn ranges() {
+        let v = |s: &str| HeaderValue::from_str(s).unwrap();
+        assert!(matches!(
+            parse_range(&v("bytes=0-9"), 100),
+            RangeAsk::Bytes(0, 9)
+        ));
+        assert!(matches!(
+            parse_range(&v("bytes=90-"), 100),
+            RangeAsk::Bytes(90, 99)
+        ));
+        assert!(matches!(
+            parse_range(&v("bytes=-10"), 100),
+            RangeAsk::Bytes(90, 99)
+        ));
+        assert!(matches!(
+            parse_range(&v("bytes=95-200"), 100),
+            RangeAsk::Bytes(95, 99)
+        ));
+        assert!(matches!(
+            parse_range(&v("bytes=100-"), 100),
+            RangeAsk::Unsatisfiable
+        ));
+        assert!(matches!(
+            parse_range(&v("bytes=0-1,5-6"), 100),
+            RangeAsk::Ignore
+        ));
+        assert!(matches!(
+            parse_range(&v("items=0-1"), 100),
+            RangeAsk::Ignore
+        ));
+    }
+
+    #[test]
+    fn names_are_derived_safely() {
+        assert_eq!(
+            name_for_store(Path::new("/data/chest ct.strata")),
+            "chest_ct"
+        );
+        assert_eq!(name_for_store(Path::new("/data/..hidden")), "hidden");
+    }
+}

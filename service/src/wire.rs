@@ -1,0 +1,127 @@
+//! What travels between `strata serve` and its client: the URL scheme and the one-response
+//! "open" document (header, histogram, stats and the octree skeleton).
+//!
+//! Paths, all under `/v1`:
+//! - `GET /v1/stores`: JSON list of the served stores (name, generation, dimensions).
+//! - `GET /v1/stores/{name}`: the open document ([`encode_open_document`]).
+//! - `GET /v1/stores/{name}/g/{generation}/bricks/{level}/{z}/{y}/{x}`: one brick record as
+//!   stored (kind, xxh3 checksum over key and body, lz4 body), never decoded on the server.
+//!   The generation makes the URL immutable: a re-import gets new URLs.
+//!
+//! A later OME-Zarr view of the same stores sits beside these, under
+//! `/v1/stores/{name}/zarr/...`.
+
+use serde::{Deserialize, Serialize};
+use strata_storage::histogram::Histogram;
+use strata_storage::store::{Skeleton, StoreStats};
+use strata_storage::{BrickId, StoreHeader};
+
+pub const API_PREFIX: &str = "/v1";
+pub const OPEN_DOCUMENT_MAGIC: &[u8; 8] = b"STRATA\x01\n";
+pub const OPEN_DOCUMENT_TYPE: &str = "application/vnd.strata.store-open.v1";
+/// The open document's JSON part is bounded (a header, a 1024-bin histogram, stats).
+pub const MAX_OPEN_JSON_BYTES: u64 = 16 << 20;
+
+/// The JSON part of the open document.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct OpenDocument {
+    pub name: String,
+    pub generation: String,
+    /// Description and provenance are emptied unless the server runs with
+    /// `--expose-identifiers` (source paths often carry patient names).
+    pub identifiers_withheld: bool,
+    pub header: StoreHeader,
+    pub histogram: Histogram,
+    pub stats: StoreStats,
+}
+
+/// One entry of `GET /v1/stores`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct StoreListing {
+    pub name: String,
+    pub generation: String,
+    pub dims: [u32; 3],
+    pub levels: usize,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct StoreList {
+    pub stores: Vec<StoreListing>,
+}
+
+/// `magic | json length u64 LE | json | skeleton (Skeleton::encode, checksummed)`.
+pub fn encode_open_document(
+    doc: &OpenDocument,
+    skeleton: &Skeleton,
+) -> serde_json::Result<Vec<u8>> {
+    let json = serde_json::to_vec(doc)?;
+    let skeleton = skeleton.encode();
+    let mut out = Vec::with_capacity(16 + json.len() + skeleton.len());
+    out.extend_from_slice(OPEN_DOCUMENT_MAGIC);
+    out.extend_from_slice(&(json.len() as u64).to_le_bytes());
+    out.extend_from_slice(&json);
+    out.extend_from_slice(&skeleton);
+    Ok(out)
+}
+
+pub fn decode_open_document(bytes: &[u8]) -> Result<(OpenDocument, Skeleton), String> {
+    let rest = bytes
+        .strip_prefix(OPEN_DOCUMENT_MAGIC.as_slice())
+        .ok_or("not a Strata open document (wrong magic)")?;
+    let (len, rest) = rest.split_at_checked(8).ok_or("open document truncated")?;
+    let len = u64::from_le_bytes(len.try_into().map_err(|_| "open document truncated")?);
+    if len > MAX_OPEN_JSON_BYTES || len > rest.len() as u64 {
+        return Err(format!("open document's JSON part claims {len} bytes"));
+    }
+    let (json, skeleton) = rest.split_at(len as usize);
+    let doc: OpenDocument =
+        serde_json::from_slice(json).map_err(|e| format!("open document: {e}"))?;
+    let skeleton = Skeleton::decode(skeleton).ok_or("octree skeleton fails its checksum")?;
+    let layout = &doc.header.layout;
+    if skeleton.levels.len() != layout.level_count()
+        || skeleton
+            .levels
+            .iter()
+            .enumerate()
+            .any(|(l, v)| v.len() as u64 != layout.brick_count_in_level(l))
+    {
+        return Err("octree skeleton does not match the header's layout".into());
+    }
+    Ok((doc, skeleton))
+}
+
+/// Path of one brick (relative to the server's root).
+pub fn brick_path(name: &str, generation: &str, id: BrickId) -> String {
+    format!(
+        "{API_PREFIX}/stores/{name}/g/{generation}/bricks/{}/{}/{}/{}",
+        id.level, id.coords[2], id.coords[1], id.coords[0]
+    )
+}
+
+/// Strong ETag of a brick: generation and record checksum.
+pub fn brick_etag(generation: &str, checksum: u64) -> String {
+    format!("\"{generation}-{checksum:016x}\"")
+}
+
+/// Store names that may appear in a URL: what `strata serve` accepts for a store's name.
+pub fn is_valid_store_name(name: &str) -> bool {
+    !name.is_empty()
+        && name.len() <= 128
+        && name
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || b == b'-' || b == b'_' || b == b'.')
+        && !name.starts_with('.')
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn store_names_exclude_paths() {
+        assert!(is_valid_store_name("chest-ct.strata"));
+        for bad in ["", "..", "../x", "a/b", ".hidden", "a b", "a%2Fb"] {
+            assert!(!is_valid_store_name(bad), "{bad}");
+        }
+    }
+}

@@ -1,0 +1,247 @@
+//! The remote fetcher against a real server on loopback (the RTT injected in the server):
+//! many requests in flight over one HTTP/2 connection, the loader's priority order, stale
+//! requests aborted on the wire, a record damaged in transit re-requested once and then
+//! reported, and the HTTP/1.1 pool.
+
+use std::collections::HashSet;
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+use strata_service::server::{find_stores, start, RunningServer, ServeOptions};
+use strata_service::{RemoteOptions, RemoteSource};
+use strata_source::{BrickFetcher, FetchOptions, FetchResult, SourceError, VolumeSource};
+use strata_storage::import::ImportOptions;
+use strata_storage::phantom::Phantom;
+use strata_storage::{BrickId, Store};
+
+fn served(dir: &Path, size: u64, options: ServeOptions) -> RunningServer {
+    let path = dir.join("phantom.strata");
+    Phantom::cube(size)
+        .write_store(&path, &ImportOptions::default())
+        .unwrap();
+    start(find_stores(&[path]).unwrap(), options).unwrap()
+}
+
+fn fetcher(
+    server: &RunningServer,
+    options: RemoteOptions,
+) -> (RemoteSource, Box<dyn BrickFetcher>) {
+    let remote = RemoteSource::open(&server.store_url("phantom"), options).unwrap();
+    let fetcher = remote
+        .start_fetching(FetchOptions {
+            max_queued: 512,
+            max_in_transit: 256,
+            threads: 1,
+        })
+        .expect("a remote source has its own fetcher")
+        .unwrap();
+    (remote, fetcher)
+}
+
+fn level_ids(remote: &RemoteSource, level: usize) -> Vec<BrickId> {
+    let n = remote.layout().bricks_in_level(level);
+    let mut ids = Vec::new();
+    for z in 0..n[2] {
+        for y in 0..n[1] {
+            for x in 0..n[0] {
+                ids.push(BrickId::new(level as u8, [x, y, z]));
+            }
+        }
+    }
+    ids
+}
+
+/// Takes results until `count` arrived (or 60 s passed), completing each.
+fn collect(fetcher: &dyn BrickFetcher, count: usize) -> Vec<FetchResult> {
+    let deadline = Instant::now() + Duration::from_secs(60);
+    let mut got = Vec::new();
+    while got.len() < count && Instant::now() < deadline {
+        for r in fetcher.try_results() {
+            fetcher.complete(r.id);
+            got.push(r);
+        }
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    got
+}
+
+#[test]
+fn many_requests_fly_at_once_over_one_http2_connection() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = served(
+        dir.path(),
+        160,
+        ServeOptions {
+            added_delay: Duration::from_millis(300),
+            ..ServeOptions::default()
+        },
+    );
+    let (remote, fetcher) = fetcher(&server, RemoteOptions::default());
+    let ids = level_ids(&remote, 0);
+    assert!(ids.len() >= 64, "{} bricks", ids.len());
+    let demand: Vec<(BrickId, f64)> = ids.iter().map(|&id| (id, 1.0)).collect();
+    fetcher.set_requests(&demand, &[]);
+    let got = collect(fetcher.as_ref(), ids.len());
+    assert_eq!(got.len(), ids.len());
+    // The server holds the store, and its lock says where it is served.
+    match Store::open_with_cache(&dir.path().join("phantom.strata"), 1 << 20) {
+        Err(strata_storage::StorageError::InUse { holder, .. }) => {
+            assert_eq!(holder.url, Some(server.store_url("phantom")))
+        }
+        other => panic!("a served store opened locally: {:?}", other.err()),
+    }
+    // Every record was verified on arrival: Ok means its checksum matched.
+    for r in &got {
+        let brick = r.outcome.as_ref().unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(brick.len(), strata_storage::BRICK_PAYLOAD_VOXELS);
+        assert!(r.stored_bytes > 0);
+    }
+    let c = fetcher.counters();
+    // One 300 ms round trip each: only overlap makes 125 of them finish; at least 32 at once.
+    assert!(
+        c.max_in_flight >= 32,
+        "at most {} in flight",
+        c.max_in_flight
+    );
+    assert_eq!(c.retried, 0);
+}
+
+#[test]
+fn demand_comes_before_prefetch_and_higher_priority_first() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = served(
+        dir.path(),
+        128,
+        ServeOptions {
+            added_delay: Duration::from_millis(150),
+            ..ServeOptions::default()
+        },
+    );
+    let (remote, fetcher) = fetcher(
+        &server,
+        RemoteOptions {
+            max_in_flight: 4,
+            ..RemoteOptions::default()
+        },
+    );
+    let ids = level_ids(&remote, 0);
+    // Demand: 8 bricks, priority = index (the loader's convention: higher is sooner).
+    let demand: Vec<(BrickId, f64)> = ids[..8]
+        .iter()
+        .enumerate()
+        .map(|(i, &id)| (id, i as f64))
+        .collect();
+    // Prefetch with higher numbers still comes after every demand request.
+    let prefetch: Vec<(BrickId, f64)> = ids[8..12].iter().map(|&id| (id, 100.0)).collect();
+    fetcher.set_requests(&demand, &prefetch);
+    let got = collect(fetcher.as_ref(), 12);
+    let order: Vec<BrickId> = got.iter().map(|r| r.id).collect();
+    assert_eq!(order.len(), 12);
+    // Four at a time: the four most urgent demand bricks arrive first, then the other four,
+    // then the prefetch.
+    let first: HashSet<BrickId> = order[..4].iter().copied().collect();
+    let want_first: HashSet<BrickId> = ids[4..8].iter().copied().collect();
+    assert_eq!(first, want_first, "{order:?}");
+    let second: HashSet<BrickId> = order[4..8].iter().copied().collect();
+    assert_eq!(second, ids[..4].iter().copied().collect(), "{order:?}");
+    let last: HashSet<BrickId> = order[8..].iter().copied().collect();
+    assert_eq!(last, ids[8..12].iter().copied().collect(), "{order:?}");
+}
+
+#[test]
+fn requests_a_new_view_no_longer_names_are_cancelled_on_the_wire() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = served(
+        dir.path(),
+        128,
+        ServeOptions {
+            added_delay: Duration::from_millis(1500),
+            ..ServeOptions::default()
+        },
+    );
+    let (remote, fetcher) = fetcher(
+        &server,
+        RemoteOptions {
+            max_in_flight: 8,
+            ..RemoteOptions::default()
+        },
+    );
+    let ids = level_ids(&remote, 0);
+    let old: Vec<(BrickId, f64)> = ids[..8].iter().map(|&id| (id, 1.0)).collect();
+    let new: Vec<(BrickId, f64)> = ids[8..16].iter().map(|&id| (id, 1.0)).collect();
+    fetcher.set_requests(&old, &[]);
+    std::thread::sleep(Duration::from_millis(100));
+    assert_eq!(
+        fetcher.in_flight(),
+        8,
+        "the first view's requests are on the wire"
+    );
+    // Two views that want other bricks: the first eight are aborted, the new ones start.
+    fetcher.set_requests(&new, &[]);
+    fetcher.set_requests(&new, &[]);
+    let c = fetcher.counters();
+    assert_eq!(c.cancelled_in_flight, 8);
+    let got = collect(fetcher.as_ref(), 8);
+    let arrived: HashSet<BrickId> = got.iter().map(|r| r.id).collect();
+    assert_eq!(arrived, ids[8..16].iter().copied().collect::<HashSet<_>>());
+    // Nothing of the old view ever arrives.
+    std::thread::sleep(Duration::from_millis(200));
+    assert!(fetcher.try_results().is_empty());
+}
+
+#[test]
+fn a_record_damaged_in_transit_is_fetched_again_once_then_reported() {
+    let id = BrickId::new(0, [1, 1, 1]);
+    for (corrupted_answers, expect_ok) in [(1, true), (2, false)] {
+        let dir = tempfile::tempdir().unwrap();
+        let server = served(
+            dir.path(),
+            96,
+            ServeOptions {
+                corrupt_answers: Some((id, corrupted_answers)),
+                ..ServeOptions::default()
+            },
+        );
+        let (_remote, fetcher) = fetcher(&server, RemoteOptions::default());
+        fetcher.set_requests(&[(id, 1.0)], &[]);
+        let got = collect(fetcher.as_ref(), 1);
+        assert_eq!(got.len(), 1);
+        let c = fetcher.counters();
+        assert_eq!(c.checksum_failures, corrupted_answers as u64);
+        match (&got[0].outcome, expect_ok) {
+            (Ok(_), true) => {}
+            (Err(SourceError::Damaged { message, .. }), false) => {
+                assert!(message.contains("checksum"), "{message}")
+            }
+            (other, _) => panic!(
+                "{corrupted_answers} corrupted answers gave {:?}",
+                other.as_ref().map(|_| "a brick")
+            ),
+        }
+    }
+}
+
+#[test]
+fn the_http1_pool_fetches_the_same_bricks() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = served(dir.path(), 96, ServeOptions::default());
+    let (remote, fetcher) = fetcher(
+        &server,
+        RemoteOptions {
+            http1: true,
+            max_in_flight: 8,
+            ..RemoteOptions::default()
+        },
+    );
+    let ids: Vec<BrickId> = (0..remote.layout().level_count())
+        .flat_map(|l| level_ids(&remote, l))
+        .collect();
+    let demand: Vec<(BrickId, f64)> = ids.iter().map(|&id| (id, 1.0)).collect();
+    fetcher.set_requests(&demand, &[]);
+    let got = collect(fetcher.as_ref(), ids.len());
+    assert_eq!(got.len(), ids.len());
+    for r in &got {
+        let brick = r.outcome.as_ref().unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(&**brick, &remote.read_brick(r.id).unwrap());
+    }
+}
