@@ -474,6 +474,13 @@ impl StreamingVolume {
         self.raycaster.compile_in_background = on;
     }
 
+    /// True while the last frame was drawn with a stand-in pipeline because the one its
+    /// settings need is still compiling: that frame is not what was asked for, however
+    /// converged the cut is (the viewer keeps rendering until the real pipeline draws).
+    pub fn compiling_in_background(&self) -> bool {
+        self.raycaster.compiling_in_background()
+    }
+
     /// Waits until the GPU finished everything submitted (frame timing in benchmarks).
     pub fn wait_for_gpu(&self, ctx: &GpuContext) -> Result<(), LoaderError> {
         ctx.device

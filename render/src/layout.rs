@@ -47,6 +47,13 @@ pub fn neighbour_offsets() -> impl Iterator<Item = [i32; 3]> {
     (0..27).filter(|&b| b != 13).map(neighbour_offset)
 }
 
+/// The depth a DVR ray reports (the pick depth: what a click in the 3D view lands on) is the
+/// distance where its accumulated opacity first reaches this: where the user sees the surface,
+/// not the first faint contribution, which is haze. MIP reports the maximum's distance, an
+/// isosurface its hit; a DVR ray that never gets this opaque reports +inf (nothing to pick).
+/// Every pass that writes depth (the reference, the raycast pass, any later one) uses it.
+pub const DEPTH_OPACITY: f64 = 0.5;
+
 /// The raycast pass's workgroup edge: one invocation per pixel, in 8×8 tiles.
 pub const WORKGROUP_SIZE: u32 = 8;
 

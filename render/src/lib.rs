@@ -92,7 +92,7 @@ pub use error::RenderError;
 pub use gpu_page_table::GpuPageTable;
 pub use gpu_timing::{FrameTiming, FrameTimingSource};
 pub use gpu_transfer_function::GpuTransferFunction;
-pub use layout::BrickSource;
+pub use layout::{BrickSource, DEPTH_OPACITY};
 pub use metrics::{compare_rgba8, ImageComparison};
 pub use offscreen::OffscreenRenderer;
 pub use page_table::{PageEntry, PageTable};

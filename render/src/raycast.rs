@@ -1,6 +1,6 @@
 //! The raycast pass: one compute dispatch of the composed raycast shader (shaders.rs;
 //! entry point and ray loop in shaders/raycast.wgsl) writing an RGBA8 storage texture, a
-//! first-hit depth buffer, the per-page visibility buffer and an optional sample counter.
+//! pick-depth buffer (layout.rs `DEPTH_OPACITY`), the per-page visibility buffer and an optional sample counter.
 //! [`Raycaster`] holds the pass: parameters ([`Scene`] → `Params`), bind group, dispatch, and
 //! the readbacks (blocking for tests and the CLI; visibility and timings through the readback
 //! ring, 1-2 frames late). Pipelines per effect combination are pipelines.rs; the GPU
@@ -48,7 +48,8 @@ pub struct FrameReadback {
     pub height: u32,
     /// Premultiplied RGBA8, row 0 at the top.
     pub rgba: Vec<u8>,
-    /// Ray distance (mm) of the first contributing sample / iso hit / MIP maximum, or +inf.
+    /// Pick depth, ray distance in mm from the camera ray's origin: DVR where the accumulated
+    /// opacity reaches [`crate::layout::DEPTH_OPACITY`], the MIP maximum, the iso hit; or +inf.
     pub depth: Vec<f32>,
     /// Per page entry: 1 if a sample there contributed before the ray terminated.
     pub visibility: Vec<u32>,

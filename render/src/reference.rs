@@ -10,7 +10,7 @@ use rayon::prelude::*;
 use crate::camera::Camera;
 use crate::error::RenderError;
 use crate::field::{sample_field, FieldSample};
-use crate::layout::BrickSource;
+use crate::layout::{BrickSource, DEPTH_OPACITY};
 use crate::page_table::PageTable;
 use crate::settings::{RenderMode, RenderSettings, Shading};
 use crate::smooth_transitions::transition_masks;
@@ -35,7 +35,8 @@ pub struct ReferenceImage {
     /// Premultiplied RGBA over transparent black, rounded to 8 bits like the GPU's unorm store.
     pub rgba: Vec<u8>,
     pub rgba_f64: Vec<[f64; 4]>,
-    /// Ray distance (mm) of the first contributing sample / hit / maximum; +inf if none.
+    /// Pick depth (mm along the ray): DVR where accumulated opacity reaches
+    /// [`DEPTH_OPACITY`], the iso hit, the MIP maximum; +inf if none.
     pub depth: Vec<f32>,
 }
 
@@ -232,14 +233,15 @@ fn trace<S: BrickSource>(
                 if let Some(s) = &shading {
                     col = shade(col, gradient_patient(&loc), dir, s, flatness_scale);
                 }
-                if depth.is_infinite() {
-                    depth = t as f32;
-                }
                 let wgt = (1.0 - alpha) * op;
                 for i in 0..3 {
                     c[i] += wgt * col[i];
                 }
                 alpha += wgt;
+                // The pick depth: where the accumulated opacity reaches DEPTH_OPACITY.
+                if depth.is_infinite() && alpha >= DEPTH_OPACITY {
+                    depth = t as f32;
+                }
                 if let Some(th) = settings.early_termination {
                     if alpha >= th as f64 {
                         break;

@@ -17,9 +17,9 @@
 use std::sync::OnceLock;
 
 use crate::layout::{
-    BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD, FLAG_EMPTY, FLAG_NOT_RESIDENT, FLAG_TRANSITION,
-    LEVEL_MASK, LEVEL_SHIFT, SHADING_FLAT_BELOW, SHADING_LIT_ABOVE, SLOT_AXIS_BITS, SLOT_AXIS_MASK,
-    WORKGROUP_SIZE,
+    BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD, DEPTH_OPACITY, FLAG_EMPTY, FLAG_NOT_RESIDENT,
+    FLAG_TRANSITION, LEVEL_MASK, LEVEL_SHIFT, SHADING_FLAT_BELOW, SHADING_LIT_ABOVE,
+    SLOT_AXIS_BITS, SLOT_AXIS_MASK, WORKGROUP_SIZE,
 };
 
 /// The files that define the sampled field and its lookups, in composition order.
@@ -57,7 +57,7 @@ pub(crate) enum PreludeValue {
 }
 
 /// Every constant the shader shares with Rust, by its WGSL name.
-pub(crate) fn prelude_constants() -> [(&'static str, PreludeValue); 13] {
+pub(crate) fn prelude_constants() -> [(&'static str, PreludeValue); 14] {
     use PreludeValue::*;
     [
         ("CORE", F32(BRICK_CORE as f64)),
@@ -75,6 +75,8 @@ pub(crate) fn prelude_constants() -> [(&'static str, PreludeValue); 13] {
         ("SHADING_FLAT_BELOW", F32(SHADING_FLAT_BELOW)),
         ("SHADING_LIT_ABOVE", F32(SHADING_LIT_ABOVE)),
         ("WORKGROUP_SIZE", U32(WORKGROUP_SIZE)),
+        // DVR depth: where accumulated opacity first reaches this.
+        ("DEPTH_OPACITY", F32(DEPTH_OPACITY)),
     ]
 }
 

@@ -12,8 +12,7 @@ use strata_storage::phantom::Phantom;
 use strata_storage::readers::{open_source, ReadOptions};
 use strata_storage::Store;
 
-use super::sync::lock_ignoring_poison;
-use super::volume_session::Repaint;
+use super::sync::{lock_ignoring_poison, Repaint};
 
 /// What the user asked to look at.
 #[derive(Clone, Debug, PartialEq)]

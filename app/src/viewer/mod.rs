@@ -1,18 +1,34 @@
 //! The interactive viewer (`strata`, `strata view`): eframe window, layouts of the 3D view and
-//! three slice views, transfer-function editor, performance panel. Not for diagnostic use.
+//! three slice views, side panels (transfer function, rendering, performance, screenshot,
+//! information). Not for diagnostic use.
+//!
+//! Structure, as egui's demo app: a thin shell (`app.rs`: toolbar, status bar, layout,
+//! shortcuts), views that own their state and draw themselves (`view3d.rs`, `slice_view.rs`),
+//! panels likewise (`panels/`), dialogs (`dialogs.rs`), and the state they share
+//! (`scene.rs`: the volume's data handles and the scene the user adjusts).
 //!
 //! Threads: the UI thread only draws and turns input into requests. The render thread
 //! (`volume_session`), the slice reader (`slices`) and store preparation (`jobs`) do all GPU
 //! work, disk reads and imports, and wake the UI when they have something new.
 
 pub mod app;
+pub mod colour_maps;
+pub mod dialogs;
+pub mod history;
 pub mod jobs;
+pub mod measurements;
 pub mod orientation;
+pub mod panels;
+pub mod preferences;
+pub mod scene;
+pub mod screenshots;
+pub mod slice_view;
 pub mod slices;
-mod sync;
+pub(crate) mod sync;
 pub mod tf_editor;
 pub mod view3d;
 pub mod volume_session;
+pub mod widgets;
 
 #[cfg(test)]
 mod ui_tests;

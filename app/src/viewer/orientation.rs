@@ -86,7 +86,8 @@ pub fn index_axis_of_patient_axes(geometry: &VolumeGeometry) -> [usize; 3] {
     best
 }
 
-fn label_of(direction: DVec3) -> &'static str {
+/// The patient direction (L, R, P, A, S, I) an LPS vector points to most.
+pub fn label_of(direction: DVec3) -> &'static str {
     let a = direction.abs();
     if a.x >= a.y && a.x >= a.z {
         if direction.x > 0.0 {

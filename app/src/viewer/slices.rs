@@ -11,8 +11,7 @@ use strata_source::VolumeSource;
 use strata_storage::{BrickId, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
 
 use super::orientation::{SliceFrame, SliceView};
-use super::sync::{lock_ignoring_poison, wait_ignoring_poison};
-use super::volume_session::Repaint;
+use super::sync::{lock_ignoring_poison, wait_ignoring_poison, Repaint};
 
 /// Decompressed bricks kept for paging (bytes).
 pub const SLICE_CACHE_BYTES: usize = 192 << 20;
@@ -39,9 +38,19 @@ pub struct SliceImage {
     pub inside_fraction: (f64, f64),
 }
 
+/// The stored value of one level-0 voxel (the readout under the pointer).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct VoxelValue {
+    pub index: [u32; 3],
+    pub stored: u16,
+}
+
 struct Shared {
     pending: Mutex<[Option<SliceRequest>; 3]>,
     results: Mutex<[Option<SliceImage>; 3]>,
+    /// A voxel whose level-0 value is wanted, and the last one read.
+    probe: Mutex<Option<[u32; 3]>>,
+    probed: Mutex<Option<VoxelValue>>,
     error: Mutex<Option<String>>,
     wake: std::sync::Condvar,
     stop: AtomicBool,
@@ -73,6 +82,8 @@ impl SliceReader {
         let shared = Arc::new(Shared {
             pending: Mutex::new([None; 3]),
             results: Mutex::new([None, None, None]),
+            probe: Mutex::new(None),
+            probed: Mutex::new(None),
             error: Mutex::new(None),
             wake: std::sync::Condvar::new(),
             stop: AtomicBool::new(false),
@@ -88,6 +99,24 @@ impl SliceReader {
                         loop {
                             if thread_shared.stop.load(Ordering::Acquire) {
                                 return;
+                            }
+                            // A probe is one brick (usually cached): it goes first.
+                            let probe = lock_ignoring_poison(&thread_shared.probe).take();
+                            if let Some(index) = probe {
+                                drop(pending);
+                                match read_voxel(&store, &mut cache, index) {
+                                    Ok(stored) => {
+                                        *lock_ignoring_poison(&thread_shared.probed) =
+                                            Some(VoxelValue { index, stored })
+                                    }
+                                    Err(e) => {
+                                        *lock_ignoring_poison(&thread_shared.error) =
+                                            Some(format!("{e:#}"))
+                                    }
+                                }
+                                repaint();
+                                pending = lock_ignoring_poison(&thread_shared.pending);
+                                continue;
                             }
                             if let Some(r) = pending.iter_mut().find_map(|p| p.take()) {
                                 break r;
@@ -118,6 +147,26 @@ impl SliceReader {
     pub fn request(&self, request: SliceRequest) {
         lock_ignoring_poison(&self.shared.pending)[request.view.index()] = Some(request);
         self.shared.wake.notify_all();
+    }
+
+    /// Asks for the level-0 value of `index` (a newer probe replaces an unread older one);
+    /// [`SliceReader::probed`] has it a moment later. Does nothing if it is already there.
+    pub fn probe(&self, index: [u32; 3]) {
+        if self.probed().is_some_and(|p| p.index == index) {
+            return;
+        }
+        let mut probe = lock_ignoring_poison(&self.shared.probe);
+        if *probe != Some(index) {
+            *probe = Some(index);
+            drop(probe);
+            // Take the pending lock so the wake cannot slip between the reader's check and wait.
+            let _pending = lock_ignoring_poison(&self.shared.pending);
+            self.shared.wake.notify_all();
+        }
+    }
+
+    pub fn probed(&self) -> Option<VoxelValue> {
+        *lock_ignoring_poison(&self.shared.probed)
     }
 
     pub fn latest(&self, view: SliceView) -> Option<SliceImage> {
@@ -176,6 +225,22 @@ impl BrickLru {
         self.order.push_back(id);
         Ok(brick)
     }
+}
+
+/// One level-0 voxel's stored value, through the brick cache.
+fn read_voxel(
+    store: &dyn VolumeSource,
+    cache: &mut BrickLru,
+    index: [u32; 3],
+) -> anyhow::Result<u16> {
+    let dims = store.layout().level_dims[0];
+    if (0..3).any(|a| index[a] >= dims[a]) {
+        anyhow::bail!("voxel {index:?} is outside the volume {dims:?}");
+    }
+    let brick = cache.get(store, BrickId::new(0, index.map(|i| i / BRICK_CORE)))?;
+    let local = index.map(|i| (i % BRICK_CORE + BRICK_APRON) as usize);
+    let edge = BRICK_PAYLOAD as usize;
+    Ok(brick[(local[2] * edge + local[1]) * edge + local[0]])
 }
 
 fn read_slice(
@@ -273,5 +338,11 @@ mod tests {
         let e = BRICK_PAYLOAD as usize;
         let expected = brick[(8 * e + 5) * e + 3];
         assert_eq!(image.values[38 * 40 + 33], expected);
+        // A probe of the same voxel reads the same value.
+        assert_eq!(
+            read_voxel(&store, &mut cache, [33, 35, 38]).expect("voxel"),
+            expected
+        );
+        assert!(read_voxel(&store, &mut cache, [40, 0, 0]).is_err());
     }
 }

@@ -26,6 +26,9 @@ pub(crate) fn wait_ignoring_poison<'a, T>(
     condvar.wait(guard).unwrap_or_else(|e| e.into_inner())
 }
 
+/// Wakes the UI (egui's `request_repaint`), callable from any thread.
+pub type Repaint = std::sync::Arc<dyn Fn() + Send + Sync>;
+
 #[cfg(test)]
 mod tests {
     use super::*;

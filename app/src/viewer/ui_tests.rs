@@ -41,8 +41,17 @@ fn harness(store: &Path, side_panel: bool) -> Harness<'static, Option<StrataApp>
 }
 
 fn harness_with(
+    options: ViewerOptions,
+    preferences: Preferences,
+) -> Harness<'static, Option<StrataApp>> {
+    harness_sized(options, preferences, Vec2::new(560.0, 380.0))
+}
+
+/// A harness with a window of `size` points (taller where a test needs lower side panels).
+fn harness_sized(
     mut options: ViewerOptions,
     preferences: Preferences,
+    size: Vec2,
 ) -> Harness<'static, Option<StrataApp>> {
     options.max_render_pixels = 96;
     options.persist_settings = false;
@@ -52,19 +61,16 @@ fn harness_with(
         step_voxels: 1.0,
         ..preferences
     };
-    Harness::builder()
-        .with_size(Vec2::new(560.0, 380.0))
-        .wgpu()
-        .build_ui_state(
-            move |ui, state: &mut Option<StrataApp>| {
-                state
-                    .get_or_insert_with(|| {
-                        StrataApp::new(ui.ctx().clone(), preferences.clone(), options.clone())
-                    })
-                    .ui(ui);
-            },
-            None,
-        )
+    Harness::builder().with_size(size).wgpu().build_ui_state(
+        move |ui, state: &mut Option<StrataApp>| {
+            state
+                .get_or_insert_with(|| {
+                    StrataApp::new(ui.ctx().clone(), preferences.clone(), options.clone())
+                })
+                .ui(ui);
+        },
+        None,
+    )
 }
 
 fn app<'h>(h: &'h Harness<'static, Option<StrataApp>>) -> &'h StrataApp {
@@ -218,9 +224,10 @@ fn right_drag_in_a_slice_changes_window_level_and_the_image_and_the_wheel_pages(
     let rect = app(&h)
         .view_rect(ViewSlot::Slice(SliceView::Axial))
         .expect("axial view laid out");
-    let (values_before, window_before) = app(&h)
+    let shown = app(&h)
         .slice_display(SliceView::Axial)
         .expect("slice shown");
+    let (values_before, window_before) = (shown.values, shown.window);
     h.step();
     let screen_before = region_pixels(&h.render().expect("render"), rect.shrink(20.0));
 
@@ -246,22 +253,23 @@ fn right_drag_in_a_slice_changes_window_level_and_the_image_and_the_wheel_pages(
         modifiers: Modifiers::NONE,
     });
     h.step();
-    let window_after = app(&h).volume.as_ref().expect("volume").window;
+    let window_after = app(&h).volume.as_ref().expect("volume").scene.window;
     assert!(
-        window_after.1 > window_before.1,
+        window_after.width > window_before.width,
         "window width did not grow: {window_before:?} → {window_after:?}"
     );
     assert!(
-        window_after.0 > window_before.0,
+        window_after.centre > window_before.centre,
         "level did not rise: {window_before:?} → {window_after:?}"
     );
     step_until(&mut h, "the re-windowed slice", |a| {
         a.slice_display(SliceView::Axial)
-            .is_some_and(|(_, w)| w == window_after)
+            .is_some_and(|s| s.window == window_after)
     });
-    let (values_after, _) = app(&h)
+    let values_after = app(&h)
         .slice_display(SliceView::Axial)
-        .expect("slice shown");
+        .expect("slice shown")
+        .values;
     assert!(
         std::sync::Arc::ptr_eq(&values_before, &values_after),
         "a window change must not re-read the slice"
@@ -279,9 +287,10 @@ fn right_drag_in_a_slice_changes_window_level_and_the_image_and_the_wheel_pages(
     // Wheel: one line up pages one slice along the axial normal.
     let normal = {
         let v = app(&h).volume.as_ref().expect("volume");
-        super::orientation::SliceFrame::for_view(SliceView::Axial, &v.info.geometry).normal_axis
+        super::orientation::SliceFrame::for_view(SliceView::Axial, &v.data.info.geometry)
+            .normal_axis
     };
-    let before = app(&h).volume.as_ref().expect("volume").cursor[normal];
+    let before = app(&h).volume.as_ref().expect("volume").scene.cursor[normal];
     h.event(Event::PointerMoved(rect.center() + Vec2::new(3.0, 3.0)));
     h.event(Event::MouseWheel {
         unit: egui::MouseWheelUnit::Line,
@@ -291,7 +300,7 @@ fn right_drag_in_a_slice_changes_window_level_and_the_image_and_the_wheel_pages(
         modifiers: Modifiers::NONE,
     });
     h.step();
-    let after = app(&h).volume.as_ref().expect("volume").cursor[normal];
+    let after = app(&h).volume.as_ref().expect("volume").scene.cursor[normal];
     assert_eq!(
         after,
         before.round() + 1.0,
@@ -369,16 +378,20 @@ fn a_click_in_the_transfer_function_editor_adds_a_point_that_the_next_frame_uses
     let mut h = harness(&store, true);
     step_until(&mut h, "the converged first frame and the editor", |a| {
         settled_frame(a).is_some()
-            && a.volume
-                .as_ref()
-                .is_some_and(|v| v.tf_state.plot_rect.is_some())
+            && a.volume.is_some()
+            && a.panels.transfer_function.editor.plot_rect.is_some()
     });
     h.check_accessibility();
     let (plot, points_before) = {
         let v = app(&h).volume.as_ref().expect("volume");
         (
-            v.tf_state.plot_rect.expect("plot drawn"),
-            v.transfer_function.opacity.len(),
+            app(&h)
+                .panels
+                .transfer_function
+                .editor
+                .plot_rect
+                .expect("plot drawn"),
+            v.scene.transfer_function.opacity.len(),
         )
     };
     // Left of the middle, a third of the way down: high opacity where the bone preset has none,
@@ -405,6 +418,7 @@ fn a_click_in_the_transfer_function_editor_adds_a_point_that_the_next_frame_uses
         .volume
         .as_ref()
         .expect("volume")
+        .scene
         .transfer_function
         .clone();
     assert_eq!(
@@ -433,5 +447,609 @@ fn a_click_in_the_transfer_function_editor_adds_a_point_that_the_next_frame_uses
     assert_eq!(
         settled.request.transfer_function, edited,
         "the converged frame after the edit is drawn with it"
+    );
+    // The edited function no longer claims to be the preset (titles, preset buttons).
+    assert_eq!(edited.name, "ct-bone (edited)");
+    assert!(app(&h).volume.as_ref().is_some_and(|v| v.scene.tf_edited()));
+}
+
+#[test]
+fn a_file_that_cannot_be_opened_shows_its_error_once() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let bad = dir.path().join("broken.nii");
+    std::fs::write(&bad, b"this is not a NIfTI file at all, just some bytes").expect("write");
+    let mut options = ViewerOptions::new(VolumeSource::Path(bad));
+    options.import_folder = dir.path().join("imported");
+    let mut h = harness_with(options, Preferences::default());
+    let start = Instant::now();
+    let error = loop {
+        h.step();
+        if let Some(e) = app(&h).job_error() {
+            break e.to_string();
+        }
+        assert!(start.elapsed() < WAIT, "no error for a broken file");
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    h.step();
+    h.step();
+    // Dialog and waiting screen used to show the same text, one behind the other.
+    let shown = h.query_all_by_label(&error).count();
+    assert_eq!(shown, 1, "the error {error:?} is shown {shown} times");
+}
+
+fn click(h: &mut Harness<'static, Option<StrataApp>>, at: egui::Pos2, button: PointerButton) {
+    h.event(Event::PointerMoved(at));
+    h.event(Event::PointerButton {
+        pos: at,
+        button,
+        pressed: true,
+        modifiers: Modifiers::NONE,
+    });
+    h.event(Event::PointerButton {
+        pos: at,
+        button,
+        pressed: false,
+        modifiers: Modifiers::NONE,
+    });
+    h.step();
+}
+
+#[test]
+fn the_readout_shows_the_hu_voxel_and_position_under_the_pointer() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let store = phantom_store(dir.path());
+    let mut h = harness(&store, false);
+    step_until(&mut h, "the axial slice drawn", |a| {
+        a.slice_display(SliceView::Axial).is_some()
+            && a.volume
+                .as_ref()
+                .is_some_and(|v| v.slice_views[SliceView::Axial.index()].image_rect.is_some())
+    });
+    let (k, at) = {
+        let v = app(&h).volume.as_ref().expect("volume");
+        let k = v.scene.cursor[2];
+        // A voxel in the body, off the crosshair (which the readout shows otherwise).
+        let target = [30.0, 20.0, k];
+        let at = v.slice_views[SliceView::Axial.index()]
+            .screen_of(target, &v.data)
+            .expect("axial image on screen");
+        (k as u32, at)
+    };
+    h.event(Event::PointerMoved(at));
+    let readout = step_until_some(&mut h, "the value under the pointer", |a| {
+        a.readout
+            .clone()
+            .filter(|r| r.under_pointer && r.value.is_some())
+    });
+    assert_eq!(readout.index, [30, 20, k], "the voxel under the pointer");
+    // The phantom's own HU at that voxel (its slope is 1, so storage is exact).
+    let phantom = Phantom::cube(48);
+    let expected = phantom.hu(30, 20, k as u64) as f64;
+    assert_eq!(readout.value, Some(expected), "HU at voxel (30, 20, {k})");
+    assert_eq!(readout.unit, "HU");
+    let g = phantom.geometry();
+    let spacing = g.spacing_mm[0];
+    for (axis, i) in [30.0, 20.0, k as f64].iter().enumerate() {
+        let mm = g.origin_lps_mm[axis] + i * spacing;
+        assert!(
+            (readout.patient_mm[axis] - mm).abs() < 1e-9,
+            "axis {axis}: {} vs {mm}",
+            readout.patient_mm[axis]
+        );
+    }
+    // And the status bar says so.
+    h.step();
+    let text = app(&h).readout.as_ref().expect("readout").text();
+    assert!(text.contains(&format!("{expected:.0} HU")), "{text}");
+    h.get_by_label(&text);
+}
+
+/// Trilinear value of the phantom at a continuous index (clamped to the volume).
+fn phantom_value(p: &Phantom, index: glam::DVec3) -> f64 {
+    let n = p.size.map(|d| d as f64 - 1.0);
+    let c = [
+        index.x.clamp(0.0, n[0]),
+        index.y.clamp(0.0, n[1]),
+        index.z.clamp(0.0, n[2]),
+    ];
+    let base = c.map(|x| x.floor());
+    let f = [c[0] - base[0], c[1] - base[1], c[2] - base[2]];
+    let mut value = 0.0;
+    for corner in 0..8 {
+        let mut w = 1.0;
+        let mut at = [0u64; 3];
+        for a in 0..3 {
+            let up = corner >> a & 1 == 1;
+            w *= if up { f[a] } else { 1.0 - f[a] };
+            at[a] = ((base[a] + up as u8 as f64).min(n[a])) as u64;
+        }
+        if w > 0.0 {
+            value += w * p.hu(at[0], at[1], at[2]) as f64;
+        }
+    }
+    value
+}
+
+#[test]
+fn a_click_in_the_3d_view_picks_the_bone_surface_it_shows() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let store = phantom_store(dir.path());
+    let mut options = ViewerOptions::new(VolumeSource::Path(store.clone()));
+    options.import_folder = dir.path().join("imported");
+    options.initial_view = Some(super::view3d::StandardView::Anterior);
+    let preferences = Preferences {
+        layout: Layout::TwoByTwo,
+        show_side_panel: false,
+        mode: strata_render::RenderMode::Isosurface,
+        ..Preferences::default()
+    };
+    let mut h = harness_with(options, preferences);
+    // The viewer's CT iso value (300 HU): the spine's cortical shell is 1200 HU, the contrast
+    // aorta in front of it 300, so the click goes right of the aorta, onto the spine.
+    const ISO: f64 = 300.0;
+    step_until(&mut h, "the volume open", |a| a.volume.is_some());
+    assert_eq!(
+        app(&h).volume.as_ref().expect("volume").scene.iso_value,
+        ISO
+    );
+    let frame = wait_for_settled_frame(&mut h, "the converged isosurface frame", 0);
+    assert_eq!(frame.request.settings.iso_value, ISO);
+    let rect = app(&h).view_rect(ViewSlot::ThreeD).expect("3D view");
+    // Right of the centre (the patient's left in an anterior view), clear of the aorta.
+    let at = rect.center() + Vec2::new(4.0, 2.0);
+    click(&mut h, at, PointerButton::Primary);
+    let picked = app(&h).volume.as_ref().expect("volume").scene.cursor;
+
+    // The same pixel's ray, marched on the CPU through the phantom's own values in steps of
+    // 1/20 voxel: the first crossing of the iso value is the surface the user sees there.
+    let (px, py) = (
+        ((at.x - rect.left()) / rect.width() * frame.width as f32) as u32,
+        ((at.y - rect.top()) / rect.height() * frame.height as f32) as u32,
+    );
+    let (origin, dir) = frame
+        .request
+        .camera
+        .basis()
+        .ray(px, py, frame.width, frame.height);
+    let phantom = Phantom::cube(48);
+    let g = phantom.geometry();
+    let geometry = strata_render::VolumeGeometry {
+        dims: g.dims,
+        spacing_mm: g.spacing_mm,
+        origin_lps_mm: g.origin_lps_mm,
+        direction: g.direction,
+    };
+    let step = g.spacing_mm[0] / 20.0;
+    let mut expected = None;
+    let mut t = 0.0;
+    while t < 3000.0 {
+        let index = geometry.index_from_patient(origin + dir * t);
+        let inside = (0..3).all(|a| index[a] >= 0.0 && index[a] <= g.dims[a] as f64 - 1.0);
+        if inside && phantom_value(&phantom, index) >= ISO {
+            expected = Some(index);
+            break;
+        }
+        t += step;
+    }
+    let expected = expected.expect("the test ray meets bone (move the click)");
+    let off = (glam::DVec3::from(picked) - expected).abs().max_element();
+    // Within a voxel: the GPU samples every half voxel and bisects, on 8-bit-weighted
+    // trilinear filtering; the CPU march is exact to 1/20 voxel.
+    assert!(
+        off <= 1.0,
+        "picked {picked:?}, the surface is at {expected:?} ({off:.2} voxels off)"
+    );
+    // What was hit is bone: a voxel of at least 700 HU within a voxel of the pick.
+    let bone_nearby = (0..27).any(|o| {
+        let offset = glam::DVec3::new(
+            (o % 3) as f64 - 1.0,
+            (o / 3 % 3) as f64 - 1.0,
+            (o / 9) as f64 - 1.0,
+        );
+        let v = (glam::DVec3::from(picked) + offset).round();
+        (0..3).all(|a| v[a] >= 0.0 && v[a] < 48.0)
+            && phantom.hu(v.x as u64, v.y as u64, v.z as u64) >= 700
+    });
+    assert!(bone_nearby, "no bone within a voxel of the pick {picked:?}");
+    // The readout over the 3D view names the picked voxel.
+    h.event(Event::PointerMoved(at));
+    h.step();
+    let readout = step_until_some(&mut h, "the readout over the 3D view", |a| {
+        a.readout.clone().filter(|r| r.under_pointer)
+    });
+    assert_eq!(
+        readout.index,
+        super::scene::voxel_index(picked).map(|i| i as u32)
+    );
+}
+
+/// Mean of the 5×5 screen pixels around `at` (one channel).
+fn screen_patch(image: &image::RgbaImage, at: egui::Pos2, channel: usize) -> f64 {
+    let rect = egui::Rect::from_center_size(at, Vec2::splat(5.0));
+    let pixels = region_pixels(image, rect);
+    let n = pixels.len() / 4;
+    pixels
+        .chunks_exact(4)
+        .map(|p| p[channel] as f64)
+        .sum::<f64>()
+        / n.max(1) as f64
+}
+
+#[test]
+fn a_window_preset_and_the_inverted_colour_map_reach_the_screen() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let store = phantom_store(dir.path());
+    let mut options = ViewerOptions::new(VolumeSource::Path(store.clone()));
+    options.import_folder = dir.path().join("imported");
+    let preferences = Preferences {
+        layout: Layout::TwoByTwo,
+        ..Preferences::default()
+    };
+    // Tall enough for the slices panel below the transfer-function editor.
+    let mut h = harness_sized(options, preferences, Vec2::new(720.0, 900.0));
+    step_until(&mut h, "the axial slice drawn", |a| {
+        a.slice_display(SliceView::Axial).is_some()
+    });
+    h.get_by_label("Mediastinum").click();
+    h.step();
+    let mediastinum = super::scene::Window::new(50.0, 350.0);
+    assert_eq!(
+        app(&h).volume.as_ref().expect("volume").scene.window,
+        mediastinum
+    );
+    step_until(&mut h, "the slice in the mediastinal window", |a| {
+        a.slice_display(SliceView::Axial)
+            .is_some_and(|s| s.window == mediastinum)
+    });
+    h.step();
+    // Air outside the body (-1000 HU) is below the window: black in grey, white inverted.
+    let air_at = |h: &Harness<'static, Option<StrataApp>>| {
+        let v = app(h).volume.as_ref().expect("volume");
+        let k = v.scene.cursor[2];
+        v.slice_views[SliceView::Axial.index()]
+            .screen_of([3.0, 3.0, k], &v.data)
+            .expect("axial image on screen")
+    };
+    let at = air_at(&h);
+    let grey = screen_patch(&h.render().expect("render"), at, 0);
+    h.state_mut()
+        .as_mut()
+        .and_then(|a| a.volume.as_mut())
+        .expect("volume")
+        .scene
+        .colour_map = super::colour_maps::ColourMap::Inverted;
+    step_until(&mut h, "the inverted slice", |a| {
+        a.slice_display(SliceView::Axial)
+            .is_some_and(|s| s.colour_map == super::colour_maps::ColourMap::Inverted)
+    });
+    h.step();
+    let inverted = screen_patch(&h.render().expect("render"), air_at(&h), 0);
+    // Exact 0 and 255 in the texture; a few levels for the UI's blending and sRGB rounding.
+    assert!(
+        grey < 8.0,
+        "air in the mediastinal window is not black: {grey}"
+    );
+    assert!(inverted > 247.0, "air inverted is not white: {inverted}");
+}
+
+/// Left-drags from `from` to `to` in steps, as a user would.
+fn drag(h: &mut Harness<'static, Option<StrataApp>>, from: egui::Pos2, to: egui::Pos2) {
+    h.event(Event::PointerMoved(from));
+    h.event(Event::PointerButton {
+        pos: from,
+        button: PointerButton::Primary,
+        pressed: true,
+        modifiers: Modifiers::NONE,
+    });
+    h.step();
+    for i in 1..=8 {
+        h.event(Event::PointerMoved(from + (to - from) * (i as f32 / 8.0)));
+        h.step();
+    }
+    h.event(Event::PointerButton {
+        pos: to,
+        button: PointerButton::Primary,
+        pressed: false,
+        modifiers: Modifiers::NONE,
+    });
+    h.step();
+}
+
+fn set_tool(h: &mut Harness<'static, Option<StrataApp>>, tool: super::measurements::Tool) {
+    h.state_mut()
+        .as_mut()
+        .and_then(|a| a.volume.as_mut())
+        .expect("volume")
+        .scene
+        .measurements
+        .tool = tool;
+}
+
+fn axial_point(h: &Harness<'static, Option<StrataApp>>, i: f64, j: f64) -> egui::Pos2 {
+    let v = app(h).volume.as_ref().expect("volume");
+    let k = v.scene.cursor[2];
+    v.slice_views[SliceView::Axial.index()]
+        .screen_of([i, j, k], &v.data)
+        .expect("axial image on screen")
+}
+
+#[test]
+fn a_ruler_reads_the_millimetres_and_a_box_roi_the_phantoms_statistics_and_undo_removes_them() {
+    use super::measurements::{Shape, Tool};
+    let dir = tempfile::tempdir().expect("temp dir");
+    let store = phantom_store(dir.path());
+    let mut h = harness(&store, false);
+    step_until(&mut h, "the axial slice at full resolution", |a| {
+        a.slice_image(SliceView::Axial)
+            .is_some_and(|i| i.request.level == 0)
+            && a.volume
+                .as_ref()
+                .is_some_and(|v| v.slice_views[SliceView::Axial.index()].image_rect.is_some())
+    });
+    let phantom = Phantom::cube(48);
+    let spacing = phantom.geometry().spacing_mm[0];
+
+    set_tool(&mut h, Tool::Distance);
+    let (from, to) = (axial_point(&h, 10.0, 10.0), axial_point(&h, 30.0, 25.0));
+    drag(&mut h, from, to);
+    let (length, text) = {
+        let v = app(&h).volume.as_ref().expect("volume");
+        let items = &v.scene.measurements.items;
+        assert_eq!(items.len(), 1, "one ruler");
+        let Shape::Distance { a, b } = items[0].shape else {
+            panic!("not a ruler: {:?}", items[0]);
+        };
+        (
+            super::measurements::distance_mm(&v.data.info.geometry, a, b),
+            items[0].describe(&v.data.info.geometry, "HU"),
+        )
+    };
+    // 20 voxels across and 15 down: 25 voxels of 400/48 mm. The pointer lands within a
+    // hundredth of a screen point of the voxel centres (f32 positions).
+    let expected = 25.0 * spacing;
+    assert!(
+        (length - expected).abs() < 0.05,
+        "ruler {length:.3} mm, expected {expected:.3}"
+    );
+    assert!(text.contains(&format!("{expected:.1} mm")), "{text}");
+
+    set_tool(&mut h, Tool::BoxRoi);
+    let (from, to) = (axial_point(&h, 14.0, 16.0), axial_point(&h, 21.0, 26.0));
+    drag(&mut h, from, to);
+    let stats = {
+        let v = app(&h).volume.as_ref().expect("volume");
+        let items = &v.scene.measurements.items;
+        assert_eq!(items.len(), 2, "a ruler and a box");
+        let Shape::Roi { stats, .. } = &items[1].shape else {
+            panic!("not a region: {:?}", items[1]);
+        };
+        stats.expect("statistics of the box")
+    };
+    // The phantom's own HU over the voxels whose centres lie in the box: i 14..=21, j 16..=26
+    // (corners on voxel centres count as inside, up to the pointer's f32 rounding).
+    let k = app(&h).volume.as_ref().expect("volume").scene.cursor[2] as u64;
+    let values: Vec<f64> = (16..=26)
+        .flat_map(|j| (14..=21).map(move |i| (i, j)))
+        .map(|(i, j)| phantom.hu(i, j, k) as f64)
+        .collect();
+    let n = values.len() as f64;
+    let mean = values.iter().sum::<f64>() / n;
+    let sd = (values.iter().map(|v| (v - mean) * (v - mean)).sum::<f64>() / n).sqrt();
+    let close = |a: f64, b: f64| (a - b).abs() <= 1e-6 * (1.0 + b.abs());
+    // Corners exactly on voxel centres may fall either side by f32 rounding: allow the edge
+    // rows/columns to be in or out by checking the count and mean against both.
+    if stats.voxels == values.len() as u64 {
+        assert!(
+            close(stats.mean, mean) && close(stats.sd, sd),
+            "{stats:?} vs mean {mean} sd {sd}"
+        );
+        assert_eq!(
+            stats.min,
+            values.iter().cloned().fold(f64::INFINITY, f64::min)
+        );
+        assert_eq!(
+            stats.max,
+            values.iter().cloned().fold(f64::NEG_INFINITY, f64::max)
+        );
+    } else {
+        assert!(
+            stats.voxels >= 6 * 9 && stats.voxels < values.len() as u64,
+            "{} voxels (expected {} or a trimmed edge)",
+            stats.voxels,
+            values.len()
+        );
+    }
+    let area = 7.0 * spacing * 10.0 * spacing;
+    assert!(
+        (stats.area_mm2 - area).abs() < 0.5,
+        "area {} vs {area}",
+        stats.area_mm2
+    );
+
+    // Undo takes the box away, then the ruler; redo brings the ruler back.
+    h.key_press_modifiers(Modifiers::COMMAND, egui::Key::Z);
+    h.step();
+    let count = |h: &Harness<'static, Option<StrataApp>>| {
+        app(h)
+            .volume
+            .as_ref()
+            .expect("volume")
+            .scene
+            .measurements
+            .items
+            .len()
+    };
+    assert_eq!(count(&h), 1);
+    h.key_press_modifiers(Modifiers::COMMAND, egui::Key::Z);
+    h.step();
+    assert_eq!(count(&h), 0);
+    h.key_press_modifiers(Modifiers::COMMAND | Modifiers::SHIFT, egui::Key::Z);
+    h.step();
+    assert_eq!(count(&h), 1);
+}
+
+#[test]
+fn undo_restores_the_transfer_function_exactly_and_redo_the_edit() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let store = phantom_store(dir.path());
+    let mut h = harness(&store, true);
+    step_until(&mut h, "the editor", |a| {
+        a.volume.is_some() && a.panels.transfer_function.editor.plot_rect.is_some()
+    });
+    h.step();
+    let tf = |h: &Harness<'static, Option<StrataApp>>| {
+        app(h)
+            .volume
+            .as_ref()
+            .expect("volume")
+            .scene
+            .transfer_function
+            .clone()
+    };
+    let original = tf(&h);
+    let plot = app(&h)
+        .panels
+        .transfer_function
+        .editor
+        .plot_rect
+        .expect("plot");
+    click(
+        &mut h,
+        plot.left_top() + Vec2::new(plot.width() * 0.42, plot.height() * 0.3),
+        PointerButton::Primary,
+    );
+    h.step();
+    let edited = tf(&h);
+    assert_ne!(edited, original, "the click edited the function");
+    h.key_press_modifiers(Modifiers::COMMAND, egui::Key::Z);
+    h.step();
+    assert_eq!(tf(&h), original, "undo restores the function exactly");
+    assert_eq!(
+        app(&h).volume_request().map(|r| r.transfer_function),
+        Some(original),
+        "and the renderer is asked for it"
+    );
+    h.key_press_modifiers(Modifiers::COMMAND | Modifiers::SHIFT, egui::Key::Z);
+    h.step();
+    assert_eq!(tf(&h), edited, "redo brings the edit back");
+}
+
+#[test]
+fn a_screenshot_has_the_views_full_pixel_size_and_its_annotations() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let store = phantom_store(dir.path());
+    let mut options = ViewerOptions::new(VolumeSource::Path(store.clone()));
+    options.import_folder = dir.path().join("imported");
+    let shots = dir.path().join("shots (picked folder)");
+    let preferences = Preferences {
+        layout: Layout::TwoByTwo,
+        show_side_panel: false,
+        screenshot_folder: shots.clone(),
+        // The interactive render is at 60 % of the view's pixels; the screenshot must not be.
+        render_scale: 0.6,
+        ..Preferences::default()
+    };
+    let mut h = harness_with(options, preferences);
+    wait_for_settled_frame(&mut h, "the first converged frame", 0);
+    let interactive = app(&h).volume_frame().expect("frame");
+    h.key_press(egui::Key::F12);
+    let path = step_until_some(&mut h, "the screenshot written", |a| {
+        a.last_screenshot()
+            .map(|r| r.unwrap_or_else(|e| panic!("screenshot failed: {e}")))
+    });
+    assert!(
+        path.starts_with(&shots),
+        "{} is not in the picked folder",
+        path.display()
+    );
+    let rect = app(&h).view_rect(ViewSlot::ThreeD).expect("3D view");
+    let ppp = h.ctx.pixels_per_point();
+    let expected = super::view3d::View3d::full_resolution_size(rect, ppp);
+    let image = image::open(&path).expect("a PNG").to_rgb8();
+    assert_eq!(
+        [image.width(), image.height()],
+        expected,
+        "the screenshot is the view's pixel size (the interactive frame was {}x{})",
+        interactive.width,
+        interactive.height
+    );
+    assert!(
+        interactive.width < expected[0],
+        "the test needs a reduced interactive frame"
+    );
+    // The orange not-for-diagnosis label is in the bottom-right corner of the image.
+    let corner = image
+        .enumerate_pixels()
+        .filter(|(x, y, _)| *x > image.width() * 2 / 3 && *y > image.height() - 20)
+        .filter(|(_, _, p)| p[0] > 200 && (120..220).contains(&p[1]) && p[2] < 110)
+        .count();
+    assert!(
+        corner > 5,
+        "no warning label in the screenshot ({corner} orange pixels)"
+    );
+    // And the volume itself.
+    let lit = image
+        .pixels()
+        .filter(|p| p.0.iter().any(|c| *c > 16))
+        .count();
+    assert!(
+        lit * 20 > (image.width() * image.height()) as usize,
+        "screenshot nearly blank"
+    );
+}
+
+#[test]
+fn the_crop_box_is_drawn_in_3d_and_dragging_its_superior_handle_lowers_the_top() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let store = phantom_store(dir.path());
+    let mut options = ViewerOptions::new(VolumeSource::Path(store.clone()));
+    options.import_folder = dir.path().join("imported");
+    options.initial_view = Some(super::view3d::StandardView::Anterior);
+    let preferences = Preferences {
+        layout: Layout::TwoByTwo,
+        show_side_panel: false,
+        show_crop_box: true,
+        ..Preferences::default()
+    };
+    let mut h = harness_with(options, preferences);
+    wait_for_settled_frame(&mut h, "the first converged frame", 0);
+    let rect = app(&h).view_rect(ViewSlot::ThreeD).expect("3D view");
+    let handles = {
+        let v = app(&h).volume.as_ref().expect("volume");
+        let camera = v.view_3d.orbit.camera(&v.data.info.geometry);
+        super::view3d::crop_handles(rect, &camera, &v.data, &v.scene)
+    };
+    let labels: Vec<&str> = handles.iter().map(|h| h.label).collect();
+    for face in ["R", "L", "A", "P", "S", "I"] {
+        assert!(labels.contains(&face), "no {face} handle: {labels:?}");
+    }
+    let top = *handles.iter().find(|h| h.label == "S").expect("S handle");
+    assert_eq!(
+        (top.axis, top.max_side),
+        (2, true),
+        "the phantom's +k is superior"
+    );
+    // Seen from the front, superior is up: dragging the S handle 20 points down lowers the top.
+    drag(&mut h, top.at, top.at + Vec2::new(0.0, 20.0));
+    let crop = app(&h).volume.as_ref().expect("volume").scene.crop;
+    assert!(
+        crop.max[2] < 0.95 && crop.max[2] > 0.5,
+        "crop top {} after the drag",
+        crop.max[2]
+    );
+    assert_eq!(crop.min, [0.0; 3]);
+    assert_eq!(&crop.max[..2], &[1.0, 1.0]);
+    h.step();
+    assert_eq!(
+        app(&h).volume_request().map(|r| r.settings.crop),
+        Some(crop),
+        "the renderer is asked for the new crop"
+    );
+    // One undo step for the whole drag.
+    h.key_press_modifiers(Modifiers::COMMAND, egui::Key::Z);
+    h.step();
+    assert_eq!(
+        app(&h).volume.as_ref().expect("volume").scene.crop,
+        strata_render::CropBox::default()
     );
 }

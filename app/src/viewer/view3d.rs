@@ -1,10 +1,25 @@
-//! The 3D view's camera and mouse handling: orbit (left drag), pan (middle or shift+left),
-//! zoom (wheel), the six standard views, and the orientation marker.
+//! The 3D view: its camera and mouse handling (orbit: left drag; pan: middle or shift+left;
+//! zoom: wheel; TF shift/widen: right drag), the six standard views, the render request it
+//! sends, the frame it shows, the slice-plane outlines and the orientation marker.
 
-use egui::{Color32, Pos2, Rect, Stroke, Vec2};
+use std::time::{Duration, Instant};
+
+use egui::{Color32, Pos2, Rect, Sense, Stroke, TextureHandle, TextureOptions, Vec2};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
-use strata_render::{Camera, Projection, VolumeGeometry};
+use strata_render::{Camera, Projection, RenderMode, RenderSettings, Shading, VolumeGeometry};
+
+use super::measurements::{Shape, Tool};
+use super::orientation::SliceView;
+use super::preferences::Preferences;
+use super::scene::{Scene, VolumeData};
+use super::slice_view::slice_colour;
+use super::tf_editor;
+use super::volume_session::{RenderRequest, RenderedFrame};
+use super::widgets::{view_title, wheel_lines, ViewResponse, NOT_FOR_DIAGNOSIS, WARNING_COLOUR};
+
+/// Zoom factor per wheel click in the 3D view.
+pub const ZOOM_PER_WHEEL_LINE: f64 = 1.1;
 
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct OrbitCamera {
@@ -168,9 +183,10 @@ impl OrbitCamera {
         self.pan[1] += delta.y as f64 * per_point;
     }
 
-    /// Wheel: `scroll` points (positive = away from the user = zoom in).
-    pub fn zoom_by(&mut self, scroll: f32) {
-        self.zoom = (self.zoom * (scroll as f64 / 200.0).exp()).clamp(0.2, 20.0);
+    /// Wheel: `lines` clicks (positive = away from the user = zoom in), 10 % per click, as
+    /// Slicer's 3D view (egui's smoothed scroll in points made 3 clicks zoom ~4×).
+    pub fn zoom_by_lines(&mut self, lines: f64) {
+        self.zoom = (self.zoom * ZOOM_PER_WHEEL_LINE.powf(lines)).clamp(0.2, 20.0);
     }
 }
 
@@ -214,6 +230,557 @@ pub fn paint_orientation_marker(painter: &egui::Painter, view_rect: Rect, camera
             font,
             colour.gamma_multiply(0.7),
         );
+    }
+}
+
+/// The texture showing the newest volume frame and the frame's serial (re-uploaded only when
+/// a newer frame arrives).
+struct FrameTexture {
+    texture: TextureHandle,
+    serial: u64,
+}
+
+/// The 3D view's own state.
+pub struct View3d {
+    pub orbit: OrbitCamera,
+    texture: Option<FrameTexture>,
+    /// The frame on screen (its depth and camera turn a pixel into a picked point).
+    shown: Option<RenderedFrame>,
+    /// Until when input counts as interaction (lower resolution, target frame rate held).
+    pub interacting_until: Option<Instant>,
+    /// Render at the screen's full pixel density (a screenshot is being taken).
+    pub full_resolution: bool,
+    /// The frame size asked for last.
+    requested_size: [u32; 2],
+}
+
+/// A short name of the render mode for titles (new modes add a line here).
+pub fn mode_name(mode: RenderMode) -> &'static str {
+    match mode {
+        RenderMode::Dvr => "DVR",
+        RenderMode::Mip => "MIP",
+        RenderMode::Isosurface => "Isosurface",
+    }
+}
+
+impl View3d {
+    pub fn new(orbit: OrbitCamera) -> Self {
+        View3d {
+            orbit,
+            texture: None,
+            shown: None,
+            interacting_until: None,
+            full_resolution: false,
+            requested_size: [0, 0],
+        }
+    }
+
+    pub fn reset(&mut self, orthographic: bool) {
+        self.orbit = OrbitCamera {
+            orthographic,
+            ..OrbitCamera::default()
+        };
+    }
+
+    /// The view shows the converged frame of the size it asks for now (a screenshot may go).
+    pub fn shows_converged_frame(&self) -> bool {
+        self.shown.as_ref().is_some_and(|f| {
+            f.converged
+                && [f.width, f.height] == self.requested_size
+                && [f.request.settings.width, f.request.settings.height] == self.requested_size
+        })
+    }
+
+    /// The pixel size of the frames this view asks for at full resolution.
+    pub fn full_resolution_size(rect: Rect, pixels_per_point: f32) -> [u32; 2] {
+        [
+            ((rect.width() * pixels_per_point).round() as u32).max(16),
+            ((rect.height() * pixels_per_point).round() as u32).max(16),
+        ]
+    }
+
+    /// What the user sees at screen point `pos` of the view drawn in `rect`: the level-0
+    /// continuous index at the frame's pick depth (DVR: where the accumulated opacity reaches
+    /// render's `DEPTH_OPACITY`; MIP: the maximum; iso: the surface), or None where the ray
+    /// meets nothing. Uses the frame on screen and the camera it was rendered with, so a
+    /// click picks what is shown even while a newer frame renders.
+    pub fn pick(&self, pos: Pos2, rect: Rect, data: &VolumeData) -> Option<[f64; 3]> {
+        let frame = self.shown.as_ref()?;
+        let fx = (pos.x - rect.left()) / rect.width().max(1.0);
+        let fy = (pos.y - rect.top()) / rect.height().max(1.0);
+        if !(0.0..1.0).contains(&fx) || !(0.0..1.0).contains(&fy) {
+            return None;
+        }
+        let px = ((fx * frame.width as f32) as u32).min(frame.width.saturating_sub(1));
+        let py = ((fy * frame.height as f32) as u32).min(frame.height.saturating_sub(1));
+        let t = *frame.depth.get((py * frame.width + px) as usize)?;
+        if !t.is_finite() {
+            return None;
+        }
+        let (origin, dir) = frame
+            .request
+            .camera
+            .basis()
+            .ray(px, py, frame.width, frame.height);
+        let g = &data.info.geometry;
+        let index = g.index_from_patient(origin + dir * t as f64);
+        Some([0, 1, 2].map(|a| index[a].clamp(0.0, g.dims[a] as f64 - 1.0)))
+    }
+
+    /// Draws the view into `rect`, turns input into camera and TF changes and sends the render
+    /// request for this frame.
+    pub fn ui(
+        &mut self,
+        ui: &mut egui::Ui,
+        rect: Rect,
+        data: &VolumeData,
+        scene: &mut Scene,
+        prefs: &Preferences,
+        max_pixels: u32,
+    ) -> ViewResponse {
+        let painter = ui.painter_at(rect);
+        painter.rect_filled(rect, 0.0, Color32::BLACK);
+        let response = ui.interact(rect, ui.scope_id().with("3d view"), Sense::click_and_drag());
+        let (shift, pointer_delta) = ui.input(|i| (i.modifiers.shift, i.pointer.delta()));
+        let mut moved = false;
+        if response.dragged_by(egui::PointerButton::Primary) && !shift {
+            self.orbit.orbit_by(pointer_delta, rect.size());
+            moved = true;
+        }
+        if response.dragged_by(egui::PointerButton::Middle)
+            || (response.dragged_by(egui::PointerButton::Primary) && shift)
+        {
+            self.orbit.pan_by(pointer_delta, rect.size());
+            moved = true;
+        }
+        if response.dragged_by(egui::PointerButton::Secondary) {
+            let (lo, hi) = data.info.physical_range;
+            let shift_value = pointer_delta.x as f64 / rect.width().max(1.0) as f64 * (hi - lo);
+            let scale = (-pointer_delta.y as f64 / rect.height().max(1.0) as f64 * 2.0).exp();
+            tf_editor::shift_and_scale(&mut scene.transfer_function, shift_value, scale);
+            moved = true;
+        }
+        if response.hovered() {
+            let lines = wheel_lines(ui);
+            if lines != 0.0 {
+                self.orbit.zoom_by_lines(lines);
+                moved = true;
+            }
+        }
+        if response.double_clicked() {
+            self.reset(prefs.orthographic);
+        }
+        if moved {
+            self.interacting_until = Some(Instant::now() + Duration::from_millis(150));
+        }
+        let interacting = self.interacting_until.is_some_and(|t| t > Instant::now());
+        if interacting {
+            ui.ctx().request_repaint_after(Duration::from_millis(160));
+        }
+
+        scene.name_tf_edits();
+        // Request a frame at the view's aspect.
+        let ppp = ui.ctx().pixels_per_point();
+        let mut scale = prefs.render_scale.clamp(0.2, 1.0) * ppp;
+        if self.full_resolution {
+            // A screenshot: one ray per screen pixel, whatever the interactive settings.
+            scale = ppp;
+        } else {
+            if interacting && prefs.target_fps_enabled {
+                // While dragging, fewer pixels: the controller then keeps a higher sampling rate.
+                scale *= 0.5;
+            }
+            let longest = rect.width().max(rect.height()) * scale;
+            if longest > max_pixels as f32 {
+                scale *= max_pixels as f32 / longest;
+            }
+        }
+        let width = ((rect.width() * scale).round() as u32).max(16);
+        let height = ((rect.height() * scale).round() as u32).max(16);
+        self.requested_size = [width, height];
+        let camera = self.orbit.camera(&data.info.geometry);
+        let clip_plane = scene.clip.enabled.then(|| data.clip_plane(&scene.clip));
+        let settings = RenderSettings {
+            width,
+            height,
+            mode: prefs.mode,
+            quality: prefs.step_voxels,
+            shading: prefs.shading.then(Shading::default),
+            smooth_transitions: prefs.smooth_transitions,
+            iso_value: scene.iso_value,
+            crop: scene.crop,
+            clip_plane,
+            ..RenderSettings::default()
+        };
+        data.session.request(RenderRequest {
+            camera,
+            settings,
+            transfer_function: scene.transfer_function.clone(),
+            target_fps: prefs.target_fps_enabled.then_some(prefs.target_fps),
+            interacting,
+        });
+
+        if let Some(frame) = data.session.latest_frame() {
+            let fresh = self
+                .texture
+                .as_ref()
+                .is_none_or(|t| t.serial != frame.serial);
+            if fresh {
+                self.shown = Some(frame.clone());
+            }
+            if fresh {
+                let image = egui::ColorImage::from_rgba_premultiplied(
+                    [frame.width as usize, frame.height as usize],
+                    &frame.rgba,
+                );
+                match &mut self.texture {
+                    Some(t) => {
+                        t.texture.set(image, TextureOptions::LINEAR);
+                        t.serial = frame.serial;
+                    }
+                    None => {
+                        self.texture = Some(FrameTexture {
+                            texture: ui
+                                .ctx()
+                                .load_texture("volume", image, TextureOptions::LINEAR),
+                            serial: frame.serial,
+                        })
+                    }
+                }
+            }
+            if let Some(t) = &self.texture {
+                painter.image(
+                    t.texture.id(),
+                    rect,
+                    Rect::from_min_max(Pos2::ZERO, Pos2::new(1.0, 1.0)),
+                    Color32::WHITE,
+                );
+            }
+        }
+        if prefs.show_planes_in_3d {
+            paint_slice_planes(&painter, rect, &camera, data, scene);
+        }
+        paint_measurements_3d(&painter, rect, &camera, data, scene);
+        if prefs.show_crop_box && crop_box_ui(ui, &painter, rect, &camera, data, scene) {
+            self.interacting_until = Some(Instant::now() + Duration::from_millis(150));
+        }
+        paint_orientation_marker(&painter, rect, &camera);
+        let status = data.session.status();
+        let toggled = view_title(
+            ui,
+            rect,
+            "3d",
+            &format!(
+                "3D · {} · {}",
+                mode_name(prefs.mode),
+                scene.transfer_function.name
+            ),
+            Color32::from_rgb(200, 200, 255),
+        );
+        let mut right_lines = Vec::new();
+        if let Some(loading) = &status.loading {
+            right_lines.push(loading.clone());
+        } else if status.refining {
+            right_lines.push("refining…".to_string());
+        }
+        if let Some(level) = status.finest_resident_level {
+            right_lines.push(format!("finest level {level}"));
+        }
+        for (i, line) in right_lines.iter().enumerate() {
+            painter.text(
+                Pos2::new(rect.right() - 8.0, rect.top() + 4.0 + 15.0 * i as f32),
+                egui::Align2::RIGHT_TOP,
+                line,
+                egui::FontId::proportional(12.0),
+                Color32::LIGHT_GRAY,
+            );
+        }
+        if let Some(error) = &status.error {
+            painter.text(
+                rect.center(),
+                egui::Align2::CENTER_CENTER,
+                error,
+                egui::FontId::proportional(13.0),
+                Color32::LIGHT_RED,
+            );
+        }
+        painter.text(
+            rect.right_bottom() + Vec2::new(-8.0, -6.0),
+            egui::Align2::RIGHT_BOTTOM,
+            NOT_FOR_DIAGNOSIS,
+            egui::FontId::proportional(11.0),
+            WARNING_COLOUR,
+        );
+        // A click (no drag) moves the linked crosshair to what is seen there, or adds a ruler
+        // or angle point there with a measuring tool.
+        if response.clicked() {
+            if let Some(index) = response
+                .interact_pointer_pos()
+                .and_then(|p| self.pick(p, rect, data))
+            {
+                match scene.measurements.tool {
+                    Tool::Distance | Tool::Angle => scene.measurements.click(index),
+                    _ => scene.cursor = index,
+                }
+            }
+        }
+        let hover = response.hover_pos().and_then(|p| self.pick(p, rect, data));
+        ViewResponse {
+            toggle_focus: toggled,
+            focused: response.clicked() || response.drag_started(),
+            hover,
+        }
+    }
+}
+
+/// The screen point of a level-0 index, projected with `camera` into a frame filling `rect`
+/// (rendered at its aspect); None behind the eye.
+pub fn project_to_view(
+    camera: &Camera,
+    rect: Rect,
+    g: &VolumeGeometry,
+    index: DVec3,
+) -> Option<Pos2> {
+    let basis = camera.basis();
+    let aspect = (rect.width() / rect.height().max(1.0)) as f64;
+    let d = g.patient_from_index(index) - basis.eye;
+    let depth = d.dot(basis.forward);
+    let (sx, sy) = if basis.orthographic {
+        (d.dot(basis.right), d.dot(basis.up))
+    } else if depth > 1e-6 {
+        (d.dot(basis.right) / depth, d.dot(basis.up) / depth)
+    } else {
+        return None;
+    };
+    let u = (sx / (aspect * basis.half_extent) + 1.0) * 0.5;
+    let w = (1.0 - sy / basis.half_extent) * 0.5;
+    Some(Pos2::new(
+        rect.left() + u as f32 * rect.width(),
+        rect.top() + w as f32 * rect.height(),
+    ))
+}
+
+/// A crop-box face handle: the index axis it moves, which end, and where it is drawn.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CropHandle {
+    pub axis: usize,
+    pub max_side: bool,
+    /// The face's anatomical direction (R/L, A/P, S/I).
+    pub label: &'static str,
+    pub at: Pos2,
+}
+
+/// The crop box's corners in level-0 index space (voxel faces, not centres).
+fn crop_bounds(data: &VolumeData, scene: &Scene) -> ([f64; 3], [f64; 3]) {
+    let dims = data.info.geometry.dims;
+    let lo = [0, 1, 2].map(|a| scene.crop.min[a] as f64 * dims[a] as f64 - 0.5);
+    let hi = [0, 1, 2].map(|a| scene.crop.max[a] as f64 * dims[a] as f64 - 0.5);
+    (lo, hi)
+}
+
+/// The six face handles of the crop box on screen (None behind the eye).
+pub fn crop_handles(
+    rect: Rect,
+    camera: &Camera,
+    data: &VolumeData,
+    scene: &Scene,
+) -> Vec<CropHandle> {
+    let g = &data.info.geometry;
+    let (lo, hi) = crop_bounds(data, scene);
+    let mut handles = Vec::new();
+    for axis in 0..3 {
+        for max_side in [false, true] {
+            let mut centre = [0.0; 3];
+            for a in 0..3 {
+                centre[a] = (lo[a] + hi[a]) * 0.5;
+            }
+            centre[axis] = if max_side { hi[axis] } else { lo[axis] };
+            let outward = DVec3::from(g.direction[axis]) * if max_side { 1.0 } else { -1.0 };
+            if let Some(at) = project_to_view(camera, rect, g, DVec3::from(centre)) {
+                handles.push(CropHandle {
+                    axis,
+                    max_side,
+                    label: super::orientation::label_of(outward),
+                    at,
+                });
+            }
+        }
+    }
+    handles
+}
+
+/// Draws the crop box (12 edges) and its face handles; dragging a handle moves that face
+/// along its axis by the pointer's motion along the axis's screen direction. True while a
+/// handle is dragged.
+fn crop_box_ui(
+    ui: &mut egui::Ui,
+    painter: &egui::Painter,
+    rect: Rect,
+    camera: &Camera,
+    data: &VolumeData,
+    scene: &mut Scene,
+) -> bool {
+    let g = &data.info.geometry;
+    let (lo, hi) = crop_bounds(data, scene);
+    let corner = |c: usize| {
+        DVec3::new(
+            if c & 1 == 0 { lo[0] } else { hi[0] },
+            if c & 2 == 0 { lo[1] } else { hi[1] },
+            if c & 4 == 0 { lo[2] } else { hi[2] },
+        )
+    };
+    let colour = Color32::from_rgb(120, 220, 255);
+    let stroke = Stroke::new(1.2, colour.gamma_multiply(0.8));
+    for c in 0..8usize {
+        for bit in [1usize, 2, 4] {
+            if c & bit == 0 {
+                if let (Some(a), Some(b)) = (
+                    project_to_view(camera, rect, g, corner(c)),
+                    project_to_view(camera, rect, g, corner(c | bit)),
+                ) {
+                    painter.line_segment([a, b], stroke);
+                }
+            }
+        }
+    }
+    let mut dragging = false;
+    let dims = g.dims;
+    for handle in crop_handles(rect, camera, data, scene) {
+        let id = ui
+            .scope_id()
+            .with(("crop handle", handle.axis, handle.max_side));
+        let response = ui.interact(
+            Rect::from_center_size(handle.at, Vec2::splat(14.0)),
+            id,
+            Sense::drag(),
+        );
+        let radius = if response.hovered() || response.dragged() {
+            7.0
+        } else {
+            5.0
+        };
+        painter.circle_filled(handle.at, radius, colour);
+        painter.text(
+            handle.at + Vec2::new(8.0, -8.0),
+            egui::Align2::LEFT_BOTTOM,
+            handle.label,
+            egui::FontId::proportional(12.0),
+            colour,
+        );
+        if response.dragged() {
+            dragging = true;
+            // The screen motion of one voxel along the axis, from this face's centre.
+            let mut centre = [0.0; 3];
+            for a in 0..3 {
+                centre[a] = (lo[a] + hi[a]) * 0.5;
+            }
+            centre[handle.axis] = if handle.max_side {
+                hi[handle.axis]
+            } else {
+                lo[handle.axis]
+            };
+            let mut next = centre;
+            next[handle.axis] += 1.0;
+            let (Some(p0), Some(p1)) = (
+                project_to_view(camera, rect, g, DVec3::from(centre)),
+                project_to_view(camera, rect, g, DVec3::from(next)),
+            ) else {
+                continue;
+            };
+            let per_voxel = p1 - p0;
+            if per_voxel.length_sq() < 1e-6 {
+                continue; // looking straight along the axis: no sensible motion
+            }
+            let voxels = response.drag_delta().dot(per_voxel) / per_voxel.length_sq();
+            let fraction = voxels as f64 / dims[handle.axis] as f64;
+            let (min, max) = (
+                &mut scene.crop.min[handle.axis],
+                &mut scene.crop.max[handle.axis],
+            );
+            if handle.max_side {
+                *max = (*max as f64 + fraction).clamp(*min as f64 + 0.01, 1.0) as f32;
+            } else {
+                *min = (*min as f64 + fraction).clamp(0.0, *max as f64 - 0.01) as f32;
+            }
+        }
+    }
+    dragging
+}
+
+/// Rulers and angles (and the points of one being drawn) over the 3D view.
+fn paint_measurements_3d(
+    painter: &egui::Painter,
+    rect: Rect,
+    camera: &Camera,
+    data: &VolumeData,
+    scene: &Scene,
+) {
+    let g = &data.info.geometry;
+    let project = |p: [f64; 3]| project_to_view(camera, rect, g, DVec3::from(p));
+    let colour = Color32::from_rgb(255, 230, 80);
+    let stroke = Stroke::new(1.5, colour);
+    let unit = data.unit();
+    for m in &scene.measurements.items {
+        let points: Option<Vec<Pos2>> = match &m.shape {
+            Shape::Roi { .. } => None,
+            _ => m.points().into_iter().map(project).collect(),
+        };
+        let Some(points) = points else { continue };
+        painter.add(egui::Shape::line(points.clone(), stroke));
+        if let Some(last) = points.last() {
+            painter.text(
+                *last + Vec2::new(4.0, -4.0),
+                egui::Align2::LEFT_BOTTOM,
+                m.describe(g, &unit),
+                egui::FontId::proportional(12.0),
+                colour,
+            );
+        }
+    }
+    for p in scene
+        .measurements
+        .draft
+        .points
+        .iter()
+        .filter_map(|p| project(*p))
+    {
+        painter.circle_filled(p, 3.0, colour);
+    }
+}
+
+/// Outlines where the three slice views cut the volume, projected with the 3D view's camera
+/// (the frame fills `rect`, rendered at its aspect).
+fn paint_slice_planes(
+    painter: &egui::Painter,
+    rect: Rect,
+    camera: &Camera,
+    data: &VolumeData,
+    scene: &Scene,
+) {
+    let g = &data.info.geometry;
+    let project = |index: DVec3| project_to_view(camera, rect, g, index);
+    for view in SliceView::ALL {
+        let frame = data.frame(view);
+        let (n, a, b) = (frame.normal_axis, frame.across_axis, frame.down_axis);
+        let (lo_a, hi_a) = (-0.5, g.dims[a] as f64 - 0.5);
+        let (lo_b, hi_b) = (-0.5, g.dims[b] as f64 - 0.5);
+        let corner = |ca: f64, cb: f64| {
+            let mut i = [0.0; 3];
+            i[n] = scene.cursor[n];
+            i[a] = ca;
+            i[b] = cb;
+            project(DVec3::from(i))
+        };
+        let corners = [
+            corner(lo_a, lo_b),
+            corner(hi_a, lo_b),
+            corner(hi_a, hi_b),
+            corner(lo_a, hi_b),
+        ];
+        if let [Some(p0), Some(p1), Some(p2), Some(p3)] = corners {
+            let stroke = Stroke::new(1.5, slice_colour(view).gamma_multiply(0.8));
+            painter.add(egui::Shape::closed_line(vec![p0, p1, p2, p3], stroke));
+        }
     }
 }
 
@@ -267,6 +834,17 @@ mod tests {
             basis.up.dot(-DVec3::Y) > 0.99,
             "anterior at the top when looking down"
         );
+    }
+
+    #[test]
+    fn three_wheel_clicks_zoom_a_third_not_four_times() {
+        let mut orbit = OrbitCamera::default();
+        for _ in 0..3 {
+            orbit.zoom_by_lines(1.0);
+        }
+        assert!((orbit.zoom - 1.331).abs() < 1e-9, "zoom {}", orbit.zoom);
+        orbit.zoom_by_lines(-3.0);
+        assert!((orbit.zoom - 1.0).abs() < 1e-9);
     }
 
     #[test]

@@ -48,10 +48,13 @@ pub struct RenderedFrame {
     pub width: u32,
     pub height: u32,
     pub rgba: Arc<Vec<u8>>,
+    /// Pick depth per pixel, mm along the pixel's camera ray (render's `DEPTH_OPACITY`: DVR
+    /// where accumulated opacity reaches it, the MIP maximum, the iso hit), +inf where none.
+    pub depth: Arc<Vec<f32>>,
     /// Increments with every published frame, so the UI re-uploads only new ones.
     pub serial: u64,
-    /// The request this frame answers (tests tie a frame to what was asked).
-    #[cfg_attr(not(test), allow(dead_code))]
+    /// The request this frame answers (its camera turns a pixel's depth into a point; tests
+    /// tie a frame to what was asked).
     pub request: RenderRequest,
     /// The last frame for its request unless something changes: the loader had converged and
     /// still refinement was done. Carried by the frame, not only by [`SessionStatus`], which is
@@ -99,11 +102,12 @@ impl SessionStatus {
     }
 }
 
-/// A request to write the 3D view to PNG at `scale` × the on-screen size.
+/// A request to write the 3D view to PNG at `size` pixels (the view's full resolution times
+/// the chosen scale; the aspect of the last request).
 #[derive(Clone, Debug)]
 pub struct ScreenshotRequest {
     pub path: PathBuf,
-    pub scale: u32,
+    pub size: [u32; 2],
 }
 
 /// Static facts of the opened volume, for the UI.
@@ -148,7 +152,7 @@ pub struct VolumeSession {
     thread: Option<std::thread::JoinHandle<()>>,
 }
 
-pub type Repaint = Arc<dyn Fn() + Send + Sync>;
+pub use super::sync::Repaint;
 
 impl VolumeSession {
     /// Starts the render thread on an opened store. Never blocks on the GPU or the disk.
@@ -437,7 +441,10 @@ impl RenderWorker {
             if frame_ms_history.len() > 240 {
                 frame_ms_history.drain(..frame_ms_history.len() - 240);
             }
-            converged = stats.converged;
+            // A frame drawn with a stand-in pipeline (the mode's own still compiling) is not the
+            // frame asked for: keep rendering until the right pipeline draws, or a DVR image
+            // stays up under a "MIP" title.
+            converged = stats.converged && !volume.compiling_in_background();
             let refining = !converged
                 || (request.target_fps.is_some()
                     && !request.interacting
@@ -447,6 +454,7 @@ impl RenderWorker {
                 width: frame.width,
                 height: frame.height,
                 rgba: Arc::new(frame.rgba),
+                depth: Arc::new(frame.depth),
                 serial: self.serial,
                 request: request.clone(),
                 converged: !refining,
@@ -492,7 +500,7 @@ impl RenderWorker {
         let _ = self.shared.wake.wait_timeout(guard, timeout);
     }
 
-    /// Renders the last request at `scale` × its size, lets the loader converge for that size
+    /// Renders the last request at the shot's size, lets the loader converge for that size
     /// (bounded), and writes a PNG.
     fn screenshot(
         &mut self,
@@ -501,10 +509,9 @@ impl RenderWorker {
         request: &RenderRequest,
         shot: &ScreenshotRequest,
     ) -> anyhow::Result<()> {
-        let scale = shot.scale.clamp(1, 4);
         let mut settings = request.settings.clone();
-        settings.width = (settings.width * scale).min(4096);
-        settings.height = (settings.height * scale).min(4096);
+        settings.width = shot.size[0].clamp(16, 4096);
+        settings.height = shot.size[1].clamp(16, 4096);
         settings.quality = settings.quality.min(0.5);
         volume.set_max_voxel_pixels(1.0);
         let started = Instant::now();
@@ -530,6 +537,86 @@ fn new_request_is_same(last: &Option<RenderRequest>, request: &RenderRequest) ->
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn wait_converged(session: &VolumeSession, request: &RenderRequest) -> RenderedFrame {
+        let start = Instant::now();
+        loop {
+            if let Some(e) = session.status().error {
+                panic!("render thread failed: {e}");
+            }
+            if let Some(frame) = session
+                .latest_frame()
+                .filter(|f| f.converged && &f.request == request)
+            {
+                return frame;
+            }
+            assert!(
+                start.elapsed() < Duration::from_secs(120),
+                "no converged frame for {:?}",
+                request.settings.mode
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    /// The bug seen: DVR → MIP showed the DVR image as the "converged" MIP frame, because the
+    /// MIP pipeline compiled in the background while the DVR one drew a stand-in frame that
+    /// the converged cut made final.
+    #[test]
+    fn after_a_mode_switch_the_converged_frame_is_drawn_in_the_new_mode() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let path = dir.path().join("p.strata");
+        strata_storage::phantom::Phantom::cube(48)
+            .write_store(&path, &Default::default())
+            .expect("phantom store");
+        let store = Arc::new(strata_storage::Store::open(&path).expect("open"));
+        let session = VolumeSession::start(store, DEFAULT_GPU_BUDGET_BYTES, Arc::new(|| {}))
+            .expect("session");
+        let info = session.info().clone();
+        let dvr = RenderRequest {
+            camera: Camera::orbit(
+                &info.geometry,
+                30.0,
+                15.0,
+                1.5,
+                strata_render::Projection::Perspective { fov_y_deg: 30.0 },
+            ),
+            settings: RenderSettings {
+                width: 48,
+                height: 48,
+                jitter: false,
+                ..RenderSettings::default()
+            },
+            transfer_function: TransferFunction::preset("ct-bone").expect("preset"),
+            target_fps: None,
+            interacting: false,
+        };
+        session.request(dvr.clone());
+        let dvr_frame = wait_converged(&session, &dvr);
+        let mip = RenderRequest {
+            settings: RenderSettings {
+                mode: strata_render::RenderMode::Mip,
+                ..dvr.settings.clone()
+            },
+            ..dvr.clone()
+        };
+        session.request(mip.clone());
+        let mip_frame = wait_converged(&session, &mip);
+        // DVR of the bone preset composites a shaded, partly transparent shell; MIP shows the
+        // maximum's TF colour unlit: the images differ over most of the object. A stand-in
+        // DVR frame would match the DVR one up to nothing (jitter off, same camera).
+        let difference = mip_frame
+            .rgba
+            .iter()
+            .zip(dvr_frame.rgba.iter())
+            .map(|(a, b)| (*a as f64 - *b as f64).abs())
+            .sum::<f64>()
+            / dvr_frame.rgba.len() as f64;
+        assert!(
+            difference > 1.0,
+            "the converged MIP frame looks like the DVR frame (mean |Δ| {difference:.3})"
+        );
+    }
 
     #[test]
     fn the_status_line_says_when_the_connection_is_lost() {
@@ -561,7 +648,13 @@ mod tests {
             .expect("session");
         let info = session.info().clone();
         let request = RenderRequest {
-            camera: crate::viewer::view3d::OrbitCamera::default().camera(&info.geometry),
+            camera: Camera::orbit(
+                &info.geometry,
+                30.0,
+                15.0,
+                1.5,
+                strata_render::Projection::Perspective { fov_y_deg: 30.0 },
+            ),
             settings: RenderSettings {
                 width: 64,
                 height: 64,

@@ -107,15 +107,16 @@ fn mark_visible_in(st: ptr<function, RayState>, page: u32) {
     }
 }
 
-// Front-to-back "over" of a premultiplied colour and its opacity at ray distance t; the first
-// contribution sets the depth, its page is marked visible, early termination is checked.
+// Front-to-back "over" of a premultiplied colour and its opacity at ray distance t; the
+// contribution that takes the accumulated opacity to DEPTH_OPACITY sets the depth (layout.rs),
+// its page is marked visible, early termination is checked.
 fn composite(st: ptr<function, RayState>, premultiplied: vec3<f32>, alpha: f32, page: u32, t: f32) {
-    if (*st).depth == bitcast<f32>(0x7f800000u) {
-        (*st).depth = t;
-    }
     mark_visible_in(st, page);
     let w = 1.0 - (*st).acc.a;
     (*st).acc = vec4<f32>((*st).acc.rgb + w * premultiplied, (*st).acc.a + w * alpha);
+    if (*st).depth == bitcast<f32>(0x7f800000u) && (*st).acc.a >= DEPTH_OPACITY {
+        (*st).depth = t;
+    }
     if EARLY_TERMINATION && (*st).acc.a >= P.dims.w {
         (*st).done = true;
     }

@@ -1,0 +1,226 @@
+//! The dialogs: open or import (typed path, native file dialog on its own thread, DICOM series,
+//! demo phantom, progress and errors of the running preparation) and keyboard-and-mouse help.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use egui::{Color32, RichText};
+
+use super::jobs::{PrepareJob, VolumeSource};
+use super::sync::lock_ignoring_poison;
+use super::widgets::{NOT_FOR_DIAGNOSIS, WARNING_COLOUR};
+
+/// How a closed file dialog ended.
+enum DialogOutcome {
+    Chosen(PathBuf),
+    /// Cancelled, or no desktop portal answered.
+    NothingChosen,
+}
+
+/// The open-or-import dialog.
+pub struct OpenDialog {
+    pub open: bool,
+    pub path: String,
+    series: String,
+    /// A native file dialog running on its own thread: filled by the dialog's thread when it
+    /// closes; `None` inside while it is open.
+    file_dialog: Option<Arc<std::sync::Mutex<Option<DialogOutcome>>>>,
+    note: Option<String>,
+    ctx: egui::Context,
+}
+
+impl OpenDialog {
+    pub fn new(ctx: egui::Context, path: String) -> Self {
+        OpenDialog {
+            open: false,
+            path,
+            series: String::new(),
+            file_dialog: None,
+            note: None,
+            ctx,
+        }
+    }
+
+    /// Draws the dialog while it is open; returns what to open when the user asked for it.
+    pub fn ui(
+        &mut self,
+        ctx: &egui::Context,
+        job: Option<&PrepareJob>,
+        job_error: &mut Option<String>,
+    ) -> Option<(VolumeSource, Option<String>)> {
+        if !self.open {
+            return None;
+        }
+        let mut open = true;
+        let mut start: Option<VolumeSource> = None;
+        egui::Window::new("Open or import").open(&mut open).resizable(false).default_width(460.0).show(ctx, |ui| {
+            ui.label("A Strata store, or a scan to import: DICOM folder or file, NIfTI (.nii, .nii.gz), NRRD, MetaImage (.mha/.mhd).");
+            ui.label("Scans are imported once into your data folder; the next open is instant.");
+            ui.horizontal(|ui| {
+                ui.label("Path");
+                ui.add(egui::TextEdit::singleline(&mut self.path).desired_width(340.0).hint_text("/path/to/scan.nii.gz"));
+            });
+            ui.horizontal(|ui| {
+                let idle = self.file_dialog.is_none();
+                if ui.add_enabled(idle, egui::Button::new("Choose file…")).clicked() {
+                    self.start_file_dialog(false);
+                }
+                if ui.add_enabled(idle, egui::Button::new("Choose folder…")).on_hover_text("A DICOM series folder, or a store").clicked() {
+                    self.start_file_dialog(true);
+                }
+                if !idle {
+                    ui.spinner();
+                }
+            });
+            self.poll_file_dialog();
+            if let Some(note) = &self.note {
+                ui.weak(note);
+            }
+            ui.horizontal(|ui| {
+                ui.label("DICOM series (optional)");
+                ui.add(egui::TextEdit::singleline(&mut self.series).desired_width(200.0).hint_text("index or UID"));
+            });
+            ui.horizontal(|ui| {
+                let busy = job.is_some();
+                if ui.add_enabled(!busy && !self.path.trim().is_empty(), egui::Button::new("Open / import")).clicked() {
+                    start = Some(VolumeSource::Path(PathBuf::from(self.path.trim())));
+                }
+                if ui.add_enabled(!busy, egui::Button::new("Demo phantom")).clicked() {
+                    start = Some(super::demo_source());
+                }
+            });
+            if let Some(job) = job {
+                ui.separator();
+                let (done, total, stage) = job.progress();
+                ui.label(&job.title);
+                ui.label(stage);
+                let fraction = if total > 0 { done as f32 / total as f32 } else { 0.0 };
+                ui.add(egui::ProgressBar::new(fraction).show_percentage());
+                if ui.button("Cancel").clicked() {
+                    job.cancel();
+                }
+            }
+            if let Some(e) = job_error.clone() {
+                ui.separator();
+                egui::Frame::NONE.fill(Color32::from_rgb(70, 20, 20)).inner_margin(8.0).corner_radius(4.0).show(ui, |ui| {
+                    ui.colored_label(Color32::from_rgb(255, 190, 190), RichText::new("Could not open").strong());
+                    ui.label(RichText::new(&e).color(Color32::from_rgb(255, 220, 220)));
+                    if ui.button("Dismiss").clicked() {
+                        *job_error = None;
+                    }
+                });
+            }
+        });
+        if !open {
+            self.open = false;
+        }
+        start.map(|source| {
+            let series = Some(self.series.trim().to_string()).filter(|s| !s.is_empty());
+            (source, series)
+        })
+    }
+
+    /// The system dialog blocks whoever calls it, so it runs on its own thread; without a
+    /// desktop portal it returns nothing and the typed path still works.
+    fn start_file_dialog(&mut self, folder: bool) {
+        let slot = Arc::new(std::sync::Mutex::new(None));
+        let thread_slot = slot.clone();
+        let ctx = self.ctx.clone();
+        let start = PathBuf::from(self.path.trim());
+        let spawned = std::thread::Builder::new()
+            .name("strata-file-dialog".into())
+            .spawn(move || {
+                let mut dialog = rfd::FileDialog::new().set_title(if folder {
+                    "Open a DICOM folder or store"
+                } else {
+                    "Open a scan"
+                });
+                if let Some(dir) = start.parent().filter(|d| d.is_dir()) {
+                    dialog = dialog.set_directory(dir);
+                }
+                let chosen = if folder {
+                    dialog.pick_folder()
+                } else {
+                    dialog.pick_file()
+                };
+                let outcome = chosen.map_or(DialogOutcome::NothingChosen, DialogOutcome::Chosen);
+                *lock_ignoring_poison(&thread_slot) = Some(outcome);
+                ctx.request_repaint();
+            });
+        match spawned {
+            Ok(_) => {
+                self.file_dialog = Some(slot);
+                self.note = None;
+            }
+            Err(e) => self.note = Some(format!("no file dialog: {e}; type the path")),
+        }
+    }
+
+    fn poll_file_dialog(&mut self) {
+        let Some(slot) = &self.file_dialog else {
+            return;
+        };
+        let Some(chosen) = lock_ignoring_poison(slot).take() else {
+            return;
+        };
+        self.file_dialog = None;
+        match chosen {
+            DialogOutcome::Chosen(path) => {
+                self.path = path.display().to_string();
+                self.note = None;
+            }
+            DialogOutcome::NothingChosen => {
+                self.note = Some(
+                    "Nothing chosen (the dialog needs a desktop portal); you can type the path."
+                        .into(),
+                )
+            }
+        }
+    }
+}
+
+/// The keyboard-and-mouse help window.
+#[derive(Default)]
+pub struct HelpWindow {
+    pub open: bool,
+}
+
+impl HelpWindow {
+    pub fn ui(&mut self, ctx: &egui::Context) {
+        let mut open = self.open;
+        egui::Window::new("Keyboard and mouse").open(&mut open).resizable(false).show(ctx, |ui| {
+            egui::Grid::new("help").num_columns(2).striped(true).show(ui, |ui| {
+                for (keys, what) in [
+                    ("Left drag (3D)", "orbit"),
+                    ("Middle / Shift+left drag (3D)", "pan"),
+                    ("Wheel (3D)", "zoom"),
+                    ("Right drag (3D)", "shift (sideways) / widen (up-down) the transfer function"),
+                    ("Double-click (3D)", "reset view"),
+                    ("A P L R S I", "standard views: anterior, posterior, left, right, superior, inferior"),
+                    ("Home, 0", "reset view"),
+                    ("Left click / drag (slice)", "move the linked crosshair"),
+                    ("Wheel, Up/Down, PgUp/PgDn (slice)", "page slices"),
+                    ("Right drag (slice)", "window (sideways) / level (up-down)"),
+                    ("Ctrl+wheel, middle drag (slice)", "zoom, pan; double-click resets"),
+                    ("Double-click view title", "focus the view (1×1)"),
+                    ("1 2 3", "layouts 1×1, 3D + 1×3, 2×2"),
+                    ("M", "cycle DVR / MIP / isosurface"),
+                    ("T", "target frame rate on/off"),
+                    ("F12", "screenshot of the 3D view"),
+                    ("Ctrl+Z, Ctrl+Shift+Z / Ctrl+Y", "undo, redo (TF, window, crop, measurements)"),
+                    ("Click (3D)", "move the crosshair to what is seen there (pick)"),
+                    ("Ruler / Angle / ROI tools", "measure on slices (drag, clicks) and in 3D (clicks)"),
+                    ("Ctrl+O", "open or import"),
+                    ("F1, H", "this help"),
+                ] {
+                    ui.strong(keys);
+                    ui.label(what);
+                    ui.end_row();
+                }
+            });
+            ui.add_space(6.0);
+            ui.label(RichText::new(format!("{NOT_FOR_DIAGNOSIS}: research and education only.")).color(WARNING_COLOUR));
+        });
+        self.open = open;
+    }
+}

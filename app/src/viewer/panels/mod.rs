@@ -1,0 +1,82 @@
+//! The side panels, each a type owning its state with a `ui()`: transfer function, slices,
+//! measurements, rendering,
+//! performance, screenshot, volume information. [`Panels::ui`] stacks them in the side bar.
+
+pub mod info;
+pub mod measurements;
+pub mod performance;
+pub mod rendering;
+pub mod screenshot;
+pub mod slices;
+pub mod transfer_function;
+
+use super::preferences::Preferences;
+use super::scene::{Scene, VolumeData};
+use super::view3d::View3d;
+
+pub use performance::FrameClock;
+
+/// Everything in the side bar that outlives one frame.
+#[derive(Default)]
+pub struct Panels {
+    pub transfer_function: transfer_function::TfPanel,
+    pub performance: performance::PerformancePanel,
+    pub screenshot: screenshot::ScreenshotPanel,
+}
+
+/// What the side panels work on.
+pub struct PanelContext<'a> {
+    pub prefs: &'a mut Preferences,
+    pub data: &'a VolumeData,
+    pub scene: &'a mut Scene,
+    pub view_3d: &'a mut View3d,
+    pub clock: &'a FrameClock,
+}
+
+impl Panels {
+    pub fn ui(&mut self, ui: &mut egui::Ui, cx: PanelContext<'_>) {
+        let PanelContext {
+            prefs,
+            data,
+            scene,
+            view_3d,
+            clock,
+        } = cx;
+        egui::CollapsingHeader::new("Transfer function")
+            .default_open(true)
+            .show(ui, |ui| {
+                self.transfer_function
+                    .ui(ui, &mut prefs.preset, data, scene);
+            });
+        egui::CollapsingHeader::new("Slices")
+            .default_open(true)
+            .show(ui, |ui| {
+                slices::ui(ui, data, scene);
+            });
+        egui::CollapsingHeader::new("Measurements")
+            .default_open(true)
+            .show(ui, |ui| {
+                measurements::ui(ui, data, scene);
+            });
+        egui::CollapsingHeader::new("Rendering")
+            .default_open(true)
+            .show(ui, |ui| {
+                rendering::ui(ui, prefs, data, scene, view_3d);
+            });
+        egui::CollapsingHeader::new("Performance")
+            .default_open(true)
+            .show(ui, |ui| {
+                self.performance.ui(ui, prefs, data, clock);
+            });
+        egui::CollapsingHeader::new("Screenshot")
+            .default_open(false)
+            .show(ui, |ui| {
+                self.screenshot.ui(ui, prefs);
+            });
+        egui::CollapsingHeader::new("Volume information")
+            .default_open(false)
+            .show(ui, |ui| {
+                info::ui(ui, prefs, data);
+            });
+    }
+}

@@ -1,0 +1,405 @@
+//! The opened volume and what every view shares: the data handles (render session, slice
+//! reader, header facts, histogram) and the scene the user adjusts (crosshair, slice window,
+//! transfer function, iso value, crop and clip). Views and panels own their own state; they
+//! read [`VolumeData`] and change [`Scene`].
+
+use serde::{Deserialize, Serialize};
+use strata_render::{ClipPlane, CropBox, TransferFunction};
+use strata_storage::histogram::Histogram;
+
+use super::colour_maps::ColourMap;
+use super::measurements::Measurements;
+use super::orientation::{SliceFrame, SliceView};
+use super::slices::SliceReader;
+use super::volume_session::{VolumeInfo, VolumeSession};
+
+/// A slice window in physical units (HU for CT): values from `centre - width/2` (black) to
+/// `centre + width/2` (white).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Window {
+    pub centre: f64,
+    pub width: f64,
+}
+
+impl Window {
+    pub fn new(centre: f64, width: f64) -> Self {
+        Window { centre, width }
+    }
+
+    pub fn low(&self) -> f64 {
+        self.centre - self.width * 0.5
+    }
+}
+
+/// The clip plane as the user sets it: an LPS axis, which side is cut, and where.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ClipSettings {
+    pub enabled: bool,
+    /// LPS axis of the plane's normal: 0 L–R, 1 A–P, 2 S–I.
+    pub axis: usize,
+    pub flip: bool,
+    /// Position as a fraction of the volume's extent along the normal.
+    pub fraction: f64,
+}
+
+impl Default for ClipSettings {
+    fn default() -> Self {
+        ClipSettings {
+            enabled: false,
+            axis: 1,
+            flip: false,
+            fraction: 0.5,
+        }
+    }
+}
+
+/// What the views read and never change: the render session, the slice reader and facts of
+/// the store.
+pub struct VolumeData {
+    pub session: VolumeSession,
+    pub slices: SliceReader,
+    pub info: VolumeInfo,
+    pub histogram: Histogram,
+    /// How each slice view maps index axes to the screen (fixed by the geometry).
+    pub frames: [SliceFrame; 3],
+    /// The store's path (measurements are remembered per store).
+    pub store_path: std::path::PathBuf,
+}
+
+/// What the user adjusts and every view shows.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Scene {
+    /// Linked crosshair, level-0 continuous index.
+    pub cursor: [f64; 3],
+    pub window: Window,
+    /// How slices colour values through the window.
+    pub colour_map: ColourMap,
+    pub transfer_function: TransferFunction,
+    /// The preset or file the transfer function came from: an edit is a difference from it.
+    pub tf_source: TransferFunction,
+    pub iso_value: f64,
+    pub crop: CropBox,
+    pub clip: ClipSettings,
+    pub measurements: Measurements,
+}
+
+impl Scene {
+    /// Sets a new transfer function from a preset or a file.
+    pub fn set_transfer_function(&mut self, tf: TransferFunction) {
+        self.tf_source = tf.clone();
+        self.transfer_function = tf;
+    }
+
+    /// The transfer function differs from its preset or file.
+    pub fn tf_edited(&self) -> bool {
+        self.transfer_function.opacity != self.tf_source.opacity
+            || self.transfer_function.color != self.tf_source.color
+    }
+
+    /// Names an edited transfer function "<source> (edited)" (and a restored one by its source
+    /// again), so titles and the preset buttons never claim an edited function is the preset.
+    pub fn name_tf_edits(&mut self) {
+        let name = if self.tf_edited() {
+            format!("{} (edited)", self.tf_source.name)
+        } else {
+            self.tf_source.name.clone()
+        };
+        if self.transfer_function.name != name {
+            self.transfer_function.name = name;
+        }
+    }
+}
+
+/// The value readout: a voxel, where it is in the patient, and its physical value once the
+/// slice reader has read it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Readout {
+    /// Under the pointer (true) or at the crosshair.
+    pub under_pointer: bool,
+    pub index: [u32; 3],
+    /// LPS millimetres of the voxel centre.
+    pub patient_mm: [f64; 3],
+    pub value: Option<f64>,
+    pub unit: String,
+}
+
+impl Readout {
+    /// "Pointer 40 HU · voxel (23, 23, 23) · R0.0 A8.3 S0.0 mm": value, index, and the patient
+    /// position in the signed R/L, A/P, S/I a radiologist reads (LPS positive = L, P, S).
+    pub fn text(&self) -> String {
+        let side = |value: f64, pos: &str, neg: &str| {
+            format!("{}{:.1}", if value >= 0.0 { pos } else { neg }, value.abs())
+        };
+        let [x, y, z] = self.patient_mm;
+        let value = match self.value {
+            Some(v) if self.unit == "HU" => format!("{v:.0} HU"),
+            Some(v) if v.abs() >= 100.0 => format!("{v:.1} {}", self.unit),
+            Some(v) => format!("{v:.4} {}", self.unit),
+            None => "…".into(),
+        };
+        format!(
+            "{} {} · voxel ({}, {}, {}) · {} {} {} mm",
+            if self.under_pointer {
+                "Pointer"
+            } else {
+                "Crosshair"
+            },
+            value.trim_end(),
+            self.index[0],
+            self.index[1],
+            self.index[2],
+            side(x, "L", "R"),
+            side(y, "P", "A"),
+            side(z, "S", "I"),
+        )
+    }
+}
+
+impl VolumeData {
+    pub fn frame(&self, view: SliceView) -> SliceFrame {
+        self.frames[view.index()]
+    }
+
+    /// The unit values are shown in: the header's, or HU for a CT that does not say.
+    pub fn unit(&self) -> String {
+        let h = &self.info.header;
+        let unit = h.value_mapping.unit.trim();
+        if unit.is_empty() && looks_like_ct(&h.modality, unit, self.info.physical_range) {
+            "HU".into()
+        } else {
+            unit.to_string()
+        }
+    }
+
+    /// The readout of the voxel at level-0 continuous index `at`; asks the slice reader for
+    /// its value if it does not have it yet (the value arrives a frame or two later).
+    pub fn readout(&self, at: [f64; 3], under_pointer: bool) -> Readout {
+        let dims = self.info.geometry.dims;
+        let k = voxel_index(at);
+        let index = [0, 1, 2].map(|a| k[a].clamp(0, dims[a] as i64 - 1) as u32);
+        self.slices.probe(index);
+        let value = self
+            .slices
+            .probed()
+            .filter(|p| p.index == index)
+            .map(|p| self.info.mapping.physical(p.stored as f64));
+        let p = self
+            .info
+            .geometry
+            .patient_from_index(glam::DVec3::from(index.map(|i| i as f64)));
+        Readout {
+            under_pointer,
+            index,
+            patient_mm: p.into(),
+            value,
+            unit: self.unit(),
+        }
+    }
+
+    /// The clip plane in patient space for the user's clip settings.
+    pub fn clip_plane(&self, clip: &ClipSettings) -> ClipPlane {
+        let g = &self.info.geometry;
+        let mut normal = [0.0; 3];
+        normal[clip.axis] = if clip.flip { -1.0 } else { 1.0 };
+        let n = glam::DVec3::from(normal);
+        // Offset from the fraction of the volume's extent along the plane's normal.
+        let corners = (0..8).map(|c| {
+            let idx = glam::DVec3::new(
+                if c & 1 == 0 {
+                    -0.5
+                } else {
+                    g.dims[0] as f64 - 0.5
+                },
+                if c & 2 == 0 {
+                    -0.5
+                } else {
+                    g.dims[1] as f64 - 0.5
+                },
+                if c & 4 == 0 {
+                    -0.5
+                } else {
+                    g.dims[2] as f64 - 0.5
+                },
+            );
+            g.patient_from_index(idx).dot(n)
+        });
+        let (lo, hi) = corners.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), x| {
+            (a.min(x), b.max(x))
+        });
+        ClipPlane {
+            normal,
+            offset_mm: lo + (hi - lo) * clip.fraction,
+        }
+    }
+
+    /// Moves the crosshair `step` displayed slices along `view`'s normal.
+    pub fn page_slice(&self, scene: &mut Scene, view: SliceView, step: f64) {
+        let frame = self.frame(view);
+        let n = frame.normal_axis;
+        let max = self.info.geometry.dims[n] as f64 - 1.0;
+        // One displayed slice: a voxel of the level shown.
+        let level = self.slices.latest(view).map_or(0, |i| i.request.level);
+        let voxel = (1u64 << level) as f64;
+        scene.cursor[n] = (scene.cursor[n].round() + step * voxel).clamp(0.0, max);
+    }
+}
+
+/// The voxel a level-0 continuous index lies in (what the slice reader shows at level 0, the
+/// slice header counts from and the status bar prints: one rounding for all three).
+pub fn voxel_index(cursor: [f64; 3]) -> [i64; 3] {
+    cursor.map(|c| c.round() as i64)
+}
+
+/// The crosshair a volume opens with: the centre voxel (a voxel centre, never between two
+/// slices, so every readout names the same voxel).
+pub fn start_cursor(dims: [u32; 3]) -> [f64; 3] {
+    dims.map(|d| ((d as f64 - 1.0) * 0.5).floor().max(0.0))
+}
+
+/// CT by its header (modality tag, HU unit), or, with no modality, by its values: air near
+/// -1000 and dense tissue above +300 in one scan is how a CT in HU looks (an MR's intensities
+/// are non-negative).
+pub fn looks_like_ct(modality: &str, unit: &str, physical_range: (f64, f64)) -> bool {
+    if modality.eq_ignore_ascii_case("CT") || unit.eq_ignore_ascii_case("HU") {
+        return true;
+    }
+    let untagged = modality.trim().is_empty() || modality.eq_ignore_ascii_case("OT");
+    let (lo, hi) = physical_range;
+    untagged && (-1100.0..=-700.0).contains(&lo) && hi >= 300.0
+}
+
+/// A named slice window.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct WindowPreset {
+    pub name: &'static str,
+    pub window: Window,
+}
+
+const fn preset(name: &'static str, centre: f64, width: f64) -> WindowPreset {
+    WindowPreset {
+        name,
+        window: Window { centre, width },
+    }
+}
+
+/// The usual CT windows (HU), as radiology departments and Slicer name them.
+pub const CT_WINDOWS: [WindowPreset; 8] = [
+    preset("Brain", 40.0, 80.0),
+    preset("Subdural", 75.0, 215.0),
+    preset("Stroke", 40.0, 40.0),
+    preset("Bone", 400.0, 1800.0),
+    preset("Lung", -600.0, 1500.0),
+    preset("Abdomen", 40.0, 400.0),
+    preset("Liver", 60.0, 160.0),
+    preset("Mediastinum", 50.0, 350.0),
+];
+
+/// A window from the `low`..`high` quantiles of the histogram (MR's "auto": MR has no
+/// absolute scale, so the window follows the scan's own distribution).
+pub fn quantile_window(h: &Histogram, low: f64, high: f64) -> Window {
+    let total = h.total().max(1) as f64;
+    let bin = (h.physical_max - h.physical_min) / h.counts.len().max(1) as f64;
+    let mut seen = 0.0;
+    let (mut lo, mut hi) = (h.physical_min, h.physical_max);
+    let mut lo_set = false;
+    for (i, &c) in h.counts.iter().enumerate() {
+        seen += c as f64;
+        if !lo_set && seen >= low * total {
+            lo = h.physical_min + i as f64 * bin;
+            lo_set = true;
+        }
+        if seen >= high * total {
+            hi = h.physical_min + (i + 1) as f64 * bin;
+            break;
+        }
+    }
+    Window::new((lo + hi) * 0.5, (hi - lo).max(1e-6))
+}
+
+/// The named presets in the transfer-function panel: (preset name, button label).
+pub const PRESETS: [(&str, &str); 5] = [
+    ("ct-bone", "Bone"),
+    ("ct-soft-tissue", "Soft tissue"),
+    ("ct-lung", "Lung"),
+    ("ct-vessels", "Vessels"),
+    ("mr-default", "MR"),
+];
+
+pub fn preset_for(name: &str, info: &VolumeInfo) -> TransferFunction {
+    let mut tf = TransferFunction::preset(name).unwrap_or_else(|| {
+        TransferFunction::new(name, &[(0.0, 0.0), (1.0, 1.0)], &[(0.0, [1.0; 3])])
+    });
+    // The MR preset assumes intensities near 0..1000; stretch it onto this scan's range.
+    if name.starts_with("mr") {
+        let (lo, hi) = info.physical_range;
+        let scale = (hi - lo).max(1e-6) / 1000.0;
+        for p in &mut tf.opacity {
+            p.value = lo + p.value * scale;
+        }
+        for c in &mut tf.color {
+            c.value = lo + c.value * scale;
+        }
+    }
+    tf
+}
+
+/// A window from the histogram's 1st to 99th percentile, for scans without presets.
+pub fn percentile_window(h: &Histogram) -> Window {
+    quantile_window(h, 0.01, 0.99)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_start_cursor_is_a_voxel_centre_every_readout_agrees_on() {
+        for dims in [[6, 6, 6], [188, 256, 190], [1, 2, 3], [48, 48, 48]] {
+            let c = start_cursor(dims);
+            assert!(c.iter().all(|x| x.fract() == 0.0), "{dims:?} → {c:?}");
+            let k = voxel_index(c);
+            for axis in 0..3 {
+                assert!(k[axis] >= 0 && k[axis] < dims[axis] as i64);
+                // The slice reader's level-0 slice for this position.
+                let read = ((c[axis] + 0.5) - 0.5).round() as i64;
+                assert_eq!(read, k[axis], "{dims:?} axis {axis}");
+            }
+        }
+        // enh.dcm's 6 slices: the header said 4/6 while the status bar said k=2.
+        assert_eq!(voxel_index(start_cursor([6, 6, 6]))[2] + 1, 3);
+    }
+
+    #[test]
+    fn a_ct_without_a_modality_tag_is_recognised_by_its_values() {
+        assert!(looks_like_ct("CT", "", (0.0, 100.0)));
+        assert!(looks_like_ct("", "HU", (0.0, 100.0)));
+        // Strata's own int16 HU phantom written as NRRD: no tag, no unit.
+        assert!(looks_like_ct("", "", (-1000.0, 1900.0)));
+        assert!(looks_like_ct("", "", (-1024.0, 3071.0)));
+        // MR: non-negative intensities, tagged or not.
+        assert!(!looks_like_ct("", "", (0.0, 1200.0)));
+        assert!(!looks_like_ct("MR", "", (-1000.0, 2000.0)));
+        // A signed statistic map is not a CT.
+        assert!(!looks_like_ct("", "", (-8.0, 8.0)));
+    }
+
+    #[test]
+    fn percentile_window_spans_the_bulk_of_the_histogram() {
+        let mut counts = vec![0u64; 100];
+        counts[10] = 1; // an outlier below
+        for c in counts.iter_mut().take(80).skip(20) {
+            *c = 100;
+        }
+        counts[99] = 1; // an outlier above
+        let h = Histogram {
+            physical_min: 0.0,
+            physical_max: 100.0,
+            counts,
+        };
+        let w = percentile_window(&h);
+        assert!(
+            (w.centre - 50.0).abs() < 2.0 && (w.width - 60.0).abs() < 3.0,
+            "window {w:?}"
+        );
+    }
+}

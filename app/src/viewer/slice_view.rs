@@ -1,0 +1,643 @@
+//! One slice view (axial, coronal or sagittal): the slice read at the level matching its
+//! pixels, window-levelled into a texture, the crosshair, orientation labels and the W/L line.
+//! Left click/drag moves the linked crosshair, right drag windows, the wheel pages, Ctrl+wheel
+//! zooms about the pointer, middle drag pans, a double-click resets zoom and pan.
+
+use std::sync::Arc;
+
+use egui::{Color32, Pos2, Rect, Sense, Stroke, TextureHandle, TextureOptions, Vec2};
+
+use super::colour_maps::ColourMap;
+use super::measurements::{distance_mm, roi_stats, Shape, Tool};
+use super::orientation::SliceView;
+use super::scene::{voxel_index, Scene, VolumeData, Window};
+use super::slices::{level_for_pixels, SliceImage, SliceRequest};
+use super::widgets::{view_title, wheel_lines, ViewResponse};
+
+/// A slice texture and what it was made from (so it is rebuilt only when one of them changes).
+struct SliceTexture {
+    texture: TextureHandle,
+    values: Arc<Vec<u16>>,
+    window: Window,
+    colour_map: ColourMap,
+}
+
+/// The stored values behind a slice texture and the window they were shown with (tests).
+#[cfg(test)]
+pub struct SliceShown {
+    pub values: Arc<Vec<u16>>,
+    pub window: Window,
+    pub colour_map: ColourMap,
+}
+
+/// One slice view's own state.
+pub struct SliceViewer {
+    pub view: SliceView,
+    /// Magnification over fit-to-view, and pan in points.
+    zoom: f32,
+    pan: Vec2,
+    texture: Option<SliceTexture>,
+    last_request: Option<SliceRequest>,
+    /// Wheel movement not yet paged (fractions of a line).
+    wheel_lines: f64,
+    /// Where the slice image was drawn last frame (tests point at voxels through it).
+    pub image_rect: Option<Rect>,
+}
+
+pub fn slice_colour(view: SliceView) -> Color32 {
+    match view {
+        SliceView::Axial => Color32::from_rgb(240, 90, 90),
+        SliceView::Coronal => Color32::from_rgb(110, 200, 110),
+        SliceView::Sagittal => Color32::from_rgb(230, 210, 90),
+    }
+}
+
+impl SliceViewer {
+    pub fn new(view: SliceView) -> Self {
+        SliceViewer {
+            view,
+            zoom: 1.0,
+            pan: Vec2::ZERO,
+            texture: None,
+            last_request: None,
+            wheel_lines: 0.0,
+            image_rect: None,
+        }
+    }
+
+    #[cfg(test)]
+    pub fn shown(&self) -> Option<SliceShown> {
+        self.texture.as_ref().map(|t| SliceShown {
+            values: t.values.clone(),
+            window: t.window,
+            colour_map: t.colour_map,
+        })
+    }
+
+    /// The level-0 continuous index at screen point `pos` of an image drawn in `image_rect`:
+    /// on this view's slice (the crosshair's position along its normal).
+    pub fn index_at(
+        &self,
+        pos: Pos2,
+        image_rect: Rect,
+        data: &VolumeData,
+        scene: &Scene,
+    ) -> [f64; 3] {
+        let frame = data.frame(self.view);
+        let u = ((pos.x - image_rect.left()) / image_rect.width()) as f64;
+        let w = ((pos.y - image_rect.top()) / image_rect.height()) as f64;
+        let (a, d) = frame.index_at(data.info.geometry.dims, u, w);
+        let mut index = scene.cursor;
+        index[frame.across_axis] = a;
+        index[frame.down_axis] = d;
+        index
+    }
+
+    /// The screen point of level-0 index `index` (its across and down components) in the
+    /// image as drawn last frame.
+    #[cfg_attr(not(test), allow(dead_code))]
+    pub fn screen_of(&self, index: [f64; 3], data: &VolumeData) -> Option<Pos2> {
+        let rect = self.image_rect?;
+        let frame = data.frame(self.view);
+        let (u, v) = frame.fraction_of(
+            data.info.geometry.dims,
+            index[frame.across_axis],
+            index[frame.down_axis],
+        );
+        Some(Pos2::new(
+            rect.left() + u as f32 * rect.width(),
+            rect.top() + v as f32 * rect.height(),
+        ))
+    }
+
+    /// The point of `pos` on this slice, if it lies on the image.
+    fn point_at(
+        &self,
+        pos: Pos2,
+        image_rect: Rect,
+        data: &VolumeData,
+        scene: &Scene,
+    ) -> Option<[f64; 3]> {
+        image_rect
+            .contains(pos)
+            .then(|| self.index_at(pos, image_rect, data, scene))
+    }
+
+    /// Left button with a measuring tool: drag a ruler or a region, click angle points.
+    fn measure_input(
+        &mut self,
+        ui: &egui::Ui,
+        response: &egui::Response,
+        image_rect: Rect,
+        data: &VolumeData,
+        scene: &mut Scene,
+    ) {
+        let tool = scene.measurements.tool;
+        match tool {
+            Tool::Angle => {
+                if response.clicked() {
+                    if let Some(p) = response
+                        .interact_pointer_pos()
+                        .and_then(|p| self.point_at(p, image_rect, data, scene))
+                    {
+                        scene.measurements.click(p);
+                    }
+                }
+            }
+            Tool::Distance | Tool::BoxRoi | Tool::EllipseRoi => {
+                if response.dragged_by(egui::PointerButton::Primary) {
+                    let start = ui.input(|i| i.pointer.press_origin());
+                    let now = response.interact_pointer_pos();
+                    if let (Some(a), Some(b)) = (
+                        start.and_then(|p| self.point_at(p, image_rect, data, scene)),
+                        now.map(|p| self.index_at(p, image_rect, data, scene)),
+                    ) {
+                        scene.measurements.draft.points = vec![a, b];
+                    }
+                }
+                if response.drag_stopped() {
+                    let points = std::mem::take(&mut scene.measurements.draft.points);
+                    if let [a, b] = points[..] {
+                        let shape = match tool {
+                            Tool::Distance => Shape::Distance { a, b },
+                            _ => {
+                                let ellipse = tool == Tool::EllipseRoi;
+                                let stats = data
+                                    .slices
+                                    .latest(self.view)
+                                    .filter(|i| {
+                                        i.request.position == a[data.frame(self.view).normal_axis]
+                                    })
+                                    .and_then(|image| {
+                                        roi_stats(
+                                            &image,
+                                            &data.info.geometry,
+                                            data.info.mapping,
+                                            ellipse,
+                                            a,
+                                            b,
+                                        )
+                                    });
+                                Shape::Roi {
+                                    view: self.view,
+                                    ellipse,
+                                    a,
+                                    b,
+                                    stats,
+                                }
+                            }
+                        };
+                        if distance_mm(&data.info.geometry, a, b) > 0.0 {
+                            scene.measurements.add(shape);
+                        }
+                    }
+                }
+            }
+            Tool::Navigate => {}
+        }
+    }
+
+    /// Draws the measurements lying on the slice shown (and the one being drawn).
+    fn paint_measurements(
+        &self,
+        painter: &egui::Painter,
+        image_rect: Rect,
+        data: &VolumeData,
+        scene: &Scene,
+    ) {
+        let frame = data.frame(self.view);
+        let n = frame.normal_axis;
+        let here = voxel_index(scene.cursor)[n];
+        let on_slice = |p: &[f64; 3]| voxel_index(*p)[n] == here;
+        let screen = |p: [f64; 3]| {
+            let (u, v) = frame.fraction_of(
+                data.info.geometry.dims,
+                p[frame.across_axis],
+                p[frame.down_axis],
+            );
+            Pos2::new(
+                image_rect.left() + u as f32 * image_rect.width(),
+                image_rect.top() + v as f32 * image_rect.height(),
+            )
+        };
+        let colour = Color32::from_rgb(255, 230, 80);
+        let stroke = Stroke::new(1.5, colour);
+        let unit = data.unit();
+        let font = egui::FontId::proportional(12.0);
+        let draw = |shape: &Shape, label: Option<String>| {
+            let anchor = match shape {
+                Shape::Distance { a, b } => {
+                    painter.line_segment([screen(*a), screen(*b)], stroke);
+                    screen(*b)
+                }
+                Shape::Angle { a, vertex, b } => {
+                    painter.line_segment([screen(*a), screen(*vertex)], stroke);
+                    painter.line_segment([screen(*vertex), screen(*b)], stroke);
+                    screen(*vertex)
+                }
+                Shape::Roi { ellipse, a, b, .. } => {
+                    let r = Rect::from_two_pos(screen(*a), screen(*b));
+                    if *ellipse {
+                        let points: Vec<Pos2> = (0..48)
+                            .map(|i| {
+                                let t = i as f32 / 48.0 * std::f32::consts::TAU;
+                                r.center()
+                                    + Vec2::new(
+                                        t.cos() * r.width() * 0.5,
+                                        t.sin() * r.height() * 0.5,
+                                    )
+                            })
+                            .collect();
+                        painter.add(egui::Shape::closed_line(points, stroke));
+                    } else {
+                        painter.rect_stroke(r, 0.0, stroke, egui::StrokeKind::Middle);
+                    }
+                    r.right_top()
+                }
+            };
+            if let Some(label) = label {
+                painter.text(
+                    anchor + Vec2::new(4.0, -4.0),
+                    egui::Align2::LEFT_BOTTOM,
+                    label,
+                    font.clone(),
+                    colour,
+                );
+            }
+        };
+        for m in &scene.measurements.items {
+            let visible = match &m.shape {
+                Shape::Roi { view, a, .. } => *view == self.view && on_slice(a),
+                _ => m.points().iter().all(on_slice),
+            };
+            if visible {
+                draw(&m.shape, Some(m.describe(&data.info.geometry, &unit)));
+            }
+        }
+        let draft = &scene.measurements.draft.points;
+        if draft.iter().all(on_slice) {
+            match (scene.measurements.tool, &draft[..]) {
+                (Tool::Distance, [a, b]) => draw(
+                    &Shape::Distance { a: *a, b: *b },
+                    Some(format!(
+                        "{:.1} mm",
+                        distance_mm(&data.info.geometry, *a, *b)
+                    )),
+                ),
+                (Tool::BoxRoi | Tool::EllipseRoi, [a, b]) => draw(
+                    &Shape::Roi {
+                        view: self.view,
+                        ellipse: scene.measurements.tool == Tool::EllipseRoi,
+                        a: *a,
+                        b: *b,
+                        stats: None,
+                    },
+                    None,
+                ),
+                (Tool::Angle, [a, vertex]) => draw(&Shape::Distance { a: *a, b: *vertex }, None),
+                _ => {
+                    for p in draft {
+                        painter.circle_filled(screen(*p), 3.0, colour);
+                    }
+                }
+            }
+        }
+    }
+
+    pub fn ui(
+        &mut self,
+        ui: &mut egui::Ui,
+        rect: Rect,
+        data: &VolumeData,
+        scene: &mut Scene,
+    ) -> ViewResponse {
+        let view = self.view;
+        let frame = data.frame(view);
+        let geometry = &data.info.geometry;
+        let dims = geometry.dims;
+        let painter = ui.painter_at(rect);
+        painter.rect_filled(rect, 0.0, Color32::BLACK);
+        let colour = slice_colour(view);
+        painter.rect_stroke(
+            rect.shrink(0.5),
+            0.0,
+            Stroke::new(1.0, colour.gamma_multiply(0.6)),
+            egui::StrokeKind::Inside,
+        );
+        // The image keeps the patient's proportions, centred with room for labels.
+        let (w_mm, h_mm) = frame.extent_mm(geometry);
+        // Room for the title line above, the W/L line below and the side labels.
+        let inner = Rect::from_min_max(
+            rect.min + Vec2::new(18.0, 38.0),
+            rect.max - Vec2::new(18.0, 36.0),
+        );
+        let fit = (inner.width() as f64 / w_mm)
+            .min(inner.height() as f64 / h_mm)
+            .max(1e-6);
+        let response = ui.interact(
+            rect,
+            ui.scope_id().with(("slice", view.index())),
+            Sense::click_and_drag(),
+        );
+        if response.hovered() {
+            // Ctrl+wheel (or pinch) zooms about the pointer; plain wheel pages (below).
+            let zoom = ui.input(|i| i.zoom_delta());
+            if zoom != 1.0 {
+                let old = self.zoom;
+                self.zoom = (old * zoom).clamp(1.0, 32.0);
+                if let Some(pointer) = response.hover_pos() {
+                    let from_centre = pointer - inner.center() - self.pan;
+                    self.pan -= from_centre * (self.zoom / old - 1.0);
+                }
+            }
+        }
+        if response.dragged_by(egui::PointerButton::Middle) {
+            self.pan += ui.input(|i| i.pointer.delta());
+        }
+        if response.double_clicked() {
+            self.zoom = 1.0;
+            self.pan = Vec2::ZERO;
+        }
+        if self.zoom <= 1.0 {
+            self.pan = Vec2::ZERO;
+        }
+        let image_rect = Rect::from_center_size(
+            inner.center() + self.pan,
+            Vec2::new(
+                (w_mm * fit) as f32 * self.zoom,
+                (h_mm * fit) as f32 * self.zoom,
+            ),
+        );
+
+        let tool = scene.measurements.tool;
+        if tool != Tool::Navigate {
+            self.measure_input(ui, &response, image_rect, data, scene);
+        } else if let Some(pos) = response.interact_pointer_pos() {
+            if (response.clicked() || response.dragged_by(egui::PointerButton::Primary))
+                && image_rect.contains(pos)
+            {
+                let u = ((pos.x - image_rect.left()) / image_rect.width()) as f64;
+                let w = ((pos.y - image_rect.top()) / image_rect.height()) as f64;
+                let (a, d) = frame.index_at(dims, u, w);
+                scene.cursor[frame.across_axis] =
+                    a.clamp(0.0, dims[frame.across_axis] as f64 - 1.0);
+                scene.cursor[frame.down_axis] = d.clamp(0.0, dims[frame.down_axis] as f64 - 1.0);
+            }
+        }
+        if response.dragged_by(egui::PointerButton::Secondary) {
+            let delta = ui.input(|i| i.pointer.delta());
+            scene.window = drag_window(scene.window, delta, data.info.physical_range);
+        }
+        if response.hovered() && !ui.input(|i| i.modifiers.command || i.modifiers.ctrl) {
+            // Whole lines page; fractions (touchpads, pixel-precise wheels) add up, so every
+            // wheel click pages the same one slice however the events are split.
+            self.wheel_lines += wheel_lines(ui);
+            let step = self.wheel_lines.trunc();
+            if step != 0.0 {
+                self.wheel_lines -= step;
+                // Wheel up (content moves down) goes towards higher slice numbers, as in Slicer.
+                data.page_slice(scene, view, step);
+            }
+        } else {
+            self.wheel_lines = 0.0;
+        }
+        let focused = response.clicked()
+            || response.drag_started()
+            || response.hovered() && ui.input(|i| i.pointer.any_pressed());
+
+        // Ask for the slice at the level matching this view's pixels.
+        let ppp = ui.ctx().pixels_per_point();
+        let voxels_across = dims[frame.across_axis] as f64;
+        let level_count = data.info.header.layout.level_count();
+        let level = level_for_pixels(
+            voxels_across,
+            (image_rect.width() * ppp) as f64,
+            level_count,
+        );
+        let request = SliceRequest {
+            view,
+            frame,
+            position: scene.cursor[frame.normal_axis],
+            level,
+        };
+        if self.last_request != Some(request) {
+            data.slices.request(request);
+            self.last_request = Some(request);
+        }
+        if let Some(image) = data.slices.latest(view) {
+            let stale = self.texture.as_ref().is_none_or(|t| {
+                !Arc::ptr_eq(&t.values, &image.values)
+                    || t.window != scene.window
+                    || t.colour_map != scene.colour_map
+            });
+            if stale {
+                let grey =
+                    window_level_image(&image, scene.window, scene.colour_map, data.info.mapping);
+                match &mut self.texture {
+                    Some(t) => {
+                        t.texture.set(grey, TextureOptions::LINEAR);
+                        t.values = image.values.clone();
+                        t.window = scene.window;
+                        t.colour_map = scene.colour_map;
+                    }
+                    None => {
+                        self.texture = Some(SliceTexture {
+                            texture: ui.ctx().load_texture(
+                                format!("slice {}", view.name()),
+                                grey,
+                                TextureOptions::LINEAR,
+                            ),
+                            values: image.values.clone(),
+                            window: scene.window,
+                            colour_map: scene.colour_map,
+                        })
+                    }
+                }
+            }
+            if let Some(t) = &self.texture {
+                let (fu, fv) = image.inside_fraction;
+                let (u0, u1) = if frame.across_flipped {
+                    (fu as f32, 0.0)
+                } else {
+                    (0.0, fu as f32)
+                };
+                let (v0, v1) = if frame.down_flipped {
+                    (fv as f32, 0.0)
+                } else {
+                    (0.0, fv as f32)
+                };
+                let mut mesh = egui::Mesh::with_texture(t.texture.id());
+                mesh.add_rect_with_uv(
+                    image_rect,
+                    Rect::from_min_max(Pos2::new(u0, v0), Pos2::new(u1, v1)),
+                    Color32::WHITE,
+                );
+                // add_rect_with_uv orders uv corners by min/max; flip by swapping vertex uvs.
+                if u0 > u1 || v0 > v1 {
+                    for vertex in &mut mesh.vertices {
+                        let fx = (vertex.pos.x - image_rect.left()) / image_rect.width();
+                        let fy = (vertex.pos.y - image_rect.top()) / image_rect.height();
+                        vertex.uv = Pos2::new(u0 + (u1 - u0) * fx, v0 + (v1 - v0) * fy);
+                    }
+                }
+                painter.add(egui::Shape::mesh(mesh));
+            }
+        }
+        // Crosshair.
+        let (cu, cv) = frame.fraction_of(
+            dims,
+            scene.cursor[frame.across_axis],
+            scene.cursor[frame.down_axis],
+        );
+        let cx = image_rect.left() + cu as f32 * image_rect.width();
+        let cy = image_rect.top() + cv as f32 * image_rect.height();
+        let hair = Stroke::new(1.0, Color32::from_rgba_unmultiplied(120, 220, 255, 150));
+        painter.line_segment(
+            [Pos2::new(image_rect.left(), cy), Pos2::new(cx - 8.0, cy)],
+            hair,
+        );
+        painter.line_segment(
+            [Pos2::new(cx + 8.0, cy), Pos2::new(image_rect.right(), cy)],
+            hair,
+        );
+        painter.line_segment(
+            [Pos2::new(cx, image_rect.top()), Pos2::new(cx, cy - 8.0)],
+            hair,
+        );
+        painter.line_segment(
+            [Pos2::new(cx, cy + 8.0), Pos2::new(cx, image_rect.bottom())],
+            hair,
+        );
+        self.paint_measurements(&painter, image_rect, data, scene);
+        // Orientation labels.
+        let font = egui::FontId::proportional(14.0);
+        let label_colour = Color32::from_rgb(255, 220, 120);
+        let [left, right, top, bottom] = frame.labels;
+        painter.text(
+            Pos2::new(rect.left() + 5.0, rect.center().y),
+            egui::Align2::LEFT_CENTER,
+            left,
+            font.clone(),
+            label_colour,
+        );
+        painter.text(
+            Pos2::new(rect.right() - 5.0, rect.center().y),
+            egui::Align2::RIGHT_CENTER,
+            right,
+            font.clone(),
+            label_colour,
+        );
+        painter.text(
+            Pos2::new(rect.center().x, rect.top() + 21.0),
+            egui::Align2::CENTER_TOP,
+            top,
+            font.clone(),
+            label_colour,
+        );
+        painter.text(
+            Pos2::new(rect.center().x, rect.bottom() - 19.0),
+            egui::Align2::CENTER_BOTTOM,
+            bottom,
+            font,
+            label_colour,
+        );
+        let n = frame.normal_axis;
+        let slice_number = voxel_index(scene.cursor)[n] + 1;
+        let title = format!("{} {}/{}", view.name(), slice_number, dims[n]);
+        let toggled = view_title(ui, rect, view.name(), &title, colour);
+        let shown_level = data.slices.latest(view).map(|i| i.request.level);
+        let info = format!(
+            "W {:.0} L {:.0}{}",
+            scene.window.width,
+            scene.window.centre,
+            shown_level
+                .filter(|l| *l > 0)
+                .map(|l| format!(" · level {l}"))
+                .unwrap_or_default()
+        );
+        painter.text(
+            rect.left_bottom() + Vec2::new(8.0, -4.0),
+            egui::Align2::LEFT_BOTTOM,
+            info,
+            egui::FontId::proportional(11.0),
+            Color32::LIGHT_GRAY,
+        );
+        let hover = response
+            .hover_pos()
+            .filter(|p| image_rect.contains(*p))
+            .map(|p| self.index_at(p, image_rect, data, scene));
+        self.image_rect = Some(image_rect);
+        ViewResponse {
+            toggle_focus: toggled,
+            focused,
+            hover,
+        }
+    }
+}
+
+/// Right drag: sideways widens (right) or narrows the window, up raises the level. The gain
+/// follows the window itself (a drag across 300 points multiplies the width by e, moves the
+/// level by one width), so a narrow brain window and a wide bone window feel the same; a floor
+/// of 1/500 of the scan's range keeps a collapsed window recoverable.
+pub fn drag_window(window: Window, delta: Vec2, physical_range: (f64, f64)) -> Window {
+    let (lo, hi) = physical_range;
+    let floor = ((hi - lo).abs() / 500.0).max(1e-6);
+    let width = window.width.max(floor);
+    Window::new(
+        window.centre - delta.y as f64 * width / 300.0,
+        (width * (delta.x as f64 / 300.0).exp()).max(floor),
+    )
+}
+
+/// Stored values → colours through the window (physical units) and the colour map, as a
+/// texture image.
+pub fn window_level_image(
+    image: &SliceImage,
+    window: Window,
+    colour_map: ColourMap,
+    mapping: strata_render::ValueMapping,
+) -> egui::ColorImage {
+    let lo = window.low();
+    let scale = 255.0 / window.width.max(1e-9);
+    let table = colour_map.table();
+    let pixels = image
+        .values
+        .iter()
+        .map(|&s| {
+            let g = ((mapping.physical(s as f64) - lo) * scale).clamp(0.0, 255.0) as usize;
+            let [r, g, b] = table[g];
+            Color32::from_rgb(r, g, b)
+        })
+        .collect();
+    egui::ColorImage::new([image.width, image.height], pixels)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn window_drag_gain_follows_the_window_not_the_scan_range() {
+        let ct_range = (-1024.0, 3071.0);
+        // 100 points right: the same factor for a brain and a bone window (e^(1/3) ≈ 1.40),
+        // where the old gain added ~1300 HU to either.
+        for width in [80.0, 2000.0] {
+            let w = drag_window(Window::new(40.0, width), Vec2::new(100.0, 0.0), ct_range);
+            let factor = w.width / width;
+            assert!(
+                (factor - (1.0f64 / 3.0).exp()).abs() < 1e-9,
+                "{width}: ×{factor}"
+            );
+            assert_eq!(w.centre, 40.0);
+        }
+        // 30 points up raises the level by a tenth of the width.
+        let w = drag_window(Window::new(40.0, 400.0), Vec2::new(0.0, -30.0), ct_range);
+        assert!((w.centre - 80.0).abs() < 1e-9 && w.width == 400.0);
+        // Dragging left for ever never collapses the window below the floor.
+        let mut w = Window::new(0.0, 10.0);
+        for _ in 0..100 {
+            w = drag_window(w, Vec2::new(-300.0, 0.0), ct_range);
+        }
+        assert!(w.width >= 4095.0 / 500.0 - 1e-9);
+    }
+}
