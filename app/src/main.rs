@@ -109,9 +109,12 @@ struct StoreArg {
 
 #[derive(clap::Args)]
 struct ViewArgs {
-    /// A store, or a scan to import first (DICOM folder or file, NIfTI, NRRD, MetaImage).
-    /// Without it, the demo phantom.
+    /// A store, a scan to import first (DICOM folder or file, NIfTI, NRRD, MetaImage), or
+    /// http://HOST:PORT/v1/stores/NAME served by `strata serve`. Without it, the demo phantom.
     path: Option<PathBuf>,
+    /// Bearer token for a server that requires one.
+    #[arg(long)]
+    token_file: Option<PathBuf>,
     /// DICOM: the series to open when a folder holds several (SeriesInstanceUID or index).
     #[arg(long)]
     series: Option<String>,
@@ -143,6 +146,9 @@ struct ViewArgs {
 
 fn view(args: ViewArgs) -> Result<()> {
     let source = match args.path {
+        Some(path) if volume_location::is_url(&path.to_string_lossy()) => {
+            viewer::url_source(path.to_string_lossy().into_owned(), args.token_file)
+        }
         Some(path) => viewer::path_source(path),
         None => viewer::demo_source(),
     };

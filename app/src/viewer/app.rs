@@ -9,7 +9,6 @@ use std::time::{Duration, Instant};
 
 use egui::{Color32, Key, Pos2, Rect, RichText, Sense, Vec2};
 use strata_render::{CropBox, RenderMode};
-use strata_storage::Store;
 
 use super::dialogs::{HelpWindow, OpenDialog};
 use super::history::History;
@@ -130,6 +129,7 @@ impl StrataApp {
     pub fn new(ctx: egui::Context, preferences: Preferences, options: ViewerOptions) -> Self {
         let open_path = match &options.source {
             VolumeSource::Path(p) => p.display().to_string(),
+            VolumeSource::Url { url, .. } => url.clone(),
             VolumeSource::Demo { .. } => preferences
                 .last_opened
                 .as_ref()
@@ -265,7 +265,10 @@ impl StrataApp {
         }
     }
 
-    fn open_store(&mut self, store: Arc<Store>) -> anyhow::Result<()> {
+    fn open_store(&mut self, store: Arc<dyn strata_source::VolumeSource>) -> anyhow::Result<()> {
+        // A local store's folder, or a served store's URL: what "open last" and the
+        // remembered measurements are keyed by.
+        let location = PathBuf::from(store.location());
         // Drop the old volume first: its threads and GPU memory go before the new ones start.
         self.volume = None;
         let repaint = lock_free_repaint(&self.ctx);
@@ -299,7 +302,7 @@ impl StrataApp {
         let dims = info.geometry.dims;
         let frames = SliceView::ALL.map(|v| SliceFrame::for_view(v, &info.geometry));
         let (lo, hi) = info.physical_range;
-        self.preferences.last_opened = Some(store.path().to_path_buf());
+        self.preferences.last_opened = Some(location.clone());
         self.panels.transfer_function.editor = TfEditorState::default();
         let orbit = match self.options.initial_view {
             Some(view) => OrbitCamera::standard(view, self.preferences.orthographic),
@@ -324,7 +327,7 @@ impl StrataApp {
             measurements: Measurements::with_items(
                 self.preferences
                     .measurements
-                    .get(&store.path().display().to_string())
+                    .get(&location.display().to_string())
                     .cloned()
                     .unwrap_or_default(),
             ),
@@ -338,7 +341,7 @@ impl StrataApp {
                 slices,
                 info,
                 frames,
-                store_path: store.path().to_path_buf(),
+                store_path: location,
             },
             scene,
             view_3d: View3d::new(orbit),
@@ -734,6 +737,10 @@ impl StrataApp {
                 } else if status.refining {
                     ui.spinner();
                     ui.label("refining…");
+                }
+                if let Some(line) = status.source_line() {
+                    // A remote store that cannot be reached: the view keeps what it has.
+                    ui.colored_label(Color32::YELLOW, line);
                 }
                 if let Some(e) = &status.error {
                     ui.colored_label(Color32::LIGHT_RED, e);

@@ -21,10 +21,15 @@ pub enum VolumeSource {
     Demo { path: PathBuf, size: u64 },
     /// A store, or anything the importer reads (imported into the data folder first).
     Path(PathBuf),
+    /// A store served by `strata serve` (`http(s)://HOST:PORT/v1/stores/NAME`), streamed.
+    Url {
+        url: String,
+        token_file: Option<PathBuf>,
+    },
 }
 
 /// The prepared store, or why it could not be prepared; None while the job runs.
-type PrepareOutcome = Arc<Mutex<Option<Result<Arc<Store>, String>>>>;
+type PrepareOutcome = Arc<Mutex<Option<Result<Arc<dyn strata_source::VolumeSource>, String>>>>;
 
 pub struct PrepareJob {
     pub title: String,
@@ -108,6 +113,7 @@ impl PrepareJob {
         let title = match &source {
             VolumeSource::Demo { size, .. } => format!("Preparing the {size}³ demo phantom"),
             VolumeSource::Path(p) => format!("Opening {}", p.display()),
+            VolumeSource::Url { url, .. } => format!("Opening {url}"),
         };
         let job = PrepareJob {
             title,
@@ -144,8 +150,7 @@ impl PrepareJob {
                     &set_stage,
                     &cancel,
                 )
-                .map(Arc::new)
-                .map_err(|e| format!("{e:#}"));
+                .map_err(|e| crate::error_report::describe(&e));
                 *lock_ignoring_poison(&result) = Some(outcome);
                 repaint();
             })?;
@@ -165,12 +170,51 @@ impl PrepareJob {
         self.cancel.store(true, Ordering::Release);
     }
 
-    pub fn take_result(&self) -> Option<Result<Arc<Store>, String>> {
+    pub fn take_result(&self) -> Option<Result<Arc<dyn strata_source::VolumeSource>, String>> {
         lock_ignoring_poison(&self.result).take()
     }
 }
 
+/// Opens what the user asked for as a volume source: a URL or a store through
+/// `volume_location` (which streams from `strata serve` when the server holds the store), a
+/// scan after importing it.
 fn prepare(
+    source: &VolumeSource,
+    dicom_series: Option<String>,
+    import_folder: &Path,
+    progress: &(dyn Fn(ImportProgress) + Sync),
+    set_stage: &dyn Fn(String),
+    cancel: &AtomicBool,
+) -> anyhow::Result<Arc<dyn strata_source::VolumeSource>> {
+    let cache = strata_storage::store::DEFAULT_READ_CACHE_BYTES;
+    match source {
+        VolumeSource::Url { url, token_file } => {
+            set_stage(format!("connecting to {url}"));
+            crate::volume_location::open_source(url, token_file.as_deref(), cache)
+        }
+        VolumeSource::Path(p) if crate::volume_location::is_url(&p.to_string_lossy()) => {
+            set_stage(format!("connecting to {}", p.display()));
+            crate::volume_location::open_source(&p.to_string_lossy(), None, cache)
+        }
+        VolumeSource::Path(p) if is_store(p) => {
+            set_stage(format!("opening store {}", p.display()));
+            crate::volume_location::open_source(&p.to_string_lossy(), None, cache)
+        }
+        _ => {
+            let store = prepare_store(
+                source,
+                dicom_series,
+                import_folder,
+                progress,
+                set_stage,
+                cancel,
+            )?;
+            Ok(Arc::new(store))
+        }
+    }
+}
+
+fn prepare_store(
     source: &VolumeSource,
     dicom_series: Option<String>,
     import_folder: &Path,
@@ -245,5 +289,63 @@ fn prepare(
             set_stage("opening".into());
             Ok(Store::open(&store_path)?)
         }
+        VolumeSource::Url { url, .. } => {
+            anyhow::bail!("{url} is a served store: it is streamed, not imported")
+        }
+    }
+}
+
+#[cfg(test)]
+mod remote_tests {
+    use super::*;
+    use std::time::{Duration, Instant};
+
+    fn wait_for(job: &PrepareJob) -> Result<Arc<dyn strata_source::VolumeSource>, String> {
+        let deadline = Instant::now() + Duration::from_secs(120);
+        loop {
+            if let Some(r) = job.take_result() {
+                return r;
+            }
+            assert!(Instant::now() < deadline, "the prepare job did not finish");
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    /// `strata view URL` and `strata view STORE` while `strata serve` holds it: both stream
+    /// from the server (the viewer's status then says "connection lost, retrying" on outages,
+    /// see `SessionStatus::source_line`).
+    #[test]
+    fn the_viewer_opens_a_served_store_by_url_and_by_its_path() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("served.strata");
+        Phantom::cube(40)
+            .write_store(&path, &ImportOptions::default())
+            .unwrap();
+        let name = strata_service::server::name_for_store(&path);
+        let server = strata_service::server::start(
+            vec![(name.clone(), path.clone())],
+            strata_service::server::ServeOptions::default(),
+        )
+        .unwrap();
+        let url = server.store_url(&name);
+        let repaint: Repaint = Arc::new(|| {});
+        for source in [
+            VolumeSource::Url {
+                url: url.clone(),
+                token_file: None,
+            },
+            VolumeSource::Path(path.clone()),
+        ] {
+            let job = PrepareJob::start(source.clone(), None, dir.path().into(), repaint.clone())
+                .unwrap();
+            let opened = wait_for(&job).unwrap_or_else(|e| panic!("{source:?}: {e}"));
+            assert_eq!(opened.header().geometry.dims, [40, 40, 40]);
+            assert_eq!(
+                opened.location(),
+                url,
+                "{source:?} should stream from the server"
+            );
+        }
+        server.stop();
     }
 }

@@ -83,3 +83,8 @@ pub fn demo_source() -> VolumeSource {
 pub fn path_source(path: PathBuf) -> VolumeSource {
     VolumeSource::Path(path)
 }
+
+/// A store served by `strata serve`, streamed (with the bearer token in `token_file`).
+pub fn url_source(url: String, token_file: Option<PathBuf>) -> VolumeSource {
+    VolumeSource::Url { url, token_file }
+}

@@ -88,7 +88,6 @@ pub struct SessionStatus {
 impl SessionStatus {
     /// What the status bar should show about the volume's source: "connection lost, retrying"
     /// while a remote store cannot be reached (the view keeps what it has), nothing otherwise.
-    #[cfg_attr(not(test), allow(dead_code))]
     pub fn source_line(&self) -> Option<String> {
         match &self.loader.as_ref()?.source_status {
             strata_source::SourceStatus::Available => None,
