@@ -369,6 +369,24 @@ fn a_store_on_read_only_media_says_so_with_the_remedy() {
     assert!(r2.text.contains("copy the store"), "{}", r2.text);
 }
 
+/// A slowed import of `input` into `store` (staging in `staging`), returned once it is
+/// writing its database: the moment the signal tests interrupt it.
+fn slow_import_in_progress(input: &Path, store: &Path, staging: &Path) -> std::process::Child {
+    let child = Command::new(STRATA)
+        .args(["import", s(input), s(store), "--staging-dir", s(staging)])
+        .env("STRATA_DEBUG_SLOW_IMPORT", "1")
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let deadline = Instant::now() + COMMAND_LIMIT;
+    while !store.join("db").exists() && Instant::now() < deadline {
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    std::thread::sleep(Duration::from_millis(250));
+    child
+}
+
 /// SIGKILL during a compressed import leaves its staging file (nothing can run on SIGKILL);
 /// the next import removes it, and the killed store reads as incomplete, never complete.
 #[cfg(unix)]
@@ -397,24 +415,7 @@ fn a_killed_compressed_import_leaves_no_staging_file_after_the_next_run() {
     std::fs::write(&packed, out).unwrap();
 
     let store = dir.path().join("killed.strata");
-    let mut child = Command::new(STRATA)
-        .args([
-            "import",
-            s(&packed),
-            s(&store),
-            "--staging-dir",
-            s(&staging),
-        ])
-        .env("STRATA_DEBUG_SLOW_IMPORT", "1")
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let deadline = Instant::now() + COMMAND_LIMIT;
-    while !store.join("db").exists() && Instant::now() < deadline {
-        std::thread::sleep(Duration::from_millis(10));
-    }
-    std::thread::sleep(Duration::from_millis(300));
+    let mut child = slow_import_in_progress(&packed, &store, &staging);
     child.kill().unwrap();
     child.wait().unwrap();
     assert_eq!(
@@ -472,24 +473,7 @@ fn an_interrupted_import_removes_its_staging_file() {
     let packed = dir.path().join("noise.nrrd");
     std::fs::write(&packed, bytes).unwrap();
     let store = dir.path().join("int.strata");
-    let child = Command::new(STRATA)
-        .args([
-            "import",
-            s(&packed),
-            s(&store),
-            "--staging-dir",
-            s(&staging),
-        ])
-        .env("STRATA_DEBUG_SLOW_IMPORT", "1")
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let deadline = Instant::now() + COMMAND_LIMIT;
-    while !store.join("db").exists() && Instant::now() < deadline {
-        std::thread::sleep(Duration::from_millis(10));
-    }
-    std::thread::sleep(Duration::from_millis(200));
+    let child = slow_import_in_progress(&packed, &store, &staging);
     let term = Command::new("kill")
         .args(["-TERM", &child.id().to_string()])
         .status()
