@@ -419,3 +419,24 @@ fn zero_pixel_spacing_is_treated_like_a_missing_one() {
         s.info.description
     );
 }
+
+/// NEMA's NM1_JPLY (pydicom's JPEG-lossy.dcm) has Se = 0 in its sequential scan header, which
+/// libjpeg and GDCM ignore with a warning and pydicom refuses; JPGExtended.dcm is the same file
+/// with that byte fixed. Strata repairs the field, says so, and must decode exactly the fixed
+/// file's voxels (the same decoder on the same entropy-coded data).
+#[test]
+fn jpeg_with_invalid_sequential_scan_header_decodes_like_its_fixed_copy() {
+    let s = open(&pydicom_file("JPEG-lossy.dcm"));
+    let fixed = open(&pydicom_file("JPGExtended.dcm"));
+    assert_eq!(all_values(&s), all_values(&fixed));
+    assert!(
+        s.info.description.contains("JPEG scan header repaired"),
+        "{}",
+        s.info.description
+    );
+    assert!(
+        !fixed.info.description.contains("repaired"),
+        "{}",
+        fixed.info.description
+    );
+}

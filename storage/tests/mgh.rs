@@ -250,3 +250,48 @@ fn bad_mgh_headers_fail_naming_the_file() {
     zero_size[30..34].copy_from_slice(&0f32.to_be_bytes());
     check("size.mgh", zero_size, "voxel sizes");
 }
+
+/// A real scan (chris_t1, see shared/data/SOURCES.md) converted to MGZ by nibabel opens with the
+/// same voxels and the same patient-space geometry as the NIfTI it came from (the NIfTI reader
+/// agrees with SimpleITK and nibabel). Skipped when the data folder is absent.
+#[test]
+fn real_scan_as_mgz_matches_its_nifti() {
+    let nii =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/niivue/chris_t1.nii.gz");
+    if !nii.is_file() {
+        eprintln!("SKIP: real test data not found at {}", nii.display());
+        return;
+    }
+    let t = tempfile::tempdir().unwrap();
+    let mgz = t.path().join("chris_t1.mgz");
+    python(&format!(
+        "import nibabel as nib, numpy as np; i = nib.load(r'{}'); d = np.asanyarray(i.dataobj); t = d.dtype if d.dtype in (np.uint8, np.int16, np.int32, np.float32) else np.float32; nib.save(nib.MGHImage(d.astype(t), i.affine), r'{}')",
+        nii.display(),
+        mgz.display()
+    ));
+    let a = open_source(&nii, &ReadOptions::default()).unwrap();
+    let b = open_source(&mgz, &ReadOptions::default()).unwrap();
+    assert_eq!(a.data.dims, b.data.dims);
+    let (ga, gb) = (&a.info.geometry, &b.info.geometry);
+    // MGH stores float32 directions, sizes and centre: agreement to float32 precision.
+    for axis in 0..3 {
+        for c in 0..3 {
+            let (x, y) = (
+                ga.direction[axis][c] * ga.spacing_mm[axis],
+                gb.direction[axis][c] * gb.spacing_mm[axis],
+            );
+            assert!((x - y).abs() < 1e-5, "axis {axis}: {ga:?} vs {gb:?}");
+        }
+        assert!(
+            (ga.origin_lps_mm[axis] - gb.origin_lps_mm[axis]).abs() < 1e-3,
+            "origin: {ga:?} vs {gb:?}"
+        );
+    }
+    let scale = |s: &OpenedSource| -> Vec<f64> {
+        all_values(s)
+            .iter()
+            .map(|v| v * s.info.slope + s.info.intercept)
+            .collect()
+    };
+    assert_eq!(scale(&a), scale(&b));
+}

@@ -1025,9 +1025,15 @@ fn assemble(
                         &mut buf,
                     );
                 }
-                Loaded::Object(obj) => {
-                    decode_frame(h, obj, f.frame, output, f.slope, f.intercept, &mut buf)?
-                }
+                Loaded::Object(obj) => decode_frame(
+                    h,
+                    obj,
+                    f.frame,
+                    output,
+                    (f.slope, f.intercept),
+                    &mut buf,
+                    &mut notes,
+                )?,
             }
             out.write_all(&buf)
                 .map_err(|e| StorageError::io(display, e))?;
@@ -1073,9 +1079,9 @@ fn decode_frame(
     obj: &DefaultDicomObject,
     frame: u32,
     output: Output,
-    slope: f64,
-    intercept: f64,
+    (slope, intercept): (f64, f64),
     out: &mut Vec<u8>,
+    notes: &mut Vec<String>,
 ) -> Result<()> {
     let bytes_per = (h.bits_allocated / 8) as usize;
     let frame_len = h.rows as usize * h.cols as usize * bytes_per;
@@ -1128,18 +1134,30 @@ fn decode_frame(
         }
         value if h.transfer_syntax == uids::JPEG_EXTENDED12_BIT && h.bits_allocated == 16 => {
             let jpeg = frame_fragments(h, value, frame)?;
-            let samples = crate::readers::jpeg12::decode_12bit_frame(
+            let (samples, repaired) = crate::readers::jpeg12::decode_12bit_frame(
                 &h.path,
                 frame + 1,
                 &jpeg,
                 h.cols,
                 h.rows,
             )?;
+            if let Some(note) = repaired {
+                if !notes.iter().any(|n| n == note) {
+                    notes.push(note.to_string());
+                }
+            }
             let bytes: Vec<u8> = samples.iter().flat_map(|v| v.to_ne_bytes()).collect();
             convert(h, &bytes, NATIVE, output, slope, intercept, out);
             return Ok(());
         }
-        _ => {
+        value => {
+            if let Some(codec) = codestream_with_end_marker(&h.transfer_syntax) {
+                // A cut codestream makes CharLS spin for many seconds and OpenJPEG decode a
+                // degraded image without an error: both end in a marker, checked first.
+                if let Ok(bytes) = frame_fragments(h, value, frame) {
+                    check_end_marker(h, &bytes, frame, codec)?;
+                }
+            }
             let ts = obj.meta().transfer_syntax().to_string();
             decoded = obj.decode_pixel_data_frame(frame).map_err(|e| {
                 StorageError::unsupported(
@@ -1163,6 +1181,35 @@ fn decode_frame(
     }
     convert(h, &src[..frame_len], NATIVE, output, slope, intercept, out);
     Ok(())
+}
+
+/// Codecs whose codestream must end in the end-of-image (JPEG-LS EOI) or end-of-codestream
+/// (JPEG 2000 EOC) marker, 0xFFD9 in both.
+fn codestream_with_end_marker(uid: &str) -> Option<&'static str> {
+    Some(match uid {
+        uids::JPEGLS_LOSSLESS | uids::JPEGLS_NEAR_LOSSLESS => "JPEG-LS",
+        uids::JPEG2000_LOSSLESS | uids::JPEG2000 | uids::JPEG2000MC_LOSSLESS | uids::JPEG2000MC => {
+            "JPEG 2000"
+        }
+        _ => return None,
+    })
+}
+
+/// Refuses a codestream that does not end in 0xFFD9 (after the zero padding that makes DICOM
+/// fragments even): it was cut short.
+fn check_end_marker(h: &ImageHeader, bytes: &[u8], frame: u32, codec: &str) -> Result<()> {
+    let end = bytes.iter().rposition(|&b| b != 0).map_or(0, |i| i + 1);
+    if end >= 2 && bytes[end - 2..end] == [0xFF, 0xD9] {
+        return Ok(());
+    }
+    Err(StorageError::invalid(
+        &h.path,
+        format!(
+            "truncated data: the {codec} codestream of frame {} ({} bytes) does not end in its end marker (FFD9); the file was cut short or damaged",
+            frame + 1,
+            bytes.len()
+        ),
+    ))
 }
 
 /// The encoded bytes of frame `frame` of encapsulated pixel data: one fragment per frame, all
