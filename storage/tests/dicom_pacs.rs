@@ -2,8 +2,9 @@
 //! JPEG-LS) checked against pydicom's bundled test files and pydicom's own decode (pylibjpeg
 //! plugins), RT Dose frame spacing and dose scaling, and unusable PixelSpacing.
 //!
-//! The reference files come from pydicom's wheel (`pydicom/data/test_files`, bundled offline);
-//! without pydicom these tests FAIL with the install command, as CI installs it (.ci/run).
+//! The reference files are pydicom's test files: those bundled in its wheel and those of the
+//! `pydicom-data` package (PyPI), both found offline by `pydicom.data.get_testdata_file`.
+//! Without them these tests FAIL with the install command, as CI installs them (.ci/run).
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -12,8 +13,7 @@ use strata_storage::import::{import_source, ImportOptions};
 use strata_storage::readers::{open_source, ReadOptions};
 use strata_storage::{OpenedSource, SampleType, Store};
 
-const INSTALL: &str =
-    "pip install pydicom pylibjpeg pylibjpeg-libjpeg pylibjpeg-openjpeg numpy (CI: .ci/run)";
+const INSTALL: &str = "pip install pydicom pydicom-data pylibjpeg pylibjpeg-libjpeg pylibjpeg-openjpeg numpy (CI: .ci/run)";
 
 /// Runs a python snippet and returns its stdout; fails the test with the install hint when
 /// python or pydicom is missing.
@@ -33,17 +33,26 @@ fn python(code: &str) -> String {
     String::from_utf8_lossy(&out.stdout).trim().to_string()
 }
 
-/// The path of one of pydicom's bundled test files.
+/// The path of one of pydicom's test files (its own or pydicom-data's).
 fn pydicom_file(name: &str) -> PathBuf {
-    let p = PathBuf::from(python(&format!(
-        "import pydicom.data, os; print(os.path.join(os.path.dirname(pydicom.data.__file__), 'test_files', '{name}'))"
-    )));
-    assert!(
-        p.is_file(),
-        "{} is not in this pydicom install: {INSTALL}",
-        p.display()
-    );
-    p
+    pydicom_files(&[name]).remove(0)
+}
+
+/// Paths of several of pydicom's test files, looked up in one python run (each run costs
+/// seconds on a loaded machine).
+fn pydicom_files(names: &[&str]) -> Vec<PathBuf> {
+    let printed = python(&format!(
+        "from pydicom.data import get_testdata_file\nfor n in {names:?}: print(get_testdata_file(n) or '-')"
+    ));
+    let paths: Vec<PathBuf> = printed.lines().map(PathBuf::from).collect();
+    assert_eq!(paths.len(), names.len(), "{printed}");
+    for (p, name) in paths.iter().zip(names) {
+        assert!(
+            p.is_file(),
+            "pydicom test file {name} not found offline: {INSTALL}"
+        );
+    }
+    paths
 }
 
 /// pydicom's decode of `path` (all frames, i fastest), through its pylibjpeg plugins.
@@ -88,23 +97,54 @@ fn stored_description(src: OpenedSource) -> String {
 
 #[test]
 fn lossless_jpeg2000_and_jpegls_import_to_the_voxels_of_their_uncompressed_twin() {
-    let plain = open(&pydicom_file("MR_small.dcm"));
-    let reference = all_values(&plain);
-    assert_eq!(reference.len(), 64 * 64);
-    for twin in [
-        "MR_small_jp2klossless.dcm",
-        "MR_small_jpeg_ls_lossless.dcm",
-        "MR_small_RLE.dcm",
+    for (plain, twins) in [
+        // MR 64x64, one frame.
+        (
+            "MR_small.dcm",
+            &[
+                "MR_small_jp2klossless.dcm",
+                "MR_small_jpeg_ls_lossless.dcm",
+                "MR_small_RLE.dcm",
+            ][..],
+        ),
+        // Enhanced MR, 10 frames of 64x64: frames found per fragment.
+        (
+            "emri_small.dcm",
+            &[
+                "emri_small_jpeg_2k_lossless.dcm",
+                "emri_small_jpeg_ls_lossless.dcm",
+                "emri_small_RLE.dcm",
+                // Only the pixel data's 8-byte sequence delimiter is missing at the end of the
+                // file (pydicom refuses it): every fragment is whole, so are the voxels.
+                "emri_small_jpeg_2k_lossless_too_short.dcm",
+            ][..],
+        ),
+        // NEMA WG04: CT 512x512 (14 bits stored), JPEG 2000 reversible. (MR2_J2KR, 1024x1024,
+        // also matches its MR2_UNCR twin, but takes ~20 s to decode in a debug test run.)
+        ("693_UNCR.dcm", &["693_J2KR.dcm"][..]),
     ] {
-        let s = open(&pydicom_file(twin));
-        assert_eq!(s.info.sample_type, plain.info.sample_type, "{twin}");
-        assert_eq!(s.info.geometry, plain.info.geometry, "{twin}");
-        assert_eq!(all_values(&s), reference, "{twin}: voxels differ");
+        let mut paths = pydicom_files(&[&[plain][..], twins].concat());
+        let plain_source = open(&paths.remove(0));
+        let reference = all_values(&plain_source);
         assert!(
-            !s.info.description.contains("lossy"),
-            "{twin}: {}",
-            s.info.description
+            reference.iter().any(|&v| v != reference[0]),
+            "{plain} is flat"
         );
+        for (twin, path) in twins.iter().zip(&paths) {
+            let s = open(path);
+            assert_eq!(s.info.sample_type, plain_source.info.sample_type, "{twin}");
+            assert_eq!(s.info.geometry, plain_source.info.geometry, "{twin}");
+            assert_eq!(
+                all_values(&s),
+                reference,
+                "{twin}: voxels differ from {plain}"
+            );
+            assert!(
+                !s.info.description.contains("lossy"),
+                "{twin}: {}",
+                s.info.description
+            );
+        }
     }
 }
 

@@ -1195,11 +1195,13 @@ fn codestream_with_end_marker(uid: &str) -> Option<&'static str> {
     })
 }
 
-/// Refuses a codestream that does not end in 0xFFD9 (after the zero padding that makes DICOM
-/// fragments even): it was cut short.
+/// Refuses a codestream that does not end in 0xFFD9, after the padding that makes DICOM
+/// fragments even (zeros, or one byte of any value: NEMA's MR2_J2KR pads with 0xFF): it was cut
+/// short.
 fn check_end_marker(h: &ImageHeader, bytes: &[u8], frame: u32, codec: &str) -> Result<()> {
     let end = bytes.iter().rposition(|&b| b != 0).map_or(0, |i| i + 1);
-    if end >= 2 && bytes[end - 2..end] == [0xFF, 0xD9] {
+    let ends_at = |e: usize| e >= 2 && bytes[e - 2..e] == [0xFF, 0xD9];
+    if ends_at(end) || ends_at(end.saturating_sub(1)) {
         return Ok(());
     }
     Err(StorageError::invalid(
