@@ -148,6 +148,16 @@ fn lossless_jpeg2000_and_jpegls_import_to_the_voxels_of_their_uncompressed_twin(
     }
 }
 
+/// A JPEG 2000 codestream whose signedness disagrees with PixelRepresentation (pydicom's
+/// J2K_pixelrep_mismatch.dcm, CT 512x512, 13 bits stored): pydicom follows the DICOM header.
+#[test]
+fn jpeg2000_with_signedness_mismatch_matches_pydicom() {
+    let p = pydicom_file("J2K_pixelrep_mismatch.dcm");
+    let s = open(&p);
+    assert_eq!(s.info.sample_type, SampleType::I16);
+    assert_eq!(all_values(&s), pydicom_pixels(&p));
+}
+
 #[test]
 fn jpeg2000_lossy_matches_pydicom_and_says_lossy() {
     for name in ["JPEG2000.dcm", "693_J2KI.dcm"] {

@@ -13,7 +13,8 @@ use turbojpeg_sys as tj;
 
 use crate::error::{Result, StorageError};
 
-/// libjpeg-turbo's own working memory, in MiB; a 12-bit frame of 8192² needs about 130.
+/// libjpeg-turbo's own working memory, in MiB: a progressive 12-bit frame of 8192² keeps
+/// 128 MiB of coefficients; a sequential one needs a few rows of blocks.
 const MAX_DECODER_MEMORY_MIB: c_int = 1024;
 /// Progressive JPEG with thousands of scans is a known decompression bomb; real ones have ~10.
 const MAX_SCANS: c_int = 500;
