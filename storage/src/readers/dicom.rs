@@ -67,8 +67,16 @@ struct ImageHeader {
     samples_per_pixel: u16,
     photometric: String,
     windows: Vec<WindowPreset>,
-    /// Slice thickness / spacing between slices, only used when positions cannot tell.
-    gap_hint: Option<f64>,
+    /// Slice spacing when positions cannot tell, and where it came from (for the description).
+    gap_hint: Option<(f64, &'static str)>,
+    /// The pixel data's transfer syntax UID.
+    transfer_syntax: String,
+    /// LossyImageCompression "01": the pixels went through a lossy codec at some point.
+    lossy_history: bool,
+    /// What the reader assumed or derived for this file (fallback spacings), for the description.
+    notes: Vec<String>,
+    /// RT Dose: DoseGridScaling (dose = stored · scaling) and DoseUnits ("GY", "RELATIVE").
+    dose: Option<(f64, String)>,
     frames: Vec<FrameInfo>,
     /// File offset of uncompressed little-endian pixel data, when found: frames are then read
     /// straight from the file, so a multi-gigabyte multi-frame file never sits in memory.
@@ -224,7 +232,8 @@ fn read_header(path: &Path) -> Result<Option<ImageHeader>> {
             tags::PIXEL_SPACING,
         ))
         .filter(|v| v.len() == 2)
-        .map(|v| [v[0], v[1]]);
+        .map(|v| [v[0], v[1]])
+        .filter(|v| usable_spacing(*v));
         let slope = floats(fg_attr(
             &obj,
             &groups,
@@ -253,40 +262,116 @@ fn read_header(path: &Path) -> Result<Option<ImageHeader>> {
             instance,
         });
     }
-    let groups0 = [per_frame.first(), shared];
-    let gap_hint = floats(fg_attr(
+    // In-plane spacing: a missing PixelSpacing and a zero one ("0\0", seen on CR) are treated
+    // alike: ImagerPixelSpacing (at the detector) first, then 1 mm, saying so either way.
+    let stated_spacing = floats(fg_attr(
         &obj,
-        &groups0,
+        &[per_frame.first(), shared],
         tags::PIXEL_MEASURES_SEQUENCE,
-        tags::SPACING_BETWEEN_SLICES,
-    ))
-    .or_else(|| {
-        floats(fg_attr(
-            &obj,
-            &groups0,
-            tags::PIXEL_MEASURES_SEQUENCE,
-            tags::SLICE_THICKNESS,
-        ))
-    })
-    .and_then(|v| v.first().copied())
-    .filter(|v| *v > 0.0);
+        tags::PIXEL_SPACING,
+    ));
+    let mut notes = Vec::new();
+    if frames.iter().any(|f| f.pixel_spacing.is_none()) {
+        let what = match &stated_spacing {
+            Some(v) => format!("PixelSpacing {v:?} unusable"),
+            None => "no PixelSpacing".to_string(),
+        };
+        let imager = floats(obj.get(tags::IMAGER_PIXEL_SPACING))
+            .filter(|v| v.len() == 2)
+            .map(|v| [v[0], v[1]])
+            .filter(|v| usable_spacing(*v));
+        let fallback = match imager {
+            Some(v) => {
+                notes.push(format!(
+                    "{what}: ImagerPixelSpacing {}\\{} mm used (at the detector, not corrected for magnification)",
+                    v[0], v[1]
+                ));
+                v
+            }
+            None => {
+                notes.push(format!("{what}: 1 mm pixels assumed"));
+                [1.0, 1.0]
+            }
+        };
+        for f in frames.iter_mut().filter(|f| f.pixel_spacing.is_none()) {
+            f.pixel_spacing = Some(fallback);
+        }
+    }
 
-    // Classic multi-frame (NM, US, old MR) states one position for the whole stack; step along
-    // the slice normal by the slice gap so the frames still sort and space correctly.
+    let groups0 = [per_frame.first(), shared];
+    let positive = |tag: Tag| {
+        floats(fg_attr(&obj, &groups0, tags::PIXEL_MEASURES_SEQUENCE, tag))
+            .and_then(|v| v.first().copied())
+            .filter(|v| *v > 0.0)
+    };
+    let gap_hint = positive(tags::SPACING_BETWEEN_SLICES)
+        .map(|g| (g, "SpacingBetweenSlices"))
+        .or_else(|| positive(tags::SLICE_THICKNESS).map(|g| (g, "SliceThickness")));
+
+    // RT Dose and other classic multi-frame objects: GridFrameOffsetVector gives each frame's
+    // offset along the slice normal (relative to the first frame when it starts at 0, absolute
+    // otherwise; the difference to the first entry is right either way).
+    let frame_offsets = floats(obj.get(tags::GRID_FRAME_OFFSET_VECTOR));
+    if let Some(off) = &frame_offsets {
+        if n_frames > 1 && off.len() != n_frames as usize {
+            return Err(StorageError::invalid(
+                path,
+                format!(
+                    "GridFrameOffsetVector has {} entries for {n_frames} frames",
+                    off.len()
+                ),
+            ));
+        }
+    }
+
+    // Classic multi-frame (NM, US, old MR, RT Dose) states one position for the whole stack;
+    // step along the slice normal by the frame offsets or the slice gap so the frames still sort
+    // and space correctly. Without either, 1 mm is assumed and said.
     if n_frames > 1 && per_frame.is_empty() {
         if let (Some(ipp), Some(iop)) = (frames[0].ipp, frames[0].iop) {
             let normal = cross([iop[0], iop[1], iop[2]], [iop[3], iop[4], iop[5]]);
-            let gap = gap_hint.unwrap_or(1.0);
+            let step = |k: usize| -> f64 {
+                match (&frame_offsets, gap_hint) {
+                    (Some(off), _) => off[k] - off[0],
+                    (None, Some((g, _))) => g * k as f64,
+                    (None, None) => k as f64,
+                }
+            };
             for (k, fr) in frames.iter_mut().enumerate() {
-                let d = gap * k as f64;
+                let d = step(k);
                 fr.ipp = Some([
                     ipp[0] + normal[0] * d,
                     ipp[1] + normal[1] * d,
                     ipp[2] + normal[2] * d,
                 ]);
             }
+            if frame_offsets.is_none() && gap_hint.is_none() {
+                notes.push(
+                    "frames 1 mm apart assumed (no GridFrameOffsetVector, SpacingBetweenSlices or SliceThickness)"
+                        .to_string(),
+                );
+            }
         }
     }
+
+    let dose = if text(&obj, tags::MODALITY).as_deref() == Some("RTDOSE")
+        || obj.get(tags::DOSE_GRID_SCALING).is_some()
+    {
+        let scaling = floats(obj.get(tags::DOSE_GRID_SCALING))
+            .and_then(|v| v.first().copied())
+            .filter(|s| *s != 0.0);
+        let units = text(&obj, tags::DOSE_UNITS).unwrap_or_else(|| "unknown units".into());
+        if let Some(s) = scaling {
+            for f in frames.iter_mut() {
+                // DoseGridScaling is the slope; RescaleSlope (rare in RT Dose) would multiply.
+                f.slope *= s;
+                f.intercept *= s;
+            }
+        }
+        Some((scaling.unwrap_or(1.0), units))
+    } else {
+        None
+    };
 
     let mut windows = shared
         .and_then(|s| seq_item(s, tags::FRAME_VOILUT_SEQUENCE))
@@ -317,6 +402,14 @@ fn read_header(path: &Path) -> Result<Option<ImageHeader>> {
 
     Ok(Some(ImageHeader {
         native_offset,
+        transfer_syntax: obj
+            .meta()
+            .transfer_syntax()
+            .trim_end_matches('\0')
+            .to_string(),
+        lossy_history: text(&obj, tags::LOSSY_IMAGE_COMPRESSION).as_deref() == Some("01"),
+        notes,
+        dose,
         path: path.to_path_buf(),
         series_uid: text(&obj, tags::SERIES_INSTANCE_UID).unwrap_or_default(),
         series_number: int(&obj, tags::SERIES_NUMBER),
@@ -565,6 +658,27 @@ pub(crate) fn open_dicom_file(path: &Path, options: &ReadOptions) -> Result<Open
     }
 }
 
+/// A pixel spacing that can enter the geometry: positive and finite ("0\0" is not).
+fn usable_spacing(v: [f64; 2]) -> bool {
+    v.iter().all(|s| s.is_finite() && *s > 0.0)
+}
+
+/// The codec name of a transfer syntax whose pixels are lossy by definition, for the
+/// description; JPEG-LS near-lossless (.81) counts because its error bound is above zero in
+/// practice (a zero bound would have been written as .80).
+fn lossy_transfer_syntax(uid: &str) -> Option<&'static str> {
+    Some(match uid {
+        uids::JPEG_BASELINE8_BIT => "JPEG baseline",
+        uids::JPEG_EXTENDED12_BIT => "JPEG extended (12-bit)",
+        uids::JPEG2000 => "JPEG 2000",
+        uids::JPEG2000MC => "JPEG 2000 multi-component",
+        uids::JPEGLS_NEAR_LOSSLESS => "JPEG-LS near-lossless",
+        uids::HTJ2K => "HTJ2K",
+        uids::JPEGXL => "JPEG XL",
+        _ => return None,
+    })
+}
+
 /// The pixel source of the file being decoded.
 enum Loaded {
     Native(std::fs::File, u64),
@@ -667,6 +781,22 @@ fn assemble(
         // Values are kept as stored; only the display convention (high = dark) differs.
         notes.push("MONOCHROME1: low values are meant to display bright".to_string());
     }
+    for n in &first.notes {
+        notes.push(n.clone());
+    }
+    if let Some((scaling, units)) = &first.dose {
+        notes.push(format!(
+            "dose in {units} (DoseGridScaling {scaling} applied)"
+        ));
+    }
+    if let Some(name) = lossy_transfer_syntax(&first.transfer_syntax) {
+        notes.push(format!("lossy {name} source"));
+    } else if first.lossy_history {
+        notes.push(
+            "lossy-compressed at some point (LossyImageCompression 01), stored uncompressed now"
+                .to_string(),
+        );
+    }
     let pixel_spacing = frames[0].pixel_spacing.unwrap_or_else(|| {
         notes.push("no PixelSpacing: 1 mm assumed".to_string());
         [1.0, 1.0]
@@ -709,7 +839,16 @@ fn assemble(
         let n = frames.len();
         let p0 = frames[0].ipp.unwrap_or([0.0; 3]);
         if n == 1 {
-            ([row, col, normal], p0, first.gap_hint.unwrap_or(1.0))
+            let gap = match first.gap_hint {
+                Some((g, _)) => g,
+                None => {
+                    notes.push(
+                        "single slice without SliceThickness: 1 mm thickness assumed".to_string(),
+                    );
+                    1.0
+                }
+            };
+            ([row, col, normal], p0, gap)
         } else {
             for w in frames.windows(2) {
                 if (pos(&w[1]) - pos(&w[0])).abs() < 1e-4 {
@@ -777,10 +916,25 @@ fn assemble(
             );
         }
         frames.sort_by_key(|f| (f.instance, f.file, f.frame));
+        let gap = match first.gap_hint {
+            Some((g, from)) => {
+                if frames.len() > 1 {
+                    notes.push(format!("slice spacing {g} mm from {from}"));
+                }
+                g
+            }
+            None => {
+                notes.push(
+                    "1 mm slice spacing assumed (no positions, SpacingBetweenSlices or SliceThickness)"
+                        .to_string(),
+                );
+                1.0
+            }
+        };
         (
             [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
             frames[0].ipp.unwrap_or([0.0; 3]),
-            first.gap_hint.unwrap_or(1.0),
+            gap,
         )
     };
     if norm(cross(direction[0], direction[1])) < 1e-3 {
@@ -871,9 +1025,15 @@ fn assemble(
                         &mut buf,
                     );
                 }
-                Loaded::Object(obj) => {
-                    decode_frame(h, obj, f.frame, output, f.slope, f.intercept, &mut buf)?
-                }
+                Loaded::Object(obj) => decode_frame(
+                    h,
+                    obj,
+                    f.frame,
+                    output,
+                    (f.slope, f.intercept),
+                    &mut buf,
+                    &mut notes,
+                )?,
             }
             out.write_all(&buf)
                 .map_err(|e| StorageError::io(display, e))?;
@@ -919,9 +1079,9 @@ fn decode_frame(
     obj: &DefaultDicomObject,
     frame: u32,
     output: Output,
-    slope: f64,
-    intercept: f64,
+    (slope, intercept): (f64, f64),
     out: &mut Vec<u8>,
+    notes: &mut Vec<String>,
 ) -> Result<()> {
     let bytes_per = (h.bits_allocated / 8) as usize;
     let frame_len = h.rows as usize * h.cols as usize * bytes_per;
@@ -972,7 +1132,32 @@ fn decode_frame(
             convert(h, slice, NATIVE, output, slope, intercept, out);
             return Ok(());
         }
-        _ => {
+        value if h.transfer_syntax == uids::JPEG_EXTENDED12_BIT && h.bits_allocated == 16 => {
+            let jpeg = frame_fragments(h, value, frame)?;
+            let (samples, repaired) = crate::readers::jpeg12::decode_12bit_frame(
+                &h.path,
+                frame + 1,
+                &jpeg,
+                h.cols,
+                h.rows,
+            )?;
+            if let Some(note) = repaired {
+                if !notes.iter().any(|n| n == note) {
+                    notes.push(note.to_string());
+                }
+            }
+            let bytes: Vec<u8> = samples.iter().flat_map(|v| v.to_ne_bytes()).collect();
+            convert(h, &bytes, NATIVE, output, slope, intercept, out);
+            return Ok(());
+        }
+        value => {
+            if let Some(codec) = codestream_with_end_marker(&h.transfer_syntax) {
+                // A cut codestream makes CharLS spin for many seconds and OpenJPEG decode a
+                // degraded image without an error: both end in a marker, checked first.
+                if let Ok(bytes) = frame_fragments(h, value, frame) {
+                    check_end_marker(h, &bytes, frame, codec)?;
+                }
+            }
             let ts = obj.meta().transfer_syntax().to_string();
             decoded = obj.decode_pixel_data_frame(frame).map_err(|e| {
                 StorageError::unsupported(
@@ -996,6 +1181,84 @@ fn decode_frame(
     }
     convert(h, &src[..frame_len], NATIVE, output, slope, intercept, out);
     Ok(())
+}
+
+/// Codecs whose codestream must end in the end-of-image (JPEG-LS EOI) or end-of-codestream
+/// (JPEG 2000 EOC) marker, 0xFFD9 in both.
+fn codestream_with_end_marker(uid: &str) -> Option<&'static str> {
+    Some(match uid {
+        uids::JPEGLS_LOSSLESS | uids::JPEGLS_NEAR_LOSSLESS => "JPEG-LS",
+        uids::JPEG2000_LOSSLESS | uids::JPEG2000 | uids::JPEG2000MC_LOSSLESS | uids::JPEG2000MC => {
+            "JPEG 2000"
+        }
+        _ => return None,
+    })
+}
+
+/// Refuses a codestream that does not end in 0xFFD9, after the padding that makes DICOM
+/// fragments even (zeros, or one byte of any value: NEMA's MR2_J2KR pads with 0xFF): it was cut
+/// short.
+fn check_end_marker(h: &ImageHeader, bytes: &[u8], frame: u32, codec: &str) -> Result<()> {
+    let end = bytes.iter().rposition(|&b| b != 0).map_or(0, |i| i + 1);
+    let ends_at = |e: usize| e >= 2 && bytes[e - 2..e] == [0xFF, 0xD9];
+    if ends_at(end) || ends_at(end.saturating_sub(1)) {
+        return Ok(());
+    }
+    Err(StorageError::invalid(
+        &h.path,
+        format!(
+            "truncated data: the {codec} codestream of frame {} ({} bytes) does not end in its end marker (FFD9); the file was cut short or damaged",
+            frame + 1,
+            bytes.len()
+        ),
+    ))
+}
+
+/// The encoded bytes of frame `frame` of encapsulated pixel data: one fragment per frame, all
+/// fragments for a single frame, or the fragments the Basic Offset Table assigns to it.
+fn frame_fragments(
+    h: &ImageHeader,
+    value: &DicomValue<Obj, dicom_core::value::InMemFragment>,
+    frame: u32,
+) -> Result<Vec<u8>> {
+    let (Some(fragments), Some(table)) = (value.fragments(), value.offset_table()) else {
+        return Err(StorageError::invalid(
+            &h.path,
+            "PixelData is not encapsulated although the transfer syntax is compressed",
+        ));
+    };
+    let n_frames = h.frames.len();
+    let f = frame as usize;
+    if n_frames == 1 {
+        return Ok(fragments.concat());
+    }
+    if fragments.len() == n_frames {
+        return Ok(fragments[f].clone());
+    }
+    if table.len() == n_frames {
+        // Offsets count from the first fragment's item header; each item header is 8 bytes.
+        let mut out = Vec::new();
+        let mut at = 0u64;
+        let start = u64::from(table[f]);
+        let end = table.get(f + 1).map_or(u64::MAX, |&e| u64::from(e));
+        for frag in fragments {
+            if at >= start && at < end {
+                out.extend_from_slice(frag);
+            }
+            at += 8 + frag.len() as u64;
+        }
+        if !out.is_empty() {
+            return Ok(out);
+        }
+    }
+    Err(StorageError::invalid(
+        &h.path,
+        format!(
+            "cannot tell which of the {} PixelData fragments hold frame {} of {n_frames} (no usable offset table)",
+            fragments.len(),
+            frame + 1
+        ),
+    ))
 }
 
 /// Native-endian samples → staging bytes, masking bits above BitsStored (some scanners keep

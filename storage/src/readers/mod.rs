@@ -1,5 +1,7 @@
 //! Format readers. Each turns an input path into an [`OpenedSource`]:
-//! DICOM (folder series, single and enhanced multi-frame files), NIfTI-1/2, NRRD, MetaImage, raw.
+//! DICOM (folder series, single and enhanced multi-frame files; uncompressed, RLE, JPEG baseline,
+//! extended 12-bit and lossless, JPEG 2000, JPEG-LS), NIfTI-1/2, NRRD, MetaImage, FreeSurfer
+//! MGH/MGZ, raw.
 //!
 //! Readers never decode a whole volume into memory. Uncompressed inputs are mapped in place;
 //! compressed ones (gzip, zlib, DICOM pixel data) are streamed into a temporary raw file first,
@@ -8,7 +10,9 @@
 mod common;
 mod dicom;
 mod dicom_bounds;
+mod jpeg12;
 mod metaimage;
+mod mgh;
 mod nifti;
 mod nrrd;
 mod raw;
@@ -48,7 +52,7 @@ pub struct RawSpec {
 
 pub(crate) const SUPPORTED: &str =
     "DICOM (.dcm file or a folder of slices), NIfTI (.nii, .nii.gz, .hdr/.img), \
-NRRD (.nrrd, .nhdr), MetaImage (.mha, .mhd), or raw with explicit dimensions and type";
+NRRD (.nrrd, .nhdr), MetaImage (.mha, .mhd), FreeSurfer MGH (.mgh, .mgz), or raw with explicit dimensions and type";
 
 /// Opens any supported volume; the format follows from the path (folder, extension, DICM magic).
 pub fn open_source(path: &Path, options: &ReadOptions) -> Result<OpenedSource> {
@@ -85,6 +89,9 @@ pub fn open_source(path: &Path, options: &ReadOptions) -> Result<OpenedSource> {
     }
     if name.ends_with(".mha") || name.ends_with(".mhd") {
         return metaimage::open_metaimage(path, options);
+    }
+    if name.ends_with(".mgh") || name.ends_with(".mgz") || name.ends_with(".mgh.gz") {
+        return mgh::open_mgh(path, options);
     }
     if name.ends_with(".dcm") || name.ends_with(".dicom") || has_dicom_preamble(path) {
         return dicom::open_dicom_file(path, options);
