@@ -15,7 +15,7 @@ use std::time::Instant;
 
 use rayon::prelude::*;
 
-use crate::brick::{encode_brick, extract_brick, value_range};
+use crate::brick::{encode_brick, extract_brick, value_range, BrickCodec};
 use crate::error::{Result, StorageError};
 use crate::geometry::VolumeGeometry;
 use crate::histogram::{Histogram, StoredValueCounts};
@@ -67,6 +67,9 @@ pub struct ImportOptions<'a> {
     pub memory_budget_bytes: u64,
     pub cancel: Option<&'a AtomicBool>,
     pub progress: Option<&'a (dyn Fn(ImportProgress) + Sync)>,
+    /// The brick codec. [`BrickCodec::Lz4`] writes a format-1 store, exactly as builds before
+    /// format 2 did (for tests of old stores and the codec benchmark).
+    pub codec: BrickCodec,
 }
 
 impl Default for ImportOptions<'_> {
@@ -75,6 +78,7 @@ impl Default for ImportOptions<'_> {
             memory_budget_bytes: 1 << 30,
             cancel: None,
             progress: None,
+            codec: BrickCodec::default(),
         }
     }
 }
@@ -83,6 +87,19 @@ impl Default for ImportOptions<'_> {
 pub struct ImportReport {
     pub stats: StoreStats,
     pub header: StoreHeader,
+    pub profile: ImportProfile,
+}
+
+/// Where an import's time went (what `strata bench import` prints). The first three are spent
+/// on the importing thread one after the other; the sled writes run on their own thread,
+/// overlapping them; `finish` is the final metadata write and flush.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct ImportProfile {
+    pub convert: std::time::Duration,
+    pub histogram: std::time::Duration,
+    pub bricks: std::time::Duration,
+    pub sled_writes: std::time::Duration,
+    pub finish: std::time::Duration,
 }
 
 /// Adapts a reader's mapped raw data: converts slices with the quantiser, drops mapped pages
@@ -213,7 +230,12 @@ pub fn import_slices(
             ),
         ));
     }
-    let writer = StoreWriter::create(store_path, sled_cache)?;
+    let format_version = if options.codec == BrickCodec::Lz4 {
+        1
+    } else {
+        STORE_FORMAT_VERSION
+    };
+    let writer = StoreWriter::create_with_format(store_path, sled_cache, format_version)?;
     let narrow = meta.stored == StoredScalar::U8;
     let mut levels: Vec<LevelBuilder> = (0..layout.level_count())
         .map(|l| LevelBuilder::new(l, layout.level_dims[l].map(u64::from), &layout))
@@ -244,6 +266,7 @@ pub fn import_slices(
                     store_path,
                     batches,
                     narrow,
+                    codec: options.codec,
                     compressed_bytes: AtomicU64::new(0),
                 };
                 build_levels(
@@ -299,7 +322,7 @@ pub fn import_slices(
         meta.value_mapping.mapping.intercept,
     );
     let header = StoreHeader {
-        format_version: STORE_FORMAT_VERSION,
+        format_version,
         geometry: meta.geometry,
         stored: meta.stored,
         value_mapping: meta.value_mapping,
@@ -322,6 +345,8 @@ pub fn import_slices(
         brick_apron: APRON,
         stored_range: [stored_lo, stored_hi],
         generation: crate::store::new_generation_id(),
+        codec: options.codec,
+        required_features: Vec::new(),
     };
     let bytes_per_voxel = if narrow { 1 } else { 2 };
     let stats = StoreStats {
@@ -340,8 +365,20 @@ pub fn import_slices(
         source_bytes: total_source,
         import_seconds: started.elapsed().as_secs_f64(),
     };
+    let finishing = Instant::now();
     writer.finish(&header, &skeleton, &histogram, &stats)?;
-    Ok(ImportReport { stats, header })
+    let profile = ImportProfile {
+        convert: phase[0],
+        histogram: phase[1],
+        bricks: phase[2],
+        sled_writes: write_time,
+        finish: finishing.elapsed(),
+    };
+    Ok(ImportReport {
+        stats,
+        header,
+        profile,
+    })
 }
 
 /// Set `STRATA_DEBUG_SLOW_IMPORT=1` to sleep 20 ms per slice: lets tests kill an import midway.
@@ -399,6 +436,7 @@ struct BrickSink<'a> {
     store_path: &'a Path,
     batches: crossbeam_channel::Sender<Vec<(BrickId, Vec<u8>)>>,
     narrow: bool,
+    codec: BrickCodec,
     compressed_bytes: AtomicU64,
 }
 
@@ -514,7 +552,7 @@ fn emit_row(builder: &LevelBuilder, sink: &BrickSink, skeleton: &mut Skeleton) -
                     extract_brick(bx, by, bz, builder.dims, &slice_at, voxels);
                     let range = value_range(voxels);
                     let id = BrickId::new(level as u8, [bx as u32, by as u32, bz as u32]);
-                    let record = encode_brick(id, voxels, range, sink.narrow);
+                    let record = encode_brick(id, voxels, range, sink.narrow, sink.codec);
                     let flags = if range.min == range.max {
                         NodeInfo::CONSTANT
                     } else {

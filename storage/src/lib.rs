@@ -8,6 +8,7 @@ pub mod error;
 pub mod geometry;
 pub mod histogram;
 pub mod import;
+pub mod inventory;
 pub mod lock;
 mod lock_holder;
 pub mod octree;
@@ -24,4 +25,5 @@ pub use octree::{
     BrickId, OctreeLayout, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD, BRICK_PAYLOAD_VOXELS,
 };
 pub use source::{ByteOrder, OpenedSource, RawVolume, SampleType, SourceInfo, WindowPreset};
+pub use brick::BrickCodec;
 pub use store::{Store, StoreHeader, StoredScalar, ValueMapping, ValueMappingWithUnit};
