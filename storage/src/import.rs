@@ -215,7 +215,8 @@ pub fn import_slices(
     let layout = OctreeLayout::new(meta.geometry.dims);
     // Budget: slice windows, per-core brick buffers, sled's cache (at least 16 MiB, at most 1/4).
     let per_core_buffers = rayon::current_num_threads() as u64 * (BRICK_PAYLOAD_VOXELS as u64 * 8);
-    let fixed = window_bytes(meta.geometry.dims) + per_core_buffers;
+    let converted_ahead = (SLICES_CONVERTED_AHEAD + 1) * dims[0] * dims[1] * 2;
+    let fixed = window_bytes(meta.geometry.dims) + per_core_buffers + converted_ahead;
     let sled_cache =
         (options.memory_budget_bytes.saturating_sub(fixed) / 4).clamp(16 << 20, 256 << 20);
     if fixed + sled_cache > options.memory_budget_bytes {
@@ -387,8 +388,13 @@ fn debug_slow_import() -> bool {
     *SLOW.get_or_init(|| std::env::var_os("STRATA_DEBUG_SLOW_IMPORT").is_some())
 }
 
+/// Level-0 slices converted ahead of the brick builder: conversion and the histogram run on
+/// their own thread while the previous slices' bricks are cut and compressed.
+pub const SLICES_CONVERTED_AHEAD: u64 = 4;
+
 /// Streams level-0 slices through every level's window. Returns time spent converting,
-/// counting the histogram, and building bricks.
+/// counting the histogram (both on the conversion thread, overlapping the rest), and building
+/// bricks.
 fn build_levels(
     producer: &dyn SliceProducer,
     levels: &mut [LevelBuilder],
@@ -401,35 +407,81 @@ fn build_levels(
     let dims = producer.dims();
     let slice_len = (dims[0] * dims[1]) as usize;
     let total_source = producer.source_bytes_per_slice() * dims[2];
-    let mut phase = [std::time::Duration::ZERO; 3];
-    for k in 0..dims[2] {
-        if options.cancel.is_some_and(|c| c.load(Ordering::Relaxed)) {
-            return Err(StorageError::Cancelled {
-                path: store_path.to_path_buf(),
-            });
-        }
-        let t0 = Instant::now();
-        let mut slice = vec![0u16; slice_len];
-        producer.stored_slice(k, &mut slice)?;
-        producer.release_slice(k);
-        let t1 = Instant::now();
-        counts.add_slice(&slice);
-        let t2 = Instant::now();
-        push_slice(levels, 0, k, slice, sink, skeleton)?;
-        phase[0] += t1 - t0;
-        phase[1] += t2 - t1;
-        phase[2] += t2.elapsed();
-        if let Some(progress) = options.progress {
-            progress(ImportProgress {
-                source_bytes_done: producer.source_bytes_per_slice() * (k + 1),
-                source_bytes_total: total_source,
-            });
-        }
-        if debug_slow_import() {
-            std::thread::sleep(std::time::Duration::from_millis(20));
-        }
-    }
-    Ok(phase)
+    let cancelled = || options.cancel.is_some_and(|c| c.load(Ordering::Relaxed));
+    let (converted, converted_in) =
+        crossbeam_channel::bounded::<Result<(u64, Vec<u16>)>>(SLICES_CONVERTED_AHEAD as usize);
+    std::thread::scope(|scope| {
+        let conversion = std::thread::Builder::new()
+            .name("strata-import-convert".into())
+            .spawn_scoped(scope, move || {
+                let mut counts = StoredValueCounts::default();
+                let mut phase = [std::time::Duration::ZERO; 2];
+                for k in 0..dims[2] {
+                    if cancelled() {
+                        break;
+                    }
+                    let t0 = Instant::now();
+                    let mut slice = vec![0u16; slice_len];
+                    let result = producer.stored_slice(k, &mut slice);
+                    producer.release_slice(k);
+                    let t1 = Instant::now();
+                    if let Err(e) = result {
+                        let _ = converted.send(Err(e));
+                        break;
+                    }
+                    counts.add_slice(&slice);
+                    phase[0] += t1 - t0;
+                    phase[1] += t1.elapsed();
+                    // A closed channel: the builder stopped (an error, a cancel).
+                    if converted.send(Ok((k, slice))).is_err() {
+                        break;
+                    }
+                }
+                (counts, phase)
+            })
+            .map_err(|e| StorageError::io(store_path, e))?;
+        let mut bricks_time = std::time::Duration::ZERO;
+        let built = (|| -> Result<()> {
+            for k in 0..dims[2] {
+                if cancelled() {
+                    return Err(StorageError::Cancelled {
+                        path: store_path.to_path_buf(),
+                    });
+                }
+                let (index, slice) = match converted_in.recv() {
+                    Ok(r) => r?,
+                    // The conversion thread ended early only on a cancel (an error is sent).
+                    Err(_) => {
+                        return Err(StorageError::Cancelled {
+                            path: store_path.to_path_buf(),
+                        })
+                    }
+                };
+                debug_assert_eq!(index, k);
+                let t = Instant::now();
+                push_slice(levels, 0, k, slice, sink, skeleton)?;
+                bricks_time += t.elapsed();
+                if let Some(progress) = options.progress {
+                    progress(ImportProgress {
+                        source_bytes_done: producer.source_bytes_per_slice() * (k + 1),
+                        source_bytes_total: total_source,
+                    });
+                }
+                if debug_slow_import() {
+                    std::thread::sleep(std::time::Duration::from_millis(20));
+                }
+            }
+            Ok(())
+        })();
+        // Lets a conversion thread blocked on a full channel end.
+        drop(converted_in);
+        let (slice_counts, phase) = conversion.join().map_err(|_| {
+            StorageError::invalid(store_path, "the import's conversion thread panicked")
+        })?;
+        built?;
+        *counts = slice_counts;
+        Ok([phase[0], phase[1], bricks_time])
+    })
 }
 
 struct BrickSink<'a> {
