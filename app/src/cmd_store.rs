@@ -149,7 +149,11 @@ fn prune(folder: &std::path::Path, dry_run: bool, yes: bool) -> Result<()> {
         if !std::io::stdin().is_terminal() {
             anyhow::bail!("nothing removed: pass --yes to remove these stores (or --dry-run to only list them)");
         }
-        eprint!("remove these {} stores ({})? [y/N] ", doomed.len(), mb(total));
+        eprint!(
+            "remove these {} stores ({})? [y/N] ",
+            doomed.len(),
+            mb(total)
+        );
         let mut answer = String::new();
         std::io::stdin().read_line(&mut answer)?;
         if !matches!(answer.trim(), "y" | "Y" | "yes") {

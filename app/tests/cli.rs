@@ -152,7 +152,13 @@ fn import_codec_is_recorded_shown_and_listed_and_prune_keeps_complete_stores() {
         "{}",
         text(&o)
     );
-    let o = strata(&["import", nrrd.to_str().unwrap(), "x.strata", "--codec", "gzip"]);
+    let o = strata(&[
+        "import",
+        nrrd.to_str().unwrap(),
+        "x.strata",
+        "--codec",
+        "gzip",
+    ]);
     assert!(!o.status.success());
     assert!(text(&o).contains("use fast or dense"), "{}", text(&o));
 

@@ -243,7 +243,11 @@ fn shuffle_bytes(bytes: &[u8]) -> Vec<u8> {
     let mut out = vec![0u8; bytes.len()];
     let (low, rest) = out.split_at_mut(n);
     let (high, tail) = rest.split_at_mut(n);
-    for ((pair, l), h) in bytes.chunks_exact(2).zip(low.iter_mut()).zip(high.iter_mut()) {
+    for ((pair, l), h) in bytes
+        .chunks_exact(2)
+        .zip(low.iter_mut())
+        .zip(high.iter_mut())
+    {
         *l = pair[0];
         *h = pair[1];
     }
@@ -252,10 +256,29 @@ fn shuffle_bytes(bytes: &[u8]) -> Vec<u8> {
 }
 
 /// Inverse of [`shuffle_u16`]: `planes` holds `out.len()` low bytes, then as many high bytes.
+/// Blocks of 32 samples with fixed-size arrays, which the compiler turns into byte unpacks.
 fn unshuffle_u16(planes: &[u8], out: &mut [u16]) {
+    const BLOCK: usize = 32;
     let (low, high) = planes.split_at(out.len());
-    for ((v, &l), &h) in out.iter_mut().zip(low).zip(high) {
-        *v = u16::from_le_bytes([l, h]);
+    let blocks = out.len() / BLOCK * BLOCK;
+    for ((o, l), h) in out[..blocks]
+        .chunks_exact_mut(BLOCK)
+        .zip(low[..blocks].chunks_exact(BLOCK))
+        .zip(high[..blocks].chunks_exact(BLOCK))
+    {
+        let o: &mut [u16; BLOCK] = o.try_into().unwrap_or_else(|_| unreachable!());
+        let l: &[u8; BLOCK] = l.try_into().unwrap_or_else(|_| unreachable!());
+        let h: &[u8; BLOCK] = h.try_into().unwrap_or_else(|_| unreachable!());
+        for i in 0..BLOCK {
+            o[i] = u16::from(l[i]) | u16::from(h[i]) << 8;
+        }
+    }
+    for ((v, &l), &h) in out[blocks..]
+        .iter_mut()
+        .zip(&low[blocks..])
+        .zip(&high[blocks..])
+    {
+        *v = u16::from(l) | u16::from(h) << 8;
     }
 }
 
@@ -469,7 +492,11 @@ mod tests {
         let id = BrickId::new(2, [1, 0, 3]);
         let cases: Vec<(&str, Vec<u16>, bool)> = vec![
             ("u16 constant 0", vec![0; BRICK_PAYLOAD_VOXELS], false),
-            ("u16 constant max", vec![u16::MAX; BRICK_PAYLOAD_VOXELS], false),
+            (
+                "u16 constant max",
+                vec![u16::MAX; BRICK_PAYLOAD_VOXELS],
+                false,
+            ),
             ("u16 full range", full_range_brick(16), false),
             ("u16 12-bit", full_range_brick(12), false),
             ("u16 smooth", sample_brick(), false),
@@ -508,8 +535,14 @@ mod tests {
         );
         let n: Vec<u16> = v.iter().map(|x| x % 256).collect();
         let rn = value_range(&n);
-        assert_eq!(encode_brick(id, &n, rn, true, BrickCodec::Fast)[0], KIND_LZ4_U8);
-        assert_eq!(encode_brick(id, &n, rn, true, BrickCodec::Dense)[0], KIND_ZSTD_U8);
+        assert_eq!(
+            encode_brick(id, &n, rn, true, BrickCodec::Fast)[0],
+            KIND_LZ4_U8
+        );
+        assert_eq!(
+            encode_brick(id, &n, rn, true, BrickCodec::Dense)[0],
+            KIND_ZSTD_U8
+        );
     }
 
     #[test]
@@ -538,6 +571,11 @@ mod tests {
             let rec = encode_brick(id, &v, value_range(&v), false, codec);
             let body = compress_samples(bytemuck::cast_slice(&v), false, codec);
             assert_eq!(&rec[HEADER_LEN..], &body[..], "{}", codec.name());
+            let n: Vec<u16> = v.iter().map(|x| x % 256).collect();
+            let rec = encode_brick(id, &n, value_range(&n), true, codec);
+            let bytes: Vec<u8> = n.iter().map(|&x| x as u8).collect();
+            let body = compress_samples(&bytes, true, codec);
+            assert_eq!(&rec[HEADER_LEN..], &body[..], "{} u8", codec.name());
         }
     }
 

@@ -19,11 +19,11 @@ pub mod source;
 pub mod staging;
 pub mod store;
 
+pub use brick::BrickCodec;
 pub use error::{Result, StorageError};
 pub use geometry::VolumeGeometry;
 pub use octree::{
     BrickId, OctreeLayout, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD, BRICK_PAYLOAD_VOXELS,
 };
 pub use source::{ByteOrder, OpenedSource, RawVolume, SampleType, SourceInfo, WindowPreset};
-pub use brick::BrickCodec;
 pub use store::{Store, StoreHeader, StoredScalar, ValueMapping, ValueMappingWithUnit};

@@ -102,7 +102,10 @@ pub struct StoreHeader {
     pub generation: String,
     /// How the bricks are compressed. Absent in format-1 headers (which are all lz4); written
     /// only when it is not lz4, so a format-1 header written today reads exactly as before.
-    #[serde(default = "format_1_codec", skip_serializing_if = "BrickCodec::is_format_1")]
+    #[serde(
+        default = "format_1_codec",
+        skip_serializing_if = "BrickCodec::is_format_1"
+    )]
     pub codec: BrickCodec,
     /// Format-2 extensions this store uses, each of which a reader must understand (see
     /// [`KNOWN_STORE_FEATURES`]). Empty for every store this build writes.

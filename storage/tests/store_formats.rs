@@ -100,7 +100,12 @@ fn the_codec_is_recorded_and_dense_is_smaller_than_fast_smaller_than_lz4() {
     assert_eq!(bricks[1], bricks[2]);
     // The phantom is 12-bit CT with noise: shuffling its bytes helps both codecs.
     assert!(sizes[1] < sizes[0], "fast {} vs lz4 {}", sizes[1], sizes[0]);
-    assert!(sizes[2] < sizes[1], "dense {} vs fast {}", sizes[2], sizes[1]);
+    assert!(
+        sizes[2] < sizes[1],
+        "dense {} vs fast {}",
+        sizes[2],
+        sizes[1]
+    );
 }
 
 #[test]
