@@ -99,6 +99,7 @@ fn render_depends_on_neither_storage_nor_loader() {
         &[
             "sled",
             "lz4_flex",
+            "zstd",
             "memmap2",
             "dicom-object",
             "eframe",

@@ -6,24 +6,25 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use clap::Subcommand;
-use rayon::prelude::*;
-use strata_storage::import::{import_source, ImportOptions};
-use strata_storage::phantom::Phantom;
-use strata_storage::readers::{open_source, ReadOptions};
-use strata_storage::{BrickId, Store, BRICK_PAYLOAD_VOXELS};
+use strata_storage::{BrickCodec, BrickId, Store, BRICK_PAYLOAD_VOXELS};
 
 mod accuracy;
 mod adaptive;
 mod common;
+mod import;
 mod remote;
 mod time_critical;
 mod transitions;
 
 #[derive(Subcommand)]
 pub enum BenchCommand {
-    /// Import throughput of a u16 phantom NRRD against read + lz4-on-all-cores; optional peak RSS
-    /// of a large import in a child process.
+    /// Import throughput of a u16 phantom NRRD against its physical limit (read the source,
+    /// compress every byte the store holds with its codec on all cores, write that sequentially
+    /// and fsync); optional peak RSS of a large import in a child process.
     Import {
+        /// Brick codec of the store (and of the limit): fast or dense.
+        #[arg(long, default_value = "fast", value_parser = parse_codec)]
+        codec: BrickCodec,
         /// Edge of the phantom for the throughput run.
         #[arg(long, default_value_t = 512)]
         size: u64,
@@ -36,6 +37,18 @@ pub enum BenchCommand {
         /// Scratch folder for generated inputs and stores (kept between runs to save time).
         #[arg(long, default_value = "target/bench-data")]
         dir: PathBuf,
+    },
+    /// The brick codecs side by side: stored size against lz4 (format 1), compress and
+    /// decompress MB/s per core, on the phantom and the scans of SOURCES.md that are present.
+    Codecs {
+        /// Edge of the generated phantom.
+        #[arg(long, default_value_t = 256)]
+        phantom_size: u64,
+        /// Folder of the real scans (see its SOURCES.md).
+        #[arg(long, default_value = concat!(env!("CARGO_MANIFEST_DIR"), "/../../shared/data"))]
+        scans: PathBuf,
+        /// Scans to compare instead of the default ones.
+        inputs: Vec<PathBuf>,
     },
     /// Random brick reads from a store: cold (fresh open, files evicted from the page cache; Linux
     /// only, elsewhere the output says so) and warm.
@@ -136,15 +149,39 @@ pub enum BenchCommand {
     Remote(remote::Options),
 }
 
+/// `--codec` of the import benchmark: fast or dense.
+fn parse_codec(name: &str) -> std::result::Result<BrickCodec, String> {
+    match BrickCodec::parse(name) {
+        Some(c @ (BrickCodec::Fast | BrickCodec::Dense)) => Ok(c),
+        _ => Err(format!("'{name}' is not a codec: use fast or dense")),
+    }
+}
+
 pub fn run(cmd: BenchCommand) -> Result<()> {
     match cmd {
         BenchCommand::Remote(options) => remote::run(options),
         BenchCommand::Import {
+            codec,
             size,
             rss_size,
             memory_mib,
             dir,
-        } => bench_import(size, rss_size, memory_mib, &dir),
+        } => import::run(import::Options {
+            size,
+            rss_size,
+            memory_mib,
+            dir,
+            codec,
+        }),
+        BenchCommand::Codecs {
+            phantom_size,
+            scans,
+            inputs,
+        } => import::codecs(import::CodecOptions {
+            phantom_size,
+            scans,
+            inputs,
+        }),
         BenchCommand::Bricks { store, count } => bench_bricks(&store, count),
         BenchCommand::Accuracy {
             input,
@@ -217,114 +254,9 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
     }
 }
 
-fn ensure_phantom_nrrd(dir: &Path, size: u64) -> Result<PathBuf> {
-    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    let path = dir.join(format!("phantom-{size}.nrrd"));
-    let expected = size * size * size * 2;
-    if std::fs::metadata(&path)
-        .map(|m| m.len() > expected)
-        .unwrap_or(false)
-    {
-        return Ok(path);
-    }
-    eprintln!("generating {}", path.display());
-    Phantom::cube(size).write_nrrd(&path, None)?;
-    Ok(path)
-}
-
-/// The ceiling for import: touch every source byte from the page cache and lz4-compress it in
-/// brick-sized chunks on all cores. An import cannot beat this; it also cuts bricks, averages
-/// levels and writes the database.
-fn read_and_compress_limit(nrrd: &Path, data_bytes: u64) -> Result<f64> {
-    let file = std::fs::File::open(nrrd)?;
-    // SAFETY: read-only map of a file this benchmark wrote and does not modify.
-    let map = unsafe { memmap2::Mmap::map(&file)? };
-    let data = &map[map.len() - data_bytes as usize..];
-    let chunk = BRICK_PAYLOAD_VOXELS * 2;
-    let mut best = f64::MAX;
-    for _ in 0..2 {
-        let t = Instant::now();
-        let compressed: usize = data
-            .par_chunks(chunk)
-            .map(|c| lz4_flex::block::compress_prepend_size(c).len())
-            .sum();
-        std::hint::black_box(compressed);
-        best = best.min(t.elapsed().as_secs_f64());
-    }
-    Ok(data_bytes as f64 / 1e6 / best)
-}
-
-fn bench_import(size: u64, rss_size: Option<u64>, memory_mib: u64, dir: &Path) -> Result<()> {
-    let nrrd = ensure_phantom_nrrd(dir, size)?;
-    let data_bytes = size * size * size * 2;
-    // Warm the page cache so both sides read from memory.
-    std::hint::black_box(std::fs::read(&nrrd)?.len());
-    let limit = read_and_compress_limit(&nrrd, data_bytes)?;
-    let store = dir.join(format!("phantom-{size}.strata"));
-    let mut best = f64::MAX;
-    let mut last = None;
-    for _ in 0..2 {
-        let opened = open_source(&nrrd, &ReadOptions::default())?;
-        let t = Instant::now();
-        let report = import_source(opened, &store, &ImportOptions::default())?;
-        best = best.min(t.elapsed().as_secs_f64());
-        last = Some(report);
-    }
-    let import_rate = data_bytes as f64 / 1e6 / best;
-    println!(
-        "import throughput, {size}^3 int16 phantom NRRD ({:.0} MB), {} threads",
-        data_bytes as f64 / 1e6,
-        rayon::current_num_threads()
-    );
-    println!("  limit (page-cache read + lz4 on all cores): {limit:8.0} MB/s");
-    println!("  strata import (best of 2):                 {import_rate:8.0} MB/s  = {:.0} % of the limit", 100.0 * import_rate / limit);
-    if let Some(r) = last {
-        println!(
-            "  stored {:.1} MB (compression ratio {:.2} over bricks with aprons)",
-            r.stats.compressed_bytes as f64 / 1e6,
-            r.stats.uncompressed_bytes as f64 / r.stats.compressed_bytes.max(1) as f64
-        );
-    }
-    if let Some(rss_size) = rss_size {
-        let big = ensure_phantom_nrrd(dir, rss_size)?;
-        let big_store = dir.join(format!("phantom-{rss_size}.strata"));
-        let exe = std::env::current_exe()?;
-        let t = Instant::now();
-        let status = std::process::Command::new(exe)
-            .arg("import")
-            .arg(&big)
-            .arg(&big_store)
-            .arg("--memory-mib")
-            .arg(memory_mib.to_string())
-            .stderr(std::process::Stdio::null())
-            .status()?;
-        anyhow::ensure!(status.success(), "child import failed");
-        let seconds = t.elapsed().as_secs_f64();
-        let gb = (rss_size * rss_size * rss_size * 2) as f64 / 1e9;
-        let peak = match peak_child_rss_bytes() {
-            Some(peak) => format!(
-                "{:.0} MiB ({})",
-                peak as f64 / (1 << 20) as f64,
-                if peak <= memory_mib << 20 {
-                    "within budget"
-                } else {
-                    "OVER BUDGET"
-                }
-            ),
-            None => "unavailable (no getrusage on this platform, or it failed)".into(),
-        };
-        println!(
-            "peak RSS importing {rss_size}^3 u16 ({gb:.2} GB) with a {memory_mib} MiB budget: {peak}, {:.1} s, {:.0} MB/s",
-            seconds,
-            gb * 1e3 / seconds
-        );
-    }
-    Ok(())
-}
-
 /// Peak resident set size of the largest waited-for child, in bytes; None where the platform
 /// has no `getrusage` (Windows) or the call fails.
-fn peak_child_rss_bytes() -> Option<u64> {
+pub(crate) fn peak_child_rss_bytes() -> Option<u64> {
     #[cfg(unix)]
     {
         // SAFETY: rusage is a plain C struct of integers, for which all-zero bytes are valid.

@@ -4,7 +4,7 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 use strata_storage::import::{import_source, ImportOptions, ImportProgress};
 use strata_storage::readers::{open_source, RawSpec, ReadOptions};
-use strata_storage::{ByteOrder, SampleType};
+use strata_storage::{BrickCodec, ByteOrder, SampleType};
 
 #[derive(Args)]
 pub struct ImportArgs {
@@ -33,9 +33,21 @@ pub struct ImportArgs {
     /// Raw input: bytes to skip before the voxels.
     #[arg(long, default_value_t = 0)]
     pub raw_header_bytes: u64,
+    /// Brick codec: fast (byte shuffle + lz4, the default) or dense (byte shuffle + zstd:
+    /// smaller stores, slower to decode).
+    #[arg(long, default_value = "fast", value_parser = parse_codec)]
+    pub codec: BrickCodec,
     /// Folder for temporary decompressed data (default: the system temp folder).
     #[arg(long)]
     pub staging_dir: Option<PathBuf>,
+}
+
+/// `--codec`: the codecs a new store may use (lz4 alone is format 1's, not offered).
+fn parse_codec(name: &str) -> std::result::Result<BrickCodec, String> {
+    match BrickCodec::parse(name) {
+        Some(c @ (BrickCodec::Fast | BrickCodec::Dense)) => Ok(c),
+        _ => Err(format!("'{name}' is not a codec: use fast or dense")),
+    }
 }
 
 pub fn parse_sample_type(name: &str) -> Result<SampleType> {
@@ -112,6 +124,7 @@ pub fn run(args: ImportArgs) -> Result<()> {
         memory_budget_bytes: args.memory_mib << 20,
         cancel: None,
         progress: Some(&progress),
+        codec: args.codec,
     };
     let report = import_source(opened, &args.store, &import_options).with_context(|| {
         format!(
@@ -123,7 +136,7 @@ pub fn run(args: ImportArgs) -> Result<()> {
     bar.finish_and_clear();
     let s = &report.stats;
     println!(
-        "imported {} into {}: {:.1} MB source in {:.2} s ({:.0} MB/s), {} bricks, {:.1} MB stored (ratio {:.2})",
+        "imported {} into {}: {:.1} MB source in {:.2} s ({:.0} MB/s), {} bricks, {:.1} MB stored with the {} codec (ratio {:.2})",
         args.input.display(),
         args.store.display(),
         s.source_bytes as f64 / 1e6,
@@ -131,6 +144,7 @@ pub fn run(args: ImportArgs) -> Result<()> {
         s.source_bytes as f64 / 1e6 / s.import_seconds.max(1e-9),
         s.bricks_per_level.iter().map(|l| l.0).sum::<u64>(),
         s.compressed_bytes as f64 / 1e6,
+        report.header.codec.name(),
         s.uncompressed_bytes as f64 / s.compressed_bytes.max(1) as f64,
     );
     if report.header.quantization_error > 0.0 {

@@ -60,6 +60,11 @@ pub fn run(location: &str, token_file: Option<&Path>) -> Result<()> {
         h.provenance.tool_version
     );
     println!(
+        "format       store format {}, brick codec {}",
+        h.format_version,
+        h.codec.describe()
+    );
+    println!(
         "dimensions   {} x {} x {} voxels",
         g.dims[0], g.dims[1], g.dims[2]
     );

@@ -8,6 +8,7 @@ mod cmd_info;
 mod cmd_render;
 mod cmd_sample;
 mod cmd_serve;
+mod cmd_store;
 mod cmd_verify;
 mod error_report;
 mod progress;
@@ -48,6 +49,9 @@ enum Command {
     View(ViewArgs),
     /// Replay a scripted camera path with the streaming loader; per-frame stats to CSV.
     Flythrough(cmd_flythrough::FlythroughArgs),
+    /// The stores of the viewer's data folder: list them, prune what can go.
+    #[command(subcommand)]
+    Store(cmd_store::StoreCommand),
     /// Benchmarks (figures for the issue notes).
     #[command(subcommand)]
     Bench(bench::BenchCommand),
@@ -92,6 +96,7 @@ fn run(cli: Cli) -> Result<()> {
         Some(Command::Sample(args)) => cmd_sample::run(args),
         Some(Command::Render(args)) => cmd_render::run(args),
         Some(Command::Bench(cmd)) => bench::run(cmd),
+        Some(Command::Store(cmd)) => cmd_store::run(cmd),
         Some(Command::Flythrough(args)) => cmd_flythrough::run(args),
         Some(Command::View(args)) => view(args),
         None => viewer::run(viewer::ViewerOptions::new(viewer::demo_source())),

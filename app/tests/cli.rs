@@ -127,3 +127,65 @@ fn verify_reports_a_flipped_byte() {
     );
     assert!(out.contains("1 problem"), "{out}");
 }
+
+#[test]
+fn import_codec_is_recorded_shown_and_listed_and_prune_keeps_complete_stores() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("stores");
+    std::fs::create_dir(&data).unwrap();
+    let nrrd = dir.path().join("p.nrrd");
+    let o = strata(&["sample", "--size", "40", "--out", nrrd.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    let dense = data.join("dense.strata");
+    let o = strata(&[
+        "import",
+        nrrd.to_str().unwrap(),
+        dense.to_str().unwrap(),
+        "--codec",
+        "dense",
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("dense codec"), "{}", text(&o));
+    let o = strata(&["info", dense.to_str().unwrap()]);
+    assert!(
+        text(&o).contains("store format 2, brick codec dense"),
+        "{}",
+        text(&o)
+    );
+    let o = strata(&[
+        "import",
+        nrrd.to_str().unwrap(),
+        "x.strata",
+        "--codec",
+        "gzip",
+    ]);
+    assert!(!o.status.success());
+    assert!(text(&o).contains("use fast or dense"), "{}", text(&o));
+
+    // A store whose source is gone is orphaned; prune lists it, removes it only with --yes.
+    let moved = dir.path().join("moved.nrrd");
+    std::fs::copy(&nrrd, &moved).unwrap();
+    let orphan = data.join("orphan.strata");
+    let o = strata(&["import", moved.to_str().unwrap(), orphan.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    std::fs::remove_file(&moved).unwrap();
+    let data_dir = data.to_str().unwrap();
+    let o = strata(&["store", "list", "--data-dir", data_dir]);
+    let listing = text(&o);
+    assert!(o.status.success(), "{listing}");
+    assert!(listing.contains("dense.strata"), "{listing}");
+    assert!(listing.contains("format 2, dense codec"), "{listing}");
+    assert!(listing.contains("format 2, fast codec"), "{listing}");
+    assert!(listing.contains("2 stores"), "{listing}");
+    let o = strata(&["store", "prune", "--data-dir", data_dir, "--dry-run"]);
+    assert!(text(&o).contains("would remove"), "{}", text(&o));
+    assert!(orphan.exists());
+    // Without a terminal and without --yes nothing goes.
+    let o = strata(&["store", "prune", "--data-dir", data_dir]);
+    assert!(!o.status.success(), "{}", text(&o));
+    assert!(orphan.exists());
+    let o = strata(&["store", "prune", "--data-dir", data_dir, "--yes"]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(!orphan.exists());
+    assert!(Store::open(&dense).is_ok());
+}

@@ -1,7 +1,7 @@
 //! Asynchronous brick fetching (octree paper §4: "all data access requests are performed
 //! asynchronously by a separate thread, and refinement continues only if data is immediately
 //! available"). Named worker threads take the most urgent request, read it from the store
-//! (checksum-verified, lz4-decompressed) and send it back over a bounded crossbeam channel; the
+//! (checksum-verified, decompressed by its codec) and send it back over a bounded crossbeam channel; the
 //! frame loop moves it into the CPU cache.
 //!
 //! The queue holds at most `capacity` requests. Each frame the loader replaces its contents

@@ -5,7 +5,7 @@
 //! - `GET /v1/stores`: JSON list of the served stores (name, generation, dimensions).
 //! - `GET /v1/stores/{name}`: the open document ([`encode_open_document`]).
 //! - `GET /v1/stores/{name}/g/{generation}/bricks/{level}/{z}/{y}/{x}`: one brick record as
-//!   stored (kind, xxh3 checksum over key and body, lz4 body), never decoded on the server.
+//!   stored (kind, xxh3 checksum over key and body, compressed body), never decoded on the server.
 //!   The generation makes the URL immutable: a re-import gets new URLs.
 //!
 //! A later OME-Zarr view of the same stores sits beside these, under

@@ -1,18 +1,84 @@
-//! Brick payloads on disk: lz4-compressed voxels behind an xxh3 checksum, or a constant marker.
+//! Brick payloads on disk: compressed voxels behind an xxh3 checksum, or a constant marker.
 //!
 //! Value layout (little endian): `kind: u8 | checksum: u64 | body`. The checksum covers the
-//! brick's key and the body, so a brick swapped under another key is caught as well as a flipped
-//! bit. Kinds: 0 = lz4 block of u16 samples, 1 = lz4 block of u8 samples, 2 = constant (body is
-//! the u16 value, no payload).
+//! brick's key and the body (and, for the kinds of format 2, the kind byte), so a brick swapped
+//! under another key is caught as well as a flipped bit. The kind names the codec, so every record decodes on its own (the data service sends
+//! records as stored, and a client needs no store header to read them):
+//!
+//! | kind | body                                             | written by              |
+//! |------|--------------------------------------------------|-------------------------|
+//! | 0    | lz4 block of u16 samples (size-prefixed)         | format 1 (`lz4`)        |
+//! | 1    | lz4 block of u8 samples (size-prefixed)          | format 1, and `fast` u8 |
+//! | 2    | constant: the u16 value, no payload              | every format            |
+//! | 3    | byte-shuffled u16 samples, lz4 (size-prefixed)   | format 2 `fast`         |
+//! | 4    | byte-shuffled u16 samples, zstd level 1 frame    | format 2 `dense`        |
+//! | 5    | u8 samples, zstd level 1 frame                   | format 2 `dense`        |
+//!
+//! The byte shuffle (Blosc's, the Zarr default) stores all low bytes of a brick, then all high
+//! bytes: the high plane of a 12-bit scan is nearly constant, which lz4 alone cannot see in
+//! interleaved samples. Decompression never allocates more than a brick, whatever a size
+//! prefix says.
 
+use serde::{Deserialize, Serialize};
 use xxhash_rust::xxh3::Xxh3;
 
 use crate::octree::{BrickId, APRON, BRICK_PAYLOAD, BRICK_PAYLOAD_VOXELS, CORE};
 
-const KIND_U16: u8 = 0;
-const KIND_U8: u8 = 1;
+const KIND_LZ4_U16: u8 = 0;
+const KIND_LZ4_U8: u8 = 1;
 const KIND_CONSTANT: u8 = 2;
+const KIND_SHUFFLE_LZ4_U16: u8 = 3;
+const KIND_SHUFFLE_ZSTD_U16: u8 = 4;
+const KIND_ZSTD_U8: u8 = 5;
 const HEADER_LEN: usize = 9;
+/// zstd level of the dense codec: level 1 keeps compression at hundreds of MB/s per core.
+const ZSTD_LEVEL: i32 = 1;
+
+/// How a store compresses its bricks: a per-store choice recorded in its header.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum BrickCodec {
+    /// lz4 on interleaved samples: the only codec of format-1 stores (their headers name none).
+    /// Written only to produce format-1 stores (tests, the codec benchmark).
+    Lz4,
+    /// Byte shuffle + lz4: the default.
+    #[default]
+    Fast,
+    /// Byte shuffle + zstd level 1: smaller stores, slower to decode.
+    Dense,
+}
+
+impl BrickCodec {
+    pub const ALL: [BrickCodec; 3] = [BrickCodec::Lz4, BrickCodec::Fast, BrickCodec::Dense];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            BrickCodec::Lz4 => "lz4",
+            BrickCodec::Fast => "fast",
+            BrickCodec::Dense => "dense",
+        }
+    }
+
+    pub fn parse(name: &str) -> Option<BrickCodec> {
+        Self::ALL
+            .into_iter()
+            .find(|c| c.name().eq_ignore_ascii_case(name))
+    }
+
+    /// What `strata info` prints.
+    pub fn describe(self) -> &'static str {
+        match self {
+            BrickCodec::Lz4 => "lz4 (format 1)",
+            BrickCodec::Fast => "fast (byte shuffle + lz4)",
+            BrickCodec::Dense => "dense (byte shuffle + zstd level 1)",
+        }
+    }
+
+    /// The codec a store without a codec field uses (format 1).
+    pub fn is_format_1(&self) -> bool {
+        *self == BrickCodec::Lz4
+    }
+}
 
 /// sled key of a brick: level first, then z, y, x big-endian, so a level's bricks are contiguous
 /// and a z-row of bricks is contiguous within it.
@@ -38,8 +104,15 @@ pub fn brick_id_from_key(key: &[u8]) -> Option<BrickId> {
     })
 }
 
-fn checksum(key: &[u8], body: &[u8]) -> u64 {
+/// The record's checksum. Kinds of format 2 (3 and up) also cover the kind byte, so a flip that
+/// turns a shuffled brick into a "constant" one is caught; the kinds of format 1 keep the
+/// checksum they were written with (key and body). A flip from one group into the other is
+/// caught because the two formulas differ.
+fn checksum(kind: u8, key: &[u8], body: &[u8]) -> u64 {
     let mut h = Xxh3::new();
+    if kind >= KIND_SHUFFLE_LZ4_U16 {
+        h.update(&[kind]);
+    }
     h.update(key);
     h.update(body);
     h.digest()
@@ -70,26 +143,143 @@ pub fn value_range(voxels: &[u16]) -> ValueRange {
     ValueRange { min, max }
 }
 
-/// Encodes a 36³ brick. `narrow` stores u8 samples (the store's scalar type is u8).
-pub fn encode_brick(id: BrickId, voxels: &[u16], range: ValueRange, narrow: bool) -> Vec<u8> {
+/// Encodes a 36³ brick with `codec`. `narrow` stores u8 samples (the store's scalar type is u8).
+pub fn encode_brick(
+    id: BrickId,
+    voxels: &[u16],
+    range: ValueRange,
+    narrow: bool,
+    codec: BrickCodec,
+) -> Vec<u8> {
     debug_assert_eq!(voxels.len(), BRICK_PAYLOAD_VOXELS);
     let key = brick_key(id);
     let (kind, body) = if range.min == range.max {
         (KIND_CONSTANT, range.min.to_le_bytes().to_vec())
     } else if narrow {
         let bytes: Vec<u8> = voxels.iter().map(|&v| v as u8).collect();
-        (KIND_U8, lz4_flex::block::compress_prepend_size(&bytes))
+        match codec {
+            BrickCodec::Lz4 | BrickCodec::Fast => {
+                (KIND_LZ4_U8, lz4_flex::block::compress_prepend_size(&bytes))
+            }
+            BrickCodec::Dense => match zstd_compress(&bytes) {
+                Some(body) => (KIND_ZSTD_U8, body),
+                None => (KIND_LZ4_U8, lz4_flex::block::compress_prepend_size(&bytes)),
+            },
+        }
     } else {
-        (
-            KIND_U16,
-            lz4_flex::block::compress_prepend_size(&u16_le_bytes(voxels)),
-        )
+        match codec {
+            BrickCodec::Lz4 => (
+                KIND_LZ4_U16,
+                lz4_flex::block::compress_prepend_size(&u16_le_bytes(voxels)),
+            ),
+            BrickCodec::Fast => (
+                KIND_SHUFFLE_LZ4_U16,
+                lz4_flex::block::compress_prepend_size(&shuffle_u16(voxels)),
+            ),
+            BrickCodec::Dense => {
+                let planes = shuffle_u16(voxels);
+                match zstd_compress(&planes) {
+                    Some(body) => (KIND_SHUFFLE_ZSTD_U16, body),
+                    None => (
+                        KIND_SHUFFLE_LZ4_U16,
+                        lz4_flex::block::compress_prepend_size(&planes),
+                    ),
+                }
+            }
+        }
     };
     let mut out = Vec::with_capacity(HEADER_LEN + body.len());
     out.push(kind);
-    out.extend_from_slice(&checksum(&key, &body).to_le_bytes());
+    out.extend_from_slice(&checksum(kind, &key, &body).to_le_bytes());
     out.extend_from_slice(&body);
     out
+}
+
+/// Compresses little-endian u16 sample bytes (or u8 samples when `narrow`) the way `codec`
+/// stores a brick body, without the record header: what the import benchmark's limit runs.
+pub fn compress_samples(sample_bytes: &[u8], narrow: bool, codec: BrickCodec) -> Vec<u8> {
+    if narrow {
+        return match codec {
+            BrickCodec::Lz4 | BrickCodec::Fast => {
+                lz4_flex::block::compress_prepend_size(sample_bytes)
+            }
+            BrickCodec::Dense => zstd_compress(sample_bytes)
+                .unwrap_or_else(|| lz4_flex::block::compress_prepend_size(sample_bytes)),
+        };
+    }
+    match codec {
+        BrickCodec::Lz4 => lz4_flex::block::compress_prepend_size(sample_bytes),
+        BrickCodec::Fast => lz4_flex::block::compress_prepend_size(&shuffle_bytes(sample_bytes)),
+        BrickCodec::Dense => {
+            let planes = shuffle_bytes(sample_bytes);
+            zstd_compress(&planes)
+                .unwrap_or_else(|| lz4_flex::block::compress_prepend_size(&planes))
+        }
+    }
+}
+
+/// zstd of a whole buffer; None only when zstd cannot allocate its context (memory to memory
+/// cannot fail otherwise). Callers then store lz4 instead: the record's kind says which.
+fn zstd_compress(bytes: &[u8]) -> Option<Vec<u8>> {
+    zstd::bulk::compress(bytes, ZSTD_LEVEL).ok()
+}
+
+/// Splits little-endian u16 samples into planes: all low bytes, then all high bytes.
+fn shuffle_u16(voxels: &[u16]) -> Vec<u8> {
+    let n = voxels.len();
+    let mut out = vec![0u8; n * 2];
+    let (low, high) = out.split_at_mut(n);
+    for ((v, l), h) in voxels.iter().zip(low.iter_mut()).zip(high.iter_mut()) {
+        let [a, b] = v.to_le_bytes();
+        *l = a;
+        *h = b;
+    }
+    out
+}
+
+/// [`shuffle_u16`] of samples given as little-endian bytes (an odd trailing byte stays last).
+fn shuffle_bytes(bytes: &[u8]) -> Vec<u8> {
+    let n = bytes.len() / 2;
+    let mut out = vec![0u8; bytes.len()];
+    let (low, rest) = out.split_at_mut(n);
+    let (high, tail) = rest.split_at_mut(n);
+    for ((pair, l), h) in bytes
+        .chunks_exact(2)
+        .zip(low.iter_mut())
+        .zip(high.iter_mut())
+    {
+        *l = pair[0];
+        *h = pair[1];
+    }
+    tail.copy_from_slice(&bytes[2 * n..]);
+    out
+}
+
+/// Inverse of [`shuffle_u16`]: `planes` holds `out.len()` low bytes, then as many high bytes.
+/// Blocks of 32 samples with fixed-size arrays, which the compiler turns into byte unpacks.
+fn unshuffle_u16(planes: &[u8], out: &mut [u16]) {
+    const BLOCK: usize = 32;
+    let (low, high) = planes.split_at(out.len());
+    let blocks = out.len() / BLOCK * BLOCK;
+    for ((o, l), h) in out[..blocks]
+        .chunks_exact_mut(BLOCK)
+        .zip(low[..blocks].chunks_exact(BLOCK))
+        .zip(high[..blocks].chunks_exact(BLOCK))
+    {
+        let o: &mut [u16; BLOCK] = o.try_into().unwrap_or_else(|_| unreachable!());
+        let l: &[u8; BLOCK] = l.try_into().unwrap_or_else(|_| unreachable!());
+        let h: &[u8; BLOCK] = h.try_into().unwrap_or_else(|_| unreachable!());
+        for i in 0..BLOCK {
+            o[i] = u16::from(l[i]) | u16::from(h[i]) << 8;
+        }
+    }
+    for ((v, &l), &h) in out[blocks..]
+        .iter_mut()
+        .zip(&low[blocks..])
+        .zip(&high[blocks..])
+    {
+        *v = u16::from(l) | u16::from(h) << 8;
+    }
 }
 
 /// Why a stored brick could not be decoded. The store wraps it with the file name.
@@ -99,7 +289,7 @@ pub enum BrickDecodeError {
     ChecksumMismatch { expected: u64, actual: u64 },
     UnknownKind(u8),
     Decompress(String),
-    WrongSize(usize),
+    WrongSize { bytes: usize, expected: usize },
 }
 
 impl std::fmt::Display for BrickDecodeError {
@@ -113,12 +303,22 @@ impl std::fmt::Display for BrickDecodeError {
                 )
             }
             BrickDecodeError::UnknownKind(k) => write!(f, "unknown brick kind {k}"),
-            BrickDecodeError::Decompress(e) => write!(f, "lz4 decompression failed: {e}"),
-            BrickDecodeError::WrongSize(n) => {
-                write!(f, "decoded {n} voxels, expected {BRICK_PAYLOAD_VOXELS}")
+            BrickDecodeError::Decompress(e) => write!(f, "decompression failed: {e}"),
+            BrickDecodeError::WrongSize { bytes, expected } => {
+                write!(f, "holds {bytes} bytes, expected {expected}")
             }
         }
     }
+}
+
+/// A record of `kind` with `body` and the right checksum, whatever the body holds: lets the
+/// malformed-input tests hand the decoders bodies that pass the checksum but lie.
+#[doc(hidden)]
+pub fn seal_record_for_tests(id: BrickId, kind: u8, body: &[u8]) -> Vec<u8> {
+    let mut out = vec![kind];
+    out.extend_from_slice(&checksum(kind, &brick_key(id), body).to_le_bytes());
+    out.extend_from_slice(body);
+    out
 }
 
 /// Checks a stored record's checksum without decompressing it; returns the checksum (what the
@@ -130,7 +330,7 @@ pub fn verify_record(id: BrickId, record: &[u8]) -> Result<u64, BrickDecodeError
     let mut sum = [0u8; 8];
     sum.copy_from_slice(&record[1..9]);
     let expected = u64::from_le_bytes(sum);
-    let actual = checksum(&brick_key(id), &record[HEADER_LEN..]);
+    let actual = checksum(record[0], &brick_key(id), &record[HEADER_LEN..]);
     if actual != expected {
         return Err(BrickDecodeError::ChecksumMismatch { expected, actual });
     }
@@ -147,36 +347,81 @@ pub fn decode_brick(id: BrickId, record: &[u8]) -> Result<Vec<u16>, BrickDecodeE
     sum.copy_from_slice(&record[1..9]);
     let expected = u64::from_le_bytes(sum);
     let body = &record[HEADER_LEN..];
-    let actual = checksum(&brick_key(id), body);
+    let actual = checksum(kind, &brick_key(id), body);
     if actual != expected {
         return Err(BrickDecodeError::ChecksumMismatch { expected, actual });
     }
     match kind {
         KIND_CONSTANT => {
-            let v = body.get(0..2).ok_or(BrickDecodeError::TooShort)?;
-            Ok(vec![u16::from_le_bytes([v[0], v[1]]); BRICK_PAYLOAD_VOXELS])
+            // Exactly the value: a compressed body under a flipped kind byte is never taken for
+            // a constant (format-1 checksums do not cover the kind).
+            let [a, b] = body else {
+                return Err(BrickDecodeError::WrongSize {
+                    bytes: body.len(),
+                    expected: 2,
+                });
+            };
+            Ok(vec![u16::from_le_bytes([*a, *b]); BRICK_PAYLOAD_VOXELS])
         }
-        KIND_U8 => {
-            let bytes = lz4_flex::block::decompress_size_prepended(body)
-                .map_err(|e| BrickDecodeError::Decompress(e.to_string()))?;
-            if bytes.len() != BRICK_PAYLOAD_VOXELS {
-                return Err(BrickDecodeError::WrongSize(bytes.len()));
-            }
-            Ok(bytes.into_iter().map(u16::from).collect())
+        KIND_LZ4_U8 => Ok(lz4_exact(body, BRICK_PAYLOAD_VOXELS)?
+            .into_iter()
+            .map(u16::from)
+            .collect()),
+        KIND_ZSTD_U8 => Ok(zstd_exact(body, BRICK_PAYLOAD_VOXELS)?
+            .into_iter()
+            .map(u16::from)
+            .collect()),
+        KIND_LZ4_U16 => Ok(lz4_exact(body, BRICK_PAYLOAD_VOXELS * 2)?
+            .chunks_exact(2)
+            .map(|c| u16::from_le_bytes([c[0], c[1]]))
+            .collect()),
+        KIND_SHUFFLE_LZ4_U16 => {
+            let planes = lz4_exact(body, BRICK_PAYLOAD_VOXELS * 2)?;
+            let mut out = vec![0u16; BRICK_PAYLOAD_VOXELS];
+            unshuffle_u16(&planes, &mut out);
+            Ok(out)
         }
-        KIND_U16 => {
-            let bytes = lz4_flex::block::decompress_size_prepended(body)
-                .map_err(|e| BrickDecodeError::Decompress(e.to_string()))?;
-            if bytes.len() != BRICK_PAYLOAD_VOXELS * 2 {
-                return Err(BrickDecodeError::WrongSize(bytes.len() / 2));
-            }
-            Ok(bytes
-                .chunks_exact(2)
-                .map(|c| u16::from_le_bytes([c[0], c[1]]))
-                .collect())
+        KIND_SHUFFLE_ZSTD_U16 => {
+            let planes = zstd_exact(body, BRICK_PAYLOAD_VOXELS * 2)?;
+            let mut out = vec![0u16; BRICK_PAYLOAD_VOXELS];
+            unshuffle_u16(&planes, &mut out);
+            Ok(out)
         }
         other => Err(BrickDecodeError::UnknownKind(other)),
     }
+}
+
+/// Decompresses a size-prefixed lz4 block that must hold exactly `expected` bytes. The prefix is
+/// checked before anything is allocated, so a damaged prefix cannot ask for gigabytes.
+fn lz4_exact(body: &[u8], expected: usize) -> Result<Vec<u8>, BrickDecodeError> {
+    let prefix = body.get(0..4).ok_or(BrickDecodeError::TooShort)?;
+    let claimed = u32::from_le_bytes([prefix[0], prefix[1], prefix[2], prefix[3]]) as usize;
+    if claimed != expected {
+        return Err(BrickDecodeError::WrongSize {
+            bytes: claimed,
+            expected,
+        });
+    }
+    let mut out = vec![0u8; expected];
+    let n = lz4_flex::block::decompress_into(&body[4..], &mut out)
+        .map_err(|e| BrickDecodeError::Decompress(format!("lz4: {e}")))?;
+    if n != expected {
+        return Err(BrickDecodeError::WrongSize { bytes: n, expected });
+    }
+    Ok(out)
+}
+
+/// Decompresses a zstd frame that must hold exactly `expected` bytes (at most that is allocated).
+fn zstd_exact(body: &[u8], expected: usize) -> Result<Vec<u8>, BrickDecodeError> {
+    let out = zstd::bulk::decompress(body, expected)
+        .map_err(|e| BrickDecodeError::Decompress(format!("zstd: {e}")))?;
+    if out.len() != expected {
+        return Err(BrickDecodeError::WrongSize {
+            bytes: out.len(),
+            expected,
+        });
+    }
+    Ok(out)
 }
 
 /// Cuts brick `(bx, by)` of a z-row out of a level's slices. `slice_at(z)` returns the level
@@ -225,33 +470,192 @@ mod tests {
             .collect()
     }
 
+    /// Deterministic noise over the whole u16 range (xorshift), the worst case for every codec.
+    fn full_range_brick(bits: u32) -> Vec<u16> {
+        let mut state = 0x9E37_79B9_7F4A_7C15u64;
+        let mut v: Vec<u16> = (0..BRICK_PAYLOAD_VOXELS)
+            .map(|_| {
+                state ^= state << 13;
+                state ^= state >> 7;
+                state ^= state << 17;
+                (state >> 40) as u16 & ((1u32 << bits) - 1) as u16
+            })
+            .collect();
+        // Both ends of the range are present.
+        v[0] = 0;
+        v[1] = ((1u32 << bits) - 1) as u16;
+        v
+    }
+
+    #[test]
+    fn every_codec_round_trips_u8_and_u16_constant_and_full_range() {
+        let id = BrickId::new(2, [1, 0, 3]);
+        let cases: Vec<(&str, Vec<u16>, bool)> = vec![
+            ("u16 constant 0", vec![0; BRICK_PAYLOAD_VOXELS], false),
+            (
+                "u16 constant max",
+                vec![u16::MAX; BRICK_PAYLOAD_VOXELS],
+                false,
+            ),
+            ("u16 full range", full_range_brick(16), false),
+            ("u16 12-bit", full_range_brick(12), false),
+            ("u16 smooth", sample_brick(), false),
+            ("u8 constant", vec![200; BRICK_PAYLOAD_VOXELS], true),
+            ("u8 full range", full_range_brick(8), true),
+        ];
+        for codec in BrickCodec::ALL {
+            for (name, voxels, narrow) in &cases {
+                let rec = encode_brick(id, voxels, value_range(voxels), *narrow, codec);
+                assert_eq!(
+                    decode_brick(id, &rec).as_ref(),
+                    Ok(voxels),
+                    "{} {name}",
+                    codec.name()
+                );
+                if value_range(voxels).min == value_range(voxels).max {
+                    assert_eq!(rec[0], KIND_CONSTANT, "{} {name}", codec.name());
+                }
+                assert!(verify_record(id, &rec).is_ok());
+            }
+        }
+    }
+
+    #[test]
+    fn each_codec_writes_its_own_kind() {
+        let id = BrickId::new(0, [0, 0, 0]);
+        let v = sample_brick();
+        let r = value_range(&v);
+        let kinds: Vec<u8> = BrickCodec::ALL
+            .into_iter()
+            .map(|c| encode_brick(id, &v, r, false, c)[0])
+            .collect();
+        assert_eq!(
+            kinds,
+            [KIND_LZ4_U16, KIND_SHUFFLE_LZ4_U16, KIND_SHUFFLE_ZSTD_U16]
+        );
+        let n: Vec<u16> = v.iter().map(|x| x % 256).collect();
+        let rn = value_range(&n);
+        assert_eq!(
+            encode_brick(id, &n, rn, true, BrickCodec::Fast)[0],
+            KIND_LZ4_U8
+        );
+        assert_eq!(
+            encode_brick(id, &n, rn, true, BrickCodec::Dense)[0],
+            KIND_ZSTD_U8
+        );
+    }
+
+    #[test]
+    fn shuffle_makes_12_bit_samples_smaller() {
+        // Noisy MR: a smooth 12-bit signal plus 6 bits of noise. The high bytes change slowly,
+        // so shuffled into their own plane they form runs that lz4 finds; interleaved with the
+        // noisy low bytes they do not.
+        let id = BrickId::new(0, [0, 0, 0]);
+        let noise = full_range_brick(6);
+        let v: Vec<u16> = noise
+            .iter()
+            .enumerate()
+            .map(|(i, n)| 1000 + (i / 1296) as u16 * 40 + n)
+            .collect();
+        let r = value_range(&v);
+        let size = |c| encode_brick(id, &v, r, false, c).len();
+        assert!(size(BrickCodec::Fast) < size(BrickCodec::Lz4));
+        assert!(size(BrickCodec::Dense) < size(BrickCodec::Fast));
+    }
+
+    #[test]
+    fn compress_samples_matches_the_brick_body() {
+        let id = BrickId::new(0, [0, 0, 0]);
+        let v = sample_brick();
+        for codec in BrickCodec::ALL {
+            let rec = encode_brick(id, &v, value_range(&v), false, codec);
+            let body = compress_samples(bytemuck::cast_slice(&v), false, codec);
+            assert_eq!(&rec[HEADER_LEN..], &body[..], "{}", codec.name());
+            let n: Vec<u16> = v.iter().map(|x| x % 256).collect();
+            let rec = encode_brick(id, &n, value_range(&n), true, codec);
+            let bytes: Vec<u8> = n.iter().map(|&x| x as u8).collect();
+            let body = compress_samples(&bytes, true, codec);
+            assert_eq!(&rec[HEADER_LEN..], &body[..], "{} u8", codec.name());
+        }
+    }
+
     #[test]
     fn round_trip_and_checksum() {
-        let id = BrickId::new(1, [2, 3, 4]);
-        let v = sample_brick();
-        let rec = encode_brick(id, &v, value_range(&v), false);
-        assert_eq!(decode_brick(id, &rec).unwrap(), v);
-        // Any flipped byte in the record is caught.
-        for pos in [0usize, 3, 9, rec.len() / 2, rec.len() - 1] {
-            let mut bad = rec.clone();
-            bad[pos] ^= 0x10;
-            assert!(
-                decode_brick(id, &bad).is_err(),
-                "flip at {pos} not detected"
-            );
+        for codec in BrickCodec::ALL {
+            let id = BrickId::new(1, [2, 3, 4]);
+            let v = sample_brick();
+            let rec = encode_brick(id, &v, value_range(&v), false, codec);
+            assert_eq!(decode_brick(id, &rec).unwrap(), v);
+            // Any flipped bit in the record is caught, the kind byte's included.
+            for pos in [0usize, 3, 9, 12, rec.len() / 2, rec.len() - 1] {
+                for bit in [0x01, 0x02, 0x04, 0x10, 0x80] {
+                    let mut bad = rec.clone();
+                    bad[pos] ^= bit;
+                    assert!(
+                        decode_brick(id, &bad).is_err(),
+                        "{}: flip of bit {bit:#x} at {pos} not detected",
+                        codec.name()
+                    );
+                }
+            }
+            // The same record under another key is caught too.
+            assert!(matches!(
+                decode_brick(BrickId::new(1, [2, 3, 5]), &rec),
+                Err(BrickDecodeError::ChecksumMismatch { .. })
+            ));
         }
-        // The same record under another key is caught too.
-        assert!(matches!(
-            decode_brick(BrickId::new(1, [2, 3, 5]), &rec),
-            Err(BrickDecodeError::ChecksumMismatch { .. })
-        ));
+    }
+
+    /// A record whose checksum is right but whose body lies (a bug in another writer, or a
+    /// crafted file): decoding fails with a message, never allocates what a prefix claims.
+    #[test]
+    fn lying_bodies_fail_cleanly() {
+        let id = BrickId::new(0, [1, 1, 1]);
+        let reseal = |kind: u8, body: &[u8]| {
+            let mut out = vec![kind];
+            out.extend_from_slice(&checksum(kind, &brick_key(id), body).to_le_bytes());
+            out.extend_from_slice(body);
+            out
+        };
+        // An lz4 prefix claiming 4 GiB.
+        let mut huge = u32::MAX.to_le_bytes().to_vec();
+        huge.extend_from_slice(&[0u8; 16]);
+        for kind in [KIND_LZ4_U16, KIND_SHUFFLE_LZ4_U16, KIND_LZ4_U8] {
+            assert!(matches!(
+                decode_brick(id, &reseal(kind, &huge)),
+                Err(BrickDecodeError::WrongSize { .. })
+            ));
+        }
+        // A zstd frame of the wrong size, and garbage where a frame should be.
+        let small = zstd::bulk::compress(&[1u8; 100], 1).unwrap();
+        for kind in [KIND_SHUFFLE_ZSTD_U16, KIND_ZSTD_U8] {
+            assert!(decode_brick(id, &reseal(kind, &small)).is_err());
+            assert!(matches!(
+                decode_brick(id, &reseal(kind, &[0xAB; 40])),
+                Err(BrickDecodeError::Decompress(_))
+            ));
+        }
+        // An unknown kind is named.
+        assert_eq!(
+            decode_brick(id, &reseal(99, &[0; 8])),
+            Err(BrickDecodeError::UnknownKind(99))
+        );
+    }
+
+    #[test]
+    fn codec_names_parse() {
+        for codec in BrickCodec::ALL {
+            assert_eq!(BrickCodec::parse(codec.name()), Some(codec));
+        }
+        assert_eq!(BrickCodec::parse("DENSE"), Some(BrickCodec::Dense));
+        assert_eq!(BrickCodec::parse("gzip"), None);
     }
 
     #[test]
     fn constant_and_narrow_bricks() {
         let id = BrickId::new(0, [0, 0, 0]);
         let c = vec![77u16; BRICK_PAYLOAD_VOXELS];
-        let rec = encode_brick(id, &c, value_range(&c), false);
+        let rec = encode_brick(id, &c, value_range(&c), false, BrickCodec::Fast);
         assert!(
             rec.len() < 16,
             "constant brick stored as marker, got {} bytes",
@@ -261,7 +665,7 @@ mod tests {
         let n: Vec<u16> = (0..BRICK_PAYLOAD_VOXELS)
             .map(|i| (i % 251) as u16)
             .collect();
-        let rec = encode_brick(id, &n, value_range(&n), true);
+        let rec = encode_brick(id, &n, value_range(&n), true, BrickCodec::Fast);
         assert_eq!(decode_brick(id, &rec).unwrap(), n);
     }
 

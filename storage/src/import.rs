@@ -15,7 +15,7 @@ use std::time::Instant;
 
 use rayon::prelude::*;
 
-use crate::brick::{encode_brick, extract_brick, value_range};
+use crate::brick::{encode_brick, extract_brick, value_range, BrickCodec};
 use crate::error::{Result, StorageError};
 use crate::geometry::VolumeGeometry;
 use crate::histogram::{Histogram, StoredValueCounts};
@@ -67,6 +67,9 @@ pub struct ImportOptions<'a> {
     pub memory_budget_bytes: u64,
     pub cancel: Option<&'a AtomicBool>,
     pub progress: Option<&'a (dyn Fn(ImportProgress) + Sync)>,
+    /// The brick codec. [`BrickCodec::Lz4`] writes a format-1 store, exactly as builds before
+    /// format 2 did (for tests of old stores and the codec benchmark).
+    pub codec: BrickCodec,
 }
 
 impl Default for ImportOptions<'_> {
@@ -75,6 +78,7 @@ impl Default for ImportOptions<'_> {
             memory_budget_bytes: 1 << 30,
             cancel: None,
             progress: None,
+            codec: BrickCodec::default(),
         }
     }
 }
@@ -83,6 +87,19 @@ impl Default for ImportOptions<'_> {
 pub struct ImportReport {
     pub stats: StoreStats,
     pub header: StoreHeader,
+    pub profile: ImportProfile,
+}
+
+/// Where an import's time went (what `strata bench import` prints). The first three are spent
+/// on the importing thread one after the other; the sled writes run on their own thread,
+/// overlapping them; `finish` is the final metadata write and flush.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct ImportProfile {
+    pub convert: std::time::Duration,
+    pub histogram: std::time::Duration,
+    pub bricks: std::time::Duration,
+    pub sled_writes: std::time::Duration,
+    pub finish: std::time::Duration,
 }
 
 /// Adapts a reader's mapped raw data: converts slices with the quantiser, drops mapped pages
@@ -198,7 +215,8 @@ pub fn import_slices(
     let layout = OctreeLayout::new(meta.geometry.dims);
     // Budget: slice windows, per-core brick buffers, sled's cache (at least 16 MiB, at most 1/4).
     let per_core_buffers = rayon::current_num_threads() as u64 * (BRICK_PAYLOAD_VOXELS as u64 * 8);
-    let fixed = window_bytes(meta.geometry.dims) + per_core_buffers;
+    let converted_ahead = (SLICES_CONVERTED_AHEAD + 1) * dims[0] * dims[1] * 2;
+    let fixed = window_bytes(meta.geometry.dims) + per_core_buffers + converted_ahead;
     let sled_cache =
         (options.memory_budget_bytes.saturating_sub(fixed) / 4).clamp(16 << 20, 256 << 20);
     if fixed + sled_cache > options.memory_budget_bytes {
@@ -213,7 +231,12 @@ pub fn import_slices(
             ),
         ));
     }
-    let writer = StoreWriter::create(store_path, sled_cache)?;
+    let format_version = if options.codec == BrickCodec::Lz4 {
+        1
+    } else {
+        STORE_FORMAT_VERSION
+    };
+    let writer = StoreWriter::create_with_format(store_path, sled_cache, format_version)?;
     let narrow = meta.stored == StoredScalar::U8;
     let mut levels: Vec<LevelBuilder> = (0..layout.level_count())
         .map(|l| LevelBuilder::new(l, layout.level_dims[l].map(u64::from), &layout))
@@ -244,6 +267,7 @@ pub fn import_slices(
                     store_path,
                     batches,
                     narrow,
+                    codec: options.codec,
                     compressed_bytes: AtomicU64::new(0),
                 };
                 build_levels(
@@ -299,7 +323,7 @@ pub fn import_slices(
         meta.value_mapping.mapping.intercept,
     );
     let header = StoreHeader {
-        format_version: STORE_FORMAT_VERSION,
+        format_version,
         geometry: meta.geometry,
         stored: meta.stored,
         value_mapping: meta.value_mapping,
@@ -322,6 +346,8 @@ pub fn import_slices(
         brick_apron: APRON,
         stored_range: [stored_lo, stored_hi],
         generation: crate::store::new_generation_id(),
+        codec: options.codec,
+        required_features: Vec::new(),
     };
     let bytes_per_voxel = if narrow { 1 } else { 2 };
     let stats = StoreStats {
@@ -340,8 +366,20 @@ pub fn import_slices(
         source_bytes: total_source,
         import_seconds: started.elapsed().as_secs_f64(),
     };
+    let finishing = Instant::now();
     writer.finish(&header, &skeleton, &histogram, &stats)?;
-    Ok(ImportReport { stats, header })
+    let profile = ImportProfile {
+        convert: phase[0],
+        histogram: phase[1],
+        bricks: phase[2],
+        sled_writes: write_time,
+        finish: finishing.elapsed(),
+    };
+    Ok(ImportReport {
+        stats,
+        header,
+        profile,
+    })
 }
 
 /// Set `STRATA_DEBUG_SLOW_IMPORT=1` to sleep 20 ms per slice: lets tests kill an import midway.
@@ -350,8 +388,13 @@ fn debug_slow_import() -> bool {
     *SLOW.get_or_init(|| std::env::var_os("STRATA_DEBUG_SLOW_IMPORT").is_some())
 }
 
+/// Level-0 slices converted ahead of the brick builder: conversion and the histogram run on
+/// their own thread while the previous slices' bricks are cut and compressed.
+pub const SLICES_CONVERTED_AHEAD: u64 = 4;
+
 /// Streams level-0 slices through every level's window. Returns time spent converting,
-/// counting the histogram, and building bricks.
+/// counting the histogram (both on the conversion thread, overlapping the rest), and building
+/// bricks.
 fn build_levels(
     producer: &dyn SliceProducer,
     levels: &mut [LevelBuilder],
@@ -364,41 +407,88 @@ fn build_levels(
     let dims = producer.dims();
     let slice_len = (dims[0] * dims[1]) as usize;
     let total_source = producer.source_bytes_per_slice() * dims[2];
-    let mut phase = [std::time::Duration::ZERO; 3];
-    for k in 0..dims[2] {
-        if options.cancel.is_some_and(|c| c.load(Ordering::Relaxed)) {
-            return Err(StorageError::Cancelled {
-                path: store_path.to_path_buf(),
-            });
-        }
-        let t0 = Instant::now();
-        let mut slice = vec![0u16; slice_len];
-        producer.stored_slice(k, &mut slice)?;
-        producer.release_slice(k);
-        let t1 = Instant::now();
-        counts.add_slice(&slice);
-        let t2 = Instant::now();
-        push_slice(levels, 0, k, slice, sink, skeleton)?;
-        phase[0] += t1 - t0;
-        phase[1] += t2 - t1;
-        phase[2] += t2.elapsed();
-        if let Some(progress) = options.progress {
-            progress(ImportProgress {
-                source_bytes_done: producer.source_bytes_per_slice() * (k + 1),
-                source_bytes_total: total_source,
-            });
-        }
-        if debug_slow_import() {
-            std::thread::sleep(std::time::Duration::from_millis(20));
-        }
-    }
-    Ok(phase)
+    let cancelled = || options.cancel.is_some_and(|c| c.load(Ordering::Relaxed));
+    let (converted, converted_in) =
+        crossbeam_channel::bounded::<Result<(u64, Vec<u16>)>>(SLICES_CONVERTED_AHEAD as usize);
+    std::thread::scope(|scope| {
+        let conversion = std::thread::Builder::new()
+            .name("strata-import-convert".into())
+            .spawn_scoped(scope, move || {
+                let mut counts = StoredValueCounts::default();
+                let mut phase = [std::time::Duration::ZERO; 2];
+                for k in 0..dims[2] {
+                    if cancelled() {
+                        break;
+                    }
+                    let t0 = Instant::now();
+                    let mut slice = vec![0u16; slice_len];
+                    let result = producer.stored_slice(k, &mut slice);
+                    producer.release_slice(k);
+                    let t1 = Instant::now();
+                    if let Err(e) = result {
+                        let _ = converted.send(Err(e));
+                        break;
+                    }
+                    counts.add_slice(&slice);
+                    phase[0] += t1 - t0;
+                    phase[1] += t1.elapsed();
+                    // A closed channel: the builder stopped (an error, a cancel).
+                    if converted.send(Ok((k, slice))).is_err() {
+                        break;
+                    }
+                }
+                (counts, phase)
+            })
+            .map_err(|e| StorageError::io(store_path, e))?;
+        let mut bricks_time = std::time::Duration::ZERO;
+        let built = (|| -> Result<()> {
+            for k in 0..dims[2] {
+                if cancelled() {
+                    return Err(StorageError::Cancelled {
+                        path: store_path.to_path_buf(),
+                    });
+                }
+                let (index, slice) = match converted_in.recv() {
+                    Ok(r) => r?,
+                    // The conversion thread ended early only on a cancel (an error is sent).
+                    Err(_) => {
+                        return Err(StorageError::Cancelled {
+                            path: store_path.to_path_buf(),
+                        })
+                    }
+                };
+                debug_assert_eq!(index, k);
+                let t = Instant::now();
+                push_slice(levels, 0, k, slice, sink, skeleton)?;
+                bricks_time += t.elapsed();
+                if let Some(progress) = options.progress {
+                    progress(ImportProgress {
+                        source_bytes_done: producer.source_bytes_per_slice() * (k + 1),
+                        source_bytes_total: total_source,
+                    });
+                }
+                if debug_slow_import() {
+                    std::thread::sleep(std::time::Duration::from_millis(20));
+                }
+            }
+            Ok(())
+        })();
+        // Lets a conversion thread blocked on a full channel end.
+        drop(converted_in);
+        let (slice_counts, phase) = conversion.join().map_err(|_| {
+            StorageError::invalid(store_path, "the import's conversion thread panicked")
+        })?;
+        built?;
+        *counts = slice_counts;
+        Ok([phase[0], phase[1], bricks_time])
+    })
 }
 
 struct BrickSink<'a> {
     store_path: &'a Path,
     batches: crossbeam_channel::Sender<Vec<(BrickId, Vec<u8>)>>,
     narrow: bool,
+    codec: BrickCodec,
     compressed_bytes: AtomicU64,
 }
 
@@ -514,7 +604,7 @@ fn emit_row(builder: &LevelBuilder, sink: &BrickSink, skeleton: &mut Skeleton) -
                     extract_brick(bx, by, bz, builder.dims, &slice_at, voxels);
                     let range = value_range(voxels);
                     let id = BrickId::new(level as u8, [bx as u32, by as u32, bz as u32]);
-                    let record = encode_brick(id, voxels, range, sink.narrow);
+                    let record = encode_brick(id, voxels, range, sink.narrow, sink.codec);
                     let flags = if range.min == range.max {
                         NodeInfo::CONSTANT
                     } else {

@@ -8,6 +8,7 @@ pub mod error;
 pub mod geometry;
 pub mod histogram;
 pub mod import;
+pub mod inventory;
 pub mod lock;
 mod lock_holder;
 pub mod octree;
@@ -18,6 +19,7 @@ pub mod source;
 pub mod staging;
 pub mod store;
 
+pub use brick::BrickCodec;
 pub use error::{Result, StorageError};
 pub use geometry::VolumeGeometry;
 pub use octree::{

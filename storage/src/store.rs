@@ -16,6 +16,7 @@ use serde::{Deserialize, Serialize};
 pub use strata_types::ValueMapping;
 use xxhash_rust::xxh3::xxh3_64;
 
+pub use crate::brick::BrickCodec;
 use crate::brick::{brick_key, decode_brick, BrickDecodeError};
 use crate::contained_db::{contained, SledHandles};
 use crate::error::{Result, StorageError};
@@ -27,7 +28,17 @@ use crate::source::{SampleType, WindowPreset};
 
 pub use crate::quantize::StoredScalar;
 
-pub const STORE_FORMAT_VERSION: u32 = 1;
+/// Format 2: the brick codec is a per-store choice named in the header ([`StoreHeader::codec`]),
+/// and a header may list [`StoreHeader::required_features`] that a reader must know. Format 1
+/// (lz4 bricks, no codec field) still opens: its records decode by their kind byte.
+pub const STORE_FORMAT_VERSION: u32 = 2;
+/// The oldest format this build opens.
+pub const OLDEST_READABLE_FORMAT_VERSION: u32 = 1;
+/// Features of format 2 this build reads. A later wave extends format 2 without a version bump
+/// by adding a feature here (the octree's sparse skeleton, say) and naming it in the header of
+/// the stores that use it; a build that lacks it refuses those stores with a clear message
+/// instead of misreading them.
+pub const KNOWN_STORE_FEATURES: &[&str] = &[];
 const MARKER_FILE: &str = "STRATA-STORE";
 /// The marker file's line that [`StoreWriter::finish`] adds last.
 const MARKER_COMPLETE_LINE: &str = "complete";
@@ -89,6 +100,21 @@ pub struct StoreHeader {
     /// Empty for stores written before it existed (see [`StoreHeader::generation_id`]).
     #[serde(default)]
     pub generation: String,
+    /// How the bricks are compressed. Absent in format-1 headers (which are all lz4); written
+    /// only when it is not lz4, so a format-1 header written today reads exactly as before.
+    #[serde(
+        default = "format_1_codec",
+        skip_serializing_if = "BrickCodec::is_format_1"
+    )]
+    pub codec: BrickCodec,
+    /// Format-2 extensions this store uses, each of which a reader must understand (see
+    /// [`KNOWN_STORE_FEATURES`]). Empty for every store this build writes.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub required_features: Vec<String>,
+}
+
+fn format_1_codec() -> BrickCodec {
+    BrickCodec::Lz4
 }
 
 impl StoreHeader {
@@ -293,12 +319,7 @@ impl Store {
         }
         let header: StoreHeader = serde_json::from_slice(&require(KEY_HEADER)?)
             .map_err(|e| StorageError::corrupted(path, format!("its header is unreadable: {e}")))?;
-        if header.format_version != STORE_FORMAT_VERSION {
-            return Err(StorageError::unsupported(
-                path,
-                format!("store format version {}", header.format_version),
-            ));
-        }
+        check_format(path, &header)?;
         header
             .geometry
             .validate()
@@ -526,6 +547,57 @@ impl Store {
     }
 }
 
+/// Refuses a header this build cannot read, naming the command that rebuilds the store.
+fn check_format(path: &Path, header: &StoreHeader) -> Result<()> {
+    let rebuild = || rebuild_command(path, header);
+    let v = header.format_version;
+    if !(OLDEST_READABLE_FORMAT_VERSION..=STORE_FORMAT_VERSION).contains(&v) {
+        return Err(StorageError::unsupported(
+            path,
+            format!(
+                "store format version {v} (this build reads versions {OLDEST_READABLE_FORMAT_VERSION} to {STORE_FORMAT_VERSION}); rebuild it with: {}",
+                rebuild()
+            ),
+        ));
+    }
+    if v == 1 && header.codec != BrickCodec::Lz4 {
+        return Err(StorageError::corrupted(
+            path,
+            format!(
+                "its format-1 header names the {} codec, which format 1 does not have",
+                header.codec.name()
+            ),
+        ));
+    }
+    if let Some(unknown) = header
+        .required_features
+        .iter()
+        .find(|f| !KNOWN_STORE_FEATURES.contains(&f.as_str()))
+    {
+        return Err(StorageError::unsupported(
+            path,
+            format!(
+                "store feature '{unknown}' of a newer Strata; update Strata, or rebuild the store with: {}",
+                rebuild()
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// The `strata import` command line that rebuilds a store from its recorded source.
+pub fn rebuild_command(path: &Path, header: &StoreHeader) -> String {
+    let input = match header.provenance.inputs.as_slice() {
+        [one] => one.clone(),
+        // A DICOM series records its files: their folder is what `strata import` takes.
+        [first, ..] => Path::new(first)
+            .parent()
+            .map_or_else(|| first.clone(), |p| p.display().to_string()),
+        [] => "SOURCE".into(),
+    };
+    format!("strata import '{input}' '{}'", path.display())
+}
+
 /// Per-brick time limit of [`Store::verify`]: a brick is at most a few hundred KB; seconds mean
 /// sled is stuck, not slow.
 pub const VERIFY_READ_LIMIT: Duration = Duration::from_secs(20);
@@ -579,6 +651,7 @@ pub struct StoreWriter {
     db: SledHandles,
     finished: bool,
     lock: Option<StoreLock>,
+    format_version: u32,
 }
 
 impl StoreWriter {
@@ -586,6 +659,16 @@ impl StoreWriter {
     /// refuses to touch a non-empty directory or file that is not a store, or a store another
     /// process holds.
     pub fn create(path: &Path, sled_cache_bytes: u64) -> Result<StoreWriter> {
+        Self::create_with_format(path, sled_cache_bytes, STORE_FORMAT_VERSION)
+    }
+
+    /// [`StoreWriter::create`] for a store of format `format_version` (1 only to produce
+    /// format-1 stores in tests and benchmarks; [`StoreWriter::finish`] checks the header agrees).
+    pub fn create_with_format(
+        path: &Path,
+        sled_cache_bytes: u64,
+        format_version: u32,
+    ) -> Result<StoreWriter> {
         let lock = if path.exists() {
             let is_store = path.join(MARKER_FILE).is_file();
             let is_empty_dir = path.is_dir()
@@ -607,7 +690,7 @@ impl StoreWriter {
         };
         std::fs::write(
             path.join(MARKER_FILE),
-            format!("strata store format {STORE_FORMAT_VERSION}\n"),
+            format!("strata store format {format_version}\n"),
         )
         .map_err(|e| StorageError::io(path.join(MARKER_FILE), e))?;
         let config = sled::Config::new()
@@ -624,6 +707,7 @@ impl StoreWriter {
             bricks,
             finished: false,
             lock: Some(lock),
+            format_version,
         })
     }
 
@@ -654,6 +738,16 @@ impl StoreWriter {
     ) -> Result<()> {
         let path = self.path.clone();
         let path = &path;
+        if header.format_version != self.format_version {
+            return Err(StorageError::invalid(
+                path,
+                format!(
+                    "header of format {} for a store created as format {}",
+                    header.format_version, self.format_version
+                ),
+            ));
+        }
+        check_format(path, header)?;
         let meta = contained(path, "creating the metadata", || self.db.open_tree("meta"))?;
         let to_json = |v: &dyn erased::Json| {
             v.json()
@@ -675,7 +769,10 @@ impl StoreWriter {
         let staged = self.path.join(format!("{MARKER_FILE}.new"));
         std::fs::write(
             &staged,
-            format!("strata store format {STORE_FORMAT_VERSION}\n{MARKER_COMPLETE_LINE}\n"),
+            format!(
+                "strata store format {}\n{MARKER_COMPLETE_LINE}\n",
+                self.format_version
+            ),
         )
         .and_then(|()| std::fs::rename(&staged, &marker))
         .map_err(|e| StorageError::io(&marker, e))?;
