@@ -148,6 +148,7 @@ pub fn run(args: FlythroughArgs) -> Result<()> {
 
     let mut frame_seconds = Vec::new();
     let mut loader_seconds = Vec::new();
+    let mut loader_cpu_seconds = Vec::new();
     let mut first_frame_seconds = None;
     let mut stops = Vec::new();
     let mut ever_in_working_set: HashSet<BrickId> = HashSet::new();
@@ -168,6 +169,7 @@ pub fn run(args: FlythroughArgs) -> Result<()> {
             record(&mut csv, total_frames, stop, "glide", seconds, &stats)?;
             frame_seconds.push(seconds);
             loader_seconds.push(stats.loader_seconds);
+            loader_cpu_seconds.push(stats.loader_cpu_seconds);
             total_frames += 1;
             first_frame_seconds.get_or_insert(opening.elapsed().as_secs_f64());
         }
@@ -190,6 +192,7 @@ pub fn run(args: FlythroughArgs) -> Result<()> {
             record(&mut csv, total_frames, stop, "hold", seconds, &stats)?;
             frame_seconds.push(seconds);
             loader_seconds.push(stats.loader_seconds);
+            loader_cpu_seconds.push(stats.loader_cpu_seconds);
             total_frames += 1;
             first_frame_seconds.get_or_insert(opening.elapsed().as_secs_f64());
             if stats.converged {
@@ -225,6 +228,7 @@ pub fn run(args: FlythroughArgs) -> Result<()> {
         first_frame_seconds,
         frame_seconds,
         loader_seconds,
+        loader_cpu_seconds,
         stops,
         ever_in_working_set,
     };
@@ -318,6 +322,8 @@ struct RunRecord {
     first_frame_seconds: Option<f64>,
     frame_seconds: Vec<f64>,
     loader_seconds: Vec<f64>,
+    /// Frame-thread CPU time of the same span (thread CPU clock).
+    loader_cpu_seconds: Vec<f64>,
     stops: Vec<StopResult>,
     ever_in_working_set: HashSet<BrickId>,
 }
@@ -328,12 +334,14 @@ fn summary(args: &FlythroughArgs, volume: &StreamingVolume, record: &RunRecord) 
         first_frame_seconds,
         frame_seconds,
         loader_seconds,
+        loader_cpu_seconds,
         stops,
         ever_in_working_set,
     } = record;
     let last = volume.last_stats();
     let frames = Distribution::of(frame_seconds);
     let loader = Distribution::of(loader_seconds);
+    let loader_cpu = Distribution::of(loader_cpu_seconds);
     println!(
         "flythrough of {} ({} frames, {} viewpoints)",
         args.store,
@@ -372,6 +380,12 @@ fn summary(args: &FlythroughArgs, volume: &StreamingVolume, record: &RunRecord) 
         loader.p50 * 1e3,
         loader.p95 * 1e3,
         loader.max * 1e3
+    );
+    println!(
+        "  loader frame-thread CPU ms: p50 {:.2} p95 {:.2} max {:.2} (thread CPU clock)",
+        loader_cpu.p50 * 1e3,
+        loader_cpu.p95 * 1e3,
+        loader_cpu.max * 1e3
     );
     let distinct = ever_in_working_set.len().max(1) as u64;
     println!(
@@ -416,7 +430,7 @@ fn summary(args: &FlythroughArgs, volume: &StreamingVolume, record: &RunRecord) 
     }
 }
 
-const CSV_HEADER: &str = "frame,viewpoint,phase,frame_ms,loader_ms,converged,leaves,data_leaves,working_set_bricks,gpu_slots_used,gpu_mib,cpu_mib,cpu_hit_rate,gpu_hit_rate,pending,queued,in_flight,stale_dropped_total,uploads,upload_mib,bricks_read_total,stored_mb_read_total,read_mb_per_s,prefetch_loaded_total,prefetch_used_total,prefetch_hit_rate,failed_bricks,gpu_budget_limited,gpu_resident_per_level,blocked_data_upload_slots_balance";
+const CSV_HEADER: &str = "frame,viewpoint,phase,frame_ms,loader_ms,loader_cpu_ms,converged,leaves,data_leaves,working_set_bricks,gpu_slots_used,gpu_mib,cpu_mib,cpu_hit_rate,gpu_hit_rate,pending,queued,in_flight,stale_dropped_total,uploads,upload_mib,bricks_read_total,stored_mb_read_total,read_mb_per_s,prefetch_loaded_total,prefetch_used_total,prefetch_hit_rate,failed_bricks,gpu_budget_limited,gpu_resident_per_level,blocked_data_upload_slots_balance,data_leaves_per_level";
 
 fn record(
     csv: &mut Option<std::io::BufWriter<std::fs::File>>,
@@ -435,9 +449,10 @@ fn record(
     };
     writeln!(
         file,
-        "{frame},{stop},{phase},{:.3},{:.3},{},{},{},{},{},{:.2},{:.2},{:.4},{:.4},{},{},{},{},{},{:.3},{},{:.3},{:.3},{},{},{:.4},{},{},{},{}",
+        "{frame},{stop},{phase},{:.3},{:.3},{:.3},{},{},{},{},{},{:.2},{:.2},{:.4},{:.4},{},{},{},{},{},{:.3},{},{:.3},{:.3},{},{},{:.4},{},{},{},{},{}",
         seconds * 1e3,
         s.loader_seconds * 1e3,
+        s.loader_cpu_seconds * 1e3,
         s.converged,
         s.leaves,
         s.data_leaves,
@@ -462,7 +477,8 @@ fn record(
         s.failed_bricks,
         s.gpu_budget_limited,
         join(&s.gpu_resident_per_level),
-        join(&s.blocked)
+        join(&s.blocked),
+        join(&s.data_leaves_per_level)
     )?;
     Ok(())
 }

@@ -13,6 +13,7 @@ pub mod octree_ranges;
 pub mod prefetch;
 pub mod store_volume;
 pub mod streaming;
+pub mod thread_cpu;
 pub mod visibility;
 
 pub use error::LoaderError;

@@ -7,6 +7,10 @@ pub struct FrameStats {
     /// Wall time of `StreamingVolume::frame` up to the submit (selection, uploads, page table):
     /// what the loader adds to a frame. Never includes a read.
     pub loader_seconds: f64,
+    /// The same span in CPU time of the calling (frame) thread (`CLOCK_THREAD_CPUTIME_ID`):
+    /// what the loader costs the frame thread, whatever else the machine runs. NaN where the
+    /// clock is unavailable.
+    pub loader_cpu_seconds: f64,
     pub leaves: usize,
     pub data_leaves: usize,
     /// Data leaves of this cut per level (index = level).

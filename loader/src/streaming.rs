@@ -329,6 +329,7 @@ impl StreamingVolume {
         settings: &RenderSettings,
     ) -> Result<FrameStats, LoaderError> {
         let started = Instant::now();
+        let started_cpu = crate::thread_cpu::thread_cpu_seconds();
         self.frame += 1;
         let frame = self.frame;
         let fetched = self.take_fetched();
@@ -419,6 +420,9 @@ impl StreamingVolume {
         self.workers.set_requests(&demand, &prefetch);
 
         let loader_seconds = started.elapsed().as_secs_f64();
+        let loader_cpu_seconds = started_cpu
+            .zip(crate::thread_cpu::thread_cpu_seconds())
+            .map_or(f64::NAN, |(a, b)| b - a);
         let scene = Scene {
             cache: &self.cache,
             page_table: &self.gpu_page_table,
@@ -440,7 +444,8 @@ impl StreamingVolume {
         let visibility_seen = !self.config.visibility_feedback
             || self.visibility.newest_render_frame() >= self.cut_changed_at_render;
         let converged = cut.complete() && cut.uploads.is_empty() && !rewritten && visibility_seen;
-        let stats = self.stats(&cut, fetched, rewritten, converged, loader_seconds);
+        let mut stats = self.stats(&cut, fetched, rewritten, converged, loader_seconds);
+        stats.loader_cpu_seconds = loader_cpu_seconds;
         self.last_stats = stats.clone();
         Ok(stats)
     }
@@ -673,6 +678,7 @@ impl StreamingVolume {
         FrameStats {
             frame: self.frame,
             loader_seconds,
+            loader_cpu_seconds: f64::NAN,
             leaves: cut.leaves.len(),
             data_leaves,
             data_leaves_per_level: {
