@@ -85,6 +85,8 @@ pub(crate) fn viewpoint(geometry: &VolumeGeometry, k: f64, n: usize) -> Camera {
 struct StopResult {
     stop: usize,
     converged: bool,
+    /// "converged" or "converged at budget (N nodes left coarser than wanted)".
+    status: String,
     seconds_to_converge: f64,
     frames_to_converge: usize,
     working_set_bricks: usize,
@@ -178,6 +180,7 @@ pub fn run(args: FlythroughArgs) -> Result<()> {
         let mut result = StopResult {
             stop,
             converged: false,
+            status: String::new(),
             seconds_to_converge: f64::NAN,
             frames_to_converge: 0,
             working_set_bricks: 0,
@@ -197,6 +200,7 @@ pub fn run(args: FlythroughArgs) -> Result<()> {
             first_frame_seconds.get_or_insert(opening.elapsed().as_secs_f64());
             if stats.converged {
                 result.converged = true;
+                result.status = stats.convergence_status();
                 result.seconds_to_converge = arrived.elapsed().as_secs_f64();
                 result.frames_to_converge = held + 1;
                 result.working_set_bricks = stats.working_set_bricks;
@@ -296,8 +300,8 @@ fn in_core(
 fn print_stop(r: &StopResult) {
     let converge = if r.converged {
         format!(
-            "converged in {:.2} s ({} frames), working set {} bricks",
-            r.seconds_to_converge, r.frames_to_converge, r.working_set_bricks
+            "{} in {:.2} s ({} frames), working set {} bricks",
+            r.status, r.seconds_to_converge, r.frames_to_converge, r.working_set_bricks
         )
     } else {
         "did not converge within --settle-frames".to_string()
@@ -359,8 +363,8 @@ fn summary(args: &FlythroughArgs, volume: &StreamingVolume, record: &RunRecord) 
             r.stop,
             if r.converged {
                 format!(
-                    "converged in {:.2} s / {} frames",
-                    r.seconds_to_converge, r.frames_to_converge
+                    "{} in {:.2} s / {} frames",
+                    r.status, r.seconds_to_converge, r.frames_to_converge
                 )
             } else {
                 "not converged".into()
@@ -430,7 +434,7 @@ fn summary(args: &FlythroughArgs, volume: &StreamingVolume, record: &RunRecord) 
     }
 }
 
-const CSV_HEADER: &str = "frame,viewpoint,phase,frame_ms,loader_ms,loader_cpu_ms,converged,leaves,data_leaves,working_set_bricks,gpu_slots_used,gpu_mib,cpu_mib,cpu_hit_rate,gpu_hit_rate,pending,queued,in_flight,stale_dropped_total,uploads,upload_mib,bricks_read_total,stored_mb_read_total,read_mb_per_s,prefetch_loaded_total,prefetch_used_total,prefetch_hit_rate,failed_bricks,gpu_budget_limited,gpu_resident_per_level,blocked_data_upload_slots_balance,data_leaves_per_level";
+const CSV_HEADER: &str = "frame,viewpoint,phase,frame_ms,loader_ms,loader_cpu_ms,converged,leaves,data_leaves,working_set_bricks,gpu_slots_used,gpu_mib,cpu_mib,cpu_hit_rate,gpu_hit_rate,pending,queued,in_flight,stale_dropped_total,uploads,upload_mib,bricks_read_total,stored_mb_read_total,read_mb_per_s,prefetch_loaded_total,prefetch_used_total,prefetch_hit_rate,failed_bricks,gpu_budget_limited,left_coarser,gpu_resident_per_level,blocked_data_upload_slots_balance,data_leaves_per_level";
 
 fn record(
     csv: &mut Option<std::io::BufWriter<std::fs::File>>,
@@ -449,7 +453,7 @@ fn record(
     };
     writeln!(
         file,
-        "{frame},{stop},{phase},{:.3},{:.3},{:.3},{},{},{},{},{},{:.2},{:.2},{:.4},{:.4},{},{},{},{},{},{:.3},{},{:.3},{:.3},{},{},{:.4},{},{},{},{},{}",
+        "{frame},{stop},{phase},{:.3},{:.3},{:.3},{},{},{},{},{},{:.2},{:.2},{:.4},{:.4},{},{},{},{},{},{:.3},{},{:.3},{:.3},{},{},{:.4},{},{},{},{},{},{}",
         seconds * 1e3,
         s.loader_seconds * 1e3,
         s.loader_cpu_seconds * 1e3,
@@ -476,6 +480,7 @@ fn record(
         s.prefetch_hit_rate,
         s.failed_bricks,
         s.gpu_budget_limited,
+        s.left_coarser,
         join(&s.gpu_resident_per_level),
         join(&s.blocked),
         join(&s.data_leaves_per_level)

@@ -10,6 +10,7 @@ pub mod fetch_workers;
 pub mod gpu_slots;
 pub mod metrics;
 pub mod octree_ranges;
+pub mod predicted_cut;
 pub mod prefetch;
 pub mod store_volume;
 pub mod streaming;

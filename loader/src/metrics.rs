@@ -71,9 +71,29 @@ pub struct FrameStats {
     pub blocked: [usize; 4],
     /// Refinement stopped somewhere only because GPU slots ran out.
     pub gpu_budget_limited: bool,
+    /// Leaves the quality factor wanted finer that the GPU budget kept coarser this frame.
+    pub left_coarser: usize,
+    /// Converged with `left_coarser` > 0: the best cut that fits the GPU budget (a bigger
+    /// budget refines further).
+    pub converged_at_budget: bool,
     /// Nothing the quality factor asks for is missing, the cut is stable and the visibility
     /// feedback has seen it: further frames show the same image.
     pub converged: bool,
+}
+
+impl FrameStats {
+    /// One line for status bars and summaries: "converged", "converged at budget (N nodes
+    /// left coarser than wanted)" or "refining".
+    pub fn convergence_status(&self) -> String {
+        match (self.converged, self.converged_at_budget) {
+            (true, true) => format!(
+                "converged at budget ({} nodes left coarser than wanted)",
+                self.left_coarser
+            ),
+            (true, false) => "converged".into(),
+            (false, _) => "refining".into(),
+        }
+    }
 }
 
 /// Frame-time distribution over a run.

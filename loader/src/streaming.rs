@@ -4,7 +4,10 @@
 //! workers, and submit the raycast. Nothing here waits for a read: the root is read once at
 //! open and stays pinned, so every frame draws the whole volume and refines over frames.
 
-use std::collections::{HashMap, HashSet, VecDeque};
+use std::collections::VecDeque;
+
+// Keys are brick ids, not attacker-chosen: a fast hash on the frame thread.
+use rustc_hash::{FxHashMap as HashMap, FxHashSet as HashSet};
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -23,6 +26,7 @@ use crate::fetch_workers::FetchWorkers;
 use crate::gpu_slots::GpuSlots;
 use crate::metrics::FrameStats;
 use crate::octree_ranges::{Emptiness, OctreeRanges, StoredRange};
+use crate::predicted_cut::{CutPredictor, EmptinessSpec, PredictionJob};
 use crate::prefetch::MotionPredictor;
 use crate::visibility::PageVisibility;
 
@@ -122,31 +126,13 @@ impl Residency for ResidencyView<'_> {
     }
 }
 
-/// For predicting a future cut: as if everything were loaded, so the prediction says what
-/// the view will want rather than what it can show now.
-struct EverythingLoaded<'a> {
-    failed: &'a HashSet<BrickId>,
-}
-
-impl Residency for EverythingLoaded<'_> {
-    fn on_gpu(&self, _: BrickId) -> bool {
-        true
-    }
-    fn in_cpu(&self, _: BrickId) -> bool {
-        true
-    }
-    fn failed(&self, id: BrickId) -> bool {
-        self.failed.contains(&id)
-    }
-}
-
 pub struct StreamingVolume {
     config: StreamingConfig,
     geometry: VolumeGeometry,
     mapping: ValueMapping,
-    octree: OctreeRanges,
+    octree: Arc<OctreeRanges>,
     root: BrickId,
-    tf_table: TransferFunctionTable,
+    tf_table: Arc<TransferFunctionTable>,
     cache: BrickCache,
     gpu_page_table: GpuPageTable,
     transfer_function: GpuTransferFunction,
@@ -158,6 +144,8 @@ pub struct StreamingVolume {
     source: Arc<dyn VolumeSource>,
     visibility: PageVisibility,
     motion: MotionPredictor,
+    /// Selects the motion-extrapolated cut off the frame thread.
+    predictor: CutPredictor,
     failed: HashSet<BrickId>,
     new_failures: Vec<BrickFailure>,
     frame: u64,
@@ -168,6 +156,45 @@ pub struct StreamingVolume {
     read_history: VecDeque<(Instant, u64)>,
     last_stats: FrameStats,
     working_set: Vec<BrickId>,
+    /// Nodes the last frame's cut refined: the incumbents hysteresis protects.
+    refined_last_frame: HashSet<BrickId>,
+    /// What the current page table was built from.
+    page_table_key: PageTableKey,
+    /// Counts transfer-function changes (emptiness changes with them).
+    tf_generation: u64,
+}
+
+/// Everything `build_page_table` reads: each leaf with its kind and the slot it is drawn
+/// from (its own, or its parent's for a pending or failed leaf), and what counts as empty.
+#[derive(Default, PartialEq)]
+struct PageTableKey {
+    leaves: Vec<(BrickId, LeafKind, Option<u32>)>,
+    mode: Option<RenderMode>,
+    iso_bits: u64,
+    tf_generation: u64,
+}
+
+impl PageTableKey {
+    fn of(cut: &Cut, slots: &GpuSlots, settings: &RenderSettings, tf_generation: u64) -> Self {
+        let leaves = cut
+            .leaves
+            .iter()
+            .map(|l| {
+                let drawn_from = match l.kind {
+                    LeafKind::Data => slots.slot_of(l.id),
+                    LeafKind::Failed | LeafKind::Pending => slots.slot_of(l.id.parent()),
+                    _ => None,
+                };
+                (l.id, l.kind, drawn_from)
+            })
+            .collect();
+        PageTableKey {
+            leaves,
+            mode: Some(settings.mode),
+            iso_bits: settings.iso_value.to_bits(),
+            tf_generation,
+        }
+    }
 }
 
 impl StreamingVolume {
@@ -196,9 +223,9 @@ impl StreamingVolume {
         let header = source.header();
         let geometry = header.geometry.clone();
         let mapping = header.value_mapping.mapping;
-        let octree = OctreeRanges::from_source(source.as_ref());
+        let octree = Arc::new(OctreeRanges::from_source(source.as_ref()));
         let root = BrickId::new(octree.root_level(), [0, 0, 0]);
-        let tf_table = tf_table_for(tf, mapping, header.stored_range);
+        let tf_table = Arc::new(tf_table_for(tf, mapping, header.stored_range));
         let cpu = CpuBrickCache::new(config.cpu_cache_budget()?);
         let cache = BrickCache::new(
             &ctx.device,
@@ -241,6 +268,7 @@ impl StreamingVolume {
             )?),
         };
         let visibility = PageVisibility::new(&octree, config.visibility_memory_frames);
+        let predictor = CutPredictor::start(octree.clone())?;
         Ok(StreamingVolume {
             geometry,
             mapping,
@@ -258,7 +286,8 @@ impl StreamingVolume {
             source,
             visibility,
             motion: MotionPredictor::new(4.0),
-            failed: HashSet::new(),
+            predictor,
+            failed: HashSet::default(),
             new_failures: Vec::new(),
             frame: 0,
             renders: 0,
@@ -268,6 +297,9 @@ impl StreamingVolume {
             read_history: VecDeque::new(),
             last_stats: FrameStats::default(),
             working_set: vec![root],
+            refined_last_frame: HashSet::default(),
+            page_table_key: PageTableKey::default(),
+            tf_generation: 0,
             config,
         })
     }
@@ -302,8 +334,9 @@ impl StreamingVolume {
         tf: &TransferFunction,
     ) -> Result<(), LoaderError> {
         tf.validate()?;
-        self.tf_table = tf_table_for_range(tf, self.tf_table.lo, self.tf_table.hi);
+        self.tf_table = Arc::new(tf_table_for_range(tf, self.tf_table.lo, self.tf_table.hi));
         self.transfer_function.update(&ctx.queue, &self.tf_table);
+        self.tf_generation += 1;
         Ok(())
     }
 
@@ -359,9 +392,12 @@ impl StreamingVolume {
                 emptiness,
                 visibility,
                 &residency,
+                &self.refined_last_frame,
                 limits,
             )
         };
+        self.refined_last_frame.clear();
+        self.refined_last_frame.extend(cut.refined.iter().copied());
 
         // Everything this cut shows is protected before any slot is reused.
         self.slots.touch(self.root, frame);
@@ -383,13 +419,20 @@ impl StreamingVolume {
             self.cache.upload_brick(&ctx.queue, slot, &brick)?;
         }
 
-        let table = build_page_table(&self.octree, &self.slots, &cut, &emptiness)?;
-        let rewritten = table != self.page_table;
-        if rewritten {
-            self.gpu_page_table.update(&ctx.queue, &table)?;
-            self.write_mip_bounds(ctx, &table)?;
-            self.page_table = table;
-            self.cut_changed_at_render = self.renders + 1;
+        // The table is a function of the leaves, their slots and what counts as empty: when
+        // none of these changed (a settled cut, or one waiting for reads) it is not rebuilt.
+        let key = PageTableKey::of(&cut, &self.slots, settings, self.tf_generation);
+        let mut rewritten = false;
+        if key != self.page_table_key {
+            let table = build_page_table(&self.octree, &self.slots, &cut, &emptiness)?;
+            rewritten = table != self.page_table;
+            if rewritten {
+                self.gpu_page_table.update(&ctx.queue, &table)?;
+                self.write_mip_bounds(ctx, &table)?;
+                self.page_table = table;
+                self.cut_changed_at_render = self.renders + 1;
+            }
+            self.page_table_key = key;
         }
 
         // Ask for no more than half the CPU cache holds: bricks read faster than uploads and
@@ -411,8 +454,17 @@ impl StreamingVolume {
         let mut prefetch: Vec<(BrickId, f64)> = Vec::new();
         if self.config.prefetch {
             prefetch.extend(cut.refine_next.iter().map(|r| (r.id, r.priority)));
+            // The prediction thread answers a frame or more late; an answer that arrives once
+            // the camera stopped is dropped.
+            let newest_prediction = self.predictor.take_newest();
             if let Some(predicted) = self.motion.observe(camera) {
-                prefetch.extend(self.predicted_misses(&predicted, settings, limits));
+                self.predictor.submit(PredictionJob {
+                    view: ViewSetup::new(&self.geometry, &predicted, settings),
+                    emptiness: self.emptiness_spec(settings),
+                    failed: self.failed.clone(),
+                    limits,
+                });
+                prefetch.extend(newest_prediction.into_iter().flatten());
             }
             prefetch.retain(|(id, _)| !self.cpu.contains(*id) && !self.slots.contains(*id));
             prefetch.truncate(self.config.prefetch_per_frame);
@@ -616,35 +668,17 @@ impl StreamingVolume {
         fetched
     }
 
-    fn predicted_misses(
-        &self,
-        predicted: &Camera,
-        settings: &RenderSettings,
-        limits: CutLimits,
-    ) -> Vec<(BrickId, f64)> {
-        let view = ViewSetup::new(&self.geometry, predicted, settings);
-        let emptiness = emptiness_for(settings, &self.tf_table, self.mapping);
-        let everything = EverythingLoaded {
-            failed: &self.failed,
-        };
-        let cut = select_cut(
-            &self.octree,
-            &view,
-            emptiness,
-            None,
-            &everything,
-            CutLimits {
-                uploads: usize::MAX,
-                ..limits
+    fn emptiness_spec(&self, settings: &RenderSettings) -> EmptinessSpec {
+        match settings.mode {
+            RenderMode::Isosurface => EmptinessSpec::Iso {
+                value: settings.iso_value,
+                mapping: self.mapping,
             },
-        );
-        cut.leaves
-            .iter()
-            .filter(|l| {
-                l.kind == LeafKind::Data && !self.slots.contains(l.id) && !self.cpu.contains(l.id)
-            })
-            .map(|l| (l.id, l.priority))
-            .collect()
+            RenderMode::Dvr | RenderMode::Mip => EmptinessSpec::TransferFunction {
+                table: self.tf_table.clone(),
+                mapping: self.mapping,
+            },
+        }
     }
 
     fn stats(
@@ -671,6 +705,14 @@ impl StreamingVolume {
             .max(1e-3);
         let window_bytes: u64 = self.read_history.iter().map(|(_, b)| b).sum();
         let data_leaves = cut.data_leaves().count();
+        // A settled cut keeps the count it settled with: which nodes the feedback calls
+        // visible flickers at the silhouette, and with it how many blocked refinements are
+        // tried, while the cut (and so what was left coarser) stays the same.
+        let left_coarser = if converged && !rewritten && self.last_stats.converged {
+            self.last_stats.left_coarser
+        } else {
+            cut.blocked_by_gpu_slots
+        };
         let slot_bytes = BRICK_PAYLOAD_VOXELS as u64 * self.cache.format.bytes_per_voxel();
         let cpu_counters = self.cpu.counters();
         let queue = self.workers.counters();
@@ -731,6 +773,8 @@ impl StreamingVolume {
                 cut.blocked_by_balance,
             ],
             gpu_budget_limited: cut.blocked_by_gpu_slots > 0,
+            left_coarser,
+            converged_at_budget: converged && left_coarser > 0,
             converged,
         }
     }
@@ -790,7 +834,7 @@ fn build_page_table(
     // harmless only when the slot holds that node's own transparent voxels.
     let skipped = |_level: u8| PageEntry::NOT_RESIDENT;
     let own_empty = |id: BrickId| octree.own_range(id).is_some_and(|r| emptiness.is_empty(r));
-    let mut memo: HashMap<BrickId, PageEntry> = HashMap::new();
+    let mut memo: HashMap<BrickId, PageEntry> = HashMap::default();
     for leaf in &cut.leaves {
         let entry = match leaf.kind {
             LeafKind::Data => {
