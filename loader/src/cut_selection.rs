@@ -739,7 +739,7 @@ mod tests {
         // Half the level-1 and level-0 bricks missing: their parents' refinements are pending.
         let partly = select(
             &view,
-            &Loaded(|id: BrickId| id.level >= 2 || (id.coords[0] + id.coords[1]) % 2 == 0),
+            &Loaded(|id: BrickId| id.level >= 2 || (id.coords[0] + id.coords[1]).is_multiple_of(2)),
             &none,
         );
         assert!(!partly.demand.is_empty(), "some bricks must be missing");

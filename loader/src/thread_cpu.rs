@@ -14,7 +14,7 @@ pub fn thread_cpu_seconds() -> Option<f64> {
         // SAFETY: `now` is a valid, writable timespec for the duration of the call, and
         // CLOCK_THREAD_CPUTIME_ID is a clock id every supported Unix defines.
         let rc = unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut now) };
-        (rc == 0).then(|| now.tv_sec as f64 + now.tv_nsec as f64 * 1e-9)
+        (rc == 0).then_some(now.tv_sec as f64 + now.tv_nsec as f64 * 1e-9)
     }
     #[cfg(not(unix))]
     {
