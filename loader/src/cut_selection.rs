@@ -249,17 +249,17 @@ impl ViewSetup {
                 return true;
             }
         }
-        // Camera-space coordinates (mm) of each corner.
-        let cam: Vec<DVec3> = corners
-            .map(|c| {
-                let d = c - self.eye_index;
-                DVec3::new(
-                    self.right_row.dot(d),
-                    self.up_row.dot(d),
-                    self.forward_row.dot(d),
-                )
-            })
-            .collect();
+        // Camera-space coordinates (mm) of each corner (on the stack: this runs for every
+        // child the selection looks at).
+        let mut cam = [DVec3::ZERO; 8];
+        for (c, corner) in cam.iter_mut().zip(corners) {
+            let d = corner - self.eye_index;
+            *c = DVec3::new(
+                self.right_row.dot(d),
+                self.up_row.dot(d),
+                self.forward_row.dot(d),
+            );
+        }
         let outside = |f: &dyn Fn(&DVec3) -> bool| cam.iter().all(f);
         if self.orthographic {
             let (hx, hy) = (self.half_extent * self.aspect, self.half_extent);
