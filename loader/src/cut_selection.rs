@@ -99,7 +99,7 @@ pub struct CutLimits {
     pub prefetch_candidates: usize,
 }
 
-#[derive(Debug, Default)]
+#[derive(Clone, Debug, Default)]
 pub struct Cut {
     pub leaves: Vec<CutLeaf>,
     /// In CPU memory, not on the GPU, needed by this cut: upload now.

@@ -160,8 +160,51 @@ pub struct StreamingVolume {
     refined_last_frame: HashSet<BrickId>,
     /// What the current page table was built from.
     page_table_key: PageTableKey,
+    /// The last frame's cut when it was complete and bound by the GPU budget, with the view
+    /// it was selected for.
+    settled: Option<(Cut, ViewInputs)>,
     /// Counts transfer-function changes (emptiness changes with them).
     tf_generation: u64,
+}
+
+/// Once a still view's cut is complete and bound by the GPU budget, a new selection may
+/// only refine it further, never trade: one that would coarsen a node the settled cut
+/// refined is replaced by the settled cut (whose bricks are all still on the GPU, so
+/// nothing is uploaded). Without this, feedback flicker at the silhouette and bricks
+/// evicted and read again made two cuts that each fit alternate forever at 1024³.
+fn keep_settled_cut(
+    settled: &mut Option<(Cut, ViewInputs)>,
+    slots: &GpuSlots,
+    cut: Cut,
+    inputs: &ViewInputs,
+) -> Cut {
+    let Some((settled, settled_for)) = settled.take() else {
+        return cut;
+    };
+    if settled_for != *inputs {
+        return cut;
+    }
+    let refined: HashSet<BrickId> = cut.refined.iter().copied().collect();
+    let coarsens = settled.refined.iter().any(|id| !refined.contains(id));
+    let drawable = settled
+        .data_leaves()
+        .chain(settled.resident_inner.iter().copied())
+        .all(|id| slots.contains(id));
+    if coarsens && drawable {
+        settled
+    } else {
+        cut
+    }
+}
+
+/// What a cut is selected for, apart from residency and visibility feedback.
+#[derive(PartialEq)]
+struct ViewInputs {
+    camera: Camera,
+    settings: RenderSettings,
+    tf_generation: u64,
+    failed_bricks: usize,
+    max_voxel_pixels: f64,
 }
 
 /// Everything `build_page_table` reads: each leaf with its kind and the slot it is drawn
@@ -299,6 +342,7 @@ impl StreamingVolume {
             working_set: vec![root],
             refined_last_frame: HashSet::default(),
             page_table_key: PageTableKey::default(),
+            settled: None,
             tf_generation: 0,
             config,
         })
@@ -396,6 +440,14 @@ impl StreamingVolume {
                 limits,
             )
         };
+        let inputs = ViewInputs {
+            camera: *camera,
+            settings: settings.clone(),
+            tf_generation: self.tf_generation,
+            failed_bricks: self.failed.len(),
+            max_voxel_pixels: self.config.max_voxel_pixels,
+        };
+        let cut = keep_settled_cut(&mut self.settled, &self.slots, cut, &inputs);
         self.refined_last_frame.clear();
         self.refined_last_frame.extend(cut.refined.iter().copied());
 
@@ -498,6 +550,13 @@ impl StreamingVolume {
         let converged = cut.complete() && cut.uploads.is_empty() && !rewritten && visibility_seen;
         let mut stats = self.stats(&cut, fetched, rewritten, converged, loader_seconds);
         stats.loader_cpu_seconds = loader_cpu_seconds;
+        // A complete cut the budget bound is what this view settles on (see keep_settled_cut).
+        self.settled = (cut.complete() && cut.blocked_by_gpu_slots > 0).then(|| {
+            let mut settled = cut;
+            settled.uploads.clear();
+            settled.data_leaves_on_gpu = settled.data_leaves().count();
+            (settled, inputs)
+        });
         self.last_stats = stats.clone();
         Ok(stats)
     }
