@@ -943,3 +943,87 @@ fn build_page_table(
     }
     Ok(table)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cut_selection::CutLeaf;
+    use strata_render::Projection;
+
+    fn inputs(azimuth: f64) -> ViewInputs {
+        let geometry = VolumeGeometry::axis_aligned([256, 256, 256], [1.0; 3]);
+        ViewInputs {
+            camera: Camera::orbit(
+                &geometry,
+                azimuth,
+                10.0,
+                2.0,
+                Projection::Perspective { fov_y_deg: 30.0 },
+            ),
+            settings: RenderSettings::default(),
+            tf_generation: 0,
+            failed_bricks: 0,
+            max_voxel_pixels: 1.0,
+        }
+    }
+
+    /// A cut refining `refined` (level-1 nodes) into data leaves at level 0.
+    fn cut(refined: &[u32]) -> Cut {
+        let inner: Vec<BrickId> = refined
+            .iter()
+            .map(|&x| BrickId::new(1, [x, 0, 0]))
+            .collect();
+        Cut {
+            leaves: inner
+                .iter()
+                .flat_map(|p| {
+                    (0..2).map(move |i| CutLeaf {
+                        id: BrickId::new(0, [p.coords[0] * 2 + i, 0, 0]),
+                        kind: LeafKind::Data,
+                        priority: 1.0,
+                    })
+                })
+                .collect(),
+            resident_inner: inner.clone(),
+            refined: inner,
+            blocked_by_gpu_slots: 1,
+            ..Cut::default()
+        }
+    }
+
+    fn slots_holding(cut: &Cut) -> GpuSlots {
+        let mut slots = GpuSlots::new(64);
+        for id in cut.data_leaves().chain(cut.resident_inner.iter().copied()) {
+            slots.allocate(id, 1, false);
+        }
+        slots
+    }
+
+    fn refined_of(cut: &Cut) -> Vec<u32> {
+        cut.refined.iter().map(|id| id.coords[0]).collect()
+    }
+
+    #[test]
+    fn a_settled_cut_is_kept_against_a_trade_but_not_against_progress_or_a_new_view() {
+        let settled = cut(&[0, 1]);
+        let slots = slots_holding(&settled);
+        // The same view offers a trade (node 1 coarsened for node 2): the settled cut stays.
+        let mut memory = Some((settled.clone(), inputs(30.0)));
+        let kept = keep_settled_cut(&mut memory, &slots, cut(&[0, 2]), &inputs(30.0));
+        assert_eq!(refined_of(&kept), vec![0, 1]);
+        assert!(kept.uploads.is_empty());
+        // Refining further is progress: taken.
+        let mut memory = Some((settled.clone(), inputs(30.0)));
+        let more = keep_settled_cut(&mut memory, &slots, cut(&[0, 1, 2]), &inputs(30.0));
+        assert_eq!(refined_of(&more), vec![0, 1, 2]);
+        // A new view selects freely.
+        let mut memory = Some((settled.clone(), inputs(30.0)));
+        let moved = keep_settled_cut(&mut memory, &slots, cut(&[0, 2]), &inputs(31.0));
+        assert_eq!(refined_of(&moved), vec![0, 2]);
+        // A settled cut whose bricks left the GPU cannot be drawn: the new cut is taken.
+        let mut memory = Some((settled, inputs(30.0)));
+        let empty_slots = GpuSlots::new(64);
+        let redrawn = keep_settled_cut(&mut memory, &empty_slots, cut(&[0, 2]), &inputs(30.0));
+        assert_eq!(refined_of(&redrawn), vec![0, 2]);
+    }
+}
