@@ -85,6 +85,8 @@ pub(crate) fn viewpoint(geometry: &VolumeGeometry, k: f64, n: usize) -> Camera {
 struct StopResult {
     stop: usize,
     converged: bool,
+    /// "converged" or "converged at budget (N nodes left coarser than wanted)".
+    status: String,
     seconds_to_converge: f64,
     frames_to_converge: usize,
     working_set_bricks: usize,
@@ -148,6 +150,7 @@ pub fn run(args: FlythroughArgs) -> Result<()> {
 
     let mut frame_seconds = Vec::new();
     let mut loader_seconds = Vec::new();
+    let mut loader_cpu_seconds = Vec::new();
     let mut first_frame_seconds = None;
     let mut stops = Vec::new();
     let mut ever_in_working_set: HashSet<BrickId> = HashSet::new();
@@ -168,6 +171,7 @@ pub fn run(args: FlythroughArgs) -> Result<()> {
             record(&mut csv, total_frames, stop, "glide", seconds, &stats)?;
             frame_seconds.push(seconds);
             loader_seconds.push(stats.loader_seconds);
+            loader_cpu_seconds.push(stats.loader_cpu_seconds);
             total_frames += 1;
             first_frame_seconds.get_or_insert(opening.elapsed().as_secs_f64());
         }
@@ -176,6 +180,7 @@ pub fn run(args: FlythroughArgs) -> Result<()> {
         let mut result = StopResult {
             stop,
             converged: false,
+            status: String::new(),
             seconds_to_converge: f64::NAN,
             frames_to_converge: 0,
             working_set_bricks: 0,
@@ -190,10 +195,12 @@ pub fn run(args: FlythroughArgs) -> Result<()> {
             record(&mut csv, total_frames, stop, "hold", seconds, &stats)?;
             frame_seconds.push(seconds);
             loader_seconds.push(stats.loader_seconds);
+            loader_cpu_seconds.push(stats.loader_cpu_seconds);
             total_frames += 1;
             first_frame_seconds.get_or_insert(opening.elapsed().as_secs_f64());
             if stats.converged {
                 result.converged = true;
+                result.status = stats.convergence_status();
                 result.seconds_to_converge = arrived.elapsed().as_secs_f64();
                 result.frames_to_converge = held + 1;
                 result.working_set_bricks = stats.working_set_bricks;
@@ -225,6 +232,7 @@ pub fn run(args: FlythroughArgs) -> Result<()> {
         first_frame_seconds,
         frame_seconds,
         loader_seconds,
+        loader_cpu_seconds,
         stops,
         ever_in_working_set,
     };
@@ -292,8 +300,8 @@ fn in_core(
 fn print_stop(r: &StopResult) {
     let converge = if r.converged {
         format!(
-            "converged in {:.2} s ({} frames), working set {} bricks",
-            r.seconds_to_converge, r.frames_to_converge, r.working_set_bricks
+            "{} in {:.2} s ({} frames), working set {} bricks",
+            r.status, r.seconds_to_converge, r.frames_to_converge, r.working_set_bricks
         )
     } else {
         "did not converge within --settle-frames".to_string()
@@ -318,6 +326,8 @@ struct RunRecord {
     first_frame_seconds: Option<f64>,
     frame_seconds: Vec<f64>,
     loader_seconds: Vec<f64>,
+    /// Frame-thread CPU time of the same span (thread CPU clock).
+    loader_cpu_seconds: Vec<f64>,
     stops: Vec<StopResult>,
     ever_in_working_set: HashSet<BrickId>,
 }
@@ -328,12 +338,14 @@ fn summary(args: &FlythroughArgs, volume: &StreamingVolume, record: &RunRecord) 
         first_frame_seconds,
         frame_seconds,
         loader_seconds,
+        loader_cpu_seconds,
         stops,
         ever_in_working_set,
     } = record;
     let last = volume.last_stats();
     let frames = Distribution::of(frame_seconds);
     let loader = Distribution::of(loader_seconds);
+    let loader_cpu = Distribution::of(loader_cpu_seconds);
     println!(
         "flythrough of {} ({} frames, {} viewpoints)",
         args.store,
@@ -351,8 +363,8 @@ fn summary(args: &FlythroughArgs, volume: &StreamingVolume, record: &RunRecord) 
             r.stop,
             if r.converged {
                 format!(
-                    "converged in {:.2} s / {} frames",
-                    r.seconds_to_converge, r.frames_to_converge
+                    "{} in {:.2} s / {} frames",
+                    r.status, r.seconds_to_converge, r.frames_to_converge
                 )
             } else {
                 "not converged".into()
@@ -372,6 +384,12 @@ fn summary(args: &FlythroughArgs, volume: &StreamingVolume, record: &RunRecord) 
         loader.p50 * 1e3,
         loader.p95 * 1e3,
         loader.max * 1e3
+    );
+    println!(
+        "  loader frame-thread CPU ms: p50 {:.2} p95 {:.2} max {:.2} (thread CPU clock)",
+        loader_cpu.p50 * 1e3,
+        loader_cpu.p95 * 1e3,
+        loader_cpu.max * 1e3
     );
     let distinct = ever_in_working_set.len().max(1) as u64;
     println!(
@@ -416,7 +434,7 @@ fn summary(args: &FlythroughArgs, volume: &StreamingVolume, record: &RunRecord) 
     }
 }
 
-const CSV_HEADER: &str = "frame,viewpoint,phase,frame_ms,loader_ms,converged,leaves,data_leaves,working_set_bricks,gpu_slots_used,gpu_mib,cpu_mib,cpu_hit_rate,gpu_hit_rate,pending,queued,in_flight,stale_dropped_total,uploads,upload_mib,bricks_read_total,stored_mb_read_total,read_mb_per_s,prefetch_loaded_total,prefetch_used_total,prefetch_hit_rate,failed_bricks,gpu_budget_limited,gpu_resident_per_level,blocked_data_upload_slots_balance";
+const CSV_HEADER: &str = "frame,viewpoint,phase,frame_ms,loader_ms,loader_cpu_ms,converged,leaves,data_leaves,working_set_bricks,gpu_slots_used,gpu_mib,cpu_mib,cpu_hit_rate,gpu_hit_rate,pending,queued,in_flight,stale_dropped_total,uploads,upload_mib,bricks_read_total,stored_mb_read_total,read_mb_per_s,prefetch_loaded_total,prefetch_used_total,prefetch_hit_rate,failed_bricks,gpu_budget_limited,left_coarser,gpu_resident_per_level,blocked_data_upload_slots_balance,data_leaves_per_level";
 
 fn record(
     csv: &mut Option<std::io::BufWriter<std::fs::File>>,
@@ -435,9 +453,10 @@ fn record(
     };
     writeln!(
         file,
-        "{frame},{stop},{phase},{:.3},{:.3},{},{},{},{},{},{:.2},{:.2},{:.4},{:.4},{},{},{},{},{},{:.3},{},{:.3},{:.3},{},{},{:.4},{},{},{},{}",
+        "{frame},{stop},{phase},{:.3},{:.3},{:.3},{},{},{},{},{},{:.2},{:.2},{:.4},{:.4},{},{},{},{},{},{:.3},{},{:.3},{:.3},{},{},{:.4},{},{},{},{},{},{}",
         seconds * 1e3,
         s.loader_seconds * 1e3,
+        s.loader_cpu_seconds * 1e3,
         s.converged,
         s.leaves,
         s.data_leaves,
@@ -461,8 +480,10 @@ fn record(
         s.prefetch_hit_rate,
         s.failed_bricks,
         s.gpu_budget_limited,
+        s.left_coarser,
         join(&s.gpu_resident_per_level),
-        join(&s.blocked)
+        join(&s.blocked),
+        join(&s.data_leaves_per_level)
     )?;
     Ok(())
 }

@@ -388,7 +388,11 @@ fn run_streaming(args: &RenderArgs) -> Result<()> {
     }
     eprintln!(
         "{} after {} frames in {:.2} s (open {:.2} s): {} bricks on the GPU per level {:?}, {:.1} MB read",
-        if last.converged { "converged" } else { "not converged (raise --max-frames)" },
+        if last.converged {
+            last.convergence_status()
+        } else {
+            "not converged (raise --max-frames)".into()
+        },
         history.len(),
         opened.elapsed().as_secs_f64(),
         (opened - started).as_secs_f64(),

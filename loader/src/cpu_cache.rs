@@ -2,7 +2,11 @@
 //! byte budget, so recently used bricks come back without touching the store. Owned by the
 //! frame loop; fetch workers hand bricks over through a channel.
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::BTreeMap;
+
+// Keys are brick ids, not attacker-chosen: a fast hash (the frame thread looks bricks up
+// thousands of times a frame).
+use rustc_hash::FxHashMap as HashMap;
 use std::sync::Arc;
 
 use strata_storage::BrickId;
@@ -41,7 +45,7 @@ impl CpuBrickCache {
             budget_bytes,
             bytes: 0,
             tick: 0,
-            entries: HashMap::new(),
+            entries: HashMap::default(),
             by_age: BTreeMap::new(),
             counters: CpuCacheCounters::default(),
         }

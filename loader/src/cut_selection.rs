@@ -15,9 +15,24 @@
 //!
 //! The selection only reads residency; slot assignment and uploads happen afterwards in
 //! `streaming.rs`, so a frame's whole cut is decided before any slot is reused.
+//!
+//! When the GPU budget binds, the cut must settle rather than trade bricks back and forth:
+//! - a refinement reserves slots for every child with data, also for children still on their
+//!   way (pending), so how much of the budget is spent does not depend on which bricks
+//!   happen to be loaded: the cut that fits is a function of the view alone;
+//! - nodes refined in the previous frame's cut (incumbents) are considered before others of
+//!   up to [`HYSTERESIS`] times their priority, so a node is not coarsened again for one of
+//!   equal or near-equal projected size.
+//!
+//! Leaves the quality factor wanted finer but the budget did not allow are counted
+//! (`blocked_by_gpu_slots`): a converged cut with such leaves is "converged at budget".
 
 use std::cmp::Ordering;
-use std::collections::{BinaryHeap, HashMap};
+use std::collections::BinaryHeap;
+
+// Keys are brick ids, not attacker-chosen: a fast hash (selection does tens of thousands of
+// lookups per frame; SipHash was a visible share of the frame thread's time).
+use rustc_hash::{FxHashMap as HashMap, FxHashSet as HashSet};
 
 use glam::{DMat3, DVec3};
 use strata_render::{Camera, RenderSettings, VolumeGeometry, BRICK_CORE};
@@ -25,6 +40,11 @@ use strata_storage::BrickId;
 
 use crate::octree_ranges::{Emptiness, OctreeRanges};
 use crate::visibility::PageVisibility;
+
+/// An incumbent (a node refined in the previous frame's cut) is refined before a newcomer
+/// unless the newcomer's projected voxel size is more than this factor larger: the budget
+/// then swaps bricks only for a clear gain, never for a near tie.
+pub const HYSTERESIS: f64 = 1.25;
 
 /// Where the data of a node is right now.
 pub trait Residency {
@@ -79,7 +99,7 @@ pub struct CutLimits {
     pub prefetch_candidates: usize,
 }
 
-#[derive(Debug, Default)]
+#[derive(Clone, Debug, Default)]
 pub struct Cut {
     pub leaves: Vec<CutLeaf>,
     /// In CPU memory, not on the GPU, needed by this cut: upload now.
@@ -91,11 +111,13 @@ pub struct Cut {
     /// Refined nodes kept on the GPU (ancestors of data leaves; they also draw the region of
     /// a failed or pending child).
     pub resident_inner: Vec<BrickId>,
+    /// Every refined node of this cut, with or without a slot: next frame's incumbents.
+    pub refined: Vec<BrickId>,
     pub blocked_by_data: usize,
     pub blocked_by_uploads: usize,
     pub blocked_by_gpu_slots: usize,
     pub blocked_by_balance: usize,
-    /// GPU slots this cut occupies.
+    /// GPU slots this cut occupies or has reserved for its pending bricks.
     pub slots_needed: usize,
     /// Data leaves already on the GPU when selection ran (GPU hit count).
     pub data_leaves_on_gpu: usize,
@@ -227,17 +249,17 @@ impl ViewSetup {
                 return true;
             }
         }
-        // Camera-space coordinates (mm) of each corner.
-        let cam: Vec<DVec3> = corners
-            .map(|c| {
-                let d = c - self.eye_index;
-                DVec3::new(
-                    self.right_row.dot(d),
-                    self.up_row.dot(d),
-                    self.forward_row.dot(d),
-                )
-            })
-            .collect();
+        // Camera-space coordinates (mm) of each corner (on the stack: this runs for every
+        // child the selection looks at).
+        let mut cam = [DVec3::ZERO; 8];
+        for (c, corner) in cam.iter_mut().zip(corners) {
+            let d = corner - self.eye_index;
+            *c = DVec3::new(
+                self.right_row.dot(d),
+                self.up_row.dot(d),
+                self.forward_row.dot(d),
+            );
+        }
         let outside = |f: &dyn Fn(&DVec3) -> bool| cam.iter().all(f);
         if self.orthographic {
             let (hx, hy) = (self.half_extent * self.aspect, self.half_extent);
@@ -276,6 +298,8 @@ enum Block {
     Balance,
 }
 
+/// A leaf waiting to be refined, ordered by `key`: its projected voxel size, raised by
+/// [`HYSTERESIS`] for an incumbent.
 #[derive(PartialEq)]
 struct Queued(f64, BrickId);
 impl Eq for Queued {}
@@ -299,19 +323,24 @@ struct Selection<'a, R: Residency> {
     visibility: Option<&'a PageVisibility>,
     residency: &'a R,
     limits: CutLimits,
+    incumbents: &'a HashSet<BrickId>,
     nodes: HashMap<BrickId, NodeState>,
     heap: BinaryHeap<Queued>,
     slots_used: usize,
+    /// Nodes whose data children hold (or have reserved) slots, counted once each.
+    reserved: HashSet<BrickId>,
     cut: Cut,
 }
 
-/// Selects this frame's cut. `visibility` None turns feedback off.
+/// Selects this frame's cut. `visibility` None turns feedback off; `incumbents` are the nodes
+/// the previous frame's cut refined ([`Cut::refined`]), empty for none.
 pub fn select_cut<R: Residency>(
     octree: &OctreeRanges,
     view: &ViewSetup,
     emptiness: Emptiness,
     visibility: Option<&PageVisibility>,
     residency: &R,
+    incumbents: &HashSet<BrickId>,
     limits: CutLimits,
 ) -> Cut {
     let root = BrickId::new(octree.root_level(), [0, 0, 0]);
@@ -322,10 +351,12 @@ pub fn select_cut<R: Residency>(
         visibility,
         residency,
         limits,
-        nodes: HashMap::new(),
+        incumbents,
+        nodes: HashMap::default(),
         heap: BinaryHeap::new(),
         // The root is pinned: it holds a slot whatever the cut.
         slots_used: 1,
+        reserved: HashSet::default(),
         cut: Cut::default(),
     };
     let root_priority = view.projected_voxel_pixels(root);
@@ -340,10 +371,10 @@ pub fn select_cut<R: Residency>(
     s.nodes
         .insert(root, NodeState::Leaf(root_kind, root_priority));
     if root_kind == LeafKind::Data {
-        s.heap.push(Queued(root_priority, root));
+        s.queue(root, root_priority);
     }
-    while let Some(Queued(priority, id)) = s.heap.pop() {
-        let Some(NodeState::Leaf(kind, _)) = s.nodes.get(&id).copied() else {
+    while let Some(Queued(_, id)) = s.heap.pop() {
+        let Some(NodeState::Leaf(kind, priority)) = s.nodes.get(&id).copied() else {
             continue;
         };
         if !matches!(kind, LeafKind::Data | LeafKind::Transparent) || id.level == 0 {
@@ -370,6 +401,15 @@ pub fn select_cut<R: Residency>(
 }
 
 impl<R: Residency> Selection<'_, R> {
+    fn queue(&mut self, id: BrickId, priority: f64) {
+        let key = if self.incumbents.contains(&id) {
+            priority * HYSTERESIS
+        } else {
+            priority
+        };
+        self.heap.push(Queued(key, id));
+    }
+
     fn classify(&self, id: BrickId) -> LeafKind {
         if self.residency.failed(id) {
             return LeafKind::Failed;
@@ -442,8 +482,10 @@ impl<R: Residency> Selection<'_, R> {
             .filter(|(_, k)| *k == LeafKind::Data)
             .count();
         // Refine only if every child with data fits: a half-refined node would hold slots
-        // that the next frame's more urgent refinements need.
-        if self.slots_used + data_children > self.limits.gpu_slots {
+        // that the next frame's more urgent refinements need. Slots are counted for every
+        // child with data, loaded or not (see the module comment).
+        let newly_reserved = !self.reserved.contains(&id);
+        if newly_reserved && self.slots_used + data_children > self.limits.gpu_slots {
             return Err(Block::GpuSlots);
         }
         let mut uploads_left = self.limits.uploads.saturating_sub(self.cut.uploads.len());
@@ -480,6 +522,10 @@ impl<R: Residency> Selection<'_, R> {
         } else {
             Ok(())
         };
+        if newly_reserved {
+            self.reserved.insert(id);
+            self.slots_used += data_children;
+        }
         if plan.iter().all(|(_, k)| *k == LeafKind::Pending) {
             return outcome;
         }
@@ -487,17 +533,17 @@ impl<R: Residency> Selection<'_, R> {
         // frame, zooming out needs no reload, and a pending child is always drawn by it.
         // Costs about one slot in seven.
         let keeps_slot = kind == LeafKind::Data;
-        self.slots_used += plan.iter().filter(|(_, k)| *k == LeafKind::Data).count();
         self.cut.uploads.extend(uploads);
         if keeps_slot {
             self.cut.resident_inner.push(id);
         }
+        self.cut.refined.push(id);
         self.nodes.insert(id, NodeState::Inner { keeps_slot });
         for (child, kind) in plan {
             let p = self.view.projected_voxel_pixels(child);
             self.nodes.insert(child, NodeState::Leaf(kind, p));
             if matches!(kind, LeafKind::Data | LeafKind::Transparent) {
-                self.heap.push(Queued(p, child));
+                self.queue(child, p);
             }
         }
         // Pending children keep the node from being fully refined, but what was possible is
@@ -579,13 +625,12 @@ impl<R: Residency> Selection<'_, R> {
             .count();
         self.cut.leaves = leaves;
 
-        let mut seen = HashMap::new();
+        let mut seen = HashMap::default();
         self.cut.demand.retain(|r| seen.insert(r.id, ()).is_none());
         self.cut
             .demand
             .sort_by(|a, b| b.priority.total_cmp(&a.priority));
-        let demanded: std::collections::HashSet<BrickId> =
-            self.cut.demand.iter().map(|r| r.id).collect();
+        let demanded: HashSet<BrickId> = self.cut.demand.iter().map(|r| r.id).collect();
         self.cut
             .refine_next
             .retain(|r| !demanded.contains(&r.id) && seen.insert(r.id, ()).is_none());
@@ -597,5 +642,153 @@ impl<R: Residency> Selection<'_, R> {
             .truncate(self.limits.prefetch_candidates);
         self.cut.slots_needed = self.slots_used;
         self.cut
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use strata_render::{Projection, ValueMapping};
+
+    use crate::octree_ranges::StoredRange;
+
+    /// 256³ voxels: 8³ level-0 bricks under a 4-level octree, every node holding data.
+    fn octree() -> OctreeRanges {
+        OctreeRanges::from_fn(&[[8, 8, 8], [4, 4, 4], [2, 2, 2], [1, 1, 1]], |_, _| {
+            StoredRange { min: 0, max: 1000 }
+        })
+    }
+
+    fn geometry() -> VolumeGeometry {
+        VolumeGeometry::axis_aligned([256, 256, 256], [1.0, 1.0, 1.0])
+    }
+
+    fn view(azimuth: f64) -> ViewSetup {
+        let settings = RenderSettings {
+            width: 256,
+            height: 256,
+            ..RenderSettings::default()
+        };
+        let camera = Camera::orbit(
+            &geometry(),
+            azimuth,
+            20.0,
+            2.0,
+            Projection::Perspective { fov_y_deg: 30.0 },
+        );
+        ViewSetup::new(&geometry(), &camera, &settings)
+    }
+
+    /// Nothing is empty: every node is data.
+    fn nothing_empty() -> Emptiness<'static> {
+        Emptiness::Iso {
+            value: -1e9,
+            mapping: ValueMapping::default(),
+        }
+    }
+
+    /// Level-0 wanted almost everywhere, far more than 60 slots hold.
+    fn limits() -> CutLimits {
+        CutLimits {
+            max_voxel_pixels: 0.25,
+            gpu_slots: 60,
+            uploads: 1000,
+            prefetch_candidates: 0,
+        }
+    }
+
+    struct Loaded<F: Fn(BrickId) -> bool>(F);
+    impl<F: Fn(BrickId) -> bool> Residency for Loaded<F> {
+        fn on_gpu(&self, id: BrickId) -> bool {
+            (self.0)(id)
+        }
+        fn in_cpu(&self, id: BrickId) -> bool {
+            (self.0)(id)
+        }
+        fn failed(&self, _: BrickId) -> bool {
+            false
+        }
+    }
+
+    fn refined(cut: &Cut) -> HashSet<BrickId> {
+        cut.refined.iter().copied().collect()
+    }
+
+    fn select(view: &ViewSetup, residency: &impl Residency, incumbents: &HashSet<BrickId>) -> Cut {
+        select_cut(
+            &octree(),
+            view,
+            nothing_empty(),
+            None,
+            residency,
+            incumbents,
+            limits(),
+        )
+    }
+
+    #[test]
+    fn the_budget_spent_does_not_depend_on_which_bricks_are_loaded() {
+        let view = view(30.0);
+        let none = HashSet::default();
+        let everything = select(&view, &Loaded(|_| true), &none);
+        assert!(
+            everything.blocked_by_gpu_slots > 0,
+            "the budget must bind for this test"
+        );
+        assert!(everything.slots_needed <= limits().gpu_slots);
+        // Half the level-1 and level-0 bricks missing: their parents' refinements are pending.
+        let partly = select(
+            &view,
+            &Loaded(|id: BrickId| id.level >= 2 || (id.coords[0] + id.coords[1]).is_multiple_of(2)),
+            &none,
+        );
+        assert!(!partly.demand.is_empty(), "some bricks must be missing");
+        assert!(partly.slots_needed <= limits().gpu_slots);
+        // Slots are reserved for bricks on their way, so missing bricks never let a
+        // lower-priority node refine in their place: what is refined is part of the cut that
+        // fits with everything loaded, and the cut only grows towards it as bricks arrive.
+        let extra: Vec<_> = refined(&partly)
+            .difference(&refined(&everything))
+            .copied()
+            .collect();
+        assert!(
+            extra.is_empty(),
+            "refined only while bricks were missing: {extra:?}"
+        );
+    }
+
+    #[test]
+    fn incumbents_keep_their_refinement_against_near_ties() {
+        let none = HashSet::default();
+        let here = view(30.0);
+        let fresh = refined(&select(&here, &Loaded(|_| true), &none));
+        // Its own refined set as incumbents: a fixed point (the cut settles).
+        let again = refined(&select(&here, &Loaded(|_| true), &fresh));
+        assert_eq!(again, fresh);
+        // The cut of a view turned by a few degrees differs at the budget's edge by near ties; with that cut as incumbents, this view keeps it rather than trading
+        // bricks back for nodes of near-equal priority.
+        let mut kept_closer = 0;
+        for k in 1..=8 {
+            let nearby = refined(&select(
+                &view(30.0 + 5.0 * k as f64),
+                &Loaded(|_| true),
+                &none,
+            ));
+            let kept = refined(&select(&here, &Loaded(|_| true), &nearby));
+            let distance = |a: &HashSet<BrickId>| a.symmetric_difference(&nearby).count();
+            assert!(
+                distance(&kept) <= distance(&fresh),
+                "turn {k}: hysteresis moved the cut away from the incumbents"
+            );
+            // Not every difference is a near tie (culling, a node that only fits the slots
+            // left over), so not every turn can be kept.
+            if distance(&kept) < distance(&fresh) {
+                kept_closer += 1;
+            }
+        }
+        assert!(
+            kept_closer > 0,
+            "no nearby view's cut was kept; the test checks nothing"
+        );
     }
 }

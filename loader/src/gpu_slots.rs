@@ -2,7 +2,8 @@
 //! §4) with the root pinned, so every frame can draw the whole volume. Any level fits any slot
 //! (mixed-resolution paper §3.2: one cache, levels mixed freely through the page table).
 
-use std::collections::HashMap;
+// Keys are brick ids, not attacker-chosen: a fast hash (looked up for every node of every cut).
+use rustc_hash::FxHashMap as HashMap;
 
 use strata_storage::BrickId;
 
@@ -18,7 +19,7 @@ impl GpuSlots {
     pub fn new(capacity: u32) -> Self {
         GpuSlots {
             node_in_slot: vec![None; capacity as usize],
-            slot_of: HashMap::new(),
+            slot_of: HashMap::default(),
             last_used_frame: vec![0; capacity as usize],
             pinned: vec![false; capacity as usize],
             // Popped from the back: hand out slot 0 first.

@@ -10,9 +10,11 @@ pub mod fetch_workers;
 pub mod gpu_slots;
 pub mod metrics;
 pub mod octree_ranges;
+pub mod predicted_cut;
 pub mod prefetch;
 pub mod store_volume;
 pub mod streaming;
+pub mod thread_cpu;
 pub mod visibility;
 
 pub use error::LoaderError;

@@ -7,6 +7,10 @@ pub struct FrameStats {
     /// Wall time of `StreamingVolume::frame` up to the submit (selection, uploads, page table):
     /// what the loader adds to a frame. Never includes a read.
     pub loader_seconds: f64,
+    /// The same span in CPU time of the calling (frame) thread (`CLOCK_THREAD_CPUTIME_ID`):
+    /// what the loader costs the frame thread, whatever else the machine runs. NaN where the
+    /// clock is unavailable.
+    pub loader_cpu_seconds: f64,
     pub leaves: usize,
     pub data_leaves: usize,
     /// Data leaves of this cut per level (index = level).
@@ -67,9 +71,29 @@ pub struct FrameStats {
     pub blocked: [usize; 4],
     /// Refinement stopped somewhere only because GPU slots ran out.
     pub gpu_budget_limited: bool,
+    /// Leaves the quality factor wanted finer that the GPU budget kept coarser this frame.
+    pub left_coarser: usize,
+    /// Converged with `left_coarser` > 0: the best cut that fits the GPU budget (a bigger
+    /// budget refines further).
+    pub converged_at_budget: bool,
     /// Nothing the quality factor asks for is missing, the cut is stable and the visibility
     /// feedback has seen it: further frames show the same image.
     pub converged: bool,
+}
+
+impl FrameStats {
+    /// One line for status bars and summaries: "converged", "converged at budget (N nodes
+    /// left coarser than wanted)" or "refining".
+    pub fn convergence_status(&self) -> String {
+        match (self.converged, self.converged_at_budget) {
+            (true, true) => format!(
+                "converged at budget ({} nodes left coarser than wanted)",
+                self.left_coarser
+            ),
+            (true, false) => "converged".into(),
+            (false, _) => "refining".into(),
+        }
+    }
 }
 
 /// Frame-time distribution over a run.

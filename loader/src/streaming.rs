@@ -4,7 +4,10 @@
 //! workers, and submit the raycast. Nothing here waits for a read: the root is read once at
 //! open and stays pinned, so every frame draws the whole volume and refines over frames.
 
-use std::collections::{HashMap, HashSet, VecDeque};
+use std::collections::VecDeque;
+
+// Keys are brick ids, not attacker-chosen: a fast hash on the frame thread.
+use rustc_hash::{FxHashMap as HashMap, FxHashSet as HashSet};
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -23,6 +26,7 @@ use crate::fetch_workers::FetchWorkers;
 use crate::gpu_slots::GpuSlots;
 use crate::metrics::FrameStats;
 use crate::octree_ranges::{Emptiness, OctreeRanges, StoredRange};
+use crate::predicted_cut::{CutPredictor, EmptinessSpec, PredictionJob};
 use crate::prefetch::MotionPredictor;
 use crate::visibility::PageVisibility;
 
@@ -122,31 +126,13 @@ impl Residency for ResidencyView<'_> {
     }
 }
 
-/// For predicting a future cut: as if everything were loaded, so the prediction says what
-/// the view will want rather than what it can show now.
-struct EverythingLoaded<'a> {
-    failed: &'a HashSet<BrickId>,
-}
-
-impl Residency for EverythingLoaded<'_> {
-    fn on_gpu(&self, _: BrickId) -> bool {
-        true
-    }
-    fn in_cpu(&self, _: BrickId) -> bool {
-        true
-    }
-    fn failed(&self, id: BrickId) -> bool {
-        self.failed.contains(&id)
-    }
-}
-
 pub struct StreamingVolume {
     config: StreamingConfig,
     geometry: VolumeGeometry,
     mapping: ValueMapping,
-    octree: OctreeRanges,
+    octree: Arc<OctreeRanges>,
     root: BrickId,
-    tf_table: TransferFunctionTable,
+    tf_table: Arc<TransferFunctionTable>,
     cache: BrickCache,
     gpu_page_table: GpuPageTable,
     transfer_function: GpuTransferFunction,
@@ -158,6 +144,8 @@ pub struct StreamingVolume {
     source: Arc<dyn VolumeSource>,
     visibility: PageVisibility,
     motion: MotionPredictor,
+    /// Selects the motion-extrapolated cut off the frame thread.
+    predictor: CutPredictor,
     failed: HashSet<BrickId>,
     new_failures: Vec<BrickFailure>,
     frame: u64,
@@ -168,6 +156,88 @@ pub struct StreamingVolume {
     read_history: VecDeque<(Instant, u64)>,
     last_stats: FrameStats,
     working_set: Vec<BrickId>,
+    /// Nodes the last frame's cut refined: the incumbents hysteresis protects.
+    refined_last_frame: HashSet<BrickId>,
+    /// What the current page table was built from.
+    page_table_key: PageTableKey,
+    /// The last frame's cut when it was complete and bound by the GPU budget, with the view
+    /// it was selected for.
+    settled: Option<(Cut, ViewInputs)>,
+    /// Counts transfer-function changes (emptiness changes with them).
+    tf_generation: u64,
+}
+
+/// Once a still view's cut is complete and bound by the GPU budget, a new selection may
+/// only refine it further, never trade: one that would coarsen a node the settled cut
+/// refined is replaced by the settled cut (whose bricks are all still on the GPU, so
+/// nothing is uploaded). Without this, feedback flicker at the silhouette and bricks
+/// evicted and read again made two cuts that each fit alternate forever at 1024³.
+fn keep_settled_cut(
+    settled: &mut Option<(Cut, ViewInputs)>,
+    slots: &GpuSlots,
+    cut: Cut,
+    inputs: &ViewInputs,
+) -> Cut {
+    let Some((settled, settled_for)) = settled.take() else {
+        return cut;
+    };
+    if settled_for != *inputs {
+        return cut;
+    }
+    let refined: HashSet<BrickId> = cut.refined.iter().copied().collect();
+    let coarsens = settled.refined.iter().any(|id| !refined.contains(id));
+    let drawable = settled
+        .data_leaves()
+        .chain(settled.resident_inner.iter().copied())
+        .all(|id| slots.contains(id));
+    if coarsens && drawable {
+        settled
+    } else {
+        cut
+    }
+}
+
+/// What a cut is selected for, apart from residency and visibility feedback.
+#[derive(PartialEq)]
+struct ViewInputs {
+    camera: Camera,
+    settings: RenderSettings,
+    tf_generation: u64,
+    failed_bricks: usize,
+    max_voxel_pixels: f64,
+}
+
+/// Everything `build_page_table` reads: each leaf with its kind and the slot it is drawn
+/// from (its own, or its parent's for a pending or failed leaf), and what counts as empty.
+#[derive(Default, PartialEq)]
+struct PageTableKey {
+    leaves: Vec<(BrickId, LeafKind, Option<u32>)>,
+    mode: Option<RenderMode>,
+    iso_bits: u64,
+    tf_generation: u64,
+}
+
+impl PageTableKey {
+    fn of(cut: &Cut, slots: &GpuSlots, settings: &RenderSettings, tf_generation: u64) -> Self {
+        let leaves = cut
+            .leaves
+            .iter()
+            .map(|l| {
+                let drawn_from = match l.kind {
+                    LeafKind::Data => slots.slot_of(l.id),
+                    LeafKind::Failed | LeafKind::Pending => slots.slot_of(l.id.parent()),
+                    _ => None,
+                };
+                (l.id, l.kind, drawn_from)
+            })
+            .collect();
+        PageTableKey {
+            leaves,
+            mode: Some(settings.mode),
+            iso_bits: settings.iso_value.to_bits(),
+            tf_generation,
+        }
+    }
 }
 
 impl StreamingVolume {
@@ -196,9 +266,9 @@ impl StreamingVolume {
         let header = source.header();
         let geometry = header.geometry.clone();
         let mapping = header.value_mapping.mapping;
-        let octree = OctreeRanges::from_source(source.as_ref());
+        let octree = Arc::new(OctreeRanges::from_source(source.as_ref()));
         let root = BrickId::new(octree.root_level(), [0, 0, 0]);
-        let tf_table = tf_table_for(tf, mapping, header.stored_range);
+        let tf_table = Arc::new(tf_table_for(tf, mapping, header.stored_range));
         let cpu = CpuBrickCache::new(config.cpu_cache_budget()?);
         let cache = BrickCache::new(
             &ctx.device,
@@ -241,6 +311,7 @@ impl StreamingVolume {
             )?),
         };
         let visibility = PageVisibility::new(&octree, config.visibility_memory_frames);
+        let predictor = CutPredictor::start(octree.clone())?;
         Ok(StreamingVolume {
             geometry,
             mapping,
@@ -258,7 +329,8 @@ impl StreamingVolume {
             source,
             visibility,
             motion: MotionPredictor::new(4.0),
-            failed: HashSet::new(),
+            predictor,
+            failed: HashSet::default(),
             new_failures: Vec::new(),
             frame: 0,
             renders: 0,
@@ -268,6 +340,10 @@ impl StreamingVolume {
             read_history: VecDeque::new(),
             last_stats: FrameStats::default(),
             working_set: vec![root],
+            refined_last_frame: HashSet::default(),
+            page_table_key: PageTableKey::default(),
+            settled: None,
+            tf_generation: 0,
             config,
         })
     }
@@ -302,8 +378,9 @@ impl StreamingVolume {
         tf: &TransferFunction,
     ) -> Result<(), LoaderError> {
         tf.validate()?;
-        self.tf_table = tf_table_for_range(tf, self.tf_table.lo, self.tf_table.hi);
+        self.tf_table = Arc::new(tf_table_for_range(tf, self.tf_table.lo, self.tf_table.hi));
         self.transfer_function.update(&ctx.queue, &self.tf_table);
+        self.tf_generation += 1;
         Ok(())
     }
 
@@ -329,6 +406,7 @@ impl StreamingVolume {
         settings: &RenderSettings,
     ) -> Result<FrameStats, LoaderError> {
         let started = Instant::now();
+        let started_cpu = crate::thread_cpu::thread_cpu_seconds();
         self.frame += 1;
         let frame = self.frame;
         let fetched = self.take_fetched();
@@ -358,9 +436,20 @@ impl StreamingVolume {
                 emptiness,
                 visibility,
                 &residency,
+                &self.refined_last_frame,
                 limits,
             )
         };
+        let inputs = ViewInputs {
+            camera: *camera,
+            settings: settings.clone(),
+            tf_generation: self.tf_generation,
+            failed_bricks: self.failed.len(),
+            max_voxel_pixels: self.config.max_voxel_pixels,
+        };
+        let cut = keep_settled_cut(&mut self.settled, &self.slots, cut, &inputs);
+        self.refined_last_frame.clear();
+        self.refined_last_frame.extend(cut.refined.iter().copied());
 
         // Everything this cut shows is protected before any slot is reused.
         self.slots.touch(self.root, frame);
@@ -382,13 +471,20 @@ impl StreamingVolume {
             self.cache.upload_brick(&ctx.queue, slot, &brick)?;
         }
 
-        let table = build_page_table(&self.octree, &self.slots, &cut, &emptiness)?;
-        let rewritten = table != self.page_table;
-        if rewritten {
-            self.gpu_page_table.update(&ctx.queue, &table)?;
-            self.write_mip_bounds(ctx, &table)?;
-            self.page_table = table;
-            self.cut_changed_at_render = self.renders + 1;
+        // The table is a function of the leaves, their slots and what counts as empty: when
+        // none of these changed (a settled cut, or one waiting for reads) it is not rebuilt.
+        let key = PageTableKey::of(&cut, &self.slots, settings, self.tf_generation);
+        let mut rewritten = false;
+        if key != self.page_table_key {
+            let table = build_page_table(&self.octree, &self.slots, &cut, &emptiness)?;
+            rewritten = table != self.page_table;
+            if rewritten {
+                self.gpu_page_table.update(&ctx.queue, &table)?;
+                self.write_mip_bounds(ctx, &table)?;
+                self.page_table = table;
+                self.cut_changed_at_render = self.renders + 1;
+            }
+            self.page_table_key = key;
         }
 
         // Ask for no more than half the CPU cache holds: bricks read faster than uploads and
@@ -410,8 +506,17 @@ impl StreamingVolume {
         let mut prefetch: Vec<(BrickId, f64)> = Vec::new();
         if self.config.prefetch {
             prefetch.extend(cut.refine_next.iter().map(|r| (r.id, r.priority)));
+            // The prediction thread answers a frame or more late; an answer that arrives once
+            // the camera stopped is dropped.
+            let newest_prediction = self.predictor.take_newest();
             if let Some(predicted) = self.motion.observe(camera) {
-                prefetch.extend(self.predicted_misses(&predicted, settings, limits));
+                self.predictor.submit(PredictionJob {
+                    view: ViewSetup::new(&self.geometry, &predicted, settings),
+                    emptiness: self.emptiness_spec(settings),
+                    failed: self.failed.clone(),
+                    limits,
+                });
+                prefetch.extend(newest_prediction.into_iter().flatten());
             }
             prefetch.retain(|(id, _)| !self.cpu.contains(*id) && !self.slots.contains(*id));
             prefetch.truncate(self.config.prefetch_per_frame);
@@ -419,6 +524,9 @@ impl StreamingVolume {
         self.workers.set_requests(&demand, &prefetch);
 
         let loader_seconds = started.elapsed().as_secs_f64();
+        let loader_cpu_seconds = started_cpu
+            .zip(crate::thread_cpu::thread_cpu_seconds())
+            .map_or(f64::NAN, |(a, b)| b - a);
         let scene = Scene {
             cache: &self.cache,
             page_table: &self.gpu_page_table,
@@ -440,7 +548,15 @@ impl StreamingVolume {
         let visibility_seen = !self.config.visibility_feedback
             || self.visibility.newest_render_frame() >= self.cut_changed_at_render;
         let converged = cut.complete() && cut.uploads.is_empty() && !rewritten && visibility_seen;
-        let stats = self.stats(&cut, fetched, rewritten, converged, loader_seconds);
+        let mut stats = self.stats(&cut, fetched, rewritten, converged, loader_seconds);
+        stats.loader_cpu_seconds = loader_cpu_seconds;
+        // A complete cut the budget bound is what this view settles on (see keep_settled_cut).
+        self.settled = (cut.complete() && cut.blocked_by_gpu_slots > 0).then(|| {
+            let mut settled = cut;
+            settled.uploads.clear();
+            settled.data_leaves_on_gpu = settled.data_leaves().count();
+            (settled, inputs)
+        });
         self.last_stats = stats.clone();
         Ok(stats)
     }
@@ -611,35 +727,17 @@ impl StreamingVolume {
         fetched
     }
 
-    fn predicted_misses(
-        &self,
-        predicted: &Camera,
-        settings: &RenderSettings,
-        limits: CutLimits,
-    ) -> Vec<(BrickId, f64)> {
-        let view = ViewSetup::new(&self.geometry, predicted, settings);
-        let emptiness = emptiness_for(settings, &self.tf_table, self.mapping);
-        let everything = EverythingLoaded {
-            failed: &self.failed,
-        };
-        let cut = select_cut(
-            &self.octree,
-            &view,
-            emptiness,
-            None,
-            &everything,
-            CutLimits {
-                uploads: usize::MAX,
-                ..limits
+    fn emptiness_spec(&self, settings: &RenderSettings) -> EmptinessSpec {
+        match settings.mode {
+            RenderMode::Isosurface => EmptinessSpec::Iso {
+                value: settings.iso_value,
+                mapping: self.mapping,
             },
-        );
-        cut.leaves
-            .iter()
-            .filter(|l| {
-                l.kind == LeafKind::Data && !self.slots.contains(l.id) && !self.cpu.contains(l.id)
-            })
-            .map(|l| (l.id, l.priority))
-            .collect()
+            RenderMode::Dvr | RenderMode::Mip => EmptinessSpec::TransferFunction {
+                table: self.tf_table.clone(),
+                mapping: self.mapping,
+            },
+        }
     }
 
     fn stats(
@@ -666,6 +764,14 @@ impl StreamingVolume {
             .max(1e-3);
         let window_bytes: u64 = self.read_history.iter().map(|(_, b)| b).sum();
         let data_leaves = cut.data_leaves().count();
+        // A settled cut keeps the count it settled with: which nodes the feedback calls
+        // visible flickers at the silhouette, and with it how many blocked refinements are
+        // tried, while the cut (and so what was left coarser) stays the same.
+        let left_coarser = if converged && !rewritten && self.last_stats.converged {
+            self.last_stats.left_coarser
+        } else {
+            cut.blocked_by_gpu_slots
+        };
         let slot_bytes = BRICK_PAYLOAD_VOXELS as u64 * self.cache.format.bytes_per_voxel();
         let cpu_counters = self.cpu.counters();
         let queue = self.workers.counters();
@@ -673,6 +779,7 @@ impl StreamingVolume {
         FrameStats {
             frame: self.frame,
             loader_seconds,
+            loader_cpu_seconds: f64::NAN,
             leaves: cut.leaves.len(),
             data_leaves,
             data_leaves_per_level: {
@@ -725,6 +832,8 @@ impl StreamingVolume {
                 cut.blocked_by_balance,
             ],
             gpu_budget_limited: cut.blocked_by_gpu_slots > 0,
+            left_coarser,
+            converged_at_budget: converged && left_coarser > 0,
             converged,
         }
     }
@@ -784,7 +893,7 @@ fn build_page_table(
     // harmless only when the slot holds that node's own transparent voxels.
     let skipped = |_level: u8| PageEntry::NOT_RESIDENT;
     let own_empty = |id: BrickId| octree.own_range(id).is_some_and(|r| emptiness.is_empty(r));
-    let mut memo: HashMap<BrickId, PageEntry> = HashMap::new();
+    let mut memo: HashMap<BrickId, PageEntry> = HashMap::default();
     for leaf in &cut.leaves {
         let entry = match leaf.kind {
             LeafKind::Data => {
@@ -833,4 +942,88 @@ fn build_page_table(
         }
     }
     Ok(table)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cut_selection::CutLeaf;
+    use strata_render::Projection;
+
+    fn inputs(azimuth: f64) -> ViewInputs {
+        let geometry = VolumeGeometry::axis_aligned([256, 256, 256], [1.0; 3]);
+        ViewInputs {
+            camera: Camera::orbit(
+                &geometry,
+                azimuth,
+                10.0,
+                2.0,
+                Projection::Perspective { fov_y_deg: 30.0 },
+            ),
+            settings: RenderSettings::default(),
+            tf_generation: 0,
+            failed_bricks: 0,
+            max_voxel_pixels: 1.0,
+        }
+    }
+
+    /// A cut refining `refined` (level-1 nodes) into data leaves at level 0.
+    fn cut(refined: &[u32]) -> Cut {
+        let inner: Vec<BrickId> = refined
+            .iter()
+            .map(|&x| BrickId::new(1, [x, 0, 0]))
+            .collect();
+        Cut {
+            leaves: inner
+                .iter()
+                .flat_map(|p| {
+                    (0..2).map(move |i| CutLeaf {
+                        id: BrickId::new(0, [p.coords[0] * 2 + i, 0, 0]),
+                        kind: LeafKind::Data,
+                        priority: 1.0,
+                    })
+                })
+                .collect(),
+            resident_inner: inner.clone(),
+            refined: inner,
+            blocked_by_gpu_slots: 1,
+            ..Cut::default()
+        }
+    }
+
+    fn slots_holding(cut: &Cut) -> GpuSlots {
+        let mut slots = GpuSlots::new(64);
+        for id in cut.data_leaves().chain(cut.resident_inner.iter().copied()) {
+            slots.allocate(id, 1, false);
+        }
+        slots
+    }
+
+    fn refined_of(cut: &Cut) -> Vec<u32> {
+        cut.refined.iter().map(|id| id.coords[0]).collect()
+    }
+
+    #[test]
+    fn a_settled_cut_is_kept_against_a_trade_but_not_against_progress_or_a_new_view() {
+        let settled = cut(&[0, 1]);
+        let slots = slots_holding(&settled);
+        // The same view offers a trade (node 1 coarsened for node 2): the settled cut stays.
+        let mut memory = Some((settled.clone(), inputs(30.0)));
+        let kept = keep_settled_cut(&mut memory, &slots, cut(&[0, 2]), &inputs(30.0));
+        assert_eq!(refined_of(&kept), vec![0, 1]);
+        assert!(kept.uploads.is_empty());
+        // Refining further is progress: taken.
+        let mut memory = Some((settled.clone(), inputs(30.0)));
+        let more = keep_settled_cut(&mut memory, &slots, cut(&[0, 1, 2]), &inputs(30.0));
+        assert_eq!(refined_of(&more), vec![0, 1, 2]);
+        // A new view selects freely.
+        let mut memory = Some((settled.clone(), inputs(30.0)));
+        let moved = keep_settled_cut(&mut memory, &slots, cut(&[0, 2]), &inputs(31.0));
+        assert_eq!(refined_of(&moved), vec![0, 2]);
+        // A settled cut whose bricks left the GPU cannot be drawn: the new cut is taken.
+        let mut memory = Some((settled, inputs(30.0)));
+        let empty_slots = GpuSlots::new(64);
+        let redrawn = keep_settled_cut(&mut memory, &empty_slots, cut(&[0, 2]), &inputs(30.0));
+        assert_eq!(refined_of(&redrawn), vec![0, 2]);
+    }
 }

@@ -737,6 +737,9 @@ impl StrataApp {
                 } else if status.refining {
                     ui.spinner();
                     ui.label("refining…");
+                } else if let Some(stats) = status.loader.as_ref().filter(|s| s.converged_at_budget)
+                {
+                    ui.label(stats.convergence_status());
                 }
                 if let Some(line) = status.source_line() {
                     // A remote store that cannot be reached: the view keeps what it has.

@@ -219,7 +219,12 @@ impl PerformancePanel {
                 ui.label(status.loading.clone().unwrap_or_else(|| "refining…".into()));
             });
         } else {
-            ui.weak("converged");
+            // "converged at budget (N nodes left coarser than wanted)" when the GPU budget
+            // bound: a bigger budget would refine further.
+            ui.weak(match &status.loader {
+                Some(stats) if stats.converged_at_budget => stats.convergence_status(),
+                _ => "converged".into(),
+            });
         }
     }
 }
