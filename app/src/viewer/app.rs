@@ -742,6 +742,10 @@ impl StrataApp {
                     // A remote store that cannot be reached: the view keeps what it has.
                     ui.colored_label(Color32::YELLOW, line);
                 }
+                if let Some(line) = &status.gpu_recovery {
+                    // The GPU failed and the renderer was rebuilt: the session carried on.
+                    ui.colored_label(Color32::YELLOW, line);
+                }
                 if let Some(e) = &status.error {
                     ui.colored_label(Color32::LIGHT_RED, e);
                 }

@@ -14,6 +14,7 @@
 pub mod app;
 pub mod colour_maps;
 pub mod dialogs;
+pub mod gpu_recovery;
 pub mod history;
 pub mod jobs;
 pub mod measurements;
