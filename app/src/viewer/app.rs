@@ -15,6 +15,7 @@ use super::history::History;
 use super::jobs::{PrepareJob, VolumeSource};
 use super::measurements::Measurements;
 use super::orientation::{SliceFrame, SliceView};
+use super::overlay::Overlay;
 use super::panels::{FrameClock, PanelContext, Panels};
 pub use super::preferences::{Layout, Preferences, ViewSlot};
 use super::scene::{
@@ -90,6 +91,8 @@ pub struct OpenVolume {
     pub view_3d: View3d,
     pub slice_views: [SliceViewer; 3],
     pub view_rects: Vec<PlacedView>,
+    /// A label map or continuous overlay drawn over the slices (overlay.rs).
+    pub overlay: Option<Overlay>,
 }
 
 /// A short message in the status bar, cleared after a few seconds.
@@ -113,6 +116,8 @@ pub struct StrataApp {
     toast: Option<Toast>,
     /// What the views reported under the pointer last frame.
     hover: Option<[f64; 3]>,
+    /// The overlay's value there (a slice view's sampled overlay), if any.
+    hover_overlay: Option<f32>,
     /// The readout in the status bar this frame (tests read it).
     pub readout: Option<Readout>,
     screenshot: Option<ScreenshotJob>,
@@ -149,6 +154,7 @@ impl StrataApp {
             clock: FrameClock::default(),
             toast: None,
             hover: None,
+            hover_overlay: None,
             readout: None,
             screenshot: None,
             saved_screenshot: None,
@@ -347,6 +353,7 @@ impl StrataApp {
             view_3d: View3d::new(orbit),
             slice_views: SliceView::ALL.map(SliceViewer::new),
             view_rects: Vec::new(),
+            overlay: None,
         });
         Ok(())
     }
@@ -355,6 +362,10 @@ impl StrataApp {
     pub fn ui(&mut self, ui: &mut egui::Ui) {
         let ui_started = Instant::now();
         self.poll_job();
+        if let Some(v) = self.volume.as_mut() {
+            // Here, not in the panel: an overlay opens even with the side bar hidden.
+            self.panels.overlay.poll(ui.ctx(), &v.data, &mut v.overlay);
+        }
         self.handle_shortcuts(ui.ctx());
         if let (Some(deg), Some(v)) = (self.options.auto_orbit_deg_per_second, self.volume.as_mut())
         {
@@ -720,10 +731,20 @@ impl StrataApp {
                     Some(at) => v.data.readout(at, true),
                     None => v.data.readout(v.scene.cursor, false),
                 };
-                ui.label(readout.text()).on_hover_text(
-                    "Value, voxel index and patient position (mm) under the pointer, or at \
-                     the crosshair when the pointer is off the views",
-                );
+                let overlay_text = match (&v.overlay, self.hover_overlay) {
+                    (Some(o), Some(value)) => match o.kind {
+                        super::overlay::OverlayKind::Labels => format!(" · label {value:.0}"),
+                        super::overlay::OverlayKind::Continuous => {
+                            format!(" · overlay {value:.4}")
+                        }
+                    },
+                    _ => String::new(),
+                };
+                ui.label(format!("{}{overlay_text}", readout.text()))
+                    .on_hover_text(
+                        "Value, voxel index and patient position (mm) under the pointer, or at \
+                     the crosshair when the pointer is off the views; the overlay's value",
+                    );
                 self.readout = Some(readout);
                 ui.separator();
                 ui.label(format!(
@@ -840,6 +861,8 @@ impl StrataApp {
                 scene: &mut v.scene,
                 view_3d: &mut v.view_3d,
                 clock: &self.clock,
+                overlay: &mut v.overlay,
+                import_folder: &self.options.import_folder,
             },
         );
     }
@@ -890,6 +913,7 @@ impl StrataApp {
             return;
         };
         self.hover = None;
+        self.hover_overlay = None;
         for (slot, rect) in &slots {
             let response = match slot {
                 ViewSlot::ThreeD => v.view_3d.ui(
@@ -900,9 +924,13 @@ impl StrataApp {
                     &self.preferences,
                     max_pixels,
                 ),
-                ViewSlot::Slice(view) => {
-                    v.slice_views[view.index()].ui(ui, *rect, &v.data, &mut v.scene)
-                }
+                ViewSlot::Slice(view) => v.slice_views[view.index()].ui(
+                    ui,
+                    *rect,
+                    &v.data,
+                    &mut v.scene,
+                    v.overlay.as_ref(),
+                ),
             };
             if response.focused {
                 self.preferences.focused = *slot;
@@ -910,8 +938,16 @@ impl StrataApp {
             if response.toggle_focus {
                 focus_request = Some(*slot);
             }
-            if response.hover.is_some() {
-                self.hover = response.hover;
+            if let Some(at) = response.hover {
+                self.hover = Some(at);
+                self.hover_overlay = match (slot, &v.overlay) {
+                    (ViewSlot::Slice(view), Some(o)) => {
+                        v.data.slices.latest(*view).and_then(|image| {
+                            v.slice_views[view.index()].overlay_value_at(o, at, &image)
+                        })
+                    }
+                    _ => None,
+                };
             }
         }
         v.view_rects = slots

@@ -184,6 +184,9 @@ pub fn recovery_line(failure: &GpuFailure, new_budget: u64, recoveries: u32) -> 
 /// Test hook: faults the render thread applies to its own device at the start of its next
 /// step, so tests exercise the real recovery path on lavapipe.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
+// Constructed by tests only; the render thread's side of the hook is always compiled in, so
+// the path tests take is the path a real failure takes.
+#[cfg_attr(not(test), allow(dead_code))]
 pub enum InjectedFault {
     /// `wgpu::Device::destroy`: wgpu loses the device for real and calls the lost callback.
     DestroyDevice,

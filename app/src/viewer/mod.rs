@@ -19,6 +19,7 @@ pub mod history;
 pub mod jobs;
 pub mod measurements;
 pub mod orientation;
+pub mod overlay;
 pub mod panels;
 pub mod preferences;
 pub mod scene;

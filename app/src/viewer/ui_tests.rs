@@ -1128,3 +1128,200 @@ fn a_lost_gpu_device_is_rebuilt_with_a_smaller_cache_and_the_session_carries_on(
         "the view changed across the rebuild by {difference:.2} per channel"
     );
 }
+
+/// Issue 16: a label map on a coarser, shifted grid (40³ of 10 mm over the phantom's 48³ of
+/// 8.3 mm), opened from the overlay panel as a NRRD, colours exactly the axial pixels whose
+/// patient position falls in a labelled overlay voxel, in that label's colour at the chosen
+/// opacity; background and hidden labels leave the slice as it was; the readout names the
+/// label under the pointer.
+#[test]
+fn a_label_map_overlay_colours_the_right_pixels_and_a_hidden_label_clears_them() {
+    use super::overlay::tests::{label_of, write_nrrd, LABEL_DIMS, LABEL_ORIGIN, LABEL_SPACING};
+    use super::overlay::{label_colour, OverlayKind};
+    let dir = tempfile::tempdir().expect("temp dir");
+    let store = phantom_store(dir.path());
+    let labels = dir.path().join("labels.nrrd");
+    write_nrrd(
+        &labels,
+        LABEL_DIMS,
+        LABEL_SPACING,
+        LABEL_ORIGIN,
+        false,
+        label_of,
+    );
+    let mut options = ViewerOptions::new(VolumeSource::Path(store.clone()));
+    options.import_folder = dir.path().join("imported");
+    let preferences = Preferences {
+        layout: Layout::TwoByTwo,
+        show_side_panel: true,
+        ..Preferences::default()
+    };
+    // Large enough for ~6 screen pixels per phantom voxel in the axial view.
+    let mut h = harness_sized(options, preferences, Vec2::new(1100.0, 800.0));
+    step_until(&mut h, "the axial slice at full resolution", |a| {
+        a.slice_display(SliceView::Axial).is_some()
+            && a.slice_image(SliceView::Axial)
+                .is_some_and(|i| i.request.level == 0)
+    });
+    h.get_by_label("Overlay").click();
+    h.step();
+    if let Some(a) = h.state_mut().as_mut() {
+        a.panels.overlay.path = labels.display().to_string();
+    }
+    h.step();
+    h.get_by_label("Open overlay").click();
+    step_until_some(&mut h, "the overlay over the axial slice", |a| {
+        let v = a.volume.as_ref()?;
+        let o = v.overlay.as_ref()?;
+        let image = a.slice_image(SliceView::Axial)?;
+        o.latest(SliceView::Axial)
+            .filter(|s| s.request == image.request)
+            .map(|_| ())
+    });
+    let kind = app(&h)
+        .volume
+        .as_ref()
+        .and_then(|v| v.overlay.as_ref())
+        .map(|o| o.kind);
+    assert_eq!(kind, Some(OverlayKind::Labels));
+    // A few frames for the texture upload.
+    for _ in 0..3 {
+        h.step();
+    }
+    let shown = h.render().expect("render");
+    // The slice alone, in the same layout (the panel grew when the overlay opened).
+    let set_style = |h: &mut Harness<'static, Option<StrataApp>>,
+                     change: &dyn Fn(&mut super::overlay::OverlayStyle)| {
+        if let Some(o) = h
+            .state_mut()
+            .as_mut()
+            .and_then(|a| a.volume.as_mut())
+            .and_then(|v| v.overlay.as_mut())
+        {
+            change(&mut o.style);
+        }
+        for _ in 0..3 {
+            h.step();
+        }
+    };
+    set_style(&mut h, &|s| s.visible = false);
+    let base = h.render().expect("render");
+    set_style(&mut h, &|s| s.visible = true);
+
+    // Points well inside one overlay voxel's label region: the label at the voxel's centre
+    // and at its four corners (half a voxel away) agree, so the 5×5 patch is one label.
+    let (geometry, overlay_geometry, k) = {
+        let v = app(&h).volume.as_ref().expect("volume");
+        let mut g = strata_render::VolumeGeometry::axis_aligned(LABEL_DIMS, [LABEL_SPACING; 3]);
+        g.origin_lps_mm = LABEL_ORIGIN;
+        (v.data.info.geometry.clone(), g, v.scene.cursor[2].round())
+    };
+    let cursor = app(&h).volume.as_ref().expect("volume").scene.cursor;
+    let label_at = |i: f64, j: f64| -> Option<u32> {
+        let o = overlay_geometry.index_from_patient(geometry.patient_from_index([i, j, k]));
+        if (0..3).any(|a| o[a] < -0.5 || o[a] >= LABEL_DIMS[a] as f64 - 0.5) {
+            return None;
+        }
+        let n = o.round();
+        Some(label_of(n.x as u32, n.y as u32, n.z as u32) as u32)
+    };
+    let mut checked = [0usize; 5];
+    let mut hidden_points = Vec::new();
+    // Away from the image's top rows, which the view's title bar covers.
+    for j in 8..44 {
+        for i in 4..44 {
+            let (i, j) = (i as f64, j as f64);
+            // The crosshair is drawn over the overlay: keep away from its lines.
+            if (i - cursor[0]).abs() < 2.0 || (j - cursor[1]).abs() < 2.0 {
+                continue;
+            }
+            let Some(label) = label_at(i, j) else {
+                continue;
+            };
+            let uniform = [(-0.5, -0.5), (0.5, -0.5), (-0.5, 0.5), (0.5, 0.5)]
+                .iter()
+                .all(|(di, dj)| label_at(i + di, j + dj) == Some(label));
+            if !uniform || checked[label as usize] >= 6 {
+                continue;
+            }
+            checked[label as usize] += 1;
+            let at = {
+                let v = app(&h).volume.as_ref().expect("volume");
+                v.slice_views[SliceView::Axial.index()]
+                    .screen_of([i, j, k], &v.data)
+                    .expect("on screen")
+            };
+            let colour = label_colour(label as i64);
+            // A 3×3 patch: a voxel is ~6 screen pixels here, and the overlay texture is
+            // sampled nearest, so the patch must stay inside one texel.
+            let patch = |image: &image::RgbaImage, c: usize| {
+                let pixels =
+                    region_pixels(image, egui::Rect::from_center_size(at, Vec2::splat(3.0)));
+                pixels.chunks_exact(4).map(|p| p[c] as f64).sum::<f64>()
+                    / (pixels.len() / 4).max(1) as f64
+            };
+            let before: Vec<f64> = (0..3).map(|c| patch(&base, c)).collect();
+            let after: Vec<f64> = (0..3).map(|c| patch(&shown, c)).collect();
+            // Premultiplied "over" at opacity 0.5, as egui blends (gamma space); 8 levels for
+            // the blend's rounding and the patch mean. Background leaves the slice alone.
+            let expected: Vec<f64> = before
+                .iter()
+                .zip(colour)
+                .map(|(b, c)| {
+                    if label == 0 {
+                        *b
+                    } else {
+                        0.5 * b + 0.5 * c as f64
+                    }
+                })
+                .collect();
+            let sampled = {
+                let v = app(&h).volume.as_ref().expect("volume");
+                let o = v.overlay.as_ref().expect("overlay");
+                o.latest(SliceView::Axial)
+                    .map(|s| s.values[j as usize * s.width + i as usize])
+            };
+            assert!(
+                after
+                    .iter()
+                    .zip(&expected)
+                    .all(|(a, e)| (a - e).abs() <= 8.0),
+                "label {label} at voxel ({i},{j}): {after:.1?} on screen, {expected:.1?} \
+                 expected (slice alone {before:.1?}); sampled {sampled:?} at {at:?}"
+            );
+            if label == 2 {
+                hidden_points.push(at);
+            }
+        }
+    }
+    assert!(
+        checked.iter().all(|&n| n > 0),
+        "every label (and background) checked: {checked:?}"
+    );
+
+    // The readout under the pointer names the label.
+    let probe = hidden_points[0];
+    h.event(Event::PointerMoved(probe));
+    h.step();
+    h.step();
+    assert!(
+        h.query_by_label_contains("label 2").is_some(),
+        "the readout shows the overlay's label"
+    );
+
+    // Hide label 2: its pixels show the slice alone again.
+    h.event(Event::PointerMoved(egui::Pos2::new(5.0, 5.0)));
+    set_style(&mut h, &|s| {
+        s.hidden_labels.insert(2);
+    });
+    let hidden = h.render().expect("render");
+    for at in hidden_points {
+        for c in 0..3 {
+            let (before, after) = (screen_patch(&base, at, c), screen_patch(&hidden, at, c));
+            assert!(
+                (after - before).abs() <= 2.0,
+                "hidden label 2 still drawn: {after:.1} vs {before:.1}"
+            );
+        }
+    }
+}
