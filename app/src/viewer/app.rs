@@ -14,6 +14,7 @@ use super::dialogs::{HelpWindow, OpenDialog};
 use super::history::History;
 use super::jobs::{PrepareJob, VolumeSource};
 use super::measurements::Measurements;
+use super::oblique_view::{AlignTarget, ObliqueViewer};
 use super::orientation::{SliceFrame, SliceView};
 use super::overlay::Overlay;
 use super::panels::{FrameClock, PanelContext, Panels};
@@ -90,6 +91,7 @@ pub struct OpenVolume {
     pub history: History,
     pub view_3d: View3d,
     pub slice_views: [SliceViewer; 3],
+    pub oblique_view: ObliqueViewer,
     pub view_rects: Vec<PlacedView>,
     /// A label map or continuous overlay drawn over the slices (overlay.rs).
     pub overlay: Option<Overlay>,
@@ -283,7 +285,8 @@ impl StrataApp {
             self.options.gpu_budget_bytes,
             repaint.clone(),
         )?;
-        let slices = SliceReader::start(store.clone(), repaint)?;
+        let slices = SliceReader::start(store.clone(), repaint.clone())?;
+        let oblique = super::oblique::ObliqueReader::start(store.clone(), repaint)?;
         let info = session.info().clone();
         let header = &info.header;
         let is_ct = looks_like_ct(
@@ -345,6 +348,7 @@ impl StrataApp {
                 histogram: store.histogram().clone(),
                 session,
                 slices,
+                oblique,
                 info,
                 frames,
                 store_path: location,
@@ -352,6 +356,7 @@ impl StrataApp {
             scene,
             view_3d: View3d::new(orbit),
             slice_views: SliceView::ALL.map(SliceViewer::new),
+            oblique_view: ObliqueViewer::default(),
             view_rects: Vec::new(),
             overlay: None,
         });
@@ -529,7 +534,7 @@ impl StrataApp {
             if step != 0 {
                 let view = match self.preferences.focused {
                     ViewSlot::Slice(s) => s,
-                    ViewSlot::ThreeD => SliceView::Axial,
+                    ViewSlot::ThreeD | ViewSlot::Oblique => SliceView::Axial,
                 };
                 v.data.page_slice(&mut v.scene, view, step as f64);
             }
@@ -704,6 +709,8 @@ impl StrataApp {
                     v.history.redo(&mut v.scene);
                 }
             }
+            ui.toggle_value(&mut self.preferences.show_oblique, "Oblique")
+                .on_hover_text("Show the oblique view: a slice through the crosshair at any angle");
             ui.toggle_value(&mut self.preferences.show_side_panel, "Panels");
             if ui
                 .button("?")
@@ -871,17 +878,23 @@ impl StrataApp {
         let area = ui.available_rect_before_wrap();
         let gap = 2.0;
         let focused = self.preferences.focused;
+        let show_oblique = self.preferences.show_oblique;
         let slots: Vec<(ViewSlot, Rect)> = match self.preferences.layout {
             Layout::Single => vec![(focused, area)],
             Layout::ThreeDOverSlices => {
                 let split = area.top() + area.height() * 0.62;
                 let top = Rect::from_min_max(area.min, Pos2::new(area.right(), split - gap));
-                let w = (area.width() - 2.0 * gap) / 3.0;
+                let mut row: Vec<ViewSlot> = SliceView::ALL.map(ViewSlot::Slice).to_vec();
+                if show_oblique {
+                    row.push(ViewSlot::Oblique);
+                }
+                let columns = row.len() as f32;
+                let w = (area.width() - (columns - 1.0) * gap) / columns;
                 let mut slots = vec![(ViewSlot::ThreeD, top)];
-                for (i, view) in SliceView::ALL.iter().enumerate() {
+                for (i, slot) in row.into_iter().enumerate() {
                     let left = area.left() + i as f32 * (w + gap);
                     slots.push((
-                        ViewSlot::Slice(*view),
+                        slot,
                         Rect::from_min_max(
                             Pos2::new(left, split),
                             Pos2::new(left + w, area.bottom()),
@@ -901,7 +914,14 @@ impl StrataApp {
                 vec![
                     (ViewSlot::Slice(SliceView::Axial), cell(0.0, 0.0)),
                     (ViewSlot::ThreeD, cell(1.0, 0.0)),
-                    (ViewSlot::Slice(SliceView::Sagittal), cell(0.0, 1.0)),
+                    (
+                        if show_oblique {
+                            ViewSlot::Oblique
+                        } else {
+                            ViewSlot::Slice(SliceView::Sagittal)
+                        },
+                        cell(0.0, 1.0),
+                    ),
                     (ViewSlot::Slice(SliceView::Coronal), cell(1.0, 1.0)),
                 ]
             }
@@ -924,6 +944,16 @@ impl StrataApp {
                     &self.preferences,
                     max_pixels,
                 ),
+                ViewSlot::Oblique => {
+                    let camera = v.view_3d.orbit.camera(&v.data.info.geometry);
+                    v.oblique_view.ui(
+                        ui,
+                        *rect,
+                        &v.data,
+                        &mut v.scene,
+                        AlignTarget { camera: &camera },
+                    )
+                }
                 ViewSlot::Slice(view) => v.slice_views[view.index()].ui(
                     ui,
                     *rect,

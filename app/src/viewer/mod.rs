@@ -18,6 +18,8 @@ pub mod gpu_recovery;
 pub mod history;
 pub mod jobs;
 pub mod measurements;
+pub mod oblique;
+pub mod oblique_view;
 pub mod orientation;
 pub mod overlay;
 pub mod panels;
