@@ -417,6 +417,9 @@ impl StrataApp {
             self.toast = None;
         }
         self.step_screenshot(ui.ctx());
+        if let Some(frames) = self.panels.screenshot.take_orbit_request() {
+            self.take_orbit_movie(frames);
+        }
         if let Some(v) = self.volume.as_mut() {
             let gesture = ui.ctx().input(|i| i.pointer.any_down());
             v.history.observe(&v.scene, gesture);
@@ -582,9 +585,65 @@ impl StrataApp {
         v.data.session.request_screenshot(ScreenshotRequest {
             path: path.clone(),
             size,
+            camera: None,
+            then_encode: None,
         });
         self.toast = Some(Toast {
             text: format!("Saving screenshot to {}…", path.display()),
+            shown_at: Instant::now(),
+        });
+    }
+
+    /// An orbit movie of the 3D view: `frames` frames at the view's full resolution, turning
+    /// the camera about the superior axis from where it is now, into a new folder beside the
+    /// screenshots; orbit.mp4 when ffmpeg is there. The render thread writes them in order.
+    pub fn take_orbit_movie(&mut self, frames: u32) {
+        let Some(v) = &self.volume else { return };
+        let frames = frames.clamp(2, crate::cmd_render::MAX_ORBIT_FRAMES);
+        let Some(rect) = v
+            .view_rects
+            .iter()
+            .find(|p| p.slot == ViewSlot::ThreeD)
+            .map(|p| p.rect)
+        else {
+            self.saved_screenshot = Some(Err("no 3D view is shown to make a movie of".into()));
+            return;
+        };
+        let size = View3d::full_resolution_size(rect, self.ctx.pixels_per_point());
+        let stamp = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_millis());
+        let folder = self
+            .preferences
+            .screenshot_folder
+            .join(format!("strata-orbit-{stamp}"));
+        if let Err(e) = std::fs::create_dir_all(&folder) {
+            self.saved_screenshot = Some(Err(format!(
+                "cannot create the folder {}: {e}",
+                folder.display()
+            )));
+            return;
+        }
+        let geometry = &v.data.info.geometry;
+        let start = v.view_3d.orbit;
+        for i in 0..frames {
+            let orbit = OrbitCamera {
+                azimuth_deg: crate::cmd_render::orbit_azimuth(start.azimuth_deg, i, frames),
+                ..start
+            };
+            v.data.session.request_screenshot(ScreenshotRequest {
+                path: folder.join(crate::cmd_render::orbit_frame_name(i)),
+                size,
+                camera: Some(orbit.camera(geometry)),
+                then_encode: (i + 1 == frames).then(|| folder.clone()),
+            });
+        }
+        self.saved_screenshot = None;
+        self.toast = Some(Toast {
+            text: format!(
+                "Writing a {frames}-frame orbit movie to {}…",
+                folder.display()
+            ),
             shown_at: Instant::now(),
         });
     }

@@ -87,6 +87,8 @@ pub struct SessionStatus {
     pub refining: bool,
     pub frames_rendered: u64,
     pub last_screenshot: Option<Result<PathBuf, String>>,
+    /// Screenshots written so far (orbit movies count their frames).
+    pub screenshots_written: u64,
     /// Set once the renderer has been rebuilt after a GPU failure: what failed and the brick
     /// cache it restarted with (gpu_recovery.rs). Stays for the status bar.
     pub gpu_recovery: Option<String>,
@@ -117,6 +119,11 @@ impl SessionStatus {
 pub struct ScreenshotRequest {
     pub path: PathBuf,
     pub size: [u32; 2],
+    /// Render from this camera instead of the view's (orbit movie frames).
+    pub camera: Option<Camera>,
+    /// After writing this frame, encode the folder's frame-%04d.png as orbit.mp4 (ffmpeg when
+    /// it is on the PATH; otherwise the frames are the movie).
+    pub then_encode: Option<PathBuf>,
 }
 
 /// Static facts of the opened volume, for the UI.
@@ -150,7 +157,8 @@ struct Shared {
     wake: Condvar,
     frame: Mutex<Option<RenderedFrame>>,
     status: Mutex<SessionStatus>,
-    screenshot: Mutex<Option<ScreenshotRequest>>,
+    /// Screenshots to take, in order (one, or an orbit movie's frames).
+    screenshot: Mutex<std::collections::VecDeque<ScreenshotRequest>>,
     /// Test hook: a GPU fault for the render thread to apply to its device (gpu_recovery.rs).
     fault: Mutex<Option<InjectedFault>>,
     stop: AtomicBool,
@@ -185,7 +193,7 @@ impl VolumeSession {
                 gpu_budget_bytes,
                 ..Default::default()
             }),
-            screenshot: Mutex::new(None),
+            screenshot: Mutex::new(std::collections::VecDeque::new()),
             fault: Mutex::new(None),
             stop: AtomicBool::new(false),
         });
@@ -244,7 +252,7 @@ impl VolumeSession {
     }
 
     pub fn request_screenshot(&self, request: ScreenshotRequest) {
-        *lock_ignoring_poison(&self.shared.screenshot) = Some(request);
+        lock_ignoring_poison(&self.shared.screenshot).push_back(request);
         self.shared.wake.notify_all();
     }
 
@@ -447,18 +455,31 @@ impl RenderWorker {
             if let Some(fault) = lock_ignoring_poison(&self.shared.fault).take() {
                 fault.apply(&ctx.device, &watch);
             }
-            let screenshot = lock_ignoring_poison(&self.shared.screenshot).take();
+            let screenshot = lock_ignoring_poison(&self.shared.screenshot).pop_front();
             if let Some(shot) = screenshot {
                 let result = match last_rendered.clone() {
                     Some(request) => self.screenshot(&ctx, &mut volume, &request, &shot),
                     None => Err(anyhow::anyhow!("nothing rendered yet")),
                 };
+                let result = match (result, &shot.then_encode) {
+                    (Ok(()), Some(folder)) => match crate::cmd_render::encode_mp4(folder) {
+                        Ok(Some(movie)) => Ok(movie),
+                        Ok(None) => Ok(folder.clone()),
+                        Err(e) => Err(e.context(format!(
+                            "the frames are in {}, the MP4 failed",
+                            folder.display()
+                        ))),
+                    },
+                    (Ok(()), None) => Ok(shot.path.clone()),
+                    (Err(e), _) => Err(e),
+                };
+                if result.is_err() {
+                    // One failed frame ends the movie: the rest would fail the same way.
+                    lock_ignoring_poison(&self.shared.screenshot).clear();
+                }
                 self.set_status(|s| {
-                    s.last_screenshot = Some(
-                        result
-                            .map(|_| shot.path.clone())
-                            .map_err(|e| format!("{e:#}")),
-                    )
+                    s.screenshots_written += result.is_ok() as u64;
+                    s.last_screenshot = Some(result.map_err(|e| format!("{e:#}")));
                 });
                 // The screenshot changed the cut and the raycaster's size: render the view again.
                 last_rendered = None;
@@ -615,8 +636,9 @@ impl RenderWorker {
         settings.quality = settings.quality.min(0.5);
         volume.set_max_voxel_pixels(1.0);
         let started = Instant::now();
+        let camera = shot.camera.unwrap_or(request.camera);
         for _ in 0..200 {
-            let stats = volume.frame(ctx, &request.camera, &settings)?;
+            let stats = volume.frame(ctx, &camera, &settings)?;
             if stats.converged || started.elapsed() > Duration::from_secs(20) {
                 break;
             }

@@ -81,7 +81,7 @@ impl Panels {
             .show(ui, |ui| {
                 self.performance.ui(ui, prefs, data, clock);
             });
-        egui::CollapsingHeader::new("Screenshot")
+        egui::CollapsingHeader::new("Screenshots and movies")
             .default_open(false)
             .show(ui, |ui| {
                 self.screenshot.ui(ui, prefs);
