@@ -28,7 +28,7 @@ pub enum ModeArg {
     Adaptive,
 }
 
-#[derive(Args)]
+#[derive(Args, Clone)]
 pub struct RenderArgs {
     /// A store directory, or http://HOST:PORT/v1/stores/NAME served by `strata serve`.
     pub store: String,
@@ -97,7 +97,15 @@ pub struct RenderArgs {
     /// chris_t1 (53 dB against the f64 reference); 0.01 is a fast preview.
     #[arg(long, default_value_t = 0.001)]
     pub oracle_epsilon: f64,
+    /// An orbit movie: N frames around the volume (azimuth steps of 360/N from --azimuth)
+    /// written as frame-0000.png … into the folder --out (created); with ffmpeg on the PATH
+    /// also orbit.mp4 (24 frames per second) beside them.
+    #[arg(long, value_name = "N")]
+    pub orbit: Option<u32>,
 }
+
+/// The most frames an orbit movie may have: 10 per degree, 150 s at 24 frames per second.
+pub const MAX_ORBIT_FRAMES: u32 = 3600;
 
 pub fn parse_size(text: &str) -> Result<(u32, u32)> {
     let (w, h) = text
@@ -143,7 +151,25 @@ fn check_args(args: &RenderArgs) -> Result<()> {
     check_range("step", args.step, STEP_RANGE)?;
     check_range("quality", args.quality, 0.01..=1000.0)?;
     check_finite("iso", args.iso)?;
-    check_png_output("out", &args.out)?;
+    match args.orbit {
+        Some(n) => {
+            anyhow::ensure!(
+                (1..=MAX_ORBIT_FRAMES).contains(&n),
+                "--orbit {n}: the number of frames must be 1..={MAX_ORBIT_FRAMES}"
+            );
+            anyhow::ensure!(
+                !args.out.is_file(),
+                "--out {} is a file: an orbit movie is written into a folder",
+                args.out.display()
+            );
+            anyhow::ensure!(
+                !args.up_front && !args.reference && !matches!(args.mode, ModeArg::Adaptive),
+                "--orbit streams the store: it does not combine with --up-front, --reference or \
+                 --mode adaptive"
+            );
+        }
+        None => check_png_output("out", &args.out)?,
+    }
     parse_size(&args.size)?;
     Ok(())
 }
@@ -359,6 +385,9 @@ fn run_streaming(args: &RenderArgs) -> Result<()> {
         .with_context(|| format!("cannot stream store {}", args.store))?;
     let opened = Instant::now();
     let geometry = volume.geometry().clone();
+    if let Some(frames) = args.orbit {
+        return write_orbit(args, &ctx, &mut volume, &settings, frames);
+    }
     let camera = camera_of(args, &geometry);
     let (frame, history) =
         volume.render_until_converged(&ctx, &camera, &settings, args.max_frames.max(1))?;
@@ -403,6 +432,98 @@ fn run_streaming(args: &RenderArgs) -> Result<()> {
     write_png(&args.out, settings.width, settings.height, &frame.rgba)?;
     println!("wrote {}", args.out.display());
     Ok(())
+}
+
+/// The orbit movie: one converged frame per azimuth step, on one streaming volume (bricks
+/// stay resident from frame to frame), then ffmpeg when it is there.
+fn write_orbit(
+    args: &RenderArgs,
+    ctx: &GpuContext,
+    volume: &mut StreamingVolume,
+    settings: &RenderSettings,
+    frames: u32,
+) -> Result<()> {
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("creating the orbit folder {}", args.out.display()))?;
+    let geometry = volume.geometry().clone();
+    let started = Instant::now();
+    let mut not_converged = 0;
+    for i in 0..frames {
+        let azimuth = orbit_azimuth(args.azimuth, i, frames);
+        let camera = camera_of(
+            &RenderArgs {
+                azimuth,
+                ..args.clone()
+            },
+            &geometry,
+        );
+        let (frame, history) =
+            volume.render_until_converged(ctx, &camera, settings, args.max_frames.max(1))?;
+        if !history.last().is_some_and(|s| s.converged) {
+            not_converged += 1;
+        }
+        let path = args.out.join(orbit_frame_name(i));
+        write_png(&path, settings.width, settings.height, &frame.rgba)?;
+    }
+    for failure in volume.take_failures() {
+        eprintln!(
+            "warning: {}; its parent is shown there instead",
+            failure.message
+        );
+    }
+    if not_converged > 0 {
+        eprintln!("warning: {not_converged} frames had not converged (raise --max-frames)");
+    }
+    eprintln!(
+        "{frames} orbit frames in {:.2} s",
+        started.elapsed().as_secs_f64()
+    );
+    println!("wrote {frames} frames to {}", args.out.display());
+    match encode_mp4(&args.out) {
+        Ok(Some(movie)) => println!("wrote {}", movie.display()),
+        Ok(None) => eprintln!("ffmpeg is not on the PATH: the frames are the movie (no MP4)"),
+        Err(e) => eprintln!("warning: ffmpeg failed, the frames are kept: {e:#}"),
+    }
+    Ok(())
+}
+
+/// Azimuth of frame `i` of `frames`, evenly around the full turn from `start`.
+pub fn orbit_azimuth(start: f64, i: u32, frames: u32) -> f64 {
+    start + 360.0 * i as f64 / frames.max(1) as f64
+}
+
+pub fn orbit_frame_name(i: u32) -> String {
+    format!("frame-{i:04}.png")
+}
+
+/// frame-%04d.png in `folder` → orbit.mp4 through ffmpeg, if ffmpeg runs; None without it.
+pub fn encode_mp4(folder: &Path) -> Result<Option<PathBuf>> {
+    let probe = std::process::Command::new("ffmpeg")
+        .arg("-version")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .status();
+    if !probe.is_ok_and(|s| s.success()) {
+        return Ok(None);
+    }
+    let movie = folder.join("orbit.mp4");
+    let output = std::process::Command::new("ffmpeg")
+        .args(["-y", "-loglevel", "error", "-framerate", "24", "-i"])
+        .arg(folder.join("frame-%04d.png"))
+        // Even dimensions and yuv420p: what every player accepts.
+        .args([
+            "-vf",
+            "pad=ceil(iw/2)*2:ceil(ih/2)*2",
+            "-pix_fmt",
+            "yuv420p",
+        ])
+        .arg(&movie)
+        .output()
+        .context("running ffmpeg")?;
+    if !output.status.success() {
+        bail!("ffmpeg: {}", String::from_utf8_lossy(&output.stderr).trim());
+    }
+    Ok(Some(movie))
 }
 
 /// Writes premultiplied RGBA over black (the usual background of medical viewers) as PNG.

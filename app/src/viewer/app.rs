@@ -14,7 +14,9 @@ use super::dialogs::{HelpWindow, OpenDialog};
 use super::history::History;
 use super::jobs::{PrepareJob, VolumeSource};
 use super::measurements::Measurements;
+use super::oblique_view::{AlignTarget, ObliqueViewer};
 use super::orientation::{SliceFrame, SliceView};
+use super::overlay::Overlay;
 use super::panels::{FrameClock, PanelContext, Panels};
 pub use super::preferences::{Layout, Preferences, ViewSlot};
 use super::scene::{
@@ -89,7 +91,10 @@ pub struct OpenVolume {
     pub history: History,
     pub view_3d: View3d,
     pub slice_views: [SliceViewer; 3],
+    pub oblique_view: ObliqueViewer,
     pub view_rects: Vec<PlacedView>,
+    /// A label map or continuous overlay drawn over the slices (overlay.rs).
+    pub overlay: Option<Overlay>,
 }
 
 /// A short message in the status bar, cleared after a few seconds.
@@ -113,6 +118,8 @@ pub struct StrataApp {
     toast: Option<Toast>,
     /// What the views reported under the pointer last frame.
     hover: Option<[f64; 3]>,
+    /// The overlay's value there (a slice view's sampled overlay), if any.
+    hover_overlay: Option<f32>,
     /// The readout in the status bar this frame (tests read it).
     pub readout: Option<Readout>,
     screenshot: Option<ScreenshotJob>,
@@ -149,6 +156,7 @@ impl StrataApp {
             clock: FrameClock::default(),
             toast: None,
             hover: None,
+            hover_overlay: None,
             readout: None,
             screenshot: None,
             saved_screenshot: None,
@@ -277,7 +285,8 @@ impl StrataApp {
             self.options.gpu_budget_bytes,
             repaint.clone(),
         )?;
-        let slices = SliceReader::start(store.clone(), repaint)?;
+        let slices = SliceReader::start(store.clone(), repaint.clone())?;
+        let oblique = super::oblique::ObliqueReader::start(store.clone(), repaint)?;
         let info = session.info().clone();
         let header = &info.header;
         let is_ct = looks_like_ct(
@@ -339,6 +348,7 @@ impl StrataApp {
                 histogram: store.histogram().clone(),
                 session,
                 slices,
+                oblique,
                 info,
                 frames,
                 store_path: location,
@@ -346,7 +356,9 @@ impl StrataApp {
             scene,
             view_3d: View3d::new(orbit),
             slice_views: SliceView::ALL.map(SliceViewer::new),
+            oblique_view: ObliqueViewer::default(),
             view_rects: Vec::new(),
+            overlay: None,
         });
         Ok(())
     }
@@ -355,6 +367,10 @@ impl StrataApp {
     pub fn ui(&mut self, ui: &mut egui::Ui) {
         let ui_started = Instant::now();
         self.poll_job();
+        if let Some(v) = self.volume.as_mut() {
+            // Here, not in the panel: an overlay opens even with the side bar hidden.
+            self.panels.overlay.poll(ui.ctx(), &v.data, &mut v.overlay);
+        }
         self.handle_shortcuts(ui.ctx());
         if let (Some(deg), Some(v)) = (self.options.auto_orbit_deg_per_second, self.volume.as_mut())
         {
@@ -401,6 +417,9 @@ impl StrataApp {
             self.toast = None;
         }
         self.step_screenshot(ui.ctx());
+        if let Some(frames) = self.panels.screenshot.take_orbit_request() {
+            self.take_orbit_movie(frames);
+        }
         if let Some(v) = self.volume.as_mut() {
             let gesture = ui.ctx().input(|i| i.pointer.any_down());
             v.history.observe(&v.scene, gesture);
@@ -518,7 +537,7 @@ impl StrataApp {
             if step != 0 {
                 let view = match self.preferences.focused {
                     ViewSlot::Slice(s) => s,
-                    ViewSlot::ThreeD => SliceView::Axial,
+                    ViewSlot::ThreeD | ViewSlot::Oblique => SliceView::Axial,
                 };
                 v.data.page_slice(&mut v.scene, view, step as f64);
             }
@@ -566,9 +585,65 @@ impl StrataApp {
         v.data.session.request_screenshot(ScreenshotRequest {
             path: path.clone(),
             size,
+            camera: None,
+            then_encode: None,
         });
         self.toast = Some(Toast {
             text: format!("Saving screenshot to {}…", path.display()),
+            shown_at: Instant::now(),
+        });
+    }
+
+    /// An orbit movie of the 3D view: `frames` frames at the view's full resolution, turning
+    /// the camera about the superior axis from where it is now, into a new folder beside the
+    /// screenshots; orbit.mp4 when ffmpeg is there. The render thread writes them in order.
+    pub fn take_orbit_movie(&mut self, frames: u32) {
+        let Some(v) = &self.volume else { return };
+        let frames = frames.clamp(2, crate::cmd_render::MAX_ORBIT_FRAMES);
+        let Some(rect) = v
+            .view_rects
+            .iter()
+            .find(|p| p.slot == ViewSlot::ThreeD)
+            .map(|p| p.rect)
+        else {
+            self.saved_screenshot = Some(Err("no 3D view is shown to make a movie of".into()));
+            return;
+        };
+        let size = View3d::full_resolution_size(rect, self.ctx.pixels_per_point());
+        let stamp = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_millis());
+        let folder = self
+            .preferences
+            .screenshot_folder
+            .join(format!("strata-orbit-{stamp}"));
+        if let Err(e) = std::fs::create_dir_all(&folder) {
+            self.saved_screenshot = Some(Err(format!(
+                "cannot create the folder {}: {e}",
+                folder.display()
+            )));
+            return;
+        }
+        let geometry = &v.data.info.geometry;
+        let start = v.view_3d.orbit;
+        for i in 0..frames {
+            let orbit = OrbitCamera {
+                azimuth_deg: crate::cmd_render::orbit_azimuth(start.azimuth_deg, i, frames),
+                ..start
+            };
+            v.data.session.request_screenshot(ScreenshotRequest {
+                path: folder.join(crate::cmd_render::orbit_frame_name(i)),
+                size,
+                camera: Some(orbit.camera(geometry)),
+                then_encode: (i + 1 == frames).then(|| folder.clone()),
+            });
+        }
+        self.saved_screenshot = None;
+        self.toast = Some(Toast {
+            text: format!(
+                "Writing a {frames}-frame orbit movie to {}…",
+                folder.display()
+            ),
             shown_at: Instant::now(),
         });
     }
@@ -693,6 +768,8 @@ impl StrataApp {
                     v.history.redo(&mut v.scene);
                 }
             }
+            ui.toggle_value(&mut self.preferences.show_oblique, "Oblique")
+                .on_hover_text("Show the oblique view: a slice through the crosshair at any angle");
             ui.toggle_value(&mut self.preferences.show_side_panel, "Panels");
             if ui
                 .button("?")
@@ -720,10 +797,20 @@ impl StrataApp {
                     Some(at) => v.data.readout(at, true),
                     None => v.data.readout(v.scene.cursor, false),
                 };
-                ui.label(readout.text()).on_hover_text(
-                    "Value, voxel index and patient position (mm) under the pointer, or at \
-                     the crosshair when the pointer is off the views",
-                );
+                let overlay_text = match (&v.overlay, self.hover_overlay) {
+                    (Some(o), Some(value)) => match o.kind {
+                        super::overlay::OverlayKind::Labels => format!(" · label {value:.0}"),
+                        super::overlay::OverlayKind::Continuous => {
+                            format!(" · overlay {value:.4}")
+                        }
+                    },
+                    _ => String::new(),
+                };
+                ui.label(format!("{}{overlay_text}", readout.text()))
+                    .on_hover_text(
+                        "Value, voxel index and patient position (mm) under the pointer, or at \
+                     the crosshair when the pointer is off the views; the overlay's value",
+                    );
                 self.readout = Some(readout);
                 ui.separator();
                 ui.label(format!(
@@ -743,6 +830,10 @@ impl StrataApp {
                 }
                 if let Some(line) = status.source_line() {
                     // A remote store that cannot be reached: the view keeps what it has.
+                    ui.colored_label(Color32::YELLOW, line);
+                }
+                if let Some(line) = &status.gpu_recovery {
+                    // The GPU failed and the renderer was rebuilt: the session carried on.
                     ui.colored_label(Color32::YELLOW, line);
                 }
                 if let Some(e) = &status.error {
@@ -839,6 +930,8 @@ impl StrataApp {
                 scene: &mut v.scene,
                 view_3d: &mut v.view_3d,
                 clock: &self.clock,
+                overlay: &mut v.overlay,
+                import_folder: &self.options.import_folder,
             },
         );
     }
@@ -847,17 +940,23 @@ impl StrataApp {
         let area = ui.available_rect_before_wrap();
         let gap = 2.0;
         let focused = self.preferences.focused;
+        let show_oblique = self.preferences.show_oblique;
         let slots: Vec<(ViewSlot, Rect)> = match self.preferences.layout {
             Layout::Single => vec![(focused, area)],
             Layout::ThreeDOverSlices => {
                 let split = area.top() + area.height() * 0.62;
                 let top = Rect::from_min_max(area.min, Pos2::new(area.right(), split - gap));
-                let w = (area.width() - 2.0 * gap) / 3.0;
+                let mut row: Vec<ViewSlot> = SliceView::ALL.map(ViewSlot::Slice).to_vec();
+                if show_oblique {
+                    row.push(ViewSlot::Oblique);
+                }
+                let columns = row.len() as f32;
+                let w = (area.width() - (columns - 1.0) * gap) / columns;
                 let mut slots = vec![(ViewSlot::ThreeD, top)];
-                for (i, view) in SliceView::ALL.iter().enumerate() {
+                for (i, slot) in row.into_iter().enumerate() {
                     let left = area.left() + i as f32 * (w + gap);
                     slots.push((
-                        ViewSlot::Slice(*view),
+                        slot,
                         Rect::from_min_max(
                             Pos2::new(left, split),
                             Pos2::new(left + w, area.bottom()),
@@ -877,7 +976,14 @@ impl StrataApp {
                 vec![
                     (ViewSlot::Slice(SliceView::Axial), cell(0.0, 0.0)),
                     (ViewSlot::ThreeD, cell(1.0, 0.0)),
-                    (ViewSlot::Slice(SliceView::Sagittal), cell(0.0, 1.0)),
+                    (
+                        if show_oblique {
+                            ViewSlot::Oblique
+                        } else {
+                            ViewSlot::Slice(SliceView::Sagittal)
+                        },
+                        cell(0.0, 1.0),
+                    ),
                     (ViewSlot::Slice(SliceView::Coronal), cell(1.0, 1.0)),
                 ]
             }
@@ -889,6 +995,7 @@ impl StrataApp {
             return;
         };
         self.hover = None;
+        self.hover_overlay = None;
         for (slot, rect) in &slots {
             let response = match slot {
                 ViewSlot::ThreeD => v.view_3d.ui(
@@ -899,9 +1006,23 @@ impl StrataApp {
                     &self.preferences,
                     max_pixels,
                 ),
-                ViewSlot::Slice(view) => {
-                    v.slice_views[view.index()].ui(ui, *rect, &v.data, &mut v.scene)
+                ViewSlot::Oblique => {
+                    let camera = v.view_3d.orbit.camera(&v.data.info.geometry);
+                    v.oblique_view.ui(
+                        ui,
+                        *rect,
+                        &v.data,
+                        &mut v.scene,
+                        AlignTarget { camera: &camera },
+                    )
                 }
+                ViewSlot::Slice(view) => v.slice_views[view.index()].ui(
+                    ui,
+                    *rect,
+                    &v.data,
+                    &mut v.scene,
+                    v.overlay.as_ref(),
+                ),
             };
             if response.focused {
                 self.preferences.focused = *slot;
@@ -909,8 +1030,16 @@ impl StrataApp {
             if response.toggle_focus {
                 focus_request = Some(*slot);
             }
-            if response.hover.is_some() {
-                self.hover = response.hover;
+            if let Some(at) = response.hover {
+                self.hover = Some(at);
+                self.hover_overlay = match (slot, &v.overlay) {
+                    (ViewSlot::Slice(view), Some(o)) => {
+                        v.data.slices.latest(*view).and_then(|image| {
+                            v.slice_views[view.index()].overlay_value_at(o, at, &image)
+                        })
+                    }
+                    _ => None,
+                };
             }
         }
         v.view_rects = slots

@@ -14,10 +14,14 @@
 pub mod app;
 pub mod colour_maps;
 pub mod dialogs;
+pub mod gpu_recovery;
 pub mod history;
 pub mod jobs;
 pub mod measurements;
+pub mod oblique;
+pub mod oblique_view;
 pub mod orientation;
+pub mod overlay;
 pub mod panels;
 pub mod preferences;
 pub mod scene;

@@ -23,6 +23,8 @@ pub enum Layout {
 pub enum ViewSlot {
     ThreeD,
     Slice(SliceView),
+    /// The oblique reformat (oblique_view.rs).
+    Oblique,
 }
 
 /// ~/Pictures/Strata where there is a Pictures folder, else "screenshots" beside the stores
@@ -59,6 +61,9 @@ pub struct Preferences {
     pub render_scale: f32,
     pub show_identifiers: bool,
     pub show_side_panel: bool,
+    /// Show the oblique view in the layouts (in the sagittal's place in 2×2, as a fourth
+    /// slice in 3D + 1×3).
+    pub show_oblique: bool,
     /// Outline the three slice planes in the 3D view.
     pub show_planes_in_3d: bool,
     /// Draw the crop box in the 3D view, with a handle on each face to drag it.
@@ -86,6 +91,7 @@ impl Default for Preferences {
             render_scale: 0.6,
             show_identifiers: false,
             show_side_panel: true,
+            show_oblique: false,
             show_planes_in_3d: true,
             show_crop_box: false,
             screenshot_folder: default_screenshot_folder(),

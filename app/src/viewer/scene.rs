@@ -58,6 +58,8 @@ impl Default for ClipSettings {
 pub struct VolumeData {
     pub session: VolumeSession,
     pub slices: SliceReader,
+    /// Resamples the oblique view's plane (oblique.rs).
+    pub oblique: super::oblique::ObliqueReader,
     pub info: VolumeInfo,
     pub histogram: Histogram,
     /// How each slice view maps index axes to the screen (fixed by the geometry).

@@ -55,6 +55,7 @@ impl ScreenshotJob {
         let what = match target {
             ShotTarget::View(ViewSlot::ThreeD) => "3d".to_string(),
             ShotTarget::View(ViewSlot::Slice(view)) => view.name().to_lowercase(),
+            ShotTarget::View(ViewSlot::Oblique) => "oblique".to_string(),
             ShotTarget::Layout => "layout".to_string(),
         };
         ScreenshotJob {

@@ -10,6 +10,7 @@ use egui::{Color32, Pos2, Rect, Sense, Stroke, TextureHandle, TextureOptions, Ve
 use super::colour_maps::ColourMap;
 use super::measurements::{distance_mm, roi_stats, Shape, Tool};
 use super::orientation::SliceView;
+use super::overlay::{Overlay, OverlayKind, OverlayStyle};
 use super::scene::{voxel_index, Scene, VolumeData, Window};
 use super::slices::{level_for_pixels, SliceImage, SliceRequest};
 use super::widgets::{view_title, wheel_lines, ViewResponse};
@@ -20,6 +21,13 @@ struct SliceTexture {
     values: Arc<Vec<u16>>,
     window: Window,
     colour_map: ColourMap,
+}
+
+/// The overlay's texture over a slice and what it was coloured from.
+struct OverlayTexture {
+    texture: TextureHandle,
+    values: Arc<Vec<f32>>,
+    style: OverlayStyle,
 }
 
 /// The stored values behind a slice texture and the window they were shown with (tests).
@@ -37,6 +45,7 @@ pub struct SliceViewer {
     zoom: f32,
     pan: Vec2,
     texture: Option<SliceTexture>,
+    overlay_texture: Option<OverlayTexture>,
     last_request: Option<SliceRequest>,
     /// Wheel movement not yet paged (fractions of a line).
     wheel_lines: f64,
@@ -59,6 +68,7 @@ impl SliceViewer {
             zoom: 1.0,
             pan: Vec2::ZERO,
             texture: None,
+            overlay_texture: None,
             last_request: None,
             wheel_lines: 0.0,
             image_rect: None,
@@ -304,12 +314,95 @@ impl SliceViewer {
         }
     }
 
+    /// The overlay over the slice `image`: asked for on the overlay's thread for exactly this
+    /// image's grid, coloured here (again only when the values or the style change), drawn
+    /// with the slice's own mesh. Labels are drawn with nearest filtering: a linear filter
+    /// would blend two labels' colours into a third at every boundary.
+    fn paint_overlay(
+        &mut self,
+        ui: &egui::Ui,
+        painter: &egui::Painter,
+        overlay: &Overlay,
+        image: &SliceImage,
+        image_rect: Rect,
+    ) {
+        overlay.request(image.request, image.width, image.height);
+        let Some(slice) = overlay
+            .latest(self.view)
+            .filter(|s| s.request == image.request && s.width == image.width)
+        else {
+            return;
+        };
+        let filter = match overlay.kind {
+            OverlayKind::Labels => TextureOptions::NEAREST,
+            OverlayKind::Continuous => TextureOptions::LINEAR,
+        };
+        let stale = self
+            .overlay_texture
+            .as_ref()
+            .is_none_or(|t| !Arc::ptr_eq(&t.values, &slice.values) || t.style != overlay.style);
+        if stale {
+            let colours = overlay.colourise(&slice);
+            match &mut self.overlay_texture {
+                Some(t) => {
+                    t.texture.set(colours, filter);
+                    t.values = slice.values.clone();
+                    t.style = overlay.style.clone();
+                }
+                None => {
+                    self.overlay_texture = Some(OverlayTexture {
+                        texture: ui.ctx().load_texture(
+                            format!("overlay {}", self.view.name()),
+                            colours,
+                            filter,
+                        ),
+                        values: slice.values.clone(),
+                        style: overlay.style.clone(),
+                    })
+                }
+            }
+        }
+        if let Some(t) = &self.overlay_texture {
+            painter.add(egui::Shape::mesh(slice_mesh(
+                t.texture.id(),
+                image_rect,
+                image.inside_fraction,
+                image.request.frame,
+            )));
+        }
+    }
+
+    /// The overlay's value at the slice pixel under `index` (level-0 continuous), if sampled.
+    pub fn overlay_value_at(
+        &self,
+        overlay: &Overlay,
+        index: [f64; 3],
+        image: &SliceImage,
+    ) -> Option<f32> {
+        let slice = overlay
+            .latest(self.view)
+            .filter(|s| s.request == image.request && s.width == image.width)?;
+        let frame = image.request.frame;
+        let scale = (1u64 << image.request.level) as f64;
+        let pixel = |axis: usize| ((index[axis] + 0.5) / scale - 0.5).round();
+        let (x, y) = (pixel(frame.across_axis), pixel(frame.down_axis));
+        if x < 0.0 || y < 0.0 || x as usize >= slice.width || y as usize >= slice.height {
+            return None;
+        }
+        slice
+            .values
+            .get(y as usize * slice.width + x as usize)
+            .copied()
+            .filter(|v| v.is_finite())
+    }
+
     pub fn ui(
         &mut self,
         ui: &mut egui::Ui,
         rect: Rect,
         data: &VolumeData,
         scene: &mut Scene,
+        overlay: Option<&Overlay>,
     ) -> ViewResponse {
         let view = self.view;
         let frame = data.frame(view);
@@ -455,32 +548,15 @@ impl SliceViewer {
                 }
             }
             if let Some(t) = &self.texture {
-                let (fu, fv) = image.inside_fraction;
-                let (u0, u1) = if frame.across_flipped {
-                    (fu as f32, 0.0)
-                } else {
-                    (0.0, fu as f32)
-                };
-                let (v0, v1) = if frame.down_flipped {
-                    (fv as f32, 0.0)
-                } else {
-                    (0.0, fv as f32)
-                };
-                let mut mesh = egui::Mesh::with_texture(t.texture.id());
-                mesh.add_rect_with_uv(
+                painter.add(egui::Shape::mesh(slice_mesh(
+                    t.texture.id(),
                     image_rect,
-                    Rect::from_min_max(Pos2::new(u0, v0), Pos2::new(u1, v1)),
-                    Color32::WHITE,
-                );
-                // add_rect_with_uv orders uv corners by min/max; flip by swapping vertex uvs.
-                if u0 > u1 || v0 > v1 {
-                    for vertex in &mut mesh.vertices {
-                        let fx = (vertex.pos.x - image_rect.left()) / image_rect.width();
-                        let fy = (vertex.pos.y - image_rect.top()) / image_rect.height();
-                        vertex.uv = Pos2::new(u0 + (u1 - u0) * fx, v0 + (v1 - v0) * fy);
-                    }
-                }
-                painter.add(egui::Shape::mesh(mesh));
+                    image.inside_fraction,
+                    frame,
+                )));
+            }
+            if let Some(o) = overlay {
+                self.paint_overlay(ui, &painter, o, &image, image_rect);
             }
         }
         // Crosshair.
@@ -573,6 +649,42 @@ impl SliceViewer {
             hover,
         }
     }
+}
+
+/// The slice image as a textured rectangle: the level grid's overhang cropped by
+/// `inside_fraction`, and the view's flips applied through the texture coordinates.
+fn slice_mesh(
+    texture: egui::TextureId,
+    image_rect: Rect,
+    inside_fraction: (f64, f64),
+    frame: super::orientation::SliceFrame,
+) -> egui::Mesh {
+    let (fu, fv) = inside_fraction;
+    let (u0, u1) = if frame.across_flipped {
+        (fu as f32, 0.0)
+    } else {
+        (0.0, fu as f32)
+    };
+    let (v0, v1) = if frame.down_flipped {
+        (fv as f32, 0.0)
+    } else {
+        (0.0, fv as f32)
+    };
+    let mut mesh = egui::Mesh::with_texture(texture);
+    mesh.add_rect_with_uv(
+        image_rect,
+        Rect::from_min_max(Pos2::new(u0, v0), Pos2::new(u1, v1)),
+        Color32::WHITE,
+    );
+    // add_rect_with_uv orders uv corners by min/max; flip by swapping vertex uvs.
+    if u0 > u1 || v0 > v1 {
+        for vertex in &mut mesh.vertices {
+            let fx = (vertex.pos.x - image_rect.left()) / image_rect.width();
+            let fy = (vertex.pos.y - image_rect.top()) / image_rect.height();
+            vertex.uv = Pos2::new(u0 + (u1 - u0) * fx, v0 + (v1 - v0) * fy);
+        }
+    }
+    mesh
 }
 
 /// Right drag: sideways widens (right) or narrows the window, up raises the level. The gain

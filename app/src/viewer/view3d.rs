@@ -759,34 +759,76 @@ fn paint_slice_planes(
 ) {
     let g = &data.info.geometry;
     let project = |index: DVec3| project_to_view(camera, rect, g, index);
+    let (lo, hi) = crop_bounds(data, scene);
     for view in SliceView::ALL {
         let frame = data.frame(view);
-        let (n, a, b) = (frame.normal_axis, frame.across_axis, frame.down_axis);
-        let (lo_a, hi_a) = (-0.5, g.dims[a] as f64 - 0.5);
-        let (lo_b, hi_b) = (-0.5, g.dims[b] as f64 - 0.5);
-        let corner = |ca: f64, cb: f64| {
-            let mut i = [0.0; 3];
-            i[n] = scene.cursor[n];
-            i[a] = ca;
-            i[b] = cb;
-            project(DVec3::from(i))
+        let Some(outline) = slice_outline(frame, scene.cursor, lo, hi) else {
+            continue;
         };
-        let corners = [
-            corner(lo_a, lo_b),
-            corner(hi_a, lo_b),
-            corner(hi_a, hi_b),
-            corner(lo_a, hi_b),
-        ];
-        if let [Some(p0), Some(p1), Some(p2), Some(p3)] = corners {
+        if let [Some(p0), Some(p1), Some(p2), Some(p3)] = outline.map(project) {
             let stroke = Stroke::new(1.5, slice_colour(view).gamma_multiply(0.8));
             painter.add(egui::Shape::closed_line(vec![p0, p1, p2, p3], stroke));
         }
     }
 }
 
+/// The four corners (level-0 index space) of a slice plane's outline, clipped to the crop box
+/// `lo`..`hi` (voxel faces), as the raycaster clips the volume: the part of the slice that is
+/// still drawn in 3D. None when the slice lies outside the box (nothing of it is shown).
+pub fn slice_outline(
+    frame: crate::viewer::orientation::SliceFrame,
+    cursor: [f64; 3],
+    lo: [f64; 3],
+    hi: [f64; 3],
+) -> Option<[DVec3; 4]> {
+    let (n, a, b) = (frame.normal_axis, frame.across_axis, frame.down_axis);
+    if cursor[n] < lo[n] || cursor[n] > hi[n] || lo[a] >= hi[a] || lo[b] >= hi[b] {
+        return None;
+    }
+    let corner = |ca: f64, cb: f64| {
+        let mut i = [0.0; 3];
+        i[n] = cursor[n];
+        i[a] = ca;
+        i[b] = cb;
+        DVec3::from(i)
+    };
+    Some([
+        corner(lo[a], lo[b]),
+        corner(hi[a], lo[b]),
+        corner(hi[a], hi[b]),
+        corner(lo[a], hi[b]),
+    ])
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn slice_outlines_are_clipped_to_the_crop_box_and_vanish_outside_it() {
+        let g = VolumeGeometry::axis_aligned([40, 30, 20], [1.0, 1.0, 1.0]);
+        let axial = crate::viewer::orientation::SliceFrame::for_view(SliceView::Axial, &g);
+        let full = ([-0.5; 3], [39.5, 29.5, 19.5]);
+        let cursor = [10.0, 12.0, 7.0];
+        let outline = slice_outline(axial, cursor, full.0, full.1).expect("inside");
+        // Uncropped: the whole slice, at the cursor's k.
+        for corner in outline {
+            assert_eq!(corner.z, 7.0);
+            assert!(corner.x == -0.5 || corner.x == 39.5);
+            assert!(corner.y == -0.5 || corner.y == 29.5);
+        }
+        // Cropped to i 4.5..20.5, j 2.5..25.5, k 5.5..15.5: the outline follows the box.
+        let (lo, hi) = ([4.5, 2.5, 5.5], [20.5, 25.5, 15.5]);
+        let clipped = slice_outline(axial, cursor, lo, hi).expect("inside the box");
+        let xs: Vec<f64> = clipped.iter().map(|c| c.x).collect();
+        let ys: Vec<f64> = clipped.iter().map(|c| c.y).collect();
+        assert_eq!(xs.iter().cloned().fold(f64::INFINITY, f64::min), 4.5);
+        assert_eq!(xs.iter().cloned().fold(f64::NEG_INFINITY, f64::max), 20.5);
+        assert_eq!(ys.iter().cloned().fold(f64::INFINITY, f64::min), 2.5);
+        assert_eq!(ys.iter().cloned().fold(f64::NEG_INFINITY, f64::max), 25.5);
+        // The axial slice at k = 3 is cropped away: no outline.
+        assert!(slice_outline(axial, [10.0, 12.0, 3.0], lo, hi).is_none());
+    }
 
     fn geometry() -> VolumeGeometry {
         VolumeGeometry::axis_aligned([64, 64, 64], [1.0, 1.0, 1.0])

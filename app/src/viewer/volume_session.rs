@@ -25,6 +25,10 @@ use strata_render::{
 use strata_source::VolumeSource;
 use strata_storage::StoreHeader;
 
+use super::gpu_recovery::{
+    recovery_line, smaller_budget, DeviceWatch, GpuFailureKind, InjectedFault, StepError,
+    MAX_FAILURES_WITHOUT_A_FRAME,
+};
 use super::sync::lock_ignoring_poison;
 
 /// GPU memory for the brick cache.
@@ -83,6 +87,14 @@ pub struct SessionStatus {
     pub refining: bool,
     pub frames_rendered: u64,
     pub last_screenshot: Option<Result<PathBuf, String>>,
+    /// Screenshots written so far (orbit movies count their frames).
+    pub screenshots_written: u64,
+    /// Set once the renderer has been rebuilt after a GPU failure: what failed and the brick
+    /// cache it restarted with (gpu_recovery.rs). Stays for the status bar.
+    pub gpu_recovery: Option<String>,
+    pub gpu_recoveries: u32,
+    /// The brick cache the renderer works with now (smaller after each recovery).
+    pub gpu_budget_bytes: u64,
 }
 
 impl SessionStatus {
@@ -107,6 +119,11 @@ impl SessionStatus {
 pub struct ScreenshotRequest {
     pub path: PathBuf,
     pub size: [u32; 2],
+    /// Render from this camera instead of the view's (orbit movie frames).
+    pub camera: Option<Camera>,
+    /// After writing this frame, encode the folder's frame-%04d.png as orbit.mp4 (ffmpeg when
+    /// it is on the PATH; otherwise the frames are the movie).
+    pub then_encode: Option<PathBuf>,
 }
 
 /// Static facts of the opened volume, for the UI.
@@ -140,7 +157,10 @@ struct Shared {
     wake: Condvar,
     frame: Mutex<Option<RenderedFrame>>,
     status: Mutex<SessionStatus>,
-    screenshot: Mutex<Option<ScreenshotRequest>>,
+    /// Screenshots to take, in order (one, or an orbit movie's frames).
+    screenshot: Mutex<std::collections::VecDeque<ScreenshotRequest>>,
+    /// Test hook: a GPU fault for the render thread to apply to its device (gpu_recovery.rs).
+    fault: Mutex<Option<InjectedFault>>,
     stop: AtomicBool,
 }
 
@@ -170,9 +190,11 @@ impl VolumeSession {
                 level_count: store.layout().level_count(),
                 sampling_rate: 2.0,
                 lod_factor: 1.0,
+                gpu_budget_bytes,
                 ..Default::default()
             }),
-            screenshot: Mutex::new(None),
+            screenshot: Mutex::new(std::collections::VecDeque::new()),
+            fault: Mutex::new(None),
             stop: AtomicBool::new(false),
         });
         let thread_shared = shared.clone();
@@ -230,7 +252,15 @@ impl VolumeSession {
     }
 
     pub fn request_screenshot(&self, request: ScreenshotRequest) {
-        *lock_ignoring_poison(&self.shared.screenshot) = Some(request);
+        lock_ignoring_poison(&self.shared.screenshot).push_back(request);
+        self.shared.wake.notify_all();
+    }
+
+    /// Test hook: the render thread applies `fault` to its own device before its next step, so
+    /// the recovery runs for real (a destroyed device is lost as a driver reset loses it).
+    #[cfg(test)]
+    pub fn inject_gpu_fault(&self, fault: InjectedFault) {
+        *lock_ignoring_poison(&self.shared.fault) = Some(fault);
         self.shared.wake.notify_all();
     }
 
@@ -314,9 +344,71 @@ impl RenderWorker {
         (self.repaint)();
     }
 
+    /// Renders on a device until stopped. A GPU failure (device lost, out of memory) drops the
+    /// device and everything on it and starts again on a new one with a smaller brick cache
+    /// (gpu_recovery.rs); the UI keeps its session and the last frame meanwhile.
     fn run(&mut self) -> anyhow::Result<()> {
         lower_this_threads_priority();
-        let ctx = GpuContext::headless()?;
+        let mut budget = self.gpu_budget_bytes;
+        let mut recoveries = 0u32;
+        let mut failures_without_a_frame = 0u32;
+        loop {
+            let frames_before = self.serial;
+            let failure = match self.run_on_a_new_device(budget) {
+                Ok(()) => return Ok(()),
+                Err(StepError::Other(e)) if recoveries > 0 => {
+                    return Err(e.context(format!(
+                        "the renderer could not restart after a GPU failure ({} MiB brick cache)",
+                        budget >> 20
+                    )))
+                }
+                Err(StepError::Other(e)) => return Err(e),
+                Err(StepError::Gpu(failure)) => failure,
+            };
+            failures_without_a_frame = if self.serial == frames_before {
+                failures_without_a_frame + 1
+            } else {
+                1
+            };
+            // Out of memory: only a smaller cache can help. Lost: a smaller cache is the safer
+            // guess (memory pressure and long frames cause resets), the same one is fine too.
+            let next = match failure.kind {
+                GpuFailureKind::OutOfMemory => smaller_budget(budget),
+                GpuFailureKind::DeviceLost => smaller_budget(budget).or(Some(budget)),
+            };
+            let next = match next {
+                None => anyhow::bail!(
+                    "{failure} with the smallest brick cache ({} MiB); the 3D view stopped \
+                     (close other GPU programs, then reopen the volume)",
+                    budget >> 20
+                ),
+                Some(_) if failures_without_a_frame >= MAX_FAILURES_WITHOUT_A_FRAME => {
+                    anyhow::bail!(
+                        "{failure}, {failures_without_a_frame} times in a row without a frame; \
+                         the 3D view stopped at a {} MiB brick cache (reopen the volume to retry)",
+                        budget >> 20
+                    )
+                }
+                Some(next) => next,
+            };
+            recoveries += 1;
+            budget = next;
+            let line = recovery_line(&failure, budget, recoveries);
+            tracing::warn!("{line}");
+            self.set_status(|s| {
+                s.gpu_recovery = Some(line);
+                s.gpu_recoveries = recoveries;
+                s.gpu_budget_bytes = budget;
+                s.loading = Some("restarting the renderer after a GPU failure".into());
+            });
+        }
+    }
+
+    /// One device's life: create it, watch it, render requests until stopped (Ok) or until a
+    /// step fails; every step's outcome goes through the watch's classification.
+    fn run_on_a_new_device(&mut self, gpu_budget_bytes: u64) -> Result<(), StepError> {
+        let ctx = GpuContext::headless().map_err(anyhow::Error::from)?;
+        let watch = DeviceWatch::install(&ctx.device);
         let adapter = ctx.adapter_name();
         if ctx
             .adapter_info
@@ -339,10 +431,12 @@ impl RenderWorker {
             .or_else(|| TransferFunction::preset("ct-bone"))
             .ok_or_else(|| anyhow::anyhow!("no transfer function"))?;
         let config = StreamingConfig {
-            gpu_budget_bytes: self.gpu_budget_bytes,
+            gpu_budget_bytes,
             ..StreamingConfig::default()
         };
-        let mut volume = StreamingVolume::new(&ctx, self.store.clone(), &initial_tf, config)?;
+        let mut volume = watch.classify(
+            StreamingVolume::new(&ctx, self.store.clone(), &initial_tf, config).map_err(Into::into),
+        )?;
         // Toggling shading, a mode or pre-integration must not stall the volume view while
         // lavapipe compiles the new pipeline: the previous one draws meanwhile.
         volume.set_compile_in_background(true);
@@ -358,24 +452,41 @@ impl RenderWorker {
             if self.shared.stop.load(Ordering::Acquire) {
                 return Ok(());
             }
-            let screenshot = lock_ignoring_poison(&self.shared.screenshot).take();
+            if let Some(fault) = lock_ignoring_poison(&self.shared.fault).take() {
+                fault.apply(&ctx.device, &watch);
+            }
+            let screenshot = lock_ignoring_poison(&self.shared.screenshot).pop_front();
             if let Some(shot) = screenshot {
                 let result = match last_rendered.clone() {
                     Some(request) => self.screenshot(&ctx, &mut volume, &request, &shot),
                     None => Err(anyhow::anyhow!("nothing rendered yet")),
                 };
+                let result = match (result, &shot.then_encode) {
+                    (Ok(()), Some(folder)) => match crate::cmd_render::encode_mp4(folder) {
+                        Ok(Some(movie)) => Ok(movie),
+                        Ok(None) => Ok(folder.clone()),
+                        Err(e) => Err(e.context(format!(
+                            "the frames are in {}, the MP4 failed",
+                            folder.display()
+                        ))),
+                    },
+                    (Ok(()), None) => Ok(shot.path.clone()),
+                    (Err(e), _) => Err(e),
+                };
+                if result.is_err() {
+                    // One failed frame ends the movie: the rest would fail the same way.
+                    lock_ignoring_poison(&self.shared.screenshot).clear();
+                }
                 self.set_status(|s| {
-                    s.last_screenshot = Some(
-                        result
-                            .map(|_| shot.path.clone())
-                            .map_err(|e| format!("{e:#}")),
-                    )
+                    s.screenshots_written += result.is_ok() as u64;
+                    s.last_screenshot = Some(result.map_err(|e| format!("{e:#}")));
                 });
                 // The screenshot changed the cut and the raycaster's size: render the view again.
                 last_rendered = None;
             }
             let request = lock_ignoring_poison(&self.shared.request).clone();
             let Some(request) = request else {
+                watch.classify(Ok(()))?;
                 self.wait(Duration::from_millis(50));
                 continue;
             };
@@ -384,12 +495,19 @@ impl RenderWorker {
                 && !request.interacting
                 && !self.controller.still_refinement_done();
             if !(new_request || !converged || still_refining) {
+                // Idle: poll, so a device lost meanwhile is noticed (and rebuilt) now.
+                let _ = ctx.device.poll(wgpu::PollType::Poll);
+                watch.classify(Ok(()))?;
                 self.set_status(|s| s.refining = false);
                 self.wait(Duration::from_millis(100));
                 continue;
             }
             if request.transfer_function != current_tf {
-                volume.set_transfer_function(&ctx, &request.transfer_function)?;
+                watch.classify(
+                    volume
+                        .set_transfer_function(&ctx, &request.transfer_function)
+                        .map_err(Into::into),
+                )?;
                 current_tf = request.transfer_function.clone();
             }
             let mut settings = request.settings.clone();
@@ -415,11 +533,15 @@ impl RenderWorker {
             });
             settings.frame_index = self.serial as u32;
             let started = Instant::now();
-            let stats = volume.frame(&ctx, &request.camera, &settings)?;
+            let stats = watch.classify(
+                volume
+                    .frame(&ctx, &request.camera, &settings)
+                    .map_err(Into::into),
+            )?;
             if let Some(q) = quality {
                 self.controller.submitted(volume.last_frame_number(), q);
             }
-            let frame = volume.read_frame_blocking(&ctx)?;
+            let frame = watch.classify(volume.read_frame_blocking(&ctx).map_err(Into::into))?;
             let frame_ms = started.elapsed().as_secs_f64() * 1e3;
             // The controller learns from the raycast pass's GPU time (timestamps, read a frame
             // or two late), not from request-to-pixels time, which includes loader work and the
@@ -514,8 +636,9 @@ impl RenderWorker {
         settings.quality = settings.quality.min(0.5);
         volume.set_max_voxel_pixels(1.0);
         let started = Instant::now();
+        let camera = shot.camera.unwrap_or(request.camera);
         for _ in 0..200 {
-            let stats = volume.frame(ctx, &request.camera, &settings)?;
+            let stats = volume.frame(ctx, &camera, &settings)?;
             if stats.converged || started.elapsed() > Duration::from_secs(20) {
                 break;
             }
@@ -614,6 +737,145 @@ mod tests {
         assert!(
             difference > 1.0,
             "the converged MIP frame looks like the DVR frame (mean |Δ| {difference:.3})"
+        );
+    }
+
+    fn phantom_session(dir: &std::path::Path) -> (VolumeSession, RenderRequest) {
+        let path = dir.join("p.strata");
+        strata_storage::phantom::Phantom::cube(48)
+            .write_store(&path, &Default::default())
+            .expect("phantom store");
+        let store = Arc::new(strata_storage::Store::open(&path).expect("open"));
+        let session = VolumeSession::start(store, DEFAULT_GPU_BUDGET_BYTES, Arc::new(|| {}))
+            .expect("session");
+        let info = session.info().clone();
+        let request = RenderRequest {
+            camera: Camera::orbit(
+                &info.geometry,
+                30.0,
+                15.0,
+                1.5,
+                strata_render::Projection::Perspective { fov_y_deg: 30.0 },
+            ),
+            settings: RenderSettings {
+                width: 48,
+                height: 48,
+                jitter: false,
+                ..RenderSettings::default()
+            },
+            transfer_function: TransferFunction::preset("ct-bone").expect("preset"),
+            target_fps: None,
+            interacting: false,
+        };
+        session.request(request.clone());
+        (session, request)
+    }
+
+    /// Waits for a converged frame of `request` newer than `after` with `recoveries` rebuilds.
+    fn wait_recovered(
+        session: &VolumeSession,
+        request: &RenderRequest,
+        after: u64,
+        recoveries: u32,
+    ) -> RenderedFrame {
+        let start = Instant::now();
+        loop {
+            let status = session.status();
+            if let Some(e) = status.error {
+                panic!("render thread failed: {e}");
+            }
+            if status.gpu_recoveries == recoveries {
+                if let Some(frame) = session
+                    .latest_frame()
+                    .filter(|f| f.converged && &f.request == request && f.serial > after)
+                {
+                    return frame;
+                }
+            }
+            assert!(
+                start.elapsed() < Duration::from_secs(120),
+                "no recovery {recoveries}: {status:?}"
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    /// Issue 13: a lost device (destroyed for real on lavapipe) and an out-of-memory report
+    /// each rebuild the renderer on a new device with half the brick cache, and the same request
+    /// converges to the same image again.
+    #[test]
+    fn a_lost_device_and_an_out_of_memory_rebuild_the_renderer_with_a_smaller_cache() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let (session, request) = phantom_session(dir.path());
+        let before = wait_converged(&session, &request);
+        assert_eq!(session.status().gpu_budget_bytes, DEFAULT_GPU_BUDGET_BYTES);
+
+        session.inject_gpu_fault(InjectedFault::DestroyDevice);
+        let after_loss = wait_recovered(&session, &request, before.serial, 1);
+        let status = session.status();
+        assert_eq!(status.gpu_budget_bytes, DEFAULT_GPU_BUDGET_BYTES / 2);
+        let line = status.gpu_recovery.unwrap_or_default();
+        assert!(
+            line.starts_with("the GPU device was lost") && line.contains("192 MiB"),
+            "{line}"
+        );
+        // Same request, jitter off, and 192 MiB still holds every brick of the 48³ phantom: the
+        // converged cut and so the image are the same as before the loss. 0.5 of 255 on the
+        // mean allows for nothing but rounding differences between two devices' pipelines.
+        let difference = before
+            .rgba
+            .iter()
+            .zip(after_loss.rgba.iter())
+            .map(|(a, b)| (*a as f64 - *b as f64).abs())
+            .sum::<f64>()
+            / before.rgba.len() as f64;
+        assert!(
+            difference < 0.5,
+            "image changed by {difference:.3} per channel"
+        );
+        assert!(after_loss.rgba.chunks_exact(4).any(|p| p[3] > 0));
+
+        session.inject_gpu_fault(InjectedFault::OutOfMemory);
+        let after_oom = wait_recovered(&session, &request, after_loss.serial, 2);
+        let status = session.status();
+        assert_eq!(status.gpu_budget_bytes, DEFAULT_GPU_BUDGET_BYTES / 4);
+        let line = status.gpu_recovery.unwrap_or_default();
+        assert!(
+            line.starts_with("the GPU ran out of memory")
+                && line.contains("96 MiB brick cache (2 times)"),
+            "{line}"
+        );
+        assert_eq!(after_oom.rgba.len(), before.rgba.len());
+    }
+
+    /// A device that fails again before it shows a frame is not rebuilt forever: an
+    /// out-of-memory at the smallest cache is the end, said in the status.
+    #[test]
+    fn out_of_memory_at_the_smallest_cache_stops_with_an_error_instead_of_looping() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let path = dir.path().join("p.strata");
+        strata_storage::phantom::Phantom::cube(24)
+            .write_store(&path, &Default::default())
+            .expect("phantom store");
+        let store = Arc::new(strata_storage::Store::open(&path).expect("open"));
+        let session = VolumeSession::start(
+            store,
+            crate::viewer::gpu_recovery::MIN_GPU_BUDGET_BYTES,
+            Arc::new(|| {}),
+        )
+        .expect("session");
+        session.inject_gpu_fault(InjectedFault::OutOfMemory);
+        let start = Instant::now();
+        let error = loop {
+            if let Some(e) = session.status().error {
+                break e;
+            }
+            assert!(start.elapsed() < Duration::from_secs(60), "no error");
+            std::thread::sleep(Duration::from_millis(20));
+        };
+        assert!(
+            error.contains("ran out of memory") && error.contains("32 MiB"),
+            "{error}"
         );
     }
 

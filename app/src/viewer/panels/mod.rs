@@ -1,15 +1,17 @@
 //! The side panels, each a type owning its state with a `ui()`: transfer function, slices,
-//! measurements, rendering,
+//! measurements, overlay, rendering,
 //! performance, screenshot, volume information. [`Panels::ui`] stacks them in the side bar.
 
 pub mod info;
 pub mod measurements;
+pub mod overlay;
 pub mod performance;
 pub mod rendering;
 pub mod screenshot;
 pub mod slices;
 pub mod transfer_function;
 
+use super::overlay::Overlay;
 use super::preferences::Preferences;
 use super::scene::{Scene, VolumeData};
 use super::view3d::View3d;
@@ -22,6 +24,7 @@ pub struct Panels {
     pub transfer_function: transfer_function::TfPanel,
     pub performance: performance::PerformancePanel,
     pub screenshot: screenshot::ScreenshotPanel,
+    pub overlay: overlay::OverlayPanel,
 }
 
 /// What the side panels work on.
@@ -31,6 +34,9 @@ pub struct PanelContext<'a> {
     pub scene: &'a mut Scene,
     pub view_3d: &'a mut View3d,
     pub clock: &'a FrameClock,
+    pub overlay: &'a mut Option<Overlay>,
+    /// Where an overlay scan is imported to.
+    pub import_folder: &'a std::path::Path,
 }
 
 impl Panels {
@@ -41,6 +47,8 @@ impl Panels {
             scene,
             view_3d,
             clock,
+            overlay,
+            import_folder,
         } = cx;
         egui::CollapsingHeader::new("Transfer function")
             .default_open(true)
@@ -52,6 +60,11 @@ impl Panels {
             .default_open(true)
             .show(ui, |ui| {
                 slices::ui(ui, data, scene);
+            });
+        egui::CollapsingHeader::new("Overlay")
+            .default_open(overlay.is_some())
+            .show(ui, |ui| {
+                self.overlay.ui(ui, overlay, import_folder);
             });
         egui::CollapsingHeader::new("Measurements")
             .default_open(true)
@@ -68,7 +81,7 @@ impl Panels {
             .show(ui, |ui| {
                 self.performance.ui(ui, prefs, data, clock);
             });
-        egui::CollapsingHeader::new("Screenshot")
+        egui::CollapsingHeader::new("Screenshots and movies")
             .default_open(false)
             .show(ui, |ui| {
                 self.screenshot.ui(ui, prefs);

@@ -14,14 +14,32 @@ enum Choice {
     Nothing,
 }
 
-#[derive(Default)]
 pub struct ScreenshotPanel {
     /// A folder dialog running on its own thread: filled when it closes.
     dialog: Option<Arc<Mutex<Option<Choice>>>>,
     note: Option<String>,
+    /// Frames of the orbit movie, and whether the button asked for one this frame.
+    pub orbit_frames: u32,
+    orbit_requested: bool,
+}
+
+impl Default for ScreenshotPanel {
+    fn default() -> Self {
+        ScreenshotPanel {
+            dialog: None,
+            note: None,
+            orbit_frames: 36,
+            orbit_requested: false,
+        }
+    }
 }
 
 impl ScreenshotPanel {
+    /// The frame count when "Orbit movie" was pressed (the shell starts the movie).
+    pub fn take_orbit_request(&mut self) -> Option<u32> {
+        std::mem::take(&mut self.orbit_requested).then_some(self.orbit_frames)
+    }
+
     pub fn ui(&mut self, ui: &mut egui::Ui, prefs: &mut Preferences) {
         let closed = self
             .dialog
@@ -68,6 +86,19 @@ impl ScreenshotPanel {
             ui.label("Resolution");
             for s in [1, 2, 4] {
                 ui.selectable_value(&mut prefs.screenshot_scale, s, format!("{s}×"));
+            }
+        });
+        ui.horizontal(|ui| {
+            ui.add(egui::Slider::new(&mut self.orbit_frames, 4..=360).text("frames"));
+            if ui
+                .button("Orbit movie")
+                .on_hover_text(
+                    "The 3D view turned once around the superior axis, as PNG frames in a new \
+                     folder here (and orbit.mp4 when ffmpeg is installed)",
+                )
+                .clicked()
+            {
+                self.orbit_requested = true;
             }
         });
         if prefs.screenshot_scale > 1 {

@@ -1,0 +1,313 @@
+//! The oblique view: a slice through the crosshair at any orientation (oblique.rs resamples
+//! it). Left drag turns the plane (sideways about the screen's vertical, up/down about its
+//! horizontal), a click moves the crosshair, right drag windows, the wheel pages along the
+//! plane's normal; "Axial" resets the plane, "Align to 3D" takes the 3D camera's orientation.
+//! Orientation letters follow the plane.
+
+use egui::{Color32, Pos2, Rect, Sense, Stroke, TextureHandle, TextureOptions, Vec2};
+use glam::DVec3;
+
+use super::colour_maps::ColourMap;
+use super::oblique::{
+    default_extent_mm, level_for_pixel_mm, ObliqueImage, ObliquePlane, ObliqueRequest,
+};
+use super::scene::{Scene, VolumeData, Window};
+use super::slice_view::drag_window;
+use super::widgets::{view_title, wheel_lines, ViewResponse};
+
+/// Radians the plane turns per point dragged.
+pub const TURN_PER_POINT: f64 = 0.01;
+
+/// The most pixels the CPU resamples across (the view is upscaled beyond).
+pub const MAX_OBLIQUE_PIXELS: usize = 384;
+
+struct ObliqueTexture {
+    texture: TextureHandle,
+    image: ObliqueImage,
+    window: Window,
+    colour_map: ColourMap,
+}
+
+/// What the 3D view's camera looks along, for "Align to 3D" (the shell passes it in).
+pub struct AlignTarget<'a> {
+    pub camera: &'a strata_render::Camera,
+}
+
+pub struct ObliqueViewer {
+    /// The plane's orientation (its centre follows the crosshair every frame).
+    pub plane: Option<ObliquePlane>,
+    texture: Option<ObliqueTexture>,
+    wheel_lines: f64,
+    /// Where the image was drawn last frame (tests).
+    pub image_rect: Option<Rect>,
+}
+
+impl Default for ObliqueViewer {
+    fn default() -> Self {
+        ObliqueViewer {
+            plane: None,
+            texture: None,
+            wheel_lines: 0.0,
+            image_rect: None,
+        }
+    }
+}
+
+impl ObliqueViewer {
+    /// The plane through the crosshair (axial until turned).
+    pub fn current_plane(&self, data: &VolumeData, scene: &Scene) -> ObliquePlane {
+        let geometry = &data.info.geometry;
+        let centre = geometry.patient_from_index(DVec3::from(scene.cursor));
+        match self.plane {
+            Some(p) => ObliquePlane { centre, ..p },
+            None => ObliquePlane::axial(centre, default_extent_mm(geometry)),
+        }
+    }
+
+    /// The image shown now (tests compare it with the plane asked for).
+    #[cfg(test)]
+    pub fn shown(&self) -> Option<&ObliqueImage> {
+        self.texture.as_ref().map(|t| &t.image)
+    }
+
+    pub fn ui(
+        &mut self,
+        ui: &mut egui::Ui,
+        rect: Rect,
+        data: &VolumeData,
+        scene: &mut Scene,
+        align: AlignTarget<'_>,
+    ) -> ViewResponse {
+        let geometry = &data.info.geometry;
+        let painter = ui.painter_at(rect);
+        painter.rect_filled(rect, 0.0, Color32::BLACK);
+        let colour = Color32::from_rgb(200, 140, 255);
+        painter.rect_stroke(
+            rect.shrink(0.5),
+            0.0,
+            Stroke::new(1.0, colour.gamma_multiply(0.6)),
+            egui::StrokeKind::Inside,
+        );
+        let inner = Rect::from_min_max(
+            rect.min + Vec2::new(18.0, 38.0),
+            rect.max - Vec2::new(18.0, 36.0),
+        );
+        let side = inner.width().min(inner.height()).max(1.0);
+        let image_rect = Rect::from_center_size(inner.center(), Vec2::splat(side));
+        let response = ui.interact(rect, ui.scope_id().with("oblique"), Sense::click_and_drag());
+        let mut plane = self.current_plane(data, scene);
+        if response.dragged_by(egui::PointerButton::Primary) {
+            let delta = ui.input(|i| i.pointer.delta());
+            if delta != Vec2::ZERO {
+                plane = plane.rotated(
+                    delta.x as f64 * TURN_PER_POINT,
+                    -delta.y as f64 * TURN_PER_POINT,
+                );
+                self.plane = Some(plane);
+            }
+        } else if response.clicked() {
+            if let Some(pos) = response.interact_pointer_pos() {
+                if image_rect.contains(pos) {
+                    let index = index_at(&plane, image_rect, pos, data);
+                    let dims = geometry.dims;
+                    for a in 0..3 {
+                        scene.cursor[a] = index[a].clamp(0.0, dims[a] as f64 - 1.0);
+                    }
+                    plane = self.current_plane(data, scene);
+                }
+            }
+        }
+        if response.dragged_by(egui::PointerButton::Secondary) {
+            let delta = ui.input(|i| i.pointer.delta());
+            scene.window = drag_window(scene.window, delta, data.info.physical_range);
+        }
+        if response.hovered() {
+            self.wheel_lines += wheel_lines(ui);
+            let step = self.wheel_lines.trunc();
+            if step != 0.0 {
+                self.wheel_lines -= step;
+                // One finest voxel spacing per click along the normal.
+                let along = plane.normal() * (step * geometry.finest_spacing_mm());
+                let moved = geometry.index_from_patient(plane.centre + along);
+                let dims = geometry.dims;
+                for a in 0..3 {
+                    scene.cursor[a] = moved[a].clamp(0.0, dims[a] as f64 - 1.0);
+                }
+                plane = self.current_plane(data, scene);
+            }
+        } else {
+            self.wheel_lines = 0.0;
+        }
+
+        let ppp = ui.ctx().pixels_per_point();
+        let pixels = ((side * ppp) as usize).clamp(16, MAX_OBLIQUE_PIXELS);
+        let level = level_for_pixel_mm(
+            plane.extent_mm / pixels as f64,
+            geometry.finest_spacing_mm(),
+            data.info.header.layout.level_count(),
+        );
+        let request = ObliqueRequest {
+            plane,
+            width: pixels,
+            height: pixels,
+            level,
+        };
+        data.oblique.request(request);
+        if let Some(image) = data.oblique.latest() {
+            let stale = self.texture.as_ref().is_none_or(|t| {
+                !std::sync::Arc::ptr_eq(&t.image.values, &image.values)
+                    || t.window != scene.window
+                    || t.colour_map != scene.colour_map
+            });
+            if stale {
+                let pixels = window_level(&image, scene.window, scene.colour_map, data);
+                match &mut self.texture {
+                    Some(t) => {
+                        t.texture.set(pixels, TextureOptions::LINEAR);
+                        t.image = image;
+                        t.window = scene.window;
+                        t.colour_map = scene.colour_map;
+                    }
+                    None => {
+                        self.texture = Some(ObliqueTexture {
+                            texture: ui.ctx().load_texture(
+                                "oblique",
+                                pixels,
+                                TextureOptions::LINEAR,
+                            ),
+                            image,
+                            window: scene.window,
+                            colour_map: scene.colour_map,
+                        })
+                    }
+                }
+            }
+        }
+        if let Some(t) = &self.texture {
+            painter.image(
+                t.texture.id(),
+                image_rect,
+                Rect::from_min_max(Pos2::ZERO, Pos2::new(1.0, 1.0)),
+                Color32::WHITE,
+            );
+        }
+        // The crosshair is the plane's centre.
+        let c = image_rect.center();
+        let hair = Stroke::new(1.0, Color32::from_rgba_unmultiplied(120, 220, 255, 150));
+        painter.line_segment([c - Vec2::new(12.0, 0.0), c + Vec2::new(12.0, 0.0)], hair);
+        painter.line_segment([c - Vec2::new(0.0, 12.0), c + Vec2::new(0.0, 12.0)], hair);
+        let font = egui::FontId::proportional(14.0);
+        let label_colour = Color32::from_rgb(255, 220, 120);
+        let [left, right, top, bottom] = plane.labels();
+        for (pos, align, text) in [
+            (
+                Pos2::new(rect.left() + 5.0, rect.center().y),
+                egui::Align2::LEFT_CENTER,
+                left,
+            ),
+            (
+                Pos2::new(rect.right() - 5.0, rect.center().y),
+                egui::Align2::RIGHT_CENTER,
+                right,
+            ),
+            (
+                Pos2::new(rect.center().x, rect.top() + 21.0),
+                egui::Align2::CENTER_TOP,
+                top,
+            ),
+            (
+                Pos2::new(rect.center().x, rect.bottom() - 19.0),
+                egui::Align2::CENTER_BOTTOM,
+                bottom,
+            ),
+        ] {
+            painter.text(pos, align, text, font.clone(), label_colour);
+        }
+        let toggled = view_title(ui, rect, "Oblique", "Oblique", colour);
+        // Buttons in the top-right corner.
+        let buttons = Rect::from_min_max(
+            Pos2::new(rect.right() - 160.0, rect.top() + 2.0),
+            Pos2::new(rect.right() - 4.0, rect.top() + 22.0),
+        );
+        ui.scope_builder(egui::UiBuilder::new().max_rect(buttons), |ui| {
+            ui.with_layout(egui::Layout::right_to_left(egui::Align::Center), |ui| {
+                if ui
+                    .small_button("Align to 3D")
+                    .on_hover_text("Turn the plane to face the 3D view's camera")
+                    .clicked()
+                {
+                    self.plane = Some(ObliquePlane::facing(
+                        align.camera,
+                        plane.centre,
+                        plane.extent_mm,
+                    ));
+                }
+                if ui
+                    .small_button("Axial")
+                    .on_hover_text("Reset the plane to axial")
+                    .clicked()
+                {
+                    self.plane = None;
+                }
+            });
+        });
+        if let Some(e) = data.oblique.error() {
+            painter.text(
+                rect.left_bottom() + Vec2::new(8.0, -4.0),
+                egui::Align2::LEFT_BOTTOM,
+                e,
+                egui::FontId::proportional(11.0),
+                Color32::LIGHT_RED,
+            );
+        }
+        let hover = response
+            .hover_pos()
+            .filter(|p| image_rect.contains(*p))
+            .map(|p| {
+                let i = index_at(&plane, image_rect, p, data);
+                [i.x, i.y, i.z]
+            });
+        self.image_rect = Some(image_rect);
+        ViewResponse {
+            toggle_focus: toggled,
+            focused: response.clicked()
+                || response.drag_started()
+                || response.hovered() && ui.input(|i| i.pointer.any_pressed()),
+            hover,
+        }
+    }
+}
+
+/// The level-0 continuous index under screen position `pos`.
+fn index_at(plane: &ObliquePlane, image_rect: Rect, pos: Pos2, data: &VolumeData) -> DVec3 {
+    let u = ((pos.x - image_rect.left()) / image_rect.width()) as f64;
+    let w = ((pos.y - image_rect.top()) / image_rect.height()) as f64;
+    data.info
+        .geometry
+        .index_from_patient(plane.patient_at(u, w))
+}
+
+fn window_level(
+    image: &ObliqueImage,
+    window: Window,
+    colour_map: ColourMap,
+    data: &VolumeData,
+) -> egui::ColorImage {
+    let lo = window.low();
+    let scale = 255.0 / window.width.max(1e-9);
+    let table = colour_map.table();
+    let mapping = data.info.mapping;
+    let pixels = image
+        .values
+        .iter()
+        .map(|&s| {
+            if !s.is_finite() {
+                return Color32::BLACK;
+            }
+            let g = ((mapping.physical(s as f64) - lo) * scale).clamp(0.0, 255.0) as usize;
+            let [r, g, b] = table[g];
+            Color32::from_rgb(r, g, b)
+        })
+        .collect();
+    egui::ColorImage::new([image.request.width, image.request.height], pixels)
+}
