@@ -57,6 +57,24 @@ fn upload_cut(ctx: &GpuContext, volume: &BrickedVolume, table: &PageTable) -> Gp
     }
 }
 
+fn scene_of<'a>(
+    cut: &'a GpuCut,
+    transfer_function: &'a GpuTransferFunction,
+    volume: &'a BrickedVolume,
+    camera: &'a Camera,
+    settings: &'a RenderSettings,
+) -> Scene<'a> {
+    Scene {
+        cache: &cut.cache,
+        page_table: &cut.table,
+        transfer_function,
+        geometry: &volume.geometry,
+        mapping: volume.mapping,
+        camera,
+        settings,
+    }
+}
+
 fn main() {
     let ctx = match GpuContext::headless() {
         Ok(c) => c,
@@ -158,26 +176,18 @@ fn main() {
                 count_samples: true,
                 ..settings.clone()
             };
-            let scene = |s: &'_ RenderSettings| Scene {
-                cache: &cut.cache,
-                page_table: &cut.table,
-                transfer_function: &gpu_tf,
-                geometry: &volume.geometry,
-                mapping: volume.mapping,
-                camera: &camera,
-                settings: s,
-            };
             let a = before
-                .render_blocking(&ctx, &scene(&counting))
+                .render_blocking(&ctx, &scene_of(&cut, &gpu_tf, &volume, &camera, &counting))
                 .expect("render");
             let b = now
-                .render_blocking(&ctx, &scene(&counting))
+                .render_blocking(&ctx, &scene_of(&cut, &gpu_tf, &volume, &camera, &counting))
                 .expect("render");
             let mut times = [Vec::new(), Vec::new()];
             for round in 0..=frames {
                 for (i, rc) in [&mut before, &mut now].into_iter().enumerate() {
                     let t = Instant::now();
-                    rc.render_and_wait(&ctx, &scene(&settings)).expect("render");
+                    rc.render_and_wait(&ctx, &scene_of(&cut, &gpu_tf, &volume, &camera, &settings))
+                        .expect("render");
                     if round > 0 {
                         times[i].push(t.elapsed().as_secs_f64() * 1e3);
                     }
@@ -207,15 +217,7 @@ fn main() {
             quality: 0.5,
             ..Default::default()
         };
-        let scene = Scene {
-            cache: &cut.cache,
-            page_table: &cut.table,
-            transfer_function: &gpu_tf,
-            geometry: &volume.geometry,
-            mapping: volume.mapping,
-            camera: &camera,
-            settings: &settings,
-        };
+        let scene = scene_of(&cut, &gpu_tf, &volume, &camera, &settings);
         let mut times = [Vec::new(), Vec::new()];
         for round in 0..=frames {
             for (i, rc) in [&mut general, &mut now].into_iter().enumerate() {
