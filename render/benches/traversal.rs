@@ -32,7 +32,14 @@ struct GpuCut {
 }
 
 fn upload_cut(ctx: &GpuContext, volume: &BrickedVolume, table: &PageTable) -> GpuCut {
-    let nodes = BrickedVolume::resident_nodes(table).len() as u32;
+    // Slots as the table numbers them (culled entries leave gaps).
+    let nodes = table
+        .entries
+        .iter()
+        .filter(|e| e.resident)
+        .map(|e| e.slot_in_cache + 1)
+        .max()
+        .unwrap_or(1);
     let cache = BrickCache::new(
         &ctx.device,
         CacheConfig {
@@ -161,6 +168,20 @@ fn main() {
     );
     for (name, mut table) in cuts {
         volume.classify_empty(&mut table, &tf_table);
+        // Index memory: the flat table's per-entry buffers (page word, MIP bound, visibility,
+        // transition mask + closure: 20 B per finest brick position) against the octree of
+        // the same cut (octree_cut.rs; projected at 32 B per node, 8 words, plus the same
+        // 16 B of per-leaf buffers per leaf): what the GPU octree path would hold.
+        let octree = octree_cut::OctreeCut::from_page_table(&table);
+        let leaves = octree.nodes.iter().filter(|n| n.is_leaf()).count();
+        let flat_bytes = table.entries.len() * 20;
+        let octree_bytes = octree.nodes.len() * 32 + leaves * 16;
+        println!(
+            "{name:<18} index bytes: flat {flat_bytes} ({} entries), octree {octree_bytes} ({} nodes, {leaves} leaves): {:.3}x",
+            table.entries.len(),
+            octree.nodes.len(),
+            octree_bytes as f64 / flat_bytes as f64
+        );
         let cut = upload_cut(&ctx, &volume, &table);
         let mut now = Raycaster::new(&ctx, &cut.cache);
         let mut before = Raycaster::with_shader_source(&ctx, &cut.cache, &before_both);
