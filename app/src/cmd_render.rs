@@ -87,6 +87,11 @@ pub struct RenderArgs {
     /// Show the seams where bricks of different levels meet (no smooth transitions).
     #[arg(long)]
     pub no_smooth: bool,
+    /// Trilinear interpolation by hand in f32 instead of the texture sampler: weights from
+    /// the in-slot coordinate, so the image does not depend on the order bricks arrived in
+    /// (bit-identical local and streamed renders); the sampler may move a channel by one step.
+    #[arg(long)]
+    pub exact_trilinear: bool,
     /// --mode adaptive: the oracle's ε (opacity change per slice a node may have and still
     /// be sampled coarsely; larger = fewer samples). 0.001 matches the raycaster's image on
     /// chris_t1 (53 dB against the f64 reference); 0.01 is a fast preview.
@@ -323,6 +328,7 @@ fn settings_of(args: &RenderArgs) -> Result<RenderSettings> {
         shading: (args.shading || matches!(args.mode, ModeArg::Iso)).then(Shading::default),
         smooth_transitions: !args.no_smooth,
         iso_value: args.iso,
+        exact_trilinear: args.exact_trilinear,
         ..RenderSettings::default()
     })
 }

@@ -51,6 +51,9 @@ pub struct ServeArgs {
     /// Test hook: how many answers for --test-corrupt-brick to corrupt.
     #[arg(long, hide = true, default_value_t = 1)]
     pub test_corrupt_times: u32,
+    /// Test hook: accept brick requests below the root and never answer them.
+    #[arg(long, hide = true)]
+    pub test_stall_below_root: bool,
 }
 
 pub fn run(args: ServeArgs) -> Result<()> {
@@ -91,6 +94,7 @@ pub fn run(args: ServeArgs) -> Result<()> {
         header_read_timeout: Duration::from_secs_f64(args.header_timeout),
         added_delay: Duration::from_millis(args.added_delay_ms),
         corrupt_answers,
+        stall_below_root: args.test_stall_below_root,
         tls: match (args.tls_cert, args.tls_key) {
             (Some(cert), Some(key)) => Some(strata_service::server::TlsFiles { cert, key }),
             _ => None,

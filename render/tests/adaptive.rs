@@ -104,6 +104,7 @@ fn tiled_gpu_pass_equals_the_transcription_for_random_integer_oracles() {
             l_max: 3,
             tile,
             oracle: OracleKind::Hash(seed),
+            ..AdaptiveConfig::default()
         };
         let frame = render_gpu(&ctx, &g, &mut pass, &f, &camera, &s, &config);
         let cpu = render_adaptive_reference(
@@ -200,6 +201,7 @@ fn distance_one_is_a_plain_slice_aligned_march() {
         l_max: 3,
         tile: 16,
         oracle: OracleKind::Constant(1.0),
+        ..AdaptiveConfig::default()
     };
     let cpu = render_adaptive_reference(
         &reference_scene(&f),
@@ -272,6 +274,7 @@ fn the_coarsest_distance_loses_nothing_on_a_field_varying_only_along_the_view() 
         l_max: 3,
         tile: 16,
         oracle: OracleKind::Constant(d),
+        ..AdaptiveConfig::default()
     };
     let integral = integral_table(&f);
     let cpu = |d: f32| {
@@ -350,6 +353,7 @@ fn the_oracle_frame_is_close_to_the_full_rate_reference_with_far_fewer_samples()
         l_max: 3,
         tile: 16,
         oracle: OracleKind::PerNode,
+        ..AdaptiveConfig::default()
     };
     let full = AdaptiveConfig {
         oracle: OracleKind::Constant(1.0),
@@ -357,6 +361,36 @@ fn the_oracle_frame_is_close_to_the_full_rate_reference_with_far_fewer_samples()
     };
     let adaptive = render_gpu(&ctx, &g, &mut pass, &f, &camera, &s, &oracle);
     let full_rate = render_gpu(&ctx, &g, &mut pass, &f, &camera, &s, &full);
+    // Marching each tile only over the slices its rays meet the box in changes nothing but
+    // the work: the skipped samples are the transparent default, bit for bit the same image.
+    let every_slice = render_gpu(
+        &ctx,
+        &g,
+        &mut pass,
+        &f,
+        &camera,
+        &s,
+        &AdaptiveConfig {
+            tile_slice_ranges: false,
+            ..oracle
+        },
+    );
+    assert!(
+        adaptive.rgba == every_slice.rgba && adaptive.depth == every_slice.depth,
+        "tile slice ranges changed the image"
+    );
+    eprintln!(
+        "tile slice ranges: {} samples + {} apron, every slice: {} + {}",
+        adaptive.total_samples(),
+        adaptive.total_apron_samples(),
+        every_slice.total_samples(),
+        every_slice.total_apron_samples()
+    );
+    assert!(
+        adaptive.total_samples() + adaptive.total_apron_samples()
+            < every_slice.total_samples() + every_slice.total_apron_samples(),
+        "the tile slice ranges skipped nothing"
+    );
     let reference = f.reference(&camera, &s, 8.0);
     let c_adaptive = compare_rgba8(&adaptive.rgba, &reference.rgba).unwrap();
     let c_full = compare_rgba8(&full_rate.rgba, &reference.rgba).unwrap();

@@ -76,6 +76,9 @@ pub struct ServeOptions {
     /// Test hook: flip one byte of this brick's next N answers after the server verified them
     /// (corruption in transit).
     pub corrupt_answers: Option<(BrickId, u32)>,
+    /// Test hook: never answer a brick request below the root (it ends in the request
+    /// timeout): a server that accepts and then stalls, for the no-frame-waits test.
+    pub stall_below_root: bool,
 }
 
 impl Default for ServeOptions {
@@ -92,6 +95,7 @@ impl Default for ServeOptions {
             max_streams_per_connection: 256,
             added_delay: Duration::ZERO,
             corrupt_answers: None,
+            stall_below_root: false,
             tls: None,
         }
     }
@@ -169,6 +173,7 @@ struct AppState {
     requests: Arc<Semaphore>,
     added_delay: Duration,
     corrupt_answers: std::sync::Mutex<Option<(BrickId, u32)>>,
+    stall_below_root: bool,
 }
 
 /// A store found on the command line: its name in URLs and its directory.
@@ -428,6 +433,7 @@ pub fn start(
         requests: Arc::new(Semaphore::new(options.max_concurrent_requests.max(1))),
         added_delay: options.added_delay,
         corrupt_answers: std::sync::Mutex::new(options.corrupt_answers),
+        stall_below_root: options.stall_below_root,
     });
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
@@ -733,6 +739,9 @@ async fn brick(
     }
     if !state.added_delay.is_zero() {
         tokio::time::sleep(state.added_delay).await;
+    }
+    if state.stall_below_root && usize::from(id.level) + 1 < store.store.layout().level_count() {
+        std::future::pending::<()>().await;
     }
     let reader = store.clone();
     let record = match tokio::task::spawn_blocking(move || reader.store.read_brick_record(id)).await

@@ -112,15 +112,31 @@ pub fn run(options: Options) -> Result<()> {
     }
 
     let mut pass = AdaptivePass::new(&ctx, &cut.cache);
-    let mut configs = vec![("adaptive d ≡ 1".to_string(), OracleKind::Constant(1.0), 0.0)];
-    for &e in &options.epsilons {
-        configs.push((format!("adaptive ε {e}"), OracleKind::PerNode, e));
+    let mut configs = vec![(
+        "adaptive d ≡ 1".to_string(),
+        OracleKind::Constant(1.0),
+        0.0,
+        false,
+    )];
+    for (i, &e) in options.epsilons.iter().enumerate() {
+        configs.push((format!("adaptive ε {e}"), OracleKind::PerNode, e, true));
+        // The first ε once more marching every slice of every tile: what the tile slice
+        // ranges save (same image, bit for bit).
+        if i == 0 {
+            configs.push((
+                format!("adaptive ε {e}, every slice"),
+                OracleKind::PerNode,
+                e,
+                false,
+            ));
+        }
     }
-    for (label, oracle, epsilon) in configs {
+    for (label, oracle, epsilon, tile_slice_ranges) in configs {
         let config = AdaptiveConfig {
             l_max: options.l_max,
             tile: options.tile,
             oracle,
+            tile_slice_ranges,
         };
         if oracle == OracleKind::PerNode {
             let distances = oracle_for_cut(

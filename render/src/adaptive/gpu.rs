@@ -40,6 +40,7 @@ struct AdaptiveKey {
     l_max: u32,
     oracle: u32,
     early_termination: bool,
+    tile_slice_ranges: bool,
     clipped: bool,
     manual_trilinear: bool,
     smooth_transitions: bool,
@@ -362,6 +363,7 @@ impl AdaptivePass {
                 ("L_MAX", key.l_max as f64),
                 ("ORACLE", key.oracle as f64),
                 ("EARLY_TERMINATION", b(key.early_termination)),
+                ("TILE_SLICE_RANGES", b(key.tile_slice_ranges)),
                 ("CLIPPED", b(key.clipped)),
                 ("MANUAL_TRILINEAR", b(key.manual_trilinear)),
                 ("SMOOTH_TRANSITIONS", b(key.smooth_transitions)),
@@ -419,6 +421,7 @@ impl AdaptivePass {
             l_max: config.l_max,
             oracle,
             early_termination: oracle == 0 && settings.early_termination.is_some(),
+            tile_slice_ranges: oracle == 0 && config.tile_slice_ranges,
             clipped: settings.clip_plane.is_some(),
             manual_trilinear: settings.exact_trilinear || !self.filterable,
             smooth_transitions: settings.smooth_transitions

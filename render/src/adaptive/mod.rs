@@ -35,6 +35,10 @@ pub struct AdaptiveConfig {
     pub tile: u32,
     /// Where sampling distances come from.
     pub oracle: OracleKind,
+    /// Per-node oracle: each tile marches only the slices between its rays' nearest entry
+    /// into the box and farthest exit (rounded out to slices of l_slice = l_max), which
+    /// gives the same image as marching every slice. Off only to test exactly that.
+    pub tile_slice_ranges: bool,
 }
 
 impl Default for AdaptiveConfig {
@@ -43,6 +47,7 @@ impl Default for AdaptiveConfig {
             l_max: 3,
             tile: 16,
             oracle: OracleKind::PerNode,
+            tile_slice_ranges: true,
         }
     }
 }

@@ -13,6 +13,7 @@
 //! - SYNTHESIZE's parents outside the level are clamped to its edge ("image edges clamped").
 //! - Slices run from 0 to `last_slice`, a multiple of 2^l_max (Fig. 6 rounds up to a power of
 //!   two; a multiple is all §3.1 asks for and wastes fewer slices).
+use crate::layout::DEPTH_OPACITY;
 
 /// l_slice of §3.1: the number of trailing zeros of `i_slice`, capped at `l_max`; slice 0
 /// counts as l_max (its trailing zeros are infinite, Table 1).
@@ -186,8 +187,11 @@ pub fn project_volume(
                             for ch in 0..4 {
                                 c[ch] += wgt * seg[ch];
                             }
-                            if depth[k].is_infinite() && before < 0.5 && c[3] >= 0.5 {
-                                let f = (0.5 - before) / (c[3] - before);
+                            if depth[k].is_infinite()
+                                && before < DEPTH_OPACITY
+                                && c[3] >= DEPTH_OPACITY
+                            {
+                                let f = (DEPTH_OPACITY - before) / (c[3] - before);
                                 depth[k] = i_prev[k] as f64 + f * length as f64;
                             }
                             segments += 1;

@@ -18,6 +18,8 @@ override ORACLE: u32 = 0u;       // 0 per page entry, 1 constant, 2 hash (tests)
 // tile stops once all its pixels reach the early-termination opacity (checked every 2^L_MAX
 // slices, where every pixel has just accumulated).
 override EARLY_TERMINATION: bool = false;
+// Per-node oracle: march each tile only over the slices its rays can meet the box in.
+override TILE_SLICE_RANGES: bool = true;
 // A clip plane is set (the outside distance then includes the plane's).
 override CLIPPED: bool = false;
 
@@ -45,6 +47,12 @@ struct AdaptiveParams {
 var<workgroup> pyramid_s: array<f32, PYRAMID_CAP>;
 var<workgroup> tile_vote: atomic<u32>;
 var<workgroup> tile_decision: u32;
+// The tile's slice range: the nearest entry and farthest exit (t as f32 bits, t ≥ 0 so the
+// bits order like the values) over every ray the tile samples, then the slices they allow.
+var<workgroup> tile_t_entry: atomic<u32>;
+var<workgroup> tile_t_exit: atomic<u32>;
+var<workgroup> tile_first_slice: u32;
+var<workgroup> tile_last_slice: u32;
 var<workgroup> pyramid_d: array<f32, PYRAMID_CAP>;
 
 // Edge of level l's tile with its apron, and where level l starts in the pyramid arrays.
@@ -265,14 +273,23 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
     if ORACLE == 0u && extinction_at(A.frame.z) <= 0.0 {
         if lid == 0u {
             atomicStore(&tile_vote, 0u);
+            atomicStore(&tile_t_entry, 0x7f800000u);
+            atomicStore(&tile_t_exit, 0u);
         }
         workgroupBarrier();
         let t_last = A.frame.x + f32(A.pyramid.z) * A.frame.y;
         var hit = false;
+        var t_entry = inf;
+        var t_exit = 0.0;
         for (var j = 0u; j < owned; j++) {
             let idx = lid + j * THREADS;
             let r = pixel_ray(f32(tile_x + idx % TILE), f32(tile_y + idx / TILE));
-            hit = hit || (r.t1 >= r.t0 && r.t0 <= t_last);
+            let meets = r.t1 >= r.t0 && r.t0 <= t_last;
+            hit = hit || meets;
+            if meets {
+                t_entry = min(t_entry, r.t0);
+                t_exit = max(t_exit, r.t1);
+            }
         }
         for (var l = 1u; l <= L_MAX; l++) {
             let e = extent(l);
@@ -282,15 +299,41 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
                 let u = f32(1u << l) * (f32(gx) + 0.5) - 0.5;
                 let v = f32(1u << l) * (f32(gy) + 0.5) - 0.5;
                 let r = pixel_ray(u, v);
-                hit = hit || (r.t1 >= r.t0 && r.t0 <= t_last);
+                let meets = r.t1 >= r.t0 && r.t0 <= t_last;
+                hit = hit || meets;
+                if meets {
+                    t_entry = min(t_entry, r.t0);
+                    t_exit = max(t_exit, r.t1);
+                }
             }
         }
         if hit {
             atomicOr(&tile_vote, 1u);
+            atomicMin(&tile_t_entry, bitcast<u32>(max(t_entry, 0.0)));
+            atomicMax(&tile_t_exit, bitcast<u32>(max(t_exit, 0.0)));
         }
         workgroupBarrier();
         if lid == 0u {
             tile_decision = atomicLoad(&tile_vote);
+            // Before the first entry and after the last exit every sample is the transparent
+            // default, and a segment between two of them adds nothing: march only from the
+            // last slice of l_slice = l_max before every entry to the first one after every
+            // exit (slices of l_max rebuild the whole pyramid, so the march from there is
+            // the full march's, sample for sample). One block of margin each side for the
+            // rounding of t.
+            let block = 1u << L_MAX;
+            let entry = (bitcast<f32>(atomicLoad(&tile_t_entry)) - A.frame.x) / A.frame.y;
+            let exit = (bitcast<f32>(atomicLoad(&tile_t_exit)) - A.frame.x) / A.frame.y;
+            var first = 0u;
+            if entry > f32(2u * block) {
+                first = (u32(entry) / block - 1u) * block;
+            }
+            var last = A.pyramid.z;
+            if exit + f32(2u * block) < f32(A.pyramid.z) {
+                last = min((u32(exit) / block + 2u) * block, A.pyramid.z);
+            }
+            tile_first_slice = min(first, A.pyramid.z);
+            tile_last_slice = last;
         }
         if workgroupUniformLoad(&tile_decision) == 0u {
             for (var j = 0u; j < owned; j++) {
@@ -311,8 +354,17 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
     var n_synth = array<u32, 4>(0u, 0u, 0u, 0u);
     var n_apron = array<u32, 4>(0u, 0u, 0u, 0u);
     var n_segments = 0u;
-    let last_slice = A.pyramid.z;
-    for (var i = 0u; i <= last_slice; i++) {
+    var first_slice = 0u;
+    var last_slice = A.pyramid.z;
+    if ORACLE == 0u && TILE_SLICE_RANGES && extinction_at(A.frame.z) <= 0.0 {
+        first_slice = workgroupUniformLoad(&tile_first_slice);
+        last_slice = workgroupUniformLoad(&tile_last_slice);
+    }
+    for (var j = 0u; j < MAX_OWNED; j++) {
+        i_prev[j] = first_slice;
+        s_prev[j] = A.frame.z;
+    }
+    for (var i = first_slice; i <= last_slice; i++) {
         var ls = L_MAX;
         if i != 0u {
             ls = min(countTrailingZeros(i), L_MAX);
@@ -380,13 +432,13 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
                 n_samples[0] += 1u;
             }
             if ls == L_MAX || d0[j] < skip_bound {
-                if i > 0u {
+                if i > first_slice {
                     let slices = i - i_prev[j];
                     let seg = preintegrated_segment(s_prev[j], s0[j], f32(slices) * A.frame.y);
                     let before = acc[j].a;
                     acc[j] = acc[j] + (1.0 - acc[j].a) * seg;
-                    if depth[j] == inf && before < 0.5 && acc[j].a >= 0.5 {
-                        let f = (0.5 - before) / (acc[j].a - before);
+                    if depth[j] == inf && before < DEPTH_OPACITY && acc[j].a >= DEPTH_OPACITY {
+                        let f = (DEPTH_OPACITY - before) / (acc[j].a - before);
                         depth[j] = A.frame.x + (f32(i_prev[j]) + f * f32(slices)) * A.frame.y;
                     }
                     n_segments += 1u;
@@ -401,7 +453,7 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
         if min(countTrailingZeros(i + 1u), L_MAX) == 1u {
             workgroupBarrier();
         }
-        if EARLY_TERMINATION && ORACLE == 0u && ls == L_MAX && i > 0u {
+        if EARLY_TERMINATION && ORACLE == 0u && ls == L_MAX && i > first_slice {
             if lid == 0u {
                 atomicStore(&tile_vote, 0u);
             }

@@ -12,8 +12,10 @@ struct Location {
     page: u32,
     cell: vec3<f32>,
     level: u32,
-    // Continuous texel coordinate in the cache, voxel centres at integers.
+    // Continuous texel coordinate within the node's cache slot (voxel centres at integers),
+    // and the slot's corner texel: fetch() adds the two only after splitting off the fraction.
     coord: vec3<f32>,
+    slot_base: vec3<f32>,
     // Level-0 index position (clamped to the volume) and the node's transition mask.
     pos: vec3<f32>,
     transition: u32,
@@ -33,6 +35,7 @@ fn location_in(pg: Page, pc: vec3<f32>) -> Location {
     loc.cell = vec3<f32>(pg.cell);
     loc.level = pg.level;
     loc.coord = pc * pg.inv_scale + pg.offset;
+    loc.slot_base = pg.slot_base;
     loc.pos = pc;
     loc.transition = pg.transition;
     loc.maybe_band = false;
@@ -49,12 +52,16 @@ fn locate(p: vec3<f32>) -> Location {
     return location_in(decode_page(cell_of(pc)), pc);
 }
 
-// Normalised stored value (stored / 255 or / 65535, see cache.rs) at a cache texel coordinate.
-fn fetch(coord: vec3<f32>) -> f32 {
+// Normalised stored value (stored / 255 or / 65535, see cache.rs) at in-slot texel coordinate
+// `coord` of the slot whose corner texel is `slot_base`.
+fn fetch(slot_base: vec3<f32>, coord: vec3<f32>) -> f32 {
     if MANUAL_TRILINEAR {
+        // Weights from the in-slot coordinate alone: the image does not depend on which slot
+        // a brick was given (bricks arrive in another order from a server, after a restart or
+        // under another budget), bit for bit.
         let i0f = floor(coord);
         let f = coord - i0f;
-        let i0 = vec3<i32>(i0f);
+        let i0 = vec3<i32>(slot_base) + vec3<i32>(i0f);
         let c000 = textureLoad(cache, i0, 0).r;
         let c100 = textureLoad(cache, i0 + vec3<i32>(1, 0, 0), 0).r;
         let c010 = textureLoad(cache, i0 + vec3<i32>(0, 1, 0), 0).r;
@@ -69,7 +76,9 @@ fn fetch(coord: vec3<f32>) -> f32 {
         let x11 = mix(c011, c111, f.x);
         return mix(mix(x00, x10, f.y), mix(x01, x11, f.y), f.z);
     } else {
-        return textureSampleLevel(cache, cache_sampler, (coord + vec3<f32>(0.5)) * P.cache_inv.xyz, 0.0).r;
+        // The sampler takes one normalised coordinate, whose rounding depends on the slot's
+        // place in the texture: a channel may move by one 8-bit step with the slot.
+        return textureSampleLevel(cache, cache_sampler, (slot_base + coord + vec3<f32>(0.5)) * P.cache_inv.xyz, 0.0).r;
     }
 }
 
@@ -78,6 +87,7 @@ fn fetch(coord: vec3<f32>) -> f32 {
 struct Blend {
     w: f32,
     coord: vec3<f32>,
+    slot_base: vec3<f32>,
     level: u32,
 };
 
@@ -127,6 +137,7 @@ fn transition_blend(loc: Location) -> Blend {
         best = d;
         b.w = clamp(1.0 - 2.0 * d, 0.0, 1.0);
         b.coord = loc.pos * pg.inv_scale + pg.offset;
+        b.slot_base = pg.slot_base;
         b.level = pg.level;
     }
     return b;
@@ -136,7 +147,7 @@ fn transition_blend(loc: Location) -> Blend {
 // neighbour inside a transition band.
 fn field(loc: Location) -> f32 {
     if !SMOOTH_TRANSITIONS {
-        return fetch(loc.coord);
+        return fetch(loc.slot_base, loc.coord);
     }
     var b: Blend;
     b.w = 0.0;
@@ -147,13 +158,15 @@ fn field(loc: Location) -> f32 {
     // made every sample of the pipeline slower on lavapipe (its sampler is inlined code).
     var value = 0.0;
     var coord = loc.coord;
+    var slot_base = loc.slot_base;
     var weight = 1.0 - b.w;
     for (var k = 0u; k < 2u; k++) {
-        value += weight * fetch(coord);
+        value += weight * fetch(slot_base, coord);
         if b.w <= 0.0 {
             break;
         }
         coord = b.coord;
+        slot_base = b.slot_base;
         weight = b.w;
         b.w = 0.0;
     }
@@ -162,21 +175,21 @@ fn field(loc: Location) -> f32 {
 
 // Central differences in the payload around `coord` (one voxel of `level` each way), in
 // physical units per level-0 index step.
-fn payload_gradient(coord: vec3<f32>, level: u32) -> vec3<f32> {
+fn payload_gradient(slot_base: vec3<f32>, coord: vec3<f32>, level: u32) -> vec3<f32> {
     let h = 2.0 * f32(1u << level);
     let ex = vec3<f32>(1.0, 0.0, 0.0);
     let ey = vec3<f32>(0.0, 1.0, 0.0);
     let ez = vec3<f32>(0.0, 0.0, 1.0);
     return vec3<f32>(
-        fetch(coord + ex) - fetch(coord - ex),
-        fetch(coord + ey) - fetch(coord - ey),
-        fetch(coord + ez) - fetch(coord - ez),
+        fetch(slot_base, coord + ex) - fetch(slot_base, coord - ex),
+        fetch(slot_base, coord + ey) - fetch(slot_base, coord - ey),
+        fetch(slot_base, coord + ez) - fetch(slot_base, coord - ez),
     ) * (P.value_map.x / h);
 }
 
 fn field_gradient(loc: Location) -> vec3<f32> {
     if !SMOOTH_TRANSITIONS {
-        return payload_gradient(loc.coord, loc.level);
+        return payload_gradient(loc.slot_base, loc.coord, loc.level);
     }
     var b: Blend;
     b.w = 0.0;
@@ -186,14 +199,16 @@ fn field_gradient(loc: Location) -> vec3<f32> {
     // One call site for the six fetches, as in field().
     var g = vec3<f32>(0.0);
     var coord = loc.coord;
+    var slot_base = loc.slot_base;
     var level = loc.level;
     var weight = 1.0 - b.w;
     for (var k = 0u; k < 2u; k++) {
-        g += weight * payload_gradient(coord, level);
+        g += weight * payload_gradient(slot_base, coord, level);
         if b.w <= 0.0 {
             break;
         }
         coord = b.coord;
+        slot_base = b.slot_base;
         level = b.level;
         weight = b.w;
         b.w = 0.0;

@@ -15,6 +15,10 @@ struct Page {
     cell: vec3<i32>,
     level: u32,
     inv_scale: f32,
+    // Texel coordinate in the cache = slot_base + (level-0 position · inv_scale + offset).
+    // The slot's corner is kept apart from the in-slot offset so that the in-slot coordinate,
+    // and with it the trilinear weights, do not depend on which slot a brick landed in.
+    slot_base: vec3<f32>,
     offset: vec3<f32>,
     // The node has a coarser neighbour (entry bit 31); its mask is read only then.
     has_transition: bool,
@@ -61,7 +65,7 @@ fn decode_entry(cell: vec3<i32>) -> Page {
                              (e >> (2u * SLOT_AXIS_BITS)) & SLOT_AXIS_MASK);
     // Level-L voxel i is centred at level-0 index (i + 0.5)·2^L - 0.5 (cell-centred octree):
     // q = (p + 0.5)·2^-L - 0.5, local = q - (32·node - 2), coord = slot·36 + local.
-    pg.offset = vec3<f32>(slot_xyz * PAYLOAD) - (vec3<f32>(node) * CORE - vec3<f32>(APRON))
-        + vec3<f32>(0.5 * pg.inv_scale - 0.5);
+    pg.slot_base = vec3<f32>(slot_xyz * PAYLOAD);
+    pg.offset = vec3<f32>(APRON) - vec3<f32>(node) * CORE + vec3<f32>(0.5 * pg.inv_scale - 0.5);
     return pg;
 }
