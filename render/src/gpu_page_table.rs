@@ -4,7 +4,7 @@
 
 use crate::cache::BrickCache;
 use crate::error::RenderError;
-use crate::layout::FLAG_TRANSITION;
+use crate::layout::LEVEL_MASK;
 use crate::page_table::{PageEntry, PageTable};
 use crate::smooth_transitions::{near_side_closure, transition_masks, transition_node_fraction};
 
@@ -23,6 +23,9 @@ pub struct GpuPageTable {
     /// Share of resident nodes with a coarser neighbour in the last table written; 0 means
     /// frames need no transition code at all.
     transition_fraction: std::sync::Mutex<f64>,
+    /// The table as last written ([`GpuPageTable::update`], [`GpuPageTable::write_entries`]):
+    /// a partial write re-encodes the words whose whole-node flag or skip level it changes.
+    written: std::sync::Mutex<PageTable>,
 }
 
 impl GpuPageTable {
@@ -33,6 +36,14 @@ impl GpuPageTable {
         cache: &BrickCache,
     ) -> Result<Self, RenderError> {
         let n: u64 = page_dims.iter().map(|&d| d.max(1) as u64).product();
+        // The page word's level field holds levels 0..=LEVEL_MASK (layout.rs).
+        let max_pages = 1u32 << LEVEL_MASK;
+        if page_dims.iter().any(|&d| d > max_pages) {
+            return Err(RenderError::PageTableMismatch(format!(
+                "a page grid of {page_dims:?} exceeds {max_pages} pages per axis, the most the \
+                 page word's level field addresses"
+            )));
+        }
         let limit = device.limits().max_storage_buffer_binding_size;
         if n * 8 > limit {
             return Err(RenderError::PageTableMismatch(format!(
@@ -67,6 +78,7 @@ impl GpuPageTable {
             slots_per_axis: cache.slots_per_axis,
             transitions,
             transition_fraction: std::sync::Mutex::new(0.0),
+            written: std::sync::Mutex::new(PageTable::new(page_dims)),
         })
     }
 
@@ -74,9 +86,10 @@ impl GpuPageTable {
         self.page_dims.iter().map(|&d| d as usize).product()
     }
 
-    /// Writes `entries` starting at linear index `first` (x fastest, then y, z): for loaders
-    /// that change a few entries per frame. Takes effect for the next submitted frame. The
-    /// transition masks are not touched: a change of levels needs [`GpuPageTable::update`].
+    /// Writes `entries` starting at linear index `first` (x fastest, then y, z) into the table
+    /// as last written. Takes effect for the next submitted frame. Re-encodes the whole table
+    /// with its transition masks, as [`GpuPageTable::update`] does (O(entries): node-extent
+    /// flags and transition masks depend on neighbours).
     pub fn write_entries(
         &self,
         queue: &wgpu::Queue,
@@ -100,11 +113,15 @@ impl GpuPageTable {
                 slots,
             });
         }
-        let words: Vec<u32> = entries
-            .iter()
-            .map(|e| e.encode(self.slots_per_axis))
-            .collect();
-        queue.write_buffer(&self.buffer, first as u64 * 4, bytemuck::cast_slice(&words));
+        // A word's whole-node flag and skip level depend on its neighbours (see
+        // PageTable::encoded_for_gpu), so the table as last written is re-encoded whole.
+        let mut table = self
+            .written
+            .lock()
+            .map_err(|_| RenderError::PageTableMismatch("page table mirror poisoned".into()))?
+            .clone();
+        table.entries[first..first + entries.len()].copy_from_slice(entries);
+        self.update(queue, &table)?;
         Ok(())
     }
 
@@ -137,11 +154,9 @@ impl GpuPageTable {
             });
         }
         let masks = transition_masks(table);
-        let mut words = table.encoded(self.slots_per_axis);
-        for (word, mask) in words.iter_mut().zip(&masks) {
-            if *mask != 0 {
-                *word |= FLAG_TRANSITION;
-            }
+        let words = table.encoded_for_gpu(self.slots_per_axis, &masks);
+        if let Ok(mut written) = self.written.lock() {
+            written.clone_from(table);
         }
         queue.write_buffer(&self.buffer, 0, bytemuck::cast_slice(&words));
         let transitions: Vec<[u32; 2]> = masks.iter().map(|&m| [m, near_side_closure(m)]).collect();

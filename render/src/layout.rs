@@ -13,17 +13,25 @@
 pub use strata_types::{BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD, BRICK_PAYLOAD_VOXELS};
 
 /// GPU word layout: bits 0-7 / 8-15 / 16-23 the slot's x / y / z position in the cache's slot
-/// grid (the shader then needs no integer division), 24-28 level, bit 29 empty, bit 30 not
-/// resident, bit 31 has a coarser neighbour (smooth transitions). The CPU side speaks slot
-/// indices; the cache's grid converts.
+/// grid (the shader then needs no integer division), 24-27 level, bit 28 whole node, bit 29
+/// empty, bit 30 not resident, bit 31 has a coarser neighbour (smooth transitions). The CPU
+/// side speaks slot indices; the cache's grid converts. A not-resident word has no slot, and
+/// its level field says how far rays may skip instead: the largest aligned block of 2^level
+/// page cells around it that is all not resident (written by [`crate::GpuPageTable::update`]).
 pub const MAX_SLOTS_PER_AXIS: u32 = 255;
 pub const MAX_SLOTS: u32 = MAX_SLOTS_PER_AXIS * MAX_SLOTS_PER_AXIS * MAX_SLOTS_PER_AXIS;
 /// Bits per axis of the slot's grid position, and their mask (holds MAX_SLOTS_PER_AXIS).
 pub const SLOT_AXIS_BITS: u32 = 8;
 pub const SLOT_AXIS_MASK: u32 = (1 << SLOT_AXIS_BITS) - 1;
 pub const LEVEL_SHIFT: u32 = 24;
-/// The level field's mask after the shift (5 bits: levels 0-31).
-pub const LEVEL_MASK: u32 = 31;
+/// The level field's mask after the shift (4 bits: levels 0-15, i.e. up to 2^15 pages =
+/// 1M voxels per axis; [`crate::GpuPageTable::new`] refuses larger grids).
+pub const LEVEL_MASK: u32 = 15;
+/// Set by [`crate::GpuPageTable::update`] where every page cell of the entry's node holds this
+/// same word (the node is a leaf of the cut, not a parent standing in for some of its
+/// children): a ray may then treat the whole node as one region (node-extent exit: skip an
+/// empty node at once, cross its cells without reading their entries).
+pub const FLAG_WHOLE_NODE: u32 = 1 << 28;
 pub const FLAG_EMPTY: u32 = 1 << 29;
 pub const FLAG_NOT_RESIDENT: u32 = 1 << 30;
 /// Set by [`crate::GpuPageTable::update`] where the node has a coarser neighbour: the shader

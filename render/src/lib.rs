@@ -16,6 +16,7 @@
 //! CPU side
 //!   page_table          → layout, transfer_function, error      (topology, coarser neighbours)
 //!   smooth_transitions  → page_table, layout                    (masks, near-side closure)
+//!   octree_cut          → page_table                            (the cut as an octree with ropes)
 //!   field               → page_table, layout                    (the one field definition)
 //!   reference           → field, smooth_transitions, page_table, layout, camera, settings,
 //!                         transfer_function, error              (f64 renderer)
@@ -67,6 +68,7 @@ pub mod gpu_timing;
 pub mod gpu_transfer_function;
 pub mod layout;
 pub mod metrics;
+pub mod octree_cut;
 pub mod offscreen;
 pub mod page_table;
 pub mod phantom;

@@ -19,8 +19,8 @@ type NodeKey = (u8, [u32; 3]);
 /// The page word's bits and the slot limits (moved to layout.rs; kept here so existing paths
 /// resolve).
 pub use crate::layout::{
-    FLAG_EMPTY, FLAG_NOT_RESIDENT, FLAG_TRANSITION, LEVEL_MASK, LEVEL_SHIFT, MAX_SLOTS,
-    MAX_SLOTS_PER_AXIS, SLOT_AXIS_BITS, SLOT_AXIS_MASK,
+    FLAG_EMPTY, FLAG_NOT_RESIDENT, FLAG_TRANSITION, FLAG_WHOLE_NODE, LEVEL_MASK, LEVEL_SHIFT,
+    MAX_SLOTS, MAX_SLOTS_PER_AXIS, SLOT_AXIS_BITS, SLOT_AXIS_MASK,
 };
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -134,6 +134,116 @@ impl PageTable {
             .iter()
             .map(|e| e.encode(slots_per_axis))
             .collect()
+    }
+
+    /// The words the raycaster reads (binding 3): [`PageEntry::encode`] plus what only the
+    /// whole table knows, for the node-extent exit (raycast.wgsl): [`FLAG_WHOLE_NODE`] on
+    /// entries whose node is covered by that one word, [`FLAG_TRANSITION`] where
+    /// `transition_masks` (one per entry, smooth_transitions.rs) is non-zero, and in a
+    /// not-resident word's level field its skip level ([`PageTable::not_resident_skip_levels`]).
+    pub fn encoded_for_gpu(&self, slots_per_axis: [u32; 3], transition_masks: &[u32]) -> Vec<u32> {
+        let whole = self.whole_node_flags();
+        let skip = self.not_resident_skip_levels();
+        self.entries
+            .iter()
+            .enumerate()
+            .map(|(i, e)| {
+                let mut word = if e.resident {
+                    e.encode(slots_per_axis)
+                } else {
+                    let mut blank = *e;
+                    blank.level = skip[i];
+                    blank.slot_in_cache = 0;
+                    blank.encode(slots_per_axis)
+                };
+                if whole[i] {
+                    word |= FLAG_WHOLE_NODE;
+                }
+                if transition_masks.get(i).is_some_and(|&m| m != 0) {
+                    word |= FLAG_TRANSITION;
+                }
+                word
+            })
+            .collect()
+    }
+
+    /// Per entry: is it resident and does every page cell of its node (within the grid) hold
+    /// the same entry? False for a parent that stands in for some of its children only (the
+    /// loader shows a pending child's parent there), whose node box holds other entries too.
+    pub fn whole_node_flags(&self) -> Vec<bool> {
+        let mut cells_with: HashMap<(NodeKey, u32, bool), u64> = HashMap::new();
+        let key = |i: usize, e: &PageEntry| {
+            let node = Self::node_of(self.page_of_linear(i), e.level);
+            ((e.level, node), e.slot_in_cache, e.empty)
+        };
+        for (i, e) in self.entries.iter().enumerate() {
+            if e.resident {
+                *cells_with.entry(key(i, e)).or_insert(0) += 1;
+            }
+        }
+        self.entries
+            .iter()
+            .enumerate()
+            .map(|(i, e)| {
+                if !e.resident {
+                    return false;
+                }
+                let k = key(i, e);
+                let (level, node) = k.0;
+                let span: u64 = (0..3)
+                    .map(|a| {
+                        let lo = (node[a] as u64) << level;
+                        let hi = ((node[a] as u64 + 1) << level).min(self.page_dims[a] as u64);
+                        hi.saturating_sub(lo)
+                    })
+                    .product();
+                cells_with.get(&k) == Some(&span)
+            })
+            .collect()
+    }
+
+    /// Per not-resident entry, the largest s (≤ [`LEVEL_MASK`]) such that the aligned block of
+    /// 2^s page cells per axis around it holds only not-resident entries (cells beyond the grid
+    /// count as not resident: no ray samples there); 0 for resident entries. Rays skip such a
+    /// block at once, as they skip a whole empty node.
+    pub fn not_resident_skip_levels(&self) -> Vec<u8> {
+        let mut levels = vec![0u8; self.entries.len()];
+        // all_skipped[s] over the block grid of level s: is every cell of that block skipped.
+        let mut dims = self.page_dims;
+        let mut all: Vec<bool> = self.entries.iter().map(|e| !e.resident).collect();
+        for s in 1..=LEVEL_MASK as u8 {
+            if dims.iter().all(|&d| d <= 1) {
+                break;
+            }
+            let next_dims = dims.map(|d| d.div_ceil(2));
+            let lin = |p: [u32; 3], d: [u32; 3]| {
+                p[0] as usize + d[0] as usize * (p[1] as usize + d[1] as usize * p[2] as usize)
+            };
+            let mut next = vec![true; next_dims.iter().map(|&d| d as usize).product()];
+            for z in 0..dims[2] {
+                for y in 0..dims[1] {
+                    for x in 0..dims[0] {
+                        if !all[lin([x, y, z], dims)] {
+                            next[lin([x / 2, y / 2, z / 2], next_dims)] = false;
+                        }
+                    }
+                }
+            }
+            let mut any = false;
+            for (i, level) in levels.iter_mut().enumerate() {
+                let p = self.page_of_linear(i).map(|c| c >> s);
+                if *level == s - 1 && next[lin(p, next_dims)] && !self.entries[i].resident {
+                    *level = s;
+                    any = true;
+                }
+            }
+            if !any {
+                break;
+            }
+            dims = next_dims;
+            all = next;
+        }
+        levels
     }
 
     pub fn check_against(&self, page_dims: [u32; 3]) -> Result<(), RenderError> {
@@ -354,11 +464,93 @@ mod tests {
     }
 
     #[test]
+    fn whole_node_flags_tell_a_leaf_from_a_parent_standing_in_for_some_children() {
+        // 4×2×2 grid: a level-1 node at x = 2..4 covers all its cells (a leaf of the cut);
+        // the level-1 node at x = 0..2 shows in two of its eight cells only (a pending child's
+        // parent), level-0 leaves in the rest; one cell is not resident.
+        let mut t = PageTable::new([4, 2, 2]);
+        for i in 0..t.entries.len() {
+            let p = t.page_of_linear(i);
+            let e = if p[0] >= 2 {
+                PageEntry::resident(0, 1)
+            } else if p[1] == 0 && p[2] == 0 {
+                PageEntry::resident(1, 1)
+            } else if p == [1, 1, 1] {
+                PageEntry::NOT_RESIDENT
+            } else {
+                PageEntry::resident(2 + i as u32, 0)
+            };
+            t.entries[i] = e;
+        }
+        let whole = t.whole_node_flags();
+        for (i, e) in t.entries.iter().enumerate() {
+            let p = t.page_of_linear(i);
+            let expected = e.resident && (p[0] >= 2 || e.level == 0);
+            assert_eq!(whole[i], expected, "page {p:?}");
+        }
+        // An odd grid: the last node reaches past the grid, its cells inside all agree.
+        let mut t = PageTable::new([3, 1, 1]);
+        t.entries = vec![
+            PageEntry::resident(0, 0),
+            PageEntry::resident(1, 1),
+            PageEntry::resident(1, 1),
+        ];
+        assert_eq!(t.whole_node_flags(), vec![true, false, true]);
+    }
+
+    #[test]
+    fn skip_levels_are_the_largest_all_not_resident_aligned_blocks() {
+        // 8×4×4: everything not resident but the cells (1, 0, 0) and (1, 3, 3).
+        let mut t = PageTable::new([8, 4, 4]);
+        t.set([1, 0, 0], PageEntry::resident(0, 0));
+        t.set([1, 3, 3], PageEntry::resident(1, 0));
+        let levels = t.not_resident_skip_levels();
+        // Brute force: the largest s whose aligned block (clipped to the grid) is all not
+        // resident.
+        for (i, &got) in levels.iter().enumerate() {
+            let p = t.page_of_linear(i);
+            if t.entries[i].resident {
+                assert_eq!(got, 0);
+                continue;
+            }
+            let all_skipped = |s: u32| {
+                let lo = p.map(|c| (c >> s) << s);
+                (0..t.entries.len()).all(|j| {
+                    let q = t.page_of_linear(j);
+                    let inside = (0..3).all(|a| q[a] >= lo[a] && q[a] < lo[a] + (1 << s));
+                    !inside || !t.entries[j].resident
+                })
+            };
+            let want = (0..=4).rev().find(|&s| all_skipped(s)).unwrap() as u8;
+            assert_eq!(got, want, "page {p:?}");
+        }
+        // x 4..8 is one all-not-resident level-2 block; the level-3 block (the grid) is not.
+        assert_eq!(levels[t.linear([5, 0, 0])], 2);
+        assert_eq!(levels[t.linear([0, 0, 0])], 0);
+        assert_eq!(levels[t.linear([2, 2, 2])], 1);
+        // The GPU words: skip levels in the not-resident words' level field, no slot bits.
+        let words = t.encoded_for_gpu([4, 4, 4], &[]);
+        for (i, w) in words.iter().enumerate() {
+            if !t.entries[i].resident {
+                assert_eq!(w & FLAG_NOT_RESIDENT, FLAG_NOT_RESIDENT);
+                assert_eq!((w >> LEVEL_SHIFT) & LEVEL_MASK, levels[i] as u32);
+                assert_eq!(w & 0x00ff_ffff, 0);
+            } else {
+                assert_eq!(
+                    w & FLAG_WHOLE_NODE,
+                    FLAG_WHOLE_NODE,
+                    "level-0 leaves are whole"
+                );
+            }
+        }
+    }
+
+    #[test]
     fn entry_round_trips() {
         let grid = [56, 40, 255];
         for e in [
             PageEntry::resident(0, 0),
-            PageEntry::resident(56 * 40 * 255 - 1, 31),
+            PageEntry::resident(56 * 40 * 255 - 1, LEVEL_MASK as u8),
             PageEntry {
                 slot_in_cache: 77,
                 level: 3,

@@ -55,6 +55,9 @@ pub struct FrameReadback {
     pub visibility: Vec<u32>,
     /// Samples taken, if `count_samples` was set.
     pub samples: Option<u64>,
+    /// Page-table words read (the shader's `decode_entry` calls, the march's and the
+    /// transition blend's), if `count_samples` was set.
+    pub page_reads: Option<u64>,
 }
 
 /// A visibility buffer read back without blocking, tagged with the frame it came from.
@@ -197,7 +200,7 @@ impl Raycaster {
         });
         let counter = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("sample counter"),
-            size: 8,
+            size: 16,
             usage: wgpu::BufferUsages::STORAGE
                 | wgpu::BufferUsages::COPY_SRC
                 | wgpu::BufferUsages::COPY_DST,
@@ -205,7 +208,7 @@ impl Raycaster {
         });
         let counter_readback = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("sample counter readback"),
-            size: 8,
+            size: 16,
             usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
@@ -627,7 +630,7 @@ impl Raycaster {
             0,
             (vis.entries.max(1) * 4) as u64,
         );
-        encoder.copy_buffer_to_buffer(&self.counter, 0, &self.counter_readback, 0, 8);
+        encoder.copy_buffer_to_buffer(&self.counter, 0, &self.counter_readback, 0, 16);
         ctx.queue.submit(Some(encoder.finish()));
         for b in [
             &t.color_readback,
@@ -656,10 +659,10 @@ impl Raycaster {
         let mut visibility: Vec<u32> = bytemuck::pod_collect_to_vec(&read(&vis.blocking_readback)?);
         visibility.truncate(vis.entries);
         let counter: Vec<u32> = bytemuck::pod_collect_to_vec(&read(&self.counter_readback)?);
-        let samples = self
-            .last_key
-            .filter(|k| k.count_samples)
-            .map(|_| counter[0] as u64 + ((counter[1] as u64) << 32));
+        let counted = self.last_key.is_some_and(|k| k.count_samples);
+        let wide = |lo: usize| counter[lo] as u64 + ((counter[lo + 1] as u64) << 32);
+        let samples = counted.then(|| wide(0));
+        let page_reads = counted.then(|| wide(2));
         Ok(FrameReadback {
             width: t.width,
             height: t.height,
@@ -667,6 +670,7 @@ impl Raycaster {
             depth,
             visibility,
             samples,
+            page_reads,
         })
     }
 

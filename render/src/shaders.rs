@@ -18,8 +18,8 @@ use std::sync::OnceLock;
 
 use crate::layout::{
     BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD, DEPTH_OPACITY, FLAG_EMPTY, FLAG_NOT_RESIDENT,
-    FLAG_TRANSITION, LEVEL_MASK, LEVEL_SHIFT, SHADING_FLAT_BELOW, SHADING_LIT_ABOVE,
-    SLOT_AXIS_BITS, SLOT_AXIS_MASK, WORKGROUP_SIZE,
+    FLAG_TRANSITION, FLAG_WHOLE_NODE, LEVEL_MASK, LEVEL_SHIFT, SHADING_FLAT_BELOW,
+    SHADING_LIT_ABOVE, SLOT_AXIS_BITS, SLOT_AXIS_MASK, WORKGROUP_SIZE,
 };
 
 /// The files that define the sampled field and its lookups, in composition order.
@@ -57,7 +57,7 @@ pub(crate) enum PreludeValue {
 }
 
 /// Every constant the shader shares with Rust, by its WGSL name.
-pub(crate) fn prelude_constants() -> [(&'static str, PreludeValue); 14] {
+pub(crate) fn prelude_constants() -> [(&'static str, PreludeValue); 15] {
     use PreludeValue::*;
     [
         ("CORE", F32(BRICK_CORE as f64)),
@@ -66,6 +66,7 @@ pub(crate) fn prelude_constants() -> [(&'static str, PreludeValue); 14] {
         ("FLAG_EMPTY", Bits(FLAG_EMPTY)),
         ("FLAG_NOT_RESIDENT", Bits(FLAG_NOT_RESIDENT)),
         ("FLAG_TRANSITION", Bits(FLAG_TRANSITION)),
+        ("FLAG_WHOLE_NODE", Bits(FLAG_WHOLE_NODE)),
         ("LEVEL_SHIFT", U32(LEVEL_SHIFT)),
         ("LEVEL_MASK", Bits(LEVEL_MASK)),
         ("SLOT_AXIS_BITS", U32(SLOT_AXIS_BITS)),

@@ -1,6 +1,8 @@
 // The page table (page_table.rs; GpuPageTable writes binding 3): one u32 per level-0 brick
 // position, decoded into the covering node's level and its payload's place in the cache.
-// Bit layout (slot grid x | y << 8 | z << 16, level << 24, FLAG_*) as in PageEntry::encode.
+// Bit layout (slot grid x | y << 8 | z << 16, level << 24, FLAG_*) as in PageEntry::encode;
+// PageTable::encoded_for_gpu adds FLAG_WHOLE_NODE, FLAG_TRANSITION and, in a not-resident
+// word's level field, its skip level (an aligned block of 2^level cells all not resident).
 
 @group(0) @binding(3) var<storage, read> page_table: array<u32>;
 
@@ -28,7 +30,14 @@ struct Page {
     inner_hi: vec3<f32>,
     // Ray distance at which the ray leaves this page cell (cached lookups only).
     t_exit: f32,
+    // Every cell of the node (level L) holds this word (FLAG_WHOLE_NODE); for a not-resident
+    // word the 2^level block around `cell` is all not resident.
+    whole_node: bool,
 };
+
+// Page-table words read by this invocation (decode_entry calls): the raycaster's debug counter
+// (COUNT_SAMPLES) reports it; unused, the compiler drops it.
+var<private> page_reads: u32 = 0u;
 
 fn cell_of(pc: vec3<f32>) -> vec3<i32> {
     let last = vec3<i32>(P.pages.xyz) - vec3<i32>(1);
@@ -42,9 +51,11 @@ fn decode_entry(cell: vec3<i32>) -> Page {
     pg.cell = cell;
     pg.linear = c.x + P.pages.x * (c.y + P.pages.y * c.z);
     let e = page_table[pg.linear];
+    page_reads += 1u;
     pg.resident = (e & FLAG_NOT_RESIDENT) == 0u;
     pg.empty = (e & FLAG_EMPTY) != 0u;
     pg.has_transition = (e & FLAG_TRANSITION) != 0u;
+    pg.whole_node = (e & FLAG_WHOLE_NODE) != 0u;
     pg.level = (e >> LEVEL_SHIFT) & LEVEL_MASK;
     pg.inv_scale = 1.0 / f32(1u << pg.level);
     let node = c >> vec3<u32>(pg.level);

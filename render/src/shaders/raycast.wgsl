@@ -15,13 +15,24 @@ override CLIP_PLANE: bool = false;
 override COUNT_SAMPLES: bool = false;
 override PREINTEGRATED: bool = false;
 
+// Node-extent exit (page_table.rs FLAG_WHOLE_NODE, skip levels): a ray leaves an empty whole
+// node, one its MIP maximum already beats, or a not-resident block at once instead of cell by
+// cell, and crosses the cells of a whole node without reading their (identical) entries. The
+// benches and tests build a variant with `const NODE_EXTENT: bool = false;` (cell by cell, the
+// march before it) to count page reads and compare images.
+const NODE_EXTENT: bool = true;
+// MIP's own march (march_mip): no DVR/isosurface ray state, value-bound skipping at node
+// extent. The benches and tests build a variant with `const LEAN_MIP: bool = false;` (MIP
+// through the general march, as before) to compare images and time.
+const LEAN_MIP: bool = true;
 const BISECTION_STEPS: u32 = 10u;
 const MAX_ITERATIONS: u32 = 1000000u;
 
 @group(0) @binding(5) var out_color: texture_storage_2d<rgba8unorm, write>;
 @group(0) @binding(6) var<storage, read_write> out_depth: array<f32>;
 @group(0) @binding(7) var<storage, read_write> visibility: array<u32>;
-@group(0) @binding(8) var<storage, read_write> sample_counter: array<atomic<u32>, 2>;
+// Debug counters (COUNT_SAMPLES): samples lo/hi, page-table reads lo/hi.
+@group(0) @binding(8) var<storage, read_write> sample_counter: array<atomic<u32>, 4>;
 // Per page entry: no sample there exceeds this physical value (+inf when unknown).
 @group(0) @binding(9) var<storage, read> page_value_max: array<f32>;
 
@@ -29,14 +40,40 @@ const MAX_ITERATIONS: u32 = 1000000u;
 // its cell, so a sample costs a compare and three FMAs instead of a page read and decode.
 // (A sample within rounding of a cell face may use the neighbour's payload; the apron makes
 // that the same value at equal levels.)
+// With NODE_EXTENT, a new cell in the same whole node (or not-resident block) holds the same
+// word: only the cell and its linear index change, nothing is read.
 fn locate_on_ray(o: vec3<f32>, d: vec3<f32>, t: f32, cached: ptr<function, Page>) -> Location {
     let pc = clamp_to_volume(o + d * t);
     if t >= (*cached).t_exit {
         let cell = cell_of(pc);
-        *cached = decode_page(cell);
+        let shift = vec3<u32>((*cached).level);
+        let same_region = NODE_EXTENT && ((*cached).whole_node || !(*cached).resident)
+            && all((vec3<u32>(cell) >> shift) == (vec3<u32>((*cached).cell) >> shift));
+        if same_region {
+            let c = vec3<u32>(cell);
+            (*cached).cell = cell;
+            (*cached).linear = c.x + P.pages.x * (c.y + P.pages.y * c.z);
+        } else {
+            *cached = decode_page(cell);
+        }
         (*cached).t_exit = cell_exit(o, d, vec3<f32>(cell));
     }
     return location_in(*cached, pc);
+}
+
+// Where the ray leaves the region a skipped entry stands for: with NODE_EXTENT its whole node
+// (FLAG_WHOLE_NODE) or its not-resident block, else (or for a parent standing in for some of
+// its children) its cell.
+fn skip_exit(o: vec3<f32>, d: vec3<f32>, pg: Page) -> f32 {
+    if NODE_EXTENT && (pg.whole_node || !pg.resident) && pg.level > 0u {
+        let cells = f32(1u << pg.level);
+        let node = vec3<f32>(vec3<u32>(pg.cell) >> vec3<u32>(pg.level));
+        let lo = node * (CORE * cells) - vec3<f32>(0.5);
+        let bound = select(lo, lo + vec3<f32>(CORE * cells), d > vec3<f32>(0.0));
+        let t = select((bound - o) / d, vec3<f32>(3.0e38), abs(d) < vec3<f32>(1e-20));
+        return min(t.x, min(t.y, t.z));
+    }
+    return pg.t_exit;
 }
 
 // Blinn-Phong with a headlight; `d_idx` is the ray direction mapped into index space, so
@@ -58,6 +95,20 @@ fn shade(color: vec3<f32>, loc: Location, d_idx: vec3<f32>) -> vec3<f32> {
     let lit = P.shading.x + P.shading.y * ndl;
     let gain = unlit + (lit - unlit) * w;
     return color * gain + vec3<f32>(P.shading.z * spec * w);
+}
+
+// The debug counters (COUNT_SAMPLES): this ray's samples and page-table reads, 64-bit sums.
+fn count(samples: u32) {
+    if COUNT_SAMPLES {
+        let old = atomicAdd(&sample_counter[0], samples);
+        if old > 0xffffffffu - samples {
+            atomicAdd(&sample_counter[1], 1u);
+        }
+        let old_reads = atomicAdd(&sample_counter[2], page_reads);
+        if old_reads > 0xffffffffu - page_reads {
+            atomicAdd(&sample_counter[3], 1u);
+        }
+    }
 }
 
 fn pcg(v: u32) -> u32 {
@@ -214,6 +265,112 @@ fn take_sample(st: ptr<function, RayState>, loc: Location, t: f32, delta: f32, o
     }
 }
 
+// What a MIP ray keeps: its maximum, where it was, what it marked, how many samples it took.
+struct MipRay {
+    best_value: f32,
+    best_t: f32,
+    have_best: bool,
+    samples: u32,
+    last_marked: u32,
+};
+
+// One MIP sample: the running maximum (ties keep the first), and the page marked visible once
+// per visit where the TF makes a sample visible.
+fn mip_sample(r: ptr<function, MipRay>, loc: Location, t: f32) {
+    (*r).samples = (*r).samples + 1u;
+    let v = physical(field(loc));
+    if v > (*r).best_value {
+        (*r).best_value = v;
+        (*r).best_t = t;
+        (*r).have_best = true;
+    }
+    if loc.page != (*r).last_marked && transfer(v).a > 0.0 {
+        visibility[loc.page] = 1u;
+        (*r).last_marked = loc.page;
+    }
+}
+
+// MIP's lean march over [first, t1): the lattice, the coarse-node strides, the partial last
+// segment and the skips of main's general march (so the same samples, the same image), with
+// nothing but the maximum in flight. A region (whole node, not-resident block) that is
+// skipped, empty, or whose value bound cannot beat the running maximum is left at its extent
+// (skip_exit), and a page stops being sampled once the maximum reaches its bound.
+fn march_mip(o: vec3<f32>, d: vec3<f32>, t1: f32, first: f32, base: f32) -> MipRay {
+    var r: MipRay;
+    r.best_value = -3.0e38;
+    r.best_t = bitcast<f32>(0x7f800000u);
+    r.have_best = false;
+    r.samples = 0u;
+    r.last_marked = 0xffffffffu;
+    var k = 0u;
+    var partial_start = bitcast<f32>(0x7f800000u);
+    var pg: Page;
+    pg.t_exit = -3.0e38;
+    pg.resident = true;
+    pg.whole_node = false;
+    for (var iter = 0u; iter < MAX_ITERATIONS; iter++) {
+        let seg = first + f32(k) * base;
+        let probe_t = seg + 0.5 * base;
+        if probe_t >= t1 {
+            partial_start = seg;
+            break;
+        }
+        let probe = locate_on_ray(o, d, probe_t, &pg);
+        let cannot_win = SKIP_EMPTY && r.have_best && page_value_max[probe.page] <= r.best_value;
+        if !probe.resident || (SKIP_EMPTY && probe.empty) || cannot_win {
+            if SKIP_EMPTY {
+                let next = ceil((skip_exit(o, d, pg) - first) / base - 0.5);
+                k = max(k + 1u, u32(clamp(next, 0.0, 4.0e9)));
+            } else {
+                k = k + 1u;
+            }
+            continue;
+        }
+        let level = probe.level;
+        let stride = 1u << level;
+        let delta = base * f32(stride);
+        let t = seg + 0.5 * delta;
+        if t >= t1 {
+            partial_start = seg;
+            break;
+        }
+        var loc = probe;
+        if level != 0u {
+            loc = locate_on_ray(o, d, t, &pg);
+        }
+        k = k + stride;
+        if !loc.resident {
+            continue;
+        }
+        mip_sample(&r, loc, t);
+        if pg.level == level && pg.resident {
+            var bound = bitcast<f32>(0x7f800000u);
+            if SKIP_EMPTY {
+                bound = page_value_max[pg.linear];
+            }
+            for (var inner = 0u; inner < MAX_ITERATIONS; inner++) {
+                if r.best_value >= bound {
+                    break;
+                }
+                let t_next = first + (f32(k) + 0.5 * f32(stride)) * base;
+                if t_next >= t1 || t_next >= pg.t_exit {
+                    break;
+                }
+                k = k + stride;
+                mip_sample(&r, location_in(pg, clamp_to_volume(o + d * t_next)), t_next);
+            }
+        }
+    }
+    if partial_start < t1 {
+        let t = partial_start + 0.5 * (t1 - partial_start);
+        let loc = locate(o + d * t);
+        if loc.resident && !(SKIP_EMPTY && loc.empty) {
+            mip_sample(&r, loc, t);
+        }
+    }
+    return r;
+}
+
 @compute @workgroup_size(WORKGROUP_SIZE, WORKGROUP_SIZE, 1)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     let width = P.image.x;
@@ -286,6 +443,22 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     // t0 + (k + j)·base, the midpoints when jitter is off. Coarse nodes take 2^L segments at
     // once, so every sample stays on one lattice and empty-space jumps cannot shift it.
     let first = t0 + (j - 0.5) * base;
+    if MODE == 1u && LEAN_MIP {
+        let r = march_mip(o, d, t1, first, base);
+        var acc = vec4<f32>(0.0);
+        var depth = inf;
+        if r.have_best {
+            let tf = transfer(r.best_value);
+            acc = vec4<f32>(tf.rgb * tf.a, tf.a);
+            if tf.a > 0.0 {
+                depth = r.best_t;
+            }
+        }
+        count(r.samples);
+        textureStore(out_color, vec2<i32>(gid.xy), clamp(acc, vec4<f32>(0.0), vec4<f32>(1.0)));
+        out_depth[pixel] = depth;
+        return;
+    }
 
     var st: RayState;
     st.acc = vec4<f32>(0.0);
@@ -298,6 +471,9 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     var partial_start = inf;
     var page_cache: Page;
     page_cache.t_exit = -3.0e38;
+    // Nothing decoded yet: the first lookup must read (locate_on_ray's same-region test).
+    page_cache.resident = true;
+    page_cache.whole_node = false;
     for (var iter = 0u; iter < MAX_ITERATIONS; iter++) {
         let seg = first + f32(k) * base;
         let probe_t = seg + 0.5 * base;
@@ -314,7 +490,9 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             && page_value_max[probe.page] <= st.best_value;
         if !probe.resident || (SKIP_EMPTY && probe.empty) || mip_cannot_win {
             if SKIP_EMPTY {
-                let t_exit = page_cache.t_exit;
+                // Every cell of the region skip_exit leaves is skipped the same way (same
+                // word, same bound, no sample in between to raise the MIP maximum).
+                let t_exit = skip_exit(o, d, page_cache);
                 let next = ceil((t_exit - first) / base - 0.5);
                 k = max(k + 1u, u32(clamp(next, 0.0, 4.0e9)));
                 st.prev_valid = false;
@@ -417,12 +595,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         let base_color = P.iso_color.rgb;
         acc = vec4<f32>(shade(base_color, hit_loc, d), 1.0);
     }
-    if COUNT_SAMPLES {
-        let old = atomicAdd(&sample_counter[0], samples);
-        if old > 0xffffffffu - samples {
-            atomicAdd(&sample_counter[1], 1u);
-        }
-    }
+    count(samples);
     textureStore(out_color, vec2<i32>(gid.xy), clamp(acc, vec4<f32>(0.0), vec4<f32>(1.0)));
     out_depth[pixel] = depth;
 }
