@@ -15,6 +15,7 @@ use strata_storage::{BrickId, Store, BRICK_PAYLOAD_VOXELS};
 mod accuracy;
 mod adaptive;
 mod common;
+mod omezarr;
 mod remote;
 mod time_critical;
 mod transitions;
@@ -134,11 +135,15 @@ pub enum BenchCommand {
     /// The flythrough from a local store and through `strata serve` on loopback with added
     /// round-trip delays: convergence time, bytes and requests in flight, remote vs local.
     Remote(remote::Options),
+    /// OME-Zarr: export and import throughput vs raw read + compress, objects and bytes vs the
+    /// store, and (--s3) the remote flythrough streamed from SeaweedFS.
+    Omezarr(omezarr::Options),
 }
 
 pub fn run(cmd: BenchCommand) -> Result<()> {
     match cmd {
         BenchCommand::Remote(options) => remote::run(options),
+        BenchCommand::Omezarr(options) => omezarr::run(options),
         BenchCommand::Import {
             size,
             rss_size,

@@ -105,13 +105,11 @@ pub fn export(
         .sum();
     let mut done = 0u64;
     on_progress(0, total);
-    for level in 0..layout.level_count() {
-        let d = layout.level_dims[level];
+    for (level, (d, &n)) in layout.level_dims.iter().zip(&shards_per_level).enumerate() {
         let zyx = [d[2], d[1], d[0]].map(u64::from);
         let shard = shard_shape(zyx);
         let array = create_level_array(&storage, level, zyx, shard, narrow, fill)
             .map_err(|e| OmeZarrError::access(&dest.display, format!("level {level}: {e}")))?;
-        let n = shards_per_level[level];
         for sz in 0..n[0] {
             for sy in 0..n[1] {
                 for sx in 0..n[2] {

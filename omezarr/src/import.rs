@@ -266,9 +266,9 @@ pub fn foreign_geometry(
     };
     // t0[a] = origin · direction[a] with orthonormal directions: origin = Σ t0[a]·direction[a].
     let mut origin = [0.0; 3];
-    for a in 0..3 {
-        for (c, o) in origin.iter_mut().enumerate() {
-            *o += t0[a] * direction[a][c];
+    for (t, axis) in t0.iter().zip(&direction) {
+        for (o, d) in origin.iter_mut().zip(axis) {
+            *o += t * d;
         }
     }
     let geometry = VolumeGeometry {

@@ -24,6 +24,9 @@ pub struct ObjectStoreOptions {
     pub endpoint: Option<String>,
     /// S3 region (default: `AWS_REGION`, else `us-east-1`).
     pub region: Option<String>,
+    /// Access key id and secret, for callers that hold their own (a benchmark's test server);
+    /// the environment's otherwise.
+    pub credentials: Option<(String, String)>,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -51,6 +54,9 @@ impl ObjectLocation {
     /// Opens `spec` (a folder path, `s3://bucket/prefix` or `http(s)://host/path`). A folder
     /// is created when `create_folder` (for export); nothing is contacted yet for S3 or HTTP.
     pub fn open(spec: &str, options: &ObjectStoreOptions, create_folder: bool) -> Result<Self> {
+        // reqwest (under object_store) is built without a TLS provider of its own: rustls on
+        // ring, installed before any client exists (an error means one is installed already).
+        let _ = rustls::crypto::ring::default_provider().install_default();
         if let Some(rest) = spec.strip_prefix("s3://") {
             let (bucket, prefix) = rest.split_once('/').unwrap_or((rest, ""));
             if bucket.is_empty() {
@@ -78,6 +84,11 @@ impl ObjectLocation {
                 .or_else(|| std::env::var("AWS_DEFAULT_REGION").ok())
                 .unwrap_or_else(|| "us-east-1".into());
             builder = builder.with_region(region);
+            if let Some((key, secret)) = &options.credentials {
+                builder = builder
+                    .with_access_key_id(key)
+                    .with_secret_access_key(secret);
+            }
             let s3 = builder
                 .build()
                 .map_err(|e| OmeZarrError::invalid(spec, format!("S3 configuration: {e}")))?;

@@ -96,9 +96,8 @@ impl OmeZarrSource {
         };
         let narrow = header.stored == StoredScalar::U8;
         let mut levels = Vec::with_capacity(header.layout.level_count());
-        for level in 0..header.layout.level_count() {
+        for (level, d) in header.layout.level_dims.iter().enumerate() {
             let array = open_level(&opened, level)?;
-            let d = header.layout.level_dims[level];
             let expected = [d[2], d[1], d[0]].map(u64::from);
             if array.shape() != expected {
                 return Err(OmeZarrError::invalid(
@@ -198,6 +197,53 @@ impl OmeZarrSource {
             }
         }
         Ok(out)
+    }
+
+    /// Encoded bytes of the inner chunks the bricks read so far needed: each brick's own and its
+    /// neighbours' (its apron's sources), each chunk counted once. The denominator of the
+    /// bytes-fetched ratio; reads shard indices (already cached by the reads it accounts for).
+    pub fn needed_chunk_bytes(&self) -> Result<u64> {
+        let ids: Vec<BrickId> = self
+            .bricks_read
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .iter()
+            .copied()
+            .collect();
+        let mut chunks = std::collections::HashSet::new();
+        for id in ids {
+            let n = self
+                .header
+                .layout
+                .bricks_in_level(id.level as usize)
+                .map(i64::from);
+            for dz in -1..=1i64 {
+                for dy in -1..=1i64 {
+                    for dx in -1..=1i64 {
+                        let c = [
+                            i64::from(id.coords[0]) + dx,
+                            i64::from(id.coords[1]) + dy,
+                            i64::from(id.coords[2]) + dz,
+                        ];
+                        if (0..3).all(|a| (0..n[a]).contains(&c[a])) {
+                            chunks.insert((id.level, c[2] as u64, c[1] as u64, c[0] as u64));
+                        }
+                    }
+                }
+            }
+        }
+        let mut total = 0;
+        for (level, z, y, x) in chunks {
+            let l = &self.levels[level as usize];
+            let range = l
+                .array
+                .subchunk_byte_range(&l.cache, &[z, y, x])
+                .map_err(|e| OmeZarrError::access(&self.display, e))?;
+            if let Some(range) = range {
+                total += range.length(u64::MAX);
+            }
+        }
+        Ok(total)
     }
 
     /// Shard indices cached so far, over all levels.
