@@ -276,10 +276,7 @@ fn create_level_array(
     };
     builder
         .subchunk_shape(vec![INNER_CHUNK; 3])
-        .bytes_to_bytes_codecs(vec![Arc::new(codec::ZstdCodec::new(
-            ZSTD_LEVEL.into(),
-            false,
-        ))])
+        .bytes_to_bytes_codecs(vec![Arc::new(codec::ZstdCodec::new(ZSTD_LEVEL, false))])
         .dimension_names(Some(["z", "y", "x"]));
     let array = builder
         .build(storage.clone(), &format!("/{level}"))

@@ -178,8 +178,8 @@ fn numbers(value: Option<&Value>) -> Option<Vec<f64>> {
 /// Applies a `coordinateTransformations` list to (scale, translation), in order.
 fn apply_transformations(
     list: Option<&Value>,
-    scale: &mut Vec<f64>,
-    translation: &mut Vec<f64>,
+    scale: &mut [f64],
+    translation: &mut [f64],
     location: &str,
 ) -> Result<()> {
     let Some(list) = list.and_then(Value::as_array) else {

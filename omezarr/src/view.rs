@@ -85,7 +85,7 @@ impl ZarrView {
                 ArrayBuilder::new(shape, vec![CHUNK; 3], data_type::uint16(), fill)
             };
             builder
-                .bytes_to_bytes_codecs(vec![Arc::new(codec::ZstdCodec::new(3.into(), false))])
+                .bytes_to_bytes_codecs(vec![Arc::new(codec::ZstdCodec::new(3, false))])
                 .dimension_names(Some(["z", "y", "x"]));
             let array = builder
                 .build(memory.clone(), &format!("/{level}"))

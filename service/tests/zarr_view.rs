@@ -98,7 +98,7 @@ fn a_served_store_reads_as_ome_zarr_over_http() {
     };
     std::fs::write(work.path().join("meta.json"), serde_json_string(&shapes)).unwrap();
     let server = start(
-        find_stores(&[path.clone()]).unwrap(),
+        find_stores(std::slice::from_ref(&path)).unwrap(),
         ServeOptions::default(),
     )
     .unwrap();
