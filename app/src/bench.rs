@@ -12,6 +12,7 @@ mod accuracy;
 mod adaptive;
 mod common;
 mod import;
+mod omezarr;
 mod remote;
 mod time_critical;
 mod transitions;
@@ -147,6 +148,9 @@ pub enum BenchCommand {
     /// The flythrough from a local store and through `strata serve` on loopback with added
     /// round-trip delays: convergence time, bytes and requests in flight, remote vs local.
     Remote(remote::Options),
+    /// OME-Zarr: export and import throughput vs raw read + compress, objects and bytes vs the
+    /// store, and (--s3) the remote flythrough streamed from SeaweedFS.
+    Omezarr(omezarr::Options),
 }
 
 /// `--codec` of the import benchmark: fast or dense.
@@ -160,6 +164,7 @@ fn parse_codec(name: &str) -> std::result::Result<BrickCodec, String> {
 pub fn run(cmd: BenchCommand) -> Result<()> {
     match cmd {
         BenchCommand::Remote(options) => remote::run(options),
+        BenchCommand::Omezarr(options) => omezarr::run(options),
         BenchCommand::Import {
             codec,
             size,

@@ -8,7 +8,8 @@ use strata_storage::{BrickCodec, ByteOrder, SampleType};
 
 #[derive(Args)]
 pub struct ImportArgs {
-    /// DICOM folder or file, .nii/.nii.gz, .nrrd/.nhdr, .mha/.mhd, or raw (with --raw-*).
+    /// DICOM folder or file, .nii/.nii.gz, .nrrd/.nhdr, .mha/.mhd, raw (with --raw-*), or an
+    /// OME-Zarr (a folder, s3://BUCKET/PREFIX or http(s)://.../x.ome.zarr).
     pub input: PathBuf,
     /// Store directory to create (an existing store there is replaced).
     pub store: PathBuf,
@@ -40,6 +41,14 @@ pub struct ImportArgs {
     /// Folder for temporary decompressed data (default: the system temp folder).
     #[arg(long)]
     pub staging_dir: Option<PathBuf>,
+    /// OME-Zarr: the channel to import when the image has a channel axis (default 0).
+    #[arg(long)]
+    pub channel: Option<u64>,
+    /// OME-Zarr: the time point to import when the image has a time axis (default 0).
+    #[arg(long)]
+    pub time: Option<u64>,
+    #[command(flatten)]
+    pub object_store: crate::cmd_omezarr::ObjectStoreArgs,
 }
 
 /// `--codec`: the codecs a new store may use (lz4 alone is format 1's, not offered).
@@ -82,6 +91,22 @@ fn three<T: Copy + std::fmt::Display>(flag: &str, values: &[T]) -> Result<[T; 3]
 }
 
 pub fn run(args: ImportArgs) -> Result<()> {
+    let input = args.input.to_string_lossy().into_owned();
+    if strata_omezarr::looks_like_ome_zarr(&input) {
+        let zarr = strata_omezarr::import::ImportZarrOptions {
+            channel: args.channel,
+            time: args.time,
+            staging_dir: args.staging_dir.clone(),
+            memory_budget_bytes: None,
+        };
+        return crate::cmd_omezarr::run_import(
+            &input,
+            &args.store,
+            &zarr,
+            &args.object_store,
+            args.memory_mib << 20,
+        );
+    }
     let raw = match (&args.raw_dims, &args.raw_type) {
         (Some(d), Some(t)) => Some(RawSpec {
             dims: three("raw-dims", d)?,

@@ -21,7 +21,7 @@ pub fn run(location: &str, token_file: Option<&Path>) -> Result<()> {
         Opened::Local(store) => store
             .verify(|done, _| bar.set_position(done))
             .with_context(|| format!("verifying {location}"))?,
-        Opened::Remote(_) => {
+        Opened::Remote(_) | Opened::OmeZarr(_) => {
             strata_source::verify_source(source.as_ref(), REMOTE_VERIFY_THREADS, &|done, _| {
                 bar.set_position(done)
             })

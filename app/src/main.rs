@@ -5,6 +5,7 @@ mod cli_checks;
 mod cmd_flythrough;
 mod cmd_import;
 mod cmd_info;
+mod cmd_omezarr;
 mod cmd_render;
 mod cmd_sample;
 mod cmd_serve;
@@ -35,6 +36,8 @@ struct Cli {
 enum Command {
     /// Import a scan (DICOM folder or file, NIfTI, NRRD, MetaImage, raw) into a brick store.
     Import(cmd_import::ImportArgs),
+    /// Export a store as OME-Zarr 0.5 (sharded Zarr v3) to a folder or s3://bucket/prefix.
+    Export(cmd_omezarr::ExportArgs),
     /// Print a store's geometry, orientation, value range, levels and sizes.
     Info(StoreArg),
     /// Read and check every brick of a store (checksums, decompression, ranges).
@@ -90,6 +93,7 @@ fn install_interrupt_cleanup() {
 fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Some(Command::Import(args)) => cmd_import::run(args),
+        Some(Command::Export(args)) => cmd_omezarr::run_export(args),
         Some(Command::Info(a)) => cmd_info::run(&a.store, a.token_file.as_deref()),
         Some(Command::Verify(a)) => cmd_verify::run(&a.store, a.token_file.as_deref()),
         Some(Command::Serve(args)) => cmd_serve::run(args),
@@ -151,7 +155,10 @@ struct ViewArgs {
 
 fn view(args: ViewArgs) -> Result<()> {
     let source = match args.path {
-        Some(path) if volume_location::is_url(&path.to_string_lossy()) => {
+        Some(path)
+            if volume_location::is_url(&path.to_string_lossy())
+                || strata_omezarr::looks_like_ome_zarr(&path.to_string_lossy()) =>
+        {
             viewer::url_source(path.to_string_lossy().into_owned(), args.token_file)
         }
         Some(path) => viewer::path_source(path),

@@ -1,6 +1,8 @@
-//! Where a command's volume comes from: a store directory on this machine, or
+//! Where a command's volume comes from: a store directory on this machine,
 //! `http://host:port/v1/stores/NAME` served by `strata serve` (with `--token-file` when the
-//! server asks for one). Every reading command opens its volume here and reads it through the
+//! server asks for one), or an OME-Zarr streamed in place (`s3://bucket/x.ome.zarr`,
+//! `https://host/x.ome.zarr`, or a local `.zarr` folder; S3 endpoint and region from
+//! `AWS_ENDPOINT_URL` / `AWS_REGION`). Every reading command opens its volume here and reads it through the
 //! volume-source seam, so a URL works wherever a store path does.
 
 use std::path::Path;
@@ -33,6 +35,7 @@ pub fn read_token(path: &Path) -> Result<String> {
 pub enum Opened {
     Local(Arc<Store>),
     Remote(Arc<RemoteSource>),
+    OmeZarr(Arc<strata_omezarr::streaming::OmeZarrSource>),
 }
 
 impl Opened {
@@ -40,6 +43,7 @@ impl Opened {
         match self {
             Opened::Local(s) => s.clone(),
             Opened::Remote(r) => r.clone(),
+            Opened::OmeZarr(z) => z.clone(),
         }
     }
 }
@@ -70,6 +74,11 @@ pub fn open_remote(url: &str, token_file: Option<&Path>) -> Result<Arc<RemoteSou
 
 /// Opens `location` (a path or a URL). `sled_cache_bytes` sizes a local store's page cache.
 pub fn open(location: &str, token_file: Option<&Path>, sled_cache_bytes: u64) -> Result<Opened> {
+    if strata_omezarr::looks_like_ome_zarr(location) {
+        let source = strata_omezarr::streaming::open_source(location, &Default::default())
+            .with_context(|| format!("cannot open the OME-Zarr {location}"))?;
+        return Ok(Opened::OmeZarr(source));
+    }
     if is_url(location) {
         return Ok(Opened::Remote(open_remote(location, token_file)?));
     }

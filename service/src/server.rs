@@ -150,6 +150,8 @@ struct ServedStore {
     store: Store,
     open_document: axum::body::Bytes,
     listing: StoreListing,
+    /// The store as a read-only OME-Zarr 0.5 image (`/v1/stores/{name}/zarr/...`).
+    zarr_view: strata_omezarr::view::ZarrView,
 }
 
 /// Counters, logged once a minute and readable by tests.
@@ -282,6 +284,15 @@ fn open_served(
     };
     let open_document = encode_open_document(&doc, store.skeleton())
         .map_err(|e| ServeError::Config(format!("cannot encode {}: {e}", path.display())))?;
+    let zarr_view = strata_omezarr::view::ZarrView::new(
+        &name,
+        store.header(),
+        store.histogram(),
+        store.stats(),
+        store.skeleton(),
+        expose_identifiers,
+    )
+    .map_err(|e| ServeError::Config(format!("{}: {e}", path.display())))?;
     let listing = StoreListing {
         name: name.clone(),
         generation: generation.clone(),
@@ -295,6 +306,7 @@ fn open_served(
         store,
         open_document: open_document.into(),
         listing,
+        zarr_view,
     })
 }
 
@@ -495,6 +507,7 @@ fn router(state: Arc<AppState>, options: &ServeOptions) -> Router {
             "/v1/stores/{name}/g/{generation}/bricks/{level}/{z}/{y}/{x}",
             get(brick),
         )
+        .route("/v1/stores/{name}/zarr/{*key}", get(zarr_key))
         .fallback(not_found)
         .layer(axum::middleware::from_fn_with_state(state.clone(), guard))
         .layer(tower_http::timeout::TimeoutLayer::with_status_code(
@@ -840,6 +853,91 @@ async fn brick(
         }
     };
     response.unwrap_or_else(|_| StatusCode::INTERNAL_SERVER_ERROR.into_response())
+}
+
+/// The store's read-only OME-Zarr 0.5 view: group and array metadata, the skeleton object, and
+/// each 32³ chunk built from its brick (apron stripped). Chunks of fill value only are 404,
+/// which Zarr readers take as the fill value. Bodies carry the generation in their ETag.
+async fn zarr_key(
+    State(state): State<Arc<AppState>>,
+    UrlPath((name, key)): UrlPath<(String, String)>,
+    headers: HeaderMap,
+) -> Response {
+    use strata_omezarr::view::ViewAnswer;
+    let Some(store) = state.stores.get(&name).cloned() else {
+        return not_found().await;
+    };
+    // Keys are matched against the view below; the tag keeps only their plain characters.
+    let plain: String = key
+        .chars()
+        .filter(|c| c.is_ascii_alphanumeric() || matches!(c, '/' | '.' | '_' | '-'))
+        .collect();
+    let etag = format!("\"{}-zarr-{plain}\"", store.generation);
+    if if_none_match(&headers, &etag) {
+        state.counters.not_modified.fetch_add(1, Ordering::Relaxed);
+        return (StatusCode::NOT_MODIFIED, [(header::ETAG, etag)]).into_response();
+    }
+    let answer = match store.zarr_view.metadata(&key) {
+        Some(answer) => Ok(answer),
+        None => {
+            let reader = store.clone();
+            let read = tokio::task::spawn_blocking(move || {
+                let Some(id) = reader.zarr_view.chunk_brick(&key) else {
+                    return Ok(ViewAnswer::NotFound);
+                };
+                if reader.zarr_view.chunk_is_fill(reader.store.node(id)) {
+                    return Ok(ViewAnswer::NotFound);
+                }
+                let payload = reader.store.read_brick(id).map_err(|e| e.to_string())?;
+                reader
+                    .zarr_view
+                    .encode_chunk(id, &payload)
+                    .map_err(|e| e.to_string())
+            })
+            .await;
+            match read {
+                Ok(answer) => answer,
+                Err(e) => Err(format!("read failed: {e}")),
+            }
+        }
+    };
+    match answer {
+        Ok(ViewAnswer::Found(body)) => {
+            let total = body.len() as u64;
+            let builder = Response::builder()
+                .header(header::CONTENT_TYPE, "application/octet-stream")
+                .header(header::CACHE_CONTROL, "no-cache")
+                .header(header::ACCEPT_RANGES, "bytes")
+                .header(header::ETAG, etag);
+            let response = match headers.get(header::RANGE).map(|v| parse_range(v, total)) {
+                Some(RangeAsk::Unsatisfiable) => builder
+                    .status(StatusCode::RANGE_NOT_SATISFIABLE)
+                    .header(header::CONTENT_RANGE, format!("bytes */{total}"))
+                    .body(Body::empty()),
+                Some(RangeAsk::Bytes(a, b)) => {
+                    let part = body[a as usize..=b as usize].to_vec();
+                    state
+                        .counters
+                        .bytes
+                        .fetch_add(part.len() as u64, Ordering::Relaxed);
+                    builder
+                        .status(StatusCode::PARTIAL_CONTENT)
+                        .header(header::CONTENT_RANGE, format!("bytes {a}-{b}/{total}"))
+                        .body(Body::from(part))
+                }
+                None | Some(RangeAsk::Ignore) => {
+                    state.counters.bytes.fetch_add(total, Ordering::Relaxed);
+                    builder.status(StatusCode::OK).body(Body::from(body))
+                }
+            };
+            response.unwrap_or_else(|_| StatusCode::INTERNAL_SERVER_ERROR.into_response())
+        }
+        Ok(ViewAnswer::NotFound) => not_found().await,
+        Err(e) => {
+            tracing::error!("strata serve: {e}");
+            (StatusCode::INTERNAL_SERVER_ERROR, format!("{e}\n")).into_response()
+        }
+    }
 }
 
 enum RangeAsk {

@@ -61,10 +61,29 @@ pub struct Options {
     pub http1: bool,
 }
 
+impl Options {
+    /// The flythrough's defaults for another bench (`bench omezarr`).
+    pub(crate) fn for_bench(store: PathBuf, size: &str, stops: usize) -> Options {
+        Options {
+            store,
+            rtt_ms: vec![0],
+            size: size.to_string(),
+            stops,
+            glide_frames: 12,
+            settle_frames: 2000,
+            gpu_mib: 1024,
+            cpu_mib: 2048,
+            uploads: 64,
+            tf: None,
+            http1: false,
+        }
+    }
+}
+
 #[derive(Clone, Debug, Default)]
-struct Stop {
-    first_frame_seconds: f64,
-    converge_seconds: Option<f64>,
+pub(crate) struct Stop {
+    pub(crate) first_frame_seconds: f64,
+    pub(crate) converge_seconds: Option<f64>,
     bytes: u64,
     in_flight_mean: f64,
     in_flight_max: usize,
@@ -73,16 +92,18 @@ struct Stop {
     max_loader_seconds: f64,
 }
 
-struct Run {
+pub(crate) struct Run {
     label: String,
-    open_seconds: f64,
-    stops: Vec<Stop>,
+    pub(crate) open_seconds: f64,
+    pub(crate) stops: Vec<Stop>,
+    /// Bricks the loader read from the source over the whole run.
+    pub(crate) bricks_read: u64,
     cancelled: u64,
     retried: u64,
     max_in_flight: u64,
 }
 
-fn fly(
+pub(crate) fn fly(
     ctx: &GpuContext,
     label: String,
     open: &dyn Fn() -> Result<Arc<dyn VolumeSource>>,
@@ -159,6 +180,7 @@ fn fly(
         label,
         open_seconds,
         stops,
+        bricks_read: last.bricks_read_total,
         cancelled: last.cancelled_in_flight_total,
         retried: last.retried_total,
         max_in_flight: last.max_in_flight,
