@@ -105,6 +105,7 @@ pub fn run(args: ImportArgs) -> Result<()> {
             &zarr,
             &args.object_store,
             args.memory_mib << 20,
+            args.codec,
         );
     }
     let raw = match (&args.raw_dims, &args.raw_type) {

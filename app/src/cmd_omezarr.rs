@@ -97,6 +97,7 @@ pub fn run_import(
     zarr: &ImportZarrOptions,
     object_store: &ObjectStoreArgs,
     memory_budget_bytes: u64,
+    codec: strata_storage::BrickCodec,
 ) -> Result<()> {
     let location = ObjectLocation::open(input, &object_store.options(), false)
         .with_context(|| format!("cannot open {input}"))?;
@@ -114,6 +115,7 @@ pub fn run_import(
         memory_budget_bytes,
         cancel: None,
         progress: Some(&progress),
+        codec,
     };
     let report = import_zarr(location, store, zarr, &stage_progress, &import_options)
         .with_context(|| format!("import of {input} into {} failed", store.display()))?;

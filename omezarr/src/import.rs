@@ -528,6 +528,7 @@ pub fn import_zarr(
             .unwrap_or(import_options.memory_budget_bytes),
         cancel: import_options.cancel,
         progress: import_options.progress,
+        codec: import_options.codec,
     };
     let import = import_slices(&producer, meta, store_path, &options)?;
     drop(producer);

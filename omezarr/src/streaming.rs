@@ -367,6 +367,9 @@ fn foreign_description(
         brick_apron: u64::from(BRICK_APRON),
         stored_range: [0, max],
         generation: format!("ome-zarr:{display}"),
+        // The records this source hands the loader (read_brick_record) use the default codec.
+        codec: strata_storage::BrickCodec::default(),
+        required_features: Vec::new(),
     };
     let histogram = Histogram::from_stored(
         &strata_storage::histogram::StoredValueCounts::default(),
@@ -396,7 +399,13 @@ impl VolumeSource for OmeZarrSource {
     /// verify records the same way for every source).
     fn read_brick_record(&self, id: BrickId) -> Result<Vec<u8>, SourceError> {
         let voxels = self.assemble_brick(id)?;
-        Ok(encode_brick(id, &voxels, value_range(&voxels), self.narrow))
+        Ok(encode_brick(
+            id,
+            &voxels,
+            value_range(&voxels),
+            self.narrow,
+            self.header.codec,
+        ))
     }
     fn read_brick(&self, id: BrickId) -> Result<Vec<u16>, SourceError> {
         self.assemble_brick(id)
