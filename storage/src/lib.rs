@@ -1,4 +1,4 @@
-//! strata-storage: the out-of-core brick octree store (sled + lz4) and the streaming importers.
+//! strata-storage: the out-of-core brick octree store (sled; byte-shuffled lz4 or zstd bricks) and the streaming importers.
 //!
 //! Knows nothing of GPUs. See ARCHITECTURE.md for the store layout and its invariants.
 
