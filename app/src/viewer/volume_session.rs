@@ -687,33 +687,7 @@ mod tests {
     #[test]
     fn after_a_mode_switch_the_converged_frame_is_drawn_in_the_new_mode() {
         let dir = tempfile::tempdir().expect("temp dir");
-        let path = dir.path().join("p.strata");
-        strata_storage::phantom::Phantom::cube(48)
-            .write_store(&path, &Default::default())
-            .expect("phantom store");
-        let store = Arc::new(strata_storage::Store::open(&path).expect("open"));
-        let session = VolumeSession::start(store, DEFAULT_GPU_BUDGET_BYTES, Arc::new(|| {}))
-            .expect("session");
-        let info = session.info().clone();
-        let dvr = RenderRequest {
-            camera: Camera::orbit(
-                &info.geometry,
-                30.0,
-                15.0,
-                1.5,
-                strata_render::Projection::Perspective { fov_y_deg: 30.0 },
-            ),
-            settings: RenderSettings {
-                width: 48,
-                height: 48,
-                jitter: false,
-                ..RenderSettings::default()
-            },
-            transfer_function: TransferFunction::preset("ct-bone").expect("preset"),
-            target_fps: None,
-            interacting: false,
-        };
-        session.request(dvr.clone());
+        let (session, dvr) = phantom_session(dir.path());
         let dvr_frame = wait_converged(&session, &dvr);
         let mip = RenderRequest {
             settings: RenderSettings {
