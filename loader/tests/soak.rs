@@ -44,6 +44,8 @@ fn loader_soak_random_views_tfs_and_budgets() {
         .ok()
         .and_then(|s| s.parse().ok())
         .unwrap_or(1800);
+    // First, before the GPU's and the store's threads (see malloc_arenas.rs).
+    strata_loader::malloc_arenas::limit_malloc_arenas();
     let ctx = gpu();
     let dir = tempfile::tempdir().unwrap();
     let store = open(&phantom_store(dir.path(), 160));
@@ -86,7 +88,9 @@ fn loader_soak_random_views_tfs_and_budgets() {
         // A new volume with random budgets every few hundred frames.
         let config = StreamingConfig {
             gpu_budget_bytes: (8 + rng.next() % 120) << 20,
-            cpu_budget_bytes: (8 + rng.next() % 248) << 20,
+            // At least 16 MiB: sled's cache and the bricks in transit take 13 (below that
+            // the volume refuses to start, which is tested elsewhere).
+            cpu_budget_bytes: (16 + rng.next() % 240) << 20,
             sled_cache_bytes: 1 << 20,
             uploads_per_frame: 1 + (rng.next() % 64) as usize,
             ..StreamingConfig::default()
@@ -159,13 +163,31 @@ fn loader_soak_random_views_tfs_and_budgets() {
         started.elapsed().as_secs_f64(),
         (-worst_rss_over) >> 20
     );
-    // The trend a leak would show: RSS when each new volume starts, first quarter vs last.
+    // The trend a leak (or memory a dropped volume keeps) would show: RSS when each new
+    // volume starts, first quarter vs last. It must not rise by more than a tenth of the
+    // peak budgets.
     let quarter = (rss_at_volume_starts.len() / 4).max(1);
     let mean_mib = |xs: &[u64]| xs.iter().sum::<u64>() as f64 / xs.len().max(1) as f64 / 1048576.0;
+    let first = mean_mib(&rss_at_volume_starts[..quarter.min(rss_at_volume_starts.len())]);
+    let last =
+        mean_mib(&rss_at_volume_starts[rss_at_volume_starts.len().saturating_sub(quarter)..]);
     println!(
-        "soak: RSS at volume start, mean of the first quarter {:.0} MiB, of the last {:.0} MiB (peak budgets {} MiB)",
-        mean_mib(&rss_at_volume_starts[..quarter.min(rss_at_volume_starts.len())]),
-        mean_mib(&rss_at_volume_starts[rss_at_volume_starts.len().saturating_sub(quarter)..]),
+        "soak: RSS at volume start, mean of the first quarter {first:.0} MiB, of the last {last:.0} MiB (peak budgets {} MiB)",
         peak_budgets >> 20
     );
+    println!(
+        "soak: RSS at each volume start (MiB): {:?}",
+        rss_at_volume_starts
+            .iter()
+            .map(|r| r >> 20)
+            .collect::<Vec<_>>()
+    );
+    if rss_at_volume_starts.len() >= 8 {
+        let allowed = (peak_budgets as f64 / 1048576.0) / 10.0;
+        assert!(
+            last <= first + allowed,
+            "RSS at volume start rose from {first:.0} MiB (first quarter) to {last:.0} MiB \
+             (last quarter), more than a tenth of the peak budgets ({allowed:.0} MiB)"
+        );
+    }
 }
