@@ -4,6 +4,8 @@
 //! that frames keep coming (a watchdog fails the test after 60 s without one: a deadlock).
 //!
 //! `STRATA_SOAK_SECONDS=1800 cargo test -p strata-loader --test soak -- --ignored --nocapture`
+//! (`STRATA_SOAK_MAX_FRAMES_PER_VOLUME=60` for more, shorter volumes in a shorter run;
+//! `STRATA_MALLOC_ARENAS=default` to measure without the arena cap of malloc_arenas.rs)
 
 mod common;
 
@@ -44,6 +46,13 @@ fn loader_soak_random_views_tfs_and_budgets() {
         .ok()
         .and_then(|s| s.parse().ok())
         .unwrap_or(1800);
+    // Frames per volume: a quarter of this up to this (a short run shortens it to see the
+    // trend over more volumes).
+    let max_frames: u64 = std::env::var("STRATA_SOAK_MAX_FRAMES_PER_VOLUME")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(400)
+        .max(4);
     // First, before the GPU's and the store's threads (see malloc_arenas.rs).
     strata_loader::malloc_arenas::limit_malloc_arenas();
     let ctx = gpu();
@@ -101,7 +110,7 @@ fn loader_soak_random_views_tfs_and_budgets() {
         let mut volume = stream(&ctx, &store, &tf, config.clone());
         volumes += 1;
         let mut settings = settings(128);
-        for _ in 0..(100 + rng.next() % 300) {
+        for _ in 0..(max_frames / 4 + rng.next() % (max_frames - max_frames / 4)) {
             if rng.next().is_multiple_of(16) {
                 let name = presets[(rng.next() % presets.len() as u64) as usize];
                 volume
