@@ -72,6 +72,7 @@ pub fn run(options: ViewerOptions) -> Result<()> {
                 if restore {
                     child.env(session_restore::RESTORE_ENV, "1");
                 }
+                session_restore::end_with_parent(&mut child);
                 child.status()
             },
             |line| eprintln!("{line}"),

@@ -219,6 +219,26 @@ impl UiDeviceWatch {
     }
 }
 
+/// The window must not outlive its supervisor (killed, or ended by Ctrl-C or SIGTERM): on
+/// Linux the kernel sends the child SIGTERM when the supervisor ends, and the child's own
+/// handler ends it as Ctrl-C would.
+pub fn end_with_parent(child: &mut std::process::Command) {
+    #[cfg(target_os = "linux")]
+    {
+        use std::os::unix::process::CommandExt;
+        // SAFETY: the closure runs in the forked child before exec and only calls prctl,
+        // which is async-signal-safe and touches no memory of ours.
+        unsafe {
+            child.pre_exec(|| {
+                libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM);
+                Ok(())
+            });
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    let _ = child;
+}
+
 /// How a supervised child ended.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum ChildOutcome {
