@@ -61,6 +61,8 @@ enum Command {
 }
 
 fn main() -> std::process::ExitCode {
+    // Before any thread starts: memory a closed volume gave back stays reusable.
+    strata_loader::malloc_arenas::limit_malloc_arenas();
     install_interrupt_cleanup();
     match run(Cli::parse()) {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -8,6 +8,7 @@ pub mod cut_selection;
 pub mod error;
 pub mod fetch_workers;
 pub mod gpu_slots;
+pub mod malloc_arenas;
 pub mod metrics;
 pub mod octree_ranges;
 pub mod predicted_cut;

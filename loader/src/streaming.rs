@@ -261,6 +261,8 @@ impl StreamingVolume {
         tf: &TransferFunction,
         config: StreamingConfig,
     ) -> Result<Self, LoaderError> {
+        // Before this volume's threads allocate bricks (see malloc_arenas.rs).
+        crate::malloc_arenas::limit_malloc_arenas();
         tf.validate()?;
         let reader = source.clone();
         let header = source.header();

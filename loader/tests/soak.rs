@@ -4,6 +4,8 @@
 //! that frames keep coming (a watchdog fails the test after 60 s without one: a deadlock).
 //!
 //! `STRATA_SOAK_SECONDS=1800 cargo test -p strata-loader --test soak -- --ignored --nocapture`
+//! (`STRATA_SOAK_MAX_FRAMES_PER_VOLUME=60` for more, shorter volumes in a shorter run;
+//! `STRATA_MALLOC_ARENAS=default` to measure without the arena cap of malloc_arenas.rs)
 
 mod common;
 
@@ -44,6 +46,15 @@ fn loader_soak_random_views_tfs_and_budgets() {
         .ok()
         .and_then(|s| s.parse().ok())
         .unwrap_or(1800);
+    // Frames per volume: a quarter of this up to this (a short run shortens it to see the
+    // trend over more volumes).
+    let max_frames: u64 = std::env::var("STRATA_SOAK_MAX_FRAMES_PER_VOLUME")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(400)
+        .max(4);
+    // First, before the GPU's and the store's threads (see malloc_arenas.rs).
+    strata_loader::malloc_arenas::limit_malloc_arenas();
     let ctx = gpu();
     let dir = tempfile::tempdir().unwrap();
     let store = open(&phantom_store(dir.path(), 160));
@@ -86,18 +97,26 @@ fn loader_soak_random_views_tfs_and_budgets() {
         // A new volume with random budgets every few hundred frames.
         let config = StreamingConfig {
             gpu_budget_bytes: (8 + rng.next() % 120) << 20,
-            cpu_budget_bytes: (8 + rng.next() % 248) << 20,
+            // At least 16 MiB: sled's cache and the bricks in transit take 13 (below that
+            // the volume refuses to start, which is tested elsewhere).
+            cpu_budget_bytes: (16 + rng.next() % 240) << 20,
             sled_cache_bytes: 1 << 20,
             uploads_per_frame: 1 + (rng.next() % 64) as usize,
             ..StreamingConfig::default()
         };
         peak_budgets = peak_budgets.max(config.cpu_budget_bytes + config.gpu_budget_bytes);
-        rss_at_volume_starts.extend(resident_bytes());
+        // After the last volume was dropped and wgpu, polled, has freed its GPU objects
+        // (without the poll the last volume's cache texture is still counted), and not
+        // before the first volume (that is the baseline, not memory a volume left).
+        ctx.wait_idle().unwrap();
+        if volumes > 0 {
+            rss_at_volume_starts.extend(resident_bytes());
+        }
         let tf = TransferFunction::preset(presets[0]).unwrap();
         let mut volume = stream(&ctx, &store, &tf, config.clone());
         volumes += 1;
         let mut settings = settings(128);
-        for _ in 0..(100 + rng.next() % 300) {
+        for _ in 0..(max_frames / 4 + rng.next() % (max_frames - max_frames / 4)) {
             if rng.next().is_multiple_of(16) {
                 let name = presets[(rng.next() % presets.len() as u64) as usize];
                 volume
@@ -159,13 +178,34 @@ fn loader_soak_random_views_tfs_and_budgets() {
         started.elapsed().as_secs_f64(),
         (-worst_rss_over) >> 20
     );
-    // The trend a leak would show: RSS when each new volume starts, first quarter vs last.
+    // The trend a leak (or memory a dropped volume keeps) would show: RSS when each new
+    // volume starts, first quarter vs last. It must not rise by more than a fifth of the
+    // peak budgets. Measured in a 540 s run (17 volumes, 10-40 frames each, peak budgets
+    // 299 MiB): with glibc's default arenas the mean rose 237 -> 335 MiB (+98), with the cap
+    // of malloc_arenas.rs 208 -> 253 MiB (+45, in two steps at volumes 5 and 12, then flat).
+    // A tenth (30 MiB) is not met yet: what the remaining steps are is not known.
     let quarter = (rss_at_volume_starts.len() / 4).max(1);
     let mean_mib = |xs: &[u64]| xs.iter().sum::<u64>() as f64 / xs.len().max(1) as f64 / 1048576.0;
+    let first = mean_mib(&rss_at_volume_starts[..quarter.min(rss_at_volume_starts.len())]);
+    let last =
+        mean_mib(&rss_at_volume_starts[rss_at_volume_starts.len().saturating_sub(quarter)..]);
     println!(
-        "soak: RSS at volume start, mean of the first quarter {:.0} MiB, of the last {:.0} MiB (peak budgets {} MiB)",
-        mean_mib(&rss_at_volume_starts[..quarter.min(rss_at_volume_starts.len())]),
-        mean_mib(&rss_at_volume_starts[rss_at_volume_starts.len().saturating_sub(quarter)..]),
+        "soak: RSS at volume start, mean of the first quarter {first:.0} MiB, of the last {last:.0} MiB (peak budgets {} MiB)",
         peak_budgets >> 20
     );
+    println!(
+        "soak: RSS at each volume start (MiB): {:?}",
+        rss_at_volume_starts
+            .iter()
+            .map(|r| r >> 20)
+            .collect::<Vec<_>>()
+    );
+    if rss_at_volume_starts.len() >= 8 {
+        let allowed = (peak_budgets as f64 / 1048576.0) / 5.0;
+        assert!(
+            last <= first + allowed,
+            "RSS at volume start rose from {first:.0} MiB (first quarter) to {last:.0} MiB \
+             (last quarter), more than a fifth of the peak budgets ({allowed:.0} MiB)"
+        );
+    }
 }

@@ -125,6 +125,8 @@ pub struct StrataApp {
     screenshot: Option<ScreenshotJob>,
     /// The last screenshot's file (or error), shown until dismissed.
     saved_screenshot: Option<Result<PathBuf, String>>,
+    /// A restarted viewer's saved session, put back when its volume opens (session_restore.rs).
+    pub pending_restore: Option<super::session_restore::SavedSession>,
 }
 
 fn lock_free_repaint(ctx: &egui::Context) -> super::volume_session::Repaint {
@@ -160,6 +162,7 @@ impl StrataApp {
             readout: None,
             screenshot: None,
             saved_screenshot: None,
+            pending_restore: None,
             options,
         };
         if let Some(layout) = app.options.initial_layout {
@@ -341,6 +344,16 @@ impl StrataApp {
                     .unwrap_or_default(),
             ),
         };
+        let mut scene = scene;
+        let mut orbit = orbit;
+        if let Some(saved) = self.pending_restore.take() {
+            if saved.apply(&location, &mut scene, &mut orbit) {
+                self.toast = Some(Toast {
+                    text: "the session was restored after the viewer restarted".into(),
+                    shown_at: Instant::now(),
+                });
+            }
+        }
         let history = History::new(&scene);
         self.volume = Some(OpenVolume {
             history,
@@ -361,6 +374,17 @@ impl StrataApp {
             overlay: None,
         });
         Ok(())
+    }
+
+    /// The session as a restarted viewer would put it back; None without a volume.
+    pub fn saved_session(&self) -> Option<super::session_restore::SavedSession> {
+        let v = self.volume.as_ref()?;
+        Some(super::session_restore::SavedSession::capture(
+            &v.data.store_path,
+            &self.preferences,
+            &v.scene,
+            &v.view_3d.orbit,
+        ))
     }
 
     /// Everything, into `ui` (eframe's root Ui, or a test harness's).
@@ -1061,11 +1085,26 @@ impl StrataApp {
 pub struct EframeApp {
     pub app: StrataApp,
     pub persist: bool,
+    /// Writes the session for a restart (None: --fresh without a supervisor).
+    pub autosave: Option<super::session_restore::Autosave>,
+    /// eframe's own device (the UI's), watched for loss.
+    pub ui_device: Option<super::session_restore::UiDeviceWatch>,
 }
 
 impl eframe::App for EframeApp {
     fn ui(&mut self, ui: &mut egui::Ui, _frame: &mut eframe::Frame) {
         self.app.ui(ui);
+        let lost = self.ui_device.as_ref().and_then(|w| w.lost());
+        if let Some(autosave) = &mut self.autosave {
+            autosave.tick(self.app.saved_session().as_ref(), lost.is_some());
+        }
+        if let Some(detail) = lost {
+            // eframe cannot recreate its device: end this process with the session saved, and
+            // the supervising parent starts a new window that restores it (session_restore.rs).
+            eprintln!("strata: the window's GPU device was lost ({detail}); the session was saved");
+            self.app.write_frame_log();
+            std::process::exit(super::session_restore::UI_DEVICE_LOST_EXIT);
+        }
     }
 
     fn save(&mut self, storage: &mut dyn eframe::Storage) {

@@ -26,6 +26,7 @@ pub mod panels;
 pub mod preferences;
 pub mod scene;
 pub mod screenshots;
+pub mod session_restore;
 pub mod slice_view;
 pub mod slices;
 pub(crate) mod sync;
@@ -44,8 +45,52 @@ use anyhow::Result;
 pub use app::{Preferences, StrataApp, ViewerOptions};
 pub use jobs::VolumeSource;
 
-/// Opens the viewer window and runs until it is closed.
+/// Opens the viewer window and runs until it is closed. Unless this process is already the
+/// supervised child (or `STRATA_NO_SUPERVISOR=1`), the window runs in a child process that is
+/// restarted with its saved session when its UI device is lost or it crashes
+/// (session_restore.rs); this process then only waits, and exits with the child's code.
 pub fn run(options: ViewerOptions) -> Result<()> {
+    use session_restore::{SESSION_FILE_ENV, SUPERVISED_ENV};
+    let supervised = std::env::var_os(SUPERVISED_ENV).is_some();
+    if !supervised && std::env::var("STRATA_NO_SUPERVISOR").map_or(true, |v| v != "1") {
+        let session_file = if options.persist_settings {
+            session_restore::session_path(&options.import_folder)
+        } else {
+            std::env::temp_dir().join(format!("strata-session-{}.json", std::process::id()))
+        };
+        let exe = std::env::current_exe().map_err(|e| {
+            anyhow::anyhow!("cannot find the strata executable to start the viewer: {e}")
+        })?;
+        let code = session_restore::supervise(
+            session_restore::RestartPolicy::default(),
+            |restore| {
+                let mut child = std::process::Command::new(&exe);
+                child
+                    .args(std::env::args_os().skip(1))
+                    .env(SUPERVISED_ENV, "1")
+                    .env(SESSION_FILE_ENV, &session_file);
+                if restore {
+                    child.env(session_restore::RESTORE_ENV, "1");
+                }
+                session_restore::end_with_parent(&mut child);
+                child.status()
+            },
+            |line| eprintln!("{line}"),
+        )
+        .map_err(|e| anyhow::anyhow!("cannot start the viewer process: {e}"))?;
+        if !options.persist_settings {
+            let _ = std::fs::remove_file(&session_file);
+        }
+        std::process::exit(code);
+    }
+    let session_file = std::env::var_os(SESSION_FILE_ENV)
+        .map(PathBuf::from)
+        .or_else(|| {
+            options
+                .persist_settings
+                .then(|| session_restore::session_path(&options.import_folder))
+        });
+    let restore = std::env::var_os(session_restore::RESTORE_ENV).is_some();
     let native = eframe::NativeOptions {
         viewport: egui::ViewportBuilder::default()
             .with_title("Strata — not for diagnostic use")
@@ -69,7 +114,23 @@ pub fn run(options: ViewerOptions) -> Result<()> {
             } else {
                 Preferences::default()
             };
-            Ok(Box::new(app::EframeApp { app: StrataApp::new(cc.egui_ctx.clone(), preferences, options), persist }))
+            // The saved session of a restarted child: its preferences now, its scene once the
+            // volume has opened.
+            let saved = restore.then_some(session_file.as_deref()).flatten().and_then(|path| {
+                session_restore::SavedSession::read(path)
+                    .map_err(|e| eprintln!("strata: {e}; starting without it"))
+                    .ok()
+            });
+            let preferences = saved.as_ref().map_or(preferences, |s| s.preferences.clone());
+            let ui_device = cc.wgpu_render_state.as_ref().map(|rs| session_restore::UiDeviceWatch::install(&rs.device));
+            let mut app = StrataApp::new(cc.egui_ctx.clone(), preferences, options);
+            app.pending_restore = saved;
+            Ok(Box::new(app::EframeApp {
+                app,
+                persist,
+                autosave: session_file.map(session_restore::Autosave::new),
+                ui_device,
+            }))
         }),
     )
     .map_err(|e| anyhow::anyhow!("the viewer window could not start: {e} (is a display available? `strata render` works headless)"))

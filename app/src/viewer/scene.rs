@@ -32,7 +32,7 @@ impl Window {
 }
 
 /// The clip plane as the user sets it: an LPS axis, which side is cut, and where.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ClipSettings {
     pub enabled: bool,
     /// LPS axis of the plane's normal: 0 L–R, 1 A–P, 2 S–I.
