@@ -344,32 +344,54 @@ fn med_prediction(a: u8, b: u8, c: u8) -> u8 {
     }
 }
 
-/// The prediction of sample `i` from the already known samples of `v` (rows of [`EDGE`], slices
-/// of EDGE²): the median edge detector inside a slice, the x or y neighbour on its first row or
-/// column, the row-start rule of the x-delta filter for a slice's first sample.
-fn med_predict_at(v: &[u8], i: usize) -> u8 {
-    let x = i % EDGE;
-    let y = (i / EDGE) % EDGE;
-    match (x, y) {
-        (0, 0) => row_start_prediction(v, i),
-        (0, _) => v[i - EDGE],
-        (_, 0) => v[i - 1],
-        _ => med_prediction(v[i - 1], v[i - EDGE], v[i - EDGE - 1]),
-    }
-}
-
-/// Residuals of the median-edge filter (wrapping, exact).
+/// Residuals of the median-edge filter (wrapping, exact): the median edge detector inside a
+/// slice, the x neighbour on a slice's first row, the y neighbour in its first column, the
+/// row-start rule of the x-delta filter for a slice's first sample.
 fn med_residuals(v: &[u8]) -> Vec<u8> {
-    (0..v.len())
-        .map(|i| v[i].wrapping_sub(med_predict_at(v, i)))
-        .collect()
+    let mut r = vec![0u8; v.len()];
+    for start in (0..v.len()).step_by(EDGE) {
+        let end = (start + EDGE).min(v.len());
+        let (row, out) = (&v[start..end], &mut r[start..end]);
+        if (start / EDGE) % EDGE == 0 {
+            let mut previous = row_start_prediction(v, start);
+            for (o, &x) in out.iter_mut().zip(row) {
+                *o = x.wrapping_sub(previous);
+                previous = x;
+            }
+        } else {
+            let above = &v[start - EDGE..end - EDGE];
+            out[0] = row[0].wrapping_sub(above[0]);
+            for x in 1..row.len() {
+                out[x] = row[x].wrapping_sub(med_prediction(row[x - 1], above[x], above[x - 1]));
+            }
+        }
+    }
+    r
 }
 
-/// Inverse of [`med_residuals`]: sample by sample, each from the ones decoded before it.
+/// Inverse of [`med_residuals`]: row by row, each sample from the ones decoded before it.
 fn restore_med(r: &[u8], out: &mut [u16]) {
     let mut decoded = vec![0u8; r.len()];
-    for i in 0..r.len() {
-        decoded[i] = r[i].wrapping_add(med_predict_at(&decoded, i));
+    for start in (0..r.len()).step_by(EDGE) {
+        let end = (start + EDGE).min(r.len());
+        let residuals = &r[start..end];
+        if (start / EDGE) % EDGE == 0 {
+            let mut previous = row_start_prediction(&decoded, start);
+            for (d, &e) in decoded[start..end].iter_mut().zip(residuals) {
+                previous = previous.wrapping_add(e);
+                *d = previous;
+            }
+        } else {
+            let (done, rest) = decoded.split_at_mut(start);
+            let above = &done[start - EDGE..end - EDGE];
+            let row = &mut rest[..end - start];
+            let mut left = residuals[0].wrapping_add(above[0]);
+            row[0] = left;
+            for x in 1..row.len() {
+                left = residuals[x].wrapping_add(med_prediction(left, above[x], above[x - 1]));
+                row[x] = left;
+            }
+        }
     }
     for (o, &d) in out.iter_mut().zip(&decoded) {
         *o = u16::from(d);
