@@ -311,10 +311,14 @@ fn row_start_prediction(decoded: &[u8], start: usize) -> u8 {
     }
 }
 
-/// Inverse of [`delta_residuals`], widening to u16 as it goes: a running sum per row.
-fn restore_delta(r: &[u8], out: &mut [u16]) {
-    for start in (0..r.len()).step_by(EDGE) {
-        let end = (start + EDGE).min(r.len());
+/// Inverse of [`delta_residuals`], widening to u16 as it goes: a running sum per row, appended
+/// to `out` (no zero fill of a buffer that is overwritten anyway).
+fn restore_delta(r: &[u8], out: &mut Vec<u16>) {
+    out.clear();
+    out.reserve(r.len());
+    for (row_index, row) in r.chunks(EDGE).enumerate() {
+        let start = row_index * EDGE;
+        // The row-start rule of `row_start_prediction`, on the samples decoded so far.
         let mut acc = if start % (EDGE * EDGE) != 0 {
             out[start - EDGE] as u8
         } else if start > 0 {
@@ -322,10 +326,10 @@ fn restore_delta(r: &[u8], out: &mut [u16]) {
         } else {
             0
         };
-        for (o, &d) in out[start..end].iter_mut().zip(&r[start..end]) {
+        out.extend(row.iter().map(|&d| {
             acc = acc.wrapping_add(d);
-            *o = u16::from(acc);
-        }
+            u16::from(acc)
+        }));
     }
 }
 
@@ -547,13 +551,15 @@ pub fn decode_brick(id: BrickId, record: &[u8]) -> Result<Vec<u16>, BrickDecodeE
             .collect()),
         KIND_DELTA_ZSTD_U8 | KIND_MED_ZSTD_U8 => {
             let residuals = zstd_exact(body, BRICK_PAYLOAD_VOXELS)?;
-            let mut out = vec![0u16; BRICK_PAYLOAD_VOXELS];
             if kind == KIND_DELTA_ZSTD_U8 {
+                let mut out = Vec::new();
                 restore_delta(&residuals, &mut out);
+                Ok(out)
             } else {
+                let mut out = vec![0u16; BRICK_PAYLOAD_VOXELS];
                 restore_med(&residuals, &mut out);
+                Ok(out)
             }
-            Ok(out)
         }
         KIND_LZ4_U16 => Ok(lz4_exact(body, BRICK_PAYLOAD_VOXELS * 2)?
             .chunks_exact(2)
@@ -780,7 +786,7 @@ mod tests {
         ];
         cases.push(mr_like_u8_brick().iter().map(|&v| v as u8).collect());
         for (n, v) in cases.iter().enumerate() {
-            let mut out = vec![0u16; v.len()];
+            let mut out = Vec::new();
             restore_delta(&delta_residuals(v), &mut out);
             assert!(
                 out.iter().zip(v).all(|(&o, &x)| o == u16::from(x)),
