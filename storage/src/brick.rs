@@ -302,7 +302,7 @@ fn delta_residuals(v: &[u8]) -> Vec<u8> {
 /// What a row's first sample is predicted from: the sample above it, or at the same place one
 /// slice before for a slice's first row, 0 for the first sample of all.
 fn row_start_prediction(decoded: &[u8], start: usize) -> u8 {
-    if start % (EDGE * EDGE) != 0 {
+    if !start.is_multiple_of(EDGE * EDGE) {
         decoded[start - EDGE]
     } else if start > 0 {
         decoded[start - EDGE * EDGE]
@@ -319,7 +319,7 @@ fn restore_delta(r: &[u8], out: &mut Vec<u16>) {
     for (row_index, row) in r.chunks(EDGE).enumerate() {
         let start = row_index * EDGE;
         // The row-start rule of `row_start_prediction`, on the samples decoded so far.
-        let mut acc = if start % (EDGE * EDGE) != 0 {
+        let mut acc = if !start.is_multiple_of(EDGE * EDGE) {
             out[start - EDGE] as u8
         } else if start > 0 {
             out[start - EDGE * EDGE] as u8
@@ -356,7 +356,7 @@ fn med_residuals(v: &[u8]) -> Vec<u8> {
     for start in (0..v.len()).step_by(EDGE) {
         let end = (start + EDGE).min(v.len());
         let (row, out) = (&v[start..end], &mut r[start..end]);
-        if (start / EDGE) % EDGE == 0 {
+        if (start / EDGE).is_multiple_of(EDGE) {
             let mut previous = row_start_prediction(v, start);
             for (o, &x) in out.iter_mut().zip(row) {
                 *o = x.wrapping_sub(previous);
@@ -379,7 +379,7 @@ fn restore_med(r: &[u8], out: &mut [u16]) {
     for start in (0..r.len()).step_by(EDGE) {
         let end = (start + EDGE).min(r.len());
         let residuals = &r[start..end];
-        if (start / EDGE) % EDGE == 0 {
+        if (start / EDGE).is_multiple_of(EDGE) {
             let mut previous = row_start_prediction(&decoded, start);
             for (d, &e) in decoded[start..end].iter_mut().zip(residuals) {
                 previous = previous.wrapping_add(e);
@@ -775,7 +775,7 @@ mod tests {
             full_range_brick(8).iter().map(|&v| v as u8).collect(),
             (0..BRICK_PAYLOAD_VOXELS)
                 .map(|i| {
-                    if (i + i / EDGE + i / (EDGE * EDGE)) % 2 == 0 {
+                    if (i + i / EDGE + i / (EDGE * EDGE)).is_multiple_of(2) {
                         0
                     } else {
                         255
