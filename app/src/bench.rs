@@ -38,6 +38,9 @@ pub enum BenchCommand {
         /// Scratch folder for generated inputs and stores (kept between runs to save time).
         #[arg(long, default_value = "target/bench-data")]
         dir: PathBuf,
+        /// Interleaved runs of import and limit; the medians are reported.
+        #[arg(long, default_value_t = 5)]
+        runs: usize,
     },
     /// The brick codecs side by side: stored size against lz4 (format 1), compress and
     /// decompress MB/s per core, on the phantom and the scans of SOURCES.md that are present.
@@ -171,12 +174,14 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
             rss_size,
             memory_mib,
             dir,
+            runs,
         } => import::run(import::Options {
             size,
             rss_size,
             memory_mib,
             dir,
             codec,
+            runs,
         }),
         BenchCommand::Codecs {
             phantom_size,

@@ -26,6 +26,24 @@ pub fn orientation_letter(direction: [f64; 3]) -> char {
     }
 }
 
+/// Why a store's bricks are larger than a fresh import's would be, if they are: format 1's lz4,
+/// or u8 bricks written before the prediction filters (their header lacks the feature).
+fn superseded_codec(h: &strata_storage::StoreHeader) -> Option<&'static str> {
+    let narrow = h.stored == strata_storage::StoredScalar::U8;
+    if h.codec.is_format_1() {
+        Some("format 1: lz4 bricks, larger than today's codecs write")
+    } else if narrow
+        && !h
+            .required_features
+            .iter()
+            .any(|f| f == strata_storage::brick::PREDICTED_U8_FEATURE)
+    {
+        Some("u8 bricks without the prediction filter, larger than today's codecs write")
+    } else {
+        None
+    }
+}
+
 pub fn run(location: &str, token_file: Option<&Path>) -> Result<()> {
     let opened = open(
         location,
@@ -64,6 +82,14 @@ pub fn run(location: &str, token_file: Option<&Path>) -> Result<()> {
         h.format_version,
         h.codec.describe()
     );
+    if let Opened::Local(local) = &opened {
+        if let Some(why) = superseded_codec(h) {
+            println!(
+                "             {why}; rewrite it in the current fast codec with: {}",
+                strata_storage::store::rebuild_command(local.path(), h)
+            );
+        }
+    }
     println!(
         "dimensions   {} x {} x {} voxels",
         g.dims[0], g.dims[1], g.dims[2]

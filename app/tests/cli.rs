@@ -189,3 +189,34 @@ fn import_codec_is_recorded_shown_and_listed_and_prune_keeps_complete_stores() {
     assert!(!orphan.exists());
     assert!(Store::open(&dense).is_ok());
 }
+
+/// `strata info` of a format-1 store (lz4 bricks) names the command that rewrites it in the
+/// current codec; a fresh store's says nothing of the kind.
+#[test]
+fn info_of_a_format_1_store_names_the_command_that_rewrites_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let old = dir.path().join("old.strata");
+    let options = strata_storage::import::ImportOptions {
+        codec: strata_storage::BrickCodec::Lz4,
+        ..Default::default()
+    };
+    strata_storage::phantom::Phantom::cube(40)
+        .write_store(&old, &options)
+        .unwrap();
+    let o = strata(&["info", old.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("store format 1"), "{}", text(&o));
+    assert!(
+        text(&o).contains("rewrite it in the current fast codec with: strata import"),
+        "{}",
+        text(&o)
+    );
+    assert!(text(&o).contains("old.strata"), "{}", text(&o));
+    let fresh = dir.path().join("fresh.strata");
+    strata_storage::phantom::Phantom::cube(40)
+        .write_store(&fresh, &Default::default())
+        .unwrap();
+    let o = strata(&["info", fresh.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(!text(&o).contains("rewrite it"), "{}", text(&o));
+}

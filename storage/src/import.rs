@@ -100,6 +100,70 @@ pub struct ImportProfile {
     pub bricks: std::time::Duration,
     pub sled_writes: std::time::Duration,
     pub finish: std::time::Duration,
+    /// CPU time of each thread against the import's wall time: a thread whose CPU time is far
+    /// below the wall time waits (on a channel, the disk or the pool), one near it is the limit.
+    pub cpu: ImportCpu,
+}
+
+/// CPU seconds per import thread (None where the platform has no per-thread clock).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct ImportCpu {
+    pub wall: std::time::Duration,
+    /// The whole process over the import (every thread, the compression pool's included).
+    pub process: Option<std::time::Duration>,
+    pub convert_thread: Option<std::time::Duration>,
+    pub builder_thread: Option<std::time::Duration>,
+    pub writer_thread: Option<std::time::Duration>,
+}
+
+/// CPU time the calling thread has run (Linux, the BSDs, macOS).
+pub fn thread_cpu_time() -> Option<std::time::Duration> {
+    cpu_clock(CpuClock::Thread)
+}
+
+/// CPU time every thread of this process has run together.
+pub fn process_cpu_time() -> Option<std::time::Duration> {
+    cpu_clock(CpuClock::Process)
+}
+
+enum CpuClock {
+    Thread,
+    Process,
+}
+
+fn cpu_clock(clock: CpuClock) -> Option<std::time::Duration> {
+    #[cfg(unix)]
+    {
+        let id = match clock {
+            CpuClock::Thread => libc::CLOCK_THREAD_CPUTIME_ID,
+            CpuClock::Process => libc::CLOCK_PROCESS_CPUTIME_ID,
+        };
+        let mut t = libc::timespec {
+            tv_sec: 0,
+            tv_nsec: 0,
+        };
+        // SAFETY: clock_gettime only writes the timespec we pass, which outlives the call.
+        if unsafe { libc::clock_gettime(id, &mut t) } == 0 {
+            return Some(std::time::Duration::new(
+                u64::try_from(t.tv_sec).ok()?,
+                u32::try_from(t.tv_nsec).ok()?,
+            ));
+        }
+        None
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = clock;
+        None
+    }
+}
+
+/// CPU time spent since `start` on the clock `now` reads (None when either is unknown).
+fn cpu_since(
+    start: Option<std::time::Duration>,
+    now: Option<std::time::Duration>,
+) -> Option<std::time::Duration> {
+    Some(now?.saturating_sub(start?))
 }
 
 /// Adapts a reader's mapped raw data: converts slices with the quantiser, drops mapped pages
@@ -247,18 +311,19 @@ pub fn import_slices(
     // sled writes run on their own thread, overlapping the compression of the next batch; the
     // channel holds two batches at most, so memory stays bounded when the disk is slow.
     let (batches, batches_in) = crossbeam_channel::bounded::<Vec<(BrickId, Vec<u8>)>>(2);
+    let process_cpu_start = process_cpu_time();
     let (built, written) = std::thread::scope(|scope| {
         let writer = &writer;
         let writer_thread = std::thread::Builder::new()
             .name("strata-import-writer".into())
-            .spawn_scoped(scope, move || -> Result<std::time::Duration> {
+            .spawn_scoped(scope, move || -> Result<_> {
                 let mut busy = std::time::Duration::ZERO;
                 for batch in batches_in {
                     let t = Instant::now();
                     writer.put_bricks(batch)?;
                     busy += t.elapsed();
                 }
-                Ok(busy)
+                Ok((busy, thread_cpu_time()))
             })
             .map_err(|e| StorageError::io(store_path, e));
         let built = match &writer_thread {
@@ -270,6 +335,7 @@ pub fn import_slices(
                     codec: options.codec,
                     compressed_bytes: AtomicU64::new(0),
                 };
+                let builder_cpu_start = thread_cpu_time();
                 build_levels(
                     producer,
                     &mut levels,
@@ -279,7 +345,14 @@ pub fn import_slices(
                     options,
                     store_path,
                 )
-                .map(|phases| (phases, sink.compressed_bytes.load(Ordering::Relaxed)))
+                .map(|(phases, convert_cpu)| {
+                    (
+                        phases,
+                        convert_cpu,
+                        cpu_since(builder_cpu_start, thread_cpu_time()),
+                        sink.compressed_bytes.load(Ordering::Relaxed),
+                    )
+                })
             }
             Err(_) => Err(StorageError::invalid(
                 store_path,
@@ -294,8 +367,15 @@ pub fn import_slices(
         (built, written)
     });
     // A writer failure explains a producer failure (its channel closed), so report it first.
-    let write_time = written?;
-    let (phase, compressed_bytes) = built?;
+    let (write_time, writer_cpu) = written?;
+    let (phase, convert_cpu, builder_cpu, compressed_bytes) = built?;
+    let cpu = ImportCpu {
+        wall: started.elapsed(),
+        process: cpu_since(process_cpu_start, process_cpu_time()),
+        convert_thread: convert_cpu,
+        builder_thread: builder_cpu,
+        writer_thread: writer_cpu,
+    };
     if std::env::var_os("STRATA_IMPORT_PROFILE").is_some() {
         eprintln!(
             "import phases: convert {:?}, histogram {:?}, bricks (cut + compress + hand-off) {:?}, sled writes (own thread) {write_time:?}",
@@ -347,7 +427,7 @@ pub fn import_slices(
         stored_range: [stored_lo, stored_hi],
         generation: crate::store::new_generation_id(),
         codec: options.codec,
-        required_features: Vec::new(),
+        required_features: options.codec.required_features(narrow),
     };
     let bytes_per_voxel = if narrow { 1 } else { 2 };
     let stats = StoreStats {
@@ -374,6 +454,7 @@ pub fn import_slices(
         bricks: phase[2],
         sled_writes: write_time,
         finish: finishing.elapsed(),
+        cpu,
     };
     Ok(ImportReport {
         stats,
@@ -394,7 +475,7 @@ pub const SLICES_CONVERTED_AHEAD: u64 = 4;
 
 /// Streams level-0 slices through every level's window. Returns time spent converting,
 /// counting the histogram (both on the conversion thread, overlapping the rest), and building
-/// bricks.
+/// bricks, and the conversion thread's CPU time.
 fn build_levels(
     producer: &dyn SliceProducer,
     levels: &mut [LevelBuilder],
@@ -403,7 +484,7 @@ fn build_levels(
     counts: &mut StoredValueCounts,
     options: &ImportOptions,
     store_path: &Path,
-) -> Result<[std::time::Duration; 3]> {
+) -> Result<([std::time::Duration; 3], Option<std::time::Duration>)> {
     let dims = producer.dims();
     let slice_len = (dims[0] * dims[1]) as usize;
     let total_source = producer.source_bytes_per_slice() * dims[2];
@@ -437,7 +518,7 @@ fn build_levels(
                         break;
                     }
                 }
-                (counts, phase)
+                (counts, phase, thread_cpu_time())
             })
             .map_err(|e| StorageError::io(store_path, e))?;
         let mut bricks_time = std::time::Duration::ZERO;
@@ -475,12 +556,12 @@ fn build_levels(
         })();
         // Lets a conversion thread blocked on a full channel end.
         drop(converted_in);
-        let (slice_counts, phase) = conversion.join().map_err(|_| {
+        let (slice_counts, phase, convert_cpu) = conversion.join().map_err(|_| {
             StorageError::invalid(store_path, "the import's conversion thread panicked")
         })?;
         built?;
         *counts = slice_counts;
-        Ok([phase[0], phase[1], bricks_time])
+        Ok(([phase[0], phase[1], bricks_time], convert_cpu))
     })
 }
 

@@ -37,8 +37,9 @@ pub const OLDEST_READABLE_FORMAT_VERSION: u32 = 1;
 /// Features of format 2 this build reads. A later wave extends format 2 without a version bump
 /// by adding a feature here (the octree's sparse skeleton, say) and naming it in the header of
 /// the stores that use it; a build that lacks it refuses those stores with a clear message
-/// instead of misreading them.
-pub const KNOWN_STORE_FEATURES: &[&str] = &[];
+/// instead of misreading them. `predicted-u8-bricks`: u8 bricks of kinds 6 and 7 (see
+/// [`crate::brick`]).
+pub const KNOWN_STORE_FEATURES: &[&str] = &[crate::brick::PREDICTED_U8_FEATURE];
 const MARKER_FILE: &str = "STRATA-STORE";
 /// The marker file's line that [`StoreWriter::finish`] adds last.
 const MARKER_COMPLETE_LINE: &str = "complete";

@@ -183,3 +183,58 @@ fn a_flipped_byte_in_a_brick_of_each_codec_is_found_by_read_and_verify() {
         assert!(store.verify(|_, _| {}).unwrap().is_empty());
     }
 }
+
+/// An 8-bit MR (a real scan of SOURCES.md; skipped when absent): every codec stores the same
+/// voxels, the predicted u8 kinds make fast and dense smaller than lz4, the header names the
+/// feature those kinds need, and a build without that feature would refuse the store.
+#[test]
+fn an_8_bit_mr_stores_the_same_voxels_smaller_under_the_predicted_kinds() {
+    let scan = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../shared/data/niivue/nifti_space/RAS.nii.gz");
+    if !scan.exists() {
+        println!(
+            "SKIP: {} absent (see shared/data/SOURCES.md)",
+            scan.display()
+        );
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let mut sizes = Vec::new();
+    let mut bricks = Vec::new();
+    for codec in BrickCodec::ALL {
+        let path = dir.path().join(format!("{}.strata", codec.name()));
+        let opened = strata_storage::readers::open_source(
+            &scan,
+            &strata_storage::readers::ReadOptions::default(),
+        )
+        .unwrap();
+        let options = ImportOptions {
+            codec,
+            ..Default::default()
+        };
+        let report = strata_storage::import::import_source(opened, &path, &options).unwrap();
+        sizes.push(report.stats.compressed_bytes);
+        let store = Store::open(&path).unwrap();
+        assert_eq!(store.header().stored, strata_storage::StoredScalar::U8);
+        let features = &store.header().required_features;
+        if codec == BrickCodec::Lz4 {
+            assert!(features.is_empty(), "{features:?}");
+        } else {
+            assert_eq!(
+                features,
+                &vec![strata_storage::brick::PREDICTED_U8_FEATURE.to_string()]
+            );
+        }
+        assert!(store.verify(|_, _| {}).unwrap().is_empty());
+        bricks.push(all_bricks(&store));
+    }
+    assert_eq!(bricks[0], bricks[1]);
+    assert_eq!(bricks[0], bricks[2]);
+    assert!(sizes[1] < sizes[0], "fast {} vs lz4 {}", sizes[1], sizes[0]);
+    assert!(
+        sizes[2] < sizes[0],
+        "dense {} vs lz4 {}",
+        sizes[2],
+        sizes[0]
+    );
+}

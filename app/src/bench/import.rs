@@ -25,6 +25,7 @@ pub(crate) struct Options {
     pub(crate) memory_mib: u64,
     pub(crate) dir: PathBuf,
     pub(crate) codec: BrickCodec,
+    pub(crate) runs: usize,
 }
 
 fn ensure_phantom_nrrd(dir: &Path, size: u64) -> Result<PathBuf> {
@@ -109,6 +110,29 @@ fn secs(d: Duration) -> String {
     format!("{:.2} s", d.as_secs_f64())
 }
 
+/// The median of `values` (the mean of the middle two for an even count); 0 when empty.
+fn median(values: &[f64]) -> f64 {
+    let mut v = values.to_vec();
+    v.sort_by(f64::total_cmp);
+    match v.len() {
+        0 => 0.0,
+        n if n % 2 == 1 => v[n / 2],
+        n => (v[n / 2 - 1] + v[n / 2]) / 2.0,
+    }
+}
+
+/// `cpu` as seconds and as a share of `wall` ("n/a" where the platform has no such clock).
+fn cpu_share(cpu: Option<Duration>, wall: Duration) -> String {
+    match cpu {
+        Some(c) => format!(
+            "{:.2} s ({:.0} %)",
+            c.as_secs_f64(),
+            100.0 * c.as_secs_f64() / wall.as_secs_f64().max(1e-9)
+        ),
+        None => "n/a".into(),
+    }
+}
+
 pub(crate) fn run(o: Options) -> Result<()> {
     let Options {
         size,
@@ -116,7 +140,9 @@ pub(crate) fn run(o: Options) -> Result<()> {
         memory_mib,
         dir,
         codec,
+        runs,
     } = o;
+    anyhow::ensure!(runs >= 1, "--runs must be at least 1");
     let nrrd = ensure_phantom_nrrd(&dir, size)?;
     let data_bytes = size * size * size * 2;
     // Warm the page cache so both sides read from memory.
@@ -130,48 +156,83 @@ pub(crate) fn run(o: Options) -> Result<()> {
         codec,
         ..Default::default()
     };
-    // Alternate limit and import, best of 3 each: both see the same machine state.
-    let (mut best_limit, mut best_import) = (f64::MAX, f64::MAX);
-    let mut last = None;
+    // Interleave import and limit, `runs` pairs: each import is compared with the limit measured
+    // right after it, so a burst of load from other processes hits one pair, and the median of
+    // the pairs' ratios ignores it.
+    let mb = data_bytes as f64 / 1e6;
+    let (mut limit_rates, mut import_rates, mut ratios) = (vec![], vec![], vec![]);
+    let mut reports = Vec::new();
     let mut written = 0;
-    for _ in 0..3 {
+    for _ in 0..runs {
         let opened = open_source(&nrrd, &ReadOptions::default())?;
         let t = Instant::now();
         let report = import_source(opened, &store, &options)?;
-        best_import = best_import.min(t.elapsed().as_secs_f64());
+        let import_rate = mb / t.elapsed().as_secs_f64();
         let (limit_seconds, bytes) =
             physical_limit(source, report.stats.uncompressed_bytes, codec, &dir)?;
-        best_limit = best_limit.min(limit_seconds);
+        let limit_rate = mb / limit_seconds;
         written = bytes;
-        last = Some(report);
+        limit_rates.push(limit_rate);
+        import_rates.push(import_rate);
+        ratios.push(import_rate / limit_rate);
+        reports.push((import_rate / limit_rate, report));
     }
-    let Some(report) = last else {
+    let ratio = median(&ratios);
+    // The run whose ratio is nearest the median: its profile is the one printed.
+    let Some((_, report)) = reports
+        .into_iter()
+        .min_by(|a, b| (a.0 - ratio).abs().total_cmp(&(b.0 - ratio).abs()))
+    else {
         anyhow::bail!("no import ran");
     };
-    let mb = data_bytes as f64 / 1e6;
-    let (limit, import_rate) = (mb / best_limit, mb / best_import);
     let s = &report.stats;
     println!(
-        "import throughput, {size}^3 int16 phantom NRRD ({mb:.0} MB), {} codec, {} threads",
+        "import throughput, {size}^3 int16 phantom NRRD ({mb:.0} MB), {} codec, {} threads, {runs} interleaved runs of import and limit (medians)",
         codec.name(),
         rayon::current_num_threads()
     );
     println!(
-        "  limit: read the source + {} codec on {:.0} MB (the store's bricks, {:.2}x the source) on all cores + sequential write of {:.0} MB + fsync (best of 3): {limit:8.0} MB/s",
+        "  limit: read the source + {} codec on {:.0} MB (the store's bricks, {:.2}x the source) on all cores + sequential write of {:.0} MB + fsync: {:8.0} MB/s",
         codec.name(),
         s.uncompressed_bytes as f64 / 1e6,
         s.uncompressed_bytes as f64 / data_bytes as f64,
-        written as f64 / 1e6
+        written as f64 / 1e6,
+        median(&limit_rates)
     );
-    println!("  strata import (best of 3):                 {import_rate:8.0} MB/s  = {:.0} % of the limit", 100.0 * import_rate / limit);
+    let list = |v: &[f64], scale: f64| {
+        v.iter()
+            .map(|x| format!("{:.0}", x * scale))
+            .collect::<Vec<_>>()
+            .join(" ")
+    };
+    println!(
+        "  runs: limit MB/s [{}], import MB/s [{}], import/limit % [{}]",
+        list(&limit_rates, 1.0),
+        list(&import_rates, 1.0),
+        list(&ratios, 100.0)
+    );
+    println!(
+        "  strata import:                             {:8.0} MB/s  = {:.0} % of the limit",
+        median(&import_rates),
+        100.0 * ratio
+    );
     let p = &report.profile;
     println!(
-        "  last import's phases: convert {}, histogram {}, bricks (cut + range + compress + hand-off) {}, sled writes on their own thread {}, finish (metadata + flush) {}",
+        "  median run's phases: convert {}, histogram {}, bricks (cut + range + compress + hand-off) {}, sled writes on their own thread {}, finish (metadata + flush) {}",
         secs(p.convert),
         secs(p.histogram),
         secs(p.bricks),
         secs(p.sled_writes),
         secs(p.finish)
+    );
+    let c = &p.cpu;
+    println!(
+        "  median run's CPU time against its {} wall: all threads {}, conversion thread {}, builder thread {}, sled writer thread {}",
+        secs(c.wall),
+        cpu_share(c.process, c.wall),
+        cpu_share(c.convert_thread, c.wall),
+        cpu_share(c.builder_thread, c.wall),
+        cpu_share(c.writer_thread, c.wall)
     );
     println!(
         "  stored {:.1} MB (compression ratio {:.2} over bricks with aprons)",
