@@ -54,6 +54,8 @@ pub struct VolumeMeta {
     pub description: String,
     pub inputs: Vec<String>,
     pub source_format: String,
+    /// A label map's labels (DICOM SEG segments), written to the header; empty otherwise.
+    pub labels: Vec<crate::source::LabelInfo>,
 }
 
 #[derive(Clone, Copy, Debug, Default)]
@@ -157,6 +159,7 @@ pub fn import_source(
             .map(|p| p.display().to_string())
             .collect(),
         source_format: info.format.clone(),
+        labels: info.labels.clone(),
     };
     let producer = QuantizedSource {
         data: opened.data,
@@ -348,6 +351,7 @@ pub fn import_slices(
         generation: crate::store::new_generation_id(),
         codec: options.codec,
         required_features: Vec::new(),
+        labels: meta.labels,
     };
     let bytes_per_voxel = if narrow { 1 } else { 2 };
     let stats = StoreStats {

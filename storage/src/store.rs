@@ -111,6 +111,10 @@ pub struct StoreHeader {
     /// [`KNOWN_STORE_FEATURES`]). Empty for every store this build writes.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub required_features: Vec<String>,
+    /// A label map's labels (names, colours), from a DICOM SEG; absent for other stores, and
+    /// ignored by builds that predate it (the voxels read the same without it).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub labels: Vec<crate::source::LabelInfo>,
 }
 
 fn format_1_codec() -> BrickCodec {

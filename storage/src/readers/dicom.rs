@@ -59,6 +59,8 @@ struct ImageHeader {
     series_number: Option<i64>,
     series_description: String,
     modality: String,
+    /// SOPClassUID (a DICOM SEG is read by `dicom_seg`).
+    sop_class: String,
     rows: u32,
     cols: u32,
     bits_allocated: u16,
@@ -415,6 +417,7 @@ fn read_header(path: &Path) -> Result<Option<ImageHeader>> {
         series_number: int(&obj, tags::SERIES_NUMBER),
         series_description: text(&obj, tags::SERIES_DESCRIPTION).unwrap_or_default(),
         modality: text(&obj, tags::MODALITY).unwrap_or_default(),
+        sop_class: text(&obj, tags::SOP_CLASS_UID).unwrap_or_default(),
         rows: rows as u32,
         cols: cols as u32,
         bits_allocated: bits_allocated.clamp(0, u16::MAX as i64) as u16,
@@ -639,11 +642,19 @@ pub(crate) fn open_series_dir(dir: &Path, options: &ReadOptions) -> Result<Opene
         }
     };
     let headers = series.swap_remove(chosen);
+    if let [h] = headers.as_slice() {
+        if crate::readers::dicom_seg::is_segmentation(&h.sop_class, &h.modality) {
+            return crate::readers::dicom_seg::open_dicom_seg(&h.path, options);
+        }
+    }
     assemble(dir, headers, options)
 }
 
 pub(crate) fn open_dicom_file(path: &Path, options: &ReadOptions) -> Result<OpenedSource> {
     match read_header(path)? {
+        Some(h) if crate::readers::dicom_seg::is_segmentation(&h.sop_class, &h.modality) => {
+            crate::readers::dicom_seg::open_dicom_seg(path, options)
+        }
         Some(h) => assemble(path, vec![h], options),
         None => {
             let sop = open_header(path)
@@ -1061,6 +1072,7 @@ fn assemble(
             windows: first.windows.clone(),
             description,
             inputs: vec![display.to_path_buf()],
+            labels: Vec::new(),
         },
         data,
     })

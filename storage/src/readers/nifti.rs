@@ -502,6 +502,7 @@ pub(crate) fn open_nifti(path: &Path, options: &ReadOptions) -> Result<OpenedSou
             windows,
             description,
             inputs,
+            labels: Vec::new(),
         },
         data,
     })

@@ -53,6 +53,7 @@ pub(crate) fn open_raw(path: &Path, spec: &RawSpec) -> Result<OpenedSource> {
             windows: Vec::new(),
             description: String::new(),
             inputs: vec![path.to_path_buf()],
+            labels: Vec::new(),
         },
         data,
     })
