@@ -799,7 +799,12 @@ impl StrataApp {
                 };
                 let overlay_text = match (&v.overlay, self.hover_overlay) {
                     (Some(o), Some(value)) => match o.kind {
-                        super::overlay::OverlayKind::Labels => format!(" · label {value:.0}"),
+                        super::overlay::OverlayKind::Labels => {
+                            match o.label_name(value.round() as i64) {
+                                Some(name) => format!(" · label {value:.0} {name}"),
+                                None => format!(" · label {value:.0}"),
+                            }
+                        }
                         super::overlay::OverlayKind::Continuous => {
                             format!(" · overlay {value:.4}")
                         }
