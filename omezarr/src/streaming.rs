@@ -371,6 +371,7 @@ fn foreign_description(
         codec: strata_storage::BrickCodec::default(),
         required_features: Vec::new(),
         labels: Vec::new(),
+        frames: 1,
     };
     let histogram = Histogram::from_stored(
         &strata_storage::histogram::StoredValueCounts::default(),

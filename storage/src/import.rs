@@ -133,10 +133,23 @@ pub fn import_source(
     store_path: &Path,
     options: &ImportOptions,
 ) -> Result<ImportReport> {
+    if opened.info.frames > 1 {
+        return crate::frames::import_frames(opened, store_path, options);
+    }
     let info = opened.info;
     let quantizer = Quantizer::plan(&opened.data, info.slope);
+    let meta = source_meta(&info, &quantizer);
+    let producer = QuantizedSource {
+        data: opened.data,
+        quantizer,
+    };
+    import_slices(&producer, meta, store_path, options)
+}
+
+/// The header facts of a reader's source stored through `quantizer`.
+pub(crate) fn source_meta(info: &crate::source::SourceInfo, quantizer: &Quantizer) -> VolumeMeta {
     let (slope, intercept) = quantizer.physical_mapping(info.slope, info.intercept);
-    let meta = VolumeMeta {
+    VolumeMeta {
         geometry: info.geometry.clone(),
         stored: quantizer.stored,
         value_mapping: ValueMappingWithUnit {
@@ -160,12 +173,7 @@ pub fn import_source(
             .collect(),
         source_format: info.format.clone(),
         labels: info.labels.clone(),
-    };
-    let producer = QuantizedSource {
-        data: opened.data,
-        quantizer,
-    };
-    import_slices(&producer, meta, store_path, options)
+    }
 }
 
 /// Bytes the importer's slice windows need for a volume of `dims` (all levels).
@@ -352,6 +360,7 @@ pub fn import_slices(
         codec: options.codec,
         required_features: Vec::new(),
         labels: meta.labels,
+        frames: 1,
     };
     let bytes_per_voxel = if narrow { 1 } else { 2 };
     let stats = StoreStats {

@@ -5,6 +5,7 @@
 pub mod brick;
 mod contained_db;
 pub mod error;
+mod frames;
 pub mod geometry;
 pub mod histogram;
 pub mod import;

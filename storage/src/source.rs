@@ -98,6 +98,14 @@ pub struct SourceInfo {
     /// The labels of a label map (DICOM SEG segments); empty for every other source.
     #[serde(default)]
     pub labels: Vec<LabelInfo>,
+    /// Volumes on this grid (a 4-D NIfTI's time points); the data then holds them one after
+    /// the other, `dims[2] · frames` slices in all.
+    #[serde(default = "one_frame")]
+    pub frames: u32,
+}
+
+fn one_frame() -> u32 {
+    1
 }
 
 /// A raw voxel array, i fastest, then j, then k, mapped from disk.

@@ -1073,6 +1073,7 @@ fn assemble(
             description,
             inputs: vec![display.to_path_buf()],
             labels: Vec::new(),
+            frames: 1,
         },
         data,
     })

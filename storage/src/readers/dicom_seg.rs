@@ -468,6 +468,7 @@ pub(crate) fn open_dicom_seg(path: &Path, options: &ReadOptions) -> Result<Opene
             description,
             inputs: vec![path.to_path_buf()],
             labels,
+            frames: 1,
         },
         data,
     })

@@ -246,6 +246,7 @@ pub(crate) fn open_metaimage(path: &Path, options: &ReadOptions) -> Result<Opene
             description: get("Comment").unwrap_or("").to_string(),
             inputs,
             labels: Vec::new(),
+            frames: 1,
         },
         data,
     })

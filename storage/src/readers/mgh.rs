@@ -268,6 +268,7 @@ pub(crate) fn open_mgh(path: &Path, options: &ReadOptions) -> Result<OpenedSourc
             description: notes.join("; "),
             inputs: vec![path.to_path_buf()],
             labels: Vec::new(),
+            frames: 1,
         },
         data,
     })

@@ -354,6 +354,7 @@ pub(crate) fn open_nrrd(path: &Path, options: &ReadOptions) -> Result<OpenedSour
             description: get("content").unwrap_or("").to_string(),
             inputs,
             labels: Vec::new(),
+            frames: 1,
         },
         data,
     })

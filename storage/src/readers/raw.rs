@@ -54,6 +54,7 @@ pub(crate) fn open_raw(path: &Path, spec: &RawSpec) -> Result<OpenedSource> {
             description: String::new(),
             inputs: vec![path.to_path_buf()],
             labels: Vec::new(),
+            frames: 1,
         },
         data,
     })
