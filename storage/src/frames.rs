@@ -7,7 +7,9 @@
 use std::path::{Path, PathBuf};
 
 use crate::error::Result;
-use crate::import::{import_slices, source_meta, ImportOptions, ImportReport, SliceProducer};
+use crate::import::{
+    import_slices, source_meta, ImportOptions, ImportProgress, ImportReport, SliceProducer,
+};
 use crate::quantize::Quantizer;
 use crate::source::{OpenedSource, RawVolume};
 
@@ -65,11 +67,35 @@ pub(crate) fn import_frames(
     let temporary: Vec<PathBuf> = (1..frames)
         .map(|f| frame_store_path(store_path, f))
         .collect();
+    // Progress over all frames: each frame's import reports its own bytes.
+    let frame_bytes = opened.data.slice_bytes_len() as u64 * dims[2];
+    let total = frame_bytes * u64::from(frames);
+    let options_for = |done_before: u64| {
+        let progress = options.progress;
+        move |p: ImportProgress| {
+            if let Some(report) = progress {
+                report(ImportProgress {
+                    source_bytes_done: done_before + p.source_bytes_done,
+                    source_bytes_total: total,
+                });
+            }
+        }
+    };
+    let import_frame = |f: u32, n: u64, path: &Path, meta| {
+        let progress = options_for(n * frame_bytes);
+        let frame_options = ImportOptions {
+            memory_budget_bytes: options.memory_budget_bytes,
+            cancel: options.cancel,
+            progress: Some(&progress),
+            codec: options.codec,
+        };
+        import_slices(&frame(f), meta, path, &frame_options)
+    };
     let result = (|| {
         for (f, path) in (1..frames).zip(&temporary) {
-            import_slices(&frame(f), meta.clone(), path, options)?;
+            import_frame(f, u64::from(f - 1), path, meta.clone())?;
         }
-        let mut report = import_slices(&frame(0), meta, store_path, options)?;
+        let mut report = import_frame(0, u64::from(frames - 1), store_path, meta)?;
         crate::store::append_frames(store_path, &temporary)?;
         report.header = crate::store::Store::open(store_path)?.header().clone();
         Ok(report)

@@ -1563,3 +1563,86 @@ fn a_dicom_seg_overlay_lists_its_segments_by_name_and_colour() {
         );
     }
 }
+
+/// Issue 16: a 4-D NIfTI (3 time points written by nibabel) opens with a Frames panel; moving
+/// its slider one step changes the crosshair readout from frame 0's value to frame 1's at a
+/// known voxel, the 3D view renders the new frame, and frame 2 is opened ahead. Without
+/// nibabel this FAILS with the install command (CI: .ci/run).
+#[test]
+fn the_frame_slider_moves_the_readout_to_the_next_frames_value() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let nifti = dir.path().join("cine.nii.gz");
+    // value = 1000·t + 100·k + 10·j + i at voxel (i, j, k) of time point t.
+    let script = format!(
+        "import nibabel as nib, numpy as np\n\
+         i, j, k, t = np.meshgrid(np.arange(8), np.arange(8), np.arange(6), np.arange(3), indexing='ij')\n\
+         d = (1000 * t + 100 * k + 10 * j + i).astype(np.int16)\n\
+         nib.save(nib.Nifti1Image(d, np.diag([-1.0, -1.0, 1.5, 1.0])), r'{}')\n",
+        nifti.display()
+    );
+    let out = std::process::Command::new("python3")
+        .args(["-c", &script])
+        .output()
+        .expect("python3 needed");
+    assert!(
+        out.status.success(),
+        "nibabel needed: pip install nibabel (CI: .ci/run)\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let mut options = ViewerOptions::new(VolumeSource::Path(nifti));
+    options.import_folder = dir.path().join("imported");
+    let preferences = Preferences {
+        layout: Layout::TwoByTwo,
+        show_side_panel: true,
+        ..Preferences::default()
+    };
+    let mut h = harness_sized(options, preferences, Vec2::new(1100.0, 800.0));
+    step_until(&mut h, "the 4-D volume open with its frames", |a| {
+        a.volume.as_ref().is_some_and(|v| v.frames.is_some())
+    });
+    if let Some(v) = h.state_mut().as_mut().and_then(|a| a.volume.as_mut()) {
+        v.scene.cursor = [2.0, 3.0, 1.0];
+    }
+    let readout = |t: u32| format!("Crosshair {}.0 · voxel (2, 3, 1)", 1000 * t + 132);
+    let start = Instant::now();
+    while h.query_by_label_contains(&readout(0)).is_none() {
+        assert!(
+            start.elapsed() < Duration::from_secs(60),
+            "no frame-0 readout '{}'",
+            readout(0)
+        );
+        h.step();
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    let ahead = app(&h)
+        .volume
+        .as_ref()
+        .and_then(|v| v.frames.as_ref())
+        .and_then(|f| f.ahead_frame());
+    assert_eq!(ahead, Some(1), "frame 1 is opened ahead");
+
+    h.get_by_role_and_label(egui::accesskit::Role::Slider, "Frame")
+        .increment_accesskit();
+    let start = Instant::now();
+    while h.query_by_label_contains(&readout(1)).is_none() {
+        assert!(
+            start.elapsed() < Duration::from_secs(60),
+            "no frame-1 readout '{}' after moving the slider",
+            readout(1)
+        );
+        h.step();
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    let player = app(&h)
+        .volume
+        .as_ref()
+        .and_then(|v| v.frames.as_ref())
+        .expect("frames");
+    assert_eq!(player.current, 1);
+    assert_eq!(player.ahead_frame(), Some(2), "frame 2 is opened ahead");
+    step_until(&mut h, "a 3D frame of frame 1", |a| {
+        a.volume
+            .as_ref()
+            .is_some_and(|v| v.data.session.latest_frame().is_some())
+    });
+}
