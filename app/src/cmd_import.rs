@@ -143,7 +143,13 @@ pub fn run(args: ImportArgs) -> Result<()> {
         g.spacing_mm[1],
         g.spacing_mm[2]
     );
-    let total = opened.data.slice_bytes_len() as u64 * u64::from(g.dims[2]);
+    if opened.info.frames > 1 {
+        eprintln!(
+            "{} frames (time points), each a frame of the store",
+            opened.info.frames
+        );
+    }
+    let total = opened.data.slice_bytes_len() as u64 * opened.data.dims[2];
     let bar = crate::progress::bytes_bar(total, "importing");
     let progress = |p: ImportProgress| bar.set_position(p.source_bytes_done);
     let import_options = ImportOptions {

@@ -1,6 +1,8 @@
 //! Real-window smoke test: the `strata` binary opens its eframe window on an X server (Xvfb,
 //! started here), draws the 3D view of a small phantom, and keeps running. The screen is read
-//! back over the X protocol (x11rb, no screenshot tool needed) and must show the volume.
+//! back over the X protocol (x11rb, no screenshot tool needed) and must show the volume. Then
+//! real input through XTEST: a click in the 3D view picks (the crosshair moves to the surface
+//! seen there, so the slice views change) and F12 saves a screenshot of the 3D view as a PNG.
 //!
 //! Without Xvfb this test fails with the install hint; it never passes silently.
 
@@ -149,10 +151,117 @@ fn launch_viewer(store: &Path, display: &str, dir: &Path, runtime_dir: &Path) ->
         .env_remove("WAYLAND_DISPLAY")
         .env("XDG_RUNTIME_DIR", runtime_dir)
         .env("XDG_DATA_HOME", dir.join("data"))
+        // Screenshots go to $HOME/Pictures/Strata.
+        .env("HOME", dir.join("home"))
         .stdout(Stdio::null())
         .stderr(Stdio::piped())
         .spawn()
         .expect("launching strata")
+}
+
+/// Real input through the XTEST extension: pointer motion, a left click, a key press.
+mod input {
+    use x11rb::connection::Connection;
+    use x11rb::protocol::xproto::{
+        ConnectionExt as _, BUTTON_PRESS_EVENT, BUTTON_RELEASE_EVENT, KEY_PRESS_EVENT,
+        KEY_RELEASE_EVENT, MOTION_NOTIFY_EVENT,
+    };
+    use x11rb::protocol::xtest::ConnectionExt as _;
+    use x11rb::wrapper::ConnectionExt as _;
+
+    fn send(display: &str, events: &[(u8, u8, i16, i16)]) {
+        let (conn, screen_num) = x11rb::connect(Some(display)).expect("X connection");
+        let root = conn.setup().roots[screen_num].root;
+        for &(kind, detail, x, y) in events {
+            conn.xtest_fake_input(kind, detail, 0, root, x, y, 0)
+                .expect("XTEST request");
+            conn.flush().expect("flush");
+            std::thread::sleep(std::time::Duration::from_millis(60));
+        }
+        conn.sync().expect("sync");
+    }
+
+    pub fn move_to(display: &str, x: i16, y: i16) {
+        send(display, &[(MOTION_NOTIFY_EVENT, 0, x, y)]);
+    }
+
+    pub fn click(display: &str, x: i16, y: i16) {
+        send(
+            display,
+            &[
+                (MOTION_NOTIFY_EVENT, 0, x, y),
+                (BUTTON_PRESS_EVENT, 1, x, y),
+                (BUTTON_RELEASE_EVENT, 1, x, y),
+            ],
+        );
+    }
+
+    /// Presses and releases the key with X keysym `keysym` (0xFFC9 is F12).
+    pub fn key(display: &str, keysym: u32) {
+        let (conn, _) = x11rb::connect(Some(display)).expect("X connection");
+        let setup = conn.setup();
+        let (min, max) = (setup.min_keycode, setup.max_keycode);
+        let mapping = conn
+            .get_keyboard_mapping(min, max - min + 1)
+            .expect("keyboard mapping")
+            .reply()
+            .expect("keyboard mapping reply");
+        let per = mapping.keysyms_per_keycode.max(1) as usize;
+        let index = mapping
+            .keysyms
+            .iter()
+            .position(|&s| s == keysym)
+            .unwrap_or_else(|| panic!("no keycode for keysym {keysym:#x}"));
+        let keycode = min + (index / per) as u8;
+        // No window manager gives the window the keyboard: keys go where the pointer is.
+        let root = setup.roots[0].root;
+        let under = conn
+            .query_pointer(root)
+            .expect("query pointer")
+            .reply()
+            .expect("query pointer reply")
+            .child;
+        conn.set_input_focus(
+            x11rb::protocol::xproto::InputFocus::PARENT,
+            if under == 0 { 1u32 } else { under },
+            0u32,
+        )
+        .expect("focus request");
+        conn.sync().expect("sync");
+        drop(conn);
+        send(
+            display,
+            &[
+                (KEY_PRESS_EVENT, keycode, 0, 0),
+                (KEY_RELEASE_EVENT, keycode, 0, 0),
+            ],
+        );
+    }
+}
+
+/// Pixels of the slice row of the default layout (below the 3D view, left of the side panel).
+fn slice_row(w: usize, h: usize, pixels: &[[u8; 3]]) -> Vec<[u8; 3]> {
+    let (x0, x1) = (w * 2 / 100, w * 55 / 100);
+    let (y0, y1) = (h * 68 / 100, h * 90 / 100);
+    (y0..y1)
+        .flat_map(|y| (x0..x1).map(move |x| pixels[y * w + x]))
+        .collect()
+}
+
+/// Every file under `dir` (for a failure message).
+fn walk(dir: &Path) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    for e in std::fs::read_dir(dir).into_iter().flatten().flatten() {
+        let p = e.path();
+        if p.is_dir() {
+            if !p.ends_with("phantom.strata") {
+                out.extend(walk(&p));
+            }
+        } else {
+            out.push(p);
+        }
+    }
+    out
 }
 
 fn read_stderr(child: &mut Child) -> String {
@@ -177,6 +286,8 @@ fn the_viewer_window_shows_the_volume_and_keeps_running() {
         .expect("phantom store");
     let runtime_dir = dir.path().join("runtime");
     std::fs::create_dir_all(&runtime_dir).expect("runtime dir");
+    // The viewer picks its screenshot folder at start: $HOME/Pictures/Strata when Pictures is there.
+    std::fs::create_dir_all(dir.path().join("home/Pictures")).expect("Pictures folder");
 
     // A fresh server per attempt: on the shared machine winit now and then failed to open a
     // display Xvfb had just reported ready (cause not found; a new server worked each time).
@@ -238,6 +349,98 @@ fn the_viewer_window_shows_the_volume_and_keeps_running() {
     assert!(
         matches!(viewer.0.try_wait(), Ok(None)),
         "strata died right after its first frames"
+    );
+
+    // Picking: the pointer rests over the middle of the 3D view until the slice row is still
+    // (two screens a second apart agree), then a click there moves the crosshair to the bone
+    // surface seen along that ray (away from the volume's centre, where it starts), so the
+    // slice views redraw at other positions.
+    let (w, h) = (SCREEN.0 as usize, SCREEN.1 as usize);
+    let (px, py) = ((w * 35 / 100) as i16, (h * 30 / 100) as i16);
+    input::move_to(&display, px, py);
+    let start = Instant::now();
+    let still = loop {
+        std::thread::sleep(Duration::from_millis(1000));
+        let a = screenshot(&display).map(|(w, h, p)| slice_row(w, h, &p));
+        std::thread::sleep(Duration::from_millis(1000));
+        let b = screenshot(&display).map(|(w, h, p)| slice_row(w, h, &p));
+        if let (Some(a), Some(b)) = (a, b) {
+            if a == b {
+                break a;
+            }
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(60),
+            "the slice row never settled"
+        );
+    };
+    input::click(&display, px, py);
+    let start = Instant::now();
+    loop {
+        std::thread::sleep(Duration::from_millis(500));
+        if let Some((w, h, p)) = screenshot(&display) {
+            let now = slice_row(w, h, &p);
+            let changed = now.iter().zip(&still).filter(|(a, b)| a != b).count();
+            // The crosshair lines alone move a few hundred pixels; new slice images more.
+            if changed > now.len() / 100 {
+                break;
+            }
+            if start.elapsed() > Duration::from_secs(30) {
+                save_png(&shot_path, w, h, &p);
+                panic!(
+                    "a click in the 3D view did not move the crosshair ({changed} of {} slice-row pixels changed); screen in {}",
+                    now.len(),
+                    shot_path.display()
+                );
+            }
+        }
+    }
+
+    // F12: the focused view (the 3D view, focused by the click) as a PNG at its full size.
+    let pictures = dir.path().join("home/Pictures");
+    input::key(&display, 0xFFC9);
+    let folder = pictures.join("Strata");
+    let start = Instant::now();
+    let png = loop {
+        let found = std::fs::read_dir(&folder).ok().and_then(|entries| {
+            entries
+                .flatten()
+                .map(|e| e.path())
+                .find(|p| p.extension().is_some_and(|x| x == "png"))
+        });
+        if let Some(p) = found {
+            // Written by rename or in one go; a partial file fails to decode, so retry.
+            if let Ok(img) = image::open(&p) {
+                break img.to_rgb8();
+            }
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(60),
+            "no screenshot PNG in {} 60 s after F12; files: {:?}\n{}",
+            folder.display(),
+            walk(dir.path()),
+            if matches!(viewer.0.try_wait(), Ok(Some(_))) {
+                read_stderr(&mut viewer.0)
+            } else {
+                String::new()
+            }
+        );
+        std::thread::sleep(Duration::from_millis(500));
+    };
+    // The 3D view of this layout: most of the width left of the side panel, ~60 % of the
+    // height; and the phantom on it.
+    let (sw, sh) = png.dimensions();
+    assert!(
+        sw > SCREEN.0 as u32 / 3
+            && sw < SCREEN.0 as u32
+            && sh > SCREEN.1 as u32 / 3
+            && sh < SCREEN.1 as u32,
+        "screenshot {sw}x{sh} is not the 3D view's size"
+    );
+    let lit = png.pixels().filter(|p| p.0.iter().any(|&c| c > 40)).count();
+    assert!(
+        lit > (sw * sh / 20) as usize,
+        "the screenshot shows no volume ({lit} lit pixels of {sw}x{sh})"
     );
     eprintln!(
         "viewer window screenshot: {} ({:.0}% of the 3D region lit)",

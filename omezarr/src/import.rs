@@ -473,6 +473,7 @@ pub fn import_zarr(
                     description: h.description.clone(),
                     inputs,
                     source_format: h.provenance.source_format.clone(),
+                    labels: h.labels.clone(),
                 },
                 true,
             )
@@ -505,6 +506,7 @@ pub fn import_zarr(
                     description: opened.multiscale.name.clone(),
                     inputs: vec![display.clone()],
                     source_format: "ome-zarr".into(),
+                    labels: Vec::new(),
                 },
                 false,
             )

@@ -370,6 +370,8 @@ fn foreign_description(
         // The records this source hands the loader (read_brick_record) use the default codec.
         codec: strata_storage::BrickCodec::default(),
         required_features: Vec::new(),
+        labels: Vec::new(),
+        frames: 1,
     };
     let histogram = Histogram::from_stored(
         &strata_storage::histogram::StoredValueCounts::default(),

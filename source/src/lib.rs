@@ -155,6 +155,16 @@ pub trait VolumeSource: Send + Sync {
     fn status(&self) -> SourceStatus {
         SourceStatus::Available
     }
+    /// Volumes in the source: a 4-D store's frames (time points, phases); 1 for most.
+    fn frame_count(&self) -> u32 {
+        1
+    }
+    /// Frame `frame` of a 4-D source as a volume source of its own (same header and grid,
+    /// that frame's skeleton and bricks); `None` past the last frame or for a source without
+    /// frames.
+    fn frame_source(self: Arc<Self>, _frame: u32) -> Option<Arc<dyn VolumeSource>> {
+        None
+    }
 
     fn layout(&self) -> &OctreeLayout {
         &self.header().layout
@@ -201,6 +211,54 @@ impl VolumeSource for Store {
     fn node(&self, id: BrickId) -> Option<NodeInfo> {
         Store::node(self, id)
     }
+    fn frame_count(&self) -> u32 {
+        Store::frame_count(self)
+    }
+    fn frame_source(self: Arc<Self>, frame: u32) -> Option<Arc<dyn VolumeSource>> {
+        if frame == 0 {
+            return Some(self);
+        }
+        (frame < Store::frame_count(&self))
+            .then(|| Arc::new(StoreFrame { store: self, frame }) as Arc<dyn VolumeSource>)
+    }
+}
+
+/// One frame ≥ 1 of a local 4-D store (frame 0 is the store itself).
+struct StoreFrame {
+    store: Arc<Store>,
+    frame: u32,
+}
+
+impl VolumeSource for StoreFrame {
+    fn location(&self) -> String {
+        self.store.path().display().to_string()
+    }
+    fn header(&self) -> &StoreHeader {
+        self.store.header()
+    }
+    fn skeleton(&self) -> &Skeleton {
+        self.store
+            .frame_skeleton(self.frame)
+            .unwrap_or_else(|| self.store.skeleton())
+    }
+    fn histogram(&self) -> &Histogram {
+        self.store.histogram()
+    }
+    fn stats(&self) -> &StoreStats {
+        self.store.stats()
+    }
+    fn read_brick_record(&self, id: BrickId) -> Result<Vec<u8>, SourceError> {
+        Ok(self.store.read_frame_brick_record(self.frame, id)?)
+    }
+    fn read_brick(&self, id: BrickId) -> Result<Vec<u16>, SourceError> {
+        Ok(self.store.read_frame_brick(self.frame, id)?)
+    }
+    fn frame_count(&self) -> u32 {
+        self.store.frame_count()
+    }
+    fn frame_source(self: Arc<Self>, frame: u32) -> Option<Arc<dyn VolumeSource>> {
+        self.store.clone().frame_source(frame)
+    }
 }
 
 impl<S: VolumeSource + ?Sized> VolumeSource for Arc<S> {
@@ -236,6 +294,12 @@ impl<S: VolumeSource + ?Sized> VolumeSource for Arc<S> {
     }
     fn read_brick(&self, id: BrickId) -> Result<Vec<u16>, SourceError> {
         (**self).read_brick(id)
+    }
+    fn frame_count(&self) -> u32 {
+        (**self).frame_count()
+    }
+    fn frame_source(self: Arc<Self>, frame: u32) -> Option<Arc<dyn VolumeSource>> {
+        S::frame_source(Arc::clone(&*self), frame)
     }
 }
 

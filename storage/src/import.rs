@@ -54,6 +54,8 @@ pub struct VolumeMeta {
     pub description: String,
     pub inputs: Vec<String>,
     pub source_format: String,
+    /// A label map's labels (DICOM SEG segments), written to the header; empty otherwise.
+    pub labels: Vec<crate::source::LabelInfo>,
 }
 
 #[derive(Clone, Copy, Debug, Default)]
@@ -195,10 +197,23 @@ pub fn import_source(
     store_path: &Path,
     options: &ImportOptions,
 ) -> Result<ImportReport> {
+    if opened.info.frames > 1 {
+        return crate::frames::import_frames(opened, store_path, options);
+    }
     let info = opened.info;
     let quantizer = Quantizer::plan(&opened.data, info.slope);
+    let meta = source_meta(&info, &quantizer);
+    let producer = QuantizedSource {
+        data: opened.data,
+        quantizer,
+    };
+    import_slices(&producer, meta, store_path, options)
+}
+
+/// The header facts of a reader's source stored through `quantizer`.
+pub(crate) fn source_meta(info: &crate::source::SourceInfo, quantizer: &Quantizer) -> VolumeMeta {
     let (slope, intercept) = quantizer.physical_mapping(info.slope, info.intercept);
-    let meta = VolumeMeta {
+    VolumeMeta {
         geometry: info.geometry.clone(),
         stored: quantizer.stored,
         value_mapping: ValueMappingWithUnit {
@@ -221,12 +236,8 @@ pub fn import_source(
             .map(|p| p.display().to_string())
             .collect(),
         source_format: info.format.clone(),
-    };
-    let producer = QuantizedSource {
-        data: opened.data,
-        quantizer,
-    };
-    import_slices(&producer, meta, store_path, options)
+        labels: info.labels.clone(),
+    }
 }
 
 /// Bytes the importer's slice windows need for a volume of `dims` (all levels).
@@ -428,6 +439,8 @@ pub fn import_slices(
         generation: crate::store::new_generation_id(),
         codec: options.codec,
         required_features: options.codec.required_features(narrow),
+        labels: meta.labels,
+        frames: 1,
     };
     let bytes_per_voxel = if narrow { 1 } else { 2 };
     let stats = StoreStats {

@@ -5,6 +5,7 @@
 pub mod brick;
 mod contained_db;
 pub mod error;
+mod frames;
 pub mod geometry;
 pub mod histogram;
 pub mod import;
@@ -25,5 +26,7 @@ pub use geometry::VolumeGeometry;
 pub use octree::{
     BrickId, OctreeLayout, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD, BRICK_PAYLOAD_VOXELS,
 };
-pub use source::{ByteOrder, OpenedSource, RawVolume, SampleType, SourceInfo, WindowPreset};
+pub use source::{
+    ByteOrder, LabelInfo, OpenedSource, RawVolume, SampleType, SourceInfo, WindowPreset,
+};
 pub use store::{Store, StoreHeader, StoredScalar, ValueMapping, ValueMappingWithUnit};

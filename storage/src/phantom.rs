@@ -84,6 +84,7 @@ impl Phantom {
             ),
             inputs: vec![],
             source_format: "phantom".into(),
+            labels: Vec::new(),
         }
     }
 

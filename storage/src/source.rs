@@ -67,6 +67,16 @@ pub struct WindowPreset {
     pub width: f64,
 }
 
+/// One label of a label map (a DICOM SEG segment): its stored value, name and display colour.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct LabelInfo {
+    pub value: u32,
+    pub name: String,
+    /// sRGB; `None` where the source recommends no colour (the viewer's table then decides).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rgb: Option<[u8; 3]>,
+}
+
 /// Everything a reader learned from the header.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct SourceInfo {
@@ -85,6 +95,17 @@ pub struct SourceInfo {
     pub description: String,
     /// Every file that contributed voxels (a DICOM series lists all its slices' folder once).
     pub inputs: Vec<PathBuf>,
+    /// The labels of a label map (DICOM SEG segments); empty for every other source.
+    #[serde(default)]
+    pub labels: Vec<LabelInfo>,
+    /// Volumes on this grid (a 4-D NIfTI's time points); the data then holds them one after
+    /// the other, `dims[2] · frames` slices in all.
+    #[serde(default = "one_frame")]
+    pub frames: u32,
+}
+
+fn one_frame() -> u32 {
+    1
 }
 
 /// A raw voxel array, i fastest, then j, then k, mapped from disk.

@@ -38,8 +38,14 @@ pub const OLDEST_READABLE_FORMAT_VERSION: u32 = 1;
 /// by adding a feature here (the octree's sparse skeleton, say) and naming it in the header of
 /// the stores that use it; a build that lacks it refuses those stores with a clear message
 /// instead of misreading them. `predicted-u8-bricks`: u8 bricks of kinds 6 and 7 (see
-/// [`crate::brick`]).
-pub const KNOWN_STORE_FEATURES: &[&str] = &[crate::brick::PREDICTED_U8_FEATURE];
+/// [`crate::brick`]); `frames`: see [`FEATURE_FRAMES`].
+pub const KNOWN_STORE_FEATURES: &[&str] = &[crate::brick::PREDICTED_U8_FEATURE, FEATURE_FRAMES];
+/// A 4-D store: [`StoreHeader::frames`] volumes on one grid. Frame 0 is stored exactly as a
+/// single volume is (tree `bricks`, meta `skeleton`), so everything that reads one volume reads
+/// frame 0 unchanged; frame f ≥ 1 has its bricks in tree `bricks-frame-f` (same keys) and its
+/// skeleton at meta `skeleton-frame-f`. All frames share the header's value mapping; the
+/// histogram and statistics are frame 0's.
+pub const FEATURE_FRAMES: &str = "frames";
 const MARKER_FILE: &str = "STRATA-STORE";
 /// The marker file's line that [`StoreWriter::finish`] adds last.
 const MARKER_COMPLETE_LINE: &str = "complete";
@@ -112,6 +118,22 @@ pub struct StoreHeader {
     /// [`KNOWN_STORE_FEATURES`]). Empty for every store this build writes.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub required_features: Vec<String>,
+    /// A label map's labels (names, colours), from a DICOM SEG; absent for other stores, and
+    /// ignored by builds that predate it (the voxels read the same without it).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub labels: Vec<crate::source::LabelInfo>,
+    /// Volumes in a 4-D store (time points, cardiac phases); 1 (and absent) otherwise. More
+    /// than one requires the feature [`FEATURE_FRAMES`].
+    #[serde(default = "one_frame", skip_serializing_if = "is_one_frame")]
+    pub frames: u32,
+}
+
+fn one_frame() -> u32 {
+    1
+}
+
+fn is_one_frame(frames: &u32) -> bool {
+    *frames == 1
 }
 
 fn format_1_codec() -> BrickCodec {
@@ -248,6 +270,8 @@ pub struct Store {
     skeleton: Skeleton,
     histogram: Histogram,
     stats: StoreStats,
+    /// Frames 1.. of a 4-D store: each one's bricks tree and skeleton (frame 0 is above).
+    later_frames: Vec<(sled::Tree, Skeleton)>,
     // Dropped after the trees above: the database closes (bounded), then the lock goes.
     db: SledHandles,
     _lock: StoreLock,
@@ -353,9 +377,46 @@ impl Store {
             StorageError::corrupted(path, format!("its statistics are unreadable: {e}"))
         })?;
         let bricks = contained(path, "opening the bricks", || db.open_tree("bricks"))?;
+        if header.frames == 0
+            || header.frames as u64 > crate::geometry::MAX_AXIS_VOXELS
+            || (header.frames > 1 && !header.required_features.iter().any(|f| f == FEATURE_FRAMES))
+        {
+            return Err(StorageError::corrupted(
+                path,
+                format!(
+                    "its header claims {} frames (without the '{FEATURE_FRAMES}' feature, or absurd)",
+                    header.frames
+                ),
+            ));
+        }
+        let mut later_frames = Vec::new();
+        let mut trees = vec![meta.clone(), bricks.clone()];
+        for f in 1..header.frames {
+            let key = frame_skeleton_key(f);
+            let frame_skeleton = Skeleton::decode(&require(key.as_bytes())?)
+                .filter(|s| {
+                    s.levels.len() == header.layout.level_count()
+                        && s.levels
+                            .iter()
+                            .enumerate()
+                            .all(|(l, v)| v.len() as u64 == header.layout.brick_count_in_level(l))
+                })
+                .ok_or_else(|| {
+                    StorageError::corrupted(
+                        path,
+                        format!("frame {f}'s skeleton fails its checksum or the layout"),
+                    )
+                })?;
+            let tree = contained(path, "opening a frame's bricks", || {
+                db.open_tree(frame_bricks_tree(f))
+            })?;
+            trees.push(tree.clone());
+            later_frames.push((tree, frame_skeleton));
+        }
         Ok(Store {
             path: path.to_path_buf(),
-            db: SledHandles::new(path, db, vec![meta, bricks.clone()]),
+            later_frames,
+            db: SledHandles::new(path, db, trees),
             bricks,
             header,
             skeleton,
@@ -387,6 +448,58 @@ impl Store {
     pub fn node(&self, id: BrickId) -> Option<NodeInfo> {
         let i = self.header.layout.index_in_level(id)?;
         Some(self.skeleton.levels[id.level as usize][i])
+    }
+
+    /// Volumes in this store (1 unless it is 4-D).
+    pub fn frame_count(&self) -> u32 {
+        self.header.frames.max(1)
+    }
+
+    /// Frame `frame`'s skeleton (frame 0's is [`Store::skeleton`]).
+    pub fn frame_skeleton(&self, frame: u32) -> Option<&Skeleton> {
+        match frame {
+            0 => Some(&self.skeleton),
+            f => self.later_frames.get(f as usize - 1).map(|(_, s)| s),
+        }
+    }
+
+    /// [`Store::read_brick_record`] of frame `frame`.
+    pub fn read_frame_brick_record(&self, frame: u32, id: BrickId) -> Result<Vec<u8>> {
+        let tree = match frame {
+            0 => &self.bricks,
+            f => match self.later_frames.get(f as usize - 1) {
+                Some((t, _)) => t,
+                None => {
+                    return Err(StorageError::invalid(
+                        &self.path,
+                        format!("frame {f} of a store with {} frames", self.frame_count()),
+                    ))
+                }
+            },
+        };
+        if !self.header.layout.contains(id) {
+            return Err(StorageError::invalid(
+                &self.path,
+                format!("brick {id:?} is outside the octree"),
+            ));
+        }
+        let record = contained(&self.path, "reading a brick", || tree.get(brick_key(id)))?
+            .ok_or_else(|| {
+                StorageError::corrupted(
+                    &self.path,
+                    format!(
+                        "frame {frame}: brick level {} at {:?} is missing",
+                        id.level, id.coords
+                    ),
+                )
+            })?;
+        Ok(record.to_vec())
+    }
+
+    /// [`Store::read_brick`] of frame `frame`.
+    pub fn read_frame_brick(&self, frame: u32, id: BrickId) -> Result<Vec<u16>> {
+        let record = self.read_frame_brick_record(frame, id)?;
+        decode_brick(id, &record).map_err(|e| brick_error(&self.path, id, e))
     }
 
     /// Reads, verifies and decompresses one brick: 36³ stored values, x fastest.
@@ -583,6 +696,75 @@ fn check_format(path: &Path, header: &StoreHeader) -> Result<()> {
             ),
         ));
     }
+    Ok(())
+}
+
+fn frame_skeleton_key(frame: u32) -> String {
+    format!("skeleton-frame-{frame}")
+}
+
+fn frame_bricks_tree(frame: u32) -> String {
+    format!("bricks-frame-{frame}")
+}
+
+/// Makes the complete store at `path` a 4-D store: the complete single-volume stores
+/// `later_frames` (imported with the same value mapping onto the same grid) become its frames
+/// 1.., their bricks and skeletons copied in; the header, rewritten last in one insert, then
+/// names the frames and the feature. Until that insert the store is a valid single volume.
+pub(crate) fn append_frames(path: &Path, later_frames: &[PathBuf]) -> Result<()> {
+    let mut frame_stores = Vec::with_capacity(later_frames.len());
+    for p in later_frames {
+        frame_stores.push(Store::open(p)?);
+    }
+    let _lock = StoreLock::acquire(path, LockPurpose::Import)?;
+    let config = sled::Config::new().path(path.join(DB_DIR));
+    let db = contained(path, "opening the database", || {
+        open_db_when_unlocked(config)
+    })?;
+    let meta = contained(path, "opening the metadata", || db.open_tree("meta"))?;
+    let mut header: StoreHeader = contained(path, "reading the metadata", || meta.get(KEY_HEADER))?
+        .and_then(|h| serde_json::from_slice(&h).ok())
+        .ok_or_else(|| StorageError::corrupted(path, "its header is unreadable"))?;
+    let mut trees = vec![meta.clone()];
+    for (i, frame) in frame_stores.iter().enumerate() {
+        let f = i as u32 + 1;
+        let h = frame.header();
+        if h.layout != header.layout || h.value_mapping != header.value_mapping {
+            return Err(StorageError::invalid(
+                path,
+                format!("frame {f} has another grid or value mapping than frame 0"),
+            ));
+        }
+        let tree = contained(path, "creating a frame's bricks", || {
+            db.open_tree(frame_bricks_tree(f))
+        })?;
+        let mut batch = sled::Batch::default();
+        for entry in frame.bricks.iter() {
+            let (k, v) = contained(path, "copying a frame", || entry)?;
+            batch.insert(k, v);
+        }
+        contained(path, "writing a frame's bricks", || tree.apply_batch(batch))?;
+        contained(path, "writing a frame's skeleton", || {
+            meta.insert(frame_skeleton_key(f).as_bytes(), frame.skeleton.encode())
+        })?;
+        header.stored_range = [
+            header.stored_range[0].min(h.stored_range[0]),
+            header.stored_range[1].max(h.stored_range[1]),
+        ];
+        trees.push(tree);
+    }
+    header.frames = later_frames.len() as u32 + 1;
+    if !header.required_features.iter().any(|f| f == FEATURE_FRAMES) {
+        header.required_features.push(FEATURE_FRAMES.into());
+    }
+    let handles = SledHandles::new(path, db, trees);
+    handles.flush(FLUSH_LIMIT)?;
+    let json = serde_json::to_vec(&header)
+        .map_err(|e| StorageError::invalid(path, format!("encoding the header: {e}")))?;
+    contained(path, "writing the header", || meta.insert(KEY_HEADER, json))?;
+    handles.flush(FLUSH_LIMIT)?;
+    drop(meta);
+    drop(frame_stores);
     Ok(())
 }
 

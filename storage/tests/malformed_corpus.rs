@@ -923,3 +923,90 @@ fn damaged_format_2_bricks_and_unknown_codecs_end_in_clean_errors() {
     assert!(err.contains("header is unreadable"), "{err}");
     assert!(err.contains("brotli-9"), "{err}");
 }
+
+/// DICOM SEG joins the campaign: hand-made header faults (absurd frame counts and sizes,
+/// truncated pixel data, frames naming unknown segments or lying off the grid, see
+/// `support/make_dicom_seg.py`) must each end in a clean error naming the file; byte
+/// truncations and flips of a valid SEG end in such an error or a bounded label volume. Without
+/// highdicom this FAILS with the install command (CI installs it: .ci/run).
+#[test]
+fn malformed_dicom_segs_end_in_clean_errors() {
+    let dir = tempfile::tempdir().unwrap();
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/support/make_dicom_seg.py");
+    let out = std::process::Command::new("python3")
+        .arg(&script)
+        .arg(dir.path())
+        .output()
+        .expect("python3 needed");
+    assert!(
+        out.status.success(),
+        "make_dicom_seg.py failed (needs highdicom: pip install highdicom; CI: .ci/run)\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let staging = dir.path().join("staging");
+    std::fs::create_dir_all(&staging).unwrap();
+    let options = ReadOptions {
+        staging_dir: Some(staging.clone()),
+        ..Default::default()
+    };
+    let mut failures = Vec::new();
+    let mut cases = 0;
+    let mut names: Vec<_> = std::fs::read_dir(dir.path().join("malformed"))
+        .unwrap()
+        .flatten()
+        .map(|e| e.path())
+        .collect();
+    names.sort();
+    for path in &names {
+        cases += 1;
+        let name = path.file_name().unwrap().to_string_lossy().into_owned();
+        match run_case(path, &options, dir.path()) {
+            Err(e) => failures.push(format!("{name}: {e}")),
+            Ok(Outcome::Failed(message)) if message.contains(&name) => {}
+            Ok(Outcome::Failed(message)) => failures.push(format!(
+                "{name}: the error does not name the file: {message}"
+            )),
+            Ok(Outcome::Opened { .. }) => failures.push(format!("{name}: opened")),
+        }
+    }
+    assert!(cases >= 19, "only {cases} hand-made cases");
+    let base = Base {
+        name: "seg.dcm",
+        bytes: std::fs::read(dir.path().join("binary.dcm")).unwrap(),
+        compressed_from: None,
+        text_keys: &[],
+        raw: None,
+    };
+    let case_dir = dir.path().join("mutated");
+    std::fs::create_dir_all(&case_dir).unwrap();
+    let path = case_dir.join("seg.dcm");
+    for (what, damaged) in mutations(&base, 0x5e9_0000) {
+        cases += 1;
+        std::fs::write(&path, &damaged).unwrap();
+        match run_case(&path, &options, &case_dir) {
+            Err(e) => failures.push(format!("seg.dcm ({what}): {e}")),
+            Ok(Outcome::Failed(message)) => {
+                if !message.contains("seg.dcm") {
+                    failures.push(format!(
+                        "seg.dcm ({what}): the error does not name the file: {message}"
+                    ));
+                }
+            }
+            Ok(Outcome::Opened { values, .. }) => {
+                // A flipped digit of a position may move a frame (more slices); never absurd.
+                if values.is_empty() || values.len() > 1 << 24 {
+                    failures.push(format!("seg.dcm ({what}): {} voxels", values.len()));
+                }
+            }
+        }
+    }
+    let leaked: Vec<_> = std::fs::read_dir(&staging).unwrap().flatten().collect();
+    assert!(leaked.is_empty(), "staging files left behind: {leaked:?}");
+    assert!(cases > 100, "only {cases} cases");
+    assert!(
+        failures.is_empty(),
+        "{} of {cases} cases failed:\n{}",
+        failures.len(),
+        failures.join("\n")
+    );
+}

@@ -902,10 +902,11 @@ fn synthetic_nifti2_big_endian_4d() {
     );
     assert_eq!(g.origin_lps_mm, [-5.0, -6.0, 7.0]);
     assert_eq!((s.info.slope, s.info.intercept), (2.0, -1.0));
-    assert!(s.info.description.contains("first of 2 volumes"));
+    // Both time points, one after the other (each a frame of the store: storage/tests/frames.rs).
+    assert_eq!(s.info.frames, 2);
     assert_eq!(
         all_values(&s),
-        (-24..0).map(|x| x as f64).collect::<Vec<_>>()
+        (-24..24).map(|x| x as f64).collect::<Vec<_>>()
     );
 
     // The same header as a .hdr/.img pair (magic ni2, data from offset 0 of the .img).

@@ -95,6 +95,8 @@ pub struct OpenVolume {
     pub view_rects: Vec<PlacedView>,
     /// A label map or continuous overlay drawn over the slices (overlay.rs).
     pub overlay: Option<Overlay>,
+    /// A 4-D volume's frame slider and cine (frames.rs); `None` for one volume.
+    pub frames: Option<super::frames::FramePlayer>,
 }
 
 /// A short message in the status bar, cleared after a few seconds.
@@ -289,7 +291,12 @@ impl StrataApp {
             repaint.clone(),
         )?;
         let slices = SliceReader::start(store.clone(), repaint.clone())?;
-        let oblique = super::oblique::ObliqueReader::start(store.clone(), repaint)?;
+        let oblique = super::oblique::ObliqueReader::start(store.clone(), repaint.clone())?;
+        let frame_player = super::frames::FramePlayer::for_source(
+            store.clone(),
+            self.options.gpu_budget_bytes,
+            repaint,
+        );
         let info = session.info().clone();
         let header = &info.header;
         let is_ct = looks_like_ct(
@@ -372,6 +379,7 @@ impl StrataApp {
             oblique_view: ObliqueViewer::default(),
             view_rects: Vec::new(),
             overlay: None,
+            frames: frame_player,
         });
         Ok(())
     }
@@ -394,6 +402,15 @@ impl StrataApp {
         if let Some(v) = self.volume.as_mut() {
             // Here, not in the panel: an overlay opens even with the side bar hidden.
             self.panels.overlay.poll(ui.ctx(), &v.data, &mut v.overlay);
+            if let Some(player) = v.frames.as_mut() {
+                if player.tick(ui.ctx(), &mut v.data) {
+                    // New readers: the views ask them again and take their next images.
+                    for view in &mut v.slice_views {
+                        view.forget_requests();
+                    }
+                    v.view_3d.forget_frame();
+                }
+            }
         }
         self.handle_shortcuts(ui.ctx());
         if let (Some(deg), Some(v)) = (self.options.auto_orbit_deg_per_second, self.volume.as_mut())
@@ -823,7 +840,12 @@ impl StrataApp {
                 };
                 let overlay_text = match (&v.overlay, self.hover_overlay) {
                     (Some(o), Some(value)) => match o.kind {
-                        super::overlay::OverlayKind::Labels => format!(" · label {value:.0}"),
+                        super::overlay::OverlayKind::Labels => {
+                            match o.label_name(value.round() as i64) {
+                                Some(name) => format!(" · label {value:.0} {name}"),
+                                None => format!(" · label {value:.0}"),
+                            }
+                        }
                         super::overlay::OverlayKind::Continuous => {
                             format!(" · overlay {value:.4}")
                         }
@@ -955,6 +977,7 @@ impl StrataApp {
                 view_3d: &mut v.view_3d,
                 clock: &self.clock,
                 overlay: &mut v.overlay,
+                frames: &mut v.frames,
                 import_folder: &self.options.import_folder,
             },
         );

@@ -14,6 +14,7 @@
 pub mod app;
 pub mod colour_maps;
 pub mod dialogs;
+pub mod frames;
 pub mod gpu_recovery;
 pub mod history;
 pub mod jobs;

@@ -14,7 +14,7 @@
 //! Sampling runs on a named thread (`strata-overlay-reader`) per overlay, with its own bounded
 //! brick cache; the UI colours the sampled values (cheap) whenever the style changes.
 
-use std::collections::{BTreeSet, HashMap};
+use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Condvar, Mutex};
 
@@ -47,11 +47,40 @@ pub struct OverlayStyle {
     pub opacity: f32,
     /// Labels hidden by the user.
     pub hidden_labels: BTreeSet<i64>,
+    /// Names and colours the label store's header gives (a DICOM SEG's segments); labels not
+    /// in it take [`label_colour`].
+    pub label_table: BTreeMap<i64, LabelEntry>,
     pub colour_map: ColourMap,
     /// Continuous: values in `range` run through the colour map; below `threshold` nothing is
     /// drawn (the base shows through).
     pub range: (f64, f64),
     pub threshold: f64,
+}
+
+/// A named label with its colour (from the store header's labels).
+#[derive(Clone, Debug, PartialEq)]
+pub struct LabelEntry {
+    pub name: String,
+    pub colour: [u8; 3],
+}
+
+/// The label table of a store header: each label's name and its recommended colour, or the
+/// default table's where the source recommends none.
+pub fn label_table_of(labels: &[strata_storage::LabelInfo]) -> BTreeMap<i64, LabelEntry> {
+    labels
+        .iter()
+        .map(|l| {
+            let value = i64::from(l.value);
+            let colour = l.rgb.unwrap_or_else(|| label_colour(value));
+            (
+                value,
+                LabelEntry {
+                    name: l.name.clone(),
+                    colour,
+                },
+            )
+        })
+        .collect()
 }
 
 /// A label's colour: a fixed table for the first labels (distinct, saturated, as segmentation
@@ -145,6 +174,13 @@ impl Overlay {
         repaint: Repaint,
     ) -> anyhow::Result<Self> {
         let header = store.header().clone();
+        // A store that names its labels (a DICOM SEG) is a label map whatever was asked.
+        let kind = if header.labels.is_empty() {
+            kind
+        } else {
+            OverlayKind::Labels
+        };
+        let label_table = label_table_of(&header.labels);
         let mapping = header.value_mapping.mapping;
         let (a, b) = (
             mapping.physical(header.stored_range[0] as f64),
@@ -218,6 +254,7 @@ impl Overlay {
             visible: true,
             opacity: 0.5,
             hidden_labels: BTreeSet::new(),
+            label_table,
             colour_map: ColourMap::Hot,
             range: physical_range,
             // Continuous: the lower fifth of the range stays transparent at first.
@@ -253,6 +290,11 @@ impl Overlay {
 
     pub fn latest(&self, view: SliceView) -> Option<OverlaySlice> {
         lock_ignoring_poison(&self.shared.results)[view.index()].clone()
+    }
+
+    /// A label's name from the store header ("kidney"), if it has one.
+    pub fn label_name(&self, label: i64) -> Option<&str> {
+        self.style.label_table.get(&label).map(|e| e.name.as_str())
     }
 
     /// Labels met so far in the sampled slices (the panel lists them).
@@ -304,7 +346,11 @@ pub fn colour_of(kind: OverlayKind, style: &OverlayStyle, value: f32) -> [u8; 4]
             if label == 0 || style.hidden_labels.contains(&label) {
                 return [0; 4];
             }
-            (label_colour(label), style.opacity)
+            let colour = style
+                .label_table
+                .get(&label)
+                .map_or_else(|| label_colour(label), |e| e.colour);
+            (colour, style.opacity)
         }
         OverlayKind::Continuous => {
             let v = value as f64;
@@ -483,6 +529,7 @@ pub(crate) mod tests {
             visible: true,
             opacity: 0.5,
             hidden_labels: [2].into_iter().collect(),
+            label_table: BTreeMap::new(),
             colour_map: ColourMap::Hot,
             range: (0.0, 1.0),
             threshold: 0.5,
@@ -507,6 +554,19 @@ pub(crate) mod tests {
         assert_eq!(
             colour_of(OverlayKind::Continuous, &style, 0.75),
             [half(r), half(g), half(b), 128]
+        );
+        // A header's label table (a DICOM SEG's recommended colours) wins over the default.
+        let named = OverlayStyle {
+            label_table: label_table_of(&[strata_storage::LabelInfo {
+                value: 1,
+                name: "liver".into(),
+                rgb: Some([200, 100, 50]),
+            }]),
+            ..style.clone()
+        };
+        assert_eq!(
+            colour_of(OverlayKind::Labels, &named, 1.0),
+            [100, 50, 25, 128]
         );
         let hidden = OverlayStyle {
             visible: false,

@@ -62,6 +62,11 @@ pub fn slice_colour(view: SliceView) -> Color32 {
 }
 
 impl SliceViewer {
+    /// The slice reader changed (another frame of a 4-D volume): ask it again.
+    pub fn forget_requests(&mut self) {
+        self.last_request = None;
+    }
+
     pub fn new(view: SliceView) -> Self {
         SliceViewer {
             view,

@@ -1485,3 +1485,164 @@ fn the_orbit_movie_writes_the_frames_around_the_volume() {
         "a quarter turn changed nothing ({difference})"
     );
 }
+
+/// Issue 16: a DICOM SEG (written by highdicom: `storage/tests/support/make_dicom_seg.py`)
+/// opened from the overlay panel, even with "Continuous" chosen, becomes a label map whose
+/// panel lists every segment by number and name in its recommended colour (CIELab → sRGB as
+/// highdicom converts it, ±1). Without highdicom this FAILS with the install command (CI:
+/// .ci/run).
+#[test]
+fn a_dicom_seg_overlay_lists_its_segments_by_name_and_colour() {
+    use super::overlay::OverlayKind;
+    let dir = tempfile::tempdir().expect("temp dir");
+    let store = phantom_store(dir.path());
+    let script =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../storage/tests/support/make_dicom_seg.py");
+    let out = std::process::Command::new("python3")
+        .arg(&script)
+        .arg(dir.path().join("seg"))
+        .output()
+        .expect("python3 needed");
+    assert!(
+        out.status.success(),
+        "make_dicom_seg.py failed (needs highdicom: pip install highdicom; CI: .ci/run)\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let expected: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("seg/binary.json")).expect("json"))
+            .expect("json");
+    let mut options = ViewerOptions::new(VolumeSource::Path(store.clone()));
+    options.import_folder = dir.path().join("imported");
+    let preferences = Preferences {
+        show_side_panel: true,
+        ..Preferences::default()
+    };
+    let mut h = harness_sized(options, preferences, Vec2::new(1100.0, 800.0));
+    step_until(&mut h, "the axial slice", |a| {
+        a.slice_display(SliceView::Axial).is_some()
+    });
+    h.get_by_label("Overlay").click();
+    h.step();
+    if let Some(a) = h.state_mut().as_mut() {
+        a.panels.overlay.path = dir.path().join("seg/binary.dcm").display().to_string();
+        a.panels.overlay.kind = OverlayKind::Continuous;
+    }
+    h.step();
+    h.get_by_label("Open overlay").click();
+    step_until_some(&mut h, "the SEG overlay", |a| {
+        a.volume.as_ref()?.overlay.as_ref().map(|_| ())
+    });
+    h.step();
+    h.step();
+    let overlay = app(&h)
+        .volume
+        .as_ref()
+        .and_then(|v| v.overlay.as_ref())
+        .expect("overlay");
+    assert_eq!(overlay.kind, OverlayKind::Labels, "a SEG is a label map");
+    let segments = expected["segments"].as_array().expect("segments");
+    assert_eq!(overlay.style.label_table.len(), segments.len());
+    for s in segments {
+        let number = s["number"].as_i64().expect("number");
+        let name = s["name"].as_str().expect("name");
+        let entry = &overlay.style.label_table[&number];
+        assert_eq!(entry.name, name);
+        for c in 0..3 {
+            let want = s["rgb"][c].as_i64().expect("rgb");
+            assert!(
+                (i64::from(entry.colour[c]) - want).abs() <= 1,
+                "{name}: {:?} vs {}",
+                entry.colour,
+                s["rgb"]
+            );
+        }
+        assert!(
+            h.query_by_label_contains(&format!("{number} {name}"))
+                .is_some(),
+            "the panel lists segment {number} {name}"
+        );
+    }
+}
+
+/// Issue 16: a 4-D NIfTI (3 time points written by nibabel) opens with a Frames panel; moving
+/// its slider one step changes the crosshair readout from frame 0's value to frame 1's at a
+/// known voxel, the 3D view renders the new frame, and frame 2 is opened ahead. Without
+/// nibabel this FAILS with the install command (CI: .ci/run).
+#[test]
+fn the_frame_slider_moves_the_readout_to_the_next_frames_value() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let nifti = dir.path().join("cine.nii.gz");
+    // value = 1000·t + 100·k + 10·j + i at voxel (i, j, k) of time point t.
+    let script = format!(
+        "import nibabel as nib, numpy as np\n\
+         i, j, k, t = np.meshgrid(np.arange(8), np.arange(8), np.arange(6), np.arange(3), indexing='ij')\n\
+         d = (1000 * t + 100 * k + 10 * j + i).astype(np.int16)\n\
+         nib.save(nib.Nifti1Image(d, np.diag([-1.0, -1.0, 1.5, 1.0])), r'{}')\n",
+        nifti.display()
+    );
+    let out = std::process::Command::new("python3")
+        .args(["-c", &script])
+        .output()
+        .expect("python3 needed");
+    assert!(
+        out.status.success(),
+        "nibabel needed: pip install nibabel (CI: .ci/run)\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let mut options = ViewerOptions::new(VolumeSource::Path(nifti));
+    options.import_folder = dir.path().join("imported");
+    let preferences = Preferences {
+        layout: Layout::TwoByTwo,
+        show_side_panel: true,
+        ..Preferences::default()
+    };
+    let mut h = harness_sized(options, preferences, Vec2::new(1100.0, 800.0));
+    step_until(&mut h, "the 4-D volume open with its frames", |a| {
+        a.volume.as_ref().is_some_and(|v| v.frames.is_some())
+    });
+    if let Some(v) = h.state_mut().as_mut().and_then(|a| a.volume.as_mut()) {
+        v.scene.cursor = [2.0, 3.0, 1.0];
+    }
+    let readout = |t: u32| format!("Crosshair {}.0 · voxel (2, 3, 1)", 1000 * t + 132);
+    let start = Instant::now();
+    while h.query_by_label_contains(&readout(0)).is_none() {
+        assert!(
+            start.elapsed() < Duration::from_secs(60),
+            "no frame-0 readout '{}'",
+            readout(0)
+        );
+        h.step();
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    let ahead = app(&h)
+        .volume
+        .as_ref()
+        .and_then(|v| v.frames.as_ref())
+        .and_then(|f| f.ahead_frame());
+    assert_eq!(ahead, Some(1), "frame 1 is opened ahead");
+
+    h.get_by_role_and_label(egui::accesskit::Role::Slider, "Frame")
+        .increment_accesskit();
+    let start = Instant::now();
+    while h.query_by_label_contains(&readout(1)).is_none() {
+        assert!(
+            start.elapsed() < Duration::from_secs(60),
+            "no frame-1 readout '{}' after moving the slider",
+            readout(1)
+        );
+        h.step();
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    let player = app(&h)
+        .volume
+        .as_ref()
+        .and_then(|v| v.frames.as_ref())
+        .expect("frames");
+    assert_eq!(player.current, 1);
+    assert_eq!(player.ahead_frame(), Some(2), "frame 2 is opened ahead");
+    step_until(&mut h, "a 3D frame of frame 1", |a| {
+        a.volume
+            .as_ref()
+            .is_some_and(|v| v.data.session.latest_frame().is_some())
+    });
+}

@@ -254,6 +254,16 @@ pub struct View3d {
     requested_size: [u32; 2],
 }
 
+impl View3d {
+    /// The readers changed (another frame of a 4-D volume): the next frame they publish is
+    /// uploaded whatever its serial (serials count per render session).
+    pub fn forget_frame(&mut self) {
+        if let Some(t) = &mut self.texture {
+            t.serial = u64::MAX;
+        }
+    }
+}
+
 /// A short name of the render mode for titles (new modes add a line here).
 pub fn mode_name(mode: RenderMode) -> &'static str {
     match mode {

@@ -264,8 +264,8 @@ impl VolumeSession {
         self.shared.wake.notify_all();
     }
 
-    /// The newest request, the one the next frame answers (tests compare frames with it).
-    #[cfg(test)]
+    /// The newest request, the one the next frame answers (tests compare frames with it; the
+    /// frame ahead of a 4-D volume is sent it too).
     pub fn current_request(&self) -> Option<RenderRequest> {
         lock_ignoring_poison(&self.shared.request).clone()
     }

@@ -49,6 +49,9 @@ struct FrameInfo {
     slope: f64,
     intercept: f64,
     instance: i64,
+    /// What tells the volumes of a multi-phase series apart, for this frame:
+    /// TemporalPositionIndex / TemporalPositionIdentifier, TriggerTime, AcquisitionNumber.
+    phase: [Option<f64>; 3],
 }
 
 /// The header of one image file (pixel data not read).
@@ -59,6 +62,8 @@ struct ImageHeader {
     series_number: Option<i64>,
     series_description: String,
     modality: String,
+    /// SOPClassUID (a DICOM SEG is read by `dicom_seg`).
+    sop_class: String,
     rows: u32,
     cols: u32,
     bits_allocated: u16,
@@ -251,6 +256,19 @@ fn read_header(path: &Path) -> Result<Option<ImageHeader>> {
         ))
         .and_then(|v| v.first().copied())
         .unwrap_or(0.0);
+        let temporal = per_frame
+            .get(f)
+            .and_then(|g| seq_item(g, tags::FRAME_CONTENT_SEQUENCE))
+            .and_then(|c| int(c, tags::TEMPORAL_POSITION_INDEX))
+            .or_else(|| int(&obj, tags::TEMPORAL_POSITION_IDENTIFIER))
+            .map(|v| v as f64);
+        let trigger = per_frame
+            .get(f)
+            .and_then(|g| seq_item(g, tags::CARDIAC_SYNCHRONIZATION_SEQUENCE))
+            .and_then(|c| floats(c.get(tags::NOMINAL_CARDIAC_TRIGGER_DELAY_TIME)))
+            .or_else(|| floats(obj.get(tags::TRIGGER_TIME)))
+            .and_then(|v| v.first().copied());
+        let acquisition = int(&obj, tags::ACQUISITION_NUMBER).map(|v| v as f64);
         frames.push(FrameInfo {
             file: 0,
             frame: f as u32,
@@ -260,6 +278,7 @@ fn read_header(path: &Path) -> Result<Option<ImageHeader>> {
             slope,
             intercept,
             instance,
+            phase: [temporal, trigger, acquisition],
         });
     }
     // In-plane spacing: a missing PixelSpacing and a zero one ("0\0", seen on CR) are treated
@@ -415,6 +434,7 @@ fn read_header(path: &Path) -> Result<Option<ImageHeader>> {
         series_number: int(&obj, tags::SERIES_NUMBER),
         series_description: text(&obj, tags::SERIES_DESCRIPTION).unwrap_or_default(),
         modality: text(&obj, tags::MODALITY).unwrap_or_default(),
+        sop_class: text(&obj, tags::SOP_CLASS_UID).unwrap_or_default(),
         rows: rows as u32,
         cols: cols as u32,
         bits_allocated: bits_allocated.clamp(0, u16::MAX as i64) as u16,
@@ -639,11 +659,19 @@ pub(crate) fn open_series_dir(dir: &Path, options: &ReadOptions) -> Result<Opene
         }
     };
     let headers = series.swap_remove(chosen);
+    if let [h] = headers.as_slice() {
+        if crate::readers::dicom_seg::is_segmentation(&h.sop_class, &h.modality) {
+            return crate::readers::dicom_seg::open_dicom_seg(&h.path, options);
+        }
+    }
     assemble(dir, headers, options)
 }
 
 pub(crate) fn open_dicom_file(path: &Path, options: &ReadOptions) -> Result<OpenedSource> {
     match read_header(path)? {
+        Some(h) if crate::readers::dicom_seg::is_segmentation(&h.sop_class, &h.modality) => {
+            crate::readers::dicom_seg::open_dicom_seg(path, options)
+        }
         Some(h) => assemble(path, vec![h], options),
         None => {
             let sop = open_header(path)
@@ -656,6 +684,56 @@ pub(crate) fn open_dicom_file(path: &Path, options: &ReadOptions) -> Result<Open
             ))
         }
     }
+}
+
+/// Splits a series with several slices at each position into phases: by the first of
+/// TemporalPositionIndex/Identifier, TriggerTime and AcquisitionNumber that every frame has and
+/// that groups the frames into phases of equal size, each with every position once. Phase 0
+/// (the lowest value) stays in `frames`; the others are returned in order. Nothing changes when
+/// positions are distinct or no attribute splits them (the caller then names the duplicate).
+fn split_phases(
+    frames: &mut Vec<FrameInfo>,
+    pos: &dyn Fn(&FrameInfo) -> f64,
+) -> Vec<Vec<FrameInfo>> {
+    let key = |p: f64| (p * 1e4).round() as i64;
+    let mut positions: Vec<i64> = frames.iter().map(|f| key(pos(f))).collect();
+    positions.sort_unstable();
+    positions.dedup();
+    if positions.len() == frames.len() || positions.is_empty() {
+        return Vec::new();
+    }
+    for attr in 0..3 {
+        if frames.iter().any(|f| f.phase[attr].is_none()) {
+            continue;
+        }
+        let mut values: Vec<f64> = frames.iter().filter_map(|f| f.phase[attr]).collect();
+        values.sort_by(f64::total_cmp);
+        values.dedup();
+        if values.len() < 2 || values.len() * positions.len() != frames.len() {
+            continue;
+        }
+        let groups: Vec<Vec<FrameInfo>> = values
+            .iter()
+            .map(|v| {
+                frames
+                    .iter()
+                    .filter(|f| f.phase[attr] == Some(*v))
+                    .cloned()
+                    .collect()
+            })
+            .collect();
+        let complete = groups.iter().all(|g| {
+            let mut p: Vec<i64> = g.iter().map(|f| key(pos(f))).collect();
+            p.sort_unstable();
+            p == positions
+        });
+        if complete {
+            let mut groups = groups.into_iter();
+            *frames = groups.next().unwrap_or_default();
+            return groups.collect();
+        }
+    }
+    Vec::new()
 }
 
 /// A pixel spacing that can enter the geometry: positive and finite ("0\0" is not).
@@ -802,6 +880,10 @@ fn assemble(
         [1.0, 1.0]
     });
     let positioned = frames.iter().all(|f| f.ipp.is_some() && f.iop.is_some());
+    // A multi-phase series (cardiac phases, perfusion time points): phase 0 stays in `frames`
+    // and makes the geometry; the other phases, each at the same positions, become frames of
+    // the store (written after phase 0, one phase after the other).
+    let mut later_phases: Vec<Vec<FrameInfo>> = Vec::new();
     let (direction, origin, slice_gap) = if positioned {
         let iop0 = frames[0].iop.unwrap_or([1.0, 0.0, 0.0, 0.0, 1.0, 0.0]);
         for f in &frames {
@@ -835,6 +917,7 @@ fn assemble(
         )?;
         let (normal, _) = split_axis(display, "slice normal", cross(row, col))?;
         let pos = |f: &FrameInfo| f.ipp.map_or(0.0, |p| dot(p, normal));
+        later_phases = split_phases(&mut frames, &pos);
         frames.sort_by(|a, b| pos(a).total_cmp(&pos(b)));
         let n = frames.len();
         let p0 = frames[0].ipp.unwrap_or([0.0; 3]);
@@ -945,6 +1028,44 @@ fn assemble(
     }
 
     let dims = [first.cols as u64, first.rows as u64, frames.len() as u64];
+    let phase_count = later_phases.len() as u64 + 1;
+    if !later_phases.is_empty() {
+        let along = |f: &FrameInfo| {
+            f.ipp.map_or(0.0, |p| {
+                dot(
+                    [p[0] - origin[0], p[1] - origin[1], p[2] - origin[2]],
+                    direction[2],
+                )
+            })
+        };
+        for (n, phase) in later_phases.iter_mut().enumerate() {
+            phase.sort_by(|a, b| along(a).total_cmp(&along(b)));
+            for (k, (f, f0)) in phase.iter().zip(frames.iter()).enumerate() {
+                let off = norm(
+                    [0, 1, 2].map(|c| f.ipp.unwrap_or([0.0; 3])[c] - f0.ipp.unwrap_or([0.0; 3])[c]),
+                );
+                if off > GAP_REL_TOL * slice_gap + 10.0 * GAP_ABS_TOL_MM {
+                    return Err(StorageError::invalid(
+                        display,
+                        format!(
+                            "phase {} slice {} ({}) lies {off:.3} mm from phase 1's slice {} ({}): the phases are not on one grid",
+                            n + 2,
+                            k + 1,
+                            where_(f),
+                            k + 1,
+                            where_(f0)
+                        ),
+                    ));
+                }
+            }
+        }
+        notes.push(format!(
+            "{phase_count} phases (time points) at the same positions, each a frame of the store"
+        ));
+    }
+    let later_count = later_phases.len();
+    frames.extend(later_phases.into_iter().flatten());
+    let data_dims = [dims[0], dims[1], dims[2] * phase_count];
     let geometry = VolumeGeometry {
         dims: crate::geometry::checked_dims(dims, display)?,
         // PixelSpacing is (row spacing, column spacing): the step along j, then along i.
@@ -970,9 +1091,11 @@ fn assemble(
         (Output::Physical, SampleType::F32, 1.0, 0.0)
     };
 
-    let staging_bytes = dims.iter().fold(out_type.size_bytes() as u64, |acc, &d| {
-        acc.saturating_mul(d)
-    });
+    let staging_bytes = data_dims
+        .iter()
+        .fold(out_type.size_bytes() as u64, |acc, &d| {
+            acc.saturating_mul(d)
+        });
     let mut staging = new_staging(display, options.staging_dir.as_deref(), staging_bytes)?;
     {
         let mut out = BufWriter::with_capacity(1 << 20, staging.as_file_mut());
@@ -1040,7 +1163,7 @@ fn assemble(
         }
         out.flush().map_err(|e| StorageError::io(display, e))?;
     }
-    let data = RawVolume::from_staging(staging, display, out_type, ByteOrder::Little, dims)?;
+    let data = RawVolume::from_staging(staging, display, out_type, ByteOrder::Little, data_dims)?;
 
     let mut description = first.series_description.clone();
     for n in notes {
@@ -1061,6 +1184,8 @@ fn assemble(
             windows: first.windows.clone(),
             description,
             inputs: vec![display.to_path_buf()],
+            labels: Vec::new(),
+            frames: later_count as u32 + 1,
         },
         data,
     })

@@ -245,6 +245,8 @@ pub(crate) fn open_metaimage(path: &Path, options: &ReadOptions) -> Result<Opene
             windows: Vec::new(),
             description: get("Comment").unwrap_or("").to_string(),
             inputs,
+            labels: Vec::new(),
+            frames: 1,
         },
         data,
     })

@@ -267,6 +267,8 @@ pub(crate) fn open_mgh(path: &Path, options: &ReadOptions) -> Result<OpenedSourc
             windows: Vec::new(),
             description: notes.join("; "),
             inputs: vec![path.to_path_buf()],
+            labels: Vec::new(),
+            frames: 1,
         },
         data,
     })

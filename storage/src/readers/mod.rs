@@ -1,6 +1,6 @@
 //! Format readers. Each turns an input path into an [`OpenedSource`]:
 //! DICOM (folder series, single and enhanced multi-frame files; uncompressed, RLE, JPEG baseline,
-//! extended 12-bit and lossless, JPEG 2000, JPEG-LS), NIfTI-1/2, NRRD, MetaImage, FreeSurfer
+//! extended 12-bit and lossless, JPEG 2000, JPEG-LS; SEG segmentations as label maps), NIfTI-1/2, NRRD, MetaImage, FreeSurfer
 //! MGH/MGZ, raw.
 //!
 //! Readers never decode a whole volume into memory. Uncompressed inputs are mapped in place;
@@ -10,6 +10,7 @@
 mod common;
 mod dicom;
 mod dicom_bounds;
+mod dicom_seg;
 mod jpeg12;
 mod metaimage;
 mod mgh;
@@ -26,6 +27,7 @@ use crate::source::{ByteOrder, OpenedSource, SampleType};
 
 pub use crate::staging::{remove_live_staging_files, remove_stale_staging_files, StagingFile};
 pub use dicom::{list_dicom_series, DicomSeriesSummary};
+pub use dicom_seg::dicom_lab_to_srgb;
 
 /// What the user told us beyond the path.
 #[derive(Default, Clone, Debug)]

@@ -391,17 +391,29 @@ pub(crate) fn open_nifti(path: &Path, options: &ReadOptions) -> Result<OpenedSou
             format!("zero dimension: dim {raw_dims:?} contains {bad}"),
         ));
     }
-    // Only the first volume of a 4-D+ series is read: it is contiguous at the start of the data.
+    // A 4-D series (dim[4] > 1: time points) imports every volume as a frame; they lie one
+    // after the other in the data. Of dimensions 5..7 (vector components and the like) only the
+    // first volume is read.
+    let frames = raw_dims.get(3).copied().unwrap_or(1);
+    if frames as u64 > crate::geometry::MAX_AXIS_VOXELS {
+        return Err(StorageError::invalid(
+            path,
+            format!("absurd dim[4] = {frames} (time points)"),
+        ));
+    }
+    let frames = frames as u64;
     let extra_volumes: i64 = raw_dims
         .iter()
-        .skip(3)
+        .skip(4)
         .fold(1i64, |acc, &d| acc.saturating_mul(d));
     let spatial: Vec<u64> = raw_dims.iter().take(3).map(|&d| d as u64).collect();
     let dims = dims3(path, "dim", &spatial)?;
     let sample_type = sample_type(path, h.datatype)?;
     let geometry = geometry(path, &h, dims)?;
     crate::geometry::validate(&geometry, path)?;
-    let needed = volume_bytes(path, dims, sample_type.size_bytes())?;
+    // Every frame: the voxels are read as one stack of dims[2] · frames slices.
+    let data_dims = [dims[0], dims[1], dims[2].saturating_mul(frames)];
+    let needed = volume_bytes(path, data_dims, sample_type.size_bytes())?;
 
     let slope = if h.scl_slope == 0.0 || !h.scl_slope.is_finite() {
         1.0
@@ -426,7 +438,9 @@ pub(crate) fn open_nifti(path: &Path, options: &ReadOptions) -> Result<OpenedSou
         if !description.is_empty() {
             description.push_str("; ");
         }
-        description.push_str(&format!("first of {extra_volumes} volumes"));
+        description.push_str(&format!(
+            "first of {extra_volumes} volumes per time point (dimensions 5-7)"
+        ));
     }
 
     let lower = path.to_string_lossy().to_ascii_lowercase();
@@ -480,10 +494,10 @@ pub(crate) fn open_nifti(path: &Path, options: &ReadOptions) -> Result<OpenedSou
         };
         let mut staging = new_staging(path, options.staging_dir.as_deref(), needed)?;
         stream_into(&data_path, &mut reader, &mut staging, needed)?;
-        RawVolume::from_staging(staging, &data_path, sample_type, h.order, dims)?
+        RawVolume::from_staging(staging, &data_path, sample_type, h.order, data_dims)?
     } else {
         drop(reader);
-        RawVolume::map_file(&data_path, data_offset, sample_type, h.order, dims)?
+        RawVolume::map_file(&data_path, data_offset, sample_type, h.order, data_dims)?
     };
 
     let mut inputs = vec![path.to_path_buf()];
@@ -502,6 +516,8 @@ pub(crate) fn open_nifti(path: &Path, options: &ReadOptions) -> Result<OpenedSou
             windows,
             description,
             inputs,
+            labels: Vec::new(),
+            frames: frames as u32,
         },
         data,
     })

@@ -353,6 +353,8 @@ pub(crate) fn open_nrrd(path: &Path, options: &ReadOptions) -> Result<OpenedSour
             windows: Vec::new(),
             description: get("content").unwrap_or("").to_string(),
             inputs,
+            labels: Vec::new(),
+            frames: 1,
         },
         data,
     })

@@ -53,6 +53,8 @@ pub(crate) fn open_raw(path: &Path, spec: &RawSpec) -> Result<OpenedSource> {
             windows: Vec::new(),
             description: String::new(),
             inputs: vec![path.to_path_buf()],
+            labels: Vec::new(),
+            frames: 1,
         },
         data,
     })

@@ -1,7 +1,8 @@
 //! The side panels, each a type owning its state with a `ui()`: transfer function, slices,
-//! measurements, overlay, rendering,
+//! frames (4-D cine), measurements, overlay, rendering,
 //! performance, screenshot, volume information. [`Panels::ui`] stacks them in the side bar.
 
+pub mod frames;
 pub mod info;
 pub mod measurements;
 pub mod overlay;
@@ -35,6 +36,8 @@ pub struct PanelContext<'a> {
     pub view_3d: &'a mut View3d,
     pub clock: &'a FrameClock,
     pub overlay: &'a mut Option<Overlay>,
+    /// The frame player of a 4-D volume.
+    pub frames: &'a mut Option<super::frames::FramePlayer>,
     /// Where an overlay scan is imported to.
     pub import_folder: &'a std::path::Path,
 }
@@ -48,8 +51,14 @@ impl Panels {
             view_3d,
             clock,
             overlay,
+            frames,
             import_folder,
         } = cx;
+        if let Some(player) = frames.as_mut() {
+            egui::CollapsingHeader::new("Frames")
+                .default_open(true)
+                .show(ui, |ui| frames::ui(ui, player));
+        }
         egui::CollapsingHeader::new("Transfer function")
             .default_open(true)
             .show(ui, |ui| {

@@ -80,7 +80,7 @@ impl OverlayPanel {
             ui.label("File");
             ui.add(
                 egui::TextEdit::singleline(&mut self.path)
-                    .hint_text("label map or overlay (.nii, .nrrd, store)")
+                    .hint_text("label map or overlay (.nii, .nrrd, DICOM SEG, store)")
                     .desired_width(200.0),
             );
         });
@@ -130,19 +130,30 @@ impl OverlayPanel {
                         )
                         .small(),
                     );
-                    let seen = o.labels_seen();
-                    if seen.is_empty() {
+                    // The store's named labels (a DICOM SEG's segments) and any other label
+                    // met in the slices shown.
+                    let mut labels = o.labels_seen();
+                    labels.extend(o.style.label_table.keys().copied());
+                    if labels.is_empty() {
                         ui.label("No label in the slices shown yet.");
                     }
                     ui.horizontal_wrapped(|ui| {
-                        for label in seen {
-                            let [r, g, b] = label_colour(label);
+                        for label in labels {
+                            let [r, g, b] = o
+                                .style
+                                .label_table
+                                .get(&label)
+                                .map_or_else(|| label_colour(label), |e| e.colour);
+                            let text = match o.label_name(label) {
+                                Some(name) => format!("{label} {name}"),
+                                None => format!("{label}"),
+                            };
                             let mut shown = !o.style.hidden_labels.contains(&label);
                             let (swatch, _) = ui
                                 .allocate_exact_size(egui::vec2(12.0, 12.0), egui::Sense::hover());
                             ui.painter()
                                 .rect_filled(swatch, 2.0, Color32::from_rgb(r, g, b));
-                            if ui.checkbox(&mut shown, format!("{label}")).changed() {
+                            if ui.checkbox(&mut shown, text).changed() {
                                 if shown {
                                     o.style.hidden_labels.remove(&label);
                                 } else {

@@ -1,0 +1,250 @@
+//! 4-D import: a 4-D NIfTI (written by nibabel) imports every time point as a frame of one
+//! store; each frame's level-0 voxels equal the source's, frame 0 reads exactly as a single
+//! volume does, and the header names the frames and the feature older builds refuse. Without
+//! nibabel this FAILS with the install command (CI installs it: .ci/run).
+
+use std::path::Path;
+
+use strata_storage::import::{import_source, ImportOptions};
+use strata_storage::readers::{open_source, ReadOptions};
+use strata_storage::store::FEATURE_FRAMES;
+use strata_storage::{BrickId, Store};
+use strata_types::{BRICK_APRON, BRICK_PAYLOAD};
+
+const DIMS: [usize; 4] = [6, 5, 4, 3];
+
+/// The source value at voxel (i, j, k) of time point t: frames differ everywhere, and later
+/// frames lie outside frame 0's range (one value mapping must cover them all).
+fn value(i: usize, j: usize, k: usize, t: usize, float: bool) -> f64 {
+    let v = (i + 10 * j + 100 * k) as f64 + 1000.0 * t as f64;
+    if float {
+        v * 0.25 - 7.0
+    } else {
+        v
+    }
+}
+
+fn write_nifti(path: &Path, float: bool) {
+    let script = format!(
+        "import nibabel as nib, numpy as np\n\
+         d = np.zeros({dims:?}, np.{ty})\n\
+         for i in range({a}):\n  for j in range({b}):\n    for k in range({c}):\n      for t in range({e}):\n        \
+         v = i + 10*j + 100*k + 1000.0*t\n        d[i, j, k, t] = v * 0.25 - 7.0 if {float} else v\n\
+         img = nib.Nifti1Image(d, np.diag([0.8, 0.9, 2.0, 1.0]))\n\
+         nib.save(img, r'{path}')\n",
+        dims = DIMS,
+        ty = if float { "float32" } else { "int16" },
+        a = DIMS[0],
+        b = DIMS[1],
+        c = DIMS[2],
+        e = DIMS[3],
+        float = if float { "True" } else { "False" },
+        path = path.display()
+    );
+    let out = std::process::Command::new("python3")
+        .args(["-c", &script])
+        .output()
+        .expect("python3 needed");
+    assert!(
+        out.status.success(),
+        "nibabel needed: pip install nibabel (CI: .ci/run)\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+#[test]
+fn a_4d_nifti_imports_every_volume_as_a_frame() {
+    let dir = tempfile::tempdir().unwrap();
+    for (name, float) in [
+        ("series.nii", false),
+        ("series.nii.gz", false),
+        ("float.nii.gz", true),
+    ] {
+        let source = dir.path().join(name);
+        write_nifti(&source, float);
+        let opened = open_source(&source, &ReadOptions::default()).unwrap();
+        assert_eq!(opened.info.frames, DIMS[3] as u32, "{name}");
+        assert_eq!(opened.info.geometry.dims, [6, 5, 4], "{name}");
+        let store_path = dir.path().join(format!("{name}.strata"));
+        import_source(opened, &store_path, &ImportOptions::default()).unwrap();
+        let leftovers: Vec<_> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .flatten()
+            .filter(|e| e.file_name().to_string_lossy().contains("importing"))
+            .collect();
+        assert!(
+            leftovers.is_empty(),
+            "temporary frame stores left: {leftovers:?}"
+        );
+        let store = Store::open(&store_path).unwrap();
+        let header = store.header();
+        assert_eq!(store.frame_count(), DIMS[3] as u32);
+        assert_eq!(header.frames, DIMS[3] as u32);
+        assert!(header.required_features.iter().any(|f| f == FEATURE_FRAMES));
+        // Integers import exactly; floats within the stated quantisation error (one mapping
+        // for all frames, so frame 2's values are not clamped to frame 0's range).
+        let tolerance = header.quantization_error + 1e-9;
+        let payload = BRICK_PAYLOAD as usize;
+        let a = BRICK_APRON as usize;
+        for t in 0..DIMS[3] {
+            let brick = store
+                .read_frame_brick(t as u32, BrickId::new(0, [0, 0, 0]))
+                .unwrap();
+            if t == 0 {
+                assert_eq!(
+                    brick,
+                    store.read_brick(BrickId::new(0, [0, 0, 0])).unwrap(),
+                    "frame 0 is the single-volume layout"
+                );
+            }
+            for k in 0..DIMS[2] {
+                for j in 0..DIMS[1] {
+                    for i in 0..DIMS[0] {
+                        let stored = brick[(i + a) + payload * ((j + a) + payload * (k + a))];
+                        let got = header.value_mapping.physical(stored);
+                        let want = value(i, j, k, t, float);
+                        assert!(
+                            (got - want).abs() <= tolerance,
+                            "{name} frame {t} voxel ({i},{j},{k}): {got} vs {want} (±{tolerance})"
+                        );
+                    }
+                }
+            }
+            let skeleton = store.frame_skeleton(t as u32).unwrap();
+            let range = skeleton.levels[0][0];
+            let lo = header.value_mapping.physical(range.min);
+            assert!(
+                (lo - value(0, 0, 0, t, float)).abs() <= tolerance,
+                "{name} frame {t}: its own skeleton ({lo})"
+            );
+        }
+        assert!(store
+            .read_frame_brick(DIMS[3] as u32, BrickId::new(0, [0, 0, 0]))
+            .is_err());
+    }
+}
+
+/// One 3×2 MR slice at height `z` of phase `phase` (0-based), telling its phase by `tag`.
+fn write_phase_slice(path: &Path, z: f64, phase: usize, tag: dicom_core::Tag) {
+    use dicom_core::{DataElement, PrimitiveValue, VR};
+    use dicom_dictionary_std::{tags, uids};
+    use dicom_object::{FileMetaTableBuilder, InMemDicomObject};
+    let sop_uid = format!("1.2.3.{}.{}", phase + 1, (z * 10.0) as i64 + 100);
+    let mut obj = InMemDicomObject::new_empty();
+    let mut put = |tag, vr, v: PrimitiveValue| obj.put(DataElement::new(tag, vr, v));
+    put(tags::SOP_CLASS_UID, VR::UI, uids::MR_IMAGE_STORAGE.into());
+    put(tags::SOP_INSTANCE_UID, VR::UI, sop_uid.clone().into());
+    put(tags::MODALITY, VR::CS, "MR".into());
+    put(tags::SERIES_INSTANCE_UID, VR::UI, "1.2.840.7".into());
+    put(
+        tags::IMAGE_POSITION_PATIENT,
+        VR::DS,
+        format!("0\\0\\{z}").into(),
+    );
+    put(
+        tags::IMAGE_ORIENTATION_PATIENT,
+        VR::DS,
+        "1\\0\\0\\0\\1\\0".into(),
+    );
+    put(tags::PIXEL_SPACING, VR::DS, "0.5\\0.25".into());
+    put(tags::ROWS, VR::US, PrimitiveValue::from(2u16));
+    put(tags::COLUMNS, VR::US, PrimitiveValue::from(3u16));
+    put(tags::SAMPLES_PER_PIXEL, VR::US, PrimitiveValue::from(1u16));
+    put(
+        tags::PHOTOMETRIC_INTERPRETATION,
+        VR::CS,
+        "MONOCHROME2".into(),
+    );
+    put(tags::BITS_ALLOCATED, VR::US, PrimitiveValue::from(16u16));
+    put(tags::BITS_STORED, VR::US, PrimitiveValue::from(16u16));
+    put(tags::HIGH_BIT, VR::US, PrimitiveValue::from(15u16));
+    put(
+        tags::PIXEL_REPRESENTATION,
+        VR::US,
+        PrimitiveValue::from(0u16),
+    );
+    // Trigger times in ms; identifiers and acquisition numbers count from 1.
+    let phase_value = if tag == tags::TRIGGER_TIME {
+        format!("{}", 40.5 * phase as f64)
+    } else {
+        format!("{}", phase + 1)
+    };
+    let vr = if tag == tags::TRIGGER_TIME {
+        VR::DS
+    } else {
+        VR::IS
+    };
+    put(tag, vr, phase_value.into());
+    let px: Vec<u16> = (0..6u16)
+        .map(|i| 1000 * phase as u16 + 10 * z as u16 + i)
+        .collect();
+    put(tags::PIXEL_DATA, VR::OW, PrimitiveValue::U16(px.into()));
+    obj.with_meta(
+        FileMetaTableBuilder::new()
+            .transfer_syntax(uids::EXPLICIT_VR_LITTLE_ENDIAN)
+            .media_storage_sop_class_uid(uids::MR_IMAGE_STORAGE)
+            .media_storage_sop_instance_uid(sop_uid),
+    )
+    .unwrap()
+    .write_to_file(path)
+    .unwrap();
+}
+
+/// A multi-phase DICOM series (two slices at each of three positions, told apart by
+/// TemporalPositionIdentifier, TriggerTime or AcquisitionNumber) imports both phases as
+/// frames in phase order, each with its own voxels, on phase 1's grid.
+#[test]
+fn a_multi_phase_dicom_series_imports_each_phase_as_a_frame() {
+    use dicom_dictionary_std::tags;
+    let dir = tempfile::tempdir().unwrap();
+    for (n, tag) in [
+        tags::TEMPORAL_POSITION_IDENTIFIER,
+        tags::TRIGGER_TIME,
+        tags::ACQUISITION_NUMBER,
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let series = dir.path().join(format!("series-{n}"));
+        std::fs::create_dir(&series).unwrap();
+        // Files named so that their order says nothing: phase 1's last slice first.
+        for (name, z, phase) in [
+            ("a.dcm", 4.0, 1),
+            ("b.dcm", 0.0, 0),
+            ("c.dcm", 2.0, 1),
+            ("d.dcm", 4.0, 0),
+            ("e.dcm", 0.0, 1),
+            ("f.dcm", 2.0, 0),
+        ] {
+            write_phase_slice(&series.join(name), z, phase, tag);
+        }
+        let opened = open_source(&series, &ReadOptions::default()).unwrap();
+        assert_eq!(opened.info.frames, 2, "{tag:?}");
+        assert_eq!(opened.info.geometry.dims, [3, 2, 3]);
+        assert_eq!(opened.info.geometry.spacing_mm, [0.25, 0.5, 2.0]);
+        let store_path = dir.path().join(format!("series-{n}.strata"));
+        import_source(opened, &store_path, &ImportOptions::default()).unwrap();
+        let store = Store::open(&store_path).unwrap();
+        assert_eq!(store.frame_count(), 2);
+        let payload = BRICK_PAYLOAD as usize;
+        let a = BRICK_APRON as usize;
+        for phase in 0..2usize {
+            let brick = store
+                .read_frame_brick(phase as u32, BrickId::new(0, [0, 0, 0]))
+                .unwrap();
+            for k in 0..3 {
+                for j in 0..2 {
+                    for i in 0..3 {
+                        let stored = brick[(i + a) + payload * ((j + a) + payload * (k + a))];
+                        let want = 1000 * phase + 10 * (2 * k) + (3 * j + i);
+                        assert_eq!(
+                            store.header().value_mapping.physical(stored),
+                            want as f64,
+                            "{tag:?} phase {phase} voxel ({i},{j},{k})"
+                        );
+                    }
+                }
+            }
+        }
+    }
+}
