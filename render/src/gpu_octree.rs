@@ -5,7 +5,8 @@
 //! the cut (nodes and leaves), not with the volume's page grid.
 //!
 //! Layout (layout.rs `OCTREE_*`): records of 8 u32. Record 0 is the header (word 0 the root's
-//! reference, word 1 the leaf count); record i + 1 is the cut's node i. An inner record holds
+//! reference, word 1 the leaf count); records 1..=leaves the leaves (leaf index = record − 1),
+//! then the inner nodes. An inner record holds
 //! its 8 children's references (x fastest; [`OCTREE_NULL`] outside the grid), a leaf record
 //! its page word ([`PageEntry::encode`]), its 6 ropes (−x, +x, −y, +y, −z, +z, null on volume
 //! faces) and its leaf index. A reference is `record | size << 27 | leaf bit`: the shader gets
@@ -111,11 +112,14 @@ impl OctreeLeaves {
     }
 }
 
-/// The node buffer's words for `cut` (see the module doc) and its leaves in index order.
+/// The node buffer's words for `cut` (see the module doc), its leaves in index order, and per
+/// record the cut's node it holds (record 0, the header: [`NULL`]). Leaves take records
+/// 1..=leaves in the cut's order, so a leaf's index is its record − 1 and the shader reads no
+/// index word; inner nodes follow.
 pub fn encode_node_buffer(
     cut: &OctreeCut,
     slots_per_axis: [u32; 3],
-) -> Result<(Vec<u32>, OctreeLeaves), RenderError> {
+) -> Result<(Vec<u32>, OctreeLeaves, Vec<u32>), RenderError> {
     if cut.nodes.len() as u64 + 1 > OCTREE_ID_MASK as u64 {
         return Err(RenderError::PageTableMismatch(format!(
             "{} octree nodes exceed the node buffer's {} addressable records",
@@ -123,19 +127,41 @@ pub fn encode_node_buffer(
             OCTREE_ID_MASK
         )));
     }
+    let leaf_count = cut.nodes.iter().filter(|n| n.is_leaf()).count() as u32;
+    let mut record_of = vec![0u32; cut.nodes.len()];
+    let mut node_of_record = vec![NULL; cut.nodes.len() + 1];
+    let (mut next_leaf, mut next_inner) = (1u32, leaf_count + 1);
+    for (i, n) in cut.nodes.iter().enumerate() {
+        let r = if n.is_leaf() {
+            next_leaf += 1;
+            next_leaf - 1
+        } else {
+            next_inner += 1;
+            next_inner - 1
+        };
+        record_of[i] = r;
+        node_of_record[r as usize] = i as u32;
+    }
     let reference = |i: u32| -> u32 {
         if i == NULL {
             return OCTREE_NULL;
         }
         let n = &cut.nodes[i as usize];
         let leaf = if n.is_leaf() { OCTREE_LEAF_BIT } else { 0 };
-        (i + 1) | ((n.size as u32) << OCTREE_SIZE_SHIFT) | leaf
+        record_of[i as usize] | ((n.size as u32) << OCTREE_SIZE_SHIFT) | leaf
     };
     let w = OCTREE_RECORD_WORDS as usize;
     let mut words = vec![0u32; (cut.nodes.len() + 1) * w];
-    let mut boxes = Vec::new();
+    let mut boxes = vec![
+        LeafBox {
+            origin: [0; 3],
+            size: 0
+        };
+        leaf_count as usize
+    ];
     for (i, n) in cut.nodes.iter().enumerate() {
-        let rec = &mut words[(i + 1) * w..(i + 2) * w];
+        let r = record_of[i] as usize;
+        let rec = &mut words[r * w..(r + 1) * w];
         match &n.kind {
             NodeKind::Inner { children } => {
                 for (slot, &c) in rec.iter_mut().zip(children) {
@@ -147,11 +173,11 @@ pub fn encode_node_buffer(
                 for (slot, &r) in rec[1..7].iter_mut().zip(ropes) {
                     *slot = reference(r);
                 }
-                rec[7] = boxes.len() as u32;
-                boxes.push(LeafBox {
+                rec[7] = (r - 1) as u32;
+                boxes[r - 1] = LeafBox {
                     origin: n.origin,
                     size: n.size,
-                });
+                };
             }
         }
     }
@@ -160,13 +186,14 @@ pub fn encode_node_buffer(
     } else {
         reference(0)
     };
-    words[1] = boxes.len() as u32;
+    words[1] = leaf_count;
     Ok((
         words,
         OctreeLeaves {
             page_dims: cut.page_dims,
             boxes,
         },
+        node_of_record,
     ))
 }
 
@@ -178,6 +205,8 @@ pub(crate) struct GpuOctreeIndex {
     pub(crate) leaves: std::sync::Arc<OctreeLeaves>,
     /// Words of the cut last written (the GPU bytes of the index are these, not the capacity).
     pub(crate) node_words: usize,
+    /// The root's reference (header word 0), passed to the shader in the parameters.
+    pub(crate) root: u32,
     /// The per-page bounds last given ([`crate::GpuPageTable::update_value_max`]), reduced per
     /// leaf whenever the cut changes (CPU memory only).
     page_bounds: Vec<f32>,
@@ -193,6 +222,7 @@ impl GpuOctreeIndex {
                 boxes: Vec::new(),
             }),
             node_words: 0,
+            root: OCTREE_NULL,
             page_bounds: Vec::new(),
         }
     }
@@ -206,7 +236,8 @@ impl GpuOctreeIndex {
         slots_per_axis: [u32; 3],
     ) -> Result<(), RenderError> {
         let cut = OctreeCut::from_page_table(table);
-        let (words, leaves) = encode_node_buffer(&cut, slots_per_axis)?;
+        let (words, leaves, _) = encode_node_buffer(&cut, slots_per_axis)?;
+        self.root = words[0];
         let bytes = (words.len() * 4) as u64;
         if self.nodes.size() < bytes {
             self.nodes = node_buffer(device, bytes.next_power_of_two());
@@ -281,7 +312,7 @@ mod tests {
         }
         table.entries[5] = PageEntry::NOT_RESIDENT;
         let cut = OctreeCut::from_page_table(&table);
-        let (words, leaves) = encode_node_buffer(&cut, [16, 1, 1]).unwrap();
+        let (words, leaves, node_of_record) = encode_node_buffer(&cut, [16, 1, 1]).unwrap();
         let w = OCTREE_RECORD_WORDS as usize;
         assert_eq!(words.len(), (cut.nodes.len() + 1) * w);
         assert_eq!(words[1] as usize, leaves.boxes.len());
@@ -300,6 +331,12 @@ mod tests {
             let base = (r & OCTREE_ID_MASK) as usize * w;
             assert_eq!(words[base], table.entries[i].encode([16, 1, 1]));
             let leaf = words[base + 7] as usize;
+            assert_eq!(
+                leaf,
+                (r & OCTREE_ID_MASK) as usize - 1,
+                "leaf index = record - 1"
+            );
+            assert!(cut.nodes[node_of_record[leaf + 1] as usize].is_leaf());
             let b = leaves.boxes[leaf];
             assert!((0..3).all(|a| cell[a] >> b.size == b.origin[a] >> b.size));
         }

@@ -141,6 +141,14 @@ impl GpuPageTable {
         self.octree.lock().ok().map(|o| o.leaves.clone())
     }
 
+    /// The octree root's reference (`OCTREE_NULL` with the flat table or before a write).
+    pub(crate) fn octree_root(&self) -> u32 {
+        self.octree
+            .lock()
+            .map(|o| o.root)
+            .unwrap_or(crate::layout::OCTREE_NULL)
+    }
+
     /// The buffers bound at 9 (MIP bounds) and 12 (octree nodes) for the traversal.
     pub(crate) fn traversal_buffers(&self) -> Result<(wgpu::Buffer, wgpu::Buffer), RenderError> {
         let octree = self

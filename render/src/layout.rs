@@ -78,9 +78,9 @@ pub trait BrickSource: Sync {
 
 /// The GPU node buffer of the octree traversal (gpu_octree.rs ↔ shaders/octree.wgsl): records
 /// of [`OCTREE_RECORD_WORDS`] u32; record 0 a header (root reference, leaf count), record
-/// i + 1 the cut's node i (octree_cut.rs). An inner record holds 8 child references (x
-/// fastest); a leaf record its page word, 6 ropes (−x, +x, −y, +y, −z, +z) and its leaf index
-/// (per-leaf MIP bound and visibility word).
+/// 1..=leaves the cut's leaves (octree_cut.rs; leaf index = record − 1: per-leaf MIP bound and
+/// visibility word), then its inner nodes. An inner record holds 8 child references (x
+/// fastest); a leaf record its page word, 6 ropes (−x, +x, −y, +y, −z, +z) and its leaf index.
 pub const OCTREE_RECORD_WORDS: u32 = 8;
 /// A node reference: record id in the low bits, the node's size (it spans 2^size page cells
 /// per axis) from [`OCTREE_SIZE_SHIFT`], [`OCTREE_LEAF_BIT`] for a leaf; [`OCTREE_NULL`] for

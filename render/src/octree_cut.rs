@@ -513,7 +513,6 @@ pub mod test_cuts {
         }
         out
     }
-
 }
 
 #[cfg(test)]

@@ -28,7 +28,7 @@ pub fn walk_on_gpu(
         return Ok(Vec::new());
     }
     let device = &ctx.device;
-    let (words, _) = encode_node_buffer(cut, [1, 1, 1])?;
+    let (words, _, node_of_record) = encode_node_buffer(cut, [1, 1, 1])?;
     let source = shaders::compose_alone(&[
         ("octree.wgsl", shaders::OCTREE_WGSL),
         ("octree_walk.wgsl", WALK_WGSL),
@@ -149,8 +149,10 @@ pub fn walk_on_gpu(
                 .map(|i| {
                     let v = &words[base + 1 + 3 * i..base + 4 + 3 * i];
                     LeafVisit {
-                        // Record i + 1 is node i (gpu_octree.rs).
-                        node: v[0].wrapping_sub(1),
+                        node: node_of_record
+                            .get(v[0] as usize)
+                            .copied()
+                            .unwrap_or(u32::MAX),
                         t_enter: f32::from_bits(v[1]) as f64,
                         t_exit: f32::from_bits(v[2]) as f64,
                     }

@@ -875,7 +875,13 @@ pub(crate) fn build_params(scene: &Scene) -> Params {
             0.0,
         ],
         image: [s.width, s.height, s.frame_index, tf.entries],
-        pages: [g.page_dims()[0], g.page_dims()[1], g.page_dims()[2], 0],
+        // w: the octree's root reference (octree.wgsl; the traversal reads it from here).
+        pages: [
+            g.page_dims()[0],
+            g.page_dims()[1],
+            g.page_dims()[2],
+            scene.page_table.octree_root(),
+        ],
         slots: [
             scene.cache.slots_per_axis[0],
             scene.cache.slots_per_axis[1],

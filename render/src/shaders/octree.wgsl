@@ -1,7 +1,8 @@
 // The octree traversal's index (octree paper §5.1-5.2): the cut's octree with ropes, as
 // gpu_octree.rs encodes octree_cut.rs's tree into binding 12 (layout.rs OCTREE_*). Records of
-// OCTREE_RECORD_WORDS u32: record 0 the header (word 0 the root's reference), an inner
-// record 8 child references (x fastest), a leaf record [page word, 6 ropes, leaf index].
+// OCTREE_RECORD_WORDS u32: record 0 the header (word 0 the root's reference), records
+// 1..=leaves the leaves [page word, 6 ropes, leaf index = record - 1], then the inner records
+// (8 child references, x fastest).
 // A reference carries the node's size, so a node's box is the looked-up cell snapped to its
 // size grid: nothing but references is read (the paper's boxes computed on the fly).
 // This file needs nothing but the prelude; the raycaster (raycast.wgsl) and the test-only leaf
@@ -46,8 +47,9 @@ fn octree_descend(start: u32, cell: vec3<u32>) -> OctreeLeaf {
             leaf.size = size;
             leaf.origin = (cell >> vec3<u32>(size)) << vec3<u32>(size);
             leaf.word = octree[base];
-            leaf.index = octree[base + 7u];
-            octree_reads += 2u;
+            // Leaves take records 1..=leaves (gpu_octree.rs): the index costs no read.
+            leaf.index = (r & OCTREE_ID_MASK) - 1u;
+            octree_reads += 1u;
             return leaf;
         }
         if size == 0u {
@@ -60,17 +62,17 @@ fn octree_descend(start: u32, cell: vec3<u32>) -> OctreeLeaf {
     return leaf;
 }
 
-// The point query: the leaf holding page cell `cell`, from the root.
-fn octree_leaf_at(cell: vec3<u32>) -> OctreeLeaf {
-    octree_reads += 1u;
-    return octree_descend(octree[0], cell);
+// The point query: the leaf holding page cell `cell`, from the root (its reference `root`:
+// the raycaster has it in its parameters, the header holds it too).
+fn octree_leaf_at(root: u32, cell: vec3<u32>) -> OctreeLeaf {
+    return octree_descend(root, cell);
 }
 
 // The leaf holding `cell`, coming from leaf `prev` (`cell` outside it): across one face, the
 // rope of that face and a descent from the rope's node; through an edge or a corner (or a
 // jump past more than one leaf) a point query from the root. The rope's node covers the
 // face's far side: its box is the cell across the face snapped to the rope's size.
-fn octree_next_leaf(prev: OctreeLeaf, cell: vec3<u32>) -> OctreeLeaf {
+fn octree_next_leaf(root: u32, prev: OctreeLeaf, cell: vec3<u32>) -> OctreeLeaf {
     let side = vec3<u32>(1u << prev.size);
     let below = cell < prev.origin;
     let above = cell >= prev.origin + side;
@@ -90,5 +92,5 @@ fn octree_next_leaf(prev: OctreeLeaf, cell: vec3<u32>) -> OctreeLeaf {
             }
         }
     }
-    return octree_leaf_at(cell);
+    return octree_leaf_at(root, cell);
 }

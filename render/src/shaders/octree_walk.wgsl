@@ -54,7 +54,8 @@ fn octree_walk(@builtin(global_invocation_id) gid: vec3<u32>) {
     if !(t_end >= t) {
         return;
     }
-    var leaf = octree_leaf_at(walk_cell_on_ray(o, d, t));
+    let root = octree[0];
+    var leaf = octree_leaf_at(root, walk_cell_on_ray(o, d, t));
     var count = 0u;
     for (var step = 0u; step < 100000u; step++) {
         if !leaf.found {
@@ -96,7 +97,7 @@ fn octree_walk(@builtin(global_invocation_id) gid: vec3<u32>) {
         if cell[axis] >= W.dims[axis] {
             break;
         }
-        leaf = octree_next_leaf(leaf, cell);
+        leaf = octree_next_leaf(root, leaf, cell);
     }
     walk_out[out] = count;
 }

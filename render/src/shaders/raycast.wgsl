@@ -60,9 +60,9 @@ fn locate_on_ray(o: vec3<f32>, d: vec3<f32>, t: f32, cached: ptr<function, Page>
             if known && all((c >> s) == ((*cached).leaf_origin >> s)) {
                 (*cached).cell = cell;
             } else if known {
-                *cached = decode_leaf(octree_next_leaf(leaf_of(*cached), c), cell);
+                *cached = decode_leaf(octree_next_leaf(P.pages.w, leaf_of(*cached), c), cell);
             } else {
-                *cached = decode_leaf(octree_leaf_at(c), cell);
+                *cached = decode_leaf(octree_leaf_at(P.pages.w, c), cell);
             }
             // The march's fast path samples a resident page up to t_exit without looking at its
             // flags. A sample can land in an empty leaf its probe was not in (a coarse stride);
@@ -126,13 +126,31 @@ fn region_exit(o: vec3<f32>, d: vec3<f32>, origin: vec3<u32>, size: u32) -> f32 
     return min(t.x, min(t.y, t.z));
 }
 
+// locate_traversal, keeping the octree leaf found in `near` (zeroed: none yet) and reading
+// nothing while later points stay in it; the flat table reads its word each time.
+fn locate_cached(p: vec3<f32>, near: ptr<function, Page>) -> Location {
+    if !OCTREE {
+        return locate(p);
+    }
+    let pc = clamp_to_volume(p);
+    let cell = cell_of(pc);
+    let c = vec3<u32>(cell);
+    let s = vec3<u32>((*near).leaf_size);
+    if (*near).leaf_record != 0u && all((c >> s) == ((*near).leaf_origin >> s)) {
+        (*near).cell = cell;
+    } else {
+        *near = decode_leaf(octree_leaf_at(P.pages.w, c), cell);
+    }
+    return location_in(*near, pc);
+}
+
 // The sample at `p` located by whichever traversal the pipeline has: a point query on the
 // node buffer (OCTREE) or a page-table read (locate, field.wgsl).
 fn locate_traversal(p: vec3<f32>) -> Location {
     if OCTREE {
         let pc = clamp_to_volume(p);
         let cell = cell_of(pc);
-        return location_in(decode_leaf(octree_leaf_at(vec3<u32>(cell)), cell), pc);
+        return location_in(decode_leaf(octree_leaf_at(P.pages.w, vec3<u32>(cell)), cell), pc);
     }
     return locate(p);
 }
@@ -322,12 +340,15 @@ fn take_sample(st: ptr<function, RayState>, loc: Location, t: f32, delta: f32, o
     } else {
         if v >= P.iso.x {
             var t_hit = t;
+            // The bisection's points mostly share one or two leaves: with the octree, a leaf
+            // found is kept while the points stay in it (no descent per step).
+            var near: Page;
             if (*st).prev_valid {
                 var lo = (*st).prev_t;
                 var hi = t;
                 for (var b = 0u; b < BISECTION_STEPS; b++) {
                     let mid = 0.5 * (lo + hi);
-                    let m = locate_traversal(o + d * mid);
+                    let m = locate_cached(o + d * mid, &near);
                     if m.resident && physical(field(m)) >= P.iso.x {
                         hi = mid;
                     } else {
@@ -338,7 +359,7 @@ fn take_sample(st: ptr<function, RayState>, loc: Location, t: f32, delta: f32, o
             }
             (*st).hit = true;
             (*st).depth = t_hit;
-            mark_visible_in(st, locate_traversal(o + d * t_hit).page);
+            mark_visible_in(st, locate_cached(o + d * t_hit, &near).page);
             (*st).done = true;
         } else {
             (*st).prev_t = t;
