@@ -353,7 +353,8 @@ pub mod test_cuts {
 
     pub struct Rng(pub u64);
     impl Rng {
-        pub fn next(&mut self) -> f64 {
+        /// Uniform in [0, 1).
+        pub fn uniform(&mut self) -> f64 {
             self.0 ^= self.0 << 13;
             self.0 ^= self.0 >> 7;
             self.0 ^= self.0 << 17;
@@ -370,7 +371,7 @@ pub mod test_cuts {
         let max = dims.iter().copied().max().unwrap();
         let root = (32 - (max - 1).leading_zeros()) as u8;
         fn split(rng: &mut Rng, t: &PageTable, level: &mut [u8], origin: [u32; 3], size: u8) {
-            if size == 0 || rng.next() < 0.35 {
+            if size == 0 || rng.uniform() < 0.35 {
                 for i in 0..level.len() {
                     let p = t.page_of_linear(i);
                     if (0..3).all(|a| p[a] >= origin[a] && p[a] < origin[a] + (1 << size)) {
@@ -427,7 +428,9 @@ pub mod test_cuts {
             let key = (l, p.map(|c| c >> l));
             let next = slots.len() as u32;
             let slot = *slots.entry(key).or_insert(next);
-            let skip = *not_resident.entry(key).or_insert_with(|| rng.next() < 0.2);
+            let skip = *not_resident
+                .entry(key)
+                .or_insert_with(|| rng.uniform() < 0.2);
             table.entries[i] = if skip {
                 PageEntry::NOT_RESIDENT
             } else {
@@ -495,17 +498,17 @@ pub mod test_cuts {
             out.push(([1.0, 1.0, 1.0], d, -10.0, f64::INFINITY));
         }
         for _ in 0..60 {
-            let inside = rng.next() < 0.5;
+            let inside = rng.uniform() < 0.5;
             let o: [f64; 3] = std::array::from_fn(|a| {
                 if inside {
-                    rng.next() * g[a]
+                    rng.uniform() * g[a]
                 } else {
-                    (rng.next() * 3.0 - 1.0) * g[a]
+                    (rng.uniform() * 3.0 - 1.0) * g[a]
                 }
             });
-            let d: [f64; 3] = std::array::from_fn(|_| rng.next() * 2.0 - 1.0);
-            let t1 = if rng.next() < 0.3 {
-                rng.next() * 4.0
+            let d: [f64; 3] = std::array::from_fn(|_| rng.uniform() * 2.0 - 1.0);
+            let t1 = if rng.uniform() < 0.3 {
+                rng.uniform() * 4.0
             } else {
                 f64::INFINITY
             };
