@@ -1,8 +1,8 @@
 //! The cut as an octree with neighbour pointers ("ropes", octree paper §5.1-5.2), built from the
-//! page table the loader gives render: the CPU half of the octree traversal. Not yet read by
-//! any shader (the GPU traversal of issue 18 item 2 is still to come); what it fixes now is
-//! the node layout, the ropes and the traversal order a GPU twin must reproduce, with the
-//! brute-force checks that define them.
+//! page table the loader gives render: the CPU half of the octree traversal. gpu_octree.rs
+//! encodes it into the GPU node buffer that shaders/octree.wgsl traverses; this module fixes
+//! the node layout, the ropes and the traversal order the GPU reproduces, with the brute-force
+//! checks that define them (render/tests/octree_traversal.rs runs the GPU walk against them).
 //!
 //! - **Nodes**: an aligned block of 2^size page cells per axis. A block whose cells (those inside
 //!   the page grid) all hold one entry is a leaf carrying that entry: a whole node of the cut,
