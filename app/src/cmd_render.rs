@@ -12,8 +12,8 @@ use strata_render::adaptive::{
 };
 use strata_render::reference::{render_reference, ReferenceOptions, ReferenceScene};
 use strata_render::{
-    Camera, GpuContext, Projection, RenderMode, RenderSettings, Scene, SegmentIntegralTable,
-    Shading, TransferFunction,
+    Camera, GpuContext, GpuPageTable, Projection, RenderMode, RenderSettings, Scene,
+    SegmentIntegralTable, Shading, TransferFunction, Traversal,
 };
 use strata_storage::BrickId;
 
@@ -26,6 +26,17 @@ pub enum ModeArg {
     /// sampling distances from the per-node oracle (--oracle-epsilon); renders a fixed cut
     /// (--up-front).
     Adaptive,
+}
+
+/// How the GPU raycaster finds the bricks along a ray (render/src/gpu_octree.rs).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum TraversalArg {
+    /// The flat page table: one entry per finest brick position (the default).
+    Flat,
+    /// The octree of the resident cut with neighbour pointers (octree paper §5): index memory
+    /// grows with the cut, not the volume. Needs --up-front for now; smooth level transitions
+    /// are not available with it yet (a cut with level changes needs --no-smooth).
+    Octree,
 }
 
 #[derive(Args, Clone)]
@@ -102,6 +113,9 @@ pub struct RenderArgs {
     /// also orbit.mp4 (24 frames per second) beside them.
     #[arg(long, value_name = "N")]
     pub orbit: Option<u32>,
+    /// The raycaster's traversal: `flat` page table or the cut's `octree` with ropes.
+    #[arg(long, value_enum, default_value_t = TraversalArg::Flat)]
+    pub traversal: TraversalArg,
 }
 
 /// The most frames an orbit movie may have: 10 per degree, 150 s at 24 frames per second.
@@ -169,6 +183,14 @@ fn check_args(args: &RenderArgs) -> Result<()> {
             );
         }
         None => check_png_output("out", &args.out)?,
+    }
+    if args.traversal == TraversalArg::Octree {
+        anyhow::ensure!(
+            args.up_front && !args.reference && !matches!(args.mode, ModeArg::Adaptive),
+            "--traversal octree is the GPU raycaster's over a fixed cut: it needs --up-front \
+             (the streaming loader builds the flat table) and does not apply to --reference or \
+             --mode adaptive"
+        );
     }
     parse_size(&args.size)?;
     Ok(())
@@ -302,8 +324,47 @@ pub fn run(args: RenderArgs) -> Result<()> {
         let ctx = GpuContext::headless()?;
         eprintln!("GPU: {}", ctx.adapter_name());
         let mut cut = GpuCut::upload(&ctx, &bricks, &table, geometry.page_dims(), &tf_table)?;
-        cut.render_blocking(&ctx, &geometry, mapping, &camera, &settings)?
-            .rgba
+        match args.traversal {
+            TraversalArg::Flat => {
+                cut.render_blocking(&ctx, &geometry, mapping, &camera, &settings)?
+                    .rgba
+            }
+            TraversalArg::Octree => {
+                // The same cut and cache, indexed by its octree instead of the flat table.
+                let index = GpuPageTable::with_traversal(
+                    &ctx.device,
+                    geometry.page_dims(),
+                    &cut.cache,
+                    Traversal::Octree,
+                )?;
+                index.update(&ctx.queue, &table)?;
+                let bounds = table.value_max_physical(mapping, |level, node| {
+                    store
+                        .node(BrickId::new(level, node))
+                        .map(|n| (n.min, n.max))
+                });
+                index.update_value_max(&ctx.queue, &bounds)?;
+                eprintln!(
+                    "octree index: {} leaves, {} bytes on the GPU (flat table: {} bytes)",
+                    index.visibility_entries(),
+                    index.gpu_index_bytes(),
+                    cut.page_table.gpu_index_bytes()
+                );
+                let scene = Scene {
+                    cache: &cut.cache,
+                    page_table: &index,
+                    transfer_function: &cut.transfer_function,
+                    geometry: &geometry,
+                    mapping,
+                    camera: &camera,
+                    settings: &settings,
+                };
+                cut.raycaster
+                    .render_blocking(&ctx, &scene)
+                    .context("--traversal octree")?
+                    .rgba
+            }
+        }
     };
     eprintln!(
         "rendered {}x{} in {:.2} s ({})",

@@ -1,10 +1,14 @@
 //! Traversal benchmark: what the node-extent exit and MIP's lean march save, in one run, as
 //! ratios against the march before them (the same shader built with
-//! `const NODE_EXTENT: bool = false;` / `const LEAN_MIP: bool = false;`).
+//! `const NODE_EXTENT: bool = false;` / `const LEAN_MIP: bool = false;`); then the flat page
+//! table against the octree traversal (gpu_octree.rs, octree.wgsl) on the same cut and cache:
+//! GPU index bytes, index words read per pixel, samples per pixel, ms/frame and the ratio
+//! octree/flat at equal samples (the images are the same: render/tests/octree_traversal.rs).
 //!
 //! Run: cargo bench -p strata-render --bench traversal
 //! Env: STRATA_BENCH_VOLUME (default 256: the peer phantom's size), STRATA_BENCH_SIZE
-//!      (default 256), STRATA_BENCH_FRAMES (default 3).
+//!      (default 256), STRATA_BENCH_FRAMES (default 3), STRATA_BENCH_ONLY_OCTREE=1 (only the
+//!      flat-vs-octree table).
 //!
 //! Cuts: uniform level 0 (nothing to gain: every node is one cell), uniform levels 1 and 2,
 //! and a view-like mixed cut (level 0 in the near octant, 2 in the far half, 1 between, the
@@ -183,6 +187,12 @@ fn main() {
             octree_bytes as f64 / flat_bytes as f64
         );
         let cut = upload_cut(&ctx, &volume, &table);
+        octree_vs_flat(
+            &ctx, &name, &volume, &table, &cut, &gpu_tf, &camera, size, frames,
+        );
+        if std::env::var("STRATA_BENCH_ONLY_OCTREE").is_ok_and(|v| v == "1") {
+            continue;
+        }
         let mut now = Raycaster::new(&ctx, &cut.cache);
         let mut before = Raycaster::with_shader_source(&ctx, &cut.cache, &before_both);
         for mode in [RenderMode::Dvr, RenderMode::Mip] {
@@ -254,6 +264,116 @@ fn main() {
             "{:<18} MIP general march {ms_general:.1} ms, lean march {ms_lean:.1} ms: {:.3}x",
             name,
             ms_lean / ms_general
+        );
+    }
+}
+
+/// Flat table vs octree traversal on one cut (same cache, same raycaster, interleaved rounds):
+/// GPU index bytes (visibility words included), index words read and samples per pixel,
+/// ms/frame and octree/flat, for DVR, shaded DVR, MIP and isosurfaces. Smooth transitions off
+/// (not available with the octree yet), for both.
+#[allow(clippy::too_many_arguments)]
+fn octree_vs_flat(
+    ctx: &GpuContext,
+    name: &str,
+    volume: &BrickedVolume,
+    table: &PageTable,
+    cut: &GpuCut,
+    gpu_tf: &GpuTransferFunction,
+    camera: &Camera,
+    size: u32,
+    frames: u32,
+) {
+    let octree = GpuPageTable::with_traversal(
+        &ctx.device,
+        volume.geometry.page_dims(),
+        &cut.cache,
+        Traversal::Octree,
+    )
+    .expect("octree index");
+    octree.update(&ctx.queue, table).expect("octree index");
+    octree
+        .update_value_max(
+            &ctx.queue,
+            &table.value_max_physical(volume.mapping, |l, n| volume.node_range(l, n)),
+        )
+        .expect("value bounds");
+    let flat_bytes = cut.table.gpu_index_bytes() + cut.table.visibility_entries() as u64 * 4;
+    let octree_bytes = octree.gpu_index_bytes() + octree.visibility_entries() as u64 * 4;
+    println!(
+        "{name:<18} GPU index bytes: flat {flat_bytes} ({} page cells), octree {octree_bytes} ({} leaves): {:.3}x",
+        cut.table.entry_count(),
+        octree.visibility_entries(),
+        octree_bytes as f64 / flat_bytes as f64
+    );
+    let mut rc = Raycaster::new(ctx, &cut.cache);
+    let pixels = size as f64 * size as f64;
+    for (mode_name, mode, shading) in [
+        ("dvr", RenderMode::Dvr, None),
+        ("dvr+sh", RenderMode::Dvr, Some(Shading::default())),
+        ("mip", RenderMode::Mip, None),
+        ("iso", RenderMode::Isosurface, None),
+    ] {
+        let settings = RenderSettings {
+            width: size,
+            height: size,
+            mode,
+            shading,
+            iso_value: 120.0,
+            quality: 0.5,
+            smooth_transitions: false,
+            ..Default::default()
+        };
+        let counting = RenderSettings {
+            count_samples: true,
+            ..settings.clone()
+        };
+        let indices = [&cut.table, &octree];
+        fn scene<'a>(
+            cut: &'a GpuCut,
+            index: &'a GpuPageTable,
+            gpu_tf: &'a GpuTransferFunction,
+            volume: &'a BrickedVolume,
+            camera: &'a Camera,
+            s: &'a RenderSettings,
+        ) -> Scene<'a> {
+            Scene {
+                page_table: index,
+                ..scene_of(cut, gpu_tf, volume, camera, s)
+            }
+        }
+        let counted: Vec<FrameReadback> = indices
+            .iter()
+            .map(|index| {
+                rc.render_blocking(ctx, &scene(cut, index, gpu_tf, volume, camera, &counting))
+                    .expect("render")
+            })
+            .collect();
+        let mut times = [Vec::new(), Vec::new()];
+        for round in 0..=frames {
+            for (i, index) in indices.iter().enumerate() {
+                let t = Instant::now();
+                rc.render_and_wait(ctx, &scene(cut, index, gpu_tf, volume, camera, &settings))
+                    .expect("render");
+                if round > 0 {
+                    times[i].push(t.elapsed().as_secs_f64() * 1e3);
+                }
+            }
+        }
+        let [ms_flat, ms_octree] = times.map(median);
+        let per_px = |v: Option<u64>| v.unwrap_or(0) as f64 / pixels;
+        let same = counted[0].rgba == counted[1].rgba;
+        println!(
+            "{:<18} {:<6} reads/px flat {:>6.2} octree {:>6.2} | samples/px flat {:>7.1} octree {:>7.1} | ms flat {:>7.1} octree {:>7.1} octree/flat {:>6.3}x | same image {same}",
+            name,
+            mode_name,
+            per_px(counted[0].page_reads),
+            per_px(counted[1].page_reads),
+            per_px(counted[0].samples),
+            per_px(counted[1].samples),
+            ms_flat,
+            ms_octree,
+            ms_octree / ms_flat
         );
     }
 }

@@ -1,9 +1,11 @@
 //! The page table on the GPU (binding 3), the per-entry MIP bounds (binding 9) and the
 //! per-entry transition masks with their near-side closures (binding 11), as the raycast
-//! shader's page lookups read them.
+//! shader's page lookups read them; with [`Traversal::Octree`], the cut's octree instead
+//! (gpu_octree.rs: node buffer, per-leaf bounds), and the flat buffers shrink to stubs.
 
 use crate::cache::BrickCache;
 use crate::error::RenderError;
+use crate::gpu_octree::{GpuOctreeIndex, OctreeLeaves, Traversal};
 use crate::layout::LEVEL_MASK;
 use crate::page_table::{PageEntry, PageTable};
 use crate::smooth_transitions::{near_side_closure, transition_masks, transition_node_fraction};
@@ -26,16 +28,38 @@ pub struct GpuPageTable {
     /// The table as last written ([`GpuPageTable::update`], [`GpuPageTable::write_entries`]):
     /// a partial write re-encodes the words whose whole-node flag or skip level it changes.
     written: std::sync::Mutex<PageTable>,
+    /// Which index the raycaster traverses; the octree's buffers (stubs with the flat table).
+    traversal: Traversal,
+    octree: std::sync::Mutex<GpuOctreeIndex>,
+    device: wgpu::Device,
 }
 
 impl GpuPageTable {
-    /// Fails if the table would exceed the device's storage-buffer binding limit.
+    /// The flat page table. Fails if the table would exceed the device's storage-buffer
+    /// binding limit.
     pub fn new(
         device: &wgpu::Device,
         page_dims: [u32; 3],
         cache: &BrickCache,
     ) -> Result<Self, RenderError> {
-        let n: u64 = page_dims.iter().map(|&d| d.max(1) as u64).product();
+        Self::with_traversal(device, page_dims, cache, Traversal::Flat)
+    }
+
+    /// The index for `traversal`: the flat table (one word per page cell, limited by the
+    /// device's storage-binding size), or the octree of the cut (GPU buffers O(cut); the flat
+    /// buffers are one-entry stubs then).
+    pub fn with_traversal(
+        device: &wgpu::Device,
+        page_dims: [u32; 3],
+        cache: &BrickCache,
+        traversal: Traversal,
+    ) -> Result<Self, RenderError> {
+        let pages: u64 = page_dims.iter().map(|&d| d.max(1) as u64).product();
+        let n = if traversal == Traversal::Octree {
+            1
+        } else {
+            pages
+        };
         // The page word's level field holds levels 0..=LEVEL_MASK (layout.rs).
         let max_pages = 1u32 << LEVEL_MASK;
         if page_dims.iter().any(|&d| d > max_pages) {
@@ -45,7 +69,7 @@ impl GpuPageTable {
             )));
         }
         let limit = device.limits().max_storage_buffer_binding_size;
-        if n * 8 > limit {
+        if traversal == Traversal::Flat && n * 8 > limit {
             return Err(RenderError::PageTableMismatch(format!(
                 "{n} page entries exceed the device's storage buffer limit of {limit} bytes"
             )));
@@ -79,6 +103,61 @@ impl GpuPageTable {
             transitions,
             transition_fraction: std::sync::Mutex::new(0.0),
             written: std::sync::Mutex::new(PageTable::new(page_dims)),
+            traversal,
+            octree: std::sync::Mutex::new(GpuOctreeIndex::new(device, page_dims)),
+            device: device.clone(),
+        })
+    }
+
+    /// The traversal this index was made for (the raycaster compiles the matching pipeline).
+    pub fn traversal(&self) -> Traversal {
+        self.traversal
+    }
+
+    /// GPU bytes of the index the raycaster reads, as last written: the flat table's page
+    /// words, MIP bounds and transition masks per page cell, or the octree's node buffer and
+    /// per-leaf bounds. The visibility words (one per page cell / per leaf) come on top:
+    /// [`GpuPageTable::visibility_entries`].
+    pub fn gpu_index_bytes(&self) -> u64 {
+        match self.traversal {
+            Traversal::Flat => self.entry_count() as u64 * 16,
+            Traversal::Octree => self.octree.lock().map(|o| o.bytes()).unwrap_or(0),
+        }
+    }
+
+    /// Visibility words a frame writes: one per page cell (flat) or per leaf (octree).
+    pub fn visibility_entries(&self) -> usize {
+        match self.traversal {
+            Traversal::Flat => self.entry_count(),
+            Traversal::Octree => self.octree_leaves().map_or(0, |l| l.boxes.len()),
+        }
+    }
+
+    /// The leaves of the octree last written (None with the flat table).
+    pub fn octree_leaves(&self) -> Option<std::sync::Arc<OctreeLeaves>> {
+        if self.traversal != Traversal::Octree {
+            return None;
+        }
+        self.octree.lock().ok().map(|o| o.leaves.clone())
+    }
+
+    /// The octree root's reference (`OCTREE_NULL` with the flat table or before a write).
+    pub(crate) fn octree_root(&self) -> u32 {
+        self.octree
+            .lock()
+            .map(|o| o.root)
+            .unwrap_or(crate::layout::OCTREE_NULL)
+    }
+
+    /// The buffers bound at 9 (MIP bounds) and 12 (octree nodes) for the traversal.
+    pub(crate) fn traversal_buffers(&self) -> Result<(wgpu::Buffer, wgpu::Buffer), RenderError> {
+        let octree = self
+            .octree
+            .lock()
+            .map_err(|_| RenderError::PageTableMismatch("octree index poisoned".into()))?;
+        Ok(match self.traversal {
+            Traversal::Flat => (self.value_max.clone(), octree.nodes.clone()),
+            Traversal::Octree => (octree.leaf_value_max.clone(), octree.nodes.clone()),
         })
     }
 
@@ -135,6 +214,14 @@ impl GpuPageTable {
                 self.entry_count()
             )));
         }
+        if self.traversal == Traversal::Octree {
+            let mut octree = self
+                .octree
+                .lock()
+                .map_err(|_| RenderError::PageTableMismatch("octree index poisoned".into()))?;
+            octree.update_value_max(&self.device, queue, bounds);
+            return Ok(());
+        }
         queue.write_buffer(&self.value_max, 0, bytemuck::cast_slice(bounds));
         Ok(())
     }
@@ -154,13 +241,24 @@ impl GpuPageTable {
             });
         }
         let masks = transition_masks(table);
-        let words = table.encoded_for_gpu(self.slots_per_axis, &masks);
         if let Ok(mut written) = self.written.lock() {
             written.clone_from(table);
         }
-        queue.write_buffer(&self.buffer, 0, bytemuck::cast_slice(&words));
-        let transitions: Vec<[u32; 2]> = masks.iter().map(|&m| [m, near_side_closure(m)]).collect();
-        queue.write_buffer(&self.transitions, 0, bytemuck::cast_slice(&transitions));
+        if self.traversal == Traversal::Octree {
+            // The cut changed: its octree is rebuilt whole (O(cells · depth) on the CPU, a few
+            // thousand leaves to upload).
+            let mut octree = self
+                .octree
+                .lock()
+                .map_err(|_| RenderError::PageTableMismatch("octree index poisoned".into()))?;
+            octree.update(&self.device, queue, table, self.slots_per_axis)?;
+        } else {
+            let words = table.encoded_for_gpu(self.slots_per_axis, &masks);
+            queue.write_buffer(&self.buffer, 0, bytemuck::cast_slice(&words));
+            let transitions: Vec<[u32; 2]> =
+                masks.iter().map(|&m| [m, near_side_closure(m)]).collect();
+            queue.write_buffer(&self.transitions, 0, bytemuck::cast_slice(&transitions));
+        }
         let fraction = transition_node_fraction(table, &masks);
         if let Ok(mut f) = self.transition_fraction.lock() {
             *f = fraction;

@@ -75,3 +75,18 @@ pub const SHADING_LIT_ABOVE: f64 = 2e-3;
 pub trait BrickSource: Sync {
     fn brick(&self, level: u8, node: [u32; 3]) -> Option<&[u16]>;
 }
+
+/// The GPU node buffer of the octree traversal (gpu_octree.rs ↔ shaders/octree.wgsl): records
+/// of [`OCTREE_RECORD_WORDS`] u32; record 0 a header (root reference, leaf count), record
+/// 1..=leaves the cut's leaves (octree_cut.rs; leaf index = record − 1: per-leaf MIP bound and
+/// visibility word), then its inner nodes. An inner record holds 8 child references (x
+/// fastest); a leaf record its page word, 6 ropes (−x, +x, −y, +y, −z, +z) and its leaf index.
+pub const OCTREE_RECORD_WORDS: u32 = 8;
+/// A node reference: record id in the low bits, the node's size (it spans 2^size page cells
+/// per axis) from [`OCTREE_SIZE_SHIFT`], [`OCTREE_LEAF_BIT`] for a leaf; [`OCTREE_NULL`] for
+/// no node (a volume face, a child outside the grid). The size travels with the reference, so
+/// the shader computes every box from the cell it looks up (octree §5.2: no box in memory).
+pub const OCTREE_ID_MASK: u32 = (1 << 27) - 1;
+pub const OCTREE_SIZE_SHIFT: u32 = 27;
+pub const OCTREE_LEAF_BIT: u32 = 1 << 31;
+pub const OCTREE_NULL: u32 = u32::MAX;

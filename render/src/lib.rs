@@ -30,13 +30,16 @@
 //!   pipelines           → settings     (PipelineKey, bind-group layout, cache, compiler)
 //!   readback_ring                      (staging ring read 1-2 frames late)
 //!   gpu_timing          → readback_ring
-//!   gpu_page_table      → page_table, smooth_transitions, cache, layout, error
+//!   gpu_octree          → octree_cut, page_table, layout, error (node buffer, per-leaf)
+//!   gpu_page_table      → gpu_octree, page_table, smooth_transitions, cache, layout, error
 //!   gpu_transfer_function → transfer_function
 //!   gpu_preintegration  → gpu_transfer_function, segment_integral, transfer_function
 //!   raycast             → shaders, pipelines, gpu_page_table, gpu_transfer_function,
 //!                         gpu_preintegration, gpu_timing, readback_ring, cache, camera,
 //!                         device, layout, settings, error       (the pass)
 //!   probe               → raycast, shaders, device, error       (feature test-probe)
+//!   octree_probe        → gpu_octree, octree_cut, shaders, raycast, device, error
+//!                                                               (feature test-probe)
 //!   offscreen           → raycast, gpu_page_table, gpu_transfer_function, bricked_volume,
 //!                         cache, page_table, camera, device, settings, transfer_function, error
 //!   time_critical       → gpu_timing, settings
@@ -62,6 +65,7 @@ pub mod camera;
 pub mod device;
 pub mod error;
 pub mod field;
+pub mod gpu_octree;
 pub mod gpu_page_table;
 pub(crate) mod gpu_preintegration;
 pub mod gpu_timing;
@@ -69,6 +73,8 @@ pub mod gpu_transfer_function;
 pub mod layout;
 pub mod metrics;
 pub mod octree_cut;
+#[cfg(feature = "test-probe")]
+pub mod octree_probe;
 pub mod offscreen;
 pub mod page_table;
 pub mod phantom;
@@ -91,6 +97,7 @@ pub use cache::{BrickCache, CacheConfig, CacheFormat};
 pub use camera::{Camera, Projection};
 pub use device::GpuContext;
 pub use error::RenderError;
+pub use gpu_octree::Traversal;
 pub use gpu_page_table::GpuPageTable;
 pub use gpu_timing::{FrameTiming, FrameTimingSource};
 pub use gpu_transfer_function::GpuTransferFunction;

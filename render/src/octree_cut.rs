@@ -1,8 +1,8 @@
 //! The cut as an octree with neighbour pointers ("ropes", octree paper §5.1-5.2), built from the
-//! page table the loader gives render: the CPU half of the octree traversal. Not yet read by
-//! any shader (the GPU traversal of issue 18 item 2 is still to come); what it fixes now is
-//! the node layout, the ropes and the traversal order a GPU twin must reproduce, with the
-//! brute-force checks that define them.
+//! page table the loader gives render: the CPU half of the octree traversal. gpu_octree.rs
+//! encodes it into the GPU node buffer that shaders/octree.wgsl traverses; this module fixes
+//! the node layout, the ropes and the traversal order the GPU reproduces, with the brute-force
+//! checks that define them (render/tests/octree_traversal.rs runs the GPU walk against them).
 //!
 //! - **Nodes**: an aligned block of 2^size page cells per axis. A block whose cells (those inside
 //!   the page grid) all hold one entry is a leaf carrying that entry: a whole node of the cut,
@@ -343,15 +343,18 @@ fn exit_of(o: [f64; 3], d: [f64; 3], lo: [f64; 3], hi: [f64; 3]) -> (f64, usize)
     best
 }
 
-#[cfg(test)]
+/// The random cuts and rays the traversal is tested on, shared by the CPU tests here and the
+/// GPU walk's tests (render/tests/octree_traversal.rs).
+#[cfg(any(test, feature = "test-probe"))]
 // The loops' indices are page positions (page_of_linear) and face numbers, not just indices.
 #[allow(clippy::needless_range_loop)]
-mod tests {
-    use super::*;
+pub mod test_cuts {
+    use crate::page_table::{PageEntry, PageTable};
 
-    struct Rng(u64);
+    pub struct Rng(pub u64);
     impl Rng {
-        fn next(&mut self) -> f64 {
+        /// Uniform in [0, 1).
+        pub fn uniform(&mut self) -> f64 {
             self.0 ^= self.0 << 13;
             self.0 ^= self.0 >> 7;
             self.0 ^= self.0 << 17;
@@ -362,13 +365,13 @@ mod tests {
     /// A random cut of a `dims` page grid as a page table: blocks split at random down to
     /// level 0, leaves resident with distinct slots, some not resident; with `balanced`, split
     /// further until face/edge/corner neighbours differ by at most one level (2:1).
-    fn random_cut(rng: &mut Rng, dims: [u32; 3], balanced: bool) -> PageTable {
+    pub fn random_cut(rng: &mut Rng, dims: [u32; 3], balanced: bool) -> PageTable {
         let mut level = vec![0u8; dims.iter().map(|&d| d as usize).product()];
         let mut table = PageTable::new(dims);
         let max = dims.iter().copied().max().unwrap();
         let root = (32 - (max - 1).leading_zeros()) as u8;
         fn split(rng: &mut Rng, t: &PageTable, level: &mut [u8], origin: [u32; 3], size: u8) {
-            if size == 0 || rng.next() < 0.35 {
+            if size == 0 || rng.uniform() < 0.35 {
                 for i in 0..level.len() {
                     let p = t.page_of_linear(i);
                     if (0..3).all(|a| p[a] >= origin[a] && p[a] < origin[a] + (1 << size)) {
@@ -425,7 +428,9 @@ mod tests {
             let key = (l, p.map(|c| c >> l));
             let next = slots.len() as u32;
             let slot = *slots.entry(key).or_insert(next);
-            let skip = *not_resident.entry(key).or_insert_with(|| rng.next() < 0.2);
+            let skip = *not_resident
+                .entry(key)
+                .or_insert_with(|| rng.uniform() < 0.2);
             table.entries[i] = if skip {
                 PageEntry::NOT_RESIDENT
             } else {
@@ -435,7 +440,7 @@ mod tests {
         table
     }
 
-    fn cuts() -> Vec<(String, PageTable)> {
+    pub fn cuts() -> Vec<(String, PageTable)> {
         let mut rng = Rng(0x2545_f491_4f6c_dd1d);
         let mut out = Vec::new();
         for (k, dims) in [[8, 8, 8], [5, 7, 3], [16, 4, 9], [1, 1, 1], [2, 1, 3]]
@@ -453,6 +458,72 @@ mod tests {
         }
         out
     }
+
+    /// Rays along the axes through cell centres and along cell faces and edges, diagonals
+    /// through corners, random rays starting inside and outside.
+    pub fn rays(dims: [u32; 3], rng: &mut Rng) -> Vec<([f64; 3], [f64; 3], f64, f64)> {
+        let g = dims.map(|v| v as f64);
+        let mut out = Vec::new();
+        for axis in 0..3 {
+            for sign in [1.0, -1.0] {
+                for (u, v) in [(0.5, 0.5), (1.0, 0.5), (1.0, 1.0), (0.0, 0.0), (2.0, 1.0)] {
+                    let mut o = [u, v, u];
+                    o[(axis + 1) % 3] = u;
+                    o[(axis + 2) % 3] = v;
+                    o[axis] = if sign > 0.0 { -1.0 } else { g[axis] + 1.0 };
+                    let mut d = [0.0; 3];
+                    d[axis] = sign;
+                    out.push((o, d, 0.0, f64::INFINITY));
+                }
+            }
+        }
+        // Through grid corners and edges: integer points on the diagonal.
+        for &d in &[
+            [1.0, 1.0, 1.0],
+            [1.0, -1.0, 1.0],
+            [-1.0, 1.0, 0.0],
+            [1.0, 0.0, -1.0],
+            [1.0, 2.0, 0.0],
+        ] {
+            out.push((
+                [
+                    0.0,
+                    if d[1] < 0.0 { g[1] } else { 0.0 },
+                    if d[2] < 0.0 { g[2] } else { 0.0 },
+                ],
+                d,
+                0.0,
+                f64::INFINITY,
+            ));
+            out.push(([1.0, 1.0, 1.0], d, -10.0, f64::INFINITY));
+        }
+        for _ in 0..60 {
+            let inside = rng.uniform() < 0.5;
+            let o: [f64; 3] = std::array::from_fn(|a| {
+                if inside {
+                    rng.uniform() * g[a]
+                } else {
+                    (rng.uniform() * 3.0 - 1.0) * g[a]
+                }
+            });
+            let d: [f64; 3] = std::array::from_fn(|_| rng.uniform() * 2.0 - 1.0);
+            let t1 = if rng.uniform() < 0.3 {
+                rng.uniform() * 4.0
+            } else {
+                f64::INFINITY
+            };
+            out.push((o, d, 0.0, t1));
+        }
+        out
+    }
+}
+
+#[cfg(test)]
+// The loops' indices are page positions (page_of_linear) and face numbers, not just indices.
+#[allow(clippy::needless_range_loop)]
+mod tests {
+    use super::test_cuts::*;
+    use super::*;
 
     #[test]
     fn leaves_tile_the_grid_and_carry_the_table() {
@@ -539,64 +610,6 @@ mod tests {
                 }
             }
         }
-    }
-
-    /// Rays along the axes through cell centres and along cell faces and edges, diagonals
-    /// through corners, random rays starting inside and outside.
-    fn rays(dims: [u32; 3], rng: &mut Rng) -> Vec<([f64; 3], [f64; 3], f64, f64)> {
-        let g = dims.map(|v| v as f64);
-        let mut out = Vec::new();
-        for axis in 0..3 {
-            for sign in [1.0, -1.0] {
-                for (u, v) in [(0.5, 0.5), (1.0, 0.5), (1.0, 1.0), (0.0, 0.0), (2.0, 1.0)] {
-                    let mut o = [u, v, u];
-                    o[(axis + 1) % 3] = u;
-                    o[(axis + 2) % 3] = v;
-                    o[axis] = if sign > 0.0 { -1.0 } else { g[axis] + 1.0 };
-                    let mut d = [0.0; 3];
-                    d[axis] = sign;
-                    out.push((o, d, 0.0, f64::INFINITY));
-                }
-            }
-        }
-        // Through grid corners and edges: integer points on the diagonal.
-        for &d in &[
-            [1.0, 1.0, 1.0],
-            [1.0, -1.0, 1.0],
-            [-1.0, 1.0, 0.0],
-            [1.0, 0.0, -1.0],
-            [1.0, 2.0, 0.0],
-        ] {
-            out.push((
-                [
-                    0.0,
-                    if d[1] < 0.0 { g[1] } else { 0.0 },
-                    if d[2] < 0.0 { g[2] } else { 0.0 },
-                ],
-                d,
-                0.0,
-                f64::INFINITY,
-            ));
-            out.push(([1.0, 1.0, 1.0], d, -10.0, f64::INFINITY));
-        }
-        for _ in 0..60 {
-            let inside = rng.next() < 0.5;
-            let o: [f64; 3] = std::array::from_fn(|a| {
-                if inside {
-                    rng.next() * g[a]
-                } else {
-                    (rng.next() * 3.0 - 1.0) * g[a]
-                }
-            });
-            let d: [f64; 3] = std::array::from_fn(|_| rng.next() * 2.0 - 1.0);
-            let t1 = if rng.next() < 0.3 {
-                rng.next() * 4.0
-            } else {
-                f64::INFINITY
-            };
-            out.push((o, d, 0.0, t1));
-        }
-        out
     }
 
     #[test]

@@ -21,11 +21,15 @@ pub struct PipelineKey {
     pub count_samples: bool,
     pub preintegrated: bool,
     pub smooth_transitions: bool,
+    /// The octree traversal (octree.wgsl) instead of the flat page table: set by the scene's
+    /// index ([`crate::GpuPageTable::traversal`]), not by the settings.
+    pub octree: bool,
 }
 
 /// The raycast pass's bind-group layout: parameters (0), brick cache and its sampler (1, 2),
 /// page table (3), TF table (4), colour target (5), depth (6), visibility (7), sample counter
-/// (8), MIP page bounds (9), pre-integration table (10), transition masks (11).
+/// (8), MIP page bounds (9; per leaf with the octree), pre-integration table (10), transition
+/// masks (11), octree node buffer (12).
 fn bind_group_layout(device: &wgpu::Device, filterable: bool) -> wgpu::BindGroupLayout {
     let storage = |binding: u32, read_only: bool| wgpu::BindGroupLayoutEntry {
         binding,
@@ -96,6 +100,7 @@ fn bind_group_layout(device: &wgpu::Device, filterable: bool) -> wgpu::BindGroup
             storage(8, false),
             storage(9, true),
             storage(11, true),
+            storage(12, true),
             wgpu::BindGroupLayoutEntry {
                 binding: 10,
                 visibility: wgpu::ShaderStages::COMPUTE,
@@ -118,7 +123,7 @@ struct BackgroundCompiler {
 
 /// The shader's effect overrides, as named in the WGSL (raycast.wgsl, field.wgsl,
 /// smooth_transitions.wgsl).
-pub(crate) const OVERRIDE_NAMES: [&str; 10] = [
+pub(crate) const OVERRIDE_NAMES: [&str; 11] = [
     "MODE",
     "MANUAL_TRILINEAR",
     "SHADING",
@@ -129,6 +134,7 @@ pub(crate) const OVERRIDE_NAMES: [&str; 10] = [
     "COUNT_SAMPLES",
     "PREINTEGRATED",
     "SMOOTH_TRANSITIONS",
+    "OCTREE",
 ];
 
 /// One raycast pipeline with the effects of `key` as override constants (those of
@@ -157,6 +163,7 @@ fn build_pipeline(
         ("COUNT_SAMPLES", b(key.count_samples)),
         ("PREINTEGRATED", b(key.preintegrated)),
         ("SMOOTH_TRANSITIONS", b(key.smooth_transitions)),
+        ("OCTREE", b(key.octree)),
     ];
     let constants: Vec<(&str, f64)> = constants
         .into_iter()

@@ -13,6 +13,7 @@ use crate::cache::BrickCache;
 use crate::camera::Camera;
 use crate::device::GpuContext;
 use crate::error::RenderError;
+use crate::gpu_octree::{OctreeLeaves, Traversal};
 use crate::gpu_preintegration::GpuPreintegration;
 use crate::gpu_timing::{FrameTiming, FrameTimingSource, PassTimestamps};
 use crate::layout::WORKGROUP_SIZE;
@@ -103,6 +104,9 @@ struct Targets {
 }
 
 struct VisibilityBuffers {
+    /// Words the buffers hold (a power of two: a cut that changes its leaf count keeps them).
+    capacity: usize,
+    /// Words the last frame wrote: page cells (flat) or leaves (octree).
     entries: usize,
     buffer: wgpu::Buffer,
     blocking_readback: wgpu::Buffer,
@@ -120,6 +124,11 @@ pub struct Raycaster {
     targets: Option<Targets>,
     visibility: Option<VisibilityBuffers>,
     frame_number: u64,
+    /// Page cells of the last frame's volume (the length of a per-page visibility list).
+    page_count: usize,
+    /// The octree leaves of the last frames (per-leaf visibility is read back per page cell
+    /// through them), newest last; None for flat frames.
+    frame_leaves: std::collections::VecDeque<(u64, Option<std::sync::Arc<OctreeLeaves>>)>,
     last_key: Option<PipelineKey>,
     /// Interactive callers (the viewer) set this: a frame whose pipeline is not compiled yet
     /// draws with the previous frame's while a thread compiles it. Off by default, so tests,
@@ -222,6 +231,8 @@ impl Raycaster {
             targets: None,
             visibility: None,
             frame_number: 0,
+            page_count: 0,
+            frame_leaves: std::collections::VecDeque::new(),
             last_key: None,
             compile_in_background: false,
             preintegration: GpuPreintegration::new(device, &ctx.queue),
@@ -301,14 +312,12 @@ impl Raycaster {
     }
 
     fn ensure_visibility(&mut self, device: &wgpu::Device, entries: usize) {
-        if self
-            .visibility
-            .as_ref()
-            .is_some_and(|v| v.entries == entries)
-        {
+        if let Some(v) = self.visibility.as_mut().filter(|v| v.capacity >= entries) {
+            v.entries = entries;
             return;
         }
-        let size = (entries.max(1) * 4) as u64;
+        let capacity = entries.max(1).next_power_of_two();
+        let size = (capacity * 4) as u64;
         let make = |label: &str, usage| {
             device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some(label),
@@ -319,6 +328,7 @@ impl Raycaster {
         };
         let read = wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST;
         self.visibility = Some(VisibilityBuffers {
+            capacity,
             entries,
             buffer: make(
                 "visibility",
@@ -329,6 +339,20 @@ impl Raycaster {
             blocking_readback: make("visibility readback", read),
             ring: ReadbackRing::new(device, "visibility staging", VISIBILITY_RING, size),
         });
+    }
+
+    /// Frame `frame_number`'s visibility words as the per-page-cell list the loader speaks
+    /// (per-leaf words expanded through that frame's leaves).
+    fn visibility_per_page(&self, frame_number: u64, words: &[u32], pages: usize) -> Vec<u32> {
+        let leaves = self
+            .frame_leaves
+            .iter()
+            .find(|(n, _)| *n == frame_number)
+            .and_then(|(_, l)| l.clone());
+        match leaves {
+            Some(leaves) => leaves.expand_to_pages(&words[..leaves.boxes.len().min(words.len())]),
+            None => words[..pages.min(words.len())].to_vec(),
+        }
     }
 
     /// The colour target, for display by the app (valid after the first `render`).
@@ -375,6 +399,7 @@ impl Raycaster {
             count_samples: settings.count_samples,
             preintegrated: settings.preintegrated && settings.mode == RenderMode::Dvr,
             smooth_transitions: settings.smooth_transitions,
+            octree: false,
         }
     }
 
@@ -414,6 +439,7 @@ impl Raycaster {
     pub fn key_for_scene(&self, scene: &Scene) -> PipelineKey {
         let mut key = self.key_for(scene.settings);
         key.smooth_transitions &= scene.page_table.transition_fraction() > 0.0;
+        key.octree = scene.page_table.traversal() == Traversal::Octree;
         key
     }
 
@@ -464,6 +490,14 @@ impl Raycaster {
             )));
         }
         let wanted = self.key_for_scene(scene);
+        if wanted.octree && wanted.smooth_transitions {
+            return Err(RenderError::InvalidSettings(
+                "smooth level transitions are not available with the octree traversal yet \
+                 (they need edge and corner neighbours, which the leaves' face ropes do not \
+                 reach); use the flat traversal or turn smooth transitions off"
+                    .into(),
+            ));
+        }
         let key = self
             .pipelines
             .choose(device, wanted, self.compile_in_background, self.last_key);
@@ -472,7 +506,10 @@ impl Raycaster {
             self.ensure_preintegration(ctx, scene);
         }
         self.ensure_targets(device, settings.width, settings.height);
-        self.ensure_visibility(device, page_dims.iter().map(|&d| d as usize).product());
+        self.ensure_visibility(device, scene.page_table.visibility_entries());
+        self.page_count = page_dims.iter().map(|&d| d as usize).product();
+        let leaves = scene.page_table.octree_leaves();
+        let (bounds_buffer, octree_nodes) = scene.page_table.traversal_buffers()?;
         let params = build_params(scene);
         ctx.queue
             .write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
@@ -511,7 +548,11 @@ impl Raycaster {
                     },
                     wgpu::BindGroupEntry {
                         binding: 9,
-                        resource: scene.page_table.value_max.as_entire_binding(),
+                        resource: bounds_buffer.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 12,
+                        resource: octree_nodes.as_entire_binding(),
                     },
                     wgpu::BindGroupEntry {
                         binding: 10,
@@ -544,6 +585,10 @@ impl Raycaster {
             );
         }
         self.frame_number += 1;
+        self.frame_leaves.push_back((self.frame_number, leaves));
+        while self.frame_leaves.len() > VISIBILITY_RING + 2 {
+            self.frame_leaves.pop_front();
+        }
         if let Some(timestamps) = self.timestamps.as_mut() {
             timestamps.encode_resolve(&mut encoder, self.frame_number);
         }
@@ -570,20 +615,18 @@ impl Raycaster {
     pub fn try_take_visibility(&mut self, ctx: &GpuContext) -> Option<VisibilityFrame> {
         let _ = ctx.device.poll(wgpu::PollType::Poll);
         let vis = self.visibility.as_mut()?;
-        let entries = vis.entries;
-        let mut newest: Option<VisibilityFrame> = None;
+        let mut newest: Option<(u64, Vec<u32>)> = None;
         vis.ring.drain(|frame_number, view| {
-            if newest
-                .as_ref()
-                .is_none_or(|n| n.frame_number < frame_number)
-            {
-                newest = Some(VisibilityFrame {
-                    frame_number,
-                    visibility: bytemuck::cast_slice(view)[..entries].to_vec(),
-                });
+            if newest.as_ref().is_none_or(|n| n.0 < frame_number) {
+                newest = Some((frame_number, bytemuck::cast_slice(view).to_vec()));
             }
         });
-        newest
+        let (frame_number, words) = newest?;
+        let pages = self.page_count;
+        Some(VisibilityFrame {
+            frame_number,
+            visibility: self.visibility_per_page(frame_number, &words, pages),
+        })
     }
 
     /// Copies the last rendered frame back and waits for it. For tests and the CLI.
@@ -656,8 +699,8 @@ impl Raycaster {
             rgba.extend_from_slice(&padded[start..start + row]);
         }
         let depth: Vec<f32> = bytemuck::pod_collect_to_vec(&read(&t.depth_readback)?);
-        let mut visibility: Vec<u32> = bytemuck::pod_collect_to_vec(&read(&vis.blocking_readback)?);
-        visibility.truncate(vis.entries);
+        let words: Vec<u32> = bytemuck::pod_collect_to_vec(&read(&vis.blocking_readback)?);
+        let visibility = self.visibility_per_page(self.frame_number, &words, self.page_count);
         let counter: Vec<u32> = bytemuck::pod_collect_to_vec(&read(&self.counter_readback)?);
         let counted = self.last_key.is_some_and(|k| k.count_samples);
         let wide = |lo: usize| counter[lo] as u64 + ((counter[lo + 1] as u64) << 32);
@@ -832,7 +875,13 @@ pub(crate) fn build_params(scene: &Scene) -> Params {
             0.0,
         ],
         image: [s.width, s.height, s.frame_index, tf.entries],
-        pages: [g.page_dims()[0], g.page_dims()[1], g.page_dims()[2], 0],
+        // w: the octree's root reference (octree.wgsl; the traversal reads it from here).
+        pages: [
+            g.page_dims()[0],
+            g.page_dims()[1],
+            g.page_dims()[2],
+            scene.page_table.octree_root(),
+        ],
         slots: [
             scene.cache.slots_per_axis[0],
             scene.cache.slots_per_axis[1],

@@ -18,8 +18,9 @@ use std::sync::OnceLock;
 
 use crate::layout::{
     BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD, DEPTH_OPACITY, FLAG_EMPTY, FLAG_NOT_RESIDENT,
-    FLAG_TRANSITION, FLAG_WHOLE_NODE, LEVEL_MASK, LEVEL_SHIFT, SHADING_FLAT_BELOW,
-    SHADING_LIT_ABOVE, SLOT_AXIS_BITS, SLOT_AXIS_MASK, WORKGROUP_SIZE,
+    FLAG_TRANSITION, FLAG_WHOLE_NODE, LEVEL_MASK, LEVEL_SHIFT, OCTREE_ID_MASK, OCTREE_LEAF_BIT,
+    OCTREE_NULL, OCTREE_RECORD_WORDS, OCTREE_SIZE_SHIFT, SHADING_FLAT_BELOW, SHADING_LIT_ABOVE,
+    SLOT_AXIS_BITS, SLOT_AXIS_MASK, WORKGROUP_SIZE,
 };
 
 /// The files that define the sampled field and its lookups, in composition order.
@@ -34,7 +35,7 @@ const FIELD_FILES: [(&str, &str); 4] = [
 ];
 
 /// The raycast pass's own files, after [`FIELD_FILES`].
-const RAYCAST_FILES: [(&str, &str); 3] = [
+const RAYCAST_FILES: [(&str, &str); 4] = [
     (
         "transfer_function.wgsl",
         include_str!("shaders/transfer_function.wgsl"),
@@ -43,8 +44,13 @@ const RAYCAST_FILES: [(&str, &str); 3] = [
         "preintegration.wgsl",
         include_str!("shaders/preintegration.wgsl"),
     ),
+    ("octree.wgsl", OCTREE_WGSL),
     ("raycast.wgsl", include_str!("shaders/raycast.wgsl")),
 ];
+
+/// The octree traversal's index lookups (needs only the prelude): in the raycast shader and the
+/// test-only leaf walk (octree_probe.rs).
+pub(crate) const OCTREE_WGSL: &str = include_str!("shaders/octree.wgsl");
 
 /// A prelude constant's WGSL type and value.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -57,7 +63,7 @@ pub(crate) enum PreludeValue {
 }
 
 /// Every constant the shader shares with Rust, by its WGSL name.
-pub(crate) fn prelude_constants() -> [(&'static str, PreludeValue); 15] {
+pub(crate) fn prelude_constants() -> [(&'static str, PreludeValue); 20] {
     use PreludeValue::*;
     [
         ("CORE", F32(BRICK_CORE as f64)),
@@ -78,6 +84,12 @@ pub(crate) fn prelude_constants() -> [(&'static str, PreludeValue); 15] {
         ("WORKGROUP_SIZE", U32(WORKGROUP_SIZE)),
         // DVR depth: where accumulated opacity first reaches this.
         ("DEPTH_OPACITY", F32(DEPTH_OPACITY)),
+        // The octree traversal's node buffer (gpu_octree.rs).
+        ("OCTREE_RECORD_WORDS", U32(OCTREE_RECORD_WORDS)),
+        ("OCTREE_ID_MASK", Bits(OCTREE_ID_MASK)),
+        ("OCTREE_SIZE_SHIFT", U32(OCTREE_SIZE_SHIFT)),
+        ("OCTREE_LEAF_BIT", Bits(OCTREE_LEAF_BIT)),
+        ("OCTREE_NULL", Bits(OCTREE_NULL)),
     ]
 }
 
@@ -111,6 +123,12 @@ fn compose(files: &[(&str, &str)]) -> String {
 pub(crate) fn compose_with_field(files: &[(&str, &str)]) -> String {
     let all: Vec<(&str, &str)> = FIELD_FILES.iter().chain(files).copied().collect();
     compose(&all)
+}
+
+/// The prelude and `files`, no field files (the test-only octree walk).
+#[cfg(feature = "test-probe")]
+pub(crate) fn compose_alone(files: &[(&str, &str)]) -> String {
+    compose(files)
 }
 
 /// The composed raycast shader: prelude, field files, the pass's files. The test probe

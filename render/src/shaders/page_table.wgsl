@@ -33,6 +33,11 @@ struct Page {
     // Every cell of the node (level L) holds this word (FLAG_WHOLE_NODE); for a not-resident
     // word the 2^level block around `cell` is all not resident.
     whole_node: bool,
+    // The octree traversal's leaf (octree.wgsl; 0: none yet, record 0 is the header): its
+    // box (first page cell, 2^leaf_size cells per axis) is the region the word stands for.
+    leaf_record: u32,
+    leaf_origin: vec3<u32>,
+    leaf_size: u32,
 };
 
 // Page-table words read by this invocation (decode_entry calls): the raycaster's debug counter
@@ -46,12 +51,19 @@ fn cell_of(pc: vec3<f32>) -> vec3<i32> {
 
 // The page entry alone: where its node's payload sits (no transition data).
 fn decode_entry(cell: vec3<i32>) -> Page {
+    let c = vec3<u32>(cell);
+    let linear = c.x + P.pages.x * (c.y + P.pages.y * c.z);
+    page_reads += 1u;
+    return decode_word(page_table[linear], cell, linear);
+}
+
+// A page word decoded for page cell `cell`; `linear` indexes the per-entry buffers (the page
+// cell in the flat table, the leaf in the octree traversal).
+fn decode_word(e: u32, cell: vec3<i32>, linear: u32) -> Page {
     var pg: Page;
     let c = vec3<u32>(cell);
     pg.cell = cell;
-    pg.linear = c.x + P.pages.x * (c.y + P.pages.y * c.z);
-    let e = page_table[pg.linear];
-    page_reads += 1u;
+    pg.linear = linear;
     pg.resident = (e & FLAG_NOT_RESIDENT) == 0u;
     pg.empty = (e & FLAG_EMPTY) != 0u;
     pg.has_transition = (e & FLAG_TRANSITION) != 0u;

@@ -14,6 +14,11 @@ override EARLY_TERMINATION: bool = true;
 override CLIP_PLANE: bool = false;
 override COUNT_SAMPLES: bool = false;
 override PREINTEGRATED: bool = false;
+// The octree traversal (octree paper §5.2; octree.wgsl, gpu_octree.rs): pages come from the
+// cut's leaves, found by a point query at the ray's entry, then by the exit face's rope and a
+// descent; a leaf's box is the region a ray crosses or skips at once; the MIP bound and the
+// visibility word are per leaf. Off: the flat page table (one word per finest brick position).
+override OCTREE: bool = false;
 
 // Node-extent exit (page_table.rs FLAG_WHOLE_NODE, skip levels): a ray leaves an empty whole
 // node, one its MIP maximum already beats, or a not-resident block at once instead of cell by
@@ -46,6 +51,31 @@ fn locate_on_ray(o: vec3<f32>, d: vec3<f32>, t: f32, cached: ptr<function, Page>
     let pc = clamp_to_volume(o + d * t);
     if t >= (*cached).t_exit {
         let cell = cell_of(pc);
+        if OCTREE {
+            // Still in the leaf (a sample within rounding of its exit): nothing is read. Else
+            // the rope of the face the ray left by, and a descent (octree_next_leaf).
+            let c = vec3<u32>(cell);
+            let s = vec3<u32>((*cached).leaf_size);
+            let known = (*cached).leaf_record != 0u;
+            if known && all((c >> s) == ((*cached).leaf_origin >> s)) {
+                (*cached).cell = cell;
+            } else if known {
+                *cached = decode_leaf(octree_next_leaf(P.pages.w, leaf_of(*cached), c), cell);
+            } else {
+                *cached = decode_leaf(octree_leaf_at(P.pages.w, c), cell);
+            }
+            // The march's fast path samples a resident page up to t_exit without looking at its
+            // flags. A sample can land in an empty leaf its probe was not in (a coarse stride);
+            // the flat march then samples to that cell's exit and its next probe skips the node,
+            // so an empty leaf ends at the cell too: the same samples, the same MIP maxima.
+            // Skipping it still leaves the whole leaf (skip_exit).
+            if (*cached).empty {
+                (*cached).t_exit = cell_exit(o, d, vec3<f32>(cell));
+            } else {
+                (*cached).t_exit = region_exit(o, d, (*cached).leaf_origin, (*cached).leaf_size);
+            }
+            return location_in(*cached, pc);
+        }
         let shift = vec3<u32>((*cached).level);
         let same_region = NODE_EXTENT && ((*cached).whole_node || !(*cached).resident)
             && all((vec3<u32>(cell) >> shift) == (vec3<u32>((*cached).cell) >> shift));
@@ -61,10 +91,78 @@ fn locate_on_ray(o: vec3<f32>, d: vec3<f32>, t: f32, cached: ptr<function, Page>
     return location_in(*cached, pc);
 }
 
+// The octree traversal's page for `cell` from the leaf holding it (not found: not resident).
+// Its per-entry index is the leaf's; its region the leaf's box.
+fn decode_leaf(leaf: OctreeLeaf, cell: vec3<i32>) -> Page {
+    var word = FLAG_NOT_RESIDENT;
+    if leaf.found {
+        word = leaf.word;
+    }
+    var pg = decode_word(word, cell, leaf.index);
+    pg.whole_node = true;
+    pg.transition = 0u;
+    pg.near_side_closure = 0u;
+    pg.leaf_record = select(0u, leaf.record, leaf.found);
+    pg.leaf_origin = leaf.origin;
+    pg.leaf_size = leaf.size;
+    return pg;
+}
+
+fn leaf_of(pg: Page) -> OctreeLeaf {
+    var leaf: OctreeLeaf;
+    leaf.found = true;
+    leaf.record = pg.leaf_record;
+    leaf.index = pg.linear;
+    leaf.origin = pg.leaf_origin;
+    leaf.size = pg.leaf_size;
+    return leaf;
+}
+
+// Where the ray leaves the block of 2^size page cells from page cell `origin` (index space).
+fn region_exit(o: vec3<f32>, d: vec3<f32>, origin: vec3<u32>, size: u32) -> f32 {
+    let lo = vec3<f32>(origin) * CORE - vec3<f32>(0.5);
+    let bound = select(lo, lo + vec3<f32>(CORE * f32(1u << size)), d > vec3<f32>(0.0));
+    let t = select((bound - o) / d, vec3<f32>(3.0e38), abs(d) < vec3<f32>(1e-20));
+    return min(t.x, min(t.y, t.z));
+}
+
+// locate_traversal, keeping the octree leaf found in `near` (zeroed: none yet) and reading
+// nothing while later points stay in it; the flat table reads its word each time.
+fn locate_cached(p: vec3<f32>, near: ptr<function, Page>) -> Location {
+    if !OCTREE {
+        return locate(p);
+    }
+    let pc = clamp_to_volume(p);
+    let cell = cell_of(pc);
+    let c = vec3<u32>(cell);
+    let s = vec3<u32>((*near).leaf_size);
+    if (*near).leaf_record != 0u && all((c >> s) == ((*near).leaf_origin >> s)) {
+        (*near).cell = cell;
+    } else {
+        *near = decode_leaf(octree_leaf_at(P.pages.w, c), cell);
+    }
+    return location_in(*near, pc);
+}
+
+// The sample at `p` located by whichever traversal the pipeline has: a point query on the
+// node buffer (OCTREE) or a page-table read (locate, field.wgsl).
+fn locate_traversal(p: vec3<f32>) -> Location {
+    if OCTREE {
+        let pc = clamp_to_volume(p);
+        let cell = cell_of(pc);
+        return location_in(decode_leaf(octree_leaf_at(P.pages.w, vec3<u32>(cell)), cell), pc);
+    }
+    return locate(p);
+}
+
 // Where the ray leaves the region a skipped entry stands for: with NODE_EXTENT its whole node
 // (FLAG_WHOLE_NODE) or its not-resident block, else (or for a parent standing in for some of
 // its children) its cell.
 fn skip_exit(o: vec3<f32>, d: vec3<f32>, pg: Page) -> f32 {
+    if OCTREE {
+        // The leaf's box.
+        return region_exit(o, d, pg.leaf_origin, pg.leaf_size);
+    }
     if NODE_EXTENT && (pg.whole_node || !pg.resident) && pg.level > 0u {
         let cells = f32(1u << pg.level);
         let node = vec3<f32>(vec3<u32>(pg.cell) >> vec3<u32>(pg.level));
@@ -104,8 +202,10 @@ fn count(samples: u32) {
         if old > 0xffffffffu - samples {
             atomicAdd(&sample_counter[1], 1u);
         }
-        let old_reads = atomicAdd(&sample_counter[2], page_reads);
-        if old_reads > 0xffffffffu - page_reads {
+        // Index reads: page-table words (flat) or node-buffer words (octree).
+        let reads = page_reads + octree_reads;
+        let old_reads = atomicAdd(&sample_counter[2], reads);
+        if old_reads > 0xffffffffu - reads {
             atomicAdd(&sample_counter[3], 1u);
         }
     }
@@ -240,12 +340,15 @@ fn take_sample(st: ptr<function, RayState>, loc: Location, t: f32, delta: f32, o
     } else {
         if v >= P.iso.x {
             var t_hit = t;
+            // The bisection's points mostly share one or two leaves: with the octree, a leaf
+            // found is kept while the points stay in it (no descent per step).
+            var near: Page;
             if (*st).prev_valid {
                 var lo = (*st).prev_t;
                 var hi = t;
                 for (var b = 0u; b < BISECTION_STEPS; b++) {
                     let mid = 0.5 * (lo + hi);
-                    let m = locate(o + d * mid);
+                    let m = locate_cached(o + d * mid, &near);
                     if m.resident && physical(field(m)) >= P.iso.x {
                         hi = mid;
                     } else {
@@ -256,7 +359,7 @@ fn take_sample(st: ptr<function, RayState>, loc: Location, t: f32, delta: f32, o
             }
             (*st).hit = true;
             (*st).depth = t_hit;
-            mark_visible_in(st, locate(o + d * t_hit).page);
+            mark_visible_in(st, locate_cached(o + d * t_hit, &near).page);
             (*st).done = true;
         } else {
             (*st).prev_t = t;
@@ -363,7 +466,7 @@ fn march_mip(o: vec3<f32>, d: vec3<f32>, t1: f32, first: f32, base: f32) -> MipR
     }
     if partial_start < t1 {
         let t = partial_start + 0.5 * (t1 - partial_start);
-        let loc = locate(o + d * t);
+        let loc = locate_traversal(o + d * t);
         if loc.resident && !(SKIP_EMPTY && loc.empty) {
             mip_sample(&r, loc, t);
         }
@@ -566,7 +669,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     if partial_start < t1 && !st.done {
         let length = t1 - partial_start;
         let t = partial_start + 0.5 * length;
-        let loc = locate(o + d * t);
+        let loc = locate_traversal(o + d * t);
         if loc.resident && !(SKIP_EMPTY && loc.empty) {
             take_sample(&st, loc, t, length, o, d);
         }
@@ -581,7 +684,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     let hit = st.hit;
     var hit_loc: Location;
     if hit {
-        hit_loc = locate(o + d * depth);
+        hit_loc = locate_traversal(o + d * depth);
     }
 
     if MODE == 1u && have_best {

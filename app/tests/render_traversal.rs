@@ -1,0 +1,82 @@
+//! `strata render --traversal flat|octree`: the real binary renders a phantom store's fixed cut
+//! through the flat page table and through the cut's octree (render/src/gpu_octree.rs), and
+//! the PNGs are identical (render/tests/octree_traversal.rs shows why: same samples, same
+//! words); the octree without --up-front is refused with a reason.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+use strata_storage::import::ImportOptions;
+use strata_storage::phantom::Phantom;
+
+fn strata(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_strata"))
+        .args(args)
+        .output()
+        .expect("strata runs")
+}
+
+fn render(store: &Path, out: &Path, extra: &[&str]) -> (Vec<u8>, String) {
+    let mut args = vec![
+        "render",
+        store.to_str().unwrap(),
+        "--size",
+        "96x96",
+        "--up-front",
+        "--level",
+        "0",
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    args.extend_from_slice(extra);
+    let o = strata(&args);
+    let stderr = String::from_utf8_lossy(&o.stderr).into_owned();
+    assert!(o.status.success(), "render {extra:?} failed: {stderr}");
+    let pixels = image::open(out)
+        .unwrap_or_else(|e| panic!("{}: {e}", out.display()))
+        .to_rgba8()
+        .into_raw();
+    (pixels, stderr)
+}
+
+#[test]
+fn octree_and_flat_traversals_render_the_same_png() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("phantom.strata");
+    Phantom::cube(96)
+        .write_store(&store, &ImportOptions::default())
+        .unwrap();
+    for mode in [
+        &["--mode", "dvr"][..],
+        &["--mode", "mip"],
+        &["--mode", "iso"],
+    ] {
+        let (flat, _) = render(&store, &dir.path().join("flat.png"), mode);
+        let octree_args: Vec<&str> = mode
+            .iter()
+            .copied()
+            .chain(["--traversal", "octree"])
+            .collect();
+        let (octree, stderr) = render(&store, &dir.path().join("octree.png"), &octree_args);
+        assert!(stderr.contains("octree index:"), "{stderr}");
+        assert!(
+            flat.iter().any(|&v| v > 0),
+            "{mode:?}: empty image proves nothing"
+        );
+        assert_eq!(flat, octree, "{mode:?}");
+    }
+    let o = strata(&[
+        "render",
+        store.to_str().unwrap(),
+        "--traversal",
+        "octree",
+        "--out",
+        dir.path().join("x.png").to_str().unwrap(),
+    ]);
+    assert!(!o.status.success());
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        stderr.contains("--traversal octree") && stderr.contains("--up-front"),
+        "{stderr}"
+    );
+}
