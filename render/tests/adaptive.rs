@@ -721,7 +721,7 @@ fn the_block_oracle_is_finer_than_the_node_oracle_and_read_alike_on_gpu_and_cpu(
             // Against the transcription reading the same table: a sample within f32 rounding
             // of a block face may read the neighbouring block on one side only, and its
             // distance then steers later samples: counts agree to 1 %, the image to well
-            // within an 8-bit step on average.
+            // within an 8-bit step on average (measured: identical counts and image).
             let cpu = render_adaptive_reference(
                 &reference_scene(&f),
                 &camera,
@@ -739,10 +739,11 @@ fn the_block_oracle_is_finer_than_the_node_oracle_and_read_alike_on_gpu_and_cpu(
             let c_cpu = compare_rgba8(&frame.rgba, &cpu.rgba).unwrap();
             eprintln!("GPU vs CPU transcription: {c_cpu:?}");
             assert!(c_cpu.psnr_db >= 45.0, "{c_cpu:?}");
-            // The image against the f64 full-rate reference (the per-node oracle's test
-            // measures the d ≡ 1 frame there at 54 dB; the block oracle coarsens only where
-            // the TF's opacity is flat over a block).
-            assert!(c.psnr_db >= 45.0, "{c:?}");
+            // The image against the f64 full-rate reference: the block oracle coarsens only
+            // where the TF's opacity is flat over a block (measured 54.9 dB, as the d ≡ 1
+            // frame, with 589k samples against the per-node oracle's 1.21M and d ≡ 1's 5.96M;
+            // ε 0.02: 198k samples, 27.3 dB). 50 dB leaves room for driver rounding.
+            assert!(c.psnr_db >= 50.0, "{c:?}");
         }
     }
     assert!(samples[1] < samples[0], "ε is no knob: {samples:?}");
