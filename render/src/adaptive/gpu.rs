@@ -412,7 +412,7 @@ impl AdaptivePass {
             )));
         }
         if config.oracle == OracleKind::PerBlock
-            && (self.oracle_entries == 0 || self.oracle_entries % BLOCKS_PER_SLOT != 0)
+            && (self.oracle_entries == 0 || !self.oracle_entries.is_multiple_of(BLOCKS_PER_SLOT))
         {
             // A run of blocks per slot (block_oracle.rs); slots past its end read d = 1.
             return Err(RenderError::InvalidSettings(format!(
