@@ -8,14 +8,13 @@ use clap::{Args, ValueEnum};
 use strata_loader::store_volume::{classify_empty, page_table_for_cut, GpuCut};
 use strata_loader::{ResidentBricks, StreamingConfig, StreamingVolume};
 use strata_render::adaptive::{
-    oracle_for_cut, render_adaptive_reference, AdaptiveConfig, AdaptiveOptics, AdaptivePass,
+    block_oracle, render_adaptive_reference, AdaptiveConfig, AdaptiveOptics, AdaptivePass,
 };
 use strata_render::reference::{render_reference, ReferenceOptions, ReferenceScene};
 use strata_render::{
     Camera, GpuContext, GpuPageTable, Projection, RenderMode, RenderSettings, Scene,
     SegmentIntegralTable, Shading, TransferFunction, Traversal,
 };
-use strata_storage::BrickId;
 
 #[derive(Clone, Copy, ValueEnum)]
 pub enum ModeArg {
@@ -23,7 +22,7 @@ pub enum ModeArg {
     Mip,
     Iso,
     /// DVR by adaptive sampling in three dimensions (adaptive-sampling paper): its own pass,
-    /// sampling distances from the per-node oracle (--oracle-epsilon); renders a fixed cut
+    /// sampling distances from the per-block oracle (--oracle-epsilon); renders a fixed cut
     /// (--up-front).
     Adaptive,
 }
@@ -103,9 +102,8 @@ pub struct RenderArgs {
     /// (bit-identical local and streamed renders); the sampler may move a channel by one step.
     #[arg(long)]
     pub exact_trilinear: bool,
-    /// --mode adaptive: the oracle's ε (opacity change per slice a node may have and still
-    /// be sampled coarsely; larger = fewer samples). 0.001 matches the raycaster's image on
-    /// chris_t1 (53 dB against the f64 reference); 0.01 is a fast preview.
+    /// --mode adaptive: the oracle's ε (opacity change per slice a 4³ block may have and
+    /// still be sampled coarsely; larger = fewer samples, coarser image).
     #[arg(long, default_value_t = 0.001)]
     pub oracle_epsilon: f64,
     /// An orbit movie: N frames around the volume (azimuth steps of 360/N from --azimuth)
@@ -246,15 +244,12 @@ pub fn run(args: RenderArgs) -> Result<()> {
     );
 
     let t = Instant::now();
+    // The per-block oracle (the render mode's): a distance per 4³ block of every brick.
     let oracle = || {
-        oracle_for_cut(
+        block_oracle(
             &table,
+            &bricks,
             mapping,
-            |level, node| {
-                store
-                    .node(BrickId::new(level, node))
-                    .map(|n| (n.min, n.max))
-            },
             &tf,
             args.oracle_epsilon,
             AdaptiveConfig::default().l_max,

@@ -17,7 +17,7 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 use strata_loader::store_volume::{classify_empty, load_uniform_cut, page_table_for_cut, GpuCut};
 use strata_loader::ResidentBricks;
-use strata_render::adaptive::{oracle_for_cut, AdaptiveConfig, AdaptivePass};
+use strata_render::adaptive::{block_oracle, AdaptiveConfig, AdaptivePass};
 use strata_render::{
     compare_rgba8, Camera, GpuContext, PageTable, RenderMode, RenderSettings, Shading,
 };
@@ -50,7 +50,7 @@ struct Knobs {
     shading: bool,
     /// Step chosen by the time-critical controller for this frame time.
     target_ms: Option<f64>,
-    /// The adaptive pass (adaptive sampling in 3D) with its per-node oracle at this ε.
+    /// The adaptive pass (adaptive sampling in 3D) with its per-block oracle at this ε.
     adaptive_epsilon: Option<f64>,
 }
 
@@ -390,14 +390,10 @@ pub fn run(options: Options) -> Result<()> {
             let config = AdaptiveConfig::default();
             pass.set_oracle(
                 &ctx,
-                &oracle_for_cut(
+                &block_oracle(
                     &cut.table,
+                    &cut.bricks,
                     v.mapping,
-                    |level, node| {
-                        v.store
-                            .node(strata_storage::BrickId::new(level, node))
-                            .map(|n| (n.min, n.max))
-                    },
                     &v.tf,
                     epsilon,
                     config.l_max,

@@ -2,7 +2,8 @@
 //! Tables 2 and 3 (adaptive-sampling-3d §4). One view at 512² (by default), rendered by
 //! - the existing raycaster (classic and pre-integrated, at the same step),
 //! - the adaptive pass with d ≡ 1 (the paper's "min." oracle: the worst-case overhead),
-//! - the adaptive pass with the per-node oracle at a sweep of ε,
+//! - the adaptive pass with the per-node oracle at the first ε and the per-block oracle
+//!   (block_oracle.rs) at a sweep of ε,
 //!
 //! each with its sampling operations (volume samples), synthesis operations (pyramid
 //! interpolations; the adaptive pass's own overhead), apron samples (what the tiling adds),
@@ -16,7 +17,9 @@ use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 use strata_loader::store_volume::{load_uniform_cut, GpuCut};
-use strata_render::adaptive::{oracle_for_cut, AdaptiveConfig, AdaptivePass, OracleKind};
+use strata_render::adaptive::{
+    block_oracle, oracle_for_cut, AdaptiveConfig, AdaptivePass, OracleKind,
+};
 use strata_render::{compare_rgba8, GpuContext, RenderMode, RenderSettings, Scene};
 use strata_storage::BrickId;
 
@@ -118,14 +121,23 @@ pub fn run(options: Options) -> Result<()> {
         0.0,
         false,
     )];
+    if let Some(&e) = options.epsilons.first() {
+        // The coarser per-node oracle at the first ε, for comparison.
+        configs.push((
+            format!("adaptive per-node ε {e}"),
+            OracleKind::PerNode,
+            e,
+            true,
+        ));
+    }
     for (i, &e) in options.epsilons.iter().enumerate() {
-        configs.push((format!("adaptive ε {e}"), OracleKind::PerNode, e, true));
+        configs.push((format!("adaptive ε {e}"), OracleKind::PerBlock, e, true));
         // The first ε once more marching every slice of every tile: what the tile slice
         // ranges save (same image, bit for bit).
         if i == 0 {
             configs.push((
                 format!("adaptive ε {e}, every slice"),
-                OracleKind::PerNode,
+                OracleKind::PerBlock,
                 e,
                 false,
             ));
@@ -138,7 +150,24 @@ pub fn run(options: Options) -> Result<()> {
             oracle,
             tile_slice_ranges,
         };
-        if oracle == OracleKind::PerNode {
+        if oracle == OracleKind::PerBlock {
+            let t = Instant::now();
+            let distances = block_oracle(
+                &table,
+                &bricks,
+                v.mapping,
+                &v.tf,
+                epsilon,
+                options.l_max,
+                options.step,
+            );
+            eprintln!(
+                "block oracle ε {epsilon}: {} blocks in {:.0} ms",
+                distances.len(),
+                t.elapsed().as_secs_f64() * 1e3
+            );
+            pass.set_oracle(&ctx, &distances);
+        } else if oracle == OracleKind::PerNode {
             let distances = oracle_for_cut(
                 &table,
                 v.mapping,

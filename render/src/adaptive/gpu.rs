@@ -10,6 +10,7 @@
 
 use std::collections::HashMap;
 
+use super::block_oracle::BLOCKS_PER_SLOT;
 use super::frame::SliceFrame;
 use super::oracle::OracleKind;
 use super::AdaptiveConfig;
@@ -274,8 +275,9 @@ impl AdaptivePass {
         }
     }
 
-    /// The oracle's sampling distance per page entry (oracle.rs `oracle_distances`), read by
-    /// [`OracleKind::PerNode`] frames.
+    /// The oracle's sampling distances: per page entry (oracle.rs `oracle_distances`) for
+    /// [`OracleKind::PerNode`] frames, per slot and block (block_oracle.rs) for
+    /// [`OracleKind::PerBlock`] frames.
     pub fn set_oracle(&mut self, ctx: &GpuContext, distances: &[f32]) {
         let bytes = (distances.len().max(1) * 4) as u64;
         if self.oracle.size() < bytes {
@@ -409,19 +411,31 @@ impl AdaptivePass {
                 self.oracle_entries
             )));
         }
+        if config.oracle == OracleKind::PerBlock
+            && (self.oracle_entries == 0 || !self.oracle_entries.is_multiple_of(BLOCKS_PER_SLOT))
+        {
+            // A run of blocks per slot (block_oracle.rs); slots past its end read d = 1.
+            return Err(RenderError::InvalidSettings(format!(
+                "adaptive block oracle has {} entries, not whole slots of {BLOCKS_PER_SLOT}: \
+                 call set_oracle with block_oracle's table",
+                self.oracle_entries
+            )));
+        }
         let device = &ctx.device;
         let frame = SliceFrame::new(scene.geometry, settings, scene.camera, config.l_max);
         let (constant, seed, oracle) = match config.oracle {
             OracleKind::PerNode => (0.0, 0, 0),
+            OracleKind::PerBlock => (0.0, 0, 3),
             OracleKind::Constant(c) => (c, 0, 1),
             OracleKind::Hash(seed) => (0.0, seed, 2),
         };
+        let data_oracle = matches!(config.oracle, OracleKind::PerNode | OracleKind::PerBlock);
         let key = AdaptiveKey {
             tile: config.tile,
             l_max: config.l_max,
             oracle,
-            early_termination: oracle == 0 && settings.early_termination.is_some(),
-            tile_slice_ranges: oracle == 0 && config.tile_slice_ranges,
+            early_termination: settings.early_termination.is_some(),
+            tile_slice_ranges: data_oracle && config.tile_slice_ranges,
             clipped: settings.clip_plane.is_some(),
             manual_trilinear: settings.exact_trilinear || !self.filterable,
             smooth_transitions: settings.smooth_transitions
@@ -468,7 +482,12 @@ impl AdaptivePass {
                 constant,
             ],
             pyramid: [frame.dims.width, frame.dims.height, frame.last_slice, seed],
-            viewport: [settings.width, settings.height, 0, 0],
+            viewport: [
+                settings.width,
+                settings.height,
+                scene.cache.slots_per_axis[0],
+                scene.cache.slots_per_axis[1],
+            ],
         };
         ctx.queue
             .write_buffer(&self.adaptive_params, 0, bytemuck::bytes_of(&params));

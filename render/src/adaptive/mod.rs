@@ -9,21 +9,27 @@
 //!   GPU pass.
 //! - [`oracle`]: the sampling distance per page entry from the TF over node value ranges,
 //!   dilated over neighbours, with ε the user's knob.
+//! - [`block_oracle`]: the finer oracle, a distance per 4³ block of every resident node (the
+//!   paper's distance to the nearest voxel with |∇α| > ε), indexed by slot and in-slot block.
 //! - [`scene`]: the transcription over a real volume (the field of field.rs, the length-free
 //!   pre-integration of segment_integral.rs): the CPU twin of the GPU pass.
 //! - [`gpu`]: the tiled compute pass (shaders/adaptive.wgsl).
 
+pub mod block_oracle;
 pub mod frame;
 pub mod gpu;
 pub mod oracle;
 pub mod scene;
 pub mod transcription;
 
+pub use block_oracle::block_oracle;
 pub use frame::SliceFrame;
 pub use gpu::{AdaptiveFrame, AdaptivePass};
 pub use oracle::{oracle_distances, oracle_for_cut, OracleKind};
 pub use scene::{render_adaptive_reference, slice_sample, AdaptiveOptics, AdaptiveReference};
-pub use transcription::{l_slice, project_volume, PyramidDims, Transcription};
+pub use transcription::{
+    l_slice, project_volume, project_volume_tiled, PyramidDims, TileRules, Transcription,
+};
 
 /// The adaptive pass's own settings (the rest comes from [`crate::RenderSettings`]).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -35,7 +41,7 @@ pub struct AdaptiveConfig {
     pub tile: u32,
     /// Where sampling distances come from.
     pub oracle: OracleKind,
-    /// Per-node oracle: each tile marches only the slices between its rays' nearest entry
+    /// Data oracles (per node, per block): each tile marches only the slices between its rays' nearest entry
     /// into the box and farthest exit (rounded out to slices of l_slice = l_max), which
     /// gives the same image as marching every slice. Off only to test exactly that.
     pub tile_slice_ranges: bool,
@@ -46,7 +52,7 @@ impl Default for AdaptiveConfig {
         AdaptiveConfig {
             l_max: 3,
             tile: 16,
-            oracle: OracleKind::PerNode,
+            oracle: OracleKind::PerBlock,
             tile_slice_ranges: true,
         }
     }

@@ -20,8 +20,11 @@ use crate::transfer_function::TransferFunction;
 /// Where the pass's sampling distances come from.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum OracleKind {
-    /// The per-entry table of [`oracle_distances`] (the render mode).
+    /// The per-entry table of [`oracle_distances`].
     PerNode,
+    /// The per-slot, per-4³-block table of [`super::block_oracle::block_oracle`] (the render
+    /// mode): the paper's distance to the nearest voxel with |∇α| > ε.
+    PerBlock,
     /// The same distance everywhere: 1 is the worst-case overhead of the paper's Tables 2/3
     /// ("min."), 2^l_max the coarsest image.
     Constant(f32),
@@ -31,7 +34,7 @@ pub enum OracleKind {
 }
 
 /// Smallest and largest opacity of the piecewise-linear TF over [lo, hi].
-fn opacity_extent(tf: &TransferFunction, lo: f64, hi: f64) -> (f64, f64) {
+pub(crate) fn opacity_extent(tf: &TransferFunction, lo: f64, hi: f64) -> (f64, f64) {
     let (a, b) = (tf.opacity_at(lo), tf.opacity_at(hi));
     let (mut min, mut max) = (a.min(b), a.max(b));
     for s in &tf.opacity {

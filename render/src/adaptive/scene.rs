@@ -6,10 +6,11 @@
 
 use glam::DVec3;
 
+use super::block_oracle::{block_of_local, BLOCKS_PER_SLOT};
 use super::frame::SliceFrame;
 use super::oracle::{hash_distance, outside_distance, OracleKind};
 use super::transcription::{
-    level0_coordinate, project_volume, AdaptiveProbe, SegmentOptics, Transcription,
+    level0_coordinate, project_volume_tiled, AdaptiveProbe, SegmentOptics, TileRules, Transcription,
 };
 use super::AdaptiveConfig;
 use crate::error::RenderError;
@@ -51,6 +52,15 @@ struct SceneProbe<'a, S: BrickSource> {
     oracle_table: &'a [f32],
 }
 
+/// What SAMPLE reads at a point of a slice: the value (physical), and where it lies (page
+/// entry, and the per-block oracle's table index: slot · 512 + in-slot block).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SliceSample {
+    pub value: f64,
+    pub page: Option<usize>,
+    pub block: Option<usize>,
+}
+
 /// The value (physical) and page entry SAMPLE reads at level-0 pixel coordinates (u, v) on
 /// slice `i_slice`: the field where the slice's point lies in the ray's box-and-clip
 /// interval and something is resident there, else the default value, the low end of the TF
@@ -60,9 +70,22 @@ pub fn slice_sample<S: BrickSource>(
     settings: &RenderSettings,
     frame: &SliceFrame,
     masks: Option<&[u32]>,
-    (u, v): (f64, f64),
+    uv: (f64, f64),
     i_slice: u32,
 ) -> (f64, Option<usize>) {
+    let s = slice_sample_located(scene, settings, frame, masks, uv, i_slice);
+    (s.value, s.page)
+}
+
+/// [`slice_sample`] with the block of the per-block oracle (block_oracle.rs).
+pub fn slice_sample_located<S: BrickSource>(
+    scene: &ReferenceScene<S>,
+    settings: &RenderSettings,
+    frame: &SliceFrame,
+    masks: Option<&[u32]>,
+    (u, v): (f64, f64),
+    i_slice: u32,
+) -> SliceSample {
     let (o, d) = frame.ray(u, v);
     let t = frame.slice_t(i_slice);
     let g = scene.geometry;
@@ -75,11 +98,19 @@ pub fn slice_sample<S: BrickSource>(
         })
         .flatten();
     match located {
-        Some(s) => (
-            scene.mapping.physical(s.value),
-            Some(s.location.page_linear),
-        ),
-        None => (scene.tf_range.0, None),
+        Some(s) => {
+            let slot = scene.page_table.entries[s.location.page_linear].slot_in_cache as usize;
+            SliceSample {
+                value: scene.mapping.physical(s.value),
+                page: Some(s.location.page_linear),
+                block: Some(slot * BLOCKS_PER_SLOT + block_of_local(s.location.local.to_array())),
+            }
+        }
+        None => SliceSample {
+            value: scene.tf_range.0,
+            page: None,
+            block: None,
+        },
     }
 }
 
@@ -87,7 +118,7 @@ impl<S: BrickSource> AdaptiveProbe for SceneProbe<'_, S> {
     fn probe(&self, level: u32, x: u32, y: u32, i_slice: u32) -> (f64, f64) {
         let l_max = self.config.l_max;
         let coarsest = (1u32 << l_max) as f64;
-        let (value, page) = slice_sample(
+        let sample = slice_sample_located(
             self.scene,
             self.settings,
             self.frame,
@@ -95,10 +126,14 @@ impl<S: BrickSource> AdaptiveProbe for SceneProbe<'_, S> {
             (level0_coordinate(level, x), level0_coordinate(level, y)),
             i_slice,
         );
+        let entry = match self.config.oracle {
+            OracleKind::PerBlock => sample.block,
+            _ => sample.page,
+        };
         let distance = match self.config.oracle {
             OracleKind::Constant(c) => c as f64,
             OracleKind::Hash(seed) => hash_distance(level, x, y, i_slice, seed, l_max),
-            OracleKind::PerNode => match page {
+            OracleKind::PerNode | OracleKind::PerBlock => match entry {
                 Some(p) => self.oracle_table.get(p).map_or(coarsest, |&d| d as f64),
                 None => {
                     let (o, d) = self
@@ -114,7 +149,17 @@ impl<S: BrickSource> AdaptiveProbe for SceneProbe<'_, S> {
                 }
             },
         };
-        (value, distance)
+        (sample.value, distance)
+    }
+
+    fn ray_slices(&self, u: f64, v: f64) -> Option<(f64, f64)> {
+        let (o, d) = self.frame.ray(u, v);
+        let (t0, t1) = ray_interval(self.scene.geometry, self.settings, o, d)?;
+        let f = self.frame;
+        Some((
+            (t0.max(0.0) - f.t_front) / f.spacing_mm,
+            (t1.max(0.0) - f.t_front) / f.spacing_mm,
+        ))
     }
 }
 
@@ -144,7 +189,8 @@ impl SegmentOptics for Optics<'_> {
 }
 
 /// The adaptive frame of `settings` on the CPU (DVR, unshaded). `oracle_table` is per page
-/// entry (oracle.rs) and read only with [`OracleKind::PerNode`].
+/// entry (oracle.rs) with [`OracleKind::PerNode`], per slot and block (block_oracle.rs) with
+/// [`OracleKind::PerBlock`], and not read otherwise.
 pub fn render_adaptive_reference<S: BrickSource>(
     scene: &ReferenceScene<S>,
     camera: &crate::camera::Camera,
@@ -174,7 +220,17 @@ pub fn render_adaptive_reference<S: BrickSource>(
         spacing_mm: frame.spacing_mm,
         unit_mm: scene.geometry.finest_spacing_mm(),
     };
-    let transcription = project_volume(frame.dims, frame.last_slice, &probe, &optics);
+    // The tile's decisions, as the GPU pass takes them (gpu.rs): early termination from the
+    // settings; slice ranges only with a data oracle and a transparent default value.
+    let data_oracle = matches!(config.oracle, OracleKind::PerNode | OracleKind::PerBlock);
+    let rules = TileRules {
+        tile: config.tile,
+        early_termination: settings.early_termination.map(|t| t as f64),
+        slice_ranges: data_oracle
+            && config.tile_slice_ranges
+            && scene.transfer_function.opacity_at(scene.tf_range.0) <= 0.0,
+    };
+    let transcription = project_volume_tiled(frame.dims, frame.last_slice, rules, &probe, &optics);
     let (w, h) = frame.viewport;
     let pw = frame.dims.width as usize;
     let mut rgba_f64 = Vec::with_capacity((w * h) as usize);

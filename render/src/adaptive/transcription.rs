@@ -92,6 +92,13 @@ impl PyramidDims {
 /// at level-`level` pixel (x, y) of slice `i_slice` (the paper samples both at one point).
 pub trait AdaptiveProbe: Sync {
     fn probe(&self, level: u32, x: u32, y: u32, i_slice: u32) -> (f64, f64);
+
+    /// Where the ray through level-0 pixel coordinates (u, v) can meet anything but the
+    /// transparent default value, as fractional slice positions (entry, exit); None if
+    /// nowhere. Read only by [`TileRules::slice_ranges`]; the default is every slice.
+    fn ray_slices(&self, _u: f64, _v: f64) -> Option<(f64, f64)> {
+        Some((0.0, f64::INFINITY))
+    }
 }
 
 /// What a segment of a ray contributes (Fig. 6's C_lut and α_lut) and how MIP keeps its
@@ -291,6 +298,61 @@ mod tests {
         }
     }
 
+    /// Values and distances hashed from (level, pixel, slice): no structure to hide behind.
+    struct Hashed;
+
+    impl AdaptiveProbe for Hashed {
+        fn probe(&self, level: u32, x: u32, y: u32, i_slice: u32) -> (f64, f64) {
+            let h = crate::adaptive::oracle::pcg(
+                x ^ crate::adaptive::oracle::pcg(y ^ (i_slice << 8) ^ level),
+            );
+            ((h % 1000) as f64, (1 + (h >> 10) % 16) as f64)
+        }
+    }
+
+    struct Opacity;
+
+    impl SegmentOptics for Opacity {
+        fn segment(&self, s_front: f64, s_back: f64, slices: u32) -> [f64; 4] {
+            let a = 1.0 - (-(s_front + s_back) * 2e-5 * slices as f64).exp();
+            [a * 0.5, a * 0.25, a, a]
+        }
+    }
+
+    #[test]
+    fn tiles_without_rules_are_the_global_algorithm_and_termination_only_stops_tiles() {
+        let dims = PyramidDims::padded(40, 24, 3);
+        let global = project_volume(dims, 64, &Hashed, &Opacity);
+        for tile in [8, 16, 32] {
+            let rules = TileRules {
+                tile,
+                early_termination: None,
+                slice_ranges: true,
+            };
+            // Every slice is "meetable" with the default ray_slices: ranges change nothing.
+            let tiled = project_volume_tiled(dims, 64, rules, &Hashed, &Opacity);
+            assert_eq!(tiled, global, "tile {tile}");
+            let stopped = project_volume_tiled(
+                dims,
+                64,
+                TileRules {
+                    early_termination: Some(0.3),
+                    ..rules
+                },
+                &Hashed,
+                &Opacity,
+            );
+            // Stopping a tile freezes its pixels at ≥ the threshold, never lowers them.
+            assert!(
+                stopped.total_samples() < global.total_samples(),
+                "tile {tile}"
+            );
+            for (a, b) in stopped.rgba.iter().zip(&global.rgba) {
+                assert!(a[3] <= b[3] && (a[3] >= 0.3 || a == b), "tile {tile}");
+            }
+        }
+    }
+
     /// Constant-distance oracle over a value that depends on the slice only.
     struct SliceField {
         distance: f64,
@@ -328,4 +390,225 @@ mod tests {
         assert_eq!(coarse.samples_per_level[0], 0);
         assert_eq!(coarse.segments, n0 * 4);
     }
+}
+
+/// The decisions a tile of the GPU pass takes together (shaders/adaptive.wgsl), each the same
+/// for every pixel of the tile so the barriers stay in uniform control flow. Tiles of
+/// `tile`² level-0 pixels hold levels 1..=l_max with a one-pixel apron, which evolve exactly
+/// as the same pixels of the global algorithm; what the rules change is where a tile starts
+/// and stops.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TileRules {
+    pub tile: u32,
+    /// Early ray termination for the tile: after every slice of l_slice = l_max (where every
+    /// pixel has just composited), the tile stops once all its level-0 pixels reach this
+    /// opacity.
+    pub early_termination: Option<f64>,
+    /// Empty space before and behind the data: a tile none of whose rays (every level's,
+    /// apron included) meets the data is transparent without a sample; otherwise it marches
+    /// from the last slice of l_slice = l_max before every entry to the first one after every
+    /// exit (with one such block of margin each side), which gives the image of the full
+    /// march, since a slice of l_slice = l_max rebuilds the whole pyramid.
+    pub slice_ranges: bool,
+}
+
+/// One tile's slice range under [`TileRules::slice_ranges`] (None: the tile meets nothing),
+/// from the rays it samples; the shader's rounding, step for step.
+fn tile_slice_range(
+    dims: PyramidDims,
+    last_slice: u32,
+    tile: u32,
+    (tile_x, tile_y): (u32, u32),
+    probe: &impl AdaptiveProbe,
+) -> Option<(u32, u32)> {
+    let mut hit = false;
+    let (mut entry, mut exit) = (f64::INFINITY, 0.0f64);
+    let mut see = |u: f64, v: f64| {
+        if let Some((t0, t1)) = probe.ray_slices(u, v) {
+            if t1 >= t0 && t0 <= last_slice as f64 {
+                hit = true;
+                entry = entry.min(t0);
+                exit = exit.max(t1);
+            }
+        }
+    };
+    for y in tile_y..tile_y + tile {
+        for x in tile_x..tile_x + tile {
+            see(x as f64, y as f64);
+        }
+    }
+    for l in 1..=dims.l_max {
+        let e = (tile >> l) as i64 + 2;
+        for j in 0..e {
+            for i in 0..e {
+                let gx = (tile_x >> l) as i64 - 1 + i;
+                let gy = (tile_y >> l) as i64 - 1 + j;
+                let scale = (1u64 << l) as f64;
+                see(
+                    scale * (gx as f64 + 0.5) - 0.5,
+                    scale * (gy as f64 + 0.5) - 0.5,
+                );
+            }
+        }
+    }
+    if !hit {
+        return None;
+    }
+    let block = 1u32 << dims.l_max;
+    let mut first = 0;
+    if entry > (2 * block) as f64 {
+        first = (entry as u32 / block - 1) * block;
+    }
+    let mut last = last_slice;
+    if exit + ((2 * block) as f64) < last_slice as f64 {
+        last = (exit as u32 / block + 2)
+            .saturating_mul(block)
+            .min(last_slice);
+    }
+    Some((first.min(last_slice), last))
+}
+
+/// [`project_volume`] tile by tile under `rules`, as the GPU pass runs it: each tile marches
+/// its own levels (apron included) over its own slices. Counts are of each tile's own pixels
+/// (the global algorithm's, where no rule stops a tile early); with no rule in force the
+/// result equals [`project_volume`]'s.
+pub fn project_volume_tiled(
+    dims: PyramidDims,
+    last_slice: u32,
+    rules: TileRules,
+    probe: &impl AdaptiveProbe,
+    optics: &impl SegmentOptics,
+) -> Transcription {
+    let l_max = dims.l_max;
+    let m = 1u32 << l_max;
+    let last_slice = last_slice.div_ceil(m) * m;
+    let levels = (l_max + 1) as usize;
+    let tile = rules.tile.max(m);
+    let n0 = (dims.width * dims.height) as usize;
+    let mut rgba = vec![[0.0f64; 4]; n0];
+    let mut depth = vec![f64::INFINITY; n0];
+    let mut samples = vec![0u64; levels];
+    let mut syntheses = vec![0u64; levels];
+    let mut segments = 0u64;
+    // Scratch pyramid over the whole image; each tile touches only its window.
+    let mut s: Vec<Vec<f64>> = (0..=l_max)
+        .map(|l| vec![0.0; (dims.level_width(l) * dims.level_height(l)) as usize])
+        .collect();
+    let mut d = s.clone();
+    let mut s_prev = vec![0.0; n0];
+    let mut i_prev = vec![0u32; n0];
+    for tile_y in (0..dims.height).step_by(tile as usize) {
+        for tile_x in (0..dims.width).step_by(tile as usize) {
+            let (first, last) = if rules.slice_ranges {
+                match tile_slice_range(dims, last_slice, tile, (tile_x, tile_y), probe) {
+                    Some(r) => r,
+                    None => continue,
+                }
+            } else {
+                (0, last_slice)
+            };
+            // Level-l window of the tile: its own pixels plus the apron, inside the level.
+            let window = |l: u32| {
+                let (wl, hl) = (dims.level_width(l) as i64, dims.level_height(l) as i64);
+                let lo = |t: u32| ((t >> l) as i64 - if l == 0 { 0 } else { 1 }).max(0);
+                let hi = |t: u32, n: i64| {
+                    ((t >> l) as i64 + (tile >> l) as i64 + if l == 0 { 0 } else { 1 }).min(n)
+                };
+                (lo(tile_x)..hi(tile_x, wl), lo(tile_y)..hi(tile_y, hl))
+            };
+            let owned = |l: u32, x: i64, y: i64| {
+                let (ox, oy) = ((tile_x >> l) as i64, (tile_y >> l) as i64);
+                let n = (tile >> l) as i64;
+                x >= ox && x < ox + n && y >= oy && y < oy + n
+            };
+            for (x, y) in cartesian(window(0)) {
+                let k = (y as u32 * dims.width + x as u32) as usize;
+                i_prev[k] = first;
+                s_prev[k] = 0.0;
+            }
+            let mut first_value = true;
+            for i_slice in first..=last {
+                let ls = l_slice(i_slice, l_max);
+                let skip_bound = (2u64 << ls) as f64;
+                for l in (0..=ls).rev() {
+                    let w = dims.level_width(l);
+                    let (coarser, finer) = s.split_at_mut(l as usize + 1);
+                    let (d_coarser, d_finer) = d.split_at_mut(l as usize + 1);
+                    let s_l = &mut coarser[l as usize];
+                    let d_l = &mut d_coarser[l as usize];
+                    let s_parent = finer.first().map(|v| v.as_slice());
+                    let d_parent = d_finer.first().map(|v| v.as_slice());
+                    for (x, y) in cartesian(window(l)) {
+                        let (x, y) = (x as u32, y as u32);
+                        let k = (y * w + x) as usize;
+                        let own = owned(l, x as i64, y as i64);
+                        if l < ls && (ls == l_max || d_l[k] < skip_bound) {
+                            if let (Some(sp), Some(dp)) = (s_parent, d_parent) {
+                                d_l[k] = dims.synthesize(dp, l, x, y);
+                                s_l[k] = dims.synthesize(sp, l, x, y);
+                                if own {
+                                    syntheses[l as usize] += 1;
+                                }
+                            }
+                        }
+                        if l == l_max || d_l[k] < (2u64 << l) as f64 {
+                            let (value, distance) = probe.probe(l, x, y, i_slice);
+                            d_l[k] = distance;
+                            s_l[k] = value;
+                            if own {
+                                samples[l as usize] += 1;
+                            }
+                        }
+                        if l == 0 && (ls == l_max || d_l[k] < skip_bound) {
+                            if !first_value {
+                                let length = i_slice - i_prev[k];
+                                let seg = optics.segment(s_prev[k], s_l[k], length);
+                                let c = &mut rgba[k];
+                                let before = c[3];
+                                let wgt = 1.0 - c[3];
+                                for ch in 0..4 {
+                                    c[ch] += wgt * seg[ch];
+                                }
+                                if depth[k].is_infinite()
+                                    && before < DEPTH_OPACITY
+                                    && c[3] >= DEPTH_OPACITY
+                                {
+                                    let f = (DEPTH_OPACITY - before) / (c[3] - before);
+                                    depth[k] = i_prev[k] as f64 + f * length as f64;
+                                }
+                                segments += 1;
+                            }
+                            s_prev[k] = s_l[k];
+                            i_prev[k] = i_slice;
+                        }
+                    }
+                }
+                first_value = false;
+                if let Some(threshold) = rules.early_termination {
+                    if ls == l_max && i_slice > first {
+                        let open = cartesian(window(0)).any(|(x, y)| {
+                            rgba[(y as u32 * dims.width + x as u32) as usize][3] < threshold
+                        });
+                        if !open {
+                            break;
+                        }
+                    }
+                }
+            }
+        }
+    }
+    Transcription {
+        dims,
+        rgba,
+        depth_slices: depth,
+        samples_per_level: samples,
+        syntheses_per_level: syntheses,
+        segments,
+    }
+}
+
+fn cartesian(
+    (xs, ys): (std::ops::Range<i64>, std::ops::Range<i64>),
+) -> impl Iterator<Item = (i64, i64)> {
+    ys.flat_map(move |y| xs.clone().map(move |x| (x, y)))
 }

@@ -12,13 +12,13 @@
 
 override TILE: u32 = 16u;
 override L_MAX: u32 = 3u;
-override ORACLE: u32 = 0u;       // 0 per page entry, 1 constant, 2 hash (tests)
-// Per-node oracle frames only (the others must match the transcription sample for sample):
-// a tile none of whose rays meets the box is written transparent without marching, and a
-// tile stops once all its pixels reach the early-termination opacity (checked every 2^L_MAX
-// slices, where every pixel has just accumulated).
+override ORACLE: u32 = 0u;       // 0 per page entry, 1 constant, 2 hash (tests), 3 per block
+// The tile's decisions (transcription.rs TileRules, which the CPU side follows too): a tile
+// stops once all its pixels reach the early-termination opacity (voted every 2^L_MAX slices,
+// where every pixel has just accumulated).
 override EARLY_TERMINATION: bool = false;
-// Per-node oracle: march each tile only over the slices its rays can meet the box in.
+// Data oracles: a tile none of whose rays meets the box is written transparent without
+// marching, and each tile marches only over the slices its rays can meet the box in.
 override TILE_SLICE_RANGES: bool = true;
 // A clip plane is set (the outside distance then includes the plane's).
 override CLIPPED: bool = false;
@@ -31,8 +31,24 @@ const PYRAMID_CAP: u32 = 460u;
 struct AdaptiveParams {
     frame: vec4<f32>,      // t_front (mm), slice spacing (mm), default value, constant distance
     pyramid: vec4<u32>,    // padded width, padded height, last slice, hash seed
-    viewport: vec4<u32>,   // width, height
+    viewport: vec4<u32>,   // width, height, the cache's slots along x and y
 };
+
+// The oracle's distances come from the data (per page entry or per block): the tile may then
+// skip what its rays cannot meet.
+fn data_oracle() -> bool {
+    return ORACLE == 0u || ORACLE == 3u;
+}
+
+// Index of the per-block oracle's table (block_oracle.rs): slot · 512 + in-slot block of a
+// location, from the in-slot coordinate (voxel centres at integers, core voxel i at i + apron)
+// kept apart from the slot's corner, so the block does not depend on where the brick landed.
+fn adaptive_block(slot_base: vec3<f32>, coord: vec3<f32>) -> u32 {
+    let slot = vec3<u32>(round(slot_base / f32(PAYLOAD)));
+    let slot_linear = slot.x + A.viewport.z * (slot.y + A.viewport.w * slot.z);
+    let b = vec3<u32>(clamp(floor((coord - vec3<f32>(APRON - 0.5)) * 0.25), vec3<f32>(0.0), vec3<f32>(7.0)));
+    return slot_linear * 512u + b.x + 8u * (b.y + 8u * b.z);
+}
 
 @group(0) @binding(12) var<uniform> A: AdaptiveParams;
 @group(0) @binding(14) var<storage, read> oracle_distance: array<f32>;
@@ -195,10 +211,14 @@ fn probe(level: u32, x: u32, y: u32, slice: u32) -> Probe {
             r.hit = true;
             if ORACLE == 0u {
                 r.distance = oracle_distance[loc.page];
+            } else if ORACLE == 3u {
+                // A slot past the table's end (uploaded after it was built) is sampled finely.
+                let k = adaptive_block(loc.slot_base, loc.coord);
+                r.distance = select(1.0, oracle_distance[min(k, arrayLength(&oracle_distance) - 1u)], k < arrayLength(&oracle_distance));
             }
         }
     }
-    if ORACLE == 0u && !inside {
+    if data_oracle() && !inside {
         r.distance = outside_distance(ray, t);
     }
     if ORACLE == 1u {
@@ -270,7 +290,7 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
     // level's, apron included) meet the box in front of the last slice? If not, every sample
     // would be the default value: the tile is transparent (if the TF is there; a uniform
     // condition: the value is a frame parameter).
-    if ORACLE == 0u && extinction_at(A.frame.z) <= 0.0 {
+    if data_oracle() && TILE_SLICE_RANGES && extinction_at(A.frame.z) <= 0.0 {
         if lid == 0u {
             atomicStore(&tile_vote, 0u);
             atomicStore(&tile_t_entry, 0x7f800000u);
@@ -356,7 +376,7 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
     var n_segments = 0u;
     var first_slice = 0u;
     var last_slice = A.pyramid.z;
-    if ORACLE == 0u && TILE_SLICE_RANGES && extinction_at(A.frame.z) <= 0.0 {
+    if data_oracle() && TILE_SLICE_RANGES && extinction_at(A.frame.z) <= 0.0 {
         first_slice = workgroupUniformLoad(&tile_first_slice);
         last_slice = workgroupUniformLoad(&tile_last_slice);
     }
@@ -453,7 +473,7 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
         if min(countTrailingZeros(i + 1u), L_MAX) == 1u {
             workgroupBarrier();
         }
-        if EARLY_TERMINATION && ORACLE == 0u && ls == L_MAX && i > first_slice {
+        if EARLY_TERMINATION && ls == L_MAX && i > first_slice {
             if lid == 0u {
                 atomicStore(&tile_vote, 0u);
             }
