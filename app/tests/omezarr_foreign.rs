@@ -3,8 +3,9 @@
 //! `omero` window with the data range, and a pyramid of Strata's shapes (2×2×2 rounded means,
 //! edge replicated) with one extra dataset that does not halve (x binned by 3), which must be
 //! passed over. It imports (`strata import`) and renders correctly: the GPU image of the
-//! imported store against the f64 CPU reference; and streamed in place (`strata render
-//! FOLDER`) it gives the same image as the imported store streamed, bit for bit.
+//! imported store against the f64 CPU reference; streamed in place it gives the imported
+//! store's bricks exactly, and (`strata render FOLDER`) the imported store's image up to a
+//! few channels one step off (why: below).
 
 use std::path::Path;
 use std::process::{Command, Output};
@@ -152,8 +153,11 @@ fn a_foreign_int16_pyramid_imports_renders_like_the_reference_and_streams_identi
         "import",
     );
     assert!(text.contains("assumed x runs right-to-left"), "{text}");
+    // (Held only while checked: sled lets one process open a store, and `strata render` is
+    // another process.)
     let imported = strata_storage::Store::open(&store).unwrap();
-    let h = imported.header();
+    let h = imported.header().clone();
+    drop(imported);
     assert_eq!(h.geometry.dims, [70, 60, 50]);
     assert_eq!(h.geometry.spacing_mm, [1.0, 1.0, 2.0]);
     assert_eq!(h.geometry.origin_lps_mm, [30.0, 20.0, 10.0]);
@@ -195,6 +199,7 @@ fn a_foreign_int16_pyramid_imports_renders_like_the_reference_and_streams_identi
             .unwrap();
     let notes = streamed.notes().join("\n");
     assert!(notes.contains("passed over"), "{notes}");
+    let imported = strata_storage::Store::open(&store).unwrap();
     assert_eq!(streamed.layout(), imported.layout());
     assert_eq!(streamed.header().geometry, h.geometry);
     assert_eq!(streamed.header().value_mapping, h.value_mapping);
@@ -215,8 +220,14 @@ fn a_foreign_int16_pyramid_imports_renders_like_the_reference_and_streams_identi
         }
     }
     drop(streamed);
-    // ... and the same image: `strata render` streams both (the loader, the GPU cut) and must
-    // draw the same pixels.
+    drop(imported);
+    // ... and the same image: `strata render` streams both (the loader, the GPU cut). The
+    // bricks are identical (above); what differs is the node ranges: the imported store knows
+    // each brick's min/max, which lets the cut and the raycaster skip bricks (air, transparent
+    // under the transfer function), while the foreign source knows no ranges (all count as
+    // non-empty) and samples through them, its 0.5-voxel steps landing at other positions
+    // after the gap. Same field, other sample positions: measured 1 channel of 65536 one step
+    // off in each view; allowed: 0.1 % of channels, 2 steps.
     for (i, view) in [&[][..], &["--mode", "mip"][..]].iter().enumerate() {
         let from_zarr = render(&zarr, &work.path().join(format!("zarr-{i}.png")), view);
         let from_store = render(&store, &work.path().join(format!("store-{i}.png")), view);
@@ -225,9 +236,17 @@ fn a_foreign_int16_pyramid_imports_renders_like_the_reference_and_streams_identi
             .zip(&from_store)
             .filter(|(a, b)| a != b)
             .count();
-        assert_eq!(
-            differing, 0,
-            "view {view:?}: streaming the foreign OME-Zarr differs from the imported store in {differing} channels"
+        let max_step = from_zarr
+            .iter()
+            .zip(&from_store)
+            .map(|(a, b)| a.abs_diff(*b))
+            .max()
+            .unwrap_or(0);
+        println!("view {view:?}: {differing} channels differ, by up to {max_step}");
+        assert!(
+            differing * 1000 <= from_zarr.len() && max_step <= 2,
+            "view {view:?}: streaming the foreign OME-Zarr differs from the imported store in {differing} channels, by up to {max_step}"
         );
+        assert!(from_zarr.chunks_exact(4).filter(|p| p[3] > 0).count() > 2000);
     }
 }
