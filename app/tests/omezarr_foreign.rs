@@ -163,7 +163,10 @@ fn a_foreign_int16_pyramid_imports_renders_like_the_reference_and_streams_identi
     assert_eq!(h.geometry.origin_lps_mm, [30.0, 20.0, 10.0]);
     // int16 is stored exactly: HU + 32768.
     assert_eq!(
-        (h.value_mapping.mapping.slope, h.value_mapping.mapping.intercept),
+        (
+            h.value_mapping.mapping.slope,
+            h.value_mapping.mapping.intercept
+        ),
         (1.0, -32768.0)
     );
 

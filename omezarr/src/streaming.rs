@@ -44,8 +44,8 @@ use zarrs::array::{
     Array, ArrayShardedReadableExt, ArrayShardedReadableExtCache, ArraySubset,
     AsyncArrayShardedReadableExt, AsyncArrayShardedReadableExtCache, CodecOptions,
 };
-use zarrs_object_store::AsyncObjectStore;
 use zarrs::storage::ReadableWritableListableStorageTraits;
+use zarrs_object_store::AsyncObjectStore;
 
 use crate::import::{data_type_name, open_level, open_multiscale, OpenedMultiscale};
 use crate::metadata::SKELETON_KEY;
@@ -85,9 +85,7 @@ enum ScaledSample {
 
 impl Sampling {
     fn of_data_type(dtype: &str, quantizer: Option<Quantizer>) -> Option<Sampling> {
-        let scaled = |sample| {
-            quantizer.map(|quantizer| Sampling::Scaled { sample, quantizer })
-        };
+        let scaled = |sample| quantizer.map(|quantizer| Sampling::Scaled { sample, quantizer });
         match dtype {
             "uint8" => Some(Sampling::U8),
             "uint16" => Some(Sampling::U16),
@@ -408,7 +406,9 @@ impl OmeZarrSource {
                 if dtype != wanted {
                     return Err(import_instead(
                         &display,
-                        format!("level {level} holds {dtype} where the strata attribute says {wanted}"),
+                        format!(
+                            "level {level} holds {dtype} where the strata attribute says {wanted}"
+                        ),
                     ));
                 }
                 let cache = ArrayShardedReadableExtCache::new(&array);
@@ -673,7 +673,10 @@ fn open_foreign(opened: &OpenedMultiscale) -> Result<Foreign> {
             if passed_over.is_empty() {
                 String::new()
             } else {
-                format!("; passed over (not Strata's halving): {}", passed_over.join(", "))
+                format!(
+                    "; passed over (not Strata's halving): {}",
+                    passed_over.join(", ")
+                )
             }
         ));
     }
@@ -686,12 +689,7 @@ fn open_foreign(opened: &OpenedMultiscale) -> Result<Foreign> {
         .collect();
 
     // The value mapping, decided before any brick streams.
-    let omero_range = opened
-        .multiscale
-        .channel_ranges
-        .first()
-        .copied()
-        .flatten();
+    let omero_range = opened.multiscale.channel_ranges.first().copied().flatten();
     let integer = matches!(dtype.as_str(), "int32" | "uint32");
     let quantizer = match dtype.as_str() {
         "float32" | "float64" | "int32" | "uint32" => {

@@ -167,11 +167,9 @@ fn wait_for(what: &str, mut done: impl FnMut() -> bool) {
 fn stale_requests_are_aborted_on_the_wire_and_wanted_ones_finish() {
     let work = tempfile::tempdir().unwrap();
     let store_path = work.path().join("p.strata");
-    Phantom {
-        size: [96, 96, 64],
-    }
-    .write_store(&store_path, &ImportOptions::default())
-    .unwrap();
+    Phantom { size: [96, 96, 64] }
+        .write_store(&store_path, &ImportOptions::default())
+        .unwrap();
     let store = Store::open(&store_path).unwrap();
     let zarr = work.path().join("x.ome.zarr");
     let options = ObjectStoreOptions::default();

@@ -18,7 +18,12 @@ use strata_storage::import::ImportOptions;
 use strata_storage::Store;
 
 fn folder(path: &Path) -> ObjectLocation {
-    ObjectLocation::open(path.to_str().unwrap(), &ObjectStoreOptions::default(), false).unwrap()
+    ObjectLocation::open(
+        path.to_str().unwrap(),
+        &ObjectStoreOptions::default(),
+        false,
+    )
+    .unwrap()
 }
 
 fn import(zarr: &Path, store: &Path) -> Store {
@@ -119,7 +124,10 @@ fn float32_streams_over_the_omero_range_like_the_import_and_else_over_the_coarse
             "sample {sample} streamed as {got} (range [{lo}, {hi}])"
         );
     }
-    assert!(clamped > 0, "the test should have values outside the coarse range");
+    assert!(
+        clamped > 0,
+        "the test should have values outside the coarse range"
+    );
 }
 
 const WRITE_NOT_HALVING: &str = r#"
