@@ -301,6 +301,48 @@ impl Assembler {
     }
 }
 
+/// How a level's shards hold inner chunks (from its sharding codec's configuration).
+struct ShardLayout {
+    chunks_per_shard: [u64; 3],
+    index_at_end: bool,
+}
+
+impl ShardLayout {
+    fn of(array: &LevelArray, display: &str) -> Result<ShardLayout> {
+        let metadata = serde_json::to_value(array.metadata()).unwrap_or_default();
+        let sharding = metadata
+            .pointer("/codecs/0")
+            .filter(|c| {
+                c.get("name").and_then(serde_json::Value::as_str) == Some("sharding_indexed")
+            })
+            .and_then(|c| c.get("configuration"))
+            .ok_or_else(|| OmeZarrError::invalid(display, "the array is not sharded"))?;
+        let inner: Vec<u64> = sharding
+            .get("chunk_shape")
+            .and_then(serde_json::Value::as_array)
+            .map(|a| a.iter().filter_map(serde_json::Value::as_u64).collect())
+            .unwrap_or_default();
+        let outer: Vec<u64> = metadata
+            .pointer("/chunk_grid/configuration/chunk_shape")
+            .and_then(serde_json::Value::as_array)
+            .map(|a| a.iter().filter_map(serde_json::Value::as_u64).collect())
+            .unwrap_or_default();
+        if inner.len() != 3 || outer.len() != 3 || inner.contains(&0) {
+            return Err(OmeZarrError::invalid(
+                display,
+                "unexpected sharding configuration",
+            ));
+        }
+        Ok(ShardLayout {
+            chunks_per_shard: [0, 1, 2].map(|a| outer[a] / inner[a]),
+            index_at_end: sharding
+                .get("index_location")
+                .and_then(serde_json::Value::as_str)
+                != Some("start"),
+        })
+    }
+}
+
 /// The quantiser `strata import` plans for samples in [lo, hi] (`Quantizer::plan`'s rule,
 /// written out because streaming knows the range before it reads the data): integers spanning
 /// at most 65536 values shift exactly, anything else is scaled onto 0..=65535.
@@ -350,6 +392,8 @@ pub struct OmeZarrSource {
     /// What was assumed or chosen to stream a foreign pyramid (levels taken, value mapping).
     notes: Vec<String>,
     counters: Arc<TransferCounters>,
+    /// The (range-cached) object store under the levels.
+    store: Arc<dyn object_store::ObjectStore>,
     /// The asynchronous side: what the source's request tasks assemble bricks with.
     assembler: Arc<Assembler>,
 }
@@ -422,6 +466,7 @@ impl OmeZarrSource {
                 &levels,
             )?);
             return Ok(OmeZarrSource {
+                store: opened.location.store.clone(),
                 display,
                 histogram: strata.histogram.clone(),
                 stats: strata.stats.clone(),
@@ -447,6 +492,7 @@ impl OmeZarrSource {
             &foreign.levels,
         )?);
         Ok(OmeZarrSource {
+            store: opened.location.store.clone(),
             assembler,
             display,
             header: foreign.header,
@@ -527,23 +573,89 @@ impl OmeZarrSource {
                 }
             }
         }
+        // zarrs' own `subchunk_byte_range` adds offset + size of an absent inner chunk
+        // (u64::MAX twice): the shard indices are read here instead (from the range cache,
+        // where the bricks' reads left them).
+        let mut indices: std::collections::HashMap<(u8, [u64; 3]), Option<Vec<u64>>> =
+            Default::default();
         let mut total = 0;
         for (level, z, y, x) in chunks {
-            let l = &self.levels[level as usize];
-            let range = l
-                .array
-                .subchunk_byte_range(&l.cache, &[z, y, x])
-                .map_err(|e| OmeZarrError::access(&self.display, e))?;
-            if let Some(range) = range {
-                total += range.length(u64::MAX);
+            let array = &self.levels[level as usize].array;
+            let layout = ShardLayout::of(array, &self.display)?;
+            let chunk = [z, y, x];
+            let shard = [0, 1, 2].map(|a| chunk[a] / layout.chunks_per_shard[a]);
+            let index = match indices.get(&(level, shard)) {
+                Some(index) => index.clone(),
+                None => {
+                    let index = self.read_shard_index(array, &layout, shard)?;
+                    indices.insert((level, shard), index.clone());
+                    index
+                }
+            };
+            let Some(index) = index else { continue };
+            let within = [0, 1, 2].map(|a| chunk[a] % layout.chunks_per_shard[a]);
+            let n = layout.chunks_per_shard;
+            let i = ((within[0] * n[1] + within[1]) * n[2] + within[2]) as usize;
+            let (offset, size) = (index[2 * i], index[2 * i + 1]);
+            if offset != u64::MAX || size != u64::MAX {
+                total += size;
             }
         }
         Ok(total)
     }
 
-    /// Shard indices cached so far, over all levels.
+    /// A shard's index (offset, size per inner chunk, C order); `None`: the shard is absent.
+    fn read_shard_index(
+        &self,
+        array: &LevelArray,
+        layout: &ShardLayout,
+        shard: [u64; 3],
+    ) -> Result<Option<Vec<u64>>> {
+        use object_store::ObjectStoreExt;
+        let key = array.chunk_key(&shard);
+        let path = object_store::path::Path::from(key.as_str());
+        let store = self.store.clone();
+        let entries = layout.chunks_per_shard.iter().product::<u64>();
+        let index_bytes = entries * 16;
+        let display = self.display.clone();
+        let bytes = crate::zarr_store::block_on(async move {
+            let size = match store.head(&path).await {
+                Ok(meta) => meta.size,
+                Err(object_store::Error::NotFound { .. }) => return Ok(None),
+                Err(e) => return Err(e),
+            };
+            // bytes codec + crc32c: the index, then its 4-byte checksum.
+            let start = if layout.index_at_end {
+                size.saturating_sub(index_bytes + 4)
+            } else {
+                0
+            };
+            store
+                .get_range(&path, start..start + index_bytes)
+                .await
+                .map(Some)
+        })?
+        .map_err(|e| OmeZarrError::access(&display, format!("{key}: {e}")))?;
+        Ok(bytes.map(|b| {
+            b.chunks_exact(8)
+                .map(|c| u64::from_le_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]]))
+                .collect()
+        }))
+    }
+
+    /// Shard indices cached so far, over all levels (the blocking reader's and the request
+    /// tasks').
     pub fn cached_shard_indices(&self) -> usize {
-        self.levels.iter().map(|l| l.cache.len()).sum()
+        let sync: usize = self.levels.iter().map(|l| l.cache.len()).sum();
+        let tasks = crate::zarr_store::block_on(async {
+            let mut n = 0;
+            for level in &self.assembler.levels {
+                n += level.cache.len().await;
+            }
+            n
+        })
+        .unwrap_or(0);
+        sync + tasks
     }
 }
 
