@@ -250,3 +250,71 @@ fn stale_requests_are_aborted_on_the_wire_and_wanted_ones_finish() {
         fetcher.complete(result.id);
     }
 }
+
+/// Every brick through the request tasks at once (64 in flight, their aprons sharing chunks):
+/// a chunk another task is already fetching is waited for, not fetched again, so the bytes
+/// read stay within the 1.3 × the chunks needed, as with one brick at a time.
+#[test]
+fn concurrent_requests_fetch_each_chunk_about_once() {
+    let work = tempfile::tempdir().unwrap();
+    let store_path = work.path().join("p.strata");
+    Phantom {
+        size: [160, 128, 96],
+    }
+    .write_store(&store_path, &ImportOptions::default())
+    .unwrap();
+    let store = Store::open(&store_path).unwrap();
+    let zarr = work.path().join("x.ome.zarr");
+    let options = ObjectStoreOptions::default();
+    export(
+        &store,
+        &ObjectLocation::open(zarr.to_str().unwrap(), &options, true).unwrap(),
+        &ExportOptions::default(),
+        &|_, _| {},
+    )
+    .unwrap();
+    let source =
+        OmeZarrSource::open(ObjectLocation::open(zarr.to_str().unwrap(), &options, false).unwrap())
+            .unwrap();
+    let fetcher = source
+        .start_fetching(FetchOptions {
+            max_queued: 4096,
+            max_in_transit: 64,
+            threads: 1,
+        })
+        .unwrap()
+        .unwrap();
+    let layout = store.layout().clone();
+    let mut all = Vec::new();
+    for level in 0..layout.level_count() {
+        let n = layout.bricks_in_level(level);
+        for z in 0..n[2] {
+            for y in 0..n[1] {
+                for x in 0..n[0] {
+                    all.push((BrickId::new(level as u8, [x, y, z]), -(level as f64)));
+                }
+            }
+        }
+    }
+    let mut done = 0;
+    wait_for("every brick", || {
+        fetcher.set_requests(&all, &[]);
+        for result in fetcher.try_results() {
+            let brick = result.outcome.unwrap();
+            assert!(*brick == store.read_brick(result.id).unwrap(), "{:?}", result.id);
+            fetcher.complete(result.id);
+            all.retain(|(id, _)| *id != result.id);
+            done += 1;
+        }
+        all.is_empty()
+    });
+    assert!(fetcher.counters().max_in_flight > 8);
+    let counters = source.transfer_counters();
+    let (bytes, requests) = (counters.bytes(), counters.requests());
+    let needed = source.needed_chunk_bytes().unwrap();
+    println!("{done} bricks: {requests} requests, {bytes} bytes for {needed} bytes of chunks needed");
+    assert!(
+        bytes as f64 <= 1.3 * needed as f64,
+        "{bytes} bytes read for {needed} bytes of chunks needed"
+    );
+}
