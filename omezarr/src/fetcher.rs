@@ -15,10 +15,22 @@ use std::collections::HashMap;
 use std::sync::{Arc, Mutex, MutexGuard};
 
 use crossbeam_channel::{Receiver, Sender};
-use strata_source::{BrickFetcher, FetchResult, QueueCounters, RequestClass};
+use strata_source::{BrickFetcher, FetchResult, QueueCounters, RequestClass, SourceError};
 use strata_storage::BrickId;
 
-use crate::streaming::Assembler;
+/// Assembles one brick asynchronously (the streaming source's reads, awaited on the I/O
+/// runtime); dropping the future cancels its requests.
+pub(crate) type AssembleBrick = Arc<
+    dyn Fn(BrickId) -> futures::future::BoxFuture<'static, Result<Vec<u16>, SourceError>>
+        + Send
+        + Sync,
+>;
+
+/// What every request task needs.
+struct Brickmaker {
+    assemble: AssembleBrick,
+    bytes_per_sample: usize,
+}
 
 struct InFlight {
     /// `set_requests` call that last named it.
@@ -49,7 +61,7 @@ impl FetchShared {
     }
 }
 
-/// The asynchronous request queue of an [`crate::streaming::OmeZarrSource`].
+/// The asynchronous request queue of the streaming source (`OmeZarrSource`).
 pub struct ZarrFetcher {
     shared: Arc<FetchShared>,
     results: Receiver<FetchResult>,
@@ -59,7 +71,8 @@ pub struct ZarrFetcher {
 impl ZarrFetcher {
     pub(crate) fn start(
         runtime: &tokio::runtime::Runtime,
-        assembler: Arc<Assembler>,
+        assemble: AssembleBrick,
+        bytes_per_sample: usize,
         capacity: usize,
         max_in_flight: usize,
     ) -> Self {
@@ -79,7 +92,13 @@ impl ZarrFetcher {
             max_in_flight,
         });
         let dispatcher = runtime
-            .spawn(dispatch(assembler, shared.clone()))
+            .spawn(dispatch(
+                Arc::new(Brickmaker {
+                    assemble,
+                    bytes_per_sample,
+                }),
+                shared.clone(),
+            ))
             .abort_handle();
         ZarrFetcher {
             shared,
@@ -90,7 +109,7 @@ impl ZarrFetcher {
 }
 
 /// Starts the most urgent queued requests while fewer than `max_in_flight` are out.
-async fn dispatch(assembler: Arc<Assembler>, shared: Arc<FetchShared>) {
+async fn dispatch(maker: Arc<Brickmaker>, shared: Arc<FetchShared>) {
     loop {
         {
             let mut state = shared.lock();
@@ -110,7 +129,7 @@ async fn dispatch(assembler: Arc<Assembler>, shared: Arc<FetchShared>) {
                     RequestClass::Demand => state.counters.demand_started += 1,
                     RequestClass::Prefetch => state.counters.prefetch_started += 1,
                 }
-                let task = tokio::spawn(fetch_one(assembler.clone(), shared.clone(), id, class));
+                let task = tokio::spawn(fetch_one(maker.clone(), shared.clone(), id, class));
                 let named_at = state.calls;
                 state.in_flight.insert(
                     id,
@@ -129,12 +148,12 @@ async fn dispatch(assembler: Arc<Assembler>, shared: Arc<FetchShared>) {
 }
 
 async fn fetch_one(
-    assembler: Arc<Assembler>,
+    maker: Arc<Brickmaker>,
     shared: Arc<FetchShared>,
     id: BrickId,
     class: RequestClass,
 ) {
-    let outcome = assembler.assemble(id).await;
+    let outcome = (maker.assemble)(id).await;
     let mut state = shared.lock();
     let Some(entry) = state.in_flight.get_mut(&id) else {
         return; // cancelled meanwhile
@@ -145,7 +164,7 @@ async fn fetch_one(
     // chunks are shared between neighbouring bricks).
     let (outcome, stored_bytes) = match outcome {
         Ok(voxels) => {
-            let bytes = (voxels.len() * assembler.bytes_per_sample()) as u64;
+            let bytes = (voxels.len() * maker.bytes_per_sample) as u64;
             (Ok(Arc::new(voxels)), bytes)
         }
         Err(e) => (Err(e), 0),

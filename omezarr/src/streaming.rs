@@ -1018,9 +1018,15 @@ impl VolumeSource for OmeZarrSource {
             }
         };
         let max_in_flight = options.max_in_transit.clamp(1, MAX_REQUESTS_IN_FLIGHT);
+        let assembler = self.assembler.clone();
+        let assemble: crate::fetcher::AssembleBrick = Arc::new(move |id| {
+            let assembler = assembler.clone();
+            Box::pin(async move { assembler.assemble(id).await })
+        });
         Some(Ok(Box::new(crate::fetcher::ZarrFetcher::start(
             runtime,
-            self.assembler.clone(),
+            assemble,
+            self.assembler.bytes_per_sample(),
             options.max_queued.max(1),
             max_in_flight,
         ))))

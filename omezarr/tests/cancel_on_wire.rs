@@ -301,7 +301,11 @@ fn concurrent_requests_fetch_each_chunk_about_once() {
         fetcher.set_requests(&all, &[]);
         for result in fetcher.try_results() {
             let brick = result.outcome.unwrap();
-            assert!(*brick == store.read_brick(result.id).unwrap(), "{:?}", result.id);
+            assert!(
+                *brick == store.read_brick(result.id).unwrap(),
+                "{:?}",
+                result.id
+            );
             fetcher.complete(result.id);
             all.retain(|(id, _)| *id != result.id);
             done += 1;
@@ -312,7 +316,9 @@ fn concurrent_requests_fetch_each_chunk_about_once() {
     let counters = source.transfer_counters();
     let (bytes, requests) = (counters.bytes(), counters.requests());
     let needed = source.needed_chunk_bytes().unwrap();
-    println!("{done} bricks: {requests} requests, {bytes} bytes for {needed} bytes of chunks needed");
+    println!(
+        "{done} bricks: {requests} requests, {bytes} bytes for {needed} bytes of chunks needed"
+    );
     assert!(
         bytes as f64 <= 1.3 * needed as f64,
         "{bytes} bytes read for {needed} bytes of chunks needed"
