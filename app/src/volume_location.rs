@@ -77,6 +77,10 @@ pub fn open(location: &str, token_file: Option<&Path>, sled_cache_bytes: u64) ->
     if strata_omezarr::looks_like_ome_zarr(location) {
         let source = strata_omezarr::streaming::open_source(location, &Default::default())
             .with_context(|| format!("cannot open the OME-Zarr {location}"))?;
+        // What was assumed to stream a foreign pyramid (orientation, levels, value mapping).
+        for note in source.notes() {
+            eprintln!("note: {note}");
+        }
         return Ok(Opened::OmeZarr(source));
     }
     if is_url(location) {

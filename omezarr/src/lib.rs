@@ -5,7 +5,8 @@
 //!   group; the full Strata geometry rides along under the group's `strata` attribute.
 //! - [`import`]: an OME-Zarr (Strata's own or anyone's) into a local store.
 //! - [`streaming`]: an OME-Zarr pyramid read in place as a [`strata_source::VolumeSource`]:
-//!   bricks with their 2-voxel apron assembled from the chunks they overlap.
+//!   bricks with their 2-voxel apron assembled from the chunks they overlap; [`fetcher`]: its
+//!   own request path, one task per brick, stale requests aborted on the wire.
 //! - [`metadata`]: the multiscales document, the `strata` attribute, RFC-4 orientation labels.
 //! - [`object_location`]: a folder, `s3://bucket/prefix` or `http(s)://...` as an object store.
 //!
@@ -13,6 +14,7 @@
 //! object_store's. Nothing here encodes a Zarr codec or signs a request by hand.
 
 pub mod export;
+pub mod fetcher;
 pub mod import;
 pub mod metadata;
 pub mod object_location;

@@ -59,6 +59,10 @@ pub struct Multiscale {
     pub axes: Vec<Axis>,
     pub datasets: Vec<Dataset>,
     pub strata: Option<StrataAttributes>,
+    /// Per channel, the data range of the `omero` rendering metadata (`window.min`/`max`),
+    /// when the writer gave it (finite, min ≤ max); the display window (`start`/`end`) is not
+    /// a data range and is not used.
+    pub channel_ranges: Vec<Option<[f64; 2]>>,
 }
 
 /// RFC-4 label of an index axis whose LPS direction is cardinal (±L, ±P, ±S); `None` when
@@ -320,7 +324,25 @@ pub fn parse_group_attributes(
         ),
         None => None,
     };
+    let ome = attributes.get("ome").unwrap_or(&Value::Null);
+    let channel_ranges = ome
+        .get("omero")
+        .or_else(|| attributes.get("omero"))
+        .and_then(|o| o.get("channels"))
+        .and_then(Value::as_array)
+        .map(|channels| {
+            channels
+                .iter()
+                .map(|c| {
+                    let min = c.pointer("/window/min").and_then(Value::as_f64)?;
+                    let max = c.pointer("/window/max").and_then(Value::as_f64)?;
+                    (min.is_finite() && max.is_finite() && min <= max).then_some([min, max])
+                })
+                .collect()
+        })
+        .unwrap_or_default();
     Ok(Multiscale {
+        channel_ranges,
         name: first
             .get("name")
             .and_then(Value::as_str)

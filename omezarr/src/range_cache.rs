@@ -4,7 +4,10 @@
 //! would be fetched up to 27 times. Ranges are cached as fetched (an inner chunk, a shard
 //! index), within a byte budget, oldest first out; missing ranges of one call are merged where
 //! they are less than [`MERGE_GAP`] apart (object_store's own default, 1 MiB, would fetch
-//! whole stretches of unneeded chunks) and fetched concurrently. Object sizes (the HEAD zarrs
+//! whole stretches of unneeded chunks) and fetched concurrently. A range already on its way
+//! for another caller is waited for, not fetched again (the streaming source has many bricks
+//! in flight whose aprons share chunks); when that caller is cancelled or fails, the waiter
+//! fetches the range itself. Object sizes (the HEAD zarrs
 //! sends before each ranged read) are cached too, absent objects (fill-only shards) included.
 //! Sound because what it fronts is an immutable export, read-only.
 
@@ -55,6 +58,9 @@ struct Cache {
     /// Object sizes (HEAD answers; `None`: absent), asked before every ranged read by zarrs.
     heads: HashMap<String, Option<ObjectMeta>>,
     entries: HashMap<RangeKey, Bytes>,
+    /// Ranges on their way: a caller that needs one waits for it instead of fetching it again
+    /// (many bricks in flight share their neighbours' chunks).
+    pending: HashMap<RangeKey, tokio::sync::watch::Receiver<Option<Bytes>>>,
     order: VecDeque<RangeKey>,
     bytes: u64,
 }
@@ -96,6 +102,37 @@ impl RangeCacheStore {
             if let Some(b) = cache.entries.remove(&old) {
                 cache.bytes -= b.len() as u64;
             }
+        }
+    }
+}
+
+impl RangeCacheStore {
+    async fn fetch_range(&self, location: &Path, range: Range<u64>) -> object_store::Result<Bytes> {
+        let got = self
+            .get_opts(
+                location,
+                GetOptions {
+                    range: Some(range.into()),
+                    ..GetOptions::default()
+                },
+            )
+            .await?;
+        got.bytes().await
+    }
+}
+
+/// Ranges a caller of `get_ranges` fetches for everyone; released when it is done, cancelled
+/// (its future dropped) or failed, so that waiters then fetch them themselves.
+struct PendingClaim<'a> {
+    store: &'a RangeCacheStore,
+    keys: Vec<RangeKey>,
+}
+
+impl Drop for PendingClaim<'_> {
+    fn drop(&mut self) {
+        let mut cache = self.store.lock();
+        for key in &self.keys {
+            cache.pending.remove(key);
         }
     }
 }
@@ -187,47 +224,69 @@ impl ObjectStore for RangeCacheStore {
         ranges: &[Range<u64>],
     ) -> object_store::Result<Vec<Bytes>> {
         let name = location.to_string();
-        let mut out: Vec<Option<Bytes>> = {
-            let cache = self.lock();
-            ranges
-                .iter()
-                .map(|r| cache.entries.get(&(name.clone(), r.start, r.end)).cloned())
-                .collect()
+        let mut out: Vec<Option<Bytes>> = vec![None; ranges.len()];
+        let mut waiting = Vec::new();
+        let mut claimed = Vec::new();
+        let mut claim = PendingClaim {
+            store: self,
+            keys: Vec::new(),
         };
-        let hits = out.iter().filter(|b| b.is_some()).count() as u64;
+        {
+            let mut cache = self.lock();
+            for (i, r) in ranges.iter().enumerate() {
+                let key = (name.clone(), r.start, r.end);
+                if let Some(bytes) = cache.entries.get(&key) {
+                    out[i] = Some(bytes.clone());
+                } else if let Some(rx) = cache.pending.get(&key) {
+                    waiting.push((i, rx.clone()));
+                } else if !claim.keys.contains(&key) {
+                    let (tx, rx) = tokio::sync::watch::channel(None);
+                    cache.pending.insert(key.clone(), rx);
+                    claim.keys.push(key);
+                    claimed.push((i, tx));
+                } else {
+                    // The same range twice in one call: filled from the first below.
+                    waiting.push((i, cache.pending[&key].clone()));
+                }
+            }
+        }
+        let hits = out.iter().filter(|b| b.is_some()).count() as u64 + waiting.len() as u64;
         self.counters.cache_hits.fetch_add(hits, Ordering::Relaxed);
-        let missing: Vec<Range<u64>> = ranges
-            .iter()
-            .zip(&out)
-            .filter(|(_, b)| b.is_none())
-            .map(|(r, _)| r.clone())
-            .collect();
-        if !missing.is_empty() {
+        // Own claims first, then the waits: a caller never waits while holding an unfetched
+        // claim, so two callers waiting on each other's ranges cannot deadlock.
+        if !claimed.is_empty() {
+            let missing: Vec<Range<u64>> =
+                claimed.iter().map(|(i, _)| ranges[*i].clone()).collect();
             let fetched = object_store::coalesce_ranges(
                 &missing,
-                |range| async move {
-                    let got = self
-                        .get_opts(
-                            location,
-                            GetOptions {
-                                range: Some(range.into()),
-                                ..GetOptions::default()
-                            },
-                        )
-                        .await?;
-                    got.bytes().await
-                },
+                |range| self.fetch_range(location, range),
                 MERGE_GAP,
             )
             .await?;
-            let mut fetched = fetched.into_iter();
-            for (slot, range) in out.iter_mut().zip(ranges) {
-                if slot.is_none() {
-                    let bytes = fetched.next().unwrap_or_default();
-                    self.insert((name.clone(), range.start, range.end), bytes.clone());
-                    *slot = Some(bytes);
-                }
+            for ((i, tx), bytes) in claimed.into_iter().zip(fetched) {
+                let r = &ranges[i];
+                self.insert((name.clone(), r.start, r.end), bytes.clone());
+                let _ = tx.send(Some(bytes.clone()));
+                out[i] = Some(bytes);
             }
+        }
+        drop(claim);
+        for (i, mut rx) in waiting {
+            let arrived = rx
+                .wait_for(Option::is_some)
+                .await
+                .ok()
+                .and_then(|v| v.clone());
+            out[i] = Some(match arrived {
+                Some(bytes) => bytes,
+                // Its fetcher was cancelled or failed: fetch it here.
+                None => {
+                    let r = &ranges[i];
+                    let bytes = self.fetch_range(location, r.clone()).await?;
+                    self.insert((name.clone(), r.start, r.end), bytes.clone());
+                    bytes
+                }
+            });
         }
         Ok(out.into_iter().map(Option::unwrap_or_default).collect())
     }

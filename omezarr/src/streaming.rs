@@ -13,25 +13,39 @@
 //! brick's own, or a shard's index, crosses the wire once.
 //!
 //! The header, histogram and octree skeleton (per-node ranges) come from the `strata` attribute
-//! and the skeleton object of a Strata export. A foreign pyramid streams when its levels are
-//! Strata's (each level the ceiling half of the one before, down to one brick) and its samples
-//! 8- or 16-bit unsigned; its node ranges are unknown and count as non-empty (the full range).
-//! Anything else is imported first (`strata import`), which rebuilds the pyramid.
+//! and the skeleton object of a Strata export. A foreign pyramid (no `strata` attribute) streams
+//! when, for each of Strata's levels (each the ceiling half of the one before, down to one
+//! brick), one of its datasets has that shape (datasets of other shapes, such as levels binned
+//! along some axes only, are passed over); its node ranges are unknown and count as non-empty.
+//! Its samples map onto stored values as `strata import` maps them, decided at open:
+//! - uint8 / uint16 as they are, int8 / int16 shifted by 128 / 32768 (exact: CT in HU keeps
+//!   every value); the data range, for the transfer function's table, is the `omero` window's
+//!   `min`/`max` when given, else the type's full range;
+//! - float32/64 and (u)int32 scaled onto 16 bits over the `omero` window's `min`/`max` when
+//!   given, else over the range of the coarsest level (read at open, one brick): level-0
+//!   values outside that range are clamped, which the source's notes say. Import computes the
+//!   exact range of level 0 instead.
+//!
+//! Whatever cannot be streamed (other axes, too few levels of Strata's shapes, other types) is
+//! refused with the URL and the remedy: `strata import URL STORE`, which rebuilds the pyramid.
 
 use std::sync::Arc;
 
-use strata_source::{SourceError, VolumeSource};
+use strata_source::{BrickFetcher, FetchOptions, SourceError, VolumeSource};
 use strata_storage::brick::{encode_brick, value_range};
 use strata_storage::histogram::Histogram;
+use strata_storage::quantize::Quantizer;
 use strata_storage::store::{NodeInfo, Skeleton, StoreStats};
 use strata_storage::{
     BrickId, OctreeLayout, StoreHeader, StoredScalar, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD,
     BRICK_PAYLOAD_VOXELS,
 };
 use zarrs::array::{
-    Array, ArrayShardedReadableExt, ArrayShardedReadableExtCache, ArraySubset, CodecOptions,
+    Array, ArrayShardedReadableExt, ArrayShardedReadableExtCache, ArraySubset,
+    AsyncArrayShardedReadableExt, AsyncArrayShardedReadableExtCache, CodecOptions,
 };
 use zarrs::storage::ReadableWritableListableStorageTraits;
+use zarrs_object_store::AsyncObjectStore;
 
 use crate::import::{data_type_name, open_level, open_multiscale, OpenedMultiscale};
 use crate::metadata::SKELETON_KEY;
@@ -46,6 +60,326 @@ struct Level {
     cache: ArrayShardedReadableExtCache,
 }
 
+/// How a level's samples become stored values (decided at open, the same for every level).
+#[derive(Clone, Debug)]
+enum Sampling {
+    U8,
+    U16,
+    /// int8 / int16: shifted by 128 / 32768, exact (as `Quantizer::plan`).
+    I8,
+    I16,
+    /// Read as f64 (float32/64, (u)int32) and quantised with `quantizer`.
+    Scaled {
+        sample: ScaledSample,
+        quantizer: Quantizer,
+    },
+}
+
+#[derive(Clone, Copy, Debug)]
+enum ScaledSample {
+    F32,
+    F64,
+    I32,
+    U32,
+}
+
+impl Sampling {
+    fn of_data_type(dtype: &str, quantizer: Option<Quantizer>) -> Option<Sampling> {
+        let scaled = |sample| quantizer.map(|quantizer| Sampling::Scaled { sample, quantizer });
+        match dtype {
+            "uint8" => Some(Sampling::U8),
+            "uint16" => Some(Sampling::U16),
+            "int8" => Some(Sampling::I8),
+            "int16" => Some(Sampling::I16),
+            "float32" => scaled(ScaledSample::F32),
+            "float64" => scaled(ScaledSample::F64),
+            "int32" => scaled(ScaledSample::I32),
+            "uint32" => scaled(ScaledSample::U32),
+            _ => None,
+        }
+    }
+
+    fn stored(&self) -> StoredScalar {
+        match self {
+            Sampling::U8 | Sampling::I8 => StoredScalar::U8,
+            _ => StoredScalar::U16,
+        }
+    }
+}
+
+/// The samples `$read!(T)` returns (a `Vec<T>`), as stored values; `$sampling: &Sampling`.
+macro_rules! convert_samples {
+    ($sampling:expr, $read:ident) => {
+        match $sampling {
+            Sampling::U8 => $read!(u8).into_iter().map(u16::from).collect::<Vec<u16>>(),
+            Sampling::U16 => $read!(u16),
+            Sampling::I8 => $read!(i8)
+                .into_iter()
+                .map(|v| (i16::from(v) + 128) as u16)
+                .collect(),
+            Sampling::I16 => $read!(i16)
+                .into_iter()
+                .map(|v| (i32::from(v) + 32768) as u16)
+                .collect(),
+            Sampling::Scaled { sample, quantizer } => match sample {
+                ScaledSample::F32 => $read!(f32)
+                    .into_iter()
+                    .map(|v| quantizer.to_stored(f64::from(v)))
+                    .collect(),
+                ScaledSample::F64 => $read!(f64)
+                    .into_iter()
+                    .map(|v| quantizer.to_stored(v))
+                    .collect(),
+                ScaledSample::I32 => $read!(i32)
+                    .into_iter()
+                    .map(|v| quantizer.to_stored(f64::from(v)))
+                    .collect(),
+                ScaledSample::U32 => $read!(u32)
+                    .into_iter()
+                    .map(|v| quantizer.to_stored(f64::from(v)))
+                    .collect(),
+            },
+        }
+    };
+}
+
+/// What a brick reads of its level: its core ± the apron, clamped to the level.
+struct BrickRegion {
+    id: BrickId,
+    dims: [i64; 3],
+    /// Per index axis (x, y, z): the payload's first voxel, and the clamped range read.
+    start: [i64; 3],
+    lo: [i64; 3],
+    hi: [i64; 3],
+    subset: ArraySubset,
+}
+
+impl BrickRegion {
+    fn of(layout: &OctreeLayout, id: BrickId, display: &str) -> Result<Self, SourceError> {
+        if !layout.contains(id) {
+            return Err(SourceError::Refused {
+                location: display.to_string(),
+                message: format!("no brick level {} at {:?}", id.level, id.coords),
+            });
+        }
+        let dims = layout.level_dims[id.level as usize].map(i64::from);
+        let (core, apron, payload) = (
+            i64::from(BRICK_CORE),
+            i64::from(BRICK_APRON),
+            i64::from(BRICK_PAYLOAD),
+        );
+        let start = [0, 1, 2].map(|a| i64::from(id.coords[a]) * core - apron);
+        let lo = [0, 1, 2].map(|a| start[a].clamp(0, dims[a] - 1));
+        let hi = [0, 1, 2].map(|a| (start[a] + payload).clamp(1, dims[a]));
+        let subset = ArraySubset::new_with_ranges(&[
+            lo[2] as u64..hi[2] as u64,
+            lo[1] as u64..hi[1] as u64,
+            lo[0] as u64..hi[0] as u64,
+        ]);
+        Ok(BrickRegion {
+            id,
+            dims,
+            start,
+            lo,
+            hi,
+            subset,
+        })
+    }
+
+    fn failed(&self, e: zarrs::array::ArrayError, display: &str) -> SourceError {
+        SourceError::Unavailable {
+            location: display.to_string(),
+            message: format!("brick level {} at {:?}: {e}", self.id.level, self.id.coords),
+        }
+    }
+
+    /// The 36³ payload out of the region read: outside the level, the edge voxel replicated.
+    fn gather(&self, region: &[u16]) -> Vec<u16> {
+        let (start, lo, hi, dims) = (self.start, self.lo, self.hi, self.dims);
+        let payload = i64::from(BRICK_PAYLOAD);
+        let n = [0, 1, 2].map(|a| (hi[a] - lo[a]) as usize);
+        let mut out = Vec::with_capacity(BRICK_PAYLOAD_VOXELS);
+        let index = |a: usize, d: i64| ((start[a] + d).clamp(0, dims[a] - 1) - lo[a]) as usize;
+        let xs: Vec<usize> = (0..payload).map(|d| index(0, d)).collect();
+        for dz in 0..payload {
+            let z = index(2, dz);
+            for dy in 0..payload {
+                let row = (z * n[1] + index(1, dy)) * n[0];
+                out.extend(xs.iter().map(|&x| region[row + x]));
+            }
+        }
+        out
+    }
+}
+
+type AsyncLevelArray = Array<AsyncObjectStore<Arc<dyn object_store::ObjectStore>>>;
+
+/// A level read through zarrs' asynchronous API, for the source's own request path.
+struct AsyncLevel {
+    array: AsyncLevelArray,
+    cache: AsyncArrayShardedReadableExtCache,
+}
+
+/// What a brick request task needs, shared with it: the asynchronous levels and the mapping.
+pub(crate) struct Assembler {
+    display: String,
+    layout: OctreeLayout,
+    sampling: Sampling,
+    levels: Vec<AsyncLevel>,
+    /// Bricks assembled so far, for [`OmeZarrSource::needed_chunk_bytes`].
+    bricks_read: std::sync::Mutex<std::collections::HashSet<BrickId>>,
+}
+
+impl Assembler {
+    fn new(
+        display: &str,
+        layout: &OctreeLayout,
+        sampling: &Sampling,
+        store: &Arc<dyn object_store::ObjectStore>,
+        levels: &[Level],
+    ) -> Result<Self> {
+        let storage = Arc::new(AsyncObjectStore::new(store.clone()));
+        let levels = levels
+            .iter()
+            .map(|level| {
+                let array = Array::new_with_metadata(
+                    storage.clone(),
+                    level.array.path().as_str(),
+                    level.array.metadata().clone(),
+                )
+                .map_err(|e| OmeZarrError::invalid(display, e.to_string()))?;
+                let cache = AsyncArrayShardedReadableExtCache::new(&array);
+                Ok(AsyncLevel { array, cache })
+            })
+            .collect::<Result<Vec<_>>>()?;
+        Ok(Assembler {
+            display: display.to_string(),
+            layout: layout.clone(),
+            sampling: sampling.clone(),
+            levels,
+            bricks_read: Default::default(),
+        })
+    }
+
+    pub(crate) fn bytes_per_sample(&self) -> usize {
+        if self.sampling.stored() == StoredScalar::U8 {
+            1
+        } else {
+            2
+        }
+    }
+
+    fn note_read(&self, id: BrickId) {
+        self.bricks_read
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .insert(id);
+    }
+
+    /// The brick's payload, its reads awaited on the I/O runtime: dropping the future (an
+    /// aborted task) drops object_store's pending requests, which closes their connections.
+    pub(crate) async fn assemble(&self, id: BrickId) -> Result<Vec<u16>, SourceError> {
+        let region = BrickRegion::of(&self.layout, id, &self.display)?;
+        self.note_read(id);
+        let level = &self.levels[id.level as usize];
+        let options = CodecOptions::default();
+        macro_rules! read {
+            ($t:ty) => {
+                level
+                    .array
+                    .async_retrieve_array_subset_sharded_opt::<Vec<$t>>(
+                        &level.cache,
+                        &region.subset,
+                        &options,
+                    )
+                    .await
+                    .map_err(|e| region.failed(e, &self.display))?
+            };
+        }
+        let values = convert_samples!(&self.sampling, read);
+        Ok(region.gather(&values))
+    }
+}
+
+/// How a level's shards hold inner chunks (from its sharding codec's configuration).
+struct ShardLayout {
+    chunks_per_shard: [u64; 3],
+    index_at_end: bool,
+}
+
+impl ShardLayout {
+    fn of(array: &LevelArray, display: &str) -> Result<ShardLayout> {
+        let metadata = serde_json::to_value(array.metadata()).unwrap_or_default();
+        let sharding = metadata
+            .pointer("/codecs/0")
+            .filter(|c| {
+                c.get("name").and_then(serde_json::Value::as_str) == Some("sharding_indexed")
+            })
+            .and_then(|c| c.get("configuration"))
+            .ok_or_else(|| OmeZarrError::invalid(display, "the array is not sharded"))?;
+        let inner: Vec<u64> = sharding
+            .get("chunk_shape")
+            .and_then(serde_json::Value::as_array)
+            .map(|a| a.iter().filter_map(serde_json::Value::as_u64).collect())
+            .unwrap_or_default();
+        let outer: Vec<u64> = metadata
+            .pointer("/chunk_grid/configuration/chunk_shape")
+            .and_then(serde_json::Value::as_array)
+            .map(|a| a.iter().filter_map(serde_json::Value::as_u64).collect())
+            .unwrap_or_default();
+        if inner.len() != 3 || outer.len() != 3 || inner.contains(&0) {
+            return Err(OmeZarrError::invalid(
+                display,
+                "unexpected sharding configuration",
+            ));
+        }
+        Ok(ShardLayout {
+            chunks_per_shard: [0, 1, 2].map(|a| outer[a] / inner[a]),
+            index_at_end: sharding
+                .get("index_location")
+                .and_then(serde_json::Value::as_str)
+                != Some("start"),
+        })
+    }
+}
+
+/// The quantiser `strata import` plans for samples in [lo, hi] (`Quantizer::plan`'s rule,
+/// written out because streaming knows the range before it reads the data): integers spanning
+/// at most 65536 values shift exactly, anything else is scaled onto 0..=65535.
+fn quantizer_for_range(lo: f64, hi: f64, integer: bool) -> Quantizer {
+    let (lo, hi) = if lo <= hi { (lo, hi) } else { (0.0, 0.0) };
+    if integer && hi - lo <= 65535.0 {
+        return Quantizer {
+            stored: StoredScalar::U16,
+            offset: lo,
+            scale: 1.0,
+            max_error_physical: 0.0,
+            non_finite_samples: 0,
+        };
+    }
+    let half_span = hi / 2.0 - lo / 2.0;
+    let scale = if half_span > 0.0 {
+        (65535.0 / 2.0) / half_span
+    } else {
+        1.0
+    };
+    Quantizer {
+        stored: StoredScalar::U16,
+        offset: lo,
+        scale,
+        max_error_physical: (0.5 * half_span / (65535.0 / 2.0)).min(f64::MAX),
+        non_finite_samples: 0,
+    }
+}
+
+/// The refusal of what cannot be streamed, with the remedy.
+fn import_instead(display: &str, why: impl std::fmt::Display) -> OmeZarrError {
+    OmeZarrError::invalid(
+        display,
+        format!("{why}; it cannot be streamed: import it instead with `strata import {display} STORE.strata`, which rebuilds the pyramid"),
+    )
+}
+
 /// An OME-Zarr multiscale streamed brick by brick.
 pub struct OmeZarrSource {
     display: String,
@@ -54,10 +388,14 @@ pub struct OmeZarrSource {
     histogram: Histogram,
     stats: StoreStats,
     levels: Vec<Level>,
-    narrow: bool,
+    sampling: Sampling,
+    /// What was assumed or chosen to stream a foreign pyramid (levels taken, value mapping).
+    notes: Vec<String>,
     counters: Arc<TransferCounters>,
-    /// Bricks assembled so far, for [`OmeZarrSource::needed_chunk_bytes`].
-    bricks_read: std::sync::Mutex<std::collections::HashSet<BrickId>>,
+    /// The (range-cached) object store under the levels.
+    store: Arc<dyn object_store::ObjectStore>,
+    /// The asynchronous side: what the source's request tasks assemble bricks with.
+    assembler: Arc<Assembler>,
 }
 
 /// Bytes of fetched ranges (inner chunks, shard indices) kept for the neighbours that need them.
@@ -72,64 +410,105 @@ impl OmeZarrSource {
         location.store = Arc::new(cached);
         let opened = open_multiscale(location)?;
         let display = opened.location.display.clone();
-        let (header, skeleton, histogram, stats) = match &opened.multiscale.strata {
-            Some(strata) => {
-                let skeleton = read_skeleton(&opened, &strata.skeleton)?;
-                let layout = &strata.header.layout;
-                if skeleton.levels.len() != layout.level_count()
-                    || (0..layout.level_count())
-                        .any(|l| skeleton.levels[l].len() as u64 != layout.brick_count_in_level(l))
-                {
-                    return Err(OmeZarrError::invalid(
+        if let Some(strata) = &opened.multiscale.strata {
+            let skeleton = read_skeleton(&opened, &strata.skeleton)?;
+            let header = strata.header.clone();
+            let layout = &header.layout;
+            if skeleton.levels.len() != layout.level_count()
+                || (0..layout.level_count())
+                    .any(|l| skeleton.levels[l].len() as u64 != layout.brick_count_in_level(l))
+            {
+                return Err(OmeZarrError::invalid(
+                    &display,
+                    "the skeleton object does not match the strata attribute's layout",
+                ));
+            }
+            let sampling = if header.stored == StoredScalar::U8 {
+                Sampling::U8
+            } else {
+                Sampling::U16
+            };
+            let mut levels = Vec::with_capacity(layout.level_count());
+            for (level, d) in layout.level_dims.iter().enumerate() {
+                let array = open_level(&opened, level)?;
+                let expected = [d[2], d[1], d[0]].map(u64::from);
+                if array.shape() != expected {
+                    return Err(import_instead(
                         &display,
-                        "the skeleton object does not match the strata attribute's layout",
+                        format!(
+                            "level {level} has shape {:?} where the strata attribute's octree has {expected:?} (z, y, x)",
+                            array.shape()
+                        ),
                     ));
                 }
-                (
-                    strata.header.clone(),
-                    skeleton,
-                    strata.histogram.clone(),
-                    strata.stats.clone(),
-                )
+                let dtype = data_type_name(&array);
+                let wanted = if sampling.stored() == StoredScalar::U8 {
+                    "uint8"
+                } else {
+                    "uint16"
+                };
+                if dtype != wanted {
+                    return Err(import_instead(
+                        &display,
+                        format!(
+                            "level {level} holds {dtype} where the strata attribute says {wanted}"
+                        ),
+                    ));
+                }
+                let cache = ArrayShardedReadableExtCache::new(&array);
+                levels.push(Level { array, cache });
             }
-            None => foreign_description(&opened)?,
-        };
-        let narrow = header.stored == StoredScalar::U8;
-        let mut levels = Vec::with_capacity(header.layout.level_count());
-        for (level, d) in header.layout.level_dims.iter().enumerate() {
-            let array = open_level(&opened, level)?;
-            let expected = [d[2], d[1], d[0]].map(u64::from);
-            if array.shape() != expected {
-                return Err(OmeZarrError::invalid(
-                    &display,
-                    format!(
-                        "level {level} has shape {:?}; Strata's octree needs {expected:?} (z, y, x): import it instead (strata import), which rebuilds the pyramid",
-                        array.shape()
-                    ),
-                ));
-            }
-            let dtype = data_type_name(&array);
-            let wanted = if narrow { "uint8" } else { "uint16" };
-            if dtype != wanted {
-                return Err(OmeZarrError::invalid(
-                    &display,
-                    format!("level {level} holds {dtype}, streaming needs {wanted}: import it instead (strata import)"),
-                ));
-            }
-            let cache = ArrayShardedReadableExtCache::new(&array);
-            levels.push(Level { array, cache });
+            let assembler = Arc::new(Assembler::new(
+                &display,
+                &header.layout,
+                &sampling,
+                &opened.location.store,
+                &levels,
+            )?);
+            return Ok(OmeZarrSource {
+                store: opened.location.store.clone(),
+                display,
+                histogram: strata.histogram.clone(),
+                stats: strata.stats.clone(),
+                header,
+                skeleton,
+                levels,
+                sampling,
+                notes: Vec::new(),
+                counters,
+                assembler,
+            });
         }
+        let foreign = open_foreign(&opened)?;
+        let place: &str = &display;
+        for note in &foreign.notes {
+            tracing::info!("{place}: {note}");
+        }
+        let assembler = Arc::new(Assembler::new(
+            &display,
+            &foreign.header.layout,
+            &foreign.sampling,
+            &opened.location.store,
+            &foreign.levels,
+        )?);
         Ok(OmeZarrSource {
+            store: opened.location.store.clone(),
+            assembler,
             display,
-            header,
-            skeleton,
-            histogram,
-            stats,
-            levels,
-            narrow,
+            header: foreign.header,
+            skeleton: foreign.skeleton,
+            histogram: foreign.histogram,
+            stats: StoreStats::default(),
+            levels: foreign.levels,
+            sampling: foreign.sampling,
+            notes: foreign.notes,
             counters,
-            bricks_read: Default::default(),
         })
+    }
+
+    /// What was assumed or chosen to stream a foreign pyramid (empty for a Strata export).
+    pub fn notes(&self) -> &[String] {
+        &self.notes
     }
 
     /// Requests and bytes that crossed the wire so far (metadata included).
@@ -138,65 +517,26 @@ impl OmeZarrSource {
     }
 
     /// The brick's 36³ payload (x fastest): its core and apron, edge-replicated outside.
+    /// Blocking (plain threads: `verify`, slice views, up-front loads).
     pub fn assemble_brick(&self, id: BrickId) -> Result<Vec<u16>, SourceError> {
-        let layout = &self.header.layout;
-        if !layout.contains(id) {
-            return Err(SourceError::Refused {
-                location: self.display.clone(),
-                message: format!("no brick level {} at {:?}", id.level, id.coords),
-            });
-        }
-        self.bricks_read
-            .lock()
-            .unwrap_or_else(|p| p.into_inner())
-            .insert(id);
+        let region = BrickRegion::of(&self.header.layout, id, &self.display)?;
+        self.assembler.note_read(id);
         let level = &self.levels[id.level as usize];
-        let dims = layout.level_dims[id.level as usize].map(i64::from);
-        let (core, apron, payload) = (
-            i64::from(BRICK_CORE),
-            i64::from(BRICK_APRON),
-            i64::from(BRICK_PAYLOAD),
-        );
-        // Per index axis (x, y, z): the payload's first voxel, and the clamped range read.
-        let start = [0, 1, 2].map(|a| i64::from(id.coords[a]) * core - apron);
-        let lo = [0, 1, 2].map(|a| start[a].clamp(0, dims[a] - 1));
-        let hi = [0, 1, 2].map(|a| (start[a] + payload).clamp(1, dims[a]));
-        let subset = ArraySubset::new_with_ranges(&[
-            lo[2] as u64..hi[2] as u64,
-            lo[1] as u64..hi[1] as u64,
-            lo[0] as u64..hi[0] as u64,
-        ]);
         let options = CodecOptions::default();
-        let fail = |e: zarrs::array::ArrayError| SourceError::Unavailable {
-            location: self.display.clone(),
-            message: format!("brick level {} at {:?}: {e}", id.level, id.coords),
-        };
-        let region: Vec<u16> = if self.narrow {
-            level
-                .array
-                .retrieve_array_subset_sharded_opt::<Vec<u8>>(&level.cache, &subset, &options)
-                .map_err(fail)?
-                .into_iter()
-                .map(u16::from)
-                .collect()
-        } else {
-            level
-                .array
-                .retrieve_array_subset_sharded_opt::<Vec<u16>>(&level.cache, &subset, &options)
-                .map_err(fail)?
-        };
-        let n = [0, 1, 2].map(|a| (hi[a] - lo[a]) as usize);
-        let mut out = Vec::with_capacity(BRICK_PAYLOAD_VOXELS);
-        let index = |a: usize, d: i64| ((start[a] + d).clamp(0, dims[a] - 1) - lo[a]) as usize;
-        let xs: Vec<usize> = (0..payload).map(|d| index(0, d)).collect();
-        for dz in 0..payload {
-            let z = index(2, dz);
-            for dy in 0..payload {
-                let row = (z * n[1] + index(1, dy)) * n[0];
-                out.extend(xs.iter().map(|&x| region[row + x]));
-            }
+        macro_rules! read {
+            ($t:ty) => {
+                level
+                    .array
+                    .retrieve_array_subset_sharded_opt::<Vec<$t>>(
+                        &level.cache,
+                        &region.subset,
+                        &options,
+                    )
+                    .map_err(|e| region.failed(e, &self.display))?
+            };
         }
-        Ok(out)
+        let values = convert_samples!(&self.sampling, read);
+        Ok(region.gather(&values))
     }
 
     /// Encoded bytes of the inner chunks the bricks read so far needed: each brick's own and its
@@ -204,6 +544,7 @@ impl OmeZarrSource {
     /// bytes-fetched ratio; reads shard indices (already cached by the reads it accounts for).
     pub fn needed_chunk_bytes(&self) -> Result<u64> {
         let ids: Vec<BrickId> = self
+            .assembler
             .bricks_read
             .lock()
             .unwrap_or_else(|p| p.into_inner())
@@ -232,23 +573,89 @@ impl OmeZarrSource {
                 }
             }
         }
+        // zarrs' own `subchunk_byte_range` adds offset + size of an absent inner chunk
+        // (u64::MAX twice): the shard indices are read here instead (from the range cache,
+        // where the bricks' reads left them).
+        let mut indices: std::collections::HashMap<(u8, [u64; 3]), Option<Vec<u64>>> =
+            Default::default();
         let mut total = 0;
         for (level, z, y, x) in chunks {
-            let l = &self.levels[level as usize];
-            let range = l
-                .array
-                .subchunk_byte_range(&l.cache, &[z, y, x])
-                .map_err(|e| OmeZarrError::access(&self.display, e))?;
-            if let Some(range) = range {
-                total += range.length(u64::MAX);
+            let array = &self.levels[level as usize].array;
+            let layout = ShardLayout::of(array, &self.display)?;
+            let chunk = [z, y, x];
+            let shard = [0, 1, 2].map(|a| chunk[a] / layout.chunks_per_shard[a]);
+            let index = match indices.get(&(level, shard)) {
+                Some(index) => index.clone(),
+                None => {
+                    let index = self.read_shard_index(array, &layout, shard)?;
+                    indices.insert((level, shard), index.clone());
+                    index
+                }
+            };
+            let Some(index) = index else { continue };
+            let within = [0, 1, 2].map(|a| chunk[a] % layout.chunks_per_shard[a]);
+            let n = layout.chunks_per_shard;
+            let i = ((within[0] * n[1] + within[1]) * n[2] + within[2]) as usize;
+            let (offset, size) = (index[2 * i], index[2 * i + 1]);
+            if offset != u64::MAX || size != u64::MAX {
+                total += size;
             }
         }
         Ok(total)
     }
 
-    /// Shard indices cached so far, over all levels.
+    /// A shard's index (offset, size per inner chunk, C order); `None`: the shard is absent.
+    fn read_shard_index(
+        &self,
+        array: &LevelArray,
+        layout: &ShardLayout,
+        shard: [u64; 3],
+    ) -> Result<Option<Vec<u64>>> {
+        use object_store::ObjectStoreExt;
+        let key = array.chunk_key(&shard);
+        let path = object_store::path::Path::from(key.as_str());
+        let store = self.store.clone();
+        let entries = layout.chunks_per_shard.iter().product::<u64>();
+        let index_bytes = entries * 16;
+        let display = self.display.clone();
+        let bytes = crate::zarr_store::block_on(async move {
+            let size = match store.head(&path).await {
+                Ok(meta) => meta.size,
+                Err(object_store::Error::NotFound { .. }) => return Ok(None),
+                Err(e) => return Err(e),
+            };
+            // bytes codec + crc32c: the index, then its 4-byte checksum.
+            let start = if layout.index_at_end {
+                size.saturating_sub(index_bytes + 4)
+            } else {
+                0
+            };
+            store
+                .get_range(&path, start..start + index_bytes)
+                .await
+                .map(Some)
+        })?
+        .map_err(|e| OmeZarrError::access(&display, format!("{key}: {e}")))?;
+        Ok(bytes.map(|b| {
+            b.chunks_exact(8)
+                .map(|c| u64::from_le_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]]))
+                .collect()
+        }))
+    }
+
+    /// Shard indices cached so far, over all levels (the blocking reader's and the request
+    /// tasks').
     pub fn cached_shard_indices(&self) -> usize {
-        self.levels.iter().map(|l| l.cache.len()).sum()
+        let sync: usize = self.levels.iter().map(|l| l.cache.len()).sum();
+        let tasks = crate::zarr_store::block_on(async {
+            let mut n = 0;
+            for level in &self.assembler.levels {
+                n += level.cache.len().await;
+            }
+            n
+        })
+        .unwrap_or(0);
+        sync + tasks
     }
 }
 
@@ -275,58 +682,195 @@ fn read_skeleton(opened: &OpenedMultiscale, key: &str) -> Result<Skeleton> {
     })
 }
 
-/// Header, skeleton (ranges unknown: full), empty histogram and stats of a foreign pyramid.
-fn foreign_description(
-    opened: &OpenedMultiscale,
-) -> Result<(StoreHeader, Skeleton, Histogram, StoreStats)> {
+/// A foreign pyramid, described for streaming.
+struct Foreign {
+    header: StoreHeader,
+    skeleton: Skeleton,
+    histogram: Histogram,
+    levels: Vec<Level>,
+    sampling: Sampling,
+    notes: Vec<String>,
+}
+
+/// Header, skeleton (ranges unknown: full), empty histogram, the datasets taken as Strata's
+/// levels and the value mapping of a foreign pyramid.
+fn open_foreign(opened: &OpenedMultiscale) -> Result<Foreign> {
     let display = &opened.location.display;
     let array = open_level(opened, 0)?;
     let shape = array.shape().to_vec();
     let choice =
         crate::import::choose_axes(&opened.multiscale, &shape, &Default::default(), display)?;
-    if !choice.fixed.iter().all(|&(axis, _)| shape[axis] == 1) {
-        return Err(OmeZarrError::invalid(
-            display,
-            "streaming takes 3 space axes only: import it (strata import --channel/--time picks one)",
-        ));
-    }
     if shape.len() != 3 {
-        return Err(OmeZarrError::invalid(
+        return Err(import_instead(
             display,
-            "streaming takes z, y, x arrays only: import it instead (strata import)",
+            format!(
+                "its arrays have {} axes ({}); streaming takes z, y, x arrays only (import picks a channel and a time point with --channel/--time)",
+                shape.len(),
+                opened
+                    .multiscale
+                    .axes
+                    .iter()
+                    .map(|a| a.name.as_str())
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ),
         ));
     }
     let dims = strata_storage::VolumeGeometry::checked_dims([shape[2], shape[1], shape[0]])
         .map_err(|e| OmeZarrError::invalid(display, e.to_string()))?;
     let dtype = data_type_name(&array);
-    let stored = match dtype.as_str() {
-        "uint8" => StoredScalar::U8,
-        "uint16" => StoredScalar::U16,
-        other => {
-            return Err(OmeZarrError::invalid(
-                display,
-                format!("{other} samples cannot be streamed: import it instead (strata import)"),
-            ))
-        }
-    };
-    let (geometry, notes) =
+    let (geometry, mut notes) =
         crate::import::foreign_geometry(&opened.multiscale, &choice, dims, display)?;
-    for note in notes {
-        let place: &str = display;
-        tracing::info!("{place}: {note}");
-    }
+    // foreign_geometry's note on coarser levels is about import; streaming says its own below.
+    notes.retain(|n| !n.contains("coarser levels in the source not read"));
     let layout = OctreeLayout::new(dims);
-    if opened.multiscale.datasets.len() < layout.level_count() {
-        return Err(OmeZarrError::invalid(
-            display,
-            format!(
-                "{} levels; Strata's octree needs {} (down to one 32³ brick): import it instead (strata import)",
-                opened.multiscale.datasets.len(),
-                layout.level_count()
-            ),
+
+    // Strata's level L is the first dataset of its shape (level 0 is dataset 0).
+    let mut arrays = vec![array];
+    let mut taken = vec![0usize];
+    let mut passed_over = Vec::new();
+    let mut next_dataset = 1;
+    for (level, d) in layout.level_dims.iter().enumerate().skip(1) {
+        let expected = [d[2], d[1], d[0]].map(u64::from);
+        let mut found = None;
+        while next_dataset < opened.multiscale.datasets.len() {
+            let candidate = open_level(opened, next_dataset)?;
+            next_dataset += 1;
+            if candidate.shape() == expected {
+                found = Some(candidate);
+                break;
+            }
+            passed_over.push(format!(
+                "`{}` {:?}",
+                opened.multiscale.datasets[next_dataset - 1].path,
+                candidate.shape()
+            ));
+        }
+        let Some(candidate) = found else {
+            return Err(import_instead(
+                display,
+                format!(
+                    "Strata's octree needs {} levels down to one 32³ brick, each the ceiling half of the one before; no dataset has level {level}'s shape {expected:?} (z, y, x){}",
+                    layout.level_count(),
+                    if passed_over.is_empty() {
+                        String::new()
+                    } else {
+                        format!(" (passed over: {})", passed_over.join(", "))
+                    }
+                ),
+            ));
+        };
+        let candidate_type = data_type_name(&candidate);
+        if candidate_type != dtype {
+            return Err(import_instead(
+                display,
+                format!(
+                    "dataset `{}` holds {candidate_type} where level 0 holds {dtype}",
+                    opened.multiscale.datasets[next_dataset - 1].path
+                ),
+            ));
+        }
+        arrays.push(candidate);
+        taken.push(next_dataset - 1);
+    }
+    if opened.multiscale.datasets.len() > 1 {
+        notes.push(format!(
+            "datasets {} taken as Strata's levels 0..{}{}",
+            taken
+                .iter()
+                .map(|&i| format!("`{}`", opened.multiscale.datasets[i].path))
+                .collect::<Vec<_>>()
+                .join(", "),
+            layout.level_count() - 1,
+            if passed_over.is_empty() {
+                String::new()
+            } else {
+                format!(
+                    "; passed over (not Strata's halving): {}",
+                    passed_over.join(", ")
+                )
+            }
         ));
     }
+    let levels: Vec<Level> = arrays
+        .into_iter()
+        .map(|array| {
+            let cache = ArrayShardedReadableExtCache::new(&array);
+            Level { array, cache }
+        })
+        .collect();
+
+    // The value mapping, decided before any brick streams.
+    let omero_range = opened.multiscale.channel_ranges.first().copied().flatten();
+    let integer = matches!(dtype.as_str(), "int32" | "uint32");
+    let quantizer = match dtype.as_str() {
+        "float32" | "float64" | "int32" | "uint32" => {
+            let [lo, hi] = match omero_range {
+                Some(range) => {
+                    notes.push(format!(
+                        "{dtype} values scaled onto 16 bits over the omero window's data range [{}, {}]",
+                        range[0], range[1]
+                    ));
+                    range
+                }
+                None => {
+                    let range = coarsest_range(&levels, &dtype, display)?;
+                    notes.push(format!(
+                        "{dtype} values scaled onto 16 bits over the coarsest level's range [{}, {}] (no omero window): finer values outside it are clamped; `strata import` maps the exact range of level 0",
+                        range[0], range[1]
+                    ));
+                    range
+                }
+            };
+            Some(quantizer_for_range(lo, hi, integer))
+        }
+        _ => None,
+    };
+    let sampling = Sampling::of_data_type(&dtype, quantizer).ok_or_else(|| {
+        import_instead(
+            display,
+            format!("its samples are {dtype}; streaming reads (u)int8/16/32 and float32/64"),
+        )
+    })?;
+    let stored = sampling.stored();
     let max = stored.max_value();
+    let (slope, intercept, source_sample_type, quantization_error) = match &sampling {
+        Sampling::U8 => (1.0, 0.0, strata_storage::SampleType::U8, 0.0),
+        Sampling::U16 => (1.0, 0.0, strata_storage::SampleType::U16, 0.0),
+        Sampling::I8 => (1.0, -128.0, strata_storage::SampleType::I8, 0.0),
+        Sampling::I16 => (1.0, -32768.0, strata_storage::SampleType::I16, 0.0),
+        Sampling::Scaled { sample, quantizer } => {
+            let (slope, intercept) = quantizer.physical_mapping(1.0, 0.0);
+            let sample_type = match sample {
+                ScaledSample::F32 => strata_storage::SampleType::F32,
+                ScaledSample::F64 => strata_storage::SampleType::F64,
+                ScaledSample::I32 => strata_storage::SampleType::I32,
+                ScaledSample::U32 => strata_storage::SampleType::U32,
+            };
+            (slope, intercept, sample_type, quantizer.max_error_physical)
+        }
+    };
+    // The data range (the transfer function's table spans it): the omero window's for
+    // integers when given, else every stored value.
+    let stored_range = match (&sampling, omero_range) {
+        (Sampling::Scaled { quantizer, .. }, Some([lo, hi])) => {
+            [quantizer.to_stored(lo), quantizer.to_stored(hi)]
+        }
+        (Sampling::Scaled { .. }, None) => [0, max],
+        (_, Some([lo, hi])) => {
+            let to_stored =
+                |v: f64| ((v - intercept) / slope).round().clamp(0.0, f64::from(max)) as u16;
+            [to_stored(lo), to_stored(hi)]
+        }
+        (_, None) => {
+            if matches!(sampling, Sampling::I8 | Sampling::I16) {
+                notes.push(format!(
+                    "no omero window: the data range is taken as {dtype}'s full range"
+                ));
+            }
+            [0, max]
+        }
+    };
     let mut skeleton = Skeleton::new(&layout);
     for level in &mut skeleton.levels {
         level.fill(NodeInfo {
@@ -340,18 +884,11 @@ fn foreign_description(
         geometry,
         stored,
         value_mapping: strata_storage::ValueMappingWithUnit {
-            mapping: strata_storage::ValueMapping {
-                slope: 1.0,
-                intercept: 0.0,
-            },
+            mapping: strata_storage::ValueMapping { slope, intercept },
             unit: String::new(),
         },
-        source_sample_type: if stored == StoredScalar::U8 {
-            strata_storage::SampleType::U8
-        } else {
-            strata_storage::SampleType::U16
-        },
-        quantization_error: 0.0,
+        source_sample_type,
+        quantization_error,
         non_finite_samples: 0,
         modality: String::new(),
         windows: Vec::new(),
@@ -365,7 +902,7 @@ fn foreign_description(
         layout: layout.clone(),
         brick_core: u64::from(BRICK_CORE),
         brick_apron: u64::from(BRICK_APRON),
-        stored_range: [0, max],
+        stored_range,
         generation: format!("ome-zarr:{display}"),
         // The records this source hands the loader (read_brick_record) use the default codec.
         codec: strata_storage::BrickCodec::default(),
@@ -375,10 +912,66 @@ fn foreign_description(
     };
     let histogram = Histogram::from_stored(
         &strata_storage::histogram::StoredValueCounts::default(),
-        1.0,
-        0.0,
+        slope,
+        intercept,
     );
-    Ok((header, skeleton, histogram, StoreStats::default()))
+    Ok(Foreign {
+        header,
+        skeleton,
+        histogram,
+        levels,
+        sampling,
+        notes,
+    })
+}
+
+/// Finite min and max of the coarsest level (one brick: Strata's top level), as f64.
+fn coarsest_range(levels: &[Level], dtype: &str, display: &str) -> Result<[f64; 2]> {
+    let Some(level) = levels.last() else {
+        return Err(OmeZarrError::invalid(display, "no levels"));
+    };
+    let subset = ArraySubset::new_with_shape(level.array.shape().to_vec());
+    let fail = |e: zarrs::array::ArrayError| OmeZarrError::access(display, e);
+    let values: Vec<f64> = match dtype {
+        "float32" => level
+            .array
+            .retrieve_array_subset::<Vec<f32>>(&subset)
+            .map_err(fail)?
+            .into_iter()
+            .map(f64::from)
+            .collect(),
+        "float64" => level
+            .array
+            .retrieve_array_subset::<Vec<f64>>(&subset)
+            .map_err(fail)?,
+        "int32" => level
+            .array
+            .retrieve_array_subset::<Vec<i32>>(&subset)
+            .map_err(fail)?
+            .into_iter()
+            .map(f64::from)
+            .collect(),
+        _ => level
+            .array
+            .retrieve_array_subset::<Vec<u32>>(&subset)
+            .map_err(fail)?
+            .into_iter()
+            .map(f64::from)
+            .collect(),
+    };
+    let (lo, hi) = values
+        .iter()
+        .filter(|v| v.is_finite())
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &v| {
+            (lo.min(v), hi.max(v))
+        });
+    if lo > hi {
+        return Err(import_instead(
+            display,
+            "its coarsest level holds no finite value to take a value range from",
+        ));
+    }
+    Ok([lo, hi])
 }
 
 impl VolumeSource for OmeZarrSource {
@@ -405,14 +998,46 @@ impl VolumeSource for OmeZarrSource {
             id,
             &voxels,
             value_range(&voxels),
-            self.narrow,
+            self.sampling.stored() == StoredScalar::U8,
             self.header.codec,
         ))
     }
     fn read_brick(&self, id: BrickId) -> Result<Vec<u16>, SourceError> {
         self.assemble_brick(id)
     }
+    /// The source's own request path: one task per brick, aborted on the wire when stale.
+    fn start_fetching(
+        &self,
+        options: FetchOptions,
+    ) -> Option<Result<Box<dyn BrickFetcher>, SourceError>> {
+        let runtime = match crate::zarr_store::runtime() {
+            Ok(runtime) => runtime,
+            Err(e) => {
+                return Some(Err(SourceError::Unavailable {
+                    location: self.display.clone(),
+                    message: e.to_string(),
+                }))
+            }
+        };
+        let max_in_flight = options.max_in_transit.clamp(1, MAX_REQUESTS_IN_FLIGHT);
+        let assembler = self.assembler.clone();
+        let assemble: crate::fetcher::AssembleBrick = Arc::new(move |id| {
+            let assembler = assembler.clone();
+            Box::pin(async move { assembler.assemble(id).await })
+        });
+        Some(Ok(Box::new(crate::fetcher::ZarrFetcher::start(
+            runtime,
+            assemble,
+            self.assembler.bytes_per_sample(),
+            options.max_queued.max(1),
+            max_in_flight,
+        ))))
+    }
 }
+
+/// Bricks assembled at once by the source's own request path (each a few ranged GETs; they
+/// share object_store's connection pool).
+pub const MAX_REQUESTS_IN_FLIGHT: usize = 64;
 
 /// Opens `spec` as a streamed OME-Zarr source.
 pub fn open_source(spec: &str, options: &crate::ObjectStoreOptions) -> Result<Arc<OmeZarrSource>> {

@@ -16,7 +16,7 @@ use crate::{ObjectLocation, OmeZarrError, Result};
 /// suffice however many are outstanding.
 const IO_THREADS: usize = 2;
 
-fn runtime() -> Result<&'static tokio::runtime::Runtime> {
+pub(crate) fn runtime() -> Result<&'static tokio::runtime::Runtime> {
     static RUNTIME: OnceLock<std::result::Result<tokio::runtime::Runtime, String>> =
         OnceLock::new();
     RUNTIME

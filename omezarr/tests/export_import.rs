@@ -70,6 +70,18 @@ fn round_trip(store: &Store, work: &Path) -> Store {
         "streamed {} bytes for an export of {stored} bytes",
         counters.bytes()
     );
+    // The bytes of the inner chunks those bricks needed (each once; absent chunks of fill-only
+    // regions count nothing): all of the export but its metadata and shard indices.
+    let needed = streamed.needed_chunk_bytes().unwrap();
+    assert!(
+        needed > 0 && needed <= stored,
+        "needed {needed} of {stored}"
+    );
+    assert!(
+        counters.bytes() as f64 <= 1.3 * needed as f64,
+        "streamed {} bytes for {needed} bytes of chunks needed",
+        counters.bytes()
+    );
     let bricks = store.layout().total_bricks();
     println!(
         "streamed every brick: {} requests for {bricks} bricks, {} bytes of {stored} stored, {} cache hits",
@@ -247,6 +259,9 @@ fn fill_only_shards_are_not_written_and_a_foreign_folder_is_refused() {
     // The left-out shard reads as the fill value (air) through the streaming source.
     let streamed = OmeZarrSource::open(folder(&dest, false)).unwrap();
     assert_same_bricks(&store, &streamed);
+    // Absent inner chunks (air) in the written shards count nothing in the chunks needed.
+    let needed = streamed.needed_chunk_bytes().unwrap();
+    assert!(needed > 0 && needed < report_bytes(&dest), "{needed}");
     // Exporting again replaces the previous export.
     let again = export_folder(&store, &dest, false);
     assert_eq!(again, report);

@@ -334,7 +334,11 @@ fn remote_flythrough(options: &Options, store_path: &Path) -> Result<()> {
         .unwrap_or_else(|p| p.into_inner())
         .clone()
         .context("the remote source was not opened")?;
+    // The wire counts of the flythrough, taken before the shard indices are read again for
+    // the denominator.
     let counters = source.transfer_counters();
+    let (requests, bytes, cache_hits) =
+        (counters.requests(), counters.bytes(), counters.cache_hits());
     let needed = source.needed_chunk_bytes()?;
     let bricks_read = remote.bricks_read.max(1);
     println!(
@@ -360,12 +364,12 @@ fn remote_flythrough(options: &Options, store_path: &Path) -> Result<()> {
     println!(
         "  SeaweedFS: {} bricks assembled, {} requests ({:.2} per brick), {:.2} MB fetched / {:.2} MB of chunks needed (own + apron neighbours) = {:.2}, {} ranges from the cache, {} shard indices",
         remote.bricks_read,
-        counters.requests(),
-        counters.requests() as f64 / bricks_read as f64,
-        counters.bytes() as f64 / 1e6,
+        requests,
+        requests as f64 / bricks_read as f64,
+        bytes as f64 / 1e6,
         needed as f64 / 1e6,
-        counters.bytes() as f64 / needed.max(1) as f64,
-        counters.cache_hits(),
+        bytes as f64 / needed.max(1) as f64,
+        cache_hits,
         source.cached_shard_indices(),
     );
     drop(server);
