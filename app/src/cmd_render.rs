@@ -15,6 +15,7 @@ use strata_render::{
     Camera, GpuContext, GpuPageTable, Projection, RenderMode, RenderSettings, Scene,
     SegmentIntegralTable, Shading, TransferFunction, Traversal,
 };
+use strata_storage::BrickId;
 
 #[derive(Clone, Copy, ValueEnum)]
 pub enum ModeArg {
