@@ -10,15 +10,13 @@
 //! and verifies every record's checksum on arrival, re-requesting a damaged one once before
 //! reporting it. Decoded bricks go to the loader's CPU cache; there is no second cache here.
 
-use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
-use crossbeam_channel::{Receiver, Sender};
+use strata_source::task_queue::{BrickJob, BrickJobOutcome, TaskQueue};
 use strata_source::{
-    Brick, BrickFetcher, FetchOptions, FetchResult, QueueCounters, RequestClass, SourceError,
-    SourceStatus, VolumeSource,
+    BrickFetcher, FetchOptions, FetchResult, QueueCounters, SourceError, SourceStatus, VolumeSource,
 };
 use strata_storage::brick::decode_brick;
 use strata_storage::histogram::Histogram;
@@ -399,44 +397,22 @@ impl VolumeSource for RemoteSource {
     }
 }
 
-struct InFlight {
-    /// `set_requests` call that last named it.
-    named_at: u64,
-    /// The result is in the channel; only `complete` ends it now.
-    delivered: bool,
-    abort: Option<tokio::task::AbortHandle>,
-}
-
-struct FetchState {
-    queued: HashMap<BrickId, (RequestClass, f64)>,
-    in_flight: HashMap<BrickId, InFlight>,
-    counters: QueueCounters,
-    calls: u64,
-}
-
-struct FetchShared {
-    state: Mutex<FetchState>,
-    wake: tokio::sync::Notify,
-    results: Sender<FetchResult>,
-    capacity: usize,
-    max_in_flight: usize,
+/// What the retry loop counts (the queue counts the rest).
+#[derive(Default)]
+struct RetryCounters {
     retried: AtomicU64,
     checksum_failures: AtomicU64,
 }
 
-impl FetchShared {
-    fn lock(&self) -> MutexGuard<'_, FetchState> {
-        self.state.lock().unwrap_or_else(|p| p.into_inner())
-    }
-}
-
-/// The asynchronous request queue of a [`RemoteSource`].
+/// The asynchronous request queue of a [`RemoteSource`]: the shared [`TaskQueue`] (priorities,
+/// capacity, cancellation on the wire), each request a [`fetch_one`] with its retries.
 pub struct RemoteFetcher {
-    runtime: Arc<tokio::runtime::Runtime>,
+    /// Declared first so that it drops (aborting its tasks) before the runtime can.
+    queue: TaskQueue,
+    counters: Arc<RetryCounters>,
     conn: Arc<Connection>,
-    shared: Arc<FetchShared>,
-    results: Receiver<FetchResult>,
-    dispatcher: tokio::task::AbortHandle,
+    /// Held (never used) so that the runtime outlives the queue's tasks.
+    _runtime: Arc<tokio::runtime::Runtime>,
 }
 
 impl RemoteFetcher {
@@ -446,90 +422,35 @@ impl RemoteFetcher {
         capacity: usize,
         max_in_flight: usize,
     ) -> Self {
-        // Unbounded in type, bounded in fact: at most `max_in_flight` requests exist between
-        // dispatch and `complete`, and each sends one result.
-        let (tx, rx) = crossbeam_channel::unbounded();
-        let shared = Arc::new(FetchShared {
-            state: Mutex::new(FetchState {
-                queued: HashMap::new(),
-                in_flight: HashMap::new(),
-                counters: QueueCounters::default(),
-                calls: 0,
-            }),
-            wake: tokio::sync::Notify::new(),
-            results: tx,
-            capacity,
-            max_in_flight,
-            retried: AtomicU64::new(0),
-            checksum_failures: AtomicU64::new(0),
-        });
-        let dispatcher = runtime
-            .spawn(dispatch(conn.clone(), shared.clone()))
-            .abort_handle();
+        let counters = Arc::new(RetryCounters::default());
+        let job: BrickJob = {
+            let (conn, counters) = (conn.clone(), counters.clone());
+            Arc::new(move |id| Box::pin(fetch_one(conn.clone(), counters.clone(), id)))
+        };
+        let queue = TaskQueue::start(runtime.handle(), job, capacity, max_in_flight);
         RemoteFetcher {
-            runtime,
+            queue,
+            counters,
             conn,
-            shared,
-            results: rx,
-            dispatcher,
+            _runtime: runtime,
         }
-    }
-}
-
-/// Starts the most urgent queued requests while fewer than `max_in_flight` are out.
-async fn dispatch(conn: Arc<Connection>, shared: Arc<FetchShared>) {
-    loop {
-        {
-            let mut state = shared.lock();
-            while state.in_flight.len() < shared.max_in_flight {
-                let best = state
-                    .queued
-                    .iter()
-                    .max_by(|a, b| {
-                        (a.1 .0, a.1 .1)
-                            .partial_cmp(&(b.1 .0, b.1 .1))
-                            .unwrap_or(std::cmp::Ordering::Equal)
-                    })
-                    .map(|(&id, &(class, _))| (id, class));
-                let Some((id, class)) = best else { break };
-                state.queued.remove(&id);
-                match class {
-                    RequestClass::Demand => state.counters.demand_started += 1,
-                    RequestClass::Prefetch => state.counters.prefetch_started += 1,
-                }
-                let task = tokio::spawn(fetch_one(conn.clone(), shared.clone(), id, class));
-                let named_at = state.calls;
-                state.in_flight.insert(
-                    id,
-                    InFlight {
-                        named_at,
-                        delivered: false,
-                        abort: Some(task.abort_handle()),
-                    },
-                );
-                let n = state.in_flight.len() as u64;
-                state.counters.max_in_flight = state.counters.max_in_flight.max(n);
-            }
-        }
-        shared.wake.notified().await;
     }
 }
 
 /// One brick: retried until it arrives verified, the server refuses it, or it is cancelled.
 async fn fetch_one(
     conn: Arc<Connection>,
-    shared: Arc<FetchShared>,
+    counters: Arc<RetryCounters>,
     id: BrickId,
-    class: RequestClass,
-) {
+) -> BrickJobOutcome {
     let mut retries = 0u32;
     let mut damaged = 0u32;
-    let outcome: Result<(Brick, u64), SourceError> = loop {
+    loop {
         match attempt(&conn, id).await {
             Attempt::Record(record) => match decode_brick(id, &record) {
                 Ok(voxels) => break Ok((Arc::new(voxels), record.len() as u64)),
                 Err(e) => {
-                    shared.checksum_failures.fetch_add(1, Ordering::Relaxed);
+                    counters.checksum_failures.fetch_add(1, Ordering::Relaxed);
                     damaged += 1;
                     if damaged >= 2 {
                         break Err(SourceError::damaged(&conn.location, id, e));
@@ -540,12 +461,12 @@ async fn fetch_one(
                         id.level,
                         id.coords
                     );
-                    shared.retried.fetch_add(1, Ordering::Relaxed);
+                    counters.retried.fetch_add(1, Ordering::Relaxed);
                     continue;
                 }
             },
             Attempt::Retry(_) => {
-                shared.retried.fetch_add(1, Ordering::Relaxed);
+                counters.retried.fetch_add(1, Ordering::Relaxed);
                 tokio::time::sleep(backoff(retries)).await;
                 retries += 1;
             }
@@ -556,132 +477,36 @@ async fn fetch_one(
                 })
             }
         }
-    };
-    let mut state = shared.lock();
-    let Some(entry) = state.in_flight.get_mut(&id) else {
-        return; // cancelled meanwhile
-    };
-    entry.delivered = true;
-    entry.abort = None;
-    let (outcome, stored_bytes) = match outcome {
-        Ok((brick, bytes)) => (Ok(brick), bytes),
-        Err(e) => (Err(e), 0),
-    };
-    let _ = shared.results.send(FetchResult {
-        id,
-        class,
-        outcome,
-        stored_bytes,
-    });
+    }
 }
 
 impl BrickFetcher for RemoteFetcher {
     fn set_requests(&self, demand: &[(BrickId, f64)], prefetch: &[(BrickId, f64)]) -> usize {
-        let mut state = self.shared.lock();
-        state.calls += 1;
-        let call = state.calls;
-        let mut wanted: HashMap<BrickId, (RequestClass, f64)> = HashMap::new();
-        let mut overflow = 0;
-        let candidates = demand
-            .iter()
-            .map(|&(id, p)| (id, RequestClass::Demand, p))
-            .chain(
-                prefetch
-                    .iter()
-                    .map(|&(id, p)| (id, RequestClass::Prefetch, p)),
-            );
-        for (id, class, priority) in candidates {
-            if let Some(f) = state.in_flight.get_mut(&id) {
-                f.named_at = call;
-                continue;
-            }
-            if wanted.contains_key(&id) {
-                continue;
-            }
-            if wanted.len() >= self.shared.capacity {
-                overflow += 1;
-                continue;
-            }
-            wanted.insert(id, (class, priority));
-        }
-        let stale = state
-            .queued
-            .keys()
-            .filter(|id| !wanted.contains_key(id))
-            .count() as u64;
-        state.counters.stale_dropped += stale;
-        state.counters.overflow_dropped += overflow;
-        state.queued = wanted;
-        // On the wire but named by neither this view nor the previous one: abort (the
-        // HTTP/2 stream is reset), freeing the slot for what the view wants now. One view of
-        // grace keeps a request that flickers at the edge of the wish list from being
-        // cancelled and asked for again.
-        let cancel: Vec<BrickId> = state
-            .in_flight
-            .iter()
-            .filter(|(_, f)| !f.delivered && f.named_at + 1 < call)
-            .map(|(&id, _)| id)
-            .collect();
-        for id in &cancel {
-            if let Some(f) = state.in_flight.remove(id) {
-                if let Some(abort) = f.abort {
-                    abort.abort();
-                }
-            }
-        }
-        state.counters.cancelled_in_flight += cancel.len() as u64;
-        let n = state.queued.len();
-        drop(state);
-        self.shared.wake.notify_one();
-        n
+        self.queue.set_requests(demand, prefetch)
     }
     fn try_results(&self) -> Vec<FetchResult> {
-        self.results.try_iter().collect()
+        self.queue.try_results()
     }
     fn complete(&self, id: BrickId) {
-        let removed = {
-            let mut state = self.shared.lock();
-            match state.in_flight.get(&id) {
-                Some(f) if f.delivered => state.in_flight.remove(&id).is_some(),
-                _ => false,
-            }
-        };
-        if removed {
-            self.shared.wake.notify_one();
-        }
+        self.queue.complete(id)
     }
     fn queued(&self) -> usize {
-        self.shared.lock().queued.len()
+        self.queue.queued()
     }
     fn in_flight(&self) -> usize {
-        self.shared.lock().in_flight.len()
+        self.queue.in_flight()
     }
     fn capacity(&self) -> usize {
-        self.shared.capacity
+        self.queue.capacity()
     }
     fn counters(&self) -> QueueCounters {
-        let mut c = self.shared.lock().counters;
-        c.retried = self.shared.retried.load(Ordering::Relaxed);
-        c.checksum_failures = self.shared.checksum_failures.load(Ordering::Relaxed);
+        let mut c = self.queue.counters();
+        c.retried = self.counters.retried.load(Ordering::Relaxed);
+        c.checksum_failures = self.counters.checksum_failures.load(Ordering::Relaxed);
         c
     }
     fn status(&self) -> SourceStatus {
         self.conn.status()
-    }
-}
-
-impl Drop for RemoteFetcher {
-    fn drop(&mut self) {
-        self.dispatcher.abort();
-        let mut state = self.shared.lock();
-        for (_, f) in state.in_flight.drain() {
-            if let Some(abort) = f.abort {
-                abort.abort();
-            }
-        }
-        drop(state);
-        // Keeps the runtime alive until the tasks above are told to stop.
-        let _ = &self.runtime;
     }
 }
 

@@ -3,12 +3,16 @@
 //! [`VolumeSource`]: the header, the octree skeleton (per-node ranges), the histogram and the
 //! bricks in their stored form (compressed and checksummed, verified where they are decoded).
 //! A local [`Store`] implements it here; the data service's client (strata-service) implements
-//! it over HTTP; the OME-Zarr reader will be a third.
+//! it over HTTP; the OME-Zarr reader (strata-omezarr) is a third.
 //!
 //! Brick requests are asynchronous: [`VolumeSource::start_fetching`] returns a
 //! [`BrickFetcher`], a priority queue the loader rewrites every frame (demand before prefetch,
 //! then by priority) and polls without waiting. A source without its own asynchronous path
-//! (the local store) gets the loader's reader threads instead.
+//! (the local store) gets the loader's reader threads instead. The sources whose requests are
+//! tokio tasks (the data service's client, the OME-Zarr reader) share one queue for that,
+//! [`task_queue::TaskQueue`].
+
+pub mod task_queue;
 
 use std::sync::Arc;
 
