@@ -450,6 +450,16 @@ impl Store {
         Some(self.skeleton.levels[id.level as usize][i])
     }
 
+    /// [`Store::node`] of frame `frame`.
+    pub fn frame_node(&self, frame: u32, id: BrickId) -> Option<NodeInfo> {
+        let i = self.header.layout.index_in_level(id)?;
+        self.frame_skeleton(frame)?
+            .levels
+            .get(id.level as usize)?
+            .get(i)
+            .copied()
+    }
+
     /// Volumes in this store (1 unless it is 4-D).
     pub fn frame_count(&self) -> u32 {
         self.header.frames.max(1)
@@ -548,7 +558,8 @@ impl Store {
         .map_or(0, |r| r.len() as u64))
     }
 
-    /// Checks every brick: present, checksum, decompression, and range equal to the skeleton's.
+    /// Checks every brick of every frame: present, checksum, decompression, and range equal to
+    /// the (frame's) skeleton's.
     /// Returns one message per problem found (empty when the store is sound).
     ///
     /// Terminates on any damage: the bricks are read on a named thread of their own and each read
@@ -556,30 +567,43 @@ impl Store {
     /// file) ends the check with a problem naming the brick, because the database is then stuck.
     pub fn verify(&self, mut on_progress: impl FnMut(u64, u64)) -> Result<Vec<String>> {
         let layout = self.header.layout.clone();
-        let total = layout.total_bricks();
-        let (results, received) = crossbeam_channel::bounded::<(BrickId, Result<Vec<u16>>)>(4);
-        let (tree, path) = (self.bricks.clone(), self.path.clone());
+        // Every frame of a 4-D store: frame 0 in `bricks`, frame f in its own tree.
+        let frame_trees: Vec<(u32, sled::Tree)> = std::iter::once((0, self.bricks.clone()))
+            .chain(
+                self.later_frames
+                    .iter()
+                    .enumerate()
+                    .map(|(i, (tree, _))| (i as u32 + 1, tree.clone())),
+            )
+            .collect();
+        let per_frame = layout.total_bricks();
+        let total = per_frame * frame_trees.len() as u64;
+        let (results, received) = crossbeam_channel::bounded::<(u32, BrickId, Result<Vec<u16>>)>(4);
+        let path = self.path.clone();
         let (count_sender, counted) = crossbeam_channel::bounded::<Result<usize>>(1);
         let reader = std::thread::Builder::new()
             .name("strata-verify-reader".into())
             .spawn(move || {
-                for level in 0..layout.level_count() {
-                    let n = layout.bricks_in_level(level);
-                    for z in 0..n[2] {
-                        for y in 0..n[1] {
-                            for x in 0..n[0] {
-                                let id = BrickId::new(level as u8, [x, y, z]);
-                                let voxels = read_brick_record(&path, &tree, id);
-                                if results.send((id, voxels)).is_err() {
-                                    return;
+                for (frame, tree) in &frame_trees {
+                    for level in 0..layout.level_count() {
+                        let n = layout.bricks_in_level(level);
+                        for z in 0..n[2] {
+                            for y in 0..n[1] {
+                                for x in 0..n[0] {
+                                    let id = BrickId::new(level as u8, [x, y, z]);
+                                    let voxels = read_brick_record(&path, tree, id);
+                                    if results.send((*frame, id, voxels)).is_err() {
+                                        return;
+                                    }
                                 }
                             }
                         }
                     }
                 }
                 drop(results);
-                let _ =
-                    count_sender.send(contained(&path, "counting the bricks", || Ok(tree.len())));
+                let _ = count_sender.send(contained(&path, "counting the bricks", || {
+                    Ok(frame_trees.iter().map(|(_, tree)| tree.len()).sum())
+                }));
             });
         if let Err(e) = reader {
             return Err(StorageError::io(&self.path, e));
@@ -587,7 +611,7 @@ impl Store {
         let mut problems = Vec::new();
         let mut seen = 0u64;
         while seen < total {
-            let (id, voxels) = match received.recv_timeout(VERIFY_READ_LIMIT) {
+            let (frame, id, voxels) = match received.recv_timeout(VERIFY_READ_LIMIT) {
                 Ok(r) => r,
                 Err(_) => {
                     problems.push(format!(
@@ -601,13 +625,19 @@ impl Store {
             };
             seen += 1;
             match voxels {
-                Err(e) => problems.push(e.to_string()),
+                Err(e) if frame == 0 => problems.push(e.to_string()),
+                Err(e) => problems.push(format!("frame {frame}: {e}")),
                 Ok(voxels) => {
                     let r = crate::brick::value_range(&voxels);
-                    let node = self.node(id).unwrap_or_default();
+                    let node = self.frame_node(frame, id).unwrap_or_default();
                     if (r.min, r.max) != (node.min, node.max) {
+                        let which = if frame == 0 {
+                            String::new()
+                        } else {
+                            format!("frame {frame}, ")
+                        };
                         problems.push(format!(
-                            "{}: brick level {} at {:?}: range {}..{} differs from the skeleton's {}..{}",
+                            "{}: {which}brick level {} at {:?}: range {}..{} differs from the skeleton's {}..{}",
                             self.path.display(), id.level, id.coords, r.min, r.max, node.min, node.max
                         ));
                     }
@@ -636,11 +666,26 @@ impl Store {
     /// Overwrites one byte of a stored brick record. Only for tests of corruption handling.
     #[doc(hidden)]
     pub fn corrupt_brick_for_tests(path: &Path, id: BrickId, byte: usize) -> Result<()> {
+        Self::corrupt_frame_brick_for_tests(path, 0, id, byte)
+    }
+
+    /// [`Store::corrupt_brick_for_tests`] in frame `frame` of a 4-D store.
+    #[doc(hidden)]
+    pub fn corrupt_frame_brick_for_tests(
+        path: &Path,
+        frame: u32,
+        id: BrickId,
+        byte: usize,
+    ) -> Result<()> {
         let _lock = StoreLock::acquire(path, LockPurpose::Import)?;
         let db = contained(path, "opening the database", || {
             open_db_when_unlocked(sled::Config::new().path(path.join(DB_DIR)))
         })?;
-        let bricks = contained(path, "opening the bricks", || db.open_tree("bricks"))?;
+        let tree_name = match frame {
+            0 => "bricks".to_string(),
+            f => frame_bricks_tree(f),
+        };
+        let bricks = contained(path, "opening the bricks", || db.open_tree(&tree_name))?;
         let mut record = contained(path, "reading a brick", || bricks.get(brick_key(id)))?
             .ok_or_else(|| StorageError::corrupted(path, "no such brick"))?
             .to_vec();

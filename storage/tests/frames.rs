@@ -121,6 +121,18 @@ fn a_4d_nifti_imports_every_volume_as_a_frame() {
         assert!(store
             .read_frame_brick(DIMS[3] as u32, BrickId::new(0, [0, 0, 0]))
             .is_err());
+        assert!(store.verify(|_, _| {}).unwrap().is_empty(), "{name}");
+        // Damage in a later frame is found by verify, naming the frame.
+        drop(store);
+        let last = DIMS[3] as u32 - 1;
+        Store::corrupt_frame_brick_for_tests(&store_path, last, BrickId::new(0, [0, 0, 0]), 40)
+            .unwrap();
+        let problems = Store::open(&store_path).unwrap().verify(|_, _| {}).unwrap();
+        assert_eq!(problems.len(), 1, "{name}: {problems:?}");
+        assert!(
+            problems[0].contains(&format!("frame {last}")),
+            "{name}: {problems:?}"
+        );
     }
 }
 
