@@ -8,6 +8,9 @@
 //! complete, and peak memory is about 36 slices of level 0 plus a third of that for the coarser
 //! levels, whatever the volume's depth.
 
+/// 4-D stores: every frame of a 4-D source (a child module: it builds on this one's pipeline).
+mod frames;
+
 use std::collections::VecDeque;
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -198,7 +201,7 @@ pub fn import_source(
     options: &ImportOptions,
 ) -> Result<ImportReport> {
     if opened.info.frames > 1 {
-        return crate::frames::import_frames(opened, store_path, options);
+        return frames::import_frames(opened, store_path, options);
     }
     let info = opened.info;
     let quantizer = Quantizer::plan(&opened.data, info.slope);

@@ -5,7 +5,6 @@
 pub mod brick;
 mod contained_db;
 pub mod error;
-mod frames;
 pub mod geometry;
 pub mod histogram;
 pub mod import;
