@@ -325,15 +325,32 @@ fn row_start_prediction(decoded: &[u8], start: usize) -> u8 {
     }
 }
 
-/// Inverse of [`delta_residuals`], in place: a running sum per row. The rows are the only serial
-/// part (one add per sample); the widening to u16 is a separate pass the compiler vectorises
-/// (fused into the sum, it was a per-sample push).
+/// Inverse of [`delta_residuals`], in place: a running sum per row. Each row's sum is a serial
+/// chain (one add per sample), but rows depend on each other only through their first samples:
+/// those are restored first (a short chain down the first column), then four rows are summed in
+/// lockstep, four independent chains the core overlaps. The widening to u16 is a separate pass
+/// the compiler vectorises (fused into the sum, it was a per-sample push).
 fn restore_delta(r: &mut [u8]) {
+    const LANES: usize = 4;
     for start in (0..r.len()).step_by(EDGE) {
-        // The row-start rule of `row_start_prediction`, on the rows restored so far.
-        let mut acc = row_start_prediction(r, start);
-        let end = (start + EDGE).min(r.len());
-        for d in &mut r[start..end] {
+        // The row-start rule of `row_start_prediction`: only first samples are read, and those
+        // before `start` are restored already.
+        r[start] = r[start].wrapping_add(row_start_prediction(r, start));
+    }
+    let mut groups = r.chunks_exact_mut(LANES * EDGE);
+    for group in &mut groups {
+        let mut acc: [u8; LANES] = std::array::from_fn(|k| group[k * EDGE]);
+        for x in 1..EDGE {
+            for (k, acc) in acc.iter_mut().enumerate() {
+                let d = &mut group[k * EDGE + x];
+                *acc = acc.wrapping_add(*d);
+                *d = *acc;
+            }
+        }
+    }
+    for row in groups.into_remainder().chunks_mut(EDGE) {
+        let mut acc = row[0];
+        for d in &mut row[1..] {
             acc = acc.wrapping_add(*d);
             *d = acc;
         }
@@ -561,11 +578,11 @@ pub fn decode_brick(id: BrickId, record: &[u8]) -> Result<Vec<u16>, BrickDecodeE
             .into_iter()
             .map(u16::from)
             .collect()),
-        KIND_DELTA_ZSTD_U8 => {
-            let mut samples = zstd_exact(body, BRICK_PAYLOAD_VOXELS)?;
-            restore_delta(&mut samples);
-            Ok(widen(&samples))
-        }
+        KIND_DELTA_ZSTD_U8 => with_scratch(|samples| {
+            zstd_exact_into(body, samples)?;
+            restore_delta(samples);
+            Ok(widen(samples))
+        }),
         KIND_MED_ZSTD_U8 => {
             let residuals = zstd_exact(body, BRICK_PAYLOAD_VOXELS)?;
             let mut out = vec![0u16; BRICK_PAYLOAD_VOXELS];
@@ -611,6 +628,36 @@ fn lz4_exact(body: &[u8], expected: usize) -> Result<Vec<u8>, BrickDecodeError> 
         return Err(BrickDecodeError::WrongSize { bytes: n, expected });
     }
     Ok(out)
+}
+
+thread_local! {
+    /// The u8 residuals of the brick being decoded on this thread: the fast path allocates only
+    /// the voxels it returns (a second brick-sized allocation per decode measured as a large
+    /// share of the time after zstd).
+    static SCRATCH: std::cell::RefCell<Vec<u8>> = const { std::cell::RefCell::new(Vec::new()) };
+}
+
+/// Runs `f` on this thread's scratch buffer of one brick of u8 (a fresh one if re-entered).
+fn with_scratch<T>(f: impl FnOnce(&mut [u8]) -> T) -> T {
+    SCRATCH.with(|cell| match cell.try_borrow_mut() {
+        Ok(mut buffer) => {
+            buffer.resize(BRICK_PAYLOAD_VOXELS, 0);
+            f(&mut buffer)
+        }
+        Err(_) => f(&mut vec![0u8; BRICK_PAYLOAD_VOXELS]),
+    })
+}
+
+/// Decompresses a zstd frame that must fill `out` exactly, with this thread's reused context.
+fn zstd_exact_into(body: &[u8], out: &mut [u8]) -> Result<(), BrickDecodeError> {
+    let n = linear3d::zstd_into(body, out)?;
+    if n != out.len() {
+        return Err(BrickDecodeError::WrongSize {
+            bytes: n,
+            expected: out.len(),
+        });
+    }
+    Ok(())
 }
 
 /// Decompresses a zstd frame that must hold exactly `expected` bytes (at most that is allocated),

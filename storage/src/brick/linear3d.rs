@@ -43,15 +43,31 @@ pub(super) const CONTEXTS: usize = 6;
 const ACTIVITY_BOUNDS: [u32; CONTEXTS - 1] = [1, 3, 7, 15, 31];
 const SLICE: usize = EDGE * EDGE;
 
-/// The context of an activity value.
-#[inline(always)]
+/// The context of an activity value (the definition [`CONTEXT_OF`] tabulates).
+#[cfg(test)]
 fn context_of(activity: u32) -> usize {
     ACTIVITY_BOUNDS.iter().filter(|&&b| activity > b).count()
 }
 
+/// [`context_of`] for every activity a sample can have (three byte differences: at most 765), so
+/// the serial part of the decoder is one load.
+const CONTEXT_OF: [u8; 766] = {
+    let mut table = [0u8; 766];
+    let mut activity = 0;
+    while activity < table.len() {
+        let mut k = 0;
+        while k < ACTIVITY_BOUNDS.len() && activity as u32 > ACTIVITY_BOUNDS[k] {
+            k += 1;
+        }
+        table[activity] = k as u8;
+        activity += 1;
+    }
+    table
+};
+
 /// Prediction and context of an interior sample (x ≥ 1, y ≥ 1) of slice `z` at index `i` in
-/// `v`, from the samples before it.
-#[inline(always)]
+/// `v`, from the samples before it: the definition the row-wise passes below must equal.
+#[cfg(test)]
 fn interior(v: &[u8], i: usize, x: usize, z: usize) -> (u8, usize) {
     let a = v[i - 1];
     let b = v[i - EDGE];
@@ -72,6 +88,66 @@ fn interior(v: &[u8], i: usize, x: usize, z: usize) -> (u8, usize) {
     (prediction, context_of(activity))
 }
 
+/// What a row's interior samples (x ≥ 1) take from the rows before it, computed for the whole row
+/// at once (vectorisable): the left neighbour `a` is all that stays serial.
+struct RowParts {
+    /// The upper-left neighbour `c` (for `|a - c|`).
+    c: [u8; EDGE],
+    /// The upper row's part of the activity, `|b - c| + |d - b|`.
+    activity: [u16; EDGE],
+    /// The prediction's sum without `35a`, rounding included (slices z ≥ 1), or the upper
+    /// neighbour `b` (slice 0, for the median edge detector).
+    rest: [i32; EDGE],
+}
+
+impl RowParts {
+    /// The parts of row `row` (index of its first sample, y ≥ 1) in slice `z`.
+    #[inline(always)]
+    fn of(v: &[u8], row: usize, z: usize) -> RowParts {
+        let mut p = RowParts {
+            c: [0; EDGE],
+            activity: [0; EDGE],
+            rest: [0; EDGE],
+        };
+        let up = &v[row - EDGE..row];
+        for x in 1..EDGE {
+            let (b, c) = (up[x], up[x - 1]);
+            let d = if x + 1 < EDGE { up[x + 1] } else { b };
+            p.c[x] = c;
+            p.activity[x] = u16::from(b.abs_diff(c)) + u16::from(d.abs_diff(b));
+            p.rest[x] = i32::from(b);
+        }
+        if z > 0 {
+            let below = &v[row - SLICE..row - SLICE + EDGE];
+            let below_up = &v[row - SLICE - EDGE..row - SLICE];
+            for x in 1..EDGE {
+                let (b, c) = (up[x], up[x - 1]);
+                let d = if x + 1 < EDGE { up[x + 1] } else { b };
+                p.rest[x] = 34 * i32::from(b) - 14 * i32::from(c)
+                    + 4 * i32::from(d)
+                    + 34 * i32::from(below[x])
+                    - 13 * i32::from(below[x - 1])
+                    - 16 * i32::from(below_up[x])
+                    + 32;
+            }
+        }
+        p
+    }
+
+    /// Prediction and context of sample `x` of the row, given its left neighbour `a`.
+    #[inline(always)]
+    fn predict(&self, x: usize, a: u8, z: usize) -> (u8, usize) {
+        let c = self.c[x];
+        let context = CONTEXT_OF[usize::from(a.abs_diff(c)) + usize::from(self.activity[x])];
+        let prediction = if z == 0 {
+            med_prediction(a, self.rest[x] as u8, c)
+        } else {
+            ((35 * i32::from(a) + self.rest[x]) >> 6).clamp(0, 255) as u8
+        };
+        (prediction, usize::from(context))
+    }
+}
+
 /// Prediction of an edge sample (first row or first column of a slice), context 0.
 #[inline(always)]
 fn edge(v: &[u8], i: usize, x: usize, y: usize) -> u8 {
@@ -89,14 +165,22 @@ fn edge(v: &[u8], i: usize, x: usize, y: usize) -> u8 {
 /// The residual streams of a brick's u8 samples (x fastest, rows of [`EDGE`]).
 fn residual_streams(v: &[u8]) -> [Vec<u8>; CONTEXTS] {
     let mut streams: [Vec<u8>; CONTEXTS] = Default::default();
-    for (i, &sample) in v.iter().enumerate() {
-        let (x, y, z) = (i % EDGE, i / EDGE % EDGE, i / SLICE);
-        let (prediction, context) = if x == 0 || y == 0 {
-            (edge(v, i, x, y), 0)
-        } else {
-            interior(v, i, x, z)
-        };
-        streams[context].push(sample.wrapping_sub(prediction));
+    for z in 0..EDGE {
+        for y in 0..EDGE {
+            let row = z * SLICE + y * EDGE;
+            streams[0].push(v[row].wrapping_sub(edge(v, row, 0, y)));
+            if y == 0 {
+                for i in row + 1..row + EDGE {
+                    streams[0].push(v[i].wrapping_sub(v[i - 1]));
+                }
+            } else {
+                let parts = RowParts::of(v, row, z);
+                for x in 1..EDGE {
+                    let (prediction, context) = parts.predict(x, v[row + x - 1], z);
+                    streams[context].push(v[row + x].wrapping_sub(prediction));
+                }
+            }
+        }
     }
     streams
 }
@@ -121,7 +205,7 @@ pub(super) fn compress(v: &[u8]) -> Option<Vec<u8>> {
 
 /// Decompresses one zstd frame into `dst` (this thread's reused context), returning its length;
 /// a frame larger than `dst` is an error, so nothing beyond `dst` is ever written or allocated.
-fn zstd_into(frame: &[u8], dst: &mut [u8]) -> Result<usize, BrickDecodeError> {
+pub(super) fn zstd_into(frame: &[u8], dst: &mut [u8]) -> Result<usize, BrickDecodeError> {
     let failed = |e: std::io::Error| BrickDecodeError::Decompress(format!("zstd: {e}"));
     ZSTD_DECOMPRESSOR.with(|cell| match cell.try_borrow_mut() {
         Ok(mut slot) => {
@@ -188,10 +272,12 @@ pub(super) fn decompress(body: &[u8]) -> Result<Vec<u16>, BrickDecodeError> {
                     v[i] = v[i - 1].wrapping_add(next(0)?);
                 }
             } else {
-                for x in 1..EDGE {
-                    let i = row + x;
-                    let (prediction, context) = interior(&v, i, x, z);
-                    v[i] = prediction.wrapping_add(next(context)?);
+                let parts = RowParts::of(&v, row, z);
+                let mut left = first;
+                for (x, out) in v[row + 1..row + EDGE].iter_mut().enumerate() {
+                    let (prediction, context) = parts.predict(x + 1, left, z);
+                    left = prediction.wrapping_add(next(context)?);
+                    *out = left;
                 }
             }
         }
@@ -222,6 +308,39 @@ mod tests {
             let v = vec![value; 2 * SLICE + 2 * EDGE + 2];
             let i = SLICE + EDGE + 1;
             assert_eq!(interior(&v, i, 1, 1), (value, 0));
+        }
+    }
+
+    #[test]
+    fn the_row_wise_passes_equal_the_per_sample_definition() {
+        let mut state = 0x2545_F491_4F6C_DD1Du64;
+        let mut v: Vec<u8> = (0..EDGE * SLICE)
+            .map(|_| {
+                state ^= state << 13;
+                state ^= state >> 7;
+                state ^= state << 17;
+                (state >> 56) as u8
+            })
+            .collect();
+        // Extremes side by side, where the clamp and the wrapping matter.
+        for (i, s) in v.iter_mut().enumerate().step_by(3) {
+            *s = if i % 2 == 0 { 0 } else { 255 };
+        }
+        for z in [0, 1, EDGE - 1] {
+            for y in [1, 2, EDGE - 1] {
+                let row = z * SLICE + y * EDGE;
+                let parts = RowParts::of(&v, row, z);
+                for x in 1..EDGE {
+                    assert_eq!(
+                        parts.predict(x, v[row + x - 1], z),
+                        interior(&v, row + x, x, z),
+                        "z {z} y {y} x {x}"
+                    );
+                }
+            }
+        }
+        for (activity, &context) in CONTEXT_OF.iter().enumerate() {
+            assert_eq!(usize::from(context), context_of(activity as u32));
         }
     }
 
