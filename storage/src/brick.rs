@@ -1055,13 +1055,16 @@ mod tests {
             Err(BrickDecodeError::TooShort)
         );
         let mut past = good.clone();
-        past[..4].copy_from_slice(&u32::MAX.to_le_bytes());
+        let w = linear3d::WEIGHTS;
+        past[w..w + 4].copy_from_slice(&u32::MAX.to_le_bytes());
         assert_eq!(
             decode_brick(id, &reseal(KIND_LINEAR3D_U8, &past)),
             Err(BrickDecodeError::TooShort)
         );
         let big = zstd::bulk::compress(&vec![0u8; 4 * BRICK_PAYLOAD_VOXELS], 1).unwrap();
-        let mut oversized = (big.len() as u32).to_le_bytes().to_vec();
+        // Weights of zero: every interior prediction is 0.
+        let mut oversized = vec![0u8; w];
+        oversized.extend_from_slice(&(big.len() as u32).to_le_bytes());
         oversized.extend_from_slice(&[0u8; 4 * (linear3d::CONTEXTS - 1)]);
         oversized.extend_from_slice(&big);
         assert!(matches!(
@@ -1070,7 +1073,8 @@ mod tests {
         ));
         // All residuals in stream 0: the right total, but the noisy brick needs other streams.
         let all = zstd::bulk::compress(&vec![0u8; BRICK_PAYLOAD_VOXELS], 1).unwrap();
-        let mut one_stream = (all.len() as u32).to_le_bytes().to_vec();
+        let mut one_stream = vec![0u8; w];
+        one_stream.extend_from_slice(&(all.len() as u32).to_le_bytes());
         one_stream.extend_from_slice(&[0u8; 4 * (linear3d::CONTEXTS - 1)]);
         one_stream.extend_from_slice(&all);
         // Zero residuals decode a constant brick: stream 0 alone is consistent, so this one
@@ -1079,7 +1083,7 @@ mod tests {
             decode_brick(id, &reseal(KIND_LINEAR3D_U8, &one_stream)),
             Ok(vec![0; BRICK_PAYLOAD_VOXELS])
         );
-        let mut last_stream = vec![0u8; 4 * (linear3d::CONTEXTS - 1)];
+        let mut last_stream = vec![0u8; w + 4 * (linear3d::CONTEXTS - 1)];
         last_stream.extend_from_slice(&(all.len() as u32).to_le_bytes());
         last_stream.extend_from_slice(&all);
         assert!(matches!(
