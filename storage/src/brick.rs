@@ -14,18 +14,20 @@
 //! | 4    | byte-shuffled u16 samples, zstd level 1 frame    | format 2 `dense`        |
 //! | 5    | u8 samples, zstd level 1 frame                   | format 2 `dense`, before `predicted-u8-bricks` |
 //! | 6    | u8 x-delta residuals, zstd frame                 | `fast` u8 (`predicted-u8-bricks`)  |
-//! | 7    | u8 median-edge (LOCO-I) residuals, zstd frame    | `dense` u8 (`predicted-u8-bricks`) |
+//! | 7    | u8 median-edge (LOCO-I) residuals, zstd frame    | `dense` u8 before `linear3d-u8-bricks` |
+//! | 8    | u8 3-D linear residuals in 6 context streams, a zstd frame each (see [`linear3d`]) | `dense` u8 (`linear3d-u8-bricks`) |
 //!
 //! u8 samples (8-bit MR) gain nothing from the byte shuffle. A prediction filter turns them into
 //! residuals (the sample minus a prediction from its already decoded neighbours, wrapping byte
 //! arithmetic, as JPEG-LS and other medical-image codecs do) whose values cluster around zero,
 //! and zstd's Huffman stage codes that in fewer bits; lz4 has no entropy stage, and zstd's
 //! negative levels store literals raw, so neither gains on residuals. `fast` predicts from the
-//! x neighbour (decoded by a running sum per row, one add per sample); `dense` uses the median
-//! edge detector of LOCO-I over the x, y and xy neighbours (smaller, decoded sample by sample).
-//! Measured (`strata bench codecs`): chris_t1 and FLAIR 0.76 / 0.77 of lz4 with `fast`, 0.71 /
-//! 0.72 with `dense`; the Lorenzo predictors (2D and 3D) and an x/y average landed between the two,
-//! bit shuffle before zstd was larger. u16 bricks keep the byte shuffle (kinds 3 and 4): on the
+//! x neighbour (decoded by a running sum per row, one add per sample); `dense` predicts from
+//! seven neighbours in this slice and the one below and codes the residuals in six streams by
+//! local activity (kind 8, [`linear3d`]; kind 7, the median edge detector of LOCO-I with one
+//! zstd frame, is what `dense` wrote before). Measured (`strata bench codecs`): chris_t1 and
+//! FLAIR 0.76 / 0.77 of lz4 with `fast`, 0.71 / 0.72 with kind 7; the Lorenzo predictors (2D and
+//! 3D) and an x/y average landed between the two, bit shuffle before zstd was larger. u16 bricks keep the byte shuffle (kinds 3 and 4): on the
 //! 16-bit MR and the CT phantom the filters made them larger.
 //!
 //! The byte shuffle (Blosc's, the Zarr default) stores all low bytes of a brick, then all high
@@ -38,6 +40,8 @@ use xxhash_rust::xxh3::Xxh3;
 
 use crate::octree::{BrickId, APRON, BRICK_PAYLOAD, BRICK_PAYLOAD_VOXELS, CORE};
 
+mod linear3d;
+
 const KIND_LZ4_U16: u8 = 0;
 const KIND_LZ4_U8: u8 = 1;
 const KIND_CONSTANT: u8 = 2;
@@ -46,6 +50,7 @@ const KIND_SHUFFLE_ZSTD_U16: u8 = 4;
 const KIND_ZSTD_U8: u8 = 5;
 const KIND_DELTA_ZSTD_U8: u8 = 6;
 const KIND_MED_ZSTD_U8: u8 = 7;
+const KIND_LINEAR3D_U8: u8 = 8;
 const HEADER_LEN: usize = 9;
 /// zstd level of the dense codec: level 1 keeps compression at hundreds of MB/s per core.
 const ZSTD_LEVEL: i32 = 1;
@@ -56,6 +61,9 @@ const PREDICTED_ZSTD_LEVEL: i32 = 1;
 /// The store feature a store with kinds 6 and 7 requires: builds that cannot decode them refuse
 /// the store with a message instead of failing brick by brick.
 pub const PREDICTED_U8_FEATURE: &str = "predicted-u8-bricks";
+/// The store feature a store with kind-8 bricks (`dense` u8) requires, on top of
+/// [`PREDICTED_U8_FEATURE`]: a build that knows only kinds 0-7 refuses such a store whole.
+pub const LINEAR3D_U8_FEATURE: &str = "linear3d-u8-bricks";
 /// Edge of a brick's payload (core and apron), the row length of the prediction filters.
 const EDGE: usize = BRICK_PAYLOAD as usize;
 
@@ -69,8 +77,8 @@ pub enum BrickCodec {
     /// The default: u16 byte shuffle + lz4, u8 x-delta + zstd.
     #[default]
     Fast,
-    /// Smaller stores, slower to decode: u16 byte shuffle + zstd, u8 median-edge prediction +
-    /// zstd.
+    /// Smaller stores, slower to decode: u16 byte shuffle + zstd, u8 3-D linear prediction +
+    /// zstd per activity context.
     Dense,
 }
 
@@ -97,18 +105,21 @@ impl BrickCodec {
             BrickCodec::Lz4 => "lz4 (format 1)",
             BrickCodec::Fast => "fast (u16: byte shuffle + lz4; u8: x-delta + zstd)",
             BrickCodec::Dense => {
-                "dense (u16: byte shuffle + zstd; u8: median-edge prediction + zstd)"
+                "dense (u16: byte shuffle + zstd; u8: 3-D linear prediction + zstd per context)"
             }
         }
     }
 
     /// The store features a store of this codec requires (its header's `required_features`):
-    /// u8 stores of format 2 hold the predicted kinds.
+    /// u8 stores of format 2 hold the predicted kinds, `dense` ones kind 8 as well.
     pub fn required_features(self, narrow: bool) -> Vec<String> {
-        if narrow && !self.is_format_1() {
-            vec![PREDICTED_U8_FEATURE.to_string()]
-        } else {
-            Vec::new()
+        match (narrow, self) {
+            (true, BrickCodec::Fast) => vec![PREDICTED_U8_FEATURE.to_string()],
+            (true, BrickCodec::Dense) => vec![
+                PREDICTED_U8_FEATURE.to_string(),
+                LINEAR3D_U8_FEATURE.to_string(),
+            ],
+            _ => Vec::new(),
         }
     }
 
@@ -245,15 +256,18 @@ pub fn compress_samples(sample_bytes: &[u8], narrow: bool, codec: BrickCodec) ->
 /// The kind and body of u8 samples (a brick, x fastest, rows of [`EDGE`]) under `codec`.
 fn compress_u8(bytes: &[u8], codec: BrickCodec) -> (u8, Vec<u8>) {
     let lz4 = || (KIND_LZ4_U8, lz4_flex::block::compress_prepend_size(bytes));
-    let (kind, residuals) = match codec {
+    let body = match codec {
         BrickCodec::Lz4 => return lz4(),
-        BrickCodec::Fast => (KIND_DELTA_ZSTD_U8, delta_residuals(bytes)),
-        BrickCodec::Dense => (KIND_MED_ZSTD_U8, med_residuals(bytes)),
+        BrickCodec::Fast => zstd_compress_level(&delta_residuals(bytes), PREDICTED_ZSTD_LEVEL)
+            .map(|body| (KIND_DELTA_ZSTD_U8, body)),
+        // Only whole bricks have the 3-D neighbourhood (the import limit passes other lengths).
+        BrickCodec::Dense if bytes.len() == BRICK_PAYLOAD_VOXELS => {
+            linear3d::compress(bytes).map(|body| (KIND_LINEAR3D_U8, body))
+        }
+        BrickCodec::Dense => zstd_compress_level(&med_residuals(bytes), PREDICTED_ZSTD_LEVEL)
+            .map(|body| (KIND_MED_ZSTD_U8, body)),
     };
-    match zstd_compress_level(&residuals, PREDICTED_ZSTD_LEVEL) {
-        Some(body) => (kind, body),
-        None => lz4(),
-    }
+    body.unwrap_or_else(lz4)
 }
 
 /// zstd of a whole buffer; None only when zstd cannot allocate its context (memory to memory
@@ -311,26 +325,41 @@ fn row_start_prediction(decoded: &[u8], start: usize) -> u8 {
     }
 }
 
-/// Inverse of [`delta_residuals`], widening to u16 as it goes: a running sum per row, appended
-/// to `out` (no zero fill of a buffer that is overwritten anyway).
-fn restore_delta(r: &[u8], out: &mut Vec<u16>) {
-    out.clear();
-    out.reserve(r.len());
-    for (row_index, row) in r.chunks(EDGE).enumerate() {
-        let start = row_index * EDGE;
-        // The row-start rule of `row_start_prediction`, on the samples decoded so far.
-        let mut acc = if !start.is_multiple_of(EDGE * EDGE) {
-            out[start - EDGE] as u8
-        } else if start > 0 {
-            out[start - EDGE * EDGE] as u8
-        } else {
-            0
-        };
-        out.extend(row.iter().map(|&d| {
-            acc = acc.wrapping_add(d);
-            u16::from(acc)
-        }));
+/// Inverse of [`delta_residuals`], in place: a running sum per row. Each row's sum is a serial
+/// chain (one add per sample), but rows depend on each other only through their first samples:
+/// those are restored first (a short chain down the first column), then four rows are summed in
+/// lockstep, four independent chains the core overlaps. The widening to u16 is a separate pass
+/// the compiler vectorises (fused into the sum, it was a per-sample push).
+fn restore_delta(r: &mut [u8]) {
+    const LANES: usize = 4;
+    for start in (0..r.len()).step_by(EDGE) {
+        // The row-start rule of `row_start_prediction`: only first samples are read, and those
+        // before `start` are restored already.
+        r[start] = r[start].wrapping_add(row_start_prediction(r, start));
     }
+    let mut groups = r.chunks_exact_mut(LANES * EDGE);
+    for group in &mut groups {
+        let mut acc: [u8; LANES] = std::array::from_fn(|k| group[k * EDGE]);
+        for x in 1..EDGE {
+            for (k, acc) in acc.iter_mut().enumerate() {
+                let d = &mut group[k * EDGE + x];
+                *acc = acc.wrapping_add(*d);
+                *d = *acc;
+            }
+        }
+    }
+    for row in groups.into_remainder().chunks_mut(EDGE) {
+        let mut acc = row[0];
+        for d in &mut row[1..] {
+            acc = acc.wrapping_add(*d);
+            *d = acc;
+        }
+    }
+}
+
+/// u8 samples widened to the u16 voxels a brick decodes to.
+fn widen(bytes: &[u8]) -> Vec<u16> {
+    bytes.iter().map(|&b| u16::from(b)).collect()
 }
 
 /// LOCO-I's median edge detector (JPEG-LS): from the left `a`, upper `b` and upper-left `c`
@@ -549,18 +578,18 @@ pub fn decode_brick(id: BrickId, record: &[u8]) -> Result<Vec<u16>, BrickDecodeE
             .into_iter()
             .map(u16::from)
             .collect()),
-        KIND_DELTA_ZSTD_U8 | KIND_MED_ZSTD_U8 => {
+        KIND_DELTA_ZSTD_U8 => with_scratch(|samples| {
+            zstd_exact_into(body, samples)?;
+            restore_delta(samples);
+            Ok(widen(samples))
+        }),
+        KIND_MED_ZSTD_U8 => {
             let residuals = zstd_exact(body, BRICK_PAYLOAD_VOXELS)?;
-            if kind == KIND_DELTA_ZSTD_U8 {
-                let mut out = Vec::new();
-                restore_delta(&residuals, &mut out);
-                Ok(out)
-            } else {
-                let mut out = vec![0u16; BRICK_PAYLOAD_VOXELS];
-                restore_med(&residuals, &mut out);
-                Ok(out)
-            }
+            let mut out = vec![0u16; BRICK_PAYLOAD_VOXELS];
+            restore_med(&residuals, &mut out);
+            Ok(out)
         }
+        KIND_LINEAR3D_U8 => linear3d::decompress(body),
         KIND_LZ4_U16 => Ok(lz4_exact(body, BRICK_PAYLOAD_VOXELS * 2)?
             .chunks_exact(2)
             .map(|c| u16::from_le_bytes([c[0], c[1]]))
@@ -599,6 +628,36 @@ fn lz4_exact(body: &[u8], expected: usize) -> Result<Vec<u8>, BrickDecodeError> 
         return Err(BrickDecodeError::WrongSize { bytes: n, expected });
     }
     Ok(out)
+}
+
+thread_local! {
+    /// The u8 residuals of the brick being decoded on this thread: the fast path allocates only
+    /// the voxels it returns (a second brick-sized allocation per decode measured as a large
+    /// share of the time after zstd).
+    static SCRATCH: std::cell::RefCell<Vec<u8>> = const { std::cell::RefCell::new(Vec::new()) };
+}
+
+/// Runs `f` on this thread's scratch buffer of one brick of u8 (a fresh one if re-entered).
+fn with_scratch<T>(f: impl FnOnce(&mut [u8]) -> T) -> T {
+    SCRATCH.with(|cell| match cell.try_borrow_mut() {
+        Ok(mut buffer) => {
+            buffer.resize(BRICK_PAYLOAD_VOXELS, 0);
+            f(&mut buffer)
+        }
+        Err(_) => f(&mut vec![0u8; BRICK_PAYLOAD_VOXELS]),
+    })
+}
+
+/// Decompresses a zstd frame that must fill `out` exactly, with this thread's reused context.
+fn zstd_exact_into(body: &[u8], out: &mut [u8]) -> Result<(), BrickDecodeError> {
+    let n = linear3d::zstd_into(body, out)?;
+    if n != out.len() {
+        return Err(BrickDecodeError::WrongSize {
+            bytes: n,
+            expected: out.len(),
+        });
+    }
+    Ok(())
 }
 
 /// Decompresses a zstd frame that must hold exactly `expected` bytes (at most that is allocated),
@@ -750,7 +809,7 @@ mod tests {
             .collect();
         assert_eq!(
             narrow_kinds,
-            [KIND_LZ4_U8, KIND_DELTA_ZSTD_U8, KIND_MED_ZSTD_U8]
+            [KIND_LZ4_U8, KIND_DELTA_ZSTD_U8, KIND_LINEAR3D_U8]
         );
     }
 
@@ -786,17 +845,20 @@ mod tests {
         ];
         cases.push(mr_like_u8_brick().iter().map(|&v| v as u8).collect());
         for (n, v) in cases.iter().enumerate() {
-            let mut out = Vec::new();
-            restore_delta(&delta_residuals(v), &mut out);
-            assert!(
-                out.iter().zip(v).all(|(&o, &x)| o == u16::from(x)),
-                "delta case {n}"
-            );
+            let mut out = delta_residuals(v);
+            restore_delta(&mut out);
+            assert_eq!(&out, v, "delta case {n}");
             let mut out = vec![0u16; v.len()];
             restore_med(&med_residuals(v), &mut out);
             assert!(
                 out.iter().zip(v).all(|(&o, &x)| o == u16::from(x)),
                 "med case {n}"
+            );
+            let body = linear3d::compress(v).unwrap();
+            let out = linear3d::decompress(&body).unwrap();
+            assert!(
+                out.iter().zip(v).all(|(&o, &x)| o == u16::from(x)),
+                "linear3d case {n}"
             );
         }
         // The MED predictor picks min, max or the plane as LOCO-I does.
@@ -857,8 +919,15 @@ mod tests {
         );
         let zstd =
             seal_record_for_tests(id, KIND_ZSTD_U8, &zstd::bulk::compress(&bytes, 1).unwrap());
+        // Kind 7, what `dense` wrote for u8 before kind 8.
+        let med = seal_record_for_tests(
+            id,
+            KIND_MED_ZSTD_U8,
+            &zstd::bulk::compress(&med_residuals(&bytes), 1).unwrap(),
+        );
         assert_eq!(decode_brick(id, &lz4), Ok(v.clone()));
-        assert_eq!(decode_brick(id, &zstd), Ok(v));
+        assert_eq!(decode_brick(id, &zstd), Ok(v.clone()));
+        assert_eq!(decode_brick(id, &med), Ok(v));
     }
 
     #[test]
@@ -869,8 +938,12 @@ mod tests {
         );
         assert_eq!(
             BrickCodec::Dense.required_features(true),
-            vec![PREDICTED_U8_FEATURE.to_string()]
+            vec![
+                PREDICTED_U8_FEATURE.to_string(),
+                LINEAR3D_U8_FEATURE.to_string()
+            ]
         );
+        assert!(BrickCodec::Dense.required_features(false).is_empty());
         assert!(BrickCodec::Fast.required_features(false).is_empty());
         assert!(BrickCodec::Lz4.required_features(true).is_empty());
     }
@@ -970,6 +1043,63 @@ mod tests {
                 Err(BrickDecodeError::Decompress(_))
             ));
         }
+        // Kind 8: a frame-length table cut short, lengths past the body, a frame in a stream
+        // that claims more than a brick (at most one brick is ever decompressed), streams whose
+        // totals are right but whose contexts do not match the samples they decode, and
+        // leftover bytes after the frames.
+        let v: Vec<u8> = mr_like_u8_brick().iter().map(|&x| x as u8).collect();
+        let good = linear3d::compress(&v).unwrap();
+        assert!(linear3d::decompress(&good).is_ok());
+        assert_eq!(
+            decode_brick(id, &reseal(KIND_LINEAR3D_U8, &good[..10])),
+            Err(BrickDecodeError::TooShort)
+        );
+        let mut past = good.clone();
+        let w = linear3d::WEIGHTS;
+        past[w..w + 4].copy_from_slice(&u32::MAX.to_le_bytes());
+        assert_eq!(
+            decode_brick(id, &reseal(KIND_LINEAR3D_U8, &past)),
+            Err(BrickDecodeError::TooShort)
+        );
+        let big = zstd::bulk::compress(&vec![0u8; 4 * BRICK_PAYLOAD_VOXELS], 1).unwrap();
+        // Weights of zero: every interior prediction is 0.
+        let mut oversized = vec![0u8; w];
+        oversized.extend_from_slice(&(big.len() as u32).to_le_bytes());
+        oversized.extend_from_slice(&[0u8; 4 * (linear3d::CONTEXTS - 1)]);
+        oversized.extend_from_slice(&big);
+        assert!(matches!(
+            decode_brick(id, &reseal(KIND_LINEAR3D_U8, &oversized)),
+            Err(BrickDecodeError::Decompress(_))
+        ));
+        // All residuals in stream 0: the right total, but the noisy brick needs other streams.
+        let all = zstd::bulk::compress(&vec![0u8; BRICK_PAYLOAD_VOXELS], 1).unwrap();
+        let mut one_stream = vec![0u8; w];
+        one_stream.extend_from_slice(&(all.len() as u32).to_le_bytes());
+        one_stream.extend_from_slice(&[0u8; 4 * (linear3d::CONTEXTS - 1)]);
+        one_stream.extend_from_slice(&all);
+        // Zero residuals decode a constant brick: stream 0 alone is consistent, so this one
+        // decodes; the same total spread over the last stream runs stream 0 dry.
+        assert_eq!(
+            decode_brick(id, &reseal(KIND_LINEAR3D_U8, &one_stream)),
+            Ok(vec![0; BRICK_PAYLOAD_VOXELS])
+        );
+        let mut last_stream = vec![0u8; w + 4 * (linear3d::CONTEXTS - 1)];
+        last_stream.extend_from_slice(&(all.len() as u32).to_le_bytes());
+        last_stream.extend_from_slice(&all);
+        assert!(matches!(
+            decode_brick(id, &reseal(KIND_LINEAR3D_U8, &last_stream)),
+            Err(BrickDecodeError::Decompress(_))
+        ));
+        let mut trailing = good.clone();
+        trailing.push(0);
+        assert!(matches!(
+            decode_brick(id, &reseal(KIND_LINEAR3D_U8, &trailing)),
+            Err(BrickDecodeError::WrongSize { .. })
+        ));
+        assert!(matches!(
+            decode_brick(id, &reseal(KIND_LINEAR3D_U8, &[0xAB; 40])),
+            Err(BrickDecodeError::TooShort | BrickDecodeError::Decompress(_))
+        ));
         // An unknown kind is named.
         assert_eq!(
             decode_brick(id, &reseal(99, &[0; 8])),

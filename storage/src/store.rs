@@ -37,9 +37,14 @@ pub const OLDEST_READABLE_FORMAT_VERSION: u32 = 1;
 /// Features of format 2 this build reads. A later wave extends format 2 without a version bump
 /// by adding a feature here (the octree's sparse skeleton, say) and naming it in the header of
 /// the stores that use it; a build that lacks it refuses those stores with a clear message
-/// instead of misreading them. `predicted-u8-bricks`: u8 bricks of kinds 6 and 7 (see
-/// [`crate::brick`]); `frames`: see [`FEATURE_FRAMES`].
-pub const KNOWN_STORE_FEATURES: &[&str] = &[crate::brick::PREDICTED_U8_FEATURE, FEATURE_FRAMES];
+/// instead of misreading them. `predicted-u8-bricks`: u8 bricks of kinds 6 and 7;
+/// `linear3d-u8-bricks`: u8 bricks of kind 8 (see [`crate::brick`]); `frames`: see
+/// [`FEATURE_FRAMES`].
+pub const KNOWN_STORE_FEATURES: &[&str] = &[
+    crate::brick::PREDICTED_U8_FEATURE,
+    crate::brick::LINEAR3D_U8_FEATURE,
+    FEATURE_FRAMES,
+];
 /// A 4-D store: [`StoreHeader::frames`] volumes on one grid. Frame 0 is stored exactly as a
 /// single volume is (tree `bricks`, meta `skeleton`), so everything that reads one volume reads
 /// frame 0 unchanged; frame f ≥ 1 has its bricks in tree `bricks-frame-f` (same keys) and its
@@ -708,6 +713,13 @@ impl Store {
 
 /// Refuses a header this build cannot read, naming the command that rebuilds the store.
 fn check_format(path: &Path, header: &StoreHeader) -> Result<()> {
+    check_format_knowing(path, header, KNOWN_STORE_FEATURES)
+}
+
+/// What a build that knows only the store features `known` says of `header`: lets the tests
+/// show that an older build (one whose list lacks a feature) refuses a store cleanly.
+#[doc(hidden)]
+pub fn check_format_knowing(path: &Path, header: &StoreHeader, known: &[&str]) -> Result<()> {
     let rebuild = || rebuild_command(path, header);
     let v = header.format_version;
     if !(OLDEST_READABLE_FORMAT_VERSION..=STORE_FORMAT_VERSION).contains(&v) {
@@ -731,7 +743,7 @@ fn check_format(path: &Path, header: &StoreHeader) -> Result<()> {
     if let Some(unknown) = header
         .required_features
         .iter()
-        .find(|f| !KNOWN_STORE_FEATURES.contains(&f.as_str()))
+        .find(|f| !known.contains(&f.as_str()))
     {
         return Err(StorageError::unsupported(
             path,

@@ -841,7 +841,7 @@ fn damaged_compressed_dicom_ends_in_a_clean_error_or_a_volume() {
 fn damaged_format_2_bricks_and_unknown_codecs_end_in_clean_errors() {
     use strata_storage::brick::{decode_brick, seal_record_for_tests};
     use strata_storage::phantom::Phantom;
-    use strata_storage::{BrickCodec, BrickId, Store, BRICK_PAYLOAD_VOXELS};
+    use strata_storage::{BrickCodec, BrickId, Store};
 
     let dir = tempfile::tempdir().unwrap();
     let mut rng = Rng(0x5EED_0017);
@@ -858,31 +858,7 @@ fn damaged_format_2_bricks_and_unknown_codecs_end_in_clean_errors() {
             let store = Store::open(&path).unwrap();
             store.read_brick_record(id).unwrap()
         };
-        for case in 0..300 {
-            let mut bad = record.clone();
-            match case % 4 {
-                0 => {
-                    let at = rng.below(bad.len());
-                    bad[at] ^= 1 << rng.below(8);
-                }
-                1 => bad.truncate(rng.below(bad.len())),
-                2 => bad.extend((0..1 + rng.below(64)).map(|_| rng.next() as u8)),
-                _ => bad[0] = 6 + rng.below(250) as u8,
-            }
-            assert!(
-                decode_brick(id, &bad).is_err(),
-                "{} case {case}: damage not detected",
-                codec.name()
-            );
-            // The same bytes resealed: the checksum passes, the decoder must still cope.
-            if bad.len() >= 9 {
-                let kind = if case % 2 == 0 { record[0] } else { bad[0] };
-                let sealed = seal_record_for_tests(id, kind, &bad[9..]);
-                if let Ok(voxels) = decode_brick(id, &sealed) {
-                    assert_eq!(voxels.len(), BRICK_PAYLOAD_VOXELS);
-                }
-            }
-        }
+        damage_record(id, &record, codec.name(), &mut rng);
         // Garbage bodies of every kind, resealed.
         for kind in 0..=8u8 {
             let body: Vec<u8> = (0..3 + rng.below(4000)).map(|_| rng.next() as u8).collect();
@@ -922,6 +898,69 @@ fn damaged_format_2_bricks_and_unknown_codecs_end_in_clean_errors() {
     assert!(err.contains("fast.strata"), "{err}");
     assert!(err.contains("header is unreadable"), "{err}");
     assert!(err.contains("brotli-9"), "{err}");
+}
+
+/// Flipped bits, truncations, extensions and changed kinds of a valid brick record: each is
+/// refused by the checksum, and the same bytes resealed (checksum right, body lying) end in an
+/// error or a brick of the right size.
+fn damage_record(id: strata_storage::BrickId, record: &[u8], name: &str, rng: &mut Rng) {
+    use strata_storage::brick::{decode_brick, seal_record_for_tests};
+    use strata_storage::BRICK_PAYLOAD_VOXELS;
+    for case in 0..300 {
+        let mut bad = record.to_vec();
+        match case % 4 {
+            0 => {
+                let at = rng.below(bad.len());
+                bad[at] ^= 1 << rng.below(8);
+            }
+            1 => bad.truncate(rng.below(bad.len())),
+            2 => bad.extend((0..1 + rng.below(64)).map(|_| rng.next() as u8)),
+            // Any other kind (a u8 record's own kind, 6, is among 6..=255).
+            _ => bad[0] = record[0].wrapping_add(1 + rng.below(255) as u8),
+        }
+        assert!(
+            decode_brick(id, &bad).is_err(),
+            "{} case {case}: damage not detected",
+            name
+        );
+        // The same bytes resealed: the checksum passes, the decoder must still cope.
+        if bad.len() >= 9 {
+            let kind = if case % 2 == 0 { record[0] } else { bad[0] };
+            let sealed = seal_record_for_tests(id, kind, &bad[9..]);
+            if let Ok(voxels) = decode_brick(id, &sealed) {
+                assert_eq!(voxels.len(), BRICK_PAYLOAD_VOXELS);
+            }
+        }
+    }
+}
+
+/// The u8 kinds (6: x-delta, 8: 3-D linear in context streams) under the same campaign: no u8
+/// phantom exists, so the records are encoded here from an MR-like brick (a smooth field plus
+/// noise) and from full-range noise.
+#[test]
+fn damaged_u8_bricks_of_the_predicted_kinds_end_in_clean_errors() {
+    use strata_storage::brick::{decode_brick, encode_brick, value_range};
+    use strata_storage::{BrickCodec, BrickId, BRICK_PAYLOAD, BRICK_PAYLOAD_VOXELS};
+
+    let edge = BRICK_PAYLOAD as usize;
+    let mut rng = Rng(0x5EED_0008);
+    let mr_like: Vec<u16> = (0..BRICK_PAYLOAD_VOXELS)
+        .map(|i| {
+            let (x, y, z) = (i % edge, i / edge % edge, i / (edge * edge));
+            (30 + 2 * x + 3 * y + z + rng.below(9)).min(255) as u16
+        })
+        .collect();
+    let noise: Vec<u16> = (0..BRICK_PAYLOAD_VOXELS)
+        .map(|_| rng.below(256) as u16)
+        .collect();
+    let id = BrickId::new(0, [1, 2, 3]);
+    for codec in [BrickCodec::Fast, BrickCodec::Dense] {
+        for voxels in [&mr_like, &noise] {
+            let record = encode_brick(id, voxels, value_range(voxels), true, codec);
+            assert_eq!(decode_brick(id, &record).as_ref(), Ok(voxels));
+            damage_record(id, &record, codec.name(), &mut rng);
+        }
+    }
 }
 
 /// DICOM SEG joins the campaign: hand-made header faults (absurd frame counts and sizes,

@@ -217,13 +217,9 @@ fn an_8_bit_mr_stores_the_same_voxels_smaller_under_the_predicted_kinds() {
         let store = Store::open(&path).unwrap();
         assert_eq!(store.header().stored, strata_storage::StoredScalar::U8);
         let features = &store.header().required_features;
-        if codec == BrickCodec::Lz4 {
-            assert!(features.is_empty(), "{features:?}");
-        } else {
-            assert_eq!(
-                features,
-                &vec![strata_storage::brick::PREDICTED_U8_FEATURE.to_string()]
-            );
+        assert_eq!(features, &codec.required_features(true), "{}", codec.name());
+        if codec != BrickCodec::Lz4 {
+            assert!(features.contains(&strata_storage::brick::PREDICTED_U8_FEATURE.to_string()));
         }
         assert!(store.verify(|_, _| {}).unwrap().is_empty());
         bricks.push(all_bricks(&store));
@@ -237,4 +233,52 @@ fn an_8_bit_mr_stores_the_same_voxels_smaller_under_the_predicted_kinds() {
         sizes[2],
         sizes[0]
     );
+}
+
+/// A `dense` u8 store holds kind-8 bricks and says so: a build that knows the store features up
+/// to `predicted-u8-bricks` only (the one before kind 8) refuses it with the rebuild command,
+/// while this build opens it. Skipped when the scan is absent.
+#[test]
+fn a_build_without_kind_8_refuses_a_dense_u8_store_cleanly() {
+    let scan = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../shared/data/niivue/nifti_space/LPI.nii.gz");
+    if !scan.exists() {
+        println!(
+            "SKIP: {} absent (see shared/data/SOURCES.md)",
+            scan.display()
+        );
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("dense-u8.strata");
+    let opened = strata_storage::readers::open_source(
+        &scan,
+        &strata_storage::readers::ReadOptions::default(),
+    )
+    .unwrap();
+    let options = ImportOptions {
+        codec: BrickCodec::Dense,
+        ..Default::default()
+    };
+    strata_storage::import::import_source(opened, &path, &options).unwrap();
+    let store = Store::open(&path).unwrap();
+    let header = store.header().clone();
+    let linear3d = strata_storage::brick::LINEAR3D_U8_FEATURE;
+    assert!(header.required_features.iter().any(|f| f == linear3d));
+    let older = [
+        strata_storage::brick::PREDICTED_U8_FEATURE,
+        strata_storage::store::FEATURE_FRAMES,
+    ];
+    let err = strata_storage::store::check_format_knowing(&path, &header, &older).unwrap_err();
+    let message = err.to_string();
+    assert!(matches!(err, StorageError::Unsupported { .. }), "{message}");
+    assert!(message.contains(linear3d), "{message}");
+    assert!(message.contains("strata import"), "{message}");
+    strata_storage::store::check_format_knowing(
+        &path,
+        &header,
+        strata_storage::store::KNOWN_STORE_FEATURES,
+    )
+    .unwrap();
+    assert!(store.verify(|_, _| {}).unwrap().is_empty());
 }
