@@ -586,6 +586,12 @@ impl StreamingVolume {
         self.raycaster.try_take_frame_timings(ctx)
     }
 
+    /// The raycaster, for what it draws besides the volume (the viewer's 3D overlay:
+    /// `Raycaster::set_overlay`).
+    pub fn raycaster_mut(&mut self) -> &mut Raycaster {
+        &mut self.raycaster
+    }
+
     /// Interactive use: a frame that needs a pipeline not compiled yet draws with the previous
     /// one while a thread compiles it (see `Raycaster::compile_in_background`).
     pub fn set_compile_in_background(&mut self, on: bool) {

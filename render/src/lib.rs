@@ -18,23 +18,25 @@
 //!   smooth_transitions  → page_table, layout                    (masks, near-side closure)
 //!   octree_cut          → page_table                            (the cut as an octree with ropes)
 //!   field               → page_table, layout                    (the one field definition)
+//!   overlay             → error           (3D overlay: grid sampling, LUT, the blend rule)
 //!   reference           → field, smooth_transitions, page_table, layout, camera, settings,
-//!                         transfer_function, error              (f64 renderer)
+//!                         transfer_function, overlay, error     (f64 renderer)
 //!   preintegration      → transfer_function             (the former 2D table; f64 segments)
 //!   segment_integral    → transfer_function             (length-free pre-integration)
 //!   cache               → layout, error
 //!   bricked_volume      → cache, page_table, layout, transfer_function, error
 //!   phantom             → bricked_volume, transfer_function, error
 //! GPU side
-//!   shaders             → layout       (composed WGSL, generated constants prelude, naga)
+//!   shaders             → layout, overlay (composed WGSL, generated constants prelude, naga)
 //!   pipelines           → settings     (PipelineKey, bind-group layout, cache, compiler)
 //!   readback_ring                      (staging ring read 1-2 frames late)
 //!   gpu_timing          → readback_ring
 //!   gpu_octree          → octree_cut, page_table, layout, error (node buffer, per-leaf)
 //!   gpu_page_table      → gpu_octree, page_table, smooth_transitions, cache, layout, error
 //!   gpu_transfer_function → transfer_function
+//!   gpu_overlay         → overlay, error                        (overlay grid + LUT textures)
 //!   gpu_preintegration  → gpu_transfer_function, segment_integral, transfer_function
-//!   raycast             → shaders, pipelines, gpu_page_table, gpu_transfer_function,
+//!   raycast             → shaders, pipelines, gpu_page_table, gpu_transfer_function, gpu_overlay, overlay,
 //!                         gpu_preintegration, gpu_timing, readback_ring, cache, camera,
 //!                         device, layout, settings, error       (the pass)
 //!   probe               → raycast, shaders, device, error       (feature test-probe)
@@ -66,6 +68,7 @@ pub mod device;
 pub mod error;
 pub mod field;
 pub mod gpu_octree;
+pub(crate) mod gpu_overlay;
 pub mod gpu_page_table;
 pub(crate) mod gpu_preintegration;
 pub mod gpu_timing;
@@ -76,6 +79,7 @@ pub mod octree_cut;
 #[cfg(feature = "test-probe")]
 pub mod octree_probe;
 pub mod offscreen;
+pub mod overlay;
 pub mod page_table;
 pub mod phantom;
 pub mod pipelines;
@@ -104,11 +108,15 @@ pub use gpu_transfer_function::GpuTransferFunction;
 pub use layout::{BrickSource, DEPTH_OPACITY};
 pub use metrics::{compare_rgba8, ImageComparison};
 pub use offscreen::OffscreenRenderer;
+pub use overlay::{OverlayKind, OverlayLut, OverlayScene, OverlayVolume};
 pub use page_table::{PageEntry, PageTable};
 pub use pipelines::PipelineKey;
 pub use preintegration::PreintegrationTable;
 pub use raycast::{FrameReadback, Raycaster, Scene, VisibilityFrame};
-pub use reference::{render_reference, ReferenceImage, ReferenceOptions, ReferenceScene};
+pub use reference::{
+    render_reference, render_reference_with_overlay, ReferenceImage, ReferenceOptions,
+    ReferenceScene,
+};
 pub use segment_integral::SegmentIntegralTable;
 pub use settings::{ClipPlane, CropBox, RenderMode, RenderSettings, Shading};
 pub use strata_types::{ValueMapping, VolumeGeometry};

@@ -24,12 +24,15 @@ pub struct PipelineKey {
     /// The octree traversal (octree.wgsl) instead of the flat page table: set by the scene's
     /// index ([`crate::GpuPageTable::traversal`]), not by the settings.
     pub octree: bool,
+    /// A label map or continuous overlay drawn in 3D (overlay.wgsl): set by the raycaster's
+    /// overlay ([`crate::Raycaster::set_overlay`]), not by the settings.
+    pub overlay: bool,
 }
 
 /// The raycast pass's bind-group layout: parameters (0), brick cache and its sampler (1, 2),
 /// page table (3), TF table (4), colour target (5), depth (6), visibility (7), sample counter
 /// (8), MIP page bounds (9; per leaf with the octree), pre-integration table (10), transition
-/// masks (11), octree node buffer (12).
+/// masks (11), octree node buffer (12), overlay grid, colour table and parameters (13-15).
 fn bind_group_layout(device: &wgpu::Device, filterable: bool) -> wgpu::BindGroupLayout {
     let storage = |binding: u32, read_only: bool| wgpu::BindGroupLayoutEntry {
         binding,
@@ -102,6 +105,36 @@ fn bind_group_layout(device: &wgpu::Device, filterable: bool) -> wgpu::BindGroup
             storage(11, true),
             storage(12, true),
             wgpu::BindGroupLayoutEntry {
+                binding: 13,
+                visibility: wgpu::ShaderStages::COMPUTE,
+                ty: wgpu::BindingType::Texture {
+                    sample_type: wgpu::TextureSampleType::Float { filterable: false },
+                    view_dimension: wgpu::TextureViewDimension::D3,
+                    multisampled: false,
+                },
+                count: None,
+            },
+            wgpu::BindGroupLayoutEntry {
+                binding: 14,
+                visibility: wgpu::ShaderStages::COMPUTE,
+                ty: wgpu::BindingType::Texture {
+                    sample_type: wgpu::TextureSampleType::Float { filterable: false },
+                    view_dimension: wgpu::TextureViewDimension::D1,
+                    multisampled: false,
+                },
+                count: None,
+            },
+            wgpu::BindGroupLayoutEntry {
+                binding: 15,
+                visibility: wgpu::ShaderStages::COMPUTE,
+                ty: wgpu::BindingType::Buffer {
+                    ty: wgpu::BufferBindingType::Uniform,
+                    has_dynamic_offset: false,
+                    min_binding_size: None,
+                },
+                count: None,
+            },
+            wgpu::BindGroupLayoutEntry {
                 binding: 10,
                 visibility: wgpu::ShaderStages::COMPUTE,
                 ty: wgpu::BindingType::Texture {
@@ -122,8 +155,8 @@ struct BackgroundCompiler {
 }
 
 /// The shader's effect overrides, as named in the WGSL (raycast.wgsl, field.wgsl,
-/// smooth_transitions.wgsl).
-pub(crate) const OVERRIDE_NAMES: [&str; 11] = [
+/// smooth_transitions.wgsl, overlay.wgsl).
+pub(crate) const OVERRIDE_NAMES: [&str; 12] = [
     "MODE",
     "MANUAL_TRILINEAR",
     "SHADING",
@@ -135,6 +168,7 @@ pub(crate) const OVERRIDE_NAMES: [&str; 11] = [
     "PREINTEGRATED",
     "SMOOTH_TRANSITIONS",
     "OCTREE",
+    "OVERLAY",
 ];
 
 /// One raycast pipeline with the effects of `key` as override constants (those of
@@ -164,6 +198,7 @@ fn build_pipeline(
         ("PREINTEGRATED", b(key.preintegrated)),
         ("SMOOTH_TRANSITIONS", b(key.smooth_transitions)),
         ("OCTREE", b(key.octree)),
+        ("OVERLAY", b(key.overlay)),
     ];
     let constants: Vec<(&str, f64)> = constants
         .into_iter()

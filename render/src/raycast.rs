@@ -14,9 +14,11 @@ use crate::camera::Camera;
 use crate::device::GpuContext;
 use crate::error::RenderError;
 use crate::gpu_octree::{OctreeLeaves, Traversal};
+use crate::gpu_overlay::GpuOverlay;
 use crate::gpu_preintegration::GpuPreintegration;
 use crate::gpu_timing::{FrameTiming, FrameTimingSource, PassTimestamps};
 use crate::layout::WORKGROUP_SIZE;
+use crate::overlay::{OverlayLut, OverlayVolume};
 use crate::pipelines::Pipelines;
 use crate::readback_ring::ReadbackRing;
 use crate::settings::{RenderMode, RenderSettings};
@@ -141,6 +143,8 @@ pub struct Raycaster {
     timestamps: Option<PassTimestamps>,
     last_submit_at: Option<std::time::Instant>,
     submit_to_done_timings: Vec<FrameTiming>,
+    /// The overlay drawn in 3D (gpu_overlay.rs), stand-ins when there is none.
+    overlay: GpuOverlay,
 }
 
 pub(crate) fn map_blocking(
@@ -239,7 +243,49 @@ impl Raycaster {
             timestamps: PassTimestamps::new(device, &ctx.queue),
             last_submit_at: None,
             submit_to_done_timings: Vec::new(),
+            overlay: GpuOverlay::new(device),
         }
+    }
+
+    /// Draws `volume` (resampled onto a grid spanning the primary's index box of `primary_dims`
+    /// voxels, overlay.rs) with `lut` in the following frames, which then use pipelines with the
+    /// overlay code compiled in. Shown until [`Raycaster::show_overlay`] turns it off.
+    pub fn set_overlay(
+        &mut self,
+        ctx: &GpuContext,
+        volume: &OverlayVolume,
+        lut: &OverlayLut,
+        primary_dims: [u32; 3],
+    ) -> Result<(), RenderError> {
+        self.overlay
+            .set(&ctx.device, &ctx.queue, volume, lut, primary_dims)?;
+        self.overlay.shown = true;
+        Ok(())
+    }
+
+    /// Replaces the overlay's colour table only (opacity, hidden labels, colour map, range,
+    /// threshold): no grid upload.
+    pub fn set_overlay_lut(
+        &mut self,
+        ctx: &GpuContext,
+        lut: &OverlayLut,
+    ) -> Result<(), RenderError> {
+        self.overlay.set_lut(&ctx.device, &ctx.queue, lut)
+    }
+
+    /// Shows or hides the loaded overlay (hidden: today's pipelines, as without one).
+    pub fn show_overlay(&mut self, shown: bool) {
+        self.overlay.shown = shown;
+    }
+
+    /// Forgets the overlay: frames are drawn as without one.
+    pub fn clear_overlay(&mut self) {
+        self.overlay.clear();
+    }
+
+    /// Whether frames draw an overlay.
+    pub fn overlay_active(&self) -> bool {
+        self.overlay.active()
     }
 
     /// True while a background compile is outstanding (the UI can say "compiling…").
@@ -387,6 +433,7 @@ impl Raycaster {
 
     /// The effects a frame with `settings` compiles in (see [`PipelineKey`]).
     pub fn key_for(&self, settings: &RenderSettings) -> PipelineKey {
+        let overlay = self.overlay.active();
         PipelineKey {
             mode: settings.mode,
             manual_trilinear: settings.exact_trilinear || !self.filterable,
@@ -397,9 +444,12 @@ impl Raycaster {
                 && settings.mode == RenderMode::Dvr,
             clip_plane: settings.clip_plane.is_some(),
             count_samples: settings.count_samples,
-            preintegrated: settings.preintegrated && settings.mode == RenderMode::Dvr,
+            // The overlay is composited per sample (its colours are categories, not a TF the
+            // segment integral could hold), so with one DVR takes the classic path.
+            preintegrated: settings.preintegrated && settings.mode == RenderMode::Dvr && !overlay,
             smooth_transitions: settings.smooth_transitions,
             octree: false,
+            overlay,
         }
     }
 
@@ -553,6 +603,18 @@ impl Raycaster {
                     wgpu::BindGroupEntry {
                         binding: 12,
                         resource: octree_nodes.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 13,
+                        resource: wgpu::BindingResource::TextureView(&self.overlay.grid_view),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 14,
+                        resource: wgpu::BindingResource::TextureView(&self.overlay.lut_view),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 15,
+                        resource: self.overlay.params.as_entire_binding(),
                     },
                     wgpu::BindGroupEntry {
                         binding: 10,

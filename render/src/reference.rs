@@ -11,6 +11,7 @@ use crate::camera::Camera;
 use crate::error::RenderError;
 use crate::field::{sample_field, FieldSample};
 use crate::layout::{BrickSource, DEPTH_OPACITY};
+use crate::overlay::{blend, OverlayScene};
 use crate::page_table::PageTable;
 use crate::settings::{RenderMode, RenderSettings, Shading};
 use crate::smooth_transitions::transition_masks;
@@ -142,6 +143,18 @@ pub fn render_reference<S: BrickSource>(
     settings: &RenderSettings,
     options: ReferenceOptions,
 ) -> Result<ReferenceImage, RenderError> {
+    render_reference_with_overlay(scene, None, camera, settings, options)
+}
+
+/// [`render_reference`] with an overlay drawn in 3D (overlay.rs: its sampling and blend rule,
+/// the same the shader applies).
+pub fn render_reference_with_overlay<S: BrickSource>(
+    scene: &ReferenceScene<S>,
+    overlay: Option<&OverlayScene>,
+    camera: &Camera,
+    settings: &RenderSettings,
+    options: ReferenceOptions,
+) -> Result<ReferenceImage, RenderError> {
     settings.validate()?;
     scene.geometry.validate()?;
     scene.page_table.check_against(scene.geometry.page_dims())?;
@@ -156,7 +169,7 @@ pub fn render_reference<S: BrickSource>(
         .flat_map_iter(|py| {
             (0..w).map(move |px| {
                 let (origin, dir) = basis.ray(px, py, w, h);
-                trace(scene, masks, settings, &options, origin, dir)
+                trace(scene, overlay, masks, settings, &options, origin, dir)
             })
         })
         .collect();
@@ -175,6 +188,7 @@ pub fn render_reference<S: BrickSource>(
 
 fn trace<S: BrickSource>(
     scene: &ReferenceScene<S>,
+    overlay: Option<&OverlayScene>,
     masks: Option<&[u32]>,
     settings: &RenderSettings,
     options: &ReferenceOptions,
@@ -205,6 +219,8 @@ fn trace<S: BrickSource>(
         )
     };
     // Physical gradient per mm: d(value)/d(patient) = A^T · d(value)/d(index).
+    // The overlay's colour and opacity at ray distance t (none: nothing drawn).
+    let overlay_at = |t: f64| overlay.map_or([0.0; 4], |o| o.colour_at(o_idx + d_idx * t));
     let gradient_patient = |s: &FieldSample| a.transpose() * s.gradient_index() * mapping.slope;
     let n_steps = ((t1 - t0) / step).ceil() as u64;
     // Segment k is [t0 + k·step, t0 + (k+1)·step) cut at t1, sampled at its midpoint; the
@@ -224,12 +240,11 @@ fn trace<S: BrickSource>(
                 let Some((t, length)) = segment(k) else { break };
                 let Some(loc) = at(t) else { continue };
                 let v = mapping.physical(loc.value);
-                let op = tf.opacity_at(v);
+                let (mut col, op) = blend(tf.color_at(v), tf.opacity_at(v), overlay_at(t));
                 if op <= 0.0 {
                     continue;
                 }
                 let op = 1.0 - (1.0 - op).powf(length / unit);
-                let mut col = tf.color_at(v);
                 if let Some(s) = &shading {
                     col = shade(col, gradient_patient(&loc), dir, s, flatness_scale);
                 }
@@ -262,8 +277,13 @@ fn trace<S: BrickSource>(
             }
             match best {
                 Some((v, t)) => {
-                    let op = tf.opacity_at(v);
-                    let col = tf.color_at(v);
+                    // The overlay projected too: its first shown sample on the ray.
+                    let first_shown = (0..n_steps)
+                        .map_while(&segment)
+                        .map(|(t, _)| overlay_at(t))
+                        .find(|c| c[3] > 0.0)
+                        .unwrap_or([0.0; 4]);
+                    let (col, op) = blend(tf.color_at(v), tf.opacity_at(v), first_shown);
                     let depth = if op > 0.0 { t as f32 } else { f32::INFINITY };
                     ([col[0] * op, col[1] * op, col[2] * op, op], depth)
                 }
@@ -295,8 +315,11 @@ fn trace<S: BrickSource>(
                         hit = hi;
                     }
                     let Some(loc) = at(hit) else { break };
+                    let surface = tf.color_at(iso);
+                    let o = overlay_at(hit);
+                    let surface = [0, 1, 2].map(|i| surface[i] + (o[i] - surface[i]) * o[3]);
                     let col = shade(
-                        tf.color_at(iso),
+                        surface,
                         gradient_patient(&loc),
                         dir,
                         &shading.unwrap_or_default(),

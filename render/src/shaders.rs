@@ -6,7 +6,7 @@
 //! Each file is the twin of a Rust module: `params.wgsl` ↔ `Params` in raycast.rs,
 //! `page_table.wgsl` ↔ page_table.rs, `smooth_transitions.wgsl` ↔ smooth_transitions.rs,
 //! `field.wgsl` ↔ field.rs, `transfer_function.wgsl` ↔ transfer_function.rs,
-//! `preintegration.wgsl` ↔ preintegration.rs, `raycast.wgsl` (entry point and ray loop) ↔
+//! `preintegration.wgsl` ↔ preintegration.rs, `overlay.wgsl` ↔ overlay.rs, `raycast.wgsl` (entry point and ray loop) ↔
 //! raycast.rs; `probe.wgsl` ↔ probe.rs, composed into a test-only module of its own;
 //! `adaptive.wgsl` ↔ adaptive/gpu.rs (and adaptive/transcription.rs), composed with the field
 //! files and `preintegration.wgsl` into the adaptive pass's module.
@@ -22,6 +22,7 @@ use crate::layout::{
     OCTREE_NULL, OCTREE_RECORD_WORDS, OCTREE_SIZE_SHIFT, SHADING_FLAT_BELOW, SHADING_LIT_ABOVE,
     SLOT_AXIS_BITS, SLOT_AXIS_MASK, WORKGROUP_SIZE,
 };
+use crate::overlay::OVERLAY_VOXEL_OPACITY;
 
 /// The files that define the sampled field and its lookups, in composition order.
 const FIELD_FILES: [(&str, &str); 4] = [
@@ -35,7 +36,7 @@ const FIELD_FILES: [(&str, &str); 4] = [
 ];
 
 /// The raycast pass's own files, after [`FIELD_FILES`].
-const RAYCAST_FILES: [(&str, &str); 4] = [
+const RAYCAST_FILES: [(&str, &str); 5] = [
     (
         "transfer_function.wgsl",
         include_str!("shaders/transfer_function.wgsl"),
@@ -45,6 +46,7 @@ const RAYCAST_FILES: [(&str, &str); 4] = [
         include_str!("shaders/preintegration.wgsl"),
     ),
     ("octree.wgsl", OCTREE_WGSL),
+    ("overlay.wgsl", include_str!("shaders/overlay.wgsl")),
     ("raycast.wgsl", include_str!("shaders/raycast.wgsl")),
 ];
 
@@ -63,7 +65,7 @@ pub(crate) enum PreludeValue {
 }
 
 /// Every constant the shader shares with Rust, by its WGSL name.
-pub(crate) fn prelude_constants() -> [(&'static str, PreludeValue); 20] {
+pub(crate) fn prelude_constants() -> [(&'static str, PreludeValue); 21] {
     use PreludeValue::*;
     [
         ("CORE", F32(BRICK_CORE as f64)),
@@ -90,6 +92,8 @@ pub(crate) fn prelude_constants() -> [(&'static str, PreludeValue); 20] {
         ("OCTREE_SIZE_SHIFT", U32(OCTREE_SIZE_SHIFT)),
         ("OCTREE_LEAF_BIT", Bits(OCTREE_LEAF_BIT)),
         ("OCTREE_NULL", Bits(OCTREE_NULL)),
+        // The overlay's opacity floor per finest voxel (overlay.rs, the blend rule).
+        ("OVERLAY_VOXEL_OPACITY", F32(OVERLAY_VOXEL_OPACITY)),
     ]
 }
 

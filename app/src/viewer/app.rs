@@ -17,6 +17,7 @@ use super::measurements::Measurements;
 use super::oblique_view::{AlignTarget, ObliqueViewer};
 use super::orientation::{SliceFrame, SliceView};
 use super::overlay::Overlay;
+use super::overlay_3d::Overlay3d;
 use super::panels::{FrameClock, PanelContext, Panels};
 pub use super::preferences::{Layout, Preferences, ViewSlot};
 use super::scene::{
@@ -95,6 +96,8 @@ pub struct OpenVolume {
     pub view_rects: Vec<PlacedView>,
     /// A label map or continuous overlay drawn over the slices (overlay.rs).
     pub overlay: Option<Overlay>,
+    /// That overlay resampled for the 3D view (overlay_3d.rs), following `overlay`.
+    pub overlay_3d: Option<Overlay3d>,
     /// A 4-D volume's frame slider and cine (frames.rs); `None` for one volume.
     pub frames: Option<super::frames::FramePlayer>,
 }
@@ -379,6 +382,7 @@ impl StrataApp {
             oblique_view: ObliqueViewer::default(),
             view_rects: Vec::new(),
             overlay: None,
+            overlay_3d: None,
             frames: frame_player,
         });
         Ok(())
@@ -402,6 +406,17 @@ impl StrataApp {
         if let Some(v) = self.volume.as_mut() {
             // Here, not in the panel: an overlay opens even with the side bar hidden.
             self.panels.overlay.poll(ui.ctx(), &v.data, &mut v.overlay);
+            // The 3D grid follows the overlay: started for a new one, dropped with it.
+            match &v.overlay {
+                Some(o) if !v.overlay_3d.as_ref().is_some_and(|g| g.is_for(o)) => {
+                    let ctx = ui.ctx().clone();
+                    v.overlay_3d = Overlay3d::start(o, Arc::new(move || ctx.request_repaint()))
+                        .map_err(|e| eprintln!("strata: overlay in 3D: {e:#}"))
+                        .ok();
+                }
+                Some(_) => {}
+                None => v.overlay_3d = None,
+            }
             if let Some(player) = v.frames.as_mut() {
                 if player.tick(ui.ctx(), &mut v.data) {
                     // New readers: the views ask them again and take their next images.
@@ -1043,6 +1058,10 @@ impl StrataApp {
         };
         self.hover = None;
         self.hover_overlay = None;
+        let overlay_3d = match (&v.overlay, &v.overlay_3d) {
+            (Some(o), Some(g)) => g.request(o),
+            _ => None,
+        };
         for (slot, rect) in &slots {
             let response = match slot {
                 ViewSlot::ThreeD => v.view_3d.ui(
@@ -1052,6 +1071,7 @@ impl StrataApp {
                     &mut v.scene,
                     &self.preferences,
                     max_pixels,
+                    overlay_3d.clone(),
                 ),
                 ViewSlot::Oblique => {
                     let camera = v.view_3d.orbit.camera(&v.data.info.geometry);

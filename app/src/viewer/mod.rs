@@ -23,6 +23,7 @@ pub mod oblique;
 pub mod oblique_view;
 pub mod orientation;
 pub mod overlay;
+pub mod overlay_3d;
 pub mod panels;
 pub mod preferences;
 pub mod scene;

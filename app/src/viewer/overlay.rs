@@ -43,6 +43,8 @@ pub enum OverlayKind {
 #[derive(Clone, Debug, PartialEq)]
 pub struct OverlayStyle {
     pub visible: bool,
+    /// Drawn in the 3D view too (overlay_3d.rs), not only on the slices.
+    pub show_in_3d: bool,
     /// 0..1, multiplied into every overlay pixel.
     pub opacity: f32,
     /// Labels hidden by the user.
@@ -161,6 +163,9 @@ pub struct Overlay {
     pub style: OverlayStyle,
     /// The overlay's physical value range.
     pub physical_range: (f64, f64),
+    /// The overlay's store and both grids (the 3D view resamples from them, overlay_3d.rs).
+    source: Arc<dyn VolumeSource>,
+    grids: OverlayGrids,
     shared: Arc<Shared>,
     thread: Option<std::thread::JoinHandle<()>>,
 }
@@ -203,8 +208,9 @@ impl Overlay {
             stop: AtomicBool::new(false),
         });
         let name = store.location();
+        let source = store.clone();
         let thread_shared = shared.clone();
-        let thread_grids = grids;
+        let thread_grids = grids.clone();
         let thread = std::thread::Builder::new()
             .name("strata-overlay-reader".into())
             .spawn(move || {
@@ -252,6 +258,7 @@ impl Overlay {
             })?;
         let style = OverlayStyle {
             visible: true,
+            show_in_3d: true,
             opacity: 0.5,
             hidden_labels: BTreeSet::new(),
             label_table,
@@ -265,9 +272,21 @@ impl Overlay {
             kind,
             style,
             physical_range,
+            source,
+            grids,
             shared,
             thread: Some(thread),
         })
+    }
+
+    /// The overlay's store.
+    pub fn source(&self) -> &Arc<dyn VolumeSource> {
+        &self.source
+    }
+
+    /// The primary's and the overlay's grids.
+    pub fn grids(&self) -> &OverlayGrids {
+        &self.grids
     }
 
     /// Asks for the overlay over the primary slice image `slice` (`width`×`height` pixels).
@@ -381,7 +400,7 @@ pub struct BrickCache {
 }
 
 impl BrickCache {
-    fn new(budget_bytes: usize) -> Self {
+    pub fn new(budget_bytes: usize) -> Self {
         BrickCache {
             budget_bricks: (budget_bytes / (strata_storage::BRICK_PAYLOAD_VOXELS * 2)).max(16),
             bricks: HashMap::new(),
@@ -390,7 +409,7 @@ impl BrickCache {
     }
 
     /// The stored value of level-0 voxel `index` (inside the volume).
-    fn voxel(&mut self, store: &dyn VolumeSource, index: [u32; 3]) -> anyhow::Result<u16> {
+    pub fn voxel(&mut self, store: &dyn VolumeSource, index: [u32; 3]) -> anyhow::Result<u16> {
         let id = BrickId::new(0, index.map(|i| i / BRICK_CORE));
         let brick = match &self.last {
             Some((last_id, brick)) if *last_id == id => brick.clone(),
@@ -486,7 +505,9 @@ pub fn sample_slice(
     })
 }
 
-fn trilinear(
+/// The overlay's physical value at its continuous index `p`, trilinear between level-0 voxel
+/// centres, clamped at the edges.
+pub fn trilinear(
     store: &dyn VolumeSource,
     cache: &mut BrickCache,
     dims: [u32; 3],
@@ -527,6 +548,7 @@ pub(crate) mod tests {
         assert_eq!(colours.len(), 40, "40 labels, 40 colours");
         let style = OverlayStyle {
             visible: true,
+            show_in_3d: true,
             opacity: 0.5,
             hidden_labels: [2].into_iter().collect(),
             label_table: BTreeMap::new(),

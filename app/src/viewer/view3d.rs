@@ -11,6 +11,7 @@ use strata_render::{Camera, Projection, RenderMode, RenderSettings, Shading, Vol
 
 use super::measurements::{Shape, Tool};
 use super::orientation::SliceView;
+use super::overlay_3d::OverlayIn3d;
 use super::preferences::Preferences;
 use super::scene::{Scene, VolumeData};
 use super::slice_view::slice_colour;
@@ -338,7 +339,8 @@ impl View3d {
     }
 
     /// Draws the view into `rect`, turns input into camera and TF changes and sends the render
-    /// request for this frame.
+    /// request for this frame, with the overlay to draw in 3D (`overlay`, overlay_3d.rs).
+    #[allow(clippy::too_many_arguments)]
     pub fn ui(
         &mut self,
         ui: &mut egui::Ui,
@@ -347,6 +349,7 @@ impl View3d {
         scene: &mut Scene,
         prefs: &Preferences,
         max_pixels: u32,
+        overlay: Option<OverlayIn3d>,
     ) -> ViewResponse {
         let painter = ui.painter_at(rect);
         painter.rect_filled(rect, 0.0, Color32::BLACK);
@@ -428,6 +431,7 @@ impl View3d {
             transfer_function: scene.transfer_function.clone(),
             target_fps: prefs.target_fps_enabled.then_some(prefs.target_fps),
             interacting,
+            overlay,
         });
 
         if let Some(frame) = data.session.latest_frame() {

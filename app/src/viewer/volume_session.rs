@@ -29,6 +29,7 @@ use super::gpu_recovery::{
     recovery_line, smaller_budget, DeviceWatch, GpuFailureKind, InjectedFault, StepError,
     MAX_FAILURES_WITHOUT_A_FRAME,
 };
+use super::overlay_3d::OverlayIn3d;
 use super::sync::lock_ignoring_poison;
 
 /// GPU memory for the brick cache.
@@ -44,6 +45,8 @@ pub struct RenderRequest {
     pub target_fps: Option<f64>,
     /// The user is dragging: interactive quality; when it stops, still frames refine.
     pub interacting: bool,
+    /// The overlay drawn in 3D (overlay_3d.rs), if any.
+    pub overlay: Option<OverlayIn3d>,
 }
 
 /// A finished volume frame, premultiplied RGBA8, row 0 at the top.
@@ -445,6 +448,8 @@ impl RenderWorker {
         self.set_status(|s| s.loading = None);
 
         let mut last_rendered: Option<RenderRequest> = None;
+        // The overlay on this device's raycaster (a new device starts without one).
+        let mut current_overlay: Option<OverlayIn3d> = None;
         let mut converged = false;
         let mut frame_ms_history: Vec<(Instant, f64)> = Vec::new();
         let mut failures: Vec<String> = Vec::new();
@@ -509,6 +514,23 @@ impl RenderWorker {
                         .map_err(Into::into),
                 )?;
                 current_tf = request.transfer_function.clone();
+            }
+            if request.overlay != current_overlay {
+                let dims = self.store.header().geometry.dims;
+                let raycaster = volume.raycaster_mut();
+                let result = match (&request.overlay, &current_overlay) {
+                    // A style change: the colour table only.
+                    (Some(new), Some(old)) if Arc::ptr_eq(&new.volume, &old.volume) => {
+                        raycaster.set_overlay_lut(&ctx, &new.lut)
+                    }
+                    (Some(new), _) => raycaster.set_overlay(&ctx, &new.volume, &new.lut, dims),
+                    (None, _) => {
+                        raycaster.clear_overlay();
+                        Ok(())
+                    }
+                };
+                watch.classify(result.map_err(anyhow::Error::from))?;
+                current_overlay = request.overlay.clone();
             }
             let mut settings = request.settings.clone();
             // Three regimes: dragging holds the target rate (sampling rate and lod from the
@@ -740,6 +762,7 @@ mod tests {
             transfer_function: TransferFunction::preset("ct-bone").expect("preset"),
             target_fps: None,
             interacting: false,
+            overlay: None,
         };
         session.request(request.clone());
         (session, request)
@@ -898,6 +921,7 @@ mod tests {
             transfer_function: TransferFunction::preset("ct-bone").expect("preset"),
             target_fps: None,
             interacting: false,
+            overlay: None,
         };
         session.request(request);
         let start = Instant::now();

@@ -5,7 +5,7 @@
 //
 // Specialisation: every effect a scene may not use is an override constant, so the pipeline
 // compiled for a scene contains only what that scene needs (MANUAL_TRILINEAR is declared in
-// field.wgsl, SMOOTH_TRANSITIONS in smooth_transitions.wgsl).
+// field.wgsl, SMOOTH_TRANSITIONS in smooth_transitions.wgsl, OVERLAY in overlay.wgsl).
 override MODE: u32 = 0u;              // 0 DVR, 1 MIP, 2 isosurface
 override SHADING: bool = false;
 override JITTER: bool = false;
@@ -317,7 +317,11 @@ fn take_sample(st: ptr<function, RayState>, loc: Location, t: f32, delta: f32, o
         (*st).run_loc = loc;
         (*st).run_open = true;
     } else if MODE == 0u {
-        let tf = transfer(v);
+        var tf = transfer(v);
+        if OVERLAY {
+            // overlay.wgsl: the blend rule, before opacity correction and shading.
+            tf = overlay_blend(tf, overlay_at(o + d * t));
+        }
         if tf.a > 0.0 {
             // Opacity correction: opacity is defined per finest voxel; a step of `delta` mm
             // must absorb as much as delta/unit such steps would.
@@ -551,7 +555,12 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         var acc = vec4<f32>(0.0);
         var depth = inf;
         if r.have_best {
-            let tf = transfer(r.best_value);
+            var tf = transfer(r.best_value);
+            if OVERLAY {
+                // The overlay projected too: the first shown overlay sample on the ray,
+                // blended as one DVR sample (overlay.rs).
+                tf = overlay_blend(tf, overlay_first_on_ray(o, d, t0, t1, first, base));
+            }
             acc = vec4<f32>(tf.rgb * tf.a, tf.a);
             if tf.a > 0.0 {
                 depth = r.best_t;
@@ -577,6 +586,12 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     // Nothing decoded yet: the first lookup must read (locate_on_ray's same-region test).
     page_cache.resident = true;
     page_cache.whole_node = false;
+    // DVR with an overlay: inside the overlay's box an empty page is sampled all the same (a
+    // label may sit in tissue the TF makes transparent); before the box a skip stops at it.
+    var overlay_span = vec2<f32>(1.0, 0.0);
+    if OVERLAY && MODE == 0u {
+        overlay_span = overlay_interval(o, d);
+    }
     for (var iter = 0u; iter < MAX_ITERATIONS; iter++) {
         let seg = first + f32(k) * base;
         let probe_t = seg + 0.5 * base;
@@ -585,17 +600,23 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             break;
         }
         let probe = locate_on_ray(o, d, probe_t, &page_cache);
+        let in_overlay = OVERLAY && MODE == 0u && probe_t >= overlay_span.x
+            && probe_t <= overlay_span.y;
         // MIP: a page whose bound cannot beat the running maximum cannot change the pixel
         // (ties keep the first maximum), so it is skipped like an empty one.
         // (Empty flags and MIP bounds cover the coarser field a transition band blends in:
         // PageTable::sampled_ranges.)
         let mip_cannot_win = MODE == 1u && SKIP_EMPTY && st.have_best
             && page_value_max[probe.page] <= st.best_value;
-        if !probe.resident || (SKIP_EMPTY && probe.empty) || mip_cannot_win {
+        if !probe.resident || (SKIP_EMPTY && probe.empty && !in_overlay) || mip_cannot_win {
             if SKIP_EMPTY {
                 // Every cell of the region skip_exit leaves is skipped the same way (same
                 // word, same bound, no sample in between to raise the MIP maximum).
-                let t_exit = skip_exit(o, d, page_cache);
+                var t_exit = skip_exit(o, d, page_cache);
+                if OVERLAY && MODE == 0u && probe_t < overlay_span.x
+                    && overlay_span.x <= overlay_span.y {
+                    t_exit = min(t_exit, overlay_span.x);
+                }
                 let next = ceil((t_exit - first) / base - 0.5);
                 k = max(k + 1u, u32(clamp(next, 0.0, 4.0e9)));
                 st.prev_valid = false;
@@ -670,7 +691,8 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         let length = t1 - partial_start;
         let t = partial_start + 0.5 * length;
         let loc = locate_traversal(o + d * t);
-        if loc.resident && !(SKIP_EMPTY && loc.empty) {
+        let in_overlay = OVERLAY && MODE == 0u && t >= overlay_span.x && t <= overlay_span.y;
+        if loc.resident && !(SKIP_EMPTY && loc.empty && !in_overlay) {
             take_sample(&st, loc, t, length, o, d);
         }
     }
@@ -688,14 +710,22 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
 
     if MODE == 1u && have_best {
-        let tf = transfer(best_value);
+        var tf = transfer(best_value);
+        if OVERLAY {
+            tf = overlay_blend(tf, overlay_first_on_ray(o, d, t0, t1, first, base));
+        }
         acc = vec4<f32>(tf.rgb * tf.a, tf.a);
         if tf.a > 0.0 {
             depth = best_t;
         }
     }
     if MODE == 2u && hit {
-        let base_color = P.iso_color.rgb;
+        var base_color = P.iso_color.rgb;
+        if OVERLAY {
+            // The surface takes the overlay's colour at the hit, mixed by its opacity.
+            let ov = overlay_at(o + d * depth);
+            base_color = base_color + (ov.rgb - base_color) * ov.a;
+        }
         acc = vec4<f32>(shade(base_color, hit_loc, d), 1.0);
     }
     count(samples);

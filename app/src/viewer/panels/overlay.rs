@@ -1,6 +1,7 @@
 //! The overlay panel: open a second volume (a store, or a scan imported first) as a label map
-//! or as a continuous overlay over the primary's slices, then its opacity, visibility, the
-//! labels (colour swatch, show/hide each) or the colour map, range and threshold.
+//! or as a continuous overlay over the primary's slices and in 3D, then its opacity, visibility
+//! (on the slices, in 3D), the labels (colour swatch, show/hide each) or the colour map, range
+//! and threshold.
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -114,6 +115,11 @@ impl OverlayPanel {
             ui.separator();
             ui.horizontal(|ui| {
                 ui.checkbox(&mut o.style.visible, "Show");
+                ui.checkbox(&mut o.style.show_in_3d, "Show in 3D")
+                    .on_hover_text(
+                        "Draw the overlay in the 3D view too (resampled once in the background; \
+                     style changes only recolour it)",
+                    );
                 ui.label(RichText::new(short_name(&o.name)).strong())
                     .on_hover_text(&o.name);
                 remove = ui.small_button("Remove").clicked();
