@@ -106,21 +106,11 @@ impl OverlayVolume {
                 self.at(i)
             }
             OverlayKind::Continuous => {
-                let q = [0, 1, 2].map(|a| (g[a] - 0.5).clamp(0.0, last(a)));
-                let base = q.map(f64::floor);
-                let mut sum = 0.0;
-                for corner in 0..8u32 {
-                    let mut weight = 1.0;
-                    let mut index = [0u32; 3];
-                    for a in 0..3 {
-                        let up = (corner >> a) & 1 == 1;
-                        let f = q[a] - base[a];
-                        weight *= if up { f } else { 1.0 - f };
-                        index[a] = (base[a] as u32 + up as u32).min(self.dims[a] - 1);
-                    }
-                    sum += weight * self.at(index);
-                }
-                sum
+                let q = [0, 1, 2].map(|a| g[a] - 0.5);
+                crate::field::trilinear_corners(q, self.dims)
+                    .into_iter()
+                    .map(|(index, weight)| weight * self.at(index))
+                    .sum()
             }
         }
     }

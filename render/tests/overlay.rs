@@ -291,7 +291,7 @@ fn labels_are_fetched_nearest_so_no_blended_colour_appears() {
 /// MIP takes the first shown overlay sample along the ray, the isosurface the overlay at the
 /// hit; both follow the reference.
 #[test]
-fn mip_and_isosurface_take_the_overlay_colour_at_the_maximum_and_the_hit() {
+fn mip_takes_the_first_shown_overlay_colour_and_the_isosurface_the_colour_at_the_hit() {
     let ctx = gpu();
     let f = Fixture::ct(64);
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());

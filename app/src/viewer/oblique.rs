@@ -241,18 +241,8 @@ fn trilinear(
     dims: [u32; 3],
     p: DVec3,
 ) -> anyhow::Result<f64> {
-    let q = [0, 1, 2].map(|a| p[a].clamp(0.0, dims[a] as f64 - 1.0));
-    let base = q.map(f64::floor);
     let mut sum = 0.0;
-    for corner in 0..8u32 {
-        let mut weight = 1.0;
-        let mut index = [0u32; 3];
-        for a in 0..3 {
-            let up = (corner >> a) & 1 == 1;
-            let t = q[a] - base[a];
-            weight *= if up { t } else { 1.0 - t };
-            index[a] = ((base[a] as u32) + up as u32).min(dims[a] - 1);
-        }
+    for (index, weight) in strata_render::field::trilinear_corners(p.to_array(), dims) {
         if weight > 0.0 {
             sum += weight * cache.voxel(store, level, index)? as f64;
         }

@@ -514,23 +514,8 @@ pub fn trilinear(
     p: DVec3,
     physical: impl Fn(u16) -> f64,
 ) -> anyhow::Result<f64> {
-    let clamp_index = |v: f64, a: usize| v.clamp(0.0, dims[a] as f64 - 1.0);
-    let q = [
-        clamp_index(p.x, 0),
-        clamp_index(p.y, 1),
-        clamp_index(p.z, 2),
-    ];
-    let base = q.map(|v| v.floor());
-    let t = [q[0] - base[0], q[1] - base[1], q[2] - base[2]];
     let mut sum = 0.0;
-    for corner in 0..8u32 {
-        let mut weight = 1.0;
-        let mut index = [0u32; 3];
-        for a in 0..3 {
-            let up = (corner >> a) & 1 == 1;
-            weight *= if up { t[a] } else { 1.0 - t[a] };
-            index[a] = ((base[a] as u32) + up as u32).min(dims[a] - 1);
-        }
+    for (index, weight) in strata_render::field::trilinear_corners(p.to_array(), dims) {
         if weight > 0.0 {
             sum += weight * physical(cache.voxel(store, index)?);
         }
