@@ -299,6 +299,8 @@ impl RemoteSource {
         }
         .map_err(refused)?;
         let (doc, skeleton) = decode_open_document(&bytes).map_err(refused)?;
+        check_store_format(&doc.header, strata_storage::store::KNOWN_STORE_FEATURES)
+            .map_err(refused)?;
         conn.generation = doc.generation.clone();
         Ok(RemoteSource {
             runtime: Arc::new(runtime),
@@ -510,9 +512,61 @@ impl BrickFetcher for RemoteFetcher {
     }
 }
 
+/// Refuses a served store this client cannot read as a whole, by name, before any brick is
+/// fetched: a newer format version, or a store feature (a brick kind, 4-D frames) of a newer
+/// Strata. Without it an older client would fail brick by brick, or misread a header field it
+/// does not know.
+fn check_store_format(header: &StoreHeader, known_features: &[&str]) -> Result<(), String> {
+    use strata_storage::store::{OLDEST_READABLE_FORMAT_VERSION, STORE_FORMAT_VERSION};
+    let version = header.format_version;
+    if !(OLDEST_READABLE_FORMAT_VERSION..=STORE_FORMAT_VERSION).contains(&version) {
+        return Err(format!(
+            "the server's store has format version {version}, and this client reads versions \
+             {OLDEST_READABLE_FORMAT_VERSION} to {STORE_FORMAT_VERSION}: update this client"
+        ));
+    }
+    match header
+        .required_features
+        .iter()
+        .find(|feature| !known_features.contains(&feature.as_str()))
+    {
+        Some(feature) => Err(format!(
+            "the store needs '{feature}', a store feature of a newer Strata: update this client"
+        )),
+        None => Ok(()),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn phantom_header() -> StoreHeader {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("phantom.strata");
+        strata_storage::phantom::Phantom::cube(16)
+            .write_store(&path, &strata_storage::import::ImportOptions::default())
+            .unwrap();
+        strata_storage::Store::open(&path).unwrap().header().clone()
+    }
+
+    #[test]
+    fn a_store_with_a_feature_this_client_lacks_is_refused_by_name() {
+        let mut header = phantom_header();
+        let known = strata_storage::store::KNOWN_STORE_FEATURES;
+        assert_eq!(check_store_format(&header, known), Ok(()));
+        // What a newer server sends of a store whose bricks this build cannot decode.
+        header.required_features.push("quantum-bricks".into());
+        let refusal = check_store_format(&header, known).unwrap_err();
+        assert!(refusal.contains("'quantum-bricks'"), "{refusal}");
+        assert!(refusal.contains("update this client"), "{refusal}");
+        // Every feature this build knows is accepted.
+        header.required_features = known.iter().map(|f| f.to_string()).collect();
+        assert_eq!(check_store_format(&header, known), Ok(()));
+        header.format_version = strata_storage::store::STORE_FORMAT_VERSION + 1;
+        let refusal = check_store_format(&header, known).unwrap_err();
+        assert!(refusal.contains("format version"), "{refusal}");
+    }
 
     #[test]
     fn store_urls() {
