@@ -27,20 +27,56 @@ pub fn orientation_letter(direction: [f64; 3]) -> char {
 }
 
 /// Why a store's bricks are larger than a fresh import's would be, if they are: format 1's lz4,
-/// or u8 bricks written before the prediction filters (their header lacks the feature).
-fn superseded_codec(h: &strata_storage::StoreHeader) -> Option<&'static str> {
+/// u8 bricks written before the prediction filters, dense u8 bricks written before the 3-D
+/// predictor (kind 7, not kind 8), or fast u8 bricks of the x-delta filter (kind 6, not the
+/// column delta of kind 9); the header's features tell which. With the rewrite's codec.
+fn superseded_codec(
+    h: &strata_storage::StoreHeader,
+) -> Option<(&'static str, strata_storage::BrickCodec)> {
+    use strata_storage::brick::{
+        COLUMN_DELTA_U8_FEATURE, LINEAR3D_U8_FEATURE, PREDICTED_U8_FEATURE,
+    };
+    use strata_storage::BrickCodec;
     let narrow = h.stored == strata_storage::StoredScalar::U8;
+    let has = |feature: &str| h.required_features.iter().any(|f| f == feature);
     if h.codec.is_format_1() {
-        Some("format 1: lz4 bricks, larger than today's codecs write")
-    } else if narrow
-        && !h
-            .required_features
-            .iter()
-            .any(|f| f == strata_storage::brick::PREDICTED_U8_FEATURE)
-    {
-        Some("u8 bricks without the prediction filter, larger than today's codecs write")
+        Some((
+            "format 1: lz4 bricks, larger than today's codecs write",
+            BrickCodec::Fast,
+        ))
+    } else if narrow && !has(PREDICTED_U8_FEATURE) {
+        Some((
+            "u8 bricks without the prediction filter, larger than today's codecs write",
+            h.codec,
+        ))
+    } else if narrow && h.codec == BrickCodec::Dense && !has(LINEAR3D_U8_FEATURE) {
+        Some((
+            "dense u8 bricks of the older 2-D predictor (kind 7), about 4 % larger than \
+             today's dense codec writes",
+            BrickCodec::Dense,
+        ))
+    } else if narrow && h.codec == BrickCodec::Fast && !has(COLUMN_DELTA_U8_FEATURE) {
+        Some((
+            "fast u8 bricks of the x-delta filter (kind 6), slower to decode and about 3 % \
+             larger than today's fast codec writes",
+            BrickCodec::Fast,
+        ))
     } else {
         None
+    }
+}
+
+/// The command that rewrites the store at `path` in `codec`.
+fn rewrite_command(
+    path: &Path,
+    h: &strata_storage::StoreHeader,
+    codec: strata_storage::BrickCodec,
+) -> String {
+    let import = strata_storage::store::rebuild_command(path, h);
+    if codec == strata_storage::BrickCodec::default() {
+        import
+    } else {
+        format!("{import} --codec {}", codec.name())
     }
 }
 
@@ -83,10 +119,11 @@ pub fn run(location: &str, token_file: Option<&Path>) -> Result<()> {
         h.codec.describe()
     );
     if let Opened::Local(local) = &opened {
-        if let Some(why) = superseded_codec(h) {
+        if let Some((why, codec)) = superseded_codec(h) {
             println!(
-                "             {why}; rewrite it in the current fast codec with: {}",
-                strata_storage::store::rebuild_command(local.path(), h)
+                "             {why}; rewrite it in the current {} codec with: {}",
+                codec.name(),
+                rewrite_command(local.path(), h, codec)
             );
         }
     }
@@ -154,4 +191,53 @@ pub fn run(location: &str, token_file: Option<&Path>) -> Result<()> {
         s.source_bytes as f64 / 1e6
     );
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use strata_storage::brick::{
+        COLUMN_DELTA_U8_FEATURE, LINEAR3D_U8_FEATURE, PREDICTED_U8_FEATURE,
+    };
+    use strata_storage::{BrickCodec, StoredScalar};
+
+    /// A dense u8 store an earlier build wrote (kind-7 bricks: its header lists the predicted
+    /// feature but not the 3-D one) is flagged with a dense rewrite, a fast one of kind 6 with a
+    /// fast rewrite; today's are not.
+    #[test]
+    fn u8_stores_of_older_predictors_are_flagged_with_a_rewrite_in_their_codec() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("t1.strata");
+        strata_storage::phantom::Phantom::cube(16)
+            .write_store(&path, &Default::default())
+            .unwrap();
+        let mut header = strata_storage::Store::open(&path).unwrap().header().clone();
+        header.stored = StoredScalar::U8;
+        header.codec = BrickCodec::Dense;
+        header.required_features = vec![PREDICTED_U8_FEATURE.into()];
+        let (why, codec) = superseded_codec(&header).expect("kind-7 dense store not flagged");
+        assert!(why.contains("kind 7"), "{why}");
+        assert_eq!(codec, BrickCodec::Dense);
+        let command = rewrite_command(&path, &header, codec);
+        assert!(command.ends_with("--codec dense"), "{command}");
+        header.required_features.push(LINEAR3D_U8_FEATURE.into());
+        assert_eq!(superseded_codec(&header), None);
+        // A fast u8 store needs no 3-D predictor, but the column delta.
+        header.codec = BrickCodec::Fast;
+        header.required_features = vec![PREDICTED_U8_FEATURE.into()];
+        let (why, codec) = superseded_codec(&header).expect("kind-6 fast store not flagged");
+        assert!(why.contains("kind 6"), "{why}");
+        assert_eq!(codec, BrickCodec::Fast);
+        header
+            .required_features
+            .push(COLUMN_DELTA_U8_FEATURE.into());
+        assert_eq!(superseded_codec(&header), None);
+        header.required_features.clear();
+        let (why, codec) = superseded_codec(&header).expect("unfiltered u8 store not flagged");
+        assert!(why.contains("without the prediction filter"), "{why}");
+        assert_eq!(
+            rewrite_command(&path, &header, codec),
+            strata_storage::store::rebuild_command(&path, &header)
+        );
+    }
 }

@@ -38,11 +38,12 @@ pub const OLDEST_READABLE_FORMAT_VERSION: u32 = 1;
 /// by adding a feature here (the octree's sparse skeleton, say) and naming it in the header of
 /// the stores that use it; a build that lacks it refuses those stores with a clear message
 /// instead of misreading them. `predicted-u8-bricks`: u8 bricks of kinds 6 and 7;
-/// `linear3d-u8-bricks`: u8 bricks of kind 8 (see [`crate::brick`]); `frames`: see
-/// [`FEATURE_FRAMES`].
+/// `linear3d-u8-bricks`: u8 bricks of kind 8; `column-delta-u8-bricks`: u8 bricks of kind 9
+/// (see [`crate::brick`]); `frames`: see [`FEATURE_FRAMES`].
 pub const KNOWN_STORE_FEATURES: &[&str] = &[
     crate::brick::PREDICTED_U8_FEATURE,
     crate::brick::LINEAR3D_U8_FEATURE,
+    crate::brick::COLUMN_DELTA_U8_FEATURE,
     FEATURE_FRAMES,
 ];
 /// A 4-D store: [`StoreHeader::frames`] volumes on one grid. Frame 0 is stored exactly as a

@@ -934,7 +934,7 @@ fn damage_record(id: strata_storage::BrickId, record: &[u8], name: &str, rng: &m
     }
 }
 
-/// The u8 kinds (6: x-delta, 8: 3-D linear in context streams) under the same campaign: no u8
+/// The u8 kinds (9: column delta, 8: 3-D linear in context streams) under the same campaign: no u8
 /// phantom exists, so the records are encoded here from an MR-like brick (a smooth field plus
 /// noise) and from full-range noise.
 #[test]

@@ -235,11 +235,12 @@ fn an_8_bit_mr_stores_the_same_voxels_smaller_under_the_predicted_kinds() {
     );
 }
 
-/// A `dense` u8 store holds kind-8 bricks and says so: a build that knows the store features up
-/// to `predicted-u8-bricks` only (the one before kind 8) refuses it with the rebuild command,
-/// while this build opens it. Skipped when the scan is absent.
+/// A `dense` u8 store holds kind-8 bricks and a `fast` one kind-9 bricks, and each says so: a
+/// build that knows the store features up to `predicted-u8-bricks` only (the one before kinds 8
+/// and 9) refuses it with the rebuild command, while this build opens it. Skipped when the scan
+/// is absent.
 #[test]
-fn a_build_without_kind_8_refuses_a_dense_u8_store_cleanly() {
+fn a_build_without_kinds_8_and_9_refuses_a_predicted_u8_store_cleanly() {
     let scan = Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("../../shared/data/niivue/nifti_space/LPI.nii.gz");
     if !scan.exists() {
@@ -250,35 +251,45 @@ fn a_build_without_kind_8_refuses_a_dense_u8_store_cleanly() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();
-    let path = dir.path().join("dense-u8.strata");
-    let opened = strata_storage::readers::open_source(
-        &scan,
-        &strata_storage::readers::ReadOptions::default(),
-    )
-    .unwrap();
-    let options = ImportOptions {
-        codec: BrickCodec::Dense,
-        ..Default::default()
-    };
-    strata_storage::import::import_source(opened, &path, &options).unwrap();
-    let store = Store::open(&path).unwrap();
-    let header = store.header().clone();
-    let linear3d = strata_storage::brick::LINEAR3D_U8_FEATURE;
-    assert!(header.required_features.iter().any(|f| f == linear3d));
-    let older = [
-        strata_storage::brick::PREDICTED_U8_FEATURE,
-        strata_storage::store::FEATURE_FRAMES,
-    ];
-    let err = strata_storage::store::check_format_knowing(&path, &header, &older).unwrap_err();
-    let message = err.to_string();
-    assert!(matches!(err, StorageError::Unsupported { .. }), "{message}");
-    assert!(message.contains(linear3d), "{message}");
-    assert!(message.contains("strata import"), "{message}");
-    strata_storage::store::check_format_knowing(
-        &path,
-        &header,
-        strata_storage::store::KNOWN_STORE_FEATURES,
-    )
-    .unwrap();
-    assert!(store.verify(|_, _| {}).unwrap().is_empty());
+    for (codec, feature) in [
+        (
+            BrickCodec::Dense,
+            strata_storage::brick::LINEAR3D_U8_FEATURE,
+        ),
+        (
+            BrickCodec::Fast,
+            strata_storage::brick::COLUMN_DELTA_U8_FEATURE,
+        ),
+    ] {
+        let path = dir.path().join(format!("{}-u8.strata", codec.name()));
+        let opened = strata_storage::readers::open_source(
+            &scan,
+            &strata_storage::readers::ReadOptions::default(),
+        )
+        .unwrap();
+        let options = ImportOptions {
+            codec,
+            ..Default::default()
+        };
+        strata_storage::import::import_source(opened, &path, &options).unwrap();
+        let store = Store::open(&path).unwrap();
+        let header = store.header().clone();
+        assert!(header.required_features.iter().any(|f| f == feature));
+        let older = [
+            strata_storage::brick::PREDICTED_U8_FEATURE,
+            strata_storage::store::FEATURE_FRAMES,
+        ];
+        let err = strata_storage::store::check_format_knowing(&path, &header, &older).unwrap_err();
+        let message = err.to_string();
+        assert!(matches!(err, StorageError::Unsupported { .. }), "{message}");
+        assert!(message.contains(feature), "{message}");
+        assert!(message.contains("strata import"), "{message}");
+        strata_storage::store::check_format_knowing(
+            &path,
+            &header,
+            strata_storage::store::KNOWN_STORE_FEATURES,
+        )
+        .unwrap();
+        assert!(store.verify(|_, _| {}).unwrap().is_empty());
+    }
 }
