@@ -26,12 +26,12 @@
 //! y neighbour, the sample above in the same slice (kind 9): its inverse adds whole rows, so it
 //! runs at memory speed (SIMD over a row) where kind 6's x neighbour, which `fast` wrote before,
 //! needs a serial running sum per row and took as long as zstd itself; on chris_t1 and FLAIR the
-//! y neighbour also predicts better (0.735 / 0.748 of lz4 against 0.755 / 0.772 for x, level-0
-//! bricks without aprons, `/tmp` probe of this change). `dense` predicts from
+//! y neighbour also predicts better (whole stores: 0.738 / 0.747 of lz4 against 0.759 / 0.774
+//! for x). `dense` predicts from
 //! seven neighbours in this slice and the one below and codes the residuals in six streams by
 //! local activity (kind 8, [`linear3d`]; kind 7, the median edge detector of LOCO-I with one
 //! zstd frame, is what `dense` wrote before). Measured (`strata bench codecs`): chris_t1 and
-//! FLAIR 0.76 / 0.77 of lz4 with `fast`, 0.71 / 0.72 with kind 7; the Lorenzo predictors (2D and
+//! FLAIR 0.74 / 0.75 of lz4 with `fast`, 0.71 / 0.72 with kind 7, 0.64 / 0.69 with kind 8; the Lorenzo predictors (2D and
 //! 3D) and an x/y average landed between the two, bit shuffle before zstd was larger. u16 bricks keep the byte shuffle (kinds 3 and 4): on the
 //! 16-bit MR and the CT phantom the filters made them larger.
 //!
