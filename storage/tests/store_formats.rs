@@ -203,16 +203,7 @@ fn an_8_bit_mr_stores_the_same_voxels_smaller_under_the_predicted_kinds() {
     let mut bricks = Vec::new();
     for codec in BrickCodec::ALL {
         let path = dir.path().join(format!("{}.strata", codec.name()));
-        let opened = strata_storage::readers::open_source(
-            &scan,
-            &strata_storage::readers::ReadOptions::default(),
-        )
-        .unwrap();
-        let options = ImportOptions {
-            codec,
-            ..Default::default()
-        };
-        let report = strata_storage::import::import_source(opened, &path, &options).unwrap();
+        let report = import_with_codec(&scan, &path, codec);
         sizes.push(report.stats.compressed_bytes);
         let store = Store::open(&path).unwrap();
         assert_eq!(store.header().stored, strata_storage::StoredScalar::U8);
@@ -233,6 +224,24 @@ fn an_8_bit_mr_stores_the_same_voxels_smaller_under_the_predicted_kinds() {
         sizes[2],
         sizes[0]
     );
+}
+
+/// Imports the scan at `scan` into a store at `path` in `codec`.
+fn import_with_codec(
+    scan: &Path,
+    path: &Path,
+    codec: BrickCodec,
+) -> strata_storage::import::ImportReport {
+    let opened = strata_storage::readers::open_source(
+        scan,
+        &strata_storage::readers::ReadOptions::default(),
+    )
+    .unwrap();
+    let options = ImportOptions {
+        codec,
+        ..Default::default()
+    };
+    strata_storage::import::import_source(opened, path, &options).unwrap()
 }
 
 /// A `dense` u8 store holds kind-8 bricks and a `fast` one kind-9 bricks, and each says so: a
@@ -262,16 +271,7 @@ fn a_build_without_kinds_8_and_9_refuses_a_predicted_u8_store_cleanly() {
         ),
     ] {
         let path = dir.path().join(format!("{}-u8.strata", codec.name()));
-        let opened = strata_storage::readers::open_source(
-            &scan,
-            &strata_storage::readers::ReadOptions::default(),
-        )
-        .unwrap();
-        let options = ImportOptions {
-            codec,
-            ..Default::default()
-        };
-        strata_storage::import::import_source(opened, &path, &options).unwrap();
+        import_with_codec(&scan, &path, codec);
         let store = Store::open(&path).unwrap();
         let header = store.header().clone();
         assert!(header.required_features.iter().any(|f| f == feature));
