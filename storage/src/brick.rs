@@ -1048,12 +1048,12 @@ mod tests {
             .map(|i| (i / EDGE % EDGE * 3 + i % EDGE * 7) as u8)
             .collect();
         let r = column_delta_residuals(&v);
-        for i in EDGE..v.len() {
+        for (i, &residual) in r.iter().enumerate().skip(EDGE) {
             if i % (EDGE * EDGE) >= EDGE {
-                assert_eq!(r[i], 3, "sample {i}");
+                assert_eq!(residual, 3, "sample {i}");
             } else {
                 // A slice's first row: the same place one slice before holds the same value.
-                assert_eq!(r[i], 0, "sample {i}");
+                assert_eq!(residual, 0, "sample {i}");
             }
         }
         assert_eq!(r[1], 7);
