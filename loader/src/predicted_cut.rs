@@ -104,6 +104,9 @@ pub fn predict(octree: &OctreeRanges, job: &PredictionJob) -> PredictedLeaves {
         .collect()
 }
 
+/// The prediction thread's name.
+pub const PREDICTION_THREAD: &str = "strata-cut-predict";
+
 impl CutPredictor {
     pub fn start(octree: Arc<OctreeRanges>) -> Result<Self, LoaderError> {
         // One job at a time and one answer waiting: a newer frame's job replaces nothing, it
@@ -112,7 +115,7 @@ impl CutPredictor {
         let (result_tx, result_rx) = crossbeam_channel::bounded::<PredictedLeaves>(1);
         let stale = result_rx.clone();
         let thread = std::thread::Builder::new()
-            .name("strata-cut-predict".into())
+            .name(PREDICTION_THREAD.into())
             .spawn(move || {
                 for job in job_rx {
                     let leaves = predict(&octree, &job);
