@@ -342,6 +342,11 @@ pub struct SelectionsByThread {
     pub elsewhere: u64,
 }
 
+/// The thread that selects the frames' cuts (cut_worker.rs).
+pub const SELECTION_THREAD: &str = "strata-cut-select";
+/// The thread that selects the motion-extrapolated cut (predicted_cut.rs).
+pub const PREDICTION_THREAD: &str = "strata-cut-predict";
+
 static ON_SELECTION_THREADS: AtomicU64 = AtomicU64::new(0);
 static ELSEWHERE: AtomicU64 = AtomicU64::new(0);
 
@@ -355,9 +360,7 @@ pub fn selections_by_thread() -> SelectionsByThread {
 fn count_selection() {
     let thread = std::thread::current();
     let counter = match thread.name() {
-        Some(crate::cut_worker::SELECTION_THREAD | crate::predicted_cut::PREDICTION_THREAD) => {
-            &ON_SELECTION_THREADS
-        }
+        Some(SELECTION_THREAD | PREDICTION_THREAD) => &ON_SELECTION_THREADS,
         _ => &ELSEWHERE,
     };
     counter.fetch_add(1, AtomicOrdering::Relaxed);

@@ -27,7 +27,9 @@ use strata_render::{
 };
 use strata_storage::BrickId;
 
-use crate::cut_selection::{select_cut, Cut, CutLimits, LeafKind, Residency, ViewSetup};
+use crate::cut_selection::{
+    select_cut, Cut, CutLimits, LeafKind, Residency, ViewSetup, SELECTION_THREAD,
+};
 use crate::error::LoaderError;
 use crate::gpu_slots::GpuSlots;
 use crate::octree_ranges::{Emptiness, OctreeRanges, StoredRange};
@@ -363,7 +365,7 @@ impl Gate {
     }
 }
 
-/// Holds the selection thread until dropped ([`crate::StreamingVolume::hold_selection_for_tests`]).
+/// Holds the selection thread until dropped (`StreamingVolume::hold_selection_for_tests`).
 pub struct SelectionHold {
     gate: Arc<Gate>,
 }
@@ -373,9 +375,6 @@ impl Drop for SelectionHold {
         self.gate.set(false);
     }
 }
-
-/// The thread's name (the test of issue 18 checks that selection runs there).
-pub const SELECTION_THREAD: &str = "strata-cut-select";
 
 impl CutWorker {
     pub fn start(octree: Arc<OctreeRanges>) -> Result<Self, LoaderError> {

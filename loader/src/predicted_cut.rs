@@ -12,7 +12,9 @@ use rustc_hash::FxHashSet;
 use strata_render::{TransferFunctionTable, ValueMapping};
 use strata_storage::BrickId;
 
-use crate::cut_selection::{select_cut, CutLimits, LeafKind, Residency, ViewSetup};
+use crate::cut_selection::{
+    select_cut, CutLimits, LeafKind, Residency, ViewSetup, PREDICTION_THREAD,
+};
 use crate::error::LoaderError;
 use crate::octree_ranges::{Emptiness, OctreeRanges};
 
@@ -103,9 +105,6 @@ pub fn predict(octree: &OctreeRanges, job: &PredictionJob) -> PredictedLeaves {
         .map(|l| (l.id, l.priority))
         .collect()
 }
-
-/// The prediction thread's name.
-pub const PREDICTION_THREAD: &str = "strata-cut-predict";
 
 impl CutPredictor {
     pub fn start(octree: Arc<OctreeRanges>) -> Result<Self, LoaderError> {
