@@ -547,9 +547,12 @@ impl StreamingVolume {
                 .filter(|&id| id != self.root),
         );
         let demand_limit = ((self.cpu.budget_bytes() / BRICK_BYTES) as usize / 2).max(1);
+        // A background selection saw residency a frame or more ago: what arrived meanwhile
+        // is not asked for again.
         let demand: Vec<(BrickId, f64)> = cut
             .demand
             .iter()
+            .filter(|r| !self.cpu.contains(r.id) && !self.slots.contains(r.id))
             .take(demand_limit)
             .map(|r| (r.id, r.priority))
             .collect();
