@@ -71,6 +71,11 @@ impl CpuBrickCache {
         self.counters
     }
 
+    /// The bricks held (the selection thread's snapshot of what is in CPU memory).
+    pub fn ids(&self) -> impl Iterator<Item = BrickId> + '_ {
+        self.entries.keys().copied()
+    }
+
     pub fn contains(&self, id: BrickId) -> bool {
         self.entries.contains_key(&id)
     }

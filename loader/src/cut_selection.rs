@@ -29,6 +29,7 @@
 
 use std::cmp::Ordering;
 use std::collections::BinaryHeap;
+use std::sync::atomic::{AtomicU64, Ordering as AtomicOrdering};
 
 // Keys are brick ids, not attacker-chosen: a fast hash (selection does tens of thousands of
 // lookups per frame; SipHash was a visible share of the frame thread's time).
@@ -332,6 +333,39 @@ struct Selection<'a, R: Residency> {
     cut: Cut,
 }
 
+/// Selections run since start, by thread: on the loader's selection threads
+/// (`strata-cut-select`, `strata-cut-predict`) or elsewhere (a frame thread, a test). The
+/// test of issue 18 reads them: the frame thread selects no cut.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct SelectionsByThread {
+    pub on_selection_threads: u64,
+    pub elsewhere: u64,
+}
+
+/// The thread that selects the frames' cuts (cut_worker.rs).
+pub const SELECTION_THREAD: &str = "strata-cut-select";
+/// The thread that selects the motion-extrapolated cut (predicted_cut.rs).
+pub const PREDICTION_THREAD: &str = "strata-cut-predict";
+
+static ON_SELECTION_THREADS: AtomicU64 = AtomicU64::new(0);
+static ELSEWHERE: AtomicU64 = AtomicU64::new(0);
+
+pub fn selections_by_thread() -> SelectionsByThread {
+    SelectionsByThread {
+        on_selection_threads: ON_SELECTION_THREADS.load(AtomicOrdering::Relaxed),
+        elsewhere: ELSEWHERE.load(AtomicOrdering::Relaxed),
+    }
+}
+
+fn count_selection() {
+    let thread = std::thread::current();
+    let counter = match thread.name() {
+        Some(SELECTION_THREAD | PREDICTION_THREAD) => &ON_SELECTION_THREADS,
+        _ => &ELSEWHERE,
+    };
+    counter.fetch_add(1, AtomicOrdering::Relaxed);
+}
+
 /// Selects this frame's cut. `visibility` None turns feedback off; `incumbents` are the nodes
 /// the previous frame's cut refined ([`Cut::refined`]), empty for none.
 pub fn select_cut<R: Residency>(
@@ -343,6 +377,7 @@ pub fn select_cut<R: Residency>(
     incumbents: &HashSet<BrickId>,
     limits: CutLimits,
 ) -> Cut {
+    count_selection();
     let root = BrickId::new(octree.root_level(), [0, 0, 0]);
     let mut s = Selection {
         octree,

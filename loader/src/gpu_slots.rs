@@ -7,6 +7,9 @@ use rustc_hash::FxHashMap as HashMap;
 
 use strata_storage::BrickId;
 
+/// Cloned into each job of the selection thread (cut_worker.rs), which returns the copy
+/// with the cut's slots assigned.
+#[derive(Clone)]
 pub struct GpuSlots {
     node_in_slot: Vec<Option<BrickId>>,
     slot_of: HashMap<BrickId, u32>,

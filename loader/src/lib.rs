@@ -5,6 +5,7 @@
 
 pub mod cpu_cache;
 pub mod cut_selection;
+pub mod cut_worker;
 pub mod error;
 pub mod fetch_workers;
 pub mod gpu_slots;
@@ -18,6 +19,7 @@ pub mod streaming;
 pub mod thread_cpu;
 pub mod visibility;
 
+pub use cut_worker::SelectionTiming;
 pub use error::LoaderError;
 pub use fetch_workers::SlowReader;
 pub use metrics::{Distribution, FrameStats};

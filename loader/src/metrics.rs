@@ -11,6 +11,12 @@ pub struct FrameStats {
     /// what the loader costs the frame thread, whatever else the machine runs. NaN where the
     /// clock is unavailable.
     pub loader_cpu_seconds: f64,
+    /// Selections (made on `strata-cut-select`) applied since open: one per frame with
+    /// `SelectionTiming::EachFrame`, fewer in the background when the thread lags.
+    pub selections_applied_total: u64,
+    /// Finished selections dropped since open because they no longer fitted (a brick to
+    /// upload left the CPU cache meanwhile, or a new transfer function).
+    pub selections_dropped_total: u64,
     pub leaves: usize,
     pub data_leaves: usize,
     /// Data leaves of this cut per level (index = level).

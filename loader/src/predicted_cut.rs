@@ -12,7 +12,9 @@ use rustc_hash::FxHashSet;
 use strata_render::{TransferFunctionTable, ValueMapping};
 use strata_storage::BrickId;
 
-use crate::cut_selection::{select_cut, CutLimits, LeafKind, Residency, ViewSetup};
+use crate::cut_selection::{
+    select_cut, CutLimits, LeafKind, Residency, ViewSetup, PREDICTION_THREAD,
+};
 use crate::error::LoaderError;
 use crate::octree_ranges::{Emptiness, OctreeRanges};
 
@@ -112,7 +114,7 @@ impl CutPredictor {
         let (result_tx, result_rx) = crossbeam_channel::bounded::<PredictedLeaves>(1);
         let stale = result_rx.clone();
         let thread = std::thread::Builder::new()
-            .name("strata-cut-predict".into())
+            .name(PREDICTION_THREAD.into())
             .spawn(move || {
                 for job in job_rx {
                     let leaves = predict(&octree, &job);

@@ -3,11 +3,13 @@
 //! GPU slots, rewrite the page table if the cut changed, hand the missing bricks to the
 //! workers, and submit the raycast. Nothing here waits for a read: the root is read once at
 //! open and stays pinned, so every frame draws the whole volume and refines over frames.
+//! Selecting the cut and building the page table run on the selection thread (cut_worker.rs);
+//! the frame applies a finished selection: its uploads and the table's changed spans.
 
 use std::collections::VecDeque;
 
 // Keys are brick ids, not attacker-chosen: a fast hash on the frame thread.
-use rustc_hash::{FxHashMap as HashMap, FxHashSet as HashSet};
+use rustc_hash::FxHashSet as HashSet;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -20,12 +22,16 @@ use strata_source::{BrickFetcher, FetchOptions, SourceStatus, VolumeSource};
 use strata_storage::{BrickId, Store};
 
 use crate::cpu_cache::CpuBrickCache;
-use crate::cut_selection::{select_cut, Cut, CutLimits, LeafKind, Residency, ViewSetup};
+use crate::cut_selection::{Cut, CutLimits, ViewSetup};
+use crate::cut_worker::{
+    CutWorker, PageTableKey, ResidencySnapshot, Selected, SelectionJob, SelectionTiming,
+    SettledCut, ViewInputs,
+};
 use crate::error::LoaderError;
 use crate::fetch_workers::FetchWorkers;
 use crate::gpu_slots::GpuSlots;
 use crate::metrics::FrameStats;
-use crate::octree_ranges::{Emptiness, OctreeRanges, StoredRange};
+use crate::octree_ranges::OctreeRanges;
 use crate::predicted_cut::{CutPredictor, EmptinessSpec, PredictionJob};
 use crate::prefetch::MotionPredictor;
 use crate::visibility::PageVisibility;
@@ -61,6 +67,8 @@ pub struct StreamingConfig {
     pub prefetch: bool,
     /// Prefetch requests queued per frame at most.
     pub prefetch_per_frame: usize,
+    /// Whether a frame waits for its own view's selection or applies the newest finished one.
+    pub selection: SelectionTiming,
 }
 
 impl Default for StreamingConfig {
@@ -79,6 +87,7 @@ impl Default for StreamingConfig {
             visibility_memory_frames: 3,
             prefetch: true,
             prefetch_per_frame: 16,
+            selection: SelectionTiming::EachFrame,
         }
     }
 }
@@ -108,24 +117,6 @@ pub struct BrickFailure {
     pub message: String,
 }
 
-struct ResidencyView<'a> {
-    slots: &'a GpuSlots,
-    cpu: &'a CpuBrickCache,
-    failed: &'a HashSet<BrickId>,
-}
-
-impl Residency for ResidencyView<'_> {
-    fn on_gpu(&self, id: BrickId) -> bool {
-        self.slots.contains(id)
-    }
-    fn in_cpu(&self, id: BrickId) -> bool {
-        self.cpu.contains(id)
-    }
-    fn failed(&self, id: BrickId) -> bool {
-        self.failed.contains(&id)
-    }
-}
-
 pub struct StreamingVolume {
     config: StreamingConfig,
     geometry: VolumeGeometry,
@@ -137,15 +128,19 @@ pub struct StreamingVolume {
     gpu_page_table: GpuPageTable,
     transfer_function: GpuTransferFunction,
     raycaster: Raycaster,
-    page_table: PageTable,
+    /// The table the GPU holds (shared with the selection thread's jobs).
+    page_table: Arc<PageTable>,
     slots: GpuSlots,
     cpu: CpuBrickCache,
     workers: Box<dyn BrickFetcher>,
     source: Arc<dyn VolumeSource>,
-    visibility: PageVisibility,
+    /// Shared with the selection thread's job; copied on write while a job still holds it.
+    visibility: Arc<PageVisibility>,
     motion: MotionPredictor,
     /// Selects the motion-extrapolated cut off the frame thread.
     predictor: CutPredictor,
+    /// Selects the cut and builds the page table off the frame thread.
+    selector: CutWorker,
     failed: HashSet<BrickId>,
     new_failures: Vec<BrickFailure>,
     frame: u64,
@@ -156,88 +151,22 @@ pub struct StreamingVolume {
     read_history: VecDeque<(Instant, u64)>,
     last_stats: FrameStats,
     working_set: Vec<BrickId>,
-    /// Nodes the last frame's cut refined: the incumbents hysteresis protects.
-    refined_last_frame: HashSet<BrickId>,
+    /// Nodes the last applied cut refined: the incumbents hysteresis protects.
+    refined_last_frame: Arc<HashSet<BrickId>>,
     /// What the current page table was built from.
-    page_table_key: PageTableKey,
-    /// The last frame's cut when it was complete and bound by the GPU budget, with the view
-    /// it was selected for.
-    settled: Option<(Cut, ViewInputs)>,
+    page_table_key: Arc<PageTableKey>,
+    /// The last applied cut (uploads done) with the view it was selected for.
+    current: Option<SettledCut>,
+    /// The current cut was complete, uploaded nothing and left the table as it was when
+    /// applied: converged, while the view stays the same.
+    current_converged: bool,
+    /// The current cut is complete and bound by the GPU budget: what this view settles on
+    /// (see cut_worker.rs's keep_settled_cut).
+    current_settled: bool,
+    selections_applied: u64,
+    selections_dropped: u64,
     /// Counts transfer-function changes (emptiness changes with them).
     tf_generation: u64,
-}
-
-/// Once a still view's cut is complete and bound by the GPU budget, a new selection may
-/// only refine it further, never trade: one that would coarsen a node the settled cut
-/// refined is replaced by the settled cut (whose bricks are all still on the GPU, so
-/// nothing is uploaded). Without this, feedback flicker at the silhouette and bricks
-/// evicted and read again made two cuts that each fit alternate forever at 1024³.
-fn keep_settled_cut(
-    settled: &mut Option<(Cut, ViewInputs)>,
-    slots: &GpuSlots,
-    cut: Cut,
-    inputs: &ViewInputs,
-) -> Cut {
-    let Some((settled, settled_for)) = settled.take() else {
-        return cut;
-    };
-    if settled_for != *inputs {
-        return cut;
-    }
-    let refined: HashSet<BrickId> = cut.refined.iter().copied().collect();
-    let coarsens = settled.refined.iter().any(|id| !refined.contains(id));
-    let drawable = settled
-        .data_leaves()
-        .chain(settled.resident_inner.iter().copied())
-        .all(|id| slots.contains(id));
-    if coarsens && drawable {
-        settled
-    } else {
-        cut
-    }
-}
-
-/// What a cut is selected for, apart from residency and visibility feedback.
-#[derive(PartialEq)]
-struct ViewInputs {
-    camera: Camera,
-    settings: RenderSettings,
-    tf_generation: u64,
-    failed_bricks: usize,
-    max_voxel_pixels: f64,
-}
-
-/// Everything `build_page_table` reads: each leaf with its kind and the slot it is drawn
-/// from (its own, or its parent's for a pending or failed leaf), and what counts as empty.
-#[derive(Default, PartialEq)]
-struct PageTableKey {
-    leaves: Vec<(BrickId, LeafKind, Option<u32>)>,
-    mode: Option<RenderMode>,
-    iso_bits: u64,
-    tf_generation: u64,
-}
-
-impl PageTableKey {
-    fn of(cut: &Cut, slots: &GpuSlots, settings: &RenderSettings, tf_generation: u64) -> Self {
-        let leaves = cut
-            .leaves
-            .iter()
-            .map(|l| {
-                let drawn_from = match l.kind {
-                    LeafKind::Data => slots.slot_of(l.id),
-                    LeafKind::Failed | LeafKind::Pending => slots.slot_of(l.id.parent()),
-                    _ => None,
-                };
-                (l.id, l.kind, drawn_from)
-            })
-            .collect();
-        PageTableKey {
-            leaves,
-            mode: Some(settings.mode),
-            iso_bits: settings.iso_value.to_bits(),
-            tf_generation,
-        }
-    }
 }
 
 impl StreamingVolume {
@@ -294,6 +223,7 @@ impl StreamingVolume {
         page_table
             .entries
             .fill(PageEntry::resident(root_slot, root.level));
+        let page_table = Arc::new(page_table);
         let gpu_page_table = GpuPageTable::new(&ctx.device, page_dims, &cache)?;
         gpu_page_table.update(&ctx.queue, &page_table)?;
         let transfer_function = GpuTransferFunction::new(&ctx.device, &ctx.queue, &tf_table);
@@ -312,8 +242,12 @@ impl StreamingVolume {
                 config.bricks_in_transit,
             )?),
         };
-        let visibility = PageVisibility::new(&octree, config.visibility_memory_frames);
+        let visibility = Arc::new(PageVisibility::new(
+            &octree,
+            config.visibility_memory_frames,
+        ));
         let predictor = CutPredictor::start(octree.clone())?;
+        let selector = CutWorker::start(octree.clone())?;
         Ok(StreamingVolume {
             geometry,
             mapping,
@@ -332,6 +266,7 @@ impl StreamingVolume {
             visibility,
             motion: MotionPredictor::new(4.0),
             predictor,
+            selector,
             failed: HashSet::default(),
             new_failures: Vec::new(),
             frame: 0,
@@ -342,9 +277,13 @@ impl StreamingVolume {
             read_history: VecDeque::new(),
             last_stats: FrameStats::default(),
             working_set: vec![root],
-            refined_last_frame: HashSet::default(),
-            page_table_key: PageTableKey::default(),
-            settled: None,
+            refined_last_frame: Arc::default(),
+            page_table_key: Arc::default(),
+            current: None,
+            current_converged: false,
+            current_settled: false,
+            selections_applied: 0,
+            selections_dropped: 0,
             tf_generation: 0,
             config,
         })
@@ -400,7 +339,8 @@ impl StreamingVolume {
         std::mem::take(&mut self.new_failures)
     }
 
-    /// Runs the loader for one frame and submits it. Never waits for a read or for the GPU.
+    /// Runs the loader for one frame and submits it. Never waits for a read or for the GPU;
+    /// waits for the selection thread only with [`SelectionTiming::EachFrame`].
     pub fn frame(
         &mut self,
         ctx: &GpuContext,
@@ -410,38 +350,12 @@ impl StreamingVolume {
         let started = Instant::now();
         let started_cpu = crate::thread_cpu::thread_cpu_seconds();
         self.frame += 1;
-        let frame = self.frame;
         let fetched = self.take_fetched();
         if self.config.visibility_feedback {
             if let Some(v) = self.raycaster.try_take_visibility(ctx) {
-                self.visibility.record(v.frame_number, &v.visibility);
+                Arc::make_mut(&mut self.visibility).record(v.frame_number, &v.visibility);
             }
         }
-        let view = ViewSetup::new(&self.geometry, camera, settings);
-        let emptiness = emptiness_for(settings, &self.tf_table, self.mapping);
-        let limits = CutLimits {
-            max_voxel_pixels: self.config.max_voxel_pixels,
-            gpu_slots: self.slots.capacity(),
-            uploads: self.config.uploads_per_frame,
-            prefetch_candidates: self.config.prefetch_per_frame,
-        };
-        let visibility = self.config.visibility_feedback.then_some(&self.visibility);
-        let cut = {
-            let residency = ResidencyView {
-                slots: &self.slots,
-                cpu: &self.cpu,
-                failed: &self.failed,
-            };
-            select_cut(
-                &self.octree,
-                &view,
-                emptiness,
-                visibility,
-                &residency,
-                &self.refined_last_frame,
-                limits,
-            )
-        };
         let inputs = ViewInputs {
             camera: *camera,
             settings: settings.clone(),
@@ -449,81 +363,24 @@ impl StreamingVolume {
             failed_bricks: self.failed.len(),
             max_voxel_pixels: self.config.max_voxel_pixels,
         };
-        let cut = keep_settled_cut(&mut self.settled, &self.slots, cut, &inputs);
-        self.refined_last_frame.clear();
-        self.refined_last_frame.extend(cut.refined.iter().copied());
-
-        // Everything this cut shows is protected before any slot is reused.
-        self.slots.touch(self.root, frame);
-        for id in cut.data_leaves().chain(cut.resident_inner.iter().copied()) {
-            self.slots.touch(id, frame);
-        }
-        for _ in &cut.demand {
-            self.cpu.note_miss();
-        }
-        for &id in &cut.uploads {
-            let brick = self.cpu.get_for_use(id).ok_or_else(|| {
-                LoaderError::Inconsistent(format!(
-                    "brick {id:?} chosen for upload is not in CPU memory"
-                ))
-            })?;
-            let slot = self.slots.allocate(id, frame, false).ok_or_else(|| {
-                LoaderError::Inconsistent("every GPU slot is in use by this frame".into())
-            })?;
-            self.cache.upload_brick(&ctx.queue, slot, &brick)?;
-        }
-
-        // The table is a function of the leaves, their slots and what counts as empty: when
-        // none of these changed (a settled cut, or one waiting for reads) it is not rebuilt.
-        let key = PageTableKey::of(&cut, &self.slots, settings, self.tf_generation);
-        let mut rewritten = false;
-        if key != self.page_table_key {
-            let table = build_page_table(&self.octree, &self.slots, &cut, &emptiness)?;
-            rewritten = table != self.page_table;
-            if rewritten {
-                self.gpu_page_table.update(&ctx.queue, &table)?;
-                self.write_mip_bounds(ctx, &table)?;
-                self.page_table = table;
-                self.cut_changed_at_render = self.renders + 1;
+        let applied = match self.config.selection {
+            SelectionTiming::EachFrame => {
+                self.submit_selection(camera, settings, inputs.clone())?;
+                let selected = self.selector.wait()?;
+                self.apply_selection(ctx, selected, camera, settings)?
             }
-            self.page_table_key = key;
-        }
-
-        // Ask for no more than half the CPU cache holds: bricks read faster than uploads and
-        // refinement can use them would evict each other before use and be read again.
-        self.working_set.clear();
-        self.working_set.push(self.root);
-        self.working_set.extend(
-            cut.data_leaves()
-                .chain(cut.resident_inner.iter().copied())
-                .filter(|&id| id != self.root),
-        );
-        let demand_limit = ((self.cpu.budget_bytes() / BRICK_BYTES) as usize / 2).max(1);
-        let demand: Vec<(BrickId, f64)> = cut
-            .demand
-            .iter()
-            .take(demand_limit)
-            .map(|r| (r.id, r.priority))
-            .collect();
-        let mut prefetch: Vec<(BrickId, f64)> = Vec::new();
-        if self.config.prefetch {
-            prefetch.extend(cut.refine_next.iter().map(|r| (r.id, r.priority)));
-            // The prediction thread answers a frame or more late; an answer that arrives once
-            // the camera stopped is dropped.
-            let newest_prediction = self.predictor.take_newest();
-            if let Some(predicted) = self.motion.observe(camera) {
-                self.predictor.submit(PredictionJob {
-                    view: ViewSetup::new(&self.geometry, &predicted, settings),
-                    emptiness: self.emptiness_spec(settings),
-                    failed: self.failed.clone(),
-                    limits,
-                });
-                prefetch.extend(newest_prediction.into_iter().flatten());
+            SelectionTiming::Background => {
+                let applied = match self.selector.try_take() {
+                    Some(selected) => self.apply_selection(ctx, selected?, camera, settings)?,
+                    None => None,
+                };
+                // The next job starts from what this frame applied.
+                if !self.selector.busy() {
+                    self.submit_selection(camera, settings, inputs.clone())?;
+                }
+                applied
             }
-            prefetch.retain(|(id, _)| !self.cpu.contains(*id) && !self.slots.contains(*id));
-            prefetch.truncate(self.config.prefetch_per_frame);
-        }
-        self.workers.set_requests(&demand, &prefetch);
+        };
 
         let loader_seconds = started.elapsed().as_secs_f64();
         let loader_cpu_seconds = started_cpu
@@ -549,29 +406,175 @@ impl StreamingVolume {
 
         let visibility_seen = !self.config.visibility_feedback
             || self.visibility.newest_render_frame() >= self.cut_changed_at_render;
-        let converged = cut.complete() && cut.uploads.is_empty() && !rewritten && visibility_seen;
-        let mut stats = self.stats(&cut, fetched, rewritten, converged, loader_seconds);
+        let current = self.current.clone();
+        let no_cut = Cut::default();
+        let (cut, rewritten) = match &applied {
+            Some((cut, rewritten)) => (cut, *rewritten),
+            None => (current.as_deref().map_or(&no_cut, |c| &c.0), false),
+        };
+        // A frame without a new selection shows the current cut: converged if that cut was
+        // when applied and the view is still the one it was selected for.
+        let converged = match &applied {
+            Some((cut, rewritten)) => {
+                cut.complete() && cut.uploads.is_empty() && !rewritten && visibility_seen
+            }
+            None => {
+                self.current_converged
+                    && visibility_seen
+                    && current.as_ref().is_some_and(|c| c.1 == inputs)
+            }
+        };
+        let mut stats = self.stats(cut, fetched, rewritten, converged, loader_seconds);
         stats.loader_cpu_seconds = loader_cpu_seconds;
-        // A complete cut the budget bound is what this view settles on (see keep_settled_cut).
-        self.settled = (cut.complete() && cut.blocked_by_gpu_slots > 0).then(|| {
-            let mut settled = cut;
-            settled.uploads.clear();
-            settled.data_leaves_on_gpu = settled.data_leaves().count();
-            (settled, inputs)
-        });
+        if let Some((mut cut, rewritten)) = applied {
+            self.current_converged = cut.complete() && cut.uploads.is_empty() && !rewritten;
+            self.current_settled = cut.complete() && cut.blocked_by_gpu_slots > 0;
+            cut.uploads.clear();
+            cut.data_leaves_on_gpu = cut.data_leaves().count();
+            self.current = Some(Arc::new((cut, inputs)));
+        }
         self.last_stats = stats.clone();
         Ok(stats)
     }
 
-    /// Per page entry, the largest value its node holds (skeleton range incl. apron), so MIP
-    /// rays skip pages that cannot beat their running maximum.
-    fn write_mip_bounds(&self, ctx: &GpuContext, table: &PageTable) -> Result<(), LoaderError> {
-        let bounds = table.value_max_physical(self.mapping, |level, node| {
-            self.octree
-                .own_range(BrickId::new(level, node))
-                .map(|r| (r.min, r.max))
-        });
-        Ok(self.gpu_page_table.update_value_max(&ctx.queue, &bounds)?)
+    /// Hands the selection thread this frame's view and a snapshot of residency.
+    fn submit_selection(
+        &mut self,
+        camera: &Camera,
+        settings: &RenderSettings,
+        inputs: ViewInputs,
+    ) -> Result<(), LoaderError> {
+        let job = SelectionJob {
+            frame: self.frame,
+            root: self.root,
+            view: ViewSetup::new(&self.geometry, camera, settings),
+            emptiness: self.emptiness_spec(settings),
+            limits: self.cut_limits(),
+            inputs,
+            visibility: self
+                .config
+                .visibility_feedback
+                .then(|| self.visibility.clone()),
+            residency: ResidencySnapshot {
+                slots: self.slots.clone(),
+                cpu: self.cpu.ids().collect(),
+                failed: self.failed.clone(),
+            },
+            incumbents: self.refined_last_frame.clone(),
+            settled: self.current.clone().filter(|_| self.current_settled),
+            page_table_key: self.page_table_key.clone(),
+            page_table: self.page_table.clone(),
+            layout: self.gpu_page_table.layout(),
+            mapping: self.mapping,
+        };
+        self.selector.submit(job)
+    }
+
+    fn cut_limits(&self) -> CutLimits {
+        CutLimits {
+            max_voxel_pixels: self.config.max_voxel_pixels,
+            gpu_slots: self.slots.capacity(),
+            uploads: self.config.uploads_per_frame,
+            prefetch_candidates: self.config.prefetch_per_frame,
+        }
+    }
+
+    /// Applies a finished selection: its uploads, its page table (changed spans only), its
+    /// requests. Returns the cut and whether the table changed, or None when the answer no
+    /// longer fits (a brick it uploads left the CPU cache, or the transfer function changed
+    /// since): then nothing changed and the next job selects again.
+    fn apply_selection(
+        &mut self,
+        ctx: &GpuContext,
+        selected: Selected,
+        camera: &Camera,
+        settings: &RenderSettings,
+    ) -> Result<Option<(Cut, bool)>, LoaderError> {
+        let Selected {
+            inputs,
+            cut,
+            slots,
+            uploads,
+            refined,
+            page_table_key,
+            new_table,
+        } = selected;
+        if inputs.tf_generation != self.tf_generation
+            || !uploads.iter().all(|&(id, _)| self.cpu.contains(id))
+        {
+            self.selections_dropped += 1;
+            return Ok(None);
+        }
+        self.selections_applied += 1;
+        for _ in &cut.demand {
+            self.cpu.note_miss();
+        }
+        // The selection thread touched this cut's nodes and allocated the uploads' slots on
+        // the job's copy of the map, which nothing changed meanwhile (one job in flight).
+        self.slots = slots;
+        for (id, slot) in uploads {
+            let brick = self.cpu.get_for_use(id).ok_or_else(|| {
+                LoaderError::Inconsistent(format!(
+                    "brick {id:?} chosen for upload is not in CPU memory"
+                ))
+            })?;
+            self.cache.upload_brick(&ctx.queue, slot, &brick)?;
+        }
+        let rewritten = new_table.is_some();
+        if let Some(new) = new_table {
+            self.gpu_page_table
+                .write_prepared(&ctx.queue, &new.prepared)?;
+            self.gpu_page_table
+                .update_value_max(&ctx.queue, &new.mip_bounds)?;
+            self.page_table = Arc::new(new.prepared.into_table());
+            self.cut_changed_at_render = self.renders + 1;
+        }
+        self.page_table_key = page_table_key;
+        self.refined_last_frame = refined;
+        self.request_bricks(&cut, camera, settings);
+        Ok(Some((cut, rewritten)))
+    }
+
+    /// Replaces the fetchers' requests with `cut`'s demand and the prefetch candidates.
+    fn request_bricks(&mut self, cut: &Cut, camera: &Camera, settings: &RenderSettings) {
+        // Ask for no more than half the CPU cache holds: bricks read faster than uploads and
+        // refinement can use them would evict each other before use and be read again.
+        self.working_set.clear();
+        self.working_set.push(self.root);
+        self.working_set.extend(
+            cut.data_leaves()
+                .chain(cut.resident_inner.iter().copied())
+                .filter(|&id| id != self.root),
+        );
+        let demand_limit = ((self.cpu.budget_bytes() / BRICK_BYTES) as usize / 2).max(1);
+        // A background selection saw residency a frame or more ago: what arrived meanwhile
+        // is not asked for again.
+        let demand: Vec<(BrickId, f64)> = cut
+            .demand
+            .iter()
+            .filter(|r| !self.cpu.contains(r.id) && !self.slots.contains(r.id))
+            .take(demand_limit)
+            .map(|r| (r.id, r.priority))
+            .collect();
+        let mut prefetch: Vec<(BrickId, f64)> = Vec::new();
+        if self.config.prefetch {
+            prefetch.extend(cut.refine_next.iter().map(|r| (r.id, r.priority)));
+            // The prediction thread answers a frame or more late; an answer that arrives once
+            // the camera stopped is dropped.
+            let newest_prediction = self.predictor.take_newest();
+            if let Some(predicted) = self.motion.observe(camera) {
+                self.predictor.submit(PredictionJob {
+                    view: ViewSetup::new(&self.geometry, &predicted, settings),
+                    emptiness: self.emptiness_spec(settings),
+                    failed: self.failed.clone(),
+                    limits: self.cut_limits(),
+                });
+                prefetch.extend(newest_prediction.into_iter().flatten());
+            }
+            prefetch.retain(|(id, _)| !self.cpu.contains(*id) && !self.slots.contains(*id));
+            prefetch.truncate(self.config.prefetch_per_frame);
+        }
+        self.workers.set_requests(&demand, &prefetch);
     }
 
     /// The raycaster's number of the frame the last [`StreamingVolume::frame`] submitted; GPU
@@ -648,6 +651,14 @@ impl StreamingVolume {
     /// Where the volume comes from (path or URL).
     pub fn source(&self) -> &Arc<dyn VolumeSource> {
         &self.source
+    }
+
+    /// Holds the selection thread before its next job until the guard is dropped: frames go
+    /// on with the current cut meanwhile (with [`SelectionTiming::Background`]; an
+    /// `EachFrame` frame would wait for the guard). For tests.
+    #[doc(hidden)]
+    pub fn hold_selection_for_tests(&self) -> crate::cut_worker::SelectionHold {
+        self.selector.hold()
     }
 
     /// Re-reads every brick the page table samples from `store` and uploads it into its slot
@@ -788,6 +799,8 @@ impl StreamingVolume {
             frame: self.frame,
             loader_seconds,
             loader_cpu_seconds: f64::NAN,
+            selections_applied_total: self.selections_applied,
+            selections_dropped_total: self.selections_dropped,
             leaves: cut.leaves.len(),
             data_leaves,
             data_leaves_per_level: {
@@ -871,167 +884,4 @@ pub fn tf_table_for(
 
 fn tf_table_for_range(tf: &TransferFunction, lo: f64, hi: f64) -> TransferFunctionTable {
     tf.table(lo, hi)
-}
-
-fn emptiness_for<'a>(
-    settings: &RenderSettings,
-    table: &'a TransferFunctionTable,
-    mapping: ValueMapping,
-) -> Emptiness<'a> {
-    match settings.mode {
-        RenderMode::Isosurface => Emptiness::Iso {
-            value: settings.iso_value,
-            mapping,
-        },
-        RenderMode::Dvr | RenderMode::Mip => Emptiness::TransferFunction { table, mapping },
-    }
-}
-
-/// Page entries of a cut: data leaves point at their slot; transparent, empty and culled
-/// leaves are not resident (rays skip them); a failed or pending leaf shows its parent.
-fn build_page_table(
-    octree: &OctreeRanges,
-    slots: &GpuSlots,
-    cut: &Cut,
-    emptiness: &Emptiness,
-) -> Result<PageTable, LoaderError> {
-    let mut table = PageTable::new(octree.page_dims());
-    // Leaves without data are "not resident", never "empty" with a borrowed slot: the
-    // raycaster may still sample a page flagged empty (a coarse step landing in it), which is
-    // harmless only when the slot holds that node's own transparent voxels.
-    let skipped = |_level: u8| PageEntry::NOT_RESIDENT;
-    let own_empty = |id: BrickId| octree.own_range(id).is_some_and(|r| emptiness.is_empty(r));
-    let mut memo: HashMap<BrickId, PageEntry> = HashMap::default();
-    for leaf in &cut.leaves {
-        let entry = match leaf.kind {
-            LeafKind::Data => {
-                let slot = slots.slot_of(leaf.id).ok_or_else(|| {
-                    LoaderError::Inconsistent(format!("data leaf {:?} has no GPU slot", leaf.id))
-                })?;
-                PageEntry {
-                    slot_in_cache: slot,
-                    level: leaf.id.level,
-                    empty: own_empty(leaf.id),
-                    resident: true,
-                }
-            }
-            LeafKind::Transparent | LeafKind::Empty => skipped(leaf.id.level),
-            LeafKind::Culled => PageEntry::NOT_RESIDENT,
-            LeafKind::Failed | LeafKind::Pending => {
-                let parent = leaf.id.parent();
-                *memo
-                    .entry(parent)
-                    .or_insert_with(|| match slots.slot_of(parent) {
-                        Some(slot) if !own_empty(parent) => PageEntry::resident(slot, parent.level),
-                        _ => skipped(parent.level),
-                    })
-            }
-        };
-        let (lo, hi) = octree.page_span(leaf.id);
-        for z in lo[2]..hi[2] {
-            for y in lo[1]..hi[1] {
-                for x in lo[0]..hi[0] {
-                    table.set([x, y, z], entry);
-                }
-            }
-        }
-    }
-    // Rays skip an empty entry, so it must be empty over every value sampled there, which
-    // includes the coarser neighbours' field blended into its transition bands.
-    let sampled = table.sampled_ranges(|level, node| {
-        octree
-            .own_range(BrickId::new(level, node))
-            .map(|r| (r.min, r.max))
-    });
-    for (entry, range) in table.entries.iter_mut().zip(sampled) {
-        if entry.resident && entry.empty {
-            entry.empty =
-                range.is_some_and(|(min, max)| emptiness.is_empty(StoredRange { min, max }));
-        }
-    }
-    Ok(table)
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::cut_selection::CutLeaf;
-    use strata_render::Projection;
-
-    fn inputs(azimuth: f64) -> ViewInputs {
-        let geometry = VolumeGeometry::axis_aligned([256, 256, 256], [1.0; 3]);
-        ViewInputs {
-            camera: Camera::orbit(
-                &geometry,
-                azimuth,
-                10.0,
-                2.0,
-                Projection::Perspective { fov_y_deg: 30.0 },
-            ),
-            settings: RenderSettings::default(),
-            tf_generation: 0,
-            failed_bricks: 0,
-            max_voxel_pixels: 1.0,
-        }
-    }
-
-    /// A cut refining `refined` (level-1 nodes) into data leaves at level 0.
-    fn cut(refined: &[u32]) -> Cut {
-        let inner: Vec<BrickId> = refined
-            .iter()
-            .map(|&x| BrickId::new(1, [x, 0, 0]))
-            .collect();
-        Cut {
-            leaves: inner
-                .iter()
-                .flat_map(|p| {
-                    (0..2).map(move |i| CutLeaf {
-                        id: BrickId::new(0, [p.coords[0] * 2 + i, 0, 0]),
-                        kind: LeafKind::Data,
-                        priority: 1.0,
-                    })
-                })
-                .collect(),
-            resident_inner: inner.clone(),
-            refined: inner,
-            blocked_by_gpu_slots: 1,
-            ..Cut::default()
-        }
-    }
-
-    fn slots_holding(cut: &Cut) -> GpuSlots {
-        let mut slots = GpuSlots::new(64);
-        for id in cut.data_leaves().chain(cut.resident_inner.iter().copied()) {
-            slots.allocate(id, 1, false);
-        }
-        slots
-    }
-
-    fn refined_of(cut: &Cut) -> Vec<u32> {
-        cut.refined.iter().map(|id| id.coords[0]).collect()
-    }
-
-    #[test]
-    fn a_settled_cut_is_kept_against_a_trade_but_not_against_progress_or_a_new_view() {
-        let settled = cut(&[0, 1]);
-        let slots = slots_holding(&settled);
-        // The same view offers a trade (node 1 coarsened for node 2): the settled cut stays.
-        let mut memory = Some((settled.clone(), inputs(30.0)));
-        let kept = keep_settled_cut(&mut memory, &slots, cut(&[0, 2]), &inputs(30.0));
-        assert_eq!(refined_of(&kept), vec![0, 1]);
-        assert!(kept.uploads.is_empty());
-        // Refining further is progress: taken.
-        let mut memory = Some((settled.clone(), inputs(30.0)));
-        let more = keep_settled_cut(&mut memory, &slots, cut(&[0, 1, 2]), &inputs(30.0));
-        assert_eq!(refined_of(&more), vec![0, 1, 2]);
-        // A new view selects freely.
-        let mut memory = Some((settled.clone(), inputs(30.0)));
-        let moved = keep_settled_cut(&mut memory, &slots, cut(&[0, 2]), &inputs(31.0));
-        assert_eq!(refined_of(&moved), vec![0, 2]);
-        // A settled cut whose bricks left the GPU cannot be drawn: the new cut is taken.
-        let mut memory = Some((settled, inputs(30.0)));
-        let empty_slots = GpuSlots::new(64);
-        let redrawn = keep_settled_cut(&mut memory, &empty_slots, cut(&[0, 2]), &inputs(30.0));
-        assert_eq!(refined_of(&redrawn), vec![0, 2]);
-    }
 }

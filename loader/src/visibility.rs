@@ -11,6 +11,8 @@ use strata_storage::BrickId;
 
 use crate::octree_ranges::OctreeRanges;
 
+/// Shared with the selection thread behind an `Arc` (copied on write when it still holds it).
+#[derive(Clone)]
 pub struct PageVisibility {
     page_dims: [u32; 3],
     /// Feedback frame (1-based count) in which each page was last seen contributing; 0 = never.

@@ -7,7 +7,8 @@
 mod common;
 
 use common::*;
-use strata_loader::{FrameStats, StreamingConfig};
+use strata_loader::cut_selection::selections_by_thread;
+use strata_loader::{FrameStats, SelectionTiming, StreamingConfig};
 
 /// Frames a viewpoint gets to settle. Generous against the cut's own needs (a few frames of
 /// uploads and feedback) because the fetch workers share two busy cores with the test.
@@ -15,8 +16,9 @@ const SETTLE_FRAMES: usize = 150;
 /// Frames the settled cut must then stay unchanged.
 const STABLE_FRAMES: usize = 12;
 
-fn budget_config(slots: u32) -> StreamingConfig {
+fn budget_config(slots: u32, selection: SelectionTiming) -> StreamingConfig {
     StreamingConfig {
+        selection,
         max_gpu_slots: Some(slots),
         // Asks for level 0 wherever a voxel covers more than half a pixel: far more than the
         // small budget holds.
@@ -79,13 +81,109 @@ fn settle(
 
 #[test]
 fn a_budget_bound_flythrough_settles_and_a_bigger_budget_refines_further() {
+    budget_bound_flythrough(SelectionTiming::EachFrame);
+}
+
+/// The same with the viewer's timing: frames apply whatever selection the thread finished
+/// and never wait for one; the settling rules hold all the same.
+#[test]
+fn the_flythrough_settles_with_the_cut_selected_in_the_background() {
+    budget_bound_flythrough(SelectionTiming::Background);
+}
+
+/// Every cut of these streamed volumes is selected on the loader's selection threads
+/// (`strata-cut-select`, `strata-cut-predict`), none on a frame thread (this binary calls
+/// no selection directly, so any selection elsewhere is a frame's).
+#[test]
+fn frames_select_no_cut_on_their_own_thread() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = open(&phantom_store(dir.path(), 64));
+    let ctx = gpu();
+    let tf = bone();
+    let s = settings(64);
+    for selection in [SelectionTiming::EachFrame, SelectionTiming::Background] {
+        let mut volume = stream(&ctx, &store, &tf, budget_config(40, selection));
+        let before = selections_by_thread();
+        let mut last = None;
+        for k in 0..20 {
+            let camera = orbit(&store, 3.0 * k as f64, 10.0, 1.6);
+            let stats = volume.frame(&ctx, &camera, &s).unwrap();
+            volume.read_frame_blocking(&ctx).unwrap();
+            last = Some(stats);
+        }
+        let after = selections_by_thread();
+        let last = last.unwrap();
+        assert!(
+            last.selections_applied_total > 0,
+            "{selection:?}: no selection applied: {last:#?}"
+        );
+        assert!(after.on_selection_threads > before.on_selection_threads);
+        assert_eq!(
+            after.elsewhere, 0,
+            "{selection:?}: a cut was selected outside the selection threads"
+        );
+        if selection == SelectionTiming::EachFrame {
+            assert_eq!(last.selections_applied_total, 20, "one selection per frame");
+        }
+    }
+}
+
+/// With the background timing a frame never waits for a selection: while the selection
+/// thread is held, frames go on drawing the current cut, and once released its answer is
+/// applied by a later frame.
+#[test]
+fn frames_go_on_while_the_selection_thread_is_held() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = open(&phantom_store(dir.path(), 64));
+    let ctx = gpu();
+    let tf = bone();
+    let s = settings(64);
+    let mut volume = stream(
+        &ctx,
+        &store,
+        &tf,
+        budget_config(40, SelectionTiming::Background),
+    );
+    let camera = orbit(&store, 20.0, 10.0, 1.6);
+    let hold = volume.hold_selection_for_tests();
+    let table = volume.page_table().clone();
+    for _ in 0..10 {
+        let stats = volume.frame(&ctx, &camera, &s).unwrap();
+        volume.read_frame_blocking(&ctx).unwrap();
+        assert_eq!(stats.selections_applied_total, 0, "{stats:#?}");
+        assert!(!stats.converged && stats.uploads == 0);
+        assert_eq!(*volume.page_table(), table, "no cut applied while held");
+    }
+    drop(hold);
+    let mut applied = 0;
+    for _ in 0..200 {
+        let stats = volume.frame(&ctx, &camera, &s).unwrap();
+        volume.read_frame_blocking(&ctx).unwrap();
+        applied = stats.selections_applied_total;
+        if applied > 0 && *volume.page_table() != table {
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(2));
+    }
+    assert!(
+        applied > 0,
+        "the released thread's selection was never applied"
+    );
+    assert_ne!(
+        *volume.page_table(),
+        table,
+        "the released thread's selections refine the root"
+    );
+}
+
+fn budget_bound_flythrough(selection: SelectionTiming) {
     let dir = tempfile::tempdir().unwrap();
     let store = open(&phantom_store(dir.path(), 256));
     let ctx = gpu();
     let tf = bone();
     let s = settings(128);
     let slots = 40u32;
-    let mut volume = stream(&ctx, &store, &tf, budget_config(slots));
+    let mut volume = stream(&ctx, &store, &tf, budget_config(slots, selection));
     let stops = [
         orbit(&store, -30.0, 15.0, 1.6),
         orbit(&store, 20.0, 5.0, 2.2),
@@ -133,7 +231,7 @@ fn a_budget_bound_flythrough_settles_and_a_bigger_budget_refines_further() {
 
     // The same last view with four times the slots: finer, with fewer nodes left coarser.
     let small = last_stop.unwrap();
-    let mut bigger = stream(&ctx, &store, &tf, budget_config(4 * slots));
+    let mut bigger = stream(&ctx, &store, &tf, budget_config(4 * slots, selection));
     let large = settle(&ctx, &mut bigger, &stops[2], &s, "bigger budget");
     eprintln!(
         "bigger budget: {}; data leaves per level {:?}",

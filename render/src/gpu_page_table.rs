@@ -4,11 +4,91 @@
 //! (gpu_octree.rs: node buffer, per-leaf bounds), and the flat buffers shrink to stubs.
 
 use crate::cache::BrickCache;
+use crate::dirty_spans::write_changed;
 use crate::error::RenderError;
 use crate::gpu_octree::{GpuOctreeIndex, OctreeLeaves, Traversal};
 use crate::layout::LEVEL_MASK;
 use crate::page_table::{PageEntry, PageTable};
 use crate::smooth_transitions::{near_side_closure, transition_masks, transition_node_fraction};
+
+/// What the CPU half of a page-table write needs to know of the GPU index: page grid, the
+/// cache's slot grid and the traversal. Plain data, so a loader thread can prepare a table
+/// ([`PreparedPageTable::new`]) without touching the GPU.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct PageTableLayout {
+    pub page_dims: [u32; 3],
+    pub slots_per_axis: [u32; 3],
+    pub traversal: Traversal,
+}
+
+/// A page table with everything derived from it for the flat buffers (the GPU words with
+/// their node-extent flags and skip levels, the transition masks and closures), computed on
+/// any thread; [`GpuPageTable::write_prepared`] then writes only what changed.
+#[derive(Clone, Debug)]
+pub struct PreparedPageTable {
+    layout: PageTableLayout,
+    table: PageTable,
+    /// Binding 3's words (empty with the octree traversal, which builds its node buffer).
+    words: Vec<u32>,
+    /// Binding 11's pairs (empty with the octree traversal).
+    transitions: Vec<[u32; 2]>,
+    transition_fraction: f64,
+}
+
+impl PreparedPageTable {
+    /// Checks `table` against `layout` and derives the GPU words (O(entries): node-extent
+    /// flags and transition masks depend on neighbours).
+    pub fn new(layout: PageTableLayout, table: PageTable) -> Result<Self, RenderError> {
+        table.check_against(layout.page_dims)?;
+        let slots: u32 = layout.slots_per_axis.iter().product();
+        if let Some(bad) = table
+            .entries
+            .iter()
+            .find(|e| e.resident && e.slot_in_cache >= slots)
+        {
+            return Err(RenderError::SlotOutOfRange {
+                slot: bad.slot_in_cache,
+                slots,
+            });
+        }
+        let masks = transition_masks(&table);
+        let transition_fraction = transition_node_fraction(&table, &masks);
+        let (words, transitions) = if layout.traversal == Traversal::Flat {
+            (
+                table.encoded_for_gpu(layout.slots_per_axis, &masks),
+                masks.iter().map(|&m| [m, near_side_closure(m)]).collect(),
+            )
+        } else {
+            (Vec::new(), Vec::new())
+        };
+        Ok(PreparedPageTable {
+            layout,
+            table,
+            words,
+            transitions,
+            transition_fraction,
+        })
+    }
+
+    pub fn table(&self) -> &PageTable {
+        &self.table
+    }
+
+    pub fn into_table(self) -> PageTable {
+        self.table
+    }
+}
+
+/// The flat buffers' contents as last written, compared with the next write so only the
+/// changed spans are written (dirty_spans.rs).
+struct Written {
+    table: PageTable,
+    words: Vec<u32>,
+    transitions: Vec<[u32; 2]>,
+    value_max: Vec<f32>,
+    /// Bytes the last table or bound write sent to the GPU (tests check it stays O(change)).
+    last_write_bytes: u64,
+}
 
 /// The page table on the GPU: a storage buffer of encoded entries (see page_table.rs).
 pub struct GpuPageTable {
@@ -25,9 +105,11 @@ pub struct GpuPageTable {
     /// Share of resident nodes with a coarser neighbour in the last table written; 0 means
     /// frames need no transition code at all.
     transition_fraction: std::sync::Mutex<f64>,
-    /// The table as last written ([`GpuPageTable::update`], [`GpuPageTable::write_entries`]):
-    /// a partial write re-encodes the words whose whole-node flag or skip level it changes.
-    written: std::sync::Mutex<PageTable>,
+    /// The table and the flat buffers as last written ([`GpuPageTable::update`],
+    /// [`GpuPageTable::write_entries`], [`GpuPageTable::update_value_max`]): a partial write
+    /// re-encodes the words whose whole-node flag or skip level it changes, and every write
+    /// sends only the spans that differ.
+    written: std::sync::Mutex<Written>,
     /// Which index the raycaster traverses; the octree's buffers (stubs with the flat table).
     traversal: Traversal,
     octree: std::sync::Mutex<GpuOctreeIndex>,
@@ -102,7 +184,14 @@ impl GpuPageTable {
             slots_per_axis: cache.slots_per_axis,
             transitions,
             transition_fraction: std::sync::Mutex::new(0.0),
-            written: std::sync::Mutex::new(PageTable::new(page_dims)),
+            // Fresh buffers are zero-filled (wgpu clears them), the bounds +inf as written above.
+            written: std::sync::Mutex::new(Written {
+                table: PageTable::new(page_dims),
+                words: vec![0; n as usize],
+                transitions: vec![[0; 2]; n as usize],
+                value_max: vec![f32::INFINITY; n as usize],
+                last_write_bytes: 0,
+            }),
             traversal,
             octree: std::sync::Mutex::new(GpuOctreeIndex::new(device, page_dims)),
             device: device.clone(),
@@ -112,6 +201,27 @@ impl GpuPageTable {
     /// The traversal this index was made for (the raycaster compiles the matching pipeline).
     pub fn traversal(&self) -> Traversal {
         self.traversal
+    }
+
+    /// What [`PreparedPageTable::new`] needs to prepare a table for this index.
+    pub fn layout(&self) -> PageTableLayout {
+        PageTableLayout {
+            page_dims: self.page_dims,
+            slots_per_axis: self.slots_per_axis,
+            traversal: self.traversal,
+        }
+    }
+
+    /// Bytes the last table or MIP-bound write sent to the GPU (the flat buffers' changed
+    /// spans; with the octree traversal, 0: its node buffer is rewritten whole).
+    pub fn last_write_bytes(&self) -> u64 {
+        self.written.lock().map_or(0, |w| w.last_write_bytes)
+    }
+
+    fn written(&self) -> Result<std::sync::MutexGuard<'_, Written>, RenderError> {
+        self.written
+            .lock()
+            .map_err(|_| RenderError::PageTableMismatch("page table mirror poisoned".into()))
     }
 
     /// GPU bytes of the index the raycaster reads, as last written: the flat table's page
@@ -194,11 +304,7 @@ impl GpuPageTable {
         }
         // A word's whole-node flag and skip level depend on its neighbours (see
         // PageTable::encoded_for_gpu), so the table as last written is re-encoded whole.
-        let mut table = self
-            .written
-            .lock()
-            .map_err(|_| RenderError::PageTableMismatch("page table mirror poisoned".into()))?
-            .clone();
+        let mut table = self.written()?.table.clone();
         table.entries[first..first + entries.len()].copy_from_slice(entries);
         self.update(queue, &table)?;
         Ok(())
@@ -222,28 +328,42 @@ impl GpuPageTable {
             octree.update_value_max(&self.device, queue, bounds);
             return Ok(());
         }
-        queue.write_buffer(&self.value_max, 0, bytemuck::cast_slice(bounds));
+        let mut written = self.written()?;
+        let Written {
+            value_max,
+            last_write_bytes,
+            ..
+        } = &mut *written;
+        *last_write_bytes = write_changed(queue, &self.value_max, value_max, bounds);
         Ok(())
     }
 
-    /// Writes the whole table; takes effect for the next submitted frame.
+    /// Writes the whole table; takes effect for the next submitted frame. Only the spans of
+    /// the flat buffers that differ from the last write are sent.
     pub fn update(&self, queue: &wgpu::Queue, table: &PageTable) -> Result<(), RenderError> {
-        table.check_against(self.page_dims)?;
-        let slots: u32 = self.slots_per_axis.iter().product();
-        if let Some(bad) = table
-            .entries
-            .iter()
-            .find(|e| e.resident && e.slot_in_cache >= slots)
-        {
-            return Err(RenderError::SlotOutOfRange {
-                slot: bad.slot_in_cache,
-                slots,
-            });
+        self.write_prepared(
+            queue,
+            &PreparedPageTable::new(self.layout(), table.clone())?,
+        )
+    }
+
+    /// Writes a table prepared (possibly on another thread) for this index: the flat
+    /// buffers' changed spans, or the octree's node buffer rebuilt; takes effect for the next
+    /// submitted frame.
+    pub fn write_prepared(
+        &self,
+        queue: &wgpu::Queue,
+        prepared: &PreparedPageTable,
+    ) -> Result<(), RenderError> {
+        if prepared.layout != self.layout() {
+            return Err(RenderError::PageTableMismatch(format!(
+                "table prepared for {:?}, index is {:?}",
+                prepared.layout,
+                self.layout()
+            )));
         }
-        let masks = transition_masks(table);
-        if let Ok(mut written) = self.written.lock() {
-            written.clone_from(table);
-        }
+        let mut written = self.written()?;
+        written.table.clone_from(&prepared.table);
         if self.traversal == Traversal::Octree {
             // The cut changed: its octree is rebuilt whole (O(cells · depth) on the CPU, a few
             // thousand leaves to upload).
@@ -251,17 +371,20 @@ impl GpuPageTable {
                 .octree
                 .lock()
                 .map_err(|_| RenderError::PageTableMismatch("octree index poisoned".into()))?;
-            octree.update(&self.device, queue, table, self.slots_per_axis)?;
+            octree.update(&self.device, queue, &prepared.table, self.slots_per_axis)?;
+            written.last_write_bytes = 0;
         } else {
-            let words = table.encoded_for_gpu(self.slots_per_axis, &masks);
-            queue.write_buffer(&self.buffer, 0, bytemuck::cast_slice(&words));
-            let transitions: Vec<[u32; 2]> =
-                masks.iter().map(|&m| [m, near_side_closure(m)]).collect();
-            queue.write_buffer(&self.transitions, 0, bytemuck::cast_slice(&transitions));
+            let w = &mut *written;
+            w.last_write_bytes = write_changed(queue, &self.buffer, &mut w.words, &prepared.words)
+                + write_changed(
+                    queue,
+                    &self.transitions,
+                    &mut w.transitions,
+                    &prepared.transitions,
+                );
         }
-        let fraction = transition_node_fraction(table, &masks);
         if let Ok(mut f) = self.transition_fraction.lock() {
-            *f = fraction;
+            *f = prepared.transition_fraction;
         }
         Ok(())
     }

@@ -30,9 +30,11 @@
 //!   shaders             → layout, overlay (composed WGSL, generated constants prelude, naga)
 //!   pipelines           → settings     (PipelineKey, bind-group layout, cache, compiler)
 //!   readback_ring                      (staging ring read 1-2 frames late)
+//!   dirty_spans                        (changed spans of a buffer, written alone)
 //!   gpu_timing          → readback_ring
 //!   gpu_octree          → octree_cut, page_table, layout, error (node buffer, per-leaf)
-//!   gpu_page_table      → gpu_octree, page_table, smooth_transitions, cache, layout, error
+//!   gpu_page_table      → gpu_octree, page_table, smooth_transitions, dirty_spans, cache,
+//!                         layout, error
 //!   gpu_transfer_function → transfer_function
 //!   gpu_overlay         → overlay, error                        (overlay grid + LUT textures)
 //!   gpu_preintegration  → gpu_transfer_function, segment_integral, transfer_function
@@ -65,6 +67,7 @@ pub mod bricked_volume;
 pub mod cache;
 pub mod camera;
 pub mod device;
+pub mod dirty_spans;
 pub mod error;
 pub mod field;
 pub mod gpu_octree;
@@ -102,7 +105,7 @@ pub use camera::{Camera, Projection};
 pub use device::GpuContext;
 pub use error::RenderError;
 pub use gpu_octree::Traversal;
-pub use gpu_page_table::GpuPageTable;
+pub use gpu_page_table::{GpuPageTable, PageTableLayout, PreparedPageTable};
 pub use gpu_timing::{FrameTiming, FrameTimingSource};
 pub use gpu_transfer_function::GpuTransferFunction;
 pub use layout::{BrickSource, DEPTH_OPACITY};

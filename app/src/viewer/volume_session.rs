@@ -17,7 +17,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 
-use strata_loader::{FrameStats, StreamingConfig, StreamingVolume};
+use strata_loader::{FrameStats, SelectionTiming, StreamingConfig, StreamingVolume};
 use strata_render::{
     Camera, GpuContext, RenderSettings, TimeCriticalConfig, TimeCriticalController,
     TransferFunction, ValueMapping, VolumeGeometry,
@@ -435,6 +435,8 @@ impl RenderWorker {
             .ok_or_else(|| anyhow::anyhow!("no transfer function"))?;
         let config = StreamingConfig {
             gpu_budget_bytes,
+            // The frame never waits for a cut: it applies the newest the thread finished.
+            selection: SelectionTiming::Background,
             ..StreamingConfig::default()
         };
         let mut volume = watch.classify(
