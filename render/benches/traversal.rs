@@ -270,8 +270,9 @@ fn main() {
 
 /// Flat table vs octree traversal on one cut (same cache, same raycaster, interleaved rounds):
 /// GPU index bytes (visibility words included), index words read and samples per pixel,
-/// ms/frame and octree/flat, for DVR, shaded DVR, MIP and isosurfaces. Smooth transitions off
-/// (not available with the octree yet), for both.
+/// ms/frame and octree/flat, for DVR, shaded DVR, MIP and isosurfaces; smooth transitions off,
+/// and on where the cut has coarser neighbours (rows marked `+st`; the octree finds a band
+/// sample's neighbour by a point query).
 #[allow(clippy::too_many_arguments)]
 fn octree_vs_flat(
     ctx: &GpuContext,
@@ -308,12 +309,21 @@ fn octree_vs_flat(
     );
     let mut rc = Raycaster::new(ctx, &cut.cache);
     let pixels = size as f64 * size as f64;
-    for (mode_name, mode, shading) in [
-        ("dvr", RenderMode::Dvr, None),
-        ("dvr+sh", RenderMode::Dvr, Some(Shading::default())),
-        ("mip", RenderMode::Mip, None),
-        ("iso", RenderMode::Isosurface, None),
-    ] {
+    let smooth_options: &[bool] = if cut.table.transition_fraction() > 0.0 {
+        &[false, true]
+    } else {
+        &[false]
+    };
+    for (&smooth, (mode_name, mode, shading)) in smooth_options.iter().flat_map(|s| {
+        [
+            ("dvr", RenderMode::Dvr, None),
+            ("dvr+sh", RenderMode::Dvr, Some(Shading::default())),
+            ("mip", RenderMode::Mip, None),
+            ("iso", RenderMode::Isosurface, None),
+        ]
+        .map(|m| (s, m))
+    }) {
+        let mode_name = format!("{mode_name}{}", if smooth { "+st" } else { "" });
         let settings = RenderSettings {
             width: size,
             height: size,
@@ -321,7 +331,7 @@ fn octree_vs_flat(
             shading,
             iso_value: 120.0,
             quality: 0.5,
-            smooth_transitions: false,
+            smooth_transitions: smooth,
             ..Default::default()
         };
         let counting = RenderSettings {

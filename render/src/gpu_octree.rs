@@ -1,8 +1,10 @@
 //! The octree traversal's index on the GPU (octree paper §5.1): the cut's octree with ropes
 //! ([`OctreeCut`], octree_cut.rs) encoded as one node buffer that `shaders/octree.wgsl` reads
 //! (binding 12), plus what the flat table keeps per page cell kept per leaf: the MIP bound
-//! (binding 9) and the visibility word (binding 7). Every GPU buffer of the index grows with
-//! the cut (nodes and leaves), not with the volume's page grid.
+//! (binding 9), the visibility word (binding 7) and the smooth-transition mask with its
+//! near-side closure (binding 11; the leaf's word carries `FLAG_TRANSITION` as the flat
+//! table's does). Every GPU buffer of the index grows with the cut (nodes and leaves), not
+//! with the volume's page grid.
 //!
 //! Layout (layout.rs `OCTREE_*`): records of 8 u32. Record 0 is the header (word 0 the root's
 //! reference, word 1 the leaf count); records 1..=leaves the leaves (leaf index = record − 1),
@@ -15,10 +17,12 @@
 
 use crate::error::RenderError;
 use crate::layout::{
-    OCTREE_ID_MASK, OCTREE_LEAF_BIT, OCTREE_NULL, OCTREE_RECORD_WORDS, OCTREE_SIZE_SHIFT,
+    FLAG_TRANSITION, OCTREE_ID_MASK, OCTREE_LEAF_BIT, OCTREE_NULL, OCTREE_RECORD_WORDS,
+    OCTREE_SIZE_SHIFT,
 };
 use crate::octree_cut::{NodeKind, OctreeCut, NULL};
 use crate::page_table::PageTable;
+use crate::smooth_transitions::near_side_closure;
 
 /// How the raycaster finds the data along a ray.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
@@ -95,6 +99,20 @@ impl OctreeLeaves {
             }
         }
         out
+    }
+
+    /// Per leaf, the union of the per-page bit masks over its cells (the cells of a leaf share
+    /// one entry, hence one node and one transition mask; the union is the safe choice should
+    /// they not). Missing pages read as 0.
+    pub fn reduce_or(&self, per_page: &[u32]) -> Vec<u32> {
+        self.boxes
+            .iter()
+            .map(|&b| {
+                self.cells(b)
+                    .map(|c| per_page.get(c).copied().unwrap_or(0))
+                    .fold(0, |a, m| a | m)
+            })
+            .collect()
     }
 
     /// Per leaf, the largest per-page bound over its cells (the cells of a leaf share one
@@ -197,11 +215,34 @@ pub fn encode_node_buffer(
     ))
 }
 
-/// The node buffer and the per-leaf MIP bounds on the GPU, grown (recreated) when a cut needs
-/// more than they hold; the leaves of the cut last written.
+/// Per leaf, [transition mask, near-side closure] of its node from the table's per-page
+/// `transition_masks` (smooth_transitions.rs), and `FLAG_TRANSITION` set on the page word of
+/// every leaf with a mask in the node buffer `words` (as `PageTable::encoded_for_gpu` sets it
+/// on the flat table's words): the shader reads a leaf's mask only then.
+pub fn per_leaf_transitions(
+    words: &mut [u32],
+    leaves: &OctreeLeaves,
+    transition_masks: &[u32],
+) -> Vec<[u32; 2]> {
+    let w = OCTREE_RECORD_WORDS as usize;
+    let masks = leaves.reduce_or(transition_masks);
+    for (leaf, &m) in masks.iter().enumerate() {
+        if m != 0 {
+            // Leaf `leaf` is record leaf + 1; its page word is the record's first.
+            words[(leaf + 1) * w] |= FLAG_TRANSITION;
+        }
+    }
+    masks.iter().map(|&m| [m, near_side_closure(m)]).collect()
+}
+
+/// The node buffer, the per-leaf MIP bounds and transition masks on the GPU, grown (recreated)
+/// when a cut needs more than they hold; the leaves of the cut last written.
 pub(crate) struct GpuOctreeIndex {
     pub(crate) nodes: wgpu::Buffer,
     pub(crate) leaf_value_max: wgpu::Buffer,
+    /// Per leaf, [transition mask, near-side closure] of its node (smooth_transitions.rs), as
+    /// the flat table's binding 11 holds them per page cell.
+    pub(crate) leaf_transitions: wgpu::Buffer,
     pub(crate) leaves: std::sync::Arc<OctreeLeaves>,
     /// Words of the cut last written (the GPU bytes of the index are these, not the capacity).
     pub(crate) node_words: usize,
@@ -217,6 +258,7 @@ impl GpuOctreeIndex {
         GpuOctreeIndex {
             nodes: node_buffer(device, OCTREE_RECORD_WORDS as u64 * 4),
             leaf_value_max: leaf_buffer(device, 4),
+            leaf_transitions: transition_buffer(device, 8),
             leaves: std::sync::Arc::new(OctreeLeaves {
                 page_dims,
                 boxes: Vec::new(),
@@ -227,16 +269,31 @@ impl GpuOctreeIndex {
         }
     }
 
-    /// Rebuilds the tree of `table`, writes it and its per-leaf bounds.
+    /// Rebuilds the tree of `table`, writes it, its per-leaf bounds and its per-leaf
+    /// transition masks (`transition_masks`: the table's, per page cell; see
+    /// smooth_transitions.rs).
     pub(crate) fn update(
         &mut self,
         device: &wgpu::Device,
         queue: &wgpu::Queue,
         table: &PageTable,
+        transition_masks: &[u32],
         slots_per_axis: [u32; 3],
     ) -> Result<(), RenderError> {
         let cut = OctreeCut::from_page_table(table);
-        let (words, leaves, _) = encode_node_buffer(&cut, slots_per_axis)?;
+        let (mut words, leaves, _) = encode_node_buffer(&cut, slots_per_axis)?;
+        let transitions = per_leaf_transitions(&mut words, &leaves, transition_masks);
+        let transition_bytes = (transitions.len().max(1) * 8) as u64;
+        if self.leaf_transitions.size() < transition_bytes {
+            self.leaf_transitions = transition_buffer(device, transition_bytes.next_power_of_two());
+        }
+        if !transitions.is_empty() {
+            queue.write_buffer(
+                &self.leaf_transitions,
+                0,
+                bytemuck::cast_slice(&transitions),
+            );
+        }
         self.root = words[0];
         let bytes = (words.len() * 4) as u64;
         if self.nodes.size() < bytes {
@@ -271,16 +328,25 @@ impl GpuOctreeIndex {
         }
     }
 
-    /// GPU bytes of the index as written: node buffer and per-leaf MIP bounds (the per-leaf
-    /// visibility words are the raycaster's, one u32 per leaf more).
+    /// GPU bytes of the index as written: node buffer, per-leaf MIP bounds and transition
+    /// masks (the per-leaf visibility words are the raycaster's, one u32 per leaf more).
     pub(crate) fn bytes(&self) -> u64 {
-        (self.node_words * 4 + self.leaves.boxes.len() * 4) as u64
+        (self.node_words * 4 + self.leaves.boxes.len() * 12) as u64
     }
 }
 
 fn node_buffer(device: &wgpu::Device, size: u64) -> wgpu::Buffer {
     device.create_buffer(&wgpu::BufferDescriptor {
         label: Some("octree nodes"),
+        size,
+        usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    })
+}
+
+fn transition_buffer(device: &wgpu::Device, size: u64) -> wgpu::Buffer {
+    device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("leaf transitions"),
         size,
         usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
         mapped_at_creation: false,
@@ -304,6 +370,21 @@ mod tests {
     use super::*;
     use crate::page_table::PageEntry;
 
+    /// The record of the leaf holding `cell`, by the GPU's descent rule (bit at the child
+    /// size).
+    fn leaf_record(words: &[u32], cell: [u32; 3]) -> usize {
+        let w = OCTREE_RECORD_WORDS as usize;
+        let mut r = words[0];
+        while r & OCTREE_LEAF_BIT == 0 {
+            let size = (r >> OCTREE_SIZE_SHIFT) & 15;
+            let base = (r & OCTREE_ID_MASK) as usize * w;
+            let bit = cell.map(|c| (c >> (size - 1)) & 1);
+            r = words[base + (bit[0] + 2 * bit[1] + 4 * bit[2]) as usize];
+            assert_ne!(r, OCTREE_NULL);
+        }
+        (r & OCTREE_ID_MASK) as usize
+    }
+
     #[test]
     fn node_buffer_references_match_the_cut() {
         let mut table = PageTable::new([3, 2, 2]);
@@ -320,22 +401,11 @@ mod tests {
         // table's entry.
         for i in 0..table.entries.len() {
             let cell = table.page_of_linear(i);
-            let mut r = words[0];
-            while r & OCTREE_LEAF_BIT == 0 {
-                let size = (r >> OCTREE_SIZE_SHIFT) & 15;
-                let base = (r & OCTREE_ID_MASK) as usize * w;
-                let bit = cell.map(|c| (c >> (size - 1)) & 1);
-                r = words[base + (bit[0] + 2 * bit[1] + 4 * bit[2]) as usize];
-                assert_ne!(r, OCTREE_NULL);
-            }
-            let base = (r & OCTREE_ID_MASK) as usize * w;
+            let record = leaf_record(&words, cell);
+            let base = record * w;
             assert_eq!(words[base], table.entries[i].encode([16, 1, 1]));
             let leaf = words[base + 7] as usize;
-            assert_eq!(
-                leaf,
-                (r & OCTREE_ID_MASK) as usize - 1,
-                "leaf index = record - 1"
-            );
+            assert_eq!(leaf, record - 1, "leaf index = record - 1");
             assert!(cut.nodes[node_of_record[leaf + 1] as usize].is_leaf());
             let b = leaves.boxes[leaf];
             assert!((0..3).all(|a| cell[a] >> b.size == b.origin[a] >> b.size));
@@ -348,6 +418,52 @@ mod tests {
         for (b, m) in leaves.boxes.iter().zip(per_leaf) {
             let i = table.linear(b.origin);
             assert!(m >= bounds[i]);
+        }
+    }
+
+    #[test]
+    fn leaves_carry_their_nodes_transition_masks_and_flags() {
+        use crate::smooth_transitions::transition_masks;
+        // 4×4×4 pages: a level-1 block in the far half (x ≥ 2), level 0 elsewhere, one level-1
+        // parent standing in for its children at (0, 2, 2)'s node (cell (1, 3, 3) only), a
+        // not-resident corner: faces, edges and corners of coarser nodes, leaves of one cell
+        // and of eight.
+        let mut table = PageTable::new([4, 4, 4]);
+        for i in 0..table.entries.len() {
+            let p = table.page_of_linear(i);
+            let level = u8::from(p[0] >= 2 || p == [1, 3, 3]);
+            let node = PageTable::node_of(p, level);
+            let slot = node[0] + 4 * (node[1] + 4 * node[2]) + 64 * level as u32;
+            table.entries[i] = PageEntry::resident(slot, level);
+        }
+        let corner = table.linear([0, 0, 3]);
+        table.entries[corner] = PageEntry::NOT_RESIDENT;
+        let masks = transition_masks(&table);
+        assert!(masks.iter().filter(|&&m| m != 0).count() > 8);
+        let slots = [128, 1, 1];
+        let flat = table.encoded_for_gpu(slots, &masks);
+        let cut = OctreeCut::from_page_table(&table);
+        let (mut words, leaves, _) = encode_node_buffer(&cut, slots).unwrap();
+        assert!(leaves.boxes.iter().any(|b| b.size > 0), "no coarse leaf");
+        let transitions = per_leaf_transitions(&mut words, &leaves, &masks);
+        assert_eq!(transitions.len(), leaves.boxes.len());
+        let w = OCTREE_RECORD_WORDS as usize;
+        for (i, &mask) in masks.iter().enumerate() {
+            let cell = table.page_of_linear(i);
+            let record = leaf_record(&words, cell);
+            let word = words[record * w];
+            // The flat table's transition bit, and the leaf's entry otherwise untouched.
+            assert_eq!(
+                word & FLAG_TRANSITION,
+                flat[i] & FLAG_TRANSITION,
+                "{cell:?}"
+            );
+            assert_eq!(word & !FLAG_TRANSITION, table.entries[i].encode(slots));
+            assert_eq!(
+                transitions[record - 1],
+                [mask, near_side_closure(mask)],
+                "{cell:?}"
+            );
         }
     }
 }

@@ -1,7 +1,8 @@
 //! The page table on the GPU (binding 3), the per-entry MIP bounds (binding 9) and the
 //! per-entry transition masks with their near-side closures (binding 11), as the raycast
 //! shader's page lookups read them; with [`Traversal::Octree`], the cut's octree instead
-//! (gpu_octree.rs: node buffer, per-leaf bounds), and the flat buffers shrink to stubs.
+//! (gpu_octree.rs: node buffer, per-leaf bounds and transition masks), and the flat buffers
+//! shrink to stubs.
 
 use crate::cache::BrickCache;
 use crate::dirty_spans::write_changed;
@@ -30,7 +31,8 @@ pub struct PreparedPageTable {
     table: PageTable,
     /// Binding 3's words (empty with the octree traversal, which builds its node buffer).
     words: Vec<u32>,
-    /// Binding 11's pairs (empty with the octree traversal).
+    /// Binding 11's pairs per page cell (with the octree traversal, the masks its leaves
+    /// take theirs from: gpu_octree.rs `per_leaf_transitions`).
     transitions: Vec<[u32; 2]>,
     transition_fraction: f64,
 }
@@ -53,14 +55,12 @@ impl PreparedPageTable {
         }
         let masks = transition_masks(&table);
         let transition_fraction = transition_node_fraction(&table, &masks);
-        let (words, transitions) = if layout.traversal == Traversal::Flat {
-            (
-                table.encoded_for_gpu(layout.slots_per_axis, &masks),
-                masks.iter().map(|&m| [m, near_side_closure(m)]).collect(),
-            )
+        let words = if layout.traversal == Traversal::Flat {
+            table.encoded_for_gpu(layout.slots_per_axis, &masks)
         } else {
-            (Vec::new(), Vec::new())
+            Vec::new()
         };
+        let transitions = masks.iter().map(|&m| [m, near_side_closure(m)]).collect();
         Ok(PreparedPageTable {
             layout,
             table,
@@ -259,15 +259,26 @@ impl GpuPageTable {
             .unwrap_or(crate::layout::OCTREE_NULL)
     }
 
-    /// The buffers bound at 9 (MIP bounds) and 12 (octree nodes) for the traversal.
-    pub(crate) fn traversal_buffers(&self) -> Result<(wgpu::Buffer, wgpu::Buffer), RenderError> {
+    /// The buffers bound at 9 (MIP bounds), 12 (octree nodes) and 11 (transition masks) for
+    /// the traversal.
+    pub(crate) fn traversal_buffers(
+        &self,
+    ) -> Result<(wgpu::Buffer, wgpu::Buffer, wgpu::Buffer), RenderError> {
         let octree = self
             .octree
             .lock()
             .map_err(|_| RenderError::PageTableMismatch("octree index poisoned".into()))?;
         Ok(match self.traversal {
-            Traversal::Flat => (self.value_max.clone(), octree.nodes.clone()),
-            Traversal::Octree => (octree.leaf_value_max.clone(), octree.nodes.clone()),
+            Traversal::Flat => (
+                self.value_max.clone(),
+                octree.nodes.clone(),
+                self.transitions.clone(),
+            ),
+            Traversal::Octree => (
+                octree.leaf_value_max.clone(),
+                octree.nodes.clone(),
+                octree.leaf_transitions.clone(),
+            ),
         })
     }
 
@@ -371,7 +382,14 @@ impl GpuPageTable {
                 .octree
                 .lock()
                 .map_err(|_| RenderError::PageTableMismatch("octree index poisoned".into()))?;
-            octree.update(&self.device, queue, &prepared.table, self.slots_per_axis)?;
+            let masks: Vec<u32> = prepared.transitions.iter().map(|t| t[0]).collect();
+            octree.update(
+                &self.device,
+                queue,
+                &prepared.table,
+                &masks,
+                self.slots_per_axis,
+            )?;
             written.last_write_bytes = 0;
         } else {
             let w = &mut *written;

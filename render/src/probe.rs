@@ -21,8 +21,11 @@ fn probe_source() -> (&'static str, &'static [String]) {
     static SOURCE: OnceLock<(String, Vec<String>)> = OnceLock::new();
     let (source, declared) = SOURCE.get_or_init(|| {
         let prelude = format!("const PROBE_WORKGROUP_SIZE: u32 = {PROBE_WORKGROUP_SIZE}u;\n");
-        let source =
-            shaders::compose_with_field(&[("probe prelude", &prelude), ("probe.wgsl", PROBE_WGSL)]);
+        let source = shaders::compose_with_field(&[
+            ("probe prelude", &prelude),
+            shaders::FLAT_NEIGHBOUR,
+            ("probe.wgsl", PROBE_WGSL),
+        ]);
         let declared = shaders::declared_overrides(&source).unwrap_or_default();
         (source, declared)
     });
@@ -147,19 +150,24 @@ impl Raycaster {
         let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("field probe"),
             layout: &layout,
-            entries: &Self::field_entries(&self.params, &self.sampler, scene)
-                .into_iter()
-                .chain([
-                    wgpu::BindGroupEntry {
-                        binding: 12,
-                        resource: points_buffer.as_entire_binding(),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 13,
-                        resource: values.as_entire_binding(),
-                    },
-                ])
-                .collect::<Vec<_>>(),
+            entries: &Self::field_entries(
+                &self.params,
+                &self.sampler,
+                scene,
+                &scene.page_table.transitions,
+            )
+            .into_iter()
+            .chain([
+                wgpu::BindGroupEntry {
+                    binding: 12,
+                    resource: points_buffer.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 13,
+                    resource: values.as_entire_binding(),
+                },
+            ])
+            .collect::<Vec<_>>(),
         });
         let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
             label: Some("field probe"),

@@ -454,11 +454,13 @@ impl Raycaster {
     }
 
     /// The bindings that define the sampled field (parameters, cache, sampler, page table,
-    /// transition masks): shared by the raycast pass and the field probe.
+    /// transition masks: `transitions`, per page cell or per leaf as the traversal has them):
+    /// shared by the raycast pass, the adaptive pass and the field probe.
     pub(crate) fn field_entries<'a>(
         params: &'a wgpu::Buffer,
         sampler: &'a wgpu::Sampler,
         scene: &'a Scene,
+        transitions: &'a wgpu::Buffer,
     ) -> [wgpu::BindGroupEntry<'a>; 5] {
         [
             wgpu::BindGroupEntry {
@@ -479,7 +481,7 @@ impl Raycaster {
             },
             wgpu::BindGroupEntry {
                 binding: 11,
-                resource: scene.page_table.transitions.as_entire_binding(),
+                resource: transitions.as_entire_binding(),
             },
         ]
     }
@@ -540,14 +542,6 @@ impl Raycaster {
             )));
         }
         let wanted = self.key_for_scene(scene);
-        if wanted.octree && wanted.smooth_transitions {
-            return Err(RenderError::InvalidSettings(
-                "smooth level transitions are not available with the octree traversal yet \
-                 (they need edge and corner neighbours, which the leaves' face ropes do not \
-                 reach); use the flat traversal or turn smooth transitions off"
-                    .into(),
-            ));
-        }
         let key = self
             .pipelines
             .choose(device, wanted, self.compile_in_background, self.last_key);
@@ -559,7 +553,7 @@ impl Raycaster {
         self.ensure_visibility(device, scene.page_table.visibility_entries());
         self.page_count = page_dims.iter().map(|&d| d as usize).product();
         let leaves = scene.page_table.octree_leaves();
-        let (bounds_buffer, octree_nodes) = scene.page_table.traversal_buffers()?;
+        let (bounds_buffer, octree_nodes, transitions) = scene.page_table.traversal_buffers()?;
         let params = build_params(scene);
         ctx.queue
             .write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
@@ -573,7 +567,7 @@ impl Raycaster {
         let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("raycast"),
             layout: &self.pipelines.layout,
-            entries: &Self::field_entries(&self.params, &self.sampler, scene)
+            entries: &Self::field_entries(&self.params, &self.sampler, scene, &transitions)
                 .into_iter()
                 .chain([
                     wgpu::BindGroupEntry {

@@ -9,7 +9,9 @@
 //! `preintegration.wgsl` ↔ preintegration.rs, `overlay.wgsl` ↔ overlay.rs, `raycast.wgsl` (entry point and ray loop) ↔
 //! raycast.rs; `probe.wgsl` ↔ probe.rs, composed into a test-only module of its own;
 //! `adaptive.wgsl` ↔ adaptive/gpu.rs (and adaptive/transcription.rs), composed with the field
-//! files and `preintegration.wgsl` into the adaptive pass's module.
+//! files and `preintegration.wgsl` into the adaptive pass's module. The field files leave the
+//! transition blend's neighbour lookup (`neighbour_page`) to the module: `flat_neighbour.wgsl`
+//! in the adaptive pass and the probe, raycast.wgsl's own (flat or octree) in the raycaster.
 //!
 //! The effect overrides a source declares are read from naga's IR of it
 //! (`declared_overrides`); the default source is composed and parsed once per process.
@@ -142,8 +144,16 @@ pub fn raycast_source() -> &'static str {
     SOURCE.get_or_init(|| compose_with_field(&RAYCAST_FILES))
 }
 
+/// The transition blend's neighbour lookup in the flat page table, for the passes that have
+/// no octree traversal (adaptive pass, field probe); the raycaster's own is in raycast.wgsl.
+pub(crate) const FLAT_NEIGHBOUR: (&str, &str) = (
+    "flat_neighbour.wgsl",
+    include_str!("shaders/flat_neighbour.wgsl"),
+);
+
 /// The adaptive pass's own files, after [`FIELD_FILES`] (adaptive/gpu.rs).
-const ADAPTIVE_FILES: [(&str, &str); 2] = [
+const ADAPTIVE_FILES: [(&str, &str); 3] = [
+    FLAT_NEIGHBOUR,
     (
         "preintegration.wgsl",
         include_str!("shaders/preintegration.wgsl"),

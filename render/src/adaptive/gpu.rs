@@ -503,45 +503,48 @@ impl AdaptivePass {
         let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("adaptive"),
             layout: &self.layout,
-            entries: &Raycaster::field_entries(&self.params, &self.sampler, scene)
-                .into_iter()
-                .chain([
-                    wgpu::BindGroupEntry {
-                        binding: 10,
-                        resource: wgpu::BindingResource::TextureView(
-                            self.preintegration.view(true),
-                        ),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 12,
-                        resource: self.adaptive_params.as_entire_binding(),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 14,
-                        resource: self.oracle.as_entire_binding(),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 15,
-                        resource: wgpu::BindingResource::TextureView(&targets.color_view),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 16,
-                        resource: targets.rgba.as_entire_binding(),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 17,
-                        resource: targets.depth.as_entire_binding(),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 18,
-                        resource: vis.1.as_entire_binding(),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 19,
-                        resource: self.counters.as_entire_binding(),
-                    },
-                ])
-                .collect::<Vec<_>>(),
+            entries: &Raycaster::field_entries(
+                &self.params,
+                &self.sampler,
+                scene,
+                &scene.page_table.transitions,
+            )
+            .into_iter()
+            .chain([
+                wgpu::BindGroupEntry {
+                    binding: 10,
+                    resource: wgpu::BindingResource::TextureView(self.preintegration.view(true)),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 12,
+                    resource: self.adaptive_params.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 14,
+                    resource: self.oracle.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 15,
+                    resource: wgpu::BindingResource::TextureView(&targets.color_view),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 16,
+                    resource: targets.rgba.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 17,
+                    resource: targets.depth.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 18,
+                    resource: vis.1.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 19,
+                    resource: self.counters.as_entire_binding(),
+                },
+            ])
+            .collect::<Vec<_>>(),
         });
         let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
             label: Some("adaptive"),

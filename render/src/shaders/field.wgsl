@@ -130,7 +130,9 @@ fn transition_blend(loc: Location) -> Blend {
         if any(neighbour < vec3<i32>(0)) || any(neighbour >= vec3<i32>(P.pages.xyz)) {
             continue;
         }
-        let pg = decode_entry(neighbour);
+        // The module's traversal finds the neighbour's page (flat_neighbour.wgsl: its word in
+        // the flat table; raycast.wgsl: a point query on the octree's node buffer).
+        let pg = neighbour_page(neighbour);
         if !pg.resident || pg.level <= loc.level {
             continue;
         }

@@ -94,18 +94,23 @@ fn locate_on_ray(o: vec3<f32>, d: vec3<f32>, t: f32, cached: ptr<function, Page>
 // The octree traversal's page for `cell` from the leaf holding it (not found: not resident).
 // Its per-entry index is the leaf's; its region the leaf's box.
 fn decode_leaf(leaf: OctreeLeaf, cell: vec3<i32>) -> Page {
-    var word = FLAG_NOT_RESIDENT;
-    if leaf.found {
-        word = leaf.word;
-    }
-    var pg = decode_word(word, cell, leaf.index);
+    // The leaf's transition data is per leaf (binding 11 indexed by the leaf, as the MIP
+    // bound): the same mask as the flat table's entries of that node.
+    var pg = with_transition(leaf_entry(leaf, cell), cell);
     pg.whole_node = true;
-    pg.transition = 0u;
-    pg.near_side_closure = 0u;
     pg.leaf_record = select(0u, leaf.record, leaf.found);
     pg.leaf_origin = leaf.origin;
     pg.leaf_size = leaf.size;
     return pg;
+}
+
+// The leaf's page word alone, decoded for `cell` (decode_entry's twin: no transition data).
+fn leaf_entry(leaf: OctreeLeaf, cell: vec3<i32>) -> Page {
+    var word = FLAG_NOT_RESIDENT;
+    if leaf.found {
+        word = leaf.word;
+    }
+    return decode_word(word, cell, leaf.index);
 }
 
 fn leaf_of(pg: Page) -> OctreeLeaf {
@@ -153,6 +158,17 @@ fn locate_traversal(p: vec3<f32>) -> Location {
         return location_in(decode_leaf(octree_leaf_at(P.pages.w, vec3<u32>(cell)), cell), pc);
     }
     return locate(p);
+}
+
+// The transition blend's neighbour lookup (field.wgsl: transition_blend; the other passes
+// take flat_neighbour.wgsl's): the page of a face, edge or corner neighbour cell. Six face
+// ropes do not reach edge and corner neighbours, so the octree finds every one with a point
+// query on the node buffer (the neighbour's leaf holds the flat table's word for that cell).
+fn neighbour_page(cell: vec3<i32>) -> Page {
+    if OCTREE {
+        return leaf_entry(octree_leaf_at(P.pages.w, vec3<u32>(cell)), cell);
+    }
+    return decode_entry(cell);
 }
 
 // Where the ray leaves the region a skipped entry stands for: with NODE_EXTENT its whole node
@@ -246,6 +262,8 @@ struct RayState {
     run_delta: f32,
     run_loc: Location,
     run_open: bool,
+    // Isosurface: where the hit is (take_sample), for its shading.
+    hit_loc: Location,
 };
 
 // Marks a page visible once per visit: consecutive samples mostly share a page, and a
@@ -298,7 +316,9 @@ fn close_preintegrated_run(st: ptr<function, RayState>, d: vec3<f32>) {
     (*st).run_open = false;
 }
 
-fn take_sample(st: ptr<function, RayState>, loc: Location, t: f32, delta: f32, o: vec3<f32>, d: vec3<f32>) {
+// `leaf`: the march's decoded page (with the octree, the leaf it holds), where an isosurface
+// hit starts its bisection.
+fn take_sample(st: ptr<function, RayState>, loc: Location, t: f32, delta: f32, o: vec3<f32>, d: vec3<f32>, leaf: Page) {
     (*st).samples = (*st).samples + 1u;
     let v = physical(field(loc));
     if MODE == 0u && PREINTEGRATED {
@@ -345,8 +365,12 @@ fn take_sample(st: ptr<function, RayState>, loc: Location, t: f32, delta: f32, o
         if v >= P.iso.x {
             var t_hit = t;
             // The bisection's points mostly share one or two leaves: with the octree, a leaf
-            // found is kept while the points stay in it (no descent per step).
-            var near: Page;
+            // found is kept while the points stay in it (no descent per step), starting with
+            // the leaf the march holds (the hit sample's, or the one before it): most hits
+            // then need no point query at all. The hit's location (its shading gradient) is
+            // the bisection's last leaf too. (locate_cached of a point in the leaf is that
+            // leaf's page at the point's cell: the same Location a fresh query finds.)
+            var near = leaf;
             if (*st).prev_valid {
                 var lo = (*st).prev_t;
                 var hi = t;
@@ -363,7 +387,8 @@ fn take_sample(st: ptr<function, RayState>, loc: Location, t: f32, delta: f32, o
             }
             (*st).hit = true;
             (*st).depth = t_hit;
-            mark_visible_in(st, locate_cached(o + d * t_hit, &near).page);
+            (*st).hit_loc = locate_cached(o + d * t_hit, &near);
+            mark_visible_in(st, (*st).hit_loc.page);
             (*st).done = true;
         } else {
             (*st).prev_t = t;
@@ -652,7 +677,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             close_preintegrated_run(&st, d);
             continue;
         }
-        take_sample(&st, loc, t, delta, o, d);
+        take_sample(&st, loc, t, delta, o, d, page_cache);
         if st.done {
             break;
         }
@@ -674,7 +699,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
                     break;
                 }
                 k = k + stride;
-                take_sample(&st, location_in(page_cache, clamp_to_volume(o + d * t_next)), t_next, delta, o, d);
+                take_sample(&st, location_in(page_cache, clamp_to_volume(o + d * t_next)), t_next, delta, o, d, page_cache);
                 if st.done {
                     break;
                 }
@@ -693,7 +718,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         let loc = locate_traversal(o + d * t);
         let in_overlay = OVERLAY && MODE == 0u && t >= overlay_span.x && t <= overlay_span.y;
         if loc.resident && !(SKIP_EMPTY && loc.empty && !in_overlay) {
-            take_sample(&st, loc, t, length, o, d);
+            take_sample(&st, loc, t, length, o, d, page_cache);
         }
     }
     close_preintegrated_run(&st, d);
@@ -704,10 +729,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     let best_value = st.best_value;
     let best_t = st.best_t;
     let hit = st.hit;
-    var hit_loc: Location;
-    if hit {
-        hit_loc = locate_traversal(o + d * depth);
-    }
+    let hit_loc = st.hit_loc;
 
     if MODE == 1u && have_best {
         var tf = transfer(best_value);

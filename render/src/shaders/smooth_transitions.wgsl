@@ -5,13 +5,22 @@
 // C0 blend into coarser neighbours (smooth_transitions.rs); on only when the cut has transitions.
 override SMOOTH_TRANSITIONS: bool = false;
 
-// Per page entry: x = 26-neighbour mask of the covering node, bit (x+1)+3(y+1)+9(z+1) set where
-// that neighbour is coarser; y = its near-side closure: bit (s+1)·(1,3,9) set where a sample
-// within half a voxel of the sides s can be in a band (smooth_transitions.rs).
+// Per page entry (flat table) or per leaf (octree traversal: indexed by the leaf, as the MIP
+// bound and the visibility word): x = 26-neighbour mask of the covering node, bit
+// (x+1)+3(y+1)+9(z+1) set where that neighbour is coarser; y = its near-side closure: bit
+// (s+1)·(1,3,9) set where a sample within half a voxel of the sides s can be in a band
+// (smooth_transitions.rs).
 @group(0) @binding(11) var<storage, read> page_transitions: array<vec2<u32>>;
 
 fn decode_page(cell: vec3<i32>) -> Page {
-    var pg = decode_entry(cell);
+    return with_transition(decode_entry(cell), cell);
+}
+
+// `pg` (decoded for page cell `cell`, `pg.linear` indexing binding 11) with its node's
+// transition mask, closure and band-free box; nothing is read unless the word has
+// FLAG_TRANSITION and the pipeline smooths.
+fn with_transition(decoded: Page, cell: vec3<i32>) -> Page {
+    var pg = decoded;
     pg.transition = 0u;
     pg.near_side_closure = 0u;
     if SMOOTH_TRANSITIONS && pg.has_transition {
