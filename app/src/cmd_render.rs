@@ -34,8 +34,8 @@ pub enum TraversalArg {
     /// The flat page table: one entry per finest brick position (the default).
     Flat,
     /// The octree of the resident cut with neighbour pointers (octree paper §5): index memory
-    /// grows with the cut, not the volume. Needs --up-front for now; smooth level transitions
-    /// are not available with it yet (a cut with level changes needs --no-smooth).
+    /// grows with the cut, not the volume. Needs --up-front for now (the streaming loader builds
+    /// the flat table); smooth level transitions work with it as with the flat table.
     Octree,
 }
 
