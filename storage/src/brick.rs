@@ -690,10 +690,10 @@ pub fn decode_brick(id: BrickId, record: &[u8]) -> Result<Vec<u16>, BrickDecodeE
     }
 }
 
-/// Decompresses a size-prefixed lz4 block that must hold exactly `expected` bytes. The prefix is
-/// checked before anything is allocated, so a damaged prefix cannot ask for gigabytes.
+/// Decompresses a size-prefixed lz4 block that must hold exactly `expected` bytes. What is
+/// allocated is the caller's `expected` (one brick), never the prefix's claim, so a damaged
+/// prefix cannot ask for gigabytes.
 fn lz4_exact(body: &[u8], expected: usize) -> Result<Vec<u8>, BrickDecodeError> {
-    check_lz4_prefix(body, expected)?;
     let mut out = vec![0u8; expected];
     lz4_exact_into(body, &mut out)?;
     Ok(out)
