@@ -320,7 +320,7 @@ mod tests {
     }
 
     #[test]
-    fn tiles_without_rules_are_the_global_algorithm_and_termination_only_stops_tiles() {
+    fn tiles_without_rules_are_the_global_algorithm_and_termination_only_freezes_opaque_pixels() {
         let dims = PyramidDims::padded(40, 24, 3);
         let global = project_volume(dims, 64, &Hashed, &Opacity);
         for tile in [8, 16, 32] {
@@ -349,6 +349,63 @@ mod tests {
             );
             for (a, b) in stopped.rgba.iter().zip(&global.rgba) {
                 assert!(a[3] <= b[3] && (a[3] >= 0.3 || a == b), "tile {tile}");
+            }
+        }
+    }
+
+    /// Opaque everywhere but the rays left of level-0 column 1: one open pixel per row keeps
+    /// every tile of the left column voting "open".
+    struct OpaqueButTheLeftColumn;
+
+    impl AdaptiveProbe for OpaqueButTheLeftColumn {
+        fn probe(&self, level: u32, x: u32, _y: u32, _i_slice: u32) -> (f64, f64) {
+            let u = level0_coordinate(level, x);
+            (if u < 0.25 { 0.0 } else { 1.0e5 }, 1.0)
+        }
+    }
+
+    #[test]
+    fn opaque_pixels_stop_sampling_while_an_open_pixel_keeps_their_tile_going() {
+        // Two tiles of 32²: at level 3 a tile owns 4² pixels, the middle ones interior.
+        let dims = PyramidDims::padded(64, 32, 3);
+        let rules = |early_termination| TileRules {
+            tile: 32,
+            early_termination,
+            slice_ranges: false,
+        };
+        let probe = OpaqueButTheLeftColumn;
+        let full = project_volume_tiled(dims, 64, rules(None), &probe, &Opacity);
+        let stopped = project_volume_tiled(dims, 64, rules(Some(0.99)), &probe, &Opacity);
+        // Opaque pixels reach 0.99 within a few slices; the left column never does.
+        let n0 = (dims.width * dims.height) as usize;
+        let open = (0..n0).filter(|&k| full.rgba[k][3] < 0.99).count();
+        assert_eq!(
+            open, dims.height as usize,
+            "only the left column stays open"
+        );
+        // Level 0: the open column samples all 65 slices, the rest a few each.
+        assert!(
+            stopped.samples_per_level[0] * 5 < full.samples_per_level[0],
+            "{:?} vs {:?}",
+            stopped.samples_per_level,
+            full.samples_per_level
+        );
+        // Coarser levels: the right tile stops at its first vote; the left one closes its
+        // interior pixels but those feeding the open column.
+        for l in 1..=3 {
+            assert!(
+                stopped.samples_per_level[l] * 2 < full.samples_per_level[l],
+                "level {l}: {:?} vs {:?}",
+                stopped.samples_per_level,
+                full.samples_per_level
+            );
+        }
+        // Open pixels are the full march's exactly; closed ones stay at ≥ the threshold.
+        for k in 0..n0 {
+            if full.rgba[k][3] < 0.99 {
+                assert_eq!(stopped.rgba[k], full.rgba[k], "pixel {k}");
+            } else {
+                assert!(stopped.rgba[k][3] >= 0.99 && stopped.rgba[k][3] <= full.rgba[k][3]);
             }
         }
     }
@@ -400,9 +457,16 @@ mod tests {
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct TileRules {
     pub tile: u32,
-    /// Early ray termination for the tile: after every slice of l_slice = l_max (where every
-    /// pixel has just composited), the tile stops once all its level-0 pixels reach this
-    /// opacity.
+    /// Early ray termination at this opacity, per pixel and per tile:
+    /// - a level-0 pixel that reached it takes no more samples, syntheses or segments (level 0
+    ///   feeds no other pixel, so every other pixel is unchanged);
+    /// - after every slice of l_slice = l_max (where every pixel has just composited) a
+    ///   coarser pixel closes once every finer pixel its synthesis feeds (children
+    ///   2p−1..2p+2 per axis) is closed, and a closed pixel takes no more samples or
+    ///   syntheses: only closed pixels ever read it again, so the open ones are unchanged.
+    ///   Apron pixels and pixels whose children reach the apron or another tile stay open
+    ///   (the tile cannot see those children);
+    /// - at the same slices the tile stops once all its level-0 pixels are closed.
     pub early_termination: Option<f64>,
     /// Empty space before and behind the data: a tile none of whose rays (every level's,
     /// apron included) meets the data is transparent without a sample; otherwise it marches
@@ -497,6 +561,11 @@ pub fn project_volume_tiled(
     let mut d = s.clone();
     let mut s_prev = vec![0.0; n0];
     let mut i_prev = vec![0u32; n0];
+    // Closed pixels of levels 1..=l_max under early termination (index 0 unused: level 0
+    // reads its opacity directly).
+    let mut closed: Vec<Vec<bool>> = (0..=l_max)
+        .map(|l| vec![false; (dims.level_width(l) * dims.level_height(l)) as usize])
+        .collect();
     for tile_y in (0..dims.height).step_by(tile as usize) {
         for tile_x in (0..dims.width).step_by(tile as usize) {
             let (first, last) = if rules.slice_ranges {
@@ -526,6 +595,17 @@ pub fn project_volume_tiled(
                 i_prev[k] = first;
                 s_prev[k] = 0.0;
             }
+            for l in 1..=l_max {
+                let w = dims.level_width(l);
+                for (x, y) in cartesian(window(l)) {
+                    closed[l as usize][(y as u32 * w + x as u32) as usize] = false;
+                }
+            }
+            let opaque = |c: &[f64; 4]| {
+                rules
+                    .early_termination
+                    .is_some_and(|threshold| c[3] >= threshold)
+            };
             let mut first_value = true;
             for i_slice in first..=last {
                 let ls = l_slice(i_slice, l_max);
@@ -542,6 +622,9 @@ pub fn project_volume_tiled(
                         let (x, y) = (x as u32, y as u32);
                         let k = (y * w + x) as usize;
                         let own = owned(l, x as i64, y as i64);
+                        if (l == 0 && opaque(&rgba[k])) || (l > 0 && closed[l as usize][k]) {
+                            continue;
+                        }
                         if l < ls && (ls == l_max || d_l[k] < skip_bound) {
                             if let (Some(sp), Some(dp)) = (s_parent, d_parent) {
                                 d_l[k] = dims.synthesize(dp, l, x, y);
@@ -584,13 +667,38 @@ pub fn project_volume_tiled(
                     }
                 }
                 first_value = false;
-                if let Some(threshold) = rules.early_termination {
-                    if ls == l_max && i_slice > first {
-                        let open = cartesian(window(0)).any(|(x, y)| {
-                            rgba[(y as u32 * dims.width + x as u32) as usize][3] < threshold
-                        });
-                        if !open {
-                            break;
+                if rules.early_termination.is_some() && ls == l_max && i_slice > first {
+                    let open = cartesian(window(0))
+                        .any(|(x, y)| !opaque(&rgba[(y as u32 * dims.width + x as u32) as usize]));
+                    if !open {
+                        break;
+                    }
+                    for l in 1..=l_max {
+                        let (finer, coarser) = closed.split_at_mut(l as usize);
+                        let child_closed = |cx: i64, cy: i64| {
+                            if l == 1 {
+                                let (tx, ty) = (tile_x as i64, tile_y as i64);
+                                let inside = (tx..tx + tile as i64).contains(&cx)
+                                    && (ty..ty + tile as i64).contains(&cy);
+                                inside
+                                    && opaque(&rgba[(cy as u32 * dims.width + cx as u32) as usize])
+                            } else {
+                                let wf = dims.level_width(l - 1);
+                                owned(l - 1, cx, cy)
+                                    && finer[l as usize - 1][(cy as u32 * wf + cx as u32) as usize]
+                            }
+                        };
+                        let (wf, hf) = (
+                            dims.level_width(l - 1) as i64,
+                            dims.level_height(l - 1) as i64,
+                        );
+                        let w = dims.level_width(l);
+                        for (x, y) in cartesian(window(l)) {
+                            let children = |p: i64, n: i64| (2 * p - 1).max(0)..(2 * p + 3).min(n);
+                            let all_closed = owned(l, x, y)
+                                && cartesian((children(x, wf), children(y, hf)))
+                                    .all(|(cx, cy)| child_closed(cx, cy));
+                            coarser[0][(y as u32 * w + x as u32) as usize] = all_closed;
                         }
                     }
                 }

@@ -13,9 +13,10 @@
 override TILE: u32 = 16u;
 override L_MAX: u32 = 3u;
 override ORACLE: u32 = 0u;       // 0 per page entry, 1 constant, 2 hash (tests), 3 per block
-// The tile's decisions (transcription.rs TileRules, which the CPU side follows too): a tile
-// stops once all its pixels reach the early-termination opacity (voted every 2^L_MAX slices,
-// where every pixel has just accumulated).
+// The tile's decisions (transcription.rs TileRules, which the CPU side follows too), at the
+// early-termination opacity: a level-0 pixel that reached it stops sampling; every 2^L_MAX
+// slices (where every pixel has just accumulated) a coarser pixel closes once every finer
+// pixel it feeds is closed, and the tile stops once all its pixels are.
 override EARLY_TERMINATION: bool = false;
 // Data oracles: a tile none of whose rays meets the box is written transparent without
 // marching, and each tile marches only over the slices its rays can meet the box in.
@@ -70,6 +71,10 @@ var<workgroup> tile_t_exit: atomic<u32>;
 var<workgroup> tile_first_slice: u32;
 var<workgroup> tile_last_slice: u32;
 var<workgroup> pyramid_d: array<f32, PYRAMID_CAP>;
+// Early termination's closed pixels: one bit per level-0 pixel of the tile (32² / 32 words),
+// and a flag per pixel of levels 1..L_MAX, apron included (an apron pixel never closes).
+var<workgroup> closed_level0: array<atomic<u32>, 32>;
+var<workgroup> pyramid_closed: array<u32, PYRAMID_CAP>;
 
 // Edge of level l's tile with its apron, and where level l starts in the pyramid arrays.
 fn extent(l: u32) -> u32 {
@@ -264,6 +269,65 @@ fn synthesize(l: u32, gx: u32, gy: u32, tile_x: u32, tile_y: u32) -> vec2<f32> {
     return sum;
 }
 
+// Early termination's closing step (transcription.rs TileRules::early_termination): level-0
+// pixels at the opacity threshold are closed; a pixel of level l ≥ 1 closes when it is the
+// tile's own (not apron) and every child its synthesis feeds (2p−1..2p+2 per axis, inside the
+// level) is a closed pixel of this tile. Called in uniform control flow.
+fn close_opaque_pixels(tile_x: u32, tile_y: u32, lid: u32, acc: ptr<function, array<vec4<f32>, MAX_OWNED>>) {
+    for (var w = lid; w < 32u; w += THREADS) {
+        atomicStore(&closed_level0[w], 0u);
+    }
+    workgroupBarrier();
+    for (var j = 0u; j < (TILE * TILE) / THREADS; j++) {
+        let idx = lid + j * THREADS;
+        if tile_x + idx % TILE < A.pyramid.x && tile_y + idx / TILE < A.pyramid.y && (*acc)[j].a >= P.dims.w {
+            atomicOr(&closed_level0[idx / 32u], 1u << (idx % 32u));
+        }
+    }
+    workgroupBarrier();
+    for (var l = 1u; l <= L_MAX; l++) {
+        let e = extent(l);
+        let off = level_offset(l);
+        let ox = i32(tile_x >> l) - 1;
+        let oy = i32(tile_y >> l) - 1;
+        let wf = i32(A.pyramid.x >> (l - 1u));
+        let hf = i32(A.pyramid.y >> (l - 1u));
+        let ec = i32(extent(l - 1u));
+        let offc = level_offset(l - 1u);
+        let oxc = i32(tile_x >> (l - 1u)) - 1;
+        let oyc = i32(tile_y >> (l - 1u)) - 1;
+        for (var idx = lid; idx < e * e; idx += THREADS) {
+            let lx = idx % e;
+            let ly = idx / e;
+            let gx = ox + i32(lx);
+            let gy = oy + i32(ly);
+            var all_closed = lx >= 1u && ly >= 1u && lx + 2u <= e && ly + 2u <= e;
+            for (var cy = max(2 * gy - 1, 0); cy < min(2 * gy + 3, hf) && all_closed; cy++) {
+                for (var cx = max(2 * gx - 1, 0); cx < min(2 * gx + 3, wf) && all_closed; cx++) {
+                    if l == 1u {
+                        let tx = cx - i32(tile_x);
+                        let ty = cy - i32(tile_y);
+                        let inside = tx >= 0 && ty >= 0 && tx < i32(TILE) && ty < i32(TILE);
+                        if inside {
+                            let bit = u32(ty) * TILE + u32(tx);
+                            all_closed = (atomicLoad(&closed_level0[bit / 32u]) & (1u << (bit % 32u))) != 0u;
+                        } else {
+                            all_closed = false;
+                        }
+                    } else {
+                        let lxc = cx - oxc;
+                        let lyc = cy - oyc;
+                        let child_owned = lxc >= 1 && lyc >= 1 && lxc + 2 <= ec && lyc + 2 <= ec;
+                        all_closed = child_owned && pyramid_closed[offc + u32(lyc * ec + lxc)] != 0u;
+                    }
+                }
+            }
+            pyramid_closed[off + idx] = select(0u, 1u, all_closed);
+        }
+        workgroupBarrier();
+    }
+}
+
 @compute @workgroup_size(8, 8, 1)
 fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
     let tile_x = wid.x * TILE;
@@ -384,6 +448,12 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
         i_prev[j] = first_slice;
         s_prev[j] = A.frame.z;
     }
+    if EARLY_TERMINATION {
+        for (var idx = lid; idx < PYRAMID_CAP; idx += THREADS) {
+            pyramid_closed[idx] = 0u;
+        }
+        workgroupBarrier();
+    }
     for (var i = first_slice; i <= last_slice; i++) {
         var ls = L_MAX;
         if i != 0u {
@@ -407,6 +477,9 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
                     continue;
                 }
                 let k = off + idx;
+                if EARLY_TERMINATION && pyramid_closed[k] != 0u {
+                    continue;
+                }
                 let is_owned = lx >= 1u && ly >= 1u && lx + 2u <= e && ly + 2u <= e;
                 if l < ls && (ls == L_MAX || pyramid_d[k] < skip_bound) {
                     let syn = synthesize(l, u32(gx), u32(gy), tile_x, tile_y);
@@ -436,6 +509,9 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
             let gx = tile_x + idx % TILE;
             let gy = tile_y + idx / TILE;
             if gx >= width || gy >= height {
+                continue;
+            }
+            if EARLY_TERMINATION && acc[j].a >= P.dims.w {
                 continue;
             }
             if 0u < ls && (ls == L_MAX || d0[j] < skip_bound) {
@@ -495,6 +571,7 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
             if workgroupUniformLoad(&tile_decision) == 0u {
                 break;
             }
+            close_opaque_pixels(tile_x, tile_y, lid, &acc);
         }
     }
     for (var j = 0u; j < owned; j++) {
