@@ -26,6 +26,9 @@ pub enum ModeArg {
     /// sampling distances from the per-block oracle (--oracle-epsilon); renders a fixed cut
     /// (--up-front).
     Adaptive,
+    /// MIP by adaptive sampling in three dimensions: the same pass, oracle and fixed cut as
+    /// --mode adaptive, each pixel keeping its largest value.
+    AdaptiveMip,
 }
 
 /// How the GPU raycaster finds the bricks along a ray (render/src/gpu_octree.rs).
@@ -176,7 +179,9 @@ fn check_args(args: &RenderArgs) -> Result<()> {
                 args.out.display()
             );
             anyhow::ensure!(
-                !args.up_front && !args.reference && !matches!(args.mode, ModeArg::Adaptive),
+                !args.up_front
+                    && !args.reference
+                    && !matches!(args.mode, ModeArg::Adaptive | ModeArg::AdaptiveMip),
                 "--orbit streams the store: it does not combine with --up-front, --reference or \
                  --mode adaptive"
             );
@@ -185,7 +190,9 @@ fn check_args(args: &RenderArgs) -> Result<()> {
     }
     if args.traversal == TraversalArg::Octree {
         anyhow::ensure!(
-            args.up_front && !args.reference && !matches!(args.mode, ModeArg::Adaptive),
+            args.up_front
+                && !args.reference
+                && !matches!(args.mode, ModeArg::Adaptive | ModeArg::AdaptiveMip),
             "--traversal octree is the GPU raycaster's over a fixed cut: it needs --up-front \
              (the streaming loader builds the flat table) and does not apply to --reference or \
              --mode adaptive"
@@ -197,7 +204,7 @@ fn check_args(args: &RenderArgs) -> Result<()> {
 
 pub fn run(args: RenderArgs) -> Result<()> {
     check_args(&args)?;
-    let adaptive = matches!(args.mode, ModeArg::Adaptive);
+    let adaptive = matches!(args.mode, ModeArg::Adaptive | ModeArg::AdaptiveMip);
     if adaptive {
         anyhow::ensure!(
             args.oracle_epsilon.is_finite() && args.oracle_epsilon >= 0.0,
@@ -403,7 +410,7 @@ fn settings_of(args: &RenderArgs) -> Result<RenderSettings> {
         height,
         mode: match args.mode {
             ModeArg::Dvr | ModeArg::Adaptive => RenderMode::Dvr,
-            ModeArg::Mip => RenderMode::Mip,
+            ModeArg::Mip | ModeArg::AdaptiveMip => RenderMode::Mip,
             ModeArg::Iso => RenderMode::Isosurface,
         },
         quality: args.step,

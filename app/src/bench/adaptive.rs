@@ -4,6 +4,8 @@
 //! - the adaptive pass with d ≡ 1 (the paper's "min." oracle: the worst-case overhead),
 //! - the adaptive pass with the per-node oracle at the first ε and the per-block oracle
 //!   (block_oracle.rs) at a sweep of ε,
+//! - and for MIP the raycaster, adaptive d ≡ 1 and the block oracle at the first ε (against
+//!   the f64 MIP reference, ratios to the MIP raycaster),
 //!
 //! each with its sampling operations (volume samples), synthesis operations (pyramid
 //! interpolations; the adaptive pass's own overhead), apron samples (what the tiling adds),
@@ -20,10 +22,10 @@ use strata_loader::store_volume::{load_uniform_cut, GpuCut};
 use strata_render::adaptive::{
     block_oracle, oracle_for_cut, AdaptiveConfig, AdaptivePass, OracleKind,
 };
-use strata_render::{compare_rgba8, GpuContext, RenderMode, RenderSettings, Scene};
+use strata_render::{compare_rgba8, Camera, GpuContext, RenderMode, RenderSettings, Scene};
 use strata_storage::BrickId;
 
-use super::common::{bench_camera, median, open_input, reference_rgba};
+use super::common::{bench_camera, median, open_input, reference_rgba, Volume};
 use crate::cmd_render::parse_size;
 
 pub struct Options {
@@ -81,36 +83,21 @@ pub fn run(options: Options) -> Result<()> {
             preintegrated,
             ..base.clone()
         };
-        let frame = cut.render_blocking(&ctx, &v.geometry, v.mapping, &camera, &settings)?;
-        let c = compare_rgba8(&frame.rgba, &reference)?;
-        let mut times = Vec::new();
-        for _ in 0..options.frames {
-            let scene = Scene {
-                cache: &cut.cache,
-                page_table: &cut.page_table,
-                transfer_function: &cut.transfer_function,
-                geometry: &v.geometry,
-                mapping: v.mapping,
-                camera: &camera,
-                settings: &settings,
-            };
-            let t = Instant::now();
-            cut.raycaster.render_and_wait(&ctx, &scene)?;
-            times.push(t.elapsed().as_secs_f64() * 1e3);
-        }
-        rows.push(Row {
-            setting: format!(
-                "raycaster step {}{}",
-                options.step,
-                if preintegrated { " preint" } else { "" }
-            ),
-            samples: frame.samples.unwrap_or(0),
-            apron_samples: 0,
-            syntheses: 0,
-            median_ms: median(times),
-            rmse: c.rmse,
-            psnr_db: c.psnr_db,
-        });
+        let setting = format!(
+            "raycaster step {}{}",
+            options.step,
+            if preintegrated { " preint" } else { "" }
+        );
+        rows.push(raycaster_row(
+            &ctx,
+            &mut cut,
+            &v,
+            &camera,
+            &settings,
+            &reference,
+            options.frames,
+            setting,
+        )?);
         report(rows.last());
     }
 
@@ -192,23 +179,77 @@ pub fn run(options: Options) -> Result<()> {
             camera: &camera,
             settings: &base,
         };
-        let frame = pass.render_blocking(&ctx, &scene, &config)?;
-        let c = compare_rgba8(&frame.rgba, &reference)?;
-        let mut times = Vec::new();
-        for _ in 0..options.frames {
-            let t = Instant::now();
-            pass.render_and_wait(&ctx, &scene, &config)?;
-            times.push(t.elapsed().as_secs_f64() * 1e3);
-        }
-        rows.push(Row {
-            setting: format!("{label} (l_max {}, tile {})", options.l_max, options.tile),
-            samples: frame.total_samples(),
-            apron_samples: frame.total_apron_samples(),
-            syntheses: frame.total_syntheses(),
-            median_ms: median(times),
-            rmse: c.rmse,
-            psnr_db: c.psnr_db,
-        });
+        let label = format!("{label} (l_max {}, tile {})", options.l_max, options.tile);
+        rows.push(adaptive_row(
+            &ctx,
+            &mut pass,
+            &scene,
+            &config,
+            &reference,
+            options.frames,
+            label,
+        )?);
+        report(rows.last());
+    }
+
+    // MIP: the raycaster's lean march, the adaptive pass with d ≡ 1 and with the block oracle
+    // at the first ε, against the f64 MIP reference (its own group of ratios).
+    let mip = RenderSettings {
+        mode: RenderMode::Mip,
+        ..base.clone()
+    };
+    let mip_reference = reference_rgba(&v, &bricks, &table, &camera, &mip)?;
+    rows.push(raycaster_row(
+        &ctx,
+        &mut cut,
+        &v,
+        &camera,
+        &mip,
+        &mip_reference,
+        options.frames,
+        format!("MIP raycaster step {}", options.step),
+    )?);
+    report(rows.last());
+    let mut mip_configs = vec![("MIP adaptive d ≡ 1".to_string(), OracleKind::Constant(1.0))];
+    if let Some(&e) = options.epsilons.first() {
+        let distances = block_oracle(
+            &table,
+            &bricks,
+            v.mapping,
+            &v.tf,
+            e,
+            options.l_max,
+            options.step,
+        );
+        pass.set_oracle(&ctx, &distances);
+        mip_configs.push((format!("MIP adaptive ε {e}"), OracleKind::PerBlock));
+    }
+    for (label, oracle) in mip_configs {
+        let config = AdaptiveConfig {
+            l_max: options.l_max,
+            tile: options.tile,
+            oracle,
+            tile_slice_ranges: true,
+        };
+        let scene = Scene {
+            cache: &cut.cache,
+            page_table: &cut.page_table,
+            transfer_function: &cut.transfer_function,
+            geometry: &v.geometry,
+            mapping: v.mapping,
+            camera: &camera,
+            settings: &mip,
+        };
+        let label = format!("{label} (l_max {}, tile {})", options.l_max, options.tile);
+        rows.push(adaptive_row(
+            &ctx,
+            &mut pass,
+            &scene,
+            &config,
+            &mip_reference,
+            options.frames,
+            label,
+        )?);
         report(rows.last());
     }
 
@@ -241,6 +282,82 @@ pub fn run(options: Options) -> Result<()> {
     Ok(())
 }
 
+/// One raycaster frame's samples and error against `reference`, and the median time of
+/// `frames` more.
+#[allow(clippy::too_many_arguments)]
+fn raycaster_row(
+    ctx: &GpuContext,
+    cut: &mut GpuCut,
+    v: &Volume,
+    camera: &Camera,
+    settings: &RenderSettings,
+    reference: &[u8],
+    frames: usize,
+    setting: String,
+) -> Result<Row> {
+    let frame = cut.render_blocking(ctx, &v.geometry, v.mapping, camera, settings)?;
+    let c = compare_rgba8(&frame.rgba, reference)?;
+    let mut times = Vec::new();
+    for _ in 0..frames {
+        let scene = Scene {
+            cache: &cut.cache,
+            page_table: &cut.page_table,
+            transfer_function: &cut.transfer_function,
+            geometry: &v.geometry,
+            mapping: v.mapping,
+            camera,
+            settings,
+        };
+        let t = Instant::now();
+        cut.raycaster.render_and_wait(ctx, &scene)?;
+        times.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    Ok(Row {
+        setting,
+        samples: frame.samples.unwrap_or(0),
+        apron_samples: 0,
+        syntheses: 0,
+        median_ms: median(times),
+        rmse: c.rmse,
+        psnr_db: c.psnr_db,
+    })
+}
+
+/// One adaptive frame's counts and error against `reference`, and the median time of
+/// `frames` more.
+fn adaptive_row(
+    ctx: &GpuContext,
+    pass: &mut AdaptivePass,
+    scene: &Scene,
+    config: &AdaptiveConfig,
+    reference: &[u8],
+    frames: usize,
+    setting: String,
+) -> Result<Row> {
+    let frame = pass.render_blocking(ctx, scene, config)?;
+    let c = compare_rgba8(&frame.rgba, reference)?;
+    let mut times = Vec::new();
+    for _ in 0..frames {
+        let t = Instant::now();
+        pass.render_and_wait(ctx, scene, config)?;
+        times.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    Ok(Row {
+        setting,
+        samples: frame.total_samples(),
+        apron_samples: frame.total_apron_samples(),
+        syntheses: frame.total_syntheses(),
+        median_ms: median(times),
+        rmse: c.rmse,
+        psnr_db: c.psnr_db,
+    })
+}
+
+/// MIP rows (setting "MIP …") form their own group: their ratios are to the first MIP row.
+fn is_mip(row: &Row) -> bool {
+    row.setting.starts_with("MIP ")
+}
+
 fn report(row: Option<&Row>) {
     if let Some(r) = row {
         eprintln!(
@@ -264,17 +381,18 @@ fn write_csv(path: &Path, rows: &[Row]) -> Result<()> {
 }
 
 fn markdown(rows: &[Row], name: &str, w: u32, h: u32, frames: usize, adapter: &str) -> String {
-    let base = rows.first();
-    let (base_samples, base_ms) =
-        base.map_or((1.0, 1.0), |b| (b.samples.max(1) as f64, b.median_ms));
     let mut out = format!(
-        "Adaptive sampling in 3D, {name}, {w}×{h} DVR, median of {frames} frames on {adapter}; \
-         error against the f64 reference (level 0, 1/16 voxel). Ratios are to the first row \
-         (the raycaster), measured in the same run.\n\n\
+        "Adaptive sampling in 3D, {name}, {w}×{h} DVR and MIP, median of {frames} frames on \
+         {adapter}; error against the f64 reference of the same mode (level 0, 1/16 voxel). \
+         Ratios are to the first row of the same mode (the raycaster), measured in the same \
+         run.\n\n\
          | setting | sampling ops | × fewer | apron samples | synthesis ops | ms/frame | time ratio | PSNR dB | RMSE |\n\
          | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |\n"
     );
     for r in rows {
+        let base = rows.iter().find(|b| is_mip(b) == is_mip(r));
+        let (base_samples, base_ms) =
+            base.map_or((1.0, 1.0), |b| (b.samples.max(1) as f64, b.median_ms));
         let _ = writeln!(
             out,
             "| {} | {} | {:.1} | {} | {} | {:.1} | {:.2} | {:.1} | {:.3} |",
@@ -362,7 +480,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn markdown_reports_ratios_against_the_first_row() {
+    fn markdown_reports_ratios_against_the_first_row_of_the_same_mode() {
         let row = |setting: &str, samples: u64, ms: f64| Row {
             setting: setting.into(),
             samples,
@@ -373,7 +491,12 @@ mod tests {
             psnr_db: 48.0,
         };
         let md = markdown(
-            &[row("raycaster", 1000, 10.0), row("adaptive", 100, 5.0)],
+            &[
+                row("raycaster", 1000, 10.0),
+                row("adaptive", 100, 5.0),
+                row("MIP raycaster", 400, 8.0),
+                row("MIP adaptive", 100, 16.0),
+            ],
             "x",
             8,
             8,
@@ -382,6 +505,11 @@ mod tests {
         );
         assert!(
             md.contains("| adaptive | 100 | 10.0 | 0 | 0 | 5.0 | 0.50 |"),
+            "{md}"
+        );
+        // MIP rows are measured against the MIP raycaster, not the DVR one.
+        assert!(
+            md.contains("| MIP adaptive | 100 | 4.0 | 0 | 0 | 16.0 | 2.00 |"),
             "{md}"
         );
     }

@@ -45,6 +45,7 @@ struct AdaptiveKey {
     clipped: bool,
     manual_trilinear: bool,
     smooth_transitions: bool,
+    mip: bool,
 }
 
 /// One frame read back.
@@ -369,6 +370,7 @@ impl AdaptivePass {
                 ("CLIPPED", b(key.clipped)),
                 ("MANUAL_TRILINEAR", b(key.manual_trilinear)),
                 ("SMOOTH_TRANSITIONS", b(key.smooth_transitions)),
+                ("MIP", b(key.mip)),
             ];
             device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
                 label: Some("adaptive"),
@@ -384,7 +386,8 @@ impl AdaptivePass {
         })
     }
 
-    /// Encodes and submits one adaptive frame (DVR, unshaded, pre-integrated; no jitter).
+    /// Encodes and submits one adaptive frame (DVR unshaded and pre-integrated, or MIP; no
+    /// jitter).
     /// With the per-node oracle, tiles whose rays miss the box are skipped and
     /// `settings.early_termination` stops a tile once all its pixels reach it (the other
     /// oracles follow the transcription sample for sample). Never waits.
@@ -398,11 +401,13 @@ impl AdaptivePass {
         settings.validate()?;
         config.validate()?;
         scene.geometry.validate()?;
-        if settings.mode != RenderMode::Dvr {
-            return Err(RenderError::InvalidSettings(
-                "the adaptive pass renders DVR only".into(),
-            ));
+        if !matches!(settings.mode, RenderMode::Dvr | RenderMode::Mip) {
+            return Err(RenderError::InvalidSettings(format!(
+                "the adaptive pass renders DVR and MIP, not {:?}",
+                settings.mode
+            )));
         }
+        let mip = settings.mode == RenderMode::Mip;
         let page_dims = scene.geometry.page_dims();
         let entries: usize = page_dims.iter().map(|&d| d as usize).product();
         if config.oracle == OracleKind::PerNode && self.oracle_entries != entries {
@@ -434,12 +439,15 @@ impl AdaptivePass {
             tile: config.tile,
             l_max: config.l_max,
             oracle,
-            early_termination: settings.early_termination.is_some(),
+            // MIP has no opacity to terminate on (the transcription's rules then never
+            // close a pixel or stop a tile either).
+            early_termination: settings.early_termination.is_some() && !mip,
             tile_slice_ranges: data_oracle && config.tile_slice_ranges,
             clipped: settings.clip_plane.is_some(),
             manual_trilinear: settings.exact_trilinear || !self.filterable,
             smooth_transitions: settings.smooth_transitions
                 && scene.page_table.transition_fraction() > 0.0,
+            mip,
         };
         self.preintegration.ensure(
             device,

@@ -165,6 +165,8 @@ impl<S: BrickSource> AdaptiveProbe for SceneProbe<'_, S> {
 
 struct Optics<'a> {
     kind: AdaptiveOptics<'a>,
+    /// MIP (`RenderMode::Mip`): the transcription keeps maxima, coloured below.
+    mip: bool,
     tf: &'a crate::transfer_function::TransferFunction,
     spacing_mm: f64,
     unit_mm: f64,
@@ -186,9 +188,27 @@ impl SegmentOptics for Optics<'_> {
             AdaptiveOptics::Table(table) => table.segment(s_front, s_back, length),
         }
     }
+
+    fn maximum_intensity(&self) -> bool {
+        self.mip
+    }
+
+    /// The TF at one value, as the raycaster's MIP colours its maximum: exactly, or through
+    /// the table as the GPU pass does (a segment of one opacity unit is the TF's own opacity
+    /// and colour, up to the table's interpolation).
+    fn point(&self, s: f64) -> [f64; 4] {
+        match self.kind {
+            AdaptiveOptics::Exact { .. } => {
+                let (c, a) = (self.tf.color_at(s), self.tf.opacity_at(s));
+                [c[0] * a, c[1] * a, c[2] * a, a]
+            }
+            AdaptiveOptics::Table(table) => table.segment(s, s, self.unit_mm),
+        }
+    }
 }
 
-/// The adaptive frame of `settings` on the CPU (DVR, unshaded). `oracle_table` is per page
+/// The adaptive frame of `settings` on the CPU (DVR unshaded, or MIP: the TF's colour and
+/// opacity at each pixel's maximum, premultiplied, the pick depth at the maximum). `oracle_table` is per page
 /// entry (oracle.rs) with [`OracleKind::PerNode`], per slot and block (block_oracle.rs) with
 /// [`OracleKind::PerBlock`], and not read otherwise.
 pub fn render_adaptive_reference<S: BrickSource>(
@@ -214,8 +234,18 @@ pub fn render_adaptive_reference<S: BrickSource>(
         config: *config,
         oracle_table,
     };
+    let mip = match settings.mode {
+        crate::settings::RenderMode::Dvr => false,
+        crate::settings::RenderMode::Mip => true,
+        other => {
+            return Err(RenderError::InvalidSettings(format!(
+                "the adaptive pass renders DVR and MIP, not {other:?}"
+            )))
+        }
+    };
     let optics = Optics {
         kind: optics,
+        mip,
         tf: scene.transfer_function,
         spacing_mm: frame.spacing_mm,
         unit_mm: scene.geometry.finest_spacing_mm(),

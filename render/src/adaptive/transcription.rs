@@ -107,6 +107,22 @@ pub trait SegmentOptics: Sync {
     /// Premultiplied RGB and opacity of a segment of `slices` slice distances whose value runs
     /// linearly from `s_front` to `s_back`.
     fn segment(&self, s_front: f64, s_back: f64, slices: u32) -> [f64; 4];
+
+    /// Maximum intensity projection: ACCUMULATECOLOR keeps each pixel's largest value (and
+    /// its slice) instead of compositing segments; the maximum of a segment whose value runs
+    /// linearly is at one of its ends, so the maximum over the accumulated values is the
+    /// segments' maximum. [`Transcription::maxima`] holds it, and the pixel's colour is
+    /// [`SegmentOptics::point`] of it (its pick depth the maximum's slice where that colour
+    /// is not transparent), as the raycaster's MIP.
+    fn maximum_intensity(&self) -> bool {
+        false
+    }
+
+    /// Premultiplied RGB and opacity of the TF at one value (MIP's colour): by default a
+    /// one-slice segment of that value.
+    fn point(&self, s: f64) -> [f64; 4] {
+        self.segment(s, s, 1)
+    }
 }
 
 /// What the transcription accumulates per level-0 pixel and counts.
@@ -124,6 +140,108 @@ pub struct Transcription {
     pub syntheses_per_level: Vec<u64>,
     /// ACCUMULATECOLOR calls with a segment (i_slice > 0).
     pub segments: u64,
+    /// With [`SegmentOptics::maximum_intensity`], per level-0 pixel the largest accumulated
+    /// value and its slice (the first of equal ones; −∞ where nothing accumulated); empty
+    /// otherwise.
+    pub maxima: Vec<(f64, u32)>,
+}
+
+/// ACCUMULATECOLOR (Fig. 6) of every level-0 pixel: the previous value and slice, the
+/// composited colour and pick depth (DVR), or the running maximum (MIP).
+struct Accumulator {
+    s_prev: Vec<f64>,
+    i_prev: Vec<u32>,
+    rgba: Vec<[f64; 4]>,
+    depth: Vec<f64>,
+    maxima: Vec<(f64, u32)>,
+    segments: u64,
+    mip: bool,
+}
+
+impl Accumulator {
+    fn new(n0: usize, mip: bool) -> Self {
+        Accumulator {
+            s_prev: vec![0.0; n0],
+            i_prev: vec![0; n0],
+            rgba: vec![[0.0; 4]; n0],
+            depth: vec![f64::INFINITY; n0],
+            maxima: if mip {
+                vec![(f64::NEG_INFINITY, 0); n0]
+            } else {
+                Vec::new()
+            },
+            segments: 0,
+            mip,
+        }
+    }
+
+    /// A pixel's march starts at `first` (before any value of it accumulated).
+    fn start(&mut self, k: usize, first: u32) {
+        self.i_prev[k] = first;
+        self.s_prev[k] = 0.0;
+    }
+
+    /// ACCUMULATECOLOR(x, y, i_slice) with the pixel's value `value`; `segment` is false for
+    /// the march's first value, which only starts the first segment.
+    fn accumulate(
+        &mut self,
+        k: usize,
+        value: f64,
+        i_slice: u32,
+        segment: bool,
+        optics: &impl SegmentOptics,
+    ) {
+        if self.mip {
+            if value > self.maxima[k].0 {
+                self.maxima[k] = (value, i_slice);
+            }
+            if segment {
+                self.segments += 1;
+            }
+        } else if segment {
+            let length = i_slice - self.i_prev[k];
+            let seg = optics.segment(self.s_prev[k], value, length);
+            let c = &mut self.rgba[k];
+            let before = c[3];
+            let wgt = 1.0 - c[3];
+            for ch in 0..4 {
+                c[ch] += wgt * seg[ch];
+            }
+            if self.depth[k].is_infinite() && before < DEPTH_OPACITY && c[3] >= DEPTH_OPACITY {
+                let f = (DEPTH_OPACITY - before) / (c[3] - before);
+                self.depth[k] = self.i_prev[k] as f64 + f * length as f64;
+            }
+            self.segments += 1;
+        }
+        self.s_prev[k] = value;
+        self.i_prev[k] = i_slice;
+    }
+
+    fn into_transcription(
+        mut self,
+        dims: PyramidDims,
+        samples_per_level: Vec<u64>,
+        syntheses_per_level: Vec<u64>,
+        optics: &impl SegmentOptics,
+    ) -> Transcription {
+        for (k, &(value, slice)) in self.maxima.iter().enumerate() {
+            if value.is_finite() {
+                self.rgba[k] = optics.point(value);
+                if self.rgba[k][3] > 0.0 {
+                    self.depth[k] = slice as f64;
+                }
+            }
+        }
+        Transcription {
+            dims,
+            rgba: self.rgba,
+            depth_slices: self.depth,
+            samples_per_level,
+            syntheses_per_level,
+            segments: self.segments,
+            maxima: self.maxima,
+        }
+    }
 }
 
 impl Transcription {
@@ -149,13 +267,9 @@ pub fn project_volume(
         .collect();
     let mut d = s.clone();
     let n0 = s[0].len();
-    let mut s_prev = vec![0.0; n0];
-    let mut i_prev = vec![0u32; n0];
-    let mut rgba = vec![[0.0f64; 4]; n0];
-    let mut depth = vec![f64::INFINITY; n0];
+    let mut acc = Accumulator::new(n0, optics.maximum_intensity());
     let mut samples = vec![0u64; levels];
     let mut syntheses = vec![0u64; levels];
-    let mut segments = 0u64;
     for i_slice in 0..=last_slice {
         let ls = l_slice(i_slice, l_max);
         let skip_bound = (2u64 << ls) as f64; // 2^(l_slice+1)
@@ -184,40 +298,13 @@ pub fn project_volume(
                         samples[l as usize] += 1;
                     }
                     if l == 0 && (ls == l_max || d_l[k] < skip_bound) {
-                        // ACCUMULATECOLOR(x, y, i_slice)
-                        if i_slice > 0 {
-                            let length = i_slice - i_prev[k];
-                            let seg = optics.segment(s_prev[k], s_l[k], length);
-                            let c = &mut rgba[k];
-                            let before = c[3];
-                            let wgt = 1.0 - c[3];
-                            for ch in 0..4 {
-                                c[ch] += wgt * seg[ch];
-                            }
-                            if depth[k].is_infinite()
-                                && before < DEPTH_OPACITY
-                                && c[3] >= DEPTH_OPACITY
-                            {
-                                let f = (DEPTH_OPACITY - before) / (c[3] - before);
-                                depth[k] = i_prev[k] as f64 + f * length as f64;
-                            }
-                            segments += 1;
-                        }
-                        s_prev[k] = s_l[k];
-                        i_prev[k] = i_slice;
+                        acc.accumulate(k, s_l[k], i_slice, i_slice > 0, optics);
                     }
                 }
             }
         }
     }
-    Transcription {
-        dims,
-        rgba,
-        depth_slices: depth,
-        samples_per_level: samples,
-        syntheses_per_level: syntheses,
-        segments,
-    }
+    acc.into_transcription(dims, samples, syntheses, optics)
 }
 
 #[cfg(test)]
@@ -549,18 +636,14 @@ pub fn project_volume_tiled(
     let levels = (l_max + 1) as usize;
     let tile = rules.tile.max(m);
     let n0 = (dims.width * dims.height) as usize;
-    let mut rgba = vec![[0.0f64; 4]; n0];
-    let mut depth = vec![f64::INFINITY; n0];
+    let mut acc = Accumulator::new(n0, optics.maximum_intensity());
     let mut samples = vec![0u64; levels];
     let mut syntheses = vec![0u64; levels];
-    let mut segments = 0u64;
     // Scratch pyramid over the whole image; each tile touches only its window.
     let mut s: Vec<Vec<f64>> = (0..=l_max)
         .map(|l| vec![0.0; (dims.level_width(l) * dims.level_height(l)) as usize])
         .collect();
     let mut d = s.clone();
-    let mut s_prev = vec![0.0; n0];
-    let mut i_prev = vec![0u32; n0];
     // Closed pixels of levels 1..=l_max under early termination (index 0 unused: level 0
     // reads its opacity directly).
     let mut closed: Vec<Vec<bool>> = (0..=l_max)
@@ -591,9 +674,7 @@ pub fn project_volume_tiled(
                 x >= ox && x < ox + n && y >= oy && y < oy + n
             };
             for (x, y) in cartesian(window(0)) {
-                let k = (y as u32 * dims.width + x as u32) as usize;
-                i_prev[k] = first;
-                s_prev[k] = 0.0;
+                acc.start((y as u32 * dims.width + x as u32) as usize, first);
             }
             for l in 1..=l_max {
                 let w = dims.level_width(l);
@@ -622,7 +703,7 @@ pub fn project_volume_tiled(
                         let (x, y) = (x as u32, y as u32);
                         let k = (y * w + x) as usize;
                         let own = owned(l, x as i64, y as i64);
-                        if (l == 0 && opaque(&rgba[k])) || (l > 0 && closed[l as usize][k]) {
+                        if (l == 0 && opaque(&acc.rgba[k])) || (l > 0 && closed[l as usize][k]) {
                             continue;
                         }
                         if l < ls && (ls == l_max || d_l[k] < skip_bound) {
@@ -643,33 +724,15 @@ pub fn project_volume_tiled(
                             }
                         }
                         if l == 0 && (ls == l_max || d_l[k] < skip_bound) {
-                            if !first_value {
-                                let length = i_slice - i_prev[k];
-                                let seg = optics.segment(s_prev[k], s_l[k], length);
-                                let c = &mut rgba[k];
-                                let before = c[3];
-                                let wgt = 1.0 - c[3];
-                                for ch in 0..4 {
-                                    c[ch] += wgt * seg[ch];
-                                }
-                                if depth[k].is_infinite()
-                                    && before < DEPTH_OPACITY
-                                    && c[3] >= DEPTH_OPACITY
-                                {
-                                    let f = (DEPTH_OPACITY - before) / (c[3] - before);
-                                    depth[k] = i_prev[k] as f64 + f * length as f64;
-                                }
-                                segments += 1;
-                            }
-                            s_prev[k] = s_l[k];
-                            i_prev[k] = i_slice;
+                            acc.accumulate(k, s_l[k], i_slice, !first_value, optics);
                         }
                     }
                 }
                 first_value = false;
                 if rules.early_termination.is_some() && ls == l_max && i_slice > first {
-                    let open = cartesian(window(0))
-                        .any(|(x, y)| !opaque(&rgba[(y as u32 * dims.width + x as u32) as usize]));
+                    let open = cartesian(window(0)).any(|(x, y)| {
+                        !opaque(&acc.rgba[(y as u32 * dims.width + x as u32) as usize])
+                    });
                     if !open {
                         break;
                     }
@@ -681,7 +744,9 @@ pub fn project_volume_tiled(
                                 let inside = (tx..tx + tile as i64).contains(&cx)
                                     && (ty..ty + tile as i64).contains(&cy);
                                 inside
-                                    && opaque(&rgba[(cy as u32 * dims.width + cx as u32) as usize])
+                                    && opaque(
+                                        &acc.rgba[(cy as u32 * dims.width + cx as u32) as usize],
+                                    )
                             } else {
                                 let wf = dims.level_width(l - 1);
                                 owned(l - 1, cx, cy)
@@ -705,14 +770,7 @@ pub fn project_volume_tiled(
             }
         }
     }
-    Transcription {
-        dims,
-        rgba,
-        depth_slices: depth,
-        samples_per_level: samples,
-        syntheses_per_level: syntheses,
-        segments,
-    }
+    acc.into_transcription(dims, samples, syntheses, optics)
 }
 
 fn cartesian(

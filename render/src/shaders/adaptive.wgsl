@@ -23,6 +23,10 @@ override EARLY_TERMINATION: bool = false;
 override TILE_SLICE_RANGES: bool = true;
 // A clip plane is set (the outside distance then includes the plane's).
 override CLIPPED: bool = false;
+// Maximum intensity projection (transcription.rs SegmentOptics::maximum_intensity): level-0
+// pixels keep their largest accumulated value and its slice (in acc: value, slice, taken)
+// instead of compositing, and are coloured by the TF at it at the end.
+override MIP: bool = false;
 
 const THREADS: u32 = 64u;
 const MAX_OWNED: u32 = 16u;      // 32² / 64
@@ -527,7 +531,17 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
                 mark_visible(p);
                 n_samples[0] += 1u;
             }
-            if ls == L_MAX || d0[j] < skip_bound {
+            if MIP && (ls == L_MAX || d0[j] < skip_bound) {
+                // The first of equal maxima stays, as in the transcription.
+                if acc[j].z == 0.0 || s0[j] > acc[j].x {
+                    acc[j] = vec4<f32>(s0[j], f32(i), 1.0, 0.0);
+                }
+                if i > first_slice {
+                    n_segments += 1u;
+                }
+                s_prev[j] = s0[j];
+                i_prev[j] = i;
+            } else if ls == L_MAX || d0[j] < skip_bound {
                 if i > first_slice {
                     let slices = i - i_prev[j];
                     let seg = preintegrated_segment(s_prev[j], s0[j], f32(slices) * A.frame.y);
@@ -578,6 +592,18 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
         let idx = lid + j * THREADS;
         let gx = tile_x + idx % TILE;
         let gy = tile_y + idx / TILE;
+        if MIP {
+            // The TF at the maximum: a segment of one opacity unit of that value
+            // (SegmentOptics::point on the CPU side), the pick depth at the maximum.
+            let best = acc[j];
+            acc[j] = vec4<f32>(0.0);
+            if best.z > 0.0 {
+                acc[j] = preintegrated_segment(best.x, best.x, P.box_hi.w);
+                if acc[j].a > 0.0 {
+                    depth[j] = A.frame.x + best.y * A.frame.y;
+                }
+            }
+        }
         if gx < A.viewport.x && gy < A.viewport.y {
             let pixel = gy * A.viewport.x + gx;
             out_rgba[pixel] = acc[j];
