@@ -106,7 +106,7 @@ pub struct RenderArgs {
     /// (bit-identical local and streamed renders); the sampler may move a channel by one step.
     #[arg(long)]
     pub exact_trilinear: bool,
-    /// --mode adaptive: the oracle's ε (opacity change per slice a 4³ block may have and
+    /// --mode adaptive: the oracle's ε (opacity change per slice a 2³ block may have and
     /// still be sampled coarsely; larger = fewer samples, coarser image).
     #[arg(long, default_value_t = 0.001)]
     pub oracle_epsilon: f64,
@@ -252,7 +252,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
     );
 
     let t = Instant::now();
-    // The per-block oracle (the render mode's): a distance per 4³ block of every brick.
+    // The per-block oracle (the render mode's): a distance per 2³ block of every brick.
     let oracle = || {
         block_oracle(
             &table,

@@ -67,7 +67,7 @@ pub(crate) enum PreludeValue {
 }
 
 /// Every constant the shader shares with Rust, by its WGSL name.
-pub(crate) fn prelude_constants() -> [(&'static str, PreludeValue); 21] {
+pub(crate) fn prelude_constants() -> [(&'static str, PreludeValue); 23] {
     use PreludeValue::*;
     [
         ("CORE", F32(BRICK_CORE as f64)),
@@ -96,6 +96,15 @@ pub(crate) fn prelude_constants() -> [(&'static str, PreludeValue); 21] {
         ("OCTREE_NULL", Bits(OCTREE_NULL)),
         // The overlay's opacity floor per finest voxel (overlay.rs, the blend rule).
         ("OVERLAY_VOXEL_OPACITY", F32(OVERLAY_VOXEL_OPACITY)),
+        // The adaptive pass's per-block oracle table (adaptive/block_oracle.rs).
+        (
+            "ORACLE_BLOCK",
+            F32(crate::adaptive::block_oracle::BLOCK as f64),
+        ),
+        (
+            "ORACLE_BLOCKS_PER_AXIS",
+            U32(crate::adaptive::block_oracle::BLOCKS_PER_AXIS),
+        ),
     ]
 }
 

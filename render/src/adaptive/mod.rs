@@ -9,7 +9,7 @@
 //!   GPU pass.
 //! - [`oracle`]: the sampling distance per page entry from the TF over node value ranges,
 //!   dilated over neighbours, with ε the user's knob.
-//! - [`block_oracle`]: the finer oracle, a distance per 4³ block of every resident node (the
+//! - [`block_oracle`]: the finer oracle, a distance per 2³ block of every resident node (the
 //!   paper's distance to the nearest voxel with |∇α| > ε), indexed by slot and in-slot block.
 //! - [`scene`]: the transcription over a real volume (the field of field.rs, the length-free
 //!   pre-integration of segment_integral.rs): the CPU twin of the GPU pass.

@@ -22,7 +22,7 @@ use crate::transfer_function::TransferFunction;
 pub enum OracleKind {
     /// The per-entry table of [`oracle_distances`].
     PerNode,
-    /// The per-slot, per-4³-block table of [`super::block_oracle::block_oracle`] (the render
+    /// The per-slot, per-2³-block table of [`super::block_oracle::block_oracle`] (the render
     /// mode): the paper's distance to the nearest voxel with |∇α| > ε.
     PerBlock,
     /// The same distance everywhere: 1 is the worst-case overhead of the paper's Tables 2/3

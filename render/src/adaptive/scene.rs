@@ -53,7 +53,7 @@ struct SceneProbe<'a, S: BrickSource> {
 }
 
 /// What SAMPLE reads at a point of a slice: the value (physical), and where it lies (page
-/// entry, and the per-block oracle's table index: slot · 512 + in-slot block).
+/// entry, and the per-block oracle's table index: slot · BLOCKS_PER_SLOT + in-slot block).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SliceSample {
     pub value: f64,

@@ -45,14 +45,15 @@ fn data_oracle() -> bool {
     return ORACLE == 0u || ORACLE == 3u;
 }
 
-// Index of the per-block oracle's table (block_oracle.rs): slot · 512 + in-slot block of a
+// Index of the per-block oracle's table (block_oracle.rs): slot · blocks per slot + in-slot block of a
 // location, from the in-slot coordinate (voxel centres at integers, core voxel i at i + apron)
 // kept apart from the slot's corner, so the block does not depend on where the brick landed.
 fn adaptive_block(slot_base: vec3<f32>, coord: vec3<f32>) -> u32 {
     let slot = vec3<u32>(round(slot_base / f32(PAYLOAD)));
     let slot_linear = slot.x + A.viewport.z * (slot.y + A.viewport.w * slot.z);
-    let b = vec3<u32>(clamp(floor((coord - vec3<f32>(APRON - 0.5)) * 0.25), vec3<f32>(0.0), vec3<f32>(7.0)));
-    return slot_linear * 512u + b.x + 8u * (b.y + 8u * b.z);
+    let n = ORACLE_BLOCKS_PER_AXIS;
+    let b = vec3<u32>(clamp(floor((coord - vec3<f32>(APRON - 0.5)) / ORACLE_BLOCK), vec3<f32>(0.0), vec3<f32>(f32(n - 1u))));
+    return slot_linear * (n * n * n) + b.x + n * (b.y + n * b.z);
 }
 
 @group(0) @binding(12) var<uniform> A: AdaptiveParams;
