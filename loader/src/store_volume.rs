@@ -233,6 +233,26 @@ impl GpuCut {
         };
         Ok(self.raycaster.render_blocking(ctx, &scene)?)
     }
+
+    /// The cut's GPU resources as a scene of `settings` (for a pass other than the cut's own
+    /// raycaster, or a timed render through it).
+    pub fn scene<'a>(
+        &'a self,
+        geometry: &'a VolumeGeometry,
+        mapping: ValueMapping,
+        camera: &'a strata_render::Camera,
+        settings: &'a strata_render::RenderSettings,
+    ) -> strata_render::Scene<'a> {
+        strata_render::Scene {
+            cache: &self.cache,
+            page_table: &self.page_table,
+            transfer_function: &self.transfer_function,
+            geometry,
+            mapping,
+            camera,
+            settings,
+        }
+    }
 }
 
 /// The same field as `table` with only its sampled entries (resident, not empty) and slots

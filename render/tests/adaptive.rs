@@ -14,7 +14,7 @@ use strata_render::adaptive::transcription::{
 };
 use strata_render::adaptive::{
     block_oracle, oracle_for_cut, project_volume, render_adaptive_reference, slice_sample,
-    AdaptiveConfig, AdaptiveFrame, AdaptivePass, OracleKind, SliceFrame,
+    AdaptiveConfig, AdaptiveFrame, AdaptivePass, AdaptiveReference, OracleKind, SliceFrame,
 };
 use strata_render::reference::ReferenceScene;
 use strata_render::transfer_function::TABLE_ENTRIES;
@@ -83,54 +83,78 @@ fn max_abs_difference(gpu: &[[f32; 4]], cpu: &[[f64; 4]]) -> f64 {
         .fold(0.0, f64::max)
 }
 
+/// The orbit view both hash-oracle comparisons use.
+fn orbit_30_20(f: &Fixture) -> Camera {
+    Camera::orbit(
+        &f.volume.geometry,
+        30.0,
+        20.0,
+        1.0,
+        Projection::Perspective { fov_y_deg: 30.0 },
+    )
+}
+
+/// One frame on the GPU and in the transcription with the hash oracle `seed` at `tile`:
+/// identical sample, synthesis and segment counts asserted; the frame, the CPU image and
+/// their largest colour difference returned.
+#[allow(clippy::too_many_arguments)]
+fn gpu_against_transcription(
+    ctx: &GpuContext,
+    g: &GpuScene,
+    pass: &mut AdaptivePass,
+    f: &Fixture,
+    camera: &Camera,
+    s: &RenderSettings,
+    (tile, seed): (u32, u32),
+    table: &SegmentIntegralTable,
+) -> (AdaptiveFrame, AdaptiveReference, f64) {
+    let config = AdaptiveConfig {
+        l_max: 3,
+        tile,
+        oracle: OracleKind::Hash(seed),
+        ..AdaptiveConfig::default()
+    };
+    let frame = render_gpu(ctx, g, pass, f, camera, s, &config);
+    let cpu = render_adaptive_reference(
+        &reference_scene(f),
+        camera,
+        s,
+        &config,
+        &[],
+        AdaptiveOptics::Table(table),
+    )
+    .unwrap();
+    let t = &cpu.transcription;
+    assert_eq!(
+        frame.samples_per_level.to_vec(),
+        t.samples_per_level,
+        "tile {tile}: samples per level"
+    );
+    assert_eq!(
+        frame.syntheses_per_level.to_vec(),
+        t.syntheses_per_level,
+        "tile {tile}: syntheses per level"
+    );
+    assert_eq!(frame.segments, t.segments, "tile {tile}: segments");
+    let diff = max_abs_difference(&frame.rgba_f32, &cpu.rgba_f64);
+    (frame, cpu, diff)
+}
+
 #[test]
 fn tiled_gpu_pass_equals_the_transcription_for_random_integer_oracles() {
     let ctx = gpu();
     let f = Fixture::ct(64);
     let g = GpuScene::new(&ctx, &f, CacheConfig::default());
     let mut pass = AdaptivePass::new(&ctx, &g.cache);
-    let camera = Camera::orbit(
-        &f.volume.geometry,
-        30.0,
-        20.0,
-        1.0,
-        Projection::Perspective { fov_y_deg: 30.0 },
-    );
+    let camera = orbit_30_20(&f);
     // 100 × 60 pads to 104 × 64 (l_max 3); tiles of 32 then overhang the padded image.
     let s = settings(100, 60, 1.0);
     let table = integral_table(&f);
     for (tile, seed) in [(8, 1), (16, 2), (32, 3)] {
-        let config = AdaptiveConfig {
-            l_max: 3,
-            tile,
-            oracle: OracleKind::Hash(seed),
-            ..AdaptiveConfig::default()
-        };
-        let frame = render_gpu(&ctx, &g, &mut pass, &f, &camera, &s, &config);
-        let cpu = render_adaptive_reference(
-            &reference_scene(&f),
-            &camera,
-            &s,
-            &config,
-            &[],
-            AdaptiveOptics::Table(&table),
-        )
-        .unwrap();
-        let t = &cpu.transcription;
-        assert_eq!(
-            frame.samples_per_level.to_vec(),
-            t.samples_per_level,
-            "tile {tile}: samples per level"
-        );
-        assert_eq!(
-            frame.syntheses_per_level.to_vec(),
-            t.syntheses_per_level,
-            "tile {tile}: syntheses per level"
-        );
-        assert_eq!(frame.segments, t.segments, "tile {tile}: segments");
+        let (frame, cpu, diff) =
+            gpu_against_transcription(&ctx, &g, &mut pass, &f, &camera, &s, (tile, seed), &table);
         // The tiling's redundant work exists (and is what 8² tiles pay most for).
         assert!(frame.total_apron_samples() > 0);
-        let diff = max_abs_difference(&frame.rgba_f32, &cpu.rgba_f64);
         let covered = cpu.rgba_f64.iter().filter(|c| c[3] > 0.01).count();
         eprintln!(
             "tile {tile}: samples {:?} apron {:?} syntheses {:?}, max |GPU − CPU| {diff:.2e}, covered {covered}",
@@ -788,43 +812,26 @@ fn adaptive_mip_keeps_the_transcriptions_maxima_and_is_close_to_the_reference() 
     let f = Fixture::ct(64);
     let g = GpuScene::new(&ctx, &f, CacheConfig::default());
     let mut pass = AdaptivePass::new(&ctx, &g.cache);
-    let camera = Camera::orbit(
-        &f.volume.geometry,
-        30.0,
-        20.0,
-        1.0,
-        Projection::Perspective { fov_y_deg: 30.0 },
-    );
+    let camera = orbit_30_20(&f);
     let integral = integral_table(&f);
     let s = RenderSettings {
         mode: RenderMode::Mip,
         ..settings(100, 60, 1.0)
     };
     for (tile, seed) in [(8, 4), (16, 5), (32, 6)] {
-        let config = AdaptiveConfig {
-            l_max: 3,
-            tile,
-            oracle: OracleKind::Hash(seed),
-            ..AdaptiveConfig::default()
-        };
-        let frame = render_gpu(&ctx, &g, &mut pass, &f, &camera, &s, &config);
-        let cpu = render_adaptive_reference(
-            &reference_scene(&f),
+        let (_, cpu, diff) = gpu_against_transcription(
+            &ctx,
+            &g,
+            &mut pass,
+            &f,
             &camera,
             &s,
-            &config,
-            &[],
-            AdaptiveOptics::Table(&integral),
-        )
-        .unwrap();
-        let t = &cpu.transcription;
-        assert_eq!(frame.samples_per_level.to_vec(), t.samples_per_level);
-        assert_eq!(frame.syntheses_per_level.to_vec(), t.syntheses_per_level);
-        assert_eq!(frame.segments, t.segments);
-        assert!(t.maxima.iter().any(|m| m.0.is_finite()));
+            (tile, seed),
+            &integral,
+        );
+        assert!(cpu.transcription.maxima.iter().any(|m| m.0.is_finite()));
         // The same maximum coloured through the same table: f32 against f64 in the value
         // (a few 1e-5 physical units) and in the table lookup, far below one 8-bit step.
-        let diff = max_abs_difference(&frame.rgba_f32, &cpu.rgba_f64);
         let shown = cpu.rgba_f64.iter().filter(|c| c[3] > 0.01).count();
         eprintln!("MIP tile {tile}: max |GPU − CPU| {diff:.2e}, {shown} pixels shown");
         assert!(shown as u32 > s.width * s.height / 20, "image nearly empty");

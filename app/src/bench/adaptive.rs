@@ -170,15 +170,7 @@ pub fn run(options: Options) -> Result<()> {
             );
             pass.set_oracle(&ctx, &distances);
         }
-        let scene = Scene {
-            cache: &cut.cache,
-            page_table: &cut.page_table,
-            transfer_function: &cut.transfer_function,
-            geometry: &v.geometry,
-            mapping: v.mapping,
-            camera: &camera,
-            settings: &base,
-        };
+        let scene = cut.scene(&v.geometry, v.mapping, &camera, &base);
         let label = format!("{label} (l_max {}, tile {})", options.l_max, options.tile);
         rows.push(adaptive_row(
             &ctx,
@@ -231,15 +223,7 @@ pub fn run(options: Options) -> Result<()> {
             oracle,
             tile_slice_ranges: true,
         };
-        let scene = Scene {
-            cache: &cut.cache,
-            page_table: &cut.page_table,
-            transfer_function: &cut.transfer_function,
-            geometry: &v.geometry,
-            mapping: v.mapping,
-            camera: &camera,
-            settings: &mip,
-        };
+        let scene = cut.scene(&v.geometry, v.mapping, &camera, &mip);
         let label = format!("{label} (l_max {}, tile {})", options.l_max, options.tile);
         rows.push(adaptive_row(
             &ctx,
@@ -299,6 +283,7 @@ fn raycaster_row(
     let c = compare_rgba8(&frame.rgba, reference)?;
     let mut times = Vec::new();
     for _ in 0..frames {
+        // Field by field: the raycaster below is borrowed mutably beside these.
         let scene = Scene {
             cache: &cut.cache,
             page_table: &cut.page_table,
