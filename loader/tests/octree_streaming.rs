@@ -73,63 +73,24 @@ fn streamed_octree_renders_equal_the_flat_table_after_both_converge() {
 }
 
 /// With visibility feedback on (the default), the octree's per-leaf feedback lets the loader
-/// converge too, to an image equal to the flat table's over the octree's own cut.
+/// converge too. Its image is compared with the flat table's, also with feedback on: the two
+/// may leave different occluded nodes coarser (a visible coarse leaf marks all its cells),
+/// which rays reach only after opacity ≥ 0.99, so PSNR ≥ 45 dB bounds the difference (the
+/// tolerance of streaming.rs's streamed-vs-up-front test, for the same reason).
 #[test]
 fn the_octree_converges_with_per_leaf_visibility_feedback() {
     let dir = tempfile::tempdir().unwrap();
     let store = open(&phantom_store(dir.path(), 128));
-    let (octree, cut, _) = converged_with(&store, Traversal::Octree, RenderMode::Dvr, true);
-    // The same cut, indexed by the flat table: the same image.
-    let ctx = gpu();
-    let tf = bone();
-    let s = settings(128);
-    let camera = orbit(&store, 30.0, 20.0, 1.4);
-    let header = store.header();
-    let table_tf = strata_loader::streaming::tf_table_for(
-        &tf,
-        header.value_mapping.mapping,
-        header.stored_range,
-    );
-    let table = sampled_entries(&cut);
-    let bricks = strata_loader::ResidentBricks::load(store.as_ref(), &table).unwrap();
-    let mut up_front = strata_loader::store_volume::GpuCut::upload(
-        &ctx,
-        &bricks,
-        &table,
-        table.page_dims,
-        &table_tf,
-    )
-    .unwrap();
-    let flat = up_front
-        .render_blocking(
-            &ctx,
-            &header.geometry,
-            header.value_mapping.mapping,
-            &camera,
-            &s,
-        )
-        .unwrap()
-        .rgba;
+    let (octree, _, octree_bytes) =
+        converged_with(&store, Traversal::Octree, RenderMode::Dvr, true);
+    let (flat, _, flat_bytes) = converged_with(&store, Traversal::Flat, RenderMode::Dvr, true);
     assert!(
         covered_pixels(&octree) > 128 * 128 / 20,
         "image nearly empty"
     );
-    assert!(
-        flat == octree,
-        "octree streamed image differs from its cut rendered flat"
-    );
-}
-
-/// The streamed table with every entry that is not sampled (empty, not resident) as the
-/// up-front loader writes it, so its bricks can be loaded by `ResidentBricks`.
-fn sampled_entries(table: &strata_render::PageTable) -> strata_render::PageTable {
-    let mut t = table.clone();
-    for e in &mut t.entries {
-        if e.skipped() {
-            *e = strata_render::PageEntry::NOT_RESIDENT;
-        }
-    }
-    t
+    let c = strata_render::compare_rgba8(&octree, &flat).unwrap();
+    eprintln!("feedback on: {c:?}; GPU index bytes flat {flat_bytes}, octree {octree_bytes}");
+    assert!(c.psnr_db >= 45.0, "octree vs flat with feedback: {c:?}");
 }
 
 #[test]
