@@ -69,6 +69,10 @@ pub struct FlythroughArgs {
     /// Turn visibility feedback off.
     #[arg(long)]
     pub no_visibility: bool,
+    /// The raycaster's traversal: `flat` page table or the cut's `octree`. Not given: flat,
+    /// unless its per-page buffers exceed the device's storage-binding limit.
+    #[arg(long, value_enum)]
+    pub traversal: Option<crate::cmd_render::TraversalArg>,
 }
 
 /// Viewpoint `k` of `n`: an orbit that swings around and closes in, ending inside the body's
@@ -125,6 +129,7 @@ pub fn run(args: FlythroughArgs) -> Result<()> {
         visibility_feedback: !args.no_visibility,
         // As the viewer: frames apply the newest finished selection and never wait for one.
         selection: SelectionTiming::Background,
+        traversal: args.traversal.map(|t| t.traversal()),
         ..StreamingConfig::default()
     };
     let mut csv = match &args.csv {
@@ -150,6 +155,9 @@ pub fn run(args: FlythroughArgs) -> Result<()> {
     let mut volume = StreamingVolume::new(&ctx, store.clone(), &tf, config.clone())
         .with_context(|| format!("cannot stream store {}", args.store))?;
     let open_seconds = opening.elapsed().as_secs_f64();
+    if let Some(note) = volume.traversal_note() {
+        eprintln!("{note}");
+    }
     let geometry = volume.geometry().clone();
 
     let mut frame_seconds = Vec::new();
@@ -355,6 +363,11 @@ fn summary(args: &FlythroughArgs, volume: &StreamingVolume, record: &RunRecord) 
         args.store,
         frames.count,
         stops.len()
+    );
+    println!(
+        "  traversal {}: {} index bytes on the GPU at the end",
+        volume.traversal().name(),
+        volume.gpu_index_bytes()
     );
     println!(
         "  time to first frame (open + first frame on the GPU): {:.3} s, of which opening the store and reading the root {:.3} s",

@@ -37,9 +37,18 @@ pub enum TraversalArg {
     /// The flat page table: one entry per finest brick position (the default).
     Flat,
     /// The octree of the resident cut with neighbour pointers (octree paper §5): index memory
-    /// grows with the cut, not the volume. Needs --up-front for now (the streaming loader builds
-    /// the flat table); smooth level transitions work with it as with the flat table.
+    /// grows with the cut, not the volume; streamed or --up-front, smooth level transitions
+    /// as with the flat table.
     Octree,
+}
+
+impl TraversalArg {
+    pub fn traversal(self) -> Traversal {
+        match self {
+            TraversalArg::Flat => Traversal::Flat,
+            TraversalArg::Octree => Traversal::Octree,
+        }
+    }
 }
 
 #[derive(Args, Clone)]
@@ -115,9 +124,11 @@ pub struct RenderArgs {
     /// also orbit.mp4 (24 frames per second) beside them.
     #[arg(long, value_name = "N")]
     pub orbit: Option<u32>,
-    /// The raycaster's traversal: `flat` page table or the cut's `octree` with ropes.
-    #[arg(long, value_enum, default_value_t = TraversalArg::Flat)]
-    pub traversal: TraversalArg,
+    /// The raycaster's traversal: `flat` page table or the cut's `octree` with ropes. Not
+    /// given: flat, unless its per-page buffers exceed the device's storage-binding limit
+    /// (streaming then takes the octree and says so).
+    #[arg(long, value_enum)]
+    pub traversal: Option<TraversalArg>,
 }
 
 /// The most frames an orbit movie may have: 10 per degree, 150 s at 24 frames per second.
@@ -188,13 +199,10 @@ fn check_args(args: &RenderArgs) -> Result<()> {
         }
         None => check_png_output("out", &args.out)?,
     }
-    if args.traversal == TraversalArg::Octree {
+    if args.traversal == Some(TraversalArg::Octree) {
         anyhow::ensure!(
-            args.up_front
-                && !args.reference
-                && !matches!(args.mode, ModeArg::Adaptive | ModeArg::AdaptiveMip),
-            "--traversal octree is the GPU raycaster's over a fixed cut: it needs --up-front \
-             (the streaming loader builds the flat table) and does not apply to --reference or \
+            !args.reference && !matches!(args.mode, ModeArg::Adaptive | ModeArg::AdaptiveMip),
+            "--traversal octree is the GPU raycaster's: it does not apply to --reference or \
              --mode adaptive"
         );
     }
@@ -327,7 +335,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
         let ctx = GpuContext::headless()?;
         eprintln!("GPU: {}", ctx.adapter_name());
         let mut cut = GpuCut::upload(&ctx, &bricks, &table, geometry.page_dims(), &tf_table)?;
-        match args.traversal {
+        match args.traversal.unwrap_or(TraversalArg::Flat) {
             TraversalArg::Flat => {
                 cut.render_blocking(&ctx, &geometry, mapping, &camera, &settings)?
                     .rgba
@@ -432,6 +440,7 @@ fn run_streaming(args: &RenderArgs) -> Result<()> {
     eprintln!("GPU: {}", ctx.adapter_name());
     let config = StreamingConfig {
         max_voxel_pixels: args.quality,
+        traversal: args.traversal.map(TraversalArg::traversal),
         ..StreamingConfig::default()
     };
     anyhow::ensure!(
@@ -448,6 +457,9 @@ fn run_streaming(args: &RenderArgs) -> Result<()> {
     let mut volume = StreamingVolume::new(&ctx, store, &tf, config)
         .with_context(|| format!("cannot stream store {}", args.store))?;
     let opened = Instant::now();
+    if let Some(note) = volume.traversal_note() {
+        eprintln!("{note}");
+    }
     let geometry = volume.geometry().clone();
     if let Some(frames) = args.orbit {
         return write_orbit(args, &ctx, &mut volume, &settings, frames);
@@ -479,6 +491,11 @@ fn run_streaming(args: &RenderArgs) -> Result<()> {
             last.max_in_flight
         );
     }
+    eprintln!(
+        "{} traversal: {} index bytes on the GPU",
+        volume.traversal().name(),
+        volume.gpu_index_bytes()
+    );
     eprintln!(
         "{} after {} frames in {:.2} s (open {:.2} s): {} bricks on the GPU per level {:?}, {:.1} MB read",
         if last.converged {

@@ -1,7 +1,7 @@
 //! `strata render --traversal flat|octree`: the real binary renders a phantom store's fixed cut
 //! through the flat page table and through the cut's octree (render/src/gpu_octree.rs), and
 //! the PNGs are identical (render/tests/octree_traversal.rs shows why: same samples, same
-//! words); the octree without --up-front is refused with a reason.
+//! words); streamed, both converge to the same PNG.
 
 use std::path::Path;
 use std::process::{Command, Output};
@@ -65,18 +65,44 @@ fn octree_and_flat_traversals_render_the_same_png() {
         );
         assert_eq!(flat, octree, "{mode:?}");
     }
-    let o = strata(&[
-        "render",
-        store.to_str().unwrap(),
-        "--traversal",
-        "octree",
-        "--out",
-        dir.path().join("x.png").to_str().unwrap(),
-    ]);
-    assert!(!o.status.success());
-    let stderr = String::from_utf8_lossy(&o.stderr);
-    assert!(
-        stderr.contains("--traversal octree") && stderr.contains("--up-front"),
-        "{stderr}"
-    );
+}
+
+/// Streamed (no --up-front): the loader converges with either traversal to the same PNG, and
+/// says which traversal it used.
+#[test]
+fn streamed_octree_and_flat_renders_give_the_same_png() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("phantom.strata");
+    Phantom::cube(96)
+        .write_store(&store, &ImportOptions::default())
+        .unwrap();
+    for mode in ["dvr", "mip"] {
+        let mut images = Vec::new();
+        for traversal in ["flat", "octree"] {
+            let out = dir.path().join(format!("{mode}-{traversal}.png"));
+            let o = strata(&[
+                "render",
+                store.to_str().unwrap(),
+                "--size",
+                "96x96",
+                "--mode",
+                mode,
+                "--no-jitter",
+                "--traversal",
+                traversal,
+                "--out",
+                out.to_str().unwrap(),
+            ]);
+            let stderr = String::from_utf8_lossy(&o.stderr).into_owned();
+            assert!(o.status.success(), "{mode} {traversal}: {stderr}");
+            assert!(
+                stderr.contains(&format!("{traversal} traversal:")),
+                "{stderr}"
+            );
+            assert!(stderr.contains("converged"), "{stderr}");
+            images.push(image::open(&out).unwrap().to_rgba8().into_raw());
+        }
+        assert!(images[0].iter().any(|&v| v > 0), "{mode}: empty image");
+        assert!(images[0] == images[1], "{mode}: streamed octree differs");
+    }
 }

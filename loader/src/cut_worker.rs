@@ -21,6 +21,8 @@ use std::thread::JoinHandle;
 use crossbeam_channel::{Receiver, Sender};
 // Keys are brick ids, not attacker-chosen: a fast hash.
 use rustc_hash::{FxHashMap as HashMap, FxHashSet as HashSet};
+use strata_render::gpu_octree::leaf_value_max;
+use strata_render::octree_cut::CutLeaf as TableLeaf;
 use strata_render::{
     Camera, PageEntry, PageTable, PageTableLayout, PreparedPageTable, RenderMode, RenderSettings,
     ValueMapping,
@@ -133,10 +135,18 @@ pub(crate) struct SelectionJob {
     pub mapping: ValueMapping,
 }
 
-/// A new page table for the GPU: its words prepared, and the MIP bounds.
+/// The MIP value bounds of a new table, in the index's own unit.
+pub(crate) enum MipBounds {
+    /// One per page cell (the flat table).
+    PerPage(Vec<f32>),
+    /// One per leaf of the prepared octree, in its leaf order (the octree traversal).
+    PerLeaf(Vec<f32>),
+}
+
+/// A new page table for the GPU: its words (or octree) prepared, and the MIP bounds.
 pub(crate) struct NewTable {
     pub prepared: PreparedPageTable,
-    pub mip_bounds: Vec<f32>,
+    pub mip_bounds: MipBounds,
 }
 
 /// A finished selection, to apply on the frame thread.
@@ -241,9 +251,19 @@ fn select(octree: &OctreeRanges, job: SelectionJob) -> Result<Selected, LoaderEr
         let new_table = if table == *page_table {
             None
         } else {
-            let mip_bounds = mip_bounds(octree, &table, mapping);
+            // The octree is built from the cut's leaves (O(cut)), its bounds per leaf.
+            let leaves = table_leaves(octree, &cut, &table);
+            let prepared = PreparedPageTable::with_leaves(layout, table, leaves)?;
+            let mip_bounds = match prepared.octree_leaves() {
+                Some(leaves) => {
+                    MipBounds::PerLeaf(leaf_value_max(prepared.table(), leaves, mapping, |l, n| {
+                        octree.own_range(BrickId::new(l, n)).map(|r| (r.min, r.max))
+                    }))
+                }
+                None => MipBounds::PerPage(mip_bounds(octree, prepared.table(), mapping)),
+            };
             Some(NewTable {
-                prepared: PreparedPageTable::new(layout, table)?,
+                prepared,
                 mip_bounds,
             })
         };
@@ -268,6 +288,23 @@ fn mip_bounds(octree: &OctreeRanges, table: &PageTable, mapping: ValueMapping) -
             .own_range(BrickId::new(level, node))
             .map(|r| (r.min, r.max))
     })
+}
+
+/// The cut's leaves as the blocks of page cells `table` was painted from, each with the
+/// entry its cells hold there (one per leaf: every cell of a leaf gets the same entry, and
+/// the empty refinement depends on the entry's node only): the octree's input, O(leaves).
+fn table_leaves(octree: &OctreeRanges, cut: &Cut, table: &PageTable) -> Vec<TableLeaf> {
+    cut.leaves
+        .iter()
+        .map(|leaf| {
+            let (lo, _) = octree.page_span(leaf.id);
+            TableLeaf {
+                origin: lo,
+                size: leaf.id.level,
+                entry: table.get(lo),
+            }
+        })
+        .collect()
 }
 
 /// Page entries of a cut: data leaves point at their slot; transparent, empty and culled

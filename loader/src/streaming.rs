@@ -16,7 +16,7 @@ use std::time::Instant;
 use strata_render::{
     BrickCache, CacheConfig, Camera, FrameReadback, GpuContext, GpuPageTable, GpuTransferFunction,
     PageEntry, PageTable, Raycaster, RenderMode, RenderSettings, Scene, TransferFunction,
-    TransferFunctionTable, ValueMapping, VolumeGeometry, BRICK_PAYLOAD_VOXELS,
+    TransferFunctionTable, Traversal, ValueMapping, VolumeGeometry, BRICK_PAYLOAD_VOXELS,
 };
 use strata_source::{BrickFetcher, FetchOptions, SourceStatus, VolumeSource};
 use strata_storage::{BrickId, Store};
@@ -24,7 +24,7 @@ use strata_storage::{BrickId, Store};
 use crate::cpu_cache::CpuBrickCache;
 use crate::cut_selection::{Cut, CutLimits, ViewSetup};
 use crate::cut_worker::{
-    CutWorker, PageTableKey, ResidencySnapshot, Selected, SelectionJob, SelectionTiming,
+    CutWorker, MipBounds, PageTableKey, ResidencySnapshot, Selected, SelectionJob, SelectionTiming,
     SettledCut, ViewInputs,
 };
 use crate::error::LoaderError;
@@ -69,6 +69,13 @@ pub struct StreamingConfig {
     pub prefetch_per_frame: usize,
     /// Whether a frame waits for its own view's selection or applies the newest finished one.
     pub selection: SelectionTiming,
+    /// How the raycaster finds the bricks: the flat page table or the cut's octree. None
+    /// (the default): the flat table where it fits the limit below, else the octree, said in
+    /// [`StreamingVolume::traversal_note`].
+    pub traversal: Option<Traversal>,
+    /// The most bytes the flat table's largest per-page buffer may take, where below the
+    /// device's storage-binding limit (tests make the limit bind on a small volume).
+    pub flat_table_limit_bytes: Option<u64>,
 }
 
 impl Default for StreamingConfig {
@@ -88,6 +95,8 @@ impl Default for StreamingConfig {
             prefetch: true,
             prefetch_per_frame: 16,
             selection: SelectionTiming::EachFrame,
+            traversal: None,
+            flat_table_limit_bytes: None,
         }
     }
 }
@@ -167,6 +176,9 @@ pub struct StreamingVolume {
     selections_dropped: u64,
     /// Counts transfer-function changes (emptiness changes with them).
     tf_generation: u64,
+    /// Why the traversal was chosen when the configuration left it open and the flat table
+    /// did not fit.
+    traversal_note: Option<String>,
 }
 
 impl StreamingVolume {
@@ -223,9 +235,27 @@ impl StreamingVolume {
         page_table
             .entries
             .fill(PageEntry::resident(root_slot, root.level));
-        let page_table = Arc::new(page_table);
-        let gpu_page_table = GpuPageTable::new(&ctx.device, page_dims, &cache)?;
-        gpu_page_table.update(&ctx.queue, &page_table)?;
+        let (traversal, traversal_note) = choose_traversal(ctx, page_dims, &config)?;
+        let gpu_page_table = GpuPageTable::with_traversal_limited(
+            &ctx.device,
+            page_dims,
+            &cache,
+            traversal,
+            config.flat_table_limit_bytes,
+        )?;
+        // The root alone: one leaf for the octree, whatever the page grid's size.
+        let root_leaf = strata_render::octree_cut::CutLeaf {
+            origin: [0; 3],
+            size: root.level,
+            entry: PageEntry::resident(root_slot, root.level),
+        };
+        let prepared = strata_render::PreparedPageTable::with_leaves(
+            gpu_page_table.layout(),
+            page_table,
+            vec![root_leaf],
+        )?;
+        gpu_page_table.write_prepared(&ctx.queue, &prepared)?;
+        let page_table = Arc::new(prepared.into_table());
         let transfer_function = GpuTransferFunction::new(&ctx.device, &ctx.queue, &tf_table);
         let raycaster = Raycaster::new(ctx, &cache);
         let options = FetchOptions {
@@ -285,8 +315,26 @@ impl StreamingVolume {
             selections_applied: 0,
             selections_dropped: 0,
             tf_generation: 0,
+            traversal_note,
             config,
         })
+    }
+
+    /// The traversal the raycaster uses for this volume.
+    pub fn traversal(&self) -> Traversal {
+        self.gpu_page_table.traversal()
+    }
+
+    /// Some when the configuration left the traversal open and the flat table was refused
+    /// (its size against the limit): says so, for the status line or the log.
+    pub fn traversal_note(&self) -> Option<&str> {
+        self.traversal_note.as_deref()
+    }
+
+    /// GPU bytes of the index the raycaster reads (flat: per page cell; octree: per node and
+    /// leaf of the cut), as last written.
+    pub fn gpu_index_bytes(&self) -> u64 {
+        self.gpu_page_table.gpu_index_bytes()
     }
 
     pub fn geometry(&self) -> &VolumeGeometry {
@@ -524,8 +572,12 @@ impl StreamingVolume {
         if let Some(new) = new_table {
             self.gpu_page_table
                 .write_prepared(&ctx.queue, &new.prepared)?;
-            self.gpu_page_table
-                .update_value_max(&ctx.queue, &new.mip_bounds)?;
+            match &new.mip_bounds {
+                MipBounds::PerPage(b) => self.gpu_page_table.update_value_max(&ctx.queue, b)?,
+                MipBounds::PerLeaf(b) => {
+                    self.gpu_page_table.update_leaf_value_max(&ctx.queue, b)?
+                }
+            }
             self.page_table = Arc::new(new.prepared.into_table());
             self.cut_changed_at_render = self.renders + 1;
         }
@@ -857,6 +909,38 @@ impl StreamingVolume {
             converged_at_budget: converged && left_coarser > 0,
             converged,
         }
+    }
+}
+
+/// The configured traversal, or when left open the flat table where its per-page buffers
+/// fit the limit (the device's, or the configured one) and else the octree, with a note
+/// saying why.
+fn choose_traversal(
+    ctx: &GpuContext,
+    page_dims: [u32; 3],
+    config: &StreamingConfig,
+) -> Result<(Traversal, Option<String>), LoaderError> {
+    if let Some(t) = config.traversal {
+        return Ok((t, None));
+    }
+    let (limit, source) =
+        strata_render::flat_table_limit(&ctx.device, config.flat_table_limit_bytes);
+    match strata_render::check_flat_table_fits(page_dims, limit, &source) {
+        Ok(()) => Ok((Traversal::Flat, None)),
+        Err(strata_render::RenderError::FlatTableTooLarge {
+            pages,
+            bytes,
+            limit_bytes,
+            limit_source,
+            ..
+        }) => Ok((
+            Traversal::Octree,
+            Some(format!(
+                "octree traversal chosen: the flat page table's {pages} page cells would need \
+                 {bytes} bytes, over {limit_source} ({limit_bytes} bytes)"
+            )),
+        )),
+        Err(e) => Err(e.into()),
     }
 }
 

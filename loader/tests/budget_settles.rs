@@ -9,6 +9,7 @@ mod common;
 use common::*;
 use strata_loader::cut_selection::selections_by_thread;
 use strata_loader::{FrameStats, SelectionTiming, StreamingConfig};
+use strata_render::Traversal;
 
 /// Frames a viewpoint gets to settle. Generous against the cut's own needs (a few frames of
 /// uploads and feedback) because the fetch workers share two busy cores with the test.
@@ -81,14 +82,21 @@ fn settle(
 
 #[test]
 fn a_budget_bound_flythrough_settles_and_a_bigger_budget_refines_further() {
-    budget_bound_flythrough(SelectionTiming::EachFrame);
+    budget_bound_flythrough(SelectionTiming::EachFrame, Traversal::Flat);
+}
+
+/// The same with the octree traversal: its per-leaf visibility feedback and MIP bounds feed
+/// the same settling rules.
+#[test]
+fn a_budget_bound_flythrough_settles_with_the_octree_traversal() {
+    budget_bound_flythrough(SelectionTiming::EachFrame, Traversal::Octree);
 }
 
 /// The same with the viewer's timing: frames apply whatever selection the thread finished
 /// and never wait for one; the settling rules hold all the same.
 #[test]
 fn the_flythrough_settles_with_the_cut_selected_in_the_background() {
-    budget_bound_flythrough(SelectionTiming::Background);
+    budget_bound_flythrough(SelectionTiming::Background, Traversal::Flat);
 }
 
 /// Every cut of these streamed volumes is selected on the loader's selection threads
@@ -176,14 +184,19 @@ fn frames_go_on_while_the_selection_thread_is_held() {
     );
 }
 
-fn budget_bound_flythrough(selection: SelectionTiming) {
+fn budget_bound_flythrough(selection: SelectionTiming, traversal: Traversal) {
     let dir = tempfile::tempdir().unwrap();
     let store = open(&phantom_store(dir.path(), 256));
     let ctx = gpu();
     let tf = bone();
     let s = settings(128);
     let slots = 40u32;
-    let mut volume = stream(&ctx, &store, &tf, budget_config(slots, selection));
+    let with_traversal = |slots| StreamingConfig {
+        traversal: Some(traversal),
+        ..budget_config(slots, selection)
+    };
+    let mut volume = stream(&ctx, &store, &tf, with_traversal(slots));
+    assert_eq!(volume.traversal(), traversal);
     let stops = [
         orbit(&store, -30.0, 15.0, 1.6),
         orbit(&store, 20.0, 5.0, 2.2),
@@ -231,7 +244,7 @@ fn budget_bound_flythrough(selection: SelectionTiming) {
 
     // The same last view with four times the slots: finer, with fewer nodes left coarser.
     let small = last_stop.unwrap();
-    let mut bigger = stream(&ctx, &store, &tf, budget_config(4 * slots, selection));
+    let mut bigger = stream(&ctx, &store, &tf, with_traversal(4 * slots));
     let large = settle(&ctx, &mut bigger, &stops[2], &s, "bigger budget");
     eprintln!(
         "bigger budget: {}; data leaves per level {:?}",

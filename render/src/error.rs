@@ -25,6 +25,19 @@ pub enum RenderError {
     InvalidTransferFunction(String),
     #[error("transfer function JSON: {0}")]
     TransferFunctionJson(#[from] serde_json::Error),
+    #[error(
+        "the flat page table is too large: {pages} page cells ({page_dims:?}) need {bytes} bytes \
+         in its per-page buffers, the largest binding {binding_bytes} bytes, over {limit_source} \
+         of {limit_bytes} bytes; use --traversal octree, whose index grows with the cut"
+    )]
+    FlatTableTooLarge {
+        pages: u64,
+        page_dims: [u32; 3],
+        bytes: u64,
+        binding_bytes: u64,
+        limit_bytes: u64,
+        limit_source: String,
+    },
     #[error("page table does not match the volume: {0}")]
     PageTableMismatch(String),
     #[error("invalid render settings: {0}")]

@@ -21,8 +21,9 @@ use crate::layout::{
     OCTREE_SIZE_SHIFT,
 };
 use crate::octree_cut::{NodeKind, OctreeCut, NULL};
-use crate::page_table::PageTable;
+use crate::page_table::{coarser_neighbours, physical_max_bound, PageTable};
 use crate::smooth_transitions::near_side_closure;
+use strata_types::ValueMapping;
 
 /// How the raycaster finds the data along a ray.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
@@ -224,8 +225,12 @@ pub fn per_leaf_transitions(
     leaves: &OctreeLeaves,
     transition_masks: &[u32],
 ) -> Vec<[u32; 2]> {
+    flag_leaf_transitions(words, &leaves.reduce_or(transition_masks))
+}
+
+/// [`per_leaf_transitions`] from masks already per leaf (in leaf-index order).
+fn flag_leaf_transitions(words: &mut [u32], masks: &[u32]) -> Vec<[u32; 2]> {
     let w = OCTREE_RECORD_WORDS as usize;
-    let masks = leaves.reduce_or(transition_masks);
     for (leaf, &m) in masks.iter().enumerate() {
         if m != 0 {
             // Leaf `leaf` is record leaf + 1; its page word is the record's first.
@@ -233,6 +238,117 @@ pub fn per_leaf_transitions(
         }
     }
     masks.iter().map(|&m| [m, near_side_closure(m)]).collect()
+}
+
+/// Per leaf of `leaves`, the 26-neighbour mask of coarser neighbours of the node its entry
+/// names (0 for a leaf that is not resident), each node's mask computed once: per leaf, not
+/// per page cell (`smooth_transitions::transition_masks` is the per-page twin).
+pub fn leaf_transition_masks(table: &PageTable, leaves: &OctreeLeaves) -> Vec<u32> {
+    let mut memo: std::collections::HashMap<(u8, [u32; 3]), u32> = Default::default();
+    leaves
+        .boxes
+        .iter()
+        .map(|b| {
+            let e = table.get(b.origin);
+            if !e.resident {
+                return 0;
+            }
+            let node = PageTable::node_of(b.origin, e.level);
+            *memo
+                .entry((e.level, node))
+                .or_insert_with(|| coarser_neighbours(table, table.page_dims, e.level, node).0)
+        })
+        .collect()
+}
+
+/// Per leaf, the largest physical value a sample in it can take (its node's range widened by
+/// the coarser neighbours a transition band blends in, as `PageTable::value_max_physical`
+/// gives per page cell; +inf where not resident or unknown): one computation per leaf.
+pub fn leaf_value_max(
+    table: &PageTable,
+    leaves: &OctreeLeaves,
+    mapping: ValueMapping,
+    mut range_of: impl FnMut(u8, [u32; 3]) -> Option<(u16, u16)>,
+) -> Vec<f32> {
+    let mut memo: std::collections::HashMap<(u8, [u32; 3]), f32> = Default::default();
+    leaves
+        .boxes
+        .iter()
+        .map(|b| {
+            let e = table.get(b.origin);
+            if !e.resident {
+                return f32::INFINITY;
+            }
+            let node = PageTable::node_of(b.origin, e.level);
+            *memo.entry((e.level, node)).or_insert_with(|| {
+                let (_, coarser) = coarser_neighbours(table, table.page_dims, e.level, node);
+                let hull = coarser
+                    .iter()
+                    .try_fold(range_of(e.level, node), |h, &(l, n)| {
+                        let (h, (lo, hi)) = (h?, range_of(l, n)?);
+                        Some(Some((h.0.min(lo), h.1.max(hi))))
+                    })
+                    .flatten();
+                hull.map_or(f32::INFINITY, |r| physical_max_bound(r, mapping))
+            })
+        })
+        .collect()
+}
+
+/// The octree index of one cut encoded on the CPU, on any thread (the loader's selection
+/// thread): the node buffer's words with `FLAG_TRANSITION` on the leaves that have a mask,
+/// the leaves, and per leaf [transition mask, near-side closure]. Everything here is O(cut).
+#[derive(Clone, Debug)]
+pub struct EncodedOctree {
+    pub words: Vec<u32>,
+    pub leaves: std::sync::Arc<OctreeLeaves>,
+    pub transitions: Vec<[u32; 2]>,
+    /// Share of resident nodes with a coarser neighbour (`transition_node_fraction`'s).
+    pub transition_fraction: f64,
+}
+
+impl EncodedOctree {
+    /// Encodes `cut`, whose leaves hold `table`'s entries (the table answers the transition
+    /// masks' neighbour queries, once per leaf).
+    pub fn new(
+        cut: &OctreeCut,
+        table: &PageTable,
+        slots_per_axis: [u32; 3],
+    ) -> Result<Self, RenderError> {
+        let (mut words, leaves, _) = encode_node_buffer(cut, slots_per_axis)?;
+        let masks = leaf_transition_masks(table, &leaves);
+        let transitions = flag_leaf_transitions(&mut words, &masks);
+        let mut nodes = std::collections::HashSet::new();
+        let mut transition = std::collections::HashSet::new();
+        for (b, &m) in leaves.boxes.iter().zip(&masks) {
+            let e = table.get(b.origin);
+            if e.resident {
+                let key = (e.level, PageTable::node_of(b.origin, e.level));
+                nodes.insert(key);
+                if m != 0 {
+                    transition.insert(key);
+                }
+            }
+        }
+        let transition_fraction = if nodes.is_empty() {
+            0.0
+        } else {
+            transition.len() as f64 / nodes.len() as f64
+        };
+        Ok(EncodedOctree {
+            words,
+            leaves: std::sync::Arc::new(leaves),
+            transitions,
+            transition_fraction,
+        })
+    }
+
+    /// CPU bytes of the encoded index: node words, leaf boxes, per-leaf transitions.
+    pub fn cpu_bytes(&self) -> usize {
+        self.words.len() * 4
+            + self.leaves.boxes.len() * size_of::<LeafBox>()
+            + self.transitions.len() * 8
+    }
 }
 
 /// The node buffer, the per-leaf MIP bounds and transition masks on the GPU, grown (recreated)
@@ -269,40 +385,56 @@ impl GpuOctreeIndex {
         }
     }
 
-    /// Rebuilds the tree of `table`, writes it, its per-leaf bounds and its per-leaf
-    /// transition masks (`transition_masks`: the table's, per page cell; see
-    /// smooth_transitions.rs).
-    pub(crate) fn update(
+    /// Writes an encoded cut: its node buffer, per-leaf transition masks, and per-leaf
+    /// bounds reduced from the per-page bounds last given (+inf without them, until
+    /// [`GpuOctreeIndex::update_leaf_value_max`]).
+    pub(crate) fn write_encoded(
         &mut self,
         device: &wgpu::Device,
         queue: &wgpu::Queue,
-        table: &PageTable,
-        transition_masks: &[u32],
-        slots_per_axis: [u32; 3],
-    ) -> Result<(), RenderError> {
-        let cut = OctreeCut::from_page_table(table);
-        let (mut words, leaves, _) = encode_node_buffer(&cut, slots_per_axis)?;
-        let transitions = per_leaf_transitions(&mut words, &leaves, transition_masks);
+        encoded: &EncodedOctree,
+    ) {
+        let EncodedOctree {
+            words,
+            leaves,
+            transitions,
+            ..
+        } = encoded;
         let transition_bytes = (transitions.len().max(1) * 8) as u64;
         if self.leaf_transitions.size() < transition_bytes {
             self.leaf_transitions = transition_buffer(device, transition_bytes.next_power_of_two());
         }
         if !transitions.is_empty() {
-            queue.write_buffer(
-                &self.leaf_transitions,
-                0,
-                bytemuck::cast_slice(&transitions),
-            );
+            queue.write_buffer(&self.leaf_transitions, 0, bytemuck::cast_slice(transitions));
         }
         self.root = words[0];
         let bytes = (words.len() * 4) as u64;
         if self.nodes.size() < bytes {
             self.nodes = node_buffer(device, bytes.next_power_of_two());
         }
-        queue.write_buffer(&self.nodes, 0, bytemuck::cast_slice(&words));
+        queue.write_buffer(&self.nodes, 0, bytemuck::cast_slice(words));
         self.node_words = words.len();
-        self.leaves = std::sync::Arc::new(leaves);
+        self.leaves = leaves.clone();
         self.write_bounds(device, queue);
+    }
+
+    /// Per-leaf MIP bounds for the cut last written ([`leaf_value_max`]), in leaf order.
+    pub(crate) fn update_leaf_value_max(
+        &mut self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        per_leaf: &[f32],
+    ) -> Result<(), RenderError> {
+        if per_leaf.len() != self.leaves.boxes.len() {
+            return Err(RenderError::PageTableMismatch(format!(
+                "{} value bounds for {} octree leaves",
+                per_leaf.len(),
+                self.leaves.boxes.len()
+            )));
+        }
+        // Per-page bounds no longer describe the cut: a later cut starts unskipped (+inf).
+        self.page_bounds.clear();
+        self.write_leaf_bounds(device, queue, per_leaf);
         Ok(())
     }
 
@@ -319,12 +451,16 @@ impl GpuOctreeIndex {
 
     fn write_bounds(&mut self, device: &wgpu::Device, queue: &wgpu::Queue) {
         let per_leaf = self.leaves.reduce_max(&self.page_bounds);
+        self.write_leaf_bounds(device, queue, &per_leaf);
+    }
+
+    fn write_leaf_bounds(&mut self, device: &wgpu::Device, queue: &wgpu::Queue, per_leaf: &[f32]) {
         let bytes = (per_leaf.len().max(1) * 4) as u64;
         if self.leaf_value_max.size() < bytes {
             self.leaf_value_max = leaf_buffer(device, bytes.next_power_of_two());
         }
         if !per_leaf.is_empty() {
-            queue.write_buffer(&self.leaf_value_max, 0, bytemuck::cast_slice(&per_leaf));
+            queue.write_buffer(&self.leaf_value_max, 0, bytemuck::cast_slice(per_leaf));
         }
     }
 

@@ -7,8 +7,9 @@
 use crate::cache::BrickCache;
 use crate::dirty_spans::write_changed;
 use crate::error::RenderError;
-use crate::gpu_octree::{GpuOctreeIndex, OctreeLeaves, Traversal};
+use crate::gpu_octree::{EncodedOctree, GpuOctreeIndex, OctreeLeaves, Traversal};
 use crate::layout::LEVEL_MASK;
+use crate::octree_cut::{CutLeaf, OctreeCut};
 use crate::page_table::{PageEntry, PageTable};
 use crate::smooth_transitions::{near_side_closure, transition_masks, transition_node_fraction};
 
@@ -22,25 +23,91 @@ pub struct PageTableLayout {
     pub traversal: Traversal,
 }
 
-/// A page table with everything derived from it for the flat buffers (the GPU words with
-/// their node-extent flags and skip levels, the transition masks and closures), computed on
-/// any thread; [`GpuPageTable::write_prepared`] then writes only what changed.
+/// Per page cell, bytes of the flat table's buffers: page word (binding 3), MIP bound
+/// (binding 9), transition mask and closure (binding 11), visibility word (binding 7).
+pub const FLAT_BYTES_PER_PAGE: u64 = 4 + 4 + 8 + 4;
+/// Per page cell, bytes of the flat table's largest single binding (the transition pairs):
+/// what a storage-binding limit is measured against.
+pub const FLAT_LARGEST_BINDING_BYTES_PER_PAGE: u64 = 8;
+
+/// The flat table's size against a binding limit: `Ok` when its largest per-page buffer fits
+/// `limit_bytes`, else [`RenderError::FlatTableTooLarge`] naming the page count, the bytes
+/// and the limit (`limit_source` says whose limit it is: the device's or a configured one).
+pub fn check_flat_table_fits(
+    page_dims: [u32; 3],
+    limit_bytes: u64,
+    limit_source: &str,
+) -> Result<(), RenderError> {
+    let pages: u64 = page_dims.iter().map(|&d| d.max(1) as u64).product();
+    let binding_bytes = pages * FLAT_LARGEST_BINDING_BYTES_PER_PAGE;
+    if binding_bytes > limit_bytes {
+        return Err(RenderError::FlatTableTooLarge {
+            pages,
+            page_dims,
+            bytes: pages * FLAT_BYTES_PER_PAGE,
+            binding_bytes,
+            limit_bytes,
+            limit_source: limit_source.to_string(),
+        });
+    }
+    Ok(())
+}
+
+/// The limit the flat table is checked against on `device`: the device's storage-binding
+/// size, or `configured` where that is smaller (tests make it bind on a small volume).
+pub fn flat_table_limit(device: &wgpu::Device, configured: Option<u64>) -> (u64, String) {
+    let device_limit = device.limits().max_storage_buffer_binding_size;
+    match configured {
+        Some(c) if c < device_limit => (c, "the configured flat-table limit".into()),
+        _ => (
+            device_limit,
+            "the device's max storage buffer binding size".into(),
+        ),
+    }
+}
+
+/// A page table with everything derived from it for the GPU index, computed on any thread:
+/// for the flat buffers the GPU words with their node-extent flags and skip levels, the
+/// transition masks and closures; for the octree the encoded node buffer (O(cut)).
+/// [`GpuPageTable::write_prepared`] then writes only what changed (flat) or the node buffer.
 #[derive(Clone, Debug)]
 pub struct PreparedPageTable {
     layout: PageTableLayout,
     table: PageTable,
     /// Binding 3's words (empty with the octree traversal, which builds its node buffer).
     words: Vec<u32>,
-    /// Binding 11's pairs per page cell (with the octree traversal, the masks its leaves
-    /// take theirs from: gpu_octree.rs `per_leaf_transitions`).
+    /// Binding 11's pairs per page cell (empty with the octree traversal: its leaves carry
+    /// theirs, `EncodedOctree::transitions`).
     transitions: Vec<[u32; 2]>,
+    /// The octree traversal's node buffer, leaves and per-leaf masks.
+    octree: Option<EncodedOctree>,
     transition_fraction: f64,
 }
 
 impl PreparedPageTable {
     /// Checks `table` against `layout` and derives the GPU words (O(entries): node-extent
-    /// flags and transition masks depend on neighbours).
+    /// flags and transition masks depend on neighbours). With the octree traversal the tree
+    /// is built from the table's cells (see [`PreparedPageTable::with_leaves`]).
     pub fn new(layout: PageTableLayout, table: PageTable) -> Result<Self, RenderError> {
+        Self::prepare(layout, table, None)
+    }
+
+    /// As [`PreparedPageTable::new`], with the cut's leaves (the blocks the table was painted
+    /// from): the octree traversal builds its tree from them in O(leaves · depth) instead of
+    /// from every page cell. The flat traversal ignores them.
+    pub fn with_leaves(
+        layout: PageTableLayout,
+        table: PageTable,
+        leaves: Vec<CutLeaf>,
+    ) -> Result<Self, RenderError> {
+        Self::prepare(layout, table, Some(leaves))
+    }
+
+    fn prepare(
+        layout: PageTableLayout,
+        table: PageTable,
+        leaves: Option<Vec<CutLeaf>>,
+    ) -> Result<Self, RenderError> {
         table.check_against(layout.page_dims)?;
         let slots: u32 = layout.slots_per_axis.iter().product();
         if let Some(bad) = table
@@ -53,19 +120,31 @@ impl PreparedPageTable {
                 slots,
             });
         }
+        if layout.traversal == Traversal::Octree {
+            let cut = match leaves {
+                Some(leaves) => OctreeCut::from_leaves(layout.page_dims, leaves),
+                None => OctreeCut::from_page_table(&table),
+            };
+            let encoded = EncodedOctree::new(&cut, &table, layout.slots_per_axis)?;
+            return Ok(PreparedPageTable {
+                layout,
+                table,
+                words: Vec::new(),
+                transitions: Vec::new(),
+                transition_fraction: encoded.transition_fraction,
+                octree: Some(encoded),
+            });
+        }
         let masks = transition_masks(&table);
         let transition_fraction = transition_node_fraction(&table, &masks);
-        let words = if layout.traversal == Traversal::Flat {
-            table.encoded_for_gpu(layout.slots_per_axis, &masks)
-        } else {
-            Vec::new()
-        };
+        let words = table.encoded_for_gpu(layout.slots_per_axis, &masks);
         let transitions = masks.iter().map(|&m| [m, near_side_closure(m)]).collect();
         Ok(PreparedPageTable {
             layout,
             table,
             words,
             transitions,
+            octree: None,
             transition_fraction,
         })
     }
@@ -76,6 +155,21 @@ impl PreparedPageTable {
 
     pub fn into_table(self) -> PageTable {
         self.table
+    }
+
+    /// The octree's leaves (None with the flat traversal): what per-leaf MIP bounds are
+    /// computed over (`gpu_octree::leaf_value_max`).
+    pub fn octree_leaves(&self) -> Option<&OctreeLeaves> {
+        self.octree.as_ref().map(|o| &*o.leaves)
+    }
+
+    /// CPU bytes of the GPU index this holds besides the table: the flat words and
+    /// transition pairs per page cell, or the octree's encoded node buffer, leaves and
+    /// per-leaf masks.
+    pub fn index_cpu_bytes(&self) -> usize {
+        self.words.len() * 4
+            + self.transitions.len() * 8
+            + self.octree.as_ref().map_or(0, |o| o.cpu_bytes())
     }
 }
 
@@ -136,6 +230,19 @@ impl GpuPageTable {
         cache: &BrickCache,
         traversal: Traversal,
     ) -> Result<Self, RenderError> {
+        Self::with_traversal_limited(device, page_dims, cache, traversal, None)
+    }
+
+    /// As [`GpuPageTable::with_traversal`], the flat table refused
+    /// ([`RenderError::FlatTableTooLarge`]) already when its largest per-page buffer exceeds
+    /// `flat_limit_bytes` (below the device's limit; see [`flat_table_limit`]).
+    pub fn with_traversal_limited(
+        device: &wgpu::Device,
+        page_dims: [u32; 3],
+        cache: &BrickCache,
+        traversal: Traversal,
+        flat_limit_bytes: Option<u64>,
+    ) -> Result<Self, RenderError> {
         let pages: u64 = page_dims.iter().map(|&d| d.max(1) as u64).product();
         let n = if traversal == Traversal::Octree {
             1
@@ -150,11 +257,9 @@ impl GpuPageTable {
                  page word's level field addresses"
             )));
         }
-        let limit = device.limits().max_storage_buffer_binding_size;
-        if traversal == Traversal::Flat && n * 8 > limit {
-            return Err(RenderError::PageTableMismatch(format!(
-                "{n} page entries exceed the device's storage buffer limit of {limit} bytes"
-            )));
+        if traversal == Traversal::Flat {
+            let (limit, source) = flat_table_limit(device, flat_limit_bytes);
+            check_flat_table_fits(page_dims, limit, &source)?;
         }
         let buffer = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("page table"),
@@ -349,6 +454,25 @@ impl GpuPageTable {
         Ok(())
     }
 
+    /// Writes per-leaf MIP bounds (`gpu_octree::leaf_value_max`, in the leaf order of the
+    /// cut last written) for the octree traversal; takes effect for the next submitted frame.
+    pub fn update_leaf_value_max(
+        &self,
+        queue: &wgpu::Queue,
+        per_leaf: &[f32],
+    ) -> Result<(), RenderError> {
+        if self.traversal != Traversal::Octree {
+            return Err(RenderError::PageTableMismatch(
+                "per-leaf value bounds need the octree traversal".into(),
+            ));
+        }
+        let mut octree = self
+            .octree
+            .lock()
+            .map_err(|_| RenderError::PageTableMismatch("octree index poisoned".into()))?;
+        octree.update_leaf_value_max(&self.device, queue, per_leaf)
+    }
+
     /// Writes the whole table; takes effect for the next submitted frame. Only the spans of
     /// the flat buffers that differ from the last write are sent.
     pub fn update(&self, queue: &wgpu::Queue, table: &PageTable) -> Result<(), RenderError> {
@@ -375,21 +499,14 @@ impl GpuPageTable {
         }
         let mut written = self.written()?;
         written.table.clone_from(&prepared.table);
-        if self.traversal == Traversal::Octree {
-            // The cut changed: its octree is rebuilt whole (O(cells · depth) on the CPU, a few
-            // thousand leaves to upload).
+        if let Some(encoded) = &prepared.octree {
+            // The cut changed: its node buffer (encoded where the table was prepared) is
+            // written whole: a few thousand leaves.
             let mut octree = self
                 .octree
                 .lock()
                 .map_err(|_| RenderError::PageTableMismatch("octree index poisoned".into()))?;
-            let masks: Vec<u32> = prepared.transitions.iter().map(|t| t[0]).collect();
-            octree.update(
-                &self.device,
-                queue,
-                &prepared.table,
-                &masks,
-                self.slots_per_axis,
-            )?;
+            octree.write_encoded(&self.device, queue, encoded);
             written.last_write_bytes = 0;
         } else {
             let w = &mut *written;

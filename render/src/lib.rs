@@ -105,7 +105,9 @@ pub use camera::{Camera, Projection};
 pub use device::GpuContext;
 pub use error::RenderError;
 pub use gpu_octree::Traversal;
-pub use gpu_page_table::{GpuPageTable, PageTableLayout, PreparedPageTable};
+pub use gpu_page_table::{
+    check_flat_table_fits, flat_table_limit, GpuPageTable, PageTableLayout, PreparedPageTable,
+};
 pub use gpu_timing::{FrameTiming, FrameTimingSource};
 pub use gpu_transfer_function::GpuTransferFunction;
 pub use layout::{BrickSource, DEPTH_OPACITY};

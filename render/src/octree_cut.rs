@@ -75,17 +75,61 @@ pub struct OctreeCut {
     pub nodes: Vec<OctreeNode>,
 }
 
+/// One leaf of a cut as the loader hands it over: an aligned block of 2^size page cells
+/// from `origin` holding `entry` (see [`OctreeCut::from_leaves`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CutLeaf {
+    pub origin: [u32; 3],
+    pub size: u8,
+    pub entry: PageEntry,
+}
+
+/// Morton code of a page cell (x in the lowest bit of each triple, as the child order); page
+/// grids have at most 2^15 cells per axis (layout.rs `LEVEL_MASK`), 21 bits are room enough.
+fn morton(cell: [u32; 3]) -> u64 {
+    fn spread(v: u32) -> u64 {
+        let mut x = (v as u64) & 0x1f_ffff;
+        x = (x | x << 32) & 0x1f_0000_0000_ffff;
+        x = (x | x << 16) & 0x1f_0000_ff00_00ff;
+        x = (x | x << 8) & 0x100f_00f0_0f00_f00f;
+        x = (x | x << 4) & 0x10c3_0c30_c30c_30c3;
+        x = (x | x << 2) & 0x1249_2492_4924_9249;
+        x
+    }
+    spread(cell[0]) | spread(cell[1]) << 1 | spread(cell[2]) << 2
+}
+
 impl OctreeCut {
-    /// Builds the tree and its ropes from `table`, O(cells · depth).
+    /// Builds the tree and its ropes from `table`, O(cells · depth): every page cell as a
+    /// one-cell leaf handed to [`OctreeCut::from_leaves`], which merges uniform blocks.
     pub fn from_page_table(table: &PageTable) -> Self {
-        let dims = table.page_dims;
-        let max = dims.iter().copied().max().unwrap_or(1).max(1);
+        let cells: Vec<CutLeaf> = (0..table.entries.len())
+            .map(|i| CutLeaf {
+                origin: table.page_of_linear(i),
+                size: 0,
+                entry: table.entries[i],
+            })
+            .collect();
+        Self::from_leaves(table.page_dims, cells)
+    }
+
+    /// Builds the tree and its ropes from the cut's leaves, O(leaves · depth) time and memory,
+    /// whatever the page grid's size: each leaf an aligned block of 2^size page cells
+    /// (a level-L node of the cut covers 2^L cells per axis from `coords << L`) with the entry
+    /// its cells hold. Leaves must not overlap (the first in Morton order wins where they do);
+    /// cells no leaf covers are not resident. A block whose cells all hold one entry becomes
+    /// one leaf, so the tree equals the one of the dense page table the leaves paint.
+    pub fn from_leaves(page_dims: [u32; 3], mut leaves: Vec<CutLeaf>) -> Self {
+        let max = page_dims.iter().copied().max().unwrap_or(1).max(1);
         let root_size = (32 - (max - 1).leading_zeros()) as u8;
         let mut cut = OctreeCut {
-            page_dims: dims,
-            nodes: Vec::new(),
+            page_dims,
+            nodes: Vec::with_capacity(leaves.len() * 8 / 7 + 1),
         };
-        cut.build(table, [0; 3], root_size);
+        // Morton order (x fastest, as the children): a block's leaves are one run of it.
+        leaves.retain(|l| (0..3).all(|a| l.origin[a] < page_dims[a]));
+        leaves.sort_unstable_by_key(|l| morton(l.origin));
+        cut.build(&leaves, [0; 3], root_size);
         let ropes: Vec<(usize, [u32; 6])> = (0..cut.nodes.len())
             .filter(|&i| cut.nodes[i].is_leaf())
             .map(|i| (i, std::array::from_fn(|face| cut.face_neighbour(i, face))))
@@ -98,20 +142,19 @@ impl OctreeCut {
         cut
     }
 
-    fn build(&mut self, table: &PageTable, origin: [u32; 3], size: u8) -> u32 {
+    /// The subtree of the block at `origin` of 2^size cells over `leaves` (the run of the
+    /// Morton-sorted leaves inside the block), in pre-order; children that end up uniform
+    /// leaves of one entry merge into their parent.
+    fn build(&mut self, leaves: &[CutLeaf], origin: [u32; 3], size: u8) -> u32 {
         let index = self.nodes.len() as u32;
-        let dims = self.page_dims;
-        let hi = |a: usize| ((origin[a] as u64 + (1u64 << size)).min(dims[a] as u64)) as u32;
-        let first = table.get(origin);
-        let uniform = (origin[2]..hi(2)).all(|z| {
-            (origin[1]..hi(1)).all(|y| (origin[0]..hi(0)).all(|x| table.get([x, y, z]) == first))
-        });
-        if uniform || size == 0 {
+        let covering = leaves.first().filter(|l| l.size >= size || size == 0);
+        if leaves.is_empty() || covering.is_some() {
+            let entry = covering.map_or(PageEntry::NOT_RESIDENT, |l| l.entry);
             self.nodes.push(OctreeNode {
                 origin,
                 size,
                 kind: NodeKind::Leaf {
-                    entry: first,
+                    entry,
                     ropes: [NULL; 6],
                 },
             });
@@ -124,17 +167,49 @@ impl OctreeCut {
                 children: [NULL; 8],
             },
         });
+        let dims = self.page_dims;
         let half = 1u32 << (size - 1);
+        let child_span = 1u64 << (3 * (size as u32 - 1));
         let mut children = [NULL; 8];
+        let mut rest = leaves;
         for (c, child) in children.iter_mut().enumerate() {
             let o: [u32; 3] =
                 std::array::from_fn(|a| origin[a] + if c >> a & 1 == 1 { half } else { 0 });
+            let end = morton(o) + child_span;
+            let split = rest.partition_point(|l| morton(l.origin) < end);
+            let (inside, after) = rest.split_at(split);
+            rest = after;
             if (0..3).all(|a| o[a] < dims[a]) {
-                *child = self.build(table, o, size - 1);
+                *child = self.build(inside, o, size - 1);
             }
         }
-        self.nodes[index as usize].kind = NodeKind::Inner { children };
+        // Uniform children (all leaves, one entry) are one leaf: the dense table's rule.
+        let mut entries =
+            children
+                .iter()
+                .filter(|&&c| c != NULL)
+                .map(|&c| match &self.nodes[c as usize].kind {
+                    NodeKind::Leaf { entry, .. } => Some(*entry),
+                    NodeKind::Inner { .. } => None,
+                });
+        let first = entries.next().flatten();
+        let uniform = first.is_some() && entries.all(|e| e == first);
+        if let (true, Some(entry)) = (uniform, first) {
+            self.nodes.truncate(index as usize + 1);
+            self.nodes[index as usize].kind = NodeKind::Leaf {
+                entry,
+                ropes: [NULL; 6],
+            };
+        } else {
+            self.nodes[index as usize].kind = NodeKind::Inner { children };
+        }
         index
+    }
+
+    /// CPU bytes of this tree (nodes; what the octree path holds per cut instead of a dense
+    /// table's entry per page cell).
+    pub fn cpu_bytes(&self) -> usize {
+        self.nodes.len() * size_of::<OctreeNode>()
     }
 
     /// The rope of leaf `leaf` across `face` (see the module doc).
@@ -524,6 +599,124 @@ pub mod test_cuts {
 mod tests {
     use super::test_cuts::*;
     use super::*;
+
+    /// The tree by the dense rule, written out independently: a block whose in-grid cells
+    /// all hold one entry is a leaf, else 8 children (pre-order; NULL outside the grid).
+    fn dense_reference(table: &PageTable) -> Vec<(OctreeNodeShape, Option<PageEntry>)> {
+        fn build(
+            t: &PageTable,
+            origin: [u32; 3],
+            size: u8,
+            out: &mut Vec<(OctreeNodeShape, Option<PageEntry>)>,
+        ) {
+            let d = t.page_dims;
+            let hi = |a: usize| ((origin[a] as u64 + (1u64 << size)).min(d[a] as u64)) as u32;
+            let first = t.get(origin);
+            let uniform = (origin[2]..hi(2)).all(|z| {
+                (origin[1]..hi(1)).all(|y| (origin[0]..hi(0)).all(|x| t.get([x, y, z]) == first))
+            });
+            if uniform || size == 0 {
+                out.push(((origin, size), Some(first)));
+                return;
+            }
+            out.push(((origin, size), None));
+            let half = 1u32 << (size - 1);
+            for c in 0..8usize {
+                let o: [u32; 3] =
+                    std::array::from_fn(|a| origin[a] + if c >> a & 1 == 1 { half } else { 0 });
+                if (0..3).all(|a| o[a] < d[a]) {
+                    build(t, o, size - 1, out);
+                }
+            }
+        }
+        let max = table.page_dims.iter().copied().max().unwrap().max(1);
+        let mut out = Vec::new();
+        build(
+            table,
+            [0; 3],
+            (32 - (max - 1).leading_zeros()) as u8,
+            &mut out,
+        );
+        out
+    }
+
+    type OctreeNodeShape = ([u32; 3], u8);
+
+    fn shape(cut: &OctreeCut) -> Vec<(OctreeNodeShape, Option<PageEntry>)> {
+        cut.nodes
+            .iter()
+            .map(|n| {
+                let entry = match &n.kind {
+                    NodeKind::Leaf { entry, .. } => Some(*entry),
+                    NodeKind::Inner { .. } => None,
+                };
+                ((n.origin, n.size), entry)
+            })
+            .collect()
+    }
+
+    /// The cut's resident nodes as leaves (one block per node, not per cell; not-resident
+    /// cells left out, so the builder fills them): the loader's input.
+    fn node_leaves(table: &PageTable) -> Vec<CutLeaf> {
+        let mut seen = std::collections::HashSet::new();
+        (0..table.entries.len())
+            .filter_map(|i| {
+                let e = table.entries[i];
+                let node = PageTable::node_of(table.page_of_linear(i), e.level);
+                (e.resident && seen.insert((e.level, node))).then(|| CutLeaf {
+                    origin: node.map(|c| c << e.level),
+                    size: e.level,
+                    entry: e,
+                })
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_tree_from_the_cuts_leaves_equals_the_dense_tables() {
+        for (name, table) in cuts() {
+            let reference = dense_reference(&table);
+            let from_cells = OctreeCut::from_page_table(&table);
+            assert_eq!(shape(&from_cells), reference, "{name}: from the page table");
+            let mut leaves = node_leaves(&table);
+            // Any order: the builder sorts.
+            leaves.reverse();
+            let from_leaves = OctreeCut::from_leaves(table.page_dims, leaves);
+            assert_eq!(from_leaves, from_cells, "{name}: from the cut's leaves");
+        }
+    }
+
+    /// CPU memory of the octree path is O(cut): nodes per leaf bounded whatever the grid.
+    #[test]
+    fn the_trees_cpu_bytes_grow_with_the_leaves_not_the_grid() {
+        for (name, table) in cuts() {
+            let leaves = node_leaves(&table);
+            let cut = OctreeCut::from_leaves(table.page_dims, leaves);
+            let leaf_count = cut.nodes.iter().filter(|n| n.is_leaf()).count();
+            // An octree has fewer inner nodes than leaves, except chains of one in-grid child
+            // along a thin grid's edge (at most one per level).
+            let depth = 16;
+            assert!(
+                cut.nodes.len() <= 2 * leaf_count + depth,
+                "{name}: {} nodes for {leaf_count} leaves",
+                cut.nodes.len()
+            );
+            assert!(cut.cpu_bytes() <= 64 * (2 * leaf_count + depth), "{name}");
+        }
+        // A 32768² × 1 grid with one coarse leaf holding it all: a handful of nodes, where
+        // the dense table has a billion cells.
+        let dims = [1 << 15, 1 << 15, 1];
+        let cut = OctreeCut::from_leaves(
+            dims,
+            vec![CutLeaf {
+                origin: [0; 3],
+                size: 15,
+                entry: PageEntry::resident(0, 15),
+            }],
+        );
+        assert_eq!(cut.nodes.len(), 1);
+        assert_eq!(cut.leaf_at([12345, 30000, 0]), Some(0));
+    }
 
     #[test]
     fn leaves_tile_the_grid_and_carry_the_table() {

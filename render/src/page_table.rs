@@ -336,19 +336,7 @@ impl PageTable {
                 if !e.resident {
                     return f32::INFINITY;
                 }
-                match ranges[i] {
-                    Some((lo, hi)) => {
-                        let (a, b) = (mapping.physical(lo as f64), mapping.physical(hi as f64));
-                        // Rounded up so f32 never makes the bound smaller than a real sample.
-                        let bound = a.max(b) as f32;
-                        if (bound as f64) < a.max(b) {
-                            bound.next_up()
-                        } else {
-                            bound
-                        }
-                    }
-                    None => f32::INFINITY,
-                }
+                ranges[i].map_or(f32::INFINITY, |r| physical_max_bound(r, mapping))
             })
             .collect()
     }
@@ -375,6 +363,18 @@ impl PageTable {
                 None => false,
             };
         }
+    }
+}
+
+/// The largest physical value of the stored range `(lo, hi)` as f32, rounded up so f32 never
+/// makes the bound smaller than a real sample (a MIP bound).
+pub fn physical_max_bound((lo, hi): (u16, u16), mapping: ValueMapping) -> f32 {
+    let (a, b) = (mapping.physical(lo as f64), mapping.physical(hi as f64));
+    let bound = a.max(b) as f32;
+    if (bound as f64) < a.max(b) {
+        bound.next_up()
+    } else {
+        bound
     }
 }
 

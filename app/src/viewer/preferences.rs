@@ -41,6 +41,40 @@ pub fn default_screenshot_folder() -> PathBuf {
 }
 
 /// Remembered between runs (eframe persistence).
+/// How the 3D view's raycaster finds the bricks (render's `Traversal`); a change restarts
+/// the volume's loader.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub enum TraversalChoice {
+    /// The flat page table unless it exceeds the device's storage-binding limit.
+    #[default]
+    Automatic,
+    Flat,
+    Octree,
+}
+
+impl TraversalChoice {
+    pub const ALL: [(TraversalChoice, &'static str); 3] = [
+        (TraversalChoice::Automatic, "Automatic"),
+        (TraversalChoice::Flat, "Flat page table"),
+        (TraversalChoice::Octree, "Octree"),
+    ];
+
+    pub fn traversal(self) -> Option<strata_render::Traversal> {
+        match self {
+            TraversalChoice::Automatic => None,
+            TraversalChoice::Flat => Some(strata_render::Traversal::Flat),
+            TraversalChoice::Octree => Some(strata_render::Traversal::Octree),
+        }
+    }
+
+    pub fn label(self) -> &'static str {
+        Self::ALL
+            .iter()
+            .find(|(c, _)| *c == self)
+            .map_or("Automatic", |(_, l)| l)
+    }
+}
+
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct Preferences {
@@ -52,6 +86,8 @@ pub struct Preferences {
     pub shading: bool,
     /// Continuous field where bricks of different resolution meet (off: visible seams).
     pub smooth_transitions: bool,
+    /// The raycaster's traversal (flat table or the cut's octree).
+    pub traversal: TraversalChoice,
     pub orthographic: bool,
     pub target_fps_enabled: bool,
     pub target_fps: f64,
@@ -84,6 +120,7 @@ impl Default for Preferences {
             mode: RenderMode::Dvr,
             shading: true,
             smooth_transitions: true,
+            traversal: TraversalChoice::Automatic,
             orthographic: false,
             target_fps_enabled: true,
             target_fps: 10.0,

@@ -432,6 +432,7 @@ impl View3d {
             target_fps: prefs.target_fps_enabled.then_some(prefs.target_fps),
             interacting,
             overlay,
+            traversal: prefs.traversal.traversal(),
         });
 
         if let Some(frame) = data.session.latest_frame() {

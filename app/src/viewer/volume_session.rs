@@ -20,7 +20,7 @@ use std::time::{Duration, Instant};
 use strata_loader::{FrameStats, SelectionTiming, StreamingConfig, StreamingVolume};
 use strata_render::{
     Camera, GpuContext, RenderSettings, TimeCriticalConfig, TimeCriticalController,
-    TransferFunction, ValueMapping, VolumeGeometry,
+    TransferFunction, Traversal, ValueMapping, VolumeGeometry,
 };
 use strata_source::VolumeSource;
 use strata_storage::StoreHeader;
@@ -47,6 +47,9 @@ pub struct RenderRequest {
     pub interacting: bool,
     /// The overlay drawn in 3D (overlay_3d.rs), if any.
     pub overlay: Option<OverlayIn3d>,
+    /// The raycaster's traversal; None: the loader's choice (flat where it fits). A change
+    /// restarts the streaming volume on the same device.
+    pub traversal: Option<Traversal>,
 }
 
 /// A finished volume frame, premultiplied RGBA8, row 0 at the top.
@@ -98,6 +101,8 @@ pub struct SessionStatus {
     pub gpu_recoveries: u32,
     /// The brick cache the renderer works with now (smaller after each recovery).
     pub gpu_budget_bytes: u64,
+    /// The traversal the volume renders with, and why when it was chosen automatically.
+    pub traversal: String,
 }
 
 impl SessionStatus {
@@ -342,6 +347,34 @@ impl RenderWorker {
         }
     }
 
+    /// The streaming volume for this device with `traversal` (None: the loader's choice),
+    /// its traversal said in the status.
+    fn open_volume(
+        &self,
+        ctx: &GpuContext,
+        gpu_budget_bytes: u64,
+        tf: &TransferFunction,
+        traversal: Option<Traversal>,
+    ) -> anyhow::Result<StreamingVolume> {
+        let config = StreamingConfig {
+            gpu_budget_bytes,
+            // The frame never waits for a cut: it applies the newest the thread finished.
+            selection: SelectionTiming::Background,
+            traversal,
+            ..StreamingConfig::default()
+        };
+        let mut volume = StreamingVolume::new(ctx, self.store.clone(), tf, config)?;
+        // Toggling shading, a mode or pre-integration must not stall the volume view while
+        // lavapipe compiles the new pipeline: the previous one draws meanwhile.
+        volume.set_compile_in_background(true);
+        let line = match volume.traversal_note() {
+            Some(note) => note.to_string(),
+            None => volume.traversal().name().to_string(),
+        };
+        self.set_status(|s| s.traversal = line);
+        Ok(volume)
+    }
+
     fn set_status(&self, f: impl FnOnce(&mut SessionStatus)) {
         f(&mut lock_ignoring_poison(&self.shared.status));
         (self.repaint)();
@@ -433,18 +466,15 @@ impl RenderWorker {
             .map(|r| r.transfer_function.clone())
             .or_else(|| TransferFunction::preset("ct-bone"))
             .ok_or_else(|| anyhow::anyhow!("no transfer function"))?;
-        let config = StreamingConfig {
+        let mut current_traversal = lock_ignoring_poison(&self.shared.request)
+            .as_ref()
+            .and_then(|r| r.traversal);
+        let mut volume = watch.classify(self.open_volume(
+            &ctx,
             gpu_budget_bytes,
-            // The frame never waits for a cut: it applies the newest the thread finished.
-            selection: SelectionTiming::Background,
-            ..StreamingConfig::default()
-        };
-        let mut volume = watch.classify(
-            StreamingVolume::new(&ctx, self.store.clone(), &initial_tf, config).map_err(Into::into),
-        )?;
-        // Toggling shading, a mode or pre-integration must not stall the volume view while
-        // lavapipe compiles the new pipeline: the previous one draws meanwhile.
-        volume.set_compile_in_background(true);
+            &initial_tf,
+            current_traversal,
+        ))?;
         let gpu_timestamps = ctx.supports_timestamps();
         let mut current_tf = initial_tf;
         self.set_status(|s| s.loading = None);
@@ -508,6 +538,22 @@ impl RenderWorker {
                 self.set_status(|s| s.refining = false);
                 self.wait(Duration::from_millis(100));
                 continue;
+            }
+            if request.traversal != current_traversal {
+                // The traversal is the index's layout: a new streaming volume (the bricks are
+                // read again; the view keeps its last frame meanwhile).
+                self.set_status(|s| s.loading = Some("switching the traversal".into()));
+                current_traversal = request.traversal;
+                volume = watch.classify(self.open_volume(
+                    &ctx,
+                    gpu_budget_bytes,
+                    &request.transfer_function,
+                    current_traversal,
+                ))?;
+                current_tf = request.transfer_function.clone();
+                current_overlay = None;
+                converged = false;
+                self.set_status(|s| s.loading = None);
             }
             if request.transfer_function != current_tf {
                 watch.classify(
@@ -705,6 +751,29 @@ mod tests {
         }
     }
 
+    /// The rendering panel's traversal setting restarts the volume with the octree: the
+    /// status says so and the converged frame equals the flat table's (same samples in the
+    /// same order: render/tests/octree_traversal.rs), then back to flat.
+    #[test]
+    fn a_traversal_switch_renders_the_same_converged_frame_through_the_octree() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let (session, flat) = phantom_session(dir.path());
+        let flat_frame = wait_converged(&session, &flat);
+        assert_eq!(session.status().traversal, "flat");
+        let octree = RenderRequest {
+            traversal: Some(Traversal::Octree),
+            ..flat.clone()
+        };
+        session.request(octree.clone());
+        let octree_frame = wait_converged(&session, &octree);
+        assert_eq!(session.status().traversal, "octree");
+        assert!(flat_frame.rgba.iter().any(|&v| v > 0), "empty image");
+        assert!(
+            flat_frame.rgba == octree_frame.rgba,
+            "octree frame differs from the flat one"
+        );
+    }
+
     /// The bug seen: DVR → MIP showed the DVR image as the "converged" MIP frame, because the
     /// MIP pipeline compiled in the background while the DVR one drew a stand-in frame that
     /// the converged cut made final.
@@ -765,6 +834,7 @@ mod tests {
             target_fps: None,
             interacting: false,
             overlay: None,
+            traversal: None,
         };
         session.request(request.clone());
         (session, request)
@@ -924,6 +994,7 @@ mod tests {
             target_fps: None,
             interacting: false,
             overlay: None,
+            traversal: None,
         };
         session.request(request);
         let start = Instant::now();

@@ -182,6 +182,9 @@ impl PerformancePanel {
                         l.gpu_budget_bytes as f64 / MIB
                     ));
                     ui.end_row();
+                    ui.label("Traversal");
+                    ui.label(&status.traversal);
+                    ui.end_row();
                     ui.label("CPU cache");
                     ui.label(format!(
                         "{:.0} / {:.0} MiB · hit {:.0}%",

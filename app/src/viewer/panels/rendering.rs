@@ -1,9 +1,9 @@
-//! The rendering panel: mode, iso value, shading, smooth transitions, slice planes in 3D,
+//! The rendering panel: mode, iso value, shading, smooth transitions, traversal, slice planes in 3D,
 //! projection, crop box and clip plane.
 
 use strata_render::{CropBox, RenderMode};
 
-use crate::viewer::preferences::Preferences;
+use crate::viewer::preferences::{Preferences, TraversalChoice};
 use crate::viewer::scene::{Scene, VolumeData};
 use crate::viewer::view3d::View3d;
 
@@ -36,6 +36,19 @@ pub fn ui(
         .on_hover_text(
             "Blend across the half voxel where bricks of different resolution meet, \
              so coarse and fine bricks join without seams. Off shows the seams.",
+        );
+    egui::ComboBox::from_label("Traversal")
+        .selected_text(prefs.traversal.label())
+        .show_ui(ui, |ui| {
+            for (choice, label) in TraversalChoice::ALL {
+                ui.selectable_value(&mut prefs.traversal, choice, label);
+            }
+        })
+        .response
+        .on_hover_text(
+            "How rays find the bricks: the flat page table (one entry per finest brick) or \
+             the octree of the loaded bricks (memory grows with what is loaded). Automatic: \
+             flat unless it exceeds the GPU's limit. A change reloads the volume.",
         );
     ui.checkbox(&mut prefs.show_planes_in_3d, "Slice planes in the 3D view");
     if ui
