@@ -3,43 +3,20 @@
 //! transcription (render/src/adaptive/transcription.rs), and the two PNGs agree; the command
 //! reports the pass's sampling operations.
 
-use std::path::Path;
-use std::process::{Command, Output};
+mod common;
 
+use common::render_level0;
 use strata_storage::import::ImportOptions;
 use strata_storage::phantom::Phantom;
 
-fn strata(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_strata"))
-        .args(args)
-        .output()
-        .expect("strata runs")
-}
+// The sampler's 8-bit filter weights on lavapipe would differ from f64 trilinear by more than
+// the bound below; the exact (manual) trilinear is what the CPU computes.
+const EXACT: &str = "--exact-trilinear";
 
-fn render(store: &Path, out: &Path, extra: &[&str]) -> (Vec<u8>, String) {
-    let mut args = vec![
-        "render",
-        store.to_str().unwrap(),
-        "--size",
-        "96x96",
-        "--up-front",
-        "--level",
-        "0",
-        // The sampler's 8-bit filter weights on lavapipe would differ from f64 trilinear by
-        // more than the bound below; the exact (manual) trilinear is what the CPU computes.
-        "--exact-trilinear",
-        "--out",
-        out.to_str().unwrap(),
-    ];
-    args.extend_from_slice(extra);
-    let o = strata(&args);
-    let stderr = String::from_utf8_lossy(&o.stderr).into_owned();
-    assert!(o.status.success(), "render {extra:?} failed: {stderr}");
-    let pixels = image::open(out)
-        .unwrap_or_else(|e| panic!("{}: {e}", out.display()))
-        .to_rgba8()
-        .into_raw();
-    (pixels, stderr)
+/// `render_level0` with the exact trilinear filter.
+fn render(store: &std::path::Path, out: &std::path::Path, extra: &[&str]) -> (Vec<u8>, String) {
+    let args: Vec<&str> = extra.iter().copied().chain([EXACT]).collect();
+    render_level0(store, out, &args)
 }
 
 #[test]

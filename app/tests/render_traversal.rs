@@ -3,41 +3,11 @@
 //! the PNGs are identical (render/tests/octree_traversal.rs shows why: same samples, same
 //! words); streamed, both converge to the same PNG.
 
-use std::path::Path;
-use std::process::{Command, Output};
+mod common;
 
+use common::{render_level0, strata};
 use strata_storage::import::ImportOptions;
 use strata_storage::phantom::Phantom;
-
-fn strata(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_strata"))
-        .args(args)
-        .output()
-        .expect("strata runs")
-}
-
-fn render(store: &Path, out: &Path, extra: &[&str]) -> (Vec<u8>, String) {
-    let mut args = vec![
-        "render",
-        store.to_str().unwrap(),
-        "--size",
-        "96x96",
-        "--up-front",
-        "--level",
-        "0",
-        "--out",
-        out.to_str().unwrap(),
-    ];
-    args.extend_from_slice(extra);
-    let o = strata(&args);
-    let stderr = String::from_utf8_lossy(&o.stderr).into_owned();
-    assert!(o.status.success(), "render {extra:?} failed: {stderr}");
-    let pixels = image::open(out)
-        .unwrap_or_else(|e| panic!("{}: {e}", out.display()))
-        .to_rgba8()
-        .into_raw();
-    (pixels, stderr)
-}
 
 #[test]
 fn octree_and_flat_traversals_render_the_same_png() {
@@ -51,13 +21,13 @@ fn octree_and_flat_traversals_render_the_same_png() {
         &["--mode", "mip"],
         &["--mode", "iso"],
     ] {
-        let (flat, _) = render(&store, &dir.path().join("flat.png"), mode);
+        let (flat, _) = render_level0(&store, &dir.path().join("flat.png"), mode);
         let octree_args: Vec<&str> = mode
             .iter()
             .copied()
             .chain(["--traversal", "octree"])
             .collect();
-        let (octree, stderr) = render(&store, &dir.path().join("octree.png"), &octree_args);
+        let (octree, stderr) = render_level0(&store, &dir.path().join("octree.png"), &octree_args);
         assert!(stderr.contains("octree index:"), "{stderr}");
         assert!(
             flat.iter().any(|&v| v > 0),
