@@ -15,6 +15,8 @@ pub mod octree;
 pub mod phantom;
 pub mod quantize;
 pub mod readers;
+pub mod skeleton;
+pub mod sparse_phantom;
 pub mod source;
 pub mod staging;
 pub mod store;
