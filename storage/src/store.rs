@@ -614,6 +614,12 @@ impl Store {
                 }
             };
             seen += 1;
+            // A record present but damaged counts as present: its damage is its own problem.
+            if !self.frame_node(frame, id).unwrap_or_default().is_constant() {
+                if let Some(n) = varying_with_records.get_mut(frame as usize) {
+                    *n += 1;
+                }
+            }
             let which = if frame == 0 {
                 String::new()
             } else {
@@ -625,11 +631,6 @@ impl Store {
                 Ok(voxels) => {
                     let r = crate::brick::value_range(&voxels);
                     let node = self.frame_node(frame, id).unwrap_or_default();
-                    if !node.is_constant() {
-                        if let Some(n) = varying_with_records.get_mut(frame as usize) {
-                            *n += 1;
-                        }
-                    }
                     if (r.min, r.max) != (node.min, node.max) {
                         problems.push(format!(
                             "{}: {which}brick level {} at {:?}: range {}..{} differs from the skeleton's {}..{}",

@@ -256,5 +256,8 @@ fn a_damaged_brick_of_a_sparse_store_is_found_by_verify() {
     let store = Store::open(&path).unwrap();
     let problems = store.verify(|_, _| {}).unwrap();
     assert_eq!(problems.len(), 1, "{problems:?}");
-    assert!(problems[0].contains(&format!("{:?}", victim.coords)), "{problems:?}");
+    assert!(
+        problems[0].contains(&format!("{:?}", victim.coords)) && problems[0].contains("checksum"),
+        "{problems:?}"
+    );
 }
