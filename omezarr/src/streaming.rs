@@ -650,11 +650,7 @@ impl OmeZarrSource {
     }
 }
 
-fn read_skeleton(
-    opened: &OpenedMultiscale,
-    key: &str,
-    layout: &OctreeLayout,
-) -> Result<Skeleton> {
+fn read_skeleton(opened: &OpenedMultiscale, key: &str, layout: &OctreeLayout) -> Result<Skeleton> {
     if key != SKELETON_KEY {
         return Err(OmeZarrError::invalid(
             &opened.location.display,

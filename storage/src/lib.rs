@@ -16,8 +16,8 @@ pub mod phantom;
 pub mod quantize;
 pub mod readers;
 pub mod skeleton;
-pub mod sparse_phantom;
 pub mod source;
+pub mod sparse_phantom;
 pub mod staging;
 pub mod store;
 

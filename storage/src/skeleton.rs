@@ -189,7 +189,9 @@ impl Skeleton {
     ) -> Skeleton {
         let level_count = layout.level_count();
         listed.resize(level_count, Vec::new());
-        let bricks: Vec<[u32; 3]> = (0..level_count).map(|l| layout.bricks_in_level(l)).collect();
+        let bricks: Vec<[u32; 3]> = (0..level_count)
+            .map(|l| layout.bricks_in_level(l))
+            .collect();
         let index_of = |l: usize, c: [u32; 3]| -> u64 {
             let n = bricks[l].map(u64::from);
             u64::from(c[0]) + n[0] * (u64::from(c[1]) + n[1] * u64::from(c[2]))
@@ -460,7 +462,12 @@ impl Skeleton {
                 ));
             }
             // take() checks the bytes are there before anything is allocated.
-            let raw = reader.take(usize::try_from(n).map_err(|_| "too large")?.checked_mul(5).ok_or("too large")?)?;
+            let raw = reader.take(
+                usize::try_from(n)
+                    .map_err(|_| "too large")?
+                    .checked_mul(5)
+                    .ok_or("too large")?,
+            )?;
             levels.push(
                 raw.chunks_exact(5)
                     .map(|c| NodeInfo {
@@ -574,7 +581,9 @@ impl<'a> Reader<'a> {
         Ok(s)
     }
     fn array<const N: usize>(&mut self) -> Result<[u8; N], String> {
-        self.take(N)?.try_into().map_err(|_| "truncated".to_string())
+        self.take(N)?
+            .try_into()
+            .map_err(|_| "truncated".to_string())
     }
     fn varint(&mut self) -> Result<u64, String> {
         let mut v = 0u64;
@@ -603,7 +612,9 @@ mod tests {
     fn mostly_air(layout: &OctreeLayout, seed: u64) -> Vec<Vec<NodeInfo>> {
         let mut rng = seed;
         let mut next = || {
-            rng = rng.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            rng = rng
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
             rng >> 33
         };
         let mut levels: Vec<Vec<NodeInfo>> = (0..layout.level_count())
@@ -641,7 +652,10 @@ mod tests {
             }
         }
         assert_eq!(s.node(BrickId::new(0, [n_past(layout), 0, 0])), None);
-        assert_eq!(s.node(BrickId::new(layout.level_count() as u8, [0, 0, 0])), None);
+        assert_eq!(
+            s.node(BrickId::new(layout.level_count() as u8, [0, 0, 0])),
+            None
+        );
     }
 
     fn n_past(layout: &OctreeLayout) -> u32 {
@@ -709,7 +723,11 @@ mod tests {
         let s = Skeleton::from_dense(&layout, &levels);
         let (sparse, dense) = (s.encode().len(), s.encode_dense().len());
         assert!(sparse * 100 < dense, "sparse {sparse} B vs dense {dense} B");
-        assert_same_answers(&layout, &levels, &Skeleton::decode(&s.encode(), &layout).unwrap());
+        assert_same_answers(
+            &layout,
+            &levels,
+            &Skeleton::decode(&s.encode(), &layout).unwrap(),
+        );
     }
 
     #[test]
@@ -722,7 +740,9 @@ mod tests {
         let n = bytes.len() - 8;
         let sum = xxh3_64(&bytes[..n]);
         bytes[n..].copy_from_slice(&sum.to_le_bytes());
-        assert!(Skeleton::decode(&bytes, &layout).unwrap_err().contains("claims"));
+        assert!(Skeleton::decode(&bytes, &layout)
+            .unwrap_err()
+            .contains("claims"));
         // A flipped byte fails the checksum; another layout is refused.
         let mut flipped = s.encode();
         flipped[10] ^= 1;
@@ -737,8 +757,16 @@ mod tests {
         let mut dense: Vec<Vec<NodeInfo>> = (0..layout.level_count())
             .map(|l| vec![NodeInfo::constant(0); layout.brick_count_in_level(l) as usize])
             .collect();
-        dense[0][0] = NodeInfo { min: 0, max: 9, flags: 0 };
-        dense[1][0] = NodeInfo { min: 0, max: 9, flags: 0 };
+        dense[0][0] = NodeInfo {
+            min: 0,
+            max: 9,
+            flags: 0,
+        };
+        dense[1][0] = NodeInfo {
+            min: 0,
+            max: 9,
+            flags: 0,
+        };
         let s = Skeleton::from_dense(&layout, &dense);
         // Drop one level-0 node from the encoding: its parent then has 7 of 8 children.
         let mut broken = s.clone();

@@ -50,7 +50,11 @@ pub const MAX_SPARSE_SIZE: u64 = 32768;
 #[derive(Clone, Debug)]
 enum Shape {
     /// A capsule: the segment a-b thickened by `radius`.
-    Tube { a: [f64; 3], b: [f64; 3], radius: f64 },
+    Tube {
+        a: [f64; 3],
+        b: [f64; 3],
+        radius: f64,
+    },
     /// A hollow cylinder along z: centre line (x, y), mid radius, wall thickness, z extent.
     BoneTube {
         centre: [f64; 2],
@@ -188,6 +192,11 @@ pub struct SparsePhantom {
     structures: Vec<Structure>,
 }
 
+/// A computed level-0 brick: index in level, node, record (None when constant), histogram
+/// of its core voxels (empty when constant: then all `core voxels` hold the node's value) and
+/// its core voxels inside the volume.
+type Level0Brick = (u64, NodeInfo, Option<Vec<u8>>, StoredValueCounts, u64);
+
 /// Where the generator is: level, bricks computed of that level's candidates.
 #[derive(Clone, Copy, Debug)]
 pub struct SparseProgress {
@@ -276,7 +285,10 @@ impl SparsePhantom {
 
     /// The level-0 value rule (module doc) at voxel `p`.
     pub fn value(&self, p: [u64; 3]) -> u16 {
-        self.value_among(p.map(|c| c as f64), &self.structures.iter().collect::<Vec<_>>())
+        self.value_among(
+            p.map(|c| c as f64),
+            &self.structures.iter().collect::<Vec<_>>(),
+        )
     }
 
     fn value_among(&self, p: [f64; 3], near: &[&Structure]) -> u16 {
@@ -322,15 +334,15 @@ impl SparsePhantom {
                 let v = ((s.hi[a] + APRON as f64) / CORE as f64).floor();
                 v.clamp(0.0, (n[a] - 1) as f64) as u64
             });
-            if (0..3).any(|a| s.hi[a] < -(APRON as f64) || s.lo[a] > (n[a] * CORE + APRON) as f64)
-            {
+            if (0..3).any(|a| s.hi[a] < -(APRON as f64) || s.lo[a] > (n[a] * CORE + APRON) as f64) {
                 continue;
             }
             let half = (PAYLOAD as f64 - 1.0) / 2.0 * 3f64.sqrt();
             for z in lo[2]..=hi[2] {
                 for y in lo[1]..=hi[1] {
                     for x in lo[0]..=hi[0] {
-                        let centre = [x, y, z].map(|c| (c * CORE) as f64 + (CORE as f64 - 1.0) / 2.0);
+                        let centre =
+                            [x, y, z].map(|c| (c * CORE) as f64 + (CORE as f64 - 1.0) / 2.0);
                         if s.distance(centre) <= half + 0.5 {
                             out.push(x + n[0] * (y + n[1] * z));
                         }
@@ -369,10 +381,7 @@ impl SparsePhantom {
         if !(1..=MAX_SPARSE_SIZE).contains(&self.size) {
             return Err(StorageError::invalid(
                 path,
-                format!(
-                    "sparse phantom size {} (1 to {MAX_SPARSE_SIZE})",
-                    self.size
-                ),
+                format!("sparse phantom size {} (1 to {MAX_SPARSE_SIZE})", self.size),
             ));
         }
         if codec == BrickCodec::Lz4 {
@@ -407,7 +416,7 @@ impl SparsePhantom {
         let n0 = layout.bricks_in_level(0).map(u64::from);
         let total0 = candidates.len() as u64;
         for (chunk_index, chunk) in candidates.chunks(256).enumerate() {
-            let results: Vec<(u64, NodeInfo, Option<Vec<u8>>, StoredValueCounts, u64)> = chunk
+            let results: Vec<Level0Brick> = chunk
                 .par_iter()
                 .map_init(
                     || Vec::with_capacity(BRICK_PAYLOAD_VOXELS),
@@ -494,7 +503,7 @@ impl SparsePhantom {
                 let f = [i % nf[0], (i / nf[0]) % nf[1], i / (nf[0] * nf[1])];
                 // Parents c with 2c − 1 ≤ f ≤ 2c + 2: c from ⌈(f − 2)/2⌉ to ⌊(f + 1)/2⌋.
                 let lo = f.map(|v| (v.saturating_sub(1)) / 2);
-                let hi = [0, 1, 2].map(|a| ((f[a] + 1) / 2).min(nc[a] - 1));
+                let hi = [0, 1, 2].map(|a| f[a].div_ceil(2).min(nc[a] - 1));
                 for z in lo[2]..=hi[2] {
                     for y in lo[1]..=hi[1] {
                         for x in lo[0]..=hi[0] {
@@ -558,7 +567,8 @@ impl SparsePhantom {
                         let id = BrickId::new(level as u8, c.map(|v| v as u32));
                         // The finer voxels this brick averages, gathered once: [64c − 4, 64c + 68).
                         let lo = c.map(|v| (2 * v * CORE).saturating_sub(2 * APRON));
-                        let hi = [0, 1, 2].map(|a| (2 * c[a] * CORE + 2 * (CORE + APRON)).min(finer_dims[a]));
+                        let hi = [0, 1, 2]
+                            .map(|a| (2 * c[a] * CORE + 2 * (CORE + APRON)).min(finer_dims[a]));
                         let ext = [0, 1, 2].map(|a| hi[a] - lo[a]);
                         let mut block = vec![AIR; (ext[0] * ext[1] * ext[2]) as usize];
                         // Brick by brick (at most 4³): the cores' overlap with the block.
@@ -575,7 +585,8 @@ impl SparsePhantom {
                                         for y in from[1]..to[1] {
                                             let dst = (((z - lo[2]) * ext[1] + y - lo[1]) * ext[0]
                                                 + from[0]
-                                                - lo[0]) as usize;
+                                                - lo[0])
+                                                as usize;
                                             let len = (to[0] - from[0]) as usize;
                                             match source {
                                                 Ok(payload) => {
@@ -603,11 +614,15 @@ impl SparsePhantom {
                         };
                         let mut voxels = Vec::with_capacity(BRICK_PAYLOAD_VOXELS);
                         for z in 0..PAYLOAD {
-                            let jz = (c[2] * CORE + z).saturating_sub(APRON).min(coarse_dims[2] - 1);
+                            let jz = (c[2] * CORE + z)
+                                .saturating_sub(APRON)
+                                .min(coarse_dims[2] - 1);
                             let z0 = 2 * jz;
                             let z1 = (z0 + 1).min(finer_dims[2] - 1);
                             for y in 0..PAYLOAD {
-                                let jy = (c[1] * CORE + y).saturating_sub(APRON).min(coarse_dims[1] - 1);
+                                let jy = (c[1] * CORE + y)
+                                    .saturating_sub(APRON)
+                                    .min(coarse_dims[1] - 1);
                                 let y0 = 2 * jy;
                                 let y1 = (y0 + 1).min(finer_dims[1] - 1);
                                 for x in 0..PAYLOAD {

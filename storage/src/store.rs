@@ -379,7 +379,8 @@ impl Store {
         skeleton: &Skeleton,
         id: BrickId,
     ) -> Result<Option<Vec<u8>>> {
-        if let Some(record) = contained(&self.path, "reading a brick", || tree.get(brick_key(id)))? {
+        if let Some(record) = contained(&self.path, "reading a brick", || tree.get(brick_key(id)))?
+        {
             return Ok(Some(record.to_vec()));
         }
         Ok(skeleton
@@ -519,7 +520,10 @@ impl Store {
             .collect();
         let per_frame = layout.total_bricks();
         let total = if sparse {
-            frame_skeletons.iter().map(|s| s.stored_nodes() as u64).sum()
+            frame_skeletons
+                .iter()
+                .map(|s| s.stored_nodes() as u64)
+                .sum()
         } else {
             per_frame * frame_trees.len() as u64
         };
@@ -556,7 +560,8 @@ impl Store {
                                 for x in 0..n[0] {
                                     let id = BrickId::new(level as u8, [x, y, z]);
                                     let voxels = read_brick_record(&path, tree, id);
-                                    if results.send(VerifyItem::Brick(*frame, id, voxels)).is_err() {
+                                    if results.send(VerifyItem::Brick(*frame, id, voxels)).is_err()
+                                    {
                                         return;
                                     }
                                 }
@@ -975,10 +980,10 @@ impl StoreWriter {
     /// A record written earlier (by [`StoreWriter::put_bricks`]), for a writer that builds
     /// coarser levels from the finer ones it wrote.
     pub fn read_brick_record(&self, id: BrickId) -> Result<Option<Vec<u8>>> {
-        Ok(
-            contained(&self.path, "reading a brick", || self.bricks.get(brick_key(id)))?
-                .map(|r| r.to_vec()),
-        )
+        Ok(contained(&self.path, "reading a brick", || {
+            self.bricks.get(brick_key(id))
+        })?
+        .map(|r| r.to_vec()))
     }
 
     /// Writes bricks in one sled batch (give them in key order).

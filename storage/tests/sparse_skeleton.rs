@@ -11,7 +11,9 @@ use strata_storage::octree::average8;
 use strata_storage::phantom::Phantom;
 use strata_storage::sparse_phantom::{SparsePhantom, AIR};
 use strata_storage::store::{NodeInfo, FEATURE_SPARSE_SKELETON};
-use strata_storage::{BrickCodec, BrickId, OctreeLayout, Store, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
+use strata_storage::{
+    BrickCodec, BrickId, OctreeLayout, Store, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD,
+};
 
 /// Every node's answer, in layout order.
 fn all_nodes(store: &Store) -> Vec<(BrickId, NodeInfo)> {
@@ -141,9 +143,7 @@ fn the_sparse_phantom_opens_small_verifies_and_holds_the_field_and_the_pyramid_r
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("sparse.strata");
     let phantom = SparsePhantom::new(1024);
-    let report = phantom
-        .write_store(&path, BrickCodec::Fast, None)
-        .unwrap();
+    let report = phantom.write_store(&path, BrickCodec::Fast, None).unwrap();
     let store = Store::open(&path).unwrap();
     let layout = store.layout().clone();
     assert_eq!(layout.level_dims[0], [1024, 1024, 1024]);
@@ -151,7 +151,10 @@ fn the_sparse_phantom_opens_small_verifies_and_holds_the_field_and_the_pyramid_r
     let total = layout.total_bricks();
     let written: u64 = report.written_per_level.iter().sum();
     // Mostly air: well under a tenth of the nodes hold anything.
-    assert!(written > 100 && written * 10 < total, "{written} of {total}");
+    assert!(
+        written > 100 && written * 10 < total,
+        "{written} of {total}"
+    );
     // Skeleton at open: every stored node is a varying one, a listed constant, or a sibling
     // of one, so it keeps at most 8 × the computed nodes (+1 root); it encodes to a small
     // fraction of the dense encoding (5 bytes per node).
@@ -164,7 +167,11 @@ fn the_sparse_phantom_opens_small_verifies_and_holds_the_field_and_the_pyramid_r
         sparse_bytes * 4 < dense_bytes,
         "sparse {sparse_bytes} B, dense {dense_bytes} B"
     );
-    assert!(skeleton.memory_bytes() < 1 << 20, "{}", skeleton.memory_bytes());
+    assert!(
+        skeleton.memory_bytes() < 1 << 20,
+        "{}",
+        skeleton.memory_bytes()
+    );
 
     let problems = store.verify(|_, _| {}).unwrap();
     assert!(problems.is_empty(), "{problems:?}");
@@ -216,9 +223,8 @@ fn the_sparse_phantom_opens_small_verifies_and_holds_the_field_and_the_pyramid_r
                     for dz in 0..2 {
                         for dy in 0..2 {
                             for dx in 0..2 {
-                                let f = [0, 1, 2].map(|a| {
-                                    (2 * j[a] + [dx, dy, dz][a]).min(finer[a] - 1)
-                                });
+                                let f = [0, 1, 2]
+                                    .map(|a| (2 * j[a] + [dx, dy, dz][a]).min(finer[a] - 1));
                                 sum += u32::from(stored_voxel(&store, &mut cache, level - 1, f));
                             }
                         }
