@@ -7,7 +7,7 @@ use strata_storage::phantom::Phantom;
 
 #[derive(Args)]
 pub struct SampleArgs {
-    /// Edge length in voxels (cube), up to 2048 (up to 32768 with --sparse).
+    /// Edge length in voxels (cube), up to 2048 (up to 16384 with --sparse).
     #[arg(long, default_value_t = 256)]
     pub size: u64,
     /// A mostly-air micro-CT-like volume (vessel trees, a bone shell, small shells) written

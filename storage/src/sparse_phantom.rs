@@ -44,8 +44,8 @@ const SHELL: u16 = 1900;
 /// The generator's fixed seed: every run writes the same volume.
 const SEED: u64 = 0x5eed_0018_5a17_0001;
 
-/// Largest supported edge (the 16384³ and a little room).
-pub const MAX_SPARSE_SIZE: u64 = 32768;
+/// Largest supported edge (the 16384³; the header check allows up to 2^44 voxels).
+pub const MAX_SPARSE_SIZE: u64 = 16384;
 
 #[derive(Clone, Debug)]
 enum Shape {
@@ -278,6 +278,15 @@ impl SparsePhantom {
         SparsePhantom { size, structures }
     }
 
+    /// 10 µm voxels (a micro-CT), centred on the origin.
+    pub fn geometry(&self) -> crate::geometry::VolumeGeometry {
+        let spacing = 0.01;
+        let d = u32::try_from(self.size).unwrap_or(u32::MAX);
+        let mut geometry = crate::geometry::VolumeGeometry::axis_aligned([d, d, d], [spacing; 3]);
+        geometry.origin_lps_mm = [-0.5 * spacing * (self.size.max(1) - 1) as f64; 3];
+        geometry
+    }
+
     pub fn layout(&self) -> OctreeLayout {
         let d = u32::try_from(self.size).unwrap_or(u32::MAX);
         OctreeLayout::new([d, d, d])
@@ -391,6 +400,9 @@ impl SparsePhantom {
             ));
         }
         let started = Instant::now();
+        let header_geometry = self.geometry();
+        // Refused before any work, not after the bricks are written.
+        crate::geometry::validate(&header_geometry, path)?;
         let layout = self.layout();
         let levels = layout.level_count();
         let writer = StoreWriter::create(path, 64 << 20)?;
@@ -678,10 +690,7 @@ impl SparsePhantom {
         let skeleton = Skeleton::from_listed(&layout, listed, NodeInfo::constant(AIR));
         let (stored_lo, stored_hi) = counts.stored_range().unwrap_or((AIR, AIR));
         let histogram = Histogram::from_stored(&counts, 1.0, PHANTOM_INTERCEPT);
-        let spacing = 0.01; // 10 µm: a micro-CT.
-        let d = u32::try_from(self.size).unwrap_or(u32::MAX);
-        let mut geometry = crate::geometry::VolumeGeometry::axis_aligned([d, d, d], [spacing; 3]);
-        geometry.origin_lps_mm = [-0.5 * spacing * (self.size - 1) as f64; 3];
+        let geometry = header_geometry;
         let mut required_features = codec.required_features(false);
         required_features.push(FEATURE_SPARSE_SKELETON.to_string());
         let header = StoreHeader {
