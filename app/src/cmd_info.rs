@@ -183,6 +183,13 @@ pub fn run(location: &str, token_file: Option<&Path>) -> Result<()> {
             dims[0], dims[1], dims[2], nb[0], nb[1], nb[2], count - constant
         );
     }
+    let skeleton = store.skeleton();
+    println!(
+        "skeleton     {} of {} nodes kept ({:.2} MiB in memory; constant subtrees collapsed)",
+        skeleton.stored_nodes(),
+        h.layout.total_bricks(),
+        skeleton.memory_bytes() as f64 / (1u64 << 20) as f64
+    );
     println!(
         "size         {:.2} MB compressed, {:.2} MB uncompressed bricks (ratio {:.2}), source {:.2} MB",
         s.compressed_bytes as f64 / 1e6,

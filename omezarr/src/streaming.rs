@@ -411,18 +411,9 @@ impl OmeZarrSource {
         let opened = open_multiscale(location)?;
         let display = opened.location.display.clone();
         if let Some(strata) = &opened.multiscale.strata {
-            let skeleton = read_skeleton(&opened, &strata.skeleton)?;
             let header = strata.header.clone();
+            let skeleton = read_skeleton(&opened, &strata.skeleton, &header.layout)?;
             let layout = &header.layout;
-            if skeleton.levels.len() != layout.level_count()
-                || (0..layout.level_count())
-                    .any(|l| skeleton.levels[l].len() as u64 != layout.brick_count_in_level(l))
-            {
-                return Err(OmeZarrError::invalid(
-                    &display,
-                    "the skeleton object does not match the strata attribute's layout",
-                ));
-            }
             let sampling = if header.stored == StoredScalar::U8 {
                 Sampling::U8
             } else {
@@ -659,7 +650,7 @@ impl OmeZarrSource {
     }
 }
 
-fn read_skeleton(opened: &OpenedMultiscale, key: &str) -> Result<Skeleton> {
+fn read_skeleton(opened: &OpenedMultiscale, key: &str, layout: &OctreeLayout) -> Result<Skeleton> {
     if key != SKELETON_KEY {
         return Err(OmeZarrError::invalid(
             &opened.location.display,
@@ -674,10 +665,10 @@ fn read_skeleton(opened: &OpenedMultiscale, key: &str) -> Result<Skeleton> {
         got.bytes().await
     })?
     .map_err(|e| OmeZarrError::access(&opened.location.display, format!("{key}: {e}")))?;
-    Skeleton::decode(&bytes).ok_or_else(|| {
+    Skeleton::decode(&bytes, layout).map_err(|e| {
         OmeZarrError::invalid(
             &opened.location.display,
-            format!("{key}: checksum or framing is wrong"),
+            format!("{key}: the skeleton {e} (for the strata attribute's layout)"),
         )
     })
 }
@@ -871,14 +862,14 @@ fn open_foreign(opened: &OpenedMultiscale) -> Result<Foreign> {
             [0, max]
         }
     };
-    let mut skeleton = Skeleton::new(&layout);
-    for level in &mut skeleton.levels {
-        level.fill(NodeInfo {
+    let skeleton = Skeleton::uniform(
+        &layout,
+        NodeInfo {
             min: 0,
             max,
             flags: 0,
-        });
-    }
+        },
+    );
     let header = StoreHeader {
         format_version: strata_storage::store::STORE_FORMAT_VERSION,
         geometry,

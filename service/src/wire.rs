@@ -76,17 +76,8 @@ pub fn decode_open_document(bytes: &[u8]) -> Result<(OpenDocument, Skeleton), St
     let (json, skeleton) = rest.split_at(len as usize);
     let doc: OpenDocument =
         serde_json::from_slice(json).map_err(|e| format!("open document: {e}"))?;
-    let skeleton = Skeleton::decode(skeleton).ok_or("octree skeleton fails its checksum")?;
-    let layout = &doc.header.layout;
-    if skeleton.levels.len() != layout.level_count()
-        || skeleton
-            .levels
-            .iter()
-            .enumerate()
-            .any(|(l, v)| v.len() as u64 != layout.brick_count_in_level(l))
-    {
-        return Err("octree skeleton does not match the header's layout".into());
-    }
+    let skeleton = Skeleton::decode(skeleton, &doc.header.layout)
+        .map_err(|e| format!("octree skeleton {e}"))?;
     Ok((doc, skeleton))
 }
 

@@ -127,7 +127,7 @@ fn endpoints_serve_records_as_stored_with_immutable_caching() {
         assert!(doc.header.provenance.inputs.is_empty());
         assert_eq!(doc.header.geometry, want.header.geometry);
         assert_eq!(doc.header.layout, want.header.layout);
-        assert_eq!(skeleton.levels.len(), want.header.layout.level_count());
+        assert_eq!(skeleton.level_count(), want.header.layout.level_count());
         let revalidated = http
             .get(server.store_url("chest"))
             .header("if-none-match", &etag)

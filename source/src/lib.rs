@@ -174,12 +174,7 @@ pub trait VolumeSource: Send + Sync {
         &self.header().layout
     }
     fn node(&self, id: BrickId) -> Option<NodeInfo> {
-        let i = self.layout().index_in_level(id)?;
-        self.skeleton()
-            .levels
-            .get(id.level as usize)?
-            .get(i)
-            .copied()
+        self.skeleton().node(id)
     }
     /// Reads, verifies (checksum) and decompresses one brick.
     fn read_brick(&self, id: BrickId) -> Result<Vec<u16>, SourceError> {
@@ -307,27 +302,20 @@ impl<S: VolumeSource + ?Sized> VolumeSource for Arc<S> {
     }
 }
 
-/// Checks every brick of a source: present, checksum, decompression, and range equal to the
-/// skeleton's. Reads through `read_brick` on `threads` threads (many in flight for a remote
-/// source). Returns one message per problem found.
+/// Checks every brick the skeleton stores a node for (every brick, for a dense skeleton;
+/// implied nodes of collapsed constant subtrees are not read): present, checksum,
+/// decompression, and range equal to the skeleton's. Reads through `read_brick` on `threads`
+/// threads (many in flight for a remote source). Returns one message per problem found.
 pub fn verify_source(
     source: &dyn VolumeSource,
     threads: usize,
     on_progress: &(dyn Fn(u64, u64) + Sync),
 ) -> Vec<String> {
-    let layout = source.layout();
-    let total = layout.total_bricks();
-    let mut ids = Vec::with_capacity(total.min(1 << 24) as usize);
-    for level in 0..layout.level_count() {
-        let n = layout.bricks_in_level(level);
-        for z in 0..n[2] {
-            for y in 0..n[1] {
-                for x in 0..n[0] {
-                    ids.push(BrickId::new(level as u8, [x, y, z]));
-                }
-            }
-        }
-    }
+    let skeleton = source.skeleton();
+    let ids: Vec<BrickId> = (0..skeleton.level_count())
+        .flat_map(|level| skeleton.stored_in_level_iter(level).map(|(id, _)| id))
+        .collect();
+    let total = ids.len() as u64;
     let next = std::sync::atomic::AtomicUsize::new(0);
     let problems = std::sync::Mutex::new(Vec::new());
     std::thread::scope(|scope| {

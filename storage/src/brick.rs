@@ -205,6 +205,15 @@ pub fn value_range(voxels: &[u16]) -> ValueRange {
     ValueRange { min, max }
 }
 
+/// The record of a brick whose every voxel is `value` (what [`encode_brick`] writes for it).
+pub fn constant_record(id: BrickId, value: u16) -> Vec<u8> {
+    let body = value.to_le_bytes();
+    let mut out = vec![KIND_CONSTANT];
+    out.extend_from_slice(&checksum(KIND_CONSTANT, &brick_key(id), &body).to_le_bytes());
+    out.extend_from_slice(&body);
+    out
+}
+
 /// Encodes a 36³ brick with `codec`. `narrow` stores u8 samples (the store's scalar type is u8).
 pub fn encode_brick(
     id: BrickId,

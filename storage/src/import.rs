@@ -32,6 +32,9 @@ use crate::store::{
     ValueMappingWithUnit, STORE_FORMAT_VERSION,
 };
 
+/// Every node of every level, in brick order, while an import fills them in.
+type DenseNodes = Vec<Vec<NodeInfo>>;
+
 /// Source of level-0 slices already converted to stored values.
 pub trait SliceProducer: Sync {
     fn dims(&self) -> [u64; 3];
@@ -319,7 +322,11 @@ pub fn import_slices(
     let mut levels: Vec<LevelBuilder> = (0..layout.level_count())
         .map(|l| LevelBuilder::new(l, layout.level_dims[l].map(u64::from), &layout))
         .collect();
-    let mut skeleton = Skeleton::new(&layout);
+    // Every node while the import runs (O(volume / 32³), small beside the slices it holds);
+    // collapsed into the sparse skeleton at the end.
+    let mut skeleton: DenseNodes = (0..layout.level_count())
+        .map(|l| vec![NodeInfo::default(); layout.brick_count_in_level(l) as usize])
+        .collect();
     let mut counts = StoredValueCounts::default();
     let total_source = producer.source_bytes_per_slice() * dims[2];
     // sled writes run on their own thread, overlapping the compression of the next batch; the
@@ -441,14 +448,20 @@ pub fn import_slices(
         stored_range: [stored_lo, stored_hi],
         generation: crate::store::new_generation_id(),
         codec: options.codec,
-        required_features: options.codec.required_features(narrow),
+        required_features: {
+            let mut features = options.codec.required_features(narrow);
+            // Format 1 stays exactly what builds before format 2 read (dense skeleton).
+            if format_version >= 2 {
+                features.push(crate::store::FEATURE_SPARSE_SKELETON.to_string());
+            }
+            features
+        },
         labels: meta.labels,
         frames: 1,
     };
     let bytes_per_voxel = if narrow { 1 } else { 2 };
     let stats = StoreStats {
         bricks_per_level: skeleton
-            .levels
             .iter()
             .map(|l| {
                 (
@@ -463,6 +476,7 @@ pub fn import_slices(
         import_seconds: started.elapsed().as_secs_f64(),
     };
     let finishing = Instant::now();
+    let skeleton = Skeleton::from_dense(&layout, &skeleton);
     writer.finish(&header, &skeleton, &histogram, &stats)?;
     let profile = ImportProfile {
         convert: phase[0],
@@ -496,7 +510,7 @@ fn build_levels(
     producer: &dyn SliceProducer,
     levels: &mut [LevelBuilder],
     sink: &BrickSink,
-    skeleton: &mut Skeleton,
+    skeleton: &mut DenseNodes,
     counts: &mut StoredValueCounts,
     options: &ImportOptions,
     store_path: &Path,
@@ -636,7 +650,7 @@ fn push_slice(
     k: u64,
     slice: Vec<u16>,
     sink: &BrickSink,
-    skeleton: &mut Skeleton,
+    skeleton: &mut DenseNodes,
 ) -> Result<()> {
     let builder = &mut levels[level];
     if builder.window.is_empty() {
@@ -683,7 +697,7 @@ fn push_slice(
 /// less node rewriting than scattered concurrent inserts.
 const BRICKS_PER_BATCH: u64 = 128;
 
-fn emit_row(builder: &LevelBuilder, sink: &BrickSink, skeleton: &mut Skeleton) -> Result<()> {
+fn emit_row(builder: &LevelBuilder, sink: &BrickSink, skeleton: &mut DenseNodes) -> Result<()> {
     let bz = builder.next_row;
     let [nbx, nby, _] = builder.bricks;
     let slice_at = |z: u64| builder.slice(z);
@@ -722,7 +736,7 @@ fn emit_row(builder: &LevelBuilder, sink: &BrickSink, skeleton: &mut Skeleton) -
         let mut bytes = 0;
         let mut records = Vec::with_capacity(encoded.len());
         for (offset, (id, node, record)) in encoded.into_iter().enumerate() {
-            skeleton.levels[level][row_start + batch_start as usize + offset] = node;
+            skeleton[level][row_start + batch_start as usize + offset] = node;
             bytes += record.len() as u64;
             records.push((id, record));
         }

@@ -15,7 +15,9 @@ pub mod octree;
 pub mod phantom;
 pub mod quantize;
 pub mod readers;
+pub mod skeleton;
 pub mod source;
+pub mod sparse_phantom;
 pub mod staging;
 pub mod store;
 

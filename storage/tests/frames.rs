@@ -111,7 +111,7 @@ fn a_4d_nifti_imports_every_volume_as_a_frame() {
                 }
             }
             let skeleton = store.frame_skeleton(t as u32).unwrap();
-            let range = skeleton.levels[0][0];
+            let range = skeleton.node(BrickId::new(0, [0, 0, 0])).unwrap();
             let lo = header.value_mapping.physical(range.min);
             assert!(
                 (lo - value(0, 0, 0, t, float)).abs() <= tolerance,

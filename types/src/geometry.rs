@@ -8,9 +8,9 @@ use serde::{Deserialize, Serialize};
 
 /// Largest extent accepted on one axis; beyond this a header is taken as corrupt, not as data.
 pub const MAX_AXIS_VOXELS: u64 = 1 << 20;
-/// Largest voxel count accepted (2^40 ≈ 1.1 T voxels): far beyond any scanner, small enough to
-/// catch garbage.
-pub const MAX_TOTAL_VOXELS: u64 = 1 << 40;
+/// Largest voxel count accepted (2^44 ≈ 17.6 T voxels, about 26000³): room for the mostly-air
+/// 16384³ micro-CT sizes of the sparse skeleton (issue 18), small enough to catch garbage.
+pub const MAX_TOTAL_VOXELS: u64 = 1 << 44;
 
 /// What is wrong with a geometry. Callers add the file (storage) or the scene (render).
 /// Smallest voxel spacing accepted: 1 nm.
@@ -231,7 +231,9 @@ mod tests {
             .unwrap_err()
             .to_string()
             .contains("absurd"));
-        assert!(VolumeGeometry::checked_dims([1 << 20, 1 << 20, 2]).is_err());
+        assert!(VolumeGeometry::checked_dims([1 << 20, 1 << 20, 1 << 6]).is_err());
+        // 16384³ (mostly-air micro-CT, a sparse store) is data, not garbage.
+        assert!(VolumeGeometry::checked_dims([1 << 14, 1 << 14, 1 << 14]).is_ok());
         assert_eq!(VolumeGeometry::checked_dims([3, 4, 5]), Ok([3, 4, 5]));
         let mut g = VolumeGeometry::axis_aligned([4, 4, 4], [1.0; 3]);
         g.direction[2] = g.direction[0];
