@@ -764,10 +764,10 @@ fn the_block_oracle_is_finer_than_the_node_oracle_and_read_alike_on_gpu_and_cpu(
             eprintln!("GPU vs CPU transcription: {c_cpu:?}");
             assert!(c_cpu.psnr_db >= 45.0, "{c_cpu:?}");
             // The image against the f64 full-rate reference: the block oracle coarsens only
-            // where the TF's opacity is flat over a block (2³ blocks: measured 63.0 dB with
-            // 381k samples; 4³ blocks took 525k; before per-pixel termination 54.9 dB with
-            // 589k, against the per-node oracle's 1.13M and d ≡ 1's 5.96M; ε 0.02: 144k
-            // samples, 34.8 dB). 50 dB leaves room for driver rounding.
+            // where the TF's opacity is flat over a block (2³ blocks: measured 63.1 dB with
+            // 376k samples; 4³ blocks took 525k; before per-pixel termination 54.9 dB with
+            // 589k, against the per-node oracle's 1.13M and d ≡ 1's 5.96M; ε 0.02: 141k
+            // samples, 34.9 dB). 50 dB leaves room for driver rounding.
             assert!(c.psnr_db >= 50.0, "{c:?}");
         }
     }
@@ -887,7 +887,7 @@ fn adaptive_mip_keeps_the_transcriptions_maxima_and_is_close_to_the_reference() 
     // MIP samples on slices half a voxel apart where the reference steps 1/16 voxel: a
     // maximum between two samples is missed by up to the field's curvature over half a voxel,
     // which the bone's hard edge makes a few 8-bit steps on silhouette pixels (measured
-    // 65.9 dB, worst pixel 5, with 425k samples against d ≡ 1's 4.07M). 40 dB is the
+    // 65.9 dB, worst pixel 5, with 418k samples against d ≡ 1's 4.07M). 40 dB is the
     // render tests' bar for MIP against the reference.
     assert!(c.psnr_db >= 40.0, "{c:?}");
 }

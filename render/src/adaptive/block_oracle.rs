@@ -203,7 +203,9 @@ fn neighbour_block(
     let mut p = [0.0f64; 3];
     for a in 0..3 {
         // Node voxel coordinate of the block centre, then level-0 index.
-        let q = node[a] as f64 * BRICK_CORE as f64 + b[a] as f64 * BLOCK as f64 + 1.5;
+        let q = node[a] as f64 * BRICK_CORE as f64
+            + b[a] as f64 * BLOCK as f64
+            + 0.5 * (BLOCK as f64 - 1.0);
         p[a] = (q + 0.5) * scale - 0.5;
         let c = ((p[a] + 0.5) / BRICK_CORE as f64).floor();
         if c < 0.0 || c >= page_dims[a] as f64 {
@@ -270,42 +272,53 @@ mod tests {
             &[(0.0, [1.0; 3])],
         );
         let mapping = strata_types::ValueMapping::default();
+        let n = BLOCKS_PER_AXIS as usize;
         let at = |d: &[f32], slot: usize, b: [usize; 3]| {
-            d[slot * BLOCKS_PER_SLOT + b[0] + 8 * (b[1] + 8 * b[2])]
+            d[slot * BLOCKS_PER_SLOT + b[0] + n * (b[1] + n * b[2])]
         };
-        // Slices of half a voxel: the longest skip (8 slices) is one block.
+        // A row of blocks through the middle of the node along x.
+        let mid = n / 2;
+        let row = |d: &[f32], slot: usize, x: usize| at(d, slot, [x, mid, mid]);
+        // Slices of half a voxel: the longest skip (8 slices, 4 voxels) reaches 2 blocks.
         let d = block_oracle(&table, &source, mapping, &tf, 0.01, 3, 0.5);
         assert_eq!(d.len(), 2 * BLOCKS_PER_SLOT);
-        // The step (core voxel 9 → 10) lies in what block 2 reads (voxels 7..=12); block 1
-        // reads 3..=8 (all 0), block 3 reads 11..=16 (all 200).
-        assert_eq!(at(&d, 1, [2, 3, 3]), 1.0);
-        // Its neighbours slow down (dilation), blocks two away do not.
-        assert_eq!(at(&d, 1, [1, 3, 3]), 1.0);
-        assert_eq!(at(&d, 1, [3, 3, 3]), 1.0);
-        assert_eq!(at(&d, 1, [0, 3, 3]), 8.0);
+        // Block b reads core voxels 2b−1 ..= 2b+2: the step (voxel 9 → 10) lies in what blocks
+        // 4 (7..=10) and 5 (9..=12) read; block 3 reads 5..=8 (all 0), block 6 11..=14 (200).
+        assert_eq!(row(&d, 1, 4), 1.0);
+        assert_eq!(row(&d, 1, 5), 1.0);
+        // Their neighbours slow down to d = 1 (no gap), the next ones to the 4-slice gap,
+        // blocks three away not at all.
+        assert_eq!(row(&d, 1, 3), 1.0);
+        assert_eq!(row(&d, 1, 6), 1.0);
+        assert_eq!(row(&d, 1, 2), 4.0);
+        assert_eq!(row(&d, 1, 7), 4.0);
+        assert_eq!(row(&d, 1, 1), 8.0);
+        assert_eq!(row(&d, 1, 8), 8.0);
         // Deep inside the plateau the opacity does not vary: the coarsest distance.
-        assert_eq!(at(&d, 1, [6, 3, 3]), 8.0);
-        // The empty node is coarse up to its face: the step is 2 blocks beyond it.
-        assert_eq!(at(&d, 0, [7, 3, 3]), 8.0);
-        // ε is a knob: at ε = 0.2 the step's blocks take longer steps (Δα 0.8 over 8 slices).
-        let coarse = block_oracle(&table, &source, mapping, &tf, 0.2, 3, 0.5);
-        assert_eq!(at(&coarse, 1, [2, 3, 3]), 2.0);
-        // At a slice of 2 voxels the longest skip is 16 voxels (4 blocks): the empty node's
-        // face blocks, 2 blocks from the step, slow down to the gap to it.
+        assert_eq!(row(&d, 1, 12), 8.0);
+        // The empty node is coarse up to its face: the step is 4 blocks beyond it.
+        assert_eq!(row(&d, 0, n - 1), 8.0);
+        // ε is a knob: at ε = 0.4 the step's blocks take longer steps (Δα 0.8 over 4 slices).
+        let coarse = block_oracle(&table, &source, mapping, &tf, 0.4, 3, 0.5);
+        assert_eq!(row(&coarse, 1, 4), 2.0);
+        // At a slice of 2 voxels the longest skip is 16 voxels (8 blocks): the empty node's
+        // face block, 4 blocks from the step (a gap of 4 slices), slows down to the gap.
         let far = block_oracle(&table, &source, mapping, &tf, 0.01, 3, 2.0);
-        assert_eq!(at(&far, 0, [7, 3, 3]), 4.0);
-        assert_eq!(at(&far, 0, [3, 3, 3]), 8.0);
+        assert_eq!(row(&far, 0, n - 1), 4.0);
+        assert_eq!(row(&far, 0, 3), 8.0);
     }
 
     #[test]
-    fn block_of_local_splits_the_core_into_eight_blocks_per_axis() {
+    fn block_of_local_splits_the_core_into_blocks_of_two_voxels() {
+        assert_eq!(BLOCK, 2);
+        let n = BLOCKS_PER_AXIS as usize;
         let a = BRICK_APRON as f64;
         assert_eq!(block_of_local([a, a, a]), 0);
-        assert_eq!(block_of_local([a + 3.4, a, a]), 0);
-        assert_eq!(block_of_local([a + 3.6, a, a]), 1);
+        assert_eq!(block_of_local([a + 1.4, a, a]), 0);
+        assert_eq!(block_of_local([a + 1.6, a, a]), 1);
         // Apron samples belong to the border blocks.
         assert_eq!(block_of_local([0.0, 0.0, 0.0]), 0);
-        assert_eq!(block_of_local([a + 33.0, a, a]), 7);
-        assert_eq!(block_of_local([a, a + 4.0, a + 8.0]), 8 + 2 * 64);
+        assert_eq!(block_of_local([a + 33.0, a, a]), n - 1);
+        assert_eq!(block_of_local([a, a + 2.0, a + 4.0]), n + 2 * n * n);
     }
 }
