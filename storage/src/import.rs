@@ -64,6 +64,47 @@ pub struct VolumeMeta {
     pub labels: Vec<crate::source::LabelInfo>,
 }
 
+/// The header of a single-volume store written from `meta` (imports and the sparse
+/// generator): provenance stamped now with this build's version, a new generation.
+pub(crate) fn store_header(
+    meta: VolumeMeta,
+    format_version: u32,
+    layout: &OctreeLayout,
+    stored_range: [u16; 2],
+    codec: BrickCodec,
+    required_features: Vec<String>,
+) -> StoreHeader {
+    StoreHeader {
+        format_version,
+        geometry: meta.geometry,
+        stored: meta.stored,
+        value_mapping: meta.value_mapping,
+        source_sample_type: meta.source_sample_type,
+        quantization_error: meta.quantization_error,
+        non_finite_samples: meta.non_finite_samples,
+        modality: meta.modality,
+        windows: meta.windows,
+        description: meta.description,
+        provenance: Provenance {
+            inputs: meta.inputs,
+            source_format: meta.source_format,
+            imported_at_unix_seconds: std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0, |d| d.as_secs()),
+            tool_version: env!("CARGO_PKG_VERSION").to_string(),
+        },
+        layout: layout.clone(),
+        brick_core: CORE,
+        brick_apron: APRON,
+        stored_range,
+        generation: crate::store::new_generation_id(),
+        codec,
+        required_features,
+        labels: meta.labels,
+        frames: 1,
+    }
+}
+
 #[derive(Clone, Copy, Debug, Default)]
 pub struct ImportProgress {
     pub source_bytes_done: u64,
@@ -423,42 +464,22 @@ pub fn import_slices(
         meta.value_mapping.mapping.slope,
         meta.value_mapping.mapping.intercept,
     );
-    let header = StoreHeader {
-        format_version,
-        geometry: meta.geometry,
-        stored: meta.stored,
-        value_mapping: meta.value_mapping,
-        source_sample_type: meta.source_sample_type,
-        quantization_error: meta.quantization_error,
-        non_finite_samples: meta.non_finite_samples,
-        modality: meta.modality,
-        windows: meta.windows,
-        description: meta.description,
-        provenance: Provenance {
-            inputs: meta.inputs,
-            source_format: meta.source_format,
-            imported_at_unix_seconds: std::time::SystemTime::now()
-                .duration_since(std::time::UNIX_EPOCH)
-                .map_or(0, |d| d.as_secs()),
-            tool_version: env!("CARGO_PKG_VERSION").to_string(),
-        },
-        layout: layout.clone(),
-        brick_core: CORE,
-        brick_apron: APRON,
-        stored_range: [stored_lo, stored_hi],
-        generation: crate::store::new_generation_id(),
-        codec: options.codec,
-        required_features: {
-            let mut features = options.codec.required_features(narrow);
-            // Format 1 stays exactly what builds before format 2 read (dense skeleton).
-            if format_version >= 2 {
-                features.push(crate::store::FEATURE_SPARSE_SKELETON.to_string());
-            }
-            features
-        },
-        labels: meta.labels,
-        frames: 1,
+    let required_features = {
+        let mut features = options.codec.required_features(narrow);
+        // Format 1 stays exactly what builds before format 2 read (dense skeleton).
+        if format_version >= 2 {
+            features.push(crate::store::FEATURE_SPARSE_SKELETON.to_string());
+        }
+        features
     };
+    let header = store_header(
+        meta,
+        format_version,
+        &layout,
+        [stored_lo, stored_hi],
+        options.codec,
+        required_features,
+    );
     let bytes_per_voxel = if narrow { 1 } else { 2 };
     let stats = StoreStats {
         bricks_per_level: skeleton

@@ -26,14 +26,14 @@ use rayon::prelude::*;
 use crate::brick::{decode_brick, encode_brick, value_range, BrickCodec};
 use crate::error::{Result, StorageError};
 use crate::histogram::{Histogram, StoredValueCounts};
+use crate::import::VolumeMeta;
 use crate::octree::{average8, BrickId, OctreeLayout, APRON, BRICK_PAYLOAD_VOXELS, CORE, PAYLOAD};
 use crate::phantom::PHANTOM_INTERCEPT;
 use crate::quantize::StoredScalar;
 use crate::skeleton::{NodeInfo, Skeleton, FEATURE_SPARSE_SKELETON};
 use crate::source::{SampleType, WindowPreset};
 use crate::store::{
-    Provenance, StoreHeader, StoreStats, StoreWriter, ValueMapping, ValueMappingWithUnit,
-    STORE_FORMAT_VERSION,
+    StoreHeader, StoreStats, StoreWriter, ValueMapping, ValueMappingWithUnit, STORE_FORMAT_VERSION,
 };
 
 /// Stored value of air (−1024 HU with the phantom's intercept).
@@ -693,8 +693,7 @@ impl SparsePhantom {
         let geometry = header_geometry;
         let mut required_features = codec.required_features(false);
         required_features.push(FEATURE_SPARSE_SKELETON.to_string());
-        let header = StoreHeader {
-            format_version: STORE_FORMAT_VERSION,
+        let meta = VolumeMeta {
             geometry,
             stored: StoredScalar::U16,
             value_mapping: ValueMappingWithUnit {
@@ -717,24 +716,18 @@ impl SparsePhantom {
                 "Strata sparse synthetic micro-CT {0}x{0}x{0} (vessel trees, bone shell, spherical shells in air)",
                 self.size
             ),
-            provenance: Provenance {
-                inputs: Vec::new(),
-                source_format: "sparse-phantom".into(),
-                imported_at_unix_seconds: std::time::SystemTime::now()
-                    .duration_since(std::time::UNIX_EPOCH)
-                    .map_or(0, |d| d.as_secs()),
-                tool_version: env!("CARGO_PKG_VERSION").to_string(),
-            },
-            layout: layout.clone(),
-            brick_core: CORE,
-            brick_apron: APRON,
-            stored_range: [stored_lo, stored_hi],
-            generation: crate::store::new_generation_id(),
+            inputs: Vec::new(),
+            source_format: "sparse-phantom".into(),
+            labels: Vec::new(),
+        };
+        let header = crate::import::store_header(
+            meta,
+            STORE_FORMAT_VERSION,
+            &layout,
+            [stored_lo, stored_hi],
             codec,
             required_features,
-            labels: Vec::new(),
-            frames: 1,
-        };
+        );
         let stats = StoreStats {
             bricks_per_level: (0..levels)
                 .map(|l| (skeleton.nodes_in_level(l), skeleton.constant_in_level(l)))
