@@ -23,6 +23,18 @@ use crate::store::{ValueMapping, ValueMappingWithUnit};
 /// Stored value = HU + 1024 (the usual CT offset), so −1024 HU is stored as 0.
 pub const PHANTOM_INTERCEPT: f64 = -1024.0;
 
+/// Stored value = HU + 1024 in HU: the value mapping of every synthetic CT (this phantom and
+/// the sparse one).
+pub fn phantom_value_mapping() -> ValueMappingWithUnit {
+    ValueMappingWithUnit {
+        mapping: ValueMapping {
+            slope: 1.0,
+            intercept: PHANTOM_INTERCEPT,
+        },
+        unit: "HU".into(),
+    }
+}
+
 pub struct Phantom {
     pub size: [u64; 3],
 }
@@ -50,13 +62,7 @@ impl Phantom {
         VolumeMeta {
             geometry: self.geometry(),
             stored: StoredScalar::U16,
-            value_mapping: ValueMappingWithUnit {
-                mapping: ValueMapping {
-                    slope: 1.0,
-                    intercept: PHANTOM_INTERCEPT,
-                },
-                unit: "HU".into(),
-            },
+            value_mapping: phantom_value_mapping(),
             source_sample_type: SampleType::I16,
             quantization_error: 0.0,
             non_finite_samples: 0,

@@ -32,9 +32,7 @@ use crate::phantom::PHANTOM_INTERCEPT;
 use crate::quantize::StoredScalar;
 use crate::skeleton::{NodeInfo, Skeleton, FEATURE_SPARSE_SKELETON};
 use crate::source::{SampleType, WindowPreset};
-use crate::store::{
-    StoreHeader, StoreStats, StoreWriter, ValueMapping, ValueMappingWithUnit, STORE_FORMAT_VERSION,
-};
+use crate::store::{StoreHeader, StoreStats, StoreWriter, STORE_FORMAT_VERSION};
 
 /// Stored value of air (−1024 HU with the phantom's intercept).
 pub const AIR: u16 = 0;
@@ -696,13 +694,7 @@ impl SparsePhantom {
         let meta = VolumeMeta {
             geometry,
             stored: StoredScalar::U16,
-            value_mapping: ValueMappingWithUnit {
-                mapping: ValueMapping {
-                    slope: 1.0,
-                    intercept: PHANTOM_INTERCEPT,
-                },
-                unit: "HU".into(),
-            },
+            value_mapping: crate::phantom::phantom_value_mapping(),
             source_sample_type: SampleType::I16,
             quantization_error: 0.0,
             non_finite_samples: 0,

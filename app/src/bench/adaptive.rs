@@ -101,11 +101,32 @@ pub fn run(options: Options) -> Result<()> {
         report(rows.last());
     }
 
+    // MIP: the raycaster's lean march here, the adaptive pass with d ≡ 1 and with the block
+    // oracle at the first ε below, against the f64 MIP reference (its own group of ratios).
+    let mip = RenderSettings {
+        mode: RenderMode::Mip,
+        ..base.clone()
+    };
+    let mip_reference = reference_rgba(&v, &bricks, &table, &camera, &mip)?;
+    rows.push(raycaster_row(
+        &ctx,
+        &mut cut,
+        &v,
+        &camera,
+        &mip,
+        &mip_reference,
+        options.frames,
+        format!("MIP raycaster step {}", options.step),
+    )?);
+    report(rows.last());
+
     let mut pass = AdaptivePass::new(&ctx, &cut.cache);
+    // (label, oracle, ε, tile slice ranges, MIP)
     let mut configs = vec![(
         "adaptive d ≡ 1".to_string(),
         OracleKind::Constant(1.0),
         0.0,
+        false,
         false,
     )];
     if let Some(&e) = options.epsilons.first() {
@@ -115,10 +136,17 @@ pub fn run(options: Options) -> Result<()> {
             OracleKind::PerNode,
             e,
             true,
+            false,
         ));
     }
     for (i, &e) in options.epsilons.iter().enumerate() {
-        configs.push((format!("adaptive ε {e}"), OracleKind::PerBlock, e, true));
+        configs.push((
+            format!("adaptive ε {e}"),
+            OracleKind::PerBlock,
+            e,
+            true,
+            false,
+        ));
         // The first ε once more marching every slice of every tile: what the tile slice
         // ranges save (same image, bit for bit).
         if i == 0 {
@@ -127,10 +155,27 @@ pub fn run(options: Options) -> Result<()> {
                 OracleKind::PerBlock,
                 e,
                 false,
+                false,
             ));
         }
     }
-    for (label, oracle, epsilon, tile_slice_ranges) in configs {
+    configs.push((
+        "MIP adaptive d ≡ 1".to_string(),
+        OracleKind::Constant(1.0),
+        0.0,
+        true,
+        true,
+    ));
+    if let Some(&e) = options.epsilons.first() {
+        configs.push((
+            format!("MIP adaptive ε {e}"),
+            OracleKind::PerBlock,
+            e,
+            true,
+            true,
+        ));
+    }
+    for (label, oracle, epsilon, tile_slice_ranges, is_mip_row) in configs {
         let config = AdaptiveConfig {
             l_max: options.l_max,
             tile: options.tile,
@@ -170,72 +215,26 @@ pub fn run(options: Options) -> Result<()> {
             );
             pass.set_oracle(&ctx, &distances);
         }
-        let scene = cut.scene(&v.geometry, v.mapping, &camera, &base);
-        let label = format!("{label} (l_max {}, tile {})", options.l_max, options.tile);
-        rows.push(adaptive_row(
-            &ctx,
-            &mut pass,
-            &scene,
-            &config,
-            &reference,
-            options.frames,
-            label,
-        )?);
-        report(rows.last());
-    }
-
-    // MIP: the raycaster's lean march, the adaptive pass with d ≡ 1 and with the block oracle
-    // at the first ε, against the f64 MIP reference (its own group of ratios).
-    let mip = RenderSettings {
-        mode: RenderMode::Mip,
-        ..base.clone()
-    };
-    let mip_reference = reference_rgba(&v, &bricks, &table, &camera, &mip)?;
-    rows.push(raycaster_row(
-        &ctx,
-        &mut cut,
-        &v,
-        &camera,
-        &mip,
-        &mip_reference,
-        options.frames,
-        format!("MIP raycaster step {}", options.step),
-    )?);
-    report(rows.last());
-    let mut mip_configs = vec![("MIP adaptive d ≡ 1".to_string(), OracleKind::Constant(1.0))];
-    if let Some(&e) = options.epsilons.first() {
-        let distances = block_oracle(
-            &table,
-            &bricks,
-            v.mapping,
-            &v.tf,
-            e,
-            options.l_max,
-            options.step,
-        );
-        pass.set_oracle(&ctx, &distances);
-        mip_configs.push((format!("MIP adaptive ε {e}"), OracleKind::PerBlock));
-    }
-    for (label, oracle) in mip_configs {
-        let config = AdaptiveConfig {
-            l_max: options.l_max,
-            tile: options.tile,
-            oracle,
-            tile_slice_ranges: true,
+        let (settings, expected) = if is_mip_row {
+            (&mip, &mip_reference)
+        } else {
+            (&base, &reference)
         };
-        let scene = cut.scene(&v.geometry, v.mapping, &camera, &mip);
+        let scene = cut.scene(&v.geometry, v.mapping, &camera, settings);
         let label = format!("{label} (l_max {}, tile {})", options.l_max, options.tile);
         rows.push(adaptive_row(
             &ctx,
             &mut pass,
             &scene,
             &config,
-            &mip_reference,
+            expected,
             options.frames,
             label,
         )?);
         report(rows.last());
     }
+    // DVR rows first, then MIP's (each group starts with its raycaster).
+    rows.sort_by_key(is_mip);
 
     std::fs::create_dir_all(&options.out_dir)
         .with_context(|| format!("creating {}", options.out_dir.display()))?;
