@@ -891,3 +891,127 @@ fn adaptive_mip_keeps_the_transcriptions_maxima_and_is_close_to_the_reference() 
     // render tests' bar for MIP against the reference.
     assert!(c.psnr_db >= 40.0, "{c:?}");
 }
+
+/// Idle-slice skipping (adaptive.wgsl `SKIP_IDLE_SLICES`) only leaves out slices in which no
+/// open pixel acts: the frame and every counter equal those of the march over every slice,
+/// with fewer passes through the slice loop.
+#[test]
+fn skipping_idle_slices_changes_nothing_but_the_slices_marched() {
+    let ctx = gpu();
+    let f = Fixture::ct(64);
+    let g = GpuScene::new(&ctx, &f, CacheConfig::default());
+    let mut pass = AdaptivePass::new(&ctx, &g.cache);
+    let camera = orbit_30_20(&f);
+    let (width, height) = (72, 56);
+    let tiles = |tile: u64| (width as u64).div_ceil(tile) * (height as u64).div_ceil(tile);
+    let same = |a: &AdaptiveFrame, b: &AdaptiveFrame, what: &str| {
+        assert_eq!(a.rgba_f32, b.rgba_f32, "{what}: colour");
+        assert_eq!(a.depth, b.depth, "{what}: depth");
+        assert_eq!(a.visibility, b.visibility, "{what}: visibility");
+        assert_eq!(a.samples_per_level, b.samples_per_level, "{what}: samples");
+        assert_eq!(
+            a.syntheses_per_level, b.syntheses_per_level,
+            "{what}: syntheses"
+        );
+        assert_eq!(
+            a.apron_samples_per_level, b.apron_samples_per_level,
+            "{what}: apron"
+        );
+        assert_eq!(a.segments, b.segments, "{what}: segments");
+    };
+    let both = |pass: &mut AdaptivePass, s: &RenderSettings, config: AdaptiveConfig| {
+        let skipping = render_gpu(&ctx, &g, pass, &f, &camera, s, &config);
+        let every = render_gpu(
+            &ctx,
+            &g,
+            pass,
+            &f,
+            &camera,
+            s,
+            &AdaptiveConfig {
+                skip_idle_slices: false,
+                ..config
+            },
+        );
+        (skipping, every)
+    };
+    let s = settings(width, height, 0.5);
+
+    // A constant distance 2^k: after the first slice every pixel holds it, so exactly the
+    // slices that are multiples of 2^k are marched, in every tile (no slice ranges without a
+    // data oracle).
+    for (k, tile) in [(0u32, 8u32), (1, 16), (2, 8), (3, 32)] {
+        let config = AdaptiveConfig {
+            l_max: 3,
+            tile,
+            oracle: OracleKind::Constant(f32::from(1u8 << k)),
+            ..AdaptiveConfig::default()
+        };
+        let (skipping, every) = both(&mut pass, &s, config);
+        same(&skipping, &every, &format!("d ≡ {}", 1 << k));
+        let slices = skipping.last_slice as u64 + 1;
+        assert_eq!(every.tile_slices, tiles(tile as u64) * slices);
+        assert_eq!(
+            skipping.tile_slices,
+            tiles(tile as u64) * (skipping.last_slice as u64 / (1 << k) + 1),
+            "d ≡ {}",
+            1 << k
+        );
+    }
+
+    // Random distances (most tiles then hold a d = 1 somewhere: equality is the point here).
+    let (skipping, every) = both(
+        &mut pass,
+        &s,
+        AdaptiveConfig {
+            l_max: 3,
+            tile: 16,
+            oracle: OracleKind::Hash(7),
+            ..AdaptiveConfig::default()
+        },
+    );
+    same(&skipping, &every, "hash oracle");
+    assert!(skipping.tile_slices <= every.tile_slices);
+
+    // The block oracle on the phantom, DVR with per-pixel early termination and MIP: the
+    // data's empty and smooth stretches are where slices go idle.
+    let table = block_oracle(
+        &f.page_table,
+        &f.volume,
+        f.volume.mapping,
+        &f.tf,
+        0.002,
+        3,
+        s.quality,
+    );
+    pass.set_oracle(&ctx, &table);
+    let block = AdaptiveConfig {
+        l_max: 3,
+        tile: 16,
+        oracle: OracleKind::PerBlock,
+        ..AdaptiveConfig::default()
+    };
+    for (what, mode, early_termination) in [
+        ("DVR", RenderMode::Dvr, None),
+        ("DVR, early termination", RenderMode::Dvr, Some(0.99)),
+        ("MIP", RenderMode::Mip, None),
+    ] {
+        let s = RenderSettings {
+            mode,
+            early_termination,
+            ..s.clone()
+        };
+        let (skipping, every) = both(&mut pass, &s, block);
+        same(&skipping, &every, what);
+        eprintln!(
+            "{what}: {} tile slices marched of {} ({} samples)",
+            skipping.tile_slices,
+            every.tile_slices,
+            skipping.total_samples()
+        );
+        assert!(
+            skipping.tile_slices < every.tile_slices,
+            "{what}: no slice was skipped"
+        );
+    }
+}

@@ -48,6 +48,8 @@ struct Row {
     samples: u64,
     apron_samples: u64,
     syntheses: u64,
+    /// Slices marched summed over tiles (adaptive rows; the raycaster has none).
+    tile_slices: u64,
     median_ms: f64,
     rmse: f64,
     psnr_db: f64,
@@ -121,12 +123,13 @@ pub fn run(options: Options) -> Result<()> {
     report(rows.last());
 
     let mut pass = AdaptivePass::new(&ctx, &cut.cache);
-    // (label, oracle, ε, tile slice ranges, MIP)
+    // (label, oracle, ε, tile slice ranges, idle-slice skipping, MIP)
     let mut configs = vec![(
         "adaptive d ≡ 1".to_string(),
         OracleKind::Constant(1.0),
         0.0,
         false,
+        true,
         false,
     )];
     if let Some(&e) = options.epsilons.first() {
@@ -135,6 +138,7 @@ pub fn run(options: Options) -> Result<()> {
             format!("adaptive per-node ε {e}"),
             OracleKind::PerNode,
             e,
+            true,
             true,
             false,
         ));
@@ -145,15 +149,25 @@ pub fn run(options: Options) -> Result<()> {
             OracleKind::PerBlock,
             e,
             true,
+            true,
             false,
         ));
-        // The first ε once more marching every slice of every tile: what the tile slice
-        // ranges save (same image, bit for bit).
+        // The first ε once more without idle-slice skipping, and marching every slice of
+        // every tile: what skipping and the tile slice ranges save (same image, bit for bit).
         if i == 0 {
+            configs.push((
+                format!("adaptive ε {e}, no idle-slice skipping"),
+                OracleKind::PerBlock,
+                e,
+                true,
+                false,
+                false,
+            ));
             configs.push((
                 format!("adaptive ε {e}, every slice"),
                 OracleKind::PerBlock,
                 e,
+                false,
                 false,
                 false,
             ));
@@ -165,6 +179,7 @@ pub fn run(options: Options) -> Result<()> {
         0.0,
         true,
         true,
+        true,
     ));
     if let Some(&e) = options.epsilons.first() {
         configs.push((
@@ -173,14 +188,16 @@ pub fn run(options: Options) -> Result<()> {
             e,
             true,
             true,
+            true,
         ));
     }
-    for (label, oracle, epsilon, tile_slice_ranges, is_mip_row) in configs {
+    for (label, oracle, epsilon, tile_slice_ranges, skip_idle_slices, is_mip_row) in configs {
         let config = AdaptiveConfig {
             l_max: options.l_max,
             tile: options.tile,
             oracle,
             tile_slice_ranges,
+            skip_idle_slices,
         };
         if oracle == OracleKind::PerBlock {
             let t = Instant::now();
@@ -301,6 +318,7 @@ fn raycaster_row(
         samples: frame.samples.unwrap_or(0),
         apron_samples: 0,
         syntheses: 0,
+        tile_slices: 0,
         median_ms: median(times),
         rmse: c.rmse,
         psnr_db: c.psnr_db,
@@ -331,6 +349,7 @@ fn adaptive_row(
         samples: frame.total_samples(),
         apron_samples: frame.total_apron_samples(),
         syntheses: frame.total_syntheses(),
+        tile_slices: frame.tile_slices,
         median_ms: median(times),
         rmse: c.rmse,
         psnr_db: c.psnr_db,
@@ -345,20 +364,35 @@ fn is_mip(row: &Row) -> bool {
 fn report(row: Option<&Row>) {
     if let Some(r) = row {
         eprintln!(
-            "{:<40} {:>11} samples {:>10} apron {:>11} synth {:>8.1} ms  PSNR {:>5.1} dB",
-            r.setting, r.samples, r.apron_samples, r.syntheses, r.median_ms, r.psnr_db
+            "{:<40} {:>11} samples {:>10} apron {:>11} synth {:>9} tile slices {:>8.1} ms  \
+             PSNR {:>5.1} dB",
+            r.setting,
+            r.samples,
+            r.apron_samples,
+            r.syntheses,
+            r.tile_slices,
+            r.median_ms,
+            r.psnr_db
         );
     }
 }
 
 fn write_csv(path: &Path, rows: &[Row]) -> Result<()> {
-    let mut out =
-        String::from("setting,sampling_ops,apron_samples,synthesis_ops,median_ms,rmse,psnr_db\n");
+    let mut out = String::from(
+        "setting,sampling_ops,apron_samples,synthesis_ops,tile_slices,median_ms,rmse,psnr_db\n",
+    );
     for r in rows {
         let _ = writeln!(
             out,
-            "{},{},{},{},{:.3},{:.4},{:.2}",
-            r.setting, r.samples, r.apron_samples, r.syntheses, r.median_ms, r.rmse, r.psnr_db
+            "{},{},{},{},{},{:.3},{:.4},{:.2}",
+            r.setting,
+            r.samples,
+            r.apron_samples,
+            r.syntheses,
+            r.tile_slices,
+            r.median_ms,
+            r.rmse,
+            r.psnr_db
         );
     }
     std::fs::write(path, out).with_context(|| format!("writing {}", path.display()))
@@ -370,8 +404,8 @@ fn markdown(rows: &[Row], name: &str, w: u32, h: u32, frames: usize, adapter: &s
          {adapter}; error against the f64 reference of the same mode (level 0, 1/16 voxel). \
          Ratios are to the first row of the same mode (the raycaster), measured in the same \
          run.\n\n\
-         | setting | sampling ops | × fewer | apron samples | synthesis ops | ms/frame | time ratio | PSNR dB | RMSE |\n\
-         | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |\n"
+         | setting | sampling ops | × fewer | apron samples | synthesis ops | tile slices | ms/frame | time ratio | PSNR dB | RMSE |\n\
+         | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |\n"
     );
     for r in rows {
         let base = rows.iter().find(|b| is_mip(b) == is_mip(r));
@@ -379,12 +413,13 @@ fn markdown(rows: &[Row], name: &str, w: u32, h: u32, frames: usize, adapter: &s
             base.map_or((1.0, 1.0), |b| (b.samples.max(1) as f64, b.median_ms));
         let _ = writeln!(
             out,
-            "| {} | {} | {:.1} | {} | {} | {:.1} | {:.2} | {:.1} | {:.3} |",
+            "| {} | {} | {:.1} | {} | {} | {} | {:.1} | {:.2} | {:.1} | {:.3} |",
             r.setting,
             r.samples,
             base_samples / r.samples.max(1) as f64,
             r.apron_samples,
             r.syntheses,
+            r.tile_slices,
             r.median_ms,
             r.median_ms / base_ms.max(1e-9),
             r.psnr_db,
@@ -470,6 +505,7 @@ mod tests {
             samples,
             apron_samples: 0,
             syntheses: 0,
+            tile_slices: 0,
             median_ms: ms,
             rmse: 1.0,
             psnr_db: 48.0,
@@ -488,12 +524,12 @@ mod tests {
             "cpu",
         );
         assert!(
-            md.contains("| adaptive | 100 | 10.0 | 0 | 0 | 5.0 | 0.50 |"),
+            md.contains("| adaptive | 100 | 10.0 | 0 | 0 | 0 | 5.0 | 0.50 |"),
             "{md}"
         );
         // MIP rows are measured against the MIP raycaster, not the DVR one.
         assert!(
-            md.contains("| MIP adaptive | 100 | 4.0 | 0 | 0 | 16.0 | 2.00 |"),
+            md.contains("| MIP adaptive | 100 | 4.0 | 0 | 0 | 0 | 16.0 | 2.00 |"),
             "{md}"
         );
     }

@@ -42,6 +42,7 @@ struct AdaptiveKey {
     oracle: u32,
     early_termination: bool,
     tile_slice_ranges: bool,
+    skip_idle_slices: bool,
     clipped: bool,
     manual_trilinear: bool,
     smooth_transitions: bool,
@@ -71,6 +72,9 @@ pub struct AdaptiveFrame {
     pub segments: u64,
     /// The frame's slices.
     pub last_slice: u32,
+    /// Slices marched, summed over tiles: the passes through the slice loop (its barriers and
+    /// per-pixel checks), which idle-slice skipping cuts and the counters above do not see.
+    pub tile_slices: u64,
 }
 
 impl AdaptiveFrame {
@@ -367,6 +371,7 @@ impl AdaptivePass {
                 ("ORACLE", key.oracle as f64),
                 ("EARLY_TERMINATION", b(key.early_termination)),
                 ("TILE_SLICE_RANGES", b(key.tile_slice_ranges)),
+                ("SKIP_IDLE_SLICES", b(key.skip_idle_slices)),
                 ("CLIPPED", b(key.clipped)),
                 ("MANUAL_TRILINEAR", b(key.manual_trilinear)),
                 ("SMOOTH_TRANSITIONS", b(key.smooth_transitions)),
@@ -443,6 +448,7 @@ impl AdaptivePass {
             // close a pixel or stop a tile either).
             early_termination: settings.early_termination.is_some() && !mip,
             tile_slice_ranges: data_oracle && config.tile_slice_ranges,
+            skip_idle_slices: config.skip_idle_slices,
             clipped: settings.clip_plane.is_some(),
             manual_trilinear: settings.exact_trilinear || !self.filterable,
             smooth_transitions: settings.smooth_transitions
@@ -688,6 +694,7 @@ impl AdaptivePass {
             apron_samples_per_level: level(9),
             segments: c[8] as u64,
             last_slice: self.last_slice,
+            tile_slices: c[13] as u64,
         })
     }
 }

@@ -45,6 +45,10 @@ pub struct AdaptiveConfig {
     /// into the box and farthest exit (rounded out to slices of l_slice = l_max), which
     /// gives the same image as marching every slice. Off only to test exactly that.
     pub tile_slice_ranges: bool,
+    /// After each slice the tile goes straight to the next slice in which one of its open
+    /// pixels acts (adaptive.wgsl `SKIP_IDLE_SLICES`): the same image and counters with fewer
+    /// passes through the slice loop. Off only to test exactly that.
+    pub skip_idle_slices: bool,
 }
 
 impl Default for AdaptiveConfig {
@@ -54,6 +58,7 @@ impl Default for AdaptiveConfig {
             tile: 16,
             oracle: OracleKind::PerBlock,
             tile_slice_ranges: true,
+            skip_idle_slices: true,
         }
     }
 }

@@ -27,6 +27,14 @@ override CLIPPED: bool = false;
 // pixels keep their largest accumulated value and its slice (in acc: value, slice, taken)
 // instead of compositing, and are coloured by the TF at it at the end.
 override MIP: bool = false;
+// Idle slices: a slice of l_slice < L_MAX changes nothing unless some open pixel of levels
+// 0..l_slice has d < 2^(l_slice+1) (no probe, synthesis or segment happens otherwise, by the
+// rules below), and d changes only where something happens. So after each slice the tile
+// takes the least d over its open pixels of levels 0..L_MAX−1 (slices of l_slice = L_MAX are
+// never idle) and goes straight to the next multiple of 2^⌊log2 d⌋: the image and every
+// counter stay those of the full march, with fewer passes through the slice loop, whose
+// barriers and per-pixel checks (not the samples) bound the frame on a CPU rasteriser.
+override SKIP_IDLE_SLICES: bool = true;
 
 const THREADS: u32 = 64u;
 const MAX_OWNED: u32 = 16u;      // 32² / 64
@@ -63,7 +71,7 @@ fn adaptive_block(slot_base: vec3<f32>, coord: vec3<f32>) -> u32 {
 @group(0) @binding(17) var<storage, read_write> out_depth: array<f32>;
 @group(0) @binding(18) var<storage, read_write> visibility: array<u32>;
 // 0..3 samples per level (owned pixels), 4..7 syntheses per level (owned), 8 segments,
-// 9..12 apron samples per level (the tiling's overhead).
+// 9..12 apron samples per level (the tiling's overhead), 13 slices the tiles marched.
 @group(0) @binding(19) var<storage, read_write> counters: array<atomic<u32>, 16>;
 
 var<workgroup> pyramid_s: array<f32, PYRAMID_CAP>;
@@ -80,6 +88,10 @@ var<workgroup> pyramid_d: array<f32, PYRAMID_CAP>;
 // and a flag per pixel of levels 1..L_MAX, apron included (an apron pixel never closes).
 var<workgroup> closed_level0: array<atomic<u32>, 32>;
 var<workgroup> pyramid_closed: array<u32, PYRAMID_CAP>;
+// The least d over the tile's open pixels after a marched slice (f32 bits; d > 0, so the
+// bits order like the values). Three in turn: the n-th marched slice gathers into n mod 3 and
+// resets n + 2 mod 3, which nobody reads or writes until two barriers later.
+var<workgroup> tile_least_distance: array<atomic<u32>, 3>;
 
 // Edge of level l's tile with its apron, and where level l starts in the pyramid arrays.
 fn extent(l: u32) -> u32 {
@@ -333,6 +345,56 @@ fn close_opaque_pixels(tile_x: u32, tile_y: u32, lid: u32, acc: ptr<function, ar
     }
 }
 
+// SKIP_IDLE_SLICES: the largest k ≤ L_MAX with 2^k ≤ the least d over the tile's open pixels
+// of levels 0..L_MAX−1 (inside the image, not closed), so slices of l_slice < k are idle.
+// Compared as powers of two, not through log2, whose rounding could skip a slice that acts.
+// Called in uniform control flow (it holds the tile's barrier).
+fn least_distance_level(
+    tile_x: u32,
+    tile_y: u32,
+    lid: u32,
+    marched: u32,
+    d0: ptr<function, array<f32, MAX_OWNED>>,
+    acc: ptr<function, array<vec4<f32>, MAX_OWNED>>,
+) -> u32 {
+    var least = bitcast<f32>(0x7f800000u);
+    for (var j = 0u; j < (TILE * TILE) / THREADS; j++) {
+        let idx = lid + j * THREADS;
+        let open = !EARLY_TERMINATION || (*acc)[j].a < P.dims.w;
+        if open && tile_x + idx % TILE < A.pyramid.x && tile_y + idx / TILE < A.pyramid.y {
+            least = min(least, (*d0)[j]);
+        }
+    }
+    for (var l = 1u; l < L_MAX; l++) {
+        let e = extent(l);
+        let off = level_offset(l);
+        let ox = i32(tile_x >> l) - 1;
+        let oy = i32(tile_y >> l) - 1;
+        let wl = i32(A.pyramid.x >> l);
+        let hl = i32(A.pyramid.y >> l);
+        for (var idx = lid; idx < e * e; idx += THREADS) {
+            let gx = ox + i32(idx % e);
+            let gy = oy + i32(idx / e);
+            let inside = gx >= 0 && gy >= 0 && gx < wl && gy < hl;
+            if inside && !(EARLY_TERMINATION && pyramid_closed[off + idx] != 0u) {
+                least = min(least, pyramid_d[off + idx]);
+            }
+        }
+    }
+    atomicMin(&tile_least_distance[marched % 3u], bitcast<u32>(least));
+    let tile_least = bitcast<f32>(workgroupUniformLoad(&tile_least_distance[marched % 3u]));
+    if lid == 0u {
+        atomicStore(&tile_least_distance[(marched + 2u) % 3u], 0x7f800000u);
+    }
+    var k = 0u;
+    for (var c = 1u; c <= L_MAX; c++) {
+        if f32(1u << c) <= tile_least {
+            k = c;
+        }
+    }
+    return k;
+}
+
 @compute @workgroup_size(8, 8, 1)
 fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
     let tile_x = wid.x * TILE;
@@ -457,9 +519,19 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
         for (var idx = lid; idx < PYRAMID_CAP; idx += THREADS) {
             pyramid_closed[idx] = 0u;
         }
-        workgroupBarrier();
     }
-    for (var i = first_slice; i <= last_slice; i++) {
+    if lid == 0u {
+        for (var k = 0u; k < 3u; k++) {
+            atomicStore(&tile_least_distance[k], 0x7f800000u);
+        }
+    }
+    workgroupBarrier();
+    var marched = 0u;
+    var i = first_slice;
+    loop {
+        if i > last_slice {
+            break;
+        }
         var ls = L_MAX;
         if i != 0u {
             ls = min(countTrailingZeros(i), L_MAX);
@@ -560,8 +632,9 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
         }
         // Level 0 read level 1; the next slice writes level 1 first only if its l_slice is 1
         // (a higher l_slice writes level l_slice first and barriers before reaching level 1,
-        // l_slice 0 writes no shared level at all), so only then must it wait here.
-        if min(countTrailingZeros(i + 1u), L_MAX) == 1u {
+        // l_slice 0 writes no shared level at all), so only then must it wait here. With idle
+        // slices skipped, the least-distance load below is that barrier.
+        if !SKIP_IDLE_SLICES && min(countTrailingZeros(i + 1u), L_MAX) == 1u {
             workgroupBarrier();
         }
         if EARLY_TERMINATION && ls == L_MAX && i > first_slice {
@@ -588,6 +661,17 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
             }
             close_opaque_pixels(tile_x, tile_y, lid, &acc);
         }
+        marched += 1u;
+        var next = i + 1u;
+        if SKIP_IDLE_SLICES {
+            // The next multiple of 2^k after i, k = ⌊log2⌋ of the tile's least d.
+            let k = least_distance_level(tile_x, tile_y, lid, marched, &d0, &acc);
+            next = ((i >> k) + 1u) << k;
+        }
+        i = next;
+    }
+    if lid == 0u {
+        atomicAdd(&counters[13], marched);
     }
     for (var j = 0u; j < owned; j++) {
         let idx = lid + j * THREADS;
