@@ -42,6 +42,38 @@ fn sample_nrrd_imports_and_reports() {
     assert!(text(&o).contains("all 9 bricks verified"), "{}", text(&o));
 }
 
+/// `strata sample --sparse` writes only varying bricks; verify checks those and says how many
+/// constant nodes the skeleton implies instead of claiming every node was read.
+#[test]
+fn a_sparse_sample_verifies_its_stored_bricks_and_counts_the_implied_ones() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("sparse.strata");
+    let o = strata(&[
+        "sample",
+        "--sparse",
+        "--size",
+        "256",
+        "--out",
+        store.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    let o = strata(&["verify", store.to_str().unwrap()]);
+    let said = text(&o);
+    assert!(o.status.success(), "{said}");
+    let opened = Store::open(&store).unwrap();
+    let total = opened.header().layout.total_bricks();
+    let stored = opened.skeleton().stored_nodes() as u64;
+    assert!(stored < total, "the sample is sparse: {stored} of {total}");
+    assert!(
+        said.contains(&format!(
+            "all {stored} nodes of the sparse skeleton verified; the other {} of the octree's \
+             {total} nodes are constant",
+            total - stored
+        )),
+        "{said}"
+    );
+}
+
 #[test]
 fn bad_inputs_fail_with_the_file_named() {
     let dir = tempfile::tempdir().unwrap();

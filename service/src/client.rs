@@ -298,9 +298,9 @@ impl RemoteSource {
             })
         }
         .map_err(refused)?;
-        let (doc, skeleton) = decode_open_document(&bytes).map_err(refused)?;
-        check_store_format(&doc.header, strata_storage::store::KNOWN_STORE_FEATURES)
-            .map_err(refused)?;
+        let (doc, skeleton) =
+            decode_open_document(&bytes, strata_storage::store::KNOWN_STORE_FEATURES)
+                .map_err(refused)?;
         conn.generation = doc.generation.clone();
         Ok(RemoteSource {
             runtime: Arc::new(runtime),
@@ -512,34 +512,10 @@ impl BrickFetcher for RemoteFetcher {
     }
 }
 
-/// Refuses a served store this client cannot read as a whole, by name, before any brick is
-/// fetched: a newer format version, or a store feature (a brick kind, 4-D frames) of a newer
-/// Strata. Without it an older client would fail brick by brick, or misread a header field it
-/// does not know.
-fn check_store_format(header: &StoreHeader, known_features: &[&str]) -> Result<(), String> {
-    use strata_storage::store::{OLDEST_READABLE_FORMAT_VERSION, STORE_FORMAT_VERSION};
-    let version = header.format_version;
-    if !(OLDEST_READABLE_FORMAT_VERSION..=STORE_FORMAT_VERSION).contains(&version) {
-        return Err(format!(
-            "the server's store has format version {version}, and this client reads versions \
-             {OLDEST_READABLE_FORMAT_VERSION} to {STORE_FORMAT_VERSION}: update this client"
-        ));
-    }
-    match header
-        .required_features
-        .iter()
-        .find(|feature| !known_features.contains(&feature.as_str()))
-    {
-        Some(feature) => Err(format!(
-            "the store needs '{feature}', a store feature of a newer Strata: update this client"
-        )),
-        None => Ok(()),
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::wire::check_store_format;
 
     fn phantom_header() -> StoreHeader {
         let dir = tempfile::tempdir().unwrap();

@@ -64,7 +64,12 @@ pub fn encode_open_document(
     Ok(out)
 }
 
-pub fn decode_open_document(bytes: &[u8]) -> Result<(OpenDocument, Skeleton), String> {
+/// Decodes [`encode_open_document`]'s bytes, refusing a store this build cannot read
+/// ([`check_store_format`] with `known_features`) before it decodes the skeleton.
+pub fn decode_open_document(
+    bytes: &[u8],
+    known_features: &[&str],
+) -> Result<(OpenDocument, Skeleton), String> {
     let rest = bytes
         .strip_prefix(OPEN_DOCUMENT_MAGIC.as_slice())
         .ok_or("not a Strata open document (wrong magic)")?;
@@ -76,9 +81,37 @@ pub fn decode_open_document(bytes: &[u8]) -> Result<(OpenDocument, Skeleton), St
     let (json, skeleton) = rest.split_at(len as usize);
     let doc: OpenDocument =
         serde_json::from_slice(json).map_err(|e| format!("open document: {e}"))?;
+    // Before the skeleton: a newer store's skeleton may be one this build cannot decode, and
+    // the feature or version names the reason where the decode error would not.
+    check_store_format(&doc.header, known_features)?;
     let skeleton = Skeleton::decode(skeleton, &doc.header.layout)
         .map_err(|e| format!("octree skeleton {e}"))?;
     Ok((doc, skeleton))
+}
+
+/// Refuses a served store this client cannot read as a whole, by name, before any brick is
+/// fetched: a newer format version, or a store feature (a brick kind, 4-D frames) of a newer
+/// Strata. Without it an older client would fail brick by brick, or misread a header field it
+/// does not know.
+pub fn check_store_format(header: &StoreHeader, known_features: &[&str]) -> Result<(), String> {
+    use strata_storage::store::{OLDEST_READABLE_FORMAT_VERSION, STORE_FORMAT_VERSION};
+    let version = header.format_version;
+    if !(OLDEST_READABLE_FORMAT_VERSION..=STORE_FORMAT_VERSION).contains(&version) {
+        return Err(format!(
+            "the server's store has format version {version}, and this client reads versions \
+             {OLDEST_READABLE_FORMAT_VERSION} to {STORE_FORMAT_VERSION}: update this client"
+        ));
+    }
+    match header
+        .required_features
+        .iter()
+        .find(|feature| !known_features.contains(&feature.as_str()))
+    {
+        Some(feature) => Err(format!(
+            "the store needs '{feature}', a store feature of a newer Strata: update this client"
+        )),
+        None => Ok(()),
+    }
 }
 
 /// Path of one brick (relative to the server's root).
@@ -107,6 +140,48 @@ pub fn is_valid_store_name(name: &str) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// What an older client meets when a newer server sends a store with a skeleton encoding
+    /// it lacks: the feature by name, not the skeleton's decode error.
+    #[test]
+    fn an_unknown_feature_is_named_before_the_skeleton_is_decoded() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("phantom.strata");
+        strata_storage::phantom::Phantom::cube(16)
+            .write_store(&path, &strata_storage::import::ImportOptions::default())
+            .unwrap();
+        let store = strata_storage::Store::open(&path).unwrap();
+        let mut doc = OpenDocument {
+            name: "phantom".into(),
+            generation: "g1".into(),
+            identifiers_withheld: true,
+            header: store.header().clone(),
+            histogram: store.histogram().clone(),
+            stats: store.stats().clone(),
+        };
+        let known = strata_storage::store::KNOWN_STORE_FEATURES;
+        let bytes = encode_open_document(&doc, store.skeleton()).unwrap();
+        let (decoded, skeleton) = decode_open_document(&bytes, known).unwrap();
+        assert_eq!(decoded, doc);
+        assert_eq!(skeleton.encode(), store.skeleton().encode());
+
+        // The document with skeleton bytes no build can decode.
+        let with_unreadable_skeleton = |doc: &OpenDocument| {
+            let mut bytes = encode_open_document(doc, store.skeleton()).unwrap();
+            bytes.truncate(bytes.len() - store.skeleton().encode().len());
+            bytes.extend_from_slice(b"an encoding from the future");
+            bytes
+        };
+        // A newer encoding behind a feature this build does not know: the feature is named.
+        doc.header.required_features.push("skeleton-v9".into());
+        let refusal = decode_open_document(&with_unreadable_skeleton(&doc), known).unwrap_err();
+        assert!(refusal.contains("'skeleton-v9'"), "{refusal}");
+        assert!(refusal.contains("update this client"), "{refusal}");
+        // Known features: the same bytes are then reported as the skeleton's.
+        doc.header.required_features.pop();
+        let error = decode_open_document(&with_unreadable_skeleton(&doc), known).unwrap_err();
+        assert!(error.contains("skeleton"), "{error}");
+    }
 
     #[test]
     fn store_names_exclude_paths() {

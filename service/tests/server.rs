@@ -118,7 +118,11 @@ fn endpoints_serve_records_as_stored_with_immutable_caching() {
         let open = http.get(server.store_url("chest")).send().await.unwrap();
         assert_eq!(open.status(), 200);
         let etag = open.headers()["etag"].to_str().unwrap().to_string();
-        let (doc, skeleton) = decode_open_document(&open.bytes().await.unwrap()).unwrap();
+        let (doc, skeleton) = decode_open_document(
+            &open.bytes().await.unwrap(),
+            strata_storage::store::KNOWN_STORE_FEATURES,
+        )
+        .unwrap();
         assert!(doc.identifiers_withheld);
         assert_eq!(
             doc.header.description, "",
