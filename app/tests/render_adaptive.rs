@@ -1,7 +1,7 @@
 //! `strata render --mode adaptive|adaptive-mip`: the real binary renders a phantom store's
 //! fixed cut with the adaptive pass on the GPU (lavapipe) and with `--reference`, its f64 CPU
-//! transcription (render/src/adaptive/transcription.rs), and the two PNGs agree; the command
-//! reports the pass's sampling operations.
+//! transcription (render/src/adaptive/transcription.rs), and the two PNGs agree (DVR, MIP and
+//! shaded DVR); the command reports the pass's sampling operations.
 
 mod common;
 
@@ -26,14 +26,17 @@ fn adaptive_dvr_and_mip_on_the_gpu_match_their_cpu_transcription() {
     Phantom::cube(96)
         .write_store(&store, &ImportOptions::default())
         .unwrap();
-    for mode in ["adaptive", "adaptive-mip"] {
-        let (gpu, stderr) = render(&store, &dir.path().join("gpu.png"), &["--mode", mode]);
+    for (mode, extra) in [
+        ("adaptive", None),
+        ("adaptive-mip", None),
+        ("adaptive", Some("--shading")),
+    ] {
+        let args: Vec<&str> = ["--mode", mode].into_iter().chain(extra).collect();
+        let (gpu, stderr) = render(&store, &dir.path().join("gpu.png"), &args);
         assert!(stderr.contains("sampling operations"), "{mode}: {stderr}");
-        let (cpu, _) = render(
-            &store,
-            &dir.path().join("cpu.png"),
-            &["--mode", mode, "--reference"],
-        );
+        let reference: Vec<&str> = args.iter().copied().chain(["--reference"]).collect();
+        let (cpu, _) = render(&store, &dir.path().join("cpu.png"), &reference);
+        let mode = format!("{mode} {}", extra.unwrap_or(""));
         assert_eq!(gpu.len(), cpu.len());
         let shown = cpu.chunks(4).filter(|p| p[3] > 8).count();
         assert!(
@@ -41,7 +44,7 @@ fn adaptive_dvr_and_mip_on_the_gpu_match_their_cpu_transcription() {
             "{mode}: image nearly empty ({shown} pixels)"
         );
         // The same samples in f32 and f64, through the same tables (render/tests/adaptive.rs
-        // bounds the colours to 1e-5); a block face within f32 rounding of a sample may
+        // bounds the colours to 1e-5, 1e-4 shaded); a block face within f32 rounding of a sample may
         // still send one ray's oracle lookup to the neighbouring block: one 8-bit step, on
         // at most 1 % of the pixels.
         let off: Vec<i32> = gpu

@@ -6,7 +6,8 @@
 //! Each file is the twin of a Rust module: `params.wgsl` ↔ `Params` in raycast.rs,
 //! `page_table.wgsl` ↔ page_table.rs, `smooth_transitions.wgsl` ↔ smooth_transitions.rs,
 //! `field.wgsl` ↔ field.rs, `transfer_function.wgsl` ↔ transfer_function.rs,
-//! `preintegration.wgsl` ↔ preintegration.rs, `overlay.wgsl` ↔ overlay.rs, `raycast.wgsl` (entry point and ray loop) ↔
+//! `preintegration.wgsl` ↔ preintegration.rs, `shading.wgsl` ↔ reference.rs `shade`,
+//! `overlay.wgsl` ↔ overlay.rs, `raycast.wgsl` (entry point and ray loop) ↔
 //! raycast.rs; `probe.wgsl` ↔ probe.rs, composed into a test-only module of its own;
 //! `adaptive.wgsl` ↔ adaptive/gpu.rs (and adaptive/transcription.rs), composed with the field
 //! files and `preintegration.wgsl` into the adaptive pass's module. The field files leave the
@@ -38,7 +39,7 @@ const FIELD_FILES: [(&str, &str); 4] = [
 ];
 
 /// The raycast pass's own files, after [`FIELD_FILES`].
-const RAYCAST_FILES: [(&str, &str); 5] = [
+const RAYCAST_FILES: [(&str, &str); 6] = [
     (
         "transfer_function.wgsl",
         include_str!("shaders/transfer_function.wgsl"),
@@ -47,6 +48,7 @@ const RAYCAST_FILES: [(&str, &str); 5] = [
         "preintegration.wgsl",
         include_str!("shaders/preintegration.wgsl"),
     ),
+    SHADING,
     ("octree.wgsl", OCTREE_WGSL),
     ("overlay.wgsl", include_str!("shaders/overlay.wgsl")),
     ("raycast.wgsl", include_str!("shaders/raycast.wgsl")),
@@ -160,13 +162,17 @@ pub(crate) const FLAT_NEIGHBOUR: (&str, &str) = (
     include_str!("shaders/flat_neighbour.wgsl"),
 );
 
+/// Blinn-Phong at a gradient (reference.rs `shade`), in the raycaster and the adaptive pass.
+const SHADING: (&str, &str) = ("shading.wgsl", include_str!("shaders/shading.wgsl"));
+
 /// The adaptive pass's own files, after [`FIELD_FILES`] (adaptive/gpu.rs).
-const ADAPTIVE_FILES: [(&str, &str); 3] = [
+const ADAPTIVE_FILES: [(&str, &str); 4] = [
     FLAT_NEIGHBOUR,
     (
         "preintegration.wgsl",
         include_str!("shaders/preintegration.wgsl"),
     ),
+    SHADING,
     ("adaptive.wgsl", include_str!("shaders/adaptive.wgsl")),
 ];
 

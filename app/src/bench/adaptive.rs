@@ -6,6 +6,9 @@
 //!   (block_oracle.rs) at a sweep of ε,
 //! - and for MIP the raycaster, adaptive d ≡ 1 and the block oracle at the first ε (against
 //!   the f64 MIP reference, ratios to the MIP raycaster),
+//! - and shaded DVR with smooth level transitions over a mixed level-0/level-1 cut (where a
+//!   sample costs most) for the raycaster, adaptive d ≡ 1 and the block oracle at the first ε
+//!   (against the f64 reference of that cut, ratios to the shaded raycaster),
 //!
 //! each with its sampling operations (volume samples), synthesis operations (pyramid
 //! interpolations; the adaptive pass's own overhead), apron samples (what the tiling adds),
@@ -18,11 +21,15 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
-use strata_loader::store_volume::{load_uniform_cut, GpuCut};
+use strata_loader::store_volume::{
+    classify_empty, load_uniform_cut, page_table_for_cut, GpuCut, ResidentBricks,
+};
 use strata_render::adaptive::{
     block_oracle, oracle_for_cut, AdaptiveConfig, AdaptivePass, OracleKind,
 };
-use strata_render::{compare_rgba8, Camera, GpuContext, RenderMode, RenderSettings, Scene};
+use strata_render::{
+    compare_rgba8, Camera, GpuContext, RenderMode, RenderSettings, Scene, Shading,
+};
 use strata_storage::BrickId;
 
 use super::common::{bench_camera, median, open_input, reference_rgba, Volume};
@@ -250,8 +257,9 @@ pub fn run(options: Options) -> Result<()> {
         )?);
         report(rows.last());
     }
-    // DVR rows first, then MIP's (each group starts with its raycaster).
-    rows.sort_by_key(is_mip);
+    shaded_rows(&ctx, &v, &camera, &base, &options, &mut rows)?;
+    // DVR rows first, then MIP's, then the shaded ones (each group starts with its raycaster).
+    rows.sort_by_key(|r| group(r).1);
 
     std::fs::create_dir_all(&options.out_dir)
         .with_context(|| format!("creating {}", options.out_dir.display()))?;
@@ -279,6 +287,85 @@ pub fn run(options: Options) -> Result<()> {
         md.display(),
         png.display()
     );
+    Ok(())
+}
+
+/// Shaded DVR with smooth level transitions over a mixed cut (level 0 where x is below the
+/// middle of the volume, level 1 beyond, so the transition band crosses the view): where a
+/// sample costs most (a gradient of six more fetches, each blended across the band), the
+/// issue's frame-time case. The raycaster, the adaptive pass with d ≡ 1 and with the block
+/// oracle at the first ε, against the f64 reference of the same cut and settings.
+fn shaded_rows(
+    ctx: &GpuContext,
+    v: &Volume,
+    camera: &Camera,
+    base: &RenderSettings,
+    options: &Options,
+    rows: &mut Vec<Row>,
+) -> Result<()> {
+    let half = v.geometry.page_dims()[0].div_ceil(2);
+    let mut table = page_table_for_cut(&v.store, &v.geometry, |page| u8::from(page[0] >= half));
+    classify_empty(&v.store, &mut table, v.mapping, &v.tf_table);
+    let bricks = ResidentBricks::load(&v.store, &table)?;
+    let mut cut = GpuCut::upload(ctx, &bricks, &table, v.geometry.page_dims(), &v.tf_table)?;
+    let settings = RenderSettings {
+        shading: Some(Shading::default()),
+        smooth_transitions: true,
+        ..base.clone()
+    };
+    let reference = reference_rgba(v, &bricks, &table, camera, &settings)?;
+    rows.push(raycaster_row(
+        ctx,
+        &mut cut,
+        v,
+        camera,
+        &settings,
+        &reference,
+        options.frames,
+        format!("shaded raycaster step {}", options.step),
+    )?);
+    report(rows.last());
+    let mut pass = AdaptivePass::new(ctx, &cut.cache);
+    let mut configs = vec![(
+        "shaded adaptive d ≡ 1".to_string(),
+        OracleKind::Constant(1.0),
+        0.0,
+    )];
+    if let Some(&e) = options.epsilons.first() {
+        configs.push((format!("shaded adaptive ε {e}"), OracleKind::PerBlock, e));
+    }
+    for (label, oracle, epsilon) in configs {
+        if oracle == OracleKind::PerBlock {
+            let distances = block_oracle(
+                &table,
+                &bricks,
+                v.mapping,
+                &v.tf,
+                epsilon,
+                options.l_max,
+                options.step,
+            );
+            pass.set_oracle(ctx, &distances);
+        }
+        let config = AdaptiveConfig {
+            l_max: options.l_max,
+            tile: options.tile,
+            oracle,
+            ..AdaptiveConfig::default()
+        };
+        let scene = cut.scene(&v.geometry, v.mapping, camera, &settings);
+        let label = format!("{label} (l_max {}, tile {})", options.l_max, options.tile);
+        rows.push(adaptive_row(
+            ctx,
+            &mut pass,
+            &scene,
+            &config,
+            &reference,
+            options.frames,
+            label,
+        )?);
+        report(rows.last());
+    }
     Ok(())
 }
 
@@ -356,9 +443,16 @@ fn adaptive_row(
     })
 }
 
-/// MIP rows (setting "MIP …") form their own group: their ratios are to the first MIP row.
-fn is_mip(row: &Row) -> bool {
-    row.setting.starts_with("MIP ")
+/// Rows form groups by their setting's first word ("MIP …", "shaded …", the rest DVR); each
+/// group's ratios are to its first row (its raycaster). The group's order in the table.
+fn group(row: &Row) -> (&'static str, u8) {
+    if row.setting.starts_with("MIP ") {
+        ("MIP", 1)
+    } else if row.setting.starts_with("shaded ") {
+        ("shaded", 2)
+    } else {
+        ("DVR", 0)
+    }
 }
 
 fn report(row: Option<&Row>) {
@@ -408,7 +502,7 @@ fn markdown(rows: &[Row], name: &str, w: u32, h: u32, frames: usize, adapter: &s
          | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |\n"
     );
     for r in rows {
-        let base = rows.iter().find(|b| is_mip(b) == is_mip(r));
+        let base = rows.iter().find(|b| group(b) == group(r));
         let (base_samples, base_ms) =
             base.map_or((1.0, 1.0), |b| (b.samples.max(1) as f64, b.median_ms));
         let _ = writeln!(
@@ -499,7 +593,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn markdown_reports_ratios_against_the_first_row_of_the_same_mode() {
+    fn markdown_reports_ratios_against_the_first_row_of_the_same_group() {
         let row = |setting: &str, samples: u64, ms: f64| Row {
             setting: setting.into(),
             samples,
@@ -516,6 +610,8 @@ mod tests {
                 row("adaptive", 100, 5.0),
                 row("MIP raycaster", 400, 8.0),
                 row("MIP adaptive", 100, 16.0),
+                row("shaded raycaster", 500, 40.0),
+                row("shaded adaptive", 50, 10.0),
             ],
             "x",
             8,
@@ -530,6 +626,11 @@ mod tests {
         // MIP rows are measured against the MIP raycaster, not the DVR one.
         assert!(
             md.contains("| MIP adaptive | 100 | 4.0 | 0 | 0 | 0 | 16.0 | 2.00 |"),
+            "{md}"
+        );
+        // And shaded rows against the shaded raycaster.
+        assert!(
+            md.contains("| shaded adaptive | 50 | 10.0 | 0 | 0 | 0 | 10.0 | 0.25 |"),
             "{md}"
         );
     }

@@ -43,6 +43,7 @@ struct AdaptiveKey {
     early_termination: bool,
     tile_slice_ranges: bool,
     skip_idle_slices: bool,
+    shaded: bool,
     clipped: bool,
     manual_trilinear: bool,
     smooth_transitions: bool,
@@ -372,6 +373,7 @@ impl AdaptivePass {
                 ("EARLY_TERMINATION", b(key.early_termination)),
                 ("TILE_SLICE_RANGES", b(key.tile_slice_ranges)),
                 ("SKIP_IDLE_SLICES", b(key.skip_idle_slices)),
+                ("SHADED", b(key.shaded)),
                 ("CLIPPED", b(key.clipped)),
                 ("MANUAL_TRILINEAR", b(key.manual_trilinear)),
                 ("SMOOTH_TRANSITIONS", b(key.smooth_transitions)),
@@ -449,6 +451,7 @@ impl AdaptivePass {
             early_termination: settings.early_termination.is_some() && !mip,
             tile_slice_ranges: data_oracle && config.tile_slice_ranges,
             skip_idle_slices: config.skip_idle_slices,
+            shaded: settings.effective_shading().is_some() && !mip,
             clipped: settings.clip_plane.is_some(),
             manual_trilinear: settings.exact_trilinear || !self.filterable,
             smooth_transitions: settings.smooth_transitions

@@ -4,7 +4,7 @@
 //! (segment_integral.rs). The CPU twin of the GPU pass, and with exact optics and d ≡ 1 the
 //! slice-aligned full-rate image that adaptive frames are measured against.
 
-use glam::DVec3;
+use glam::{DMat3, DVec3};
 
 use super::block_oracle::{block_of_local, BLOCKS_PER_SLOT};
 use super::frame::SliceFrame;
@@ -14,10 +14,10 @@ use super::transcription::{
 };
 use super::AdaptiveConfig;
 use crate::error::RenderError;
-use crate::field::sample_field;
+use crate::field::{sample_field, FieldSample};
 use crate::layout::BrickSource;
 use crate::preintegration::integrate_segment;
-use crate::reference::{ray_interval, ReferenceScene};
+use crate::reference::{ray_interval, shade, ReferenceScene};
 use crate::segment_integral::SegmentIntegralTable;
 use crate::settings::RenderSettings;
 use crate::smooth_transitions::transition_masks;
@@ -83,20 +83,39 @@ pub fn slice_sample_located<S: BrickSource>(
     settings: &RenderSettings,
     frame: &SliceFrame,
     masks: Option<&[u32]>,
-    (u, v): (f64, f64),
+    uv: (f64, f64),
     i_slice: u32,
 ) -> SliceSample {
+    let located = slice_field(scene, settings, frame, masks, uv, i_slice);
+    slice_sample_of(scene, located.as_ref())
+}
+
+/// The field where the slice's point lies in the ray's interval and something is resident.
+fn slice_field<'a, S: BrickSource>(
+    scene: &ReferenceScene<'a, S>,
+    settings: &RenderSettings,
+    frame: &SliceFrame,
+    masks: Option<&[u32]>,
+    (u, v): (f64, f64),
+    i_slice: u32,
+) -> Option<FieldSample<'a>> {
     let (o, d) = frame.ray(u, v);
     let t = frame.slice_t(i_slice);
     let g = scene.geometry;
     let inside = ray_interval(g, settings, o, d).is_some_and(|(t0, t1)| t >= t0 && t <= t1);
-    let located = inside
+    inside
         .then(|| {
             let a = g.index_from_patient_linear();
             let p: DVec3 = a * (o + d * t - g.origin());
             sample_field(scene.source, scene.page_table, masks, g.dims, p)
         })
-        .flatten();
+        .flatten()
+}
+
+fn slice_sample_of<S: BrickSource>(
+    scene: &ReferenceScene<S>,
+    located: Option<&FieldSample>,
+) -> SliceSample {
     match located {
         Some(s) => {
             let slot = scene.page_table.entries[s.location.page_linear].slot_in_cache as usize;
@@ -114,11 +133,18 @@ pub fn slice_sample_located<S: BrickSource>(
     }
 }
 
-impl<S: BrickSource> AdaptiveProbe for SceneProbe<'_, S> {
-    fn probe(&self, level: u32, x: u32, y: u32, i_slice: u32) -> (f64, f64) {
-        let l_max = self.config.l_max;
-        let coarsest = (1u32 << l_max) as f64;
-        let sample = slice_sample_located(
+impl<S: BrickSource> SceneProbe<'_, S> {
+    /// SAMPLE and ORACLE at level-`level` pixel (x, y) of slice `i_slice`, and the gradient
+    /// when asked (index space, physical units per index step: the GPU's `field_gradient`).
+    fn sample(
+        &self,
+        level: u32,
+        x: u32,
+        y: u32,
+        i_slice: u32,
+        gradient: bool,
+    ) -> (f64, f64, [f64; 3]) {
+        let located = slice_field(
             self.scene,
             self.settings,
             self.frame,
@@ -126,6 +152,25 @@ impl<S: BrickSource> AdaptiveProbe for SceneProbe<'_, S> {
             (level0_coordinate(level, x), level0_coordinate(level, y)),
             i_slice,
         );
+        let g = match &located {
+            Some(f) if gradient => (f.gradient_index() * self.scene.mapping.slope).to_array(),
+            _ => [0.0; 3],
+        };
+        let (value, distance) = self.value_and_distance(level, x, y, i_slice, located.as_ref());
+        (value, distance, g)
+    }
+
+    fn value_and_distance(
+        &self,
+        level: u32,
+        x: u32,
+        y: u32,
+        i_slice: u32,
+        located: Option<&FieldSample>,
+    ) -> (f64, f64) {
+        let l_max = self.config.l_max;
+        let coarsest = (1u32 << l_max) as f64;
+        let sample = slice_sample_of(self.scene, located);
         let entry = match self.config.oracle {
             OracleKind::PerBlock => sample.block,
             _ => sample.page,
@@ -151,6 +196,23 @@ impl<S: BrickSource> AdaptiveProbe for SceneProbe<'_, S> {
         };
         (sample.value, distance)
     }
+}
+
+impl<S: BrickSource> AdaptiveProbe for SceneProbe<'_, S> {
+    fn probe(&self, level: u32, x: u32, y: u32, i_slice: u32) -> (f64, f64) {
+        let (value, distance, _) = self.sample(level, x, y, i_slice, false);
+        (value, distance)
+    }
+
+    fn probe_with_gradient(
+        &self,
+        level: u32,
+        x: u32,
+        y: u32,
+        i_slice: u32,
+    ) -> (f64, f64, [f64; 3]) {
+        self.sample(level, x, y, i_slice, true)
+    }
 
     fn ray_slices(&self, u: f64, v: f64) -> Option<(f64, f64)> {
         let (o, d) = self.frame.ray(u, v);
@@ -167,6 +229,10 @@ struct Optics<'a> {
     kind: AdaptiveOptics<'a>,
     /// MIP (`RenderMode::Mip`): the transcription keeps maxima, coloured below.
     mip: bool,
+    /// Shaded DVR: the shading, the frame (each level-0 pixel's ray direction), the inverse
+    /// transpose map from index to patient gradients and the flatness scale, as reference.rs
+    /// lights a sample.
+    shading: Option<(crate::settings::Shading, &'a SliceFrame, DMat3, f64)>,
     tf: &'a crate::transfer_function::TransferFunction,
     spacing_mm: f64,
     unit_mm: f64,
@@ -193,6 +259,30 @@ impl SegmentOptics for Optics<'_> {
         self.mip
     }
 
+    fn shaded(&self) -> bool {
+        self.shading.is_some()
+    }
+
+    /// reference.rs `shade` of the segment's colour (un-premultiplied) at the gradient, along
+    /// the level-0 pixel's ray; opacity unchanged.
+    fn shade(&self, rgba: [f64; 4], gradient: [f64; 3], x: u32, y: u32) -> [f64; 4] {
+        let Some((shading, frame, patient_from_index_gradient, flatness_scale)) = &self.shading
+        else {
+            return rgba;
+        };
+        let (_, dir) = frame.ray(x as f64, y as f64);
+        let g = *patient_from_index_gradient * DVec3::from(gradient);
+        let a = rgba[3];
+        let lit = shade(
+            [rgba[0] / a, rgba[1] / a, rgba[2] / a],
+            g,
+            dir,
+            shading,
+            *flatness_scale,
+        );
+        [lit[0] * a, lit[1] * a, lit[2] * a, a]
+    }
+
     /// The TF at one value, as the raycaster's MIP colours its maximum: exactly, or through
     /// the table as the GPU pass does (a segment of one opacity unit is the TF's own opacity
     /// and colour, up to the table's interpolation).
@@ -207,7 +297,7 @@ impl SegmentOptics for Optics<'_> {
     }
 }
 
-/// The adaptive frame of `settings` on the CPU (DVR unshaded, or MIP: the TF's colour and
+/// The adaptive frame of `settings` on the CPU (DVR, shaded as `settings` says, or MIP: the TF's colour and
 /// opacity at each pixel's maximum, premultiplied, the pick depth at the maximum). `oracle_table` is per page
 /// entry (oracle.rs) with [`OracleKind::PerNode`], per slot and block (block_oracle.rs) with
 /// [`OracleKind::PerBlock`], and not read otherwise.
@@ -243,9 +333,24 @@ pub fn render_adaptive_reference<S: BrickSource>(
             )))
         }
     };
+    let g = scene.geometry;
+    let shading = (!mip)
+        .then(|| settings.effective_shading())
+        .flatten()
+        .map(|shading| {
+            let flatness_scale = scene.mapping.slope.abs() * g.finest_spacing_mm()
+                / (scene.tf_range.1 - scene.tf_range.0).max(1e-30);
+            (
+                shading,
+                &frame,
+                g.index_from_patient_linear().transpose(),
+                flatness_scale,
+            )
+        });
     let optics = Optics {
         kind: optics,
         mip,
+        shading,
         tf: scene.transfer_function,
         spacing_mm: frame.spacing_mm,
         unit_mm: scene.geometry.finest_spacing_mm(),

@@ -71,20 +71,38 @@ impl PyramidDims {
         y as usize * self.level_width(level) as usize + x as usize
     }
 
-    /// SYNTHESIZE(g, l, x, y) of Fig. 5 over `parent` (level l+1), parents clamped to the edge.
-    pub fn synthesize(&self, parent: &[f64], level: u32, x: u32, y: u32) -> f64 {
+    /// The four parents (indices into level l+1, clamped to the edge) of level-l pixel (x, y)
+    /// and their weights, in the order SYNTHESIZE sums them.
+    fn synthesis_terms(&self, level: u32, x: u32, y: u32) -> [(usize, f64); 4] {
         let (pw, ph) = (
             self.level_width(level + 1) as i64,
             self.level_height(level + 1) as i64,
         );
-        let mut sum = 0.0;
-        for (py, wy) in synthesis_parents(y) {
-            for (px, wx) in synthesis_parents(x) {
+        let mut terms = [(0, 0.0); 4];
+        for (j, (py, wy)) in synthesis_parents(y).into_iter().enumerate() {
+            for (i, (px, wx)) in synthesis_parents(x).into_iter().enumerate() {
                 let (cx, cy) = (px.clamp(0, pw - 1) as u32, py.clamp(0, ph - 1) as u32);
-                sum += wx * wy * parent[self.index(level + 1, cx, cy)];
+                terms[2 * j + i] = (self.index(level + 1, cx, cy), wx * wy);
             }
         }
-        sum
+        terms
+    }
+
+    /// SYNTHESIZE(g, l, x, y) of Fig. 5 over `parent` (level l+1), parents clamped to the edge.
+    pub fn synthesize(&self, parent: &[f64], level: u32, x: u32, y: u32) -> f64 {
+        self.synthesis_terms(level, x, y)
+            .iter()
+            .fold(0.0, |sum, &(k, w)| sum + w * parent[k])
+    }
+
+    /// [`PyramidDims::synthesize`] of a vector per pixel (the shading gradient), component by
+    /// component with the same weights.
+    pub fn synthesize_vector(&self, parent: &[[f64; 3]], level: u32, x: u32, y: u32) -> [f64; 3] {
+        self.synthesis_terms(level, x, y)
+            .iter()
+            .fold([0.0; 3], |sum, &(k, w)| {
+                [0, 1, 2].map(|c| sum[c] + w * parent[k][c])
+            })
     }
 }
 
@@ -92,6 +110,19 @@ impl PyramidDims {
 /// at level-`level` pixel (x, y) of slice `i_slice` (the paper samples both at one point).
 pub trait AdaptiveProbe: Sync {
     fn probe(&self, level: u32, x: u32, y: u32, i_slice: u32) -> (f64, f64);
+
+    /// [`AdaptiveProbe::probe`] and the gradient of the data at the same point, for shaded
+    /// optics ([`SegmentOptics::shaded`]); by default a zero gradient.
+    fn probe_with_gradient(
+        &self,
+        level: u32,
+        x: u32,
+        y: u32,
+        i_slice: u32,
+    ) -> (f64, f64, [f64; 3]) {
+        let (value, distance) = self.probe(level, x, y, i_slice);
+        (value, distance, [0.0; 3])
+    }
 
     /// Where the ray through level-0 pixel coordinates (u, v) can meet anything but the
     /// transparent default value, as fractional slice positions (entry, exit); None if
@@ -122,6 +153,18 @@ pub trait SegmentOptics: Sync {
     /// one-slice segment of that value.
     fn point(&self, s: f64) -> [f64; 4] {
         self.segment(s, s, 1)
+    }
+
+    /// Shaded optics: the pyramid then carries the data's gradient beside its value
+    /// ([`AdaptiveProbe::probe_with_gradient`], synthesised with the same weights), and each
+    /// segment is lit by [`SegmentOptics::shade`] at its back sample's gradient.
+    fn shaded(&self) -> bool {
+        false
+    }
+
+    /// The segment `rgba` of level-0 pixel (x, y) lit at `gradient`; unlit by default.
+    fn shade(&self, rgba: [f64; 4], _gradient: [f64; 3], _x: u32, _y: u32) -> [f64; 4] {
+        rgba
     }
 }
 
@@ -156,11 +199,14 @@ struct Accumulator {
     maxima: Vec<(f64, u32)>,
     segments: u64,
     mip: bool,
+    /// Level-0 width (a pixel's coordinates for [`SegmentOptics::shade`]).
+    width: u32,
 }
 
 impl Accumulator {
-    fn new(n0: usize, mip: bool) -> Self {
+    fn new(n0: usize, width: u32, mip: bool) -> Self {
         Accumulator {
+            width,
             s_prev: vec![0.0; n0],
             i_prev: vec![0; n0],
             rgba: vec![[0.0; 4]; n0],
@@ -181,12 +227,13 @@ impl Accumulator {
         self.s_prev[k] = 0.0;
     }
 
-    /// ACCUMULATECOLOR(x, y, i_slice) with the pixel's value `value`; `segment` is false for
-    /// the march's first value, which only starts the first segment.
+    /// ACCUMULATECOLOR(x, y, i_slice) with the pixel's value `value` (and its gradient, for
+    /// shaded optics); `segment` is false for the march's first value, which only starts the
+    /// first segment.
     fn accumulate(
         &mut self,
         k: usize,
-        value: f64,
+        (value, gradient): (f64, [f64; 3]),
         i_slice: u32,
         segment: bool,
         optics: &impl SegmentOptics,
@@ -200,7 +247,11 @@ impl Accumulator {
             }
         } else if segment {
             let length = i_slice - self.i_prev[k];
-            let seg = optics.segment(self.s_prev[k], value, length);
+            let mut seg = optics.segment(self.s_prev[k], value, length);
+            if optics.shaded() && seg[3] > 0.0 {
+                let (x, y) = (k as u32 % self.width, k as u32 / self.width);
+                seg = optics.shade(seg, gradient, x, y);
+            }
             let c = &mut self.rgba[k];
             let before = c[3];
             let wgt = 1.0 - c[3];
@@ -250,6 +301,62 @@ impl Transcription {
     }
 }
 
+/// The shading gradient's channel of the pyramid: sampled where the value is sampled and
+/// synthesised where it is synthesised, with the same weights. Empty (and every call a no-op
+/// returning zero) for unshaded optics.
+struct GradientPyramid {
+    dims: PyramidDims,
+    levels: Vec<Vec<[f64; 3]>>,
+}
+
+impl GradientPyramid {
+    fn new(dims: PyramidDims, shaded: bool) -> Self {
+        let levels = if shaded {
+            (0..=dims.l_max)
+                .map(|l| vec![[0.0; 3]; (dims.level_width(l) * dims.level_height(l)) as usize])
+                .collect()
+        } else {
+            Vec::new()
+        };
+        GradientPyramid { dims, levels }
+    }
+
+    fn at(&self, level: u32, k: usize) -> [f64; 3] {
+        self.levels.get(level as usize).map_or([0.0; 3], |g| g[k])
+    }
+
+    /// SYNTHESIZE of level-`level` pixel (x, y) from the next coarser level.
+    fn synthesize(&mut self, level: u32, x: u32, y: u32) {
+        let l = level as usize;
+        if l + 1 >= self.levels.len() {
+            return;
+        }
+        let (finer, coarser) = self.levels.split_at_mut(l + 1);
+        let k = self.dims.index(level, x, y);
+        finer[l][k] = self.dims.synthesize_vector(&coarser[0], level, x, y);
+    }
+
+    /// SAMPLE: the probe's value and distance, its gradient kept when shaded.
+    fn probe(
+        &mut self,
+        probe: &impl AdaptiveProbe,
+        level: u32,
+        x: u32,
+        y: u32,
+        i_slice: u32,
+    ) -> (f64, f64) {
+        let k = self.dims.index(level, x, y);
+        match self.levels.get_mut(level as usize) {
+            Some(g) => {
+                let (value, distance, gradient) = probe.probe_with_gradient(level, x, y, i_slice);
+                g[k] = gradient;
+                (value, distance)
+            }
+            None => probe.probe(level, x, y, i_slice),
+        }
+    }
+}
+
 /// PROJECTVOLUME of Fig. 6 with PROJECTSLICE of Fig. 3 for slices 0..=`last_slice`
 /// (rounded up to a multiple of 2^l_max).
 pub fn project_volume(
@@ -266,8 +373,9 @@ pub fn project_volume(
         .map(|l| vec![0.0; (dims.level_width(l) * dims.level_height(l)) as usize])
         .collect();
     let mut d = s.clone();
+    let mut g = GradientPyramid::new(dims, optics.shaded());
     let n0 = s[0].len();
-    let mut acc = Accumulator::new(n0, optics.maximum_intensity());
+    let mut acc = Accumulator::new(n0, dims.width, optics.maximum_intensity());
     let mut samples = vec![0u64; levels];
     let mut syntheses = vec![0u64; levels];
     for i_slice in 0..=last_slice {
@@ -288,17 +396,19 @@ pub fn project_volume(
                         if let (Some(sp), Some(dp)) = (s_parent, d_parent) {
                             d_l[k] = dims.synthesize(dp, l, x, y);
                             s_l[k] = dims.synthesize(sp, l, x, y);
+                            g.synthesize(l, x, y);
                             syntheses[l as usize] += 1;
                         }
                     }
                     if l == l_max || d_l[k] < (2u64 << l) as f64 {
-                        let (value, distance) = probe.probe(l, x, y, i_slice);
+                        let (value, distance) = g.probe(probe, l, x, y, i_slice);
                         d_l[k] = distance;
                         s_l[k] = value;
                         samples[l as usize] += 1;
                     }
                     if l == 0 && (ls == l_max || d_l[k] < skip_bound) {
-                        acc.accumulate(k, s_l[k], i_slice, i_slice > 0, optics);
+                        let value = (s_l[k], g.at(0, k));
+                        acc.accumulate(k, value, i_slice, i_slice > 0, optics);
                     }
                 }
             }
@@ -636,7 +746,7 @@ pub fn project_volume_tiled(
     let levels = (l_max + 1) as usize;
     let tile = rules.tile.max(m);
     let n0 = (dims.width * dims.height) as usize;
-    let mut acc = Accumulator::new(n0, optics.maximum_intensity());
+    let mut acc = Accumulator::new(n0, dims.width, optics.maximum_intensity());
     let mut samples = vec![0u64; levels];
     let mut syntheses = vec![0u64; levels];
     // Scratch pyramid over the whole image; each tile touches only its window.
@@ -644,6 +754,7 @@ pub fn project_volume_tiled(
         .map(|l| vec![0.0; (dims.level_width(l) * dims.level_height(l)) as usize])
         .collect();
     let mut d = s.clone();
+    let mut g = GradientPyramid::new(dims, optics.shaded());
     // Closed pixels of levels 1..=l_max under early termination (index 0 unused: level 0
     // reads its opacity directly).
     let mut closed: Vec<Vec<bool>> = (0..=l_max)
@@ -710,13 +821,14 @@ pub fn project_volume_tiled(
                             if let (Some(sp), Some(dp)) = (s_parent, d_parent) {
                                 d_l[k] = dims.synthesize(dp, l, x, y);
                                 s_l[k] = dims.synthesize(sp, l, x, y);
+                                g.synthesize(l, x, y);
                                 if own {
                                     syntheses[l as usize] += 1;
                                 }
                             }
                         }
                         if l == l_max || d_l[k] < (2u64 << l) as f64 {
-                            let (value, distance) = probe.probe(l, x, y, i_slice);
+                            let (value, distance) = g.probe(probe, l, x, y, i_slice);
                             d_l[k] = distance;
                             s_l[k] = value;
                             if own {
@@ -724,7 +836,8 @@ pub fn project_volume_tiled(
                             }
                         }
                         if l == 0 && (ls == l_max || d_l[k] < skip_bound) {
-                            acc.accumulate(k, s_l[k], i_slice, !first_value, optics);
+                            let value = (s_l[k], g.at(0, k));
+                            acc.accumulate(k, value, i_slice, !first_value, optics);
                         }
                     }
                 }

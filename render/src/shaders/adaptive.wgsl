@@ -35,6 +35,11 @@ override MIP: bool = false;
 // counter stay those of the full march, with fewer passes through the slice loop, whose
 // barriers and per-pixel checks (not the samples) bound the frame on a CPU rasteriser.
 override SKIP_IDLE_SLICES: bool = true;
+// Shaded DVR: the pyramid carries the field's gradient beside the value (sampled where the
+// value is sampled, synthesised with the same weights where it is synthesised), and each
+// level-0 segment is lit at its back sample's gradient, as the raycaster lights a
+// pre-integrated segment (shading.wgsl); the transcription does the same (SegmentOptics::shade).
+override SHADED: bool = false;
 
 const THREADS: u32 = 64u;
 const MAX_OWNED: u32 = 16u;      // 32² / 64
@@ -84,6 +89,8 @@ var<workgroup> tile_t_exit: atomic<u32>;
 var<workgroup> tile_first_slice: u32;
 var<workgroup> tile_last_slice: u32;
 var<workgroup> pyramid_d: array<f32, PYRAMID_CAP>;
+// SHADED: the gradient (index space, physical units per index step) per pyramid pixel.
+var<workgroup> pyramid_g: array<vec3<f32>, PYRAMID_CAP>;
 // Early termination's closed pixels: one bit per level-0 pixel of the tile (32² / 32 words),
 // and a flag per pixel of levels 1..L_MAX, apron included (an apron pixel never closes).
 var<workgroup> closed_level0: array<atomic<u32>, 32>;
@@ -122,6 +129,8 @@ fn adaptive_hash(level: u32, x: u32, y: u32, slice: u32) -> f32 {
 struct Probe {
     value: f32,
     distance: f32,
+    // SHADED: the field's gradient there (zero where nothing is resident).
+    gradient: vec3<f32>,
     page: u32,
     hit: bool,
 };
@@ -223,12 +232,16 @@ fn probe(level: u32, x: u32, y: u32, slice: u32) -> Probe {
     r.distance = f32(1u << L_MAX);
     r.page = 0u;
     r.hit = false;
+    r.gradient = vec3<f32>(0.0);
     var inside = false;
     if t >= t0 && t <= t1 {
         let loc = locate(o + d * t);
         inside = true;
         if loc.resident {
             r.value = physical(field(loc));
+            if SHADED {
+                r.gradient = field_gradient(loc);
+            }
             r.page = loc.page;
             r.hit = true;
             if ORACLE == 0u {
@@ -258,9 +271,17 @@ fn mark_visible(p: Probe) {
     }
 }
 
-// SYNTHESIZE (Fig. 5) of level-l pixel (gx, gy) from level l+1 in workgroup memory: (s, d).
-// Parents outside the image are clamped to its edge, as in transcription.rs.
-fn synthesize(l: u32, gx: u32, gy: u32, tile_x: u32, tile_y: u32) -> vec2<f32> {
+struct Synthesis {
+    value: f32,
+    distance: f32,
+    // SHADED only.
+    gradient: vec3<f32>,
+};
+
+// SYNTHESIZE (Fig. 5) of level-l pixel (gx, gy) from level l+1 in workgroup memory: s, d (and
+// the gradient when SHADED). Parents outside the image are clamped to its edge, as in
+// transcription.rs.
+fn synthesize(l: u32, gx: u32, gy: u32, tile_x: u32, tile_y: u32) -> Synthesis {
     let pl = l + 1u;
     let pw = i32(A.pyramid.x >> pl);
     let ph = i32(A.pyramid.y >> pl);
@@ -277,13 +298,18 @@ fn synthesize(l: u32, gx: u32, gy: u32, tile_x: u32, tile_y: u32) -> vec2<f32> {
     let wx = array<f32, 2>(0.25 + fx, 0.75 - fx);
     let wy = array<f32, 2>(0.25 + fy, 0.75 - fy);
     var sum = vec2<f32>(0.0);
+    var gradient = vec3<f32>(0.0);
     for (var j = 0u; j < 2u; j++) {
         for (var i = 0u; i < 2u; i++) {
             let k = off + u32(ys[j] * e + xs[i]);
-            sum += wx[i] * wy[j] * vec2<f32>(pyramid_s[k], pyramid_d[k]);
+            let w = wx[i] * wy[j];
+            sum += w * vec2<f32>(pyramid_s[k], pyramid_d[k]);
+            if SHADED {
+                gradient += w * pyramid_g[k];
+            }
         }
     }
-    return sum;
+    return Synthesis(sum.x, sum.y, gradient);
 }
 
 // Early termination's closing step (transcription.rs TileRules::early_termination): level-0
@@ -405,6 +431,7 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
     let inf = bitcast<f32>(0x7f800000u);
     var s0: array<f32, MAX_OWNED>;
     var d0: array<f32, MAX_OWNED>;
+    var g0: array<vec3<f32>, MAX_OWNED>;
     var s_prev: array<f32, MAX_OWNED>;
     var i_prev: array<u32, MAX_OWNED>;
     var acc: array<vec4<f32>, MAX_OWNED>;
@@ -414,6 +441,7 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
         depth[j] = inf;
         s0[j] = 0.0;
         d0[j] = 0.0;
+        g0[j] = vec3<f32>(0.0);
         s_prev[j] = 0.0;
         i_prev[j] = 0u;
     }
@@ -560,8 +588,11 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
                 let is_owned = lx >= 1u && ly >= 1u && lx + 2u <= e && ly + 2u <= e;
                 if l < ls && (ls == L_MAX || pyramid_d[k] < skip_bound) {
                     let syn = synthesize(l, u32(gx), u32(gy), tile_x, tile_y);
-                    pyramid_d[k] = syn.y;
-                    pyramid_s[k] = syn.x;
+                    pyramid_d[k] = syn.distance;
+                    pyramid_s[k] = syn.value;
+                    if SHADED {
+                        pyramid_g[k] = syn.gradient;
+                    }
                     if is_owned {
                         n_synth[l] += 1u;
                     }
@@ -570,6 +601,9 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
                     let p = probe(l, u32(gx), u32(gy), i);
                     pyramid_d[k] = p.distance;
                     pyramid_s[k] = p.value;
+                    if SHADED {
+                        pyramid_g[k] = p.gradient;
+                    }
                     mark_visible(p);
                     if is_owned {
                         n_samples[l] += 1u;
@@ -593,14 +627,16 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
             }
             if 0u < ls && (ls == L_MAX || d0[j] < skip_bound) {
                 let syn = synthesize(0u, gx, gy, tile_x, tile_y);
-                d0[j] = syn.y;
-                s0[j] = syn.x;
+                d0[j] = syn.distance;
+                s0[j] = syn.value;
+                g0[j] = syn.gradient;
                 n_synth[0] += 1u;
             }
             if d0[j] < 2.0 {
                 let p = probe(0u, gx, gy, i);
                 d0[j] = p.distance;
                 s0[j] = p.value;
+                g0[j] = p.gradient;
                 mark_visible(p);
                 n_samples[0] += 1u;
             }
@@ -617,7 +653,12 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
             } else if ls == L_MAX || d0[j] < skip_bound {
                 if i > first_slice {
                     let slices = i - i_prev[j];
-                    let seg = preintegrated_segment(s_prev[j], s0[j], f32(slices) * A.frame.y);
+                    var seg = preintegrated_segment(s_prev[j], s0[j], f32(slices) * A.frame.y);
+                    if SHADED && seg.a > 0.0 {
+                        // Lit at the back sample, as the raycaster's pre-integrated segments.
+                        let ray = pixel_ray(f32(gx), f32(gy));
+                        seg = vec4<f32>(shade_gradient(seg.rgb / seg.a, g0[j], ray.d) * seg.a, seg.a);
+                    }
                     let before = acc[j].a;
                     acc[j] = acc[j] + (1.0 - acc[j].a) * seg;
                     if depth[j] == inf && before < DEPTH_OPACITY && acc[j].a >= DEPTH_OPACITY {

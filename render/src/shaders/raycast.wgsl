@@ -190,25 +190,9 @@ fn skip_exit(o: vec3<f32>, d: vec3<f32>, pg: Page) -> f32 {
     return pg.t_exit;
 }
 
-// Blinn-Phong with a headlight; `d_idx` is the ray direction mapped into index space, so
-// g·d_idx = (A^T g)·d_patient without leaving index space.
+// Blinn-Phong with a headlight at the field's gradient there (shading.wgsl).
 fn shade(color: vec3<f32>, loc: Location, d_idx: vec3<f32>) -> vec3<f32> {
-    let g_idx = field_gradient(loc);
-    let g_patient = g_idx.x * P.a_row0.xyz + g_idx.y * P.a_row1.xyz + g_idx.z * P.a_row2.xyz;
-    let mag = length(g_patient);
-    let w = smoothstep(SHADING_FLAT_BELOW, SHADING_LIT_ABOVE, mag * P.iso.y);
-    var ndl = 1.0;
-    if mag > 0.0 {
-        ndl = min(abs(dot(g_idx, d_idx)) / mag, 1.0);
-    }
-    var spec = 0.0;
-    if mag > 0.0 {
-        spec = pow(ndl, P.shading.w);
-    }
-    let unlit = P.shading.x + P.shading.y;
-    let lit = P.shading.x + P.shading.y * ndl;
-    let gain = unlit + (lit - unlit) * w;
-    return color * gain + vec3<f32>(P.shading.z * spec * w);
+    return shade_gradient(color, field_gradient(loc), d_idx);
 }
 
 // The debug counters (COUNT_SAMPLES): this ray's samples and page-table reads, 64-bit sums.
