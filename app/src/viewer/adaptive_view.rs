@@ -13,6 +13,12 @@
 //! for another key is cancelled, and no oracle is ever applied to a cut or TF it was not built
 //! from. Failures (the pass cannot be created or rendered, the oracle thread panics or cannot
 //! read a brick) fall back to the raycaster's frame with the reason said.
+//!
+//! The pass writes the pick depth (the published frame carries it, so picking works on the
+//! adaptive frame) and visibility words as the raycaster does. Those words are not handed to
+//! the loader: the adaptive frame is drawn only over a cut the raycaster's own feedback has
+//! already settled, and letting the final frame's slightly different visibility move that
+//! cut would restart refinement under it (raycaster, then adaptive, then perhaps again).
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
