@@ -158,11 +158,12 @@ struct Pending {
 }
 
 impl Pending {
-    fn cancel(mut self) {
+    /// Flags the build to stop and hands back its thread. Not joined here: that would hold
+    /// the render thread until block_oracle returns; the thread sees the flag between reads
+    /// and its result goes nowhere.
+    fn cancel(mut self) -> Option<std::thread::JoinHandle<()>> {
         self.cancel.store(true, Ordering::Release);
-        // Detached: joining would hold the render thread until block_oracle returns; the
-        // thread sees the flag between reads and its result goes nowhere.
-        drop(self.thread.take());
+        self.thread.take()
     }
 }
 
@@ -178,12 +179,16 @@ pub struct AdaptiveView {
     /// The key whose build or render failed, and why (no retry loop for the same key).
     failed: Option<(OracleKey, String)>,
     volume: u64,
+    /// Cancelled builds still finishing (joined once done, all of them on drop: no oracle
+    /// thread outlives the session).
+    abandoned: Vec<std::thread::JoinHandle<()>>,
 }
 
 impl Drop for AdaptiveView {
     fn drop(&mut self) {
-        if let Some(p) = self.pending.take() {
-            p.cancel();
+        self.cancel_pending();
+        for thread in self.abandoned.drain(..) {
+            let _ = thread.join();
         }
     }
 }
@@ -199,8 +204,32 @@ impl AdaptiveView {
         self.volume += 1;
         self.applied = None;
         self.failed = None;
-        if let Some(p) = self.pending.take() {
-            p.cancel();
+        self.cancel_pending();
+    }
+
+    /// The pending build delivered: its thread is returning; joined with the abandoned ones.
+    fn finish_pending(&mut self) {
+        if let Some(thread) = self.pending.take().and_then(|mut p| p.thread.take()) {
+            self.abandoned.push(thread);
+        }
+        self.join_finished();
+    }
+
+    fn cancel_pending(&mut self) {
+        if let Some(thread) = self.pending.take().and_then(Pending::cancel) {
+            self.abandoned.push(thread);
+        }
+        self.join_finished();
+    }
+
+    /// Joins the builds that are done, without waiting for the others.
+    fn join_finished(&mut self) {
+        let (done, running): (Vec<_>, Vec<_>) = std::mem::take(&mut self.abandoned)
+            .into_iter()
+            .partition(|t| t.is_finished());
+        self.abandoned = running;
+        for thread in done {
+            let _ = thread.join();
         }
     }
 
@@ -226,9 +255,7 @@ impl AdaptiveView {
             .as_ref()
             .is_some_and(|p| Some(&p.key) != current)
         {
-            if let Some(p) = self.pending.take() {
-                p.cancel();
-            }
+            self.cancel_pending();
         }
     }
 
@@ -327,16 +354,16 @@ impl AdaptiveView {
         };
         match pending.result.try_recv() {
             Ok(Ok(Some(built))) => {
-                self.pending = None;
+                self.finish_pending();
                 Ok(Some(Arc::new(built)))
             }
             Ok(Ok(None)) => {
                 // Cancelled, yet asked for again: build anew.
-                self.pending = None;
+                self.finish_pending();
                 Ok(None)
             }
             Ok(Err(reason)) => {
-                self.pending = None;
+                self.finish_pending();
                 Err(reason)
             }
             Err(crossbeam_channel::TryRecvError::Empty) => Ok(None),

@@ -1217,6 +1217,26 @@ mod tests {
             coarse_facts.samples,
             moved_facts.samples
         );
+
+        // A new transfer function: the oracle is rebuilt for it, never the old TF's applied.
+        let vessels = RenderRequest {
+            transfer_function: TransferFunction::preset("ct-vessels").expect("preset"),
+            ..coarser
+        };
+        assert_ne!(
+            vessels.transfer_function,
+            coarse_facts.oracle.key.transfer_function
+        );
+        session.request(vessels.clone());
+        let vessels_facts = wait_converged(&session, &vessels)
+            .adaptive
+            .clone()
+            .expect("adaptive");
+        assert_eq!(
+            vessels_facts.oracle.key.transfer_function,
+            vessels.transfer_function
+        );
+        assert!(!Arc::ptr_eq(&vessels_facts.oracle, &coarse_facts.oracle));
     }
 
     /// Shaded DVR and MIP: the still frame is the adaptive pass's in those modes too, the
