@@ -160,6 +160,12 @@ impl CpuBrickCache {
         Some(e.brick.clone())
     }
 
+    /// The brick if held, without counting a lookup or refreshing its age (a snapshot for
+    /// another pass, cut_payloads.rs, must not change what the loader keeps).
+    pub fn peek(&self, id: BrickId) -> Option<Brick> {
+        self.entries.get(&id).map(|e| e.brick.clone())
+    }
+
     /// Counts a wanted brick that was not here (the miss side of the hit rate).
     pub fn note_miss(&mut self) {
         self.counters.lookups += 1;

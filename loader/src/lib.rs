@@ -4,6 +4,7 @@
 //! which tests and benches use as the in-core baseline.
 
 pub mod cpu_cache;
+pub mod cut_payloads;
 pub mod cut_selection;
 pub mod cut_worker;
 pub mod error;
@@ -19,6 +20,7 @@ pub mod streaming;
 pub mod thread_cpu;
 pub mod visibility;
 
+pub use cut_payloads::CutPayloads;
 pub use cut_worker::SelectionTiming;
 pub use error::LoaderError;
 pub use fetch_workers::SlowReader;

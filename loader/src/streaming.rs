@@ -22,6 +22,7 @@ use strata_source::{BrickFetcher, FetchOptions, SourceStatus, VolumeSource};
 use strata_storage::{BrickId, Store};
 
 use crate::cpu_cache::CpuBrickCache;
+use crate::cut_payloads::CutPayloads;
 use crate::cut_selection::{Cut, CutLimits, ViewSetup};
 use crate::cut_worker::{
     CutWorker, MipBounds, PageTableKey, ResidencySnapshot, Selected, SelectionJob, SelectionTiming,
@@ -179,6 +180,10 @@ pub struct StreamingVolume {
     /// Why the traversal was chosen when the configuration left it open and the flat table
     /// did not fit.
     traversal_note: Option<String>,
+    /// Incremented by every upload into a slot and every page-table rewrite: equal values mean
+    /// the same bricks in the same slots under the same table (what a pass built from the cut,
+    /// the viewer's adaptive oracle, is valid for).
+    residency_generation: u64,
 }
 
 impl StreamingVolume {
@@ -316,6 +321,7 @@ impl StreamingVolume {
             selections_dropped: 0,
             tf_generation: 0,
             traversal_note,
+            residency_generation: 0,
             config,
         })
     }
@@ -376,6 +382,37 @@ impl StreamingVolume {
     /// The page table of the last frame.
     pub fn page_table(&self) -> &PageTable {
         &self.page_table
+    }
+
+    /// Changes whenever a brick is uploaded or the page table rewritten (see the field).
+    pub fn residency_generation(&self) -> u64 {
+        self.residency_generation
+    }
+
+    /// The payloads of the current cut's resident nodes: a snapshot of the CPU cache's copies
+    /// now, the others read later through the source by [`CutPayloads::read_missing`] (off
+    /// this thread). For a CPU pass over the cut (the viewer's adaptive oracle).
+    pub fn cut_payloads(&self) -> CutPayloads {
+        CutPayloads::snapshot(self.page_table.clone(), &self.cpu, self.source.clone())
+    }
+
+    /// The cut's GPU resources as a scene of `camera` and `settings`, for a pass other than
+    /// the raycaster over the same bricks (the adaptive pass).
+    pub fn scene<'a>(&'a self, camera: &'a Camera, settings: &'a RenderSettings) -> Scene<'a> {
+        Scene {
+            cache: &self.cache,
+            page_table: &self.gpu_page_table,
+            transfer_function: &self.transfer_function,
+            geometry: &self.geometry,
+            mapping: self.mapping,
+            camera,
+            settings,
+        }
+    }
+
+    /// The GPU brick cache (a pass beside the raycaster is created over it).
+    pub fn brick_cache(&self) -> &BrickCache {
+        &self.cache
     }
 
     pub fn last_stats(&self) -> &FrameStats {
@@ -560,6 +597,9 @@ impl StreamingVolume {
         // The selection thread touched this cut's nodes and allocated the uploads' slots on
         // the job's copy of the map, which nothing changed meanwhile (one job in flight).
         self.slots = slots;
+        if !uploads.is_empty() || new_table.is_some() {
+            self.residency_generation += 1;
+        }
         for (id, slot) in uploads {
             let brick = self.cpu.get_for_use(id).ok_or_else(|| {
                 LoaderError::Inconsistent(format!(

@@ -889,6 +889,9 @@ impl StrataApp {
                 {
                     ui.label(stats.convergence_status());
                 }
+                if let Some(line) = &status.adaptive {
+                    ui.label(line);
+                }
                 if let Some(line) = status.source_line() {
                     // A remote store that cannot be reached: the view keeps what it has.
                     ui.colored_label(Color32::YELLOW, line);
@@ -1172,6 +1175,8 @@ mod tests {
             preset: "ct-lung".into(),
             target_fps: 24.0,
             show_identifiers: true,
+            adaptive_sampling: true,
+            adaptive_epsilon: 0.004,
             ..Preferences::default()
         };
         p.focused = ViewSlot::Slice(SliceView::Sagittal);
@@ -1186,6 +1191,11 @@ mod tests {
         assert_eq!(old.layout, Layout::Single);
         assert_eq!(old.preset, "mr-default");
         assert_eq!(old.target_fps, Preferences::default().target_fps);
+        assert!(!old.adaptive_sampling, "adaptive sampling is opt-in");
+        assert_eq!(
+            old.adaptive_epsilon,
+            crate::viewer::adaptive_view::DEFAULT_EPSILON
+        );
         assert!(
             !old.show_identifiers,
             "identifiers stay hidden unless the user showed them"

@@ -11,6 +11,7 @@
 //! (`volume_session`), the slice reader (`slices`) and store preparation (`jobs`) do all GPU
 //! work, disk reads and imports, and wake the UI when they have something new.
 
+pub mod adaptive_view;
 pub mod app;
 pub mod colour_maps;
 pub mod dialogs;

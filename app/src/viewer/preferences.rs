@@ -88,6 +88,10 @@ pub struct Preferences {
     pub smooth_transitions: bool,
     /// The raycaster's traversal (flat table or the cut's octree).
     pub traversal: TraversalChoice,
+    /// The still view's final frame by the adaptive pass (adaptive_view.rs; DVR and MIP).
+    pub adaptive_sampling: bool,
+    /// The adaptive oracle's ε: the opacity change per slice a 2³ block may have.
+    pub adaptive_epsilon: f64,
     pub orthographic: bool,
     pub target_fps_enabled: bool,
     pub target_fps: f64,
@@ -121,6 +125,8 @@ impl Default for Preferences {
             shading: true,
             smooth_transitions: true,
             traversal: TraversalChoice::Automatic,
+            adaptive_sampling: false,
+            adaptive_epsilon: super::adaptive_view::DEFAULT_EPSILON,
             orthographic: false,
             target_fps_enabled: true,
             target_fps: 10.0,

@@ -372,6 +372,8 @@ mod tests {
         };
         let preferences = Preferences {
             preset: "ct-lung".into(),
+            adaptive_sampling: true,
+            adaptive_epsilon: 0.02,
             ..Preferences::default()
         };
         let saved = SavedSession::capture(&location, &preferences, &edited, &orbit);
@@ -379,6 +381,9 @@ mod tests {
         SavedSession::write(&saved.to_json(), &path).expect("write");
         let read = SavedSession::read(&path).expect("read");
         assert_eq!(read, saved);
+        // The restarted window takes its preferences from here (viewer/mod.rs).
+        assert!(read.preferences.adaptive_sampling);
+        assert_eq!(read.preferences.adaptive_epsilon, 0.02);
 
         let mut fresh = scene();
         let mut fresh_orbit = OrbitCamera::default();

@@ -1870,3 +1870,74 @@ fn a_restarted_viewer_opens_its_volume_with_the_saved_session() {
     assert!(restored.clip.enabled);
     assert_eq!(restored.transfer_function, edited.transfer_function);
 }
+
+/// The rendering panel's adaptive sampling (issue 15): the checkbox shows the ε slider, both
+/// reach the render request, the still view's final frame is then the adaptive pass's (the
+/// status line says so), both survive the preferences' round trip, and in iso mode the
+/// checkbox is disabled.
+#[test]
+fn the_adaptive_sampling_checkbox_and_epsilon_slider_reach_the_frame_and_persist() {
+    use super::panels::rendering::{ADAPTIVE_LABEL, EPSILON_LABEL};
+    use egui_kittest::kittest::NodeT;
+    let dir = tempfile::tempdir().expect("tempdir");
+    let store = phantom_store(dir.path());
+    let mut options = ViewerOptions::new(VolumeSource::Path(store.clone()));
+    options.import_folder = dir.path().join("imported");
+    let preferences = Preferences {
+        layout: Layout::Single,
+        show_side_panel: true,
+        ..Preferences::default()
+    };
+    // Tall, so the rendering panel is on screen below the others.
+    let mut h = harness_sized(options, preferences, Vec2::new(700.0, 1600.0));
+    wait_for_settled_frame(&mut h, "the first converged frame", 0);
+    assert!(
+        h.query_by_label(EPSILON_LABEL).is_none(),
+        "no ε slider while adaptive sampling is off"
+    );
+    assert_eq!(
+        app(&h).volume_request().and_then(|r| r.adaptive_epsilon),
+        None
+    );
+
+    h.get_by_label(ADAPTIVE_LABEL).click_accesskit();
+    h.step();
+    h.step();
+    assert!(app(&h).preferences.adaptive_sampling);
+    h.get_by_role_and_label(egui::accesskit::Role::Slider, EPSILON_LABEL)
+        .set_value_accesskit(0.02);
+    h.step();
+    h.step();
+    let epsilon = app(&h).preferences.adaptive_epsilon;
+    assert!((epsilon - 0.02).abs() < 1e-9, "ε {epsilon}");
+    step_until(&mut h, "the request with ε 0.02", |a| {
+        a.volume_request()
+            .is_some_and(|r| r.adaptive_epsilon == Some(epsilon))
+    });
+    let frame = step_until_some(&mut h, "the adaptive final frame", |a| {
+        settled_frame(a).filter(|f| f.adaptive.is_some())
+    });
+    assert_eq!(frame.request.adaptive_epsilon, Some(epsilon));
+    step_until(&mut h, "the adaptive status line", |a| {
+        a.volume_status()
+            .and_then(|s| s.adaptive)
+            .is_some_and(|l| l.starts_with("adaptive: ") && l.ends_with("ε 0.02"))
+    });
+
+    // Persisted with the other preferences (eframe's storage and the session autosave hold
+    // them as this JSON).
+    let text = serde_json::to_string(&app(&h).preferences).expect("serialise");
+    let read: Preferences = serde_json::from_str(&text).expect("parse");
+    assert!(read.adaptive_sampling);
+    assert_eq!(read.adaptive_epsilon, epsilon);
+    assert_eq!(read, app(&h).preferences);
+
+    // Isosurface: no adaptive pass, the checkbox is disabled (its tooltip says why).
+    h.get_by_label("Isosurface").click_accesskit();
+    h.step();
+    h.step();
+    assert!(h
+        .get_by_label(ADAPTIVE_LABEL)
+        .accesskit_node()
+        .is_disabled());
+}

@@ -433,6 +433,7 @@ impl View3d {
             interacting,
             overlay,
             traversal: prefs.traversal.traversal(),
+            adaptive_epsilon: prefs.adaptive_sampling.then_some(prefs.adaptive_epsilon),
         });
 
         if let Some(frame) = data.session.latest_frame() {

@@ -1,8 +1,9 @@
-//! The rendering panel: mode, iso value, shading, smooth transitions, traversal, slice planes in 3D,
-//! projection, crop box and clip plane.
+//! The rendering panel: mode, iso value, shading, smooth transitions, traversal, adaptive
+//! sampling, slice planes in 3D, projection, crop box and clip plane.
 
 use strata_render::{CropBox, RenderMode};
 
+use crate::viewer::adaptive_view::{format_epsilon, EPSILON_RANGE};
 use crate::viewer::preferences::{Preferences, TraversalChoice};
 use crate::viewer::scene::{Scene, VolumeData};
 use crate::viewer::view3d::View3d;
@@ -50,6 +51,7 @@ pub fn ui(
              the octree of the loaded bricks (memory grows with what is loaded). Automatic: \
              flat unless it exceeds the GPU's limit. A change reloads the volume.",
         );
+    adaptive_sampling(ui, prefs);
     ui.checkbox(&mut prefs.show_planes_in_3d, "Slice planes in the 3D view");
     if ui
         .checkbox(&mut prefs.orthographic, "Orthographic projection")
@@ -96,4 +98,45 @@ pub fn ui(
         scene.crop = CropBox::default();
         scene.clip.enabled = false;
     }
+}
+
+/// The checkbox label (the UI tests find it by this text).
+pub const ADAPTIVE_LABEL: &str = "Adaptive sampling (still view)";
+/// The ε slider's accessible name.
+pub const EPSILON_LABEL: &str = "Adaptive ε";
+
+/// Adaptive sampling of the still view and its oracle's ε (logarithmic slider).
+fn adaptive_sampling(ui: &mut egui::Ui, prefs: &mut Preferences) {
+    let iso = prefs.mode == RenderMode::Isosurface;
+    ui.add_enabled_ui(!iso, |ui| {
+        ui.checkbox(&mut prefs.adaptive_sampling, ADAPTIVE_LABEL)
+            .on_hover_text(
+                "When the view is still and loaded, draw the final frame by adaptive sampling \
+                 (samples on view-aligned slices, skipped where the data are smooth and \
+                 synthesised from coarser ones): far fewer samples for nearly the same image. \
+                 Moving the camera draws with the raycaster as usual.",
+            )
+            .on_disabled_hover_text(
+                "Adaptive sampling draws DVR and MIP; the isosurface's hit search is the \
+                 raycaster's own.",
+            );
+        if prefs.adaptive_sampling {
+            let (lo, hi) = EPSILON_RANGE;
+            if !prefs.adaptive_epsilon.is_finite() {
+                prefs.adaptive_epsilon = crate::viewer::adaptive_view::DEFAULT_EPSILON;
+            }
+            ui.add(
+                egui::Slider::new(&mut prefs.adaptive_epsilon, lo..=hi)
+                    .logarithmic(true)
+                    .custom_formatter(|v, _| format_epsilon(v))
+                    .text("ε"),
+            )
+            .on_hover_text(
+                "The oracle's ε: the opacity change per slice a 2³ block may have before it is \
+                 sampled at every slice. Smaller is closer to the raycaster and slower; larger \
+                 skips more and may step over thin features.",
+            )
+            .accessible_name(EPSILON_LABEL);
+        }
+    });
 }
