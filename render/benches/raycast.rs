@@ -520,14 +520,24 @@ fn main() {
         )
         .expect("reference");
         let reference_s = t.elapsed().as_secs_f64();
+        // Strata's own converged image (the GPU at 1/16 voxel), the other yardstick: the f64
+        // reference shares Strata's optical model, which a peer does not, so each renderer is
+        // also scored against its own converged image (bench/peers/vtk_peer_bench.py does the
+        // same for VTK at sample distance 1/16).
+        let converged = raycaster
+            .render_blocking(&ctx, &drawn.scene(&camera, &settings_at(1.0 / 16.0)))
+            .expect("render")
+            .rgba;
         for &step in &steps {
             let settings = settings_at(step);
             let scene = drawn.scene(&camera, &settings);
             let gpu = raycaster.render_blocking(&ctx, &scene).expect("render");
             let c = compare_rgba8(&gpu.rgba, &reference.rgba).expect("compare");
+            let own = compare_rgba8(&gpu.rgba, &converged).expect("compare");
             println!(
-                "{name} step {step}: PSNR {:.1} dB, RMSE {:.3}, max abs {} (reference {reference_s:.1} s)",
-                c.psnr_db, c.rmse, c.max_abs_error,
+                "{name} step {step}: PSNR {:.1} dB, RMSE {:.3}, max abs {} (reference {reference_s:.1} s); \
+                 against its own step 1/16: {:.1} dB",
+                c.psnr_db, c.rmse, c.max_abs_error, own.psnr_db,
             );
             // STRATA_BENCH_SAVE=DIR keeps the images, so bench/peers/vtk_peer_bench.py
             // --reference-dir DIR can score VTK's frame of the same view against this reference.
@@ -537,6 +547,7 @@ fn main() {
                 let mut images = vec![(format!("gpu-step{step}"), &gpu.rgba)];
                 if step == steps[0] {
                     images.push(("ref".to_string(), &reference.rgba));
+                    images.push(("gpu-converged".to_string(), &converged));
                 }
                 for (kind, rgba) in images {
                     let path = dir.join(format!("strata-bench-{name}-{kind}.ppm"));
