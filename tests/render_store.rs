@@ -148,7 +148,6 @@ fn chris_t1_adaptive_frames_are_close_to_the_full_rate_reference() {
     use strata_loader::store_volume::{load_uniform_cut, GpuCut};
     use strata_render::adaptive::{block_oracle, AdaptiveConfig, AdaptivePass, OracleKind};
     use strata_render::reference::{render_reference, ReferenceOptions, ReferenceScene};
-    use strata_render::Scene;
     let Some(data) = shared_data("chris_t1_adaptive_frames_are_close_to_the_full_rate_reference")
     else {
         return;
@@ -197,15 +196,7 @@ fn chris_t1_adaptive_frames_are_close_to_the_full_rate_reference() {
                 s.quality,
             ),
         );
-        let scene = Scene {
-            cache: &cut.cache,
-            page_table: &cut.page_table,
-            transfer_function: &cut.transfer_function,
-            geometry: &geometry,
-            mapping,
-            camera: &camera,
-            settings: &s,
-        };
+        let scene = cut.scene(&geometry, mapping, &camera, &s);
         let adaptive = pass.render_blocking(&ctx, &scene, &config).unwrap();
         let every_slice = pass
             .render_blocking(

@@ -489,7 +489,8 @@ fn resolved_scope(scope: wgpu::ErrorScopeGuard) -> Option<wgpu::Error> {
     }
 }
 
-fn panic_message(panic: &(dyn std::any::Any + Send)) -> String {
+/// A caught panic's message (a `String` or `&str` payload), for status lines.
+pub(crate) fn panic_message(panic: &(dyn std::any::Any + Send)) -> String {
     panic
         .downcast_ref::<String>()
         .cloned()

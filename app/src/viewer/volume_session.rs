@@ -246,11 +246,7 @@ impl VolumeSession {
                     Ok(Err(e)) => Some(format!("{e:#}")),
                     Err(panic) => Some(format!(
                         "the volume renderer stopped: {}",
-                        panic
-                            .downcast_ref::<String>()
-                            .map(String::as_str)
-                            .or_else(|| panic.downcast_ref::<&str>().copied())
-                            .unwrap_or("panic")
+                        super::adaptive_view::panic_message(panic.as_ref())
                     )),
                 };
                 if let Some(message) = message {
