@@ -24,8 +24,8 @@ use rustc_hash::{FxHashMap as HashMap, FxHashSet as HashSet};
 use strata_render::gpu_octree::leaf_value_max;
 use strata_render::octree_cut::CutLeaf as TableLeaf;
 use strata_render::{
-    Camera, PageEntry, PageTable, PageTableLayout, PreparedPageTable, RenderMode, RenderSettings,
-    ValueMapping,
+    Camera, IndexTable, PageEntry, PageLookup, PageTable, PageTableLayout, PreparedPageTable,
+    RenderMode, RenderSettings, SparsePageTable, Traversal, ValueMapping,
 };
 use strata_storage::BrickId;
 
@@ -130,7 +130,7 @@ pub(crate) struct SelectionJob {
     pub incumbents: Arc<HashSet<BrickId>>,
     pub settled: Option<SettledCut>,
     pub page_table_key: Arc<PageTableKey>,
-    pub page_table: Arc<PageTable>,
+    pub page_table: Arc<IndexTable>,
     pub layout: PageTableLayout,
     pub mapping: ValueMapping,
 }
@@ -247,20 +247,32 @@ fn select(octree: &OctreeRanges, job: SelectionJob) -> Result<Selected, LoaderEr
     let (page_table_key, new_table) = if key == *page_table_key {
         (page_table_key, None)
     } else {
-        let table = build_page_table(octree, &slots, &cut, &emptiness)?;
+        let table = build_page_table(octree, &slots, &cut, &emptiness, layout.traversal)?;
         let new_table = if table == *page_table {
             None
         } else {
-            // The octree is built from the cut's leaves (O(cut)), its bounds per leaf.
-            let leaves = table_leaves(octree, &cut, &table);
-            let prepared = PreparedPageTable::with_leaves(layout, table, leaves)?;
-            let mip_bounds = match prepared.octree_leaves() {
-                Some(leaves) => {
-                    MipBounds::PerLeaf(leaf_value_max(prepared.table(), leaves, mapping, |l, n| {
-                        octree.own_range(BrickId::new(l, n)).map(|r| (r.min, r.max))
-                    }))
+            let prepared = match table {
+                // The octree is built from the cut's leaves (O(cut)), its bounds per leaf.
+                IndexTable::Sparse(table) => PreparedPageTable::sparse(layout, table)?,
+                IndexTable::Dense(table) => {
+                    let leaves = table_leaves(octree, &cut, &table);
+                    PreparedPageTable::with_leaves(layout, table, leaves)?
                 }
-                None => MipBounds::PerPage(mip_bounds(octree, prepared.table(), mapping)),
+            };
+            let range_of =
+                |l: u8, n: [u32; 3]| octree.own_range(BrickId::new(l, n)).map(|r| (r.min, r.max));
+            let mip_bounds = match (prepared.octree_leaves(), prepared.table()) {
+                (Some(leaves), table) => {
+                    MipBounds::PerLeaf(leaf_value_max(table, leaves, mapping, range_of))
+                }
+                (None, IndexTable::Dense(table)) => {
+                    MipBounds::PerPage(mip_bounds(octree, table, mapping))
+                }
+                (None, IndexTable::Sparse(_)) => {
+                    return Err(LoaderError::Inconsistent(
+                        "a table kept per leaf was prepared without its octree".into(),
+                    ))
+                }
             };
             Some(NewTable {
                 prepared,
@@ -308,68 +320,137 @@ fn table_leaves(octree: &OctreeRanges, cut: &Cut, table: &PageTable) -> Vec<Tabl
 }
 
 /// Page entries of a cut: data leaves point at their slot; transparent, empty and culled
-/// leaves are not resident (rays skip them); a failed or pending leaf shows its parent.
+/// leaves are not resident (rays skip them); a failed or pending leaf shows its parent. Per
+/// page cell for the flat traversal, per leaf for the octree (nothing there is O(cells)).
 fn build_page_table(
     octree: &OctreeRanges,
     slots: &GpuSlots,
     cut: &Cut,
     emptiness: &Emptiness,
-) -> Result<PageTable, LoaderError> {
-    let mut table = PageTable::new(octree.page_dims());
-    // Leaves without data are "not resident", never "empty" with a borrowed slot: the
-    // raycaster may still sample a page flagged empty (a coarse step landing in it), which is
-    // harmless only when the slot holds that node's own transparent voxels.
-    let skipped = |_level: u8| PageEntry::NOT_RESIDENT;
-    let own_empty = |id: BrickId| octree.own_range(id).is_some_and(|r| emptiness.is_empty(r));
-    let mut memo: HashMap<BrickId, PageEntry> = HashMap::default();
-    for leaf in &cut.leaves {
-        let entry = match leaf.kind {
-            LeafKind::Data => {
-                let slot = slots.slot_of(leaf.id).ok_or_else(|| {
-                    LoaderError::Inconsistent(format!("data leaf {:?} has no GPU slot", leaf.id))
-                })?;
-                PageEntry {
-                    slot_in_cache: slot,
-                    level: leaf.id.level,
-                    empty: own_empty(leaf.id),
-                    resident: true,
-                }
-            }
-            LeafKind::Transparent | LeafKind::Empty => skipped(leaf.id.level),
-            LeafKind::Culled => PageEntry::NOT_RESIDENT,
-            LeafKind::Failed | LeafKind::Pending => {
-                let parent = leaf.id.parent();
-                *memo
-                    .entry(parent)
-                    .or_insert_with(|| match slots.slot_of(parent) {
-                        Some(slot) if !own_empty(parent) => PageEntry::resident(slot, parent.level),
-                        _ => skipped(parent.level),
-                    })
-            }
-        };
-        let (lo, hi) = octree.page_span(leaf.id);
-        for z in lo[2]..hi[2] {
-            for y in lo[1]..hi[1] {
-                for x in lo[0]..hi[0] {
-                    table.set([x, y, z], entry);
-                }
-            }
-        }
-    }
-    // Rays skip an empty entry, so it must be empty over every value sampled there, which
-    // includes the coarser neighbours' field blended into its transition bands.
-    let sampled = table.sampled_ranges(|level, node| {
+    traversal: Traversal,
+) -> Result<IndexTable, LoaderError> {
+    let leaves = leaf_entries(octree, slots, cut, emptiness)?;
+    let range_of = |level: u8, node: [u32; 3]| {
         octree
             .own_range(BrickId::new(level, node))
             .map(|r| (r.min, r.max))
-    });
-    for (entry, range) in table.entries.iter_mut().zip(sampled) {
-        if entry.resident && entry.empty {
-            entry.empty =
-                range.is_some_and(|(min, max)| emptiness.is_empty(StoredRange { min, max }));
+    };
+    let is_empty = |range: Option<(u16, u16)>| {
+        range.is_some_and(|(min, max)| emptiness.is_empty(StoredRange { min, max }))
+    };
+    match traversal {
+        Traversal::Octree => {
+            let table = SparsePageTable::from_leaves(octree.page_dims(), leaves);
+            // Rays skip an empty entry, so it must be empty over every value sampled there,
+            // which includes the coarser neighbours' field blended into its transition bands.
+            let mut memo: HashMap<(u8, [u32; 3]), bool> = HashMap::default();
+            let refined: Vec<TableLeaf> = table
+                .leaves()
+                .iter()
+                .map(|leaf| {
+                    let mut leaf = *leaf;
+                    let e = leaf.entry;
+                    if e.resident && e.empty {
+                        let node = PageTable::node_of(leaf.origin, e.level);
+                        leaf.entry.empty = *memo.entry((e.level, node)).or_insert_with(|| {
+                            let (_, coarser) = table.coarser_neighbours(e.level, node);
+                            let hull =
+                                coarser
+                                    .iter()
+                                    .try_fold(range_of(e.level, node), |h, &(l, n)| {
+                                        let (h, (lo, hi)) = (h?, range_of(l, n)?);
+                                        Some(Some((h.0.min(lo), h.1.max(hi))))
+                                    });
+                            is_empty(hull.flatten())
+                        });
+                    }
+                    leaf
+                })
+                .collect();
+            Ok(IndexTable::Sparse(SparsePageTable::from_leaves(
+                octree.page_dims(),
+                refined,
+            )))
+        }
+        Traversal::Flat => {
+            let mut table = PageTable::new(octree.page_dims());
+            for leaf in &leaves {
+                let (lo, hi) =
+                    octree.page_span(BrickId::new(leaf.size, leaf.origin.map(|c| c >> leaf.size)));
+                for z in lo[2]..hi[2] {
+                    for y in lo[1]..hi[1] {
+                        for x in lo[0]..hi[0] {
+                            table.set([x, y, z], leaf.entry);
+                        }
+                    }
+                }
+            }
+            // As above, per page cell.
+            let sampled = table.sampled_ranges(range_of);
+            for (entry, range) in table.entries.iter_mut().zip(sampled) {
+                if entry.resident && entry.empty {
+                    entry.empty = is_empty(range);
+                }
+            }
+            Ok(IndexTable::Dense(table))
         }
     }
-    Ok(table)
+}
+
+/// Each leaf of the cut as its block of page cells with the entry its cells hold, before the
+/// empty flags are refined by the neighbours (see [`build_page_table`]).
+fn leaf_entries(
+    octree: &OctreeRanges,
+    slots: &GpuSlots,
+    cut: &Cut,
+    emptiness: &Emptiness,
+) -> Result<Vec<TableLeaf>, LoaderError> {
+    // Leaves without data are "not resident", never "empty" with a borrowed slot: the
+    // raycaster may still sample a page flagged empty (a coarse step landing in it), which is
+    // harmless only when the slot holds that node's own transparent voxels.
+    let own_empty = |id: BrickId| octree.own_range(id).is_some_and(|r| emptiness.is_empty(r));
+    let mut memo: HashMap<BrickId, PageEntry> = HashMap::default();
+    cut.leaves
+        .iter()
+        .map(|leaf| {
+            let entry = match leaf.kind {
+                LeafKind::Data => {
+                    let slot = slots.slot_of(leaf.id).ok_or_else(|| {
+                        LoaderError::Inconsistent(format!(
+                            "data leaf {:?} has no GPU slot",
+                            leaf.id
+                        ))
+                    })?;
+                    PageEntry {
+                        slot_in_cache: slot,
+                        level: leaf.id.level,
+                        empty: own_empty(leaf.id),
+                        resident: true,
+                    }
+                }
+                LeafKind::Transparent | LeafKind::Empty | LeafKind::Culled => {
+                    PageEntry::NOT_RESIDENT
+                }
+                LeafKind::Failed | LeafKind::Pending => {
+                    let parent = leaf.id.parent();
+                    *memo
+                        .entry(parent)
+                        .or_insert_with(|| match slots.slot_of(parent) {
+                            Some(slot) if !own_empty(parent) => {
+                                PageEntry::resident(slot, parent.level)
+                            }
+                            _ => PageEntry::NOT_RESIDENT,
+                        })
+                }
+            };
+            let (lo, _) = octree.page_span(leaf.id);
+            Ok(TableLeaf {
+                origin: lo,
+                size: leaf.id.level,
+                entry,
+            })
+        })
+        .collect()
 }
 
 /// The selection thread: one job in flight at a time.

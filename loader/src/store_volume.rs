@@ -5,7 +5,7 @@ use std::collections::HashMap;
 
 use rayon::prelude::*;
 use strata_render::{
-    BrickCache, BrickSource, PageEntry, PageTable, TransferFunctionTable, ValueMapping,
+    BrickCache, BrickSource, IndexTable, PageEntry, PageTable, TransferFunctionTable, ValueMapping,
     VolumeGeometry,
 };
 use strata_source::{SourceError, VolumeSource};
@@ -258,7 +258,9 @@ impl GpuCut {
 /// The same field as `table` with only its sampled entries (resident, not empty) and slots
 /// renumbered densely: what `ResidentBricks::load` + `GpuCut::upload` need to render a
 /// streamed cut in core. Skipped entries stay skipped (not resident), so nothing else loads.
-pub fn sampled_entries_only(table: &PageTable) -> PageTable {
+pub fn sampled_entries_only(table: &IndexTable) -> PageTable {
+    // Per page cell: the in-core render this feeds is per page cell too.
+    let table = table.to_page_table();
     let mut out = PageTable::new(table.page_dims);
     let mut slots: HashMap<(u8, [u32; 3]), u32> = HashMap::new();
     for (i, e) in table.entries.iter().enumerate() {

@@ -15,8 +15,9 @@ use std::time::Instant;
 
 use strata_render::{
     BrickCache, CacheConfig, Camera, FrameReadback, GpuContext, GpuPageTable, GpuTransferFunction,
-    PageEntry, PageTable, Raycaster, RenderMode, RenderSettings, Scene, TransferFunction,
-    TransferFunctionTable, Traversal, ValueMapping, VolumeGeometry, BRICK_PAYLOAD_VOXELS,
+    IndexTable, PageEntry, PageTable, PreparedPageTable, Raycaster, RenderMode, RenderSettings,
+    Scene, SparsePageTable, TransferFunction, TransferFunctionTable, Traversal, ValueMapping,
+    VolumeGeometry, BRICK_PAYLOAD_VOXELS,
 };
 use strata_source::{BrickFetcher, FetchOptions, SourceStatus, VolumeSource};
 use strata_storage::{BrickId, Store};
@@ -138,8 +139,9 @@ pub struct StreamingVolume {
     gpu_page_table: GpuPageTable,
     transfer_function: GpuTransferFunction,
     raycaster: Raycaster,
-    /// The table the GPU holds (shared with the selection thread's jobs).
-    page_table: Arc<PageTable>,
+    /// The table the GPU holds (shared with the selection thread's jobs): per page cell with
+    /// the flat traversal, per leaf with the octree (O(cut): see sparse_page_table.rs).
+    page_table: Arc<IndexTable>,
     slots: GpuSlots,
     cpu: CpuBrickCache,
     workers: Box<dyn BrickFetcher>,
@@ -236,10 +238,6 @@ impl StreamingVolume {
             .ok_or_else(|| LoaderError::Inconsistent("no slot for the root".into()))?;
         cache.upload_brick(&ctx.queue, root_slot, &root_brick)?;
         let page_dims = geometry.page_dims();
-        let mut page_table = PageTable::new(page_dims);
-        page_table
-            .entries
-            .fill(PageEntry::resident(root_slot, root.level));
         let (traversal, traversal_note) = choose_traversal(ctx, page_dims, &config)?;
         let gpu_page_table = GpuPageTable::with_traversal_limited(
             &ctx.device,
@@ -248,17 +246,19 @@ impl StreamingVolume {
             traversal,
             config.flat_table_limit_bytes,
         )?;
-        // The root alone: one leaf for the octree, whatever the page grid's size.
-        let root_leaf = strata_render::octree_cut::CutLeaf {
-            origin: [0; 3],
-            size: root.level,
-            entry: PageEntry::resident(root_slot, root.level),
+        // The root alone: every page cell shows it.
+        let root_entry = PageEntry::resident(root_slot, root.level);
+        let prepared = match traversal {
+            Traversal::Flat => {
+                let mut page_table = PageTable::new(page_dims);
+                page_table.entries.fill(root_entry);
+                PreparedPageTable::new(gpu_page_table.layout(), page_table)?
+            }
+            Traversal::Octree => PreparedPageTable::sparse(
+                gpu_page_table.layout(),
+                SparsePageTable::uniform(page_dims, root_entry),
+            )?,
         };
-        let prepared = strata_render::PreparedPageTable::with_leaves(
-            gpu_page_table.layout(),
-            page_table,
-            vec![root_leaf],
-        )?;
         gpu_page_table.write_prepared(&ctx.queue, &prepared)?;
         let page_table = Arc::new(prepared.into_table());
         let transfer_function = GpuTransferFunction::new(&ctx.device, &ctx.queue, &tf_table);
@@ -277,10 +277,10 @@ impl StreamingVolume {
                 config.bricks_in_transit,
             )?),
         };
-        let visibility = Arc::new(PageVisibility::new(
-            &octree,
-            config.visibility_memory_frames,
-        ));
+        let visibility = Arc::new(match traversal {
+            Traversal::Flat => PageVisibility::new(&octree, config.visibility_memory_frames),
+            Traversal::Octree => PageVisibility::per_leaf(&octree, config.visibility_memory_frames),
+        });
         let predictor = CutPredictor::start(octree.clone())?;
         let selector = CutWorker::start(octree.clone())?;
         Ok(StreamingVolume {
@@ -379,9 +379,16 @@ impl StreamingVolume {
         Ok(())
     }
 
-    /// The page table of the last frame.
-    pub fn page_table(&self) -> &PageTable {
+    /// The page table of the last frame: dense with the flat traversal, per leaf with the
+    /// octree ([`IndexTable::to_page_table`] paints it per page cell, for small grids).
+    pub fn page_table(&self) -> &IndexTable {
         &self.page_table
+    }
+
+    /// CPU bytes of the loader's index: the page table as last applied and the visibility
+    /// marks (per page cell with the flat traversal, O(cut) with the octree).
+    pub fn cpu_index_bytes(&self) -> usize {
+        self.page_table.cpu_bytes() + self.visibility.memory_bytes()
     }
 
     /// Changes whenever a brick is uploaded or the page table rewritten (see the field).
@@ -393,7 +400,12 @@ impl StreamingVolume {
     /// now, the others read later through the source by [`CutPayloads::read_missing`] (off
     /// this thread). For a CPU pass over the cut (the viewer's adaptive oracle).
     pub fn cut_payloads(&self) -> CutPayloads {
-        CutPayloads::snapshot(self.page_table.clone(), &self.cpu, self.source.clone())
+        // The adaptive pass reads the flat table (the viewer does not ask with the octree).
+        CutPayloads::snapshot(
+            Arc::new(self.page_table.to_page_table()),
+            &self.cpu,
+            self.source.clone(),
+        )
     }
 
     /// The cut's GPU resources as a scene of `camera` and `settings`, for a pass other than
@@ -438,7 +450,7 @@ impl StreamingVolume {
         let fetched = self.take_fetched();
         if self.config.visibility_feedback {
             if let Some(v) = self.raycaster.try_take_visibility(ctx) {
-                Arc::make_mut(&mut self.visibility).record(v.frame_number, &v.visibility);
+                Arc::make_mut(&mut self.visibility).record_frame(&v);
             }
         }
         let inputs = ViewInputs {
@@ -716,19 +728,13 @@ impl StreamingVolume {
     /// Checks that every sampled page entry points at a slot holding the node it names
     /// (for tests: a broken slot map shows up as wrong voxels, not as an error).
     pub fn check_slot_map(&self) -> Result<(), String> {
-        for (i, e) in self.page_table.entries.iter().enumerate() {
-            if e.resident && !e.empty {
-                let node = BrickId::new(
-                    e.level,
-                    PageTable::node_of(self.page_table.page_of_linear(i), e.level),
-                );
-                if self.slots.slot_of(node) != Some(e.slot_in_cache) {
-                    return Err(format!(
-                        "page {i} names {node:?} in slot {}, slot map says {:?}",
-                        e.slot_in_cache,
-                        self.slots.slot_of(node)
-                    ));
-                }
+        for (level, coords, slot) in self.page_table.resident_nodes() {
+            let node = BrickId::new(level, coords);
+            if self.slots.slot_of(node) != Some(slot) {
+                return Err(format!(
+                    "the table names {node:?} in slot {slot}, slot map says {:?}",
+                    self.slots.slot_of(node)
+                ));
             }
         }
         Ok(())
@@ -761,17 +767,22 @@ impl StreamingVolume {
         ctx: &GpuContext,
         store: &dyn VolumeSource,
     ) -> Result<(), LoaderError> {
-        for (i, e) in self.page_table.entries.iter().enumerate() {
-            if e.resident && !e.empty {
-                let node = BrickId::new(
-                    e.level,
-                    PageTable::node_of(self.page_table.page_of_linear(i), e.level),
-                );
-                self.cache
-                    .upload_brick(&ctx.queue, e.slot_in_cache, &store.read_brick(node)?)?;
-            }
+        for (level, coords, slot) in self.page_table.resident_nodes() {
+            self.cache.upload_brick(
+                &ctx.queue,
+                slot,
+                &store.read_brick(BrickId::new(level, coords))?,
+            )?;
         }
-        self.gpu_page_table.update(&ctx.queue, &self.page_table)?;
+        let prepared = match &*self.page_table {
+            IndexTable::Dense(t) => {
+                PreparedPageTable::new(self.gpu_page_table.layout(), t.clone())?
+            }
+            IndexTable::Sparse(t) => {
+                PreparedPageTable::sparse(self.gpu_page_table.layout(), t.clone())?
+            }
+        };
+        self.gpu_page_table.write_prepared(&ctx.queue, &prepared)?;
         Ok(())
     }
 

@@ -4,29 +4,61 @@
 //! pages is) and refines only visible nodes. A page stays visible for a few feedback frames so
 //! one noisy frame does not make the cut flicker; after that, invisible nodes age out.
 //!
-//! Marks are per level-0 page, not per node, so a frame rendered with an older cut still says
-//! the right thing about the current one.
+//! Marks are per region of page cells, not per node, so a frame rendered with an older cut
+//! still says the right thing about the current one. Two ways to keep them: per page cell for
+//! the flat traversal (whose grid is bounded by a binding limit anyway), and per visible leaf
+//! block for the octree traversal, whose grids reach 512³ cells (16384³ voxels) while a frame
+//! sees a few thousand leaves: then memory and the work per feedback frame grow with the
+//! visible part of the cut, not with the volume (issue 18).
 
+use rustc_hash::{FxHashMap as HashMap, FxHashSet as HashSet};
+use strata_render::VisibilityFrame;
 use strata_storage::BrickId;
 
 use crate::octree_ranges::OctreeRanges;
+
+/// A block of page cells: (size, origin >> size), 2^size cells per axis; the key of an octree
+/// node of that level.
+type Block = (u8, [u32; 3]);
+
+#[derive(Clone)]
+enum Marks {
+    /// Per page cell.
+    Dense {
+        /// Feedback frame (1-based count) in which each page was last seen contributing;
+        /// 0 = never.
+        last_visible: Vec<u64>,
+        /// Per level: is any page under the node visible (rebuilt on each feedback frame).
+        pyramid: Vec<Vec<bool>>,
+        level_bricks: Vec<[u32; 3]>,
+    },
+    /// Per visible leaf block of the frames' cuts.
+    Sparse {
+        /// Feedback frame in which each block was last seen contributing (blocks aged out
+        /// are dropped, so this holds what the last `memory_frames` frames saw).
+        last_seen: HashMap<Block, u64>,
+        /// The blocks still remembered as visible.
+        visible: HashSet<Block>,
+        /// Every strict ancestor block of a visible block: nodes with a visible part.
+        above: HashSet<Block>,
+        /// The coarsest level a node or block can have.
+        top_level: u8,
+    },
+}
 
 /// Shared with the selection thread behind an `Arc` (copied on write when it still holds it).
 #[derive(Clone)]
 pub struct PageVisibility {
     page_dims: [u32; 3],
-    /// Feedback frame (1-based count) in which each page was last seen contributing; 0 = never.
-    last_visible: Vec<u64>,
     frames_received: u64,
     /// Render frame number of the newest feedback.
     newest_render_frame: u64,
     memory_frames: u64,
-    /// Per level: is any page under the node visible (rebuilt on each feedback frame).
-    pyramid: Vec<Vec<bool>>,
-    level_bricks: Vec<[u32; 3]>,
+    marks: Marks,
 }
 
 impl PageVisibility {
+    /// Marks per page cell (the flat traversal).
     pub fn new(octree: &OctreeRanges, memory_frames: u64) -> Self {
         let page_dims = octree.page_dims();
         let pages = page_dims.iter().map(|&d| d as usize).product();
@@ -35,12 +67,33 @@ impl PageVisibility {
             .collect();
         PageVisibility {
             page_dims,
-            last_visible: vec![0; pages],
             frames_received: 0,
             newest_render_frame: 0,
             memory_frames: memory_frames.max(1),
-            pyramid: Vec::new(),
-            level_bricks,
+            marks: Marks::Dense {
+                last_visible: vec![0; pages],
+                pyramid: Vec::new(),
+                level_bricks,
+            },
+        }
+    }
+
+    /// Marks per visible leaf block (the octree traversal): O(visible leaves · depth).
+    pub fn per_leaf(octree: &OctreeRanges, memory_frames: u64) -> Self {
+        let page_dims = octree.page_dims();
+        let max = page_dims.iter().copied().max().unwrap_or(1).max(1);
+        let grid_level = (32 - (max - 1).leading_zeros()) as u8;
+        PageVisibility {
+            page_dims,
+            frames_received: 0,
+            newest_render_frame: 0,
+            memory_frames: memory_frames.max(1),
+            marks: Marks::Sparse {
+                last_seen: HashMap::default(),
+                visible: HashSet::default(),
+                above: HashSet::default(),
+                top_level: grid_level.max(octree.level_count().saturating_sub(1)),
+            },
         }
     }
 
@@ -53,71 +106,212 @@ impl PageVisibility {
         self.newest_render_frame
     }
 
+    /// Takes one frame's feedback: its per-leaf words with the per-leaf marks, else its
+    /// per-page words. Older or repeated frames are ignored.
+    pub fn record_frame(&mut self, frame: &VisibilityFrame) {
+        match (&self.marks, &frame.leaf_visibility) {
+            (Marks::Sparse { .. }, Some(leaf)) => {
+                let blocks = leaf
+                    .leaves
+                    .boxes
+                    .iter()
+                    .zip(&leaf.marks)
+                    .filter(|(_, &m)| m != 0)
+                    .map(|(b, _)| (b.size, b.origin.map(|c| c >> b.size)));
+                self.record_blocks(frame.frame_number, blocks);
+            }
+            _ => self.record(frame.frame_number, &frame.visibility),
+        }
+    }
+
     /// Takes one feedback buffer (one u32 per page, non-zero = visible).
     pub fn record(&mut self, render_frame: u64, marks: &[u32]) {
-        if marks.len() != self.last_visible.len() || render_frame <= self.newest_render_frame {
+        let pages: usize = self.page_dims.iter().map(|&d| d as usize).product();
+        if marks.len() != pages || render_frame <= self.newest_render_frame {
+            return;
+        }
+        if let Marks::Sparse { .. } = self.marks {
+            let [nx, ny, _] = self.page_dims;
+            let blocks: Vec<Block> = marks
+                .iter()
+                .enumerate()
+                .filter(|(_, &m)| m != 0)
+                .map(|(i, _)| {
+                    let i = i as u32;
+                    (0, [i % nx, (i / nx) % ny, i / (nx * ny)])
+                })
+                .collect();
+            self.record_blocks(render_frame, blocks.into_iter());
             return;
         }
         self.frames_received += 1;
         self.newest_render_frame = render_frame;
-        for (last, &mark) in self.last_visible.iter_mut().zip(marks) {
-            if mark != 0 {
-                *last = self.frames_received;
-            }
-        }
-        self.rebuild_pyramid();
-    }
-
-    fn rebuild_pyramid(&mut self) {
         let now = self.frames_received;
         let memory = self.memory_frames;
-        let level0: Vec<bool> = self
-            .last_visible
-            .iter()
-            .map(|&t| t > 0 && now - t < memory)
-            .collect();
-        let mut pyramid = vec![level0];
-        for level in 1..self.level_bricks.len() {
-            let [cx, cy, cz] = self.level_bricks[level - 1];
-            let [px, py, pz] = self.level_bricks[level];
-            let mut up = vec![false; (px * py * pz) as usize];
-            let child = &pyramid[level - 1];
-            for z in 0..cz {
-                for y in 0..cy {
-                    for x in 0..cx {
-                        if child[(x + cx * (y + cy * z)) as usize] {
-                            up[(x / 2 + px * (y / 2 + py * (z / 2))) as usize] = true;
-                        }
-                    }
+        if let Marks::Dense {
+            last_visible,
+            pyramid,
+            level_bricks,
+        } = &mut self.marks
+        {
+            for (last, &mark) in last_visible.iter_mut().zip(marks) {
+                if mark != 0 {
+                    *last = now;
                 }
             }
-            pyramid.push(up);
+            *pyramid = dense_pyramid(last_visible, level_bricks, now, memory);
         }
-        self.pyramid = pyramid;
+    }
+
+    fn record_blocks(&mut self, render_frame: u64, blocks: impl Iterator<Item = Block>) {
+        if render_frame <= self.newest_render_frame {
+            return;
+        }
+        self.frames_received += 1;
+        self.newest_render_frame = render_frame;
+        let now = self.frames_received;
+        let memory = self.memory_frames;
+        let Marks::Sparse {
+            last_seen,
+            visible,
+            above,
+            top_level,
+        } = &mut self.marks
+        else {
+            return;
+        };
+        for b in blocks {
+            last_seen.insert(b, now);
+        }
+        last_seen.retain(|_, &mut t| now - t < memory);
+        visible.clear();
+        above.clear();
+        for &(size, coords) in last_seen.keys() {
+            visible.insert((size, coords));
+            for level in size + 1..=*top_level {
+                let shift = (level - size) as u32;
+                if !above.insert((level, coords.map(|c| c >> shift))) {
+                    // Its ancestors are in already.
+                    break;
+                }
+            }
+        }
     }
 
     /// Before any feedback everything counts as visible, so the first frames refine normally.
     pub fn is_visible(&self, id: BrickId) -> bool {
-        let Some(level) = self.pyramid.get(id.level as usize) else {
+        if self.frames_received == 0 {
             return true;
-        };
-        let [bx, by, _] = self.level_bricks[id.level as usize];
-        let [x, y, z] = id.coords;
-        level
-            .get((x + bx * (y + by * z)) as usize)
-            .copied()
-            .unwrap_or(true)
+        }
+        match &self.marks {
+            Marks::Dense {
+                pyramid,
+                level_bricks,
+                ..
+            } => {
+                let Some(level) = pyramid.get(id.level as usize) else {
+                    return true;
+                };
+                let [bx, by, _] = level_bricks[id.level as usize];
+                let [x, y, z] = id.coords;
+                level
+                    .get((x + bx * (y + by * z)) as usize)
+                    .copied()
+                    .unwrap_or(true)
+            }
+            Marks::Sparse {
+                visible,
+                above,
+                top_level,
+                ..
+            } => {
+                if above.contains(&(id.level, id.coords)) {
+                    return true;
+                }
+                // Inside a visible block (the block itself or one of its ancestors).
+                (id.level..=(*top_level).max(id.level)).any(|level| {
+                    let shift = (level - id.level) as u32;
+                    visible.contains(&(level, id.coords.map(|c| c >> shift)))
+                })
+            }
+        }
     }
 
+    /// Page cells remembered as visible.
     pub fn visible_pages(&self) -> usize {
-        self.pyramid
-            .first()
-            .map_or(0, |p| p.iter().filter(|&&v| v).count())
+        match &self.marks {
+            Marks::Dense { pyramid, .. } => pyramid
+                .first()
+                .map_or(0, |p| p.iter().filter(|&&v| v).count()),
+            Marks::Sparse { visible, .. } => visible
+                .iter()
+                .map(|&(size, coords)| {
+                    (0..3)
+                        .map(|a| {
+                            let lo = (coords[a] as u64) << size;
+                            let hi = ((coords[a] as u64 + 1) << size).min(self.page_dims[a] as u64);
+                            hi.saturating_sub(lo) as usize
+                        })
+                        .product::<usize>()
+                })
+                .sum(),
+        }
     }
 
     pub fn page_dims(&self) -> [u32; 3] {
         self.page_dims
     }
+
+    /// CPU bytes of the marks (the dense ones are per page cell).
+    pub fn memory_bytes(&self) -> usize {
+        match &self.marks {
+            Marks::Dense {
+                last_visible,
+                pyramid,
+                ..
+            } => last_visible.capacity() * 8 + pyramid.iter().map(Vec::capacity).sum::<usize>(),
+            Marks::Sparse {
+                last_seen,
+                visible,
+                above,
+                ..
+            } => {
+                let entry = size_of::<Block>() + 1;
+                last_seen.capacity() * (entry + 8) + (visible.capacity() + above.capacity()) * entry
+            }
+        }
+    }
+}
+
+/// Per level, is any page under the node visible within the last `memory` feedback frames.
+fn dense_pyramid(
+    last_visible: &[u64],
+    level_bricks: &[[u32; 3]],
+    now: u64,
+    memory: u64,
+) -> Vec<Vec<bool>> {
+    let level0: Vec<bool> = last_visible
+        .iter()
+        .map(|&t| t > 0 && now - t < memory)
+        .collect();
+    let mut pyramid = vec![level0];
+    for level in 1..level_bricks.len() {
+        let [cx, cy, cz] = level_bricks[level - 1];
+        let [px, py, pz] = level_bricks[level];
+        let mut up = vec![false; (px * py * pz) as usize];
+        let child = &pyramid[level - 1];
+        for z in 0..cz {
+            for y in 0..cy {
+                for x in 0..cx {
+                    if child[(x + cx * (y + cy * z)) as usize] {
+                        up[(x / 2 + px * (y / 2 + py * (z / 2))) as usize] = true;
+                    }
+                }
+            }
+        }
+        pyramid.push(up);
+    }
+    pyramid
 }
 
 #[cfg(test)]
@@ -152,5 +346,77 @@ mod tests {
             !vis.is_visible(leaf),
             "an older or repeated frame is ignored"
         );
+    }
+
+    /// Every node of a 4³-page octree.
+    fn nodes() -> Vec<BrickId> {
+        (0..3u8)
+            .flat_map(|level| {
+                let n = 4u32 >> level;
+                (0..n * n * n).map(move |i| BrickId::new(level, [i % n, (i / n) % n, i / (n * n)]))
+            })
+            .collect()
+    }
+
+    fn octree() -> OctreeRanges {
+        OctreeRanges::from_fn(&[[4, 4, 4], [2, 2, 2], [1, 1, 1]], |_, _| StoredRange {
+            min: 0,
+            max: 1,
+        })
+    }
+
+    #[test]
+    fn marks_per_leaf_block_answer_as_marks_per_page() {
+        let octree = octree();
+        let mut dense = PageVisibility::new(&octree, 2);
+        let mut sparse = PageVisibility::per_leaf(&octree, 2);
+        let mut seed = 0x9e37_79b9_7f4a_7c15u64;
+        for frame in 1..=12 {
+            let marks: Vec<u32> = (0..64)
+                .map(|_| {
+                    seed ^= seed << 13;
+                    seed ^= seed >> 7;
+                    seed ^= seed << 17;
+                    u32::from(seed % 9 == 0)
+                })
+                .collect();
+            dense.record(frame, &marks);
+            sparse.record(frame, &marks);
+            for id in nodes() {
+                assert_eq!(
+                    sparse.is_visible(id),
+                    dense.is_visible(id),
+                    "frame {frame}: {id:?}"
+                );
+            }
+            assert_eq!(
+                sparse.visible_pages(),
+                dense.visible_pages(),
+                "frame {frame}"
+            );
+        }
+    }
+
+    #[test]
+    fn a_visible_coarse_block_covers_its_descendants_and_ancestors_only() {
+        let octree = octree();
+        let mut vis = PageVisibility::per_leaf(&octree, 1);
+        // The level-1 block at (1, 0, 0): page cells x 2..4, y 0..2, z 0..2.
+        vis.record_blocks(1, [(1, [1, 0, 0])].into_iter());
+        for id in nodes() {
+            let inside = (0..3).all(|a| {
+                let lo = id.coords[a] << id.level;
+                let hi = (id.coords[a] + 1) << id.level;
+                let (blo, bhi) = if a == 0 { (2, 4) } else { (0, 2) };
+                lo < bhi && blo < hi
+            });
+            assert_eq!(vis.is_visible(id), inside, "{id:?}");
+        }
+        assert_eq!(vis.visible_pages(), 8);
+        // The next frame sees nothing: with one frame of memory, nothing stays visible, and
+        // nothing stays held.
+        vis.record_blocks(2, std::iter::empty());
+        assert!(nodes().iter().all(|&id| !vis.is_visible(id)));
+        assert_eq!(vis.visible_pages(), 0);
     }
 }

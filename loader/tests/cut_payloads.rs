@@ -51,7 +51,7 @@ fn the_converged_cuts_payloads_are_the_stores_bricks_and_the_generation_follows_
     assert!(stats.converged);
     assert_eq!(volume.residency_generation(), generation);
 
-    let table = volume.page_table().clone();
+    let table = volume.page_table().to_page_table();
     let mut nodes: Vec<BrickId> = table
         .entries
         .iter()

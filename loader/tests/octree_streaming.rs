@@ -44,7 +44,11 @@ fn converged_with(
         "{traversal:?} {mode:?}: level 0 never loaded: {last:#?}"
     );
     volume.check_slot_map().unwrap();
-    (image, volume.page_table().clone(), volume.gpu_index_bytes())
+    (
+        image,
+        volume.page_table().to_page_table(),
+        volume.gpu_index_bytes(),
+    )
 }
 
 #[test]

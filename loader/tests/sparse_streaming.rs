@@ -84,6 +84,16 @@ fn a_sparse_store_streams_through_the_octree_and_matches_the_reference_close_up(
         volume.gpu_index_bytes()
     );
     assert!(last.data_leaves_per_level[0] > 0, "level 0 never loaded");
+    // The loader's own index (the table as applied and the visibility marks) is per leaf
+    // too: per page cell it would be 64³ × (8 + 8) bytes = 4 MiB here, 2 GiB at 16384³.
+    let cpu_index = volume.cpu_index_bytes();
+    let leaves = volume.page_table().resident_nodes().len();
+    eprintln!("loader CPU index: {cpu_index} bytes for {leaves} resident nodes");
+    assert!(
+        matches!(volume.page_table(), strata_render::IndexTable::Sparse(_)),
+        "the octree's table is kept per leaf"
+    );
+    assert!(cpu_index < 1 << 20, "{cpu_index} bytes");
     assert!(
         covered_pixels(&image) > 256 * 256 / 10,
         "the bone is not in view"

@@ -115,7 +115,7 @@ fn budgets_hold_along_a_scripted_camera_path() {
             stats.queued <= stats.queue_capacity && stats.in_flight <= 2 + 4,
             "{stats:#?}"
         );
-        check_page_table_points_at_resident_slots(volume.page_table(), slots);
+        check_page_table_points_at_resident_slots(&volume.page_table().to_page_table(), slots);
         volume
             .check_slot_map()
             .unwrap_or_else(|e| panic!("frame {frame}: {e}"));
@@ -273,7 +273,7 @@ fn corrupted_brick_is_reported_once_and_its_parent_keeps_serving() {
         "{}",
         failures[0].message
     );
-    let table = volume.page_table();
+    let table = volume.page_table().to_page_table();
     let served = table.get([1, 1, 1]);
     assert!(
         served.resident && served.level == 1,

@@ -21,8 +21,9 @@ use crate::layout::{
     OCTREE_SIZE_SHIFT,
 };
 use crate::octree_cut::{NodeKind, OctreeCut, NULL};
-use crate::page_table::{coarser_neighbours, physical_max_bound, PageTable};
+use crate::page_table::{physical_max_bound, PageTable};
 use crate::smooth_transitions::near_side_closure;
+use crate::sparse_page_table::PageLookup;
 use strata_types::ValueMapping;
 
 /// How the raycaster finds the data along a ray.
@@ -63,6 +64,14 @@ impl std::str::FromStr for Traversal {
 pub struct LeafBox {
     pub origin: [u32; 3],
     pub size: u8,
+}
+
+/// A frame's per-leaf visibility words (non-zero: a sample in the leaf contributed) with the
+/// leaves of the cut it was drawn with: the octree traversal's feedback, O(leaves).
+#[derive(Clone, Debug, PartialEq)]
+pub struct LeafVisibility {
+    pub leaves: std::sync::Arc<OctreeLeaves>,
+    pub marks: Vec<u32>,
 }
 
 /// The leaves of one encoded cut, in leaf-index order: what a per-leaf word covers.
@@ -243,20 +252,20 @@ fn flag_leaf_transitions(words: &mut [u32], masks: &[u32]) -> Vec<[u32; 2]> {
 /// Per leaf of `leaves`, the 26-neighbour mask of coarser neighbours of the node its entry
 /// names (0 for a leaf that is not resident), each node's mask computed once: per leaf, not
 /// per page cell (`smooth_transitions::transition_masks` is the per-page twin).
-pub fn leaf_transition_masks(table: &PageTable, leaves: &OctreeLeaves) -> Vec<u32> {
+pub fn leaf_transition_masks(table: &impl PageLookup, leaves: &OctreeLeaves) -> Vec<u32> {
     let mut memo: std::collections::HashMap<(u8, [u32; 3]), u32> = Default::default();
     leaves
         .boxes
         .iter()
         .map(|b| {
-            let e = table.get(b.origin);
+            let e = table.entry_at(b.origin);
             if !e.resident {
                 return 0;
             }
             let node = PageTable::node_of(b.origin, e.level);
             *memo
                 .entry((e.level, node))
-                .or_insert_with(|| coarser_neighbours(table, table.page_dims, e.level, node).0)
+                .or_insert_with(|| table.coarser_neighbours(e.level, node).0)
         })
         .collect()
 }
@@ -265,7 +274,7 @@ pub fn leaf_transition_masks(table: &PageTable, leaves: &OctreeLeaves) -> Vec<u3
 /// the coarser neighbours a transition band blends in, as `PageTable::value_max_physical`
 /// gives per page cell; +inf where not resident or unknown): one computation per leaf.
 pub fn leaf_value_max(
-    table: &PageTable,
+    table: &impl PageLookup,
     leaves: &OctreeLeaves,
     mapping: ValueMapping,
     mut range_of: impl FnMut(u8, [u32; 3]) -> Option<(u16, u16)>,
@@ -275,13 +284,13 @@ pub fn leaf_value_max(
         .boxes
         .iter()
         .map(|b| {
-            let e = table.get(b.origin);
+            let e = table.entry_at(b.origin);
             if !e.resident {
                 return f32::INFINITY;
             }
             let node = PageTable::node_of(b.origin, e.level);
             *memo.entry((e.level, node)).or_insert_with(|| {
-                let (_, coarser) = coarser_neighbours(table, table.page_dims, e.level, node);
+                let (_, coarser) = table.coarser_neighbours(e.level, node);
                 let hull = coarser
                     .iter()
                     .try_fold(range_of(e.level, node), |h, &(l, n)| {
@@ -312,7 +321,7 @@ impl EncodedOctree {
     /// masks' neighbour queries, once per leaf).
     pub fn new(
         cut: &OctreeCut,
-        table: &PageTable,
+        table: &impl PageLookup,
         slots_per_axis: [u32; 3],
     ) -> Result<Self, RenderError> {
         let (mut words, leaves, _) = encode_node_buffer(cut, slots_per_axis)?;
@@ -321,7 +330,7 @@ impl EncodedOctree {
         let mut nodes = std::collections::HashSet::new();
         let mut transition = std::collections::HashSet::new();
         for (b, &m) in leaves.boxes.iter().zip(&masks) {
-            let e = table.get(b.origin);
+            let e = table.entry_at(b.origin);
             if e.resident {
                 let key = (e.level, PageTable::node_of(b.origin, e.level));
                 nodes.insert(key);

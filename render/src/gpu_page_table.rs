@@ -12,6 +12,7 @@ use crate::layout::LEVEL_MASK;
 use crate::octree_cut::{CutLeaf, OctreeCut};
 use crate::page_table::{PageEntry, PageTable};
 use crate::smooth_transitions::{near_side_closure, transition_masks, transition_node_fraction};
+use crate::sparse_page_table::{IndexTable, PageLookup, SparsePageTable};
 
 /// What the CPU half of a page-table write needs to know of the GPU index: page grid, the
 /// cache's slot grid and the traversal. Plain data, so a loader thread can prepare a table
@@ -73,7 +74,8 @@ pub fn flat_table_limit(device: &wgpu::Device, configured: Option<u64>) -> (u64,
 #[derive(Clone, Debug)]
 pub struct PreparedPageTable {
     layout: PageTableLayout,
-    table: PageTable,
+    /// Dense for the flat traversal; per leaf when prepared by [`PreparedPageTable::sparse`].
+    table: IndexTable,
     /// Binding 3's words (empty with the octree traversal, which builds its node buffer).
     words: Vec<u32>,
     /// Binding 11's pairs per page cell (empty with the octree traversal: its leaves carry
@@ -103,23 +105,41 @@ impl PreparedPageTable {
         Self::prepare(layout, table, Some(leaves))
     }
 
+    /// The octree traversal's index from the cut's table kept per leaf: nothing here is per
+    /// page cell, so a 16384³ volume's cut prepares in O(leaves · depth) time and memory.
+    pub fn sparse(layout: PageTableLayout, table: SparsePageTable) -> Result<Self, RenderError> {
+        if layout.traversal != Traversal::Octree {
+            return Err(RenderError::PageTableMismatch(
+                "a table kept per leaf needs the octree traversal".into(),
+            ));
+        }
+        if table.page_dims() != layout.page_dims {
+            return Err(RenderError::PageTableMismatch(format!(
+                "table is {:?}, volume needs {:?}",
+                table.page_dims(),
+                layout.page_dims
+            )));
+        }
+        check_slots(layout, table.leaves().iter().map(|l| &l.entry))?;
+        let cut = OctreeCut::from_leaves(layout.page_dims, table.leaves().to_vec());
+        let encoded = EncodedOctree::new(&cut, &table, layout.slots_per_axis)?;
+        Ok(PreparedPageTable {
+            layout,
+            table: IndexTable::Sparse(table),
+            words: Vec::new(),
+            transitions: Vec::new(),
+            transition_fraction: encoded.transition_fraction,
+            octree: Some(encoded),
+        })
+    }
+
     fn prepare(
         layout: PageTableLayout,
         table: PageTable,
         leaves: Option<Vec<CutLeaf>>,
     ) -> Result<Self, RenderError> {
         table.check_against(layout.page_dims)?;
-        let slots: u32 = layout.slots_per_axis.iter().product();
-        if let Some(bad) = table
-            .entries
-            .iter()
-            .find(|e| e.resident && e.slot_in_cache >= slots)
-        {
-            return Err(RenderError::SlotOutOfRange {
-                slot: bad.slot_in_cache,
-                slots,
-            });
-        }
+        check_slots(layout, table.entries.iter())?;
         if layout.traversal == Traversal::Octree {
             let cut = match leaves {
                 Some(leaves) => OctreeCut::from_leaves(layout.page_dims, leaves),
@@ -128,7 +148,7 @@ impl PreparedPageTable {
             let encoded = EncodedOctree::new(&cut, &table, layout.slots_per_axis)?;
             return Ok(PreparedPageTable {
                 layout,
-                table,
+                table: IndexTable::Dense(table),
                 words: Vec::new(),
                 transitions: Vec::new(),
                 transition_fraction: encoded.transition_fraction,
@@ -141,7 +161,7 @@ impl PreparedPageTable {
         let transitions = masks.iter().map(|&m| [m, near_side_closure(m)]).collect();
         Ok(PreparedPageTable {
             layout,
-            table,
+            table: IndexTable::Dense(table),
             words,
             transitions,
             octree: None,
@@ -149,11 +169,11 @@ impl PreparedPageTable {
         })
     }
 
-    pub fn table(&self) -> &PageTable {
+    pub fn table(&self) -> &IndexTable {
         &self.table
     }
 
-    pub fn into_table(self) -> PageTable {
+    pub fn into_table(self) -> IndexTable {
         self.table
     }
 
@@ -173,10 +193,27 @@ impl PreparedPageTable {
     }
 }
 
+/// Every resident entry's slot within the cache's slot grid.
+fn check_slots<'a>(
+    layout: PageTableLayout,
+    mut entries: impl Iterator<Item = &'a PageEntry>,
+) -> Result<(), RenderError> {
+    let slots: u32 = layout.slots_per_axis.iter().product();
+    match entries.find(|e| e.resident && e.slot_in_cache >= slots) {
+        Some(bad) => Err(RenderError::SlotOutOfRange {
+            slot: bad.slot_in_cache,
+            slots,
+        }),
+        None => Ok(()),
+    }
+}
+
 /// The flat buffers' contents as last written, compared with the next write so only the
 /// changed spans are written (dirty_spans.rs).
 struct Written {
-    table: PageTable,
+    /// Dense with the flat traversal (its buffers are per page cell anyway); with the octree,
+    /// the table as prepared (per leaf from the loader).
+    table: IndexTable,
     words: Vec<u32>,
     transitions: Vec<[u32; 2]>,
     value_max: Vec<f32>,
@@ -291,7 +328,13 @@ impl GpuPageTable {
             transition_fraction: std::sync::Mutex::new(0.0),
             // Fresh buffers are zero-filled (wgpu clears them), the bounds +inf as written above.
             written: std::sync::Mutex::new(Written {
-                table: PageTable::new(page_dims),
+                table: match traversal {
+                    Traversal::Flat => IndexTable::Dense(PageTable::new(page_dims)),
+                    Traversal::Octree => IndexTable::Sparse(SparsePageTable::uniform(
+                        page_dims,
+                        PageEntry::NOT_RESIDENT,
+                    )),
+                },
                 words: vec![0; n as usize],
                 transitions: vec![[0; 2]; n as usize],
                 value_max: vec![f32::INFINITY; n as usize],
@@ -420,7 +463,7 @@ impl GpuPageTable {
         }
         // A word's whole-node flag and skip level depend on its neighbours (see
         // PageTable::encoded_for_gpu), so the table as last written is re-encoded whole.
-        let mut table = self.written()?.table.clone();
+        let mut table = self.written()?.table.to_page_table();
         table.entries[first..first + entries.len()].copy_from_slice(entries);
         self.update(queue, &table)?;
         Ok(())

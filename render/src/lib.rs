@@ -17,6 +17,7 @@
 //!   page_table          → layout, transfer_function, error      (topology, coarser neighbours)
 //!   smooth_transitions  → page_table, layout                    (masks, near-side closure)
 //!   octree_cut          → page_table                            (the cut as an octree with ropes)
+//!   sparse_page_table   → octree_cut, page_table, layout        (the cut's table per leaf)
 //!   field               → page_table, layout                    (the one field definition)
 //!   overlay             → error           (3D overlay: grid sampling, LUT, the blend rule)
 //!   reference           → field, smooth_transitions, page_table, layout, camera, settings,
@@ -32,8 +33,9 @@
 //!   readback_ring                      (staging ring read 1-2 frames late)
 //!   dirty_spans                        (changed spans of a buffer, written alone)
 //!   gpu_timing          → readback_ring
-//!   gpu_octree          → octree_cut, page_table, layout, error (node buffer, per-leaf)
-//!   gpu_page_table      → gpu_octree, page_table, smooth_transitions, dirty_spans, cache,
+//!   gpu_octree          → octree_cut, sparse_page_table, page_table, layout, error
+//!                                                               (node buffer, per-leaf)
+//!   gpu_page_table      → gpu_octree, sparse_page_table, page_table, smooth_transitions, dirty_spans, cache,
 //!                         layout, error
 //!   gpu_transfer_function → transfer_function
 //!   gpu_overlay         → overlay, error                        (overlay grid + LUT textures)
@@ -96,6 +98,7 @@ pub mod segment_integral;
 pub mod settings;
 pub mod shaders;
 pub mod smooth_transitions;
+pub mod sparse_page_table;
 pub mod time_critical;
 pub mod transfer_function;
 
@@ -104,6 +107,7 @@ pub use cache::{BrickCache, CacheConfig, CacheFormat};
 pub use camera::{Camera, Projection};
 pub use device::GpuContext;
 pub use error::RenderError;
+pub use gpu_octree::LeafVisibility;
 pub use gpu_octree::Traversal;
 pub use gpu_page_table::{
     check_flat_table_fits, flat_table_limit, GpuPageTable, PageTableLayout, PreparedPageTable,
@@ -117,13 +121,14 @@ pub use overlay::{OverlayKind, OverlayLut, OverlayScene, OverlayVolume};
 pub use page_table::{PageEntry, PageTable};
 pub use pipelines::PipelineKey;
 pub use preintegration::PreintegrationTable;
-pub use raycast::{FrameReadback, Raycaster, Scene, VisibilityFrame};
+pub use raycast::{FrameReadback, Raycaster, Scene, VisibilityFrame, PER_PAGE_VISIBILITY_CELLS};
 pub use reference::{
     render_reference, render_reference_with_overlay, ReferenceImage, ReferenceOptions,
     ReferenceScene,
 };
 pub use segment_integral::SegmentIntegralTable;
 pub use settings::{ClipPlane, CropBox, RenderMode, RenderSettings, Shading};
+pub use sparse_page_table::{IndexTable, PageLookup, SparsePageTable};
 pub use strata_types::{ValueMapping, VolumeGeometry};
 pub use time_critical::{
     ControllerConfig, FrameQuality, LodConfig, Observation, SamplingRateController,

@@ -13,7 +13,7 @@ use crate::cache::BrickCache;
 use crate::camera::Camera;
 use crate::device::GpuContext;
 use crate::error::RenderError;
-use crate::gpu_octree::{OctreeLeaves, Traversal};
+use crate::gpu_octree::{LeafVisibility, OctreeLeaves, Traversal};
 use crate::gpu_overlay::GpuOverlay;
 use crate::gpu_preintegration::GpuPreintegration;
 use crate::gpu_timing::{FrameTiming, FrameTimingSource, PassTimestamps};
@@ -54,8 +54,13 @@ pub struct FrameReadback {
     /// Pick depth, ray distance in mm from the camera ray's origin: DVR where the accumulated
     /// opacity reaches [`crate::layout::DEPTH_OPACITY`], the MIP maximum, the iso hit; or +inf.
     pub depth: Vec<f32>,
-    /// Per page entry: 1 if a sample there contributed before the ray terminated.
+    /// Per page entry: 1 if a sample there contributed before the ray terminated. With the
+    /// octree traversal, expanded from [`FrameReadback::leaf_visibility`] only on grids of at
+    /// most [`PER_PAGE_VISIBILITY_CELLS`] page cells (else empty: O(cells) per frame is what
+    /// the octree avoids).
     pub visibility: Vec<u32>,
+    /// The octree traversal's visibility as it is written: per leaf of the frame's cut.
+    pub leaf_visibility: Option<LeafVisibility>,
     /// Samples taken, if `count_samples` was set.
     pub samples: Option<u64>,
     /// Page-table words read (the shader's `decode_entry` calls, the march's and the
@@ -67,8 +72,16 @@ pub struct FrameReadback {
 #[derive(Clone, Debug)]
 pub struct VisibilityFrame {
     pub frame_number: u64,
+    /// Per page cell (see [`FrameReadback::visibility`]: empty for a large octree grid).
     pub visibility: Vec<u32>,
+    /// Per leaf of the frame's cut, with the octree traversal.
+    pub leaf_visibility: Option<LeafVisibility>,
 }
+
+/// Up to this many page cells (16 MiB of words), octree frames' per-leaf visibility is also
+/// expanded per page cell, which tests compare with the flat traversal's; beyond it only the
+/// per-leaf words come back.
+pub const PER_PAGE_VISIBILITY_CELLS: usize = 1 << 22;
 
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
@@ -389,15 +402,28 @@ impl Raycaster {
 
     /// Frame `frame_number`'s visibility words as the per-page-cell list the loader speaks
     /// (per-leaf words expanded through that frame's leaves).
-    fn visibility_per_page(&self, frame_number: u64, words: &[u32], pages: usize) -> Vec<u32> {
+    fn visibility_per_page(
+        &self,
+        frame_number: u64,
+        words: &[u32],
+        pages: usize,
+    ) -> (Vec<u32>, Option<LeafVisibility>) {
         let leaves = self
             .frame_leaves
             .iter()
             .find(|(n, _)| *n == frame_number)
             .and_then(|(_, l)| l.clone());
         match leaves {
-            Some(leaves) => leaves.expand_to_pages(&words[..leaves.boxes.len().min(words.len())]),
-            None => words[..pages.min(words.len())].to_vec(),
+            Some(leaves) => {
+                let marks = words[..leaves.boxes.len().min(words.len())].to_vec();
+                let per_page = if pages <= PER_PAGE_VISIBILITY_CELLS {
+                    leaves.expand_to_pages(&marks)
+                } else {
+                    Vec::new()
+                };
+                (per_page, Some(LeafVisibility { leaves, marks }))
+            }
+            None => (words[..pages.min(words.len())].to_vec(), None),
         }
     }
 
@@ -679,9 +705,11 @@ impl Raycaster {
         });
         let (frame_number, words) = newest?;
         let pages = self.page_count;
+        let (visibility, leaf_visibility) = self.visibility_per_page(frame_number, &words, pages);
         Some(VisibilityFrame {
             frame_number,
-            visibility: self.visibility_per_page(frame_number, &words, pages),
+            visibility,
+            leaf_visibility,
         })
     }
 
@@ -756,7 +784,8 @@ impl Raycaster {
         }
         let depth: Vec<f32> = bytemuck::pod_collect_to_vec(&read(&t.depth_readback)?);
         let words: Vec<u32> = bytemuck::pod_collect_to_vec(&read(&vis.blocking_readback)?);
-        let visibility = self.visibility_per_page(self.frame_number, &words, self.page_count);
+        let (visibility, leaf_visibility) =
+            self.visibility_per_page(self.frame_number, &words, self.page_count);
         let counter: Vec<u32> = bytemuck::pod_collect_to_vec(&read(&self.counter_readback)?);
         let counted = self.last_key.is_some_and(|k| k.count_samples);
         let wide = |lo: usize| counter[lo] as u64 + ((counter[lo + 1] as u64) << 32);
@@ -768,6 +797,7 @@ impl Raycaster {
             rgba,
             depth,
             visibility,
+            leaf_visibility,
             samples,
             page_reads,
         })
