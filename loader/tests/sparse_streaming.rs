@@ -93,6 +93,7 @@ fn a_sparse_store_streams_through_the_octree_and_matches_the_reference_close_up(
         matches!(volume.page_table(), strata_render::IndexTable::Sparse(_)),
         "the octree's table is kept per leaf"
     );
+    // Measured: 45 222 bytes for 265 resident nodes.
     assert!(cpu_index < 1 << 20, "{cpu_index} bytes");
     assert!(
         covered_pixels(&image) > 256 * 256 / 10,

@@ -459,7 +459,13 @@ impl GpuOctreeIndex {
     }
 
     fn write_bounds(&mut self, device: &wgpu::Device, queue: &wgpu::Queue) {
-        let per_leaf = self.leaves.reduce_max(&self.page_bounds);
+        // Without per-page bounds every leaf is +inf: no walk over its cells (a coarse leaf
+        // of a 16384³ volume has 134 M of them; the loader gives per-leaf bounds next).
+        let per_leaf = if self.page_bounds.is_empty() {
+            vec![f32::INFINITY; self.leaves.boxes.len()]
+        } else {
+            self.leaves.reduce_max(&self.page_bounds)
+        };
         self.write_leaf_bounds(device, queue, &per_leaf);
     }
 
