@@ -70,7 +70,8 @@ pub struct FlythroughArgs {
     #[arg(long)]
     pub no_visibility: bool,
     /// The raycaster's traversal: `flat` page table or the cut's `octree`. Not given: flat,
-    /// unless its per-page buffers exceed the device's storage-binding limit.
+    /// unless its per-page buffers exceed the device's storage-binding limit or the grid has
+    /// over 2^18 page cells (beyond 2048³ voxels).
     #[arg(long, value_enum)]
     pub traversal: Option<crate::cmd_render::TraversalArg>,
 }

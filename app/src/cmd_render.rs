@@ -125,8 +125,9 @@ pub struct RenderArgs {
     #[arg(long, value_name = "N")]
     pub orbit: Option<u32>,
     /// The raycaster's traversal: `flat` page table or the cut's `octree` with ropes. Not
-    /// given: flat, unless its per-page buffers exceed the device's storage-binding limit
-    /// (streaming then takes the octree and says so).
+    /// given: flat, unless its per-page buffers exceed the device's storage-binding limit or
+    /// the grid has over 2^18 page cells (beyond 2048³ voxels; streaming then takes the
+    /// octree and says so).
     #[arg(long, value_enum)]
     pub traversal: Option<TraversalArg>,
 }

@@ -153,4 +153,22 @@ fn the_flat_table_is_refused_past_its_limit_and_the_octree_chosen_when_left_open
     );
     assert_eq!(fits.traversal(), Traversal::Flat);
     assert!(fits.traversal_note().is_none());
+    // Where it fits but has more page cells than the flat table is chosen for, an open choice
+    // takes the octree too, and says why; a given flat traversal is still built.
+    let many_cells = |traversal| StreamingConfig {
+        traversal,
+        flat_table_max_page_cells: 7,
+        ..config()
+    };
+    let octree = stream(&ctx, &store, &tf, many_cells(None));
+    assert_eq!(octree.traversal(), Traversal::Octree);
+    let note = octree
+        .traversal_note()
+        .expect("a note on the automatic choice");
+    assert!(
+        note.contains("8 page cells exceed 7") && note.contains("--traversal flat"),
+        "{note}"
+    );
+    let forced = stream(&ctx, &store, &tf, many_cells(Some(Traversal::Flat)));
+    assert_eq!(forced.traversal(), Traversal::Flat);
 }

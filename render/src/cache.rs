@@ -197,6 +197,7 @@ impl BrickCache {
             });
         }
         let converted: Vec<u8>;
+        let converted_float: Vec<f32>;
         let bytes: &[u8] = match self.format {
             CacheFormat::R8Unorm => {
                 if let Some(&v) = payload.iter().find(|&&v| v > 255) {
@@ -209,9 +210,9 @@ impl BrickCache {
             }
             CacheFormat::R16Unorm => bytemuck::cast_slice(payload),
             CacheFormat::R32Float => {
-                let f: Vec<f32> = payload.iter().map(|&v| v as f32 / 65535.0).collect();
-                converted = bytemuck::cast_slice(&f).to_vec();
-                &converted
+                // One pass, no second copy: write_texture stages the bytes itself.
+                converted_float = payload.iter().map(|&v| v as f32 / 65535.0).collect();
+                bytemuck::cast_slice(&converted_float)
             }
         };
         let o = self.slot_origin(slot);
