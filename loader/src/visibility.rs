@@ -377,7 +377,7 @@ mod tests {
                     seed ^= seed << 13;
                     seed ^= seed >> 7;
                     seed ^= seed << 17;
-                    u32::from(seed % 9 == 0)
+                    u32::from(seed.is_multiple_of(9))
                 })
                 .collect();
             dense.record(frame, &marks);

@@ -303,7 +303,7 @@ mod tests {
                 })
             };
             let mut s = 0;
-            while s < 15 && uniform(s + 1) && (s + 1 <= e.level || !e.resident) {
+            while s < 15 && uniform(s + 1) && (s < e.level || !e.resident) {
                 s += 1;
             }
             let lo = p.map(|c| (c >> s) << s);
