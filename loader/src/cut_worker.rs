@@ -353,15 +353,7 @@ fn build_page_table(
                     if e.resident && e.empty {
                         let node = PageTable::node_of(leaf.origin, e.level);
                         leaf.entry.empty = *memo.entry((e.level, node)).or_insert_with(|| {
-                            let (_, coarser) = table.coarser_neighbours(e.level, node);
-                            let hull =
-                                coarser
-                                    .iter()
-                                    .try_fold(range_of(e.level, node), |h, &(l, n)| {
-                                        let (h, (lo, hi)) = (h?, range_of(l, n)?);
-                                        Some(Some((h.0.min(lo), h.1.max(hi))))
-                                    });
-                            is_empty(hull.flatten())
+                            is_empty(table.sampled_range(e.level, node, range_of))
                         });
                     }
                     leaf

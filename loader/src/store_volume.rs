@@ -260,7 +260,14 @@ impl GpuCut {
 /// streamed cut in core. Skipped entries stay skipped (not resident), so nothing else loads.
 pub fn sampled_entries_only(table: &IndexTable) -> PageTable {
     // Per page cell: the in-core render this feeds is per page cell too.
-    let table = table.to_page_table();
+    let painted;
+    let table = match table {
+        IndexTable::Dense(t) => t,
+        IndexTable::Sparse(t) => {
+            painted = t.to_dense();
+            &painted
+        }
+    };
     let mut out = PageTable::new(table.page_dims);
     let mut slots: HashMap<(u8, [u32; 3]), u32> = HashMap::new();
     for (i, e) in table.entries.iter().enumerate() {

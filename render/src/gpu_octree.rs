@@ -290,15 +290,9 @@ pub fn leaf_value_max(
             }
             let node = PageTable::node_of(b.origin, e.level);
             *memo.entry((e.level, node)).or_insert_with(|| {
-                let (_, coarser) = table.coarser_neighbours(e.level, node);
-                let hull = coarser
-                    .iter()
-                    .try_fold(range_of(e.level, node), |h, &(l, n)| {
-                        let (h, (lo, hi)) = (h?, range_of(l, n)?);
-                        Some(Some((h.0.min(lo), h.1.max(hi))))
-                    })
-                    .flatten();
-                hull.map_or(f32::INFINITY, |r| physical_max_bound(r, mapping))
+                table
+                    .sampled_range(e.level, node, &mut range_of)
+                    .map_or(f32::INFINITY, |r| physical_max_bound(r, mapping))
             })
         })
         .collect()

@@ -28,6 +28,24 @@ pub trait PageLookup {
     /// The 26-neighbour mask of coarser resident neighbours of the level-`level` node `node`
     /// and those neighbours (level, node): see `page_table::coarser_neighbours`.
     fn coarser_neighbours(&self, level: u8, node: [u32; 3]) -> (u32, Vec<(u8, [u32; 3])>);
+
+    /// The stored [min, max] of every value a sample in the level-`level` node `node` can
+    /// take: its own range widened by its coarser neighbours', whose field smooth transitions
+    /// blend in (`PageTable::sampled_ranges` per page cell); None where any is unknown.
+    fn sampled_range(
+        &self,
+        level: u8,
+        node: [u32; 3],
+        mut range_of: impl FnMut(u8, [u32; 3]) -> Option<(u16, u16)>,
+    ) -> Option<(u16, u16)> {
+        let (_, coarser) = self.coarser_neighbours(level, node);
+        let mut hull = range_of(level, node)?;
+        for (l, n) in coarser {
+            let (lo, hi) = range_of(l, n)?;
+            hull = (hull.0.min(lo), hull.1.max(hi));
+        }
+        Some(hull)
+    }
 }
 
 impl PageLookup for PageTable {
