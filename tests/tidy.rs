@@ -397,3 +397,155 @@ fn the_cycle_finder_finds_cycles_and_reads_grouped_imports() {
     graph.insert("c".to_string(), BTreeSet::new());
     assert_eq!(find_cycle(&graph), None);
 }
+
+/// The `path = "…"` of every `[[test]]` a manifest declares.
+fn declared_test_paths(manifest: &Path) -> Vec<String> {
+    let text =
+        fs::read_to_string(manifest).unwrap_or_else(|e| panic!("{}: {e}", manifest.display()));
+    let mut in_test = false;
+    let mut paths = Vec::new();
+    for line in text.lines() {
+        let line = line.trim();
+        if line.starts_with('[') {
+            in_test = line == "[[test]]";
+            continue;
+        }
+        if in_test {
+            if let Some(value) = line.strip_prefix("path") {
+                let value = value
+                    .trim_start_matches([' ', '='])
+                    .trim()
+                    .trim_matches('"');
+                paths.push(value.to_string());
+            }
+        }
+    }
+    paths
+}
+
+/// The files a test root includes with `mod name;` (a sibling `name.rs` or `name/mod.rs`).
+fn declared_modules(root: &Path) -> BTreeSet<String> {
+    let text = fs::read_to_string(root).unwrap_or_else(|e| panic!("{}: {e}", root.display()));
+    text.lines()
+        .filter_map(|l| l.trim().strip_prefix("mod ")?.strip_suffix(';'))
+        .map(|m| m.trim().to_string())
+        .collect()
+}
+
+/// The `.rs` files of a test folder that no test target compiles: with `autotests = false`
+/// (one integration binary per crate) a new file is silently left out unless it is a
+/// `[[test]]` or a module of one.
+fn uncompiled_test_files(crate_dir: &Path, tests_dir: &Path, lib: Option<&str>) -> Vec<String> {
+    let mut compiled = BTreeSet::new();
+    for path in declared_test_paths(&crate_dir.join("Cargo.toml")) {
+        let root = crate_dir.join(&path);
+        compiled.insert(root.file_name().unwrap().to_string_lossy().into_owned());
+        for module in declared_modules(&root) {
+            compiled.insert(format!("{module}.rs"));
+        }
+    }
+    let mut missing = Vec::new();
+    let Ok(entries) = fs::read_dir(tests_dir) else {
+        return missing;
+    };
+    for entry in entries.flatten() {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        if name.ends_with(".rs") && Some(name.as_str()) != lib && !compiled.contains(&name) {
+            missing.push(format!("{}", tests_dir.join(&name).display()));
+        }
+    }
+    missing
+}
+
+#[test]
+fn every_test_file_is_compiled() {
+    let root = repo_root();
+    let mut missing = Vec::new();
+    for crate_dir in [
+        "types", "storage", "source", "service", "omezarr", "loader", "render", "app",
+    ] {
+        let dir = root.join(crate_dir);
+        missing.extend(uncompiled_test_files(&dir, &dir.join("tests"), None));
+    }
+    // strata-e2e: the crate is tests/ itself, its library is common.rs.
+    let e2e = root.join("tests");
+    missing.extend(uncompiled_test_files(&e2e, &e2e, Some("common.rs")));
+    assert!(
+        missing.is_empty(),
+        "test files no test target compiles: {missing:?}; add `mod <file>;` to the crate's \
+         tests/integration.rs (or a [[test]] of its own in Cargo.toml)"
+    );
+}
+
+#[test]
+fn the_test_file_check_can_fail() {
+    let dir = tempfile::tempdir().unwrap();
+    let tests = dir.path().join("tests");
+    fs::create_dir(&tests).unwrap();
+    fs::write(
+        dir.path().join("Cargo.toml"),
+        "[package]\nname = \"x\"\nautotests = false\n\n[[test]]\nname = \"integration\"\npath = \"tests/integration.rs\"\n",
+    )
+    .unwrap();
+    fs::write(tests.join("integration.rs"), "mod listed;\n").unwrap();
+    fs::write(tests.join("listed.rs"), "").unwrap();
+    assert!(uncompiled_test_files(dir.path(), &tests, None).is_empty());
+    fs::write(tests.join("forgotten.rs"), "").unwrap();
+    let missing = uncompiled_test_files(dir.path(), &tests, None);
+    assert_eq!(missing.len(), 1, "{missing:?}");
+    assert!(missing[0].ends_with("forgotten.rs"), "{missing:?}");
+}
+
+/// The Debian packages of a list file under `.ci/` (one per line, `#` comments).
+fn package_list(name: &str) -> Vec<String> {
+    let path = repo_root().join(".ci").join(name);
+    fs::read_to_string(&path)
+        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+        .lines()
+        .map(|l| l.split('#').next().unwrap_or("").trim())
+        .filter(|l| !l.is_empty())
+        .map(str::to_string)
+        .collect()
+}
+
+#[test]
+fn the_readme_prerequisites_are_the_package_list_ci_installs() {
+    // One source of truth: .ci/packages lists what the README's two commands need on a fresh
+    // Debian machine; .ci/run installs exactly that list (plus .ci/test-packages for the tests'
+    // own tools) and the README's prerequisites show it as one apt line.
+    let packages = package_list("packages");
+    let line = format!("apt-get install -y {}", packages.join(" "));
+    let readme = fs::read_to_string(repo_root().join("README.md")).unwrap();
+    let prerequisites = readme
+        .split("## Prerequisites")
+        .nth(1)
+        .expect("README.md has a Prerequisites section")
+        .split("\n## ")
+        .next()
+        .unwrap();
+    assert!(
+        prerequisites.contains(&line),
+        "README.md's prerequisites must show exactly `{line}` (from .ci/packages)"
+    );
+    assert_eq!(
+        prerequisites.matches("apt-get install").count(),
+        1,
+        "one apt line in the README's prerequisites"
+    );
+    let ci = fs::read_to_string(repo_root().join(".ci/run")).unwrap();
+    for list in ["packages", "test-packages"] {
+        assert!(
+            ci.contains(&format!(".ci/{list}")),
+            ".ci/run must install from .ci/{list}"
+        );
+    }
+    for not_needed in ["cmake", "nasm"] {
+        assert!(
+            !packages
+                .iter()
+                .chain(&package_list("test-packages"))
+                .any(|p| p == not_needed),
+            "{not_needed} is not needed to build (issue 34): keep it out of .ci's package lists"
+        );
+    }
+}

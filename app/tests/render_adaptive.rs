@@ -3,7 +3,7 @@
 //! transcription (render/src/adaptive/transcription.rs), and the two PNGs agree (DVR, MIP and
 //! shaded DVR); the command reports the pass's sampling operations.
 
-mod common;
+use crate::common;
 
 use common::render_level0;
 use strata_storage::import::ImportOptions;

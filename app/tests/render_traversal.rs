@@ -3,7 +3,7 @@
 //! the PNGs are identical (render/tests/octree_traversal.rs shows why: same samples, same
 //! words); streamed, both converge to the same PNG.
 
-mod common;
+use crate::common;
 
 use common::{render_level0, strata};
 use strata_storage::import::ImportOptions;

@@ -4,7 +4,7 @@
 //! bigger budget refines the same view further. Frames never wait for a read (each frame is
 //! drawn with what is loaded; the fetch workers run behind it).
 
-mod common;
+use crate::common;
 
 use common::*;
 use strata_loader::cut_selection::selections_by_thread;

@@ -4,7 +4,7 @@
 //! converged cut is there with the store's voxels; the residency generation moves with the
 //! cut and stays put once it converged.
 
-mod common;
+use crate::common;
 
 use common::*;
 use strata_loader::StreamingConfig;

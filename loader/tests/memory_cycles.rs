@@ -7,7 +7,7 @@
 //! `STRATA_CYCLES=20 STRATA_CYCLE_PART=full|gpu|cpu STRATA_CYCLE_BUDGETS=fixed|random \
 //!  cargo test -p strata-loader --test memory_cycles -- --ignored --nocapture`
 
-mod common;
+use crate::common;
 
 use std::sync::Arc;
 

@@ -9,7 +9,7 @@
 //! and a visible coarse leaf marks all its page cells (the flat table marks only the cells
 //! that contributed), so with feedback on the two may refine different occluded nodes.
 
-mod common;
+use crate::common;
 
 use common::*;
 use strata_loader::StreamingConfig;

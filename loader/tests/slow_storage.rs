@@ -7,7 +7,7 @@
 //! the watchdog had to. The frame-time comparison with fast storage (50 ms per read injected)
 //! runs only with `STRATA_TIMING_TESTS=1`.
 
-mod common;
+use crate::common;
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{mpsc, Arc, Condvar, Mutex};

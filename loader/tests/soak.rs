@@ -7,7 +7,7 @@
 //! (`STRATA_SOAK_MAX_FRAMES_PER_VOLUME=60` for more, shorter volumes in a shorter run;
 //! `STRATA_MALLOC_ARENAS=default` to measure without the arena cap of malloc_arenas.rs)
 
-mod common;
+use crate::common;
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;

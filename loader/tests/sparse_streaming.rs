@@ -4,7 +4,7 @@
 //! 256 MiB GPU and 1 GiB CPU budgets, converges and matches the f64 reference over the cut
 //! the loader settled on.
 
-mod common;
+use crate::common;
 
 use common::*;
 use strata_loader::store_volume::sampled_entries_only;

@@ -6,7 +6,7 @@
 //! feedback left an occluded node coarser: rays reach it only after opacity ≥ 0.99, so it can
 //! move a pixel by a couple of levels at most. PSNR ≥ 45 dB bounds that.
 
-mod common;
+use crate::common;
 
 use common::*;
 use strata_loader::StreamingConfig;

@@ -5,7 +5,7 @@
 //! zarr-python (float, a channel axis, no orientation, levels that do not halve) imports to the
 //! same store as the same samples imported from raw.
 
-mod common;
+use crate::common;
 
 use std::path::Path;
 

@@ -5,7 +5,7 @@
 //! without Strata's level shapes refused with the URL and the remedy; blosc-compressed chunks
 //! (ome-zarr-py's default) imported and streamed.
 
-mod common;
+use crate::common;
 
 use std::path::Path;
 

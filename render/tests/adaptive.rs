@@ -4,7 +4,7 @@
 //! field that varies only along the view, and the oracle's frames stay close to the full-rate
 //! f64 reference.
 
-mod common;
+use crate::common;
 
 use common::*;
 use strata_render::adaptive::oracle::pcg;

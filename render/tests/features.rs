@@ -1,5 +1,5 @@
 //! Geometry, mixed levels, acceleration invariants, degenerate inputs, visibility readback.
-mod common;
+use crate::common;
 use common::*;
 use glam::{DMat3, DVec3};
 use strata_render::*;

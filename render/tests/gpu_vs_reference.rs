@@ -8,7 +8,7 @@
 //! - Max abs error ≤ 24/255 on any channel: isolated silhouette/edge pixels where the f32 ray
 //!   hits a different side of a sharp TF knee or misses a grazing edge the f64 ray catches.
 //!   PSNR bounds the mean; this bounds gross garbage.
-mod common;
+use crate::common;
 use common::*;
 use strata_render::*;
 

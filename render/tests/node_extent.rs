@@ -3,7 +3,7 @@
 //! not-resident region, rays read fewer page-table words than the cell-by-cell march (the same
 //! shader built with `const NODE_EXTENT: bool = false;`), sample the same points and make the
 //! same images, which match the f64 reference.
-mod common;
+use crate::common;
 use common::*;
 use strata_render::*;
 

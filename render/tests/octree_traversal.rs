@@ -4,7 +4,7 @@
 //! node buffer makes the flat table's images for DVR, shaded DVR, MIP and isosurfaces, with
 //! smooth level transitions off and on (their edge and corner neighbours found by point
 //! queries), within the f64 reference's bounds.
-mod common;
+use crate::common;
 use common::*;
 use strata_render::octree_cut::test_cuts::{cuts, rays, Rng};
 use strata_render::octree_cut::{LeafVisit, OctreeCut};

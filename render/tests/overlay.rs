@@ -7,7 +7,7 @@
 //! otherwise. The label faces add a discontinuity of their own (a piecewise-constant overlay
 //! is not smoothed by the midpoint rule), but a sample lands on the wrong side of a face only
 //! within f32 rounding of it, so it stays inside the same bounds.
-mod common;
+use crate::common;
 use common::*;
 use glam::DVec3;
 use strata_render::reference::{render_reference_with_overlay, ReferenceImage, ReferenceOptions};

@@ -2,7 +2,7 @@
 //! order they arrive (from disk, from a server, after an outage, under another budget), so the
 //! same cut sits in different slots from run to run; with exact trilinear the weights come from
 //! the in-slot coordinate alone (field.wgsl `fetch`), and two such runs must agree bit for bit.
-mod common;
+use crate::common;
 use common::*;
 use strata_render::*;
 

@@ -1,7 +1,7 @@
 //! Smooth mixed-resolution transitions (smooth_transitions.rs): the field is continuous across
 //! every face, edge and corner where levels meet, on the CPU and on the GPU (probe pass), and
 //! GPU images of mixed cuts match the reference with smoothing on.
-mod common;
+use crate::common;
 use common::*;
 use glam::DVec3;
 use strata_render::smooth_transitions::{sample_field, transition_masks};

@@ -5,7 +5,7 @@
 //! other, so those comparisons run only with `STRATA_TIMING_TESTS=1`; what follows from the
 //! order of events (a pass inside the wait that covers it, timings that arrive, the controller
 //! fed with them) is always checked.
-mod common;
+use crate::common;
 use common::*;
 use std::collections::VecDeque;
 use strata_render::*;

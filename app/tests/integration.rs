@@ -1,0 +1,16 @@
+//! The crate's integration tests as one test binary: one link instead of one per file
+//! (issue 34). Each module is one former test file; a new file in tests/ must be added
+//! here (or as a [[test]] of its own in Cargo.toml): tests/tidy.rs checks that none is left out.
+
+mod bench_timecritical;
+mod bench_transitions;
+mod cli;
+mod common;
+mod omezarr_foreign;
+mod omezarr_s3;
+mod orbit;
+mod reliability;
+mod remote;
+mod render_adaptive;
+mod render_traversal;
+mod viewer_window;

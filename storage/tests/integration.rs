@@ -1,0 +1,12 @@
+//! The crate's integration tests as one test binary: one link instead of one per file
+//! (issue 34). Each module is one former test file; a new file in tests/ must be added
+//! here (or as a [[test]] of its own in Cargo.toml): tests/tidy.rs checks that none is left out.
+
+mod dicom_pacs;
+mod dicom_seg;
+mod frames;
+mod malformed_corpus;
+mod mgh;
+mod readers;
+mod sparse_skeleton;
+mod store_formats;
