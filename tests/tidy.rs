@@ -6,6 +6,9 @@
 //!   shared types crate stays small.
 //! - Module graphs: no module cycle inside any crate (a module and its own ancestors excepted:
 //!   a parent declares its children and a child may use what its parent defines).
+//! - Build tools: Rust and a C/C++ compiler are enough to build; nothing in `Cargo.lock` needs
+//!   cmake or nasm (read from the lock file: `cargo tree` would need the network for all
+//!   targets).
 //!
 //! `cargo test -p strata-e2e --test tidy -- --nocapture` prints each crate's module graph.
 
@@ -474,6 +477,103 @@ fn every_test_file_is_compiled() {
         missing.is_empty(),
         "test files no test target compiles: {missing:?}; add `mod <file>;` to the crate's \
          tests/integration.rs (or a [[test]] of its own in Cargo.toml)"
+/// Crates whose build runs a tool beyond Rust and a C/C++ compiler: `cmake` (the crate that
+/// drives the cmake program, a build-dependency of every cmake-built -sys crate) and `nasm-rs`
+/// (drives nasm).
+const NEEDS_EXTRA_BUILD_TOOL: &[&str] = &["cmake", "nasm-rs"];
+
+/// The packages of a `Cargo.lock` (format version 3 or 4): name -> (has a registry or git
+/// source, names of its dependencies). Enough of TOML for what cargo writes: one `[[package]]`
+/// table each, `name = "…"`, `source = …`, and `dependencies = [` with one `"name[ version[
+/// (source)]]"` per line. A name locked at two versions keeps the union of their dependencies.
+fn lock_packages(lock: &str) -> BTreeMap<String, (bool, BTreeSet<String>)> {
+    let mut packages: BTreeMap<String, (bool, BTreeSet<String>)> = BTreeMap::new();
+    let mut name: Option<String> = None;
+    let mut in_deps = false;
+    let unquote = |s: &str| s.trim().trim_end_matches(',').trim_matches('"').to_string();
+    for line in lock.lines() {
+        let line = line.trim();
+        if line == "[[package]]" || line.starts_with('[') && !line.starts_with("[\"") {
+            name = None;
+            in_deps = false;
+            continue;
+        }
+        if in_deps {
+            if line.starts_with(']') {
+                in_deps = false;
+            } else if let Some(n) = &name {
+                let dep = unquote(line);
+                let dep = dep.split(' ').next().unwrap_or_default().to_string();
+                packages.entry(n.clone()).or_default().1.insert(dep);
+            }
+            continue;
+        }
+        if let Some(v) = line.strip_prefix("name = ") {
+            let n = unquote(v);
+            packages.entry(n.clone()).or_default();
+            name = Some(n);
+        } else if let (Some(_), Some(n)) = (line.strip_prefix("source = "), &name) {
+            packages.entry(n.clone()).or_default().0 = true;
+        } else if line.starts_with("dependencies = [") {
+            in_deps = !line.ends_with(']');
+        }
+    }
+    packages
+}
+
+/// For each forbidden package reachable from a package without a source (the workspace's own
+/// crates and its patched copies), one chain from such a package to it, shortest first found.
+fn chains_to(lock: &str, forbidden: &[&str]) -> Vec<Vec<String>> {
+    let packages = lock_packages(lock);
+    let mut parent: BTreeMap<String, Option<String>> = BTreeMap::new();
+    let mut queue = std::collections::VecDeque::new();
+    for (name, (sourced, _)) in &packages {
+        if !sourced {
+            parent.insert(name.clone(), None);
+            queue.push_back(name.clone());
+        }
+    }
+    while let Some(name) = queue.pop_front() {
+        for dep in packages.get(&name).map(|p| &p.1).into_iter().flatten() {
+            if !parent.contains_key(dep) {
+                parent.insert(dep.clone(), Some(name.clone()));
+                queue.push_back(dep.clone());
+            }
+        }
+    }
+    let mut chains = Vec::new();
+    for f in forbidden {
+        if parent.contains_key(*f) {
+            let mut chain = vec![f.to_string()];
+            while let Some(Some(p)) = parent.get(chain.last().expect("never empty")) {
+                chain.push(p.clone());
+            }
+            chain.reverse();
+            chains.push(chain);
+        }
+    }
+    chains
+}
+
+#[test]
+fn rust_and_a_c_compiler_are_enough_to_build() {
+    let path = repo_root().join("Cargo.lock");
+    let lock = fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    assert!(
+        lock_packages(&lock).contains_key("strata-storage"),
+        "{} lists no strata-storage: the lock parser no longer reads it",
+        path.display()
+    );
+    let chains: Vec<String> = chains_to(&lock, NEEDS_EXTRA_BUILD_TOOL)
+        .iter()
+        .map(|c| c.join(" -> "))
+        .collect();
+    assert!(
+        chains.is_empty(),
+        "the build graph needs a tool beyond Rust and a C/C++ compiler: {}. Pick a pure-Rust or \
+         cc-built alternative, or patch the -sys crate to build through cc (as vendor/ does for \
+         charls-sys and turbojpeg-sys)",
+        chains.join("; ")
     );
 }
 
@@ -548,4 +648,63 @@ fn the_readme_prerequisites_are_the_package_list_ci_installs() {
             "{not_needed} is not needed to build (issue 34): keep it out of .ci's package lists"
         );
     }
+fn the_lock_reader_finds_a_chain_to_cmake() {
+    // The checker itself must be able to fail: a cmake-built -sys crate two steps down.
+    let lock = r#"version = 4
+
+[[package]]
+name = "strata-storage"
+version = "0.1.0"
+dependencies = [
+ "dicom-pixeldata",
+ "serde",
+]
+
+[[package]]
+name = "dicom-pixeldata"
+version = "0.10.1"
+source = "registry+https://github.com/rust-lang/crates.io-index"
+dependencies = [
+ "charls-sys 2.4.6+charls.2.4.5 (registry+https://github.com/rust-lang/crates.io-index)",
+]
+
+[[package]]
+name = "charls-sys"
+version = "2.4.6+charls.2.4.5"
+source = "registry+https://github.com/rust-lang/crates.io-index"
+dependencies = [
+ "cmake",
+]
+
+[[package]]
+name = "cmake"
+version = "0.1.58"
+source = "registry+https://github.com/rust-lang/crates.io-index"
+dependencies = ["cc"]
+
+[[package]]
+name = "serde"
+version = "1.0.0"
+source = "registry+https://github.com/rust-lang/crates.io-index"
+
+[[package]]
+name = "nasm-rs"
+version = "0.3.0"
+source = "registry+https://github.com/rust-lang/crates.io-index"
+"#;
+    assert_eq!(
+        chains_to(lock, NEEDS_EXTRA_BUILD_TOOL),
+        vec![vec![
+            "strata-storage".to_string(),
+            "dicom-pixeldata".to_string(),
+            "charls-sys".to_string(),
+            "cmake".to_string()
+        ]],
+        "nasm-rs is locked but unreachable, so only cmake's chain counts"
+    );
+    let without = lock.replace(" \"cmake\",\n", "");
+    assert_eq!(
+        chains_to(&without, NEEDS_EXTRA_BUILD_TOOL),
+        Vec::<Vec<String>>::new()
+    );
 }
