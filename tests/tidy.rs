@@ -10,7 +10,7 @@
 //!   cmake or nasm (read from the lock file: `cargo tree` would need the network for all
 //!   targets).
 //!
-//! `cargo test -p strata-e2e --test tidy -- --nocapture` prints each crate's module graph.
+//! `cargo test -p strata-e2e --test integration tidy:: -- --nocapture` prints each crate's module graph.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::fs;
@@ -477,6 +477,82 @@ fn every_test_file_is_compiled() {
         missing.is_empty(),
         "test files no test target compiles: {missing:?}; add `mod <file>;` to the crate's \
          tests/integration.rs (or a [[test]] of its own in Cargo.toml)"
+    );
+}
+
+#[test]
+fn the_test_file_check_can_fail() {
+    let dir = tempfile::tempdir().unwrap();
+    let tests = dir.path().join("tests");
+    fs::create_dir(&tests).unwrap();
+    fs::write(
+        dir.path().join("Cargo.toml"),
+        "[package]\nname = \"x\"\nautotests = false\n\n[[test]]\nname = \"integration\"\npath = \"tests/integration.rs\"\n",
+    )
+    .unwrap();
+    fs::write(tests.join("integration.rs"), "mod listed;\n").unwrap();
+    fs::write(tests.join("listed.rs"), "").unwrap();
+    assert!(uncompiled_test_files(dir.path(), &tests, None).is_empty());
+    fs::write(tests.join("forgotten.rs"), "").unwrap();
+    let missing = uncompiled_test_files(dir.path(), &tests, None);
+    assert_eq!(missing.len(), 1, "{missing:?}");
+    assert!(missing[0].ends_with("forgotten.rs"), "{missing:?}");
+}
+
+/// The Debian packages of a list file under `.ci/` (one per line, `#` comments).
+fn package_list(name: &str) -> Vec<String> {
+    let path = repo_root().join(".ci").join(name);
+    fs::read_to_string(&path)
+        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+        .lines()
+        .map(|l| l.split('#').next().unwrap_or("").trim())
+        .filter(|l| !l.is_empty())
+        .map(str::to_string)
+        .collect()
+}
+
+#[test]
+fn the_readme_prerequisites_are_the_package_list_ci_installs() {
+    // One source of truth: .ci/packages lists what the README's two commands need on a fresh
+    // Debian machine; .ci/run installs exactly that list (plus .ci/test-packages for the tests'
+    // own tools) and the README's prerequisites show it as one apt line.
+    let packages = package_list("packages");
+    let line = format!("apt-get install -y {}", packages.join(" "));
+    let readme = fs::read_to_string(repo_root().join("README.md")).unwrap();
+    let prerequisites = readme
+        .split("## Prerequisites")
+        .nth(1)
+        .expect("README.md has a Prerequisites section")
+        .split("\n## ")
+        .next()
+        .unwrap();
+    assert!(
+        prerequisites.contains(&line),
+        "README.md's prerequisites must show exactly `{line}` (from .ci/packages)"
+    );
+    assert_eq!(
+        prerequisites.matches("apt-get install").count(),
+        1,
+        "one apt line in the README's prerequisites"
+    );
+    let ci = fs::read_to_string(repo_root().join(".ci/run")).unwrap();
+    for list in ["packages", "test-packages"] {
+        assert!(
+            ci.contains(&format!(".ci/{list}")),
+            ".ci/run must install from .ci/{list}"
+        );
+    }
+    for not_needed in ["cmake", "nasm"] {
+        assert!(
+            !packages
+                .iter()
+                .chain(&package_list("test-packages"))
+                .any(|p| p == not_needed),
+            "{not_needed} is not needed to build (issue 34): keep it out of .ci's package lists"
+        );
+    }
+}
+
 /// Crates whose build runs a tool beyond Rust and a C/C++ compiler: `cmake` (the crate that
 /// drives the cmake program, a build-dependency of every cmake-built -sys crate) and `nasm-rs`
 /// (drives nasm).
@@ -578,76 +654,6 @@ fn rust_and_a_c_compiler_are_enough_to_build() {
 }
 
 #[test]
-fn the_test_file_check_can_fail() {
-    let dir = tempfile::tempdir().unwrap();
-    let tests = dir.path().join("tests");
-    fs::create_dir(&tests).unwrap();
-    fs::write(
-        dir.path().join("Cargo.toml"),
-        "[package]\nname = \"x\"\nautotests = false\n\n[[test]]\nname = \"integration\"\npath = \"tests/integration.rs\"\n",
-    )
-    .unwrap();
-    fs::write(tests.join("integration.rs"), "mod listed;\n").unwrap();
-    fs::write(tests.join("listed.rs"), "").unwrap();
-    assert!(uncompiled_test_files(dir.path(), &tests, None).is_empty());
-    fs::write(tests.join("forgotten.rs"), "").unwrap();
-    let missing = uncompiled_test_files(dir.path(), &tests, None);
-    assert_eq!(missing.len(), 1, "{missing:?}");
-    assert!(missing[0].ends_with("forgotten.rs"), "{missing:?}");
-}
-
-/// The Debian packages of a list file under `.ci/` (one per line, `#` comments).
-fn package_list(name: &str) -> Vec<String> {
-    let path = repo_root().join(".ci").join(name);
-    fs::read_to_string(&path)
-        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
-        .lines()
-        .map(|l| l.split('#').next().unwrap_or("").trim())
-        .filter(|l| !l.is_empty())
-        .map(str::to_string)
-        .collect()
-}
-
-#[test]
-fn the_readme_prerequisites_are_the_package_list_ci_installs() {
-    // One source of truth: .ci/packages lists what the README's two commands need on a fresh
-    // Debian machine; .ci/run installs exactly that list (plus .ci/test-packages for the tests'
-    // own tools) and the README's prerequisites show it as one apt line.
-    let packages = package_list("packages");
-    let line = format!("apt-get install -y {}", packages.join(" "));
-    let readme = fs::read_to_string(repo_root().join("README.md")).unwrap();
-    let prerequisites = readme
-        .split("## Prerequisites")
-        .nth(1)
-        .expect("README.md has a Prerequisites section")
-        .split("\n## ")
-        .next()
-        .unwrap();
-    assert!(
-        prerequisites.contains(&line),
-        "README.md's prerequisites must show exactly `{line}` (from .ci/packages)"
-    );
-    assert_eq!(
-        prerequisites.matches("apt-get install").count(),
-        1,
-        "one apt line in the README's prerequisites"
-    );
-    let ci = fs::read_to_string(repo_root().join(".ci/run")).unwrap();
-    for list in ["packages", "test-packages"] {
-        assert!(
-            ci.contains(&format!(".ci/{list}")),
-            ".ci/run must install from .ci/{list}"
-        );
-    }
-    for not_needed in ["cmake", "nasm"] {
-        assert!(
-            !packages
-                .iter()
-                .chain(&package_list("test-packages"))
-                .any(|p| p == not_needed),
-            "{not_needed} is not needed to build (issue 34): keep it out of .ci's package lists"
-        );
-    }
 fn the_lock_reader_finds_a_chain_to_cmake() {
     // The checker itself must be able to fail: a cmake-built -sys crate two steps down.
     let lock = r#"version = 4
