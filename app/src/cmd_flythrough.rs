@@ -61,6 +61,15 @@ pub struct FlythroughArgs {
     /// Frames to wait at a viewpoint for convergence before moving on.
     #[arg(long, default_value_t = 300)]
     pub settle_frames: usize,
+    /// Seconds to wait at a viewpoint for convergence before moving on, whichever of this and
+    /// --settle-frames ends first: a fast GPU passes 3000 frames in 9 s, lavapipe at 512² in
+    /// an hour.
+    #[arg(long)]
+    pub settle_seconds: Option<f64>,
+    /// Still frames to keep a viewpoint after it converged, counting cut changes (LOD
+    /// flicker: "cut changes while still", which should be 0).
+    #[arg(long, default_value_t = 30)]
+    pub hold_frames: usize,
     #[arg(long, default_value_t = 2)]
     pub fetch_threads: usize,
     /// Skip the in-core comparison.
@@ -97,6 +106,12 @@ struct StopResult {
     seconds_to_converge: f64,
     frames_to_converge: usize,
     working_set_bricks: usize,
+    /// Cut changes at this viewpoint while the camera stood still (the loader's
+    /// `cut_changes_while_still_total` over the settle and hold frames).
+    cut_changes_while_still: u64,
+    /// Still frames held after converging, and how many of them were not converged.
+    held_frames: usize,
+    held_not_converged: usize,
     in_core: Option<InCore>,
 }
 
@@ -119,6 +134,12 @@ pub fn run(args: FlythroughArgs) -> Result<()> {
         height,
         ..RenderSettings::default()
     };
+    if let Some(s) = args.settle_seconds {
+        anyhow::ensure!(
+            s.is_finite() && s > 0.0,
+            "--settle-seconds must be a positive number of seconds, not {s}"
+        );
+    }
     let ctx = GpuContext::headless()?;
     eprintln!("GPU: {}", ctx.adapter_name());
     let config = StreamingConfig {
@@ -197,9 +218,19 @@ pub fn run(args: FlythroughArgs) -> Result<()> {
             seconds_to_converge: f64::NAN,
             frames_to_converge: 0,
             working_set_bricks: 0,
+            cut_changes_while_still: 0,
+            held_frames: 0,
+            held_not_converged: 0,
             in_core: None,
         };
+        let changes_before = volume.last_stats().cut_changes_while_still_total;
         for held in 0..args.settle_frames.max(1) {
+            if args
+                .settle_seconds
+                .is_some_and(|s| held > 0 && arrived.elapsed().as_secs_f64() >= s)
+            {
+                break;
+            }
             if total_frames >= args.frames {
                 stops.push(result);
                 break 'path;
@@ -221,6 +252,24 @@ pub fn run(args: FlythroughArgs) -> Result<()> {
                 break;
             }
         }
+        // Hold the converged view: a still view must stay still (issue 35).
+        if result.converged {
+            for _ in 0..args.hold_frames {
+                if total_frames >= args.frames {
+                    break;
+                }
+                let (stats, seconds) = timed_frame(&ctx, &mut volume, &camera, &settings)?;
+                record(&mut csv, total_frames, stop, "still", seconds, &stats)?;
+                frame_seconds.push(seconds);
+                loader_seconds.push(stats.loader_seconds);
+                loader_cpu_seconds.push(stats.loader_cpu_seconds);
+                total_frames += 1;
+                result.held_frames += 1;
+                result.held_not_converged += usize::from(!stats.converged);
+            }
+        }
+        result.cut_changes_while_still =
+            volume.last_stats().cut_changes_while_still_total - changes_before;
         if result.converged && !args.no_in_core {
             result.in_core = Some(in_core(
                 &ctx,
@@ -310,6 +359,14 @@ fn in_core(
     })
 }
 
+/// "cut changes while still: N" with the hold that followed convergence.
+fn still_line(r: &StopResult) -> String {
+    format!(
+        "cut changes while still: {} (held {} frames after converging, {} of them not converged)",
+        r.cut_changes_while_still, r.held_frames, r.held_not_converged
+    )
+}
+
 fn print_stop(r: &StopResult) {
     let converge = if r.converged {
         format!(
@@ -317,9 +374,10 @@ fn print_stop(r: &StopResult) {
             r.status, r.seconds_to_converge, r.frames_to_converge, r.working_set_bricks
         )
     } else {
-        "did not converge within --settle-frames".to_string()
+        "did not converge within --settle-frames / --settle-seconds".to_string()
     };
     eprintln!("viewpoint {}: {converge}", r.stop);
+    eprintln!("  {}", still_line(r));
     if let Some(c) = &r.in_core {
         eprintln!(
             "  in core: {} bricks loaded in {:.2} s; frame {:.1} ms in core vs {:.1} ms streamed (ratio {:.2}); streamed vs in-core PSNR {:.1} dB",
@@ -388,6 +446,7 @@ fn summary(args: &FlythroughArgs, volume: &StreamingVolume, record: &RunRecord) 
                 "not converged".into()
             }
         );
+        println!("    {}", still_line(r));
     }
     println!(
         "  frame time ms: p50 {:.1} p95 {:.1} p99 {:.1} max {:.1} mean {:.1}",
@@ -454,7 +513,7 @@ fn summary(args: &FlythroughArgs, volume: &StreamingVolume, record: &RunRecord) 
     }
 }
 
-const CSV_HEADER: &str = "frame,viewpoint,phase,frame_ms,loader_ms,loader_cpu_ms,converged,leaves,data_leaves,working_set_bricks,gpu_slots_used,gpu_mib,cpu_mib,cpu_hit_rate,gpu_hit_rate,pending,queued,in_flight,stale_dropped_total,uploads,upload_mib,bricks_read_total,stored_mb_read_total,read_mb_per_s,prefetch_loaded_total,prefetch_used_total,prefetch_hit_rate,failed_bricks,gpu_budget_limited,left_coarser,gpu_resident_per_level,blocked_data_upload_slots_balance,data_leaves_per_level";
+const CSV_HEADER: &str = "frame,viewpoint,phase,frame_ms,loader_ms,loader_cpu_ms,converged,leaves,data_leaves,working_set_bricks,gpu_slots_used,gpu_mib,cpu_mib,cpu_hit_rate,gpu_hit_rate,pending,queued,in_flight,stale_dropped_total,uploads,upload_mib,bricks_read_total,stored_mb_read_total,read_mb_per_s,prefetch_loaded_total,prefetch_used_total,prefetch_hit_rate,failed_bricks,gpu_budget_limited,left_coarser,gpu_resident_per_level,blocked_data_upload_slots_balance,data_leaves_per_level,cut_changes_while_still_total";
 
 fn record(
     csv: &mut Option<std::io::BufWriter<std::fs::File>>,
@@ -473,7 +532,7 @@ fn record(
     };
     writeln!(
         file,
-        "{frame},{stop},{phase},{:.3},{:.3},{:.3},{},{},{},{},{},{:.2},{:.2},{:.4},{:.4},{},{},{},{},{},{:.3},{},{:.3},{:.3},{},{},{:.4},{},{},{},{},{},{}",
+        "{frame},{stop},{phase},{:.3},{:.3},{:.3},{},{},{},{},{},{:.2},{:.2},{:.4},{:.4},{},{},{},{},{},{:.3},{},{:.3},{:.3},{},{},{:.4},{},{},{},{},{},{},{}",
         seconds * 1e3,
         s.loader_seconds * 1e3,
         s.loader_cpu_seconds * 1e3,
@@ -503,7 +562,8 @@ fn record(
         s.left_coarser,
         join(&s.gpu_resident_per_level),
         join(&s.blocked),
-        join(&s.data_leaves_per_level)
+        join(&s.data_leaves_per_level),
+        s.cut_changes_while_still_total
     )?;
     Ok(())
 }

@@ -252,3 +252,77 @@ fn info_of_a_format_1_store_names_the_command_that_rewrites_it() {
     assert!(o.status.success(), "{}", text(&o));
     assert!(!text(&o).contains("rewrite it"), "{}", text(&o));
 }
+
+/// `strata flythrough` holds each converged viewpoint for `--hold-frames` and reports LOD
+/// flicker per viewpoint ("cut changes while still: N") and per frame in the CSV (issue 35).
+#[test]
+fn flythrough_reports_cut_changes_while_still_per_viewpoint_and_in_the_csv() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("p.strata");
+    let csv = dir.path().join("f.csv");
+    let o = strata(&["sample", "--size", "64", "--out", store.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    let o = strata(&[
+        "flythrough",
+        store.to_str().unwrap(),
+        "--size",
+        "64x64",
+        "--stops",
+        "2",
+        "--glide-frames",
+        "2",
+        "--settle-frames",
+        "400",
+        "--settle-seconds",
+        "120",
+        "--hold-frames",
+        "20",
+        "--gpu-mib",
+        "64",
+        "--cpu-mib",
+        "128",
+        "--no-in-core",
+        "--csv",
+        csv.to_str().unwrap(),
+    ]);
+    let out = text(&o);
+    assert!(o.status.success(), "{out}");
+    for stop in 0..2 {
+        let line = out
+            .lines()
+            .skip_while(|l| {
+                !l.trim_start()
+                    .starts_with(&format!("viewpoint {stop}: converged"))
+            })
+            .nth(1)
+            .unwrap_or_else(|| panic!("viewpoint {stop} did not converge: {out}"));
+        assert!(
+            line.contains("cut changes while still: 0 (held 20 frames after converging, 0 of them not converged)"),
+            "viewpoint {stop}: {line}\n{out}"
+        );
+    }
+    let table = std::fs::read_to_string(&csv).unwrap();
+    let mut lines = table.lines();
+    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let column = header
+        .iter()
+        .position(|&c| c == "cut_changes_while_still_total")
+        .expect("the CSV has the flicker column");
+    let phase = header.iter().position(|&c| c == "phase").unwrap();
+    let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
+    assert!(rows.iter().all(|r| r.len() == header.len()), "{table}");
+    assert_eq!(rows.iter().filter(|r| r[phase] == "still").count(), 40);
+    assert!(rows.iter().all(|r| r[column] == "0"), "{table}");
+}
+
+/// `--settle-seconds` must be a positive number: a clear error, before any GPU work.
+#[test]
+fn flythrough_refuses_a_settle_time_that_is_not_positive() {
+    let o = strata(&["flythrough", "nowhere.strata", "--settle-seconds", "0"]);
+    assert!(!o.status.success());
+    assert!(
+        text(&o).contains("--settle-seconds must be a positive"),
+        "{}",
+        text(&o)
+    );
+}

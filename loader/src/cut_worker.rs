@@ -49,16 +49,41 @@ pub enum SelectionTiming {
     /// job when it is idle; it never waits (the viewer, the flythrough). The cut lags the
     /// camera by a frame or more.
     Background,
+    /// The background timing at a fixed cadence: every `n`-th frame waits for the job handed
+    /// over `n` frames before, applies it and hands over the next; the frames between apply
+    /// nothing. What a fast GPU does (an H200 draws ~7.5 frames per selection at 1024³),
+    /// made deterministic so lavapipe can be driven at that cadence (tests).
+    EveryNthFrame(u32),
 }
 
 /// What a cut is selected for, apart from residency and visibility feedback.
 #[derive(Clone, PartialEq)]
 pub(crate) struct ViewInputs {
     pub camera: Camera,
+    /// Only what the selection reads ([`ViewInputs::selection_settings`]).
     pub settings: RenderSettings,
     pub tf_generation: u64,
     pub failed_bricks: usize,
     pub max_voxel_pixels: f64,
+}
+
+impl ViewInputs {
+    /// The settings a cut depends on: the image size, crop box and clip plane (projection and
+    /// culling), the mode and iso value (emptiness); everything else at its default. The
+    /// viewer changes `frame_index` (the jitter's seed) every frame and the time-critical
+    /// controller the step: with the whole settings compared, a still view was a new view
+    /// every frame, so it never reported "converged" and its cut was never kept (issue 35).
+    pub fn selection_settings(settings: &RenderSettings) -> RenderSettings {
+        RenderSettings {
+            width: settings.width,
+            height: settings.height,
+            mode: settings.mode,
+            iso_value: settings.iso_value,
+            crop: settings.crop,
+            clip_plane: settings.clip_plane,
+            ..RenderSettings::default()
+        }
+    }
 }
 
 /// Everything `build_page_table` reads: each leaf with its kind and the slot it is drawn
@@ -163,11 +188,15 @@ pub(crate) struct Selected {
     pub new_table: Option<NewTable>,
 }
 
-/// Once a still view's cut is complete and bound by the GPU budget, a new selection may
-/// only refine it further, never trade: one that would coarsen a node the settled cut
-/// refined is replaced by the settled cut (whose bricks are all still on the GPU, so
-/// nothing is uploaded). Without this, feedback flicker at the silhouette and bricks
-/// evicted and read again made two cuts that each fit alternate forever at 1024³.
+/// Once a still view's cut is complete, a new selection may only refine it further, never
+/// trade: one that would coarsen a node the settled cut refined is replaced by the settled
+/// cut (whose bricks are all still on the GPU, so nothing is uploaded). Without this,
+/// feedback flicker at the silhouette and bricks evicted and read again made two cuts that
+/// each fit a budget alternate forever at 1024³, and without a binding budget the cut
+/// flipped between two states at a fast GPU's cadence (issue 35): a node's own refinement
+/// hid part of it, and the next selection coarsened it. The settled cut is the last
+/// complete one, whether the budget binds or not, so the cut of a still view changes only
+/// by refinement, which ends.
 fn keep_settled_cut(
     settled: Option<&(Cut, ViewInputs)>,
     slots: &GpuSlots,

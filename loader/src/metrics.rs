@@ -17,6 +17,10 @@ pub struct FrameStats {
     /// Finished selections dropped since open because they no longer fitted (a brick to
     /// upload left the CPU cache meanwhile, or a new transfer function).
     pub selections_dropped_total: u64,
+    /// Cut changes since open while the view stood still (same camera, settings and transfer
+    /// function as the cut before): ones that coarsened a node the previous cut refined, and
+    /// any change after the view had converged. LOD flicker: 0 when a still view is still.
+    pub cut_changes_while_still_total: u64,
     pub leaves: usize,
     pub data_leaves: usize,
     /// Data leaves of this cut per level (index = level).

@@ -64,8 +64,10 @@ pub struct StreamingConfig {
     /// Bound on queued requests (stale ones are dropped each frame anyway).
     pub max_queued_requests: usize,
     pub visibility_feedback: bool,
-    /// Feedback frames a page stays visible after it was last seen contributing.
-    pub visibility_memory_frames: u64,
+    /// Cut generations (cut changes) a page stays visible after the one under which it was
+    /// last seen contributing: never frames, whose count per selection varies with the GPU's
+    /// speed (see visibility.rs).
+    pub visibility_memory_generations: u64,
     pub prefetch: bool,
     /// Prefetch requests queued per frame at most.
     pub prefetch_per_frame: usize,
@@ -99,7 +101,7 @@ impl Default for StreamingConfig {
             bricks_in_transit: 128,
             max_queued_requests: 256,
             visibility_feedback: true,
-            visibility_memory_frames: 3,
+            visibility_memory_generations: 3,
             prefetch: true,
             prefetch_per_frame: 16,
             selection: SelectionTiming::EachFrame,
@@ -179,11 +181,20 @@ pub struct StreamingVolume {
     /// The current cut was complete, uploaded nothing and left the table as it was when
     /// applied: converged, while the view stays the same.
     current_converged: bool,
-    /// The current cut is complete and bound by the GPU budget: what this view settles on
-    /// (see cut_worker.rs's keep_settled_cut).
-    current_settled: bool,
+    /// The last complete cut applied (its uploads done) with its view: while the view stays
+    /// the same, a selection may only refine it (see cut_worker.rs's keep_settled_cut).
+    settled: Option<SettledCut>,
+    /// Frames between the last two applied selections (1 when each frame selects): the
+    /// upload budget is per frame, so a selection may upload for each frame it spans.
+    frames_per_selection: u64,
+    /// Frame at which the last selection was applied.
+    applied_at_frame: u64,
     selections_applied: u64,
     selections_dropped: u64,
+    /// See [`FrameStats::cut_changes_while_still_total`].
+    cut_changes_while_still: u64,
+    /// The view inputs the loader last reported converged for (flicker after that counts).
+    converged_for: Option<ViewInputs>,
     /// Counts transfer-function changes (emptiness changes with them).
     tf_generation: u64,
     /// Why the traversal was chosen when the configuration left it open and the flat table
@@ -285,8 +296,10 @@ impl StreamingVolume {
             )?),
         };
         let visibility = Arc::new(match traversal {
-            Traversal::Flat => PageVisibility::new(&octree, config.visibility_memory_frames),
-            Traversal::Octree => PageVisibility::per_leaf(&octree, config.visibility_memory_frames),
+            Traversal::Flat => PageVisibility::new(&octree, config.visibility_memory_generations),
+            Traversal::Octree => {
+                PageVisibility::per_leaf(&octree, config.visibility_memory_generations)
+            }
         });
         let predictor = CutPredictor::start(octree.clone())?;
         let selector = CutWorker::start(octree.clone())?;
@@ -323,9 +336,13 @@ impl StreamingVolume {
             page_table_key: Arc::default(),
             current: None,
             current_converged: false,
-            current_settled: false,
+            settled: None,
+            frames_per_selection: 1,
+            applied_at_frame: 0,
             selections_applied: 0,
             selections_dropped: 0,
+            cut_changes_while_still: 0,
+            converged_for: None,
             tf_generation: 0,
             traversal_note,
             residency_generation: 0,
@@ -462,7 +479,7 @@ impl StreamingVolume {
         }
         let inputs = ViewInputs {
             camera: *camera,
-            settings: settings.clone(),
+            settings: ViewInputs::selection_settings(settings),
             tf_generation: self.tf_generation,
             failed_bricks: self.failed.len(),
             max_voxel_pixels: self.config.max_voxel_pixels,
@@ -480,6 +497,17 @@ impl StreamingVolume {
                 };
                 // The next job starts from what this frame applied.
                 if !self.selector.busy() {
+                    self.submit_selection(camera, settings, inputs.clone())?;
+                }
+                applied
+            }
+            SelectionTiming::EveryNthFrame(n) => {
+                let mut applied = None;
+                if self.frame.is_multiple_of(u64::from(n.max(1))) || !self.selector.busy() {
+                    if self.selector.busy() {
+                        let selected = self.selector.wait()?;
+                        applied = self.apply_selection(ctx, selected, camera, settings)?;
+                    }
                     self.submit_selection(camera, settings, inputs.clone())?;
                 }
                 applied
@@ -528,14 +556,33 @@ impl StreamingVolume {
                     && current.as_ref().is_some_and(|c| c.1 == inputs)
             }
         };
+        if let (Some((cut, true)), Some(previous)) = (&applied, &current) {
+            // A still view's cut changed: flicker when it gives back a refinement, or when
+            // the view had already converged.
+            let (before, before_inputs) = (&previous.0, &previous.1);
+            if *before_inputs == inputs {
+                let refined: HashSet<BrickId> = cut.refined.iter().copied().collect();
+                let coarsens = before.refined.iter().any(|id| !refined.contains(id));
+                if coarsens || self.converged_for.as_ref() == Some(&inputs) {
+                    self.cut_changes_while_still += 1;
+                }
+            }
+        }
+        if converged {
+            self.converged_for = Some(inputs.clone());
+        }
         let mut stats = self.stats(cut, fetched, rewritten, converged, loader_seconds);
         stats.loader_cpu_seconds = loader_cpu_seconds;
         if let Some((mut cut, rewritten)) = applied {
             self.current_converged = cut.complete() && cut.uploads.is_empty() && !rewritten;
-            self.current_settled = cut.complete() && cut.blocked_by_gpu_slots > 0;
+            let complete = cut.complete();
             cut.uploads.clear();
             cut.data_leaves_on_gpu = cut.data_leaves().count();
-            self.current = Some(Arc::new((cut, inputs)));
+            let current = Arc::new((cut, inputs));
+            if complete {
+                self.settled = Some(current.clone());
+            }
+            self.current = Some(current);
         }
         self.last_stats = stats.clone();
         Ok(stats)
@@ -565,7 +612,7 @@ impl StreamingVolume {
                 failed: self.failed.clone(),
             },
             incumbents: self.refined_last_frame.clone(),
-            settled: self.current.clone().filter(|_| self.current_settled),
+            settled: self.settled.clone(),
             page_table_key: self.page_table_key.clone(),
             page_table: self.page_table.clone(),
             layout: self.gpu_page_table.layout(),
@@ -578,7 +625,11 @@ impl StreamingVolume {
         CutLimits {
             max_voxel_pixels: self.config.max_voxel_pixels,
             gpu_slots: self.slots.capacity(),
-            uploads: self.config.uploads_per_frame,
+            // Per frame, not per selection: a fast GPU draws several frames per selection,
+            // and a budget per selection capped it at uploads_per_frame / 7.5 per frame at
+            // 1024³ on an H200 (101 selections to converge). Capped at 16 frames' worth so
+            // a stalled frame's selection does not upload in one go what 100 frames would.
+            uploads: self.config.uploads_per_frame * self.frames_per_selection as usize,
             prefetch_candidates: self.config.prefetch_per_frame,
         }
     }
@@ -610,6 +661,10 @@ impl StreamingVolume {
             return Ok(None);
         }
         self.selections_applied += 1;
+        if self.applied_at_frame > 0 {
+            self.frames_per_selection = (self.frame - self.applied_at_frame).clamp(1, 16);
+        }
+        self.applied_at_frame = self.frame;
         for _ in &cut.demand {
             self.cpu.note_miss();
         }
@@ -639,6 +694,9 @@ impl StreamingVolume {
             }
             self.page_table = Arc::new(new.prepared.into_table());
             self.cut_changed_at_render = self.renders + 1;
+            // Visibility ages by cut generations (visibility.rs), so a still view's marks
+            // accumulate while its cut holds.
+            Arc::make_mut(&mut self.visibility).start_generation(self.renders + 1);
         }
         self.page_table_key = page_table_key;
         self.refined_last_frame = refined;
@@ -911,6 +969,7 @@ impl StreamingVolume {
             loader_cpu_seconds: f64::NAN,
             selections_applied_total: self.selections_applied,
             selections_dropped_total: self.selections_dropped,
+            cut_changes_while_still_total: self.cut_changes_while_still,
             leaves: cut.leaves.len(),
             data_leaves,
             data_leaves_per_level: {

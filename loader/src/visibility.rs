@@ -1,8 +1,18 @@
 //! Visibility feedback (octree paper §6): the renderer marks each page where a sample
 //! contributed before its ray terminated; the loader reads that buffer a frame or two late
 //! without stalling, propagates it up the octree (an inner node is visible when any of its
-//! pages is) and refines only visible nodes. A page stays visible for a few feedback frames so
-//! one noisy frame does not make the cut flicker; after that, invisible nodes age out.
+//! pages is) and refines only visible nodes. A page stays visible until the cut changed a few
+//! times since it was last seen contributing (cut *generations*, not frames: issue 35), so
+//! one noisy frame does not make the cut flicker, and after that invisible nodes age out.
+//!
+//! Why generations: counted in frames, the memory depended on the frame rate. A fast GPU
+//! draws ~7.5 frames per selection at 1024³, so with 3 frames of memory every mark a
+//! selection saw came from the cut then current, and selection became a memoryless map
+//! cut → marks(cut) → cut, which at the H200 cycled between two cuts forever (leaves 8387 ↔
+//! 8373; with the octree 725 cut changes in 4500 still frames). Counted in generations, a
+//! mark lasts while the cut it was seen under, and the next few, are drawn, however many
+//! frames that is: while a still view's cut holds, nothing ages, and the marks of two cuts
+//! that would alternate are both remembered by the selection after them.
 //!
 //! Marks are per region of page cells, not per node, so a frame rendered with an older cut
 //! still says the right thing about the current one. Two ways to keep them: per page cell for
@@ -25,7 +35,7 @@ type Block = (u8, [u32; 3]);
 enum Marks {
     /// Per page cell.
     Dense {
-        /// Feedback frame (1-based count) in which each page was last seen contributing;
+        /// Cut generation (1-based) under which each page was last seen contributing;
         /// 0 = never.
         last_visible: Vec<u64>,
         /// Per level: is any page under the node visible (rebuilt on each feedback frame).
@@ -34,8 +44,8 @@ enum Marks {
     },
     /// Per visible leaf block of the frames' cuts.
     Sparse {
-        /// Feedback frame in which each block was last seen contributing (blocks aged out
-        /// are dropped, so this holds what the last `memory_frames` frames saw).
+        /// Cut generation under which each block was last seen contributing (blocks aged
+        /// out are dropped, so this holds what the last `memory` generations saw).
         last_seen: HashMap<Block, u64>,
         /// The blocks still remembered as visible.
         visible: HashSet<Block>,
@@ -53,13 +63,24 @@ pub struct PageVisibility {
     frames_received: u64,
     /// Render frame number of the newest feedback.
     newest_render_frame: u64,
-    memory_frames: u64,
+    /// Generations a mark is remembered for after the one it was last seen under.
+    memory: u64,
+    /// The current cut generation (1 = the first cut).
+    generation: u64,
+    /// (first render frame, generation) of the recent generations, oldest first: a frame's
+    /// feedback arrives a frame or more late and counts for the generation it was drawn
+    /// with.
+    generation_starts: std::collections::VecDeque<(u64, u64)>,
     marks: Marks,
 }
 
+/// Generations whose first frames are kept for dating late feedback (feedback is at most a
+/// few frames late; a frame older than all of them counts as seen long ago).
+const GENERATIONS_KEPT: usize = 32;
+
 impl PageVisibility {
     /// Marks per page cell (the flat traversal).
-    pub fn new(octree: &OctreeRanges, memory_frames: u64) -> Self {
+    pub fn new(octree: &OctreeRanges, memory_generations: u64) -> Self {
         let page_dims = octree.page_dims();
         let pages = page_dims.iter().map(|&d| d as usize).product();
         let level_bricks: Vec<[u32; 3]> = (0..octree.level_count())
@@ -69,7 +90,9 @@ impl PageVisibility {
             page_dims,
             frames_received: 0,
             newest_render_frame: 0,
-            memory_frames: memory_frames.max(1),
+            memory: memory_generations.max(1),
+            generation: 1,
+            generation_starts: [(0, 1)].into(),
             marks: Marks::Dense {
                 last_visible: vec![0; pages],
                 pyramid: Vec::new(),
@@ -79,7 +102,7 @@ impl PageVisibility {
     }
 
     /// Marks per visible leaf block (the octree traversal): O(visible leaves · depth).
-    pub fn per_leaf(octree: &OctreeRanges, memory_frames: u64) -> Self {
+    pub fn per_leaf(octree: &OctreeRanges, memory_generations: u64) -> Self {
         let page_dims = octree.page_dims();
         let max = page_dims.iter().copied().max().unwrap_or(1).max(1);
         let grid_level = (32 - (max - 1).leading_zeros()) as u8;
@@ -87,7 +110,9 @@ impl PageVisibility {
             page_dims,
             frames_received: 0,
             newest_render_frame: 0,
-            memory_frames: memory_frames.max(1),
+            memory: memory_generations.max(1),
+            generation: 1,
+            generation_starts: [(0, 1)].into(),
             marks: Marks::Sparse {
                 last_seen: HashMap::default(),
                 visible: HashSet::default(),
@@ -99,6 +124,66 @@ impl PageVisibility {
 
     pub fn frames_received(&self) -> u64 {
         self.frames_received
+    }
+
+    /// The current cut generation.
+    pub fn generation(&self) -> u64 {
+        self.generation
+    }
+
+    /// A new cut is drawn from render frame `first_render_frame` on: marks last seen more
+    /// than the memory's generations ago age out now (and only now: frames alone age
+    /// nothing).
+    pub fn start_generation(&mut self, first_render_frame: u64) {
+        self.generation += 1;
+        self.generation_starts
+            .push_back((first_render_frame, self.generation));
+        while self.generation_starts.len() > GENERATIONS_KEPT {
+            self.generation_starts.pop_front();
+        }
+        self.refresh();
+    }
+
+    /// The generation render frame `render_frame` was drawn with; 0 (long ago) when older
+    /// than every generation kept.
+    fn generation_of(&self, render_frame: u64) -> u64 {
+        self.generation_starts
+            .iter()
+            .rev()
+            .find(|&&(first, _)| first <= render_frame)
+            .map_or(0, |&(_, g)| g)
+    }
+
+    /// Rebuilds what counts as visible from the marks, the generation and the memory.
+    fn refresh(&mut self) {
+        let (now, memory) = (self.generation, self.memory);
+        match &mut self.marks {
+            Marks::Dense {
+                last_visible,
+                pyramid,
+                level_bricks,
+            } => *pyramid = dense_pyramid(last_visible, level_bricks, now, memory),
+            Marks::Sparse {
+                last_seen,
+                visible,
+                above,
+                top_level,
+            } => {
+                last_seen.retain(|_, &mut t| now - t < memory);
+                visible.clear();
+                above.clear();
+                for &(size, coords) in last_seen.keys() {
+                    visible.insert((size, coords));
+                    for level in size + 1..=*top_level {
+                        let shift = (level - size) as u32;
+                        if !above.insert((level, coords.map(|c| c >> shift))) {
+                            // Its ancestors are in already.
+                            break;
+                        }
+                    }
+                }
+            }
+        }
     }
 
     /// Render frame number the newest feedback came from (0 before any).
@@ -146,21 +231,15 @@ impl PageVisibility {
         }
         self.frames_received += 1;
         self.newest_render_frame = render_frame;
-        let now = self.frames_received;
-        let memory = self.memory_frames;
-        if let Marks::Dense {
-            last_visible,
-            pyramid,
-            level_bricks,
-        } = &mut self.marks
-        {
+        let seen = self.generation_of(render_frame);
+        if let Marks::Dense { last_visible, .. } = &mut self.marks {
             for (last, &mark) in last_visible.iter_mut().zip(marks) {
                 if mark != 0 {
-                    *last = now;
+                    *last = (*last).max(seen);
                 }
             }
-            *pyramid = dense_pyramid(last_visible, level_bricks, now, memory);
         }
+        self.refresh();
     }
 
     fn record_blocks(&mut self, render_frame: u64, blocks: impl Iterator<Item = Block>) {
@@ -169,33 +248,15 @@ impl PageVisibility {
         }
         self.frames_received += 1;
         self.newest_render_frame = render_frame;
-        let now = self.frames_received;
-        let memory = self.memory_frames;
-        let Marks::Sparse {
-            last_seen,
-            visible,
-            above,
-            top_level,
-        } = &mut self.marks
-        else {
+        let seen = self.generation_of(render_frame);
+        let Marks::Sparse { last_seen, .. } = &mut self.marks else {
             return;
         };
         for b in blocks {
-            last_seen.insert(b, now);
+            let last = last_seen.entry(b).or_insert(seen);
+            *last = (*last).max(seen);
         }
-        last_seen.retain(|_, &mut t| now - t < memory);
-        visible.clear();
-        above.clear();
-        for &(size, coords) in last_seen.keys() {
-            visible.insert((size, coords));
-            for level in size + 1..=*top_level {
-                let shift = (level - size) as u32;
-                if !above.insert((level, coords.map(|c| c >> shift))) {
-                    // Its ancestors are in already.
-                    break;
-                }
-            }
-        }
+        self.refresh();
     }
 
     /// Before any feedback everything counts as visible, so the first frames refine normally.
@@ -283,7 +344,7 @@ impl PageVisibility {
     }
 }
 
-/// Per level, is any page under the node visible within the last `memory` feedback frames.
+/// Per level, is any page under the node visible within the last `memory` cut generations.
 fn dense_pyramid(
     last_visible: &[u64],
     level_bricks: &[[u32; 3]],
@@ -337,15 +398,53 @@ mod tests {
             vis.is_visible(BrickId::new(1, [0, 0, 0])),
             "parent of a visible page is visible"
         );
-        vis.record(2, &[0; 8]);
-        assert!(vis.is_visible(leaf), "remembered for memory_frames");
-        vis.record(3, &[0; 8]);
-        assert!(!vis.is_visible(leaf), "aged out");
-        vis.record(3, &marks);
+        // Frames alone age nothing: a still view's cut may be drawn any number of times.
+        for frame in 2..50 {
+            vis.record(frame, &[0; 8]);
+        }
+        assert!(vis.is_visible(leaf), "frames must not age a mark");
+        vis.start_generation(50);
+        vis.record(50, &[0; 8]);
+        assert!(
+            vis.is_visible(leaf),
+            "remembered for the memory's generations"
+        );
+        vis.start_generation(51);
+        assert!(!vis.is_visible(leaf), "aged out two cuts later");
+        vis.record(50, &marks);
         assert!(
             !vis.is_visible(leaf),
             "an older or repeated frame is ignored"
         );
+    }
+
+    /// Feedback arrives a frame or more late: a frame drawn with the previous cut counts for
+    /// that cut's generation, not for the one current when it arrives.
+    #[test]
+    fn late_feedback_counts_for_the_cut_it_was_drawn_with() {
+        let octree = OctreeRanges::from_fn(&[[2, 2, 2], [1, 1, 1]], |_, _| StoredRange {
+            min: 0,
+            max: 1,
+        });
+        let mut vis = PageVisibility::new(&octree, 2);
+        let leaf = BrickId::new(0, [1, 0, 0]);
+        let mut marks = vec![0u32; 8];
+        marks[1] = 1;
+        // Cuts change at frames 5 and 9; frame 4 (generation 1) is read back after both.
+        vis.start_generation(5);
+        vis.start_generation(9);
+        vis.record(4, &marks);
+        assert!(
+            !vis.is_visible(leaf),
+            "a mark two generations old is aged out on arrival"
+        );
+        vis.record(8, &marks);
+        assert!(
+            vis.is_visible(leaf),
+            "a mark of the previous generation counts"
+        );
+        vis.start_generation(12);
+        assert!(!vis.is_visible(leaf));
     }
 
     /// Every node of a 4³-page octree.
@@ -380,6 +479,10 @@ mod tests {
                     u32::from(seed.is_multiple_of(9))
                 })
                 .collect();
+            if frame % 3 == 0 {
+                dense.start_generation(frame);
+                sparse.start_generation(frame);
+            }
             dense.record(frame, &marks);
             sparse.record(frame, &marks);
             for id in nodes() {
@@ -413,8 +516,9 @@ mod tests {
             assert_eq!(vis.is_visible(id), inside, "{id:?}");
         }
         assert_eq!(vis.visible_pages(), 8);
-        // The next frame sees nothing: with one frame of memory, nothing stays visible, and
-        // nothing stays held.
+        // The next cut's frame sees nothing: with one generation of memory, nothing stays
+        // visible, and nothing stays held.
+        vis.start_generation(2);
         vis.record_blocks(2, std::iter::empty());
         assert!(nodes().iter().all(|&id| !vis.is_visible(id)));
         assert_eq!(vis.visible_pages(), 0);

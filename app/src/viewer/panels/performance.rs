@@ -203,6 +203,11 @@ impl PerformancePanel {
                         l.bricks_read_total
                     ));
                     ui.end_row();
+                    // LOD flicker: cut changes while the view stood still (0 when still is
+                    // still; issue 35).
+                    ui.label("Cut changes while still");
+                    ui.label(l.cut_changes_while_still_total.to_string());
+                    ui.end_row();
                 }
                 ui.label("Finest level on GPU");
                 ui.label(status.finest_resident_level.map_or("—".into(), |l| {

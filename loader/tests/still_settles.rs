@@ -1,0 +1,179 @@
+//! A still view is still at any frame rate (issue 35). On an H200 one cut selection is applied
+//! per ~7.5 rendered frames; on lavapipe about one per frame, which hid an oscillation: with
+//! visibility remembered for a number of *frames*, every mark a fast GPU's selection saw came
+//! from the current cut, and the cut flipped between two states forever. These tests drive
+//! lavapipe at a fast GPU's cadence (`SelectionTiming::EveryNthFrame`, several frames per
+//! selection, jitter seeded per frame as the viewer does) and at the opposite one (a
+//! selection per frame, feedback several frames late), on occluded and open views, flat and
+//! octree traversals, budget-bound and not, and check that once converged the cut never
+//! changes again, "converged" stays true and nothing is uploaded.
+
+mod common;
+
+use common::*;
+use strata_loader::{SelectionTiming, StreamingConfig};
+use strata_render::{RenderSettings, TransferFunction, Traversal};
+
+/// Frames a viewpoint gets to converge (generous: the fetch workers share two busy cores).
+const SETTLE_FRAMES: u32 = 600;
+/// Still frames after converging in which nothing may change (a few seconds' worth on a fast
+/// GPU; dozens of selections at the fast cadence).
+const HOLD_FRAMES: u32 = 120;
+
+#[derive(Clone, Copy, Debug)]
+enum Cadence {
+    /// Frames per selection, feedback read back a frame late (a fast GPU).
+    Fast(u32),
+    /// A selection per frame, feedback read back only every few frames (a slow adapter).
+    Slow { readback_every: u32 },
+}
+
+struct Case {
+    what: &'static str,
+    tf: TransferFunction,
+    traversal: Traversal,
+    /// Some: a GPU budget the view's working set does not fit.
+    slots: Option<u32>,
+    cadence: Cadence,
+}
+
+/// The viewer's settings: jitter on, seeded by a frame index that changes every frame.
+fn frame_settings(size: u32, frame: u32) -> RenderSettings {
+    RenderSettings {
+        jitter: true,
+        frame_index: frame,
+        ..settings(size)
+    }
+}
+
+/// What a still view did: frames to converge, and the converged stats.
+fn hold_still(case: &Case) -> (u32, strata_loader::FrameStats) {
+    let dir = tempfile::tempdir().unwrap();
+    let store = open(&phantom_store(dir.path(), 128));
+    let ctx = gpu();
+    let selection = match case.cadence {
+        Cadence::Fast(n) => SelectionTiming::EveryNthFrame(n),
+        Cadence::Slow { .. } => SelectionTiming::EachFrame,
+    };
+    let mut volume = stream(
+        &ctx,
+        &store,
+        &case.tf,
+        StreamingConfig {
+            selection,
+            traversal: Some(case.traversal),
+            max_gpu_slots: case.slots,
+            // Level 0 wanted over most of the view.
+            max_voxel_pixels: 0.5,
+            uploads_per_frame: 16,
+            ..config()
+        },
+    );
+    let camera = orbit(&store, 35.0, 20.0, 1.8);
+    let what = case.what;
+    let mut frame = 0u32;
+    let render = |volume: &mut strata_loader::StreamingVolume, frame: &mut u32| {
+        *frame += 1;
+        let stats = volume
+            .frame(&ctx, &camera, &frame_settings(64, *frame))
+            .unwrap();
+        let read_back = match case.cadence {
+            Cadence::Fast(_) => true,
+            Cadence::Slow { readback_every } => frame.is_multiple_of(readback_every),
+        };
+        if read_back {
+            volume.read_frame_blocking(&ctx).unwrap();
+        }
+        stats
+    };
+    let converged = loop {
+        let stats = render(&mut volume, &mut frame);
+        if stats.converged {
+            break stats;
+        }
+        assert!(
+            frame < SETTLE_FRAMES,
+            "{what}: not converged in {SETTLE_FRAMES} still frames: {stats:#?}"
+        );
+        if stats.pending > 0 && stats.uploads == 0 && !stats.page_table_rewritten {
+            // Waiting for reads: let the workers run rather than spin identical frames.
+            std::thread::sleep(std::time::Duration::from_millis(1));
+        }
+    };
+    let converged_at = frame;
+    let table = volume.page_table().clone();
+    for held in 1..=HOLD_FRAMES {
+        let stats = render(&mut volume, &mut frame);
+        assert_eq!(
+            stats.uploads, 0,
+            "{what}: uploaded {held} frames after converging (frame {converged_at})"
+        );
+        assert!(
+            !stats.page_table_rewritten && *volume.page_table() == table,
+            "{what}: the cut changed {held} still frames after converging (frame \
+             {converged_at}): {} leaves then, {} now",
+            converged.leaves,
+            stats.leaves
+        );
+        assert!(
+            stats.converged,
+            "{what}: \"converged\" lost {held} still frames after converging: {stats:#?}"
+        );
+        assert_eq!(stats.cut_changes_while_still_total, 0, "{what}");
+    }
+    volume.check_slot_map().unwrap();
+    (converged_at, converged)
+}
+
+fn cases(cadence: Cadence) -> Vec<Case> {
+    let mut cases = Vec::new();
+    for traversal in [Traversal::Flat, Traversal::Octree] {
+        for (what, tf) in [("occluded", opaque()), ("open", bone())] {
+            for slots in [None, Some(48)] {
+                cases.push(Case {
+                    what: Box::leak(
+                        format!(
+                            "{what} view, {} traversal, {}, {cadence:?}",
+                            traversal.name(),
+                            if slots.is_some() {
+                                "budget-bound"
+                            } else {
+                                "generous budget"
+                            }
+                        )
+                        .into_boxed_str(),
+                    ),
+                    tf: tf.clone(),
+                    traversal,
+                    slots,
+                    cadence,
+                });
+            }
+        }
+    }
+    cases
+}
+
+/// A fast GPU's cadence: eight frames per selection.
+#[test]
+fn a_still_view_settles_at_a_fast_gpus_cadence() {
+    for case in cases(Cadence::Fast(8)) {
+        let (frames, stats) = hold_still(&case);
+        eprintln!(
+            "{}: converged after {frames} frames, {} leaves, working set {} bricks",
+            case.what, stats.leaves, stats.working_set_bricks
+        );
+    }
+}
+
+/// The opposite cadence: a selection per frame, feedback read back every fourth frame.
+#[test]
+fn a_still_view_settles_at_a_slow_adapters_cadence() {
+    for case in cases(Cadence::Slow { readback_every: 4 }) {
+        let (frames, stats) = hold_still(&case);
+        eprintln!(
+            "{}: converged after {frames} frames, {} leaves, working set {} bricks",
+            case.what, stats.leaves, stats.working_set_bricks
+        );
+    }
+}
