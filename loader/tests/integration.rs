@@ -10,4 +10,5 @@ mod octree_streaming;
 mod slow_storage;
 mod soak;
 mod sparse_streaming;
+mod still_settles;
 mod streaming;

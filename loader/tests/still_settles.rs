@@ -8,7 +8,7 @@
 //! octree traversals, budget-bound and not, and check that once converged the cut never
 //! changes again, "converged" stays true and nothing is uploaded.
 
-mod common;
+use crate::common;
 
 use common::*;
 use strata_loader::{SelectionTiming, StreamingConfig};
