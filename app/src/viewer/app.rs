@@ -465,12 +465,14 @@ impl StrataApp {
         }
         self.help.ui(ui.ctx());
 
-        if self
-            .toast
-            .as_ref()
-            .is_some_and(|t| t.shown_at.elapsed() > Duration::from_secs(6))
-        {
-            self.toast = None;
+        if let Some(toast) = &self.toast {
+            let left = Duration::from_secs(6).saturating_sub(toast.shown_at.elapsed());
+            if left.is_zero() {
+                self.toast = None;
+            } else {
+                // One wake when it expires: without it the toast stayed until the next input.
+                ui.ctx().request_repaint_after(left);
+            }
         }
         self.step_screenshot(ui.ctx());
         if let Some(frames) = self.panels.screenshot.take_orbit_request() {
@@ -483,11 +485,15 @@ impl StrataApp {
         self.remember_measurements();
         self.record_frame(ui_started);
         if let Some(limit) = self.options.exit_after_seconds {
-            if self.started_at.elapsed().as_secs_f64() >= limit {
+            let elapsed = self.started_at.elapsed().as_secs_f64();
+            if elapsed >= limit {
                 self.write_frame_log();
                 ui.ctx().send_viewport_cmd(egui::ViewportCommand::Close);
             } else {
-                ui.ctx().request_repaint_after(Duration::from_millis(100));
+                // One wake at the deadline, not a 10 Hz repaint for the whole run: the run
+                // is how the idle CPU is measured (issue 36).
+                ui.ctx()
+                    .request_repaint_after(Duration::from_secs_f64(limit - elapsed));
             }
         }
     }
@@ -880,14 +886,19 @@ impl StrataApp {
                 ));
                 ui.separator();
                 if let Some(loading) = &status.loading {
-                    ui.spinner();
+                    super::widgets::slow_spinner(ui);
                     ui.label(loading);
                 } else if status.refining {
-                    ui.spinner();
-                    ui.label("refining…");
+                    super::widgets::slow_spinner(ui);
+                    ui.label(status.refining_line());
                 } else if let Some(stats) = status.loader.as_ref().filter(|s| s.converged_at_budget)
                 {
                     ui.label(stats.convergence_status());
+                } else if status.settled_unconverged {
+                    ui.label(status.refining_line()).on_hover_text(
+                        "Nothing changed for several frames with no read pending: the view \
+                         rests on this image until it moves",
+                    );
                 }
                 if let Some(line) = &status.adaptive {
                     ui.label(line);

@@ -1941,3 +1941,70 @@ fn the_adaptive_sampling_checkbox_and_epsilon_slider_reach_the_frame_and_persist
         .accesskit_node()
         .is_disabled());
 }
+
+/// Issue 36: once the view has converged and nothing moves (no pointer over the window), the UI
+/// asks for no repaint and the render thread renders nothing over a settled interval. The run
+/// has `--exit-after` set, which used to repaint at 10 Hz, and the controller's still
+/// refinement on, which must end.
+#[test]
+fn a_settled_viewer_asks_for_no_repaint_and_renders_nothing() {
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    use std::sync::Arc;
+
+    let dir = tempfile::tempdir().expect("temp dir");
+    let store = phantom_store(dir.path());
+    let mut options = ViewerOptions::new(VolumeSource::Path(store.clone()));
+    options.import_folder = dir.path().join("imported");
+    options.exit_after_seconds = Some(3600.0);
+    let preferences = Preferences {
+        layout: Layout::TwoByTwo,
+        show_side_panel: true,
+        ..Preferences::default()
+    };
+    let mut h = harness_with(options, preferences);
+    h.step();
+    h.state_mut()
+        .as_mut()
+        .expect("the app is created on the first step")
+        .preferences
+        .target_fps_enabled = true;
+    wait_for_settled_frame(&mut h, "a converged 3D frame", 0);
+    step_until(&mut h, "the status to leave refining", |a| {
+        a.volume_status().is_some_and(|s| !s.refining)
+    });
+    // The UI takes the final frame, the slices their images.
+    for _ in 0..5 {
+        h.step();
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let requests = Arc::new(AtomicUsize::new(0));
+    let counter = requests.clone();
+    // Counted: requests for a repaint due within a minute. The `--exit-after` deadline is
+    // asked again each pass (egui keeps a delayed request for one pass only) but is an hour
+    // away: it repaints nothing at rest.
+    h.ctx.set_repaint_observer(move |info| {
+        if info.delay < Duration::from_secs(60) {
+            counter.fetch_add(1, Ordering::Relaxed);
+        }
+    });
+    let rendered = app(&h).volume_status().expect("status").frames_rendered;
+    // The settled interval: passes at about a display's rate would drive them if asked.
+    for _ in 0..30 {
+        h.step();
+        std::thread::sleep(Duration::from_millis(30));
+    }
+    assert_eq!(
+        requests.load(Ordering::Relaxed),
+        0,
+        "repaints asked for at rest: {:?}",
+        h.ctx.repaint_causes()
+    );
+    let status = app(&h).volume_status().expect("status");
+    assert_eq!(
+        status.frames_rendered,
+        rendered,
+        "the render thread drew at rest (refining {}, {})",
+        status.refining,
+        status.refining_line()
+    );
+}
