@@ -445,7 +445,13 @@ impl StrataApp {
                 .default_size(340.0)
                 .min_size(260.0)
                 .show(ui, |ui| {
-                    egui::ScrollArea::vertical().show(ui, |ui| self.side_panel(ui));
+                    // The width is the user's (the resize handle) or the default: text wraps
+                    // (or elides, with the full text on hover) inside it rather than widening
+                    // the panel, which shrank the views and moved the buttons (issue 36).
+                    ui.style_mut().wrap_mode = Some(egui::TextWrapMode::Wrap);
+                    egui::ScrollArea::vertical()
+                        .auto_shrink([false, true])
+                        .show(ui, |ui| self.side_panel(ui));
                 });
         }
         egui::CentralPanel::default()
@@ -744,7 +750,39 @@ impl StrataApp {
     }
 
     fn toolbar(&mut self, ui: &mut egui::Ui) {
-        ui.horizontal_wrapped(|ui| {
+        // The warning takes its place at the right first and the buttons wrap in what is left,
+        // so no button can slide under it at any window width (issue 36: "Panels" overlapped
+        // it when the row wrapped).
+        let warning = egui::WidgetText::from(
+            RichText::new(NOT_FOR_DIAGNOSIS)
+                .strong()
+                .color(WARNING_COLOUR),
+        );
+        let galley = warning.clone().into_galley(
+            ui,
+            Some(egui::TextWrapMode::Extend),
+            f32::INFINITY,
+            egui::TextStyle::Body,
+        );
+        let warning_width = galley.size().x + 2.0 * ui.spacing().item_spacing.x;
+        ui.horizontal_top(|ui| {
+            let buttons_width = (ui.available_width() - warning_width).max(0.0);
+            ui.allocate_ui_with_layout(
+                Vec2::new(buttons_width, 0.0),
+                egui::Layout::left_to_right(egui::Align::Center).with_main_wrap(true),
+                |ui| {
+                    ui.set_max_width(buttons_width);
+                    self.toolbar_buttons(ui)
+                },
+            );
+            ui.with_layout(egui::Layout::right_to_left(egui::Align::Min), |ui| {
+                ui.label(warning);
+            });
+        });
+    }
+
+    fn toolbar_buttons(&mut self, ui: &mut egui::Ui) {
+        {
             ui.strong("Strata");
             if ui
                 .button("Open…")
@@ -840,14 +878,7 @@ impl StrataApp {
             {
                 self.help.open = !self.help.open;
             }
-            ui.with_layout(egui::Layout::right_to_left(egui::Align::Center), |ui| {
-                ui.label(
-                    RichText::new(NOT_FOR_DIAGNOSIS)
-                        .strong()
-                        .color(WARNING_COLOUR),
-                );
-            });
-        });
+        }
     }
 
     fn status_bar(&mut self, ui: &mut egui::Ui) {
