@@ -252,3 +252,23 @@ fn info_of_a_format_1_store_names_the_command_that_rewrites_it() {
     assert!(o.status.success(), "{}", text(&o));
     assert!(!text(&o).contains("rewrite it"), "{}", text(&o));
 }
+
+/// `strata view --overlay` twice: the viewer holds one overlay, so it says so before opening a
+/// window rather than dropping one.
+#[test]
+fn view_with_two_overlays_says_it_shows_one() {
+    let out = strata(&[
+        "view",
+        "scan.nrrd",
+        "--overlay",
+        "a.nrrd",
+        "--overlay",
+        "b.nrrd",
+    ]);
+    assert!(!out.status.success());
+    assert!(
+        text(&out).contains("--overlay was given 2 times"),
+        "{}",
+        text(&out)
+    );
+}

@@ -21,8 +21,8 @@ use super::overlay_3d::Overlay3d;
 use super::panels::{FrameClock, PanelContext, Panels};
 pub use super::preferences::{Layout, Preferences, ViewSlot};
 use super::scene::{
-    looks_like_ct, percentile_window, preset_for, start_cursor, ClipSettings, Readout, Scene,
-    VolumeData, Window, PRESETS,
+    looks_like_ct, preset_for, start_cursor, ClipSettings, Readout, Scene, VolumeData, Window,
+    PRESETS,
 };
 use super::screenshots::{ScreenshotJob, ShotTarget};
 use super::slice_view::SliceViewer;
@@ -56,6 +56,8 @@ pub struct ViewerOptions {
     pub initial_view: Option<StandardView>,
     /// Overrides the remembered transfer-function preset.
     pub initial_preset: Option<String>,
+    /// A label map opened over the volume once it is shown (`strata view --overlay`).
+    pub overlay: Option<PathBuf>,
 }
 
 impl ViewerOptions {
@@ -74,6 +76,7 @@ impl ViewerOptions {
             initial_layout: None,
             initial_view: None,
             initial_preset: None,
+            overlay: None,
         }
     }
 }
@@ -316,11 +319,14 @@ impl StrataApp {
             self.preferences.preset = if is_ct { "ct-bone" } else { "mr-default" }.into();
         }
         let transfer_function = preset_for(&self.preferences.preset, &info);
-        let window = header
-            .windows
-            .first()
-            .map(|w| Window::new(w.center, w.width.max(1e-6)))
-            .unwrap_or_else(|| percentile_window(store.histogram()));
+        let window = super::scene::initial_window(
+            header
+                .windows
+                .first()
+                .map(|w| Window::new(w.center, w.width.max(1e-6))),
+            is_ct,
+            store.histogram(),
+        );
         let dims = info.geometry.dims;
         let frames = SliceView::ALL.map(|v| SliceFrame::for_view(v, &info.geometry));
         let (lo, hi) = info.physical_range;
@@ -403,6 +409,18 @@ impl StrataApp {
     pub fn ui(&mut self, ui: &mut egui::Ui) {
         let ui_started = Instant::now();
         self.poll_job();
+        if self.volume.is_some() {
+            if let Some(path) = self.options.overlay.take() {
+                // As the panel's "Open overlay" would: imported first if it is a scan.
+                self.panels.overlay.path = path.display().to_string();
+                self.panels.overlay.open(
+                    ui.ctx(),
+                    path,
+                    super::overlay::OverlayKind::Labels,
+                    &self.options.import_folder,
+                );
+            }
+        }
         if let Some(v) = self.volume.as_mut() {
             // Here, not in the panel: an overlay opens even with the side bar hidden.
             self.panels.overlay.poll(ui.ctx(), &v.data, &mut v.overlay);

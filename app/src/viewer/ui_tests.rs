@@ -2168,3 +2168,46 @@ fn toolbar_items_do_not_overlap_at_1024_points() {
         }
     }
 }
+
+/// `strata view SCAN --overlay LABELS`: the option opens the label map over the volume once it
+/// is shown, as the panel's button does.
+#[test]
+fn the_overlay_option_opens_the_label_map_with_the_volume() {
+    use super::overlay::tests::{label_of, write_nrrd, LABEL_DIMS, LABEL_ORIGIN, LABEL_SPACING};
+    use super::overlay::OverlayKind;
+    let dir = tempfile::tempdir().expect("temp dir");
+    let store = phantom_store(dir.path());
+    let labels = dir.path().join("labels.nrrd");
+    write_nrrd(
+        &labels,
+        LABEL_DIMS,
+        LABEL_SPACING,
+        LABEL_ORIGIN,
+        false,
+        label_of,
+    );
+    let mut options = ViewerOptions::new(VolumeSource::Path(store.clone()));
+    options.import_folder = dir.path().join("imported");
+    options.overlay = Some(labels.clone());
+    let mut h = harness_with(
+        options,
+        Preferences {
+            layout: Layout::TwoByTwo,
+            show_side_panel: true,
+            ..Preferences::default()
+        },
+    );
+    let kind = step_until_some(&mut h, "the overlay from the option", |a| {
+        a.volume.as_ref()?.overlay.as_ref().map(|o| o.kind)
+    });
+    assert_eq!(kind, OverlayKind::Labels);
+    assert_eq!(app(&h).panels.overlay.path, labels.display().to_string());
+    // Listed by the file given, not by the imported store's internal name.
+    let name = app(&h)
+        .volume
+        .as_ref()
+        .and_then(|v| v.overlay.as_ref())
+        .map(|o| o.name.clone());
+    assert_eq!(name, Some(labels.display().to_string()));
+    assert!(app(&h).panels.overlay.error.is_none());
+}
