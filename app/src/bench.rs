@@ -11,6 +11,7 @@ use strata_storage::{BrickCodec, BrickId, Store, BRICK_PAYLOAD_VOXELS};
 mod accuracy;
 mod adaptive;
 mod common;
+mod idle;
 mod import;
 mod omezarr;
 mod remote;
@@ -154,6 +155,9 @@ pub enum BenchCommand {
     /// OME-Zarr: export and import throughput vs raw read + compress, objects and bytes vs the
     /// store, and (--s3) the remote flythrough streamed from SeaweedFS.
     Omezarr(omezarr::Options),
+    /// The viewer's CPU at rest: `strata view` settles, then its CPU time, UI passes and volume
+    /// frames over a settled interval (needs a display; `xvfb-run -a` where there is none).
+    Idle(idle::Options),
 }
 
 /// `--codec` of the import benchmark: fast or dense.
@@ -167,6 +171,7 @@ fn parse_codec(name: &str) -> std::result::Result<BrickCodec, String> {
 pub fn run(cmd: BenchCommand) -> Result<()> {
     match cmd {
         BenchCommand::Remote(options) => remote::run(options),
+        BenchCommand::Idle(options) => idle::run(options),
         BenchCommand::Omezarr(options) => omezarr::run(options),
         BenchCommand::Import {
             codec,

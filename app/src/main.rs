@@ -150,6 +150,9 @@ struct ViewArgs {
     /// Transfer-function preset to start with (ct-bone, ct-soft-tissue, ct-lung, ct-vessels, mr-default).
     #[arg(long)]
     preset: Option<String>,
+    /// A label map (store or scan) to show over the volume, as the Overlay panel opens it.
+    #[arg(long)]
+    overlay: Vec<PathBuf>,
     /// Start from default settings and do not remember them.
     #[arg(long)]
     fresh: bool,
@@ -195,5 +198,13 @@ fn view(args: ViewArgs) -> Result<()> {
         ),
     };
     options.initial_preset = args.preset;
+    if args.overlay.len() > 1 {
+        // The viewer holds one overlay at a time (overlay.rs); say so rather than drop some.
+        anyhow::bail!(
+            "--overlay was given {} times; the viewer shows one overlay at a time",
+            args.overlay.len()
+        );
+    }
+    options.overlay = args.overlay.into_iter().next();
     viewer::run(options)
 }

@@ -326,3 +326,23 @@ fn flythrough_refuses_a_settle_time_that_is_not_positive() {
         text(&o)
     );
 }
+
+/// `strata view --overlay` twice: the viewer holds one overlay, so it says so before opening a
+/// window rather than dropping one.
+#[test]
+fn view_with_two_overlays_says_it_shows_one() {
+    let out = strata(&[
+        "view",
+        "scan.nrrd",
+        "--overlay",
+        "a.nrrd",
+        "--overlay",
+        "b.nrrd",
+    ]);
+    assert!(!out.status.success());
+    assert!(
+        text(&out).contains("--overlay was given 2 times"),
+        "{}",
+        text(&out)
+    );
+}

@@ -21,8 +21,8 @@ use super::overlay_3d::Overlay3d;
 use super::panels::{FrameClock, PanelContext, Panels};
 pub use super::preferences::{Layout, Preferences, ViewSlot};
 use super::scene::{
-    looks_like_ct, percentile_window, preset_for, start_cursor, ClipSettings, Readout, Scene,
-    VolumeData, Window, PRESETS,
+    looks_like_ct, preset_for, start_cursor, ClipSettings, Readout, Scene, VolumeData, Window,
+    PRESETS,
 };
 use super::screenshots::{ScreenshotJob, ShotTarget};
 use super::slice_view::SliceViewer;
@@ -56,6 +56,8 @@ pub struct ViewerOptions {
     pub initial_view: Option<StandardView>,
     /// Overrides the remembered transfer-function preset.
     pub initial_preset: Option<String>,
+    /// A label map opened over the volume once it is shown (`strata view --overlay`).
+    pub overlay: Option<PathBuf>,
 }
 
 impl ViewerOptions {
@@ -74,6 +76,7 @@ impl ViewerOptions {
             initial_layout: None,
             initial_view: None,
             initial_preset: None,
+            overlay: None,
         }
     }
 }
@@ -316,11 +319,14 @@ impl StrataApp {
             self.preferences.preset = if is_ct { "ct-bone" } else { "mr-default" }.into();
         }
         let transfer_function = preset_for(&self.preferences.preset, &info);
-        let window = header
-            .windows
-            .first()
-            .map(|w| Window::new(w.center, w.width.max(1e-6)))
-            .unwrap_or_else(|| percentile_window(store.histogram()));
+        let window = super::scene::initial_window(
+            header
+                .windows
+                .first()
+                .map(|w| Window::new(w.center, w.width.max(1e-6))),
+            is_ct,
+            store.histogram(),
+        );
         let dims = info.geometry.dims;
         let frames = SliceView::ALL.map(|v| SliceFrame::for_view(v, &info.geometry));
         let (lo, hi) = info.physical_range;
@@ -403,6 +409,18 @@ impl StrataApp {
     pub fn ui(&mut self, ui: &mut egui::Ui) {
         let ui_started = Instant::now();
         self.poll_job();
+        if self.volume.is_some() {
+            if let Some(path) = self.options.overlay.take() {
+                // As the panel's "Open overlay" would: imported first if it is a scan.
+                self.panels.overlay.path = path.display().to_string();
+                self.panels.overlay.open(
+                    ui.ctx(),
+                    path,
+                    super::overlay::OverlayKind::Labels,
+                    &self.options.import_folder,
+                );
+            }
+        }
         if let Some(v) = self.volume.as_mut() {
             // Here, not in the panel: an overlay opens even with the side bar hidden.
             self.panels.overlay.poll(ui.ctx(), &v.data, &mut v.overlay);
@@ -445,7 +463,13 @@ impl StrataApp {
                 .default_size(340.0)
                 .min_size(260.0)
                 .show(ui, |ui| {
-                    egui::ScrollArea::vertical().show(ui, |ui| self.side_panel(ui));
+                    // The width is the user's (the resize handle) or the default: text wraps
+                    // (or elides, with the full text on hover) inside it rather than widening
+                    // the panel, which shrank the views and moved the buttons (issue 36).
+                    ui.style_mut().wrap_mode = Some(egui::TextWrapMode::Wrap);
+                    egui::ScrollArea::vertical()
+                        .auto_shrink([false, true])
+                        .show(ui, |ui| self.side_panel(ui));
                 });
         }
         egui::CentralPanel::default()
@@ -465,12 +489,14 @@ impl StrataApp {
         }
         self.help.ui(ui.ctx());
 
-        if self
-            .toast
-            .as_ref()
-            .is_some_and(|t| t.shown_at.elapsed() > Duration::from_secs(6))
-        {
-            self.toast = None;
+        if let Some(toast) = &self.toast {
+            let left = Duration::from_secs(6).saturating_sub(toast.shown_at.elapsed());
+            if left.is_zero() {
+                self.toast = None;
+            } else {
+                // One wake when it expires: without it the toast stayed until the next input.
+                ui.ctx().request_repaint_after(left);
+            }
         }
         self.step_screenshot(ui.ctx());
         if let Some(frames) = self.panels.screenshot.take_orbit_request() {
@@ -483,11 +509,15 @@ impl StrataApp {
         self.remember_measurements();
         self.record_frame(ui_started);
         if let Some(limit) = self.options.exit_after_seconds {
-            if self.started_at.elapsed().as_secs_f64() >= limit {
+            let elapsed = self.started_at.elapsed().as_secs_f64();
+            if elapsed >= limit {
                 self.write_frame_log();
                 ui.ctx().send_viewport_cmd(egui::ViewportCommand::Close);
             } else {
-                ui.ctx().request_repaint_after(Duration::from_millis(100));
+                // One wake at the deadline, not a 10 Hz repaint for the whole run: the run
+                // is how the idle CPU is measured (issue 36).
+                ui.ctx()
+                    .request_repaint_after(Duration::from_secs_f64(limit - elapsed));
             }
         }
     }
@@ -738,7 +768,39 @@ impl StrataApp {
     }
 
     fn toolbar(&mut self, ui: &mut egui::Ui) {
-        ui.horizontal_wrapped(|ui| {
+        // The warning takes its place at the right first and the buttons wrap in what is left,
+        // so no button can slide under it at any window width (issue 36: "Panels" overlapped
+        // it when the row wrapped).
+        let warning = egui::WidgetText::from(
+            RichText::new(NOT_FOR_DIAGNOSIS)
+                .strong()
+                .color(WARNING_COLOUR),
+        );
+        let galley = warning.clone().into_galley(
+            ui,
+            Some(egui::TextWrapMode::Extend),
+            f32::INFINITY,
+            egui::TextStyle::Body,
+        );
+        let warning_width = galley.size().x + 2.0 * ui.spacing().item_spacing.x;
+        ui.horizontal_top(|ui| {
+            let buttons_width = (ui.available_width() - warning_width).max(0.0);
+            ui.allocate_ui_with_layout(
+                Vec2::new(buttons_width, 0.0),
+                egui::Layout::left_to_right(egui::Align::Center).with_main_wrap(true),
+                |ui| {
+                    ui.set_max_width(buttons_width);
+                    self.toolbar_buttons(ui)
+                },
+            );
+            ui.with_layout(egui::Layout::right_to_left(egui::Align::Min), |ui| {
+                ui.label(warning);
+            });
+        });
+    }
+
+    fn toolbar_buttons(&mut self, ui: &mut egui::Ui) {
+        {
             ui.strong("Strata");
             if ui
                 .button("Open…")
@@ -834,14 +896,7 @@ impl StrataApp {
             {
                 self.help.open = !self.help.open;
             }
-            ui.with_layout(egui::Layout::right_to_left(egui::Align::Center), |ui| {
-                ui.label(
-                    RichText::new(NOT_FOR_DIAGNOSIS)
-                        .strong()
-                        .color(WARNING_COLOUR),
-                );
-            });
-        });
+        }
     }
 
     fn status_bar(&mut self, ui: &mut egui::Ui) {
@@ -880,14 +935,19 @@ impl StrataApp {
                 ));
                 ui.separator();
                 if let Some(loading) = &status.loading {
-                    ui.spinner();
+                    super::widgets::slow_spinner(ui);
                     ui.label(loading);
                 } else if status.refining {
-                    ui.spinner();
-                    ui.label("refining…");
+                    super::widgets::slow_spinner(ui);
+                    ui.label(status.refining_line());
                 } else if let Some(stats) = status.loader.as_ref().filter(|s| s.converged_at_budget)
                 {
                     ui.label(stats.convergence_status());
+                } else if status.settled_unconverged {
+                    ui.label(status.refining_line()).on_hover_text(
+                        "Nothing changed for several frames with no read pending: the view \
+                         rests on this image until it moves",
+                    );
                 }
                 if let Some(line) = &status.adaptive {
                     ui.label(line);

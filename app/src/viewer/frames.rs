@@ -68,9 +68,35 @@ pub struct FramePlayer {
     pub error: Option<String>,
     /// The slice requests last passed to the frame ahead (each is passed once).
     mirrored: [Option<super::slices::SliceRequest>; 3],
+    /// Seconds between the last cine steps shown (newest last, at most 8), for the rate line.
+    step_seconds: Vec<f64>,
+}
+
+/// What the Frames panel says about the cine rate: None while it holds the asked rate (within
+/// 20 %) or before 3 steps are timed; otherwise the rate it reaches, so a slow cine says so
+/// (issue 36: 5 frames/s asked, about 1 shown, nothing said).
+pub fn cine_rate_line(asked_fps: f64, step_seconds: &[f64]) -> Option<String> {
+    if step_seconds.len() < 3 {
+        return None;
+    }
+    let mean = step_seconds.iter().sum::<f64>() / step_seconds.len() as f64;
+    let reached = 1.0 / mean.max(1e-6);
+    (reached < 0.8 * asked_fps).then(|| {
+        format!(
+            "playing at {reached:.1} frames/s: cannot hold {asked_fps:.0} (each frame is read as it plays)"
+        )
+    })
 }
 
 impl FramePlayer {
+    /// The Frames panel's line when the cine cannot hold its rate ([`cine_rate_line`]).
+    pub fn rate_line(&self) -> Option<String> {
+        if !self.playing {
+            return None;
+        }
+        cine_rate_line(self.fps, &self.step_seconds)
+    }
+
     /// A player for `source` when it has more than one frame; frame 0 is shown (by the readers
     /// the viewer opened on the source itself) and frame 1 is opened ahead.
     pub fn for_source(
@@ -95,6 +121,7 @@ impl FramePlayer {
             repaint,
             error: None,
             mirrored: [None; 3],
+            step_seconds: Vec::new(),
         };
         player.open_ahead();
         Some(player)
@@ -163,6 +190,14 @@ impl FramePlayer {
                 data.slices = r.slices;
                 data.oblique = r.oblique;
                 self.current = frame;
+                if self.playing {
+                    self.step_seconds
+                        .push(self.shown_at.elapsed().as_secs_f64());
+                    let excess = self.step_seconds.len().saturating_sub(8);
+                    self.step_seconds.drain(..excess);
+                } else {
+                    self.step_seconds.clear();
+                }
                 self.shown_at = Instant::now();
                 self.error = None;
                 self.open_ahead();
@@ -190,5 +225,23 @@ impl FramePlayer {
                 }
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod rate_tests {
+    use super::cine_rate_line;
+
+    #[test]
+    fn a_cine_that_cannot_hold_its_rate_says_what_it_reaches() {
+        // 5 frames/s asked, a step every second: said, with the rate reached.
+        let line = cine_rate_line(5.0, &[1.0, 1.0, 1.0]).expect("a slow cine says so");
+        assert!(
+            line.contains("1.0 frames/s") && line.contains("cannot hold 5"),
+            "{line}"
+        );
+        // Within 20 % of the rate, or too few steps to tell: nothing.
+        assert_eq!(cine_rate_line(5.0, &[0.22, 0.21, 0.2]), None);
+        assert_eq!(cine_rate_line(5.0, &[1.0, 1.0]), None);
     }
 }

@@ -350,6 +350,23 @@ pub fn percentile_window(h: &Histogram) -> Window {
     quantile_window(h, 0.01, 0.99)
 }
 
+/// The window a volume opens with: the header's first (DICOM's), else for a CT (by
+/// [`looks_like_ct`]: a NRRD or NIfTI in HU has no window in its header) the abdomen window
+/// W400/L40 as a CT reader expects (issue 36: a CT NRRD opened at a percentile W1256/L−372),
+/// else the percentile window, which suits MR's arbitrary scale.
+pub fn initial_window(header_window: Option<Window>, is_ct: bool, h: &Histogram) -> Window {
+    header_window.unwrap_or_else(|| {
+        if is_ct {
+            CT_WINDOWS
+                .iter()
+                .find(|p| p.name == "Abdomen")
+                .map_or(Window::new(40.0, 400.0), |p| p.window)
+        } else {
+            percentile_window(h)
+        }
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -383,6 +400,37 @@ mod tests {
         assert!(!looks_like_ct("MR", "", (-1000.0, 2000.0)));
         // A signed statistic map is not a CT.
         assert!(!looks_like_ct("", "", (-8.0, 8.0)));
+    }
+
+    #[test]
+    fn a_ct_without_a_header_window_opens_at_a_ct_window_and_an_mr_at_its_percentiles() {
+        // A CT NRRD in HU: air, soft tissue, bone; no modality tag, no window in the header.
+        let mut counts = vec![0u64; 300];
+        counts[0] = 5_000; // air at -1024
+        for c in counts.iter_mut().take(120).skip(100) {
+            *c = 2_000; // soft tissue around 0 HU
+        }
+        counts[250] = 300; // bone
+        let ct = Histogram {
+            physical_min: -1024.0,
+            physical_max: 2000.0,
+            counts: counts.clone(),
+        };
+        let is_ct = looks_like_ct("", "", (ct.physical_min, ct.physical_max));
+        assert!(is_ct);
+        assert_eq!(initial_window(None, is_ct, &ct), Window::new(40.0, 400.0));
+        // The header's window wins where there is one.
+        let dicom = Window::new(-600.0, 1500.0);
+        assert_eq!(initial_window(Some(dicom), is_ct, &ct), dicom);
+        // An MR (non-negative, no unit): the percentile window, as before.
+        let mr = Histogram {
+            physical_min: 0.0,
+            physical_max: 3000.0,
+            counts,
+        };
+        let is_ct = looks_like_ct("MR", "", (mr.physical_min, mr.physical_max));
+        assert!(!is_ct);
+        assert_eq!(initial_window(None, is_ct, &mr), percentile_window(&mr));
     }
 
     #[test]

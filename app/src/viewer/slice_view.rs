@@ -51,6 +51,9 @@ pub struct SliceViewer {
     wheel_lines: f64,
     /// Where the slice image was drawn last frame (tests point at voxels through it).
     pub image_rect: Option<Rect>,
+    /// The crosshair before the last single click moved it: a double-click (whose first click
+    /// is such a click) puts it back, so it resets the zoom only (issue 36).
+    cursor_before_click: Option<[f64; 3]>,
 }
 
 pub fn slice_colour(view: SliceView) -> Color32 {
@@ -77,6 +80,7 @@ impl SliceViewer {
             last_request: None,
             wheel_lines: 0.0,
             image_rect: None,
+            cursor_before_click: None,
         }
     }
 
@@ -452,9 +456,13 @@ impl SliceViewer {
         if response.dragged_by(egui::PointerButton::Middle) {
             self.pan += ui.input(|i| i.pointer.delta());
         }
-        if response.double_clicked() {
+        let double_clicked = response.double_clicked();
+        if double_clicked {
             self.zoom = 1.0;
             self.pan = Vec2::ZERO;
+            if let Some(cursor) = self.cursor_before_click.take() {
+                scene.cursor = cursor;
+            }
         }
         if self.zoom <= 1.0 {
             self.pan = Vec2::ZERO;
@@ -470,10 +478,11 @@ impl SliceViewer {
         let tool = scene.measurements.tool;
         if tool != Tool::Navigate {
             self.measure_input(ui, &response, image_rect, data, scene);
-        } else if let Some(pos) = response.interact_pointer_pos() {
+        } else if let Some(pos) = response.interact_pointer_pos().filter(|_| !double_clicked) {
             if (response.clicked() || response.dragged_by(egui::PointerButton::Primary))
                 && image_rect.contains(pos)
             {
+                self.cursor_before_click = response.clicked().then_some(scene.cursor);
                 let u = ((pos.x - image_rect.left()) / image_rect.width()) as f64;
                 let w = ((pos.y - image_rect.top()) / image_rect.height()) as f64;
                 let (a, d) = frame.index_at(dims, u, w);

@@ -1941,3 +1941,273 @@ fn the_adaptive_sampling_checkbox_and_epsilon_slider_reach_the_frame_and_persist
         .accesskit_node()
         .is_disabled());
 }
+
+/// Issue 36: once the view has converged and nothing moves (no pointer over the window), the UI
+/// asks for no repaint and the render thread renders nothing over a settled interval. The run
+/// has `--exit-after` set, which used to repaint at 10 Hz, and the controller's still
+/// refinement on, which must end.
+#[test]
+fn a_settled_viewer_asks_for_no_repaint_and_renders_nothing() {
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    use std::sync::Arc;
+
+    let dir = tempfile::tempdir().expect("temp dir");
+    let store = phantom_store(dir.path());
+    let mut options = ViewerOptions::new(VolumeSource::Path(store.clone()));
+    options.import_folder = dir.path().join("imported");
+    options.exit_after_seconds = Some(3600.0);
+    let preferences = Preferences {
+        layout: Layout::TwoByTwo,
+        show_side_panel: true,
+        ..Preferences::default()
+    };
+    let mut h = harness_with(options, preferences);
+    h.step();
+    h.state_mut()
+        .as_mut()
+        .expect("the app is created on the first step")
+        .preferences
+        .target_fps_enabled = true;
+    wait_for_settled_frame(&mut h, "a converged 3D frame", 0);
+    step_until(&mut h, "the status to leave refining", |a| {
+        a.volume_status().is_some_and(|s| !s.refining)
+    });
+    // The UI takes the final frame, the slices their images.
+    for _ in 0..5 {
+        h.step();
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let requests = Arc::new(AtomicUsize::new(0));
+    let counter = requests.clone();
+    // Counted: requests for a repaint due within a minute. The `--exit-after` deadline is
+    // asked again each pass (egui keeps a delayed request for one pass only) but is an hour
+    // away: it repaints nothing at rest.
+    h.ctx.set_repaint_observer(move |info| {
+        if info.delay < Duration::from_secs(60) {
+            counter.fetch_add(1, Ordering::Relaxed);
+        }
+    });
+    let rendered = app(&h).volume_status().expect("status").frames_rendered;
+    // The settled interval: passes at about a display's rate would drive them if asked.
+    for _ in 0..30 {
+        h.step();
+        std::thread::sleep(Duration::from_millis(30));
+    }
+    assert_eq!(
+        requests.load(Ordering::Relaxed),
+        0,
+        "repaints asked for at rest: {:?}",
+        h.ctx.repaint_causes()
+    );
+    let status = app(&h).volume_status().expect("status");
+    assert_eq!(
+        status.frames_rendered,
+        rendered,
+        "the render thread drew at rest (refining {}, {})",
+        status.refining,
+        status.refining_line()
+    );
+}
+
+/// Issue 36, the steady layout: a long ROI statistics line does not widen the side panel (the
+/// views keep their rects), and the first transfer-function edit does not move the plot.
+#[test]
+fn a_long_roi_line_and_the_first_tf_edit_move_nothing() {
+    use super::measurements::{RoiStats, Shape};
+
+    let dir = tempfile::tempdir().expect("temp dir");
+    let store = phantom_store(dir.path());
+    let mut options = ViewerOptions::new(VolumeSource::Path(store.clone()));
+    options.import_folder = dir.path().join("imported");
+    let preferences = Preferences {
+        layout: Layout::TwoByTwo,
+        show_side_panel: true,
+        ..Preferences::default()
+    };
+    let mut h = harness_sized(options, preferences, Vec2::new(1024.0, 700.0));
+    step_until(&mut h, "the converged first frame and the TF plot", |a| {
+        settled_frame(a).is_some()
+            && a.volume.is_some()
+            && a.panels.transfer_function.editor.plot_rect.is_some()
+    });
+    for _ in 0..3 {
+        h.step();
+    }
+    let views_before = app(&h).view_rect(ViewSlot::ThreeD).expect("3D view");
+    let plot_before = app(&h)
+        .panels
+        .transfer_function
+        .editor
+        .plot_rect
+        .expect("plot drawn");
+    {
+        let v = h
+            .state_mut()
+            .as_mut()
+            .expect("app")
+            .volume
+            .as_mut()
+            .expect("volume");
+        v.scene.measurements.add(Shape::Roi {
+            view: SliceView::Axial,
+            ellipse: false,
+            a: [1.0, 1.0, 10.0],
+            b: [40.0, 40.0, 10.0],
+            stats: Some(RoiStats {
+                mean: -123_456.789,
+                sd: 98_765.432,
+                min: -1_000_000.0,
+                max: 3_000_000.0,
+                voxels: 123_456_789,
+                area_mm2: 987_654.3,
+                level: 3,
+            }),
+        });
+    }
+    for _ in 0..3 {
+        h.step();
+    }
+    // The line is there (elided, the whole text on hover), the views did not move.
+    assert!(h.query_all_by_label_contains("Box mean").count() > 0);
+    let views_after = app(&h).view_rect(ViewSlot::ThreeD).expect("3D view");
+    assert_eq!(
+        views_before, views_after,
+        "the long ROI line moved the views"
+    );
+
+    // The first edit: a click in the plot adds a point (the TF becomes "edited").
+    assert!(!app(&h).volume.as_ref().expect("volume").scene.tf_edited());
+    let at =
+        plot_before.left_top() + Vec2::new(plot_before.width() * 0.42, plot_before.height() * 0.3);
+    h.event(Event::PointerMoved(at));
+    for pressed in [true, false] {
+        h.event(Event::PointerButton {
+            pos: at,
+            button: PointerButton::Primary,
+            pressed,
+            modifiers: Modifiers::NONE,
+        });
+    }
+    h.step();
+    h.step();
+    assert!(app(&h).volume.as_ref().expect("volume").scene.tf_edited());
+    let plot_after = app(&h)
+        .panels
+        .transfer_function
+        .editor
+        .plot_rect
+        .expect("plot drawn");
+    assert_eq!(plot_before, plot_after, "the first TF edit moved the plot");
+}
+
+/// Issue 36: at 1024 points wide, with a volume open (all toolbar items shown), no two toolbar
+/// items overlap, the warning included.
+#[test]
+fn toolbar_items_do_not_overlap_at_1024_points() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let store = phantom_store(dir.path());
+    let mut options = ViewerOptions::new(VolumeSource::Path(store.clone()));
+    options.import_folder = dir.path().join("imported");
+    let preferences = Preferences {
+        layout: Layout::TwoByTwo,
+        show_side_panel: true,
+        ..Preferences::default()
+    };
+    let mut h = harness_sized(options, preferences, Vec2::new(1024.0, 600.0));
+    step_until(&mut h, "the volume", |a| a.volume.is_some());
+    h.step();
+    let labels = [
+        "Open…",
+        "1×1",
+        "3D + 1×3",
+        "2×2",
+        "DVR",
+        "MIP",
+        "Iso",
+        "Shading",
+        "A",
+        "P",
+        "L",
+        "R",
+        "S",
+        "I",
+        "Reset",
+        "Screenshot",
+        "Layout",
+        "Undo",
+        "Redo",
+        "Oblique",
+        "Panels",
+        "?",
+        super::widgets::NOT_FOR_DIAGNOSIS,
+    ];
+    let mut rects: Vec<(String, egui::Rect)> = Vec::new();
+    for label in labels {
+        for node in h.query_all_by_label(label) {
+            rects.push((label.to_string(), node.rect()));
+        }
+    }
+    assert!(
+        rects.iter().any(|(l, _)| l == "Panels")
+            && rects
+                .iter()
+                .any(|(l, _)| l == super::widgets::NOT_FOR_DIAGNOSIS),
+        "toolbar items not found: {rects:?}"
+    );
+    // Only the toolbar's: the top rows of the window.
+    let toolbar_bottom = app(&h).view_rect(ViewSlot::ThreeD).expect("3D view").top();
+    rects.retain(|(_, r)| r.bottom() <= toolbar_bottom);
+    for (i, (a, ra)) in rects.iter().enumerate() {
+        assert!(ra.right() <= 1024.0, "{a} runs off the window: {ra:?}");
+        for (b, rb) in &rects[i + 1..] {
+            // Shrunk by a hair: adjacent items may share an edge.
+            assert!(
+                !ra.shrink(0.5).intersects(rb.shrink(0.5)),
+                "'{a}' {ra:?} overlaps '{b}' {rb:?}"
+            );
+        }
+    }
+}
+
+/// `strata view SCAN --overlay LABELS`: the option opens the label map over the volume once it
+/// is shown, as the panel's button does.
+#[test]
+fn the_overlay_option_opens_the_label_map_with_the_volume() {
+    use super::overlay::tests::{label_of, write_nrrd, LABEL_DIMS, LABEL_ORIGIN, LABEL_SPACING};
+    use super::overlay::OverlayKind;
+    let dir = tempfile::tempdir().expect("temp dir");
+    let store = phantom_store(dir.path());
+    let labels = dir.path().join("labels.nrrd");
+    write_nrrd(
+        &labels,
+        LABEL_DIMS,
+        LABEL_SPACING,
+        LABEL_ORIGIN,
+        false,
+        label_of,
+    );
+    let mut options = ViewerOptions::new(VolumeSource::Path(store.clone()));
+    options.import_folder = dir.path().join("imported");
+    options.overlay = Some(labels.clone());
+    let mut h = harness_with(
+        options,
+        Preferences {
+            layout: Layout::TwoByTwo,
+            show_side_panel: true,
+            ..Preferences::default()
+        },
+    );
+    let kind = step_until_some(&mut h, "the overlay from the option", |a| {
+        a.volume.as_ref()?.overlay.as_ref().map(|o| o.kind)
+    });
+    assert_eq!(kind, OverlayKind::Labels);
+    assert_eq!(app(&h).panels.overlay.path, labels.display().to_string());
+    // Listed by the file given, not by the imported store's internal name.
+    let name = app(&h)
+        .volume
+        .as_ref()
+        .and_then(|v| v.overlay.as_ref())
+        .map(|o| o.name.clone());
+    assert_eq!(name, Some(labels.display().to_string()));
+    assert!(app(&h).panels.overlay.error.is_none());
+}

@@ -338,6 +338,15 @@ impl View3d {
         Some([0, 1, 2].map(|a| index[a].clamp(0.0, g.dims[a] as f64 - 1.0)))
     }
 
+    /// The camera to draw the overlays (slice outlines, measurements, crop box, orientation
+    /// marker) with: the shown frame's, which may lag `live` (the orbit's now) while the render
+    /// thread catches up; `live` before any frame.
+    pub fn overlay_camera(&self, live: Camera) -> Camera {
+        self.shown
+            .as_ref()
+            .map_or(live, |frame| frame.request.camera)
+    }
+
     /// Draws the view into `rect`, turns input into camera and TF changes and sends the render
     /// request for this frame, with the overlay to draw in 3D (`overlay`, overlay_3d.rs).
     #[allow(clippy::too_many_arguments)]
@@ -473,6 +482,10 @@ impl View3d {
                 );
             }
         }
+        // Everything drawn over the image uses the camera the image was rendered with, so
+        // outlines, crosshair and measurements stay on the structures while the image lags the
+        // orbit (issue 36: outlines had already rotated over the old image).
+        let camera = self.overlay_camera(camera);
         if prefs.show_planes_in_3d {
             paint_slice_planes(&painter, rect, &camera, data, scene);
         }
@@ -497,7 +510,7 @@ impl View3d {
         if let Some(loading) = &status.loading {
             right_lines.push(loading.clone());
         } else if status.refining {
-            right_lines.push("refining…".to_string());
+            right_lines.push(status.refining_line());
         }
         if let Some(level) = status.finest_resident_level {
             right_lines.push(format!("finest level {level}"));

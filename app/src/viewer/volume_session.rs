@@ -111,6 +111,9 @@ pub struct SessionStatus {
     pub lod_factor: f64,
     /// More frames are coming without input: bricks are streaming in or still frames refine.
     pub refining: bool,
+    /// The render thread stopped drawing a cut the loader does not call converged because
+    /// several frames in a row changed nothing with no read pending (`RestGovernor`).
+    pub settled_unconverged: bool,
     pub frames_rendered: u64,
     pub last_screenshot: Option<Result<PathBuf, String>>,
     /// Screenshots written so far (orbit movies count their frames).
@@ -129,6 +132,28 @@ pub struct SessionStatus {
 }
 
 impl SessionStatus {
+    /// What is left while `refining`: bricks still to read, the levels still to come down, or
+    /// the sampling rate still rising; "settled" for a cut that stopped short of the loader's
+    /// convergence (`settled_unconverged`).
+    pub fn refining_line(&self) -> String {
+        if self.settled_unconverged && !self.refining {
+            return "settled".into();
+        }
+        let Some(stats) = &self.loader else {
+            return "refining…".into();
+        };
+        if !stats.converged && stats.pending > 0 {
+            return format!("refining… {} bricks to read", stats.pending);
+        }
+        match self.finest_resident_level {
+            Some(level) if !stats.converged && level > 0 => {
+                format!("refining… finest level {level}, {level} to go")
+            }
+            _ if !stats.converged => "refining… uploading bricks".into(),
+            _ => format!("refining… sampling {:.2}/voxel", self.sampling_rate),
+        }
+    }
+
     /// What the status bar should show about the volume's source: "connection lost, retrying"
     /// while a remote store cannot be reached (the view keeps what it has), nothing otherwise.
     pub fn source_line(&self) -> Option<String> {
@@ -508,6 +533,7 @@ impl RenderWorker {
         // The raycaster's final frame of `last_rendered`, held back (published as not final)
         // while the adaptive pass prepares to draw over the same cut.
         let mut awaiting_adaptive: Option<AwaitingAdaptive> = None;
+        let mut rest = RestGovernor::default();
         loop {
             if self.shared.stop.load(Ordering::Acquire) {
                 return Ok(());
@@ -636,7 +662,11 @@ impl RenderWorker {
                 // Idle: poll, so a device lost meanwhile is noticed (and rebuilt) now.
                 let _ = ctx.device.poll(wgpu::PollType::Poll);
                 watch.classify(Ok(()))?;
-                self.set_status(|s| s.refining = false);
+                // Only a change wakes the UI: setting it every 100 ms repainted the window at
+                // 10 Hz at rest (issue 36).
+                if lock_ignoring_poison(&self.shared.status).refining {
+                    self.set_status(|s| s.refining = false);
+                }
                 self.wait(Duration::from_millis(100));
                 continue;
             }
@@ -737,10 +767,20 @@ impl RenderWorker {
             if frame_ms_history.len() > 240 {
                 frame_ms_history.drain(..frame_ms_history.len() - 240);
             }
+            // The same request, nothing uploaded and the same page table as the frame before:
+            // the cut did not change (the sampling rate may still, see below).
+            let unchanged = new_request_is_same(&last_rendered, &request)
+                && stats.uploads == 0
+                && !stats.page_table_rewritten;
+            let pace = rest.after_frame(unchanged, stats.pending);
             // A frame drawn with a stand-in pipeline (the mode's own still compiling) is not the
             // frame asked for: keep rendering until the right pipeline draws, or a DVR image
-            // stays up under a "MIP" title.
-            converged = stats.converged && !volume.compiling_in_background();
+            // stays up under a "MIP" title. A cut the loader does not call converged but that
+            // changed nothing for several frames with no read pending is final too: drawing it
+            // again showed the same image and kept a core busy at rest (issue 36). Counted as
+            // converged, the still refinement of the sampling rate follows, then the idle wait.
+            let settled = pace == Pace::Rest && !stats.converged;
+            converged = (stats.converged || settled) && !volume.compiling_in_background();
             let refining = !converged
                 || (request.target_fps.is_some()
                     && !request.interacting
@@ -776,11 +816,9 @@ impl RenderWorker {
             let error = failures
                 .last()
                 .map(|f| format!("{} bricks failed to read; last: {f}", failures.len()));
-            let idle_frame = new_request_is_same(&last_rendered, &request)
-                && stats.uploads == 0
-                && !stats.page_table_rewritten;
             self.set_status(|s| {
                 s.frames_rendered += 1;
+                s.settled_unconverged = settled;
                 s.volume_frame_ms = history;
                 s.refining = refining;
                 s.sampling_rate =
@@ -798,10 +836,10 @@ impl RenderWorker {
                 }
             });
             last_rendered = Some(request);
-            if idle_frame && !converged {
+            if let (Pace::After(delay), false) = (pace, converged) {
                 // Waiting on reads: nothing new to show, so do not burn the cores on the same
                 // image (a new request still wakes this at once).
-                self.wait(Duration::from_millis(30));
+                self.wait(delay);
             }
         }
     }
@@ -883,6 +921,46 @@ struct AwaitingAdaptive {
     raycaster_samples: Option<u64>,
 }
 
+/// When the render thread draws the same request again: at once while frames change something,
+/// after a growing pause while they do not (reads pending), and not at all once they have not
+/// for [`RestGovernor::SETTLE_FRAMES`] frames with nothing pending. Without it a cut that never
+/// reaches the loader's `converged` kept the render thread drawing the same image every 30 ms
+/// (93-124 % of a core at rest, issue 36). A new request starts it again.
+#[derive(Debug, Default)]
+struct RestGovernor {
+    unchanged_frames: u32,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Pace {
+    Now,
+    After(Duration),
+    Rest,
+}
+
+impl RestGovernor {
+    /// Frames in a row that changed nothing, with no read pending, before the image counts as
+    /// final. With the pauses between them (30, 60, 120, 240, 240 ms) the background cut
+    /// selection has about 0.7 s to hand over a cut that changes something.
+    const SETTLE_FRAMES: u32 = 6;
+    /// The longest pause between two unchanged frames while reads are pending: a brick that
+    /// arrives meanwhile shows at most this late.
+    const MAX_PAUSE: Duration = Duration::from_millis(240);
+
+    fn after_frame(&mut self, unchanged: bool, pending: usize) -> Pace {
+        if !unchanged {
+            self.unchanged_frames = 0;
+            return Pace::Now;
+        }
+        self.unchanged_frames = self.unchanged_frames.saturating_add(1);
+        if pending == 0 && self.unchanged_frames >= Self::SETTLE_FRAMES {
+            return Pace::Rest;
+        }
+        let doubled = Duration::from_millis(30) * (1u32 << (self.unchanged_frames - 1).min(4));
+        Pace::After(doubled.min(Self::MAX_PAUSE))
+    }
+}
+
 fn new_request_is_same(last: &Option<RenderRequest>, request: &RenderRequest) -> bool {
     last.as_ref() == Some(request)
 }
@@ -890,6 +968,32 @@ fn new_request_is_same(last: &Option<RenderRequest>, request: &RenderRequest) ->
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_unchanging_cut_rests_after_the_settle_frames_and_pending_reads_keep_it_paced() {
+        let mut rest = RestGovernor::default();
+        // Frames that change something are drawn at once and reset the count.
+        assert_eq!(rest.after_frame(false, 3), Pace::Now);
+        // Unchanged with reads pending: growing pauses up to the cap, never rest.
+        let pauses: Vec<Pace> = (0..8).map(|_| rest.after_frame(true, 2)).collect();
+        let ms = |p: &Pace| match p {
+            Pace::After(d) => d.as_millis(),
+            other => panic!("expected a pause, got {other:?}"),
+        };
+        assert_eq!(
+            pauses.iter().map(ms).collect::<Vec<_>>(),
+            [30, 60, 120, 240, 240, 240, 240, 240]
+        );
+        // The reads end: already past the settle count, it rests at once.
+        assert_eq!(rest.after_frame(true, 0), Pace::Rest);
+        // A change (a new request, an upload) starts the count again.
+        assert_eq!(rest.after_frame(false, 0), Pace::Now);
+        let before_rest: Vec<Pace> = (1..RestGovernor::SETTLE_FRAMES)
+            .map(|_| rest.after_frame(true, 0))
+            .collect();
+        assert!(before_rest.iter().all(|p| matches!(p, Pace::After(_))));
+        assert_eq!(rest.after_frame(true, 0), Pace::Rest);
+    }
 
     fn wait_converged(session: &VolumeSession, request: &RenderRequest) -> RenderedFrame {
         let start = Instant::now();

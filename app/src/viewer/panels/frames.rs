@@ -32,6 +32,9 @@ pub fn ui(ui: &mut egui::Ui, player: &mut FramePlayer) {
         "frame {} of {} (frames numbered from 0)",
         player.current, player.count
     ));
+    if let Some(line) = player.rate_line() {
+        ui.colored_label(crate::viewer::widgets::WARNING_COLOUR, line);
+    }
     if let Some(e) = &player.error {
         ui.colored_label(Color32::LIGHT_RED, e);
     }

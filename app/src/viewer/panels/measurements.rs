@@ -24,22 +24,21 @@ pub fn ui(ui: &mut egui::Ui, data: &VolumeData, scene: &mut Scene) {
     }
     let unit = data.unit();
     let mut delete = None;
-    egui::Grid::new("measurements")
-        .num_columns(2)
-        .striped(true)
-        .show(ui, |ui| {
-            for item in &m.items {
-                ui.label(item.describe(&data.info.geometry, &unit));
-                if ui
-                    .small_button("Delete")
-                    .on_hover_text("Delete this measurement (Ctrl+Z brings it back)")
-                    .clicked()
-                {
-                    delete = Some(item.id);
-                }
-                ui.end_row();
+    for item in &m.items {
+        // The button first and the line elided in what is left, the full line on hover: a long
+        // ROI statistics line in a grid widened the side panel and moved every view and button
+        // under the cursor (issue 36).
+        ui.horizontal(|ui| {
+            if ui
+                .small_button("Delete")
+                .on_hover_text("Delete this measurement (Ctrl+Z brings it back)")
+                .clicked()
+            {
+                delete = Some(item.id);
             }
+            ui.add(egui::Label::new(item.describe(&data.info.geometry, &unit)).truncate());
         });
+    }
     if let Some(id) = delete {
         m.remove(id);
     }

@@ -17,7 +17,9 @@ use crate::viewer::scene::VolumeData;
 pub struct OverlayPanel {
     pub path: String,
     pub kind: OverlayKind,
-    job: Option<(PrepareJob, OverlayKind)>,
+    /// The job, the kind asked for and the file the user gave (the overlay is listed by it,
+    /// not by the imported store's internal name).
+    job: Option<(PrepareJob, OverlayKind, PathBuf)>,
     pub error: Option<String>,
 }
 
@@ -38,23 +40,26 @@ impl OverlayPanel {
         self.error = None;
         let ctx = ctx.clone();
         match PrepareJob::start(
-            VolumeSource::Path(path),
+            VolumeSource::Path(path.clone()),
             None,
             folder.to_path_buf(),
             Arc::new(move || ctx.request_repaint()),
         ) {
-            Ok(job) => self.job = Some((job, kind)),
+            Ok(job) => self.job = Some((job, kind, path)),
             Err(e) => self.error = Some(format!("could not start: {e:#}")),
         }
     }
 
     /// Moves a preparing overlay on; once its store is open it replaces `overlay`.
     pub fn poll(&mut self, ctx: &egui::Context, data: &VolumeData, overlay: &mut Option<Overlay>) {
-        let Some((job, kind)) = &self.job else { return };
+        let Some((job, kind, source)) = &self.job else {
+            return;
+        };
         let Some(result) = job.take_result() else {
             return;
         };
         let kind = *kind;
+        let source = source.display().to_string();
         self.job = None;
         let repaint_ctx = ctx.clone();
         let started = result.and_then(|store| {
@@ -68,7 +73,11 @@ impl OverlayPanel {
             .map_err(|e| format!("{e:#}"))
         });
         match started {
-            Ok(o) => *overlay = Some(o),
+            Ok(mut o) => {
+                // "labels.nii.gz", not "labels.nii.gz-9998ee….strata" (issue 36).
+                o.name = source;
+                *overlay = Some(o);
+            }
             Err(e) => {
                 eprintln!("strata: overlay: {e}");
                 self.error = Some(e);

@@ -223,8 +223,13 @@ impl PerformancePanel {
             });
         if status.loading.is_some() || status.refining {
             ui.horizontal(|ui| {
-                ui.spinner();
-                ui.label(status.loading.clone().unwrap_or_else(|| "refining…".into()));
+                crate::viewer::widgets::slow_spinner(ui);
+                ui.label(
+                    status
+                        .loading
+                        .clone()
+                        .unwrap_or_else(|| status.refining_line()),
+                );
             });
         } else {
             // "converged at budget (N nodes left coarser than wanted)" when the GPU budget

@@ -41,9 +41,14 @@ impl TfPanel {
                 }
             }
         });
-        if scene.tf_edited() {
-            ui.weak(format!("{} — edited", scene.tf_source.name));
-        }
+        // Always one line, edited or not, so the plot below does not move when the first edit
+        // of a drag adds "— edited" (issue 36: the point left the cursor mid-drag).
+        let source = if scene.tf_edited() {
+            format!("{} — edited", scene.tf_source.name)
+        } else {
+            scene.tf_source.name.clone()
+        };
+        ui.add(egui::Label::new(egui::RichText::new(source).weak()).truncate());
         tf_editor::show(
             ui,
             &mut self.editor,
@@ -71,6 +76,9 @@ impl TfPanel {
                     match TransferFunction::load(std::path::Path::new(&self.path)) {
                         Ok(tf) => {
                             scene.set_transfer_function(tf);
+                            // A file is no preset: the highlight must not stay on the one
+                            // before (issue 36). The next volume opens with its default.
+                            preset.clear();
                             self.editor = TfEditorState::default();
                             format!("loaded {}", self.path)
                         }
