@@ -556,16 +556,16 @@ fn a_deleted_shard_is_named_on_import() {
     }
 }
 
-/// A broken top-level zarr.json is an OME-Zarr with a broken zarr.json, not another format.
+/// A broken top-level zarr.json is an OME-Zarr with a broken zarr.json, not another format
+/// ("no DICOM files in this folder"), also in a folder whose name does not say `.zarr`.
 #[test]
 fn a_broken_group_document_is_named() {
     let fixture = fixture([64, 64, 64]);
-    std::fs::write(fixture.zarr.join("zarr.json"), b"{ not json").unwrap();
-    assert!(strata_omezarr::looks_like_ome_zarr(
-        fixture.zarr.to_str().unwrap()
-    ));
-    let zarr = fixture.zarr.clone();
-    match guarded("broken", move || import_outcome(zarr)) {
+    let plain = fixture.zarr.with_file_name("scan-export");
+    std::fs::rename(&fixture.zarr, &plain).unwrap();
+    std::fs::write(plain.join("zarr.json"), b"{ not json").unwrap();
+    assert!(strata_omezarr::looks_like_ome_zarr(plain.to_str().unwrap()));
+    match guarded("broken", move || import_outcome(plain)) {
         Outcome::Clean(m) => assert!(m.contains("zarr.json"), "{m}"),
         other => panic!("{other:?}"),
     }
