@@ -85,6 +85,7 @@ pub fn looks_like_ome_zarr(location: &str) -> bool {
     let path = std::path::Path::new(location);
     // A folder with a zarr.json file is a Zarr, whatever that file holds: a damaged one must be
     // named as such by the OME-Zarr reader, not sent to another format's ("no DICOM files").
-    // Only a regular file is considered (reading a FIFO would block).
-    path.is_dir() && std::fs::metadata(path.join("zarr.json")).is_ok_and(|m| m.is_file())
+    // Nothing is read here (a FIFO would block): a zarr.json that is not a regular file is
+    // the OME-Zarr reader's to refuse, which it does before opening it.
+    path.is_dir() && std::fs::metadata(path.join("zarr.json")).is_ok_and(|m| !m.is_dir())
 }

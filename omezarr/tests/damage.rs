@@ -692,3 +692,54 @@ fn mutated_exports_never_panic_hang_or_read_silently_wrong() {
         "{counts:#?}"
     );
 }
+
+/// A FIFO as the group's zarr.json: taken for an OME-Zarr (not handed to another format's
+/// reader, which would open it) and refused before it is opened.
+#[test]
+fn a_fifo_group_document_is_refused_not_waited_on() {
+    let fixture = fixture([64, 64, 64]);
+    let plain = fixture.zarr.with_file_name("scan-export");
+    std::fs::rename(&fixture.zarr, &plain).unwrap();
+    std::fs::remove_file(plain.join("zarr.json")).unwrap();
+    mkfifo(&plain.join("zarr.json"));
+    assert!(strata_omezarr::looks_like_ome_zarr(plain.to_str().unwrap()));
+    match guarded("fifo-group", move || import_outcome(plain)) {
+        Outcome::Clean(m) => assert!(m.contains("FIFO") && m.contains("zarr.json"), "{m}"),
+        other => panic!("{other:?}"),
+    }
+}
+
+/// A foreign OME-Zarr (no `strata` attribute) keeps Zarr's fill-value semantics: a level
+/// without any chunk imports as the fill value, and the report says so.
+#[test]
+fn a_foreign_level_without_chunks_imports_as_fill_with_a_note() {
+    let fixture = fixture([64, 64, 64]);
+    edit_json(&fixture.zarr.join("zarr.json"), |d| {
+        d["attributes"].as_object_mut().unwrap().remove("strata");
+    });
+    std::fs::remove_dir_all(fixture.zarr.join("0/c")).unwrap();
+    let work = tempfile::tempdir().unwrap();
+    let report = import_zarr(
+        folder(&fixture.zarr),
+        &work.path().join("back.strata"),
+        &ImportZarrOptions::default(),
+        &|_, _| {},
+        &ImportOptions::default(),
+    )
+    .unwrap();
+    assert!(!report.strata_export);
+    assert!(
+        report
+            .notes
+            .iter()
+            .any(|n| n.contains("level 0") && n.contains("no chunk") && n.contains("fill value")),
+        "{:?}",
+        report.notes
+    );
+    let source = OmeZarrSource::open(folder(&fixture.zarr)).unwrap();
+    assert!(
+        source.notes().iter().any(|n| n.contains("no chunk")),
+        "{:?}",
+        source.notes()
+    );
+}
