@@ -4,7 +4,9 @@
 //! hold 32³ inner chunks (the bricks' cores, so chunk c of level L is brick c of level L),
 //! zstd-compressed, with a crc32c-checked index at the shard's end. A shard whose bricks all
 //! hold the fill value (read from the skeleton, without touching the bricks) is not written,
-//! and zarrs leaves fill-valued inner chunks out of the shards it writes.
+//! and zarrs leaves fill-valued inner chunks out of the shards it writes. Each varying
+//! brick's core checksum goes to `strata-checksums.bin` ([`crate::checksums`]), so that import
+//! and streaming tell a damaged or missing chunk from the fill value.
 //!
 //! Memory is bounded by one shard (256³ samples) plus its bricks in flight. The export is
 //! cleanly restartable: a marker object is written first and removed last, after the group's
@@ -24,7 +26,9 @@ use zarrs::storage::{
     ReadableWritableListableStorageTraits, StorePrefix, WritableStorageTraits,
 };
 
-use crate::metadata::{group_attributes, StrataAttributes, SKELETON_KEY, STRATA_ATTRIBUTE_VERSION};
+use crate::metadata::{
+    group_attributes, StrataAttributes, CHECKSUMS_KEY, SKELETON_KEY, STRATA_ATTRIBUTE_VERSION,
+};
 use crate::zarr_store::zarr_storage;
 use crate::{ObjectLocation, OmeZarrError, Result};
 
@@ -104,6 +108,8 @@ pub fn export(
         .map(|n| n.iter().product::<u64>())
         .sum();
     let mut done = 0u64;
+    // Each varying brick's core checksum, as the shards hold it (see `crate::checksums`).
+    let checksums = std::sync::Mutex::new(Vec::new());
     on_progress(0, total);
     for (level, (d, &n)) in layout.level_dims.iter().zip(&shards_per_level).enumerate() {
         let zyx = [d[2], d[1], d[0]].map(u64::from);
@@ -125,6 +131,7 @@ pub fn export(
                         zyx,
                         fill,
                         narrow,
+                        &checksums,
                     )
                     .map_err(|e| match e {
                         OmeZarrError::Access { message, .. } => OmeZarrError::access(
@@ -162,7 +169,11 @@ pub fn export(
             .set(&key, bytes.into())
             .map_err(|e| OmeZarrError::access(&dest.display, e))
     };
-    report.metadata_bytes += skeleton.len() as u64;
+    let mut checksums = checksums.into_inner().unwrap_or_else(|p| p.into_inner());
+    checksums.sort_unstable_by_key(|(id, _)| (id.level, id.coords[2], id.coords[1], id.coords[0]));
+    let checksums = crate::checksums::encode(&checksums);
+    report.metadata_bytes += skeleton.len() as u64 + checksums.len() as u64;
+    put(CHECKSUMS_KEY, checksums)?;
     put(SKELETON_KEY, skeleton)?;
     let mut exposed = header.clone();
     if !options.expose_identifiers {
@@ -180,6 +191,7 @@ pub fn export(
         histogram: source.histogram().clone(),
         stats: source.stats().clone(),
         skeleton: SKELETON_KEY.into(),
+        checksums: Some(CHECKSUMS_KEY.into()),
     };
     let name = options.name.clone().unwrap_or_else(|| "strata".into());
     let mut group = zarrs::group::GroupBuilder::new()
@@ -296,6 +308,7 @@ fn export_shard(
     level_zyx: [u64; 3],
     fill: u16,
     narrow: bool,
+    checksums: &std::sync::Mutex<Vec<(BrickId, u32)>>,
 ) -> Result<bool> {
     let core = INNER_CHUNK;
     let start = [0, 1, 2].map(|a| shard_index[a] * shard[a]);
@@ -344,9 +357,22 @@ fn export_shard(
                     }
                     let payload: Vec<u16> = match node {
                         Some(n) if n.min == n.max => vec![n.min; BRICK_PAYLOAD.pow(3) as usize],
-                        _ => source
-                            .read_brick(id)
-                            .map_err(|e| OmeZarrError::access(source.location(), e))?,
+                        _ => {
+                            let payload = source
+                                .read_brick(id)
+                                .map_err(|e| OmeZarrError::access(source.location(), e))?;
+                            let digest = crate::checksums::core_digest(
+                                &payload,
+                                id,
+                                &source.header().layout,
+                                narrow,
+                            );
+                            checksums
+                                .lock()
+                                .unwrap_or_else(|p| p.into_inner())
+                                .push((id, digest.crc));
+                            payload
+                        }
                     };
                     copy_core(&payload, out, [bx, by, bz], start, end, [sy, sx]);
                 }

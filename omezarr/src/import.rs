@@ -93,6 +93,10 @@ pub fn open_level(
                 format!("array `{}`: {e}", dataset.path),
             )
         })?;
+    opened
+        .location
+        .limits
+        .register(array_limits(&array, &dataset.path));
     if array.dimensionality() != opened.multiscale.axes.len() {
         return Err(OmeZarrError::invalid(
             &opened.location.display,
@@ -105,6 +109,100 @@ pub fn open_level(
         ));
     }
     Ok(array)
+}
+
+/// What reads under an array may ask for, from its metadata: an encoded chunk no longer than
+/// its samples plus any codec's expansion; for a sharded array, the index layout.
+pub fn array_limits(
+    array: &Array<dyn ReadableWritableListableStorageTraits>,
+    path: &str,
+) -> crate::read_guard::ArrayLimits {
+    use crate::read_guard::{max_encoded_bytes, ArrayLimits, ShardSpec};
+    let sample_bytes: u64 = match data_type_name(array).as_str() {
+        "bool" | "uint8" | "int8" => 1,
+        "uint16" | "int16" | "float16" | "bfloat16" => 2,
+        "uint32" | "int32" | "float32" => 4,
+        "uint64" | "int64" | "float64" => 8,
+        // Anything wider or unknown: generous (the bound stays a bound).
+        _ => 16,
+    };
+    let metadata = serde_json::to_value(array.metadata()).unwrap_or_default();
+    let shape_of = |v: Option<&Value>| -> Vec<u64> {
+        v.and_then(Value::as_array)
+            .map(|a| a.iter().filter_map(Value::as_u64).collect())
+            .unwrap_or_default()
+    };
+    let outer = shape_of(metadata.pointer("/chunk_grid/configuration/chunk_shape"));
+    let sharding = metadata
+        .pointer("/codecs/0")
+        .filter(|c| c.get("name").and_then(Value::as_str) == Some("sharding_indexed"))
+        .and_then(|c| c.get("configuration"));
+    let voxels = |shape: &[u64]| {
+        shape
+            .iter()
+            .fold(1u64, |n, &d| n.saturating_mul(d.max(1)))
+            .saturating_mul(sample_bytes)
+    };
+    let (max_chunk_bytes, shard) = match sharding {
+        Some(config) => {
+            let inner = shape_of(config.get("chunk_shape"));
+            let entries = outer
+                .iter()
+                .zip(&inner)
+                .fold(1u64, |n, (&o, &i)| n.saturating_mul(o.div_ceil(i.max(1))));
+            let checksum = config
+                .get("index_codecs")
+                .and_then(Value::as_array)
+                .is_some_and(|codecs| {
+                    codecs
+                        .iter()
+                        .any(|c| c.get("name").and_then(Value::as_str) == Some("crc32c"))
+                });
+            let at_end = config.get("index_location").and_then(Value::as_str) != Some("start");
+            (
+                max_encoded_bytes(voxels(&inner)),
+                Some(ShardSpec {
+                    entries,
+                    index_at_end: at_end,
+                    index_bytes: entries.saturating_mul(16) + if checksum { 4 } else { 0 },
+                }),
+            )
+        }
+        None => (max_encoded_bytes(voxels(&outer)), None),
+    };
+    ArrayLimits {
+        prefix: format!("{}/", path.trim_end_matches('/')),
+        max_chunk_bytes,
+        shard,
+    }
+}
+
+/// A note when a foreign level's array holds no chunk at all: Zarr reads it as the fill value
+/// throughout, which is what the image then shows (a Strata export is checked instead).
+pub fn absent_level_note(opened: &OpenedMultiscale, level: usize) -> Option<String> {
+    use futures::StreamExt;
+    let dataset = opened.multiscale.datasets.get(level)?;
+    let prefix = object_store::path::Path::from(dataset.path.as_str());
+    let store = opened.location.store.clone();
+    let any_chunk = crate::zarr_store::block_on(async move {
+        let mut listing = store.list(Some(&prefix));
+        while let Some(entry) = listing.next().await {
+            match entry {
+                Ok(meta) if !meta.location.as_ref().ends_with("zarr.json") => return true,
+                Ok(_) => {}
+                // Listing failed: say nothing rather than something wrong.
+                Err(_) => return true,
+            }
+        }
+        false
+    })
+    .unwrap_or(true);
+    (!any_chunk).then(|| {
+        format!(
+            "level {level} (`{}`) holds no chunk at all: every voxel reads as the array's fill value",
+            dataset.path
+        )
+    })
 }
 
 /// The data type name of an array (`uint16`, `float32`, ...).
@@ -357,6 +455,112 @@ fn read_le(
     })
 }
 
+/// What a Strata export's chunks are checked against (its skeleton and, from version 2, its
+/// bricks' checksums); `None` for a foreign OME-Zarr, whose absent chunks are the fill value.
+pub fn chunk_check(opened: &OpenedMultiscale) -> Result<Option<crate::checksums::ChunkCheck>> {
+    let Some(strata) = &opened.multiscale.strata else {
+        return Ok(None);
+    };
+    let layout = strata.header.layout.clone();
+    let skeleton = crate::streaming::read_skeleton(opened, &strata.skeleton, &layout)?;
+    let checksums = match &strata.checksums {
+        None => None,
+        Some(key) => {
+            if key != crate::metadata::CHECKSUMS_KEY {
+                return Err(OmeZarrError::invalid(
+                    &opened.location.display,
+                    format!("unexpected checksums object `{key}`"),
+                ));
+            }
+            use object_store::ObjectStoreExt;
+            let path = object_store::path::Path::from(key.as_str());
+            let store = opened.location.store.clone();
+            let bytes = crate::zarr_store::block_on(async move {
+                let got = store.get(&path).await?;
+                got.bytes().await
+            })?
+            .map_err(|e| OmeZarrError::access(&opened.location.display, format!("{key}: {e}")))?;
+            Some(crate::checksums::decode(&bytes, &layout).map_err(|e| {
+                OmeZarrError::invalid(
+                    &opened.location.display,
+                    format!("{key}: the bricks' checksums {e}: the export is damaged"),
+                )
+            })?)
+        }
+    };
+    Ok(Some(crate::checksums::ChunkCheck {
+        skeleton,
+        layout,
+        checksums,
+        narrow: strata.header.stored == StoredScalar::U8,
+        fill: strata.header.stored_range[0],
+    }))
+}
+
+/// Checks level 0 of a Strata export as it is staged, slab by slab: one digest per brick of
+/// the current row of bricks (12 bytes each), checked when the row's last slice has passed.
+struct StagingCheck<'a> {
+    check: &'a crate::checksums::ChunkCheck,
+    dims: [u64; 3],
+    bricks: [u64; 2],
+    row: Vec<crate::checksums::DigestState>,
+}
+
+impl<'a> StagingCheck<'a> {
+    fn new(check: &'a crate::checksums::ChunkCheck, dims: [u64; 3]) -> Self {
+        let core = u64::from(strata_storage::BRICK_CORE);
+        let bricks = [dims[0].div_ceil(core), dims[1].div_ceil(core)];
+        StagingCheck {
+            check,
+            dims,
+            bricks,
+            row: vec![Default::default(); (bricks[0] * bricks[1]) as usize],
+        }
+    }
+
+    /// Slices `z0..` of level 0 (z, y, x order, stored bytes) have been read.
+    fn feed(&mut self, z0: u64, bytes: &[u8]) -> std::result::Result<(), String> {
+        let core = u64::from(strata_storage::BRICK_CORE);
+        let narrow = self.check.narrow;
+        let sample = if narrow { 1 } else { 2 };
+        let [nx, ny, nz] = self.dims;
+        let slice = (nx * ny) as usize * sample;
+        for (dz, plane) in bytes.chunks_exact(slice).enumerate() {
+            let z = z0 + dz as u64;
+            for y in 0..ny {
+                let row = &plane[(y * nx) as usize * sample..((y + 1) * nx) as usize * sample];
+                for bx in 0..self.bricks[0] {
+                    let x0 = (bx * core) as usize * sample;
+                    let x1 = ((bx + 1) * core).min(nx) as usize * sample;
+                    let state = &mut self.row[((y / core) * self.bricks[0] + bx) as usize];
+                    state.add_row_bytes(&row[x0..x1], narrow);
+                }
+            }
+            if (z + 1).is_multiple_of(core) || z + 1 == nz {
+                for (i, state) in self.row.iter_mut().enumerate() {
+                    let i = i as u64;
+                    let id = strata_storage::BrickId::new(
+                        0,
+                        [
+                            (i % self.bricks[0]) as u32,
+                            (i / self.bricks[0]) as u32,
+                            (z / core) as u32,
+                        ],
+                    );
+                    let digest = std::mem::take(state).finish();
+                    self.check.check(id, digest).map_err(|e| {
+                        format!(
+                            "level 0 brick {:?} (chunk z {} y {} x {}) {e}",
+                            id.coords, id.coords[2], id.coords[1], id.coords[0]
+                        )
+                    })?;
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
 /// Imports the OME-Zarr at `location` into a new store at `store_path`.
 pub fn import_zarr(
     location: ObjectLocation,
@@ -381,6 +585,14 @@ pub fn import_zarr(
         )
     })?;
     let mut notes = choice.notes.clone();
+    let check = chunk_check(&opened)?;
+    let mut staging_check = match &check {
+        Some(check) if shape.len() == 3 => Some(StagingCheck::new(check, dims_u64)),
+        _ => None,
+    };
+    if check.is_none() {
+        notes.extend(absent_level_note(&opened, 0));
+    }
     if matches!(dtype.as_str(), "uint64" | "int64") {
         notes.push(format!(
             "{dtype} samples converted to float64 before quantisation"
@@ -422,6 +634,11 @@ pub fn import_zarr(
             ranges[choice.space[0]] = z..z_end;
             let subset = ArraySubset::new_with_ranges(&ranges);
             let bytes = read_le(&array, &dtype, &subset, &display)?;
+            if let Some(check) = &mut staging_check {
+                check
+                    .feed(z, &bytes)
+                    .map_err(|e| OmeZarrError::invalid(&display, e))?;
+            }
             out.write_all(&bytes)
                 .map_err(|e| OmeZarrError::access(staging_dir.display(), e))?;
             z = z_end;

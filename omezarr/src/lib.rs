@@ -13,12 +13,14 @@
 //! The Zarr format (sharding, zstd, crc32c) is zarrs'; the stores and the S3 signer are
 //! object_store's. Nothing here encodes a Zarr codec or signs a request by hand.
 
+pub mod checksums;
 pub mod export;
 pub mod fetcher;
 pub mod import;
 pub mod metadata;
 pub mod object_location;
 pub mod range_cache;
+pub mod read_guard;
 pub mod streaming;
 pub mod view;
 mod zarr_store;
@@ -81,9 +83,9 @@ pub fn looks_like_ome_zarr(location: &str) -> bool {
         return true;
     }
     let path = std::path::Path::new(location);
-    path.is_dir()
-        && std::fs::read(path.join("zarr.json"))
-            .ok()
-            .and_then(|bytes| serde_json::from_slice::<serde_json::Value>(&bytes).ok())
-            .is_some_and(|doc| doc.pointer("/attributes/ome/multiscales").is_some())
+    // A folder with a zarr.json file is a Zarr, whatever that file holds: a damaged one must be
+    // named as such by the OME-Zarr reader, not sent to another format's ("no DICOM files").
+    // Nothing is read here (a FIFO would block): a zarr.json that is not a regular file is
+    // the OME-Zarr reader's to refuse, which it does before opening it.
+    path.is_dir() && std::fs::metadata(path.join("zarr.json")).is_ok_and(|m| !m.is_dir())
 }

@@ -16,8 +16,11 @@ use strata_storage::{StoreHeader, VolumeGeometry};
 
 use crate::{OmeZarrError, Result};
 
-/// Version of the `strata` attribute's layout.
-pub const STRATA_ATTRIBUTE_VERSION: u32 = 1;
+/// Version of the `strata` attribute's layout (2: the bricks' checksums ride along in
+/// [`CHECKSUMS_KEY`]; version-1 exports are read, with the skeleton's ranges as their check).
+pub const STRATA_ATTRIBUTE_VERSION: u32 = 2;
+/// The object holding each varying brick's core checksum (see `crate::checksums`).
+pub const CHECKSUMS_KEY: &str = "strata-checksums.bin";
 /// The object (beside the group's zarr.json) holding the octree skeleton: per-node min/max,
 /// as the store encodes it (checksummed).
 pub const SKELETON_KEY: &str = "strata-skeleton.bin";
@@ -31,6 +34,9 @@ pub struct StrataAttributes {
     pub stats: StoreStats,
     /// Key of the skeleton object, relative to the group.
     pub skeleton: String,
+    /// Key of the brick checksums object (absent in version-1 exports).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub checksums: Option<String>,
 }
 
 /// One axis of the multiscale.
@@ -246,6 +252,24 @@ pub fn parse_group_attributes(
     let first = multiscales
         .first()
         .ok_or_else(|| OmeZarrError::invalid(location, "the multiscales list is empty"))?;
+    // A version this build does not know may mean anything: refused, not guessed at.
+    for version in [
+        attributes.get("ome").and_then(|ome| ome.get("version")),
+        first.get("version"),
+    ]
+    .into_iter()
+    .flatten()
+    {
+        let known = version
+            .as_str()
+            .is_some_and(|v| v == "0.4" || v == "0.5" || v.starts_with("0.5-"));
+        if !known {
+            return Err(OmeZarrError::invalid(
+                location,
+                format!("OME-Zarr version {version} is not one this build reads (0.4, 0.5)"),
+            ));
+        }
+    }
     let axes: Vec<Axis> = first
         .get("axes")
         .and_then(Value::as_array)
@@ -310,6 +334,16 @@ pub fn parse_group_attributes(
             &mut translation,
             location,
         )?;
+        if scale.iter().any(|s| !s.is_finite() || *s <= 0.0)
+            || translation.iter().any(|t| !t.is_finite())
+        {
+            return Err(OmeZarrError::invalid(
+                location,
+                format!(
+                    "dataset `{path}`: scale {scale:?} and translation {translation:?}: scales must be positive and finite, translations finite"
+                ),
+            ));
+        }
         datasets.push(Dataset {
             path,
             scale,
@@ -324,6 +358,9 @@ pub fn parse_group_attributes(
         ),
         None => None,
     };
+    if let Some(strata) = &strata {
+        check_strata(strata, &datasets, location)?;
+    }
     let ome = attributes.get("ome").unwrap_or(&Value::Null);
     let channel_ranges = ome
         .get("omero")
@@ -352,6 +389,103 @@ pub fn parse_group_attributes(
         datasets,
         strata,
     })
+}
+
+/// Refuses a `strata` attribute this build cannot read or that contradicts itself or the
+/// multiscales beside it (a damaged export must not import or stream as something else).
+fn check_strata(strata: &StrataAttributes, datasets: &[Dataset], location: &str) -> Result<()> {
+    use strata_storage::store::{
+        KNOWN_STORE_FEATURES, OLDEST_READABLE_FORMAT_VERSION, STORE_FORMAT_VERSION,
+    };
+    let bad = |message: String| {
+        Err(OmeZarrError::invalid(
+            location,
+            format!("the `strata` attribute {message}"),
+        ))
+    };
+    if !(1..=STRATA_ATTRIBUTE_VERSION).contains(&strata.version) {
+        return bad(format!(
+            "is version {} (this build reads 1 to {STRATA_ATTRIBUTE_VERSION}): update Strata",
+            strata.version
+        ));
+    }
+    let h = &strata.header;
+    let v = h.format_version;
+    if !(OLDEST_READABLE_FORMAT_VERSION..=STORE_FORMAT_VERSION).contains(&v) {
+        return bad(format!(
+            "names store format version {v} (this build reads {OLDEST_READABLE_FORMAT_VERSION} to {STORE_FORMAT_VERSION})"
+        ));
+    }
+    if let Some(unknown) = h
+        .required_features
+        .iter()
+        .find(|f| !KNOWN_STORE_FEATURES.contains(&f.as_str()))
+    {
+        return bad(format!(
+            "requires the feature '{unknown}', which this build does not know: update Strata"
+        ));
+    }
+    if let Err(e) = h.geometry.validate() {
+        return bad(format!("has an unusable geometry: {e}"));
+    }
+    if h.layout != strata_storage::OctreeLayout::new(h.geometry.dims) {
+        return bad(format!(
+            "has an octree layout that does not fit its {:?} voxels",
+            h.geometry.dims
+        ));
+    }
+    if h.brick_core != u64::from(strata_storage::BRICK_CORE)
+        || h.brick_apron != u64::from(strata_storage::BRICK_APRON)
+    {
+        return bad(format!(
+            "has bricks of {} + {} voxels (this build's are {} + {})",
+            h.brick_core,
+            h.brick_apron,
+            strata_storage::BRICK_CORE,
+            strata_storage::BRICK_APRON
+        ));
+    }
+    let m = &h.value_mapping.mapping;
+    if !(m.slope.is_finite() && m.slope != 0.0 && m.intercept.is_finite()) {
+        return bad(format!(
+            "has the value mapping slope {} intercept {}: the slope must be finite and non-zero",
+            m.slope, m.intercept
+        ));
+    }
+    let max = h.stored.max_value();
+    if h.stored_range[0] > h.stored_range[1] || h.stored_range[1] > max {
+        return bad(format!("has the stored range {:?}", h.stored_range));
+    }
+    if datasets.len() != h.layout.level_count() {
+        return bad(format!(
+            "describes {} levels but the multiscale has {} datasets",
+            h.layout.level_count(),
+            datasets.len()
+        ));
+    }
+    // The multiscales' transformations are the attribute's geometry written out: a
+    // disagreement is damage to one of them.
+    for (level, d) in datasets.iter().enumerate() {
+        let (scale, translation) = level_transform(&h.geometry, level as u8);
+        let close = |a: f64, b: f64, scale: f64| (a - b).abs() <= 1e-6 * scale.abs().max(1.0);
+        let agrees = d.scale.len() == 3
+            && d.translation.len() == 3
+            && (0..3).all(|a| {
+                close(d.scale[a], scale[a], scale[a])
+                    && close(
+                        d.translation[a],
+                        translation[a],
+                        scale[a].abs().max(translation[a].abs()),
+                    )
+            });
+        if !agrees {
+            return bad(format!(
+                "and dataset `{}` disagree: scale {:?} translation {:?} in the multiscales, {scale:?} {translation:?} from the attribute's geometry",
+                d.path, d.scale, d.translation
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// Millimetres per unit of an OME-Zarr space axis (UDUNITS-2 names as the spec lists them).

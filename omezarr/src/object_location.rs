@@ -15,6 +15,7 @@ use object_store::local::LocalFileSystem;
 use object_store::prefix::PrefixStore;
 use object_store::{ClientOptions, ObjectStore};
 
+use crate::read_guard::{ReadGuard, ReadLimits};
 use crate::{OmeZarrError, Result};
 
 /// Flags for object stores that the URL does not carry.
@@ -41,7 +42,10 @@ pub enum LocationKind {
 pub struct ObjectLocation {
     pub display: String,
     pub kind: LocationKind,
+    /// Every read bounded by the metadata and the objects' sizes ([`ReadGuard`]).
     pub store: Arc<dyn ObjectStore>,
+    /// What the guard allows under each array; the levels register theirs as they open.
+    pub limits: Arc<ReadLimits>,
 }
 
 impl std::fmt::Debug for ObjectLocation {
@@ -97,11 +101,7 @@ impl ObjectLocation {
             } else {
                 Arc::new(PrefixStore::new(s3, prefix.trim_matches('/')))
             };
-            return Ok(ObjectLocation {
-                display: spec.to_string(),
-                kind: LocationKind::S3,
-                store,
-            });
+            return Ok(ObjectLocation::guarded(spec, LocationKind::S3, store, None));
         }
         if spec.starts_with("http://") || spec.starts_with("https://") {
             let http = HttpBuilder::new()
@@ -109,11 +109,12 @@ impl ObjectLocation {
                 .with_client_options(ClientOptions::new().with_allow_http(true))
                 .build()
                 .map_err(|e| OmeZarrError::invalid(spec, format!("HTTP location: {e}")))?;
-            return Ok(ObjectLocation {
-                display: spec.to_string(),
-                kind: LocationKind::Http,
-                store: Arc::new(http),
-            });
+            return Ok(ObjectLocation::guarded(
+                spec,
+                LocationKind::Http,
+                Arc::new(http),
+                None,
+            ));
         }
         let path = std::path::Path::new(spec);
         if create_folder {
@@ -126,10 +127,32 @@ impl ObjectLocation {
         }
         let local =
             LocalFileSystem::new_with_prefix(path).map_err(|e| OmeZarrError::access(spec, e))?;
-        Ok(ObjectLocation {
+        Ok(ObjectLocation::guarded(
+            spec,
+            LocationKind::Folder,
+            Arc::new(local),
+            Some(path.to_path_buf()),
+        ))
+    }
+
+    fn guarded(
+        spec: &str,
+        kind: LocationKind,
+        store: Arc<dyn ObjectStore>,
+        local_root: Option<std::path::PathBuf>,
+    ) -> Self {
+        let limits = Arc::new(ReadLimits::default());
+        ObjectLocation {
             display: spec.to_string(),
-            kind: LocationKind::Folder,
-            store: Arc::new(local),
-        })
+            kind,
+            store: Arc::new(ReadGuard::new(store, local_root, limits.clone())),
+            limits,
+        }
+    }
+
+    /// `store` (a cache in front of this location's) behind a guard with the same limits, so
+    /// that ranges are checked as the callers ask for them, before the cache merges them.
+    pub fn guard_again(&self, store: Arc<dyn ObjectStore>) -> Arc<dyn ObjectStore> {
+        Arc::new(ReadGuard::new(store, None, self.limits.clone()))
     }
 }

@@ -186,10 +186,24 @@ impl BrickRegion {
         })
     }
 
+    /// A read that failed: damage (a codec failed, a checksum, a read the guard refused) is
+    /// reported as such, the loader then keeping the parent; storage errors as unavailable.
     fn failed(&self, e: zarrs::array::ArrayError, display: &str) -> SourceError {
+        let message = e.to_string();
+        let storage = matches!(e, zarrs::array::ArrayError::StorageError(_));
+        if !storage || message.contains("Generic strata error") {
+            return SourceError::Damaged {
+                location: display.to_string(),
+                id: self.id,
+                message,
+            };
+        }
         SourceError::Unavailable {
             location: display.to_string(),
-            message: format!("brick level {} at {:?}: {e}", self.id.level, self.id.coords),
+            message: format!(
+                "brick level {} at {:?}: {message}",
+                self.id.level, self.id.coords
+            ),
         }
     }
 
@@ -226,6 +240,10 @@ pub(crate) struct Assembler {
     layout: OctreeLayout,
     sampling: Sampling,
     levels: Vec<AsyncLevel>,
+    /// A Strata export's skeleton and checksums, each brick's core checked against them.
+    check: Option<Arc<crate::checksums::ChunkCheck>>,
+    /// Chunks whose core passed the check (a brick's apron is read from its neighbours').
+    verified: std::sync::Mutex<std::collections::HashSet<BrickId>>,
     /// Bricks assembled so far, for [`OmeZarrSource::needed_chunk_bytes`].
     bricks_read: std::sync::Mutex<std::collections::HashSet<BrickId>>,
 }
@@ -237,6 +255,7 @@ impl Assembler {
         sampling: &Sampling,
         store: &Arc<dyn object_store::ObjectStore>,
         levels: &[Level],
+        check: Option<Arc<crate::checksums::ChunkCheck>>,
     ) -> Result<Self> {
         let storage = Arc::new(AsyncObjectStore::new(store.clone()));
         let levels = levels
@@ -257,8 +276,29 @@ impl Assembler {
             layout: layout.clone(),
             sampling: sampling.clone(),
             levels,
+            check,
+            verified: Default::default(),
             bricks_read: Default::default(),
         })
+    }
+
+    /// The payload, once its core is checked against the export's skeleton and checksums.
+    fn checked(&self, id: BrickId, payload: Vec<u16>) -> Result<Vec<u16>, SourceError> {
+        if let Some(check) = &self.check {
+            let digest = crate::checksums::core_digest(&payload, id, &self.layout, check.narrow);
+            check
+                .check(id, digest)
+                .map_err(|message| SourceError::Damaged {
+                    location: self.display.clone(),
+                    id,
+                    message,
+                })?;
+            self.verified
+                .lock()
+                .unwrap_or_else(|p| p.into_inner())
+                .insert(id);
+        }
+        Ok(payload)
     }
 
     pub(crate) fn bytes_per_sample(&self) -> usize {
@@ -297,8 +337,105 @@ impl Assembler {
             };
         }
         let values = convert_samples!(&self.sampling, read);
-        Ok(region.gather(&values))
+        let payload = self.checked(id, region.gather(&values))?;
+        // The apron's sources: each neighbour chunk checked whole once (its bytes are in the
+        // range cache already; only the decode repeats).
+        for neighbour in self.unverified_neighbours(id) {
+            let subset = core_subset(&self.layout, neighbour);
+            macro_rules! read_core {
+                ($t:ty) => {
+                    level
+                        .array
+                        .async_retrieve_array_subset_sharded_opt::<Vec<$t>>(
+                            &level.cache,
+                            &subset,
+                            &options,
+                        )
+                        .await
+                        .map_err(|e| region.failed(e, &self.display))?
+                };
+            }
+            let core = convert_samples!(&self.sampling, read_core);
+            self.check_neighbour(id, neighbour, &core)?;
+        }
+        Ok(payload)
     }
+
+    /// Neighbour chunks of `id` (its apron's sources, in its level) not checked yet.
+    fn unverified_neighbours(&self, id: BrickId) -> Vec<BrickId> {
+        if self.check.is_none() {
+            return Vec::new();
+        }
+        let n = self
+            .layout
+            .bricks_in_level(id.level as usize)
+            .map(i64::from);
+        let verified = self.verified.lock().unwrap_or_else(|p| p.into_inner());
+        let mut out = Vec::new();
+        for dz in -1..=1i64 {
+            for dy in -1..=1i64 {
+                for dx in -1..=1i64 {
+                    let c = [dx, dy, dz]
+                        .iter()
+                        .zip(id.coords)
+                        .map(|(d, c)| i64::from(c) + d)
+                        .collect::<Vec<_>>();
+                    if (0..3).all(|a| (0..n[a]).contains(&c[a])) {
+                        let neighbour =
+                            BrickId::new(id.level, [c[0] as u32, c[1] as u32, c[2] as u32]);
+                        if !verified.contains(&neighbour) {
+                            out.push(neighbour);
+                        }
+                    }
+                }
+            }
+        }
+        out
+    }
+
+    /// Checks a neighbour's core (z, y, x order, as read), for brick `id` whose apron it fed.
+    fn check_neighbour(
+        &self,
+        id: BrickId,
+        neighbour: BrickId,
+        core: &[u16],
+    ) -> Result<(), SourceError> {
+        let Some(check) = &self.check else {
+            return Ok(());
+        };
+        let dims = self.layout.level_dims[neighbour.level as usize];
+        let nx = (dims[0] - neighbour.coords[0] * BRICK_CORE).min(BRICK_CORE) as usize;
+        let mut state = crate::checksums::DigestState::default();
+        for row in core.chunks_exact(nx) {
+            state.add_row(row, check.narrow);
+        }
+        check
+            .check(neighbour, state.finish())
+            .map_err(|e| SourceError::Damaged {
+                location: self.display.clone(),
+                id,
+                message: format!(
+                    "its apron's source, brick level {} at {:?}, {e}",
+                    neighbour.level, neighbour.coords
+                ),
+            })?;
+        self.verified
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .insert(neighbour);
+        Ok(())
+    }
+}
+
+/// The array subset of brick `id`'s core (its chunk, clipped to the level).
+fn core_subset(layout: &OctreeLayout, id: BrickId) -> ArraySubset {
+    let dims = layout.level_dims[id.level as usize].map(u64::from);
+    let core = u64::from(BRICK_CORE);
+    let range = |a: usize| {
+        let lo = u64::from(id.coords[a]) * core;
+        lo..(lo + core).min(dims[a])
+    };
+    ArraySubset::new_with_ranges(&[range(2), range(1), range(0)])
 }
 
 /// How a level's shards hold inner chunks (from its sharding codec's configuration).
@@ -407,7 +544,7 @@ impl OmeZarrSource {
     pub fn open(mut location: ObjectLocation) -> Result<Self> {
         let cached = RangeCacheStore::new(location.store.clone(), RANGE_CACHE_BYTES);
         let counters = cached.counters.clone();
-        location.store = Arc::new(cached);
+        location.store = location.guard_again(Arc::new(cached));
         let opened = open_multiscale(location)?;
         let display = opened.location.display.clone();
         if let Some(strata) = &opened.multiscale.strata {
@@ -449,12 +586,14 @@ impl OmeZarrSource {
                 let cache = ArrayShardedReadableExtCache::new(&array);
                 levels.push(Level { array, cache });
             }
+            let check = crate::import::chunk_check(&opened)?.map(Arc::new);
             let assembler = Arc::new(Assembler::new(
                 &display,
                 &header.layout,
                 &sampling,
                 &opened.location.store,
                 &levels,
+                check,
             )?);
             return Ok(OmeZarrSource {
                 store: opened.location.store.clone(),
@@ -481,6 +620,7 @@ impl OmeZarrSource {
             &foreign.sampling,
             &opened.location.store,
             &foreign.levels,
+            None,
         )?);
         Ok(OmeZarrSource {
             store: opened.location.store.clone(),
@@ -527,7 +667,25 @@ impl OmeZarrSource {
             };
         }
         let values = convert_samples!(&self.sampling, read);
-        Ok(region.gather(&values))
+        let payload = self.assembler.checked(id, region.gather(&values))?;
+        for neighbour in self.assembler.unverified_neighbours(id) {
+            let subset = core_subset(&self.header.layout, neighbour);
+            macro_rules! read_core {
+                ($t:ty) => {
+                    level
+                        .array
+                        .retrieve_array_subset_sharded_opt::<Vec<$t>>(
+                            &level.cache,
+                            &subset,
+                            &options,
+                        )
+                        .map_err(|e| region.failed(e, &self.display))?
+                };
+            }
+            let core = convert_samples!(&self.sampling, read_core);
+            self.assembler.check_neighbour(id, neighbour, &core)?;
+        }
+        Ok(payload)
     }
 
     /// Encoded bytes of the inner chunks the bricks read so far needed: each brick's own and its
@@ -650,7 +808,11 @@ impl OmeZarrSource {
     }
 }
 
-fn read_skeleton(opened: &OpenedMultiscale, key: &str, layout: &OctreeLayout) -> Result<Skeleton> {
+pub(crate) fn read_skeleton(
+    opened: &OpenedMultiscale,
+    key: &str,
+    layout: &OctreeLayout,
+) -> Result<Skeleton> {
     if key != SKELETON_KEY {
         return Err(OmeZarrError::invalid(
             &opened.location.display,
@@ -783,6 +945,13 @@ fn open_foreign(opened: &OpenedMultiscale) -> Result<Foreign> {
             }
         ));
     }
+    // Absent chunks are the fill value in a foreign pyramid, as Zarr has it; a whole level
+    // without any is worth saying.
+    notes.extend(
+        taken
+            .iter()
+            .filter_map(|&i| crate::import::absent_level_note(opened, i)),
+    );
     let levels: Vec<Level> = arrays
         .into_iter()
         .map(|array| {
