@@ -4,5 +4,6 @@
 
 mod cancel_on_wire;
 mod common;
+mod damage;
 mod export_import;
 mod foreign_streaming;
