@@ -308,3 +308,26 @@ fn the_store_marker_content_is_checked() {
     }
     assert!(Store::open(&pristine).is_ok());
 }
+
+/// `verify`'s time on an intact 256³ phantom store (the figure for the note):
+/// `cargo test -p strata-storage --test store_damage verify_time -- --ignored --nocapture`.
+#[test]
+#[ignore = "measurement: run with --ignored --nocapture"]
+fn verify_time_on_an_intact_store() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("phantom.strata");
+    strata_storage::phantom::Phantom::cube(256)
+        .write_store(&path, &ImportOptions::default())
+        .unwrap();
+    let store = Store::open(&path).unwrap();
+    for round in 0..3 {
+        let started = std::time::Instant::now();
+        let report = store.verify_report(|_, _| {}).unwrap();
+        assert!(report.problems.is_empty(), "{:?}", report.problems);
+        println!(
+            "round {round}: verify of {} records in {:.3} s",
+            report.records_read,
+            started.elapsed().as_secs_f64()
+        );
+    }
+}
