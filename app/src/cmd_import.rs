@@ -143,6 +143,10 @@ pub fn run(args: ImportArgs) -> Result<()> {
         g.spacing_mm[1],
         g.spacing_mm[2]
     );
+    // Header values replaced by an assumption: said here, and kept in the store's description.
+    for warning in opened.info.warnings() {
+        eprintln!("warning: {}: {warning}", args.input.display());
+    }
     if opened.info.frames > 1 {
         eprintln!(
             "{} frames (time points), each a frame of the store",

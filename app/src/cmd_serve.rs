@@ -36,10 +36,15 @@ pub struct ServeArgs {
     pub expose_identifiers: bool,
     #[arg(long, default_value_t = 256)]
     pub max_connections: usize,
+    /// Connections from one client address; at a cap the connection idle longest is closed
+    /// to admit a new one.
+    #[arg(long, default_value_t = 64)]
+    pub max_connections_per_address: usize,
     #[arg(long, default_value_t = 512)]
     pub max_requests: usize,
-    /// Seconds a client may take to send a request's headers before it is disconnected.
-    #[arg(long, default_value_t = 10.0)]
+    /// Seconds a client may take to send a request's first byte (from connecting), and then
+    /// its headers, before it is disconnected.
+    #[arg(long, default_value_t = 5.0)]
     pub header_timeout: f64,
     /// Milliseconds added before every brick answer: a round-trip delay for benchmarks on
     /// loopback.
@@ -90,6 +95,7 @@ pub fn run(args: ServeArgs) -> Result<()> {
         token,
         expose_identifiers: args.expose_identifiers,
         max_connections: args.max_connections,
+        max_connections_per_address: args.max_connections_per_address,
         max_concurrent_requests: args.max_requests,
         header_read_timeout: Duration::from_secs_f64(args.header_timeout),
         added_delay: Duration::from_millis(args.added_delay_ms),

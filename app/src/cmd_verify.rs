@@ -19,17 +19,22 @@ pub fn run(location: &str, token_file: Option<&Path>) -> Result<()> {
     // What the check reads: every node of the octree, or in a store whose constant bricks are
     // implied by its sparse skeleton only the stored records (the store's verify says which).
     let checked = std::cell::Cell::new(total);
+    let mut verdict = None;
     let problems = match &opened {
         // The store's own check also counts the records against the octree.
-        Opened::Local(store) => store
-            .verify(|done, of| {
-                if of != checked.get() {
-                    checked.set(of);
-                    bar.set_length(of);
-                }
-                bar.set_position(done)
-            })
-            .with_context(|| format!("verifying {location}"))?,
+        Opened::Local(store) => {
+            let report = store
+                .verify_report(|done, of| {
+                    if of != checked.get() {
+                        checked.set(of);
+                        bar.set_length(of);
+                    }
+                    bar.set_position(done)
+                })
+                .with_context(|| format!("verifying {location}"))?;
+            verdict = report.verdict;
+            report.problems
+        }
         Opened::Remote(_) | Opened::OmeZarr(_) => {
             strata_source::verify_source(source.as_ref(), REMOTE_VERIFY_THREADS, &|done, _| {
                 bar.set_position(done)
@@ -52,6 +57,9 @@ pub fn run(location: &str, token_file: Option<&Path>) -> Result<()> {
     }
     for p in &problems {
         eprintln!("{p}");
+    }
+    if let Some(verdict) = verdict {
+        eprintln!("{verdict}");
     }
     bail!(
         "{location}: {} problem(s) found in {} bricks",

@@ -4,6 +4,7 @@
 //! document, ETags). See ARCHITECTURE.md, "The data service".
 
 pub mod client;
+mod connections;
 pub mod server;
 pub mod wire;
 

@@ -59,10 +59,16 @@ pub struct ServeOptions {
     pub token: Option<String>,
     pub expose_identifiers: bool,
     pub max_connections: usize,
+    /// Connections from one client address (below `max_connections`, so one address cannot
+    /// take them all). When a cap is reached the connection idle longest is closed to admit
+    /// the new one (see `connections.rs`); only when all are busy is the new one refused.
+    pub max_connections_per_address: usize,
     pub max_concurrent_requests: usize,
     /// HTTP/1 read buffer (bounds the request line and headers) and HTTP/2 header list size.
     pub max_header_bytes: usize,
-    /// A client that has not sent a request's headers within this time is disconnected.
+    /// A client that has not sent a request's headers within this time is disconnected: the
+    /// first byte must come within it from accept (an idle socket is closed), and the rest of
+    /// the head within it from there (hyper's own timer, which starts at the first byte).
     pub header_read_timeout: Duration,
     /// A request not answered within this time gets 408.
     pub request_timeout: Duration,
@@ -88,9 +94,10 @@ impl Default for ServeOptions {
             token: None,
             expose_identifiers: false,
             max_connections: 256,
+            max_connections_per_address: 64,
             max_concurrent_requests: 512,
             max_header_bytes: 16 << 10,
-            header_read_timeout: Duration::from_secs(10),
+            header_read_timeout: Duration::from_secs(5),
             request_timeout: Duration::from_secs(30),
             max_streams_per_connection: 256,
             added_delay: Duration::ZERO,
@@ -113,7 +120,8 @@ fn tls_acceptor(files: &TlsFiles) -> Result<tokio_rustls::TlsAcceptor, ServeErro
     use rustls::pki_types::pem::PemObject;
     use rustls::pki_types::{CertificateDer, PrivateKeyDer};
     let read = |path: &Path| {
-        std::fs::read(path).map_err(|e| ServeError::Refused {
+        // Only a regular file: a FIFO given as a certificate would block the start for ever.
+        strata_storage::regular_file::read(path).map_err(|e| ServeError::Refused {
             path: path.to_path_buf(),
             message: format!("cannot read it: {e}"),
         })
@@ -165,6 +173,10 @@ pub struct ServerCounters {
     pub unauthorized: AtomicU64,
     pub rejected_busy: AtomicU64,
     pub connections_refused: AtomicU64,
+    /// Idle connections closed to admit a new one at a cap.
+    pub connections_shed: AtomicU64,
+    /// Connections closed because no request byte came within the header timeout.
+    pub connections_idle_closed: AtomicU64,
 }
 
 struct AppState {
@@ -551,7 +563,10 @@ async fn serve(
         .max_pending_accept_reset_streams(Some(64))
         .keep_alive_interval(Some(Duration::from_secs(20)))
         .keep_alive_timeout(Duration::from_secs(20));
-    let connections = Arc::new(Semaphore::new(options.max_connections.max(1)));
+    let connections = crate::connections::Connections::new(
+        options.max_connections,
+        options.max_connections_per_address,
+    );
     let mut tasks = tokio::task::JoinSet::new();
     let mut minute = tokio::time::interval(Duration::from_secs(60));
     minute.tick().await;
@@ -568,39 +583,72 @@ async fn serve(
                         continue;
                     }
                 };
-                let Ok(permit) = connections.clone().try_acquire_owned() else {
-                    state.counters.connections_refused.fetch_add(1, Ordering::Relaxed);
-                    drop(stream);
-                    continue;
+                let admitted = match connections.admit(peer.ip()) {
+                    Ok(a) => a,
+                    Err(_) => {
+                        state.counters.connections_refused.fetch_add(1, Ordering::Relaxed);
+                        drop(stream);
+                        continue;
+                    }
                 };
+                if admitted.shed_one {
+                    state.counters.connections_shed.fetch_add(1, Ordering::Relaxed);
+                }
                 let _ = stream.set_nodelay(true);
                 let builder = builder.clone();
                 let app = app.clone();
                 let tls = tls.clone();
+                let counters = state.counters.clone();
                 let handshake_timeout = options.header_read_timeout;
                 tasks.spawn(async move {
+                    let handle = admitted.handle();
                     let service = hyper::service::service_fn(move |req: hyper::Request<hyper::body::Incoming>| {
                         let mut app = app.clone();
-                        async move { tower_service::Service::call(&mut app, req).await }
+                        // Busy while the request is answered: a busy connection is never shed.
+                        let in_flight = handle.request();
+                        async move {
+                            let answer = tower_service::Service::call(&mut app, req).await;
+                            drop(in_flight);
+                            answer
+                        }
                     });
-                    let served = match tls {
-                        None => builder.serve_connection(TokioIo::new(stream), service).await,
-                        Some(acceptor) => {
-                            // The handshake is bounded like the headers: a client that stalls
-                            // in it is dropped.
-                            match tokio::time::timeout(handshake_timeout, acceptor.accept(stream)).await {
-                                Ok(Ok(tls_stream)) => {
-                                    builder.serve_connection(TokioIo::new(tls_stream), service).await
-                                }
-                                Ok(Err(e)) => Err(e.into()),
-                                Err(_) => Err("TLS handshake timed out".into()),
+                    let serve = async {
+                        // hyper's header timer starts only at the first byte (its protocol
+                        // detection waits for it without a limit): bound that wait here, so a
+                        // socket that sends nothing is closed.
+                        let mut first = [0u8; 1];
+                        match tokio::time::timeout(handshake_timeout, stream.peek(&mut first)).await {
+                            Ok(Ok(n)) if n > 0 => {}
+                            Ok(Ok(_)) => return Ok(()),
+                            Ok(Err(e)) => return Err(e.into()),
+                            Err(_) => {
+                                counters.connections_idle_closed.fetch_add(1, Ordering::Relaxed);
+                                return Err("no request within the header timeout".into());
                             }
                         }
+                        match tls {
+                            None => builder.serve_connection(TokioIo::new(stream), service).await,
+                            Some(acceptor) => {
+                                // The handshake is bounded like the headers: a client that stalls
+                                // in it is dropped.
+                                match tokio::time::timeout(handshake_timeout, acceptor.accept(stream)).await {
+                                    Ok(Ok(tls_stream)) => {
+                                        builder.serve_connection(TokioIo::new(tls_stream), service).await
+                                    }
+                                    Ok(Err(e)) => Err(e.into()),
+                                    Err(_) => Err("TLS handshake timed out".into()),
+                                }
+                            }
+                        }
+                    };
+                    let served: Result<(), Box<dyn std::error::Error + Send + Sync>> = tokio::select! {
+                        served = serve => served,
+                        () = admitted.shed() => Err("closed while idle to admit another connection".into()),
                     };
                     if let Err(e) = served {
                         tracing::debug!("strata serve: connection from {peer} ended: {e}");
                     }
-                    drop(permit);
+                    drop(admitted);
                 });
                 // Reap finished connection tasks so the set does not grow.
                 while tasks.try_join_next().is_some() {}

@@ -114,7 +114,7 @@ pub fn list_stores(folder: &Path) -> Result<Vec<StoreEntry>> {
 
 /// Describes one store folder (opening it briefly, read-only, when nobody holds it).
 pub fn survey(path: &Path) -> StoreEntry {
-    let marker = std::fs::read_to_string(path.join(MARKER_FILE)).unwrap_or_default();
+    let marker = crate::regular_file::read_to_string(&path.join(MARKER_FILE)).unwrap_or_default();
     let marker_format_version = marker
         .lines()
         .next()

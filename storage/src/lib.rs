@@ -15,6 +15,7 @@ pub mod octree;
 pub mod phantom;
 pub mod quantize;
 pub mod readers;
+pub mod regular_file;
 pub mod skeleton;
 pub mod source;
 pub mod sparse_phantom;

@@ -104,6 +104,21 @@ pub struct SourceInfo {
     pub frames: u32,
 }
 
+/// Begins a note in [`SourceInfo::description`] that says a header value was not usable and
+/// what was assumed instead; the import prints these (the description keeps them).
+pub const WARNING_PREFIX: &str = "warning: ";
+
+impl SourceInfo {
+    /// The description's warnings (notes are joined with "; "): header values a scanner
+    /// cannot mean, replaced by an assumption the user should know of.
+    pub fn warnings(&self) -> Vec<&str> {
+        self.description
+            .split("; ")
+            .filter_map(|n| n.strip_prefix(WARNING_PREFIX))
+            .collect()
+    }
+}
+
 fn one_frame() -> u32 {
     1
 }
@@ -130,7 +145,7 @@ impl RawVolume {
         byte_order: ByteOrder,
         dims: [u64; 3],
     ) -> Result<Self> {
-        let file = File::open(path).map_err(|e| StorageError::io(path, e))?;
+        let file = crate::regular_file::open(path)?;
         Self::from_file(file, path, offset, sample_type, byte_order, dims, None)
     }
 

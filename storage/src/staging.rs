@@ -94,13 +94,18 @@ pub fn remove_stale_staging_files(dir: &Path) -> usize {
             continue;
         }
         let path = entry.path();
-        let Ok(file) = std::fs::OpenOptions::new()
-            .read(true)
-            .write(true)
-            .open(&path)
-        else {
+        // Non-blocking, and the type checked on the open file: the entry may have been
+        // replaced by a FIFO since the listing, whose open would wait for a writer.
+        let mut options = std::fs::OpenOptions::new();
+        options.read(true).write(true);
+        #[cfg(unix)]
+        std::os::unix::fs::OpenOptionsExt::custom_flags(&mut options, libc::O_NONBLOCK);
+        let Ok(file) = options.open(&path) else {
             continue;
         };
+        if !file.metadata().is_ok_and(|m| m.is_file()) {
+            continue;
+        }
         if file.try_lock().is_ok() && std::fs::remove_file(&path).is_ok() {
             removed += 1;
         }

@@ -223,7 +223,9 @@ impl Store {
         if !path.exists() {
             return Err(StorageError::invalid(path, "store does not exist"));
         }
-        if !path.join(MARKER_FILE).is_file() {
+        // Present at all (without following it or opening it): what it is and says is
+        // checked by `read_marker` below.
+        if std::fs::symlink_metadata(path.join(MARKER_FILE)).is_err() {
             return Err(StorageError::NotAStore {
                 path: path.to_path_buf(),
                 message: format!("no {MARKER_FILE} marker"),
@@ -235,6 +237,9 @@ impl Store {
                 format!("its database folder {DB_DIR}/ is missing"),
             ));
         }
+        let marker = read_marker(path)?;
+        // sled opens every file under db/ itself; a FIFO there would block it for ever.
+        refuse_non_regular_files(path, &path.join(DB_DIR), 2)?;
         let lock = StoreLock::acquire(path, LockPurpose::Read)?;
         let config = sled::Config::new()
             .path(path.join(DB_DIR))
@@ -258,9 +263,7 @@ impl Store {
             // An interrupted import wrote bricks but no metadata yet. The marker file says
             // "complete" once the import finished (stores of older versions lack that line, so
             // metadata without the final record counts as damage too).
-            let marked_complete = std::fs::read_to_string(path.join(MARKER_FILE))
-                .is_ok_and(|m| m.lines().any(|l| l.trim() == MARKER_COMPLETE_LINE));
-            return Err(if marked_complete {
+            return Err(if marker.complete {
                 StorageError::corrupted(
                     path,
                     "the import finished, but the database lost its records (damaged database files)",
@@ -276,6 +279,15 @@ impl Store {
         let header: StoreHeader = serde_json::from_slice(&require(KEY_HEADER)?)
             .map_err(|e| StorageError::corrupted(path, format!("its header is unreadable: {e}")))?;
         check_format(path, &header)?;
+        if marker.format != header.format_version {
+            return Err(StorageError::corrupted(
+                path,
+                format!(
+                    "its {MARKER_FILE} marker says format {} but its header format {}",
+                    marker.format, header.format_version
+                ),
+            ));
+        }
         header
             .geometry
             .validate()
@@ -494,7 +506,12 @@ impl Store {
     /// Terminates on any damage: the bricks are read on a named thread of their own and each read
     /// may take at most [`VERIFY_READ_LIMIT`]; a read that hangs inside sled (as on a damaged blob
     /// file) ends the check with a problem naming the brick, because the database is then stuck.
-    pub fn verify(&self, mut on_progress: impl FnMut(u64, u64)) -> Result<Vec<String>> {
+    pub fn verify(&self, on_progress: impl FnMut(u64, u64)) -> Result<Vec<String>> {
+        self.verify_report(on_progress).map(|r| r.problems)
+    }
+
+    /// [`Store::verify`] with what could still be read and the verdict to print.
+    pub fn verify_report(&self, mut on_progress: impl FnMut(u64, u64)) -> Result<VerifyReport> {
         let layout = self.header.layout.clone();
         let sparse = self.constant_bricks_implied();
         // Every frame of a 4-D store: frame 0 in `bricks`, frame f in its own tree.
@@ -527,29 +544,42 @@ impl Store {
         } else {
             per_frame * frame_trees.len() as u64
         };
+        let skeletons: Vec<Skeleton> = frame_skeletons.iter().map(|s| (*s).clone()).collect();
         let (results, received) = crossbeam_channel::bounded::<VerifyItem>(4);
         let path = self.path.clone();
         let reader = std::thread::Builder::new()
             .name("strata-verify-reader".into())
             .spawn(move || {
+                let mut counted = Ok(0usize);
                 for (frame, tree) in &frame_trees {
+                    let skeleton = &skeletons[*frame as usize];
                     if sparse {
-                        for entry in tree.iter() {
-                            let item = match contained(&path, "reading a brick", || entry) {
-                                Err(e) => VerifyItem::Failed(e),
-                                Ok((key, record)) => match brick_id_from_key(&key) {
+                        // One pass over the records in key order; each damaged record or page
+                        // is reported once and the walk moves on (see `walk_records`).
+                        let walked = walk_records(&path, tree, skeleton, |item| {
+                            let item = match item {
+                                Walked::Record(key, record) => match brick_id_from_key(&key) {
                                     Some(id) if layout.contains(id) => VerifyItem::Brick(
                                         *frame,
                                         id,
-                                        decode_brick(id, &record)
-                                            .map_err(|e| brick_error(&path, id, e)),
+                                        record.and_then(|record| {
+                                            decode_brick(id, &record)
+                                                .map_err(|e| brick_error(&path, id, e))
+                                        }),
                                     ),
-                                    _ => VerifyItem::Stray(*frame, key.to_vec()),
+                                    _ => VerifyItem::Stray(*frame, key),
                                 },
+                                Walked::Failed(e) => VerifyItem::Failed(e),
                             };
-                            if results.send(item).is_err() {
-                                return;
+                            results.send(item).is_ok()
+                        });
+                        match walked {
+                            Some(n) => {
+                                if let Ok(c) = &mut counted {
+                                    *c += n;
+                                }
                             }
+                            None => return,
                         }
                         continue;
                     }
@@ -568,16 +598,24 @@ impl Store {
                             }
                         }
                     }
+                    // Stray records: count them, stopping at the first error (the keyed reads
+                    // above already reported every damaged record once).
+                    match (&mut counted, count_records(&path, tree)) {
+                        (Ok(c), Ok(n)) => *c += n,
+                        (c, Err(e)) => {
+                            if c.is_ok() {
+                                *c = Err(e);
+                            }
+                        }
+                        (Err(_), Ok(_)) => {}
+                    }
                 }
-                let counted = contained(&path, "counting the bricks", || {
-                    Ok(frame_trees.iter().map(|(_, tree)| tree.len()).sum())
-                });
                 let _ = results.send(VerifyItem::Done(counted));
             });
         if let Err(e) = reader {
             return Err(StorageError::io(&self.path, e));
         }
-        let mut problems = Vec::new();
+        let mut problems = Problems::default();
         let mut seen = 0u64;
         let mut varying_with_records = vec![0u64; varying.len()];
         loop {
@@ -590,13 +628,15 @@ impl Store {
                         seen + 1,
                         VERIFY_READ_LIMIT.as_secs()
                     ));
-                    return Ok(problems);
+                    return Ok(problems.finish(&self.path, &self.header, seen));
                 }
             };
             let (frame, id, voxels) = match item {
                 VerifyItem::Brick(frame, id, voxels) => (frame, id, voxels),
                 VerifyItem::Failed(e) => {
-                    problems.push(e.to_string());
+                    problems.push(format!(
+                        "{e} (the records after it are read one by one, by the skeleton's nodes)"
+                    ));
                     continue;
                 }
                 VerifyItem::Stray(frame, key) => {
@@ -636,7 +676,9 @@ impl Store {
                 Ok(voxels) => {
                     let r = crate::brick::value_range(&voxels);
                     let node = self.frame_node(frame, id).unwrap_or_default();
-                    if (r.min, r.max) != (node.min, node.max) {
+                    if (r.min, r.max) == (node.min, node.max) {
+                        problems.intact += 1;
+                    } else {
                         problems.push(format!(
                             "{}: {which}brick level {} at {:?}: range {}..{} differs from the skeleton's {}..{}",
                             self.path.display(), id.level, id.coords, r.min, r.max, node.min, node.max
@@ -659,7 +701,7 @@ impl Store {
             }
         }
         on_progress(total, total);
-        Ok(problems)
+        Ok(problems.finish(&self.path, &self.header, seen))
     }
 
     /// Overwrites one byte of a stored brick record. Only for tests of corruption handling.
@@ -847,6 +889,240 @@ pub fn rebuild_command(path: &Path, header: &StoreHeader) -> String {
         [] => "SOURCE".into(),
     };
     format!("strata import '{input}' '{}'", path.display())
+}
+
+/// What a store's marker file says.
+struct Marker {
+    format: u32,
+    /// The `complete` line (stores written before it existed lack it).
+    complete: bool,
+}
+
+/// The marker is a few dozen bytes; anything larger is not one.
+const MARKER_MAX_BYTES: u64 = 4096;
+
+/// Reads and checks the marker: a regular file (checked before opening it: a FIFO would block
+/// the read) holding `strata store format N` with N a format this build reads, and at most
+/// the `complete` line after it. Empty, junk, an unknown format or unknown lines are damage.
+fn read_marker(path: &Path) -> Result<Marker> {
+    let file = path.join(MARKER_FILE);
+    let bad =
+        |what: String| StorageError::corrupted(path, format!("its {MARKER_FILE} marker {what}"));
+    let meta = std::fs::metadata(&file).map_err(|e| StorageError::io(&file, e))?;
+    if !meta.is_file() {
+        return Err(bad("is not a regular file".into()));
+    }
+    if meta.len() > MARKER_MAX_BYTES {
+        return Err(bad(format!(
+            "is {} bytes long (a marker is one or two lines)",
+            meta.len()
+        )));
+    }
+    let text = crate::regular_file::read_to_string(&file)?;
+    let mut lines = text.lines().map(str::trim).filter(|l| !l.is_empty());
+    let first = lines.next().unwrap_or_default();
+    let format = first
+        .strip_prefix("strata store format ")
+        .and_then(|v| v.parse::<u32>().ok())
+        .ok_or_else(|| {
+            bad(format!(
+                "does not say 'strata store format N' (it says {first:?})"
+            ))
+        })?;
+    if !(OLDEST_READABLE_FORMAT_VERSION..=STORE_FORMAT_VERSION).contains(&format) {
+        return Err(StorageError::unsupported(
+            path,
+            format!(
+                "its {MARKER_FILE} marker names store format {format} (this build reads versions {OLDEST_READABLE_FORMAT_VERSION} to {STORE_FORMAT_VERSION})"
+            ),
+        ));
+    }
+    let mut complete = false;
+    for line in lines {
+        if line == MARKER_COMPLETE_LINE && !complete {
+            complete = true;
+        } else {
+            return Err(bad(format!("has an unknown line {line:?}")));
+        }
+    }
+    Ok(Marker { format, complete })
+}
+
+/// Refuses anything under `dir` (to `depth` folders down) that is neither a folder nor a
+/// regular file: sled opens the database's files itself and a FIFO, socket or device among
+/// them would block it (and every command) for ever. `read_dir`'s file types come without an
+/// open; a symbolic link is judged by what it points at.
+fn refuse_non_regular_files(store: &Path, dir: &Path, depth: u32) -> Result<()> {
+    let entries = std::fs::read_dir(dir).map_err(|e| StorageError::io(dir, e))?;
+    for entry in entries {
+        let entry = entry.map_err(|e| StorageError::io(dir, e))?;
+        let p = entry.path();
+        let mut kind = entry.file_type().map_err(|e| StorageError::io(&p, e))?;
+        if kind.is_symlink() {
+            kind = std::fs::metadata(&p)
+                .map_err(|e| StorageError::io(&p, e))?
+                .file_type();
+        }
+        if kind.is_dir() {
+            if depth > 0 {
+                refuse_non_regular_files(store, &p, depth - 1)?;
+            }
+        } else if !kind.is_file() {
+            return Err(StorageError::corrupted(
+                store,
+                format!(
+                    "{} is not a regular file (a FIFO, socket or device); the database is damaged: re-import the store",
+                    p.display()
+                ),
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// Problem messages [`Store::verify`] keeps: a database damaged throughout yields one per
+/// record, so the list is capped (memory stays bounded) and the rest only counted.
+const VERIFY_PROBLEMS_KEPT: usize = 200;
+
+#[derive(Default)]
+struct Problems {
+    kept: Vec<String>,
+    more: u64,
+    /// Records read whole whose range matches their node.
+    intact: u64,
+}
+
+impl Problems {
+    fn push(&mut self, message: String) {
+        if self.kept.len() < VERIFY_PROBLEMS_KEPT {
+            self.kept.push(message);
+        } else {
+            self.more += 1;
+        }
+    }
+
+    /// The report: the messages kept, then how many more there were; with any problem, the
+    /// verdict (what could still be read, and the command that rebuilds the store).
+    fn finish(mut self, path: &Path, header: &StoreHeader, seen: u64) -> VerifyReport {
+        let verdict = (!self.kept.is_empty()).then(|| {
+            format!(
+                "{}: damaged: re-import it ({} of the {seen} brick records read could still be read intact): {}",
+                path.display(),
+                self.intact,
+                rebuild_command(path, header)
+            )
+        });
+        if self.more > 0 {
+            self.kept.push(format!(
+                "{}: ... and {} more problems",
+                path.display(),
+                self.more
+            ));
+        }
+        VerifyReport {
+            problems: self.kept,
+            records_read: seen,
+            intact: self.intact,
+            verdict,
+        }
+    }
+}
+
+/// What [`Store::verify_report`] found.
+#[derive(Clone, Debug, Default)]
+pub struct VerifyReport {
+    /// One message per problem (at most 200, then one saying how many more): empty when sound.
+    pub problems: Vec<String>,
+    /// Brick records read (each at most once).
+    pub records_read: u64,
+    /// Of those, read whole with their node's range.
+    pub intact: u64,
+    /// With any problem: "damaged: re-import" with what could still be read and the command.
+    pub verdict: Option<String>,
+}
+
+/// What [`walk_records`] hands on.
+enum Walked {
+    /// A record by key; `Err` when reading that key failed (after the walk fell back to keys).
+    Record(Vec<u8>, Result<Vec<u8>>),
+    /// Iterating the tree failed: reported once, then the walk reads the rest by key.
+    Failed(StorageError),
+}
+
+/// Walks every record of a bricks tree in key order and hands each to `send` (false: stop).
+/// Returns the records read, `None` when `send` stopped the walk.
+///
+/// Bounded on any damage: sled's iterator returns the same error again and again when a page
+/// is damaged (it never moves past it), so the first failure is reported once and the walk
+/// goes on by key over the nodes `skeleton` says may have records, after the last key read;
+/// each of those reads fails at most once. Every sled call runs inside [`contained`], so a panic
+/// inside sled is a damage message, not a printed panic.
+fn walk_records(
+    path: &Path,
+    tree: &sled::Tree,
+    skeleton: &Skeleton,
+    mut send: impl FnMut(Walked) -> bool,
+) -> Option<usize> {
+    let mut count = 0usize;
+    let mut last: Option<Vec<u8>> = None;
+    let mut iter = tree.iter();
+    loop {
+        match contained(path, "reading the brick records", || {
+            iter.next().transpose()
+        }) {
+            Ok(None) => return Some(count),
+            Ok(Some((key, record))) => {
+                count += 1;
+                last = Some(key.to_vec());
+                if !send(Walked::Record(key.to_vec(), Ok(record.to_vec()))) {
+                    return None;
+                }
+            }
+            Err(e) => {
+                if !send(Walked::Failed(e)) {
+                    return None;
+                }
+                break;
+            }
+        }
+    }
+    drop(iter);
+    for level in 0..skeleton.level_count() {
+        for (id, _) in skeleton.stored_in_level_iter(level) {
+            let key = brick_key(id);
+            if last.as_deref().is_some_and(|l| key.as_slice() <= l) {
+                continue;
+            }
+            let what = format!("reading brick level {} at {:?}", id.level, id.coords);
+            let read = contained(path, &what, || tree.get(key));
+            let item = match read {
+                Ok(None) => continue,
+                Ok(Some(record)) => {
+                    count += 1;
+                    Walked::Record(key.to_vec(), Ok(record.to_vec()))
+                }
+                Err(e) => Walked::Record(key.to_vec(), Err(e)),
+            };
+            if !send(item) {
+                return None;
+            }
+        }
+    }
+    Some(count)
+}
+
+/// The records in `tree`, or the first error (never a second: sled's iterator repeats it).
+fn count_records(path: &Path, tree: &sled::Tree) -> Result<usize> {
+    let mut iter = tree.iter();
+    let mut n = 0;
+    while contained(path, "counting the brick records", || {
+        iter.next().transpose()
+    })?
+    .is_some()
+    {
+        n += 1;
+    }
+    Ok(n)
 }
 
 /// What [`Store::verify`]'s reader thread hands on.

@@ -16,6 +16,44 @@ use strata_storage::{ByteOrder, SampleType};
 /// Per case, on a shared 2-core machine in a debug build: a small volume opens in milliseconds.
 const CASE_LIMIT: Duration = Duration::from_secs(20);
 
+/// The largest single allocation a case may make. The inputs are a few KB and their volumes
+/// 9×7×5; the import's buffers (its memory budget is 256 MiB, spread over many) stay far below.
+/// An allocation sized from a damaged header is what this catches (issue 38 saw one of 722 TB
+/// abort a process).
+const ALLOCATION_LIMIT: usize = 128 << 20;
+
+/// The system allocator, recording the largest single request since the last reset (over all
+/// threads: a case's readers and import threads are counted too).
+struct LargestAllocation;
+
+static LARGEST: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+
+// SAFETY: every call is forwarded unchanged to the system allocator; only a size is recorded.
+unsafe impl std::alloc::GlobalAlloc for LargestAllocation {
+    unsafe fn alloc(&self, layout: std::alloc::Layout) -> *mut u8 {
+        LARGEST.fetch_max(layout.size(), std::sync::atomic::Ordering::Relaxed);
+        // SAFETY: the caller's contract is the system allocator's.
+        unsafe { std::alloc::System.alloc(layout) }
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: std::alloc::Layout) {
+        // SAFETY: as above.
+        unsafe { std::alloc::System.dealloc(ptr, layout) }
+    }
+    unsafe fn alloc_zeroed(&self, layout: std::alloc::Layout) -> *mut u8 {
+        LARGEST.fetch_max(layout.size(), std::sync::atomic::Ordering::Relaxed);
+        // SAFETY: as above.
+        unsafe { std::alloc::System.alloc_zeroed(layout) }
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: std::alloc::Layout, new_size: usize) -> *mut u8 {
+        LARGEST.fetch_max(new_size, std::sync::atomic::Ordering::Relaxed);
+        // SAFETY: as above.
+        unsafe { std::alloc::System.realloc(ptr, layout, new_size) }
+    }
+}
+
+#[global_allocator]
+static ALLOCATOR: LargestAllocation = LargestAllocation;
+
 const DIMS: [usize; 3] = [9, 7, 5];
 
 fn voxel(i: usize, j: usize, k: usize) -> i16 {
@@ -463,6 +501,7 @@ fn run_corpus(rounds: u64) -> usize {
     let mut failures = Vec::new();
     let mut cases = 0usize;
     let mut errors = 0usize;
+    let mut max_allocation = 0usize;
     for (b, base) in bases().iter().enumerate() {
         let options = ReadOptions {
             raw: base.raw.clone(),
@@ -496,7 +535,17 @@ fn run_corpus(rounds: u64) -> usize {
                 .zip(&base.bytes)
                 .position(|(a, b)| a != b)
                 .unwrap_or(bytes.len().min(base.bytes.len()));
-            match run_case(&path, &options, &case_dir) {
+            LARGEST.store(0, std::sync::atomic::Ordering::Relaxed);
+            let outcome = run_case(&path, &options, &case_dir);
+            let largest = LARGEST.load(std::sync::atomic::Ordering::Relaxed);
+            if largest > ALLOCATION_LIMIT {
+                failures.push(format!(
+                    "{} ({what}): allocated {largest} bytes at once (limit {ALLOCATION_LIMIT})",
+                    base.name
+                ));
+            }
+            max_allocation = max_allocation.max(largest);
+            match outcome {
                 Err(e) => failures.push(format!("{} ({what}): {e}", base.name)),
                 Ok(Outcome::Failed(message)) => {
                     errors += 1;
@@ -536,7 +585,9 @@ fn run_corpus(rounds: u64) -> usize {
         "staging files left behind: {:?}",
         leaked.iter().map(|e| e.path()).collect::<Vec<PathBuf>>()
     );
-    println!("{cases} malformed inputs, {errors} refused with an error naming the file");
+    println!(
+        "{cases} malformed inputs, {errors} refused with an error naming the file; largest single allocation {max_allocation} bytes"
+    );
     assert!(
         failures.is_empty(),
         "{} of {cases} cases failed:\n{}",

@@ -984,3 +984,132 @@ fn synthetic_dicom_rle_lossless() {
         values.iter().map(|&v| v as f64).collect::<Vec<_>>()
     );
 }
+
+/// A one-slice DICOM (the series writer's) changed by `edit`, written with transfer syntax
+/// `ts` (its pixels stay uncompressed).
+fn edited_dicom(
+    dir: &Path,
+    name: &str,
+    ts: &str,
+    edit: impl FnOnce(&mut dicom_object::InMemDicomObject),
+) -> PathBuf {
+    use dicom_dictionary_std::uids;
+    let base = dir.join(format!("{name}.base"));
+    write_dicom(&base, "1.2.3", "edited", 0.0, true, 1.0);
+    let mut obj = dicom_object::open_file(&base).unwrap().into_inner();
+    std::fs::remove_file(&base).unwrap();
+    edit(&mut obj);
+    let file = obj
+        .with_meta(
+            dicom_object::FileMetaTableBuilder::new()
+                .transfer_syntax(ts)
+                .media_storage_sop_class_uid(uids::MR_IMAGE_STORAGE)
+                .media_storage_sop_instance_uid("1.2.3.100"),
+        )
+        .unwrap();
+    let p = dir.join(format!("{name}.dcm"));
+    file.write_to_file(&p).unwrap();
+    p
+}
+
+/// Issue 38, finding 8: header values a scanner cannot mean. A stated PixelSpacing of 0, -1,
+/// NaN or 1e309 becomes 1 mm with a warning (in the description, where the import prints it
+/// from); PixelRepresentation 255, a compressed transfer syntax over uncompressed pixels, and
+/// MetaImage spacing ≤ 0 / not finite or several channels are refused naming the file. Before
+/// the fix all of these opened silently.
+#[test]
+fn header_values_no_scanner_means_are_warned_or_refused() {
+    use dicom_core::{DataElement, PrimitiveValue, VR};
+    use dicom_dictionary_std::{tags, uids};
+    let t = tempfile::tempdir().unwrap();
+    let d = t.path();
+    for (n, spacing) in ["0\\0", "-1\\-1", "NaN\\NaN", "1e309\\1e309"]
+        .iter()
+        .enumerate()
+    {
+        let p = edited_dicom(
+            d,
+            &format!("spacing{n}"),
+            uids::EXPLICIT_VR_LITTLE_ENDIAN,
+            |o| {
+                o.put(DataElement::new(
+                    tags::PIXEL_SPACING,
+                    VR::DS,
+                    PrimitiveValue::from(*spacing),
+                ));
+            },
+        );
+        let s = open(&p);
+        let warnings = s.info.warnings();
+        assert!(
+            warnings
+                .iter()
+                .any(|w| w.contains("PixelSpacing") && w.contains("1 mm")),
+            "PixelSpacing {spacing}: no warning in {:?}",
+            s.info.description
+        );
+        assert_eq!(s.info.geometry.spacing_mm[0], 1.0, "PixelSpacing {spacing}");
+    }
+    let good = open(&edited_dicom(
+        d,
+        "good",
+        uids::EXPLICIT_VR_LITTLE_ENDIAN,
+        |_| {},
+    ));
+    assert!(
+        good.info.warnings().is_empty(),
+        "{:?}",
+        good.info.description
+    );
+
+    let p = edited_dicom(d, "pixrep", uids::EXPLICIT_VR_LITTLE_ENDIAN, |o| {
+        o.put(DataElement::new(
+            tags::PIXEL_REPRESENTATION,
+            VR::US,
+            PrimitiveValue::from(255u16),
+        ));
+    });
+    let e = err_of(&p, &ReadOptions::default());
+    assert!(
+        e.contains("pixrep.dcm") && e.contains("PixelRepresentation 255"),
+        "{e}"
+    );
+
+    for (name, ts) in [
+        ("jpeg", uids::JPEG_BASELINE8_BIT),
+        ("j2k", uids::JPEG2000_LOSSLESS),
+        ("rle", uids::RLE_LOSSLESS),
+        ("htj2k", uids::HTJ2K_LOSSLESS),
+        ("jpegls", uids::JPEGLS_LOSSLESS),
+    ] {
+        let p = edited_dicom(d, name, ts, |_| {});
+        let e = err_of(&p, &ReadOptions::default());
+        assert!(
+            e.contains(&format!("{name}.dcm")) && e.contains("uncompressed"),
+            "{name}: {e}"
+        );
+    }
+
+    let mut body = Vec::new();
+    for v in 0u16..8 {
+        body.extend_from_slice(&v.to_le_bytes());
+    }
+    write(d, "m.raw", &body);
+    for (n, line) in [
+        "ElementSpacing = -1 1 1",
+        "ElementSpacing = 0 1 1",
+        "ElementSpacing = 1 nan 1",
+        "ElementSpacing = 1 1 inf",
+        "ElementNumberOfChannels = 3",
+    ]
+    .iter()
+    .enumerate()
+    {
+        let hdr = format!(
+            "ObjectType = Image\nNDims = 3\nDimSize = 2 2 2\nElementType = MET_USHORT\n{line}\nElementDataFile = m.raw\n"
+        );
+        let p = write(d, &format!("m{n}.mhd"), hdr.as_bytes());
+        let e = err_of(&p, &ReadOptions::default());
+        assert!(e.contains(&format!("m{n}.mhd")), "{line}: {e}");
+    }
+}

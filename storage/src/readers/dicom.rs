@@ -283,17 +283,25 @@ fn read_header(path: &Path) -> Result<Option<ImageHeader>> {
     }
     // In-plane spacing: a missing PixelSpacing and a zero one ("0\0", seen on CR) are treated
     // alike: ImagerPixelSpacing (at the detector) first, then 1 mm, saying so either way.
-    let stated_spacing = floats(fg_attr(
+    let spacing_element = fg_attr(
         &obj,
         &[per_frame.first(), shared],
         tags::PIXEL_MEASURES_SEQUENCE,
         tags::PIXEL_SPACING,
-    ));
+    );
+    let stated_spacing = floats(spacing_element);
+    // Present but not numbers (NaN, 1e309 read as infinite, text): stated, and unusable.
+    let stated_text = spacing_element
+        .filter(|_| stated_spacing.is_none())
+        .and_then(|e| e.to_str().ok())
+        .map(|t| t.trim().to_string())
+        .filter(|t| !t.is_empty());
     let mut notes = Vec::new();
     if frames.iter().any(|f| f.pixel_spacing.is_none()) {
-        let what = match &stated_spacing {
-            Some(v) => format!("PixelSpacing {v:?} unusable"),
-            None => "no PixelSpacing".to_string(),
+        let what = match (&stated_spacing, &stated_text) {
+            (Some(v), _) => format!("PixelSpacing {v:?} unusable"),
+            (None, Some(t)) => format!("PixelSpacing '{t}' unusable"),
+            (None, None) => "no PixelSpacing".to_string(),
         };
         let imager = floats(obj.get(tags::IMAGER_PIXEL_SPACING))
             .filter(|v| v.len() == 2)
@@ -306,6 +314,12 @@ fn read_header(path: &Path) -> Result<Option<ImageHeader>> {
                     v[0], v[1]
                 ));
                 v
+            }
+            // A stated value no scanner means (zero, negative, not finite) is a warning, printed
+            // by the import and kept in the description; an absent one is only a note.
+            None if stated_spacing.is_some() || stated_text.is_some() => {
+                notes.push(format!("{WARNING_PREFIX}{what}: 1 mm pixels assumed"));
+                [1.0, 1.0]
             }
             None => {
                 notes.push(format!("{what}: 1 mm pixels assumed"));
@@ -439,7 +453,7 @@ fn read_header(path: &Path) -> Result<Option<ImageHeader>> {
         cols: cols as u32,
         bits_allocated: bits_allocated.clamp(0, u16::MAX as i64) as u16,
         bits_stored: bits_stored.clamp(0, u16::MAX as i64) as u16,
-        signed: int(&obj, tags::PIXEL_REPRESENTATION).unwrap_or(0) == 1,
+        signed: pixel_representation(path, &obj)?,
         samples_per_pixel: int(&obj, tags::SAMPLES_PER_PIXEL)
             .unwrap_or(1)
             .clamp(0, u16::MAX as i64) as u16,
@@ -448,6 +462,25 @@ fn read_header(path: &Path) -> Result<Option<ImageHeader>> {
         gap_hint,
         frames,
     }))
+}
+
+/// PixelRepresentation: 0 (unsigned) or 1 (two's complement); absent reads as 0. Any other
+/// value is not something a scanner writes and says nothing about the sign, so it is refused.
+fn pixel_representation(path: &Path, obj: &DefaultDicomObject) -> Result<bool> {
+    match int(obj, tags::PIXEL_REPRESENTATION) {
+        None | Some(0) => Ok(false),
+        Some(1) => Ok(true),
+        Some(other) => Err(StorageError::invalid(
+            path,
+            format!("PixelRepresentation {other} (only 0, unsigned, or 1, signed, exist)"),
+        )),
+    }
+}
+
+/// Transfer syntaxes whose PixelData is encapsulated (compressed fragments): the JPEG family
+/// (baseline, extended, lossless, JPEG-LS, JPEG 2000, HTJ2K, JPEG XL, MPEG) and RLE.
+fn is_encapsulated_transfer_syntax(uid: &str) -> bool {
+    uid.starts_with("1.2.840.10008.1.2.4.") || uid == "1.2.840.10008.1.2.5"
 }
 
 /// Finds uncompressed pixel data by its element header at the end of the file, where Part 10
@@ -471,7 +504,7 @@ fn locate_native_pixel_data(path: &Path, transfer_syntax: &str, len: u64) -> Opt
         else {
             continue;
         };
-        let mut f = std::fs::File::open(path).ok()?;
+        let mut f = crate::regular_file::open(path).ok()?;
         f.seek(SeekFrom::Start(start - header_len)).ok()?;
         let mut h = [0u8; 12];
         f.read_exact(&mut h[..header_len as usize]).ok()?;
@@ -737,6 +770,10 @@ fn split_phases(
 }
 
 /// A pixel spacing that can enter the geometry: positive and finite ("0\0" is not).
+/// Begins a description note that the import prints as a warning (see
+/// [`crate::source::SourceInfo::warnings`]).
+pub(crate) const WARNING_PREFIX: &str = crate::source::WARNING_PREFIX;
+
 fn usable_spacing(v: [f64; 2]) -> bool {
     v.iter().all(|s| s.is_finite() && *s > 0.0)
 }
@@ -1108,10 +1145,7 @@ fn assemble(
                 // Release the previous file before loading the next: one slice in memory at a time.
                 drop(cur.take());
                 let loaded = match h.native_offset {
-                    Some(off) => Loaded::Native(
-                        std::fs::File::open(&h.path).map_err(|e| StorageError::io(&h.path, e))?,
-                        off,
-                    ),
+                    Some(off) => Loaded::Native(crate::regular_file::open(&h.path)?, off),
                     None => {
                         Loaded::Object(Box::new(dicom_object::open_file(&h.path).map_err(|e| {
                             StorageError::invalid(&h.path, format!("unreadable DICOM file: {e}"))
@@ -1221,6 +1255,17 @@ fn decode_frame(
     let decoded;
     let src: &[u8] = match pixel.value() {
         DicomValue::Primitive(p) => {
+            // A compressed transfer syntax with plain bytes in PixelData contradicts itself:
+            // which one is wrong cannot be told, so neither is trusted.
+            if is_encapsulated_transfer_syntax(&h.transfer_syntax) {
+                return Err(StorageError::invalid(
+                    &h.path,
+                    format!(
+                        "its transfer syntax {} says compressed (encapsulated) pixel data, but PixelData holds uncompressed bytes",
+                        h.transfer_syntax
+                    ),
+                ));
+            }
             let all = p.to_bytes();
             // The whole element must be the frames the header describes (plus one pad byte for
             // an odd length): 16-bit data read with BitsAllocated 8, or frames missing from

@@ -71,7 +71,7 @@ impl<R: Read + Seek> Walker<R> {
 
 /// Checks every defined element length of the DICOM Part 10 file at `path`.
 pub(crate) fn check_element_lengths(path: &Path) -> Result<()> {
-    let file = std::fs::File::open(path).map_err(|e| StorageError::io(path, e))?;
+    let file = crate::regular_file::open(path)?;
     let file_len = file
         .metadata()
         .map_err(|e| StorageError::io(path, e))?

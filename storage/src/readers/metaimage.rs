@@ -3,7 +3,6 @@
 //! (its first three values are the direction of the first index axis).
 
 use std::collections::HashMap;
-use std::fs::File;
 use std::io::{BufRead, BufReader, Read, Seek, SeekFrom};
 use std::path::{Path, PathBuf};
 
@@ -52,7 +51,7 @@ fn orientation_letter(c: char) -> Option<[f64; 3]> {
 }
 
 pub(crate) fn open_metaimage(path: &Path, options: &ReadOptions) -> Result<OpenedSource> {
-    let file = File::open(path).map_err(|e| StorageError::io(path, e))?;
+    let file = crate::regular_file::open(path)?;
     let mut r = BufReader::new(file);
     let mut consumed = 0u64;
     let mut fields: HashMap<String, String> = HashMap::new();
@@ -183,7 +182,7 @@ pub(crate) fn open_metaimage(path: &Path, options: &ReadOptions) -> Result<Opene
 
     crate::readers::common::check_data_file(path, &data_path)?;
     let data = if compressed {
-        let f = File::open(&data_path).map_err(|e| StorageError::io(&data_path, e))?;
+        let f = crate::regular_file::open(&data_path)?;
         let mut br = BufReader::new(f);
         br.seek(SeekFrom::Start(base))
             .map_err(|e| StorageError::io(&data_path, e))?;
@@ -267,6 +266,14 @@ fn meta_geometry<'a>(
                 format!("MetaImage ElementSpacing {v:?} does not match NDims {ndims}"),
             ));
         }
+        // Spacing is a length: zero, negative or not finite is nothing a scanner writes (a
+        // flip belongs in TransformMatrix), and guessing which axis was meant would be silent.
+        if let Some(bad) = v.iter().find(|s| !s.is_finite() || **s <= 0.0) {
+            return Err(StorageError::invalid(
+                path,
+                format!("MetaImage ElementSpacing {v:?}: {bad} is not a positive, finite spacing"),
+            ));
+        }
         spacing[..ndims].copy_from_slice(&v);
     }
     let mut origin = [0.0; 3];
@@ -311,13 +318,6 @@ fn meta_geometry<'a>(
             ) {
                 direction = [a, b, c];
             }
-        }
-    }
-    // Negative spacing is a flip; keep spacing positive and move the sign into the direction.
-    for (s, dir) in spacing.iter_mut().zip(direction.iter_mut()) {
-        if *s < 0.0 {
-            *s = -*s;
-            *dir = dir.map(|v| -v);
         }
     }
     if ndims == 2 {

@@ -8,7 +8,6 @@
 //! A .mgh is mapped in place; a .mgz is streamed through the gzip decoder into a staging file
 //! (bounded by the header's volume size, checked against the stream's CRC), never held in memory.
 
-use std::fs::File;
 use std::io::{BufReader, Read};
 use std::path::Path;
 
@@ -145,7 +144,7 @@ fn geometry(path: &Path, h: &Header) -> Result<VolumeGeometry> {
 
 fn is_gz(path: &Path) -> Result<bool> {
     let mut magic = [0u8; 2];
-    let mut f = File::open(path).map_err(|e| StorageError::io(path, e))?;
+    let mut f = crate::regular_file::open(path)?;
     let n = f.read(&mut magic).map_err(|e| StorageError::io(path, e))?;
     Ok(n == 2 && magic == [0x1f, 0x8b])
 }
@@ -173,7 +172,7 @@ pub(crate) fn open_mgh(path: &Path, options: &ReadOptions) -> Result<OpenedSourc
     // The content decides, not the name: .mgz files are sometimes left uncompressed and the
     // other way round.
     let gz = is_gz(path)?;
-    let file = File::open(path).map_err(|e| StorageError::io(path, e))?;
+    let file = crate::regular_file::open(path)?;
     let mut reader: Box<dyn Read> = if gz {
         Box::new(MultiGzDecoder::new(BufReader::new(file)))
     } else {

@@ -18,7 +18,6 @@ mod nifti;
 mod nrrd;
 mod raw;
 
-use std::fs::File;
 use std::io::Read;
 use std::path::{Path, PathBuf};
 
@@ -111,7 +110,7 @@ pub fn open_source(path: &Path, options: &ReadOptions) -> Result<OpenedSource> {
 /// byte 0 where a writer dropped the preamble (dicom-object reads both). A read failure means "no".
 pub(crate) fn has_dicom_preamble(path: &Path) -> bool {
     let mut buf = [0u8; 132];
-    let Ok(mut f) = File::open(path) else {
+    let Ok(mut f) = crate::regular_file::open(path) else {
         return false;
     };
     let mut n = 0;

@@ -1,7 +1,6 @@
 //! NIfTI-1 and NIfTI-2 (.nii, .nii.gz, .hdr/.img). The header is parsed here rather than with the
 //! `nifti` crate because that crate loads whole volumes; voxels are mapped or staged instead.
 
-use std::fs::File;
 use std::io::{BufReader, Read};
 use std::path::{Path, PathBuf};
 
@@ -336,9 +335,7 @@ fn geometry(path: &Path, h: &Header, dims: [u64; 3]) -> Result<VolumeGeometry> {
 /// the reverse often enough.
 fn is_gz(path: &Path) -> bool {
     let mut magic = [0u8; 2];
-    File::open(path)
-        .and_then(|mut f| f.read_exact(&mut magic))
-        .is_ok()
+    crate::regular_file::open(path).is_ok_and(|mut f| f.read_exact(&mut magic).is_ok())
         && magic == [0x1f, 0x8b]
 }
 
@@ -368,7 +365,7 @@ fn image_file_for(path: &Path) -> Result<PathBuf> {
 }
 
 pub(crate) fn open_nifti(path: &Path, options: &ReadOptions) -> Result<OpenedSource> {
-    let file = File::open(path).map_err(|e| StorageError::io(path, e))?;
+    let file = crate::regular_file::open(path)?;
     let gz = is_gz(path);
     let mut reader: Box<dyn Read> = if gz {
         Box::new(MultiGzDecoder::new(BufReader::new(file)))
@@ -487,7 +484,7 @@ pub(crate) fn open_nifti(path: &Path, options: &ReadOptions) -> Result<OpenedSou
             )?;
             reader
         } else {
-            let f = File::open(&data_path).map_err(|e| StorageError::io(&data_path, e))?;
+            let f = crate::regular_file::open(&data_path)?;
             let mut r: Box<dyn Read> = Box::new(MultiGzDecoder::new(BufReader::new(f)));
             skip_bytes(&data_path, &mut r, data_offset, "image header bytes")?;
             r

@@ -1,7 +1,6 @@
 //! NRRD (.nrrd with attached header, .nhdr with detached data), raw and gzip encodings.
 
 use std::collections::HashMap;
-use std::fs::File;
 use std::io::{BufRead, BufReader, Read, Seek, SeekFrom};
 use std::path::{Path, PathBuf};
 
@@ -128,7 +127,7 @@ fn space_to_lps(path: &Path, space: &str) -> Result<[f64; 3]> {
 }
 
 pub(crate) fn open_nrrd(path: &Path, options: &ReadOptions) -> Result<OpenedSource> {
-    let file = File::open(path).map_err(|e| StorageError::io(path, e))?;
+    let file = crate::regular_file::open(path)?;
     let mut r = BufReader::new(file);
     let mut consumed = 0u64;
     let magic = read_line(path, &mut r, &mut consumed)?.unwrap_or_default();
@@ -289,7 +288,7 @@ pub(crate) fn open_nrrd(path: &Path, options: &ReadOptions) -> Result<OpenedSour
     drop(r);
 
     crate::readers::common::check_data_file(path, &data_path)?;
-    let data_file = File::open(&data_path).map_err(|e| StorageError::io(&data_path, e))?;
+    let data_file = crate::regular_file::open(&data_path)?;
     let mut dr = BufReader::new(data_file);
     dr.seek(SeekFrom::Start(base_offset))
         .map_err(|e| StorageError::io(&data_path, e))?;
