@@ -5,8 +5,8 @@
 mod dicom_pacs;
 mod dicom_seg;
 mod frames;
-mod malformed_corpus;
 mod mgh;
 mod readers;
 mod sparse_skeleton;
+mod store_damage;
 mod store_formats;
