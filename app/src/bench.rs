@@ -111,6 +111,10 @@ pub enum BenchCommand {
         level: u8,
         #[arg(long, default_value_t = 20.0, allow_hyphen_values = true)]
         elevation: f64,
+        /// GPU memory for a level's brick cache, MiB; a level whose bricks do not fit is an
+        /// error saying bricks × bytes against it. Not given: each cache holds its whole level.
+        #[arg(long)]
+        gpu_mib: Option<u64>,
     },
     /// The adaptive-sampling paper's Tables 2 and 3: sampling operations, synthesis
     /// operations and frame time of the raycaster, adaptive sampling with d ≡ 1 and with the
@@ -223,6 +227,7 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
             tf,
             level,
             elevation,
+            gpu_mib,
         } => time_critical::run(time_critical::Options {
             store,
             target_fps: target,
@@ -233,6 +238,7 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
             tf,
             level,
             elevation,
+            gpu_budget_bytes: gpu_mib.map(|m| m << 20),
         }),
         BenchCommand::Transitions(options) => transitions::run(options),
         BenchCommand::Adaptive {

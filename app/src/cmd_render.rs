@@ -5,7 +5,9 @@ use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};
-use strata_loader::store_volume::{classify_empty, page_table_for_cut, GpuCut};
+use strata_loader::store_volume::{
+    check_cut_fits, classify_empty, page_table_for_cut, slots_needed, GpuCut,
+};
 use strata_loader::{ResidentBricks, StreamingConfig, StreamingVolume};
 use strata_render::adaptive::{
     block_oracle, render_adaptive_reference, AdaptiveConfig, AdaptiveOptics, AdaptivePass,
@@ -130,6 +132,11 @@ pub struct RenderArgs {
     /// octree and says so).
     #[arg(long, value_enum)]
     pub traversal: Option<TraversalArg>,
+    /// GPU memory for the brick cache, MiB. Streaming: the loader's budget (default 256).
+    /// --up-front: the level's bricks must fit it (an error says bricks × bytes against it);
+    /// not given, the cache holds the whole level.
+    #[arg(long)]
+    pub gpu_mib: Option<u64>,
 }
 
 /// The most frames an orbit movie may have: 10 per degree, 150 s at 24 frames per second.
@@ -251,6 +258,22 @@ pub fn run(args: RenderArgs) -> Result<()> {
         classify_empty(store, &mut table, mapping, &tf_table);
     }
     let camera = camera_of(&args, &geometry);
+    let budget = args.gpu_mib.map(|m| m << 20);
+    // The GPU paths' device, made before the bricks are read: a level over the budget (or the
+    // device) is refused before reading it.
+    let gpu = if args.reference {
+        None
+    } else {
+        let ctx = GpuContext::headless()?;
+        eprintln!("GPU: {}", ctx.adapter_name());
+        check_cut_fits(
+            &ctx,
+            slots_needed(&table),
+            budget,
+            &format!("level {} of {}", args.level, args.store),
+        )?;
+        Some(ctx)
+    };
     let t_load = Instant::now();
     let bricks = ResidentBricks::load(store, &table)?;
     eprintln!(
@@ -299,9 +322,15 @@ pub fn run(args: RenderArgs) -> Result<()> {
         )?
         .rgba
     } else if adaptive {
-        let ctx = GpuContext::headless()?;
-        eprintln!("GPU: {}", ctx.adapter_name());
-        let cut = GpuCut::upload(&ctx, &bricks, &table, geometry.page_dims(), &tf_table)?;
+        let ctx = gpu.context("GPU context missing")?;
+        let cut = GpuCut::upload_within(
+            &ctx,
+            &bricks,
+            &table,
+            geometry.page_dims(),
+            &tf_table,
+            budget,
+        )?;
         let mut pass = AdaptivePass::new(&ctx, &cut.cache);
         pass.set_oracle(&ctx, &oracle());
         let scene = Scene {
@@ -333,9 +362,15 @@ pub fn run(args: RenderArgs) -> Result<()> {
         };
         render_reference(&scene, &camera, &settings, ReferenceOptions::default())?.rgba
     } else {
-        let ctx = GpuContext::headless()?;
-        eprintln!("GPU: {}", ctx.adapter_name());
-        let mut cut = GpuCut::upload(&ctx, &bricks, &table, geometry.page_dims(), &tf_table)?;
+        let ctx = gpu.context("GPU context missing")?;
+        let mut cut = GpuCut::upload_within(
+            &ctx,
+            &bricks,
+            &table,
+            geometry.page_dims(),
+            &tf_table,
+            budget,
+        )?;
         match args.traversal.unwrap_or(TraversalArg::Flat) {
             TraversalArg::Flat => {
                 cut.render_blocking(&ctx, &geometry, mapping, &camera, &settings)?
@@ -439,10 +474,12 @@ fn run_streaming(args: &RenderArgs) -> Result<()> {
     let started = Instant::now();
     let ctx = GpuContext::headless()?;
     eprintln!("GPU: {}", ctx.adapter_name());
+    let defaults = StreamingConfig::default();
     let config = StreamingConfig {
         max_voxel_pixels: args.quality,
         traversal: args.traversal.map(TraversalArg::traversal),
-        ..StreamingConfig::default()
+        gpu_budget_bytes: args.gpu_mib.map_or(defaults.gpu_budget_bytes, |m| m << 20),
+        ..defaults
     };
     anyhow::ensure!(
         args.quality.is_finite() && args.quality > 0.0,

@@ -112,3 +112,44 @@ fn bad_arguments_are_refused_with_a_reason() {
         assert!(!text(&o).contains("panicked"), "{}", text(&o));
     }
 }
+
+/// Issue 35: a level over --gpu-mib is refused before it is read, with its bricks × bytes
+/// against the budget (on a 1024³ store level 0 needs 32768 bricks, 2.8 GiB: the same message
+/// at scale); a level that fits runs.
+#[test]
+fn a_level_over_the_gpu_budget_is_named_with_its_bricks_and_bytes() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("p.strata");
+    let o = strata(&["sample", "--size", "128", "--out", store.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    let run = |level: &str| {
+        strata(&[
+            "bench",
+            "timecritical",
+            store.to_str().unwrap(),
+            "--target",
+            "100000",
+            "--frames",
+            "4",
+            "--size",
+            "32x32",
+            "--gpu-mib",
+            "4",
+            "--level",
+            level,
+        ])
+    };
+    let o = run("0");
+    let out = text(&o);
+    assert!(!o.status.success(), "{out}");
+    assert!(!out.contains("panicked"), "{out}");
+    assert!(
+        out.contains(&format!(
+            "level 0 of {} needs 64 bricks × 93312 bytes = 6 MiB of GPU brick cache, over the budget of 4 MiB (--gpu-mib)",
+            store.display()
+        )),
+        "{out}"
+    );
+    let o = run("1");
+    assert!(o.status.success(), "{}", text(&o));
+}

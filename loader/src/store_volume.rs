@@ -121,6 +121,58 @@ pub fn load_uniform_cut(
     Ok((table, bricks))
 }
 
+/// Cache slots `table` needs (its highest resident slot + 1; at least the root's one).
+pub fn slots_needed(table: &PageTable) -> u32 {
+    table
+        .entries
+        .iter()
+        .filter(|e| e.resident)
+        .map(|e| e.slot_in_cache + 1)
+        .max()
+        .unwrap_or(1)
+}
+
+/// Bytes of one cache slot in the format a default cache takes on `ctx`'s device.
+fn slot_bytes_on(ctx: &strata_render::GpuContext) -> u64 {
+    strata_render::CacheFormat::for_device(&ctx.device, &strata_render::CacheConfig::default())
+        .slot_bytes()
+}
+
+/// Whether `bricks` slots of the default cache format fit `budget_bytes` (when given) and the
+/// device's 3D texture limit: checked before a cut is read (reading gigabytes to then refuse
+/// them helps nobody). `what` names the cut in the message ("level 0 of STORE").
+pub fn check_cut_fits(
+    ctx: &strata_render::GpuContext,
+    bricks: u32,
+    budget_bytes: Option<u64>,
+    what: &str,
+) -> Result<(), LoaderError> {
+    let brick_bytes = slot_bytes_on(ctx);
+    if let Some(budget_bytes) = budget_bytes {
+        if bricks as u64 * brick_bytes > budget_bytes {
+            return Err(LoaderError::CutOverBudget {
+                what: what.into(),
+                bricks: bricks as u64,
+                brick_bytes,
+                budget_bytes,
+            });
+        }
+    }
+    let max_dim = ctx.device.limits().max_texture_dimension_3d;
+    let per_axis = (max_dim / strata_render::layout::BRICK_PAYLOAD)
+        .min(strata_render::layout::MAX_SLOTS_PER_AXIS) as u64;
+    let slots = per_axis.pow(3);
+    if bricks as u64 > slots {
+        return Err(LoaderError::CutOverDeviceLimit {
+            what: what.into(),
+            bricks: bricks as u64,
+            slots,
+            max_dim,
+        });
+    }
+    Ok(())
+}
+
 /// Flags positions whose node is transparent under the transfer function (skeleton ranges).
 pub fn classify_empty(
     store: &dyn VolumeSource,
@@ -149,7 +201,8 @@ pub struct GpuCut {
 }
 
 impl GpuCut {
-    /// Uploads `bricks` into a cache with exactly as many slots as the cut needs.
+    /// Uploads `bricks` into a cache with exactly as many slots as the cut needs, however many
+    /// that is (the device's limits still apply; see [`check_cut_fits`]).
     pub fn upload(
         ctx: &strata_render::GpuContext,
         bricks: &ResidentBricks,
@@ -157,26 +210,38 @@ impl GpuCut {
         page_dims: [u32; 3],
         tf_table: &TransferFunctionTable,
     ) -> Result<GpuCut, LoaderError> {
+        Self::upload_within(ctx, bricks, table, page_dims, tf_table, None)
+    }
+
+    /// [`GpuCut::upload`] within `budget_bytes` of GPU memory when given: a cut that does not
+    /// fit is an error naming its bricks × bytes against the budget.
+    pub fn upload_within(
+        ctx: &strata_render::GpuContext,
+        bricks: &ResidentBricks,
+        table: &PageTable,
+        page_dims: [u32; 3],
+        tf_table: &TransferFunctionTable,
+        budget_bytes: Option<u64>,
+    ) -> Result<GpuCut, LoaderError> {
+        let needed = slots_needed(table);
+        check_cut_fits(ctx, needed, budget_bytes, "the cut")?;
         // The cache shapes its slots into a 3D grid and may round a count down by up to 3 %;
         // ask for a little more so every brick has a slot.
-        let needed = table
-            .entries
-            .iter()
-            .filter(|e| e.resident)
-            .map(|e| e.slot_in_cache + 1)
-            .max()
-            .unwrap_or(1);
+        let asked = needed + needed / 32 + 8;
+        let slot_bytes = slot_bytes_on(ctx);
         let config = strata_render::CacheConfig {
-            max_slots: Some(needed + needed / 32 + 8),
+            budget_bytes: budget_bytes.unwrap_or(asked as u64 * slot_bytes),
+            max_slots: Some(asked),
             ..Default::default()
         };
         let cache = BrickCache::new(&ctx.device, config)?;
         if cache.slot_count() < needed {
-            return Err(LoaderError::Render(
-                strata_render::RenderError::CacheTooSmall {
-                    budget_bytes: config.budget_bytes,
-                },
-            ));
+            return Err(LoaderError::CutOverDeviceLimit {
+                what: "the cut".into(),
+                bricks: needed as u64,
+                slots: cache.slot_count() as u64,
+                max_dim: ctx.device.limits().max_texture_dimension_3d,
+            });
         }
         bricks.upload(&cache, &ctx.queue, table)?;
         let page_table = strata_render::GpuPageTable::new(&ctx.device, page_dims, &cache)?;

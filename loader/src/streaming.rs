@@ -238,14 +238,19 @@ impl StreamingVolume {
         let root = BrickId::new(octree.root_level(), [0, 0, 0]);
         let tf_table = Arc::new(tf_table_for(tf, mapping, header.stored_range));
         let cpu = CpuBrickCache::new(config.cpu_cache_budget()?);
-        let cache = BrickCache::new(
+        // The texture grows with the slots in use: the first frame does not wait for a
+        // budget-sized texture to be zeroed (render/src/cache.rs).
+        let mut cache = BrickCache::new(
             &ctx.device,
             CacheConfig {
                 budget_bytes: config.gpu_budget_bytes,
                 max_slots: config.max_gpu_slots,
+                grow_with_use: true,
                 ..Default::default()
             },
         )?;
+        // A budget the device cannot hold fails now, named, not when the cache grows into it.
+        cache.check_full_allocation(&ctx.device, config.gpu_budget_bytes)?;
         let mut slots = GpuSlots::new(cache.slot_count());
         let root_record = reader.read_brick_record(root)?;
         let root_bytes = root_record.len() as u64;
@@ -254,6 +259,7 @@ impl StreamingVolume {
         let root_slot = slots
             .allocate(root, 0, true)
             .ok_or_else(|| LoaderError::Inconsistent("no slot for the root".into()))?;
+        cache.ensure_slot(&ctx.device, &ctx.queue, root_slot)?;
         cache.upload_brick(&ctx.queue, root_slot, &root_brick)?;
         let page_dims = geometry.page_dims();
         let (traversal, traversal_note) = choose_traversal(ctx, page_dims, &config)?;
@@ -680,6 +686,7 @@ impl StreamingVolume {
                     "brick {id:?} chosen for upload is not in CPU memory"
                 ))
             })?;
+            self.cache.ensure_slot(&ctx.device, &ctx.queue, slot)?;
             self.cache.upload_brick(&ctx.queue, slot, &brick)?;
         }
         let rewritten = new_table.is_some();

@@ -1,5 +1,7 @@
 //! The wgpu device: created headless for tests and the CLI, or adopted from eframe.
 
+use std::sync::{Arc, Mutex};
+
 use crate::error::RenderError;
 
 pub struct GpuContext {
@@ -7,6 +9,10 @@ pub struct GpuContext {
     pub queue: wgpu::Queue,
     /// None when adopted from a device whose adapter we never saw.
     pub adapter_info: Option<wgpu::AdapterInfo>,
+    /// The first error wgpu reported outside any error scope (headless devices only: an
+    /// adopted device has its owner's handler). wgpu's default handler panics; this one keeps
+    /// the error for the next frame or wait to return.
+    uncaptured: Arc<Mutex<Option<String>>>,
 }
 
 impl GpuContext {
@@ -43,10 +49,17 @@ impl GpuContext {
             })
             .await
             .map_err(|e| RenderError::RequestDevice(e.to_string()))?;
+        let uncaptured = Arc::new(Mutex::new(None::<String>));
+        let slot = uncaptured.clone();
+        device.on_uncaptured_error(Arc::new(move |error: wgpu::Error| {
+            let mut first = slot.lock().unwrap_or_else(|p| p.into_inner());
+            first.get_or_insert_with(|| error.to_string());
+        }));
         Ok(GpuContext {
             device,
             queue,
             adapter_info: Some(adapter.get_info()),
+            uncaptured,
         })
     }
 
@@ -56,6 +69,17 @@ impl GpuContext {
             device,
             queue,
             adapter_info: None,
+            uncaptured: Arc::default(),
+        }
+    }
+
+    /// The error wgpu reported outside an error scope since the last call, if any (an
+    /// allocation that did not fit, a validation error): taken, so it is reported once.
+    pub fn check_uncaptured(&self) -> Result<(), RenderError> {
+        let mut first = self.uncaptured.lock().unwrap_or_else(|p| p.into_inner());
+        match first.take() {
+            None => Ok(()),
+            Some(detail) => Err(RenderError::Uncaptured(detail)),
         }
     }
 
@@ -81,16 +105,16 @@ impl GpuContext {
                 submission_index: Some(submission),
                 timeout: None,
             })
-            .map(|_| ())
-            .map_err(|e| RenderError::Readback(e.to_string()))
+            .map_err(|e| RenderError::Readback(e.to_string()))?;
+        self.check_uncaptured()
     }
 
     /// Blocks until all submitted work has finished.
     pub fn wait_idle(&self) -> Result<(), RenderError> {
         self.device
             .poll(wgpu::PollType::wait_indefinitely())
-            .map(|_| ())
-            .map_err(|e| RenderError::Readback(e.to_string()))
+            .map_err(|e| RenderError::Readback(e.to_string()))?;
+        self.check_uncaptured()
     }
 
     pub fn limits(&self) -> wgpu::Limits {

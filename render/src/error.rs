@@ -17,6 +17,20 @@ pub enum RenderError {
     SlotOutOfRange { slot: u32, slots: u32 },
     #[error("brick cache cannot hold a single 36^3 slot within budget {budget_bytes} bytes / device limits")]
     CacheTooSmall { budget_bytes: u64 },
+    /// wgpu refused an allocation (out of memory, or beyond a limit it validates): captured in
+    /// an error scope instead of reaching the uncaptured-error handler. The detail keeps wgpu's
+    /// words ("Out of Memory"), which the viewer's recovery classifies.
+    #[error(
+        "the GPU could not allocate {what}: {detail}; the adapter reports a largest single \
+         allocation of {reported_limit_mib} MiB: give a smaller budget (--gpu-mib)"
+    )]
+    GpuAllocation {
+        what: String,
+        detail: String,
+        reported_limit_mib: u64,
+    },
+    #[error("the GPU reported an error: {0}")]
+    Uncaptured(String),
     #[error("invalid volume: {0}")]
     InvalidVolume(String),
     #[error("invalid volume geometry: {0}")]

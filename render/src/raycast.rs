@@ -536,6 +536,8 @@ impl Raycaster {
         ctx: &GpuContext,
         scene: &Scene,
     ) -> Result<wgpu::SubmissionIndex, RenderError> {
+        // An earlier step's uncaptured GPU error ends the loop here, not in a panic.
+        ctx.check_uncaptured()?;
         let settings = scene.settings;
         settings.validate()?;
         scene.geometry.validate()?;

@@ -15,7 +15,9 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
-use strata_loader::store_volume::{load_uniform_cut, GpuCut};
+use strata_loader::store_volume::{
+    check_cut_fits, classify_empty, page_table_for_cut, slots_needed, GpuCut, ResidentBricks,
+};
 use strata_render::{
     Camera, ControllerConfig, FrameQuality, GpuContext, Projection, RenderSettings, Scene, Shading,
     TimeCriticalConfig, TimeCriticalController, TransferFunctionTable, ValueMapping,
@@ -45,6 +47,8 @@ pub struct Options {
     pub tf: Option<String>,
     pub level: u8,
     pub elevation: f64,
+    /// GPU memory each level's cut may use (None: as much as the level needs).
+    pub gpu_budget_bytes: Option<u64>,
 }
 
 /// The fixed cuts the level-of-detail factor can ask for, one per octree level, built on
@@ -57,6 +61,7 @@ struct Cuts<'a> {
     finest_level: u8,
     root_level: u8,
     by_level: HashMap<u8, GpuCut>,
+    gpu_budget_bytes: Option<u64>,
 }
 
 impl Cuts<'_> {
@@ -70,19 +75,24 @@ impl Cuts<'_> {
 
     fn get(&mut self, ctx: &GpuContext, level: u8) -> Result<&GpuCut> {
         if !self.by_level.contains_key(&level) {
-            let (table, bricks) = load_uniform_cut(
-                self.store,
-                self.geometry,
-                self.mapping,
-                self.tf_table,
-                level,
+            // Checked before the level is read: a level over the budget is refused without
+            // reading its gigabytes first.
+            let mut table = page_table_for_cut(self.store, self.geometry, |_| level);
+            check_cut_fits(
+                ctx,
+                slots_needed(&table),
+                self.gpu_budget_bytes,
+                &format!("level {level} of {}", self.store.path().display()),
             )?;
-            let cut = GpuCut::upload(
+            classify_empty(self.store, &mut table, self.mapping, self.tf_table);
+            let bricks = ResidentBricks::load(self.store, &table)?;
+            let cut = GpuCut::upload_within(
                 ctx,
                 &bricks,
                 &table,
                 self.geometry.page_dims(),
                 self.tf_table,
+                self.gpu_budget_bytes,
             )?;
             eprintln!("  (level {level}: {} bricks resident)", bricks.len());
             self.by_level.insert(level, cut);
@@ -175,6 +185,7 @@ pub fn run(options: Options) -> Result<()> {
         finest_level: options.level.min(root_level),
         root_level,
         by_level: HashMap::new(),
+        gpu_budget_bytes: options.gpu_budget_bytes,
     };
     let base_settings = RenderSettings {
         width,
