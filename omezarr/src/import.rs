@@ -18,9 +18,10 @@ use strata_storage::import::{
     import_slices, ImportOptions, ImportReport, QuantizedSource, VolumeMeta,
 };
 use strata_storage::quantize::Quantizer;
+use strata_storage::store::Skeleton;
 use strata_storage::{
-    ByteOrder, RawVolume, SampleType, StoredScalar, ValueMapping, ValueMappingWithUnit,
-    VolumeGeometry,
+    ByteOrder, OctreeLayout, RawVolume, SampleType, StoredScalar, ValueMapping,
+    ValueMappingWithUnit, VolumeGeometry,
 };
 use zarrs::array::{Array, ArraySubset};
 use zarrs::storage::ReadableWritableListableStorageTraits;
@@ -462,7 +463,7 @@ pub fn chunk_check(opened: &OpenedMultiscale) -> Result<Option<crate::checksums:
         return Ok(None);
     };
     let layout = strata.header.layout.clone();
-    let skeleton = crate::streaming::read_skeleton(opened, &strata.skeleton, &layout)?;
+    let skeleton = read_skeleton(opened, &strata.skeleton, &layout)?;
     let checksums = match &strata.checksums {
         None => None,
         Some(key) => {
@@ -756,5 +757,33 @@ pub fn import_zarr(
         import,
         notes,
         strata_export,
+    })
+}
+
+/// The skeleton object a Strata export names in its `strata` attribute (import and streaming).
+pub(crate) fn read_skeleton(
+    opened: &OpenedMultiscale,
+    key: &str,
+    layout: &OctreeLayout,
+) -> Result<Skeleton> {
+    if key != crate::metadata::SKELETON_KEY {
+        return Err(OmeZarrError::invalid(
+            &opened.location.display,
+            format!("unexpected skeleton object `{key}`"),
+        ));
+    }
+    use object_store::ObjectStoreExt;
+    let path = object_store::path::Path::from(key);
+    let store = opened.location.store.clone();
+    let bytes = crate::zarr_store::block_on(async move {
+        let got = store.get(&path).await?;
+        got.bytes().await
+    })?
+    .map_err(|e| OmeZarrError::access(&opened.location.display, format!("{key}: {e}")))?;
+    Skeleton::decode(&bytes, layout).map_err(|e| {
+        OmeZarrError::invalid(
+            &opened.location.display,
+            format!("{key}: the skeleton {e} (for the strata attribute's layout)"),
+        )
     })
 }

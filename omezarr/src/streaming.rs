@@ -47,8 +47,7 @@ use zarrs::array::{
 use zarrs::storage::ReadableWritableListableStorageTraits;
 use zarrs_object_store::AsyncObjectStore;
 
-use crate::import::{data_type_name, open_level, open_multiscale, OpenedMultiscale};
-use crate::metadata::SKELETON_KEY;
+use crate::import::{data_type_name, open_level, open_multiscale, read_skeleton, OpenedMultiscale};
 use crate::range_cache::{RangeCacheStore, TransferCounters};
 use crate::{ObjectLocation, OmeZarrError, Result};
 
@@ -806,33 +805,6 @@ impl OmeZarrSource {
         .unwrap_or(0);
         sync + tasks
     }
-}
-
-pub(crate) fn read_skeleton(
-    opened: &OpenedMultiscale,
-    key: &str,
-    layout: &OctreeLayout,
-) -> Result<Skeleton> {
-    if key != SKELETON_KEY {
-        return Err(OmeZarrError::invalid(
-            &opened.location.display,
-            format!("unexpected skeleton object `{key}`"),
-        ));
-    }
-    use object_store::ObjectStoreExt;
-    let path = object_store::path::Path::from(key);
-    let store = opened.location.store.clone();
-    let bytes = crate::zarr_store::block_on(async move {
-        let got = store.get(&path).await?;
-        got.bytes().await
-    })?
-    .map_err(|e| OmeZarrError::access(&opened.location.display, format!("{key}: {e}")))?;
-    Skeleton::decode(&bytes, layout).map_err(|e| {
-        OmeZarrError::invalid(
-            &opened.location.display,
-            format!("{key}: the skeleton {e} (for the strata attribute's layout)"),
-        )
-    })
 }
 
 /// A foreign pyramid, described for streaming.

@@ -1174,6 +1174,20 @@ mod tests {
         .expect("direct adaptive render")
     }
 
+    /// The session's adaptive frame against the same pass run directly. Not bit for bit: the
+    /// streaming loader's cache grows with use (a deeper slot grid, sized by what it holds), so
+    /// each brick sits at other normalised texture coordinates than in the directly allocated
+    /// cache, and lavapipe's sampler rounds its filter weights to 8-bit fixed point from those
+    /// coordinates: a channel may come out 1 apart, never more. The raycaster's frame differs
+    /// from the adaptive pass's by far more, so this still tells which pass drew the frame.
+    fn same_image_up_to_cache_layout(direct: &[u8], session: &[u8], what: &str) {
+        let c = strata_render::compare_rgba8(direct, session).expect("same size");
+        assert!(
+            c.max_abs_error <= 1 && c.pixels_off_by_more_than_one == 0,
+            "{what}: the session's adaptive frame differs from the pass run directly: {c:?}"
+        );
+    }
+
     /// Issue 15 in the viewer: with adaptive sampling on, the still view's final frame is the
     /// adaptive pass's over the streamed cut, equal to the pass run directly over that cut,
     /// close to the raycaster's; moving the camera shows a raycaster frame again, and a new ε
@@ -1210,14 +1224,11 @@ mod tests {
         );
         assert!(frame.rgba.chunks_exact(4).any(|p| p[3] > 0), "empty image");
 
-        // Same shader, inputs and device type: the same bits.
+        // Same shader, inputs and device type: the same samples, and the same image up to the
+        // sampler's rounding (`same_image_up_to_cache_layout`).
         let direct = direct_adaptive_render(&store, &facts, &adaptive);
         assert_eq!(direct.total_samples(), facts.samples);
-        assert!(
-            direct.rgba == *frame.rgba,
-            "the session's adaptive frame differs from the pass run directly: {:?}",
-            strata_render::compare_rgba8(&direct.rgba, &frame.rgba)
-        );
+        same_image_up_to_cache_layout(&direct.rgba, &frame.rgba, "DVR");
         assert_eq!(direct.depth.len(), frame.depth.len());
         assert!(direct
             .depth
@@ -1366,12 +1377,9 @@ mod tests {
             let facts = frame.adaptive.clone().expect("drawn by the adaptive pass");
             assert!(frame.rgba.chunks_exact(4).any(|p| p[3] > 0), "empty image");
             let direct = direct_adaptive_render(&store, &facts, &request);
-            assert!(
-                direct.rgba == *frame.rgba,
-                "{:?}: the session's adaptive frame differs from the pass run directly: {:?}",
-                request.settings.mode,
-                strata_render::compare_rgba8(&direct.rgba, &frame.rgba)
-            );
+            assert_eq!(direct.total_samples(), facts.samples);
+            let mode = format!("{:?}", request.settings.mode);
+            same_image_up_to_cache_layout(&direct.rgba, &frame.rgba, &mode);
         }
     }
 
