@@ -7,12 +7,13 @@
 # Here (no GPU), from the checkout's root:
 #   cargo build --release -p strata-app --bin strata
 #   cargo bench --no-run -p strata-render --bench raycast --bench traversal
-#   cargo test --release --no-run -p strata-render --test features   # the cache's first-upload probe
+#   cargo test --release --no-run -p strata-render --test integration  # features::cache_first_upload_cost
 #   mkdir -p .gpu && grep -qx /.gpu/ .git/info/exclude || echo /.gpu/ >> .git/info/exclude
 #   for b in target/release/strata target/release/deps/raycast-* target/release/deps/traversal-* \
-#            target/release/deps/features-*; do
-#     case $b in *.d) continue;; esac; n=$(basename $b | sed 's/-[0-9a-f]*$//')
+#            $(ls -t target/release/deps/integration-* | grep -v '\.d$' | head -1); do
+#     case $b in *.d) continue;; esac; n=$(basename $b | sed 's/-[0-9a-f]*$//; s/^integration$/features/')
 #     strip -o .gpu/$n $b; xz -f -T0 .gpu/$n; done
+#   (render's integration-test binary, newest after the command above, goes as `features`.)
 #   and, for a bare GPU machine without a Vulkan loader, its Debian packages into .gl (git-ignored):
 #   mkdir -p .gl && (cd .gl && apt-get download libvulkan1 libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2)
 # There: with .gl and .gpu carried along (git worktrees: `carry: [".gpu", ".gl"]`):
