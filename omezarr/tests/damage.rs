@@ -4,8 +4,6 @@
 //! (each case runs on its own thread under a time limit); nothing reads silently wrong (every
 //! brick streamed is either the undamaged one or reported damaged).
 
-use crate::common;
-
 use std::path::{Path, PathBuf};
 use std::sync::mpsc;
 use std::time::Duration;
