@@ -1230,11 +1230,30 @@ mod tests {
         assert_eq!(direct.total_samples(), facts.samples);
         same_image_up_to_cache_layout(&direct.rgba, &frame.rgba, "DVR");
         assert_eq!(direct.depth.len(), frame.depth.len());
-        assert!(direct
+        // The pick depth is where the accumulated opacity reaches ½, interpolated along the
+        // ray: samples that round 1 apart (above) move it slightly in many pixels, and where
+        // the opacity only just reaches ½ they can decide whether it is reached at all. So:
+        // within half a voxel (the bound the pick test against the raycaster uses), except in
+        // at most 1 % of the pixels.
+        let half_voxel = 0.5
+            * VolumeSource::header(&store)
+                .geometry
+                .spacing_mm
+                .into_iter()
+                .fold(f64::INFINITY, f64::min) as f32;
+        let differing = direct
             .depth
             .iter()
             .zip(frame.depth.iter())
-            .all(|(a, b)| a == b || (a.is_infinite() && b.is_infinite())));
+            .filter(|(a, b)| {
+                !((a.is_infinite() && b.is_infinite()) || (*a - *b).abs() <= half_voxel)
+            })
+            .count();
+        assert!(
+            differing * 100 <= direct.depth.len(),
+            "{differing} of {} pick depths differ by more than half a voxel ({half_voxel} mm)",
+            direct.depth.len()
+        );
 
         // Against the raycaster's converged frame of the same cut and view: the adaptive pass
         // samples on slices (shells) with length-free pre-integration and synthesises skipped
