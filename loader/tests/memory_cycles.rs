@@ -5,7 +5,7 @@
 //! gives it back) from memory outside malloc's heap (the driver's blocks).
 //!
 //! `STRATA_CYCLES=20 STRATA_CYCLE_PART=full|gpu|cpu STRATA_CYCLE_BUDGETS=fixed|random \
-//!  cargo test -p strata-loader --test memory_cycles -- --ignored --nocapture`
+//!  cargo test -p strata-loader --test integration memory_cycles:: -- --ignored --nocapture`
 
 use crate::common;
 

@@ -3,7 +3,7 @@
 //! the caches stay within their budgets (+10 %), that the process's memory stays bounded, and
 //! that frames keep coming (a watchdog fails the test after 60 s without one: a deadlock).
 //!
-//! `STRATA_SOAK_SECONDS=1800 cargo test -p strata-loader --test soak -- --ignored --nocapture`
+//! `STRATA_SOAK_SECONDS=1800 cargo test -p strata-loader --test integration soak:: -- --ignored --nocapture`
 //! (`STRATA_SOAK_MAX_FRAMES_PER_VOLUME=60` for more, shorter volumes in a shorter run;
 //! `STRATA_MALLOC_ARENAS=default` to measure without the arena cap of malloc_arenas.rs)
 

@@ -1204,7 +1204,7 @@ fn offscreen_renderer_handles_iso_classification() {
 /// STRATA_CACHE_BUDGETS_MIB (default 256,8192), the time to create the cache, upload one brick
 /// (the root) and wait for the GPU, with the texture allocated for the whole budget and with
 /// it growing with use. Run on a real GPU:
-/// `cargo test --release -p strata-render --test features cache_first_upload_cost -- --ignored --nocapture`.
+/// `cargo test --release -p strata-render --test integration features::cache_first_upload_cost -- --ignored --nocapture`.
 #[test]
 #[ignore]
 fn cache_first_upload_cost() {

@@ -766,7 +766,7 @@ fn tls_serves_the_same_bricks_over_https() {
 
 /// The figure for the note: the median time of a normal request (connect, GET, whole
 /// answer) with 0, 300 and 2 000 idle sockets held against the server (default caps), as
-/// ratios to the first. `cargo test -p strata-service --test server idle_socket_figures --
+/// ratios to the first. `cargo test -p strata-service --test integration server::idle_socket_figures --
 /// --ignored --nocapture` (needs `ulimit -n` above 4 100).
 #[test]
 #[ignore = "measurement: run with --ignored --nocapture"]

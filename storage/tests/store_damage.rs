@@ -310,7 +310,7 @@ fn the_store_marker_content_is_checked() {
 }
 
 /// `verify`'s time on an intact 256³ phantom store (the figure for the note):
-/// `cargo test -p strata-storage --test store_damage verify_time -- --ignored --nocapture`.
+/// `cargo test -p strata-storage --test integration store_damage::verify_time -- --ignored --nocapture`.
 #[test]
 #[ignore = "measurement: run with --ignored --nocapture"]
 fn verify_time_on_an_intact_store() {
