@@ -83,6 +83,12 @@ pub struct FlythroughArgs {
     /// over 2^18 page cells (beyond 2048³ voxels).
     #[arg(long, value_enum)]
     pub traversal: Option<crate::cmd_render::TraversalArg>,
+    /// Apply a cut selection every N-th frame, waiting for it (a fixed cadence), instead of
+    /// the newest one whenever it is ready: lavapipe draws about one frame per selection, a
+    /// fast GPU several (an H200 ~7.5 at 1024²), so this replays a fast GPU's cadence on a
+    /// slow adapter.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=1000))]
+    pub frames_per_selection: Option<u32>,
 }
 
 /// Viewpoint `k` of `n`: an orbit that swings around and closes in, ending inside the body's
@@ -149,8 +155,11 @@ pub fn run(args: FlythroughArgs) -> Result<()> {
         max_voxel_pixels: args.quality,
         fetch_threads: args.fetch_threads,
         visibility_feedback: !args.no_visibility,
-        // As the viewer: frames apply the newest finished selection and never wait for one.
-        selection: SelectionTiming::Background,
+        // As the viewer: frames apply the newest finished selection and never wait for one
+        // (unless a fixed cadence is asked for).
+        selection: args
+            .frames_per_selection
+            .map_or(SelectionTiming::Background, SelectionTiming::EveryNthFrame),
         traversal: args.traversal.map(|t| t.traversal()),
         ..StreamingConfig::default()
     };

@@ -85,7 +85,13 @@ fn install_interrupt_cleanup() {
         } else {
             eprintln!("interrupted");
         }
-        std::process::exit(130);
+        // `_exit`, not `exit`: `exit` runs the GPU driver's atexit teardown while the main
+        // thread may still be polling the device, which then panics with "Parent device is
+        // lost" (the H200 run of 2026-12-04 read a step killed by its timeout as a lost
+        // device that way).
+        // SAFETY: `_exit` takes no pointers and never returns; skipping destructors and
+        // atexit handlers is the point (the staging files are already removed).
+        unsafe { libc::_exit(130) }
     });
     if let Err(e) = installed {
         eprintln!("warning: cannot install the interrupt handler ({e}); an interrupted import may leave its staging file in the temp folder");

@@ -47,6 +47,7 @@ step() { # step NAME TIMEOUT CMD...
   timeout "$t" "$@" >"$L/$name.log" 2>&1; local rc=$?
   local t1=$(date +%s.%N)
   echo "    rc=$rc wall=$(python3 -c "print(round($t1-$t0,2))")s" | tee -a "$OUT/summary.txt"
+  [ $rc -eq 124 ] && echo "    TIMED OUT after ${t} s: killed, not failed (what it printed after 'interrupted' is teardown)" | tee -a "$OUT/summary.txt"
   grep -vE 'XDG_RUNTIME' "$L/$name.log" | tail -n "${TAILN:-14}" | sed 's/^/    /' >> "$OUT/summary.txt"
   tar czf "$OUT/logs.tgz" -C $L . 2>/dev/null
 }
@@ -55,7 +56,9 @@ if [ -n "${SMALL:-}" ]; then
   FLYT=600; STEPT=300
 else
   MID=512; BIG=1024; IMG=1024; BIGIMG=2048; FR=15; HUGE=16384; TCF=360; SET=3000; GMIB=8192; SECS=4
-  FLYT=75; STEPT=60
+  # A flythrough holds each of its 3 viewpoints 3000 frames after converging (or 4 s
+  # without): 75 s killed the 256 MiB runs on the H200 before they ended.
+  FLYT=150; STEPT=60
 fi
 (nvidia-smi --query-gpu=name,driver_version,clocks.sm,clocks.mem --format=csv 2>&1; nproc) | tee -a "$OUT/summary.txt"
 step adapter $STEPT $S sample --size 64 --out $W/p64.strata
@@ -88,6 +91,6 @@ TAILN=4 step timecritical-over-budget 30 $S bench timecritical $W/p$BIG.strata -
 TAILN=24 step adaptive 100 $S bench adaptive phantom --phantom-size 256 --size ${IMG}x$IMG --frames 5 --epsilons 0.001,0.01,0.05 --out-dir $W/adaptive
 step sparse-gen 150 $S sample --sparse --size $HUGE --out $W/big.strata
 step sparse-info 30 $S info $W/big.strata
-TAILN=8 step sparse-render $STEPT $S render $W/big.strata --out "$OUT/big.png" --size ${IMG}x$IMG --mode mip --traversal octree --max-frames 400
+TAILN=8 step sparse-render 150 $S render $W/big.strata --out "$OUT/big.png" --size ${IMG}x$IMG --mode mip --traversal octree --max-frames 400
 log done
 cat "$OUT/summary.txt"

@@ -547,14 +547,19 @@ impl StreamingVolume {
         let current = self.current.clone();
         let no_cut = Cut::default();
         let (cut, rewritten) = match &applied {
-            Some((cut, rewritten)) => (cut, *rewritten),
+            Some(a) => (&a.cut, a.rewritten),
             None => (current.as_deref().map_or(&no_cut, |c| &c.0), false),
         };
-        // A frame without a new selection shows the current cut: converged if that cut was
-        // when applied and the view is still the one it was selected for.
+        // Converged: the cut shown was selected for this very view, is complete, uploaded
+        // nothing and left the table as it was. A background selection lags the camera, so
+        // the cut applied on the first still frame was selected for the last moving one.
         let converged = match &applied {
-            Some((cut, rewritten)) => {
-                cut.complete() && cut.uploads.is_empty() && !rewritten && visibility_seen
+            Some(a) => {
+                a.cut.complete()
+                    && a.cut.uploads.is_empty()
+                    && !a.rewritten
+                    && visibility_seen
+                    && a.selected_for == inputs
             }
             None => {
                 self.current_converged
@@ -562,12 +567,13 @@ impl StreamingVolume {
                     && current.as_ref().is_some_and(|c| c.1 == inputs)
             }
         };
-        if let (Some((cut, true)), Some(previous)) = (&applied, &current) {
+        if let (Some(a), Some(previous)) = (&applied, &current) {
             // A still view's cut changed: flicker when it gives back a refinement, or when
-            // the view had already converged.
+            // the view had already converged. Both cuts must have been selected for this
+            // view: the first one selected for it replaces one that was not.
             let (before, before_inputs) = (&previous.0, &previous.1);
-            if *before_inputs == inputs {
-                let refined: HashSet<BrickId> = cut.refined.iter().copied().collect();
+            if a.rewritten && *before_inputs == inputs && a.selected_for == inputs {
+                let refined: HashSet<BrickId> = a.cut.refined.iter().copied().collect();
                 let coarsens = before.refined.iter().any(|id| !refined.contains(id));
                 if coarsens || self.converged_for.as_ref() == Some(&inputs) {
                     self.cut_changes_while_still += 1;
@@ -579,16 +585,19 @@ impl StreamingVolume {
         }
         let mut stats = self.stats(cut, fetched, rewritten, converged, loader_seconds);
         stats.loader_cpu_seconds = loader_cpu_seconds;
-        if let Some((mut cut, rewritten)) = applied {
+        if let Some(AppliedCut {
+            mut cut,
+            rewritten,
+            selected_for,
+        }) = applied
+        {
             self.current_converged = cut.complete() && cut.uploads.is_empty() && !rewritten;
-            let complete = cut.complete();
             cut.uploads.clear();
             cut.data_leaves_on_gpu = cut.data_leaves().count();
-            let current = Arc::new((cut, inputs));
-            if complete {
-                self.settled = Some(current.clone());
-            }
-            self.current = Some(current);
+            // Labelled with the view it was selected for, never this frame's: a cut selected
+            // for a moving camera kept as the still view's settled cut held the old frustum's
+            // culling (issue 35).
+            self.current = Some(Arc::new((cut, selected_for)));
         }
         self.last_stats = stats.clone();
         Ok(stats)
@@ -650,7 +659,7 @@ impl StreamingVolume {
         selected: Selected,
         camera: &Camera,
         settings: &RenderSettings,
-    ) -> Result<Option<(Cut, bool)>, LoaderError> {
+    ) -> Result<Option<AppliedCut>, LoaderError> {
         let Selected {
             inputs,
             cut,
@@ -708,7 +717,21 @@ impl StreamingVolume {
         self.page_table_key = page_table_key;
         self.refined_last_frame = refined;
         self.request_bricks(&cut, camera, settings);
-        Ok(Some((cut, rewritten)))
+        // The settled cut is updated here, not after the frame is drawn: the job handed over
+        // right after this (background timings) must see the cut it is asked to keep beside
+        // the incumbents it refines from. One applied cut late, two complete cuts took turns
+        // forever (issue 35: keep_settled_cut brought back the cut before the current one
+        // each time, 9339 <-> 6686 leaves on an H200 with nothing to load).
+        if cut.complete() {
+            let mut kept = cut.clone();
+            kept.uploads.clear();
+            self.settled = Some(Arc::new((kept, inputs.clone())));
+        }
+        Ok(Some(AppliedCut {
+            cut,
+            rewritten,
+            selected_for: inputs,
+        }))
     }
 
     /// Replaces the fetchers' requests with `cut`'s demand and the prefetch candidates.
@@ -1034,6 +1057,15 @@ impl StreamingVolume {
             converged,
         }
     }
+}
+
+/// A selection applied on the frame thread.
+struct AppliedCut {
+    cut: Cut,
+    /// The page table changed.
+    rewritten: bool,
+    /// The view the cut was selected for (a background selection lags the camera).
+    selected_for: ViewInputs,
 }
 
 /// The configured traversal, or when left open the flat table where its per-page buffers
