@@ -204,11 +204,16 @@ fn effect_table(
         shading: Some(Shading::default()),
         ..base.clone()
     };
+    // The shadows row's "off": shaded, key-lit, and with empty skipping and early termination
+    // on as any real frame has them (without them every sample of the volume would trace a
+    // shadow ray, a cost no view pays).
     let key_lit = RenderSettings {
         light: KeyLight {
             direction: LightDirection::Camera([0.5, 0.5, 0.7]),
             intensity: 1.0,
         },
+        early_termination: Some(0.99),
+        skip_empty: true,
         ..shaded.clone()
     };
     let clip = ClipPlane {
@@ -277,8 +282,9 @@ fn effect_table(
                 ..base.clone()
             },
         ),
-        // Exact shadow rays (shadows.rs), shaded DVR with a key light from the upper right:
-        // "off" is the same key light unshadowed, "never built" a shader without SHADOWS.
+        // Exact shadow rays (shadows.rs, step 1 voxel), shaded DVR with a key light from the
+        // upper right: "off" is the same key light unshadowed (`key_lit`), "never built" a
+        // shader without SHADOWS.
         (
             "shadows (exact)",
             "SHADOWS",

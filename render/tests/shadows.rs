@@ -366,10 +366,10 @@ fn isosurface_in_the_slabs_shadow_keeps_the_ambient_term() {
             let (x, y) = floor_point(&cam, px, py);
             if (1.0..=7.0).contains(&x) && (16.0..=24.0).contains(&y) {
                 let i = ((py * SIZE + px) * 4) as usize;
-                for c in 0..3 {
+                for (c, colour) in COLOUR.iter().enumerate() {
                     let got = frame.rgba[i + c] as f64 / 255.0;
                     assert!(
-                        (got - ambient * COLOUR[c]).abs() <= 2.0 / 255.0,
+                        (got - ambient * colour).abs() <= 2.0 / 255.0,
                         "iso shadowed ({px}, {py}): {:?}",
                         &frame.rgba[i..i + 4]
                     );
