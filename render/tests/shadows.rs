@@ -416,3 +416,38 @@ fn shadows_are_compiled_in_only_when_they_light_something() {
     let k = g.key(&f, &cam, &on);
     assert!(k.key_light && k.shadows);
 }
+
+/// A clip plane that cuts the slab away lets the light in (the cut casts no shadow; shadows.rs):
+/// the floor is lit as if the slab were not there. The clipped view ray starts at the plane
+/// z = 20, 39 main steps below the box's top face, so its samples are the unclipped floor-only
+/// view's: the images agree within one 8-bit step, and with the reference.
+#[test]
+fn light_enters_through_the_clip_plane() {
+    let ctx = gpu();
+    let cam = from_above();
+    let s = shadowed(LightDirection::Patient([1.0, 0.0, 1.0]), 1.0);
+    let clipped = RenderSettings {
+        // Keeps −z ≥ −20: everything below z = 20, the floor but not the slab.
+        clip_plane: Some(ClipPlane {
+            normal: [0.0, 0.0, -1.0],
+            offset_mm: -20.0,
+        }),
+        ..s.clone()
+    };
+    let f = slab_and_floor();
+    let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
+    let cut = g.render(&ctx, &f, &cam, &clipped);
+    let shadowed_floor = g.render(&ctx, &f, &cam, &s);
+    let floor = floor_only();
+    let mut g_floor = GpuScene::new(&ctx, &floor, CacheConfig::default());
+    let open = g_floor.render(&ctx, &floor, &cam, &s);
+    let c = compare_rgba8(&cut.rgba, &open.rgba).unwrap();
+    assert!(c.max_abs_error <= 1, "clipped slab still shadows: {c:?}");
+    // And the slab, unclipped, does shadow this floor (else the test proves nothing).
+    let d = compare_rgba8(&shadowed_floor.rgba, &open.rgba).unwrap();
+    assert!(d.max_abs_error > 40, "{d:?}");
+    let reference = timed_reference("clip", &f, &cam, &clipped);
+    let r = compare_rgba8(&cut.rgba, &reference.rgba).unwrap();
+    eprintln!("clip: {r:?}");
+    assert!(r.psnr_db >= 45.0, "{r:?}");
+}
