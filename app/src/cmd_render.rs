@@ -14,8 +14,9 @@ use strata_render::adaptive::{
 };
 use strata_render::reference::{render_reference, ReferenceOptions, ReferenceScene};
 use strata_render::{
-    Camera, GpuContext, GpuPageTable, Projection, RenderMode, RenderSettings, Scene,
-    SegmentIntegralTable, Shading, TransferFunction, Traversal,
+    Camera, GpuContext, GpuPageTable, KeyLight, LightDirection, Projection, RenderMode,
+    RenderSettings, Scene, SegmentIntegralTable, Shading, ShadowMode, Shadows, TransferFunction,
+    Traversal,
 };
 use strata_storage::BrickId;
 
@@ -137,6 +138,42 @@ pub struct RenderArgs {
     /// not given, the cache holds the whole level.
     #[arg(long)]
     pub gpu_mib: Option<u64>,
+    /// Volumetric shadows from the key light: `exact` traces a shadow ray per shaded sample
+    /// (render/src/shadows.rs); turns shading on. The f64 reference (--reference) renders the
+    /// same model.
+    #[arg(long, value_enum, default_value_t = ShadowsArg::Off)]
+    pub shadows: ShadowsArg,
+    /// The key light's direction towards the light, camera-relative: X right, Y up, Z towards
+    /// the viewer (0,0,1 lights along the view axis). Not given: the headlight.
+    #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
+    pub light_dir: Option<String>,
+    /// Shadow-ray step in finest voxels.
+    #[arg(long, default_value_t = 1.0)]
+    pub shadow_step: f64,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum ShadowsArg {
+    Off,
+    Exact,
+}
+
+/// "X,Y,Z" as a non-zero finite vector.
+pub fn parse_light_dir(text: &str) -> Result<[f64; 3]> {
+    let parts: Vec<&str> = text.split(',').map(str::trim).collect();
+    let bad = || anyhow::anyhow!("--light-dir {text:?}: expected three numbers X,Y,Z");
+    let [x, y, z] = parts[..] else {
+        return Err(bad());
+    };
+    let v = [x, y, z].map(|p| p.parse::<f64>());
+    let [Ok(x), Ok(y), Ok(z)] = v else {
+        return Err(bad());
+    };
+    anyhow::ensure!(
+        [x, y, z].iter().all(|c| c.is_finite()) && (x * x + y * y + z * z) > 1e-24,
+        "--light-dir {text:?}: the direction must be finite and non-zero"
+    );
+    Ok([x, y, z])
 }
 
 /// The most frames an orbit movie may have: 10 per degree, 150 s at 24 frames per second.
@@ -213,6 +250,20 @@ fn check_args(args: &RenderArgs) -> Result<()> {
             "--traversal octree is the GPU raycaster's: it does not apply to --reference or \
              --mode adaptive"
         );
+    }
+    if args.shadows != ShadowsArg::Off {
+        check_range("shadow-step", args.shadow_step, 0.05..=1000.0)?;
+        anyhow::ensure!(
+            !matches!(
+                args.mode,
+                ModeArg::Mip | ModeArg::Adaptive | ModeArg::AdaptiveMip
+            ),
+            "--shadows is the raycaster's DVR and isosurface lighting: not for MIP or \
+             --mode adaptive"
+        );
+    }
+    if let Some(text) = &args.light_dir {
+        parse_light_dir(text)?;
     }
     parse_size(&args.size)?;
     Ok(())
@@ -459,10 +510,27 @@ fn settings_of(args: &RenderArgs) -> Result<RenderSettings> {
         },
         quality: args.step,
         jitter: !args.no_jitter,
-        shading: (args.shading || matches!(args.mode, ModeArg::Iso)).then(Shading::default),
+        shading: (args.shading
+            || args.shadows != ShadowsArg::Off
+            || matches!(args.mode, ModeArg::Iso))
+        .then(Shading::default),
         smooth_transitions: !args.no_smooth,
         iso_value: args.iso,
         exact_trilinear: args.exact_trilinear,
+        light: KeyLight {
+            direction: match &args.light_dir {
+                Some(text) => LightDirection::Camera(parse_light_dir(text)?),
+                None => LightDirection::Headlight,
+            },
+            ..KeyLight::default()
+        },
+        shadows: Shadows {
+            mode: match args.shadows {
+                ShadowsArg::Off => ShadowMode::Off,
+                ShadowsArg::Exact => ShadowMode::Exact,
+            },
+            step: args.shadow_step,
+        },
         ..RenderSettings::default()
     })
 }

@@ -7,7 +7,8 @@
 //! Env: STRATA_BENCH_SIZE (default 512), STRATA_BENCH_FRAMES (default 5),
 //!      STRATA_BENCH_VOLUME (default 256), STRATA_BENCH_REF_SIZE (default 128),
 //!      STRATA_BENCH_STEPS (default 0.5,1,2,3: the peer runs at 0.5; the rest find equal PSNR),
-//!      STRATA_BENCH_SAVE=DIR (keep the PSNR images as PPM in DIR).
+//!      STRATA_BENCH_SAVE=DIR (keep the PSNR images as PPM in DIR),
+//!      STRATA_BENCH_EFFECTS=shadows,shading (only those rows of the effect table, nothing else).
 //!
 //! Prints ms/frame (median), samples/s, the sampling-only kernel's samples/s measured in the
 //! same run (the ceiling: same texture, same fetch count, no page lookup, TF or compositing),
@@ -170,6 +171,191 @@ impl Drawn<'_> {
     }
 }
 
+/// The effect table: what an effect costs on, off and never built (see the comment inside).
+/// `only`: effect names (prefixes) to run, from STRATA_BENCH_EFFECTS; None: all.
+#[allow(clippy::too_many_arguments)]
+fn effect_table(
+    ctx: &GpuContext,
+    cache: &BrickCache,
+    drawn: &Drawn,
+    raycaster: &mut Raycaster,
+    camera_at: &dyn Fn(u32) -> Camera,
+    size: u32,
+    frames: u32,
+    only: Option<&[String]>,
+) {
+    let volume = drawn.volume;
+    // What an effect costs, and what it costs when off. "never" is a raycaster built from the
+    // shader with that effect's override turned into `const false`, i.e. a build that never had
+    // the effect: the specialised pipeline with the effect off should take the same time.
+    // DVR at step 0.5 with every effect off is the base; rounds interleave all variants.
+    let base = RenderSettings {
+        width: size,
+        height: size,
+        mode: RenderMode::Dvr,
+        quality: 0.5,
+        jitter: false,
+        early_termination: None,
+        skip_empty: false,
+        smooth_transitions: false,
+        ..Default::default()
+    };
+    let shaded = RenderSettings {
+        shading: Some(Shading::default()),
+        ..base.clone()
+    };
+    // The shadows row's "off": shaded, key-lit, and with empty skipping and early termination
+    // on as any real frame has them (without them every sample of the volume would trace a
+    // shadow ray, a cost no view pays).
+    let key_lit = RenderSettings {
+        light: KeyLight {
+            direction: LightDirection::Camera([0.5, 0.5, 0.7]),
+            intensity: 1.0,
+        },
+        early_termination: Some(0.99),
+        skip_empty: true,
+        ..shaded.clone()
+    };
+    let clip = ClipPlane {
+        normal: [0.0, 0.0, 1.0],
+        offset_mm: volume.geometry.centre_patient().z - 40.0,
+    };
+    // (name, override, on); "off" is `base`, or for effects that need another effect on
+    // (shadows need shading), the settings in `off_for`.
+    let effects: Vec<(&str, &str, RenderSettings)> = vec![
+        ("shading", "SHADING", shaded.clone()),
+        (
+            "jitter",
+            "JITTER",
+            RenderSettings {
+                jitter: true,
+                ..base.clone()
+            },
+        ),
+        (
+            "clip plane",
+            "CLIP_PLANE",
+            RenderSettings {
+                clip_plane: Some(clip),
+                ..base.clone()
+            },
+        ),
+        (
+            "pre-integration",
+            "PREINTEGRATED",
+            RenderSettings {
+                preintegrated: true,
+                ..base.clone()
+            },
+        ),
+        (
+            "sample counter",
+            "COUNT_SAMPLES",
+            RenderSettings {
+                count_samples: true,
+                ..base.clone()
+            },
+        ),
+        (
+            "early termination",
+            "EARLY_TERMINATION",
+            RenderSettings {
+                early_termination: Some(0.99),
+                ..base.clone()
+            },
+        ),
+        (
+            "empty skipping",
+            "SKIP_EMPTY",
+            RenderSettings {
+                skip_empty: true,
+                ..base.clone()
+            },
+        ),
+        // This cut is uniform, so "on" asks for smoothing and gets the same pipeline as "off"
+        // (the cut decides); what smoothing costs on a mixed cut is `strata bench transitions`.
+        (
+            "smooth transitions",
+            "SMOOTH_TRANSITIONS",
+            RenderSettings {
+                smooth_transitions: true,
+                ..base.clone()
+            },
+        ),
+        // Exact shadow rays (shadows.rs, step 1 voxel), shaded DVR with a key light from the
+        // upper right: "off" is the same key light unshadowed (`key_lit`), "never built" a
+        // shader without SHADOWS.
+        (
+            "shadows (exact)",
+            "SHADOWS",
+            RenderSettings {
+                shadows: Shadows {
+                    mode: ShadowMode::Exact,
+                    step: 1.0,
+                },
+                ..key_lit.clone()
+            },
+        ),
+    ];
+    let effects: Vec<_> = effects
+        .into_iter()
+        .filter(|(name, _, _)| only.is_none_or(|o| o.iter().any(|w| name.starts_with(w.as_str()))))
+        .collect();
+    let off_for = |name: &str| {
+        if name.starts_with("shadows") {
+            &key_lit
+        } else {
+            &base
+        }
+    };
+    let mut never_had: Vec<Raycaster> = effects
+        .iter()
+        .map(|(_, name, _)| {
+            let declared = ["false", "true"]
+                .map(|default| format!("override {name}: bool = {default};"))
+                .into_iter()
+                .find(|d| Raycaster::shader_source().contains(d))
+                .unwrap_or_else(|| panic!("override {name} not in the shader"));
+            let variant = Raycaster::shader_source()
+                .replace(&declared, &format!("const {name}: bool = false;"));
+            Raycaster::with_shader_source(ctx, cache, &variant)
+        })
+        .collect();
+    let camera = camera_at(1);
+    let mut effect_times = vec![[Vec::new(), Vec::new(), Vec::new()]; effects.len()];
+    for round in 0..=frames {
+        for (i, (name, _, on)) in effects.iter().enumerate() {
+            let off = off_for(name);
+            for (variant, settings) in [(0, off), (1, off), (2, on)] {
+                let scene = drawn.scene(&camera, settings);
+                let rc = if variant == 1 {
+                    &mut never_had[i]
+                } else {
+                    &mut *raycaster
+                };
+                let t = Instant::now();
+                rc.render_and_wait(ctx, &scene).expect("render");
+                if round > 0 {
+                    effect_times[i][variant].push(t.elapsed().as_secs_f64() * 1e3);
+                }
+            }
+        }
+    }
+    println!("\nEffect cost, DVR step 0.5 at {size}², median of {frames} interleaved rounds (ms):");
+    println!(
+        "{:<20} {:>10} {:>14} {:>12} {:>10} {:>10}",
+        "effect", "off", "never built", "never/off", "on", "on/off"
+    );
+    for (i, (name, _, _)) in effects.iter().enumerate() {
+        let [off, never, on] = effect_times[i].clone().map(median);
+        println!(
+            "{name:<20} {off:>10.1} {never:>14.1} {:>12.3} {on:>10.1} {:>10.3}",
+            never / off,
+            on / off
+        );
+    }
+}
+
 fn main() {
     let ctx = match GpuContext::headless() {
         Ok(c) => c,
@@ -253,6 +439,21 @@ fn main() {
             Projection::Perspective { fov_y_deg: 30.0 },
         )
     };
+    // STRATA_BENCH_EFFECTS=shadows,shading: only those rows of the effect table, nothing else.
+    if let Ok(list) = std::env::var("STRATA_BENCH_EFFECTS") {
+        let only: Vec<String> = list.split(',').map(|w| w.trim().to_owned()).collect();
+        effect_table(
+            &ctx,
+            &cache,
+            &drawn,
+            &mut raycaster,
+            &camera_at,
+            size,
+            frames,
+            Some(&only),
+        );
+        return;
+    }
     let quick = std::env::var("STRATA_BENCH_QUICK").is_ok();
     // Steps in finest voxels. 0.5 is the peer's setting; coarser steps show what the same
     // accuracy as the peer costs here (the goal is "at equal or better PSNR").
@@ -357,134 +558,16 @@ fn main() {
         return;
     }
 
-    // What an effect costs, and what it costs when off. "never" is a raycaster built from the
-    // shader with that effect's override turned into `const false`, i.e. a build that never had
-    // the effect: the specialised pipeline with the effect off should take the same time.
-    // DVR at step 0.5 with every effect off is the base; rounds interleave all variants.
-    let base = RenderSettings {
-        jitter: false,
-        early_termination: None,
-        skip_empty: false,
-        smooth_transitions: false,
-        ..settings_for(RenderMode::Dvr, false, 0.5)
-    };
-    let clip = ClipPlane {
-        normal: [0.0, 0.0, 1.0],
-        offset_mm: volume.geometry.centre_patient().z - 40.0,
-    };
-    let effects: Vec<(&str, &str, RenderSettings)> = vec![
-        (
-            "shading",
-            "SHADING",
-            RenderSettings {
-                shading: Some(Shading::default()),
-                ..base.clone()
-            },
-        ),
-        (
-            "jitter",
-            "JITTER",
-            RenderSettings {
-                jitter: true,
-                ..base.clone()
-            },
-        ),
-        (
-            "clip plane",
-            "CLIP_PLANE",
-            RenderSettings {
-                clip_plane: Some(clip),
-                ..base.clone()
-            },
-        ),
-        (
-            "pre-integration",
-            "PREINTEGRATED",
-            RenderSettings {
-                preintegrated: true,
-                ..base.clone()
-            },
-        ),
-        (
-            "sample counter",
-            "COUNT_SAMPLES",
-            RenderSettings {
-                count_samples: true,
-                ..base.clone()
-            },
-        ),
-        (
-            "early termination",
-            "EARLY_TERMINATION",
-            RenderSettings {
-                early_termination: Some(0.99),
-                ..base.clone()
-            },
-        ),
-        (
-            "empty skipping",
-            "SKIP_EMPTY",
-            RenderSettings {
-                skip_empty: true,
-                ..base.clone()
-            },
-        ),
-        // This cut is uniform, so "on" asks for smoothing and gets the same pipeline as "off"
-        // (the cut decides); what smoothing costs on a mixed cut is `strata bench transitions`.
-        (
-            "smooth transitions",
-            "SMOOTH_TRANSITIONS",
-            RenderSettings {
-                smooth_transitions: true,
-                ..base.clone()
-            },
-        ),
-    ];
-    let mut never_had: Vec<Raycaster> = effects
-        .iter()
-        .map(|(_, name, _)| {
-            let declared = ["false", "true"]
-                .map(|default| format!("override {name}: bool = {default};"))
-                .into_iter()
-                .find(|d| Raycaster::shader_source().contains(d))
-                .unwrap_or_else(|| panic!("override {name} not in the shader"));
-            let variant = Raycaster::shader_source()
-                .replace(&declared, &format!("const {name}: bool = false;"));
-            Raycaster::with_shader_source(&ctx, &cache, &variant)
-        })
-        .collect();
-    let camera = camera_at(1);
-    let mut effect_times = vec![[Vec::new(), Vec::new(), Vec::new()]; effects.len()];
-    for round in 0..=frames {
-        for (i, (_, _, on)) in effects.iter().enumerate() {
-            for (variant, settings) in [(0, &base), (1, &base), (2, on)] {
-                let scene = drawn.scene(&camera, settings);
-                let rc = if variant == 1 {
-                    &mut never_had[i]
-                } else {
-                    &mut raycaster
-                };
-                let t = Instant::now();
-                rc.render_and_wait(&ctx, &scene).expect("render");
-                if round > 0 {
-                    effect_times[i][variant].push(t.elapsed().as_secs_f64() * 1e3);
-                }
-            }
-        }
-    }
-    println!("\nEffect cost, DVR step 0.5 at {size}², median of {frames} interleaved rounds (ms):");
-    println!(
-        "{:<20} {:>10} {:>14} {:>12} {:>10} {:>10}",
-        "effect", "off", "never built", "never/off", "on", "on/off"
+    effect_table(
+        &ctx,
+        &cache,
+        &drawn,
+        &mut raycaster,
+        &camera_at,
+        size,
+        frames,
+        None,
     );
-    for (i, (name, _, _)) in effects.iter().enumerate() {
-        let [off, never, on] = effect_times[i].clone().map(median);
-        println!(
-            "{name:<20} {off:>10.1} {never:>14.1} {:>12.3} {on:>10.1} {:>10.3}",
-            never / off,
-            on / off
-        );
-    }
 
     // Accuracy against the f64 reference at a smaller image (the reference at 512² takes
     // minutes on two cores). One reference per mode at a 1/16-voxel step: opacity correction

@@ -97,6 +97,7 @@ pub mod reference;
 pub mod segment_integral;
 pub mod settings;
 pub mod shaders;
+pub mod shadows;
 pub mod smooth_transitions;
 pub mod sparse_page_table;
 pub mod time_critical;
@@ -127,7 +128,10 @@ pub use reference::{
     ReferenceScene,
 };
 pub use segment_integral::SegmentIntegralTable;
-pub use settings::{ClipPlane, CropBox, RenderMode, RenderSettings, Shading};
+pub use settings::{
+    ClipPlane, CropBox, KeyLight, LightDirection, RenderMode, RenderSettings, Shading, ShadowMode,
+    Shadows,
+};
 pub use sparse_page_table::{IndexTable, PageLookup, SparsePageTable};
 pub use strata_types::{ValueMapping, VolumeGeometry};
 pub use time_critical::{

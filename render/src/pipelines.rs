@@ -21,6 +21,11 @@ pub struct PipelineKey {
     pub count_samples: bool,
     pub preintegrated: bool,
     pub smooth_transitions: bool,
+    /// The key light instead of the headlight (shadows.wgsl): a light other than the default
+    /// or shadows.
+    pub key_light: bool,
+    /// Shadow rays to the key light, exact mode (shadows.wgsl).
+    pub shadows: bool,
     /// The octree traversal (octree.wgsl) instead of the flat page table: set by the scene's
     /// index ([`crate::GpuPageTable::traversal`]), not by the settings.
     pub octree: bool,
@@ -105,8 +110,8 @@ struct BackgroundCompiler {
 }
 
 /// The shader's effect overrides, as named in the WGSL (raycast.wgsl, field.wgsl,
-/// smooth_transitions.wgsl, overlay.wgsl).
-pub(crate) const OVERRIDE_NAMES: [&str; 12] = [
+/// smooth_transitions.wgsl, overlay.wgsl, shadows.wgsl).
+pub(crate) const OVERRIDE_NAMES: [&str; 14] = [
     "MODE",
     "MANUAL_TRILINEAR",
     "SHADING",
@@ -117,6 +122,8 @@ pub(crate) const OVERRIDE_NAMES: [&str; 12] = [
     "COUNT_SAMPLES",
     "PREINTEGRATED",
     "SMOOTH_TRANSITIONS",
+    "KEY_LIGHT",
+    "SHADOWS",
     "OCTREE",
     "OVERLAY",
 ];
@@ -147,6 +154,8 @@ fn build_pipeline(
         ("COUNT_SAMPLES", b(key.count_samples)),
         ("PREINTEGRATED", b(key.preintegrated)),
         ("SMOOTH_TRANSITIONS", b(key.smooth_transitions)),
+        ("KEY_LIGHT", b(key.key_light)),
+        ("SHADOWS", b(key.shadows)),
         ("OCTREE", b(key.octree)),
         ("OVERLAY", b(key.overlay)),
     ];

@@ -105,6 +105,10 @@ pub(crate) struct Params {
     image: [u32; 4],
     pages: [u32; 4],
     slots: [u32; 4],
+    light: [f32; 4],
+    light_dual: [f32; 4],
+    shadow: [f32; 4],
+    clip_idx: [f32; 4],
 }
 
 struct Targets {
@@ -474,6 +478,8 @@ impl Raycaster {
             // segment integral could hold), so with one DVR takes the classic path.
             preintegrated: settings.preintegrated && settings.mode == RenderMode::Dvr && !overlay,
             smooth_transitions: settings.smooth_transitions,
+            key_light: settings.effective_key_light(),
+            shadows: settings.effective_shadows(),
             octree: false,
             overlay,
         }
@@ -925,6 +931,7 @@ pub(crate) fn build_params(scene: &Scene) -> Params {
     let flatness = scene.mapping.slope.abs() * unit / range;
     let texel = scene.cache.texel_dims();
     let iso_color = tf.source.color_at(s.iso_value);
+    let light = crate::shadows::gpu_light(s, &basis, g);
     Params {
         eye_idx: v4(eye_idx, basis.half_extent),
         right_idx: v4(a * basis.right, aspect),
@@ -976,5 +983,9 @@ pub(crate) fn build_params(scene: &Scene) -> Params {
             scene.cache.slots_per_axis[2],
             0,
         ],
+        light: light.light,
+        light_dual: light.light_dual,
+        shadow: light.shadow,
+        clip_idx: light.clip_idx,
     }
 }

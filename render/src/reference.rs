@@ -7,13 +7,17 @@
 use glam::{DMat3, DVec3};
 use rayon::prelude::*;
 
-use crate::camera::Camera;
+use crate::camera::{Camera, CameraBasis};
 use crate::error::RenderError;
 use crate::field::{sample_field, FieldSample};
 use crate::layout::{BrickSource, DEPTH_OPACITY};
 use crate::overlay::{blend, OverlayScene};
 use crate::page_table::PageTable;
 use crate::settings::{RenderMode, RenderSettings, Shading};
+use crate::shadows::{
+    extinction, light_towards, shade_lit, transmittance, REFERENCE_SHADOW_REFINEMENT,
+    REFERENCE_TAU_MAX, SHADOW_START_VOXELS,
+};
 use crate::smooth_transitions::transition_masks;
 use crate::transfer_function::TransferFunction;
 use strata_types::{ValueMapping, VolumeGeometry};
@@ -169,7 +173,9 @@ pub fn render_reference_with_overlay<S: BrickSource>(
         .flat_map_iter(|py| {
             (0..w).map(move |px| {
                 let (origin, dir) = basis.ray(px, py, w, h);
-                trace(scene, overlay, masks, settings, &options, origin, dir)
+                trace(
+                    scene, overlay, masks, settings, &options, &basis, origin, dir,
+                )
             })
         })
         .collect();
@@ -186,12 +192,14 @@ pub fn render_reference_with_overlay<S: BrickSource>(
     })
 }
 
+#[allow(clippy::too_many_arguments)]
 fn trace<S: BrickSource>(
     scene: &ReferenceScene<S>,
     overlay: Option<&OverlayScene>,
     masks: Option<&[u32]>,
     settings: &RenderSettings,
     options: &ReferenceOptions,
+    basis: &CameraBasis,
     origin: DVec3,
     dir: DVec3,
 ) -> ([f64; 4], f32) {
@@ -222,6 +230,58 @@ fn trace<S: BrickSource>(
     // The overlay's colour and opacity at ray distance t (none: nothing drawn).
     let overlay_at = |t: f64| overlay.map_or([0.0; 4], |o| o.colour_at(o_idx + d_idx * t));
     let gradient_patient = |s: &FieldSample| a.transpose() * s.gradient_index() * mapping.slope;
+    // The key light and its shadows (shadows.rs, the model both renderers follow); with the
+    // default headlight and no shadows the old `shade`, so default images are unchanged.
+    let key_light = settings.effective_key_light();
+    let light = light_towards(&settings.light, basis, dir);
+    let l_idx = a * light;
+    let shadow_step = settings.shadows.step * unit / REFERENCE_SHADOW_REFINEMENT;
+    // V at ray distance t: an exact shadow ray through the same field (module doc of
+    // shadows.rs for its cost), transparent where nothing is resident.
+    let visibility = |t: f64| -> f64 {
+        if !settings.effective_shadows() {
+            return 1.0;
+        }
+        let p = origin + dir * t;
+        let Some((_, r1)) = ray_interval(g, settings, p, light) else {
+            return 1.0;
+        };
+        let p_idx = o_idx + d_idx * t;
+        transmittance(
+            SHADOW_START_VOXELS * unit,
+            r1,
+            shadow_step,
+            REFERENCE_TAU_MAX,
+            |s| {
+                sample_field(
+                    scene.source,
+                    scene.page_table,
+                    masks,
+                    g.dims,
+                    p_idx + l_idx * s,
+                )
+                .map_or(0.0, |loc| {
+                    extinction(tf.opacity_at(mapping.physical(loc.value)), unit)
+                })
+            },
+        )
+    };
+    let lit = |col: [f64; 3], loc: &FieldSample, t: f64, s: &Shading| -> [f64; 3] {
+        if key_light {
+            shade_lit(
+                col,
+                gradient_patient(loc),
+                dir,
+                light,
+                s,
+                settings.light.intensity as f64,
+                visibility(t),
+                flatness_scale,
+            )
+        } else {
+            shade(col, gradient_patient(loc), dir, s, flatness_scale)
+        }
+    };
     let n_steps = ((t1 - t0) / step).ceil() as u64;
     // Segment k is [t0 + k·step, t0 + (k+1)·step) cut at t1, sampled at its midpoint; the
     // last one is usually shorter and absorbs only for its own length (a grazing ray through
@@ -246,7 +306,7 @@ fn trace<S: BrickSource>(
                 }
                 let op = 1.0 - (1.0 - op).powf(length / unit);
                 if let Some(s) = &shading {
-                    col = shade(col, gradient_patient(&loc), dir, s, flatness_scale);
+                    col = lit(col, &loc, t, s);
                 }
                 let wgt = (1.0 - alpha) * op;
                 for i in 0..3 {
@@ -318,13 +378,7 @@ fn trace<S: BrickSource>(
                     let surface = tf.color_at(iso);
                     let o = overlay_at(hit);
                     let surface = [0, 1, 2].map(|i| surface[i] + (o[i] - surface[i]) * o[3]);
-                    let col = shade(
-                        surface,
-                        gradient_patient(&loc),
-                        dir,
-                        &shading.unwrap_or_default(),
-                        flatness_scale,
-                    );
+                    let col = lit(surface, &loc, hit, &shading.unwrap_or_default());
                     return ([col[0], col[1], col[2], 1.0], hit as f32);
                 }
                 prev = Some(t);

@@ -36,6 +36,72 @@ impl Default for Shading {
     }
 }
 
+/// Where the key light sits. Lighting needs shading ([`RenderSettings::shading`]); MIP is
+/// never lit.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub enum LightDirection {
+    /// At the eye: every ray is lit from its own origin (each pixel's own direction in a
+    /// perspective view), which is the lighting Strata has always had.
+    Headlight,
+    /// Directional, pointing towards the light in camera axes: x right, y up, z towards the
+    /// viewer ((0, 0, 1) lights from behind the camera, along the view axis).
+    Camera([f64; 3]),
+    /// Directional, pointing towards the light in patient (LPS) axes: fixed to the anatomy
+    /// while the camera orbits.
+    Patient([f64; 3]),
+}
+
+/// The key light: direction and intensity of its direct (diffuse and specular) term. The
+/// ambient term is [`Shading::ambient`], which shadows never darken.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct KeyLight {
+    pub direction: LightDirection,
+    pub intensity: f32,
+}
+
+impl Default for KeyLight {
+    /// Today's image: the headlight at full intensity.
+    fn default() -> Self {
+        KeyLight {
+            direction: LightDirection::Headlight,
+            intensity: 1.0,
+        }
+    }
+}
+
+impl KeyLight {
+    /// Whether this is the default headlight, which the shader lights without any key-light
+    /// code (so default images stay byte-identical).
+    pub fn is_default(&self) -> bool {
+        *self == KeyLight::default()
+    }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub enum ShadowMode {
+    Off,
+    /// A shadow ray per shaded sample towards the key light through the resident cut
+    /// (shadows.rs).
+    Exact,
+}
+
+/// Volumetric shadows from the key light (shadows.rs: the model, the bias, the reference).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Shadows {
+    pub mode: ShadowMode,
+    /// Shadow-ray step in finest voxels (the main ray's step is `quality`).
+    pub step: f64,
+}
+
+impl Default for Shadows {
+    fn default() -> Self {
+        Shadows {
+            mode: ShadowMode::Off,
+            step: 1.0,
+        }
+    }
+}
+
 /// Axis-aligned crop in fractions of the volume extent per index axis (0 = first cell face,
 /// 1 = last cell face).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -97,6 +163,12 @@ pub struct RenderSettings {
     /// next to a coarser one.
     #[serde(default = "default_true")]
     pub smooth_transitions: bool,
+    /// The key light of shaded DVR and isosurfaces (default: the headlight).
+    #[serde(default)]
+    pub light: KeyLight,
+    /// Volumetric shadows from the key light (default: off).
+    #[serde(default)]
+    pub shadows: Shadows,
 }
 
 fn default_true() -> bool {
@@ -122,6 +194,8 @@ impl Default for RenderSettings {
             exact_trilinear: false,
             preintegrated: false,
             smooth_transitions: true,
+            light: KeyLight::default(),
+            shadows: Shadows::default(),
         }
     }
 }
@@ -155,7 +229,47 @@ impl RenderSettings {
                 ));
             }
         }
+        let light = match self.light.direction {
+            LightDirection::Headlight => None,
+            LightDirection::Camera(v) | LightDirection::Patient(v) => Some(v),
+        };
+        if let Some(v) = light {
+            let n = glam::DVec3::from(v).length();
+            if !(n.is_finite() && n > 1e-12) {
+                return Err(RenderError::InvalidSettings(format!(
+                    "light direction must be finite and non-zero, got {v:?}"
+                )));
+            }
+        }
+        if !(self.light.intensity.is_finite() && self.light.intensity >= 0.0) {
+            return Err(RenderError::InvalidSettings(format!(
+                "light intensity must be finite and >= 0, got {}",
+                self.light.intensity
+            )));
+        }
+        if self.shadows.mode != ShadowMode::Off
+            && !(self.shadows.step.is_finite() && self.shadows.step >= 0.05)
+        {
+            // Below 1/20 voxel a shadow ray through a 512³ volume takes > 10⁴ samples per
+            // shaded sample: a typo, not a setting.
+            return Err(RenderError::InvalidSettings(format!(
+                "shadow step must be >= 0.05 voxel, got {}",
+                self.shadows.step
+            )));
+        }
         Ok(())
+    }
+
+    /// Whether shadow rays are traced: shadows on and a lit mode (shaded DVR, isosurface).
+    pub fn effective_shadows(&self) -> bool {
+        self.shadows.mode == ShadowMode::Exact && self.effective_shading().is_some()
+    }
+
+    /// Whether the key-light shading path is compiled in: a light other than the default
+    /// headlight, or shadows (both need the sample's light direction and a split of the
+    /// ambient from the direct term).
+    pub fn effective_key_light(&self) -> bool {
+        self.effective_shading().is_some() && (!self.light.is_default() || self.effective_shadows())
     }
 
     /// Shading actually applied: isosurfaces are always shaded.

@@ -7,7 +7,7 @@
 //! `page_table.wgsl` ↔ page_table.rs, `smooth_transitions.wgsl` ↔ smooth_transitions.rs,
 //! `field.wgsl` ↔ field.rs, `transfer_function.wgsl` ↔ transfer_function.rs,
 //! `preintegration.wgsl` ↔ preintegration.rs, `shading.wgsl` ↔ reference.rs `shade`,
-//! `overlay.wgsl` ↔ overlay.rs, `raycast.wgsl` (entry point and ray loop) ↔
+//! `overlay.wgsl` ↔ overlay.rs, `shadows.wgsl` ↔ shadows.rs, `raycast.wgsl` (entry point and ray loop) ↔
 //! raycast.rs; `probe.wgsl` ↔ probe.rs, composed into a test-only module of its own;
 //! `adaptive.wgsl` ↔ adaptive/gpu.rs (and adaptive/transcription.rs), composed with the field
 //! files and `preintegration.wgsl` into the adaptive pass's module. The field files leave the
@@ -39,7 +39,7 @@ const FIELD_FILES: [(&str, &str); 4] = [
 ];
 
 /// The raycast pass's own files, after [`FIELD_FILES`].
-const RAYCAST_FILES: [(&str, &str); 6] = [
+const RAYCAST_FILES: [(&str, &str); 7] = [
     (
         "transfer_function.wgsl",
         include_str!("shaders/transfer_function.wgsl"),
@@ -51,6 +51,7 @@ const RAYCAST_FILES: [(&str, &str); 6] = [
     SHADING,
     ("octree.wgsl", OCTREE_WGSL),
     ("overlay.wgsl", include_str!("shaders/overlay.wgsl")),
+    ("shadows.wgsl", include_str!("shaders/shadows.wgsl")),
     ("raycast.wgsl", include_str!("shaders/raycast.wgsl")),
 ];
 
@@ -69,7 +70,7 @@ pub(crate) enum PreludeValue {
 }
 
 /// Every constant the shader shares with Rust, by its WGSL name.
-pub(crate) fn prelude_constants() -> [(&'static str, PreludeValue); 23] {
+pub(crate) fn prelude_constants() -> [(&'static str, PreludeValue); 24] {
     use PreludeValue::*;
     [
         ("CORE", F32(BRICK_CORE as f64)),
@@ -98,6 +99,8 @@ pub(crate) fn prelude_constants() -> [(&'static str, PreludeValue); 23] {
         ("OCTREE_NULL", Bits(OCTREE_NULL)),
         // The overlay's opacity floor per finest voxel (overlay.rs, the blend rule).
         ("OVERLAY_VOXEL_OPACITY", F32(OVERLAY_VOXEL_OPACITY)),
+        // The longest shadow ray in steps (shadows.rs).
+        ("MAX_SHADOW_STEPS", U32(crate::shadows::MAX_SHADOW_STEPS)),
         // The adaptive pass's per-block oracle table (adaptive/block_oracle.rs).
         (
             "ORACLE_BLOCK",

@@ -9,6 +9,7 @@ mod gpu_vs_reference;
 mod node_extent;
 mod octree_traversal;
 mod overlay;
+mod shadows;
 mod slot_independence;
 mod smooth_transitions;
 mod time_critical;

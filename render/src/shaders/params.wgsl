@@ -29,6 +29,11 @@ struct Params {
     image: vec4<u32>,          // width, height, frame index, TF table length
     pages: vec4<u32>,          // page grid dims
     slots: vec4<u32>,          // cache slots per axis
+    // The key light and shadows (shadows.rs GpuLight; read only by KEY_LIGHT pipelines).
+    light: vec4<f32>,          // A·(unit direction to the light), w: intensity
+    light_dual: vec4<f32>,     // A^-T·(direction), w: 1 = headlight (direction is −d)
+    shadow: vec4<f32>,         // shadow step (mm), bias r0 (mm), optical depth limit
+    clip_idx: vec4<f32>,       // clip plane in index space: kept where dot(xyz, p) + w >= 0
 };
 
 @group(0) @binding(0) var<uniform> P: Params;

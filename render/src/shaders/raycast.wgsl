@@ -190,8 +190,12 @@ fn skip_exit(o: vec3<f32>, d: vec3<f32>, pg: Page) -> f32 {
     return pg.t_exit;
 }
 
-// Blinn-Phong with a headlight at the field's gradient there (shading.wgsl).
-fn shade(color: vec3<f32>, loc: Location, d_idx: vec3<f32>) -> vec3<f32> {
+// Blinn-Phong at the field's gradient there: with the headlight (shading.wgsl), or with the
+// key light and its shadows from the sample at index-space point `p` (shadows.wgsl).
+fn shade(color: vec3<f32>, loc: Location, p: vec3<f32>, d_idx: vec3<f32>) -> vec3<f32> {
+    if KEY_LIGHT {
+        return shade_key_light(color, field_gradient(loc), d_idx, p);
+    }
     return shade_gradient(color, field_gradient(loc), d_idx);
 }
 
@@ -278,7 +282,7 @@ fn composite(st: ptr<function, RayState>, premultiplied: vec3<f32>, alpha: f32, 
 // Composites the pre-integrated segment of `length` (mm) from value `front` to `back`
 // (length-free: half segments, coarse levels and level changes are exact too).
 fn composite_segment(st: ptr<function, RayState>, front: f32, back: f32, length: f32,
-                     back_loc: Location, t: f32, d: vec3<f32>) {
+                     back_loc: Location, t: f32, o: vec3<f32>, d: vec3<f32>) {
     let seg = preintegrated_segment(front, back, length);
     if seg.a <= 0.0 {
         return;
@@ -286,16 +290,16 @@ fn composite_segment(st: ptr<function, RayState>, front: f32, back: f32, length:
     var color = seg.rgb;
     if SHADING {
         // Lit at the segment's nearer sample: the gradient is only known at samples.
-        color = shade(seg.rgb / seg.a, back_loc, d) * seg.a;
+        color = shade(seg.rgb / seg.a, back_loc, o + d * t, d) * seg.a;
     }
     composite(st, color, seg.a, back_loc.page, t);
 }
 
 // The constant half segment after the last sample of a run (see take_sample).
-fn close_preintegrated_run(st: ptr<function, RayState>, d: vec3<f32>) {
+fn close_preintegrated_run(st: ptr<function, RayState>, o: vec3<f32>, d: vec3<f32>) {
     if MODE == 0u && PREINTEGRATED && (*st).run_open && !(*st).done {
         let v = (*st).run_value;
-        composite_segment(st, v, v, 0.5 * (*st).run_delta, (*st).run_loc, (*st).run_t, d);
+        composite_segment(st, v, v, 0.5 * (*st).run_delta, (*st).run_loc, (*st).run_t, o, d);
     }
     (*st).run_open = false;
 }
@@ -311,9 +315,9 @@ fn take_sample(st: ptr<function, RayState>, loc: Location, t: f32, delta: f32, o
         // one after its last (close_preintegrated_run), so the integrated interval is the one
         // the classic path covers.
         if (*st).run_open {
-            composite_segment(st, (*st).run_value, v, t - (*st).run_t, loc, t, d);
+            composite_segment(st, (*st).run_value, v, t - (*st).run_t, loc, t, o, d);
         } else {
-            composite_segment(st, v, v, 0.5 * delta, loc, t, d);
+            composite_segment(st, v, v, 0.5 * delta, loc, t, o, d);
         }
         (*st).run_value = v;
         (*st).run_t = t;
@@ -332,7 +336,7 @@ fn take_sample(st: ptr<function, RayState>, loc: Location, t: f32, delta: f32, o
             let alpha = 1.0 - pow(1.0 - min(tf.a, 0.999999), delta / P.box_hi.w);
             var color = tf.rgb;
             if SHADING {
-                color = shade(color, loc, d);
+                color = shade(color, loc, o + d * t, d);
             }
             composite(st, color * alpha, alpha, loc.page, t);
         }
@@ -629,7 +633,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
                 let next = ceil((t_exit - first) / base - 0.5);
                 k = max(k + 1u, u32(clamp(next, 0.0, 4.0e9)));
                 st.prev_valid = false;
-                close_preintegrated_run(&st, d);
+                close_preintegrated_run(&st, o, d);
                 if MODE == 2u && probe.resident {
                     // Empty for an isosurface means below the iso value: the crossing lies
                     // after the cell face, so bisection may start there.
@@ -639,7 +643,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             } else {
                 k = k + 1u;
                 st.prev_valid = false;
-                close_preintegrated_run(&st, d);
+                close_preintegrated_run(&st, o, d);
             }
             continue;
         }
@@ -658,7 +662,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         k = k + stride;
         if !loc.resident {
             st.prev_valid = false;
-            close_preintegrated_run(&st, d);
+            close_preintegrated_run(&st, o, d);
             continue;
         }
         take_sample(&st, loc, t, delta, o, d, page_cache);
@@ -705,7 +709,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             take_sample(&st, loc, t, length, o, d, page_cache);
         }
     }
-    close_preintegrated_run(&st, d);
+    close_preintegrated_run(&st, o, d);
     var acc = st.acc;
     var depth = st.depth;
     let samples = st.samples;
@@ -732,7 +736,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             let ov = overlay_at(o + d * depth);
             base_color = base_color + (ov.rgb - base_color) * ov.a;
         }
-        acc = vec4<f32>(shade(base_color, hit_loc, d), 1.0);
+        acc = vec4<f32>(shade(base_color, hit_loc, o + d * depth, d), 1.0);
     }
     count(samples);
     textureStore(out_color, vec2<i32>(gid.xy), clamp(acc, vec4<f32>(0.0), vec4<f32>(1.0)));
