@@ -1,22 +1,14 @@
-//! The screenshot panel: the folder (typed, or chosen in the system dialog on its own thread)
-//! and the resolution.
+//! The screenshot panel: the folder (typed, or chosen in the system dialog, or the egui one
+//! where no desktop portal answers: file_chooser.rs) and the resolution.
 
 use std::path::PathBuf;
-use std::sync::{Arc, Mutex};
 
+use crate::viewer::file_chooser::{ChooserKind, Chosen, FileChooser};
 use crate::viewer::preferences::Preferences;
-use crate::viewer::sync::lock_ignoring_poison;
-
-/// How a closed folder dialog ended.
-enum Choice {
-    Folder(PathBuf),
-    /// Cancelled, or no desktop portal answered.
-    Nothing,
-}
 
 pub struct ScreenshotPanel {
-    /// A folder dialog running on its own thread: filled when it closes.
-    dialog: Option<Arc<Mutex<Option<Choice>>>>,
+    /// The folder chooser while it is open.
+    dialog: Option<FileChooser>,
     note: Option<String>,
     /// Frames of the orbit movie, and whether the button asked for one this frame.
     pub orbit_frames: u32,
@@ -41,25 +33,12 @@ impl ScreenshotPanel {
     }
 
     pub fn ui(&mut self, ui: &mut egui::Ui, prefs: &mut Preferences) {
-        let closed = self
-            .dialog
-            .as_ref()
-            .and_then(|slot| lock_ignoring_poison(slot).take());
-        {
-            if let Some(choice) = closed {
-                match choice {
-                    Choice::Folder(folder) => {
-                        prefs.screenshot_folder = folder;
-                        self.note = None;
-                    }
-                    Choice::Nothing => {
-                        self.note = Some(
-                            "Nothing chosen (the dialog needs a desktop portal); type the folder."
-                                .into(),
-                        )
-                    }
-                }
-                self.dialog = None;
+        let closed = self.dialog.as_mut().and_then(|d| d.poll(ui.ctx()));
+        if let Some(choice) = closed {
+            self.dialog = None;
+            if let Chosen::Path(folder) = choice {
+                prefs.screenshot_folder = folder;
+                self.note = None;
             }
         }
         ui.horizontal(|ui| {
@@ -76,7 +55,13 @@ impl ScreenshotPanel {
                 .add_enabled(self.dialog.is_none(), egui::Button::new("Choose…"))
                 .clicked()
             {
-                self.start_dialog(ui.ctx(), prefs.screenshot_folder.clone());
+                self.dialog = Some(FileChooser::start(
+                    ui.ctx(),
+                    ChooserKind::OpenFolder,
+                    "Folder for screenshots and movies",
+                    &prefs.screenshot_folder,
+                    None,
+                ));
             }
         });
         if let Some(note) = &self.note {
@@ -105,27 +90,6 @@ impl ScreenshotPanel {
             ui.weak("2× and 4×: the 3D image alone, rendered at that size (no annotations).");
         } else {
             ui.weak("1×: the view as seen, at the screen's full resolution, with annotations.");
-        }
-    }
-
-    fn start_dialog(&mut self, ctx: &egui::Context, start: PathBuf) {
-        let slot = Arc::new(Mutex::new(None));
-        let thread_slot = slot.clone();
-        let ctx = ctx.clone();
-        let spawned = std::thread::Builder::new()
-            .name("strata-folder-dialog".into())
-            .spawn(move || {
-                let mut dialog = rfd::FileDialog::new().set_title("Folder for screenshots");
-                if start.is_dir() {
-                    dialog = dialog.set_directory(&start);
-                }
-                let choice = dialog.pick_folder().map_or(Choice::Nothing, Choice::Folder);
-                *lock_ignoring_poison(&thread_slot) = Some(choice);
-                ctx.request_repaint();
-            });
-        match spawned {
-            Ok(_) => self.dialog = Some(slot),
-            Err(e) => self.note = Some(format!("no folder dialog: {e}; type the folder")),
         }
     }
 }
