@@ -513,8 +513,8 @@ impl StrataApp {
                 self.export = None;
             }
         }
-        if let Some(frames) = self.panels.screenshot.take_orbit_request() {
-            self.take_orbit_movie(frames);
+        if let Some((frames, folder)) = self.panels.screenshot.take_orbit_request() {
+            self.take_orbit_movie_into(frames, Some(folder));
         }
         if let Some(v) = self.volume.as_mut() {
             let gesture = ui.ctx().input(|i| i.pointer.any_down());
@@ -704,7 +704,14 @@ impl StrataApp {
     /// An orbit movie of the 3D view: `frames` frames at the view's full resolution, turning
     /// the camera about the superior axis from where it is now, into a new folder beside the
     /// screenshots; orbit.mp4 when ffmpeg is there. The render thread writes them in order.
+    #[cfg(test)]
     pub fn take_orbit_movie(&mut self, frames: u32) {
+        self.take_orbit_movie_into(frames, None);
+    }
+
+    /// The orbit movie into `folder` (the one the panel's save dialog chose), or a new
+    /// strata-orbit-<time> folder beside the screenshots.
+    pub fn take_orbit_movie_into(&mut self, frames: u32, folder: Option<PathBuf>) {
         let Some(v) = &self.volume else { return };
         let frames = frames.clamp(2, crate::cmd_render::MAX_ORBIT_FRAMES);
         let Some(rect) = v
@@ -720,10 +727,11 @@ impl StrataApp {
         let stamp = std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
             .map_or(0, |d| d.as_millis());
-        let folder = self
-            .preferences
-            .screenshot_folder
-            .join(format!("strata-orbit-{stamp}"));
+        let folder = folder.unwrap_or_else(|| {
+            self.preferences
+                .screenshot_folder
+                .join(format!("strata-orbit-{stamp}"))
+        });
         if let Err(e) = std::fs::create_dir_all(&folder) {
             self.saved_screenshot = Some(Err(format!(
                 "cannot create the folder {}: {e}",

@@ -10,9 +10,11 @@ pub struct ScreenshotPanel {
     /// The folder chooser while it is open.
     dialog: Option<FileChooser>,
     note: Option<String>,
-    /// Frames of the orbit movie, and whether the button asked for one this frame.
+    /// Frames of the orbit movie; the save dialog for its folder while it is open; the folder
+    /// chosen, until the shell starts the movie.
     pub orbit_frames: u32,
-    orbit_requested: bool,
+    movie_dialog: Option<FileChooser>,
+    orbit_requested: Option<PathBuf>,
 }
 
 impl Default for ScreenshotPanel {
@@ -21,15 +23,18 @@ impl Default for ScreenshotPanel {
             dialog: None,
             note: None,
             orbit_frames: 36,
-            orbit_requested: false,
+            movie_dialog: None,
+            orbit_requested: None,
         }
     }
 }
 
 impl ScreenshotPanel {
     /// The frame count when "Orbit movie" was pressed (the shell starts the movie).
-    pub fn take_orbit_request(&mut self) -> Option<u32> {
-        std::mem::take(&mut self.orbit_requested).then_some(self.orbit_frames)
+    pub fn take_orbit_request(&mut self) -> Option<(u32, PathBuf)> {
+        self.orbit_requested
+            .take()
+            .map(|folder| (self.orbit_frames, folder))
     }
 
     pub fn ui(&mut self, ui: &mut egui::Ui, prefs: &mut Preferences) {
@@ -76,16 +81,34 @@ impl ScreenshotPanel {
         ui.horizontal(|ui| {
             ui.add(egui::Slider::new(&mut self.orbit_frames, 4..=360).text("frames"));
             if ui
-                .button("Orbit movie")
+                .add_enabled(
+                    self.movie_dialog.is_none(),
+                    egui::Button::new("Orbit movie…"),
+                )
                 .on_hover_text(
-                    "The 3D view turned once around the superior axis, as PNG frames in a new \
-                     folder here (and orbit.mp4 when ffmpeg is installed)",
+                    "The 3D view turned once around the superior axis, as PNG frames in the \
+                     folder you name (and orbit.mp4 in it when ffmpeg is installed)",
                 )
                 .clicked()
             {
-                self.orbit_requested = true;
+                let stamp = std::time::SystemTime::now()
+                    .duration_since(std::time::UNIX_EPOCH)
+                    .map_or(0, |d| d.as_secs());
+                self.movie_dialog = Some(FileChooser::start(
+                    ui.ctx(),
+                    ChooserKind::SaveFile,
+                    "Save the orbit movie (a folder of frames)",
+                    &prefs.screenshot_folder,
+                    Some(&format!("strata-orbit-{stamp}")),
+                ));
             }
         });
+        if let Some(chosen) = self.movie_dialog.as_mut().and_then(|d| d.poll(ui.ctx())) {
+            self.movie_dialog = None;
+            if let Chosen::Path(folder) = chosen {
+                self.orbit_requested = Some(folder);
+            }
+        }
         if prefs.screenshot_scale > 1 {
             ui.weak("2× and 4×: the 3D image alone, rendered at that size (no annotations).");
         } else {
