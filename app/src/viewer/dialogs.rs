@@ -17,7 +17,6 @@ pub struct OpenDialog {
     /// The file chooser while it is open (the system dialog, or the egui one where no desktop
     /// portal answers: file_chooser.rs).
     file_dialog: Option<FileChooser>,
-    note: Option<String>,
     ctx: egui::Context,
 }
 
@@ -28,7 +27,6 @@ impl OpenDialog {
             path,
             series: String::new(),
             file_dialog: None,
-            note: None,
             ctx,
         }
     }
@@ -65,9 +63,6 @@ impl OpenDialog {
                 }
             });
             self.poll_file_dialog();
-            if let Some(note) = &self.note {
-                ui.weak(note);
-            }
             ui.horizontal(|ui| {
                 ui.label("DICOM series (optional)");
                 ui.add(egui::TextEdit::singleline(&mut self.series).desired_width(200.0).hint_text("index or UID"));
@@ -120,7 +115,6 @@ impl OpenDialog {
         };
         let start = PathBuf::from(self.path.trim());
         self.file_dialog = Some(FileChooser::start(&self.ctx, kind, title, &start, None));
-        self.note = None;
     }
 
     fn poll_file_dialog(&mut self) {
@@ -130,7 +124,6 @@ impl OpenDialog {
         self.file_dialog = None;
         if let Chosen::Path(path) = chosen {
             self.path = path.display().to_string();
-            self.note = None;
         }
     }
 }

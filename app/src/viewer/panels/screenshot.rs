@@ -9,7 +9,6 @@ use crate::viewer::preferences::Preferences;
 pub struct ScreenshotPanel {
     /// The folder chooser while it is open.
     dialog: Option<FileChooser>,
-    note: Option<String>,
     /// Frames of the orbit movie; the save dialog for its folder while it is open; the folder
     /// chosen, until the shell starts the movie.
     pub orbit_frames: u32,
@@ -21,7 +20,6 @@ impl Default for ScreenshotPanel {
     fn default() -> Self {
         ScreenshotPanel {
             dialog: None,
-            note: None,
             orbit_frames: 36,
             movie_dialog: None,
             orbit_requested: None,
@@ -43,7 +41,6 @@ impl ScreenshotPanel {
             self.dialog = None;
             if let Chosen::Path(folder) = choice {
                 prefs.screenshot_folder = folder;
-                self.note = None;
             }
         }
         ui.horizontal(|ui| {
@@ -69,9 +66,6 @@ impl ScreenshotPanel {
                 ));
             }
         });
-        if let Some(note) = &self.note {
-            ui.weak(note);
-        }
         ui.horizontal(|ui| {
             ui.label("Resolution");
             for s in [1, 2, 4] {
