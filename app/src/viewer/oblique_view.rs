@@ -15,9 +15,6 @@ use super::scene::{Scene, VolumeData, Window};
 use super::slice_view::drag_window;
 use super::widgets::{view_title, wheel_lines, ViewResponse};
 
-/// The oblique view's colour: its title, and its plane's outline in the 3D view.
-pub const OBLIQUE_COLOUR: Color32 = Color32::from_rgb(200, 140, 255);
-
 /// Radians the plane turns per point dragged.
 pub const TURN_PER_POINT: f64 = 0.01;
 
@@ -84,7 +81,7 @@ impl ObliqueViewer {
         let geometry = &data.info.geometry;
         let painter = ui.painter_at(rect);
         painter.rect_filled(rect, 0.0, Color32::BLACK);
-        let colour = OBLIQUE_COLOUR;
+        let colour = super::oblique::OBLIQUE_COLOUR;
         painter.rect_stroke(
             rect.shrink(0.5),
             0.0,

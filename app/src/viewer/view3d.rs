@@ -10,8 +10,7 @@ use serde::{Deserialize, Serialize};
 use strata_render::{Camera, Projection, RenderMode, RenderSettings, Shading, VolumeGeometry};
 
 use super::measurements::{Shape, Tool};
-use super::oblique::ObliquePlane;
-use super::oblique_view::OBLIQUE_COLOUR;
+use super::oblique::{ObliquePlane, OBLIQUE_COLOUR};
 use super::orientation::SliceView;
 use super::overlay_3d::OverlayIn3d;
 use super::preferences::Preferences;

@@ -1247,7 +1247,14 @@ mod tests {
         let tf = TransferFunction::preset("ct-bone").expect("preset");
         let mut volume =
             StreamingVolume::new(&ctx, store, &tf, StreamingConfig::default()).expect("volume");
-        let camera = super::super::view3d::OrbitCamera::default().camera(volume.geometry());
+        // The 3D view's default orbit (30°, 15°), framing the volume as the viewer opens it.
+        let camera = Camera::orbit(
+            volume.geometry(),
+            30.0,
+            15.0,
+            1.0,
+            strata_render::Projection::Perspective { fov_y_deg: 30.0 },
+        );
         let base = RenderSettings {
             width: 160,
             height: 160,
