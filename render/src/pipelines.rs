@@ -248,8 +248,8 @@ impl Pipelines {
     }
 
     /// The pipeline this frame draws with: the wanted one if compiled; otherwise, when
-    /// `in_background` is set and the previous frame's pipeline (`previous`) is compiled, that
-    /// one while a named thread compiles the wanted one (a compile takes long enough on CPU
+    /// `in_background` is set and the previous frame's pipeline (`previous`) is compiled and
+    /// draws the same mode, that one while a named thread compiles the wanted one (a compile takes long enough on CPU
     /// drivers to drop frames); otherwise the wanted one, compiled now.
     pub(crate) fn choose(
         &mut self,
@@ -268,7 +268,12 @@ impl Pipelines {
             return wanted;
         }
         if in_background {
-            let previous = previous.filter(|k| self.compiled.contains_key(k));
+            // A stand-in of another mode is not the picture asked for (a DVR image under a
+            // "MIP" title for the seconds a compile takes on lavapipe, issue 36): a mode switch
+            // compiles its pipeline now, which is also sooner than a background compile that
+            // shares the cores with stand-in frames nobody wants.
+            let previous =
+                previous.filter(|k| k.mode == wanted.mode && self.compiled.contains_key(k));
             if let Some(previous) = previous {
                 if self.request_background_compile(device, wanted) {
                     return previous;

@@ -466,6 +466,15 @@ fn a_new_effect_compiles_in_the_background_while_the_previous_pipeline_draws() {
     let after = g.render(&ctx, &f, &cam, &shaded);
     assert_ne!(after.rgba, first.rgba, "shading must change the picture");
 
+    // A mode switch has no stand-in even with the flag: the old mode's image is not the new
+    // mode's (issue 36), so the MIP pipeline is compiled for this very frame.
+    let mip = RenderSettings {
+        mode: RenderMode::Mip,
+        ..shaded.clone()
+    };
+    g.render(&ctx, &f, &cam, &mip);
+    assert_eq!(g.raycaster.last_pipeline_key(), Some(g.key(&f, &cam, &mip)));
+
     // Without the flag (tests, CLI, benchmarks) a frame always uses its own pipeline.
     g.raycaster.compile_in_background = false;
     let iso = RenderSettings {

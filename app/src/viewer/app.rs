@@ -133,6 +133,8 @@ pub struct StrataApp {
     screenshot: Option<ScreenshotJob>,
     /// The last screenshot's file (or error), shown until dismissed.
     saved_screenshot: Option<Result<PathBuf, String>>,
+    /// The running (or just ended) export: orbit movie, 2×/4× screenshot (exports.rs).
+    pub export: Option<Arc<super::exports::ExportProgress>>,
     /// A restarted viewer's saved session, put back when its volume opens (session_restore.rs).
     pub pending_restore: Option<super::session_restore::SavedSession>,
 }
@@ -170,6 +172,7 @@ impl StrataApp {
             readout: None,
             screenshot: None,
             saved_screenshot: None,
+            export: None,
             pending_restore: None,
             options,
         };
@@ -230,6 +233,12 @@ impl StrataApp {
         self.volume
             .as_ref()
             .and_then(|v| v.data.session.current_request())
+    }
+
+    #[cfg(test)]
+    /// The mode of the image the 3D view painted last (None: it was left empty).
+    pub fn painted_3d_mode(&self) -> Option<RenderMode> {
+        self.volume.as_ref().and_then(|v| v.view_3d.painted_mode())
     }
 
     pub fn volume_status(&self) -> Option<super::volume_session::SessionStatus> {
@@ -499,8 +508,13 @@ impl StrataApp {
             }
         }
         self.step_screenshot(ui.ctx());
-        if let Some(frames) = self.panels.screenshot.take_orbit_request() {
-            self.take_orbit_movie(frames);
+        if let Some(job) = &self.export {
+            if super::exports::progress_window(ui.ctx(), job) {
+                self.export = None;
+            }
+        }
+        if let Some((frames, folder)) = self.panels.screenshot.take_orbit_request() {
+            self.take_orbit_movie_into(frames, Some(folder));
         }
         if let Some(v) = self.volume.as_mut() {
             let gesture = ui.ctx().input(|i| i.pointer.any_down());
@@ -668,12 +682,19 @@ impl StrataApp {
             )));
             return;
         }
+        let job = Arc::new(super::exports::ExportProgress::new(
+            format!("{scale}× screenshot of the 3D view to {}", path.display()),
+            1,
+            None,
+        ));
         v.data.session.request_screenshot(ScreenshotRequest {
             path: path.clone(),
             size,
             camera: None,
             then_encode: None,
+            job: Some(job.clone()),
         });
+        self.export = Some(job);
         self.toast = Some(Toast {
             text: format!("Saving screenshot to {}…", path.display()),
             shown_at: Instant::now(),
@@ -683,7 +704,14 @@ impl StrataApp {
     /// An orbit movie of the 3D view: `frames` frames at the view's full resolution, turning
     /// the camera about the superior axis from where it is now, into a new folder beside the
     /// screenshots; orbit.mp4 when ffmpeg is there. The render thread writes them in order.
+    #[cfg(test)]
     pub fn take_orbit_movie(&mut self, frames: u32) {
+        self.take_orbit_movie_into(frames, None);
+    }
+
+    /// The orbit movie into `folder` (the one the panel's save dialog chose), or a new
+    /// strata-orbit-<time> folder beside the screenshots.
+    pub fn take_orbit_movie_into(&mut self, frames: u32, folder: Option<PathBuf>) {
         let Some(v) = &self.volume else { return };
         let frames = frames.clamp(2, crate::cmd_render::MAX_ORBIT_FRAMES);
         let Some(rect) = v
@@ -699,10 +727,11 @@ impl StrataApp {
         let stamp = std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
             .map_or(0, |d| d.as_millis());
-        let folder = self
-            .preferences
-            .screenshot_folder
-            .join(format!("strata-orbit-{stamp}"));
+        let folder = folder.unwrap_or_else(|| {
+            self.preferences
+                .screenshot_folder
+                .join(format!("strata-orbit-{stamp}"))
+        });
         if let Err(e) = std::fs::create_dir_all(&folder) {
             self.saved_screenshot = Some(Err(format!(
                 "cannot create the folder {}: {e}",
@@ -712,6 +741,11 @@ impl StrataApp {
         }
         let geometry = &v.data.info.geometry;
         let start = v.view_3d.orbit;
+        let job = Arc::new(super::exports::ExportProgress::new(
+            format!("{frames}-frame orbit movie to {}", folder.display()),
+            frames,
+            Some(folder.clone()),
+        ));
         for i in 0..frames {
             let orbit = OrbitCamera {
                 azimuth_deg: crate::cmd_render::orbit_azimuth(start.azimuth_deg, i, frames),
@@ -722,8 +756,10 @@ impl StrataApp {
                 size,
                 camera: Some(orbit.camera(geometry)),
                 then_encode: (i + 1 == frames).then(|| folder.clone()),
+                job: Some(job.clone()),
             });
         }
+        self.export = Some(job);
         self.saved_screenshot = None;
         self.toast = Some(Toast {
             text: format!(
@@ -1125,6 +1161,9 @@ impl StrataApp {
             (Some(o), Some(g)) => g.request(o),
             _ => None,
         };
+        // Drawn in 3D only while the oblique view is shown, as the slice views are.
+        let oblique_plane = (show_oblique && slots.iter().any(|(s, _)| *s == ViewSlot::Oblique))
+            .then(|| v.oblique_view.current_plane(&v.data, &v.scene));
         for (slot, rect) in &slots {
             let response = match slot {
                 ViewSlot::ThreeD => v.view_3d.ui(
@@ -1135,6 +1174,7 @@ impl StrataApp {
                     &self.preferences,
                     max_pixels,
                     overlay_3d.clone(),
+                    oblique_plane,
                 ),
                 ViewSlot::Oblique => {
                     let camera = v.view_3d.orbit.camera(&v.data.info.geometry);

@@ -2,30 +2,21 @@
 //! demo phantom, progress and errors of the running preparation) and keyboard-and-mouse help.
 
 use std::path::PathBuf;
-use std::sync::Arc;
 
 use egui::{Color32, RichText};
 
+use super::file_chooser::{ChooserKind, Chosen, FileChooser};
 use super::jobs::{PrepareJob, VolumeSource};
-use super::sync::lock_ignoring_poison;
 use super::widgets::{NOT_FOR_DIAGNOSIS, WARNING_COLOUR};
-
-/// How a closed file dialog ended.
-enum DialogOutcome {
-    Chosen(PathBuf),
-    /// Cancelled, or no desktop portal answered.
-    NothingChosen,
-}
 
 /// The open-or-import dialog.
 pub struct OpenDialog {
     pub open: bool,
     pub path: String,
     series: String,
-    /// A native file dialog running on its own thread: filled by the dialog's thread when it
-    /// closes; `None` inside while it is open.
-    file_dialog: Option<Arc<std::sync::Mutex<Option<DialogOutcome>>>>,
-    note: Option<String>,
+    /// The file chooser while it is open (the system dialog, or the egui one where no desktop
+    /// portal answers: file_chooser.rs).
+    file_dialog: Option<FileChooser>,
     ctx: egui::Context,
 }
 
@@ -36,7 +27,6 @@ impl OpenDialog {
             path,
             series: String::new(),
             file_dialog: None,
-            note: None,
             ctx,
         }
     }
@@ -73,9 +63,6 @@ impl OpenDialog {
                 }
             });
             self.poll_file_dialog();
-            if let Some(note) = &self.note {
-                ui.weak(note);
-            }
             ui.horizontal(|ui| {
                 ui.label("DICOM series (optional)");
                 ui.add(egui::TextEdit::singleline(&mut self.series).desired_width(200.0).hint_text("index or UID"));
@@ -120,61 +107,23 @@ impl OpenDialog {
         })
     }
 
-    /// The system dialog blocks whoever calls it, so it runs on its own thread; without a
-    /// desktop portal it returns nothing and the typed path still works.
     fn start_file_dialog(&mut self, folder: bool) {
-        let slot = Arc::new(std::sync::Mutex::new(None));
-        let thread_slot = slot.clone();
-        let ctx = self.ctx.clone();
+        let (kind, title) = if folder {
+            (ChooserKind::OpenFolder, "Open a DICOM folder or store")
+        } else {
+            (ChooserKind::OpenFile, "Open a scan")
+        };
         let start = PathBuf::from(self.path.trim());
-        let spawned = std::thread::Builder::new()
-            .name("strata-file-dialog".into())
-            .spawn(move || {
-                let mut dialog = rfd::FileDialog::new().set_title(if folder {
-                    "Open a DICOM folder or store"
-                } else {
-                    "Open a scan"
-                });
-                if let Some(dir) = start.parent().filter(|d| d.is_dir()) {
-                    dialog = dialog.set_directory(dir);
-                }
-                let chosen = if folder {
-                    dialog.pick_folder()
-                } else {
-                    dialog.pick_file()
-                };
-                let outcome = chosen.map_or(DialogOutcome::NothingChosen, DialogOutcome::Chosen);
-                *lock_ignoring_poison(&thread_slot) = Some(outcome);
-                ctx.request_repaint();
-            });
-        match spawned {
-            Ok(_) => {
-                self.file_dialog = Some(slot);
-                self.note = None;
-            }
-            Err(e) => self.note = Some(format!("no file dialog: {e}; type the path")),
-        }
+        self.file_dialog = Some(FileChooser::start(&self.ctx, kind, title, &start, None));
     }
 
     fn poll_file_dialog(&mut self) {
-        let Some(slot) = &self.file_dialog else {
-            return;
-        };
-        let Some(chosen) = lock_ignoring_poison(slot).take() else {
+        let Some(chosen) = self.file_dialog.as_mut().and_then(|d| d.poll(&self.ctx)) else {
             return;
         };
         self.file_dialog = None;
-        match chosen {
-            DialogOutcome::Chosen(path) => {
-                self.path = path.display().to_string();
-                self.note = None;
-            }
-            DialogOutcome::NothingChosen => {
-                self.note = Some(
-                    "Nothing chosen (the dialog needs a desktop portal); you can type the path."
-                        .into(),
-                )
-            }
+        if let Chosen::Path(path) = chosen {
+            self.path = path.display().to_string();
         }
     }
 }

@@ -15,6 +15,8 @@ pub mod adaptive_view;
 pub mod app;
 pub mod colour_maps;
 pub mod dialogs;
+pub mod exports;
+pub mod file_chooser;
 pub mod frames;
 pub mod gpu_recovery;
 pub mod history;

@@ -19,6 +19,9 @@ use super::sync::{lock_ignoring_poison, wait_ignoring_poison, Repaint};
 /// Decompressed bricks kept for oblique slices (bytes).
 pub const OBLIQUE_CACHE_BYTES: usize = 96 << 20;
 
+/// The oblique view's colour: its title, and its plane's outline in the 3D view.
+pub const OBLIQUE_COLOUR: egui::Color32 = egui::Color32::from_rgb(200, 140, 255);
+
 /// The plane of an oblique view, in patient space (LPS mm).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ObliquePlane {

@@ -81,7 +81,7 @@ impl ObliqueViewer {
         let geometry = &data.info.geometry;
         let painter = ui.painter_at(rect);
         painter.rect_filled(rect, 0.0, Color32::BLACK);
-        let colour = Color32::from_rgb(200, 140, 255);
+        let colour = super::oblique::OBLIQUE_COLOUR;
         painter.rect_stroke(
             rect.shrink(0.5),
             0.0,

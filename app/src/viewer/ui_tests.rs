@@ -2211,3 +2211,109 @@ fn the_overlay_option_opens_the_label_map_with_the_volume() {
     assert_eq!(name, Some(labels.display().to_string()));
     assert!(app(&h).panels.overlay.error.is_none());
 }
+
+/// Issue 36, honest motion: after DVR → MIP the 3D view never paints the DVR image again (it
+/// stays empty, saying "rendering MIP…", until the first MIP frame), and the first image it
+/// paints is a MIP one. The time from the switch to that first painted MIP frame is printed:
+/// the switch's latency as the user sees it (not asserted: wall-clock bounds fail on loaded
+/// machines).
+#[test]
+fn after_a_mode_switch_the_3d_view_paints_only_the_new_modes_frames() {
+    use strata_render::RenderMode;
+    let dir = tempfile::tempdir().expect("temp dir");
+    let store = phantom_store(dir.path());
+    let mut h = harness(&store, false);
+    wait_for_settled_frame(&mut h, "a converged DVR frame", 0);
+    h.step();
+    assert_eq!(app(&h).painted_3d_mode(), Some(RenderMode::Dvr));
+    h.state_mut()
+        .as_mut()
+        .expect("the app is created on the first step")
+        .preferences
+        .mode = RenderMode::Mip;
+    let switched = Instant::now();
+    let mut painted = Vec::new();
+    loop {
+        h.step();
+        let mode = app(&h).painted_3d_mode();
+        assert_ne!(
+            mode,
+            Some(RenderMode::Dvr),
+            "the DVR image was painted {:.0} ms after the switch to MIP",
+            switched.elapsed().as_secs_f64() * 1e3
+        );
+        if mode == Some(RenderMode::Mip) {
+            break;
+        }
+        assert!(switched.elapsed() < WAIT, "no MIP frame was painted");
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    eprintln!(
+        "mode switch DVR -> MIP in the viewer: first MIP frame painted after {:.0} ms",
+        switched.elapsed().as_secs_f64() * 1e3
+    );
+    // From here on every pass paints MIP (a late DVR frame would be refused, not shown).
+    for _ in 0..10 {
+        h.step();
+        painted.push(app(&h).painted_3d_mode());
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    assert!(
+        painted.iter().all(|m| *m == Some(RenderMode::Mip)),
+        "{painted:?}"
+    );
+}
+
+/// Issue 36, honest motion: the slice outlines (and every overlay) of the 3D view are drawn
+/// with the camera of the frame on screen, not the orbit's newest: in the pass right after a
+/// turn the image is still the old frame (the new one is not rendered yet), and its outlines
+/// use its camera; once the turned frame arrives, the outlines follow it.
+#[test]
+fn the_outlines_of_a_frame_are_drawn_with_that_frames_camera() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let store = phantom_store(dir.path());
+    let mut h = harness(&store, false);
+    wait_for_settled_frame(&mut h, "the phantom", 0);
+    h.step();
+    let cameras = |h: &Harness<'static, Option<StrataApp>>| {
+        let v = app(h).volume.as_ref().expect("open volume");
+        let (painted, overlays) = v.view_3d.painted_and_overlay_cameras();
+        (
+            painted,
+            overlays,
+            v.view_3d.orbit.camera(&v.data.info.geometry),
+        )
+    };
+    let (painted, overlays, live) = cameras(&h);
+    assert!(painted.is_some(), "no frame painted");
+    assert_eq!(overlays, painted);
+    assert_eq!(
+        painted,
+        Some(live),
+        "the settled frame is the live camera's"
+    );
+    // Turn by 40°: this pass sends the request and paints the frame it has, the old one.
+    if let Some(v) = h.state_mut().as_mut().and_then(|a| a.volume.as_mut()) {
+        v.view_3d.orbit.azimuth_deg += 40.0;
+    }
+    h.step();
+    let (painted, overlays, turned) = cameras(&h);
+    assert_ne!(turned, live);
+    assert_eq!(
+        painted,
+        Some(live),
+        "the turned frame came within the same pass"
+    );
+    assert_eq!(
+        overlays, painted,
+        "the outlines were drawn with another camera than the image under them"
+    );
+    // The turned frame arrives: image and outlines move together.
+    step_until(&mut h, "the turned frame on screen", |a| {
+        let v = a.volume.as_ref().expect("open volume");
+        v.view_3d.painted_and_overlay_cameras().0 == Some(turned)
+    });
+    let (painted, overlays, _) = cameras(&h);
+    assert_eq!(painted, Some(turned));
+    assert_eq!(overlays, painted);
+}

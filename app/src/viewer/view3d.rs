@@ -10,6 +10,7 @@ use serde::{Deserialize, Serialize};
 use strata_render::{Camera, Projection, RenderMode, RenderSettings, Shading, VolumeGeometry};
 
 use super::measurements::{Shape, Tool};
+use super::oblique::{ObliquePlane, OBLIQUE_COLOUR};
 use super::orientation::SliceView;
 use super::overlay_3d::OverlayIn3d;
 use super::preferences::Preferences;
@@ -239,6 +240,17 @@ pub fn paint_orientation_marker(painter: &egui::Painter, view_rect: Rect, camera
 struct FrameTexture {
     texture: TextureHandle,
     serial: u64,
+    /// The mode the uploaded frame was drawn in: after a switch it is not painted until a
+    /// frame of the new mode replaces it.
+    mode: RenderMode,
+}
+
+/// Whether a frame drawn in `drawn` may stand on screen for a view showing `shown`: only the
+/// same mode. After a DVR→MIP switch the DVR frame stayed up (or a stand-in DVR image came
+/// under the MIP title) for 1-5 s on lavapipe (issue 36); an empty view that says what it is
+/// rendering is the honest picture until the new mode's first frame.
+pub fn frame_fits_mode(drawn: RenderMode, shown: RenderMode) -> bool {
+    drawn == shown
 }
 
 /// The 3D view's own state.
@@ -253,6 +265,16 @@ pub struct View3d {
     pub full_resolution: bool,
     /// The frame size asked for last.
     requested_size: [u32; 2],
+    /// The mode of the image painted in the last pass; None: the view was left empty (no
+    /// frame yet, or only frames of another mode).
+    #[cfg_attr(not(test), allow(dead_code))]
+    painted: Option<RenderMode>,
+    /// The camera of the frame painted in the last pass and the one its overlays (outlines,
+    /// measurements, crop box, marker) were projected with: the motion rule's test compares them.
+    #[cfg_attr(not(test), allow(dead_code))]
+    painted_camera: Option<Camera>,
+    #[cfg_attr(not(test), allow(dead_code))]
+    overlays_camera: Option<Camera>,
 }
 
 impl View3d {
@@ -283,6 +305,9 @@ impl View3d {
             interacting_until: None,
             full_resolution: false,
             requested_size: [0, 0],
+            painted: None,
+            painted_camera: None,
+            overlays_camera: None,
         }
     }
 
@@ -300,6 +325,18 @@ impl View3d {
                 && [f.width, f.height] == self.requested_size
                 && [f.request.settings.width, f.request.settings.height] == self.requested_size
         })
+    }
+
+    /// The mode of the image the last pass painted (None: none painted).
+    #[cfg(test)]
+    pub fn painted_mode(&self) -> Option<RenderMode> {
+        self.painted
+    }
+
+    /// The camera of the image the last pass painted, and the one it drew the overlays with.
+    #[cfg(test)]
+    pub fn painted_and_overlay_cameras(&self) -> (Option<Camera>, Option<Camera>) {
+        (self.painted_camera, self.overlays_camera)
     }
 
     /// The pixel size of the frames this view asks for at full resolution.
@@ -359,6 +396,7 @@ impl View3d {
         prefs: &Preferences,
         max_pixels: u32,
         overlay: Option<OverlayIn3d>,
+        oblique: Option<ObliquePlane>,
     ) -> ViewResponse {
         let painter = ui.painter_at(rect);
         painter.rect_filled(rect, 0.0, Color32::BLACK);
@@ -445,7 +483,22 @@ impl View3d {
             adaptive_epsilon: prefs.adaptive_sampling.then_some(prefs.adaptive_epsilon),
         });
 
-        if let Some(frame) = data.session.latest_frame() {
+        if self
+            .shown
+            .as_ref()
+            .is_some_and(|f| !frame_fits_mode(f.drawn_mode, prefs.mode))
+        {
+            // Picks and the overlay camera must not use the previous mode's frame either.
+            self.shown = None;
+        }
+        let mut waiting_for_mode = true;
+        self.painted = None;
+        self.painted_camera = None;
+        if let Some(frame) = data
+            .session
+            .latest_frame()
+            .filter(|f| frame_fits_mode(f.drawn_mode, prefs.mode))
+        {
             let fresh = self
                 .texture
                 .as_ref()
@@ -462,6 +515,7 @@ impl View3d {
                     Some(t) => {
                         t.texture.set(image, TextureOptions::LINEAR);
                         t.serial = frame.serial;
+                        t.mode = frame.drawn_mode;
                     }
                     None => {
                         self.texture = Some(FrameTexture {
@@ -469,11 +523,19 @@ impl View3d {
                                 .ctx()
                                 .load_texture("volume", image, TextureOptions::LINEAR),
                             serial: frame.serial,
+                            mode: frame.drawn_mode,
                         })
                     }
                 }
             }
-            if let Some(t) = &self.texture {
+            if let Some(t) = self
+                .texture
+                .as_ref()
+                .filter(|t| frame_fits_mode(t.mode, prefs.mode))
+            {
+                waiting_for_mode = false;
+                self.painted = Some(t.mode);
+                self.painted_camera = self.shown.as_ref().map(|f| f.request.camera);
                 painter.image(
                     t.texture.id(),
                     rect,
@@ -486,8 +548,9 @@ impl View3d {
         // outlines, crosshair and measurements stay on the structures while the image lags the
         // orbit (issue 36: outlines had already rotated over the old image).
         let camera = self.overlay_camera(camera);
+        self.overlays_camera = Some(camera);
         if prefs.show_planes_in_3d {
-            paint_slice_planes(&painter, rect, &camera, data, scene);
+            paint_slice_planes(&painter, rect, &camera, data, scene, oblique.as_ref());
         }
         paint_measurements_3d(&painter, rect, &camera, data, scene);
         if prefs.show_crop_box && crop_box_ui(ui, &painter, rect, &camera, data, scene) {
@@ -507,6 +570,10 @@ impl View3d {
             Color32::from_rgb(200, 200, 255),
         );
         let mut right_lines = Vec::new();
+        if waiting_for_mode && status.loading.is_none() && status.error.is_none() {
+            // The view is empty until the mode's first frame (see `frame_fits_mode`): say why.
+            right_lines.push(format!("rendering {}…", mode_name(prefs.mode)));
+        }
         if let Some(loading) = &status.loading {
             right_lines.push(loading.clone());
         } else if status.refining {
@@ -514,6 +581,10 @@ impl View3d {
         }
         if let Some(level) = status.finest_resident_level {
             right_lines.push(format!("finest level {level}"));
+        }
+        if let Some(exporting) = &status.exporting {
+            // Why the view is not redrawn for seconds at a time while a movie renders.
+            right_lines.push(exporting.clone());
         }
         for (i, line) in right_lines.iter().enumerate() {
             painter.text(
@@ -785,10 +856,21 @@ fn paint_slice_planes(
     camera: &Camera,
     data: &VolumeData,
     scene: &Scene,
+    oblique: Option<&ObliquePlane>,
 ) {
     let g = &data.info.geometry;
     let project = |index: DVec3| project_to_view(camera, rect, g, index);
     let (lo, hi) = crop_bounds(data, scene);
+    if let Some(plane) = oblique {
+        // The oblique view's plane as the orthogonal ones are drawn: the part of it inside the
+        // crop box and the oblique image's square (issue 36: it was not drawn at all).
+        let outline = oblique_outline(plane, g, lo, hi);
+        let points: Option<Vec<Pos2>> = outline.into_iter().map(project).collect();
+        if let Some(points) = points.filter(|p| p.len() >= 3) {
+            let stroke = Stroke::new(1.5, OBLIQUE_COLOUR.gamma_multiply(0.8));
+            painter.add(egui::Shape::closed_line(points, stroke));
+        }
+    }
     for view in SliceView::ALL {
         let frame = data.frame(view);
         let Some(outline) = slice_outline(frame, scene.cursor, lo, hi) else {
@@ -799,6 +881,91 @@ fn paint_slice_planes(
             painter.add(egui::Shape::closed_line(vec![p0, p1, p2, p3], stroke));
         }
     }
+}
+
+/// The outline (level-0 index space, in order around it) of the oblique plane's part inside
+/// the crop box `lo`..`hi` (voxel faces) and inside the oblique image's square: the plane cut
+/// by the box's 12 edges, then clipped to the square in the plane's own coordinates. Empty
+/// when the plane misses the box.
+pub fn oblique_outline(
+    plane: &ObliquePlane,
+    g: &VolumeGeometry,
+    lo: [f64; 3],
+    hi: [f64; 3],
+) -> Vec<DVec3> {
+    if (0..3).any(|a| lo[a] >= hi[a]) {
+        return Vec::new();
+    }
+    let normal = plane.normal();
+    let corner = |c: usize| {
+        DVec3::new(
+            if c & 1 == 0 { lo[0] } else { hi[0] },
+            if c & 2 == 0 { lo[1] } else { hi[1] },
+            if c & 4 == 0 { lo[2] } else { hi[2] },
+        )
+    };
+    let distance = |index: DVec3| (g.patient_from_index(index) - plane.centre).dot(normal);
+    // Plane coordinates (mm along right and down from the centre) of each crossing.
+    let to_plane = |index: DVec3| {
+        let d = g.patient_from_index(index) - plane.centre;
+        (d.dot(plane.right), d.dot(plane.down))
+    };
+    // Corners on the plane, then the edges whose ends lie strictly on either side.
+    let mut points: Vec<(f64, f64)> = (0..8usize)
+        .map(corner)
+        .filter(|c| distance(*c) == 0.0)
+        .map(to_plane)
+        .collect();
+    for c in 0..8usize {
+        for bit in [1usize, 2, 4] {
+            if c & bit != 0 {
+                continue;
+            }
+            let (a, b) = (corner(c), corner(c | bit));
+            let (da, db) = (distance(a), distance(b));
+            if (da < 0.0 && db > 0.0) || (da > 0.0 && db < 0.0) {
+                points.push(to_plane(a + (b - a) * (da / (da - db))));
+            }
+        }
+    }
+    if points.len() < 3 {
+        return Vec::new();
+    }
+    // Convex: ordered by angle about the centroid.
+    let n = points.len() as f64;
+    let mid = points
+        .iter()
+        .fold((0.0, 0.0), |m, p| (m.0 + p.0 / n, m.1 + p.1 / n));
+    points.sort_by(|p, q| {
+        (p.1 - mid.1)
+            .atan2(p.0 - mid.0)
+            .total_cmp(&(q.1 - mid.1).atan2(q.0 - mid.0))
+    });
+    // Clipped to the oblique image's square (Sutherland-Hodgman, four half-planes).
+    let half = plane.extent_mm * 0.5;
+    for (axis, sign) in [(0, 1.0), (0, -1.0), (1, 1.0), (1, -1.0)] {
+        let inside = |p: &(f64, f64)| sign * if axis == 0 { p.0 } else { p.1 } <= half;
+        let value = |p: &(f64, f64)| sign * if axis == 0 { p.0 } else { p.1 } - half;
+        let mut clipped = Vec::with_capacity(points.len() + 1);
+        for i in 0..points.len() {
+            let (p, q) = (points[i], points[(i + 1) % points.len()]);
+            if inside(&p) {
+                clipped.push(p);
+            }
+            if inside(&p) != inside(&q) {
+                let t = value(&p) / (value(&p) - value(&q));
+                clipped.push((p.0 + (q.0 - p.0) * t, p.1 + (q.1 - p.1) * t));
+            }
+        }
+        points = clipped;
+        if points.len() < 3 {
+            return Vec::new();
+        }
+    }
+    points
+        .into_iter()
+        .map(|(u, w)| g.index_from_patient(plane.centre + plane.right * u + plane.down * w))
+        .collect()
 }
 
 /// The four corners (level-0 index space) of a slice plane's outline, clipped to the crop box
@@ -834,6 +1001,20 @@ mod tests {
     use super::*;
 
     #[test]
+    fn only_a_frame_of_the_shown_mode_stands_on_screen() {
+        use RenderMode::*;
+        for drawn in [Dvr, Mip, Isosurface] {
+            for shown in [Dvr, Mip, Isosurface] {
+                assert_eq!(
+                    frame_fits_mode(drawn, shown),
+                    drawn == shown,
+                    "{drawn:?} {shown:?}"
+                );
+            }
+        }
+    }
+
+    #[test]
     fn slice_outlines_are_clipped_to_the_crop_box_and_vanish_outside_it() {
         let g = VolumeGeometry::axis_aligned([40, 30, 20], [1.0, 1.0, 1.0]);
         let axial = crate::viewer::orientation::SliceFrame::for_view(SliceView::Axial, &g);
@@ -857,6 +1038,52 @@ mod tests {
         assert_eq!(ys.iter().cloned().fold(f64::NEG_INFINITY, f64::max), 25.5);
         // The axial slice at k = 3 is cropped away: no outline.
         assert!(slice_outline(axial, [10.0, 12.0, 3.0], lo, hi).is_none());
+    }
+
+    #[test]
+    fn the_oblique_outline_is_the_planes_part_inside_the_box_and_its_square() {
+        let g = VolumeGeometry::axis_aligned([40, 30, 20], [1.0, 1.0, 1.0]);
+        let (lo, hi) = ([-0.5; 3], [39.5, 29.5, 19.5]);
+        // Axial, through k = 7, square large enough: the axial slice's outline.
+        let centre = g.patient_from_index(DVec3::new(10.0, 12.0, 7.0));
+        let axial = ObliquePlane::axial(centre, 200.0);
+        let outline = oblique_outline(&axial, &g, lo, hi);
+        assert_eq!(outline.len(), 4, "{outline:?}");
+        let frame = crate::viewer::orientation::SliceFrame::for_view(SliceView::Axial, &g);
+        let slice = slice_outline(frame, [10.0, 12.0, 7.0], lo, hi).expect("inside");
+        for corner in slice {
+            assert!(
+                outline.iter().any(|p| (*p - corner).length() < 1e-6),
+                "{corner} not in {outline:?}"
+            );
+        }
+        // Tilted 30° about screen right: every point on the plane and on the box's surface.
+        let tilted = axial.rotated(0.0, 30f64.to_radians());
+        let outline = oblique_outline(&tilted, &g, lo, hi);
+        assert!(outline.len() >= 4, "{outline:?}");
+        for p in &outline {
+            let off = (g.patient_from_index(*p) - tilted.centre).dot(tilted.normal());
+            assert!(off.abs() < 1e-6, "{p} is {off} mm off the plane");
+            let on_face =
+                (0..3).any(|a| (p[a] - lo[a]).abs() < 1e-6 || (p[a] - hi[a]).abs() < 1e-6);
+            assert!(on_face, "{p} is not on the box");
+        }
+        // A 10 mm square: the outline is the square itself, 10 mm across.
+        let small = ObliquePlane {
+            extent_mm: 10.0,
+            ..tilted
+        };
+        let outline = oblique_outline(&small, &g, lo, hi);
+        assert_eq!(outline.len(), 4, "{outline:?}");
+        let widest = outline
+            .iter()
+            .flat_map(|a| outline.iter().map(move |b| (*a - *b).length()))
+            .fold(0.0, f64::max);
+        assert!((widest - 200f64.sqrt()).abs() < 1e-6, "diagonal {widest}");
+        // Outside the box: nothing.
+        let outside =
+            ObliquePlane::axial(g.patient_from_index(DVec3::new(10.0, 12.0, 40.0)), 200.0);
+        assert!(oblique_outline(&outside, &g, lo, hi).is_empty());
     }
 
     fn geometry() -> VolumeGeometry {

@@ -19,13 +19,14 @@ use std::time::{Duration, Instant};
 
 use strata_loader::{FrameStats, SelectionTiming, StreamingConfig, StreamingVolume};
 use strata_render::{
-    Camera, GpuContext, RenderSettings, TimeCriticalConfig, TimeCriticalController,
+    Camera, GpuContext, RenderMode, RenderSettings, TimeCriticalConfig, TimeCriticalController,
     TransferFunction, Traversal, ValueMapping, VolumeGeometry,
 };
 use strata_source::VolumeSource;
 use strata_storage::StoreHeader;
 
 use super::adaptive_view::{AdaptiveFacts, AdaptiveView, Step, StillView};
+use super::exports::{ExportOutcome, ExportProgress};
 use super::gpu_recovery::{
     recovery_line, smaller_budget, DeviceWatch, GpuFailureKind, InjectedFault, StepError,
     MAX_FAILURES_WITHOUT_A_FRAME,
@@ -35,6 +36,17 @@ use super::sync::lock_ignoring_poison;
 
 /// GPU memory for the brick cache.
 pub const DEFAULT_GPU_BUDGET_BYTES: u64 = 384 << 20;
+
+/// The coarsest level of detail the viewer's time-critical controller may choose while the
+/// user drags (the loader's quality factor: a voxel may cover this many pixels). The render
+/// crate's default, 16, lost the ribs from a moving frame (issue 36). Measured on the 128³
+/// phantom, 92 px across in a 160² frame (a 512³ CT about 370 px across, as a half-resolution
+/// drag frame shows it), at the controller's lowest rate (0.125 samples/voxel), against the
+/// converged image: factor 1: 20.3 dB, 70 % of the opaque pixels kept; 2: 19.0 dB, 59 %;
+/// 4, 8 and 16: 15.8 dB, 13 % (the coarsest level: ribs, wire and plate gone). So 2: one level
+/// coarser than the screen's pixels, never the level where structures vanish. Held to its bound
+/// by `the_quality_floor_keeps_the_phantoms_structures` below.
+pub const VIEWER_MAX_LOD_FACTOR: f64 = 2.0;
 
 /// What the UI wants to see; the render thread always works on the newest one.
 #[derive(Clone, Debug, PartialEq)]
@@ -92,6 +104,10 @@ pub struct RenderedFrame {
     /// raycaster did.
     #[cfg_attr(not(test), allow(dead_code))]
     pub adaptive: Option<Arc<AdaptiveFacts>>,
+    /// The mode of the pipeline that drew the pixels (the raycaster's last pipeline key), which
+    /// the 3D view checks against the mode it shows, so a frame of the previous mode never
+    /// stands for the new one after a switch (issue 36).
+    pub drawn_mode: RenderMode,
 }
 
 /// Figures for the performance panel.
@@ -129,6 +145,8 @@ pub struct SessionStatus {
     /// The adaptive frame's line ("adaptive: 0.65 M samples (2.9× fewer than the raycaster),
     /// ε 0.001", "adaptive: building oracle…") or why the raycaster's frame is final.
     pub adaptive: Option<String>,
+    /// While an export renders: what it does and why the live view waits meanwhile.
+    pub exporting: Option<String>,
 }
 
 impl SessionStatus {
@@ -180,6 +198,8 @@ pub struct ScreenshotRequest {
     /// After writing this frame, encode the folder's frame-%04d.png as orbit.mp4 (ffmpeg when
     /// it is on the PATH; otherwise the frames are the movie).
     pub then_encode: Option<PathBuf>,
+    /// The export this shot is a frame of: its progress, and its Cancel (exports.rs).
+    pub job: Option<Arc<ExportProgress>>,
 }
 
 /// Static facts of the opened volume, for the UI.
@@ -365,6 +385,13 @@ fn lower_this_threads_priority() {
     let _ = nice;
 }
 
+/// The render crate's controller with the viewer's quality floor ([`VIEWER_MAX_LOD_FACTOR`]).
+fn viewer_time_critical_config() -> TimeCriticalConfig {
+    let mut config = TimeCriticalConfig::default();
+    config.lod.max_factor = VIEWER_MAX_LOD_FACTOR;
+    config
+}
+
 struct RenderWorker {
     store: Arc<dyn VolumeSource>,
     shared: Arc<Shared>,
@@ -386,7 +413,7 @@ impl RenderWorker {
             shared,
             repaint,
             gpu_budget_bytes,
-            controller: TimeCriticalController::new(TimeCriticalConfig::default(), 1.0),
+            controller: TimeCriticalController::new(viewer_time_critical_config(), 1.0),
             serial: 0,
         }
     }
@@ -534,6 +561,10 @@ impl RenderWorker {
         // while the adaptive pass prepares to draw over the same cut.
         let mut awaiting_adaptive: Option<AwaitingAdaptive> = None;
         let mut rest = RestGovernor::default();
+        // The next live frame follows an export's frame: its cut is the export's, so its time
+        // says nothing about the live view's cost and the controller does not learn from it
+        // (a movie's frames dragged the live view to 0.12 samples/voxel, issue 36).
+        let mut after_shot = false;
         loop {
             if self.shared.stop.load(Ordering::Acquire) {
                 return Ok(());
@@ -542,13 +573,39 @@ impl RenderWorker {
                 fault.apply(&ctx.device, &watch);
             }
             let screenshot = lock_ignoring_poison(&self.shared.screenshot).pop_front();
+            if let Some(job) = screenshot
+                .as_ref()
+                .and_then(|s| s.job.clone())
+                .filter(|j| j.is_cancelled())
+            {
+                // Cancelled before this frame: none of its frames is rendered.
+                self.end_export(&job, None);
+                continue;
+            }
             if let Some(shot) = screenshot {
+                if let Some(job) = &shot.job {
+                    let line = format!(
+                        "{}: frame {} of {}; the live view is redrawn between its frames",
+                        job.title,
+                        job.done() + 1,
+                        job.total()
+                    );
+                    self.set_status(|s| s.exporting = Some(line));
+                }
                 let result = match last_rendered.clone() {
                     Some(request) => {
                         self.screenshot(&ctx, &mut volume, &mut adaptive, &request, &shot)
                     }
                     None => Err(anyhow::anyhow!("nothing rendered yet")),
                 };
+                if let Some(job) = shot.job.as_ref().filter(|j| j.is_cancelled()) {
+                    // Cancelled during this frame: whatever it wrote goes with the rest.
+                    self.end_export(job, Some(&shot.path));
+                    last_rendered = None;
+                    awaiting_adaptive = None;
+                    after_shot = true;
+                    continue;
+                }
                 let result = match (result, &shot.then_encode) {
                     (Ok(()), Some(folder)) => match crate::cmd_render::encode_mp4(folder) {
                         Ok(Some(movie)) => Ok(movie),
@@ -565,13 +622,29 @@ impl RenderWorker {
                     // One failed frame ends the movie: the rest would fail the same way.
                     lock_ignoring_poison(&self.shared.screenshot).clear();
                 }
+                if let Some(job) = &shot.job {
+                    match &result {
+                        Ok(place) => {
+                            job.frame_written(shot.path.clone());
+                            if job.done() >= job.total() {
+                                job.finish(ExportOutcome::Written(place.clone()));
+                            }
+                        }
+                        Err(e) => job.finish(ExportOutcome::Failed(format!("{e:#}"))),
+                    }
+                }
+                let queue_empty = lock_ignoring_poison(&self.shared.screenshot).is_empty();
                 self.set_status(|s| {
                     s.screenshots_written += result.is_ok() as u64;
                     s.last_screenshot = Some(result.map_err(|e| format!("{e:#}")));
+                    if queue_empty {
+                        s.exporting = None;
+                    }
                 });
                 // The screenshot changed the cut and the raycaster's size: render the view again.
                 last_rendered = None;
                 awaiting_adaptive = None;
+                after_shot = true;
             }
             let request = lock_ignoring_poison(&self.shared.request).clone();
             let Some(request) = request else {
@@ -623,6 +696,7 @@ impl RenderWorker {
                             request: request.clone(),
                             converged: true,
                             adaptive: Some(Arc::new(facts)),
+                            drawn_mode: request.settings.mode,
                         });
                         (self.repaint)();
                         continue;
@@ -753,7 +827,8 @@ impl RenderWorker {
             // readback: measuring those is what makes other viewers' adaptive modes misbehave.
             // Still-refinement frames are ignored by the controller (q.interactive false).
             let gpu_timings = volume.take_frame_timings(&ctx);
-            if let Some(q) = quality {
+            let learn = !std::mem::take(&mut after_shot);
+            if let Some(q) = quality.filter(|_| learn) {
                 if gpu_timestamps {
                     for timing in gpu_timings {
                         self.controller.observe(timing);
@@ -799,6 +874,10 @@ impl RenderWorker {
                 request: request.clone(),
                 converged: !refining && !adaptive_next,
                 adaptive: None,
+                drawn_mode: volume
+                    .raycaster_mut()
+                    .last_pipeline_key()
+                    .map_or(settings.mode, |k| k.mode),
             };
             if adaptive_next {
                 awaiting_adaptive = Some(AwaitingAdaptive {
@@ -844,6 +923,19 @@ impl RenderWorker {
         }
     }
 
+    /// Ends a cancelled export: its queued frames are dropped, the frame in progress
+    /// (`partial`, if written) and the frames written are removed, and the job says so.
+    fn end_export(&self, job: &Arc<ExportProgress>, partial: Option<&std::path::Path>) {
+        lock_ignoring_poison(&self.shared.screenshot)
+            .retain(|s| !s.job.as_ref().is_some_and(|j| Arc::ptr_eq(j, job)));
+        if let Some(path) = partial {
+            let _ = std::fs::remove_file(path);
+        }
+        // The status first: whoever sees the outcome then sees the live view's line back.
+        self.set_status(|s| s.exporting = None);
+        job.finish_cancelled();
+    }
+
     fn wait(&self, timeout: Duration) {
         let guard = lock_ignoring_poison(&self.shared.request);
         let _ = self.shared.wake.wait_timeout(guard, timeout);
@@ -866,8 +958,12 @@ impl RenderWorker {
         volume.set_max_voxel_pixels(1.0);
         let started = Instant::now();
         let camera = shot.camera.unwrap_or(request.camera);
+        let cancelled = || shot.job.as_ref().is_some_and(|j| j.is_cancelled());
         for _ in 0..200 {
             let stats = volume.frame(ctx, &camera, &settings)?;
+            if cancelled() {
+                anyhow::bail!("cancelled");
+            }
             if stats.converged || started.elapsed() > Duration::from_secs(20) {
                 break;
             }
@@ -885,6 +981,7 @@ impl RenderWorker {
             let started = Instant::now();
             let reason = loop {
                 match adaptive.step(ctx, volume, &view, &settings, None) {
+                    Step::Building if cancelled() => anyhow::bail!("cancelled"),
                     Step::Building if started.elapsed() < Duration::from_secs(60) => {
                         std::thread::sleep(Duration::from_millis(20));
                     }
@@ -1049,13 +1146,29 @@ mod tests {
         let dvr_frame = wait_converged(&session, &dvr);
         let mip = RenderRequest {
             settings: RenderSettings {
-                mode: strata_render::RenderMode::Mip,
+                mode: RenderMode::Mip,
                 ..dvr.settings.clone()
             },
             ..dvr.clone()
         };
         session.request(mip.clone());
+        // Every frame answering the MIP request is drawn by a MIP pipeline: before issue 36's
+        // fix the DVR pipeline drew stand-ins under the MIP request while MIP compiled (1-5 s
+        // on lavapipe). The time to the first one is the switch's latency (printed, not
+        // asserted: wall-clock bounds fail on loaded machines).
+        let switched = Instant::now();
+        let first = wait_for(&session, |f| f.request == mip);
+        eprintln!(
+            "mode switch DVR -> MIP: first MIP frame after {:.0} ms",
+            switched.elapsed().as_secs_f64() * 1e3
+        );
+        assert_eq!(
+            first.drawn_mode,
+            RenderMode::Mip,
+            "the first frame answering the MIP request was drawn in another mode"
+        );
         let mip_frame = wait_converged(&session, &mip);
+        assert_eq!(mip_frame.drawn_mode, RenderMode::Mip);
         // DVR of the bone preset composites a shaded, partly transparent shell; MIP shows the
         // maximum's TF colour unlit: the images differ over most of the object. A stand-in
         // DVR frame would match the DVR one up to nothing (jitter off, same camera).
@@ -1071,6 +1184,141 @@ mod tests {
             "the converged MIP frame looks like the DVR frame (mean |Δ| {difference:.3})"
         );
     }
+
+    /// Issue 36: a movie job stops when cancelled: fewer frames than asked, no movie encoded,
+    /// the frames it wrote and its folder removed, and the job says it was cancelled.
+    #[test]
+    fn a_cancelled_movie_job_stops_early_and_leaves_no_movie() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let (session, request) = phantom_session(dir.path());
+        wait_converged(&session, &request);
+        let folder = dir.path().join("orbit");
+        std::fs::create_dir_all(&folder).expect("folder");
+        let frames = 12;
+        let job = Arc::new(ExportProgress::new("movie", frames, Some(folder.clone())));
+        for i in 0..frames {
+            session.request_screenshot(ScreenshotRequest {
+                path: folder.join(crate::cmd_render::orbit_frame_name(i)),
+                size: [64, 64],
+                camera: None,
+                then_encode: (i + 1 == frames).then(|| folder.clone()),
+                job: Some(job.clone()),
+            });
+        }
+        let start = Instant::now();
+        while job.done() == 0 {
+            assert!(job.outcome().is_none(), "{:?}", job.outcome());
+            assert!(start.elapsed() < Duration::from_secs(120), "no frame");
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        job.cancel();
+        while job.outcome().is_none() {
+            assert!(start.elapsed() < Duration::from_secs(240), "never ended");
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        match job.outcome() {
+            Some(ExportOutcome::Cancelled { done, total }) => {
+                assert!(done < total, "all {total} frames were rendered");
+            }
+            other => panic!("not cancelled: {other:?}"),
+        }
+        assert!(!folder.exists(), "the cancelled movie's folder stayed");
+        // The queue holds none of its frames: the thread goes back to the live view.
+        assert!(lock_ignoring_poison(&session.shared.screenshot).is_empty());
+        assert_eq!(session.status().exporting, None);
+    }
+
+    /// Issue 36, the quality floor: what the controller's coarsest frames lose against the
+    /// converged image of the 128³ phantom (bone preset, shaded, as the viewer draws it), at
+    /// the controller's lowest sampling rate with jitter. Printed for every factor; asserted for
+    /// the viewer's floor. Whole-image PSNR counts the black background as right, so the
+    /// structure check is recall: the share of the converged image's opaque pixels that the
+    /// coarse frame still shows (ribs and the wire are what vanish first).
+    #[test]
+    fn the_quality_floor_keeps_the_phantoms_structures() {
+        use strata_render::{FrameQuality, Shading};
+        let dir = tempfile::tempdir().expect("temp dir");
+        let path = dir.path().join("p128.strata");
+        strata_storage::phantom::Phantom::cube(128)
+            .write_store(&path, &Default::default())
+            .expect("phantom store");
+        let store = Arc::new(strata_storage::Store::open(&path).expect("open"));
+        let ctx = GpuContext::headless().expect("a GPU device (lavapipe will do)");
+        let tf = TransferFunction::preset("ct-bone").expect("preset");
+        let mut volume =
+            StreamingVolume::new(&ctx, store, &tf, StreamingConfig::default()).expect("volume");
+        // The 3D view's default orbit (30°, 15°), framing the volume as the viewer opens it.
+        let camera = Camera::orbit(
+            volume.geometry(),
+            30.0,
+            15.0,
+            1.0,
+            strata_render::Projection::Perspective { fov_y_deg: 30.0 },
+        );
+        let base = RenderSettings {
+            width: 160,
+            height: 160,
+            jitter: false,
+            shading: Some(Shading::default()),
+            frame_index: 7,
+            ..RenderSettings::default()
+        };
+        let mut render = |lod: f64, rate: f64| {
+            volume.set_max_voxel_pixels(lod);
+            let mut settings = base.clone();
+            FrameQuality {
+                sampling_rate: rate,
+                lod_factor: lod,
+                jitter: rate < 1.25,
+                interactive: true,
+            }
+            .apply_to(&mut settings);
+            let (frame, _) = volume
+                .render_until_converged(&ctx, &camera, &settings, 400)
+                .expect("render");
+            frame.rgba
+        };
+        let converged = render(1.0, 2.0);
+        let opaque =
+            |rgba: &[u8]| -> Vec<bool> { rgba.chunks_exact(4).map(|p| p[3] > 64).collect() };
+        let reference = opaque(&converged);
+        let lit = reference.iter().filter(|&&o| o).count().max(1);
+        let floor_rate = viewer_time_critical_config().controller.min_rate;
+        let mut measured = Vec::new();
+        for lod in [1.0, 2.0, 4.0, 8.0, 16.0] {
+            let image = render(lod, floor_rate);
+            let psnr = strata_render::compare_rgba8(&image, &converged)
+                .expect("same size")
+                .psnr_db;
+            let kept = opaque(&image)
+                .iter()
+                .zip(&reference)
+                .filter(|(a, b)| **a && **b)
+                .count();
+            let recall = kept as f64 / lit as f64;
+            eprintln!(
+                "quality factor {lod:>2} at {floor_rate} samples/voxel: PSNR {psnr:.1} dB, opaque pixels kept {:.1} %",
+                recall * 100.0
+            );
+            measured.push((lod, psnr, recall));
+        }
+        let (_, psnr, recall) = measured
+            .iter()
+            .copied()
+            .find(|m| m.0 == VIEWER_MAX_LOD_FACTOR)
+            .expect("the floor is among the factors measured");
+        assert!(
+            psnr >= QUALITY_FLOOR_MIN_PSNR_DB && recall >= QUALITY_FLOOR_MIN_RECALL,
+            "the viewer's floor (factor {VIEWER_MAX_LOD_FACTOR}) loses too much: PSNR {psnr:.1} dB, recall {:.1} % ({measured:?})",
+            recall * 100.0
+        );
+    }
+
+    /// Bounds for the floor's frame against the converged one (see the test above): below the
+    /// measured 19.0 dB and 59 % by a margin for drivers' rounding, above the 15.8 dB and 13 %
+    /// of the levels where the phantom's thin structures vanish.
+    const QUALITY_FLOOR_MIN_PSNR_DB: f64 = 18.0;
+    const QUALITY_FLOOR_MIN_RECALL: f64 = 0.5;
 
     fn phantom_session(dir: &std::path::Path) -> (VolumeSession, RenderRequest) {
         let (session, request, _) = phantom_session_sized(dir, 48);
@@ -1381,7 +1629,7 @@ mod tests {
                 ..raycast.settings.clone()
             },
             RenderSettings {
-                mode: strata_render::RenderMode::Mip,
+                mode: RenderMode::Mip,
                 ..raycast.settings.clone()
             },
         ];
@@ -1432,6 +1680,7 @@ mod tests {
             size: [frame.width, frame.height],
             camera: None,
             then_encode: None,
+            job: None,
         });
         let start = Instant::now();
         while session.status().screenshots_written == 0 {
@@ -1483,7 +1732,7 @@ mod tests {
         let (session, raycast) = phantom_session(dir.path());
         let iso = RenderRequest {
             settings: RenderSettings {
-                mode: strata_render::RenderMode::Isosurface,
+                mode: RenderMode::Isosurface,
                 iso_value: 300.0,
                 ..raycast.settings.clone()
             },

@@ -1,65 +1,46 @@
-//! The screenshot panel: the folder (typed, or chosen in the system dialog on its own thread)
-//! and the resolution.
+//! The screenshot panel: the folder (typed, or chosen in the system dialog, or the egui one
+//! where no desktop portal answers: file_chooser.rs) and the resolution.
 
 use std::path::PathBuf;
-use std::sync::{Arc, Mutex};
 
+use crate::viewer::file_chooser::{ChooserKind, Chosen, FileChooser};
 use crate::viewer::preferences::Preferences;
-use crate::viewer::sync::lock_ignoring_poison;
-
-/// How a closed folder dialog ended.
-enum Choice {
-    Folder(PathBuf),
-    /// Cancelled, or no desktop portal answered.
-    Nothing,
-}
 
 pub struct ScreenshotPanel {
-    /// A folder dialog running on its own thread: filled when it closes.
-    dialog: Option<Arc<Mutex<Option<Choice>>>>,
-    note: Option<String>,
-    /// Frames of the orbit movie, and whether the button asked for one this frame.
+    /// The folder chooser while it is open.
+    dialog: Option<FileChooser>,
+    /// Frames of the orbit movie; the save dialog for its folder while it is open; the folder
+    /// chosen, until the shell starts the movie.
     pub orbit_frames: u32,
-    orbit_requested: bool,
+    movie_dialog: Option<FileChooser>,
+    orbit_requested: Option<PathBuf>,
 }
 
 impl Default for ScreenshotPanel {
     fn default() -> Self {
         ScreenshotPanel {
             dialog: None,
-            note: None,
             orbit_frames: 36,
-            orbit_requested: false,
+            movie_dialog: None,
+            orbit_requested: None,
         }
     }
 }
 
 impl ScreenshotPanel {
     /// The frame count when "Orbit movie" was pressed (the shell starts the movie).
-    pub fn take_orbit_request(&mut self) -> Option<u32> {
-        std::mem::take(&mut self.orbit_requested).then_some(self.orbit_frames)
+    pub fn take_orbit_request(&mut self) -> Option<(u32, PathBuf)> {
+        self.orbit_requested
+            .take()
+            .map(|folder| (self.orbit_frames, folder))
     }
 
     pub fn ui(&mut self, ui: &mut egui::Ui, prefs: &mut Preferences) {
-        let closed = self
-            .dialog
-            .as_ref()
-            .and_then(|slot| lock_ignoring_poison(slot).take());
-        {
-            if let Some(choice) = closed {
-                match choice {
-                    Choice::Folder(folder) => {
-                        prefs.screenshot_folder = folder;
-                        self.note = None;
-                    }
-                    Choice::Nothing => {
-                        self.note = Some(
-                            "Nothing chosen (the dialog needs a desktop portal); type the folder."
-                                .into(),
-                        )
-                    }
-                }
-                self.dialog = None;
+        let closed = self.dialog.as_mut().and_then(|d| d.poll(ui.ctx()));
+        if let Some(choice) = closed {
+            self.dialog = None;
+            if let Chosen::Path(folder) = choice {
+                prefs.screenshot_folder = folder;
             }
         }
         ui.horizontal(|ui| {
@@ -76,12 +57,15 @@ impl ScreenshotPanel {
                 .add_enabled(self.dialog.is_none(), egui::Button::new("Choose…"))
                 .clicked()
             {
-                self.start_dialog(ui.ctx(), prefs.screenshot_folder.clone());
+                self.dialog = Some(FileChooser::start(
+                    ui.ctx(),
+                    ChooserKind::OpenFolder,
+                    "Folder for screenshots and movies",
+                    &prefs.screenshot_folder,
+                    None,
+                ));
             }
         });
-        if let Some(note) = &self.note {
-            ui.weak(note);
-        }
         ui.horizontal(|ui| {
             ui.label("Resolution");
             for s in [1, 2, 4] {
@@ -91,41 +75,38 @@ impl ScreenshotPanel {
         ui.horizontal(|ui| {
             ui.add(egui::Slider::new(&mut self.orbit_frames, 4..=360).text("frames"));
             if ui
-                .button("Orbit movie")
+                .add_enabled(
+                    self.movie_dialog.is_none(),
+                    egui::Button::new("Orbit movie…"),
+                )
                 .on_hover_text(
-                    "The 3D view turned once around the superior axis, as PNG frames in a new \
-                     folder here (and orbit.mp4 when ffmpeg is installed)",
+                    "The 3D view turned once around the superior axis, as PNG frames in the \
+                     folder you name (and orbit.mp4 in it when ffmpeg is installed)",
                 )
                 .clicked()
             {
-                self.orbit_requested = true;
+                let stamp = std::time::SystemTime::now()
+                    .duration_since(std::time::UNIX_EPOCH)
+                    .map_or(0, |d| d.as_secs());
+                self.movie_dialog = Some(FileChooser::start(
+                    ui.ctx(),
+                    ChooserKind::SaveFile,
+                    "Save the orbit movie (a folder of frames)",
+                    &prefs.screenshot_folder,
+                    Some(&format!("strata-orbit-{stamp}")),
+                ));
             }
         });
+        if let Some(chosen) = self.movie_dialog.as_mut().and_then(|d| d.poll(ui.ctx())) {
+            self.movie_dialog = None;
+            if let Chosen::Path(folder) = chosen {
+                self.orbit_requested = Some(folder);
+            }
+        }
         if prefs.screenshot_scale > 1 {
             ui.weak("2× and 4×: the 3D image alone, rendered at that size (no annotations).");
         } else {
             ui.weak("1×: the view as seen, at the screen's full resolution, with annotations.");
-        }
-    }
-
-    fn start_dialog(&mut self, ctx: &egui::Context, start: PathBuf) {
-        let slot = Arc::new(Mutex::new(None));
-        let thread_slot = slot.clone();
-        let ctx = ctx.clone();
-        let spawned = std::thread::Builder::new()
-            .name("strata-folder-dialog".into())
-            .spawn(move || {
-                let mut dialog = rfd::FileDialog::new().set_title("Folder for screenshots");
-                if start.is_dir() {
-                    dialog = dialog.set_directory(&start);
-                }
-                let choice = dialog.pick_folder().map_or(Choice::Nothing, Choice::Folder);
-                *lock_ignoring_poison(&thread_slot) = Some(choice);
-                ctx.request_repaint();
-            });
-        match spawned {
-            Ok(_) => self.dialog = Some(slot),
-            Err(e) => self.note = Some(format!("no folder dialog: {e}; type the folder")),
         }
     }
 }

@@ -2,24 +2,25 @@
 
 use strata_render::TransferFunction;
 
+use crate::viewer::file_chooser::{ChooserKind, Chosen, FileChooser};
 use crate::viewer::scene::{preset_for, Scene, VolumeData, PRESETS};
 use crate::viewer::tf_editor::{self, TfEditorState};
 
-pub struct TfPanel {
-    pub editor: TfEditorState,
-    /// The file Save and Load use.
-    pub path: String,
-    message: Option<String>,
+/// What a running file chooser of the panel is for.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum FileAction {
+    Save,
+    Load,
 }
 
-impl Default for TfPanel {
-    fn default() -> Self {
-        TfPanel {
-            editor: TfEditorState::default(),
-            path: "transfer-function.json".into(),
-            message: None,
-        }
-    }
+#[derive(Default)]
+pub struct TfPanel {
+    pub editor: TfEditorState,
+    /// The file last saved or loaded (where the choosers open; empty before either).
+    pub path: String,
+    message: Option<String>,
+    /// Save… and Load… ask where (issue 36: Save wrote to the current folder without asking).
+    chooser: Option<(FileChooser, FileAction)>,
 }
 
 impl TfPanel {
@@ -58,35 +59,66 @@ impl TfPanel {
             &unit,
         );
         ui.horizontal(|ui| {
-            ui.add(egui::TextEdit::singleline(&mut self.path).desired_width(150.0))
-                .accessible_name("Transfer function file");
-            if ui.button("Save").clicked() {
-                self.message = Some(
-                    match scene
-                        .transfer_function
-                        .save(std::path::Path::new(&self.path))
-                    {
-                        Ok(()) => format!("saved {}", self.path),
+            let idle = self.chooser.is_none();
+            // Where the last file was, else the home folder (never the working folder).
+            let start = if self.path.is_empty() {
+                std::env::var_os("HOME").map_or_else(Default::default, std::path::PathBuf::from)
+            } else {
+                std::path::PathBuf::from(&self.path)
+            };
+            let name = std::path::Path::new(&self.path)
+                .file_name()
+                .map_or("transfer-function.json".to_string(), |n| {
+                    n.to_string_lossy().into_owned()
+                });
+            if ui.add_enabled(idle, egui::Button::new("Save…")).clicked() {
+                let chooser = FileChooser::start(
+                    ui.ctx(),
+                    ChooserKind::SaveFile,
+                    "Save the transfer function",
+                    &start,
+                    Some(&name),
+                );
+                self.chooser = Some((chooser, FileAction::Save));
+            }
+            if ui.add_enabled(idle, egui::Button::new("Load…")).clicked() {
+                let chooser = FileChooser::start(
+                    ui.ctx(),
+                    ChooserKind::OpenFile,
+                    "Load a transfer function",
+                    &start,
+                    None,
+                );
+                self.chooser = Some((chooser, FileAction::Load));
+            }
+        });
+        let outcome = self
+            .chooser
+            .as_mut()
+            .and_then(|(chooser, action)| Some((chooser.poll(ui.ctx())?, *action)));
+        if let Some((chosen, action)) = outcome {
+            self.chooser = None;
+            if let Chosen::Path(path) = chosen {
+                self.path = path.display().to_string();
+                self.message = Some(match action {
+                    FileAction::Save => match scene.transfer_function.save(&path) {
+                        Ok(()) => format!("saved {}", path.display()),
                         Err(e) => format!("could not save: {e}"),
                     },
-                );
-            }
-            if ui.button("Load").clicked() {
-                self.message = Some(
-                    match TransferFunction::load(std::path::Path::new(&self.path)) {
+                    FileAction::Load => match TransferFunction::load(&path) {
                         Ok(tf) => {
                             scene.set_transfer_function(tf);
                             // A file is no preset: the highlight must not stay on the one
                             // before (issue 36). The next volume opens with its default.
                             preset.clear();
                             self.editor = TfEditorState::default();
-                            format!("loaded {}", self.path)
+                            format!("loaded {}", path.display())
                         }
                         Err(e) => format!("could not load: {e}"),
                     },
-                );
+                });
             }
-        });
+        }
         if let Some(m) = &self.message {
             ui.weak(m);
         }
