@@ -65,6 +65,7 @@
 //! `pipelines` → `shaders`.
 
 pub mod adaptive;
+pub mod blinn_phong;
 pub mod bricked_volume;
 pub mod cache;
 pub mod camera;

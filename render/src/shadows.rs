@@ -53,8 +53,8 @@
 
 use glam::DVec3;
 
+use crate::blinn_phong::smoothstep;
 use crate::camera::CameraBasis;
-use crate::reference::smoothstep;
 use crate::settings::{KeyLight, LightDirection, RenderSettings, Shading};
 
 /// The shadow bias r₀, in finest voxels (see the module doc).
@@ -216,7 +216,7 @@ pub(crate) fn gpu_light(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::reference::shade;
+    use crate::blinn_phong::shade;
 
     #[test]
     fn the_headlight_unshadowed_is_the_old_blinn_phong() {
