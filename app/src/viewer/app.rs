@@ -866,7 +866,14 @@ impl StrataApp {
                 };
                 ui.selectable_value(&mut self.preferences.mode, mode, label);
             }
-            ui.checkbox(&mut self.preferences.shading, "Shading");
+            if ui
+                .checkbox(&mut self.preferences.shading, "Shading")
+                .changed()
+                && !self.preferences.shading
+            {
+                // As in the Rendering panel: shadows would keep the view shaded otherwise.
+                self.preferences.light.shadows = strata_render::ShadowMode::Off;
+            }
             ui.separator();
             let orthographic = self.preferences.orthographic;
             if let Some(v) = self.volume.as_mut() {

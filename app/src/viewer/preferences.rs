@@ -4,7 +4,7 @@
 use std::path::PathBuf;
 
 use serde::{Deserialize, Serialize};
-use strata_render::RenderMode;
+use strata_render::{KeyLight, LightDirection, RenderMode, Shading, ShadowMode, Shadows};
 
 use super::measurements::Measurement;
 use super::orientation::SliceView;
@@ -84,6 +84,8 @@ pub struct Preferences {
     pub preset: String,
     pub mode: RenderMode,
     pub shading: bool,
+    /// The key light, ambient term and shadows of shaded DVR and isosurfaces (issue 37).
+    pub light: LightPrefs,
     /// Continuous field where bricks of different resolution meet (off: visible seams).
     pub smooth_transitions: bool,
     /// The raycaster's traversal (flat table or the cut's octree).
@@ -123,6 +125,7 @@ impl Default for Preferences {
             preset: "ct-bone".into(),
             mode: RenderMode::Dvr,
             shading: true,
+            light: LightPrefs::default(),
             smooth_transitions: true,
             traversal: TraversalChoice::Automatic,
             adaptive_sampling: false,
@@ -142,4 +145,122 @@ impl Default for Preferences {
             measurements: Default::default(),
         }
     }
+}
+
+/// The viewer's light controls (issue 37). The direction is kept as angles, not as render's
+/// [`LightDirection`], so choosing the headlight and back keeps the direction the user set.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct LightPrefs {
+    /// Light at the eye (today's look); false: the directional key light of the angles below.
+    pub headlight: bool,
+    /// Camera-relative, degrees: 0 is along the view axis, positive to the right.
+    pub azimuth_deg: f64,
+    /// Camera-relative, degrees: positive is above.
+    pub elevation_deg: f64,
+    /// The key light's direct (diffuse and specular) term.
+    pub intensity: f32,
+    /// [`Shading::ambient`]: what shadows never darken.
+    pub ambient: f32,
+    pub shadows: ShadowMode,
+    /// Shadow-ray step in finest voxels.
+    pub shadow_step: f64,
+}
+
+impl Default for LightPrefs {
+    /// The headlight at render's defaults: the image Strata has always drawn.
+    fn default() -> Self {
+        let key = KeyLight::default();
+        let shadows = Shadows::default();
+        LightPrefs {
+            headlight: true,
+            azimuth_deg: -30.0,
+            elevation_deg: 30.0,
+            intensity: key.intensity,
+            ambient: Shading::default().ambient,
+            shadows: shadows.mode,
+            shadow_step: shadows.step,
+        }
+    }
+}
+
+/// Degrees the direction angles span (the sliders and the gizmo square).
+pub const AZIMUTH_RANGE: std::ops::RangeInclusive<f64> = -180.0..=180.0;
+pub const ELEVATION_RANGE: std::ops::RangeInclusive<f64> = -90.0..=90.0;
+/// Shadow-step range in finest voxels: the CLI's lower bound (render refuses smaller steps);
+/// above a few voxels shadows only blur.
+pub const SHADOW_STEP_RANGE: std::ops::RangeInclusive<f64> = 0.05..=8.0;
+
+impl LightPrefs {
+    /// The direction towards the light in camera axes (x right, y up, z towards the viewer),
+    /// as `--light-dir` takes it.
+    pub fn camera_direction(&self) -> [f64; 3] {
+        let (az, el) = (
+            self.azimuth_deg.to_radians(),
+            self.elevation_deg.to_radians(),
+        );
+        [el.cos() * az.sin(), el.sin(), el.cos() * az.cos()]
+    }
+
+    pub fn key_light(&self) -> KeyLight {
+        KeyLight {
+            direction: if self.headlight {
+                LightDirection::Headlight
+            } else {
+                LightDirection::Camera(self.camera_direction())
+            },
+            // A damaged or hand-edited file must not make every frame invalid.
+            intensity: if self.intensity.is_finite() {
+                self.intensity.max(0.0)
+            } else {
+                KeyLight::default().intensity
+            },
+        }
+    }
+
+    pub fn shading(&self) -> Shading {
+        Shading {
+            ambient: if self.ambient.is_finite() {
+                self.ambient.clamp(0.0, 1.0)
+            } else {
+                Shading::default().ambient
+            },
+            ..Shading::default()
+        }
+    }
+}
+
+/// Why shadows cannot be drawn in these preferences, or None where they can: the CLI refuses
+/// them for MIP and for the adaptive pass (neither traces shadow rays).
+pub fn shadows_refused(prefs: &Preferences) -> Option<&'static str> {
+    if prefs.mode == RenderMode::Mip {
+        Some("Shadows light DVR and isosurfaces: MIP is never lit.")
+    } else if prefs.adaptive_sampling && prefs.mode != RenderMode::Isosurface {
+        Some(
+            "The adaptive pass does not trace shadow rays: turn adaptive sampling off to              draw shadows.",
+        )
+    } else {
+        None
+    }
+}
+
+/// The lighting part of the 3D view's render settings: shading, key light and shadows.
+/// Shadows turn shading on (as `strata render --shadows` does); isosurfaces are always shaded,
+/// with the panel's ambient term.
+pub fn render_lighting(prefs: &Preferences) -> (Option<Shading>, KeyLight, Shadows) {
+    let light = &prefs.light;
+    let shadows = Shadows {
+        mode: match shadows_refused(prefs) {
+            Some(_) => ShadowMode::Off,
+            None => light.shadows,
+        },
+        step: if light.shadow_step.is_finite() {
+            light.shadow_step.clamp(*SHADOW_STEP_RANGE.start(), 1000.0)
+        } else {
+            Shadows::default().step
+        },
+    };
+    let shaded =
+        prefs.shading || shadows.mode != ShadowMode::Off || prefs.mode == RenderMode::Isosurface;
+    (shaded.then(|| light.shading()), light.key_light(), shadows)
 }

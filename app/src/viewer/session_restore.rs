@@ -399,6 +399,53 @@ mod tests {
     }
 
     #[test]
+    fn the_light_comes_back_with_the_session_and_an_older_session_has_the_headlight() {
+        use super::super::preferences::{render_lighting, LightPrefs};
+        use strata_render::{LightDirection, ShadowMode};
+
+        let dir = tempfile::tempdir().expect("tempdir");
+        let location = dir.path().join("ct.strata");
+        let preferences = Preferences {
+            light: LightPrefs {
+                headlight: false,
+                azimuth_deg: 75.5,
+                elevation_deg: -20.25,
+                intensity: 1.5,
+                ambient: 0.125,
+                shadows: ShadowMode::Exact,
+                shadow_step: 0.75,
+            },
+            ..Preferences::default()
+        };
+        let saved = SavedSession::capture(&location, &preferences, &scene(), &Default::default());
+        let path = session_path(&dir.path().join("stores"));
+        SavedSession::write(&saved.to_json(), &path).expect("write");
+        let read = SavedSession::read(&path).expect("read");
+        assert_eq!(read.preferences.light, preferences.light);
+        assert_eq!(
+            render_lighting(&read.preferences),
+            render_lighting(&preferences),
+            "the restored session renders with the same light"
+        );
+
+        // A session written before the light controls: its preferences have no "light".
+        let mut json: serde_json::Value = serde_json::from_str(&saved.to_json()).expect("json");
+        json["preferences"]
+            .as_object_mut()
+            .expect("preferences object")
+            .remove("light")
+            .expect("the light is saved under preferences.light");
+        std::fs::write(&path, json.to_string()).expect("write old");
+        let old = SavedSession::read(&path).expect("an old session still loads");
+        assert_eq!(old.preferences.light, LightPrefs::default());
+        let (shading, light, shadows) = render_lighting(&old.preferences);
+        assert_eq!(light.direction, LightDirection::Headlight);
+        assert!(light.is_default(), "today's look: {light:?}");
+        assert_eq!(shadows.mode, ShadowMode::Off);
+        assert_eq!(shading, Some(strata_render::Shading::default()));
+    }
+
+    #[test]
     fn a_damaged_or_foreign_session_file_is_an_error_naming_it() {
         let dir = tempfile::tempdir().expect("tempdir");
         let path = dir.path().join("last-session.json");

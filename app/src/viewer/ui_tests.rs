@@ -2317,3 +2317,113 @@ fn the_outlines_of_a_frame_are_drawn_with_that_frames_camera() {
     assert_eq!(painted, Some(turned));
     assert_eq!(overlays, painted);
 }
+
+/// Issue 37: the Rendering panel's light controls change the settings the 3D view asks for
+/// (key light, intensity, ambient, shadows, which turn shading on), the shadowed frame renders,
+/// shadows are refused for MIP, and showing the controls does not move the views (issue 36:
+/// the side panel keeps its width).
+#[test]
+fn the_light_controls_reach_the_3d_views_settings_without_widening_the_panel() {
+    use super::panels::rendering::{
+        AMBIENT_LABEL, AZIMUTH_LABEL, DIRECTIONAL_LABEL, ELEVATION_LABEL, EXACT_SHADOWS_LABEL,
+        INTENSITY_LABEL, SHADOW_STEP_LABEL,
+    };
+    use egui::accesskit::Role;
+    use egui_kittest::kittest::NodeT;
+    use strata_render::{LightDirection, RenderSettings, ShadowMode};
+
+    let dir = tempfile::tempdir().expect("tempdir");
+    let store = phantom_store(dir.path());
+    let mut options = ViewerOptions::new(VolumeSource::Path(store.clone()));
+    options.import_folder = dir.path().join("imported");
+    let preferences = Preferences {
+        layout: Layout::Single,
+        show_side_panel: true,
+        // Off, so that turning shadows on visibly turns it on.
+        shading: false,
+        ..Preferences::default()
+    };
+    // Tall, so the rendering panel is on screen below the others.
+    let mut h = harness_sized(options, preferences, Vec2::new(700.0, 1600.0));
+    let first = wait_for_settled_frame(&mut h, "the first converged frame", 0);
+    let settings = |h: &Harness<'static, Option<StrataApp>>| -> RenderSettings {
+        app(h).volume_request().expect("a request").settings
+    };
+    let before = settings(&h);
+    assert_eq!(before.light.direction, LightDirection::Headlight);
+    assert!(before.light.is_default());
+    assert_eq!(before.shadows.mode, ShadowMode::Off);
+    assert_eq!(before.shading, None);
+    let view_before = app(&h).view_rect(ViewSlot::ThreeD).expect("3D view");
+
+    h.get_by_label(DIRECTIONAL_LABEL).click_accesskit();
+    h.step();
+    h.step();
+    h.get_by_role_and_label(Role::Slider, AZIMUTH_LABEL)
+        .set_value_accesskit(90.0);
+    h.step();
+    h.get_by_role_and_label(Role::Slider, ELEVATION_LABEL)
+        .set_value_accesskit(0.0);
+    h.step();
+    h.get_by_role_and_label(Role::Slider, INTENSITY_LABEL)
+        .set_value_accesskit(1.5);
+    h.step();
+    h.get_by_role_and_label(Role::Slider, AMBIENT_LABEL)
+        .set_value_accesskit(0.1);
+    h.step();
+    h.get_by_label(EXACT_SHADOWS_LABEL).click_accesskit();
+    h.step();
+    h.step();
+    h.get_by_role_and_label(Role::Slider, SHADOW_STEP_LABEL)
+        .set_value_accesskit(2.0);
+    h.step();
+    h.step();
+    assert!(app(&h).preferences.shading, "shadows turn shading on");
+
+    let lit = settings(&h);
+    match lit.light.direction {
+        // Azimuth 90°, elevation 0: from the right, in camera axes.
+        LightDirection::Camera(v) => assert!(
+            (v[0] - 1.0).abs() < 1e-9 && v[1].abs() < 1e-9 && v[2].abs() < 1e-9,
+            "{v:?}"
+        ),
+        other => panic!("expected a camera-relative light, got {other:?}"),
+    }
+    assert_eq!(lit.light.intensity, 1.5);
+    assert_eq!(lit.shading.map(|s| s.ambient), Some(0.1));
+    assert_eq!(lit.shadows.mode, ShadowMode::Exact);
+    assert_eq!(lit.shadows.step, 2.0);
+    assert!(lit.effective_shadows());
+    assert_eq!(
+        app(&h).view_rect(ViewSlot::ThreeD).expect("3D view"),
+        view_before,
+        "the light controls widened the side panel"
+    );
+
+    // The shadowed frame renders (the raycaster accepts the viewer's settings) and differs
+    // from the unshaded headlight frame.
+    let shadowed = step_until_some(&mut h, "the converged shadowed frame", |a| {
+        settled_frame(a).filter(|f| f.request.settings.effective_shadows())
+    });
+    assert!(
+        mean_abs_difference(&shadowed.rgba, &first.rgba) > 0.5,
+        "the light changed nothing on screen"
+    );
+
+    // MIP is never lit: the shadow control is disabled (its tooltip says why) and the request
+    // carries no shadows, while the choice is kept for DVR.
+    // The toolbar and the panel both offer "MIP"; either switches the mode.
+    h.query_all_by_label("MIP")
+        .next()
+        .expect("a MIP button")
+        .click_accesskit();
+    h.step();
+    h.step();
+    assert_eq!(app(&h).preferences.mode, strata_render::RenderMode::Mip);
+    assert!(h
+        .get_by_label(EXACT_SHADOWS_LABEL)
+        .accesskit_node()
+        .is_disabled());
+    assert_eq!(settings(&h).shadows.mode, ShadowMode::Off);
+    assert_eq!(app(&h).preferences.light.shadows, ShadowMode::Exact);
+}

@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 use egui::{Color32, Pos2, Rect, Sense, Stroke, TextureHandle, TextureOptions, Vec2};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
-use strata_render::{Camera, Projection, RenderMode, RenderSettings, Shading, VolumeGeometry};
+use strata_render::{Camera, Projection, RenderMode, RenderSettings, VolumeGeometry};
 
 use super::measurements::{Shape, Tool};
 use super::oblique::{ObliquePlane, OBLIQUE_COLOUR};
@@ -460,12 +460,15 @@ impl View3d {
         self.requested_size = [width, height];
         let camera = self.orbit.camera(&data.info.geometry);
         let clip_plane = scene.clip.enabled.then(|| data.clip_plane(&scene.clip));
+        let (shading, light, shadows) = super::preferences::render_lighting(prefs);
         let settings = RenderSettings {
             width,
             height,
             mode: prefs.mode,
             quality: prefs.step_voxels,
-            shading: prefs.shading.then(Shading::default),
+            shading,
+            light,
+            shadows,
             smooth_transitions: prefs.smooth_transitions,
             iso_value: scene.iso_value,
             crop: scene.crop,
