@@ -292,6 +292,7 @@ fn effect_table(
                 shadows: Shadows {
                     mode: ShadowMode::Exact,
                     step: 1.0,
+                    ..Shadows::default()
                 },
                 ..key_lit.clone()
             },
