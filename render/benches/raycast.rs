@@ -8,7 +8,8 @@
 //!      STRATA_BENCH_VOLUME (default 256), STRATA_BENCH_REF_SIZE (default 128),
 //!      STRATA_BENCH_STEPS (default 0.5,1,2,3: the peer runs at 0.5; the rest find equal PSNR),
 //!      STRATA_BENCH_SAVE=DIR (keep the PSNR images as PPM in DIR),
-//!      STRATA_BENCH_EFFECTS=shadows,shading (only those rows of the effect table, nothing else).
+//!      STRATA_BENCH_EFFECTS=shadows,shading (only those rows of the effect table, nothing else),
+//!      STRATA_BENCH_LIGHT_CACHE_RES (default 2: voxels per light-cache texel, the cache row).
 //!
 //! Prints ms/frame (median), samples/s, the sampling-only kernel's samples/s measured in the
 //! same run (the ceiling: same texture, same fetch count, no page lookup, TF or compositing),
@@ -216,6 +217,7 @@ fn effect_table(
         skip_empty: true,
         ..shaded.clone()
     };
+    let cache_res = env_u32("STRATA_BENCH_LIGHT_CACHE_RES", 2) as f64;
     let clip = ClipPlane {
         normal: [0.0, 0.0, 1.0],
         offset_mm: volume.geometry.centre_patient().z - 40.0,
@@ -297,7 +299,8 @@ fn effect_table(
                 ..key_lit.clone()
             },
         ),
-        // Cache-mode shadows (light_cache.rs, 2 voxels per texel, its rays at step 1 voxel):
+        // Cache-mode shadows (light_cache.rs, 2 voxels per texel unless the environment says,
+        // its rays at step 1 voxel):
         // the same light; the cache is built in the warm-up round and kept (nothing it was
         // built from changes), so "on" is the lookup's cost. Its build time is printed below.
         (
@@ -307,7 +310,7 @@ fn effect_table(
                 shadows: Shadows {
                     mode: ShadowMode::Cache,
                     step: 1.0,
-                    cache_res: 2.0,
+                    cache_res,
                 },
                 ..key_lit.clone()
             },
@@ -399,9 +402,9 @@ fn effect_table(
             }
         }
         let (rebuilt, kept) = (median(rebuilt), median(kept));
-        let dims = light_cache::grid_dims(volume.geometry.dims, 2.0);
+        let dims = light_cache::grid_dims(volume.geometry.dims, cache_res);
         println!(
-            "light cache {dims:?} texels (2 voxels each): frame with a rebuild {rebuilt:.1} ms, \
+            "light cache {dims:?} texels ({cache_res} voxels each): frame with a rebuild {rebuilt:.1} ms, \
              without {kept:.1} ms, build ≈ {:.1} ms ({} builds)",
             rebuilt - kept,
             raycaster.light_cache_builds() - builds_before

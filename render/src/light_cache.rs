@@ -41,6 +41,21 @@
 //! **Reference.** reference.rs builds the same grid in f64 (each texel an exact shadow ray at
 //! the reference's refined shadow step, no empty test) and interpolates it the same way: linear
 //! in the texels, so the f64 cache costs (⌈N/res⌉)³ shadow rays however large the image is.
+//!
+//! **GPU cost.** `STRATA_BENCH_EFFECTS=shadows,shading STRATA_BENCH_SIZE=256
+//! STRATA_BENCH_FRAMES=3 cargo bench -p strata-render --bench raycast --profile dev` (256³
+//! VTK-peer phantom, 256², DVR step 0.5, shaded, key light (0.5, 0.5, 0.7) camera-relative,
+//! empty skipping and early termination on, shadow step 1 voxel), lavapipe on the shared
+//! 2-core machine, 2026-12-05: unshadowed 426 ms, exact shadows 5568 ms (12.95×), cache at 2
+//! voxels per texel 550 ms (1.29×; never built 424 ms), its build (128³ texels) 8.6 s; with
+//! `STRATA_BENCH_LIGHT_CACHE_RES=4`: 578 ms against 488 ms unshadowed (1.19×), build (64³
+//! texels) 1.4 s. A build traces one exact shadow ray per texel, so at 2 voxels per texel on
+//! 256³ it costs more than one exact frame at 256² (2.1 M rays against the frame's shaded
+//! samples): the cache pays from the second frame with the same light, i.e. for every camera
+//! move with a patient-relative light. A slice sweep along the light's dominant axis (each
+//! texel one cell of ray plus the interpolated texel of the slice before it) would make the
+//! build O(texels) instead of O(texels · N), at the price of diffusion along the sweep; not
+//! built yet.
 
 use glam::DVec3;
 

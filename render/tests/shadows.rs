@@ -733,6 +733,35 @@ mod cache {
         );
     }
 
+    /// The cache's lookup is compiled in only for cache shadows in a lit mode, never together
+    /// with exact shadow rays, and none of it without shading or in MIP.
+    #[test]
+    fn the_cache_is_compiled_in_only_when_it_lights_something() {
+        let ctx = gpu();
+        let f = floor_only();
+        let g = GpuScene::new(&ctx, &f, CacheConfig::default());
+        let cam = from_above();
+        let on = cached(LightDirection::Patient([1.0, 0.0, 1.0]), 2.0);
+        let k = g.key(&f, &cam, &on);
+        assert!(k.key_light && k.light_cache && !k.shadows);
+        let k = g.key(&f, &cam, &exact(&on));
+        assert!(k.shadows && !k.light_cache);
+        let k = g.key(&f, &cam, &unshadowed(&on));
+        assert!(!k.light_cache && !k.shadows);
+        for s in [
+            RenderSettings {
+                shading: None,
+                ..on.clone()
+            },
+            RenderSettings {
+                mode: RenderMode::Mip,
+                ..on.clone()
+            },
+        ] {
+            assert!(!g.key(&f, &cam, &s).light_cache, "{:?}", s.mode);
+        }
+    }
+
     /// An empty volume with cache shadows: black, depth +inf, every texel V = 1 (nothing casts
     /// a shadow; with empty skipping none is even traced), on GPU and reference; and the
     /// headlight, whose direction is each ray's own, is refused, not drawn wrong.
