@@ -6,10 +6,29 @@
 //! **Model** (shadows.rs for the lighting it plugs V into). The grid has one texel per `res`
 //! finest voxels ([`crate::Shadows::cache_res`]): texel i of an axis of n voxels sits at index
 //! position (i + ½)·res − ½, ⌈n/res⌉ texels per axis (voxel centres at integers, the volume box
-//! [−½, n − ½]). Texel i holds V_i, the exact model's shadow ray from its centre (bias r₀,
-//! [`crate::Shadows::step`], the GPU's optical-depth limit), except that it starts where the
-//! ray enters the cropped box and the clip plane's half-space: a texel centre may lie outside
-//! them, and cut-away matter casts no shadow. A shaded sample at x reads
+//! [−½, n − ½]). The build sweeps the grid slice by slice along the index axis `a` most aligned
+//! with the light (|l_a| ≥ |l|/√3), starting with the slice nearest the light:
+//!
+//! ```text
+//! first slice:  V_i = T(p_i; 0, exit)
+//! later slices: V_i = T(p_i; 0, Δt) · bilinear{V of the slice before}(p_i + ω_l·Δt),
+//!               Δt = res / |l_a| mm (the ray from p_i reaches that slice's plane),
+//!               or T(p_i; 0, exit) alone where the ray leaves first
+//! ```
+//!
+//! T(p; r, s) is the exact mode's shadow ray (shadows.rs: midpoint samples at
+//! [`crate::Shadows::step`] through the resident cut, the GPU's optical-depth limit) over
+//! [r, s], starting no earlier than where it enters the cropped box and the clip plane's
+//! half-space (a texel centre may lie outside them, and cut-away matter casts no shadow; a ray
+//! that never enters them has V = 1). There is no shadow bias r₀ (a texel's segments tile its
+//! whole ray); the lookup offset below does its work. Each slice costs a segment of at most
+//! res·√3 voxels per texel plus 4 fetches, so a build is O(texels) against O(texels · N) for a
+//! full shadow ray per texel (the first version of this module: 8.6 s against 0.73 s below,
+//! and further from exact: 40.1 against 44.7 dB in the phantom test). The price is diffusion:
+//! each slice's bilinear step blurs a shadow's edge a little more with distance from the
+//! occluder (over about √(slices) · ½ cell).
+//!
+//! A shaded sample at x reads
 //!
 //! ```text
 //! V(x) = trilinear{V_i}(x + ω_l · res · unit · LOOKUP_OFFSET_CELLS)   (clamped to the grid)
@@ -27,35 +46,31 @@
 //! resolution, the TF (table, range, entries) and value mapping, the crop box, the clip plane,
 //! the page table's contents (the cut: [`crate::GpuPageTable`] counts its writes) and the
 //! pipeline effects that change the sampled field (manual trilinear, smooth transitions, the
-//! traversal). The camera does not: with a camera-relative light, a camera move turns ω_l and
-//! so rebuilds; with a patient-relative light it does not. Bricks written into cache slots
-//! without a page-table write that points at them do not invalidate it: the loader only makes
-//! a brick visible through the table.
+//! traversal, empty skipping). The camera does not: with a camera-relative light, a camera
+//! move turns ω_l and so rebuilds; with a patient-relative light it does not. Bricks written
+//! into cache slots without a page-table write that points at them do not invalidate it: the
+//! loader only makes a brick visible through the table. Rebuilds are whole, not per brick.
 //!
-//! **Only over non-empty bricks.** A texel is only read by samples within 2·res voxels of it
-//! (a cell of trilinear support plus the offset), and a sample with α > 0 lies in a resident
-//! page not flagged empty; so a texel whose ±2·res box touches only empty or not-resident
-//! pages is written V = 1 without tracing. The test reads the pages at the box's 8 corners,
-//! which is exact while 4·res ≤ the brick core (else every texel is traced).
+//! **Empty bricks.** A segment's march skips empty and not-resident pages as the main ray
+//! does (a page lookup, no field or TF fetch). Texels in empty space are still swept: the
+//! shadow behind an occluder reaches a lit surface through the air between them.
 //!
-//! **Reference.** reference.rs builds the same grid in f64 (each texel an exact shadow ray at
-//! the reference's refined shadow step, no empty test) and interpolates it the same way: linear
-//! in the texels, so the f64 cache costs (⌈N/res⌉)³ shadow rays however large the image is.
+//! **Reference.** reference.rs runs the same sweep in f64 (segments at the reference's refined
+//! shadow step, no empty skipping, the same axis and slice order) and interpolates the same
+//! way: O(texels) shadow segments however large the image is.
 //!
 //! **GPU cost.** `STRATA_BENCH_EFFECTS=shadows,shading STRATA_BENCH_SIZE=256
 //! STRATA_BENCH_FRAMES=3 cargo bench -p strata-render --bench raycast --profile dev` (256³
 //! VTK-peer phantom, 256², DVR step 0.5, shaded, key light (0.5, 0.5, 0.7) camera-relative,
 //! empty skipping and early termination on, shadow step 1 voxel), lavapipe on the shared
-//! 2-core machine, 2026-12-05: unshadowed 426 ms, exact shadows 5568 ms (12.95×), cache at 2
-//! voxels per texel 550 ms (1.29×; never built 424 ms), its build (128³ texels) 8.6 s; with
-//! `STRATA_BENCH_LIGHT_CACHE_RES=4`: 578 ms against 488 ms unshadowed (1.19×), build (64³
-//! texels) 1.4 s. A build traces one exact shadow ray per texel, so at 2 voxels per texel on
-//! 256³ it costs more than one exact frame at 256² (2.1 M rays against the frame's shaded
-//! samples): the cache pays from the second frame with the same light, i.e. for every camera
-//! move with a patient-relative light. A slice sweep along the light's dominant axis (each
-//! texel one cell of ray plus the interpolated texel of the slice before it) would make the
-//! build O(texels) instead of O(texels · N), at the price of diffusion along the sweep; not
-//! built yet.
+//! 2-core machine, 2026-12-05, one run (the machine's load moves the base between runs:
+//! compare ratios within a run): unshadowed 696-702 ms, exact shadows 9008 ms (12.8×), cache
+//! at 2 voxels per texel 855 ms (1.23×; never built 756 ms, noise), its build (128³ texels, a
+//! frame that rebuilds against the next that does not) 0.71 s: about one unshadowed frame,
+//! under a twelfth of one exact frame, so the cache pays from its first frame. The ray-per-
+//! texel build it replaced took 8.6 s in an earlier, less loaded run (cache 1.29×, unshadowed
+//! 426 ms); with `STRATA_BENCH_LIGHT_CACHE_RES=4` (64³ texels) that build took 1.4 s and the
+//! lookup 1.19×.
 
 use glam::DVec3;
 
@@ -68,8 +83,34 @@ pub const MIN_RES: f64 = 1.0;
 pub const MAX_RES: f64 = 16.0;
 /// The lookup is moved this many cells towards the light (module doc: acne vs contact shadows).
 pub const LOOKUP_OFFSET_CELLS: f64 = 1.0;
-/// The build kernel's workgroup edge (4³ texels).
-pub const BUILD_WORKGROUP: u32 = 4;
+/// The sweep kernel's workgroup edge (8² texels of a slice).
+pub const SWEEP_WORKGROUP: u32 = 8;
+
+/// The order of the build's sweep: along `axis`, the index-space axis the light's direction
+/// `l` (index-space image of the unit direction towards the light) is most aligned with, the
+/// slices from the light's side; `across` the texel counts of the axes after it (axis + 1,
+/// axis + 2, mod 3), which a slice's dispatch spans.
+pub struct SweepOrder {
+    pub axis: u32,
+    pub slices: Vec<u32>,
+    pub across: [u32; 2],
+}
+
+pub fn sweep_order(l: [f32; 3], n: [u32; 3]) -> SweepOrder {
+    let axis = (0..3)
+        .max_by(|&a, &b| l[a].abs().total_cmp(&l[b].abs()))
+        .unwrap_or(0);
+    let slices: Vec<u32> = if l[axis] >= 0.0 {
+        (0..n[axis]).rev().collect()
+    } else {
+        (0..n[axis]).collect()
+    };
+    SweepOrder {
+        axis: axis as u32,
+        slices,
+        across: [n[(axis + 1) % 3], n[(axis + 2) % 3]],
+    }
+}
 
 /// Texels per axis for a volume of `dims` voxels at `res` voxels per texel.
 pub fn grid_dims(dims: [u32; 3], res: f64) -> [u32; 3] {
@@ -113,6 +154,39 @@ pub fn interpolate(values: &[f64], n: [u32; 3], res: f64, q: DVec3) -> f64 {
         f[1],
     );
     lerp(y0, y1, f[2])
+}
+
+/// V of slice `slice` along `axis` at index-space point `q`, bilinear in the two other axes,
+/// clamped to the grid: the sweep's step to the slice before (shadows.wgsl
+/// `light_cache_previous`).
+pub fn interpolate_in_slice(
+    values: &[f64],
+    n: [u32; 3],
+    res: f64,
+    q: DVec3,
+    axis: usize,
+    slice: u32,
+) -> f64 {
+    let (b, c) = ((axis + 1) % 3, (axis + 2) % 3);
+    let mut i0 = [0u32; 3];
+    let mut f = [0.0f64; 3];
+    for a in 0..3 {
+        let u = ((q[a] + 0.5) / res - 0.5).clamp(0.0, (n[a] - 1) as f64);
+        i0[a] = u.floor() as u32;
+        f[a] = u - u.floor();
+    }
+    i0[axis] = slice;
+    let mut i1 = i0.map(|_| 0);
+    for a in 0..3 {
+        i1[a] = (i0[a] + 1).min(n[a] - 1);
+    }
+    i1[axis] = slice;
+    let (mut ib, mut ic) = (i0, i0);
+    ib[b] = i1[b];
+    ic[c] = i1[c];
+    let at = |i: [u32; 3]| values[texel_index(i, n)];
+    let lerp = |x: f64, y: f64, t: f64| x + (y - x) * t;
+    lerp(lerp(at(i0), at(ib), f[b]), lerp(at(ic), at(i1), f[b]), f[c])
 }
 
 /// Everything a built cache depends on (module doc); a frame whose key differs rebuilds it.

@@ -200,6 +200,10 @@ fn build_entry(
 pub(crate) struct Pipelines {
     pub(crate) layout: wgpu::BindGroupLayout,
     pipeline_layout: wgpu::PipelineLayout,
+    /// The light cache's sweep slice (group 1 of its build pipelines only: a uniform
+    /// vec4<u32> at a dynamic offset per slice, shadows.wgsl `SWEEP`).
+    pub(crate) sweep_layout: wgpu::BindGroupLayout,
+    build_pipeline_layout: wgpu::PipelineLayout,
     pub(crate) module: wgpu::ShaderModule,
     /// The effect overrides this raycaster's shader declares (all of them but in variants).
     pub(crate) declared_overrides: Vec<&'static str>,
@@ -245,6 +249,25 @@ impl Pipelines {
             bind_group_layouts: &[Some(&layout)],
             immediate_size: 0,
         });
+        let sweep_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("light cache sweep"),
+            entries: &[wgpu::BindGroupLayoutEntry {
+                binding: 0,
+                visibility: wgpu::ShaderStages::COMPUTE,
+                ty: wgpu::BindingType::Buffer {
+                    ty: wgpu::BufferBindingType::Uniform,
+                    has_dynamic_offset: true,
+                    min_binding_size: std::num::NonZeroU64::new(16),
+                },
+                count: None,
+            }],
+        });
+        let build_pipeline_layout =
+            device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+                label: Some("light cache build"),
+                bind_group_layouts: &[Some(&layout), Some(&sweep_layout)],
+                immediate_size: 0,
+            });
         let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some("raycast.wgsl"),
             source: wgpu::ShaderSource::Wgsl(wgsl.to_owned().into()),
@@ -252,6 +275,8 @@ impl Pipelines {
         Pipelines {
             layout,
             pipeline_layout,
+            sweep_layout,
+            build_pipeline_layout,
             module,
             declared_overrides: OVERRIDE_NAMES
                 .iter()
@@ -304,7 +329,7 @@ impl Pipelines {
         key: PipelineKey,
     ) -> &wgpu::ComputePipeline {
         let (layout, module, declared) = (
-            &self.pipeline_layout,
+            &self.build_pipeline_layout,
             &self.module,
             &self.declared_overrides,
         );

@@ -18,7 +18,7 @@ use crate::gpu_overlay::GpuOverlay;
 use crate::gpu_preintegration::GpuPreintegration;
 use crate::gpu_timing::{FrameTiming, FrameTimingSource, PassTimestamps};
 use crate::layout::WORKGROUP_SIZE;
-use crate::light_cache::{GpuLightCache, LightCacheKey, BUILD_WORKGROUP};
+use crate::light_cache::{self, GpuLightCache, LightCacheKey, SWEEP_WORKGROUP};
 use crate::overlay::{OverlayLut, OverlayVolume};
 use crate::pipelines::Pipelines;
 use crate::readback_ring::ReadbackRing;
@@ -716,7 +716,36 @@ impl Raycaster {
         encoder.clear_buffer(&vis.buffer, 0, None);
         encoder.clear_buffer(&self.counter, 0, None);
         if let Some(n) = build_light_cache {
-            // Its own pass, before the frame's: the frame reads what it writes.
+            // Its own pass, before the frame's: the frame reads what it writes. One dispatch
+            // per slice along the sweep axis, from the light's side (light_cache.rs).
+            let l = [params.light[0], params.light[1], params.light[2]];
+            let sweep = light_cache::sweep_order(l, n);
+            let stride = (limits.min_uniform_buffer_offset_alignment as u64).max(16);
+            let mut words = vec![0u32; sweep.slices.len() * (stride as usize / 4)];
+            for (k, slice) in sweep.slices.iter().enumerate() {
+                let at = k * stride as usize / 4;
+                words[at..at + 3].copy_from_slice(&[*slice, sweep.axis, u32::from(k == 0)]);
+            }
+            let slices = wgpu::util::DeviceExt::create_buffer_init(
+                device,
+                &wgpu::util::BufferInitDescriptor {
+                    label: Some("light cache sweep"),
+                    contents: bytemuck::cast_slice(&words),
+                    usage: wgpu::BufferUsages::UNIFORM,
+                },
+            );
+            let slice_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("light cache sweep"),
+                layout: &self.pipelines.sweep_layout,
+                entries: &[wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                        buffer: &slices,
+                        offset: 0,
+                        size: wgpu::BufferSize::new(16),
+                    }),
+                }],
+            });
             if let Some(build) = self.pipelines.get_light_cache_build(&key) {
                 let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
                     label: Some("light cache"),
@@ -724,11 +753,14 @@ impl Raycaster {
                 });
                 pass.set_pipeline(build);
                 pass.set_bind_group(0, &bind_group, &[]);
-                pass.dispatch_workgroups(
-                    n[0].div_ceil(BUILD_WORKGROUP),
-                    n[1].div_ceil(BUILD_WORKGROUP),
-                    n[2].div_ceil(BUILD_WORKGROUP),
-                );
+                for k in 0..sweep.slices.len() {
+                    pass.set_bind_group(1, &slice_group, &[(k as u64 * stride) as u32]);
+                    pass.dispatch_workgroups(
+                        sweep.across[0].div_ceil(SWEEP_WORKGROUP),
+                        sweep.across[1].div_ceil(SWEEP_WORKGROUP),
+                        1,
+                    );
+                }
             }
         }
         if let Some(timestamps) = self.timestamps.as_mut() {
@@ -1006,9 +1038,7 @@ pub(crate) fn build_params(scene: &Scene) -> Params {
     let iso_color = tf.source.color_at(s.iso_value);
     let light = crate::shadows::gpu_light(s, &basis, g);
     let cache_res = s.shadows.cache_res;
-    let cache_dims = crate::light_cache::grid_dims(g.dims, cache_res);
-    // Texels over empty pages are left untraced only where the 8-corner test is exact.
-    let cache_skip = s.skip_empty && 4.0 * cache_res <= crate::layout::BRICK_CORE as f64;
+    let cache_dims = light_cache::grid_dims(g.dims, cache_res);
     Params {
         eye_idx: v4(eye_idx, basis.half_extent),
         right_idx: v4(a * basis.right, aspect),
@@ -1065,9 +1095,9 @@ pub(crate) fn build_params(scene: &Scene) -> Params {
         shadow: light.shadow,
         clip_idx: light.clip_idx,
         light_cache: [
-            (cache_res * unit * crate::light_cache::LOOKUP_OFFSET_CELLS) as f32,
+            (cache_res * unit * light_cache::LOOKUP_OFFSET_CELLS) as f32,
             cache_res as f32,
-            if cache_skip { 1.0 } else { 0.0 },
+            0.0,
             0.0,
         ],
         light_cache_dims: [cache_dims[0], cache_dims[1], cache_dims[2], 0],

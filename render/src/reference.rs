@@ -197,9 +197,8 @@ pub fn render_reference_with_overlay<S: BrickSource>(
     })
 }
 
-/// The light cache in f64 (light_cache.rs): at every texel centre an exact shadow ray at the
-/// reference's shadow step, from where it enters the cropped box and the clip half-space;
-/// texels x fastest, as the GPU's (`Raycaster::read_light_cache_blocking`).
+/// The light cache in f64 (light_cache.rs): the GPU's sweep, its rays at the reference's
+/// shadow step; texels x fastest, as the GPU's (`Raycaster::read_light_cache_blocking`).
 pub fn reference_light_cache<S: BrickSource>(
     scene: &ReferenceScene<S>,
     camera: &Camera,
@@ -228,40 +227,61 @@ fn light_cache_grid<S: BrickSource>(
     let l_idx = a * light;
     let shadow_step = settings.shadows.step * unit / REFERENCE_SHADOW_REFINEMENT;
     let (tf, mapping) = (scene.transfer_function, scene.mapping);
-    let count = n.iter().map(|&d| d as usize).product::<usize>();
-    (0..count)
-        .into_par_iter()
-        .map(|k| {
-            let i = [
-                (k % n[0] as usize) as u32,
-                ((k / n[0] as usize) % n[1] as usize) as u32,
-                (k / (n[0] as usize * n[1] as usize)) as u32,
-            ];
-            let p_idx = light_cache::texel_centre(i, res);
-            let p = g.patient_from_index(p_idx);
-            let Some((t0, t1)) = ray_interval(g, settings, p, light) else {
-                return 1.0;
-            };
-            transmittance(
-                (SHADOW_START_VOXELS * unit).max(t0),
-                t1,
-                shadow_step,
-                REFERENCE_TAU_MAX,
-                |s| {
-                    sample_field(
-                        scene.source,
-                        scene.page_table,
-                        masks,
-                        g.dims,
-                        p_idx + l_idx * s,
-                    )
-                    .map_or(0.0, |loc| {
-                        extinction(tf.opacity_at(mapping.physical(loc.value)), unit)
-                    })
-                },
-            )
+    let sigma = |q: DVec3| {
+        sample_field(scene.source, scene.page_table, masks, g.dims, q).map_or(0.0, |loc| {
+            extinction(tf.opacity_at(mapping.physical(loc.value)), unit)
         })
-        .collect()
+    };
+    // The GPU's sweep (shadows.wgsl `build_light_cache`), slice by slice from the light's
+    // side; the axis is chosen from the same f32 direction the GPU has.
+    let order = light_cache::sweep_order([l_idx.x as f32, l_idx.y as f32, l_idx.z as f32], n);
+    let axis = order.axis as usize;
+    let (b, c) = ((axis + 1) % 3, (axis + 2) % 3);
+    let dt = res / l_idx[axis].abs();
+    let mut values = vec![1.0f64; n.iter().map(|&d| d as usize).product()];
+    for (k, &slice) in order.slices.iter().enumerate() {
+        let previous = if l_idx[axis] >= 0.0 {
+            slice + 1
+        } else {
+            slice.wrapping_sub(1)
+        };
+        let across = order.across[0] as usize * order.across[1] as usize;
+        let done = &values;
+        let slice_values: Vec<(usize, f64)> = (0..across)
+            .into_par_iter()
+            .map(|j| {
+                let mut i = [0u32; 3];
+                i[axis] = slice;
+                i[b] = (j % order.across[0] as usize) as u32;
+                i[c] = (j / order.across[0] as usize) as u32;
+                let p_idx = light_cache::texel_centre(i, res);
+                let index = light_cache::texel_index(i, n);
+                let Some((t0, t1)) = ray_interval(g, settings, g.patient_from_index(p_idx), light)
+                else {
+                    return (index, 1.0);
+                };
+                let on_ray = |s: f64| sigma(p_idx + l_idx * s);
+                if k == 0 {
+                    return (
+                        index,
+                        transmittance(t0, t1, shadow_step, REFERENCE_TAU_MAX, on_ray),
+                    );
+                }
+                let v = transmittance(t0, t1.min(dt), shadow_step, REFERENCE_TAU_MAX, on_ray);
+                if t1 > dt {
+                    let q = p_idx + l_idx * dt;
+                    let before = light_cache::interpolate_in_slice(done, n, res, q, axis, previous);
+                    (index, v * before)
+                } else {
+                    (index, v)
+                }
+            })
+            .collect();
+        for (index, v) in slice_values {
+            values[index] = v;
+        }
+    }
+    values
 }
 
 #[allow(clippy::too_many_arguments)]

@@ -35,8 +35,7 @@ struct Params {
     shadow: vec4<f32>,         // shadow step (mm), bias r0 (mm), optical depth limit
     clip_idx: vec4<f32>,       // clip plane in index space: kept where dot(xyz, p) + w >= 0
     // The light cache (light_cache.rs; read only by LIGHT_CACHE pipelines and its build):
-    // x: lookup offset towards the light (mm), y: finest voxels per texel,
-    // z: 1 = texels over empty pages may be left untraced.
+    // x: lookup offset towards the light (mm), y: finest voxels per texel.
     light_cache: vec4<f32>,
     light_cache_dims: vec4<u32>, // texels per axis
 };
