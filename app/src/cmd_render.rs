@@ -139,23 +139,30 @@ pub struct RenderArgs {
     #[arg(long)]
     pub gpu_mib: Option<u64>,
     /// Volumetric shadows from the key light: `exact` traces a shadow ray per shaded sample
-    /// (render/src/shadows.rs); turns shading on. The f64 reference (--reference) renders the
-    /// same model.
+    /// (render/src/shadows.rs); `cache` reads one lookup per shaded sample from a
+    /// light-transmittance volume built on the GPU (render/src/light_cache.rs; needs a
+    /// directional light, so without --light-dir it lights along the view axis: 0,0,1). Turns
+    /// shading on. The f64 reference (--reference) renders the same model.
     #[arg(long, value_enum, default_value_t = ShadowsArg::Off)]
     pub shadows: ShadowsArg,
     /// The key light's direction towards the light, camera-relative: X right, Y up, Z towards
     /// the viewer (0,0,1 lights along the view axis). Not given: the headlight.
     #[arg(long, value_name = "X,Y,Z", allow_hyphen_values = true)]
     pub light_dir: Option<String>,
-    /// Shadow-ray step in finest voxels.
+    /// Shadow-ray step in finest voxels (the light cache's rays too).
     #[arg(long, default_value_t = 1.0)]
     pub shadow_step: f64,
+    /// --shadows cache: finest voxels per light-cache texel edge (1-16; coarser is faster to
+    /// build and blurrier).
+    #[arg(long, default_value_t = 2.0)]
+    pub light_cache_res: f64,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 pub enum ShadowsArg {
     Off,
     Exact,
+    Cache,
 }
 
 /// "X,Y,Z" as a non-zero finite vector.
@@ -253,6 +260,13 @@ fn check_args(args: &RenderArgs) -> Result<()> {
     }
     if args.shadows != ShadowsArg::Off {
         check_range("shadow-step", args.shadow_step, 0.05..=1000.0)?;
+        if args.shadows == ShadowsArg::Cache {
+            check_range(
+                "light-cache-res",
+                args.light_cache_res,
+                strata_render::light_cache::MIN_RES..=strata_render::light_cache::MAX_RES,
+            )?;
+        }
         anyhow::ensure!(
             !matches!(
                 args.mode,
@@ -520,6 +534,11 @@ fn settings_of(args: &RenderArgs) -> Result<RenderSettings> {
         light: KeyLight {
             direction: match &args.light_dir {
                 Some(text) => LightDirection::Camera(parse_light_dir(text)?),
+                // The cache holds one light direction; the headlight's is each ray's own.
+                // Along the view axis it is the headlight of an orthographic view.
+                None if args.shadows == ShadowsArg::Cache => {
+                    LightDirection::Camera([0.0, 0.0, 1.0])
+                }
                 None => LightDirection::Headlight,
             },
             ..KeyLight::default()
@@ -528,8 +547,10 @@ fn settings_of(args: &RenderArgs) -> Result<RenderSettings> {
             mode: match args.shadows {
                 ShadowsArg::Off => ShadowMode::Off,
                 ShadowsArg::Exact => ShadowMode::Exact,
+                ShadowsArg::Cache => ShadowMode::Cache,
             },
             step: args.shadow_step,
+            cache_res: args.light_cache_res,
         },
         ..RenderSettings::default()
     })

@@ -8,7 +8,8 @@
 //!      STRATA_BENCH_VOLUME (default 256), STRATA_BENCH_REF_SIZE (default 128),
 //!      STRATA_BENCH_STEPS (default 0.5,1,2,3: the peer runs at 0.5; the rest find equal PSNR),
 //!      STRATA_BENCH_SAVE=DIR (keep the PSNR images as PPM in DIR),
-//!      STRATA_BENCH_EFFECTS=shadows,shading (only those rows of the effect table, nothing else).
+//!      STRATA_BENCH_EFFECTS=shadows,shading (only those rows of the effect table, nothing else),
+//!      STRATA_BENCH_LIGHT_CACHE_RES (default 2: voxels per light-cache texel, the cache row).
 //!
 //! Prints ms/frame (median), samples/s, the sampling-only kernel's samples/s measured in the
 //! same run (the ceiling: same texture, same fetch count, no page lookup, TF or compositing),
@@ -216,6 +217,7 @@ fn effect_table(
         skip_empty: true,
         ..shaded.clone()
     };
+    let cache_res = env_u32("STRATA_BENCH_LIGHT_CACHE_RES", 2) as f64;
     let clip = ClipPlane {
         normal: [0.0, 0.0, 1.0],
         offset_mm: volume.geometry.centre_patient().z - 40.0,
@@ -292,6 +294,23 @@ fn effect_table(
                 shadows: Shadows {
                     mode: ShadowMode::Exact,
                     step: 1.0,
+                    ..Shadows::default()
+                },
+                ..key_lit.clone()
+            },
+        ),
+        // Cache-mode shadows (light_cache.rs, 2 voxels per texel unless the environment says,
+        // its rays at step 1 voxel):
+        // the same light; the cache is built in the warm-up round and kept (nothing it was
+        // built from changes), so "on" is the lookup's cost. Its build time is printed below.
+        (
+            "shadows (cache)",
+            "LIGHT_CACHE",
+            RenderSettings {
+                shadows: Shadows {
+                    mode: ShadowMode::Cache,
+                    step: 1.0,
+                    cache_res,
                 },
                 ..key_lit.clone()
             },
@@ -352,6 +371,43 @@ fn effect_table(
             "{name:<20} {off:>10.1} {never:>14.1} {:>12.3} {on:>10.1} {:>10.3}",
             never / off,
             on / off
+        );
+    }
+    // The light cache's build: frames whose light turned by a hair (each rebuilds the cache)
+    // against the next frame with that same light (which does not), interleaved; the
+    // difference of the medians is the build.
+    if let Some((_, _, cached)) = effects
+        .iter()
+        .find(|(name, _, _)| *name == "shadows (cache)")
+    {
+        let builds_before = raycaster.light_cache_builds();
+        let (mut rebuilt, mut kept) = (Vec::new(), Vec::new());
+        for round in 0..=frames {
+            // A new direction (rebuilds), then the same again (kept).
+            for rebuild in [true, false] {
+                let mut s = cached.clone();
+                s.light.direction =
+                    LightDirection::Camera([0.5, 0.5, 0.7 + 1e-3 * (round + 1) as f64]);
+                let scene = drawn.scene(&camera, &s);
+                let t = Instant::now();
+                raycaster.render_and_wait(ctx, &scene).expect("render");
+                if round > 0 {
+                    let ms = t.elapsed().as_secs_f64() * 1e3;
+                    if rebuild {
+                        rebuilt.push(ms)
+                    } else {
+                        kept.push(ms)
+                    }
+                }
+            }
+        }
+        let (rebuilt, kept) = (median(rebuilt), median(kept));
+        let dims = light_cache::grid_dims(volume.geometry.dims, cache_res);
+        println!(
+            "light cache {dims:?} texels ({cache_res} voxels each): frame with a rebuild {rebuilt:.1} ms, \
+             without {kept:.1} ms, build ≈ {:.1} ms ({} builds)",
+            rebuilt - kept,
+            raycaster.light_cache_builds() - builds_before
         );
     }
 }

@@ -245,7 +245,14 @@ pub struct GpuPageTable {
     traversal: Traversal,
     octree: std::sync::Mutex<GpuOctreeIndex>,
     device: wgpu::Device,
+    /// Unique per table and its count of table writes: together they name the cut the light
+    /// cache was built from (light_cache.rs), without comparing tables.
+    id: u64,
+    writes: std::sync::atomic::AtomicU64,
 }
+
+/// Source of [`GpuPageTable`] ids.
+static NEXT_TABLE_ID: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
 
 impl GpuPageTable {
     /// The flat page table. Fails if the table would exceed the device's storage-buffer
@@ -343,6 +350,8 @@ impl GpuPageTable {
             traversal,
             octree: std::sync::Mutex::new(GpuOctreeIndex::new(device, page_dims)),
             device: device.clone(),
+            id: NEXT_TABLE_ID.fetch_add(1, std::sync::atomic::Ordering::Relaxed),
+            writes: std::sync::atomic::AtomicU64::new(0),
         })
     }
 
@@ -541,6 +550,8 @@ impl GpuPageTable {
             )));
         }
         let mut written = self.written()?;
+        self.writes
+            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         written.table.clone_from(&prepared.table);
         if let Some(encoded) = &prepared.octree {
             // The cut changed: its node buffer (encoded where the table was prepared) is
@@ -565,6 +576,15 @@ impl GpuPageTable {
             *f = prepared.transition_fraction;
         }
         Ok(())
+    }
+
+    /// This table's id and its count of table writes (light_cache.rs keys on them: any write
+    /// may change the cut, so every write invalidates a cache built from the table).
+    pub fn generation(&self) -> (u64, u64) {
+        (
+            self.id,
+            self.writes.load(std::sync::atomic::Ordering::Relaxed),
+        )
     }
 
     /// Share of resident nodes next to a coarser node in the last table written by

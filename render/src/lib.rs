@@ -80,6 +80,7 @@ pub(crate) mod gpu_preintegration;
 pub mod gpu_timing;
 pub mod gpu_transfer_function;
 pub mod layout;
+pub mod light_cache;
 pub mod metrics;
 pub mod octree_cut;
 #[cfg(feature = "test-probe")]

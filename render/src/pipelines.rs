@@ -26,6 +26,8 @@ pub struct PipelineKey {
     pub key_light: bool,
     /// Shadow rays to the key light, exact mode (shadows.wgsl).
     pub shadows: bool,
+    /// The shadow term read from the light cache (light_cache.rs, shadows.wgsl).
+    pub light_cache: bool,
     /// The octree traversal (octree.wgsl) instead of the flat page table: set by the scene's
     /// index ([`crate::GpuPageTable::traversal`]), not by the settings.
     pub octree: bool,
@@ -37,7 +39,8 @@ pub struct PipelineKey {
 /// The raycast pass's bind-group layout: parameters (0), brick cache and its sampler (1, 2),
 /// page table (3), TF table (4), colour target (5), depth (6), visibility (7), sample counter
 /// (8), MIP page bounds (9; per leaf with the octree), pre-integration table (10), transition
-/// masks (11), octree node buffer (12), overlay grid, colour table and parameters (13-15).
+/// masks (11), octree node buffer (12), overlay grid, colour table and parameters (13-15),
+/// light cache (16: written by its build entry point, read by the raycast's).
 fn bind_group_layout(device: &wgpu::Device, filterable: bool) -> wgpu::BindGroupLayout {
     use wgpu::{BindingType, BufferBindingType, TextureSampleType, TextureViewDimension};
     let entry = |binding: u32, ty: BindingType| wgpu::BindGroupLayoutEntry {
@@ -99,6 +102,7 @@ fn bind_group_layout(device: &wgpu::Device, filterable: bool) -> wgpu::BindGroup
             texture(14, false, TextureViewDimension::D1),
             buffer(15, BufferBindingType::Uniform),
             texture(10, false, TextureViewDimension::D2),
+            storage(16, false),
         ],
     })
 }
@@ -111,7 +115,7 @@ struct BackgroundCompiler {
 
 /// The shader's effect overrides, as named in the WGSL (raycast.wgsl, field.wgsl,
 /// smooth_transitions.wgsl, overlay.wgsl, shadows.wgsl).
-pub(crate) const OVERRIDE_NAMES: [&str; 14] = [
+pub(crate) const OVERRIDE_NAMES: [&str; 15] = [
     "MODE",
     "MANUAL_TRILINEAR",
     "SHADING",
@@ -124,6 +128,7 @@ pub(crate) const OVERRIDE_NAMES: [&str; 14] = [
     "SMOOTH_TRANSITIONS",
     "KEY_LIGHT",
     "SHADOWS",
+    "LIGHT_CACHE",
     "OCTREE",
     "OVERLAY",
 ];
@@ -136,6 +141,18 @@ fn build_pipeline(
     module: &wgpu::ShaderModule,
     declared: &[&'static str],
     key: PipelineKey,
+) -> wgpu::ComputePipeline {
+    build_entry(device, layout, module, declared, key, "main")
+}
+
+/// The pipeline of `entry_point` in the raycast module with the effects of `key`.
+fn build_entry(
+    device: &wgpu::Device,
+    layout: &wgpu::PipelineLayout,
+    module: &wgpu::ShaderModule,
+    declared: &[&'static str],
+    key: PipelineKey,
+    entry_point: &str,
 ) -> wgpu::ComputePipeline {
     let b = |v: bool| if v { 1.0 } else { 0.0 };
     let mode = match key.mode {
@@ -156,6 +173,7 @@ fn build_pipeline(
         ("SMOOTH_TRANSITIONS", b(key.smooth_transitions)),
         ("KEY_LIGHT", b(key.key_light)),
         ("SHADOWS", b(key.shadows)),
+        ("LIGHT_CACHE", b(key.light_cache)),
         ("OCTREE", b(key.octree)),
         ("OVERLAY", b(key.overlay)),
     ];
@@ -164,10 +182,10 @@ fn build_pipeline(
         .filter(|(name, _)| declared.contains(name))
         .collect();
     device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-        label: Some("raycast"),
+        label: Some(entry_point),
         layout: Some(layout),
         module,
-        entry_point: Some("main"),
+        entry_point: Some(entry_point),
         compilation_options: wgpu::PipelineCompilationOptions {
             constants: &constants,
             zero_initialize_workgroup_memory: false,
@@ -182,11 +200,38 @@ fn build_pipeline(
 pub(crate) struct Pipelines {
     pub(crate) layout: wgpu::BindGroupLayout,
     pipeline_layout: wgpu::PipelineLayout,
+    /// The light cache's sweep slice (group 1 of its build pipelines only: a uniform
+    /// vec4<u32> at a dynamic offset per slice, shadows.wgsl `SWEEP`).
+    pub(crate) sweep_layout: wgpu::BindGroupLayout,
+    build_pipeline_layout: wgpu::PipelineLayout,
     pub(crate) module: wgpu::ShaderModule,
     /// The effect overrides this raycaster's shader declares (all of them but in variants).
     pub(crate) declared_overrides: Vec<&'static str>,
     compiled: HashMap<PipelineKey, wgpu::ComputePipeline>,
+    /// The light cache's build pipelines (shadows.wgsl `build_light_cache`), by
+    /// [`light_cache_build_key`].
+    light_cache_builds: HashMap<PipelineKey, wgpu::ComputePipeline>,
     compiler: Option<BackgroundCompiler>,
+}
+
+/// The effects a light-cache build compiles in for a frame of `key`: only those that change
+/// the sampled field or the shadow ray (traversal, trilinear, transitions, empty skipping, the
+/// clip plane); the rest are fixed so that frames differing in them share one build pipeline
+/// (and one cache: light_cache.rs keys on this).
+pub(crate) fn light_cache_build_key(key: PipelineKey) -> PipelineKey {
+    PipelineKey {
+        mode: RenderMode::Dvr,
+        shading: true,
+        jitter: false,
+        early_termination: false,
+        count_samples: false,
+        preintegrated: false,
+        key_light: true,
+        shadows: false,
+        light_cache: false,
+        overlay: false,
+        ..key
+    }
 }
 
 impl Pipelines {
@@ -204,6 +249,25 @@ impl Pipelines {
             bind_group_layouts: &[Some(&layout)],
             immediate_size: 0,
         });
+        let sweep_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("light cache sweep"),
+            entries: &[wgpu::BindGroupLayoutEntry {
+                binding: 0,
+                visibility: wgpu::ShaderStages::COMPUTE,
+                ty: wgpu::BindingType::Buffer {
+                    ty: wgpu::BufferBindingType::Uniform,
+                    has_dynamic_offset: true,
+                    min_binding_size: std::num::NonZeroU64::new(16),
+                },
+                count: None,
+            }],
+        });
+        let build_pipeline_layout =
+            device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+                label: Some("light cache build"),
+                bind_group_layouts: &[Some(&layout), Some(&sweep_layout)],
+                immediate_size: 0,
+            });
         let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some("raycast.wgsl"),
             source: wgpu::ShaderSource::Wgsl(wgsl.to_owned().into()),
@@ -211,6 +275,8 @@ impl Pipelines {
         Pipelines {
             layout,
             pipeline_layout,
+            sweep_layout,
+            build_pipeline_layout,
             module,
             declared_overrides: OVERRIDE_NAMES
                 .iter()
@@ -218,6 +284,7 @@ impl Pipelines {
                 .filter(|name| declared.iter().any(|d| d == name))
                 .collect(),
             compiled: HashMap::new(),
+            light_cache_builds: HashMap::new(),
             compiler: None,
         }
     }
@@ -229,6 +296,14 @@ impl Pipelines {
 
     pub(crate) fn get(&self, key: &PipelineKey) -> Option<&wgpu::ComputePipeline> {
         self.compiled.get(key)
+    }
+
+    /// The light cache's build pipeline for a frame of `key`, if compiled.
+    pub(crate) fn get_light_cache_build(
+        &self,
+        key: &PipelineKey,
+    ) -> Option<&wgpu::ComputePipeline> {
+        self.light_cache_builds.get(&light_cache_build_key(*key))
     }
 
     /// The pipeline for `key`, compiled now if it is not yet.
@@ -245,6 +320,23 @@ impl Pipelines {
         self.compiled
             .entry(key)
             .or_insert_with(|| build_pipeline(device, layout, module, declared, key))
+    }
+
+    /// The light cache's build pipeline for a frame of `key` (compiled now if it is not yet).
+    pub(crate) fn light_cache_build(
+        &mut self,
+        device: &wgpu::Device,
+        key: PipelineKey,
+    ) -> &wgpu::ComputePipeline {
+        let (layout, module, declared) = (
+            &self.build_pipeline_layout,
+            &self.module,
+            &self.declared_overrides,
+        );
+        let key = light_cache_build_key(key);
+        self.light_cache_builds.entry(key).or_insert_with(|| {
+            build_entry(device, layout, module, declared, key, "build_light_cache")
+        })
     }
 
     /// The pipeline this frame draws with: the wanted one if compiled; otherwise, when

@@ -18,6 +18,7 @@ use crate::gpu_overlay::GpuOverlay;
 use crate::gpu_preintegration::GpuPreintegration;
 use crate::gpu_timing::{FrameTiming, FrameTimingSource, PassTimestamps};
 use crate::layout::WORKGROUP_SIZE;
+use crate::light_cache::{self, GpuLightCache, LightCacheKey, SWEEP_WORKGROUP};
 use crate::overlay::{OverlayLut, OverlayVolume};
 use crate::pipelines::Pipelines;
 use crate::readback_ring::ReadbackRing;
@@ -109,6 +110,8 @@ pub(crate) struct Params {
     light_dual: [f32; 4],
     shadow: [f32; 4],
     clip_idx: [f32; 4],
+    light_cache: [f32; 4],
+    light_cache_dims: [u32; 4],
 }
 
 struct Targets {
@@ -162,6 +165,8 @@ pub struct Raycaster {
     submit_to_done_timings: Vec<FrameTiming>,
     /// The overlay drawn in 3D (gpu_overlay.rs), stand-ins when there is none.
     overlay: GpuOverlay,
+    /// The light cache of cache-mode shadows (light_cache.rs), a stand-in until one is built.
+    light_cache: GpuLightCache,
 }
 
 pub(crate) fn map_blocking(
@@ -261,6 +266,7 @@ impl Raycaster {
             last_submit_at: None,
             submit_to_done_timings: Vec::new(),
             overlay: GpuOverlay::new(device),
+            light_cache: GpuLightCache::new(device),
         }
     }
 
@@ -303,6 +309,18 @@ impl Raycaster {
     /// Whether frames draw an overlay.
     pub fn overlay_active(&self) -> bool {
         self.overlay.active()
+    }
+
+    /// How many times the light cache was built (cache-mode shadows rebuild it only when
+    /// what it was built from changes: light_cache.rs).
+    pub fn light_cache_builds(&self) -> u64 {
+        self.light_cache.builds
+    }
+
+    /// The light cache's texels as last built (x fastest, light_cache.rs's grid; empty if
+    /// none was built), read back blocking: for tests against the f64 reference.
+    pub fn read_light_cache_blocking(&self, ctx: &GpuContext) -> Result<Vec<f32>, RenderError> {
+        self.light_cache.read_blocking(&ctx.device, &ctx.queue)
     }
 
     /// True while a background compile is outstanding (the UI can say "compiling…").
@@ -480,6 +498,7 @@ impl Raycaster {
             smooth_transitions: settings.smooth_transitions,
             key_light: settings.effective_key_light(),
             shadows: settings.effective_shadows(),
+            light_cache: settings.effective_light_cache(),
             octree: false,
             overlay,
         }
@@ -591,6 +610,40 @@ impl Raycaster {
         let params = build_params(scene);
         ctx.queue
             .write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
+        // Cache-mode shadows: build the light cache first if what it was built from changed
+        // (light_cache.rs), in this frame's submission.
+        let build_light_cache = if key.light_cache {
+            let n = params.light_cache_dims;
+            let bytes = (n[0] as u64 * n[1] as u64 * n[2] as u64) * 4;
+            if bytes > limits.max_storage_buffer_binding_size {
+                return Err(RenderError::InvalidSettings(format!(
+                    "a light cache of {n:?} texels needs {bytes} bytes, over the device's \
+                     storage-binding limit {}: raise --light-cache-res",
+                    limits.max_storage_buffer_binding_size
+                )));
+            }
+            let tf = scene.transfer_function;
+            let cache_key = LightCacheKey {
+                page_table: scene.page_table.generation(),
+                transfer_function: tf.source.clone(),
+                tf_range: (tf.lo, tf.hi, tf.entries),
+                mapping: (scene.mapping.slope, scene.mapping.intercept),
+                light_idx: [params.light[0], params.light[1], params.light[2]],
+                shadow: params.shadow,
+                res: settings.shadows.cache_res,
+                dims: scene.geometry.dims,
+                crop: settings.crop,
+                clip_idx: settings.clip_plane.map(|_| params.clip_idx),
+                pipeline: crate::pipelines::light_cache_build_key(key),
+            };
+            let build = self.light_cache.needs_build(device, &cache_key, bytes);
+            if build {
+                let _ = self.pipelines.light_cache_build(device, key);
+            }
+            build.then_some([n[0], n[1], n[2]])
+        } else {
+            None
+        };
         let (Some(targets), Some(vis), Some(pipeline)) = (
             self.targets.as_ref(),
             self.visibility.as_mut(),
@@ -645,6 +698,10 @@ impl Raycaster {
                         resource: self.overlay.params.as_entire_binding(),
                     },
                     wgpu::BindGroupEntry {
+                        binding: 16,
+                        resource: self.light_cache.buffer.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
                         binding: 10,
                         resource: wgpu::BindingResource::TextureView(
                             self.preintegration.view(key.preintegrated),
@@ -658,6 +715,54 @@ impl Raycaster {
         });
         encoder.clear_buffer(&vis.buffer, 0, None);
         encoder.clear_buffer(&self.counter, 0, None);
+        if let Some(n) = build_light_cache {
+            // Its own pass, before the frame's: the frame reads what it writes. One dispatch
+            // per slice along the sweep axis, from the light's side (light_cache.rs).
+            let l = [params.light[0], params.light[1], params.light[2]];
+            let sweep = light_cache::sweep_order(l, n);
+            let stride = (limits.min_uniform_buffer_offset_alignment as u64).max(16);
+            let mut words = vec![0u32; sweep.slices.len() * (stride as usize / 4)];
+            for (k, slice) in sweep.slices.iter().enumerate() {
+                let at = k * stride as usize / 4;
+                words[at..at + 3].copy_from_slice(&[*slice, sweep.axis, u32::from(k == 0)]);
+            }
+            let slices = wgpu::util::DeviceExt::create_buffer_init(
+                device,
+                &wgpu::util::BufferInitDescriptor {
+                    label: Some("light cache sweep"),
+                    contents: bytemuck::cast_slice(&words),
+                    usage: wgpu::BufferUsages::UNIFORM,
+                },
+            );
+            let slice_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("light cache sweep"),
+                layout: &self.pipelines.sweep_layout,
+                entries: &[wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                        buffer: &slices,
+                        offset: 0,
+                        size: wgpu::BufferSize::new(16),
+                    }),
+                }],
+            });
+            if let Some(build) = self.pipelines.get_light_cache_build(&key) {
+                let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                    label: Some("light cache"),
+                    timestamp_writes: None,
+                });
+                pass.set_pipeline(build);
+                pass.set_bind_group(0, &bind_group, &[]);
+                for k in 0..sweep.slices.len() {
+                    pass.set_bind_group(1, &slice_group, &[(k as u64 * stride) as u32]);
+                    pass.dispatch_workgroups(
+                        sweep.across[0].div_ceil(SWEEP_WORKGROUP),
+                        sweep.across[1].div_ceil(SWEEP_WORKGROUP),
+                        1,
+                    );
+                }
+            }
+        }
         if let Some(timestamps) = self.timestamps.as_mut() {
             timestamps.begin_frame();
         }
@@ -932,6 +1037,8 @@ pub(crate) fn build_params(scene: &Scene) -> Params {
     let texel = scene.cache.texel_dims();
     let iso_color = tf.source.color_at(s.iso_value);
     let light = crate::shadows::gpu_light(s, &basis, g);
+    let cache_res = s.shadows.cache_res;
+    let cache_dims = light_cache::grid_dims(g.dims, cache_res);
     Params {
         eye_idx: v4(eye_idx, basis.half_extent),
         right_idx: v4(a * basis.right, aspect),
@@ -987,5 +1094,12 @@ pub(crate) fn build_params(scene: &Scene) -> Params {
         light_dual: light.light_dual,
         shadow: light.shadow,
         clip_idx: light.clip_idx,
+        light_cache: [
+            (cache_res * unit * light_cache::LOOKUP_OFFSET_CELLS) as f32,
+            cache_res as f32,
+            0.0,
+            0.0,
+        ],
+        light_cache_dims: [cache_dims[0], cache_dims[1], cache_dims[2], 0],
     }
 }

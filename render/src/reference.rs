@@ -12,6 +12,7 @@ use crate::camera::{Camera, CameraBasis};
 use crate::error::RenderError;
 use crate::field::{sample_field, FieldSample};
 use crate::layout::{BrickSource, DEPTH_OPACITY};
+use crate::light_cache;
 use crate::overlay::{blend, OverlayScene};
 use crate::page_table::PageTable;
 use crate::settings::{RenderMode, RenderSettings, Shading};
@@ -141,13 +142,17 @@ pub fn render_reference_with_overlay<S: BrickSource>(
         .smooth_transitions
         .then(|| transition_masks(scene.page_table));
     let masks = masks.as_deref();
+    let cache = settings
+        .effective_light_cache()
+        .then(|| light_cache_grid(scene, masks, settings, &basis));
+    let cache = cache.as_deref();
     let pixels: Vec<([f64; 4], f32)> = (0..h)
         .into_par_iter()
         .flat_map_iter(|py| {
             (0..w).map(move |px| {
                 let (origin, dir) = basis.ray(px, py, w, h);
                 trace(
-                    scene, overlay, masks, settings, &options, &basis, origin, dir,
+                    scene, overlay, masks, cache, settings, &options, &basis, origin, dir,
                 )
             })
         })
@@ -165,11 +170,99 @@ pub fn render_reference_with_overlay<S: BrickSource>(
     })
 }
 
+/// The light cache in f64 (light_cache.rs): the GPU's sweep, its rays at the reference's
+/// shadow step; texels x fastest, as the GPU's (`Raycaster::read_light_cache_blocking`).
+pub fn reference_light_cache<S: BrickSource>(
+    scene: &ReferenceScene<S>,
+    camera: &Camera,
+    settings: &RenderSettings,
+) -> Vec<f64> {
+    let masks = settings
+        .smooth_transitions
+        .then(|| transition_masks(scene.page_table));
+    light_cache_grid(scene, masks.as_deref(), settings, &camera.basis())
+}
+
+fn light_cache_grid<S: BrickSource>(
+    scene: &ReferenceScene<S>,
+    masks: Option<&[u32]>,
+    settings: &RenderSettings,
+    basis: &CameraBasis,
+) -> Vec<f64> {
+    let g = scene.geometry;
+    let a: DMat3 = g.index_from_patient_linear();
+    let unit = g.finest_spacing_mm();
+    let res = settings.shadows.cache_res;
+    let n = light_cache::grid_dims(g.dims, res);
+    // Cache mode needs a directional light (validate), whose direction is the same for every
+    // ray: the view axis stands in for the ray.
+    let light = light_towards(&settings.light, basis, basis.forward);
+    let l_idx = a * light;
+    let shadow_step = settings.shadows.step * unit / REFERENCE_SHADOW_REFINEMENT;
+    let (tf, mapping) = (scene.transfer_function, scene.mapping);
+    let sigma = |q: DVec3| {
+        sample_field(scene.source, scene.page_table, masks, g.dims, q).map_or(0.0, |loc| {
+            extinction(tf.opacity_at(mapping.physical(loc.value)), unit)
+        })
+    };
+    // The GPU's sweep (shadows.wgsl `build_light_cache`), slice by slice from the light's
+    // side; the axis is chosen from the same f32 direction the GPU has.
+    let order = light_cache::sweep_order([l_idx.x as f32, l_idx.y as f32, l_idx.z as f32], n);
+    let axis = order.axis as usize;
+    let (b, c) = ((axis + 1) % 3, (axis + 2) % 3);
+    let dt = res / l_idx[axis].abs();
+    let mut values = vec![1.0f64; n.iter().map(|&d| d as usize).product()];
+    for (k, &slice) in order.slices.iter().enumerate() {
+        let previous = if l_idx[axis] >= 0.0 {
+            slice + 1
+        } else {
+            slice.wrapping_sub(1)
+        };
+        let across = order.across[0] as usize * order.across[1] as usize;
+        let done = &values;
+        let slice_values: Vec<(usize, f64)> = (0..across)
+            .into_par_iter()
+            .map(|j| {
+                let mut i = [0u32; 3];
+                i[axis] = slice;
+                i[b] = (j % order.across[0] as usize) as u32;
+                i[c] = (j / order.across[0] as usize) as u32;
+                let p_idx = light_cache::texel_centre(i, res);
+                let index = light_cache::texel_index(i, n);
+                let Some((t0, t1)) = ray_interval(g, settings, g.patient_from_index(p_idx), light)
+                else {
+                    return (index, 1.0);
+                };
+                let on_ray = |s: f64| sigma(p_idx + l_idx * s);
+                if k == 0 {
+                    return (
+                        index,
+                        transmittance(t0, t1, shadow_step, REFERENCE_TAU_MAX, on_ray),
+                    );
+                }
+                let v = transmittance(t0, t1.min(dt), shadow_step, REFERENCE_TAU_MAX, on_ray);
+                if t1 > dt {
+                    let q = p_idx + l_idx * dt;
+                    let before = light_cache::interpolate_in_slice(done, n, res, q, axis, previous);
+                    (index, v * before)
+                } else {
+                    (index, v)
+                }
+            })
+            .collect();
+        for (index, v) in slice_values {
+            values[index] = v;
+        }
+    }
+    values
+}
+
 #[allow(clippy::too_many_arguments)]
 fn trace<S: BrickSource>(
     scene: &ReferenceScene<S>,
     overlay: Option<&OverlayScene>,
     masks: Option<&[u32]>,
+    cache: Option<&[f64]>,
     settings: &RenderSettings,
     options: &ReferenceOptions,
     basis: &CameraBasis,
@@ -211,7 +304,14 @@ fn trace<S: BrickSource>(
     let shadow_step = settings.shadows.step * unit / REFERENCE_SHADOW_REFINEMENT;
     // V at ray distance t: an exact shadow ray through the same field (module doc of
     // shadows.rs for its cost), transparent where nothing is resident.
+    let cache_res = settings.shadows.cache_res;
+    let cache_dims = light_cache::grid_dims(g.dims, cache_res);
+    let cache_offset = cache_res * unit * light_cache::LOOKUP_OFFSET_CELLS;
     let visibility = |t: f64| -> f64 {
+        if let Some(values) = cache {
+            let q = o_idx + d_idx * t + l_idx * cache_offset;
+            return light_cache::interpolate(values, cache_dims, cache_res, q);
+        }
         if !settings.effective_shadows() {
             return 1.0;
         }

@@ -83,14 +83,26 @@ pub enum ShadowMode {
     /// A shadow ray per shaded sample towards the key light through the resident cut
     /// (shadows.rs).
     Exact,
+    /// One fetch per shaded sample from a low-resolution transmittance volume built on the GPU
+    /// from the resident cut for the current TF and light (light_cache.rs); rebuilt only when
+    /// what it was built from changes. Needs a directional light (one direction per frame).
+    Cache,
 }
 
 /// Volumetric shadows from the key light (shadows.rs: the model, the bias, the reference).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Shadows {
     pub mode: ShadowMode,
-    /// Shadow-ray step in finest voxels (the main ray's step is `quality`).
+    /// Shadow-ray step in finest voxels (the main ray's step is `quality`); the cache's
+    /// rays use it too.
     pub step: f64,
+    /// Cache mode: finest voxels per cache texel edge (light_cache.rs).
+    #[serde(default = "default_light_cache_res")]
+    pub cache_res: f64,
+}
+
+fn default_light_cache_res() -> f64 {
+    2.0
 }
 
 impl Default for Shadows {
@@ -98,6 +110,7 @@ impl Default for Shadows {
         Shadows {
             mode: ShadowMode::Off,
             step: 1.0,
+            cache_res: default_light_cache_res(),
         }
     }
 }
@@ -257,19 +270,47 @@ impl RenderSettings {
                 self.shadows.step
             )));
         }
+        if self.shadows.mode == ShadowMode::Cache {
+            if !(self.shadows.cache_res.is_finite()
+                && (crate::light_cache::MIN_RES..=crate::light_cache::MAX_RES)
+                    .contains(&self.shadows.cache_res))
+            {
+                return Err(RenderError::InvalidSettings(format!(
+                    "light cache resolution must be {}..={} voxels per texel, got {}",
+                    crate::light_cache::MIN_RES,
+                    crate::light_cache::MAX_RES,
+                    self.shadows.cache_res
+                )));
+            }
+            if self.light.direction == LightDirection::Headlight {
+                // The headlight's direction is each ray's own: no one volume holds it.
+                return Err(RenderError::InvalidSettings(
+                    "the light cache needs a directional key light, not the headlight".into(),
+                ));
+            }
+        }
         Ok(())
     }
 
-    /// Whether shadow rays are traced: shadows on and a lit mode (shaded DVR, isosurface).
+    /// Whether shadow rays are traced: exact shadows on and a lit mode (shaded DVR,
+    /// isosurface).
     pub fn effective_shadows(&self) -> bool {
         self.shadows.mode == ShadowMode::Exact && self.effective_shading().is_some()
+    }
+
+    /// Whether the shadow term is read from the light cache: cache shadows and a lit mode.
+    pub fn effective_light_cache(&self) -> bool {
+        self.shadows.mode == ShadowMode::Cache && self.effective_shading().is_some()
     }
 
     /// Whether the key-light shading path is compiled in: a light other than the default
     /// headlight, or shadows (both need the sample's light direction and a split of the
     /// ambient from the direct term).
     pub fn effective_key_light(&self) -> bool {
-        self.effective_shading().is_some() && (!self.light.is_default() || self.effective_shadows())
+        self.effective_shading().is_some()
+            && (!self.light.is_default()
+                || self.effective_shadows()
+                || self.effective_light_cache())
     }
 
     /// Shading actually applied: isosurfaces are always shaded.

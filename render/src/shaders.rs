@@ -239,13 +239,15 @@ mod tests {
             };
             assert_eq!(literal, expected, "{name}");
         }
-        // The production shader has the raycast entry point only (the probe is test-only).
-        let entry_points: Vec<&str> = module
+        // The production shader has the raycast entry point and the light cache's build
+        // (shadows.wgsl) only (the probe is test-only).
+        let mut entry_points: Vec<&str> = module
             .entry_points
             .iter()
             .map(|e| e.name.as_str())
             .collect();
-        assert_eq!(entry_points, ["main"]);
+        entry_points.sort_unstable();
+        assert_eq!(entry_points, ["build_light_cache", "main"]);
     }
 
     #[test]

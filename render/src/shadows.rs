@@ -40,8 +40,8 @@
 //! the worst case (a ray shaded along its whole length), quadratic per ray. Early
 //! termination at the settings' threshold and the shadow ray's own exit at τ = 30 bound it in
 //! practice; the tests keep it to 64² images of 32³-48³ volumes (seconds on two cores). A
-//! transmittance volume (V once per grid point, interpolated) would make it linear; it is not
-//! built here because the cache mode of issue 37 needs the same comparison. Measured: the
+//! transmittance volume (V once per grid point, interpolated) would make it linear: the cache
+//! mode's reference is exactly that (light_cache.rs), for the cache's own model. Measured: the
 //! tests' references (64², 32³-40³, shadow step 1 → ¼) take 0.3-5.6 s each on two cores.
 //!
 //! **GPU cost.** `STRATA_BENCH_EFFECTS=shadows cargo bench -p strata-render --bench raycast`

@@ -34,6 +34,10 @@ struct Params {
     light_dual: vec4<f32>,     // A^-T·(direction), w: 1 = headlight (direction is −d)
     shadow: vec4<f32>,         // shadow step (mm), bias r0 (mm), optical depth limit
     clip_idx: vec4<f32>,       // clip plane in index space: kept where dot(xyz, p) + w >= 0
+    // The light cache (light_cache.rs; read only by LIGHT_CACHE pipelines and its build):
+    // x: lookup offset towards the light (mm), y: finest voxels per texel.
+    light_cache: vec4<f32>,
+    light_cache_dims: vec4<u32>, // texels per axis
 };
 
 @group(0) @binding(0) var<uniform> P: Params;
