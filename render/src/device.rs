@@ -128,3 +128,22 @@ impl GpuContext {
             .unwrap_or_else(|| "external device".into())
     }
 }
+
+/// Maps `buffer` for reading and waits for it (readbacks of tests, probes and pick queries).
+pub(crate) fn map_blocking(
+    device: &wgpu::Device,
+    buffer: &wgpu::Buffer,
+) -> Result<(), RenderError> {
+    let (tx, rx) = std::sync::mpsc::channel();
+    buffer.map_async(wgpu::MapMode::Read, .., move |r| {
+        let _ = tx.send(r);
+    });
+    device
+        .poll(wgpu::PollType::wait_indefinitely())
+        .map_err(|e| RenderError::Readback(e.to_string()))?;
+    match rx.recv() {
+        Ok(Ok(())) => Ok(()),
+        Ok(Err(e)) => Err(RenderError::Readback(e.to_string())),
+        Err(e) => Err(RenderError::Readback(e.to_string())),
+    }
+}

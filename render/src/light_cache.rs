@@ -77,10 +77,9 @@ use glam::DVec3;
 use crate::settings::CropBox;
 use crate::transfer_function::TransferFunction;
 
-/// The smallest and largest cache resolutions, in finest voxels per texel edge: below 1 the
-/// cache is larger than the volume; above 16 it holds no shadow smaller than a typical organ.
-pub const MIN_RES: f64 = 1.0;
-pub const MAX_RES: f64 = 16.0;
+// The valid resolutions live with the settings that validate them (settings.rs), which must
+// not depend on this module (it depends on the pipelines, which depend on the settings).
+pub use crate::settings::{LIGHT_CACHE_MAX_RES as MAX_RES, LIGHT_CACHE_MIN_RES as MIN_RES};
 /// The lookup is moved this many cells towards the light (module doc: acne vs contact shadows).
 pub const LOOKUP_OFFSET_CELLS: f64 = 1.0;
 /// The sweep kernel's workgroup edge (8² texels of a slice).
@@ -279,7 +278,7 @@ impl GpuLightCache {
         });
         encoder.copy_buffer_to_buffer(&self.buffer, 0, &readback, 0, bytes);
         queue.submit(Some(encoder.finish()));
-        crate::raycast::map_blocking(device, &readback)?;
+        crate::device::map_blocking(device, &readback)?;
         let bytes = readback
             .get_mapped_range(..)
             .map_err(|e| crate::error::RenderError::Readback(e.to_string()))?

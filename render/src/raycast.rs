@@ -169,23 +169,8 @@ pub struct Raycaster {
     light_cache: GpuLightCache,
 }
 
-pub(crate) fn map_blocking(
-    device: &wgpu::Device,
-    buffer: &wgpu::Buffer,
-) -> Result<(), RenderError> {
-    let (tx, rx) = std::sync::mpsc::channel();
-    buffer.map_async(wgpu::MapMode::Read, .., move |r| {
-        let _ = tx.send(r);
-    });
-    device
-        .poll(wgpu::PollType::wait_indefinitely())
-        .map_err(|e| RenderError::Readback(e.to_string()))?;
-    match rx.recv() {
-        Ok(Ok(())) => Ok(()),
-        Ok(Err(e)) => Err(RenderError::Readback(e.to_string())),
-        Err(e) => Err(RenderError::Readback(e.to_string())),
-    }
-}
+// Lives in device.rs so modules below the raycaster (the light cache) can read back too.
+pub(crate) use crate::device::map_blocking;
 
 impl Raycaster {
     pub fn new(ctx: &GpuContext, cache: &BrickCache) -> Self {

@@ -101,6 +101,12 @@ pub struct Shadows {
     pub cache_res: f64,
 }
 
+/// The smallest and largest light-cache resolutions, in finest voxels per texel edge: below 1
+/// the cache is larger than the volume; above 16 it holds no shadow smaller than a typical
+/// organ.
+pub const LIGHT_CACHE_MIN_RES: f64 = 1.0;
+pub const LIGHT_CACHE_MAX_RES: f64 = 16.0;
+
 fn default_light_cache_res() -> f64 {
     2.0
 }
@@ -272,14 +278,11 @@ impl RenderSettings {
         }
         if self.shadows.mode == ShadowMode::Cache {
             if !(self.shadows.cache_res.is_finite()
-                && (crate::light_cache::MIN_RES..=crate::light_cache::MAX_RES)
-                    .contains(&self.shadows.cache_res))
+                && (LIGHT_CACHE_MIN_RES..=LIGHT_CACHE_MAX_RES).contains(&self.shadows.cache_res))
             {
                 return Err(RenderError::InvalidSettings(format!(
                     "light cache resolution must be {}..={} voxels per texel, got {}",
-                    crate::light_cache::MIN_RES,
-                    crate::light_cache::MAX_RES,
-                    self.shadows.cache_res
+                    LIGHT_CACHE_MIN_RES, LIGHT_CACHE_MAX_RES, self.shadows.cache_res
                 )));
             }
             if self.light.direction == LightDirection::Headlight {

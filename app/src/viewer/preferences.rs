@@ -259,6 +259,7 @@ pub fn render_lighting(prefs: &Preferences) -> (Option<Shading>, KeyLight, Shado
         } else {
             Shadows::default().step
         },
+        ..Shadows::default()
     };
     let shaded =
         prefs.shading || shadows.mode != ShadowMode::Off || prefs.mode == RenderMode::Isosurface;
