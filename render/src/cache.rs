@@ -153,6 +153,24 @@ pub(crate) fn captured<T>(
     what: impl FnOnce() -> String,
     f: impl FnOnce() -> T,
 ) -> Result<T, RenderError> {
+    // In the browser a scope's result is a promise that only the event loop resolves, so
+    // waiting for it here would never return: there errors reach the device's uncaptured-error
+    // handler (the web viewer's shows them) instead of becoming this call's error.
+    #[cfg(target_arch = "wasm32")]
+    {
+        let _ = (device, what);
+        Ok(f())
+    }
+    #[cfg(not(target_arch = "wasm32"))]
+    captured_natively(device, what, f)
+}
+
+#[cfg(not(target_arch = "wasm32"))]
+fn captured_natively<T>(
+    device: &wgpu::Device,
+    what: impl FnOnce() -> String,
+    f: impl FnOnce() -> T,
+) -> Result<T, RenderError> {
     let oom = device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
     let validation = device.push_error_scope(wgpu::ErrorFilter::Validation);
     let value = f();

@@ -82,6 +82,25 @@ impl OffscreenRenderer {
         })
     }
 
+    /// Replaces the transfer function: the GPU table, and the empty-page flags it implies
+    /// (unless an isosurface's classification is in force, which the next DVR frame redoes).
+    pub fn set_transfer_function(
+        &mut self,
+        ctx: &GpuContext,
+        volume: &BrickedVolume,
+        tf: &TransferFunction,
+    ) -> Result<(), RenderError> {
+        tf.validate()?;
+        let (lo, hi) = volume.physical_range();
+        let table = tf.table(lo, hi);
+        self.transfer_function.update(&ctx.queue, &table);
+        if self.classified_for_iso.is_none() {
+            volume.classify_empty(&mut self.page_table, &table);
+            self.gpu_page_table.update(&ctx.queue, &self.page_table)?;
+        }
+        Ok(())
+    }
+
     /// Renders and reads back. Re-classifies empty pages when switching to or between
     /// isosurface values, since "empty" means "below the iso value" there.
     pub fn render(
@@ -91,6 +110,19 @@ impl OffscreenRenderer {
         camera: &Camera,
         settings: &RenderSettings,
     ) -> Result<FrameReadback, RenderError> {
+        self.submit(ctx, volume, camera, settings)?;
+        self.raycaster.read_frame_blocking(ctx)
+    }
+
+    /// Encodes and submits one frame into [`Raycaster::output_texture`] without waiting for
+    /// it: what a caller that cannot block (the browser's event loop) draws with.
+    pub fn submit(
+        &mut self,
+        ctx: &GpuContext,
+        volume: &BrickedVolume,
+        camera: &Camera,
+        settings: &RenderSettings,
+    ) -> Result<wgpu::SubmissionIndex, RenderError> {
         let want_iso = (settings.mode == RenderMode::Isosurface).then_some(settings.iso_value);
         if want_iso != self.classified_for_iso {
             match want_iso {
@@ -115,6 +147,6 @@ impl OffscreenRenderer {
             camera,
             settings,
         };
-        self.raycaster.render_blocking(ctx, &scene)
+        self.raycaster.render(ctx, &scene)
     }
 }

@@ -379,6 +379,13 @@ impl Pipelines {
     /// Queues `key` on the compiler thread (started on first use). False if the thread
     /// cannot be started, in which case the caller compiles in place.
     fn request_background_compile(&mut self, device: &wgpu::Device, key: PipelineKey) -> bool {
+        // The browser has no threads to lend (wasm32-unknown-unknown), and WebGPU compiles
+        // pipelines in the GPU process anyway: compile in place there.
+        if cfg!(target_arch = "wasm32") {
+            let _ = (device, key);
+            return false;
+        }
+        #[cfg(not(target_arch = "wasm32"))]
         if self.compiler.is_none() {
             let (requests, requests_in) = std::sync::mpsc::channel::<PipelineKey>();
             let (results_out, results) = std::sync::mpsc::channel();

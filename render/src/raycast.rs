@@ -161,7 +161,7 @@ pub struct Raycaster {
     preintegration: GpuPreintegration,
     /// None when the device has no `TIMESTAMP_QUERY`: then `render_measured` times on the CPU.
     timestamps: Option<PassTimestamps>,
-    last_submit_at: Option<std::time::Instant>,
+    last_submit_at: Option<web_time::Instant>,
     submit_to_done_timings: Vec<FrameTiming>,
     /// The overlay drawn in 3D (gpu_overlay.rs), stand-ins when there is none.
     overlay: GpuOverlay,
@@ -779,7 +779,7 @@ impl Raycaster {
             vis.ring
                 .encode_copy(&mut encoder, slot, &vis.buffer, 0, size, self.frame_number);
         }
-        self.last_submit_at = Some(std::time::Instant::now());
+        self.last_submit_at = Some(web_time::Instant::now());
         let index = ctx.queue.submit(Some(encoder.finish()));
         if let Some(timestamps) = self.timestamps.as_mut() {
             timestamps.after_submit();

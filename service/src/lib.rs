@@ -6,10 +6,12 @@
 pub mod client;
 mod connections;
 pub mod server;
+pub mod web_viewer;
 pub mod wire;
 
 pub use client::{RemoteOptions, RemoteSource};
 pub use server::{ServeError, ServeOptions};
+pub use web_viewer::{CapturedFrame, FrameSink, WebViewerAssets};
 
 /// Makes ring the process's rustls crypto provider (once; later calls do nothing). reqwest's
 /// TLS needs one before any client is built; `RemoteSource::open` calls this itself, other

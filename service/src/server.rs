@@ -29,6 +29,7 @@ use strata_storage::brick::verify_record;
 use strata_storage::{BrickId, StorageError, Store};
 use tokio::sync::Semaphore;
 
+use crate::web_viewer::{FrameSink, WebViewerAssets};
 use crate::wire::{
     brick_etag, encode_open_document, is_valid_store_name, OpenDocument, StoreList, StoreListing,
     API_PREFIX, OPEN_DOCUMENT_TYPE,
@@ -85,6 +86,11 @@ pub struct ServeOptions {
     /// Test hook: never answer a brick request below the root (it ends in the request
     /// timeout): a server that accepts and then stalls, for the no-frame-waits test.
     pub stall_below_root: bool,
+    /// The browser viewer's page, served at `/` (web_viewer.rs); None: `/` says how to build it.
+    pub web_viewer: Option<Arc<WebViewerAssets>>,
+    /// Test hook: a sink for the frames the page posts to `/v1/test/frame` (the route exists
+    /// only when this is set).
+    pub test_frame_sink: Option<FrameSink>,
 }
 
 impl Default for ServeOptions {
@@ -104,6 +110,8 @@ impl Default for ServeOptions {
             corrupt_answers: None,
             stall_below_root: false,
             tls: None,
+            web_viewer: None,
+            test_frame_sink: None,
         }
     }
 }
@@ -512,7 +520,18 @@ fn router(state: Arc<AppState>, options: &ServeOptions) -> Router {
             header::ACCEPT_RANGES,
         ])
         .max_age(Duration::from_secs(3600));
-    Router::new()
+    let mut api = Router::new();
+    if let Some(sink) = options.test_frame_sink.clone() {
+        api = api.route(
+            "/v1/test/frame",
+            axum::routing::post(crate::web_viewer::receive_frame)
+                .with_state(sink)
+                .layer(axum::extract::DefaultBodyLimit::max(
+                    crate::web_viewer::MAX_CAPTURED_BYTES,
+                )),
+        );
+    }
+    let api = api
         .route("/v1/stores", get(list_stores))
         .route("/v1/stores/{name}", get(open_store))
         .route(
@@ -529,7 +548,16 @@ fn router(state: Arc<AppState>, options: &ServeOptions) -> Router {
         // Outermost: preflights are answered before authentication (browsers send no
         // Authorization header with them).
         .layer(cors)
-        .with_state(state)
+        .with_state(state);
+    // The page's files carry no data and a browser cannot send the token when it navigates:
+    // outside the guard, inside the timeout.
+    let page = crate::web_viewer::router(options.web_viewer.clone()).layer(
+        tower_http::timeout::TimeoutLayer::with_status_code(
+            StatusCode::REQUEST_TIMEOUT,
+            options.request_timeout,
+        ),
+    );
+    api.merge(page)
 }
 
 async fn serve(

@@ -1,0 +1,220 @@
+//! The browser viewer's page, served at `/` by `strata serve` (issue 39).
+//!
+//! The files (the HTML page, its boot script and style, the wasm-bindgen glue and the wasm
+//! module) come from the caller: the `strata` binary embeds them when built with its `web`
+//! feature (after `cargo run -p xtask -- web`), tests load them from the xtask's output. A
+//! server given none answers `/` with how to build them, and nothing else changes.
+//!
+//! The page is as safe as the API: same origin only (a Content-Security-Policy with
+//! `default-src 'self'`, no third-party scripts, styles or fonts; `wasm-unsafe-eval` is what
+//! instantiating a wasm module needs), `Referrer-Policy: no-referrer`, no sniffing, not
+//! framable. The page's files carry no data, so they are served without the bearer token: a
+//! browser cannot send one when it navigates. The page reads the token from the URL fragment,
+//! which browsers never send, and sends it as `Authorization` on its own requests.
+
+use std::path::Path;
+use std::sync::Arc;
+
+use axum::body::Bytes;
+use axum::extract::{Path as UrlPath, State};
+use axum::http::{header, HeaderValue, StatusCode};
+use axum::response::{IntoResponse, Response};
+use axum::routing::get;
+use axum::Router;
+
+/// The files of the page, by the name the page asks for them with.
+pub const WEB_VIEWER_FILES: [(&str, &str); 5] = [
+    ("index.html", "text/html; charset=utf-8"),
+    ("strata.css", "text/css; charset=utf-8"),
+    ("strata_boot.js", "text/javascript; charset=utf-8"),
+    ("strata_web.js", "text/javascript; charset=utf-8"),
+    ("strata_web_bg.wasm", "application/wasm"),
+];
+
+/// What `/` says when the server was built without the page.
+pub const WEB_VIEWER_MISSING: &str = "This strata was built without the web viewer.\n\
+Build it with:\n\
+  rustup target add wasm32-unknown-unknown\n\
+  cargo run -p xtask -- web\n\
+  cargo build --release -p strata-app --features web\n\
+The API is under /v1/stores.\n";
+
+const CONTENT_SECURITY_POLICY: &str = "default-src 'self'; script-src 'self' 'wasm-unsafe-eval'; \
+style-src 'self'; img-src 'self' data: blob:; connect-src 'self'; font-src 'self'; \
+object-src 'none'; base-uri 'none'; form-action 'none'; frame-ancestors 'none'";
+
+/// A file of the page that could not be read.
+#[derive(Debug, thiserror::Error)]
+#[error("{path}: {message}")]
+pub struct WebViewerFilesError {
+    pub path: std::path::PathBuf,
+    pub message: String,
+}
+
+/// The page's files in memory.
+#[derive(Clone, Debug)]
+pub struct WebViewerAssets {
+    files: Vec<(&'static str, &'static str, Bytes)>,
+}
+
+impl WebViewerAssets {
+    /// From embedded bytes, in [`WEB_VIEWER_FILES`]' order.
+    pub fn from_static(bodies: [&'static [u8]; 5]) -> Self {
+        let files = WEB_VIEWER_FILES
+            .iter()
+            .zip(bodies)
+            .map(|(&(name, kind), body)| (name, kind, Bytes::from_static(body)))
+            .collect();
+        WebViewerAssets { files }
+    }
+
+    /// From a folder holding every file of [`WEB_VIEWER_FILES`] (the xtask's `dist`).
+    pub fn from_dir(dir: &Path) -> Result<Self, WebViewerFilesError> {
+        let mut files = Vec::with_capacity(WEB_VIEWER_FILES.len());
+        for (name, kind) in WEB_VIEWER_FILES {
+            let path = dir.join(name);
+            let body = std::fs::read(&path).map_err(|e| WebViewerFilesError {
+                path: path.clone(),
+                message: format!(
+                    "cannot read the web viewer's file ({e}); build it with `cargo run -p xtask -- web`"
+                ),
+            })?;
+            files.push((name, kind, Bytes::from(body)));
+        }
+        Ok(WebViewerAssets { files })
+    }
+
+    fn get(&self, name: &str) -> Option<(&'static str, Bytes)> {
+        self.files
+            .iter()
+            .find(|(n, _, _)| *n == name)
+            .map(|(_, kind, body)| (*kind, body.clone()))
+    }
+}
+
+/// `/` and the page's files; mounted outside the token guard (see the module doc).
+pub(crate) fn router(assets: Option<Arc<WebViewerAssets>>) -> Router {
+    Router::new()
+        .route("/", get(index))
+        .route("/{file}", get(file))
+        .with_state(assets)
+}
+
+async fn index(State(assets): State<Option<Arc<WebViewerAssets>>>) -> Response {
+    match assets {
+        Some(assets) => answer(&assets, "index.html"),
+        None => (
+            StatusCode::NOT_FOUND,
+            [(header::CONTENT_TYPE, "text/plain; charset=utf-8")],
+            WEB_VIEWER_MISSING,
+        )
+            .into_response(),
+    }
+}
+
+async fn file(
+    State(assets): State<Option<Arc<WebViewerAssets>>>,
+    UrlPath(name): UrlPath<String>,
+) -> Response {
+    match assets {
+        Some(assets) => answer(&assets, &name),
+        None => (StatusCode::NOT_FOUND, "not found\n").into_response(),
+    }
+}
+
+fn answer(assets: &WebViewerAssets, name: &str) -> Response {
+    let Some((kind, body)) = assets.get(name) else {
+        return (StatusCode::NOT_FOUND, "not found\n").into_response();
+    };
+    let mut response = (StatusCode::OK, body).into_response();
+    let headers = response.headers_mut();
+    headers.insert(header::CONTENT_TYPE, HeaderValue::from_static(kind));
+    // The names are not content-hashed, so the browser revalidates; the files are small next
+    // to the bricks, which are cached for good.
+    headers.insert(header::CACHE_CONTROL, HeaderValue::from_static("no-cache"));
+    headers.insert(
+        header::CONTENT_SECURITY_POLICY,
+        HeaderValue::from_static(CONTENT_SECURITY_POLICY),
+    );
+    headers.insert(
+        header::REFERRER_POLICY,
+        HeaderValue::from_static("no-referrer"),
+    );
+    headers.insert(
+        header::X_CONTENT_TYPE_OPTIONS,
+        HeaderValue::from_static("nosniff"),
+    );
+    headers.insert(header::X_FRAME_OPTIONS, HeaderValue::from_static("DENY"));
+    response
+}
+
+/// A frame the page posted to the test sink (`capture=1` in its fragment).
+#[derive(Clone, Debug)]
+pub struct CapturedFrame {
+    pub width: u32,
+    pub height: u32,
+    pub rgba: Vec<u8>,
+}
+
+/// Test hook: receives frames the page posts to `/v1/test/frame`. The route exists only on a
+/// server given a sink.
+#[derive(Clone)]
+pub struct FrameSink(pub Arc<dyn Fn(CapturedFrame) + Send + Sync>);
+
+impl std::fmt::Debug for FrameSink {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("FrameSink")
+    }
+}
+
+/// The largest frame the sink takes (a 2048² RGBA8 image).
+pub const MAX_CAPTURED_BYTES: usize = 2048 * 2048 * 4;
+
+struct FrameSize {
+    width: u32,
+    height: u32,
+}
+
+/// `width=W&height=H` of the sink's query (axum's `Query` extractor is not compiled in).
+fn frame_size(query: &str) -> Option<(u32, u32)> {
+    let mut width = None;
+    let mut height = None;
+    for pair in query.split('&') {
+        match pair.split_once('=') {
+            Some(("width", v)) => width = v.parse::<u32>().ok(),
+            Some(("height", v)) => height = v.parse::<u32>().ok(),
+            _ => {}
+        }
+    }
+    Some((width?, height?))
+}
+
+pub(crate) async fn receive_frame(
+    State(sink): State<FrameSink>,
+    uri: axum::http::Uri,
+    body: Bytes,
+) -> Response {
+    let Some((width, height)) = frame_size(uri.query().unwrap_or("")) else {
+        return (StatusCode::BAD_REQUEST, "width and height are required\n").into_response();
+    };
+    let size = FrameSize { width, height };
+    let expected = size.width as usize * size.height as usize * 4;
+    if expected == 0 || expected != body.len() {
+        return (
+            StatusCode::BAD_REQUEST,
+            format!(
+                "{}x{} RGBA8 is {expected} bytes, the body has {}\n",
+                size.width,
+                size.height,
+                body.len()
+            ),
+        )
+            .into_response();
+    }
+    (sink.0)(CapturedFrame {
+        width: size.width,
+        height: size.height,
+        rgba: body.to_vec(),
+    });
+    (StatusCode::NO_CONTENT, ()).into_response()
+}

@@ -1,0 +1,528 @@
+//! The page's entry point and the viewer app (wasm32 only).
+//!
+//! One thread: eframe's web runner calls [`WebViewer::ui`] from requestAnimationFrame, and
+//! nothing here blocks (the browser's event loop resolves every GPU promise). A frame is
+//! submitted only when the view or the image size changed, so a still page does no GPU work.
+//! The raycaster draws into its own Rgba8Unorm texture, which egui samples directly
+//! (`register_native_texture`): no readback, no copy.
+
+use std::sync::atomic::{AtomicU8, Ordering};
+use std::sync::{Arc, Mutex};
+
+use eframe::egui_wgpu;
+use strata_render::{
+    BrickedVolume, CacheConfig, GpuContext, OffscreenRenderer, RenderMode, TransferFunction,
+};
+use wasm_bindgen::prelude::*;
+use wasm_bindgen::JsCast;
+
+use crate::view_state::{Fragment, ViewState};
+
+/// The largest image edge drawn when the canvas decides (device pixels): a 4K canvas is drawn
+/// at this size and scaled, so one frame stays bounded on a software adapter.
+const MAX_CANVAS_IMAGE_EDGE: f32 = 2048.0;
+/// Degrees of orbit per logical pixel dragged.
+const ORBIT_DEG_PER_POINT: f64 = 0.4;
+
+/// Called by the wasm-bindgen glue when the module loads.
+#[wasm_bindgen(start)]
+pub fn start() {
+    wasm_bindgen_futures::spawn_local(async {
+        if let Err(message) = run().await {
+            show_message("The viewer could not start", &message);
+        }
+    });
+}
+
+/// Replaces the canvas with a message (the page's own element, not egui: it works when the
+/// GPU does not).
+fn show_message(title: &str, detail: &str) {
+    let Some(document) = web_sys::window().and_then(|w| w.document()) else {
+        return;
+    };
+    if let Some(element) = document.get_element_by_id("strata-message") {
+        element.set_text_content(Some(&format!("{title}: {detail}")));
+        let _ = element.remove_attribute("hidden");
+    }
+    if let Some(canvas) = document.get_element_by_id("strata-canvas") {
+        let _ = canvas.set_attribute("hidden", "");
+    }
+    web_sys::console::error_1(&format!("strata: {title}: {detail}").into());
+}
+
+async fn run() -> Result<(), String> {
+    let window = web_sys::window().ok_or("no window object")?;
+    let document = window.document().ok_or("no document")?;
+    let canvas = document
+        .get_element_by_id("strata-canvas")
+        .ok_or("the page has no #strata-canvas")?
+        .dyn_into::<web_sys::HtmlCanvasElement>()
+        .map_err(|_| "#strata-canvas is not a canvas")?;
+    let hash = window.location().hash().unwrap_or_default();
+    let fragment = Fragment::parse(&hash).map_err(|e| e.to_string())?;
+    if fragment.token.is_some() {
+        // The token leaves the address bar (and history) at once; the page keeps it in memory.
+        if let Ok(history) = window.history() {
+            let _ = history.replace_state_with_url(
+                &JsValue::NULL,
+                "",
+                Some(&fragment.view.to_fragment()),
+            );
+        }
+    }
+    let mut options = eframe::WebOptions::default();
+    options.wgpu_options.wgpu_setup =
+        egui_wgpu::WgpuSetup::CreateNew(egui_wgpu::WgpuSetupCreateNew {
+            // The raycaster's needs: filterable f32 bricks (no 16-bit normalised textures on
+            // WebGPU without texture-formats-tier1, and wgpu cannot ask for it there),
+            // timestamps when offered, and the adapter's own limits (eframe asks for the
+            // defaults, which cap 3D textures and bindings below what the cache can use).
+            device_descriptor: Arc::new(|adapter| {
+                let wanted = wgpu::Features::FLOAT32_FILTERABLE | wgpu::Features::TIMESTAMP_QUERY;
+                wgpu::DeviceDescriptor {
+                    label: Some("strata-web"),
+                    required_features: adapter.features() & wanted,
+                    required_limits: adapter.limits(),
+                    ..Default::default()
+                }
+            }),
+            ..egui_wgpu::WgpuSetupCreateNew::without_display_handle()
+        });
+    eframe::WebRunner::new()
+        .start(
+            canvas,
+            options,
+            Box::new(move |cc| {
+                let viewer = WebViewer::new(cc, fragment)?;
+                Ok(Box::new(viewer))
+            }),
+        )
+        .await
+        .map_err(|e| format!("{e:?}"))
+}
+
+/// Where the test capture stands (an atomic because the map callback must be `Send` on the
+/// wgpu API, although the browser calls it on this one thread).
+const CAPTURE_MAPPING: u8 = 1;
+const CAPTURE_MAPPED: u8 = 2;
+const CAPTURE_FAILED: u8 = 3;
+const CAPTURE_SENT: u8 = 4;
+
+struct Capture {
+    buffer: wgpu::Buffer,
+    padded_row: u32,
+    size: [u32; 2],
+    state: Arc<AtomicU8>,
+}
+
+struct WebViewer {
+    render_state: egui_wgpu::RenderState,
+    gpu: GpuContext,
+    view: ViewState,
+    volume: Option<BrickedVolume>,
+    renderer: Option<OffscreenRenderer>,
+    /// The preset the renderer's transfer function was made from.
+    renderer_preset: String,
+    texture: Option<egui::TextureId>,
+    /// The view and image size of the frame on screen.
+    drawn: Option<(ViewState, [u32; 2])>,
+    frames_submitted: u64,
+    /// Frames `ui` ran before the volume was generated (the first one paints the notice).
+    waited_frames: u32,
+    error: Option<String>,
+    gpu_error: Arc<Mutex<Option<String>>>,
+    device_lost: Arc<Mutex<Option<String>>>,
+    fragment_written: String,
+    capture: Option<Capture>,
+}
+
+impl WebViewer {
+    fn new(
+        cc: &eframe::CreationContext<'_>,
+        fragment: Fragment,
+    ) -> Result<Self, Box<dyn std::error::Error + Send + Sync>> {
+        let render_state = cc
+            .wgpu_render_state
+            .clone()
+            .ok_or("eframe started without wgpu")?;
+        let info = render_state.adapter.get_info();
+        if info.backend != wgpu::Backend::BrowserWebGpu {
+            // WebGL2 has no compute shaders: the raycaster cannot run on it.
+            return Err(format!(
+                "the browser offered {:?}, not WebGPU; the raycaster needs WebGPU's compute \
+                 shaders (Chrome or Edge 113+, Firefox 141+, Safari 26+)",
+                info.backend
+            )
+            .into());
+        }
+        let device = render_state.device.clone();
+        let gpu_error = Arc::new(Mutex::new(None::<String>));
+        let slot = gpu_error.clone();
+        // wgpu's default handler panics; a GPU error here becomes a message on the page.
+        device.on_uncaptured_error(Arc::new(move |error: wgpu::Error| {
+            let mut first = slot.lock().unwrap_or_else(|p| p.into_inner());
+            first.get_or_insert_with(|| error.to_string());
+        }));
+        let device_lost = Arc::new(Mutex::new(None::<String>));
+        let lost = device_lost.clone();
+        device.set_device_lost_callback(move |reason, message| {
+            let mut slot = lost.lock().unwrap_or_else(|p| p.into_inner());
+            slot.get_or_insert_with(|| format!("{reason:?}: {message}"));
+        });
+        let gpu = GpuContext::from_device(device, render_state.queue.clone());
+        let fragment_written = fragment.view.to_fragment();
+        Ok(WebViewer {
+            render_state,
+            gpu,
+            view: fragment.view,
+            volume: None,
+            renderer: None,
+            renderer_preset: String::new(),
+            texture: None,
+            drawn: None,
+            frames_submitted: 0,
+            waited_frames: 0,
+            error: None,
+            gpu_error,
+            device_lost,
+            fragment_written,
+            capture: None,
+        })
+    }
+
+    /// Makes the volume and the renderer on the second frame (the first shows the notice).
+    fn ensure_renderer(&mut self, ctx: &egui::Context) -> Result<bool, String> {
+        if self.volume.is_none() {
+            self.waited_frames += 1;
+            if self.waited_frames < 2 {
+                ctx.request_repaint();
+                return Ok(false);
+            }
+            self.volume = Some(self.view.sample_volume().map_err(|e| e.to_string())?);
+        }
+        let Some(volume) = self.volume.as_ref() else {
+            return Ok(false);
+        };
+        if self.renderer.is_none() {
+            let config = CacheConfig {
+                // What the volume needs and no more: the page shares the GPU with the tab.
+                budget_bytes: 256 << 20,
+                ..CacheConfig::default()
+            };
+            let renderer = OffscreenRenderer::new(
+                &self.gpu,
+                volume,
+                &self.view.transfer_function(),
+                0,
+                config,
+            )
+            .map_err(|e| e.to_string())?;
+            self.renderer = Some(renderer);
+            self.renderer_preset = self.view.preset.clone();
+        }
+        if self.renderer_preset != self.view.preset {
+            if let Some(renderer) = self.renderer.as_mut() {
+                renderer
+                    .set_transfer_function(&self.gpu, volume, &self.view.transfer_function())
+                    .map_err(|e| e.to_string())?;
+            }
+            self.renderer_preset = self.view.preset.clone();
+        }
+        Ok(true)
+    }
+
+    fn draw_if_changed(&mut self, size: [u32; 2]) -> Result<(), String> {
+        let wanted = (self.view.clone(), size);
+        if self.drawn.as_ref() == Some(&wanted) {
+            return Ok(());
+        }
+        let (Some(volume), Some(renderer)) = (self.volume.as_ref(), self.renderer.as_mut()) else {
+            return Ok(());
+        };
+        let camera = self.view.camera(&volume.geometry);
+        let settings = self.view.settings(size[0], size[1]);
+        renderer
+            .submit(&self.gpu, volume, &camera, &settings)
+            .map_err(|e| e.to_string())?;
+        self.frames_submitted += 1;
+        let view = renderer
+            .raycaster
+            .output_view()
+            .ok_or("the raycaster drew no image")?;
+        let mut egui_renderer = self.render_state.renderer.write();
+        match self.texture {
+            // The output texture is re-created when the size changes: point the id at it.
+            Some(id) => egui_renderer.update_egui_texture_from_wgpu_texture(
+                &self.gpu.device,
+                view,
+                wgpu::FilterMode::Linear,
+                id,
+            ),
+            None => {
+                self.texture = Some(egui_renderer.register_native_texture(
+                    &self.gpu.device,
+                    view,
+                    wgpu::FilterMode::Linear,
+                ))
+            }
+        }
+        self.drawn = Some(wanted);
+        Ok(())
+    }
+
+    fn controls(&mut self, ui: &mut egui::Ui) {
+        ui.horizontal_wrapped(|ui| {
+            ui.strong("Strata");
+            ui.separator();
+            for (mode, label) in [
+                (RenderMode::Dvr, "DVR"),
+                (RenderMode::Mip, "MIP"),
+                (RenderMode::Isosurface, "Isosurface"),
+            ] {
+                ui.selectable_value(&mut self.view.mode, mode, label);
+            }
+            ui.separator();
+            egui::ComboBox::from_id_salt("preset")
+                .selected_text(self.view.preset.clone())
+                .show_ui(ui, |ui| {
+                    for name in TransferFunction::PRESETS {
+                        ui.selectable_value(&mut self.view.preset, name.to_string(), name);
+                    }
+                });
+            if self.view.mode == RenderMode::Isosurface {
+                ui.add(
+                    egui::Slider::new(&mut self.view.iso_value, -1000.0..=3000.0).text("iso (HU)"),
+                );
+            }
+            ui.add(
+                egui::Slider::new(&mut self.view.zoom, 0.25..=8.0)
+                    .logarithmic(true)
+                    .text("zoom"),
+            );
+            ui.separator();
+            ui.label(format!(
+                "sample volume {}³ · frames drawn {}",
+                self.view.volume_edge, self.frames_submitted
+            ));
+        });
+    }
+
+    /// Keeps the address bar's fragment on the view (history.replaceState: no history entry
+    /// per drag), so copying the address shares the view.
+    fn write_fragment(&mut self, dragging: bool) {
+        let fragment = self.view.to_fragment();
+        if dragging || fragment == self.fragment_written {
+            return;
+        }
+        if let Some(history) = web_sys::window().and_then(|w| w.history().ok()) {
+            let _ = history.replace_state_with_url(&JsValue::NULL, "", Some(&fragment));
+        }
+        self.fragment_written = fragment;
+    }
+
+    /// Test hook (`capture=1`): copies the frame on screen to a buffer, maps it, and posts the
+    /// pixels to the server that served the page, once.
+    fn capture_step(&mut self, ctx: &egui::Context) {
+        if !self.view.capture {
+            return;
+        }
+        let Some((_, size)) = self.drawn.clone() else {
+            return;
+        };
+        if self.capture.is_none() {
+            let Some(texture) = self
+                .renderer
+                .as_ref()
+                .and_then(|r| r.raycaster.output_texture())
+            else {
+                return;
+            };
+            // Rows of a texture-to-buffer copy are padded to 256 bytes.
+            let padded_row = (size[0] * 4).div_ceil(256) * 256;
+            let buffer = self.gpu.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("strata-web capture"),
+                size: padded_row as u64 * size[1] as u64,
+                usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
+                mapped_at_creation: false,
+            });
+            let mut encoder =
+                self.gpu
+                    .device
+                    .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                        label: Some("strata-web capture"),
+                    });
+            encoder.copy_texture_to_buffer(
+                texture.as_image_copy(),
+                wgpu::TexelCopyBufferInfo {
+                    buffer: &buffer,
+                    layout: wgpu::TexelCopyBufferLayout {
+                        offset: 0,
+                        bytes_per_row: Some(padded_row),
+                        rows_per_image: Some(size[1]),
+                    },
+                },
+                wgpu::Extent3d {
+                    width: size[0],
+                    height: size[1],
+                    depth_or_array_layers: 1,
+                },
+            );
+            self.gpu.queue.submit(Some(encoder.finish()));
+            let state = Arc::new(AtomicU8::new(CAPTURE_MAPPING));
+            let done = state.clone();
+            let repaint = ctx.clone();
+            buffer
+                .slice(..)
+                .map_async(wgpu::MapMode::Read, move |result| {
+                    done.store(
+                        if result.is_ok() {
+                            CAPTURE_MAPPED
+                        } else {
+                            CAPTURE_FAILED
+                        },
+                        Ordering::Release,
+                    );
+                    repaint.request_repaint();
+                });
+            self.capture = Some(Capture {
+                buffer,
+                padded_row,
+                size,
+                state,
+            });
+        }
+        let Some(capture) = self.capture.as_ref() else {
+            return;
+        };
+        match capture.state.load(Ordering::Acquire) {
+            CAPTURE_MAPPED => {
+                let [w, h] = capture.size;
+                let mut rgba = Vec::with_capacity((w * h * 4) as usize);
+                match capture.buffer.slice(..).get_mapped_range() {
+                    Ok(mapped) => {
+                        for row in 0..h as usize {
+                            let start = row * capture.padded_row as usize;
+                            rgba.extend_from_slice(&mapped[start..start + (w * 4) as usize]);
+                        }
+                    }
+                    Err(e) => {
+                        self.error = Some(format!("the test capture could not be read: {e}"));
+                        return;
+                    }
+                }
+                capture.buffer.unmap();
+                capture.state.store(CAPTURE_SENT, Ordering::Release);
+                wasm_bindgen_futures::spawn_local(async move {
+                    if let Err(e) = post_frame(&rgba, w, h).await {
+                        show_message("The test capture could not be sent", &e);
+                    }
+                });
+            }
+            CAPTURE_FAILED => {
+                self.error = Some("the test capture's buffer could not be mapped".into());
+            }
+            CAPTURE_SENT => {}
+            _ => ctx.request_repaint(),
+        }
+    }
+}
+
+/// Posts a captured frame to `strata serve`'s test sink (same origin).
+async fn post_frame(rgba: &[u8], width: u32, height: u32) -> Result<(), String> {
+    let window = web_sys::window().ok_or("no window")?;
+    let init = web_sys::RequestInit::new();
+    init.set_method("POST");
+    let body = js_sys::Uint8Array::from(rgba);
+    init.set_body(&body.into());
+    let url = format!("/v1/test/frame?width={width}&height={height}");
+    let request =
+        web_sys::Request::new_with_str_and_init(&url, &init).map_err(|e| format!("{e:?}"))?;
+    let answer = wasm_bindgen_futures::JsFuture::from(window.fetch_with_request(&request))
+        .await
+        .map_err(|e| format!("{e:?}"))?;
+    let response: web_sys::Response = answer.dyn_into().map_err(|e| format!("{e:?}"))?;
+    if !response.ok() {
+        return Err(format!("the server answered {}", response.status()));
+    }
+    Ok(())
+}
+
+impl eframe::App for WebViewer {
+    fn ui(&mut self, ui: &mut egui::Ui, _frame: &mut eframe::Frame) {
+        let ctx = ui.ctx().clone();
+        if let Some(lost) = self.device_lost.lock().ok().and_then(|l| l.clone()) {
+            self.error = Some(format!(
+                "the GPU device was lost ({lost}). Reload the page: the view is in its address"
+            ));
+        }
+        if let Some(detail) = self.gpu_error.lock().ok().and_then(|mut e| e.take()) {
+            self.error.get_or_insert(format!("GPU error: {detail}"));
+        }
+        egui::Panel::top("controls").show(ui, |ui| self.controls(ui));
+        egui::CentralPanel::default().show(ui, |ui| {
+            if let Some(error) = &self.error {
+                ui.colored_label(egui::Color32::LIGHT_RED, error);
+                return;
+            }
+            match self.ensure_renderer(&ctx) {
+                Ok(true) => {}
+                Ok(false) => {
+                    ui.label(format!(
+                        "Generating the {0}³ sample volume…",
+                        self.view.volume_edge
+                    ));
+                    return;
+                }
+                Err(e) => {
+                    self.error = Some(e);
+                    return;
+                }
+            }
+            let rect = ui.available_rect_before_wrap();
+            let response = ui.allocate_rect(rect, egui::Sense::drag());
+            if response.dragged() {
+                let delta = response.drag_delta();
+                self.view.azimuth_deg -= delta.x as f64 * ORBIT_DEG_PER_POINT;
+                self.view.elevation_deg = (self.view.elevation_deg
+                    + delta.y as f64 * ORBIT_DEG_PER_POINT)
+                    .clamp(-89.0, 89.0);
+            }
+            if response.hovered() {
+                let scroll = ui.input(|i| i.smooth_scroll_delta.y);
+                if scroll != 0.0 {
+                    self.view.zoom =
+                        (self.view.zoom * (scroll as f64 * 0.002).exp()).clamp(0.25, 8.0);
+                }
+            }
+            let ppp = ctx.pixels_per_point();
+            let size = self.view.image_size.unwrap_or_else(|| {
+                let px = (rect.size() * ppp)
+                    .min(egui::vec2(MAX_CANVAS_IMAGE_EDGE, MAX_CANVAS_IMAGE_EDGE));
+                [px.x.max(16.0) as u32, px.y.max(16.0) as u32]
+            });
+            if let Err(e) = self.draw_if_changed(size) {
+                self.error = Some(e);
+                return;
+            }
+            if let Some(texture) = self.texture {
+                // Fit the image in the panel, keeping its aspect (a fixed `size=` may differ).
+                let aspect = size[0] as f32 / size[1] as f32;
+                let mut shown = rect.size();
+                if shown.x / shown.y > aspect {
+                    shown.x = shown.y * aspect;
+                } else {
+                    shown.y = shown.x / aspect;
+                }
+                let image_rect = egui::Rect::from_center_size(rect.center(), shown);
+                ui.painter().image(
+                    texture,
+                    image_rect,
+                    egui::Rect::from_min_max(egui::pos2(0.0, 0.0), egui::pos2(1.0, 1.0)),
+                    egui::Color32::WHITE,
+                );
+            }
+            self.write_fragment(response.dragged());
+        });
+        self.capture_step(&ctx);
+    }
+}

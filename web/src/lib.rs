@@ -1,0 +1,16 @@
+//! strata-web: the Strata viewer in a web browser (issue 39). eframe's web runner draws the UI
+//! on a canvas; the volume is drawn by the same `strata-render` raycaster as on the desktop,
+//! on the browser's WebGPU device, into a texture egui shows without a copy.
+//!
+//! # Modules
+//! - [`view_state`]: the URL fragment ⇄ the view (camera, mode, preset, size). Platform
+//!   independent: the native tests render the same view to check the browser's pixels.
+//! - `browser` (wasm32 only): the page's entry point, the viewer app, the frame capture.
+//!
+//! This first step shows the built-in sample volume (the render crate's CT phantom, made in
+//! the page); streaming a served store needs the loader on wasm32 (see ARCHITECTURE.md).
+
+pub mod view_state;
+
+#[cfg(target_arch = "wasm32")]
+mod browser;

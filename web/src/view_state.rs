@@ -1,0 +1,348 @@
+//! The view a URL fragment describes, and the fragment of a view (issue 39, "shareable
+//! views"): `#mode=dvr&preset=ct-bone&az=30&el=20&zoom=1.2` opens the same picture elsewhere.
+//!
+//! Platform-independent on purpose: the browser build reads and writes fragments with it, and
+//! the native tests build the very same camera, settings and transfer function from a
+//! fragment to render the reference image the browser's frame is compared with.
+//!
+//! The fragment is `key=value` pairs joined by `&`. Keys this build does not know are ignored
+//! (a link made by a newer viewer still opens); a known key with a bad value is an error that
+//! names the key, so a mangled link says what is wrong instead of showing another view. The
+//! bearer token (`token=`) is read once and never written back: fragments are shared, tokens
+//! must not be.
+
+use strata_render::phantom::ct_phantom;
+use strata_render::{
+    BrickedVolume, Camera, Projection, RenderError, RenderMode, RenderSettings, Shading,
+    TransferFunction, VolumeGeometry,
+};
+
+/// Edge of the built-in sample volume when the fragment names none (voxels).
+pub const DEFAULT_VOLUME_EDGE: u32 = 128;
+/// Largest built-in volume edge a fragment may ask for: generated on the page's one thread,
+/// 256³ takes seconds; more would freeze the tab.
+pub const MAX_VOLUME_EDGE: u32 = 256;
+/// Largest image edge a fragment may fix (`size=`); the canvas size decides otherwise.
+pub const MAX_IMAGE_EDGE: u32 = 4096;
+/// The orbit camera's field of view, as `strata render`'s perspective default.
+pub const FOV_Y_DEG: f64 = 30.0;
+
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum FragmentError {
+    #[error("the link's `{key}` is `{value}`: {expected}")]
+    BadValue {
+        key: String,
+        value: String,
+        expected: String,
+    },
+}
+
+/// What the view shows and from where.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ViewState {
+    pub mode: RenderMode,
+    /// A transfer-function preset ([`TransferFunction::PRESETS`]).
+    pub preset: String,
+    /// Orbit angles in degrees and zoom (1 frames the volume's bounding sphere), as
+    /// `strata render --azimuth --elevation --zoom`.
+    pub azimuth_deg: f64,
+    pub elevation_deg: f64,
+    pub zoom: f64,
+    /// Isosurface value in the volume's physical unit (HU for the CT sample).
+    pub iso_value: f64,
+    /// Edge of the built-in sample volume (voxels).
+    pub volume_edge: u32,
+    /// A fixed image size (width, height) instead of the canvas's: links that must give the
+    /// same pixels anywhere (screenshots, tests).
+    pub image_size: Option<[u32; 2]>,
+    /// Test hook: post the first complete frame's pixels back to the server that served the
+    /// page (`strata serve` accepts them only when started with its test sink).
+    pub capture: bool,
+}
+
+impl Default for ViewState {
+    fn default() -> Self {
+        ViewState {
+            mode: RenderMode::Dvr,
+            preset: "ct-bone".into(),
+            azimuth_deg: 30.0,
+            elevation_deg: 15.0,
+            zoom: 1.0,
+            iso_value: 300.0,
+            volume_edge: DEFAULT_VOLUME_EDGE,
+            image_size: None,
+            capture: false,
+        }
+    }
+}
+
+/// A parsed fragment: the view, and the bearer token if the link carried one.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Fragment {
+    pub view: ViewState,
+    pub token: Option<String>,
+}
+
+fn mode_name(mode: RenderMode) -> &'static str {
+    match mode {
+        RenderMode::Dvr => "dvr",
+        RenderMode::Mip => "mip",
+        RenderMode::Isosurface => "iso",
+    }
+}
+
+fn bad(key: &str, value: &str, expected: impl Into<String>) -> FragmentError {
+    FragmentError::BadValue {
+        key: key.into(),
+        value: value.into(),
+        expected: expected.into(),
+    }
+}
+
+fn finite(
+    key: &str,
+    value: &str,
+    range: std::ops::RangeInclusive<f64>,
+) -> Result<f64, FragmentError> {
+    match value.parse::<f64>() {
+        Ok(v) if v.is_finite() && range.contains(&v) => Ok(v),
+        _ => Err(bad(
+            key,
+            value,
+            format!("a number from {} to {}", range.start(), range.end()),
+        )),
+    }
+}
+
+/// Undoes the percent-encoding a browser may apply to a fragment (`%20`, `%2C`); anything
+/// malformed is kept as written.
+fn percent_decode(text: &str) -> String {
+    let bytes = text.as_bytes();
+    let mut out = Vec::with_capacity(bytes.len());
+    let mut i = 0;
+    while i < bytes.len() {
+        let hex = |b: u8| (b as char).to_digit(16);
+        if bytes[i] == b'%' && i + 2 < bytes.len() {
+            if let (Some(h), Some(l)) = (hex(bytes[i + 1]), hex(bytes[i + 2])) {
+                out.push((h * 16 + l) as u8);
+                i += 3;
+                continue;
+            }
+        }
+        out.push(bytes[i]);
+        i += 1;
+    }
+    String::from_utf8_lossy(&out).into_owned()
+}
+
+impl Fragment {
+    /// Parses `#k=v&k=v` (the leading `#` optional).
+    pub fn parse(fragment: &str) -> Result<Fragment, FragmentError> {
+        let mut view = ViewState::default();
+        let mut token = None;
+        let text = fragment.strip_prefix('#').unwrap_or(fragment);
+        for pair in text.split('&').filter(|p| !p.is_empty()) {
+            let (key, raw) = pair.split_once('=').unwrap_or((pair, ""));
+            let value = percent_decode(raw);
+            let value = value.as_str();
+            match key {
+                "mode" => {
+                    view.mode = match value {
+                        "dvr" => RenderMode::Dvr,
+                        "mip" => RenderMode::Mip,
+                        "iso" => RenderMode::Isosurface,
+                        _ => return Err(bad(key, value, "dvr, mip or iso")),
+                    }
+                }
+                "preset" => {
+                    if TransferFunction::preset(value).is_none() {
+                        return Err(bad(
+                            key,
+                            value,
+                            format!("one of {}", TransferFunction::PRESETS.join(", ")),
+                        ));
+                    }
+                    view.preset = value.into();
+                }
+                "az" => view.azimuth_deg = finite(key, value, -3600.0..=3600.0)?,
+                "el" => view.elevation_deg = finite(key, value, -90.0..=90.0)?,
+                "zoom" => view.zoom = finite(key, value, 0.05..=100.0)?,
+                "iso" => view.iso_value = finite(key, value, -1.0e6..=1.0e6)?,
+                "volume" => {
+                    view.volume_edge = match value.parse::<u32>() {
+                        Ok(n) if (8..=MAX_VOLUME_EDGE).contains(&n) => n,
+                        _ => {
+                            return Err(bad(
+                                key,
+                                value,
+                                format!("a whole number from 8 to {MAX_VOLUME_EDGE}"),
+                            ))
+                        }
+                    }
+                }
+                "size" => {
+                    let parsed = value
+                        .split_once('x')
+                        .and_then(|(w, h)| Some([w.parse::<u32>().ok()?, h.parse::<u32>().ok()?]));
+                    view.image_size = match parsed {
+                        Some([w, h])
+                            if (1..=MAX_IMAGE_EDGE).contains(&w)
+                                && (1..=MAX_IMAGE_EDGE).contains(&h) =>
+                        {
+                            Some([w, h])
+                        }
+                        _ => {
+                            return Err(bad(
+                                key,
+                                value,
+                                format!("WIDTHxHEIGHT, each 1 to {MAX_IMAGE_EDGE}"),
+                            ))
+                        }
+                    }
+                }
+                "capture" => view.capture = value == "1",
+                "token" if !value.is_empty() => token = Some(value.to_string()),
+                _ => {}
+            }
+        }
+        Ok(Fragment { view, token })
+    }
+}
+
+impl ViewState {
+    /// The fragment that opens this view (no token, whatever the page was opened with).
+    pub fn to_fragment(&self) -> String {
+        let mut parts = vec![
+            format!("mode={}", mode_name(self.mode)),
+            format!("preset={}", self.preset),
+            format!("az={}", round3(self.azimuth_deg)),
+            format!("el={}", round3(self.elevation_deg)),
+            format!("zoom={}", round3(self.zoom)),
+        ];
+        if self.mode == RenderMode::Isosurface {
+            parts.push(format!("iso={}", round3(self.iso_value)));
+        }
+        if self.volume_edge != DEFAULT_VOLUME_EDGE {
+            parts.push(format!("volume={}", self.volume_edge));
+        }
+        if let Some([w, h]) = self.image_size {
+            parts.push(format!("size={w}x{h}"));
+        }
+        format!("#{}", parts.join("&"))
+    }
+
+    /// The built-in sample volume's geometry: a cube of 1 mm voxels.
+    pub fn geometry(&self) -> VolumeGeometry {
+        VolumeGeometry::axis_aligned([self.volume_edge; 3], [1.0; 3])
+    }
+
+    /// The built-in sample volume: the render crate's CT phantom (HU in u16 + 1024).
+    pub fn sample_volume(&self) -> Result<BrickedVolume, RenderError> {
+        ct_phantom(self.geometry(), None, None)
+    }
+
+    /// The orbit camera, as `strata render --azimuth --elevation --zoom` builds it.
+    pub fn camera(&self, geometry: &VolumeGeometry) -> Camera {
+        Camera::orbit(
+            geometry,
+            self.azimuth_deg,
+            self.elevation_deg,
+            self.zoom,
+            Projection::Perspective {
+                fov_y_deg: FOV_Y_DEG,
+            },
+        )
+    }
+
+    /// The transfer function of the view's preset (the default preset if the name is unknown,
+    /// which [`Fragment::parse`] does not let through).
+    pub fn transfer_function(&self) -> TransferFunction {
+        TransferFunction::preset(&self.preset)
+            .or_else(|| TransferFunction::preset("ct-bone"))
+            .unwrap_or_else(|| TransferFunction::new("ramp", &[(0.0, 0.0), (1.0, 1.0)], &[]))
+    }
+
+    /// Render settings for a `width` × `height` image: the raycaster's defaults with the
+    /// view's mode, shaded for DVR and isosurfaces as the desktop viewer shows them.
+    pub fn settings(&self, width: u32, height: u32) -> RenderSettings {
+        RenderSettings {
+            width,
+            height,
+            mode: self.mode,
+            iso_value: self.iso_value,
+            shading: (self.mode != RenderMode::Mip).then(Shading::default),
+            ..RenderSettings::default()
+        }
+    }
+}
+
+/// Three decimals: enough for a view, short enough for a link.
+fn round3(v: f64) -> f64 {
+    (v * 1000.0).round() / 1000.0
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_view_survives_its_fragment() {
+        let view = ViewState {
+            mode: RenderMode::Isosurface,
+            preset: "ct-soft-tissue".into(),
+            azimuth_deg: -42.5,
+            elevation_deg: 12.25,
+            zoom: 1.75,
+            iso_value: 250.0,
+            volume_edge: 64,
+            image_size: Some([160, 120]),
+            capture: false,
+        };
+        let parsed = Fragment::parse(&view.to_fragment()).expect("own fragment parses");
+        assert_eq!(parsed.view, view);
+        assert_eq!(parsed.token, None);
+    }
+
+    #[test]
+    fn the_token_is_read_and_never_written_back() {
+        let parsed = Fragment::parse("#mode=mip&token=s3cr%65t&az=10").expect("parses");
+        assert_eq!(parsed.token.as_deref(), Some("s3cret"));
+        assert_eq!(parsed.view.mode, RenderMode::Mip);
+        let written = parsed.view.to_fragment();
+        assert!(!written.contains("token"), "{written}");
+        assert!(!written.contains("s3cret"), "{written}");
+    }
+
+    #[test]
+    fn a_bad_value_names_its_key_and_unknown_keys_are_ignored() {
+        let e = Fragment::parse("#mode=volume").expect_err("unknown mode");
+        assert!(e.to_string().contains("`mode`"), "{e}");
+        let e = Fragment::parse("#el=91").expect_err("elevation past the pole");
+        assert!(e.to_string().contains("`el`"), "{e}");
+        let e = Fragment::parse("#zoom=NaN").expect_err("NaN zoom");
+        assert!(e.to_string().contains("`zoom`"), "{e}");
+        let e = Fragment::parse("#volume=100000").expect_err("huge volume");
+        assert!(e.to_string().contains("256"), "{e}");
+        let e = Fragment::parse("#size=0x5").expect_err("empty image");
+        assert!(e.to_string().contains("`size`"), "{e}");
+        let e = Fragment::parse("#preset=nope").expect_err("unknown preset");
+        assert!(e.to_string().contains("ct-bone"), "{e}");
+        let ok = Fragment::parse("#layout=quad&mode=dvr").expect("unknown key ignored");
+        assert_eq!(ok.view, ViewState::default());
+        assert_eq!(
+            Fragment::parse("").expect("empty").view,
+            ViewState::default()
+        );
+    }
+
+    #[test]
+    fn settings_follow_the_mode() {
+        let mut view = ViewState::default();
+        assert!(view.settings(8, 8).shading.is_some());
+        view.mode = RenderMode::Mip;
+        let s = view.settings(64, 32);
+        assert!(s.shading.is_none());
+        assert_eq!((s.width, s.height, s.mode), (64, 32, RenderMode::Mip));
+        assert!(s.validate().is_ok());
+    }
+}
