@@ -46,6 +46,9 @@ use xxhash_rust::xxh3::Xxh3;
 use crate::octree::{BrickId, APRON, BRICK_PAYLOAD, BRICK_PAYLOAD_VOXELS, CORE};
 
 mod linear3d;
+mod zstd_frames;
+
+use zstd_frames::ZstdFrames;
 
 const KIND_LZ4_U16: u8 = 0;
 const KIND_LZ4_U8: u8 = 1;
@@ -300,15 +303,15 @@ fn zstd_compress(bytes: &[u8]) -> Option<Vec<u8>> {
     zstd_compress_level(bytes, ZSTD_LEVEL)
 }
 
+#[cfg(feature = "local")]
 thread_local! {
     /// One zstd context per thread, reused: a context costs more to set up than a brick costs to
     /// compress.
     static ZSTD_COMPRESSOR: std::cell::RefCell<Option<zstd::bulk::Compressor<'static>>> =
         const { std::cell::RefCell::new(None) };
-    static ZSTD_DECOMPRESSOR: std::cell::RefCell<Option<zstd::bulk::Decompressor<'static>>> =
-        const { std::cell::RefCell::new(None) };
 }
 
+#[cfg(feature = "local")]
 fn zstd_compress_level(bytes: &[u8], level: i32) -> Option<Vec<u8>> {
     ZSTD_COMPRESSOR.with(|cell| {
         let mut slot = cell.try_borrow_mut().ok()?;
@@ -319,6 +322,14 @@ fn zstd_compress_level(bytes: &[u8], level: i32) -> Option<Vec<u8>> {
         compressor.set_compression_level(level).ok()?;
         compressor.compress(bytes).ok()
     })
+}
+
+/// Without `local` there is no zstd encoder (C zstd is local-only; import, the only writer, is
+/// too): the encoders then store lz4, as they do when zstd cannot allocate, and the record's kind
+/// says so, so what they write still decodes everywhere.
+#[cfg(not(feature = "local"))]
+fn zstd_compress_level(_bytes: &[u8], _level: i32) -> Option<Vec<u8>> {
+    None
 }
 
 /// How far back the sample that predicts the row starting at `start` lies in the column-delta
@@ -630,6 +641,21 @@ pub fn verify_record(id: BrickId, record: &[u8]) -> Result<u64, BrickDecodeError
 
 /// Decodes and verifies a stored brick into its 36³ voxels.
 pub fn decode_brick(id: BrickId, record: &[u8]) -> Result<Vec<u16>, BrickDecodeError> {
+    decode_brick_with::<zstd_frames::Native>(id, record)
+}
+
+/// [`decode_brick`] with zstd frames decoded by the pure-Rust ruzstd whatever the build: what a
+/// build without `local` decodes with. For the tests that compare it with C zstd on stores.
+#[doc(hidden)]
+pub fn decode_brick_pure_rust(id: BrickId, record: &[u8]) -> Result<Vec<u16>, BrickDecodeError> {
+    decode_brick_with::<zstd_frames::PureZstd>(id, record)
+}
+
+/// [`decode_brick`] with zstd frames decoded by `Z` (C zstd or ruzstd, see [`zstd_frames`]).
+fn decode_brick_with<Z: ZstdFrames>(
+    id: BrickId,
+    record: &[u8],
+) -> Result<Vec<u16>, BrickDecodeError> {
     if record.len() < HEADER_LEN {
         return Err(BrickDecodeError::TooShort);
     }
@@ -658,27 +684,27 @@ pub fn decode_brick(id: BrickId, record: &[u8]) -> Result<Vec<u16>, BrickDecodeE
             .into_iter()
             .map(u16::from)
             .collect()),
-        KIND_ZSTD_U8 => Ok(zstd_exact(body, BRICK_PAYLOAD_VOXELS)?
+        KIND_ZSTD_U8 => Ok(zstd_exact::<Z>(body, BRICK_PAYLOAD_VOXELS)?
             .into_iter()
             .map(u16::from)
             .collect()),
         KIND_DELTA_ZSTD_U8 => with_scratch(BRICK_PAYLOAD_VOXELS, |samples| {
-            zstd_exact_into(body, samples)?;
+            zstd_exact_into::<Z>(body, samples)?;
             restore_delta(samples);
             Ok(widen(samples))
         }),
         KIND_COLUMN_DELTA_ZSTD_U8 => with_scratch(BRICK_PAYLOAD_VOXELS, |samples| {
-            zstd_exact_into(body, samples)?;
+            zstd_exact_into::<Z>(body, samples)?;
             restore_column_delta(samples);
             Ok(widen(samples))
         }),
         KIND_MED_ZSTD_U8 => {
-            let residuals = zstd_exact(body, BRICK_PAYLOAD_VOXELS)?;
+            let residuals = zstd_exact::<Z>(body, BRICK_PAYLOAD_VOXELS)?;
             let mut out = vec![0u16; BRICK_PAYLOAD_VOXELS];
             restore_med(&residuals, &mut out);
             Ok(out)
         }
-        KIND_LINEAR3D_U8 => linear3d::decompress(body),
+        KIND_LINEAR3D_U8 => linear3d::decompress::<Z>(body),
         KIND_LZ4_U16 => Ok(lz4_exact(body, BRICK_PAYLOAD_VOXELS * 2)?
             .chunks_exact(2)
             .map(|c| u16::from_le_bytes([c[0], c[1]]))
@@ -690,7 +716,7 @@ pub fn decode_brick(id: BrickId, record: &[u8]) -> Result<Vec<u16>, BrickDecodeE
             Ok(out)
         }),
         KIND_SHUFFLE_ZSTD_U16 => {
-            let planes = zstd_exact(body, BRICK_PAYLOAD_VOXELS * 2)?;
+            let planes = zstd_exact::<Z>(body, BRICK_PAYLOAD_VOXELS * 2)?;
             let mut out = vec![0u16; BRICK_PAYLOAD_VOXELS];
             unshuffle_u16(&planes, &mut out);
             Ok(out)
@@ -753,8 +779,8 @@ fn with_scratch<T>(len: usize, f: impl FnOnce(&mut [u8]) -> T) -> T {
 }
 
 /// Decompresses a zstd frame that must fill `out` exactly, with this thread's reused context.
-fn zstd_exact_into(body: &[u8], out: &mut [u8]) -> Result<(), BrickDecodeError> {
-    let n = linear3d::zstd_into(body, out)?;
+fn zstd_exact_into<Z: ZstdFrames>(body: &[u8], out: &mut [u8]) -> Result<(), BrickDecodeError> {
+    let n = Z::decode_into(body, out)?;
     if n != out.len() {
         return Err(BrickDecodeError::WrongSize {
             bytes: n,
@@ -766,24 +792,8 @@ fn zstd_exact_into(body: &[u8], out: &mut [u8]) -> Result<(), BrickDecodeError> 
 
 /// Decompresses a zstd frame that must hold exactly `expected` bytes (at most that is allocated),
 /// with this thread's reused context.
-fn zstd_exact(body: &[u8], expected: usize) -> Result<Vec<u8>, BrickDecodeError> {
-    let failed = |e: std::io::Error| BrickDecodeError::Decompress(format!("zstd: {e}"));
-    let out = ZSTD_DECOMPRESSOR.with(|cell| {
-        let mut out = Vec::with_capacity(expected);
-        match cell.try_borrow_mut() {
-            Ok(mut slot) => {
-                if slot.is_none() {
-                    *slot = Some(zstd::bulk::Decompressor::new().map_err(failed)?);
-                }
-                if let Some(d) = slot.as_mut() {
-                    d.decompress_to_buffer(body, &mut out).map_err(failed)?;
-                }
-            }
-            // Re-entered on this thread (cannot happen today): a fresh context.
-            Err(_) => out = zstd::bulk::decompress(body, expected).map_err(failed)?,
-        }
-        Ok::<_, BrickDecodeError>(out)
-    })?;
+fn zstd_exact<Z: ZstdFrames>(body: &[u8], expected: usize) -> Result<Vec<u8>, BrickDecodeError> {
+    let out = Z::decode_vec(body, expected)?;
     if out.len() != expected {
         return Err(BrickDecodeError::WrongSize {
             bytes: out.len(),
@@ -966,7 +976,7 @@ mod tests {
                 "med case {n}"
             );
             let body = linear3d::compress(v).unwrap();
-            let out = linear3d::decompress(&body).unwrap();
+            let out = linear3d::decompress::<zstd_frames::Native>(&body).unwrap();
             assert!(
                 out.iter().zip(v).all(|(&o, &x)| o == u16::from(x)),
                 "linear3d case {n}"
@@ -1154,6 +1164,16 @@ mod tests {
     /// crafted file): decoding fails with a message, never allocates what a prefix claims.
     #[test]
     fn lying_bodies_fail_cleanly() {
+        lying_bodies_fail_cleanly_with::<zstd_frames::CZstd>();
+    }
+
+    /// ruzstd (the decoder without `local`) refuses the same lies as C zstd, without panicking.
+    #[test]
+    fn lying_bodies_fail_cleanly_through_ruzstd() {
+        lying_bodies_fail_cleanly_with::<zstd_frames::PureZstd>();
+    }
+
+    fn lying_bodies_fail_cleanly_with<Z: ZstdFrames>() {
         let id = BrickId::new(0, [1, 1, 1]);
         let reseal = |kind: u8, body: &[u8]| {
             let mut out = vec![kind];
@@ -1166,7 +1186,7 @@ mod tests {
         huge.extend_from_slice(&[0u8; 16]);
         for kind in [KIND_LZ4_U16, KIND_SHUFFLE_LZ4_U16, KIND_LZ4_U8] {
             assert!(matches!(
-                decode_brick(id, &reseal(kind, &huge)),
+                decode_brick_with::<Z>(id, &reseal(kind, &huge)),
                 Err(BrickDecodeError::WrongSize { .. })
             ));
         }
@@ -1179,9 +1199,9 @@ mod tests {
             KIND_MED_ZSTD_U8,
             KIND_COLUMN_DELTA_ZSTD_U8,
         ] {
-            assert!(decode_brick(id, &reseal(kind, &small)).is_err());
+            assert!(decode_brick_with::<Z>(id, &reseal(kind, &small)).is_err());
             assert!(matches!(
-                decode_brick(id, &reseal(kind, &[0xAB; 40])),
+                decode_brick_with::<Z>(id, &reseal(kind, &[0xAB; 40])),
                 Err(BrickDecodeError::Decompress(_))
             ));
         }
@@ -1191,16 +1211,16 @@ mod tests {
         // leftover bytes after the frames.
         let v: Vec<u8> = mr_like_u8_brick().iter().map(|&x| x as u8).collect();
         let good = linear3d::compress(&v).unwrap();
-        assert!(linear3d::decompress(&good).is_ok());
+        assert!(linear3d::decompress::<Z>(&good).is_ok());
         assert_eq!(
-            decode_brick(id, &reseal(KIND_LINEAR3D_U8, &good[..10])),
+            decode_brick_with::<Z>(id, &reseal(KIND_LINEAR3D_U8, &good[..10])),
             Err(BrickDecodeError::TooShort)
         );
         let mut past = good.clone();
         let w = linear3d::WEIGHTS;
         past[w..w + 4].copy_from_slice(&u32::MAX.to_le_bytes());
         assert_eq!(
-            decode_brick(id, &reseal(KIND_LINEAR3D_U8, &past)),
+            decode_brick_with::<Z>(id, &reseal(KIND_LINEAR3D_U8, &past)),
             Err(BrickDecodeError::TooShort)
         );
         let big = zstd::bulk::compress(&vec![0u8; 4 * BRICK_PAYLOAD_VOXELS], 1).unwrap();
@@ -1210,7 +1230,7 @@ mod tests {
         oversized.extend_from_slice(&[0u8; 4 * (linear3d::CONTEXTS - 1)]);
         oversized.extend_from_slice(&big);
         assert!(matches!(
-            decode_brick(id, &reseal(KIND_LINEAR3D_U8, &oversized)),
+            decode_brick_with::<Z>(id, &reseal(KIND_LINEAR3D_U8, &oversized)),
             Err(BrickDecodeError::Decompress(_))
         ));
         // All residuals in stream 0: the right total, but the noisy brick needs other streams.
@@ -1222,29 +1242,29 @@ mod tests {
         // Zero residuals decode a constant brick: stream 0 alone is consistent, so this one
         // decodes; the same total spread over the last stream runs stream 0 dry.
         assert_eq!(
-            decode_brick(id, &reseal(KIND_LINEAR3D_U8, &one_stream)),
+            decode_brick_with::<Z>(id, &reseal(KIND_LINEAR3D_U8, &one_stream)),
             Ok(vec![0; BRICK_PAYLOAD_VOXELS])
         );
         let mut last_stream = vec![0u8; w + 4 * (linear3d::CONTEXTS - 1)];
         last_stream.extend_from_slice(&(all.len() as u32).to_le_bytes());
         last_stream.extend_from_slice(&all);
         assert!(matches!(
-            decode_brick(id, &reseal(KIND_LINEAR3D_U8, &last_stream)),
+            decode_brick_with::<Z>(id, &reseal(KIND_LINEAR3D_U8, &last_stream)),
             Err(BrickDecodeError::Decompress(_))
         ));
         let mut trailing = good.clone();
         trailing.push(0);
         assert!(matches!(
-            decode_brick(id, &reseal(KIND_LINEAR3D_U8, &trailing)),
+            decode_brick_with::<Z>(id, &reseal(KIND_LINEAR3D_U8, &trailing)),
             Err(BrickDecodeError::WrongSize { .. })
         ));
         assert!(matches!(
-            decode_brick(id, &reseal(KIND_LINEAR3D_U8, &[0xAB; 40])),
+            decode_brick_with::<Z>(id, &reseal(KIND_LINEAR3D_U8, &[0xAB; 40])),
             Err(BrickDecodeError::TooShort | BrickDecodeError::Decompress(_))
         ));
         // An unknown kind is named.
         assert_eq!(
-            decode_brick(id, &reseal(99, &[0; 8])),
+            decode_brick_with::<Z>(id, &reseal(99, &[0; 8])),
             Err(BrickDecodeError::UnknownKind(99))
         );
     }
@@ -1283,5 +1303,59 @@ mod tests {
         assert!(a < b);
         let id = BrickId::new(3, [5, 6, 7]);
         assert_eq!(brick_id_from_key(&brick_key(id)), Some(id));
+    }
+
+    /// The records the crate writes (every codec, u8 and u16, constant, the legacy zstd kinds 5-7
+    /// that older stores hold) decode to the same voxels through ruzstd as through C zstd, and
+    /// to what was encoded: what a browser viewer (ruzstd) shows is what the desktop shows.
+    #[test]
+    fn ruzstd_decodes_every_record_as_c_zstd_does() {
+        use zstd_frames::{CZstd, PureZstd};
+        let id = BrickId::new(1, [2, 3, 4]);
+        let mut records: Vec<(String, Vec<u16>, Vec<u8>)> = Vec::new();
+        let bricks: [(&str, Vec<u16>, bool); 6] = [
+            ("u16 smooth", sample_brick(), false),
+            ("u16 noise", full_range_brick(16), false),
+            ("u16 12-bit", full_range_brick(12), false),
+            ("u8 mr-like", mr_like_u8_brick(), true),
+            ("u8 noise", full_range_brick(8), true),
+            ("constant", vec![77; BRICK_PAYLOAD_VOXELS], true),
+        ];
+        for codec in BrickCodec::ALL {
+            for (name, voxels, narrow) in &bricks {
+                let record = encode_brick(id, voxels, value_range(voxels), *narrow, codec);
+                records.push((format!("{} {name}", codec.name()), voxels.clone(), record));
+            }
+        }
+        let bytes: Vec<u8> = mr_like_u8_brick().iter().map(|&v| v as u8).collect();
+        let zstd1 = |b: &[u8]| zstd::bulk::compress(b, 1).unwrap();
+        for (kind, body) in [
+            (KIND_ZSTD_U8, zstd1(&bytes)),
+            (KIND_DELTA_ZSTD_U8, zstd1(&delta_residuals(&bytes))),
+            (KIND_MED_ZSTD_U8, zstd1(&med_residuals(&bytes))),
+        ] {
+            let record = seal_record_for_tests(id, kind, &body);
+            records.push((format!("legacy kind {kind}"), widen(&bytes), record));
+        }
+        let mut kinds: Vec<u8> = records.iter().map(|(_, _, r)| r[0]).collect();
+        kinds.sort_unstable();
+        kinds.dedup();
+        assert_eq!(kinds, (0..=9).collect::<Vec<u8>>(), "every kind is covered");
+        for (name, voxels, record) in &records {
+            let c = decode_brick_with::<CZstd>(id, record);
+            let pure = decode_brick_with::<PureZstd>(id, record);
+            assert_eq!(c.as_ref(), Ok(voxels), "C zstd, {name}");
+            assert_eq!(pure, c, "ruzstd, {name}");
+        }
+        // Damage reads as an error through both, never as other voxels or a panic: a zstd
+        // frame cut short and one that holds more than a brick (the checksum is resealed, so
+        // the decoders see the bodies).
+        let planes = zstd1(&vec![1u8; BRICK_PAYLOAD_VOXELS * 2]);
+        let too_big = zstd1(&vec![1u8; BRICK_PAYLOAD_VOXELS * 3]);
+        for body in [&planes[..planes.len() / 2], &too_big[..], &[][..]] {
+            let record = seal_record_for_tests(id, KIND_SHUFFLE_ZSTD_U16, body);
+            assert!(decode_brick_with::<CZstd>(id, &record).is_err());
+            assert!(decode_brick_with::<PureZstd>(id, &record).is_err());
+        }
     }
 }

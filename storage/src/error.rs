@@ -76,6 +76,7 @@ impl StorageError {
     }
     /// Classifies a sled error: a full disk, damage, or other database failure. The message
     /// is sled's text once (its `Io` variant repeats the OS error when chained).
+    #[cfg(feature = "local")]
     pub fn db(path: impl Into<PathBuf>, source: sled::Error) -> Self {
         let path = path.into();
         match source {
@@ -116,6 +117,7 @@ impl StorageError {
 
 /// ENOSPC, EDQUOT, or EFBIG from a file-size limit: all mean "the bytes did not fit".
 /// sled wraps the OS error in errors of its own, so the kind is looked for along the chain.
+#[cfg(feature = "local")]
 pub fn is_disk_full(e: &std::io::Error) -> bool {
     use std::io::ErrorKind;
     let full = |e: &std::io::Error| {

@@ -20,6 +20,7 @@ pub use strata_types::{
 /// byte offsets of many-GB volumes). Derived from strata-types' definitions, not new ones.
 pub(crate) const CORE: u64 = BRICK_CORE as u64;
 pub(crate) const APRON: u64 = BRICK_APRON as u64;
+#[cfg(feature = "local")]
 pub(crate) const PAYLOAD: u64 = BRICK_PAYLOAD as u64;
 
 /// Rounded mean of 8 values, halves rounded up: what every coarser voxel is.
@@ -30,6 +31,8 @@ pub fn average8(sum: u32) -> u16 {
 
 /// Downsamples two consecutive slices of a level into one slice of the next level.
 /// `next` (the slice 2k+1) is `None` at the end of an odd axis, where the edge slice is replicated.
+/// Import's (rows in parallel on rayon), so local-only.
+#[cfg(feature = "local")]
 pub fn downsample_slice_pair(
     first: &[u16],
     next: Option<&[u16]>,

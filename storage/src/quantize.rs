@@ -13,22 +13,8 @@
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+pub use crate::header::StoredScalar;
 use crate::source::{decode_samples, RawVolume, SampleType};
-
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub enum StoredScalar {
-    U8,
-    U16,
-}
-
-impl StoredScalar {
-    pub fn max_value(self) -> u16 {
-        match self {
-            StoredScalar::U8 => u8::MAX as u16,
-            StoredScalar::U16 => u16::MAX,
-        }
-    }
-}
 
 /// stored = round((sample − offset) · scale), clamped; physical = slope · stored + intercept.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

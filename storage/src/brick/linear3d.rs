@@ -37,9 +37,10 @@
 //! The decoder reads at most one brick of residuals whatever the frames claim, and a stream that
 //! runs out or has residuals left over is an error.
 
+use super::zstd_frames::ZstdFrames;
 use super::{
     med_prediction, row_start_prediction, zstd_compress_level, BrickDecodeError, EDGE,
-    PREDICTED_ZSTD_LEVEL, ZSTD_DECOMPRESSOR,
+    PREDICTED_ZSTD_LEVEL,
 };
 
 /// Number of activity contexts (streams).
@@ -313,28 +314,8 @@ pub(super) fn compress(v: &[u8]) -> Option<Vec<u8>> {
     Some(header)
 }
 
-/// Decompresses one zstd frame into `dst` (this thread's reused context), returning its length;
-/// a frame larger than `dst` is an error, so nothing beyond `dst` is ever written or allocated.
-pub(super) fn zstd_into(frame: &[u8], dst: &mut [u8]) -> Result<usize, BrickDecodeError> {
-    let failed = |e: std::io::Error| BrickDecodeError::Decompress(format!("zstd: {e}"));
-    ZSTD_DECOMPRESSOR.with(|cell| match cell.try_borrow_mut() {
-        Ok(mut slot) => {
-            if slot.is_none() {
-                *slot = Some(zstd::bulk::Decompressor::new().map_err(failed)?);
-            }
-            match slot.as_mut() {
-                Some(d) => d.decompress_to_buffer(frame, dst).map_err(failed),
-                None => Err(BrickDecodeError::Decompress("zstd: no context".into())),
-            }
-        }
-        Err(_) => zstd::bulk::Decompressor::new()
-            .and_then(|mut d| d.decompress_to_buffer(frame, dst))
-            .map_err(failed),
-    })
-}
-
 /// Inverse of [`compress`]: the brick's samples, widened to u16.
-pub(super) fn decompress(body: &[u8]) -> Result<Vec<u16>, BrickDecodeError> {
+pub(super) fn decompress<Z: ZstdFrames>(body: &[u8]) -> Result<Vec<u16>, BrickDecodeError> {
     let total = EDGE * SLICE;
     let head = body
         .get(..WEIGHTS + 4 * CONTEXTS)
@@ -356,7 +337,7 @@ pub(super) fn decompress(body: &[u8]) -> Result<Vec<u16>, BrickDecodeError> {
         at += length;
         cursor[k] = used;
         if length > 0 {
-            used += zstd_into(frame, &mut residuals[used..])?;
+            used += Z::decode_into(frame, &mut residuals[used..])?;
         }
         end[k] = used;
     }
@@ -513,7 +494,8 @@ mod tests {
         let streams = residual_streams(&v, &Weights::fit(&v));
         assert_eq!(streams.iter().map(Vec::len).sum::<usize>(), v.len());
         let body = compress(&v).ok_or("zstd could not allocate")?;
-        let back = decompress(&body).map_err(|e| e.to_string())?;
+        let back =
+            decompress::<super::super::zstd_frames::Native>(&body).map_err(|e| e.to_string())?;
         assert!(back.iter().zip(&v).all(|(&b, &x)| b == u16::from(x)));
         Ok(())
     }
