@@ -130,10 +130,6 @@ pub struct Occlusion {
     pub radius_mm: f64,
 }
 
-/// The largest occlusion radius, in finest voxels: each of the rays takes radius / shadow step
-/// samples per shaded sample, so beyond this the effect is a shadow model, not a local one.
-pub const OCCLUSION_MAX_RADIUS_VOXELS: f64 = 64.0;
-
 /// Single scattering of the key light (scattering.rs: the phase function, the hybrid rule, the
 /// normalisation): the direct term blends the Blinn-Phong BRDF and a Henyey-Greenstein phase
 /// by gradient magnitude.
