@@ -37,7 +37,19 @@
 //! empty pays K empty-page lookups, and empty pages are never shaded at all.
 //!
 //! **Cost.** K · (R − r₀) / step field samples per shaded sample on the GPU (16 · 4 = 64 at
-//! R = 5 voxels, step 1); the reference takes 4× as many per shaded sample.
+//! R = 5 voxels, step 1); the reference takes 4× as many per shaded sample, which makes it the
+//! slow part of the tests (render/tests/cinematic.rs: 0.1-4 s per 64² reference of the 32³
+//! phantom on two shared cores, up to 10 s while other builds load them; primary reference
+//! step ¼ of the GPU's).
+//!
+//! **GPU cost.** `STRATA_BENCH_EFFECTS=occlusion,scattering STRATA_BENCH_SIZE=256 cargo bench
+//! -p strata-render --bench raycast` (256³ VTK-peer phantom, 256², DVR step 0.5, shaded, key
+//! light (0.5, 0.5, 0.7), empty skipping and early termination on, R = 3 voxels, step 1 voxel),
+//! lavapipe (llvmpipe, LLVM 15) on the shared 2-core machine, 2026-12-05: off 210.1 ms, never
+//! built 218.9 ms (1.04: noise of the shared machine, the variant has no occlusion code), on
+//! 2101.1 ms: 10.0× the unoccluded frame, about what 16 · 2 = 32 extra fetches per shaded sample
+//! predict. Like exact shadows, it is a cost the adaptive pass (fewer shaded samples) and a
+//! cached or SAT variant would have to earn back.
 
 use glam::DVec3;
 
