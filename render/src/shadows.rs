@@ -24,6 +24,10 @@
 //! reference uses it too and the images agree; its cost is that occluders thinner than r₀ in
 //! front of a sample along ω_l do not shadow it.
 //!
+//! Ambient occlusion (ambient_occlusion.rs: k_a becomes k_a·AO) and single scattering
+//! (scattering.rs: the direct term blends this BRDF with a phase function) extend this model;
+//! with both off it is exactly the above.
+//!
 //! With the headlight, ω_l is the ray's own reversed direction and the model reproduces the
 //! old Blinn-Phong exactly when V = 1 (n·h = n·ω_l = |n·d|).
 //!
