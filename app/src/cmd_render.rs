@@ -14,9 +14,9 @@ use strata_render::adaptive::{
 };
 use strata_render::reference::{render_reference, ReferenceOptions, ReferenceScene};
 use strata_render::{
-    Camera, GpuContext, GpuPageTable, KeyLight, LightDirection, Projection, RenderMode,
-    RenderSettings, Scene, SegmentIntegralTable, Shading, ShadowMode, Shadows, TransferFunction,
-    Traversal,
+    Camera, GpuContext, GpuPageTable, KeyLight, LightDirection, Occlusion, Projection, RenderMode,
+    RenderSettings, Scattering, Scene, SegmentIntegralTable, Shading, ShadowMode, Shadows,
+    TransferFunction, Traversal,
 };
 use strata_storage::BrickId;
 
@@ -156,7 +156,26 @@ pub struct RenderArgs {
     /// build and blurrier).
     #[arg(long, default_value_t = 2.0)]
     pub light_cache_res: f64,
+    /// Ambient occlusion over this radius in mm (render/src/ambient_occlusion.rs): 16 short
+    /// rays of local extinction per shaded sample, at --shadow-step, scale the ambient term.
+    /// Turns shading on. The f64 reference (--reference) renders the same model.
+    #[arg(long, value_name = "MM", allow_hyphen_values = true)]
+    pub occlusion: Option<f64>,
+    /// Single scattering of the key light with a Henyey-Greenstein phase of asymmetry G
+    /// (render/src/scattering.rs; -0.99..0.99, > 0 forward: back-lit tissue glows), blended
+    /// with the surface BRDF by gradient magnitude (--scattering-blend). Turns shading on. The
+    /// f64 reference (--reference) renders the same model.
+    #[arg(long, value_name = "G", allow_hyphen_values = true)]
+    pub scattering: Option<f64>,
+    /// --scattering: Exposure Render's gradient factor, 0..1 (0: volume-like everywhere; 1:
+    /// surface-like wherever the gradient is a few % of the TF range per voxel).
+    #[arg(long, default_value_t = 0.5)]
+    pub scattering_blend: f64,
 }
+
+/// The largest --occlusion radius: 16 rays of radius / step samples per shaded sample, so a
+/// radius of 100 mm is already thousands of samples each at a 1 mm step, and no longer local.
+pub const MAX_OCCLUSION_MM: f64 = 100.0;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 pub enum ShadowsArg {
@@ -274,6 +293,28 @@ fn check_args(args: &RenderArgs) -> Result<()> {
             ),
             "--shadows is the raycaster's DVR and isosurface lighting: not for MIP or \
              --mode adaptive"
+        );
+    }
+    if let Some(radius) = args.occlusion {
+        check_range("occlusion", radius, 0.0..=MAX_OCCLUSION_MM)?;
+        check_range("shadow-step", args.shadow_step, 0.05..=1000.0)?;
+    }
+    if let Some(g) = args.scattering {
+        let m = strata_render::settings::SCATTERING_MAX_ABS_G;
+        check_range("scattering", g, -m..=m)?;
+        check_range("scattering-blend", args.scattering_blend, 0.0..=1.0)?;
+    }
+    for (flag, on) in [
+        ("--occlusion", args.occlusion.is_some()),
+        ("--scattering", args.scattering.is_some()),
+    ] {
+        anyhow::ensure!(
+            !on || !matches!(
+                args.mode,
+                ModeArg::Mip | ModeArg::Adaptive | ModeArg::AdaptiveMip
+            ),
+            "{flag} is the raycaster's DVR and isosurface lighting: it does not apply to MIP \
+             or --mode adaptive"
         );
     }
     if let Some(text) = &args.light_dir {
@@ -526,6 +567,8 @@ fn settings_of(args: &RenderArgs) -> Result<RenderSettings> {
         jitter: !args.no_jitter,
         shading: (args.shading
             || args.shadows != ShadowsArg::Off
+            || args.occlusion.is_some()
+            || args.scattering.is_some()
             || matches!(args.mode, ModeArg::Iso))
         .then(Shading::default),
         smooth_transitions: !args.no_smooth,
@@ -552,6 +595,11 @@ fn settings_of(args: &RenderArgs) -> Result<RenderSettings> {
             step: args.shadow_step,
             cache_res: args.light_cache_res,
         },
+        occlusion: args.occlusion.map(|radius_mm| Occlusion { radius_mm }),
+        scattering: args.scattering.map(|g| Scattering {
+            g,
+            blend: args.scattering_blend,
+        }),
         ..RenderSettings::default()
     })
 }
@@ -742,4 +790,77 @@ pub fn write_png(path: &Path, width: u32, height: u32, premultiplied_rgba: &[u8]
     }
     image::save_buffer(path, &rgb, width, height, image::ExtendedColorType::Rgb8)
         .with_context(|| format!("writing {}", path.display()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        render: RenderArgs,
+    }
+
+    fn args(extra: &[&str]) -> RenderArgs {
+        let mut argv = vec!["strata", "store"];
+        argv.extend_from_slice(extra);
+        Cli::parse_from(argv).render
+    }
+
+    fn error(extra: &[&str]) -> String {
+        match check_args(&args(extra)) {
+            Ok(()) => panic!("{extra:?} accepted"),
+            Err(e) => format!("{e:#}"),
+        }
+    }
+
+    #[test]
+    fn occlusion_and_scattering_flags_reach_the_settings() {
+        let a = args(&[
+            "--occlusion",
+            "3.5",
+            "--scattering",
+            "-0.4",
+            "--scattering-blend",
+            "0.2",
+        ]);
+        assert!(check_args(&a).is_ok());
+        let s = settings_of(&a).unwrap();
+        assert_eq!(s.occlusion, Some(Occlusion { radius_mm: 3.5 }));
+        assert_eq!(
+            s.scattering,
+            Some(Scattering {
+                g: -0.4,
+                blend: 0.2
+            })
+        );
+        assert!(s.shading.is_some(), "the effects turn shading on");
+        assert!(s.validate().is_ok());
+        let plain = settings_of(&args(&[])).unwrap();
+        assert!(plain.occlusion.is_none() && plain.scattering.is_none());
+    }
+
+    #[test]
+    fn out_of_range_or_inapplicable_flags_are_refused_clearly() {
+        assert!(error(&["--occlusion", "-1"]).contains("--occlusion must be a number between 0"));
+        assert!(error(&["--occlusion", "nan"]).contains("--occlusion"));
+        assert!(error(&["--occlusion", "500"]).contains("--occlusion"));
+        assert!(error(&["--scattering", "1"]).contains("--scattering must be a number between"));
+        assert!(error(&["--scattering", "0.3", "--scattering-blend", "2"])
+            .contains("--scattering-blend"));
+        for mode in ["mip", "adaptive", "adaptive-mip"] {
+            let e = error(&["--mode", mode, "--occlusion", "2"]);
+            assert!(
+                e.contains("--occlusion") && e.contains("does not apply to MIP"),
+                "{e}"
+            );
+            let e = error(&["--mode", mode, "--scattering", "0.2"]);
+            assert!(
+                e.contains("--scattering") && e.contains("does not apply to MIP"),
+                "{e}"
+            );
+        }
+    }
 }

@@ -8,7 +8,8 @@
 //!      STRATA_BENCH_VOLUME (default 256), STRATA_BENCH_REF_SIZE (default 128),
 //!      STRATA_BENCH_STEPS (default 0.5,1,2,3: the peer runs at 0.5; the rest find equal PSNR),
 //!      STRATA_BENCH_SAVE=DIR (keep the PSNR images as PPM in DIR),
-//!      STRATA_BENCH_EFFECTS=shadows,shading (only those rows of the effect table, nothing else),
+//!      STRATA_BENCH_EFFECTS=shadows,shading (only those rows of the effect table, nothing else;
+//!      also occlusion, scattering),
 //!      STRATA_BENCH_LIGHT_CACHE_RES (default 2: voxels per light-cache texel, the cache row).
 //!
 //! Prints ms/frame (median), samples/s, the sampling-only kernel's samples/s measured in the
@@ -315,13 +316,39 @@ fn effect_table(
                 ..key_lit.clone()
             },
         ),
+        // Ambient occlusion (ambient_occlusion.rs): 16 rays of 3 voxels at the shadow step of
+        // 1 voxel, the same key light unshadowed: "off" is `key_lit`, "never built" a shader
+        // without OCCLUSION.
+        (
+            "occlusion",
+            "OCCLUSION",
+            RenderSettings {
+                occlusion: Some(Occlusion {
+                    radius_mm: 3.0 * volume.geometry.finest_spacing_mm(),
+                }),
+                ..key_lit.clone()
+            },
+        ),
+        // Single scattering (scattering.rs, g = 0.5, blend 0.5) without shadows: the phase and
+        // the hybrid weight alone (with shadows each sample also pays the shadows row).
+        (
+            "scattering",
+            "SCATTERING",
+            RenderSettings {
+                scattering: Some(Scattering { g: 0.5, blend: 0.5 }),
+                ..key_lit.clone()
+            },
+        ),
     ];
     let effects: Vec<_> = effects
         .into_iter()
         .filter(|(name, _, _)| only.is_none_or(|o| o.iter().any(|w| name.starts_with(w.as_str()))))
         .collect();
     let off_for = |name: &str| {
-        if name.starts_with("shadows") {
+        if ["shadows", "occlusion", "scattering"]
+            .iter()
+            .any(|lit| name.starts_with(lit))
+        {
             &key_lit
         } else {
             &base

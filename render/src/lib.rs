@@ -20,15 +20,23 @@
 //!   sparse_page_table   → octree_cut, page_table, layout        (the cut's table per leaf)
 //!   field               → page_table, layout                    (the one field definition)
 //!   overlay             → error           (3D overlay: grid sampling, LUT, the blend rule)
+//!   blinn_phong         → layout, settings                      (headlight Blinn-Phong, f64)
+//!   shadows             → blinn_phong, camera, layout, settings (key light, shadow model)
+//!   light_cache         → settings, transfer_function, pipelines, device, error
+//!                                                        (the cache's grid and its key)
+//!   ambient_occlusion   → shadows                               (AO model, f64)
+//!   scattering          → shadows, settings                     (HG + hybrid model, f64)
 //!   reference           → field, smooth_transitions, page_table, layout, camera, settings,
-//!                         transfer_function, overlay, error     (f64 renderer)
+//!                         transfer_function, overlay, blinn_phong, shadows, light_cache,
+//!                         ambient_occlusion, scattering, error  (f64 renderer)
 //!   preintegration      → transfer_function             (the former 2D table; f64 segments)
 //!   segment_integral    → transfer_function             (length-free pre-integration)
 //!   cache               → layout, error
 //!   bricked_volume      → cache, page_table, layout, transfer_function, error
 //!   phantom             → bricked_volume, transfer_function, error
 //! GPU side
-//!   shaders             → layout, overlay (composed WGSL, generated constants prelude, naga)
+//!   shaders             → layout, overlay, shadows, ambient_occlusion
+//!                                     (composed WGSL, generated constants prelude, naga)
 //!   pipelines           → settings     (PipelineKey, bind-group layout, cache, compiler)
 //!   readback_ring                      (staging ring read 1-2 frames late)
 //!   dirty_spans                        (changed spans of a buffer, written alone)
@@ -65,6 +73,7 @@
 //! `pipelines` → `shaders`.
 
 pub mod adaptive;
+pub mod ambient_occlusion;
 pub mod blinn_phong;
 pub mod bricked_volume;
 pub mod cache;
@@ -96,6 +105,7 @@ pub mod probe;
 pub mod raycast;
 mod readback_ring;
 pub mod reference;
+pub mod scattering;
 pub mod segment_integral;
 pub mod settings;
 pub mod shaders;
@@ -131,8 +141,8 @@ pub use reference::{
 };
 pub use segment_integral::SegmentIntegralTable;
 pub use settings::{
-    ClipPlane, CropBox, KeyLight, LightDirection, RenderMode, RenderSettings, Shading, ShadowMode,
-    Shadows,
+    ClipPlane, CropBox, KeyLight, LightDirection, Occlusion, RenderMode, RenderSettings,
+    Scattering, Shading, ShadowMode, Shadows,
 };
 pub use sparse_page_table::{IndexTable, PageLookup, SparsePageTable};
 pub use strata_types::{ValueMapping, VolumeGeometry};

@@ -28,6 +28,10 @@ pub struct PipelineKey {
     pub shadows: bool,
     /// The shadow term read from the light cache (light_cache.rs, shadows.wgsl).
     pub light_cache: bool,
+    /// Ambient occlusion of lit samples (ambient_occlusion.rs ↔ ambient_occlusion.wgsl).
+    pub occlusion: bool,
+    /// Single scattering, HG phase and the hybrid rule (scattering.rs ↔ scattering.wgsl).
+    pub scattering: bool,
     /// The octree traversal (octree.wgsl) instead of the flat page table: set by the scene's
     /// index ([`crate::GpuPageTable::traversal`]), not by the settings.
     pub octree: bool,
@@ -114,8 +118,9 @@ struct BackgroundCompiler {
 }
 
 /// The shader's effect overrides, as named in the WGSL (raycast.wgsl, field.wgsl,
-/// smooth_transitions.wgsl, overlay.wgsl, shadows.wgsl).
-pub(crate) const OVERRIDE_NAMES: [&str; 15] = [
+/// smooth_transitions.wgsl, overlay.wgsl, shadows.wgsl, ambient_occlusion.wgsl,
+/// scattering.wgsl).
+pub(crate) const OVERRIDE_NAMES: [&str; 17] = [
     "MODE",
     "MANUAL_TRILINEAR",
     "SHADING",
@@ -129,6 +134,8 @@ pub(crate) const OVERRIDE_NAMES: [&str; 15] = [
     "KEY_LIGHT",
     "SHADOWS",
     "LIGHT_CACHE",
+    "OCCLUSION",
+    "SCATTERING",
     "OCTREE",
     "OVERLAY",
 ];
@@ -174,6 +181,8 @@ fn build_entry(
         ("KEY_LIGHT", b(key.key_light)),
         ("SHADOWS", b(key.shadows)),
         ("LIGHT_CACHE", b(key.light_cache)),
+        ("OCCLUSION", b(key.occlusion)),
+        ("SCATTERING", b(key.scattering)),
         ("OCTREE", b(key.octree)),
         ("OVERLAY", b(key.overlay)),
     ];
@@ -229,6 +238,8 @@ pub(crate) fn light_cache_build_key(key: PipelineKey) -> PipelineKey {
         key_light: true,
         shadows: false,
         light_cache: false,
+        occlusion: false,
+        scattering: false,
         overlay: false,
         ..key
     }

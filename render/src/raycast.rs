@@ -112,6 +112,7 @@ pub(crate) struct Params {
     clip_idx: [f32; 4],
     light_cache: [f32; 4],
     light_cache_dims: [u32; 4],
+    cinematic: [f32; 4],
 }
 
 struct Targets {
@@ -484,6 +485,8 @@ impl Raycaster {
             key_light: settings.effective_key_light(),
             shadows: settings.effective_shadows(),
             light_cache: settings.effective_light_cache(),
+            occlusion: settings.effective_occlusion().is_some(),
+            scattering: settings.effective_scattering().is_some(),
             octree: false,
             overlay,
         }
@@ -1086,5 +1089,12 @@ pub(crate) fn build_params(scene: &Scene) -> Params {
             0.0,
         ],
         light_cache_dims: [cache_dims[0], cache_dims[1], cache_dims[2], 0],
+        // Occlusion radius (mm; ambient_occlusion.rs), scattering g and blend (scattering.rs).
+        cinematic: [
+            s.occlusion.map_or(0.0, |o| o.radius_mm) as f32,
+            s.scattering.map_or(0.0, |c| c.g) as f32,
+            s.scattering.map_or(0.0, |c| c.blend) as f32,
+            0.0,
+        ],
     }
 }

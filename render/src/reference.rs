@@ -7,6 +7,7 @@
 use glam::{DMat3, DVec3};
 use rayon::prelude::*;
 
+use crate::ambient_occlusion;
 pub use crate::blinn_phong::{shade, smoothstep};
 use crate::camera::{Camera, CameraBasis};
 use crate::error::RenderError;
@@ -15,6 +16,7 @@ use crate::layout::{BrickSource, DEPTH_OPACITY};
 use crate::light_cache;
 use crate::overlay::{blend, OverlayScene};
 use crate::page_table::PageTable;
+use crate::scattering::shade_cinematic;
 use crate::settings::{RenderMode, RenderSettings, Shading};
 use crate::shadows::{
     extinction, light_towards, shade_lit, transmittance, REFERENCE_SHADOW_REFINEMENT,
@@ -339,8 +341,49 @@ fn trace<S: BrickSource>(
             },
         )
     };
+    // Ambient occlusion (ambient_occlusion.rs) at ray distance t: its rays at the reference's
+    // shadow step, ending where they leave the cropped box or the clip half-space.
+    let occlusion = settings.effective_occlusion();
+    let scattering = settings.effective_scattering();
+    let ambient_occlusion = |t: f64| -> f64 {
+        let Some(o) = occlusion else { return 1.0 };
+        let p = origin + dir * t;
+        let p_idx = o_idx + d_idx * t;
+        ambient_occlusion::occlusion(
+            o.radius_mm,
+            SHADOW_START_VOXELS * unit,
+            shadow_step,
+            REFERENCE_TAU_MAX,
+            |nu| ray_interval(g, settings, p, nu).map_or(0.0, |(_, r1)| r1),
+            |nu, s| {
+                sample_field(
+                    scene.source,
+                    scene.page_table,
+                    masks,
+                    g.dims,
+                    p_idx + (a * nu) * s,
+                )
+                .map_or(0.0, |loc| {
+                    extinction(tf.opacity_at(mapping.physical(loc.value)), unit)
+                })
+            },
+        )
+    };
     let lit = |col: [f64; 3], loc: &FieldSample, t: f64, s: &Shading| -> [f64; 3] {
-        if key_light {
+        if occlusion.is_some() || scattering.is_some() {
+            shade_cinematic(
+                col,
+                gradient_patient(loc),
+                dir,
+                light,
+                s,
+                settings.light.intensity as f64,
+                visibility(t),
+                flatness_scale,
+                ambient_occlusion(t),
+                scattering.as_ref(),
+            )
+        } else if key_light {
             shade_lit(
                 col,
                 gradient_patient(loc),

@@ -121,6 +121,33 @@ impl Default for Shadows {
     }
 }
 
+/// Ambient occlusion from local extinction (ambient_occlusion.rs: the model, its directions
+/// and its reference): the ambient term of a lit sample is scaled by the mean transmittance of
+/// short rays over `radius_mm`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Occlusion {
+    /// Length of the occlusion rays in mm (patient space).
+    pub radius_mm: f64,
+}
+
+/// Single scattering of the key light (scattering.rs: the phase function, the hybrid rule, the
+/// normalisation): the direct term blends the Blinn-Phong BRDF and a Henyey-Greenstein phase
+/// by gradient magnitude.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Scattering {
+    /// Henyey-Greenstein asymmetry, |g| <= [`SCATTERING_MAX_ABS_G`]: > 0 scatters forward
+    /// (back-lit samples brighten), 0 is isotropic.
+    pub g: f64,
+    /// Exposure Render's gradient factor in [0, 1]: 0 is volume-like (phase) everywhere, 1 is
+    /// surface-like (BRDF) wherever the gradient is more than a few % of the TF range per voxel.
+    pub blend: f64,
+}
+
+/// The largest |g|: at 0.99 the phase's peak is already 2·10⁴ × isotropic (an 8-bit image
+/// saturates long before), and closer to 1 its f32 evaluation loses the peak's width
+/// (scattering.rs).
+pub const SCATTERING_MAX_ABS_G: f64 = 0.99;
+
 /// Axis-aligned crop in fractions of the volume extent per index axis (0 = first cell face,
 /// 1 = last cell face).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -188,6 +215,12 @@ pub struct RenderSettings {
     /// Volumetric shadows from the key light (default: off).
     #[serde(default)]
     pub shadows: Shadows,
+    /// Ambient occlusion of lit samples (default: off).
+    #[serde(default)]
+    pub occlusion: Option<Occlusion>,
+    /// Single scattering of the key light (default: off).
+    #[serde(default)]
+    pub scattering: Option<Scattering>,
 }
 
 fn default_true() -> bool {
@@ -215,6 +248,8 @@ impl Default for RenderSettings {
             smooth_transitions: true,
             light: KeyLight::default(),
             shadows: Shadows::default(),
+            occlusion: None,
+            scattering: None,
         }
     }
 }
@@ -292,7 +327,49 @@ impl RenderSettings {
                 ));
             }
         }
+        if let Some(o) = &self.occlusion {
+            if !(o.radius_mm.is_finite() && o.radius_mm >= 0.0) {
+                return Err(RenderError::InvalidSettings(format!(
+                    "occlusion radius must be finite and >= 0 mm, got {}",
+                    o.radius_mm
+                )));
+            }
+            if !(self.shadows.step.is_finite() && self.shadows.step >= 0.05) {
+                // The occlusion rays march at the shadow step (ambient_occlusion.rs).
+                return Err(RenderError::InvalidSettings(format!(
+                    "occlusion rays march at the shadow step, which must be >= 0.05 voxel, got {}",
+                    self.shadows.step
+                )));
+            }
+        }
+        if let Some(sc) = &self.scattering {
+            if !(sc.g.is_finite() && sc.g.abs() <= SCATTERING_MAX_ABS_G) {
+                return Err(RenderError::InvalidSettings(format!(
+                    "scattering g must be in [-{m}, {m}], got {}",
+                    sc.g,
+                    m = SCATTERING_MAX_ABS_G
+                )));
+            }
+            if !(sc.blend.is_finite() && (0.0..=1.0).contains(&sc.blend)) {
+                return Err(RenderError::InvalidSettings(format!(
+                    "scattering blend must be in [0, 1], got {}",
+                    sc.blend
+                )));
+            }
+        }
         Ok(())
+    }
+
+    /// Whether ambient occlusion is applied: on and a lit mode (shaded DVR, isosurface).
+    pub fn effective_occlusion(&self) -> Option<Occlusion> {
+        self.occlusion
+            .filter(|_| self.effective_shading().is_some())
+    }
+
+    /// Whether the direct term scatters (scattering.rs): on and a lit mode.
+    pub fn effective_scattering(&self) -> Option<Scattering> {
+        self.scattering
+            .filter(|_| self.effective_shading().is_some())
     }
 
     /// Whether shadow rays are traced: exact shadows on and a lit mode (shaded DVR,
@@ -307,13 +384,15 @@ impl RenderSettings {
     }
 
     /// Whether the key-light shading path is compiled in: a light other than the default
-    /// headlight, or shadows (both need the sample's light direction and a split of the
+    /// headlight, shadows, occlusion or scattering (all need the sample's light direction and a split of the
     /// ambient from the direct term).
     pub fn effective_key_light(&self) -> bool {
         self.effective_shading().is_some()
             && (!self.light.is_default()
                 || self.effective_shadows()
-                || self.effective_light_cache())
+                || self.effective_light_cache()
+                || self.effective_occlusion().is_some()
+                || self.effective_scattering().is_some())
     }
 
     /// Shading actually applied: isosurfaces are always shaded.

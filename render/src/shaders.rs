@@ -7,7 +7,8 @@
 //! `page_table.wgsl` ↔ page_table.rs, `smooth_transitions.wgsl` ↔ smooth_transitions.rs,
 //! `field.wgsl` ↔ field.rs, `transfer_function.wgsl` ↔ transfer_function.rs,
 //! `preintegration.wgsl` ↔ preintegration.rs, `shading.wgsl` ↔ reference.rs `shade`,
-//! `overlay.wgsl` ↔ overlay.rs, `shadows.wgsl` ↔ shadows.rs, `raycast.wgsl` (entry point and ray loop) ↔
+//! `overlay.wgsl` ↔ overlay.rs, `shadows.wgsl` ↔ shadows.rs, `ambient_occlusion.wgsl` ↔
+//! ambient_occlusion.rs, `scattering.wgsl` ↔ scattering.rs, `raycast.wgsl` (entry point and ray loop) ↔
 //! raycast.rs; `probe.wgsl` ↔ probe.rs, composed into a test-only module of its own;
 //! `adaptive.wgsl` ↔ adaptive/gpu.rs (and adaptive/transcription.rs), composed with the field
 //! files and `preintegration.wgsl` into the adaptive pass's module. The field files leave the
@@ -39,7 +40,7 @@ const FIELD_FILES: [(&str, &str); 4] = [
 ];
 
 /// The raycast pass's own files, after [`FIELD_FILES`].
-const RAYCAST_FILES: [(&str, &str); 7] = [
+const RAYCAST_FILES: [(&str, &str); 9] = [
     (
         "transfer_function.wgsl",
         include_str!("shaders/transfer_function.wgsl"),
@@ -52,6 +53,11 @@ const RAYCAST_FILES: [(&str, &str); 7] = [
     ("octree.wgsl", OCTREE_WGSL),
     ("overlay.wgsl", include_str!("shaders/overlay.wgsl")),
     ("shadows.wgsl", include_str!("shaders/shadows.wgsl")),
+    (
+        "ambient_occlusion.wgsl",
+        include_str!("shaders/ambient_occlusion.wgsl"),
+    ),
+    ("scattering.wgsl", include_str!("shaders/scattering.wgsl")),
     ("raycast.wgsl", include_str!("shaders/raycast.wgsl")),
 ];
 
@@ -70,7 +76,7 @@ pub(crate) enum PreludeValue {
 }
 
 /// Every constant the shader shares with Rust, by its WGSL name.
-pub(crate) fn prelude_constants() -> [(&'static str, PreludeValue); 24] {
+pub(crate) fn prelude_constants() -> [(&'static str, PreludeValue); 26] {
     use PreludeValue::*;
     [
         ("CORE", F32(BRICK_CORE as f64)),
@@ -101,6 +107,15 @@ pub(crate) fn prelude_constants() -> [(&'static str, PreludeValue); 24] {
         ("OVERLAY_VOXEL_OPACITY", F32(OVERLAY_VOXEL_OPACITY)),
         // The longest shadow ray in steps (shadows.rs).
         ("MAX_SHADOW_STEPS", U32(crate::shadows::MAX_SHADOW_STEPS)),
+        // The occlusion rays' direction set (ambient_occlusion.rs).
+        (
+            "OCCLUSION_DIRECTIONS",
+            U32(crate::ambient_occlusion::DIRECTIONS),
+        ),
+        (
+            "OCCLUSION_GOLDEN_ANGLE",
+            F32(crate::ambient_occlusion::GOLDEN_ANGLE),
+        ),
         // The adaptive pass's per-block oracle table (adaptive/block_oracle.rs).
         (
             "ORACLE_BLOCK",

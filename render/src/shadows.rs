@@ -24,6 +24,10 @@
 //! reference uses it too and the images agree; its cost is that occluders thinner than r₀ in
 //! front of a sample along ω_l do not shadow it.
 //!
+//! Ambient occlusion (ambient_occlusion.rs: k_a becomes k_a·AO) and single scattering
+//! (scattering.rs: the direct term blends this BRDF with a phase function) extend this model;
+//! with both off it is exactly the above.
+//!
 //! With the headlight, ω_l is the ray's own reversed direction and the model reproduces the
 //! old Blinn-Phong exactly when V = 1 (n·h = n·ω_l = |n·d|).
 //!
@@ -125,6 +129,35 @@ pub fn shade_lit(
     visibility: f64,
     flatness_scale: f64,
 ) -> [f64; 3] {
+    let b = brdf_terms(gradient_patient, dir, light, shading, flatness_scale);
+    let direct = intensity * visibility;
+    let gain =
+        shading.ambient as f64 + direct * shading.diffuse as f64 * (1.0 + (b.ndl - 1.0) * b.w);
+    let highlight = direct * shading.specular as f64 * b.spec * b.w;
+    color.map(|c| c * gain + highlight)
+}
+
+/// The Blinn-Phong pieces of [`shade_lit`] at a sample, shared with scattering.rs's hybrid.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BrdfTerms {
+    /// (n·ω_l)⁺ (1 without a gradient: lit as facing the light).
+    pub ndl: f64,
+    /// (n·h)⁺^shininess (0 without a gradient).
+    pub spec: f64,
+    /// The flatness weight w (0 flat … 1 lit).
+    pub w: f64,
+    /// |∇| (physical per mm) times the flatness scale: TF-range fractions per finest voxel.
+    pub gradient_fraction: f64,
+}
+
+/// [`BrdfTerms`] of a sample: arguments as [`shade_lit`]'s.
+pub fn brdf_terms(
+    gradient_patient: DVec3,
+    dir: DVec3,
+    light: DVec3,
+    shading: &Shading,
+    flatness_scale: f64,
+) -> BrdfTerms {
     let mag = gradient_patient.length();
     let w = smoothstep(
         crate::layout::SHADING_FLAT_BELOW,
@@ -146,10 +179,12 @@ pub fn shade_lit(
     } else {
         (1.0, 0.0)
     };
-    let direct = intensity * visibility;
-    let gain = shading.ambient as f64 + direct * shading.diffuse as f64 * (1.0 + (ndl - 1.0) * w);
-    let highlight = direct * shading.specular as f64 * spec * w;
-    color.map(|c| c * gain + highlight)
+    BrdfTerms {
+        ndl,
+        spec,
+        w,
+        gradient_fraction: mag * flatness_scale,
+    }
 }
 
 /// What the shader needs of the light per frame, in index space (raycast.rs `Params`).

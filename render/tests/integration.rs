@@ -3,6 +3,7 @@
 //! here (or as a [[test]] of its own in Cargo.toml): tests/tidy.rs checks that none is left out.
 
 mod adaptive;
+mod cinematic;
 mod common;
 mod features;
 mod gpu_vs_reference;

@@ -38,6 +38,9 @@ struct Params {
     // x: lookup offset towards the light (mm), y: finest voxels per texel.
     light_cache: vec4<f32>,
     light_cache_dims: vec4<u32>, // texels per axis
+    // x: occlusion radius (mm; OCCLUSION pipelines), y: scattering g, z: its blend
+    // (SCATTERING pipelines).
+    cinematic: vec4<f32>,
 };
 
 @group(0) @binding(0) var<uniform> P: Params;

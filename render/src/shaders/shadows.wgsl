@@ -202,7 +202,8 @@ fn build_light_cache(@builtin(global_invocation_id) gid: vec3<u32>) {
     light_cache[light_cache_index(i)] = v;
 }
 
-// shadows.rs `shade_lit`: `g_idx` the field's index-space gradient, `d_idx` the ray direction
+// shadows.rs `shade_lit` (with OCCLUSION or SCATTERING scattering.rs `shade_cinematic`):
+// `g_idx` the field's index-space gradient, `d_idx` the ray direction
 // and `p` the sample, both in index space.
 fn shade_key_light(color: vec3<f32>, g_idx: vec3<f32>, d_idx: vec3<f32>, p: vec3<f32>) -> vec3<f32> {
     let g_patient = g_idx.x * P.a_row0.xyz + g_idx.y * P.a_row1.xyz + g_idx.z * P.a_row2.xyz;
@@ -239,6 +240,22 @@ fn shade_key_light(color: vec3<f32>, g_idx: vec3<f32>, d_idx: vec3<f32>, p: vec3
         direct = direct * shadow_transmittance(p, l);
     } else if LIGHT_CACHE && direct > 0.0 {
         direct = direct * light_cache_visibility(p, l);
+    }
+    if OCCLUSION || SCATTERING {
+        // scattering.rs `shade_cinematic`: AO scales the ambient term; the direct term blends
+        // the BRDF (weight P) and the phase (1 − P) of the angle between light and view ray.
+        var ambient = P.shading.x;
+        if OCCLUSION {
+            ambient = ambient * ambient_occlusion(p);
+        }
+        var surface = 1.0;
+        var volume = 0.0;
+        if SCATTERING && direct > 0.0 {
+            surface = scattering_surface_weight(P.cinematic.z, mag * P.iso.y);
+            volume = (1.0 - surface) * scattering_phase_4pi(P.cinematic.y, l_dot_d);
+        }
+        let gain = ambient + direct * P.shading.y * (surface * (1.0 + (ndl - 1.0) * w) + volume);
+        return color * gain + vec3<f32>(direct * P.shading.z * spec * w * surface);
     }
     let gain = P.shading.x + direct * P.shading.y * (1.0 + (ndl - 1.0) * w);
     return color * gain + vec3<f32>(direct * P.shading.z * spec * w);
