@@ -105,11 +105,18 @@ pub fn run(args: ServeArgs) -> Result<()> {
             (Some(cert), Some(key)) => Some(strata_service::server::TlsFiles { cert, key }),
             _ => None,
         },
+        web_viewer: web_viewer(),
         ..ServeOptions::default()
     };
     let stores = find_stores(&args.stores)?;
     let server = start(stores, options).context("strata serve")?;
     println!("serving on {}", server.base_url());
+    if cfg!(feature = "web") {
+        println!(
+            "  the web viewer: {}/ (WebGPU needs https or localhost; a token goes after #token=)",
+            server.base_url()
+        );
+    }
     for (name, path, _) in server.stores() {
         println!("  {}  ({})", server.store_url(name), path.display());
     }
@@ -128,4 +135,29 @@ fn parse_brick(text: &str) -> Result<BrickId> {
         anyhow::bail!("brick must be LEVEL/Z/Y/X, not '{text}'");
     };
     Ok(BrickId::new(u8::try_from(level)?, [x, y, z]))
+}
+
+/// The browser viewer's files, embedded by the `web` feature (issue 39).
+#[cfg(feature = "web")]
+fn web_viewer() -> Option<std::sync::Arc<strata_service::WebViewerAssets>> {
+    macro_rules! dist {
+        ($name:literal) => {
+            include_bytes!(concat!(env!("CARGO_MANIFEST_DIR"), "/../web/dist/", $name)).as_slice()
+        };
+    }
+    Some(std::sync::Arc::new(
+        strata_service::WebViewerAssets::from_static([
+            dist!("index.html"),
+            dist!("strata.css"),
+            dist!("strata_boot.js"),
+            dist!("strata_web.js"),
+            dist!("strata_web_bg.wasm"),
+        ]),
+    ))
+}
+
+/// Without the `web` feature `/` says how to build the viewer.
+#[cfg(not(feature = "web"))]
+fn web_viewer() -> Option<std::sync::Arc<strata_service::WebViewerAssets>> {
+    None
 }

@@ -134,6 +134,8 @@ struct WebViewer {
     device_lost: Arc<Mutex<Option<String>>>,
     fragment_written: String,
     capture: Option<Capture>,
+    /// The bearer token from the link's fragment: kept in memory, sent as `Authorization`.
+    token: Option<String>,
 }
 
 impl WebViewer {
@@ -187,6 +189,7 @@ impl WebViewer {
             device_lost,
             fragment_written,
             capture: None,
+            token: fragment.token,
         })
     }
 
@@ -412,8 +415,9 @@ impl WebViewer {
                 }
                 capture.buffer.unmap();
                 capture.state.store(CAPTURE_SENT, Ordering::Release);
+                let token = self.token.clone();
                 wasm_bindgen_futures::spawn_local(async move {
-                    if let Err(e) = post_frame(&rgba, w, h).await {
+                    if let Err(e) = post_frame(&rgba, w, h, token.as_deref()).await {
                         show_message("The test capture could not be sent", &e);
                     }
                 });
@@ -428,10 +432,22 @@ impl WebViewer {
 }
 
 /// Posts a captured frame to `strata serve`'s test sink (same origin).
-async fn post_frame(rgba: &[u8], width: u32, height: u32) -> Result<(), String> {
+async fn post_frame(
+    rgba: &[u8],
+    width: u32,
+    height: u32,
+    token: Option<&str>,
+) -> Result<(), String> {
     let window = web_sys::window().ok_or("no window")?;
     let init = web_sys::RequestInit::new();
     init.set_method("POST");
+    if let Some(token) = token {
+        let headers = web_sys::Headers::new().map_err(|e| format!("{e:?}"))?;
+        headers
+            .set("Authorization", &format!("Bearer {token}"))
+            .map_err(|e| format!("{e:?}"))?;
+        init.set_headers(&headers);
+    }
     let body = js_sys::Uint8Array::from(rgba);
     init.set_body(&body.into());
     let url = format!("/v1/test/frame?width={width}&height={height}");

@@ -383,7 +383,7 @@ fn least_distance_level(
     d0: ptr<function, array<f32, MAX_OWNED>>,
     acc: ptr<function, array<vec4<f32>, MAX_OWNED>>,
 ) -> u32 {
-    var least = bitcast<f32>(0x7f800000u);
+    var least = positive_infinity();
     for (var j = 0u; j < (TILE * TILE) / THREADS; j++) {
         let idx = lid + j * THREADS;
         let open = !EARLY_TERMINATION || (*acc)[j].a < P.dims.w;
@@ -428,7 +428,7 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
     let owned = (TILE * TILE) / THREADS;
     let width = A.pyramid.x;
     let height = A.pyramid.y;
-    let inf = bitcast<f32>(0x7f800000u);
+    let inf = positive_infinity();
     var s0: array<f32, MAX_OWNED>;
     var d0: array<f32, MAX_OWNED>;
     var g0: array<vec3<f32>, MAX_OWNED>;

@@ -44,3 +44,12 @@ struct Params {
 };
 
 @group(0) @binding(0) var<uniform> P: Params;
+
+// +inf: the depth of a ray that hit nothing, the bound of a search that found nothing yet. A
+// runtime value on purpose: in WGSL a constant expression that evaluates to inf is a compile
+// error, which Chrome's compiler (Tint) enforces and naga does not, so an inline
+// `positive_infinity()` compiles natively and fails in the browser (issue 39).
+fn positive_infinity() -> f32 {
+    var bits = 0x7f800000u;
+    return bitcast<f32>(bits);
+}

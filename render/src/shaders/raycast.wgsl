@@ -271,7 +271,7 @@ fn composite(st: ptr<function, RayState>, premultiplied: vec3<f32>, alpha: f32, 
     mark_visible_in(st, page);
     let w = 1.0 - (*st).acc.a;
     (*st).acc = vec4<f32>((*st).acc.rgb + w * premultiplied, (*st).acc.a + w * alpha);
-    if (*st).depth == bitcast<f32>(0x7f800000u) && (*st).acc.a >= DEPTH_OPACITY {
+    if (*st).depth == positive_infinity() && (*st).acc.a >= DEPTH_OPACITY {
         (*st).depth = t;
     }
     if EARLY_TERMINATION && (*st).acc.a >= P.dims.w {
@@ -418,12 +418,12 @@ fn mip_sample(r: ptr<function, MipRay>, loc: Location, t: f32) {
 fn march_mip(o: vec3<f32>, d: vec3<f32>, t1: f32, first: f32, base: f32) -> MipRay {
     var r: MipRay;
     r.best_value = -3.0e38;
-    r.best_t = bitcast<f32>(0x7f800000u);
+    r.best_t = positive_infinity();
     r.have_best = false;
     r.samples = 0u;
     r.last_marked = 0xffffffffu;
     var k = 0u;
-    var partial_start = bitcast<f32>(0x7f800000u);
+    var partial_start = positive_infinity();
     var pg: Page;
     pg.t_exit = -3.0e38;
     pg.resident = true;
@@ -464,7 +464,7 @@ fn march_mip(o: vec3<f32>, d: vec3<f32>, t1: f32, first: f32, base: f32) -> MipR
         }
         mip_sample(&r, loc, t);
         if pg.level == level && pg.resident {
-            var bound = bitcast<f32>(0x7f800000u);
+            var bound = positive_infinity();
             if SKIP_EMPTY {
                 bound = page_value_max[pg.linear];
             }
@@ -499,7 +499,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     let pixel = gid.y * width + gid.x;
-    let inf = bitcast<f32>(0x7f800000u);
+    let inf = positive_infinity();
     let half_extent = P.eye_idx.w;
     let sx = (2.0 * (f32(gid.x) + 0.5) / f32(width) - 1.0) * P.right_idx.w * half_extent;
     let sy = (1.0 - 2.0 * (f32(gid.y) + 0.5) / f32(height)) * half_extent;
@@ -672,7 +672,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         // Fast path: while the next sample stays in the decoded page at the same level, march
         // with nothing but position, fetch and compositing (the common case by far).
         if page_cache.level == level && page_cache.resident {
-            var page_bound = bitcast<f32>(0x7f800000u);
+            var page_bound = positive_infinity();
             if MODE == 1u && SKIP_EMPTY {
                 page_bound = page_value_max[page_cache.linear];
             }
