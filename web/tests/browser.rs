@@ -23,6 +23,8 @@ use strata_web::view_state::Fragment;
 /// hang, it does not time anything.
 const PAGE_DEADLINE: Duration = Duration::from_secs(240);
 
+const TOKEN: &str = "0123456789abcdef0123456789abcdef";
+
 fn chromium() -> PathBuf {
     for candidate in ["/usr/bin/chromium", "/usr/bin/chromium-browser"] {
         if Path::new(candidate).exists() {
@@ -128,13 +130,16 @@ fn the_served_page_draws_the_view_its_link_names_as_the_native_renderer_does() {
                     let _ = sender.send(frame);
                 }
             }))),
+            // With a token, as off loopback: the page must send it (as `Authorization`,
+            // from the fragment) for the sink to take its frame.
+            token: Some(TOKEN.into()),
             ..ServeOptions::default()
         },
     )
     .expect("server starts");
 
     let fragment = "#mode=dvr&preset=ct-bone&az=35&el=20&zoom=1.3&volume=48&size=128x128&capture=1";
-    let url = format!("{}/{fragment}", server.base_url());
+    let url = format!("{}/{fragment}&token={TOKEN}", server.base_url());
     let browser = Browser::open(&url, scratch.path());
     let frame = frames.recv_timeout(PAGE_DEADLINE).unwrap_or_else(|_| {
         panic!(
@@ -144,6 +149,11 @@ fn the_served_page_draws_the_view_its_link_names_as_the_native_renderer_does() {
     });
     let console = browser.console();
     drop(browser);
+    let refused = server
+        .counters()
+        .unauthorized
+        .load(std::sync::atomic::Ordering::Relaxed);
+    assert_eq!(refused, 0, "the page made requests without its token");
     assert_eq!((frame.width, frame.height), (128, 128), "{console}");
 
     // The same view, drawn natively by the same crate on lavapipe, with the f32 brick format
@@ -224,7 +234,7 @@ fn the_page_is_served_with_its_security_headers_and_without_the_token() {
     let server = start(
         find_stores(&[store]).expect("store found"),
         ServeOptions {
-            token: Some("0123456789abcdef0123456789abcdef".into()),
+            token: Some(TOKEN.into()),
             web_viewer: Some(std::sync::Arc::new(
                 WebViewerAssets::from_dir(&dist).expect("files read"),
             )),
