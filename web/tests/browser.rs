@@ -138,65 +138,80 @@ fn the_served_page_draws_the_view_its_link_names_as_the_native_renderer_does() {
     )
     .expect("server starts");
 
-    let fragment = "#mode=dvr&preset=ct-bone&az=35&el=20&zoom=1.3&volume=48&size=128x128&capture=1";
-    let url = format!("{}/{fragment}&token={TOKEN}", server.base_url());
-    let browser = Browser::open(&url, scratch.path());
-    let frame = frames.recv_timeout(PAGE_DEADLINE).unwrap_or_else(|_| {
-        panic!(
-            "the page posted no frame within {PAGE_DEADLINE:?}; its console:\n{}",
-            browser.console()
+    // Each mode is its own pipeline (overrides), compiled by Chrome's Tint: all three must
+    // compile there and draw what the native renderer draws.
+    let gpu = GpuContext::headless().expect("a Vulkan adapter (lavapipe)");
+    for fragment in [
+        "#mode=dvr&preset=ct-bone&az=35&el=20&zoom=1.3&volume=48&size=128x128&capture=1",
+        "#mode=mip&preset=ct-soft-tissue&az=-60&el=10&zoom=1.1&volume=40&size=96x128&capture=1",
+        "#mode=iso&preset=ct-bone&iso=200&az=120&el=-25&zoom=1.5&volume=48&size=128x96&capture=1",
+    ] {
+        let url = format!("{}/{fragment}&token={TOKEN}", server.base_url());
+        let launched = std::time::Instant::now();
+        let browser = Browser::open(&url, scratch.path());
+        let frame = frames.recv_timeout(PAGE_DEADLINE).unwrap_or_else(|_| {
+            panic!(
+                "{fragment}: the page posted no frame within {PAGE_DEADLINE:?}; its console:\n{}",
+                browser.console()
+            )
+        });
+        // Reported, not asserted (no wall-clock assertions in tests): browser start, wasm
+        // load, the volume made in the page, pipeline compile, one frame, readback.
+        println!(
+            "{fragment}: first frame back {:.1} s after launching Chromium",
+            launched.elapsed().as_secs_f64()
+        );
+        let console = browser.console();
+        drop(browser);
+        let view = Fragment::parse(fragment).expect("fragment").view;
+        let [width, height] = view.image_size.expect("the fragment fixes the size");
+        assert_eq!((frame.width, frame.height), (width, height), "{console}");
+
+        // The same view, drawn natively by the same crate on lavapipe, with the f32 brick
+        // format the browser has to use (no 16-bit normalised textures on WebGPU).
+        let volume = view.sample_volume().expect("sample volume");
+        let mut renderer = OffscreenRenderer::new(
+            &gpu,
+            &volume,
+            &view.transfer_function(),
+            0,
+            CacheConfig {
+                force_fallback_format: true,
+                ..CacheConfig::default()
+            },
         )
-    });
-    let console = browser.console();
-    drop(browser);
+        .expect("native renderer");
+        let native = renderer
+            .render(
+                &gpu,
+                &volume,
+                &view.camera(&volume.geometry),
+                &view.settings(width, height),
+            )
+            .expect("native frame");
+        let lit = frame.rgba.chunks(4).filter(|p| p[3] > 0).count();
+        assert!(
+            lit > (width * height / 10) as usize,
+            "{fragment}: the browser's frame is nearly empty ({lit} pixels with coverage); its console:\n{console}"
+        );
+        let comparison = compare_rgba8(&frame.rgba, &native.rgba).expect("same size");
+        println!("{fragment}: browser (SwiftShader) vs native (lavapipe): {comparison:?}");
+        // Same WGSL, same inputs, both IEEE f32 on LLVM-compiled CPU drivers: measured
+        // identical here (SwiftShader vs lavapipe, 2026-12-05). Drivers may still differ in how
+        // they round trilinear weights of f32 textures and in the last bits of exp/pow in
+        // shading, which moves single 8-bit steps near opaque edges (the native GPU-vs-f64
+        // tests allow 40 dB for the same reasons). The f64 reference tests bound the renderer
+        // itself; this bounds "the browser draws the same picture".
+        assert!(
+            comparison.psnr_db >= 40.0,
+            "{fragment}: the browser's frame differs from the native one: {comparison:?}"
+        );
+    }
     let refused = server
         .counters()
         .unauthorized
         .load(std::sync::atomic::Ordering::Relaxed);
     assert_eq!(refused, 0, "the page made requests without its token");
-    assert_eq!((frame.width, frame.height), (128, 128), "{console}");
-
-    // The same view, drawn natively by the same crate on lavapipe, with the f32 brick format
-    // the browser has to use (no 16-bit normalised textures on WebGPU).
-    let view = Fragment::parse(fragment).expect("fragment").view;
-    let gpu = GpuContext::headless().expect("a Vulkan adapter (lavapipe)");
-    let volume = view.sample_volume().expect("sample volume");
-    let mut renderer = OffscreenRenderer::new(
-        &gpu,
-        &volume,
-        &view.transfer_function(),
-        0,
-        CacheConfig {
-            force_fallback_format: true,
-            ..CacheConfig::default()
-        },
-    )
-    .expect("native renderer");
-    let native = renderer
-        .render(
-            &gpu,
-            &volume,
-            &view.camera(&volume.geometry),
-            &view.settings(128, 128),
-        )
-        .expect("native frame");
-    let lit = frame.rgba.chunks(4).filter(|p| p[3] > 0).count();
-    assert!(
-        lit > 128 * 128 / 10,
-        "the browser's frame is nearly empty ({lit} pixels with coverage); its console:\n{console}"
-    );
-    let comparison = compare_rgba8(&frame.rgba, &native.rgba).expect("same size");
-    println!("browser (SwiftShader) vs native (lavapipe): {comparison:?}");
-    // Same WGSL, same inputs, both IEEE f32 on LLVM-compiled CPU drivers: measured identical
-    // here (SwiftShader vs lavapipe, 2026-12-05). Drivers may still differ in how they round
-    // trilinear weights of f32 textures and in the last bits of exp/pow in shading, which
-    // moves single 8-bit steps near opaque edges (the native GPU-vs-f64 tests allow 40 dB for
-    // the same reasons). The f64 reference tests bound the renderer itself; this bounds "the
-    // browser draws the same picture".
-    assert!(
-        comparison.psnr_db >= 40.0,
-        "the browser's frame differs from the native one: {comparison:?}"
-    );
 }
 
 #[test]
