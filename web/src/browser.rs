@@ -172,6 +172,9 @@ impl WebViewer {
             slot.get_or_insert_with(|| format!("{reason:?}: {message}"));
         });
         let gpu = GpuContext::from_device(device, render_state.queue.clone());
+        // Dark, as the desktop viewer and every reading room: a light page around a volume
+        // rendering dazzles and changes how its contrast reads.
+        cc.egui_ctx.set_theme(egui::Theme::Dark);
         let fragment_written = fragment.view.to_fragment();
         Ok(WebViewer {
             render_state,
@@ -302,9 +305,16 @@ impl WebViewer {
                     .logarithmic(true)
                     .text("zoom"),
             );
-            ui.separator();
+        });
+    }
+
+    /// The status line: its own panel, so the controls above never wrap or shift when it
+    /// changes.
+    fn status(&self, ui: &mut egui::Ui) {
+        ui.horizontal(|ui| {
             ui.label(format!(
-                "sample volume {}³ · frames drawn {}",
+                "Sample volume {}³ (CT phantom made in the page) · frames drawn {} · drag to \
+                 orbit, scroll to zoom; the address holds this view · not for diagnostic use",
                 self.view.volume_edge, self.frames_submitted
             ));
         });
@@ -475,70 +485,73 @@ impl eframe::App for WebViewer {
             self.error.get_or_insert(format!("GPU error: {detail}"));
         }
         egui::Panel::top("controls").show(ui, |ui| self.controls(ui));
-        egui::CentralPanel::default().show(ui, |ui| {
-            if let Some(error) = &self.error {
-                ui.colored_label(egui::Color32::LIGHT_RED, error);
-                return;
-            }
-            match self.ensure_renderer(&ctx) {
-                Ok(true) => {}
-                Ok(false) => {
-                    ui.label(format!(
-                        "Generating the {0}³ sample volume…",
-                        self.view.volume_edge
-                    ));
+        egui::Panel::bottom("status").show(ui, |ui| self.status(ui));
+        egui::CentralPanel::default()
+            .frame(egui::Frame::NONE.fill(egui::Color32::BLACK))
+            .show(ui, |ui| {
+                if let Some(error) = &self.error {
+                    ui.colored_label(egui::Color32::LIGHT_RED, error);
                     return;
                 }
-                Err(e) => {
+                match self.ensure_renderer(&ctx) {
+                    Ok(true) => {}
+                    Ok(false) => {
+                        ui.label(format!(
+                            "Generating the {0}³ sample volume…",
+                            self.view.volume_edge
+                        ));
+                        return;
+                    }
+                    Err(e) => {
+                        self.error = Some(e);
+                        return;
+                    }
+                }
+                let rect = ui.available_rect_before_wrap();
+                let response = ui.allocate_rect(rect, egui::Sense::drag());
+                if response.dragged() {
+                    let delta = response.drag_delta();
+                    self.view.azimuth_deg -= delta.x as f64 * ORBIT_DEG_PER_POINT;
+                    self.view.elevation_deg = (self.view.elevation_deg
+                        + delta.y as f64 * ORBIT_DEG_PER_POINT)
+                        .clamp(-89.0, 89.0);
+                }
+                if response.hovered() {
+                    let scroll = ui.input(|i| i.smooth_scroll_delta.y);
+                    if scroll != 0.0 {
+                        self.view.zoom =
+                            (self.view.zoom * (scroll as f64 * 0.002).exp()).clamp(0.25, 8.0);
+                    }
+                }
+                let ppp = ctx.pixels_per_point();
+                let size = self.view.image_size.unwrap_or_else(|| {
+                    let px = (rect.size() * ppp)
+                        .min(egui::vec2(MAX_CANVAS_IMAGE_EDGE, MAX_CANVAS_IMAGE_EDGE));
+                    [px.x.max(16.0) as u32, px.y.max(16.0) as u32]
+                });
+                if let Err(e) = self.draw_if_changed(size) {
                     self.error = Some(e);
                     return;
                 }
-            }
-            let rect = ui.available_rect_before_wrap();
-            let response = ui.allocate_rect(rect, egui::Sense::drag());
-            if response.dragged() {
-                let delta = response.drag_delta();
-                self.view.azimuth_deg -= delta.x as f64 * ORBIT_DEG_PER_POINT;
-                self.view.elevation_deg = (self.view.elevation_deg
-                    + delta.y as f64 * ORBIT_DEG_PER_POINT)
-                    .clamp(-89.0, 89.0);
-            }
-            if response.hovered() {
-                let scroll = ui.input(|i| i.smooth_scroll_delta.y);
-                if scroll != 0.0 {
-                    self.view.zoom =
-                        (self.view.zoom * (scroll as f64 * 0.002).exp()).clamp(0.25, 8.0);
+                if let Some(texture) = self.texture {
+                    // Fit the image in the panel, keeping its aspect (a fixed `size=` may differ).
+                    let aspect = size[0] as f32 / size[1] as f32;
+                    let mut shown = rect.size();
+                    if shown.x / shown.y > aspect {
+                        shown.x = shown.y * aspect;
+                    } else {
+                        shown.y = shown.x / aspect;
+                    }
+                    let image_rect = egui::Rect::from_center_size(rect.center(), shown);
+                    ui.painter().image(
+                        texture,
+                        image_rect,
+                        egui::Rect::from_min_max(egui::pos2(0.0, 0.0), egui::pos2(1.0, 1.0)),
+                        egui::Color32::WHITE,
+                    );
                 }
-            }
-            let ppp = ctx.pixels_per_point();
-            let size = self.view.image_size.unwrap_or_else(|| {
-                let px = (rect.size() * ppp)
-                    .min(egui::vec2(MAX_CANVAS_IMAGE_EDGE, MAX_CANVAS_IMAGE_EDGE));
-                [px.x.max(16.0) as u32, px.y.max(16.0) as u32]
+                self.write_fragment(response.dragged());
             });
-            if let Err(e) = self.draw_if_changed(size) {
-                self.error = Some(e);
-                return;
-            }
-            if let Some(texture) = self.texture {
-                // Fit the image in the panel, keeping its aspect (a fixed `size=` may differ).
-                let aspect = size[0] as f32 / size[1] as f32;
-                let mut shown = rect.size();
-                if shown.x / shown.y > aspect {
-                    shown.x = shown.y * aspect;
-                } else {
-                    shown.y = shown.x / aspect;
-                }
-                let image_rect = egui::Rect::from_center_size(rect.center(), shown);
-                ui.painter().image(
-                    texture,
-                    image_rect,
-                    egui::Rect::from_min_max(egui::pos2(0.0, 0.0), egui::pos2(1.0, 1.0)),
-                    egui::Color32::WHITE,
-                );
-            }
-            self.write_fragment(response.dragged());
-        });
         self.capture_step(&ctx);
     }
 }
