@@ -2461,6 +2461,7 @@ fn the_cinematic_presets_set_the_tf_and_lighting_the_3d_view_renders_with() {
             "{label} is enabled under MIP"
         );
     }
+    let view_before = app(&h).view_rect(ViewSlot::ThreeD).expect("3D view");
     let mip: RenderSettings = request(&h).settings;
     assert_eq!(mip.shadows.mode, ShadowMode::Off);
     assert_eq!((mip.occlusion, mip.scattering), (None, None));
@@ -2513,6 +2514,12 @@ fn the_cinematic_presets_set_the_tf_and_lighting_the_3d_view_renders_with() {
             .accesskit_node()
             .is_disabled());
     }
+
+    assert_eq!(
+        app(&h).view_rect(ViewSlot::ThreeD).expect("3D view"),
+        view_before,
+        "the effect sliders widened the side panel (issue 36)"
+    );
 
     // The raycaster draws the lit frame (the last preset's) to convergence.
     step_until_some(&mut h, "the converged cinematic frame", |a| {
