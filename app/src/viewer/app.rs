@@ -871,8 +871,9 @@ impl StrataApp {
                 .changed()
                 && !self.preferences.shading
             {
-                // As in the Rendering panel: shadows would keep the view shaded otherwise.
-                self.preferences.light.shadows = strata_render::ShadowMode::Off;
+                // As in the Rendering panel: the lighting effects would keep the view shaded
+                // otherwise.
+                self.preferences.light.effects_off();
             }
             ui.separator();
             let orthographic = self.preferences.orthographic;

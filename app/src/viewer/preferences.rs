@@ -4,7 +4,9 @@
 use std::path::PathBuf;
 
 use serde::{Deserialize, Serialize};
-use strata_render::{KeyLight, LightDirection, RenderMode, Shading, ShadowMode, Shadows};
+use strata_render::{
+    KeyLight, LightDirection, Occlusion, RenderMode, Scattering, Shading, ShadowMode, Shadows,
+};
 
 use super::measurements::Measurement;
 use super::orientation::SliceView;
@@ -165,6 +167,16 @@ pub struct LightPrefs {
     pub shadows: ShadowMode,
     /// Shadow-ray step in finest voxels.
     pub shadow_step: f64,
+    /// Ambient occlusion on (the radius is kept while it is off, as the direction is).
+    pub occlusion: bool,
+    /// Length of the occlusion rays, mm.
+    pub occlusion_radius_mm: f64,
+    /// Single scattering of the key light on.
+    pub scattering: bool,
+    /// Henyey-Greenstein asymmetry: > 0 forward (back-lit tissue glows).
+    pub scattering_g: f64,
+    /// Exposure Render's gradient factor: 0 volume-like everywhere, 1 surface-like at edges.
+    pub scattering_blend: f64,
 }
 
 impl Default for LightPrefs {
@@ -180,6 +192,11 @@ impl Default for LightPrefs {
             ambient: Shading::default().ambient,
             shadows: shadows.mode,
             shadow_step: shadows.step,
+            occlusion: false,
+            occlusion_radius_mm: 4.0,
+            scattering: false,
+            scattering_g: 0.4,
+            scattering_blend: 0.5,
         }
     }
 }
@@ -190,6 +207,13 @@ pub const ELEVATION_RANGE: std::ops::RangeInclusive<f64> = -90.0..=90.0;
 /// Shadow-step range in finest voxels: the CLI's lower bound (render refuses smaller steps);
 /// above a few voxels shadows only blur.
 pub const SHADOW_STEP_RANGE: std::ops::RangeInclusive<f64> = 0.05..=8.0;
+/// Occlusion radius in mm: below 1 mm it darkens little more than a voxel's own matter; the
+/// rays' cost grows with the radius (render takes up to `strata render`'s 100 mm), and beyond
+/// ~20 mm occlusion is no longer local shape but a second shadow.
+pub const OCCLUSION_RADIUS_RANGE: std::ops::RangeInclusive<f64> = 1.0..=20.0;
+/// Scattering asymmetry offered: past ±0.9 the phase is a narrow spike that only shows when
+/// looking into the light.
+pub const SCATTERING_G_RANGE: std::ops::RangeInclusive<f64> = -0.9..=0.9;
 
 impl LightPrefs {
     /// The direction towards the light in camera axes (x right, y up, z towards the viewer),
@@ -218,6 +242,19 @@ impl LightPrefs {
         }
     }
 
+    /// Whether any effect that needs the lit path is on (shadows, occlusion, scattering).
+    pub fn any_effect(&self) -> bool {
+        self.shadows != ShadowMode::Off || self.occlusion || self.scattering
+    }
+
+    /// Turns shadows, occlusion and scattering off (shading was turned off: each of them
+    /// would keep the view shaded otherwise, so the checkbox would not do what it says).
+    pub fn effects_off(&mut self) {
+        self.shadows = ShadowMode::Off;
+        self.occlusion = false;
+        self.scattering = false;
+    }
+
     pub fn shading(&self) -> Shading {
         Shading {
             ambient: if self.ambient.is_finite() {
@@ -230,29 +267,70 @@ impl LightPrefs {
     }
 }
 
-/// Why shadows cannot be drawn in these preferences, or None where they can: the CLI refuses
-/// them for MIP and for the adaptive pass (neither traces shadow rays).
-pub fn shadows_refused(prefs: &Preferences) -> Option<&'static str> {
+/// Why shadows, occlusion and scattering cannot be drawn in these preferences, or None where
+/// they can: the CLI refuses them for MIP (never lit), and the adaptive pass draws none of them.
+pub fn effects_refused(prefs: &Preferences) -> Option<&'static str> {
     if prefs.mode == RenderMode::Mip {
-        Some("Shadows light DVR and isosurfaces: MIP is never lit.")
+        Some("Shadows, occlusion and scattering light DVR and isosurfaces: MIP is never lit.")
     } else if prefs.adaptive_sampling && prefs.mode != RenderMode::Isosurface {
         Some(
-            "The adaptive pass does not trace shadow rays: turn adaptive sampling off to              draw shadows.",
+            "The adaptive pass draws no shadows, occlusion or scattering: turn adaptive \
+             sampling off to draw them.",
         )
     } else {
         None
     }
 }
 
-/// The lighting part of the 3D view's render settings: shading, key light and shadows.
-/// Shadows turn shading on (as `strata render --shadows` does); isosurfaces are always shaded,
-/// with the panel's ambient term.
-pub fn render_lighting(prefs: &Preferences) -> (Option<Shading>, KeyLight, Shadows) {
+/// The lighting part of the 3D view's render settings (issue 37).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Lighting {
+    pub shading: Option<Shading>,
+    pub light: KeyLight,
+    pub shadows: Shadows,
+    pub occlusion: Option<Occlusion>,
+    pub scattering: Option<Scattering>,
+}
+
+impl Lighting {
+    pub fn apply_to(&self, settings: &mut strata_render::RenderSettings) {
+        settings.shading = self.shading;
+        settings.light = self.light;
+        settings.shadows = self.shadows;
+        settings.occlusion = self.occlusion;
+        settings.scattering = self.scattering;
+    }
+}
+
+/// A finite value clamped to `range`, else `fallback` (a damaged or hand-edited file must not
+/// make every frame invalid).
+fn sane(v: f64, range: std::ops::RangeInclusive<f64>, fallback: f64) -> f64 {
+    if v.is_finite() {
+        v.clamp(*range.start(), *range.end())
+    } else {
+        fallback
+    }
+}
+
+/// The 3D view's lighting from the preferences: shading, key light, shadows, occlusion and
+/// scattering. Each effect turns shading on (as `strata render` does); isosurfaces are always
+/// shaded, with the panel's ambient term. Where [`effects_refused`], none is drawn (the
+/// choices are kept for the modes that draw them).
+pub fn render_lighting(prefs: &Preferences) -> Lighting {
     let light = &prefs.light;
+    let allowed = effects_refused(prefs).is_none();
+    let key_light = light.key_light();
+    let defaults = LightPrefs::default();
     let shadows = Shadows {
-        mode: match shadows_refused(prefs) {
-            Some(_) => ShadowMode::Off,
-            None => light.shadows,
+        mode: match light.shadows {
+            _ if !allowed => ShadowMode::Off,
+            // The cache holds one direction and the headlight's is each ray's own (render
+            // refuses it); the panel makes the light directional when the cache is chosen, so
+            // only a hand-edited file gets here: exact shadows are the same picture.
+            ShadowMode::Cache if key_light.direction == LightDirection::Headlight => {
+                ShadowMode::Exact
+            }
+            mode => mode,
         },
         step: if light.shadow_step.is_finite() {
             light.shadow_step.clamp(*SHADOW_STEP_RANGE.start(), 1000.0)
@@ -261,7 +339,139 @@ pub fn render_lighting(prefs: &Preferences) -> (Option<Shading>, KeyLight, Shado
         },
         ..Shadows::default()
     };
-    let shaded =
-        prefs.shading || shadows.mode != ShadowMode::Off || prefs.mode == RenderMode::Isosurface;
-    (shaded.then(|| light.shading()), light.key_light(), shadows)
+    let occlusion = (allowed && light.occlusion).then(|| Occlusion {
+        radius_mm: sane(
+            light.occlusion_radius_mm,
+            OCCLUSION_RADIUS_RANGE,
+            defaults.occlusion_radius_mm,
+        ),
+    });
+    let scattering = (allowed && light.scattering).then(|| Scattering {
+        g: sane(
+            light.scattering_g,
+            SCATTERING_G_RANGE,
+            defaults.scattering_g,
+        ),
+        blend: sane(light.scattering_blend, 0.0..=1.0, defaults.scattering_blend),
+    });
+    let shaded = prefs.shading
+        || shadows.mode != ShadowMode::Off
+        || occlusion.is_some()
+        || scattering.is_some()
+        || prefs.mode == RenderMode::Isosurface;
+    Lighting {
+        shading: shaded.then(|| light.shading()),
+        light: key_light,
+        shadows,
+        occlusion,
+        scattering,
+    }
+}
+
+/// A one-click cinematic look (issue 37): a transfer-function preset and the lighting that
+/// suits it. The headlight stays the viewer's default; these are opt-in.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CinematicPreset {
+    /// The button's label (the UI tests find it by this).
+    pub label: &'static str,
+    /// The transfer-function preset it sets (`TransferFunction::preset`).
+    pub tf_preset: &'static str,
+    /// Occlusion radius, mm.
+    pub occlusion_radius_mm: f64,
+    pub scattering_g: f64,
+    pub scattering_blend: f64,
+}
+
+impl CinematicPreset {
+    pub const ALL: [CinematicPreset; 2] = [
+        // Bone is a surface: mostly the BRDF at its strong edges (high blend), mild forward
+        // scattering, and a short occlusion radius that darkens foramina and joint gaps
+        // without greying the cortex.
+        CinematicPreset {
+            label: "Cinematic bone",
+            tf_preset: "ct-bone",
+            occlusion_radius_mm: 4.0,
+            scattering_g: 0.3,
+            scattering_blend: 0.8,
+        },
+        // Soft tissue is translucent with weak gradients: mostly the phase (low blend), more
+        // forward scattering so back-lit tissue glows, and a wider radius for the broad
+        // folds between organs.
+        CinematicPreset {
+            label: "Cinematic soft tissue",
+            tf_preset: "ct-soft-tissue",
+            occlusion_radius_mm: 6.0,
+            scattering_g: 0.5,
+            scattering_blend: 0.3,
+        },
+    ];
+
+    /// The preset's lighting: a key light from the upper left of the view (the painter's
+    /// convention, which reads as relief rather than as craters), shadows from the light cache
+    /// (one fetch per sample, affordable while moving), occlusion and scattering on; the
+    /// intensity and ambient at render's defaults.
+    pub fn light(&self) -> LightPrefs {
+        LightPrefs {
+            headlight: false,
+            azimuth_deg: -45.0,
+            elevation_deg: 45.0,
+            shadows: ShadowMode::Cache,
+            occlusion: true,
+            occlusion_radius_mm: self.occlusion_radius_mm,
+            scattering: true,
+            scattering_g: self.scattering_g,
+            scattering_blend: self.scattering_blend,
+            ..LightPrefs::default()
+        }
+    }
+
+    /// Sets the preset's lighting in the preferences (the caller sets the transfer function,
+    /// which lives in the scene): shading on, and DVR where the mode could not show it (MIP)
+    /// or the adaptive pass would draw the still frame without it.
+    pub fn apply_to(&self, prefs: &mut Preferences) {
+        prefs.light = self.light();
+        prefs.shading = true;
+        prefs.preset = self.tf_preset.into();
+        if prefs.mode == RenderMode::Mip {
+            prefs.mode = RenderMode::Dvr;
+        }
+        prefs.adaptive_sampling = false;
+    }
+
+    /// Whether the preferences are this preset's (its button shows selected).
+    pub fn is_current(&self, prefs: &Preferences) -> bool {
+        prefs.preset == self.tf_preset && prefs.light == self.light()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Preferences persisted by a viewer with the first light controls (no occlusion or
+    /// scattering fields) load, keep what they had, and draw no new effect.
+    #[test]
+    fn preferences_saved_before_occlusion_and_scattering_still_load() {
+        let old = r#"{"layout":"Single","mode":"Dvr","light":{"headlight":false,
+            "azimuth_deg":12.5,"elevation_deg":-10.0,"intensity":1.25,"ambient":0.2,
+            "shadows":"Exact","shadow_step":1.5}}"#;
+        let prefs: Preferences = serde_json::from_str(old).expect("old preferences load");
+        assert_eq!(
+            prefs.light,
+            LightPrefs {
+                headlight: false,
+                azimuth_deg: 12.5,
+                elevation_deg: -10.0,
+                intensity: 1.25,
+                ambient: 0.2,
+                shadows: ShadowMode::Exact,
+                shadow_step: 1.5,
+                ..LightPrefs::default()
+            }
+        );
+        assert!(!prefs.light.occlusion && !prefs.light.scattering);
+        let lit = render_lighting(&prefs);
+        assert_eq!(lit.shadows.mode, ShadowMode::Exact);
+        assert_eq!((lit.occlusion, lit.scattering), (None, None));
+    }
 }

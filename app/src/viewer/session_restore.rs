@@ -412,8 +412,13 @@ mod tests {
                 elevation_deg: -20.25,
                 intensity: 1.5,
                 ambient: 0.125,
-                shadows: ShadowMode::Exact,
+                shadows: ShadowMode::Cache,
                 shadow_step: 0.75,
+                occlusion: true,
+                occlusion_radius_mm: 7.5,
+                scattering: true,
+                scattering_g: -0.25,
+                scattering_blend: 0.625,
             },
             ..Preferences::default()
         };
@@ -438,11 +443,46 @@ mod tests {
         std::fs::write(&path, json.to_string()).expect("write old");
         let old = SavedSession::read(&path).expect("an old session still loads");
         assert_eq!(old.preferences.light, LightPrefs::default());
-        let (shading, light, shadows) = render_lighting(&old.preferences);
-        assert_eq!(light.direction, LightDirection::Headlight);
-        assert!(light.is_default(), "today's look: {light:?}");
-        assert_eq!(shadows.mode, ShadowMode::Off);
-        assert_eq!(shading, Some(strata_render::Shading::default()));
+        let lit = render_lighting(&old.preferences);
+        assert_eq!(lit.light.direction, LightDirection::Headlight);
+        assert!(lit.light.is_default(), "today's look: {:?}", lit.light);
+        assert_eq!(lit.shadows.mode, ShadowMode::Off);
+        assert_eq!(lit.shading, Some(strata_render::Shading::default()));
+        assert_eq!((lit.occlusion, lit.scattering), (None, None));
+
+        // A session written with the first light controls (shadows off/exact), before
+        // occlusion and scattering: its light loads as saved, the new effects off.
+        let mut json: serde_json::Value = serde_json::from_str(&saved.to_json()).expect("json");
+        let light = json["preferences"]["light"]
+            .as_object_mut()
+            .expect("light object");
+        for new in [
+            "occlusion",
+            "occlusion_radius_mm",
+            "scattering",
+            "scattering_g",
+            "scattering_blend",
+        ] {
+            light.remove(new).expect("each new field is saved");
+        }
+        light.insert("shadows".into(), "Exact".into());
+        std::fs::write(&path, json.to_string()).expect("write old");
+        let old = SavedSession::read(&path).expect("a first-light-controls session loads");
+        assert_eq!(
+            old.preferences.light,
+            LightPrefs {
+                shadows: ShadowMode::Exact,
+                occlusion: false,
+                occlusion_radius_mm: LightPrefs::default().occlusion_radius_mm,
+                scattering: false,
+                scattering_g: LightPrefs::default().scattering_g,
+                scattering_blend: LightPrefs::default().scattering_blend,
+                ..preferences.light
+            }
+        );
+        let lit = render_lighting(&old.preferences);
+        assert_eq!(lit.shadows.mode, ShadowMode::Exact);
+        assert_eq!((lit.occlusion, lit.scattering), (None, None));
     }
 
     #[test]

@@ -2427,3 +2427,102 @@ fn the_light_controls_reach_the_3d_views_settings_without_widening_the_panel() {
     assert_eq!(settings(&h).shadows.mode, ShadowMode::Off);
     assert_eq!(app(&h).preferences.light.shadows, ShadowMode::Exact);
 }
+
+/// Issue 37: under MIP the shadow, occlusion and scattering controls are disabled (their
+/// tooltips say why) and the request carries none of them; each cinematic preset then sets, in
+/// one click, the transfer function and the lighting the 3D view renders with (DVR, a
+/// directional light from the upper left, cached shadows, occlusion, scattering), and the
+/// raycaster draws that frame.
+#[test]
+fn the_cinematic_presets_set_the_tf_and_lighting_the_3d_view_renders_with() {
+    use super::panels::rendering::{CACHE_SHADOWS_LABEL, OCCLUSION_LABEL, SCATTERING_LABEL};
+    use super::preferences::CinematicPreset;
+    use egui_kittest::kittest::NodeT;
+    use strata_render::{LightDirection, RenderMode, RenderSettings, ShadowMode, TransferFunction};
+
+    let dir = tempfile::tempdir().expect("tempdir");
+    let store = phantom_store(dir.path());
+    let mut options = ViewerOptions::new(VolumeSource::Path(store.clone()));
+    options.import_folder = dir.path().join("imported");
+    let preferences = Preferences {
+        layout: Layout::Single,
+        show_side_panel: true,
+        mode: RenderMode::Mip,
+        ..Preferences::default()
+    };
+    // Tall, so the rendering panel is on screen below the others.
+    let mut h = harness_sized(options, preferences, Vec2::new(700.0, 1800.0));
+    wait_for_settled_frame(&mut h, "the first converged MIP frame", 0);
+    let request =
+        |h: &Harness<'static, Option<StrataApp>>| app(h).volume_request().expect("a request");
+    for label in [CACHE_SHADOWS_LABEL, OCCLUSION_LABEL, SCATTERING_LABEL] {
+        assert!(
+            h.get_by_label(label).accesskit_node().is_disabled(),
+            "{label} is enabled under MIP"
+        );
+    }
+    let view_before = app(&h).view_rect(ViewSlot::ThreeD).expect("3D view");
+    let mip: RenderSettings = request(&h).settings;
+    assert_eq!(mip.shadows.mode, ShadowMode::Off);
+    assert_eq!((mip.occlusion, mip.scattering), (None, None));
+
+    for preset in CinematicPreset::ALL {
+        h.get_by_label(preset.label).click_accesskit();
+        h.step();
+        h.step();
+        let asked = request(&h);
+        let tf = TransferFunction::preset(preset.tf_preset).expect("the preset exists");
+        assert_eq!(
+            asked.transfer_function.opacity, tf.opacity,
+            "{}",
+            preset.label
+        );
+        assert_eq!(asked.transfer_function.color, tf.color, "{}", preset.label);
+        assert_eq!(app(&h).preferences.preset, preset.tf_preset);
+        let s = asked.settings;
+        assert_eq!(
+            s.mode,
+            RenderMode::Dvr,
+            "a cinematic preset draws DVR, not MIP"
+        );
+        assert!(s.shading.is_some());
+        match s.light.direction {
+            LightDirection::Camera([x, y, z]) => {
+                assert!(x < 0.0 && y > 0.0 && z > 0.0, "upper left: {x} {y} {z}")
+            }
+            other => panic!(
+                "{}: expected a camera-relative light, got {other:?}",
+                preset.label
+            ),
+        }
+        assert_eq!(s.shadows.mode, ShadowMode::Cache);
+        assert!(s.effective_light_cache());
+        assert_eq!(
+            s.effective_occlusion().map(|o| o.radius_mm),
+            Some(preset.occlusion_radius_mm)
+        );
+        let scattering = s.effective_scattering().expect("scattering on");
+        assert_eq!(
+            (scattering.g, scattering.blend),
+            (preset.scattering_g, preset.scattering_blend)
+        );
+        s.validate()
+            .expect("the raycaster accepts the preset's settings");
+        // The controls are enabled again and show the choice.
+        assert!(!h
+            .get_by_label(OCCLUSION_LABEL)
+            .accesskit_node()
+            .is_disabled());
+    }
+
+    assert_eq!(
+        app(&h).view_rect(ViewSlot::ThreeD).expect("3D view"),
+        view_before,
+        "the effect sliders widened the side panel (issue 36)"
+    );
+
+    // The raycaster draws the lit frame (the last preset's) to convergence.
+    step_until_some(&mut h, "the converged cinematic frame", |a| {
+        settled_frame(a).filter(|f| f.request.settings.effective_occlusion().is_some())
+    });
+}

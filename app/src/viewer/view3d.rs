@@ -460,21 +460,18 @@ impl View3d {
         self.requested_size = [width, height];
         let camera = self.orbit.camera(&data.info.geometry);
         let clip_plane = scene.clip.enabled.then(|| data.clip_plane(&scene.clip));
-        let (shading, light, shadows) = super::preferences::render_lighting(prefs);
-        let settings = RenderSettings {
+        let mut settings = RenderSettings {
             width,
             height,
             mode: prefs.mode,
             quality: prefs.step_voxels,
-            shading,
-            light,
-            shadows,
             smooth_transitions: prefs.smooth_transitions,
             iso_value: scene.iso_value,
             crop: scene.crop,
             clip_plane,
             ..RenderSettings::default()
         };
+        super::preferences::render_lighting(prefs).apply_to(&mut settings);
         data.session.request(RenderRequest {
             camera,
             settings,

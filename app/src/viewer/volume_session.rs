@@ -19,8 +19,8 @@ use std::time::{Duration, Instant};
 
 use strata_loader::{FrameStats, SelectionTiming, StreamingConfig, StreamingVolume};
 use strata_render::{
-    Camera, GpuContext, RenderMode, RenderSettings, TimeCriticalConfig, TimeCriticalController,
-    TransferFunction, Traversal, ValueMapping, VolumeGeometry,
+    Camera, GpuContext, LightDirection, RenderMode, RenderSettings, ShadowMode, TimeCriticalConfig,
+    TimeCriticalController, TransferFunction, Traversal, ValueMapping, VolumeGeometry,
 };
 use strata_source::VolumeSource;
 use strata_storage::StoreHeader;
@@ -803,6 +803,9 @@ impl RenderWorker {
                 q.apply_to(&mut settings);
                 q
             });
+            if quality.is_some() && request.interacting {
+                interactive_lighting(&mut settings);
+            }
             volume.set_max_voxel_pixels(match quality {
                 Some(q) if request.interacting => q.lod_factor,
                 _ => 1.0,
@@ -1062,9 +1065,69 @@ fn new_request_is_same(last: &Option<RenderRequest>, request: &RenderRequest) ->
     last.as_ref() == Some(request)
 }
 
+/// The lighting of a frame drawn while the user drags (issue 37): the controller holds the
+/// target rate by the step and the lod, which cannot absorb effects that multiply every
+/// sample's cost. Occlusion (16 short rays per shaded sample) is off; exact shadows (a ray per
+/// shaded sample) read the light cache instead (one fetch) where the light is directional,
+/// and are off under the headlight (the cache holds one direction). Scattering stays: it is
+/// arithmetic on the sample, no extra fetch. The still frame draws the request's own settings,
+/// so everything comes back once the camera rests. With a camera-relative light the cache is
+/// rebuilt each moving frame; its build is O(texels), a fraction of an exact frame.
+fn interactive_lighting(settings: &mut RenderSettings) {
+    settings.occlusion = None;
+    if settings.shadows.mode == ShadowMode::Exact {
+        settings.shadows.mode = if settings.light.direction == LightDirection::Headlight {
+            ShadowMode::Off
+        } else {
+            ShadowMode::Cache
+        };
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn moving_frames_drop_occlusion_and_trade_exact_shadows_for_the_cache() {
+        use strata_render::{KeyLight, Occlusion, Scattering, Shadows};
+        let still = RenderSettings {
+            shading: Some(Default::default()),
+            light: KeyLight {
+                direction: LightDirection::Camera([-0.5, 0.5, 0.7]),
+                intensity: 1.0,
+            },
+            shadows: Shadows {
+                mode: ShadowMode::Exact,
+                ..Shadows::default()
+            },
+            occlusion: Some(Occlusion { radius_mm: 4.0 }),
+            scattering: Some(Scattering { g: 0.4, blend: 0.5 }),
+            ..RenderSettings::default()
+        };
+        let mut moving = still.clone();
+        interactive_lighting(&mut moving);
+        assert_eq!(moving.occlusion, None);
+        assert_eq!(moving.shadows.mode, ShadowMode::Cache);
+        assert_eq!(
+            moving.scattering, still.scattering,
+            "scattering is cheap: kept"
+        );
+        moving.validate().expect("valid");
+        // Under the headlight the cache cannot hold the light: shadows off while moving.
+        let mut headlit = RenderSettings {
+            light: KeyLight::default(),
+            ..still.clone()
+        };
+        interactive_lighting(&mut headlit);
+        assert_eq!(headlit.shadows.mode, ShadowMode::Off);
+        headlit.validate().expect("valid");
+        // Cached shadows are already the fast mode.
+        let mut cached = still.clone();
+        cached.shadows.mode = ShadowMode::Cache;
+        interactive_lighting(&mut cached);
+        assert_eq!(cached.shadows.mode, ShadowMode::Cache);
+    }
 
     #[test]
     fn an_unchanging_cut_rests_after_the_settle_frames_and_pending_reads_keep_it_paced() {

@@ -83,7 +83,11 @@ impl Panels {
         egui::CollapsingHeader::new("Rendering")
             .default_open(true)
             .show(ui, |ui| {
-                rendering::ui(ui, prefs, data, scene, view_3d);
+                if rendering::ui(ui, prefs, data, scene, view_3d) {
+                    // A cinematic preset replaced the TF: the editor's selection named a
+                    // point of the old one (as the TF panel's own presets do).
+                    self.transfer_function.editor = Default::default();
+                }
             });
         egui::CollapsingHeader::new("Performance")
             .default_open(true)

@@ -5,9 +5,10 @@ use strata_render::{CropBox, RenderMode, ShadowMode};
 
 use crate::viewer::adaptive_view::{format_epsilon, EPSILON_RANGE};
 use crate::viewer::preferences::{
-    shadows_refused, LightPrefs, Preferences, TraversalChoice, AZIMUTH_RANGE, ELEVATION_RANGE,
-    SHADOW_STEP_RANGE,
+    effects_refused, CinematicPreset, LightPrefs, Preferences, TraversalChoice, AZIMUTH_RANGE,
+    ELEVATION_RANGE, OCCLUSION_RADIUS_RANGE, SCATTERING_G_RANGE, SHADOW_STEP_RANGE,
 };
+use crate::viewer::scene::preset_for;
 use crate::viewer::scene::{Scene, VolumeData};
 use crate::viewer::view3d::View3d;
 
@@ -18,13 +19,15 @@ pub const RENDER_MODES: [(RenderMode, &str); 3] = [
     (RenderMode::Isosurface, "Isosurface"),
 ];
 
+/// Draws the panel; true when a cinematic preset replaced the transfer function (the caller
+/// resets the TF editor's selection, which named points of the old one).
 pub fn ui(
     ui: &mut egui::Ui,
     prefs: &mut Preferences,
     data: &VolumeData,
     scene: &mut Scene,
     view_3d: &mut View3d,
-) {
+) -> bool {
     let unit = &data.info.header.value_mapping.unit;
     ui.horizontal(|ui| {
         for (mode, label) in RENDER_MODES {
@@ -35,10 +38,12 @@ pub fn ui(
         let (lo, hi) = data.info.physical_range;
         ui.add(egui::Slider::new(&mut scene.iso_value, lo..=hi).text(format!("iso value {unit}")));
     }
+    let tf_replaced = cinematic_presets(ui, prefs, data, scene);
     if ui.checkbox(&mut prefs.shading, "Shading (DVR)").changed() && !prefs.shading {
-        // Shadows are part of shading: unshaded DVR with shadows on would be shaded anyway
-        // (render_lighting), so the checkbox would not do what it says.
-        prefs.light.shadows = ShadowMode::Off;
+        // Shadows, occlusion and scattering are part of shading: unshaded DVR with one of
+        // them on would be shaded anyway (render_lighting), so the checkbox would not do what
+        // it says.
+        prefs.light.effects_off();
     }
     light(ui, prefs);
     ui.checkbox(&mut prefs.smooth_transitions, "Smooth level transitions")
@@ -106,6 +111,42 @@ pub fn ui(
         scene.crop = CropBox::default();
         scene.clip.enabled = false;
     }
+    tf_replaced
+}
+
+/// The cinematic presets: one click sets the transfer function and the lighting that suits it
+/// (issue 37). True when one was applied.
+fn cinematic_presets(
+    ui: &mut egui::Ui,
+    prefs: &mut Preferences,
+    data: &VolumeData,
+    scene: &mut Scene,
+) -> bool {
+    let mut applied = false;
+    ui.horizontal_wrapped(|ui| {
+        for preset in CinematicPreset::ALL {
+            let current = preset.is_current(prefs) && !scene.tf_edited();
+            if ui
+                .selectable_label(current, preset.label)
+                .on_hover_text(format!(
+                    "The {} transfer function lit by a key light from the upper left, with \
+                     shadows from the light cache, ambient occlusion over {} mm and \
+                     scattering (g {}, blend {}). Draws DVR (MIP is never lit) with the \
+                     raycaster (adaptive sampling off).",
+                    preset.tf_preset,
+                    preset.occlusion_radius_mm,
+                    preset.scattering_g,
+                    preset.scattering_blend,
+                ))
+                .clicked()
+            {
+                preset.apply_to(prefs);
+                scene.set_transfer_function(preset_for(preset.tf_preset, &data.info));
+                applied = true;
+            }
+        }
+    });
+    applied
 }
 
 /// The checkbox label (the UI tests find it by this text).
@@ -159,6 +200,12 @@ pub const AMBIENT_LABEL: &str = "Ambient";
 pub const GIZMO_LABEL: &str = "Light direction gizmo";
 pub const NO_SHADOWS_LABEL: &str = "No shadows";
 pub const EXACT_SHADOWS_LABEL: &str = "Exact shadows";
+pub const CACHE_SHADOWS_LABEL: &str = "Cached shadows";
+pub const OCCLUSION_LABEL: &str = "Ambient occlusion";
+pub const OCCLUSION_RADIUS_LABEL: &str = "Occlusion radius";
+pub const SCATTERING_LABEL: &str = "Scattering";
+pub const SCATTERING_G_LABEL: &str = "Scattering g";
+pub const SCATTERING_BLEND_LABEL: &str = "Scattering blend";
 pub const SHADOW_STEP_LABEL: &str = "Shadow step";
 /// Side of the direction gizmo, points: small enough never to widen the panel (issue 36).
 const GIZMO_SIDE: f32 = 64.0;
@@ -204,11 +251,11 @@ fn light(ui: &mut egui::Ui, prefs: &mut Preferences) {
         .on_hover_text("Light from everywhere: what shadows never darken.")
         .accessible_name(AMBIENT_LABEL);
 
-    let refused = shadows_refused(prefs);
+    let refused = effects_refused(prefs);
     ui.add_enabled_ui(refused.is_none(), |ui| {
         let why = refused.unwrap_or_default();
-        let before = prefs.light.shadows;
-        ui.horizontal(|ui| {
+        let before = prefs.light;
+        ui.horizontal_wrapped(|ui| {
             ui.label("Shadows");
             ui.radio_value(&mut prefs.light.shadows, ShadowMode::Off, NO_SHADOWS_LABEL)
                 .on_disabled_hover_text(why);
@@ -222,10 +269,22 @@ fn light(ui: &mut egui::Ui, prefs: &mut Preferences) {
                  slower by the shadow ray's length. Turns shading on.",
             )
             .on_disabled_hover_text(why);
+            ui.radio_value(
+                &mut prefs.light.shadows,
+                ShadowMode::Cache,
+                CACHE_SHADOWS_LABEL,
+            )
+            .on_hover_text(
+                "One lookup per shaded sample in a coarse grid of the light reaching each \
+                 point, rebuilt when the light, transfer function or loaded bricks change: \
+                 fast, with softer edges. Needs a directional light (chosen if the headlight \
+                 is on). Turns shading on.",
+            )
+            .on_disabled_hover_text(why);
         });
-        if prefs.light.shadows != before && prefs.light.shadows != ShadowMode::Off {
-            // As `strata render --shadows` does: shadows need the lit path.
-            prefs.shading = true;
+        if prefs.light.shadows == ShadowMode::Cache && before.shadows != ShadowMode::Cache {
+            // The cache holds one light direction; the headlight's is each ray's own.
+            prefs.light.headlight = false;
         }
         if prefs.light.shadows != ShadowMode::Off {
             ui.add(
@@ -237,6 +296,47 @@ fn light(ui: &mut egui::Ui, prefs: &mut Preferences) {
                 "The shadow ray's step in finest voxels: smaller is more exact and slower.",
             )
             .accessible_name(SHADOW_STEP_LABEL);
+        }
+        ui.checkbox(&mut prefs.light.occlusion, OCCLUSION_LABEL)
+            .on_hover_text(
+                "Darken the ambient light where nearby matter hides a sample (creases, \
+                 cavities): short rays around each shaded sample. Turns shading on.",
+            )
+            .on_disabled_hover_text(why);
+        if prefs.light.occlusion {
+            ui.add(
+                egui::Slider::new(&mut prefs.light.occlusion_radius_mm, OCCLUSION_RADIUS_RANGE)
+                    .suffix(" mm")
+                    .text("radius"),
+            )
+            .on_hover_text(
+                "How far the occlusion rays look: larger darkens broader folds and is slower.",
+            )
+            .accessible_name(OCCLUSION_RADIUS_LABEL);
+        }
+        ui.checkbox(&mut prefs.light.scattering, SCATTERING_LABEL)
+            .on_hover_text(
+                "Light scattered once inside tissue (Henyey-Greenstein phase), blended with \
+                 the surface reflection where edges are strong. Turns shading on.",
+            )
+            .on_disabled_hover_text(why);
+        if prefs.light.scattering {
+            ui.add(egui::Slider::new(&mut prefs.light.scattering_g, SCATTERING_G_RANGE).text("g"))
+                .on_hover_text(
+                    "Asymmetry: > 0 scatters forward (tissue lit from behind glows), 0 evenly, \
+                     < 0 back towards the light.",
+                )
+                .accessible_name(SCATTERING_G_LABEL);
+            ui.add(egui::Slider::new(&mut prefs.light.scattering_blend, 0.0..=1.0).text("blend"))
+                .on_hover_text(
+                    "0: volume-like scattering everywhere; 1: surface-like reflection wherever \
+                 the gradient is strong (bone), scattering in the smooth interior.",
+                )
+                .accessible_name(SCATTERING_BLEND_LABEL);
+        }
+        if prefs.light.any_effect() && !before.any_effect() {
+            // As `strata render` does: each effect needs the lit path.
+            prefs.shading = true;
         }
     });
 }
@@ -320,19 +420,34 @@ mod tests {
     }
 
     #[test]
-    fn shadows_are_refused_for_mip_and_the_adaptive_pass_and_turn_shading_on() {
+    fn effects_are_refused_for_mip_and_the_adaptive_pass_and_turn_shading_on() {
         let mut prefs = Preferences {
             shading: false,
             ..Preferences::default()
         };
         prefs.light.shadows = ShadowMode::Exact;
-        let (shading, light, shadows) = render_lighting(&prefs);
-        assert_eq!(shadows.mode, ShadowMode::Exact);
+        let lit = render_lighting(&prefs);
+        assert_eq!(lit.shadows.mode, ShadowMode::Exact);
         assert!(
-            shading.is_some(),
+            lit.shading.is_some(),
             "shadows turn shading on, as the CLI does"
         );
-        assert_eq!(light.direction, LightDirection::Headlight);
+        assert_eq!(lit.light.direction, LightDirection::Headlight);
+        for effect in [
+            |l: &mut LightPrefs| l.occlusion = true,
+            |l: &mut LightPrefs| l.scattering = true,
+        ] {
+            let mut only = Preferences {
+                shading: false,
+                ..Preferences::default()
+            };
+            effect(&mut only.light);
+            let lit = render_lighting(&only);
+            assert!(lit.occlusion.is_some() || lit.scattering.is_some());
+            assert!(lit.shading.is_some(), "each effect turns shading on");
+        }
+        prefs.light.occlusion = true;
+        prefs.light.scattering = true;
         for refused in [
             Preferences {
                 mode: RenderMode::Mip,
@@ -343,10 +458,78 @@ mod tests {
                 ..prefs.clone()
             },
         ] {
-            assert!(shadows_refused(&refused).is_some());
-            let (shading, _, shadows) = render_lighting(&refused);
-            assert_eq!(shadows.mode, ShadowMode::Off);
-            assert_eq!(shading, None, "unshaded, as asked");
+            assert!(effects_refused(&refused).is_some());
+            let lit = render_lighting(&refused);
+            assert_eq!(lit.shadows.mode, ShadowMode::Off);
+            assert_eq!(lit.occlusion, None);
+            assert_eq!(lit.scattering, None);
+            assert_eq!(lit.shading, None, "unshaded, as asked");
         }
+    }
+
+    #[test]
+    fn cache_shadows_never_reach_render_with_the_headlight() {
+        // Render refuses the cache with the headlight (one direction per cache): a
+        // hand-edited file with both draws exact shadows instead of failing every frame.
+        let mut prefs = Preferences::default();
+        prefs.light.shadows = ShadowMode::Cache;
+        prefs.light.occlusion_radius_mm = f64::NAN;
+        prefs.light.scattering = true;
+        prefs.light.scattering_g = 5.0;
+        prefs.light.occlusion = true;
+        let mut settings = strata_render::RenderSettings::default();
+        render_lighting(&prefs).apply_to(&mut settings);
+        assert_eq!(settings.shadows.mode, ShadowMode::Exact);
+        settings
+            .validate()
+            .expect("the viewer's settings are valid");
+        assert_eq!(settings.occlusion.map(|o| o.radius_mm), Some(4.0));
+        assert_eq!(settings.scattering.map(|s| s.g), Some(0.9));
+    }
+
+    #[test]
+    fn each_cinematic_preset_renders_valid_settings_for_dvr_and_isosurfaces() {
+        for preset in CinematicPreset::ALL {
+            for mode in [RenderMode::Dvr, RenderMode::Isosurface, RenderMode::Mip] {
+                let mut prefs = Preferences {
+                    mode,
+                    adaptive_sampling: true,
+                    shading: false,
+                    ..Preferences::default()
+                };
+                preset.apply_to(&mut prefs);
+                assert!(preset.is_current(&prefs));
+                assert_eq!(
+                    prefs.mode,
+                    if mode == RenderMode::Mip {
+                        RenderMode::Dvr
+                    } else {
+                        mode
+                    },
+                    "MIP, which is never lit, becomes DVR; other modes stay"
+                );
+                let mut settings = strata_render::RenderSettings {
+                    mode: prefs.mode,
+                    ..Default::default()
+                };
+                render_lighting(&prefs).apply_to(&mut settings);
+                settings.validate().expect("valid settings");
+                assert!(settings.effective_light_cache());
+                assert!(settings.effective_occlusion().is_some());
+                assert!(settings.effective_scattering().is_some());
+                match settings.light.direction {
+                    // Upper left of the view, in front of the volume.
+                    LightDirection::Camera([x, y, z]) => {
+                        assert!(x < 0.0 && y > 0.0 && z > 0.0, "{x} {y} {z}")
+                    }
+                    other => panic!("a camera-relative key light, got {other:?}"),
+                }
+            }
+        }
+        let [bone, soft] = CinematicPreset::ALL;
+        assert!(
+            bone.scattering_blend > soft.scattering_blend,
+            "bone is surface-like, soft tissue volume-like"
+        );
     }
 }
