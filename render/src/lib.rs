@@ -57,7 +57,7 @@
 //!   offscreen           → raycast, gpu_page_table, gpu_transfer_function, bricked_volume,
 //!                         cache, page_table, camera, device, settings, transfer_function, error
 //!   time_critical       → gpu_timing, settings
-//!   progressive         → offscreen, bricked_volume, camera, device, settings, error
+//!   progressive         → raycast, camera, device, settings, error
 //!                                          (running mean of a still view's jittered frames)
 //! adaptive (adaptive sampling in 3D, its own pass beside the raycaster)
 //!   adaptive::transcription                 (Figs. 3, 5, 6 in f64)

@@ -26,11 +26,10 @@
 //! transfer function, the resident cut, the data). A frame with another key, or another size,
 //! restarts the count at 1.
 
-use crate::bricked_volume::BrickedVolume;
 use crate::camera::Camera;
 use crate::device::{map_blocking, GpuContext};
 use crate::error::RenderError;
-use crate::offscreen::OffscreenRenderer;
+use crate::raycast::{Raycaster, Scene};
 use crate::settings::RenderSettings;
 
 const WGSL: &str = include_str!("shaders/progressive.wgsl");
@@ -76,24 +75,37 @@ pub fn jittered_frame(settings: &RenderSettings, n: u32) -> RenderSettings {
     }
 }
 
-/// Renders `frames` (at least 1) jittered frames of one still view with `renderer` and returns
-/// their mean as the displayed Rgba8Unorm bytes: `strata render --progressive`.
-pub fn render_progressive(
+/// How many frames may be queued before the loop in [`render_still`] waits for the GPU: bounds
+/// the command buffers and bind groups in flight without serialising every frame.
+const FRAMES_IN_FLIGHT: u32 = 8;
+
+/// Renders `frames` (at least 1) jittered frames of `scene`'s still view with `raycaster`
+/// (frame n with `frame_index` n) and returns their mean as the displayed Rgba8Unorm bytes:
+/// `strata render --progressive`.
+pub fn render_still(
     ctx: &GpuContext,
-    renderer: &mut OffscreenRenderer,
-    volume: &BrickedVolume,
-    camera: &Camera,
-    settings: &RenderSettings,
+    raycaster: &mut Raycaster,
+    scene: &Scene,
     frames: u32,
 ) -> Result<Vec<u8>, RenderError> {
-    let key = ViewKey::new(camera, settings);
+    let key = ViewKey::new(scene.camera, scene.settings);
     let mut accumulator = Accumulator::new(ctx);
     for n in 0..frames.max(1) {
-        renderer.submit(ctx, volume, camera, &jittered_frame(settings, n))?;
-        let Some(output) = renderer.raycaster.output_texture() else {
+        let settings = jittered_frame(scene.settings, n);
+        raycaster.render(
+            ctx,
+            &Scene {
+                settings: &settings,
+                ..*scene
+            },
+        )?;
+        let Some(output) = raycaster.output_texture() else {
             return Err(RenderError::Readback("the raycaster has no output".into()));
         };
         accumulator.accumulate(ctx, &key, output)?;
+        if (n + 1) % FRAMES_IN_FLIGHT == 0 {
+            ctx.wait_idle()?;
+        }
     }
     let mean = accumulator.read_mean_blocking(ctx)?;
     ctx.check_uncaptured()?;
