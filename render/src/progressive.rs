@@ -3,16 +3,18 @@
 //! model's un-jittered, fine-step image.
 //!
 //! # What is random, and what the mean converges to
-//! The raycaster's one stochastic part is its ray-start jitter: with [`RenderSettings::jitter`]
-//! every pixel's samples sit at `t0 + (k + j)·step` with `j` a per-pixel hash of
-//! `frame_index` (uniform in [0, 1)). Over frames the mean integrates the ray at every offset
-//! inside a step, i.e. at a step that shrinks with N, so the wood-grain of one jittered frame
-//! turns into noise that averages out as 1/√N until what is left is the model's bias at that
-//! step (compositing is not linear in the sample positions, so jittered samples are not an
-//! unbiased estimator of the fine-step integral) and the 8-bit rounding of each frame. The
-//! shadow, occlusion and scattering rays are deterministic today (fixed starts, a fixed
-//! direction set): they converge as their own step dictates, not with N. See
-//! `render/tests/progressive.rs` for the measured slope.
+//! With [`RenderSettings::jitter`] two offsets vary per pixel and frame, both hashed from the
+//! pixel and `frame_index` (uniform in [0, 1), independent of each other): the main ray's
+//! samples sit at `t0 + (k + j)·step`, and every shadow and occlusion ray of that pixel samples
+//! its segments at the fraction `j'` of its step instead of the midpoint (shadows.wgsl
+//! `shadow_jitter`; the light cache's build keeps the midpoint). Over frames the mean
+//! integrates the rays at every offset inside a step, i.e. at a step that shrinks with N, so
+//! one frame's wood-grain turns into noise that averages out as 1/√N until what is left is the
+//! model's bias at that step (compositing and exp(−τ) are not linear in the sample positions,
+//! so jittered samples are not an unbiased estimator of the fine-step integral) and the 8-bit
+//! rounding of each frame. The occlusion direction set is fixed (not rotated per frame), so
+//! its angular error does not average out. See `render/tests/progressive.rs` for the measured
+//! slopes.
 //!
 //! # Cost
 //! One compute pass per frame reading the raycaster's Rgba8Unorm output and updating an
