@@ -237,8 +237,8 @@ impl Accumulator {
         self.targets.as_ref().map(|t| &t.mean_view)
     }
 
-    /// Folds `frame` (the raycaster's Rgba8Unorm output, e.g. [`crate::Raycaster::
-    /// output_texture`], rendered with `key`'s view) into the mean and submits the pass; the
+    /// Folds `frame` (the raycaster's Rgba8Unorm output, e.g.
+    /// [`crate::Raycaster::output_texture`], rendered with `key`'s view) into the mean and submits the pass; the
     /// queue orders it after the frame's own submission. A new key or size restarts the mean.
     /// Returns the number of frames now in it.
     pub fn accumulate(
