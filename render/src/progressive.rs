@@ -18,8 +18,9 @@
 //!
 //! # Cost
 //! One compute pass per frame reading the raycaster's Rgba8Unorm output and updating an
-//! f32×4 buffer and an Rgba8Unorm texture (what a viewer displays): 20 bytes per pixel touched,
-//! no CPU readback. The mean, not a sum, is stored (`mean_N = mean_{N-1} + (x_N -
+//! f32×4 buffer and an Rgba8Unorm texture (what a viewer displays): 20 bytes read and 20
+//! written per pixel, no CPU readback (within noise at 512² on lavapipe: the bench's
+//! progressive row). The mean, not a sum, is stored (`mean_N = mean_{N-1} + (x_N -
 //! mean_{N-1})/N`), so f32 never runs out of precision however long the view stays still.
 //!
 //! # Resets
