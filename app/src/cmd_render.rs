@@ -12,6 +12,7 @@ use strata_loader::{ResidentBricks, StreamingConfig, StreamingVolume};
 use strata_render::adaptive::{
     block_oracle, render_adaptive_reference, AdaptiveConfig, AdaptiveOptics, AdaptivePass,
 };
+use strata_render::progressive::render_still;
 use strata_render::reference::{render_reference, ReferenceOptions, ReferenceScene};
 use strata_render::{
     Camera, GpuContext, GpuPageTable, KeyLight, LightDirection, Occlusion, Projection, RenderMode,
@@ -171,6 +172,14 @@ pub struct RenderArgs {
     /// surface-like wherever the gradient is a few % of the TF range per voxel).
     #[arg(long, default_value_t = 0.5)]
     pub scattering_blend: f64,
+    /// Progressive refinement of the still view: render N frames with different ray-start
+    /// jitter (frame_index 0..N) and write their mean, accumulated on the GPU
+    /// (render/src/progressive.rs). The jitter's wood-grain averages out as 1/√N towards the
+    /// same model's fine-step image (--reference renders that in f64); 16-64 frames remove
+    /// most of it. Renders a fixed cut (--level, loaded up front); GPU raycaster only (not
+    /// --reference, --mode adaptive, --orbit or --no-jitter).
+    #[arg(long, value_name = "N")]
+    pub progressive: Option<u32>,
 }
 
 /// The largest --occlusion radius: 16 rays of radius / step samples per shaded sample, so a
@@ -204,6 +213,9 @@ pub fn parse_light_dir(text: &str) -> Result<[f64; 3]> {
 
 /// The most frames an orbit movie may have: 10 per degree, 150 s at 24 frames per second.
 pub const MAX_ORBIT_FRAMES: u32 = 3600;
+/// The most frames --progressive averages: past 4096 the jitter noise is 1/64 of one frame's,
+/// far under an 8-bit step; more is a typo.
+pub const MAX_PROGRESSIVE_FRAMES: u32 = 4096;
 
 pub fn parse_size(text: &str) -> Result<(u32, u32)> {
     let (w, h) = text
@@ -317,6 +329,21 @@ fn check_args(args: &RenderArgs) -> Result<()> {
              or --mode adaptive"
         );
     }
+    if let Some(n) = args.progressive {
+        anyhow::ensure!(
+            (1..=MAX_PROGRESSIVE_FRAMES).contains(&n),
+            "--progressive {n}: the number of frames must be 1..={MAX_PROGRESSIVE_FRAMES}"
+        );
+        anyhow::ensure!(
+            !args.reference
+                && args.orbit.is_none()
+                && !args.no_jitter
+                && !matches!(args.mode, ModeArg::Adaptive | ModeArg::AdaptiveMip),
+            "--progressive averages jittered frames of the GPU raycaster: it does not combine \
+             with --reference (already the converged image), --orbit, --no-jitter or --mode \
+             adaptive"
+        );
+    }
     if let Some(text) = &args.light_dir {
         parse_light_dir(text)?;
     }
@@ -336,6 +363,9 @@ pub fn run(args: RenderArgs) -> Result<()> {
         if !args.up_front && !args.reference {
             eprintln!("--mode adaptive renders a fixed cut: loading --level up front");
         }
+    } else if args.progressive.is_some() && !args.up_front {
+        // A still view of a cut that changes while it streams would restart the mean.
+        eprintln!("--progressive renders a fixed cut: loading --level up front");
     } else if !args.up_front && !args.reference {
         return run_streaming(&args);
     }
@@ -479,8 +509,23 @@ pub fn run(args: RenderArgs) -> Result<()> {
         )?;
         match args.traversal.unwrap_or(TraversalArg::Flat) {
             TraversalArg::Flat => {
-                cut.render_blocking(&ctx, &geometry, mapping, &camera, &settings)?
-                    .rgba
+                let frame = cut.render_blocking(&ctx, &geometry, mapping, &camera, &settings)?;
+                match args.progressive {
+                    None => frame.rgba,
+                    // The frame above also uploaded the MIP value bounds the scene needs.
+                    Some(frames) => {
+                        let scene = Scene {
+                            cache: &cut.cache,
+                            page_table: &cut.page_table,
+                            transfer_function: &cut.transfer_function,
+                            geometry: &geometry,
+                            mapping,
+                            camera: &camera,
+                            settings: &settings,
+                        };
+                        render_still(&ctx, &mut cut.raycaster, &scene, frames)?
+                    }
+                }
             }
             TraversalArg::Octree => {
                 // The same cut and cache, indexed by its octree instead of the flat table.
@@ -512,10 +557,16 @@ pub fn run(args: RenderArgs) -> Result<()> {
                     camera: &camera,
                     settings: &settings,
                 };
-                cut.raycaster
-                    .render_blocking(&ctx, &scene)
-                    .context("--traversal octree")?
-                    .rgba
+                match args.progressive {
+                    None => {
+                        cut.raycaster
+                            .render_blocking(&ctx, &scene)
+                            .context("--traversal octree")?
+                            .rgba
+                    }
+                    Some(frames) => render_still(&ctx, &mut cut.raycaster, &scene, frames)
+                        .context("--traversal octree")?,
+                }
             }
         }
     };
@@ -525,9 +576,11 @@ pub fn run(args: RenderArgs) -> Result<()> {
         height,
         t.elapsed().as_secs_f64(),
         if args.reference {
-            "CPU reference"
+            "CPU reference".to_string()
+        } else if let Some(n) = args.progressive {
+            format!("GPU, mean of {n} jittered frames")
         } else {
-            "GPU"
+            "GPU".to_string()
         }
     );
     write_png(&args.out, width, height, &rgba)?;
@@ -861,6 +914,25 @@ mod tests {
                 e.contains("--scattering") && e.contains("does not apply to MIP"),
                 "{e}"
             );
+        }
+    }
+
+    #[test]
+    fn progressive_is_checked_and_refused_where_it_cannot_apply() {
+        assert!(check_args(&args(&["--progressive", "16"])).is_ok());
+        assert_eq!(args(&["--progressive", "16"]).progressive, Some(16));
+        assert!(error(&["--progressive", "0"]).contains("1..=4096"));
+        assert!(error(&["--progressive", "5000"]).contains("1..=4096"));
+        for extra in [
+            &["--reference"][..],
+            &["--no-jitter"],
+            &["--orbit", "4"],
+            &["--mode", "adaptive"],
+        ] {
+            let mut a = vec!["--progressive", "4"];
+            a.extend_from_slice(extra);
+            let e = error(&a);
+            assert!(e.contains("--progressive averages jittered frames"), "{e}");
         }
     }
 }

@@ -12,5 +12,6 @@ mod orbit;
 mod reliability;
 mod remote;
 mod render_adaptive;
+mod render_progressive;
 mod render_traversal;
 mod viewer_window;

@@ -9,7 +9,7 @@
 //!      STRATA_BENCH_STEPS (default 0.5,1,2,3: the peer runs at 0.5; the rest find equal PSNR),
 //!      STRATA_BENCH_SAVE=DIR (keep the PSNR images as PPM in DIR),
 //!      STRATA_BENCH_EFFECTS=shadows,shading (only those rows of the effect table, nothing else;
-//!      also occlusion, scattering),
+//!      also occlusion, scattering, progressive),
 //!      STRATA_BENCH_LIGHT_CACHE_RES (default 2: voxels per light-cache texel, the cache row).
 //!
 //! Prints ms/frame (median), samples/s, the sampling-only kernel's samples/s measured in the
@@ -17,6 +17,7 @@
 //! and PSNR against the f64 CPU reference at a smaller image size.
 
 use std::time::Instant;
+use strata_render::progressive::jittered_frame;
 use strata_render::reference::{render_reference, ReferenceOptions, ReferenceScene};
 use strata_render::*;
 
@@ -398,6 +399,51 @@ fn effect_table(
             "{name:<20} {off:>10.1} {never:>14.1} {:>12.3} {on:>10.1} {:>10.3}",
             never / off,
             on / off
+        );
+    }
+    // Progressive refinement (progressive.rs): a jittered base frame alone against the same
+    // frame folded into the running mean, interleaved; the difference is the accumulate pass
+    // (one compute pass over the image), which only a still view pays.
+    if only.is_none_or(|o| o.iter().any(|w| "progressive".starts_with(w.as_str()))) {
+        let jittered = RenderSettings {
+            jitter: true,
+            ..base.clone()
+        };
+        let key = ViewKey::new(&camera, &jittered);
+        let mut accumulator = Accumulator::new(ctx);
+        let (mut alone, mut folded) = (Vec::new(), Vec::new());
+        for round in 0..=frames {
+            for fold in [false, true] {
+                let s = jittered_frame(&jittered, round);
+                let scene = drawn.scene(&camera, &s);
+                let t = Instant::now();
+                raycaster.render(ctx, &scene).expect("render");
+                if fold {
+                    let output = raycaster.output_texture().expect("rendered");
+                    accumulator
+                        .accumulate(ctx, &key, output)
+                        .expect("accumulate");
+                }
+                ctx.wait_idle().expect("wait");
+                if round > 0 {
+                    let ms = t.elapsed().as_secs_f64() * 1e3;
+                    if fold {
+                        folded.push(ms)
+                    } else {
+                        alone.push(ms)
+                    }
+                }
+            }
+        }
+        let (alone, folded) = (median(alone), median(folded));
+        println!(
+            "progressive {:<8} {alone:>10.1} {:>14} {:>12} {folded:>10.1} {:>10.3}   \
+             (off: a jittered frame; on: it plus the accumulate pass, {} frames in the mean)",
+            "",
+            "-",
+            "-",
+            folded / alone,
+            accumulator.frames()
         );
     }
     // The light cache's build: frames whose light turned by a hair (each rebuilds the cache)

@@ -57,6 +57,8 @@
 //!   offscreen           → raycast, gpu_page_table, gpu_transfer_function, bricked_volume,
 //!                         cache, page_table, camera, device, settings, transfer_function, error
 //!   time_critical       → gpu_timing, settings
+//!   progressive         → raycast, camera, device, settings, error
+//!                                          (running mean of a still view's jittered frames)
 //! adaptive (adaptive sampling in 3D, its own pass beside the raycaster)
 //!   adaptive::transcription                 (Figs. 3, 5, 6 in f64)
 //!   adaptive::frame     → transcription, camera, settings          (slices, pixel rays)
@@ -102,6 +104,7 @@ pub mod pipelines;
 pub mod preintegration;
 #[cfg(feature = "test-probe")]
 pub mod probe;
+pub mod progressive;
 pub mod raycast;
 mod readback_ring;
 pub mod reference;
@@ -134,6 +137,7 @@ pub use overlay::{OverlayKind, OverlayLut, OverlayScene, OverlayVolume};
 pub use page_table::{PageEntry, PageTable};
 pub use pipelines::PipelineKey;
 pub use preintegration::PreintegrationTable;
+pub use progressive::{Accumulator, ViewKey};
 pub use raycast::{FrameReadback, Raycaster, Scene, VisibilityFrame, PER_PAGE_VISIBILITY_CELLS};
 pub use reference::{
     render_reference, render_reference_with_overlay, ReferenceImage, ReferenceOptions,

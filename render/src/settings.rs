@@ -180,8 +180,9 @@ pub struct RenderSettings {
     /// Base step in units of the finest voxel edge (0.5 = half a voxel). In a level-L node the
     /// step grows to quality · 2^L voxels (octree paper §5): coarse data has no finer detail.
     pub quality: f64,
-    /// Ray-start jitter against wood-grain; off for image comparisons (the reference has no
-    /// jitter, and noise would eat the tolerance).
+    /// Ray-start jitter against wood-grain, and with it the shadow and occlusion rays' sample
+    /// offset within their step (progressive.rs averages frames of both); off for image
+    /// comparisons (the reference has no jitter, and noise would eat the tolerance).
     pub jitter: bool,
     /// Seeds the jitter hash; vary per frame for temporal accumulation.
     pub frame_index: u32,

@@ -37,6 +37,10 @@
 //! depth passes [`GPU_TAU_MAX`] (V < 10⁻³, under half an 8-bit step of any colour ≤ 1) and
 //! skips empty and not-resident regions as the main ray does (their flags are conservative:
 //! an empty page has α = 0 at every sample); the reference samples everything up to τ = 30.
+//! With [`crate::RenderSettings::jitter`] the GPU moves each segment's sample from the
+//! midpoint to a per-pixel, per-frame fraction of the step (shadows.wgsl `shadow_jitter`), so
+//! that frames averaged by progressive.rs converge to the fine-step V; comparisons run
+//! without jitter and keep the midpoint.
 //!
 //! **Reference cost.** Every shaded reference sample traces a shadow ray of up to
 //! (box diagonal) / (step / 4) field samples: for an N³ volume, a W² image and a primary

@@ -10,6 +10,7 @@ mod gpu_vs_reference;
 mod node_extent;
 mod octree_traversal;
 mod overlay;
+mod progressive;
 mod shadows;
 mod slot_independence;
 mod smooth_transitions;

@@ -557,7 +557,11 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     let unit = P.box_hi.w;
     var j = 0.5;
     if JITTER {
-        j = min(f32(pcg(gid.x ^ pcg(gid.y ^ pcg(P.image.z)))) * 2.3283064e-10, 0.99999);
+        let h = pcg(gid.x ^ pcg(gid.y ^ pcg(P.image.z)));
+        j = min(f32(h) * 2.3283064e-10, 0.99999);
+        // The shadow and occlusion rays' own offset (shadows.wgsl), from a further round of
+        // the hash so that it does not follow the main ray's sample positions.
+        shadow_jitter = min(f32(pcg(h ^ 0x9e3779b9u)) * 2.3283064e-10, 0.99999);
     }
     // Segment k spans [first + k·base, first + (k+1)·base): level-0 samples sit at
     // t0 + (k + j)·base, the midpoints when jitter is off. Coarse nodes take 2^L segments at

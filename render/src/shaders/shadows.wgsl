@@ -14,6 +14,14 @@ override LIGHT_CACHE: bool = false;
 
 @group(0) @binding(16) var<storage, read_write> light_cache: array<f32>;
 
+// Where in each shadow-ray segment its sample sits, as a fraction of the step: the midpoint
+// (0.5) unless the main pass jitters (JITTER), which sets a per-pixel, per-frame value
+// independent of its own ray-start jitter. Averaged over frames (progressive.rs) the shadow
+// and occlusion rays then converge to their fine-step transmittance as the main ray does,
+// instead of keeping their step's midpoint error. The light cache's build keeps 0.5: its grid
+// is reused across frames and must not flicker.
+var<private> shadow_jitter: f32 = 0.5;
+
 // V at index-space point `p` towards the light (unit patient direction whose index-space
 // image is `l`, so distances are mm): midpoint samples at the shadow step from the bias r0 to
 // where the ray leaves the cropped box or the clip plane's half-space, through the resident
@@ -75,12 +83,12 @@ fn shadow_span(p: vec3<f32>, l: vec3<f32>, from_entry: bool, r0_in: f32, cap: f3
             break;
         }
         let length = min(ds, r1 - s);
-        let loc = locate_on_ray(p, l, s + 0.5 * length, &pg);
+        let loc = locate_on_ray(p, l, s + shadow_jitter * length, &pg);
         if !loc.resident || (SKIP_EMPTY && loc.empty) {
             if SKIP_EMPTY {
                 // Every sample up to the region's exit is transparent: the first segment
-                // whose midpoint lies beyond it is next (the main ray's rule).
-                let next = ceil((skip_exit(p, l, pg) - r0) / ds - 0.5);
+                // whose sample lies beyond it is next (the main ray's rule).
+                let next = ceil((skip_exit(p, l, pg) - r0) / ds - shadow_jitter);
                 k = max(k + 1u, u32(clamp(next, 0.0, 4.0e9)));
             } else {
                 k = k + 1u;
