@@ -148,6 +148,10 @@ pub enum BenchCommand {
         tile: u32,
         #[arg(long, default_value = "target/bench-adaptive")]
         out_dir: PathBuf,
+        /// Only the exact-shadow group: raycaster and adaptive pass lit by the key light with
+        /// exact shadows, against the raycaster at a quarter of the step (same shadow step).
+        #[arg(long)]
+        shadowed_only: bool,
     },
     /// The mixed-resolution paper's Table 1: a level-0/level-1 cut with about 25 % transition
     /// bricks, frame time with smoothing off/on × unshaded/shaded, and the error of each image
@@ -252,6 +256,7 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
             l_max,
             tile,
             out_dir,
+            shadowed_only,
         } => adaptive::run(adaptive::Options {
             input,
             phantom_size,
@@ -271,6 +276,7 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
             l_max,
             tile,
             out_dir,
+            shadowed_only,
         }),
     }
 }

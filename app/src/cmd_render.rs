@@ -299,12 +299,14 @@ fn check_args(args: &RenderArgs) -> Result<()> {
             )?;
         }
         anyhow::ensure!(
-            !matches!(
-                args.mode,
-                ModeArg::Mip | ModeArg::Adaptive | ModeArg::AdaptiveMip
-            ),
-            "--shadows is the raycaster's DVR and isosurface lighting: not for MIP or \
-             --mode adaptive"
+            !matches!(args.mode, ModeArg::Mip | ModeArg::AdaptiveMip),
+            "--shadows is DVR and isosurface lighting: not for MIP"
+        );
+        // The adaptive pass traces exact shadow rays per lit segment; the light cache is the
+        // raycaster's (adaptive/gpu.rs).
+        anyhow::ensure!(
+            !(matches!(args.mode, ModeArg::Adaptive) && args.shadows == ShadowsArg::Cache),
+            "--mode adaptive takes --shadows exact, not cache"
         );
     }
     if let Some(radius) = args.occlusion {
@@ -321,12 +323,8 @@ fn check_args(args: &RenderArgs) -> Result<()> {
         ("--scattering", args.scattering.is_some()),
     ] {
         anyhow::ensure!(
-            !on || !matches!(
-                args.mode,
-                ModeArg::Mip | ModeArg::Adaptive | ModeArg::AdaptiveMip
-            ),
-            "{flag} is the raycaster's DVR and isosurface lighting: it does not apply to MIP \
-             or --mode adaptive"
+            !on || !matches!(args.mode, ModeArg::Mip | ModeArg::AdaptiveMip),
+            "{flag} is DVR and isosurface lighting: it does not apply to MIP"
         );
     }
     if let Some(n) = args.progressive {
@@ -432,7 +430,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
             settings.quality,
         )
     };
-    let rgba = if adaptive && args.reference {
+    let rgba = if adaptive && args.reference && !settings.effective_key_light() {
         // The f64 transcription of the same frame (its oracle, its pre-integration table).
         let scene = ReferenceScene {
             source: &bricks,
@@ -457,7 +455,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
             AdaptiveOptics::Table(&integral),
         )?
         .rgba
-    } else if adaptive {
+    } else if adaptive && !args.reference {
         let ctx = gpu.context("GPU context missing")?;
         let cut = GpuCut::upload_within(
             &ctx,
@@ -486,6 +484,9 @@ pub fn run(args: RenderArgs) -> Result<()> {
             frame.total_apron_samples(),
             frame.total_syntheses()
         );
+        if frame.shadow_rays > 0 {
+            eprintln!("adaptive: {} shadow rays", frame.shadow_rays);
+        }
         frame.rgba
     } else if args.reference {
         let scene = ReferenceScene {
@@ -903,7 +904,7 @@ mod tests {
         assert!(error(&["--scattering", "1"]).contains("--scattering must be a number between"));
         assert!(error(&["--scattering", "0.3", "--scattering-blend", "2"])
             .contains("--scattering-blend"));
-        for mode in ["mip", "adaptive", "adaptive-mip"] {
+        for mode in ["mip", "adaptive-mip"] {
             let e = error(&["--mode", mode, "--occlusion", "2"]);
             assert!(
                 e.contains("--occlusion") && e.contains("does not apply to MIP"),
@@ -914,6 +915,7 @@ mod tests {
                 e.contains("--scattering") && e.contains("does not apply to MIP"),
                 "{e}"
             );
+            assert!(error(&["--mode", mode, "--shadows", "exact"]).contains("not for MIP"));
         }
     }
 
@@ -934,5 +936,29 @@ mod tests {
             let e = error(&a);
             assert!(e.contains("--progressive averages jittered frames"), "{e}");
         }
+    }
+
+    /// The adaptive pass lights its segments by the key light (adaptive/gpu.rs): exact
+    /// shadows, occlusion and scattering are accepted; the raycaster's light cache is not.
+    #[test]
+    fn adaptive_mode_takes_exact_shadows_occlusion_and_scattering() {
+        let a = args(&[
+            "--mode",
+            "adaptive",
+            "--up-front",
+            "--shadows",
+            "exact",
+            "--occlusion",
+            "2",
+            "--scattering",
+            "0.3",
+        ]);
+        check_args(&a).unwrap();
+        let s = settings_of(&a).unwrap();
+        assert!(s.effective_shadows() && s.effective_key_light());
+        assert!(
+            error(&["--mode", "adaptive", "--up-front", "--shadows", "cache"])
+                .contains("--shadows exact, not cache")
+        );
     }
 }

@@ -11,7 +11,8 @@
 //! ambient_occlusion.rs, `scattering.wgsl` ↔ scattering.rs, `raycast.wgsl` (entry point and ray loop) ↔
 //! raycast.rs; `probe.wgsl` ↔ probe.rs, composed into a test-only module of its own;
 //! `adaptive.wgsl` ↔ adaptive/gpu.rs (and adaptive/transcription.rs), composed with the field
-//! files and `preintegration.wgsl` into the adaptive pass's module. The field files leave the
+//! files, `preintegration.wgsl` and the key light's files (`transfer_function.wgsl`,
+//! `shadows.wgsl`, `ambient_occlusion.wgsl`, `scattering.wgsl`) into the adaptive pass's module. The field files leave the
 //! transition blend's neighbour lookup (`neighbour_page`) to the module: `flat_neighbour.wgsl`
 //! in the adaptive pass and the probe, raycast.wgsl's own (flat or octree) in the raycaster.
 //!
@@ -183,14 +184,26 @@ pub(crate) const FLAT_NEIGHBOUR: (&str, &str) = (
 /// Blinn-Phong at a gradient (reference.rs `shade`), in the raycaster and the adaptive pass.
 const SHADING: (&str, &str) = ("shading.wgsl", include_str!("shaders/shading.wgsl"));
 
-/// The adaptive pass's own files, after [`FIELD_FILES`] (adaptive/gpu.rs).
-const ADAPTIVE_FILES: [(&str, &str); 4] = [
+/// The adaptive pass's own files, after [`FIELD_FILES`] (adaptive/gpu.rs). The key light's
+/// files (transfer function for the shadow rays' opacity, shadows, occlusion, scattering)
+/// come along behind their overrides: a pipeline without them has none of their code.
+const ADAPTIVE_FILES: [(&str, &str); 8] = [
     FLAT_NEIGHBOUR,
+    (
+        "transfer_function.wgsl",
+        include_str!("shaders/transfer_function.wgsl"),
+    ),
     (
         "preintegration.wgsl",
         include_str!("shaders/preintegration.wgsl"),
     ),
     SHADING,
+    ("shadows.wgsl", include_str!("shaders/shadows.wgsl")),
+    (
+        "ambient_occlusion.wgsl",
+        include_str!("shaders/ambient_occlusion.wgsl"),
+    ),
+    ("scattering.wgsl", include_str!("shaders/scattering.wgsl")),
     ("adaptive.wgsl", include_str!("shaders/adaptive.wgsl")),
 ];
 
@@ -275,9 +288,21 @@ mod tests {
             "ORACLE",
             "MANUAL_TRILINEAR",
             "SMOOTH_TRANSITIONS",
+            "KEY_LIGHT",
+            "SHADOWS",
+            "OCCLUSION",
+            "SCATTERING",
         ] {
             assert!(overrides.iter().any(|o| o == name), "{name}");
         }
-        assert_eq!(module.entry_points.len(), 1);
+        // The pass, and shadows.wgsl's light-cache build, which the adaptive pass never
+        // creates a pipeline for (it has no cache-mode shadows).
+        let mut entry_points: Vec<&str> = module
+            .entry_points
+            .iter()
+            .map(|e| e.name.as_str())
+            .collect();
+        entry_points.sort_unstable();
+        assert_eq!(entry_points, ["build_light_cache", "main"]);
     }
 }

@@ -40,6 +40,14 @@ override SKIP_IDLE_SLICES: bool = true;
 // level-0 segment is lit at its back sample's gradient, as the raycaster lights a
 // pre-integrated segment (shading.wgsl); the transcription does the same (SegmentOptics::shade).
 override SHADED: bool = false;
+// The key light (shadows.wgsl KEY_LIGHT, SHADOWS; ambient_occlusion.wgsl OCCLUSION,
+// scattering.wgsl SCATTERING), with SHADED only: each lit level-0 segment is lit by
+// shade_key_light at its back sample, so an exact shadow ray is traced per segment the pass
+// composites, and the segments adaptive sampling saves are shadow rays saved. shadow_span
+// needs the raycaster's names for the clip plane and empty skipping: the adaptive pass sets
+// CLIP_PLANE with CLIPPED, SKIP_EMPTY from the settings.
+override CLIP_PLANE: bool = false;
+override SKIP_EMPTY: bool = true;
 
 const THREADS: u32 = 64u;
 const MAX_OWNED: u32 = 16u;      // 32² / 64
@@ -72,12 +80,14 @@ fn adaptive_block(slot_base: vec3<f32>, coord: vec3<f32>) -> u32 {
 @group(0) @binding(12) var<uniform> A: AdaptiveParams;
 @group(0) @binding(14) var<storage, read> oracle_distance: array<f32>;
 @group(0) @binding(15) var out_color: texture_storage_2d<rgba8unorm, write>;
-@group(0) @binding(16) var<storage, read_write> out_rgba: array<vec4<f32>>;
-@group(0) @binding(17) var<storage, read_write> out_depth: array<f32>;
-@group(0) @binding(18) var<storage, read_write> visibility: array<u32>;
+// 16 is shadows.wgsl's light cache (bound, never read: the pass has no cache-mode shadows).
+@group(0) @binding(20) var<storage, read_write> out_rgba: array<vec4<f32>>;
+@group(0) @binding(21) var<storage, read_write> out_depth: array<f32>;
+@group(0) @binding(22) var<storage, read_write> visibility: array<u32>;
 // 0..3 samples per level (owned pixels), 4..7 syntheses per level (owned), 8 segments,
-// 9..12 apron samples per level (the tiling's overhead), 13 slices the tiles marched.
-@group(0) @binding(19) var<storage, read_write> counters: array<atomic<u32>, 16>;
+// 9..12 apron samples per level (the tiling's overhead), 13 slices the tiles marched,
+// 14 shadow rays traced (KEY_LIGHT with SHADOWS: one per lit level-0 segment).
+@group(0) @binding(23) var<storage, read_write> counters: array<atomic<u32>, 16>;
 
 var<workgroup> pyramid_s: array<f32, PYRAMID_CAP>;
 var<workgroup> tile_vote: atomic<u32>;
@@ -124,6 +134,51 @@ fn adaptive_pcg(v: u32) -> u32 {
 fn adaptive_hash(level: u32, x: u32, y: u32, slice: u32) -> f32 {
     let h = adaptive_pcg(x ^ adaptive_pcg(y ^ adaptive_pcg(slice ^ adaptive_pcg(level ^ adaptive_pcg(A.pyramid.w)))));
     return f32(1u + h % (2u << L_MAX));
+}
+
+// The shadow ray's traversal (shadows.wgsl shadow_span calls these; raycast.wgsl has its own
+// with the octree): raycast.wgsl's flat-table path with node extents. The decoded page is
+// kept until the ray leaves its cell; a whole node or not-resident block is crossed without
+// reading its (identical) entries.
+fn locate_on_ray(o: vec3<f32>, d: vec3<f32>, t: f32, cached: ptr<function, Page>) -> Location {
+    let pc = clamp_to_volume(o + d * t);
+    if t >= (*cached).t_exit {
+        let cell = cell_of(pc);
+        let shift = vec3<u32>((*cached).level);
+        let same_region = ((*cached).whole_node || !(*cached).resident)
+            && all((vec3<u32>(cell) >> shift) == (vec3<u32>((*cached).cell) >> shift));
+        if same_region {
+            let c = vec3<u32>(cell);
+            (*cached).cell = cell;
+            (*cached).linear = c.x + P.pages.x * (c.y + P.pages.y * c.z);
+        } else {
+            *cached = decode_page(cell);
+        }
+        (*cached).t_exit = cell_exit(o, d, vec3<f32>(cell));
+    }
+    return location_in(*cached, pc);
+}
+
+// Where the ray leaves page cell `cell` (index-space box of CORE voxel cells).
+fn cell_exit(o: vec3<f32>, d: vec3<f32>, cell: vec3<f32>) -> f32 {
+    let lo = cell * CORE - vec3<f32>(0.5);
+    let bound = select(lo, lo + vec3<f32>(CORE), d > vec3<f32>(0.0));
+    let t = select((bound - o) / d, vec3<f32>(3.0e38), abs(d) < vec3<f32>(1e-20));
+    return min(t.x, min(t.y, t.z));
+}
+
+// Where the ray leaves the region a skipped entry stands for: its whole node or not-resident
+// block, else its cell (raycast.wgsl skip_exit, flat table).
+fn skip_exit(o: vec3<f32>, d: vec3<f32>, pg: Page) -> f32 {
+    if (pg.whole_node || !pg.resident) && pg.level > 0u {
+        let cells = f32(1u << pg.level);
+        let node = vec3<f32>(vec3<u32>(pg.cell) >> vec3<u32>(pg.level));
+        let lo = node * (CORE * cells) - vec3<f32>(0.5);
+        let bound = select(lo, lo + vec3<f32>(CORE * cells), d > vec3<f32>(0.0));
+        let t = select((bound - o) / d, vec3<f32>(3.0e38), abs(d) < vec3<f32>(1e-20));
+        return min(t.x, min(t.y, t.z));
+    }
+    return pg.t_exit;
 }
 
 struct Probe {
@@ -533,6 +588,7 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
     var n_synth = array<u32, 4>(0u, 0u, 0u, 0u);
     var n_apron = array<u32, 4>(0u, 0u, 0u, 0u);
     var n_segments = 0u;
+    var n_shadow_rays = 0u;
     var first_slice = 0u;
     var last_slice = A.pyramid.z;
     if data_oracle() && TILE_SLICE_RANGES && extinction_at(A.frame.z) <= 0.0 {
@@ -657,7 +713,15 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
                     if SHADED && seg.a > 0.0 {
                         // Lit at the back sample, as the raycaster's pre-integrated segments.
                         let ray = pixel_ray(f32(gx), f32(gy));
-                        seg = vec4<f32>(shade_gradient(seg.rgb / seg.a, g0[j], ray.d) * seg.a, seg.a);
+                        if KEY_LIGHT {
+                            let p = ray.o + ray.d * (A.frame.x + f32(i) * A.frame.y);
+                            seg = vec4<f32>(shade_key_light(seg.rgb / seg.a, g0[j], ray.d, p) * seg.a, seg.a);
+                            if SHADOWS && P.light.w > 0.0 {
+                                n_shadow_rays += 1u;
+                            }
+                        } else {
+                            seg = vec4<f32>(shade_gradient(seg.rgb / seg.a, g0[j], ray.d) * seg.a, seg.a);
+                        }
                     }
                     let before = acc[j].a;
                     acc[j] = acc[j] + (1.0 - acc[j].a) * seg;
@@ -750,5 +814,8 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
     }
     if n_segments > 0u {
         atomicAdd(&counters[8], n_segments);
+    }
+    if n_shadow_rays > 0u {
+        atomicAdd(&counters[14], n_shadow_rays);
     }
 }
