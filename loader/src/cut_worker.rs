@@ -474,13 +474,21 @@ fn leaf_entries(
         .collect()
 }
 
-/// The selection thread: one job in flight at a time.
+/// The selection thread: one job in flight at a time. Or, inline ([`CutWorker::inline`]), the
+/// same jobs run on the frame thread when handed over, their answers taken as the thread's.
 pub(crate) struct CutWorker {
     jobs: Option<Sender<SelectionJob>>,
     results: Receiver<Result<Selected, LoaderError>>,
     thread: Option<JoinHandle<()>>,
     in_flight: bool,
     gate: Arc<Gate>,
+    inline: Option<InlineSelection>,
+}
+
+/// The inline worker's octree and the answer to the job handed over, not yet taken.
+struct InlineSelection {
+    octree: Arc<OctreeRanges>,
+    answer: Option<Result<Selected, LoaderError>>,
 }
 
 /// Test hook: while closed, the thread takes no job (a test shows frames go on without it).
@@ -538,7 +546,25 @@ impl CutWorker {
             thread: Some(thread),
             in_flight: false,
             gate,
+            inline: None,
         })
+    }
+
+    /// Without a thread: [`CutWorker::submit`] selects on the calling thread (the browser,
+    /// where wasm32 has no threads; `LoaderWork::Inline`).
+    pub fn inline(octree: Arc<OctreeRanges>) -> Self {
+        let (_, results) = crossbeam_channel::bounded(1);
+        CutWorker {
+            jobs: None,
+            results,
+            thread: None,
+            in_flight: false,
+            gate: Arc::new(Gate::default()),
+            inline: Some(InlineSelection {
+                octree,
+                answer: None,
+            }),
+        }
     }
 
     /// Holds the thread before its next job until the guard is dropped (tests).
@@ -556,6 +582,11 @@ impl CutWorker {
 
     /// Hands over `job`; call only when not [`CutWorker::busy`] (then it never waits).
     pub fn submit(&mut self, job: SelectionJob) -> Result<(), LoaderError> {
+        if let Some(inline) = &mut self.inline {
+            inline.answer = Some(select(&inline.octree, job));
+            self.in_flight = true;
+            return Ok(());
+        }
         let sent = self
             .jobs
             .as_ref()
@@ -569,6 +600,11 @@ impl CutWorker {
 
     /// The answer to the job in flight if it is finished; never waits.
     pub fn try_take(&mut self) -> Option<Result<Selected, LoaderError>> {
+        if let Some(inline) = &mut self.inline {
+            let answer = inline.answer.take()?;
+            self.in_flight = false;
+            return Some(answer);
+        }
         let answer = match self.results.try_recv() {
             Ok(answer) => answer,
             Err(crossbeam_channel::TryRecvError::Empty) => return None,
@@ -580,6 +616,10 @@ impl CutWorker {
 
     /// Waits for the answer to the job in flight ([`SelectionTiming::EachFrame`] only).
     pub fn wait(&mut self) -> Result<Selected, LoaderError> {
+        if let Some(inline) = &mut self.inline {
+            self.in_flight = false;
+            return inline.answer.take().unwrap_or_else(|| Err(stopped()));
+        }
         let answer = self.results.recv().map_err(|_| stopped())?;
         self.in_flight = false;
         answer

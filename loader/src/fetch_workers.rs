@@ -126,37 +126,12 @@ impl FetchWorkers {
     /// Replaces the queue with this frame's wishes (demand first, then prefetch, each in
     /// priority order; ids must already exclude what is cached). Returns how many were queued.
     pub fn set_requests(&self, demand: &[(BrickId, f64)], prefetch: &[(BrickId, f64)]) -> usize {
-        let mut state = self.shared.lock();
-        let mut wanted: HashMap<BrickId, (RequestClass, f64)> = HashMap::new();
-        let candidates = demand
-            .iter()
-            .map(|&(id, p)| (id, RequestClass::Demand, p))
-            .chain(
-                prefetch
-                    .iter()
-                    .map(|&(id, p)| (id, RequestClass::Prefetch, p)),
-            );
-        let mut overflow = 0;
-        for (id, class, priority) in candidates {
-            if state.in_flight.contains(&id) || wanted.contains_key(&id) {
-                continue;
-            }
-            if wanted.len() >= self.shared.capacity {
-                overflow += 1;
-                continue;
-            }
-            wanted.insert(id, (class, priority));
-        }
-        let stale = state
-            .queued
-            .keys()
-            .filter(|id| !wanted.contains_key(id))
-            .count() as u64;
-        state.counters.stale_dropped += stale;
-        state.counters.overflow_dropped += overflow;
-        state.queued = wanted;
-        let n = state.queued.len();
-        drop(state);
+        let n = replace_requests(
+            &mut self.shared.lock(),
+            self.shared.capacity,
+            demand,
+            prefetch,
+        );
         if n > 0 {
             self.shared.wake.notify_all();
         }
@@ -223,50 +198,161 @@ fn worker_loop(shared: &Shared, reader: &dyn VolumeSource, results: &Sender<Fetc
                 if state.shutdown {
                     return;
                 }
-                let best = state
-                    .queued
-                    .iter()
-                    .max_by(|a, b| {
-                        (a.1 .0, a.1 .1)
-                            .partial_cmp(&(b.1 .0, b.1 .1))
-                            .unwrap_or(std::cmp::Ordering::Equal)
-                    })
-                    .map(|(&id, &(class, _))| (id, class));
-                if let Some((id, class)) = best {
-                    state.queued.remove(&id);
-                    state.in_flight.insert(id);
-                    state.counters.max_in_flight = state
-                        .counters
-                        .max_in_flight
-                        .max(state.in_flight.len() as u64);
-                    match class {
-                        RequestClass::Demand => state.counters.demand_started += 1,
-                        RequestClass::Prefetch => state.counters.prefetch_started += 1,
-                    }
-                    break (id, class);
+                if let Some(next) = take_most_urgent(&mut state) {
+                    break next;
                 }
                 state = shared.wake.wait(state).unwrap_or_else(|p| p.into_inner());
             }
         };
         shared.busy_workers.fetch_add(1, Ordering::Relaxed);
-        // Record and decode separately (same checks as `read_brick`) to count the bytes read.
-        let mut stored_bytes = 0;
-        let outcome = reader.read_brick_record(id).and_then(|record| {
-            stored_bytes = record.len() as u64;
-            decode_record(reader, id, &record)
-        });
+        let result = read_request(reader, id, class);
         shared.busy_workers.fetch_sub(1, Ordering::Relaxed);
-        if results
-            .send(FetchResult {
-                id,
-                class,
-                outcome,
-                stored_bytes,
-            })
-            .is_err()
-        {
+        if results.send(result).is_err() {
             return;
         }
+    }
+}
+
+/// Replaces the queue with this frame's wishes (see [`FetchWorkers::set_requests`]), counting
+/// the stale and overflowing ones. Returns how many are queued.
+fn replace_requests(
+    state: &mut QueueState,
+    capacity: usize,
+    demand: &[(BrickId, f64)],
+    prefetch: &[(BrickId, f64)],
+) -> usize {
+    let mut wanted: HashMap<BrickId, (RequestClass, f64)> = HashMap::new();
+    let candidates = demand
+        .iter()
+        .map(|&(id, p)| (id, RequestClass::Demand, p))
+        .chain(
+            prefetch
+                .iter()
+                .map(|&(id, p)| (id, RequestClass::Prefetch, p)),
+        );
+    let mut overflow = 0;
+    for (id, class, priority) in candidates {
+        if state.in_flight.contains(&id) || wanted.contains_key(&id) {
+            continue;
+        }
+        if wanted.len() >= capacity {
+            overflow += 1;
+            continue;
+        }
+        wanted.insert(id, (class, priority));
+    }
+    let stale = state
+        .queued
+        .keys()
+        .filter(|id| !wanted.contains_key(id))
+        .count() as u64;
+    state.counters.stale_dropped += stale;
+    state.counters.overflow_dropped += overflow;
+    state.queued = wanted;
+    state.queued.len()
+}
+
+/// Moves the most urgent queued request (demand before prefetch, then by priority) to the
+/// in-flight set and counts it.
+fn take_most_urgent(state: &mut QueueState) -> Option<(BrickId, RequestClass)> {
+    let (id, class) = state
+        .queued
+        .iter()
+        .max_by(|a, b| {
+            (a.1 .0, a.1 .1)
+                .partial_cmp(&(b.1 .0, b.1 .1))
+                .unwrap_or(std::cmp::Ordering::Equal)
+        })
+        .map(|(&id, &(class, _))| (id, class))?;
+    state.queued.remove(&id);
+    state.in_flight.insert(id);
+    state.counters.max_in_flight = state
+        .counters
+        .max_in_flight
+        .max(state.in_flight.len() as u64);
+    match class {
+        RequestClass::Demand => state.counters.demand_started += 1,
+        RequestClass::Prefetch => state.counters.prefetch_started += 1,
+    }
+    Some((id, class))
+}
+
+/// Reads one request: record and decode separately (same checks as `read_brick`) to count
+/// the bytes read.
+fn read_request(reader: &dyn VolumeSource, id: BrickId, class: RequestClass) -> FetchResult {
+    let mut stored_bytes = 0;
+    let outcome = reader.read_brick_record(id).and_then(|record| {
+        stored_bytes = record.len() as u64;
+        decode_record(reader, id, &record)
+    });
+    FetchResult {
+        id,
+        class,
+        outcome,
+        stored_bytes,
+    }
+}
+
+/// The reader threads' queue without the threads (`LoaderWork::Inline`): each
+/// [`BrickFetcher::try_results`] reads the most urgent requests, at most `reads_per_call` of
+/// them, on the calling (frame) thread: bounded work per frame, for a source without its own
+/// asynchronous path where no thread can be started.
+pub struct InlineReads {
+    reader: Arc<dyn VolumeSource>,
+    state: Mutex<QueueState>,
+    capacity: usize,
+    reads_per_call: usize,
+}
+
+impl InlineReads {
+    pub fn new(reader: Arc<dyn VolumeSource>, reads_per_call: usize, capacity: usize) -> Self {
+        InlineReads {
+            reader,
+            state: Mutex::new(QueueState {
+                queued: HashMap::new(),
+                in_flight: HashSet::new(),
+                counters: QueueCounters::default(),
+                shutdown: false,
+            }),
+            capacity: capacity.max(1),
+            reads_per_call: reads_per_call.max(1),
+        }
+    }
+
+    fn lock(&self) -> MutexGuard<'_, QueueState> {
+        self.state.lock().unwrap_or_else(|p| p.into_inner())
+    }
+}
+
+impl BrickFetcher for InlineReads {
+    fn set_requests(&self, demand: &[(BrickId, f64)], prefetch: &[(BrickId, f64)]) -> usize {
+        replace_requests(&mut self.lock(), self.capacity, demand, prefetch)
+    }
+    fn try_results(&self) -> Vec<FetchResult> {
+        let mut results = Vec::new();
+        while results.len() < self.reads_per_call {
+            // Not held across the read: the source may take a while.
+            let Some((id, class)) = take_most_urgent(&mut self.lock()) else {
+                break;
+            };
+            results.push(read_request(self.reader.as_ref(), id, class));
+        }
+        results
+    }
+    fn complete(&self, id: BrickId) {
+        self.lock().in_flight.remove(&id);
+    }
+    fn queued(&self) -> usize {
+        self.lock().queued.len()
+    }
+    fn in_flight(&self) -> usize {
+        self.lock().in_flight.len()
+    }
+    fn capacity(&self) -> usize {
+        self.capacity
+    }
+    fn counters(&self) -> QueueCounters {
+        self.lock().counters
     }
 }
 

@@ -15,6 +15,7 @@ pub mod metrics;
 pub mod octree_ranges;
 pub mod predicted_cut;
 pub mod prefetch;
+#[cfg(feature = "local")]
 pub mod store_volume;
 pub mod streaming;
 pub mod thread_cpu;
@@ -25,6 +26,7 @@ pub use cut_worker::SelectionTiming;
 pub use error::LoaderError;
 pub use fetch_workers::SlowReader;
 pub use metrics::{Distribution, FrameStats};
+#[cfg(feature = "local")]
 pub use store_volume::ResidentBricks;
 pub use strata_source::{SourceStatus, VolumeSource};
-pub use streaming::{BrickFailure, StreamingConfig, StreamingVolume};
+pub use streaming::{BrickFailure, LoaderWork, StreamingConfig, StreamingVolume};

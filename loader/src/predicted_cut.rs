@@ -62,6 +62,8 @@ pub struct CutPredictor {
     jobs: Option<Sender<PredictionJob>>,
     results: Receiver<PredictedLeaves>,
     thread: Option<JoinHandle<()>>,
+    /// Inline ([`CutPredictor::inline`]): the octree predicted on, and the newest answer.
+    inline: Option<(Arc<OctreeRanges>, std::sync::Mutex<Option<PredictedLeaves>>)>,
 }
 
 /// As if everything were loaded, so the prediction says what the view will want rather than
@@ -130,11 +132,29 @@ impl CutPredictor {
             jobs: Some(job_tx),
             results: result_rx,
             thread: Some(thread),
+            inline: None,
         })
+    }
+
+    /// Without a thread: [`CutPredictor::submit`] predicts on the calling thread, its answer
+    /// taken by the next [`CutPredictor::take_newest`] as the thread's would be.
+    pub fn inline(octree: Arc<OctreeRanges>) -> Self {
+        let (_, results) = crossbeam_channel::bounded(1);
+        CutPredictor {
+            jobs: None,
+            results,
+            thread: None,
+            inline: Some((octree, std::sync::Mutex::new(None))),
+        }
     }
 
     /// Hands `job` to the thread unless it is still busy; never waits.
     pub fn submit(&self, job: PredictionJob) {
+        if let Some((octree, answer)) = &self.inline {
+            let leaves = predict(octree, &job);
+            *answer.lock().unwrap_or_else(|e| e.into_inner()) = Some(leaves);
+            return;
+        }
         if let Some(jobs) = &self.jobs {
             let _ = jobs.try_send(job);
         }
@@ -142,6 +162,9 @@ impl CutPredictor {
 
     /// The newest answer since the last call, if any; never waits.
     pub fn take_newest(&self) -> Option<PredictedLeaves> {
+        if let Some((_, answer)) = &self.inline {
+            return answer.lock().unwrap_or_else(|e| e.into_inner()).take();
+        }
         self.results.try_iter().last()
     }
 }

@@ -11,7 +11,8 @@ use std::collections::VecDeque;
 // Keys are brick ids, not attacker-chosen: a fast hash on the frame thread.
 use rustc_hash::FxHashSet as HashSet;
 use std::sync::Arc;
-use std::time::Instant;
+// std's Instant panics in the browser; web-time is std's natively.
+use web_time::Instant;
 
 use strata_render::{
     BrickCache, CacheConfig, Camera, FrameReadback, GpuContext, GpuPageTable, GpuTransferFunction,
@@ -20,7 +21,9 @@ use strata_render::{
     VolumeGeometry, BRICK_PAYLOAD_VOXELS,
 };
 use strata_source::{BrickFetcher, FetchOptions, SourceStatus, VolumeSource};
-use strata_storage::{BrickId, Store};
+use strata_storage::BrickId;
+#[cfg(feature = "local")]
+use strata_storage::Store;
 
 use crate::cpu_cache::CpuBrickCache;
 use crate::cut_payloads::CutPayloads;
@@ -30,7 +33,7 @@ use crate::cut_worker::{
     SettledCut, ViewInputs,
 };
 use crate::error::LoaderError;
-use crate::fetch_workers::FetchWorkers;
+use crate::fetch_workers::{FetchWorkers, InlineReads};
 use crate::gpu_slots::GpuSlots;
 use crate::metrics::FrameStats;
 use crate::octree_ranges::OctreeRanges;
@@ -86,6 +89,32 @@ pub struct StreamingConfig {
     /// 8192³ (16.7 M cells) cost 135 ms of frame-thread CPU per frame against 0.5 ms with
     /// the octree. Default 2^18: up to 2048³ voxels stays flat, whose frames are faster.
     pub flat_table_max_page_cells: u64,
+    /// Where the loader's work runs: its own threads, or the frame thread alone.
+    pub work: LoaderWork,
+}
+
+/// Where the loader's work (cut selection, prediction, reads without a source's own
+/// asynchronous path) runs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LoaderWork {
+    /// Named threads: `strata-cut-select`, `strata-cut-predict` and the reader threads.
+    Threads,
+    /// The frame thread alone, in bounded steps: a selection and a prediction when asked for
+    /// (as the threads would give them, one frame later at the earliest with the background
+    /// timing) and at most `fetch_threads` blocking reads per frame for a source without its
+    /// own asynchronous path. For the browser (wasm32 has no threads without shared memory);
+    /// natively for tests of that mode.
+    Inline,
+}
+
+impl Default for LoaderWork {
+    fn default() -> Self {
+        if cfg!(target_arch = "wasm32") {
+            LoaderWork::Inline
+        } else {
+            LoaderWork::Threads
+        }
+    }
 }
 
 impl Default for StreamingConfig {
@@ -108,6 +137,7 @@ impl Default for StreamingConfig {
             traversal: None,
             flat_table_limit_bytes: None,
             flat_table_max_page_cells: 1 << 18,
+            work: LoaderWork::default(),
         }
     }
 }
@@ -208,6 +238,7 @@ pub struct StreamingVolume {
 
 impl StreamingVolume {
     /// Opens `path` with sled's cache sized from `config` and streams from it.
+    #[cfg(feature = "local")]
     pub fn open(
         ctx: &GpuContext,
         path: &std::path::Path,
@@ -292,14 +323,19 @@ impl StreamingVolume {
             max_in_transit: config.bricks_in_transit,
             threads: config.fetch_threads,
         };
-        let workers: Box<dyn BrickFetcher> = match source.start_fetching(options) {
-            Some(fetcher) => fetcher?,
-            None => Box::new(FetchWorkers::start(
+        let workers: Box<dyn BrickFetcher> = match (source.start_fetching(options), config.work) {
+            (Some(fetcher), _) => fetcher?,
+            (None, LoaderWork::Threads) => Box::new(FetchWorkers::start(
                 reader.clone(),
                 config.fetch_threads,
                 config.max_queued_requests,
                 config.bricks_in_transit,
             )?),
+            (None, LoaderWork::Inline) => Box::new(InlineReads::new(
+                reader.clone(),
+                config.fetch_threads,
+                config.max_queued_requests,
+            )),
         };
         let visibility = Arc::new(match traversal {
             Traversal::Flat => PageVisibility::new(&octree, config.visibility_memory_generations),
@@ -307,8 +343,16 @@ impl StreamingVolume {
                 PageVisibility::per_leaf(&octree, config.visibility_memory_generations)
             }
         });
-        let predictor = CutPredictor::start(octree.clone())?;
-        let selector = CutWorker::start(octree.clone())?;
+        let (predictor, selector) = match config.work {
+            LoaderWork::Threads => (
+                CutPredictor::start(octree.clone())?,
+                CutWorker::start(octree.clone())?,
+            ),
+            LoaderWork::Inline => (
+                CutPredictor::inline(octree.clone()),
+                CutWorker::inline(octree.clone()),
+            ),
+        };
         Ok(StreamingVolume {
             geometry,
             mapping,

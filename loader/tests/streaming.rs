@@ -285,3 +285,46 @@ fn corrupted_brick_is_reported_once_and_its_parent_keeps_serving() {
         "neighbour at {neighbour:?}"
     );
 }
+
+/// The browser's mode (`LoaderWork::Inline`: wasm32 has no threads): selection, prediction
+/// and reads on the frame thread, at most `fetch_threads` reads per frame, with the
+/// background timing the viewer uses. It converges to the image the threads give (the same
+/// selection over the same bricks: identical, PSNR bound as above for feedback order).
+#[test]
+fn inline_work_on_the_frame_thread_converges_like_the_threads() {
+    use strata_loader::streaming::LoaderWork;
+    use strata_loader::SelectionTiming;
+    let dir = tempfile::tempdir().unwrap();
+    let store = open(&phantom_store(dir.path(), 96));
+    let ctx = gpu();
+    let tf = bone();
+    let s = settings(128);
+    let camera = orbit(&store, 30.0, 20.0, 1.0);
+    let base = StreamingConfig {
+        max_voxel_pixels: 0.25,
+        fetch_threads: 3,
+        selection: SelectionTiming::Background,
+        ..config()
+    };
+    let inline = StreamingConfig {
+        work: LoaderWork::Inline,
+        ..base.clone()
+    };
+    let mut volume = stream(&ctx, &store, &tf, inline);
+    let (inline_image, history) = converge(&ctx, &mut volume, &camera, &s, 400);
+    let last = history.last().unwrap();
+    assert!(last.converged, "inline work did not converge: {last:#?}");
+    assert!(last.gpu_resident_per_level[0] > 0, "level 0 never loaded");
+    // Bounded work per frame: never more reads than the budget (the root is read up front).
+    let mut read_before = 1;
+    for stats in &history {
+        let read = stats.bricks_read_total - read_before;
+        assert!(read <= 3, "frame {} read {read} bricks", stats.frame);
+        read_before = stats.bricks_read_total;
+    }
+    let mut volume = stream(&ctx, &store, &tf, base);
+    let (threaded_image, _) = converge(&ctx, &mut volume, &camera, &s, 400);
+    let c = compare_rgba8(&inline_image, &threaded_image).unwrap();
+    assert!(c.psnr_db >= 45.0, "inline vs threads: {c:?}");
+    assert!(covered_pixels(&inline_image) > 128 * 128 / 20);
+}

@@ -7,7 +7,8 @@ pub mod client;
 mod connections;
 pub mod server;
 pub mod web_viewer;
-pub mod wire;
+/// The wire format lives in strata-source, where the browser's client (strata-web) reads it too.
+pub use strata_source::wire;
 
 pub use client::{RemoteOptions, RemoteSource};
 pub use server::{ServeError, ServeOptions};

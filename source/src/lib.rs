@@ -10,16 +10,25 @@
 //! then by priority) and polls without waiting. A source without its own asynchronous path
 //! (the local store) gets the loader's reader threads instead. The sources whose requests are
 //! tokio tasks (the data service's client, the OME-Zarr reader) share one queue for that,
-//! [`task_queue::TaskQueue`].
+//! `task_queue::TaskQueue`.
+//!
+//! The default feature `local` brings the local store (strata-storage's `local`), the tokio
+//! task queue and [`verify_source`]'s threads. Without it the crate builds for
+//! `wasm32-unknown-unknown`: the seam, its errors and the data service's wire format ([`wire`]),
+//! what the browser viewer's client implements.
 
+#[cfg(feature = "local")]
 pub mod task_queue;
+pub mod wire;
 
 use std::sync::Arc;
 
 use strata_storage::brick::{decode_brick, BrickDecodeError};
 use strata_storage::histogram::Histogram;
 use strata_storage::store::{NodeInfo, Skeleton, StoreStats};
-use strata_storage::{BrickId, OctreeLayout, StorageError, Store, StoreHeader};
+#[cfg(feature = "local")]
+use strata_storage::Store;
+use strata_storage::{BrickId, OctreeLayout, StorageError, StoreHeader};
 
 /// A brick decoded to its 36³ stored values (x fastest), shared without copying.
 pub type Brick = Arc<Vec<u16>>;
@@ -184,6 +193,7 @@ pub trait VolumeSource: Send + Sync {
 }
 
 /// The local store: a sled directory on this machine.
+#[cfg(feature = "local")]
 impl VolumeSource for Store {
     fn location(&self) -> String {
         self.path().display().to_string()
@@ -223,11 +233,13 @@ impl VolumeSource for Store {
 }
 
 /// One frame ≥ 1 of a local 4-D store (frame 0 is the store itself).
+#[cfg(feature = "local")]
 struct StoreFrame {
     store: Arc<Store>,
     frame: u32,
 }
 
+#[cfg(feature = "local")]
 impl VolumeSource for StoreFrame {
     fn location(&self) -> String {
         self.store.path().display().to_string()
@@ -306,6 +318,7 @@ impl<S: VolumeSource + ?Sized> VolumeSource for Arc<S> {
 /// implied nodes of collapsed constant subtrees are not read): present, checksum,
 /// decompression, and range equal to the skeleton's. Reads through `read_brick` on `threads`
 /// threads (many in flight for a remote source). Returns one message per problem found.
+#[cfg(feature = "local")]
 pub fn verify_source(
     source: &dyn VolumeSource,
     threads: usize,
@@ -359,7 +372,7 @@ pub fn verify_source(
     problems.into_inner().unwrap_or_else(|p| p.into_inner())
 }
 
-#[cfg(test)]
+#[cfg(all(test, feature = "local"))]
 mod tests {
     use super::*;
 
