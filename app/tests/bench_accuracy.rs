@@ -2,23 +2,28 @@
 //! knob of both key-lit models in the CSV, each model with its own Pareto front, errors
 //! against the reference of the same lit model, and the progressive mean converging.
 
-use std::process::Command;
+use crate::common;
 
 #[test]
 fn cinematic_sweep_for_a_small_phantom() {
     let dir = tempfile::tempdir().unwrap();
-    let o = Command::new(env!("CARGO_BIN_EXE_strata"))
-        .args(["bench", "accuracy", "phantom", "--phantom-size", "32"])
-        .args(["--size", "32x32", "--frames", "1", "--sweep", "cinematic"])
-        .arg("--out-dir")
-        .arg(dir.path())
-        .output()
-        .expect("strata runs");
-    let text = format!(
-        "{}{}",
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr)
-    );
+    let out_dir = dir.path().to_str().unwrap();
+    let o = common::strata(&[
+        "bench",
+        "accuracy",
+        "phantom",
+        "--phantom-size",
+        "32",
+        "--size",
+        "32x32",
+        "--frames",
+        "1",
+        "--sweep",
+        "cinematic",
+        "--out-dir",
+        out_dir,
+    ]);
+    let text = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{text}");
     let csv = std::fs::read_to_string(dir.path().join("accuracy-phantom32.csv")).unwrap();
     let mut lines = csv.lines();
@@ -37,7 +42,10 @@ fn cinematic_sweep_for_a_small_phantom() {
         col("progressive_frames"),
     );
     let (psnr, rmse, pareto) = (col("psnr_db"), col("rmse"), col("pareto"));
-    let lit_models = ["lit (key light + shadows)", "cinematic (+ occlusion + scattering)"];
+    let lit_models = [
+        "lit (key light + shadows)",
+        "cinematic (+ occlusion + scattering)",
+    ];
     assert!(rows.iter().all(|r| lit_models.contains(&r[model])), "{csv}");
     for m in lit_models {
         let of = |f: &str| -> Vec<&Vec<&str>> {
@@ -45,9 +53,13 @@ fn cinematic_sweep_for_a_small_phantom() {
                 .filter(|r| r[model] == m && r[family] == f)
                 .collect()
         };
-        assert!(of("shadow step (exact)").iter().all(|r| r[shadows] == "exact"));
+        assert!(of("shadow step (exact)")
+            .iter()
+            .all(|r| r[shadows] == "exact"));
         assert!(of("light-cache resolution").len() >= 2, "{csv}");
-        assert!(of("light-cache resolution").iter().all(|r| r[shadows] == "cache"));
+        assert!(of("light-cache resolution")
+            .iter()
+            .all(|r| r[shadows] == "cache"));
         let progressive = of("progressive frames");
         let counts: Vec<&str> = progressive.iter().map(|r| r[frames]).collect();
         assert_eq!(counts, ["1", "4", "16", "64"], "{csv}");

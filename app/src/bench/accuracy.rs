@@ -24,7 +24,8 @@
 //! reference. Points of different models render different images, so the Pareto front is
 //! computed per model (one front per model in the table, CSV and plot). Cache rows time the
 //! cache's steady state: it is built by the untimed frame that measures the error, and
-//! rebuilt only when light, TF or cut change.
+//! rebuilt only when light, TF or cut change. Figures on lavapipe (64³ phantom, 128², which
+//! knob buys what, the fronts, the command): bench/accuracy/cinematic-lavapipe.md.
 //!
 use std::collections::HashMap;
 use std::fmt::Write as _;
@@ -262,7 +263,7 @@ impl Knobs {
                 step: self.shadow_step,
                 cache_res: self.cache_res,
             },
-            occlusion: cinematic.then(|| Occlusion {
+            occlusion: cinematic.then_some(Occlusion {
                 radius_mm: self.occlusion_voxels * voxel_mm,
             }),
             scattering: cinematic.then_some(SCATTERING),
