@@ -63,8 +63,10 @@ pub enum BenchCommand {
         count: usize,
     },
     /// What accuracy costs in time: sweeps step, pre-integration, level, jitter and shading on
-    /// one view and writes error vs the f64 reference against frame time (CSV, markdown, PNG
-    /// plot with the Pareto front).
+    /// one view (with --sweep cinematic or all also shadow step, light-cache resolution,
+    /// occlusion radius and progressive frames of the key-lit models) and writes error vs the
+    /// f64 reference of each setting's model against time (CSV, markdown, PNG plot with a
+    /// Pareto front per model).
     Accuracy {
         /// A store, or `phantom` for a generated CT phantom.
         input: String,
@@ -83,6 +85,12 @@ pub enum BenchCommand {
         /// Where the CSV, markdown table and plot go.
         #[arg(long, default_value = "target/bench-accuracy")]
         out_dir: PathBuf,
+        /// Which settings: `base` (unshaded and headlight-shaded DVR), `cinematic` (the
+        /// key-lit models: shadow step, light-cache resolution, occlusion radius, progressive
+        /// frames; each against the f64 reference of its own lit model, which costs minutes
+        /// of CPU) or `all`.
+        #[arg(long, value_enum, default_value_t = accuracy::Sweep::Base)]
+        sweep: accuracy::Sweep,
     },
     /// The time-critical paper's Table 2: a 360° orbit at a fixed sampling rate and under the
     /// frame-rate controller; mean fps and σ of the measured GPU frame time for both.
@@ -213,6 +221,7 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
             frames,
             tf,
             out_dir,
+            sweep,
         } => accuracy::run(accuracy::Options {
             input,
             phantom_size,
@@ -220,6 +229,7 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
             frames,
             tf,
             out_dir,
+            sweep,
         }),
         BenchCommand::Timecritical {
             store,
