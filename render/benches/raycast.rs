@@ -9,7 +9,7 @@
 //!      STRATA_BENCH_STEPS (default 0.5,1,2,3: the peer runs at 0.5; the rest find equal PSNR),
 //!      STRATA_BENCH_SAVE=DIR (keep the PSNR images as PPM in DIR),
 //!      STRATA_BENCH_EFFECTS=shadows,shading (only those rows of the effect table, nothing else;
-//!      also occlusion, scattering, progressive),
+//!      also occlusion, scattering, shadows+scattering, progressive),
 //!      STRATA_BENCH_LIGHT_CACHE_RES (default 2: voxels per light-cache texel, the cache row).
 //!
 //! Prints ms/frame (median), samples/s, the sampling-only kernel's samples/s measured in the
@@ -336,6 +336,22 @@ fn effect_table(
             "scattering",
             "SCATTERING",
             RenderSettings {
+                scattering: Some(Scattering { g: 0.5, blend: 0.5 }),
+                ..key_lit.clone()
+            },
+        ),
+        // Both at once, as VTK's VolumetricScatteringBlending does them (its shadow rays only
+        // light the volumetric part): exact shadows and scattering g = 0.5, blend 0.5 (the VTK
+        // peer, bench/peers/vtk_cine_bench.py). "never built" drops SCATTERING only.
+        (
+            "shadows+scattering",
+            "SCATTERING",
+            RenderSettings {
+                shadows: Shadows {
+                    mode: ShadowMode::Exact,
+                    step: 1.0,
+                    ..Shadows::default()
+                },
                 scattering: Some(Scattering { g: 0.5, blend: 0.5 }),
                 ..key_lit.clone()
             },
