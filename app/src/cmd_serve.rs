@@ -119,6 +119,11 @@ pub fn run(args: ServeArgs) -> Result<()> {
     }
     for (name, path, _) in server.stores() {
         println!("  {}  ({})", server.store_url(name), path.display());
+        if cfg!(feature = "web") {
+            // The link that opens the store in a browser (the token, if any, is added after
+            // `&token=` by whoever shares it: never printed into a link here).
+            println!("    in a browser: {}/#store={name}", server.base_url());
+        }
     }
     std::io::stdout().flush()?;
     server.wait();

@@ -6,16 +6,20 @@
 //! The raycaster draws into its own Rgba8Unorm texture, which egui samples directly
 //! (`register_native_texture`): no readback, no copy.
 
+use std::cell::RefCell;
+use std::rc::Rc;
 use std::sync::atomic::{AtomicU8, Ordering};
 use std::sync::{Arc, Mutex};
 
 use eframe::egui_wgpu;
+use strata_loader::{FrameStats, LoaderWork, SelectionTiming, StreamingConfig, StreamingVolume};
 use strata_render::{
     BrickedVolume, CacheConfig, GpuContext, OffscreenRenderer, RenderMode, TransferFunction,
 };
 use wasm_bindgen::prelude::*;
 use wasm_bindgen::JsCast;
 
+use crate::served_store::{ServedStore, DECODES_PER_FRAME, MAX_ON_THE_WIRE};
 use crate::view_state::{Fragment, ViewState};
 
 /// The largest image edge drawn when the canvas decides (device pixels): a 4K canvas is drawn
@@ -115,8 +119,20 @@ struct Capture {
     state: Arc<AtomicU8>,
 }
 
+/// A served store streamed by the loader, inline on the page's thread.
+struct Streamed {
+    volume: StreamingVolume,
+    /// The last frame's loader statistics (converged, bricks read, status).
+    last: Option<FrameStats>,
+}
+
+/// The store being opened: filled by the open's future, taken by the next frame.
+type Opening = Rc<RefCell<Option<Result<ServedStore, String>>>>;
+
 struct WebViewer {
     render_state: egui_wgpu::RenderState,
+    streamed: Option<Streamed>,
+    opening: Option<Opening>,
     gpu: GpuContext,
     view: ViewState,
     volume: Option<BrickedVolume>,
@@ -178,6 +194,8 @@ impl WebViewer {
         let fragment_written = fragment.view.to_fragment();
         Ok(WebViewer {
             render_state,
+            streamed: None,
+            opening: None,
             gpu,
             view: fragment.view,
             volume: None,
@@ -237,6 +255,91 @@ impl WebViewer {
         Ok(true)
     }
 
+    /// Opens the fragment's store (asynchronously) and starts the loader on it once open.
+    fn ensure_stream(&mut self, ctx: &egui::Context, name: &str) -> Result<bool, String> {
+        if let Some(streamed) = self.streamed.as_mut() {
+            if self.renderer_preset != self.view.preset {
+                streamed
+                    .volume
+                    .set_transfer_function(&self.gpu, &self.view.transfer_function())
+                    .map_err(|e| e.to_string())?;
+                self.renderer_preset = self.view.preset.clone();
+            }
+            return Ok(true);
+        }
+        let Some(opening) = self.opening.clone() else {
+            let slot: Opening = Rc::default();
+            let filled = slot.clone();
+            let (name, token, repaint) = (name.to_string(), self.token.clone(), ctx.clone());
+            wasm_bindgen_futures::spawn_local(async move {
+                let opened = ServedStore::open(&name, token)
+                    .await
+                    .map_err(|e| e.to_string());
+                *filled.borrow_mut() = Some(opened);
+                repaint.request_repaint();
+            });
+            self.opening = Some(slot);
+            return Ok(false);
+        };
+        let Some(opened) = opening.borrow_mut().take() else {
+            return Ok(false);
+        };
+        let store = opened?;
+        let config = StreamingConfig {
+            // The page shares the GPU and memory with the rest of the browser.
+            gpu_budget_bytes: 256 << 20,
+            cpu_budget_bytes: 384 << 20,
+            sled_cache_bytes: 0,
+            fetch_threads: 1,
+            bricks_in_transit: MAX_ON_THE_WIRE + DECODES_PER_FRAME,
+            // A frame never waits for its selection (the page must stay responsive).
+            selection: SelectionTiming::Background,
+            work: LoaderWork::Inline,
+            ..StreamingConfig::default()
+        };
+        let volume = StreamingVolume::new(
+            &self.gpu,
+            Arc::new(store),
+            &self.view.transfer_function(),
+            config,
+        )
+        .map_err(|e| e.to_string())?;
+        self.streamed = Some(Streamed { volume, last: None });
+        self.renderer_preset = self.view.preset.clone();
+        Ok(true)
+    }
+
+    /// A loader frame while the view changed or the cut has not converged; then idle.
+    fn draw_streamed(&mut self, ctx: &egui::Context, size: [u32; 2]) -> Result<(), String> {
+        let wanted = (self.view.clone(), size);
+        let Some(streamed) = self.streamed.as_mut() else {
+            return Ok(());
+        };
+        let converged = streamed.last.as_ref().is_some_and(|s| s.converged);
+        if self.drawn.as_ref() == Some(&wanted) && converged {
+            return Ok(());
+        }
+        let camera = self.view.camera(streamed.volume.geometry());
+        let settings = self.view.settings(size[0], size[1]);
+        let stats = streamed
+            .volume
+            .frame(&self.gpu, &camera, &settings)
+            .map_err(|e| e.to_string())?;
+        if !stats.converged {
+            ctx.request_repaint();
+        }
+        streamed.last = Some(stats);
+        self.frames_submitted += 1;
+        let view = streamed
+            .volume
+            .raycaster_mut()
+            .output_view()
+            .ok_or("the raycaster drew no image")?;
+        show_texture(&self.render_state, &self.gpu, view, &mut self.texture);
+        self.drawn = Some(wanted);
+        Ok(())
+    }
+
     fn draw_if_changed(&mut self, size: [u32; 2]) -> Result<(), String> {
         let wanted = (self.view.clone(), size);
         if self.drawn.as_ref() == Some(&wanted) {
@@ -255,23 +358,7 @@ impl WebViewer {
             .raycaster
             .output_view()
             .ok_or("the raycaster drew no image")?;
-        let mut egui_renderer = self.render_state.renderer.write();
-        match self.texture {
-            // The output texture is re-created when the size changes: point the id at it.
-            Some(id) => egui_renderer.update_egui_texture_from_wgpu_texture(
-                &self.gpu.device,
-                view,
-                wgpu::FilterMode::Linear,
-                id,
-            ),
-            None => {
-                self.texture = Some(egui_renderer.register_native_texture(
-                    &self.gpu.device,
-                    view,
-                    wgpu::FilterMode::Linear,
-                ))
-            }
-        }
+        show_texture(&self.render_state, &self.gpu, view, &mut self.texture);
         self.drawn = Some(wanted);
         Ok(())
     }
@@ -311,6 +398,44 @@ impl WebViewer {
     /// The status line: its own panel, so the controls above never wrap or shift when it
     /// changes.
     fn status(&self, ui: &mut egui::Ui) {
+        if let Some(name) = &self.view.store {
+            let detail = match &self.streamed {
+                None => "opening…".to_string(),
+                Some(streamed) => {
+                    let dims = streamed.volume.geometry().dims;
+                    let loading = match &streamed.last {
+                        Some(s) if s.source_status.is_retrying() => {
+                            format!("server unreachable, retrying ({:?})", s.source_status)
+                        }
+                        Some(s) if s.converged => "complete".to_string(),
+                        Some(s) => {
+                            format!("loading: {} requested, {} in flight", s.queued, s.in_flight)
+                        }
+                        None => "starting".to_string(),
+                    };
+                    let read = streamed
+                        .last
+                        .as_ref()
+                        .map_or((0, 0), |s| (s.bricks_read_total, s.stored_bytes_read_total));
+                    format!(
+                        "{}×{}×{} · {loading} · {} bricks, {:.1} MB fetched · frames drawn {}",
+                        dims[0],
+                        dims[1],
+                        dims[2],
+                        read.0,
+                        read.1 as f64 / 1e6,
+                        self.frames_submitted
+                    )
+                }
+            };
+            ui.horizontal(|ui| {
+                ui.label(format!(
+                    "Store {name} · {detail} · drag to orbit, scroll to zoom; the address holds \
+                     this view · not for diagnostic use"
+                ));
+            });
+            return;
+        }
         ui.horizontal(|ui| {
             ui.label(format!(
                 "Sample volume {}³ (CT phantom made in the page) · frames drawn {} · drag to \
@@ -343,11 +468,18 @@ impl WebViewer {
             return;
         };
         if self.capture.is_none() {
-            let Some(texture) = self
-                .renderer
-                .as_ref()
-                .and_then(|r| r.raycaster.output_texture())
-            else {
+            // A streamed view is captured once its cut converged: the picture a link names.
+            let texture = match self.streamed.as_mut() {
+                Some(streamed) if streamed.last.as_ref().is_some_and(|s| s.converged) => {
+                    streamed.volume.raycaster_mut().output_texture()
+                }
+                Some(_) => None,
+                None => self
+                    .renderer
+                    .as_ref()
+                    .and_then(|r| r.raycaster.output_texture()),
+            };
+            let Some(texture) = texture else {
                 return;
             };
             // Rows of a texture-to-buffer copy are padded to 256 bytes.
@@ -441,6 +573,31 @@ impl WebViewer {
     }
 }
 
+/// Points egui's texture id at the raycaster's output (re-created when the size changes).
+fn show_texture(
+    render_state: &egui_wgpu::RenderState,
+    gpu: &GpuContext,
+    view: &wgpu::TextureView,
+    texture: &mut Option<egui::TextureId>,
+) {
+    let mut egui_renderer = render_state.renderer.write();
+    match *texture {
+        Some(id) => egui_renderer.update_egui_texture_from_wgpu_texture(
+            &gpu.device,
+            view,
+            wgpu::FilterMode::Linear,
+            id,
+        ),
+        None => {
+            *texture = Some(egui_renderer.register_native_texture(
+                &gpu.device,
+                view,
+                wgpu::FilterMode::Linear,
+            ))
+        }
+    }
+}
+
 /// Posts a captured frame to `strata serve`'s test sink (same origin).
 async fn post_frame(
     rgba: &[u8],
@@ -493,13 +650,19 @@ impl eframe::App for WebViewer {
                     ui.colored_label(egui::Color32::LIGHT_RED, error);
                     return;
                 }
-                match self.ensure_renderer(&ctx) {
+                let ready = match self.view.store.clone() {
+                    Some(name) => self.ensure_stream(&ctx, &name),
+                    None => self.ensure_renderer(&ctx),
+                };
+                match ready {
                     Ok(true) => {}
                     Ok(false) => {
-                        ui.label(format!(
-                            "Generating the {0}³ sample volume…",
-                            self.view.volume_edge
-                        ));
+                        ui.label(match &self.view.store {
+                            Some(name) => format!("Opening store {name}…"),
+                            None => {
+                                format!("Generating the {0}³ sample volume…", self.view.volume_edge)
+                            }
+                        });
                         return;
                     }
                     Err(e) => {
@@ -529,7 +692,12 @@ impl eframe::App for WebViewer {
                         .min(egui::vec2(MAX_CANVAS_IMAGE_EDGE, MAX_CANVAS_IMAGE_EDGE));
                     [px.x.max(16.0) as u32, px.y.max(16.0) as u32]
                 });
-                if let Err(e) = self.draw_if_changed(size) {
+                let drawn = if self.view.store.is_some() {
+                    self.draw_streamed(&ctx, size)
+                } else {
+                    self.draw_if_changed(size)
+                };
+                if let Err(e) = drawn {
                     self.error = Some(e);
                     return;
                 }

@@ -6,11 +6,16 @@
 //! - [`view_state`]: the URL fragment ⇄ the view (camera, mode, preset, size). Platform
 //!   independent: the native tests render the same view to check the browser's pixels.
 //! - `browser` (wasm32 only): the page's entry point, the viewer app, the frame capture.
+//! - `served_store` (wasm32 only): `strata serve`'s client on `fetch()`, the volume source the
+//!   streaming loader reads a served store through (`#store=NAME`), with the loader's work
+//!   inline on the page's one thread (strata_loader::LoaderWork::Inline).
 //!
-//! This first step shows the built-in sample volume (the render crate's CT phantom, made in
-//! the page); streaming a served store needs the loader on wasm32 (see ARCHITECTURE.md).
+//! Without `store=` the page shows the built-in sample volume (the render crate's CT phantom,
+//! made in the page).
 
 pub mod view_state;
 
 #[cfg(target_arch = "wasm32")]
 mod browser;
+#[cfg(target_arch = "wasm32")]
+mod served_store;

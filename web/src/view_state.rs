@@ -52,6 +52,8 @@ pub struct ViewState {
     pub iso_value: f64,
     /// Edge of the built-in sample volume (voxels).
     pub volume_edge: u32,
+    /// A store of the server that served the page, streamed; None: the built-in sample.
+    pub store: Option<String>,
     /// A fixed image size (width, height) instead of the canvas's: links that must give the
     /// same pixels anywhere (screenshots, tests).
     pub image_size: Option<[u32; 2]>,
@@ -70,6 +72,7 @@ impl Default for ViewState {
             zoom: 1.0,
             iso_value: 300.0,
             volume_edge: DEFAULT_VOLUME_EDGE,
+            store: None,
             image_size: None,
             capture: false,
         }
@@ -200,6 +203,17 @@ impl Fragment {
                         }
                     }
                 }
+                "store" => {
+                    if !strata_source::wire::is_valid_store_name(value) {
+                        return Err(bad(
+                            key,
+                            value,
+                            "a store name of letters, digits, '-', '_' and '.' (as `strata \
+                             serve` lists them)",
+                        ));
+                    }
+                    view.store = Some(value.to_string());
+                }
                 "capture" => view.capture = value == "1",
                 "token" if !value.is_empty() => token = Some(value.to_string()),
                 _ => {}
@@ -212,17 +226,21 @@ impl Fragment {
 impl ViewState {
     /// The fragment that opens this view (no token, whatever the page was opened with).
     pub fn to_fragment(&self) -> String {
-        let mut parts = vec![
+        let mut parts = Vec::new();
+        if let Some(store) = &self.store {
+            parts.push(format!("store={store}"));
+        }
+        parts.extend([
             format!("mode={}", mode_name(self.mode)),
             format!("preset={}", self.preset),
             format!("az={}", round3(self.azimuth_deg)),
             format!("el={}", round3(self.elevation_deg)),
             format!("zoom={}", round3(self.zoom)),
-        ];
+        ]);
         if self.mode == RenderMode::Isosurface {
             parts.push(format!("iso={}", round3(self.iso_value)));
         }
-        if self.volume_edge != DEFAULT_VOLUME_EDGE {
+        if self.store.is_none() && self.volume_edge != DEFAULT_VOLUME_EDGE {
             parts.push(format!("volume={}", self.volume_edge));
         }
         if let Some([w, h]) = self.image_size {
@@ -295,12 +313,21 @@ mod tests {
             zoom: 1.75,
             iso_value: 250.0,
             volume_edge: 64,
+            store: None,
             image_size: Some([160, 120]),
             capture: false,
         };
         let parsed = Fragment::parse(&view.to_fragment()).expect("own fragment parses");
         assert_eq!(parsed.view, view);
         assert_eq!(parsed.token, None);
+        let served = ViewState {
+            store: Some("head-ct.v2".into()),
+            volume_edge: DEFAULT_VOLUME_EDGE,
+            ..view
+        };
+        let written = served.to_fragment();
+        assert!(written.starts_with("#store=head-ct.v2&"), "{written}");
+        assert_eq!(Fragment::parse(&written).expect("parses").view, served);
     }
 
     #[test]
@@ -325,6 +352,10 @@ mod tests {
         assert!(e.to_string().contains("256"), "{e}");
         let e = Fragment::parse("#size=0x5").expect_err("empty image");
         assert!(e.to_string().contains("`size`"), "{e}");
+        for name in ["../etc", "a/b", ".hidden", ""] {
+            let e = Fragment::parse(&format!("#store={name}")).expect_err("bad store name");
+            assert!(e.to_string().contains("`store`"), "{name}: {e}");
+        }
         let e = Fragment::parse("#preset=nope").expect_err("unknown preset");
         assert!(e.to_string().contains("ct-bone"), "{e}");
         let ok = Fragment::parse("#layout=quad&mode=dvr").expect("unknown key ignored");

@@ -1,0 +1,499 @@
+//! The data service's client in the browser (wasm32 only): a [`VolumeSource`] on `fetch()`
+//! speaking `strata serve`'s protocol (strata_source::wire), for the streaming loader running
+//! inline on the page's one thread.
+//!
+//! - Opening reads the open document (header, histogram, stats, skeleton), refuses a store
+//!   this build cannot read, and fetches the root brick, which the loader reads synchronously
+//!   before its first frame; every other brick comes through [`ServedBricks`].
+//! - [`ServedBricks`] is the loader's [`BrickFetcher`]: a priority queue rewritten every
+//!   frame, at most [`MAX_ON_THE_WIRE`] requests at once (HTTP/1.1 gives a page about six
+//!   connections per host; more would queue inside the browser, where priorities cannot
+//!   reach them), requests the view no longer wants aborted with their `AbortController`.
+//! - Records are decoded (and their xxh3 checksums verified) on the frame thread, at most
+//!   [`DECODES_PER_FRAME`] per frame; a record that fails is fetched once more, then reported
+//!   damaged. Connection failures and 429/503 are retried with backoff, and the status says
+//!   so ("retrying") as the desktop's remote source does.
+//! - The token travels as `Authorization`, never in a URL. The browser's HTTP cache is left to
+//!   work (brick URLs carry the store's generation and are immutable): no `If-None-Match` here.
+
+use std::cell::RefCell;
+use std::collections::{HashMap, HashSet, VecDeque};
+use std::rc::Rc;
+use std::sync::Arc;
+
+use strata_source::wire::{brick_path, decode_open_document, API_PREFIX};
+use strata_source::{
+    BrickFetcher, FetchOptions, FetchResult, QueueCounters, RequestClass, SourceError,
+    SourceStatus, VolumeSource,
+};
+use strata_storage::brick::decode_brick;
+use strata_storage::histogram::Histogram;
+use strata_storage::store::{Skeleton, StoreStats, KNOWN_STORE_FEATURES};
+use strata_storage::{BrickId, StoreHeader};
+use wasm_bindgen::JsCast;
+use wasm_bindgen_futures::JsFuture;
+
+/// Requests on the wire at once (see the module's note on HTTP/1.1).
+pub const MAX_ON_THE_WIRE: usize = 6;
+/// Records decoded per frame at most: each is ~0.1-1 ms of the page's one thread.
+pub const DECODES_PER_FRAME: usize = 24;
+/// Backoff after a failed request: doubles from the first to the last.
+const BACKOFF_FIRST_MS: f64 = 250.0;
+const BACKOFF_LAST_MS: f64 = 4000.0;
+
+/// A store served by `strata serve` (same origin as the page).
+pub struct ServedStore {
+    location: String,
+    name: String,
+    generation: String,
+    token: Option<String>,
+    header: StoreHeader,
+    skeleton: Skeleton,
+    histogram: Histogram,
+    stats: StoreStats,
+    root: (BrickId, Vec<u8>),
+}
+
+/// Why a fetch gave no body.
+enum FetchFailure {
+    Aborted,
+    /// Worth another try: no connection, 429, 5xx.
+    Transient(String),
+    /// The server said no (404, 401, 403, ...).
+    Refused(String),
+}
+
+fn js_text(value: &wasm_bindgen::JsValue) -> String {
+    value
+        .as_string()
+        .or_else(|| {
+            value
+                .dyn_ref::<js_sys::Error>()
+                .map(|e| String::from(e.message()))
+        })
+        .unwrap_or_else(|| format!("{value:?}"))
+}
+
+/// GETs `path` (same origin) with the bearer token, as bytes.
+async fn fetch_bytes(
+    path: &str,
+    token: Option<&str>,
+    signal: Option<&web_sys::AbortSignal>,
+) -> Result<Vec<u8>, FetchFailure> {
+    let window = web_sys::window().ok_or(FetchFailure::Refused("no window".into()))?;
+    let init = web_sys::RequestInit::new();
+    init.set_method("GET");
+    if let Some(token) = token {
+        let headers = web_sys::Headers::new().map_err(|e| FetchFailure::Refused(js_text(&e)))?;
+        headers
+            .set("Authorization", &format!("Bearer {token}"))
+            .map_err(|e| FetchFailure::Refused(js_text(&e)))?;
+        init.set_headers(&headers);
+    }
+    if let Some(signal) = signal {
+        init.set_signal(Some(signal));
+    }
+    let request = web_sys::Request::new_with_str_and_init(path, &init)
+        .map_err(|e| FetchFailure::Refused(js_text(&e)))?;
+    let answer = match JsFuture::from(window.fetch_with_request(&request)).await {
+        Ok(answer) => answer,
+        Err(_) if signal.is_some_and(|s| s.aborted()) => return Err(FetchFailure::Aborted),
+        Err(e) => return Err(FetchFailure::Transient(js_text(&e))),
+    };
+    let response: web_sys::Response = answer
+        .dyn_into()
+        .map_err(|_| FetchFailure::Refused("fetch gave no Response".into()))?;
+    let status = response.status();
+    if !response.ok() {
+        let what = format!("the server answered {status} {}", response.status_text());
+        return Err(match status {
+            429 | 500..=599 => FetchFailure::Transient(what),
+            401 | 403 => FetchFailure::Refused(format!(
+                "{what}: the link's token is missing or wrong (ask for a link with #token=)"
+            )),
+            _ => FetchFailure::Refused(what),
+        });
+    }
+    let buffer = response
+        .array_buffer()
+        .map_err(|e| FetchFailure::Transient(js_text(&e)))?;
+    match JsFuture::from(buffer).await {
+        Ok(body) => Ok(js_sys::Uint8Array::new(&body).to_vec()),
+        Err(_) if signal.is_some_and(|s| s.aborted()) => Err(FetchFailure::Aborted),
+        Err(e) => Err(FetchFailure::Transient(js_text(&e))),
+    }
+}
+
+impl ServedStore {
+    /// Opens the store `name` of the server that served the page.
+    pub async fn open(name: &str, token: Option<String>) -> Result<ServedStore, SourceError> {
+        let location = format!("{API_PREFIX}/stores/{name}");
+        let failed = |failure: FetchFailure, what: &str| match failure {
+            FetchFailure::Refused(message) => SourceError::Refused {
+                location: location.clone(),
+                message: format!("{what}: {message}"),
+            },
+            FetchFailure::Transient(message) => SourceError::Unavailable {
+                location: location.clone(),
+                message: format!("{what}: {message}"),
+            },
+            FetchFailure::Aborted => SourceError::Unavailable {
+                location: location.clone(),
+                message: format!("{what}: aborted"),
+            },
+        };
+        let bytes = fetch_bytes(&location, token.as_deref(), None)
+            .await
+            .map_err(|f| failed(f, "opening the store"))?;
+        let (document, skeleton) =
+            decode_open_document(&bytes, KNOWN_STORE_FEATURES).map_err(|message| {
+                SourceError::Refused {
+                    location: location.clone(),
+                    message,
+                }
+            })?;
+        let root_level = (skeleton.level_count().max(1) - 1) as u8;
+        let root = BrickId::new(root_level, [0, 0, 0]);
+        let path = brick_path(name, &document.generation, root);
+        let record = fetch_bytes(&path, token.as_deref(), None)
+            .await
+            .map_err(|f| failed(f, "reading the root brick"))?;
+        Ok(ServedStore {
+            location,
+            name: name.to_string(),
+            generation: document.generation,
+            token,
+            header: document.header,
+            skeleton,
+            histogram: document.histogram,
+            stats: document.stats,
+            root: (root, record),
+        })
+    }
+}
+
+impl VolumeSource for ServedStore {
+    fn location(&self) -> String {
+        self.location.clone()
+    }
+    fn header(&self) -> &StoreHeader {
+        &self.header
+    }
+    fn skeleton(&self) -> &Skeleton {
+        &self.skeleton
+    }
+    fn histogram(&self) -> &Histogram {
+        &self.histogram
+    }
+    fn stats(&self) -> &StoreStats {
+        &self.stats
+    }
+    /// Only the root, fetched when the store was opened: the page cannot wait for a read.
+    fn read_brick_record(&self, id: BrickId) -> Result<Vec<u8>, SourceError> {
+        if id == self.root.0 {
+            return Ok(self.root.1.clone());
+        }
+        Err(SourceError::Unavailable {
+            location: self.location.clone(),
+            message: format!(
+                "brick {id:?}: the browser reads bricks asynchronously (through the loader's \
+                 fetcher), never blocking"
+            ),
+        })
+    }
+    fn start_fetching(
+        &self,
+        options: FetchOptions,
+    ) -> Option<Result<Box<dyn BrickFetcher>, SourceError>> {
+        let shared = Rc::new(Shared {
+            location: self.location.clone(),
+            name: self.name.clone(),
+            generation: self.generation.clone(),
+            token: self.token.clone(),
+            capacity: options.max_queued.max(1),
+            state: RefCell::new(FetchState::default()),
+        });
+        Some(Ok(Box::new(ServedBricks(shared))))
+    }
+}
+
+/// A record that came back, not yet decoded.
+struct Arrival {
+    id: BrickId,
+    class: RequestClass,
+    body: Result<Vec<u8>, SourceError>,
+}
+
+#[derive(Default)]
+struct FetchState {
+    queued: HashMap<BrickId, (RequestClass, f64)>,
+    on_the_wire: HashMap<BrickId, (RequestClass, f64, web_sys::AbortController)>,
+    arrived: VecDeque<Arrival>,
+    /// On the wire, arrived, or handed to the loader and not yet completed.
+    in_flight: HashSet<BrickId>,
+    /// Records that failed their checksum once (fetched again once).
+    refetched: HashSet<BrickId>,
+    counters: QueueCounters,
+    /// Since when requests fail to reach the server (ms, `Date.now()`), and the last reason.
+    failing: Option<(f64, String)>,
+    failures_in_a_row: u32,
+    /// No new request before this time (ms): backoff after a failure.
+    quiet_until: f64,
+}
+
+struct Shared {
+    location: String,
+    name: String,
+    generation: String,
+    token: Option<String>,
+    capacity: usize,
+    state: RefCell<FetchState>,
+}
+
+/// The fetcher the loader polls every frame.
+pub struct ServedBricks(Rc<Shared>);
+
+// SAFETY: the loader's seam asks for `Send`. This type exists only on wasm32 built without
+// the `atomics` target feature, where there is exactly one thread (the page's): nothing can
+// move to another thread, so the `Rc`, `RefCell` and JS handles are never shared across
+// threads.
+#[cfg(not(target_feature = "atomics"))]
+unsafe impl Send for ServedBricks {}
+
+impl Shared {
+    /// Starts the most urgent queued requests while fewer than [`MAX_ON_THE_WIRE`] are out.
+    fn pump(self: &Rc<Self>) {
+        let now = js_sys::Date::now();
+        loop {
+            let (id, class, priority, controller) = {
+                let mut state = self.state.borrow_mut();
+                if state.on_the_wire.len() >= MAX_ON_THE_WIRE || now < state.quiet_until {
+                    return;
+                }
+                let Some((id, (class, priority))) = state
+                    .queued
+                    .iter()
+                    .max_by(|a, b| {
+                        (a.1 .0, a.1 .1)
+                            .partial_cmp(&(b.1 .0, b.1 .1))
+                            .unwrap_or(std::cmp::Ordering::Equal)
+                    })
+                    .map(|(&id, &v)| (id, v))
+                else {
+                    return;
+                };
+                let Ok(controller) = web_sys::AbortController::new() else {
+                    return;
+                };
+                state.queued.remove(&id);
+                state.in_flight.insert(id);
+                state
+                    .on_the_wire
+                    .insert(id, (class, priority, controller.clone()));
+                let on_wire = state.in_flight.len() as u64;
+                state.counters.max_in_flight = state.counters.max_in_flight.max(on_wire);
+                match class {
+                    RequestClass::Demand => state.counters.demand_started += 1,
+                    RequestClass::Prefetch => state.counters.prefetch_started += 1,
+                }
+                (id, class, priority, controller)
+            };
+            let shared = self.clone();
+            let path = brick_path(&self.name, &self.generation, id);
+            wasm_bindgen_futures::spawn_local(async move {
+                let signal = controller.signal();
+                let outcome = fetch_bytes(&path, shared.token.as_deref(), Some(&signal)).await;
+                shared.arrive(id, class, priority, outcome);
+            });
+        }
+    }
+
+    fn arrive(
+        self: &Rc<Self>,
+        id: BrickId,
+        class: RequestClass,
+        priority: f64,
+        outcome: Result<Vec<u8>, FetchFailure>,
+    ) {
+        let mut state = self.state.borrow_mut();
+        // Aborted meanwhile (the view moved on): already accounted for.
+        if state.on_the_wire.remove(&id).is_none() {
+            return;
+        }
+        let body = match outcome {
+            Ok(body) => {
+                state.failing = None;
+                state.failures_in_a_row = 0;
+                Ok(body)
+            }
+            Err(FetchFailure::Aborted) => {
+                state.in_flight.remove(&id);
+                return;
+            }
+            Err(FetchFailure::Transient(message)) => {
+                // Asked again after a pause; what is loaded stays on screen meanwhile.
+                let now = js_sys::Date::now();
+                let backoff = (BACKOFF_FIRST_MS * 2f64.powi(state.failures_in_a_row.min(8) as i32))
+                    .min(BACKOFF_LAST_MS);
+                state.failures_in_a_row += 1;
+                state.quiet_until = now + backoff;
+                state.failing.get_or_insert((now, String::new())).1 = message;
+                state.counters.retried += 1;
+                state.in_flight.remove(&id);
+                state.queued.entry(id).or_insert((class, priority));
+                return;
+            }
+            Err(FetchFailure::Refused(message)) => Err(SourceError::Refused {
+                location: self.location.clone(),
+                message: format!("brick level {} at {:?}: {message}", id.level, id.coords),
+            }),
+        };
+        state.arrived.push_back(Arrival { id, class, body });
+    }
+}
+
+impl BrickFetcher for ServedBricks {
+    fn set_requests(&self, demand: &[(BrickId, f64)], prefetch: &[(BrickId, f64)]) -> usize {
+        let shared = &self.0;
+        {
+            let mut state = shared.state.borrow_mut();
+            let mut wanted: HashMap<BrickId, (RequestClass, f64)> = HashMap::new();
+            let mut overflow = 0;
+            let candidates = demand
+                .iter()
+                .map(|&(id, p)| (id, RequestClass::Demand, p))
+                .chain(
+                    prefetch
+                        .iter()
+                        .map(|&(id, p)| (id, RequestClass::Prefetch, p)),
+                );
+            for (id, class, priority) in candidates {
+                if wanted.contains_key(&id) {
+                    continue;
+                }
+                if state.on_the_wire.contains_key(&id) {
+                    // Still wanted: keep it on the wire (with its new rank).
+                    wanted.insert(id, (class, priority));
+                    continue;
+                }
+                if state.in_flight.contains(&id) {
+                    continue;
+                }
+                if wanted.len() >= shared.capacity {
+                    overflow += 1;
+                    continue;
+                }
+                wanted.insert(id, (class, priority));
+            }
+            // Requests on the wire the view no longer names are aborted.
+            let unwanted: Vec<BrickId> = state
+                .on_the_wire
+                .keys()
+                .filter(|id| !wanted.contains_key(id))
+                .copied()
+                .collect();
+            for id in unwanted {
+                if let Some((_, _, controller)) = state.on_the_wire.remove(&id) {
+                    controller.abort();
+                    state.in_flight.remove(&id);
+                    state.counters.cancelled_in_flight += 1;
+                }
+            }
+            wanted.retain(|id, _| !state.on_the_wire.contains_key(id));
+            let stale = state
+                .queued
+                .keys()
+                .filter(|id| !wanted.contains_key(id))
+                .count() as u64;
+            state.counters.stale_dropped += stale;
+            state.counters.overflow_dropped += overflow;
+            state.queued = wanted;
+        }
+        shared.pump();
+        shared.state.borrow().queued.len()
+    }
+
+    fn try_results(&self) -> Vec<FetchResult> {
+        let shared = &self.0;
+        shared.pump();
+        let mut results = Vec::new();
+        let mut refetch = false;
+        for _ in 0..DECODES_PER_FRAME {
+            let Some(arrival) = shared.state.borrow_mut().arrived.pop_front() else {
+                break;
+            };
+            let Arrival { id, class, body } = arrival;
+            let stored_bytes = body.as_ref().map_or(0, |b| b.len() as u64);
+            let outcome = match body {
+                Err(e) => Err(e),
+                Ok(record) => match decode_brick(id, &record) {
+                    Ok(voxels) => Ok(Arc::new(voxels)),
+                    Err(e) => {
+                        let mut state = shared.state.borrow_mut();
+                        state.counters.checksum_failures += 1;
+                        if state.refetched.insert(id) {
+                            // Damaged on the way (or by a proxy): fetched once more, first.
+                            state.counters.retried += 1;
+                            state.in_flight.remove(&id);
+                            state.queued.insert(id, (RequestClass::Demand, f64::MAX));
+                            refetch = true;
+                            continue;
+                        }
+                        Err(SourceError::damaged(&shared.location, id, e))
+                    }
+                },
+            };
+            results.push(FetchResult {
+                id,
+                class,
+                outcome,
+                stored_bytes,
+            });
+        }
+        if refetch {
+            shared.pump();
+        }
+        results
+    }
+
+    fn complete(&self, id: BrickId) {
+        let mut state = self.0.state.borrow_mut();
+        state.in_flight.remove(&id);
+    }
+
+    fn queued(&self) -> usize {
+        self.0.state.borrow().queued.len()
+    }
+
+    fn in_flight(&self) -> usize {
+        self.0.state.borrow().in_flight.len()
+    }
+
+    fn capacity(&self) -> usize {
+        self.0.capacity
+    }
+
+    fn counters(&self) -> QueueCounters {
+        self.0.state.borrow().counters
+    }
+
+    fn status(&self) -> SourceStatus {
+        match &self.0.state.borrow().failing {
+            None => SourceStatus::Available,
+            Some((since, message)) => SourceStatus::Retrying {
+                since_seconds: (js_sys::Date::now() - since) / 1000.0,
+                message: message.clone(),
+            },
+        }
+    }
+}
+
+impl Drop for ServedBricks {
+    fn drop(&mut self) {
+        // Nothing left to take the answers: stop the transfers.
+        let mut state = self.0.state.borrow_mut();
+        for (_, (_, _, controller)) in state.on_the_wire.drain() {
+            controller.abort();
+        }
+    }
+}
