@@ -359,18 +359,24 @@ fn the_page_streams_a_served_store_and_converges_to_the_native_loaders_picture()
         "the page made requests without its token"
     );
     assert!(bricks_served > 1, "the page fetched no brick past the root");
-    // The server holds the store's lock; the desktop's loader opens it next.
-    server.stop();
 
-    // The desktop's loader on the same store and view (threads, lavapipe).
+    // The desktop's loader on the same store and view through the same server (its client,
+    // threads, lavapipe): the picture to match and the bytes to compare.
     let view = Fragment::parse(fragment).expect("fragment").view;
     let [width, height] = view.image_size.expect("the fragment fixes the size");
     assert_eq!((frame.width, frame.height), (width, height), "{console}");
     let gpu = GpuContext::headless().expect("a Vulkan adapter (lavapipe)");
-    let store = std::sync::Arc::new(strata_storage::Store::open(&path).expect("store opens"));
+    let remote = strata_service::client::RemoteSource::open(
+        &server.store_url("ct"),
+        strata_service::client::RemoteOptions {
+            token: Some(TOKEN.into()),
+            ..Default::default()
+        },
+    )
+    .expect("the desktop's client opens the store");
     let mut volume = StreamingVolume::new(
         &gpu,
-        store,
+        std::sync::Arc::new(remote),
         &view.transfer_function(),
         StreamingConfig::default(),
     )
@@ -382,6 +388,14 @@ fn the_page_streams_a_served_store_and_converges_to_the_native_loaders_picture()
     assert!(
         history.last().is_some_and(|s| s.converged),
         "native did not converge"
+    );
+    let desktop_bytes = counters.bytes.load(std::sync::atomic::Ordering::Relaxed) - bytes_served;
+    // Reported (issue 39's benchmark asks <= 1.05): both run the same loader; the browser's
+    // count includes the corrupted answer fetched twice.
+    println!(
+        "streamed store: bytes served to the browser / to the desktop = {bytes_served} / \
+         {desktop_bytes} = {:.3}",
+        bytes_served as f64 / desktop_bytes.max(1) as f64
     );
     let lit = frame.rgba.chunks(4).filter(|p| p[3] > 0).count();
     assert!(
