@@ -174,6 +174,8 @@ struct ServedStore {
 #[derive(Default, Debug)]
 pub struct ServerCounters {
     pub requests: AtomicU64,
+    /// Answers the test hook `ServeOptions::corrupt_answers` damaged.
+    pub corrupted: AtomicU64,
     pub bricks: AtomicU64,
     pub bytes: AtomicU64,
     pub not_modified: AtomicU64,
@@ -893,6 +895,7 @@ async fn brick(
             *left -= 1;
             let at = body.len() - 1;
             body[at] ^= 0x40;
+            state.counters.corrupted.fetch_add(1, Ordering::Relaxed);
             tracing::warn!("strata serve: test hook flipped a byte of brick {id:?} in transit");
         }
     }

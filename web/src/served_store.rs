@@ -75,14 +75,20 @@ fn js_text(value: &wasm_bindgen::JsValue) -> String {
 }
 
 /// GETs `path` (same origin) with the bearer token, as bytes.
+/// `reload`: past the browser's HTTP cache to the server (and the answer stored in its place),
+/// for a record that failed its checksum: the cache would give the damaged copy back.
 async fn fetch_bytes(
     path: &str,
     token: Option<&str>,
     signal: Option<&web_sys::AbortSignal>,
+    reload: bool,
 ) -> Result<Vec<u8>, FetchFailure> {
     let window = web_sys::window().ok_or(FetchFailure::Refused("no window".into()))?;
     let init = web_sys::RequestInit::new();
     init.set_method("GET");
+    if reload {
+        init.set_cache(web_sys::RequestCache::Reload);
+    }
     if let Some(token) = token {
         let headers = web_sys::Headers::new().map_err(|e| FetchFailure::Refused(js_text(&e)))?;
         headers
@@ -142,7 +148,7 @@ impl ServedStore {
                 message: format!("{what}: aborted"),
             },
         };
-        let bytes = fetch_bytes(&location, token.as_deref(), None)
+        let bytes = fetch_bytes(&location, token.as_deref(), None, false)
             .await
             .map_err(|f| failed(f, "opening the store"))?;
         let (document, skeleton) =
@@ -155,7 +161,7 @@ impl ServedStore {
         let root_level = (skeleton.level_count().max(1) - 1) as u8;
         let root = BrickId::new(root_level, [0, 0, 0]);
         let path = brick_path(name, &document.generation, root);
-        let record = fetch_bytes(&path, token.as_deref(), None)
+        let record = fetch_bytes(&path, token.as_deref(), None, false)
             .await
             .map_err(|f| failed(f, "reading the root brick"))?;
         Ok(ServedStore {
@@ -265,7 +271,7 @@ impl Shared {
     fn pump(self: &Rc<Self>) {
         let now = js_sys::Date::now();
         loop {
-            let (id, class, priority, controller) = {
+            let (id, class, priority, controller, reload) = {
                 let mut state = self.state.borrow_mut();
                 if state.on_the_wire.len() >= MAX_ON_THE_WIRE || now < state.quiet_until {
                     return;
@@ -296,13 +302,20 @@ impl Shared {
                     RequestClass::Demand => state.counters.demand_started += 1,
                     RequestClass::Prefetch => state.counters.prefetch_started += 1,
                 }
-                (id, class, priority, controller)
+                (
+                    id,
+                    class,
+                    priority,
+                    controller,
+                    state.refetched.contains(&id),
+                )
             };
             let shared = self.clone();
             let path = brick_path(&self.name, &self.generation, id);
             wasm_bindgen_futures::spawn_local(async move {
                 let signal = controller.signal();
-                let outcome = fetch_bytes(&path, shared.token.as_deref(), Some(&signal)).await;
+                let outcome =
+                    fetch_bytes(&path, shared.token.as_deref(), Some(&signal), reload).await;
                 shared.arrive(id, class, priority, outcome);
             });
         }
@@ -432,7 +445,8 @@ impl BrickFetcher for ServedBricks {
                         let mut state = shared.state.borrow_mut();
                         state.counters.checksum_failures += 1;
                         if state.refetched.insert(id) {
-                            // Damaged on the way (or by a proxy): fetched once more, first.
+                            // Damaged on the way (or by a proxy): fetched once more, first,
+                            // from the server (the HTTP cache holds the damaged copy).
                             state.counters.retried += 1;
                             state.in_flight.remove(&id);
                             state.queued.insert(id, (RequestClass::Demand, f64::MAX));

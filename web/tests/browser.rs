@@ -314,8 +314,9 @@ fn the_page_streams_a_served_store_and_converges_to_the_native_loaders_picture()
         .expect("writing the store");
     let (frames_in, frames) = mpsc::channel::<CapturedFrame>();
     let frames_in = std::sync::Mutex::new(frames_in);
-    // A level-0 brick in the middle of the body: every view of it needs that brick.
-    let corrupted = BrickId::new(0, [1, 1, 2]);
+    // A level-1 brick: each octant of the root holds part of the body, so every view refines
+    // through it (level-0 bricks inside may stay unfetched behind bone).
+    let corrupted = BrickId::new(1, [1, 0, 1]);
     let server = start(
         find_stores(std::slice::from_ref(&path)).expect("store found"),
         ServeOptions {
@@ -359,6 +360,13 @@ fn the_page_streams_a_served_store_and_converges_to_the_native_loaders_picture()
         "the page made requests without its token"
     );
     assert!(bricks_served > 1, "the page fetched no brick past the root");
+    assert_eq!(
+        counters
+            .corrupted
+            .load(std::sync::atomic::Ordering::Relaxed),
+        1,
+        "the corrupted answer never reached the page"
+    );
 
     // The desktop's loader on the same store and view through the same server (its client,
     // threads, lavapipe): the picture to match and the bytes to compare.
