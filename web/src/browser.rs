@@ -468,9 +468,15 @@ impl WebViewer {
             return;
         };
         if self.capture.is_none() {
-            // A streamed view is captured once its cut converged: the picture a link names.
+            // A streamed view is captured once its cut converged (the picture a link names),
+            // or, with `capture=unconverged`, once frames went on for a while without it.
+            let capture_unconverged = self.view.capture_unconverged
+                && self.frames_submitted >= crate::view_state::UNCONVERGED_CAPTURE_FRAMES;
             let texture = match self.streamed.as_mut() {
-                Some(streamed) if streamed.last.as_ref().is_some_and(|s| s.converged) => {
+                Some(streamed)
+                    if capture_unconverged
+                        || streamed.last.as_ref().is_some_and(|s| s.converged) =>
+                {
                     streamed.volume.raycaster_mut().output_texture()
                 }
                 Some(_) => None,

@@ -113,7 +113,7 @@ async fn fetch_bytes(
     if !response.ok() {
         let what = format!("the server answered {status} {}", response.status_text());
         return Err(match status {
-            429 | 500..=599 => FetchFailure::Transient(what),
+            408 | 429 | 500..=599 => FetchFailure::Transient(what),
             401 | 403 => FetchFailure::Refused(format!(
                 "{what}: the link's token is missing or wrong (ask for a link with #token=)"
             )),

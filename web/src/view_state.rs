@@ -24,6 +24,8 @@ pub const DEFAULT_VOLUME_EDGE: u32 = 128;
 pub const MAX_VOLUME_EDGE: u32 = 256;
 /// Largest image edge a fragment may fix (`size=`); the canvas size decides otherwise.
 pub const MAX_IMAGE_EDGE: u32 = 4096;
+/// Frames a `capture=unconverged` page draws before it captures (test hook).
+pub const UNCONVERGED_CAPTURE_FRAMES: u64 = 12;
 /// The orbit camera's field of view, as `strata render`'s perspective default.
 pub const FOV_Y_DEG: f64 = 30.0;
 
@@ -60,6 +62,10 @@ pub struct ViewState {
     /// Test hook: post the first complete frame's pixels back to the server that served the
     /// page (`strata serve` accepts them only when started with its test sink).
     pub capture: bool,
+    /// With `capture=unconverged`: the frame after [`UNCONVERGED_CAPTURE_FRAMES`] drawn,
+    /// converged or not (a page whose server stalls must go on drawing); `capture=1` waits
+    /// for a streamed view to converge.
+    pub capture_unconverged: bool,
 }
 
 impl Default for ViewState {
@@ -75,6 +81,7 @@ impl Default for ViewState {
             store: None,
             image_size: None,
             capture: false,
+            capture_unconverged: false,
         }
     }
 }
@@ -214,7 +221,10 @@ impl Fragment {
                     }
                     view.store = Some(value.to_string());
                 }
-                "capture" => view.capture = value == "1",
+                "capture" => {
+                    view.capture = value == "1" || value == "unconverged";
+                    view.capture_unconverged = value == "unconverged";
+                }
                 "token" if !value.is_empty() => token = Some(value.to_string()),
                 _ => {}
             }
@@ -316,6 +326,7 @@ mod tests {
             store: None,
             image_size: Some([160, 120]),
             capture: false,
+            capture_unconverged: false,
         };
         let parsed = Fragment::parse(&view.to_fragment()).expect("own fragment parses");
         assert_eq!(parsed.view, view);

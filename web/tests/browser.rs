@@ -422,3 +422,58 @@ fn the_page_streams_a_served_store_and_converges_to_the_native_loaders_picture()
         "the browser's streamed frame differs from the desktop's: {comparison:?}; console:\n{console}"
     );
 }
+
+/// A server that accepts brick requests and never answers them (its test hook: everything
+/// below the root stalls): the page must go on drawing (the root's picture) rather than wait
+/// for a brick, and post its frame after `UNCONVERGED_CAPTURE_FRAMES` frames drawn.
+#[test]
+fn a_stalled_server_leaves_the_page_drawing() {
+    let scratch = tempfile::tempdir().expect("scratch folder");
+    let path = scratch.path().join("ct.strata");
+    Phantom::cube(96)
+        .write_store(&path, &ImportOptions::default())
+        .expect("writing the store");
+    let (frames_in, frames) = mpsc::channel::<CapturedFrame>();
+    let frames_in = std::sync::Mutex::new(frames_in);
+    let server = start(
+        find_stores(std::slice::from_ref(&path)).expect("store found"),
+        ServeOptions {
+            web_viewer: Some(std::sync::Arc::new(web_viewer())),
+            test_frame_sink: Some(FrameSink(std::sync::Arc::new(move |frame| {
+                if let Ok(sender) = frames_in.lock() {
+                    let _ = sender.send(frame);
+                }
+            }))),
+            stall_below_root: true,
+            ..ServeOptions::default()
+        },
+    )
+    .expect("server starts");
+    let fragment =
+        "#store=ct&mode=mip&preset=ct-soft-tissue&az=20&el=10&size=96x96&capture=unconverged";
+    let browser = Browser::open(&format!("{}/{fragment}", server.base_url()), scratch.path());
+    let frame = frames.recv_timeout(PAGE_DEADLINE).unwrap_or_else(|_| {
+        panic!(
+            "the page stopped drawing while its server stalled: no frame within \
+             {PAGE_DEADLINE:?}; its console:\n{}",
+            browser.console()
+        )
+    });
+    let console = browser.console();
+    drop(browser);
+    let counters = server.counters();
+    let requests = counters.requests.load(std::sync::atomic::Ordering::Relaxed);
+    let bricks = counters.bricks.load(std::sync::atomic::Ordering::Relaxed);
+    // Answered: the root (opening); asked and stalled: the bricks below it. The frame is the
+    // root's MIP (the bone preset leaves a 32³-voxel root nearly transparent).
+    assert_eq!(bricks, 1, "only the root may have been answered");
+    assert!(
+        requests > bricks + 1,
+        "the page asked for no brick below the root ({requests} requests)"
+    );
+    let lit = frame.rgba.chunks(4).filter(|p| p[3] > 0).count();
+    assert!(
+        lit > 96 * 96 / 10,
+        "the page's frame is nearly empty while its server stalls ({lit} pixels); console:\n{console}"
+    );
+}
