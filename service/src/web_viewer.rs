@@ -11,13 +11,17 @@
 //! framable. The page's files carry no data, so they are served without the bearer token: a
 //! browser cannot send one when it navigates. The page reads the token from the URL fragment,
 //! which browsers never send, and sends it as `Authorization` on its own requests.
+//!
+//! A browser that accepts gzip gets the files gzipped (the wasm module: 7.0 MB as built,
+//! 2.4 MB on the wire), each compressed once, on its first such request.
 
+use std::io::Write as _;
 use std::path::Path;
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 
 use axum::body::Bytes;
 use axum::extract::{Path as UrlPath, State};
-use axum::http::{header, HeaderValue, StatusCode};
+use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use axum::Router;
@@ -54,7 +58,59 @@ pub struct WebViewerFilesError {
 /// The page's files in memory.
 #[derive(Clone, Debug)]
 pub struct WebViewerAssets {
-    files: Vec<(&'static str, &'static str, Bytes)>,
+    files: Vec<WebViewerFile>,
+}
+
+#[derive(Clone, Debug)]
+struct WebViewerFile {
+    name: &'static str,
+    kind: &'static str,
+    body: Bytes,
+    /// The body gzipped, made on the first request that accepts it.
+    gzipped: OnceLock<Bytes>,
+}
+
+impl WebViewerFile {
+    fn new(name: &'static str, kind: &'static str, body: Bytes) -> Self {
+        WebViewerFile {
+            name,
+            kind,
+            body,
+            gzipped: OnceLock::new(),
+        }
+    }
+
+    fn gzipped(&self) -> &Bytes {
+        self.gzipped.get_or_init(|| {
+            let mut encoder =
+                flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::default());
+            // Writing into a Vec cannot fail.
+            let _ = encoder.write_all(&self.body);
+            Bytes::from(encoder.finish().unwrap_or_default())
+        })
+    }
+}
+
+/// Files smaller than this go as they are (gzip's header would eat the saving).
+const MIN_GZIP_BYTES: usize = 1024;
+
+/// Whether `Accept-Encoding` takes gzip (`gzip` or `*`, not at `q=0`).
+fn accepts_gzip(headers: &HeaderMap) -> bool {
+    headers
+        .get_all(header::ACCEPT_ENCODING)
+        .iter()
+        .filter_map(|v| v.to_str().ok())
+        .flat_map(|v| v.split(','))
+        .any(|coding| {
+            let mut parts = coding.split(';').map(str::trim);
+            let name = parts.next().unwrap_or("");
+            let refused = parts.any(|p| {
+                p.strip_prefix("q=")
+                    .and_then(|q| q.parse::<f32>().ok())
+                    .is_some_and(|q| q <= 0.0)
+            });
+            (name.eq_ignore_ascii_case("gzip") || name == "*") && !refused
+        })
 }
 
 impl WebViewerAssets {
@@ -63,7 +119,7 @@ impl WebViewerAssets {
         let files = WEB_VIEWER_FILES
             .iter()
             .zip(bodies)
-            .map(|(&(name, kind), body)| (name, kind, Bytes::from_static(body)))
+            .map(|(&(name, kind), body)| WebViewerFile::new(name, kind, Bytes::from_static(body)))
             .collect();
         WebViewerAssets { files }
     }
@@ -79,16 +135,13 @@ impl WebViewerAssets {
                     "cannot read the web viewer's file ({e}); build it with `cargo run -p xtask -- web`"
                 ),
             })?;
-            files.push((name, kind, Bytes::from(body)));
+            files.push(WebViewerFile::new(name, kind, Bytes::from(body)));
         }
         Ok(WebViewerAssets { files })
     }
 
-    fn get(&self, name: &str) -> Option<(&'static str, Bytes)> {
-        self.files
-            .iter()
-            .find(|(n, _, _)| *n == name)
-            .map(|(_, kind, body)| (*kind, body.clone()))
+    fn get(&self, name: &str) -> Option<&WebViewerFile> {
+        self.files.iter().find(|f| f.name == name)
     }
 }
 
@@ -100,9 +153,12 @@ pub(crate) fn router(assets: Option<Arc<WebViewerAssets>>) -> Router {
         .with_state(assets)
 }
 
-async fn index(State(assets): State<Option<Arc<WebViewerAssets>>>) -> Response {
+async fn index(
+    State(assets): State<Option<Arc<WebViewerAssets>>>,
+    request_headers: HeaderMap,
+) -> Response {
     match assets {
-        Some(assets) => answer(&assets, "index.html"),
+        Some(assets) => answer(&assets, "index.html", &request_headers),
         None => (
             StatusCode::NOT_FOUND,
             [(header::CONTENT_TYPE, "text/plain; charset=utf-8")],
@@ -115,20 +171,31 @@ async fn index(State(assets): State<Option<Arc<WebViewerAssets>>>) -> Response {
 async fn file(
     State(assets): State<Option<Arc<WebViewerAssets>>>,
     UrlPath(name): UrlPath<String>,
+    request_headers: HeaderMap,
 ) -> Response {
     match assets {
-        Some(assets) => answer(&assets, &name),
+        Some(assets) => answer(&assets, &name, &request_headers),
         None => (StatusCode::NOT_FOUND, "not found\n").into_response(),
     }
 }
 
-fn answer(assets: &WebViewerAssets, name: &str) -> Response {
-    let Some((kind, body)) = assets.get(name) else {
+fn answer(assets: &WebViewerAssets, name: &str, request_headers: &HeaderMap) -> Response {
+    let Some(file) = assets.get(name) else {
         return (StatusCode::NOT_FOUND, "not found\n").into_response();
+    };
+    let gzip = file.body.len() >= MIN_GZIP_BYTES && accepts_gzip(request_headers);
+    let body = if gzip {
+        file.gzipped().clone()
+    } else {
+        file.body.clone()
     };
     let mut response = (StatusCode::OK, body).into_response();
     let headers = response.headers_mut();
-    headers.insert(header::CONTENT_TYPE, HeaderValue::from_static(kind));
+    headers.insert(header::CONTENT_TYPE, HeaderValue::from_static(file.kind));
+    if gzip {
+        headers.insert(header::CONTENT_ENCODING, HeaderValue::from_static("gzip"));
+    }
+    headers.insert(header::VARY, HeaderValue::from_static("accept-encoding"));
     // The names are not content-hashed, so the browser revalidates; the files are small next
     // to the bricks, which are cached for good.
     headers.insert(header::CACHE_CONTROL, HeaderValue::from_static("no-cache"));
@@ -217,4 +284,70 @@ pub(crate) async fn receive_frame(
         rgba: body.to_vec(),
     });
     (StatusCode::NO_CONTENT, ()).into_response()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::io::Read as _;
+
+    fn assets() -> WebViewerAssets {
+        // The module's stand-in: large and compressible, as a wasm module is.
+        let wasm: &'static [u8] = Box::leak(
+            (0..200_000u32)
+                .flat_map(|i| (i % 251).to_le_bytes())
+                .collect::<Vec<u8>>()
+                .into_boxed_slice(),
+        );
+        WebViewerAssets::from_static([b"<html></html>", b"body{}", b"boot()", b"glue()", wasm])
+    }
+
+    fn headers(accept: Option<&str>) -> HeaderMap {
+        let mut h = HeaderMap::new();
+        if let Some(a) = accept {
+            h.insert(header::ACCEPT_ENCODING, HeaderValue::from_str(a).unwrap());
+        }
+        h
+    }
+
+    async fn body_of(response: Response) -> Vec<u8> {
+        axum::body::to_bytes(response.into_body(), usize::MAX)
+            .await
+            .unwrap()
+            .to_vec()
+    }
+
+    #[test]
+    fn the_module_goes_gzipped_to_a_browser_that_accepts_it_and_as_is_otherwise() {
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .build()
+            .unwrap();
+        let assets = assets();
+        let original = assets.get("strata_web_bg.wasm").unwrap().body.clone();
+        let gz = answer(
+            &assets,
+            "strata_web_bg.wasm",
+            &headers(Some("gzip, deflate, br, zstd")),
+        );
+        assert_eq!(gz.headers()[header::CONTENT_ENCODING], "gzip");
+        assert_eq!(gz.headers()[header::VARY], "accept-encoding");
+        assert_eq!(gz.headers()[header::CONTENT_TYPE], "application/wasm");
+        let wire = runtime.block_on(body_of(gz));
+        assert!(wire.len() * 4 < original.len(), "{} bytes", wire.len());
+        let mut unpacked = Vec::new();
+        flate2::read::GzDecoder::new(wire.as_slice())
+            .read_to_end(&mut unpacked)
+            .unwrap();
+        assert_eq!(unpacked, original);
+        for refused in [None, Some("br"), Some("gzip;q=0, identity")] {
+            let plain = answer(&assets, "strata_web_bg.wasm", &headers(refused));
+            assert!(plain.headers().get(header::CONTENT_ENCODING).is_none());
+            assert_eq!(runtime.block_on(body_of(plain)), original, "{refused:?}");
+        }
+        // A file too small to gain goes as it is.
+        let small = answer(&assets, "index.html", &headers(Some("gzip")));
+        assert!(small.headers().get(header::CONTENT_ENCODING).is_none());
+        assert!(accepts_gzip(&headers(Some("*"))));
+        assert!(accepts_gzip(&headers(Some("GZIP;q=0.5"))));
+    }
 }

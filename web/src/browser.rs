@@ -19,8 +19,9 @@ use strata_render::{
 use wasm_bindgen::prelude::*;
 use wasm_bindgen::JsCast;
 
-use crate::served_store::{ServedStore, DECODES_PER_FRAME, MAX_ON_THE_WIRE};
+use crate::served_store::{list_stores, ServedStore, DECODES_PER_FRAME, MAX_ON_THE_WIRE};
 use crate::view_state::{Fragment, ViewState};
+use strata_source::wire::StoreList;
 
 /// The largest image edge drawn when the canvas decides (device pixels): a 4K canvas is drawn
 /// at this size and scaled, so one frame stays bounded on a software adapter.
@@ -129,8 +130,12 @@ struct Streamed {
 /// The store being opened: filled by the open's future, taken by the next frame.
 type Opening = Rc<RefCell<Option<Result<ServedStore, String>>>>;
 
+/// The server's store list, filled by its request's future.
+type Stores = Rc<RefCell<Option<Result<StoreList, String>>>>;
+
 struct WebViewer {
     render_state: egui_wgpu::RenderState,
+    stores: Stores,
     streamed: Option<Streamed>,
     opening: Option<Opening>,
     gpu: GpuContext,
@@ -192,8 +197,17 @@ impl WebViewer {
         // rendering dazzles and changes how its contrast reads.
         cc.egui_ctx.set_theme(egui::Theme::Dark);
         let fragment_written = fragment.view.to_fragment();
+        let stores: Stores = Rc::default();
+        let (filled, token, repaint) =
+            (stores.clone(), fragment.token.clone(), cc.egui_ctx.clone());
+        wasm_bindgen_futures::spawn_local(async move {
+            let listed = list_stores(token.as_deref()).await;
+            *filled.borrow_mut() = Some(listed);
+            repaint.request_repaint();
+        });
         Ok(WebViewer {
             render_state,
+            stores,
             streamed: None,
             opening: None,
             gpu,
@@ -363,9 +377,49 @@ impl WebViewer {
         Ok(())
     }
 
+    /// The volume shown: the page's sample, or one of the server's stores (each entry is the
+    /// link `#store=NAME`: choosing it streams that store, and the address then shares it).
+    fn volume_choice(&mut self, ui: &mut egui::Ui) {
+        let mut chosen = self.view.store.clone();
+        let shown = chosen
+            .clone()
+            .unwrap_or_else(|| "sample (made in the page)".into());
+        egui::ComboBox::from_id_salt("volume")
+            .selected_text(shown)
+            .show_ui(ui, |ui| {
+                ui.selectable_value(&mut chosen, None, "sample (made in the page)");
+                match &*self.stores.borrow() {
+                    Some(Ok(list)) => {
+                        for store in &list.stores {
+                            let [x, y, z] = store.dims;
+                            ui.selectable_value(
+                                &mut chosen,
+                                Some(store.name.clone()),
+                                format!("{} ({x}×{y}×{z})", store.name),
+                            );
+                        }
+                    }
+                    Some(Err(e)) => {
+                        ui.label(format!("the server's stores: {e}"));
+                    }
+                    None => {
+                        ui.label("asking the server for its stores…");
+                    }
+                }
+            });
+        if chosen != self.view.store {
+            self.view.store = chosen;
+            self.streamed = None;
+            self.opening = None;
+            self.drawn = None;
+        }
+    }
+
     fn controls(&mut self, ui: &mut egui::Ui) {
         ui.horizontal_wrapped(|ui| {
             ui.strong("Strata");
+            ui.separator();
+            self.volume_choice(ui);
             ui.separator();
             for (mode, label) in [
                 (RenderMode::Dvr, "DVR"),

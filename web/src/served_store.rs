@@ -21,7 +21,7 @@ use std::collections::{HashMap, HashSet, VecDeque};
 use std::rc::Rc;
 use std::sync::Arc;
 
-use strata_source::wire::{brick_path, decode_open_document, API_PREFIX};
+use strata_source::wire::{brick_path, decode_open_document, StoreList, API_PREFIX};
 use strata_source::{
     BrickFetcher, FetchOptions, FetchResult, QueueCounters, RequestClass, SourceError,
     SourceStatus, VolumeSource,
@@ -128,6 +128,17 @@ async fn fetch_bytes(
         Err(_) if signal.is_some_and(|s| s.aborted()) => Err(FetchFailure::Aborted),
         Err(e) => Err(FetchFailure::Transient(js_text(&e))),
     }
+}
+
+/// The server's stores (`GET /v1/stores`), for the page's store list.
+pub async fn list_stores(token: Option<&str>) -> Result<StoreList, String> {
+    let bytes = fetch_bytes(&format!("{API_PREFIX}/stores"), token, None, false)
+        .await
+        .map_err(|failure| match failure {
+            FetchFailure::Aborted => "aborted".to_string(),
+            FetchFailure::Transient(message) | FetchFailure::Refused(message) => message,
+        })?;
+    serde_json::from_slice(&bytes).map_err(|e| format!("the server's store list: {e}"))
 }
 
 impl ServedStore {
