@@ -126,8 +126,9 @@ struct StoreArg {
 
 #[derive(clap::Args)]
 struct ViewArgs {
-    /// A store, a scan to import first (DICOM folder or file, NIfTI, NRRD, MetaImage), or
-    /// http://HOST:PORT/v1/stores/NAME served by `strata serve`. Without it, the demo phantom.
+    /// A store, a scan to import first (DICOM folder or file, NIfTI, NRRD, MetaImage),
+    /// http://HOST:PORT/v1/stores/NAME served by `strata serve`, or a web viewer's link
+    /// (http://HOST:PORT/#store=NAME&az=…: that store and view). Without it, the demo phantom.
     path: Option<PathBuf>,
     /// Bearer token for a server that requires one.
     #[arg(long)]

@@ -53,6 +53,11 @@ impl Opened {
 const TLS_CA_VARIABLE: &str = "STRATA_TLS_CA";
 
 pub fn open_remote(url: &str, token_file: Option<&Path>) -> Result<Arc<RemoteSource>> {
+    open_remote_with_token(url, token_file.map(read_token).transpose()?)
+}
+
+/// [`open_remote`] with the token itself (a viewer link's, held in memory only).
+pub fn open_remote_with_token(url: &str, token: Option<String>) -> Result<Arc<RemoteSource>> {
     let tls_ca_pem = match std::env::var_os(TLS_CA_VARIABLE) {
         Some(path) => Some(std::fs::read(&path).with_context(|| {
             format!(
@@ -63,7 +68,7 @@ pub fn open_remote(url: &str, token_file: Option<&Path>) -> Result<Arc<RemoteSou
         None => None,
     };
     let options = RemoteOptions {
-        token: token_file.map(read_token).transpose()?,
+        token,
         tls_ca_pem,
         ..RemoteOptions::default()
     };

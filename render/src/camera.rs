@@ -57,7 +57,29 @@ impl Camera {
         zoom: f64,
         projection: Projection,
     ) -> Self {
-        let centre = geometry.centre_patient();
+        Camera::orbit_panned(
+            geometry,
+            azimuth_deg,
+            elevation_deg,
+            zoom,
+            [0.0, 0.0],
+            projection,
+        )
+    }
+
+    /// [`Camera::orbit`] with the target moved in the view plane by `pan` (right, up) in
+    /// units of the volume's bounding radius: the desktop viewer's camera and a shared link's
+    /// (`pan=`), one definition so that a link opens the same picture in either viewer. An
+    /// orthographic `projection`'s height is replaced by the one that frames the bounding
+    /// sphere at `zoom`.
+    pub fn orbit_panned(
+        geometry: &VolumeGeometry,
+        azimuth_deg: f64,
+        elevation_deg: f64,
+        zoom: f64,
+        pan: [f64; 2],
+        projection: Projection,
+    ) -> Self {
         let radius = geometry.bounding_radius_mm().max(1e-6);
         let zoom = if zoom.is_finite() && zoom > 1e-6 {
             zoom
@@ -65,10 +87,9 @@ impl Camera {
             1.0
         };
         let (az, el) = (azimuth_deg.to_radians(), elevation_deg.to_radians());
-        let up_axis = DVec3::new(0.0, 0.0, 1.0);
+        let superior = DVec3::Z;
         // Azimuth 0 looks from anterior (-y in LPS) towards posterior, as a frontal view.
-        let dir_from_centre =
-            DVec3::new(az.sin() * el.cos(), -az.cos() * el.cos(), 0.0) + up_axis * el.sin();
+        let from_centre = DVec3::new(az.sin() * el.cos(), -az.cos() * el.cos(), el.sin());
         let (distance, projection) = match projection {
             Projection::Perspective { fov_y_deg } => {
                 let half = (fov_y_deg.to_radians() * 0.5).max(1e-3);
@@ -81,16 +102,25 @@ impl Camera {
                 },
             ),
         };
-        let eye = centre + dir_from_centre * distance;
-        // Straight up/down: fall back to anterior as up so the frame stays defined.
-        let up = if dir_from_centre.cross(up_axis).length() < 1e-9 {
-            DVec3::new(0.0, -1.0, 0.0)
+        // Straight up/down the superior axis: anterior at the top keeps the frame defined.
+        let up = if from_centre.cross(superior).length() < 1e-6 {
+            -DVec3::Y
         } else {
-            up_axis
+            superior
         };
+        let forward = -from_centre;
+        let right = forward.cross(up).normalize_or_zero();
+        let screen_up = right.cross(forward);
+        let pan = if pan.iter().all(|p| p.is_finite()) {
+            pan
+        } else {
+            [0.0, 0.0]
+        };
+        let target = geometry.centre_patient() + (right * pan[0] + screen_up * pan[1]) * radius;
+        let eye = target + from_centre * distance;
         Camera {
             eye: eye.into(),
-            target: centre.into(),
+            target: target.into(),
             up: up.into(),
             projection,
         }

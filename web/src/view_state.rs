@@ -50,6 +50,11 @@ pub struct ViewState {
     pub azimuth_deg: f64,
     pub elevation_deg: f64,
     pub zoom: f64,
+    /// The target moved in the view plane (right, up) in units of the volume's bounding
+    /// radius, as the desktop viewer pans ([`Camera::orbit_panned`]).
+    pub pan: [f64; 2],
+    /// Parallel projection (the desktop's "orthographic" switch) instead of perspective.
+    pub orthographic: bool,
     /// Isosurface value in the volume's physical unit (HU for the CT sample).
     pub iso_value: f64,
     /// Edge of the built-in sample volume (voxels).
@@ -76,6 +81,8 @@ impl Default for ViewState {
             azimuth_deg: 30.0,
             elevation_deg: 15.0,
             zoom: 1.0,
+            pan: [0.0, 0.0],
+            orthographic: false,
             iso_value: 300.0,
             volume_edge: DEFAULT_VOLUME_EDGE,
             store: None,
@@ -178,6 +185,22 @@ impl Fragment {
                 "el" => view.elevation_deg = finite(key, value, -90.0..=90.0)?,
                 "zoom" => view.zoom = finite(key, value, 0.05..=100.0)?,
                 "iso" => view.iso_value = finite(key, value, -1.0e6..=1.0e6)?,
+                "pan" => {
+                    let (x, y) = value
+                        .split_once(',')
+                        .ok_or_else(|| bad(key, value, "two numbers X,Y"))?;
+                    view.pan = [
+                        finite(key, x, -100.0..=100.0)?,
+                        finite(key, y, -100.0..=100.0)?,
+                    ];
+                }
+                "proj" => {
+                    view.orthographic = match value {
+                        "persp" => false,
+                        "ortho" => true,
+                        _ => return Err(bad(key, value, "persp or ortho")),
+                    }
+                }
                 "volume" => {
                     view.volume_edge = match value.parse::<u32>() {
                         Ok(n) if (8..=MAX_VOLUME_EDGE).contains(&n) => n,
@@ -247,6 +270,16 @@ impl ViewState {
             format!("el={}", round3(self.elevation_deg)),
             format!("zoom={}", round3(self.zoom)),
         ]);
+        if self.pan != [0.0, 0.0] {
+            parts.push(format!(
+                "pan={},{}",
+                round3(self.pan[0]),
+                round3(self.pan[1])
+            ));
+        }
+        if self.orthographic {
+            parts.push("proj=ortho".into());
+        }
         if self.mode == RenderMode::Isosurface {
             parts.push(format!("iso={}", round3(self.iso_value)));
         }
@@ -269,16 +302,24 @@ impl ViewState {
         ct_phantom(self.geometry(), None, None)
     }
 
-    /// The orbit camera, as `strata render --azimuth --elevation --zoom` builds it.
+    /// The orbit camera, as `strata render --azimuth --elevation --zoom` and the desktop
+    /// viewer build it (the same function: a link opens the same picture in both).
     pub fn camera(&self, geometry: &VolumeGeometry) -> Camera {
-        Camera::orbit(
+        let projection = if self.orthographic {
+            // orbit_panned sizes the height from the zoom.
+            Projection::Orthographic { height_mm: 1.0 }
+        } else {
+            Projection::Perspective {
+                fov_y_deg: FOV_Y_DEG,
+            }
+        };
+        Camera::orbit_panned(
             geometry,
             self.azimuth_deg,
             self.elevation_deg,
             self.zoom,
-            Projection::Perspective {
-                fov_y_deg: FOV_Y_DEG,
-            },
+            self.pan,
+            projection,
         )
     }
 
@@ -321,6 +362,8 @@ mod tests {
             azimuth_deg: -42.5,
             elevation_deg: 12.25,
             zoom: 1.75,
+            pan: [0.125, -0.5],
+            orthographic: true,
             iso_value: 250.0,
             volume_edge: 64,
             store: None,
@@ -361,6 +404,12 @@ mod tests {
         assert!(e.to_string().contains("`zoom`"), "{e}");
         let e = Fragment::parse("#volume=100000").expect_err("huge volume");
         assert!(e.to_string().contains("256"), "{e}");
+        let e = Fragment::parse("#pan=0.1").expect_err("one pan coordinate");
+        assert!(e.to_string().contains("`pan`"), "{e}");
+        let e = Fragment::parse("#pan=0.1,inf").expect_err("infinite pan");
+        assert!(e.to_string().contains("`pan`"), "{e}");
+        let e = Fragment::parse("#proj=fisheye").expect_err("unknown projection");
+        assert!(e.to_string().contains("`proj`"), "{e}");
         let e = Fragment::parse("#size=0x5").expect_err("empty image");
         assert!(e.to_string().contains("`size`"), "{e}");
         for name in ["../etc", "a/b", ".hidden", ""] {

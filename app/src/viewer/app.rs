@@ -13,6 +13,7 @@ use strata_render::{CropBox, RenderMode};
 use super::dialogs::{HelpWindow, OpenDialog};
 use super::history::History;
 use super::jobs::{PrepareJob, VolumeSource};
+use super::links::{self, DesktopView};
 use super::measurements::Measurements;
 use super::oblique_view::{AlignTarget, ObliqueViewer};
 use super::orientation::{SliceFrame, SliceView};
@@ -137,6 +138,44 @@ pub struct StrataApp {
     pub export: Option<Arc<super::exports::ExportProgress>>,
     /// A restarted viewer's saved session, put back when its volume opens (session_restore.rs).
     pub pending_restore: Option<super::session_restore::SavedSession>,
+    /// The view of the viewer link being opened (links.rs), applied when its store opens.
+    pending_link_view: Option<DesktopView>,
+}
+
+/// A viewer link (`http://HOST:PORT/#store=NAME&…`, links.rs) as the store's URL and its view;
+/// anything else as it is. The error names the link (without its token).
+fn resolve_link(source: VolumeSource) -> (VolumeSource, Option<DesktopView>, Option<String>) {
+    let (text, token_file) = match &source {
+        VolumeSource::Url {
+            url, token_file, ..
+        } => (url.clone(), token_file.clone()),
+        VolumeSource::Path(p) => (p.to_string_lossy().into_owned(), None),
+        VolumeSource::Demo { .. } => return (source, None, None),
+    };
+    if !links::is_link(&text) {
+        return (source, None, None);
+    }
+    match links::parse_link(&text) {
+        Ok(link) => (
+            VolumeSource::Url {
+                url: link.store_url,
+                token_file,
+                token: link.token,
+            },
+            Some(links::desktop_view(&link.view)),
+            None,
+        ),
+        Err(e) => (
+            source_without_link(),
+            None,
+            Some(format!("cannot open the link: {e}")),
+        ),
+    }
+}
+
+/// What stands in for a link that could not be read (its text may hold a token).
+fn source_without_link() -> VolumeSource {
+    VolumeSource::Path(PathBuf::new())
 }
 
 fn lock_free_repaint(ctx: &egui::Context) -> super::volume_session::Repaint {
@@ -145,7 +184,11 @@ fn lock_free_repaint(ctx: &egui::Context) -> super::volume_session::Repaint {
 }
 
 impl StrataApp {
-    pub fn new(ctx: egui::Context, preferences: Preferences, options: ViewerOptions) -> Self {
+    pub fn new(ctx: egui::Context, preferences: Preferences, mut options: ViewerOptions) -> Self {
+        // A viewer link: the store's URL from here on (a link's token must not show in the
+        // Open dialog or a job title), its view applied when the store opens.
+        let (source, link_view, link_error) = resolve_link(options.source.clone());
+        options.source = source;
         let open_path = match &options.source {
             VolumeSource::Path(p) => p.display().to_string(),
             VolumeSource::Url { url, .. } => url.clone(),
@@ -174,6 +217,7 @@ impl StrataApp {
             saved_screenshot: None,
             export: None,
             pending_restore: None,
+            pending_link_view: None,
             options,
         };
         if let Some(layout) = app.options.initial_layout {
@@ -184,12 +228,35 @@ impl StrataApp {
         }
         let source = app.options.source.clone();
         let series = app.options.dicom_series.clone();
-        app.start_job(source, series);
+        match link_error {
+            Some(e) => app.job_error = Some(e),
+            None => app.start_resolved_job(source, series, link_view),
+        }
         app
     }
 
+    /// Opens `source`: a store, a scan to import, a served store's URL or a viewer link.
     fn start_job(&mut self, source: VolumeSource, dicom_series: Option<String>) {
+        let (source, link_view, link_error) = resolve_link(source);
+        match link_error {
+            Some(e) => self.job_error = Some(e),
+            None => self.start_resolved_job(source, dicom_series, link_view),
+        }
+    }
+
+    /// [`Self::start_job`] once a link is resolved: `link_view` is shown when the store opens.
+    fn start_resolved_job(
+        &mut self,
+        source: VolumeSource,
+        dicom_series: Option<String>,
+        link_view: Option<DesktopView>,
+    ) {
         self.job_error = None;
+        if let Some(view) = &link_view {
+            self.preferences.preset = view.preset.clone();
+            self.preferences.mode = view.mode;
+        }
+        self.pending_link_view = link_view;
         match PrepareJob::start(
             source,
             dicom_series,
@@ -319,7 +386,7 @@ impl StrataApp {
             &header.value_mapping.unit,
             info.physical_range,
         );
-        let asked = self.options.initial_preset.is_some();
+        let asked = self.options.initial_preset.is_some() || self.pending_link_view.is_some();
         if !PRESETS.iter().any(|(p, _)| *p == self.preferences.preset)
             || (!asked
                 && ((!is_ct && self.preferences.preset.starts_with("ct-"))
@@ -371,6 +438,10 @@ impl StrataApp {
         };
         let mut scene = scene;
         let mut orbit = orbit;
+        if let Some(view) = self.pending_link_view.take() {
+            orbit = view.orbit;
+            scene.iso_value = view.iso_value;
+        }
         if let Some(saved) = self.pending_restore.take() {
             if saved.apply(&location, &mut scene, &mut orbit) {
                 self.toast = Some(Toast {
@@ -401,6 +472,21 @@ impl StrataApp {
             frames: frame_player,
         });
         Ok(())
+    }
+
+    /// The link to the 3D view of the served store on screen (links.rs); None without a volume
+    /// or for a volume that is not a served store.
+    pub fn share_link(&self) -> Option<String> {
+        let v = self.volume.as_ref()?;
+        links::link_for(
+            &v.data.store_path.to_string_lossy(),
+            &DesktopView {
+                orbit: v.view_3d.orbit,
+                mode: self.preferences.mode,
+                preset: self.preferences.preset.clone(),
+                iso_value: v.scene.iso_value,
+            },
+        )
     }
 
     /// The session as a restarted viewer would put it back; None without a volume.
@@ -893,6 +979,23 @@ impl StrataApp {
                     .clicked()
                 {
                     v.view_3d.reset(orthographic);
+                }
+            }
+            if let Some(link) = self.share_link() {
+                if ui
+                    .button("Copy link")
+                    .on_hover_text(
+                        "Copy a link to this view of the served store: it opens in a browser \
+                         (strata serve's web viewer) or in Strata (strata view LINK). The \
+                         server's token is not in it.",
+                    )
+                    .clicked()
+                {
+                    ui.ctx().copy_text(link);
+                    self.toast = Some(Toast {
+                        text: "link to this view copied".into(),
+                        shown_at: Instant::now(),
+                    });
                 }
             }
             ui.separator();

@@ -25,6 +25,9 @@ pub enum VolumeSource {
     Url {
         url: String,
         token_file: Option<PathBuf>,
+        /// A bearer token from a viewer link's `#token=` (links.rs): kept in memory only,
+        /// and used instead of `token_file`.
+        token: Option<String>,
     },
 }
 
@@ -188,7 +191,19 @@ fn prepare(
 ) -> anyhow::Result<Arc<dyn strata_source::VolumeSource>> {
     let cache = strata_storage::store::DEFAULT_READ_CACHE_BYTES;
     match source {
-        VolumeSource::Url { url, token_file } => {
+        VolumeSource::Url {
+            url,
+            token: Some(token),
+            ..
+        } => {
+            set_stage(format!("connecting to {url}"));
+            let remote: Arc<dyn strata_source::VolumeSource> =
+                crate::volume_location::open_remote_with_token(url, Some(token.clone()))?;
+            Ok(remote)
+        }
+        VolumeSource::Url {
+            url, token_file, ..
+        } => {
             set_stage(format!("connecting to {url}"));
             crate::volume_location::open_source(url, token_file.as_deref(), cache)
         }
@@ -333,6 +348,7 @@ mod remote_tests {
             VolumeSource::Url {
                 url: url.clone(),
                 token_file: None,
+                token: None,
             },
             VolumeSource::Path(path.clone()),
         ] {

@@ -21,6 +21,7 @@ pub mod frames;
 pub mod gpu_recovery;
 pub mod history;
 pub mod jobs;
+pub mod links;
 pub mod measurements;
 pub mod oblique;
 pub mod oblique_view;
@@ -156,5 +157,9 @@ pub fn path_source(path: PathBuf) -> VolumeSource {
 
 /// A store served by `strata serve`, streamed (with the bearer token in `token_file`).
 pub fn url_source(url: String, token_file: Option<PathBuf>) -> VolumeSource {
-    VolumeSource::Url { url, token_file }
+    VolumeSource::Url {
+        url,
+        token_file,
+        token: None,
+    }
 }

@@ -2526,3 +2526,95 @@ fn the_cinematic_presets_set_the_tf_and_lighting_the_3d_view_renders_with() {
         settled_frame(a).filter(|f| f.request.settings.effective_occlusion().is_some())
     });
 }
+
+/// Issue 39, shareable views: the browser viewer's link to a served store opens that store in
+/// the desktop viewer with the link's view (camera, mode, preset), the server's token taken
+/// from the link; "Copy link" gives the view back as a link without the token.
+#[test]
+fn a_viewer_link_opens_its_store_and_view_and_copy_link_gives_it_back_without_the_token() {
+    use super::links;
+    use super::view3d::OrbitCamera;
+    use strata_render::RenderMode;
+    use strata_service::server::{name_for_store, start, ServeOptions};
+
+    let dir = tempfile::tempdir().expect("temp dir");
+    let store = phantom_store(dir.path());
+    let name = name_for_store(&store);
+    let token = "link-token-0123456789abcdef";
+    let server = start(
+        vec![(name.clone(), store.clone())],
+        ServeOptions {
+            token: Some(token.into()),
+            ..ServeOptions::default()
+        },
+    )
+    .expect("serving the phantom");
+    let link = format!(
+        "{}/#store={name}&mode=mip&preset=ct-soft-tissue&az=-60&el=25&zoom=1.5&pan=0.1,-0.05&token={token}",
+        server.base_url()
+    );
+    let mut options = ViewerOptions::new(VolumeSource::Url {
+        url: link,
+        token_file: None,
+        token: None,
+    });
+    options.import_folder = dir.path().join("imported");
+    let preferences = Preferences {
+        layout: Layout::Single,
+        ..Preferences::default()
+    };
+    // Wide enough for the whole toolbar, "Copy link" included.
+    let mut h = harness_sized(options, preferences, Vec2::new(1400.0, 300.0));
+    step_until(&mut h, "the linked store to open", |a| a.volume.is_some());
+    let expected_orbit = OrbitCamera {
+        azimuth_deg: -60.0,
+        elevation_deg: 25.0,
+        zoom: 1.5,
+        pan: [0.1, -0.05],
+        orthographic: false,
+    };
+    let copied = {
+        let a = app(&h);
+        let v = a.volume.as_ref().expect("opened");
+        assert_eq!(v.view_3d.orbit, expected_orbit);
+        assert_eq!(a.preferences.mode, RenderMode::Mip);
+        assert_eq!(a.preferences.preset, "ct-soft-tissue");
+        assert_eq!(
+            v.data.store_path.to_string_lossy(),
+            server.store_url(&name),
+            "streamed from the link's server"
+        );
+        a.share_link().expect("a served store has a link")
+    };
+    assert!(!copied.contains(token), "{copied}");
+    let reopened = links::parse_link(&copied).expect("the copied link parses");
+    assert_eq!(reopened.store_url, server.store_url(&name));
+    assert_eq!(links::desktop_view(&reopened.view).orbit, expected_orbit);
+    assert_eq!(reopened.view.mode, RenderMode::Mip);
+
+    h.get_by_label("Copy link").click();
+    let mut clipboard = None;
+    for _ in 0..3 {
+        h.step();
+        clipboard = clipboard.or_else(|| {
+            h.output()
+                .platform_output
+                .commands
+                .iter()
+                .find_map(|c| match c {
+                    egui::OutputCommand::CopyText(text) => Some(text.clone()),
+                    _ => None,
+                })
+        });
+    }
+    assert_eq!(clipboard.as_deref(), Some(copied.as_str()));
+    assert_eq!(
+        server
+            .counters()
+            .unauthorized
+            .load(std::sync::atomic::Ordering::Relaxed),
+        0,
+        "every request carried the link's token"
+    );
+    server.stop();
+}

@@ -123,50 +123,23 @@ impl OrbitCamera {
         }
     }
 
-    /// Built here rather than with `Camera::orbit`, which takes -z (inferior in LPS) as up and
-    /// so shows heads upside down; a radiologist expects superior at the top.
+    /// The camera this orbit shows: [`Camera::orbit_panned`], the one definition a shared
+    /// link's view (strata_web::view_state) also uses.
     pub fn camera(&self, geometry: &VolumeGeometry) -> Camera {
-        let radius = geometry.bounding_radius_mm().max(1e-6);
-        let zoom = if self.zoom.is_finite() && self.zoom > 1e-6 {
-            self.zoom
+        let projection = if self.orthographic {
+            // orbit_panned sizes the height from the zoom.
+            Projection::Orthographic { height_mm: 1.0 }
         } else {
-            1.0
+            Projection::Perspective { fov_y_deg: 30.0 }
         };
-        let (az, el) = (
-            self.azimuth_deg.to_radians(),
-            self.elevation_deg.to_radians(),
-        );
-        let superior = DVec3::Z;
-        let from_centre = DVec3::new(az.sin() * el.cos(), -az.cos() * el.cos(), el.sin());
-        let fov_y_deg = 30.0f64;
-        let (distance, projection) = if self.orthographic {
-            (
-                radius * 3.0,
-                Projection::Orthographic {
-                    height_mm: 2.0 * radius / zoom,
-                },
-            )
-        } else {
-            (
-                radius / (fov_y_deg.to_radians() * 0.5).sin() / zoom,
-                Projection::Perspective { fov_y_deg },
-            )
-        };
-        // Looking straight down or up the superior axis: keep anterior at the top of the screen.
-        let up = if from_centre.cross(superior).length() < 1e-6 {
-            -DVec3::Y
-        } else {
-            superior
-        };
-        let (right, screen_up) = {
-            let forward = -from_centre;
-            let right = forward.cross(up).normalize_or_zero();
-            (right, right.cross(forward))
-        };
-        let shift = (right * self.pan[0] + screen_up * self.pan[1]) * radius;
-        let target = geometry.centre_patient() + shift;
-        let eye = target + from_centre * distance;
-        Camera::look_at(eye.into(), target.into(), up.into(), projection)
+        Camera::orbit_panned(
+            geometry,
+            self.azimuth_deg,
+            self.elevation_deg,
+            self.zoom,
+            self.pan,
+            projection,
+        )
     }
 
     /// Orbit by a drag of `delta` points in a view `size` points tall.
