@@ -221,6 +221,31 @@ pub struct CapturedFrame {
     pub width: u32,
     pub height: u32,
     pub rgba: Vec<u8>,
+    /// The page's own measurements sent along (`name=value` in the query besides the size:
+    /// time to first image, to convergence, frame times; see strata-web's page_timing.rs).
+    pub metrics: Vec<(String, f64)>,
+}
+
+/// Most measurements a captured frame carries (the page sends six).
+const MAX_FRAME_METRICS: usize = 16;
+
+/// The query's `name=value` pairs other than the size whose name is a short lowercase word
+/// and whose value is a finite number; anything else is ignored (a test hook, bounded).
+fn frame_metrics(query: &str) -> Vec<(String, f64)> {
+    query
+        .split('&')
+        .filter_map(|pair| pair.split_once('='))
+        .filter(|(name, _)| {
+            !matches!(*name, "width" | "height")
+                && (1..=32).contains(&name.len())
+                && name.bytes().all(|b| b.is_ascii_lowercase() || b == b'_')
+        })
+        .filter_map(|(name, value)| {
+            let value = value.parse::<f64>().ok().filter(|v| v.is_finite())?;
+            Some((name.to_string(), value))
+        })
+        .take(MAX_FRAME_METRICS)
+        .collect()
 }
 
 /// Test hook: receives frames the page posts to `/v1/test/frame`. The route exists only on a
@@ -282,6 +307,7 @@ pub(crate) async fn receive_frame(
         width: size.width,
         height: size.height,
         rgba: body.to_vec(),
+        metrics: frame_metrics(uri.query().unwrap_or("")),
     });
     (StatusCode::NO_CONTENT, ()).into_response()
 }
@@ -315,6 +341,26 @@ mod tests {
             .await
             .unwrap()
             .to_vec()
+    }
+
+    #[test]
+    fn a_captured_frames_metrics_are_bounded_named_numbers() {
+        let metrics = frame_metrics(
+            "width=4&height=2&first_image_ms=812.5&converged_ms=20113.25&bad-name=1&\
+             UPPER=2&nan_ms=NaN&inf_ms=inf&text_ms=abc&frame_ms_median=41.000",
+        );
+        assert_eq!(
+            metrics,
+            vec![
+                ("first_image_ms".to_string(), 812.5),
+                ("converged_ms".to_string(), 20113.25),
+                ("frame_ms_median".to_string(), 41.0),
+            ]
+        );
+        let many: Vec<String> = (0..40)
+            .map(|i| format!("m_{}=1", "x".repeat(i % 5 + 1)))
+            .collect();
+        assert_eq!(frame_metrics(&many.join("&")).len(), MAX_FRAME_METRICS);
     }
 
     #[test]

@@ -19,6 +19,7 @@ use strata_render::{
 use wasm_bindgen::prelude::*;
 use wasm_bindgen::JsCast;
 
+use crate::page_timing::{PageTiming, BENCH_DEG_PER_FRAME};
 use crate::served_store::{list_stores, ServedStore, DECODES_PER_FRAME, MAX_ON_THE_WIRE};
 use crate::view_state::{Fragment, ViewState};
 use strata_source::wire::StoreList;
@@ -157,6 +158,8 @@ struct WebViewer {
     capture: Option<Capture>,
     /// The bearer token from the link's fragment: kept in memory, sent as `Authorization`.
     token: Option<String>,
+    /// Time to first and converged image, the bench's frame times (sent with the capture).
+    timing: PageTiming,
 }
 
 impl WebViewer {
@@ -211,6 +214,7 @@ impl WebViewer {
             streamed: None,
             opening: None,
             gpu,
+            timing: PageTiming::new(fragment.view.bench_frames),
             view: fragment.view,
             volume: None,
             renderer: None,
@@ -342,6 +346,7 @@ impl WebViewer {
         if !stats.converged {
             ctx.request_repaint();
         }
+        self.timing.submitted(stats.converged);
         streamed.last = Some(stats);
         self.frames_submitted += 1;
         let view = streamed
@@ -367,6 +372,8 @@ impl WebViewer {
         renderer
             .submit(&self.gpu, volume, &camera, &settings)
             .map_err(|e| e.to_string())?;
+        // The sample is drawn whole in one frame.
+        self.timing.submitted(true);
         self.frames_submitted += 1;
         let view = renderer
             .raycaster
@@ -515,7 +522,7 @@ impl WebViewer {
     /// Test hook (`capture=1`): copies the frame on screen to a buffer, maps it, and posts the
     /// pixels to the server that served the page, once.
     fn capture_step(&mut self, ctx: &egui::Context) {
-        if !self.view.capture {
+        if !self.view.capture || !self.timing.bench_done() {
             return;
         }
         let Some((_, size)) = self.drawn.clone() else {
@@ -618,8 +625,9 @@ impl WebViewer {
                 capture.buffer.unmap();
                 capture.state.store(CAPTURE_SENT, Ordering::Release);
                 let token = self.token.clone();
+                let metrics = self.timing.metrics();
                 wasm_bindgen_futures::spawn_local(async move {
-                    if let Err(e) = post_frame(&rgba, w, h, token.as_deref()).await {
+                    if let Err(e) = post_frame(&rgba, w, h, &metrics, token.as_deref()).await {
                         show_message("The test capture could not be sent", &e);
                     }
                 });
@@ -663,6 +671,7 @@ async fn post_frame(
     rgba: &[u8],
     width: u32,
     height: u32,
+    metrics: &[(&str, f64)],
     token: Option<&str>,
 ) -> Result<(), String> {
     let window = web_sys::window().ok_or("no window")?;
@@ -677,7 +686,10 @@ async fn post_frame(
     }
     let body = js_sys::Uint8Array::from(rgba);
     init.set_body(&body.into());
-    let url = format!("/v1/test/frame?width={width}&height={height}");
+    let mut url = format!("/v1/test/frame?width={width}&height={height}");
+    for (name, value) in metrics {
+        url.push_str(&format!("&{name}={value:.3}"));
+    }
     let request =
         web_sys::Request::new_with_str_and_init(&url, &init).map_err(|e| format!("{e:?}"))?;
     let answer = wasm_bindgen_futures::JsFuture::from(window.fetch_with_request(&request))
@@ -738,6 +750,10 @@ impl eframe::App for WebViewer {
                     self.view.elevation_deg = (self.view.elevation_deg
                         + delta.y as f64 * ORBIT_DEG_PER_POINT)
                         .clamp(-89.0, 89.0);
+                }
+                if self.timing.orbiting() {
+                    self.view.azimuth_deg += BENCH_DEG_PER_FRAME;
+                    ctx.request_repaint();
                 }
                 if response.hovered() {
                     let scroll = ui.input(|i| i.smooth_scroll_delta.y);

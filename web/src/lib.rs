@@ -6,6 +6,8 @@
 //! - [`view_state`]: the URL fragment ⇄ the view (camera, mode, preset, size). Platform
 //!   independent: the native tests render the same view to check the browser's pixels.
 //! - `browser` (wasm32 only): the page's entry point, the viewer app, the frame capture.
+//! - `page_timing` (wasm32 only): time to first and converged image and the bench's frame
+//!   times (`bench=N`), posted with the test capture (issue 39's benchmark).
 //! - `served_store` (wasm32 only): `strata serve`'s client on `fetch()`, the volume source the
 //!   streaming loader reads a served store through (`#store=NAME`), with the loader's work
 //!   inline on the page's one thread (strata_loader::LoaderWork::Inline).
@@ -17,5 +19,7 @@ pub mod view_state;
 
 #[cfg(target_arch = "wasm32")]
 mod browser;
+#[cfg(target_arch = "wasm32")]
+mod page_timing;
 #[cfg(target_arch = "wasm32")]
 mod served_store;

@@ -26,6 +26,8 @@ pub const MAX_VOLUME_EDGE: u32 = 256;
 pub const MAX_IMAGE_EDGE: u32 = 4096;
 /// Frames a `capture=unconverged` page draws before it captures (test hook).
 pub const UNCONVERGED_CAPTURE_FRAMES: u64 = 12;
+/// Most frames a `bench=` fragment may orbit (each is a full frame on a software adapter).
+pub const MAX_BENCH_FRAMES: u32 = 1000;
 /// The orbit camera's field of view, as `strata render`'s perspective default.
 pub const FOV_Y_DEG: f64 = 30.0;
 
@@ -71,6 +73,9 @@ pub struct ViewState {
     /// converged or not (a page whose server stalls must go on drawing); `capture=1` waits
     /// for a streamed view to converge.
     pub capture_unconverged: bool,
+    /// Benchmark hook (`bench=N`): once the view converged, orbit N frames and report their
+    /// frame time with the capture. Not written back into the address.
+    pub bench_frames: u32,
 }
 
 impl Default for ViewState {
@@ -89,6 +94,7 @@ impl Default for ViewState {
             image_size: None,
             capture: false,
             capture_unconverged: false,
+            bench_frames: 0,
         }
     }
 }
@@ -248,6 +254,18 @@ impl Fragment {
                     view.capture = value == "1" || value == "unconverged";
                     view.capture_unconverged = value == "unconverged";
                 }
+                "bench" => {
+                    view.bench_frames = match value.parse::<u32>() {
+                        Ok(n) if n <= MAX_BENCH_FRAMES => n,
+                        _ => {
+                            return Err(bad(
+                                key,
+                                value,
+                                format!("a whole number of frames up to {MAX_BENCH_FRAMES}"),
+                            ))
+                        }
+                    }
+                }
                 "token" if !value.is_empty() => token = Some(value.to_string()),
                 _ => {}
             }
@@ -370,6 +388,7 @@ mod tests {
             image_size: Some([160, 120]),
             capture: false,
             capture_unconverged: false,
+            bench_frames: 0,
         };
         let parsed = Fragment::parse(&view.to_fragment()).expect("own fragment parses");
         assert_eq!(parsed.view, view);
