@@ -20,6 +20,7 @@ use wasm_bindgen::prelude::*;
 use wasm_bindgen::JsCast;
 
 use crate::served_store::{list_stores, ServedStore, DECODES_PER_FRAME, MAX_ON_THE_WIRE};
+use crate::slice_views::{two_by_two, SliceViews};
 use crate::view_state::{Fragment, ViewState};
 use strata_source::wire::StoreList;
 
@@ -125,6 +126,8 @@ struct Streamed {
     volume: StreamingVolume,
     /// The last frame's loader statistics (converged, bricks read, status).
     last: Option<FrameStats>,
+    /// The three slice views beside the 3D view (slice_views.rs).
+    slices: SliceViews,
 }
 
 /// The store being opened: filled by the open's future, taken by the next frame.
@@ -298,7 +301,8 @@ impl WebViewer {
         let Some(opened) = opening.borrow_mut().take() else {
             return Ok(false);
         };
-        let store = opened?;
+        let store = Arc::new(opened?);
+        let slices = SliceViews::new(store.as_ref())?;
         let config = StreamingConfig {
             // The page shares the GPU and memory with the rest of the browser.
             gpu_budget_bytes: 256 << 20,
@@ -311,14 +315,13 @@ impl WebViewer {
             work: LoaderWork::Inline,
             ..StreamingConfig::default()
         };
-        let volume = StreamingVolume::new(
-            &self.gpu,
-            Arc::new(store),
-            &self.view.transfer_function(),
-            config,
-        )
-        .map_err(|e| e.to_string())?;
-        self.streamed = Some(Streamed { volume, last: None });
+        let volume = StreamingVolume::new(&self.gpu, store, &self.view.transfer_function(), config)
+            .map_err(|e| e.to_string())?;
+        self.streamed = Some(Streamed {
+            volume,
+            last: None,
+            slices,
+        });
         self.renderer_preset = self.view.preset.clone();
         Ok(true)
     }
@@ -484,8 +487,9 @@ impl WebViewer {
             };
             ui.horizontal(|ui| {
                 ui.label(format!(
-                    "Store {name} · {detail} · drag to orbit, scroll to zoom; the address holds \
-                     this view · not for diagnostic use"
+                    "Store {name} · {detail} · 3D: drag to orbit, scroll to zoom; slices: click \
+                     moves the crosshair, scroll pages, right drag (or Shift+drag) windows; the \
+                     address holds the 3D view · not for diagnostic use"
                 ));
             });
             return;
@@ -493,7 +497,8 @@ impl WebViewer {
         ui.horizontal(|ui| {
             ui.label(format!(
                 "Sample volume {}³ (CT phantom made in the page) · frames drawn {} · drag to \
-                 orbit, scroll to zoom; the address holds this view · not for diagnostic use",
+                 orbit, scroll to zoom; the address holds this view · slice views: for a \
+                 server's store (Volume menu) · not for diagnostic use",
                 self.view.volume_edge, self.frames_submitted
             ));
         });
@@ -730,7 +735,14 @@ impl eframe::App for WebViewer {
                         return;
                     }
                 }
-                let rect = ui.available_rect_before_wrap();
+                // A streamed store: the desktop's 2×2 of the 3D view and three slice views.
+                let area = ui.available_rect_before_wrap();
+                let (rect, slice_rects) = if self.streamed.is_some() {
+                    let (rect, slices) = two_by_two(area);
+                    (rect, Some(slices))
+                } else {
+                    (area, None)
+                };
                 let response = ui.allocate_rect(rect, egui::Sense::drag());
                 if response.dragged() {
                     let delta = response.drag_delta();
@@ -777,6 +789,9 @@ impl eframe::App for WebViewer {
                         egui::Rect::from_min_max(egui::pos2(0.0, 0.0), egui::pos2(1.0, 1.0)),
                         egui::Color32::WHITE,
                     );
+                }
+                if let (Some(rects), Some(streamed)) = (slice_rects, self.streamed.as_mut()) {
+                    streamed.slices.ui(ui, rects);
                 }
                 self.write_fragment(response.dragged());
             });
