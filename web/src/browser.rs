@@ -632,7 +632,21 @@ impl WebViewer {
             CAPTURE_FAILED => {
                 self.error = Some("the test capture's buffer could not be mapped".into());
             }
-            CAPTURE_SENT => {}
+            CAPTURE_SENT => {
+                // Then, once, the axial slice view's image (slice_views.rs).
+                if let Some(streamed) = self.streamed.as_mut() {
+                    if let Some((rgba, w, h)) = streamed.slices.take_capture() {
+                        let token = self.token.clone();
+                        wasm_bindgen_futures::spawn_local(async move {
+                            if let Err(e) = post_frame(&rgba, w, h, token.as_deref()).await {
+                                show_message("The slice capture could not be sent", &e);
+                            }
+                        });
+                    } else if !streamed.slices.captured() {
+                        ctx.request_repaint();
+                    }
+                }
+            }
             _ => ctx.request_repaint(),
         }
     }

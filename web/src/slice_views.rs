@@ -64,6 +64,8 @@ pub struct SliceViews {
     /// The level-0 voxel under the pointer this frame, if any.
     hovered: Option<[u32; 3]>,
     error: Option<String>,
+    /// The test capture of the axial view was handed out (`capture=1`).
+    captured: bool,
 }
 
 pub fn slice_colour(view: SliceView) -> Color32 {
@@ -153,7 +155,33 @@ impl SliceViews {
             wheel_lines: [0.0; 3],
             hovered: None,
             error: None,
+            captured: false,
         })
+    }
+
+    /// Test hook (`capture=1`): once every view shows the slice it asked for, the axial view's
+    /// image as the page coloured it (RGBA8 in index order, flips not applied), with its
+    /// width and height; given once. The browser test compares it with the desktop's
+    /// assembler and window/level on the same store.
+    pub fn take_capture(&mut self) -> Option<(Vec<u8>, u32, u32)> {
+        let complete = SliceView::ALL.iter().all(|v| {
+            self.assembler.pending(*v).is_none()
+                && self.shown[v.index()]
+                    .as_ref()
+                    .is_some_and(|s| Some(s.image.request) == self.requested[v.index()])
+        });
+        if self.captured || !complete {
+            return None;
+        }
+        let shown = self.shown[SliceView::Axial.index()].as_ref()?;
+        self.captured = true;
+        let image = &shown.image;
+        let rgba = window_level_rgba(&image.values, shown.window, self.colour_map, self.mapping);
+        Some((rgba, image.width as u32, image.height as u32))
+    }
+
+    pub fn captured(&self) -> bool {
+        self.captured
     }
 
     /// Takes the bricks that arrived, hands finished slices to their views and asks for the
@@ -207,6 +235,18 @@ impl SliceViews {
                 self.show(&ctx, image);
             }
             self.view_ui(ui, view, rects[view.index()]);
+        }
+        // A slice started this frame, or a readout waiting for its brick: the next frame must
+        // come (fetch answers wake nothing) to ask for and take the bricks.
+        let waiting_for_voxel = self
+            .hovered
+            .is_some_and(|i| matches!(self.assembler.voxel(i), Ok(VoxelLookup::Needs(_))));
+        if waiting_for_voxel
+            || SliceView::ALL
+                .iter()
+                .any(|v| self.assembler.pending(*v).is_some())
+        {
+            ctx.request_repaint();
         }
         // Textures follow the window (dragged this frame) for every view.
         for view in SliceView::ALL {
@@ -284,7 +324,7 @@ impl SliceViews {
         let response = ui.interact(
             rect,
             ui.scope_id().with(("slice", view.index())),
-            Sense::drag(),
+            Sense::click_and_drag(),
         );
         let windowing = response.dragged_by(egui::PointerButton::Secondary)
             || response.dragged_by(egui::PointerButton::Primary) && ui.input(|i| i.modifiers.shift);

@@ -477,3 +477,127 @@ fn a_stalled_server_leaves_the_page_drawing() {
         "the page's frame is nearly empty while its server stalls ({lit} pixels); console:\n{console}"
     );
 }
+
+/// The page's slice views (slice_views.rs) slice a served store as the desktop does: after its
+/// converged 3D frame the page posts its axial view's image (`capture=1`), which must equal,
+/// byte for byte, the desktop's path on the same store: strata-slices' assembler fed by blocking
+/// reads of the store, and the same window/level step with the store's first window.
+#[test]
+fn the_page_slices_a_served_store_as_the_desktops_assembler_does() {
+    use strata_slices::{
+        window_level_rgba, ColourMap, SliceAssembler, SliceFrame, SliceRequest, SliceView, Window,
+    };
+    let scratch = tempfile::tempdir().expect("scratch folder");
+    let path = scratch.path().join("ct.strata");
+    Phantom::cube(96)
+        .write_store(&path, &ImportOptions::default())
+        .expect("writing the store");
+    let (frames_in, frames) = mpsc::channel::<CapturedFrame>();
+    let frames_in = std::sync::Mutex::new(frames_in);
+    let server = start(
+        find_stores(std::slice::from_ref(&path)).expect("store found"),
+        ServeOptions {
+            web_viewer: Some(std::sync::Arc::new(web_viewer())),
+            test_frame_sink: Some(FrameSink(std::sync::Arc::new(move |frame| {
+                if let Ok(sender) = frames_in.lock() {
+                    let _ = sender.send(frame);
+                }
+            }))),
+            token: Some(TOKEN.into()),
+            ..ServeOptions::default()
+        },
+    )
+    .expect("server starts");
+    let fragment = "#store=ct&mode=mip&preset=ct-soft-tissue&size=64x64&capture=1";
+    let url = format!("{}/{fragment}&token={TOKEN}", server.base_url());
+    let browser = Browser::open(&url, scratch.path());
+    let wait = |what: &str| {
+        frames.recv_timeout(PAGE_DEADLINE).unwrap_or_else(|_| {
+            panic!(
+                "the page posted no {what} within {PAGE_DEADLINE:?}; its console:\n{}",
+                browser.console()
+            )
+        })
+    };
+    let three_d = wait("3D frame");
+    assert_eq!((three_d.width, three_d.height), (64, 64));
+    let slice = wait("slice image");
+    let console = browser.console();
+    drop(browser);
+
+    // The desktop's path: its client on the same server (the server holds the store), the
+    // desktop's blocking reads, the page's request (the start crosshair, the level whose grid
+    // the posted image has).
+    use strata_source::VolumeSource;
+    let store = strata_service::client::RemoteSource::open(
+        &server.store_url("ct"),
+        strata_service::client::RemoteOptions {
+            token: Some(TOKEN.into()),
+            ..Default::default()
+        },
+    )
+    .expect("the desktop's client opens the store");
+    let header = store.header();
+    let geometry = &header.geometry;
+    let frame = SliceFrame::for_view(SliceView::Axial, geometry);
+    let layout = &header.layout;
+    let level = (0..layout.level_count())
+        .find(|&l| {
+            let dims = layout.level_dims[l];
+            (dims[frame.across_axis], dims[frame.down_axis]) == (slice.width, slice.height)
+        })
+        .unwrap_or_else(|| {
+            panic!(
+                "the posted slice is {}×{}, no level's grid; console:\n{console}",
+                slice.width, slice.height
+            )
+        });
+    let dims = geometry.dims;
+    let cursor = dims.map(|d| ((d as f64 - 1.0) * 0.5).floor().max(0.0));
+    let request = SliceRequest {
+        view: SliceView::Axial,
+        frame,
+        position: cursor[frame.normal_axis],
+        level: level as u8,
+    };
+    let mut assembler = SliceAssembler::new(layout.clone(), 64 << 20);
+    let image = assembler
+        .assemble_with(request, |id| {
+            Ok::<_, strata_slices::SliceError>(store.read_brick(id).expect("brick"))
+        })
+        .expect("the desktop's slice");
+    let preset = header
+        .windows
+        .first()
+        .expect("the phantom names its windows");
+    let window = Window::new(preset.center, preset.width);
+    let desktop = window_level_rgba(
+        &image.values,
+        window,
+        ColourMap::Grey,
+        header.value_mapping.mapping,
+    );
+    let differing = slice
+        .rgba
+        .chunks(4)
+        .zip(desktop.chunks(4))
+        .filter(|(a, b)| a != b)
+        .count();
+    let distinct: std::collections::BTreeSet<u8> = desktop.chunks(4).map(|p| p[0]).collect();
+    println!(
+        "slice views: axial level {level}, {}×{}, {differing} pixels differ from the desktop's \
+         assembler, {} grey levels",
+        slice.width,
+        slice.height,
+        distinct.len()
+    );
+    assert!(
+        distinct.len() > 8,
+        "the slice shows nearly nothing: {distinct:?}"
+    );
+    assert_eq!(slice.rgba.len(), desktop.len());
+    assert_eq!(
+        differing, 0,
+        "the page's axial slice differs from the desktop's; console:\n{console}"
+    );
+}
