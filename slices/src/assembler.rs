@@ -10,7 +10,7 @@
 //! ([`SliceAssembler::assemble_with`]); the browser from `fetch()` answers on the page's thread
 //! ([`SliceAssembler::start`], [`SliceAssembler::missing`], [`SliceAssembler::offer`]).
 
-use std::collections::{HashMap, VecDeque};
+use std::collections::{HashMap, HashSet, VecDeque};
 use std::sync::Arc;
 
 use strata_types::{
@@ -327,17 +327,27 @@ impl SliceAssembler {
     /// The bricks every unfinished slice still needs, each once: the views take turns, each
     /// giving its next most useful brick, so no view waits for another's whole slice.
     pub fn missing(&self) -> Vec<BrickId> {
+        self.most_useful_missing(usize::MAX)
+    }
+
+    /// The first `limit` of [`SliceAssembler::missing`] (a page asking for a few bricks a
+    /// frame need not list a large slice's thousands).
+    pub fn most_useful_missing(&self, limit: usize) -> Vec<BrickId> {
         let lists: Vec<&[BrickId]> = SliceView::ALL
             .iter()
             .map(|v| self.missing_for(*v))
             .collect();
         let longest = lists.iter().map(|l| l.len()).max().unwrap_or(0);
         let mut out = Vec::new();
+        let mut listed = HashSet::new();
         for rank in 0..longest {
             for list in &lists {
-                if let Some(id) = list.get(rank) {
-                    if !out.contains(id) {
-                        out.push(*id);
+                if out.len() >= limit {
+                    return out;
+                }
+                if let Some(&id) = list.get(rank) {
+                    if listed.insert(id) {
+                        out.push(id);
                     }
                 }
             }

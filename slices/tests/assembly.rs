@@ -205,6 +205,7 @@ fn three_views_share_bricks_and_a_small_cache_still_completes_large_slices() {
     unique.sort();
     unique.dedup();
     assert_eq!(unique.len(), missing.len());
+    assert_eq!(assembler.most_useful_missing(4), missing[..4]);
     assert!(missing.len() < 27);
     for id in &missing {
         assembler

@@ -205,7 +205,7 @@ impl SliceViews {
                 wanted.push(id);
             }
         }
-        for id in self.assembler.missing() {
+        for id in self.assembler.most_useful_missing(SLICE_REQUESTS) {
             if wanted.len() >= SLICE_REQUESTS {
                 break;
             }
