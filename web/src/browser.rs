@@ -21,6 +21,7 @@ use wasm_bindgen::JsCast;
 
 use crate::page_timing::{PageTiming, BENCH_DEG_PER_FRAME};
 use crate::served_store::{list_stores, ServedStore, DECODES_PER_FRAME, MAX_ON_THE_WIRE};
+use crate::slice_views::{two_by_two, SliceViews};
 use crate::view_state::{Fragment, ViewState};
 use strata_source::wire::StoreList;
 
@@ -126,6 +127,8 @@ struct Streamed {
     volume: StreamingVolume,
     /// The last frame's loader statistics (converged, bricks read, status).
     last: Option<FrameStats>,
+    /// The three slice views beside the 3D view (slice_views.rs).
+    slices: SliceViews,
 }
 
 /// The store being opened: filled by the open's future, taken by the next frame.
@@ -302,7 +305,8 @@ impl WebViewer {
         let Some(opened) = opening.borrow_mut().take() else {
             return Ok(false);
         };
-        let store = opened?;
+        let store = Arc::new(opened?);
+        let slices = SliceViews::new(store.as_ref())?;
         let config = StreamingConfig {
             // The page shares the GPU and memory with the rest of the browser.
             gpu_budget_bytes: 256 << 20,
@@ -315,14 +319,13 @@ impl WebViewer {
             work: LoaderWork::Inline,
             ..StreamingConfig::default()
         };
-        let volume = StreamingVolume::new(
-            &self.gpu,
-            Arc::new(store),
-            &self.view.transfer_function(),
-            config,
-        )
-        .map_err(|e| e.to_string())?;
-        self.streamed = Some(Streamed { volume, last: None });
+        let volume = StreamingVolume::new(&self.gpu, store, &self.view.transfer_function(), config)
+            .map_err(|e| e.to_string())?;
+        self.streamed = Some(Streamed {
+            volume,
+            last: None,
+            slices,
+        });
         self.renderer_preset = self.view.preset.clone();
         Ok(true)
     }
@@ -491,8 +494,9 @@ impl WebViewer {
             };
             ui.horizontal(|ui| {
                 ui.label(format!(
-                    "Store {name} · {detail} · drag to orbit, scroll to zoom; the address holds \
-                     this view · not for diagnostic use"
+                    "Store {name} · {detail} · 3D: drag to orbit, scroll to zoom; slices: click \
+                     moves the crosshair, scroll pages, right drag (or Shift+drag) windows; the \
+                     address holds the 3D view · not for diagnostic use"
                 ));
             });
             return;
@@ -500,7 +504,8 @@ impl WebViewer {
         ui.horizontal(|ui| {
             ui.label(format!(
                 "Sample volume {}³ (CT phantom made in the page) · frames drawn {} · drag to \
-                 orbit, scroll to zoom; the address holds this view · not for diagnostic use",
+                 orbit, scroll to zoom; the address holds this view · slice views: for a \
+                 server's store (Volume menu) · not for diagnostic use",
                 self.view.volume_edge, self.frames_submitted
             ));
         });
@@ -635,7 +640,22 @@ impl WebViewer {
             CAPTURE_FAILED => {
                 self.error = Some("the test capture's buffer could not be mapped".into());
             }
-            CAPTURE_SENT => {}
+            CAPTURE_SENT => {
+                // Then, once, the axial slice view's image (slice_views.rs), where it is shown.
+                let four_up = self.view.layout == crate::view_state::Layout::FourUp;
+                if let Some(streamed) = self.streamed.as_mut().filter(|_| four_up) {
+                    if let Some((rgba, w, h)) = streamed.slices.take_capture() {
+                        let token = self.token.clone();
+                        wasm_bindgen_futures::spawn_local(async move {
+                            if let Err(e) = post_frame(&rgba, w, h, &[], token.as_deref()).await {
+                                show_message("The slice capture could not be sent", &e);
+                            }
+                        });
+                    } else if !streamed.slices.captured() {
+                        ctx.request_repaint();
+                    }
+                }
+            }
             _ => ctx.request_repaint(),
         }
     }
@@ -742,7 +762,15 @@ impl eframe::App for WebViewer {
                         return;
                     }
                 }
-                let rect = ui.available_rect_before_wrap();
+                // A streamed store: the desktop's 2×2 of the 3D view and three slice views.
+                let area = ui.available_rect_before_wrap();
+                let four_up = self.view.layout == crate::view_state::Layout::FourUp;
+                let (rect, slice_rects) = if self.streamed.is_some() && four_up {
+                    let (rect, slices) = two_by_two(area);
+                    (rect, Some(slices))
+                } else {
+                    (area, None)
+                };
                 let response = ui.allocate_rect(rect, egui::Sense::drag());
                 if response.dragged() {
                     let delta = response.drag_delta();
@@ -793,6 +821,9 @@ impl eframe::App for WebViewer {
                         egui::Rect::from_min_max(egui::pos2(0.0, 0.0), egui::pos2(1.0, 1.0)),
                         egui::Color32::WHITE,
                     );
+                }
+                if let (Some(rects), Some(streamed)) = (slice_rects, self.streamed.as_mut()) {
+                    streamed.slices.ui(ui, rects);
                 }
                 self.write_fragment(response.dragged());
             });

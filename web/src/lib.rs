@@ -11,6 +11,9 @@
 //! - `served_store` (wasm32 only): `strata serve`'s client on `fetch()`, the volume source the
 //!   streaming loader reads a served store through (`#store=NAME`), with the loader's work
 //!   inline on the page's one thread (strata_loader::LoaderWork::Inline).
+//! - `slice_views` (wasm32 only): a streamed store's three linked slice views (axial, coronal,
+//!   sagittal) beside the 3D view, sliced by strata-slices' assembler (the desktop's) from
+//!   bricks fetched asynchronously through the served store, window/level by right drag.
 //!
 //! Without `store=` the page shows the built-in sample volume (the render crate's CT phantom,
 //! made in the page).
@@ -23,3 +26,5 @@ mod browser;
 mod page_timing;
 #[cfg(target_arch = "wasm32")]
 mod served_store;
+#[cfg(target_arch = "wasm32")]
+mod slice_views;

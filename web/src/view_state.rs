@@ -41,6 +41,16 @@ pub enum FragmentError {
     },
 }
 
+/// How the page lays out its views, named as `strata view --layout` names them.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Layout {
+    /// The 3D view alone.
+    Single,
+    /// A served store's 2×2: the 3D view and the axial, coronal and sagittal slices (the
+    /// built-in sample has no slice views and shows the 3D view alone either way).
+    FourUp,
+}
+
 /// What the view shows and from where.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ViewState {
@@ -57,6 +67,7 @@ pub struct ViewState {
     pub pan: [f64; 2],
     /// Parallel projection (the desktop's "orthographic" switch) instead of perspective.
     pub orthographic: bool,
+    pub layout: Layout,
     /// Isosurface value in the volume's physical unit (HU for the CT sample).
     pub iso_value: f64,
     /// Edge of the built-in sample volume (voxels).
@@ -88,6 +99,7 @@ impl Default for ViewState {
             zoom: 1.0,
             pan: [0.0, 0.0],
             orthographic: false,
+            layout: Layout::FourUp,
             iso_value: 300.0,
             volume_edge: DEFAULT_VOLUME_EDGE,
             store: None,
@@ -200,6 +212,13 @@ impl Fragment {
                         finite(key, y, -100.0..=100.0)?,
                     ];
                 }
+                "layout" => {
+                    view.layout = match value {
+                        "single" => Layout::Single,
+                        "four-up" => Layout::FourUp,
+                        _ => return Err(bad(key, value, "single or four-up")),
+                    }
+                }
                 "proj" => {
                     view.orthographic = match value {
                         "persp" => false,
@@ -298,6 +317,9 @@ impl ViewState {
         if self.orthographic {
             parts.push("proj=ortho".into());
         }
+        if self.layout == Layout::Single {
+            parts.push("layout=single".into());
+        }
         if self.mode == RenderMode::Isosurface {
             parts.push(format!("iso={}", round3(self.iso_value)));
         }
@@ -382,6 +404,7 @@ mod tests {
             zoom: 1.75,
             pan: [0.125, -0.5],
             orthographic: true,
+            layout: Layout::Single,
             iso_value: 250.0,
             volume_edge: 64,
             store: None,
@@ -437,7 +460,9 @@ mod tests {
         }
         let e = Fragment::parse("#preset=nope").expect_err("unknown preset");
         assert!(e.to_string().contains("ct-bone"), "{e}");
-        let ok = Fragment::parse("#layout=quad&mode=dvr").expect("unknown key ignored");
+        let e = Fragment::parse("#layout=quad").expect_err("unknown layout");
+        assert!(e.to_string().contains("`layout`"), "{e}");
+        let ok = Fragment::parse("#colour=hot&mode=dvr").expect("unknown key ignored");
         assert_eq!(ok.view, ViewState::default());
         assert_eq!(
             Fragment::parse("").expect("empty").view,

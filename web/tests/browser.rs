@@ -332,7 +332,9 @@ fn the_page_streams_a_served_store_and_converges_to_the_native_loaders_picture()
         },
     )
     .expect("server starts");
-    let fragment = "#store=ct&mode=dvr&preset=ct-bone&az=35&el=20&zoom=1.4&size=128x128&capture=1";
+    // The 3D view alone: its own fetcher must meet the corrupted answer, and its bytes compare
+    // with the desktop loader's (slice views fetch bricks of their own).
+    let fragment = "#store=ct&mode=dvr&preset=ct-bone&az=35&el=20&zoom=1.4&size=128x128&layout=single&capture=1";
     let url = format!("{}/{fragment}&token={TOKEN}", server.base_url());
     let launched = std::time::Instant::now();
     let browser = Browser::open(&url, scratch.path());
@@ -478,6 +480,130 @@ fn a_stalled_server_leaves_the_page_drawing() {
     );
 }
 
+/// The page's slice views (slice_views.rs) slice a served store as the desktop does: after its
+/// converged 3D frame the page posts its axial view's image (`capture=1`), which must equal,
+/// byte for byte, the desktop's path on the same store: strata-slices' assembler fed by blocking
+/// reads of the store, and the same window/level step with the store's first window.
+#[test]
+fn the_page_slices_a_served_store_as_the_desktops_assembler_does() {
+    use strata_slices::{
+        window_level_rgba, ColourMap, SliceAssembler, SliceFrame, SliceRequest, SliceView, Window,
+    };
+    let scratch = tempfile::tempdir().expect("scratch folder");
+    let path = scratch.path().join("ct.strata");
+    Phantom::cube(96)
+        .write_store(&path, &ImportOptions::default())
+        .expect("writing the store");
+    let (frames_in, frames) = mpsc::channel::<CapturedFrame>();
+    let frames_in = std::sync::Mutex::new(frames_in);
+    let server = start(
+        find_stores(std::slice::from_ref(&path)).expect("store found"),
+        ServeOptions {
+            web_viewer: Some(std::sync::Arc::new(web_viewer())),
+            test_frame_sink: Some(FrameSink(std::sync::Arc::new(move |frame| {
+                if let Ok(sender) = frames_in.lock() {
+                    let _ = sender.send(frame);
+                }
+            }))),
+            token: Some(TOKEN.into()),
+            ..ServeOptions::default()
+        },
+    )
+    .expect("server starts");
+    let fragment = "#store=ct&mode=mip&preset=ct-soft-tissue&size=64x64&capture=1";
+    let url = format!("{}/{fragment}&token={TOKEN}", server.base_url());
+    let browser = Browser::open(&url, scratch.path());
+    let wait = |what: &str| {
+        frames.recv_timeout(PAGE_DEADLINE).unwrap_or_else(|_| {
+            panic!(
+                "the page posted no {what} within {PAGE_DEADLINE:?}; its console:\n{}",
+                browser.console()
+            )
+        })
+    };
+    let three_d = wait("3D frame");
+    assert_eq!((three_d.width, three_d.height), (64, 64));
+    let slice = wait("slice image");
+    let console = browser.console();
+    drop(browser);
+
+    // The desktop's path: its client on the same server (the server holds the store), the
+    // desktop's blocking reads, the page's request (the start crosshair, the level whose grid
+    // the posted image has).
+    use strata_source::VolumeSource;
+    let store = strata_service::client::RemoteSource::open(
+        &server.store_url("ct"),
+        strata_service::client::RemoteOptions {
+            token: Some(TOKEN.into()),
+            ..Default::default()
+        },
+    )
+    .expect("the desktop's client opens the store");
+    let header = store.header();
+    let geometry = &header.geometry;
+    let frame = SliceFrame::for_view(SliceView::Axial, geometry);
+    let layout = &header.layout;
+    let level = (0..layout.level_count())
+        .find(|&l| {
+            let dims = layout.level_dims[l];
+            (dims[frame.across_axis], dims[frame.down_axis]) == (slice.width, slice.height)
+        })
+        .unwrap_or_else(|| {
+            panic!(
+                "the posted slice is {}×{}, no level's grid; console:\n{console}",
+                slice.width, slice.height
+            )
+        });
+    let dims = geometry.dims;
+    let cursor = dims.map(|d| ((d as f64 - 1.0) * 0.5).floor().max(0.0));
+    let request = SliceRequest {
+        view: SliceView::Axial,
+        frame,
+        position: cursor[frame.normal_axis],
+        level: level as u8,
+    };
+    let mut assembler = SliceAssembler::new(layout.clone(), 64 << 20);
+    let image = assembler
+        .assemble_with(request, |id| {
+            Ok::<_, strata_slices::SliceError>(store.read_brick(id).expect("brick"))
+        })
+        .expect("the desktop's slice");
+    let preset = header
+        .windows
+        .first()
+        .expect("the phantom names its windows");
+    let window = Window::new(preset.center, preset.width);
+    let desktop = window_level_rgba(
+        &image.values,
+        window,
+        ColourMap::Grey,
+        header.value_mapping.mapping,
+    );
+    let differing = slice
+        .rgba
+        .chunks(4)
+        .zip(desktop.chunks(4))
+        .filter(|(a, b)| a != b)
+        .count();
+    let distinct: std::collections::BTreeSet<u8> = desktop.chunks(4).map(|p| p[0]).collect();
+    println!(
+        "slice views: axial level {level}, {}×{}, {differing} pixels differ from the desktop's \
+         assembler, {} grey levels",
+        slice.width,
+        slice.height,
+        distinct.len()
+    );
+    assert!(
+        distinct.len() > 8,
+        "the slice shows nearly nothing: {distinct:?}"
+    );
+    assert_eq!(slice.rgba.len(), desktop.len());
+    assert_eq!(
+        differing, 0,
+        "the page's axial slice differs from the desktop's; console:\n{console}"
+    );
+}
+
 /// The page's measurements sent with its capture (strata-web's page_timing.rs), by name.
 fn metric(frame: &CapturedFrame, name: &str) -> Option<f64> {
     frame
@@ -499,7 +625,7 @@ fn median_ms(mut v: Vec<f64>) -> f64 {
 /// ratio is the issue's bound and is asserted.
 ///
 /// `cargo test -p strata-web --test browser benchmark -- --ignored --nocapture`
-/// Env: STRATA_BENCH_VOLUME (phantom edge, default 192), STRATA_BENCH_FRAMES (orbit frames,
+/// Env: STRATA_BENCH_VOLUME (phantom edge, default 128), STRATA_BENCH_FRAMES (orbit frames,
 /// default 24).
 #[test]
 #[ignore = "measurement: run with --ignored --nocapture"]
@@ -513,7 +639,7 @@ fn benchmark_the_browser_against_the_desktop_on_one_served_store() {
             .and_then(|v| v.parse::<u32>().ok())
             .unwrap_or(default)
     };
-    let edge = env_u32("STRATA_BENCH_VOLUME", 192);
+    let edge = env_u32("STRATA_BENCH_VOLUME", 128);
     let orbit_frames = env_u32("STRATA_BENCH_FRAMES", 24);
     let scratch = tempfile::tempdir().expect("scratch folder");
     let path = scratch.path().join("ct.strata");
@@ -537,7 +663,8 @@ fn benchmark_the_browser_against_the_desktop_on_one_served_store() {
     )
     .expect("server starts");
     let counters = server.counters();
-    let view_fragment = "store=ct&mode=dvr&preset=ct-bone&az=35&el=20&zoom=1.4";
+    // The 3D view alone, as the desktop loader it is compared with.
+    let view_fragment = "store=ct&mode=dvr&preset=ct-bone&az=35&el=20&zoom=1.4&layout=single";
     let page = |fragment: String| -> CapturedFrame {
         let url = format!("{}/#{fragment}&token={TOKEN}", server.base_url());
         let browser = Browser::open(&url, scratch.path());

@@ -13,7 +13,8 @@
 
 pub mod adaptive_view;
 pub mod app;
-pub mod colour_maps;
+// Orientation and colour maps live in strata-slices, shared with the browser viewer.
+pub use strata_slices::colour_maps;
 pub mod dialogs;
 pub mod exports;
 pub mod file_chooser;
@@ -25,7 +26,7 @@ pub mod links;
 pub mod measurements;
 pub mod oblique;
 pub mod oblique_view;
-pub mod orientation;
+pub use strata_slices::orientation;
 pub mod overlay;
 pub mod overlay_3d;
 pub mod panels;

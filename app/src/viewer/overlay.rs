@@ -437,7 +437,7 @@ impl BrickCache {
 }
 
 /// The level-0 continuous index (of the primary) at the centre of pixel (`x`, `y`) of the
-/// primary's slice image for `request`: the same grid `slices::read_slice` fills.
+/// primary's slice image for `request`: the same grid strata-slices' assembler fills.
 pub fn primary_index_of_pixel(
     request: &SliceRequest,
     level_dims: &[[u32; 3]],

@@ -13,23 +13,8 @@ use super::orientation::{SliceFrame, SliceView};
 use super::slices::SliceReader;
 use super::volume_session::{VolumeInfo, VolumeSession};
 
-/// A slice window in physical units (HU for CT): values from `centre - width/2` (black) to
-/// `centre + width/2` (white).
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct Window {
-    pub centre: f64,
-    pub width: f64,
-}
-
-impl Window {
-    pub fn new(centre: f64, width: f64) -> Self {
-        Window { centre, width }
-    }
-
-    pub fn low(&self) -> f64 {
-        self.centre - self.width * 0.5
-    }
-}
+/// A slice window in physical units (strata-slices', shared with the browser viewer).
+pub use strata_slices::Window;
 
 /// The clip plane as the user sets it: an LPS axis, which side is cut, and where.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]

@@ -701,69 +701,21 @@ fn slice_mesh(
     mesh
 }
 
-/// Right drag: sideways widens (right) or narrows the window, up raises the level. The gain
-/// follows the window itself (a drag across 300 points multiplies the width by e, moves the
-/// level by one width), so a narrow brain window and a wide bone window feel the same; a floor
-/// of 1/500 of the scan's range keeps a collapsed window recoverable.
+/// Right drag: strata-slices' window gesture (shared with the browser viewer), from egui's
+/// pointer delta.
 pub fn drag_window(window: Window, delta: Vec2, physical_range: (f64, f64)) -> Window {
-    let (lo, hi) = physical_range;
-    let floor = ((hi - lo).abs() / 500.0).max(1e-6);
-    let width = window.width.max(floor);
-    Window::new(
-        window.centre - delta.y as f64 * width / 300.0,
-        (width * (delta.x as f64 / 300.0).exp()).max(floor),
-    )
+    strata_slices::drag_window(window, delta.x as f64, delta.y as f64, physical_range)
 }
 
 /// Stored values → colours through the window (physical units) and the colour map, as a
-/// texture image.
+/// texture image: strata-slices' image step, which the browser viewer uses too. (The drag
+/// gesture's test lives with it in strata-slices.)
 pub fn window_level_image(
     image: &SliceImage,
     window: Window,
     colour_map: ColourMap,
     mapping: strata_render::ValueMapping,
 ) -> egui::ColorImage {
-    let lo = window.low();
-    let scale = 255.0 / window.width.max(1e-9);
-    let table = colour_map.table();
-    let pixels = image
-        .values
-        .iter()
-        .map(|&s| {
-            let g = ((mapping.physical(s as f64) - lo) * scale).clamp(0.0, 255.0) as usize;
-            let [r, g, b] = table[g];
-            Color32::from_rgb(r, g, b)
-        })
-        .collect();
-    egui::ColorImage::new([image.width, image.height], pixels)
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn window_drag_gain_follows_the_window_not_the_scan_range() {
-        let ct_range = (-1024.0, 3071.0);
-        // 100 points right: the same factor for a brain and a bone window (e^(1/3) ≈ 1.40),
-        // where the old gain added ~1300 HU to either.
-        for width in [80.0, 2000.0] {
-            let w = drag_window(Window::new(40.0, width), Vec2::new(100.0, 0.0), ct_range);
-            let factor = w.width / width;
-            assert!(
-                (factor - (1.0f64 / 3.0).exp()).abs() < 1e-9,
-                "{width}: ×{factor}"
-            );
-            assert_eq!(w.centre, 40.0);
-        }
-        // 30 points up raises the level by a tenth of the width.
-        let w = drag_window(Window::new(40.0, 400.0), Vec2::new(0.0, -30.0), ct_range);
-        assert!((w.centre - 80.0).abs() < 1e-9 && w.width == 400.0);
-        // Dragging left for ever never collapses the window below the floor.
-        let mut w = Window::new(0.0, 10.0);
-        for _ in 0..100 {
-            w = drag_window(w, Vec2::new(-300.0, 0.0), ct_range);
-        }
-        assert!(w.width >= 4095.0 / 500.0 - 1e-9);
-    }
+    let rgba = strata_slices::window_level_rgba(&image.values, window, colour_map, mapping);
+    egui::ColorImage::from_rgba_unmultiplied([image.width, image.height], &rgba)
 }

@@ -8,7 +8,7 @@
 
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
-use strata_render::VolumeGeometry;
+use strata_types::VolumeGeometry;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
 pub enum SliceView {

@@ -1,0 +1,3 @@
+//! strata-slices' integration tests, one binary (each file a module).
+
+mod assembly;

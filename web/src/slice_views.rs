@@ -1,0 +1,532 @@
+//! The page's three linked slice views (wasm32 only): axial, coronal and sagittal of a
+//! streamed store, oriented as the desktop's (strata-slices' [`SliceFrame`]), sliced by the
+//! same [`SliceAssembler`] and coloured by the same window/level step, so a slice looks the
+//! same in both viewers.
+//!
+//! Nothing here waits: the bricks the assembler lists are fetched through the served store's
+//! own asynchronous path (a second [`BrickFetcher`] of `served_store.rs`: the same request,
+//! checksum verification and decoding as the 3D view's, at most [`DECODES_PER_FRAME`] decoded
+//! a frame), with only the [`SLICE_REQUESTS`] most useful bricks asked for at a time, so the
+//! slices never crowd the 3D view's requests off the page's few connections. A view keeps its
+//! last image until the new one is complete.
+//!
+//! Input, as the desktop's slice views: left click or drag moves the linked crosshair (the
+//! other two views page to it), the wheel pages, right drag (or Shift + left drag, for
+//! touchpads) windows: sideways widens, up raises the level. The line under each view reads
+//! W/L, the slice's level when coarser than 0, and the stored value under the pointer in
+//! physical units.
+//!
+//! [`DECODES_PER_FRAME`]: crate::served_store::DECODES_PER_FRAME
+
+use egui::{Color32, Pos2, Rect, Sense, Stroke, TextureHandle, TextureOptions, Vec2};
+use strata_render::{ValueMapping, VolumeGeometry};
+use strata_slices::{
+    drag_window, level_for_pixels, window_level_rgba, ColourMap, SliceAssembler, SliceFrame,
+    SliceImage, SliceRequest, SliceView, VoxelLookup, Window,
+};
+use strata_source::{BrickFetcher, FetchOptions, VolumeSource};
+use strata_storage::BrickId;
+
+/// Decoded bricks the page keeps for its slices (bytes): a brick row of every view at the
+/// level the views need, and more for paging, well inside the page's memory.
+pub const SLICE_CACHE_BYTES: usize = 96 << 20;
+/// Brick requests the slice views have out at once (the most useful first).
+pub const SLICE_REQUESTS: usize = 4;
+/// Space around the image for the title above, the readout below and the side labels.
+const MARGIN_SIDES: f32 = 18.0;
+const MARGIN_TOP: f32 = 38.0;
+const MARGIN_BOTTOM: f32 = 36.0;
+
+/// A slice on screen: the image, its texture, and the window and map it was coloured with.
+struct Shown {
+    image: SliceImage,
+    texture: TextureHandle,
+    window: Window,
+}
+
+/// The three slice views of one streamed store.
+pub struct SliceViews {
+    fetcher: Box<dyn BrickFetcher>,
+    assembler: SliceAssembler,
+    geometry: VolumeGeometry,
+    frames: [SliceFrame; 3],
+    mapping: ValueMapping,
+    unit: String,
+    physical_range: (f64, f64),
+    /// The linked crosshair, level-0 continuous index.
+    pub cursor: [f64; 3],
+    pub window: Window,
+    colour_map: ColourMap,
+    shown: [Option<Shown>; 3],
+    requested: [Option<SliceRequest>; 3],
+    /// Wheel movement not yet paged, per view (fractions of a line).
+    wheel_lines: [f64; 3],
+    /// The level-0 voxel under the pointer this frame, if any.
+    hovered: Option<[u32; 3]>,
+    error: Option<String>,
+    /// The test capture of the axial view was handed out (`capture=1`).
+    captured: bool,
+}
+
+pub fn slice_colour(view: SliceView) -> Color32 {
+    match view {
+        SliceView::Axial => Color32::from_rgb(240, 90, 90),
+        SliceView::Coronal => Color32::from_rgb(110, 200, 110),
+        SliceView::Sagittal => Color32::from_rgb(230, 210, 90),
+    }
+}
+
+/// The desktop's four-up layout: axial | 3D over sagittal | coronal. Returns the 3D view's
+/// rectangle and the slice views' (axial, coronal, sagittal).
+pub fn two_by_two(area: Rect) -> (Rect, [Rect; 3]) {
+    let gap = 2.0;
+    let (w, h) = ((area.width() - gap) / 2.0, (area.height() - gap) / 2.0);
+    let cell = |c: f32, r: f32| {
+        Rect::from_min_size(
+            Pos2::new(area.left() + c * (w + gap), area.top() + r * (h + gap)),
+            Vec2::new(w, h),
+        )
+    };
+    (
+        cell(1.0, 0.0),
+        [cell(0.0, 0.0), cell(1.0, 1.0), cell(0.0, 1.0)],
+    )
+}
+
+/// Wheel movement this frame in lines (up positive), whatever unit the browser reports.
+fn wheel_lines(ui: &egui::Ui) -> f64 {
+    ui.input(|i| {
+        i.events
+            .iter()
+            .map(|e| match e {
+                egui::Event::MouseWheel { unit, delta, .. } => match unit {
+                    egui::MouseWheelUnit::Point => delta.y as f64 / 40.0,
+                    egui::MouseWheelUnit::Line => delta.y as f64,
+                    egui::MouseWheelUnit::Page => delta.y as f64 * 10.0,
+                },
+                _ => 0.0,
+            })
+            .sum::<f64>()
+    })
+}
+
+impl SliceViews {
+    /// Slice views of `store`, fetching through its asynchronous path.
+    pub fn new(store: &dyn VolumeSource) -> Result<SliceViews, String> {
+        let fetcher = match store.start_fetching(FetchOptions {
+            max_queued: SLICE_REQUESTS + 1,
+            max_in_transit: SLICE_REQUESTS + 1,
+            threads: 1,
+        }) {
+            Some(Ok(fetcher)) => fetcher,
+            Some(Err(e)) => return Err(e.to_string()),
+            None => return Err("the store has no asynchronous brick path".into()),
+        };
+        let header = store.header();
+        let geometry = header.geometry.clone();
+        let mapping = header.value_mapping.mapping;
+        let unit = header.value_mapping.unit.clone();
+        let a = mapping.physical(header.stored_range[0] as f64);
+        let b = mapping.physical(header.stored_range[1] as f64);
+        let physical_range = (a.min(b), a.max(b));
+        // The header's window (DICOM's), else CT's abdomen window for HU, else the full range.
+        let window = match header.windows.first() {
+            Some(w) => Window::new(w.center, w.width),
+            None if unit.eq_ignore_ascii_case("HU") => Window::new(40.0, 400.0),
+            None => Window::new((a + b) / 2.0, (b - a).abs().max(1.0)),
+        };
+        let frames = SliceView::ALL.map(|v| SliceFrame::for_view(v, &geometry));
+        let cursor = geometry
+            .dims
+            .map(|d| ((d as f64 - 1.0) * 0.5).floor().max(0.0));
+        Ok(SliceViews {
+            fetcher,
+            assembler: SliceAssembler::new(header.layout.clone(), SLICE_CACHE_BYTES),
+            geometry,
+            frames,
+            mapping,
+            unit,
+            physical_range,
+            cursor,
+            window,
+            colour_map: ColourMap::Grey,
+            shown: [None, None, None],
+            requested: [None, None, None],
+            wheel_lines: [0.0; 3],
+            hovered: None,
+            error: None,
+            captured: false,
+        })
+    }
+
+    /// Test hook (`capture=1`): once every view shows the slice it asked for, the axial view's
+    /// image as the page coloured it (RGBA8 in index order, flips not applied), with its
+    /// width and height; given once. The browser test compares it with the desktop's
+    /// assembler and window/level on the same store.
+    pub fn take_capture(&mut self) -> Option<(Vec<u8>, u32, u32)> {
+        let complete = SliceView::ALL.iter().all(|v| {
+            self.assembler.pending(*v).is_none()
+                && self.shown[v.index()]
+                    .as_ref()
+                    .is_some_and(|s| Some(s.image.request) == self.requested[v.index()])
+        });
+        if self.captured || !complete {
+            return None;
+        }
+        let shown = self.shown[SliceView::Axial.index()].as_ref()?;
+        self.captured = true;
+        let image = &shown.image;
+        let rgba = window_level_rgba(&image.values, shown.window, self.colour_map, self.mapping);
+        Some((rgba, image.width as u32, image.height as u32))
+    }
+
+    pub fn captured(&self) -> bool {
+        self.captured
+    }
+
+    /// Takes the bricks that arrived, hands finished slices to their views and asks for the
+    /// next bricks. Call once a frame, before [`SliceViews::ui`].
+    fn pump(&mut self, ctx: &egui::Context) {
+        for result in self.fetcher.try_results() {
+            match result.outcome {
+                Ok(voxels) => {
+                    if let Err(e) = self.assembler.offer(result.id, voxels) {
+                        self.error = Some(e.to_string());
+                    }
+                }
+                Err(e) => self.error = Some(e.to_string()),
+            }
+            self.fetcher.complete(result.id);
+        }
+        // The voxel under the pointer first (one brick), then the slices' most useful bricks.
+        let mut wanted: Vec<BrickId> = Vec::with_capacity(SLICE_REQUESTS);
+        if let Some(index) = self.hovered {
+            if let Ok(VoxelLookup::Needs(id)) = self.assembler.voxel(index) {
+                wanted.push(id);
+            }
+        }
+        for id in self.assembler.most_useful_missing(SLICE_REQUESTS) {
+            if wanted.len() >= SLICE_REQUESTS {
+                break;
+            }
+            if !wanted.contains(&id) {
+                wanted.push(id);
+            }
+        }
+        let demand: Vec<(BrickId, f64)> = wanted
+            .iter()
+            .enumerate()
+            .map(|(rank, id)| (*id, (SLICE_REQUESTS - rank) as f64))
+            .collect();
+        self.fetcher.set_requests(&demand, &[]);
+        if !demand.is_empty() {
+            // Answers arrive between frames and wake nothing: poll until they are in.
+            ctx.request_repaint();
+        }
+    }
+
+    /// The three views in their rectangles (axial, coronal, sagittal).
+    pub fn ui(&mut self, ui: &mut egui::Ui, rects: [Rect; 3]) {
+        let ctx = ui.ctx().clone();
+        self.pump(&ctx);
+        self.hovered = None;
+        for view in SliceView::ALL {
+            if let Some(image) = self.assembler.take_finished(view) {
+                self.show(&ctx, image);
+            }
+            self.view_ui(ui, view, rects[view.index()]);
+        }
+        // A slice started this frame, or a readout waiting for its brick: the next frame must
+        // come (fetch answers wake nothing) to ask for and take the bricks.
+        let waiting_for_voxel = self
+            .hovered
+            .is_some_and(|i| matches!(self.assembler.voxel(i), Ok(VoxelLookup::Needs(_))));
+        if waiting_for_voxel
+            || SliceView::ALL
+                .iter()
+                .any(|v| self.assembler.pending(*v).is_some())
+        {
+            ctx.request_repaint();
+        }
+        // Textures follow the window (dragged this frame) for every view.
+        for view in SliceView::ALL {
+            if let Some(shown) = self.shown[view.index()].as_mut() {
+                if shown.window != self.window {
+                    let rgba = window_level_rgba(
+                        &shown.image.values,
+                        self.window,
+                        self.colour_map,
+                        self.mapping,
+                    );
+                    shown.texture.set(
+                        egui::ColorImage::from_rgba_unmultiplied(
+                            [shown.image.width, shown.image.height],
+                            &rgba,
+                        ),
+                        TextureOptions::LINEAR,
+                    );
+                    shown.window = self.window;
+                }
+            }
+        }
+    }
+
+    fn show(&mut self, ctx: &egui::Context, image: SliceImage) {
+        let rgba = window_level_rgba(&image.values, self.window, self.colour_map, self.mapping);
+        let colours = egui::ColorImage::from_rgba_unmultiplied([image.width, image.height], &rgba);
+        let view = image.request.view;
+        match self.shown[view.index()].as_mut() {
+            Some(shown) => {
+                shown.texture.set(colours, TextureOptions::LINEAR);
+                shown.image = image;
+                shown.window = self.window;
+            }
+            None => {
+                let texture = ctx.load_texture(
+                    format!("slice {}", view.name()),
+                    colours,
+                    TextureOptions::LINEAR,
+                );
+                self.shown[view.index()] = Some(Shown {
+                    image,
+                    texture,
+                    window: self.window,
+                });
+            }
+        }
+    }
+
+    fn view_ui(&mut self, ui: &mut egui::Ui, view: SliceView, rect: Rect) {
+        let frame = self.frames[view.index()];
+        let dims = self.geometry.dims;
+        let painter = ui.painter_at(rect);
+        painter.rect_filled(rect, 0.0, Color32::BLACK);
+        let colour = slice_colour(view);
+        painter.rect_stroke(
+            rect.shrink(0.5),
+            0.0,
+            Stroke::new(1.0, colour.gamma_multiply(0.6)),
+            egui::StrokeKind::Inside,
+        );
+        // The image keeps the patient's proportions, centred with room for the labels.
+        let (w_mm, h_mm) = frame.extent_mm(&self.geometry);
+        let inner = Rect::from_min_max(
+            rect.min + Vec2::new(MARGIN_SIDES, MARGIN_TOP),
+            rect.max - Vec2::new(MARGIN_SIDES, MARGIN_BOTTOM),
+        );
+        let fit = (inner.width() as f64 / w_mm)
+            .min(inner.height() as f64 / h_mm)
+            .max(1e-6);
+        let image_rect = Rect::from_center_size(
+            inner.center(),
+            Vec2::new((w_mm * fit) as f32, (h_mm * fit) as f32),
+        );
+        let response = ui.interact(
+            rect,
+            ui.scope_id().with(("slice", view.index())),
+            Sense::click_and_drag(),
+        );
+        let windowing = response.dragged_by(egui::PointerButton::Secondary)
+            || response.dragged_by(egui::PointerButton::Primary) && ui.input(|i| i.modifiers.shift);
+        if windowing {
+            let delta = ui.input(|i| i.pointer.delta());
+            self.window = drag_window(
+                self.window,
+                delta.x as f64,
+                delta.y as f64,
+                self.physical_range,
+            );
+        } else if let Some(pos) = response.interact_pointer_pos() {
+            if (response.clicked() || response.dragged_by(egui::PointerButton::Primary))
+                && image_rect.contains(pos)
+            {
+                let u = ((pos.x - image_rect.left()) / image_rect.width()) as f64;
+                let v = ((pos.y - image_rect.top()) / image_rect.height()) as f64;
+                let (a, d) = frame.index_at(dims, u, v);
+                self.cursor[frame.across_axis] = a.clamp(0.0, dims[frame.across_axis] as f64 - 1.0);
+                self.cursor[frame.down_axis] = d.clamp(0.0, dims[frame.down_axis] as f64 - 1.0);
+            }
+        }
+        let n = frame.normal_axis;
+        if response.hovered() {
+            // Whole lines page; fractions (touchpads) add up to the same one slice a click.
+            self.wheel_lines[view.index()] += wheel_lines(ui);
+            let step = self.wheel_lines[view.index()].trunc();
+            if step != 0.0 {
+                self.wheel_lines[view.index()] -= step;
+                self.cursor[n] = (self.cursor[n].round() + step).clamp(0.0, dims[n] as f64 - 1.0);
+            }
+        } else {
+            self.wheel_lines[view.index()] = 0.0;
+        }
+
+        // Ask for the slice at the level matching this view's pixels.
+        let ppp = ui.ctx().pixels_per_point();
+        let level = level_for_pixels(
+            dims[frame.across_axis] as f64,
+            (image_rect.width() * ppp) as f64,
+            self.assembler.layout().level_count(),
+        );
+        let request = SliceRequest {
+            view,
+            frame,
+            position: self.cursor[n],
+            level,
+        };
+        if self.requested[view.index()] != Some(request) {
+            match self.assembler.start(request) {
+                Ok(()) => self.requested[view.index()] = Some(request),
+                Err(e) => self.error = Some(e.to_string()),
+            }
+        }
+        if let Some(shown) = &self.shown[view.index()] {
+            painter.add(egui::Shape::mesh(slice_mesh(
+                shown.texture.id(),
+                image_rect,
+                shown.image.inside_fraction,
+                frame,
+            )));
+        }
+
+        // The crosshair, with a gap around its centre.
+        let (cu, cv) = frame.fraction_of(
+            dims,
+            self.cursor[frame.across_axis],
+            self.cursor[frame.down_axis],
+        );
+        let c = Pos2::new(
+            image_rect.left() + cu as f32 * image_rect.width(),
+            image_rect.top() + cv as f32 * image_rect.height(),
+        );
+        let hair = Stroke::new(1.0, Color32::from_rgba_unmultiplied(120, 220, 255, 150));
+        for (from, to) in [
+            (Pos2::new(image_rect.left(), c.y), Pos2::new(c.x - 8.0, c.y)),
+            (
+                Pos2::new(c.x + 8.0, c.y),
+                Pos2::new(image_rect.right(), c.y),
+            ),
+            (Pos2::new(c.x, image_rect.top()), Pos2::new(c.x, c.y - 8.0)),
+            (
+                Pos2::new(c.x, c.y + 8.0),
+                Pos2::new(c.x, image_rect.bottom()),
+            ),
+        ] {
+            painter.line_segment([from, to], hair);
+        }
+
+        // Orientation labels, the title, and the readout line.
+        let font = egui::FontId::proportional(14.0);
+        let label_colour = Color32::from_rgb(255, 220, 120);
+        let [left, right, top, bottom] = frame.labels;
+        for (pos, align, text) in [
+            (
+                Pos2::new(rect.left() + 5.0, rect.center().y),
+                egui::Align2::LEFT_CENTER,
+                left,
+            ),
+            (
+                Pos2::new(rect.right() - 5.0, rect.center().y),
+                egui::Align2::RIGHT_CENTER,
+                right,
+            ),
+            (
+                Pos2::new(rect.center().x, rect.top() + 21.0),
+                egui::Align2::CENTER_TOP,
+                top,
+            ),
+            (
+                Pos2::new(rect.center().x, rect.bottom() - 19.0),
+                egui::Align2::CENTER_BOTTOM,
+                bottom,
+            ),
+        ] {
+            painter.text(pos, align, text, font.clone(), label_colour);
+        }
+        let slice_number = self.cursor[n].round() as i64 + 1;
+        painter.text(
+            rect.left_top() + Vec2::new(8.0, 4.0),
+            egui::Align2::LEFT_TOP,
+            format!("{} {}/{}", view.name(), slice_number, dims[n]),
+            egui::FontId::proportional(13.0),
+            colour,
+        );
+        let mut info = format!("W {:.0} L {:.0}", self.window.width, self.window.centre);
+        if let Some(level) = self.shown[view.index()]
+            .as_ref()
+            .map(|s| s.image.request.level)
+            .filter(|l| *l > 0)
+        {
+            info.push_str(&format!(" · level {level}"));
+        }
+        if self.assembler.pending(view).is_some() {
+            info.push_str(" · loading");
+        }
+        if let Some(pos) = response.hover_pos().filter(|p| image_rect.contains(*p)) {
+            let u = ((pos.x - image_rect.left()) / image_rect.width()) as f64;
+            let v = ((pos.y - image_rect.top()) / image_rect.height()) as f64;
+            let (a, d) = frame.index_at(dims, u, v);
+            let mut index = self.cursor.map(|c| c.round().max(0.0) as u32);
+            index[frame.across_axis] = (a.round().max(0.0) as u32).min(dims[frame.across_axis] - 1);
+            index[frame.down_axis] = (d.round().max(0.0) as u32).min(dims[frame.down_axis] - 1);
+            self.hovered = Some(index);
+            let value = match self.assembler.voxel(index) {
+                Ok(VoxelLookup::Value(stored)) => {
+                    format!("{:.0} {}", self.mapping.physical(stored as f64), self.unit)
+                }
+                Ok(VoxelLookup::Needs(_)) => "…".to_string(),
+                Err(e) => e.to_string(),
+            };
+            info.push_str(&format!(
+                " · ({}, {}, {}) {}",
+                index[0],
+                index[1],
+                index[2],
+                value.trim_end()
+            ));
+        }
+        if let Some(error) = &self.error {
+            info.push_str(&format!(" · {error}"));
+        }
+        painter.text(
+            rect.left_bottom() + Vec2::new(8.0, -4.0),
+            egui::Align2::LEFT_BOTTOM,
+            info,
+            egui::FontId::proportional(11.0),
+            Color32::LIGHT_GRAY,
+        );
+    }
+}
+
+/// The slice image as a textured rectangle: the level grid's overhang cropped by
+/// `inside_fraction`, the view's flips applied through the texture coordinates.
+fn slice_mesh(
+    texture: egui::TextureId,
+    image_rect: Rect,
+    inside_fraction: (f64, f64),
+    frame: SliceFrame,
+) -> egui::Mesh {
+    let (fu, fv) = (inside_fraction.0 as f32, inside_fraction.1 as f32);
+    let (u0, u1) = if frame.across_flipped {
+        (fu, 0.0)
+    } else {
+        (0.0, fu)
+    };
+    let (v0, v1) = if frame.down_flipped {
+        (fv, 0.0)
+    } else {
+        (0.0, fv)
+    };
+    let mut mesh = egui::Mesh::with_texture(texture);
+    mesh.add_rect_with_uv(
+        image_rect,
+        Rect::from_min_max(Pos2::new(0.0, 0.0), Pos2::new(1.0, 1.0)),
+        Color32::WHITE,
+    );
+    // Each vertex's uv from its place in the rectangle (flips included).
+    for vertex in &mut mesh.vertices {
+        let fx = (vertex.pos.x - image_rect.left()) / image_rect.width();
+        let fy = (vertex.pos.y - image_rect.top()) / image_rect.height();
+        vertex.uv = Pos2::new(u0 + (u1 - u0) * fx, v0 + (v1 - v0) * fy);
+    }
+    mesh
+}
