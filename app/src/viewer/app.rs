@@ -255,6 +255,7 @@ impl StrataApp {
         if let Some(view) = &link_view {
             self.preferences.preset = view.preset.clone();
             self.preferences.mode = view.mode;
+            self.preferences.layout = view.layout;
         }
         self.pending_link_view = link_view;
         match PrepareJob::start(
@@ -485,6 +486,7 @@ impl StrataApp {
                 mode: self.preferences.mode,
                 preset: self.preferences.preset.clone(),
                 iso_value: v.scene.iso_value,
+                layout: self.preferences.layout,
             },
         )
     }

@@ -9,8 +9,9 @@
 //! written back into a copied link (links are shared, tokens must not be), logged, or saved.
 
 use strata_render::RenderMode;
-use strata_web::view_state::{Fragment, ViewState};
+use strata_web::view_state::{Fragment, Layout as LinkLayout, ViewState};
 
+use super::preferences::Layout;
 use super::view3d::OrbitCamera;
 
 /// A link's store and view.
@@ -30,6 +31,9 @@ pub struct DesktopView {
     pub preset: String,
     /// In the volume's physical unit.
     pub iso_value: f64,
+    /// The 3D view alone, or with the slices (the page's 2×2; the desktop's conventional
+    /// 3D + 1×3 is shared as the 2×2, its nearest in the page).
+    pub layout: Layout,
 }
 
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -119,6 +123,10 @@ pub fn link_for(store_url: &str, view: &DesktopView) -> Option<String> {
         pan: view.orbit.pan,
         orthographic: view.orbit.orthographic,
         iso_value: view.iso_value,
+        layout: match view.layout {
+            Layout::Single => LinkLayout::Single,
+            Layout::ThreeDOverSlices | Layout::TwoByTwo => LinkLayout::FourUp,
+        },
         store: Some(name.to_string()),
         ..ViewState::default()
     };
@@ -138,6 +146,10 @@ pub fn desktop_view(view: &ViewState) -> DesktopView {
         mode: view.mode,
         preset: view.preset.clone(),
         iso_value: view.iso_value,
+        layout: match view.layout {
+            LinkLayout::Single => Layout::Single,
+            LinkLayout::FourUp => Layout::TwoByTwo,
+        },
     }
 }
 
@@ -158,6 +170,7 @@ mod tests {
             mode: RenderMode::Isosurface,
             preset: "ct-soft-tissue".into(),
             iso_value: 150.5,
+            layout: Layout::Single,
         }
     }
 

@@ -2550,7 +2550,7 @@ fn a_viewer_link_opens_its_store_and_view_and_copy_link_gives_it_back_without_th
     )
     .expect("serving the phantom");
     let link = format!(
-        "{}/#store={name}&mode=mip&preset=ct-soft-tissue&az=-60&el=25&zoom=1.5&pan=0.1,-0.05&token={token}",
+        "{}/#store={name}&mode=mip&preset=ct-soft-tissue&az=-60&el=25&zoom=1.5&pan=0.1,-0.05&layout=single&token={token}",
         server.base_url()
     );
     let mut options = ViewerOptions::new(VolumeSource::Url {
@@ -2560,7 +2560,7 @@ fn a_viewer_link_opens_its_store_and_view_and_copy_link_gives_it_back_without_th
     });
     options.import_folder = dir.path().join("imported");
     let preferences = Preferences {
-        layout: Layout::Single,
+        layout: Layout::TwoByTwo,
         ..Preferences::default()
     };
     // Wide enough for the whole toolbar, "Copy link" included.
@@ -2579,6 +2579,7 @@ fn a_viewer_link_opens_its_store_and_view_and_copy_link_gives_it_back_without_th
         assert_eq!(v.view_3d.orbit, expected_orbit);
         assert_eq!(a.preferences.mode, RenderMode::Mip);
         assert_eq!(a.preferences.preset, "ct-soft-tissue");
+        assert_eq!(a.preferences.layout, Layout::Single, "the link's layout");
         assert_eq!(
             v.data.store_path.to_string_lossy(),
             server.store_url(&name),
