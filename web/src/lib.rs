@@ -9,6 +9,8 @@
 //! - `served_store` (wasm32 only): `strata serve`'s client on `fetch()`, the volume source the
 //!   streaming loader reads a served store through (`#store=NAME`), with the loader's work
 //!   inline on the page's one thread (strata_loader::LoaderWork::Inline).
+//! - `side_panel` (wasm32 only): the side panel, the desktop's transfer-function editor and
+//!   Performance panel from strata-viewer-ui, on the page's 3D view.
 //!
 //! Without `store=` the page shows the built-in sample volume (the render crate's CT phantom,
 //! made in the page).
@@ -19,3 +21,5 @@ pub mod view_state;
 mod browser;
 #[cfg(target_arch = "wasm32")]
 mod served_store;
+#[cfg(target_arch = "wasm32")]
+mod side_panel;
