@@ -150,6 +150,20 @@ fn shared_types_stay_small() {
     );
 }
 
+/// The workspace's library and app crates whose sources the checks below read.
+const CRATE_DIRS: [&str; 10] = [
+    "types",
+    "storage",
+    "source",
+    "service",
+    "omezarr",
+    "loader",
+    "render",
+    "slices",
+    "viewer-ui",
+    "app",
+];
+
 /// Module path of a source file: `src/lib.rs` → "", `src/bench/accuracy.rs` → "bench::accuracy",
 /// `src/viewer/mod.rs` → "viewer".
 fn module_of(src: &Path, file: &Path) -> String {
@@ -350,9 +364,7 @@ fn find_cycle(graph: &BTreeMap<String, BTreeSet<String>>) -> Option<Vec<String>>
 #[test]
 fn no_module_cycles_in_any_crate() {
     let mut cycles = Vec::new();
-    for crate_dir in [
-        "types", "storage", "source", "service", "omezarr", "loader", "render", "slices", "app",
-    ] {
+    for crate_dir in CRATE_DIRS {
         let graph = module_graph(crate_dir);
         println!("{crate_dir}:");
         for (module, uses) in &graph {
@@ -464,9 +476,7 @@ fn uncompiled_test_files(crate_dir: &Path, tests_dir: &Path, lib: Option<&str>) 
 fn every_test_file_is_compiled() {
     let root = repo_root();
     let mut missing = Vec::new();
-    for crate_dir in [
-        "types", "storage", "source", "service", "omezarr", "loader", "render", "slices", "app",
-    ] {
+    for crate_dir in CRATE_DIRS {
         let dir = root.join(crate_dir);
         missing.extend(uncompiled_test_files(&dir, &dir.join("tests"), None));
     }

@@ -21,9 +21,11 @@ use wasm_bindgen::JsCast;
 
 use crate::page_timing::{PageTiming, BENCH_DEG_PER_FRAME};
 use crate::served_store::{list_stores, ServedStore, DECODES_PER_FRAME, MAX_ON_THE_WIRE};
+use crate::side_panel::{SidePanel, VolumeFigures};
 use crate::slice_views::{two_by_two, SliceViews};
 use crate::view_state::{Fragment, ViewState};
 use strata_source::wire::StoreList;
+use strata_source::VolumeSource;
 
 /// The largest image edge drawn when the canvas decides (device pixels): a 4K canvas is drawn
 /// at this size and scaled, so one frame stays bounded on a software adapter.
@@ -146,8 +148,10 @@ struct WebViewer {
     view: ViewState,
     volume: Option<BrickedVolume>,
     renderer: Option<OffscreenRenderer>,
-    /// The preset the renderer's transfer function was made from.
+    /// The transfer function the renderer draws with (`SidePanel::tf_key`).
     renderer_preset: String,
+    /// The transfer-function editor and the Performance panel (side_panel.rs).
+    side: SidePanel,
     texture: Option<egui::TextureId>,
     /// The view and image size of the frame on screen.
     drawn: Option<(ViewState, [u32; 2])>,
@@ -211,6 +215,7 @@ impl WebViewer {
             *filled.borrow_mut() = Some(listed);
             repaint.request_repaint();
         });
+        let side = SidePanel::new(&fragment.view, info.name.clone());
         Ok(WebViewer {
             render_state,
             stores,
@@ -222,6 +227,7 @@ impl WebViewer {
             volume: None,
             renderer: None,
             renderer_preset: String::new(),
+            side,
             texture: None,
             drawn: None,
             frames_submitted: 0,
@@ -244,6 +250,7 @@ impl WebViewer {
                 return Ok(false);
             }
             self.volume = Some(self.view.sample_volume().map_err(|e| e.to_string())?);
+            self.side.set_sample_histogram(&self.view);
         }
         let Some(volume) = self.volume.as_ref() else {
             return Ok(false);
@@ -257,21 +264,27 @@ impl WebViewer {
             let renderer = OffscreenRenderer::new(
                 &self.gpu,
                 volume,
-                &self.view.transfer_function(),
+                &self.side.transfer_function(&self.view),
                 0,
                 config,
             )
             .map_err(|e| e.to_string())?;
             self.renderer = Some(renderer);
-            self.renderer_preset = self.view.preset.clone();
+            self.renderer_preset = self.side.tf_key(&self.view);
         }
-        if self.renderer_preset != self.view.preset {
+        let tf_key = self.side.tf_key(&self.view);
+        if self.renderer_preset != tf_key {
             if let Some(renderer) = self.renderer.as_mut() {
                 renderer
-                    .set_transfer_function(&self.gpu, volume, &self.view.transfer_function())
+                    .set_transfer_function(
+                        &self.gpu,
+                        volume,
+                        &self.side.transfer_function(&self.view),
+                    )
                     .map_err(|e| e.to_string())?;
             }
-            self.renderer_preset = self.view.preset.clone();
+            self.renderer_preset = tf_key;
+            self.drawn = None;
         }
         Ok(true)
     }
@@ -279,12 +292,14 @@ impl WebViewer {
     /// Opens the fragment's store (asynchronously) and starts the loader on it once open.
     fn ensure_stream(&mut self, ctx: &egui::Context, name: &str) -> Result<bool, String> {
         if let Some(streamed) = self.streamed.as_mut() {
-            if self.renderer_preset != self.view.preset {
+            let tf_key = self.side.tf_key(&self.view);
+            if self.renderer_preset != tf_key {
                 streamed
                     .volume
-                    .set_transfer_function(&self.gpu, &self.view.transfer_function())
+                    .set_transfer_function(&self.gpu, &self.side.transfer_function(&self.view))
                     .map_err(|e| e.to_string())?;
-                self.renderer_preset = self.view.preset.clone();
+                self.renderer_preset = tf_key;
+                self.drawn = None;
             }
             return Ok(true);
         }
@@ -306,6 +321,10 @@ impl WebViewer {
             return Ok(false);
         };
         let store = Arc::new(opened?);
+        self.side.set_histogram(
+            store.histogram().clone(),
+            &store.header().value_mapping.unit,
+        );
         let slices = SliceViews::new(store.as_ref())?;
         let config = StreamingConfig {
             // The page shares the GPU and memory with the rest of the browser.
@@ -319,14 +338,19 @@ impl WebViewer {
             work: LoaderWork::Inline,
             ..StreamingConfig::default()
         };
-        let volume = StreamingVolume::new(&self.gpu, store, &self.view.transfer_function(), config)
-            .map_err(|e| e.to_string())?;
+        let volume = StreamingVolume::new(
+            &self.gpu,
+            store,
+            &self.side.transfer_function(&self.view),
+            config,
+        )
+        .map_err(|e| e.to_string())?;
         self.streamed = Some(Streamed {
             volume,
             last: None,
             slices,
         });
-        self.renderer_preset = self.view.preset.clone();
+        self.renderer_preset = self.side.tf_key(&self.view);
         Ok(true)
     }
 
@@ -351,6 +375,8 @@ impl WebViewer {
         }
         self.timing.submitted(stats.converged);
         streamed.last = Some(stats);
+        self.side
+            .gpu_timings(streamed.volume.take_frame_timings(&self.gpu));
         self.frames_submitted += 1;
         let view = streamed
             .volume
@@ -377,6 +403,8 @@ impl WebViewer {
             .map_err(|e| e.to_string())?;
         // The sample is drawn whole in one frame.
         self.timing.submitted(true);
+        self.side
+            .gpu_timings(renderer.raycaster.try_take_frame_timings(&self.gpu));
         self.frames_submitted += 1;
         let view = renderer
             .raycaster
@@ -724,6 +752,7 @@ async fn post_frame(
 
 impl eframe::App for WebViewer {
     fn ui(&mut self, ui: &mut egui::Ui, _frame: &mut eframe::Frame) {
+        let ui_started = web_time::Instant::now();
         let ctx = ui.ctx().clone();
         if let Some(lost) = self.device_lost.lock().ok().and_then(|l| l.clone()) {
             self.error = Some(format!(
@@ -735,6 +764,17 @@ impl eframe::App for WebViewer {
         }
         egui::Panel::top("controls").show(ui, |ui| self.controls(ui));
         egui::Panel::bottom("status").show(ui, |ui| self.status(ui));
+        egui::Panel::right("side panel")
+            .resizable(true)
+            .default_size(300.0)
+            .show(ui, |ui| {
+                let figures = VolumeFigures {
+                    loader: self.streamed.as_ref().and_then(|s| s.last.as_ref()),
+                    step_factor: self.view.settings(1, 1).quality,
+                    frames_submitted: self.frames_submitted,
+                };
+                self.side.ui(ui, &self.view, figures);
+            });
         egui::CentralPanel::default()
             .frame(egui::Frame::NONE.fill(egui::Color32::BLACK))
             .show(ui, |ui| {
@@ -828,5 +868,6 @@ impl eframe::App for WebViewer {
                 self.write_fragment(response.dragged());
             });
         self.capture_step(&ctx);
+        self.side.record_frame(ui_started, self.frames_submitted);
     }
 }

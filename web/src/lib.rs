@@ -14,6 +14,8 @@
 //! - `slice_views` (wasm32 only): a streamed store's three linked slice views (axial, coronal,
 //!   sagittal) beside the 3D view, sliced by strata-slices' assembler (the desktop's) from
 //!   bricks fetched asynchronously through the served store, window/level by right drag.
+//! - `side_panel` (wasm32 only): the side panel, the desktop's transfer-function editor and
+//!   Performance panel from strata-viewer-ui, on the page's 3D view.
 //!
 //! Without `store=` the page shows the built-in sample volume (the render crate's CT phantom,
 //! made in the page).
@@ -26,5 +28,7 @@ mod browser;
 mod page_timing;
 #[cfg(target_arch = "wasm32")]
 mod served_store;
+#[cfg(target_arch = "wasm32")]
+mod side_panel;
 #[cfg(target_arch = "wasm32")]
 mod slice_views;

@@ -28,10 +28,10 @@ use super::scene::{
 use super::screenshots::{ScreenshotJob, ShotTarget};
 use super::slice_view::SliceViewer;
 use super::slices::SliceReader;
-use super::tf_editor::TfEditorState;
 use super::view3d::{OrbitCamera, StandardView, View3d};
 use super::volume_session::{ScreenshotRequest, VolumeSession, DEFAULT_GPU_BUDGET_BYTES};
 use super::widgets::{NOT_FOR_DIAGNOSIS, WARNING_COLOUR};
+use strata_viewer_ui::tf_editor::TfEditorState;
 
 /// How the viewer was started (command line, tests).
 #[derive(Clone, Debug)]
@@ -1084,10 +1084,10 @@ impl StrataApp {
                 ));
                 ui.separator();
                 if let Some(loading) = &status.loading {
-                    super::widgets::slow_spinner(ui);
+                    strata_viewer_ui::widgets::slow_spinner(ui);
                     ui.label(loading);
                 } else if status.refining {
-                    super::widgets::slow_spinner(ui);
+                    strata_viewer_ui::widgets::slow_spinner(ui);
                     ui.label(status.refining_line());
                 } else if let Some(stats) = status.loader.as_ref().filter(|s| s.converged_at_budget)
                 {

@@ -37,7 +37,6 @@ pub mod session_restore;
 pub mod slice_view;
 pub mod slices;
 pub(crate) mod sync;
-pub mod tf_editor;
 pub mod view3d;
 pub mod volume_session;
 pub mod widgets;

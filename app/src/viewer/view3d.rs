@@ -16,7 +16,6 @@ use super::overlay_3d::OverlayIn3d;
 use super::preferences::Preferences;
 use super::scene::{Scene, VolumeData};
 use super::slice_view::slice_colour;
-use super::tf_editor;
 use super::volume_session::{RenderRequest, RenderedFrame};
 use super::widgets::{view_title, wheel_lines, ViewResponse, NOT_FOR_DIAGNOSIS, WARNING_COLOUR};
 
@@ -390,7 +389,11 @@ impl View3d {
             let (lo, hi) = data.info.physical_range;
             let shift_value = pointer_delta.x as f64 / rect.width().max(1.0) as f64 * (hi - lo);
             let scale = (-pointer_delta.y as f64 / rect.height().max(1.0) as f64 * 2.0).exp();
-            tf_editor::shift_and_scale(&mut scene.transfer_function, shift_value, scale);
+            strata_viewer_ui::tf_editor::shift_and_scale(
+                &mut scene.transfer_function,
+                shift_value,
+                scale,
+            );
             moved = true;
         }
         if response.hovered() {

@@ -17,7 +17,7 @@ use super::preferences::Preferences;
 use super::scene::{Scene, VolumeData};
 use super::view3d::View3d;
 
-pub use performance::FrameClock;
+pub use strata_viewer_ui::performance::FrameClock;
 
 /// Everything in the side bar that outlives one frame.
 #[derive(Default)]

@@ -1,10 +1,10 @@
-//! The transfer-function panel: presets, the editor (tf_editor.rs), save and load.
+//! The transfer-function panel: presets, the editor (strata_viewer_ui::tf_editor), save and load.
 
 use strata_render::TransferFunction;
 
 use crate::viewer::file_chooser::{ChooserKind, Chosen, FileChooser};
 use crate::viewer::scene::{preset_for, Scene, VolumeData, PRESETS};
-use crate::viewer::tf_editor::{self, TfEditorState};
+use strata_viewer_ui::tf_editor::{self, TfEditorState};
 
 /// What a running file chooser of the panel is for.
 #[derive(Clone, Copy, Debug, PartialEq)]

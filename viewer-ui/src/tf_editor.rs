@@ -1,7 +1,8 @@
-//! Transfer-function editor: the volume's histogram (log counts) over physical values, an
-//! opacity polyline with draggable points (click to add, right-click to remove) and a colour
-//! bar with stops (click to add, drag, right-click to remove, pick the colour of the selected
-//! stop). Every edit changes the `TransferFunction` at once; the next render request carries it.
+//! Transfer-function editor, in the desktop viewer's TF panel and the browser's side panel: the
+//! volume's histogram (log counts) over physical values, an opacity polyline with draggable
+//! points (click to add, right-click to remove) and a colour bar with stops (click to add, drag,
+//! right-click to remove, pick the colour of the selected stop). Every edit changes the
+//! `TransferFunction` at once; the caller's next render carries it.
 
 use egui::{Color32, Pos2, Rect, Sense, Stroke, Vec2};
 use strata_render::transfer_function::{ColorStop, OpacityStop};

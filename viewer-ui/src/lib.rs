@@ -1,0 +1,17 @@
+//! strata-viewer-ui: the views and panels the desktop viewer (`strata`, app/src/viewer/) and the
+//! browser viewer (strata-web) share, so both builds draw one copy (issue 39). Everything here
+//! builds natively and for wasm32-unknown-unknown: it takes plain inputs (the transfer function,
+//! the histogram, the figures to show) from the caller and knows nothing of either app's state.
+//!
+//! # Modules
+//! - [`tf_editor`]: the transfer-function editor (histogram, opacity points, colour stops).
+//! - [`performance`]: [`performance::FrameClock`] (UI frame-time history and the frame log) and
+//!   the Performance panel's figures, drawn from [`performance::PerformanceFigures`].
+//! - [`target_fps`]: the target frame-rate control (checkbox + slider) the time-critical
+//!   controller (strata_render::time_critical) is driven by.
+//! - [`widgets`]: small widgets the panels need (the slow spinner).
+
+pub mod performance;
+pub mod target_fps;
+pub mod tf_editor;
+pub mod widgets;

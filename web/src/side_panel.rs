@@ -1,0 +1,227 @@
+//! The page's side panel (wasm32 only): the transfer-function editor on the 3D view's function
+//! and the Performance panel, both the desktop viewer's own (strata_viewer_ui). What the browser
+//! cannot do (import, local stores, saving a function to a file) is not offered here.
+//!
+//! The panel owns the function the view draws with: the view's preset until the editor changes
+//! it; choosing another preset starts again from that preset. [`SidePanel::tf_key`] names the
+//! function (preset and edit count), so the page uploads it to the renderer only when it changed.
+//! The address (view_state.rs) keeps the preset, not the edits.
+
+use std::collections::VecDeque;
+
+use strata_loader::FrameStats;
+use strata_render::phantom::ct_phantom_hu;
+use strata_render::{FrameTiming, TransferFunction};
+use strata_storage::histogram::{Histogram, StoredValueCounts};
+use strata_viewer_ui::performance::{self, FrameClock, PerformanceFigures};
+use strata_viewer_ui::tf_editor::{self, TfEditorState};
+use web_time::Instant;
+
+use crate::view_state::ViewState;
+
+/// GPU frame times kept for the plot.
+const GPU_TIMES_KEPT: usize = 240;
+/// Points per axis at which the sample's histogram samples the phantom (its own formula, not
+/// the bricks: 48³ values give the histogram's shape in a few milliseconds).
+const SAMPLE_HISTOGRAM_EDGE: u32 = 48;
+
+/// What the page tells the panel about this frame's volume.
+pub struct VolumeFigures<'a> {
+    /// The loader's figures for a streamed store (`None` for the sample made in the page).
+    pub loader: Option<&'a FrameStats>,
+    /// The raycaster's step factor this view draws with (samples per voxel = 1 / it).
+    pub step_factor: f64,
+    /// Volume frames submitted so far.
+    pub frames_submitted: u64,
+}
+
+pub struct SidePanel {
+    editor: TfEditorState,
+    transfer_function: TransferFunction,
+    /// The preset `transfer_function` started from.
+    preset: String,
+    /// Edits since that preset was chosen (0: the preset as it is).
+    edits: u64,
+    /// The volume's histogram, its physical range and unit (until known: none, no editor).
+    histogram: Option<(Histogram, (f64, f64), String)>,
+    adapter: String,
+    started: Instant,
+    clock: FrameClock,
+    /// Raycast GPU times (timestamp queries) as `[seconds, ms]` on the clock's axis.
+    gpu_ms: VecDeque<[f64; 2]>,
+}
+
+impl SidePanel {
+    pub fn new(view: &ViewState, adapter: String) -> Self {
+        SidePanel {
+            editor: TfEditorState::default(),
+            transfer_function: view.transfer_function(),
+            preset: view.preset.clone(),
+            edits: 0,
+            histogram: None,
+            adapter,
+            started: Instant::now(),
+            clock: FrameClock::default(),
+            gpu_ms: VecDeque::new(),
+        }
+    }
+
+    /// Follows the view's preset: another one replaces the function (and drops the edits).
+    fn follow_preset(&mut self, view: &ViewState) {
+        if view.preset != self.preset {
+            self.transfer_function = view.transfer_function();
+            self.preset = view.preset.clone();
+            self.edits = 0;
+            self.editor = TfEditorState::default();
+        }
+    }
+
+    /// The function the 3D view draws with.
+    pub fn transfer_function(&mut self, view: &ViewState) -> TransferFunction {
+        self.follow_preset(view);
+        self.transfer_function.clone()
+    }
+
+    /// Names the function the view draws with: it changes when the function does.
+    pub fn tf_key(&mut self, view: &ViewState) -> String {
+        self.follow_preset(view);
+        format!("{}#{}", self.preset, self.edits)
+    }
+
+    /// The editor's histogram: a served store's own (from its open document).
+    pub fn set_histogram(&mut self, histogram: Histogram, unit: &str) {
+        let range = (histogram.physical_min, histogram.physical_max);
+        self.histogram = Some((histogram, range, unit.to_string()));
+    }
+
+    /// The editor's histogram for the sample volume made in the page.
+    pub fn set_sample_histogram(&mut self, view: &ViewState) {
+        self.set_histogram(sample_histogram(view), "HU");
+    }
+
+    /// Raycast GPU times of frames that finished (read without waiting, a frame or two late).
+    pub fn gpu_timings(&mut self, timings: Vec<FrameTiming>) {
+        let now = self.started.elapsed().as_secs_f64();
+        for timing in timings {
+            self.gpu_ms.push_back([now, timing.milliseconds]);
+        }
+        while self.gpu_ms.len() > GPU_TIMES_KEPT {
+            self.gpu_ms.pop_front();
+        }
+    }
+
+    /// Records the UI frame that started at `ui_started` (the panel plots the intervals).
+    pub fn record_frame(&mut self, ui_started: Instant, frames_submitted: u64) {
+        let seconds = self.started.elapsed().as_secs_f64();
+        self.clock
+            .record(seconds, ui_started, frames_submitted, false);
+    }
+
+    pub fn ui(&mut self, ui: &mut egui::Ui, view: &ViewState, figures: VolumeFigures<'_>) {
+        self.follow_preset(view);
+        egui::ScrollArea::vertical().show(ui, |ui| {
+            egui::CollapsingHeader::new("Transfer function")
+                .default_open(true)
+                .show(ui, |ui| self.transfer_function_ui(ui));
+            egui::CollapsingHeader::new("Performance")
+                .default_open(true)
+                .show(ui, |ui| self.performance_ui(ui, figures));
+        });
+    }
+
+    fn transfer_function_ui(&mut self, ui: &mut egui::Ui) {
+        let source = if self.edits > 0 {
+            format!("{} — edited", self.preset)
+        } else {
+            self.preset.clone()
+        };
+        ui.horizontal(|ui| {
+            ui.add(egui::Label::new(egui::RichText::new(source).weak()).truncate());
+            if self.edits > 0 && ui.button("Reset").clicked() {
+                self.transfer_function = TransferFunction::preset(&self.preset)
+                    .unwrap_or_else(|| self.transfer_function.clone());
+                // A new key: the view draws the preset again.
+                self.edits += 1;
+                self.editor = TfEditorState::default();
+            }
+        });
+        let Some((histogram, range, unit)) = &self.histogram else {
+            ui.weak("the volume's histogram arrives with the volume");
+            return;
+        };
+        if tf_editor::show(
+            ui,
+            &mut self.editor,
+            &mut self.transfer_function,
+            histogram,
+            *range,
+            unit,
+        ) {
+            self.edits += 1;
+        }
+    }
+
+    fn performance_ui(&mut self, ui: &mut egui::Ui, figures: VolumeFigures<'_>) {
+        let loader = figures.loader;
+        // The finest level with a brick on the GPU and the pyramid's depth, from the loader's
+        // residency per level.
+        let per_level = loader.map_or(&[][..], |l| &l.gpu_resident_per_level[..]);
+        let working = match loader {
+            Some(l) if l.source_status.is_retrying() => Some(format!(
+                "server unreachable, retrying ({:?})",
+                l.source_status
+            )),
+            Some(l) if !l.converged => Some(format!(
+                "loading: {} requested, {} in flight",
+                l.queued, l.in_flight
+            )),
+            _ => None,
+        };
+        let volume_frame_ms: Vec<[f64; 2]> = self.gpu_ms.iter().copied().collect();
+        let shown = PerformanceFigures {
+            adapter: &self.adapter,
+            gpu_frame_ms: volume_frame_ms.last().map(|p| p[1]),
+            volume_frame_ms,
+            sampling_rate: 1.0 / figures.step_factor.max(1e-9),
+            lod_factor: 1.0,
+            loader,
+            traversal: None,
+            finest_resident_level: per_level.iter().position(|&n| n > 0).map(|l| l as u8),
+            level_count: per_level.len(),
+            frames_rendered: figures.frames_submitted,
+            working,
+        };
+        performance::show(ui, &self.clock, &shown);
+        if self.gpu_ms.is_empty() {
+            ui.weak("volume frame times: this browser's WebGPU offers no timestamp queries");
+        } else {
+            ui.weak("volume frame: the raycast pass's GPU time (timestamp queries)");
+        }
+    }
+}
+
+/// The sample volume's histogram: the CT phantom's formula (render::phantom) sampled on a
+/// coarser grid over the same box, in the sample's stored values (HU + 1024).
+pub fn sample_histogram(view: &ViewState) -> Histogram {
+    let geometry = view.geometry();
+    let centre = geometry.centre_patient();
+    let extent = [0, 1, 2].map(|a| geometry.dims[a] as f64 * geometry.spacing_mm[a]);
+    let radius = 0.5 * extent.iter().cloned().fold(f64::INFINITY, f64::min);
+    let edge_mm = geometry.spacing_mm.iter().cloned().fold(0.0, f64::max);
+    let n = SAMPLE_HISTOGRAM_EDGE;
+    let mut counts = StoredValueCounts::default();
+    let mut row = Vec::with_capacity(n as usize);
+    for z in 0..n {
+        for y in 0..n {
+            row.clear();
+            for x in 0..n {
+                let index =
+                    [x, y, z].map(|i| (i as f64 + 0.5) / n as f64 * view.volume_edge as f64);
+                let hu = ct_phantom_hu(geometry.patient_from_index(index), centre, radius, edge_mm);
+                row.push((hu + 1024.0).round().clamp(0.0, 4095.0) as u16);
+            }
+            counts.add_slice(&row);
+        }
+    }
+    Histogram::from_stored(&counts, 1.0, -1024.0)
+}
