@@ -10,7 +10,10 @@
 //!      STRATA_BENCH_SAVE=DIR (keep the PSNR images as PPM in DIR),
 //!      STRATA_BENCH_EFFECTS=shadows,shading (only those rows of the effect table, nothing else;
 //!      also occlusion, scattering, shadows+scattering, progressive),
-//!      STRATA_BENCH_LIGHT_CACHE_RES (default 2: voxels per light-cache texel, the cache row).
+//!      STRATA_BENCH_LIGHT_CACHE_RES (default 2: voxels per light-cache texel, the cache row),
+//!      STRATA_BENCH_DUMP_SHADER=FILE (write the composed raycast WGSL there and go on),
+//!      STRATA_BENCH_SHADER=FILE (the main table's raycaster built from that WGSL, a variant
+//!      of the dumped source: ablations such as "no TF fetch" measured without a rebuild).
 //!
 //! Prints ms/frame (median), samples/s, the sampling-only kernel's samples/s measured in the
 //! same run (the ceiling: same texture, same fetch count, no page lookup, TF or compositing),
@@ -553,7 +556,17 @@ fn main() {
         )
         .expect("page value bounds");
     let gpu_tf = GpuTransferFunction::new(&ctx.device, &ctx.queue, &tf_table);
-    let mut raycaster = Raycaster::new(&ctx, &cache);
+    if let Ok(path) = std::env::var("STRATA_BENCH_DUMP_SHADER") {
+        std::fs::write(&path, Raycaster::shader_source()).expect("dump shader");
+    }
+    let mut raycaster = match std::env::var("STRATA_BENCH_SHADER") {
+        Ok(path) => {
+            let wgsl = std::fs::read_to_string(&path).expect("read STRATA_BENCH_SHADER");
+            println!("raycast shader: {path}");
+            Raycaster::with_shader_source(&ctx, &cache, &wgsl)
+        }
+        Err(_) => Raycaster::new(&ctx, &cache),
+    };
     let drawn = Drawn {
         cache: &cache,
         page_table: &gpu_table,
@@ -618,6 +631,12 @@ fn main() {
     for &step in &steps {
         configs.push((format!("dvr step {step}"), RenderMode::Dvr, true, step));
         configs.push((format!("mip step {step}"), RenderMode::Mip, true, step));
+        configs.push((
+            format!("iso step {step}"),
+            RenderMode::Isosurface,
+            true,
+            step,
+        ));
     }
     if !quick {
         configs.push(("dvr step 0.5 no-skip".into(), RenderMode::Dvr, false, 0.5));
@@ -629,6 +648,8 @@ fn main() {
         mode,
         quality: step,
         skip_empty: skip,
+        // The isosurface at the TF's first visible value (the ramp starts at 60).
+        iso_value: 120.0,
         ..Default::default()
     };
 
@@ -673,6 +694,65 @@ fn main() {
         if round > 0 {
             times[configs.len()].push(t.elapsed().as_secs_f64() * 1e3);
         }
+    }
+    // The fixed per-frame cost: a 16² frame (its rays cost next to nothing) split into
+    // encode + submit on the CPU (`render`) and the wait for the GPU, a 16² frame looking away
+    // from the volume (every ray misses: the frame's cost outside the rays), and the
+    // sampling-only kernel's 16² dispatch (submit + wait alone).
+    let tiny = 16;
+    let small_ceiling = SamplingOnly::new(&ctx, &cache, tiny, ceiling_per_ray);
+    for (name, mode) in [
+        ("dvr", RenderMode::Dvr),
+        ("mip", RenderMode::Mip),
+        ("iso", RenderMode::Isosurface),
+    ] {
+        let (mut encode, mut total, mut bare) = (Vec::new(), Vec::new(), Vec::new());
+        let mut missing = Vec::new();
+        for round in 0..=2 * frames.max(9) + 1 {
+            let away = round % 2 == 1;
+            let camera = if away {
+                let c = camera_at(1);
+                let eye = glam::DVec3::from(c.eye);
+                let ahead = eye - (glam::DVec3::from(c.target) - eye);
+                Camera::look_at(c.eye, ahead.into(), [0.0, 1.0, 0.0], c.projection)
+            } else {
+                camera_at(round + 1)
+            };
+            let settings = RenderSettings {
+                width: tiny,
+                height: tiny,
+                ..settings_for(mode, true, steps[0])
+            };
+            let scene = drawn.scene(&camera, &settings);
+            let t = Instant::now();
+            let index = raycaster.render(&ctx, &scene).expect("render");
+            let encoded = t.elapsed().as_secs_f64() * 1e3;
+            ctx.device
+                .poll(wgpu::PollType::Wait {
+                    submission_index: Some(index),
+                    timeout: None,
+                })
+                .expect("poll");
+            let _ = raycaster.try_take_visibility(&ctx);
+            let frame = t.elapsed().as_secs_f64() * 1e3;
+            let t = Instant::now();
+            small_ceiling.run(&ctx);
+            if round > 1 && away {
+                missing.push(frame);
+            } else if round > 1 {
+                encode.push(encoded);
+                total.push(frame);
+                bare.push(t.elapsed().as_secs_f64() * 1e3);
+            }
+        }
+        println!(
+            "fixed per-frame cost ({name} at {tiny}²): {:.2} ms/frame, of which encode+submit \
+             {:.2} ms; every ray missing {:.2} ms; sampling-only kernel at {tiny}²: {:.2} ms",
+            median(total),
+            median(encode),
+            median(missing),
+            median(bare)
+        );
     }
     let ceiling_ms = median(times[configs.len()].clone());
     let ceiling_samples = ceiling_per_ray as f64 * size as f64 * size as f64;

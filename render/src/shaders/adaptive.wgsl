@@ -208,18 +208,16 @@ fn pixel_ray(u: f32, v: f32) -> PixelRay {
     let sx = (2.0 * (u + 0.5) / f32(A.viewport.x) - 1.0) * P.right_idx.w * half_extent;
     let sy = (1.0 - 2.0 * (v + 0.5) / f32(A.viewport.y)) * half_extent;
     var r: PixelRay;
-    r.o = P.eye_idx.xyz;
-    r.d = P.forward_idx.xyz;
-    var plane_nd = P.clip.x;
-    var plane_rhs = P.clip.w;
-    if P.up_idx.w > 0.5 {
-        r.o = r.o + sx * P.right_idx.xyz + sy * P.up_idx.xyz;
-        plane_rhs = plane_rhs - sx * P.clip.y - sy * P.clip.z;
-    } else {
-        let len = sqrt(1.0 + sx * sx + sy * sy);
-        r.d = (r.d + sx * P.right_idx.xyz + sy * P.up_idx.xyz) / len;
-        plane_nd = (plane_nd + sx * P.clip.y + sy * P.clip.z) / len;
-    }
+    // Selects, not an `if` on a uniform: see main in raycast.wgsl (lavapipe recompiles).
+    let orthographic = P.up_idx.w > 0.5;
+    let len = sqrt(1.0 + sx * sx + sy * sy);
+    r.o = select(P.eye_idx.xyz, P.eye_idx.xyz + sx * P.right_idx.xyz + sy * P.up_idx.xyz,
+                 orthographic);
+    r.d = select((P.forward_idx.xyz + sx * P.right_idx.xyz + sy * P.up_idx.xyz) / len,
+                 P.forward_idx.xyz, orthographic);
+    let plane_nd = select((P.clip.x + sx * P.clip.y + sy * P.clip.z) / len, P.clip.x,
+                          orthographic);
+    let plane_rhs = select(P.clip.w, P.clip.w - sx * P.clip.y - sy * P.clip.z, orthographic);
     var t0 = 0.0;
     var t1 = 3.0e38;
     var miss = false;

@@ -219,12 +219,10 @@ fn shade_key_light(color: vec3<f32>, g_idx: vec3<f32>, d_idx: vec3<f32>, p: vec3
     let w = smoothstep(SHADING_FLAT_BELOW, SHADING_LIT_ABOVE, mag * P.iso.y);
     // Towards the light: −d for the headlight, else the frame's direction; l·d in patient
     // space through the dual vector (shadows.rs GpuLight).
-    var l = P.light.xyz;
-    var l_dot_d = dot(P.light_dual.xyz, d_idx);
-    if P.light_dual.w > 0.5 {
-        l = -d_idx;
-        l_dot_d = -1.0;
-    }
+    // Selects, not an `if` on a uniform: see main in raycast.wgsl (lavapipe recompiles).
+    let headlight = P.light_dual.w > 0.5;
+    let l = select(P.light.xyz, -d_idx, headlight);
+    let l_dot_d = select(dot(P.light_dual.xyz, d_idx), -1.0, headlight);
     var ndl = 1.0;
     var spec = 0.0;
     if mag > 0.0 {
