@@ -1390,6 +1390,7 @@ mod tests {
             show_identifiers: true,
             adaptive_sampling: true,
             adaptive_epsilon: 0.004,
+            progressive_frames: 16,
             ..Preferences::default()
         };
         p.focused = ViewSlot::Slice(SliceView::Sagittal);
@@ -1405,6 +1406,10 @@ mod tests {
         assert_eq!(old.preset, "mr-default");
         assert_eq!(old.target_fps, Preferences::default().target_fps);
         assert!(!old.adaptive_sampling, "adaptive sampling is opt-in");
+        assert_eq!(
+            old.progressive_frames,
+            crate::viewer::preferences::DEFAULT_PROGRESSIVE_FRAMES
+        );
         assert_eq!(
             old.adaptive_epsilon,
             crate::viewer::adaptive_view::DEFAULT_EPSILON

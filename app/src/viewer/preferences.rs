@@ -77,6 +77,12 @@ impl TraversalChoice {
     }
 }
 
+/// Progressive frames by default: the jitter's noise falls as 1/√N, so 64 frames leave 1/8 of
+/// one frame's (render/tests/progressive.rs measures the slope).
+pub const DEFAULT_PROGRESSIVE_FRAMES: u32 = 64;
+/// The most the Rendering panel offers (as `strata render --progressive`'s bound is far above).
+pub const MAX_PROGRESSIVE_FRAMES: u32 = 256;
+
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct Preferences {
@@ -96,6 +102,9 @@ pub struct Preferences {
     pub adaptive_sampling: bool,
     /// The adaptive oracle's ε: the opacity change per slice a 2³ block may have.
     pub adaptive_epsilon: f64,
+    /// Jittered frames a still view with shadows, occlusion or scattering averages
+    /// (progressive refinement, volume_session.rs); 0: off.
+    pub progressive_frames: u32,
     pub orthographic: bool,
     pub target_fps_enabled: bool,
     pub target_fps: f64,
@@ -132,6 +141,7 @@ impl Default for Preferences {
             traversal: TraversalChoice::Automatic,
             adaptive_sampling: false,
             adaptive_epsilon: super::adaptive_view::DEFAULT_EPSILON,
+            progressive_frames: DEFAULT_PROGRESSIVE_FRAMES,
             orthographic: false,
             target_fps_enabled: true,
             target_fps: 10.0,

@@ -457,6 +457,7 @@ impl View3d {
             overlay,
             traversal: prefs.traversal.traversal(),
             adaptive_epsilon: prefs.adaptive_sampling.then_some(prefs.adaptive_epsilon),
+            progressive_frames: prefs.progressive_frames,
         });
 
         if self

@@ -18,6 +18,7 @@ use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 
 use strata_loader::{FrameStats, SelectionTiming, StreamingConfig, StreamingVolume};
+use strata_render::progressive::{jittered_frame, Accumulator, ViewKey};
 use strata_render::{
     Camera, GpuContext, LightDirection, RenderMode, RenderSettings, ShadowMode, TimeCriticalConfig,
     TimeCriticalController, TransferFunction, Traversal, ValueMapping, VolumeGeometry,
@@ -66,6 +67,9 @@ pub struct RenderRequest {
     /// Some(ε): once the view is still and the cut converged, the final frame is drawn by the
     /// adaptive pass with the block oracle's ε (adaptive_view.rs); DVR and MIP only.
     pub adaptive_epsilon: Option<f64>,
+    /// How many jittered frames a still, converged view with shadows, occlusion or
+    /// scattering accumulates into its running mean (progressive refinement); 0: off.
+    pub progressive_frames: u32,
 }
 
 impl RenderRequest {
@@ -147,6 +151,8 @@ pub struct SessionStatus {
     pub adaptive: Option<String>,
     /// While an export renders: what it does and why the live view waits meanwhile.
     pub exporting: Option<String>,
+    /// Progressive refinement of the still view: (frames accumulated, frames asked for).
+    pub progressive: Option<(u32, u32)>,
 }
 
 impl SessionStatus {
@@ -156,6 +162,9 @@ impl SessionStatus {
     pub fn refining_line(&self) -> String {
         if self.settled_unconverged && !self.refining {
             return "settled".into();
+        }
+        if let Some((done, total)) = self.progressive.filter(|_| self.refining) {
+            return format!("refining {done}/{total}");
         }
         let Some(stats) = &self.loader else {
             return "refining…".into();
@@ -560,6 +569,10 @@ impl RenderWorker {
         // The raycaster's final frame of `last_rendered`, held back (published as not final)
         // while the adaptive pass prepares to draw over the same cut.
         let mut awaiting_adaptive: Option<AwaitingAdaptive> = None;
+        // Progressive refinement of `last_rendered` once it is final, and the running mean on
+        // this device (its pipeline is built on first use).
+        let mut progressive: Option<ProgressiveRun> = None;
+        let mut accumulator: Option<Accumulator> = None;
         let mut rest = RestGovernor::default();
         // The next live frame follows an export's frame: its cut is the export's, so its time
         // says nothing about the live view's cost and the controller does not learn from it
@@ -656,6 +669,59 @@ impl RenderWorker {
             if new_request {
                 // Held for another request: the next raycaster frames answer this one.
                 awaiting_adaptive = None;
+                // A change starts again at 1 (after the new request's own final frame).
+                progressive = None;
+            }
+            if let Some(run) = progressive.as_mut().filter(|r| r.accumulated < r.total) {
+                // One jittered frame of the same view per turn of the loop: a new request is
+                // seen before the next one, so interaction never waits on accumulation.
+                let settings = jittered_frame(&run.settings, run.seed);
+                run.seed += 1;
+                let stats = watch.classify(
+                    volume
+                        .frame(&ctx, &run.request.camera, &settings)
+                        .map_err(Into::into),
+                )?;
+                if stats.uploads > 0 || stats.page_table_rewritten {
+                    // Another cut: what was averaged so far shows other bricks.
+                    run.generation += 1;
+                }
+                let key = ViewKey::new(&run.request.camera, &run.settings)
+                    .with_generation(run.generation);
+                let accumulator = accumulator.get_or_insert_with(|| Accumulator::new(&ctx));
+                let Some(output) = volume.raycaster_mut().output_texture() else {
+                    return Err(StepError::Other(anyhow::anyhow!(
+                        "the raycaster has no output to accumulate"
+                    )));
+                };
+                let accumulated = watch.classify(
+                    accumulator
+                        .accumulate(&ctx, &key, output)
+                        .map_err(Into::into),
+                )?;
+                let mean =
+                    watch.classify(accumulator.read_mean_blocking(&ctx).map_err(Into::into))?;
+                run.accumulated = accumulated;
+                let (total, finished) = (run.total, accumulated >= run.total);
+                self.set_status(|s| {
+                    s.frames_rendered += 1;
+                    s.progressive = Some((accumulated, total));
+                    s.refining = !finished;
+                });
+                self.serial += 1;
+                *lock_ignoring_poison(&self.shared.frame) = Some(RenderedFrame {
+                    width: settings.width,
+                    height: settings.height,
+                    rgba: Arc::new(mean),
+                    depth: run.depth.clone(),
+                    serial: self.serial,
+                    request: run.request.clone(),
+                    converged: finished,
+                    adaptive: None,
+                    drawn_mode: run.drawn_mode,
+                });
+                (self.repaint)();
+                continue;
             }
             if let Some(waiting) = awaiting_adaptive.take() {
                 let view = request.still_view();
@@ -866,7 +932,15 @@ impl RenderWorker {
             let view = request.still_view();
             // A build for another cut, TF, ε or spacing than this frame's is stale.
             adaptive.supersede(adaptive.key(&volume, &view, &settings).as_ref());
-            let adaptive_next = !refining && !request.interacting && view.wanted();
+            // Progressive refinement replaces the adaptive pass's final frame where both apply:
+            // the adaptive pass draws one un-jittered frame at the controller's still rate, so
+            // the shadow and occlusion rays' wood-grain it shows is what the mean averages out.
+            let progressive_next = !refining
+                && !request.interacting
+                && request.progressive_frames > 0
+                && jitter_refines(&settings);
+            let adaptive_next =
+                !refining && !request.interacting && view.wanted() && !progressive_next;
             self.serial += 1;
             let published = RenderedFrame {
                 width: frame.width,
@@ -875,13 +949,26 @@ impl RenderWorker {
                 depth: Arc::new(frame.depth),
                 serial: self.serial,
                 request: request.clone(),
-                converged: !refining && !adaptive_next,
+                converged: !refining && !adaptive_next && !progressive_next,
                 adaptive: None,
                 drawn_mode: volume
                     .raycaster_mut()
                     .last_pipeline_key()
                     .map_or(settings.mode, |k| k.mode),
             };
+            progressive = progressive_next.then(|| ProgressiveRun {
+                request: request.clone(),
+                settings: RenderSettings {
+                    count_samples: false,
+                    ..settings.clone()
+                },
+                depth: published.depth.clone(),
+                drawn_mode: published.drawn_mode,
+                generation: 0,
+                seed: 0,
+                accumulated: 0,
+                total: request.progressive_frames,
+            });
             if adaptive_next {
                 awaiting_adaptive = Some(AwaitingAdaptive {
                     frame: published.clone(),
@@ -902,7 +989,8 @@ impl RenderWorker {
                 s.frames_rendered += 1;
                 s.settled_unconverged = settled;
                 s.volume_frame_ms = history;
-                s.refining = refining;
+                s.refining = refining || progressive_next;
+                s.progressive = progressive_next.then_some((0, request.progressive_frames));
                 s.sampling_rate =
                     quality.map_or(1.0 / request.settings.quality, |q| q.sampling_rate);
                 s.lod_factor = quality.map_or(1.0, |q| q.lod_factor);
@@ -1019,6 +1107,37 @@ struct AwaitingAdaptive {
     /// adaptive pass draws with the same.
     settings: RenderSettings,
     raycaster_samples: Option<u64>,
+}
+
+/// Progressive refinement of a still view (issue 37, item 3; render/src/progressive.rs): once
+/// a view's final frame is drawn (cut converged, still refinement done) and its settings have
+/// an effect that jitter refines, the render thread draws `total` jittered frames of the same
+/// request, frame n with jitter seed n as `strata render --progressive` does, and publishes
+/// their running mean after each, then rests. Any change is a new request, which drops the run;
+/// a cut that changes under it bumps the [`ViewKey`]'s generation, restarting the mean at 1.
+struct ProgressiveRun {
+    request: RenderRequest,
+    /// The final frame's settings (the controller's still rate), which every frame jitters.
+    settings: RenderSettings,
+    /// The final frame's pick depth: the mean's pixels are the same surfaces.
+    depth: Arc<Vec<f32>>,
+    drawn_mode: RenderMode,
+    generation: u64,
+    seed: u32,
+    accumulated: u32,
+    total: u32,
+}
+
+/// Whether a still view of `settings` is refined progressively: with shadows, occlusion or
+/// scattering (the light's effects, issue 37). The jitter moves the shadow and occlusion rays'
+/// sample positions as well as the main ray's, and those secondary rays, sampled more coarsely
+/// than the main ray, are where a still frame's wood-grain is most visible. Plain DVR is left
+/// to the controller's still refinement of the sampling rate (and the adaptive pass): it was
+/// not measured here whether its main-ray wood-grain is worth 64 more frames at rest.
+fn jitter_refines(settings: &RenderSettings) -> bool {
+    settings.shadows.mode != ShadowMode::Off
+        || settings.occlusion.is_some()
+        || settings.scattering.is_some()
 }
 
 /// When the render thread draws the same request again: at once while frames change something,
@@ -1422,6 +1541,7 @@ mod tests {
             overlay: None,
             traversal: None,
             adaptive_epsilon: None,
+            progressive_frames: 0,
         };
         session.request(request.clone());
         (session, request, store)
@@ -1959,6 +2079,129 @@ mod tests {
     }
 
     #[test]
+    fn the_status_line_counts_progressive_frames_while_they_run() {
+        let status = SessionStatus {
+            refining: true,
+            progressive: Some((3, 64)),
+            ..SessionStatus::default()
+        };
+        assert_eq!(status.refining_line(), "refining 3/64");
+    }
+
+    /// `render_still`'s mean of `frames` jittered frames of `request`, over the cut a fresh
+    /// streaming volume converges to for the same view: `strata render --progressive` in
+    /// the viewer's terms.
+    fn direct_progressive_render(
+        store: &Arc<strata_storage::Store>,
+        request: &RenderRequest,
+        frames: u32,
+    ) -> Vec<u8> {
+        let ctx = GpuContext::headless().expect("device");
+        let config = StreamingConfig {
+            gpu_budget_bytes: DEFAULT_GPU_BUDGET_BYTES,
+            ..StreamingConfig::default()
+        };
+        let source: Arc<dyn VolumeSource> = store.clone();
+        let mut volume =
+            StreamingVolume::new(&ctx, source, &request.transfer_function, config).expect("volume");
+        let (_, history) = volume
+            .render_until_converged(&ctx, &request.camera, &request.settings, 2000)
+            .expect("converge");
+        assert!(
+            history.last().is_some_and(|s| s.converged),
+            "the direct cut converges"
+        );
+        let mut raycaster = strata_render::Raycaster::new(&ctx, volume.brick_cache());
+        let scene = volume.scene(&request.camera, &request.settings);
+        strata_render::progressive::render_still(&ctx, &mut raycaster, &scene, frames)
+            .expect("render_still")
+    }
+
+    /// Issue 37 item 3 in the viewer: a still view with shadows, once converged, accumulates
+    /// `progressive_frames` jittered frames, publishes their mean as the view's frame, and then
+    /// rests; the mean is `render_still`'s over the same cut. A camera change starts the count
+    /// again; with 0 frames the converged raycaster frame is final, as before.
+    #[test]
+    fn a_still_view_with_shadows_accumulates_its_progressive_frames_then_rests() {
+        const FRAMES: u32 = 8;
+        let dir = tempfile::tempdir().expect("temp dir");
+        let (session, plain, store) = phantom_session_sized(dir.path(), 64);
+        let shadowed = RenderRequest {
+            settings: RenderSettings {
+                shading: Some(strata_render::Shading::default()),
+                shadows: strata_render::Shadows {
+                    mode: ShadowMode::Exact,
+                    ..Default::default()
+                },
+                ..plain.settings.clone()
+            },
+            progressive_frames: FRAMES,
+            ..plain.clone()
+        };
+        session.request(shadowed.clone());
+        let mean = wait_converged(&session, &shadowed);
+        let status = session.status();
+        assert_eq!(status.progressive, Some((FRAMES, FRAMES)));
+        assert!(!status.refining, "{}", status.refining_line());
+        assert!(mean.adaptive.is_none());
+
+        // At rest: no frame follows the last mean (the thread polls every 100 ms when idle).
+        let rendered = status.frames_rendered;
+        std::thread::sleep(Duration::from_millis(600));
+        let later = session.latest_frame().expect("frame");
+        assert_eq!(later.serial, mean.serial, "a frame was drawn at rest");
+        assert_eq!(session.status().frames_rendered, rendered);
+
+        // The same mean as render_still's over the same cut. Not bit for bit: the session's
+        // cache grew with use, so bricks sit at other texture coordinates, and lavapipe's
+        // sampler rounds its filter weights from those (a channel 1 apart per frame, see
+        // `same_image_up_to_cache_layout`); each mean rounds to 8 bits on its own, so the two
+        // may be up to 2 apart where a frame's difference straddles a rounding boundary.
+        let reference = direct_progressive_render(&store, &shadowed, FRAMES);
+        let c = strata_render::compare_rgba8(&reference, &mean.rgba).expect("same size");
+        eprintln!("session mean vs render_still ({FRAMES} frames): {c:?}");
+        assert!(c.max_abs_error <= 2, "{c:?}");
+        // ...and not the raycaster's single frame: the mean averaged something.
+        let single = direct_progressive_render(&store, &shadowed, 1);
+        let s = strata_render::compare_rgba8(&single, &mean.rgba).expect("same size");
+        eprintln!("session mean vs one jittered frame: {s:?}");
+        assert!(s.max_abs_error > 2, "the mean equals a single frame: {s:?}");
+
+        // A camera change: the moved view's own final frame, then FRAMES again from 1.
+        let moved = RenderRequest {
+            camera: Camera::orbit(
+                &session.info().geometry,
+                60.0,
+                15.0,
+                1.5,
+                strata_render::Projection::Perspective { fov_y_deg: 30.0 },
+            ),
+            ..shadowed.clone()
+        };
+        session.request(moved.clone());
+        wait_converged(&session, &moved);
+        let status = session.status();
+        assert_eq!(status.progressive, Some((FRAMES, FRAMES)));
+        assert!(
+            status.frames_rendered > rendered + u64::from(FRAMES),
+            "the moved view accumulated {FRAMES} frames of its own: {} -> {}",
+            rendered,
+            status.frames_rendered
+        );
+
+        // Progressive frames 0: the raycaster's converged frame is final, as before.
+        let off = RenderRequest {
+            progressive_frames: 0,
+            ..moved.clone()
+        };
+        session.request(off.clone());
+        let last = wait_converged(&session, &off);
+        assert_eq!(session.status().progressive, None);
+        std::thread::sleep(Duration::from_millis(600));
+        assert_eq!(session.latest_frame().expect("frame").serial, last.serial);
+    }
+
+    #[test]
     fn a_session_streams_to_convergence_and_publishes_frames() {
         let dir = tempfile::tempdir().expect("temp dir");
         let path = dir.path().join("p.strata");
@@ -1988,6 +2231,7 @@ mod tests {
             overlay: None,
             traversal: None,
             adaptive_epsilon: None,
+            progressive_frames: 0,
         };
         session.request(request);
         let start = Instant::now();

@@ -188,7 +188,22 @@ fn adaptive_sampling(ui: &mut egui::Ui, prefs: &mut Preferences) {
             .accessible_name(EPSILON_LABEL);
         }
     });
+    ui.add(
+        egui::Slider::new(
+            &mut prefs.progressive_frames,
+            0..=crate::viewer::preferences::MAX_PROGRESSIVE_FRAMES,
+        )
+        .text(PROGRESSIVE_LABEL),
+    )
+    .on_hover_text(
+        "With shadows, occlusion or scattering on, a still view keeps drawing jittered frames \
+         of the same view and shows their mean, up to this many, then rests: the wood-grain \
+         and shadow noise average out. 0: off. Any change starts again at 1.",
+    );
 }
+
+/// Accessible name of the progressive refinement slider.
+pub const PROGRESSIVE_LABEL: &str = "Progressive frames";
 
 /// Accessible names of the light controls (the UI tests find them by these).
 pub const HEADLIGHT_LABEL: &str = "Headlight";
