@@ -325,7 +325,9 @@ impl WebViewer {
             store.histogram().clone(),
             &store.header().value_mapping.unit,
         );
-        let slices = SliceViews::new(store.as_ref())?;
+        let mut slices = SliceViews::new(store.as_ref())?;
+        // The link's crosshair and window, if it names them.
+        slices.set_from_link(self.view.cursor, self.view.window);
         let config = StreamingConfig {
             // The page shares the GPU and memory with the rest of the browser.
             gpu_budget_bytes: 256 << 20,
@@ -356,7 +358,7 @@ impl WebViewer {
 
     /// A loader frame while the view changed or the cut has not converged; then idle.
     fn draw_streamed(&mut self, ctx: &egui::Context, size: [u32; 2]) -> Result<(), String> {
-        let wanted = (self.view.clone(), size);
+        let wanted = (self.view.of_3d_view(), size);
         let Some(streamed) = self.streamed.as_mut() else {
             return Ok(());
         };
@@ -389,7 +391,7 @@ impl WebViewer {
     }
 
     fn draw_if_changed(&mut self, size: [u32; 2]) -> Result<(), String> {
-        let wanted = (self.view.clone(), size);
+        let wanted = (self.view.of_3d_view(), size);
         if self.drawn.as_ref() == Some(&wanted) {
             return Ok(());
         }
@@ -864,6 +866,10 @@ impl eframe::App for WebViewer {
                 }
                 if let (Some(rects), Some(streamed)) = (slice_rects, self.streamed.as_mut()) {
                     streamed.slices.ui(ui, rects);
+                    // The address follows the crosshair and window, so a link shares them.
+                    self.view.cursor = Some(streamed.slices.cursor);
+                    self.view.window =
+                        Some([streamed.slices.window.centre, streamed.slices.window.width]);
                 }
                 self.write_fragment(response.dragged());
             });

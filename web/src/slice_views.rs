@@ -159,6 +159,19 @@ impl SliceViews {
         })
     }
 
+    /// A link's crosshair (clamped into the volume) and window (None: keep the store's).
+    pub fn set_from_link(&mut self, cursor: Option<[f64; 3]>, window: Option<[f64; 2]>) {
+        if let Some(cursor) = cursor {
+            let dims = self.geometry.dims;
+            self.cursor = std::array::from_fn(|axis| {
+                cursor[axis].clamp(0.0, (dims[axis] as f64 - 1.0).max(0.0))
+            });
+        }
+        if let Some([centre, width]) = window {
+            self.window = Window::new(centre, width);
+        }
+    }
+
     /// Test hook (`capture=1`): once every view shows the slice it asked for, the axial view's
     /// image as the page coloured it (RGBA8 in index order, flips not applied), with its
     /// width and height; given once. The browser test compares it with the desktop's

@@ -68,6 +68,12 @@ pub struct ViewState {
     /// Parallel projection (the desktop's "orthographic" switch) instead of perspective.
     pub orthographic: bool,
     pub layout: Layout,
+    /// The slice views' linked crosshair (level-0 continuous voxel index); None: the volume's
+    /// centre. Applied when a served store opens, clamped to its dimensions.
+    pub cursor: Option<[f64; 3]>,
+    /// The slice views' window (centre, width) in the volume's physical unit; None: the
+    /// store's own first window.
+    pub window: Option<[f64; 2]>,
     /// Isosurface value in the volume's physical unit (HU for the CT sample).
     pub iso_value: f64,
     /// Edge of the built-in sample volume (voxels).
@@ -100,6 +106,8 @@ impl Default for ViewState {
             pan: [0.0, 0.0],
             orthographic: false,
             layout: Layout::FourUp,
+            cursor: None,
+            window: None,
             iso_value: 300.0,
             volume_edge: DEFAULT_VOLUME_EDGE,
             store: None,
@@ -212,6 +220,27 @@ impl Fragment {
                         finite(key, y, -100.0..=100.0)?,
                     ];
                 }
+                "cursor" => {
+                    let parts: Vec<&str> = value.split(',').collect();
+                    let [x, y, z] = parts[..] else {
+                        return Err(bad(key, value, "three voxel indices X,Y,Z"));
+                    };
+                    let range = 0.0..=1.0e6;
+                    view.cursor = Some([
+                        finite(key, x, range.clone())?,
+                        finite(key, y, range.clone())?,
+                        finite(key, z, range)?,
+                    ]);
+                }
+                "window" => {
+                    let (centre, width) = value
+                        .split_once(',')
+                        .ok_or_else(|| bad(key, value, "CENTRE,WIDTH"))?;
+                    view.window = Some([
+                        finite(key, centre, -1.0e9..=1.0e9)?,
+                        finite(key, width, 1.0e-6..=1.0e9)?,
+                    ]);
+                }
                 "layout" => {
                     view.layout = match value {
                         "single" => Layout::Single,
@@ -320,6 +349,12 @@ impl ViewState {
         if self.layout == Layout::Single {
             parts.push("layout=single".into());
         }
+        if let Some([x, y, z]) = self.cursor {
+            parts.push(format!("cursor={},{},{}", round3(x), round3(y), round3(z)));
+        }
+        if let Some([centre, width]) = self.window {
+            parts.push(format!("window={},{}", round3(centre), round3(width)));
+        }
         if self.mode == RenderMode::Isosurface {
             parts.push(format!("iso={}", round3(self.iso_value)));
         }
@@ -330,6 +365,16 @@ impl ViewState {
             parts.push(format!("size={w}x{h}"));
         }
         format!("#{}", parts.join("&"))
+    }
+
+    /// What the 3D view shows: this view without the slice views' crosshair and window, so
+    /// that paging a slice or windowing it does not redraw the volume.
+    pub fn of_3d_view(&self) -> ViewState {
+        ViewState {
+            cursor: None,
+            window: None,
+            ..self.clone()
+        }
     }
 
     /// The built-in sample volume's geometry: a cube of 1 mm voxels.
@@ -405,6 +450,8 @@ mod tests {
             pan: [0.125, -0.5],
             orthographic: true,
             layout: Layout::Single,
+            cursor: Some([10.5, 20.0, 3.25]),
+            window: Some([40.0, 400.0]),
             iso_value: 250.0,
             volume_edge: 64,
             store: None,
@@ -460,6 +507,12 @@ mod tests {
         }
         let e = Fragment::parse("#preset=nope").expect_err("unknown preset");
         assert!(e.to_string().contains("ct-bone"), "{e}");
+        let e = Fragment::parse("#cursor=1,2").expect_err("two coordinates");
+        assert!(e.to_string().contains("`cursor`"), "{e}");
+        let e = Fragment::parse("#cursor=1,2,-3").expect_err("negative index");
+        assert!(e.to_string().contains("`cursor`"), "{e}");
+        let e = Fragment::parse("#window=40,0").expect_err("empty window");
+        assert!(e.to_string().contains("`window`"), "{e}");
         let e = Fragment::parse("#layout=quad").expect_err("unknown layout");
         assert!(e.to_string().contains("`layout`"), "{e}");
         let ok = Fragment::parse("#colour=hot&mode=dvr").expect("unknown key ignored");

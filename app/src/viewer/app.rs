@@ -442,6 +442,14 @@ impl StrataApp {
         if let Some(view) = self.pending_link_view.take() {
             orbit = view.orbit;
             scene.iso_value = view.iso_value;
+            if let Some(cursor) = view.cursor {
+                scene.cursor = std::array::from_fn(|axis| {
+                    cursor[axis].clamp(0.0, (dims[axis] as f64 - 1.0).max(0.0))
+                });
+            }
+            if let Some([centre, width]) = view.window {
+                scene.window = Window::new(centre, width);
+            }
         }
         if let Some(saved) = self.pending_restore.take() {
             if saved.apply(&location, &mut scene, &mut orbit) {
@@ -487,6 +495,8 @@ impl StrataApp {
                 preset: self.preferences.preset.clone(),
                 iso_value: v.scene.iso_value,
                 layout: self.preferences.layout,
+                cursor: Some(v.scene.cursor),
+                window: Some([v.scene.window.centre, v.scene.window.width]),
             },
         )
     }

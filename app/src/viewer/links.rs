@@ -34,6 +34,10 @@ pub struct DesktopView {
     /// The 3D view alone, or with the slices (the page's 2×2; the desktop's conventional
     /// 3D + 1×3 is shared as the 2×2, its nearest in the page).
     pub layout: Layout,
+    /// The slices' crosshair (level-0 voxel index) and window (centre, width; physical unit);
+    /// None where a link leaves them to the store.
+    pub cursor: Option<[f64; 3]>,
+    pub window: Option<[f64; 2]>,
 }
 
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -127,6 +131,8 @@ pub fn link_for(store_url: &str, view: &DesktopView) -> Option<String> {
             Layout::Single => LinkLayout::Single,
             Layout::ThreeDOverSlices | Layout::TwoByTwo => LinkLayout::FourUp,
         },
+        cursor: view.cursor,
+        window: view.window,
         store: Some(name.to_string()),
         ..ViewState::default()
     };
@@ -150,6 +156,8 @@ pub fn desktop_view(view: &ViewState) -> DesktopView {
             LinkLayout::Single => Layout::Single,
             LinkLayout::FourUp => Layout::TwoByTwo,
         },
+        cursor: view.cursor,
+        window: view.window,
     }
 }
 
@@ -171,6 +179,8 @@ mod tests {
             preset: "ct-soft-tissue".into(),
             iso_value: 150.5,
             layout: Layout::Single,
+            cursor: Some([12.0, 30.5, 7.0]),
+            window: Some([-600.0, 1500.0]),
         }
     }
 

@@ -2550,7 +2550,7 @@ fn a_viewer_link_opens_its_store_and_view_and_copy_link_gives_it_back_without_th
     )
     .expect("serving the phantom");
     let link = format!(
-        "{}/#store={name}&mode=mip&preset=ct-soft-tissue&az=-60&el=25&zoom=1.5&pan=0.1,-0.05&layout=single&token={token}",
+        "{}/#store={name}&mode=mip&preset=ct-soft-tissue&az=-60&el=25&zoom=1.5&pan=0.1,-0.05&layout=single&cursor=5,40,12.5&window=300,1200&token={token}",
         server.base_url()
     );
     let mut options = ViewerOptions::new(VolumeSource::Url {
@@ -2580,6 +2580,13 @@ fn a_viewer_link_opens_its_store_and_view_and_copy_link_gives_it_back_without_th
         assert_eq!(a.preferences.mode, RenderMode::Mip);
         assert_eq!(a.preferences.preset, "ct-soft-tissue");
         assert_eq!(a.preferences.layout, Layout::Single, "the link's layout");
+        // The phantom is 48³: the crosshair's 40 is inside, as given.
+        assert_eq!(v.scene.cursor, [5.0, 40.0, 12.5], "the link's crosshair");
+        assert_eq!(
+            (v.scene.window.centre, v.scene.window.width),
+            (300.0, 1200.0),
+            "the link's window"
+        );
         assert_eq!(
             v.data.store_path.to_string_lossy(),
             server.store_url(&name),
@@ -2592,6 +2599,8 @@ fn a_viewer_link_opens_its_store_and_view_and_copy_link_gives_it_back_without_th
     assert_eq!(reopened.store_url, server.store_url(&name));
     assert_eq!(links::desktop_view(&reopened.view).orbit, expected_orbit);
     assert_eq!(reopened.view.mode, RenderMode::Mip);
+    assert_eq!(reopened.view.cursor, Some([5.0, 40.0, 12.5]));
+    assert_eq!(reopened.view.window, Some([300.0, 1200.0]));
 
     h.get_by_label("Copy link").click();
     let mut clipboard = None;
