@@ -1977,18 +1977,7 @@ mod tests {
         const FRAMES: u32 = 8;
         let dir = tempfile::tempdir().expect("temp dir");
         let (session, plain, store) = phantom_session_sized(dir.path(), 64);
-        let shadowed = RenderRequest {
-            settings: RenderSettings {
-                shading: Some(strata_render::Shading::default()),
-                shadows: strata_render::Shadows {
-                    mode: ShadowMode::Exact,
-                    ..Default::default()
-                },
-                ..plain.settings.clone()
-            },
-            progressive_frames: FRAMES,
-            ..plain.clone()
-        };
+        let shadowed = shaded_with_exact_shadows(&plain, FRAMES);
         let single = RenderRequest {
             progressive_frames: 0,
             ..shadowed.clone()
@@ -2263,6 +2252,22 @@ mod tests {
             .expect("render_still")
     }
 
+    /// `plain` shaded and lit by the key light with exact shadows, refining over `frames`.
+    fn shaded_with_exact_shadows(plain: &RenderRequest, frames: u32) -> RenderRequest {
+        RenderRequest {
+            settings: RenderSettings {
+                shading: Some(strata_render::Shading::default()),
+                shadows: strata_render::Shadows {
+                    mode: ShadowMode::Exact,
+                    ..Default::default()
+                },
+                ..plain.settings.clone()
+            },
+            progressive_frames: frames,
+            ..plain.clone()
+        }
+    }
+
     /// Issue 37 item 3 in the viewer: a still view with shadows, once converged, accumulates
     /// `progressive_frames` jittered frames, publishes their mean as the view's frame, and then
     /// rests; the mean is `render_still`'s over the same cut. A camera change starts the count
@@ -2272,18 +2277,7 @@ mod tests {
         const FRAMES: u32 = 8;
         let dir = tempfile::tempdir().expect("temp dir");
         let (session, plain, store) = phantom_session_sized(dir.path(), 64);
-        let shadowed = RenderRequest {
-            settings: RenderSettings {
-                shading: Some(strata_render::Shading::default()),
-                shadows: strata_render::Shadows {
-                    mode: ShadowMode::Exact,
-                    ..Default::default()
-                },
-                ..plain.settings.clone()
-            },
-            progressive_frames: FRAMES,
-            ..plain.clone()
-        };
+        let shadowed = shaded_with_exact_shadows(&plain, FRAMES);
         session.request(shadowed.clone());
         let mean = wait_converged(&session, &shadowed);
         let status = session.status();
