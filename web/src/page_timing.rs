@@ -11,6 +11,46 @@
 /// Degrees of azimuth per frame while the bench orbits.
 pub const BENCH_DEG_PER_FRAME: f64 = 2.0;
 
+thread_local! {
+    /// Time the page's one thread spent decoding and verifying brick records: (total ms,
+    /// records, the most in one frame so far, this frame's ms). Kept here rather than in the
+    /// fetcher's counters (strata_source's, shared with the desktop) because it answers one
+    /// question of the benchmark: does decoding need web workers (issue 39 item 2)?
+    static DECODING: std::cell::Cell<DecodeTime> = const { std::cell::Cell::new(DecodeTime::ZERO) };
+}
+
+#[derive(Clone, Copy)]
+struct DecodeTime {
+    total_ms: f64,
+    records: u32,
+    worst_frame_ms: f64,
+    this_frame_ms: f64,
+}
+
+impl DecodeTime {
+    const ZERO: DecodeTime = DecodeTime {
+        total_ms: 0.0,
+        records: 0,
+        worst_frame_ms: 0.0,
+        this_frame_ms: 0.0,
+    };
+}
+
+/// Runs `decode` (one record's decoding and checksum) and adds its time to the page's.
+pub fn time_decode<T>(decode: impl FnOnce() -> T) -> T {
+    let started = now_ms();
+    let out = decode();
+    let spent = now_ms() - started;
+    DECODING.with(|d| {
+        let mut t = d.get();
+        t.total_ms += spent;
+        t.records += 1;
+        t.this_frame_ms += spent;
+        d.set(t);
+    });
+    out
+}
+
 /// Milliseconds since navigation; 0 where the page has no `performance` (not a browser).
 fn now_ms() -> f64 {
     web_sys::window()
@@ -43,6 +83,12 @@ impl PageTiming {
     /// A frame was submitted; `converged`: it is the complete picture of its view.
     pub fn submitted(&mut self, converged: bool) {
         let at = now_ms();
+        DECODING.with(|d| {
+            let mut t = d.get();
+            t.worst_frame_ms = t.worst_frame_ms.max(t.this_frame_ms);
+            t.this_frame_ms = 0.0;
+            d.set(t);
+        });
         self.first_image_ms.get_or_insert(at);
         if converged {
             self.converged_ms.get_or_insert(at);
@@ -73,6 +119,12 @@ impl PageTiming {
         }
         if let Some(converged) = self.converged_ms {
             out.push(("converged_ms", converged));
+        }
+        let decoding = DECODING.with(|d| d.get());
+        if decoding.records > 0 {
+            out.push(("decode_ms_total", decoding.total_ms));
+            out.push(("decoded_records", f64::from(decoding.records)));
+            out.push(("decode_ms_worst_frame", decoding.worst_frame_ms));
         }
         let mut intervals: Vec<f64> = self
             .bench_submits

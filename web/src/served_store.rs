@@ -450,7 +450,7 @@ impl BrickFetcher for ServedBricks {
             let stored_bytes = body.as_ref().map_or(0, |b| b.len() as u64);
             let outcome = match body {
                 Err(e) => Err(e),
-                Ok(record) => match decode_brick(id, &record) {
+                Ok(record) => match crate::page_timing::time_decode(|| decode_brick(id, &record)) {
                     Ok(voxels) => Ok(Arc::new(voxels)),
                     Err(e) => {
                         let mut state = shared.state.borrow_mut();

@@ -784,6 +784,20 @@ fn benchmark_the_browser_against_the_desktop_on_one_served_store() {
         "browser: page navigation to module start {boot:.0} ms (loading and compiling the wasm), \
          navigation to first image {first:.0} ms, to convergence {done:.0} ms"
     );
+    // Whether decoding needs web workers (issue 39 item 2): the page's one thread decodes and
+    // verifies every record inline, at most DECODES_PER_FRAME a frame.
+    if let (Some(total), Some(records), Some(worst)) = (
+        metric(&converged, "decode_ms_total"),
+        metric(&converged, "decoded_records"),
+        metric(&converged, "decode_ms_worst_frame"),
+    ) {
+        println!(
+            "browser decoding: {records:.0} records in {total:.0} ms ({:.2} ms each, {:.1} % of \
+             module start to convergence), at most {worst:.1} ms in one frame",
+            total / records.max(1.0),
+            100.0 * total / (done - boot).max(1.0)
+        );
+    }
     assert!(
         bytes_ratio <= 1.05,
         "the browser fetched more than the desktop: {browser_bytes} / {desktop_bytes}"
