@@ -776,6 +776,19 @@ impl eframe::App for WebViewer {
                     frames_submitted: self.frames_submitted,
                 };
                 self.side.ui(ui, &self.view, figures);
+                // The address carries an edited function (`tf=`); the renderer follows the
+                // panel's tf_key, so this adds no redraw of its own.
+                let edited = self.side.edited_function();
+                let differs = match (self.view.tf.as_ref(), edited) {
+                    (Some(a), Some(b)) => a.opacity != b.opacity || a.color != b.color,
+                    (a, b) => a.is_some() != b.is_some(),
+                };
+                if differs {
+                    self.view.tf = edited.map(|tf| TransferFunction {
+                        name: crate::view_state::edited_name(&self.view.preset),
+                        ..tf.clone()
+                    });
+                }
             });
         egui::CentralPanel::default()
             .frame(egui::Frame::NONE.fill(egui::Color32::BLACK))
@@ -871,7 +884,10 @@ impl eframe::App for WebViewer {
                     self.view.window =
                         Some([streamed.slices.window.centre, streamed.slices.window.width]);
                 }
-                self.write_fragment(response.dragged());
+                // Not while a drag goes on (the view, a slice, the editor's points): one
+                // history entry rewrite when it ends, not one per frame.
+                let pointer_down = ctx.input(|i| i.pointer.any_down());
+                self.write_fragment(response.dragged() || pointer_down);
             });
         self.capture_step(&ctx);
         self.side.record_frame(ui_started, self.frames_submitted);

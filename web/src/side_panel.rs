@@ -5,7 +5,8 @@
 //! The panel owns the function the view draws with: the view's preset until the editor changes
 //! it; choosing another preset starts again from that preset. [`SidePanel::tf_key`] names the
 //! function (preset and edit count), so the page uploads it to the renderer only when it changed.
-//! The address (view_state.rs) keeps the preset, not the edits.
+//! The address (view_state.rs) keeps the preset and, once edited, the function itself (`tf=`,
+//! [`SidePanel::edited_function`]); a link with `tf=` opens with that function, as edited.
 
 use std::collections::VecDeque;
 
@@ -57,7 +58,8 @@ impl SidePanel {
             editor: TfEditorState::default(),
             transfer_function: view.transfer_function(),
             preset: view.preset.clone(),
-            edits: 0,
+            // A link's edited function (`tf=`) shows as edited, with Reset to its preset.
+            edits: u64::from(view.tf.is_some()),
             histogram: None,
             adapter,
             started: Instant::now(),
@@ -80,6 +82,14 @@ impl SidePanel {
     pub fn transfer_function(&mut self, view: &ViewState) -> TransferFunction {
         self.follow_preset(view);
         self.transfer_function.clone()
+    }
+
+    /// The function for the address: the edited one while it differs from its preset; None
+    /// when it is the preset (never edited, or Reset), which `preset=` alone describes.
+    pub fn edited_function(&self) -> Option<&TransferFunction> {
+        let preset = TransferFunction::preset(&self.preset)?;
+        let tf = &self.transfer_function;
+        (self.edits > 0 && (tf.opacity != preset.opacity || tf.color != preset.color)).then_some(tf)
     }
 
     /// Names the function the view draws with: it changes when the function does.
