@@ -115,6 +115,7 @@ pub mod shaders;
 pub mod shadows;
 pub mod smooth_transitions;
 pub mod sparse_page_table;
+pub mod target_rate;
 pub mod time_critical;
 pub mod transfer_function;
 

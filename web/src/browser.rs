@@ -23,6 +23,7 @@ use crate::page_timing::{PageTiming, BENCH_DEG_PER_FRAME};
 use crate::served_store::{list_stores, ServedStore, DECODES_PER_FRAME, MAX_ON_THE_WIRE};
 use crate::side_panel::{SidePanel, VolumeFigures};
 use crate::slice_views::{two_by_two, SliceViews};
+use crate::view_motion::{ViewMotion, MOTION_HOLD_S};
 use crate::view_state::{Fragment, ViewState};
 use strata_source::wire::StoreList;
 use strata_source::VolumeSource;
@@ -167,6 +168,10 @@ struct WebViewer {
     token: Option<String>,
     /// Time to first and converged image, the bench's frame times (sent with the capture).
     timing: PageTiming,
+    /// The target-fps control's controller while the view moves (view_motion.rs), on the
+    /// page's clock (`page_started`).
+    motion: ViewMotion,
+    page_started: web_time::Instant,
 }
 
 impl WebViewer {
@@ -203,6 +208,7 @@ impl WebViewer {
             slot.get_or_insert_with(|| format!("{reason:?}: {message}"));
         });
         let gpu = GpuContext::from_device(device, render_state.queue.clone());
+        let motion = ViewMotion::new(gpu.supports_timestamps());
         // Dark, as the desktop viewer and every reading room: a light page around a volume
         // rendering dazzles and changes how its contrast reads.
         cc.egui_ctx.set_theme(egui::Theme::Dark);
@@ -238,6 +244,8 @@ impl WebViewer {
             fragment_written,
             capture: None,
             token: fragment.token,
+            motion,
+            page_started: web_time::Instant::now(),
         })
     }
 
@@ -363,11 +371,19 @@ impl WebViewer {
             return Ok(());
         };
         let converged = streamed.last.as_ref().is_some_and(|s| s.converged);
-        if self.drawn.as_ref() == Some(&wanted) && converged {
+        let now = self.page_started.elapsed().as_secs_f64();
+        let target_fps = self.side.target_fps();
+        if self.drawn.as_ref() == Some(&wanted)
+            && converged
+            && !self.motion.full_quality_due(now, target_fps)
+        {
+            self.motion.skipped();
             return Ok(());
         }
         let camera = self.view.camera(streamed.volume.geometry());
-        let settings = self.view.settings(size[0], size[1]);
+        let mut settings = self.view.settings(size[0], size[1]);
+        let (quality, lod_factor) = self.motion.plan(now, target_fps, &mut settings);
+        streamed.volume.set_max_voxel_pixels(lod_factor);
         let stats = streamed
             .volume
             .frame(&self.gpu, &camera, &settings)
@@ -377,8 +393,10 @@ impl WebViewer {
         }
         self.timing.submitted(stats.converged);
         streamed.last = Some(stats);
-        self.side
-            .gpu_timings(streamed.volume.take_frame_timings(&self.gpu));
+        let timings = streamed.volume.take_frame_timings(&self.gpu);
+        self.side.gpu_timings(timings.clone());
+        let frame_number = streamed.volume.last_frame_number();
+        self.motion.drawn(now, frame_number, quality, timings);
         self.frames_submitted += 1;
         let view = streamed
             .volume
@@ -392,21 +410,28 @@ impl WebViewer {
 
     fn draw_if_changed(&mut self, size: [u32; 2]) -> Result<(), String> {
         let wanted = (self.view.of_3d_view(), size);
-        if self.drawn.as_ref() == Some(&wanted) {
+        let now = self.page_started.elapsed().as_secs_f64();
+        let target_fps = self.side.target_fps();
+        if self.drawn.as_ref() == Some(&wanted) && !self.motion.full_quality_due(now, target_fps) {
+            self.motion.skipped();
             return Ok(());
         }
         let (Some(volume), Some(renderer)) = (self.volume.as_ref(), self.renderer.as_mut()) else {
             return Ok(());
         };
         let camera = self.view.camera(&volume.geometry);
-        let settings = self.view.settings(size[0], size[1]);
+        let mut settings = self.view.settings(size[0], size[1]);
+        // The sample is drawn whole: no level of detail to coarsen, the step only.
+        let (quality, _) = self.motion.plan(now, target_fps, &mut settings);
         renderer
             .submit(&self.gpu, volume, &camera, &settings)
             .map_err(|e| e.to_string())?;
         // The sample is drawn whole in one frame.
         self.timing.submitted(true);
-        self.side
-            .gpu_timings(renderer.raycaster.try_take_frame_timings(&self.gpu));
+        let timings = renderer.raycaster.try_take_frame_timings(&self.gpu);
+        self.side.gpu_timings(timings.clone());
+        let frame_number = renderer.raycaster.frame_number();
+        self.motion.drawn(now, frame_number, quality, timings);
         self.frames_submitted += 1;
         let view = renderer
             .raycaster
@@ -772,10 +797,24 @@ impl eframe::App for WebViewer {
             .show(ui, |ui| {
                 let figures = VolumeFigures {
                     loader: self.streamed.as_ref().and_then(|s| s.last.as_ref()),
-                    step_factor: self.view.settings(1, 1).quality,
+                    step_factor: self.motion.shown().0,
+                    lod_factor: self.motion.shown().1,
                     frames_submitted: self.frames_submitted,
                 };
                 self.side.ui(ui, &self.view, figures);
+                // The address carries an edited function (`tf=`); the renderer follows the
+                // panel's tf_key, so this adds no redraw of its own.
+                let edited = self.side.edited_function();
+                let differs = match (self.view.tf.as_ref(), edited) {
+                    (Some(a), Some(b)) => a.opacity != b.opacity || a.color != b.color,
+                    (a, b) => a.is_some() != b.is_some(),
+                };
+                if differs {
+                    self.view.tf = edited.map(|tf| TransferFunction {
+                        name: crate::view_state::edited_name(&self.view.preset),
+                        ..tf.clone()
+                    });
+                }
             });
         egui::CentralPanel::default()
             .frame(egui::Frame::NONE.fill(egui::Color32::BLACK))
@@ -825,12 +864,23 @@ impl eframe::App for WebViewer {
                     self.view.azimuth_deg += BENCH_DEG_PER_FRAME;
                     ctx.request_repaint();
                 }
+                let mut moved = response.dragged();
                 if response.hovered() {
                     let scroll = ui.input(|i| i.smooth_scroll_delta.y);
                     if scroll != 0.0 {
                         self.view.zoom =
                             (self.view.zoom * (scroll as f64 * 0.002).exp()).clamp(0.25, 8.0);
+                        moved = true;
                     }
+                }
+                // Orbit and zoom move the view: the target-fps control's rate until it rests,
+                // then one full-quality frame (a repaint is asked for that moment).
+                if moved {
+                    let now = self.page_started.elapsed().as_secs_f64();
+                    self.motion.moved(now);
+                    ctx.request_repaint_after(std::time::Duration::from_secs_f64(
+                        MOTION_HOLD_S + 0.01,
+                    ));
                 }
                 let ppp = ctx.pixels_per_point();
                 let size = self.view.image_size.unwrap_or_else(|| {
@@ -871,7 +921,10 @@ impl eframe::App for WebViewer {
                     self.view.window =
                         Some([streamed.slices.window.centre, streamed.slices.window.width]);
                 }
-                self.write_fragment(response.dragged());
+                // Not while a drag goes on (the view, a slice, the editor's points): one
+                // history entry rewrite when it ends, not one per frame.
+                let pointer_down = ctx.input(|i| i.pointer.any_down());
+                self.write_fragment(response.dragged() || pointer_down);
             });
         self.capture_step(&ctx);
         self.side.record_frame(ui_started, self.frames_submitted);

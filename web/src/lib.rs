@@ -5,6 +5,10 @@
 //! # Modules
 //! - [`view_state`]: the URL fragment ⇄ the view (camera, mode, preset, size). Platform
 //!   independent: the native tests render the same view to check the browser's pixels.
+//! - [`compact_tf`]: an edited transfer function's stops as a link's `tf=` value, exact and
+//!   bounded.
+//! - [`view_motion`]: the 3D view in motion: the target-fps control's controller
+//!   (strata_render::target_rate, the desktop's) while the view moves, full quality at rest.
 //! - `browser` (wasm32 only): the page's entry point, the viewer app, the frame capture.
 //! - `page_timing` (wasm32 only): time to first and converged image and the bench's frame
 //!   times (`bench=N`), posted with the test capture (issue 39's benchmark).
@@ -20,6 +24,8 @@
 //! Without `store=` the page shows the built-in sample volume (the render crate's CT phantom,
 //! made in the page).
 
+pub mod compact_tf;
+pub mod view_motion;
 pub mod view_state;
 
 #[cfg(target_arch = "wasm32")]

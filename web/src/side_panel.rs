@@ -5,7 +5,8 @@
 //! The panel owns the function the view draws with: the view's preset until the editor changes
 //! it; choosing another preset starts again from that preset. [`SidePanel::tf_key`] names the
 //! function (preset and edit count), so the page uploads it to the renderer only when it changed.
-//! The address (view_state.rs) keeps the preset, not the edits.
+//! The address (view_state.rs) keeps the preset and, once edited, the function itself (`tf=`,
+//! [`SidePanel::edited_function`]); a link with `tf=` opens with that function, as edited.
 
 use std::collections::VecDeque;
 
@@ -14,11 +15,14 @@ use strata_render::phantom::ct_phantom_hu;
 use strata_render::{FrameTiming, TransferFunction};
 use strata_storage::histogram::{Histogram, StoredValueCounts};
 use strata_viewer_ui::performance::{self, FrameClock, PerformanceFigures};
+use strata_viewer_ui::target_fps::target_fps_control;
 use strata_viewer_ui::tf_editor::{self, TfEditorState};
 use web_time::Instant;
 
 use crate::view_state::ViewState;
 
+/// The target frame rate the page starts with: the desktop viewer's default.
+const DEFAULT_TARGET_FPS: f64 = 10.0;
 /// GPU frame times kept for the plot.
 const GPU_TIMES_KEPT: usize = 240;
 /// Points per axis at which the sample's histogram samples the phantom (its own formula, not
@@ -29,8 +33,11 @@ const SAMPLE_HISTOGRAM_EDGE: u32 = 48;
 pub struct VolumeFigures<'a> {
     /// The loader's figures for a streamed store (`None` for the sample made in the page).
     pub loader: Option<&'a FrameStats>,
-    /// The raycaster's step factor this view draws with (samples per voxel = 1 / it).
+    /// The raycaster's step factor the frame on screen was drawn with (samples per voxel =
+    /// 1 / it): the controller's while the view moves, the view's own at rest.
     pub step_factor: f64,
+    /// The loader's quality factor that frame asked for (1: the full-quality cut).
+    pub lod_factor: f64,
     /// Volume frames submitted so far.
     pub frames_submitted: u64,
 }
@@ -49,6 +56,10 @@ pub struct SidePanel {
     clock: FrameClock,
     /// Raycast GPU times (timestamp queries) as `[seconds, ms]` on the clock's axis.
     gpu_ms: VecDeque<[f64; 2]>,
+    /// The target-frame-rate control, as the desktop's (on, 10 fps): while the view moves the
+    /// time-critical controller holds the rate; at rest the view draws at full quality.
+    target_fps_enabled: bool,
+    target_fps: f64,
 }
 
 impl SidePanel {
@@ -57,12 +68,15 @@ impl SidePanel {
             editor: TfEditorState::default(),
             transfer_function: view.transfer_function(),
             preset: view.preset.clone(),
-            edits: 0,
+            // A link's edited function (`tf=`) shows as edited, with Reset to its preset.
+            edits: u64::from(view.tf.is_some()),
             histogram: None,
             adapter,
             started: Instant::now(),
             clock: FrameClock::default(),
             gpu_ms: VecDeque::new(),
+            target_fps_enabled: true,
+            target_fps: DEFAULT_TARGET_FPS,
         }
     }
 
@@ -80,6 +94,20 @@ impl SidePanel {
     pub fn transfer_function(&mut self, view: &ViewState) -> TransferFunction {
         self.follow_preset(view);
         self.transfer_function.clone()
+    }
+
+    /// The rate the view holds while it moves; None: the control is off (the view's own
+    /// sampling step, moving or not).
+    pub fn target_fps(&self) -> Option<f64> {
+        self.target_fps_enabled.then_some(self.target_fps)
+    }
+
+    /// The function for the address: the edited one while it differs from its preset; None
+    /// when it is the preset (never edited, or Reset), which `preset=` alone describes.
+    pub fn edited_function(&self) -> Option<&TransferFunction> {
+        let preset = TransferFunction::preset(&self.preset)?;
+        let tf = &self.transfer_function;
+        (self.edits > 0 && (tf.opacity != preset.opacity || tf.color != preset.color)).then_some(tf)
     }
 
     /// Names the function the view draws with: it changes when the function does.
@@ -177,13 +205,14 @@ impl SidePanel {
             )),
             _ => None,
         };
+        target_fps_control(ui, &mut self.target_fps_enabled, &mut self.target_fps);
         let volume_frame_ms: Vec<[f64; 2]> = self.gpu_ms.iter().copied().collect();
         let shown = PerformanceFigures {
             adapter: &self.adapter,
             gpu_frame_ms: volume_frame_ms.last().map(|p| p[1]),
             volume_frame_ms,
             sampling_rate: 1.0 / figures.step_factor.max(1e-9),
-            lod_factor: 1.0,
+            lod_factor: figures.lod_factor,
             loader,
             traversal: None,
             finest_resident_level: per_level.iter().position(|&n| n > 0).map(|l| l as u8),

@@ -57,6 +57,9 @@ pub struct ViewState {
     pub mode: RenderMode,
     /// A transfer-function preset ([`TransferFunction::PRESETS`]).
     pub preset: String,
+    /// The function as edited from that preset (`tf=`, compact_tf.rs); None: the preset as
+    /// it is. Named "PRESET (edited)", as the desktop names an edited function.
+    pub tf: Option<TransferFunction>,
     /// Orbit angles in degrees and zoom (1 frames the volume's bounding sphere), as
     /// `strata render --azimuth --elevation --zoom`.
     pub azimuth_deg: f64,
@@ -100,6 +103,7 @@ impl Default for ViewState {
         ViewState {
             mode: RenderMode::Dvr,
             preset: "ct-bone".into(),
+            tf: None,
             azimuth_deg: 30.0,
             elevation_deg: 15.0,
             zoom: 1.0,
@@ -206,6 +210,14 @@ impl Fragment {
                         ));
                     }
                     view.preset = value.into();
+                }
+                "tf" => {
+                    let tf = crate::compact_tf::decode(value, "").map_err(|e| {
+                        // The value may be kilobytes: the message quotes its start only.
+                        let shown: String = value.chars().take(40).collect();
+                        bad(key, &shown, e.0)
+                    })?;
+                    view.tf = Some(tf);
                 }
                 "az" => view.azimuth_deg = finite(key, value, -3600.0..=3600.0)?,
                 "el" => view.elevation_deg = finite(key, value, -90.0..=90.0)?,
@@ -318,6 +330,9 @@ impl Fragment {
                 _ => {}
             }
         }
+        if let Some(tf) = view.tf.as_mut() {
+            tf.name = edited_name(&view.preset);
+        }
         Ok(Fragment { view, token })
     }
 }
@@ -332,6 +347,13 @@ impl ViewState {
         parts.extend([
             format!("mode={}", mode_name(self.mode)),
             format!("preset={}", self.preset),
+        ]);
+        // A function beyond the link's bounds (compact_tf::unwritable) is left out: the link
+        // then opens the preset, which callers that can say so check first.
+        if let Some(Ok(text)) = self.tf.as_ref().map(crate::compact_tf::encode) {
+            parts.push(format!("tf={text}"));
+        }
+        parts.extend([
             format!("az={}", round3(self.azimuth_deg)),
             format!("el={}", round3(self.elevation_deg)),
             format!("zoom={}", round3(self.zoom)),
@@ -408,9 +430,13 @@ impl ViewState {
         )
     }
 
-    /// The transfer function of the view's preset (the default preset if the name is unknown,
-    /// which [`Fragment::parse`] does not let through).
+    /// The view's transfer function: the edited one if the link carries it, else its preset's
+    /// (the default preset if the name is unknown, which [`Fragment::parse`] does not let
+    /// through).
     pub fn transfer_function(&self) -> TransferFunction {
+        if let Some(tf) = &self.tf {
+            return tf.clone();
+        }
         TransferFunction::preset(&self.preset)
             .or_else(|| TransferFunction::preset("ct-bone"))
             .unwrap_or_else(|| TransferFunction::new("ramp", &[(0.0, 0.0), (1.0, 1.0)], &[]))
@@ -430,6 +456,11 @@ impl ViewState {
     }
 }
 
+/// The name of a function edited from `preset` (the desktop's naming, scene.rs).
+pub fn edited_name(preset: &str) -> String {
+    format!("{preset} (edited)")
+}
+
 /// Three decimals: enough for a view, short enough for a link.
 fn round3(v: f64) -> f64 {
     (v * 1000.0).round() / 1000.0
@@ -444,6 +475,7 @@ mod tests {
         let view = ViewState {
             mode: RenderMode::Isosurface,
             preset: "ct-soft-tissue".into(),
+            tf: None,
             azimuth_deg: -42.5,
             elevation_deg: 12.25,
             zoom: 1.75,
@@ -521,6 +553,68 @@ mod tests {
             Fragment::parse("").expect("empty").view,
             ViewState::default()
         );
+    }
+
+    #[test]
+    fn an_edited_transfer_function_survives_its_fragment() {
+        let mut tf = TransferFunction::preset("ct-vessels").expect("preset");
+        // As the editor leaves a dragged point: a value and an opacity from f32 pixel maths.
+        tf.opacity[2].value = -1024.0 + f64::from(0.3101_f32) * 4095.0;
+        tf.opacity[2].opacity = f64::from(0.4873_f32);
+        tf.color[1].rgb = [0.91_f32, 0.2, 0.05].map(f64::from);
+        tf.name = edited_name("ct-vessels");
+        let view = ViewState {
+            preset: "ct-vessels".into(),
+            tf: Some(tf.clone()),
+            store: Some("head-ct".into()),
+            ..ViewState::default()
+        };
+        let written = view.to_fragment();
+        assert!(written.contains("&preset=ct-vessels&tf="), "{written}");
+        let parsed = Fragment::parse(&written).expect("own fragment parses").view;
+        assert_eq!(parsed, view);
+        assert_eq!(parsed.transfer_function(), tf);
+        // The key's order does not matter, and a browser's percent-encoding is undone.
+        let text = crate::compact_tf::encode(&tf).expect("writes");
+        let reordered = format!("#tf={}&preset=ct-vessels", text.replace(',', "%2C"));
+        assert_eq!(
+            Fragment::parse(&reordered).expect("parses").view.tf,
+            Some(tf)
+        );
+        // Unedited: the preset alone.
+        let plain = ViewState::default().to_fragment();
+        assert!(!plain.contains("tf="), "{plain}");
+        assert_eq!(
+            ViewState::default().transfer_function(),
+            TransferFunction::preset("ct-bone").expect("preset")
+        );
+    }
+
+    #[test]
+    fn a_bad_or_oversized_tf_names_its_key() {
+        for value in ["0,0_1,2~", "0,0", "1,0_0,1~", "~", "0,x~0,1,1,1"] {
+            let e = Fragment::parse(&format!("#tf={value}")).expect_err(value);
+            assert!(e.to_string().contains("`tf`"), "{value}: {e}");
+        }
+        let huge = format!("#tf=0,0_1,1~{}", "0,1,1,1_".repeat(3000));
+        let e = Fragment::parse(&huge).expect_err("oversized");
+        let message = e.to_string();
+        assert!(message.contains("`tf`"), "{message}");
+        assert!(
+            message.len() < 400,
+            "the message quotes the value's start only"
+        );
+        // A function beyond the bounds is not written (the link opens the preset instead).
+        let many: Vec<(f64, f64)> = (0..=crate::compact_tf::MAX_TF_STOPS)
+            .map(|i| (i as f64, 0.5))
+            .collect();
+        let view = ViewState {
+            tf: Some(TransferFunction::new("x", &many, &[])),
+            ..ViewState::default()
+        };
+        let written = view.to_fragment();
+        assert!(!written.contains("tf="), "{written}");
+        assert!(Fragment::parse(&written).is_ok());
     }
 
     #[test]

@@ -11,7 +11,7 @@ use std::process::{Child, Command, Stdio};
 use std::sync::mpsc;
 use std::time::Duration;
 
-use strata_render::{compare_rgba8, CacheConfig, GpuContext, OffscreenRenderer};
+use strata_render::{compare_rgba8, CacheConfig, GpuContext, OffscreenRenderer, TransferFunction};
 use strata_service::server::{find_stores, start};
 use strata_service::{CapturedFrame, FrameSink, ServeOptions, WebViewerAssets};
 use strata_storage::import::ImportOptions;
@@ -141,11 +141,21 @@ fn the_served_page_draws_the_view_its_link_names_as_the_native_renderer_does() {
     // Each mode is its own pipeline (overrides), compiled by Chrome's Tint: all three must
     // compile there and draw what the native renderer draws.
     let gpu = GpuContext::headless().expect("a Vulkan adapter (lavapipe)");
+    // A function edited from ct-bone (`tf=`, compact_tf.rs): denser at 300 HU and green, so a
+    // page that drew the preset instead would fail the comparison (checked below).
+    let mut edited = TransferFunction::preset("ct-bone").expect("preset");
+    edited.opacity[2].opacity = 0.5;
+    for stop in &mut edited.color {
+        stop.rgb = [0.2, stop.rgb[1].max(0.6), 0.3];
+    }
+    let tf = strata_web::compact_tf::encode(&edited).expect("within a link's bounds");
     for fragment in [
-        "#mode=dvr&preset=ct-bone&az=35&el=20&zoom=1.3&volume=48&size=128x128&capture=1",
-        "#mode=mip&preset=ct-soft-tissue&az=-60&el=10&zoom=1.1&volume=40&size=96x128&capture=1",
-        "#mode=iso&preset=ct-bone&iso=200&az=120&el=-25&zoom=1.5&volume=48&size=128x96&capture=1",
+        "#mode=dvr&preset=ct-bone&az=35&el=20&zoom=1.3&volume=48&size=128x128&capture=1".to_string(),
+        "#mode=mip&preset=ct-soft-tissue&az=-60&el=10&zoom=1.1&volume=40&size=96x128&capture=1".into(),
+        "#mode=iso&preset=ct-bone&iso=200&az=120&el=-25&zoom=1.5&volume=48&size=128x96&capture=1".into(),
+        format!("#mode=dvr&preset=ct-bone&tf={tf}&az=35&el=20&zoom=1.3&volume=48&size=128x128&capture=1"),
     ] {
+        let fragment = fragment.as_str();
         let url = format!("{}/{fragment}&token={TOKEN}", server.base_url());
         let launched = std::time::Instant::now();
         let browser = Browser::open(&url, scratch.path());
@@ -206,6 +216,25 @@ fn the_served_page_draws_the_view_its_link_names_as_the_native_renderer_does() {
             comparison.psnr_db >= 40.0,
             "{fragment}: the browser's frame differs from the native one: {comparison:?}"
         );
+        if view.tf.is_some() {
+            // The link's function, not its preset, made the picture: the preset's frame is
+            // far from the browser's.
+            let preset = TransferFunction::preset(&view.preset).expect("preset");
+            renderer
+                .set_transfer_function(&gpu, &volume, &preset)
+                .expect("the preset's table");
+            let preset_frame = renderer
+                .render(
+                    &gpu,
+                    &volume,
+                    &view.camera(&volume.geometry),
+                    &view.settings(width, height),
+                )
+                .expect("native frame");
+            let apart = compare_rgba8(&frame.rgba, &preset_frame.rgba).expect("same size");
+            println!("{fragment}: browser vs the preset's native frame: {apart:?}");
+            assert!(apart.psnr_db < 30.0, "{fragment}: {apart:?}");
+        }
     }
     let refused = server
         .counters()

@@ -8,7 +8,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use egui::{Color32, Key, Pos2, Rect, RichText, Sense, Vec2};
-use strata_render::{CropBox, RenderMode};
+use strata_render::{CropBox, RenderMode, TransferFunction};
 
 use super::dialogs::{HelpWindow, OpenDialog};
 use super::history::History;
@@ -442,6 +442,11 @@ impl StrataApp {
         if let Some(view) = self.pending_link_view.take() {
             orbit = view.orbit;
             scene.iso_value = view.iso_value;
+            if let Some(tf) = view.tf {
+                // Edited from the link's preset (tf_source): the panel shows it as edited.
+                scene.transfer_function = tf;
+                scene.name_tf_edits();
+            }
             if let Some(cursor) = view.cursor {
                 scene.cursor = std::array::from_fn(|axis| {
                     cursor[axis].clamp(0.0, (dims[axis] as f64 - 1.0).max(0.0))
@@ -493,12 +498,22 @@ impl StrataApp {
                 orbit: v.view_3d.orbit,
                 mode: self.preferences.mode,
                 preset: self.preferences.preset.clone(),
+                tf: self.tf_for_link(),
                 iso_value: v.scene.iso_value,
                 layout: self.preferences.layout,
                 cursor: Some(v.scene.cursor),
                 window: Some([v.scene.window.centre, v.scene.window.width]),
             },
         )
+    }
+
+    /// The 3D view's transfer function for a link when the preset alone would not give it
+    /// (edited, or loaded from a file): the link's `tf=`.
+    fn tf_for_link(&self) -> Option<TransferFunction> {
+        let v = self.volume.as_ref()?;
+        let preset = preset_for(&self.preferences.preset, &v.data.info);
+        let tf = &v.scene.transfer_function;
+        (tf.opacity != preset.opacity || tf.color != preset.color).then(|| tf.clone())
     }
 
     /// The session as a restarted viewer would put it back; None without a volume.
@@ -1004,8 +1019,19 @@ impl StrataApp {
                     .clicked()
                 {
                     ui.ctx().copy_text(link);
+                    let left_out = self
+                        .tf_for_link()
+                        .as_ref()
+                        .and_then(strata_web::compact_tf::unwritable);
                     self.toast = Some(Toast {
-                        text: "link to this view copied".into(),
+                        text: match left_out {
+                            // The link then opens the preset (view_state::to_fragment).
+                            Some(why) => format!(
+                                "link copied with the preset, not the edited transfer \
+                                 function ({why})"
+                            ),
+                            None => "link to this view copied".into(),
+                        },
                         shown_at: Instant::now(),
                     });
                 }

@@ -8,7 +8,7 @@
 //! A link's `token=` is used for that one connection and kept in memory only: it is never
 //! written back into a copied link (links are shared, tokens must not be), logged, or saved.
 
-use strata_render::RenderMode;
+use strata_render::{RenderMode, TransferFunction};
 use strata_web::view_state::{Fragment, Layout as LinkLayout, ViewState};
 
 use super::preferences::Layout;
@@ -29,6 +29,9 @@ pub struct DesktopView {
     pub orbit: OrbitCamera,
     pub mode: RenderMode,
     pub preset: String,
+    /// The transfer function as edited (or loaded from a file) when it is not the preset's:
+    /// the link's `tf=`. None: the preset as it is.
+    pub tf: Option<TransferFunction>,
     /// In the volume's physical unit.
     pub iso_value: f64,
     /// The 3D view alone, or with the slices (the page's 2×2; the desktop's conventional
@@ -121,6 +124,7 @@ pub fn link_for(store_url: &str, view: &DesktopView) -> Option<String> {
     let state = ViewState {
         mode: view.mode,
         preset: view.preset.clone(),
+        tf: view.tf.clone(),
         azimuth_deg: view.orbit.azimuth_deg,
         elevation_deg: view.orbit.elevation_deg,
         zoom: view.orbit.zoom,
@@ -151,6 +155,7 @@ pub fn desktop_view(view: &ViewState) -> DesktopView {
         },
         mode: view.mode,
         preset: view.preset.clone(),
+        tf: view.tf.clone(),
         iso_value: view.iso_value,
         layout: match view.layout {
             LinkLayout::Single => Layout::Single,
@@ -177,6 +182,7 @@ mod tests {
             },
             mode: RenderMode::Isosurface,
             preset: "ct-soft-tissue".into(),
+            tf: None,
             iso_value: 150.5,
             layout: Layout::Single,
             cursor: Some([12.0, 30.5, 7.0]),
@@ -232,6 +238,25 @@ mod tests {
         let view = parse_link(&link).expect("parses").view;
         assert_eq!(view.camera(&geometry), perspective.orbit.camera(&geometry));
         assert_eq!(link_for("/data/stores/head", &desktop()), None);
+    }
+
+    #[test]
+    fn an_edited_transfer_function_travels_with_the_link() {
+        let mut tf = TransferFunction::preset("ct-soft-tissue").expect("preset");
+        tf.opacity[3].opacity = f64::from(0.6183_f32);
+        tf.color[2].rgb = [0.25_f32, 0.5, 0.8725].map(f64::from);
+        tf.name = strata_web::view_state::edited_name("ct-soft-tissue");
+        let edited = DesktopView {
+            tf: Some(tf),
+            ..desktop()
+        };
+        let store_url = "http://127.0.0.1:8080/v1/stores/head-ct";
+        let link = link_for(store_url, &edited).expect("link");
+        assert!(link.contains("&tf="), "{link}");
+        let opened = parse_link(&link).expect("own link parses");
+        assert_eq!(desktop_view(&opened.view), edited);
+        let plain = link_for(store_url, &desktop()).expect("link");
+        assert!(!plain.contains("tf="), "{plain}");
     }
 
     #[test]

@@ -2549,8 +2549,14 @@ fn a_viewer_link_opens_its_store_and_view_and_copy_link_gives_it_back_without_th
         },
     )
     .expect("serving the phantom");
+    // A function edited from the preset, as the editor leaves points (f32 pixel maths).
+    let mut edited_tf = strata_render::TransferFunction::preset("ct-soft-tissue").expect("preset");
+    edited_tf.opacity[2].value = -1024.0 + f64::from(0.2213_f32) * 4095.0;
+    edited_tf.opacity[2].opacity = f64::from(0.3377_f32);
+    edited_tf.color[1].rgb = [0.12_f32, 0.8, 0.4].map(f64::from);
+    let tf_text = strata_web::compact_tf::encode(&edited_tf).expect("within the link's bounds");
     let link = format!(
-        "{}/#store={name}&mode=mip&preset=ct-soft-tissue&az=-60&el=25&zoom=1.5&pan=0.1,-0.05&layout=single&cursor=5,40,12.5&window=300,1200&token={token}",
+        "{}/#store={name}&mode=mip&preset=ct-soft-tissue&tf={tf_text}&az=-60&el=25&zoom=1.5&pan=0.1,-0.05&layout=single&cursor=5,40,12.5&window=300,1200&token={token}",
         server.base_url()
     );
     let mut options = ViewerOptions::new(VolumeSource::Url {
@@ -2579,6 +2585,17 @@ fn a_viewer_link_opens_its_store_and_view_and_copy_link_gives_it_back_without_th
         assert_eq!(v.view_3d.orbit, expected_orbit);
         assert_eq!(a.preferences.mode, RenderMode::Mip);
         assert_eq!(a.preferences.preset, "ct-soft-tissue");
+        let tf = &v.scene.transfer_function;
+        assert_eq!(
+            (&tf.opacity, &tf.color),
+            (&edited_tf.opacity, &edited_tf.color),
+            "the link's edited transfer function"
+        );
+        assert!(
+            v.scene.tf_edited(),
+            "shown as edited from the link's preset"
+        );
+        assert_eq!(tf.name, "ct-soft-tissue (edited)");
         assert_eq!(a.preferences.layout, Layout::Single, "the link's layout");
         // The phantom is 48³: the crosshair's 40 is inside, as given.
         assert_eq!(v.scene.cursor, [5.0, 40.0, 12.5], "the link's crosshair");
@@ -2601,6 +2618,17 @@ fn a_viewer_link_opens_its_store_and_view_and_copy_link_gives_it_back_without_th
     assert_eq!(reopened.view.mode, RenderMode::Mip);
     assert_eq!(reopened.view.cursor, Some([5.0, 40.0, 12.5]));
     assert_eq!(reopened.view.window, Some([300.0, 1200.0]));
+    assert_eq!(reopened.view.preset, "ct-soft-tissue");
+    let carried = reopened
+        .view
+        .tf
+        .as_ref()
+        .expect("the copy carries the edit");
+    assert_eq!(
+        (&carried.opacity, &carried.color),
+        (&edited_tf.opacity, &edited_tf.color),
+        "bit for bit"
+    );
 
     h.get_by_label("Copy link").click();
     let mut clipboard = None;

@@ -19,9 +19,10 @@ use std::time::{Duration, Instant};
 
 use strata_loader::{FrameStats, SelectionTiming, StreamingConfig, StreamingVolume};
 use strata_render::progressive::{jittered_frame, Accumulator, ViewKey};
+use strata_render::target_rate::{AtRest, TargetRateDriver};
 use strata_render::{
     Camera, GpuContext, LightDirection, RenderMode, RenderSettings, ShadowMode, TimeCriticalConfig,
-    TimeCriticalController, TransferFunction, Traversal, ValueMapping, VolumeGeometry,
+    TransferFunction, Traversal, ValueMapping, VolumeGeometry,
 };
 use strata_source::VolumeSource;
 use strata_storage::StoreHeader;
@@ -406,7 +407,9 @@ struct RenderWorker {
     shared: Arc<Shared>,
     repaint: Repaint,
     gpu_budget_bytes: u64,
-    controller: TimeCriticalController,
+    /// The time-critical controller as the target-frame-rate control drives it (shared with
+    /// the browser page: strata_render::target_rate).
+    rate: TargetRateDriver,
     serial: u64,
 }
 
@@ -422,7 +425,7 @@ impl RenderWorker {
             shared,
             repaint,
             gpu_budget_bytes,
-            controller: TimeCriticalController::new(viewer_time_critical_config(), 1.0),
+            rate: TargetRateDriver::new(viewer_time_critical_config(), 1.0, AtRest::Refine),
             serial: 0,
         }
     }
@@ -533,9 +536,9 @@ impl RenderWorker {
         {
             // On a CPU rasteriser a still frame at 2 samples per voxel takes seconds, and a new
             // request waits for the frame in progress: refine to 1 sample per voxel there.
-            let mut config = *self.controller.config();
+            let mut config = *self.rate.controller().config();
             config.lod.still_rate = 1.0;
-            self.controller = TimeCriticalController::new(config, 1.0);
+            self.rate = TargetRateDriver::new(config, 1.0, AtRest::Refine);
         }
         self.set_status(|s| {
             s.adapter = adapter;
@@ -803,9 +806,7 @@ impl RenderWorker {
                 (self.repaint)();
                 continue;
             }
-            let still_refining = request.target_fps.is_some()
-                && !request.interacting
-                && !self.controller.still_refinement_done();
+            let still_refining = self.rate.refining(request.target_fps, request.interacting);
             if !(new_request || !converged || still_refining) {
                 // Idle: poll, so a device lost meanwhile is noticed (and rebuilt) now.
                 let _ = ctx.device.poll(wgpu::PollType::Poll);
@@ -867,23 +868,16 @@ impl RenderWorker {
             // The loader's quality factor is 1 whenever the user is not dragging: lowering it
             // during still refinement would swap in coarser bricks (popping).
             let streaming_still = !request.interacting && !converged;
-            let quality = request.target_fps.map(|fps| {
-                if (self.controller.config().controller.target_fps - fps).abs() > 1e-9 {
-                    self.controller.set_target_fps(fps);
-                }
-                let q = self
-                    .controller
-                    .plan_frame(request.interacting || streaming_still);
-                q.apply_to(&mut settings);
-                q
-            });
+            let quality = self.rate.plan(
+                request.target_fps,
+                request.interacting,
+                streaming_still,
+                &mut settings,
+            );
             if quality.is_some() && request.interacting {
                 interactive_lighting(&mut settings);
             }
-            volume.set_max_voxel_pixels(match quality {
-                Some(q) if request.interacting => q.lod_factor,
-                _ => 1.0,
-            });
+            volume.set_max_voxel_pixels(TargetRateDriver::lod_factor(quality, request.interacting));
             settings.frame_index = self.serial as u32;
             // With adaptive sampling on, the raycaster counts its samples (one atomic per ray),
             // so the status line can compare the two passes on the same view.
@@ -895,7 +889,7 @@ impl RenderWorker {
                     .map_err(Into::into),
             )?;
             if let Some(q) = quality {
-                self.controller.submitted(volume.last_frame_number(), q);
+                self.rate.submitted(volume.last_frame_number(), q);
             }
             let frame = watch.classify(volume.read_frame_blocking(&ctx).map_err(Into::into))?;
             let frame_ms = started.elapsed().as_secs_f64() * 1e3;
@@ -906,14 +900,9 @@ impl RenderWorker {
             let gpu_timings = volume.take_frame_timings(&ctx);
             let learn = !std::mem::take(&mut after_shot);
             if let Some(q) = quality.filter(|_| learn) {
-                if gpu_timestamps {
-                    for timing in gpu_timings {
-                        self.controller.observe(timing);
-                    }
-                } else {
-                    // No timestamp queries on this device: submit-to-pixels is all there is.
-                    self.controller.observe_ms(frame_ms, q);
-                }
+                // No timestamp queries on this device: submit-to-pixels is all there is.
+                self.rate
+                    .learn(q, gpu_timings, gpu_timestamps, Some(frame_ms));
             }
             frame_ms_history.push((Instant::now(), frame_ms));
             if frame_ms_history.len() > 240 {
@@ -933,10 +922,8 @@ impl RenderWorker {
             // converged, the still refinement of the sampling rate follows, then the idle wait.
             let settled = pace == Pace::Rest && !stats.converged;
             converged = (stats.converged || settled) && !volume.compiling_in_background();
-            let refining = !converged
-                || (request.target_fps.is_some()
-                    && !request.interacting
-                    && !self.controller.still_refinement_done());
+            let refining =
+                !converged || self.rate.refining(request.target_fps, request.interacting);
             let view = request.still_view();
             // A build for another cut, TF, ε or spacing than this frame's is stale.
             adaptive.supersede(adaptive.key(&volume, &view, &settings).as_ref());
