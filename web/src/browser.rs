@@ -146,7 +146,10 @@ struct WebViewer {
     opening: Option<Opening>,
     gpu: GpuContext,
     view: ViewState,
-    volume: Option<BrickedVolume>,
+    /// The sample, shared with its slice views (they read its bricks).
+    volume: Option<Rc<BrickedVolume>>,
+    /// The sample's three slice views (slice_views.rs), made with it.
+    sample_slices: Option<SliceViews>,
     renderer: Option<OffscreenRenderer>,
     /// The transfer function the renderer draws with (`SidePanel::tf_key`).
     renderer_preset: String,
@@ -225,6 +228,7 @@ impl WebViewer {
             timing: PageTiming::new(fragment.view.bench_frames),
             view: fragment.view,
             volume: None,
+            sample_slices: None,
             renderer: None,
             renderer_preset: String::new(),
             side,
@@ -249,7 +253,11 @@ impl WebViewer {
                 ctx.request_repaint();
                 return Ok(false);
             }
-            self.volume = Some(self.view.sample_volume().map_err(|e| e.to_string())?);
+            let volume = Rc::new(self.view.sample_volume().map_err(|e| e.to_string())?);
+            let mut slices = SliceViews::for_sample(volume.clone());
+            slices.set_from_link(self.view.cursor, self.view.window);
+            self.sample_slices = Some(slices);
+            self.volume = Some(volume);
             self.side.set_sample_histogram(&self.view);
         }
         let Some(volume) = self.volume.as_ref() else {
@@ -525,17 +533,19 @@ impl WebViewer {
             ui.horizontal(|ui| {
                 ui.label(format!(
                     "Store {name} · {detail} · 3D: drag to orbit, scroll to zoom; slices: click \
-                     moves the crosshair, scroll pages, right drag (or Shift+drag) windows; the \
-                     address holds the 3D view · not for diagnostic use"
+                     moves the crosshair, scroll pages, Ctrl+scroll zooms, middle drag pans, \
+                     right drag (or Shift+drag) windows; the address holds the view · not for \
+                     diagnostic use"
                 ));
             });
             return;
         }
         ui.horizontal(|ui| {
             ui.label(format!(
-                "Sample volume {}³ (CT phantom made in the page) · frames drawn {} · drag to \
-                 orbit, scroll to zoom; the address holds this view · slice views: for a \
-                 server's store (Volume menu) · not for diagnostic use",
+                "Sample volume {}³ (CT phantom made in the page) · frames drawn {} · 3D: drag to \
+                 orbit, scroll to zoom; slices: click moves the crosshair, scroll pages, \
+                 Ctrl+scroll zooms, middle drag pans, right drag (or Shift+drag) windows; the \
+                 address holds this view · not for diagnostic use",
                 self.view.volume_edge, self.frames_submitted
             ));
         });
@@ -671,17 +681,22 @@ impl WebViewer {
                 self.error = Some("the test capture's buffer could not be mapped".into());
             }
             CAPTURE_SENT => {
-                // Then, once, the axial slice view's image (slice_views.rs), where it is shown.
+                // Then, once, the axial slice view's image (slice_views.rs), where it is shown
+                // (a served store's or the sample's).
                 let four_up = self.view.layout == crate::view_state::Layout::FourUp;
-                if let Some(streamed) = self.streamed.as_mut().filter(|_| four_up) {
-                    if let Some((rgba, w, h)) = streamed.slices.take_capture() {
+                let slices = match self.streamed.as_mut() {
+                    Some(streamed) => Some(&mut streamed.slices),
+                    None => self.sample_slices.as_mut(),
+                };
+                if let Some(slices) = slices.filter(|_| four_up) {
+                    if let Some((rgba, w, h)) = slices.take_capture() {
                         let token = self.token.clone();
                         wasm_bindgen_futures::spawn_local(async move {
                             if let Err(e) = post_frame(&rgba, w, h, &[], token.as_deref()).await {
                                 show_message("The slice capture could not be sent", &e);
                             }
                         });
-                    } else if !streamed.slices.captured() {
+                    } else if !slices.captured() {
                         ctx.request_repaint();
                     }
                 }
@@ -804,10 +819,12 @@ impl eframe::App for WebViewer {
                         return;
                     }
                 }
-                // A streamed store: the desktop's 2×2 of the 3D view and three slice views.
+                // The desktop's 2×2 of the 3D view and three slice views (a store's or the
+                // sample's).
                 let area = ui.available_rect_before_wrap();
                 let four_up = self.view.layout == crate::view_state::Layout::FourUp;
-                let (rect, slice_rects) = if self.streamed.is_some() && four_up {
+                let has_slices = self.streamed.is_some() || self.sample_slices.is_some();
+                let (rect, slice_rects) = if has_slices && four_up {
                     let (rect, slices) = two_by_two(area);
                     (rect, Some(slices))
                 } else {
@@ -864,12 +881,15 @@ impl eframe::App for WebViewer {
                         egui::Color32::WHITE,
                     );
                 }
-                if let (Some(rects), Some(streamed)) = (slice_rects, self.streamed.as_mut()) {
-                    streamed.slices.ui(ui, rects);
+                let slices = match self.streamed.as_mut() {
+                    Some(streamed) => Some(&mut streamed.slices),
+                    None => self.sample_slices.as_mut(),
+                };
+                if let (Some(rects), Some(slices)) = (slice_rects, slices) {
+                    slices.ui(ui, rects);
                     // The address follows the crosshair and window, so a link shares them.
-                    self.view.cursor = Some(streamed.slices.cursor);
-                    self.view.window =
-                        Some([streamed.slices.window.centre, streamed.slices.window.width]);
+                    self.view.cursor = Some(slices.cursor);
+                    self.view.window = Some([slices.window.centre, slices.window.width]);
                 }
                 self.write_fragment(response.dragged());
             });

@@ -142,9 +142,9 @@ fn the_served_page_draws_the_view_its_link_names_as_the_native_renderer_does() {
     // compile there and draw what the native renderer draws.
     let gpu = GpuContext::headless().expect("a Vulkan adapter (lavapipe)");
     for fragment in [
-        "#mode=dvr&preset=ct-bone&az=35&el=20&zoom=1.3&volume=48&size=128x128&capture=1",
-        "#mode=mip&preset=ct-soft-tissue&az=-60&el=10&zoom=1.1&volume=40&size=96x128&capture=1",
-        "#mode=iso&preset=ct-bone&iso=200&az=120&el=-25&zoom=1.5&volume=48&size=128x96&capture=1",
+        "#mode=dvr&preset=ct-bone&az=35&el=20&zoom=1.3&volume=48&size=128x128&capture=1&layout=single",
+        "#mode=mip&preset=ct-soft-tissue&az=-60&el=10&zoom=1.1&volume=40&size=96x128&capture=1&layout=single",
+        "#mode=iso&preset=ct-bone&iso=200&az=120&el=-25&zoom=1.5&volume=48&size=128x96&capture=1&layout=single",
     ] {
         let url = format!("{}/{fragment}&token={TOKEN}", server.base_url());
         let launched = std::time::Instant::now();
@@ -604,6 +604,119 @@ fn the_page_slices_a_served_store_as_the_desktops_assembler_does() {
     );
 }
 
+/// The built-in sample has slice views too (no store: the page feeds the same assembler from
+/// its in-memory octree): the axial image the page posts equals, byte for byte, the desktop's
+/// assembler and window/level on the same sample made natively (the page's defaults: the
+/// volume's centre, CT's abdomen window 40/400 HU for a volume in HU, grey).
+#[test]
+fn the_page_slices_its_built_in_sample_as_the_desktops_assembler_does() {
+    use strata_render::BrickSource;
+    use strata_slices::{
+        window_level_rgba, ColourMap, SliceAssembler, SliceFrame, SliceRequest, SliceView, Window,
+    };
+    use strata_storage::OctreeLayout;
+    let scratch = tempfile::tempdir().expect("scratch folder");
+    // The server needs a store to serve; the page shows its own sample.
+    let store = scratch.path().join("tiny.strata");
+    Phantom::cube(32)
+        .write_store(&store, &ImportOptions::default())
+        .expect("writing a tiny store");
+    let (frames_in, frames) = mpsc::channel::<CapturedFrame>();
+    let frames_in = std::sync::Mutex::new(frames_in);
+    let server = start(
+        find_stores(&[store]).expect("store found"),
+        ServeOptions {
+            web_viewer: Some(std::sync::Arc::new(web_viewer())),
+            test_frame_sink: Some(FrameSink(std::sync::Arc::new(move |frame| {
+                if let Ok(sender) = frames_in.lock() {
+                    let _ = sender.send(frame);
+                }
+            }))),
+            token: Some(TOKEN.into()),
+            ..ServeOptions::default()
+        },
+    )
+    .expect("server starts");
+    let fragment = "#mode=mip&preset=ct-soft-tissue&volume=40&size=64x64&capture=1";
+    let url = format!("{}/{fragment}&token={TOKEN}", server.base_url());
+    let browser = Browser::open(&url, scratch.path());
+    let wait = |what: &str| {
+        frames.recv_timeout(PAGE_DEADLINE).unwrap_or_else(|_| {
+            panic!(
+                "the page posted no {what} within {PAGE_DEADLINE:?}; its console:\n{}",
+                browser.console()
+            )
+        })
+    };
+    let three_d = wait("3D frame");
+    assert_eq!((three_d.width, three_d.height), (64, 64));
+    let slice = wait("sample slice image");
+    let console = browser.console();
+    drop(browser);
+
+    let view = Fragment::parse(fragment).expect("fragment").view;
+    let volume = view.sample_volume().expect("sample volume");
+    let geometry = &volume.geometry;
+    let frame = SliceFrame::for_view(SliceView::Axial, geometry);
+    let layout = OctreeLayout::new(geometry.dims);
+    let level = (0..layout.level_count())
+        .find(|&l| {
+            let dims = layout.level_dims[l];
+            (dims[frame.across_axis], dims[frame.down_axis]) == (slice.width, slice.height)
+        })
+        .unwrap_or_else(|| {
+            panic!(
+                "the posted slice is {}×{}, no level's grid; console:\n{console}",
+                slice.width, slice.height
+            )
+        });
+    let cursor = geometry
+        .dims
+        .map(|d| ((d as f64 - 1.0) * 0.5).floor().max(0.0));
+    let request = SliceRequest {
+        view: SliceView::Axial,
+        frame,
+        position: cursor[frame.normal_axis],
+        level: level as u8,
+    };
+    let mut assembler = SliceAssembler::new(layout, 64 << 20);
+    let image = assembler
+        .assemble_with(request, |id| {
+            let brick = volume.brick(id.level, id.coords).expect("in-memory brick");
+            Ok::<_, strata_slices::SliceError>(brick.to_vec())
+        })
+        .expect("the desktop's slice");
+    let desktop = window_level_rgba(
+        &image.values,
+        Window::new(40.0, 400.0),
+        ColourMap::Grey,
+        volume.mapping,
+    );
+    let differing = slice
+        .rgba
+        .chunks(4)
+        .zip(desktop.chunks(4))
+        .filter(|(a, b)| a != b)
+        .count();
+    let distinct: std::collections::BTreeSet<u8> = desktop.chunks(4).map(|p| p[0]).collect();
+    println!(
+        "sample slice views: axial level {level}, {}×{}, {differing} pixels differ from the \
+         desktop's assembler, {} grey levels",
+        slice.width,
+        slice.height,
+        distinct.len()
+    );
+    assert!(
+        distinct.len() > 8,
+        "the slice shows nearly nothing: {distinct:?}"
+    );
+    assert_eq!(slice.rgba.len(), desktop.len());
+    assert_eq!(
+        differing, 0,
+        "the page's sample slice differs from the desktop's; console:\n{console}"
+    );
+}
+
 /// The page's measurements sent with its capture (strata-web's page_timing.rs), by name.
 fn metric(frame: &CapturedFrame, name: &str) -> Option<f64> {
     frame
@@ -689,7 +802,7 @@ fn benchmark_the_browser_against_the_desktop_on_one_served_store() {
     // whole every frame (a streamed store at 512² keeps refining while it moves, so its frame
     // time mixes loading in), against the desktop's renderer on the same volume below.
     let orbiting = page(format!(
-        "mode=dvr&preset=ct-bone&az=35&el=20&zoom=1.4&size=512x512&capture=1&bench={orbit_frames}"
+        "mode=dvr&preset=ct-bone&az=35&el=20&zoom=1.4&size=512x512&layout=single&capture=1&bench={orbit_frames}"
     ));
     let browser_frame_ms = metric(&orbiting, "frame_ms_median").expect("frame_ms_median");
 
