@@ -1,7 +1,8 @@
 //! What an axis-aligned slice view draws around its image, shared by the desktop's slice views
 //! (app/src/viewer/slice_view.rs) and the page's (web/src/slice_views.rs): the image's place
 //! in the view with zoom and pan ([`ZoomPan`]), screen ↔ image-fraction mapping, the
-//! crosshair, the orientation labels and the textured image with the view's flips.
+//! crosshair, the orientation labels, the readout line and the textured image with the view's
+//! flips.
 //!
 //! Gestures, as the desktop has always had them: Ctrl+wheel (or a pinch) zooms about the
 //! pointer, middle drag pans, a double-click resets both. Zoom is magnification over
@@ -186,6 +187,17 @@ pub fn paint_orientation_labels(painter: &egui::Painter, view_rect: Rect, labels
     ] {
         painter.text(pos, align, text, font.clone(), colour);
     }
+}
+
+/// The line under the view (W/L, level, the value under the pointer).
+pub fn paint_readout_line(painter: &egui::Painter, view_rect: Rect, text: String) {
+    painter.text(
+        view_rect.left_bottom() + Vec2::new(8.0, -4.0),
+        egui::Align2::LEFT_BOTTOM,
+        text,
+        egui::FontId::proportional(11.0),
+        Color32::LIGHT_GRAY,
+    );
 }
 
 /// The slice image as a textured rectangle: the level grid's overhang cropped by

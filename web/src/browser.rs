@@ -24,6 +24,7 @@ use crate::served_store::{list_stores, ServedStore, DECODES_PER_FRAME, MAX_ON_TH
 use crate::side_panel::{SidePanel, VolumeFigures};
 use crate::slice_views::{two_by_two, SliceViews};
 use crate::view_state::{Fragment, ViewState};
+use crate::volume_menu;
 use strata_source::wire::StoreList;
 use strata_source::VolumeSource;
 
@@ -429,34 +430,24 @@ impl WebViewer {
     /// link `#store=NAME`: choosing it streams that store, and the address then shares it).
     fn volume_choice(&mut self, ui: &mut egui::Ui) {
         let mut chosen = self.view.store.clone();
-        let shown = chosen
-            .clone()
-            .unwrap_or_else(|| "sample (made in the page)".into());
         egui::ComboBox::from_id_salt("volume")
-            .selected_text(shown)
-            .show_ui(ui, |ui| {
-                ui.selectable_value(&mut chosen, None, "sample (made in the page)");
-                match &*self.stores.borrow() {
-                    Some(Ok(list)) => {
-                        for store in &list.stores {
-                            let [x, y, z] = store.dims;
-                            ui.selectable_value(
-                                &mut chosen,
-                                Some(store.name.clone()),
-                                format!("{} ({x}×{y}×{z})", store.name),
-                            );
-                        }
-                    }
-                    Some(Err(e)) => {
-                        ui.label(format!("the server's stores: {e}"));
-                    }
-                    None => {
-                        ui.label("asking the server for its stores…");
+            .selected_text(volume_menu::shown_label(chosen.as_deref()))
+            .show_ui(ui, |ui| match &*self.stores.borrow() {
+                Some(Ok(list)) => {
+                    for entry in volume_menu::entries(list) {
+                        ui.selectable_value(&mut chosen, entry.store, entry.label);
                     }
                 }
+                Some(Err(e)) => {
+                    ui.selectable_value(&mut chosen, None, volume_menu::SAMPLE_ENTRY);
+                    ui.label(format!("the server's stores: {e}"));
+                }
+                None => {
+                    ui.selectable_value(&mut chosen, None, volume_menu::SAMPLE_ENTRY);
+                    ui.label("asking the server for its stores…");
+                }
             });
-        if chosen != self.view.store {
-            self.view.store = chosen;
+        if volume_menu::choose(&mut self.view, chosen) {
             self.streamed = None;
             self.opening = None;
             self.drawn = None;

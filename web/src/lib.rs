@@ -5,6 +5,9 @@
 //! # Modules
 //! - [`view_state`]: the URL fragment ⇄ the view (camera, mode, preset, size). Platform
 //!   independent: the native tests render the same view to check the browser's pixels.
+//! - [`volume_menu`]: the Volume menu's entries (the sample, then the server's stores from
+//!   `GET /v1/stores`) and what a choice does to the view; platform independent, tested natively
+//!   against a real server's list.
 //! - `browser` (wasm32 only): the page's entry point, the viewer app, the frame capture.
 //! - `page_timing` (wasm32 only): time to first and converged image and the bench's frame
 //!   times (`bench=N`), posted with the test capture (issue 39's benchmark).
@@ -21,6 +24,7 @@
 //! made in the page).
 
 pub mod view_state;
+pub mod volume_menu;
 
 #[cfg(target_arch = "wasm32")]
 mod browser;

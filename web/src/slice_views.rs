@@ -36,7 +36,7 @@ use strata_source::{BrickFetcher, FetchOptions, VolumeSource};
 use strata_storage::{BrickId, OctreeLayout};
 use strata_viewer_ui::slice_canvas::{
     colour_map_combo, fraction_at, inner_rect, paint_crosshair, paint_orientation_labels,
-    screen_at, slice_mesh, ZoomPan,
+    paint_readout_line, screen_at, slice_mesh, ZoomPan,
 };
 
 /// Decoded bricks the page keeps for its slices (bytes): a brick row of every view at the
@@ -559,12 +559,6 @@ impl SliceViews {
         if let Some(error) = &self.error {
             info.push_str(&format!(" · {error}"));
         }
-        painter.text(
-            rect.left_bottom() + Vec2::new(8.0, -4.0),
-            egui::Align2::LEFT_BOTTOM,
-            info,
-            egui::FontId::proportional(11.0),
-            Color32::LIGHT_GRAY,
-        );
+        paint_readout_line(&painter, rect, info);
     }
 }

@@ -494,38 +494,9 @@ fn the_page_slices_a_served_store_as_the_desktops_assembler_does() {
     Phantom::cube(96)
         .write_store(&path, &ImportOptions::default())
         .expect("writing the store");
-    let (frames_in, frames) = mpsc::channel::<CapturedFrame>();
-    let frames_in = std::sync::Mutex::new(frames_in);
-    let server = start(
-        find_stores(std::slice::from_ref(&path)).expect("store found"),
-        ServeOptions {
-            web_viewer: Some(std::sync::Arc::new(web_viewer())),
-            test_frame_sink: Some(FrameSink(std::sync::Arc::new(move |frame| {
-                if let Ok(sender) = frames_in.lock() {
-                    let _ = sender.send(frame);
-                }
-            }))),
-            token: Some(TOKEN.into()),
-            ..ServeOptions::default()
-        },
-    )
-    .expect("server starts");
+    let (server, frames) = serve_capturing(&path);
     let fragment = "#store=ct&mode=mip&preset=ct-soft-tissue&size=64x64&capture=1";
-    let url = format!("{}/{fragment}&token={TOKEN}", server.base_url());
-    let browser = Browser::open(&url, scratch.path());
-    let wait = |what: &str| {
-        frames.recv_timeout(PAGE_DEADLINE).unwrap_or_else(|_| {
-            panic!(
-                "the page posted no {what} within {PAGE_DEADLINE:?}; its console:\n{}",
-                browser.console()
-            )
-        })
-    };
-    let three_d = wait("3D frame");
-    assert_eq!((three_d.width, three_d.height), (64, 64));
-    let slice = wait("slice image");
-    let console = browser.console();
-    drop(browser);
+    let (slice, console) = capture_slice(&server, fragment, scratch.path(), &frames);
 
     // The desktop's path: its client on the same server (the server holds the store), the
     // desktop's blocking reads, the page's request (the start crosshair, the level whose grid
@@ -543,17 +514,7 @@ fn the_page_slices_a_served_store_as_the_desktops_assembler_does() {
     let geometry = &header.geometry;
     let frame = SliceFrame::for_view(SliceView::Axial, geometry);
     let layout = &header.layout;
-    let level = (0..layout.level_count())
-        .find(|&l| {
-            let dims = layout.level_dims[l];
-            (dims[frame.across_axis], dims[frame.down_axis]) == (slice.width, slice.height)
-        })
-        .unwrap_or_else(|| {
-            panic!(
-                "the posted slice is {}×{}, no level's grid; console:\n{console}",
-                slice.width, slice.height
-            )
-        });
+    let level = level_of_grid(layout, &frame, &slice, &console);
     let dims = geometry.dims;
     let cursor = dims.map(|d| ((d as f64 - 1.0) * 0.5).floor().max(0.0));
     let request = SliceRequest {
@@ -579,29 +540,7 @@ fn the_page_slices_a_served_store_as_the_desktops_assembler_does() {
         ColourMap::Grey,
         header.value_mapping.mapping,
     );
-    let differing = slice
-        .rgba
-        .chunks(4)
-        .zip(desktop.chunks(4))
-        .filter(|(a, b)| a != b)
-        .count();
-    let distinct: std::collections::BTreeSet<u8> = desktop.chunks(4).map(|p| p[0]).collect();
-    println!(
-        "slice views: axial level {level}, {}×{}, {differing} pixels differ from the desktop's \
-         assembler, {} grey levels",
-        slice.width,
-        slice.height,
-        distinct.len()
-    );
-    assert!(
-        distinct.len() > 8,
-        "the slice shows nearly nothing: {distinct:?}"
-    );
-    assert_eq!(slice.rgba.len(), desktop.len());
-    assert_eq!(
-        differing, 0,
-        "the page's axial slice differs from the desktop's; console:\n{console}"
-    );
+    assert_same_slice("slice views", level, &slice, &desktop, &console);
 }
 
 /// The built-in sample has slice views too (no store: the page feeds the same assembler from
@@ -621,55 +560,16 @@ fn the_page_slices_its_built_in_sample_as_the_desktops_assembler_does() {
     Phantom::cube(32)
         .write_store(&store, &ImportOptions::default())
         .expect("writing a tiny store");
-    let (frames_in, frames) = mpsc::channel::<CapturedFrame>();
-    let frames_in = std::sync::Mutex::new(frames_in);
-    let server = start(
-        find_stores(&[store]).expect("store found"),
-        ServeOptions {
-            web_viewer: Some(std::sync::Arc::new(web_viewer())),
-            test_frame_sink: Some(FrameSink(std::sync::Arc::new(move |frame| {
-                if let Ok(sender) = frames_in.lock() {
-                    let _ = sender.send(frame);
-                }
-            }))),
-            token: Some(TOKEN.into()),
-            ..ServeOptions::default()
-        },
-    )
-    .expect("server starts");
+    let (server, frames) = serve_capturing(&store);
     let fragment = "#mode=mip&preset=ct-soft-tissue&volume=40&size=64x64&capture=1";
-    let url = format!("{}/{fragment}&token={TOKEN}", server.base_url());
-    let browser = Browser::open(&url, scratch.path());
-    let wait = |what: &str| {
-        frames.recv_timeout(PAGE_DEADLINE).unwrap_or_else(|_| {
-            panic!(
-                "the page posted no {what} within {PAGE_DEADLINE:?}; its console:\n{}",
-                browser.console()
-            )
-        })
-    };
-    let three_d = wait("3D frame");
-    assert_eq!((three_d.width, three_d.height), (64, 64));
-    let slice = wait("sample slice image");
-    let console = browser.console();
-    drop(browser);
+    let (slice, console) = capture_slice(&server, fragment, scratch.path(), &frames);
 
     let view = Fragment::parse(fragment).expect("fragment").view;
     let volume = view.sample_volume().expect("sample volume");
     let geometry = &volume.geometry;
     let frame = SliceFrame::for_view(SliceView::Axial, geometry);
     let layout = OctreeLayout::new(geometry.dims);
-    let level = (0..layout.level_count())
-        .find(|&l| {
-            let dims = layout.level_dims[l];
-            (dims[frame.across_axis], dims[frame.down_axis]) == (slice.width, slice.height)
-        })
-        .unwrap_or_else(|| {
-            panic!(
-                "the posted slice is {}×{}, no level's grid; console:\n{console}",
-                slice.width, slice.height
-            )
-        });
+    let level = level_of_grid(&layout, &frame, &slice, &console);
     let cursor = geometry
         .dims
         .map(|d| ((d as f64 - 1.0) * 0.5).floor().max(0.0));
@@ -692,6 +592,89 @@ fn the_page_slices_its_built_in_sample_as_the_desktops_assembler_does() {
         ColourMap::Grey,
         volume.mapping,
     );
+    assert_same_slice("sample slice views", level, &slice, &desktop, &console);
+}
+
+/// A server for the store at `path` with the page, the test token and a sink for the page's
+/// captures.
+fn serve_capturing(
+    path: &Path,
+) -> (
+    strata_service::server::RunningServer,
+    mpsc::Receiver<CapturedFrame>,
+) {
+    let (frames_in, frames) = mpsc::channel::<CapturedFrame>();
+    let frames_in = std::sync::Mutex::new(frames_in);
+    let server = start(
+        find_stores(&[path.to_path_buf()]).expect("store found"),
+        ServeOptions {
+            web_viewer: Some(std::sync::Arc::new(web_viewer())),
+            test_frame_sink: Some(FrameSink(std::sync::Arc::new(move |frame| {
+                if let Ok(sender) = frames_in.lock() {
+                    let _ = sender.send(frame);
+                }
+            }))),
+            token: Some(TOKEN.into()),
+            ..ServeOptions::default()
+        },
+    )
+    .expect("server starts");
+    (server, frames)
+}
+
+/// Opens the page at `fragment` (a 64² 3D view with `capture=1`) and takes what it posts: its
+/// 3D frame, then its axial slice view's image; returns that and the page's console.
+fn capture_slice(
+    server: &strata_service::server::RunningServer,
+    fragment: &str,
+    scratch: &Path,
+    frames: &mpsc::Receiver<CapturedFrame>,
+) -> (CapturedFrame, String) {
+    let url = format!("{}/{fragment}&token={TOKEN}", server.base_url());
+    let browser = Browser::open(&url, scratch);
+    let wait = |what: &str| {
+        frames.recv_timeout(PAGE_DEADLINE).unwrap_or_else(|_| {
+            panic!(
+                "the page posted no {what} within {PAGE_DEADLINE:?}; its console:\n{}",
+                browser.console()
+            )
+        })
+    };
+    let three_d = wait("3D frame");
+    assert_eq!((three_d.width, three_d.height), (64, 64));
+    let slice = wait("slice image");
+    let console = browser.console();
+    (slice, console)
+}
+
+/// The octree level whose grid the posted slice image has.
+fn level_of_grid(
+    layout: &strata_storage::OctreeLayout,
+    frame: &strata_slices::SliceFrame,
+    slice: &CapturedFrame,
+    console: &str,
+) -> usize {
+    (0..layout.level_count())
+        .find(|&l| {
+            let dims = layout.level_dims[l];
+            (dims[frame.across_axis], dims[frame.down_axis]) == (slice.width, slice.height)
+        })
+        .unwrap_or_else(|| {
+            panic!(
+                "the posted slice is {}×{}, no level's grid; console:\n{console}",
+                slice.width, slice.height
+            )
+        })
+}
+
+/// The page's slice image equals the desktop's byte for byte (and shows something).
+fn assert_same_slice(
+    what: &str,
+    level: usize,
+    slice: &CapturedFrame,
+    desktop: &[u8],
+    console: &str,
+) {
     let differing = slice
         .rgba
         .chunks(4)
@@ -700,8 +683,8 @@ fn the_page_slices_its_built_in_sample_as_the_desktops_assembler_does() {
         .count();
     let distinct: std::collections::BTreeSet<u8> = desktop.chunks(4).map(|p| p[0]).collect();
     println!(
-        "sample slice views: axial level {level}, {}×{}, {differing} pixels differ from the \
-         desktop's assembler, {} grey levels",
+        "{what}: axial level {level}, {}×{}, {differing} pixels differ from the desktop's \
+         assembler, {} grey levels",
         slice.width,
         slice.height,
         distinct.len()
@@ -713,7 +696,7 @@ fn the_page_slices_its_built_in_sample_as_the_desktops_assembler_does() {
     assert_eq!(slice.rgba.len(), desktop.len());
     assert_eq!(
         differing, 0,
-        "the page's sample slice differs from the desktop's; console:\n{console}"
+        "{what}: the page's axial slice differs from the desktop's; console:\n{console}"
     );
 }
 

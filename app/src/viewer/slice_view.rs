@@ -7,8 +7,8 @@ use std::sync::Arc;
 
 use egui::{Color32, Pos2, Rect, Sense, Stroke, TextureHandle, TextureOptions, Vec2};
 use strata_viewer_ui::slice_canvas::{
-    fraction_at, inner_rect, paint_crosshair, paint_orientation_labels, screen_at, slice_mesh,
-    ZoomPan,
+    fraction_at, inner_rect, paint_crosshair, paint_orientation_labels, paint_readout_line,
+    screen_at, slice_mesh, ZoomPan,
 };
 
 use super::colour_maps::ColourMap;
@@ -566,13 +566,7 @@ impl SliceViewer {
                 .map(|l| format!(" · level {l}"))
                 .unwrap_or_default()
         );
-        painter.text(
-            rect.left_bottom() + Vec2::new(8.0, -4.0),
-            egui::Align2::LEFT_BOTTOM,
-            info,
-            egui::FontId::proportional(11.0),
-            Color32::LIGHT_GRAY,
-        );
+        paint_readout_line(&painter, rect, info);
         let hover = response
             .hover_pos()
             .filter(|p| image_rect.contains(*p))
