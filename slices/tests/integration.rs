@@ -1,3 +1,4 @@
 //! strata-slices' integration tests, one binary (each file a module).
 
 mod assembly;
+mod memory_bricks;

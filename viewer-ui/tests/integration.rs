@@ -3,5 +3,6 @@
 //! for all of them, as the other crates do: each test file is a module.
 
 mod performance;
+mod slice_canvas;
 mod target_fps;
 mod tf_editor;

@@ -25,6 +25,7 @@ use crate::side_panel::{SidePanel, VolumeFigures};
 use crate::slice_views::{two_by_two, SliceViews};
 use crate::view_motion::{ViewMotion, MOTION_HOLD_S};
 use crate::view_state::{Fragment, ViewState};
+use crate::volume_menu;
 use strata_source::wire::StoreList;
 use strata_source::VolumeSource;
 
@@ -147,7 +148,10 @@ struct WebViewer {
     opening: Option<Opening>,
     gpu: GpuContext,
     view: ViewState,
-    volume: Option<BrickedVolume>,
+    /// The sample, shared with its slice views (they read its bricks).
+    volume: Option<Rc<BrickedVolume>>,
+    /// The sample's three slice views (slice_views.rs), made with it.
+    sample_slices: Option<SliceViews>,
     renderer: Option<OffscreenRenderer>,
     /// The transfer function the renderer draws with (`SidePanel::tf_key`).
     renderer_preset: String,
@@ -231,6 +235,7 @@ impl WebViewer {
             timing: PageTiming::new(fragment.view.bench_frames),
             view: fragment.view,
             volume: None,
+            sample_slices: None,
             renderer: None,
             renderer_preset: String::new(),
             side,
@@ -257,7 +262,11 @@ impl WebViewer {
                 ctx.request_repaint();
                 return Ok(false);
             }
-            self.volume = Some(self.view.sample_volume().map_err(|e| e.to_string())?);
+            let volume = Rc::new(self.view.sample_volume().map_err(|e| e.to_string())?);
+            let mut slices = SliceViews::for_sample(volume.clone());
+            slices.set_from_link(self.view.cursor, self.view.window);
+            self.sample_slices = Some(slices);
+            self.volume = Some(volume);
             self.side.set_sample_histogram(&self.view);
         }
         let Some(volume) = self.volume.as_ref() else {
@@ -446,34 +455,24 @@ impl WebViewer {
     /// link `#store=NAME`: choosing it streams that store, and the address then shares it).
     fn volume_choice(&mut self, ui: &mut egui::Ui) {
         let mut chosen = self.view.store.clone();
-        let shown = chosen
-            .clone()
-            .unwrap_or_else(|| "sample (made in the page)".into());
         egui::ComboBox::from_id_salt("volume")
-            .selected_text(shown)
-            .show_ui(ui, |ui| {
-                ui.selectable_value(&mut chosen, None, "sample (made in the page)");
-                match &*self.stores.borrow() {
-                    Some(Ok(list)) => {
-                        for store in &list.stores {
-                            let [x, y, z] = store.dims;
-                            ui.selectable_value(
-                                &mut chosen,
-                                Some(store.name.clone()),
-                                format!("{} ({x}×{y}×{z})", store.name),
-                            );
-                        }
-                    }
-                    Some(Err(e)) => {
-                        ui.label(format!("the server's stores: {e}"));
-                    }
-                    None => {
-                        ui.label("asking the server for its stores…");
+            .selected_text(volume_menu::shown_label(chosen.as_deref()))
+            .show_ui(ui, |ui| match &*self.stores.borrow() {
+                Some(Ok(list)) => {
+                    for entry in volume_menu::entries(list) {
+                        ui.selectable_value(&mut chosen, entry.store, entry.label);
                     }
                 }
+                Some(Err(e)) => {
+                    ui.selectable_value(&mut chosen, None, volume_menu::SAMPLE_ENTRY);
+                    ui.label(format!("the server's stores: {e}"));
+                }
+                None => {
+                    ui.selectable_value(&mut chosen, None, volume_menu::SAMPLE_ENTRY);
+                    ui.label("asking the server for its stores…");
+                }
             });
-        if chosen != self.view.store {
-            self.view.store = chosen;
+        if volume_menu::choose(&mut self.view, chosen) {
             self.streamed = None;
             self.opening = None;
             self.drawn = None;
@@ -550,17 +549,19 @@ impl WebViewer {
             ui.horizontal(|ui| {
                 ui.label(format!(
                     "Store {name} · {detail} · 3D: drag to orbit, scroll to zoom; slices: click \
-                     moves the crosshair, scroll pages, right drag (or Shift+drag) windows; the \
-                     address holds the 3D view · not for diagnostic use"
+                     moves the crosshair, scroll pages, Ctrl+scroll zooms, middle drag pans, \
+                     right drag (or Shift+drag) windows; the address holds the view · not for \
+                     diagnostic use"
                 ));
             });
             return;
         }
         ui.horizontal(|ui| {
             ui.label(format!(
-                "Sample volume {}³ (CT phantom made in the page) · frames drawn {} · drag to \
-                 orbit, scroll to zoom; the address holds this view · slice views: for a \
-                 server's store (Volume menu) · not for diagnostic use",
+                "Sample volume {}³ (CT phantom made in the page) · frames drawn {} · 3D: drag to \
+                 orbit, scroll to zoom; slices: click moves the crosshair, scroll pages, \
+                 Ctrl+scroll zooms, middle drag pans, right drag (or Shift+drag) windows; the \
+                 address holds this view · not for diagnostic use",
                 self.view.volume_edge, self.frames_submitted
             ));
         });
@@ -696,17 +697,22 @@ impl WebViewer {
                 self.error = Some("the test capture's buffer could not be mapped".into());
             }
             CAPTURE_SENT => {
-                // Then, once, the axial slice view's image (slice_views.rs), where it is shown.
+                // Then, once, the axial slice view's image (slice_views.rs), where it is shown
+                // (a served store's or the sample's).
                 let four_up = self.view.layout == crate::view_state::Layout::FourUp;
-                if let Some(streamed) = self.streamed.as_mut().filter(|_| four_up) {
-                    if let Some((rgba, w, h)) = streamed.slices.take_capture() {
+                let slices = match self.streamed.as_mut() {
+                    Some(streamed) => Some(&mut streamed.slices),
+                    None => self.sample_slices.as_mut(),
+                };
+                if let Some(slices) = slices.filter(|_| four_up) {
+                    if let Some((rgba, w, h)) = slices.take_capture() {
                         let token = self.token.clone();
                         wasm_bindgen_futures::spawn_local(async move {
                             if let Err(e) = post_frame(&rgba, w, h, &[], token.as_deref()).await {
                                 show_message("The slice capture could not be sent", &e);
                             }
                         });
-                    } else if !streamed.slices.captured() {
+                    } else if !slices.captured() {
                         ctx.request_repaint();
                     }
                 }
@@ -843,10 +849,12 @@ impl eframe::App for WebViewer {
                         return;
                     }
                 }
-                // A streamed store: the desktop's 2×2 of the 3D view and three slice views.
+                // The desktop's 2×2 of the 3D view and three slice views (a store's or the
+                // sample's).
                 let area = ui.available_rect_before_wrap();
                 let four_up = self.view.layout == crate::view_state::Layout::FourUp;
-                let (rect, slice_rects) = if self.streamed.is_some() && four_up {
+                let has_slices = self.streamed.is_some() || self.sample_slices.is_some();
+                let (rect, slice_rects) = if has_slices && four_up {
                     let (rect, slices) = two_by_two(area);
                     (rect, Some(slices))
                 } else {
@@ -914,12 +922,15 @@ impl eframe::App for WebViewer {
                         egui::Color32::WHITE,
                     );
                 }
-                if let (Some(rects), Some(streamed)) = (slice_rects, self.streamed.as_mut()) {
-                    streamed.slices.ui(ui, rects);
+                let slices = match self.streamed.as_mut() {
+                    Some(streamed) => Some(&mut streamed.slices),
+                    None => self.sample_slices.as_mut(),
+                };
+                if let (Some(rects), Some(slices)) = (slice_rects, slices) {
+                    slices.ui(ui, rects);
                     // The address follows the crosshair and window, so a link shares them.
-                    self.view.cursor = Some(streamed.slices.cursor);
-                    self.view.window =
-                        Some([streamed.slices.window.centre, streamed.slices.window.width]);
+                    self.view.cursor = Some(slices.cursor);
+                    self.view.window = Some([slices.window.centre, slices.window.width]);
                 }
                 // Not while a drag goes on (the view, a slice, the editor's points): one
                 // history entry rewrite when it ends, not one per frame.

@@ -9,6 +9,9 @@
 //!   bounded.
 //! - [`view_motion`]: the 3D view in motion: the target-fps control's controller
 //!   (strata_render::target_rate, the desktop's) while the view moves, full quality at rest.
+//! - [`volume_menu`]: the Volume menu's entries (the sample, then the server's stores from
+//!   `GET /v1/stores`) and what a choice does to the view; platform independent, tested natively
+//!   against a real server's list.
 //! - `browser` (wasm32 only): the page's entry point, the viewer app, the frame capture.
 //! - `page_timing` (wasm32 only): time to first and converged image and the bench's frame
 //!   times (`bench=N`), posted with the test capture (issue 39's benchmark).
@@ -27,6 +30,7 @@
 pub mod compact_tf;
 pub mod view_motion;
 pub mod view_state;
+pub mod volume_menu;
 
 #[cfg(target_arch = "wasm32")]
 mod browser;

@@ -138,7 +138,7 @@ pub async fn list_stores(token: Option<&str>) -> Result<StoreList, String> {
             FetchFailure::Aborted => "aborted".to_string(),
             FetchFailure::Transient(message) | FetchFailure::Refused(message) => message,
         })?;
-    serde_json::from_slice(&bytes).map_err(|e| format!("the server's store list: {e}"))
+    crate::volume_menu::parse_store_list(&bytes)
 }
 
 impl ServedStore {

@@ -1,5 +1,5 @@
 //! The page's three linked slice views (wasm32 only): axial, coronal and sagittal of a
-//! streamed store, oriented as the desktop's (strata-slices' [`SliceFrame`]), sliced by the
+//! streamed store or of the page's built-in sample, oriented as the desktop's (strata-slices' [`SliceFrame`]), sliced by the
 //! same [`SliceAssembler`] and coloured by the same window/level step, so a slice looks the
 //! same in both viewers.
 //!
@@ -7,46 +7,67 @@
 //! own asynchronous path (a second [`BrickFetcher`] of `served_store.rs`: the same request,
 //! checksum verification and decoding as the 3D view's, at most [`DECODES_PER_FRAME`] decoded
 //! a frame), with only the [`SLICE_REQUESTS`] most useful bricks asked for at a time, so the
-//! slices never crowd the 3D view's requests off the page's few connections. A view keeps its
-//! last image until the new one is complete.
+//! slices never crowd the 3D view's requests off the page's few connections. The sample's
+//! bricks are in memory already (the render crate's [`BrickedVolume`], bricked as the stores
+//! are): at most [`SAMPLE_BRICKS_PER_FRAME`] of them are handed to the same assembler a frame.
+//! A view keeps its last image until the new one is complete.
 //!
 //! Input, as the desktop's slice views: left click or drag moves the linked crosshair (the
 //! other two views page to it), the wheel pages, right drag (or Shift + left drag, for
-//! touchpads) windows: sideways widens, up raises the level. The line under each view reads
+//! touchpads) windows: sideways widens, up raises the level; Ctrl+wheel (or a pinch) zooms
+//! about the pointer, middle drag pans, a double-click resets zoom and pan (the desktop's
+//! gestures, from strata-viewer-ui's slice_canvas, as is the drawing around the image). The
+//! colour-map choice sits at the axial view's top right. The line under each view reads
 //! W/L, the slice's level when coarser than 0, and the stored value under the pointer in
 //! physical units.
 //!
 //! [`DECODES_PER_FRAME`]: crate::served_store::DECODES_PER_FRAME
 
+use std::rc::Rc;
+use std::sync::Arc;
+
 use egui::{Color32, Pos2, Rect, Sense, Stroke, TextureHandle, TextureOptions, Vec2};
-use strata_render::{ValueMapping, VolumeGeometry};
+use strata_render::{BrickSource, BrickedVolume, ValueMapping, VolumeGeometry};
 use strata_slices::{
     drag_window, level_for_pixels, window_level_rgba, ColourMap, SliceAssembler, SliceFrame,
     SliceImage, SliceRequest, SliceView, VoxelLookup, Window,
 };
 use strata_source::{BrickFetcher, FetchOptions, VolumeSource};
-use strata_storage::BrickId;
+use strata_storage::{BrickId, OctreeLayout};
+use strata_viewer_ui::slice_canvas::{
+    colour_map_combo, fraction_at, inner_rect, paint_crosshair, paint_orientation_labels,
+    paint_readout_line, screen_at, slice_mesh, ZoomPan,
+};
 
 /// Decoded bricks the page keeps for its slices (bytes): a brick row of every view at the
 /// level the views need, and more for paging, well inside the page's memory.
 pub const SLICE_CACHE_BYTES: usize = 96 << 20;
 /// Brick requests the slice views have out at once (the most useful first).
 pub const SLICE_REQUESTS: usize = 4;
-/// Space around the image for the title above, the readout below and the side labels.
-const MARGIN_SIDES: f32 = 18.0;
-const MARGIN_TOP: f32 = 38.0;
-const MARGIN_BOTTOM: f32 = 36.0;
+/// In-memory bricks handed to the assembler a frame (the sample's): a 256³ sample's
+/// level-0 slice needs 64, each a copy of about 90 kB, so a slice completes in a frame or
+/// two without one frame copying a whole volume's worth.
+pub const SAMPLE_BRICKS_PER_FRAME: usize = 64;
+
+/// Where the views' bricks come from.
+enum Bricks {
+    /// A served store, fetched asynchronously.
+    Served(Box<dyn BrickFetcher>),
+    /// The page's sample, bricked in memory as the stores are (shared with the 3D view).
+    Sample(Rc<BrickedVolume>),
+}
 
 /// A slice on screen: the image, its texture, and the window and map it was coloured with.
 struct Shown {
     image: SliceImage,
     texture: TextureHandle,
     window: Window,
+    colour_map: ColourMap,
 }
 
-/// The three slice views of one streamed store.
+/// The three slice views of one volume.
 pub struct SliceViews {
-    fetcher: Box<dyn BrickFetcher>,
+    bricks: Bricks,
     assembler: SliceAssembler,
     geometry: VolumeGeometry,
     frames: [SliceFrame; 3],
@@ -56,7 +77,12 @@ pub struct SliceViews {
     /// The linked crosshair, level-0 continuous index.
     pub cursor: [f64; 3],
     pub window: Window,
-    colour_map: ColourMap,
+    pub colour_map: ColourMap,
+    /// Each view's zoom and pan.
+    zoom_pan: [ZoomPan; 3],
+    /// The crosshair before the last single click moved it: a double-click (whose first
+    /// click is such a click) puts it back, so it resets the zoom only (as on the desktop).
+    cursor_before_click: Option<[f64; 3]>,
     shown: [Option<Shown>; 3],
     requested: [Option<SliceRequest>; 3],
     /// Wheel movement not yet paged, per view (fractions of a line).
@@ -123,15 +149,52 @@ impl SliceViews {
             None => return Err("the store has no asynchronous brick path".into()),
         };
         let header = store.header();
-        let geometry = header.geometry.clone();
-        let mapping = header.value_mapping.mapping;
-        let unit = header.value_mapping.unit.clone();
-        let a = mapping.physical(header.stored_range[0] as f64);
-        let b = mapping.physical(header.stored_range[1] as f64);
+        let stored = (header.stored_range[0], header.stored_range[1]);
+        Ok(SliceViews::with_bricks(
+            Bricks::Served(fetcher),
+            header.geometry.clone(),
+            header.layout.clone(),
+            header.value_mapping.mapping,
+            header.value_mapping.unit.clone(),
+            stored,
+            header
+                .windows
+                .first()
+                .map(|w| Window::new(w.center, w.width)),
+        ))
+    }
+
+    /// Slice views of the page's sample (a CT phantom in HU), read from its in-memory bricks.
+    pub fn for_sample(volume: Rc<BrickedVolume>) -> SliceViews {
+        let geometry = volume.geometry.clone();
+        let layout = OctreeLayout::new(geometry.dims);
+        let (mapping, stored) = (volume.mapping, volume.stored_range);
+        SliceViews::with_bricks(
+            Bricks::Sample(volume),
+            geometry,
+            layout,
+            mapping,
+            "HU".into(),
+            stored,
+            None,
+        )
+    }
+
+    fn with_bricks(
+        bricks: Bricks,
+        geometry: VolumeGeometry,
+        layout: OctreeLayout,
+        mapping: ValueMapping,
+        unit: String,
+        stored_range: (u16, u16),
+        header_window: Option<Window>,
+    ) -> SliceViews {
+        let a = mapping.physical(stored_range.0 as f64);
+        let b = mapping.physical(stored_range.1 as f64);
         let physical_range = (a.min(b), a.max(b));
         // The header's window (DICOM's), else CT's abdomen window for HU, else the full range.
-        let window = match header.windows.first() {
-            Some(w) => Window::new(w.center, w.width),
+        let window = match header_window {
+            Some(w) => w,
             None if unit.eq_ignore_ascii_case("HU") => Window::new(40.0, 400.0),
             None => Window::new((a + b) / 2.0, (b - a).abs().max(1.0)),
         };
@@ -139,9 +202,9 @@ impl SliceViews {
         let cursor = geometry
             .dims
             .map(|d| ((d as f64 - 1.0) * 0.5).floor().max(0.0));
-        Ok(SliceViews {
-            fetcher,
-            assembler: SliceAssembler::new(header.layout.clone(), SLICE_CACHE_BYTES),
+        SliceViews {
+            bricks,
+            assembler: SliceAssembler::new(layout, SLICE_CACHE_BYTES),
             geometry,
             frames,
             mapping,
@@ -150,13 +213,15 @@ impl SliceViews {
             cursor,
             window,
             colour_map: ColourMap::Grey,
+            zoom_pan: [ZoomPan::default(); 3],
+            cursor_before_click: None,
             shown: [None, None, None],
             requested: [None, None, None],
             wheel_lines: [0.0; 3],
             hovered: None,
             error: None,
             captured: false,
-        })
+        }
     }
 
     /// A link's crosshair (clamped into the volume) and window (None: keep the store's).
@@ -200,41 +265,68 @@ impl SliceViews {
     /// Takes the bricks that arrived, hands finished slices to their views and asks for the
     /// next bricks. Call once a frame, before [`SliceViews::ui`].
     fn pump(&mut self, ctx: &egui::Context) {
-        for result in self.fetcher.try_results() {
-            match result.outcome {
-                Ok(voxels) => {
-                    if let Err(e) = self.assembler.offer(result.id, voxels) {
-                        self.error = Some(e.to_string());
+        if let Bricks::Served(fetcher) = &mut self.bricks {
+            for result in fetcher.try_results() {
+                match result.outcome {
+                    Ok(voxels) => {
+                        if let Err(e) = self.assembler.offer(result.id, voxels) {
+                            self.error = Some(e.to_string());
+                        }
                     }
+                    Err(e) => self.error = Some(e.to_string()),
                 }
-                Err(e) => self.error = Some(e.to_string()),
+                fetcher.complete(result.id);
             }
-            self.fetcher.complete(result.id);
         }
+        let limit = match self.bricks {
+            Bricks::Served(_) => SLICE_REQUESTS,
+            Bricks::Sample(_) => SAMPLE_BRICKS_PER_FRAME,
+        };
         // The voxel under the pointer first (one brick), then the slices' most useful bricks.
-        let mut wanted: Vec<BrickId> = Vec::with_capacity(SLICE_REQUESTS);
+        let mut wanted: Vec<BrickId> = Vec::with_capacity(limit);
         if let Some(index) = self.hovered {
             if let Ok(VoxelLookup::Needs(id)) = self.assembler.voxel(index) {
                 wanted.push(id);
             }
         }
-        for id in self.assembler.most_useful_missing(SLICE_REQUESTS) {
-            if wanted.len() >= SLICE_REQUESTS {
+        for id in self.assembler.most_useful_missing(limit) {
+            if wanted.len() >= limit {
                 break;
             }
             if !wanted.contains(&id) {
                 wanted.push(id);
             }
         }
-        let demand: Vec<(BrickId, f64)> = wanted
-            .iter()
-            .enumerate()
-            .map(|(rank, id)| (*id, (SLICE_REQUESTS - rank) as f64))
-            .collect();
-        self.fetcher.set_requests(&demand, &[]);
-        if !demand.is_empty() {
-            // Answers arrive between frames and wake nothing: poll until they are in.
-            ctx.request_repaint();
+        match &mut self.bricks {
+            Bricks::Served(fetcher) => {
+                let demand: Vec<(BrickId, f64)> = wanted
+                    .iter()
+                    .enumerate()
+                    .map(|(rank, id)| (*id, (limit - rank) as f64))
+                    .collect();
+                fetcher.set_requests(&demand, &[]);
+                if !demand.is_empty() {
+                    // Answers arrive between frames and wake nothing: poll until they are in.
+                    ctx.request_repaint();
+                }
+            }
+            Bricks::Sample(volume) => {
+                for id in wanted {
+                    match volume.brick(id.level, id.coords) {
+                        Some(payload) => {
+                            if let Err(e) = self.assembler.offer(id, Arc::new(payload.to_vec())) {
+                                self.error = Some(e.to_string());
+                            }
+                        }
+                        None => {
+                            self.error = Some(format!(
+                                "the sample has no brick at level {} {:?}",
+                                id.level, id.coords
+                            ))
+                        }
+                    }
+                }
+            }
         }
     }
 
@@ -261,10 +353,19 @@ impl SliceViews {
         {
             ctx.request_repaint();
         }
-        // Textures follow the window (dragged this frame) for every view.
+        // The colour map, at the axial view's top right.
+        let axial = rects[SliceView::Axial.index()];
+        let picker = Rect::from_min_size(
+            Pos2::new(axial.right() - 104.0, axial.top() + 2.0),
+            Vec2::new(100.0, 20.0),
+        );
+        ui.scope_builder(egui::UiBuilder::new().max_rect(picker), |ui| {
+            colour_map_combo(ui, &mut self.colour_map)
+        });
+        // Textures follow the window (dragged this frame) and the colour map, every view.
         for view in SliceView::ALL {
             if let Some(shown) = self.shown[view.index()].as_mut() {
-                if shown.window != self.window {
+                if shown.window != self.window || shown.colour_map != self.colour_map {
                     let rgba = window_level_rgba(
                         &shown.image.values,
                         self.window,
@@ -279,6 +380,7 @@ impl SliceViews {
                         TextureOptions::LINEAR,
                     );
                     shown.window = self.window;
+                    shown.colour_map = self.colour_map;
                 }
             }
         }
@@ -293,6 +395,7 @@ impl SliceViews {
                 shown.texture.set(colours, TextureOptions::LINEAR);
                 shown.image = image;
                 shown.window = self.window;
+                shown.colour_map = self.colour_map;
             }
             None => {
                 let texture = ctx.load_texture(
@@ -304,6 +407,7 @@ impl SliceViews {
                     image,
                     texture,
                     window: self.window,
+                    colour_map: self.colour_map,
                 });
             }
         }
@@ -321,24 +425,22 @@ impl SliceViews {
             Stroke::new(1.0, colour.gamma_multiply(0.6)),
             egui::StrokeKind::Inside,
         );
-        // The image keeps the patient's proportions, centred with room for the labels.
-        let (w_mm, h_mm) = frame.extent_mm(&self.geometry);
-        let inner = Rect::from_min_max(
-            rect.min + Vec2::new(MARGIN_SIDES, MARGIN_TOP),
-            rect.max - Vec2::new(MARGIN_SIDES, MARGIN_BOTTOM),
-        );
-        let fit = (inner.width() as f64 / w_mm)
-            .min(inner.height() as f64 / h_mm)
-            .max(1e-6);
-        let image_rect = Rect::from_center_size(
-            inner.center(),
-            Vec2::new((w_mm * fit) as f32, (h_mm * fit) as f32),
-        );
+        // The image keeps the patient's proportions, centred with room for the labels;
+        // zoomed and panned as on the desktop.
+        let inner = inner_rect(rect);
         let response = ui.interact(
             rect,
             ui.scope_id().with(("slice", view.index())),
             Sense::click_and_drag(),
         );
+        let double_clicked = self.zoom_pan[view.index()].input(ui, &response, inner);
+        if double_clicked {
+            if let Some(cursor) = self.cursor_before_click.take() {
+                self.cursor = cursor;
+            }
+        }
+        let image_rect =
+            self.zoom_pan[view.index()].image_rect(inner, frame.extent_mm(&self.geometry));
         let windowing = response.dragged_by(egui::PointerButton::Secondary)
             || response.dragged_by(egui::PointerButton::Primary) && ui.input(|i| i.modifiers.shift);
         if windowing {
@@ -349,20 +451,21 @@ impl SliceViews {
                 delta.y as f64,
                 self.physical_range,
             );
-        } else if let Some(pos) = response.interact_pointer_pos() {
+        } else if let Some(pos) = response.interact_pointer_pos().filter(|_| !double_clicked) {
             if (response.clicked() || response.dragged_by(egui::PointerButton::Primary))
                 && image_rect.contains(pos)
             {
-                let u = ((pos.x - image_rect.left()) / image_rect.width()) as f64;
-                let v = ((pos.y - image_rect.top()) / image_rect.height()) as f64;
+                self.cursor_before_click = response.clicked().then_some(self.cursor);
+                let (u, v) = fraction_at(image_rect, pos);
                 let (a, d) = frame.index_at(dims, u, v);
                 self.cursor[frame.across_axis] = a.clamp(0.0, dims[frame.across_axis] as f64 - 1.0);
                 self.cursor[frame.down_axis] = d.clamp(0.0, dims[frame.down_axis] as f64 - 1.0);
             }
         }
         let n = frame.normal_axis;
-        if response.hovered() {
+        if response.hovered() && !ui.input(|i| i.modifiers.command || i.modifiers.ctrl) {
             // Whole lines page; fractions (touchpads) add up to the same one slice a click.
+            // (Ctrl+wheel zooms.)
             self.wheel_lines[view.index()] += wheel_lines(ui);
             let step = self.wheel_lines[view.index()].trunc();
             if step != 0.0 {
@@ -401,60 +504,17 @@ impl SliceViews {
             )));
         }
 
-        // The crosshair, with a gap around its centre.
-        let (cu, cv) = frame.fraction_of(
-            dims,
-            self.cursor[frame.across_axis],
-            self.cursor[frame.down_axis],
+        // The crosshair and the orientation labels.
+        let centre = screen_at(
+            image_rect,
+            frame.fraction_of(
+                dims,
+                self.cursor[frame.across_axis],
+                self.cursor[frame.down_axis],
+            ),
         );
-        let c = Pos2::new(
-            image_rect.left() + cu as f32 * image_rect.width(),
-            image_rect.top() + cv as f32 * image_rect.height(),
-        );
-        let hair = Stroke::new(1.0, Color32::from_rgba_unmultiplied(120, 220, 255, 150));
-        for (from, to) in [
-            (Pos2::new(image_rect.left(), c.y), Pos2::new(c.x - 8.0, c.y)),
-            (
-                Pos2::new(c.x + 8.0, c.y),
-                Pos2::new(image_rect.right(), c.y),
-            ),
-            (Pos2::new(c.x, image_rect.top()), Pos2::new(c.x, c.y - 8.0)),
-            (
-                Pos2::new(c.x, c.y + 8.0),
-                Pos2::new(c.x, image_rect.bottom()),
-            ),
-        ] {
-            painter.line_segment([from, to], hair);
-        }
-
-        // Orientation labels, the title, and the readout line.
-        let font = egui::FontId::proportional(14.0);
-        let label_colour = Color32::from_rgb(255, 220, 120);
-        let [left, right, top, bottom] = frame.labels;
-        for (pos, align, text) in [
-            (
-                Pos2::new(rect.left() + 5.0, rect.center().y),
-                egui::Align2::LEFT_CENTER,
-                left,
-            ),
-            (
-                Pos2::new(rect.right() - 5.0, rect.center().y),
-                egui::Align2::RIGHT_CENTER,
-                right,
-            ),
-            (
-                Pos2::new(rect.center().x, rect.top() + 21.0),
-                egui::Align2::CENTER_TOP,
-                top,
-            ),
-            (
-                Pos2::new(rect.center().x, rect.bottom() - 19.0),
-                egui::Align2::CENTER_BOTTOM,
-                bottom,
-            ),
-        ] {
-            painter.text(pos, align, text, font.clone(), label_colour);
-        }
+        paint_crosshair(&painter, image_rect, centre);
+        paint_orientation_labels(&painter, rect, frame.labels);
         let slice_number = self.cursor[n].round() as i64 + 1;
         painter.text(
             rect.left_top() + Vec2::new(8.0, 4.0),
@@ -475,8 +535,7 @@ impl SliceViews {
             info.push_str(" · loading");
         }
         if let Some(pos) = response.hover_pos().filter(|p| image_rect.contains(*p)) {
-            let u = ((pos.x - image_rect.left()) / image_rect.width()) as f64;
-            let v = ((pos.y - image_rect.top()) / image_rect.height()) as f64;
+            let (u, v) = fraction_at(image_rect, pos);
             let (a, d) = frame.index_at(dims, u, v);
             let mut index = self.cursor.map(|c| c.round().max(0.0) as u32);
             index[frame.across_axis] = (a.round().max(0.0) as u32).min(dims[frame.across_axis] - 1);
@@ -500,46 +559,6 @@ impl SliceViews {
         if let Some(error) = &self.error {
             info.push_str(&format!(" · {error}"));
         }
-        painter.text(
-            rect.left_bottom() + Vec2::new(8.0, -4.0),
-            egui::Align2::LEFT_BOTTOM,
-            info,
-            egui::FontId::proportional(11.0),
-            Color32::LIGHT_GRAY,
-        );
+        paint_readout_line(&painter, rect, info);
     }
-}
-
-/// The slice image as a textured rectangle: the level grid's overhang cropped by
-/// `inside_fraction`, the view's flips applied through the texture coordinates.
-fn slice_mesh(
-    texture: egui::TextureId,
-    image_rect: Rect,
-    inside_fraction: (f64, f64),
-    frame: SliceFrame,
-) -> egui::Mesh {
-    let (fu, fv) = (inside_fraction.0 as f32, inside_fraction.1 as f32);
-    let (u0, u1) = if frame.across_flipped {
-        (fu, 0.0)
-    } else {
-        (0.0, fu)
-    };
-    let (v0, v1) = if frame.down_flipped {
-        (fv, 0.0)
-    } else {
-        (0.0, fv)
-    };
-    let mut mesh = egui::Mesh::with_texture(texture);
-    mesh.add_rect_with_uv(
-        image_rect,
-        Rect::from_min_max(Pos2::new(0.0, 0.0), Pos2::new(1.0, 1.0)),
-        Color32::WHITE,
-    );
-    // Each vertex's uv from its place in the rectangle (flips included).
-    for vertex in &mut mesh.vertices {
-        let fx = (vertex.pos.x - image_rect.left()) / image_rect.width();
-        let fy = (vertex.pos.y - image_rect.top()) / image_rect.height();
-        vertex.uv = Pos2::new(u0 + (u1 - u0) * fx, v0 + (v1 - v0) * fy);
-    }
-    mesh
 }

@@ -46,8 +46,8 @@ pub enum FragmentError {
 pub enum Layout {
     /// The 3D view alone.
     Single,
-    /// A served store's 2×2: the 3D view and the axial, coronal and sagittal slices (the
-    /// built-in sample has no slice views and shows the 3D view alone either way).
+    /// The 2×2: the 3D view and the axial, coronal and sagittal slices, of a served store or
+    /// of the built-in sample alike.
     FourUp,
 }
 

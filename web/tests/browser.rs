@@ -150,10 +150,10 @@ fn the_served_page_draws_the_view_its_link_names_as_the_native_renderer_does() {
     }
     let tf = strata_web::compact_tf::encode(&edited).expect("within a link's bounds");
     for fragment in [
-        "#mode=dvr&preset=ct-bone&az=35&el=20&zoom=1.3&volume=48&size=128x128&capture=1".to_string(),
-        "#mode=mip&preset=ct-soft-tissue&az=-60&el=10&zoom=1.1&volume=40&size=96x128&capture=1".into(),
-        "#mode=iso&preset=ct-bone&iso=200&az=120&el=-25&zoom=1.5&volume=48&size=128x96&capture=1".into(),
-        format!("#mode=dvr&preset=ct-bone&tf={tf}&az=35&el=20&zoom=1.3&volume=48&size=128x128&capture=1"),
+        "#mode=dvr&preset=ct-bone&az=35&el=20&zoom=1.3&volume=48&size=128x128&capture=1&layout=single".to_string(),
+        "#mode=mip&preset=ct-soft-tissue&az=-60&el=10&zoom=1.1&volume=40&size=96x128&capture=1&layout=single".into(),
+        "#mode=iso&preset=ct-bone&iso=200&az=120&el=-25&zoom=1.5&volume=48&size=128x96&capture=1&layout=single".into(),
+        format!("#mode=dvr&preset=ct-bone&tf={tf}&az=35&el=20&zoom=1.3&volume=48&size=128x128&capture=1&layout=single"),
     ] {
         let fragment = fragment.as_str();
         let url = format!("{}/{fragment}&token={TOKEN}", server.base_url());
@@ -523,38 +523,9 @@ fn the_page_slices_a_served_store_as_the_desktops_assembler_does() {
     Phantom::cube(96)
         .write_store(&path, &ImportOptions::default())
         .expect("writing the store");
-    let (frames_in, frames) = mpsc::channel::<CapturedFrame>();
-    let frames_in = std::sync::Mutex::new(frames_in);
-    let server = start(
-        find_stores(std::slice::from_ref(&path)).expect("store found"),
-        ServeOptions {
-            web_viewer: Some(std::sync::Arc::new(web_viewer())),
-            test_frame_sink: Some(FrameSink(std::sync::Arc::new(move |frame| {
-                if let Ok(sender) = frames_in.lock() {
-                    let _ = sender.send(frame);
-                }
-            }))),
-            token: Some(TOKEN.into()),
-            ..ServeOptions::default()
-        },
-    )
-    .expect("server starts");
+    let (server, frames) = serve_capturing(&path);
     let fragment = "#store=ct&mode=mip&preset=ct-soft-tissue&size=64x64&capture=1";
-    let url = format!("{}/{fragment}&token={TOKEN}", server.base_url());
-    let browser = Browser::open(&url, scratch.path());
-    let wait = |what: &str| {
-        frames.recv_timeout(PAGE_DEADLINE).unwrap_or_else(|_| {
-            panic!(
-                "the page posted no {what} within {PAGE_DEADLINE:?}; its console:\n{}",
-                browser.console()
-            )
-        })
-    };
-    let three_d = wait("3D frame");
-    assert_eq!((three_d.width, three_d.height), (64, 64));
-    let slice = wait("slice image");
-    let console = browser.console();
-    drop(browser);
+    let (slice, console) = capture_slice(&server, fragment, scratch.path(), &frames);
 
     // The desktop's path: its client on the same server (the server holds the store), the
     // desktop's blocking reads, the page's request (the start crosshair, the level whose grid
@@ -572,17 +543,7 @@ fn the_page_slices_a_served_store_as_the_desktops_assembler_does() {
     let geometry = &header.geometry;
     let frame = SliceFrame::for_view(SliceView::Axial, geometry);
     let layout = &header.layout;
-    let level = (0..layout.level_count())
-        .find(|&l| {
-            let dims = layout.level_dims[l];
-            (dims[frame.across_axis], dims[frame.down_axis]) == (slice.width, slice.height)
-        })
-        .unwrap_or_else(|| {
-            panic!(
-                "the posted slice is {}×{}, no level's grid; console:\n{console}",
-                slice.width, slice.height
-            )
-        });
+    let level = level_of_grid(layout, &frame, &slice, &console);
     let dims = geometry.dims;
     let cursor = dims.map(|d| ((d as f64 - 1.0) * 0.5).floor().max(0.0));
     let request = SliceRequest {
@@ -608,6 +569,141 @@ fn the_page_slices_a_served_store_as_the_desktops_assembler_does() {
         ColourMap::Grey,
         header.value_mapping.mapping,
     );
+    assert_same_slice("slice views", level, &slice, &desktop, &console);
+}
+
+/// The built-in sample has slice views too (no store: the page feeds the same assembler from
+/// its in-memory octree): the axial image the page posts equals, byte for byte, the desktop's
+/// assembler and window/level on the same sample made natively (the page's defaults: the
+/// volume's centre, CT's abdomen window 40/400 HU for a volume in HU, grey).
+#[test]
+fn the_page_slices_its_built_in_sample_as_the_desktops_assembler_does() {
+    use strata_render::BrickSource;
+    use strata_slices::{
+        window_level_rgba, ColourMap, SliceAssembler, SliceFrame, SliceRequest, SliceView, Window,
+    };
+    use strata_storage::OctreeLayout;
+    let scratch = tempfile::tempdir().expect("scratch folder");
+    // The server needs a store to serve; the page shows its own sample.
+    let store = scratch.path().join("tiny.strata");
+    Phantom::cube(32)
+        .write_store(&store, &ImportOptions::default())
+        .expect("writing a tiny store");
+    let (server, frames) = serve_capturing(&store);
+    let fragment = "#mode=mip&preset=ct-soft-tissue&volume=40&size=64x64&capture=1";
+    let (slice, console) = capture_slice(&server, fragment, scratch.path(), &frames);
+
+    let view = Fragment::parse(fragment).expect("fragment").view;
+    let volume = view.sample_volume().expect("sample volume");
+    let geometry = &volume.geometry;
+    let frame = SliceFrame::for_view(SliceView::Axial, geometry);
+    let layout = OctreeLayout::new(geometry.dims);
+    let level = level_of_grid(&layout, &frame, &slice, &console);
+    let cursor = geometry
+        .dims
+        .map(|d| ((d as f64 - 1.0) * 0.5).floor().max(0.0));
+    let request = SliceRequest {
+        view: SliceView::Axial,
+        frame,
+        position: cursor[frame.normal_axis],
+        level: level as u8,
+    };
+    let mut assembler = SliceAssembler::new(layout, 64 << 20);
+    let image = assembler
+        .assemble_with(request, |id| {
+            let brick = volume.brick(id.level, id.coords).expect("in-memory brick");
+            Ok::<_, strata_slices::SliceError>(brick.to_vec())
+        })
+        .expect("the desktop's slice");
+    let desktop = window_level_rgba(
+        &image.values,
+        Window::new(40.0, 400.0),
+        ColourMap::Grey,
+        volume.mapping,
+    );
+    assert_same_slice("sample slice views", level, &slice, &desktop, &console);
+}
+
+/// A server for the store at `path` with the page, the test token and a sink for the page's
+/// captures.
+fn serve_capturing(
+    path: &Path,
+) -> (
+    strata_service::server::RunningServer,
+    mpsc::Receiver<CapturedFrame>,
+) {
+    let (frames_in, frames) = mpsc::channel::<CapturedFrame>();
+    let frames_in = std::sync::Mutex::new(frames_in);
+    let server = start(
+        find_stores(&[path.to_path_buf()]).expect("store found"),
+        ServeOptions {
+            web_viewer: Some(std::sync::Arc::new(web_viewer())),
+            test_frame_sink: Some(FrameSink(std::sync::Arc::new(move |frame| {
+                if let Ok(sender) = frames_in.lock() {
+                    let _ = sender.send(frame);
+                }
+            }))),
+            token: Some(TOKEN.into()),
+            ..ServeOptions::default()
+        },
+    )
+    .expect("server starts");
+    (server, frames)
+}
+
+/// Opens the page at `fragment` (a 64² 3D view with `capture=1`) and takes what it posts: its
+/// 3D frame, then its axial slice view's image; returns that and the page's console.
+fn capture_slice(
+    server: &strata_service::server::RunningServer,
+    fragment: &str,
+    scratch: &Path,
+    frames: &mpsc::Receiver<CapturedFrame>,
+) -> (CapturedFrame, String) {
+    let url = format!("{}/{fragment}&token={TOKEN}", server.base_url());
+    let browser = Browser::open(&url, scratch);
+    let wait = |what: &str| {
+        frames.recv_timeout(PAGE_DEADLINE).unwrap_or_else(|_| {
+            panic!(
+                "the page posted no {what} within {PAGE_DEADLINE:?}; its console:\n{}",
+                browser.console()
+            )
+        })
+    };
+    let three_d = wait("3D frame");
+    assert_eq!((three_d.width, three_d.height), (64, 64));
+    let slice = wait("slice image");
+    let console = browser.console();
+    (slice, console)
+}
+
+/// The octree level whose grid the posted slice image has.
+fn level_of_grid(
+    layout: &strata_storage::OctreeLayout,
+    frame: &strata_slices::SliceFrame,
+    slice: &CapturedFrame,
+    console: &str,
+) -> usize {
+    (0..layout.level_count())
+        .find(|&l| {
+            let dims = layout.level_dims[l];
+            (dims[frame.across_axis], dims[frame.down_axis]) == (slice.width, slice.height)
+        })
+        .unwrap_or_else(|| {
+            panic!(
+                "the posted slice is {}×{}, no level's grid; console:\n{console}",
+                slice.width, slice.height
+            )
+        })
+}
+
+/// The page's slice image equals the desktop's byte for byte (and shows something).
+fn assert_same_slice(
+    what: &str,
+    level: usize,
+    slice: &CapturedFrame,
+    desktop: &[u8],
+    console: &str,
+) {
     let differing = slice
         .rgba
         .chunks(4)
@@ -616,7 +712,7 @@ fn the_page_slices_a_served_store_as_the_desktops_assembler_does() {
         .count();
     let distinct: std::collections::BTreeSet<u8> = desktop.chunks(4).map(|p| p[0]).collect();
     println!(
-        "slice views: axial level {level}, {}×{}, {differing} pixels differ from the desktop's \
+        "{what}: axial level {level}, {}×{}, {differing} pixels differ from the desktop's \
          assembler, {} grey levels",
         slice.width,
         slice.height,
@@ -629,7 +725,7 @@ fn the_page_slices_a_served_store_as_the_desktops_assembler_does() {
     assert_eq!(slice.rgba.len(), desktop.len());
     assert_eq!(
         differing, 0,
-        "the page's axial slice differs from the desktop's; console:\n{console}"
+        "{what}: the page's axial slice differs from the desktop's; console:\n{console}"
     );
 }
 
@@ -718,7 +814,7 @@ fn benchmark_the_browser_against_the_desktop_on_one_served_store() {
     // whole every frame (a streamed store at 512² keeps refining while it moves, so its frame
     // time mixes loading in), against the desktop's renderer on the same volume below.
     let orbiting = page(format!(
-        "mode=dvr&preset=ct-bone&az=35&el=20&zoom=1.4&size=512x512&capture=1&bench={orbit_frames}"
+        "mode=dvr&preset=ct-bone&az=35&el=20&zoom=1.4&size=512x512&layout=single&capture=1&bench={orbit_frames}"
     ));
     let browser_frame_ms = metric(&orbiting, "frame_ms_median").expect("frame_ms_median");
 

@@ -196,33 +196,7 @@ impl ObliqueViewer {
         let hair = Stroke::new(1.0, Color32::from_rgba_unmultiplied(120, 220, 255, 150));
         painter.line_segment([c - Vec2::new(12.0, 0.0), c + Vec2::new(12.0, 0.0)], hair);
         painter.line_segment([c - Vec2::new(0.0, 12.0), c + Vec2::new(0.0, 12.0)], hair);
-        let font = egui::FontId::proportional(14.0);
-        let label_colour = Color32::from_rgb(255, 220, 120);
-        let [left, right, top, bottom] = plane.labels();
-        for (pos, align, text) in [
-            (
-                Pos2::new(rect.left() + 5.0, rect.center().y),
-                egui::Align2::LEFT_CENTER,
-                left,
-            ),
-            (
-                Pos2::new(rect.right() - 5.0, rect.center().y),
-                egui::Align2::RIGHT_CENTER,
-                right,
-            ),
-            (
-                Pos2::new(rect.center().x, rect.top() + 21.0),
-                egui::Align2::CENTER_TOP,
-                top,
-            ),
-            (
-                Pos2::new(rect.center().x, rect.bottom() - 19.0),
-                egui::Align2::CENTER_BOTTOM,
-                bottom,
-            ),
-        ] {
-            painter.text(pos, align, text, font.clone(), label_colour);
-        }
+        strata_viewer_ui::slice_canvas::paint_orientation_labels(&painter, rect, plane.labels());
         let toggled = view_title(ui, rect, "Oblique", "Oblique", colour);
         // Buttons in the top-right corner.
         let buttons = Rect::from_min_max(

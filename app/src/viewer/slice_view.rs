@@ -6,6 +6,10 @@
 use std::sync::Arc;
 
 use egui::{Color32, Pos2, Rect, Sense, Stroke, TextureHandle, TextureOptions, Vec2};
+use strata_viewer_ui::slice_canvas::{
+    fraction_at, inner_rect, paint_crosshair, paint_orientation_labels, paint_readout_line,
+    screen_at, slice_mesh, ZoomPan,
+};
 
 use super::colour_maps::ColourMap;
 use super::measurements::{distance_mm, roi_stats, Shape, Tool};
@@ -41,9 +45,8 @@ pub struct SliceShown {
 /// One slice view's own state.
 pub struct SliceViewer {
     pub view: SliceView,
-    /// Magnification over fit-to-view, and pan in points.
-    zoom: f32,
-    pan: Vec2,
+    /// Magnification over fit-to-view, and pan in points (strata-viewer-ui's slice_canvas).
+    zoom_pan: ZoomPan,
     texture: Option<SliceTexture>,
     overlay_texture: Option<OverlayTexture>,
     last_request: Option<SliceRequest>,
@@ -73,8 +76,7 @@ impl SliceViewer {
     pub fn new(view: SliceView) -> Self {
         SliceViewer {
             view,
-            zoom: 1.0,
-            pan: Vec2::ZERO,
+            zoom_pan: ZoomPan::default(),
             texture: None,
             overlay_texture: None,
             last_request: None,
@@ -103,8 +105,7 @@ impl SliceViewer {
         scene: &Scene,
     ) -> [f64; 3] {
         let frame = data.frame(self.view);
-        let u = ((pos.x - image_rect.left()) / image_rect.width()) as f64;
-        let w = ((pos.y - image_rect.top()) / image_rect.height()) as f64;
+        let (u, w) = fraction_at(image_rect, pos);
         let (a, d) = frame.index_at(data.info.geometry.dims, u, w);
         let mut index = scene.cursor;
         index[frame.across_axis] = a;
@@ -118,14 +119,13 @@ impl SliceViewer {
     pub fn screen_of(&self, index: [f64; 3], data: &VolumeData) -> Option<Pos2> {
         let rect = self.image_rect?;
         let frame = data.frame(self.view);
-        let (u, v) = frame.fraction_of(
-            data.info.geometry.dims,
-            index[frame.across_axis],
-            index[frame.down_axis],
-        );
-        Some(Pos2::new(
-            rect.left() + u as f32 * rect.width(),
-            rect.top() + v as f32 * rect.height(),
+        Some(screen_at(
+            rect,
+            frame.fraction_of(
+                data.info.geometry.dims,
+                index[frame.across_axis],
+                index[frame.down_axis],
+            ),
         ))
     }
 
@@ -229,14 +229,13 @@ impl SliceViewer {
         let here = voxel_index(scene.cursor)[n];
         let on_slice = |p: &[f64; 3]| voxel_index(*p)[n] == here;
         let screen = |p: [f64; 3]| {
-            let (u, v) = frame.fraction_of(
-                data.info.geometry.dims,
-                p[frame.across_axis],
-                p[frame.down_axis],
-            );
-            Pos2::new(
-                image_rect.left() + u as f32 * image_rect.width(),
-                image_rect.top() + v as f32 * image_rect.height(),
+            screen_at(
+                image_rect,
+                frame.fraction_of(
+                    data.info.geometry.dims,
+                    p[frame.across_axis],
+                    p[frame.down_axis],
+                ),
             )
         };
         let colour = Color32::from_rgb(255, 230, 80);
@@ -426,54 +425,23 @@ impl SliceViewer {
             Stroke::new(1.0, colour.gamma_multiply(0.6)),
             egui::StrokeKind::Inside,
         );
-        // The image keeps the patient's proportions, centred with room for labels.
-        let (w_mm, h_mm) = frame.extent_mm(geometry);
-        // Room for the title line above, the W/L line below and the side labels.
-        let inner = Rect::from_min_max(
-            rect.min + Vec2::new(18.0, 38.0),
-            rect.max - Vec2::new(18.0, 36.0),
-        );
-        let fit = (inner.width() as f64 / w_mm)
-            .min(inner.height() as f64 / h_mm)
-            .max(1e-6);
+        // The image keeps the patient's proportions, centred with room for the title line
+        // above, the W/L line below and the side labels; zoomed and panned.
+        let inner = inner_rect(rect);
         let response = ui.interact(
             rect,
             ui.scope_id().with(("slice", view.index())),
             Sense::click_and_drag(),
         );
-        if response.hovered() {
-            // Ctrl+wheel (or pinch) zooms about the pointer; plain wheel pages (below).
-            let zoom = ui.input(|i| i.zoom_delta());
-            if zoom != 1.0 {
-                let old = self.zoom;
-                self.zoom = (old * zoom).clamp(1.0, 32.0);
-                if let Some(pointer) = response.hover_pos() {
-                    let from_centre = pointer - inner.center() - self.pan;
-                    self.pan -= from_centre * (self.zoom / old - 1.0);
-                }
-            }
-        }
-        if response.dragged_by(egui::PointerButton::Middle) {
-            self.pan += ui.input(|i| i.pointer.delta());
-        }
-        let double_clicked = response.double_clicked();
+        // Ctrl+wheel (or pinch) zooms about the pointer (plain wheel pages, below), middle
+        // drag pans, a double-click resets.
+        let double_clicked = self.zoom_pan.input(ui, &response, inner);
         if double_clicked {
-            self.zoom = 1.0;
-            self.pan = Vec2::ZERO;
             if let Some(cursor) = self.cursor_before_click.take() {
                 scene.cursor = cursor;
             }
         }
-        if self.zoom <= 1.0 {
-            self.pan = Vec2::ZERO;
-        }
-        let image_rect = Rect::from_center_size(
-            inner.center() + self.pan,
-            Vec2::new(
-                (w_mm * fit) as f32 * self.zoom,
-                (h_mm * fit) as f32 * self.zoom,
-            ),
-        );
+        let image_rect = self.zoom_pan.image_rect(inner, frame.extent_mm(geometry));
 
         let tool = scene.measurements.tool;
         if tool != Tool::Navigate {
@@ -483,8 +451,7 @@ impl SliceViewer {
                 && image_rect.contains(pos)
             {
                 self.cursor_before_click = response.clicked().then_some(scene.cursor);
-                let u = ((pos.x - image_rect.left()) / image_rect.width()) as f64;
-                let w = ((pos.y - image_rect.top()) / image_rect.height()) as f64;
+                let (u, w) = fraction_at(image_rect, pos);
                 let (a, d) = frame.index_at(dims, u, w);
                 scene.cursor[frame.across_axis] =
                     a.clamp(0.0, dims[frame.across_axis] as f64 - 1.0);
@@ -573,64 +540,18 @@ impl SliceViewer {
                 self.paint_overlay(ui, &painter, o, &image, image_rect);
             }
         }
-        // Crosshair.
-        let (cu, cv) = frame.fraction_of(
-            dims,
-            scene.cursor[frame.across_axis],
-            scene.cursor[frame.down_axis],
+        // Crosshair, measurements, orientation labels.
+        let centre = screen_at(
+            image_rect,
+            frame.fraction_of(
+                dims,
+                scene.cursor[frame.across_axis],
+                scene.cursor[frame.down_axis],
+            ),
         );
-        let cx = image_rect.left() + cu as f32 * image_rect.width();
-        let cy = image_rect.top() + cv as f32 * image_rect.height();
-        let hair = Stroke::new(1.0, Color32::from_rgba_unmultiplied(120, 220, 255, 150));
-        painter.line_segment(
-            [Pos2::new(image_rect.left(), cy), Pos2::new(cx - 8.0, cy)],
-            hair,
-        );
-        painter.line_segment(
-            [Pos2::new(cx + 8.0, cy), Pos2::new(image_rect.right(), cy)],
-            hair,
-        );
-        painter.line_segment(
-            [Pos2::new(cx, image_rect.top()), Pos2::new(cx, cy - 8.0)],
-            hair,
-        );
-        painter.line_segment(
-            [Pos2::new(cx, cy + 8.0), Pos2::new(cx, image_rect.bottom())],
-            hair,
-        );
+        paint_crosshair(&painter, image_rect, centre);
         self.paint_measurements(&painter, image_rect, data, scene);
-        // Orientation labels.
-        let font = egui::FontId::proportional(14.0);
-        let label_colour = Color32::from_rgb(255, 220, 120);
-        let [left, right, top, bottom] = frame.labels;
-        painter.text(
-            Pos2::new(rect.left() + 5.0, rect.center().y),
-            egui::Align2::LEFT_CENTER,
-            left,
-            font.clone(),
-            label_colour,
-        );
-        painter.text(
-            Pos2::new(rect.right() - 5.0, rect.center().y),
-            egui::Align2::RIGHT_CENTER,
-            right,
-            font.clone(),
-            label_colour,
-        );
-        painter.text(
-            Pos2::new(rect.center().x, rect.top() + 21.0),
-            egui::Align2::CENTER_TOP,
-            top,
-            font.clone(),
-            label_colour,
-        );
-        painter.text(
-            Pos2::new(rect.center().x, rect.bottom() - 19.0),
-            egui::Align2::CENTER_BOTTOM,
-            bottom,
-            font,
-            label_colour,
-        );
+        paint_orientation_labels(&painter, rect, frame.labels);
         let n = frame.normal_axis;
         let slice_number = voxel_index(scene.cursor)[n] + 1;
         let title = format!("{} {}/{}", view.name(), slice_number, dims[n]);
@@ -645,13 +566,7 @@ impl SliceViewer {
                 .map(|l| format!(" · level {l}"))
                 .unwrap_or_default()
         );
-        painter.text(
-            rect.left_bottom() + Vec2::new(8.0, -4.0),
-            egui::Align2::LEFT_BOTTOM,
-            info,
-            egui::FontId::proportional(11.0),
-            Color32::LIGHT_GRAY,
-        );
+        paint_readout_line(&painter, rect, info);
         let hover = response
             .hover_pos()
             .filter(|p| image_rect.contains(*p))
@@ -663,42 +578,6 @@ impl SliceViewer {
             hover,
         }
     }
-}
-
-/// The slice image as a textured rectangle: the level grid's overhang cropped by
-/// `inside_fraction`, and the view's flips applied through the texture coordinates.
-fn slice_mesh(
-    texture: egui::TextureId,
-    image_rect: Rect,
-    inside_fraction: (f64, f64),
-    frame: super::orientation::SliceFrame,
-) -> egui::Mesh {
-    let (fu, fv) = inside_fraction;
-    let (u0, u1) = if frame.across_flipped {
-        (fu as f32, 0.0)
-    } else {
-        (0.0, fu as f32)
-    };
-    let (v0, v1) = if frame.down_flipped {
-        (fv as f32, 0.0)
-    } else {
-        (0.0, fv as f32)
-    };
-    let mut mesh = egui::Mesh::with_texture(texture);
-    mesh.add_rect_with_uv(
-        image_rect,
-        Rect::from_min_max(Pos2::new(u0, v0), Pos2::new(u1, v1)),
-        Color32::WHITE,
-    );
-    // add_rect_with_uv orders uv corners by min/max; flip by swapping vertex uvs.
-    if u0 > u1 || v0 > v1 {
-        for vertex in &mut mesh.vertices {
-            let fx = (vertex.pos.x - image_rect.left()) / image_rect.width();
-            let fy = (vertex.pos.y - image_rect.top()) / image_rect.height();
-            vertex.uv = Pos2::new(u0 + (u1 - u0) * fx, v0 + (v1 - v0) * fy);
-        }
-    }
-    mesh
 }
 
 /// Right drag: strata-slices' window gesture (shared with the browser viewer), from egui's

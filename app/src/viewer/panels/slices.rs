@@ -1,7 +1,6 @@
 //! The slices panel: window/level presets (CT's named windows, MR's auto percentile, the
 //! scan's own), window and level values, and the colour map.
 
-use crate::viewer::colour_maps::ColourMap;
 use crate::viewer::scene::{quantile_window, Scene, VolumeData, Window, CT_WINDOWS};
 
 pub fn ui(ui: &mut egui::Ui, data: &VolumeData, scene: &mut Scene) {
@@ -63,14 +62,6 @@ pub fn ui(ui: &mut egui::Ui, data: &VolumeData, scene: &mut Scene) {
     });
     ui.horizontal(|ui| {
         ui.label("Colour map");
-        egui::ComboBox::from_id_salt("slice colour map")
-            .selected_text(scene.colour_map.label())
-            .show_ui(ui, |ui| {
-                for map in ColourMap::ALL {
-                    ui.selectable_value(&mut scene.colour_map, map, map.label());
-                }
-            })
-            .response
-            .accessible_name("Slice colour map");
+        strata_viewer_ui::slice_canvas::colour_map_combo(ui, &mut scene.colour_map);
     });
 }
