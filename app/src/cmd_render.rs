@@ -10,7 +10,8 @@ use strata_loader::store_volume::{
 };
 use strata_loader::{ResidentBricks, StreamingConfig, StreamingVolume};
 use strata_render::adaptive::{
-    block_oracle, render_adaptive_reference, AdaptiveConfig, AdaptiveOptics, AdaptivePass,
+    block_oracle_with, render_adaptive_reference, AdaptiveConfig, AdaptiveOptics, AdaptivePass,
+    OracleTarget,
 };
 use strata_render::progressive::render_still;
 use strata_render::reference::{render_reference, ReferenceOptions, ReferenceScene};
@@ -418,9 +419,10 @@ pub fn run(args: RenderArgs) -> Result<()> {
     );
 
     let t = Instant::now();
-    // The per-block oracle (the render mode's): a distance per 2³ block of every brick.
+    // The per-block oracle (the render mode's): a distance per 2³ block of every brick,
+    // bounding the lit colour's change where the settings light the samples.
     let oracle = || {
-        block_oracle(
+        block_oracle_with(
             &table,
             &bricks,
             mapping,
@@ -428,6 +430,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
             args.oracle_epsilon,
             AdaptiveConfig::default().l_max,
             settings.quality,
+            OracleTarget::for_settings(&settings),
         )
     };
     let rgba = if adaptive && args.reference && !settings.effective_key_light() {

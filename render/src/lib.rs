@@ -62,7 +62,7 @@
 //! adaptive (adaptive sampling in 3D, its own pass beside the raycaster)
 //!   adaptive::transcription                 (Figs. 3, 5, 6 in f64)
 //!   adaptive::frame     → transcription, camera, settings          (slices, pixel rays)
-//!   adaptive::oracle    → page_table, layout, transfer_function     (distance per entry)
+//!   adaptive::oracle    → page_table, layout, transfer_function, settings (distance per entry)
 //!   adaptive::scene     → transcription, frame, oracle, field, reference, preintegration,
 //!                         segment_integral, smooth_transitions, settings   (CPU twin)
 //!   adaptive::gpu       → frame, oracle, shaders, raycast, gpu_preintegration, cache,

@@ -25,7 +25,7 @@ use crate::layout::{BrickSource, BRICK_APRON, BRICK_CORE};
 use crate::page_table::PageTable;
 use crate::transfer_function::TransferFunction;
 
-use super::oracle::opacity_extent;
+use super::oracle::{tf_variation, OracleTarget};
 
 /// Block edge in node voxels. 2 rather than 4: on the 128³ bench phantom at equal PSNR
 /// (50.3 dB) 2³ blocks take 0.67 M samples where 4³ blocks take 1.10 M, because a detailed
@@ -57,9 +57,7 @@ fn largest_power_of_two_at_most(x: f64, cap: f64) -> f64 {
     d
 }
 
-/// Per cache slot and block (`slot · BLOCKS_PER_SLOT + block`) the oracle's distance in slices (see the
-/// module doc). Slots no resident entry uses get 2^l_max. `mapping` turns stored values into
-/// the TF's physical units; `quality` is the slice spacing in finest voxels.
+/// [`block_oracle_with`] bounding the opacity's change ([`OracleTarget::Opacity`]).
 pub fn block_oracle<S: BrickSource>(
     table: &PageTable,
     source: &S,
@@ -68,6 +66,34 @@ pub fn block_oracle<S: BrickSource>(
     epsilon: f64,
     l_max: u32,
     quality: f64,
+) -> Vec<f32> {
+    block_oracle_with(
+        table,
+        source,
+        mapping,
+        tf,
+        epsilon,
+        l_max,
+        quality,
+        OracleTarget::Opacity,
+    )
+}
+
+/// Per cache slot and block (`slot · BLOCKS_PER_SLOT + block`) the oracle's distance in slices (see the
+/// module doc). Slots no resident entry uses get 2^l_max. `mapping` turns stored values into
+/// the TF's physical units; `quality` is the slice spacing in finest voxels; `target` what the
+/// distance bounds the change of (the opacity, or with lighting on the lit colour:
+/// oracle.rs `tf_variation`).
+#[allow(clippy::too_many_arguments)]
+pub fn block_oracle_with<S: BrickSource>(
+    table: &PageTable,
+    source: &S,
+    mapping: strata_types::ValueMapping,
+    tf: &TransferFunction,
+    epsilon: f64,
+    l_max: u32,
+    quality: f64,
+    target: OracleTarget,
 ) -> Vec<f32> {
     let coarsest = (1u32 << l_max) as f64;
     let epsilon = if epsilon.is_finite() {
@@ -102,7 +128,8 @@ pub fn block_oracle<S: BrickSource>(
         };
         let scale = (1u64 << level.min(30)) as f64;
         let finest = scale.clamp(1.0, coarsest);
-        let extent_slices = BLOCK as f64 * scale / quality;
+        let extent_voxels = BLOCK as f64 * scale;
+        let extent_slices = extent_voxels / quality;
         for bz in 0..n {
             for by in 0..n {
                 for bx in 0..n {
@@ -120,17 +147,17 @@ pub fn block_oracle<S: BrickSource>(
                         }
                     }
                     let (a, b) = (mapping.physical(lo as f64), mapping.physical(hi as f64));
-                    let (a_min, a_max) = opacity_extent(tf, a.min(b), a.max(b));
                     let k = slot * BLOCKS_PER_SLOT + (bx + n * (by + n * bz)) as usize;
-                    own[k] = if a_max <= 0.0 {
-                        coarsest
-                    } else {
-                        let gradient = (a_max - a_min) / extent_slices;
-                        let mut d = coarsest;
-                        while d > finest && d * gradient > epsilon {
-                            d *= 0.5;
+                    own[k] = match tf_variation(tf, a.min(b), a.max(b), target, extent_voxels) {
+                        None => coarsest,
+                        Some(variation) => {
+                            let gradient = variation / extent_slices;
+                            let mut d = coarsest;
+                            while d > finest && d * gradient > epsilon {
+                                d *= 0.5;
+                            }
+                            d.max(finest)
                         }
-                        d.max(finest)
                     };
                 }
             }
@@ -306,6 +333,62 @@ mod tests {
         let far = block_oracle(&table, &source, mapping, &tf, 0.01, 3, 2.0);
         assert_eq!(row(&far, 0, n - 1), 4.0);
         assert_eq!(row(&far, 0, 3), 8.0);
+    }
+
+    #[test]
+    fn with_lighting_a_colour_change_at_constant_opacity_is_sampled_finely() {
+        let p = crate::layout::BRICK_PAYLOAD as usize;
+        let flat = vec![0u16; BRICK_PAYLOAD_VOXELS];
+        let mut step = flat.clone();
+        for z in 0..p {
+            for y in 0..p {
+                for x in 0..p {
+                    if x >= 10 + BRICK_APRON as usize {
+                        step[x + p * (y + p * z)] = 200;
+                    }
+                }
+            }
+        }
+        let source = TwoNodes {
+            bricks: [flat, step],
+        };
+        let mut table = PageTable::new([2, 1, 1]);
+        table.entries[0] = PageEntry::resident(0, 0);
+        table.entries[1] = PageEntry::resident(1, 0);
+        // Constant opacity; red below 100, white above 150: only the colour changes at the step.
+        let tf = TransferFunction::new(
+            "colour step",
+            &[(0.0, 0.3), (1000.0, 0.3)],
+            &[
+                (0.0, [1.0, 0.0, 0.0]),
+                (100.0, [1.0, 0.0, 0.0]),
+                (150.0, [1.0; 3]),
+            ],
+        );
+        let mapping = strata_types::ValueMapping::default();
+        let n = BLOCKS_PER_AXIS as usize;
+        let row = |d: &[f32], x: usize| d[BLOCKS_PER_SLOT + x + n * (n / 2 + n * (n / 2))];
+        let opacity = block_oracle(&table, &source, mapping, &tf, 0.01, 3, 0.5);
+        let lit = block_oracle_with(
+            &table,
+            &source,
+            mapping,
+            &tf,
+            0.01,
+            3,
+            0.5,
+            OracleTarget::LitColour { shadowed: false },
+        );
+        // α is 0.3 everywhere: the opacity oracle steps 8 slices through the step's blocks.
+        assert!(opacity.iter().all(|&d| d == 8.0));
+        // c·α (green, blue) goes 0 → 0.3 over blocks 4 and 5 (4 slices: 0.075 per slice > ε
+        // at d = 1): the lit oracle samples them and their dilation shell finely.
+        assert_eq!(row(&lit, 4), 1.0);
+        assert_eq!(row(&lit, 5), 1.0);
+        assert_eq!(row(&lit, 2), 4.0);
+        // Far from the step the colour and opacity are constant and the field flat: coarse.
+        assert_eq!(row(&lit, 12), 8.0);
+        assert!(lit.iter().zip(&opacity).all(|(l, o)| l <= o));
     }
 
     #[test]

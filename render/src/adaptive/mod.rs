@@ -8,7 +8,8 @@
 //! - [`frame`]: the frame-wide slices and the rays of pyramid pixels, shared by the CPU and the
 //!   GPU pass.
 //! - [`oracle`]: the sampling distance per page entry from the TF over node value ranges,
-//!   dilated over neighbours, with ε the user's knob.
+//!   dilated over neighbours, with ε the user's knob; with lighting on it bounds the lit
+//!   colour's change, not only the opacity's ([`OracleTarget`]).
 //! - [`block_oracle`]: the finer oracle, a distance per 2³ block of every resident node (the
 //!   paper's distance to the nearest voxel with |∇α| > ε), indexed by slot and in-slot block.
 //! - [`scene`]: the transcription over a real volume (the field of field.rs, the length-free
@@ -22,10 +23,10 @@ pub mod oracle;
 pub mod scene;
 pub mod transcription;
 
-pub use block_oracle::block_oracle;
+pub use block_oracle::{block_oracle, block_oracle_with};
 pub use frame::SliceFrame;
 pub use gpu::{AdaptiveFrame, AdaptivePass};
-pub use oracle::{oracle_distances, oracle_for_cut, OracleKind};
+pub use oracle::{oracle_distances, oracle_for_cut, oracle_for_cut_with, OracleKind, OracleTarget};
 pub use scene::{render_adaptive_reference, slice_sample, AdaptiveOptics, AdaptiveReference};
 pub use transcription::{
     l_slice, project_volume, project_volume_tiled, PyramidDims, TileRules, Transcription,

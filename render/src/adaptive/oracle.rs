@@ -33,6 +33,129 @@ pub enum OracleKind {
     Hash(u32),
 }
 
+/// What the oracle's distance bounds the change of (issue 37 item 4).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum OracleTarget {
+    /// The opacity α only: unlit DVR, where a sample's colour is the TF's.
+    #[default]
+    Opacity,
+    /// The lit colour: also the TF's premultiplied colour c·α, the shaded term where the
+    /// field is steep and, with `shadowed`, the light's attenuation across the node or block
+    /// (see [`tf_variation`]). Never coarser than [`OracleTarget::Opacity`].
+    LitColour {
+        /// Shadow rays or occlusion attenuate the light inside the data.
+        shadowed: bool,
+    },
+}
+
+impl OracleTarget {
+    /// [`OracleTarget::LitColour`] where the settings light DVR samples (shading on: the
+    /// headlight or the key light with its shadows, occlusion and scattering), else opacity.
+    pub fn for_settings(settings: &crate::settings::RenderSettings) -> Self {
+        if settings.mode == crate::settings::RenderMode::Dvr && settings.shading.is_some() {
+            OracleTarget::LitColour {
+                shadowed: settings.effective_shadows()
+                    || settings.effective_light_cache()
+                    || settings.effective_occlusion().is_some(),
+            }
+        } else {
+            OracleTarget::Opacity
+        }
+    }
+}
+
+/// Smallest and largest colour channel values of the piecewise-linear TF over [lo, hi].
+fn colour_extent(tf: &TransferFunction, lo: f64, hi: f64) -> ([f64; 3], [f64; 3]) {
+    let (a, b) = (tf.color_at(lo), tf.color_at(hi));
+    let mut min = [0, 1, 2].map(|k| a[k].min(b[k]));
+    let mut max = [0, 1, 2].map(|k| a[k].max(b[k]));
+    for s in &tf.color {
+        if s.value > lo && s.value < hi {
+            for k in 0..3 {
+                min[k] = min[k].min(s.rgb[k]);
+                max[k] = max[k].max(s.rgb[k]);
+            }
+        }
+    }
+    (min, max)
+}
+
+/// Width of the values the TF makes visible (first to last stop with opacity > 0, at least
+/// the whole stop list's width where a ramp starts at 0): the scale of the TF's features.
+fn visible_width(tf: &TransferFunction) -> f64 {
+    let visible: Vec<f64> = tf
+        .opacity
+        .iter()
+        .enumerate()
+        .filter(|(i, s)| {
+            // A stop counts if it or a neighbour is opaque (a ramp's foot belongs to it).
+            s.opacity > 0.0
+                || (*i > 0 && tf.opacity[i - 1].opacity > 0.0)
+                || tf.opacity.get(i + 1).is_some_and(|n| n.opacity > 0.0)
+        })
+        .map(|(_, s)| s.value)
+        .collect();
+    match (visible.first(), visible.last()) {
+        (Some(a), Some(b)) if b > a => b - a,
+        _ => f64::INFINITY,
+    }
+}
+
+/// The change over a node or block whose values span [lo, hi] and whose edge is
+/// `extent_voxels` finest voxels that the oracle spreads over its extent (None: transparent
+/// over the whole range, the coarsest distance).
+/// - Opacity: Δα = α_max − α_min (the oracle's rule before lighting; bit-identical).
+/// - Lit colour: the largest of Δα; the premultiplied colour's change per channel, bounded by
+///   c_max·α_max − c_min·α_min (c, α ≥ 0); and the shaded term's, (c·α)_max·w with
+///   w = min(1, (hi − lo) / the TF's visible width). The lit colour is c·α·S, S the shading
+///   (N·L, specular, the shadow's and occlusion's transmittance, the phase), which varies
+///   with the gradient's direction; a local range cannot bound that, so the test is the
+///   field's steepness against the TF's feature scale: a block that crosses a surface
+///   (w → 1) is sampled as if its lit colour went from 0 to (c·α)_max, one inside a
+///   homogeneous tissue (w → 0, the normal is noise there and the hybrid scattering weights
+///   the phase, not the gradient) as its TF dictates. With shadows (or occlusion) the light
+///   reaching a sample also falls inside homogeneous data, by its own extinction: across the
+///   extent at most 1 − (1 − α_max)^extent (the TF's opacity is per finest voxel), so the
+///   lit colour changes by up to (c·α)_max times that. Shadow edges cast by data outside the
+///   block are not bounded by anything local: the test image's PSNR is their measure.
+///   ε stays the one knob.
+pub(crate) fn tf_variation(
+    tf: &TransferFunction,
+    lo: f64,
+    hi: f64,
+    target: OracleTarget,
+    extent_voxels: f64,
+) -> Option<f64> {
+    let (a_min, a_max) = opacity_extent(tf, lo, hi);
+    if a_max <= 0.0 {
+        return None;
+    }
+    let opacity = a_max - a_min;
+    match target {
+        OracleTarget::Opacity => Some(opacity),
+        OracleTarget::LitColour { shadowed } => {
+            let (c_min, c_max) = colour_extent(tf, lo, hi);
+            let mut premultiplied = 0.0f64;
+            let mut brightest = 0.0f64;
+            for k in 0..3 {
+                premultiplied = premultiplied.max(c_max[k] * a_max - c_min[k] * a_min);
+                brightest = brightest.max(c_max[k] * a_max);
+            }
+            let steepness = ((hi - lo) / visible_width(tf)).clamp(0.0, 1.0);
+            let attenuation = if shadowed {
+                1.0 - (1.0 - a_max.min(1.0)).powf(extent_voxels.max(0.0))
+            } else {
+                0.0
+            };
+            Some(
+                opacity
+                    .max(premultiplied)
+                    .max(brightest * steepness.max(attenuation)),
+            )
+        }
+    }
+}
+
 /// Smallest and largest opacity of the piecewise-linear TF over [lo, hi].
 pub(crate) fn opacity_extent(tf: &TransferFunction, lo: f64, hi: f64) -> (f64, f64) {
     let (a, b) = (tf.opacity_at(lo), tf.opacity_at(hi));
@@ -55,6 +178,7 @@ pub fn oracle_distances(
     epsilon: f64,
     l_max: u32,
     quality: f64,
+    target: OracleTarget,
 ) -> Vec<f32> {
     let coarsest = (1u32 << l_max) as f64;
     let epsilon = if epsilon.is_finite() {
@@ -76,13 +200,13 @@ pub fn oracle_distances(
             let Some((lo, hi)) = ranges.get(i).copied().flatten() else {
                 return finest;
             };
-            let (a_min, a_max) = opacity_extent(tf, lo.min(hi), lo.max(hi));
-            if a_max <= 0.0 {
+            let extent_voxels = BRICK_CORE as f64 * (1u64 << e.level.min(30)) as f64;
+            let Some(variation) = tf_variation(tf, lo.min(hi), lo.max(hi), target, extent_voxels)
+            else {
                 return coarsest;
-            }
-            let extent_slices =
-                BRICK_CORE as f64 * (1u64 << e.level.min(30)) as f64 / quality.max(1e-6);
-            let gradient = (a_max - a_min) / extent_slices;
+            };
+            let extent_slices = extent_voxels / quality.max(1e-6);
+            let gradient = variation / extent_slices;
             let mut d = coarsest;
             while d > finest && d * gradient > epsilon {
                 d *= 0.5;
@@ -112,9 +236,7 @@ pub fn oracle_distances(
         .collect()
 }
 
-/// [`oracle_distances`] for a cut whose node ranges are known in stored units (a store's node
-/// headers, a volume's node ranges): widened over transition bands (PageTable::sampled_ranges)
-/// and mapped to physical units first.
+/// [`oracle_for_cut_with`] bounding the opacity's change ([`OracleTarget::Opacity`]).
 pub fn oracle_for_cut(
     table: &PageTable,
     mapping: strata_types::ValueMapping,
@@ -123,6 +245,32 @@ pub fn oracle_for_cut(
     epsilon: f64,
     l_max: u32,
     quality: f64,
+) -> Vec<f32> {
+    oracle_for_cut_with(
+        table,
+        mapping,
+        range_of,
+        tf,
+        epsilon,
+        l_max,
+        quality,
+        OracleTarget::Opacity,
+    )
+}
+
+/// [`oracle_distances`] for a cut whose node ranges are known in stored units (a store's node
+/// headers, a volume's node ranges): widened over transition bands (PageTable::sampled_ranges)
+/// and mapped to physical units first.
+#[allow(clippy::too_many_arguments)]
+pub fn oracle_for_cut_with(
+    table: &PageTable,
+    mapping: strata_types::ValueMapping,
+    range_of: impl FnMut(u8, [u32; 3]) -> Option<(u16, u16)>,
+    tf: &TransferFunction,
+    epsilon: f64,
+    l_max: u32,
+    quality: f64,
+    target: OracleTarget,
 ) -> Vec<f32> {
     let ranges: Vec<Option<(f64, f64)>> = table
         .sampled_ranges(range_of)
@@ -134,7 +282,7 @@ pub fn oracle_for_cut(
             })
         })
         .collect();
-    oracle_distances(table, &ranges, tf, epsilon, l_max, quality)
+    oracle_distances(table, &ranges, tf, epsilon, l_max, quality, target)
 }
 
 /// The per-node oracle where a sample has no page entry (outside the cropped box or the clip
@@ -210,18 +358,132 @@ mod tests {
             Some((90.0, 130.0)),
             Some((0.0, 50.0)),
         ];
-        let d = oracle_distances(&table, &ranges, &tf, 0.01, 3, 0.5);
+        let d = oracle_distances(&table, &ranges, &tf, 0.01, 3, 0.5, OracleTarget::Opacity);
         // Entry 3 holds the band (Δα 0.8 over 64 slices: 0.0125 per slice > ε at d = 1).
         assert_eq!(d, vec![8.0, 8.0, 1.0, 1.0, 1.0]);
         // A larger ε lets the band's node take longer steps.
-        let d = oracle_distances(&table, &ranges, &tf, 0.05, 3, 0.5);
+        let d = oracle_distances(&table, &ranges, &tf, 0.05, 3, 0.5, OracleTarget::Opacity);
         assert_eq!(d[3], 4.0);
         // Level-1 nodes are never sampled finer than the raycaster steps them (2 base steps).
         let mut coarse = table.clone();
         coarse.entries[3] = PageEntry::resident(3, 1);
-        let d = oracle_distances(&coarse, &ranges, &tf, 0.0, 3, 0.5);
+        let d = oracle_distances(&coarse, &ranges, &tf, 0.0, 3, 0.5, OracleTarget::Opacity);
         assert_eq!(d[3], 2.0);
         assert_eq!(d[0], 8.0);
+    }
+
+    #[test]
+    fn the_lit_oracle_bounds_the_premultiplied_colour_where_opacity_is_constant() {
+        let mut table = PageTable::new([3, 1, 1]);
+        for i in 0..3 {
+            table.entries[i] = PageEntry::resident(i as u32, 0);
+        }
+        // Opacity 0.5 everywhere; the colour goes from black to white over [0, 100].
+        let tf = TransferFunction::new(
+            "colour ramp",
+            &[(0.0, 0.5), (1000.0, 0.5)],
+            &[(0.0, [0.0; 3]), (100.0, [1.0; 3])],
+        );
+        // Entry 0 spans the ramp; entries 1 and 2 sit on the white plateau (narrow ranges).
+        let ranges = vec![
+            Some((0.0, 100.0)),
+            Some((500.0, 510.0)),
+            Some((700.0, 710.0)),
+        ];
+        let opacity = oracle_distances(&table, &ranges, &tf, 0.002, 3, 0.5, OracleTarget::Opacity);
+        let lit = oracle_distances(
+            &table,
+            &ranges,
+            &tf,
+            0.002,
+            3,
+            0.5,
+            OracleTarget::LitColour { shadowed: false },
+        );
+        // Opacity never changes: the opacity oracle takes the coarsest step everywhere.
+        assert_eq!(opacity, vec![8.0; 3]);
+        // c·α changes by 0.5 over entry 0's 64 slices (0.0078 per slice > ε at d = 1):
+        // sampled finely, and its neighbour too (dilation); the far plateau stays coarse
+        // (its shaded term 0.5 · 10/1000 over 64 slices: 0.0006 at d = 8, within ε).
+        assert_eq!(lit[0], 1.0);
+        assert_eq!(lit[1], 1.0);
+        assert_eq!(lit[2], 8.0);
+        // The lit oracle is never coarser than the opacity oracle, and ε stays the knob.
+        let loose = oracle_distances(
+            &table,
+            &ranges,
+            &tf,
+            0.05,
+            3,
+            0.5,
+            OracleTarget::LitColour { shadowed: false },
+        );
+        assert_eq!(loose[0], 4.0);
+    }
+
+    #[test]
+    fn with_a_constant_colour_the_lit_oracle_adds_only_the_shading_term() {
+        let tf = TransferFunction::new(
+            "band",
+            &[(0.0, 0.0), (100.0, 0.0), (110.0, 0.8), (120.0, 0.0)],
+            &[(0.0, [1.0; 3])],
+        );
+        // Premultiplied white is the opacity: Δ(c·α) = Δα.
+        assert_eq!(
+            tf_variation(&tf, 90.0, 130.0, OracleTarget::Opacity, 2.0),
+            tf_variation(
+                &tf,
+                90.0,
+                130.0,
+                OracleTarget::LitColour { shadowed: false },
+                2.0
+            )
+        );
+        // Transparent ranges stay transparent under both.
+        assert_eq!(
+            tf_variation(
+                &tf,
+                0.0,
+                50.0,
+                OracleTarget::LitColour { shadowed: true },
+                2.0
+            ),
+            None
+        );
+        // On an opacity plateau α does not change, but a range of 10 against the TF's
+        // visible width of 110 makes the shaded term α_max · 10/110.
+        let plateau = TransferFunction::new(
+            "plateau",
+            &[
+                (0.0, 0.0),
+                (100.0, 0.0),
+                (110.0, 0.8),
+                (200.0, 0.8),
+                (210.0, 0.0),
+            ],
+            &[(0.0, [1.0; 3])],
+        );
+        let opacity = tf_variation(&plateau, 150.0, 160.0, OracleTarget::Opacity, 2.0);
+        let lit = tf_variation(
+            &plateau,
+            150.0,
+            160.0,
+            OracleTarget::LitColour { shadowed: false },
+            2.0,
+        )
+        .unwrap_or(0.0);
+        assert_eq!(opacity, Some(0.0));
+        assert!((lit - 0.8 * 10.0 / 110.0).abs() < 1e-12, "{lit}");
+        // Shadowed, a homogeneous block (one value) still attenuates the light across its
+        // 2 voxels by 1 − 0.2² of itself: the lit colour changes by α_max · 0.96.
+        let shadowed = OracleTarget::LitColour { shadowed: true };
+        let lit = tf_variation(&plateau, 150.0, 150.0, shadowed, 2.0).unwrap_or(0.0);
+        assert!((lit - 0.8 * 0.96).abs() < 1e-12, "{lit}");
+        let unshadowed = OracleTarget::LitColour { shadowed: false };
+        assert_eq!(
+            tf_variation(&plateau, 150.0, 150.0, unshadowed, 2.0),
+            Some(0.0)
+        );
     }
 
     #[test]

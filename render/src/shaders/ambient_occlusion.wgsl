@@ -16,14 +16,14 @@ fn occlusion_direction(k: u32) -> vec3<f32> {
 
 // AO at index-space point `p`: each ray from the bias to min(radius, where it leaves the
 // cropped box or the clip plane's half-space). A radius within the bias is 1 exactly.
+// Branch-free on that uniform-only condition (a `select`, the radius clamped to the bias so
+// every span is empty): Mesa's lavapipe recompiles, on every frame whose uniforms changed, a
+// shader that branches on uniforms alone (bench/lean-base/lavapipe.md).
 fn ambient_occlusion(p: vec3<f32>) -> f32 {
-    let radius = P.cinematic.x;
-    if radius <= P.shadow.y {
-        return 1.0;
-    }
+    let radius = max(P.cinematic.x, P.shadow.y);
     var sum = 0.0;
     for (var k = 0u; k < OCCLUSION_DIRECTIONS; k++) {
         sum = sum + shadow_span(p, occlusion_direction(k), false, P.shadow.y, radius).x;
     }
-    return sum / f32(OCCLUSION_DIRECTIONS);
+    return select(sum / f32(OCCLUSION_DIRECTIONS), 1.0, P.cinematic.x <= P.shadow.y);
 }
