@@ -156,8 +156,9 @@ pub enum BenchCommand {
         tile: u32,
         #[arg(long, default_value = "target/bench-adaptive")]
         out_dir: PathBuf,
-        /// Only the exact-shadow group: raycaster and adaptive pass lit by the key light with
-        /// exact shadows, against the raycaster at a quarter of the step (same shadow step).
+        /// Only the lit group: raycaster and adaptive pass lit by the key light with exact
+        /// shadows and single scattering (g 0.5), each ε with the opacity and the lit-colour
+        /// oracle, against the raycaster at a quarter of the step (same shadow step).
         #[arg(long)]
         shadowed_only: bool,
     },

@@ -24,7 +24,9 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 use strata_loader::{CutPayloads, StreamingVolume};
-use strata_render::adaptive::{block_oracle, AdaptiveConfig, AdaptiveFrame, AdaptivePass};
+use strata_render::adaptive::{
+    block_oracle_with, AdaptiveConfig, AdaptiveFrame, AdaptivePass, OracleTarget,
+};
 use strata_render::{
     Camera, GpuContext, PageTable, RenderMode, RenderSettings, TransferFunction, Traversal,
     ValueMapping,
@@ -53,6 +55,9 @@ pub struct OracleKey {
     pub epsilon: f64,
     /// Slice spacing in finest voxels (`RenderSettings::quality` of the frame).
     pub quality: f64,
+    /// What the distances bound: the lit colour where the frame is lit (issue 37 item 4), so
+    /// turning the light on or off builds again.
+    pub target: OracleTarget,
 }
 
 /// A finished oracle: the distances the pass reads, per cache slot and 2³ block.
@@ -245,6 +250,7 @@ impl AdaptiveView {
             transfer_function: view.transfer_function.clone(),
             epsilon: view.epsilon?,
             quality: settings.quality,
+            target: OracleTarget::for_settings(settings),
         })
     }
 
@@ -439,7 +445,7 @@ fn start_build(
                 Ok(false) => Ok(None),
                 Ok(true) => {
                     inject_test_fault(thread_key.epsilon);
-                    let distances = block_oracle(
+                    let distances = block_oracle_with(
                         payloads.table(),
                         &payloads,
                         mapping,
@@ -447,6 +453,7 @@ fn start_build(
                         thread_key.epsilon,
                         AdaptiveConfig::default().l_max,
                         thread_key.quality,
+                        thread_key.target,
                     );
                     Ok((!cancelled()).then(|| BuiltOracle {
                         key: thread_key,
