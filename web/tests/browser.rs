@@ -515,9 +515,7 @@ fn a_stalled_server_leaves_the_page_drawing() {
 /// reads of the store, and the same window/level step with the store's first window.
 #[test]
 fn the_page_slices_a_served_store_as_the_desktops_assembler_does() {
-    use strata_slices::{
-        window_level_rgba, ColourMap, SliceAssembler, SliceFrame, SliceRequest, SliceView, Window,
-    };
+    use strata_slices::Window;
     let scratch = tempfile::tempdir().expect("scratch folder");
     let path = scratch.path().join("ct.strata");
     Phantom::cube(96)
@@ -540,34 +538,17 @@ fn the_page_slices_a_served_store_as_the_desktops_assembler_does() {
     )
     .expect("the desktop's client opens the store");
     let header = store.header();
-    let geometry = &header.geometry;
-    let frame = SliceFrame::for_view(SliceView::Axial, geometry);
-    let layout = &header.layout;
-    let level = level_of_grid(layout, &frame, &slice, &console);
-    let dims = geometry.dims;
-    let cursor = dims.map(|d| ((d as f64 - 1.0) * 0.5).floor().max(0.0));
-    let request = SliceRequest {
-        view: SliceView::Axial,
-        frame,
-        position: cursor[frame.normal_axis],
-        level: level as u8,
-    };
-    let mut assembler = SliceAssembler::new(layout.clone(), 64 << 20);
-    let image = assembler
-        .assemble_with(request, |id| {
-            Ok::<_, strata_slices::SliceError>(store.read_brick(id).expect("brick"))
-        })
-        .expect("the desktop's slice");
     let preset = header
         .windows
         .first()
         .expect("the phantom names its windows");
-    let window = Window::new(preset.center, preset.width);
-    let desktop = window_level_rgba(
-        &image.values,
-        window,
-        ColourMap::Grey,
+    let (level, desktop) = desktop_axial_slice(
+        &header.layout,
+        &header.geometry,
+        Window::new(preset.center, preset.width),
         header.value_mapping.mapping,
+        (&slice, &console),
+        |id| store.read_brick(id).expect("brick"),
     );
     assert_same_slice("slice views", level, &slice, &desktop, &console);
 }
@@ -579,9 +560,7 @@ fn the_page_slices_a_served_store_as_the_desktops_assembler_does() {
 #[test]
 fn the_page_slices_its_built_in_sample_as_the_desktops_assembler_does() {
     use strata_render::BrickSource;
-    use strata_slices::{
-        window_level_rgba, ColourMap, SliceAssembler, SliceFrame, SliceRequest, SliceView, Window,
-    };
+    use strata_slices::Window;
     use strata_storage::OctreeLayout;
     let scratch = tempfile::tempdir().expect("scratch folder");
     // The server needs a store to serve; the page shows its own sample.
@@ -595,10 +574,38 @@ fn the_page_slices_its_built_in_sample_as_the_desktops_assembler_does() {
 
     let view = Fragment::parse(fragment).expect("fragment").view;
     let volume = view.sample_volume().expect("sample volume");
-    let geometry = &volume.geometry;
+    let (level, desktop) = desktop_axial_slice(
+        &OctreeLayout::new(volume.geometry.dims),
+        &volume.geometry,
+        Window::new(40.0, 400.0),
+        volume.mapping,
+        (&slice, &console),
+        |id| {
+            volume
+                .brick(id.level, id.coords)
+                .expect("in-memory brick")
+                .to_vec()
+        },
+    );
+    assert_same_slice("sample slice views", level, &slice, &desktop, &console);
+}
+
+/// The desktop's path to the page's posted axial slice: the level whose grid the posted image
+/// has, the page's start crosshair (the volume's centre), strata-slices' assembler fed by
+/// `read` (blocking), and the window/level step in grey. Returns the level and the RGBA.
+fn desktop_axial_slice(
+    layout: &strata_storage::OctreeLayout,
+    geometry: &strata_render::VolumeGeometry,
+    window: strata_slices::Window,
+    mapping: strata_render::ValueMapping,
+    (posted, console): (&CapturedFrame, &str),
+    mut read: impl FnMut(strata_storage::BrickId) -> Vec<u16>,
+) -> (usize, Vec<u8>) {
+    use strata_slices::{
+        window_level_rgba, ColourMap, SliceAssembler, SliceFrame, SliceRequest, SliceView,
+    };
     let frame = SliceFrame::for_view(SliceView::Axial, geometry);
-    let layout = OctreeLayout::new(geometry.dims);
-    let level = level_of_grid(&layout, &frame, &slice, &console);
+    let level = level_of_grid(layout, &frame, posted, console);
     let cursor = geometry
         .dims
         .map(|d| ((d as f64 - 1.0) * 0.5).floor().max(0.0));
@@ -608,20 +615,12 @@ fn the_page_slices_its_built_in_sample_as_the_desktops_assembler_does() {
         position: cursor[frame.normal_axis],
         level: level as u8,
     };
-    let mut assembler = SliceAssembler::new(layout, 64 << 20);
+    let mut assembler = SliceAssembler::new(layout.clone(), 64 << 20);
     let image = assembler
-        .assemble_with(request, |id| {
-            let brick = volume.brick(id.level, id.coords).expect("in-memory brick");
-            Ok::<_, strata_slices::SliceError>(brick.to_vec())
-        })
+        .assemble_with(request, |id| Ok::<_, strata_slices::SliceError>(read(id)))
         .expect("the desktop's slice");
-    let desktop = window_level_rgba(
-        &image.values,
-        Window::new(40.0, 400.0),
-        ColourMap::Grey,
-        volume.mapping,
-    );
-    assert_same_slice("sample slice views", level, &slice, &desktop, &console);
+    let rgba = window_level_rgba(&image.values, window, ColourMap::Grey, mapping);
+    (level, rgba)
 }
 
 /// A server for the store at `path` with the page, the test token and a sink for the page's
