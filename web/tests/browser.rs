@@ -191,13 +191,9 @@ fn the_served_page_draws_the_view_its_link_names_as_the_native_renderer_does() {
             },
         )
         .expect("native renderer");
+        let (camera, settings) = (view.camera(&volume.geometry), view.settings(width, height));
         let native = renderer
-            .render(
-                &gpu,
-                &volume,
-                &view.camera(&volume.geometry),
-                &view.settings(width, height),
-            )
+            .render(&gpu, &volume, &camera, &settings)
             .expect("native frame");
         let lit = frame.rgba.chunks(4).filter(|p| p[3] > 0).count();
         assert!(
@@ -224,12 +220,7 @@ fn the_served_page_draws_the_view_its_link_names_as_the_native_renderer_does() {
                 .set_transfer_function(&gpu, &volume, &preset)
                 .expect("the preset's table");
             let preset_frame = renderer
-                .render(
-                    &gpu,
-                    &volume,
-                    &view.camera(&volume.geometry),
-                    &view.settings(width, height),
-                )
+                .render(&gpu, &volume, &camera, &settings)
                 .expect("native frame");
             let apart = compare_rgba8(&frame.rgba, &preset_frame.rgba).expect("same size");
             println!("{fragment}: browser vs the preset's native frame: {apart:?}");
