@@ -1270,3 +1270,62 @@ fn key_light_shadows_are_close_to_the_reference_with_fewer_shadow_rays() {
         lit.shadow_rays
     );
 }
+
+/// The adaptive pass at d ≡ 1 with the key light and exact shadows is a plain slice march
+/// (every slice sampled at level 0, nothing synthesised into the image), so with early
+/// termination and idle-slice skipping off every tile must march every slice, and its image
+/// must be the raycaster's at the same step up to where the samples sit (slices vs the
+/// raycaster's per-ray steps: measured 48.4 dB at 128³, 64², on the storage phantom).
+/// On lavapipe at 256³ (storage phantom, 64², tile 32) the slice loop ends early when
+/// shadow rays are traced: 1330 of 3844 tile slices, 17.4 dB against the raycaster's fine
+/// image; the same frame without shadows, at 128³, or at tile 8 marches every slice
+/// (gpu.rs module doc). Cause not found: ignored until it is (run with --ignored).
+#[test]
+#[ignore = "the d ≡ 1 lit pass stops marching early at 256³ with exact shadows on lavapipe (gpu.rs doc); cause open"]
+fn lit_distance_one_marches_every_slice_and_matches_the_raycaster_at_256() {
+    let ctx = gpu();
+    let f = Fixture::ct(256);
+    let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
+    let mut pass = AdaptivePass::new(&ctx, &g.cache);
+    let camera = Camera::orbit(
+        &f.volume.geometry,
+        30.0,
+        20.0,
+        1.0,
+        Projection::Perspective { fov_y_deg: 30.0 },
+    );
+    let s = RenderSettings {
+        shading: Some(Shading::default()),
+        light: KeyLight {
+            direction: LightDirection::Camera([0.6, 0.7, 0.4]),
+            intensity: 1.0,
+        },
+        shadows: Shadows {
+            mode: ShadowMode::Exact,
+            step: 1.0,
+            ..Shadows::default()
+        },
+        scattering: Some(Scattering { g: 0.5, blend: 0.5 }),
+        early_termination: None,
+        ..settings(64, 64, 0.5)
+    };
+    let config = AdaptiveConfig {
+        oracle: OracleKind::Constant(1.0),
+        tile: 32,
+        skip_idle_slices: false,
+        ..AdaptiveConfig::default()
+    };
+    let frame = render_gpu(&ctx, &g, &mut pass, &f, &camera, &s, &config);
+    let raycast = g.render(&ctx, &f, &camera, &s);
+    let c = compare_rgba8(&frame.rgba, &raycast.rgba).unwrap();
+    let tiles = 64u64.div_ceil(32) * 64u64.div_ceil(32);
+    eprintln!(
+        "d ≡ 1 lit at 256³: {} of {} tile slices, {} shadow rays, {:.1} dB vs the raycaster",
+        frame.tile_slices,
+        tiles * (frame.last_slice as u64 + 1),
+        frame.shadow_rays,
+        c.psnr_db
+    );
+    assert_eq!(frame.tile_slices, tiles * (frame.last_slice as u64 + 1));
+    assert!(c.psnr_db >= 40.0, "d ≡ 1 lit vs raycaster: {c:?}");
+}
