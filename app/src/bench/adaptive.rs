@@ -583,6 +583,14 @@ fn adaptive_row(
     setting: String,
 ) -> Result<Row> {
     let frame = pass.render_blocking(ctx, scene, config)?;
+    if frame.cut_short_invocations > 0 {
+        // llvmpipe's shared loop limit (adaptive/gpu.rs module doc): not the algorithm's frame.
+        eprintln!(
+            "warning: {setting}: the device cut {} invocations' march short; this row's image \
+             and counts are not the algorithm's",
+            frame.cut_short_invocations
+        );
+    }
     let c = compare_rgba8(&frame.rgba, reference)?;
     let mut times = Vec::new();
     for _ in 0..frames {

@@ -36,9 +36,9 @@
 //! So the goal (≥ 2× faster at ≥ 40 dB) is not met: the pass is 1.7-3× slower than the
 //! raycaster and below 40 dB against its fine image on this phantom. The lit segments are
 //! few (≈ 2 per pixel: the phantom's visible structures are opaque shells), so the
-//! shadow rays are not where the time goes; the pyramid's samples and syntheses are. Open:
-//! why d ≡ 1 scores lower and traces fewer shadow rays than the block oracle here (at 40³
-//! they agree).
+//! shadow rays are not where the time goes; the pyramid's samples and syntheses are. But see
+//! "Lavapipe cuts the lit march short" below: on lavapipe the d ≡ 1 and soft-tissue rows at
+//! 256³ are not the algorithm's frames.
 //!
 //! The lit-colour oracle (oracle.rs `OracleTarget::LitColour`, `tf_variation`: with
 //! lighting on the distance also bounds the premultiplied colour's change, the shaded term
@@ -75,27 +75,77 @@
 //! slower on bone, 1.4-1.6× slower on soft tissue, below 40 dB everywhere. The lit oracle
 //! changes nothing measurable: its table equals the opacity oracle's except at ε 0.02
 //! (bone: +0.8 % samples, +3 % shadow rays; soft tissue: +0.1 %), same PSNR. Measured causes:
-//! - Accuracy is not the oracle's: the pass at d ≡ 1 (every slice, no synthesis) is the
-//!   farthest from the raycaster's fine image (22.1 dB bone, 13.2 dB soft tissue), and it
-//!   traces fewer shadow rays than ε 0.002 (91170 vs 143792; 616073 vs 715849), so the
-//!   pass's lit model at 256³ differs from the raycaster's (at 40³ both are within 49.7 /
-//!   54.8 dB of the f64 reference, tests/adaptive.rs); find that first. On the phantom the
-//!   opacity's change dominates every lit term wherever data is visible (its noise moves α
-//!   more than the colour, steepness or self-shadowing move the lit colour at the same ε),
-//!   so bounding the lit colour buys no accuracy here. Even the raycaster at step 0.5 is at
-//!   34.5 dB from its quarter-step image on soft tissue.
-//! - Time, bone: fitting the d ≡ 1 and ε 0.02 rows to a cost per pixel operation (samples,
+//! - Accuracy: the d ≡ 1 rows (22.1 dB bone, 13.2 dB soft tissue, fewer shadow rays than
+//!   ε 0.002) are not the pass's lit model differing from the raycaster's: lavapipe cut the
+//!   march short (below). Those figures, and every lit row at 256³ on lavapipe, are
+//!   not the algorithm's frames and must not be compared.
+//! - Time, bone (the d ≡ 1 row was cut short on lavapipe, see below): fitting the d ≡ 1
+//!   and ε 0.02 rows to a cost per pixel operation (samples,
 //!   apron samples, syntheses) and per tile slice (a 256-invocation workgroup's pass through
 //!   the slice loop, its barriers and per-pixel checks) gives 0.14-0.39 µs and 0.05-0.17 ms
 //!   (the range: the two ε 0.02 times), i.e. 50-90 % of the ε frame in the slice loop; its
 //!   4.9 M pixel operations alone cost 0.7-1.9 s against the raycaster's whole 1.14 s
 //!   frame. The shadow rays (132202) are not the cost there.
-//! - Time, soft tissue: the same costs account for 2.7-4.8 s of the 9.85 s ε 0.02 frame; the
+//! - Time, soft tissue (every row cut short on lavapipe, see below): the same
+//!   costs account for 2.7-4.8 s of the 9.85 s ε 0.02 frame; the
 //!   rest is its 594705 shadow rays (≈ 9 µs each through semi-transparent tissue), so here
 //!   shadow rays do dominate, but the pass lights 0.6-0.7 M level-0 segments, not fewer than
 //!   the raycaster's lit samples at equal cost (it takes 6.84 s for all of its work).
 //!   Saving there needs segments lit less often than once per level-0 segment (e.g. the
 //!   shadow term interpolated in the pyramid like value and gradient), not a finer oracle.
+//!
+//! Lavapipe cuts the lit march short (measured; the cause of the d ≡ 1 rows above).
+//! llvmpipe ends every loop of a shader invocation (each 8-lane vector) once all of its loops
+//! together have iterated 65535 times (gallivm `LP_MAX_TGSI_LOOP_ITERATIONS`, "shared
+//! between every loop in a shader"): the slice loop, the per-pixel loops and every exact
+//! shadow ray's steps count against one budget, and past it every loop exits after at most
+//! one more iteration: the invocation leaves the slice loop early with its shadow rays
+//! truncated (and, by the same rule, its final per-pixel write loop likely stores only its
+//! first pixel). An invocation owns TILE²/64 pixels and traces a shadow ray per lit
+//! slice of each, so the budget goes at 96³ already with exact shadows. Measured (64²,
+//! early termination and idle skipping off, d ≡ 1, tests/adaptive.rs
+//! `lit_distance_one_reports_a_march_the_device_cut_short` at each size):
+//!
+//! | phantom | tile | tile slices marched | vs the raycaster |
+//! |---|---|---|---|
+//! | render 64³ | 32 | 868 of 868 | 56.0 dB |
+//! | render 96³ | 32 | 856 of 1284 | 19.1 dB |
+//! | render 128³ | 32 | 237 of 1700 | 15.5 dB |
+//! | render 256³ | 32 | 336 of 3364 | 14.2 dB |
+//! | render 256³ | 16 | 10092 of 13456 | 13.6 dB |
+//! | render 256³ | 8 | 52983 of 53824 | 25.9 dB |
+//!
+//! and with `strata bench adaptive phantom --phantom-size 256 --size 64x64 --epsilons 0.002
+//! --shadowed-only --frames 1` (storage phantom, bone, d ≡ 1 row against the raycaster at a
+//! quarter step): 18.3 dB at tile 16 with shadows + scattering; 18.0 dB with scattering off;
+//! 49.8 dB with shadows off (the shaded key light and scattering agree); 51.4 dB unlit; 32.8
+//! dB at tile 8 (the raycaster at step 0.5 scores 32.9 dB there); at 128³ 48.4 dB. Without
+//! shadows or early termination every tile marches the same slices; with shadows the
+//! invocations' `marched` differed within a tile (all 256 summed 10512 vs lid 0's 84 per tile
+//! × 64), which a conforming device cannot do (the loop holds barriers). So the term that
+//! differs is not the lighting: it is the exact shadow rays' loop iterations exhausting the
+//! device's budget. Not fixed here (the budget is the device's); the pass now counts the
+//! invocations that left the slice loop early without the tile's decision
+//! ([`AdaptiveFrame::cut_short_invocations`], counter 15: a lower bound, lanes of a vector
+//! leave together) and the bench warns on such rows. The raycaster's fine reference (step
+//! 0.125, a shadow ray per lit sample, one pixel per lane) likely hits the same budget on
+//! soft tissue (unmeasured: it has no such counter), which would explain its own 34.5 dB
+//! and the "23.5 dB shadow-step error". Trustworthy lit figures at 256³ need a GPU, or tile 8
+//! and shadow rays short enough to stay in budget.
+//!
+//! The bench above rerun with the counter (`strata bench adaptive phantom --phantom-size 256
+//! --size 256x256 --epsilons 0.002,0.02 --shadowed-only --frames 1 [--tf ct-soft-tissue]`,
+//! lavapipe, same counters and PSNRs as the tables above): invocations the device cut short,
+//! per row (0: none reported; the count is a lower bound):
+//!
+//! | scene | d ≡ 1 | ε 0.002 (opacity / lit) | ε 0.02 (opacity / lit) |
+//! |---|---|---|---|
+//! | bone | 72 (22.1 dB) | 8 / 8 (33.4 dB) | 0 / 0 (36.8 dB) |
+//! | soft tissue | 600 (13.2 dB) | 496 / 496 (13.6 dB) | 400 / 400 (15.3 dB) |
+//!
+//! So every soft-tissue row, and bone's d ≡ 1 and ε 0.002 rows, are truncated frames: their
+//! PSNRs, shadow-ray counts and the time analysis below (which fits costs to them) describe
+//! lavapipe's cut, not the pass. Only bone ε 0.02 is reported clean.
 
 use std::collections::HashMap;
 
@@ -112,7 +162,7 @@ use crate::settings::RenderMode;
 use crate::shaders;
 
 /// Counter words: samples per level 0..3, syntheses per level 4..7, segments 8, apron samples
-/// per level 9..12, slices marched 13, shadow rays 14.
+/// per level 9..12, slices marched 13, shadow rays 14, invocations cut short 15.
 const COUNTERS: usize = 16;
 
 #[repr(C)]
@@ -172,6 +222,11 @@ pub struct AdaptiveFrame {
     /// Slices marched, summed over tiles: the passes through the slice loop (its barriers and
     /// per-pixel checks), which idle-slice skipping cuts and the counters above do not see.
     pub tile_slices: u64,
+    /// Invocations whose slice loop ended before the last slice without the tile's
+    /// early-termination decision: the device cut the shader's loops short, so the frame is
+    /// not the algorithm's (llvmpipe's shared 65535-iteration loop limit; see the module
+    /// doc). 0 on a conforming device.
+    pub cut_short_invocations: u64,
 }
 
 impl AdaptiveFrame {
@@ -836,6 +891,7 @@ impl AdaptivePass {
             shadow_rays: c[14] as u64,
             last_slice: self.last_slice,
             tile_slices: c[13] as u64,
+            cut_short_invocations: c[15] as u64,
         })
     }
 }

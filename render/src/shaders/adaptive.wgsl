@@ -86,7 +86,8 @@ fn adaptive_block(slot_base: vec3<f32>, coord: vec3<f32>) -> u32 {
 @group(0) @binding(22) var<storage, read_write> visibility: array<u32>;
 // 0..3 samples per level (owned pixels), 4..7 syntheses per level (owned), 8 segments,
 // 9..12 apron samples per level (the tiling's overhead), 13 slices the tiles marched,
-// 14 shadow rays traced (KEY_LIGHT with SHADOWS: one per lit level-0 segment).
+// 14 shadow rays traced (KEY_LIGHT with SHADOWS: one per lit level-0 segment), 15 invocations
+// whose slice loop the device cut short (see the end of main).
 @group(0) @binding(23) var<storage, read_write> counters: array<atomic<u32>, 16>;
 
 var<workgroup> pyramid_s: array<f32, PYRAMID_CAP>;
@@ -609,6 +610,7 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
     }
     workgroupBarrier();
     var marched = 0u;
+    var stopped_by_tile = false;
     var i = first_slice;
     loop {
         if i > last_slice {
@@ -760,6 +762,7 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
                 tile_decision = atomicLoad(&tile_vote);
             }
             if workgroupUniformLoad(&tile_decision) == 0u {
+                stopped_by_tile = true;
                 break;
             }
             close_opaque_pixels(tile_x, tile_y, lid, &acc);
@@ -775,6 +778,13 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
     }
     if lid == 0u {
         atomicAdd(&counters[13], marched);
+    }
+    // The march ends past the last slice or by the tile's early-termination decision; an
+    // invocation that left it anywhere else was cut short by the device: llvmpipe (lavapipe)
+    // ends every loop of an invocation once all its loops together have iterated 65535
+    // times (gallivm LP_MAX_TGSI_LOOP_ITERATIONS), which exact shadow rays reach at 256³.
+    if !stopped_by_tile && i <= last_slice {
+        atomicAdd(&counters[15], 1u);
     }
     for (var j = 0u; j < owned; j++) {
         let idx = lid + j * THREADS;
