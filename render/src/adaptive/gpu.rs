@@ -81,7 +81,7 @@
 //!   not the algorithm's frames and must not be compared.
 //! - Time, bone (the d ≡ 1 row was cut short on lavapipe, see below): fitting the d ≡ 1
 //!   and ε 0.02 rows to a cost per pixel operation (samples,
-//!   apron samples, syntheses) and per tile slice (a 256-invocation workgroup's pass through
+//!   apron samples, syntheses) and per tile slice (a 64-invocation (8×8) workgroup's pass through
 //!   the slice loop, its barriers and per-pixel checks) gives 0.14-0.39 µs and 0.05-0.17 ms
 //!   (the range: the two ε 0.02 times), i.e. 50-90 % of the ε frame in the slice loop; its
 //!   4.9 M pixel operations alone cost 0.7-1.9 s against the raycaster's whole 1.14 s
