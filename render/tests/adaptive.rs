@@ -97,6 +97,24 @@ fn settings(width: u32, height: u32, quality: f64) -> RenderSettings {
     }
 }
 
+/// `base` shaded and lit by the key light from the camera's upper right, with exact shadows
+/// at one voxel: the lit scene of the key-light tests.
+fn key_lit_with_exact_shadows(base: RenderSettings) -> RenderSettings {
+    RenderSettings {
+        shading: Some(Shading::default()),
+        light: KeyLight {
+            direction: LightDirection::Camera([0.6, 0.7, 0.4]),
+            intensity: 1.0,
+        },
+        shadows: Shadows {
+            mode: ShadowMode::Exact,
+            step: 1.0,
+            ..Shadows::default()
+        },
+        ..base
+    }
+}
+
 fn max_abs_difference(gpu: &[[f32; 4]], cpu: &[[f64; 4]]) -> f64 {
     gpu.iter()
         .zip(cpu)
@@ -1149,18 +1167,8 @@ fn key_light_shadows_are_close_to_the_reference_with_fewer_shadow_rays() {
         Projection::Perspective { fov_y_deg: 35.0 },
     );
     let s = RenderSettings {
-        shading: Some(Shading::default()),
-        light: KeyLight {
-            direction: LightDirection::Camera([0.6, 0.7, 0.4]),
-            intensity: 1.0,
-        },
-        shadows: Shadows {
-            mode: ShadowMode::Exact,
-            step: 1.0,
-            ..Shadows::default()
-        },
         count_samples: true,
-        ..settings(64, 64, 0.5)
+        ..key_lit_with_exact_shadows(settings(64, 64, 0.5))
     };
     let unshadowed = RenderSettings {
         shadows: Shadows {
@@ -1320,19 +1328,9 @@ fn lit_distance_one_reports_a_march_the_device_cut_short() {
         Projection::Perspective { fov_y_deg: 30.0 },
     );
     let s = RenderSettings {
-        shading: Some(Shading::default()),
-        light: KeyLight {
-            direction: LightDirection::Camera([0.6, 0.7, 0.4]),
-            intensity: 1.0,
-        },
-        shadows: Shadows {
-            mode: ShadowMode::Exact,
-            step: 1.0,
-            ..Shadows::default()
-        },
         scattering: Some(Scattering { g: 0.5, blend: 0.5 }),
         early_termination: None,
-        ..settings(64, 64, 0.5)
+        ..key_lit_with_exact_shadows(settings(64, 64, 0.5))
     };
     let config = AdaptiveConfig {
         oracle: OracleKind::Constant(1.0),
