@@ -3,9 +3,10 @@
 //! wasm-bindgen, and the page's static files, into `web/dist/`, which `strata serve` serves
 //! (embedded by `strata-app`'s `web` feature, or read by the browser tests).
 //!
-//! The wasm build runs in its own target directory (`target/web-build`): a cargo build nested
-//! in a build script, or in a test that `cargo test` runs, would otherwise wait for ever on the
-//! lock of the directory the outer cargo holds.
+//! The wasm build runs in its own target directory (`web-build` under `CARGO_TARGET_DIR`, or
+//! under the workspace's `target/`): a cargo build nested in a build script, or in a test that
+//! `cargo test` runs, would otherwise wait for ever on the lock of the directory the outer
+//! cargo holds. Following `CARGO_TARGET_DIR` lets CI keep it in its build cache (.ci/run).
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -35,6 +36,15 @@ fn cargo() -> String {
     std::env::var("CARGO").unwrap_or_else(|_| "cargo".into())
 }
 
+/// Where cargo builds for this workspace: `CARGO_TARGET_DIR` (relative to the workspace, as
+/// cargo takes it from the environment when run there) or the workspace's `target/`.
+pub fn build_root(workspace: &Path) -> PathBuf {
+    match std::env::var_os("CARGO_TARGET_DIR") {
+        Some(dir) if !dir.is_empty() => workspace.join(dir),
+        _ => workspace.join("target"),
+    }
+}
+
 /// Fails with the command to run when the toolchain has no wasm32 standard library.
 pub fn check_wasm_target() -> Result<()> {
     let sysroot = Command::new(std::env::var("RUSTC").unwrap_or_else(|_| "rustc".into()))
@@ -59,7 +69,7 @@ pub fn check_wasm_target() -> Result<()> {
 /// Builds the web viewer into `web/dist/` (release profile) and returns that folder.
 pub fn build_web(workspace: &Path) -> Result<PathBuf> {
     check_wasm_target()?;
-    let target_dir = workspace.join("target").join("web-build");
+    let target_dir = build_root(workspace).join("web-build");
     let status = Command::new(cargo())
         .current_dir(workspace)
         .args([
