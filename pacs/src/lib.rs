@@ -646,10 +646,21 @@ impl Inner {
     }
 
     fn transport_error(&self, what: &str, e: &reqwest::Error) -> PacsError {
+        let problem = if e.is_timeout() {
+            // reqwest's own text ("operation timed out") does not say which bound it hit.
+            format!(
+                "timed out (the server stalled for {} s, or the request took longer than {} s): {}",
+                self.options.stall_timeout.as_secs_f64(),
+                self.options.request_timeout.as_secs_f64(),
+                describe(e)
+            )
+        } else {
+            describe(e)
+        };
         PacsError::Request {
             server: self.server(),
             what: what.to_string(),
-            problem: describe(e),
+            problem,
             retryable: (e.is_timeout() || e.is_connect() || e.is_request() || e.is_body())
                 && !e.is_redirect(),
         }
