@@ -373,10 +373,33 @@ pub fn redact_url(url: &str) -> String {
     }
 }
 
+/// A query value: only what would break the query is encoded. DICOM's wildcards and the
+/// person-name separator (`*`, `?`, `^`) stay as they are, which RFC 3986 allows in a query:
+/// Orthanc 1.10 matches the raw text and finds nothing for `DOE%5EJ%2A`.
 fn percent_encode(s: &str) -> String {
     let mut out = String::with_capacity(s.len());
     for b in s.bytes() {
-        if b.is_ascii_alphanumeric() || matches!(b, b'-' | b'_' | b'.' | b'~') {
+        if b.is_ascii_alphanumeric()
+            || matches!(
+                b,
+                b'-' | b'_'
+                    | b'.'
+                    | b'~'
+                    | b'*'
+                    | b'?'
+                    | b'^'
+                    | b'!'
+                    | b'$'
+                    | b'\''
+                    | b'('
+                    | b')'
+                    | b','
+                    | b';'
+                    | b':'
+                    | b'@'
+                    | b'/'
+            )
+        {
             out.push(b as char);
         } else {
             out.push_str(&format!("%{b:02X}"));
@@ -1249,6 +1272,12 @@ mod tests {
         );
         assert!(normalise_base_url("ftp://h").is_err());
         assert_eq!(format!("{:?}", Secret::new("pw")), "<redacted>");
+    }
+
+    #[test]
+    fn query_values_keep_wildcards_and_encode_separators() {
+        assert_eq!(percent_encode("DOE^J*"), "DOE^J*");
+        assert_eq!(percent_encode("a b&c=d#e+f%"), "a%20b%26c%3Dd%23e%2Bf%25");
     }
 
     #[test]
