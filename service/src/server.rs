@@ -29,7 +29,7 @@ use strata_storage::brick::verify_record;
 use strata_storage::{BrickId, StorageError, Store};
 use tokio::sync::Semaphore;
 
-use crate::connections::{Admitted, ConnectionHandle, Connections};
+use crate::connections::{ConnectionHandle, Connections, MayClose};
 use crate::observe::{ObservedBody, Observer};
 use crate::web_viewer::{FrameSink, WebViewerAssets};
 use crate::wire::{
@@ -66,6 +66,11 @@ pub struct ServeOptions {
     /// take them all). When a cap is reached the connection idle longest is closed to admit
     /// the new one (see `connections.rs`); only when all are busy is the new one refused.
     pub max_connections_per_address: usize,
+    /// A connection is evicted outright at a cap only after this long without a request;
+    /// one active more recently is asked to step aside instead (`Connection: close` on its
+    /// next answer, GOAWAY for HTTP/2) while the newcomer waits (issue 49: closing a
+    /// connection idle for a moment cut the request its client had just sent).
+    pub evict_idle_after: Duration,
     pub max_concurrent_requests: usize,
     /// HTTP/1 read buffer (bounds the request line and headers) and HTTP/2 header list size.
     pub max_header_bytes: usize,
@@ -109,6 +114,7 @@ impl Default for ServeOptions {
             expose_identifiers: false,
             max_connections: 256,
             max_connections_per_address: 64,
+            evict_idle_after: Duration::from_secs(1),
             max_concurrent_requests: 512,
             max_header_bytes: 16 << 10,
             header_read_timeout: Duration::from_secs(5),
@@ -205,7 +211,8 @@ pub struct ServerCounters {
     pub rejected_busy: AtomicU64,
     /// Connections closed unserved: every connection busy for the whole wait at a cap.
     pub connections_refused: AtomicU64,
-    /// Idle connections closed (gracefully) to admit a new one at a cap: evictions.
+    /// Connections admitted at a cap in place of another: an idle one closed (gracefully)
+    /// or a recently active one asked to step aside (`Connection: close`, GOAWAY).
     pub connections_shed: AtomicU64,
     /// Connections closed because no request byte came within the header timeout.
     pub connections_idle_closed: AtomicU64,
@@ -492,6 +499,7 @@ pub fn start(
         options.max_connections,
         options.max_connections_per_address,
         options.trusted_proxies.iter().copied(),
+        options.evict_idle_after,
     );
     let state = Arc::new(AppState {
         stores: served,
@@ -642,7 +650,11 @@ async fn serve(
         tokio::select! {
             _ = &mut shutdown => break,
             _ = minute.tick() => log_counters(&state.counters),
-            accepted = listener.accept() => {
+            // Backpressure: while the waiting room is full, accept nothing.
+            accepted = async {
+                state.connections.room_to_wait().await;
+                listener.accept().await
+            } => {
                 let (stream, peer) = match accepted {
                     Ok(a) => a,
                     Err(e) => {
@@ -706,11 +718,23 @@ async fn serve_connection(
     // hyper's header timer starts only at the first byte (its protocol detection waits for it
     // without a limit): bound that wait here, so a socket that sends nothing is closed. An
     // eviction meanwhile closes it at once: it has sent nothing.
+    // An eviction meanwhile closes it once it has been silent for the minimum idle time
+    // and nothing waits in its socket (its first request may be on the wire).
+    let probe = KernelProbe::new(&stream);
     let mut first = [0u8; 4];
     let peeked = tokio::select! {
         biased;
         peeked = tokio::time::timeout(header_timeout, stream.peek(&mut first)) => peeked,
-        () = admitted.shed() => return,
+        () = async {
+            loop {
+                match admitted.may_close() {
+                    MayClose::Now if !probe.bytes_waiting() => return,
+                    MayClose::Now => tokio::time::sleep(LOOK_AGAIN).await,
+                    MayClose::After(d) => tokio::time::sleep(d).await,
+                    MayClose::No | MayClose::Busy => admitted.shed().await,
+                }
+            }
+        } => return,
     };
     match peeked {
         Ok(Ok(n)) if n > 0 => {
@@ -791,20 +815,40 @@ async fn serve_connection(
     );
     tokio::pin!(conn);
     let mut closing = false;
+    // An HTTP/1 connection asked to close while idle for a moment only is looked at again
+    // when it has been idle for the minimum (a request arriving first is answered with
+    // `Connection: close`, and hyper closes after it).
+    // (Asked already during the first read: look at once.)
+    let mut look_again = Some(tokio::time::Instant::now());
     let served: Result<(), BoxError> = loop {
+        let timer = async {
+            match look_again {
+                Some(at) => tokio::time::sleep_until(at).await,
+                None => std::future::pending().await,
+            }
+        };
         tokio::select! {
             // The connection first: bytes that arrived with the eviction notice are read (and
             // make it busy) before the notice is judged.
             biased;
             served = conn.as_mut() => break served,
-            () = admitted.shed(), if !closing => {
-                if close_gracefully_now(&admitted) {
-                    closing = true;
-                    conn.as_mut().graceful_shutdown();
-                }
-                // Else it is busy: its answers carry `Connection: close`, and the end of its
-                // last request notifies again.
+            () = admitted.shed(), if !closing => {}
+            () = timer, if !closing => look_again = None,
+        }
+        match admitted.may_close() {
+            // The runtime may not have seen bytes the kernel holds already (a stalled
+            // machine): the client's request is there, so not closed; hyper reads it soon.
+            MayClose::Now if !admitted.is_http2() && probe.bytes_waiting() => {
+                look_again = Some(tokio::time::Instant::now() + LOOK_AGAIN);
             }
+            MayClose::Now => {
+                closing = true;
+                conn.as_mut().graceful_shutdown();
+            }
+            MayClose::After(d) => look_again = Some(tokio::time::Instant::now() + d),
+            // Busy: its answers carry `Connection: close`, and the end of its last request
+            // notifies again.
+            MayClose::No | MayClose::Busy => {}
         }
     };
     if let Err(e) = served {
@@ -813,10 +857,35 @@ async fn serve_connection(
     drop(admitted);
 }
 
-/// Whether an evicted connection can be shut down now: HTTP/2 always (GOAWAY answers every
-/// stream already received), HTTP/1 only between requests.
-fn close_gracefully_now(admitted: &Admitted) -> bool {
-    admitted.is_http2() || admitted.is_idle()
+/// How soon a connection asked to close is looked at again when its socket holds bytes that
+/// the runtime has not read yet.
+const LOOK_AGAIN: Duration = Duration::from_millis(20);
+
+/// A second handle on a connection's socket (a duplicated descriptor), to ask the kernel
+/// whether request bytes wait in it: the runtime learns of them only when its reactor runs,
+/// and on a stalled machine an HTTP/1 connection could look idle for the minimum time with
+/// its client's next request already received (issue 49: such a close is a failed request
+/// for the client). Dropped with the connection's task, so the socket closes with it.
+struct KernelProbe(Option<socket2::Socket>);
+
+impl KernelProbe {
+    fn new(stream: &tokio::net::TcpStream) -> Self {
+        #[cfg(unix)]
+        let handle = std::os::fd::AsFd::as_fd(stream).try_clone_to_owned();
+        #[cfg(windows)]
+        let handle = std::os::windows::io::AsSocket::as_socket(stream).try_clone_to_owned();
+        KernelProbe(handle.ok().map(socket2::Socket::from))
+    }
+
+    /// Bytes wait to be read (a non-blocking peek: the descriptor shares the stream's
+    /// non-blocking mode). Unknown counts as none: the minimum idle time still applies.
+    fn bytes_waiting(&self) -> bool {
+        let Some(socket) = &self.0 else {
+            return false;
+        };
+        let mut byte = [std::mem::MaybeUninit::<u8>::uninit(); 1];
+        matches!(socket.peek(&mut byte), Ok(n) if n > 0)
+    }
 }
 
 /// The connection's transport: TCP, or TLS over it.

@@ -61,7 +61,19 @@ fn load(c: &AtomicU64) -> u64 {
 fn no_request_is_dropped_under_load_from_one_address() {
     let dir = tempfile::tempdir().unwrap();
     let (path, records, generation) = store(dir.path(), "load", 72);
-    let server = serve(&path, ServeOptions::default());
+    let server = serve(
+        &path,
+        ServeOptions {
+            // Idleness is judged by the wall clock: on a loaded 2-core machine this test's
+            // 300 client tasks can go unscheduled for a second between a response and their
+            // next request, which the server cannot tell from a client gone quiet (and
+            // closing then is HTTP/1's keep-alive race). A client process like wrk is never
+            // starved so; here the minimum is raised so that rotation is by `Connection:
+            // close` alone, which is what the test is about.
+            evict_idle_after: Duration::from_secs(4),
+            ..ServeOptions::default()
+        },
+    );
     let url = format!(
         "{}{}",
         server.base_url(),
@@ -93,29 +105,27 @@ fn no_request_is_dropped_under_load_from_one_address() {
                 // half-way (that would be the client's abort, not the server's).
                 while Instant::now() < deadline {
                     let answer = match client.get(&url).send().await {
-                        Ok(r) if r.status().is_success() => r.bytes().await.is_ok(),
-                        _ => false,
+                        Ok(r) if r.status().is_success() => {
+                            r.bytes().await.map(drop).map_err(|e| format!("{e:?}"))
+                        }
+                        Ok(r) => Err(format!("status {}", r.status())),
+                        Err(e) => Err(format!("{e:?}")),
                     };
-                    if answer {
-                        ok.fetch_add(1, Ordering::Relaxed);
-                    } else {
-                        failed.fetch_add(1, Ordering::Relaxed);
+                    if let Err(why) = answer {
+                        if failed.fetch_add(1, Ordering::Relaxed) < 3 {
+                            eprintln!("load: a request failed: {why}");
+                        }
                         // A refused or closed connection: try again shortly, as clients do.
                         tokio::time::sleep(Duration::from_millis(20)).await;
+                    } else {
+                        ok.fetch_add(1, Ordering::Relaxed);
                     }
                 }
             })
         })
         .collect();
     // The remote fetch of every brick meanwhile (HTTP/2, the viewer's client).
-    let remote = RemoteSource::open(
-        &server.store_url("load"),
-        RemoteOptions {
-            blocking_attempts: 10,
-            ..RemoteOptions::default()
-        },
-    )
-    .unwrap();
+    let remote = RemoteSource::open(&server.store_url("load"), RemoteOptions::default()).unwrap();
     for (id, record) in &records {
         assert_eq!(&remote.read_brick_record(*id).unwrap(), record, "{id:?}");
     }
@@ -144,6 +154,9 @@ fn no_request_is_dropped_under_load_from_one_address() {
         load(&ok) > 300,
         "the load made too few requests to test anything"
     );
+    // The clients' view: not one request failed (before the fix, with every connection
+    // evicted as soon as it was idle for a moment: 5 124 answered, 8 714 failed in 3 s).
+    assert_eq!(load(&failed), 0, "requests that failed on the client");
     assert_eq!(aborted, 0, "requests started and dropped by the server");
     assert_eq!(started, answered);
 }
