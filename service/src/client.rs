@@ -5,10 +5,14 @@
 //! time over one HTTP/2 connection (h2c; `http1` uses a small pool of HTTP/1.1 connections
 //! instead): [`RemoteFetcher`] keeps the loader's priority order (demand before prefetch, then
 //! the loader's priority: coarse before fine, centre of the view first), aborts requests on the
-//! wire that two successive views no longer name (the HTTP/2 stream is reset), retries with
-//! backoff on connection errors, 429 and 503 (reporting "connection lost, retrying" meanwhile),
-//! and verifies every record's checksum on arrival, re-requesting a damaged one once before
-//! reporting it. Decoded bricks go to the loader's CPU cache; there is no second cache here.
+//! wire that two successive views no longer name (the HTTP/2 stream is reset), retries (see
+//! [`Retrying`]: a request cut on an open connection at once, refusals and 503/429 with
+//! exponential backoff honouring `Retry-After`; reporting "connection lost, retrying" or
+//! "server busy, retrying" meanwhile), and verifies every record's checksum on arrival,
+//! re-requesting a damaged one once before reporting it. A blocking read (opening,
+//! `read_brick_record`) gives up only after a bound in seconds (`give_up_after`), with an
+//! error that says so. Decoded bricks go to the loader's CPU cache; there is no second cache
+//! here.
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
@@ -37,8 +41,11 @@ pub struct RemoteOptions {
     pub max_in_flight: usize,
     pub connect_timeout: Duration,
     pub request_timeout: Duration,
-    /// Attempts of a blocking read (`read_brick_record`, opening) before giving up.
-    pub blocking_attempts: u32,
+    /// How long a blocking read (`read_brick_record`, opening) keeps retrying a server that
+    /// cannot be reached, resets or answers busy before it fails (issue 49: a bound in
+    /// seconds, not attempts: four attempts within 0.75 s failed renders under load).
+    /// Zero: one attempt.
+    pub give_up_after: Duration,
     /// For https: a PEM certificate to trust besides the system's (a lab's own CA).
     pub tls_ca_pem: Option<Vec<u8>>,
 }
@@ -51,7 +58,7 @@ impl Default for RemoteOptions {
             max_in_flight: 64,
             connect_timeout: Duration::from_secs(3),
             request_timeout: Duration::from_secs(30),
-            blocking_attempts: 4,
+            give_up_after: Duration::from_secs(20),
             tls_ca_pem: None,
         }
     }
@@ -136,11 +143,100 @@ impl Connection {
     }
 }
 
+/// Why an attempt is worth repeating, which decides how soon.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Again {
+    /// Failed after the connection was made (reset, closed before the answer, a body cut
+    /// short): typically a kept-alive connection the server closed as the request left (the
+    /// HTTP/1 keep-alive race). A brick GET is idempotent: once at once, then backoff.
+    Cut,
+    /// No connection (refused, unreachable, timed out): backoff.
+    Unreachable,
+    /// 503 or 429: backoff, at least the `Retry-After` the server gave.
+    Busy(Option<Duration>),
+}
+
+/// The retry policy of one request: when to try again, and when to give up.
+pub(crate) struct Retrying {
+    started: Instant,
+    bound: Option<Duration>,
+    failures: u32,
+    cut_retried: bool,
+}
+
+/// The longest `Retry-After` honoured as given (a longer one waits this long).
+const MAX_RETRY_AFTER: Duration = Duration::from_secs(30);
+
+impl Retrying {
+    /// `bound`: give up once this long has passed since the first attempt (`None`: never).
+    pub(crate) fn new(bound: Option<Duration>) -> Self {
+        Retrying {
+            started: Instant::now(),
+            bound,
+            failures: 0,
+            cut_retried: false,
+        }
+    }
+
+    /// The wait before the next attempt after a failure of this kind, or `None` when the
+    /// bound is spent. A wait is cut to what is left of the bound (one last attempt then).
+    fn next(&mut self, again: Again) -> Option<Duration> {
+        let failures = self.failures;
+        self.failures += 1;
+        let backoff = Duration::from_millis(50u64 << failures.min(6)).min(Duration::from_secs(2));
+        let wait = match again {
+            Again::Cut if !self.cut_retried => {
+                self.cut_retried = true;
+                Duration::ZERO
+            }
+            Again::Cut | Again::Unreachable | Again::Busy(None) => backoff,
+            Again::Busy(Some(after)) => after.min(MAX_RETRY_AFTER).max(backoff),
+        };
+        match self.bound {
+            None => Some(wait),
+            Some(bound) => {
+                let left = bound.checked_sub(self.started.elapsed())?;
+                if left.is_zero() {
+                    return None;
+                }
+                Some(wait.min(left))
+            }
+        }
+    }
+
+    fn attempts(&self) -> u32 {
+        self.failures
+    }
+
+    /// The error of a request that was given up: the bound, the attempts, the last reason.
+    fn gave_up(&self, last: &str) -> String {
+        format!(
+            "the server did not answer within {:.0} s ({} attempts); last: {last}",
+            self.bound.unwrap_or_default().as_secs_f64(),
+            self.attempts()
+        )
+    }
+}
+
+fn again_after_error(e: &reqwest::Error) -> Again {
+    if e.is_connect() || e.is_timeout() {
+        Again::Unreachable
+    } else {
+        Again::Cut
+    }
+}
+
+/// `Retry-After` in seconds (the HTTP-date form is not used by `strata serve`: ignored).
+fn retry_after(headers: &reqwest::header::HeaderMap) -> Option<Duration> {
+    let value = headers.get(reqwest::header::RETRY_AFTER)?.to_str().ok()?;
+    value.trim().parse::<u64>().ok().map(Duration::from_secs)
+}
+
 /// What one attempt at a brick came to.
 enum Attempt {
     Record(Vec<u8>),
     /// Worth trying again (connection error, 429, 503, a body cut short).
-    Retry(String),
+    Retry(String, Again),
     /// The server answered no (404, 401, 500 with its reason).
     Refused(String),
 }
@@ -151,7 +247,7 @@ async fn attempt(conn: &Connection, id: BrickId) -> Attempt {
         Err(e) => {
             let why = describe(&e);
             conn.mark_lost(why.clone());
-            return Attempt::Retry(why);
+            return Attempt::Retry(why, again_after_error(&e));
         }
     };
     let status = response.status();
@@ -164,17 +260,23 @@ async fn attempt(conn: &Connection, id: BrickId) -> Attempt {
             Err(e) => {
                 let why = describe(&e);
                 conn.mark_lost(why.clone());
-                Attempt::Retry(why)
+                Attempt::Retry(why, again_after_error(&e))
             }
         };
+    }
+    if status == reqwest::StatusCode::TOO_MANY_REQUESTS
+        || status == reqwest::StatusCode::SERVICE_UNAVAILABLE
+    {
+        let after = retry_after(response.headers());
+        let why = format!("server busy ({status})");
+        // Shown as "server busy, retrying" while it lasts.
+        conn.mark_lost(why.clone());
+        return Attempt::Retry(why, Again::Busy(after));
     }
     conn.mark_reachable();
     let text = response.text().await.unwrap_or_default();
     let text = text.trim().chars().take(300).collect::<String>();
     match status {
-        reqwest::StatusCode::TOO_MANY_REQUESTS | reqwest::StatusCode::SERVICE_UNAVAILABLE => {
-            Attempt::Retry(format!("server busy ({status})"))
-        }
         reqwest::StatusCode::UNAUTHORIZED => {
             Attempt::Refused("the server refused the token (401): check --token-file".into())
         }
@@ -190,10 +292,6 @@ fn describe(e: &reqwest::Error) -> String {
         source = inner.source();
     }
     s
-}
-
-fn backoff(attempt: u32) -> Duration {
-    Duration::from_millis(50u64 << attempt.min(5)).min(Duration::from_secs(2))
 }
 
 /// A store served by `strata serve`.
@@ -264,14 +362,13 @@ impl RemoteSource {
         let open_url = format!("{base}{API_PREFIX}/stores/{name}");
         let bytes = {
             let c = &conn;
-            let attempts = options.blocking_attempts.max(1);
+            let mut retrying = Retrying::new(Some(options.give_up_after));
             runtime.block_on(async {
-                let mut last = String::new();
-                for n in 0..attempts {
-                    match c.get(&open_url).send().await {
+                loop {
+                    let (last, again) = match c.get(&open_url).send().await {
                         Ok(r) if r.status().is_success() => match r.bytes().await {
                             Ok(b) => return Ok(b.to_vec()),
-                            Err(e) => last = describe(&e),
+                            Err(e) => (describe(&e), again_after_error(&e)),
                         },
                         Ok(r) if r.status() == reqwest::StatusCode::UNAUTHORIZED => {
                             return Err(if c.auth.is_some() {
@@ -284,17 +381,29 @@ impl RemoteSource {
                             return Err(format!("the server has no store named '{name}'"))
                         }
                         Ok(r)
-                            if r.status().is_server_error()
+                            if r.status() == reqwest::StatusCode::SERVICE_UNAVAILABLE
                                 || r.status() == reqwest::StatusCode::TOO_MANY_REQUESTS =>
                         {
-                            last = format!("server answered {}", r.status());
+                            let after = retry_after(r.headers());
+                            (format!("server busy ({})", r.status()), Again::Busy(after))
                         }
+                        Ok(r) if r.status().is_server_error() => (
+                            format!("server answered {}", r.status()),
+                            Again::Unreachable,
+                        ),
                         Ok(r) => return Err(format!("server answered {}", r.status())),
-                        Err(e) => last = describe(&e),
+                        Err(e) => (describe(&e), again_after_error(&e)),
+                    };
+                    match retrying.next(again) {
+                        Some(wait) => tokio::time::sleep(wait).await,
+                        None => {
+                            return Err(format!(
+                                "cannot reach the server: {}",
+                                retrying.gave_up(&last)
+                            ))
+                        }
                     }
-                    tokio::time::sleep(backoff(n)).await;
                 }
-                Err(format!("cannot reach the server: {last}"))
             })
         }
         .map_err(refused)?;
@@ -345,23 +454,33 @@ impl VolumeSource for RemoteSource {
             });
         }
         let conn = &self.conn;
-        let attempts = self.options.blocking_attempts.max(1);
+        let mut retrying = Retrying::new(Some(self.options.give_up_after));
         self.runtime.block_on(async {
-            let mut last = String::new();
             let mut damaged = 0;
-            let mut n = 0;
-            while n < attempts {
+            loop {
                 match attempt(conn, id).await {
                     Attempt::Record(record) => match decode_brick(id, &record) {
                         Ok(_) => return Ok(record),
-                        Err(e) if damaged == 0 => {
+                        Err(_) if damaged == 0 => {
                             damaged += 1;
-                            last = e.to_string();
                             continue;
                         }
                         Err(e) => return Err(SourceError::damaged(&conn.location, id, e)),
                     },
-                    Attempt::Retry(why) => last = why,
+                    Attempt::Retry(why, again) => match retrying.next(again) {
+                        Some(wait) => tokio::time::sleep(wait).await,
+                        None => {
+                            return Err(SourceError::Unavailable {
+                                location: conn.location.clone(),
+                                message: format!(
+                                    "brick level {} at {:?}: {}",
+                                    id.level,
+                                    id.coords,
+                                    retrying.gave_up(&why)
+                                ),
+                            })
+                        }
+                    },
                     Attempt::Refused(why) => {
                         return Err(SourceError::Refused {
                             location: conn.location.clone(),
@@ -369,13 +488,7 @@ impl VolumeSource for RemoteSource {
                         })
                     }
                 }
-                tokio::time::sleep(backoff(n)).await;
-                n += 1;
             }
-            Err(SourceError::Unavailable {
-                location: conn.location.clone(),
-                message: format!("brick level {} at {:?}: {last}", id.level, id.coords),
-            })
         })
     }
     fn start_fetching(
@@ -445,7 +558,9 @@ async fn fetch_one(
     counters: Arc<RetryCounters>,
     id: BrickId,
 ) -> BrickJobOutcome {
-    let mut retries = 0u32;
+    // The loader's queue retries until the brick is no longer wanted (its status shows
+    // "retrying" meanwhile): no bound here.
+    let mut retrying = Retrying::new(None);
     let mut damaged = 0u32;
     loop {
         match attempt(&conn, id).await {
@@ -467,10 +582,10 @@ async fn fetch_one(
                     continue;
                 }
             },
-            Attempt::Retry(_) => {
+            Attempt::Retry(_, again) => {
                 counters.retried.fetch_add(1, Ordering::Relaxed);
-                tokio::time::sleep(backoff(retries)).await;
-                retries += 1;
+                let wait = retrying.next(again).unwrap_or(Duration::from_secs(2));
+                tokio::time::sleep(wait).await;
             }
             Attempt::Refused(why) => {
                 break Err(SourceError::Refused {
@@ -557,5 +672,44 @@ mod tests {
             parse_store_url("https://h:1/v1/stores/a").unwrap().0,
             "https://h:1"
         );
+    }
+
+    #[test]
+    fn retries_a_cut_request_at_once_backs_off_honours_retry_after_and_gives_up_at_the_bound() {
+        let mut r = Retrying::new(None);
+        assert_eq!(r.next(Again::Cut), Some(Duration::ZERO));
+        // Only the first cut is retried at once: the next waits like any other failure.
+        let second = r.next(Again::Cut).unwrap();
+        assert!(second > Duration::ZERO);
+        let third = r.next(Again::Unreachable).unwrap();
+        assert!(third > second, "{third:?} after {second:?}");
+        for _ in 0..20 {
+            assert!(r.next(Again::Unreachable).unwrap() <= Duration::from_secs(2));
+        }
+        assert_eq!(
+            r.next(Again::Busy(Some(Duration::from_secs(7)))),
+            Some(Duration::from_secs(7))
+        );
+        assert_eq!(
+            r.next(Again::Busy(Some(Duration::from_secs(3600)))),
+            Some(MAX_RETRY_AFTER)
+        );
+        // A bound of zero: one attempt, then given up with a message that says so.
+        let mut once = Retrying::new(Some(Duration::ZERO));
+        assert_eq!(once.next(Again::Cut), None);
+        let message = once.gave_up("connection refused");
+        assert!(message.contains("within 0 s (1 attempts)"), "{message}");
+        // A wait is cut to what is left of the bound.
+        let mut bounded = Retrying::new(Some(Duration::from_secs(3600)));
+        let wait = bounded.next(Again::Busy(Some(Duration::from_secs(7200))));
+        assert!(wait.unwrap() <= MAX_RETRY_AFTER);
+        let mut headers = reqwest::header::HeaderMap::new();
+        headers.insert(reqwest::header::RETRY_AFTER, "2".parse().unwrap());
+        assert_eq!(retry_after(&headers), Some(Duration::from_secs(2)));
+        headers.insert(
+            reqwest::header::RETRY_AFTER,
+            "Wed, 21 Oct 2015 07:28:00 GMT".parse().unwrap(),
+        );
+        assert_eq!(retry_after(&headers), None);
     }
 }

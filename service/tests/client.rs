@@ -245,3 +245,137 @@ fn the_http1_pool_fetches_the_same_bricks() {
         assert_eq!(&**brick, &remote.read_brick(r.id).unwrap());
     }
 }
+
+/// A front on loopback between the client and a real server: the first `resets`
+/// connections are closed as soon as their request arrives (a reset, as under load), the
+/// next `busy` are answered 503 with `Retry-After: 1`, and the rest are piped to the server.
+/// Returns its address and the count of connections it took. Threads named; it stops with
+/// the test process (the listener thread blocks in accept).
+fn flaky_front(
+    upstream: std::net::SocketAddr,
+    resets: usize,
+    busy: usize,
+) -> (
+    std::net::SocketAddr,
+    std::sync::Arc<std::sync::atomic::AtomicUsize>,
+) {
+    use std::io::{Read, Write};
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = listener.local_addr().unwrap();
+    let taken = std::sync::Arc::new(AtomicUsize::new(0));
+    let count = taken.clone();
+    std::thread::Builder::new()
+        .name("strata-test-flaky-front".into())
+        .spawn(move || {
+            for stream in listener.incoming() {
+                let Ok(mut client) = stream else { continue };
+                let n = count.fetch_add(1, Ordering::Relaxed);
+                let _ = client.set_read_timeout(Some(Duration::from_secs(5)));
+                if n < resets + busy {
+                    // Read the request's head, then cut or refuse.
+                    let mut head = Vec::new();
+                    let mut buf = [0u8; 1024];
+                    while !head.windows(4).any(|w| w == b"\r\n\r\n") {
+                        match client.read(&mut buf) {
+                            Ok(0) | Err(_) => break,
+                            Ok(k) => head.extend_from_slice(&buf[..k]),
+                        }
+                    }
+                    if n >= resets {
+                        let _ = client.write_all(
+                            b"HTTP/1.1 503 Service Unavailable\r\nRetry-After: 1\r\n\
+                              Content-Length: 0\r\nConnection: close\r\n\r\n",
+                        );
+                    }
+                    continue;
+                }
+                let Ok(server) = std::net::TcpStream::connect(upstream) else {
+                    continue;
+                };
+                let _ = client.set_read_timeout(None);
+                let (mut c2, mut s2) = (client.try_clone().unwrap(), server.try_clone().unwrap());
+                let (mut client, mut server) = (client, server);
+                let _ = std::thread::Builder::new()
+                    .name("strata-test-flaky-up".into())
+                    .spawn(move || {
+                        let _ = std::io::copy(&mut c2, &mut s2);
+                        let _ = s2.shutdown(std::net::Shutdown::Write);
+                    });
+                let _ = std::thread::Builder::new()
+                    .name("strata-test-flaky-down".into())
+                    .spawn(move || {
+                        let _ = std::io::copy(&mut server, &mut client);
+                        let _ = client.shutdown(std::net::Shutdown::Write);
+                    });
+            }
+        })
+        .unwrap();
+    (addr, taken)
+}
+
+/// Issue 49, item 2: a server that resets the first connections and then answers 503 with
+/// `Retry-After` for a while is ridden out (opening and every brick read succeed, with the
+/// default bound); a server gone for good fails within the bound, with an error that says
+/// so. (No timing is asserted: the bound is 1 s, so the test is short.)
+#[test]
+fn a_busy_server_is_ridden_out_and_a_gone_one_fails_with_a_clear_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = served(dir.path(), 40, ServeOptions::default());
+    // The records as the server gives them directly (the store is locked by the server).
+    let direct =
+        RemoteSource::open(&server.store_url("phantom"), RemoteOptions::default()).unwrap();
+    let (front, taken) = flaky_front(server.addr(), 3, 2);
+    let url = format!("http://{front}/v1/stores/phantom");
+    let remote = RemoteSource::open(
+        &url,
+        RemoteOptions {
+            http1: true,
+            ..RemoteOptions::default()
+        },
+    )
+    .unwrap();
+    let ids: Vec<BrickId> = (0..8)
+        .map(|x| BrickId::new(0, [x % 2, (x / 2) % 2, x / 4]))
+        .filter(|id| remote.layout().contains(*id))
+        .collect();
+    assert!(!ids.is_empty());
+    for id in &ids {
+        assert_eq!(
+            remote.read_brick_record(*id).unwrap(),
+            direct.read_brick_record(*id).unwrap()
+        );
+    }
+    assert!(
+        taken.load(std::sync::atomic::Ordering::Relaxed) > 5,
+        "the resets and the 503s were all met"
+    );
+    // Gone for good: nothing listens on the port any more.
+    let gone = {
+        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        l.local_addr().unwrap()
+    };
+    let bound = RemoteOptions {
+        http1: true,
+        give_up_after: Duration::from_secs(1),
+        ..RemoteOptions::default()
+    };
+    let error = match RemoteSource::open(&format!("http://{gone}/v1/stores/phantom"), bound.clone())
+    {
+        Ok(_) => panic!("opened a store on a closed port"),
+        Err(e) => e.to_string(),
+    };
+    assert!(
+        error.contains("cannot reach the server: the server did not answer within 1 s"),
+        "{error}"
+    );
+    // Gone after opening: a brick read fails the same way.
+    let remote = RemoteSource::open(&server.store_url("phantom"), bound).unwrap();
+    drop(direct);
+    drop(server);
+    let error = remote.read_brick_record(ids[0]).unwrap_err().to_string();
+    assert!(
+        error.contains("the server did not answer within 1 s"),
+        "{error}"
+    );
+}

@@ -748,7 +748,7 @@ fn tls_serves_the_same_bricks_over_https() {
     let untrusted = RemoteSource::open(
         &url,
         RemoteOptions {
-            blocking_attempts: 1,
+            give_up_after: Duration::ZERO,
             ..RemoteOptions::default()
         },
     );
