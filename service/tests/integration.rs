@@ -4,5 +4,6 @@
 
 mod client;
 mod load;
+mod proxy;
 mod server;
 mod zarr_view;
