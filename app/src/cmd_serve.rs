@@ -36,8 +36,9 @@ pub struct ServeArgs {
     pub expose_identifiers: bool,
     #[arg(long, default_value_t = 256)]
     pub max_connections: usize,
-    /// Connections from one client address; at a cap the connection idle longest is closed
-    /// (gracefully) to admit a new one, and while all are busy a new one waits.
+    /// Connections from one client address; at a cap the connection idle longest (for at
+    /// least a second) is closed gracefully to admit a new one; otherwise the new one waits
+    /// while a busy one is asked to step aside (`Connection: close` on its next answer).
     #[arg(long, default_value_t = 64)]
     pub max_connections_per_address: usize,
     /// A reverse proxy's address (repeatable): its connections carry many clients, so they are
