@@ -15,9 +15,13 @@ use std::time::{Duration, Instant};
 
 use strata_service::server::{find_stores, start, ServeOptions};
 use strata_service::wire::brick_path;
+use strata_service::{RemoteOptions, RemoteSource};
+use strata_source::VolumeSource;
 use strata_storage::import::ImportOptions;
 use strata_storage::phantom::Phantom;
 use strata_storage::{BrickId, Store};
+
+const TOKEN: &str = "0123456789abcdef0123456789abcdef";
 
 fn nginx_binary() -> PathBuf {
     ["/usr/sbin/nginx", "/usr/bin/nginx", "/usr/local/sbin/nginx"]
@@ -49,9 +53,9 @@ fn free_port() -> SocketAddr {
         .unwrap()
 }
 
-/// Starts nginx in the foreground with everything (pid, logs, temp files) under `dir`, and
-/// waits (bounded) until it accepts.
-fn start_nginx(dir: &Path, listen: SocketAddr, upstream: SocketAddr) -> Nginx {
+/// Starts nginx in the foreground with everything (pid, logs, temp files) under `dir` and
+/// `servers` inside its `http` block, and waits (bounded) until it accepts on `listen`.
+fn start_nginx(dir: &Path, listen: SocketAddr, servers: &str) -> Nginx {
     let d = dir.display();
     let conf = format!(
         r#"daemon off;
@@ -67,20 +71,7 @@ http {{
     fastcgi_temp_path {d}/fastcgi;
     uwsgi_temp_path {d}/uwsgi;
     scgi_temp_path {d}/scgi;
-    upstream strata {{
-        server {upstream};
-        keepalive 64;
-    }}
-    server {{
-        listen {listen};
-        location / {{
-            proxy_pass http://strata;
-            proxy_http_version 1.1;
-            proxy_set_header Connection "";
-            proxy_set_header X-Forwarded-For $remote_addr;
-            proxy_pass_request_headers on;
-        }}
-    }}
+{servers}
 }}
 "#
     );
@@ -111,6 +102,25 @@ http {{
     nginx
 }
 
+/// The reverse proxy without TLS and cache: keep-alive upstream, as in docs/deploy.md.
+fn plain_proxy(listen: SocketAddr, upstream: SocketAddr) -> String {
+    format!(
+        r#"    upstream strata {{
+        server {upstream};
+        keepalive 64;
+    }}
+    server {{
+        listen {listen};
+        location / {{
+            proxy_pass http://strata;
+            proxy_http_version 1.1;
+            proxy_set_header Connection "";
+            proxy_set_header X-Forwarded-For $remote_addr;
+        }}
+    }}"#
+    )
+}
+
 #[test]
 fn two_hundred_connections_through_nginx_get_no_5xx() {
     let dir = tempfile::tempdir().unwrap();
@@ -133,7 +143,7 @@ fn two_hundred_connections_through_nginx_get_no_5xx() {
     let listen = free_port();
     let nginx_dir = dir.path().join("nginx");
     std::fs::create_dir_all(&nginx_dir).unwrap();
-    let _nginx = start_nginx(&nginx_dir, listen, server.addr());
+    let _nginx = start_nginx(&nginx_dir, listen, &plain_proxy(listen, server.addr()));
     let url = format!("http://{listen}{}", brick_path("proxied", &generation, id));
     strata_service::install_tls_provider();
     let runtime = tokio::runtime::Builder::new_multi_thread()
@@ -217,4 +227,147 @@ fn two_hundred_connections_through_nginx_get_no_5xx() {
         "5xx through nginx"
     );
     assert_eq!(failed.load(Ordering::Relaxed), 0, "failed through nginx");
+}
+
+/// docs/deploy.md's nginx configuration itself (its `nginx` block, with loopback ports, test
+/// certificates and a temporary cache put in): TLS terminated by nginx, the token passed
+/// through, bricks cached (the second reading of the same bricks makes no brick request to
+/// the service), a request without the token never served from the cache (401), and with the
+/// service stopped the cached bricks still served (they are fresh for a year; expired ones
+/// would be served stale on error by `proxy_cache_use_stale`).
+#[test]
+fn the_documented_nginx_configuration_terminates_tls_caches_and_serves_stale() {
+    let dir = tempfile::tempdir().unwrap();
+    let certificates = dir.path().join("tls");
+    std::fs::create_dir_all(&certificates).unwrap();
+    let (ca, cert, key) = crate::server::test_certificates(&certificates).unwrap_or_else(|| {
+        panic!("the openssl tool is needed to make test certificates: `apt-get install -y openssl`")
+    });
+    let path = dir.path().join("proxied.strata");
+    Phantom::cube(40)
+        .write_store(&path, &ImportOptions::default())
+        .unwrap();
+    let server = start(
+        find_stores(&[path]).unwrap(),
+        ServeOptions {
+            token: Some(TOKEN.into()),
+            trusted_proxies: vec![[127, 0, 0, 1].into()],
+            ..ServeOptions::default()
+        },
+    )
+    .unwrap();
+    let docs =
+        std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/deploy.md"))
+            .unwrap();
+    let block = docs
+        .split("```nginx\n")
+        .nth(1)
+        .and_then(|rest| rest.split("```").next())
+        .expect("docs/deploy.md has an nginx block");
+    let (https, http) = (free_port(), free_port());
+    let cache = dir.path().join("cache");
+    let substitutions = [
+        ("listen 443 ssl", format!("listen {https} ssl")),
+        ("listen 80;", format!("listen {http};")),
+        (
+            "server 127.0.0.1:8600;",
+            format!("server {};", server.addr()),
+        ),
+        ("/var/cache/nginx/strata", cache.display().to_string()),
+        ("/etc/ssl/strata/fullchain.pem", cert.display().to_string()),
+        ("/etc/ssl/strata/privkey.pem", key.display().to_string()),
+    ];
+    let mut servers = block.to_string();
+    for (from, to) in &substitutions {
+        assert!(
+            servers.contains(from),
+            "docs/deploy.md no longer has {from:?}"
+        );
+        servers = servers.replace(from, to);
+    }
+    let nginx_dir = dir.path().join("nginx");
+    std::fs::create_dir_all(&nginx_dir).unwrap();
+    let _nginx = start_nginx(&nginx_dir, https, &servers);
+    let options = RemoteOptions {
+        token: Some(TOKEN.into()),
+        tls_ca_pem: Some(std::fs::read(&ca).unwrap()),
+        give_up_after: Duration::from_secs(5),
+        ..RemoteOptions::default()
+    };
+    let url = format!("https://{https}/v1/stores/proxied");
+    let direct = RemoteSource::open(
+        &server.store_url("proxied"),
+        RemoteOptions {
+            token: Some(TOKEN.into()),
+            ..RemoteOptions::default()
+        },
+    )
+    .unwrap();
+    let ids: Vec<BrickId> = (0..8)
+        .map(|x| BrickId::new(0, [x % 2, (x / 2) % 2, x / 4]))
+        .filter(|id| direct.layout().contains(*id))
+        .collect();
+    let want: Vec<Vec<u8>> = ids
+        .iter()
+        .map(|id| direct.read_brick_record(*id).unwrap())
+        .collect();
+    let bricks =
+        |s: &strata_service::server::RunningServer| s.counters().bricks.load(Ordering::Relaxed);
+    let before = bricks(&server);
+    let first = RemoteSource::open(&url, options.clone()).unwrap();
+    for (id, record) in ids.iter().zip(&want) {
+        assert_eq!(&first.read_brick_record(*id).unwrap(), record);
+    }
+    let origin_first = bricks(&server) - before;
+    assert_eq!(
+        origin_first,
+        ids.len() as u64,
+        "the first reading goes to the service"
+    );
+    // Again, through a new client: from nginx's cache, no brick request reaches the service.
+    let second = RemoteSource::open(&url, options.clone()).unwrap();
+    for (id, record) in ids.iter().zip(&want) {
+        assert_eq!(&second.read_brick_record(*id).unwrap(), record);
+    }
+    assert_eq!(
+        bricks(&server) - before,
+        origin_first,
+        "the second reading was cached"
+    );
+    // Without the token: the service's 401, not the cached brick.
+    strata_service::install_tls_provider();
+    let brick_url = format!(
+        "https://{https}{}",
+        brick_path("proxied", direct.generation(), ids[0])
+    );
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    let status = runtime.block_on(async {
+        let client = reqwest::Client::builder()
+            .no_proxy()
+            .add_root_certificate(
+                reqwest::Certificate::from_pem(&std::fs::read(&ca).unwrap()).unwrap(),
+            )
+            .timeout(Duration::from_secs(10))
+            .build()
+            .unwrap();
+        client.get(&brick_url).send().await.unwrap().status()
+    });
+    assert_eq!(
+        status.as_u16(),
+        401,
+        "a cached brick served without the token"
+    );
+    // The service gone: the cached bricks are still served.
+    drop(direct);
+    drop(server);
+    for (id, record) in ids.iter().zip(&want) {
+        assert_eq!(
+            &second.read_brick_record(*id).unwrap(),
+            record,
+            "stale on error"
+        );
+    }
 }

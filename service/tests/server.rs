@@ -642,7 +642,7 @@ fn connections_beyond_the_limit_wait_for_a_place_when_all_are_busy() {
 }
 
 /// A CA and a leaf for 127.0.0.1 signed by it, made with the openssl tool (None when absent).
-fn test_certificates(dir: &Path) -> Option<(PathBuf, PathBuf, PathBuf)> {
+pub(crate) fn test_certificates(dir: &Path) -> Option<(PathBuf, PathBuf, PathBuf)> {
     let run = |args: &[&str]| {
         std::process::Command::new("openssl")
             .args(args)
