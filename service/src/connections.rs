@@ -128,7 +128,7 @@ pub(crate) enum Refused {
 pub(crate) struct Admitted {
     shared: Arc<Shared>,
     registry: Arc<Connections>,
-    /// Whether admitting it evicted another connection (or it waited for one to step aside).
+    /// Whether admitting it evicted another connection, or asked one to step aside.
     pub(crate) shed_one: bool,
 }
 
@@ -195,10 +195,16 @@ impl Connections {
     pub(crate) fn admit(self: &Arc<Self>, address: IpAddr) -> Result<Admitted, Refused> {
         let pool = self.pool(address);
         let mut live = self.lock();
-        self.admit_locked(&mut live, pool)
+        self.admit_locked(&mut live, pool, &mut false)
     }
 
-    fn admit_locked(self: &Arc<Self>, live: &mut Live, pool: Pool) -> Result<Admitted, Refused> {
+    /// `asked` is set when a connection was asked to step aside for this one.
+    fn admit_locked(
+        self: &Arc<Self>,
+        live: &mut Live,
+        pool: Pool,
+        asked: &mut bool,
+    ) -> Result<Admitted, Refused> {
         let now = self.now_ms();
         let mut shed_one = false;
         if let Pool::Direct(_) = pool {
@@ -206,7 +212,7 @@ impl Connections {
             if from_address >= self.max_per_address {
                 if !self.evict_oldest_idle(&mut live.conns, now, |c| c.pool == pool) {
                     let waiting = live.waiting.get(&pool).copied().unwrap_or(0);
-                    step_aside(&live.conns, waiting, |c| c.pool == pool);
+                    *asked |= step_aside(&live.conns, waiting, |c| c.pool == pool);
                     return Err(Refused::AllBusy);
                 }
                 shed_one = true;
@@ -215,7 +221,7 @@ impl Connections {
         if live.conns.len() >= self.max_total {
             if !self.evict_oldest_idle(&mut live.conns, now, |_| true) {
                 let waiting = live.waiting.values().sum();
-                step_aside(&live.conns, waiting, |_| true);
+                *asked |= step_aside(&live.conns, waiting, |_| true);
                 return Err(Refused::AllBusy);
             }
             shed_one = true;
@@ -259,6 +265,7 @@ impl Connections {
         let pool = self.pool(address);
         *self.lock().waiting.entry(pool).or_default() += 1;
         let deadline = tokio::time::Instant::now() + wait;
+        let mut asked = false;
         let outcome = loop {
             // Registered before the retry, so a place freed in between is not missed.
             let freed = self.freed.notified();
@@ -266,9 +273,9 @@ impl Connections {
             freed.as_mut().enable();
             let admitted = {
                 let mut live = self.lock();
-                match self.admit_locked(&mut live, pool) {
+                match self.admit_locked(&mut live, pool, &mut asked) {
                     Ok(mut a) => {
-                        a.shed_one = true;
+                        a.shed_one |= asked;
                         Ok(a)
                     }
                     other => other,
@@ -342,7 +349,7 @@ impl Connections {
 /// Asks one more connection among those `which` selects to step aside, unless as many are
 /// closing already as connections wait: an HTTP/1 one before an HTTP/2 one (a client of many
 /// streams loses more by reconnecting), the oldest first (so the places rotate).
-fn step_aside(conns: &[Arc<Shared>], waiting: usize, which: impl Fn(&Shared) -> bool) {
+fn step_aside(conns: &[Arc<Shared>], waiting: usize, which: impl Fn(&Shared) -> bool) -> bool {
     let mut closing = 0;
     let mut candidate: Option<&Arc<Shared>> = None;
     for c in conns.iter().filter(|c| which(c)) {
@@ -355,10 +362,12 @@ fn step_aside(conns: &[Arc<Shared>], waiting: usize, which: impl Fn(&Shared) -> 
             }
         }
     }
-    if closing < waiting {
-        if let Some(c) = candidate {
+    match candidate {
+        Some(c) if closing < waiting => {
             c.ask_to_close();
+            true
         }
+        _ => false,
     }
 }
 
@@ -389,6 +398,11 @@ impl Admitted {
             Some(left) if left > 0 => MayClose::After(Duration::from_millis(left)),
             _ => MayClose::Now,
         }
+    }
+
+    /// Whether it was asked to close (evicted, or asked to step aside).
+    pub(crate) fn asked_to_close(&self) -> bool {
+        self.shared.closing.load(Ordering::Acquire)
     }
 
     pub(crate) fn is_http2(&self) -> bool {

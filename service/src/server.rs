@@ -29,7 +29,7 @@ use strata_storage::brick::verify_record;
 use strata_storage::{BrickId, StorageError, Store};
 use tokio::sync::Semaphore;
 
-use crate::connections::{ConnectionHandle, Connections, MayClose};
+use crate::connections::{Admitted, ConnectionHandle, Connections, MayClose};
 use crate::observe::{ObservedBody, Observer};
 use crate::web_viewer::{FrameSink, WebViewerAssets};
 use crate::wire::{
@@ -211,8 +211,8 @@ pub struct ServerCounters {
     pub rejected_busy: AtomicU64,
     /// Connections closed unserved: every connection busy for the whole wait at a cap.
     pub connections_refused: AtomicU64,
-    /// Connections admitted at a cap in place of another: an idle one closed (gracefully)
-    /// or a recently active one asked to step aside (`Connection: close`, GOAWAY).
+    /// Connections closed (gracefully) to make room at a cap: idle ones evicted, and
+    /// recently active ones asked to step aside (`Connection: close`, GOAWAY).
     pub connections_shed: AtomicU64,
     /// Connections closed because no request byte came within the header timeout.
     pub connections_idle_closed: AtomicU64,
@@ -711,9 +711,11 @@ async fn serve_connection(
             return;
         }
     };
-    if admitted.shed_one {
-        counters.connections_shed.fetch_add(1, Ordering::Relaxed);
-    }
+    // Counted when it closes, if it was asked to (evicted or asked to step aside).
+    let admitted = CountedWhenAsked {
+        admitted,
+        counters: counters.clone(),
+    };
     let handle = admitted.handle();
     // hyper's header timer starts only at the first byte (its protocol detection waits for it
     // without a limit): bound that wait here, so a socket that sends nothing is closed. An
@@ -855,6 +857,30 @@ async fn serve_connection(
         tracing::debug!("strata serve: connection from {peer} ended: {e}");
     }
     drop(admitted);
+}
+
+/// An admitted connection that counts itself in `connections_shed` when it closes having
+/// been asked to (so the counter is the connections closed to make room, however admitted).
+struct CountedWhenAsked {
+    admitted: Admitted,
+    counters: Arc<ServerCounters>,
+}
+
+impl std::ops::Deref for CountedWhenAsked {
+    type Target = Admitted;
+    fn deref(&self) -> &Admitted {
+        &self.admitted
+    }
+}
+
+impl Drop for CountedWhenAsked {
+    fn drop(&mut self) {
+        if self.admitted.asked_to_close() {
+            self.counters
+                .connections_shed
+                .fetch_add(1, Ordering::Relaxed);
+        }
+    }
 }
 
 /// How soon a connection asked to close is looked at again when its socket holds bytes that
