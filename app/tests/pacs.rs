@@ -413,3 +413,131 @@ fn pacs_basic_auth_keeps_the_password_out_of_errors_logs_and_stores() {
     let e = client.series_of(CT_STUDY).unwrap_err().to_string();
     assert!(e.contains("401") && !e.contains("another-wrong-one"), "{e}");
 }
+
+/// Orthanc filled with the generated CT series (and the MR study) through STOW-RS.
+fn filled_orthanc(work: &Path) -> Orthanc {
+    let orthanc = start_orthanc(None);
+    let src = work.join("src");
+    write_dicom(&src);
+    let client = Client::new(&orthanc.url, Auth::None, None, ClientOptions::default()).unwrap();
+    let (files, _) = strata_pacs::dicom_files(&src).unwrap();
+    let report = client.store_files(&files, None).unwrap();
+    assert_eq!(report.stored, CT_SLICES + 2, "{report:?}");
+    orthanc
+}
+
+fn dcm_files(dir: &Path) -> Vec<PathBuf> {
+    let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    files.sort();
+    files
+}
+
+#[test]
+fn pacs_cancel_half_way_then_resume_fetches_only_the_missing_instances() {
+    let work = tempfile::tempdir().unwrap();
+    let orthanc = filled_orthanc(work.path());
+    // One request in flight: the cancel lands between instances, after half of them.
+    let options = ClientOptions {
+        parallelism: 1,
+        ..ClientOptions::default()
+    };
+    let client = Client::new(&orthanc.url, Auth::None, None, options).unwrap();
+    let folder = work.path().join("retrieved");
+    let cancel = std::sync::atomic::AtomicBool::new(false);
+    let before_cancelled = client.requests();
+    let on_progress = |p: strata_pacs::RetrieveProgress| {
+        if p.done >= CT_SLICES / 2 {
+            cancel.store(true, std::sync::atomic::Ordering::Relaxed);
+        }
+    };
+    let cancelled = client
+        .retrieve_series(
+            CT_STUDY,
+            CT_SERIES,
+            &folder,
+            Some(&cancel),
+            Some(&on_progress),
+        )
+        .unwrap_err();
+    assert!(
+        matches!(cancelled, strata_pacs::PacsError::Cancelled),
+        "{cancelled}"
+    );
+    // Whole instances only: no `.part` left, and fewer than the series.
+    let kept = dcm_files(&folder);
+    assert!(
+        kept.iter()
+            .all(|f| f.extension().is_some_and(|e| e == "dcm")),
+        "{kept:?}"
+    );
+    // One in flight and the cancel checked before each request: exactly the first half.
+    let present = kept.len();
+    assert_eq!(present, CT_SLICES / 2, "{kept:?}");
+
+    let cancelled_requests = client.requests() - before_cancelled;
+    let before_resumed = client.requests();
+    let resumed = client
+        .retrieve_series(CT_STUDY, CT_SERIES, &folder, None, None)
+        .unwrap();
+    // The cancelled run made one request per instance it kept, besides its searches (as
+    // many as the resume's): none for an instance it then dropped.
+    let searches = client.requests() - before_resumed - resumed.requests;
+    assert_eq!(cancelled_requests - searches, present as u64);
+    assert_eq!(
+        (resumed.already_present, resumed.fetched, resumed.requests),
+        (present, CT_SLICES - present, (CT_SLICES - present) as u64),
+        "{resumed:?}"
+    );
+    assert_eq!(dcm_files(&folder).len(), CT_SLICES);
+}
+
+#[test]
+fn pacs_orthanc_killed_during_a_retrieve_is_a_clear_error_and_no_store() {
+    let work = tempfile::tempdir().unwrap();
+    let orthanc = std::sync::Mutex::new(filled_orthanc(work.path()));
+    let url = orthanc.lock().unwrap().url.clone();
+    let options = ClientOptions {
+        parallelism: 1,
+        attempts: 2,
+        backoff: Duration::from_millis(50),
+        ..ClientOptions::default()
+    };
+    let client = Client::new(&url, Auth::None, None, options).unwrap();
+    let folder = work.path().join("retrieved");
+    // Orthanc is killed once the first instance is in: the next request finds nobody.
+    let on_progress = |p: strata_pacs::RetrieveProgress| {
+        if p.done == 1 {
+            let mut o = orthanc.lock().unwrap();
+            let _ = o.child.kill();
+            let _ = o.child.wait();
+        }
+    };
+    let e = client
+        .retrieve_series(CT_STUDY, CT_SERIES, &folder, None, Some(&on_progress))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains(&url) && e.contains("instance"), "{e}");
+    let kept = dcm_files(&folder);
+    assert!(
+        kept.len() < CT_SLICES
+            && kept
+                .iter()
+                .all(|f| f.extension().is_some_and(|x| x == "dcm")),
+        "{kept:?}"
+    );
+
+    // The command line against the dead server: an error naming it, and no store at the path.
+    let store = work.path().join("store");
+    let out = strata(&["import", &url, "--study", CT_STUDY, store.to_str().unwrap()]);
+    assert!(!out.status.success());
+    let text = String::from_utf8_lossy(&out.stderr).to_string();
+    assert!(text.contains(&url), "{text}");
+    assert!(
+        strata_storage::Store::open(&store).is_err(),
+        "a store is presented at {}",
+        store.display()
+    );
+}
