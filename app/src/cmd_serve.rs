@@ -1,7 +1,7 @@
 //! `strata serve`: stores, read-only, over HTTP/1.1 and h2c (see strata-service's server).
 
 use std::io::Write;
-use std::net::SocketAddr;
+use std::net::{IpAddr, SocketAddr};
 use std::path::PathBuf;
 use std::time::Duration;
 
@@ -37,9 +37,17 @@ pub struct ServeArgs {
     #[arg(long, default_value_t = 256)]
     pub max_connections: usize,
     /// Connections from one client address; at a cap the connection idle longest is closed
-    /// to admit a new one.
+    /// (gracefully) to admit a new one, and while all are busy a new one waits.
     #[arg(long, default_value_t = 64)]
     pub max_connections_per_address: usize,
+    /// A reverse proxy's address (repeatable): its connections carry many clients, so they are
+    /// a pool of their own under --max-connections, not limited per address.
+    #[arg(long = "trusted-proxy", value_name = "ADDR")]
+    pub trusted_proxies: Vec<IpAddr>,
+    /// Append one line per request to FILE: time, client, method, path (no query, no token),
+    /// status, bytes, seconds.
+    #[arg(long, value_name = "FILE")]
+    pub access_log: Option<PathBuf>,
     #[arg(long, default_value_t = 512)]
     pub max_requests: usize,
     /// Seconds a client may take to send a request's first byte (from connecting), and then
@@ -106,6 +114,8 @@ pub fn run(args: ServeArgs) -> Result<()> {
             _ => None,
         },
         web_viewer: web_viewer(),
+        trusted_proxies: args.trusted_proxies,
+        access_log: args.access_log,
         ..ServeOptions::default()
     };
     let stores = find_stores(&args.stores)?;

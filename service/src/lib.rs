@@ -5,6 +5,7 @@
 
 pub mod client;
 mod connections;
+mod observe;
 pub mod server;
 pub mod web_viewer;
 /// The wire format lives in strata-source, where the browser's client (strata-web) reads it too.

@@ -11,7 +11,7 @@
 //! each request holds at most one brick record.
 
 use std::collections::HashMap;
-use std::net::SocketAddr;
+use std::net::{IpAddr, SocketAddr};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
@@ -29,6 +29,8 @@ use strata_storage::brick::verify_record;
 use strata_storage::{BrickId, StorageError, Store};
 use tokio::sync::Semaphore;
 
+use crate::connections::{Admitted, ConnectionHandle, Connections};
+use crate::observe::{ObservedBody, Observer};
 use crate::web_viewer::{FrameSink, WebViewerAssets};
 use crate::wire::{
     brick_etag, encode_open_document, is_valid_store_name, OpenDocument, StoreList, StoreListing,
@@ -91,6 +93,12 @@ pub struct ServeOptions {
     /// Test hook: a sink for the frames the page posts to `/v1/test/frame` (the route exists
     /// only when this is set).
     pub test_frame_sink: Option<FrameSink>,
+    /// Reverse proxies (`--trusted-proxy`): their connections carry many clients over one
+    /// address, so they are a pool of their own under the global cap, never limited by the
+    /// per-address cap meant for direct clients.
+    pub trusted_proxies: Vec<IpAddr>,
+    /// `--access-log FILE`: one line per request (appended).
+    pub access_log: Option<PathBuf>,
 }
 
 impl Default for ServeOptions {
@@ -112,6 +120,8 @@ impl Default for ServeOptions {
             tls: None,
             web_viewer: None,
             test_frame_sink: None,
+            trusted_proxies: Vec::new(),
+            access_log: None,
         }
     }
 }
@@ -170,10 +180,21 @@ struct ServedStore {
     zarr_view: strata_omezarr::view::ZarrView,
 }
 
-/// Counters, logged once a minute and readable by tests.
+/// Counters, logged once a minute, served at `/metrics` and readable by tests.
 #[derive(Default, Debug)]
 pub struct ServerCounters {
+    /// Requests through the API's guard (token and concurrency checks).
     pub requests: AtomicU64,
+    /// Every request whose head was parsed (API and page), and what became of it: answered
+    /// (the response body handed to the connection in full) or aborted (dropped before; only
+    /// when the client goes away or the server stops). Never started and not finished
+    /// otherwise: a server that drops no request keeps started = answered + aborted + in
+    /// flight with aborted 0 under any load of clients that stay.
+    pub requests_started: AtomicU64,
+    pub requests_answered: AtomicU64,
+    pub requests_aborted: AtomicU64,
+    /// Response body bytes of answered requests (all routes; `bytes` counts store data).
+    pub response_bytes: AtomicU64,
     /// Answers the test hook `ServeOptions::corrupt_answers` damaged.
     pub corrupted: AtomicU64,
     pub bricks: AtomicU64,
@@ -182,8 +203,9 @@ pub struct ServerCounters {
     pub errors: AtomicU64,
     pub unauthorized: AtomicU64,
     pub rejected_busy: AtomicU64,
+    /// Connections closed unserved: every connection busy for the whole wait at a cap.
     pub connections_refused: AtomicU64,
-    /// Idle connections closed to admit a new one at a cap.
+    /// Idle connections closed (gracefully) to admit a new one at a cap: evictions.
     pub connections_shed: AtomicU64,
     /// Connections closed because no request byte came within the header timeout.
     pub connections_idle_closed: AtomicU64,
@@ -198,6 +220,8 @@ struct AppState {
     added_delay: Duration,
     corrupt_answers: std::sync::Mutex<Option<(BrickId, u32)>>,
     stall_below_root: bool,
+    observer: Arc<Observer>,
+    connections: Arc<Connections>,
 }
 
 /// A store found on the command line: its name in URLs and its directory.
@@ -455,6 +479,20 @@ pub fn start(
         .collect();
     listing.sort();
     let counters = Arc::new(ServerCounters::default());
+    let observer = Observer::new(
+        counters.clone(),
+        options.access_log.as_deref(),
+        options.token.clone(),
+    )
+    .map_err(|e| ServeError::Refused {
+        path: options.access_log.clone().unwrap_or_default(),
+        message: format!("cannot open the access log: {e}"),
+    })?;
+    let connections = Connections::new(
+        options.max_connections,
+        options.max_connections_per_address,
+        options.trusted_proxies.iter().copied(),
+    );
     let state = Arc::new(AppState {
         stores: served,
         token: options.token.as_ref().map(|t| t.as_bytes().to_vec()),
@@ -468,6 +506,8 @@ pub fn start(
         added_delay: options.added_delay,
         corrupt_answers: std::sync::Mutex::new(options.corrupt_answers),
         stall_below_root: options.stall_below_root,
+        observer: Arc::new(observer),
+        connections,
     });
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
@@ -541,6 +581,8 @@ fn router(state: Arc<AppState>, options: &ServeOptions) -> Router {
             get(brick),
         )
         .route("/v1/stores/{name}/zarr/{*key}", get(zarr_key))
+        // Inside the guard: off loopback only with the token.
+        .route("/metrics", get(metrics))
         .fallback(not_found)
         .layer(axum::middleware::from_fn_with_state(state.clone(), guard))
         .layer(tower_http::timeout::TimeoutLayer::with_status_code(
@@ -593,10 +635,6 @@ async fn serve(
         .max_pending_accept_reset_streams(Some(64))
         .keep_alive_interval(Some(Duration::from_secs(20)))
         .keep_alive_timeout(Duration::from_secs(20));
-    let connections = crate::connections::Connections::new(
-        options.max_connections,
-        options.max_connections_per_address,
-    );
     let mut tasks = tokio::task::JoinSet::new();
     let mut minute = tokio::time::interval(Duration::from_secs(60));
     minute.tick().await;
@@ -613,73 +651,16 @@ async fn serve(
                         continue;
                     }
                 };
-                let admitted = match connections.admit(peer.ip()) {
-                    Ok(a) => a,
-                    Err(_) => {
-                        state.counters.connections_refused.fetch_add(1, Ordering::Relaxed);
-                        drop(stream);
-                        continue;
-                    }
-                };
-                if admitted.shed_one {
-                    state.counters.connections_shed.fetch_add(1, Ordering::Relaxed);
-                }
                 let _ = stream.set_nodelay(true);
-                let builder = builder.clone();
-                let app = app.clone();
-                let tls = tls.clone();
-                let counters = state.counters.clone();
-                let handshake_timeout = options.header_read_timeout;
-                tasks.spawn(async move {
-                    let handle = admitted.handle();
-                    let service = hyper::service::service_fn(move |req: hyper::Request<hyper::body::Incoming>| {
-                        let mut app = app.clone();
-                        // Busy while the request is answered: a busy connection is never shed.
-                        let in_flight = handle.request();
-                        async move {
-                            let answer = tower_service::Service::call(&mut app, req).await;
-                            drop(in_flight);
-                            answer
-                        }
-                    });
-                    let serve = async {
-                        // hyper's header timer starts only at the first byte (its protocol
-                        // detection waits for it without a limit): bound that wait here, so a
-                        // socket that sends nothing is closed.
-                        let mut first = [0u8; 1];
-                        match tokio::time::timeout(handshake_timeout, stream.peek(&mut first)).await {
-                            Ok(Ok(n)) if n > 0 => {}
-                            Ok(Ok(_)) => return Ok(()),
-                            Ok(Err(e)) => return Err(e.into()),
-                            Err(_) => {
-                                counters.connections_idle_closed.fetch_add(1, Ordering::Relaxed);
-                                return Err("no request within the header timeout".into());
-                            }
-                        }
-                        match tls {
-                            None => builder.serve_connection(TokioIo::new(stream), service).await,
-                            Some(acceptor) => {
-                                // The handshake is bounded like the headers: a client that stalls
-                                // in it is dropped.
-                                match tokio::time::timeout(handshake_timeout, acceptor.accept(stream)).await {
-                                    Ok(Ok(tls_stream)) => {
-                                        builder.serve_connection(TokioIo::new(tls_stream), service).await
-                                    }
-                                    Ok(Err(e)) => Err(e.into()),
-                                    Err(_) => Err("TLS handshake timed out".into()),
-                                }
-                            }
-                        }
-                    };
-                    let served: Result<(), Box<dyn std::error::Error + Send + Sync>> = tokio::select! {
-                        served = serve => served,
-                        () = admitted.shed() => Err("closed while idle to admit another connection".into()),
-                    };
-                    if let Err(e) = served {
-                        tracing::debug!("strata serve: connection from {peer} ended: {e}");
-                    }
-                    drop(admitted);
-                });
+                tasks.spawn(serve_connection(
+                    stream,
+                    peer,
+                    state.clone(),
+                    builder.clone(),
+                    app.clone(),
+                    tls.clone(),
+                    options.header_read_timeout,
+                ));
                 // Reap finished connection tasks so the set does not grow.
                 while tasks.try_join_next().is_some() {}
             }
@@ -689,10 +670,244 @@ async fn serve(
     log_counters(&state.counters);
 }
 
+type BoxError = Box<dyn std::error::Error + Send + Sync>;
+
+/// One connection from accept to close: admission (waiting for a place while every one is
+/// busy), the first byte within the header timeout, TLS, hyper, and a graceful close when the
+/// registry asks for one (never a drop of a connection with a request in it).
+async fn serve_connection(
+    stream: tokio::net::TcpStream,
+    peer: SocketAddr,
+    state: Arc<AppState>,
+    builder: hyper_util::server::conn::auto::Builder<TokioExecutor>,
+    app: Router,
+    tls: Option<Arc<tokio_rustls::TlsAcceptor>>,
+    header_timeout: Duration,
+) {
+    let counters = state.counters.clone();
+    // Backpressure: while every place is busy the socket waits here unread (its client sees
+    // latency), for at most the header timeout.
+    let admitted = match state
+        .connections
+        .admit_waiting(peer.ip(), header_timeout)
+        .await
+    {
+        Ok(a) => a,
+        Err(why) => {
+            counters.connections_refused.fetch_add(1, Ordering::Relaxed);
+            tracing::debug!("strata serve: connection from {peer} refused: {why:?}");
+            return;
+        }
+    };
+    if admitted.shed_one {
+        counters.connections_shed.fetch_add(1, Ordering::Relaxed);
+    }
+    let handle = admitted.handle();
+    // hyper's header timer starts only at the first byte (its protocol detection waits for it
+    // without a limit): bound that wait here, so a socket that sends nothing is closed. An
+    // eviction meanwhile closes it at once: it has sent nothing.
+    let mut first = [0u8; 4];
+    let peeked = tokio::select! {
+        biased;
+        peeked = tokio::time::timeout(header_timeout, stream.peek(&mut first)) => peeked,
+        () = admitted.shed() => return,
+    };
+    match peeked {
+        Ok(Ok(n)) if n > 0 => {
+            handle.bytes_read();
+            // h2c with prior knowledge starts with the preface "PRI * HTTP/2.0".
+            if first[..n] == b"PRI "[..n] && n == 4 {
+                handle.set_http2();
+            }
+        }
+        Ok(Ok(_)) => return,
+        Ok(Err(e)) => {
+            tracing::debug!("strata serve: connection from {peer} ended: {e}");
+            return;
+        }
+        Err(_) => {
+            counters
+                .connections_idle_closed
+                .fetch_add(1, Ordering::Relaxed);
+            return;
+        }
+    }
+    let io = match tls {
+        None => Io::Plain(stream),
+        Some(acceptor) => {
+            // The handshake is bounded like the headers: a client that stalls in it is dropped.
+            match tokio::time::timeout(header_timeout, acceptor.accept(stream)).await {
+                Ok(Ok(tls_stream)) => {
+                    if tls_stream.get_ref().1.alpn_protocol() == Some(b"h2") {
+                        handle.set_http2();
+                    }
+                    Io::Tls(Box::new(tls_stream))
+                }
+                Ok(Err(e)) => {
+                    tracing::debug!("strata serve: TLS from {peer} failed: {e}");
+                    return;
+                }
+                Err(_) => return,
+            }
+        }
+    };
+    let service = {
+        let handle = handle.clone();
+        let observer = state.observer.clone();
+        hyper::service::service_fn(move |req: hyper::Request<hyper::body::Incoming>| {
+            let mut app = app.clone();
+            let http2 = req.version() == axum::http::Version::HTTP_2;
+            if http2 {
+                handle.set_http2();
+            }
+            // Busy from the head until the body is sent: a busy connection is never closed.
+            let finish = observer.start(req.method(), req.uri().path(), peer, handle.request());
+            let handle = handle.clone();
+            async move {
+                let Ok(response) = tower_service::Service::call(&mut app, req).await;
+                let (mut parts, body) = response.into_parts();
+                parts.headers.insert(
+                    header::X_CONTENT_TYPE_OPTIONS,
+                    HeaderValue::from_static("nosniff"),
+                );
+                // Asked to close: HTTP/1 answers this request and says it closes after it
+                // (hyper then closes); HTTP/2 closes by GOAWAY, which needs no header.
+                if !http2 && handle.closing() {
+                    parts
+                        .headers
+                        .insert(header::CONNECTION, HeaderValue::from_static("close"));
+                }
+                let body = Body::new(ObservedBody::new(body, finish, parts.status));
+                Ok::<_, std::convert::Infallible>(Response::from_parts(parts, body))
+            }
+        })
+    };
+    let conn = builder.serve_connection(
+        TokioIo::new(ReadTracked {
+            inner: io,
+            handle: handle.clone(),
+        }),
+        service,
+    );
+    tokio::pin!(conn);
+    let mut closing = false;
+    let served: Result<(), BoxError> = loop {
+        tokio::select! {
+            // The connection first: bytes that arrived with the eviction notice are read (and
+            // make it busy) before the notice is judged.
+            biased;
+            served = conn.as_mut() => break served,
+            () = admitted.shed(), if !closing => {
+                if close_gracefully_now(&admitted) {
+                    closing = true;
+                    conn.as_mut().graceful_shutdown();
+                }
+                // Else it is busy: its answers carry `Connection: close`, and the end of its
+                // last request notifies again.
+            }
+        }
+    };
+    if let Err(e) = served {
+        tracing::debug!("strata serve: connection from {peer} ended: {e}");
+    }
+    drop(admitted);
+}
+
+/// Whether an evicted connection can be shut down now: HTTP/2 always (GOAWAY answers every
+/// stream already received), HTTP/1 only between requests.
+fn close_gracefully_now(admitted: &Admitted) -> bool {
+    admitted.is_http2() || admitted.is_idle()
+}
+
+/// The connection's transport: TCP, or TLS over it.
+enum Io {
+    Plain(tokio::net::TcpStream),
+    Tls(Box<tokio_rustls::server::TlsStream<tokio::net::TcpStream>>),
+}
+
+/// The transport as hyper reads it, telling the registry when request bytes arrive (a
+/// connection with unparsed bytes is not idle).
+struct ReadTracked {
+    inner: Io,
+    handle: ConnectionHandle,
+}
+
+impl tokio::io::AsyncRead for ReadTracked {
+    fn poll_read(
+        mut self: std::pin::Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+        buf: &mut tokio::io::ReadBuf<'_>,
+    ) -> std::task::Poll<std::io::Result<()>> {
+        let before = buf.filled().len();
+        let polled = match &mut self.inner {
+            Io::Plain(s) => std::pin::Pin::new(s).poll_read(cx, buf),
+            Io::Tls(s) => std::pin::Pin::new(s.as_mut()).poll_read(cx, buf),
+        };
+        if matches!(polled, std::task::Poll::Ready(Ok(()))) && buf.filled().len() > before {
+            self.handle.bytes_read();
+        }
+        polled
+    }
+}
+
+impl tokio::io::AsyncWrite for ReadTracked {
+    fn poll_write(
+        mut self: std::pin::Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+        buf: &[u8],
+    ) -> std::task::Poll<std::io::Result<usize>> {
+        match &mut self.inner {
+            Io::Plain(s) => std::pin::Pin::new(s).poll_write(cx, buf),
+            Io::Tls(s) => std::pin::Pin::new(s.as_mut()).poll_write(cx, buf),
+        }
+    }
+
+    fn poll_write_vectored(
+        mut self: std::pin::Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+        bufs: &[std::io::IoSlice<'_>],
+    ) -> std::task::Poll<std::io::Result<usize>> {
+        match &mut self.inner {
+            Io::Plain(s) => std::pin::Pin::new(s).poll_write_vectored(cx, bufs),
+            Io::Tls(s) => std::pin::Pin::new(s.as_mut()).poll_write_vectored(cx, bufs),
+        }
+    }
+
+    fn is_write_vectored(&self) -> bool {
+        match &self.inner {
+            Io::Plain(s) => s.is_write_vectored(),
+            Io::Tls(s) => s.is_write_vectored(),
+        }
+    }
+
+    fn poll_flush(
+        mut self: std::pin::Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+    ) -> std::task::Poll<std::io::Result<()>> {
+        match &mut self.inner {
+            Io::Plain(s) => std::pin::Pin::new(s).poll_flush(cx),
+            Io::Tls(s) => std::pin::Pin::new(s.as_mut()).poll_flush(cx),
+        }
+    }
+
+    fn poll_shutdown(
+        mut self: std::pin::Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+    ) -> std::task::Poll<std::io::Result<()>> {
+        match &mut self.inner {
+            Io::Plain(s) => std::pin::Pin::new(s).poll_shutdown(cx),
+            Io::Tls(s) => std::pin::Pin::new(s.as_mut()).poll_shutdown(cx),
+        }
+    }
+}
+
 fn log_counters(c: &ServerCounters) {
     tracing::info!(
-        "strata serve: {} requests, {} bricks, {:.1} MB sent, {} not modified (304), {} errors, {} unauthorized, {} busy (503), {} connections refused",
+        "strata serve: {} requests ({} started, {} answered, {} aborted), {} bricks, {:.1} MB sent, {} not modified (304), {} errors, {} unauthorized, {} busy (503), {} connections refused, {} evicted",
         c.requests.load(Ordering::Relaxed),
+        c.requests_started.load(Ordering::Relaxed),
+        c.requests_answered.load(Ordering::Relaxed),
+        c.requests_aborted.load(Ordering::Relaxed),
         c.bricks.load(Ordering::Relaxed),
         c.bytes.load(Ordering::Relaxed) as f64 / 1e6,
         c.not_modified.load(Ordering::Relaxed),
@@ -700,6 +915,7 @@ fn log_counters(c: &ServerCounters) {
         c.unauthorized.load(Ordering::Relaxed),
         c.rejected_busy.load(Ordering::Relaxed),
         c.connections_refused.load(Ordering::Relaxed),
+        c.connections_shed.load(Ordering::Relaxed),
     );
 }
 
@@ -736,6 +952,20 @@ async fn guard(State(state): State<Arc<AppState>>, request: Request, next: Next)
         state.counters.errors.fetch_add(1, Ordering::Relaxed);
     }
     response
+}
+
+async fn metrics(State(state): State<Arc<AppState>>) -> Response {
+    (
+        [
+            (
+                header::CONTENT_TYPE,
+                "text/plain; version=0.0.4; charset=utf-8",
+            ),
+            (header::CACHE_CONTROL, "no-store"),
+        ],
+        state.observer.metrics_text(state.connections.live()),
+    )
+        .into_response()
 }
 
 async fn not_found() -> Response {

@@ -3,5 +3,6 @@
 //! here (or as a [[test]] of its own in Cargo.toml): tests/tidy.rs checks that none is left out.
 
 mod client;
+mod load;
 mod server;
 mod zarr_view;
