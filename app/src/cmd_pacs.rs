@@ -283,7 +283,8 @@ pub fn retrieve_for_import(
                 [one] => one.series_uid.clone(),
                 [] => bail!("{}: study {study} has no series", client.base_url()),
                 many => bail!(
-                    "study {study} has {} series; choose one with --series:\n{}",
+                    "{}: study {study} has {} series; choose one with --series:\n{}",
+                    client.base_url(),
                     many.len(),
                     many.iter()
                         .map(|s| format!(

@@ -173,15 +173,48 @@ for k in range(2):
 }
 
 fn strata(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_strata"))
+    let mut child = Command::new(env!("CARGO_BIN_EXE_strata"))
         .args(args)
         .env("RUST_LOG", "debug")
         .env(
             "STRATA_PACS_SERVERS",
             "/nonexistent/strata-test-servers.json",
         )
-        .output()
-        .expect("strata runs")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("strata runs");
+    // Bounded: a command still running after 5 minutes is killed and the test fails (its own
+    // timeouts are shorter; this only keeps a hang from holding the test run).
+    let read = |name: &str, mut pipe: Box<dyn std::io::Read + Send>| {
+        std::thread::Builder::new()
+            .name(name.into())
+            .spawn(move || {
+                let mut bytes = Vec::new();
+                let _ = pipe.read_to_end(&mut bytes);
+                bytes
+            })
+            .unwrap()
+    };
+    let stdout = read("strata-stdout", Box::new(child.stdout.take().unwrap()));
+    let stderr = read("strata-stderr", Box::new(child.stderr.take().unwrap()));
+    let deadline = Instant::now() + Duration::from_secs(300);
+    let status = loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            break status;
+        }
+        if Instant::now() > deadline {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("strata {args:?} still ran after 300 s: killed");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    Output {
+        status,
+        stdout: stdout.join().unwrap(),
+        stderr: stderr.join().unwrap(),
+    }
 }
 
 fn ok(out: Output, what: &str) -> String {
