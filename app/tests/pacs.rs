@@ -574,3 +574,119 @@ fn pacs_orthanc_killed_during_a_retrieve_is_a_clear_error_and_no_store() {
         store.display()
     );
 }
+
+const COMPRESSED_STUDY: &str = "1.2.826.0.1.3680043.8.498.300";
+/// (folder, pydicom's name, transfer syntax UID) of each compressed series.
+const CODECS: [(&str, &str, &str); 3] = [
+    ("rle", "RLELossless", "1.2.840.10008.1.2.5"),
+    ("jls", "JPEGLSLossless", "1.2.840.10008.1.2.4.80"),
+    ("j2k", "JPEG2000Lossless", "1.2.840.10008.1.2.4.90"),
+];
+
+/// One four-slice series per codec (RLE, JPEG-LS, JPEG 2000, all lossless), compressed by
+/// pydicom, in one study: `dir/rle`, `dir/jls`, `dir/j2k`.
+fn write_compressed_dicom(dir: &Path) {
+    let script = format!(
+        r#"
+import os, numpy as np, pydicom, pydicom.uid
+from pydicom.dataset import Dataset, FileMetaDataset
+codecs = {codecs}
+for i, (name, syntax, _) in enumerate(codecs):
+    os.makedirs(os.path.join(r'{dir}', name))
+    series = '{study}.%d' % (i + 1)
+    for k in range(4):
+        ds = Dataset()
+        ds.file_meta = FileMetaDataset()
+        ds.file_meta.TransferSyntaxUID = pydicom.uid.ExplicitVRLittleEndian
+        ds.file_meta.MediaStorageSOPClassUID = '1.2.840.10008.5.1.4.1.1.2'
+        ds.file_meta.MediaStorageSOPInstanceUID = '%s.%d' % (series, k)
+        ds.SOPClassUID = '1.2.840.10008.5.1.4.1.1.2'
+        ds.SOPInstanceUID = '%s.%d' % (series, k)
+        ds.StudyInstanceUID = '{study}'; ds.SeriesInstanceUID = series
+        ds.PatientName = 'COE^CODEC'; ds.PatientID = 'P-3'; ds.StudyDate = '20220202'
+        ds.Modality = 'CT'; ds.StudyID = '3'; ds.SeriesNumber = i + 1; ds.InstanceNumber = k + 1
+        ds.ImagePositionPatient = [-10.0, -12.0, 3.0 * k]
+        ds.ImageOrientationPatient = [1, 0, 0, 0, 1, 0]
+        ds.PixelSpacing = [0.5, 0.5]; ds.SliceThickness = 3.0
+        ds.Rows = 64; ds.Columns = 48  # OpenJPEG's 6 resolutions need 32 or more
+        ds.SamplesPerPixel = 1; ds.PhotometricInterpretation = 'MONOCHROME2'
+        ds.BitsAllocated = 16; ds.BitsStored = 12; ds.HighBit = 11; ds.PixelRepresentation = 0
+        ds.RescaleSlope = 1; ds.RescaleIntercept = -1024
+        y, x = np.mgrid[0:64, 0:48]
+        img = ((x * 37 + y * 11 + k * 101 + i * 7) % 4000).astype('<u2')
+        ds.PixelData = img.tobytes()
+        ds.compress(getattr(pydicom.uid, syntax), img)
+        ds.save_as(os.path.join(r'{dir}', name, '%03d.dcm' % k), enforce_file_format=True)
+"#,
+        dir = dir.display(),
+        study = COMPRESSED_STUDY,
+        codecs = format!("{CODECS:?}").replace('(', "[").replace(')', "]"),
+    );
+    let out = Command::new("python3")
+        .arg("-c")
+        .arg(script)
+        .output()
+        .unwrap_or_else(|e| panic!("python3 not runnable ({e}): pip install pydicom numpy"));
+    assert!(
+        out.status.success(),
+        "writing the compressed series failed (pip install pydicom pylibjpeg \
+         pylibjpeg-openjpeg pyjpegls numpy):\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+#[test]
+fn pacs_compressed_series_retrieved_and_imported_equal_the_folder_import() {
+    let work = tempfile::tempdir().unwrap();
+    let orthanc = start_orthanc(None);
+    let src = work.path().join("compressed");
+    write_compressed_dicom(&src);
+    let url = orthanc.url.as_str();
+    ok(
+        strata(&["pacs", "push", url, src.to_str().unwrap()]),
+        "pacs push of the compressed series",
+    );
+    let client = Client::new(url, Auth::None, None, ClientOptions::default()).unwrap();
+    for (i, (codec, _, syntax)) in CODECS.iter().enumerate() {
+        let series = format!("{COMPRESSED_STUDY}.{}", i + 1);
+        // Retrieved as stored (transfer-syntax=*): still compressed with the same codec.
+        let retrieved = work.path().join(format!("{codec}-retrieved"));
+        client
+            .retrieve_series(COMPRESSED_STUDY, &series, &retrieved, None, None)
+            .unwrap();
+        let files = dcm_files(&retrieved);
+        assert_eq!(files.len(), 4, "{files:?}");
+        for f in &files {
+            let head = std::fs::read(f).unwrap();
+            let head = &head[..head.len().min(1024)];
+            assert!(
+                head.windows(syntax.len()).any(|w| w == syntax.as_bytes()),
+                "{} is not in {syntax}",
+                f.display()
+            );
+        }
+        let from_pacs = work.path().join(format!("{codec}-pacs"));
+        let from_folder = work.path().join(format!("{codec}-folder"));
+        ok(
+            strata(&[
+                "import",
+                url,
+                "--study",
+                COMPRESSED_STUDY,
+                "--series",
+                &series,
+                from_pacs.to_str().unwrap(),
+            ]),
+            &format!("import of the {codec} series from the PACS"),
+        );
+        ok(
+            strata(&[
+                "import",
+                src.join(codec).to_str().unwrap(),
+                from_folder.to_str().unwrap(),
+            ]),
+            &format!("import of the {codec} series from the folder"),
+        );
+        same_stores(&from_pacs, &from_folder);
+    }
+}
