@@ -98,24 +98,27 @@ fn three<T: Copy + std::fmt::Display>(flag: &str, values: &[T]) -> Result<[T; 3]
 }
 
 pub fn run(mut args: ImportArgs) -> Result<()> {
-    // From a PACS: the series is retrieved into a temporary folder, imported as any DICOM
-    // folder, and the folder removed (the guard) once the import is done.
-    let mut provenance = None;
-    let _retrieved = match &args.study {
-        Some(study) => {
-            let retrieved = crate::cmd_pacs::retrieve_for_import(
-                &args.input.to_string_lossy(),
-                study,
-                args.series.as_deref(),
-                &args.pacs,
-                args.staging_dir.as_deref(),
-            )?;
-            args.input = retrieved.folder.path().to_path_buf();
-            provenance = Some(retrieved.provenance.clone());
-            Some(retrieved)
-        }
-        None => None,
+    // From a PACS: the series is retrieved into a folder beside the store, imported as any
+    // DICOM folder, and the folder removed once the import succeeded. After a failure or an
+    // interruption it stays, and the same command resumes: instances there are not fetched
+    // again.
+    let Some(study) = args.study.clone() else {
+        return import(args, None);
     };
+    let retrieved = crate::cmd_pacs::retrieve_for_import(
+        &args.input.to_string_lossy(),
+        &study,
+        args.series.as_deref(),
+        &args.pacs,
+        &args.store,
+    )?;
+    args.input = retrieved.folder.clone();
+    import(args, Some(retrieved.provenance.clone()))?;
+    retrieved.remove();
+    Ok(())
+}
+
+fn import(args: ImportArgs, provenance: Option<String>) -> Result<()> {
     let input = args.input.to_string_lossy().into_owned();
     if strata_omezarr::looks_like_ome_zarr(&input) {
         let zarr = strata_omezarr::import::ImportZarrOptions {

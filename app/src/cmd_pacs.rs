@@ -259,20 +259,35 @@ fn push(args: PushArgs) -> Result<()> {
     Ok(())
 }
 
-/// A series retrieved for `strata import SERVER --study UID [--series UID]`: its folder (kept
-/// alive by the guard) and the provenance line for the store's description.
+/// A series retrieved for `strata import SERVER --study UID [--series UID]`: its folder (beside
+/// the store, kept after a failure so that the next try resumes) and the provenance line for
+/// the store's description.
 pub struct Retrieved {
-    pub folder: tempfile::TempDir,
+    pub folder: PathBuf,
     pub provenance: String,
 }
 
-/// Retrieves the series to import into a temporary folder (under `staging_dir` if given).
+impl Retrieved {
+    /// Removes the folder once its instances are imported (a failure only warns: the store is
+    /// complete).
+    pub fn remove(self) {
+        if let Err(e) = std::fs::remove_dir_all(&self.folder) {
+            eprintln!(
+                "warning: cannot remove the retrieved instances in {}: {e}",
+                self.folder.display()
+            );
+        }
+    }
+}
+
+/// Retrieves the series to import into `STORE.retrieving-SERIESUID` beside `store`, fetching
+/// only the instances not there yet.
 pub fn retrieve_for_import(
     server: &str,
     study: &str,
     series: Option<&str>,
     args: &ServerArgs,
-    staging_dir: Option<&Path>,
+    store: &Path,
 ) -> Result<Retrieved> {
     let client = connect(server, args)?;
     let series_uid = match series {
@@ -300,21 +315,35 @@ pub fn retrieve_for_import(
             }
         }
     };
-    let folder = match staging_dir {
-        Some(d) => tempfile::Builder::new()
-            .prefix("strata-pacs-")
-            .tempdir_in(d),
-        None => tempfile::Builder::new().prefix("strata-pacs-").tempdir(),
-    }
-    .context("cannot create a temporary folder for the retrieved instances")?;
+    strata_pacs::check_uid(&series_uid)
+        .map_err(|e| anyhow::anyhow!("{}: series: {e}", client.base_url()))?;
+    let name = store
+        .file_name()
+        .with_context(|| format!("{}: not a store path", store.display()))?;
+    let mut folder_name = name.to_os_string();
+    folder_name.push(format!(".retrieving-{series_uid}"));
+    let folder = store.with_file_name(folder_name);
     let bar = crate::progress::count_bar(0, "retrieving");
     let on_progress = |p: strata_pacs::RetrieveProgress| {
         bar.set_length(p.total as u64);
         bar.set_position(p.done as u64);
     };
-    let report =
-        client.retrieve_series(study, &series_uid, folder.path(), None, Some(&on_progress))?;
+    let report = client
+        .retrieve_series(study, &series_uid, &folder, None, Some(&on_progress))
+        .with_context(|| {
+            format!(
+                "the instances retrieved so far stay in {} (the same command resumes)",
+                folder.display()
+            )
+        })?;
     bar.finish_and_clear();
+    if report.already_present > 0 {
+        eprintln!(
+            "resumed: {} instance(s) already in {}",
+            report.already_present,
+            folder.display()
+        );
+    }
     eprintln!(
         "retrieved {} instance(s), {:.1} MB, from {} in {} request(s)",
         report.fetched,

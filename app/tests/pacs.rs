@@ -376,6 +376,32 @@ fn pacs_find_push_retrieve_and_resume_against_orthanc() {
         .retrieve_series(CT_STUDY, CT_SERIES, &folder, None, None)
         .unwrap();
     assert_eq!((third.fetched, third.requests), (0, 0));
+
+    // The command line resumes too: what an interrupted import left beside the store is not
+    // fetched again, and the folder goes once the store is complete.
+    let resumed_store = work.path().join("resumed");
+    let partial = work.path().join(format!("resumed.retrieving-{CT_SERIES}"));
+    std::fs::create_dir(&partial).unwrap();
+    for f in &dcm_files(&folder)[..5] {
+        std::fs::copy(f, partial.join(f.file_name().unwrap())).unwrap();
+    }
+    let said = ok(
+        strata(&[
+            "import",
+            url,
+            "--study",
+            CT_STUDY,
+            resumed_store.to_str().unwrap(),
+        ]),
+        "resumed import from the PACS",
+    );
+    assert!(
+        said.contains("resumed: 5 instance(s)")
+            && said.contains(&format!("retrieved {} instance(s)", CT_SLICES - 5)),
+        "{said}"
+    );
+    assert!(!partial.exists(), "{} left", partial.display());
+    same_stores(&resumed_store, &from_folder);
 }
 
 #[test]
