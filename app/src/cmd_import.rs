@@ -8,14 +8,21 @@ use strata_storage::{BrickCodec, ByteOrder, SampleType};
 
 #[derive(Args)]
 pub struct ImportArgs {
-    /// DICOM folder or file, .nii/.nii.gz, .nrrd/.nhdr, .mha/.mhd, raw (with --raw-*), or an
-    /// OME-Zarr (a folder, s3://BUCKET/PREFIX or http(s)://.../x.ome.zarr).
+    /// DICOM folder or file, .nii/.nii.gz, .nrrd/.nhdr, .mha/.mhd, raw (with --raw-*), an
+    /// OME-Zarr (a folder, s3://BUCKET/PREFIX or http(s)://.../x.ome.zarr), or with --study a
+    /// DICOMweb server (its base URL or its name in the servers file).
     pub input: PathBuf,
     /// Store directory to create (an existing store there is replaced).
     pub store: PathBuf,
-    /// DICOM: the series to import when a folder holds several (SeriesInstanceUID or index).
+    /// DICOM: the series to import when a folder holds several (SeriesInstanceUID or index;
+    /// from a DICOMweb server, its SeriesInstanceUID).
     #[arg(long)]
     pub series: Option<String>,
+    /// Retrieve this study (StudyInstanceUID) from the DICOMweb server INPUT and import it.
+    #[arg(long)]
+    pub study: Option<String>,
+    #[command(flatten)]
+    pub pacs: crate::cmd_pacs::ServerArgs,
     /// Memory budget for the import in MiB (buffers plus database cache).
     #[arg(long, default_value_t = 1024, value_parser = crate::cli_checks::budget_mib)]
     pub memory_mib: u64,
@@ -90,7 +97,28 @@ fn three<T: Copy + std::fmt::Display>(flag: &str, values: &[T]) -> Result<[T; 3]
     }
 }
 
-pub fn run(args: ImportArgs) -> Result<()> {
+pub fn run(mut args: ImportArgs) -> Result<()> {
+    // From a PACS: the series is retrieved into a folder beside the store, imported as any
+    // DICOM folder, and the folder removed once the import succeeded. After a failure or an
+    // interruption it stays, and the same command resumes: instances there are not fetched
+    // again.
+    let Some(study) = args.study.clone() else {
+        return import(args, None);
+    };
+    let retrieved = crate::cmd_pacs::retrieve_for_import(
+        &args.input.to_string_lossy(),
+        &study,
+        args.series.as_deref(),
+        &args.pacs,
+        &args.store,
+    )?;
+    args.input = retrieved.folder.clone();
+    import(args, Some(retrieved.provenance.clone()))?;
+    retrieved.remove();
+    Ok(())
+}
+
+fn import(args: ImportArgs, provenance: Option<String>) -> Result<()> {
     let input = args.input.to_string_lossy().into_owned();
     if strata_omezarr::looks_like_ome_zarr(&input) {
         let zarr = strata_omezarr::import::ImportZarrOptions {
@@ -128,8 +156,16 @@ pub fn run(args: ImportArgs) -> Result<()> {
         raw,
         staging_dir: args.staging_dir.clone(),
     };
-    let opened = open_source(&args.input, &options)
+    let mut opened = open_source(&args.input, &options)
         .with_context(|| format!("cannot read {}", args.input.display()))?;
+    if let Some(p) = provenance {
+        // Notes in a description are joined with "; " (SourceInfo::warnings reads them so).
+        opened.info.description = if opened.info.description.is_empty() {
+            p
+        } else {
+            format!("{}; {p}", opened.info.description)
+        };
+    }
     let g = &opened.info.geometry;
     eprintln!(
         "{} {}: {}x{}x{} {} voxels, spacing {:.4}x{:.4}x{:.4} mm",

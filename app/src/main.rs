@@ -6,6 +6,7 @@ mod cmd_flythrough;
 mod cmd_import;
 mod cmd_info;
 mod cmd_omezarr;
+mod cmd_pacs;
 mod cmd_render;
 mod cmd_sample;
 mod cmd_serve;
@@ -55,6 +56,9 @@ enum Command {
     /// The stores of the viewer's data folder: list them, prune what can go.
     #[command(subcommand)]
     Store(cmd_store::StoreCommand),
+    /// A DICOMweb server (PACS): find studies and series, push DICOM files.
+    #[command(subcommand)]
+    Pacs(cmd_pacs::PacsCommand),
     /// Benchmarks (figures for the issue notes).
     #[command(subcommand)]
     Bench(bench::BenchCommand),
@@ -108,6 +112,7 @@ fn run(cli: Cli) -> Result<()> {
         Some(Command::Sample(args)) => cmd_sample::run(args),
         Some(Command::Render(args)) => cmd_render::run(args),
         Some(Command::Bench(cmd)) => bench::run(cmd),
+        Some(Command::Pacs(cmd)) => cmd_pacs::run(cmd),
         Some(Command::Store(cmd)) => cmd_store::run(cmd),
         Some(Command::Flythrough(args)) => cmd_flythrough::run(args),
         Some(Command::View(args)) => view(args),

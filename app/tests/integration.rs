@@ -10,6 +10,7 @@ mod common;
 mod omezarr_foreign;
 mod omezarr_s3;
 mod orbit;
+mod pacs;
 mod reliability;
 mod remote;
 mod render_adaptive;

@@ -1021,6 +1021,10 @@ impl Inner {
             "{}/studies/{study_uid}/series/{series_uid}/instances/{sop_uid}",
             self.base
         );
+        // A cancel seen before the request costs no request (a resume counts on it).
+        if cancel.is_some_and(|c| c.load(Ordering::Relaxed)) {
+            return Err(PacsError::Cancelled);
+        }
         self.requests.fetch_add(1, Ordering::Relaxed);
         let mut response = self
             .authed(self.http.get(&url))
