@@ -24,7 +24,38 @@ use bytes::Bytes;
 use http_body::{Body as _, Frame, SizeHint};
 
 use crate::connections::RequestGuard;
-use crate::server::ServerCounters;
+
+/// Counters, logged once a minute, served at `/metrics` and readable by tests.
+#[derive(Default, Debug)]
+pub struct ServerCounters {
+    /// Requests through the API's guard (token and concurrency checks).
+    pub requests: AtomicU64,
+    /// Every request whose head was parsed (API and page), and what became of it: answered
+    /// (the response body handed to the connection in full) or aborted (dropped before; only
+    /// when the client goes away or the server stops). Never started and not finished
+    /// otherwise: a server that drops no request keeps started = answered + aborted + in
+    /// flight with aborted 0 under any load of clients that stay.
+    pub requests_started: AtomicU64,
+    pub requests_answered: AtomicU64,
+    pub requests_aborted: AtomicU64,
+    /// Response body bytes of answered requests (all routes; `bytes` counts store data).
+    pub response_bytes: AtomicU64,
+    /// Answers the test hook `ServeOptions::corrupt_answers` damaged.
+    pub corrupted: AtomicU64,
+    pub bricks: AtomicU64,
+    pub bytes: AtomicU64,
+    pub not_modified: AtomicU64,
+    pub errors: AtomicU64,
+    pub unauthorized: AtomicU64,
+    pub rejected_busy: AtomicU64,
+    /// Connections closed unserved: every connection busy for the whole wait at a cap.
+    pub connections_refused: AtomicU64,
+    /// Connections closed (gracefully) to make room at a cap: idle ones evicted, and
+    /// recently active ones asked to step aside (`Connection: close`, GOAWAY).
+    pub connections_shed: AtomicU64,
+    /// Connections closed because no request byte came within the header timeout.
+    pub connections_idle_closed: AtomicU64,
+}
 
 /// Upper bounds (seconds) of the latency histogram's buckets; `+Inf` follows.
 const LATENCY_BUCKETS: [f64; 12] = [

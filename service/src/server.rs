@@ -13,7 +13,7 @@
 use std::collections::HashMap;
 use std::net::{IpAddr, SocketAddr};
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -30,6 +30,8 @@ use strata_storage::{BrickId, StorageError, Store};
 use tokio::sync::Semaphore;
 
 use crate::connections::{Admitted, ConnectionHandle, Connections, MayClose};
+// The counters live with what observes the server (observe.rs) and keep their old path here.
+pub use crate::observe::ServerCounters;
 use crate::observe::{ObservedBody, Observer};
 use crate::web_viewer::{FrameSink, WebViewerAssets};
 use crate::wire::{
@@ -184,38 +186,6 @@ struct ServedStore {
     listing: StoreListing,
     /// The store as a read-only OME-Zarr 0.5 image (`/v1/stores/{name}/zarr/...`).
     zarr_view: strata_omezarr::view::ZarrView,
-}
-
-/// Counters, logged once a minute, served at `/metrics` and readable by tests.
-#[derive(Default, Debug)]
-pub struct ServerCounters {
-    /// Requests through the API's guard (token and concurrency checks).
-    pub requests: AtomicU64,
-    /// Every request whose head was parsed (API and page), and what became of it: answered
-    /// (the response body handed to the connection in full) or aborted (dropped before; only
-    /// when the client goes away or the server stops). Never started and not finished
-    /// otherwise: a server that drops no request keeps started = answered + aborted + in
-    /// flight with aborted 0 under any load of clients that stay.
-    pub requests_started: AtomicU64,
-    pub requests_answered: AtomicU64,
-    pub requests_aborted: AtomicU64,
-    /// Response body bytes of answered requests (all routes; `bytes` counts store data).
-    pub response_bytes: AtomicU64,
-    /// Answers the test hook `ServeOptions::corrupt_answers` damaged.
-    pub corrupted: AtomicU64,
-    pub bricks: AtomicU64,
-    pub bytes: AtomicU64,
-    pub not_modified: AtomicU64,
-    pub errors: AtomicU64,
-    pub unauthorized: AtomicU64,
-    pub rejected_busy: AtomicU64,
-    /// Connections closed unserved: every connection busy for the whole wait at a cap.
-    pub connections_refused: AtomicU64,
-    /// Connections closed (gracefully) to make room at a cap: idle ones evicted, and
-    /// recently active ones asked to step aside (`Connection: close`, GOAWAY).
-    pub connections_shed: AtomicU64,
-    /// Connections closed because no request byte came within the header timeout.
-    pub connections_idle_closed: AtomicU64,
 }
 
 struct AppState {
