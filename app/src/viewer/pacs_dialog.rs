@@ -543,6 +543,26 @@ mod tests {
         assert_eq!(model.server_shown(), "http://127.0.0.1:9/dicom-web");
     }
 
+    #[test]
+    fn an_unreachable_server_is_an_error_naming_it_without_its_password() {
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .and_then(|l| l.local_addr())
+            .map(|a| a.port())
+            .unwrap();
+        let mut model = PacsModel::new(Some("/nonexistent/strata-servers.json".into()));
+        model.server = format!("http://alice:Pw-secret-9@127.0.0.1:{port}/dicom-web");
+        model.search(Arc::new(|| {}));
+        let start = std::time::Instant::now();
+        while !model.poll() {
+            assert!(start.elapsed() < std::time::Duration::from_secs(120));
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+        let e = model.error.clone().expect("an error");
+        assert!(e.contains(&format!("127.0.0.1:{port}")), "{e}");
+        assert!(!e.contains("Pw-secret-9"), "{e}");
+        assert!(model.studies.is_empty() && model.busy().is_none());
+    }
+
     /// Against a real PACS (Orthanc on loopback, the integration tests' fixture).
     mod orthanc {
         use std::time::{Duration, Instant};
