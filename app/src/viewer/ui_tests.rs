@@ -2118,6 +2118,7 @@ fn toolbar_items_do_not_overlap_at_1024_points() {
     h.step();
     let labels = [
         "Open…",
+        "Open from PACS…",
         "1×1",
         "3D + 1×3",
         "2×2",
