@@ -482,3 +482,69 @@ mod remote_tests {
         server.stop();
     }
 }
+
+#[cfg(test)]
+mod pacs_tests {
+    use std::sync::atomic::AtomicUsize;
+
+    use super::super::orthanc_fixture::{filled_orthanc, CT_SERIES, CT_SLICES, CT_STUDY};
+    use super::*;
+
+    /// Cancel half-way through "Open from PACS": an error saying so, no store; the next open
+    /// fetches only what is missing (its first progress counts the instances already there)
+    /// and opens the series.
+    #[test]
+    fn a_cancelled_pacs_open_leaves_no_store_and_the_next_open_resumes() {
+        let work = tempfile::tempdir().unwrap();
+        let orthanc = filled_orthanc(work.path());
+        let series = PacsSeries {
+            server: orthanc.url.clone(),
+            servers_file: Some(work.path().join("no-servers.json")),
+            study_uid: CT_STUDY.into(),
+            series_uid: CT_SERIES.into(),
+            label: "CT".into(),
+        };
+        let stores = work.path().join("stores");
+        let cancel = AtomicBool::new(false);
+        // Cancelled once 3 instances are in (the retrieval reports instances as progress).
+        let progress = |p: ImportProgress| {
+            if p.source_bytes_total == CT_SLICES as u64 && p.source_bytes_done >= 3 {
+                cancel.store(true, Ordering::Release);
+            }
+        };
+        let e = prepare_pacs_store(&series, &stores, &progress, &|_| {}, &cancel)
+            .err()
+            .expect("a cancelled open fails");
+        let e = format!("{e:#}");
+        assert!(e.contains("cancel"), "{e}");
+        let base = strata_pacs::normalise_base_url(&orthanc.url).unwrap();
+        let store = store_path_for_pacs_series(&base, CT_SERIES, &stores);
+        assert!(
+            Store::open(&store).is_err(),
+            "a cancelled open left a store"
+        );
+
+        let first_done = AtomicUsize::new(usize::MAX);
+        let progress = |p: ImportProgress| {
+            if p.source_bytes_total == CT_SLICES as u64 {
+                let _ = first_done.compare_exchange(
+                    usize::MAX,
+                    p.source_bytes_done as usize,
+                    Ordering::AcqRel,
+                    Ordering::Acquire,
+                );
+            }
+        };
+        let opened = prepare_pacs_store(
+            &series,
+            &stores,
+            &progress,
+            &|_| {},
+            &AtomicBool::new(false),
+        )
+        .unwrap_or_else(|e| panic!("{e:#}"));
+        assert_eq!(opened.header().geometry.dims[2], CT_SLICES as u32);
+        let resumed = first_done.load(Ordering::Acquire);
+        assert!((3..CT_SLICES).contains(&resumed), "resumed from {resumed}");
+    }
+}
