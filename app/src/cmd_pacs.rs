@@ -389,7 +389,7 @@ pub fn retrieve_series_beside(
         .retrieve_series(study, series_uid, &folder, cancel, progress)
         .with_context(|| {
             format!(
-                "the instances retrieved so far stay in {} (the same command resumes)",
+                "the instances retrieved so far stay in {} (retrieving the series again resumes)",
                 folder.display()
             )
         })?;
