@@ -118,6 +118,17 @@ pub fn run(mut args: ImportArgs) -> Result<()> {
     Ok(())
 }
 
+/// Adds where the source came from (a PACS's "retrieved from …") to a store's description
+/// (the command line's import and the viewer's "Open from PACS…").
+pub fn add_provenance(description: &mut String, provenance: &str) {
+    // Notes in a description are joined with "; " (SourceInfo::warnings reads them so).
+    *description = if description.is_empty() {
+        provenance.to_string()
+    } else {
+        format!("{description}; {provenance}")
+    };
+}
+
 fn import(args: ImportArgs, provenance: Option<String>) -> Result<()> {
     let input = args.input.to_string_lossy().into_owned();
     if strata_omezarr::looks_like_ome_zarr(&input) {
@@ -159,12 +170,7 @@ fn import(args: ImportArgs, provenance: Option<String>) -> Result<()> {
     let mut opened = open_source(&args.input, &options)
         .with_context(|| format!("cannot read {}", args.input.display()))?;
     if let Some(p) = provenance {
-        // Notes in a description are joined with "; " (SourceInfo::warnings reads them so).
-        opened.info.description = if opened.info.description.is_empty() {
-            p
-        } else {
-            format!("{}; {p}", opened.info.description)
-        };
+        add_provenance(&mut opened.info.description, &p);
     }
     let g = &opened.info.geometry;
     eprintln!(

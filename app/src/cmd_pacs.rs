@@ -88,6 +88,24 @@ pub struct PushArgs {
     pub connection: ServerArgs,
 }
 
+impl ServerArgs {
+    /// No credentials or CA besides the servers file's entry, the default limits: how the
+    /// viewer connects (credentials only ever come from the servers file there).
+    pub fn from_servers_file(servers_file: Option<PathBuf>) -> ServerArgs {
+        ServerArgs {
+            user: None,
+            password_file: None,
+            password_env: None,
+            bearer_token_file: None,
+            bearer_token_env: None,
+            ca_file: None,
+            servers_file,
+            parallel: 4,
+            max_instance_mib: 2048,
+        }
+    }
+}
+
 pub fn run(command: PacsCommand) -> Result<()> {
     match command {
         PacsCommand::Find(args) => find(args),
@@ -95,7 +113,9 @@ pub fn run(command: PacsCommand) -> Result<()> {
     }
 }
 
-fn default_servers_file() -> Option<PathBuf> {
+/// The servers file `connect` reads names from when none is given: `$STRATA_PACS_SERVERS`, else
+/// `~/.config/strata/pacs-servers.json` (the viewer's "Open from PACS…" lists the same).
+pub fn default_servers_file() -> Option<PathBuf> {
     if let Some(p) = std::env::var_os("STRATA_PACS_SERVERS") {
         return Some(PathBuf::from(p));
     }
@@ -315,33 +335,19 @@ pub fn retrieve_for_import(
             }
         }
     };
-    strata_pacs::check_uid(&series_uid)
-        .map_err(|e| anyhow::anyhow!("{}: series: {e}", client.base_url()))?;
-    let name = store
-        .file_name()
-        .with_context(|| format!("{}: not a store path", store.display()))?;
-    let mut folder_name = name.to_os_string();
-    folder_name.push(format!(".retrieving-{series_uid}"));
-    let folder = store.with_file_name(folder_name);
     let bar = crate::progress::count_bar(0, "retrieving");
     let on_progress = |p: strata_pacs::RetrieveProgress| {
         bar.set_length(p.total as u64);
         bar.set_position(p.done as u64);
     };
-    let report = client
-        .retrieve_series(study, &series_uid, &folder, None, Some(&on_progress))
-        .with_context(|| {
-            format!(
-                "the instances retrieved so far stay in {} (the same command resumes)",
-                folder.display()
-            )
-        })?;
+    let (retrieved, report) =
+        retrieve_series_beside(&client, study, &series_uid, store, None, Some(&on_progress))?;
     bar.finish_and_clear();
     if report.already_present > 0 {
         eprintln!(
             "resumed: {} instance(s) already in {}",
             report.already_present,
-            folder.display()
+            retrieved.folder.display()
         );
     }
     eprintln!(
@@ -357,11 +363,42 @@ pub fn retrieve_for_import(
             report.instances
         );
     }
-    Ok(Retrieved {
+    Ok(retrieved)
+}
+
+/// Retrieves `series_uid` into `STORE.retrieving-SERIESUID` beside `store`, fetching only the
+/// instances not there yet (the command line's import and the viewer's "Open from PACS…").
+/// `cancel` stops it between instances; what was fetched stays for the next try.
+pub fn retrieve_series_beside(
+    client: &Client,
+    study: &str,
+    series_uid: &str,
+    store: &Path,
+    cancel: Option<&std::sync::atomic::AtomicBool>,
+    progress: Option<&dyn Fn(strata_pacs::RetrieveProgress)>,
+) -> Result<(Retrieved, strata_pacs::RetrieveReport)> {
+    strata_pacs::check_uid(series_uid)
+        .map_err(|e| anyhow::anyhow!("{}: series: {e}", client.base_url()))?;
+    let name = store
+        .file_name()
+        .with_context(|| format!("{}: not a store path", store.display()))?;
+    let mut folder_name = name.to_os_string();
+    folder_name.push(format!(".retrieving-{series_uid}"));
+    let folder = store.with_file_name(folder_name);
+    let report = client
+        .retrieve_series(study, series_uid, &folder, cancel, progress)
+        .with_context(|| {
+            format!(
+                "the instances retrieved so far stay in {} (retrieving the series again resumes)",
+                folder.display()
+            )
+        })?;
+    let retrieved = Retrieved {
         folder,
         provenance: format!(
             "retrieved from {} (DICOMweb), study {study}, series {series_uid}",
             client.base_url()
         ),
-    })
+    };
+    Ok((retrieved, report))
 }

@@ -121,6 +121,10 @@ pub struct StrataApp {
     pub volume: Option<OpenVolume>,
     pub panels: Panels,
     open_dialog: OpenDialog,
+    /// "Open from PACS…" (pacs_dialog.rs).
+    pub pacs_dialog: super::pacs_dialog::PacsDialog,
+    /// Whether the running (or just failed) job came from the PACS dialog: its errors show there.
+    job_from_pacs: bool,
     help: HelpWindow,
     started_at: Instant,
     clock: FrameClock,
@@ -150,7 +154,7 @@ fn resolve_link(source: VolumeSource) -> (VolumeSource, Option<DesktopView>, Opt
             url, token_file, ..
         } => (url.clone(), token_file.clone()),
         VolumeSource::Path(p) => (p.to_string_lossy().into_owned(), None),
-        VolumeSource::Demo { .. } => return (source, None, None),
+        VolumeSource::Demo { .. } | VolumeSource::Pacs(_) => return (source, None, None),
     };
     if !links::is_link(&text) {
         return (source, None, None);
@@ -192,7 +196,7 @@ impl StrataApp {
         let open_path = match &options.source {
             VolumeSource::Path(p) => p.display().to_string(),
             VolumeSource::Url { url, .. } => url.clone(),
-            VolumeSource::Demo { .. } => preferences
+            VolumeSource::Demo { .. } | VolumeSource::Pacs(_) => preferences
                 .last_opened
                 .as_ref()
                 .map(|p| p.display().to_string())
@@ -200,6 +204,8 @@ impl StrataApp {
         };
         let mut app = StrataApp {
             open_dialog: OpenDialog::new(ctx.clone(), open_path),
+            pacs_dialog: super::pacs_dialog::PacsDialog::new(None),
+            job_from_pacs: false,
             ctx,
             preferences,
             job: None,
@@ -252,6 +258,7 @@ impl StrataApp {
         link_view: Option<DesktopView>,
     ) {
         self.job_error = None;
+        self.job_from_pacs = matches!(source, VolumeSource::Pacs(_));
         if let Some(view) = &link_view {
             self.preferences.preset = view.preset.clone();
             self.preferences.mode = view.mode;
@@ -342,20 +349,26 @@ impl StrataApp {
             return;
         };
         self.job = None;
-        match result {
+        let failed = match result {
             Ok(store) => match self.open_store(store) {
                 // The dialog has done its job.
-                Ok(()) => self.open_dialog.open = false,
-                Err(e) => {
-                    eprintln!("strata: {e:#}");
-                    self.job_error = Some(format!("{e:#}"));
-                    self.open_dialog.open = true;
+                Ok(()) => {
+                    self.open_dialog.open = false;
+                    self.pacs_dialog.open = false;
+                    None
                 }
+                Err(e) => Some(format!("{e:#}")),
             },
-            Err(e) => {
-                // Also on the terminal: `strata view bad.nii` must not fail silently there.
-                eprintln!("strata: {e}");
-                self.job_error = Some(e);
+            Err(e) => Some(e),
+        };
+        if let Some(e) = failed {
+            // Also on the terminal: `strata view bad.nii` must not fail silently there.
+            eprintln!("strata: {e}");
+            self.job_error = Some(e);
+            // Shown by the dialog it was started from.
+            if self.job_from_pacs {
+                self.pacs_dialog.open = true;
+            } else {
                 self.open_dialog.open = true;
             }
         }
@@ -608,6 +621,12 @@ impl StrataApp {
                 .ui(ui.ctx(), self.job.as_ref(), &mut self.job_error)
         {
             self.start_job(source, series);
+        }
+        if let Some(source) = self
+            .pacs_dialog
+            .ui(ui.ctx(), self.job.as_ref(), &mut self.job_error)
+        {
+            self.start_job(source, None);
         }
         self.help.ui(ui.ctx());
 
@@ -958,6 +977,13 @@ impl StrataApp {
             {
                 self.open_dialog.open = true;
             }
+            if ui
+                .button("Open from PACS…")
+                .on_hover_text("Search a DICOMweb server (PACS) and open a series")
+                .clicked()
+            {
+                self.pacs_dialog.open = true;
+            }
             ui.separator();
             ui.label("Layout");
             ui.selectable_value(&mut self.preferences.layout, Layout::Single, "1×1")
@@ -1212,7 +1238,7 @@ impl StrataApp {
                 }
             } else if let Some(e) = &self.job_error {
                 // The open dialog shows the error when it is open; once is enough.
-                if self.open_dialog.open {
+                if self.open_dialog.open || self.pacs_dialog.open {
                     ui.label(
                         RichText::new("Could not open (see the dialog).").color(Color32::LIGHT_RED),
                     );

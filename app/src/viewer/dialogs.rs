@@ -78,14 +78,7 @@ impl OpenDialog {
             });
             if let Some(job) = job {
                 ui.separator();
-                let (done, total, stage) = job.progress();
-                ui.label(&job.title);
-                ui.label(stage);
-                let fraction = if total > 0 { done as f32 / total as f32 } else { 0.0 };
-                ui.add(egui::ProgressBar::new(fraction).show_percentage());
-                if ui.button("Cancel").clicked() {
-                    job.cancel();
-                }
+                job_progress(ui, job);
             }
             if let Some(e) = job_error.clone() {
                 ui.separator();
@@ -125,6 +118,23 @@ impl OpenDialog {
         if let Chosen::Path(path) = chosen {
             self.path = path.display().to_string();
         }
+    }
+}
+
+/// A running preparation's title, stage, progress bar and Cancel (the Open and the Open from
+/// PACS dialogs).
+pub fn job_progress(ui: &mut egui::Ui, job: &PrepareJob) {
+    let (done, total, stage) = job.progress();
+    ui.label(&job.title);
+    ui.label(stage);
+    let fraction = if total > 0 {
+        done as f32 / total as f32
+    } else {
+        0.0
+    };
+    ui.add(egui::ProgressBar::new(fraction).show_percentage());
+    if ui.button("Cancel").clicked() {
+        job.cancel();
     }
 }
 

@@ -29,6 +29,30 @@ pub enum VolumeSource {
         /// and used instead of `token_file`.
         token: Option<String>,
     },
+    /// A series on a DICOMweb server ("Open from PACS…", pacs_dialog.rs): retrieved and
+    /// imported into the data folder, or the earlier import of it opened at once.
+    Pacs(PacsSeries),
+}
+
+/// A series to retrieve from a PACS. No credentials: they come from the servers file's entry
+/// when the job connects, and are never shown.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PacsSeries {
+    /// A server's name in the servers file, or a DICOMweb base URL.
+    pub server: String,
+    /// The servers file names are looked up in (None: the command line's default).
+    pub servers_file: Option<PathBuf>,
+    pub study_uid: String,
+    pub series_uid: String,
+    /// What the job's title calls the series ("CT chest, 12 instances").
+    pub label: String,
+}
+
+/// Where a PACS series' store goes: keyed by the server's base URL and the series UID, so the
+/// same series from the same server opens its earlier import at once.
+pub fn store_path_for_pacs_series(base_url: &str, series_uid: &str, folder: &Path) -> PathBuf {
+    let key = xxhash_of(format!("{base_url}|{series_uid}").as_bytes());
+    folder.join(format!("pacs-{key:016x}.strata"))
 }
 
 /// The prepared store, or why it could not be prepared; None while the job runs.
@@ -117,6 +141,11 @@ impl PrepareJob {
             VolumeSource::Demo { size, .. } => format!("Preparing the {size}³ demo phantom"),
             VolumeSource::Path(p) => format!("Opening {}", p.display()),
             VolumeSource::Url { url, .. } => format!("Opening {url}"),
+            VolumeSource::Pacs(p) => format!(
+                "Opening {} from {}",
+                p.label,
+                strata_pacs::redact_url(&p.server)
+            ),
         };
         let job = PrepareJob {
             title,
@@ -215,6 +244,10 @@ fn prepare(
             set_stage(format!("opening store {}", p.display()));
             crate::volume_location::open_source(&p.to_string_lossy(), None, cache)
         }
+        VolumeSource::Pacs(series) => {
+            let store = prepare_pacs_store(series, import_folder, progress, set_stage, cancel)?;
+            Ok(Arc::new(store))
+        }
         _ => {
             let store = prepare_store(
                 source,
@@ -307,7 +340,91 @@ fn prepare_store(
         VolumeSource::Url { url, .. } => {
             anyhow::bail!("{url} is a served store: it is streamed, not imported")
         }
+        VolumeSource::Pacs(series) => {
+            prepare_pacs_store(series, import_folder, progress, set_stage, cancel)
+        }
     }
+}
+
+/// A PACS series as a store: its earlier import from the same server, or retrieved beside the
+/// store (`STORE.retrieving-SERIES`, as `strata import SERVER --study`: a cancelled or failed
+/// retrieval resumes next time), imported with the store's provenance, the instances removed.
+/// Errors name the server (never its credentials).
+fn prepare_pacs_store(
+    series: &PacsSeries,
+    import_folder: &Path,
+    progress: &(dyn Fn(ImportProgress) + Sync),
+    set_stage: &dyn Fn(String),
+    cancel: &AtomicBool,
+) -> anyhow::Result<Store> {
+    let shown = strata_pacs::redact_url(&series.server);
+    let args = crate::cmd_pacs::ServerArgs::from_servers_file(series.servers_file.clone());
+    let client = crate::cmd_pacs::connect(&series.server, &args)
+        .with_context(|| format!("cannot reach the PACS {shown}"))?;
+    let store_path =
+        store_path_for_pacs_series(client.base_url(), &series.series_uid, import_folder);
+    if let Ok(store) = Store::open(&store_path) {
+        set_stage(format!(
+            "opening the earlier import {}",
+            store_path.display()
+        ));
+        return Ok(store);
+    }
+    std::fs::create_dir_all(import_folder)
+        .with_context(|| format!("creating {}", import_folder.display()))?;
+    set_stage(format!("retrieving from {}", client.base_url()));
+    let on_retrieved = |p: strata_pacs::RetrieveProgress| {
+        progress(ImportProgress {
+            source_bytes_done: p.done as u64,
+            source_bytes_total: p.total as u64,
+        });
+        set_stage(format!(
+            "retrieving {} of {} instance(s) from {}",
+            p.done,
+            p.total,
+            client.base_url()
+        ));
+    };
+    let (retrieved, report) = crate::cmd_pacs::retrieve_series_beside(
+        &client,
+        &series.study_uid,
+        &series.series_uid,
+        &store_path,
+        Some(cancel),
+        Some(&on_retrieved),
+    )?;
+    if cancel.load(Ordering::Acquire) {
+        anyhow::bail!(
+            "cancelled: the {} instance(s) retrieved so far stay for the next open",
+            report.fetched + report.already_present
+        );
+    }
+    set_stage(format!("reading {}", retrieved.folder.display()));
+    // The folder holds this series only: read as a folder import would.
+    let mut opened =
+        open_source(&retrieved.folder, &ReadOptions::default()).with_context(|| {
+            format!(
+                "cannot read the series retrieved from {}",
+                client.base_url()
+            )
+        })?;
+    crate::cmd_import::add_provenance(&mut opened.info.description, &retrieved.provenance);
+    set_stage(format!("importing into {}", store_path.display()));
+    let options = ImportOptions {
+        progress: Some(progress),
+        cancel: Some(cancel),
+        ..Default::default()
+    };
+    import_source(opened, &store_path, &options).with_context(|| {
+        format!(
+            "import of the series from {} into {} failed",
+            client.base_url(),
+            store_path.display()
+        )
+    })?;
+    retrieved.remove();
+    set_stage("opening".into());
+    Ok(Store::open(&store_path)?)
 }
 
 #[cfg(test)]
@@ -363,5 +480,71 @@ mod remote_tests {
             );
         }
         server.stop();
+    }
+}
+
+#[cfg(test)]
+mod pacs_tests {
+    use std::sync::atomic::AtomicUsize;
+
+    use super::super::orthanc_fixture::{filled_orthanc, CT_SERIES, CT_SLICES, CT_STUDY};
+    use super::*;
+
+    /// Cancel half-way through "Open from PACS": an error saying so, no store; the next open
+    /// fetches only what is missing (its first progress counts the instances already there)
+    /// and opens the series.
+    #[test]
+    fn a_cancelled_pacs_open_leaves_no_store_and_the_next_open_resumes() {
+        let work = tempfile::tempdir().unwrap();
+        let orthanc = filled_orthanc(work.path());
+        let series = PacsSeries {
+            server: orthanc.url.clone(),
+            servers_file: Some(work.path().join("no-servers.json")),
+            study_uid: CT_STUDY.into(),
+            series_uid: CT_SERIES.into(),
+            label: "CT".into(),
+        };
+        let stores = work.path().join("stores");
+        let cancel = AtomicBool::new(false);
+        // Cancelled once 3 instances are in (the retrieval reports instances as progress).
+        let progress = |p: ImportProgress| {
+            if p.source_bytes_total == CT_SLICES as u64 && p.source_bytes_done >= 3 {
+                cancel.store(true, Ordering::Release);
+            }
+        };
+        let e = prepare_pacs_store(&series, &stores, &progress, &|_| {}, &cancel)
+            .err()
+            .expect("a cancelled open fails");
+        let e = format!("{e:#}");
+        assert!(e.contains("cancel"), "{e}");
+        let base = strata_pacs::normalise_base_url(&orthanc.url).unwrap();
+        let store = store_path_for_pacs_series(&base, CT_SERIES, &stores);
+        assert!(
+            Store::open(&store).is_err(),
+            "a cancelled open left a store"
+        );
+
+        let first_done = AtomicUsize::new(usize::MAX);
+        let progress = |p: ImportProgress| {
+            if p.source_bytes_total == CT_SLICES as u64 {
+                let _ = first_done.compare_exchange(
+                    usize::MAX,
+                    p.source_bytes_done as usize,
+                    Ordering::AcqRel,
+                    Ordering::Acquire,
+                );
+            }
+        };
+        let opened = prepare_pacs_store(
+            &series,
+            &stores,
+            &progress,
+            &|_| {},
+            &AtomicBool::new(false),
+        )
+        .unwrap_or_else(|e| panic!("{e:#}"));
+        assert_eq!(opened.header().geometry.dims[2], CT_SLICES as u32);
+        let resumed = first_done.load(Ordering::Acquire);
+        assert!((3..CT_SLICES).contains(&resumed), "resumed from {resumed}");
     }
 }

@@ -29,6 +29,7 @@ pub mod oblique_view;
 pub use strata_slices::orientation;
 pub mod overlay;
 pub mod overlay_3d;
+pub mod pacs_dialog;
 pub mod panels;
 pub mod preferences;
 pub mod scene;
@@ -43,6 +44,13 @@ pub mod widgets;
 
 #[cfg(test)]
 mod ui_tests;
+
+/// The real PACS fixture (Orthanc on loopback) of the integration tests, shared by path so that
+/// the viewer's tests use the same one (pacs_dialog.rs, ui_tests.rs).
+#[cfg(test)]
+#[path = "../../tests/common/orthanc.rs"]
+#[allow(dead_code)]
+pub(crate) mod orthanc_fixture;
 
 use std::path::PathBuf;
 

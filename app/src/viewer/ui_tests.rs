@@ -2118,6 +2118,7 @@ fn toolbar_items_do_not_overlap_at_1024_points() {
     h.step();
     let labels = [
         "Open…",
+        "Open from PACS…",
         "1×1",
         "3D + 1×3",
         "2×2",
@@ -2655,4 +2656,64 @@ fn a_viewer_link_opens_its_store_and_view_and_copy_link_gives_it_back_without_th
         "every request carried the link's token"
     );
     server.stop();
+}
+
+/// Issue 51, end to end against Orthanc: the toolbar's "Open from PACS…" opens the dialog; a
+/// patient name typed and Search list the study; clicking it lists its series; "Open series"
+/// retrieves and imports it in the background and the viewer shows it in place of the phantom,
+/// the dialog closed.
+#[test]
+fn open_from_pacs_finds_a_study_and_shows_its_series_in_the_viewer() {
+    use super::orthanc_fixture::{filled_orthanc, CT_SLICES};
+    let dir = tempfile::tempdir().expect("temp dir");
+    let orthanc = filled_orthanc(dir.path());
+    let store = phantom_store(dir.path());
+    let mut options = ViewerOptions::new(VolumeSource::Path(store.clone()));
+    options.import_folder = dir.path().join("imported");
+    let preferences = Preferences {
+        layout: Layout::Single,
+        show_side_panel: false,
+        ..Preferences::default()
+    };
+    let mut h = harness_sized(options, preferences, Vec2::new(1024.0, 768.0));
+    step_until(&mut h, "the phantom", |a| a.volume.is_some());
+    h.get_by_label("Open from PACS…").click();
+    h.step();
+    assert!(app(&h).pacs_dialog.open);
+    if let Some(a) = h.state_mut().as_mut() {
+        a.pacs_dialog.model.server = orthanc.url.clone();
+    }
+    h.step();
+    let name = h.get_by_label("Patient name");
+    name.focus();
+    name.type_text("DOE^J*");
+    h.step();
+    h.get_by_label("Search").click();
+    step_until(&mut h, "the study", |a| {
+        assert_eq!(a.pacs_dialog.model.error, None);
+        a.pacs_dialog.model.studies.len() == 1
+    });
+    h.step();
+    h.get_by_label("DOE^JOHN").click();
+    step_until(&mut h, "the series", |a| {
+        assert_eq!(a.pacs_dialog.model.error, None);
+        a.pacs_dialog.model.series.len() == 1
+    });
+    h.step();
+    h.get_by_label("Open series").click();
+    step_until(&mut h, "the series from the PACS", |a| {
+        a.volume.as_ref().is_some_and(|v| {
+            v.data
+                .store_path
+                .file_name()
+                .is_some_and(|n| n.to_string_lossy().starts_with("pacs-"))
+        })
+    });
+    let a = app(&h);
+    assert!(
+        !a.pacs_dialog.open,
+        "the dialog stays open after the series opened"
+    );
+    let dims = a.volume.as_ref().map(|v| v.data.info.geometry.dims);
+    assert_eq!(dims, Some([40, 48, CT_SLICES as u32]));
 }

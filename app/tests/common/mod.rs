@@ -1,6 +1,8 @@
 //! What the fixed-cut render tests share: the real binary, and one PNG rendered from a store's
 //! level 0 loaded up front (render_traversal.rs, render_adaptive.rs).
 
+pub mod orthanc;
+
 use std::path::Path;
 use std::process::{Command, Output};
 
