@@ -18,7 +18,9 @@ use strata_storage::{BrickId, Store};
 
 const TOKEN: &str = "0123456789abcdef0123456789abcdef";
 
-fn store(
+/// A phantom store of `size`³ voxels named `name` in `dir`: its path, every brick's record as
+/// stored (level by level), and its generation.
+pub(crate) fn store(
     dir: &Path,
     name: &str,
     size: u64,
@@ -44,7 +46,7 @@ fn store(
     (path, records, store.header().generation_id())
 }
 
-fn serve(path: &Path, options: ServeOptions) -> RunningServer {
+pub(crate) fn serve(path: &Path, options: ServeOptions) -> RunningServer {
     start(find_stores(&[path.to_path_buf()]).unwrap(), options).unwrap()
 }
 

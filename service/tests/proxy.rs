@@ -23,7 +23,7 @@ use strata_storage::{BrickId, Store};
 
 const TOKEN: &str = "0123456789abcdef0123456789abcdef";
 
-fn nginx_binary() -> PathBuf {
+pub(crate) fn nginx_binary() -> PathBuf {
     ["/usr/sbin/nginx", "/usr/bin/nginx", "/usr/local/sbin/nginx"]
         .iter()
         .map(PathBuf::from)
@@ -37,7 +37,7 @@ fn nginx_binary() -> PathBuf {
 }
 
 /// nginx, killed and reaped when dropped.
-struct Nginx(Child);
+pub(crate) struct Nginx(Child);
 
 impl Drop for Nginx {
     fn drop(&mut self) {
@@ -46,7 +46,7 @@ impl Drop for Nginx {
     }
 }
 
-fn free_port() -> SocketAddr {
+pub(crate) fn free_port() -> SocketAddr {
     TcpListener::bind("127.0.0.1:0")
         .unwrap()
         .local_addr()
@@ -54,8 +54,11 @@ fn free_port() -> SocketAddr {
 }
 
 /// Starts nginx in the foreground with everything (pid, logs, temp files) under `dir` and
-/// `servers` inside its `http` block, and waits (bounded) until it accepts on `listen`.
-fn start_nginx(dir: &Path, listen: SocketAddr, servers: &str) -> Nginx {
+/// `servers` inside its `http` block, and waits (bounded) until it accepts on `listen`. Its
+/// one worker takes 4096 connections: each client's connection holds an upstream one while
+/// its request is forwarded, so capacity.rs's 1 000 clients need over 2 000 (with 2048
+/// nginx logged "worker_connections are not enough" and closed clients' connections).
+pub(crate) fn start_nginx(dir: &Path, listen: SocketAddr, servers: &str) -> Nginx {
     let d = dir.display();
     let conf = format!(
         r#"daemon off;
@@ -63,7 +66,7 @@ master_process off;
 worker_processes 1;
 pid {d}/nginx.pid;
 error_log {d}/error.log warn;
-events {{ worker_connections 2048; }}
+events {{ worker_connections 4096; }}
 http {{
     access_log off;
     client_body_temp_path {d}/body;
@@ -103,7 +106,7 @@ http {{
 }
 
 /// The reverse proxy without TLS and cache: keep-alive upstream, as in docs/deploy.md.
-fn plain_proxy(listen: SocketAddr, upstream: SocketAddr) -> String {
+pub(crate) fn plain_proxy(listen: SocketAddr, upstream: SocketAddr) -> String {
     format!(
         r#"    upstream strata {{
         server {upstream};
