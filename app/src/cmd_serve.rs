@@ -41,6 +41,11 @@ pub struct ServeArgs {
     /// while a busy one is asked to step aside (`Connection: close` on its next answer).
     #[arg(long, default_value_t = 64)]
     pub max_connections_per_address: usize,
+    /// Seconds without a request after which a connection at a cap is closed outright to
+    /// admit a newcomer; one active more recently is asked to step aside instead. Raise it
+    /// behind clients that pause between requests on a kept-alive connection.
+    #[arg(long, default_value_t = 1.0, value_name = "SECONDS")]
+    pub evict_idle_after: f64,
     /// A reverse proxy's address (repeatable): its connections carry many clients, so they are
     /// a pool of their own under --max-connections, not limited per address.
     #[arg(long = "trusted-proxy", value_name = "ADDR")]
@@ -97,6 +102,11 @@ pub fn run(args: ServeArgs) -> Result<()> {
         args.header_timeout.is_finite() && args.header_timeout > 0.0,
         "--header-timeout must be positive"
     );
+    anyhow::ensure!(
+        args.evict_idle_after.is_finite() && (0.0..=3600.0).contains(&args.evict_idle_after),
+        "--evict-idle-after must be between 0 and 3600 seconds (got {})",
+        args.evict_idle_after
+    );
     let options = ServeOptions {
         bind: args
             .bind
@@ -105,6 +115,7 @@ pub fn run(args: ServeArgs) -> Result<()> {
         expose_identifiers: args.expose_identifiers,
         max_connections: args.max_connections,
         max_connections_per_address: args.max_connections_per_address,
+        evict_idle_after: Duration::from_secs_f64(args.evict_idle_after),
         max_concurrent_requests: args.max_requests,
         header_read_timeout: Duration::from_secs_f64(args.header_timeout),
         added_delay: Duration::from_millis(args.added_delay_ms),

@@ -418,3 +418,45 @@ fn budgets_the_device_cannot_hold_are_clear_errors() {
     assert!(o.status.success(), "{}", text(&o));
     assert!(png.exists());
 }
+
+/// `strata serve --evict-idle-after` takes seconds; a value that is no duration is refused by
+/// name before anything is served.
+#[test]
+fn serve_refuses_an_eviction_delay_that_is_no_duration() {
+    for bad in [
+        "--evict-idle-after=-1",
+        "--evict-idle-after=nan",
+        "--evict-idle-after=1e9",
+    ] {
+        let o = strata(&["serve", bad, "nowhere.strata"]);
+        assert!(!o.status.success(), "{bad}: {}", text(&o));
+        assert!(
+            text(&o).contains("--evict-idle-after must be between 0 and 3600 seconds"),
+            "{bad}: {}",
+            text(&o)
+        );
+    }
+}
+
+/// A password never travels as a process argument (where `ps` and /proc show it to every user
+/// of the machine): `strata pacs` and `strata import <server>` take it from a file or the
+/// environment only, and a `--password VALUE` attempt is refused without echoing the value.
+#[test]
+fn pacs_takes_no_password_as_an_argument() {
+    for command in [&["pacs", "find"][..], &["pacs", "push"], &["import"]] {
+        let mut args = command.to_vec();
+        args.extend(["http://127.0.0.1:9/dicom-web", "--user", "alice"]);
+        args.extend([
+            "--password",
+            "Sesame-in-argv-42",
+            "--study",
+            "1.2",
+            "out.strata",
+        ]);
+        let o = strata(&args);
+        let said = text(&o);
+        assert!(!o.status.success(), "{command:?}: {said}");
+        assert!(said.contains("--password"), "{command:?}: {said}");
+        assert!(!said.contains("Sesame-in-argv-42"), "{command:?}: {said}");
+    }
+}

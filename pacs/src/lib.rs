@@ -414,9 +414,11 @@ fn json_string(object: &Value, tag: &str) -> Option<String> {
     match first {
         Value::String(s) => Some(s.clone()),
         Value::Number(n) => Some(n.to_string()),
-        Value::Object(o) => o
-            .get("Alphabetic")
-            .and_then(Value::as_str)
+        // A person name: its alphabetic form, else the ideographic or phonetic one (a name
+        // written only in kanji or hangul has no alphabetic group).
+        Value::Object(o) => ["Alphabetic", "Ideographic", "Phonetic"]
+            .iter()
+            .find_map(|group| o.get(*group).and_then(Value::as_str))
             .map(str::to_string),
         _ => None,
     }
@@ -445,6 +447,40 @@ fn json_int(object: &Value, tag: &str) -> Option<i64> {
 
 fn is_dicom_part10(head: &[u8]) -> bool {
     head.len() >= 132 && &head[128..132] == b"DICM"
+}
+
+/// Why the DICOM file at `path` is not instance `sop_uid` of series `series_uid` (its header
+/// read up to the pixel data), or `None` when it is.
+fn identity_mismatch(path: &Path, series_uid: &str, sop_uid: &str) -> Option<String> {
+    use dicom_dictionary_std::tags;
+    let file = match dicom_object::OpenFileOptions::new()
+        .read_until(tags::PIXEL_DATA)
+        .open_file(path)
+    {
+        Ok(file) => file,
+        Err(e) => return Some(format!("the part is not a readable DICOM file: {e}")),
+    };
+    let text = |tag| {
+        file.element(tag)
+            .ok()
+            .and_then(|e| e.to_str().ok())
+            .map(|s| s.trim_end_matches(['\0', ' ']).to_string())
+    };
+    let sop = text(tags::SOP_INSTANCE_UID);
+    let series = text(tags::SERIES_INSTANCE_UID);
+    if sop.as_deref() != Some(sop_uid) {
+        return Some(format!(
+            "the server answered instance {} instead",
+            sop.as_deref().unwrap_or("(no SOP Instance UID)")
+        ));
+    }
+    if series.as_deref() != Some(series_uid) {
+        return Some(format!(
+            "the instance belongs to series {}, not the one asked for",
+            series.as_deref().unwrap_or("(no Series Instance UID)")
+        ));
+    }
+    None
 }
 
 /// The chain of an error's causes, joined (reqwest's own text says little: "error sending
@@ -1125,6 +1161,17 @@ impl Inner {
             file.flush().map_err(io)
         });
         drop(file);
+        // A DICOM file, but is it the instance asked for? A misrouting proxy or a server bug
+        // must not put another series' slices into this one's volume.
+        let finished = finished.and_then(|()| {
+            identity_mismatch(&partial, series_uid, sop_uid).map_or(Ok(()), |problem| {
+                Err(PacsError::Invalid {
+                    server: self.server(),
+                    what: what.clone(),
+                    problem,
+                })
+            })
+        });
         if let Err(e) = finished {
             let _ = std::fs::remove_file(&partial);
             return Err(e);
@@ -1282,6 +1329,27 @@ mod tests {
     fn query_values_keep_wildcards_and_encode_separators() {
         assert_eq!(percent_encode("DOE^J*"), "DOE^J*");
         assert_eq!(percent_encode("a b&c=d#e+f%"), "a%20b%26c%3Dd%23e%2Bf%25");
+    }
+
+    /// Names beyond ASCII: a query is sent as percent-encoded UTF-8 (DICOMweb's charset), and
+    /// an answer's name comes back whole, in whichever component group it has.
+    #[test]
+    fn non_ascii_names_are_queried_as_utf8_and_read_from_any_component_group() {
+        assert_eq!(percent_encode("Müller^Jörg*"), "M%C3%BCller^J%C3%B6rg*");
+        assert_eq!(percent_encode("山田"), "%E5%B1%B1%E7%94%B0");
+        let answer: Value = serde_json::from_str(
+            r#"{"00100010": {"vr": "PN", "Value": [{"Alphabetic": "Müller^Jörg"}]},
+                "00100011": {"vr": "PN", "Value": [{"Ideographic": "山田^太郎", "Phonetic": "やまだ^たろう"}]}}"#,
+        )
+        .unwrap();
+        assert_eq!(
+            json_string(&answer, "00100010").as_deref(),
+            Some("Müller^Jörg")
+        );
+        assert_eq!(
+            json_string(&answer, "00100011").as_deref(),
+            Some("山田^太郎")
+        );
     }
 
     #[test]

@@ -117,8 +117,48 @@ fn answer(mut stream: TcpStream, port: u16) {
             "text/plain",
             b"busy",
         ),
+        // A DICOM file, but of another series ("10") or another instance ("11").
+        "10" | "11" => {
+            let (series, sop) = if study == "10" {
+                ("7.7", "9.9")
+            } else {
+                ("2", "9.8")
+            };
+            let mut body = start.clone().into_bytes();
+            body.extend_from_slice(&dicom_file(series, sop));
+            body.extend_from_slice(format!("\r\n--{BOUNDARY}--\r\n").as_bytes());
+            reply(&mut stream, "200 OK", &multipart, &body);
+        }
         _ => reply(&mut stream, "404 Not Found", "text/plain", b""),
     }
+}
+
+/// A small but whole DICOM file (explicit VR little endian) of instance `sop` of `series`.
+fn dicom_file(series: &str, sop: &str) -> Vec<u8> {
+    use dicom_core::{DataElement, PrimitiveValue, VR};
+    use dicom_dictionary_std::tags;
+    use dicom_object::{FileMetaTableBuilder, InMemDicomObject};
+    const CT_IMAGE: &str = "1.2.840.10008.5.1.4.1.1.2";
+    let object = InMemDicomObject::from_element_iter([
+        DataElement::new(tags::SOP_CLASS_UID, VR::UI, PrimitiveValue::from(CT_IMAGE)),
+        DataElement::new(tags::SOP_INSTANCE_UID, VR::UI, PrimitiveValue::from(sop)),
+        DataElement::new(
+            tags::SERIES_INSTANCE_UID,
+            VR::UI,
+            PrimitiveValue::from(series),
+        ),
+    ]);
+    let file = object
+        .with_meta(
+            FileMetaTableBuilder::new()
+                .transfer_syntax("1.2.840.10008.1.2.1")
+                .media_storage_sop_class_uid(CT_IMAGE)
+                .media_storage_sop_instance_uid(sop),
+        )
+        .unwrap();
+    let mut bytes = Vec::new();
+    file.write_all(&mut bytes).unwrap();
+    bytes
 }
 
 fn stub() -> u16 {
@@ -150,7 +190,7 @@ fn a_hostile_server_gives_clear_bounded_errors() {
     };
     let client = Client::new(&url, Auth::None, None, options).unwrap();
     let dir = tempfile::tempdir().unwrap();
-    let cases: [(&str, &str); 9] = [
+    let cases: [(&str, &str); 11] = [
         ("1", "broken boundary"),
         ("2", "before the closing boundary"),
         ("3", "larger than the limit of 4194304 bytes"),
@@ -160,6 +200,8 @@ fn a_hostile_server_gives_clear_bounded_errors() {
         ("7", "no multipart boundary"),
         ("8", "not application/dicom"),
         ("9", "HTTP 503"),
+        ("10", "belongs to series 7.7, not the one asked for"),
+        ("11", "answered instance 9.8 instead"),
     ];
     for (study, expected) in cases {
         let e: PacsError = client

@@ -28,7 +28,8 @@ use strata_storage::store::{Skeleton, StoreStats};
 use strata_storage::{BrickId, StoreHeader};
 
 use crate::wire::{
-    brick_path, decode_open_document, is_valid_store_name, OpenDocument, API_PREFIX,
+    self, brick_path, decode_open_document, is_valid_store_name, OpenDocument, API_PREFIX,
+    MAX_RETRY_AFTER,
 };
 
 /// How to reach a server.
@@ -164,9 +165,6 @@ pub(crate) struct Retrying {
     cut_retried: bool,
 }
 
-/// The longest `Retry-After` honoured as given (a longer one waits this long).
-const MAX_RETRY_AFTER: Duration = Duration::from_secs(30);
-
 impl Retrying {
     /// `bound`: give up once this long has passed since the first attempt (`None`: never).
     pub(crate) fn new(bound: Option<Duration>) -> Self {
@@ -226,10 +224,9 @@ fn again_after_error(e: &reqwest::Error) -> Again {
     }
 }
 
-/// `Retry-After` in seconds (the HTTP-date form is not used by `strata serve`: ignored).
+/// `Retry-After` in seconds, capped (strata_source::wire::retry_after).
 fn retry_after(headers: &reqwest::header::HeaderMap) -> Option<Duration> {
-    let value = headers.get(reqwest::header::RETRY_AFTER)?.to_str().ok()?;
-    value.trim().parse::<u64>().ok().map(Duration::from_secs)
+    wire::retry_after(headers.get(reqwest::header::RETRY_AFTER)?.to_str().ok()?)
 }
 
 /// What one attempt at a brick came to.

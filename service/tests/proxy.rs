@@ -269,11 +269,14 @@ fn the_documented_nginx_configuration_terminates_tls_caches_and_serves_stale() {
     let docs =
         std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/deploy.md"))
             .unwrap();
+    // The site's block (the `events` block above it belongs to nginx.conf; the test's own
+    // nginx.conf sets it).
     let block = docs
         .split("```nginx\n")
-        .nth(1)
-        .and_then(|rest| rest.split("```").next())
-        .expect("docs/deploy.md has an nginx block");
+        .skip(1)
+        .filter_map(|rest| rest.split("```").next())
+        .find(|block| block.contains("upstream strata {"))
+        .expect("docs/deploy.md has the site's nginx block (`upstream strata`)");
     let (https, http) = (free_port(), free_port());
     let cache = dir.path().join("cache");
     let substitutions = [

@@ -127,6 +127,18 @@ pub fn brick_etag(generation: &str, checksum: u64) -> String {
     format!("\"{generation}-{checksum:016x}\"")
 }
 
+/// The longest `Retry-After` a client honours as given; a longer one waits this long (a
+/// misconfigured proxy must not park a viewer for an hour).
+pub const MAX_RETRY_AFTER: std::time::Duration = std::time::Duration::from_secs(30);
+
+/// A `Retry-After` header's value as a wait, capped at [`MAX_RETRY_AFTER`]. Only the
+/// delta-seconds form: `strata serve` sends it and proxies pass it on; the HTTP-date form
+/// (and anything unreadable) gives `None`, so the caller's own backoff applies.
+pub fn retry_after(value: &str) -> Option<std::time::Duration> {
+    let seconds: u64 = value.trim().parse().ok()?;
+    Some(std::time::Duration::from_secs(seconds).min(MAX_RETRY_AFTER))
+}
+
 /// Store names that may appear in a URL: what `strata serve` accepts for a store's name.
 pub fn is_valid_store_name(name: &str) -> bool {
     !name.is_empty()
@@ -189,5 +201,16 @@ mod tests {
         for bad in ["", "..", "../x", "a/b", ".hidden", "a b", "a%2Fb"] {
             assert!(!is_valid_store_name(bad), "{bad}");
         }
+    }
+
+    #[test]
+    fn retry_after_reads_seconds_caps_them_and_ignores_dates_and_junk() {
+        use std::time::Duration;
+        assert_eq!(retry_after("2"), Some(Duration::from_secs(2)));
+        assert_eq!(retry_after(" 0 "), Some(Duration::ZERO));
+        assert_eq!(retry_after("3600"), Some(MAX_RETRY_AFTER));
+        assert_eq!(retry_after("Wed, 21 Oct 2015 07:28:00 GMT"), None);
+        assert_eq!(retry_after("-1"), None);
+        assert_eq!(retry_after(""), None);
     }
 }

@@ -11,8 +11,9 @@
 //!   reach them), requests the view no longer wants aborted with their `AbortController`.
 //! - Records are decoded (and their xxh3 checksums verified) on the frame thread, at most
 //!   [`DECODES_PER_FRAME`] per frame; a record that fails is fetched once more, then reported
-//!   damaged. Connection failures and 429/503 are retried with backoff, and the status says
-//!   so ("retrying") as the desktop's remote source does.
+//!   damaged. Connection failures and 429/503 are retried with backoff (at least the server's
+//!   `Retry-After`, capped as the desktop's client caps it), and the status says so
+//!   ("retrying") as the desktop's remote source does.
 //! - The token travels as `Authorization`, never in a URL. The browser's HTTP cache is left to
 //!   work (brick URLs carry the store's generation and are immutable): no `If-None-Match` here.
 
@@ -21,7 +22,7 @@ use std::collections::{HashMap, HashSet, VecDeque};
 use std::rc::Rc;
 use std::sync::Arc;
 
-use strata_source::wire::{brick_path, decode_open_document, StoreList, API_PREFIX};
+use strata_source::wire::{brick_path, decode_open_document, retry_after, StoreList, API_PREFIX};
 use strata_source::{
     BrickFetcher, FetchOptions, FetchResult, QueueCounters, RequestClass, SourceError,
     SourceStatus, VolumeSource,
@@ -57,8 +58,8 @@ pub struct ServedStore {
 /// Why a fetch gave no body.
 enum FetchFailure {
     Aborted,
-    /// Worth another try: no connection, 429, 5xx.
-    Transient(String),
+    /// Worth another try: no connection, 429, 5xx; with the server's `Retry-After`, if any.
+    Transient(String, Option<std::time::Duration>),
     /// The server said no (404, 401, 403, ...).
     Refused(String),
 }
@@ -104,7 +105,7 @@ async fn fetch_bytes(
     let answer = match JsFuture::from(window.fetch_with_request(&request)).await {
         Ok(answer) => answer,
         Err(_) if signal.is_some_and(|s| s.aborted()) => return Err(FetchFailure::Aborted),
-        Err(e) => return Err(FetchFailure::Transient(js_text(&e))),
+        Err(e) => return Err(FetchFailure::Transient(js_text(&e), None)),
     };
     let response: web_sys::Response = answer
         .dyn_into()
@@ -113,7 +114,16 @@ async fn fetch_bytes(
     if !response.ok() {
         let what = format!("the server answered {status} {}", response.status_text());
         return Err(match status {
-            408 | 429 | 500..=599 => FetchFailure::Transient(what),
+            408 | 429 | 500..=599 => {
+                // A busy server (or the proxy in front of it) says when to come back.
+                let after = response
+                    .headers()
+                    .get("Retry-After")
+                    .ok()
+                    .flatten()
+                    .and_then(|value| retry_after(&value));
+                FetchFailure::Transient(what, after)
+            }
             401 | 403 => FetchFailure::Refused(format!(
                 "{what}: the link's token is missing or wrong (ask for a link with #token=)"
             )),
@@ -122,11 +132,11 @@ async fn fetch_bytes(
     }
     let buffer = response
         .array_buffer()
-        .map_err(|e| FetchFailure::Transient(js_text(&e)))?;
+        .map_err(|e| FetchFailure::Transient(js_text(&e), None))?;
     match JsFuture::from(buffer).await {
         Ok(body) => Ok(js_sys::Uint8Array::new(&body).to_vec()),
         Err(_) if signal.is_some_and(|s| s.aborted()) => Err(FetchFailure::Aborted),
-        Err(e) => Err(FetchFailure::Transient(js_text(&e))),
+        Err(e) => Err(FetchFailure::Transient(js_text(&e), None)),
     }
 }
 
@@ -136,7 +146,7 @@ pub async fn list_stores(token: Option<&str>) -> Result<StoreList, String> {
         .await
         .map_err(|failure| match failure {
             FetchFailure::Aborted => "aborted".to_string(),
-            FetchFailure::Transient(message) | FetchFailure::Refused(message) => message,
+            FetchFailure::Transient(message, _) | FetchFailure::Refused(message) => message,
         })?;
     crate::volume_menu::parse_store_list(&bytes)
 }
@@ -150,7 +160,7 @@ impl ServedStore {
                 location: location.clone(),
                 message: format!("{what}: {message}"),
             },
-            FetchFailure::Transient(message) => SourceError::Unavailable {
+            FetchFailure::Transient(message, _) => SourceError::Unavailable {
                 location: location.clone(),
                 message: format!("{what}: {message}"),
             },
@@ -354,11 +364,13 @@ impl Shared {
                 state.in_flight.remove(&id);
                 return;
             }
-            Err(FetchFailure::Transient(message)) => {
-                // Asked again after a pause; what is loaded stays on screen meanwhile.
+            Err(FetchFailure::Transient(message, after)) => {
+                // Asked again after a pause; what is loaded stays on screen meanwhile. The
+                // server's Retry-After (capped) lengthens the pause, never shortens it.
                 let now = js_sys::Date::now();
                 let backoff = (BACKOFF_FIRST_MS * 2f64.powi(state.failures_in_a_row.min(8) as i32))
-                    .min(BACKOFF_LAST_MS);
+                    .min(BACKOFF_LAST_MS)
+                    .max(after.map_or(0.0, |after| after.as_secs_f64() * 1000.0));
                 state.failures_in_a_row += 1;
                 state.quiet_until = now + backoff;
                 state.failing.get_or_insert((now, String::new())).1 = message;

@@ -138,12 +138,29 @@ fn mode_name(mode: RenderMode) -> &'static str {
     }
 }
 
+/// The most of a bad value an error quotes: a pasted link can carry kilobytes in one value,
+/// and the message must stay a line on the page.
+pub const MAX_QUOTED_BYTES: usize = 100;
+
 fn bad(key: &str, value: &str, expected: impl Into<String>) -> FragmentError {
     FragmentError::BadValue {
         key: key.into(),
-        value: value.into(),
+        value: quoted(value),
         expected: expected.into(),
     }
+}
+
+/// `value` whole, or its first [`MAX_QUOTED_BYTES`] (cut at a character boundary) and how
+/// long it was.
+fn quoted(value: &str) -> String {
+    if value.len() <= MAX_QUOTED_BYTES {
+        return value.to_string();
+    }
+    let mut end = MAX_QUOTED_BYTES;
+    while !value.is_char_boundary(end) {
+        end -= 1;
+    }
+    format!("{}… ({} bytes in all)", &value[..end], value.len())
 }
 
 fn finite(
@@ -469,6 +486,21 @@ fn round3(v: f64) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_long_bad_value_is_quoted_in_part_at_a_character_boundary() {
+        let long = format!("{}é{}", "x".repeat(99), "y".repeat(5000));
+        let message = Fragment::parse(&format!("#mode={long}"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            message.contains(&format!("`{}… (5101 bytes in all)`", "x".repeat(99))),
+            "{message}"
+        );
+        assert!(message.len() < 200, "{} bytes: {message}", message.len());
+        let short = Fragment::parse("#mode=volume").unwrap_err().to_string();
+        assert!(short.contains("`volume`"), "{short}");
+    }
 
     #[test]
     fn a_view_survives_its_fragment() {
