@@ -106,3 +106,26 @@ def test_import_over_a_store_this_process_holds(tmp_path: pathlib.Path) -> None:
     with pytest.raises(strata.StoreError):
         strata.from_numpy(np.zeros((4, 4, 4), np.uint8), dst=store)
     assert vol[0, 0, 0] == vol[0, 0, 0]
+
+
+def test_an_interrupted_import_leaves_no_store(tmp_path: pathlib.Path) -> None:
+    # Ctrl-C during an import: the pending KeyboardInterrupt cancels it (the same path as an
+    # exception from the progress callback, used here), and no complete store is left.
+    calls = []
+
+    def interrupt(done: int, total: int) -> None:
+        calls.append(done)
+        raise KeyboardInterrupt
+
+    a = np.random.default_rng(4).integers(0, 65535, size=(256, 256, 256), dtype=np.uint16)
+    dst = tmp_path / "cancelled.strata"
+    try:
+        strata.from_numpy(a, dst=dst, progress=interrupt)
+    except KeyboardInterrupt:
+        pass
+    else:
+        pytest.skip("the import finished before its first progress report (a fast machine)")
+    assert calls
+    with pytest.raises(strata.StoreError):
+        strata.open(dst)
+    assert not list(tmp_path.glob(".strata-from-numpy-*")), "the temporary raw file is removed"
