@@ -18,6 +18,8 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, Weak};
 use std::time::Duration;
 
+mod serve;
+
 use pyo3::create_exception;
 use pyo3::exceptions::{PyException, PyIndexError, PyValueError};
 use pyo3::prelude::*;
@@ -68,7 +70,7 @@ create_exception!(
 );
 
 /// The Python exception of a storage error.
-fn store_error(e: StorageError) -> PyErr {
+pub(crate) fn store_error(e: StorageError) -> PyErr {
     let message = e.to_string();
     match e {
         StorageError::NotAStore { .. } => StoreNotFoundError::new_err(message),
@@ -107,7 +109,7 @@ fn import_error(e: StorageError, dst: &Path) -> PyErr {
 }
 
 /// Runs `f`, turning a panic into a `StrataError` with its message (a bug, never a crash).
-fn no_panic<T>(what: &str, f: impl FnOnce() -> PyResult<T>) -> PyResult<T> {
+pub(crate) fn no_panic<T>(what: &str, f: impl FnOnce() -> PyResult<T>) -> PyResult<T> {
     match std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)) {
         Ok(r) => r,
         Err(payload) => {
@@ -575,6 +577,8 @@ fn _strata(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(open_store, m)?)?;
     m.add_function(wrap_pyfunction!(import_file, m)?)?;
     m.add_function(wrap_pyfunction!(import_raw, m)?)?;
+    m.add_class::<serve::NativeServer>()?;
+    m.add_function(wrap_pyfunction!(serve::serve, m)?)?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     Ok(())
 }

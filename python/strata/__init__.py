@@ -13,6 +13,7 @@ raise ``IndexError``, bad arguments ``ValueError``.
 from __future__ import annotations
 
 from ._import import from_numpy, import_file
+from ._serve import Server, serve
 from ._strata import (
     DamagedStoreError,
     SourceError,
@@ -28,6 +29,7 @@ __all__ = [
     "BRICK_CORE",
     "DamagedStoreError",
     "Level",
+    "Server",
     "SourceError",
     "StoreError",
     "StoreInUseError",
@@ -40,4 +42,5 @@ __all__ = [
     "from_numpy",
     "import_file",
     "open",
+    "serve",
 ]
