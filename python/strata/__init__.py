@@ -1,0 +1,46 @@
+"""Strata from Python: open brick stores, read regions as numpy, import files and arrays.
+
+>>> import strata
+>>> vol = strata.open("scan.strata")              # a store `strata import` wrote
+>>> vol.shape, vol.spacing, vol.dtype              # (z, y, x), mm, the physical dtype
+>>> block = vol.level(0)[100:164, 200:300, :]      # numpy, read brick by brick
+>>> vol.affine                                     # index (i, j, k, 1) → LPS mm
+
+Errors are :class:`StrataError` subclasses carrying the Rust library's message; bad indices
+raise ``IndexError``, bad arguments ``ValueError``.
+"""
+
+from __future__ import annotations
+
+from ._import import from_numpy, import_file
+from ._serve import Server, serve
+from ._strata import (
+    DamagedStoreError,
+    SourceError,
+    StoreError,
+    StoreInUseError,
+    StoreNotFoundError,
+    StrataError,
+    __version__,
+)
+from ._volume import BRICK_CORE, Level, ValueMapping, Volume, WindowPreset, open
+
+__all__ = [
+    "BRICK_CORE",
+    "DamagedStoreError",
+    "Level",
+    "Server",
+    "SourceError",
+    "StoreError",
+    "StoreInUseError",
+    "StoreNotFoundError",
+    "StrataError",
+    "ValueMapping",
+    "Volume",
+    "WindowPreset",
+    "__version__",
+    "from_numpy",
+    "import_file",
+    "open",
+    "serve",
+]
