@@ -115,7 +115,9 @@ fn killed_import_leaves_an_incomplete_store_and_reimport_succeeds() {
         .unwrap();
     let started = Instant::now();
     // Wait until the database exists and has taken some writes, then kill without warning.
-    while !store.join("db").join("conf").exists() && started.elapsed() < Duration::from_secs(30) {
+    while !(store.join("db").join("conf").exists() || store.join("packs").exists())
+        && started.elapsed() < Duration::from_secs(30)
+    {
         std::thread::sleep(Duration::from_millis(20));
     }
     std::thread::sleep(Duration::from_millis(1500));

@@ -133,9 +133,14 @@ fn damaged_store_copies_give_errors_not_panics_or_hangs() {
     let pristine = dir.path().join("pristine.strata");
     import_noise(dir.path(), &pristine);
     let files = files_under(&pristine);
+    // Format 3: its packs and index (sled's own files are damaged in storage's
+    // tests/store_damage.rs, on a format-2 store).
     assert!(
-        files.iter().any(|f| f.to_string_lossy().contains("blobs")),
-        "the test store has no blob files: {files:?}"
+        files
+            .iter()
+            .any(|f| f.to_string_lossy().contains("pack-00000.pack"))
+            && files.iter().any(|f| f.ends_with("index.v3")),
+        "the test store has no packs or index: {files:?}"
     );
     let mut cases = 0;
     let mut failures = Vec::new();
@@ -380,7 +385,8 @@ fn slow_import_in_progress(input: &Path, store: &Path, staging: &Path) -> std::p
         .spawn()
         .unwrap();
     let deadline = Instant::now() + COMMAND_LIMIT;
-    while !store.join("db").exists() && Instant::now() < deadline {
+    while !(store.join("db").exists() || store.join("packs").exists()) && Instant::now() < deadline
+    {
         std::thread::sleep(Duration::from_millis(10));
     }
     std::thread::sleep(Duration::from_millis(250));
