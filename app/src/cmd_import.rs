@@ -18,6 +18,10 @@ pub struct ImportArgs {
     /// Replace an existing store at STORE (its bricks, and any edits, are lost).
     #[arg(long)]
     pub replace: bool,
+    /// Store format to write: 3 (pack files, the default) or 2 (sled, as earlier builds
+    /// wrote; for benchmarks and tests of old stores). Single volumes only.
+    #[arg(long, hide = true)]
+    pub format: Option<u32>,
     /// DICOM: the series to import when a folder holds several (SeriesInstanceUID or index;
     /// from a DICOMweb server, its SeriesInstanceUID).
     #[arg(long)]
@@ -243,7 +247,16 @@ fn import(args: ImportArgs, provenance: Option<String>) -> Result<()> {
         progress: Some(&progress),
         codec: args.codec,
     };
-    let report = import_source(opened, &args.store, &import_options).with_context(|| {
+    let imported = match args.format {
+        Some(format) => strata_storage::import::import_source_as_format(
+            opened,
+            &args.store,
+            &import_options,
+            format,
+        ),
+        None => import_source(opened, &args.store, &import_options),
+    };
+    let report = imported.with_context(|| {
         format!(
             "import of {} into {} failed",
             args.input.display(),

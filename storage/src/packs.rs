@@ -159,12 +159,9 @@ impl PackWriter {
             let offset = pack.next.fetch_add(len, Ordering::SeqCst);
             if offset + len <= self.limit || offset == 0 {
                 let path = pack_path(&self.store, pack.id);
-                pack.file.write_all_at(record, offset).map_err(|e| {
-                    StorageError::io(
-                        &path,
-                        std::io::Error::new(e.kind(), format!("writing {}: {e}", describe(id))),
-                    )
-                })?;
+                pack.file
+                    .write_all_at(record, offset)
+                    .map_err(|e| write_error(&path, id, e))?;
                 pack.end.fetch_max(offset + len, Ordering::SeqCst);
                 let key = brick_key(id);
                 self.entries
@@ -246,6 +243,24 @@ impl PackWriter {
         write_synced(&staged, &bytes)?;
         std::fs::rename(&staged, &index).map_err(|e| StorageError::io(&index, e))?;
         sync_dir(&self.store)
+    }
+}
+
+/// A failed pack write: a full disk (or file-size limit) said as such, naming the brick.
+fn write_error(path: &Path, id: BrickId, e: std::io::Error) -> StorageError {
+    if crate::error::is_disk_full(&e) {
+        StorageError::DiskFull {
+            path: path.to_path_buf(),
+            message: format!(
+                "the disk is full, or the file-size limit was reached, while writing {} ({e})",
+                describe(id)
+            ),
+        }
+    } else {
+        StorageError::io(
+            path,
+            std::io::Error::new(e.kind(), format!("writing {}: {e}", describe(id))),
+        )
     }
 }
 
