@@ -506,3 +506,55 @@ fn an_interrupted_import_removes_its_staging_file() {
         "SIGTERM left the staging file"
     );
 }
+
+/// Crash fuzz (issue 48): SIGKILL at spread-out moments of importing a small volume (slowed
+/// down so the kills land throughout it) leaves no store, an incomplete store refused as such,
+/// or a complete store that verifies; never a complete-looking damaged one. Bounded: 24 kills.
+#[test]
+fn sigkill_at_any_moment_of_an_import_never_leaves_a_complete_looking_damaged_store() {
+    let dir = tempfile::tempdir().unwrap();
+    let raw = noise_raw(dir.path());
+    let store = dir.path().join("fuzz.strata");
+    let mut state = 0x2545_f491_4f6c_dd1du64;
+    let mut outcomes = [0u32; 3];
+    for _ in 0..24 {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        let delay = Duration::from_millis(state % 3000);
+        let mut child = Command::new(STRATA)
+            .args([
+                "import",
+                "--replace",
+                s(&raw),
+                s(&store),
+                "--raw-dims",
+                "100,100,100",
+                "--raw-type",
+                "u16",
+            ])
+            .env("STRATA_DEBUG_SLOW_IMPORT", "1")
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap();
+        std::thread::sleep(delay);
+        let _ = child.kill();
+        child.wait().unwrap();
+        if !store.exists() {
+            outcomes[0] += 1;
+            continue;
+        }
+        match strata_storage::Store::open(&store) {
+            Ok(opened) => {
+                let problems = opened.verify(|_, _| {}).unwrap();
+                assert!(problems.is_empty(), "killed after {delay:?}: {problems:?}");
+                outcomes[2] += 1;
+            }
+            Err(strata_storage::StorageError::IncompleteImport { .. }) => outcomes[1] += 1,
+            Err(strata_storage::StorageError::NotAStore { .. }) => outcomes[0] += 1,
+            Err(e) => panic!("killed after {delay:?}: {e}"),
+        }
+    }
+    println!("no store / incomplete / complete: {outcomes:?}");
+}
