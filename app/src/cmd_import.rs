@@ -12,8 +12,16 @@ pub struct ImportArgs {
     /// OME-Zarr (a folder, s3://BUCKET/PREFIX or http(s)://.../x.ome.zarr), or with --study a
     /// DICOMweb server (its base URL or its name in the servers file).
     pub input: PathBuf,
-    /// Store directory to create (an existing store there is replaced).
+    /// Store directory to create. An existing store there is refused unless --replace is
+    /// given (an interrupted import's leftovers are always replaced).
     pub store: PathBuf,
+    /// Replace an existing store at STORE (its bricks, and any edits, are lost).
+    #[arg(long)]
+    pub replace: bool,
+    /// Store format to write: 3 (pack files, the default) or 2 (sled, as earlier builds
+    /// wrote; for benchmarks and tests of old stores). Single volumes only.
+    #[arg(long, hide = true)]
+    pub format: Option<u32>,
     /// DICOM: the series to import when a folder holds several (SeriesInstanceUID or index;
     /// from a DICOMweb server, its SeriesInstanceUID).
     #[arg(long)]
@@ -98,6 +106,7 @@ fn three<T: Copy + std::fmt::Display>(flag: &str, values: &[T]) -> Result<[T; 3]
 }
 
 pub fn run(mut args: ImportArgs) -> Result<()> {
+    refuse_existing_store(&args.store, args.replace)?;
     // From a PACS: the series is retrieved into a folder beside the store, imported as any
     // DICOM folder, and the folder removed once the import succeeded. After a failure or an
     // interruption it stays, and the same command resumes: instances there are not fetched
@@ -116,6 +125,40 @@ pub fn run(mut args: ImportArgs) -> Result<()> {
     import(args, Some(retrieved.provenance.clone()))?;
     retrieved.remove();
     Ok(())
+}
+
+/// Refuses to import over an existing store (complete, in use or damaged) without `--replace`,
+/// naming it and what it holds. What an interrupted import left is replaced: it holds nothing
+/// that opens.
+fn refuse_existing_store(store: &std::path::Path, replace: bool) -> Result<()> {
+    use strata_storage::inventory::{survey, StoreState};
+    if replace || !store.join("STRATA-STORE").exists() {
+        return Ok(());
+    }
+    let entry = survey(store);
+    let holds = match &entry.state {
+        StoreState::Incomplete => return Ok(()),
+        StoreState::Complete {
+            format_version,
+            codec,
+            inputs,
+        } => format!(
+            "a complete store of format {format_version} ({codec:?} codec, {:.1} MB) imported from {}",
+            entry.size_bytes as f64 / 1e6,
+            if inputs.is_empty() {
+                "an unnamed source".to_string()
+            } else {
+                inputs.join(", ")
+            }
+        ),
+        StoreState::InUse(holder) => format!("a store in use ({holder})"),
+        StoreState::Damaged(e) => format!("a damaged store ({e})"),
+        StoreState::Unsupported(e) => format!("a store this build cannot read ({e})"),
+    };
+    bail!(
+        "{} already holds {holds}; give --replace to replace it (its bricks are lost), or choose another path",
+        store.display()
+    )
 }
 
 /// Adds where the source came from (a PACS's "retrieved from …") to a store's description
@@ -204,7 +247,16 @@ fn import(args: ImportArgs, provenance: Option<String>) -> Result<()> {
         progress: Some(&progress),
         codec: args.codec,
     };
-    let report = import_source(opened, &args.store, &import_options).with_context(|| {
+    let imported = match args.format {
+        Some(format) => strata_storage::import::import_source_as_format(
+            opened,
+            &args.store,
+            &import_options,
+            format,
+        ),
+        None => import_source(opened, &args.store, &import_options),
+    };
+    let report = imported.with_context(|| {
         format!(
             "import of {} into {} failed",
             args.input.display(),

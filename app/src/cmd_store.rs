@@ -10,6 +10,12 @@ use strata_storage::inventory::{list_stores, remove_store, StoreEntry, StoreStat
 
 #[derive(Subcommand)]
 pub enum StoreCommand {
+    /// Convert a format-2 store to format 3 (pack files, opened without writing), atomically:
+    /// the old store stays until the new one verifies.
+    Upgrade {
+        /// The store folder.
+        store: PathBuf,
+    },
     /// List the stores of the data folder: size, format, codec, source, complete or not.
     List(FolderArg),
     /// Remove incomplete, damaged, orphaned (source gone) and old-format (source still there)
@@ -44,6 +50,16 @@ impl FolderArg {
 pub fn run(cmd: StoreCommand) -> Result<()> {
     match cmd {
         StoreCommand::List(folder) => list(&folder.folder()),
+        StoreCommand::Upgrade { store } => {
+            let report = strata_storage::store::upgrade_store(&store)
+                .with_context(|| format!("upgrade of {} failed", store.display()))?;
+            println!(
+                "{}: now format 3 ({} brick records verified)",
+                store.display(),
+                report.records_read
+            );
+            Ok(())
+        }
         StoreCommand::Prune {
             folder,
             dry_run,

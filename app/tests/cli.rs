@@ -115,7 +115,9 @@ fn killed_import_leaves_an_incomplete_store_and_reimport_succeeds() {
         .unwrap();
     let started = Instant::now();
     // Wait until the database exists and has taken some writes, then kill without warning.
-    while !store.join("db").join("conf").exists() && started.elapsed() < Duration::from_secs(30) {
+    while !(store.join("db").join("conf").exists() || store.join("packs").exists())
+        && started.elapsed() < Duration::from_secs(30)
+    {
         std::thread::sleep(Duration::from_millis(20));
     }
     std::thread::sleep(Duration::from_millis(1500));
@@ -180,7 +182,7 @@ fn import_codec_is_recorded_shown_and_listed_and_prune_keeps_complete_stores() {
     assert!(text(&o).contains("dense codec"), "{}", text(&o));
     let o = strata(&["info", dense.to_str().unwrap()]);
     assert!(
-        text(&o).contains("store format 2, brick codec dense"),
+        text(&o).contains("store format 3, brick codec dense"),
         "{}",
         text(&o)
     );
@@ -206,9 +208,27 @@ fn import_codec_is_recorded_shown_and_listed_and_prune_keeps_complete_stores() {
     let listing = text(&o);
     assert!(o.status.success(), "{listing}");
     assert!(listing.contains("dense.strata"), "{listing}");
-    assert!(listing.contains("format 2, dense codec"), "{listing}");
-    assert!(listing.contains("format 2, fast codec"), "{listing}");
+    assert!(listing.contains("format 3, dense codec"), "{listing}");
+    assert!(listing.contains("format 3, fast codec"), "{listing}");
     assert!(listing.contains("2 stores"), "{listing}");
+    // An import onto an existing store is refused naming it, unless --replace.
+    let o = strata(&["import", nrrd.to_str().unwrap(), dense.to_str().unwrap()]);
+    assert!(!o.status.success());
+    assert!(
+        text(&o).contains("dense.strata already holds a complete store of format 3")
+            && text(&o).contains("--replace"),
+        "{}",
+        text(&o)
+    );
+    let o = strata(&[
+        "import",
+        "--replace",
+        nrrd.to_str().unwrap(),
+        dense.to_str().unwrap(),
+        "--codec",
+        "dense",
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
     let o = strata(&["store", "prune", "--data-dir", data_dir, "--dry-run"]);
     assert!(text(&o).contains("would remove"), "{}", text(&o));
     assert!(orphan.exists());

@@ -18,8 +18,10 @@ use crate::source_info::{LabelInfo, SampleType, WindowPreset};
 
 /// Format 2: the brick codec is a per-store choice named in the header ([`StoreHeader::codec`]),
 /// and a header may list [`StoreHeader::required_features`] that a reader must know. Format 1
-/// (lz4 bricks, no codec field) still opens: its records decode by their kind byte.
-pub const STORE_FORMAT_VERSION: u32 = 2;
+/// (lz4 bricks, no codec field) still opens: its records decode by their kind byte. Format 3:
+/// the same records and documents in pack files behind a read-only index (`crate::packs`)
+/// instead of sled; formats 1 and 2 still open (read-only).
+pub const STORE_FORMAT_VERSION: u32 = 3;
 /// The oldest format this build opens.
 pub const OLDEST_READABLE_FORMAT_VERSION: u32 = 1;
 /// Features of format 2 this build reads. A later wave extends format 2 without a version bump
@@ -215,5 +217,5 @@ pub fn rebuild_command(path: &Path, header: &StoreHeader) -> String {
             .map_or_else(|| first.clone(), |p| p.display().to_string()),
         [] => "SOURCE".into(),
     };
-    format!("strata import '{input}' '{}'", path.display())
+    format!("strata import --replace '{input}' '{}'", path.display())
 }

@@ -257,6 +257,25 @@ pub fn import_source(
     import_slices(&producer, meta, store_path, options)
 }
 
+/// [`import_source`] writing store format `format` (2: the sled store of earlier builds, for
+/// tests and benchmarks of old stores and for `strata store upgrade`'s checks). Single volumes.
+#[doc(hidden)]
+pub fn import_source_as_format(
+    opened: OpenedSource,
+    store_path: &Path,
+    options: &ImportOptions,
+    format: u32,
+) -> Result<ImportReport> {
+    let info = opened.info;
+    let quantizer = Quantizer::plan(&opened.data, info.slope);
+    let meta = source_meta(&info, &quantizer);
+    let producer = QuantizedSource {
+        data: opened.data,
+        quantizer,
+    };
+    import_slices_as(&producer, meta, store_path, options, Some(format))
+}
+
 /// The header facts of a reader's source stored through `quantizer`.
 pub(crate) fn source_meta(info: &crate::source::SourceInfo, quantizer: &Quantizer) -> VolumeMeta {
     let (slope, intercept) = quantizer.physical_mapping(info.slope, info.intercept);
@@ -304,6 +323,17 @@ pub fn import_slices(
     meta: VolumeMeta,
     store_path: &Path,
     options: &ImportOptions,
+) -> Result<ImportReport> {
+    import_slices_as(producer, meta, store_path, options, None)
+}
+
+/// [`import_slices`] writing format `format` (`None`: the current one, or 1 for lz4).
+pub(crate) fn import_slices_as(
+    producer: &dyn SliceProducer,
+    meta: VolumeMeta,
+    store_path: &Path,
+    options: &ImportOptions,
+    format: Option<u32>,
 ) -> Result<ImportReport> {
     let started = Instant::now();
     let dims = producer.dims();
@@ -356,7 +386,7 @@ pub fn import_slices(
     let format_version = if options.codec == BrickCodec::Lz4 {
         1
     } else {
-        STORE_FORMAT_VERSION
+        format.unwrap_or(STORE_FORMAT_VERSION)
     };
     let writer = StoreWriter::create_with_format(store_path, sled_cache, format_version)?;
     let narrow = meta.stored == StoredScalar::U8;
@@ -392,6 +422,7 @@ pub fn import_slices(
             Ok(_) => {
                 let sink = BrickSink {
                     store_path,
+                    direct: writer.writes_in_parallel().then_some(writer),
                     batches,
                     narrow,
                     codec: options.codec,
@@ -618,6 +649,8 @@ fn build_levels(
 
 struct BrickSink<'a> {
     store_path: &'a Path,
+    /// Format 3: each worker appends its records itself (no writer thread, no batches).
+    direct: Option<&'a StoreWriter>,
     batches: crossbeam_channel::Sender<Vec<(BrickId, Vec<u8>)>>,
     narrow: bool,
     codec: BrickCodec,
@@ -727,11 +760,11 @@ fn emit_row(builder: &LevelBuilder, sink: &BrickSink, skeleton: &mut DenseNodes)
     let row_start = (bz * row_bricks) as usize;
     for batch_start in (0..row_bricks).step_by(BRICKS_PER_BATCH as usize) {
         let batch_end = (batch_start + BRICKS_PER_BATCH).min(row_bricks);
-        let encoded: Vec<(BrickId, NodeInfo, Vec<u8>)> = (batch_start..batch_end)
+        let encoded: Vec<(BrickId, NodeInfo, Option<Vec<u8>>, u64)> = (batch_start..batch_end)
             .into_par_iter()
             .map_init(
                 || Vec::with_capacity(BRICK_PAYLOAD_VOXELS),
-                |voxels, i| {
+                |voxels, i| -> Result<_> {
                     let (bx, by) = (i % nbx, i / nbx);
                     extract_brick(bx, by, bz, builder.dims, &slice_at, voxels);
                     let range = value_range(voxels);
@@ -742,28 +775,33 @@ fn emit_row(builder: &LevelBuilder, sink: &BrickSink, skeleton: &mut DenseNodes)
                     } else {
                         0
                     };
-                    (
-                        id,
-                        NodeInfo {
-                            min: range.min,
-                            max: range.max,
-                            flags,
-                        },
-                        record,
-                    )
+                    let node = NodeInfo {
+                        min: range.min,
+                        max: range.max,
+                        flags,
+                    };
+                    let len = record.len() as u64;
+                    if let Some(writer) = sink.direct {
+                        // Written by this worker; only the length goes on.
+                        writer.put_brick(id, &record)?;
+                        return Ok((id, node, None, len));
+                    }
+                    Ok((id, node, Some(record), len))
                 },
             )
-            .collect();
+            .collect::<Result<_>>()?;
         let mut bytes = 0;
         let mut records = Vec::with_capacity(encoded.len());
-        for (offset, (id, node, record)) in encoded.into_iter().enumerate() {
+        for (offset, (id, node, record, len)) in encoded.into_iter().enumerate() {
             skeleton[level][row_start + batch_start as usize + offset] = node;
-            bytes += record.len() as u64;
-            records.push((id, record));
+            bytes += len;
+            if let Some(record) = record {
+                records.push((id, record));
+            }
         }
         sink.compressed_bytes.fetch_add(bytes, Ordering::Relaxed);
         // A closed channel means the writer failed; its error is reported by the caller.
-        if sink.batches.send(records).is_err() {
+        if !records.is_empty() && sink.batches.send(records).is_err() {
             return Err(StorageError::invalid(
                 sink.store_path,
                 "brick writer stopped",

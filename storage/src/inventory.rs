@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 use crate::brick::BrickCodec;
 use crate::error::{Result, StorageError};
 use crate::lock::{LockHolder, LockPurpose, StoreLock, LOCK_FILE};
-use crate::store::{Store, STORE_FORMAT_VERSION};
+use crate::store::Store;
 
 /// What a store folder holds, as far as can be told without changing it.
 #[derive(Clone, Debug, PartialEq)]
@@ -79,7 +79,7 @@ impl StoreEntry {
                 let any_input_left = inputs.iter().any(|i| Path::new(i).exists());
                 if !inputs.is_empty() && !any_input_left {
                     Some(PruneReason::Orphaned)
-                } else if *format_version < STORE_FORMAT_VERSION && any_input_left {
+                } else if *format_version < PRUNED_BELOW_FORMAT_VERSION && any_input_left {
                     Some(PruneReason::OldFormat)
                 } else {
                     None
@@ -88,6 +88,10 @@ impl StoreEntry {
         }
     }
 }
+
+/// Formats below this are pruned when their source is still there. Format 2 (sled) is not:
+/// it still opens, and `strata store upgrade` converts it to format 3 without the source.
+const PRUNED_BELOW_FORMAT_VERSION: u32 = 2;
 
 /// The marker file's name (see `store`), which every store folder has from its creation on.
 const MARKER_FILE: &str = "STRATA-STORE";
@@ -233,7 +237,9 @@ mod tests {
         }
         std::fs::create_dir(folder.join("not-a-store")).unwrap();
 
-        let held = Store::open(&busy).unwrap();
+        // A reader of a format-3 store does not make it busy (readers share it); a writer does.
+        let reader = Store::open(&current).unwrap();
+        let held = StoreLock::acquire(&busy, LockPurpose::Import).unwrap();
         let stores = list_stores(folder).unwrap();
         let names: Vec<_> = stores
             .iter()
@@ -264,7 +270,7 @@ mod tests {
         assert!(matches!(
             stores[1].state,
             StoreState::Complete {
-                format_version: 2,
+                format_version: 3,
                 codec: BrickCodec::Dense,
                 ..
             }
@@ -279,6 +285,7 @@ mod tests {
         ));
         assert!(Store::open(&current).is_ok());
         drop(held);
+        drop(reader);
         let _ = old;
         assert!(busy.join(MARKER_FILE).is_file());
         // Not a store: refused.

@@ -27,6 +27,8 @@ pub mod lock;
 mod lock_holder;
 pub mod octree;
 #[cfg(feature = "local")]
+mod packs;
+#[cfg(feature = "local")]
 pub mod phantom;
 #[cfg(feature = "local")]
 pub mod quantize;

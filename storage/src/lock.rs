@@ -108,6 +108,45 @@ impl Drop for StoreLock {
     }
 }
 
+/// A reader's shared lock on a format-3 store: taken on the lock file if it exists, opened
+/// read-only, so that taking it writes nothing (a store on read-only media without a lock file
+/// is read without one). Any number of readers hold it at once; a writer's exclusive
+/// [`StoreLock`] is refused while one does, and a reader is refused while a writer holds that.
+#[derive(Debug)]
+pub struct SharedStoreLock {
+    _file: File,
+}
+
+impl SharedStoreLock {
+    pub fn acquire(store_dir: &Path) -> Result<Option<SharedStoreLock>> {
+        let lock_path = store_dir.join(LOCK_FILE);
+        let file = match crate::regular_file::open(&lock_path) {
+            Ok(f) => f,
+            Err(StorageError::Io { source, .. })
+                if source.kind() == std::io::ErrorKind::NotFound =>
+            {
+                return Ok(None)
+            }
+            Err(e) => return Err(e),
+        };
+        match file.try_lock_shared() {
+            Ok(()) => Ok(Some(SharedStoreLock { _file: file })),
+            Err(std::fs::TryLockError::WouldBlock) => Err(StorageError::InUse {
+                path: store_dir.to_path_buf(),
+                holder: read_record(&file).unwrap_or(LockHolder {
+                    pid: 0,
+                    purpose: LockPurpose::Import,
+                    url: None,
+                }),
+            }),
+            Err(std::fs::TryLockError::Error(e)) => Err(StorageError::io(
+                &lock_path,
+                std::io::Error::new(e.kind(), format!("locking the store: {e}")),
+            )),
+        }
+    }
+}
+
 /// Who holds the store at `store_dir` now, if anyone (a live process: the OS releases the lock
 /// of a dead one).
 pub fn current_holder(store_dir: &Path) -> Option<LockHolder> {

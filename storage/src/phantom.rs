@@ -129,6 +129,17 @@ impl Phantom {
         import_slices(self, self.meta(), path, options)
     }
 
+    /// [`Phantom::write_store`] in store format `format` (2: sled, as earlier builds wrote).
+    #[doc(hidden)]
+    pub fn write_store_as_format(
+        &self,
+        path: &Path,
+        options: &ImportOptions,
+        format: u32,
+    ) -> Result<ImportReport> {
+        crate::import::import_slices_as(self, self.meta(), path, options, Some(format))
+    }
+
     /// Writes the phantom as an NRRD file (int16 HU, raw little-endian, attached header),
     /// streaming slice by slice.
     pub fn write_nrrd(&self, path: &Path, progress: Option<&dyn Fn(u64, u64)>) -> Result<()> {

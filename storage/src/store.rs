@@ -8,6 +8,7 @@
 //! Creating a store over an existing one deletes it first, so a second import starts clean; a
 //! directory that is not a store is never deleted.
 
+use std::borrow::Cow;
 use std::path::{Path, PathBuf};
 
 use std::time::Duration;
@@ -16,8 +17,9 @@ use crate::brick::{brick_id_from_key, brick_key, decode_brick, BrickDecodeError}
 use crate::contained_db::{contained, SledHandles};
 use crate::error::{Result, StorageError};
 use crate::histogram::Histogram;
-use crate::lock::{LockPurpose, StoreLock, LOCK_FILE};
+use crate::lock::{LockPurpose, SharedStoreLock, StoreLock, LOCK_FILE};
 use crate::octree::{BrickId, OctreeLayout};
+use crate::packs::{PackWriter, Packs};
 
 // The document types live in `crate::header` (pure, also built for a remote viewer); their
 // paths under `store` stay as they were.
@@ -64,16 +66,29 @@ const FLUSH_LIMIT: Duration = Duration::from_secs(60);
 /// A complete, read-only store.
 pub struct Store {
     path: PathBuf,
-    bricks: sled::Tree,
     header: StoreHeader,
     skeleton: Skeleton,
     histogram: Histogram,
     stats: StoreStats,
-    /// Frames 1.. of a 4-D store: each one's bricks tree and skeleton (frame 0 is above).
-    later_frames: Vec<(sled::Tree, Skeleton)>,
-    // Dropped after the trees above: the database closes (bounded), then the lock goes.
-    db: SledHandles,
-    _lock: StoreLock,
+    /// Frames 1.. of a 4-D store: each one's skeleton (frame 0's is above).
+    later_skeletons: Vec<Skeleton>,
+    backend: Backend,
+}
+
+/// Where the records are: sled (formats 1 and 2) or pack files (format 3).
+enum Backend {
+    Sled {
+        bricks: sled::Tree,
+        /// Frames 1..: each one's bricks tree.
+        later_trees: Vec<sled::Tree>,
+        // Dropped after the trees above: the database closes (bounded), then the lock goes.
+        db: SledHandles,
+        lock: StoreLock,
+    },
+    Packs {
+        packs: Packs,
+        _lock: Option<SharedStoreLock>,
+    },
 }
 
 impl Store {
@@ -99,13 +114,16 @@ impl Store {
                 message: format!("no {MARKER_FILE} marker"),
             });
         }
+        let marker = read_marker(path)?;
+        if marker.format >= 3 {
+            return Self::open_packs(path, &marker);
+        }
         if !path.join(DB_DIR).is_dir() {
             return Err(StorageError::corrupted(
                 path,
                 format!("its database folder {DB_DIR}/ is missing"),
             ));
         }
-        let marker = read_marker(path)?;
         // sled opens every file under db/ itself; a FIFO there would block it for ever.
         refuse_non_regular_files(path, &path.join(DB_DIR), 2)?;
         let lock = StoreLock::acquire(path, LockPurpose::Read)?;
@@ -144,37 +162,14 @@ impl Store {
                 }
             });
         }
-        let header: StoreHeader = serde_json::from_slice(&require(KEY_HEADER)?)
-            .map_err(|e| StorageError::corrupted(path, format!("its header is unreadable: {e}")))?;
-        check_format(path, &header)?;
-        if marker.format != header.format_version {
-            return Err(StorageError::corrupted(
-                path,
-                format!(
-                    "its {MARKER_FILE} marker says format {} but its header format {}",
-                    marker.format, header.format_version
-                ),
-            ));
-        }
-        header
-            .geometry
-            .validate()
-            .map_err(|e| StorageError::corrupted(path, format!("its header's geometry: {e}")))?;
-        if header.layout != OctreeLayout::new(header.geometry.dims) {
-            return Err(StorageError::corrupted(
-                path,
-                "its header's octree layout does not match its dimensions",
-            ));
-        }
-        let skeleton = Skeleton::decode(&require(KEY_SKELETON)?, &header.layout)
-            .map_err(|e| StorageError::corrupted(path, format!("its octree skeleton {e}")))?;
-        let histogram: Histogram =
-            serde_json::from_slice(&require(KEY_HISTOGRAM)?).map_err(|e| {
-                StorageError::corrupted(path, format!("its histogram is unreadable: {e}"))
-            })?;
-        let stats: StoreStats = serde_json::from_slice(&require(KEY_STATS)?).map_err(|e| {
-            StorageError::corrupted(path, format!("its statistics are unreadable: {e}"))
-        })?;
+        let (header, skeleton, histogram, stats) = parse_documents(
+            path,
+            &marker,
+            &require(KEY_HEADER)?,
+            &require(KEY_SKELETON)?,
+            &require(KEY_HISTOGRAM)?,
+            &require(KEY_STATS)?,
+        )?;
         let bricks = contained(path, "opening the bricks", || db.open_tree("bricks"))?;
         if header.frames == 0
             || header.frames as u64 > crate::geometry::MAX_AXIS_VOXELS
@@ -188,7 +183,8 @@ impl Store {
                 ),
             ));
         }
-        let mut later_frames = Vec::new();
+        let mut later_skeletons = Vec::new();
+        let mut later_trees = Vec::new();
         let mut trees = vec![meta.clone(), bricks.clone()];
         for f in 1..header.frames {
             let key = frame_skeleton_key(f);
@@ -200,19 +196,68 @@ impl Store {
                 db.open_tree(frame_bricks_tree(f))
             })?;
             trees.push(tree.clone());
-            later_frames.push((tree, frame_skeleton));
+            later_trees.push(tree);
+            later_skeletons.push(frame_skeleton);
         }
         Ok(Store {
             path: path.to_path_buf(),
-            later_frames,
-            db: SledHandles::new(path, db, trees),
-            bricks,
+            later_skeletons,
             header,
             skeleton,
             histogram,
             stats,
-            _lock: lock,
+            backend: Backend::Sled {
+                bricks,
+                later_trees,
+                db: SledHandles::new(path, db, trees),
+                lock,
+            },
         })
+    }
+
+    /// Opens a format-3 store without writing anything: a shared lock on its existing lock
+    /// file (none where it has none), the index read, the packs mapped (see [`crate::packs`]).
+    fn open_packs(path: &Path, marker: &Marker) -> Result<Store> {
+        let lock = SharedStoreLock::acquire(path)?;
+        if !marker.complete {
+            return Err(StorageError::IncompleteImport {
+                path: path.to_path_buf(),
+            });
+        }
+        let index = crate::packs::read_index(path)?;
+        let docs = &index.docs;
+        let (header, skeleton, histogram, stats) = parse_documents(
+            path,
+            marker,
+            &docs.header,
+            &docs.skeleton,
+            &docs.histogram,
+            &docs.stats,
+        )?;
+        if header.frames != 1 {
+            return Err(StorageError::corrupted(
+                path,
+                format!(
+                    "its header claims {} frames; a format-3 store holds one",
+                    header.frames
+                ),
+            ));
+        }
+        let packs = Packs::open(path, &index.pack_lengths, index.entries)?;
+        Ok(Store {
+            path: path.to_path_buf(),
+            later_skeletons: Vec::new(),
+            header,
+            skeleton,
+            histogram,
+            stats,
+            backend: Backend::Packs { packs, _lock: lock },
+        })
+    }
+
+    /// The store's format: 3 (packs) or 1-2 (sled).
+    pub fn format_version(&self) -> u32 {
+        self.header.format_version
     }
 
     pub fn path(&self) -> &Path {
@@ -251,22 +296,68 @@ impl Store {
             .any(|f| f == FEATURE_SPARSE_SKELETON)
     }
 
-    /// The record of `id` in `tree`, or for a constant node without one in a store that may
-    /// omit them, the constant record the skeleton implies; `None` when neither exists.
-    fn record_or_implied(
-        &self,
-        tree: &sled::Tree,
-        skeleton: &Skeleton,
-        id: BrickId,
-    ) -> Result<Option<Vec<u8>>> {
-        if let Some(record) = contained(&self.path, "reading a brick", || tree.get(brick_key(id)))?
-        {
-            return Ok(Some(record.to_vec()));
+    /// The record of `id` in frame `frame` (a slice of a pack's map in format 3, a copy out of
+    /// sled before), or for a constant node without one in a store that may omit them, the
+    /// constant record the skeleton implies; `None` when neither exists.
+    fn record_or_implied(&self, frame: u32, id: BrickId) -> Result<Option<Cow<'_, [u8]>>> {
+        let skeleton = match self.frame_skeleton(frame) {
+            Some(s) => s,
+            None => {
+                return Err(StorageError::invalid(
+                    &self.path,
+                    format!(
+                        "frame {frame} of a store with {} frames",
+                        self.frame_count()
+                    ),
+                ))
+            }
+        };
+        let stored: Option<Cow<'_, [u8]>> = match &self.backend {
+            Backend::Sled {
+                bricks,
+                later_trees,
+                ..
+            } => {
+                let tree = match frame {
+                    0 => bricks,
+                    f => &later_trees[f as usize - 1],
+                };
+                contained(&self.path, "reading a brick", || tree.get(brick_key(id)))?
+                    .map(|r| Cow::Owned(r.to_vec()))
+            }
+            Backend::Packs { packs, .. } => packs.get(frame, id).map(Cow::Borrowed),
+        };
+        if stored.is_some() {
+            return Ok(stored);
         }
         Ok(skeleton
             .node(id)
             .filter(|n| n.is_constant() && self.constant_bricks_implied())
-            .map(|n| crate::brick::constant_record(id, n.min)))
+            .map(|n| Cow::Owned(crate::brick::constant_record(id, n.min))))
+    }
+
+    /// The record of `id` in frame `frame`, or an error naming the store and the brick.
+    fn record(&self, frame: u32, id: BrickId) -> Result<Cow<'_, [u8]>> {
+        if !self.header.layout.contains(id) {
+            return Err(StorageError::invalid(
+                &self.path,
+                format!("brick {id:?} is outside the octree"),
+            ));
+        }
+        self.record_or_implied(frame, id)?.ok_or_else(|| {
+            let which = if frame == 0 {
+                String::new()
+            } else {
+                format!("frame {frame}: ")
+            };
+            StorageError::corrupted(
+                &self.path,
+                format!(
+                    "{which}brick level {} at {:?} is missing",
+                    id.level, id.coords
+                ),
+            )
+        })
     }
 
     /// Volumes in this store (1 unless it is 4-D).
@@ -278,91 +369,81 @@ impl Store {
     pub fn frame_skeleton(&self, frame: u32) -> Option<&Skeleton> {
         match frame {
             0 => Some(&self.skeleton),
-            f => self.later_frames.get(f as usize - 1).map(|(_, s)| s),
+            f => self.later_skeletons.get(f as usize - 1),
         }
     }
 
     /// [`Store::read_brick_record`] of frame `frame`.
     pub fn read_frame_brick_record(&self, frame: u32, id: BrickId) -> Result<Vec<u8>> {
-        let tree = match frame {
-            0 => &self.bricks,
-            f => match self.later_frames.get(f as usize - 1) {
-                Some((t, _)) => t,
-                None => {
-                    return Err(StorageError::invalid(
-                        &self.path,
-                        format!("frame {f} of a store with {} frames", self.frame_count()),
-                    ))
-                }
-            },
-        };
-        if !self.header.layout.contains(id) {
-            return Err(StorageError::invalid(
-                &self.path,
-                format!("brick {id:?} is outside the octree"),
-            ));
-        }
-        let skeleton = self.frame_skeleton(frame).unwrap_or(&self.skeleton);
-        self.record_or_implied(tree, skeleton, id)?.ok_or_else(|| {
-            StorageError::corrupted(
-                &self.path,
-                format!(
-                    "frame {frame}: brick level {} at {:?} is missing",
-                    id.level, id.coords
-                ),
-            )
-        })
+        Ok(self.record(frame, id)?.into_owned())
     }
 
     /// [`Store::read_brick`] of frame `frame`.
     pub fn read_frame_brick(&self, frame: u32, id: BrickId) -> Result<Vec<u16>> {
-        let record = self.read_frame_brick_record(frame, id)?;
-        decode_brick(id, &record).map_err(|e| brick_error(&self.path, id, e))
+        let record = self.record(frame, id)?;
+        decode_brick(id, &record).map_err(|e| self.brick_error(id, e))
     }
 
-    /// Reads, verifies and decompresses one brick: 36³ stored values, x fastest.
+    /// Reads, verifies and decompresses one brick: 36³ stored values, x fastest. In format 3
+    /// the record is decoded straight from the pack's map (no copy).
     pub fn read_brick(&self, id: BrickId) -> Result<Vec<u16>> {
-        if !self.header.layout.contains(id) {
-            return Err(StorageError::invalid(
-                &self.path,
-                format!("brick {id:?} is outside the octree"),
-            ));
-        }
-        let record = self.read_brick_record(id)?;
-        decode_brick(id, &record).map_err(|e| brick_error(&self.path, id, e))
+        self.read_frame_brick(0, id)
     }
 
     /// One brick's record exactly as stored (kind, checksum, compressed body): what the data
     /// service sends, so nothing is decoded or re-encoded on the way. Not verified here. A
     /// constant node of a store that omits their records answers the constant record.
     pub fn read_brick_record(&self, id: BrickId) -> Result<Vec<u8>> {
-        if !self.header.layout.contains(id) {
-            return Err(StorageError::invalid(
-                &self.path,
-                format!("brick {id:?} is outside the octree"),
-            ));
-        }
-        self.record_or_implied(&self.bricks, &self.skeleton, id)?
-            .ok_or_else(|| {
+        self.read_frame_brick_record(0, id)
+    }
+
+    /// [`Store::read_brick_record`] without a copy where the store allows it (format 3: a slice
+    /// of the pack's map).
+    pub fn brick_record(&self, id: BrickId) -> Result<Cow<'_, [u8]>> {
+        self.record(0, id)
+    }
+
+    /// A decoding error of brick `id`, naming the store and, in format 3, the pack.
+    fn brick_error(&self, id: BrickId, e: BrickDecodeError) -> StorageError {
+        match &self.backend {
+            Backend::Packs { packs, .. } => {
+                let key = brick_key(id);
+                let pack = packs
+                    .entries()
+                    .iter()
+                    .find(|x| x.frame == 0 && x.key == key)
+                    .map(|x| format!("{}: ", crate::packs::pack_name(x.pack)))
+                    .unwrap_or_default();
                 StorageError::corrupted(
                     &self.path,
-                    format!("brick level {} at {:?} is missing", id.level, id.coords),
+                    format!("{pack}brick level {} at {:?}: {e}", id.level, id.coords),
                 )
-            })
+            }
+            Backend::Sled { .. } => brick_error(&self.path, id, e),
+        }
     }
 
     /// Records in this store's lock where `strata serve` streams it, so a local open of the
     /// same folder is refused at once with the URL to use instead.
+    /// A format-3 store is read by any number of processes at once: nothing is recorded.
     pub fn advertise_url(&mut self, url: &str) -> Result<()> {
-        self._lock.advertise_url(url)
+        match &mut self.backend {
+            Backend::Sled { lock, .. } => lock.advertise_url(url),
+            Backend::Packs { .. } => Ok(()),
+        }
     }
 
     /// Size of the stored record of a brick (compressed), for I/O accounting.
     pub fn stored_brick_bytes(&self, id: BrickId) -> Result<u64> {
-        Ok(contained(&self.path, "reading a brick", || {
-            self.bricks.get(brick_key(id))
-        })?
-        .map_or(0, |r| r.len() as u64))
+        match &self.backend {
+            Backend::Sled { bricks, .. } => {
+                Ok(
+                    contained(&self.path, "reading a brick", || bricks.get(brick_key(id)))?
+                        .map_or(0, |r| r.len() as u64),
+                )
+            }
+            Backend::Packs { packs, .. } => Ok(packs.get(0, id).map_or(0, |r| r.len() as u64)),
+        }
     }
 
     /// Checks every brick of every frame: present, checksum, decompression, and range equal to
@@ -380,15 +461,23 @@ impl Store {
 
     /// [`Store::verify`] with what could still be read and the verdict to print.
     pub fn verify_report(&self, mut on_progress: impl FnMut(u64, u64)) -> Result<VerifyReport> {
+        let (bricks, later_trees) = match &self.backend {
+            Backend::Sled {
+                bricks,
+                later_trees,
+                ..
+            } => (bricks, later_trees),
+            Backend::Packs { packs, .. } => return Ok(self.verify_packs(packs, on_progress)),
+        };
         let layout = self.header.layout.clone();
         let sparse = self.constant_bricks_implied();
         // Every frame of a 4-D store: frame 0 in `bricks`, frame f in its own tree.
-        let frame_trees: Vec<(u32, sled::Tree)> = std::iter::once((0, self.bricks.clone()))
+        let frame_trees: Vec<(u32, sled::Tree)> = std::iter::once((0, bricks.clone()))
             .chain(
-                self.later_frames
+                later_trees
                     .iter()
                     .enumerate()
-                    .map(|(i, (tree, _))| (i as u32 + 1, tree.clone())),
+                    .map(|(i, tree)| (i as u32 + 1, tree.clone())),
             )
             .collect();
         let frame_skeletons: Vec<&Skeleton> = (0..frame_trees.len() as u32)
@@ -572,6 +661,107 @@ impl Store {
         Ok(problems.finish(&self.path, &self.header, seen))
     }
 
+    /// [`Store::verify_report`] of a format-3 store: the packs streamed in order (entries by pack
+    /// and offset, so the disk reads sequentially), every record checked against its checksum,
+    /// its node's range and the index; every bad brick reported by id with its pack.
+    fn verify_packs(&self, packs: &Packs, mut on_progress: impl FnMut(u64, u64)) -> VerifyReport {
+        let layout = &self.header.layout;
+        let sparse = self.constant_bricks_implied();
+        let mut order: Vec<&crate::packs::Entry> = packs.entries().iter().collect();
+        order.sort_by_key(|e| (e.pack, e.offset));
+        let total = order.len() as u64;
+        // What progress counts to: as format 2 does, the nodes that need a record (a sparse
+        // store's stored nodes, every node otherwise).
+        let nodes = if sparse {
+            self.skeleton.stored_nodes() as u64
+        } else {
+            layout.total_bricks()
+        };
+        let mut problems = Problems::default();
+        let mut seen = 0u64;
+        let mut varying_with_records = 0u64;
+        let store = self.path.display();
+        // Chunks in pack order, each decoded on all cores: the disk still reads sequentially.
+        for chunk in order.chunks(VERIFY_CHUNK) {
+            use rayon::prelude::*;
+            let checked: Vec<(bool, Option<String>)> = chunk
+                .par_iter()
+                .map(|e| self.check_pack_record(packs, e))
+                .collect();
+            for (varying, problem) in checked {
+                seen += 1;
+                varying_with_records += u64::from(varying);
+                match problem {
+                    Some(p) => problems.push(p),
+                    None => problems.intact += 1,
+                }
+            }
+            on_progress(seen.min(nodes), nodes);
+        }
+        if sparse {
+            let want: u64 = (0..self.skeleton.level_count())
+                .map(|l| self.skeleton.nodes_in_level(l) - self.skeleton.constant_in_level(l))
+                .sum();
+            if varying_with_records != want {
+                problems.push(format!(
+                    "{store}: {varying_with_records} brick records for the skeleton's {want} varying nodes"
+                ));
+            }
+        } else if total != layout.total_bricks() {
+            problems.push(format!(
+                "{store}: {total} brick records for {} octree nodes",
+                layout.total_bricks()
+            ));
+        }
+        on_progress(nodes, nodes);
+        problems.finish(&self.path, &self.header, seen)
+    }
+
+    /// One record of a format-3 store checked: whether its node varies, and its problem.
+    fn check_pack_record(&self, packs: &Packs, e: &crate::packs::Entry) -> (bool, Option<String>) {
+        let store = self.path.display();
+        let pack = crate::packs::pack_name(e.pack);
+        let id = match e.id() {
+            Some(id) if self.header.layout.contains(id) && e.frame == 0 => id,
+            _ => {
+                return (
+                    false,
+                    Some(format!(
+                        "{store}: {pack}: a record under key {:02x?} (frame {}) outside the octree",
+                        e.key, e.frame
+                    )),
+                )
+            }
+        };
+        let node = self.skeleton.node(id).unwrap_or_default();
+        let varying = !node.is_constant();
+        let Some(record) = packs.slice(e) else {
+            return (
+                varying,
+                Some(format!(
+                    "{store}: {pack}: brick level {} at {:?} lies outside its pack",
+                    id.level, id.coords
+                )),
+            );
+        };
+        let problem = match decode_brick(id, record) {
+            Err(err) => Some(format!(
+                "{store}: {pack} at byte {}: brick level {} at {:?}: {err}",
+                e.offset, id.level, id.coords
+            )),
+            Ok(voxels) => {
+                let r = crate::brick::value_range(&voxels);
+                ((r.min, r.max) != (node.min, node.max)).then(|| {
+                    format!(
+                        "{store}: {pack}: brick level {} at {:?}: range {}..{} differs from the skeleton's {}..{}",
+                        id.level, id.coords, r.min, r.max, node.min, node.max
+                    )
+                })
+            }
+        };
+        (varying, problem)
+    }
+
     /// Overwrites one byte of a stored brick record. Only for tests of corruption handling.
     #[doc(hidden)]
     pub fn corrupt_brick_for_tests(path: &Path, id: BrickId, byte: usize) -> Result<()> {
@@ -587,6 +777,28 @@ impl Store {
         byte: usize,
     ) -> Result<()> {
         let _lock = StoreLock::acquire(path, LockPurpose::Import)?;
+        if read_marker(path)?.format >= 3 {
+            use std::os::unix::fs::FileExt;
+            let index = crate::packs::read_index(path)?;
+            let key = brick_key(id);
+            let e = index
+                .entries
+                .iter()
+                .find(|e| e.frame == frame && e.key == key)
+                .ok_or_else(|| StorageError::corrupted(path, "no such brick"))?;
+            let file = crate::packs::pack_path(path, e.pack);
+            let f = std::fs::OpenOptions::new()
+                .read(true)
+                .write(true)
+                .open(&file)
+                .map_err(|x| StorageError::io(&file, x))?;
+            let at = e.offset + (byte as u64).min(u64::from(e.len).saturating_sub(1));
+            let mut b = [0u8];
+            f.read_exact_at(&mut b, at)
+                .and_then(|()| f.write_all_at(&[b[0] ^ 0x01], at))
+                .map_err(|x| StorageError::io(&file, x))?;
+            return Ok(());
+        }
         let db = contained(path, "opening the database", || {
             open_db_when_unlocked(sled::Config::new().path(path.join(DB_DIR)))
         })?;
@@ -611,13 +823,58 @@ impl Store {
 
     /// Closes the store, reporting a failure to close (instead of hiding it in a drop).
     pub fn close(self) -> Result<()> {
-        self.db.flush(FLUSH_LIMIT)
+        match self.backend {
+            Backend::Sled { db, .. } => db.flush(FLUSH_LIMIT),
+            Backend::Packs { .. } => Ok(()),
+        }
     }
 }
 
 /// Refuses a header this build cannot read, naming the command that rebuilds the store.
 fn check_format(path: &Path, header: &StoreHeader) -> Result<()> {
     check_format_knowing(path, header, KNOWN_STORE_FEATURES)
+}
+
+/// Decodes and checks a store's documents (header against the marker and this build, geometry,
+/// layout, skeleton, histogram, statistics), naming the store in every error.
+fn parse_documents(
+    path: &Path,
+    marker: &Marker,
+    header: &[u8],
+    skeleton: &[u8],
+    histogram: &[u8],
+    stats: &[u8],
+) -> Result<(StoreHeader, Skeleton, Histogram, StoreStats)> {
+    let header: StoreHeader = serde_json::from_slice(header)
+        .map_err(|e| StorageError::corrupted(path, format!("its header is unreadable: {e}")))?;
+    check_format(path, &header)?;
+    if marker.format != header.format_version {
+        return Err(StorageError::corrupted(
+            path,
+            format!(
+                "its {MARKER_FILE} marker says format {} but its header format {}",
+                marker.format, header.format_version
+            ),
+        ));
+    }
+    header
+        .geometry
+        .validate()
+        .map_err(|e| StorageError::corrupted(path, format!("its header's geometry: {e}")))?;
+    if header.layout != OctreeLayout::new(header.geometry.dims) {
+        return Err(StorageError::corrupted(
+            path,
+            "its header's octree layout does not match its dimensions",
+        ));
+    }
+    let skeleton = Skeleton::decode(skeleton, &header.layout)
+        .map_err(|e| StorageError::corrupted(path, format!("its octree skeleton {e}")))?;
+    let histogram: Histogram = serde_json::from_slice(histogram)
+        .map_err(|e| StorageError::corrupted(path, format!("its histogram is unreadable: {e}")))?;
+    let stats: StoreStats = serde_json::from_slice(stats).map_err(|e| {
+        StorageError::corrupted(path, format!("its statistics are unreadable: {e}"))
+    })?;
+    Ok((header, skeleton, histogram, stats))
 }
 
 /// The skeleton's bytes for a store with `header`: sparse where the header names the feature,
@@ -674,7 +931,13 @@ pub(crate) fn append_frames(path: &Path, later_frames: &[PathBuf]) -> Result<()>
             db.open_tree(frame_bricks_tree(f))
         })?;
         let mut batch = sled::Batch::default();
-        for entry in frame.bricks.iter() {
+        let Backend::Sled { bricks, .. } = &frame.backend else {
+            return Err(StorageError::invalid(
+                path,
+                format!("frame {f} is not a format-2 store"),
+            ));
+        };
+        for entry in bricks.iter() {
             let (k, v) = contained(path, "copying a frame", || entry)?;
             batch.insert(k, v);
         }
@@ -794,6 +1057,9 @@ fn refuse_non_regular_files(store: &Path, dir: &Path, depth: u32) -> Result<()> 
     }
     Ok(())
 }
+
+/// Records of a format-3 store decoded at once by [`Store::verify`] (in pack order).
+const VERIFY_CHUNK: usize = 256;
 
 /// Problem messages [`Store::verify`] keeps: a database damaged throughout yields one per
 /// record, so the list is capped (memory stays bounded) and the rest only counted.
@@ -1000,11 +1266,16 @@ fn brick_error(path: &Path, id: BrickId, e: BrickDecodeError) -> StorageError {
 /// leaves nothing that could be taken for a store, and frees the disk it filled.
 pub struct StoreWriter {
     path: PathBuf,
-    bricks: sled::Tree,
-    db: SledHandles,
+    records: WriterBackend,
     finished: bool,
     lock: Option<StoreLock>,
     format_version: u32,
+}
+
+/// Where a [`StoreWriter`] puts records: sled (formats 1 and 2) or packs (format 3).
+enum WriterBackend {
+    Sled { bricks: sled::Tree, db: SledHandles },
+    Packs(PackWriter),
 }
 
 impl StoreWriter {
@@ -1046,6 +1317,15 @@ impl StoreWriter {
             format!("strata store format {format_version}\n"),
         )
         .map_err(|e| StorageError::io(path.join(MARKER_FILE), e))?;
+        if format_version >= 3 {
+            return Ok(StoreWriter {
+                path: path.to_path_buf(),
+                records: WriterBackend::Packs(PackWriter::create(path)?),
+                finished: false,
+                lock: Some(lock),
+                format_version,
+            });
+        }
         let config = sled::Config::new()
             .path(path.join(DB_DIR))
             .cache_capacity(sled_cache_bytes)
@@ -1056,8 +1336,10 @@ impl StoreWriter {
         let bricks = contained(path, "creating the bricks", || db.open_tree("bricks"))?;
         Ok(StoreWriter {
             path: path.to_path_buf(),
-            db: SledHandles::new(path, db, vec![bricks.clone()]),
-            bricks,
+            records: WriterBackend::Sled {
+                db: SledHandles::new(path, db, vec![bricks.clone()]),
+                bricks,
+            },
             finished: false,
             lock: Some(lock),
             format_version,
@@ -1071,21 +1353,47 @@ impl StoreWriter {
     /// A record written earlier (by [`StoreWriter::put_bricks`]), for a writer that builds
     /// coarser levels from the finer ones it wrote.
     pub fn read_brick_record(&self, id: BrickId) -> Result<Option<Vec<u8>>> {
-        Ok(contained(&self.path, "reading a brick", || {
-            self.bricks.get(brick_key(id))
-        })?
-        .map(|r| r.to_vec()))
+        match &self.records {
+            WriterBackend::Sled { bricks, .. } => {
+                Ok(
+                    contained(&self.path, "reading a brick", || bricks.get(brick_key(id)))?
+                        .map(|r| r.to_vec()),
+                )
+            }
+            WriterBackend::Packs(packs) => packs.read_back(0, id),
+        }
     }
 
-    /// Writes bricks in one sled batch (give them in key order).
+    /// Whether [`StoreWriter::put_brick`] may be called from many threads at once with no
+    /// batching (format 3); sled stores want ordered batches from one thread.
+    pub fn writes_in_parallel(&self) -> bool {
+        matches!(self.records, WriterBackend::Packs(_))
+    }
+
+    /// Writes one brick record; in format 3 from any thread, appended to a pack with `pwrite`.
+    pub fn put_brick(&self, id: BrickId, record: &[u8]) -> Result<()> {
+        match &self.records {
+            WriterBackend::Packs(packs) => packs.append(0, id, record),
+            WriterBackend::Sled { .. } => self.put_bricks(vec![(id, record.to_vec())]),
+        }
+    }
+
+    /// Writes bricks in one sled batch (give them in key order); appends them in format 3.
     pub fn put_bricks(&self, records: Vec<(BrickId, Vec<u8>)>) -> Result<()> {
+        let bricks = match &self.records {
+            WriterBackend::Sled { bricks, .. } => bricks,
+            WriterBackend::Packs(packs) => {
+                for (id, record) in records {
+                    packs.append(0, id, &record)?;
+                }
+                return Ok(());
+            }
+        };
         let mut batch = sled::Batch::default();
         for (id, record) in records {
             batch.insert(&brick_key(id)[..], record);
         }
-        contained(&self.path, "writing bricks", || {
-            self.bricks.apply_batch(batch)
-        })
+        contained(&self.path, "writing bricks", || bricks.apply_batch(batch))
     }
 
     /// Writes the metadata, flushes everything, then marks the store complete and flushes again:
@@ -1110,7 +1418,24 @@ impl StoreWriter {
             ));
         }
         check_format(path, header)?;
-        let meta = contained(path, "creating the metadata", || self.db.open_tree("meta"))?;
+        let db = match &self.records {
+            WriterBackend::Sled { db, .. } => db,
+            WriterBackend::Packs(packs) => {
+                let json = |v: &dyn erased::Json| {
+                    v.json().map_err(|e| {
+                        StorageError::invalid(path, format!("encoding the header: {e}"))
+                    })
+                };
+                packs.finish(&crate::packs::IndexDocs {
+                    header: json(header)?,
+                    skeleton: encode_skeleton_for(header, skeleton),
+                    histogram: json(histogram)?,
+                    stats: json(stats)?,
+                })?;
+                return self.write_complete_marker();
+            }
+        };
+        let meta = contained(path, "creating the metadata", || db.open_tree("meta"))?;
         let to_json = |v: &dyn erased::Json| {
             v.json()
                 .map_err(|e| StorageError::invalid(path, format!("encoding the header: {e}")))
@@ -1122,9 +1447,16 @@ impl StoreWriter {
         put(KEY_SKELETON, encode_skeleton_for(header, skeleton))?;
         put(KEY_HISTOGRAM, to_json(histogram)?)?;
         put(KEY_STATS, to_json(stats)?)?;
-        self.db.flush(FLUSH_LIMIT)?;
+        db.flush(FLUSH_LIMIT)?;
         put(KEY_COMPLETE, b"1".to_vec())?;
-        self.db.flush(FLUSH_LIMIT)?;
+        db.flush(FLUSH_LIMIT)?;
+        drop(meta);
+        self.write_complete_marker()
+    }
+
+    /// The marker's `complete` line, renamed into place last (and, in format 3, the folder
+    /// fsync'd after it: the store is complete once this returns).
+    fn write_complete_marker(&mut self) -> Result<()> {
         // Beside the database, so that damage which loses the database's records can be told
         // from an import that never finished. Written by rename: whole or not at all.
         let marker = self.path.join(MARKER_FILE);
@@ -1136,8 +1468,12 @@ impl StoreWriter {
                 self.format_version
             ),
         )
+        .and_then(|()| std::fs::File::open(&staged)?.sync_all())
         .and_then(|()| std::fs::rename(&staged, &marker))
         .map_err(|e| StorageError::io(&marker, e))?;
+        if self.format_version >= 3 {
+            crate::packs::sync_dir(&self.path)?;
+        }
         self.finished = true;
         Ok(())
     }
@@ -1150,8 +1486,16 @@ impl Drop for StoreWriter {
         }
         // Close sled first (bounded: after a full disk its close never returns), then remove the
         // partial store while still holding the lock, then the folder with its lock file.
-        let db = std::mem::replace(&mut self.db, SledHandles::closed(&self.path));
-        drop(db);
+        if let WriterBackend::Sled { db, .. } = &mut self.records {
+            drop(std::mem::replace(db, SledHandles::closed(&self.path)));
+        }
+        self.remove_partial();
+    }
+}
+
+impl StoreWriter {
+    /// Removes a partial store while still holding the lock, then the folder with its lock file.
+    fn remove_partial(&mut self) {
         let _ = remove_all_but_lock(&self.path);
         let lock = self.lock.take();
         let _ = std::fs::remove_dir_all(&self.path);
@@ -1188,4 +1532,77 @@ mod erased {
             serde_json::to_vec(self)
         }
     }
+}
+
+/// Converts the format-2 store at `path` to format 3, atomically: the new store is written
+/// beside it (`NAME.upgrading`), opened and verified; only then is the old one renamed away
+/// (`NAME.format2-old`), the new one renamed to `path`, and the old one removed. A crash before
+/// the first rename leaves the old store as it was (and an incomplete `NAME.upgrading`, which
+/// the next upgrade replaces); between the two renames both stores are kept under their
+/// suffixed names. Returns the verified store's problems-free report.
+pub fn upgrade_store(path: &Path) -> Result<VerifyReport> {
+    let old = Store::open(path)?;
+    let (bricks, version) = match &old.backend {
+        Backend::Sled { bricks, .. } => (bricks.clone(), old.header.format_version),
+        Backend::Packs { .. } => {
+            return Err(StorageError::invalid(path, "already a format-3 store"))
+        }
+    };
+    if version != 2 || old.header.frames != 1 {
+        return Err(StorageError::Unsupported {
+            path: path.to_path_buf(),
+            message: format!(
+                "upgrading a format-{version} store of {} frames: only single-volume format-2 stores are upgraded; re-import it: {}",
+                old.header.frames,
+                rebuild_command(path, &old.header)
+            ),
+        });
+    }
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .ok_or_else(|| StorageError::invalid(path, "a store path without a name"))?;
+    let staged = path.with_file_name(format!("{name}.upgrading"));
+    let parked = path.with_file_name(format!("{name}.format2-old"));
+    if parked.exists() {
+        return Err(StorageError::invalid(
+            &parked,
+            "an earlier upgrade's old store is still here; remove it or move it away first",
+        ));
+    }
+    let writer = StoreWriter::create_with_format(&staged, 0, 3)?;
+    for entry in bricks.iter() {
+        let (key, record) = contained(path, "reading the brick records", || entry)?;
+        let id = brick_id_from_key(&key).ok_or_else(|| {
+            StorageError::corrupted(path, format!("a brick record under key {key:02x?}"))
+        })?;
+        writer.put_brick(id, &record)?;
+    }
+    let mut header = old.header.clone();
+    header.format_version = 3;
+    writer.finish(&header, &old.skeleton, &old.histogram, &old.stats)?;
+    drop(bricks);
+    old.close()?;
+    let report = Store::open(&staged)?.verify_report(|_, _| {})?;
+    if !report.problems.is_empty() {
+        let _ = std::fs::remove_dir_all(&staged);
+        return Err(StorageError::corrupted(
+            path,
+            format!(
+                "the upgraded copy did not verify (the old store is kept): {}",
+                report.problems.join("; ")
+            ),
+        ));
+    }
+    // The old store is exclusively ours while renamed: a reader that opened it earlier has
+    // been refused (format 2 is held exclusively) and one that comes now finds the new store.
+    let lock = StoreLock::acquire(path, LockPurpose::Import)?;
+    std::fs::rename(path, &parked).map_err(|e| StorageError::io(path, e))?;
+    std::fs::rename(&staged, path).map_err(|e| StorageError::io(&staged, e))?;
+    if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
+        crate::packs::sync_dir(parent)?;
+    }
+    drop(lock);
+    std::fs::remove_dir_all(&parked).map_err(|e| StorageError::io(&parked, e))?;
+    Ok(report)
 }

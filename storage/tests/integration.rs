@@ -10,3 +10,4 @@ mod readers;
 mod sparse_skeleton;
 mod store_damage;
 mod store_formats;
+mod store_v3;

@@ -902,7 +902,10 @@ fn damaged_format_2_bricks_and_unknown_codecs_end_in_clean_errors() {
             codec,
             ..Default::default()
         };
-        Phantom::cube(40).write_store(&path, &options).unwrap();
+        // Format 2: its sled header is edited below (format 3's damage: store_v3.rs).
+        Phantom::cube(40)
+            .write_store_as_format(&path, &options, 2)
+            .unwrap();
         // The phantom's body: not a constant brick.
         let id = BrickId::new(0, [0, 0, 0]);
         let record = {

@@ -66,7 +66,10 @@ fn imports_write_the_sparse_skeleton_and_dense_skeleton_stores_still_open_with_t
         codec: BrickCodec::Fast,
         ..Default::default()
     };
-    Phantom::cube(100).write_store(&path, &options).unwrap();
+    // Format 2: the older build's dense skeleton is written into its sled metadata below.
+    Phantom::cube(100)
+        .write_store_as_format(&path, &options, 2)
+        .unwrap();
     let (nodes, dense_bytes, skeleton) = {
         let store = Store::open(&path).unwrap();
         assert!(store

@@ -7,7 +7,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use strata_storage::import::{import_source, ImportOptions};
+use strata_storage::import::{import_source_as_format, ImportOptions};
 use strata_storage::readers::{open_source, RawSpec, ReadOptions};
 use strata_storage::{ByteOrder, SampleType, Store};
 
@@ -39,10 +39,12 @@ fn noise_store(dir: &Path) -> PathBuf {
         ..ReadOptions::default()
     };
     let store = dir.join("pristine.strata");
-    import_source(
+    // Format 2: these cases damage sled's own files (format 3's are in store_v3.rs).
+    import_source_as_format(
         open_source(&raw, &options).unwrap(),
         &store,
         &ImportOptions::default(),
+        2,
     )
     .unwrap();
     store

@@ -18,6 +18,17 @@ fn write(path: &Path, size: u64, codec: BrickCodec) -> strata_storage::import::I
     Phantom::cube(size).write_store(path, &options).unwrap()
 }
 
+/// [`write`] as a format-2 (sled) store, whose header [`edit_header`] edits.
+fn write_v2(path: &Path, size: u64, codec: BrickCodec) {
+    let options = ImportOptions {
+        codec,
+        ..Default::default()
+    };
+    Phantom::cube(size)
+        .write_store_as_format(path, &options, 2)
+        .unwrap();
+}
+
 /// Every brick of every level of `store`.
 fn all_bricks(store: &Store) -> Vec<(BrickId, Vec<u16>)> {
     let layout = store.layout().clone();
@@ -152,7 +163,7 @@ fn the_codec_is_recorded_and_dense_is_smaller_than_fast_smaller_than_lz4() {
 fn a_newer_format_is_refused_naming_the_rebuild_command() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("future.strata");
-    write(&path, 40, BrickCodec::Fast);
+    write_v2(&path, 40, BrickCodec::Fast);
     edit_header(&path, |h| {
         h["format_version"] = serde_json::json!(STORE_FORMAT_VERSION + 1);
         h["provenance"]["inputs"] = serde_json::json!(["/scans/head.nii.gz"]);
@@ -166,7 +177,7 @@ fn a_newer_format_is_refused_naming_the_rebuild_command() {
         "{message}"
     );
     assert!(
-        message.contains("strata import '/scans/head.nii.gz'"),
+        message.contains("strata import --replace '/scans/head.nii.gz'"),
         "{message}"
     );
 }
@@ -175,7 +186,7 @@ fn a_newer_format_is_refused_naming_the_rebuild_command() {
 fn an_unknown_required_feature_is_refused_and_a_known_header_still_opens() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("sparse.strata");
-    write(&path, 40, BrickCodec::Dense);
+    write_v2(&path, 40, BrickCodec::Dense);
     edit_header(&path, |h| {
         h["required_features"] = serde_json::json!(["sparse-skeleton-v9"]);
     });
@@ -193,7 +204,7 @@ fn an_unknown_required_feature_is_refused_and_a_known_header_still_opens() {
 fn a_format_1_header_naming_a_format_2_codec_is_damage() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("mixed.strata");
-    write(&path, 40, BrickCodec::Fast);
+    write_v2(&path, 40, BrickCodec::Fast);
     edit_header(&path, |h| h["format_version"] = serde_json::json!(1));
     let err = Store::open(&path).err().unwrap();
     assert!(matches!(err, StorageError::Corrupted { .. }), "{err}");

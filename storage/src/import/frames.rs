@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 
 use crate::error::Result;
 use crate::import::{
-    import_slices, source_meta, ImportOptions, ImportProgress, ImportReport, SliceProducer,
+    import_slices_as, source_meta, ImportOptions, ImportProgress, ImportReport, SliceProducer,
 };
 use crate::quantize::Quantizer;
 use crate::source::{OpenedSource, RawVolume};
@@ -89,7 +89,8 @@ pub(crate) fn import_frames(
             progress: Some(&progress),
             codec: options.codec,
         };
-        import_slices(&frame(f), meta, path, &frame_options)
+        // 4-D stores stay format 2 (sled) for now: `append_frames` copies sled trees.
+        import_slices_as(&frame(f), meta, path, &frame_options, Some(2))
     };
     let result = (|| {
         for (f, path) in (1..frames).zip(&temporary) {

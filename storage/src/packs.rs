@@ -1,0 +1,529 @@
+//! Format 3's brick container: records appended to pack files, found through one sorted,
+//! checksummed, read-only index file written last.
+//!
+//! A store of format 3 is a folder of
+//! - `STRATA-STORE`: the marker, `strata store format 3`, and the `complete` line renamed in last;
+//! - `packs/pack-NNNNN.pack`: brick records exactly as format 2 stores them (kind, xxh3, body),
+//!   back to back, each pack at most [`PACK_LIMIT_BYTES`] (one larger record gets a pack alone);
+//! - `index.v3`: [`INDEX_MAGIC`], the header, skeleton, histogram and statistics, each pack's
+//!   length, the entries (frame, brick key, pack, offset, length) sorted by frame and key, and an
+//!   xxh3-64 of all of it. Written to `index.v3.new`, fsync'd, renamed, after every pack is
+//!   fsync'd: an index names only bytes already on disk.
+//!
+//! **Writing.** Every import worker appends its own records: it reserves the bytes with an atomic
+//! add on the current pack's end and writes them with `pwrite`, so no writer thread or lock is
+//! on the hot path (a lock is taken only to start the next pack, once per GiB, and to note the
+//! entry). A crash before the index is renamed leaves a store without index and marker line:
+//! incomplete, refused as such.
+//!
+//! **Reading.** Opening writes nothing: the index is read, the packs are mapped (memmap2) and a
+//! record is a slice of its pack's map. Mapped bytes that vanish under a reader raise SIGBUS;
+//! that cannot happen here because a pack is immutable once its store is complete (writers
+//! create packs with `create_new` in a folder they hold exclusively, never reopen, truncate or
+//! rewrite one; replacing a store removes its files, and an unlinked file stays mapped whole),
+//! a writer's exclusive lock excludes the shared lock every reader holds, and each pack's
+//! length is checked against the file (`fstat` on the open descriptor) before it is mapped,
+//! and every entry against its pack's indexed length.
+
+use std::collections::HashMap;
+use std::fs::File;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, RwLock};
+
+use crate::brick::brick_key;
+use crate::error::{Result, StorageError};
+use crate::octree::BrickId;
+
+pub(crate) const PACKS_DIR: &str = "packs";
+pub(crate) const INDEX_FILE: &str = "index.v3";
+/// The largest a pack grows before the next one is started.
+pub const PACK_LIMIT_BYTES: u64 = 1 << 30;
+pub(crate) const INDEX_MAGIC: &[u8; 16] = b"STRATA-INDEX-v3\n";
+/// Bytes of one index entry: frame u32, key 13, pack u32, offset u64, length u32.
+const ENTRY_BYTES: usize = 4 + 13 + 4 + 8 + 4;
+/// An index is entries of a few dozen bytes and a skeleton: a larger file is not one.
+const INDEX_MAX_BYTES: u64 = 4 << 30;
+
+pub(crate) fn pack_name(pack: u32) -> String {
+    format!("pack-{pack:05}.pack")
+}
+
+pub(crate) fn pack_path(store: &Path, pack: u32) -> PathBuf {
+    store.join(PACKS_DIR).join(pack_name(pack))
+}
+
+fn describe(id: BrickId) -> String {
+    format!("brick level {} at {:?}", id.level, id.coords)
+}
+
+/// Where one record lies.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) struct Entry {
+    pub frame: u32,
+    pub key: [u8; 13],
+    pub pack: u32,
+    pub offset: u64,
+    pub len: u32,
+}
+
+impl Entry {
+    pub fn id(&self) -> Option<BrickId> {
+        crate::brick::brick_id_from_key(&self.key)
+    }
+    fn what(&self) -> String {
+        match self.id() {
+            Some(id) => describe(id),
+            None => format!("the record under key {:02x?}", self.key),
+        }
+    }
+}
+
+/// The metadata documents an index carries, encoded.
+pub(crate) struct IndexDocs {
+    pub header: Vec<u8>,
+    pub skeleton: Vec<u8>,
+    pub histogram: Vec<u8>,
+    pub stats: Vec<u8>,
+}
+
+struct ActivePack {
+    id: u32,
+    file: File,
+    /// Reserved end: the next record's offset.
+    next: AtomicU64,
+    /// Largest end written.
+    end: AtomicU64,
+}
+
+/// Appends records to packs from many threads at once (see the module's documentation).
+pub(crate) struct PackWriter {
+    store: PathBuf,
+    limit: u64,
+    current: RwLock<Arc<ActivePack>>,
+    packs: Mutex<Vec<Arc<ActivePack>>>,
+    entries: Mutex<HashMap<(u32, [u8; 13]), Entry>>,
+}
+
+fn poisoned(store: &Path) -> StorageError {
+    StorageError::invalid(store, "a pack writer thread panicked")
+}
+
+impl PackWriter {
+    pub fn create(store: &Path) -> Result<PackWriter> {
+        Self::with_limit(store, PACK_LIMIT_BYTES)
+    }
+
+    pub fn with_limit(store: &Path, limit: u64) -> Result<PackWriter> {
+        let dir = store.join(PACKS_DIR);
+        std::fs::create_dir(&dir).map_err(|e| StorageError::io(&dir, e))?;
+        let first = Arc::new(Self::new_pack(store, 0)?);
+        Ok(PackWriter {
+            store: store.to_path_buf(),
+            limit: limit.max(1),
+            current: RwLock::new(first.clone()),
+            packs: Mutex::new(vec![first]),
+            entries: Mutex::new(HashMap::new()),
+        })
+    }
+
+    fn new_pack(store: &Path, id: u32) -> Result<ActivePack> {
+        let path = pack_path(store, id);
+        let file = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create_new(true)
+            .open(&path)
+            .map_err(|e| StorageError::io(&path, e))?;
+        Ok(ActivePack {
+            id,
+            file,
+            next: AtomicU64::new(0),
+            end: AtomicU64::new(0),
+        })
+    }
+
+    /// Appends one record of frame `frame` (a later one for the same brick supersedes it).
+    pub fn append(&self, frame: u32, id: BrickId, record: &[u8]) -> Result<()> {
+        use std::os::unix::fs::FileExt;
+        let len = record.len() as u64;
+        let len32 = u32::try_from(record.len()).map_err(|_| {
+            StorageError::invalid(&self.store, format!("{}: record too large", describe(id)))
+        })?;
+        loop {
+            let pack = self
+                .current
+                .read()
+                .map_err(|_| poisoned(&self.store))?
+                .clone();
+            let offset = pack.next.fetch_add(len, Ordering::SeqCst);
+            if offset + len <= self.limit || offset == 0 {
+                let path = pack_path(&self.store, pack.id);
+                pack.file
+                    .write_all_at(record, offset)
+                    .map_err(|e| write_error(&path, id, e))?;
+                pack.end.fetch_max(offset + len, Ordering::SeqCst);
+                let key = brick_key(id);
+                self.entries
+                    .lock()
+                    .map_err(|_| poisoned(&self.store))?
+                    .insert(
+                        (frame, key),
+                        Entry {
+                            frame,
+                            key,
+                            pack: pack.id,
+                            offset,
+                            len: len32,
+                        },
+                    );
+                return Ok(());
+            }
+            // This pack is full: the first thread to see it starts the next one.
+            let mut current = self.current.write().map_err(|_| poisoned(&self.store))?;
+            if current.id == pack.id {
+                let next = Arc::new(Self::new_pack(&self.store, pack.id + 1)?);
+                self.packs
+                    .lock()
+                    .map_err(|_| poisoned(&self.store))?
+                    .push(next.clone());
+                *current = next;
+            }
+        }
+    }
+
+    /// A record appended earlier, read back (for writers that build coarser levels from it).
+    pub fn read_back(&self, frame: u32, id: BrickId) -> Result<Option<Vec<u8>>> {
+        use std::os::unix::fs::FileExt;
+        let entry = self
+            .entries
+            .lock()
+            .map_err(|_| poisoned(&self.store))?
+            .get(&(frame, brick_key(id)))
+            .copied();
+        let Some(entry) = entry else { return Ok(None) };
+        let pack = self
+            .packs
+            .lock()
+            .map_err(|_| poisoned(&self.store))?
+            .get(entry.pack as usize)
+            .cloned()
+            .ok_or_else(|| poisoned(&self.store))?;
+        let mut out = vec![0u8; entry.len as usize];
+        pack.file
+            .read_exact_at(&mut out, entry.offset)
+            .map_err(|e| StorageError::io(pack_path(&self.store, entry.pack), e))?;
+        Ok(Some(out))
+    }
+
+    /// fsyncs every pack and the packs folder, then writes the index (fsync'd, renamed into
+    /// place, folder fsync'd). The store is complete only when the caller's marker follows.
+    pub fn finish(&self, docs: &IndexDocs) -> Result<()> {
+        let packs = self.packs.lock().map_err(|_| poisoned(&self.store))?;
+        let mut lengths = Vec::with_capacity(packs.len());
+        for pack in packs.iter() {
+            let path = pack_path(&self.store, pack.id);
+            pack.file
+                .sync_all()
+                .map_err(|e| StorageError::io(&path, e))?;
+            lengths.push(pack.end.load(Ordering::SeqCst));
+        }
+        sync_dir(&self.store.join(PACKS_DIR))?;
+        let mut entries: Vec<Entry> = self
+            .entries
+            .lock()
+            .map_err(|_| poisoned(&self.store))?
+            .values()
+            .copied()
+            .collect();
+        entries.sort_by_key(|e| (e.frame, e.key));
+        let bytes = encode_index(docs, &lengths, &entries);
+        let index = self.store.join(INDEX_FILE);
+        let staged = self.store.join(format!("{INDEX_FILE}.new"));
+        write_synced(&staged, &bytes)?;
+        std::fs::rename(&staged, &index).map_err(|e| StorageError::io(&index, e))?;
+        sync_dir(&self.store)
+    }
+}
+
+/// A failed pack write: a full disk (or file-size limit) said as such, naming the brick.
+fn write_error(path: &Path, id: BrickId, e: std::io::Error) -> StorageError {
+    if crate::error::is_disk_full(&e) {
+        StorageError::DiskFull {
+            path: path.to_path_buf(),
+            message: format!(
+                "the disk is full, or the file-size limit was reached, while writing {} ({e})",
+                describe(id)
+            ),
+        }
+    } else {
+        StorageError::io(
+            path,
+            std::io::Error::new(e.kind(), format!("writing {}: {e}", describe(id))),
+        )
+    }
+}
+
+/// Writes `bytes` to a new file at `path` and fsyncs it.
+pub(crate) fn write_synced(path: &Path, bytes: &[u8]) -> Result<()> {
+    use std::io::Write;
+    let mut file = File::create(path).map_err(|e| StorageError::io(path, e))?;
+    file.write_all(bytes)
+        .and_then(|()| file.sync_all())
+        .map_err(|e| StorageError::io(path, e))
+}
+
+/// fsyncs a folder, so the names created in it survive a power loss.
+pub(crate) fn sync_dir(dir: &Path) -> Result<()> {
+    File::open(dir)
+        .and_then(|d| d.sync_all())
+        .map_err(|e| StorageError::io(dir, e))
+}
+
+fn encode_index(docs: &IndexDocs, pack_lengths: &[u64], entries: &[Entry]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(
+        64 + docs.header.len() + docs.skeleton.len() + entries.len() * ENTRY_BYTES,
+    );
+    out.extend_from_slice(INDEX_MAGIC);
+    for doc in [&docs.header, &docs.skeleton, &docs.histogram, &docs.stats] {
+        out.extend_from_slice(&(doc.len() as u64).to_le_bytes());
+        out.extend_from_slice(doc);
+    }
+    out.extend_from_slice(&(pack_lengths.len() as u32).to_le_bytes());
+    for len in pack_lengths {
+        out.extend_from_slice(&len.to_le_bytes());
+    }
+    out.extend_from_slice(&(entries.len() as u64).to_le_bytes());
+    for e in entries {
+        out.extend_from_slice(&e.frame.to_le_bytes());
+        out.extend_from_slice(&e.key);
+        out.extend_from_slice(&e.pack.to_le_bytes());
+        out.extend_from_slice(&e.offset.to_le_bytes());
+        out.extend_from_slice(&e.len.to_le_bytes());
+    }
+    let sum = xxhash_rust::xxh3::xxh3_64(&out);
+    out.extend_from_slice(&sum.to_le_bytes());
+    out
+}
+
+/// A decoded index.
+pub(crate) struct Index {
+    pub docs: IndexDocs,
+    pub pack_lengths: Vec<u64>,
+    /// Sorted by (frame, key), no two alike.
+    pub entries: Vec<Entry>,
+}
+
+/// Reads bounded fields off the index bytes.
+struct Cursor<'a> {
+    bytes: &'a [u8],
+    at: usize,
+}
+
+impl<'a> Cursor<'a> {
+    fn take(&mut self, n: u64) -> Option<&'a [u8]> {
+        let n = usize::try_from(n).ok()?;
+        let end = self.at.checked_add(n)?;
+        let out = self.bytes.get(self.at..end)?;
+        self.at = end;
+        Some(out)
+    }
+    fn u32(&mut self) -> Option<u32> {
+        Some(u32::from_le_bytes(self.take(4)?.try_into().ok()?))
+    }
+    fn u64(&mut self) -> Option<u64> {
+        Some(u64::from_le_bytes(self.take(8)?.try_into().ok()?))
+    }
+}
+
+/// Reads and checks `index.v3` of the store at `store` (regular file, size, magic, checksum,
+/// counts bounded by its length, entries sorted and inside their packs' indexed lengths).
+pub(crate) fn read_index(store: &Path) -> Result<Index> {
+    let path = store.join(INDEX_FILE);
+    let bad =
+        |what: String| StorageError::corrupted(store, format!("its index {INDEX_FILE} {what}"));
+    let file = crate::regular_file::open(&path)?;
+    let len = file
+        .metadata()
+        .map_err(|e| StorageError::io(&path, e))?
+        .len();
+    if len > INDEX_MAX_BYTES {
+        return Err(bad(format!(
+            "is {len} bytes long, more than an index can be"
+        )));
+    }
+    let mut bytes = Vec::with_capacity(len as usize);
+    {
+        use std::io::Read;
+        (&file)
+            .take(INDEX_MAX_BYTES)
+            .read_to_end(&mut bytes)
+            .map_err(|e| StorageError::io(&path, e))?;
+    }
+    if bytes.len() < INDEX_MAGIC.len() + 8 || &bytes[..INDEX_MAGIC.len()] != INDEX_MAGIC {
+        return Err(bad("does not start as an index of format 3".into()));
+    }
+    let (body, sum) = bytes.split_at(bytes.len() - 8);
+    let sum = u64::from_le_bytes(sum.try_into().unwrap_or_default());
+    if xxhash_rust::xxh3::xxh3_64(body) != sum {
+        return Err(bad("is damaged (its checksum does not match)".into()));
+    }
+    let mut c = Cursor {
+        bytes: body,
+        at: INDEX_MAGIC.len(),
+    };
+    let truncated = || bad("is cut short".into());
+    let mut doc = || -> Result<Vec<u8>> {
+        let n = c.u64().ok_or_else(truncated)?;
+        Ok(c.take(n).ok_or_else(truncated)?.to_vec())
+    };
+    let docs = IndexDocs {
+        header: doc()?,
+        skeleton: doc()?,
+        histogram: doc()?,
+        stats: doc()?,
+    };
+    let packs = c.u32().ok_or_else(truncated)?;
+    if u64::from(packs) * 8 > (body.len() - c.at) as u64 {
+        return Err(truncated());
+    }
+    let pack_lengths: Vec<u64> = (0..packs)
+        .map(|_| c.u64().ok_or_else(truncated))
+        .collect::<Result<_>>()?;
+    let count = c.u64().ok_or_else(truncated)?;
+    if count.saturating_mul(ENTRY_BYTES as u64) != (body.len() - c.at) as u64 {
+        return Err(bad(format!(
+            "claims {count} entries in {} bytes",
+            body.len() - c.at
+        )));
+    }
+    let mut entries = Vec::with_capacity(count as usize);
+    for _ in 0..count {
+        let frame = c.u32().ok_or_else(truncated)?;
+        let key: [u8; 13] = c
+            .take(13)
+            .and_then(|k| k.try_into().ok())
+            .ok_or_else(truncated)?;
+        let pack = c.u32().ok_or_else(truncated)?;
+        let offset = c.u64().ok_or_else(truncated)?;
+        let len = c.u32().ok_or_else(truncated)?;
+        let e = Entry {
+            frame,
+            key,
+            pack,
+            offset,
+            len,
+        };
+        let Some(&pack_len) = pack_lengths.get(pack as usize) else {
+            return Err(bad(format!(
+                "points {} into pack {pack}, which it does not list",
+                e.what()
+            )));
+        };
+        if offset
+            .checked_add(u64::from(len))
+            .is_none_or(|end| end > pack_len)
+        {
+            return Err(bad(format!(
+                "points {} at bytes {offset}..{} of {}, which holds {pack_len} bytes",
+                e.what(),
+                offset.saturating_add(u64::from(len)),
+                pack_name(pack)
+            )));
+        }
+        if let Some(prev) = entries.last() {
+            let prev: &Entry = prev;
+            if (prev.frame, prev.key) >= (frame, key) {
+                return Err(bad("has entries out of order".into()));
+            }
+        }
+        entries.push(e);
+    }
+    Ok(Index {
+        docs,
+        pack_lengths,
+        entries,
+    })
+}
+
+/// The packs of a complete store, mapped, and its entries.
+pub(crate) struct Packs {
+    /// One map per pack, exactly its indexed length (`None` for an empty pack).
+    maps: Vec<Option<memmap2::Mmap>>,
+    entries: Vec<Entry>,
+}
+
+impl Packs {
+    /// Opens and maps every pack the index lists, checking each is a regular file at least as
+    /// long as the index says.
+    pub fn open(store: &Path, pack_lengths: &[u64], entries: Vec<Entry>) -> Result<Packs> {
+        let mut maps = Vec::with_capacity(pack_lengths.len());
+        for (i, &want) in pack_lengths.iter().enumerate() {
+            let path = pack_path(store, i as u32);
+            let file = match crate::regular_file::open(&path) {
+                Ok(f) => f,
+                Err(e) => {
+                    return Err(StorageError::corrupted(
+                        store,
+                        format!("its pack {}: {e}", pack_name(i as u32)),
+                    ))
+                }
+            };
+            let have = file
+                .metadata()
+                .map_err(|e| StorageError::io(&path, e))?
+                .len();
+            if have < want {
+                let first = entries
+                    .iter()
+                    .find(|e| e.pack == i as u32 && e.offset + u64::from(e.len) > have);
+                return Err(StorageError::corrupted(
+                    store,
+                    format!(
+                        "its pack {} is {have} bytes, its index says {want} (cut short){}",
+                        pack_name(i as u32),
+                        first
+                            .map(|e| format!(": {} is lost", e.what()))
+                            .unwrap_or_default()
+                    ),
+                ));
+            }
+            if want == 0 {
+                maps.push(None);
+                continue;
+            }
+            let len = usize::try_from(want).map_err(|_| {
+                StorageError::corrupted(
+                    store,
+                    format!("its pack {} is too large", pack_name(i as u32)),
+                )
+            })?;
+            // SAFETY: the file is a regular file at least `len` bytes long, and packs of a
+            // complete store are never truncated or rewritten (see the module's documentation).
+            let map = unsafe { memmap2::MmapOptions::new().len(len).map(&file) }
+                .map_err(|e| StorageError::io(&path, e))?;
+            maps.push(Some(map));
+        }
+        Ok(Packs { maps, entries })
+    }
+
+    pub fn entries(&self) -> &[Entry] {
+        &self.entries
+    }
+
+    /// The record of `id` in frame `frame`: a slice of its pack's map (checked at open).
+    pub fn get(&self, frame: u32, id: BrickId) -> Option<&[u8]> {
+        let key = brick_key(id);
+        let i = self
+            .entries
+            .binary_search_by(|e| (e.frame, e.key).cmp(&(frame, key)))
+            .ok()?;
+        self.slice(&self.entries[i])
+    }
+
+    pub fn slice(&self, e: &Entry) -> Option<&[u8]> {
+        let map = self.maps.get(e.pack as usize)?.as_ref()?;
+        let start = usize::try_from(e.offset).ok()?;
+        map.get(start..start.checked_add(e.len as usize)?)
+    }
+}

@@ -1,0 +1,377 @@
+//! Store format 3 (issue 48): brick records in pack files behind a read-only index. A v3 store
+//! reads every brick as the v2 store of the same source does; opening writes nothing (a
+//! read-only folder too); damage to packs or the index is an error naming the store, the file
+//! and the brick, never a panic; several readers at once.
+
+use std::path::{Path, PathBuf};
+
+use strata_storage::import::ImportOptions;
+use strata_storage::phantom::Phantom;
+use strata_storage::{BrickId, StorageError, Store};
+
+fn v3_and_v2(dir: &Path, size: u64) -> (PathBuf, PathBuf) {
+    let v3 = dir.join("v3.strata");
+    let v2 = dir.join("v2.strata");
+    let phantom = Phantom::cube(size);
+    phantom.write_store(&v3, &ImportOptions::default()).unwrap();
+    phantom
+        .write_store_as_format(&v2, &ImportOptions::default(), 2)
+        .unwrap();
+    (v3, v2)
+}
+
+fn all_ids(store: &Store) -> Vec<BrickId> {
+    let layout = store.layout().clone();
+    let mut out = Vec::new();
+    for level in 0..layout.level_count() {
+        let n = layout.bricks_in_level(level);
+        for z in 0..n[2] {
+            for y in 0..n[1] {
+                for x in 0..n[0] {
+                    out.push(BrickId::new(level as u8, [x, y, z]));
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Every file under `dir` with its size, mtime and content.
+fn snapshot(dir: &Path) -> Vec<(PathBuf, u64, std::time::SystemTime, Vec<u8>)> {
+    let mut out = Vec::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).unwrap().flatten() {
+            let meta = e.metadata().unwrap();
+            if meta.is_dir() {
+                stack.push(e.path());
+            } else {
+                out.push((
+                    e.path(),
+                    meta.len(),
+                    meta.modified().unwrap(),
+                    std::fs::read(e.path()).unwrap(),
+                ));
+            }
+        }
+    }
+    out.sort();
+    out
+}
+
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap().flatten() {
+        let target = to.join(e.file_name());
+        if e.file_type().unwrap().is_dir() {
+            copy_dir(&e.path(), &target);
+        } else {
+            std::fs::copy(e.path(), &target).unwrap();
+        }
+    }
+}
+
+fn set_read_only(dir: &Path, read_only: bool) {
+    use std::os::unix::fs::PermissionsExt;
+    let mut paths = vec![dir.to_path_buf()];
+    let mut i = 0;
+    while i < paths.len() {
+        if paths[i].is_dir() {
+            for e in std::fs::read_dir(&paths[i]).unwrap().flatten() {
+                paths.push(e.path());
+            }
+        }
+        i += 1;
+    }
+    // Deepest first when locking (a folder stays listable), shallowest first when unlocking.
+    if read_only {
+        paths.reverse();
+    }
+    for p in paths {
+        let mode = match (p.is_dir(), read_only) {
+            (true, true) => 0o555,
+            (true, false) => 0o755,
+            (false, true) => 0o444,
+            (false, false) => 0o644,
+        };
+        std::fs::set_permissions(&p, std::fs::Permissions::from_mode(mode)).unwrap();
+    }
+}
+
+fn pack(store: &Path) -> PathBuf {
+    store.join("packs").join("pack-00000.pack")
+}
+
+#[test]
+fn v3_reads_every_brick_as_v2_and_verifies() {
+    let dir = tempfile::tempdir().unwrap();
+    let (v3, v2) = v3_and_v2(dir.path(), 96);
+    assert!(v3.join("index.v3").is_file() && pack(&v3).is_file());
+    assert!(!v3.join("db").exists(), "a v3 store has no sled database");
+    let a = Store::open(&v3).unwrap();
+    let b = Store::open(&v2).unwrap();
+    assert_eq!(a.format_version(), 3);
+    assert_eq!(b.format_version(), 2);
+    assert_eq!(a.skeleton(), b.skeleton());
+    assert_eq!(a.stats().compressed_bytes, b.stats().compressed_bytes);
+    let ids = all_ids(&a);
+    assert!(ids.len() > 30, "{}", ids.len());
+    for &id in &ids {
+        assert_eq!(
+            a.read_brick_record(id).unwrap(),
+            b.read_brick_record(id).unwrap(),
+            "{id:?}"
+        );
+        assert_eq!(
+            a.read_brick(id).unwrap(),
+            b.read_brick(id).unwrap(),
+            "{id:?}"
+        );
+        assert_eq!(
+            a.stored_brick_bytes(id).unwrap(),
+            b.stored_brick_bytes(id).unwrap()
+        );
+    }
+    let report = a.verify_report(|_, _| {}).unwrap();
+    assert!(report.problems.is_empty(), "{:?}", report.problems);
+    assert!(report.records_read > 0);
+}
+
+#[test]
+fn opening_a_v3_store_writes_nothing_and_works_read_only() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("p.strata");
+    Phantom::cube(64)
+        .write_store(&store, &ImportOptions::default())
+        .unwrap();
+    let before = snapshot(&store);
+    {
+        let s = Store::open(&store).unwrap();
+        for id in all_ids(&s) {
+            s.read_brick(id).unwrap();
+        }
+        assert!(s.verify(|_, _| {}).unwrap().is_empty());
+        s.close().unwrap();
+    }
+    assert_eq!(snapshot(&store), before, "opening changed a file");
+    // A read-only folder (files and folders without write permission).
+    set_read_only(&store, true);
+    let opened = Store::open(&store).and_then(|s| s.verify(|_, _| {}));
+    set_read_only(&store, false);
+    assert!(opened.unwrap().is_empty());
+    assert_eq!(snapshot(&store), before, "opening changed a file");
+    // Without a lock file (a store copied to read-only media without it): read without a lock.
+    std::fs::remove_file(store.join("strata.lock")).unwrap();
+    set_read_only(&store, true);
+    let without_lock = Store::open(&store).and_then(|s| s.read_brick(BrickId::new(0, [0, 0, 0])));
+    set_read_only(&store, false);
+    without_lock.unwrap();
+    assert!(
+        !store.join("strata.lock").exists(),
+        "a reader created the lock file"
+    );
+}
+
+#[test]
+fn several_readers_at_once_and_a_writer_is_refused_while_they_read() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("p.strata");
+    let phantom = Phantom::cube(48);
+    phantom
+        .write_store(&store, &ImportOptions::default())
+        .unwrap();
+    let readers: Vec<Store> = (0..4).map(|_| Store::open(&store).unwrap()).collect();
+    std::thread::scope(|s| {
+        for r in &readers {
+            s.spawn(move || {
+                for id in all_ids(r) {
+                    r.read_brick(id).unwrap();
+                }
+            });
+        }
+    });
+    match phantom.write_store(&store, &ImportOptions::default()) {
+        Err(StorageError::InUse { .. }) => {}
+        other => panic!("an import over a store being read: {:?}", other.map(|_| ())),
+    }
+    drop(readers);
+    assert!(Store::open(&store).is_ok());
+}
+
+/// Opens a damaged copy and verifies it: the error or the problems, as text.
+fn outcome(store: &Path) -> String {
+    match Store::open(store) {
+        Err(e) => format!("open: {e}"),
+        Ok(s) => match s.verify(|_, _| {}) {
+            Err(e) => format!("verify: {e}"),
+            Ok(p) => format!("verify: {}", p.join("\n")),
+        },
+    }
+}
+
+#[test]
+fn damage_to_packs_and_index_is_an_error_naming_the_file_and_brick() {
+    let dir = tempfile::tempdir().unwrap();
+    let pristine = dir.path().join("pristine.strata");
+    Phantom::cube(64)
+        .write_store(&pristine, &ImportOptions::default())
+        .unwrap();
+    let case = |name: &str, damage: &dyn Fn(&Path)| -> String {
+        let copy = dir.path().join(name);
+        copy_dir(&pristine, &copy);
+        damage(&copy);
+        let out = outcome(&copy);
+        assert!(
+            out.contains(&copy.display().to_string()),
+            "{name}: does not name the store: {out}"
+        );
+        out
+    };
+    let pack_len = std::fs::metadata(pack(&pristine)).unwrap().len();
+
+    // A flipped byte in the middle of the pack: verify names the brick and the pack.
+    let out = case("flipped", &|s| {
+        let p = pack(s);
+        let mut bytes = std::fs::read(&p).unwrap();
+        let at = bytes.len() / 2;
+        bytes[at] ^= 0x40;
+        std::fs::write(&p, bytes).unwrap();
+    });
+    assert!(
+        out.contains("pack-00000.pack") && out.contains("brick level"),
+        "{out}"
+    );
+
+    // Damage through the test hook: reading that brick fails naming it.
+    let copy = dir.path().join("hooked");
+    copy_dir(&pristine, &copy);
+    let id = BrickId::new(0, [0, 0, 0]);
+    Store::corrupt_brick_for_tests(&copy, id, 20).unwrap();
+    let e = Store::open(&copy)
+        .unwrap()
+        .read_brick(id)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("brick level 0 at [0, 0, 0]") && e.contains("pack-00000.pack"),
+        "{e}"
+    );
+
+    // A pack shorter than the index says: refused at open, naming the pack.
+    let out = case("short", &|s| {
+        let f = std::fs::OpenOptions::new()
+            .write(true)
+            .open(pack(s))
+            .unwrap();
+        f.set_len(pack_len - 100).unwrap();
+    });
+    assert!(
+        out.starts_with("open:") && out.contains("pack-00000.pack") && out.contains("cut short"),
+        "{out}"
+    );
+
+    // The pack missing.
+    let out = case("missing", &|s| std::fs::remove_file(pack(s)).unwrap());
+    assert!(
+        out.starts_with("open:") && out.contains("pack-00000.pack"),
+        "{out}"
+    );
+
+    // A pack replaced by a folder, and by a FIFO (never blocks).
+    let out = case("folder", &|s| {
+        std::fs::remove_file(pack(s)).unwrap();
+        std::fs::create_dir(pack(s)).unwrap();
+    });
+    assert!(
+        out.starts_with("open:") && out.contains("pack-00000.pack"),
+        "{out}"
+    );
+    let out = case("fifo", &|s| {
+        std::fs::remove_file(pack(s)).unwrap();
+        let c = std::ffi::CString::new(pack(s).to_str().unwrap()).unwrap();
+        // SAFETY: a valid NUL-terminated path.
+        assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o644) }, 0);
+    });
+    assert!(
+        out.starts_with("open:") && out.contains("pack-00000.pack"),
+        "{out}"
+    );
+
+    // The index damaged anywhere: its checksum.
+    let out = case("index", &|s| {
+        let p = s.join("index.v3");
+        let mut bytes = std::fs::read(&p).unwrap();
+        let at = bytes.len() - 20;
+        bytes[at] ^= 1;
+        std::fs::write(&p, bytes).unwrap();
+    });
+    assert!(
+        out.contains("index.v3") && out.contains("checksum"),
+        "{out}"
+    );
+
+    // An index entry pointing outside its pack (a consistent index, rewritten with its checksum).
+    let out = case("outside", &|s| {
+        let p = s.join("index.v3");
+        let mut bytes = std::fs::read(&p).unwrap();
+        let body = bytes.len() - 8;
+        // The last entry's offset: 4 + 13 + 4 bytes into the last 33-byte entry.
+        let off = body - 33 + 21;
+        bytes[off..off + 8].copy_from_slice(&(pack_len * 2).to_le_bytes());
+        let sum = xxhash_rust::xxh3::xxh3_64(&bytes[..body]);
+        bytes[body..].copy_from_slice(&sum.to_le_bytes());
+        std::fs::write(&p, bytes).unwrap();
+    });
+    assert!(
+        out.starts_with("open:") && out.contains("brick level") && out.contains("pack-00000.pack"),
+        "{out}"
+    );
+
+    // The index truncated, and missing.
+    let out = case("index-short", &|s| {
+        let p = s.join("index.v3");
+        let bytes = std::fs::read(&p).unwrap();
+        std::fs::write(&p, &bytes[..bytes.len() / 2]).unwrap();
+    });
+    assert!(
+        out.starts_with("open:") && out.contains("index.v3"),
+        "{out}"
+    );
+
+    // An incomplete store (the marker's last line never written): refused as incomplete.
+    let out = case("incomplete", &|s| {
+        std::fs::write(s.join("STRATA-STORE"), "strata store format 3\n").unwrap();
+    });
+    assert!(out.contains("incomplete import"), "{out}");
+    assert!(Store::open(&pristine).is_ok());
+}
+
+#[test]
+fn upgrade_of_a_v2_store_equals_a_fresh_v3_import_record_for_record() {
+    let dir = tempfile::tempdir().unwrap();
+    let (v3, v2) = v3_and_v2(dir.path(), 80);
+    let report = strata_storage::store::upgrade_store(&v2).unwrap();
+    assert!(report.problems.is_empty() && report.records_read > 0);
+    let names: Vec<_> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .flatten()
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .collect();
+    assert_eq!(names.len(), 2, "upgrade left {names:?}");
+    let upgraded = Store::open(&v2).unwrap();
+    let fresh = Store::open(&v3).unwrap();
+    assert_eq!(upgraded.format_version(), 3);
+    assert_eq!(upgraded.skeleton(), fresh.skeleton());
+    assert_eq!(upgraded.header().layout, fresh.header().layout);
+    assert_eq!(upgraded.header().codec, fresh.header().codec);
+    for id in all_ids(&fresh) {
+        assert_eq!(
+            upgraded.read_brick_record(id).unwrap(),
+            fresh.read_brick_record(id).unwrap(),
+            "{id:?}"
+        );
+    }
+    // A format-3 store is not upgraded again.
+    drop(upgraded);
+    assert!(strata_storage::store::upgrade_store(&v2).is_err());
+}
