@@ -60,6 +60,7 @@ fn workspace_closure(dir: &str) -> BTreeSet<String> {
         ("strata-omezarr", "omezarr"),
         ("strata-loader", "loader"),
         ("strata-render", "render"),
+        ("strata-viewer", "viewer"),
         ("strata-app", "app"),
     ]
     .into_iter()
@@ -151,7 +152,7 @@ fn shared_types_stay_small() {
 }
 
 /// The workspace's library and app crates whose sources the checks below read.
-const CRATE_DIRS: [&str; 10] = [
+const CRATE_DIRS: [&str; 11] = [
     "types",
     "storage",
     "source",
@@ -161,6 +162,7 @@ const CRATE_DIRS: [&str; 10] = [
     "render",
     "slices",
     "viewer-ui",
+    "viewer",
     "app",
 ];
 

@@ -12,10 +12,8 @@ mod cmd_sample;
 mod cmd_serve;
 mod cmd_store;
 mod cmd_verify;
-mod error_report;
 mod progress;
 mod viewer;
-mod volume_location;
 
 use std::path::PathBuf;
 
@@ -71,7 +69,7 @@ fn main() -> std::process::ExitCode {
     match run(Cli::parse()) {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error: {}", error_report::describe(&e));
+            eprintln!("error: {}", strata_viewer::error_report::describe(&e));
             std::process::ExitCode::FAILURE
         }
     }
@@ -173,7 +171,7 @@ struct ViewArgs {
 fn view(args: ViewArgs) -> Result<()> {
     let source = match args.path {
         Some(path)
-            if volume_location::is_url(&path.to_string_lossy())
+            if strata_viewer::volume_location::is_url(&path.to_string_lossy())
                 || strata_omezarr::looks_like_ome_zarr(&path.to_string_lossy()) =>
         {
             viewer::url_source(path.to_string_lossy().into_owned(), args.token_file)
@@ -181,7 +179,7 @@ fn view(args: ViewArgs) -> Result<()> {
         Some(path) => viewer::path_source(path),
         None => viewer::demo_source(),
     };
-    let (width, height) = cmd_render::parse_size(&args.window)?;
+    let (width, height) = strata_viewer::export::parse_size(&args.window)?;
     let mut options = viewer::ViewerOptions::new(source);
     options.dicom_series = args.series;
     options.exit_after_seconds = args.exit_after;

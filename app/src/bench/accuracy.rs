@@ -43,7 +43,7 @@ use strata_render::{
 };
 
 use super::common::{bench_camera, median, open_input, reference_rgba, view_split, Volume};
-use crate::cmd_render::parse_size;
+use strata_viewer::export::parse_size;
 
 /// Which families of settings the sweep renders.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]

@@ -44,7 +44,7 @@ use strata_render::{
 use strata_storage::BrickId;
 
 use super::common::{bench_camera, median, open_input, reference_rgba, Volume};
-use crate::cmd_render::parse_size;
+use strata_viewer::export::parse_size;
 
 pub struct Options {
     pub input: String,

@@ -17,7 +17,7 @@ use strata_render::{
 };
 use strata_storage::Store;
 
-use crate::cmd_render::choose_transfer_function;
+use strata_viewer::export::choose_transfer_function;
 
 /// Median of `v` (the upper one of an even count).
 pub(crate) fn median(mut v: Vec<f64>) -> f64 {

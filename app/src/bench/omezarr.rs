@@ -297,7 +297,7 @@ fn remote_flythrough(options: &Options, store_path: &Path) -> Result<()> {
         report.shards_written,
         report.shard_bytes as f64 / 1e6
     );
-    let (width, height) = crate::cmd_render::parse_size(&options.image)?;
+    let (width, height) = strata_viewer::export::parse_size(&options.image)?;
     let settings = RenderSettings {
         width,
         height,

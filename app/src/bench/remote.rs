@@ -28,8 +28,8 @@ use strata_service::{RemoteOptions, RemoteSource};
 use strata_source::VolumeSource;
 use strata_storage::Store;
 
-use crate::cmd_flythrough::viewpoint;
-use crate::cmd_render::{choose_transfer_function, parse_size};
+use strata_viewer::camera_path::viewpoint;
+use strata_viewer::export::{choose_transfer_function, parse_size};
 
 #[derive(Args)]
 pub struct Options {

@@ -25,7 +25,7 @@ use strata_render::{
 };
 use strata_storage::Store;
 
-use crate::cmd_render::choose_transfer_function;
+use strata_viewer::export::choose_transfer_function;
 
 /// Frames the CPU may run ahead of the GPU, as a swapchain would allow.
 const FRAMES_IN_FLIGHT: usize = 2;
@@ -163,7 +163,7 @@ pub fn run(options: Options) -> Result<()> {
             options.step
         );
     }
-    let (width, height) = crate::cmd_render::parse_size(&options.size)?;
+    let (width, height) = strata_viewer::export::parse_size(&options.size)?;
     let store = Store::open(&options.store)
         .with_context(|| format!("cannot open store {}", options.store.display()))?;
     let header = store.header().clone();

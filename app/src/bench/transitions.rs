@@ -32,7 +32,7 @@ use strata_render::{
 };
 
 use super::common::{bench_camera, median, open_input, reference_rgba, view_split, Volume};
-use crate::cmd_render::parse_size;
+use strata_viewer::export::parse_size;
 
 #[derive(clap::Args)]
 pub struct Options {

@@ -845,7 +845,7 @@ impl StrataApp {
     /// strata-orbit-<time> folder beside the screenshots.
     pub fn take_orbit_movie_into(&mut self, frames: u32, folder: Option<PathBuf>) {
         let Some(v) = &self.volume else { return };
-        let frames = frames.clamp(2, crate::cmd_render::MAX_ORBIT_FRAMES);
+        let frames = frames.clamp(2, strata_viewer::export::MAX_ORBIT_FRAMES);
         let Some(rect) = v
             .view_rects
             .iter()
@@ -880,11 +880,11 @@ impl StrataApp {
         ));
         for i in 0..frames {
             let orbit = OrbitCamera {
-                azimuth_deg: crate::cmd_render::orbit_azimuth(start.azimuth_deg, i, frames),
+                azimuth_deg: strata_viewer::export::orbit_azimuth(start.azimuth_deg, i, frames),
                 ..start
             };
             v.data.session.request_screenshot(ScreenshotRequest {
-                path: folder.join(crate::cmd_render::orbit_frame_name(i)),
+                path: folder.join(strata_viewer::export::orbit_frame_name(i)),
                 size,
                 camera: Some(orbit.camera(geometry)),
                 then_encode: (i + 1 == frames).then(|| folder.clone()),

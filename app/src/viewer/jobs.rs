@@ -182,7 +182,7 @@ impl PrepareJob {
                     &set_stage,
                     &cancel,
                 )
-                .map_err(|e| crate::error_report::describe(&e));
+                .map_err(|e| strata_viewer::error_report::describe(&e));
                 *lock_ignoring_poison(&result) = Some(outcome);
                 repaint();
             })?;
@@ -227,22 +227,22 @@ fn prepare(
         } => {
             set_stage(format!("connecting to {url}"));
             let remote: Arc<dyn strata_source::VolumeSource> =
-                crate::volume_location::open_remote_with_token(url, Some(token.clone()))?;
+                strata_viewer::volume_location::open_remote_with_token(url, Some(token.clone()))?;
             Ok(remote)
         }
         VolumeSource::Url {
             url, token_file, ..
         } => {
             set_stage(format!("connecting to {url}"));
-            crate::volume_location::open_source(url, token_file.as_deref(), cache)
+            strata_viewer::volume_location::open_source(url, token_file.as_deref(), cache)
         }
-        VolumeSource::Path(p) if crate::volume_location::is_url(&p.to_string_lossy()) => {
+        VolumeSource::Path(p) if strata_viewer::volume_location::is_url(&p.to_string_lossy()) => {
             set_stage(format!("connecting to {}", p.display()));
-            crate::volume_location::open_source(&p.to_string_lossy(), None, cache)
+            strata_viewer::volume_location::open_source(&p.to_string_lossy(), None, cache)
         }
         VolumeSource::Path(p) if is_store(p) => {
             set_stage(format!("opening store {}", p.display()));
-            crate::volume_location::open_source(&p.to_string_lossy(), None, cache)
+            strata_viewer::volume_location::open_source(&p.to_string_lossy(), None, cache)
         }
         VolumeSource::Pacs(series) => {
             let store = prepare_pacs_store(series, import_folder, progress, set_stage, cancel)?;

@@ -153,8 +153,8 @@ pub fn run(options: ViewerOptions) -> Result<()> {
 /// The demo volume the viewer opens with no arguments.
 pub fn demo_source() -> VolumeSource {
     VolumeSource::Demo {
-        path: crate::cmd_sample::demo_store_path(),
-        size: crate::cmd_sample::DEMO_SIZE,
+        path: strata_viewer::sample::demo_store_path(),
+        size: strata_viewer::sample::DEMO_SIZE,
     }
 }
 

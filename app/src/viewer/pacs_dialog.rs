@@ -202,7 +202,7 @@ impl PacsModel {
                 let result = match crate::cmd_pacs::connect(&server, &args) {
                     Ok(client) => ask(&client),
                     Err(e) => {
-                        let e = crate::error_report::describe(&e);
+                        let e = strata_viewer::error_report::describe(&e);
                         if is_studies {
                             Answer::Studies(Err(e))
                         } else {
