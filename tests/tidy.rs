@@ -152,7 +152,7 @@ fn shared_types_stay_small() {
 }
 
 /// The workspace's library and app crates whose sources the checks below read.
-const CRATE_DIRS: [&str; 11] = [
+const CRATE_DIRS: [&str; 12] = [
     "types",
     "storage",
     "source",
@@ -164,6 +164,7 @@ const CRATE_DIRS: [&str; 11] = [
     "viewer-ui",
     "viewer",
     "app",
+    "bench",
 ];
 
 /// Module path of a source file: `src/lib.rs` → "", `src/bench/accuracy.rs` → "bench::accuracy",

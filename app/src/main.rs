@@ -1,6 +1,5 @@
 //! `strata`: the viewer and its command line. Not for diagnostic use.
 
-mod bench;
 mod cli_checks;
 mod cmd_flythrough;
 mod cmd_import;
@@ -57,9 +56,6 @@ enum Command {
     /// A DICOMweb server (PACS): find studies and series, push DICOM files.
     #[command(subcommand)]
     Pacs(cmd_pacs::PacsCommand),
-    /// Benchmarks (figures for the issue notes).
-    #[command(subcommand)]
-    Bench(bench::BenchCommand),
 }
 
 fn main() -> std::process::ExitCode {
@@ -109,7 +105,6 @@ fn run(cli: Cli) -> Result<()> {
         Some(Command::Serve(args)) => cmd_serve::run(args),
         Some(Command::Sample(args)) => cmd_sample::run(args),
         Some(Command::Render(args)) => cmd_render::run(args),
-        Some(Command::Bench(cmd)) => bench::run(cmd),
         Some(Command::Pacs(cmd)) => cmd_pacs::run(cmd),
         Some(Command::Store(cmd)) => cmd_store::run(cmd),
         Some(Command::Flythrough(args)) => cmd_flythrough::run(args),

@@ -1,4 +1,4 @@
-//! `strata bench idle`: the viewer's CPU at rest (issue 36). Starts `strata view` as a child
+//! `strata-bench idle`: the viewer's CPU at rest (issue 36). Starts `strata view` as a child
 //! (unsupervised, so the child is the window), lets it settle with the pointer outside the
 //! window, then reads the child's CPU time (all its threads, /proc/PID/stat) over a settled
 //! interval, and from its frame log how many UI passes and volume frames it drew meanwhile.
@@ -30,9 +30,9 @@ pub struct Options {
 
 pub fn run(options: Options) -> Result<()> {
     if std::env::var_os("DISPLAY").is_none() && std::env::var_os("WAYLAND_DISPLAY").is_none() {
-        bail!("no display: run it under Xvfb, e.g. `xvfb-run -a strata bench idle`");
+        bail!("no display: run it under Xvfb, e.g. `xvfb-run -a strata-bench idle`");
     }
-    let exe = std::env::current_exe().context("finding the strata binary")?;
+    let exe = crate::strata_exe()?;
     let scratch = tempfile::tempdir().context("a scratch folder for the frame log")?;
     let log = scratch.path().join("frames.csv");
     let total = options.settle + options.seconds;

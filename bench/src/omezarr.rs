@@ -1,6 +1,6 @@
-//! `strata bench omezarr`: OME-Zarr export and import throughput against raw read + compress
+//! `strata-bench omezarr`: OME-Zarr export and import throughput against raw read + compress
 //! in the same run, objects and bytes against the Strata store, and (with `--s3`) the remote
-//! flythrough of `strata bench remote` streamed from SeaweedFS (`weed mini` on loopback).
+//! flythrough of `strata-bench remote` streamed from SeaweedFS (`weed mini` on loopback).
 //!
 //! Baseline: every level-0 brick read from the store, its core cut out and zstd-compressed on
 //! all cores: the least any export must do. Export and import are timed end to end (all

@@ -1,4 +1,4 @@
-//! `strata bench remote <store>`: the flythrough of `strata flythrough` (same viewpoints,
+//! `strata-bench remote <store>`: the flythrough of `strata flythrough` (same viewpoints,
 //! glides between them, each viewpoint held until converged), once from the local store and
 //! once per round-trip delay through `strata serve` on loopback. The delay is injected in the
 //! server (`ServeOptions::added_delay`, slept before every brick answer), not with tc netem:

@@ -1,4 +1,4 @@
-//! `strata bench import` and `strata bench codecs`: import throughput against its physical limit
+//! `strata-bench import` and `strata-bench codecs`: import throughput against its physical limit
 //! on this machine, the peak memory of a large import, and the brick codecs side by side.
 //!
 //! The limit does, in one timed run, the work no import can avoid: read every source byte (page
@@ -279,7 +279,7 @@ pub(crate) fn run(o: Options) -> Result<()> {
 fn rss_row(dir: &Path, rss_size: u64, memory_mib: u64, codec: BrickCodec) -> Result<()> {
     let big = ensure_phantom_nrrd(dir, rss_size)?;
     let big_store = dir.join(format!("phantom-{rss_size}.strata"));
-    let exe = std::env::current_exe()?;
+    let exe = crate::strata_exe()?;
     let t = Instant::now();
     let status = std::process::Command::new(exe)
         .arg("import")

@@ -1,4 +1,4 @@
-//! `strata bench accuracy --sweep cinematic` end to end on a tiny phantom: every cinematic
+//! `strata-bench accuracy --sweep cinematic` end to end on a tiny phantom: every cinematic
 //! knob of both key-lit models in the CSV, each model with its own Pareto front, errors
 //! against the reference of the same lit model, and the progressive mean converging.
 
@@ -9,7 +9,6 @@ fn cinematic_sweep_for_a_small_phantom() {
     let dir = tempfile::tempdir().unwrap();
     let out_dir = dir.path().to_str().unwrap();
     let o = common::strata(&[
-        "bench",
         "accuracy",
         "phantom",
         "--phantom-size",

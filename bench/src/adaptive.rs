@@ -1,4 +1,4 @@
-//! `strata bench adaptive <store|phantom>`: the analogue of the adaptive-sampling paper's
+//! `strata-bench adaptive <store|phantom>`: the analogue of the adaptive-sampling paper's
 //! Tables 2 and 3 (adaptive-sampling-3d §4). One view at 512² (by default), rendered by
 //! - the existing raycaster (classic and pre-integrated, at the same step),
 //! - the adaptive pass with d ≡ 1 (the paper's "min." oracle: the worst-case overhead),

@@ -1,4 +1,4 @@
-//! What `strata bench accuracy` and `strata bench transitions` share, so that both measure
+//! What `strata-bench accuracy` and `strata-bench transitions` share, so that both measure
 //! the same thing the same way: the input (a store or a generated phantom) with its transfer
 //! function, the one oblique view they render, the f64 CPU reference they compare against, the
 //! mixed level-0/1 cut of the transitions bench (also a setting of the accuracy sweep), and
@@ -120,8 +120,8 @@ pub(crate) fn reference_rgba(
     Ok(reference.rgba)
 }
 
-/// The mixed level-0/1 cut both benches render (`strata bench transitions` measures it,
-/// `strata bench accuracy` has it as one family of its sweep). A near-fine / far-coarse cut:
+/// The mixed level-0/1 cut both benches render (`strata-bench transitions` measures it,
+/// `strata-bench accuracy` has it as one family of its sweep). A near-fine / far-coarse cut:
 /// level-1 nodes whose centre lies at depth ≤ `threshold` along `forward` (page units) are
 /// split into level-0 nodes.
 #[derive(Clone, Debug)]

@@ -1,4 +1,4 @@
-//! `strata bench timecritical`: the time-critical paper's Table 2 on a store. A 360° orbit is
+//! `strata-bench timecritical`: the time-critical paper's Table 2 on a store. A 360° orbit is
 //! rendered twice, once at a fixed sampling rate (the "standard rendering") and once under the
 //! time-critical controller, and for each the mean and standard deviation of the frame rate are
 //! printed. The frame rate is the one the controller sees: the GPU time of the raycast pass

@@ -1,13 +1,13 @@
-//! `strata bench timecritical` end to end on a tiny phantom: the Table-2 summary, the per-frame
+//! `strata-bench timecritical` end to end on a tiny phantom: the Table-2 summary, the per-frame
 //! CSV, and clear errors for bad arguments. Speed is judged by the bench itself, not here.
 
 use std::process::{Command, Output};
 
 fn strata(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_strata"))
+    Command::new(env!("CARGO_BIN_EXE_strata-bench"))
         .args(args)
         .output()
-        .expect("strata runs")
+        .expect("strata-bench runs")
 }
 
 fn text(o: &Output) -> String {
@@ -23,12 +23,11 @@ fn orbit_summary_and_csv_for_both_runs() {
     let dir = tempfile::tempdir().unwrap();
     let store = dir.path().join("p.strata");
     let csv = dir.path().join("frames.csv");
-    let o = strata(&["sample", "--size", "64", "--out", store.to_str().unwrap()]);
-    assert!(o.status.success(), "{}", text(&o));
+    // What `strata sample --size 64` writes (that binary is not this package's).
+    crate::common::sample_store(&store, 64);
     // A target no machine reaches: the controller drops to its rate floor and then coarsens the
     // level of detail, which this run exercises through the bench's per-level cuts.
     let o = strata(&[
-        "bench",
         "timecritical",
         store.to_str().unwrap(),
         "--target",
@@ -82,13 +81,7 @@ fn orbit_summary_and_csv_for_both_runs() {
 fn bad_arguments_are_refused_with_a_reason() {
     let dir = tempfile::tempdir().unwrap();
     let missing = dir.path().join("missing.strata");
-    let o = strata(&[
-        "bench",
-        "timecritical",
-        missing.to_str().unwrap(),
-        "--target",
-        "10",
-    ]);
+    let o = strata(&["timecritical", missing.to_str().unwrap(), "--target", "10"]);
     assert!(!o.status.success());
     assert!(text(&o).contains("missing.strata"), "{}", text(&o));
     for (flag, value) in [
@@ -97,13 +90,7 @@ fn bad_arguments_are_refused_with_a_reason() {
         ("--frames", "0"),
         ("--step", "-1"),
     ] {
-        let mut args = vec![
-            "bench",
-            "timecritical",
-            missing.to_str().unwrap(),
-            flag,
-            value,
-        ];
+        let mut args = vec!["timecritical", missing.to_str().unwrap(), flag, value];
         if flag != "--target" {
             args.extend(["--target", "10"]);
         }
@@ -120,11 +107,10 @@ fn bad_arguments_are_refused_with_a_reason() {
 fn a_level_over_the_gpu_budget_is_named_with_its_bricks_and_bytes() {
     let dir = tempfile::tempdir().unwrap();
     let store = dir.path().join("p.strata");
-    let o = strata(&["sample", "--size", "128", "--out", store.to_str().unwrap()]);
-    assert!(o.status.success(), "{}", text(&o));
+    // What `strata sample --size 128` writes (that binary is not this package's).
+    crate::common::sample_store(&store, 128);
     let run = |level: &str| {
         strata(&[
-            "bench",
             "timecritical",
             store.to_str().unwrap(),
             "--target",

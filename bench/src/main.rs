@@ -1,11 +1,15 @@
-//! `strata bench ...`: the measurements behind the issue notes. Every figure is reported next to
-//! a baseline measured in the same run, because these machines are shared and noisy.
+//! `strata-bench`: the measurements behind the issue notes, a binary of its own so that none of
+//! it (nor `plotters`) is compiled into the shipping `strata` (issue 47):
+//! `cargo run --release -p strata-bench -- <bench> ...`. Every figure is reported next to a
+//! baseline measured in the same run, because these machines are shared and noisy. The benches
+//! that drive the viewer or an import in a child process (`idle`, `import --rss-size`) run the
+//! `strata` binary beside this one (`strata_exe`).
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, Result};
-use clap::Subcommand;
+use clap::{Parser, Subcommand};
 use strata_storage::{BrickCodec, BrickId, Store, BRICK_PAYLOAD_VOXELS};
 
 mod accuracy;
@@ -18,8 +22,49 @@ mod remote;
 mod time_critical;
 mod transitions;
 
+#[derive(Parser)]
+#[command(
+    name = "strata-bench",
+    version,
+    about = "Strata's benchmarks: the figures behind the issue notes (not for diagnostic use)"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: BenchCommand,
+}
+
+fn main() -> std::process::ExitCode {
+    // As `strata` does: memory a closed volume gave back stays reusable.
+    strata_loader::malloc_arenas::limit_malloc_arenas();
+    match run(Cli::parse().command) {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {}", strata_viewer::error_report::describe(&e));
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+/// The `strata` binary that the benches run as a child (`strata view`, `strata import`):
+/// `$STRATA_BIN`, else the one beside this binary (cargo builds both into the same folder:
+/// `cargo build --release -p strata-app -p strata-bench`).
+pub(crate) fn strata_exe() -> Result<PathBuf> {
+    if let Some(path) = std::env::var_os("STRATA_BIN") {
+        return Ok(PathBuf::from(path));
+    }
+    let me = std::env::current_exe().context("finding the strata-bench binary")?;
+    let exe = me.with_file_name(format!("strata{}", std::env::consts::EXE_SUFFIX));
+    anyhow::ensure!(
+        exe.is_file(),
+        "{} is missing: build it beside strata-bench (`cargo build --release -p strata-app`) \
+         or name it in STRATA_BIN",
+        exe.display()
+    );
+    Ok(exe)
+}
+
 #[derive(Subcommand)]
-pub enum BenchCommand {
+enum BenchCommand {
     /// Import throughput of a u16 phantom NRRD against its physical limit (read the source,
     /// compress every byte the store holds with its codec on all cores, write that sequentially
     /// and fsync); optional peak RSS of a large import in a child process.
@@ -185,7 +230,7 @@ fn parse_codec(name: &str) -> std::result::Result<BrickCodec, String> {
     }
 }
 
-pub fn run(cmd: BenchCommand) -> Result<()> {
+fn run(cmd: BenchCommand) -> Result<()> {
     match cmd {
         BenchCommand::Remote(options) => remote::run(options),
         BenchCommand::Idle(options) => idle::run(options),

@@ -1,4 +1,4 @@
-//! `strata bench transitions` end to end on a tiny phantom: the Table-1 row, the CSV with all
+//! `strata-bench transitions` end to end on a tiny phantom: the Table-1 row, the CSV with all
 //! four settings, and GPU images that match the f64 reference of the same mixed cut.
 
 use std::process::Command;
@@ -7,8 +7,8 @@ use std::process::Command;
 fn table_and_csv_for_a_small_phantom() {
     let dir = tempfile::tempdir().unwrap();
     let md = dir.path().join("t.md");
-    let o = Command::new(env!("CARGO_BIN_EXE_strata"))
-        .args(["bench", "transitions", "phantom", "--phantom-size", "128"])
+    let o = Command::new(env!("CARGO_BIN_EXE_strata-bench"))
+        .args(["transitions", "phantom", "--phantom-size", "128"])
         .args(["--size", "32x32", "--frames", "2", "--out"])
         .arg(&md)
         .output()

@@ -1,4 +1,4 @@
-//! `strata bench transitions`: the mixed-resolution paper's Table 1 for one input. What smooth
+//! `strata-bench transitions`: the mixed-resolution paper's Table 1 for one input. What smooth
 //! transitions between octree levels cost in frame time, and what they change in the image.
 //!
 //! The cut is the one a distance-based LOD makes: a plane perpendicular to the view direction

@@ -1,4 +1,4 @@
-//! `strata bench accuracy`: what accuracy costs in time. Sweeps the quality knobs of one view
+//! `strata-bench accuracy`: what accuracy costs in time. Sweeps the quality knobs of one view
 //! (step length, pre-integration, octree level as the loader's quality factor picks it,
 //! jitter, shading), and for each setting measures the frame time (median of N, render and
 //! wait, on whatever adapter is found) and the error against the f64 CPU reference of the
@@ -126,7 +126,7 @@ struct Knobs {
     step: f64,
     preintegrated: bool,
     level: u8,
-    /// The mixed level-0/1 cut of `strata bench transitions` (about 25 % transition nodes)
+    /// The mixed level-0/1 cut of `strata-bench transitions` (about 25 % transition nodes)
     /// instead of a uniform level.
     mixed: bool,
     smooth: bool,
@@ -442,7 +442,7 @@ fn load_level(ctx: &GpuContext, v: &Volume, level: u8) -> Result<LevelCut> {
     Ok(LevelCut { table, bricks, gpu })
 }
 
-/// The mixed cut of `strata bench transitions` for this view.
+/// The mixed cut of `strata-bench transitions` for this view.
 fn load_mixed(ctx: &GpuContext, v: &Volume, camera: &Camera) -> Result<LevelCut> {
     let split = view_split(v, camera, 0.25);
     let mut table = page_table_for_cut(&v.store, &v.geometry, |p| split.level_of(p));
