@@ -12,7 +12,6 @@ mod cmd_serve;
 mod cmd_store;
 mod cmd_verify;
 mod progress;
-mod viewer;
 
 use std::path::PathBuf;
 
@@ -109,7 +108,9 @@ fn run(cli: Cli) -> Result<()> {
         Some(Command::Store(cmd)) => cmd_store::run(cmd),
         Some(Command::Flythrough(args)) => cmd_flythrough::run(args),
         Some(Command::View(args)) => view(args),
-        None => viewer::run(viewer::ViewerOptions::new(viewer::demo_source())),
+        None => strata_viewer::run(strata_viewer::ViewerOptions::new(
+            strata_viewer::demo_source(),
+        )),
     }
 }
 
@@ -169,13 +170,13 @@ fn view(args: ViewArgs) -> Result<()> {
             if strata_viewer::volume_location::is_url(&path.to_string_lossy())
                 || strata_omezarr::looks_like_ome_zarr(&path.to_string_lossy()) =>
         {
-            viewer::url_source(path.to_string_lossy().into_owned(), args.token_file)
+            strata_viewer::url_source(path.to_string_lossy().into_owned(), args.token_file)
         }
-        Some(path) => viewer::path_source(path),
-        None => viewer::demo_source(),
+        Some(path) => strata_viewer::path_source(path),
+        None => strata_viewer::demo_source(),
     };
     let (width, height) = strata_viewer::export::parse_size(&args.window)?;
-    let mut options = viewer::ViewerOptions::new(source);
+    let mut options = strata_viewer::ViewerOptions::new(source);
     options.dicom_series = args.series;
     options.exit_after_seconds = args.exit_after;
     options.auto_orbit_deg_per_second = args.orbit;
@@ -184,9 +185,9 @@ fn view(args: ViewArgs) -> Result<()> {
     options.persist_settings = !args.fresh;
     options.initial_layout = match args.layout.as_deref() {
         None => None,
-        Some("single") => Some(viewer::app::Layout::Single),
-        Some("conventional") => Some(viewer::app::Layout::ThreeDOverSlices),
-        Some("four-up") => Some(viewer::app::Layout::TwoByTwo),
+        Some("single") => Some(strata_viewer::app::Layout::Single),
+        Some("conventional") => Some(strata_viewer::app::Layout::ThreeDOverSlices),
+        Some("four-up") => Some(strata_viewer::app::Layout::TwoByTwo),
         Some(other) => {
             anyhow::bail!("--layout must be single, conventional or four-up, not '{other}'")
         }
@@ -194,7 +195,7 @@ fn view(args: ViewArgs) -> Result<()> {
     options.initial_view = match args.view.as_deref() {
         None => None,
         Some(letter) => Some(
-            viewer::view3d::StandardView::ALL
+            strata_viewer::view3d::StandardView::ALL
                 .into_iter()
                 .find(|v| v.letter().eq_ignore_ascii_case(letter))
                 .ok_or_else(|| {
@@ -211,5 +212,5 @@ fn view(args: ViewArgs) -> Result<()> {
         );
     }
     options.overlay = args.overlay.into_iter().next();
-    viewer::run(options)
+    strata_viewer::run(options)
 }

@@ -1,4 +1,4 @@
-//! strata-viewer-ui: the views and panels the desktop viewer (`strata`, app/src/viewer/) and the
+//! strata-viewer-ui: the views and panels the desktop viewer (`strata`, viewer/src/) and the
 //! browser viewer (strata-web) share, so both builds draw one copy (issue 39). Everything here
 //! builds natively and for wasm32-unknown-unknown: it takes plain inputs (the transfer function,
 //! the histogram, the figures to show) from the caller and knows nothing of either app's state.

@@ -2,8 +2,8 @@
 
 use strata_render::TransferFunction;
 
-use crate::viewer::file_chooser::{ChooserKind, Chosen, FileChooser};
-use crate::viewer::scene::{preset_for, Scene, VolumeData, PRESETS};
+use crate::file_chooser::{ChooserKind, Chosen, FileChooser};
+use crate::scene::{preset_for, Scene, VolumeData, PRESETS};
 use strata_viewer_ui::tf_editor::{self, TfEditorState};
 
 /// What a running file chooser of the panel is for.

@@ -1,7 +1,7 @@
 //! The slices panel: window/level presets (CT's named windows, MR's auto percentile, the
 //! scan's own), window and level values, and the colour map.
 
-use crate::viewer::scene::{quantile_window, Scene, VolumeData, Window, CT_WINDOWS};
+use crate::scene::{quantile_window, Scene, VolumeData, Window, CT_WINDOWS};
 
 pub fn ui(ui: &mut egui::Ui, data: &VolumeData, scene: &mut Scene) {
     let is_ct = data.unit() == "HU";

@@ -1,8 +1,8 @@
 //! The volume information panel: modality, geometry, values, storage, levels, the scan's
 //! windows; identifiers only when the user asks.
 
-use crate::viewer::preferences::Preferences;
-use crate::viewer::scene::VolumeData;
+use crate::preferences::Preferences;
+use crate::scene::VolumeData;
 
 pub fn ui(ui: &mut egui::Ui, prefs: &mut Preferences, data: &VolumeData) {
     let v = data;

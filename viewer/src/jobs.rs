@@ -182,7 +182,7 @@ impl PrepareJob {
                     &set_stage,
                     &cancel,
                 )
-                .map_err(|e| strata_viewer::error_report::describe(&e));
+                .map_err(|e| crate::error_report::describe(&e));
                 *lock_ignoring_poison(&result) = Some(outcome);
                 repaint();
             })?;
@@ -227,22 +227,22 @@ fn prepare(
         } => {
             set_stage(format!("connecting to {url}"));
             let remote: Arc<dyn strata_source::VolumeSource> =
-                strata_viewer::volume_location::open_remote_with_token(url, Some(token.clone()))?;
+                crate::volume_location::open_remote_with_token(url, Some(token.clone()))?;
             Ok(remote)
         }
         VolumeSource::Url {
             url, token_file, ..
         } => {
             set_stage(format!("connecting to {url}"));
-            strata_viewer::volume_location::open_source(url, token_file.as_deref(), cache)
+            crate::volume_location::open_source(url, token_file.as_deref(), cache)
         }
-        VolumeSource::Path(p) if strata_viewer::volume_location::is_url(&p.to_string_lossy()) => {
+        VolumeSource::Path(p) if crate::volume_location::is_url(&p.to_string_lossy()) => {
             set_stage(format!("connecting to {}", p.display()));
-            strata_viewer::volume_location::open_source(&p.to_string_lossy(), None, cache)
+            crate::volume_location::open_source(&p.to_string_lossy(), None, cache)
         }
         VolumeSource::Path(p) if is_store(p) => {
             set_stage(format!("opening store {}", p.display()));
-            strata_viewer::volume_location::open_source(&p.to_string_lossy(), None, cache)
+            crate::volume_location::open_source(&p.to_string_lossy(), None, cache)
         }
         VolumeSource::Pacs(series) => {
             let store = prepare_pacs_store(series, import_folder, progress, set_stage, cancel)?;
@@ -358,8 +358,8 @@ fn prepare_pacs_store(
     cancel: &AtomicBool,
 ) -> anyhow::Result<Store> {
     let shown = strata_pacs::redact_url(&series.server);
-    let args = crate::cmd_pacs::ServerArgs::from_servers_file(series.servers_file.clone());
-    let client = crate::cmd_pacs::connect(&series.server, &args)
+    let args = crate::pacs_client::ServerArgs::from_servers_file(series.servers_file.clone());
+    let client = crate::pacs_client::connect(&series.server, &args)
         .with_context(|| format!("cannot reach the PACS {shown}"))?;
     let store_path =
         store_path_for_pacs_series(client.base_url(), &series.series_uid, import_folder);
@@ -385,7 +385,7 @@ fn prepare_pacs_store(
             client.base_url()
         ));
     };
-    let (retrieved, report) = crate::cmd_pacs::retrieve_series_beside(
+    let (retrieved, report) = crate::pacs_client::retrieve_series_beside(
         &client,
         &series.study_uid,
         &series.series_uid,
@@ -408,7 +408,7 @@ fn prepare_pacs_store(
                 client.base_url()
             )
         })?;
-    crate::cmd_import::add_provenance(&mut opened.info.description, &retrieved.provenance);
+    crate::pacs_client::add_provenance(&mut opened.info.description, &retrieved.provenance);
     set_stage(format!("importing into {}", store_path.display()));
     let options = ImportOptions {
         progress: Some(progress),

@@ -623,7 +623,7 @@ impl RenderWorker {
                     continue;
                 }
                 let result = match (result, &shot.then_encode) {
-                    (Ok(()), Some(folder)) => match strata_viewer::export::encode_mp4(folder) {
+                    (Ok(()), Some(folder)) => match crate::export::encode_mp4(folder) {
                         Ok(Some(movie)) => Ok(movie),
                         Ok(None) => Ok(folder.clone()),
                         Err(e) => Err(e.context(format!(
@@ -1063,7 +1063,7 @@ impl RenderWorker {
             // and `strata render --progressive` do. Progressive replaces the adaptive pass here
             // too, for the live view's reason (ProgressiveRun).
             let mean = progressive_mean(ctx, volume, &camera, &settings, request, cancelled)?;
-            strata_viewer::export::write_png(&shot.path, settings.width, settings.height, &mean)?;
+            crate::export::write_png(&shot.path, settings.width, settings.height, &mean)?;
             return Ok(());
         }
         let view = StillView {
@@ -1083,7 +1083,7 @@ impl RenderWorker {
                     Step::Building => break "the adaptive oracle took over 60 s".to_string(),
                     Step::Drawn(drawn) => {
                         let frame = &drawn.0;
-                        strata_viewer::export::write_png(
+                        crate::export::write_png(
                             &shot.path,
                             frame.width,
                             frame.height,
@@ -1099,7 +1099,7 @@ impl RenderWorker {
             self.set_status(|s| s.adaptive = Some(line));
         }
         let frame = volume.read_frame_blocking(ctx)?;
-        strata_viewer::export::write_png(&shot.path, frame.width, frame.height, &frame.rgba)?;
+        crate::export::write_png(&shot.path, frame.width, frame.height, &frame.rgba)?;
         Ok(())
     }
 }
@@ -1446,7 +1446,7 @@ mod tests {
         let job = Arc::new(ExportProgress::new("movie", frames, Some(folder.clone())));
         for i in 0..frames {
             session.request_screenshot(ScreenshotRequest {
-                path: folder.join(strata_viewer::export::orbit_frame_name(i)),
+                path: folder.join(crate::export::orbit_frame_name(i)),
                 size: [64, 64],
                 camera: None,
                 then_encode: (i + 1 == frames).then(|| folder.clone()),
@@ -2010,7 +2010,7 @@ mod tests {
         let dir = tempfile::tempdir().expect("temp dir");
         let (session, raycast) = phantom_session(dir.path());
         let failing = RenderRequest {
-            adaptive_epsilon: Some(crate::viewer::adaptive_view::tests::PANICKING_EPSILON),
+            adaptive_epsilon: Some(crate::adaptive_view::tests::PANICKING_EPSILON),
             ..raycast.clone()
         };
         session.request(failing.clone());
@@ -2163,7 +2163,7 @@ mod tests {
         let store = Arc::new(strata_storage::Store::open(&path).expect("open"));
         let session = VolumeSession::start(
             store,
-            crate::viewer::gpu_recovery::MIN_GPU_BUDGET_BYTES,
+            crate::gpu_recovery::MIN_GPU_BUDGET_BYTES,
             Arc::new(|| {}),
         )
         .expect("session");

@@ -3,14 +3,14 @@
 
 use strata_render::{CropBox, RenderMode, ShadowMode};
 
-use crate::viewer::adaptive_view::{format_epsilon, EPSILON_RANGE};
-use crate::viewer::preferences::{
+use crate::adaptive_view::{format_epsilon, EPSILON_RANGE};
+use crate::preferences::{
     effects_refused, CinematicPreset, LightPrefs, Preferences, TraversalChoice, AZIMUTH_RANGE,
     ELEVATION_RANGE, OCCLUSION_RADIUS_RANGE, SCATTERING_G_RANGE, SHADOW_STEP_RANGE,
 };
-use crate::viewer::scene::preset_for;
-use crate::viewer::scene::{Scene, VolumeData};
-use crate::viewer::view3d::View3d;
+use crate::scene::preset_for;
+use crate::scene::{Scene, VolumeData};
+use crate::view3d::View3d;
 
 /// The render modes offered, with their labels (a new mode is one more line).
 pub const RENDER_MODES: [(RenderMode, &str); 3] = [
@@ -172,7 +172,7 @@ fn adaptive_sampling(ui: &mut egui::Ui, prefs: &mut Preferences) {
         if prefs.adaptive_sampling {
             let (lo, hi) = EPSILON_RANGE;
             if !prefs.adaptive_epsilon.is_finite() {
-                prefs.adaptive_epsilon = crate::viewer::adaptive_view::DEFAULT_EPSILON;
+                prefs.adaptive_epsilon = crate::adaptive_view::DEFAULT_EPSILON;
             }
             ui.add(
                 egui::Slider::new(&mut prefs.adaptive_epsilon, lo..=hi)
@@ -191,7 +191,7 @@ fn adaptive_sampling(ui: &mut egui::Ui, prefs: &mut Preferences) {
     ui.add(
         egui::Slider::new(
             &mut prefs.progressive_frames,
-            0..=crate::viewer::preferences::MAX_PROGRESSIVE_FRAMES,
+            0..=crate::preferences::MAX_PROGRESSIVE_FRAMES,
         )
         .text(PROGRESSIVE_LABEL),
     )
@@ -403,7 +403,7 @@ fn direction_gizmo(ui: &mut egui::Ui, light: &mut LightPrefs) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::viewer::preferences::render_lighting;
+    use crate::preferences::render_lighting;
     use strata_render::LightDirection;
 
     #[test]

@@ -265,7 +265,7 @@ impl Drop for Overlay3d {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::viewer::overlay::tests::{
+    use crate::overlay::tests::{
         import, label_of, write_nrrd, LABEL_DIMS, LABEL_ORIGIN, LABEL_SPACING,
     };
     use strata_storage::phantom::Phantom;
@@ -344,7 +344,7 @@ mod tests {
             opacity: 0.5,
             hidden_labels: [2].into_iter().collect(),
             label_table: Default::default(),
-            colour_map: crate::viewer::colour_maps::ColourMap::Hot,
+            colour_map: crate::colour_maps::ColourMap::Hot,
             range: (0.0, 1.0),
             threshold: 0.0,
         };

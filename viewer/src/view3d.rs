@@ -949,7 +949,7 @@ pub fn oblique_outline(
 /// `lo`..`hi` (voxel faces), as the raycaster clips the volume: the part of the slice that is
 /// still drawn in 3D. None when the slice lies outside the box (nothing of it is shown).
 pub fn slice_outline(
-    frame: crate::viewer::orientation::SliceFrame,
+    frame: crate::orientation::SliceFrame,
     cursor: [f64; 3],
     lo: [f64; 3],
     hi: [f64; 3],
@@ -994,7 +994,7 @@ mod tests {
     #[test]
     fn slice_outlines_are_clipped_to_the_crop_box_and_vanish_outside_it() {
         let g = VolumeGeometry::axis_aligned([40, 30, 20], [1.0, 1.0, 1.0]);
-        let axial = crate::viewer::orientation::SliceFrame::for_view(SliceView::Axial, &g);
+        let axial = crate::orientation::SliceFrame::for_view(SliceView::Axial, &g);
         let full = ([-0.5; 3], [39.5, 29.5, 19.5]);
         let cursor = [10.0, 12.0, 7.0];
         let outline = slice_outline(axial, cursor, full.0, full.1).expect("inside");
@@ -1026,7 +1026,7 @@ mod tests {
         let axial = ObliquePlane::axial(centre, 200.0);
         let outline = oblique_outline(&axial, &g, lo, hi);
         assert_eq!(outline.len(), 4, "{outline:?}");
-        let frame = crate::viewer::orientation::SliceFrame::for_view(SliceView::Axial, &g);
+        let frame = crate::orientation::SliceFrame::for_view(SliceView::Axial, &g);
         let slice = slice_outline(frame, [10.0, 12.0, 7.0], lo, hi).expect("inside");
         for corner in slice {
             assert!(

@@ -845,7 +845,7 @@ impl StrataApp {
     /// strata-orbit-<time> folder beside the screenshots.
     pub fn take_orbit_movie_into(&mut self, frames: u32, folder: Option<PathBuf>) {
         let Some(v) = &self.volume else { return };
-        let frames = frames.clamp(2, strata_viewer::export::MAX_ORBIT_FRAMES);
+        let frames = frames.clamp(2, crate::export::MAX_ORBIT_FRAMES);
         let Some(rect) = v
             .view_rects
             .iter()
@@ -880,11 +880,11 @@ impl StrataApp {
         ));
         for i in 0..frames {
             let orbit = OrbitCamera {
-                azimuth_deg: strata_viewer::export::orbit_azimuth(start.azimuth_deg, i, frames),
+                azimuth_deg: crate::export::orbit_azimuth(start.azimuth_deg, i, frames),
                 ..start
             };
             v.data.session.request_screenshot(ScreenshotRequest {
-                path: folder.join(strata_viewer::export::orbit_frame_name(i)),
+                path: folder.join(crate::export::orbit_frame_name(i)),
                 size,
                 camera: Some(orbit.camera(geometry)),
                 then_encode: (i + 1 == frames).then(|| folder.clone()),
@@ -1470,12 +1470,9 @@ mod tests {
         assert!(!old.adaptive_sampling, "adaptive sampling is opt-in");
         assert_eq!(
             old.progressive_frames,
-            crate::viewer::preferences::DEFAULT_PROGRESSIVE_FRAMES
+            crate::preferences::DEFAULT_PROGRESSIVE_FRAMES
         );
-        assert_eq!(
-            old.adaptive_epsilon,
-            crate::viewer::adaptive_view::DEFAULT_EPSILON
-        );
+        assert_eq!(old.adaptive_epsilon, crate::adaptive_view::DEFAULT_EPSILON);
         assert!(
             !old.show_identifiers,
             "identifiers stay hidden unless the user showed them"

@@ -103,7 +103,7 @@ impl PacsModel {
     pub fn new(servers_file: Option<PathBuf>) -> PacsModel {
         let file = servers_file
             .clone()
-            .or_else(crate::cmd_pacs::default_servers_file);
+            .or_else(crate::pacs_client::default_servers_file);
         let mut error = None;
         let server_names = match &file {
             Some(f) if f.exists() => match ServersFile::read(f) {
@@ -192,17 +192,17 @@ impl PacsModel {
             self.error = Some("choose a server, or type a DICOMweb URL".into());
             return;
         }
-        let args = crate::cmd_pacs::ServerArgs::from_servers_file(self.servers_file.clone());
+        let args = crate::pacs_client::ServerArgs::from_servers_file(self.servers_file.clone());
         let answer = Arc::new(Mutex::new(None));
         let slot = answer.clone();
         let is_studies = what.contains("studies");
         let spawned = std::thread::Builder::new()
             .name(thread.into())
             .spawn(move || {
-                let result = match crate::cmd_pacs::connect(&server, &args) {
+                let result = match crate::pacs_client::connect(&server, &args) {
                     Ok(client) => ask(&client),
                     Err(e) => {
-                        let e = strata_viewer::error_report::describe(&e);
+                        let e = crate::error_report::describe(&e);
                         if is_studies {
                             Answer::Studies(Err(e))
                         } else {
@@ -572,8 +572,8 @@ mod tests {
         use strata_storage::import::{import_source, ImportOptions};
         use strata_storage::readers::{open_source, ReadOptions};
 
-        use super::super::super::orthanc_fixture::*;
         use super::*;
+        use crate::orthanc_fixture::*;
 
         const WAIT: Duration = Duration::from_secs(120);
 
@@ -647,7 +647,7 @@ mod tests {
             let opened = finish(&job);
             assert_eq!(opened.header().geometry.dims, [40, 48, CT_SLICES as u32]);
             let base = strata_pacs::normalise_base_url(&orthanc.url).unwrap();
-            let store = crate::viewer::jobs::store_path_for_pacs_series(&base, CT_SERIES, &stores);
+            let store = crate::jobs::store_path_for_pacs_series(&base, CT_SERIES, &stores);
             assert!(opened.header().description.contains("retrieved from"));
             // Its store is locked while open.
             drop(opened);

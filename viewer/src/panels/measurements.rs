@@ -1,7 +1,7 @@
 //! The measurements panel: the tool the left button uses, the list (each deletable), clear all.
 
-use crate::viewer::measurements::Tool;
-use crate::viewer::scene::{Scene, VolumeData};
+use crate::measurements::Tool;
+use crate::scene::{Scene, VolumeData};
 
 pub fn ui(ui: &mut egui::Ui, data: &VolumeData, scene: &mut Scene) {
     let m = &mut scene.measurements;

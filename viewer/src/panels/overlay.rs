@@ -8,10 +8,10 @@ use std::sync::Arc;
 
 use egui::{Color32, RichText};
 
-use crate::viewer::colour_maps::ColourMap;
-use crate::viewer::jobs::{PrepareJob, VolumeSource};
-use crate::viewer::overlay::{label_colour, Overlay, OverlayKind};
-use crate::viewer::scene::VolumeData;
+use crate::colour_maps::ColourMap;
+use crate::jobs::{PrepareJob, VolumeSource};
+use crate::overlay::{label_colour, Overlay, OverlayKind};
+use crate::scene::VolumeData;
 
 /// The panel's own state: what the user typed and the overlay being prepared.
 pub struct OverlayPanel {

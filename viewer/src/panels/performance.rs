@@ -7,8 +7,8 @@ use std::time::Instant;
 use strata_viewer_ui::performance::{self, FrameClock, PerformanceFigures};
 use strata_viewer_ui::target_fps::target_fps_control;
 
-use crate::viewer::preferences::Preferences;
-use crate::viewer::scene::VolumeData;
+use crate::preferences::Preferences;
+use crate::scene::VolumeData;
 
 #[derive(Default)]
 pub struct PerformancePanel;

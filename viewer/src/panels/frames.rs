@@ -2,7 +2,7 @@
 
 use egui::Color32;
 
-use crate::viewer::frames::{FramePlayer, FPS_RANGE};
+use crate::frames::{FramePlayer, FPS_RANGE};
 
 pub fn ui(ui: &mut egui::Ui, player: &mut FramePlayer) {
     let mut frame = player.requested.unwrap_or(player.current);
@@ -33,7 +33,7 @@ pub fn ui(ui: &mut egui::Ui, player: &mut FramePlayer) {
         player.current, player.count
     ));
     if let Some(line) = player.rate_line() {
-        ui.colored_label(crate::viewer::widgets::WARNING_COLOUR, line);
+        ui.colored_label(crate::widgets::WARNING_COLOUR, line);
     }
     if let Some(e) = &player.error {
         ui.colored_label(Color32::LIGHT_RED, e);

@@ -3,8 +3,8 @@
 
 use std::path::PathBuf;
 
-use crate::viewer::file_chooser::{ChooserKind, Chosen, FileChooser};
-use crate::viewer::preferences::Preferences;
+use crate::file_chooser::{ChooserKind, Chosen, FileChooser};
+use crate::preferences::Preferences;
 
 pub struct ScreenshotPanel {
     /// The folder chooser while it is open.

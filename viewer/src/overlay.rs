@@ -582,7 +582,7 @@ pub(crate) mod tests {
         assert_eq!(colour_of(OverlayKind::Labels, &hidden, 1.0), [0; 4]);
     }
 
-    use crate::viewer::orientation::SliceFrame;
+    use crate::orientation::SliceFrame;
     use std::path::Path;
     use strata_storage::phantom::Phantom;
 
