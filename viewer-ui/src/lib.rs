@@ -12,9 +12,14 @@
 //! - [`slice_canvas`]: what a slice view draws around its image (zoom and pan, screen ↔ image
 //!   mapping, crosshair, orientation labels, the flipped image mesh, the colour-map choice).
 //! - [`widgets`]: small widgets the panels need (the slow spinner).
+//! - [`view_state`], [`compact_tf`]: the shareable link's format (`#store=…&az=…`, an edited
+//!   transfer function as `tf=`), which both viewers read and write (issue 39; here since issue
+//!   47, so that the desktop needs nothing of the browser crate).
 
+pub mod compact_tf;
 pub mod performance;
 pub mod slice_canvas;
 pub mod target_fps;
 pub mod tf_editor;
+pub mod view_state;
 pub mod widgets;

@@ -1048,7 +1048,7 @@ impl StrataApp {
                     let left_out = self
                         .tf_for_link()
                         .as_ref()
-                        .and_then(strata_web::compact_tf::unwritable);
+                        .and_then(strata_viewer_ui::compact_tf::unwritable);
                     self.toast = Some(Toast {
                         text: match left_out {
                             // The link then opens the preset (view_state::to_fragment).

@@ -1,5 +1,5 @@
 //! Links to a view of a served store (issue 39, "shareable views"). The browser viewer's
-//! address is `http(s)://HOST:PORT/#store=NAME&mode=…&az=…` (strata_web::view_state); the
+//! address is `http(s)://HOST:PORT/#store=NAME&mode=…&az=…` (strata_viewer_ui::view_state); the
 //! desktop viewer copies that link for the served store it streams, and opens one: the store
 //! from the server at the link's origin, the view from its fragment. The same camera function
 //! builds both viewers' pictures ([`strata_render::Camera::orbit_panned`]), so a link opens the
@@ -9,7 +9,7 @@
 //! written back into a copied link (links are shared, tokens must not be), logged, or saved.
 
 use strata_render::{RenderMode, TransferFunction};
-use strata_web::view_state::{Fragment, Layout as LinkLayout, ViewState};
+use strata_viewer_ui::view_state::{Fragment, Layout as LinkLayout, ViewState};
 
 use super::preferences::Layout;
 use super::view3d::OrbitCamera;
@@ -50,7 +50,7 @@ pub enum LinkError {
     #[error("{link}: {source}")]
     Fragment {
         link: String,
-        source: strata_web::view_state::FragmentError,
+        source: strata_viewer_ui::view_state::FragmentError,
     },
 }
 
@@ -245,7 +245,7 @@ mod tests {
         let mut tf = TransferFunction::preset("ct-soft-tissue").expect("preset");
         tf.opacity[3].opacity = f64::from(0.6183_f32);
         tf.color[2].rgb = [0.25_f32, 0.5, 0.8725].map(f64::from);
-        tf.name = strata_web::view_state::edited_name("ct-soft-tissue");
+        tf.name = strata_viewer_ui::view_state::edited_name("ct-soft-tissue");
         let edited = DesktopView {
             tf: Some(tf),
             ..desktop()

@@ -2555,7 +2555,8 @@ fn a_viewer_link_opens_its_store_and_view_and_copy_link_gives_it_back_without_th
     edited_tf.opacity[2].value = -1024.0 + f64::from(0.2213_f32) * 4095.0;
     edited_tf.opacity[2].opacity = f64::from(0.3377_f32);
     edited_tf.color[1].rgb = [0.12_f32, 0.8, 0.4].map(f64::from);
-    let tf_text = strata_web::compact_tf::encode(&edited_tf).expect("within the link's bounds");
+    let tf_text =
+        strata_viewer_ui::compact_tf::encode(&edited_tf).expect("within the link's bounds");
     let link = format!(
         "{}/#store={name}&mode=mip&preset=ct-soft-tissue&tf={tf_text}&az=-60&el=25&zoom=1.5&pan=0.1,-0.05&layout=single&cursor=5,40,12.5&window=300,1200&token={token}",
         server.base_url()

@@ -123,7 +123,7 @@ impl OrbitCamera {
     }
 
     /// The camera this orbit shows: [`Camera::orbit_panned`], the one definition a shared
-    /// link's view (strata_web::view_state) also uses.
+    /// link's view (strata_viewer_ui::view_state) also uses.
     pub fn camera(&self, geometry: &VolumeGeometry) -> Camera {
         let projection = if self.orthographic {
             // orbit_panned sizes the height from the zoom.
