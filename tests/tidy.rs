@@ -60,6 +60,10 @@ fn workspace_closure(dir: &str) -> BTreeSet<String> {
         ("strata-omezarr", "omezarr"),
         ("strata-loader", "loader"),
         ("strata-render", "render"),
+        ("strata-viewer-ui", "viewer-ui"),
+        ("strata-web", "web"),
+        ("strata-bench", "bench"),
+        ("strata-viewer", "viewer"),
         ("strata-app", "app"),
     ]
     .into_iter()
@@ -135,6 +139,84 @@ fn storage_and_types_know_nothing_of_gpus() {
     }
 }
 
+/// Issue 47: the command line, the viewer and the browser viewer are separate crates. Neither
+/// `strata` nor the desktop viewer links the browser crate (what both need of it, the link
+/// format, is in strata-viewer-ui), nothing ships the benchmarks, and the viewer, a library,
+/// reaches neither the command line nor the benchmarks.
+#[test]
+fn the_app_the_viewer_and_the_benchmarks_stay_apart() {
+    for (dir, forbidden, why) in [
+        (
+            "app",
+            &["strata-web", "strata-bench"][..],
+            "the strata binary links neither the browser viewer's crate (the page is embedded \
+             from web/dist/ by build.rs) nor the benchmarks",
+        ),
+        (
+            "viewer",
+            &["strata-web", "strata-app", "strata-bench"][..],
+            "the viewer library reaches neither the browser crate, the command line nor the \
+             benchmarks",
+        ),
+    ] {
+        let closure = workspace_closure(dir);
+        let found: Vec<_> = forbidden.iter().filter(|f| closure.contains(**f)).collect();
+        assert!(
+            found.is_empty(),
+            "{dir} reaches {found:?} (through {closure:?}): {why}"
+        );
+    }
+    let direct = normal_dependencies(&repo_root().join("app/Cargo.toml"));
+    assert_none_of(
+        "app",
+        &direct,
+        &["plotters"],
+        "plots are for the benchmarks (strata-bench), not the shipping binary",
+    );
+}
+
+/// Lines of Rust code (comments dropped) in `dir` that name a command-line module (`cmd_…`).
+fn lines_naming_a_command_module(dir: &Path) -> Vec<String> {
+    let mut files = Vec::new();
+    rust_files(dir, &mut files);
+    let mut found = Vec::new();
+    for file in files {
+        let text = fs::read_to_string(&file).unwrap_or_else(|e| panic!("{}: {e}", file.display()));
+        for (i, line) in text.lines().enumerate() {
+            let code = line.split("//").next().unwrap_or("");
+            if code.contains("cmd_") {
+                found.push(format!("{}:{}: {}", file.display(), i + 1, line.trim()));
+            }
+        }
+    }
+    found
+}
+
+/// No viewer module uses a command module: what both need (PNG and movie writing, sizes, the
+/// transfer function by name, volume locations, PACS connections) lives in strata-viewer, and
+/// the command line calls it, never the other way round.
+#[test]
+fn no_viewer_module_imports_a_command_module() {
+    let found = lines_naming_a_command_module(&repo_root().join("viewer/src"));
+    assert!(
+        found.is_empty(),
+        "viewer code names a command module (move what it needs into strata-viewer): {found:#?}"
+    );
+}
+
+#[test]
+fn the_command_module_check_can_fail() {
+    let dir = tempfile::tempdir().unwrap();
+    fs::write(
+        dir.path().join("a.rs"),
+        "// crate::cmd_render in a comment is fine\nuse crate::cmd_render::write_png;\n",
+    )
+    .unwrap();
+    let found = lines_naming_a_command_module(dir.path());
+    assert_eq!(found.len(), 1, "{found:?}");
+    assert!(found[0].contains(":2:"), "{found:?}");
+}
+
 #[test]
 fn shared_types_stay_small() {
     let direct = normal_dependencies(&repo_root().join("types/Cargo.toml"));
@@ -151,7 +233,7 @@ fn shared_types_stay_small() {
 }
 
 /// The workspace's library and app crates whose sources the checks below read.
-const CRATE_DIRS: [&str; 10] = [
+const CRATE_DIRS: [&str; 12] = [
     "types",
     "storage",
     "source",
@@ -161,7 +243,9 @@ const CRATE_DIRS: [&str; 10] = [
     "render",
     "slices",
     "viewer-ui",
+    "viewer",
     "app",
+    "bench",
 ];
 
 /// Module path of a source file: `src/lib.rs` → "", `src/bench/accuracy.rs` → "bench::accuracy",

@@ -15,13 +15,12 @@ use strata_loader::store_volume::{sampled_entries_only, GpuCut};
 use strata_loader::{
     Distribution, FrameStats, ResidentBricks, SelectionTiming, StreamingConfig, StreamingVolume,
 };
-use strata_render::{
-    compare_rgba8, Camera, GpuContext, Projection, RenderSettings, VolumeGeometry,
-};
+use strata_render::{compare_rgba8, Camera, GpuContext, RenderSettings};
 use strata_source::VolumeSource;
 use strata_storage::BrickId;
 
-use crate::cmd_render::{choose_transfer_function, parse_size};
+use strata_viewer::camera_path::viewpoint;
+use strata_viewer::export::{choose_transfer_function, parse_size};
 
 #[derive(Args)]
 pub struct FlythroughArgs {
@@ -89,19 +88,6 @@ pub struct FlythroughArgs {
     /// slow adapter.
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=1000))]
     pub frames_per_selection: Option<u32>,
-}
-
-/// Viewpoint `k` of `n`: an orbit that swings around and closes in, ending inside the body's
-/// outline where the finest level is needed.
-pub(crate) fn viewpoint(geometry: &VolumeGeometry, k: f64, n: usize) -> Camera {
-    let t = k / (n.max(2) - 1) as f64;
-    Camera::orbit(
-        geometry,
-        -50.0 + 140.0 * t,
-        25.0 - 30.0 * t,
-        1.0 + 2.5 * t * t,
-        Projection::Perspective { fov_y_deg: 30.0 },
-    )
 }
 
 struct StopResult {
@@ -177,7 +163,7 @@ pub fn run(args: FlythroughArgs) -> Result<()> {
 
     // Time to first frame: open the store, stream it, draw one frame, wait for the GPU.
     let opening = Instant::now();
-    let store: Arc<dyn VolumeSource> = crate::volume_location::open_source(
+    let store: Arc<dyn VolumeSource> = strata_viewer::volume_location::open_source(
         &args.store,
         args.token_file.as_deref(),
         config.sled_cache_bytes,

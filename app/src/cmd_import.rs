@@ -5,6 +5,7 @@ use clap::Args;
 use strata_storage::import::{import_source, ImportOptions, ImportProgress};
 use strata_storage::readers::{open_source, RawSpec, ReadOptions};
 use strata_storage::{BrickCodec, ByteOrder, SampleType};
+use strata_viewer::pacs_client::add_provenance;
 
 #[derive(Args)]
 pub struct ImportArgs {
@@ -159,17 +160,6 @@ fn refuse_existing_store(store: &std::path::Path, replace: bool) -> Result<()> {
         "{} already holds {holds}; give --replace to replace it (its bricks are lost), or choose another path",
         store.display()
     )
-}
-
-/// Adds where the source came from (a PACS's "retrieved from …") to a store's description
-/// (the command line's import and the viewer's "Open from PACS…").
-pub fn add_provenance(description: &mut String, provenance: &str) {
-    // Notes in a description are joined with "; " (SourceInfo::warnings reads them so).
-    *description = if description.is_empty() {
-        provenance.to_string()
-    } else {
-        format!("{description}; {provenance}")
-    };
 }
 
 fn import(args: ImportArgs, provenance: Option<String>) -> Result<()> {

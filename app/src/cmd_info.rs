@@ -2,7 +2,7 @@ use std::path::Path;
 
 use anyhow::Result;
 
-use crate::volume_location::{open, Opened};
+use strata_viewer::volume_location::{open, Opened};
 
 /// Anatomical label of a direction: the LPS axis it mostly points along.
 pub fn orientation_letter(direction: [f64; 3]) -> char {

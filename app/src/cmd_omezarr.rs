@@ -51,7 +51,7 @@ pub struct ExportArgs {
 }
 
 pub fn run_export(args: ExportArgs) -> Result<()> {
-    let source = crate::volume_location::open_source(
+    let source = strata_viewer::volume_location::open_source(
         &args.store,
         args.token_file.as_deref(),
         strata_storage::store::DEFAULT_READ_CACHE_BYTES,

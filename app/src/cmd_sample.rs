@@ -20,22 +20,6 @@ pub struct SampleArgs {
     pub out: PathBuf,
 }
 
-pub const DEMO_SIZE: u64 = 256;
-
-/// The demo volume in the workspace's sample-data folder (or beside the executable when the
-/// workspace is not around), generated on first use.
-pub fn demo_store_path() -> PathBuf {
-    let workspace = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("..")
-        .join("sample-data");
-    let base = if workspace.is_dir() {
-        workspace
-    } else {
-        PathBuf::from("sample-data")
-    };
-    base.join(format!("demo-phantom-{DEMO_SIZE}.strata"))
-}
-
 fn write_store(phantom: &Phantom, out: &Path) -> Result<()> {
     let total = phantom.size.iter().product::<u64>() * 2;
     let bar = crate::progress::bytes_bar(total, "generating");

@@ -84,7 +84,7 @@ pub fn run(args: ServeArgs) -> Result<()> {
         )
         .try_init();
     let token = match (&args.token_file, args.generate_token) {
-        (Some(path), _) => Some(crate::volume_location::read_token(path)?),
+        (Some(path), _) => Some(strata_viewer::volume_location::read_token(path)?),
         (None, true) => {
             let token = generate_token()?;
             println!("token {token}");

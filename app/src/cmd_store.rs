@@ -43,7 +43,7 @@ impl FolderArg {
     fn folder(&self) -> PathBuf {
         self.data_dir
             .clone()
-            .unwrap_or_else(crate::viewer::jobs::data_folder)
+            .unwrap_or_else(strata_viewer::jobs::data_folder)
     }
 }
 

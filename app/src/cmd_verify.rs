@@ -2,7 +2,7 @@ use std::path::Path;
 
 use anyhow::{bail, Context, Result};
 
-use crate::volume_location::{open, Opened};
+use strata_viewer::volume_location::{open, Opened};
 
 /// Requests in flight while verifying a remote store (each a blocking read on its thread).
 const REMOTE_VERIFY_THREADS: usize = 32;

@@ -1,6 +1,5 @@
 //! `strata`: the viewer and its command line. Not for diagnostic use.
 
-mod bench;
 mod cli_checks;
 mod cmd_flythrough;
 mod cmd_import;
@@ -12,10 +11,7 @@ mod cmd_sample;
 mod cmd_serve;
 mod cmd_store;
 mod cmd_verify;
-mod error_report;
 mod progress;
-mod viewer;
-mod volume_location;
 
 use std::path::PathBuf;
 
@@ -59,9 +55,6 @@ enum Command {
     /// A DICOMweb server (PACS): find studies and series, push DICOM files.
     #[command(subcommand)]
     Pacs(cmd_pacs::PacsCommand),
-    /// Benchmarks (figures for the issue notes).
-    #[command(subcommand)]
-    Bench(bench::BenchCommand),
 }
 
 fn main() -> std::process::ExitCode {
@@ -71,7 +64,7 @@ fn main() -> std::process::ExitCode {
     match run(Cli::parse()) {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error: {}", error_report::describe(&e));
+            eprintln!("error: {}", strata_viewer::error_report::describe(&e));
             std::process::ExitCode::FAILURE
         }
     }
@@ -111,12 +104,13 @@ fn run(cli: Cli) -> Result<()> {
         Some(Command::Serve(args)) => cmd_serve::run(args),
         Some(Command::Sample(args)) => cmd_sample::run(args),
         Some(Command::Render(args)) => cmd_render::run(args),
-        Some(Command::Bench(cmd)) => bench::run(cmd),
         Some(Command::Pacs(cmd)) => cmd_pacs::run(cmd),
         Some(Command::Store(cmd)) => cmd_store::run(cmd),
         Some(Command::Flythrough(args)) => cmd_flythrough::run(args),
         Some(Command::View(args)) => view(args),
-        None => viewer::run(viewer::ViewerOptions::new(viewer::demo_source())),
+        None => strata_viewer::run(strata_viewer::ViewerOptions::new(
+            strata_viewer::demo_source(),
+        )),
     }
 }
 
@@ -173,16 +167,16 @@ struct ViewArgs {
 fn view(args: ViewArgs) -> Result<()> {
     let source = match args.path {
         Some(path)
-            if volume_location::is_url(&path.to_string_lossy())
+            if strata_viewer::volume_location::is_url(&path.to_string_lossy())
                 || strata_omezarr::looks_like_ome_zarr(&path.to_string_lossy()) =>
         {
-            viewer::url_source(path.to_string_lossy().into_owned(), args.token_file)
+            strata_viewer::url_source(path.to_string_lossy().into_owned(), args.token_file)
         }
-        Some(path) => viewer::path_source(path),
-        None => viewer::demo_source(),
+        Some(path) => strata_viewer::path_source(path),
+        None => strata_viewer::demo_source(),
     };
-    let (width, height) = cmd_render::parse_size(&args.window)?;
-    let mut options = viewer::ViewerOptions::new(source);
+    let (width, height) = strata_viewer::export::parse_size(&args.window)?;
+    let mut options = strata_viewer::ViewerOptions::new(source);
     options.dicom_series = args.series;
     options.exit_after_seconds = args.exit_after;
     options.auto_orbit_deg_per_second = args.orbit;
@@ -191,9 +185,9 @@ fn view(args: ViewArgs) -> Result<()> {
     options.persist_settings = !args.fresh;
     options.initial_layout = match args.layout.as_deref() {
         None => None,
-        Some("single") => Some(viewer::app::Layout::Single),
-        Some("conventional") => Some(viewer::app::Layout::ThreeDOverSlices),
-        Some("four-up") => Some(viewer::app::Layout::TwoByTwo),
+        Some("single") => Some(strata_viewer::app::Layout::Single),
+        Some("conventional") => Some(strata_viewer::app::Layout::ThreeDOverSlices),
+        Some("four-up") => Some(strata_viewer::app::Layout::TwoByTwo),
         Some(other) => {
             anyhow::bail!("--layout must be single, conventional or four-up, not '{other}'")
         }
@@ -201,7 +195,7 @@ fn view(args: ViewArgs) -> Result<()> {
     options.initial_view = match args.view.as_deref() {
         None => None,
         Some(letter) => Some(
-            viewer::view3d::StandardView::ALL
+            strata_viewer::view3d::StandardView::ALL
                 .into_iter()
                 .find(|v| v.letter().eq_ignore_ascii_case(letter))
                 .ok_or_else(|| {
@@ -218,5 +212,5 @@ fn view(args: ViewArgs) -> Result<()> {
         );
     }
     options.overlay = args.overlay.into_iter().next();
-    viewer::run(options)
+    strata_viewer::run(options)
 }

@@ -2,9 +2,6 @@
 //! (issue 34). Each module is one former test file; a new file in tests/ must be added
 //! here (or as a [[test]] of its own in Cargo.toml): tests/tidy.rs checks that none is left out.
 
-mod bench_accuracy;
-mod bench_timecritical;
-mod bench_transitions;
 mod cli;
 mod common;
 mod omezarr_foreign;

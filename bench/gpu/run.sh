@@ -5,11 +5,11 @@
 # ../shared/tools/gpu-run.sh.
 #
 # Here (no GPU), from the checkout's root:
-#   cargo build --release -p strata-app --bin strata
+#   cargo build --release -p strata-app --bin strata -p strata-bench --bin strata-bench
 #   cargo bench --no-run -p strata-render --bench raycast --bench traversal
 #   cargo test --release --no-run -p strata-render --test integration  # features::cache_first_upload_cost
 #   mkdir -p .gpu && grep -qx /.gpu/ .git/info/exclude || echo /.gpu/ >> .git/info/exclude
-#   for b in target/release/strata target/release/deps/raycast-* target/release/deps/traversal-* \
+#   for b in target/release/strata target/release/strata-bench target/release/deps/raycast-* target/release/deps/traversal-* \
 #            $(ls -t target/release/deps/integration-* | grep -v '\.d$' | head -1); do
 #     case $b in *.d) continue;; esac; n=$(basename $b | sed 's/-[0-9a-f]*$//; s/^integration$/features/')
 #     strip -o .gpu/$n $b; xz -f -T0 .gpu/$n; done
@@ -30,15 +30,17 @@ if [ -d .gl ] && [ -z "${SMALL:-}" ]; then
   [ -f /usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json ] && export VK_DRIVER_FILES=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json
 fi
 B=/tmp/sbin; mkdir -p $B
-for n in strata raycast traversal features; do
+for n in strata strata-bench raycast traversal features; do
   rm -f $B/$n
   if [ -f $BIN/$n.xz ]; then xz -dc $BIN/$n.xz > $B/$n; elif [ -f $BIN/$n ]; then cp $BIN/$n $B/$n; fi
   [ -f $B/$n ] && chmod +x $B/$n
 done
 [ -x $B/strata ] || { echo "no strata binary in $BIN (see the header)"; exit 2; }
+[ -x $B/strata-bench ] || { echo "no strata-bench binary in $BIN (see the header)"; exit 2; }
 export XDG_RUNTIME_DIR=/tmp/xdg; mkdir -p $XDG_RUNTIME_DIR; chmod 700 $XDG_RUNTIME_DIR
 W=/tmp/gw; mkdir -p $W
 S=$B/strata
+SB=$B/strata-bench
 : > "$OUT/summary.txt"
 log() { echo "=== $(date +%T) $*" | tee -a "$OUT/summary.txt"; }
 step() { # step NAME TIMEOUT CMD...
@@ -85,10 +87,10 @@ fly generous-octree-vis $GMIB 16384 --traversal octree
 fly tight-flat-vis 256 512
 fly tight-octree-vis 256 512 --traversal octree
 step sample-$MID $STEPT $S sample --size $MID --out $W/p$MID.strata
-TAILN=10 step timecritical 90 $S bench timecritical $W/p$MID.strata --target 120 --frames $TCF --size ${BIGIMG}x$BIGIMG --csv "$L/timecritical.csv"
+TAILN=10 step timecritical 90 $SB timecritical $W/p$MID.strata --target 120 --frames $TCF --size ${BIGIMG}x$BIGIMG --csv "$L/timecritical.csv"
 # A level over the budget: refused before it is read, bricks × bytes against the budget.
-TAILN=4 step timecritical-over-budget 30 $S bench timecritical $W/p$BIG.strata --target 120 --frames 4 --size 64x64 --gpu-mib 256
-TAILN=24 step adaptive 100 $S bench adaptive phantom --phantom-size 256 --size ${IMG}x$IMG --frames 5 --epsilons 0.001,0.01,0.05 --out-dir $W/adaptive
+TAILN=4 step timecritical-over-budget 30 $SB timecritical $W/p$BIG.strata --target 120 --frames 4 --size 64x64 --gpu-mib 256
+TAILN=24 step adaptive 100 $SB adaptive phantom --phantom-size 256 --size ${IMG}x$IMG --frames 5 --epsilons 0.001,0.01,0.05 --out-dir $W/adaptive
 step sparse-gen 150 $S sample --sparse --size $HUGE --out $W/big.strata
 step sparse-info 30 $S info $W/big.strata
 TAILN=8 step sparse-render 150 $S render $W/big.strata --out "$OUT/big.png" --size ${IMG}x$IMG --mode mip --traversal octree --max-frames 400

@@ -3,7 +3,7 @@
 # byte-identical (issue 12: a refactor must not change a pixel). Usage:
 #   bench/house/same_images.sh OLD_STRATA NEW_STRATA [WORK_DIR]
 # Both binaries render the same phantom store (made by OLD); GPU frames, the f64 reference, and
-# the error columns of `strata bench accuracy` / `bench transitions` are compared.
+# the error columns of `strata-bench accuracy` / `strata-bench transitions` are compared.
 set -euo pipefail
 old=$1 new=$2 work=${3:-$(mktemp -d)}
 mkdir -p "$work"

@@ -280,7 +280,7 @@ fn effect_table(
             },
         ),
         // This cut is uniform, so "on" asks for smoothing and gets the same pipeline as "off"
-        // (the cut decides); what smoothing costs on a mixed cut is `strata bench transitions`.
+        // (the cut decides); what smoothing costs on a mixed cut is `strata-bench transitions`.
         (
             "smooth transitions",
             "SMOOTH_TRANSITIONS",

@@ -2,7 +2,7 @@
 //! (Corcoran & Dingliana, Eq. 1: `S_n = S_{n-1} · f_{n-1} / f_target`), then the loader's level
 //! of detail when the rate alone cannot, and refines back to full quality when the camera stops.
 //!
-//! One frame of the loop (see `strata bench timecritical` for a complete one):
+//! One frame of the loop (see `strata-bench timecritical` for a complete one):
 //! ```text
 //! let quality = controller.plan_frame(camera_moving);   // rate, jitter, lod factor
 //! quality.apply_to(&mut settings);                       // step = 1 / rate

@@ -539,7 +539,7 @@ impl AdaptiveProbe for FullRate<'_> {
 /// Issue 15's pre-integration question, measured on the CPU with everything else equal (same
 /// slices, same field, f64): on a TF of three bands each 1.5 % of the CT range wide, the
 /// length-free pre-integration beats classic sampling at steps 1 and 2 on the smooth phantom.
-/// (On the storage phantom's ±10 HU voxel noise, `strata bench accuracy` measures where it
+/// (On the storage phantom's ±10 HU voxel noise, `strata-bench accuracy` measures where it
 /// does not: the linear ramp between samples smooths noise a band only 60 HU wide responds
 /// to; see docs/accuracy-narrow-bands.md.)
 #[test]

@@ -1,5 +1,5 @@
 //! strata-slices: the axis-aligned slice views' platform-independent part, one copy for the
-//! desktop viewer (app/src/viewer/, which reads bricks on a named thread with blocking reads)
+//! desktop viewer (viewer/src/, which reads bricks on a named thread with blocking reads)
 //! and the browser viewer (web/, which fetches them asynchronously on the page's one thread).
 //!
 //! # Modules

@@ -1,4 +1,4 @@
-//! The codec table of `strata bench codecs` from the storage crate alone (its release build is
+//! The codec table of `strata-bench codecs` from the storage crate alone (its release build is
 //! far cheaper than the app's): `cargo run --release -p strata-storage --example codec_table
 //! [SCAN...]` (default: chris_t1, FLAIR and dicom-mr-3slices of shared/data, after the 256³
 //! phantom). Same encode/decode calls and the same timing (thread CPU time) as the app's bench;

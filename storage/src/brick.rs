@@ -30,7 +30,7 @@
 //! for x). `dense` predicts from
 //! seven neighbours in this slice and the one below and codes the residuals in six streams by
 //! local activity (kind 8, [`linear3d`]; kind 7, the median edge detector of LOCO-I with one
-//! zstd frame, is what `dense` wrote before). Measured (`strata bench codecs`): chris_t1 and
+//! zstd frame, is what `dense` wrote before). Measured (`strata-bench codecs`): chris_t1 and
 //! FLAIR 0.74 / 0.75 of lz4 with `fast`, 0.71 / 0.72 with kind 7, 0.64 / 0.69 with kind 8; the Lorenzo predictors (2D and
 //! 3D) and an x/y average landed between the two, bit shuffle before zstd was larger. u16 bricks keep the byte shuffle (kinds 3 and 4): on the
 //! 16-bit MR and the CT phantom the filters made them larger.

@@ -139,7 +139,7 @@ pub struct ImportReport {
     pub profile: ImportProfile,
 }
 
-/// Where an import's time went (what `strata bench import` prints). The first three are spent
+/// Where an import's time went (what `strata-bench import` prints). The first three are spent
 /// on the importing thread one after the other; the sled writes run on their own thread,
 /// overlapping them; `finish` is the final metadata write and flush.
 #[derive(Clone, Copy, Debug, Default)]

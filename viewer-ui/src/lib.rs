@@ -1,4 +1,4 @@
-//! strata-viewer-ui: the views and panels the desktop viewer (`strata`, app/src/viewer/) and the
+//! strata-viewer-ui: the views and panels the desktop viewer (`strata`, viewer/src/) and the
 //! browser viewer (strata-web) share, so both builds draw one copy (issue 39). Everything here
 //! builds natively and for wasm32-unknown-unknown: it takes plain inputs (the transfer function,
 //! the histogram, the figures to show) from the caller and knows nothing of either app's state.
@@ -12,9 +12,14 @@
 //! - [`slice_canvas`]: what a slice view draws around its image (zoom and pan, screen ↔ image
 //!   mapping, crosshair, orientation labels, the flipped image mesh, the colour-map choice).
 //! - [`widgets`]: small widgets the panels need (the slow spinner).
+//! - [`view_state`], [`compact_tf`]: the shareable link's format (`#store=…&az=…`, an edited
+//!   transfer function as `tf=`), which both viewers read and write (issue 39; here since issue
+//!   47, so that the desktop needs nothing of the browser crate).
 
+pub mod compact_tf;
 pub mod performance;
 pub mod slice_canvas;
 pub mod target_fps;
 pub mod tf_editor;
+pub mod view_state;
 pub mod widgets;

@@ -1,5 +1,5 @@
 //! What an axis-aligned slice view draws around its image, shared by the desktop's slice views
-//! (app/src/viewer/slice_view.rs) and the page's (web/src/slice_views.rs): the image's place
+//! (viewer/src/slice_view.rs) and the page's (web/src/slice_views.rs): the image's place
 //! in the view with zoom and pan ([`ZoomPan`]), screen ↔ image-fraction mapping, the
 //! crosshair, the orientation labels, the readout line and the textured image with the view's
 //! flips.

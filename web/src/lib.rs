@@ -27,9 +27,10 @@
 //! Without `store=` the page shows the built-in sample volume (the render crate's CT phantom,
 //! made in the page).
 
-pub mod compact_tf;
+// The link format lives in strata-viewer-ui, shared with the desktop viewer (issue 47); the
+// paths stay `strata_web::view_state`, `strata_web::compact_tf`.
+pub use strata_viewer_ui::{compact_tf, view_state};
 pub mod view_motion;
-pub mod view_state;
 pub mod volume_menu;
 
 #[cfg(target_arch = "wasm32")]

@@ -21,7 +21,7 @@
 //! it saves samples but not shadow rays: tests/adaptive.rs (40³ phantom, 64²) counts 60351
 //! shadow rays at ε 0.002 and at d ≡ 1 alike (49.7 dB against the f64 reference of the lit
 //! model, 48.3 dB against the raycaster; ε 0.02: 49926 rays at 39.7 dB).
-//! `strata bench adaptive phantom --phantom-size 256 --size 256x256 --epsilons 0.002,0.02
+//! `strata-bench adaptive phantom --phantom-size 256 --size 256x256 --epsilons 0.002,0.02
 //! --shadowed-only` on lavapipe (llvmpipe, 2 cores shared with three other builds, so times
 //! are ±2×), key light Camera(0.6, 0.7, 0.4), exact shadows at 1 voxel, step 0.5, against
 //! the raycaster at step 0.125 with the same shadow step:
@@ -49,7 +49,7 @@
 //! 3.7-5.8 from other agents; equal-work rows agree within 6 % except bone ε 0.02, below):
 //!
 //! ```text
-//! strata bench adaptive phantom --phantom-size 256 --size 256x256 --epsilons 0.002,0.02 \
+//! strata-bench adaptive phantom --phantom-size 256 --size 256x256 --epsilons 0.002,0.02 \
 //!   --shadowed-only --frames 3 [--tf ct-soft-tissue]
 //! ```
 //!
@@ -115,7 +115,7 @@
 //! | render 256³ | 16 | 10092 of 13456 | 13.6 dB |
 //! | render 256³ | 8 | 52983 of 53824 | 25.9 dB |
 //!
-//! and with `strata bench adaptive phantom --phantom-size 256 --size 64x64 --epsilons 0.002
+//! and with `strata-bench adaptive phantom --phantom-size 256 --size 64x64 --epsilons 0.002
 //! --shadowed-only --frames 1` (storage phantom, bone, d ≡ 1 row against the raycaster at a
 //! quarter step): 18.3 dB at tile 16 with shadows + scattering; 18.0 dB with scattering off;
 //! 49.8 dB with shadows off (the shaded key light and scattering agree); 51.4 dB unlit; 32.8
@@ -133,7 +133,7 @@
 //! and the "23.5 dB shadow-step error". Trustworthy lit figures at 256³ need a GPU, or tile 8
 //! and shadow rays short enough to stay in budget.
 //!
-//! The bench above rerun with the counter (`strata bench adaptive phantom --phantom-size 256
+//! The bench above rerun with the counter (`strata-bench adaptive phantom --phantom-size 256
 //! --size 256x256 --epsilons 0.002,0.02 --shadowed-only --frames 1 [--tf ct-soft-tissue]`,
 //! lavapipe, same counters and PSNRs as the tables above): invocations the device cut short,
 //! per row (0: none reported; the count is a lower bound):

@@ -16,7 +16,7 @@
 //! | 3-D predictor, 6 gradient contexts, a frame per context  | 0.94     | 0.96  |
 //! | the same, weights fitted per brick (7 bytes a brick)     | **0.91** | **0.955** |
 //!
-//! (The last row is of whole stores, every level, as `strata bench codecs` measures: 0.644 and
+//! (The last row is of whole stores, every level, as `strata-bench codecs` measures: 0.644 and
 //! 0.688 of lz4 against kind 7's 0.707 and 0.720. zstd 19 on the streams was 1 % smaller, at
 //! a fraction of the speed.)
 //!

@@ -1,0 +1,96 @@
+//! What the command line, the desktop viewer and the benchmarks share for writing images and
+//! movies and for reading their options: the PNG of a frame, the orbit movie's frames and its
+//! MP4 through ffmpeg, the `WxH` size and the transfer function named on a command line.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context, Result};
+use strata_render::TransferFunction;
+
+/// The most frames an orbit movie may have: 10 per degree, 150 s at 24 frames per second.
+pub const MAX_ORBIT_FRAMES: u32 = 3600;
+
+/// `WxH` (e.g. 512x512) as a width and height, each 1..=8192.
+pub fn parse_size(text: &str) -> Result<(u32, u32)> {
+    let (w, h) = text
+        .split_once(['x', 'X'])
+        .with_context(|| format!("--size must look like 512x512, not '{text}'"))?;
+    let (w, h): (u32, u32) = (w.trim().parse()?, h.trim().parse()?);
+    if !(1..=8192).contains(&w) || !(1..=8192).contains(&h) {
+        bail!("--size {w}x{h} is outside 1..8192");
+    }
+    Ok((w, h))
+}
+
+/// The transfer function the user named, or a sensible default for the modality.
+pub fn choose_transfer_function(name: Option<&str>, modality: &str) -> Result<TransferFunction> {
+    let name = name.unwrap_or(if modality.eq_ignore_ascii_case("CT") {
+        "ct-bone"
+    } else {
+        "mr-default"
+    });
+    if let Some(tf) = TransferFunction::preset(name) {
+        return Ok(tf);
+    }
+    let path = Path::new(name);
+    if path.exists() {
+        return TransferFunction::load(path)
+            .with_context(|| format!("reading transfer function {}", path.display()));
+    }
+    let looks_like_a_file = name.to_ascii_lowercase().ends_with(".json")
+        || name.contains(std::path::MAIN_SEPARATOR)
+        || name.contains('/');
+    if looks_like_a_file {
+        bail!("transfer function file {} does not exist", path.display());
+    }
+    bail!("unknown transfer function '{name}': use ct-bone, ct-soft-tissue, ct-lung, ct-vessels, mr-default or a JSON file")
+}
+
+/// Azimuth of frame `i` of `frames`, evenly around the full turn from `start`.
+pub fn orbit_azimuth(start: f64, i: u32, frames: u32) -> f64 {
+    start + 360.0 * i as f64 / frames.max(1) as f64
+}
+
+pub fn orbit_frame_name(i: u32) -> String {
+    format!("frame-{i:04}.png")
+}
+
+/// frame-%04d.png in `folder` → orbit.mp4 through ffmpeg, if ffmpeg runs; None without it.
+pub fn encode_mp4(folder: &Path) -> Result<Option<PathBuf>> {
+    let probe = std::process::Command::new("ffmpeg")
+        .arg("-version")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .status();
+    if !probe.is_ok_and(|s| s.success()) {
+        return Ok(None);
+    }
+    let movie = folder.join("orbit.mp4");
+    let output = std::process::Command::new("ffmpeg")
+        .args(["-y", "-loglevel", "error", "-framerate", "24", "-i"])
+        .arg(folder.join("frame-%04d.png"))
+        // Even dimensions and yuv420p: what every player accepts.
+        .args([
+            "-vf",
+            "pad=ceil(iw/2)*2:ceil(ih/2)*2",
+            "-pix_fmt",
+            "yuv420p",
+        ])
+        .arg(&movie)
+        .output()
+        .context("running ffmpeg")?;
+    if !output.status.success() {
+        bail!("ffmpeg: {}", String::from_utf8_lossy(&output.stderr).trim());
+    }
+    Ok(Some(movie))
+}
+
+/// Writes premultiplied RGBA over black (the usual background of medical viewers) as PNG.
+pub fn write_png(path: &Path, width: u32, height: u32, premultiplied_rgba: &[u8]) -> Result<()> {
+    let mut rgb = Vec::with_capacity((width * height * 3) as usize);
+    for px in premultiplied_rgba.chunks_exact(4) {
+        rgb.extend_from_slice(&px[..3]);
+    }
+    image::save_buffer(path, &rgb, width, height, image::ExtendedColorType::Rgb8)
+        .with_context(|| format!("writing {}", path.display()))
+}

@@ -1,0 +1,281 @@
+//! Links to a view of a served store (issue 39, "shareable views"). The browser viewer's
+//! address is `http(s)://HOST:PORT/#store=NAME&mode=…&az=…` (strata_viewer_ui::view_state); the
+//! desktop viewer copies that link for the served store it streams, and opens one: the store
+//! from the server at the link's origin, the view from its fragment. The same camera function
+//! builds both viewers' pictures ([`strata_render::Camera::orbit_panned`]), so a link opens the
+//! same view in either.
+//!
+//! A link's `token=` is used for that one connection and kept in memory only: it is never
+//! written back into a copied link (links are shared, tokens must not be), logged, or saved.
+
+use strata_render::{RenderMode, TransferFunction};
+use strata_viewer_ui::view_state::{Fragment, Layout as LinkLayout, ViewState};
+
+use super::preferences::Layout;
+use super::view3d::OrbitCamera;
+
+/// A link's store and view.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SharedLink {
+    /// `http(s)://HOST:PORT/v1/stores/NAME`, as `strata view` and the Open dialog take it.
+    pub store_url: String,
+    pub view: ViewState,
+    pub token: Option<String>,
+}
+
+/// What the desktop's 3D view shows, as a link describes it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DesktopView {
+    pub orbit: OrbitCamera,
+    pub mode: RenderMode,
+    pub preset: String,
+    /// The transfer function as edited (or loaded from a file) when it is not the preset's:
+    /// the link's `tf=`. None: the preset as it is.
+    pub tf: Option<TransferFunction>,
+    /// In the volume's physical unit.
+    pub iso_value: f64,
+    /// The 3D view alone, or with the slices (the page's 2×2; the desktop's conventional
+    /// 3D + 1×3 is shared as the 2×2, its nearest in the page).
+    pub layout: Layout,
+    /// The slices' crosshair (level-0 voxel index) and window (centre, width; physical unit);
+    /// None where a link leaves them to the store.
+    pub cursor: Option<[f64; 3]>,
+    pub window: Option<[f64; 2]>,
+}
+
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum LinkError {
+    #[error("{link}: the link names no store (`#store=NAME`); open the page's store list and copy a store's link")]
+    NoStore { link: String },
+    #[error("{link}: {source}")]
+    Fragment {
+        link: String,
+        source: strata_viewer_ui::view_state::FragmentError,
+    },
+}
+
+/// The server's origin (`http(s)://HOST[:PORT]`) and the store's name of a served store's URL
+/// (`…/v1/stores/NAME`); None for anything else (a local store, an OME-Zarr).
+pub fn served_store(store_url: &str) -> Option<(&str, &str)> {
+    let after_scheme = store_url
+        .strip_prefix("http://")
+        .or_else(|| store_url.strip_prefix("https://"))?;
+    let host_end = after_scheme.find('/')?;
+    let origin = &store_url[..store_url.len() - after_scheme.len() + host_end];
+    let name = after_scheme[host_end..]
+        .strip_prefix("/v1/stores/")?
+        .trim_end_matches('/');
+    strata_source::wire::is_valid_store_name(name).then_some((origin, name))
+}
+
+/// True when `text` is a viewer link (an http(s) address with a `#` fragment), not a store's URL.
+pub fn is_link(text: &str) -> bool {
+    (text.starts_with("http://") || text.starts_with("https://")) && text.contains('#')
+}
+
+/// Reads a viewer link; the fragment must name a store.
+pub fn parse_link(link: &str) -> Result<SharedLink, LinkError> {
+    let link = link.trim();
+    let (address, fragment) = link.split_once('#').unwrap_or((link, ""));
+    let Fragment { view, token } = Fragment::parse(fragment).map_err(|source| {
+        // The error names the key and its value; a token's value is never echoed: a bad
+        // token key cannot occur (any non-empty value is taken).
+        LinkError::Fragment {
+            link: without_token(link),
+            source,
+        }
+    })?;
+    let Some(store) = view.store.clone() else {
+        return Err(LinkError::NoStore {
+            link: without_token(link),
+        });
+    };
+    let after_scheme = address
+        .strip_prefix("http://")
+        .or_else(|| address.strip_prefix("https://"))
+        .unwrap_or(address);
+    let host_len = after_scheme.find('/').unwrap_or(after_scheme.len());
+    let origin = &address[..address.len() - after_scheme.len() + host_len];
+    Ok(SharedLink {
+        store_url: format!("{origin}/v1/stores/{store}"),
+        view,
+        token,
+    })
+}
+
+/// `link` with any `token=` value blanked, for messages.
+fn without_token(link: &str) -> String {
+    match link.split_once('#') {
+        Some((address, fragment)) => {
+            let kept: Vec<&str> = fragment
+                .split('&')
+                .filter(|pair| !pair.starts_with("token="))
+                .collect();
+            format!("{address}#{}", kept.join("&"))
+        }
+        None => link.to_string(),
+    }
+}
+
+/// The browser viewer's link to `view` of the served store at `store_url`; None when the
+/// volume is not a served store (a link could not open it elsewhere).
+pub fn link_for(store_url: &str, view: &DesktopView) -> Option<String> {
+    let (origin, name) = served_store(store_url)?;
+    let state = ViewState {
+        mode: view.mode,
+        preset: view.preset.clone(),
+        tf: view.tf.clone(),
+        azimuth_deg: view.orbit.azimuth_deg,
+        elevation_deg: view.orbit.elevation_deg,
+        zoom: view.orbit.zoom,
+        pan: view.orbit.pan,
+        orthographic: view.orbit.orthographic,
+        iso_value: view.iso_value,
+        layout: match view.layout {
+            Layout::Single => LinkLayout::Single,
+            Layout::ThreeDOverSlices | Layout::TwoByTwo => LinkLayout::FourUp,
+        },
+        cursor: view.cursor,
+        window: view.window,
+        store: Some(name.to_string()),
+        ..ViewState::default()
+    };
+    Some(format!("{origin}/{}", state.to_fragment()))
+}
+
+/// The desktop view a link's view describes.
+pub fn desktop_view(view: &ViewState) -> DesktopView {
+    DesktopView {
+        orbit: OrbitCamera {
+            azimuth_deg: view.azimuth_deg,
+            elevation_deg: view.elevation_deg,
+            zoom: view.zoom,
+            pan: view.pan,
+            orthographic: view.orthographic,
+        },
+        mode: view.mode,
+        preset: view.preset.clone(),
+        tf: view.tf.clone(),
+        iso_value: view.iso_value,
+        layout: match view.layout {
+            LinkLayout::Single => Layout::Single,
+            LinkLayout::FourUp => Layout::TwoByTwo,
+        },
+        cursor: view.cursor,
+        window: view.window,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use strata_render::VolumeGeometry;
+
+    fn desktop() -> DesktopView {
+        DesktopView {
+            orbit: OrbitCamera {
+                azimuth_deg: -37.5,
+                elevation_deg: 22.125,
+                zoom: 1.6,
+                pan: [0.25, -0.125],
+                orthographic: true,
+            },
+            mode: RenderMode::Isosurface,
+            preset: "ct-soft-tissue".into(),
+            tf: None,
+            iso_value: 150.5,
+            layout: Layout::Single,
+            cursor: Some([12.0, 30.5, 7.0]),
+            window: Some([-600.0, 1500.0]),
+        }
+    }
+
+    #[test]
+    fn a_served_stores_url_gives_its_origin_and_name() {
+        assert_eq!(
+            served_store("http://127.0.0.1:8080/v1/stores/head-ct.v2"),
+            Some(("http://127.0.0.1:8080", "head-ct.v2"))
+        );
+        assert_eq!(
+            served_store("https://lab.example:443/v1/stores/abc/"),
+            Some(("https://lab.example:443", "abc"))
+        );
+        for other in [
+            "/data/stores/head",
+            "s3://bucket/x.ome.zarr",
+            "https://lab.example/x.ome.zarr",
+            "http://h:1/v1/stores/../etc",
+            "http://h:1",
+        ] {
+            assert_eq!(served_store(other), None, "{other}");
+        }
+    }
+
+    #[test]
+    fn a_copied_link_opens_the_same_store_and_camera() {
+        let store_url = "http://127.0.0.1:8080/v1/stores/head-ct";
+        let link = link_for(store_url, &desktop()).expect("a served store has a link");
+        assert!(
+            link.starts_with("http://127.0.0.1:8080/#store=head-ct&"),
+            "{link}"
+        );
+        let opened = parse_link(&link).expect("own link parses");
+        assert_eq!(opened.store_url, store_url);
+        assert_eq!(opened.token, None);
+        let back = desktop_view(&opened.view);
+        assert_eq!(back, desktop());
+        // The same picture: the browser's camera of the link equals the desktop's.
+        let geometry = VolumeGeometry::axis_aligned([96, 80, 64], [0.8, 0.8, 1.5]);
+        assert_eq!(
+            opened.view.camera(&geometry),
+            desktop().orbit.camera(&geometry)
+        );
+        let perspective = DesktopView {
+            orbit: OrbitCamera::default(),
+            ..desktop()
+        };
+        let link = link_for(store_url, &perspective).expect("link");
+        let view = parse_link(&link).expect("parses").view;
+        assert_eq!(view.camera(&geometry), perspective.orbit.camera(&geometry));
+        assert_eq!(link_for("/data/stores/head", &desktop()), None);
+    }
+
+    #[test]
+    fn an_edited_transfer_function_travels_with_the_link() {
+        let mut tf = TransferFunction::preset("ct-soft-tissue").expect("preset");
+        tf.opacity[3].opacity = f64::from(0.6183_f32);
+        tf.color[2].rgb = [0.25_f32, 0.5, 0.8725].map(f64::from);
+        tf.name = strata_viewer_ui::view_state::edited_name("ct-soft-tissue");
+        let edited = DesktopView {
+            tf: Some(tf),
+            ..desktop()
+        };
+        let store_url = "http://127.0.0.1:8080/v1/stores/head-ct";
+        let link = link_for(store_url, &edited).expect("link");
+        assert!(link.contains("&tf="), "{link}");
+        let opened = parse_link(&link).expect("own link parses");
+        assert_eq!(desktop_view(&opened.view), edited);
+        let plain = link_for(store_url, &desktop()).expect("link");
+        assert!(!plain.contains("tf="), "{plain}");
+    }
+
+    #[test]
+    fn a_links_token_is_read_but_never_copied_or_echoed() {
+        let link = "https://lab.example:8443/#store=abc&token=s3cret-s3cret-1&mode=mip";
+        assert!(is_link(link));
+        assert!(!is_link("https://lab.example:8443/v1/stores/abc"));
+        let opened = parse_link(link).expect("parses");
+        assert_eq!(opened.token.as_deref(), Some("s3cret-s3cret-1"));
+        assert_eq!(opened.store_url, "https://lab.example:8443/v1/stores/abc");
+        assert_eq!(opened.view.mode, RenderMode::Mip);
+        let copied = link_for(&opened.store_url, &desktop_view(&opened.view)).expect("link");
+        assert!(!copied.contains("s3cret"), "{copied}");
+        let e = parse_link("http://h:1/#token=s3cret-s3cret-1&mode=dvr").expect_err("no store");
+        assert!(matches!(e, LinkError::NoStore { .. }));
+        assert!(!e.to_string().contains("s3cret"), "{e}");
+        let e = parse_link("http://h:1/#token=s3cret-s3cret-1&store=a&az=north")
+            .expect_err("bad azimuth");
+        assert!(e.to_string().contains("`az`"), "{e}");
+        assert!(!e.to_string().contains("s3cret"), "{e}");
+    }
+}

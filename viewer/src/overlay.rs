@@ -1,0 +1,797 @@
+//! A second volume drawn over the primary in the slice views: a label map (segmentation) with
+//! a colour per label, per-label show/hide and an opacity, or a continuous overlay (PET, a
+//! statistic map) with its own colour map, range and threshold. The overlay may lie on any
+//! grid: every slice pixel of the primary is taken to patient space (LPS mm) through the
+//! primary's geometry and back into the overlay's index space through the overlay's, so a
+//! segmentation on a coarser or rotated grid lands where it belongs.
+//!
+//! Labels are categories, never averaged or interpolated: they are read from the overlay
+//! store's finest level (level 0) with nearest-voxel sampling, whatever level the primary's
+//! slice uses. The store's coarser levels are means of 2×2×2 voxels, which would invent labels
+//! at boundaries (the mean of 1 and 3 is 2), so they are not used for labels at all. A
+//! continuous overlay is sampled trilinearly from level 0.
+//!
+//! Sampling runs on a named thread (`strata-overlay-reader`) per overlay, with its own bounded
+//! brick cache; the UI colours the sampled values (cheap) whenever the style changes.
+
+use std::collections::{BTreeMap, BTreeSet, HashMap};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Condvar, Mutex};
+
+use glam::DVec3;
+use strata_render::{ValueMapping, VolumeGeometry};
+use strata_source::VolumeSource;
+use strata_storage::{BrickId, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
+
+use super::colour_maps::ColourMap;
+use super::orientation::SliceView;
+use super::slices::SliceRequest;
+use super::sync::{lock_ignoring_poison, wait_ignoring_poison, Repaint};
+
+/// Decompressed overlay bricks kept (bytes).
+pub const OVERLAY_CACHE_BYTES: usize = 96 << 20;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum OverlayKind {
+    /// Integer labels, 0 = background.
+    Labels,
+    /// Physical values with a colour map.
+    Continuous,
+}
+
+/// How the overlay is drawn (the overlay panel edits it).
+#[derive(Clone, Debug, PartialEq)]
+pub struct OverlayStyle {
+    pub visible: bool,
+    /// Drawn in the 3D view too (overlay_3d.rs), not only on the slices.
+    pub show_in_3d: bool,
+    /// 0..1, multiplied into every overlay pixel.
+    pub opacity: f32,
+    /// Labels hidden by the user.
+    pub hidden_labels: BTreeSet<i64>,
+    /// Names and colours the label store's header gives (a DICOM SEG's segments); labels not
+    /// in it take [`label_colour`].
+    pub label_table: BTreeMap<i64, LabelEntry>,
+    pub colour_map: ColourMap,
+    /// Continuous: values in `range` run through the colour map; below `threshold` nothing is
+    /// drawn (the base shows through).
+    pub range: (f64, f64),
+    pub threshold: f64,
+}
+
+/// A named label with its colour (from the store header's labels).
+#[derive(Clone, Debug, PartialEq)]
+pub struct LabelEntry {
+    pub name: String,
+    pub colour: [u8; 3],
+}
+
+/// The label table of a store header: each label's name and its recommended colour, or the
+/// default table's where the source recommends none.
+pub fn label_table_of(labels: &[strata_storage::LabelInfo]) -> BTreeMap<i64, LabelEntry> {
+    labels
+        .iter()
+        .map(|l| {
+            let value = i64::from(l.value);
+            let colour = l.rgb.unwrap_or_else(|| label_colour(value));
+            (
+                value,
+                LabelEntry {
+                    name: l.name.clone(),
+                    colour,
+                },
+            )
+        })
+        .collect()
+}
+
+/// A label's colour: a fixed table for the first labels (distinct, saturated, as segmentation
+/// tools use), then hues spaced by the golden angle so neighbouring numbers differ.
+pub fn label_colour(label: i64) -> [u8; 3] {
+    const TABLE: [[u8; 3]; 12] = [
+        [230, 25, 75],
+        [60, 180, 75],
+        [255, 225, 25],
+        [0, 130, 200],
+        [245, 130, 48],
+        [145, 30, 180],
+        [70, 240, 240],
+        [240, 50, 230],
+        [210, 245, 60],
+        [250, 190, 212],
+        [0, 128, 128],
+        [170, 110, 40],
+    ];
+    if (1..=TABLE.len() as i64).contains(&label) {
+        return TABLE[(label - 1) as usize];
+    }
+    let hue = (label as f64 * 137.507_764).rem_euclid(360.0) / 60.0;
+    let x = 1.0 - (hue % 2.0 - 1.0).abs();
+    let (r, g, b) = match hue as u32 {
+        0 => (1.0, x, 0.0),
+        1 => (x, 1.0, 0.0),
+        2 => (0.0, 1.0, x),
+        3 => (0.0, x, 1.0),
+        4 => (x, 0.0, 1.0),
+        _ => (1.0, 0.0, x),
+    };
+    [r, g, b].map(|c: f64| (40.0 + 215.0 * c).round() as u8)
+}
+
+/// Overlay values for one primary slice image: one per pixel of that image, in its order
+/// (`across` fastest). Labels as whole numbers, continuous values in physical units; NaN where
+/// the pixel lies outside the overlay's grid.
+#[derive(Clone, Debug)]
+pub struct OverlaySlice {
+    pub request: SliceRequest,
+    pub width: usize,
+    pub height: usize,
+    pub values: Arc<Vec<f32>>,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct OverlayRequest {
+    slice: SliceRequest,
+    width: usize,
+    height: usize,
+}
+
+/// What the sampler needs to know about both volumes.
+#[derive(Clone, Debug)]
+pub struct OverlayGrids {
+    pub primary: VolumeGeometry,
+    /// The primary store's level dims (the slice image's grid at each level).
+    pub primary_level_dims: Vec<[u32; 3]>,
+    pub overlay: VolumeGeometry,
+    pub overlay_mapping: ValueMapping,
+    pub kind: OverlayKind,
+}
+
+struct Shared {
+    pending: Mutex<[Option<OverlayRequest>; 3]>,
+    results: Mutex<[Option<OverlaySlice>; 3]>,
+    labels_seen: Mutex<BTreeSet<i64>>,
+    error: Mutex<Option<String>>,
+    wake: Condvar,
+    stop: AtomicBool,
+}
+
+/// An opened overlay: its store's facts, its style and its sampling thread.
+pub struct Overlay {
+    pub name: String,
+    pub kind: OverlayKind,
+    pub style: OverlayStyle,
+    /// The overlay's physical value range.
+    pub physical_range: (f64, f64),
+    /// The overlay's store and both grids (the 3D view resamples from them, overlay_3d.rs).
+    source: Arc<dyn VolumeSource>,
+    grids: OverlayGrids,
+    shared: Arc<Shared>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl Overlay {
+    pub fn start(
+        store: Arc<dyn VolumeSource>,
+        kind: OverlayKind,
+        primary: VolumeGeometry,
+        primary_level_dims: Vec<[u32; 3]>,
+        repaint: Repaint,
+    ) -> anyhow::Result<Self> {
+        let header = store.header().clone();
+        // A store that names its labels (a DICOM SEG) is a label map whatever was asked.
+        let kind = if header.labels.is_empty() {
+            kind
+        } else {
+            OverlayKind::Labels
+        };
+        let label_table = label_table_of(&header.labels);
+        let mapping = header.value_mapping.mapping;
+        let (a, b) = (
+            mapping.physical(header.stored_range[0] as f64),
+            mapping.physical(header.stored_range[1] as f64),
+        );
+        let physical_range = (a.min(b), a.max(b));
+        let grids = OverlayGrids {
+            primary,
+            primary_level_dims,
+            overlay: header.geometry.clone(),
+            overlay_mapping: mapping,
+            kind,
+        };
+        let shared = Arc::new(Shared {
+            pending: Mutex::new([None; 3]),
+            results: Mutex::new([None, None, None]),
+            labels_seen: Mutex::new(BTreeSet::new()),
+            error: Mutex::new(None),
+            wake: Condvar::new(),
+            stop: AtomicBool::new(false),
+        });
+        let name = store.location();
+        let source = store.clone();
+        let thread_shared = shared.clone();
+        let thread_grids = grids.clone();
+        let thread = std::thread::Builder::new()
+            .name("strata-overlay-reader".into())
+            .spawn(move || {
+                let mut cache = BrickCache::new(OVERLAY_CACHE_BYTES);
+                loop {
+                    let next = {
+                        let mut pending = lock_ignoring_poison(&thread_shared.pending);
+                        loop {
+                            if thread_shared.stop.load(Ordering::Acquire) {
+                                return;
+                            }
+                            if let Some(r) = pending.iter_mut().find_map(|p| p.take()) {
+                                break r;
+                            }
+                            pending = wait_ignoring_poison(&thread_shared.wake, pending);
+                        }
+                    };
+                    match sample_slice(
+                        store.as_ref(),
+                        &mut cache,
+                        &thread_grids,
+                        next.slice,
+                        next.width,
+                        next.height,
+                    ) {
+                        Ok(slice) => {
+                            if kind == OverlayKind::Labels {
+                                let mut seen = lock_ignoring_poison(&thread_shared.labels_seen);
+                                for &v in slice.values.iter() {
+                                    if v.is_finite() && v != 0.0 {
+                                        seen.insert(v as i64);
+                                    }
+                                }
+                            }
+                            lock_ignoring_poison(&thread_shared.results)[next.slice.view.index()] =
+                                Some(slice);
+                            *lock_ignoring_poison(&thread_shared.error) = None;
+                        }
+                        Err(e) => {
+                            *lock_ignoring_poison(&thread_shared.error) = Some(format!("{e:#}"))
+                        }
+                    }
+                    repaint();
+                }
+            })?;
+        let style = OverlayStyle {
+            visible: true,
+            show_in_3d: true,
+            opacity: 0.5,
+            hidden_labels: BTreeSet::new(),
+            label_table,
+            colour_map: ColourMap::Hot,
+            range: physical_range,
+            // Continuous: the lower fifth of the range stays transparent at first.
+            threshold: physical_range.0 + 0.2 * (physical_range.1 - physical_range.0),
+        };
+        Ok(Overlay {
+            name,
+            kind,
+            style,
+            physical_range,
+            source,
+            grids,
+            shared,
+            thread: Some(thread),
+        })
+    }
+
+    /// The overlay's store.
+    pub fn source(&self) -> &Arc<dyn VolumeSource> {
+        &self.source
+    }
+
+    /// The primary's and the overlay's grids.
+    pub fn grids(&self) -> &OverlayGrids {
+        &self.grids
+    }
+
+    /// Asks for the overlay over the primary slice image `slice` (`width`×`height` pixels).
+    pub fn request(&self, slice: SliceRequest, width: usize, height: usize) {
+        let request = OverlayRequest {
+            slice,
+            width,
+            height,
+        };
+        let latest = self.latest(slice.view);
+        if latest.is_some_and(|l| l.request == slice && l.width == width && l.height == height) {
+            return;
+        }
+        let mut pending = lock_ignoring_poison(&self.shared.pending);
+        if pending[slice.view.index()] != Some(request) {
+            pending[slice.view.index()] = Some(request);
+            self.shared.wake.notify_all();
+        }
+    }
+
+    pub fn latest(&self, view: SliceView) -> Option<OverlaySlice> {
+        lock_ignoring_poison(&self.shared.results)[view.index()].clone()
+    }
+
+    /// A label's name from the store header ("kidney"), if it has one.
+    pub fn label_name(&self, label: i64) -> Option<&str> {
+        self.style.label_table.get(&label).map(|e| e.name.as_str())
+    }
+
+    /// Labels met so far in the sampled slices (the panel lists them).
+    pub fn labels_seen(&self) -> BTreeSet<i64> {
+        lock_ignoring_poison(&self.shared.labels_seen).clone()
+    }
+
+    pub fn error(&self) -> Option<String> {
+        lock_ignoring_poison(&self.shared.error).clone()
+    }
+
+    /// What the overlay draws at one sampled value: premultiplied RGBA.
+    pub fn colour_of(&self, value: f32) -> [u8; 4] {
+        colour_of(self.kind, &self.style, value)
+    }
+
+    /// The overlay image for `slice`, premultiplied RGBA in its pixel order.
+    pub fn colourise(&self, slice: &OverlaySlice) -> egui::ColorImage {
+        let pixels = slice
+            .values
+            .iter()
+            .map(|&v| {
+                let [r, g, b, a] = self.colour_of(v);
+                egui::Color32::from_rgba_premultiplied(r, g, b, a)
+            })
+            .collect();
+        egui::ColorImage::new([slice.width, slice.height], pixels)
+    }
+}
+
+impl Drop for Overlay {
+    fn drop(&mut self) {
+        self.shared.stop.store(true, Ordering::Release);
+        self.shared.wake.notify_all();
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+/// Premultiplied RGBA for one sampled value under `style`.
+pub fn colour_of(kind: OverlayKind, style: &OverlayStyle, value: f32) -> [u8; 4] {
+    if !style.visible || !value.is_finite() {
+        return [0; 4];
+    }
+    let (rgb, alpha) = match kind {
+        OverlayKind::Labels => {
+            let label = value as i64;
+            if label == 0 || style.hidden_labels.contains(&label) {
+                return [0; 4];
+            }
+            let colour = style
+                .label_table
+                .get(&label)
+                .map_or_else(|| label_colour(label), |e| e.colour);
+            (colour, style.opacity)
+        }
+        OverlayKind::Continuous => {
+            let v = value as f64;
+            if v < style.threshold {
+                return [0; 4];
+            }
+            let (lo, hi) = style.range;
+            let t = if hi > lo { (v - lo) / (hi - lo) } else { 1.0 };
+            (style.colour_map.rgb(t), style.opacity)
+        }
+    };
+    let a = alpha.clamp(0.0, 1.0);
+    let premultiply = |c: u8| (c as f32 * a).round() as u8;
+    [
+        premultiply(rgb[0]),
+        premultiply(rgb[1]),
+        premultiply(rgb[2]),
+        (255.0 * a).round() as u8,
+    ]
+}
+
+/// Level-0 bricks of the overlay, bounded; the last brick used is kept at hand because
+/// neighbouring pixels almost always fall into it.
+pub struct BrickCache {
+    budget_bricks: usize,
+    bricks: HashMap<BrickId, Arc<Vec<u16>>>,
+    last: Option<(BrickId, Arc<Vec<u16>>)>,
+}
+
+impl BrickCache {
+    pub fn new(budget_bytes: usize) -> Self {
+        BrickCache {
+            budget_bricks: (budget_bytes / (strata_storage::BRICK_PAYLOAD_VOXELS * 2)).max(16),
+            bricks: HashMap::new(),
+            last: None,
+        }
+    }
+
+    /// The stored value of level-0 voxel `index` (inside the volume).
+    pub fn voxel(&mut self, store: &dyn VolumeSource, index: [u32; 3]) -> anyhow::Result<u16> {
+        let id = BrickId::new(0, index.map(|i| i / BRICK_CORE));
+        let brick = match &self.last {
+            Some((last_id, brick)) if *last_id == id => brick.clone(),
+            _ => {
+                let brick = match self.bricks.get(&id) {
+                    Some(b) => b.clone(),
+                    None => {
+                        if self.bricks.len() >= self.budget_bricks {
+                            // Whole-cache reset: simple, bounded, and a slice refills it.
+                            self.bricks.clear();
+                        }
+                        let b = Arc::new(store.read_brick(id)?);
+                        self.bricks.insert(id, b.clone());
+                        b
+                    }
+                };
+                self.last = Some((id, brick.clone()));
+                brick
+            }
+        };
+        let local = index.map(|i| (i % BRICK_CORE + BRICK_APRON) as usize);
+        let edge = BRICK_PAYLOAD as usize;
+        Ok(brick[(local[2] * edge + local[1]) * edge + local[0]])
+    }
+}
+
+/// The level-0 continuous index (of the primary) at the centre of pixel (`x`, `y`) of the
+/// primary's slice image for `request`: the same grid strata-slices' assembler fills.
+pub fn primary_index_of_pixel(
+    request: &SliceRequest,
+    level_dims: &[[u32; 3]],
+    x: usize,
+    y: usize,
+) -> DVec3 {
+    let level = (request.level as usize).min(level_dims.len().saturating_sub(1));
+    let dims = level_dims[level];
+    let scale = (1u64 << level) as f64;
+    let frame = request.frame;
+    let slice = ((request.position + 0.5) / scale - 0.5)
+        .round()
+        .clamp(0.0, dims[frame.normal_axis] as f64 - 1.0);
+    let centre = |i: f64| (i + 0.5) * scale - 0.5;
+    let mut index = [0.0; 3];
+    index[frame.normal_axis] = centre(slice);
+    index[frame.across_axis] = centre(x as f64);
+    index[frame.down_axis] = centre(y as f64);
+    DVec3::from(index)
+}
+
+/// Samples the overlay over one primary slice image. Labels: nearest level-0 voxel, rounded to
+/// a whole label. Continuous: trilinear between level-0 voxel centres (clamped at the edges).
+pub fn sample_slice(
+    store: &dyn VolumeSource,
+    cache: &mut BrickCache,
+    grids: &OverlayGrids,
+    request: SliceRequest,
+    width: usize,
+    height: usize,
+) -> anyhow::Result<OverlaySlice> {
+    let overlay_from_primary =
+        grids.overlay.index_from_patient_linear() * grids.primary.patient_from_index_linear();
+    let offset = grids.overlay.index_from_patient(grids.primary.origin());
+    let dims = grids.overlay.dims;
+    let inside =
+        |p: DVec3| (0..3).all(|a| p[a] >= -0.5 && p[a] < dims[a] as f64 - 0.5 && p[a].is_finite());
+    let mut values = vec![f32::NAN; width * height];
+    for y in 0..height {
+        for x in 0..width {
+            let primary = primary_index_of_pixel(&request, &grids.primary_level_dims, x, y);
+            let p = offset + overlay_from_primary * primary;
+            if !inside(p) {
+                continue;
+            }
+            let value = match grids.kind {
+                OverlayKind::Labels => {
+                    let index = [0, 1, 2]
+                        .map(|a| (p[a].round().max(0.0) as u32).min(dims[a].saturating_sub(1)));
+                    let stored = cache.voxel(store, index)?;
+                    grids.overlay_mapping.physical(stored as f64).round()
+                }
+                OverlayKind::Continuous => trilinear(store, cache, dims, p, |s| {
+                    grids.overlay_mapping.physical(s as f64)
+                })?,
+            };
+            values[y * width + x] = value as f32;
+        }
+    }
+    Ok(OverlaySlice {
+        request,
+        width,
+        height,
+        values: Arc::new(values),
+    })
+}
+
+/// The overlay's physical value at its continuous index `p`, trilinear between level-0 voxel
+/// centres, clamped at the edges.
+pub fn trilinear(
+    store: &dyn VolumeSource,
+    cache: &mut BrickCache,
+    dims: [u32; 3],
+    p: DVec3,
+    physical: impl Fn(u16) -> f64,
+) -> anyhow::Result<f64> {
+    let mut sum = 0.0;
+    for (index, weight) in strata_render::field::trilinear_corners(p.to_array(), dims) {
+        if weight > 0.0 {
+            sum += weight * physical(cache.voxel(store, index)?);
+        }
+    }
+    Ok(sum)
+}
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::*;
+
+    #[test]
+    fn label_colours_are_distinct_for_the_first_labels_and_background_is_clear() {
+        let colours: BTreeSet<[u8; 3]> = (1..=40).map(label_colour).collect();
+        assert_eq!(colours.len(), 40, "40 labels, 40 colours");
+        let style = OverlayStyle {
+            visible: true,
+            show_in_3d: true,
+            opacity: 0.5,
+            hidden_labels: [2].into_iter().collect(),
+            label_table: BTreeMap::new(),
+            colour_map: ColourMap::Hot,
+            range: (0.0, 1.0),
+            threshold: 0.5,
+        };
+        assert_eq!(colour_of(OverlayKind::Labels, &style, 0.0), [0; 4]);
+        assert_eq!(colour_of(OverlayKind::Labels, &style, f32::NAN), [0; 4]);
+        assert_eq!(
+            colour_of(OverlayKind::Labels, &style, 2.0),
+            [0; 4],
+            "hidden"
+        );
+        let [r, g, b] = label_colour(1);
+        let half = |c: u8| (c as f32 * 0.5).round() as u8;
+        assert_eq!(
+            colour_of(OverlayKind::Labels, &style, 1.0),
+            [half(r), half(g), half(b), 128]
+        );
+        // Continuous: below the threshold clear, above it the colour map at its place in the
+        // range; hiding the overlay clears everything.
+        assert_eq!(colour_of(OverlayKind::Continuous, &style, 0.4), [0; 4]);
+        let [r, g, b] = ColourMap::Hot.rgb(0.75);
+        assert_eq!(
+            colour_of(OverlayKind::Continuous, &style, 0.75),
+            [half(r), half(g), half(b), 128]
+        );
+        // A header's label table (a DICOM SEG's recommended colours) wins over the default.
+        let named = OverlayStyle {
+            label_table: label_table_of(&[strata_storage::LabelInfo {
+                value: 1,
+                name: "liver".into(),
+                rgb: Some([200, 100, 50]),
+            }]),
+            ..style.clone()
+        };
+        assert_eq!(
+            colour_of(OverlayKind::Labels, &named, 1.0),
+            [100, 50, 25, 128]
+        );
+        let hidden = OverlayStyle {
+            visible: false,
+            ..style
+        };
+        assert_eq!(colour_of(OverlayKind::Labels, &hidden, 1.0), [0; 4]);
+    }
+
+    use crate::orientation::SliceFrame;
+    use std::path::Path;
+    use strata_storage::phantom::Phantom;
+
+    /// Writes a NRRD of `kind` ("uint8" or "float") with `value(i, j, k)` at each voxel.
+    pub(crate) fn write_nrrd(
+        path: &Path,
+        dims: [u32; 3],
+        spacing: f64,
+        origin: [f64; 3],
+        float: bool,
+        value: impl Fn(u32, u32, u32) -> f64,
+    ) {
+        let mut bytes = format!(
+            "NRRD0004\ntype: {}\ndimension: 3\nsizes: {} {} {}\n\
+             space: left-posterior-superior\n\
+             space directions: ({spacing},0,0) (0,{spacing},0) (0,0,{spacing})\n\
+             space origin: ({},{},{})\nencoding: raw\nendian: little\n\n",
+            if float { "float" } else { "uint8" },
+            dims[0],
+            dims[1],
+            dims[2],
+            origin[0],
+            origin[1],
+            origin[2]
+        )
+        .into_bytes();
+        for k in 0..dims[2] {
+            for j in 0..dims[1] {
+                for i in 0..dims[0] {
+                    let v = value(i, j, k);
+                    if float {
+                        bytes.extend_from_slice(&(v as f32).to_le_bytes());
+                    } else {
+                        bytes.push(v as u8);
+                    }
+                }
+            }
+        }
+        std::fs::write(path, bytes).expect("writing the test NRRD");
+    }
+
+    pub(crate) fn import(input: &Path, store: &Path) -> Arc<dyn VolumeSource> {
+        let opened = strata_storage::readers::open_source(input, &Default::default())
+            .expect("reading the test NRRD");
+        strata_storage::import::import_source(opened, store, &Default::default())
+            .expect("importing the test NRRD");
+        Arc::new(strata_storage::Store::open(store).expect("opening the overlay store"))
+    }
+
+    /// The label test volume: stripes of labels 0..=4 whose boundaries cross at odd places,
+    /// on a 40³ grid of 10 mm voxels (two octree levels) shifted against the primary's.
+    pub(crate) fn label_of(i: u32, j: u32, k: u32) -> f64 {
+        ((i / 5 + 2 * (j / 7) + k / 9) % 5) as f64
+    }
+    pub(crate) const LABEL_DIMS: [u32; 3] = [40, 40, 40];
+    pub(crate) const LABEL_SPACING: f64 = 10.0;
+    pub(crate) const LABEL_ORIGIN: [f64; 3] = [-187.0, -203.0, -195.0];
+
+    fn grids(
+        primary_store: &dyn VolumeSource,
+        overlay: &dyn VolumeSource,
+        kind: OverlayKind,
+    ) -> OverlayGrids {
+        OverlayGrids {
+            primary: primary_store.header().geometry.clone(),
+            primary_level_dims: primary_store.layout().level_dims.clone(),
+            overlay: overlay.header().geometry.clone(),
+            overlay_mapping: overlay.header().value_mapping.mapping,
+            kind,
+        }
+    }
+
+    fn primary(dir: &Path) -> Arc<dyn VolumeSource> {
+        let path = dir.join("primary.strata");
+        Phantom::cube(48)
+            .write_store(&path, &Default::default())
+            .expect("phantom store");
+        Arc::new(strata_storage::Store::open(&path).expect("open"))
+    }
+
+    /// Every pixel of an axial slice of the primary, at level 0 and at the coarser level 1,
+    /// carries exactly the label of the overlay voxel nearest to its patient position
+    /// (computed here in f64 from the label function, not from the store), and only labels
+    /// that exist: the store's mean coarse levels never leak in.
+    #[test]
+    fn labels_are_the_nearest_level_zero_label_at_each_pixels_patient_position() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let primary = primary(dir.path());
+        let nrrd = dir.path().join("labels.nrrd");
+        write_nrrd(
+            &nrrd,
+            LABEL_DIMS,
+            LABEL_SPACING,
+            LABEL_ORIGIN,
+            false,
+            label_of,
+        );
+        let overlay = import(&nrrd, &dir.path().join("labels.strata"));
+        assert!(
+            overlay.layout().level_count() > 1,
+            "the overlay has coarse levels to avoid"
+        );
+        let grids = grids(primary.as_ref(), overlay.as_ref(), OverlayKind::Labels);
+        let frame = SliceFrame::for_view(SliceView::Axial, &grids.primary);
+        let mut cache = BrickCache::new(8 << 20);
+        let mut compared = 0;
+        for (level, position) in [(0u8, 20.0), (1, 31.0)] {
+            let request = SliceRequest {
+                view: SliceView::Axial,
+                frame,
+                position,
+                level,
+            };
+            let dims = grids.primary_level_dims[level as usize];
+            let (w, h) = (
+                dims[frame.across_axis] as usize,
+                dims[frame.down_axis] as usize,
+            );
+            let slice = sample_slice(overlay.as_ref(), &mut cache, &grids, request, w, h)
+                .expect("sampling");
+            for y in 0..h {
+                for x in 0..w {
+                    let index = primary_index_of_pixel(&request, &grids.primary_level_dims, x, y);
+                    let patient = grids.primary.patient_from_index(index);
+                    let o = grids.overlay.index_from_patient(patient);
+                    let got = slice.values[y * w + x];
+                    let outside = (0..3).any(|a| o[a] < -0.5 || o[a] >= LABEL_DIMS[a] as f64 - 0.5);
+                    // A centre exactly between two overlay voxels may round either way.
+                    let tie = (0..3).any(|a| ((o[a] - o[a].floor()) - 0.5).abs() < 1e-6);
+                    if tie {
+                        continue;
+                    }
+                    if outside {
+                        assert!(
+                            got.is_nan(),
+                            "pixel ({x},{y}) outside the overlay has {got}"
+                        );
+                        continue;
+                    }
+                    let n = o.round();
+                    let expected = label_of(n.x as u32, n.y as u32, n.z as u32);
+                    assert_eq!(
+                        got as f64, expected,
+                        "level {level} pixel ({x},{y}) at {o:?}"
+                    );
+                    compared += 1;
+                }
+            }
+        }
+        assert!(compared > 1000, "only {compared} pixels compared");
+    }
+
+    /// A continuous overlay samples trilinearly: for a linear field, trilinear interpolation
+    /// is exact, so inside the grid every pixel must equal the field at its overlay index up to
+    /// the import's u16 quantisation (the store reports its bound).
+    #[test]
+    fn a_continuous_overlay_matches_the_trilinear_reference() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let primary = primary(dir.path());
+        let field = |i: f64, j: f64, k: f64| 3.0 * i + 5.0 * j - 2.0 * k + 40.25;
+        let nrrd = dir.path().join("pet.nrrd");
+        write_nrrd(
+            &nrrd,
+            LABEL_DIMS,
+            LABEL_SPACING,
+            LABEL_ORIGIN,
+            true,
+            |i, j, k| field(i as f64, j as f64, k as f64),
+        );
+        let overlay = import(&nrrd, &dir.path().join("pet.strata"));
+        let bound = overlay.header().quantization_error;
+        let grids = grids(primary.as_ref(), overlay.as_ref(), OverlayKind::Continuous);
+        let frame = SliceFrame::for_view(SliceView::Coronal, &grids.primary);
+        let request = SliceRequest {
+            view: SliceView::Coronal,
+            frame,
+            position: 22.0,
+            level: 0,
+        };
+        let dims = grids.primary_level_dims[0];
+        let (w, h) = (
+            dims[frame.across_axis] as usize,
+            dims[frame.down_axis] as usize,
+        );
+        let mut cache = BrickCache::new(8 << 20);
+        let slice =
+            sample_slice(overlay.as_ref(), &mut cache, &grids, request, w, h).expect("sampling");
+        let mut compared = 0;
+        for y in 0..h {
+            for x in 0..w {
+                let index = primary_index_of_pixel(&request, &grids.primary_level_dims, x, y);
+                let o = grids
+                    .overlay
+                    .index_from_patient(grids.primary.patient_from_index(index));
+                // Interior only: at the edges the sampler clamps (no extrapolation).
+                if (0..3).any(|a| o[a] < 0.0 || o[a] > LABEL_DIMS[a] as f64 - 1.0) {
+                    continue;
+                }
+                let expected = field(o.x, o.y, o.z);
+                let got = slice.values[y * w + x] as f64;
+                // Quantisation of each corner (bound) plus f32 storage of the result.
+                let tolerance = bound + 1e-6 * expected.abs() + 1e-4;
+                assert!(
+                    (got - expected).abs() <= tolerance,
+                    "pixel ({x},{y}): {got} vs {expected} (±{tolerance})"
+                );
+                compared += 1;
+            }
+        }
+        assert!(compared > 500, "only {compared} pixels compared");
+    }
+}
