@@ -1,6 +1,9 @@
 //! The level-2 cache of decompressed bricks in system memory (octree paper §4): LRU within a
 //! byte budget, so recently used bricks come back without touching the store. Owned by the
 //! frame loop; fetch workers hand bricks over through a channel.
+//!
+//! The budget counts sled's own cache for format 1-2 stores, and prefetch guesses never evict
+//! demanded bricks. Its GPU counterpart is `gpu_slots.rs` (slot LRU, the root pinned).
 
 use std::collections::BTreeMap;
 

@@ -1,5 +1,10 @@
 //! A fixed cut of a store held in memory: the bricks a page table references, read (and
 //! checksum-verified) from storage, served to the renderer through [`BrickSource`].
+//!
+//! `GpuCut` is the in-core baseline of tests and `strata flythrough`: its cache holds the whole
+//! cut, or refuses one over a given budget before anything is read (`check_cut_fits`: bricks ×
+//! bytes against `--gpu-mib` of `render --up-front` and `bench timecritical`, or the 3D texture
+//! limit).
 
 use std::collections::HashMap;
 

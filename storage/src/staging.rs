@@ -1,4 +1,9 @@
 //! Streaming decompression into a temporary raw file, so compressed inputs never sit in memory.
+//!
+//! Compressed inputs are read to their end, so gzip's CRC-32 and length and zlib's Adler-32 are
+//! checked. Free space is checked before writing; the staging file is locked by its owner and
+//! removed on Ctrl-C/SIGTERM (the binary's handler) and, after SIGKILL, by the next run (a dead
+//! owner no longer holds the lock).
 
 use std::io::{BufWriter, Read, Write};
 use std::path::{Path, PathBuf};

@@ -1,5 +1,10 @@
 //! What the viewer remembers between runs (eframe persistence): layout, focused view, render
 //! and interaction settings, the screenshot folder, measurements per store.
+//!
+//! Every field is `#[serde(default)]`, so older files load, and values from a damaged file are
+//! clamped. `render_lighting` is the one place the 3D view's `RenderSettings` lighting is built from
+//! `LightPrefs` (effects turn shading on; none for MIP or the adaptive pass; cache shadows never
+//! with the headlight).
 
 use std::path::PathBuf;
 

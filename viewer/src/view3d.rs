@@ -1,6 +1,10 @@
 //! The 3D view: its camera and mouse handling (orbit: left drag; pan: middle or shift+left;
 //! zoom: wheel; TF shift/widen: right drag), the six standard views, the render request it
 //! sends, the frame it shows, the slice-plane outlines and the orientation marker.
+//!
+//! Picking, outlines, measurements, the crop box and the orientation marker are drawn with the
+//! shown frame's camera (`View3d::overlay_camera`), not the live orbit's: the frame on screen may
+//! be a request or two behind the mouse.
 
 use std::time::{Duration, Instant};
 

@@ -1,6 +1,12 @@
 //! DICOM: a folder holding one or more series of single-frame slices, or one file (classic or
 //! enhanced multi-frame). Headers are read without pixel data first; the pixels are then decoded
 //! one slice (frame) at a time, in patient order, into a staging file.
+//!
+//! Slice spacing from the positions, then GridFrameOffsetVector, SpacingBetweenSlices,
+//! SliceThickness; PixelSpacing falls back to ImagerPixelSpacing, then 1 mm. Anything assumed is
+//! written into the description, as are lossy sources; RT Dose is scaled. Compressed pixel data
+//! goes through dicom-pixeldata (RLE, JPEG 8-bit and lossless, JPEG 2000 via openjp2, JPEG-LS
+//! via CharLS built through `cc` by the patched `vendor/charls-sys`; 12-bit JPEG: `jpeg12.rs`).
 
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
