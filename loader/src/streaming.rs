@@ -5,6 +5,15 @@
 //! open and stays pinned, so every frame draws the whole volume and refines over frames.
 //! Selecting the cut and building the page table run on the selection thread (cut_worker.rs);
 //! the frame applies a finished selection: its uploads and the table's changed spans.
+//!
+//! Selection timing (`StreamingConfig::selection`): `Background` (viewer, flythrough: apply the
+//! newest finished selection, never wait), `EachFrame` (tests, headless commands: wait for this
+//! view's), `EveryNthFrame(n)` (tests: the background timing at a fast GPU's cadence,
+//! deterministic). The upload budget is per frame: a selection uploads `uploads_per_frame` × the
+//! frames between the last two applied selections (at most 16).
+//! `FrameStats::cut_changes_while_still_total` counts LOD flicker. Traversal: flat unless its per-page buffers exceed the binding limit or the
+//! grid has more than `flat_table_max_page_cells` (2^18) page cells; then the octree, with
+//! `traversal_note` saying why.
 
 use std::collections::VecDeque;
 

@@ -11,6 +11,14 @@
 //! Residency is the streaming loader: the root is resident before the first frame, finer bricks
 //! stream in over frames within the GPU and CPU budgets, and the controller's lod factor is
 //! the loader's quality factor. Frames keep coming while the loader has not converged.
+//!
+//! **At rest it renders nothing**: `RestGovernor` paces frames that change nothing (same request,
+//! no upload, same page table: 30 → 240 ms apart while reads are pending) and after 6 of them with
+//! no read pending counts the cut as settled (still refinement, then the idle wait) even if the
+//! loader never calls it converged; the idle wait wakes the UI only when the status changes
+//! (`strata-bench idle` measures it). Moving frames under the controller drop the costly lighting
+//! (`interactive_lighting`: occlusion off, exact shadows read the light cache); once the still
+//! frame is final and an effect is on, `ProgressiveRun` draws the preference's jittered frames.
 
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
