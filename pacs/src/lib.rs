@@ -619,6 +619,34 @@ impl Client {
             .block_on(self.inner.instances_of(study_uid, series_uid))
     }
 
+    /// The series' middle instance by InstanceNumber (ties and instances without one by UID):
+    /// the slice a thumbnail shows. `None` for an empty series.
+    pub fn middle_instance(
+        &self,
+        study_uid: &str,
+        series_uid: &str,
+    ) -> Result<Option<String>, PacsError> {
+        self.runtime
+            .block_on(self.inner.middle_instance(study_uid, series_uid))
+    }
+
+    /// Retrieves one instance into `dir` as `SOPInstanceUID.dcm` (checked to be that instance
+    /// of that series); its path.
+    pub fn retrieve_instance(
+        &self,
+        study_uid: &str,
+        series_uid: &str,
+        sop_uid: &str,
+        dir: &Path,
+    ) -> Result<PathBuf, PacsError> {
+        self.inner.check_uid(sop_uid)?;
+        self.runtime.block_on(
+            self.inner
+                .fetch_instance(study_uid, series_uid, sop_uid, dir, None),
+        )?;
+        Ok(dir.join(format!("{sop_uid}.dcm")))
+    }
+
     /// Retrieves a series into `dir` as `SOPInstanceUID.dcm` files, fetching only those not
     /// there yet. `progress` sees every instance done; `cancel` stops between chunks.
     pub fn retrieve_series(
@@ -957,6 +985,33 @@ impl Inner {
         uids.sort();
         uids.dedup();
         Ok(uids)
+    }
+
+    async fn middle_instance(
+        &self,
+        study_uid: &str,
+        series_uid: &str,
+    ) -> Result<Option<String>, PacsError> {
+        self.check_uid(study_uid)?;
+        self.check_uid(series_uid)?;
+        let items = self
+            .qido(
+                "instance list",
+                &format!("/studies/{study_uid}/series/{series_uid}/instances"),
+            )
+            .await?;
+        let mut numbered = Vec::with_capacity(items.len());
+        for o in &items {
+            let Some(uid) = json_string(o, "00080018") else {
+                continue;
+            };
+            self.check_uid(&uid)?;
+            numbered.push((json_int(o, "00200013").unwrap_or(i64::MAX), uid));
+        }
+        numbered.sort();
+        numbered.dedup();
+        let middle = numbered.len() / 2;
+        Ok(numbered.into_iter().nth(middle).map(|(_, uid)| uid))
     }
 
     async fn retrieve_series(

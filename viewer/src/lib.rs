@@ -42,6 +42,7 @@ pub mod overlay;
 pub mod overlay_3d;
 pub mod pacs_client;
 pub mod pacs_dialog;
+pub mod pacs_thumbnail;
 pub mod panels;
 pub mod preferences;
 pub mod sample;

@@ -9,6 +9,7 @@
 //! the server as its redacted URL or its name: credentials come from the servers file only and
 //! are never shown.
 
+use std::collections::HashMap;
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 
@@ -16,6 +17,7 @@ use egui::{Color32, RichText};
 use strata_pacs::{Series, ServersFile, Study, StudyQuery};
 
 use super::jobs::{PacsSeries, PrepareJob, VolumeSource};
+use super::pacs_thumbnail::Thumbnail;
 use super::sync::{lock_ignoring_poison, Repaint};
 
 /// The study search form, as typed.
@@ -95,6 +97,12 @@ pub struct PacsModel {
     /// The last search's problem, naming the server.
     pub error: Option<String>,
     pending: Option<Pending>,
+    /// The listed series' thumbnails by series UID, as they arrive (an error: why none).
+    pub thumbnails: HashMap<String, Result<Thumbnail, String>>,
+    /// Where the thumbnail thread of the current series list puts them; a new list replaces
+    /// it, and an older thread's thumbnails then go nowhere.
+    arriving_thumbnails: Arc<Mutex<HashMap<String, Result<Thumbnail, String>>>>,
+    repaint: Option<Repaint>,
 }
 
 impl PacsModel {
@@ -126,6 +134,9 @@ impl PacsModel {
             selected_series: None,
             error,
             pending: None,
+            thumbnails: HashMap::new(),
+            arriving_thumbnails: Arc::default(),
+            repaint: None,
         }
     }
 
@@ -171,6 +182,7 @@ impl PacsModel {
         self.series.clear();
         self.selected_series = None;
         self.error = None;
+        self.repaint = Some(repaint.clone());
         self.start(
             "listing series",
             "strata-pacs-series",
@@ -236,14 +248,56 @@ impl PacsModel {
         }
     }
 
-    /// Takes a finished search's answer; true when something changed.
+    /// Fetches the listed series' thumbnails one after another on a named thread (a PACS is
+    /// asked for one instance at a time; the list stays usable meanwhile).
+    fn start_thumbnails(&mut self) {
+        self.thumbnails.clear();
+        self.arriving_thumbnails = Arc::default();
+        let (Some(study), Some(repaint)) = (
+            self.studies.get(self.selected_study.unwrap_or(usize::MAX)),
+            self.repaint.clone(),
+        ) else {
+            return;
+        };
+        let study_uid = study.study_uid.clone();
+        let series: Vec<String> = self.series.iter().map(|s| s.series_uid.clone()).collect();
+        let server = self.server.trim().to_string();
+        let args = crate::pacs_client::ServerArgs::from_servers_file(self.servers_file.clone());
+        let slot = self.arriving_thumbnails.clone();
+        let _ = std::thread::Builder::new()
+            .name("strata-pacs-thumbnails".into())
+            .spawn(move || {
+                let client = crate::pacs_client::connect(&server, &args)
+                    .map_err(|e| crate::error_report::describe(&e));
+                for uid in series {
+                    // A newer list took over: stop asking the server.
+                    if Arc::strong_count(&slot) == 1 {
+                        return;
+                    }
+                    let thumbnail = match &client {
+                        Ok(client) => super::pacs_thumbnail::fetch(client, &study_uid, &uid),
+                        Err(e) => Err(e.clone()),
+                    };
+                    lock_ignoring_poison(&slot).insert(uid, thumbnail);
+                    repaint();
+                }
+            });
+    }
+
+    /// Takes a finished search's answer and the thumbnails that arrived; true when something
+    /// changed.
     pub fn poll(&mut self) -> bool {
+        let arrived: Vec<_> = lock_ignoring_poison(&self.arriving_thumbnails)
+            .drain()
+            .collect();
+        let thumbnails_came = !arrived.is_empty();
+        self.thumbnails.extend(arrived);
         let Some(answer) = self
             .pending
             .as_ref()
             .and_then(|p| lock_ignoring_poison(&p.answer).take())
         else {
-            return false;
+            return thumbnails_came;
         };
         self.pending = None;
         match answer {
@@ -251,6 +305,7 @@ impl PacsModel {
             Answer::Series(Ok(series)) => {
                 self.selected_series = (series.len() == 1).then_some(0);
                 self.series = series;
+                self.start_thumbnails();
             }
             Answer::Studies(Err(e)) | Answer::Series(Err(e)) => self.error = Some(e),
         }
@@ -299,6 +354,41 @@ fn series_label(study: &Study, series: &Series) -> String {
 pub struct PacsDialog {
     pub open: bool,
     pub model: PacsModel,
+    /// The thumbnails' textures by instance UID (uploaded once each).
+    thumbnail_textures: HashMap<String, egui::TextureHandle>,
+}
+
+/// A series' thumbnail in its row: the image once it arrived, a spinner until then, a dash
+/// (with the reason on hover) when there is none.
+fn thumbnail_cell(
+    ui: &mut egui::Ui,
+    textures: &mut HashMap<String, egui::TextureHandle>,
+    thumbnail: Option<&Result<Thumbnail, String>>,
+) {
+    const SHOWN: f32 = super::pacs_thumbnail::THUMBNAIL_SIDE as f32;
+    match thumbnail {
+        None => {
+            ui.add_sized([SHOWN, SHOWN], egui::Spinner::new());
+        }
+        Some(Err(e)) => {
+            ui.add_sized([SHOWN, SHOWN], egui::Label::new("—"))
+                .on_hover_text(format!("no thumbnail: {e}"));
+        }
+        Some(Ok(t)) => {
+            let texture = textures.entry(t.instance_uid.clone()).or_insert_with(|| {
+                ui.ctx().load_texture(
+                    format!("pacs-thumbnail-{}", t.instance_uid),
+                    egui::ColorImage::from_gray(t.size, &t.gray),
+                    egui::TextureOptions::LINEAR,
+                )
+            });
+            // Fitted into a square cell, aspect kept.
+            let scale = SHOWN / t.size[0].max(t.size[1]).max(1) as f32;
+            let size = egui::vec2(t.size[0] as f32 * scale, t.size[1] as f32 * scale);
+            ui.add_sized([SHOWN, SHOWN], egui::Image::new((texture.id(), size)))
+                .on_hover_text(format!("instance {}", t.instance_uid));
+        }
+    }
 }
 
 fn labelled_text(ui: &mut egui::Ui, label: &str, text: &mut String, width: f32, hint: &str) {
@@ -316,6 +406,7 @@ impl PacsDialog {
         PacsDialog {
             open: false,
             model: PacsModel::new(servers_file),
+            thumbnail_textures: HashMap::new(),
         }
     }
 
@@ -339,6 +430,7 @@ impl PacsDialog {
         let mut open = true;
         let mut start = None;
         let model = &mut self.model;
+        let textures = &mut self.thumbnail_textures;
         egui::Window::new("Open from PACS")
             .open(&mut open)
             .default_width(620.0)
@@ -447,11 +539,16 @@ impl PacsDialog {
                             egui::Grid::new("pacs-series-grid")
                                 .striped(true)
                                 .show(ui, |ui| {
-                                    for h in ["Modality", "Description", "Instances"] {
+                                    for h in ["", "Modality", "Description", "Instances"] {
                                         ui.strong(h);
                                     }
                                     ui.end_row();
                                     for (i, s) in model.series.iter().enumerate() {
+                                        thumbnail_cell(
+                                            ui,
+                                            textures,
+                                            model.thumbnails.get(&s.series_uid),
+                                        );
                                         let [modality, description, count] = series_row(s);
                                         let selected = model.selected_series == Some(i);
                                         if ui.selectable_label(selected, modality).clicked() {
@@ -633,6 +730,48 @@ mod tests {
             assert_eq!((modality.as_str(), count), ("CT", CT_SLICES.to_string()));
             let request = model.open_request().expect("the only series is selected");
             assert_eq!(request.series_uid, CT_SERIES);
+            // The series' thumbnail: its middle instance by number, read as the importer reads
+            // it (the fixture's slices are 40 columns by 48 rows: not enlarged).
+            let start = Instant::now();
+            while !model.thumbnails.contains_key(CT_SERIES) {
+                assert!(start.elapsed() < WAIT, "no thumbnail");
+                std::thread::sleep(Duration::from_millis(20));
+                model.poll();
+            }
+            let thumbnail = model.thumbnails[CT_SERIES].clone().expect("a thumbnail");
+            assert_eq!(thumbnail.size, [40, 48]);
+            let base = strata_pacs::normalise_base_url(&orthanc.url).unwrap();
+            let client = strata_pacs::Client::new(
+                &base,
+                strata_pacs::Auth::None,
+                None,
+                strata_pacs::ClientOptions::default(),
+            )
+            .unwrap();
+            let middle = client
+                .middle_instance(CT_STUDY, CT_SERIES)
+                .unwrap()
+                .unwrap();
+            assert_eq!(thumbnail.instance_uid, middle);
+            let slice = work.path().join("middle");
+            std::fs::create_dir_all(&slice).unwrap();
+            let file = client
+                .retrieve_instance(CT_STUDY, CT_SERIES, &middle, &slice)
+                .unwrap();
+            let opened = open_source(&file, &ReadOptions::default()).unwrap();
+            let mut values = Vec::new();
+            opened.data.read_slice_f64(0, &mut values);
+            let want = crate::pacs_thumbnail::thumbnail_from_slice(
+                &values,
+                [40, 48],
+                crate::pacs_thumbnail::THUMBNAIL_SIDE,
+                middle.clone(),
+            );
+            assert_eq!(thumbnail, want);
+            assert!(
+                thumbnail.gray.iter().any(|&g| g != thumbnail.gray[0]),
+                "a phantom slice is not flat"
+            );
 
             // Open: retrieved and imported by the background job, equal to a folder import.
             let stores = work.path().join("stores");
