@@ -448,8 +448,9 @@ pub(crate) fn read_index(store: &Path) -> Result<Index> {
 
 /// The packs of a complete store, mapped, and its entries.
 pub(crate) struct Packs {
-    /// One map per pack, exactly its indexed length (`None` for an empty pack).
-    maps: Vec<Option<memmap2::Mmap>>,
+    /// One map per pack, exactly its indexed length (`None` for an empty pack); shared with
+    /// the [`MappedRecord`]s handed out.
+    maps: Vec<Option<Arc<memmap2::Mmap>>>,
     entries: Vec<Entry>,
 }
 
@@ -502,7 +503,7 @@ impl Packs {
             // complete store are never truncated or rewritten (see the module's documentation).
             let map = unsafe { memmap2::MmapOptions::new().len(len).map(&file) }
                 .map_err(|e| StorageError::io(&path, e))?;
-            maps.push(Some(map));
+            maps.push(Some(Arc::new(map)));
         }
         Ok(Packs { maps, entries })
     }
@@ -527,6 +528,23 @@ impl Packs {
             .binary_search_by(|e| (e.frame, e.key).cmp(&(frame, key)))
             .ok()?;
         self.slice(&self.entries[i])
+    }
+
+    /// The record of `id` in frame `frame` as a [`MappedRecord`]: no copy, and it stays valid
+    /// after this `Packs` is dropped (it holds its pack's map).
+    pub fn mapped(&self, frame: u32, id: BrickId) -> Option<MappedRecord> {
+        let key = brick_key(id);
+        let i = self
+            .entries
+            .binary_search_by(|e| (e.frame, e.key).cmp(&(frame, key)))
+            .ok()?;
+        let e = &self.entries[i];
+        let len = self.slice(e)?.len();
+        Some(MappedRecord {
+            map: self.maps.get(e.pack as usize)?.as_ref()?.clone(),
+            start: usize::try_from(e.offset).ok()?,
+            len,
+        })
     }
 
     pub fn slice(&self, e: &Entry) -> Option<&[u8]> {
@@ -692,4 +710,20 @@ pub(crate) fn append_versions(
     write_synced(&staged, &bytes)?;
     std::fs::rename(&staged, &target).map_err(|e| StorageError::io(&target, e))?;
     sync_dir(store)
+}
+
+/// One record as a slice of its pack's map that owns a share of the map: a server hands it to
+/// `bytes::Bytes::from_owner` and sends it without a copy. The bounds were checked when it was
+/// made (see [`Packs::mapped`]).
+#[derive(Clone)]
+pub struct MappedRecord {
+    map: Arc<memmap2::Mmap>,
+    start: usize,
+    len: usize,
+}
+
+impl AsRef<[u8]> for MappedRecord {
+    fn as_ref(&self) -> &[u8] {
+        &self.map[self.start..self.start + self.len]
+    }
 }

@@ -19,6 +19,7 @@ use crate::error::{Result, StorageError};
 use crate::histogram::Histogram;
 use crate::lock::{LockPurpose, SharedStoreLock, StoreLock, LOCK_FILE};
 use crate::octree::{BrickId, OctreeLayout};
+pub use crate::packs::MappedRecord;
 use crate::packs::{PackWriter, Packs};
 
 // The document types live in `crate::header` (pure, also built for a remote viewer); their
@@ -420,6 +421,16 @@ impl Store {
                 )
             }
             Backend::Sled { .. } => brick_error(&self.path, id, e),
+        }
+    }
+
+    /// The stored record of `id` (frame 0) as a share of its pack's map, for a server to send
+    /// without a copy; `None` where it is not a mapped record (a format 1-2 store, a constant
+    /// node without one): read it with [`Store::read_brick_record`] then.
+    pub fn brick_record_mapped(&self, id: BrickId) -> Option<MappedRecord> {
+        match &self.backend {
+            Backend::Packs { packs, .. } => packs.mapped(0, id),
+            Backend::Sled { .. } => None,
         }
     }
 
