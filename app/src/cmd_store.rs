@@ -16,6 +16,12 @@ pub enum StoreCommand {
         /// The store folder.
         store: PathBuf,
     },
+    /// Rewrite a format-3 store without the superseded versions of its brick records,
+    /// atomically: the compacted copy is verified before it replaces the store.
+    Compact {
+        /// The store folder.
+        store: PathBuf,
+    },
     /// List the stores of the data folder: size, format, codec, source, complete or not.
     List(FolderArg),
     /// Remove incomplete, damaged, orphaned (source gone) and old-format (source still there)
@@ -57,6 +63,18 @@ pub fn run(cmd: StoreCommand) -> Result<()> {
                 "{}: now format 3 ({} brick records verified)",
                 store.display(),
                 report.records_read
+            );
+            Ok(())
+        }
+        StoreCommand::Compact { store } => {
+            let report = strata_storage::store::compact_store(&store)
+                .with_context(|| format!("compaction of {} failed", store.display()))?;
+            println!(
+                "{}: {} brick records kept, packs {} -> {}",
+                store.display(),
+                report.records,
+                mb(report.bytes_before),
+                mb(report.bytes_after)
             );
             Ok(())
         }

@@ -1130,21 +1130,28 @@ async fn brick(
         std::future::pending::<()>().await;
     }
     let reader = store.clone();
-    let record = match tokio::task::spawn_blocking(move || reader.store.read_brick_record(id)).await
-    {
-        Ok(Ok(record)) => record,
-        Ok(Err(e)) => {
-            tracing::error!("strata serve: {e}");
-            return (StatusCode::INTERNAL_SERVER_ERROR, format!("{e}\n")).into_response();
-        }
-        Err(e) => {
-            return (
-                StatusCode::INTERNAL_SERVER_ERROR,
-                format!("read failed: {e}\n"),
-            )
-                .into_response()
-        }
-    };
+    // A format-3 record is a share of its pack's map, sent without a copy (the map lives as
+    // long as the body); other stores' records are read out.
+    let record =
+        match tokio::task::spawn_blocking(move || match reader.store.brick_record_mapped(id) {
+            Some(mapped) => Ok(bytes::Bytes::from_owner(mapped)),
+            None => reader.store.read_brick_record(id).map(bytes::Bytes::from),
+        })
+        .await
+        {
+            Ok(Ok(record)) => record,
+            Ok(Err(e)) => {
+                tracing::error!("strata serve: {e}");
+                return (StatusCode::INTERNAL_SERVER_ERROR, format!("{e}\n")).into_response();
+            }
+            Err(e) => {
+                return (
+                    StatusCode::INTERNAL_SERVER_ERROR,
+                    format!("read failed: {e}\n"),
+                )
+                    .into_response()
+            }
+        };
     let checksum = match verify_record(id, &record) {
         Ok(c) => c,
         Err(e) => {
@@ -1188,8 +1195,10 @@ async fn brick(
             .unwrap_or_else(|p| p.into_inner());
         if let Some((_, left)) = corrupt.as_mut().filter(|(t, n)| *t == id && *n > 0) {
             *left -= 1;
-            let at = body.len() - 1;
-            body[at] ^= 0x40;
+            let mut flipped = body.to_vec();
+            let at = flipped.len() - 1;
+            flipped[at] ^= 0x40;
+            body = bytes::Bytes::from(flipped);
             state.counters.corrupted.fetch_add(1, Ordering::Relaxed);
             tracing::warn!("strata serve: test hook flipped a byte of brick {id:?} in transit");
         }
@@ -1211,7 +1220,7 @@ async fn brick(
     let builder = builder.header(header::CONTENT_TYPE, "application/octet-stream");
     let response = match range {
         Some((a, b)) => {
-            let part = body[a as usize..=b as usize].to_vec();
+            let part = body.slice(a as usize..=b as usize);
             state
                 .counters
                 .bytes

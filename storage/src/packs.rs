@@ -448,8 +448,9 @@ pub(crate) fn read_index(store: &Path) -> Result<Index> {
 
 /// The packs of a complete store, mapped, and its entries.
 pub(crate) struct Packs {
-    /// One map per pack, exactly its indexed length (`None` for an empty pack).
-    maps: Vec<Option<memmap2::Mmap>>,
+    /// One map per pack, exactly its indexed length (`None` for an empty pack); shared with
+    /// the [`MappedRecord`]s handed out.
+    maps: Vec<Option<Arc<memmap2::Mmap>>>,
     entries: Vec<Entry>,
 }
 
@@ -502,13 +503,21 @@ impl Packs {
             // complete store are never truncated or rewritten (see the module's documentation).
             let map = unsafe { memmap2::MmapOptions::new().len(len).map(&file) }
                 .map_err(|e| StorageError::io(&path, e))?;
-            maps.push(Some(map));
+            maps.push(Some(Arc::new(map)));
         }
         Ok(Packs { maps, entries })
     }
 
     pub fn entries(&self) -> &[Entry] {
         &self.entries
+    }
+
+    /// Bytes of all packs, as the index gives their lengths (superseded records included).
+    pub fn total_bytes(&self) -> u64 {
+        self.maps
+            .iter()
+            .map(|m| m.as_ref().map_or(0, |m| m.len() as u64))
+            .sum()
     }
 
     /// The record of `id` in frame `frame`: a slice of its pack's map (checked at open).
@@ -521,9 +530,200 @@ impl Packs {
         self.slice(&self.entries[i])
     }
 
+    /// The record of `id` in frame `frame` as a [`MappedRecord`]: no copy, and it stays valid
+    /// after this `Packs` is dropped (it holds its pack's map).
+    pub fn mapped(&self, frame: u32, id: BrickId) -> Option<MappedRecord> {
+        let key = brick_key(id);
+        let i = self
+            .entries
+            .binary_search_by(|e| (e.frame, e.key).cmp(&(frame, key)))
+            .ok()?;
+        let e = &self.entries[i];
+        let len = self.slice(e)?.len();
+        Some(MappedRecord {
+            map: self.maps.get(e.pack as usize)?.as_ref()?.clone(),
+            start: usize::try_from(e.offset).ok()?,
+            len,
+        })
+    }
+
     pub fn slice(&self, e: &Entry) -> Option<&[u8]> {
         let map = self.maps.get(e.pack as usize)?.as_ref()?;
         let start = usize::try_from(e.offset).ok()?;
         map.get(start..start.checked_add(e.len as usize)?)
+    }
+}
+
+/// The lock file that writers of new record versions into a complete store hold exclusively
+/// (readers never take it, so they keep reading while a writer appends).
+pub(crate) const WRITE_LOCK_FILE: &str = "strata.write.lock";
+
+/// An exclusive hold on a complete store's [`WRITE_LOCK_FILE`]; released when dropped (and by
+/// the OS when its process dies).
+pub(crate) struct WriteLock {
+    _file: File,
+}
+
+impl WriteLock {
+    pub fn acquire(store: &Path) -> Result<WriteLock> {
+        let path = store.join(WRITE_LOCK_FILE);
+        let file = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .open(&path)
+            .map_err(|e| StorageError::io(&path, e))?;
+        match file.try_lock() {
+            Ok(()) => Ok(WriteLock { _file: file }),
+            Err(std::fs::TryLockError::WouldBlock) => Err(StorageError::InUse {
+                path: store.to_path_buf(),
+                holder: crate::lock::LockHolder {
+                    pid: 0,
+                    purpose: crate::lock::LockPurpose::Import,
+                    url: None,
+                },
+            }),
+            Err(std::fs::TryLockError::Error(e)) => Err(StorageError::io(
+                &path,
+                std::io::Error::new(e.kind(), format!("locking the store for writing: {e}")),
+            )),
+        }
+    }
+}
+
+/// Appends new versions of brick records (frame, id, record) to the complete format-3 store at
+/// `store`, whose index is `index`; the caller holds its [`WriteLock`]. Afterwards the index
+/// points every given brick at its newest record; the older records stay in their packs,
+/// superseded, until a compaction drops them.
+///
+/// **Order of writes, and why a SIGKILL or power loss at any point is safe.**
+/// 1. Pack files numbered at or past the index's pack count are removed: they are the leftovers
+///    of an append killed before its index was renamed in, and no index names them.
+/// 2. The records go to new packs (`create_new`, numbered after the index's last), each
+///    fsync'd, then the packs folder fsync'd. Existing packs are never opened for writing, so a
+///    reader's maps of them stay valid, and the index in place still names only their bytes.
+/// 3. The new index (the old entries with these replaced, the new packs' lengths) is written to
+///    `index.v3.new`, fsync'd, renamed over `index.v3`, and the store folder fsync'd. The rename
+///    is the commit point: before it every reader sees the old versions, after it the new;
+///    either index is whole (checksummed) and names only bytes already on disk.
+///
+/// The marker's `complete` line is never touched: the store is complete throughout. A reader
+/// that opened before the rename keeps its old index and maps (packs only grow by whole new
+/// files and are never truncated); one that opens after sees the new records.
+pub(crate) fn append_versions(
+    store: &Path,
+    index: &Index,
+    records: &[(u32, BrickId, Vec<u8>)],
+    limit: u64,
+) -> Result<()> {
+    use std::io::Write;
+    let dir = store.join(PACKS_DIR);
+    let first_new = u32::try_from(index.pack_lengths.len())
+        .map_err(|_| StorageError::invalid(store, "too many packs"))?;
+    // 1. Leftovers of a killed append.
+    for entry in std::fs::read_dir(&dir).map_err(|e| StorageError::io(&dir, e))? {
+        let entry = entry.map_err(|e| StorageError::io(&dir, e))?;
+        let name = entry.file_name();
+        let number = name
+            .to_str()
+            .and_then(|n| n.strip_prefix("pack-"))
+            .and_then(|n| n.strip_suffix(".pack"))
+            .and_then(|n| n.parse::<u32>().ok());
+        if number.is_some_and(|n| n >= first_new) {
+            let p = entry.path();
+            std::fs::remove_file(&p).map_err(|e| StorageError::io(&p, e))?;
+        }
+    }
+    let _ = std::fs::remove_file(store.join(format!("{INDEX_FILE}.new")));
+    // 2. New packs, fsync'd.
+    let mut lengths = index.pack_lengths.clone();
+    let mut newest: HashMap<(u32, [u8; 13]), Entry> = HashMap::new();
+    let mut current: Option<(u32, std::io::BufWriter<File>, u64)> = None;
+    let close = |pack: u32, writer: std::io::BufWriter<File>| -> Result<()> {
+        let path = pack_path(store, pack);
+        let file = writer
+            .into_inner()
+            .map_err(|e| StorageError::io(&path, e.into_error()))?;
+        file.sync_all().map_err(|e| StorageError::io(&path, e))
+    };
+    for (frame, id, record) in records {
+        let len = u32::try_from(record.len()).map_err(|_| {
+            StorageError::invalid(store, format!("{}: record too large", describe(*id)))
+        })?;
+        if current
+            .as_ref()
+            .is_some_and(|(_, _, end)| *end > 0 && end + u64::from(len) > limit)
+        {
+            if let Some((pack, writer, _)) = current.take() {
+                close(pack, writer)?;
+            }
+        }
+        if current.is_none() {
+            let pack = lengths.len() as u32;
+            let path = pack_path(store, pack);
+            let file = std::fs::OpenOptions::new()
+                .write(true)
+                .create_new(true)
+                .open(&path)
+                .map_err(|e| StorageError::io(&path, e))?;
+            lengths.push(0);
+            current = Some((pack, std::io::BufWriter::new(file), 0));
+        }
+        let Some((pack, writer, end)) = current.as_mut() else {
+            continue;
+        };
+        writer
+            .write_all(record)
+            .map_err(|e| write_error(&pack_path(store, *pack), *id, e))?;
+        let key = brick_key(*id);
+        newest.insert(
+            (*frame, key),
+            Entry {
+                frame: *frame,
+                key,
+                pack: *pack,
+                offset: *end,
+                len,
+            },
+        );
+        *end += u64::from(len);
+        lengths[*pack as usize] = *end;
+    }
+    let Some((pack, writer, _)) = current.take() else {
+        return Ok(());
+    };
+    close(pack, writer)?;
+    sync_dir(&dir)?;
+    // 3. The new index, renamed in.
+    let mut entries: Vec<Entry> = index
+        .entries
+        .iter()
+        .filter(|e| !newest.contains_key(&(e.frame, e.key)))
+        .copied()
+        .collect();
+    entries.extend(newest.into_values());
+    entries.sort_by_key(|e| (e.frame, e.key));
+    let bytes = encode_index(&index.docs, &lengths, &entries);
+    let target = store.join(INDEX_FILE);
+    let staged = store.join(format!("{INDEX_FILE}.new"));
+    write_synced(&staged, &bytes)?;
+    std::fs::rename(&staged, &target).map_err(|e| StorageError::io(&target, e))?;
+    sync_dir(store)
+}
+
+/// One record as a slice of its pack's map that owns a share of the map: a server hands it to
+/// `bytes::Bytes::from_owner` and sends it without a copy. The bounds were checked when it was
+/// made (see [`Packs::mapped`]).
+#[derive(Clone)]
+pub struct MappedRecord {
+    map: Arc<memmap2::Mmap>,
+    start: usize,
+    len: usize,
+}
+
+impl AsRef<[u8]> for MappedRecord {
+    fn as_ref(&self) -> &[u8] {
+        &self.map[self.start..self.start + self.len]
     }
 }

@@ -19,6 +19,7 @@ use crate::error::{Result, StorageError};
 use crate::histogram::Histogram;
 use crate::lock::{LockPurpose, SharedStoreLock, StoreLock, LOCK_FILE};
 use crate::octree::{BrickId, OctreeLayout};
+pub use crate::packs::MappedRecord;
 use crate::packs::{PackWriter, Packs};
 
 // The document types live in `crate::header` (pure, also built for a remote viewer); their
@@ -420,6 +421,16 @@ impl Store {
                 )
             }
             Backend::Sled { .. } => brick_error(&self.path, id, e),
+        }
+    }
+
+    /// The stored record of `id` (frame 0) as a share of its pack's map, for a server to send
+    /// without a copy; `None` where it is not a mapped record (a format 1-2 store, a constant
+    /// node without one): read it with [`Store::read_brick_record`] then.
+    pub fn brick_record_mapped(&self, id: BrickId) -> Option<MappedRecord> {
+        match &self.backend {
+            Backend::Packs { packs, .. } => packs.mapped(0, id),
+            Backend::Sled { .. } => None,
         }
     }
 
@@ -1558,12 +1569,8 @@ pub fn upgrade_store(path: &Path) -> Result<VerifyReport> {
             ),
         });
     }
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .ok_or_else(|| StorageError::invalid(path, "a store path without a name"))?;
-    let staged = path.with_file_name(format!("{name}.upgrading"));
-    let parked = path.with_file_name(format!("{name}.format2-old"));
+    let staged = sibling(path, "upgrading")?;
+    let parked = sibling(path, "format2-old")?;
     if parked.exists() {
         return Err(StorageError::invalid(
             &parked,
@@ -1594,15 +1601,188 @@ pub fn upgrade_store(path: &Path) -> Result<VerifyReport> {
             ),
         ));
     }
-    // The old store is exclusively ours while renamed: a reader that opened it earlier has
-    // been refused (format 2 is held exclusively) and one that comes now finds the new store.
-    let lock = StoreLock::acquire(path, LockPurpose::Import)?;
-    std::fs::rename(path, &parked).map_err(|e| StorageError::io(path, e))?;
-    std::fs::rename(&staged, path).map_err(|e| StorageError::io(&staged, e))?;
+    swap_in(path, &staged, &parked)?;
+    Ok(report)
+}
+
+/// Replaces the store at `path` by the verified, complete store at `staged`: `path` renamed to
+/// `parked`, `staged` to `path`, the parent folder fsync'd, `parked` removed. Taken under the
+/// old store's exclusive lock, so no reader holds it while it moves (one that comes later finds
+/// the new store). A crash before the first rename leaves the old store; between the renames
+/// both stores are kept, complete, under their suffixed names; after the second, the new one.
+fn swap_in(path: &Path, staged: &Path, parked: &Path) -> Result<()> {
+    let lock = match StoreLock::acquire(path, LockPurpose::Import) {
+        Ok(lock) => lock,
+        Err(e) => {
+            // Nothing moved: the verified copy goes, the store stays as it was.
+            let _ = std::fs::remove_dir_all(staged);
+            return Err(e);
+        }
+    };
+    std::fs::rename(path, parked).map_err(|e| StorageError::io(path, e))?;
+    std::fs::rename(staged, path).map_err(|e| StorageError::io(staged, e))?;
     if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
         crate::packs::sync_dir(parent)?;
     }
     drop(lock);
-    std::fs::remove_dir_all(&parked).map_err(|e| StorageError::io(&parked, e))?;
-    Ok(report)
+    std::fs::remove_dir_all(parked).map_err(|e| StorageError::io(parked, e))
+}
+
+/// `NAME.suffix` beside the store at `path`.
+fn sibling(path: &Path, suffix: &str) -> Result<PathBuf> {
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .ok_or_else(|| StorageError::invalid(path, "a store path without a name"))?;
+    Ok(path.with_file_name(format!("{name}.{suffix}")))
+}
+
+/// Checks that `path` is a complete format-3 store and takes, in order, its shared lock (no
+/// import replaces it meanwhile) and its write lock (no other writer of versions).
+fn hold_for_writing(path: &Path) -> Result<(Option<SharedStoreLock>, crate::packs::WriteLock)> {
+    let marker = read_marker(path)?;
+    if marker.format < 3 {
+        return Err(StorageError::Unsupported {
+            path: path.to_path_buf(),
+            message: format!(
+                "a format-{} store: new brick versions and compaction need format 3 (strata store upgrade)",
+                marker.format
+            ),
+        });
+    }
+    let shared = SharedStoreLock::acquire(path)?;
+    if !marker.complete {
+        return Err(StorageError::IncompleteImport {
+            path: path.to_path_buf(),
+        });
+    }
+    let write = crate::packs::WriteLock::acquire(path)?;
+    Ok((shared, write))
+}
+
+/// Appends new versions of brick records to the complete format-3 store at `path` (a label
+/// edit, for one): each record is checked (its checksum, its brick inside the octree), written
+/// to a new pack, and the index replaced atomically so that it points every given brick at the
+/// given record; the superseded records stay in their packs until [`compact_store`].
+///
+/// Writers exclude each other (the store's write lock, [`StorageError::InUse`] for a second
+/// one) and an import cannot replace the store meanwhile; readers are not excluded: one that
+/// opened before keeps reading the old versions, one that opens after reads the new. A SIGKILL
+/// or power loss at any moment leaves the old or the new index, each complete and naming only
+/// fsync'd bytes (the write order is argued in `packs::append_versions`). The skeleton,
+/// histogram and statistics are kept: a record whose values leave its node's range is the
+/// caller's to avoid (verify reports it).
+pub fn append_brick_versions(path: &Path, records: &[(BrickId, Vec<u8>)]) -> Result<()> {
+    let (_shared, _write) = hold_for_writing(path)?;
+    let index = crate::packs::read_index(path)?;
+    let marker = read_marker(path)?;
+    let docs = &index.docs;
+    let (header, ..) = parse_documents(
+        path,
+        &marker,
+        &docs.header,
+        &docs.skeleton,
+        &docs.histogram,
+        &docs.stats,
+    )?;
+    let mut versions = Vec::with_capacity(records.len());
+    for (id, record) in records {
+        if !header.layout.contains(*id) {
+            return Err(StorageError::invalid(
+                path,
+                format!("brick {id:?} is outside the octree"),
+            ));
+        }
+        crate::brick::verify_record(*id, record).map_err(|e| {
+            StorageError::invalid(
+                path,
+                format!(
+                    "a new version of brick level {} at {:?} is not a valid record: {e}",
+                    id.level, id.coords
+                ),
+            )
+        })?;
+        versions.push((0u32, *id, record.clone()));
+    }
+    crate::packs::append_versions(path, &index, &versions, crate::packs::PACK_LIMIT_BYTES)
+}
+
+/// What [`compact_store`] did.
+#[derive(Clone, Debug)]
+pub struct CompactReport {
+    /// Records kept (the newest version of each brick).
+    pub records: u64,
+    /// Pack bytes before and after.
+    pub bytes_before: u64,
+    pub bytes_after: u64,
+}
+
+/// Rewrites the format-3 store at `path` without superseded record versions, atomically: the
+/// newest record of each brick is copied into a new store beside it (`NAME.compacting`), which
+/// is finished (packs fsync'd, index, marker), opened and verified; only then is it swapped in
+/// as [`upgrade_store`] does (the old store renamed to `NAME.compact-old`, the new one to
+/// `path`, the old one removed). A SIGKILL or power loss before the first rename leaves the old
+/// store untouched (and an incomplete `NAME.compacting`, refused as incomplete, which the next
+/// compaction replaces); between the renames both complete stores are kept under their suffixed
+/// names; after the second, the compacted store. The write lock is held throughout, so no new
+/// version is appended to the old store and lost; the swap needs the store free of readers.
+pub fn compact_store(path: &Path) -> Result<CompactReport> {
+    let (shared, write) = hold_for_writing(path)?;
+    let staged = sibling(path, "compacting")?;
+    let parked = sibling(path, "compact-old")?;
+    if parked.exists() {
+        return Err(StorageError::invalid(
+            &parked,
+            "an earlier compaction's old store is still here; remove it or move it away first",
+        ));
+    }
+    let store = Store::open(path)?;
+    let Backend::Packs { packs, .. } = &store.backend else {
+        return Err(StorageError::invalid(path, "not a format-3 store"));
+    };
+    let bytes_before = packs.total_bytes();
+    let writer = StoreWriter::create_with_format(&staged, 0, 3)?;
+    let mut records = 0u64;
+    for e in packs.entries() {
+        let (Some(id), Some(record)) = (e.id(), packs.slice(e)) else {
+            return Err(StorageError::corrupted(
+                path,
+                format!("its index holds a bad entry under key {:02x?}", e.key),
+            ));
+        };
+        writer.put_brick(id, record)?;
+        records += 1;
+    }
+    writer.finish(
+        &store.header,
+        &store.skeleton,
+        &store.histogram,
+        &store.stats,
+    )?;
+    drop(store);
+    let compacted = Store::open(&staged)?;
+    let report = compacted.verify_report(|_, _| {})?;
+    let bytes_after = match &compacted.backend {
+        Backend::Packs { packs, .. } => packs.total_bytes(),
+        Backend::Sled { .. } => 0,
+    };
+    drop(compacted);
+    if !report.problems.is_empty() {
+        let _ = std::fs::remove_dir_all(&staged);
+        return Err(StorageError::corrupted(
+            path,
+            format!(
+                "the compacted copy did not verify (the store is kept as it was): {}",
+                report.problems.join("; ")
+            ),
+        ));
+    }
+    drop(shared);
+    swap_in(path, &staged, &parked)?;
+    drop(write);
+    Ok(CompactReport {
+        records,
+        bytes_before,
+        bytes_after,
+    })
 }
