@@ -18,6 +18,7 @@
 
 pub mod compact_tf;
 pub mod performance;
+pub mod presets;
 pub mod slice_canvas;
 pub mod target_fps;
 pub mod tf_editor;

@@ -124,14 +124,29 @@ pub struct PerformanceFigures<'a> {
     pub working: Option<String>,
 }
 
-/// The mean of the last `n` plot points' values (NaN for none: shown as "NaN ms").
-fn mean_of_last(points: &[[f64; 2]], n: usize) -> f64 {
+/// The mean of the last `n` plot points' values; None for none.
+fn mean_of_last(points: &[[f64; 2]], n: usize) -> Option<f64> {
     let last = &points[points.len().saturating_sub(n)..];
-    if last.is_empty() {
-        f64::NAN
-    } else {
-        last.iter().map(|p| p[1]).sum::<f64>() / last.len() as f64
+    let mean = last.iter().map(|p| p[1]).sum::<f64>() / last.len() as f64;
+    (!last.is_empty() && mean.is_finite()).then_some(mean)
+}
+
+/// "12.3 ms", or "—" until there is a time (issue 47: the page showed "volume frame NaN ms"
+/// before its first timed frame).
+pub fn format_ms(ms: Option<f64>) -> String {
+    match ms {
+        Some(ms) if ms.is_finite() => format!("{ms:.1} ms"),
+        _ => "—".into(),
     }
+}
+
+/// The panel's first line: the mean UI and volume frame times (last 30 and 10 frames).
+pub fn frame_times_line(ui_ms: &[[f64; 2]], volume_ms: &[[f64; 2]]) -> String {
+    format!(
+        "UI frame {} · volume frame {}",
+        format_ms(mean_of_last(ui_ms, 30)),
+        format_ms(mean_of_last(volume_ms, 10)),
+    )
 }
 
 /// Draws the panel's figures.
@@ -143,11 +158,7 @@ pub fn show(ui: &mut egui::Ui, clock: &FrameClock, figures: &PerformanceFigures<
         .map(|s| [s.seconds, s.interval_ms])
         .collect();
     let volume_ms = &figures.volume_frame_ms;
-    ui.label(format!(
-        "UI frame {:.1} ms · volume frame {:.1} ms",
-        mean_of_last(&ui_ms, 30),
-        mean_of_last(volume_ms, 10),
-    ));
+    ui.label(frame_times_line(&ui_ms, volume_ms));
     ui.weak(format!("volume on {}", figures.adapter));
     egui_plot::Plot::new("frame times")
         .height(110.0)
@@ -263,4 +274,21 @@ fn loader_rows(ui: &mut egui::Ui, l: &FrameStats, traversal: Option<&str>) {
     ui.label("Cut changes while still");
     ui.label(l.cut_changes_while_still_total.to_string());
     ui.end_row();
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn frame_times_show_a_dash_until_a_frame_is_timed_never_nan() {
+        assert_eq!(frame_times_line(&[], &[]), "UI frame — · volume frame —");
+        let line = frame_times_line(&[[0.0, 16.0], [0.1, 18.0]], &[]);
+        assert_eq!(line, "UI frame 17.0 ms · volume frame —");
+        let line = frame_times_line(&[[0.0, 16.0]], &[[0.0, 40.0], [0.2, f64::NAN]]);
+        assert_eq!(line, "UI frame 16.0 ms · volume frame —");
+        let line = frame_times_line(&[[0.0, 16.0]], &[[0.0, 40.0], [0.2, 60.0]]);
+        assert_eq!(line, "UI frame 16.0 ms · volume frame 50.0 ms");
+        assert!(!line.contains("NaN"));
+    }
 }

@@ -189,6 +189,23 @@ pub fn paint_orientation_labels(painter: &egui::Painter, view_rect: Rect, labels
     }
 }
 
+/// `rect` moved (not resized) to lie inside `bounds`, as far as it fits: a label near the
+/// view's edge stays readable. A rect larger than `bounds` keeps its left or top edge in.
+pub fn keep_inside(rect: Rect, bounds: Rect) -> Rect {
+    let shift = |lo: f32, hi: f32, min: f32, max: f32| {
+        if lo < min || hi - lo > max - min {
+            min - lo
+        } else if hi > max {
+            max - hi
+        } else {
+            0.0
+        }
+    };
+    let dx = shift(rect.min.x, rect.max.x, bounds.min.x, bounds.max.x);
+    let dy = shift(rect.min.y, rect.max.y, bounds.min.y, bounds.max.y);
+    rect.translate(Vec2::new(dx, dy))
+}
+
 /// The line under the view (W/L, level, the value under the pointer).
 pub fn paint_readout_line(painter: &egui::Painter, view_rect: Rect, text: String) {
     painter.text(
@@ -251,6 +268,19 @@ pub fn colour_map_combo(ui: &mut egui::Ui, colour_map: &mut ColourMap) -> egui::
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_label_past_the_views_edge_moves_back_inside() {
+        let view = Rect::from_min_max(Pos2::new(0.0, 0.0), Pos2::new(200.0, 100.0));
+        let label = |x: f32, y: f32| Rect::from_min_size(Pos2::new(x, y), Vec2::new(60.0, 14.0));
+        assert_eq!(keep_inside(label(10.0, 10.0), view), label(10.0, 10.0));
+        assert_eq!(keep_inside(label(170.0, 10.0), view), label(140.0, 10.0));
+        assert_eq!(keep_inside(label(-5.0, -8.0), view), label(0.0, 0.0));
+        assert_eq!(keep_inside(label(150.0, 95.0), view), label(140.0, 86.0));
+        // Wider than the view: its start stays in.
+        let wide = Rect::from_min_size(Pos2::new(50.0, 0.0), Vec2::new(300.0, 14.0));
+        assert_eq!(keep_inside(wide, view).min.x, 0.0);
+    }
 
     fn inner() -> Rect {
         Rect::from_min_size(Pos2::new(10.0, 20.0), Vec2::new(200.0, 100.0))

@@ -128,6 +128,9 @@ impl Default for ViewState {
 pub struct Fragment {
     pub view: ViewState,
     pub token: Option<String>,
+    /// The link named its preset (`preset=` or `tf=`): the volume's own choice
+    /// ([`crate::presets::initial_preset`]) does not replace it.
+    pub preset_named: bool,
 }
 
 fn mode_name(mode: RenderMode) -> &'static str {
@@ -204,6 +207,7 @@ impl Fragment {
     pub fn parse(fragment: &str) -> Result<Fragment, FragmentError> {
         let mut view = ViewState::default();
         let mut token = None;
+        let mut preset_named = false;
         let text = fragment.strip_prefix('#').unwrap_or(fragment);
         for pair in text.split('&').filter(|p| !p.is_empty()) {
             let (key, raw) = pair.split_once('=').unwrap_or((pair, ""));
@@ -227,8 +231,10 @@ impl Fragment {
                         ));
                     }
                     view.preset = value.into();
+                    preset_named = true;
                 }
                 "tf" => {
+                    preset_named = true;
                     let tf = crate::compact_tf::decode(value, "").map_err(|e| {
                         // The value may be kilobytes: the message quotes its start only.
                         let shown: String = value.chars().take(40).collect();
@@ -350,7 +356,11 @@ impl Fragment {
         if let Some(tf) = view.tf.as_mut() {
             tf.name = edited_name(&view.preset);
         }
-        Ok(Fragment { view, token })
+        Ok(Fragment {
+            view,
+            token,
+            preset_named,
+        })
     }
 }
 

@@ -21,16 +21,13 @@ use super::overlay::Overlay;
 use super::overlay_3d::Overlay3d;
 use super::panels::{FrameClock, PanelContext, Panels};
 pub use super::preferences::{Layout, Preferences, ViewSlot};
-use super::scene::{
-    looks_like_ct, preset_for, start_cursor, ClipSettings, Readout, Scene, VolumeData, Window,
-    PRESETS,
-};
+use super::scene::{preset_for, start_cursor, ClipSettings, Readout, Scene, VolumeData, Window};
 use super::screenshots::{ScreenshotJob, ShotTarget};
 use super::slice_view::SliceViewer;
 use super::slices::SliceReader;
 use super::view3d::{OrbitCamera, StandardView, View3d};
 use super::volume_session::{ScreenshotRequest, VolumeSession, DEFAULT_GPU_BUDGET_BYTES};
-use super::widgets::{NOT_FOR_DIAGNOSIS, WARNING_COLOUR};
+use super::widgets::{elide_middle, NOT_FOR_DIAGNOSIS, WARNING_COLOUR};
 use strata_viewer_ui::tf_editor::TfEditorState;
 
 /// How the viewer was started (command line, tests).
@@ -395,18 +392,15 @@ impl StrataApp {
         );
         let info = session.info().clone();
         let header = &info.header;
-        let is_ct = looks_like_ct(
-            &header.modality,
-            &header.value_mapping.unit,
-            info.physical_range,
-        );
+        let scan = strata_viewer_ui::presets::ScanValues::of(header);
+        let is_ct = scan.is_ct();
         let asked = self.options.initial_preset.is_some() || self.pending_link_view.is_some();
-        if !PRESETS.iter().any(|(p, _)| *p == self.preferences.preset)
-            || (!asked
-                && ((!is_ct && self.preferences.preset.starts_with("ct-"))
-                    || (is_ct && self.preferences.preset.starts_with("mr"))))
+        // A preset that does not fit this scan (a CT preset on an MR, issue 47) is replaced by
+        // the one it opens with, unless a link or the command line asked for it.
+        if !TransferFunction::PRESETS.contains(&self.preferences.preset.as_str())
+            || (!asked && !strata_viewer_ui::presets::keeps_preset(&self.preferences.preset, &scan))
         {
-            self.preferences.preset = if is_ct { "ct-bone" } else { "mr-default" }.into();
+            self.preferences.preset = strata_viewer_ui::presets::initial_preset(&scan).into();
         }
         let transfer_function = preset_for(&self.preferences.preset, &info);
         let window = super::scene::initial_window(
@@ -469,8 +463,10 @@ impl StrataApp {
                 scene.window = Window::new(centre, width);
             }
         }
+        let mut oblique_plane = None;
         if let Some(saved) = self.pending_restore.take() {
             if saved.apply(&location, &mut scene, &mut orbit) {
+                saved.apply_view(&mut self.preferences.preset, &mut oblique_plane);
                 self.toast = Some(Toast {
                     text: "the session was restored after the viewer restarted".into(),
                     shown_at: Instant::now(),
@@ -478,6 +474,7 @@ impl StrataApp {
             }
         }
         let history = History::new(&scene);
+        let oblique_view = ObliqueViewer::with_plane(oblique_plane);
         self.volume = Some(OpenVolume {
             history,
             data: VolumeData {
@@ -492,7 +489,7 @@ impl StrataApp {
             scene,
             view_3d: View3d::new(orbit),
             slice_views: SliceView::ALL.map(SliceViewer::new),
-            oblique_view: ObliqueViewer::default(),
+            oblique_view,
             view_rects: Vec::new(),
             overlay: None,
             overlay_3d: None,
@@ -532,12 +529,15 @@ impl StrataApp {
     /// The session as a restarted viewer would put it back; None without a volume.
     pub fn saved_session(&self) -> Option<super::session_restore::SavedSession> {
         let v = self.volume.as_ref()?;
-        Some(super::session_restore::SavedSession::capture(
-            &v.data.store_path,
-            &self.preferences,
-            &v.scene,
-            &v.view_3d.orbit,
-        ))
+        Some(
+            super::session_restore::SavedSession::capture(
+                &v.data.store_path,
+                &self.preferences,
+                &v.scene,
+                &v.view_3d.orbit,
+            )
+            .with_oblique(v.oblique_view.plane.as_ref()),
+        )
     }
 
     /// Everything, into `ui` (eframe's root Ui, or a test harness's).
@@ -1189,7 +1189,22 @@ impl StrataApp {
             match &self.saved_screenshot {
                 Some(Ok(path)) => {
                     ui.separator();
-                    ui.label(format!("Saved {}", path.display()));
+                    // Elided to leave room for Dismiss and the warning on the right.
+                    let warning = ui
+                        .painter()
+                        .layout_no_wrap(
+                            NOT_FOR_DIAGNOSIS.into(),
+                            egui::TextStyle::Body.resolve(ui.style()),
+                            WARNING_COLOUR,
+                        )
+                        .size()
+                        .x;
+                    let char_width = egui::TextStyle::Body.resolve(ui.style()).size * 0.6;
+                    let room = ui.available_width() - warning - 90.0;
+                    let max_chars = (room / char_width).max(8.0) as usize;
+                    let shown = elide_middle(&format!("Saved {}", path.display()), max_chars);
+                    ui.label(shown)
+                        .on_hover_text(format!("Saved {}", path.display()));
                     dismiss = ui.small_button("Dismiss").clicked();
                 }
                 Some(Err(e)) => {

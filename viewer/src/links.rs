@@ -77,7 +77,7 @@ pub fn is_link(text: &str) -> bool {
 pub fn parse_link(link: &str) -> Result<SharedLink, LinkError> {
     let link = link.trim();
     let (address, fragment) = link.split_once('#').unwrap_or((link, ""));
-    let Fragment { view, token } = Fragment::parse(fragment).map_err(|source| {
+    let Fragment { view, token, .. } = Fragment::parse(fragment).map_err(|source| {
         // The error names the key and its value; a token's value is never echoed: a bad
         // token key cannot occur (any non-empty value is taken).
         LinkError::Fragment {

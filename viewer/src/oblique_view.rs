@@ -54,6 +54,14 @@ impl Default for ObliqueViewer {
 }
 
 impl ObliqueViewer {
+    /// Turned to `plane`'s orientation (a restored session's); None: axial.
+    pub fn with_plane(plane: Option<ObliquePlane>) -> Self {
+        ObliqueViewer {
+            plane,
+            ..ObliqueViewer::default()
+        }
+    }
+
     /// The plane through the crosshair (axial until turned).
     pub fn current_plane(&self, data: &VolumeData, scene: &Scene) -> ObliquePlane {
         let geometry = &data.info.geometry;

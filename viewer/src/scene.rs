@@ -108,6 +108,9 @@ pub struct Readout {
     pub patient_mm: [f64; 3],
     pub value: Option<f64>,
     pub unit: String,
+    /// Every value of the volume is an integer (integer stored data under an integer slope
+    /// and intercept, e.g. 8-bit data): printed without decimals.
+    pub integer_values: bool,
 }
 
 impl Readout {
@@ -119,9 +122,11 @@ impl Readout {
         };
         let [x, y, z] = self.patient_mm;
         let value = match self.value {
+            // Issue 47: 8-bit data read "76.0000".
+            Some(v) if self.integer_values => format!("{} {}", format_number(v, true), self.unit),
             Some(v) if self.unit == "HU" => format!("{v:.0} HU"),
             Some(v) if v.abs() >= 100.0 => format!("{v:.1} {}", self.unit),
-            Some(v) => format!("{v:.4} {}", self.unit),
+            Some(v) => format!("{} {}", format_number(v, false), self.unit),
             None => "…".into(),
         };
         format!(
@@ -180,6 +185,7 @@ impl VolumeData {
             patient_mm: p.into(),
             value,
             unit: self.unit(),
+            integer_values: ScanValues::of(&self.info.header).integer_values,
         }
     }
 
@@ -243,17 +249,8 @@ pub fn start_cursor(dims: [u32; 3]) -> [f64; 3] {
     dims.map(|d| ((d as f64 - 1.0) * 0.5).floor().max(0.0))
 }
 
-/// CT by its header (modality tag, HU unit), or, with no modality, by its values: air near
-/// -1000 and dense tissue above +300 in one scan is how a CT in HU looks (an MR's intensities
-/// are non-negative).
-pub fn looks_like_ct(modality: &str, unit: &str, physical_range: (f64, f64)) -> bool {
-    if modality.eq_ignore_ascii_case("CT") || unit.eq_ignore_ascii_case("HU") {
-        return true;
-    }
-    let untagged = modality.trim().is_empty() || modality.eq_ignore_ascii_case("OT");
-    let (lo, hi) = physical_range;
-    untagged && (-1100.0..=-700.0).contains(&lo) && hi >= 300.0
-}
+pub use strata_viewer_ui::presets::looks_like_ct;
+use strata_viewer_ui::presets::{format_number, ScanValues};
 
 /// A named slice window.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -312,22 +309,9 @@ pub const PRESETS: [(&str, &str); 5] = [
     ("mr-default", "MR"),
 ];
 
+/// The preset `name` fitted to this volume ([`strata_viewer_ui::presets::fitted_preset`]).
 pub fn preset_for(name: &str, info: &VolumeInfo) -> TransferFunction {
-    let mut tf = TransferFunction::preset(name).unwrap_or_else(|| {
-        TransferFunction::new(name, &[(0.0, 0.0), (1.0, 1.0)], &[(0.0, [1.0; 3])])
-    });
-    // The MR preset assumes intensities near 0..1000; stretch it onto this scan's range.
-    if name.starts_with("mr") {
-        let (lo, hi) = info.physical_range;
-        let scale = (hi - lo).max(1e-6) / 1000.0;
-        for p in &mut tf.opacity {
-            p.value = lo + p.value * scale;
-        }
-        for c in &mut tf.color {
-            c.value = lo + c.value * scale;
-        }
-    }
-    tf
+    strata_viewer_ui::presets::fitted_preset(name, info.physical_range)
 }
 
 /// A window from the histogram's 1st to 99th percentile, for scans without presets.
@@ -355,6 +339,26 @@ pub fn initial_window(header_window: Option<Window>, is_ct: bool, h: &Histogram)
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Issue 47: the readout printed "76.0000" for 8-bit data.
+    #[test]
+    fn the_readout_prints_integers_for_integer_data_and_the_unit_when_known() {
+        let readout = |value: f64, unit: &str, integer_values: bool| {
+            Readout {
+                under_pointer: true,
+                index: [1, 2, 3],
+                patient_mm: [0.0; 3],
+                value: Some(value),
+                unit: unit.into(),
+                integer_values,
+            }
+            .text()
+        };
+        assert!(readout(76.0, "", true).starts_with("Pointer 76 · voxel"));
+        assert!(readout(-1000.0, "HU", true).starts_with("Pointer -1000 HU ·"));
+        assert!(readout(0.25, "mm²/s", false).starts_with("Pointer 0.25 mm²/s ·"));
+        assert!(readout(1.0 / 3.0, "", false).starts_with("Pointer 0.3333 ·"));
+    }
 
     #[test]
     fn the_start_cursor_is_a_voxel_centre_every_readout_agrees_on() {

@@ -28,7 +28,10 @@ use std::time::{Duration, Instant};
 use serde::{Deserialize, Serialize};
 use strata_render::{CropBox, TransferFunction};
 
+use glam::DVec3;
+
 use super::measurements::{Measurement, Measurements};
+use super::oblique::ObliquePlane;
 use super::preferences::Preferences;
 use super::scene::{ClipSettings, Scene, Window};
 use super::sync::lock_ignoring_poison;
@@ -70,6 +73,38 @@ pub struct SavedSession {
     pub crop: CropBox,
     pub clip: ClipSettings,
     pub measurements: Vec<Measurement>,
+    /// The oblique view's orientation once turned (issue 47: it came back axial). Absent in
+    /// sessions saved before it was kept, and while the plane is axial.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub oblique: Option<SavedOblique>,
+}
+
+/// An oblique plane's orientation (its centre follows the crosshair).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SavedOblique {
+    pub right: [f64; 3],
+    pub down: [f64; 3],
+    pub extent_mm: f64,
+}
+
+impl SavedOblique {
+    pub fn of(plane: &ObliquePlane) -> Self {
+        SavedOblique {
+            right: plane.right.to_array(),
+            down: plane.down.to_array(),
+            extent_mm: plane.extent_mm,
+        }
+    }
+
+    /// The plane, centred at `centre` (the crosshair's patient position).
+    pub fn plane(&self, centre: DVec3) -> ObliquePlane {
+        ObliquePlane {
+            centre,
+            right: DVec3::from_array(self.right),
+            down: DVec3::from_array(self.down),
+            extent_mm: self.extent_mm,
+        }
+    }
 }
 
 impl SavedSession {
@@ -92,7 +127,27 @@ impl SavedSession {
             crop: scene.crop,
             clip: scene.clip,
             measurements: scene.measurements.items.clone(),
+            oblique: None,
         }
+    }
+
+    /// With the oblique view's plane (None: never turned, axial).
+    pub fn with_oblique(mut self, plane: Option<&ObliquePlane>) -> Self {
+        self.oblique = plane.map(SavedOblique::of);
+        self
+    }
+
+    /// What [`SavedSession::apply`] does not reach, put back after it: the preset the panel
+    /// highlights, named by the restored function's own preset (issue 47: it named MR, the
+    /// preference of a fresh open, while the function was ct-soft-tissue), and the oblique
+    /// view's plane.
+    pub fn apply_view(&self, preset: &mut String, oblique: &mut Option<ObliquePlane>) {
+        *preset = if TransferFunction::PRESETS.contains(&self.tf_source.name.as_str()) {
+            self.tf_source.name.clone()
+        } else {
+            self.preferences.preset.clone()
+        };
+        *oblique = self.oblique.map(|o| o.plane(DVec3::ZERO));
     }
 
     /// Puts the session back into a freshly opened volume's scene and camera. Only for the
@@ -345,6 +400,51 @@ mod tests {
             clip: ClipSettings::default(),
             measurements: Measurements::default(),
         }
+    }
+
+    /// Issue 47: after a crash restore the preset highlight named MR while the function was
+    /// ct-soft-tissue, and the oblique tilt came back axial.
+    #[test]
+    fn a_restored_session_names_its_preset_and_keeps_the_oblique_tilt() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let location = dir.path().join("mr.strata");
+        let mut soft = scene();
+        soft.transfer_function = TransferFunction::preset("ct-soft-tissue").expect("preset");
+        soft.tf_source = soft.transfer_function.clone();
+        let preferences = Preferences {
+            preset: "ct-soft-tissue".into(),
+            ..Preferences::default()
+        };
+        let tilted = ObliquePlane::axial(DVec3::ZERO, 120.0).rotated(0.3, 0.7);
+        let saved = SavedSession::capture(&location, &preferences, &soft, &OrbitCamera::default())
+            .with_oblique(Some(&tilted));
+        let path = session_path(&dir.path().join("stores"));
+        SavedSession::write(&saved.to_json(), &path).expect("write");
+        let read = SavedSession::read(&path).expect("read");
+        assert_eq!(read, saved);
+
+        // The reopened volume first chose its own preset (an MR's) and an axial plane.
+        let mut fresh = scene();
+        let mut orbit = OrbitCamera::default();
+        let mut preset = "mr-default".to_string();
+        let mut oblique = None;
+        assert!(read.apply(&location, &mut fresh, &mut orbit));
+        read.apply_view(&mut preset, &mut oblique);
+        assert_eq!(
+            preset, "ct-soft-tissue",
+            "the highlight names the restored function"
+        );
+        assert_eq!(fresh.transfer_function.name, "ct-soft-tissue");
+        let oblique = oblique.expect("the tilted plane");
+        assert_eq!(oblique.right, tilted.right);
+        assert_eq!(oblique.down, tilted.down);
+        assert_eq!(oblique.extent_mm, 120.0);
+        assert_ne!(oblique.down, DVec3::Y, "not axial");
+
+        // A session saved before the plane was kept reads, with no plane.
+        let old = saved.to_json().replace("\"oblique\"", "\"ignored\"");
+        let old: SavedSession = serde_json::from_str(&old).expect("reads");
+        assert_eq!(old.oblique, None);
     }
 
     #[test]

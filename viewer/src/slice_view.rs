@@ -274,13 +274,15 @@ impl SliceViewer {
                 }
             };
             if let Some(label) = label {
-                painter.text(
-                    anchor + Vec2::new(4.0, -4.0),
-                    egui::Align2::LEFT_BOTTOM,
-                    label,
-                    font.clone(),
-                    colour,
+                // Kept inside the view (issue 47: labels were cut at its edge).
+                let galley = painter.layout_no_wrap(label, font.clone(), colour);
+                let wanted = egui::Align2::LEFT_BOTTOM
+                    .anchor_size(anchor + Vec2::new(4.0, -4.0), galley.size());
+                let placed = strata_viewer_ui::slice_canvas::keep_inside(
+                    wanted,
+                    painter.clip_rect().shrink(2.0),
                 );
+                painter.galley(placed.min, galley, colour);
             }
         };
         for m in &scene.measurements.items {

@@ -7,6 +7,27 @@ use egui::{Color32, Rect, Sense, Vec2};
 pub const NOT_FOR_DIAGNOSIS: &str = "NOT FOR DIAGNOSTIC USE";
 pub const WARNING_COLOUR: Color32 = Color32::from_rgb(255, 170, 40);
 
+/// `text` shortened to at most `max_chars` characters by cutting its middle ("…"): a path
+/// keeps its start and its file name (issue 47: the status bar's save path ran under
+/// "NOT FOR DIAGNOSTIC USE").
+pub fn elide_middle(text: &str, max_chars: usize) -> String {
+    let chars: Vec<char> = text.chars().collect();
+    if chars.len() <= max_chars {
+        return text.to_string();
+    }
+    if max_chars <= 1 {
+        return "…".chars().take(max_chars).collect();
+    }
+    let kept = max_chars - 1;
+    // The end (the file name) matters most: two thirds of what is kept.
+    let tail = (kept * 2).div_ceil(3);
+    let head = kept - tail;
+    let mut out: String = chars[..head].iter().collect();
+    out.push('…');
+    out.extend(&chars[chars.len() - tail..]);
+    out
+}
+
 /// What a view reports after drawing itself.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct ViewResponse {
@@ -58,4 +79,24 @@ pub fn view_title(ui: &mut egui::Ui, rect: Rect, id: &str, title: &str, colour: 
     response
         .on_hover_text("Double-click to focus / unfocus this view")
         .double_clicked()
+}
+
+#[cfg(test)]
+mod elide_tests {
+    use super::elide_middle;
+
+    #[test]
+    fn a_long_path_is_cut_in_the_middle_and_keeps_its_file_name() {
+        let path = "/home/someone/strata/screenshots/2026-12-06/shot-0001.png";
+        assert_eq!(elide_middle(path, 100), path);
+        let short = elide_middle(path, 30);
+        assert_eq!(short.chars().count(), 30);
+        assert!(
+            short.starts_with("/home/") && short.ends_with("shot-0001.png"),
+            "{short}"
+        );
+        assert!(short.contains('…'));
+        assert_eq!(elide_middle(path, 1), "…");
+        assert_eq!(elide_middle(path, 0), "");
+    }
 }

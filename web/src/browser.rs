@@ -28,6 +28,7 @@ use crate::view_state::{Fragment, ViewState};
 use crate::volume_menu;
 use strata_source::wire::StoreList;
 use strata_source::VolumeSource;
+use strata_viewer_ui::presets;
 
 /// The largest image edge drawn when the canvas decides (device pixels): a 4K canvas is drawn
 /// at this size and scaled, so one frame stays bounded on a software adapter.
@@ -176,6 +177,8 @@ struct WebViewer {
     /// page's clock (`page_started`).
     motion: ViewMotion,
     page_started: web_time::Instant,
+    /// The link named a preset: the store's own choice does not replace it.
+    preset_named: bool,
 }
 
 impl WebViewer {
@@ -251,6 +254,7 @@ impl WebViewer {
             token: fragment.token,
             motion,
             page_started: web_time::Instant::now(),
+            preset_named: fragment.preset_named,
         })
     }
 
@@ -338,6 +342,13 @@ impl WebViewer {
             return Ok(false);
         };
         let store = Arc::new(opened?);
+        // The preset fits the scan: the one it opens with (the desktop's choice, issue 47: an
+        // MR opened with the CT bone preset) unless the link named one.
+        let scan = presets::ScanValues::of(store.header());
+        if !self.preset_named {
+            self.view.preset = presets::initial_preset(&scan).into();
+        }
+        self.side.set_scan(scan);
         self.side.set_histogram(
             store.histogram().clone(),
             &store.header().value_mapping.unit,
@@ -493,17 +504,37 @@ impl WebViewer {
                 ui.selectable_value(&mut self.view.mode, mode, label);
             }
             ui.separator();
+            let scan = self.side.scan().cloned();
             egui::ComboBox::from_id_salt("preset")
                 .selected_text(self.view.preset.clone())
                 .show_ui(ui, |ui| {
                     for name in TransferFunction::PRESETS {
-                        ui.selectable_value(&mut self.view.preset, name.to_string(), name);
+                        // A preset that does not fit the scan is greyed out and says why.
+                        let offer = scan.as_ref().map(|s| presets::offer(name, s));
+                        let offered = offer.as_ref().is_none_or(presets::Offer::is_offered);
+                        let selected = self.view.preset == name;
+                        let response =
+                            ui.add_enabled(offered, egui::Button::selectable(selected, name));
+                        let response = match offer.as_ref().and_then(presets::Offer::reason) {
+                            Some(reason) if offered => response.on_hover_text(reason),
+                            Some(reason) => response.on_disabled_hover_text(reason),
+                            None => response,
+                        };
+                        if response.clicked() {
+                            self.view.preset = name.to_string();
+                        }
                     }
                 });
             if self.view.mode == RenderMode::Isosurface {
-                ui.add(
-                    egui::Slider::new(&mut self.view.iso_value, -1000.0..=3000.0).text("iso (HU)"),
-                );
+                // In the scan's unit and over its range (HU only for CT).
+                let (range, label) = match &scan {
+                    Some(s) => (
+                        s.physical_range.0..=s.physical_range.1,
+                        s.value_label("iso"),
+                    ),
+                    None => (-1000.0..=3000.0, "iso (HU)".to_string()),
+                };
+                ui.add(egui::Slider::new(&mut self.view.iso_value, range).text(label));
             }
             ui.add(
                 egui::Slider::new(&mut self.view.zoom, 0.25..=8.0)

@@ -15,6 +15,7 @@ use strata_render::phantom::ct_phantom_hu;
 use strata_render::{FrameTiming, TransferFunction};
 use strata_storage::histogram::{Histogram, StoredValueCounts};
 use strata_viewer_ui::performance::{self, FrameClock, PerformanceFigures};
+use strata_viewer_ui::presets::{self, ScanValues};
 use strata_viewer_ui::target_fps::target_fps_control;
 use strata_viewer_ui::tf_editor::{self, TfEditorState};
 use web_time::Instant;
@@ -51,6 +52,8 @@ pub struct SidePanel {
     edits: u64,
     /// The volume's histogram, its physical range and unit (until known: none, no editor).
     histogram: Option<(Histogram, (f64, f64), String)>,
+    /// The scan's modality, unit and range once known: presets are fitted to it.
+    scan: Option<ScanValues>,
     adapter: String,
     started: Instant,
     clock: FrameClock,
@@ -71,6 +74,7 @@ impl SidePanel {
             // A link's edited function (`tf=`) shows as edited, with Reset to its preset.
             edits: u64::from(view.tf.is_some()),
             histogram: None,
+            scan: None,
             adapter,
             started: Instant::now(),
             clock: FrameClock::default(),
@@ -83,11 +87,36 @@ impl SidePanel {
     /// Follows the view's preset: another one replaces the function (and drops the edits).
     fn follow_preset(&mut self, view: &ViewState) {
         if view.preset != self.preset {
-            self.transfer_function = view.transfer_function();
+            self.transfer_function = self.preset_function(&view.preset);
             self.preset = view.preset.clone();
             self.edits = 0;
             self.editor = TfEditorState::default();
         }
+    }
+
+    /// A preset's function fitted to the scan, once known ([`presets::fitted_preset`], the
+    /// desktop's); until then as it is.
+    fn preset_function(&self, preset: &str) -> TransferFunction {
+        match &self.scan {
+            Some(scan) => presets::fitted_preset(preset, scan.physical_range),
+            None => {
+                TransferFunction::preset(preset).unwrap_or_else(|| self.transfer_function.clone())
+            }
+        }
+    }
+
+    /// The scan the view shows (a served store's header, or the sample's): an unedited
+    /// function is fitted to it again.
+    pub fn set_scan(&mut self, scan: ScanValues) {
+        self.scan = Some(scan);
+        if self.edits == 0 {
+            self.transfer_function = self.preset_function(&self.preset);
+        }
+    }
+
+    /// The scan's values, once known.
+    pub fn scan(&self) -> Option<&ScanValues> {
+        self.scan.as_ref()
     }
 
     /// The function the 3D view draws with.
@@ -105,7 +134,8 @@ impl SidePanel {
     /// The function for the address: the edited one while it differs from its preset; None
     /// when it is the preset (never edited, or Reset), which `preset=` alone describes.
     pub fn edited_function(&self) -> Option<&TransferFunction> {
-        let preset = TransferFunction::preset(&self.preset)?;
+        TransferFunction::preset(&self.preset)?;
+        let preset = self.preset_function(&self.preset);
         let tf = &self.transfer_function;
         (self.edits > 0 && (tf.opacity != preset.opacity || tf.color != preset.color)).then_some(tf)
     }
@@ -124,7 +154,15 @@ impl SidePanel {
 
     /// The editor's histogram for the sample volume made in the page.
     pub fn set_sample_histogram(&mut self, view: &ViewState) {
-        self.set_histogram(sample_histogram(view), "HU");
+        let histogram = sample_histogram(view);
+        // The sample is the CT phantom, in HU.
+        self.set_scan(ScanValues {
+            modality: "CT".into(),
+            unit: "HU".into(),
+            physical_range: (histogram.physical_min, histogram.physical_max),
+            integer_values: true,
+        });
+        self.set_histogram(histogram, "HU");
     }
 
     /// Raycast GPU times of frames that finished (read without waiting, a frame or two late).
@@ -166,8 +204,7 @@ impl SidePanel {
         ui.horizontal(|ui| {
             ui.add(egui::Label::new(egui::RichText::new(source).weak()).truncate());
             if self.edits > 0 && ui.button("Reset").clicked() {
-                self.transfer_function = TransferFunction::preset(&self.preset)
-                    .unwrap_or_else(|| self.transfer_function.clone());
+                self.transfer_function = self.preset_function(&self.preset);
                 // A new key: the view draws the preset again.
                 self.edits += 1;
                 self.editor = TfEditorState::default();

@@ -124,10 +124,20 @@ fn cinematic_presets(
 ) -> bool {
     let mut applied = false;
     ui.horizontal_wrapped(|ui| {
+        let scan = strata_viewer_ui::presets::ScanValues::of(&data.info.header);
         for preset in CinematicPreset::ALL {
             let current = preset.is_current(prefs) && !scene.tf_edited();
-            if ui
-                .selectable_label(current, preset.label)
+            // A cinematic preset on a CT function is not offered for an MR (issue 47: a solid
+            // red cube that never converged); it says why.
+            let offer = strata_viewer_ui::presets::offer(preset.tf_preset, &scan);
+            let mut response = ui.add_enabled(
+                offer.is_offered(),
+                egui::Button::selectable(current, preset.label),
+            );
+            if let (false, Some(reason)) = (offer.is_offered(), offer.reason()) {
+                response = response.on_disabled_hover_text(reason);
+            }
+            if response
                 .on_hover_text(format!(
                     "The {} transfer function lit by a key light from the upper left, with \
                      shadows from the light cache, ambient occlusion over {} mm and \

@@ -4,6 +4,7 @@ use strata_render::TransferFunction;
 
 use crate::file_chooser::{ChooserKind, Chosen, FileChooser};
 use crate::scene::{preset_for, Scene, VolumeData, PRESETS};
+use strata_viewer_ui::presets::{self, ScanValues};
 use strata_viewer_ui::tf_editor::{self, TfEditorState};
 
 /// What a running file chooser of the panel is for.
@@ -33,9 +34,20 @@ impl TfPanel {
     ) {
         let unit = data.info.header.value_mapping.unit.clone();
         ui.horizontal_wrapped(|ui| {
+            let scan = ScanValues::of(&data.info.header);
             for (name, label) in PRESETS {
                 let current = *preset == name && !scene.tf_edited();
-                if ui.selectable_label(current, label).clicked() {
+                // A preset that does not fit the scan (a CT preset on an MR) is greyed out and
+                // says why; a fitted one says how (issue 47).
+                let offer = presets::offer(name, &scan);
+                let response =
+                    ui.add_enabled(offer.is_offered(), egui::Button::selectable(current, label));
+                let response = match offer.reason() {
+                    Some(reason) if offer.is_offered() => response.on_hover_text(reason),
+                    Some(reason) => response.on_disabled_hover_text(reason),
+                    None => response,
+                };
+                if response.clicked() {
                     *preset = name.into();
                     scene.set_transfer_function(preset_for(name, &data.info));
                     self.editor = TfEditorState::default();
