@@ -139,8 +139,11 @@ fn render(location: &str, out: &Path, extra: &[&str]) -> String {
     stderr(&o)
 }
 
-/// Renders `store` locally, serves it, renders the URL: the PNGs must be identical.
-fn local_equals_remote(store: &Path, dir: &Path, views: &[&[&str]]) {
+/// Renders `store` locally, serves it, renders the URL: the PNGs must be identical. Then the
+/// store's own path while it is served: a format-3 store (many readers) opens beside the
+/// server; a format-2 store (`sled_held`: sled admits one process) is streamed from the
+/// server its lock names.
+fn local_equals_remote(store: &Path, dir: &Path, views: &[&[&str]], sled_held: bool) {
     let mut local = Vec::new();
     for (i, view) in views.iter().enumerate() {
         let out = dir.join(format!("local-{i}.png"));
@@ -157,11 +160,11 @@ fn local_equals_remote(store: &Path, dir: &Path, views: &[&[&str]]) {
             "view {view:?}: the served store's image differs from the local one"
         );
         assert!(remote.iter().any(|&v| v > 0), "view {view:?} is black");
-        // The store's own path while the server holds it: told at once, streamed from there.
         let out = dir.join(format!("redirected-{i}.png"));
         let log = render(store.to_str().unwrap(), &out, view);
-        assert!(
+        assert_eq!(
             log.contains("served by strata serve") && log.contains(&served.url),
+            sled_held,
             "{log}"
         );
         assert!(
@@ -171,12 +174,16 @@ fn local_equals_remote(store: &Path, dir: &Path, views: &[&[&str]]) {
     }
     let info = strata(&["info", store.to_str().unwrap()]);
     assert!(info.status.success(), "{}", stderr(&info));
-    assert!(
+    assert_eq!(
         stderr(&info).contains("streaming from"),
+        sled_held,
         "{}",
         stderr(&info)
     );
-    assert!(String::from_utf8_lossy(&info.stdout).contains("withheld by the server"));
+    assert_eq!(
+        String::from_utf8_lossy(&info.stdout).contains("withheld by the server"),
+        sled_held
+    );
 }
 
 #[test]
@@ -191,7 +198,20 @@ fn a_served_phantom_renders_bit_identically() {
             &["--azimuth", "35", "--elevation", "20", "--mode", "mip"],
             &["--up-front", "--level", "1"],
         ],
+        false,
     );
+}
+
+/// A format-2 store (sled: one process at a time) held by `strata serve`: its own path is
+/// read through the server its lock names, told at once.
+#[test]
+fn a_served_format_2_store_is_read_through_the_server_by_its_path() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("phantom-v2.strata");
+    Phantom::cube(48)
+        .write_store_as_format(&store, &ImportOptions::default(), 2)
+        .unwrap();
+    local_equals_remote(&store, dir.path(), &[&[]], true);
 }
 
 #[test]
@@ -213,6 +233,7 @@ fn a_served_real_scan_renders_bit_identically() {
         &store,
         dir.path(),
         &[&[], &["--azimuth", "90", "--zoom", "1.5"]],
+        false,
     );
 }
 

@@ -448,36 +448,47 @@ mod remote_tests {
     /// see `SessionStatus::source_line`).
     #[test]
     fn the_viewer_opens_a_served_store_by_url_and_by_its_path() {
+        // Format 3 admits many readers: its path opens here beside the server. Format 2 (sled,
+        // one process at a time) is held by the server: its path streams from the server.
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("served.strata");
         Phantom::cube(40)
             .write_store(&path, &ImportOptions::default())
             .unwrap();
+        let sled_path = dir.path().join("served-v2.strata");
+        Phantom::cube(40)
+            .write_store_as_format(&sled_path, &ImportOptions::default(), 2)
+            .unwrap();
         let name = strata_service::server::name_for_store(&path);
+        let sled_name = strata_service::server::name_for_store(&sled_path);
         let server = strata_service::server::start(
-            vec![(name.clone(), path.clone())],
+            vec![
+                (name.clone(), path.clone()),
+                (sled_name.clone(), sled_path.clone()),
+            ],
             strata_service::server::ServeOptions::default(),
         )
         .unwrap();
         let url = server.store_url(&name);
+        let sled_url = server.store_url(&sled_name);
         let repaint: Repaint = Arc::new(|| {});
-        for source in [
-            VolumeSource::Url {
-                url: url.clone(),
-                token_file: None,
-                token: None,
-            },
-            VolumeSource::Path(path.clone()),
+        for (source, expected) in [
+            (
+                VolumeSource::Url {
+                    url: url.clone(),
+                    token_file: None,
+                    token: None,
+                },
+                url.clone(),
+            ),
+            (VolumeSource::Path(path.clone()), path.display().to_string()),
+            (VolumeSource::Path(sled_path.clone()), sled_url.clone()),
         ] {
             let job = PrepareJob::start(source.clone(), None, dir.path().into(), repaint.clone())
                 .unwrap();
             let opened = wait_for(&job).unwrap_or_else(|e| panic!("{source:?}: {e}"));
             assert_eq!(opened.header().geometry.dims, [40, 40, 40]);
-            assert_eq!(
-                opened.location(),
-                url,
-                "{source:?} should stream from the server"
-            );
+            assert_eq!(opened.location(), expected, "{source:?}");
         }
         server.stop();
     }

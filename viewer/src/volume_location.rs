@@ -94,8 +94,8 @@ pub fn open(location: &str, token_file: Option<&Path>, sled_cache_bytes: u64) ->
     let path = Path::new(location);
     match Store::open_with_cache(path, sled_cache_bytes) {
         Ok(store) => Ok(Opened::Local(Arc::new(store))),
-        // sled lets one process open a store; while `strata serve` holds it, stream from the
-        // server instead of waiting or failing.
+        // A format-2 store (sled) admits one process; while `strata serve` holds it, stream
+        // from the server instead of waiting or failing. Format 3 opens beside the server.
         Err(StorageError::InUse {
             holder:
                 LockHolder {
