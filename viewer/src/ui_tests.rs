@@ -1603,7 +1603,8 @@ fn the_frame_slider_moves_the_readout_to_the_next_frames_value() {
     if let Some(v) = h.state_mut().as_mut().and_then(|a| a.volume.as_mut()) {
         v.scene.cursor = [2.0, 3.0, 1.0];
     }
-    let readout = |t: u32| format!("Crosshair {}.0 · voxel (2, 3, 1)", 1000 * t + 132);
+    // Integer data reads as integers (no "132.0": issue 47's readout fix).
+    let readout = |t: u32| format!("Crosshair {} · voxel (2, 3, 1)", 1000 * t + 132);
     let start = Instant::now();
     while h.query_by_label_contains(&readout(0)).is_none() {
         assert!(
