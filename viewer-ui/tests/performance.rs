@@ -98,6 +98,6 @@ fn without_a_loader_or_gpu_time_those_rows_are_absent_and_a_final_view_says_conv
     assert!(h.query_by_label("GPU time (raycast)").is_none());
     assert!(h.query_by_label("GPU cache").is_none());
     h.get_by_label("converged");
-    // No volume frame yet: the mean of nothing.
-    h.get_by_label("UI frame 20.0 ms · volume frame NaN ms");
+    // No volume frame yet: a dash, never the mean of nothing ("NaN ms", issue 47).
+    h.get_by_label("UI frame 20.0 ms · volume frame —");
 }
