@@ -960,11 +960,13 @@ impl Inner {
         Ok(series)
     }
 
-    async fn instances_of(
+    /// A series' instances from QIDO: (InstanceNumber, SOP Instance UID), UIDs checked (a UID
+    /// becomes a file name: a hostile one must not reach the file system).
+    async fn instance_list(
         &self,
         study_uid: &str,
         series_uid: &str,
-    ) -> Result<Vec<String>, PacsError> {
+    ) -> Result<Vec<(Option<i64>, String)>, PacsError> {
         self.check_uid(study_uid)?;
         self.check_uid(series_uid)?;
         let items = self
@@ -973,15 +975,28 @@ impl Inner {
                 &format!("/studies/{study_uid}/series/{series_uid}/instances"),
             )
             .await?;
-        let mut uids = Vec::with_capacity(items.len());
+        let mut instances = Vec::with_capacity(items.len());
         for o in &items {
             let Some(uid) = json_string(o, "00080018") else {
                 continue;
             };
-            // A UID becomes a file name: a hostile one must not reach the file system.
             self.check_uid(&uid)?;
-            uids.push(uid);
+            instances.push((json_int(o, "00200013"), uid));
         }
+        Ok(instances)
+    }
+
+    async fn instances_of(
+        &self,
+        study_uid: &str,
+        series_uid: &str,
+    ) -> Result<Vec<String>, PacsError> {
+        let mut uids: Vec<String> = self
+            .instance_list(study_uid, series_uid)
+            .await?
+            .into_iter()
+            .map(|(_, uid)| uid)
+            .collect();
         uids.sort();
         uids.dedup();
         Ok(uids)
@@ -992,22 +1007,12 @@ impl Inner {
         study_uid: &str,
         series_uid: &str,
     ) -> Result<Option<String>, PacsError> {
-        self.check_uid(study_uid)?;
-        self.check_uid(series_uid)?;
-        let items = self
-            .qido(
-                "instance list",
-                &format!("/studies/{study_uid}/series/{series_uid}/instances"),
-            )
-            .await?;
-        let mut numbered = Vec::with_capacity(items.len());
-        for o in &items {
-            let Some(uid) = json_string(o, "00080018") else {
-                continue;
-            };
-            self.check_uid(&uid)?;
-            numbered.push((json_int(o, "00200013").unwrap_or(i64::MAX), uid));
-        }
+        let mut numbered: Vec<(i64, String)> = self
+            .instance_list(study_uid, series_uid)
+            .await?
+            .into_iter()
+            .map(|(number, uid)| (number.unwrap_or(i64::MAX), uid))
+            .collect();
         numbered.sort();
         numbered.dedup();
         let middle = numbered.len() / 2;
