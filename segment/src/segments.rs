@@ -1,0 +1,163 @@
+//! Segments: what each label value means (name, colour, visibility, lock, DICOM category).
+
+use serde::{Deserialize, Serialize};
+
+use crate::{Label, SegmentError, MAX_SEGMENTS};
+
+/// A coded concept (DICOM code sequence item), e.g. SCT 85756007 "Tissue".
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Code {
+    pub value: String,
+    pub scheme: String,
+    pub meaning: String,
+}
+
+/// What a segment is, as DICOM SEG records it (category and type).
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct SegmentCategory {
+    pub category: Code,
+    pub kind: Code,
+}
+
+/// One segment of a label layer.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Segment {
+    /// The label value its voxels hold (1..=65 535).
+    pub value: Label,
+    pub name: String,
+    /// sRGB display colour.
+    pub rgb: [u8; 3],
+    pub visible: bool,
+    /// A locked segment's voxels are never painted over or erased by a tool.
+    pub locked: bool,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub category: Option<SegmentCategory>,
+}
+
+/// The segments of a layer, ordered by label value.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct SegmentTable {
+    segments: Vec<Segment>,
+}
+
+/// Distinct colours for new segments (cycled); the user can change each.
+const PALETTE: [[u8; 3]; 10] = [
+    [230, 80, 70],
+    [80, 180, 90],
+    [70, 130, 230],
+    [240, 200, 60],
+    [180, 90, 210],
+    [60, 200, 200],
+    [240, 140, 50],
+    [160, 200, 60],
+    [230, 110, 170],
+    [150, 120, 90],
+];
+
+impl SegmentTable {
+    pub fn new() -> Self {
+        SegmentTable::default()
+    }
+
+    pub fn iter(&self) -> impl Iterator<Item = &Segment> {
+        self.segments.iter()
+    }
+
+    pub fn len(&self) -> usize {
+        self.segments.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.segments.is_empty()
+    }
+
+    pub fn get(&self, value: Label) -> Option<&Segment> {
+        self.segments
+            .binary_search_by_key(&value, |s| s.value)
+            .ok()
+            .map(|i| &self.segments[i])
+    }
+
+    pub fn get_mut(&mut self, value: Label) -> Option<&mut Segment> {
+        self.segments
+            .binary_search_by_key(&value, |s| s.value)
+            .ok()
+            .map(|i| &mut self.segments[i])
+    }
+
+    /// Whether tools must leave voxels of this label alone. Background is never locked.
+    pub fn is_locked(&self, value: Label) -> bool {
+        value != 0 && self.get(value).is_some_and(|s| s.locked)
+    }
+
+    /// Adds a segment with the lowest free label value and a palette colour.
+    pub fn add(&mut self, name: impl Into<String>) -> Result<Label, SegmentError> {
+        if self.segments.len() >= MAX_SEGMENTS {
+            return Err(SegmentError::TooManySegments {
+                limit: MAX_SEGMENTS,
+                requested: self.segments.len() + 1,
+            });
+        }
+        // Values are sorted: the first gap (or the end) is the lowest free one.
+        let mut value: Label = 1;
+        for s in &self.segments {
+            if s.value != value {
+                break;
+            }
+            value += 1;
+        }
+        let rgb = PALETTE[(usize::from(value) - 1) % PALETTE.len()];
+        self.insert(Segment {
+            value,
+            name: name.into(),
+            rgb,
+            visible: true,
+            locked: false,
+            category: None,
+        })?;
+        Ok(value)
+    }
+
+    /// Inserts (or replaces) the segment with `segment.value`.
+    pub fn insert(&mut self, segment: Segment) -> Result<(), SegmentError> {
+        if segment.value == 0 {
+            return Err(SegmentError::NoSuchSegment(0));
+        }
+        match self
+            .segments
+            .binary_search_by_key(&segment.value, |s| s.value)
+        {
+            Ok(i) => self.segments[i] = segment,
+            Err(i) => self.segments.insert(i, segment),
+        }
+        Ok(())
+    }
+
+    /// Removes a segment's entry (its voxels are the caller's to clear, as one edit).
+    pub fn remove(&mut self, value: Label) -> Option<Segment> {
+        let i = self
+            .segments
+            .binary_search_by_key(&value, |s| s.value)
+            .ok()?;
+        Some(self.segments.remove(i))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn new_segments_take_the_lowest_free_value() {
+        let mut t = SegmentTable::new();
+        assert_eq!(t.add("a").unwrap(), 1);
+        assert_eq!(t.add("b").unwrap(), 2);
+        assert_eq!(t.add("c").unwrap(), 3);
+        t.remove(2);
+        assert_eq!(t.add("d").unwrap(), 2);
+        assert_eq!(t.get(2).unwrap().name, "d");
+        t.get_mut(3).unwrap().locked = true;
+        assert!(t.is_locked(3));
+        assert!(!t.is_locked(0));
+    }
+}
