@@ -26,4 +26,12 @@ pub enum SegmentError {
     Format { path: PathBuf, message: String },
     #[error("cancelled")]
     Cancelled,
+    #[error("{0}")]
+    BadParameter(String),
+    #[error("{what} would reach {voxels} voxels, more than the limit of {limit}: use a smaller size or region")]
+    TooLarge {
+        what: &'static str,
+        voxels: u64,
+        limit: u64,
+    },
 }

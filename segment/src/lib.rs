@@ -10,8 +10,10 @@
 
 pub mod error;
 pub mod grid;
+pub mod intensity;
 pub mod layer;
 pub mod segments;
+pub mod tools;
 
 pub use error::SegmentError;
 pub use grid::{BrickKey, LabelGrid, LABEL_BRICK, LABEL_BRICK_VOXELS};

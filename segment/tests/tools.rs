@@ -1,0 +1,8 @@
+//! The editing tools through the crate's public API, against independent models: brute-force
+//! CPU models of the brush, scipy for region growing, numpy for statistics.
+
+mod tools {
+    pub mod brush;
+    #[allow(dead_code)] // shared by files that each use a part
+    pub mod common;
+}
