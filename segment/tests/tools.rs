@@ -5,4 +5,5 @@ mod tools {
     pub mod brush;
     #[allow(dead_code)] // shared by files that each use a part
     pub mod common;
+    pub mod grow;
 }

@@ -1,0 +1,280 @@
+//! Region growing equals scipy.ndimage.label's component of the seed on the same thresholded
+//! volume, voxel for voxel; the cap, cancel and locks; the slice fill against its model.
+
+use std::sync::atomic::AtomicBool;
+
+use strata_segment::intensity::{DenseIntensity, ValueRange};
+use strata_segment::tools::brush::SlicePlane;
+use strata_segment::tools::fill::fill_in_slice;
+use strata_segment::tools::grow::{grow_from_seed, grow_range, GrowCriterion};
+use strata_segment::{LabelLayer, SegmentError};
+use strata_types::VolumeGeometry;
+
+use super::common::{all_labels, python, scratch, voxels_of};
+
+/// A smooth field with many bright blobs, some touching: a thresholded volume with several
+/// components and winding shapes (a deterministic hash, no RNG crate).
+fn blobs(dims: [u32; 3]) -> Vec<f32> {
+    let [nx, ny, nz] = dims;
+    let mut out = Vec::with_capacity((nx * ny * nz) as usize);
+    for k in 0..nz {
+        for j in 0..ny {
+            for i in 0..nx {
+                let (x, y, z) = (i as f32, j as f32, k as f32);
+                let v = (x * 0.21).sin() * (y * 0.17 + 0.3 * (z * 0.11).cos()).cos()
+                    + 0.6 * (z * 0.23 + x * 0.05).sin()
+                    + 0.15 * ((i * 7 + j * 13 + k * 29) % 17) as f32 / 17.0;
+                out.push(400.0 * v);
+            }
+        }
+    }
+    out
+}
+
+fn write_f32(path: &std::path::Path, values: &[f32]) {
+    let bytes: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
+    std::fs::write(path, bytes).expect("write the volume for the reference");
+}
+
+#[test]
+fn region_growing_equals_scipy_ndimage_label_component_of_the_seed() {
+    let dims = [72u32, 64, 56];
+    let values = blobs(dims);
+    let dir = scratch("grow-scipy");
+    write_f32(&dir.join("volume.f32"), &values);
+    let (lo, hi) = (250.0f32, 100000.0f32);
+    let seed = (0..values.len())
+        .find(|&n| values[n] >= lo && n % 7 == 3 && n > values.len() / 3)
+        .expect("a bright voxel");
+    let [nx, ny, _] = dims;
+    let seed_voxel = [
+        seed as u32 % nx,
+        (seed as u32 / nx) % ny,
+        seed as u32 / (nx * ny),
+    ];
+    let script = format!(
+        r#"
+import numpy as np, scipy.ndimage as ndi
+v = np.fromfile("volume.f32", dtype="<f4").reshape(({nz}, {ny}, {nx}))
+mask = (v >= np.float32({lo})) & (v <= np.float32({hi}))
+labels, n = ndi.label(mask)  # default structure: 6-connected in 3D
+comp = labels == labels[{sk}, {sj}, {si}]
+comp.astype(np.uint8).tofile("component.u8")
+print(n, int(comp.sum()))
+"#,
+        nx = dims[0],
+        ny = dims[1],
+        nz = dims[2],
+        si = seed_voxel[0],
+        sj = seed_voxel[1],
+        sk = seed_voxel[2],
+    );
+    let printed = python(&script, &dir);
+    let mut words = printed.split_whitespace();
+    let components: u64 = words.next().unwrap().parse().unwrap();
+    let size: u64 = words.next().unwrap().parse().unwrap();
+    assert!(components > 1, "the volume must have several components");
+    let want = std::fs::read(dir.join("component.u8")).unwrap();
+    assert_eq!(want.len(), values.len());
+    assert!(size > 1000 && size < values.len() as u64 / 2, "size {size}");
+
+    let geometry = VolumeGeometry::axis_aligned(dims, [0.8, 0.8, 1.5]);
+    let mut layer = LabelLayer::new_empty(geometry).unwrap();
+    let bone = layer.segments_mut().add("bone").unwrap();
+    let intensity = DenseIntensity::new(dims, values.clone(), "HU").unwrap();
+    let mut reports = 0;
+    let (outcome, _) = grow_from_seed(
+        &mut layer,
+        &intensity,
+        seed_voxel,
+        bone,
+        GrowCriterion::Range(ValueRange::new(f64::from(lo), f64::from(hi)).unwrap()),
+        u64::MAX,
+        &mut |_| reports += 1,
+        None,
+    )
+    .unwrap();
+    assert!(!outcome.stopped_at_cap);
+    assert_eq!(outcome.voxels, size);
+    assert!(reports >= 1);
+    let got = all_labels(&layer);
+    let differing = got
+        .iter()
+        .zip(&want)
+        .filter(|(&g, &w)| (g == bone) != (w == 1))
+        .count();
+    assert_eq!(differing, 0, "voxels differing from scipy's component");
+    assert!(outcome.edit.is_some());
+
+    // At a cap the grow keeps exactly the cap, inside scipy's component, and says it stopped.
+    let mut capped = LabelLayer::new_empty(VolumeGeometry::axis_aligned(dims, [1.0; 3])).unwrap();
+    let b = capped.segments_mut().add("bone").unwrap();
+    let (out, _) = grow_from_seed(
+        &mut capped,
+        &intensity,
+        seed_voxel,
+        b,
+        GrowCriterion::Range(ValueRange::new(f64::from(lo), f64::from(hi)).unwrap()),
+        500,
+        &mut |_| {},
+        None,
+    )
+    .unwrap();
+    assert!(out.stopped_at_cap && out.voxels == 500);
+    let got = all_labels(&capped);
+    assert_eq!(got.iter().filter(|&&l| l == b).count(), 500);
+    assert!(got.iter().zip(&want).all(|(&g, &w)| g != b || w == 1));
+
+    // Cancel: an error and the layer as it was.
+    let mut cancelled =
+        LabelLayer::new_empty(VolumeGeometry::axis_aligned(dims, [1.0; 3])).unwrap();
+    let c = cancelled.segments_mut().add("bone").unwrap();
+    let stop = AtomicBool::new(true);
+    let all = ValueRange::new(f64::NEG_INFINITY, f64::INFINITY).unwrap();
+    let r = grow_from_seed(
+        &mut cancelled,
+        &intensity,
+        seed_voxel,
+        c,
+        GrowCriterion::Range(all),
+        u64::MAX,
+        &mut |_| {},
+        Some(&stop),
+    );
+    assert!(matches!(r, Err(SegmentError::Cancelled)));
+    assert_eq!(cancelled.edited_brick_count(), 0);
+}
+
+#[test]
+fn mean_and_sigma_come_from_the_seeds_neighbourhood_and_locks_block_growth() {
+    let dims = [40u32, 40, 40];
+    // 100 inside a cube, 0 outside, the seed's neighbourhood: 27 voxels of 100 → σ = 0.
+    let values: Vec<f32> = (0..40 * 40 * 40)
+        .map(|n: u32| {
+            let (i, j, k) = (n % 40, (n / 40) % 40, n / 1600);
+            if (5..30).contains(&i) && (5..30).contains(&j) && (5..30).contains(&k) {
+                100.0
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    let intensity = DenseIntensity::new(dims, values, "").unwrap();
+    let mut layer = LabelLayer::new_empty(VolumeGeometry::axis_aligned(dims, [1.0; 3])).unwrap();
+    let a = layer.segments_mut().add("a").unwrap();
+    let wall = layer.segments_mut().add("wall").unwrap();
+    let r = grow_range(
+        &layer,
+        &intensity,
+        [10, 10, 10],
+        GrowCriterion::MeanSigma { k: 2.0 },
+    )
+    .unwrap();
+    assert_eq!((r.lo, r.hi), (100.0, 100.0));
+    // At the cube's corner the neighbourhood mixes 8 × 100 and 19 × 0.
+    let r = grow_range(
+        &layer,
+        &intensity,
+        [5, 5, 5],
+        GrowCriterion::MeanSigma { k: 1.0 },
+    )
+    .unwrap();
+    let mean = 800.0 / 27.0;
+    let sd = (8.0 * (100.0f64 - mean).powi(2) / 27.0 + 19.0 * mean * mean / 27.0).sqrt();
+    assert!((r.lo - (mean - sd)).abs() < 1e-9 && (r.hi - (mean + sd)).abs() < 1e-9);
+    // A locked wall at k = 17 splits the cube: the grow neither paints nor crosses it.
+    layer
+        .edit("wall", |w| {
+            for j in 0..40 {
+                for i in 0..40 {
+                    w.set([i, j, 17], wall)?;
+                }
+            }
+            Ok(())
+        })
+        .unwrap();
+    layer.segments_mut().get_mut(wall).unwrap().locked = true;
+    let (out, _) = grow_from_seed(
+        &mut layer,
+        &intensity,
+        [10, 10, 10],
+        a,
+        GrowCriterion::MeanSigma { k: 0.5 },
+        u64::MAX,
+        &mut |_| {},
+        None,
+    )
+    .unwrap();
+    assert_eq!(out.voxels, 25 * 25 * 12);
+    assert!(voxels_of(&layer, a).iter().all(|v| v[2] < 17));
+    assert_eq!(voxels_of(&layer, wall).len(), 1600);
+}
+
+#[test]
+fn a_slice_fill_takes_the_inside_of_a_ring_and_nothing_in_other_slices() {
+    let dims = [48u32, 40, 6];
+    let mut layer =
+        LabelLayer::new_empty(VolumeGeometry::axis_aligned(dims, [0.7, 0.9, 2.0])).unwrap();
+    let a = layer.segments_mut().add("a").unwrap();
+    let ring = layer.segments_mut().add("ring").unwrap();
+    let d2 = |i: u32, j: u32| (i as i64 - 24).pow(2) + (j as i64 - 20).pow(2);
+    layer
+        .edit("ring", |w| {
+            for k in 0..6 {
+                for j in 0..40 {
+                    for i in 0..48 {
+                        if (36..64).contains(&d2(i, j)) {
+                            w.set([i, j, k], ring)?;
+                        }
+                    }
+                }
+            }
+            Ok(())
+        })
+        .unwrap();
+    let out = fill_in_slice(
+        &mut layer,
+        &SlicePlane::Axial,
+        [24, 20, 3],
+        a,
+        None,
+        None,
+        u64::MAX,
+    )
+    .unwrap();
+    let want: Vec<[u32; 3]> = (0..40)
+        .flat_map(|j| (0..48).map(move |i| [i, j, 3]))
+        .filter(|&[i, j, _]| d2(i, j) < 36)
+        .collect();
+    assert_eq!(voxels_of(&layer, a), want);
+    assert_eq!(out.voxels, want.len() as u64);
+    // The coronal slice through the centre: left of the ring (i ≤ 16) in every k, bounded by
+    // the ring's voxels at |i − 24| ∈ {6, 7}; the right part is another region.
+    let out = fill_in_slice(
+        &mut layer,
+        &SlicePlane::Coronal,
+        [0, 20, 0],
+        a,
+        None,
+        None,
+        u64::MAX,
+    )
+    .unwrap();
+    assert_eq!(out.voxels, 17 * 6);
+    assert_eq!(layer.get([16, 20, 5]).unwrap(), a);
+    assert_eq!(layer.get([33, 20, 5]).unwrap(), 0);
+    assert!(fill_in_slice(
+        &mut layer,
+        &SlicePlane::Oblique {
+            centre_lps: glam::DVec3::ZERO,
+            u: glam::DVec3::X,
+            v: glam::DVec3::Y
+        },
+        [1, 1, 1],
+        a,
+        None,
+        None,
+        10
+    )
+    .is_err());
+}
