@@ -6,4 +6,5 @@ mod tools {
     #[allow(dead_code)] // shared by files that each use a part
     pub mod common;
     pub mod grow;
+    pub mod morphology;
 }

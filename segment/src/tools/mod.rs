@@ -3,9 +3,13 @@
 //! journal record.
 
 pub mod brush;
+mod distance;
 pub mod fill;
 mod flood;
 pub mod grow;
+pub mod interpolate;
+pub mod morphology;
+mod region;
 
 use crate::layer::{Edit, LabelLayer};
 use crate::{Label, SegmentError};
