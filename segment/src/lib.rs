@@ -10,9 +10,11 @@
 
 pub mod error;
 pub mod grid;
+pub mod history;
 pub mod intensity;
 pub mod layer;
 pub mod segments;
+pub mod stats;
 pub mod tools;
 
 pub use error::SegmentError;

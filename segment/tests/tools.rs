@@ -7,4 +7,5 @@ mod tools {
     pub mod common;
     pub mod grow;
     pub mod morphology;
+    pub mod stats;
 }

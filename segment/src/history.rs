@@ -1,0 +1,188 @@
+//! Undo and redo of [`Edit`]s with a memory bound.
+//!
+//! Each edit holds the before and after image of every brick it changed; the history counts
+//! both (64 KiB each) against its bound and drops the oldest edits first when a new one would
+//! exceed it. A new edit clears the redo list, as every editor does. The images are shared
+//! (`Arc`) with the layer and neighbouring edits, so the count is an upper bound of what the
+//! history alone keeps alive.
+
+use std::collections::VecDeque;
+
+use crate::grid::LABEL_BRICK_VOXELS;
+use crate::layer::{Edit, LabelLayer};
+use crate::Label;
+
+/// Bytes an edit's brick images take (before and after).
+pub fn edit_bytes(edit: &Edit) -> usize {
+    edit.changes.len() * 2 * LABEL_BRICK_VOXELS * size_of::<Label>()
+}
+
+/// The undo and redo lists of one layer.
+#[derive(Debug)]
+pub struct History {
+    undo: VecDeque<Edit>,
+    redo: Vec<Edit>,
+    max_bytes: usize,
+    bytes: usize,
+}
+
+impl History {
+    /// A history that keeps at most `max_bytes` of brick images.
+    pub fn new(max_bytes: usize) -> Self {
+        History {
+            undo: VecDeque::new(),
+            redo: Vec::new(),
+            max_bytes,
+            bytes: 0,
+        }
+    }
+
+    /// Records an edit already applied to the layer. Clears redo; drops the oldest edits while
+    /// over the bound. Returns false when the edit alone exceeds the bound and so cannot be
+    /// undone (the history is then empty: older edits cannot be undone past it either).
+    pub fn push(&mut self, edit: Edit) -> bool {
+        for e in self.redo.drain(..) {
+            self.bytes -= edit_bytes(&e);
+        }
+        let size = edit_bytes(&edit);
+        if size > self.max_bytes {
+            self.undo.clear();
+            self.bytes = 0;
+            return false;
+        }
+        while self.bytes + size > self.max_bytes {
+            match self.undo.pop_front() {
+                Some(old) => self.bytes -= edit_bytes(&old),
+                None => break,
+            }
+        }
+        self.bytes += size;
+        self.undo.push_back(edit);
+        true
+    }
+
+    /// Reverts the newest edit on `layer`; returns its name (`None` when there is none).
+    pub fn undo(&mut self, layer: &mut LabelLayer) -> Option<&str> {
+        let edit = self.undo.pop_back()?;
+        layer.revert(&edit);
+        self.redo.push(edit);
+        self.redo.last().map(|e| e.name.as_str())
+    }
+
+    /// Re-applies the newest undone edit; returns its name.
+    pub fn redo(&mut self, layer: &mut LabelLayer) -> Option<&str> {
+        let edit = self.redo.pop()?;
+        layer.apply(&edit);
+        self.undo.push_back(edit);
+        self.undo.back().map(|e| e.name.as_str())
+    }
+
+    pub fn can_undo(&self) -> bool {
+        !self.undo.is_empty()
+    }
+
+    pub fn can_redo(&self) -> bool {
+        !self.redo.is_empty()
+    }
+
+    /// Names of the undoable edits, oldest first (for a history list).
+    pub fn undo_names(&self) -> impl Iterator<Item = &str> {
+        self.undo.iter().map(|e| e.name.as_str())
+    }
+
+    /// Bytes of brick images held (undo and redo).
+    pub fn bytes(&self) -> usize {
+        self.bytes
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::grid::{BrickKey, LABEL_BRICK};
+    use strata_types::VolumeGeometry;
+
+    fn layer() -> LabelLayer {
+        let mut l =
+            LabelLayer::new_empty(VolumeGeometry::axis_aligned([70, 70, 40], [1.0; 3])).unwrap();
+        l.segments_mut().add("a").unwrap();
+        l.segments_mut().add("b").unwrap();
+        l
+    }
+
+    /// Every brick image of the layer, for exact comparison.
+    fn images(l: &LabelLayer) -> Vec<(BrickKey, Vec<Label>)> {
+        let [bx, by, bz] = l.grid().bricks();
+        let mut out = Vec::new();
+        for k in 0..bz {
+            for j in 0..by {
+                for i in 0..bx {
+                    let key = BrickKey([i, j, k]);
+                    out.push((key, l.brick(key).unwrap().to_vec()));
+                }
+            }
+        }
+        out
+    }
+
+    fn paint(l: &mut LabelLayer, from: u32, label: Label) -> Edit {
+        l.edit("paint", |w| {
+            for n in from..from + 40 {
+                w.set([n, n / 2, n % 40], label)?;
+            }
+            Ok(())
+        })
+        .unwrap()
+        .unwrap()
+    }
+
+    #[test]
+    fn undo_and_redo_restore_exact_bricks_and_a_new_edit_clears_redo() {
+        let mut l = layer();
+        let mut h = History::new(usize::MAX);
+        let s0 = images(&l);
+        let e = paint(&mut l, 0, 1);
+        assert!(h.push(e));
+        let s1 = images(&l);
+        let e = paint(&mut l, 10, 2);
+        h.push(e);
+        let s2 = images(&l);
+        assert_ne!(s1, s2);
+        assert_eq!(h.undo(&mut l), Some("paint"));
+        assert_eq!(images(&l), s1);
+        h.undo(&mut l);
+        assert_eq!(images(&l), s0);
+        assert!(h.undo(&mut l).is_none());
+        h.redo(&mut l);
+        assert_eq!(images(&l), s1);
+        h.redo(&mut l);
+        assert_eq!(images(&l), s2);
+        assert!(!h.can_redo());
+        h.undo(&mut l);
+        let e = paint(&mut l, 20, 1);
+        h.push(e);
+        assert!(!h.can_redo(), "a new edit clears redo");
+        assert_eq!(h.undo_names().count(), 2);
+    }
+
+    #[test]
+    fn the_memory_bound_drops_the_oldest_edits_first() {
+        let mut l = layer();
+        let brick_bytes = 2 * (LABEL_BRICK as usize).pow(3) * 2;
+        let e1 = paint(&mut l, 0, 1);
+        let e2 = paint(&mut l, 1, 2);
+        let (n1, n2) = (e1.changes.len(), e2.changes.len());
+        let mut h = History::new((n1 + n2) * brick_bytes - 1);
+        h.push(e1);
+        h.push(e2);
+        assert_eq!(h.undo_names().count(), 1, "the first edit was dropped");
+        assert_eq!(h.bytes(), n2 * brick_bytes);
+        let s1 = images(&l);
+        h.undo(&mut l);
+        assert_ne!(images(&l), s1);
+        assert!(h.undo(&mut l).is_none());
+        let mut tiny = History::new(10);
+        assert!(!tiny.push(paint(&mut l, 3, 1)));
+        assert!(!tiny.can_undo());
+    }
+}
