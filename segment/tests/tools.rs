@@ -2,6 +2,7 @@
 //! CPU models of the brush, scipy for region growing, numpy for statistics.
 
 mod tools {
+    pub mod bench;
     pub mod brush;
     #[allow(dead_code)] // shared by files that each use a part
     pub mod common;

@@ -49,7 +49,7 @@ pub fn fill_in_slice(
         seed,
         true,
         value_range.is_some(),
-        &|l, v| l == region_label && value_range.is_none_or(|r| r.contains(v)),
+        |l, v| l == region_label && value_range.is_none_or(|r| r.contains(v)),
         &mut |_| {},
     )?;
     let edit = layer.edit("Fill", |w| region.write(w, label))?;

@@ -2,9 +2,14 @@
 //! share.
 //!
 //! State is kept per brick (the voxels seen and accepted as bitsets, the labels and values when
-//! the test needs them), so memory grows with the bricks the region reaches, not the volume,
-//! and most neighbour steps stay inside the current brick without a lookup. The queue holds each
-//! accepted voxel once, so it is bounded by the voxel cap.
+//! the test needs them), so memory grows with the bricks the region reaches, not the volume.
+//! The flood drains one brick at a time: each brick has its own stack of accepted voxels still
+//! to expand (local 15-bit indices), and a step out of the brick pushes onto the neighbour's
+//! stack and queues that brick. A breadth-first queue over the whole volume instead walks a
+//! wavefront through every brick at once and misses the cache on almost every step (measured:
+//! about 10x slower on a 49 M voxel region). Each accepted voxel is pushed once, so the stacks
+//! are bounded by the voxel cap. The region found is the same connected set; under a cap, what
+//! is kept is connected to the seed but not a breadth-first ball.
 
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -12,7 +17,7 @@ use std::sync::Arc;
 
 use rustc_hash::FxHashMap;
 
-use crate::grid::{BrickKey, LabelGrid, LABEL_BRICK_VOXELS};
+use crate::grid::{BrickKey, LabelGrid, LABEL_BRICK, LABEL_BRICK_VOXELS};
 use crate::intensity::Intensity;
 use crate::layer::{EditWriter, LabelLayer};
 use crate::{Label, SegmentError};
@@ -29,6 +34,11 @@ pub(crate) struct FloodBrick {
     values: Option<Box<[f32]>>,
     seen: Box<[u64]>,
     pub accepted: Box<[u64]>,
+    /// Voxels inside the grid along i, j, k (a brick at the far edge is partly outside).
+    extent: [usize; 3],
+    /// Accepted voxels of this brick not yet expanded.
+    pending: Vec<u16>,
+    queued: bool,
 }
 
 /// A flood's inputs.
@@ -98,12 +108,18 @@ impl State<'_> {
             }
             _ => None,
         };
+        let origin = self.grid.brick_origin(key);
+        let dims = self.grid.dims();
+        let extent = [0, 1, 2].map(|a| (dims[a] - origin[a]).min(LABEL_BRICK) as usize);
         self.bricks.push(FloodBrick {
             key,
             labels,
             values,
             seen: vec![0; WORDS].into_boxed_slice(),
             accepted: vec![0; WORDS].into_boxed_slice(),
+            extent,
+            pending: Vec::new(),
+            queued: false,
         });
         self.index.insert(key, self.bricks.len() - 1);
         Ok(self.bricks.len() - 1)
@@ -114,12 +130,13 @@ impl State<'_> {
 /// are read only when `needs_labels` / `needs_values`; otherwise 0 and NaN are passed).
 /// `progress(voxels)` is called every [`PROGRESS_EVERY_VOXELS`]; the cancel flag ends it with
 /// [`SegmentError::Cancelled`].
-pub(crate) fn flood(
+pub(crate) fn flood<F: Fn(Label, f32) -> bool>(
     flood: &Flood<'_>,
     seed: [u32; 3],
     needs_labels: bool,
     needs_values: bool,
-    accept: &dyn Fn(Label, f32) -> bool,
+    // Generic, not `dyn`: the test runs for every neighbour of every voxel and must inline.
+    accept: F,
     progress: &mut dyn FnMut(u64),
 ) -> Result<FloodRegion, SegmentError> {
     let grid = flood.layer.grid();
@@ -142,17 +159,19 @@ pub(crate) fn flood(
         bricks: Vec::new(),
         index: FxHashMap::default(),
     };
-    let dims = grid.dims();
-    let mut queue: VecDeque<[u32; 3]> = VecDeque::new();
+    let b = LABEL_BRICK as usize;
+    // Local index steps along i, j, k.
+    let stride = [1usize, b, b * b];
+    let mut queue: VecDeque<usize> = VecDeque::new();
     let mut voxels = 0u64;
     let mut stopped_at_cap = false;
 
-    // Tests one voxel, marks it seen, and queues it when accepted; false once the cap is hit.
+    // Tests one voxel of a brick, marks it seen, and pushes it when accepted; false once the
+    // cap is hit (the voxel is then left unseen: the region is kept as it is).
     let visit = |state: &mut State<'_>,
-                 queue: &mut VecDeque<[u32; 3]>,
+                 queue: &mut VecDeque<usize>,
                  voxels: &mut u64,
                  brick_at: usize,
-                 voxel: [u32; 3],
                  at: usize|
      -> bool {
         let fb = &mut state.bricks[brick_at];
@@ -167,50 +186,84 @@ pub(crate) fn flood(
             return true;
         }
         if *voxels >= flood.max_voxels {
-            // Left unseen: the region is kept as it is and the caller is told it was cut.
             return false;
         }
         fb.seen[word] |= bit;
         fb.accepted[word] |= bit;
         *voxels += 1;
-        queue.push_back(voxel);
+        // A brick has 32³ = 2^15 voxels: a local index fits in u16.
+        fb.pending.push(at as u16);
+        if !fb.queued {
+            fb.queued = true;
+            queue.push_back(brick_at);
+        }
         true
     };
 
     let (key, at) = grid.brick_of(seed);
     let seed_brick = state.brick(key)?;
-    if !visit(&mut state, &mut queue, &mut voxels, seed_brick, seed, at) {
+    if !visit(&mut state, &mut queue, &mut voxels, seed_brick, at) {
         stopped_at_cap = true;
     }
     let mut reported = 0u64;
-    'flood: while let Some(voxel) = queue.pop_front() {
-        if voxels >= reported + PROGRESS_EVERY_VOXELS {
-            reported = voxels;
-            progress(voxels);
-            if flood.cancel.is_some_and(|c| c.load(Ordering::Relaxed)) {
-                return Err(SegmentError::Cancelled);
-            }
-        }
-        let (key, _) = grid.brick_of(voxel);
-        let here = state.brick(key)?;
-        for &axis in flood.axes {
-            for step in [-1i64, 1] {
-                let n = i64::from(voxel[axis]) + step;
-                if n < 0 || n >= i64::from(dims[axis]) {
-                    continue;
+    'flood: while let Some(here) = queue.pop_front() {
+        state.bricks[here].queued = false;
+        let key = state.bricks[here].key;
+        let extent = state.bricks[here].extent;
+        while let Some(at) = state.bricks[here].pending.pop() {
+            if voxels >= reported + PROGRESS_EVERY_VOXELS {
+                reported = voxels;
+                progress(voxels);
+                if flood.cancel.is_some_and(|c| c.load(Ordering::Relaxed)) {
+                    return Err(SegmentError::Cancelled);
                 }
-                let mut next = voxel;
-                next[axis] = n as u32;
-                let (next_key, next_at) = grid.brick_of(next);
-                // Most steps stay in the brick: no lookup then.
-                let brick_at = if next_key == key {
-                    here
-                } else {
-                    state.brick(next_key)?
-                };
-                if !visit(&mut state, &mut queue, &mut voxels, brick_at, next, next_at) {
-                    stopped_at_cap = true;
-                    break 'flood;
+            }
+            let at = usize::from(at);
+            let local = [at % b, (at / b) % b, at / (b * b)];
+            for &axis in flood.axes {
+                for up in [false, true] {
+                    let inside = if up {
+                        local[axis] + 1 < extent[axis]
+                    } else {
+                        local[axis] > 0
+                    };
+                    let ok = if inside {
+                        // Most steps stay in the brick: no lookup then.
+                        let next = if up {
+                            at + stride[axis]
+                        } else {
+                            at - stride[axis]
+                        };
+                        visit(&mut state, &mut queue, &mut voxels, here, next)
+                    } else {
+                        let mut next_key = key.0;
+                        let next_local = if up {
+                            if local[axis] + 1 < b {
+                                continue; // the grid ends inside this brick
+                            }
+                            next_key[axis] += 1;
+                            0
+                        } else {
+                            if next_key[axis] == 0 {
+                                continue;
+                            }
+                            next_key[axis] -= 1;
+                            b - 1
+                        };
+                        let next_key = BrickKey(next_key);
+                        if !grid.contains(grid.brick_origin(next_key).map(i64::from)) {
+                            continue;
+                        }
+                        let mut l = local;
+                        l[axis] = next_local;
+                        let next_at = l[0] + b * (l[1] + b * l[2]);
+                        let there = state.brick(next_key)?;
+                        visit(&mut state, &mut queue, &mut voxels, there, next_at)
+                    };
+                    if !ok {
+                        stopped_at_cap = true;
+                        break 'flood;
+                    }
                 }
             }
         }

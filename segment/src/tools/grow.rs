@@ -99,7 +99,7 @@ pub fn grow_from_seed(
         seed,
         any_locked,
         true,
-        &|l, v| range.contains(v) && !segments.is_locked(l),
+        |l, v| range.contains(v) && !segments.is_locked(l),
         progress,
     )?;
     let edit = layer.edit("Grow from seed", |w| region.write(w, label))?;
