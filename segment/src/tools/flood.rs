@@ -13,7 +13,6 @@
 
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
 
 use rustc_hash::FxHashMap;
 
@@ -27,12 +26,13 @@ pub const PROGRESS_EVERY_VOXELS: u64 = 1 << 16;
 
 const WORDS: usize = LABEL_BRICK_VOXELS / 64;
 
-/// What a flood needs per brick.
+/// What a flood needs per brick: 8 KiB, whatever the volume's type.
 pub(crate) struct FloodBrick {
     pub key: BrickKey,
-    labels: Option<Arc<[Label]>>,
-    values: Option<Box<[f32]>>,
-    seen: Box<[u64]>,
+    /// The voxels the test admits (inside the grid only), evaluated once for the whole brick
+    /// when the flood first reaches it: a tight loop the compiler vectorises, after which the
+    /// labels and values are dropped and every step is a bit test in 4 KiB.
+    eligible: Box<[u64]>,
     pub accepted: Box<[u64]>,
     /// Voxels inside the grid along i, j, k (a brick at the far edge is partly outside).
     extent: [usize; 3],
@@ -69,6 +69,11 @@ impl FloodRegion {
             }
             let work = w.brick_mut(b.key)?;
             for (word_at, &word) in b.accepted.iter().enumerate() {
+                if word == u64::MAX {
+                    // Inside a large region whole words are taken: one fill, not 64 writes.
+                    work[word_at * 64..word_at * 64 + 64].fill(label);
+                    continue;
+                }
                 let mut bits = word;
                 while bits != 0 {
                     let at = word_at * 64 + bits.trailing_zeros() as usize;
@@ -81,8 +86,9 @@ impl FloodRegion {
     }
 }
 
-struct State<'a> {
+struct State<'a, F> {
     flood: &'a Flood<'a>,
+    accept: &'a F,
     grid: &'a LabelGrid,
     needs_labels: bool,
     needs_values: bool,
@@ -90,7 +96,7 @@ struct State<'a> {
     index: FxHashMap<BrickKey, usize>,
 }
 
-impl State<'_> {
+impl<F: Fn(Label, f32) -> bool> State<'_, F> {
     fn brick(&mut self, key: BrickKey) -> Result<usize, SegmentError> {
         if let Some(&at) = self.index.get(&key) {
             return Ok(at);
@@ -111,11 +117,25 @@ impl State<'_> {
         let origin = self.grid.brick_origin(key);
         let dims = self.grid.dims();
         let extent = [0, 1, 2].map(|a| (dims[a] - origin[a]).min(LABEL_BRICK) as usize);
+        let b = LABEL_BRICK as usize;
+        let mut eligible = vec![0u64; WORDS].into_boxed_slice();
+        for lk in 0..extent[2] {
+            for lj in 0..extent[1] {
+                let row = b * (lj + b * lk);
+                let mut bits = 0u64;
+                for li in 0..extent[0] {
+                    let at = row + li;
+                    let label = labels.as_ref().map_or(0, |l| l[at]);
+                    let value = values.as_ref().map_or(f32::NAN, |v| v[at]);
+                    bits |= u64::from((self.accept)(label, value)) << li;
+                }
+                // A row of 32 voxels is half a word.
+                eligible[row / 64] |= bits << (row % 64);
+            }
+        }
         self.bricks.push(FloodBrick {
             key,
-            labels,
-            values,
-            seen: vec![0; WORDS].into_boxed_slice(),
+            eligible,
             accepted: vec![0; WORDS].into_boxed_slice(),
             extent,
             pending: Vec::new(),
@@ -153,6 +173,7 @@ pub(crate) fn flood<F: Fn(Label, f32) -> bool>(
     }
     let mut state = State {
         flood,
+        accept: &accept,
         grid,
         needs_labels,
         needs_values,
@@ -168,7 +189,7 @@ pub(crate) fn flood<F: Fn(Label, f32) -> bool>(
 
     // Tests one voxel of a brick, marks it seen, and pushes it when accepted; false once the
     // cap is hit (the voxel is then left unseen: the region is kept as it is).
-    let visit = |state: &mut State<'_>,
+    let visit = |state: &mut State<'_, F>,
                  queue: &mut VecDeque<usize>,
                  voxels: &mut u64,
                  brick_at: usize,
@@ -176,19 +197,14 @@ pub(crate) fn flood<F: Fn(Label, f32) -> bool>(
      -> bool {
         let fb = &mut state.bricks[brick_at];
         let (word, bit) = (at / 64, 1u64 << (at % 64));
-        if fb.seen[word] & bit != 0 {
-            return true;
-        }
-        let label = fb.labels.as_ref().map_or(0, |l| l[at]);
-        let value = fb.values.as_ref().map_or(f32::NAN, |v| v[at]);
-        if !accept(label, value) {
-            fb.seen[word] |= bit;
+        // Eligible and not yet taken: every eligible voxel reached is taken, so "taken" is
+        // also "seen".
+        if fb.eligible[word] & !fb.accepted[word] & bit == 0 {
             return true;
         }
         if *voxels >= flood.max_voxels {
             return false;
         }
-        fb.seen[word] |= bit;
         fb.accepted[word] |= bit;
         *voxels += 1;
         // A brick has 32³ = 2^15 voxels: a local index fits in u16.
