@@ -1,13 +1,13 @@
 //! Flood over voxels brick by brick: what the slice fill, region growing and island removal
 //! share.
 //!
-//! State is kept per brick (the voxels seen and accepted as bitsets, the labels and values when
-//! the test needs them), so memory grows with the bricks the region reaches, not the volume.
+//! State is kept per brick (which voxels the test admits and which were taken, as bitsets: 8 KiB),
+//! so memory grows with the bricks the region reaches, not the volume.
 //! The flood drains one brick at a time: each brick has its own stack of accepted voxels still
 //! to expand (local 15-bit indices), and a step out of the brick pushes onto the neighbour's
 //! stack and queues that brick. A breadth-first queue over the whole volume instead walks a
-//! wavefront through every brick at once and misses the cache on almost every step (measured:
-//! about 10x slower on a 49 M voxel region). Each accepted voxel is pushed once, so the stacks
+//! wavefront through every brick at once and misses the cache on almost every step (on a
+//! 49 M voxel region of a 512³ volume: 28.9 s against 7.6 s wall, on a loaded 2-core machine). Each accepted voxel is pushed once, so the stacks
 //! are bounded by the voxel cap. The region found is the same connected set; under a cap, what
 //! is kept is connected to the seed but not a breadth-first ball.
 

@@ -248,11 +248,14 @@ pub fn combine(
             if l == 0 {
                 return Err(SegmentError::NoSuchSegment(0));
             }
-            if other.grid().dims() != layer.grid().dims() {
+            // Same dims on another placement would pair voxels that are not the same place.
+            if other.grid() != layer.grid() {
                 return Err(SegmentError::Grid(format!(
-                    "the operand's grid {:?} is not the target's {:?}",
+                    "the operand's grid ({:?} voxels, {:?} mm) is not the target's ({:?}, {:?})",
                     other.grid().dims(),
-                    layer.grid().dims()
+                    other.grid().geometry().spacing_mm,
+                    layer.grid().dims(),
+                    layer.grid().geometry().spacing_mm
                 )));
             }
             (Some(other), l)

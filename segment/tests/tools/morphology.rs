@@ -292,6 +292,16 @@ fn logical_operations_act_on_the_masks_and_respect_locks() {
             .collect();
         assert_eq!(all_labels(&layer), want, "{op:?}");
     }
+    // An operand on another grid is refused.
+    let elsewhere = layer_from(&VolumeGeometry::axis_aligned(dims, [0.5; 3]), &[(&b, 1)]);
+    let mut layer = layer_from(&g, &[(&a_only, 1)]);
+    assert!(combine(
+        &mut layer,
+        1,
+        LogicalOp::Union,
+        Operand::Other(&elsewhere, 1)
+    )
+    .is_err());
     // Within one layer a union moves the operand's voxels into the target.
     let b_only: Vec<bool> = b.iter().zip(&a).map(|(&x, &y)| x && !y).collect();
     let mut layer = layer_from(&g, &[(&a, 1), (&b_only, 2)]);
