@@ -8,13 +8,42 @@
 
 use std::collections::VecDeque;
 
-use crate::grid::LABEL_BRICK_VOXELS;
-use crate::layer::{Edit, LabelLayer};
+use rustc_hash::FxHashMap;
+
+use crate::grid::{BrickKey, LABEL_BRICK_VOXELS};
+use crate::layer::{BrickChange, Edit, LabelLayer};
 use crate::Label;
 
 /// Bytes an edit's brick images take (before and after).
 pub fn edit_bytes(edit: &Edit) -> usize {
     edit.changes.len() * 2 * LABEL_BRICK_VOXELS * size_of::<Label>()
+}
+
+/// Successive edits (in the order they were applied) as one: each brick's image before the first
+/// and after the last; bricks that ended as they began are left out (`None` when all did). This
+/// is how a stroke shown as it is drawn, one edit per pointer event, becomes one undo step.
+pub fn merge_edits(name: &str, edits: impl IntoIterator<Item = Edit>) -> Option<Edit> {
+    let mut merged: FxHashMap<BrickKey, BrickChange> = FxHashMap::default();
+    for edit in edits {
+        for change in edit.changes {
+            merged
+                .entry(change.key)
+                .and_modify(|m| m.after = change.after.clone())
+                .or_insert(change);
+        }
+    }
+    let mut changes: Vec<BrickChange> = merged
+        .into_values()
+        .filter(|c| c.before[..] != c.after[..])
+        .collect();
+    if changes.is_empty() {
+        return None;
+    }
+    changes.sort_by_key(|c| c.key);
+    Some(Edit {
+        name: name.to_owned(),
+        changes,
+    })
 }
 
 /// The undo and redo lists of one layer.
@@ -163,6 +192,40 @@ mod tests {
         h.push(e);
         assert!(!h.can_redo(), "a new edit clears redo");
         assert_eq!(h.undo_names().count(), 2);
+    }
+
+    #[test]
+    fn merged_edits_undo_to_the_first_image_and_redo_to_the_last() {
+        let mut l = layer();
+        let s0 = images(&l);
+        let edits = vec![
+            paint(&mut l, 0, 1),
+            paint(&mut l, 5, 2),
+            paint(&mut l, 30, 1),
+        ];
+        let s3 = images(&l);
+        let merged = merge_edits("stroke", edits).unwrap();
+        let mut h = History::new(usize::MAX);
+        h.push(merged);
+        assert_eq!(h.undo(&mut l), Some("stroke"));
+        assert_eq!(images(&l), s0);
+        h.redo(&mut l);
+        assert_eq!(images(&l), s3);
+        // An edit and its inverse merge to nothing.
+        let e = paint(&mut l, 2, 2);
+        let inverse = Edit {
+            name: "inverse".into(),
+            changes: e
+                .changes
+                .iter()
+                .map(|c| BrickChange {
+                    key: c.key,
+                    before: c.after.clone(),
+                    after: c.before.clone(),
+                })
+                .collect(),
+        };
+        assert!(merge_edits("none", [e, inverse]).is_none());
     }
 
     #[test]
