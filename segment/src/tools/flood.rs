@@ -3,13 +3,16 @@
 //!
 //! State is kept per brick (which voxels the test admits and which were taken, as bitsets: 8 KiB),
 //! so memory grows with the bricks the region reaches, not the volume.
-//! The flood drains one brick at a time: each brick has its own stack of accepted voxels still
-//! to expand (local 15-bit indices), and a step out of the brick pushes onto the neighbour's
-//! stack and queues that brick. A breadth-first queue over the whole volume instead walks a
-//! wavefront through every brick at once and misses the cache on almost every step (on a
-//! 49 M voxel region of a 512³ volume: 28.9 s against 7.6 s wall, on a loaded 2-core machine). Each accepted voxel is pushed once, so the stacks
-//! are bounded by the voxel cap. The region found is the same connected set; under a cap, what
-//! is kept is connected to the seed but not a breadth-first ball.
+//! The flood drains one brick at a time and works on rows of 32 voxels along i as bit masks: an
+//! offered row takes the admitted runs along i that touch the offer (a few shifts), then passes
+//! its taken bits to the rows beside it along j and k, and runs reaching a face to the brick
+//! beside it. A voxel-by-voxel breadth-first queue over the whole volume instead walks a
+//! wavefront through every brick at once and misses the cache on almost every step (on a 49 M
+//! voxel region of a 512³ volume, on a loaded 2-core machine: BFS 28.9 s wall, voxel stacks per
+//! brick 7.6 s wall / 2.9 s CPU, rows 3.5 s wall / 1.2 s CPU). Work lists hold rows, each taken
+//! voxel is counted once, and the cap is checked as bits are taken: under a cap, what is kept
+//! is connected to the seed (taken runs grow one voxel at a time at the end) but is not a
+//! breadth-first ball.
 
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -34,10 +37,10 @@ pub(crate) struct FloodBrick {
     /// labels and values are dropped and every step is a bit test in 4 KiB.
     eligible: Box<[u64]>,
     pub accepted: Box<[u64]>,
-    /// Voxels inside the grid along i, j, k (a brick at the far edge is partly outside).
-    extent: [usize; 3],
-    /// Accepted voxels of this brick not yet expanded.
+    /// Rows (j + 32·k) that took voxels not yet passed on to their neighbour rows.
     pending: Vec<u16>,
+    /// Voxels offered by neighbour bricks: (row, bits along i).
+    incoming: Vec<(u16, u32)>,
     queued: bool,
 }
 
@@ -137,12 +140,42 @@ impl<F: Fn(Label, f32) -> bool> State<'_, F> {
             key,
             eligible,
             accepted: vec![0; WORDS].into_boxed_slice(),
-            extent,
             pending: Vec::new(),
+            incoming: Vec::new(),
             queued: false,
         });
         self.index.insert(key, self.bricks.len() - 1);
         Ok(self.bricks.len() - 1)
+    }
+}
+
+/// Row `row` (32 voxels along i) of a brick's bitset: rows are half words.
+fn row_bits(words: &[u64], row: usize) -> u32 {
+    (words[row / 2] >> ((row % 2) * 32)) as u32
+}
+
+fn or_row(words: &mut [u64], row: usize, bits: u32) {
+    words[row / 2] |= u64::from(bits) << ((row % 2) * 32);
+}
+
+/// The `n` lowest set bits of `bits`.
+fn lowest_bits(bits: u32, n: u32) -> u32 {
+    let mut out = 0;
+    let mut rest = bits;
+    for _ in 0..n.min(bits.count_ones()) {
+        let low = rest & rest.wrapping_neg();
+        out |= low;
+        rest &= !low;
+    }
+    out
+}
+
+/// Offers voxels of a row to a brick from outside it, queueing the brick.
+fn offer(fb: &mut FloodBrick, queue: &mut VecDeque<usize>, at: usize, row: u16, bits: u32) {
+    fb.incoming.push((row, bits));
+    if !fb.queued {
+        fb.queued = true;
+        queue.push_back(at);
     }
 }
 
@@ -181,52 +214,24 @@ pub(crate) fn flood<F: Fn(Label, f32) -> bool>(
         index: FxHashMap::default(),
     };
     let b = LABEL_BRICK as usize;
-    // Local index steps along i, j, k.
-    let stride = [1usize, b, b * b];
+    let along = [0, 1, 2].map(|a| flood.axes.contains(&a));
     let mut queue: VecDeque<usize> = VecDeque::new();
     let mut voxels = 0u64;
     let mut stopped_at_cap = false;
 
-    // Tests one voxel of a brick, marks it seen, and pushes it when accepted; false once the
-    // cap is hit (the voxel is then left unseen: the region is kept as it is).
-    let visit = |state: &mut State<'_, F>,
-                 queue: &mut VecDeque<usize>,
-                 voxels: &mut u64,
-                 brick_at: usize,
-                 at: usize|
-     -> bool {
-        let fb = &mut state.bricks[brick_at];
-        let (word, bit) = (at / 64, 1u64 << (at % 64));
-        // Eligible and not yet taken: every eligible voxel reached is taken, so "taken" is
-        // also "seen".
-        if fb.eligible[word] & !fb.accepted[word] & bit == 0 {
-            return true;
-        }
-        if *voxels >= flood.max_voxels {
-            return false;
-        }
-        fb.accepted[word] |= bit;
-        *voxels += 1;
-        // A brick has 32³ = 2^15 voxels: a local index fits in u16.
-        fb.pending.push(at as u16);
-        if !fb.queued {
-            fb.queued = true;
-            queue.push_back(brick_at);
-        }
-        true
-    };
-
     let (key, at) = grid.brick_of(seed);
     let seed_brick = state.brick(key)?;
-    if !visit(&mut state, &mut queue, &mut voxels, seed_brick, at) {
-        stopped_at_cap = true;
-    }
+    state.bricks[seed_brick]
+        .incoming
+        .push(((at / b) as u16, 1u32 << (at % b)));
+    state.bricks[seed_brick].queued = true;
+    queue.push_back(seed_brick);
     let mut reported = 0u64;
     'flood: while let Some(here) = queue.pop_front() {
         state.bricks[here].queued = false;
         let key = state.bricks[here].key;
-        let extent = state.bricks[here].extent;
-        while let Some(at) = state.bricks[here].pending.pop() {
+        // Offers from outside, then the rows that grew, until this brick is quiet.
+        loop {
             if voxels >= reported + PROGRESS_EVERY_VOXELS {
                 reported = voxels;
                 progress(voxels);
@@ -234,53 +239,127 @@ pub(crate) fn flood<F: Fn(Label, f32) -> bool>(
                     return Err(SegmentError::Cancelled);
                 }
             }
-            let at = usize::from(at);
-            let local = [at % b, (at / b) % b, at / (b * b)];
-            for &axis in flood.axes {
-                for up in [false, true] {
-                    let inside = if up {
-                        local[axis] + 1 < extent[axis]
-                    } else {
-                        local[axis] > 0
-                    };
-                    let ok = if inside {
-                        // Most steps stay in the brick: no lookup then.
-                        let next = if up {
-                            at + stride[axis]
-                        } else {
-                            at - stride[axis]
-                        };
-                        visit(&mut state, &mut queue, &mut voxels, here, next)
-                    } else {
+            let fb = &mut state.bricks[here];
+            let (row, bits) = if let Some(offer) = fb.incoming.pop() {
+                offer
+            } else if let Some(row) = fb.pending.pop() {
+                // Pass the row's voxels on to the rows beside it along j and k.
+                let taken = row_bits(&fb.accepted, usize::from(row));
+                let (lj, lk) = (usize::from(row) % b, usize::from(row) / b);
+                for (axis, local) in [(1usize, lj), (2, lk)] {
+                    if !along[axis] {
+                        continue;
+                    }
+                    let step = if axis == 1 { 1 } else { b };
+                    for up in [false, true] {
+                        let inside = if up { local + 1 < b } else { local > 0 };
+                        if inside {
+                            let next = if up {
+                                row as usize + step
+                            } else {
+                                row as usize - step
+                            };
+                            state.bricks[here].incoming.push((next as u16, taken));
+                            continue;
+                        }
                         let mut next_key = key.0;
-                        let next_local = if up {
-                            if local[axis] + 1 < b {
-                                continue; // the grid ends inside this brick
-                            }
+                        if up {
                             next_key[axis] += 1;
-                            0
+                        } else if next_key[axis] == 0 {
+                            continue;
                         } else {
-                            if next_key[axis] == 0 {
-                                continue;
-                            }
                             next_key[axis] -= 1;
-                            b - 1
-                        };
+                        }
                         let next_key = BrickKey(next_key);
                         if !grid.contains(grid.brick_origin(next_key).map(i64::from)) {
                             continue;
                         }
-                        let mut l = local;
-                        l[axis] = next_local;
-                        let next_at = l[0] + b * (l[1] + b * l[2]);
+                        let next = if up {
+                            row as usize - (b - 1) * step
+                        } else {
+                            row as usize + (b - 1) * step
+                        };
                         let there = state.brick(next_key)?;
-                        visit(&mut state, &mut queue, &mut voxels, there, next_at)
-                    };
-                    if !ok {
-                        stopped_at_cap = true;
-                        break 'flood;
+                        offer(
+                            &mut state.bricks[there],
+                            &mut queue,
+                            there,
+                            next as u16,
+                            taken,
+                        );
                     }
                 }
+                continue;
+            } else {
+                break;
+            };
+            // Take the offered voxels that are admitted and new, and the runs along i they
+            // belong to (only up to the cap, keeping what is taken connected).
+            let row = usize::from(row);
+            let admitted = row_bits(&fb.eligible, row);
+            let old = row_bits(&fb.accepted, row);
+            let mut taken = bits & admitted & !old;
+            if taken == 0 {
+                continue;
+            }
+            let room = flood.max_voxels - voxels;
+            if u64::from(taken.count_ones()) > room {
+                taken = lowest_bits(taken, room as u32);
+                stopped_at_cap = true;
+            } else if along[0] {
+                loop {
+                    let grown = (taken | (taken << 1) | (taken >> 1)) & admitted & !old;
+                    let added = grown & !taken;
+                    if added == 0 {
+                        break;
+                    }
+                    let left = room - u64::from(taken.count_ones());
+                    if u64::from(added.count_ones()) > left {
+                        // Each added voxel touches the taken ones: any of them keeps it connected.
+                        taken |= lowest_bits(added, left as u32);
+                        stopped_at_cap = true;
+                        break;
+                    }
+                    taken = grown;
+                }
+            }
+            if taken == 0 {
+                break 'flood;
+            }
+            or_row(&mut fb.accepted, row, taken);
+            voxels += u64::from(taken.count_ones());
+            fb.pending.push(row as u16);
+            if along[0] {
+                // Runs that reach the brick's faces along i go on in the bricks beside it.
+                for (bit, up) in [(0u32, false), (31, true)] {
+                    if taken & (1 << bit) == 0 {
+                        continue;
+                    }
+                    let mut next_key = key.0;
+                    if up {
+                        next_key[0] += 1;
+                    } else if next_key[0] == 0 {
+                        continue;
+                    } else {
+                        next_key[0] -= 1;
+                    }
+                    let next_key = BrickKey(next_key);
+                    if !grid.contains(grid.brick_origin(next_key).map(i64::from)) {
+                        continue;
+                    }
+                    let there = state.brick(next_key)?;
+                    let bits = if up { 1 } else { 1 << 31 };
+                    offer(
+                        &mut state.bricks[there],
+                        &mut queue,
+                        there,
+                        row as u16,
+                        bits,
+                    );
+                }
+            }
+            if stopped_at_cap {
+                break 'flood;
             }
         }
     }

@@ -263,6 +263,29 @@ fn a_slice_fill_takes_the_inside_of_a_ring_and_nothing_in_other_slices() {
     assert_eq!(out.voxels, 17 * 6);
     assert_eq!(layer.get([16, 20, 5]).unwrap(), a);
     assert_eq!(layer.get([33, 20, 5]).unwrap(), 0);
+    // The sagittal slice through the centre (steps along j and k only): inside the ring,
+    // |j − 20| < 6, for k below 3: row k = 3 was filled with a above and cuts the region off
+    // from k = 4 and 5.
+    let fresh = |layer: &LabelLayer| layer.get([24, 20, 0]).unwrap();
+    assert_eq!(fresh(&layer), 0);
+    let out = fill_in_slice(
+        &mut layer,
+        &SlicePlane::Sagittal,
+        [24, 20, 0],
+        ring,
+        None,
+        None,
+        u64::MAX,
+    )
+    .unwrap();
+    assert_eq!(out.voxels, 11 * 3);
+    assert_eq!(layer.get([24, 25, 2]).unwrap(), ring);
+    assert_eq!(layer.get([24, 25, 4]).unwrap(), 0);
+    assert_eq!(
+        layer.get([25, 20, 0]).unwrap(),
+        0,
+        "nothing outside the sagittal slice"
+    );
     assert!(fill_in_slice(
         &mut layer,
         &SlicePlane::Oblique {
