@@ -1,5 +1,4 @@
-//! Flood over voxels brick by brick: what the slice fill, region growing and island removal
-//! share.
+//! Flood over voxels brick by brick: what the slice fill and region growing share.
 //!
 //! State is kept per brick (which voxels the test admits and which were taken, as bitsets: 8 KiB),
 //! so memory grows with the bricks the region reaches, not the volume.
