@@ -361,12 +361,7 @@ impl Pipelines {
         in_background: bool,
         previous: Option<PipelineKey>,
     ) -> PipelineKey {
-        if let Some(compiler) = self.compiler.as_mut() {
-            while let Ok((key, pipeline)) = compiler.results.try_recv() {
-                compiler.pending.remove(&key);
-                self.compiled.entry(key).or_insert(pipeline);
-            }
-        }
+        self.take_background_results();
         if self.compiled.contains_key(&wanted) {
             return wanted;
         }
@@ -385,6 +380,31 @@ impl Pipelines {
         }
         let _ = self.get_or_build(device, wanted);
         wanted
+    }
+
+    /// Keeps what the compiler thread has finished.
+    fn take_background_results(&mut self) {
+        if let Some(compiler) = self.compiler.as_mut() {
+            while let Ok((key, pipeline)) = compiler.results.try_recv() {
+                compiler.pending.remove(&key);
+                self.compiled.entry(key).or_insert(pipeline);
+            }
+        }
+    }
+
+    /// Whether `key` is compiled; if not, queues it on the compiler thread and answers false,
+    /// so a caller that can wait polls (and stays cancellable) rather than blocking in a
+    /// compile. Where no thread can be lent (wasm32) it compiles now and answers true.
+    pub(crate) fn ready_or_queued(&mut self, device: &wgpu::Device, key: PipelineKey) -> bool {
+        self.take_background_results();
+        if self.compiled.contains_key(&key) {
+            return true;
+        }
+        if self.request_background_compile(device, key) {
+            return false;
+        }
+        let _ = self.get_or_build(device, key);
+        true
     }
 
     /// Queues `key` on the compiler thread (started on first use). False if the thread

@@ -465,6 +465,23 @@ impl Raycaster {
         }
     }
 
+    /// Whether the pipelines a frame with `settings` draws with are compiled; those that are not
+    /// go to the compiler thread and the answer is false. An export polls this between checks
+    /// of its Cancel: with every cinematic effect on, one compile takes minutes on a CPU
+    /// adapter, and [`Raycaster::prepare`] would block for all of it (issue 47).
+    pub fn prepare_in_background(&mut self, ctx: &GpuContext, settings: &RenderSettings) -> bool {
+        let key = self.key_for(settings);
+        let mut ready = self.pipelines.ready_or_queued(&ctx.device, key);
+        if key.smooth_transitions {
+            let without = PipelineKey {
+                smooth_transitions: false,
+                ..key
+            };
+            ready &= self.pipelines.ready_or_queued(&ctx.device, without);
+        }
+        ready
+    }
+
     /// The effects a frame with `settings` compiles in (see [`PipelineKey`]).
     pub fn key_for(&self, settings: &RenderSettings) -> PipelineKey {
         let overlay = self.overlay.active();

@@ -183,20 +183,20 @@ pub fn show(ui: &mut egui::Ui, clock: &FrameClock, figures: &PerformanceFigures<
         .num_columns(2)
         .show(ui, |ui| {
             if let Some(ms) = figures.gpu_frame_ms {
-                ui.label("GPU time (raycast)");
+                name_cell(ui, "GPU time (raycast)");
                 ui.label(format!("{ms:.2} ms"));
                 ui.end_row();
             }
-            ui.label("Sampling rate");
+            name_cell(ui, "Sampling rate");
             ui.label(format!("{:.2} samples/voxel", figures.sampling_rate));
             ui.end_row();
-            ui.label("Quality (lod) factor");
+            name_cell(ui, "Quality (lod) factor");
             ui.label(format!("{:.1}", figures.lod_factor));
             ui.end_row();
             if let Some(l) = figures.loader {
                 loader_rows(ui, l, figures.traversal);
             }
-            ui.label("Finest level on GPU");
+            name_cell(ui, "Finest level on GPU");
             ui.label(figures.finest_resident_level.map_or("—".into(), |l| {
                 format!(
                     "{l} (0 = full resolution; root {})",
@@ -204,7 +204,7 @@ pub fn show(ui: &mut egui::Ui, clock: &FrameClock, figures: &PerformanceFigures<
                 )
             }));
             ui.end_row();
-            ui.label("Volume frames");
+            name_cell(ui, "Volume frames");
             ui.label(figures.frames_rendered.to_string());
             ui.end_row();
         });
@@ -226,9 +226,16 @@ pub fn show(ui: &mut egui::Ui, clock: &FrameClock, figures: &PerformanceFigures<
     }
 }
 
+/// A figure's name in the grid's first column: on one line, never wrapped. In a narrow side
+/// panel the value column took the width and the names wrapped letter by letter (issue 47);
+/// the values wrap at their spaces instead.
+fn name_cell(ui: &mut egui::Ui, name: &str) {
+    ui.add(egui::Label::new(name).extend());
+}
+
 /// The loader's rows of the figures grid.
 fn loader_rows(ui: &mut egui::Ui, l: &FrameStats, traversal: Option<&str>) {
-    ui.label("GPU bricks per level");
+    name_cell(ui, "GPU bricks per level");
     let per_level: Vec<String> = l
         .gpu_resident_per_level
         .iter()
@@ -238,7 +245,7 @@ fn loader_rows(ui: &mut egui::Ui, l: &FrameStats, traversal: Option<&str>) {
         .collect();
     ui.label(per_level.join("  "));
     ui.end_row();
-    ui.label("GPU cache");
+    name_cell(ui, "GPU cache");
     ui.label(format!(
         "{} / {} slots · {:.0} / {:.0} MiB",
         l.gpu_slots_used,
@@ -248,11 +255,11 @@ fn loader_rows(ui: &mut egui::Ui, l: &FrameStats, traversal: Option<&str>) {
     ));
     ui.end_row();
     if let Some(traversal) = traversal {
-        ui.label("Traversal");
+        name_cell(ui, "Traversal");
         ui.label(traversal);
         ui.end_row();
     }
-    ui.label("CPU cache");
+    name_cell(ui, "CPU cache");
     ui.label(format!(
         "{:.0} / {:.0} MiB · hit {:.0}%",
         l.cpu_bytes as f64 / MIB,
@@ -260,10 +267,10 @@ fn loader_rows(ui: &mut egui::Ui, l: &FrameStats, traversal: Option<&str>) {
         l.cpu_hit_rate * 100.0
     ));
     ui.end_row();
-    ui.label("Pending loads");
+    name_cell(ui, "Pending loads");
     ui.label(format!("{} ({} reading)", l.pending, l.in_flight));
     ui.end_row();
-    ui.label("I/O");
+    name_cell(ui, "I/O");
     ui.label(format!(
         "{:.1} MB/s · {} bricks read",
         l.bytes_read_per_second / 1e6,
@@ -271,7 +278,7 @@ fn loader_rows(ui: &mut egui::Ui, l: &FrameStats, traversal: Option<&str>) {
     ));
     ui.end_row();
     // LOD flicker: cut changes while the view stood still (0 when still is still; issue 35).
-    ui.label("Cut changes while still");
+    name_cell(ui, "Cut changes while still");
     ui.label(l.cut_changes_while_still_total.to_string());
     ui.end_row();
 }

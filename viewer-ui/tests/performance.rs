@@ -101,3 +101,48 @@ fn without_a_loader_or_gpu_time_those_rows_are_absent_and_a_final_view_says_conv
     // No volume frame yet: a dash, never the mean of nothing ("NaN ms", issue 47).
     h.get_by_label("UI frame 20.0 ms · volume frame —");
 }
+
+/// Issue 47: in a narrow panel the figures' names wrapped letter by letter (the values took
+/// the width). Each name stays on one line: its height is one row's, as a short name's is.
+#[test]
+fn in_a_narrow_panel_every_figures_name_stays_on_one_line() {
+    let clock = clock();
+    let stats = loader_stats();
+    let mut h = Harness::builder()
+        .with_size(egui::Vec2::new(180.0, 900.0))
+        .build_ui(move |ui| {
+            performance::show(
+                ui,
+                &clock,
+                &PerformanceFigures {
+                    adapter: "llvmpipe (LLVM 19.1.7, 256 bits)",
+                    volume_frame_ms: vec![[0.1, 10.0]],
+                    gpu_frame_ms: Some(3.25),
+                    sampling_rate: 1.5,
+                    lod_factor: 2.0,
+                    loader: Some(&stats),
+                    traversal: Some("octree (sparse page table)"),
+                    finest_resident_level: Some(1),
+                    level_count: 4,
+                    frames_rendered: 17,
+                    working: None,
+                },
+            )
+        });
+    h.run();
+    let one_row = h.get_by_label("Traversal").rect().height();
+    for name in [
+        "GPU time (raycast)",
+        "Sampling rate",
+        "Quality (lod) factor",
+        "Finest level on GPU",
+        "GPU bricks per level",
+        "Cut changes while still",
+    ] {
+        let height = h.get_by_label(name).rect().height();
+        assert!(
+            height < one_row * 1.5,
+            "{name:?} wrapped: {height} points high, one row is {one_row}"
+        );
+    }
+}

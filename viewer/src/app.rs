@@ -12,7 +12,7 @@ use strata_render::{CropBox, RenderMode, TransferFunction};
 
 use super::dialogs::{HelpWindow, OpenDialog};
 use super::history::History;
-use super::jobs::{PrepareJob, VolumeSource};
+use super::jobs::{PrepareJob, VolumeToOpen};
 use super::links::{self, DesktopView};
 use super::measurements::Measurements;
 use super::oblique_view::{AlignTarget, ObliqueViewer};
@@ -33,7 +33,7 @@ use strata_viewer_ui::tf_editor::TfEditorState;
 /// How the viewer was started (command line, tests).
 #[derive(Clone, Debug)]
 pub struct ViewerOptions {
-    pub source: VolumeSource,
+    pub source: VolumeToOpen,
     pub dicom_series: Option<String>,
     pub window_size: [f32; 2],
     /// Close the window after this many seconds (smoke tests, measurements).
@@ -59,7 +59,7 @@ pub struct ViewerOptions {
 }
 
 impl ViewerOptions {
-    pub fn new(source: VolumeSource) -> Self {
+    pub fn new(source: VolumeToOpen) -> Self {
         ViewerOptions {
             source,
             dicom_series: None,
@@ -145,20 +145,20 @@ pub struct StrataApp {
 
 /// A viewer link (`http://HOST:PORT/#store=NAME&…`, links.rs) as the store's URL and its view;
 /// anything else as it is. The error names the link (without its token).
-fn resolve_link(source: VolumeSource) -> (VolumeSource, Option<DesktopView>, Option<String>) {
+fn resolve_link(source: VolumeToOpen) -> (VolumeToOpen, Option<DesktopView>, Option<String>) {
     let (text, token_file) = match &source {
-        VolumeSource::Url {
+        VolumeToOpen::Url {
             url, token_file, ..
         } => (url.clone(), token_file.clone()),
-        VolumeSource::Path(p) => (p.to_string_lossy().into_owned(), None),
-        VolumeSource::Demo { .. } | VolumeSource::Pacs(_) => return (source, None, None),
+        VolumeToOpen::Path(p) => (p.to_string_lossy().into_owned(), None),
+        VolumeToOpen::Demo { .. } | VolumeToOpen::Pacs(_) => return (source, None, None),
     };
     if !links::is_link(&text) {
         return (source, None, None);
     }
     match links::parse_link(&text) {
         Ok(link) => (
-            VolumeSource::Url {
+            VolumeToOpen::Url {
                 url: link.store_url,
                 token_file,
                 token: link.token,
@@ -175,8 +175,8 @@ fn resolve_link(source: VolumeSource) -> (VolumeSource, Option<DesktopView>, Opt
 }
 
 /// What stands in for a link that could not be read (its text may hold a token).
-fn source_without_link() -> VolumeSource {
-    VolumeSource::Path(PathBuf::new())
+fn source_without_link() -> VolumeToOpen {
+    VolumeToOpen::Path(PathBuf::new())
 }
 
 fn lock_free_repaint(ctx: &egui::Context) -> super::volume_session::Repaint {
@@ -191,9 +191,9 @@ impl StrataApp {
         let (source, link_view, link_error) = resolve_link(options.source.clone());
         options.source = source;
         let open_path = match &options.source {
-            VolumeSource::Path(p) => p.display().to_string(),
-            VolumeSource::Url { url, .. } => url.clone(),
-            VolumeSource::Demo { .. } | VolumeSource::Pacs(_) => preferences
+            VolumeToOpen::Path(p) => p.display().to_string(),
+            VolumeToOpen::Url { url, .. } => url.clone(),
+            VolumeToOpen::Demo { .. } | VolumeToOpen::Pacs(_) => preferences
                 .last_opened
                 .as_ref()
                 .map(|p| p.display().to_string())
@@ -239,7 +239,7 @@ impl StrataApp {
     }
 
     /// Opens `source`: a store, a scan to import, a served store's URL or a viewer link.
-    fn start_job(&mut self, source: VolumeSource, dicom_series: Option<String>) {
+    fn start_job(&mut self, source: VolumeToOpen, dicom_series: Option<String>) {
         let (source, link_view, link_error) = resolve_link(source);
         match link_error {
             Some(e) => self.job_error = Some(e),
@@ -250,12 +250,12 @@ impl StrataApp {
     /// [`Self::start_job`] once a link is resolved: `link_view` is shown when the store opens.
     fn start_resolved_job(
         &mut self,
-        source: VolumeSource,
+        source: VolumeToOpen,
         dicom_series: Option<String>,
         link_view: Option<DesktopView>,
     ) {
         self.job_error = None;
-        self.job_from_pacs = matches!(source, VolumeSource::Pacs(_));
+        self.job_from_pacs = matches!(source, VolumeToOpen::Pacs(_));
         if let Some(view) = &link_view {
             self.preferences.preset = view.preset.clone();
             self.preferences.mode = view.mode;

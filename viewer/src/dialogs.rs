@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use egui::{Color32, RichText};
 
 use super::file_chooser::{ChooserKind, Chosen, FileChooser};
-use super::jobs::{PrepareJob, VolumeSource};
+use super::jobs::{PrepareJob, VolumeToOpen};
 use super::widgets::{NOT_FOR_DIAGNOSIS, WARNING_COLOUR};
 
 /// The open-or-import dialog.
@@ -37,12 +37,12 @@ impl OpenDialog {
         ctx: &egui::Context,
         job: Option<&PrepareJob>,
         job_error: &mut Option<String>,
-    ) -> Option<(VolumeSource, Option<String>)> {
+    ) -> Option<(VolumeToOpen, Option<String>)> {
         if !self.open {
             return None;
         }
         let mut open = true;
-        let mut start: Option<VolumeSource> = None;
+        let mut start: Option<VolumeToOpen> = None;
         egui::Window::new("Open or import").open(&mut open).resizable(false).default_width(460.0).show(ctx, |ui| {
             ui.label("A Strata store, or a scan to import: DICOM folder or file, NIfTI (.nii, .nii.gz), NRRD, MetaImage (.mha/.mhd).");
             ui.label("Scans are imported once into your data folder; the next open is instant.");
@@ -70,7 +70,7 @@ impl OpenDialog {
             ui.horizontal(|ui| {
                 let busy = job.is_some();
                 if ui.add_enabled(!busy && !self.path.trim().is_empty(), egui::Button::new("Open / import")).clicked() {
-                    start = Some(VolumeSource::Path(PathBuf::from(self.path.trim())));
+                    start = Some(VolumeToOpen::Path(PathBuf::from(self.path.trim())));
                 }
                 if ui.add_enabled(!busy, egui::Button::new("Demo phantom")).clicked() {
                     start = Some(super::demo_source());

@@ -5,6 +5,12 @@
 //! Issue 36: a 36-frame movie took about 18 minutes on lavapipe with no progress and no way to
 //! stop it. A cancelled movie removes the frames it wrote and is never encoded, so nothing it
 //! leaves looks like a finished movie.
+//!
+//! Issue 47: a single 2× screenshot with cinematic effects sat at "0 of 1 frames" for over
+//! 8 minutes and Cancel waited for the frame. A frame now reports its own stages (bricks for
+//! the shot's size, a pipeline compile, each refinement pass) and the render thread checks
+//! Cancel between them, so the bar moves within a frame and Cancel ends it after at most one
+//! pass or poll.
 
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
@@ -39,6 +45,9 @@ pub struct ExportProgress {
     /// A folder the export created for its frames (removed on cancel when left empty).
     folder: Option<PathBuf>,
     outcome: Mutex<Option<ExportOutcome>>,
+    /// How far the frame in progress is, in millionths, and what it is doing.
+    within_frame: AtomicU32,
+    stage: Mutex<Option<String>>,
 }
 
 impl ExportProgress {
@@ -52,7 +61,22 @@ impl ExportProgress {
             written: Mutex::new(Vec::new()),
             folder,
             outcome: Mutex::new(None),
+            within_frame: AtomicU32::new(0),
+            stage: Mutex::new(None),
         }
+    }
+
+    /// The frame in progress is `fraction` done (0..=1), doing `stage` ("refining: pass 3 of
+    /// 64"). The bar moves within a frame: one frame can take minutes on a CPU adapter.
+    pub fn frame_stage(&self, fraction: f64, stage: impl Into<String>) {
+        let millionths = (fraction.clamp(0.0, 1.0) * 1e6).round() as u32;
+        self.within_frame.store(millionths, Ordering::Release);
+        *lock_ignoring_poison(&self.stage) = Some(stage.into());
+    }
+
+    /// What the frame in progress is doing, if it said.
+    pub fn stage(&self) -> Option<String> {
+        lock_ignoring_poison(&self.stage).clone()
     }
 
     pub fn cancel(&self) {
@@ -74,6 +98,8 @@ impl ExportProgress {
     /// A frame (file) is written.
     pub fn frame_written(&self, path: PathBuf) {
         lock_ignoring_poison(&self.written).push(path);
+        self.within_frame.store(0, Ordering::Release);
+        *lock_ignoring_poison(&self.stage) = None;
         self.done.fetch_add(1, Ordering::AcqRel);
     }
 
@@ -105,25 +131,34 @@ impl ExportProgress {
         });
     }
 
-    /// "12 of 36 frames · about 3 min left" (no estimate before the first frame).
+    /// "12 of 36 frames · about 3 min left", with the frame's stage when it said one
+    /// ("0 of 1 frames · refining: pass 3 of 64"); no estimate before the first frame.
     pub fn line(&self) -> String {
         let done = self.done();
         let left = estimate_left(self.started.elapsed(), done, self.total);
-        match left {
+        let mut line = match left {
             Some(left) => format!(
                 "{done} of {} frames · about {} left",
                 self.total,
                 format_duration(left)
             ),
+            None if self.stage().is_some() => format!("{done} of {} frames", self.total),
             None => format!(
                 "{done} of {} frames · estimating the time left…",
                 self.total
             ),
+        };
+        if let Some(stage) = self.stage() {
+            line.push_str(" · ");
+            line.push_str(&stage);
         }
+        line
     }
 
+    /// Frames done plus the share of the frame in progress, of the total.
     pub fn fraction(&self) -> f32 {
-        self.done() as f32 / self.total as f32
+        let within = f64::from(self.within_frame.load(Ordering::Acquire)) / 1e6;
+        ((f64::from(self.done()) + within) / f64::from(self.total)).min(1.0) as f32
     }
 }
 
@@ -167,7 +202,7 @@ pub fn progress_window(ctx: &egui::Context, job: &ExportProgress) -> bool {
                     ui.label(job.line());
                     ui.add(egui::ProgressBar::new(job.fraction()).show_percentage());
                     if job.is_cancelled() {
-                        ui.label("cancelling after the frame in progress…");
+                        ui.label("cancelling…");
                     } else if ui.button("Cancel").clicked() {
                         job.cancel();
                     }
@@ -208,6 +243,22 @@ mod tests {
         assert_eq!(format_duration(Duration::from_secs(960)), "16 min");
         assert_eq!(format_duration(Duration::from_secs(45)), "45 s");
         assert_eq!(format_duration(Duration::from_secs(3900)), "1 h 05 min");
+    }
+
+    #[test]
+    fn the_bar_moves_within_a_frame_and_a_written_frame_clears_the_stage() {
+        let job = ExportProgress::new("2× screenshot", 1, None);
+        assert_eq!(job.fraction(), 0.0);
+        job.frame_stage(0.25, "refining: pass 16 of 64");
+        assert!((job.fraction() - 0.25).abs() < 1e-6, "{}", job.fraction());
+        assert_eq!(job.line(), "0 of 1 frames · refining: pass 16 of 64");
+        let job = ExportProgress::new("movie", 4, None);
+        job.frame_written(PathBuf::from("frame-0000.png"));
+        job.frame_stage(0.5, "loading bricks");
+        assert!((job.fraction() - 0.375).abs() < 1e-6, "{}", job.fraction());
+        job.frame_written(PathBuf::from("frame-0001.png"));
+        assert_eq!(job.stage(), None);
+        assert!((job.fraction() - 0.5).abs() < 1e-6, "{}", job.fraction());
     }
 
     #[test]

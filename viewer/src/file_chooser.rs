@@ -178,7 +178,10 @@ impl FileChooser {
 /// The folder a chooser opens in: `start` if it is one, else its parent if that is one, else
 /// the current folder.
 fn start_folder(start: &Path) -> PathBuf {
-    if start.is_dir() {
+    // A store is a folder, but its inside (packs, index) is nothing to choose from: start
+    // beside it, where the user's scans and stores are (issue 47: Open… opened inside the
+    // store shown).
+    if start.is_dir() && !super::jobs::is_store(start) {
         return start.to_path_buf();
     }
     match start.parent() {
@@ -190,6 +193,38 @@ fn start_folder(start: &Path) -> PathBuf {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The egui dialog's icons (egui_file draws folders as U+1F5C0 and files as U+1F5CB) are
+    /// glyphs of the viewer's fonts, not empty boxes.
+    #[test]
+    fn the_egui_dialogs_folder_and_file_icons_are_in_the_fonts() {
+        let ctx = egui::Context::default();
+        // A frame loads the fonts; its texture upload is not needed here.
+        ctx.run_ui(Default::default(), |_| {})
+            .textures_delta
+            .clear();
+        let font = egui::FontId::proportional(14.0);
+        for icon in ['🗀', '🗋', '📁'] {
+            assert!(
+                ctx.fonts_mut(|f| f.has_glyph(&font, icon)),
+                "no glyph for {icon} (U+{:04X})",
+                icon as u32
+            );
+        }
+    }
+
+    #[test]
+    fn a_chooser_starts_beside_a_store_not_inside_it() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let store = dir.path().join("scan.strata");
+        std::fs::create_dir_all(&store).expect("store folder");
+        std::fs::write(store.join("STRATA-STORE"), b"").expect("marker");
+        let folder = dir.path().join("scans");
+        std::fs::create_dir_all(&folder).expect("folder");
+        assert_eq!(start_folder(&store), dir.path());
+        assert_eq!(start_folder(&folder), folder);
+        assert_eq!(start_folder(&folder.join("ct.nii.gz")), folder);
+    }
 
     #[test]
     fn an_instant_empty_answer_means_no_portal_and_a_slow_one_a_cancel() {

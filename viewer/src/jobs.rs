@@ -16,7 +16,7 @@ use super::sync::{lock_ignoring_poison, Repaint};
 
 /// What the user asked to look at.
 #[derive(Clone, Debug, PartialEq)]
-pub enum VolumeSource {
+pub enum VolumeToOpen {
     /// The demo phantom of this edge length, generated at `path` on first use.
     Demo { path: PathBuf, size: u64 },
     /// A store, or anything the importer reads (imported into the data folder first).
@@ -132,16 +132,16 @@ fn xxhash_of(bytes: &[u8]) -> u64 {
 impl PrepareJob {
     /// Scans are imported into `import_folder` (normally [`data_folder`]).
     pub fn start(
-        source: VolumeSource,
+        source: VolumeToOpen,
         dicom_series: Option<String>,
         import_folder: PathBuf,
         repaint: Repaint,
     ) -> anyhow::Result<PrepareJob> {
         let title = match &source {
-            VolumeSource::Demo { size, .. } => format!("Preparing the {size}³ demo phantom"),
-            VolumeSource::Path(p) => format!("Opening {}", p.display()),
-            VolumeSource::Url { url, .. } => format!("Opening {url}"),
-            VolumeSource::Pacs(p) => format!(
+            VolumeToOpen::Demo { size, .. } => format!("Preparing the {size}³ demo phantom"),
+            VolumeToOpen::Path(p) => format!("Opening {}", p.display()),
+            VolumeToOpen::Url { url, .. } => format!("Opening {url}"),
+            VolumeToOpen::Pacs(p) => format!(
                 "Opening {} from {}",
                 p.label,
                 strata_pacs::redact_url(&p.server)
@@ -211,7 +211,7 @@ impl PrepareJob {
 /// `volume_location` (which streams from `strata serve` when the server holds the store), a
 /// scan after importing it.
 fn prepare(
-    source: &VolumeSource,
+    source: &VolumeToOpen,
     dicom_series: Option<String>,
     import_folder: &Path,
     progress: &(dyn Fn(ImportProgress) + Sync),
@@ -220,7 +220,7 @@ fn prepare(
 ) -> anyhow::Result<Arc<dyn strata_source::VolumeSource>> {
     let cache = strata_storage::store::DEFAULT_READ_CACHE_BYTES;
     match source {
-        VolumeSource::Url {
+        VolumeToOpen::Url {
             url,
             token: Some(token),
             ..
@@ -230,21 +230,21 @@ fn prepare(
                 crate::volume_location::open_remote_with_token(url, Some(token.clone()))?;
             Ok(remote)
         }
-        VolumeSource::Url {
+        VolumeToOpen::Url {
             url, token_file, ..
         } => {
             set_stage(format!("connecting to {url}"));
             crate::volume_location::open_source(url, token_file.as_deref(), cache)
         }
-        VolumeSource::Path(p) if crate::volume_location::is_url(&p.to_string_lossy()) => {
+        VolumeToOpen::Path(p) if crate::volume_location::is_url(&p.to_string_lossy()) => {
             set_stage(format!("connecting to {}", p.display()));
             crate::volume_location::open_source(&p.to_string_lossy(), None, cache)
         }
-        VolumeSource::Path(p) if is_store(p) => {
+        VolumeToOpen::Path(p) if is_store(p) => {
             set_stage(format!("opening store {}", p.display()));
             crate::volume_location::open_source(&p.to_string_lossy(), None, cache)
         }
-        VolumeSource::Pacs(series) => {
+        VolumeToOpen::Pacs(series) => {
             let store = prepare_pacs_store(series, import_folder, progress, set_stage, cancel)?;
             Ok(Arc::new(store))
         }
@@ -263,7 +263,7 @@ fn prepare(
 }
 
 fn prepare_store(
-    source: &VolumeSource,
+    source: &VolumeToOpen,
     dicom_series: Option<String>,
     import_folder: &Path,
     progress: &(dyn Fn(ImportProgress) + Sync),
@@ -276,7 +276,7 @@ fn prepare_store(
         ..Default::default()
     };
     match source {
-        VolumeSource::Demo { path, size } => {
+        VolumeToOpen::Demo { path, size } => {
             if let Ok(store) = Store::open(path) {
                 return Ok(store);
             }
@@ -294,7 +294,7 @@ fn prepare_store(
             set_stage("opening".into());
             Ok(Store::open(path)?)
         }
-        VolumeSource::Path(input) => {
+        VolumeToOpen::Path(input) => {
             if is_store(input) {
                 set_stage(format!("opening store {}", input.display()));
                 return Store::open(input)
@@ -337,10 +337,10 @@ fn prepare_store(
             set_stage("opening".into());
             Ok(Store::open(&store_path)?)
         }
-        VolumeSource::Url { url, .. } => {
+        VolumeToOpen::Url { url, .. } => {
             anyhow::bail!("{url} is a served store: it is streamed, not imported")
         }
-        VolumeSource::Pacs(series) => {
+        VolumeToOpen::Pacs(series) => {
             prepare_pacs_store(series, import_folder, progress, set_stage, cancel)
         }
     }
@@ -474,15 +474,15 @@ mod remote_tests {
         let repaint: Repaint = Arc::new(|| {});
         for (source, expected) in [
             (
-                VolumeSource::Url {
+                VolumeToOpen::Url {
                     url: url.clone(),
                     token_file: None,
                     token: None,
                 },
                 url.clone(),
             ),
-            (VolumeSource::Path(path.clone()), path.display().to_string()),
-            (VolumeSource::Path(sled_path.clone()), sled_url.clone()),
+            (VolumeToOpen::Path(path.clone()), path.display().to_string()),
+            (VolumeToOpen::Path(sled_path.clone()), sled_url.clone()),
         ] {
             let job = PrepareJob::start(source.clone(), None, dir.path().into(), repaint.clone())
                 .unwrap();

@@ -72,7 +72,7 @@ use std::path::PathBuf;
 use anyhow::Result;
 
 pub use app::{Preferences, StrataApp, ViewerOptions};
-pub use jobs::VolumeSource;
+pub use jobs::VolumeToOpen;
 
 /// Opens the viewer window and runs until it is closed. Unless this process is already the
 /// supervised child (or `STRATA_NO_SUPERVISOR=1`), the window runs in a child process that is
@@ -166,21 +166,21 @@ pub fn run(options: ViewerOptions) -> Result<()> {
 }
 
 /// The demo volume the viewer opens with no arguments.
-pub fn demo_source() -> VolumeSource {
-    VolumeSource::Demo {
+pub fn demo_source() -> VolumeToOpen {
+    VolumeToOpen::Demo {
         path: sample::demo_store_path(),
         size: sample::DEMO_SIZE,
     }
 }
 
 /// A path given on the command line.
-pub fn path_source(path: PathBuf) -> VolumeSource {
-    VolumeSource::Path(path)
+pub fn path_source(path: PathBuf) -> VolumeToOpen {
+    VolumeToOpen::Path(path)
 }
 
 /// A store served by `strata serve`, streamed (with the bearer token in `token_file`).
-pub fn url_source(url: String, token_file: Option<PathBuf>) -> VolumeSource {
-    VolumeSource::Url {
+pub fn url_source(url: String, token_file: Option<PathBuf>) -> VolumeToOpen {
+    VolumeToOpen::Url {
         url,
         token_file,
         token: None,

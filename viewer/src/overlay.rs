@@ -214,7 +214,7 @@ impl Overlay {
         let thread = std::thread::Builder::new()
             .name("strata-overlay-reader".into())
             .spawn(move || {
-                let mut cache = BrickCache::new(OVERLAY_CACHE_BYTES);
+                let mut cache = OverlayBrickCache::new(OVERLAY_CACHE_BYTES);
                 loop {
                     let next = {
                         let mut pending = lock_ignoring_poison(&thread_shared.pending);
@@ -393,15 +393,15 @@ pub fn colour_of(kind: OverlayKind, style: &OverlayStyle, value: f32) -> [u8; 4]
 
 /// Level-0 bricks of the overlay, bounded; the last brick used is kept at hand because
 /// neighbouring pixels almost always fall into it.
-pub struct BrickCache {
+pub struct OverlayBrickCache {
     budget_bricks: usize,
     bricks: HashMap<BrickId, Arc<Vec<u16>>>,
     last: Option<(BrickId, Arc<Vec<u16>>)>,
 }
 
-impl BrickCache {
+impl OverlayBrickCache {
     pub fn new(budget_bytes: usize) -> Self {
-        BrickCache {
+        OverlayBrickCache {
             budget_bricks: (budget_bytes / (strata_storage::BRICK_PAYLOAD_VOXELS * 2)).max(16),
             bricks: HashMap::new(),
             last: None,
@@ -463,7 +463,7 @@ pub fn primary_index_of_pixel(
 /// a whole label. Continuous: trilinear between level-0 voxel centres (clamped at the edges).
 pub fn sample_slice(
     store: &dyn VolumeSource,
-    cache: &mut BrickCache,
+    cache: &mut OverlayBrickCache,
     grids: &OverlayGrids,
     request: SliceRequest,
     width: usize,
@@ -509,7 +509,7 @@ pub fn sample_slice(
 /// centres, clamped at the edges.
 pub fn trilinear(
     store: &dyn VolumeSource,
-    cache: &mut BrickCache,
+    cache: &mut OverlayBrickCache,
     dims: [u32; 3],
     p: DVec3,
     physical: impl Fn(u16) -> f64,
@@ -687,7 +687,7 @@ pub(crate) mod tests {
         );
         let grids = grids(primary.as_ref(), overlay.as_ref(), OverlayKind::Labels);
         let frame = SliceFrame::for_view(SliceView::Axial, &grids.primary);
-        let mut cache = BrickCache::new(8 << 20);
+        let mut cache = OverlayBrickCache::new(8 << 20);
         let mut compared = 0;
         for (level, position) in [(0u8, 20.0), (1, 31.0)] {
             let request = SliceRequest {
@@ -767,7 +767,7 @@ pub(crate) mod tests {
             dims[frame.across_axis] as usize,
             dims[frame.down_axis] as usize,
         );
-        let mut cache = BrickCache::new(8 << 20);
+        let mut cache = OverlayBrickCache::new(8 << 20);
         let slice =
             sample_slice(overlay.as_ref(), &mut cache, &grids, request, w, h).expect("sampling");
         let mut compared = 0;

@@ -16,7 +16,7 @@ use strata_render::{OverlayKind as GridKind, OverlayLut, OverlayVolume};
 use strata_source::VolumeSource;
 
 use super::overlay::{
-    label_colour, trilinear, BrickCache, Overlay, OverlayGrids, OverlayKind, OverlayStyle,
+    label_colour, trilinear, Overlay, OverlayBrickCache, OverlayGrids, OverlayKind, OverlayStyle,
     OVERLAY_CACHE_BYTES,
 };
 use super::sync::{lock_ignoring_poison, Repaint};
@@ -77,7 +77,7 @@ pub fn grid_dims(level_dims: &[[u32; 3]], max_voxels: u64) -> [u32; 3] {
 /// continuous: trilinear (as the slices). Outside the overlay: background / OVERLAY_OUTSIDE.
 pub fn resample(
     store: &dyn VolumeSource,
-    cache: &mut BrickCache,
+    cache: &mut OverlayBrickCache,
     grids: &OverlayGrids,
     dims: [u32; 3],
     stop: &AtomicBool,
@@ -208,7 +208,7 @@ impl Overlay3d {
         let thread = std::thread::Builder::new()
             .name("strata-overlay-3d".into())
             .spawn(move || {
-                let mut cache = BrickCache::new(OVERLAY_CACHE_BYTES);
+                let mut cache = OverlayBrickCache::new(OVERLAY_CACHE_BYTES);
                 let result = resample(store.as_ref(), &mut cache, &grids, dims, &thread_stop);
                 *lock_ignoring_poison(&thread_state) = match result {
                     Ok(r) => State::Done(Arc::new(r)),
@@ -304,7 +304,7 @@ mod tests {
         let dims = grid_dims(&grids.primary_level_dims, 30 * 30 * 30);
         assert_eq!(dims, grids.primary_level_dims[1]);
         assert_ne!(dims, level0);
-        let mut cache = BrickCache::new(8 << 20);
+        let mut cache = OverlayBrickCache::new(8 << 20);
         let r = resample(
             overlay.as_ref(),
             &mut cache,

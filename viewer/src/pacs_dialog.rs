@@ -1,6 +1,6 @@
 //! "Open from PACS…": pick a DICOMweb server (a name from the servers file the command line
 //! uses, or a typed URL), search its studies, list a study's series and open one. Opening is a
-//! [`PrepareJob`] (jobs.rs, `VolumeSource::Pacs`): retrieved and imported on its named thread
+//! [`PrepareJob`] (jobs.rs, `VolumeToOpen::Pacs`): retrieved and imported on its named thread
 //! with progress and Cancel, or the earlier import of the same series from the same server
 //! opened at once.
 //!
@@ -16,7 +16,7 @@ use std::sync::{Arc, Mutex};
 use egui::{Color32, RichText};
 use strata_pacs::{Series, ServersFile, Study, StudyQuery};
 
-use super::jobs::{PacsSeries, PrepareJob, VolumeSource};
+use super::jobs::{PacsSeries, PrepareJob, VolumeToOpen};
 use super::pacs_thumbnail::Thumbnail;
 use super::sync::{lock_ignoring_poison, Repaint};
 
@@ -418,7 +418,7 @@ impl PacsDialog {
         ctx: &egui::Context,
         job: Option<&PrepareJob>,
         job_error: &mut Option<String>,
-    ) -> Option<VolumeSource> {
+    ) -> Option<VolumeToOpen> {
         if !self.open {
             return None;
         }
@@ -571,7 +571,7 @@ impl PacsDialog {
                         )
                         .clicked()
                     {
-                        start = request.map(VolumeSource::Pacs);
+                        start = request.map(VolumeToOpen::Pacs);
                     }
                 }
                 if let Some(job) = job {
@@ -776,7 +776,7 @@ mod tests {
             // Open: retrieved and imported by the background job, equal to a folder import.
             let stores = work.path().join("stores");
             let job = PrepareJob::start(
-                VolumeSource::Pacs(request.clone()),
+                VolumeToOpen::Pacs(request.clone()),
                 None,
                 stores.clone(),
                 repaint.clone(),
@@ -804,7 +804,7 @@ mod tests {
             // The same series from the same server again opens at once: the PACS is gone.
             drop(orthanc);
             let again =
-                PrepareJob::start(VolumeSource::Pacs(request), None, stores, repaint).unwrap();
+                PrepareJob::start(VolumeToOpen::Pacs(request), None, stores, repaint).unwrap();
             assert_eq!(finish(&again).header().geometry.dims[2], CT_SLICES as u32);
         }
 

@@ -14,7 +14,7 @@ use egui_kittest::Harness;
 use strata_storage::phantom::Phantom;
 
 use super::app::{Layout, Preferences, StrataApp, ViewSlot, ViewerOptions};
-use super::jobs::VolumeSource;
+use super::jobs::VolumeToOpen;
 use super::orientation::SliceView;
 use super::volume_session::RenderedFrame;
 
@@ -30,7 +30,7 @@ fn phantom_store(dir: &Path) -> std::path::PathBuf {
 }
 
 fn harness(store: &Path, side_panel: bool) -> Harness<'static, Option<StrataApp>> {
-    let mut options = ViewerOptions::new(VolumeSource::Path(store.to_path_buf()));
+    let mut options = ViewerOptions::new(VolumeToOpen::Path(store.to_path_buf()));
     options.import_folder = store.parent().unwrap_or(Path::new(".")).join("imported");
     let preferences = Preferences {
         layout: Layout::TwoByTwo,
@@ -324,7 +324,7 @@ fn a_scan_imports_with_progress_then_shows_and_f12_writes_a_screenshot() {
         return;
     }
     let dir = tempfile::tempdir().expect("temp dir");
-    let mut options = ViewerOptions::new(VolumeSource::Path(scan.clone()));
+    let mut options = ViewerOptions::new(VolumeToOpen::Path(scan.clone()));
     options.import_folder = dir.path().join("imported");
     let preferences = Preferences {
         show_side_panel: false,
@@ -458,7 +458,7 @@ fn a_file_that_cannot_be_opened_shows_its_error_once() {
     let dir = tempfile::tempdir().expect("temp dir");
     let bad = dir.path().join("broken.nii");
     std::fs::write(&bad, b"this is not a NIfTI file at all, just some bytes").expect("write");
-    let mut options = ViewerOptions::new(VolumeSource::Path(bad));
+    let mut options = ViewerOptions::new(VolumeToOpen::Path(bad));
     options.import_folder = dir.path().join("imported");
     let mut h = harness_with(options, Preferences::default());
     let start = Instant::now();
@@ -574,7 +574,7 @@ fn phantom_value(p: &Phantom, index: glam::DVec3) -> f64 {
 fn a_click_in_the_3d_view_picks_the_bone_surface_it_shows() {
     let dir = tempfile::tempdir().expect("temp dir");
     let store = phantom_store(dir.path());
-    let mut options = ViewerOptions::new(VolumeSource::Path(store.clone()));
+    let mut options = ViewerOptions::new(VolumeToOpen::Path(store.clone()));
     options.import_folder = dir.path().join("imported");
     options.initial_view = Some(super::view3d::StandardView::Anterior);
     let preferences = Preferences {
@@ -679,7 +679,7 @@ fn screen_patch(image: &image::RgbaImage, at: egui::Pos2, channel: usize) -> f64
 fn a_window_preset_and_the_inverted_colour_map_reach_the_screen() {
     let dir = tempfile::tempdir().expect("temp dir");
     let store = phantom_store(dir.path());
-    let mut options = ViewerOptions::new(VolumeSource::Path(store.clone()));
+    let mut options = ViewerOptions::new(VolumeToOpen::Path(store.clone()));
     options.import_folder = dir.path().join("imported");
     let preferences = Preferences {
         layout: Layout::TwoByTwo,
@@ -938,7 +938,7 @@ fn undo_restores_the_transfer_function_exactly_and_redo_the_edit() {
 fn a_screenshot_has_the_views_full_pixel_size_and_its_annotations() {
     let dir = tempfile::tempdir().expect("temp dir");
     let store = phantom_store(dir.path());
-    let mut options = ViewerOptions::new(VolumeSource::Path(store.clone()));
+    let mut options = ViewerOptions::new(VolumeToOpen::Path(store.clone()));
     options.import_folder = dir.path().join("imported");
     let shots = dir.path().join("shots (picked folder)");
     let preferences = Preferences {
@@ -1002,7 +1002,7 @@ fn a_screenshot_has_the_views_full_pixel_size_and_its_annotations() {
 fn the_crop_box_is_drawn_in_3d_and_dragging_its_superior_handle_lowers_the_top() {
     let dir = tempfile::tempdir().expect("temp dir");
     let store = phantom_store(dir.path());
-    let mut options = ViewerOptions::new(VolumeSource::Path(store.clone()));
+    let mut options = ViewerOptions::new(VolumeToOpen::Path(store.clone()));
     options.import_folder = dir.path().join("imported");
     options.initial_view = Some(super::view3d::StandardView::Anterior);
     let preferences = Preferences {
@@ -1149,7 +1149,7 @@ fn a_label_map_overlay_colours_the_right_pixels_and_a_hidden_label_clears_them()
         false,
         label_of,
     );
-    let mut options = ViewerOptions::new(VolumeSource::Path(store.clone()));
+    let mut options = ViewerOptions::new(VolumeToOpen::Path(store.clone()));
     options.import_folder = dir.path().join("imported");
     let preferences = Preferences {
         layout: Layout::TwoByTwo,
@@ -1342,7 +1342,7 @@ fn the_oblique_view_resamples_its_plane_turns_with_a_drag_and_aligns_to_the_3d_c
     use super::oblique_view::TURN_PER_POINT;
     let dir = tempfile::tempdir().expect("temp dir");
     let store = phantom_store(dir.path());
-    let mut options = ViewerOptions::new(VolumeSource::Path(store.clone()));
+    let mut options = ViewerOptions::new(VolumeToOpen::Path(store.clone()));
     options.import_folder = dir.path().join("imported");
     let preferences = Preferences {
         layout: Layout::TwoByTwo,
@@ -1511,7 +1511,7 @@ fn a_dicom_seg_overlay_lists_its_segments_by_name_and_colour() {
     let expected: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.path().join("seg/binary.json")).expect("json"))
             .expect("json");
-    let mut options = ViewerOptions::new(VolumeSource::Path(store.clone()));
+    let mut options = ViewerOptions::new(VolumeToOpen::Path(store.clone()));
     options.import_folder = dir.path().join("imported");
     let preferences = Preferences {
         show_side_panel: true,
@@ -1589,7 +1589,7 @@ fn the_frame_slider_moves_the_readout_to_the_next_frames_value() {
         "nibabel needed: pip install nibabel (CI: .ci/run)\n{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    let mut options = ViewerOptions::new(VolumeSource::Path(nifti));
+    let mut options = ViewerOptions::new(VolumeToOpen::Path(nifti));
     options.import_folder = dir.path().join("imported");
     let preferences = Preferences {
         layout: Layout::TwoByTwo,
@@ -1676,7 +1676,7 @@ fn a_label_map_colours_the_3d_pixels_over_it_and_hiding_the_label_removes_it() {
             }
         },
     );
-    let mut options = ViewerOptions::new(VolumeSource::Path(store.clone()));
+    let mut options = ViewerOptions::new(VolumeToOpen::Path(store.clone()));
     options.import_folder = dir.path().join("imported");
     let preferences = Preferences {
         layout: Layout::TwoByTwo,
@@ -1841,7 +1841,7 @@ fn a_restarted_viewer_opens_its_volume_with_the_saved_session() {
         ..OrbitCamera::default()
     };
     let saved = SavedSession::capture(&location, &Preferences::default(), &edited, &orbit);
-    let mut options = ViewerOptions::new(VolumeSource::Path(store.clone()));
+    let mut options = ViewerOptions::new(VolumeToOpen::Path(store.clone()));
     options.import_folder = dir.path().join("imported");
     options.max_render_pixels = 64;
     options.persist_settings = false;
@@ -1882,7 +1882,7 @@ fn the_adaptive_sampling_checkbox_and_epsilon_slider_reach_the_frame_and_persist
     use egui_kittest::kittest::NodeT;
     let dir = tempfile::tempdir().expect("tempdir");
     let store = phantom_store(dir.path());
-    let mut options = ViewerOptions::new(VolumeSource::Path(store.clone()));
+    let mut options = ViewerOptions::new(VolumeToOpen::Path(store.clone()));
     options.import_folder = dir.path().join("imported");
     let preferences = Preferences {
         layout: Layout::Single,
@@ -1954,7 +1954,7 @@ fn a_settled_viewer_asks_for_no_repaint_and_renders_nothing() {
 
     let dir = tempfile::tempdir().expect("temp dir");
     let store = phantom_store(dir.path());
-    let mut options = ViewerOptions::new(VolumeSource::Path(store.clone()));
+    let mut options = ViewerOptions::new(VolumeToOpen::Path(store.clone()));
     options.import_folder = dir.path().join("imported");
     options.exit_after_seconds = Some(3600.0);
     let preferences = Preferences {
@@ -2018,7 +2018,7 @@ fn a_long_roi_line_and_the_first_tf_edit_move_nothing() {
 
     let dir = tempfile::tempdir().expect("temp dir");
     let store = phantom_store(dir.path());
-    let mut options = ViewerOptions::new(VolumeSource::Path(store.clone()));
+    let mut options = ViewerOptions::new(VolumeToOpen::Path(store.clone()));
     options.import_folder = dir.path().join("imported");
     let preferences = Preferences {
         layout: Layout::TwoByTwo,
@@ -2107,7 +2107,7 @@ fn a_long_roi_line_and_the_first_tf_edit_move_nothing() {
 fn toolbar_items_do_not_overlap_at_1024_points() {
     let dir = tempfile::tempdir().expect("temp dir");
     let store = phantom_store(dir.path());
-    let mut options = ViewerOptions::new(VolumeSource::Path(store.clone()));
+    let mut options = ViewerOptions::new(VolumeToOpen::Path(store.clone()));
     options.import_folder = dir.path().join("imported");
     let preferences = Preferences {
         layout: Layout::TwoByTwo,
@@ -2188,7 +2188,7 @@ fn the_overlay_option_opens_the_label_map_with_the_volume() {
         false,
         label_of,
     );
-    let mut options = ViewerOptions::new(VolumeSource::Path(store.clone()));
+    let mut options = ViewerOptions::new(VolumeToOpen::Path(store.clone()));
     options.import_folder = dir.path().join("imported");
     options.overlay = Some(labels.clone());
     let mut h = harness_with(
@@ -2336,7 +2336,7 @@ fn the_light_controls_reach_the_3d_views_settings_without_widening_the_panel() {
 
     let dir = tempfile::tempdir().expect("tempdir");
     let store = phantom_store(dir.path());
-    let mut options = ViewerOptions::new(VolumeSource::Path(store.clone()));
+    let mut options = ViewerOptions::new(VolumeToOpen::Path(store.clone()));
     options.import_folder = dir.path().join("imported");
     let preferences = Preferences {
         layout: Layout::Single,
@@ -2444,7 +2444,7 @@ fn the_cinematic_presets_set_the_tf_and_lighting_the_3d_view_renders_with() {
 
     let dir = tempfile::tempdir().expect("tempdir");
     let store = phantom_store(dir.path());
-    let mut options = ViewerOptions::new(VolumeSource::Path(store.clone()));
+    let mut options = ViewerOptions::new(VolumeToOpen::Path(store.clone()));
     options.import_folder = dir.path().join("imported");
     let preferences = Preferences {
         layout: Layout::Single,
@@ -2562,7 +2562,7 @@ fn a_viewer_link_opens_its_store_and_view_and_copy_link_gives_it_back_without_th
         "{}/#store={name}&mode=mip&preset=ct-soft-tissue&tf={tf_text}&az=-60&el=25&zoom=1.5&pan=0.1,-0.05&layout=single&cursor=5,40,12.5&window=300,1200&token={token}",
         server.base_url()
     );
-    let mut options = ViewerOptions::new(VolumeSource::Url {
+    let mut options = ViewerOptions::new(VolumeToOpen::Url {
         url: link,
         token_file: None,
         token: None,
@@ -2670,7 +2670,7 @@ fn open_from_pacs_finds_a_study_and_shows_its_series_in_the_viewer() {
     let dir = tempfile::tempdir().expect("temp dir");
     let orthanc = filled_orthanc(dir.path());
     let store = phantom_store(dir.path());
-    let mut options = ViewerOptions::new(VolumeSource::Path(store.clone()));
+    let mut options = ViewerOptions::new(VolumeToOpen::Path(store.clone()));
     options.import_folder = dir.path().join("imported");
     let preferences = Preferences {
         layout: Layout::Single,

@@ -567,12 +567,19 @@ impl View3d {
             // Why the view is not redrawn for seconds at a time while a movie renders.
             right_lines.push(exporting.clone());
         }
+        let font = egui::FontId::proportional(12.0);
         for (i, line) in right_lines.iter().enumerate() {
+            // The first line shares its row with the view's title; the others have the width.
+            let room = if i == 0 {
+                rect.width() * 0.5
+            } else {
+                rect.width() - 16.0
+            };
             painter.text(
                 Pos2::new(rect.right() - 8.0, rect.top() + 4.0 + 15.0 * i as f32),
                 egui::Align2::RIGHT_TOP,
-                line,
-                egui::FontId::proportional(12.0),
+                super::widgets::fit_line(&painter, line, &font, room),
+                font.clone(),
                 Color32::LIGHT_GRAY,
             );
         }

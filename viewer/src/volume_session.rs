@@ -1053,7 +1053,19 @@ impl RenderWorker {
         let started = Instant::now();
         let camera = shot.camera.unwrap_or(request.camera);
         let cancelled = || shot.job.as_ref().is_some_and(|j| j.is_cancelled());
-        for _ in 0..200 {
+        // The frame's own stages move the export's bar (one frame can take minutes on a CPU
+        // adapter): loading bricks takes the first tenth, refinement the rest.
+        let report = |fraction: f64, stage: String| {
+            if let Some(job) = &shot.job {
+                job.frame_stage(fraction, stage);
+            }
+        };
+        let (width, height) = (settings.width, settings.height);
+        for attempt in 0..200u32 {
+            report(
+                0.1 * f64::from(attempt) / 200.0,
+                format!("loading the bricks for a {width}×{height} frame"),
+            );
             let stats = volume.frame(ctx, &camera, &settings)?;
             if cancelled() {
                 anyhow::bail!("cancelled");
@@ -1070,7 +1082,15 @@ impl RenderWorker {
             // same jittered frames (seeds 0..N) accumulated over the shot's cut, as the live view
             // and `strata render --progressive` do. Progressive replaces the adaptive pass here
             // too, for the live view's reason (ProgressiveRun).
-            let mean = progressive_mean(ctx, volume, &camera, &settings, request, cancelled)?;
+            let passes = ProgressiveExport {
+                request,
+                cancelled: &cancelled,
+                report: &|done, total, stage: &str| {
+                    let fraction = 0.1 + 0.9 * f64::from(done) / f64::from(total.max(1));
+                    report(fraction, stage.to_owned());
+                },
+            };
+            let mean = progressive_mean(ctx, volume, &camera, &settings, &passes)?;
             crate::export::write_png(&shot.path, settings.width, settings.height, &mean)?;
             return Ok(());
         }
@@ -1082,6 +1102,7 @@ impl RenderWorker {
             // The still view in adaptive mode is the adaptive pass's, in the file too. The
             // oracle builds on its thread; this thread waits for it as it waited for the cut.
             let started = Instant::now();
+            report(0.5, "adaptive pass: building its oracle".to_owned());
             let reason = loop {
                 match adaptive.step(ctx, volume, &view, &settings, None) {
                     Step::Building if cancelled() => anyhow::bail!("cancelled"),
@@ -1112,9 +1133,6 @@ impl RenderWorker {
     }
 }
 
-/// The mean of `request.progressive_frames` jittered frames of `camera` over the volume's
-/// current cut, as Rgba8 bytes; a cut that changes under it restarts the mean (its
-/// generation), as in the live view.
 /// Whether the volume's last frame was drawn by a jittered pipeline (not a background
 /// compile's un-jittered stand-in).
 fn drawn_jittered(volume: &mut StreamingVolume) -> bool {
@@ -1124,33 +1142,85 @@ fn drawn_jittered(volume: &mut StreamingVolume) -> bool {
         .is_some_and(|key| key.jitter)
 }
 
-/// Shot frames queued before [`progressive_mean`] waits for the GPU.
-const FRAMES_IN_FLIGHT: u32 = 8;
+/// Most shot frames queued before [`progressive_mean`] waits for the GPU.
+const MOST_FRAMES_IN_FLIGHT: u32 = 8;
+/// A frame slower than this is waited for on its own: Cancel must not wait behind a queue of
+/// slow frames (lavapipe draws a 2× cinematic frame in seconds), and the live view's next
+/// frame waits behind whatever the export left queued.
+const SLOW_FRAME: Duration = Duration::from_millis(100);
+/// Frames faster than this are queued more deeply (a real GPU's: 1-5 ms).
+const FAST_FRAME: Duration = Duration::from_millis(20);
 
+/// What a progressive shot reports and obeys: Cancel, checked before every pass and while
+/// a pipeline compiles, and its progress as (passes done, passes, stage).
+struct ProgressiveExport<'a> {
+    request: &'a RenderRequest,
+    cancelled: &'a dyn Fn() -> bool,
+    report: &'a dyn Fn(u32, u32, &str),
+}
+
+/// How many frames may be queued before waiting, from how long the last ones took: one
+/// while they are slow, doubling up to [`MOST_FRAMES_IN_FLIGHT`] while they are fast.
+fn frames_in_flight(current: u32, per_frame: Duration) -> u32 {
+    if per_frame > SLOW_FRAME {
+        1
+    } else if per_frame < FAST_FRAME {
+        (current * 2).min(MOST_FRAMES_IN_FLIGHT)
+    } else {
+        current
+    }
+}
+
+/// The mean of `request.progressive_frames` jittered frames of `camera` over the volume's
+/// current cut, as Rgba8 bytes; a cut that changes under it restarts the mean (its
+/// generation), as in the live view.
 fn progressive_mean(
     ctx: &GpuContext,
     volume: &mut StreamingVolume,
     camera: &Camera,
     settings: &RenderSettings,
-    request: &RenderRequest,
-    cancelled: impl Fn() -> bool,
+    export: &ProgressiveExport<'_>,
 ) -> anyhow::Result<Vec<u8>> {
     let still = RenderSettings {
         count_samples: false,
         ..settings.clone()
     };
+    let total = export.request.progressive_frames;
     let mut accumulator = Accumulator::new(ctx);
     let mut generation = 0;
     let mut seed = 0;
+    let mut in_flight = 1;
+    let mut queued = 0;
+    let mut batch_started = Instant::now();
     // Bounded: a cut that kept changing would otherwise restart the mean forever.
-    let most_frames = request.progressive_frames.saturating_mul(4);
-    while accumulator.frames() < request.progressive_frames && seed < most_frames {
-        if cancelled() {
+    let most_frames = total.saturating_mul(4);
+    while accumulator.frames() < total && seed < most_frames {
+        if (export.cancelled)() {
             anyhow::bail!("cancelled");
         }
         let settings = jittered_frame(&still, seed);
-        // A shot may wait: compile the jittered variant now rather than average stand-ins.
-        volume.raycaster_mut().prepare(ctx, &settings);
+        // A shot may wait for the jittered variant rather than average stand-ins, but it waits
+        // here, polling Cancel, while the compiler thread compiles it.
+        let mut compiling = false;
+        while !volume.raycaster_mut().prepare_in_background(ctx, &settings) {
+            if (export.cancelled)() {
+                anyhow::bail!("cancelled");
+            }
+            if !compiling {
+                (export.report)(
+                    accumulator.frames(),
+                    total,
+                    "compiling the renderer for these effects (first use)",
+                );
+                compiling = true;
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        (export.report)(
+            accumulator.frames(),
+            total,
+            &format!("refining: pass {} of {total}", accumulator.frames() + 1),
+        );
         let stats = volume.frame(ctx, camera, &settings)?;
         seed += 1;
         if !drawn_jittered(volume) {
@@ -1165,9 +1235,13 @@ fn progressive_mean(
             .output_texture()
             .ok_or_else(|| anyhow::anyhow!("the raycaster has no output to accumulate"))?;
         accumulator.accumulate(ctx, &key, output)?;
-        if seed % FRAMES_IN_FLIGHT == 0 {
+        queued += 1;
+        if queued >= in_flight {
             // Bounds the queued command buffers, as render_still does.
             ctx.wait_idle()?;
+            in_flight = frames_in_flight(in_flight, batch_started.elapsed() / queued);
+            queued = 0;
+            batch_started = Instant::now();
         }
     }
     Ok(accumulator.read_mean_blocking(ctx)?)
@@ -1481,6 +1555,80 @@ mod tests {
         assert!(!folder.exists(), "the cancelled movie's folder stayed");
         // The queue holds none of its frames: the thread goes back to the live view.
         assert!(lock_ignoring_poison(&session.shared.screenshot).is_empty());
+        assert_eq!(session.status().exporting, None);
+    }
+
+    /// Issue 47: a screenshot with a cinematic effect (exact shadows, refined over many passes)
+    /// moves the export's bar within its one frame, and a Cancel during its refinement ends it
+    /// after at most the pass in progress: the job says cancelled, no PNG is left, and the
+    /// thread goes back to the live view.
+    #[test]
+    fn a_refining_screenshot_reports_its_passes_and_stops_at_cancel() {
+        const PASSES: u32 = 400;
+        let dir = tempfile::tempdir().expect("temp dir");
+        let (session, plain, _store) = phantom_session_sized(dir.path(), 48);
+        let shadowed = shaded_with_exact_shadows(&plain, PASSES);
+        session.request(shadowed.clone());
+        wait_for(&session, |f| f.request == shadowed);
+        let path = dir.path().join("shot.png");
+        let job = Arc::new(ExportProgress::new("2× screenshot", 1, None));
+        session.request_screenshot(ScreenshotRequest {
+            path: path.clone(),
+            size: [64, 64],
+            camera: None,
+            then_encode: None,
+            job: Some(job.clone()),
+        });
+        let pass_of = |stage: Option<String>| -> Option<u32> {
+            let stage = stage?;
+            let rest = stage.strip_prefix("refining: pass ")?;
+            rest.split(' ').next()?.parse().ok()
+        };
+        let start = Instant::now();
+        let mut fractions = Vec::new();
+        let at_cancel = loop {
+            assert!(job.outcome().is_none(), "{:?}", job.outcome());
+            assert!(
+                start.elapsed() < Duration::from_secs(240),
+                "no pass reported"
+            );
+            fractions.push(job.fraction());
+            if let Some(pass) = pass_of(job.stage()).filter(|&p| p >= 3) {
+                job.cancel();
+                break pass;
+            }
+            std::thread::sleep(Duration::from_millis(2));
+        };
+        let cancelled_at = Instant::now();
+        assert_eq!(
+            job.done(),
+            0,
+            "the frame was written before its passes ended"
+        );
+        assert!(
+            fractions.iter().any(|&f| f > 0.1) && fractions.windows(2).all(|w| w[1] >= w[0]),
+            "the bar did not move forward within the frame: {fractions:?}"
+        );
+        while job.outcome().is_none() {
+            assert!(start.elapsed() < Duration::from_secs(240), "never ended");
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        // Printed, not asserted (wall-clock bounds fail on loaded machines): the issue's goal
+        // is under a second.
+        eprintln!(
+            "screenshot cancelled at pass {at_cancel} of {PASSES}: ended {:.0} ms later",
+            cancelled_at.elapsed().as_secs_f64() * 1e3
+        );
+        assert_eq!(
+            job.outcome(),
+            Some(ExportOutcome::Cancelled { done: 0, total: 1 })
+        );
+        let last = pass_of(job.stage()).expect("the last stage names its pass");
+        assert!(
+            last <= at_cancel + 1,
+            "passes went on after Cancel: cancelled at pass {at_cancel}, the last was {last}"
+        );
+        assert!(!path.exists(), "a cancelled screenshot left its PNG");
         assert_eq!(session.status().exporting, None);
     }
 

@@ -28,6 +28,36 @@ pub fn elide_middle(text: &str, max_chars: usize) -> String {
     out
 }
 
+/// `text` elided in the middle so that it fits `max_width` points in `font` (a line painted
+/// over a view: issue 47's export line ran off the 3D view). Whole when it fits.
+pub fn fit_line(
+    painter: &egui::Painter,
+    text: &str,
+    font: &egui::FontId,
+    max_width: f32,
+) -> String {
+    let width = |t: &str| {
+        painter
+            .layout_no_wrap(t.to_owned(), font.clone(), Color32::WHITE)
+            .size()
+            .x
+    };
+    if width(text) <= max_width {
+        return text.to_owned();
+    }
+    // The longest middle-elided version that fits (width grows with the characters kept).
+    let (mut fits, mut too_long) = (0, text.chars().count());
+    while too_long - fits > 1 {
+        let mid = (fits + too_long) / 2;
+        if width(&elide_middle(text, mid)) <= max_width {
+            fits = mid;
+        } else {
+            too_long = mid;
+        }
+    }
+    elide_middle(text, fits)
+}
+
 /// What a view reports after drawing itself.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct ViewResponse {
@@ -98,5 +128,37 @@ mod elide_tests {
         assert!(short.contains('…'));
         assert_eq!(elide_middle(path, 1), "…");
         assert_eq!(elide_middle(path, 0), "");
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_line_too_wide_for_its_room_is_elided_to_fit_and_one_that_fits_is_whole() {
+        let ctx = egui::Context::default();
+        let mut output = ctx.run_ui(Default::default(), |ui| {
+            let painter = ui.painter();
+            let font = egui::FontId::proportional(12.0);
+            let long = "2× screenshot of the 3D view to /home/user/Pictures/strata-3d-2x-1765000000000.png: frame 1 of 1";
+            let width = |t: &str| {
+                painter
+                    .layout_no_wrap(t.to_owned(), font.clone(), Color32::WHITE)
+                    .size()
+                    .x
+            };
+            assert!(width(long) > 150.0, "the test line fits already");
+            let fitted = fit_line(painter, long, &font, 150.0);
+            assert!(fitted.contains('…'), "{fitted}");
+            assert!(width(&fitted) <= 150.0, "{fitted} is {} wide", width(&fitted));
+            // As long as fits: one more character kept would not.
+            let kept = fitted.chars().count();
+            assert!(width(&elide_middle(long, kept + 1)) > 150.0);
+            assert!(fitted.ends_with("frame 1 of 1"), "{fitted}");
+            assert_eq!(fit_line(painter, "finest level 0", &font, 150.0), "finest level 0");
+        });
+        // No renderer takes the frame's font texture here.
+        output.textures_delta.clear();
     }
 }

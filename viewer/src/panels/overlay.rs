@@ -9,7 +9,7 @@ use std::sync::Arc;
 use egui::{Color32, RichText};
 
 use crate::colour_maps::ColourMap;
-use crate::jobs::{PrepareJob, VolumeSource};
+use crate::jobs::{PrepareJob, VolumeToOpen};
 use crate::overlay::{label_colour, Overlay, OverlayKind};
 use crate::scene::VolumeData;
 
@@ -40,7 +40,7 @@ impl OverlayPanel {
         self.error = None;
         let ctx = ctx.clone();
         match PrepareJob::start(
-            VolumeSource::Path(path.clone()),
+            VolumeToOpen::Path(path.clone()),
             None,
             folder.to_path_buf(),
             Arc::new(move || ctx.request_repaint()),
