@@ -74,13 +74,21 @@ def _physical_dtype(header: dict[str, Any], mapping: ValueMapping) -> np.dtype:
     return np.dtype(np.float64)
 
 
-def _to_physical(stored: np.ndarray, mapping: ValueMapping, dtype: np.dtype) -> np.ndarray:
-    """Stored u16 samples to physical values of ``dtype`` (exact for integer dtypes)."""
+def _to_physical(stored: np.ndarray, mapping: ValueMapping, dtype: np.dtype, owned: bool = False) -> np.ndarray:
+    """Stored u16 samples to physical values of ``dtype`` (exact for integer dtypes).
+
+    ``owned``: ``stored`` views a buffer only this read holds, which the int16 mapping may then
+    overwrite instead of allocating a second array (docs/bench-runs/python-read-2026-12-06.md:
+    a fresh 256 MB array costs 0.2-0.5 s on a 2-core VM, more than its decode).
+    """
     if dtype.kind in "iu":
         shift = int(mapping.intercept)
         if shift == 0:
             return stored.astype(dtype, copy=False)
         if dtype == np.int16 and shift == -32768:
+            if owned and stored.flags.writeable:
+                np.bitwise_xor(stored, np.uint16(0x8000), out=stored)
+                return stored.view(np.int16)
             return (stored ^ np.uint16(0x8000)).view(np.int16)
         if dtype == np.int8 and shift == -128:
             return (stored.astype(np.uint8) ^ np.uint8(0x80)).view(np.int8)
@@ -263,7 +271,7 @@ class Level:
         if any(dropped):
             out = out[tuple(0 if d else slice(None) for d in dropped)]
         if not self._stored:
-            out = _to_physical(out, self._volume.value_mapping, self.dtype)
+            out = _to_physical(out, self._volume.value_mapping, self.dtype, owned=True)
         elif self.dtype != out.dtype:
             out = out.astype(self.dtype)
         return np.ascontiguousarray(out)
