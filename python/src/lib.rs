@@ -1,8 +1,9 @@
 //! `strata._strata`: the native half of the `strata` Python package.
 //!
-//! A thin layer over the library crates: it opens stores (`strata_storage::Store`), reads
-//! regions of a level brick by brick into a buffer Python owns, and imports files or raw
-//! arrays through the same `import_source` as `strata import`. Everything else (slicing rules,
+//! A thin layer over the library crates: it opens stores (`strata_storage::Store`), served
+//! stores and OME-Zarrs (volume sources, `streamed.rs`), reads regions of a level brick by
+//! brick into a buffer Python owns, imports files or raw arrays through the same
+//! `import_source` as `strata import`, and exports OME-Zarr as `strata export` does. Everything else (slicing rules,
 //! dtypes, the value mapping, the affine) lives in the pure-Python package (`strata/`), which
 //! is the documented API.
 //!
@@ -19,18 +20,22 @@ use std::sync::{Arc, Mutex, Weak};
 use std::time::Duration;
 
 mod serve;
+mod streamed;
 
 use pyo3::create_exception;
 use pyo3::exceptions::{PyException, PyIndexError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyByteArray;
 use rayon::prelude::*;
+use strata_source::{SourceError as VolumeSourceError, VolumeSource};
 use strata_storage::import::{import_source, ImportOptions, ImportProgress};
 use strata_storage::readers::{open_source, ReadOptions};
+use strata_storage::store::StoreStats;
 use strata_storage::{
     BrickCodec, BrickId, ByteOrder, OpenedSource, RawVolume, SampleType, SourceInfo, StorageError,
-    Store, VolumeGeometry, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD,
+    Store, StoreHeader, VolumeGeometry, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD,
 };
+use streamed::StreamedReader;
 
 create_exception!(
     _strata,
@@ -67,6 +72,18 @@ create_exception!(
     SourceError,
     StrataError,
     "An input to an import cannot be read (missing, unsupported or malformed)."
+);
+create_exception!(
+    _strata,
+    RemoteError,
+    StrataError,
+    "A served store or a remote OME-Zarr cannot be reached, or its server refused a request."
+);
+create_exception!(
+    _strata,
+    TokenError,
+    RemoteError,
+    "The server requires a token (pass token=...) or refused the one given."
 );
 
 /// The Python exception of a storage error.
@@ -126,7 +143,7 @@ pub(crate) fn no_panic<T>(what: &str, f: impl FnOnce() -> PyResult<T>) -> PyResu
 }
 
 /// A pending Ctrl-C (or another signal handler's exception), checked with the GIL briefly held.
-fn interrupted() -> PyResult<()> {
+pub(crate) fn interrupted() -> PyResult<()> {
     Python::with_gil(|py| py.check_signals())
 }
 
@@ -146,22 +163,66 @@ fn open_shared(path: &Path) -> Result<Arc<Store>, StorageError> {
     Ok(store)
 }
 
-/// An open store (the Python class `strata.Volume` wraps it).
+/// What a [`NativeStore`] reads.
+#[derive(Clone)]
+enum Opened {
+    /// A store folder on this machine (one per folder per process: [`open_shared`]).
+    Local(Arc<Store>),
+    /// A store served by `strata serve`, or an OME-Zarr read in place (`streamed.rs`).
+    Streamed(Arc<dyn VolumeSource>),
+}
+
+impl Opened {
+    fn header(&self) -> &StoreHeader {
+        match self {
+            Opened::Local(store) => store.header(),
+            Opened::Streamed(source) => source.header(),
+        }
+    }
+    fn stats(&self) -> &StoreStats {
+        match self {
+            Opened::Local(store) => store.stats(),
+            Opened::Streamed(source) => source.stats(),
+        }
+    }
+    fn frame_count(&self) -> u32 {
+        match self {
+            Opened::Local(store) => store.frame_count(),
+            Opened::Streamed(source) => source.frame_count(),
+        }
+    }
+    fn source(&self) -> Arc<dyn VolumeSource> {
+        match self {
+            Opened::Local(store) => store.clone(),
+            Opened::Streamed(source) => source.clone(),
+        }
+    }
+}
+
+/// An open volume (the Python class `strata.Volume` wraps it): a store, a served store or an
+/// OME-Zarr.
 #[pyclass(module = "strata._strata", frozen)]
 struct NativeStore {
-    store: Mutex<Option<Arc<Store>>>,
-    path: PathBuf,
+    opened: Mutex<Option<Opened>>,
+    /// The path or URL as given (never with a token: tokens travel apart).
+    location: String,
+    /// "store", "served" or "ome-zarr".
+    kind: &'static str,
+    /// What was assumed to read it (a foreign OME-Zarr's orientation, levels, value mapping).
+    notes: Vec<String>,
+    /// The token the client sends, only to keep it out of messages.
+    secret: Option<String>,
+    /// How long a read waits on a streamed source that stopped answering.
+    give_up_after: Duration,
 }
 
 impl NativeStore {
-    fn get(&self) -> PyResult<Arc<Store>> {
-        self.store
+    fn get(&self) -> PyResult<Opened> {
+        self.opened
             .lock()
             .unwrap_or_else(|p| p.into_inner())
             .clone()
-            .ok_or_else(|| {
-                StoreError::new_err(format!("{}: the volume is closed", self.path.display()))
-            })
+            .ok_or_else(|| StoreError::new_err(format!("{}: the volume is closed", self.location)))
     }
 }
 
@@ -169,27 +230,50 @@ impl NativeStore {
 impl NativeStore {
     /// The store's header as JSON (geometry, value mapping, layout, frames, description...).
     fn header_json(&self) -> PyResult<String> {
-        let store = self.get()?;
-        serde_json::to_string(store.header())
+        let opened = self.get()?;
+        serde_json::to_string(opened.header())
             .map_err(|e| StrataError::new_err(format!("header to JSON: {e}")))
     }
 
     /// The import's statistics as JSON.
     fn stats_json(&self) -> PyResult<String> {
-        let store = self.get()?;
-        serde_json::to_string(store.stats())
+        let opened = self.get()?;
+        serde_json::to_string(opened.stats())
             .map_err(|e| StrataError::new_err(format!("statistics to JSON: {e}")))
     }
 
-    /// The store's folder.
+    /// The store's folder, or `None` for a URL.
     #[getter]
-    fn path(&self) -> PathBuf {
-        self.path.clone()
+    fn path(&self) -> Option<PathBuf> {
+        (!streamed::is_url(&self.location) && !self.location.starts_with("s3://"))
+            .then(|| PathBuf::from(&self.location))
+    }
+
+    /// The path or URL as given.
+    #[getter]
+    fn location(&self) -> String {
+        self.location.clone()
+    }
+
+    /// "store" (a folder `strata import` wrote), "served" (`strata serve`) or "ome-zarr".
+    #[getter]
+    fn kind(&self) -> &'static str {
+        self.kind
+    }
+
+    /// What was assumed to read the volume (empty for a Strata store or export).
+    fn notes(&self) -> Vec<String> {
+        self.notes.clone()
+    }
+
+    /// Volumes this handle reads (a served 4-D store: its first only).
+    fn frame_count(&self) -> PyResult<u32> {
+        Ok(self.get()?.frame_count())
     }
 
     /// Releases this handle (the store closes when no other handle of this process has it).
     fn close(&self) {
-        self.store.lock().unwrap_or_else(|p| p.into_inner()).take();
+        self.opened.lock().unwrap_or_else(|p| p.into_inner()).take();
     }
 
     /// Stored samples of frame `frame`, level `level`, voxels `lo..hi` (x, y, z; half-open),
@@ -203,18 +287,18 @@ impl NativeStore {
         lo: [u32; 3],
         hi: [u32; 3],
     ) -> PyResult<Bound<'py, PyByteArray>> {
-        let store = self.get()?;
-        let header = store.header();
+        let opened = self.get()?;
+        let header = opened.header();
         let Some(dims) = header.layout.level_dims.get(usize::from(level)).copied() else {
             return Err(PyIndexError::new_err(format!(
                 "level {level} of a store with {} levels",
                 header.layout.level_count()
             )));
         };
-        if frame >= store.frame_count() {
+        if frame >= opened.frame_count() {
             return Err(PyIndexError::new_err(format!(
                 "frame {frame} of a store with {} frames",
-                store.frame_count()
+                opened.frame_count()
             )));
         }
         for a in 0..3 {
@@ -225,12 +309,16 @@ impl NativeStore {
             }
         }
         let voxels = (0..3).map(|a| (hi[a] - lo[a]) as usize).product::<usize>();
+        let secret = self.secret.as_deref();
+        let give_up_after = self.give_up_after;
         let mut failure: Option<PyErr> = None;
         let out = PyByteArray::new_with(py, voxels * 2, |buf| {
             let result = py.allow_threads(|| {
                 no_panic("reading a region", || {
-                    read_region(&store, frame, level, lo, hi, buf).map_err(|e| match e {
+                    let read = read_region(&opened, frame, level, lo, hi, buf, give_up_after);
+                    read.map_err(|e| match e {
                         ReadError::Store(e) => store_error(e),
+                        ReadError::Source(e) => streamed::source_error(e, secret),
                         ReadError::Python(e) => e,
                     })
                 })
@@ -247,8 +335,9 @@ impl NativeStore {
     }
 }
 
-enum ReadError {
+pub(crate) enum ReadError {
     Store(StorageError),
+    Source(VolumeSourceError),
     Python(PyErr),
 }
 
@@ -256,14 +345,49 @@ enum ReadError {
 /// takes beyond its output (64 × 36³ × 2 bytes ≈ 6 MB) whatever the region's size.
 const BRICKS_PER_GROUP: usize = 64;
 
+/// Where a region's bricks come from.
+enum BrickReader<'a> {
+    /// Decoded on rayon's threads from the local store's files.
+    Local { store: &'a Store, frame: u32 },
+    /// Through a source's own request path.
+    Streamed(StreamedReader),
+}
+
+impl BrickReader<'_> {
+    fn group_size(&self) -> usize {
+        match self {
+            BrickReader::Local { .. } => BRICKS_PER_GROUP,
+            BrickReader::Streamed(_) => streamed::BRICKS_PER_REQUEST_GROUP,
+        }
+    }
+
+    fn read_group(&self, group: &[BrickId]) -> Result<Vec<(BrickId, Brick)>, ReadError> {
+        match self {
+            BrickReader::Local { store, frame } => group
+                .par_iter()
+                .map(|&id| {
+                    let brick = match store.frame_node(*frame, id) {
+                        Some(node) if node.is_constant() => Brick::Constant(node.min),
+                        _ => Brick::Voxels(Arc::new(store.read_frame_brick(*frame, id)?)),
+                    };
+                    Ok((id, brick))
+                })
+                .collect::<Result<_, StorageError>>()
+                .map_err(ReadError::Store),
+            BrickReader::Streamed(reader) => reader.read_group(group),
+        }
+    }
+}
+
 /// Fills `out` (C order z, y, x; native-endian u16) with the stored samples of `lo..hi`.
 fn read_region(
-    store: &Store,
+    opened: &Opened,
     frame: u32,
     level: u8,
     lo: [u32; 3],
     hi: [u32; 3],
     out: &mut [u8],
+    give_up_after: Duration,
 ) -> Result<(), ReadError> {
     if (0..3).any(|a| lo[a] >= hi[a]) {
         return Ok(());
@@ -283,20 +407,25 @@ fn read_region(
             }
         }
     }
+    let reader = match opened {
+        Opened::Local(store) => BrickReader::Local { store, frame },
+        Opened::Streamed(source) => {
+            let source = if frame == 0 {
+                source.clone()
+            } else {
+                source.clone().frame_source(frame).ok_or_else(|| {
+                    ReadError::Source(VolumeSourceError::Refused {
+                        location: source.location(),
+                        message: format!("frame {frame} is not served"),
+                    })
+                })?
+            };
+            BrickReader::Streamed(StreamedReader::start(source, give_up_after)?)
+        }
+    };
     let p = BRICK_PAYLOAD as usize;
-    for group in bricks.chunks(BRICKS_PER_GROUP) {
-        let decoded: Vec<(BrickId, Brick)> = group
-            .par_iter()
-            .map(|&id| {
-                let brick = match store.frame_node(frame, id) {
-                    Some(node) if node.is_constant() => Brick::Constant(node.min),
-                    _ => Brick::Voxels(store.read_frame_brick(frame, id)?),
-                };
-                Ok((id, brick))
-            })
-            .collect::<Result<_, StorageError>>()
-            .map_err(ReadError::Store)?;
-        for (id, brick) in decoded {
+    for group in bricks.chunks(reader.group_size()) {
+        for (id, brick) in reader.read_group(group)? {
             // This brick's part of the region, in level voxels.
             let start = (0..3)
                 .map(|a| lo[a].max(id.coords[a] * BRICK_CORE))
@@ -335,22 +464,126 @@ fn read_region(
     Ok(())
 }
 
-enum Brick {
+pub(crate) enum Brick {
     Constant(u16),
-    Voxels(Vec<u16>),
+    Voxels(Arc<Vec<u16>>),
 }
 
-/// Opens the store at `path` (shared with any other handle of this process).
+/// Opens `location`: a store folder (shared with any other handle of this process), a URL
+/// `strata serve` serves (with `token`), or an OME-Zarr (a `.zarr` folder or URL, `s3://`).
+/// `timeout_s`: how long opening and reading a URL keep retrying a server that does not answer.
 #[pyfunction]
-fn open_store(py: Python<'_>, path: PathBuf) -> PyResult<NativeStore> {
-    let store = py.allow_threads(|| {
-        no_panic("opening a store", || {
-            open_shared(&path).map_err(store_error)
+#[pyo3(signature = (location, token=None, timeout_s=20.0))]
+fn open_store(
+    py: Python<'_>,
+    location: String,
+    token: Option<String>,
+    timeout_s: f64,
+) -> PyResult<NativeStore> {
+    let give_up_after = Duration::try_from_secs_f64(timeout_s)
+        .ok()
+        .filter(|d| *d <= Duration::from_secs(86_400))
+        .ok_or_else(|| {
+            PyValueError::new_err(format!(
+                "timeout_s={timeout_s}: a number of seconds from 0 to 86400"
+            ))
+        })?;
+    let secret = token.clone();
+    let (opened, kind, notes) = py.allow_threads(|| {
+        no_panic("opening a volume", || {
+            if strata_omezarr::looks_like_ome_zarr(&location) {
+                if token.is_some() {
+                    return Err(PyValueError::new_err(
+                        "token= is for a URL strata serve serves, not an OME-Zarr",
+                    ));
+                }
+                let (source, notes) = streamed::open_omezarr(&location)?;
+                Ok((Opened::Streamed(source), "ome-zarr", notes))
+            } else if streamed::is_url(&location) {
+                let source = streamed::open_remote(&location, token, give_up_after)?;
+                Ok((Opened::Streamed(source), "served", Vec::new()))
+            } else if token.is_some() {
+                Err(PyValueError::new_err(format!(
+                    "token= is for a URL strata serve serves, not the folder {location}"
+                )))
+            } else {
+                let store = open_shared(Path::new(&location)).map_err(store_error)?;
+                Ok((Opened::Local(store), "store", Vec::new()))
+            }
         })
     })?;
     Ok(NativeStore {
-        store: Mutex::new(Some(store)),
-        path,
+        opened: Mutex::new(Some(opened)),
+        location,
+        kind,
+        notes,
+        secret,
+        give_up_after,
+    })
+}
+
+/// `strata export STORE DEST`: `volume` as OME-Zarr 0.5 at `dest` (a folder, created, or
+/// `s3://BUCKET/PREFIX`), on a thread of its own; Ctrl-C cancels it. Returns (levels, shards
+/// written, fill-only shards left out, shard bytes, metadata bytes).
+#[pyfunction]
+fn export_omezarr(
+    py: Python<'_>,
+    volume: &NativeStore,
+    dest: String,
+) -> PyResult<(usize, u64, u64, u64, u64)> {
+    let source = volume.get()?.source();
+    let cancel = AtomicBool::new(false);
+    let finished = AtomicBool::new(false);
+    std::thread::scope(|scope| {
+        let worker = std::thread::Builder::new()
+            .name("strata-py-export".into())
+            .spawn_scoped(scope, || {
+                let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                    let location = strata_omezarr::ObjectLocation::open(
+                        &dest,
+                        &strata_omezarr::ObjectStoreOptions::default(),
+                        true,
+                    )?;
+                    let options = strata_omezarr::export::ExportOptions {
+                        cancel: Some(&cancel),
+                        ..Default::default()
+                    };
+                    strata_omezarr::export::export(source.as_ref(), &location, &options, &|_, _| {})
+                }));
+                finished.store(true, Ordering::Release);
+                result
+            })
+            .map_err(|e| StrataError::new_err(format!("cannot start the export thread: {e}")))?;
+        let mut failure: Option<PyErr> = None;
+        while !finished.load(Ordering::Acquire) {
+            py.allow_threads(|| std::thread::sleep(Duration::from_millis(50)));
+            if failure.is_none() {
+                if let Err(e) = py.check_signals() {
+                    cancel.store(true, Ordering::Relaxed);
+                    failure = Some(e);
+                }
+            }
+        }
+        let joined = py.allow_threads(|| worker.join());
+        if let Some(e) = failure {
+            return Err(e);
+        }
+        match joined {
+            Ok(Ok(Ok(report))) => Ok((
+                report.levels,
+                report.shards_written,
+                report.shards_skipped,
+                report.shard_bytes,
+                report.metadata_bytes,
+            )),
+            Ok(Ok(Err(e))) => Err(match e {
+                strata_omezarr::OmeZarrError::Storage(e) => store_error(e),
+                other => StoreError::new_err(format!("export to {dest}: {other}")),
+            }),
+            Ok(Err(_)) | Err(_) => Err(StrataError::new_err(format!(
+                "internal error during the export to {dest} (a bug in Strata: please report it)"
+            ))),
+        }
     })
 }
 
@@ -573,10 +806,13 @@ fn _strata(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("DamagedStoreError", py.get_type::<DamagedStoreError>())?;
     m.add("StoreInUseError", py.get_type::<StoreInUseError>())?;
     m.add("SourceError", py.get_type::<SourceError>())?;
+    m.add("RemoteError", py.get_type::<RemoteError>())?;
+    m.add("TokenError", py.get_type::<TokenError>())?;
     m.add_class::<NativeStore>()?;
     m.add_function(wrap_pyfunction!(open_store, m)?)?;
     m.add_function(wrap_pyfunction!(import_file, m)?)?;
     m.add_function(wrap_pyfunction!(import_raw, m)?)?;
+    m.add_function(wrap_pyfunction!(export_omezarr, m)?)?;
     m.add_class::<serve::NativeServer>()?;
     m.add_function(wrap_pyfunction!(serve::serve, m)?)?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;

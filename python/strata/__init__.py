@@ -2,6 +2,7 @@
 
 >>> import strata
 >>> vol = strata.open("scan.strata")              # a store `strata import` wrote
+>>> vol = strata.open("http://host:8080/v1/stores/scan", token=...)  # or one strata serve serves
 >>> vol.shape, vol.spacing, vol.dtype              # (z, y, x), mm, the physical dtype
 >>> block = vol.level(0)[100:164, 200:300, :]      # numpy, read brick by brick
 >>> vol.affine                                     # index (i, j, k, 1) → LPS mm
@@ -12,15 +13,17 @@ raise ``IndexError``, bad arguments ``ValueError``.
 
 from __future__ import annotations
 
-from ._import import from_numpy, import_file
+from ._import import export_omezarr, from_numpy, import_file
 from ._serve import Server, serve
 from ._strata import (
     DamagedStoreError,
+    RemoteError,
     SourceError,
     StoreError,
     StoreInUseError,
     StoreNotFoundError,
     StrataError,
+    TokenError,
     __version__,
 )
 from ._volume import BRICK_CORE, Level, ValueMapping, Volume, WindowPreset, open
@@ -29,16 +32,19 @@ __all__ = [
     "BRICK_CORE",
     "DamagedStoreError",
     "Level",
+    "RemoteError",
     "Server",
     "SourceError",
     "StoreError",
     "StoreInUseError",
     "StoreNotFoundError",
     "StrataError",
+    "TokenError",
     "ValueMapping",
     "Volume",
     "WindowPreset",
     "__version__",
+    "export_omezarr",
     "from_numpy",
     "import_file",
     "open",

@@ -189,3 +189,30 @@ def from_numpy(
             stacklevel=2,
         )
     return vol
+
+
+def export_omezarr(volume: Volume | str | os.PathLike[str], dest: str | os.PathLike[str]) -> dict[str, int]:
+    """Exports a volume as OME-Zarr 0.5 (Zarr v3, sharded), as ``strata export`` does: every
+    level an array of the multiscale, the Strata geometry under the group's ``strata``
+    attribute, identifiers (description, input paths) left out. ``volume`` is a
+    :class:`Volume` or anything :func:`strata.open` opens; ``dest`` a folder (created; a
+    previous Strata export there is replaced) or ``s3://BUCKET/PREFIX``. zarr-python, napari
+    and ``strata.open`` read the result; Ctrl-C cancels.
+
+    Returns the export's figures: ``levels``, ``shards_written``, ``shards_skipped`` (fill
+    only), ``shard_bytes``, ``metadata_bytes``. Raises :class:`strata.StoreError` when the
+    destination cannot be written.
+    """
+    vol = volume if isinstance(volume, Volume) else open(volume)
+    try:
+        levels, written, skipped, shard_bytes, metadata_bytes = _strata.export_omezarr(vol._native(), os.fspath(dest))
+    finally:
+        if vol is not volume:
+            vol.close()
+    return {
+        "levels": levels,
+        "shards_written": written,
+        "shards_skipped": skipped,
+        "shard_bytes": shard_bytes,
+        "metadata_bytes": metadata_bytes,
+    }

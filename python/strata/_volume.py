@@ -74,13 +74,21 @@ def _physical_dtype(header: dict[str, Any], mapping: ValueMapping) -> np.dtype:
     return np.dtype(np.float64)
 
 
-def _to_physical(stored: np.ndarray, mapping: ValueMapping, dtype: np.dtype) -> np.ndarray:
-    """Stored u16 samples to physical values of ``dtype`` (exact for integer dtypes)."""
+def _to_physical(stored: np.ndarray, mapping: ValueMapping, dtype: np.dtype, owned: bool = False) -> np.ndarray:
+    """Stored u16 samples to physical values of ``dtype`` (exact for integer dtypes).
+
+    ``owned``: ``stored`` views a buffer only this read holds, which the int16 mapping may then
+    overwrite instead of allocating a second array (docs/bench-runs/python-read-2026-12-06.md:
+    a fresh 256 MB array costs 0.2-0.5 s on a 2-core VM, more than its decode).
+    """
     if dtype.kind in "iu":
         shift = int(mapping.intercept)
         if shift == 0:
             return stored.astype(dtype, copy=False)
         if dtype == np.int16 and shift == -32768:
+            if owned and stored.flags.writeable:
+                np.bitwise_xor(stored, np.uint16(0x8000), out=stored)
+                return stored.view(np.int16)
             return (stored ^ np.uint16(0x8000)).view(np.int16)
         if dtype == np.int8 and shift == -128:
             return (stored.astype(np.uint8) ^ np.uint8(0x80)).view(np.int8)
@@ -240,7 +248,7 @@ class Level:
     def __repr__(self) -> str:
         kind = "stored" if self._stored else "physical"
         return (
-            f"<strata.Level {self._index} of {self._volume.path!s}: shape {self.shape}, "
+            f"<strata.Level {self._index} of {self._volume.location}: shape {self.shape}, "
             f"{self.dtype} ({kind})>"
         )
 
@@ -263,7 +271,7 @@ class Level:
         if any(dropped):
             out = out[tuple(0 if d else slice(None) for d in dropped)]
         if not self._stored:
-            out = _to_physical(out, self._volume.value_mapping, self.dtype)
+            out = _to_physical(out, self._volume.value_mapping, self.dtype, owned=True)
         elif self.dtype != out.dtype:
             out = out.astype(self.dtype)
         return np.ascontiguousarray(out)
@@ -283,9 +291,10 @@ class Level:
 
 
 class Volume:
-    """An open Strata store: its geometry, value mapping and levels.
+    """An open Strata volume: its geometry, value mapping and levels.
 
-    Open one with :func:`strata.open`. Axis conventions: shapes, spacings and chunks are in
+    Open one with :func:`strata.open`: a store folder, a store ``strata serve`` serves (a URL),
+    or an OME-Zarr read in place; each reads alike. Axis conventions: shapes, spacings and chunks are in
     numpy's order ``(z, y, x)``; the affines map an index ``(i, j, k, 1)`` = ``(x, y, z, 1)``
     to patient LPS millimetres (the convention of DICOM, ITK and nibabel's ``affine`` — nibabel's
     is RAS: ``diag(-1, -1, 1, 1) @ vol.affine``). ``vol[...]`` reads level 0 as
@@ -308,9 +317,31 @@ class Volume:
         return self._handle
 
     @property
-    def path(self) -> os.PathLike[str]:
-        """The store's folder."""
+    def path(self) -> os.PathLike[str] | None:
+        """The store's (or OME-Zarr's) folder; ``None`` for a URL."""
         return self._handle.path
+
+    @property
+    def location(self) -> str:
+        """The path or URL the volume was opened from (never with its token)."""
+        return self._handle.location
+
+    @property
+    def url(self) -> str | None:
+        """The URL of a served store or a remote OME-Zarr; ``None`` for a folder."""
+        return None if self._handle.path is not None else self._handle.location
+
+    @property
+    def kind(self) -> str:
+        """``"store"`` (a folder ``strata import`` wrote), ``"served"`` (a URL ``strata serve``
+        serves) or ``"ome-zarr"`` (read in place)."""
+        return self._handle.kind
+
+    @property
+    def notes(self) -> list[str]:
+        """What was assumed to read the volume: a foreign OME-Zarr's orientation, levels or
+        value mapping (empty for Strata's own stores and exports)."""
+        return list(self._handle.notes())
 
     @property
     def header(self) -> dict[str, Any]:
@@ -335,8 +366,9 @@ class Volume:
 
     @property
     def frames(self) -> int:
-        """Volumes in the store (time points of a 4-D source); 1 otherwise."""
-        return int(self._header.get("frames", 1))
+        """Volumes in the store (time points of a 4-D source); 1 otherwise. A served 4-D
+        store reads as its first frame (``strata serve`` serves that one)."""
+        return int(self._handle.frame_count())
 
     @property
     def spacing(self) -> tuple[float, float, float]:
@@ -425,18 +457,34 @@ class Volume:
     def __repr__(self) -> str:
         frames = f", {self.frames} frames" if self.frames > 1 else ""
         return (
-            f"<strata.Volume {self.path!s}: {self.shape} (z, y, x){frames}, {self.dtype}, "
+            f"<strata.Volume {self.location}: {self.shape} (z, y, x){frames}, {self.dtype}, "
             f"spacing {self.spacing} mm, {self.levels} levels>"
         )
 
 
-def open(path: str | os.PathLike[str]) -> Volume:  # noqa: A001 - the package's verb
-    """Opens the Strata store at ``path`` (a folder ``strata import`` wrote).
+def open(  # noqa: A001 - the package's verb
+    path_or_url: str | os.PathLike[str], token: str | None = None, *, timeout_s: float = 20.0
+) -> Volume:
+    """Opens a volume: a Strata store (a folder ``strata import`` wrote), a store served by
+    ``strata serve`` (``http(s)://HOST:PORT/v1/stores/NAME``, with the server's ``token`` when
+    it needs one), or an OME-Zarr read in place (a ``.zarr`` folder or URL, ``s3://…``; Strata's
+    exports exactly, foreign pyramids as :attr:`Volume.notes` say).
 
-    Raises :class:`strata.StoreNotFoundError` when there is no store there,
-    :class:`strata.DamagedStoreError` for a damaged or unfinished one,
-    :class:`strata.StoreInUseError` when another process holds it, and
-    :class:`strata.StoreError` for any other reason; the message is the library's and names
-    the store. Opening the same store twice in one process shares it.
+    The token is sent as ``Authorization: Bearer …``, as ``strata serve`` expects, and appears
+    in no ``repr``, message or log. ``STRATA_TLS_CA`` names a PEM certificate to trust besides
+    the system's for https, as for the ``strata`` commands. ``timeout_s`` bounds how long
+    opening or reading a URL keeps retrying a server that does not answer.
+
+    Raises :class:`strata.StoreNotFoundError` when there is no store there (or the server has
+    no store of that name), :class:`strata.DamagedStoreError` for a damaged or unfinished one,
+    :class:`strata.StoreInUseError` when another process holds it,
+    :class:`strata.TokenError` when the server requires a token or refuses the one given,
+    :class:`strata.RemoteError` when a server cannot be reached (after ``timeout_s``) or
+    refuses otherwise, :class:`strata.StoreError` for any other reason, and ``ValueError`` for
+    a token with a folder; the message is the library's and names the volume. Opening the same
+    store folder twice in one process shares it.
     """
-    return Volume(_strata.open_store(os.fspath(path)))
+    location = os.fspath(path_or_url)
+    if not isinstance(location, str):
+        location = os.fsdecode(location)
+    return Volume(_strata.open_store(location, token, float(timeout_s)))
