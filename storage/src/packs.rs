@@ -547,6 +547,20 @@ impl Packs {
         })
     }
 
+    /// Tells the kernel the maps are about to be read front to back (verify: read ahead
+    /// further), or (`false`) back to random reads by brick. Advice only: a refusal changes
+    /// nothing but speed.
+    pub fn advise_sequential(&self, sequential: bool) {
+        let advice = if sequential {
+            memmap2::Advice::Sequential
+        } else {
+            memmap2::Advice::Normal
+        };
+        for map in self.maps.iter().flatten() {
+            let _ = map.advise(advice);
+        }
+    }
+
     pub fn slice(&self, e: &Entry) -> Option<&[u8]> {
         let map = self.maps.get(e.pack as usize)?.as_ref()?;
         let start = usize::try_from(e.offset).ok()?;

@@ -471,14 +471,27 @@ impl Store {
     }
 
     /// [`Store::verify`] with what could still be read and the verdict to print.
-    pub fn verify_report(&self, mut on_progress: impl FnMut(u64, u64)) -> Result<VerifyReport> {
+    pub fn verify_report(&self, on_progress: impl FnMut(u64, u64)) -> Result<VerifyReport> {
+        self.verify_report_to(VerifyDepth::Decode, on_progress)
+    }
+
+    /// [`Store::verify_report`] to the depth asked: a format-3 store checked at
+    /// [`VerifyDepth::Checksums`] streams its packs and checks each record's checksum and place
+    /// without decoding it (the disk's speed); formats 1-2 always decode.
+    pub fn verify_report_to(
+        &self,
+        depth: VerifyDepth,
+        mut on_progress: impl FnMut(u64, u64),
+    ) -> Result<VerifyReport> {
         let (bricks, later_trees) = match &self.backend {
             Backend::Sled {
                 bricks,
                 later_trees,
                 ..
             } => (bricks, later_trees),
-            Backend::Packs { packs, .. } => return Ok(self.verify_packs(packs, on_progress)),
+            Backend::Packs { packs, .. } => {
+                return Ok(self.verify_packs(packs, depth, on_progress))
+            }
         };
         let layout = self.header.layout.clone();
         let sparse = self.constant_bricks_implied();
@@ -673,13 +686,26 @@ impl Store {
     }
 
     /// [`Store::verify_report`] of a format-3 store: the packs streamed in order (entries by pack
-    /// and offset, so the disk reads sequentially), every record checked against its checksum,
-    /// its node's range and the index; every bad brick reported by id with its pack.
-    fn verify_packs(&self, packs: &Packs, mut on_progress: impl FnMut(u64, u64)) -> VerifyReport {
+    /// and offset, so the disk reads sequentially), every record checked against its checksum
+    /// and the index (inside its pack, overlapping no other record, a brick of the octree; at
+    /// [`VerifyDepth::Decode`] also decoded and its range compared with its node's); every bad
+    /// brick reported by id with its pack.
+    fn verify_packs(
+        &self,
+        packs: &Packs,
+        depth: VerifyDepth,
+        mut on_progress: impl FnMut(u64, u64),
+    ) -> VerifyReport {
         let layout = &self.header.layout;
         let sparse = self.constant_bricks_implied();
         let mut order: Vec<&crate::packs::Entry> = packs.entries().iter().collect();
         order.sort_by_key(|e| (e.pack, e.offset));
+        let chunk_len = match depth {
+            VerifyDepth::Checksums => VERIFY_STREAM_CHUNK,
+            VerifyDepth::Decode => VERIFY_CHUNK,
+        };
+        // The read is sequential, so the kernel may read ahead and drop what was read.
+        packs.advise_sequential(true);
         let total = order.len() as u64;
         // What progress counts to: as format 2 does, the nodes that need a record (a sparse
         // store's stored nodes, every node otherwise).
@@ -692,12 +718,32 @@ impl Store {
         let mut seen = 0u64;
         let mut varying_with_records = 0u64;
         let store = self.path.display();
-        // Chunks in pack order, each decoded on all cores: the disk still reads sequentially.
-        for chunk in order.chunks(VERIFY_CHUNK) {
+        // Records that overlap the one before them in their pack: two index entries claim the
+        // same bytes (an index written wrong), which no checksum would show.
+        let mut previous: Option<&crate::packs::Entry> = None;
+        for e in &order {
+            if let Some(p) = previous.filter(|p| p.pack == e.pack) {
+                if p.offset + u64::from(p.len) > e.offset {
+                    problems.push(format!(
+                        "{store}: {}: {} at bytes {}..{} overlaps {} at bytes {}..{}: the index is damaged",
+                        crate::packs::pack_name(e.pack),
+                        entry_what(e),
+                        e.offset,
+                        e.offset + u64::from(e.len),
+                        entry_what(p),
+                        p.offset,
+                        p.offset + u64::from(p.len)
+                    ));
+                }
+            }
+            previous = Some(e);
+        }
+        // Chunks in pack order, each checked on all cores: the disk still reads sequentially.
+        for chunk in order.chunks(chunk_len) {
             use rayon::prelude::*;
             let checked: Vec<(bool, Option<String>)> = chunk
                 .par_iter()
-                .map(|e| self.check_pack_record(packs, e))
+                .map(|e| self.check_pack_record(packs, e, depth))
                 .collect();
             for (varying, problem) in checked {
                 seen += 1;
@@ -724,12 +770,18 @@ impl Store {
                 layout.total_bricks()
             ));
         }
+        packs.advise_sequential(false);
         on_progress(nodes, nodes);
         problems.finish(&self.path, &self.header, seen)
     }
 
     /// One record of a format-3 store checked: whether its node varies, and its problem.
-    fn check_pack_record(&self, packs: &Packs, e: &crate::packs::Entry) -> (bool, Option<String>) {
+    fn check_pack_record(
+        &self,
+        packs: &Packs,
+        e: &crate::packs::Entry,
+        depth: VerifyDepth,
+    ) -> (bool, Option<String>) {
         let store = self.path.display();
         let pack = crate::packs::pack_name(e.pack);
         let id = match e.id() {
@@ -755,6 +807,15 @@ impl Store {
                 )),
             );
         };
+        if depth == VerifyDepth::Checksums {
+            let problem = crate::brick::verify_record(id, record).err().map(|err| {
+                format!(
+                    "{store}: {pack} at byte {}: brick level {} at {:?}: {err}",
+                    e.offset, id.level, id.coords
+                )
+            });
+            return (varying, problem);
+        }
         let problem = match decode_brick(id, record) {
             Err(err) => Some(format!(
                 "{store}: {pack} at byte {}: brick level {} at {:?}: {err}",
@@ -1071,6 +1132,28 @@ fn refuse_non_regular_files(store: &Path, dir: &Path, depth: u32) -> Result<()> 
 
 /// Records of a format-3 store decoded at once by [`Store::verify`] (in pack order).
 const VERIFY_CHUNK: usize = 256;
+/// Records of a format-3 store checksummed at once at [`VerifyDepth::Checksums`]: a few MB, so
+/// the cores share the work while the read stays sequential.
+const VERIFY_STREAM_CHUNK: usize = 1024;
+
+/// How deep [`Store::verify_report_to`] checks a format-3 store's records.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum VerifyDepth {
+    /// Each record's checksum (over its kind, brick key and body) and its place in the index:
+    /// what a damaged disk or a torn write changes, at the disk's speed.
+    Checksums,
+    /// Also decode each record and compare its value range with its node's (a codec fault or a
+    /// skeleton that disagrees with its bricks).
+    Decode,
+}
+
+/// "brick level L at [x, y, z]", or the raw key of an entry that names no brick.
+fn entry_what(e: &crate::packs::Entry) -> String {
+    match e.id() {
+        Some(id) => format!("brick level {} at {:?}", id.level, id.coords),
+        None => format!("the record under key {:02x?}", e.key),
+    }
+}
 
 /// Problem messages [`Store::verify`] keeps: a database damaged throughout yields one per
 /// record, so the list is capped (memory stays bounded) and the rest only counted.

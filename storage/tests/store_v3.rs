@@ -524,3 +524,92 @@ fn appended_versions_are_read_and_compaction_drops_the_superseded() {
         .unwrap()
         .is_empty());
 }
+
+/// `verify` at its default depth streams the packs and checks each record's checksum and place
+/// without decoding: a sound store passes with every record read; damaged records are each
+/// reported by brick and pack, as the deep check (`--decode`) reports them. A record whose
+/// checksum holds but whose voxels disagree with the skeleton is found only by decoding: the
+/// depths differ in what they decode, not in what they read.
+#[test]
+fn a_checksum_verify_streams_every_record_and_names_each_damaged_brick() {
+    use strata_storage::brick::{encode_brick, value_range, BrickCodec, ValueRange};
+    use strata_storage::store::VerifyDepth;
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("c.strata");
+    Phantom::cube(96)
+        .write_store(&store, &ImportOptions::default())
+        .unwrap();
+    let opened = Store::open(&store).unwrap();
+    let entries = all_ids(&opened).len() as u64;
+    let varying: Vec<BrickId> = all_ids(&opened)
+        .into_iter()
+        .filter(|&id| {
+            let r = value_range(&opened.read_brick(id).unwrap());
+            r.min != r.max
+        })
+        .collect();
+    assert!(varying.len() >= 3, "the phantom has varying bricks");
+    for depth in [VerifyDepth::Checksums, VerifyDepth::Decode] {
+        let report = opened.verify_report_to(depth, |_, _| {}).unwrap();
+        assert!(report.problems.is_empty(), "{depth:?}: {:?}", report.problems);
+        assert_eq!(report.records_read, entries, "{depth:?}");
+        assert_eq!(report.intact, entries, "{depth:?}");
+    }
+    drop(opened);
+
+    // Two damaged records: each named, with its pack.
+    let damaged = [varying[0], varying[2]];
+    for id in damaged {
+        Store::corrupt_brick_for_tests(&store, id, 20).unwrap();
+    }
+    let opened = Store::open(&store).unwrap();
+    for depth in [VerifyDepth::Checksums, VerifyDepth::Decode] {
+        let report = opened.verify_report_to(depth, |_, _| {}).unwrap();
+        assert_eq!(report.problems.len(), 2, "{depth:?}: {:?}", report.problems);
+        for (problem, id) in report.problems.iter().zip(damaged) {
+            let named = format!("brick level {} at {:?}", id.level, id.coords);
+            assert!(
+                problem.contains(&named)
+                    && problem.contains("pack-00000.pack")
+                    && problem.contains("checksum mismatch"),
+                "{depth:?}: {problem} should name {named}"
+            );
+        }
+        assert_eq!(report.intact, entries - 2, "{depth:?}");
+        assert!(report.verdict.is_some(), "{depth:?}");
+    }
+    drop(opened);
+
+    // A sound record (checksum holds) of one value where the skeleton says the brick varies.
+    let id = varying[1];
+    let node_min = Store::open(&store).unwrap().node(id).unwrap().min;
+    let flat = vec![node_min; strata_types::BRICK_PAYLOAD_VOXELS];
+    let record = encode_brick(
+        id,
+        &flat,
+        ValueRange {
+            min: node_min,
+            max: node_min,
+        },
+        false,
+        BrickCodec::Lz4,
+    );
+    strata_storage::store::append_brick_versions(&store, &[(id, record)]).unwrap();
+    let opened = Store::open(&store).unwrap();
+    let shallow = opened
+        .verify_report_to(VerifyDepth::Checksums, |_, _| {})
+        .unwrap();
+    let deep = opened
+        .verify_report_to(VerifyDepth::Decode, |_, _| {})
+        .unwrap();
+    assert_eq!(shallow.problems.len(), 2, "{:?}", shallow.problems);
+    assert_eq!(deep.problems.len(), 3, "{:?}", deep.problems);
+    assert!(
+        deep.problems
+            .iter()
+            .any(|p| p.contains(&format!("brick level {} at {:?}", id.level, id.coords))
+                && p.contains("differs from the skeleton's")),
+        "{:?}",
+        deep.problems
+    );
+}
