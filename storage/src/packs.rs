@@ -790,3 +790,63 @@ impl AsRef<[u8]> for MappedRecord {
         &self.map[self.start..self.start + self.len]
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn entry(level: u8, x: u32, offset: u64, version: u32) -> Entry {
+        Entry {
+            frame: 0,
+            key: brick_key(BrickId::new(level, [x, 0, 0])),
+            pack: 0,
+            offset,
+            len: 10,
+            version,
+        }
+    }
+
+    /// An index of the first format-3 builds (its own magic, entries without a version) reads
+    /// with every record at version 1; the current one keeps each entry's version.
+    #[test]
+    fn an_index_written_before_versions_reads_every_record_as_version_1() {
+        let dir = tempfile::tempdir().unwrap();
+        let docs = IndexDocs {
+            header: b"h".to_vec(),
+            skeleton: b"s".to_vec(),
+            histogram: b"g".to_vec(),
+            stats: b"t".to_vec(),
+        };
+        let mut entries = vec![entry(0, 0, 0, 3), entry(0, 1, 10, 1), entry(1, 0, 20, 2)];
+        entries.sort_by_key(|e| (e.frame, e.key));
+        let current = encode_index(&docs, &[30], &entries);
+        std::fs::write(dir.path().join(INDEX_FILE), &current).unwrap();
+        let read = read_index(dir.path()).unwrap();
+        assert_eq!(read.entries, entries);
+
+        // The same index as the first builds wrote it: old magic, 4 bytes fewer per entry.
+        let body = &current[..current.len() - 8];
+        let entries_at = body.len() - entries.len() * ENTRY_BYTES;
+        let mut old = INDEX_MAGIC_UNVERSIONED.to_vec();
+        old.extend_from_slice(&body[INDEX_MAGIC.len()..entries_at]);
+        for e in body[entries_at..].chunks(ENTRY_BYTES) {
+            old.extend_from_slice(&e[..ENTRY_BYTES_UNVERSIONED]);
+        }
+        let sum = xxhash_rust::xxh3::xxh3_64(&old);
+        old.extend_from_slice(&sum.to_le_bytes());
+        std::fs::write(dir.path().join(INDEX_FILE), &old).unwrap();
+        let read = read_index(dir.path()).unwrap();
+        let as_version_1: Vec<Entry> = entries.iter().map(|e| Entry { version: 1, ..*e }).collect();
+        assert_eq!(read.entries, as_version_1);
+        assert_eq!(read.pack_lengths, vec![30]);
+        assert_eq!(read.docs.skeleton, b"s");
+
+        // Neither magic: refused, naming the index.
+        old[0] ^= 1;
+        std::fs::write(dir.path().join(INDEX_FILE), &old).unwrap();
+        let err = read_index(dir.path())
+            .err()
+            .expect("a foreign magic is refused");
+        assert!(err.to_string().contains(INDEX_FILE), "{err}");
+    }
+}
