@@ -38,7 +38,7 @@ enum Command {
     /// Print a store's geometry, orientation, value range, levels and sizes.
     Info(StoreArg),
     /// Read and check every brick of a store (checksums, decompression, ranges).
-    Verify(StoreArg),
+    Verify(cmd_verify::VerifyArgs),
     /// Serve stores read-only over HTTP/1.1 and HTTP/2 (loopback unless told otherwise).
     Serve(cmd_serve::ServeArgs),
     /// Render one frame of a store headless to PNG (GPU, or the f64 CPU reference).
@@ -100,7 +100,7 @@ fn run(cli: Cli) -> Result<()> {
         Some(Command::Import(args)) => cmd_import::run(args),
         Some(Command::Export(args)) => cmd_omezarr::run_export(args),
         Some(Command::Info(a)) => cmd_info::run(&a.store, a.token_file.as_deref()),
-        Some(Command::Verify(a)) => cmd_verify::run(&a.store, a.token_file.as_deref()),
+        Some(Command::Verify(a)) => cmd_verify::run(&a),
         Some(Command::Serve(args)) => cmd_serve::run(args),
         Some(Command::Sample(args)) => cmd_sample::run(args),
         Some(Command::Render(args)) => cmd_render::run(args),

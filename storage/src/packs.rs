@@ -6,9 +6,13 @@
 //! - `packs/pack-NNNNN.pack`: brick records exactly as format 2 stores them (kind, xxh3, body),
 //!   back to back, each pack at most [`PACK_LIMIT_BYTES`] (one larger record gets a pack alone);
 //! - `index.v3`: [`INDEX_MAGIC`], the header, skeleton, histogram and statistics, each pack's
-//!   length, the entries (frame, brick key, pack, offset, length) sorted by frame and key, and an
-//!   xxh3-64 of all of it. Written to `index.v3.new`, fsync'd, renamed, after every pack is
-//!   fsync'd: an index names only bytes already on disk.
+//!   length, the entries (frame, brick key, pack, offset, length, record version) sorted by frame
+//!   and key, and an xxh3-64 of all of it. An import writes version 1 of every record; each
+//!   append of a brick's new record ([`append_versions`]) gives it the next version, and
+//!   compaction keeps them. Indexes written before versions were recorded
+//!   ([`INDEX_MAGIC_UNVERSIONED`], entries without the field) read every record as version 1.
+//!   Written to `index.v3.new`, fsync'd, renamed, after every pack is fsync'd: an index names
+//!   only bytes already on disk.
 //!
 //! **Writing.** Every import worker appends its own records: it reserves the bytes with an atomic
 //! add on the current pack's end and writes them with `pwrite`, so no writer thread or lock is
@@ -39,9 +43,13 @@ pub(crate) const PACKS_DIR: &str = "packs";
 pub(crate) const INDEX_FILE: &str = "index.v3";
 /// The largest a pack grows before the next one is started.
 pub const PACK_LIMIT_BYTES: u64 = 1 << 30;
-pub(crate) const INDEX_MAGIC: &[u8; 16] = b"STRATA-INDEX-v3\n";
-/// Bytes of one index entry: frame u32, key 13, pack u32, offset u64, length u32.
-const ENTRY_BYTES: usize = 4 + 13 + 4 + 8 + 4;
+pub(crate) const INDEX_MAGIC: &[u8; 16] = b"STRATA-IDX-v3.1\n";
+/// The magic of the first format-3 indexes, whose entries carry no record version.
+pub(crate) const INDEX_MAGIC_UNVERSIONED: &[u8; 16] = b"STRATA-INDEX-v3\n";
+/// Bytes of one index entry: frame u32, key 13, pack u32, offset u64, length u32, version u32.
+const ENTRY_BYTES: usize = 4 + 13 + 4 + 8 + 4 + 4;
+/// Bytes of one entry of an [`INDEX_MAGIC_UNVERSIONED`] index (no version).
+const ENTRY_BYTES_UNVERSIONED: usize = ENTRY_BYTES - 4;
 /// An index is entries of a few dozen bytes and a skeleton: a larger file is not one.
 const INDEX_MAX_BYTES: u64 = 4 << 30;
 
@@ -65,6 +73,8 @@ pub(crate) struct Entry {
     pub pack: u32,
     pub offset: u64,
     pub len: u32,
+    /// 1 for the record an import wrote, one more for each new record appended since.
+    pub version: u32,
 }
 
 impl Entry {
@@ -144,7 +154,8 @@ impl PackWriter {
     }
 
     /// Appends one record of frame `frame` (a later one for the same brick supersedes it).
-    pub fn append(&self, frame: u32, id: BrickId, record: &[u8]) -> Result<()> {
+    /// Appends `record` as version `version` of brick `id` in frame `frame`.
+    pub fn append(&self, frame: u32, id: BrickId, version: u32, record: &[u8]) -> Result<()> {
         use std::os::unix::fs::FileExt;
         let len = record.len() as u64;
         let len32 = u32::try_from(record.len()).map_err(|_| {
@@ -175,6 +186,7 @@ impl PackWriter {
                             pack: pack.id,
                             offset,
                             len: len32,
+                            version,
                         },
                     );
                 return Ok(());
@@ -300,6 +312,7 @@ fn encode_index(docs: &IndexDocs, pack_lengths: &[u64], entries: &[Entry]) -> Ve
         out.extend_from_slice(&e.pack.to_le_bytes());
         out.extend_from_slice(&e.offset.to_le_bytes());
         out.extend_from_slice(&e.len.to_le_bytes());
+        out.extend_from_slice(&e.version.to_le_bytes());
     }
     let sum = xxhash_rust::xxh3::xxh3_64(&out);
     out.extend_from_slice(&sum.to_le_bytes());
@@ -360,9 +373,16 @@ pub(crate) fn read_index(store: &Path) -> Result<Index> {
             .read_to_end(&mut bytes)
             .map_err(|e| StorageError::io(&path, e))?;
     }
-    if bytes.len() < INDEX_MAGIC.len() + 8 || &bytes[..INDEX_MAGIC.len()] != INDEX_MAGIC {
-        return Err(bad("does not start as an index of format 3".into()));
-    }
+    let versioned = match bytes.get(..INDEX_MAGIC.len()) {
+        Some(m) if m == INDEX_MAGIC && bytes.len() >= INDEX_MAGIC.len() + 8 => true,
+        Some(m) if m == INDEX_MAGIC_UNVERSIONED && bytes.len() >= INDEX_MAGIC.len() + 8 => false,
+        _ => return Err(bad("does not start as an index of format 3".into())),
+    };
+    let entry_bytes = if versioned {
+        ENTRY_BYTES
+    } else {
+        ENTRY_BYTES_UNVERSIONED
+    };
     let (body, sum) = bytes.split_at(bytes.len() - 8);
     let sum = u64::from_le_bytes(sum.try_into().unwrap_or_default());
     if xxhash_rust::xxh3::xxh3_64(body) != sum {
@@ -391,7 +411,7 @@ pub(crate) fn read_index(store: &Path) -> Result<Index> {
         .map(|_| c.u64().ok_or_else(truncated))
         .collect::<Result<_>>()?;
     let count = c.u64().ok_or_else(truncated)?;
-    if count.saturating_mul(ENTRY_BYTES as u64) != (body.len() - c.at) as u64 {
+    if count.saturating_mul(entry_bytes as u64) != (body.len() - c.at) as u64 {
         return Err(bad(format!(
             "claims {count} entries in {} bytes",
             body.len() - c.at
@@ -407,12 +427,18 @@ pub(crate) fn read_index(store: &Path) -> Result<Index> {
         let pack = c.u32().ok_or_else(truncated)?;
         let offset = c.u64().ok_or_else(truncated)?;
         let len = c.u32().ok_or_else(truncated)?;
+        let version = if versioned {
+            c.u32().ok_or_else(truncated)?
+        } else {
+            1
+        };
         let e = Entry {
             frame,
             key,
             pack,
             offset,
             len,
+            version,
         };
         let Some(&pack_len) = pack_lengths.get(pack as usize) else {
             return Err(bad(format!(
@@ -520,6 +546,16 @@ impl Packs {
             .sum()
     }
 
+    /// The index entry of `id` in frame `frame`.
+    pub fn entry(&self, frame: u32, id: BrickId) -> Option<&Entry> {
+        let key = brick_key(id);
+        let i = self
+            .entries
+            .binary_search_by(|e| (e.frame, e.key).cmp(&(frame, key)))
+            .ok()?;
+        self.entries.get(i)
+    }
+
     /// The record of `id` in frame `frame`: a slice of its pack's map (checked at open).
     pub fn get(&self, frame: u32, id: BrickId) -> Option<&[u8]> {
         let key = brick_key(id);
@@ -545,6 +581,20 @@ impl Packs {
             start: usize::try_from(e.offset).ok()?,
             len,
         })
+    }
+
+    /// Tells the kernel the maps are about to be read front to back (verify: read ahead
+    /// further), or (`false`) back to random reads by brick. Advice only: a refusal changes
+    /// nothing but speed.
+    pub fn advise_sequential(&self, sequential: bool) {
+        let advice = if sequential {
+            memmap2::Advice::Sequential
+        } else {
+            memmap2::Advice::Normal
+        };
+        for map in self.maps.iter().flatten() {
+            let _ = map.advise(advice);
+        }
     }
 
     pub fn slice(&self, e: &Entry) -> Option<&[u8]> {
@@ -603,7 +653,8 @@ impl WriteLock {
 /// 2. The records go to new packs (`create_new`, numbered after the index's last), each
 ///    fsync'd, then the packs folder fsync'd. Existing packs are never opened for writing, so a
 ///    reader's maps of them stay valid, and the index in place still names only their bytes.
-/// 3. The new index (the old entries with these replaced, the new packs' lengths) is written to
+/// 3. The new index (the old entries with these replaced, each one version past the record it
+///    supersedes; the new packs' lengths; `docs`, the caller's skeleton updated) is written to
 ///    `index.v3.new`, fsync'd, renamed over `index.v3`, and the store folder fsync'd. The rename
 ///    is the commit point: before it every reader sees the old versions, after it the new;
 ///    either index is whole (checksummed) and names only bytes already on disk.
@@ -614,6 +665,7 @@ impl WriteLock {
 pub(crate) fn append_versions(
     store: &Path,
     index: &Index,
+    docs: &IndexDocs,
     records: &[(u32, BrickId, Vec<u8>)],
     limit: u64,
 ) -> Result<()> {
@@ -677,6 +729,16 @@ pub(crate) fn append_versions(
             .write_all(record)
             .map_err(|e| write_error(&pack_path(store, *pack), *id, e))?;
         let key = brick_key(*id);
+        // The next version after the newest: one appended earlier in this call, else the
+        // index's, else the import's (1: a constant brick a sparse skeleton implied).
+        let version = match newest.get(&(*frame, key)) {
+            Some(e) => e.version,
+            None => index
+                .entries
+                .binary_search_by(|e| (e.frame, e.key).cmp(&(*frame, key)))
+                .map_or(1, |i| index.entries[i].version),
+        }
+        .saturating_add(1);
         newest.insert(
             (*frame, key),
             Entry {
@@ -685,6 +747,7 @@ pub(crate) fn append_versions(
                 pack: *pack,
                 offset: *end,
                 len,
+                version,
             },
         );
         *end += u64::from(len);
@@ -704,7 +767,7 @@ pub(crate) fn append_versions(
         .collect();
     entries.extend(newest.into_values());
     entries.sort_by_key(|e| (e.frame, e.key));
-    let bytes = encode_index(&index.docs, &lengths, &entries);
+    let bytes = encode_index(docs, &lengths, &entries);
     let target = store.join(INDEX_FILE);
     let staged = store.join(format!("{INDEX_FILE}.new"));
     write_synced(&staged, &bytes)?;
@@ -725,5 +788,65 @@ pub struct MappedRecord {
 impl AsRef<[u8]> for MappedRecord {
     fn as_ref(&self) -> &[u8] {
         &self.map[self.start..self.start + self.len]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn entry(level: u8, x: u32, offset: u64, version: u32) -> Entry {
+        Entry {
+            frame: 0,
+            key: brick_key(BrickId::new(level, [x, 0, 0])),
+            pack: 0,
+            offset,
+            len: 10,
+            version,
+        }
+    }
+
+    /// An index of the first format-3 builds (its own magic, entries without a version) reads
+    /// with every record at version 1; the current one keeps each entry's version.
+    #[test]
+    fn an_index_written_before_versions_reads_every_record_as_version_1() {
+        let dir = tempfile::tempdir().unwrap();
+        let docs = IndexDocs {
+            header: b"h".to_vec(),
+            skeleton: b"s".to_vec(),
+            histogram: b"g".to_vec(),
+            stats: b"t".to_vec(),
+        };
+        let mut entries = vec![entry(0, 0, 0, 3), entry(0, 1, 10, 1), entry(1, 0, 20, 2)];
+        entries.sort_by_key(|e| (e.frame, e.key));
+        let current = encode_index(&docs, &[30], &entries);
+        std::fs::write(dir.path().join(INDEX_FILE), &current).unwrap();
+        let read = read_index(dir.path()).unwrap();
+        assert_eq!(read.entries, entries);
+
+        // The same index as the first builds wrote it: old magic, 4 bytes fewer per entry.
+        let body = &current[..current.len() - 8];
+        let entries_at = body.len() - entries.len() * ENTRY_BYTES;
+        let mut old = INDEX_MAGIC_UNVERSIONED.to_vec();
+        old.extend_from_slice(&body[INDEX_MAGIC.len()..entries_at]);
+        for e in body[entries_at..].chunks(ENTRY_BYTES) {
+            old.extend_from_slice(&e[..ENTRY_BYTES_UNVERSIONED]);
+        }
+        let sum = xxhash_rust::xxh3::xxh3_64(&old);
+        old.extend_from_slice(&sum.to_le_bytes());
+        std::fs::write(dir.path().join(INDEX_FILE), &old).unwrap();
+        let read = read_index(dir.path()).unwrap();
+        let as_version_1: Vec<Entry> = entries.iter().map(|e| Entry { version: 1, ..*e }).collect();
+        assert_eq!(read.entries, as_version_1);
+        assert_eq!(read.pack_lengths, vec![30]);
+        assert_eq!(read.docs.skeleton, b"s");
+
+        // Neither magic: refused, naming the index.
+        old[0] ^= 1;
+        std::fs::write(dir.path().join(INDEX_FILE), &old).unwrap();
+        let err = read_index(dir.path())
+            .err()
+            .expect("a foreign magic is refused");
+        assert!(err.to_string().contains(INDEX_FILE), "{err}");
     }
 }

@@ -96,6 +96,24 @@ impl Level {
             (index / (n[0] * n[1])) as u32,
         ]
     }
+    fn get_mut(&mut self, index: u64) -> Option<&mut NodeInfo> {
+        match &mut self.nodes {
+            LevelNodes::Dense(n) => n.get_mut(usize::try_from(index).ok()?),
+            LevelNodes::Sparse { indices, nodes } => indices
+                .binary_search(&index)
+                .ok()
+                .map(|position| &mut nodes[position]),
+        }
+    }
+    /// Stores node `index` as `info` unless it is stored already.
+    fn insert(&mut self, index: u64, info: NodeInfo) {
+        if let LevelNodes::Sparse { indices, nodes } = &mut self.nodes {
+            if let Err(at) = indices.binary_search(&index) {
+                indices.insert(at, index);
+                nodes.insert(at, info);
+            }
+        }
+    }
     fn get(&self, index: u64) -> Option<NodeInfo> {
         match &self.nodes {
             LevelNodes::Dense(n) => n.get(usize::try_from(index).ok()?).copied(),
@@ -350,6 +368,73 @@ impl Skeleton {
             level += 1;
             coords = coords.map(|c| c / 2);
         }
+    }
+
+    /// Records an edit: brick `id` now holds voxels of `range` (`min`, `max`). Its node takes
+    /// that range exactly (constant when it is one value) and every ancestor's range widens to
+    /// include it, so culling by range never hides the edited brick (issue 48, item 3). A node
+    /// implied by a collapsed constant subtree is stored first, with the nodes the skeleton's
+    /// invariant then needs (the siblings on the way down, the edited node's children), each
+    /// with the subtree's constant value: what they held before the edit.
+    pub fn record_edit(&mut self, id: BrickId, min: u16, max: u16) -> Option<()> {
+        let level = id.level as usize;
+        self.levels.get(level)?.index(id.coords)?;
+        // The path from the edited node up to the root, and the lowest stored node on it.
+        let path: Vec<[u32; 3]> = (level..self.levels.len())
+            .scan(id.coords, |c, _| {
+                let here = *c;
+                *c = c.map(|v| v / 2);
+                Some(here)
+            })
+            .collect();
+        let stored_at = (0..path.len()).find(|&k| {
+            let l = &self.levels[level + k];
+            l.index(path[k]).and_then(|i| l.get(i)).is_some()
+        })?;
+        let before = self.node(id)?;
+        // Store the implied nodes on the way down from the collapsed root, siblings included.
+        for k in (0..stored_at).rev() {
+            let parent_level = level + k + 1;
+            let bricks = self.levels[parent_level - 1].bricks;
+            for c in children(path[k + 1], bricks) {
+                let l = &mut self.levels[parent_level - 1];
+                if let Some(i) = l.index(c) {
+                    l.insert(i, before);
+                }
+            }
+        }
+        // A node above level 0 whose children are implied: store them (they keep the value).
+        if level > 0 {
+            let below = &self.levels[level - 1];
+            let any_child_stored = children(id.coords, below.bricks)
+                .any(|c| below.index(c).and_then(|i| below.get(i)).is_some());
+            if !any_child_stored {
+                let bricks = below.bricks;
+                for c in children(id.coords, bricks) {
+                    let l = &mut self.levels[level - 1];
+                    if let Some(i) = l.index(c) {
+                        l.insert(i, before);
+                    }
+                }
+            }
+        }
+        for (k, coords) in path.iter().enumerate() {
+            let l = &mut self.levels[level + k];
+            let node = l.index(*coords).and_then(|i| l.get_mut(i))?;
+            if k == 0 {
+                node.min = min;
+                node.max = max;
+            } else {
+                node.min = node.min.min(min);
+                node.max = node.max.max(max);
+            }
+            if node.min == node.max {
+                node.flags |= NodeInfo::CONSTANT;
+            } else {
+                node.flags &= !NodeInfo::CONSTANT;
+            }
+        }
+        Some(())
     }
 
     /// Bytes this skeleton holds in memory (its node records and indices).

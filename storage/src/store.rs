@@ -457,6 +457,16 @@ impl Store {
         }
     }
 
+    /// The version of brick `id`'s record in a format-3 store: 1 as imported, one more for each
+    /// new record appended since ([`append_brick_versions`]). `None` for a brick without a
+    /// record, and in formats 1-2, which keep no versions.
+    pub fn brick_version(&self, id: BrickId) -> Option<u32> {
+        match &self.backend {
+            Backend::Packs { packs, .. } => packs.entry(0, id).map(|e| e.version),
+            Backend::Sled { .. } => None,
+        }
+    }
+
     /// Checks every brick of every frame: present, checksum, decompression, and range equal to
     /// the (frame's) skeleton's. In a store whose constant bricks may be implied
     /// ([`FEATURE_SPARSE_SKELETON`]) that is every record there is, each against its node, and
@@ -471,14 +481,27 @@ impl Store {
     }
 
     /// [`Store::verify`] with what could still be read and the verdict to print.
-    pub fn verify_report(&self, mut on_progress: impl FnMut(u64, u64)) -> Result<VerifyReport> {
+    pub fn verify_report(&self, on_progress: impl FnMut(u64, u64)) -> Result<VerifyReport> {
+        self.verify_report_to(VerifyDepth::Decode, on_progress)
+    }
+
+    /// [`Store::verify_report`] to the depth asked: a format-3 store checked at
+    /// [`VerifyDepth::Checksums`] streams its packs and checks each record's checksum and place
+    /// without decoding it (the disk's speed); formats 1-2 always decode.
+    pub fn verify_report_to(
+        &self,
+        depth: VerifyDepth,
+        mut on_progress: impl FnMut(u64, u64),
+    ) -> Result<VerifyReport> {
         let (bricks, later_trees) = match &self.backend {
             Backend::Sled {
                 bricks,
                 later_trees,
                 ..
             } => (bricks, later_trees),
-            Backend::Packs { packs, .. } => return Ok(self.verify_packs(packs, on_progress)),
+            Backend::Packs { packs, .. } => {
+                return Ok(self.verify_packs(packs, depth, on_progress))
+            }
         };
         let layout = self.header.layout.clone();
         let sparse = self.constant_bricks_implied();
@@ -673,13 +696,26 @@ impl Store {
     }
 
     /// [`Store::verify_report`] of a format-3 store: the packs streamed in order (entries by pack
-    /// and offset, so the disk reads sequentially), every record checked against its checksum,
-    /// its node's range and the index; every bad brick reported by id with its pack.
-    fn verify_packs(&self, packs: &Packs, mut on_progress: impl FnMut(u64, u64)) -> VerifyReport {
+    /// and offset, so the disk reads sequentially), every record checked against its checksum
+    /// and the index (inside its pack, overlapping no other record, a brick of the octree; at
+    /// [`VerifyDepth::Decode`] also decoded and its range compared with its node's); every bad
+    /// brick reported by id with its pack.
+    fn verify_packs(
+        &self,
+        packs: &Packs,
+        depth: VerifyDepth,
+        mut on_progress: impl FnMut(u64, u64),
+    ) -> VerifyReport {
         let layout = &self.header.layout;
         let sparse = self.constant_bricks_implied();
         let mut order: Vec<&crate::packs::Entry> = packs.entries().iter().collect();
         order.sort_by_key(|e| (e.pack, e.offset));
+        let chunk_len = match depth {
+            VerifyDepth::Checksums => VERIFY_STREAM_CHUNK,
+            VerifyDepth::Decode => VERIFY_CHUNK,
+        };
+        // The read is sequential, so the kernel may read ahead and drop what was read.
+        packs.advise_sequential(true);
         let total = order.len() as u64;
         // What progress counts to: as format 2 does, the nodes that need a record (a sparse
         // store's stored nodes, every node otherwise).
@@ -692,12 +728,48 @@ impl Store {
         let mut seen = 0u64;
         let mut varying_with_records = 0u64;
         let store = self.path.display();
-        // Chunks in pack order, each decoded on all cores: the disk still reads sequentially.
-        for chunk in order.chunks(VERIFY_CHUNK) {
+        // Records that overlap the one before them in their pack: two index entries claim the
+        // same bytes (an index written wrong), which no checksum would show.
+        let mut previous: Option<&crate::packs::Entry> = None;
+        for e in &order {
+            if let Some(p) = previous.filter(|p| p.pack == e.pack) {
+                if p.offset + u64::from(p.len) > e.offset {
+                    problems.push(format!(
+                        "{store}: {}: {} at bytes {}..{} overlaps {} at bytes {}..{}: the index is damaged",
+                        crate::packs::pack_name(e.pack),
+                        entry_what(e),
+                        e.offset,
+                        e.offset + u64::from(e.len),
+                        entry_what(p),
+                        p.offset,
+                        p.offset + u64::from(p.len)
+                    ));
+                }
+            }
+            previous = Some(e);
+        }
+        // Ancestors of bricks edited since import: their ranges were widened to bound the edit
+        // (see `append_brick_versions`), so they need only contain their records' ranges.
+        let mut widened: std::collections::HashSet<BrickId> = std::collections::HashSet::new();
+        for id in order
+            .iter()
+            .filter(|e| e.version > 1)
+            .filter_map(|e| e.id())
+        {
+            let mut at = id;
+            while usize::from(at.level) + 1 < layout.level_count() {
+                at = BrickId::new(at.level + 1, at.coords.map(|c| c / 2));
+                if !widened.insert(at) {
+                    break;
+                }
+            }
+        }
+        // Chunks in pack order, each checked on all cores: the disk still reads sequentially.
+        for chunk in order.chunks(chunk_len) {
             use rayon::prelude::*;
             let checked: Vec<(bool, Option<String>)> = chunk
                 .par_iter()
-                .map(|e| self.check_pack_record(packs, e))
+                .map(|e| self.check_pack_record(packs, e, depth, &widened))
                 .collect();
             for (varying, problem) in checked {
                 seen += 1;
@@ -724,12 +796,19 @@ impl Store {
                 layout.total_bricks()
             ));
         }
+        packs.advise_sequential(false);
         on_progress(nodes, nodes);
         problems.finish(&self.path, &self.header, seen)
     }
 
     /// One record of a format-3 store checked: whether its node varies, and its problem.
-    fn check_pack_record(&self, packs: &Packs, e: &crate::packs::Entry) -> (bool, Option<String>) {
+    fn check_pack_record(
+        &self,
+        packs: &Packs,
+        e: &crate::packs::Entry,
+        depth: VerifyDepth,
+        widened: &std::collections::HashSet<BrickId>,
+    ) -> (bool, Option<String>) {
         let store = self.path.display();
         let pack = crate::packs::pack_name(e.pack);
         let id = match e.id() {
@@ -755,6 +834,15 @@ impl Store {
                 )),
             );
         };
+        if depth == VerifyDepth::Checksums {
+            let problem = crate::brick::verify_record(id, record).err().map(|err| {
+                format!(
+                    "{store}: {pack} at byte {}: brick level {} at {:?}: {err}",
+                    e.offset, id.level, id.coords
+                )
+            });
+            return (varying, problem);
+        }
         let problem = match decode_brick(id, record) {
             Err(err) => Some(format!(
                 "{store}: {pack} at byte {}: brick level {} at {:?}: {err}",
@@ -762,7 +850,12 @@ impl Store {
             )),
             Ok(voxels) => {
                 let r = crate::brick::value_range(&voxels);
-                ((r.min, r.max) != (node.min, node.max)).then(|| {
+                let fits = if widened.contains(&id) {
+                    node.min <= r.min && r.max <= node.max
+                } else {
+                    (r.min, r.max) == (node.min, node.max)
+                };
+                (!fits).then(|| {
                     format!(
                         "{store}: {pack}: brick level {} at {:?}: range {}..{} differs from the skeleton's {}..{}",
                         id.level, id.coords, r.min, r.max, node.min, node.max
@@ -1071,6 +1164,28 @@ fn refuse_non_regular_files(store: &Path, dir: &Path, depth: u32) -> Result<()> 
 
 /// Records of a format-3 store decoded at once by [`Store::verify`] (in pack order).
 const VERIFY_CHUNK: usize = 256;
+/// Records of a format-3 store checksummed at once at [`VerifyDepth::Checksums`]: a few MB, so
+/// the cores share the work while the read stays sequential.
+const VERIFY_STREAM_CHUNK: usize = 1024;
+
+/// How deep [`Store::verify_report_to`] checks a format-3 store's records.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum VerifyDepth {
+    /// Each record's checksum (over its kind, brick key and body) and its place in the index:
+    /// what a damaged disk or a torn write changes, at the disk's speed.
+    Checksums,
+    /// Also decode each record and compare its value range with its node's (a codec fault or a
+    /// skeleton that disagrees with its bricks).
+    Decode,
+}
+
+/// "brick level L at [x, y, z]", or the raw key of an entry that names no brick.
+fn entry_what(e: &crate::packs::Entry) -> String {
+    match e.id() {
+        Some(id) => format!("brick level {} at {:?}", id.level, id.coords),
+        None => format!("the record under key {:02x?}", e.key),
+    }
+}
 
 /// Problem messages [`Store::verify`] keeps: a database damaged throughout yields one per
 /// record, so the list is capped (memory stays bounded) and the rest only counted.
@@ -1384,7 +1499,16 @@ impl StoreWriter {
     /// Writes one brick record; in format 3 from any thread, appended to a pack with `pwrite`.
     pub fn put_brick(&self, id: BrickId, record: &[u8]) -> Result<()> {
         match &self.records {
-            WriterBackend::Packs(packs) => packs.append(0, id, record),
+            WriterBackend::Packs(packs) => packs.append(0, id, 1, record),
+            WriterBackend::Sled { .. } => self.put_bricks(vec![(id, record.to_vec())]),
+        }
+    }
+
+    /// [`StoreWriter::put_brick`] of a record that is version `version` of its brick (format
+    /// 3; compaction keeps each record's version). Formats 1-2 keep no versions.
+    pub fn put_brick_version(&self, id: BrickId, version: u32, record: &[u8]) -> Result<()> {
+        match &self.records {
+            WriterBackend::Packs(packs) => packs.append(0, id, version, record),
             WriterBackend::Sled { .. } => self.put_bricks(vec![(id, record.to_vec())]),
         }
     }
@@ -1395,7 +1519,7 @@ impl StoreWriter {
             WriterBackend::Sled { bricks, .. } => bricks,
             WriterBackend::Packs(packs) => {
                 for (id, record) in records {
-                    packs.append(0, id, &record)?;
+                    packs.append(0, id, 1, &record)?;
                 }
                 return Ok(());
             }
@@ -1669,15 +1793,23 @@ fn hold_for_writing(path: &Path) -> Result<(Option<SharedStoreLock>, crate::pack
 /// one) and an import cannot replace the store meanwhile; readers are not excluded: one that
 /// opened before keeps reading the old versions, one that opens after reads the new. A SIGKILL
 /// or power loss at any moment leaves the old or the new index, each complete and naming only
-/// fsync'd bytes (the write order is argued in `packs::append_versions`). The skeleton,
-/// histogram and statistics are kept: a record whose values leave its node's range is the
-/// caller's to avoid (verify reports it).
+/// fsync'd bytes (the write order is argued in `packs::append_versions`).
+///
+/// Each record is decoded for its value range: its node in the skeleton takes that range and
+/// every ancestor's widens to include it (`Skeleton::record_edit`), so culling by range never
+/// hides an edited brick; the new skeleton is committed with the index. An ancestor's own
+/// record is not rewritten, so its range in the skeleton may now bound its voxels loosely
+/// (`strata verify --decode` accepts a range containing the record's above a brick whose
+/// version is past 1). The histogram and statistics are kept as imported. In a store whose
+/// skeleton implies constant bricks without records (`sparse-skeleton`), an edit that would
+/// make such a node vary (an ancestor inside a constant subtree) is refused unless a record of
+/// that node comes in the same call, since a varying node is read, not implied.
 pub fn append_brick_versions(path: &Path, records: &[(BrickId, Vec<u8>)]) -> Result<()> {
     let (_shared, _write) = hold_for_writing(path)?;
     let index = crate::packs::read_index(path)?;
     let marker = read_marker(path)?;
     let docs = &index.docs;
-    let (header, ..) = parse_documents(
+    let (header, mut skeleton, ..) = parse_documents(
         path,
         &marker,
         &docs.header,
@@ -1686,7 +1818,11 @@ pub fn append_brick_versions(path: &Path, records: &[(BrickId, Vec<u8>)]) -> Res
         &docs.stats,
     )?;
     let mut versions = Vec::with_capacity(records.len());
-    for (id, record) in records {
+    // Coarser bricks first: a brick edited with its ancestor in one call widens the ancestor's
+    // new range, not the other way round.
+    let mut coarse_first: Vec<&(BrickId, Vec<u8>)> = records.iter().collect();
+    coarse_first.sort_by_key(|(id, _)| std::cmp::Reverse(id.level));
+    for (id, record) in coarse_first {
         if !header.layout.contains(*id) {
             return Err(StorageError::invalid(
                 path,
@@ -1702,9 +1838,67 @@ pub fn append_brick_versions(path: &Path, records: &[(BrickId, Vec<u8>)]) -> Res
                 ),
             )
         })?;
+        let voxels = decode_brick(*id, record).map_err(|e| {
+            StorageError::invalid(
+                path,
+                format!(
+                    "a new version of brick level {} at {:?} does not decode: {e}",
+                    id.level, id.coords
+                ),
+            )
+        })?;
+        let range = crate::brick::value_range(&voxels);
+        skeleton
+            .record_edit(*id, range.min, range.max)
+            .ok_or_else(|| {
+                StorageError::invalid(
+                    path,
+                    format!(
+                        "brick level {} at {:?} has no node in the skeleton",
+                        id.level, id.coords
+                    ),
+                )
+            })?;
         versions.push((0u32, *id, record.clone()));
     }
-    crate::packs::append_versions(path, &index, &versions, crate::packs::PACK_LIMIT_BYTES)
+    // A node an edit makes vary must have a record to read (a sparse skeleton's constant nodes
+    // may have none, and a widened ancestor is read, not answered from the skeleton).
+    for (id, _) in records {
+        let mut at = Some(*id);
+        while let Some(node_id) = at {
+            let varies = skeleton.node(node_id).is_some_and(|n| !n.is_constant());
+            let key = brick_key(node_id);
+            let has_record = index
+                .entries
+                .binary_search_by(|e| (e.frame, e.key).cmp(&(0, key)))
+                .is_ok()
+                || records.iter().any(|(r, _)| *r == node_id);
+            if varies && !has_record {
+                return Err(StorageError::invalid(
+                    path,
+                    format!(
+                        "the edit of brick level {} at {:?} makes brick level {} at {:?} vary, and it has no record (its constant subtree was implied): append a version of it too",
+                        id.level, id.coords, node_id.level, node_id.coords
+                    ),
+                ));
+            }
+            at = (usize::from(node_id.level) + 1 < header.layout.level_count())
+                .then(|| BrickId::new(node_id.level + 1, node_id.coords.map(|c| c / 2)));
+        }
+    }
+    let docs = crate::packs::IndexDocs {
+        header: docs.header.clone(),
+        skeleton: encode_skeleton_for(&header, &skeleton),
+        histogram: docs.histogram.clone(),
+        stats: docs.stats.clone(),
+    };
+    crate::packs::append_versions(
+        path,
+        &index,
+        &docs,
+        &versions,
+        crate::packs::PACK_LIMIT_BYTES,
+    )
 }
 
 /// What [`compact_store`] did.
@@ -1750,7 +1944,7 @@ pub fn compact_store(path: &Path) -> Result<CompactReport> {
                 format!("its index holds a bad entry under key {:02x?}", e.key),
             ));
         };
-        writer.put_brick(id, record)?;
+        writer.put_brick_version(id, e.version, record)?;
         records += 1;
     }
     writer.finish(

@@ -524,3 +524,248 @@ fn appended_versions_are_read_and_compaction_drops_the_superseded() {
         .unwrap()
         .is_empty());
 }
+
+/// `verify` at its default depth streams the packs and checks each record's checksum and place
+/// without decoding: a sound store passes with every record read; damaged records are each
+/// reported by brick and pack, as the deep check (`--decode`) reports them. A record whose
+/// checksum holds but whose voxels disagree with the skeleton is found only by decoding: the
+/// depths differ in what they decode, not in what they read.
+#[test]
+fn a_checksum_verify_streams_every_record_and_names_each_damaged_brick() {
+    use strata_storage::brick::{encode_brick, value_range, BrickCodec};
+    use strata_storage::store::VerifyDepth;
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("c.strata");
+    Phantom::cube(96)
+        .write_store(&store, &ImportOptions::default())
+        .unwrap();
+    let opened = Store::open(&store).unwrap();
+    let entries = all_ids(&opened).len() as u64;
+    let varying: Vec<BrickId> = all_ids(&opened)
+        .into_iter()
+        .filter(|&id| {
+            let r = value_range(&opened.read_brick(id).unwrap());
+            r.min != r.max
+        })
+        .collect();
+    assert!(varying.len() >= 3, "the phantom has varying bricks");
+    for depth in [VerifyDepth::Checksums, VerifyDepth::Decode] {
+        let report = opened.verify_report_to(depth, |_, _| {}).unwrap();
+        assert!(
+            report.problems.is_empty(),
+            "{depth:?}: {:?}",
+            report.problems
+        );
+        assert_eq!(report.records_read, entries, "{depth:?}");
+        assert_eq!(report.intact, entries, "{depth:?}");
+    }
+    drop(opened);
+
+    // Two damaged records: each named, with its pack.
+    let damaged = [varying[0], varying[2]];
+    for id in damaged {
+        Store::corrupt_brick_for_tests(&store, id, 20).unwrap();
+    }
+    let opened = Store::open(&store).unwrap();
+    for depth in [VerifyDepth::Checksums, VerifyDepth::Decode] {
+        let report = opened.verify_report_to(depth, |_, _| {}).unwrap();
+        assert_eq!(report.problems.len(), 2, "{depth:?}: {:?}", report.problems);
+        for (problem, id) in report.problems.iter().zip(damaged) {
+            let named = format!("brick level {} at {:?}", id.level, id.coords);
+            assert!(
+                problem.contains(&named)
+                    && problem.contains("pack-00000.pack")
+                    && problem.contains("checksum mismatch"),
+                "{depth:?}: {problem} should name {named}"
+            );
+        }
+        assert_eq!(report.intact, entries - 2, "{depth:?}");
+        assert!(report.verdict.is_some(), "{depth:?}");
+    }
+    drop(opened);
+
+    // A sound record (its checksum holds) whose voxels leave the skeleton's range, put in place
+    // of its brick's record with the same length: only decoding shows the disagreement.
+    let reader = Store::open(&store).unwrap();
+    let id = varying[1];
+    let old = reader.read_brick_record(id).unwrap();
+    let voxels = reader.read_brick(id).unwrap();
+    let above = reader.node(id).unwrap().max + 1;
+    drop(reader);
+    let forged = (0..voxels.len())
+        .step_by(31)
+        .find_map(|at| {
+            let mut changed = voxels.clone();
+            changed[at] = above;
+            let record = encode_brick(
+                id,
+                &changed,
+                value_range(&changed),
+                false,
+                BrickCodec::default(),
+            );
+            (record.len() == old.len()).then_some(record)
+        })
+        .expect("a one-voxel change that compresses to the same length");
+    let pack_path = pack(&store);
+    let mut bytes = std::fs::read(&pack_path).unwrap();
+    let at = bytes
+        .windows(old.len())
+        .position(|w| w == old.as_slice())
+        .unwrap();
+    bytes[at..at + old.len()].copy_from_slice(&forged);
+    std::fs::write(&pack_path, &bytes).unwrap();
+    let opened = Store::open(&store).unwrap();
+    let shallow = opened
+        .verify_report_to(VerifyDepth::Checksums, |_, _| {})
+        .unwrap();
+    let deep = opened
+        .verify_report_to(VerifyDepth::Decode, |_, _| {})
+        .unwrap();
+    assert_eq!(shallow.problems.len(), 2, "{:?}", shallow.problems);
+    assert_eq!(deep.problems.len(), 3, "{:?}", deep.problems);
+    assert!(
+        deep.problems.iter().any(|p| p
+            .contains(&format!("brick level {} at {:?}", id.level, id.coords))
+            && p.contains("differs from the skeleton's")),
+        "{:?}",
+        deep.problems
+    );
+}
+
+/// A new version of a brick with new values (a bright spot painted into empty space, as a
+/// label edit would) updates the skeleton: the brick's node takes its range, every ancestor's
+/// range widens to include it, so culling by range cannot hide the edit; the index gives the
+/// record version 2, then 3, and compaction keeps the versions, the ranges and a store that
+/// verifies at both depths. A store whose skeleton may imply bricks is refused.
+#[test]
+fn an_appended_brick_with_new_values_widens_its_own_and_its_ancestors_ranges() {
+    use strata_storage::brick::{encode_brick, value_range, BrickCodec};
+    use strata_storage::store::{append_brick_versions, compact_store, VerifyDepth};
+    use strata_types::BRICK_PAYLOAD_VOXELS;
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("edit.strata");
+    Phantom::cube(96)
+        .write_store(&store, &ImportOptions::default())
+        .unwrap();
+    let before = Store::open(&store).unwrap();
+    let levels = before.layout().level_count();
+    assert!(levels >= 3, "a brick with at least two ancestors");
+    // A level-0 brick in the phantom's empty corner whose ancestors are all below the paint.
+    let id = BrickId::new(0, [0, 0, 0]);
+    let ancestors: Vec<BrickId> = (1..levels)
+        .map(|l| BrickId::new(l as u8, [0, 0, 0]))
+        .collect();
+    let paint = ancestors
+        .iter()
+        .map(|&a| before.node(a).unwrap().max)
+        .max()
+        .unwrap()
+        + 1000;
+    assert_eq!(before.brick_version(id), Some(1));
+    let mut voxels = before.read_brick(id).unwrap();
+    assert_eq!(voxels.len(), BRICK_PAYLOAD_VOXELS);
+    for v in voxels.iter_mut().take(500) {
+        *v = paint;
+    }
+    let range = value_range(&voxels);
+    assert_eq!(range.max, paint);
+    let record = encode_brick(id, &voxels, range, false, BrickCodec::Lz4);
+    let ancestors_before: Vec<_> = ancestors.iter().map(|&a| before.node(a).unwrap()).collect();
+    let sibling = BrickId::new(0, [1, 0, 0]);
+    let sibling_before = before.node(sibling);
+    drop(before);
+    append_brick_versions(&store, &[(id, record.clone())]).unwrap();
+
+    let check = |path: &Path, version: u32| {
+        let after = Store::open(path).unwrap();
+        assert_eq!(after.brick_version(id), Some(version));
+        let edited = after.node(id).unwrap();
+        assert_eq!((edited.min, edited.max), (range.min, paint));
+        assert!(!edited.is_constant());
+        for (&a, was) in ancestors.iter().zip(&ancestors_before) {
+            let n = after.node(a).unwrap();
+            assert!(
+                n.min <= range.min && n.max == paint && !n.is_constant(),
+                "ancestor {a:?}: {n:?} (was {was:?}) must bound the edit"
+            );
+            assert_eq!(
+                after.brick_version(a),
+                Some(1),
+                "its record is the import's"
+            );
+        }
+        // Bricks off the edited path keep their ranges.
+        assert_eq!(after.node(sibling), sibling_before);
+        assert_eq!(after.read_brick(id).unwrap(), voxels);
+        for depth in [VerifyDepth::Checksums, VerifyDepth::Decode] {
+            let report = after.verify_report_to(depth, |_, _| {}).unwrap();
+            assert!(
+                report.problems.is_empty(),
+                "{depth:?}: {:?}",
+                report.problems
+            );
+        }
+    };
+    check(&store, 2);
+    append_brick_versions(&store, &[(id, record)]).unwrap();
+    check(&store, 3);
+    compact_store(&store).unwrap();
+    check(&store, 3);
+
+    // In a sparse skeleton, painting a brick inside a constant subtree makes its implied
+    // parent vary, and that parent has no record: refused, naming both, until a record of the
+    // parent comes with it; then both verify and read back.
+    let sparse = dir.path().join("sparse.strata");
+    strata_storage::sparse_phantom::SparsePhantom::new(256)
+        .write_store(&sparse, BrickCodec::Fast, None)
+        .unwrap();
+    let opened = Store::open(&sparse).unwrap();
+    let (id, parent) = all_ids(&opened)
+        .into_iter()
+        .filter(|id| id.level == 0)
+        .map(|id| (id, BrickId::new(1, id.coords.map(|c| c / 2))))
+        .find(|(id, parent)| {
+            !opened.skeleton().is_stored(*id) && opened.brick_version(*parent).is_none()
+        })
+        .expect("a level-0 brick in an implied constant subtree");
+    // The ancestors without a record of their own (the parent, and maybe more above it).
+    let recordless: Vec<BrickId> = (1..opened.layout().level_count())
+        .map(|l| BrickId::new(l as u8, id.coords.map(|c| c >> l)))
+        .filter(|a| opened.brick_version(*a).is_none())
+        .collect();
+    assert_eq!(recordless.first(), Some(&parent));
+    let mut painted = opened.read_brick(id).unwrap();
+    drop(opened);
+    for v in painted.iter_mut().take(500) {
+        *v = 60000;
+    }
+    let record_of =
+        |b: BrickId| encode_brick(b, &painted, value_range(&painted), false, BrickCodec::Fast);
+    match append_brick_versions(&sparse, &[(id, record_of(id))]) {
+        Err(e) => assert!(
+            e.to_string().contains("has no record")
+                && e.to_string()
+                    .contains(&format!("level 1 at {:?}", parent.coords)),
+            "{e}"
+        ),
+        Ok(()) => panic!("an edit that makes an implied node vary was accepted"),
+    }
+    let mut edit = vec![(id, record_of(id))];
+    edit.extend(recordless.iter().map(|&a| (a, record_of(a))));
+    append_brick_versions(&sparse, &edit).unwrap();
+    let edited = Store::open(&sparse).unwrap();
+    assert_eq!(edited.brick_version(id), Some(2));
+    assert_eq!(edited.brick_version(parent), Some(2));
+    assert_eq!(edited.read_brick(id).unwrap(), painted);
+    assert_eq!(edited.node(id).unwrap().max, 60000);
+    assert_eq!(edited.node(parent).unwrap().max, 60000);
+    for depth in [VerifyDepth::Checksums, VerifyDepth::Decode] {
+        let report = edited.verify_report_to(depth, |_, _| {}).unwrap();
+        assert!(
+            report.problems.is_empty(),
+            "{depth:?}: {:?}",
+            report.problems
+        );
+    }
+}
