@@ -4,8 +4,8 @@
 //! Retrieval follows the series' QIDO instance list. A series none of whose instances is in the
 //! folder yet is asked for in one request (`/studies/S/series/T`: the whole series as one
 //! multipart answer, each part saved as its `UID.dcm` once whole and checked); Orthanc spends
-//! about 1.1 ms of CPU per instance request, which held per-instance retrieval to half the
-//! series request's throughput (docs/bench-runs/pacs-2026-12-06.md). Whatever that answer did
+//! about 1.1 ms of CPU per instance request, which held even curl's per-instance retrieval to
+//! half the series request's throughput (docs/bench-runs/pacs-2026-12-06.md). Whatever that answer did
 //! not bring (a failure part-way, a server that refuses series retrieval) and every resume is
 //! fetched per instance: a folder that already holds some instances is resumed, only the
 //! missing ones are fetched. Every answer is `multipart/related; type="application/dicom"`
@@ -187,8 +187,8 @@ pub struct ClientOptions {
     /// A series none of whose instances is in the folder yet is asked for in one WADO-RS
     /// request (the whole series as one multipart answer) before falling back to one request
     /// per instance for whatever that did not bring. Orthanc spends about 1.1 ms of CPU on each
-    /// instance request besides the bytes: one request per instance gave 0.5 of the series
-    /// request's throughput on loopback (docs/bench-runs/pacs-2026-12-06.md).
+    /// instance request besides the bytes: curl's 500 instance requests took 2-3 times as long
+    /// as its one series request on loopback (docs/bench-runs/pacs-2026-12-06.md).
     pub whole_series: bool,
     /// Tries of one request on 5xx, 429 and timeouts (1 = no retry).
     pub attempts: u32,
