@@ -188,8 +188,12 @@ pub fn retrieve_for_import(
         bar.set_length(p.total as u64);
         bar.set_position(p.done as u64);
     };
+    // The retrieve's own time (QIDO lists and WADO-RS transfers), so that a slow import can be
+    // told apart from a slow network or server (bench/pacs/run.sh reads this line).
+    let started = std::time::Instant::now();
     let (retrieved, report) =
         retrieve_series_beside(&client, study, &series_uid, store, None, Some(&on_progress))?;
+    let retrieve_seconds = started.elapsed().as_secs_f64();
     bar.finish_and_clear();
     if report.already_present > 0 {
         eprintln!(
@@ -199,11 +203,13 @@ pub fn retrieve_for_import(
         );
     }
     eprintln!(
-        "retrieved {} instance(s), {:.1} MB, from {} in {} request(s)",
+        "retrieved {} instance(s), {:.1} MB, from {} in {} request(s), {:.2} s ({:.0} MB/s)",
         report.fetched,
         report.bytes as f64 / 1e6,
         client.base_url(),
-        report.requests
+        report.requests,
+        retrieve_seconds,
+        report.bytes as f64 / 1e6 / retrieve_seconds.max(1e-9)
     );
     if let Some(n) = report.count_mismatch {
         eprintln!(

@@ -175,7 +175,11 @@ fn pacs_find_push_retrieve_and_resume_against_orthanc() {
     let first = client
         .retrieve_series(CT_STUDY, CT_SERIES, &folder, None, None)
         .unwrap();
-    assert_eq!((first.fetched, first.already_present), (CT_SLICES, 0));
+    // A fresh series comes as one multipart answer: one WADO-RS request for all instances.
+    assert_eq!(
+        (first.fetched, first.already_present, first.requests),
+        (CT_SLICES, 0, 1)
+    );
     assert_eq!(first.count_mismatch, None);
     let mut files: Vec<PathBuf> = std::fs::read_dir(&folder)
         .unwrap()
@@ -298,7 +302,8 @@ fn pacs_basic_auth_keeps_the_password_out_of_errors_logs_and_stores() {
 fn pacs_cancel_half_way_then_resume_fetches_only_the_missing_instances() {
     let work = tempfile::tempdir().unwrap();
     let orthanc = filled_orthanc(work.path());
-    // One request in flight: the cancel lands between instances, after half of them.
+    // The cancel lands between instances, after half of them (the whole series' answer is
+    // checked for it after each instance; the resume's requests go one at a time).
     let options = ClientOptions {
         parallelism: 1,
         ..ClientOptions::default()
@@ -332,7 +337,8 @@ fn pacs_cancel_half_way_then_resume_fetches_only_the_missing_instances() {
             .all(|f| f.extension().is_some_and(|e| e == "dcm")),
         "{kept:?}"
     );
-    // One in flight and the cancel checked before each request: exactly the first half.
+    // The cancel is checked after each instance of the series' one answer: exactly the first
+    // half stays.
     let present = kept.len();
     assert_eq!(present, CT_SLICES / 2, "{kept:?}");
 
@@ -341,10 +347,10 @@ fn pacs_cancel_half_way_then_resume_fetches_only_the_missing_instances() {
     let resumed = client
         .retrieve_series(CT_STUDY, CT_SERIES, &folder, None, None)
         .unwrap();
-    // The cancelled run made one request per instance it kept, besides its searches (as
-    // many as the resume's): none for an instance it then dropped.
+    // The cancelled run asked for the whole series in one request, besides its searches (as
+    // many as the resume's); the resume asks for each missing instance alone.
     let searches = client.requests() - before_resumed - resumed.requests;
-    assert_eq!(cancelled_requests - searches, present as u64);
+    assert_eq!(cancelled_requests - searches, 1);
     assert_eq!(
         (resumed.already_present, resumed.fetched, resumed.requests),
         (present, CT_SLICES - present, (CT_SLICES - present) as u64),
@@ -358,8 +364,11 @@ fn pacs_orthanc_killed_during_a_retrieve_is_a_clear_error_and_no_store() {
     let work = tempfile::tempdir().unwrap();
     let orthanc = std::sync::Mutex::new(filled_orthanc(work.path()));
     let url = orthanc.lock().unwrap().url.clone();
+    // One instance per request: the 12 small instances of a whole-series answer arrive in one
+    // read, before the kill could cut them.
     let options = ClientOptions {
         parallelism: 1,
+        whole_series: false,
         attempts: 2,
         backoff: Duration::from_millis(50),
         ..ClientOptions::default()

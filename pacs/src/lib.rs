@@ -1,12 +1,18 @@
 //! A DICOMweb client: QIDO-RS search (studies, a study's series, a series' instances), WADO-RS
 //! retrieve of a series into a folder, STOW-RS store of files.
 //!
-//! Retrieval is per instance (from the series' QIDO instance list), so a folder that already
-//! holds some instances is resumed: only the missing ones are fetched. Each instance comes as
-//! `multipart/related; type="application/dicom"` with `transfer-syntax=*` (the server sends what
-//! it stores, compressed or not; the importers decode them), parsed as it streams
-//! ([`multipart`]) into `UID.dcm.part` and renamed when whole. Requests run a few at a time
-//! (default 4), retry with backoff on 5xx, 429 and timeouts, and a body that stalls is cut.
+//! Retrieval follows the series' QIDO instance list. A series none of whose instances is in the
+//! folder yet is asked for in one request (`/studies/S/series/T`: the whole series as one
+//! multipart answer, each part saved as its `UID.dcm` once whole and checked); Orthanc spends
+//! about 1.1 ms of CPU per instance request, which held even curl's per-instance retrieval to
+//! half the series request's throughput (docs/bench-runs/pacs-2026-12-06.md). Whatever that answer did
+//! not bring (a failure part-way, a server that refuses series retrieval) and every resume is
+//! fetched per instance: a folder that already holds some instances is resumed, only the
+//! missing ones are fetched. Every answer is `multipart/related; type="application/dicom"`
+//! with `transfer-syntax=*` (the server sends what it stores, compressed or not; the importers
+//! decode them), parsed as it streams ([`multipart`]) into a `.dcm.part` file and renamed when
+//! whole. Per-instance requests run a few at a time (default 4), retry with backoff on 5xx, 429
+//! and timeouts, and a body that stalls is cut.
 //!
 //! Safety: TLS is verified (a CA file may be added, nothing turns verification off); a redirect
 //! to another host is refused; credentials (basic or bearer, read from a file or an environment
@@ -178,6 +184,12 @@ pub struct ClientOptions {
     pub max_json_bytes: u64,
     /// Retrieve requests in flight at most.
     pub parallelism: usize,
+    /// A series none of whose instances is in the folder yet is asked for in one WADO-RS
+    /// request (the whole series as one multipart answer) before falling back to one request
+    /// per instance for whatever that did not bring. Orthanc spends about 1.1 ms of CPU on each
+    /// instance request besides the bytes: curl's 500 instance requests took 2-3 times as long
+    /// as its one series request on loopback (docs/bench-runs/pacs-2026-12-06.md).
+    pub whole_series: bool,
     /// Tries of one request on 5xx, 429 and timeouts (1 = no retry).
     pub attempts: u32,
     /// The first retry's wait; each next one doubles it.
@@ -195,6 +207,7 @@ impl Default for ClientOptions {
             max_part_bytes: 2 << 30,
             max_json_bytes: 64 << 20,
             parallelism: 4,
+            whole_series: true,
             attempts: 4,
             backoff: Duration::from_millis(500),
             stow_batch_bytes: 64 << 20,
@@ -449,38 +462,50 @@ fn is_dicom_part10(head: &[u8]) -> bool {
     head.len() >= 132 && &head[128..132] == b"DICM"
 }
 
-/// Why the DICOM file at `path` is not instance `sop_uid` of series `series_uid` (its header
-/// read up to the pixel data), or `None` when it is.
-fn identity_mismatch(path: &Path, series_uid: &str, sop_uid: &str) -> Option<String> {
+/// The SOP Instance and Series Instance UIDs of the DICOM file at `path` (its header read up to
+/// the pixel data), or why it cannot be read.
+fn instance_identity(path: &Path) -> Result<(Option<String>, Option<String>), String> {
     use dicom_dictionary_std::tags;
-    let file = match dicom_object::OpenFileOptions::new()
+    let file = dicom_object::OpenFileOptions::new()
         .read_until(tags::PIXEL_DATA)
         .open_file(path)
-    {
-        Ok(file) => file,
-        Err(e) => return Some(format!("the part is not a readable DICOM file: {e}")),
-    };
+        .map_err(|e| format!("the part is not a readable DICOM file: {e}"))?;
     let text = |tag| {
         file.element(tag)
             .ok()
             .and_then(|e| e.to_str().ok())
             .map(|s| s.trim_end_matches(['\0', ' ']).to_string())
     };
-    let sop = text(tags::SOP_INSTANCE_UID);
-    let series = text(tags::SERIES_INSTANCE_UID);
+    Ok((
+        text(tags::SOP_INSTANCE_UID),
+        text(tags::SERIES_INSTANCE_UID),
+    ))
+}
+
+/// Why a part that names series `series` is not of series `series_uid`, or `None` when it is.
+fn series_mismatch(series: Option<&str>, series_uid: &str) -> Option<String> {
+    (series != Some(series_uid)).then(|| {
+        format!(
+            "the instance belongs to series {}, not the one asked for",
+            series.unwrap_or("(no Series Instance UID)")
+        )
+    })
+}
+
+/// Why the DICOM file at `path` is not instance `sop_uid` of series `series_uid`, or `None`
+/// when it is.
+fn identity_mismatch(path: &Path, series_uid: &str, sop_uid: &str) -> Option<String> {
+    let (sop, series) = match instance_identity(path) {
+        Ok(identity) => identity,
+        Err(problem) => return Some(problem),
+    };
     if sop.as_deref() != Some(sop_uid) {
         return Some(format!(
             "the server answered instance {} instead",
             sop.as_deref().unwrap_or("(no SOP Instance UID)")
         ));
     }
-    if series.as_deref() != Some(series_uid) {
-        return Some(format!(
-            "the instance belongs to series {}, not the one asked for",
-            series.as_deref().unwrap_or("(no Series Instance UID)")
-        ));
-    }
-    None
+    series_mismatch(series.as_deref(), series_uid)
 }
 
 /// The chain of an error's causes, joined (reqwest's own text says little: "error sending
@@ -504,6 +529,9 @@ enum SinkError {
     Multipart(MultipartError),
     Io(std::io::Error),
     ExtraPart,
+    /// A part that is not what was asked for (the problem, for `PacsError::Invalid`).
+    Invalid(String),
+    Cancelled,
 }
 
 impl From<MultipartError> for SinkError {
@@ -1056,10 +1084,8 @@ impl Inner {
                 uids.len()
             );
         }
-        let missing: Vec<&String> = uids
-            .iter()
-            .filter(|uid| !dir.join(format!("{uid}.dcm")).is_file())
-            .collect();
+        let is_missing = |uid: &&String| !dir.join(format!("{uid}.dcm")).is_file();
+        let mut missing: Vec<&String> = uids.iter().filter(is_missing).collect();
         report.already_present = uids.len() - missing.len();
         let requests_before = self.requests.load(Ordering::Relaxed);
         let report_progress = |r: &RetrieveReport| {
@@ -1072,6 +1098,36 @@ impl Inner {
             }
         };
         report_progress(&report);
+        if self.options.whole_series && report.already_present == 0 {
+            let wanted: std::collections::HashSet<&str> = uids.iter().map(String::as_str).collect();
+            let mut on_instance = |bytes: u64| {
+                report.fetched += 1;
+                report.bytes += bytes;
+                report_progress(&report);
+            };
+            let streamed = self
+                .fetch_series_stream(
+                    study_uid,
+                    series_uid,
+                    &wanted,
+                    dir,
+                    cancel,
+                    &mut on_instance,
+                )
+                .await;
+            match streamed {
+                Ok(()) => {}
+                // A cancel, or our own disk failing, is not the server's doing: no fallback.
+                Err(e @ (PacsError::Cancelled | PacsError::Io { .. })) => {
+                    remove_partial_files(dir);
+                    return Err(e);
+                }
+                Err(e) => tracing::warn!(
+                    "series {series_uid} in one request: {e}; fetching the missing instances one by one"
+                ),
+            }
+            missing.retain(is_missing);
+        }
         let mut fetches = futures::stream::iter(missing.into_iter().map(|uid| {
             self.with_retries("instance", move || {
                 self.fetch_instance(study_uid, series_uid, uid, dir, cancel)
@@ -1101,6 +1157,159 @@ impl Inner {
             return Err(e);
         }
         Ok(report)
+    }
+
+    /// The whole series as one WADO-RS request: each part of the multipart answer streamed into
+    /// `dir/series.dcm.part` and, once whole and checked (DICOM, of this series, one of
+    /// `wanted`, not seen before), renamed to `dir/UID.dcm`; `on_instance` sees each one's size.
+    /// The instances whole before a failure stay (a resume, or the per-instance fallback, does
+    /// not fetch them again); fewer parts than `wanted` is not an error here (the fallback
+    /// fetches the rest). `cancel` is checked between chunks and after each instance.
+    async fn fetch_series_stream(
+        &self,
+        study_uid: &str,
+        series_uid: &str,
+        wanted: &std::collections::HashSet<&str>,
+        dir: &Path,
+        cancel: Option<&AtomicBool>,
+        on_instance: &mut dyn FnMut(u64),
+    ) -> Result<(), PacsError> {
+        let what = format!("series {series_uid}");
+        let url = format!("{}/studies/{study_uid}/series/{series_uid}", self.base);
+        let cancelled = || cancel.is_some_and(|c| c.load(Ordering::Relaxed));
+        if cancelled() {
+            return Err(PacsError::Cancelled);
+        }
+        self.requests.fetch_add(1, Ordering::Relaxed);
+        let mut response = self
+            .authed(self.http.get(&url))
+            .header(
+                reqwest::header::ACCEPT,
+                "multipart/related; type=\"application/dicom\"; transfer-syntax=*",
+            )
+            .send()
+            .await
+            .map_err(|e| self.transport_error(&what, &e))?;
+        if !response.status().is_success() {
+            return Err(self.status_error(&what, response.status()));
+        }
+        let content_type = response
+            .headers()
+            .get(reqwest::header::CONTENT_TYPE)
+            .and_then(|v| v.to_str().ok())
+            .unwrap_or("")
+            .to_string();
+        let multipart_error = |source| PacsError::Multipart {
+            server: self.server(),
+            what: what.clone(),
+            source,
+        };
+        let boundary = boundary_of(&content_type).map_err(multipart_error)?;
+        // Digits and dots name instances; this name cannot be one.
+        let partial = dir.join("series.dcm.part");
+        let io = |e: std::io::Error| PacsError::Io {
+            path: partial.display().to_string(),
+            problem: e.to_string(),
+        };
+        let mut parser = MultipartParser::new(&boundary, self.options.max_part_bytes, true);
+        let mut file: Option<std::io::BufWriter<std::fs::File>> = None;
+        let mut head: Vec<u8> = Vec::with_capacity(132);
+        let mut size = 0u64;
+        let mut seen: std::collections::HashSet<String> = std::collections::HashSet::new();
+        let mut on_event = |event: Event<'_>| -> Result<(), SinkError> {
+            match event {
+                Event::PartStart { .. } => {
+                    // More parts than instances: a server repeating itself is cut here.
+                    if seen.len() >= wanted.len() {
+                        return Err(SinkError::ExtraPart);
+                    }
+                    let created = std::fs::File::create(&partial).map_err(SinkError::Io)?;
+                    file = Some(std::io::BufWriter::with_capacity(1 << 20, created));
+                    head.clear();
+                    size = 0;
+                }
+                Event::Data(data) => {
+                    if head.len() < 132 {
+                        let take = (132 - head.len()).min(data.len());
+                        head.extend_from_slice(&data[..take]);
+                    }
+                    size += data.len() as u64;
+                    if let Some(f) = file.as_mut() {
+                        f.write_all(data).map_err(SinkError::Io)?;
+                    }
+                }
+                Event::PartEnd => {
+                    if let Some(mut f) = file.take() {
+                        f.flush().map_err(SinkError::Io)?;
+                    }
+                    if !is_dicom_part10(&head) {
+                        return Err(SinkError::Invalid(
+                            "a part is not a DICOM file (no DICM preamble)".into(),
+                        ));
+                    }
+                    let (sop, series) = instance_identity(&partial).map_err(SinkError::Invalid)?;
+                    if let Some(problem) = series_mismatch(series.as_deref(), series_uid) {
+                        return Err(SinkError::Invalid(problem));
+                    }
+                    let sop = sop.unwrap_or_default();
+                    if !wanted.contains(sop.as_str()) {
+                        return Err(SinkError::Invalid(format!(
+                            "the server answered instance {} that its instance list lacks",
+                            if sop.is_empty() {
+                                "(no SOP Instance UID)"
+                            } else {
+                                &sop
+                            }
+                        )));
+                    }
+                    if !seen.insert(sop.clone()) {
+                        return Err(SinkError::Invalid(format!("instance {sop} came twice")));
+                    }
+                    std::fs::rename(&partial, dir.join(format!("{sop}.dcm")))
+                        .map_err(SinkError::Io)?;
+                    on_instance(size);
+                    if cancelled() {
+                        return Err(SinkError::Cancelled);
+                    }
+                }
+            }
+            Ok(())
+        };
+        let sink_error = |e: SinkError| match e {
+            SinkError::Multipart(m) => multipart_error(m),
+            SinkError::Io(e) => io(e),
+            SinkError::ExtraPart => PacsError::Invalid {
+                server: self.server(),
+                what: what.clone(),
+                problem: "more parts than the series has instances".into(),
+            },
+            SinkError::Invalid(problem) => PacsError::Invalid {
+                server: self.server(),
+                what: what.clone(),
+                problem,
+            },
+            SinkError::Cancelled => PacsError::Cancelled,
+        };
+        let streamed: Result<(), PacsError> = async {
+            while !parser.is_closed() {
+                if cancelled() {
+                    return Err(PacsError::Cancelled);
+                }
+                match self.next_chunk(&what, &mut response).await? {
+                    Some(chunk) => parser
+                        .feed(chunk.as_ref(), &mut on_event)
+                        .map_err(sink_error)?,
+                    None => break,
+                }
+            }
+            parser.finish().map_err(multipart_error)
+        }
+        .await;
+        drop(file);
+        if streamed.is_err() {
+            let _ = std::fs::remove_file(&partial);
+        }
+        streamed
     }
 
     /// One WADO-RS request for one instance, streamed into `dir/UID.dcm`; its size.
@@ -1187,6 +1396,12 @@ impl Inner {
                 what: what.clone(),
                 problem: "more than one part for one instance".into(),
             },
+            SinkError::Invalid(problem) => PacsError::Invalid {
+                server: self.server(),
+                what: what.clone(),
+                problem,
+            },
+            SinkError::Cancelled => PacsError::Cancelled,
         };
         let streamed: Result<(), PacsError> = async {
             while !parser.is_closed() {

@@ -218,8 +218,9 @@ fn a_hostile_server_gives_clear_bounded_errors() {
             "study {study} left files"
         );
     }
-    // 503 was tried twice (attempts = 2) before being reported.
+    // Two searches, the whole series once (no retry: what it does not bring is fetched per
+    // instance), then the instance's 503 tried twice (attempts = 2) before being reported.
     let before = client.requests();
     let _ = client.retrieve_series("9", "2", dir.path(), None, None);
-    assert_eq!(client.requests() - before, 2 + 2);
+    assert_eq!(client.requests() - before, 2 + 1 + 2);
 }
