@@ -10,6 +10,10 @@
 
 pub mod error;
 pub mod grid;
+#[cfg(feature = "local")]
+pub mod io;
+#[cfg(feature = "local")]
+pub mod journal;
 pub mod layer;
 pub mod segments;
 
