@@ -17,6 +17,9 @@
 //! of reference, lists the series (ReferencedSeriesSequence) and each frame its source image
 //! (DerivationImageSequence).
 //!
+//! A reader orders slices along row × column direction; for a left-handed grid (k against that
+//! cross product) the same voxels load back in the opposite k order, at the same patient positions.
+//!
 //! Limits, each a [`SegmentError::FormatLimit`]: 65 535 segments (SegmentNumber is a US), and a
 //! PixelData of under 4 GiB (its 32-bit length): frames × rows × columns / 8 bytes. The packed
 //! frames are held in memory until written (1/16 of a u16 label volume per segment that
@@ -196,10 +199,6 @@ fn code_item(code: &Code) -> Obj {
     ])
 }
 
-fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
 /// One frame: its segment and slice.
 struct Frame {
     segment: Label,
@@ -249,7 +248,6 @@ pub fn write_dicom_seg(
     let mut bits: Vec<u8> = Vec::new();
     let mut bit_len: u64 = 0;
     let mut in_slice: Vec<Label> = Vec::new();
-    let lowest_segment = labels.segments().iter().map(|s| s.value).next();
     for k in 0..nz {
         labels.read_slice_k(k, &mut slice)?;
         for &v in &slice {
@@ -265,10 +263,9 @@ pub fn write_dicom_seg(
         }
         in_slice.extend(seen);
         if in_slice.is_empty() && (k == 0 || k == nz - 1) {
-            // Pin the grid's extent with an empty frame (see the module doc).
-            let pin = in_slice_pin(lowest_segment, &present);
-            in_slice.push(pin);
-            present[usize::from(pin)] = true;
+            // Pin the grid's extent with an empty frame (see the module doc); 0 stands for the
+            // lowest segment number, known once every slice has been read.
+            in_slice.push(0);
         }
         for &segment in &in_slice {
             let needed = (bit_len + frame_pixels).div_ceil(8);
@@ -281,7 +278,7 @@ pub fn write_dicom_seg(
             }
             bits.resize(needed as usize, 0);
             for (p, &v) in slice.iter().enumerate() {
-                if v == segment {
+                if segment != 0 && v == segment {
                     let bit = bit_len + p as u64;
                     bits[(bit / 8) as usize] |= 1 << (bit % 8);
                 }
@@ -307,6 +304,9 @@ pub fn write_dicom_seg(
             path: path.to_path_buf(),
             message: "no segments to save: a DICOM SEG needs at least one".into(),
         });
+    }
+    for f in frames.iter_mut().filter(|f| f.segment == 0) {
+        f.segment = numbers[0];
     }
     if numbers.len() > MAX_SEGMENTS {
         return Err(limit("segments", MAX_SEGMENTS as u64, numbers.len() as u64));
@@ -366,11 +366,6 @@ pub fn write_dicom_seg(
         frames: frames.len(),
         sop_instance_uid,
     })
-}
-
-/// The segment an empty extent-pinning frame belongs to: the lowest in the table, else 1.
-fn in_slice_pin(lowest: Option<Label>, _present: &[bool]) -> Label {
-    lowest.unwrap_or(1)
 }
 
 fn build_dataset(
@@ -495,7 +490,7 @@ fn build_dataset(
         ],
     ));
 
-    let [row_dir, col_dir, slice_dir] = g.direction;
+    let [row_dir, col_dir, _] = g.direction;
     let slice_thickness = g.spacing_mm[2];
     obj.put(sequence(
         tags::SHARED_FUNCTIONAL_GROUPS_SEQUENCE,
@@ -520,7 +515,6 @@ fn build_dataset(
             ),
         ])],
     ));
-    let _ = slice_dir;
 
     let per_frame: Vec<Obj> = frames
         .iter()
@@ -613,7 +607,6 @@ fn build_dataset(
         VR::OB,
         PrimitiveValue::from(pixel_data),
     ));
-    let _ = dot;
     Ok(obj)
 }
 
