@@ -33,12 +33,12 @@ print("OK")
 /// The RAS affine nibabel should report: LPS direction × spacing with x and y negated.
 fn ras_affine(g: &strata_types::VolumeGeometry) -> Vec<Vec<f64>> {
     let mut rows = vec![vec![0.0; 4]; 4];
-    for r in 0..3 {
+    for (r, row) in rows.iter_mut().take(3).enumerate() {
         let flip = if r < 2 { -1.0 } else { 1.0 };
-        for a in 0..3 {
-            rows[r][a] = flip * g.direction[a][r] * g.spacing_mm[a];
+        for (a, cell) in row.iter_mut().take(3).enumerate() {
+            *cell = flip * g.direction[a][r] * g.spacing_mm[a];
         }
-        rows[r][3] = flip * g.origin_lps_mm[r];
+        row[3] = flip * g.origin_lps_mm[r];
     }
     rows[3][3] = 1.0;
     rows

@@ -139,12 +139,8 @@ fn nifti_header(labels: &dyn LabelRead, path: &Path) -> Result<Vec<u8>, SegmentE
         put_f32(&mut h, 268 + 4 * n, *o);
     }
     for row in 0..3 {
-        for a in 0..3 {
-            put_f32(
-                &mut h,
-                280 + 16 * row + 4 * a,
-                axes[a][row] * g.spacing_mm[a],
-            );
+        for (a, (axis, spacing)) in axes.iter().zip(g.spacing_mm).enumerate() {
+            put_f32(&mut h, 280 + 16 * row + 4 * a, axis[row] * spacing);
         }
         put_f32(&mut h, 280 + 16 * row + 12, origin[row]);
     }
