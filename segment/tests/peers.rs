@@ -296,3 +296,93 @@ fn a_file_whose_values_are_not_labels_is_refused_at_load_naming_the_voxel() {
         "{e}"
     );
 }
+
+const OMEZARR_CHECK: &str = r#"
+import sys, json
+import numpy as np
+import zarr
+from ome_zarr_models.v05.image_label import ImageLabel
+from ome_zarr_models.v05.labels import Labels
+image, raw, expected = sys.argv[1], sys.argv[2], json.load(open(sys.argv[3]))
+nx, ny, nz = expected["dims"]
+want = np.fromfile(raw, "<u2").reshape((nz, ny, nx))
+labels = Labels.from_zarr(zarr.open_group(image + "/labels", mode="r"))
+assert expected["name"] in labels.attributes.ome.labels, labels.attributes
+group = zarr.open_group(image + "/labels/" + expected["name"], mode="r")
+label = ImageLabel.from_zarr(group)
+il = label.attributes.ome.image_label
+colors = {c.label_value: list(c.rgba) for c in il.colors}
+for s in expected["segments"]:
+    assert colors[s["value"]] == s["rgba"], (colors, s)
+props = {p.label_value: p for p in il.properties}
+for s in expected["segments"]:
+    p = props[s["value"]]
+    assert getattr(p, "name", None) == s["name"] or p.model_extra.get("name") == s["name"], p
+ms = label.attributes.ome.multiscales[0]
+ts = ms.datasets[0].coordinateTransformations
+assert np.allclose(ts[0].scale, expected["scale"]), ts
+arr = zarr.open_array(image + "/labels/" + expected["name"] + "/0", mode="r")
+assert arr.dtype == np.uint16 and arr.shape == (nz, ny, nx), (arr.dtype, arr.shape)
+got = arr[...]
+assert np.array_equal(got, want), int((got != want).sum())
+print("OK")
+"#;
+
+#[test]
+fn omezarr_labels_validate_in_ome_zarr_models_and_read_in_zarr_python() {
+    let python = python_with(
+        &["zarr", "ome_zarr_models", "numpy"],
+        "'zarr>=3' ome-zarr-models numpy",
+    );
+    let dir = tempfile::tempdir().expect("tempdir");
+    // Wider than one 256-voxel tile, so edge chunks and skipped background chunks both occur.
+    let g = oblique_geometry([300, 40, 37]);
+    let layer = sample_layer(g.clone());
+    let voxels = all_voxels(&layer);
+    let raw = dir.path().join("expected.raw");
+    write_raw(&raw, &voxels);
+    let image = dir.path().join("ct.zarr");
+    // Twice: the second replaces the first, and a second label image joins the list.
+    for name in ["segmentation", "segmentation", "other"] {
+        strata_segment::io::write_omezarr_labels(&layer, &image, name).expect("write labels");
+    }
+    let segments: Vec<serde_json::Value> = layer
+        .segments()
+        .iter()
+        .map(|s| {
+            serde_json::json!({
+                "value": s.value,
+                "name": s.name,
+                "rgba": [s.rgb[0], s.rgb[1], s.rgb[2], 255],
+            })
+        })
+        .collect();
+    let expected = dir.path().join("expected.json");
+    std::fs::write(
+        &expected,
+        serde_json::json!({
+            "dims": g.dims,
+            "name": "segmentation",
+            "segments": segments,
+            "scale": [g.spacing_mm[2], g.spacing_mm[1], g.spacing_mm[0]],
+        })
+        .to_string(),
+    )
+    .expect("json");
+    run_python(&python, OMEZARR_CHECK, &[&image, &raw, &expected]);
+    let listed: serde_json::Value = serde_json::from_slice(
+        &std::fs::read(image.join("labels/zarr.json")).expect("labels group"),
+    )
+    .expect("json");
+    assert_eq!(
+        listed["attributes"]["ome"]["labels"],
+        serde_json::json!(["segmentation", "other"])
+    );
+    // No temporary or old copies are left beside the label images.
+    let mut entries: Vec<String> = std::fs::read_dir(image.join("labels"))
+        .expect("dir")
+        .map(|e| e.expect("entry").file_name().to_string_lossy().into_owned())
+        .collect();
+    entries.sort();
+    assert_eq!(entries, ["other", "segmentation", "zarr.json"]);
+}

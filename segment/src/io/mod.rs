@@ -7,7 +7,9 @@ pub mod atomic;
 pub mod dicom_seg;
 pub mod load;
 pub mod nifti;
+pub mod omezarr_labels;
 
 pub use dicom_seg::{write_dicom_seg, SegOptions, SegSource, SegSummary};
 pub use load::load_label_file;
 pub use nifti::write_nifti;
+pub use omezarr_labels::write_omezarr_labels;
