@@ -385,4 +385,13 @@ fn omezarr_labels_validate_in_ome_zarr_models_and_read_in_zarr_python() {
         .collect();
     entries.sort();
     assert_eq!(entries, ["other", "segmentation", "zarr.json"]);
+    // Loaded back: the same voxels, geometry and segments.
+    let back = strata_segment::io::load_omezarr_labels(&image.join("labels/segmentation"))
+        .expect("load back");
+    assert!(
+        all_voxels(&back) == voxels,
+        "voxels differ after loading back"
+    );
+    assert_eq!(*back.geometry(), g);
+    assert_eq!(back.segments(), layer.segments());
 }

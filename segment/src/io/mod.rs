@@ -12,4 +12,4 @@ pub mod omezarr_labels;
 pub use dicom_seg::{write_dicom_seg, SegOptions, SegSource, SegSummary};
 pub use load::load_label_file;
 pub use nifti::write_nifti;
-pub use omezarr_labels::write_omezarr_labels;
+pub use omezarr_labels::{load_omezarr_labels, write_omezarr_labels};

@@ -270,3 +270,194 @@ fn write_label_image(labels: &dyn LabelRead, dir: &Path, name: &str) -> Result<(
     }
     Ok(())
 }
+
+/// The most voxels [`load_omezarr_labels`] holds in memory (u16: 1 GiB).
+pub const MAX_LOADED_VOXELS: u64 = 512 << 20;
+
+fn read_json(path: &Path) -> Result<Value, SegmentError> {
+    let bytes = std::fs::read(path).map_err(io_error(path))?;
+    serde_json::from_slice(&bytes).map_err(|e| SegmentError::Format {
+        path: path.to_path_buf(),
+        message: format!("not JSON: {e}"),
+    })
+}
+
+/// Loads a label image written by [`write_omezarr_labels`] (`IMAGE/labels/NAME`) back as a layer:
+/// voxels, geometry (from the `strata` attribute; else axis-aligned from scale and translation)
+/// and segments (names, colours, visibility, locks, categories). Reads the `bytes` + `zstd`
+/// codec chain this module writes; other codecs (blosc, sharding) are refused by name. Held in
+/// memory as [`crate::DenseLabels`], up to [`MAX_LOADED_VOXELS`].
+pub fn load_omezarr_labels(label_dir: &Path) -> Result<crate::LabelLayer, SegmentError> {
+    let bad = |path: &Path, message: String| SegmentError::Format {
+        path: path.to_path_buf(),
+        message,
+    };
+    let group_path = label_dir.join("zarr.json");
+    let group = read_json(&group_path)?;
+    let ome = group.pointer("/attributes/ome").ok_or_else(|| {
+        bad(
+            &group_path,
+            "no `ome` attributes: not an OME-Zarr label image".into(),
+        )
+    })?;
+    let array_path = label_dir.join("0").join("zarr.json");
+    let array = read_json(&array_path)?;
+    let shape: Vec<u64> = array["shape"]
+        .as_array()
+        .map(|a| a.iter().filter_map(Value::as_u64).collect())
+        .unwrap_or_default();
+    let chunk: Vec<u64> = array
+        .pointer("/chunk_grid/configuration/chunk_shape")
+        .and_then(Value::as_array)
+        .map(|a| a.iter().filter_map(Value::as_u64).collect())
+        .unwrap_or_default();
+    if shape.len() != 3 || chunk.len() != 3 || chunk.contains(&0) || array["data_type"] != "uint16"
+    {
+        return Err(bad(
+            &array_path,
+            format!(
+                "a 3-D uint16 array is read; this is {} of shape {shape:?}, chunks {chunk:?}",
+                array["data_type"]
+            ),
+        ));
+    }
+    let codecs: Vec<&str> = array["codecs"]
+        .as_array()
+        .map(|a| a.iter().filter_map(|c| c["name"].as_str()).collect())
+        .unwrap_or_default();
+    let little = array.pointer("/codecs/0/configuration/endian") == Some(&json!("little"));
+    if codecs != ["bytes", "zstd"] || !little {
+        return Err(bad(
+            &array_path,
+            format!(
+                "codecs {codecs:?}: only Strata's own chain (bytes little-endian, zstd) is read"
+            ),
+        ));
+    }
+    let (nz, ny, nx) = (shape[0], shape[1], shape[2]);
+    let total = nx.saturating_mul(ny).saturating_mul(nz);
+    if total > MAX_LOADED_VOXELS || total == 0 || nx > u64::from(u32::MAX) {
+        return Err(bad(
+            &array_path,
+            format!(
+                "{nx} x {ny} x {nz} voxels: a label image is loaded whole up to {MAX_LOADED_VOXELS} voxels"
+            ),
+        ));
+    }
+    let dims = [nx as u32, ny as u32, nz as u32];
+    let geometry: strata_types::VolumeGeometry = match group.pointer("/attributes/strata/geometry")
+    {
+        Some(g) => serde_json::from_value(g.clone())
+            .map_err(|e| bad(&group_path, format!("strata.geometry unreadable: {e}")))?,
+        None => {
+            let t = ome.pointer("/multiscales/0/datasets/0/coordinateTransformations");
+            let find = |kind: &str| -> Option<Vec<f64>> {
+                t?.as_array()?.iter().find(|x| x["type"] == kind)?[kind]
+                    .as_array()?
+                    .iter()
+                    .map(Value::as_f64)
+                    .collect()
+            };
+            let s = find("scale").unwrap_or_else(|| vec![1.0; 3]);
+            let o = find("translation").unwrap_or_else(|| vec![0.0; 3]);
+            let mut g = strata_types::VolumeGeometry::axis_aligned(dims, [s[2], s[1], s[0]]);
+            g.origin_lps_mm = [o[2], o[1], o[0]];
+            g
+        }
+    };
+    if geometry.dims != dims {
+        return Err(bad(
+            &group_path,
+            format!(
+                "strata.geometry is {:?} voxels, the array {dims:?}",
+                geometry.dims
+            ),
+        ));
+    }
+    let mut voxels: Vec<Label> = vec![0; total as usize];
+    let chunk_voxels = (chunk[0] * chunk[1] * chunk[2]) as usize;
+    let mut raw = vec![0u8; chunk_voxels * 2];
+    let mut decoder = zstd::bulk::Decompressor::new().map_err(io_error(&array_path))?;
+    for cz in 0..nz.div_ceil(chunk[0]) {
+        for cy in 0..ny.div_ceil(chunk[1]) {
+            for cx in 0..nx.div_ceil(chunk[2]) {
+                let path = label_dir
+                    .join("0/c")
+                    .join(cz.to_string())
+                    .join(cy.to_string())
+                    .join(cx.to_string());
+                let bytes = match std::fs::read(&path) {
+                    Ok(b) => b,
+                    Err(e) if e.kind() == std::io::ErrorKind::NotFound => continue,
+                    Err(e) => return Err(io_error(&path)(e)),
+                };
+                let got = decoder
+                    .decompress_to_buffer(&bytes, &mut raw)
+                    .map_err(|e| bad(&path, format!("chunk does not decompress: {e}")))?;
+                if got != raw.len() {
+                    return Err(bad(
+                        &path,
+                        format!("chunk of {got} bytes, not {}", raw.len()),
+                    ));
+                }
+                for dz in 0..chunk[0] {
+                    for dy in 0..chunk[1] {
+                        for dx in 0..chunk[2] {
+                            let (x, y, z) =
+                                (cx * chunk[2] + dx, cy * chunk[1] + dy, cz * chunk[0] + dz);
+                            if x < nx && y < ny && z < nz {
+                                let at = 2 * (((dz * chunk[1]) + dy) * chunk[2] + dx) as usize;
+                                voxels[((z * ny + y) * nx + x) as usize] =
+                                    Label::from_le_bytes([raw[at], raw[at + 1]]);
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    }
+    let mut segments = crate::SegmentTable::new();
+    let image_label = ome.get("image-label");
+    let colours = image_label.and_then(|l| l["colors"].as_array());
+    let properties = image_label.and_then(|l| l["properties"].as_array());
+    let value_of = |v: &Value| {
+        v["label-value"]
+            .as_u64()
+            .and_then(|n| Label::try_from(n).ok())
+    };
+    for p in properties.into_iter().flatten() {
+        let Some(value) = value_of(p).filter(|&v| v != 0) else {
+            continue;
+        };
+        let rgb = colours
+            .into_iter()
+            .flatten()
+            .find(|c| value_of(c) == Some(value))
+            .and_then(|c| {
+                let a = c["rgba"].as_array()?;
+                let ch = |n: usize| a.get(n)?.as_u64().and_then(|v| u8::try_from(v).ok());
+                Some([ch(0)?, ch(1)?, ch(2)?])
+            })
+            .unwrap_or_else(|| crate::io::load::generated_colour(value));
+        segments.insert(crate::Segment {
+            value,
+            name: p["name"]
+                .as_str()
+                .map_or_else(|| format!("segment {value}"), str::to_owned),
+            rgb,
+            visible: p["visible"].as_bool().unwrap_or(true),
+            locked: p["locked"].as_bool().unwrap_or(false),
+            category: p
+                .get("category")
+                .and_then(|c| serde_json::from_value(c.clone()).ok()),
+        })?;
+    }
+    crate::LabelLayer::with_base(
+        geometry,
+        std::sync::Arc::new(crate::DenseLabels {
+            dims,
+            labels: voxels,
+        }),
+        segments,
+    )
+}
