@@ -625,7 +625,6 @@ mod tests {
             journal.append(&edit).expect("append");
             writeln!(out, "acked {i}").expect("stdout");
             out.flush().expect("stdout");
-            std::thread::sleep(Duration::from_millis(2));
         }
     }
 
@@ -660,7 +659,7 @@ mod tests {
             rng ^= rng << 13;
             rng ^= rng >> 7;
             rng ^= rng << 17;
-            std::thread::sleep(Duration::from_millis(15 + rng % 90));
+            std::thread::sleep(Duration::from_millis(20 + rng % 230));
             child.kill().expect("SIGKILL the writer");
             child.wait().expect("reap");
             kills += 1;
