@@ -97,8 +97,11 @@ impl Journal {
             path: path.to_path_buf(),
             source: e,
         };
-        let exists = path.exists();
-        if !exists {
+        // A crash between creating the file and syncing its header leaves it empty: start anew.
+        if std::fs::metadata(path).is_ok_and(|m| m.len() == 0) {
+            std::fs::remove_file(path).map_err(io)?;
+        }
+        if !path.exists() {
             let mut file = OpenOptions::new()
                 .read(true)
                 .write(true)
@@ -834,6 +837,18 @@ mod tests {
         let r = recover(&path).expect("recover");
         assert_eq!(r.edits.len(), 5);
         assert!(same_edit(&r.edits[4], &fifth));
+    }
+
+    #[test]
+    fn an_empty_journal_left_by_a_crash_at_creation_starts_anew() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("j");
+        std::fs::write(&path, b"").expect("empty file");
+        let (mut journal, r) = Journal::open_or_create(&path, &geometry()).expect("open");
+        assert!(r.edits.is_empty() && r.dropped.is_none());
+        let mut layer = LabelLayer::new_empty(geometry()).expect("grid");
+        journal.append(&stroke(&mut layer, 0)).expect("append");
+        assert_eq!(recover(&path).expect("recover").edits.len(), 1);
     }
 
     #[test]
