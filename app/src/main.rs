@@ -8,6 +8,7 @@ mod cmd_omezarr;
 mod cmd_pacs;
 mod cmd_render;
 mod cmd_sample;
+mod cmd_seg;
 mod cmd_serve;
 mod cmd_store;
 mod cmd_verify;
@@ -52,6 +53,9 @@ enum Command {
     /// The stores of the viewer's data folder: list them, prune what can go.
     #[command(subcommand)]
     Store(cmd_store::StoreCommand),
+    /// Label maps (segmentations): per-segment statistics, export to DICOM SEG, NIfTI, OME-Zarr.
+    #[command(subcommand)]
+    Seg(cmd_seg::SegCommand),
     /// A DICOMweb server (PACS): find studies and series, push DICOM files.
     #[command(subcommand)]
     Pacs(cmd_pacs::PacsCommand),
@@ -105,6 +109,7 @@ fn run(cli: Cli) -> Result<()> {
         Some(Command::Sample(args)) => cmd_sample::run(args),
         Some(Command::Render(args)) => cmd_render::run(args),
         Some(Command::Pacs(cmd)) => cmd_pacs::run(cmd),
+        Some(Command::Seg(cmd)) => cmd_seg::run(cmd),
         Some(Command::Store(cmd)) => cmd_store::run(cmd),
         Some(Command::Flythrough(args)) => cmd_flythrough::run(args),
         Some(Command::View(args)) => view(args),

@@ -13,4 +13,5 @@ mod remote;
 mod render_adaptive;
 mod render_progressive;
 mod render_traversal;
+mod seg;
 mod viewer_window;

@@ -24,6 +24,14 @@ pub enum SegmentError {
     },
     #[error("{path}: {message}")]
     Format { path: PathBuf, message: String },
+    #[error("{path}: {format} holds at most {limit} {what}; this needs {requested}")]
+    FormatLimit {
+        path: PathBuf,
+        format: &'static str,
+        what: String,
+        limit: u64,
+        requested: u64,
+    },
     #[error("cancelled")]
     Cancelled,
     #[error("{0}")]

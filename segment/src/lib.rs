@@ -12,6 +12,10 @@ pub mod error;
 pub mod grid;
 pub mod history;
 pub mod intensity;
+#[cfg(feature = "local")]
+pub mod io;
+#[cfg(feature = "local")]
+pub mod journal;
 pub mod layer;
 pub mod segments;
 pub mod stats;

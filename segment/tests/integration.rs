@@ -1,0 +1,4 @@
+//! strata-segment through its public API: one test binary (see TESTING.md).
+
+mod common;
+mod peers;
