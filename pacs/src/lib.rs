@@ -567,9 +567,11 @@ impl Client {
             server: base.clone(),
             problem,
         };
-        let runtime = tokio::runtime::Builder::new_multi_thread()
-            .worker_threads(2)
-            .thread_name("strata-pacs-io")
+        // One thread's runtime: the caller's `block_on` drives the sockets itself. With worker
+        // threads every body chunk crossed threads (the I/O driver on a worker waking the
+        // caller), and a series streamed at a sixth of curl's speed, mostly in context switches
+        // (issue 51's benchmark, perf). Requests still overlap: they are futures on one thread.
+        let runtime = tokio::runtime::Builder::new_current_thread()
             .enable_all()
             .build()
             .map_err(|e| config(format!("cannot start the client's runtime: {e}")))?;
