@@ -584,8 +584,10 @@ fn sigkill_at_any_moment_of_an_import_never_leaves_a_complete_looking_damaged_st
 
 /// Crash fuzz of `strata store upgrade` (issue 48): 20 SIGKILLs spread over the upgrade of a
 /// format-2 store (the span calibrated by one full upgrade first). Each of the store, its
-/// `.upgrading` copy and its `.format2-old` original that exists is incomplete (refused as
-/// such) or complete and verifying, and a complete store holding the volume always remains.
+/// `.upgrading` copy, its `.format2-old` original and the `.upgrade-source` copy the upgrade
+/// reads that exists is incomplete (refused as such) or complete and verifying, and a complete
+/// store holding the volume always remains. (A kill 9 ms in once damaged the original: sled
+/// wrote to it on open; the upgrade now opens a copy.)
 #[test]
 fn sigkill_at_any_moment_of_an_upgrade_never_leaves_a_complete_looking_damaged_store() {
     let dir = tempfile::tempdir().unwrap();
@@ -609,8 +611,10 @@ fn sigkill_at_any_moment_of_an_upgrade_never_leaves_a_complete_looking_damaged_s
     let store = dir.path().join("up.strata");
     let staged = dir.path().join("up.strata.upgrading");
     let parked = dir.path().join("up.strata.format2-old");
+    // The copy the upgrade reads (the original is never opened by sled, which writes on open).
+    let source = dir.path().join("up.strata.upgrade-source");
     let fresh = || {
-        for p in [&store, &staged, &parked] {
+        for p in [&store, &staged, &parked, &source] {
             let _ = std::fs::remove_dir_all(p);
         }
         copy_dir(&template, &store);
@@ -637,6 +641,8 @@ fn sigkill_at_any_moment_of_an_upgrade_never_leaves_a_complete_looking_damaged_s
         let here = killed_outcome(&store, &what);
         let copy = killed_outcome(&staged, &what);
         let old = killed_outcome(&parked, &what);
+        // A copy cut short has no marker (it is copied last): not a store at all.
+        killed_outcome(&source, &what);
         assert!(
             here == 2 || old == 2,
             "{what}: no complete store left ({here}, {copy}, {old})"
