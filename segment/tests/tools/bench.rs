@@ -174,3 +174,115 @@ print(s, c, int(comp.sum()))
         scipy_cpu_s / ours_cpu_s.max(0.01)
     );
 }
+
+/// Saving a 512³ segmentation in each format (the "saving a 512³ SEG"), and loading it
+/// back, timed in one run so the formats compare on the same machine and load.
+#[test]
+#[ignore = "timing: run with --release -- --ignored --nocapture"]
+fn bench_saving_a_512_cubed_segmentation_in_each_format() {
+    use strata_segment::grid::BrickKey;
+    use strata_segment::io::dicom_seg::{write_dicom_seg, SegOptions};
+    use strata_segment::io::load::load_label_file;
+    use strata_segment::io::nifti::write_nifti;
+    use strata_segment::io::omezarr_labels::{load_omezarr_labels, write_omezarr_labels};
+    use strata_segment::LABEL_BRICK;
+
+    let dims = [512u32, 512, 512];
+    let g = VolumeGeometry::axis_aligned(dims, [0.7, 0.7, 1.0]);
+    let mut layer = LabelLayer::new_empty(g).unwrap();
+    // Three organs' worth of labels: a large ball (a liver's size, ~1.7 L), a smaller one inside
+    // another, and a slab: 12 % of the voxels labelled, as a body CT's main segments are.
+    let a = layer.segments_mut().add("liver").unwrap();
+    let b = layer.segments_mut().add("lesion").unwrap();
+    let c = layer.segments_mut().add("table").unwrap();
+    let label_at = |v: [u32; 3]| -> u16 {
+        let d = |c: [f64; 3]| {
+            (0..3)
+                .map(|n| (f64::from(v[n]) - c[n]).powi(2))
+                .sum::<f64>()
+                .sqrt()
+        };
+        if d([300.0, 260.0, 250.0]) < 40.0 {
+            b
+        } else if d([280.0, 250.0, 256.0]) < 150.0 {
+            a
+        } else if (440..452).contains(&v[1]) {
+            c
+        } else {
+            0
+        }
+    };
+    layer
+        .edit("fill", |w| {
+            for bk in 0..dims[2] / LABEL_BRICK {
+                for bj in 0..dims[1] / LABEL_BRICK {
+                    for bi in 0..dims[0] / LABEL_BRICK {
+                        let key = BrickKey([bi, bj, bk]);
+                        let o = key.0.map(|x| x * LABEL_BRICK);
+                        let brick = w.brick_mut(key)?;
+                        let n = LABEL_BRICK as usize;
+                        for (at, voxel) in brick.iter_mut().enumerate() {
+                            let l = [at % n, (at / n) % n, at / (n * n)].map(|x| x as u32);
+                            *voxel = label_at([o[0] + l[0], o[1] + l[1], o[2] + l[2]]);
+                        }
+                    }
+                }
+            }
+            Ok(())
+        })
+        .unwrap();
+    let dir = scratch("bench-save");
+    let size_mb = |p: &std::path::Path| -> f64 {
+        fn walk(p: &std::path::Path) -> u64 {
+            if p.is_dir() {
+                std::fs::read_dir(p)
+                    .unwrap()
+                    .map(|e| walk(&e.unwrap().path()))
+                    .sum()
+            } else {
+                std::fs::metadata(p).map(|m| m.len()).unwrap_or(0)
+            }
+        }
+        walk(p) as f64 / 1e6
+    };
+    let timed = |f: &mut dyn FnMut()| {
+        let wall = Instant::now();
+        let cpu = thread_cpu_s();
+        f();
+        (wall.elapsed().as_secs_f64(), thread_cpu_s() - cpu)
+    };
+    let seg = dir.join("labels.seg.dcm");
+    let nii = dir.join("labels.nii.gz");
+    let zarr = dir.join("image.zarr");
+    let mut label_dir = std::path::PathBuf::new();
+    let saves = [
+        (
+            "DICOM SEG",
+            timed(&mut || {
+                write_dicom_seg(&layer, &seg, &SegOptions::default()).unwrap();
+            }),
+            size_mb(&seg),
+        ),
+        (
+            "NIfTI (.nii.gz)",
+            timed(&mut || write_nifti(&layer, &nii).unwrap()),
+            size_mb(&nii),
+        ),
+        (
+            "OME-Zarr labels",
+            timed(&mut || label_dir = write_omezarr_labels(&layer, &zarr, "seg").unwrap()),
+            size_mb(&zarr),
+        ),
+    ];
+    let loads = [
+        timed(&mut || drop(load_label_file(&seg).unwrap())),
+        timed(&mut || drop(load_label_file(&nii).unwrap())),
+        timed(&mut || drop(load_omezarr_labels(&label_dir).unwrap())),
+    ];
+    for ((name, (wall, cpu), mb), (load_wall, load_cpu)) in saves.iter().zip(loads) {
+        println!(
+            "512³, 3 segments: save {name}: {wall:.2} s wall / {cpu:.2} s CPU, {mb:.1} MB; load back {load_wall:.2} s wall / {load_cpu:.2} s CPU"
+        );
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
