@@ -1,22 +1,27 @@
 //! `strata seg`: label maps from the command line (issue 52): per-segment statistics and export
 //! to DICOM SEG, NIfTI or OME-Zarr `labels/`.
 //!
-//! `stats` streams the label file (and the primary, when `--on` names a scan on the same grid)
-//! one slice at a time: voxel count, volume in mL, and the primary's mean, SD, min and max per
-//! segment. Note: the editor's statistics module (median, bounding box in mm) is being written
-//! beside this; once it lands, `stats` should print through it so the panel and the CLI agree.
+//! `stats` prints the editor's statistics (`strata_segment::stats`, the viewer's table), so the
+//! panel and the command line agree: voxel count, volume in mL, bounding box in LPS mm, and with
+//! `--on` the primary's mean, SD (population, as numpy's), min, max and median. `export --onto`
+//! moves the labels onto a scan's grid first (nearest neighbour, and says so).
 
 use std::path::{Path, PathBuf};
 
-use anyhow::{bail, ensure, Context, Result};
+use anyhow::{Context, Result};
 use clap::{Subcommand, ValueEnum};
 
-use strata_segment::io::{load_label_file, write_dicom_seg, write_nifti, SegOptions};
-use strata_segment::LabelRead;
+use strata_segment::intensity::Intensity;
+use strata_segment::io::{
+    load_label_file, write_dicom_seg, write_nifti, SegOptions, SourceIntensity,
+};
+use strata_segment::resample::resample_nearest;
+use strata_segment::stats::{segment_statistics, to_csv};
 
 #[derive(Subcommand)]
 pub enum SegCommand {
-    /// Per segment: voxel count, volume in mL, and (with --on) the primary's mean, SD, min, max.
+    /// Per segment: voxel count, volume in mL, bounding box in LPS mm, and (with --on) the
+    /// primary's mean, SD, min, max and median in its unit.
     Stats(StatsArgs),
     /// Save a label map as DICOM SEG, NIfTI or OME-Zarr labels.
     Export(ExportArgs),
@@ -26,9 +31,13 @@ pub enum SegCommand {
 pub struct StatsArgs {
     /// A label map: NIfTI, DICOM SEG, NRRD, MetaImage or MGH.
     labels: PathBuf,
-    /// The scan the labels were drawn on (a file or a DICOM folder, on the labels' grid).
+    /// The scan the labels were drawn on (a file or a DICOM folder); on another grid, each label
+    /// voxel takes the value of the scan's voxel nearest its centre (and a note says so).
     #[arg(long)]
     on: Option<PathBuf>,
+    /// Print the table as CSV (the viewer's "Copy as CSV"), not as aligned text.
+    #[arg(long)]
+    csv: bool,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -51,11 +60,15 @@ pub struct ExportArgs {
     /// The label image's name under labels/ (ome-zarr only).
     #[arg(long, default_value = "segmentation")]
     name: String,
+    /// Move the labels onto this scan's grid first (a file or a DICOM folder; nearest
+    /// neighbour), e.g. to save a SEG on the series it belongs to.
+    #[arg(long)]
+    onto: Option<PathBuf>,
 }
 
 pub fn run(command: SegCommand) -> Result<()> {
     match command {
-        SegCommand::Stats(args) => stats(&args.labels, args.on.as_deref()),
+        SegCommand::Stats(args) => stats(&args),
         SegCommand::Export(args) => export(&args),
     }
 }
@@ -65,7 +78,24 @@ fn load(path: &Path) -> Result<strata_segment::LabelLayer> {
 }
 
 fn export(args: &ExportArgs) -> Result<()> {
-    let layer = load(&args.labels)?;
+    let mut layer = load(&args.labels)?;
+    if let Some(onto) = &args.onto {
+        let scan = strata_storage::readers::open_source(onto, &Default::default())
+            .with_context(|| format!("opening {}", onto.display()))?;
+        let (moved, report) = resample_nearest(&layer, scan.info.geometry.clone())
+            .with_context(|| format!("moving {} onto {}", args.labels.display(), onto.display()))?;
+        if moved.grid() != layer.grid() {
+            eprintln!(
+                "note: resampled {} ({:?} voxels) onto the grid of {} ({:?} voxels), nearest neighbour: {} labelled voxels",
+                args.labels.display(),
+                report.from_dims,
+                onto.display(),
+                report.to_dims,
+                report.labelled_voxels
+            );
+        }
+        layer = moved;
+    }
     match args.format {
         ExportFormat::Nifti => {
             write_nifti(&layer, &args.out)
@@ -95,112 +125,71 @@ fn export(args: &ExportArgs) -> Result<()> {
     Ok(())
 }
 
-/// Running sums of one segment.
-#[derive(Clone, Copy)]
-struct Sums {
-    count: u64,
-    sum: f64,
-    sum_sq: f64,
-    min: f64,
-    max: f64,
-}
-
-fn stats(labels_path: &Path, on: Option<&Path>) -> Result<()> {
-    let layer = load(labels_path)?;
-    let g = layer.geometry().clone();
-    let primary = match on {
+fn stats(args: &StatsArgs) -> Result<()> {
+    let layer = load(&args.labels)?;
+    let primary = match &args.on {
         Some(p) => {
             let opened = strata_storage::readers::open_source(p, &Default::default())
                 .with_context(|| format!("opening the primary {}", p.display()))?;
-            ensure!(
-                opened.info.geometry.dims == g.dims,
-                "{}: the primary is {:?} voxels, the labels {} are {:?}: statistics need both on one grid",
-                p.display(),
-                opened.info.geometry.dims,
-                labels_path.display(),
-                g.dims
-            );
-            Some(opened)
+            let intensity = SourceIntensity::new(opened, layer.grid())
+                .with_context(|| format!("sampling the primary {}", p.display()))?;
+            if intensity.resampled() {
+                let own = &intensity.info().geometry;
+                eprintln!(
+                    "note: the primary {} ({:?} voxels of {:?} mm) is on another grid than the labels {} ({:?} voxels of {:?} mm): each label voxel takes the value of the primary's voxel nearest its centre (none outside the primary)",
+                    p.display(),
+                    own.dims,
+                    own.spacing_mm,
+                    args.labels.display(),
+                    layer.grid().dims(),
+                    layer.grid().geometry().spacing_mm,
+                );
+            }
+            Some(intensity)
         }
         None => None,
     };
-    let [nx, ny, nz] = g.dims;
-    let plane = nx as usize * ny as usize;
-    let mut slice = vec![0u16; plane];
-    let mut values = Vec::with_capacity(plane);
-    let empty = Sums {
-        count: 0,
-        sum: 0.0,
-        sum_sq: 0.0,
-        min: f64::INFINITY,
-        max: f64::NEG_INFINITY,
-    };
-    let mut sums = vec![empty; usize::from(u16::MAX) + 1];
-    for k in 0..nz {
-        layer
-            .read_slice_k(k, &mut slice)
-            .with_context(|| format!("reading slice {k} of {}", labels_path.display()))?;
-        if let Some(p) = &primary {
-            p.data.read_slice_f64(u64::from(k), &mut values);
-            if values.len() != plane {
-                bail!(
-                    "the primary's slice {k} has {} voxels, not {plane}",
-                    values.len()
-                );
-            }
-        }
-        for (n, &label) in slice.iter().enumerate() {
-            if label == 0 {
-                continue;
-            }
-            let s = &mut sums[usize::from(label)];
-            s.count += 1;
-            if let Some(p) = &primary {
-                let v = values[n] * p.info.slope + p.info.intercept;
-                s.sum += v;
-                s.sum_sq += v * v;
-                s.min = s.min.min(v);
-                s.max = s.max.max(v);
-            }
-        }
-        if let Some(p) = &primary {
-            p.data.release_slice(u64::from(k));
-        }
+    let stats = segment_statistics(
+        &layer,
+        primary.as_ref().map(|p| p as &dyn Intensity),
+        None,
+        &mut |_, _| {},
+    )
+    .with_context(|| format!("statistics of {}", args.labels.display()))?;
+    if args.csv {
+        print!("{}", to_csv(&stats));
+        return Ok(());
     }
-    let voxel_ml = layer.grid().voxel_volume_ml();
+    let unit = if stats.unit.is_empty() {
+        String::new()
+    } else {
+        format!(" ({})", stats.unit)
+    };
     let mut header = "label\tname\tvoxels\tvolume_ml".to_string();
     if primary.is_some() {
-        header.push_str("\tmean\tsd\tmin\tmax");
+        header.push_str(&format!(
+            "\tmean{unit}\tsd{unit}\tmin{unit}\tmax{unit}\tmedian{unit}"
+        ));
     }
+    header.push_str("\tbox_lps_mm");
     println!("{header}");
-    for segment in layer.segments().iter() {
-        let s = sums[usize::from(segment.value)];
-        let mut line = format!(
-            "{}\t{}\t{}\t{:.4}",
-            segment.value,
-            segment.name,
-            s.count,
-            s.count as f64 * voxel_ml
-        );
+    let number = |v: Option<f64>| v.map_or_else(|| "-".to_string(), |v| format!("{v:.4}"));
+    for s in &stats.segments {
+        let mut line = format!("{}\t{}\t{}\t{:.4}", s.label, s.name, s.voxels, s.volume_ml);
         if primary.is_some() {
-            if s.count == 0 {
-                line.push_str("\t-\t-\t-\t-");
-            } else {
-                let n = s.count as f64;
-                let mean = s.sum / n;
-                let var = if s.count > 1 {
-                    ((s.sum_sq - s.sum * mean) / (n - 1.0)).max(0.0)
-                } else {
-                    0.0
-                };
-                line.push_str(&format!(
-                    "\t{mean:.4}\t{:.4}\t{}\t{}",
-                    var.sqrt(),
-                    s.min,
-                    s.max
-                ));
+            for v in [s.mean, s.sd, s.min, s.max, s.median] {
+                line.push('\t');
+                line.push_str(&number(v));
             }
         }
+        line.push('\t');
+        line.push_str(&match s.lps_box_mm {
+            Some((lo, hi)) => format!(
+                "[{:.2}, {:.2}, {:.2}]..[{:.2}, {:.2}, {:.2}]",
+                lo[0], lo[1], lo[2], hi[0], hi[1], hi[2]
+            ),
+            None => "-".into(),
+        });
         println!("{line}");
     }
     Ok(())

@@ -139,6 +139,112 @@ fn seg_stats_and_exports_match_the_labels_and_load_back_equal() {
         );
     }
 
+    // The primary on another grid (the same phantom at 56³: 400 mm across either way): the
+    // labels keep their voxels, each takes the value of the primary's nearest voxel, said so.
+    let finer = dir.path().join("p56.nrrd");
+    let o = strata(&["sample", "--size", "56", "--out", finer.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    let fine = open_source(&finer, &ReadOptions::default()).expect("phantom 56");
+    let fine_g = fine.info.geometry.clone();
+    let label_g = source.info.geometry.clone();
+    let nearest = |g: &strata_storage::VolumeGeometry, p: glam::DVec3| -> Option<[u32; 3]> {
+        let s = g.index_from_patient(p);
+        let s = [s.x, s.y, s.z].map(|c| (c + 0.5).floor() as i64);
+        (0..3)
+            .all(|a| s[a] >= 0 && s[a] < i64::from(g.dims[a]))
+            .then(|| s.map(|c| c as u32))
+    };
+    let mut fine_slices = Vec::new();
+    for k in 0..56u64 {
+        let mut v = Vec::new();
+        fine.data.read_slice_f64(k, &mut v);
+        fine_slices.push(v);
+    }
+    let mut sum_fine = [0f64; 2];
+    for (n, &l) in voxels.iter().enumerate() {
+        let slot = match l {
+            1 => 0,
+            7 => 1,
+            _ => continue,
+        };
+        let n = n as u32;
+        let at = glam::DVec3::new(
+            f64::from(n % 40),
+            f64::from((n / 40) % 40),
+            f64::from(n / 1600),
+        );
+        let s = nearest(&fine_g, label_g.patient_from_index(at)).expect("inside");
+        sum_fine[slot] += fine_slices[s[2] as usize][(s[0] + 56 * s[1]) as usize] * fine.info.slope
+            + fine.info.intercept;
+    }
+    let o = strata(&[
+        "seg",
+        "stats",
+        labels.to_str().unwrap(),
+        "--on",
+        finer.to_str().unwrap(),
+    ]);
+    let out = text(&o);
+    assert!(o.status.success(), "{out}");
+    assert!(
+        out.contains("on another grid") && out.contains("nearest"),
+        "{out}"
+    );
+    for (slot, value) in [1, 7].into_iter().enumerate() {
+        let line = out
+            .lines()
+            .find(|l| l.starts_with(&format!("{value}\t")))
+            .unwrap_or_else(|| panic!("no line for label {value}: {out}"));
+        let fields: Vec<&str> = line.split('\t').collect();
+        assert_eq!(fields[2], n[slot].to_string(), "{line}");
+        let mean: f64 = fields[4].parse().expect("mean");
+        let want = sum_fine[slot] / n[slot] as f64;
+        assert!(
+            (mean - want).abs() < 1e-3 * want.abs().max(1.0),
+            "{line}: mean {want} from the nearest voxels of the 56³ primary"
+        );
+    }
+
+    // Export onto the finer grid: every voxel of it holds the label of the nearest label voxel.
+    let onto = dir.path().join("onto.nii");
+    let o = strata(&[
+        "seg",
+        "export",
+        labels.to_str().unwrap(),
+        "--format",
+        "nifti",
+        "-o",
+        onto.to_str().unwrap(),
+        "--onto",
+        finer.to_str().unwrap(),
+    ]);
+    let out = text(&o);
+    assert!(o.status.success(), "{out}");
+    assert!(
+        out.contains("resampled") && out.contains("nearest"),
+        "{out}"
+    );
+    let moved = load_label_file(&onto).expect("load back");
+    assert_eq!(moved.geometry().dims, [56, 56, 56]);
+    let got = all_voxels(&moved);
+    let mut differing = 0;
+    for (n, &l) in got.iter().enumerate() {
+        let n = n as u32;
+        let at = glam::DVec3::new(
+            f64::from(n % 56),
+            f64::from((n / 56) % 56),
+            f64::from(n / 3136),
+        );
+        let want = nearest(&label_g, fine_g.patient_from_index(at))
+            .map_or(0, |s| voxels[(s[0] + 40 * (s[1] + 40 * s[2])) as usize]);
+        differing += usize::from(want != l);
+    }
+    assert_eq!(
+        differing, 0,
+        "voxels of the resampled export differing from nearest neighbour"
+    );
+    assert!(got.contains(&7));
+
     let missing = dir.path().join("missing.nii");
     let o = strata(&["seg", "stats", missing.to_str().unwrap()]);
     assert!(!o.status.success());

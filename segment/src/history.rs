@@ -1,12 +1,14 @@
 //! Undo and redo of [`Edit`]s with a memory bound.
 //!
 //! Each edit holds the before and after image of every brick it changed; the history counts
-//! both (64 KiB each) against its bound and drops the oldest edits first when a new one would
+//! both (64 KiB each; a before image that is the shared background brick is free) against its
+//! bound and drops the oldest edits first when a new one would
 //! exceed it. A new edit clears the redo list, as every editor does. The images are shared
 //! (`Arc`) with the layer and neighbouring edits, so the count is an upper bound of what the
 //! history alone keeps alive.
 
 use std::collections::VecDeque;
+use std::sync::Arc;
 
 use rustc_hash::FxHashMap;
 
@@ -16,7 +18,13 @@ use crate::Label;
 
 /// Bytes an edit's brick images take (before and after).
 pub fn edit_bytes(edit: &Edit) -> usize {
-    edit.changes.len() * 2 * LABEL_BRICK_VOXELS * size_of::<Label>()
+    let background = crate::layer::background_brick();
+    let images = edit
+        .changes
+        .iter()
+        .map(|c| 1 + usize::from(!Arc::ptr_eq(&c.before, &background)))
+        .sum::<usize>();
+    images * LABEL_BRICK_VOXELS * size_of::<Label>()
 }
 
 /// Successive edits (in the order they were applied) as one: each brick's image before the first
@@ -231,15 +239,18 @@ mod tests {
     #[test]
     fn the_memory_bound_drops_the_oldest_edits_first() {
         let mut l = layer();
-        let brick_bytes = 2 * (LABEL_BRICK as usize).pow(3) * 2;
+        let image_bytes = (LABEL_BRICK as usize).pow(3) * 2;
         let e1 = paint(&mut l, 0, 1);
+        // Painting fresh space: the "before" images are the shared background brick, not kept
+        // per edit, so only the "after" images count.
+        assert_eq!(edit_bytes(&e1), e1.changes.len() * image_bytes);
         let e2 = paint(&mut l, 1, 2);
-        let (n1, n2) = (e1.changes.len(), e2.changes.len());
-        let mut h = History::new((n1 + n2) * brick_bytes - 1);
+        let (b1, b2) = (edit_bytes(&e1), edit_bytes(&e2));
+        let mut h = History::new(b1 + b2 - 1);
         h.push(e1);
         h.push(e2);
         assert_eq!(h.undo_names().count(), 1, "the first edit was dropped");
-        assert_eq!(h.bytes(), n2 * brick_bytes);
+        assert_eq!(h.bytes(), b2);
         let s1 = images(&l);
         h.undo(&mut l);
         assert_ne!(images(&l), s1);

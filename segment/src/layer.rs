@@ -86,6 +86,14 @@ pub fn copy_brick_from_dense(dims: [u32; 3], labels: &[Label], key: BrickKey, ou
     }
 }
 
+/// The all-background brick image, allocated once and shared.
+pub fn background_brick() -> Arc<[Label]> {
+    static BACKGROUND: std::sync::OnceLock<Arc<[Label]>> = std::sync::OnceLock::new();
+    BACKGROUND
+        .get_or_init(|| vec![0; LABEL_BRICK_VOXELS].into())
+        .clone()
+}
+
 /// One brick an edit changed: its whole image before and after (shared, not copied, with the
 /// layer and the history).
 #[derive(Clone, Debug)]
@@ -160,10 +168,15 @@ impl LabelLayer {
         self.edited.len()
     }
 
-    /// The current image of a brick (edited, or read from the base).
+    /// The current image of a brick (edited, or read from the base). A brick the base knows to
+    /// be background is one shared all-zero image: the first stroke into fresh space keeps no
+    /// "before" image of its own in the history.
     pub fn brick(&self, key: BrickKey) -> Result<Arc<[Label]>, SegmentError> {
         if let Some(b) = self.edited.get(&key) {
             return Ok(b.clone());
+        }
+        if self.base.brick_is_empty(key) {
+            return Ok(background_brick());
         }
         let mut out = vec![0; LABEL_BRICK_VOXELS];
         self.base.read_brick(&self.grid, key, &mut out)?;
