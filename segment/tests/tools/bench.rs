@@ -116,6 +116,44 @@ fn bench_region_growing_of_a_512_cubed_volume_against_scipy() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// Region growing of bone (HU ≥ 300) on the 512³ CT phantom (`strata sample`'s: a spine of
+/// cortical shell around trabecular bone, ribs, contrast-filled vessels at ~300 HU) against scipy
+/// on the same machine, in one run.
+#[test]
+#[ignore = "timing: run with --release -- --ignored --nocapture"]
+fn bench_region_growing_of_bone_on_the_512_cubed_ct_phantom_against_scipy() {
+    let phantom = strata_storage::phantom::Phantom::cube(512);
+    let dims = [512u32, 512, 512];
+    let [nx, ny, nz] = dims;
+    let mut values = Vec::with_capacity((nx * ny * nz) as usize);
+    for k in 0..nz {
+        for j in 0..ny {
+            for i in 0..nx {
+                values.push(f32::from(phantom.hu(
+                    u64::from(i),
+                    u64::from(j),
+                    u64::from(k),
+                )));
+            }
+        }
+    }
+    let dir = scratch("bench-grow-ct");
+    let bytes: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
+    std::fs::write(dir.join("volume.f32"), &bytes).unwrap();
+    drop(bytes);
+    let intensity = DenseIntensity::new(dims, values, "HU").unwrap();
+    // The seed: the bone voxel nearest the middle of the middle slice (the spine).
+    let values = intensity.values();
+    let (k, lo) = (256u32, 300.0f32);
+    let seed = (0..ny)
+        .flat_map(|j| (0..nx).map(move |i| [i, j, k]))
+        .filter(|&[i, j, k]| values[(i + nx * (j + ny * k)) as usize] >= lo)
+        .min_by_key(|&[i, j, _]| (i as i64 - 256).pow(2) + (j as i64 - 256).pow(2))
+        .expect("the phantom has bone in its middle slice");
+    grow_once(&dir, dims, &intensity, lo, seed);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 fn grow_once(
     dir: &std::path::Path,
     dims: [u32; 3],
