@@ -1,5 +1,5 @@
 //! `strata seg`: label maps from the command line (issue 52): per-segment statistics and export
-//! to DICOM SEG, NIfTI or OME-Zarr `labels/`.
+//! to DICOM SEG, NIfTI, OME-Zarr `labels/` or a Strata label store.
 //!
 //! `stats` prints the editor's statistics (`strata_segment::stats`, the viewer's table), so the
 //! panel and the command line agree: voxel count, volume in mL, bounding box in LPS mm, and with
@@ -23,7 +23,7 @@ pub enum SegCommand {
     /// Per segment: voxel count, volume in mL, bounding box in LPS mm, and (with --on) the
     /// primary's mean, SD, min, max and median in its unit.
     Stats(StatsArgs),
-    /// Save a label map as DICOM SEG, NIfTI or OME-Zarr labels.
+    /// Save a label map as DICOM SEG, NIfTI, OME-Zarr labels or a Strata label store.
     Export(ExportArgs),
 }
 
@@ -45,6 +45,8 @@ pub enum ExportFormat {
     Seg,
     Nifti,
     OmeZarr,
+    /// A Strata store of the labels (opens in the viewer and `strata serve` as any store).
+    Store,
 }
 
 #[derive(clap::Args)]
@@ -53,8 +55,9 @@ pub struct ExportArgs {
     labels: PathBuf,
     #[arg(long, value_enum)]
     format: ExportFormat,
-    /// The file to write (.dcm, .nii or .nii.gz), or for ome-zarr the image's .zarr folder
-    /// (the labels go to OUT/labels/NAME).
+    /// The file to write (.dcm, .nii or .nii.gz), for ome-zarr the image's .zarr folder (the
+    /// labels go to OUT/labels/NAME), for store the store's folder (an existing store there is
+    /// replaced once the new one is complete).
     #[arg(short, long)]
     out: PathBuf,
     /// The label image's name under labels/ (ome-zarr only).
@@ -108,6 +111,10 @@ fn export(args: &ExportArgs) -> Result<()> {
                 "{} segment(s), {} frame(s)",
                 summary.segments, summary.frames
             );
+        }
+        ExportFormat::Store => {
+            strata_segment::io::write_label_store(&layer, &args.out)
+                .with_context(|| format!("writing the label store {}", args.out.display()))?;
         }
         ExportFormat::OmeZarr => {
             strata_segment::io::write_omezarr_labels(&layer, &args.out, &args.name).with_context(

@@ -115,6 +115,7 @@ fn seg_stats_and_exports_match_the_labels_and_load_back_equal() {
         ("seg", "out.dcm"),
         ("nifti", "out.nii"),
         ("ome-zarr", "out.zarr"),
+        ("store", "out.strata"),
     ] {
         let target = dir.path().join(name);
         let o = strata(&[

@@ -2,22 +2,9 @@
 
 use serde::{Deserialize, Serialize};
 
+pub use strata_types::{Code, SegmentCategory};
+
 use crate::{Label, SegmentError, MAX_SEGMENTS};
-
-/// A coded concept (DICOM code sequence item), e.g. SCT 85756007 "Tissue".
-#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
-pub struct Code {
-    pub value: String,
-    pub scheme: String,
-    pub meaning: String,
-}
-
-/// What a segment is, as DICOM SEG records it (category and type).
-#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
-pub struct SegmentCategory {
-    pub category: Code,
-    pub kind: Code,
-}
 
 /// One segment of a label layer.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -141,6 +128,21 @@ impl SegmentTable {
             .ok()?;
         Some(self.segments.remove(i))
     }
+}
+
+/// A distinct, stable colour for a label a file gives no colour (golden-ratio hue steps).
+pub fn generated_colour(value: Label) -> [u8; 3] {
+    let hue = (f64::from(value) * 0.618_033_988_749_895).fract() * 6.0;
+    let x = 1.0 - (hue % 2.0 - 1.0).abs();
+    let (r, g, b) = match hue as u32 {
+        0 => (1.0, x, 0.0),
+        1 => (x, 1.0, 0.0),
+        2 => (0.0, 1.0, x),
+        3 => (0.0, x, 1.0),
+        4 => (x, 0.0, 1.0),
+        _ => (1.0, 0.0, x),
+    };
+    [r, g, b].map(|c: f64| (60.0 + 180.0 * c).round() as u8)
 }
 
 #[cfg(test)]

@@ -395,3 +395,81 @@ fn omezarr_labels_validate_in_ome_zarr_models_and_read_in_zarr_python() {
     assert_eq!(*back.geometry(), g);
     assert_eq!(back.segments(), layer.segments());
 }
+
+#[test]
+fn a_strata_label_store_loads_back_equal_reads_bricks_lazily_and_replaces_only_a_store() {
+    use strata_segment::io::{load_label_store, write_label_store};
+    use strata_segment::BrickKey;
+
+    let dir = tempfile::tempdir().expect("tempdir");
+    // Oblique, anisotropic, dims not a multiple of the brick: placement and edges survive.
+    let layer = sample_layer(oblique_geometry([70, 45, 38]));
+    let store = dir.path().join("labels.strata");
+    write_label_store(&layer, &store).expect("saved");
+    let back = load_label_file(&store).expect("a store loads through the file loader");
+    assert_eq!(back.geometry(), layer.geometry());
+    assert_eq!(back.segments(), layer.segments(), "names, colours, values");
+    assert!(all_voxels(&back) == all_voxels(&layer), "voxels differ");
+    // Bricks the skeleton says are background are skipped without a read. The skeleton's range
+    // covers a brick's apron too, so a background brick beside labels is read; but a brick
+    // called empty must hold no label (soundness), and a background corner is skipped.
+    let [bx, by, bz] = back.grid().bricks();
+    let mut skipped = 0;
+    for k in 0..bz {
+        for j in 0..by {
+            for i in 0..bx {
+                let key = BrickKey([i, j, k]);
+                if back.brick_is_empty(key) {
+                    skipped += 1;
+                    assert!(
+                        layer.brick(key).expect("brick").iter().all(|&l| l == 0),
+                        "brick {:?} called empty holds labels",
+                        key.0
+                    );
+                }
+            }
+        }
+    }
+    assert!(skipped > 0, "no brick known to be background");
+
+    // Saving over it replaces it once the new store is complete; an edit survives the trip.
+    let mut edited = load_label_store(&store).expect("load");
+    edited
+        .edit("dot", |w| w.set([69, 44, 37], 2))
+        .expect("edit")
+        .expect("changed");
+    write_label_store(&edited, &store).expect("replaced");
+    let again = load_label_store(&store).expect("load again");
+    assert_eq!(again.get([69, 44, 37]).expect("voxel"), 2);
+    assert!(all_voxels(&again) == all_voxels(&edited));
+    let leftovers: Vec<_> = std::fs::read_dir(dir.path())
+        .expect("list")
+        .map(|e| e.expect("entry").file_name())
+        .collect();
+    assert_eq!(leftovers.len(), 1, "only the store remains: {leftovers:?}");
+
+    // A folder that is not a store is never replaced.
+    let other = dir.path().join("not-a-store");
+    std::fs::create_dir(&other).expect("mkdir");
+    std::fs::write(other.join("notes.txt"), "mine").expect("write");
+    let err = write_label_store(&layer, &other).expect_err("refused");
+    assert!(
+        err.to_string().contains("not-a-store") && err.to_string().contains("not a Strata store"),
+        "{err}"
+    );
+    assert_eq!(
+        std::fs::read_to_string(other.join("notes.txt")).expect("kept"),
+        "mine"
+    );
+
+    // A store of a scan (HU = stored − 1024) is refused as labels, naming it.
+    let ct = dir.path().join("ct.strata");
+    strata_storage::phantom::Phantom::cube(20)
+        .write_store(&ct, &Default::default())
+        .expect("phantom store");
+    let err = match load_label_file(&ct) {
+        Err(e) => e.to_string(),
+        Ok(_) => panic!("a CT store loaded as labels"),
+    };
+    assert!(err.contains("ct.strata") && err.contains("mapped"), "{err}");
+}

@@ -69,6 +69,9 @@ pub struct LabelInfo {
     /// sRGB; `None` where the source recommends no colour (the viewer's table then decides).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub rgb: Option<[u8; 3]>,
+    /// What the segment is (a SEG's category and type codes), where the source says.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub category: Option<strata_types::SegmentCategory>,
 }
 
 /// Everything a reader learned from the header.

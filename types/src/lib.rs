@@ -6,11 +6,13 @@
 //! Nothing here does I/O or touches a GPU.
 
 pub mod brick;
+pub mod coded_concept;
 pub mod geometry;
 pub mod octree;
 pub mod value_mapping;
 
 pub use brick::{BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD, BRICK_PAYLOAD_VOXELS};
+pub use coded_concept::{Code, SegmentCategory};
 pub use geometry::{
     GeometryError, VolumeGeometry, MAX_AXIS_VOXELS, MAX_ORIGIN_MM, MAX_SPACING_MM,
     MAX_TOTAL_VOXELS, MIN_SPACING_MM,

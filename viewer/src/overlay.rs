@@ -568,6 +568,7 @@ pub(crate) mod tests {
                 value: 1,
                 name: "liver".into(),
                 rgb: Some([200, 100, 50]),
+                category: None,
             }]),
             ..style.clone()
         };

@@ -84,23 +84,11 @@ fn value_text(b: &[u8], t: SampleType, order: ByteOrder) -> String {
     format!("{v}")
 }
 
-/// A distinct, stable colour for a label a file gives no colour (golden-ratio hue steps).
-pub(crate) fn generated_colour(value: Label) -> [u8; 3] {
-    let hue = (f64::from(value) * 0.618_033_988_749_895).fract() * 6.0;
-    let x = 1.0 - (hue % 2.0 - 1.0).abs();
-    let (r, g, b) = match hue as u32 {
-        0 => (1.0, x, 0.0),
-        1 => (x, 1.0, 0.0),
-        2 => (0.0, 1.0, x),
-        3 => (0.0, x, 1.0),
-        4 => (x, 0.0, 1.0),
-        _ => (1.0, 0.0, x),
-    };
-    [r, g, b].map(|c: f64| (60.0 + 180.0 * c).round() as u8)
-}
-
-/// Opens a label file as an editable layer on the file's own grid.
+/// Opens a label file (or a Strata label store) as an editable layer on its own grid.
 pub fn load_label_file(path: &Path) -> Result<LabelLayer, SegmentError> {
+    if super::label_store::is_strata_store(path) {
+        return super::label_store::load_label_store(path);
+    }
     let source = open_source(path, &ReadOptions::default()).map_err(|e| SegmentError::Format {
         path: path.to_path_buf(),
         message: e.to_string(),
@@ -161,10 +149,10 @@ pub fn load_label_file(path: &Path) -> Result<LabelLayer, SegmentError> {
             name: named.map_or_else(|| format!("segment {value}"), |l| l.name.clone()),
             rgb: named
                 .and_then(|l| l.rgb)
-                .unwrap_or_else(|| generated_colour(value)),
+                .unwrap_or_else(|| crate::segments::generated_colour(value)),
             visible: true,
             locked: false,
-            category: None,
+            category: named.and_then(|l| l.category.clone()),
         })?;
     }
     LabelLayer::with_base(geometry, Arc::new(mapped), segments)

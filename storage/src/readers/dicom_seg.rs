@@ -62,6 +62,24 @@ fn seq_item(obj: &Obj, seq: Tag) -> Option<&Obj> {
     obj.get(seq)?.items()?.first()
 }
 
+/// The first item of a code sequence as a code (all three parts present, or none).
+fn code(obj: &Obj, seq: Tag) -> Option<strata_types::Code> {
+    let item = seq_item(obj, seq)?;
+    Some(strata_types::Code {
+        value: text(item, tags::CODE_VALUE)?,
+        scheme: text(item, tags::CODING_SCHEME_DESIGNATOR)?,
+        meaning: text(item, tags::CODE_MEANING)?,
+    })
+}
+
+/// A segment's category and type codes, when it has both.
+fn segment_category(item: &Obj) -> Option<strata_types::SegmentCategory> {
+    Some(strata_types::SegmentCategory {
+        category: code(item, tags::SEGMENTED_PROPERTY_CATEGORY_CODE_SEQUENCE)?,
+        kind: code(item, tags::SEGMENTED_PROPERTY_TYPE_CODE_SEQUENCE)?,
+    })
+}
+
 /// `attr` of the functional group `seq`: the frame's own group first, then the shared one.
 fn group_floats(groups: [Option<&Obj>; 2], seq: Tag, attr: Tag) -> Option<Vec<f64>> {
     groups
@@ -196,6 +214,7 @@ pub(crate) fn open_dicom_seg(path: &Path, options: &ReadOptions) -> Result<Opene
             value: number,
             name: text(item, tags::SEGMENT_LABEL).unwrap_or_else(|| format!("segment {number}")),
             rgb,
+            category: segment_category(item),
         });
     }
     if labels.is_empty() {
