@@ -27,6 +27,7 @@ from ._strata import (
     __version__,
 )
 from ._volume import BRICK_CORE, Level, ValueMapping, Volume, WindowPreset, open
+from .widget import Viewer  # a Jupyter widget; needs anywidget only when used
 
 __all__ = [
     "BRICK_CORE",
@@ -41,6 +42,7 @@ __all__ = [
     "StrataError",
     "TokenError",
     "ValueMapping",
+    "Viewer",
     "Volume",
     "WindowPreset",
     "__version__",

@@ -56,14 +56,26 @@ def serve(
     *,
     host: str = "127.0.0.1",
     token: str | None = None,
+    web_viewer: str | os.PathLike[str] | None = None,
+    frame_ancestors: str | None = None,
 ) -> Server:
     """Serves stores over HTTP as ``strata serve`` does: each path a store or a folder of
     stores; ``port=0`` picks a free port; loopback unless ``host`` says otherwise, which then
     needs a ``token`` (16 characters or more). Identifiers stay withheld.
+
+    ``web_viewer`` is a folder with the browser viewer's files (``cargo run -p xtask -- web``
+    writes them to ``web/dist/``), served at ``/``; ``frame_ancestors`` lists who may show
+    that page in a frame (CSP sources such as ``http://localhost:*``; default nobody), which
+    :class:`strata.Viewer` sets for its notebook.
 
     Raises a :class:`strata.StoreError` for a path that is not a servable store, and a
     :class:`strata.StrataError` when the address cannot be bound or the options are refused.
     """
     if isinstance(paths, (str, os.PathLike)):
         paths = [paths]
-    return Server(_strata.serve([os.fspath(p) for p in paths], port, host, token))
+    viewer_dir = os.fspath(web_viewer) if web_viewer is not None else None
+    return Server(
+        _strata.serve(
+            [os.fspath(p) for p in paths], port, host, token, viewer_dir, frame_ancestors
+        )
+    )

@@ -97,6 +97,11 @@ pub struct ServeOptions {
     pub stall_below_root: bool,
     /// The browser viewer's page, served at `/` (web_viewer.rs); None: `/` says how to build it.
     pub web_viewer: Option<Arc<WebViewerAssets>>,
+    /// Who may embed the page in a frame: the sources of the page's CSP `frame-ancestors`
+    /// (e.g. `http://localhost:*`). None: nobody (`'none'`). Only the Jupyter widget sets it
+    /// (issue 50), for the notebook that shows the page; [`crate::web_viewer::check_frame_ancestors`] refuses
+    /// anything that could add a directive or a header.
+    pub frame_ancestors: Option<String>,
     /// Test hook: a sink for the frames the page posts to `/v1/test/frame` (the route exists
     /// only when this is set).
     pub test_frame_sink: Option<FrameSink>,
@@ -127,6 +132,7 @@ impl Default for ServeOptions {
             stall_below_root: false,
             tls: None,
             web_viewer: None,
+            frame_ancestors: None,
             test_frame_sink: None,
             trusted_proxies: Vec::new(),
             access_log: None,
@@ -422,6 +428,9 @@ pub fn start(
             "the token is shorter than 16 characters".into(),
         ));
     }
+    if let Some(sources) = &options.frame_ancestors {
+        crate::web_viewer::check_frame_ancestors(sources).map_err(ServeError::Config)?;
+    }
     if stores.is_empty() {
         return Err(ServeError::Config("no store to serve".into()));
     }
@@ -573,12 +582,14 @@ fn router(state: Arc<AppState>, options: &ServeOptions) -> Router {
         .with_state(state);
     // The page's files carry no data and a browser cannot send the token when it navigates:
     // outside the guard, inside the timeout.
-    let page = crate::web_viewer::router(options.web_viewer.clone()).layer(
-        tower_http::timeout::TimeoutLayer::with_status_code(
-            StatusCode::REQUEST_TIMEOUT,
-            options.request_timeout,
-        ),
-    );
+    let page = crate::web_viewer::router(
+        options.web_viewer.clone(),
+        options.frame_ancestors.as_deref(),
+    )
+    .layer(tower_http::timeout::TimeoutLayer::with_status_code(
+        StatusCode::REQUEST_TIMEOUT,
+        options.request_timeout,
+    ));
     api.merge(page)
 }
 

@@ -8,7 +8,9 @@
 //! The page is as safe as the API: same origin only (a Content-Security-Policy with
 //! `default-src 'self'`, no third-party scripts, styles or fonts; `wasm-unsafe-eval` is what
 //! instantiating a wasm module needs), `Referrer-Policy: no-referrer`, no sniffing, not
-//! framable. The page's files carry no data, so they are served without the bearer token: a
+//! framable unless the server was told who may frame it (`ServeOptions::frame_ancestors`,
+//! which only the Jupyter widget sets, issue 50: its notebook shows the page in an iframe).
+//! The page's files carry no data, so they are served without the bearer token: a
 //! browser cannot send one when it navigates. The page reads the token from the URL fragment,
 //! which browsers never send, and sends it as `Authorization` on its own requests.
 //!
@@ -43,9 +45,70 @@ Build it with:\n\
   cargo build --release -p strata-app --features web\n\
 The API is under /v1/stores.\n";
 
+/// The page's Content-Security-Policy but its `frame-ancestors` directive.
 const CONTENT_SECURITY_POLICY: &str = "default-src 'self'; script-src 'self' 'wasm-unsafe-eval'; \
 style-src 'self'; img-src 'self' data: blob:; connect-src 'self'; font-src 'self'; \
-object-src 'none'; base-uri 'none'; form-action 'none'; frame-ancestors 'none'";
+object-src 'none'; base-uri 'none'; form-action 'none'";
+
+/// Most sources a `frame-ancestors` option may list, and the longest one.
+const MAX_FRAME_ANCESTORS: usize = 16;
+const MAX_FRAME_ANCESTOR_LEN: usize = 256;
+
+/// Checks the sources of a `frame-ancestors` option: space-separated CSP host sources
+/// (`http://localhost:*`, `https://*.example.org`, `vscode-webview:`) or `'self'`. Anything
+/// else is refused, so the option can add neither a directive (`;`, `,`) nor a header line
+/// nor a keyword such as `*` that would let any site frame the page.
+pub fn check_frame_ancestors(sources: &str) -> Result<(), String> {
+    let listed: Vec<&str> = sources.split_ascii_whitespace().collect();
+    if listed.is_empty() || listed.len() > MAX_FRAME_ANCESTORS {
+        return Err(format!(
+            "frame_ancestors must list 1 to {MAX_FRAME_ANCESTORS} sources, not {}",
+            listed.len()
+        ));
+    }
+    for source in listed {
+        if source == "'self'" {
+            continue;
+        }
+        let allowed = |b: u8| b.is_ascii_alphanumeric() || b"-._:/*[]".contains(&b);
+        let scheme_ok = source.split_once(':').is_some_and(|(scheme, _)| {
+            !scheme.is_empty()
+                && scheme
+                    .bytes()
+                    .all(|b| b.is_ascii_alphanumeric() || b"+-.".contains(&b))
+        });
+        if source.len() > MAX_FRAME_ANCESTOR_LEN || !scheme_ok || !source.bytes().all(allowed) {
+            return Err(format!(
+                "frame_ancestors source '{}' is not a scheme and host (such as \
+                 http://localhost:*) or 'self'",
+                source.escape_debug()
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// The page's Content-Security-Policy: framable by `frame_ancestors` (checked by
+/// [`check_frame_ancestors`] when the server started), else by nobody.
+fn content_security_policy(frame_ancestors: Option<&str>) -> HeaderValue {
+    let fallback = HeaderValue::from_str(&format!(
+        "{CONTENT_SECURITY_POLICY}; frame-ancestors 'none'"
+    ))
+    .unwrap_or_else(|_| HeaderValue::from_static("frame-ancestors 'none'"));
+    match frame_ancestors.filter(|s| check_frame_ancestors(s).is_ok()) {
+        Some(sources) => {
+            let sources = sources
+                .split_ascii_whitespace()
+                .collect::<Vec<_>>()
+                .join(" ");
+            HeaderValue::from_str(&format!(
+                "{CONTENT_SECURITY_POLICY}; frame-ancestors {sources}"
+            ))
+            .unwrap_or(fallback)
+        }
+        None => fallback,
+    }
+}
 
 /// A file of the page that could not be read.
 #[derive(Debug, thiserror::Error)]
@@ -145,20 +208,35 @@ impl WebViewerAssets {
     }
 }
 
+/// What the page's routes answer with: its files and the headers they go with.
+#[derive(Clone)]
+struct Page {
+    assets: Option<Arc<WebViewerAssets>>,
+    csp: HeaderValue,
+    /// `X-Frame-Options: DENY` goes along unless someone may frame the page (it knows no
+    /// list of origins; browsers that read `frame-ancestors` ignore it when both are sent).
+    framable: bool,
+}
+
 /// `/` and the page's files; mounted outside the token guard (see the module doc).
-pub(crate) fn router(assets: Option<Arc<WebViewerAssets>>) -> Router {
+pub(crate) fn router(
+    assets: Option<Arc<WebViewerAssets>>,
+    frame_ancestors: Option<&str>,
+) -> Router {
+    let page = Page {
+        assets,
+        csp: content_security_policy(frame_ancestors),
+        framable: frame_ancestors.is_some_and(|s| check_frame_ancestors(s).is_ok()),
+    };
     Router::new()
         .route("/", get(index))
         .route("/{file}", get(file))
-        .with_state(assets)
+        .with_state(page)
 }
 
-async fn index(
-    State(assets): State<Option<Arc<WebViewerAssets>>>,
-    request_headers: HeaderMap,
-) -> Response {
-    match assets {
-        Some(assets) => answer(&assets, "index.html", &request_headers),
+async fn index(State(page): State<Page>, request_headers: HeaderMap) -> Response {
+    match &page.assets {
+        Some(assets) => answer(&page, assets, "index.html", &request_headers),
         None => (
             StatusCode::NOT_FOUND,
             [(header::CONTENT_TYPE, "text/plain; charset=utf-8")],
@@ -169,17 +247,22 @@ async fn index(
 }
 
 async fn file(
-    State(assets): State<Option<Arc<WebViewerAssets>>>,
+    State(page): State<Page>,
     UrlPath(name): UrlPath<String>,
     request_headers: HeaderMap,
 ) -> Response {
-    match assets {
-        Some(assets) => answer(&assets, &name, &request_headers),
+    match &page.assets {
+        Some(assets) => answer(&page, assets, &name, &request_headers),
         None => (StatusCode::NOT_FOUND, "not found\n").into_response(),
     }
 }
 
-fn answer(assets: &WebViewerAssets, name: &str, request_headers: &HeaderMap) -> Response {
+fn answer(
+    page: &Page,
+    assets: &WebViewerAssets,
+    name: &str,
+    request_headers: &HeaderMap,
+) -> Response {
     let Some(file) = assets.get(name) else {
         return (StatusCode::NOT_FOUND, "not found\n").into_response();
     };
@@ -199,10 +282,7 @@ fn answer(assets: &WebViewerAssets, name: &str, request_headers: &HeaderMap) -> 
     // The names are not content-hashed, so the browser revalidates; the files are small next
     // to the bricks, which are cached for good.
     headers.insert(header::CACHE_CONTROL, HeaderValue::from_static("no-cache"));
-    headers.insert(
-        header::CONTENT_SECURITY_POLICY,
-        HeaderValue::from_static(CONTENT_SECURITY_POLICY),
-    );
+    headers.insert(header::CONTENT_SECURITY_POLICY, page.csp.clone());
     headers.insert(
         header::REFERRER_POLICY,
         HeaderValue::from_static("no-referrer"),
@@ -211,7 +291,9 @@ fn answer(assets: &WebViewerAssets, name: &str, request_headers: &HeaderMap) -> 
         header::X_CONTENT_TYPE_OPTIONS,
         HeaderValue::from_static("nosniff"),
     );
-    headers.insert(header::X_FRAME_OPTIONS, HeaderValue::from_static("DENY"));
+    if !page.framable {
+        headers.insert(header::X_FRAME_OPTIONS, HeaderValue::from_static("DENY"));
+    }
     response
 }
 
@@ -328,6 +410,70 @@ mod tests {
         WebViewerAssets::from_static([b"<html></html>", b"body{}", b"boot()", b"glue()", wasm])
     }
 
+    fn page(frame_ancestors: Option<&str>) -> Page {
+        Page {
+            assets: None,
+            csp: content_security_policy(frame_ancestors),
+            framable: frame_ancestors.is_some_and(|s| check_frame_ancestors(s).is_ok()),
+        }
+    }
+
+    #[test]
+    fn the_page_is_framed_only_by_the_ancestors_it_was_told() {
+        let assets = assets();
+        let answered = |frame_ancestors: Option<&str>| {
+            let response = answer(
+                &page(frame_ancestors),
+                &assets,
+                "index.html",
+                &headers(None),
+            );
+            let csp = response.headers()[header::CONTENT_SECURITY_POLICY]
+                .to_str()
+                .unwrap()
+                .to_string();
+            let deny = response.headers().get(header::X_FRAME_OPTIONS).cloned();
+            (csp, deny)
+        };
+        let (csp, deny) = answered(None);
+        assert!(csp.ends_with("; frame-ancestors 'none'"), "{csp}");
+        assert!(csp.starts_with("default-src 'self'"), "{csp}");
+        assert_eq!(deny.unwrap(), "DENY");
+        let (csp, deny) = answered(Some("http://localhost:*  http://127.0.0.1:*"));
+        assert!(
+            csp.ends_with("; frame-ancestors http://localhost:* http://127.0.0.1:*"),
+            "{csp}"
+        );
+        assert!(
+            csp.contains("script-src 'self' 'wasm-unsafe-eval'"),
+            "{csp}"
+        );
+        assert!(deny.is_none(), "X-Frame-Options would forbid every frame");
+
+        // Nothing that adds a directive, a header or any-site framing gets through.
+        for bad in [
+            "",
+            "*",
+            "http://a; script-src *",
+            "http://a, *",
+            "http://a\r\nX-Evil: 1",
+            "'unsafe-inline'",
+            "http://a\"",
+            ":8888",
+        ] {
+            let e = check_frame_ancestors(bad).expect_err(bad);
+            assert!(e.contains("frame_ancestors"), "{e}");
+            let (csp, deny) = answered(Some(bad));
+            assert!(csp.ends_with("; frame-ancestors 'none'"), "{bad}: {csp}");
+            assert!(deny.is_some(), "{bad}");
+        }
+        let many = vec!["http://localhost:*"; MAX_FRAME_ANCESTORS + 1].join(" ");
+        assert!(check_frame_ancestors(&many).is_err());
+        for good in ["'self'", "vscode-webview:", "https://*.example.org:8443"] {
+            check_frame_ancestors(good).unwrap_or_else(|e| panic!("{good}: {e}"));
+        }
+    }
+
     fn headers(accept: Option<&str>) -> HeaderMap {
         let mut h = HeaderMap::new();
         if let Some(a) = accept {
@@ -370,7 +516,9 @@ mod tests {
             .unwrap();
         let assets = assets();
         let original = assets.get("strata_web_bg.wasm").unwrap().body.clone();
+        let page = page(None);
         let gz = answer(
+            &page,
             &assets,
             "strata_web_bg.wasm",
             &headers(Some("gzip, deflate, br, zstd")),
@@ -386,12 +534,12 @@ mod tests {
             .unwrap();
         assert_eq!(unpacked, original);
         for refused in [None, Some("br"), Some("gzip;q=0, identity")] {
-            let plain = answer(&assets, "strata_web_bg.wasm", &headers(refused));
+            let plain = answer(&page, &assets, "strata_web_bg.wasm", &headers(refused));
             assert!(plain.headers().get(header::CONTENT_ENCODING).is_none());
             assert_eq!(runtime.block_on(body_of(plain)), original, "{refused:?}");
         }
         // A file too small to gain goes as it is.
-        let small = answer(&assets, "index.html", &headers(Some("gzip")));
+        let small = answer(&page, &assets, "index.html", &headers(Some("gzip")));
         assert!(small.headers().get(header::CONTENT_ENCODING).is_none());
         assert!(accepts_gzip(&headers(Some("*"))));
         assert!(accepts_gzip(&headers(Some("GZIP;q=0.5"))));
