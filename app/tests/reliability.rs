@@ -543,32 +543,47 @@ fn next_random(state: &mut u64) -> u64 {
     *state
 }
 
-/// Crash fuzz (issue 48): 50 SIGKILLs at spread-out moments of importing a 64³ volume (slowed
-/// to 20 ms a slice so the kills land throughout it; the issue's 256³ takes 5 s a try slowed,
-/// too long for 50 tries in a bounded debug test on 2 cores) leave no store, an incomplete
-/// store refused as such, or a complete store that verifies; never a complete-looking damaged
-/// one.
+/// Kill moments for `tries` kills of a command whose uninterrupted run took `span`: the k-th
+/// lands at a random moment inside the k-th of `tries` equal slices of 1.2 × `span`, so the
+/// kills cover the whole run (start-up, records written, the index, the marker) and a few land
+/// after it, however fast the machine.
+fn spread_kill_moments(span: Duration, tries: u32, seed: u64) -> Vec<Duration> {
+    let span_us = (span.as_micros() as u64 * 6 / 5).max(u64::from(tries));
+    let slice = span_us / u64::from(tries);
+    let mut state = seed;
+    (0..u64::from(tries))
+        .map(|k| Duration::from_micros(k * slice + next_random(&mut state) % slice))
+        .collect()
+}
+
+/// Crash fuzz (issue 48): 50 SIGKILLs at moments spread over the import of a 256³ volume (the
+/// span measured by one uninterrupted import first, see `spread_kill_moments`) leave no store,
+/// an incomplete store refused as such, or a complete store that verifies; never a
+/// complete-looking damaged one.
 #[test]
 fn sigkill_at_any_moment_of_an_import_never_leaves_a_complete_looking_damaged_store() {
     let dir = tempfile::tempdir().unwrap();
-    let raw = noise_raw_of(dir.path(), 64);
+    let raw = noise_raw_of(dir.path(), 256);
     let store = dir.path().join("fuzz.strata");
-    let mut state = 0x2545_f491_4f6c_dd1du64;
+    let import = || {
+        strata(&[
+            "import",
+            "--replace",
+            s(&raw),
+            s(&store),
+            "--raw-dims",
+            "256,256,256",
+            "--raw-type",
+            "u16",
+        ])
+    };
+    let started = Instant::now();
+    let r = run_limited(import(), "an uninterrupted import of 256³");
+    assert_eq!(r.code, Some(0), "{}", r.text);
+    let span = started.elapsed();
     let mut outcomes = [0u32; 3];
-    for _ in 0..50 {
-        let delay = Duration::from_millis(next_random(&mut state) % 1600);
-        let mut child = Command::new(STRATA)
-            .args([
-                "import",
-                "--replace",
-                s(&raw),
-                s(&store),
-                "--raw-dims",
-                "64,64,64",
-                "--raw-type",
-                "u16",
-            ])
-            .env("STRATA_DEBUG_SLOW_IMPORT", "1")
+    for delay in spread_kill_moments(span, 50, 0x2545_f491_4f6c_dd1d) {
+        let mut child = import()
             .stdout(Stdio::null())
             .stderr(Stdio::null())
             .spawn()
@@ -578,20 +593,21 @@ fn sigkill_at_any_moment_of_an_import_never_leaves_a_complete_looking_damaged_st
         child.wait().unwrap();
         outcomes[killed_outcome(&store, &format!("import killed after {delay:?}"))] += 1;
     }
-    println!("no store / incomplete / complete: {outcomes:?}");
+    println!("import of 256³ in {span:?}; no store / incomplete / complete: {outcomes:?}");
     assert!(outcomes[1] > 0, "some kills landed inside the import");
 }
 
 /// Crash fuzz of `strata store upgrade` (issue 48): 20 SIGKILLs spread over the upgrade of a
-/// format-2 store (the span calibrated by one full upgrade first). Each of the store, its
-/// `.upgrading` copy, its `.format2-old` original and the `.upgrade-source` copy the upgrade
-/// reads that exists is incomplete (refused as such) or complete and verifying, and a complete
-/// store holding the volume always remains. (A kill 9 ms in once damaged the original: sled
-/// wrote to it on open; the upgrade now opens a copy.)
+/// format-2 store of a 256³ volume (the span measured by one full upgrade first, see
+/// `spread_kill_moments`). Each of the store, its `.upgrading` copy, its `.format2-old`
+/// original and the `.upgrade-source` copy the upgrade reads that exists is incomplete (refused
+/// as such) or complete and verifying, and a complete store holding the volume always remains.
+/// (A kill 9 ms in once damaged the original: sled wrote to it on open; the upgrade now opens
+/// a copy.)
 #[test]
 fn sigkill_at_any_moment_of_an_upgrade_never_leaves_a_complete_looking_damaged_store() {
     let dir = tempfile::tempdir().unwrap();
-    let raw = noise_raw_of(dir.path(), 64);
+    let raw = noise_raw_of(dir.path(), 256);
     let template = dir.path().join("template.strata");
     let r = run_limited(
         strata(&[
@@ -601,7 +617,7 @@ fn sigkill_at_any_moment_of_an_upgrade_never_leaves_a_complete_looking_damaged_s
             s(&raw),
             s(&template),
             "--raw-dims",
-            "64,64,64",
+            "256,256,256",
             "--raw-type",
             "u16",
         ]),
@@ -623,12 +639,10 @@ fn sigkill_at_any_moment_of_an_upgrade_never_leaves_a_complete_looking_damaged_s
     let started = Instant::now();
     let r = run_limited(strata(&["store", "upgrade", s(&store)]), "a full upgrade");
     assert_eq!(r.code, Some(0), "{}", r.text);
-    let span_ms = (started.elapsed().as_millis() as u64 * 6 / 5).max(1);
-    let mut state = 0x9e37_79b9_7f4a_7c15u64;
+    let span = started.elapsed();
     let mut upgraded = 0;
-    for _ in 0..20 {
+    for delay in spread_kill_moments(span, 20, 0x9e37_79b9_7f4a_7c15) {
         fresh();
-        let delay = Duration::from_millis(next_random(&mut state) % span_ms);
         let mut child = strata(&["store", "upgrade", s(&store)])
             .stdout(Stdio::null())
             .stderr(Stdio::null())
@@ -656,5 +670,68 @@ fn sigkill_at_any_moment_of_an_upgrade_never_leaves_a_complete_looking_damaged_s
             );
         }
     }
-    println!("kills after the upgrade finished: {upgraded} of 20");
+    println!("upgrade of 256³ in {span:?}; kills after it finished: {upgraded} of 20");
+}
+
+/// Crash fuzz of `strata store compact` (issue 48): 20 SIGKILLs spread over the compaction of a
+/// format-3 store of a 256³ volume (the span measured by one full compaction first). The store,
+/// its `.compacting` copy and its `.compact-old` original that exist are each incomplete
+/// (refused as such) or complete and verifying, and a complete store always remains.
+#[test]
+fn sigkill_at_any_moment_of_a_compaction_never_leaves_a_complete_looking_damaged_store() {
+    let dir = tempfile::tempdir().unwrap();
+    let raw = noise_raw_of(dir.path(), 256);
+    let template = dir.path().join("template.strata");
+    let r = run_limited(
+        strata(&[
+            "import",
+            s(&raw),
+            s(&template),
+            "--raw-dims",
+            "256,256,256",
+            "--raw-type",
+            "u16",
+        ]),
+        "import a format-3 store",
+    );
+    assert_eq!(r.code, Some(0), "{}", r.text);
+    let store = dir.path().join("c.strata");
+    let staged = dir.path().join("c.strata.compacting");
+    let parked = dir.path().join("c.strata.compact-old");
+    let fresh = || {
+        for p in [&store, &staged, &parked] {
+            let _ = std::fs::remove_dir_all(p);
+        }
+        copy_dir(&template, &store);
+    };
+    fresh();
+    let started = Instant::now();
+    let r = run_limited(
+        strata(&["store", "compact", s(&store)]),
+        "a full compaction",
+    );
+    assert_eq!(r.code, Some(0), "{}", r.text);
+    let span = started.elapsed();
+    let mut outcomes = [0u32; 3];
+    for delay in spread_kill_moments(span, 20, 0x5851_f42d_4c95_7f2d) {
+        fresh();
+        let mut child = strata(&["store", "compact", s(&store)])
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap();
+        std::thread::sleep(delay);
+        let _ = child.kill();
+        child.wait().unwrap();
+        let what = format!("compaction killed after {delay:?}");
+        let here = killed_outcome(&store, &what);
+        killed_outcome(&staged, &what);
+        let old = killed_outcome(&parked, &what);
+        assert!(
+            here == 2 || old == 2,
+            "{what}: no complete store left ({here}, {old})"
+        );
+        outcomes[here] += 1;
+    }
+    println!("compaction of 256³ in {span:?}; the store after each kill (none / incomplete / complete): {outcomes:?}");
 }

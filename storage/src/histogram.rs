@@ -83,6 +83,48 @@ impl Histogram {
     pub fn total(&self) -> u64 {
         self.counts.iter().sum()
     }
+
+    /// The bin physical value `p` falls in, as [`Histogram::from_stored`] bins it (`counts` is
+    /// not empty).
+    fn bin_of(&self, p: f64) -> usize {
+        let width = (self.physical_max - self.physical_min).max(f64::MIN_POSITIVE);
+        let bin = (((p - self.physical_min) / width) * self.counts.len() as f64) as usize;
+        bin.min(self.counts.len() - 1)
+    }
+
+    /// Keeps the histogram true across an edit of level-0 voxels: each of `removed` (the
+    /// physical values the edit overwrote) leaves its bin and each of `added` enters its own,
+    /// so the total stays the voxel count. A value beyond the range widens it first: the
+    /// counts so far move by each bin's centre into the wider bins (a voxel counted before
+    /// lands within one old bin's width of its value; the added ones exactly).
+    pub fn replace_values(&mut self, removed: &[f64], added: &[f64]) {
+        if self.counts.is_empty() {
+            return;
+        }
+        for &p in removed {
+            let b = self.bin_of(p);
+            self.counts[b] = self.counts[b].saturating_sub(1);
+        }
+        let lo = added.iter().copied().fold(self.physical_min, f64::min);
+        let hi = added.iter().copied().fold(self.physical_max, f64::max);
+        if lo < self.physical_min || hi > self.physical_max {
+            let bins = self.counts.len();
+            let old = std::mem::replace(&mut self.counts, vec![0; bins]);
+            let (old_min, old_width) = (self.physical_min, self.physical_max - self.physical_min);
+            self.physical_min = lo;
+            self.physical_max = hi;
+            let bins = bins as f64;
+            for (i, &c) in old.iter().enumerate().filter(|(_, &c)| c > 0) {
+                let centre = old_min + old_width * (i as f64 + 0.5) / bins;
+                let b = self.bin_of(centre);
+                self.counts[b] += c;
+            }
+        }
+        for &p in added {
+            let b = self.bin_of(p);
+            self.counts[b] += 1;
+        }
+    }
 }
 
 #[cfg(test)]
@@ -99,5 +141,27 @@ mod tests {
         assert_eq!(h.physical_max, 4000.0 - 1024.0);
         assert_eq!(h.counts[0], 1);
         assert_eq!(*h.counts.last().unwrap(), 1);
+    }
+
+    /// An edit inside the range moves voxels between bins exactly as a rebuild would; one past
+    /// the range widens it and keeps every voxel.
+    #[test]
+    fn replacing_values_matches_a_rebuild_and_widens_for_new_extremes() {
+        let mut before = StoredValueCounts::default();
+        before.add_slice(&[0, 10, 10, 500, 4000]);
+        let mut h = Histogram::from_stored(&before, 1.0, -1024.0);
+        h.replace_values(&[10.0 - 1024.0], &[2000.0 - 1024.0]);
+        let mut after = StoredValueCounts::default();
+        after.add_slice(&[0, 10, 2000, 500, 4000]);
+        assert_eq!(h, Histogram::from_stored(&after, 1.0, -1024.0));
+        h.replace_values(&[0.0 - 1024.0], &[9000.0 - 1024.0]);
+        assert_eq!(h.total(), 5);
+        assert_eq!(h.physical_max, 9000.0 - 1024.0);
+        assert_eq!(h.physical_min, -1024.0);
+        assert_eq!(
+            *h.counts.last().unwrap(),
+            1,
+            "the new extreme in the last bin"
+        );
     }
 }

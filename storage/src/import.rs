@@ -245,7 +245,7 @@ pub fn import_source(
     options: &ImportOptions,
 ) -> Result<ImportReport> {
     if opened.info.frames > 1 {
-        return frames::import_frames(opened, store_path, options);
+        return frames::import_frames(opened, store_path, options, None);
     }
     let info = opened.info;
     let quantizer = Quantizer::plan(&opened.data, info.slope);
@@ -258,7 +258,8 @@ pub fn import_source(
 }
 
 /// [`import_source`] writing store format `format` (2: the sled store of earlier builds, for
-/// tests and benchmarks of old stores and for `strata store upgrade`'s checks). Single volumes.
+/// tests and benchmarks of old stores and for `strata store upgrade`'s checks), 4-D sources
+/// included.
 #[doc(hidden)]
 pub fn import_source_as_format(
     opened: OpenedSource,
@@ -266,6 +267,9 @@ pub fn import_source_as_format(
     options: &ImportOptions,
     format: u32,
 ) -> Result<ImportReport> {
+    if opened.info.frames > 1 {
+        return frames::import_frames(opened, store_path, options, Some(format));
+    }
     let info = opened.info;
     let quantizer = Quantizer::plan(&opened.data, info.slope);
     let meta = source_meta(&info, &quantizer);

@@ -7,7 +7,9 @@
 //!   back to back, each pack at most [`PACK_LIMIT_BYTES`] (one larger record gets a pack alone);
 //! - `index.v3`: [`INDEX_MAGIC`], the header, skeleton, histogram and statistics, each pack's
 //!   length, the entries (frame, brick key, pack, offset, length, record version) sorted by frame
-//!   and key, and an xxh3-64 of all of it. An import writes version 1 of every record; each
+//!   and key, and an xxh3-64 of all of it. A 4-D store's index ([`INDEX_MAGIC_FRAMES`]) also
+//!   holds the skeleton of each frame after the first, after the statistics; a single volume's
+//!   keeps [`INDEX_MAGIC`], so builds that predate frames in format 3 still read it. An import writes version 1 of every record; each
 //!   append of a brick's new record ([`append_versions`]) gives it the next version, and
 //!   compaction keeps them. Indexes written before versions were recorded
 //!   ([`INDEX_MAGIC_UNVERSIONED`], entries without the field) read every record as version 1.
@@ -44,6 +46,9 @@ pub(crate) const INDEX_FILE: &str = "index.v3";
 /// The largest a pack grows before the next one is started.
 pub const PACK_LIMIT_BYTES: u64 = 1 << 30;
 pub(crate) const INDEX_MAGIC: &[u8; 16] = b"STRATA-IDX-v3.1\n";
+/// The magic of an index that carries frames 1..'s skeletons (a 4-D store); otherwise as
+/// [`INDEX_MAGIC`].
+pub(crate) const INDEX_MAGIC_FRAMES: &[u8; 16] = b"STRATA-IDX-v3.2\n";
 /// The magic of the first format-3 indexes, whose entries carry no record version.
 pub(crate) const INDEX_MAGIC_UNVERSIONED: &[u8; 16] = b"STRATA-INDEX-v3\n";
 /// Bytes of one index entry: frame u32, key 13, pack u32, offset u64, length u32, version u32.
@@ -95,6 +100,8 @@ pub(crate) struct IndexDocs {
     pub skeleton: Vec<u8>,
     pub histogram: Vec<u8>,
     pub stats: Vec<u8>,
+    /// Frames 1..'s skeletons, encoded (empty for a single volume).
+    pub frame_skeletons: Vec<Vec<u8>>,
 }
 
 struct ActivePack {
@@ -296,10 +303,21 @@ fn encode_index(docs: &IndexDocs, pack_lengths: &[u64], entries: &[Entry]) -> Ve
     let mut out = Vec::with_capacity(
         64 + docs.header.len() + docs.skeleton.len() + entries.len() * ENTRY_BYTES,
     );
-    out.extend_from_slice(INDEX_MAGIC);
+    if docs.frame_skeletons.is_empty() {
+        out.extend_from_slice(INDEX_MAGIC);
+    } else {
+        out.extend_from_slice(INDEX_MAGIC_FRAMES);
+    }
     for doc in [&docs.header, &docs.skeleton, &docs.histogram, &docs.stats] {
         out.extend_from_slice(&(doc.len() as u64).to_le_bytes());
         out.extend_from_slice(doc);
+    }
+    if !docs.frame_skeletons.is_empty() {
+        out.extend_from_slice(&(docs.frame_skeletons.len() as u32).to_le_bytes());
+        for doc in &docs.frame_skeletons {
+            out.extend_from_slice(&(doc.len() as u64).to_le_bytes());
+            out.extend_from_slice(doc);
+        }
     }
     out.extend_from_slice(&(pack_lengths.len() as u32).to_le_bytes());
     for len in pack_lengths {
@@ -373,9 +391,11 @@ pub(crate) fn read_index(store: &Path) -> Result<Index> {
             .read_to_end(&mut bytes)
             .map_err(|e| StorageError::io(&path, e))?;
     }
-    let versioned = match bytes.get(..INDEX_MAGIC.len()) {
-        Some(m) if m == INDEX_MAGIC && bytes.len() >= INDEX_MAGIC.len() + 8 => true,
-        Some(m) if m == INDEX_MAGIC_UNVERSIONED && bytes.len() >= INDEX_MAGIC.len() + 8 => false,
+    let long_enough = bytes.len() >= INDEX_MAGIC.len() + 8;
+    let (versioned, with_frames) = match bytes.get(..INDEX_MAGIC.len()) {
+        Some(m) if m == INDEX_MAGIC && long_enough => (true, false),
+        Some(m) if m == INDEX_MAGIC_FRAMES && long_enough => (true, true),
+        Some(m) if m == INDEX_MAGIC_UNVERSIONED && long_enough => (false, false),
         _ => return Err(bad("does not start as an index of format 3".into())),
     };
     let entry_bytes = if versioned {
@@ -397,11 +417,29 @@ pub(crate) fn read_index(store: &Path) -> Result<Index> {
         let n = c.u64().ok_or_else(truncated)?;
         Ok(c.take(n).ok_or_else(truncated)?.to_vec())
     };
+    let header = doc()?;
+    let skeleton = doc()?;
+    let histogram = doc()?;
+    let stats = doc()?;
+    let mut frame_skeletons = Vec::new();
+    if with_frames {
+        let count = c.u32().ok_or_else(truncated)?;
+        // Each skeleton takes at least its 8-byte length: a count past that is damage, not
+        // an allocation.
+        if u64::from(count) * 8 > (body.len() - c.at) as u64 {
+            return Err(truncated());
+        }
+        for _ in 0..count {
+            let n = c.u64().ok_or_else(truncated)?;
+            frame_skeletons.push(c.take(n).ok_or_else(truncated)?.to_vec());
+        }
+    }
     let docs = IndexDocs {
-        header: doc()?,
-        skeleton: doc()?,
-        histogram: doc()?,
-        stats: doc()?,
+        header,
+        skeleton,
+        histogram,
+        stats,
+        frame_skeletons,
     };
     let packs = c.u32().ok_or_else(truncated)?;
     if u64::from(packs) * 8 > (body.len() - c.at) as u64 {
@@ -669,6 +707,27 @@ pub(crate) fn append_versions(
     records: &[(u32, BrickId, Vec<u8>)],
     limit: u64,
 ) -> Result<()> {
+    append_records(
+        store,
+        index,
+        docs,
+        records
+            .iter()
+            .map(|(frame, id, record)| (*frame, *id, None, record.as_slice())),
+        limit,
+    )
+}
+
+/// [`append_versions`] of records given as (frame, id, version, record): a record with a
+/// version keeps it (a frame's records copied in as imported), one without takes the next
+/// after its brick's newest. Same order of writes, same commit point.
+pub(crate) fn append_records<'a>(
+    store: &Path,
+    index: &Index,
+    docs: &IndexDocs,
+    records: impl Iterator<Item = (u32, BrickId, Option<u32>, &'a [u8])>,
+    limit: u64,
+) -> Result<()> {
     use std::io::Write;
     let dir = store.join(PACKS_DIR);
     let first_new = u32::try_from(index.pack_lengths.len())
@@ -699,7 +758,8 @@ pub(crate) fn append_versions(
             .map_err(|e| StorageError::io(&path, e.into_error()))?;
         file.sync_all().map_err(|e| StorageError::io(&path, e))
     };
-    for (frame, id, record) in records {
+    for (frame, id, given_version, record) in records {
+        let (frame, id) = (&frame, &id);
         let len = u32::try_from(record.len()).map_err(|_| {
             StorageError::invalid(store, format!("{}: record too large", describe(*id)))
         })?;
@@ -731,14 +791,15 @@ pub(crate) fn append_versions(
         let key = brick_key(*id);
         // The next version after the newest: one appended earlier in this call, else the
         // index's, else the import's (1: a constant brick a sparse skeleton implied).
-        let version = match newest.get(&(*frame, key)) {
-            Some(e) => e.version,
-            None => index
+        let version = match (given_version, newest.get(&(*frame, key))) {
+            (Some(v), _) => v,
+            (None, Some(e)) => e.version.saturating_add(1),
+            (None, None) => index
                 .entries
                 .binary_search_by(|e| (e.frame, e.key).cmp(&(*frame, key)))
-                .map_or(1, |i| index.entries[i].version),
-        }
-        .saturating_add(1);
+                .map_or(1, |i| index.entries[i].version)
+                .saturating_add(1),
+        };
         newest.insert(
             (*frame, key),
             Entry {
@@ -753,11 +814,11 @@ pub(crate) fn append_versions(
         *end += u64::from(len);
         lengths[*pack as usize] = *end;
     }
-    let Some((pack, writer, _)) = current.take() else {
-        return Ok(());
-    };
-    close(pack, writer)?;
-    sync_dir(&dir)?;
+    // No records (a frame whose every brick the skeleton implies) still commits the index.
+    if let Some((pack, writer, _)) = current.take() {
+        close(pack, writer)?;
+        sync_dir(&dir)?;
+    }
     // 3. The new index, renamed in.
     let mut entries: Vec<Entry> = index
         .entries
@@ -816,6 +877,7 @@ mod tests {
             skeleton: b"s".to_vec(),
             histogram: b"g".to_vec(),
             stats: b"t".to_vec(),
+            frame_skeletons: Vec::new(),
         };
         let mut entries = vec![entry(0, 0, 0, 3), entry(0, 1, 10, 1), entry(1, 0, 20, 2)];
         entries.sort_by_key(|e| (e.frame, e.key));

@@ -20,7 +20,7 @@ use crate::histogram::Histogram;
 use crate::lock::{LockPurpose, SharedStoreLock, StoreLock, LOCK_FILE};
 use crate::octree::{BrickId, OctreeLayout};
 pub use crate::packs::MappedRecord;
-use crate::packs::{PackWriter, Packs};
+use crate::packs::{PackWriter, Packs, INDEX_FILE};
 
 // The document types live in `crate::header` (pure, also built for a remote viewer); their
 // paths under `store` stay as they were.
@@ -235,11 +235,34 @@ impl Store {
             &docs.histogram,
             &docs.stats,
         )?;
-        if header.frames != 1 {
+        // Frames 1..'s skeletons come with the index; the header must name exactly as many
+        // frames (and the feature for more than one).
+        let later = &docs.frame_skeletons;
+        if header.frames as usize != later.len() + 1
+            || (header.frames > 1 && !header.required_features.iter().any(|f| f == FEATURE_FRAMES))
+        {
             return Err(StorageError::corrupted(
                 path,
                 format!(
-                    "its header claims {} frames; a format-3 store holds one",
+                    "its header claims {} frames, its index {INDEX_FILE} holds skeletons of {} (or the '{FEATURE_FRAMES}' feature is missing)",
+                    header.frames,
+                    later.len() + 1
+                ),
+            ));
+        }
+        let mut later_skeletons = Vec::with_capacity(later.len());
+        for (i, bytes) in later.iter().enumerate() {
+            later_skeletons.push(Skeleton::decode(bytes, &header.layout).map_err(|e| {
+                StorageError::corrupted(path, format!("frame {}'s octree skeleton {e}", i + 1))
+            })?);
+        }
+        if let Some(e) = index.entries.iter().find(|e| e.frame >= header.frames) {
+            return Err(StorageError::corrupted(
+                path,
+                format!(
+                    "its index {INDEX_FILE} holds {} of frame {} in a store of {} frames",
+                    entry_what(e),
+                    e.frame,
                     header.frames
                 ),
             ));
@@ -247,7 +270,7 @@ impl Store {
         let packs = Packs::open(path, &index.pack_lengths, index.entries)?;
         Ok(Store {
             path: path.to_path_buf(),
-            later_skeletons: Vec::new(),
+            later_skeletons,
             header,
             skeleton,
             histogram,
@@ -382,7 +405,7 @@ impl Store {
     /// [`Store::read_brick`] of frame `frame`.
     pub fn read_frame_brick(&self, frame: u32, id: BrickId) -> Result<Vec<u16>> {
         let record = self.record(frame, id)?;
-        decode_brick(id, &record).map_err(|e| self.brick_error(id, e))
+        decode_brick(id, &record).map_err(|e| self.brick_error(frame, id, e))
     }
 
     /// Reads, verifies and decompresses one brick: 36³ stored values, x fastest. In format 3
@@ -405,19 +428,23 @@ impl Store {
     }
 
     /// A decoding error of brick `id`, naming the store and, in format 3, the pack.
-    fn brick_error(&self, id: BrickId, e: BrickDecodeError) -> StorageError {
+    fn brick_error(&self, frame: u32, id: BrickId, e: BrickDecodeError) -> StorageError {
         match &self.backend {
             Backend::Packs { packs, .. } => {
-                let key = brick_key(id);
                 let pack = packs
-                    .entries()
-                    .iter()
-                    .find(|x| x.frame == 0 && x.key == key)
+                    .entry(frame, id)
                     .map(|x| format!("{}: ", crate::packs::pack_name(x.pack)))
                     .unwrap_or_default();
+                let which = match frame {
+                    0 => String::new(),
+                    f => format!("frame {f}: "),
+                };
                 StorageError::corrupted(
                     &self.path,
-                    format!("{pack}brick level {} at {:?}: {e}", id.level, id.coords),
+                    format!(
+                        "{pack}{which}brick level {} at {:?}: {e}",
+                        id.level, id.coords
+                    ),
                 )
             }
             Backend::Sled { .. } => brick_error(&self.path, id, e),
@@ -454,6 +481,23 @@ impl Store {
                 )
             }
             Backend::Packs { packs, .. } => Ok(packs.get(0, id).map_or(0, |r| r.len() as u64)),
+        }
+    }
+
+    /// Where each record of a format-3 store lies: (frame, brick, pack file, offset, length),
+    /// in index order; empty for formats 1-2. For benchmarks of the read path (`pack_read`).
+    #[doc(hidden)]
+    pub fn record_locations(&self) -> Vec<(u32, BrickId, PathBuf, u64, u32)> {
+        match &self.backend {
+            Backend::Packs { packs, .. } => packs
+                .entries()
+                .iter()
+                .filter_map(|e| {
+                    let path = crate::packs::pack_path(&self.path, e.pack);
+                    Some((e.frame, e.id()?, path, e.offset, e.len))
+                })
+                .collect(),
+            Backend::Sled { .. } => Vec::new(),
         }
     }
 
@@ -719,14 +763,18 @@ impl Store {
         let total = order.len() as u64;
         // What progress counts to: as format 2 does, the nodes that need a record (a sparse
         // store's stored nodes, every node otherwise).
+        let frames = self.frame_count();
+        let skeletons: Vec<&Skeleton> =
+            (0..frames).filter_map(|f| self.frame_skeleton(f)).collect();
         let nodes = if sparse {
-            self.skeleton.stored_nodes() as u64
+            skeletons.iter().map(|s| s.stored_nodes() as u64).sum()
         } else {
-            layout.total_bricks()
+            layout.total_bricks() * u64::from(frames)
         };
         let mut problems = Problems::default();
         let mut seen = 0u64;
-        let mut varying_with_records = 0u64;
+        // Per frame: records whose node varies.
+        let mut varying_with_records = vec![0u64; frames as usize];
         let store = self.path.display();
         // Records that overlap the one before them in their pack: two index entries claim the
         // same bytes (an index written wrong), which no checksum would show.
@@ -750,16 +798,17 @@ impl Store {
         }
         // Ancestors of bricks edited since import: their ranges were widened to bound the edit
         // (see `append_brick_versions`), so they need only contain their records' ranges.
-        let mut widened: std::collections::HashSet<BrickId> = std::collections::HashSet::new();
-        for id in order
+        let mut widened: std::collections::HashSet<(u32, BrickId)> =
+            std::collections::HashSet::new();
+        for (frame, id) in order
             .iter()
             .filter(|e| e.version > 1)
-            .filter_map(|e| e.id())
+            .filter_map(|e| Some((e.frame, e.id()?)))
         {
             let mut at = id;
             while usize::from(at.level) + 1 < layout.level_count() {
                 at = BrickId::new(at.level + 1, at.coords.map(|c| c / 2));
-                if !widened.insert(at) {
+                if !widened.insert((frame, at)) {
                     break;
                 }
             }
@@ -767,13 +816,18 @@ impl Store {
         // Chunks in pack order, each checked on all cores: the disk still reads sequentially.
         for chunk in order.chunks(chunk_len) {
             use rayon::prelude::*;
-            let checked: Vec<(bool, Option<String>)> = chunk
+            let checked: Vec<(u32, bool, Option<String>)> = chunk
                 .par_iter()
-                .map(|e| self.check_pack_record(packs, e, depth, &widened))
+                .map(|e| {
+                    let (varying, problem) = self.check_pack_record(packs, e, depth, &widened);
+                    (e.frame, varying, problem)
+                })
                 .collect();
-            for (varying, problem) in checked {
+            for (frame, varying, problem) in checked {
                 seen += 1;
-                varying_with_records += u64::from(varying);
+                if let Some(n) = varying_with_records.get_mut(frame as usize) {
+                    *n += u64::from(varying);
+                }
                 match problem {
                     Some(p) => problems.push(p),
                     None => problems.intact += 1,
@@ -782,18 +836,30 @@ impl Store {
             on_progress(seen.min(nodes), nodes);
         }
         if sparse {
-            let want: u64 = (0..self.skeleton.level_count())
-                .map(|l| self.skeleton.nodes_in_level(l) - self.skeleton.constant_in_level(l))
-                .sum();
-            if varying_with_records != want {
-                problems.push(format!(
-                    "{store}: {varying_with_records} brick records for the skeleton's {want} varying nodes"
-                ));
+            for (frame, (skeleton, &have)) in
+                skeletons.iter().zip(&varying_with_records).enumerate()
+            {
+                let want: u64 = (0..skeleton.level_count())
+                    .map(|l| skeleton.nodes_in_level(l) - skeleton.constant_in_level(l))
+                    .sum();
+                if have != want {
+                    let which = match frame {
+                        0 => String::new(),
+                        f => format!("frame {f}: "),
+                    };
+                    problems.push(format!(
+                        "{store}: {which}{have} brick records for the skeleton's {want} varying nodes"
+                    ));
+                }
             }
-        } else if total != layout.total_bricks() {
+        } else if total != layout.total_bricks() * u64::from(frames) {
             problems.push(format!(
-                "{store}: {total} brick records for {} octree nodes",
-                layout.total_bricks()
+                "{store}: {total} brick records for {} octree nodes{}",
+                layout.total_bricks(),
+                match frames {
+                    1 => String::new(),
+                    n => format!(" in each of {n} frames"),
+                }
             ));
         }
         packs.advise_sequential(false);
@@ -807,12 +873,15 @@ impl Store {
         packs: &Packs,
         e: &crate::packs::Entry,
         depth: VerifyDepth,
-        widened: &std::collections::HashSet<BrickId>,
+        widened: &std::collections::HashSet<(u32, BrickId)>,
     ) -> (bool, Option<String>) {
         let store = self.path.display();
-        let pack = crate::packs::pack_name(e.pack);
+        let pack = match e.frame {
+            0 => crate::packs::pack_name(e.pack),
+            f => format!("{} (frame {f})", crate::packs::pack_name(e.pack)),
+        };
         let id = match e.id() {
-            Some(id) if self.header.layout.contains(id) && e.frame == 0 => id,
+            Some(id) if self.header.layout.contains(id) && e.frame < self.frame_count() => id,
             _ => {
                 return (
                     false,
@@ -823,7 +892,7 @@ impl Store {
                 )
             }
         };
-        let node = self.skeleton.node(id).unwrap_or_default();
+        let node = self.frame_node(e.frame, id).unwrap_or_default();
         let varying = !node.is_constant();
         let Some(record) = packs.slice(e) else {
             return (
@@ -850,7 +919,7 @@ impl Store {
             )),
             Ok(voxels) => {
                 let r = crate::brick::value_range(&voxels);
-                let fits = if widened.contains(&id) {
+                let fits = if widened.contains(&(e.frame, id)) {
                     node.min <= r.min && r.max <= node.max
                 } else {
                     (r.min, r.max) == (node.min, node.max)
@@ -1012,6 +1081,9 @@ pub(crate) fn append_frames(path: &Path, later_frames: &[PathBuf]) -> Result<()>
     for p in later_frames {
         frame_stores.push(Store::open(p)?);
     }
+    if read_marker(path)?.format >= 3 {
+        return append_frames_to_packs(path, &frame_stores);
+    }
     let _lock = StoreLock::acquire(path, LockPurpose::Import)?;
     let config = sled::Config::new().path(path.join(DB_DIR));
     let db = contained(path, "opening the database", || {
@@ -1071,6 +1143,81 @@ pub(crate) fn append_frames(path: &Path, later_frames: &[PathBuf]) -> Result<()>
     drop(meta);
     drop(frame_stores);
     Ok(())
+}
+
+/// [`append_frames`] onto a format-3 store: every record of each frame store is appended to
+/// new packs under its frame's number (as imported, version 1), and the new index, whose header
+/// names the frames and which carries their skeletons, is renamed in last
+/// (`packs::append_records`): until that rename the store is the complete single volume it was.
+fn append_frames_to_packs(path: &Path, frame_stores: &[Store]) -> Result<()> {
+    let (_shared, _write) = hold_for_writing(path)?;
+    let index = crate::packs::read_index(path)?;
+    let marker = read_marker(path)?;
+    let docs = &index.docs;
+    let (mut header, ..) = parse_documents(
+        path,
+        &marker,
+        &docs.header,
+        &docs.skeleton,
+        &docs.histogram,
+        &docs.stats,
+    )?;
+    if header.frames != 1 {
+        return Err(StorageError::invalid(
+            path,
+            "frames appended to a 4-D store",
+        ));
+    }
+    let mut frame_skeletons = Vec::with_capacity(frame_stores.len());
+    let mut records: Vec<(u32, BrickId, Option<u32>, &[u8])> = Vec::new();
+    for (f, frame) in (1u32..).zip(frame_stores) {
+        let h = frame.header();
+        let Backend::Packs { packs, .. } = &frame.backend else {
+            return Err(StorageError::invalid(
+                path,
+                format!("frame {f} is not a format-3 store"),
+            ));
+        };
+        if h.layout != header.layout || h.value_mapping != header.value_mapping || h.frames != 1 {
+            return Err(StorageError::invalid(
+                path,
+                format!("frame {f} has another grid or value mapping than frame 0"),
+            ));
+        }
+        for e in packs.entries() {
+            let (Some(id), Some(record)) = (e.id(), packs.slice(e)) else {
+                return Err(StorageError::corrupted(
+                    frame.path(),
+                    format!("its index holds a bad entry under key {:02x?}", e.key),
+                ));
+            };
+            records.push((f, id, Some(e.version), record));
+        }
+        frame_skeletons.push(encode_skeleton_for(&header, &frame.skeleton));
+        header.stored_range = [
+            header.stored_range[0].min(h.stored_range[0]),
+            header.stored_range[1].max(h.stored_range[1]),
+        ];
+    }
+    header.frames = frame_stores.len() as u32 + 1;
+    if !header.required_features.iter().any(|f| f == FEATURE_FRAMES) {
+        header.required_features.push(FEATURE_FRAMES.into());
+    }
+    let docs = crate::packs::IndexDocs {
+        header: serde_json::to_vec(&header)
+            .map_err(|e| StorageError::invalid(path, format!("encoding the header: {e}")))?,
+        skeleton: docs.skeleton.clone(),
+        histogram: docs.histogram.clone(),
+        stats: docs.stats.clone(),
+        frame_skeletons,
+    };
+    crate::packs::append_records(
+        path,
+        &index,
+        &docs,
+        records.into_iter(),
+        crate::packs::PACK_LIMIT_BYTES,
+    )
 }
 
 /// What a store's marker file says.
@@ -1424,7 +1571,13 @@ impl StoreWriter {
             let is_empty_dir = path.is_dir()
                 && std::fs::read_dir(path)
                     .map_err(|e| StorageError::io(path, e))?
-                    .all(|entry| entry.is_ok_and(|e| e.file_name() == LOCK_FILE));
+                    .all(|entry| {
+                        // The lock, and a marker a killed import staged but never renamed in.
+                        entry.is_ok_and(|e| {
+                            e.file_name() == LOCK_FILE
+                                || e.file_name().to_string_lossy() == format!("{MARKER_FILE}.new")
+                        })
+                    });
             if !is_store && !is_empty_dir {
                 return Err(StorageError::NotAStore {
                     path: path.to_path_buf(),
@@ -1432,17 +1585,20 @@ impl StoreWriter {
                 });
             }
             let lock = StoreLock::acquire(path, LockPurpose::Import)?;
-            remove_all_but_lock(path)?;
+            // The marker first says "incomplete" (renamed in whole), then the rest goes: a kill
+            // midway leaves an incomplete store, refused as such and replaced by the next
+            // import. (Removing the marker among the rest once left, killed midway, a folder
+            // with index and packs but no marker: not a store, which no import would replace.)
+            if is_store {
+                write_incomplete_marker(path, format_version)?;
+            }
+            remove_all_but_lock_and_marker(path)?;
             lock
         } else {
             std::fs::create_dir_all(path).map_err(|e| StorageError::io(path, e))?;
             StoreLock::acquire(path, LockPurpose::Import)?
         };
-        std::fs::write(
-            path.join(MARKER_FILE),
-            format!("strata store format {format_version}\n"),
-        )
-        .map_err(|e| StorageError::io(path.join(MARKER_FILE), e))?;
+        write_incomplete_marker(path, format_version)?;
         if format_version >= 3 {
             return Ok(StoreWriter {
                 path: path.to_path_buf(),
@@ -1513,6 +1669,27 @@ impl StoreWriter {
         }
     }
 
+    /// [`StoreWriter::put_brick_version`] into frame `frame` of a 4-D store (format 3; finish
+    /// it with [`StoreWriter::finish_frames`]).
+    pub fn put_frame_brick_version(
+        &self,
+        frame: u32,
+        id: BrickId,
+        version: u32,
+        record: &[u8],
+    ) -> Result<()> {
+        match &self.records {
+            WriterBackend::Packs(packs) => packs.append(frame, id, version, record),
+            WriterBackend::Sled { .. } if frame == 0 => {
+                self.put_bricks(vec![(id, record.to_vec())])
+            }
+            WriterBackend::Sled { .. } => Err(StorageError::invalid(
+                &self.path,
+                "frames after the first are written to format-2 stores by copying frame stores in",
+            )),
+        }
+    }
+
     /// Writes bricks in one sled batch (give them in key order); appends them in format 3.
     pub fn put_bricks(&self, records: Vec<(BrickId, Vec<u8>)>) -> Result<()> {
         let bricks = match &self.records {
@@ -1535,11 +1712,24 @@ impl StoreWriter {
     /// a crash at any point before the last flush leaves a store that opens as incomplete. Every
     /// flush is bounded: a disk that fills up is an error, never a wait.
     pub fn finish(
+        self,
+        header: &StoreHeader,
+        skeleton: &Skeleton,
+        histogram: &Histogram,
+        stats: &StoreStats,
+    ) -> Result<()> {
+        self.finish_frames(header, skeleton, histogram, stats, &[])
+    }
+
+    /// [`StoreWriter::finish`] of a 4-D store of format 3: `later_skeletons` are frames 1..'s
+    /// (the header names `1 + later_skeletons.len()` frames).
+    pub fn finish_frames(
         mut self,
         header: &StoreHeader,
         skeleton: &Skeleton,
         histogram: &Histogram,
         stats: &StoreStats,
+        later_skeletons: &[Skeleton],
     ) -> Result<()> {
         let path = self.path.clone();
         let path = &path;
@@ -1553,7 +1743,23 @@ impl StoreWriter {
             ));
         }
         check_format(path, header)?;
+        if header.frames as usize != later_skeletons.len() + 1 {
+            return Err(StorageError::invalid(
+                path,
+                format!(
+                    "a header of {} frames finishing a store with {} skeletons",
+                    header.frames,
+                    later_skeletons.len() + 1
+                ),
+            ));
+        }
         let db = match &self.records {
+            WriterBackend::Sled { .. } if !later_skeletons.is_empty() => {
+                return Err(StorageError::invalid(
+                    path,
+                    "frames after the first are written to format-2 stores by copying frame stores in",
+                ))
+            }
             WriterBackend::Sled { db, .. } => db,
             WriterBackend::Packs(packs) => {
                 let json = |v: &dyn erased::Json| {
@@ -1566,6 +1772,10 @@ impl StoreWriter {
                     skeleton: encode_skeleton_for(header, skeleton),
                     histogram: json(histogram)?,
                     stats: json(stats)?,
+                    frame_skeletons: later_skeletons
+                        .iter()
+                        .map(|s| encode_skeleton_for(header, s))
+                        .collect(),
                 })?;
                 return self.write_complete_marker();
             }
@@ -1631,19 +1841,30 @@ impl Drop for StoreWriter {
 impl StoreWriter {
     /// Removes a partial store while still holding the lock, then the folder with its lock file.
     fn remove_partial(&mut self) {
-        let _ = remove_all_but_lock(&self.path);
+        let _ = remove_all_but_lock_and_marker(&self.path);
         let lock = self.lock.take();
         let _ = std::fs::remove_dir_all(&self.path);
         drop(lock);
     }
 }
 
+/// Writes the marker of an incomplete store of format `format_version` by rename: a kill never
+/// leaves it empty or half written (which would read as a damaged store, not an incomplete one).
+fn write_incomplete_marker(path: &Path, format_version: u32) -> Result<()> {
+    let marker = path.join(MARKER_FILE);
+    let staged = path.join(format!("{MARKER_FILE}.new"));
+    std::fs::write(&staged, format!("strata store format {format_version}\n"))
+        .and_then(|()| std::fs::rename(&staged, &marker))
+        .map_err(|e| StorageError::io(&marker, e))
+}
+
 /// Deletes every entry of a store folder except its lock file (which a waiting process may be
-/// about to lock).
-fn remove_all_but_lock(path: &Path) -> Result<()> {
+/// about to lock) and its marker (which, saying "incomplete", keeps the folder a store that the
+/// next import replaces while the rest goes).
+fn remove_all_but_lock_and_marker(path: &Path) -> Result<()> {
     for entry in std::fs::read_dir(path).map_err(|e| StorageError::io(path, e))? {
         let entry = entry.map_err(|e| StorageError::io(path, e))?;
-        if entry.file_name() == LOCK_FILE {
+        if entry.file_name() == LOCK_FILE || entry.file_name() == MARKER_FILE {
             continue;
         }
         let p = entry.path();
@@ -1740,18 +1961,26 @@ fn copy_tree(from: &Path, to: &Path, skip: Option<&str>) -> Result<()> {
 /// [`upgrade_store`] from `source`, a copy of the store at `path`.
 fn upgrade_from_copy(path: &Path, source: &Path) -> Result<VerifyReport> {
     let old = Store::open(source)?;
-    let (bricks, version) = match &old.backend {
-        Backend::Sled { bricks, .. } => (bricks.clone(), old.header.format_version),
+    let (trees, version) = match &old.backend {
+        Backend::Sled {
+            bricks,
+            later_trees,
+            ..
+        } => (
+            std::iter::once(bricks.clone())
+                .chain(later_trees.iter().cloned())
+                .collect::<Vec<sled::Tree>>(),
+            old.header.format_version,
+        ),
         Backend::Packs { .. } => {
             return Err(StorageError::invalid(path, "already a format-3 store"))
         }
     };
-    if version != 2 || old.header.frames != 1 {
+    if version != 2 {
         return Err(StorageError::Unsupported {
             path: path.to_path_buf(),
             message: format!(
-                "upgrading a format-{version} store of {} frames: only single-volume format-2 stores are upgraded; re-import it: {}",
-                old.header.frames,
+                "upgrading a format-{version} store: only format-2 stores are upgraded; re-import it: {}",
                 rebuild_command(path, &old.header)
             ),
         });
@@ -1765,17 +1994,29 @@ fn upgrade_from_copy(path: &Path, source: &Path) -> Result<VerifyReport> {
         ));
     }
     let writer = StoreWriter::create_with_format(&staged, 0, 3)?;
-    for entry in bricks.iter() {
-        let (key, record) = contained(path, "reading the brick records", || entry)?;
-        let id = brick_id_from_key(&key).ok_or_else(|| {
-            StorageError::corrupted(path, format!("a brick record under key {key:02x?}"))
-        })?;
-        writer.put_brick(id, &record)?;
+    // Every frame's records (a 4-D store keeps frame f's in its own tree), each version 1.
+    for (frame, bricks) in (0u32..).zip(&trees) {
+        for entry in bricks.iter() {
+            let (key, record) = contained(path, "reading the brick records", || entry)?;
+            let id = brick_id_from_key(&key).ok_or_else(|| {
+                StorageError::corrupted(
+                    path,
+                    format!("frame {frame}: a brick record under key {key:02x?}"),
+                )
+            })?;
+            writer.put_frame_brick_version(frame, id, 1, &record)?;
+        }
     }
     let mut header = old.header.clone();
     header.format_version = 3;
-    writer.finish(&header, &old.skeleton, &old.histogram, &old.stats)?;
-    drop(bricks);
+    writer.finish_frames(
+        &header,
+        &old.skeleton,
+        &old.histogram,
+        &old.stats,
+        &old.later_skeletons,
+    )?;
+    drop(trees);
     old.close()?;
     let report = Store::open(&staged)?.verify_report(|_, _| {})?;
     if !report.problems.is_empty() {
@@ -1863,7 +2104,9 @@ fn hold_for_writing(path: &Path) -> Result<(Option<SharedStoreLock>, crate::pack
 /// hides an edited brick; the new skeleton is committed with the index. An ancestor's own
 /// record is not rewritten, so its range in the skeleton may now bound its voxels loosely
 /// (`strata verify --decode` accepts a range containing the record's above a brick whose
-/// version is past 1). The histogram and statistics are kept as imported. In a store whose
+/// version is past 1). The histogram follows the level-0 voxels an edit changes (the values a
+/// level-0 record overwrites leave it, its new ones enter, see `Histogram::replace_values`);
+/// the statistics are kept as imported. In a store whose
 /// skeleton implies constant bricks without records (`sparse-skeleton`), an edit that would
 /// make such a node vary (an ancestor inside a constant subtree) is refused unless a record of
 /// that node comes in the same call, since a varying node is read, not implied.
@@ -1881,6 +2124,12 @@ pub fn append_brick_versions(path: &Path, records: &[(BrickId, Vec<u8>)]) -> Res
         &docs.stats,
     )?;
     let mut versions = Vec::with_capacity(records.len());
+    // The level-0 voxels each edit overwrites, for the histogram: read from the store as it is
+    // (a brick given twice in one call replaces its first new voxels).
+    let current = Store::open(path)?;
+    let mut histogram = current.histogram().clone();
+    let mut level0_now: std::collections::HashMap<BrickId, Vec<u16>> =
+        std::collections::HashMap::new();
     // Coarser bricks first: a brick edited with its ancestor in one call widens the ancestor's
     // new range, not the other way round.
     let mut coarse_first: Vec<&(BrickId, Vec<u8>)> = records.iter().collect();
@@ -1910,6 +2159,19 @@ pub fn append_brick_versions(path: &Path, records: &[(BrickId, Vec<u8>)]) -> Res
                 ),
             )
         })?;
+        if id.level == 0 {
+            let old = match level0_now.remove(id) {
+                Some(v) => v,
+                None => current.read_brick(*id)?,
+            };
+            let physical = |v: &[u16]| -> Vec<f64> {
+                core_voxels(&header.layout, *id, v)
+                    .map(|s| header.value_mapping.physical(s))
+                    .collect()
+            };
+            histogram.replace_values(&physical(&old), &physical(&voxels));
+            level0_now.insert(*id, voxels.clone());
+        }
         let range = crate::brick::value_range(&voxels);
         skeleton
             .record_edit(*id, range.min, range.max)
@@ -1949,11 +2211,14 @@ pub fn append_brick_versions(path: &Path, records: &[(BrickId, Vec<u8>)]) -> Res
                 .then(|| BrickId::new(node_id.level + 1, node_id.coords.map(|c| c / 2)));
         }
     }
+    drop(current);
     let docs = crate::packs::IndexDocs {
         header: docs.header.clone(),
         skeleton: encode_skeleton_for(&header, &skeleton),
-        histogram: docs.histogram.clone(),
+        histogram: serde_json::to_vec(&histogram)
+            .map_err(|e| StorageError::invalid(path, format!("encoding the histogram: {e}")))?,
         stats: docs.stats.clone(),
+        frame_skeletons: docs.frame_skeletons.clone(),
     };
     crate::packs::append_versions(
         path,
@@ -1962,6 +2227,30 @@ pub fn append_brick_versions(path: &Path, records: &[(BrickId, Vec<u8>)]) -> Res
         &versions,
         crate::packs::PACK_LIMIT_BYTES,
     )
+}
+
+/// The voxels of level-0 brick `id`'s payload `voxels` that lie inside the volume (its core,
+/// cut at the volume's far faces; the apron and the padding past the volume are not voxels of
+/// their own).
+fn core_voxels<'a>(
+    layout: &OctreeLayout,
+    id: BrickId,
+    voxels: &'a [u16],
+) -> impl Iterator<Item = u16> + 'a {
+    use strata_types::{BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
+    let dims = layout.level_dims.first().copied().unwrap_or_default();
+    let extent: [u32; 3] = std::array::from_fn(|a| {
+        dims[a]
+            .saturating_sub(id.coords[a] * BRICK_CORE)
+            .min(BRICK_CORE)
+    });
+    let (p, a) = (BRICK_PAYLOAD as usize, BRICK_APRON as usize);
+    (0..extent[2] as usize).flat_map(move |k| {
+        (0..extent[1] as usize).flat_map(move |j| {
+            (0..extent[0] as usize)
+                .filter_map(move |i| voxels.get((i + a) + p * ((j + a) + p * (k + a))).copied())
+        })
+    })
 }
 
 /// What [`compact_store`] did.
@@ -2007,14 +2296,15 @@ pub fn compact_store(path: &Path) -> Result<CompactReport> {
                 format!("its index holds a bad entry under key {:02x?}", e.key),
             ));
         };
-        writer.put_brick_version(id, e.version, record)?;
+        writer.put_frame_brick_version(e.frame, id, e.version, record)?;
         records += 1;
     }
-    writer.finish(
+    writer.finish_frames(
         &store.header,
         &store.skeleton,
         &store.histogram,
         &store.stats,
+        &store.later_skeletons,
     )?;
     drop(store);
     let compacted = Store::open(&staged)?;

@@ -260,3 +260,131 @@ fn a_multi_phase_dicom_series_imports_each_phase_as_a_frame() {
         }
     }
 }
+
+/// Every brick of every level of `store`'s octree.
+fn all_ids(store: &Store) -> Vec<BrickId> {
+    let layout = store.layout().clone();
+    let mut out = Vec::new();
+    for level in 0..layout.level_count() {
+        let n = layout.bricks_in_level(level);
+        for z in 0..n[2] {
+            for y in 0..n[1] {
+                for x in 0..n[0] {
+                    out.push(BrickId::new(level as u8, [x, y, z]));
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Every frame of `a` holds the same records and skeleton as the same frame of `b`.
+fn assert_same_frames(a: &Store, b: &Store, what: &str) {
+    assert_eq!(a.frame_count(), b.frame_count(), "{what}");
+    assert_eq!(a.header().stored_range, b.header().stored_range, "{what}");
+    for f in 0..a.frame_count() {
+        assert_eq!(
+            a.frame_skeleton(f),
+            b.frame_skeleton(f),
+            "{what}: frame {f}"
+        );
+        for id in all_ids(a) {
+            assert_eq!(
+                a.read_frame_brick_record(f, id).unwrap(),
+                b.read_frame_brick_record(f, id).unwrap(),
+                "{what}: frame {f} {id:?}"
+            );
+        }
+    }
+}
+
+/// Issue 48: a 4-D source imports to format 3 (frames in the packs, their skeletons in the
+/// index) reading every frame record for record as its format-2 import does; `store upgrade`
+/// of the 4-D format-2 store equals the fresh format-3 import; a new version of a frame-0
+/// brick and a compaction keep every frame.
+#[test]
+fn a_4d_store_in_format_3_reads_each_frame_as_format_2_and_upgrade_edit_and_compaction_keep_them() {
+    use strata_storage::brick::{encode_brick, value_range, BrickCodec};
+    use strata_storage::import::import_source_as_format;
+    use strata_storage::store::{append_brick_versions, compact_store, upgrade_store};
+    let dir = tempfile::tempdir().unwrap();
+    let source = dir.path().join("series.nii");
+    write_nifti(&source, false);
+    let open = || open_source(&source, &ReadOptions::default()).unwrap();
+    let v3 = dir.path().join("v3.strata");
+    let v2 = dir.path().join("v2.strata");
+    import_source(open(), &v3, &ImportOptions::default()).unwrap();
+    import_source_as_format(open(), &v2, &ImportOptions::default(), 2).unwrap();
+    {
+        let (a, b) = (Store::open(&v3).unwrap(), Store::open(&v2).unwrap());
+        assert_eq!((a.format_version(), b.format_version()), (3, 2));
+        assert_eq!(a.frame_count(), DIMS[3] as u32);
+        assert!(a.verify(|_, _| {}).unwrap().is_empty());
+        assert_same_frames(&a, &b, "v3 against v2");
+    }
+    let names = |dir: &Path| -> Vec<String> {
+        let mut n: Vec<String> = std::fs::read_dir(dir)
+            .unwrap()
+            .flatten()
+            .map(|e| e.file_name().to_string_lossy().into_owned())
+            .collect();
+        n.sort();
+        n
+    };
+    assert_eq!(names(dir.path()), ["series.nii", "v2.strata", "v3.strata"]);
+
+    let report = upgrade_store(&v2).unwrap();
+    assert!(report.problems.is_empty(), "{:?}", report.problems);
+    assert_eq!(names(dir.path()), ["series.nii", "v2.strata", "v3.strata"]);
+    let upgraded = Store::open(&v2).unwrap();
+    assert_eq!(upgraded.format_version(), 3);
+    assert_same_frames(
+        &upgraded,
+        &Store::open(&v3).unwrap(),
+        "upgraded against fresh",
+    );
+    drop(upgraded);
+
+    // A new version of frame 0's level-0 brick (the same voxels in another codec).
+    let id = BrickId::new(0, [0, 0, 0]);
+    let before = Store::open(&v3).unwrap();
+    let voxels = before.read_brick(id).unwrap();
+    let record = encode_brick(id, &voxels, value_range(&voxels), false, BrickCodec::Lz4);
+    assert_ne!(record, before.read_brick_record(id).unwrap());
+    append_brick_versions(&v3, &[(id, record.clone())]).unwrap();
+    let edited = Store::open(&v3).unwrap();
+    assert_eq!(edited.frame_count(), DIMS[3] as u32);
+    assert_eq!(edited.brick_version(id), Some(2));
+    assert_eq!(edited.read_brick_record(id).unwrap(), record);
+    for f in 1..DIMS[3] as u32 {
+        assert_eq!(
+            edited.frame_skeleton(f),
+            before.frame_skeleton(f),
+            "frame {f}"
+        );
+        assert_eq!(
+            edited.read_frame_brick(f, id).unwrap(),
+            before.read_frame_brick(f, id).unwrap(),
+            "frame {f}"
+        );
+    }
+    assert!(edited.verify(|_, _| {}).unwrap().is_empty());
+    drop((before, edited));
+
+    let compacted = compact_store(&v3).unwrap();
+    assert!(compacted.bytes_after < compacted.bytes_before);
+    let store = Store::open(&v3).unwrap();
+    assert_eq!(store.brick_version(id), Some(2));
+    assert_eq!(store.read_brick_record(id).unwrap(), record);
+    assert!(store.verify(|_, _| {}).unwrap().is_empty());
+    let reference = Store::open(&v2).unwrap();
+    for f in 1..DIMS[3] as u32 {
+        for id in all_ids(&store) {
+            assert_eq!(
+                store.read_frame_brick_record(f, id).unwrap(),
+                reference.read_frame_brick_record(f, id).unwrap(),
+                "compacted frame {f} {id:?}"
+            );
+        }
+    }
+}

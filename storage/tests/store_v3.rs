@@ -769,3 +769,109 @@ fn an_appended_brick_with_new_values_widens_its_own_and_its_ancestors_ranges() {
         );
     }
 }
+
+/// The histogram built from every level-0 voxel `store` holds now (cores cut at the volume's
+/// far faces), as an import builds it.
+fn histogram_of_the_stored_voxels(store: &Store) -> strata_storage::histogram::Histogram {
+    use strata_storage::histogram::{Histogram, StoredValueCounts};
+    use strata_types::{BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
+    let layout = store.layout();
+    let dims = layout.level_dims[0];
+    let n = layout.bricks_in_level(0);
+    let (p, a) = (BRICK_PAYLOAD as usize, BRICK_APRON as usize);
+    let mut counts = StoredValueCounts::default();
+    for z in 0..n[2] {
+        for y in 0..n[1] {
+            for x in 0..n[0] {
+                let voxels = store.read_brick(BrickId::new(0, [x, y, z])).unwrap();
+                let extent = [x, y, z].map(|c| c * BRICK_CORE);
+                let extent: Vec<usize> = (0..3)
+                    .map(|i| (dims[i] - extent[i]).min(BRICK_CORE) as usize)
+                    .collect();
+                for k in 0..extent[2] {
+                    for j in 0..extent[1] {
+                        for i in 0..extent[0] {
+                            counts.add_slice(&[voxels[(i + a) + p * ((j + a) + p * (k + a))]]);
+                        }
+                    }
+                }
+            }
+        }
+    }
+    let m = &store.header().value_mapping.mapping;
+    Histogram::from_stored(&counts, m.slope, m.intercept)
+}
+
+/// Issue 48, item 7: after new versions of level-0 bricks the store's histogram is the one
+/// built from the voxels it now holds (an edit inside the value range: exactly; one past it:
+/// the range widened to the new extreme, every voxel still counted once) and each edited
+/// brick's node carries its record's range; a compaction keeps both.
+#[test]
+fn the_histogram_and_skeleton_after_an_edit_are_those_of_the_voxels_now_stored() {
+    use strata_storage::brick::{encode_brick, value_range, BrickCodec};
+    use strata_storage::store::{append_brick_versions, compact_store};
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("h.strata");
+    // 80 = 2 × 32 + 16: the far bricks are cut by the volume's faces.
+    Phantom::cube(80)
+        .write_store(&store, &ImportOptions::default())
+        .unwrap();
+    let before = Store::open(&store).unwrap();
+    let imported = histogram_of_the_stored_voxels(&before);
+    assert_eq!(before.histogram(), &imported, "as imported");
+    // The far corner brick takes the centre brick's voxels: values the volume holds elsewhere.
+    let corner = BrickId::new(0, [2, 2, 2]);
+    let centre = before.read_brick(BrickId::new(0, [1, 1, 1])).unwrap();
+    assert_ne!(before.read_brick(corner).unwrap(), centre);
+    let range = value_range(&centre);
+    let record = encode_brick(corner, &centre, range, false, BrickCodec::Fast);
+    drop(before);
+    append_brick_versions(&store, &[(corner, record)]).unwrap();
+    let after = Store::open(&store).unwrap();
+    let rebuilt = histogram_of_the_stored_voxels(&after);
+    assert_eq!(
+        (rebuilt.physical_min, rebuilt.physical_max),
+        (imported.physical_min, imported.physical_max),
+        "the edit keeps the volume's extremes (else pick another brick)"
+    );
+    assert_ne!(rebuilt, imported, "the edit moved voxels between bins");
+    assert_eq!(after.histogram(), &rebuilt);
+    let node = after.node(corner).unwrap();
+    assert_eq!((node.min, node.max), (range.min, range.max));
+    drop(after);
+
+    // Past the range: the same brick painted above the volume's maximum.
+    let paint = range.max.max(imported_max_stored(&store)) + 500;
+    let painted = vec![paint; centre.len()];
+    let record = encode_brick(
+        corner,
+        &painted,
+        value_range(&painted),
+        false,
+        BrickCodec::Fast,
+    );
+    append_brick_versions(&store, &[(corner, record)]).unwrap();
+    compact_store(&store).unwrap();
+    let after = Store::open(&store).unwrap();
+    let h = after.histogram();
+    let mapping = &after.header().value_mapping;
+    assert_eq!(h.total(), imported.total(), "every voxel counted once");
+    assert_eq!(h.physical_max, mapping.physical(paint));
+    assert_eq!(h.physical_min, imported.physical_min);
+    // The corner's 16³ voxels inside the volume, all at the new maximum.
+    assert!(
+        *h.counts.last().unwrap() >= 16 * 16 * 16,
+        "{:?}",
+        h.counts.last()
+    );
+    let node = after.node(corner).unwrap();
+    assert_eq!((node.min, node.max), (paint, paint));
+    assert!(after.verify(|_, _| {}).unwrap().is_empty());
+}
+
+/// The largest stored value of level 0 in `store` (its root's range covers them all).
+fn imported_max_stored(store: &Path) -> u16 {
+    let s = Store::open(store).unwrap();
+    let root = BrickId::new((s.layout().level_count() - 1) as u8, [0, 0, 0]);
+    s.node(root).unwrap().max
+}

@@ -2,7 +2,8 @@
 //! store (layout in [`crate::store::FEATURE_FRAMES`]). One quantiser is planned over all frames,
 //! so every frame shares the header's value mapping; frames 1.. are imported first, each into a
 //! temporary single-volume store beside the target, then frame 0 into the target exactly as a
-//! single volume is, and finally the other frames are copied in and the header names them.
+//! single volume is, and finally the other frames are copied in and the header names them (in
+//! format 3 appended to new packs under their frame numbers, the index renamed in last).
 
 use std::path::{Path, PathBuf};
 
@@ -47,11 +48,13 @@ fn frame_store_path(store_path: &Path, frame: u32) -> PathBuf {
     store_path.with_file_name(format!(".{name}.frame-{frame}.importing"))
 }
 
-/// Imports all `opened.info.frames` volumes into one store at `store_path`.
+/// Imports all `opened.info.frames` volumes into one store at `store_path`, of format `format`
+/// (`None`: the current one).
 pub(crate) fn import_frames(
     opened: OpenedSource,
     store_path: &Path,
     options: &ImportOptions,
+    format: Option<u32>,
 ) -> Result<ImportReport> {
     let info = opened.info;
     let frames = info.frames.max(1);
@@ -89,8 +92,7 @@ pub(crate) fn import_frames(
             progress: Some(&progress),
             codec: options.codec,
         };
-        // 4-D stores stay format 2 (sled) for now: `append_frames` copies sled trees.
-        import_slices_as(&frame(f), meta, path, &frame_options, Some(2))
+        import_slices_as(&frame(f), meta, path, &frame_options, format)
     };
     let result = (|| {
         for (f, path) in (1..frames).zip(&temporary) {
