@@ -735,3 +735,78 @@ fn sigkill_at_any_moment_of_a_compaction_never_leaves_a_complete_looking_damaged
     }
     println!("compaction of 256³ in {span:?}; the store after each kill (none / incomplete / complete): {outcomes:?}");
 }
+
+/// Issue 48: a format-3 store in a folder made read-only (every file 0444, every folder 0555)
+/// is rendered, verified, described and listed, and no file under it changes: the same files
+/// with the same size, modification time and bytes (the lock file included). Root ignores the
+/// permissions, so the unchanged files are what shows that nothing wrote.
+#[cfg(unix)]
+#[test]
+fn a_v3_store_in_a_read_only_folder_renders_verifies_and_lists_without_changing_a_file() {
+    use std::os::unix::fs::PermissionsExt;
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("ro.strata");
+    let r = run_limited(
+        strata(&["sample", "--size", "40", "--out", s(&store)]),
+        "sample",
+    );
+    assert_eq!(r.code, Some(0), "{}", r.text);
+    let snapshot = || -> Vec<(PathBuf, u64, std::time::SystemTime, Vec<u8>)> {
+        files_under(&store)
+            .into_iter()
+            .map(|p| {
+                let m = std::fs::metadata(&p).unwrap();
+                let bytes = std::fs::read(&p).unwrap();
+                (p, m.len(), m.modified().unwrap(), bytes)
+            })
+            .collect()
+    };
+    let set_read_only = |read_only: bool| {
+        let mut paths = files_under(&store);
+        let mut folders: Vec<PathBuf> = paths
+            .iter()
+            .filter_map(|p| p.parent().map(Path::to_path_buf))
+            .collect();
+        folders.sort();
+        folders.dedup();
+        paths.extend(folders);
+        for p in paths {
+            let mode = match (p.is_dir(), read_only) {
+                (true, true) => 0o555,
+                (true, false) => 0o755,
+                (false, true) => 0o444,
+                (false, false) => 0o644,
+            };
+            std::fs::set_permissions(&p, std::fs::Permissions::from_mode(mode)).unwrap();
+        }
+    };
+    let before = snapshot();
+    assert!(before.len() >= 3, "marker, index and a pack: {before:?}");
+    let png = dir.path().join("ro.png");
+    set_read_only(true);
+    let runs: Vec<(&str, Ran)> = [
+        (
+            "render",
+            vec!["render", s(&store), "--size", "32x32", "--out", s(&png)],
+        ),
+        ("verify", vec!["verify", s(&store)]),
+        ("info", vec!["info", s(&store)]),
+        (
+            "store list",
+            vec!["store", "list", "--data-dir", s(dir.path())],
+        ),
+    ]
+    .into_iter()
+    .map(|(what, args)| (what, run_limited(strata(&args), what)))
+    .collect();
+    set_read_only(false);
+    for (what, r) in &runs {
+        assert_eq!(r.code, Some(0), "{what}: {}", r.text);
+    }
+    assert!(runs[3].1.text.contains("ro.strata"), "{}", runs[3].1.text);
+    assert!(png.is_file(), "render wrote no image");
+    assert!(
+        snapshot() == before,
+        "a command changed a file under the read-only store"
+    );
+}

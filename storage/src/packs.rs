@@ -911,4 +911,52 @@ mod tests {
             .expect("a foreign magic is refused");
         assert!(err.to_string().contains(INDEX_FILE), "{err}");
     }
+
+    /// A 4-D store's index carries frames 1..'s skeletons under its own magic and reads them
+    /// back; a count of skeletons past what the file holds is refused as cut short, without
+    /// allocating for it.
+    #[test]
+    fn an_index_with_frame_skeletons_reads_them_back_and_refuses_a_lying_count() {
+        let dir = tempfile::tempdir().unwrap();
+        let docs = IndexDocs {
+            header: b"h".to_vec(),
+            skeleton: b"s".to_vec(),
+            histogram: b"g".to_vec(),
+            stats: b"t".to_vec(),
+            frame_skeletons: vec![b"frame 1".to_vec(), b"frame 2!".to_vec()],
+        };
+        let entries = vec![
+            entry(0, 0, 0, 1),
+            Entry {
+                frame: 2,
+                ..entry(0, 0, 10, 1)
+            },
+        ];
+        let bytes = encode_index(&docs, &[20], &entries);
+        assert_eq!(&bytes[..INDEX_MAGIC_FRAMES.len()], INDEX_MAGIC_FRAMES);
+        std::fs::write(dir.path().join(INDEX_FILE), &bytes).unwrap();
+        let read = read_index(dir.path()).unwrap();
+        assert_eq!(read.docs.frame_skeletons, docs.frame_skeletons);
+        assert_eq!(read.entries, entries);
+
+        // The count of skeletons (after the four documents) made huge, the checksum redone.
+        let at = INDEX_MAGIC_FRAMES.len() + 4 * 8 + 4;
+        let mut lying = bytes[..bytes.len() - 8].to_vec();
+        lying[at..at + 4].copy_from_slice(&u32::MAX.to_le_bytes());
+        let sum = xxhash_rust::xxh3::xxh3_64(&lying);
+        lying.extend_from_slice(&sum.to_le_bytes());
+        std::fs::write(dir.path().join(INDEX_FILE), &lying).unwrap();
+        let err = read_index(dir.path())
+            .err()
+            .expect("a lying count is refused");
+        assert!(err.to_string().contains("cut short"), "{err}");
+
+        // A single volume keeps the magic older builds read.
+        let single = IndexDocs {
+            frame_skeletons: Vec::new(),
+            ..docs
+        };
+        let bytes = encode_index(&single, &[20], &entries[..1]);
+        assert_eq!(&bytes[..INDEX_MAGIC.len()], INDEX_MAGIC);
+    }
 }
