@@ -19,6 +19,7 @@ use strata_render::{
 use wasm_bindgen::prelude::*;
 use wasm_bindgen::JsCast;
 
+use crate::embed_bridge::{embed_origin, EmbedBridge};
 use crate::page_timing::{PageTiming, BENCH_DEG_PER_FRAME};
 use crate::served_store::{list_stores, ServedStore, DECODES_PER_FRAME, MAX_ON_THE_WIRE};
 use crate::side_panel::{SidePanel, VolumeFigures};
@@ -72,6 +73,8 @@ async fn run() -> Result<(), String> {
         .map_err(|_| "#strata-canvas is not a canvas")?;
     let hash = window.location().hash().unwrap_or_default();
     let fragment = Fragment::parse(&hash).map_err(|e| e.to_string())?;
+    // Read before the address is rewritten below (the view's own keys only).
+    let embed = embed_origin(&hash);
     if fragment.token.is_some() {
         // The token leaves the address bar (and history) at once; the page keeps it in memory.
         if let Ok(history) = window.history() {
@@ -105,7 +108,7 @@ async fn run() -> Result<(), String> {
             canvas,
             options,
             Box::new(move |cc| {
-                let viewer = WebViewer::new(cc, fragment)?;
+                let viewer = WebViewer::new(cc, fragment, embed)?;
                 Ok(Box::new(viewer))
             }),
         )
@@ -179,12 +182,17 @@ struct WebViewer {
     page_started: web_time::Instant,
     /// The link named a preset: the store's own choice does not replace it.
     preset_named: bool,
+    /// In a notebook (`embed=ORIGIN`): the widget's postMessage bridge (embed_bridge.rs).
+    bridge: Option<EmbedBridge>,
+    /// A screenshot the bridge was asked for, being read back, and the requests it answers.
+    screenshot: Option<(Capture, Vec<JsValue>)>,
 }
 
 impl WebViewer {
     fn new(
         cc: &eframe::CreationContext<'_>,
         fragment: Fragment,
+        embed: Option<String>,
     ) -> Result<Self, Box<dyn std::error::Error + Send + Sync>> {
         let render_state = cc
             .wgpu_render_state
@@ -229,6 +237,9 @@ impl WebViewer {
             repaint.request_repaint();
         });
         let side = SidePanel::new(&fragment.view, info.name.clone());
+        let bridge = embed
+            .map(|origin| EmbedBridge::new(origin, cc.egui_ctx.clone()))
+            .transpose()?;
         Ok(WebViewer {
             render_state,
             stores,
@@ -255,6 +266,8 @@ impl WebViewer {
             motion,
             page_started: web_time::Instant::now(),
             preset_named: fragment.preset_named,
+            bridge,
+            screenshot: None,
         })
     }
 
@@ -611,6 +624,62 @@ impl WebViewer {
         self.fragment_written = fragment;
     }
 
+    /// In a notebook: reports the view to the widget once it rests, and answers its
+    /// screenshot requests with the frame on screen (a streamed view as far as it loaded).
+    fn bridge_step(&mut self, ctx: &egui::Context) {
+        let Some(bridge) = self.bridge.as_mut() else {
+            return;
+        };
+        let now = self.page_started.elapsed().as_secs_f64();
+        let dragging = ctx.input(|i| i.pointer.any_down());
+        if let Some(wait_s) = bridge.report(&self.view, now, dragging) {
+            ctx.request_repaint_after(std::time::Duration::from_secs_f64(wait_s));
+        }
+        if self.screenshot.is_none() && bridge.screenshots_wanted() {
+            let texture = match self.streamed.as_mut() {
+                Some(streamed) => streamed.volume.raycaster_mut().output_texture(),
+                None => self
+                    .renderer
+                    .as_ref()
+                    .and_then(|r| r.raycaster.output_texture()),
+            };
+            match (texture, self.drawn.as_ref()) {
+                (Some(texture), Some((_, size))) => {
+                    let readback = start_readback(&self.gpu, texture, *size, ctx);
+                    self.screenshot = Some((readback, bridge.take_screenshot_requests()));
+                }
+                _ => match &self.error {
+                    Some(error) => {
+                        for id in bridge.take_screenshot_requests() {
+                            bridge.answer_screenshot(&id, Err(error.clone()));
+                        }
+                    }
+                    // Nothing drawn yet: the first frame answers.
+                    None => ctx.request_repaint(),
+                },
+            }
+        }
+        let state = match &self.screenshot {
+            Some((capture, _)) => capture.state.load(Ordering::Acquire),
+            None => return,
+        };
+        if state != CAPTURE_MAPPED && state != CAPTURE_FAILED {
+            ctx.request_repaint();
+            return;
+        }
+        let Some((capture, ids)) = self.screenshot.take() else {
+            return;
+        };
+        let png = if state == CAPTURE_MAPPED {
+            read_back(&capture).and_then(|rgba| encode_png(&rgba, capture.size))
+        } else {
+            Err("the screenshot's buffer could not be mapped".to_string())
+        };
+        for id in ids {
+            bridge.answer_screenshot(&id, png.clone());
+        }
+    }
+
     /// Test hook (`capture=1`): copies the frame on screen to a buffer, maps it, and posts the
     /// pixels to the server that served the page, once.
     fn capture_step(&mut self, ctx: &egui::Context) {
@@ -641,59 +710,7 @@ impl WebViewer {
             let Some(texture) = texture else {
                 return;
             };
-            // Rows of a texture-to-buffer copy are padded to 256 bytes.
-            let padded_row = (size[0] * 4).div_ceil(256) * 256;
-            let buffer = self.gpu.device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("strata-web capture"),
-                size: padded_row as u64 * size[1] as u64,
-                usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
-                mapped_at_creation: false,
-            });
-            let mut encoder =
-                self.gpu
-                    .device
-                    .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                        label: Some("strata-web capture"),
-                    });
-            encoder.copy_texture_to_buffer(
-                texture.as_image_copy(),
-                wgpu::TexelCopyBufferInfo {
-                    buffer: &buffer,
-                    layout: wgpu::TexelCopyBufferLayout {
-                        offset: 0,
-                        bytes_per_row: Some(padded_row),
-                        rows_per_image: Some(size[1]),
-                    },
-                },
-                wgpu::Extent3d {
-                    width: size[0],
-                    height: size[1],
-                    depth_or_array_layers: 1,
-                },
-            );
-            self.gpu.queue.submit(Some(encoder.finish()));
-            let state = Arc::new(AtomicU8::new(CAPTURE_MAPPING));
-            let done = state.clone();
-            let repaint = ctx.clone();
-            buffer
-                .slice(..)
-                .map_async(wgpu::MapMode::Read, move |result| {
-                    done.store(
-                        if result.is_ok() {
-                            CAPTURE_MAPPED
-                        } else {
-                            CAPTURE_FAILED
-                        },
-                        Ordering::Release,
-                    );
-                    repaint.request_repaint();
-                });
-            self.capture = Some(Capture {
-                buffer,
-                padded_row,
-                size,
-                state,
-            });
+            self.capture = Some(start_readback(&self.gpu, texture, size, ctx));
         }
         let Some(capture) = self.capture.as_ref() else {
             return;
@@ -701,20 +718,13 @@ impl WebViewer {
         match capture.state.load(Ordering::Acquire) {
             CAPTURE_MAPPED => {
                 let [w, h] = capture.size;
-                let mut rgba = Vec::with_capacity((w * h * 4) as usize);
-                match capture.buffer.slice(..).get_mapped_range() {
-                    Ok(mapped) => {
-                        for row in 0..h as usize {
-                            let start = row * capture.padded_row as usize;
-                            rgba.extend_from_slice(&mapped[start..start + (w * 4) as usize]);
-                        }
-                    }
+                let rgba = match read_back(capture) {
+                    Ok(rgba) => rgba,
                     Err(e) => {
                         self.error = Some(format!("the test capture could not be read: {e}"));
                         return;
                     }
-                }
-                capture.buffer.unmap();
+                };
                 capture.state.store(CAPTURE_SENT, Ordering::Release);
                 let token = self.token.clone();
                 let metrics = self.timing.metrics();
@@ -751,6 +761,102 @@ impl WebViewer {
             _ => ctx.request_repaint(),
         }
     }
+}
+
+/// Copies `texture` (the frame on screen, `size`) to a buffer and maps it; the capture's
+/// state says when the pixels can be read ([`read_back`]).
+fn start_readback(
+    gpu: &GpuContext,
+    texture: &wgpu::Texture,
+    size: [u32; 2],
+    ctx: &egui::Context,
+) -> Capture {
+    // Rows of a texture-to-buffer copy are padded to 256 bytes.
+    let padded_row = (size[0] * 4).div_ceil(256) * 256;
+    let buffer = gpu.device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("strata-web capture"),
+        size: padded_row as u64 * size[1] as u64,
+        usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
+        mapped_at_creation: false,
+    });
+    let mut encoder = gpu
+        .device
+        .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some("strata-web capture"),
+        });
+    encoder.copy_texture_to_buffer(
+        texture.as_image_copy(),
+        wgpu::TexelCopyBufferInfo {
+            buffer: &buffer,
+            layout: wgpu::TexelCopyBufferLayout {
+                offset: 0,
+                bytes_per_row: Some(padded_row),
+                rows_per_image: Some(size[1]),
+            },
+        },
+        wgpu::Extent3d {
+            width: size[0],
+            height: size[1],
+            depth_or_array_layers: 1,
+        },
+    );
+    gpu.queue.submit(Some(encoder.finish()));
+    let state = Arc::new(AtomicU8::new(CAPTURE_MAPPING));
+    let done = state.clone();
+    let repaint = ctx.clone();
+    buffer
+        .slice(..)
+        .map_async(wgpu::MapMode::Read, move |result| {
+            done.store(
+                if result.is_ok() {
+                    CAPTURE_MAPPED
+                } else {
+                    CAPTURE_FAILED
+                },
+                Ordering::Release,
+            );
+            repaint.request_repaint();
+        });
+    Capture {
+        buffer,
+        padded_row,
+        size,
+        state,
+    }
+}
+
+/// The mapped capture's RGBA8 rows without their padding; unmaps the buffer.
+fn read_back(capture: &Capture) -> Result<Vec<u8>, String> {
+    let [w, h] = capture.size;
+    let mut rgba = Vec::with_capacity((w * h * 4) as usize);
+    {
+        let mapped = capture
+            .buffer
+            .slice(..)
+            .get_mapped_range()
+            .map_err(|e| e.to_string())?;
+        for row in 0..h as usize {
+            let start = row * capture.padded_row as usize;
+            rgba.extend_from_slice(&mapped[start..start + (w * 4) as usize]);
+        }
+    }
+    capture.buffer.unmap();
+    Ok(rgba)
+}
+
+/// An RGBA8 image as PNG (the embedded page's screenshots).
+fn encode_png(rgba: &[u8], [width, height]: [u32; 2]) -> Result<Vec<u8>, String> {
+    let mut png = Vec::new();
+    let mut encoder = png::Encoder::new(&mut png, width, height);
+    encoder.set_color(png::ColorType::Rgba);
+    encoder.set_depth(png::BitDepth::Eight);
+    // One filter for every row: the widget's numpy decoder (widget.py) undoes Up for a whole
+    // row at once, where Paeth (which the adaptive default picks) needs a loop per pixel.
+    encoder.set_filter(png::Filter::Up);
+    let mut writer = encoder.write_header().map_err(|e| e.to_string())?;
+    writer.write_image_data(rgba).map_err(|e| e.to_string())?;
+    writer.finish().map_err(|e| e.to_string())?;
+    Ok(png)
 }
 
 /// Points egui's texture id at the raycaster's output (re-created when the size changes).
@@ -825,6 +931,11 @@ impl eframe::App for WebViewer {
         }
         if let Some(detail) = self.gpu_error.lock().ok().and_then(|mut e| e.take()) {
             self.error.get_or_insert(format!("GPU error: {detail}"));
+        }
+        // The notebook's view changes land before this frame draws, so a screenshot asked
+        // for after them shows them.
+        if let Some(bridge) = self.bridge.as_mut() {
+            bridge.apply(&mut self.view);
         }
         egui::Panel::top("controls").show(ui, |ui| self.controls(ui));
         egui::Panel::bottom("status").show(ui, |ui| self.status(ui));
@@ -969,6 +1080,7 @@ impl eframe::App for WebViewer {
                 self.write_fragment(response.dragged() || pointer_down);
             });
         self.capture_step(&ctx);
+        self.bridge_step(&ctx);
         self.side.record_frame(ui_started, self.frames_submitted);
     }
 }

@@ -13,6 +13,9 @@
 //!   `GET /v1/stores`) and what a choice does to the view; platform independent, tested natively
 //!   against a real server's list.
 //! - `browser` (wasm32 only): the page's entry point, the viewer app, the frame capture.
+//! - `embed_bridge` (wasm32 only): the page in a notebook (issue 50): a postMessage bridge
+//!   to the Jupyter widget `strata.Viewer` that embeds it (view state both ways, screenshots
+//!   as PNG), listening only to the parent's origin the link names (`embed=`).
 //! - `page_timing` (wasm32 only): time to first and converged image and the bench's frame
 //!   times (`bench=N`), posted with the test capture (issue 39's benchmark).
 //! - `served_store` (wasm32 only): `strata serve`'s client on `fetch()`, the volume source the
@@ -35,6 +38,8 @@ pub mod volume_menu;
 
 #[cfg(target_arch = "wasm32")]
 mod browser;
+#[cfg(target_arch = "wasm32")]
+mod embed_bridge;
 #[cfg(target_arch = "wasm32")]
 mod page_timing;
 #[cfg(target_arch = "wasm32")]

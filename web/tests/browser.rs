@@ -919,3 +919,314 @@ fn benchmark_the_browser_against_the_desktop_on_one_served_store() {
     );
     server.stop();
 }
+
+/// The notebook widget's front end (python/strata/widget.js, issue 50) in a minimal
+/// anywidget-style host: a page of another origin that imports the module and calls its
+/// `render({ model, el })` with a model object as anywidget gives one (get, set, on, off,
+/// send, save_changes, custom messages), and plays the kernel's part itself. It reports what
+/// it saw to this test over HTTP.
+const WIDGET_JS: &str = include_str!("../../python/strata/widget.js");
+
+/// The host's script: the steps of the test, run in the browser.
+const WIDGET_HOST_JS: &str = r#"
+import widget from "/widget.js";
+const config = JSON.parse(document.getElementById("config").textContent);
+const report = (name, body) => fetch(`/report/${name}`, { method: "POST", body });
+const fail = (e) => report("error", String((e && e.stack) || e));
+window.addEventListener("error", (e) => fail(e.message));
+window.addEventListener("unhandledrejection", (e) => fail(e.reason));
+const VIEW = ["azimuth", "elevation", "zoom", "preset"];
+
+// anywidget's model contract: a change fires `change:NAME`; the kernel's custom messages
+// arrive as `msg:custom`; `send` goes to the kernel (played below).
+class Model {
+  constructor(state, kernel) {
+    this.state = { ...state };
+    this.listeners = new Map();
+    this.kernel = kernel;
+    this.saves = 0;
+  }
+  get(name) { return this.state[name]; }
+  set(name, value) {
+    const old = this.state[name];
+    this.state[name] = value;
+    if (old !== value) this.emit(`change:${name}`, this, value);
+  }
+  on(event, fn) {
+    if (!this.listeners.has(event)) this.listeners.set(event, []);
+    this.listeners.get(event).push(fn);
+  }
+  off(event, fn) {
+    const list = this.listeners.get(event) || [];
+    const i = list.indexOf(fn);
+    if (i >= 0) list.splice(i, 1);
+  }
+  emit(event, ...args) { for (const fn of [...(this.listeners.get(event) || [])]) fn(...args); }
+  save_changes() { this.saves += 1; }
+  send(content, _callbacks, buffers) { this.kernel(content, buffers || []); }
+}
+
+const shots = new Map();
+let nextShot = 1;
+// Python's side: the page's address on `ready`, screenshots' answers.
+const model = new Model(
+  { azimuth: 30, elevation: 15, zoom: 1.2, preset: "ct-bone", height: 300, store: "" },
+  (content, buffers) => {
+    if (content.type === "ready") {
+      setTimeout(() => model.emit("msg:custom", { type: "connect", url: config.page }, []), 0);
+    } else if (content.type === "screenshot") {
+      const waiting = shots.get(content.id);
+      shots.delete(content.id);
+      if (content.error || !(buffers[0] instanceof ArrayBuffer)) waiting.reject(content.error);
+      else waiting.resolve(buffers[0]);
+    }
+  },
+);
+const screenshot = () => new Promise((resolve, reject) => {
+  const id = nextShot++;
+  shots.set(id, { resolve, reject });
+  model.emit("msg:custom", { type: "screenshot", id }, []);
+});
+const view = () => Object.fromEntries(VIEW.map((n) => [n, model.get(n)]));
+const sleep = (ms) => new Promise((r) => setTimeout(r, ms));
+// Resolves once `name` left `from` and then stayed put for `quietMs`.
+const settled = (name, from, quietMs) => new Promise((resolve) => {
+  let timer = null;
+  const changed = () => {
+    if (model.get(name) === from) return;
+    clearTimeout(timer);
+    timer = setTimeout(() => { model.off(`change:${name}`, changed); resolve(); }, quietMs);
+  };
+  model.on(`change:${name}`, changed);
+});
+
+const cleanup = widget.render({ model, el: document.getElementById("cell") });
+// 1. The page's own orbit (its bench hook turns the view once drawn) reaches the model.
+await settled("azimuth", 30, 5000);
+const orbited = view();
+const first = await screenshot();
+await report("orbited", JSON.stringify({ view: orbited, saves: model.saves }));
+await report("shot-orbited", first);
+// 2. Python's side sets the traits: the page moves (its screenshot shows the new view).
+model.set("azimuth", -70);
+model.set("elevation", -25);
+model.set("zoom", 1.4);
+model.set("preset", "ct-soft-tissue");
+const second = await screenshot();
+await report("shot-set", second);
+// 3. The page's report of the view it was given leaves the model as set.
+await sleep(1500);
+await report("after-set", JSON.stringify({ view: view() }));
+if (typeof cleanup === "function") cleanup();
+await report("done", "");
+"#;
+
+/// A tiny HTTP/1.1 server for the host page (its own origin: another port) that passes
+/// `POST /report/NAME` bodies to the test.
+fn serve_widget_host(
+    listener: std::net::TcpListener,
+    page_url: String,
+) -> mpsc::Receiver<(String, Vec<u8>)> {
+    use std::io::{BufRead, BufReader, Write};
+    let (reports_in, reports) = mpsc::channel();
+    let html = format!(
+        "<!DOCTYPE html><html><head><meta charset=\"utf-8\"><title>widget host</title></head>\
+         <body><div id=\"cell\" style=\"width:460px\"></div>\
+         <script type=\"application/json\" id=\"config\">{}</script>\
+         <script type=\"module\" src=\"/host.js\"></script></body></html>",
+        serde_json::json!({ "page": page_url })
+    );
+    std::thread::Builder::new()
+        .name("widget-host".into())
+        .spawn(move || {
+            for stream in listener.incoming() {
+                let Ok(mut stream) = stream else { continue };
+                let mut reader = BufReader::new(stream.try_clone().expect("clone"));
+                let mut request_line = String::new();
+                if reader.read_line(&mut request_line).is_err() {
+                    continue;
+                }
+                let mut length = 0usize;
+                loop {
+                    let mut line = String::new();
+                    if reader.read_line(&mut line).unwrap_or(0) == 0 || line.trim().is_empty() {
+                        break;
+                    }
+                    if let Some((name, value)) = line.split_once(':') {
+                        if name.eq_ignore_ascii_case("content-length") {
+                            length = value.trim().parse().unwrap_or(0);
+                        }
+                    }
+                }
+                let mut body = vec![0u8; length];
+                if reader.read_exact(&mut body).is_err() {
+                    continue;
+                }
+                let mut parts = request_line.split_whitespace();
+                let (method, path) = (parts.next().unwrap_or(""), parts.next().unwrap_or(""));
+                let (status, kind, answer): (&str, &str, &[u8]) = match (method, path) {
+                    ("GET", "/") => ("200 OK", "text/html", html.as_bytes()),
+                    ("GET", "/host.js") => ("200 OK", "text/javascript", WIDGET_HOST_JS.as_bytes()),
+                    ("GET", "/widget.js") => ("200 OK", "text/javascript", WIDGET_JS.as_bytes()),
+                    ("POST", report) if report.starts_with("/report/") => {
+                        let name = report.trim_start_matches("/report/").to_string();
+                        let _ = reports_in.send((name, body));
+                        ("204 No Content", "text/plain", b"")
+                    }
+                    _ => ("404 Not Found", "text/plain", b"not found"),
+                };
+                let _ = write!(
+                    stream,
+                    "HTTP/1.1 {status}\r\nContent-Type: {kind}\r\nContent-Length: {}\r\n\
+                     Connection: close\r\n\r\n",
+                    answer.len()
+                );
+                let _ = stream.write_all(answer);
+            }
+        })
+        .expect("host thread");
+    reports
+}
+
+fn decode_png(bytes: &[u8]) -> (u32, u32, Vec<u8>) {
+    let mut reader = png::Decoder::new(std::io::Cursor::new(bytes))
+        .read_info()
+        .expect("the screenshot is a PNG");
+    let mut rgba = vec![0; reader.output_buffer_size().expect("size")];
+    let info = reader.next_frame(&mut rgba).expect("PNG pixels");
+    assert_eq!(info.color_type, png::ColorType::Rgba, "RGBA expected");
+    rgba.truncate(info.buffer_size());
+    (info.width, info.height, rgba)
+}
+
+#[test]
+fn the_notebook_widget_draws_the_volume_and_syncs_its_view_both_ways() {
+    let scratch = tempfile::tempdir().expect("scratch folder");
+    let store = scratch.path().join("tiny.strata");
+    Phantom::cube(32)
+        .write_store(&store, &ImportOptions::default())
+        .expect("writing a tiny store");
+    let host = std::net::TcpListener::bind("127.0.0.1:0").expect("host port");
+    let host_origin = format!("http://{}", host.local_addr().expect("host address"));
+    // The widget's server: framable by the notebook's origin only (the default is nobody).
+    let server = start(
+        find_stores(&[store]).expect("store found"),
+        ServeOptions {
+            web_viewer: Some(std::sync::Arc::new(web_viewer())),
+            token: Some(TOKEN.into()),
+            frame_ancestors: Some(host_origin.clone()),
+            ..ServeOptions::default()
+        },
+    )
+    .expect("server starts");
+    // The page's sample volume, a fixed image size and one view; `bench=6`: the page orbits
+    // six frames once drawn, as a user's drag would (a drag cannot be sent into a
+    // cross-origin frame from the host page).
+    let page = format!(
+        "{}/#volume=48&size=128x128&layout=single&bench=6&token={TOKEN}",
+        server.base_url()
+    );
+    let reports = serve_widget_host(host, page);
+    let browser = Browser::open(&format!("{host_origin}/"), scratch.path());
+    let next = |expected: &str| -> Vec<u8> {
+        let (name, body) = reports.recv_timeout(PAGE_DEADLINE).unwrap_or_else(|_| {
+            panic!(
+                "the host page reported no `{expected}` within {PAGE_DEADLINE:?}; console:\n{}",
+                browser.console()
+            )
+        });
+        assert_ne!(
+            name,
+            "error",
+            "the host page failed: {}\nconsole:\n{}",
+            String::from_utf8_lossy(&body),
+            browser.console()
+        );
+        assert_eq!(name, expected, "{}", browser.console());
+        body
+    };
+    let orbited: serde_json::Value = serde_json::from_slice(&next("orbited")).expect("JSON");
+    let shot_orbited = next("shot-orbited");
+    let shot_set = next("shot-set");
+    let after_set: serde_json::Value = serde_json::from_slice(&next("after-set")).expect("JSON");
+    next("done");
+    let console = browser.console();
+    drop(browser);
+
+    // The page's orbit moved the model's azimuth, and only that.
+    let azimuth = orbited["view"]["azimuth"].as_f64().expect("azimuth");
+    assert!(
+        azimuth > 31.0,
+        "the orbit did not reach the model: {orbited}"
+    );
+    assert_eq!(orbited["view"]["elevation"], 15.0, "{orbited}");
+    assert_eq!(orbited["view"]["zoom"], 1.2, "{orbited}");
+    assert_eq!(orbited["view"]["preset"], "ct-bone", "{orbited}");
+    assert!(orbited["saves"].as_u64() >= Some(1), "{orbited}");
+    // Python's values stay as set: the page's report of them is no change.
+    assert_eq!(
+        after_set["view"],
+        serde_json::json!({"azimuth": -70, "elevation": -25, "zoom": 1.4, "preset": "ct-soft-tissue"}),
+    );
+
+    // Each screenshot is the view the model names, as the native renderer draws it.
+    let gpu = GpuContext::headless().expect("a Vulkan adapter (lavapipe)");
+    let native = |fragment: &str| {
+        let view = Fragment::parse(fragment).expect("fragment").view;
+        let volume = view.sample_volume().expect("sample volume");
+        let mut renderer = OffscreenRenderer::new(
+            &gpu,
+            &volume,
+            &view.transfer_function(),
+            0,
+            CacheConfig {
+                force_fallback_format: true,
+                ..CacheConfig::default()
+            },
+        )
+        .expect("native renderer");
+        let (camera, settings) = (view.camera(&volume.geometry), view.settings(128, 128));
+        renderer
+            .render(&gpu, &volume, &camera, &settings)
+            .expect("native frame")
+            .rgba
+    };
+    let mut frames = Vec::new();
+    for (shot, fragment) in [
+        (
+            &shot_orbited,
+            format!("#volume=48&size=128x128&az={azimuth}&el=15&zoom=1.2&preset=ct-bone"),
+        ),
+        (
+            &shot_set,
+            "#volume=48&size=128x128&az=-70&el=-25&zoom=1.4&preset=ct-soft-tissue".to_string(),
+        ),
+    ] {
+        let (width, height, rgba) = decode_png(shot);
+        assert_eq!((width, height), (128, 128), "{console}");
+        // The ct-bone view shows the phantom's bone only: about a tenth of the image.
+        let lit = rgba.chunks(4).filter(|p| p[3] > 0).count();
+        assert!(
+            lit > 128 * 128 / 25,
+            "{fragment}: the widget's screenshot is nearly empty ({lit} pixels); console:\n{console}"
+        );
+        let comparison = compare_rgba8(&rgba, &native(&fragment)).expect("same size");
+        println!("{fragment}: widget screenshot vs native: {comparison:?}");
+        // As the page's own capture above: same WGSL on two CPU drivers.
+        assert!(
+            comparison.psnr_db >= 40.0,
+            "{fragment}: the screenshot is not this view: {comparison:?}"
+        );
+        frames.push(rgba);
+    }
+    let apart = compare_rgba8(&frames[0], &frames[1]).expect("same size");
+    assert!(
+        apart.psnr_db < 30.0,
+        "setting the traits did not move the view: {apart:?}"
+    );
+    let refused = server
+        .counters()
+        .unauthorized
+        .load(std::sync::atomic::Ordering::Relaxed);
+    assert_eq!(refused, 0, "the page made requests without its token");
+}
