@@ -3305,3 +3305,118 @@ fn a_journal_left_by_an_ended_session_is_offered_then_recovered_or_discarded() {
         }
     }
 }
+
+#[test]
+fn the_label_overlay_made_editable_keeps_its_grid_and_the_brush_paints_the_oblique_models_voxels() {
+    use super::overlay::tests::{label_of, write_nrrd, LABEL_DIMS, LABEL_ORIGIN, LABEL_SPACING};
+    use strata_segment::tools::brush::{stroke_voxels, SlicePlane};
+    let dir = tempfile::tempdir().expect("temp dir");
+    let store = phantom_store(dir.path());
+    let labels = dir.path().join("labels.nrrd");
+    write_nrrd(
+        &labels,
+        LABEL_DIMS,
+        LABEL_SPACING,
+        LABEL_ORIGIN,
+        false,
+        label_of,
+    );
+    let mut options = ViewerOptions::new(VolumeToOpen::Path(store));
+    options.import_folder = dir.path().join("imported");
+    options.overlay = Some(labels.clone());
+    let preferences = Preferences {
+        layout: Layout::TwoByTwo,
+        show_side_panel: true,
+        ..Preferences::default()
+    };
+    let mut h = harness_sized(options, preferences, Vec2::new(1100.0, 1000.0));
+    step_until(&mut h, "the label overlay", |a| {
+        a.volume.as_ref().is_some_and(|v| v.overlay.is_some())
+            && a.slice_image(SliceView::Axial)
+                .is_some_and(|i| i.request.level == 0)
+    });
+    h.step();
+    h.get_by_label("Segment").click();
+    h.step();
+    h.get_by_label("Edit overlay").click();
+    step_until(&mut h, "the overlay's file as an editable layer", |a| {
+        a.volume.as_ref().is_some_and(|v| {
+            v.segmentation.is_some() && v.overlay.as_ref().is_some_and(|o| o.layer().is_some())
+        })
+    });
+    // On the file's own grid, with the file's labels.
+    let original = |v: [u32; 3]| label_of(v[0], v[1], v[2]) as u16;
+    {
+        let seg = app(&h)
+            .volume
+            .as_ref()
+            .and_then(|v| v.segmentation.as_ref())
+            .expect("segmentation");
+        assert_eq!(seg.base_file.as_deref(), Some(labels.as_path()));
+        let layer = seg.layer.read();
+        assert_eq!(layer.grid().dims(), LABEL_DIMS);
+        for v in [[0, 0, 0], [13, 22, 31], [39, 39, 39], [7, 30, 2]] {
+            assert_eq!(layer.get(v).expect("voxel"), original(v), "voxel {v:?}");
+        }
+    }
+    set_segment_tool(&mut h, super::segmentation::SegmentTool::Brush);
+    if let Some(seg) = h
+        .state_mut()
+        .as_mut()
+        .and_then(|a| a.volume.as_mut())
+        .and_then(|v| v.segmentation.as_mut())
+    {
+        seg.diameter_mm = 30.0;
+        seg.active = 1;
+    }
+    h.step();
+    let (from, from_lps) = view_point(&h, SliceView::Axial, 9.0, 11.0);
+    let (to, to_lps) = view_point(&h, SliceView::Axial, 36.0, 30.0);
+    drag(&mut h, from, to);
+    // The model: the segment crate's disc in the view's plane (oblique to nothing here but
+    // the labels' own grid, which it cuts between voxel centres) through the stroke's start.
+    let (frame, primary) = {
+        let v = app(&h).volume.as_ref().expect("volume");
+        (v.data.frame(SliceView::Axial), v.data.info.geometry.clone())
+    };
+    let seg = app(&h)
+        .volume
+        .as_ref()
+        .and_then(|v| v.segmentation.as_ref())
+        .expect("segmentation");
+    assert_eq!(seg.error, None);
+    let positions = seg.last_stroke.clone();
+    assert!(
+        positions[0].distance(from_lps) < 0.1
+            && positions[positions.len() - 1].distance(to_lps) < 0.1,
+        "stroke {positions:?}"
+    );
+    let plane = SlicePlane::Oblique {
+        centre_lps: positions[0],
+        u: glam::DVec3::from(primary.direction[frame.across_axis]),
+        v: glam::DVec3::from(primary.direction[frame.down_axis]),
+    };
+    let brush = seg.brush(plane).expect("brush");
+    let layer = seg.layer.read();
+    let model = stroke_voxels(layer.grid(), &brush, &positions).expect("model");
+    assert!(model.len() > 20, "the stroke covers {} voxels", model.len());
+    let mut changed = 0;
+    for k in 0..LABEL_DIMS[2] {
+        for j in 0..LABEL_DIMS[1] {
+            for i in 0..LABEL_DIMS[0] {
+                let v = [i, j, k];
+                let got = layer.get(v).expect("voxel");
+                if model
+                    .binary_search_by_key(&[k, j, i], |m| [m[2], m[1], m[0]])
+                    .is_ok()
+                {
+                    assert_eq!(got, 1, "painted voxel {v:?}");
+                    changed += usize::from(original(v) != 1);
+                } else {
+                    assert_eq!(got, original(v), "voxel {v:?} outside the stroke");
+                }
+            }
+        }
+    }
+    assert!(changed > 0, "the stroke changed no label");
+}
