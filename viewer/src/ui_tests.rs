@@ -3420,3 +3420,147 @@ fn the_label_overlay_made_editable_keeps_its_grid_and_the_brush_paints_the_obliq
     }
     assert!(changed > 0, "the stroke changed no label");
 }
+
+/// Runs `f` on the open segmentation.
+fn with_seg(
+    h: &mut Harness<'static, Option<StrataApp>>,
+    f: impl FnOnce(&mut super::segmentation::Segmentation),
+) {
+    let seg = h
+        .state_mut()
+        .as_mut()
+        .and_then(|a| a.volume.as_mut())
+        .and_then(|v| v.segmentation.as_mut())
+        .expect("segmentation");
+    f(seg);
+    h.step();
+}
+
+#[test]
+fn the_brush_leaves_locked_segments_and_values_outside_its_range_and_a_capped_grow_is_one_step() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let store = phantom_store(dir.path());
+    let mut options = ViewerOptions::new(VolumeToOpen::Path(store));
+    options.import_folder = dir.path().join("imported");
+    let preferences = Preferences {
+        layout: Layout::TwoByTwo,
+        show_side_panel: true,
+        ..Preferences::default()
+    };
+    let mut h = harness_sized(options, preferences, Vec2::new(1100.0, 1000.0));
+    step_until(&mut h, "the axial slice at full resolution", |a| {
+        a.slice_image(SliceView::Axial)
+            .is_some_and(|i| i.request.level == 0)
+            && a.volume
+                .as_ref()
+                .is_some_and(|v| v.slice_views[SliceView::Axial.index()].image_rect.is_some())
+    });
+    new_segmentation(&mut h, 30.0);
+    let phantom = Phantom::cube(48);
+    let label_at = |h: &Harness<'static, Option<StrataApp>>, v: [u32; 3]| {
+        let seg = app(h)
+            .volume
+            .as_ref()
+            .and_then(|v| v.segmentation.as_ref())
+            .expect("segmentation");
+        let layer = seg.layer.read();
+        layer.get(v).expect("voxel")
+    };
+
+    // Segment 1 along a diagonal, locked; segment 2 across it leaves it alone.
+    let (from, from_lps) = view_point(&h, SliceView::Axial, 8.0, 10.0);
+    let (to, to_lps) = view_point(&h, SliceView::Axial, 38.0, 34.0);
+    drag(&mut h, from, to);
+    let first = last_stroke_model(app(&h), SliceView::Axial, from_lps, to_lps);
+    with_seg(&mut h, |seg| {
+        seg.with_segments(|t| t.get_mut(1).expect("segment 1").locked = true);
+        seg.add_segment();
+    });
+    let (from, from_lps) = view_point(&h, SliceView::Axial, 10.0, 36.0);
+    let (to, to_lps) = view_point(&h, SliceView::Axial, 36.0, 8.0);
+    drag(&mut h, from, to);
+    let second = last_stroke_model(app(&h), SliceView::Axial, from_lps, to_lps);
+    let crossing = second.iter().filter(|v| first.contains(v)).count();
+    assert!(crossing > 0, "the strokes cross");
+    for v in &first {
+        assert_eq!(label_at(&h, *v), 1, "locked voxel {v:?}");
+    }
+    for v in second.iter().filter(|v| !first.contains(v)) {
+        assert_eq!(label_at(&h, *v), 2, "voxel {v:?}");
+    }
+
+    // A brush limited to soft tissue (-200..200 HU) paints only the voxels whose value is in it.
+    with_seg(&mut h, |seg| {
+        seg.add_segment();
+        seg.limit_to_range = true;
+        seg.range = (-200.0, 200.0);
+    });
+    let k = first[0][2];
+    let (from, from_lps) = view_point(&h, SliceView::Axial, 1.0, 24.0);
+    let (to, to_lps) = view_point(&h, SliceView::Axial, 24.0, 44.0);
+    drag(&mut h, from, to);
+    let third = last_stroke_model(app(&h), SliceView::Axial, from_lps, to_lps);
+    let in_range = |v: &[u32; 3]| {
+        let hu = f64::from(phantom.hu(v[0].into(), v[1].into(), v[2].into()));
+        (-200.0..=200.0).contains(&hu)
+    };
+    let inside = third.iter().filter(|v| in_range(v)).count();
+    assert!(
+        inside > 0 && inside < third.len(),
+        "the stroke crosses the range's edge ({inside} of {})",
+        third.len()
+    );
+    for v in &third {
+        let before = if first.contains(v) {
+            1
+        } else if second.contains(v) {
+            2
+        } else {
+            0
+        };
+        let expected = if in_range(v) && before != 1 {
+            3
+        } else {
+            before
+        };
+        assert_eq!(label_at(&h, *v), expected, "voxel {v:?}");
+    }
+
+    // A grow capped at 300 voxels stops there, says so, and is one undo step.
+    with_seg(&mut h, |seg| {
+        seg.add_segment();
+        seg.limit_to_range = false;
+        seg.grow.max_voxels = 300;
+        seg.tool = super::segmentation::SegmentTool::Grow;
+    });
+    let before = labelled_voxels(app(&h));
+    let (at, _) = view_point(&h, SliceView::Axial, 24.0, 20.0);
+    assert!(in_range(&[24, 20, k]), "the seed is soft tissue");
+    click(&mut h, at, PointerButton::Primary);
+    step_until(&mut h, "the capped grow", |a| {
+        a.volume
+            .as_ref()
+            .and_then(|v| v.segmentation.as_ref())
+            .is_some_and(|s| !s.busy() && s.notice.is_some())
+    });
+    h.step();
+    let notice = app(&h)
+        .volume
+        .as_ref()
+        .and_then(|v| v.segmentation.as_ref())
+        .and_then(|s| s.notice.clone())
+        .expect("notice");
+    assert!(notice.contains("cap"), "{notice}");
+    let grown = labelled_voxels(app(&h))
+        .into_iter()
+        .filter(|&(_, l)| l == 4)
+        .count();
+    assert!(grown > 0 && grown <= 300, "the grow took {grown} voxels");
+    h.get_by_label("Undo").click();
+    h.step();
+    assert_eq!(
+        labelled_voxels(app(&h)),
+        before,
+        "one undo takes the grow back"
+    );
+}
