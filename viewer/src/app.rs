@@ -110,6 +110,12 @@ pub struct OpenVolume {
     pub segment_error: Option<String>,
     /// The primary's store (a brush limited to a value range reads it).
     pub store: Arc<dyn strata_source::VolumeSource>,
+    /// The label overlay's file being loaded as an editable layer (its labels are read once
+    /// through, so on its own thread): the file and the loading thread.
+    edit_job: Option<(
+        PathBuf,
+        std::thread::JoinHandle<Result<strata_segment::LabelLayer, strata_segment::SegmentError>>,
+    )>,
 }
 
 impl OpenVolume {
@@ -182,19 +188,23 @@ impl OpenVolume {
                 let Some(file) = self.overlay.as_ref().map(|o| PathBuf::from(&o.name)) else {
                     return;
                 };
+                if self.edit_job.is_some() {
+                    return;
+                }
                 // The label file itself, on its own grid (the overlay's store is a copy made
-                // for viewing, with mean coarse levels that labels never use).
-                match strata_segment::io::load_label_file(&file) {
-                    Ok(mut layer) => {
-                        if layer.segments().is_empty() {
-                            if let Err(e) = layer.segments_mut().add("Segment 1") {
-                                self.segment_error = Some(e.to_string());
-                                return;
-                            }
-                        }
-                        self.begin_segmentation(ctx, layer, Some(file), &journal, true)
-                    }
-                    Err(e) => self.segment_error = Some(e.to_string()),
+                // for viewing, with mean coarse levels that labels never use), read through
+                // once on a named thread.
+                let (thread_file, repaint_ctx) = (file.clone(), ctx.clone());
+                let spawned = std::thread::Builder::new()
+                    .name("strata-segment-load".into())
+                    .spawn(move || {
+                        let loaded = strata_segment::io::load_label_file(&thread_file);
+                        repaint_ctx.request_repaint();
+                        loaded
+                    });
+                match spawned {
+                    Ok(thread) => self.edit_job = Some((file, thread)),
+                    Err(e) => self.segment_error = Some(format!("could not start loading: {e}")),
                 }
             }
             SegmentRequest::Close => {
@@ -209,7 +219,32 @@ impl OpenVolume {
     /// Once per frame after the views: completed strokes into the history, the segment
     /// table's changes into the journal once no gesture is in progress, the overlay's colours
     /// after the segment list, and the recovery offer.
-    fn segment_frame(&mut self, ctx: &egui::Context, gesture: bool) {
+    fn segment_frame(&mut self, ctx: &egui::Context, gesture: bool, data_folder: &std::path::Path) {
+        if self.edit_job.as_ref().is_some_and(|(_, t)| t.is_finished()) {
+            if let Some((file, thread)) = self.edit_job.take() {
+                match thread.join() {
+                    Ok(Ok(mut layer)) => {
+                        let added = if layer.segments().is_empty() {
+                            layer.segments_mut().add("Segment 1").map(|_| ())
+                        } else {
+                            Ok(())
+                        };
+                        match added {
+                            Ok(()) => self.begin_segmentation(
+                                ctx,
+                                layer,
+                                Some(file),
+                                &journal_path(data_folder),
+                                true,
+                            ),
+                            Err(e) => self.segment_error = Some(e.to_string()),
+                        }
+                    }
+                    Ok(Err(e)) => self.segment_error = Some(e.to_string()),
+                    Err(_) => self.segment_error = Some("the loading thread failed".into()),
+                }
+            }
+        }
         if let Some(seg) = self.segmentation.as_mut() {
             seg.poll_grow();
             seg.poll_save();
@@ -683,6 +718,7 @@ impl StrataApp {
             recovery,
             segment_error,
             store,
+            edit_job: None,
         });
         Ok(())
     }
@@ -846,7 +882,7 @@ impl StrataApp {
         }
         if let Some(v) = self.volume.as_mut() {
             let gesture = ui.ctx().input(|i| i.pointer.any_down());
-            v.segment_frame(ui.ctx(), gesture);
+            v.segment_frame(ui.ctx(), gesture, &self.options.import_folder);
             v.history.observe(&v.scene, gesture);
         }
         self.remember_measurements();
