@@ -119,7 +119,9 @@ pub trait LabelRead {
     fn read_slice_k(&self, k: u32, out: &mut [Label]) -> Result<(), SegmentError>;
 }
 
-/// An editable label layer.
+/// An editable label layer. A clone is cheap (bricks are shared) and independent: a tool run in
+/// the background works on a clone while the original stays readable.
+#[derive(Clone)]
 pub struct LabelLayer {
     grid: LabelGrid,
     segments: SegmentTable,

@@ -23,6 +23,7 @@ use super::panels::{FrameClock, PanelContext, Panels};
 pub use super::preferences::{Layout, Preferences, ViewSlot};
 use super::scene::{preset_for, start_cursor, ClipSettings, Readout, Scene, VolumeData, Window};
 use super::screenshots::{ScreenshotJob, ShotTarget};
+use super::segmentation::{journal_path, PendingRecovery, Segmentation};
 use super::slice_view::SliceViewer;
 use super::slices::SliceReader;
 use super::view3d::{OrbitCamera, StandardView, View3d};
@@ -101,6 +102,220 @@ pub struct OpenVolume {
     pub overlay_3d: Option<Overlay3d>,
     /// A 4-D volume's frame slider and cine (frames.rs); `None` for one volume.
     pub frames: Option<super::frames::FramePlayer>,
+    /// The editable label layer (segmentation.rs), shown through `overlay`.
+    pub segmentation: Option<Segmentation>,
+    /// An earlier session's journal with edits over this volume, offered for recovery.
+    pub recovery: Option<PendingRecovery>,
+    /// The last error starting or recovering a segmentation (the Segment section shows it).
+    pub segment_error: Option<String>,
+    /// The primary's store (a brush limited to a value range reads it).
+    pub store: Arc<dyn strata_source::VolumeSource>,
+    /// The label overlay's file being loaded as an editable layer (its labels are read once
+    /// through, so on its own thread): the file and the loading thread.
+    edit_job: Option<(
+        PathBuf,
+        std::thread::JoinHandle<Result<strata_segment::LabelLayer, strata_segment::SegmentError>>,
+    )>,
+}
+
+impl OpenVolume {
+    /// Makes `layer` the session's segmentation, journaled to `journal` (`fresh`: a new
+    /// journal replacing any earlier one), and shows it as the overlay.
+    fn begin_segmentation(
+        &mut self,
+        ctx: &egui::Context,
+        layer: strata_segment::LabelLayer,
+        base: Option<PathBuf>,
+        journal: &std::path::Path,
+        fresh: bool,
+    ) {
+        let name = base.as_ref().map_or_else(
+            || "New segmentation".to_string(),
+            |p| p.display().to_string(),
+        );
+        let seg = Segmentation::start(
+            layer,
+            base,
+            (
+                self.data.store_path.as_path(),
+                &self.data.info.geometry,
+                &self.store,
+                self.data.info.mapping,
+            ),
+            Some(journal),
+            fresh,
+        );
+        let repaint_ctx = ctx.clone();
+        match Overlay::start_editable(
+            seg.layer.clone(),
+            name,
+            self.data.info.geometry.clone(),
+            self.data.info.header.layout.level_dims.clone(),
+            Arc::new(move || repaint_ctx.request_repaint()),
+        ) {
+            Ok(overlay) => {
+                self.overlay = Some(overlay);
+                self.segmentation = Some(seg);
+                self.recovery = None;
+                self.segment_error = None;
+            }
+            Err(e) => self.segment_error = Some(format!("{e:#}")),
+        }
+    }
+
+    /// The Segment section's request: a new segmentation, the overlay made editable, or done.
+    fn segment_request(
+        &mut self,
+        ctx: &egui::Context,
+        request: super::panels::segment::SegmentRequest,
+        data_folder: &std::path::Path,
+    ) {
+        use super::panels::segment::SegmentRequest;
+        let journal = journal_path(data_folder);
+        match request {
+            SegmentRequest::New => {
+                let layer = strata_segment::LabelLayer::new_empty(self.data.info.geometry.clone())
+                    .and_then(|mut layer| {
+                        layer.segments_mut().add("Segment 1")?;
+                        Ok(layer)
+                    });
+                match layer {
+                    Ok(layer) => self.begin_segmentation(ctx, layer, None, &journal, true),
+                    Err(e) => self.segment_error = Some(e.to_string()),
+                }
+            }
+            SegmentRequest::EditOverlay => {
+                let Some(file) = self.overlay.as_ref().map(|o| PathBuf::from(&o.name)) else {
+                    return;
+                };
+                if self.edit_job.is_some() {
+                    return;
+                }
+                // The label file itself, on its own grid (the overlay's store is a copy made
+                // for viewing, with mean coarse levels that labels never use), read through
+                // once on a named thread.
+                let (thread_file, repaint_ctx) = (file.clone(), ctx.clone());
+                let spawned = std::thread::Builder::new()
+                    .name("strata-segment-load".into())
+                    .spawn(move || {
+                        let loaded = strata_segment::io::load_label_file(&thread_file);
+                        repaint_ctx.request_repaint();
+                        loaded
+                    });
+                match spawned {
+                    Ok(thread) => self.edit_job = Some((file, thread)),
+                    Err(e) => self.segment_error = Some(format!("could not start loading: {e}")),
+                }
+            }
+            SegmentRequest::Close => {
+                if self.overlay.as_ref().is_some_and(|o| o.layer().is_some()) {
+                    self.overlay = None;
+                }
+                self.segmentation = None;
+            }
+        }
+    }
+
+    /// Once per frame after the views: completed strokes into the history, the segment
+    /// table's changes into the journal once no gesture is in progress, the overlay's colours
+    /// after the segment list, and the recovery offer.
+    fn segment_frame(&mut self, ctx: &egui::Context, gesture: bool, data_folder: &std::path::Path) {
+        if self.edit_job.as_ref().is_some_and(|(_, t)| t.is_finished()) {
+            if let Some((file, thread)) = self.edit_job.take() {
+                match thread.join() {
+                    Ok(Ok(mut layer)) => {
+                        let added = if layer.segments().is_empty() {
+                            layer.segments_mut().add("Segment 1").map(|_| ())
+                        } else {
+                            Ok(())
+                        };
+                        match added {
+                            Ok(()) => self.begin_segmentation(
+                                ctx,
+                                layer,
+                                Some(file),
+                                &journal_path(data_folder),
+                                true,
+                            ),
+                            Err(e) => self.segment_error = Some(e.to_string()),
+                        }
+                    }
+                    Ok(Err(e)) => self.segment_error = Some(e.to_string()),
+                    Err(_) => self.segment_error = Some("the loading thread failed".into()),
+                }
+            }
+        }
+        if let Some(seg) = self.segmentation.as_mut() {
+            seg.poll_grow();
+            seg.poll_save();
+            seg.poll_statistics();
+            for edit in seg.take_completed() {
+                self.history.push_label_edit(seg, edit);
+            }
+            if !gesture {
+                seg.journal_segments_if_changed();
+            }
+            if let Some(o) = self.overlay.as_mut() {
+                if o.layer().is_some_and(|l| Arc::ptr_eq(l, &seg.layer)) {
+                    o.follow_segments(seg.layer.read().segments());
+                }
+            }
+        }
+        let Some(recovery) = &self.recovery else {
+            return;
+        };
+        let mut choice = None;
+        egui::Window::new("Recover segmentation")
+            .collapsible(false)
+            .resizable(false)
+            .anchor(egui::Align2::CENTER_CENTER, Vec2::ZERO)
+            .show(ctx, |ui| {
+                let what = recovery.note.base.as_ref().map_or_else(
+                    || "a new segmentation".to_string(),
+                    |p| p.display().to_string(),
+                );
+                ui.label(format!(
+                    "The last session left {} unsaved edits to {what}.",
+                    recovery.recovery.edits.len()
+                ));
+                if let Some(dropped) = &recovery.recovery.dropped {
+                    ui.colored_label(WARNING_COLOUR, dropped);
+                }
+                ui.horizontal(|ui| {
+                    if ui.button("Recover").clicked() {
+                        choice = Some(true);
+                    }
+                    if ui.button("Discard").clicked() {
+                        choice = Some(false);
+                    }
+                });
+            });
+        match choice {
+            Some(true) => {
+                let Some(recovery) = self.recovery.take() else {
+                    return;
+                };
+                match recovery.layer(&self.data.info.geometry) {
+                    Ok(layer) => {
+                        let base = recovery.note.base.clone();
+                        self.begin_segmentation(ctx, layer, base, &recovery.journal, false)
+                    }
+                    Err(e) => self.segment_error = Some(format!("recovering: {e}")),
+                }
+            }
+            Some(false) => {
+                if let Some(recovery) = self.recovery.take() {
+                    if let Err(e) = recovery.discard() {
+                        self.segment_error = Some(format!(
+                            "{}: could not remove: {e}",
+                            recovery.journal.display()
+                        ));
+                    }
+                }
+            }
+            None => {}
+        }
+    }
 }
 
 /// A short message in the status bar, cleared after a few seconds.
@@ -475,6 +690,11 @@ impl StrataApp {
         }
         let history = History::new(&scene);
         let oblique_view = ObliqueViewer::with_plane(oblique_plane);
+        let (recovery, segment_error) =
+            match PendingRecovery::find(&self.options.import_folder, &location) {
+                Ok(found) => (found, None),
+                Err(e) => (None, Some(format!("segmentation journal: {e}"))),
+            };
         self.volume = Some(OpenVolume {
             history,
             data: VolumeData {
@@ -494,6 +714,11 @@ impl StrataApp {
             overlay: None,
             overlay_3d: None,
             frames: frame_player,
+            segmentation: None,
+            recovery,
+            segment_error,
+            store,
+            edit_job: None,
         });
         Ok(())
     }
@@ -561,6 +786,8 @@ impl StrataApp {
             self.panels.overlay.poll(ui.ctx(), &v.data, &mut v.overlay);
             // The 3D grid follows the overlay: started for a new one, dropped with it.
             match &v.overlay {
+                // An edited layer is drawn on the slices only.
+                Some(o) if o.layer().is_some() => v.overlay_3d = None,
                 Some(o) if !v.overlay_3d.as_ref().is_some_and(|g| g.is_for(o)) => {
                     let ctx = ui.ctx().clone();
                     v.overlay_3d = Overlay3d::start(o, Arc::new(move || ctx.request_repaint()))
@@ -648,8 +875,14 @@ impl StrataApp {
         if let Some((frames, folder)) = self.panels.screenshot.take_orbit_request() {
             self.take_orbit_movie_into(frames, Some(folder));
         }
+        if let Some(request) = self.panels.segment_request.take() {
+            if let Some(v) = self.volume.as_mut() {
+                v.segment_request(ui.ctx(), request, &self.options.import_folder);
+            }
+        }
         if let Some(v) = self.volume.as_mut() {
             let gesture = ui.ctx().input(|i| i.pointer.any_down());
+            v.segment_frame(ui.ctx(), gesture, &self.options.import_folder);
             v.history.observe(&v.scene, gesture);
         }
         self.remember_measurements();
@@ -745,10 +978,10 @@ impl StrataApp {
         });
         if let Some(v) = self.volume.as_mut() {
             if undo {
-                v.history.undo(&mut v.scene);
+                v.history.undo(&mut v.scene, v.segmentation.as_mut());
             }
             if redo {
-                v.history.redo(&mut v.scene);
+                v.history.redo(&mut v.scene, v.segmentation.as_mut());
             }
         }
         let orthographic = self.preferences.orthographic;
@@ -1087,14 +1320,14 @@ impl StrataApp {
                     .on_hover_text("Undo the last TF, window, crop or measurement change (Ctrl+Z)")
                     .clicked()
                 {
-                    v.history.undo(&mut v.scene);
+                    v.history.undo(&mut v.scene, v.segmentation.as_mut());
                 }
                 if ui
                     .add_enabled(can_redo, egui::Button::new("Redo"))
                     .on_hover_text("Redo (Ctrl+Shift+Z, Ctrl+Y)")
                     .clicked()
                 {
-                    v.history.redo(&mut v.scene);
+                    v.history.redo(&mut v.scene, v.segmentation.as_mut());
                 }
             }
             ui.toggle_value(&mut self.preferences.show_oblique, "Oblique")
@@ -1283,6 +1516,8 @@ impl StrataApp {
                 overlay: &mut v.overlay,
                 frames: &mut v.frames,
                 import_folder: &self.options.import_folder,
+                segmentation: &mut v.segmentation,
+                segment_error: v.segment_error.as_deref(),
             },
         );
     }
@@ -1382,6 +1617,7 @@ impl StrataApp {
                     &v.data,
                     &mut v.scene,
                     v.overlay.as_ref(),
+                    v.segmentation.as_mut(),
                 ),
             };
             if response.focused {

@@ -1,8 +1,13 @@
 //! Undo and redo (Ctrl+Z, Ctrl+Shift+Z or Ctrl+Y) of what the user adjusts: the transfer
 //! function, the slice window, the crop box and the measurements. A change becomes one step
 //! when its gesture ends (no button held), so a drag is undone as a whole, not per frame.
+//! Label edits (a brush stroke, segmentation.rs) are steps of their own in the same list: the
+//! edit's brick images, reverted or applied again on the layer they were made on.
 
 use strata_render::{CropBox, TransferFunction};
+use strata_segment::Edit;
+
+use super::segmentation::Segmentation;
 
 use super::measurements::Measurement;
 use super::scene::{Scene, Window};
@@ -40,9 +45,16 @@ impl Snapshot {
     }
 }
 
+/// One undo step: the scene before it, or a label edit of the layer `layer_id`.
+#[derive(Clone, Debug)]
+enum Step {
+    Scene(Snapshot),
+    Labels { layer_id: u64, edit: Edit },
+}
+
 pub struct History {
-    undo: Vec<Snapshot>,
-    redo: Vec<Snapshot>,
+    undo: Vec<Step>,
+    redo: Vec<Step>,
     /// The state the last step ended in.
     committed: Snapshot,
 }
@@ -65,12 +77,24 @@ impl History {
         let now = Snapshot::of(scene);
         if now != self.committed {
             let before = std::mem::replace(&mut self.committed, now);
-            self.undo.push(before);
-            if self.undo.len() > MAX_STEPS {
-                self.undo.remove(0);
-            }
-            self.redo.clear();
+            self.push(Step::Scene(before));
         }
+    }
+
+    fn push(&mut self, step: Step) {
+        self.undo.push(step);
+        if self.undo.len() > MAX_STEPS {
+            self.undo.remove(0);
+        }
+        self.redo.clear();
+    }
+
+    /// A completed label edit (already applied to the layer) becomes one undo step.
+    pub fn push_label_edit(&mut self, segmentation: &Segmentation, edit: Edit) {
+        self.push(Step::Labels {
+            layer_id: segmentation.id,
+            edit,
+        });
     }
 
     pub fn can_undo(&self) -> bool {
@@ -81,26 +105,49 @@ impl History {
         !self.redo.is_empty()
     }
 
-    /// Restores the state before the last step; false if there is none.
-    pub fn undo(&mut self, scene: &mut Scene) -> bool {
+    /// Restores the state before the last step; false if there is none. A label step of a
+    /// layer no longer open is dropped (there is nothing left to undo it on).
+    pub fn undo(&mut self, scene: &mut Scene, mut labels: Option<&mut Segmentation>) -> bool {
         self.observe(scene, false);
-        let Some(previous) = self.undo.pop() else {
-            return false;
-        };
-        let current = std::mem::replace(&mut self.committed, previous);
-        self.redo.push(current);
-        self.committed.apply(scene);
-        true
+        while let Some(step) = self.undo.pop() {
+            match step {
+                Step::Scene(previous) => {
+                    let current = std::mem::replace(&mut self.committed, previous);
+                    self.redo.push(Step::Scene(current));
+                    self.committed.apply(scene);
+                    return true;
+                }
+                Step::Labels { layer_id, edit } => {
+                    if let Some(seg) = labels.as_deref_mut().filter(|s| s.id == layer_id) {
+                        seg.revert(&edit);
+                        self.redo.push(Step::Labels { layer_id, edit });
+                        return true;
+                    }
+                }
+            }
+        }
+        false
     }
 
     /// Re-applies the last undone step; false if there is none.
-    pub fn redo(&mut self, scene: &mut Scene) -> bool {
-        let Some(next) = self.redo.pop() else {
-            return false;
-        };
-        let current = std::mem::replace(&mut self.committed, next);
-        self.undo.push(current);
-        self.committed.apply(scene);
-        true
+    pub fn redo(&mut self, scene: &mut Scene, mut labels: Option<&mut Segmentation>) -> bool {
+        while let Some(step) = self.redo.pop() {
+            match step {
+                Step::Scene(next) => {
+                    let current = std::mem::replace(&mut self.committed, next);
+                    self.undo.push(Step::Scene(current));
+                    self.committed.apply(scene);
+                    return true;
+                }
+                Step::Labels { layer_id, edit } => {
+                    if let Some(seg) = labels.as_deref_mut().filter(|s| s.id == layer_id) {
+                        seg.reapply(&edit);
+                        self.undo.push(Step::Labels { layer_id, edit });
+                        return true;
+                    }
+                }
+            }
+        }
+        false
     }
 }

@@ -13,7 +13,8 @@
 //! Structure, as egui's demo app: a thin shell (`app.rs`: toolbar, status bar, layout,
 //! shortcuts), views that own their state and draw themselves (`view3d.rs`, `slice_view.rs`),
 //! panels likewise (`panels/`), dialogs (`dialogs.rs`), and the state they share
-//! (`scene.rs`: the volume's data handles and the scene the user adjusts).
+//! (`scene.rs`: the volume's data handles and the scene the user adjusts). The editable label
+//! layer, its tools and journal are `segmentation.rs` (issue 52).
 //!
 //! Threads: the UI thread only draws and turns input into requests. The render thread
 //! (`volume_session`), the slice reader (`slices`) and store preparation (`jobs`) do all GPU
@@ -48,6 +49,7 @@ pub mod preferences;
 pub mod sample;
 pub mod scene;
 pub mod screenshots;
+pub mod segmentation;
 pub mod session_restore;
 pub mod slice_view;
 pub mod slices;

@@ -25,6 +25,7 @@ use strata_storage::{BrickId, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
 
 use super::colour_maps::ColourMap;
 use super::orientation::SliceView;
+use super::segmentation::SharedLayer;
 use super::slices::SliceRequest;
 use super::sync::{lock_ignoring_poison, wait_ignoring_poison, Repaint};
 
@@ -124,6 +125,8 @@ pub fn label_colour(label: i64) -> [u8; 3] {
 #[derive(Clone, Debug)]
 pub struct OverlaySlice {
     pub request: SliceRequest,
+    /// The source's revision it was sampled at (an edited layer's changes count up).
+    pub revision: u64,
     pub width: usize,
     pub height: usize,
     pub values: Arc<Vec<f32>>,
@@ -134,6 +137,7 @@ struct OverlayRequest {
     slice: SliceRequest,
     width: usize,
     height: usize,
+    revision: u64,
 }
 
 /// What the sampler needs to know about both volumes.
@@ -156,6 +160,24 @@ struct Shared {
     stop: AtomicBool,
 }
 
+/// What an overlay shows: an opened store, or the session's editable label layer, which the
+/// sampler reads directly (an edit shows on the next slice sampled, nothing to re-upload but
+/// that slice's texture).
+#[derive(Clone)]
+pub enum OverlaySource {
+    Store(Arc<dyn VolumeSource>),
+    Layer(Arc<SharedLayer>),
+}
+
+impl OverlaySource {
+    fn revision(&self) -> u64 {
+        match self {
+            OverlaySource::Store(_) => 0,
+            OverlaySource::Layer(layer) => layer.revision(),
+        }
+    }
+}
+
 /// An opened overlay: its store's facts, its style and its sampling thread.
 pub struct Overlay {
     pub name: String,
@@ -163,8 +185,9 @@ pub struct Overlay {
     pub style: OverlayStyle,
     /// The overlay's physical value range.
     pub physical_range: (f64, f64),
-    /// The overlay's store and both grids (the 3D view resamples from them, overlay_3d.rs).
-    source: Arc<dyn VolumeSource>,
+    /// The overlay's store (or label layer) and both grids (the 3D view resamples from them,
+    /// overlay_3d.rs).
+    source: OverlaySource,
     grids: OverlayGrids,
     shared: Arc<Shared>,
     thread: Option<std::thread::JoinHandle<()>>,
@@ -199,6 +222,53 @@ impl Overlay {
             overlay_mapping: mapping,
             kind,
         };
+        let name = store.location();
+        Self::start_sampling(
+            OverlaySource::Store(store),
+            name,
+            grids,
+            label_table,
+            physical_range,
+            repaint,
+        )
+    }
+
+    /// The session's editable label layer as a label overlay (segmentation.rs).
+    pub fn start_editable(
+        layer: Arc<SharedLayer>,
+        name: String,
+        primary: VolumeGeometry,
+        primary_level_dims: Vec<[u32; 3]>,
+        repaint: Repaint,
+    ) -> anyhow::Result<Self> {
+        let grids = OverlayGrids {
+            primary,
+            primary_level_dims,
+            overlay: layer.geometry(),
+            overlay_mapping: ValueMapping::default(),
+            kind: OverlayKind::Labels,
+        };
+        let mut overlay = Self::start_sampling(
+            OverlaySource::Layer(layer.clone()),
+            name,
+            grids,
+            BTreeMap::new(),
+            (0.0, f64::from(u16::MAX)),
+            repaint,
+        )?;
+        overlay.follow_segments(layer.read().segments());
+        Ok(overlay)
+    }
+
+    fn start_sampling(
+        source: OverlaySource,
+        name: String,
+        grids: OverlayGrids,
+        label_table: BTreeMap<i64, LabelEntry>,
+        physical_range: (f64, f64),
+        repaint: Repaint,
+    ) -> anyhow::Result<Self> {
+        let kind = grids.kind;
         let shared = Arc::new(Shared {
             pending: Mutex::new([None; 3]),
             results: Mutex::new([None, None, None]),
@@ -207,8 +277,7 @@ impl Overlay {
             wake: Condvar::new(),
             stop: AtomicBool::new(false),
         });
-        let name = store.location();
-        let source = store.clone();
+        let thread_source = source.clone();
         let thread_shared = shared.clone();
         let thread_grids = grids.clone();
         let thread = std::thread::Builder::new()
@@ -228,14 +297,29 @@ impl Overlay {
                             pending = wait_ignoring_poison(&thread_shared.wake, pending);
                         }
                     };
-                    match sample_slice(
-                        store.as_ref(),
-                        &mut cache,
-                        &thread_grids,
-                        next.slice,
-                        next.width,
-                        next.height,
-                    ) {
+                    let sampled = match &thread_source {
+                        OverlaySource::Store(store) => sample_slice(
+                            store.as_ref(),
+                            &mut cache,
+                            &thread_grids,
+                            next.slice,
+                            next.width,
+                            next.height,
+                        ),
+                        OverlaySource::Layer(layer) => {
+                            // Read before the layer: an edit after this makes the slice stale.
+                            let revision = layer.revision();
+                            sample_layer_slice(
+                                &layer.read(),
+                                &thread_grids,
+                                next.slice,
+                                next.width,
+                                next.height,
+                            )
+                            .map(|s| OverlaySlice { revision, ..s })
+                        }
+                    };
+                    match sampled {
                         Ok(slice) => {
                             if kind == OverlayKind::Labels {
                                 let mut seen = lock_ignoring_poison(&thread_shared.labels_seen);
@@ -279,9 +363,48 @@ impl Overlay {
         })
     }
 
-    /// The overlay's store.
-    pub fn source(&self) -> &Arc<dyn VolumeSource> {
-        &self.source
+    /// The overlay's store (`None` for the editable label layer).
+    pub fn source(&self) -> Option<&Arc<dyn VolumeSource>> {
+        match &self.source {
+            OverlaySource::Store(store) => Some(store),
+            OverlaySource::Layer(_) => None,
+        }
+    }
+
+    /// The editable label layer this overlay shows, if it shows one.
+    pub fn layer(&self) -> Option<&Arc<SharedLayer>> {
+        match &self.source {
+            OverlaySource::Layer(layer) => Some(layer),
+            OverlaySource::Store(_) => None,
+        }
+    }
+
+    /// Takes the segments' names, colours and visibility into the style (the segment list
+    /// edits them).
+    pub fn follow_segments(&mut self, segments: &strata_segment::SegmentTable) {
+        let table: BTreeMap<i64, LabelEntry> = segments
+            .iter()
+            .map(|s| {
+                (
+                    i64::from(s.value),
+                    LabelEntry {
+                        name: s.name.clone(),
+                        colour: s.rgb,
+                    },
+                )
+            })
+            .collect();
+        let hidden: BTreeSet<i64> = segments
+            .iter()
+            .filter(|s| !s.visible)
+            .map(|s| i64::from(s.value))
+            .collect();
+        if table != self.style.label_table {
+            self.style.label_table = table;
+        }
+        if hidden != self.style.hidden_labels {
+            self.style.hidden_labels = hidden;
+        }
     }
 
     /// The primary's and the overlay's grids.
@@ -291,13 +414,17 @@ impl Overlay {
 
     /// Asks for the overlay over the primary slice image `slice` (`width`×`height` pixels).
     pub fn request(&self, slice: SliceRequest, width: usize, height: usize) {
+        let revision = self.source.revision();
         let request = OverlayRequest {
             slice,
             width,
             height,
+            revision,
         };
         let latest = self.latest(slice.view);
-        if latest.is_some_and(|l| l.request == slice && l.width == width && l.height == height) {
+        if latest.is_some_and(|l| {
+            l.request == slice && l.width == width && l.height == height && l.revision == revision
+        }) {
             return;
         }
         let mut pending = lock_ignoring_poison(&self.shared.pending);
@@ -469,6 +596,61 @@ pub fn sample_slice(
     width: usize,
     height: usize,
 ) -> anyhow::Result<OverlaySlice> {
+    let dims = grids.overlay.dims;
+    sample_with(grids, request, width, height, |p| {
+        Ok(match grids.kind {
+            OverlayKind::Labels => {
+                let index = [0, 1, 2]
+                    .map(|a| (p[a].round().max(0.0) as u32).min(dims[a].saturating_sub(1)));
+                let stored = cache.voxel(store, index)?;
+                grids.overlay_mapping.physical(stored as f64).round()
+            }
+            OverlayKind::Continuous => trilinear(store, cache, dims, p, |s| {
+                grids.overlay_mapping.physical(s as f64)
+            })?,
+        })
+    })
+}
+
+/// Samples an editable label layer over one primary slice image: the nearest voxel's label,
+/// each label brick read once per slice.
+pub fn sample_layer_slice(
+    layer: &strata_segment::LabelLayer,
+    grids: &OverlayGrids,
+    request: SliceRequest,
+    width: usize,
+    height: usize,
+) -> anyhow::Result<OverlaySlice> {
+    let dims = grids.overlay.dims;
+    let mut last: Option<(strata_segment::BrickKey, Option<Arc<[u16]>>)> = None;
+    sample_with(grids, request, width, height, |p| {
+        let index =
+            [0, 1, 2].map(|a| (p[a].round().max(0.0) as u32).min(dims[a].saturating_sub(1)));
+        let (key, at) = layer.grid().brick_of(index);
+        if last.as_ref().is_none_or(|(k, _)| *k != key) {
+            let brick = if layer.brick_is_empty(key) {
+                None
+            } else {
+                Some(layer.brick(key)?)
+            };
+            last = Some((key, brick));
+        }
+        Ok(last
+            .as_ref()
+            .and_then(|(_, b)| b.as_ref())
+            .map_or(0.0, |b| f64::from(b[at])))
+    })
+}
+
+/// Calls `value_at` with the overlay's continuous index at every pixel of the primary slice
+/// image that lies inside the overlay's grid; NaN elsewhere.
+fn sample_with(
+    grids: &OverlayGrids,
+    request: SliceRequest,
+    width: usize,
+    height: usize,
+    mut value_at: impl FnMut(DVec3) -> anyhow::Result<f64>,
+) -> anyhow::Result<OverlaySlice> {
     let overlay_from_primary =
         grids.overlay.index_from_patient_linear() * grids.primary.patient_from_index_linear();
     let offset = grids.overlay.index_from_patient(grids.primary.origin());
@@ -483,22 +665,12 @@ pub fn sample_slice(
             if !inside(p) {
                 continue;
             }
-            let value = match grids.kind {
-                OverlayKind::Labels => {
-                    let index = [0, 1, 2]
-                        .map(|a| (p[a].round().max(0.0) as u32).min(dims[a].saturating_sub(1)));
-                    let stored = cache.voxel(store, index)?;
-                    grids.overlay_mapping.physical(stored as f64).round()
-                }
-                OverlayKind::Continuous => trilinear(store, cache, dims, p, |s| {
-                    grids.overlay_mapping.physical(s as f64)
-                })?,
-            };
-            values[y * width + x] = value as f32;
+            values[y * width + x] = value_at(p)? as f32;
         }
     }
     Ok(OverlaySlice {
         request,
+        revision: 0,
         width,
         height,
         values: Arc::new(values),

@@ -199,7 +199,10 @@ pub struct Overlay3d {
 impl Overlay3d {
     /// Starts resampling `overlay` for the 3D view.
     pub fn start(overlay: &Overlay, repaint: Repaint) -> anyhow::Result<Self> {
-        let source = overlay.source().clone();
+        let source = overlay
+            .source()
+            .ok_or_else(|| anyhow::anyhow!("an edited label layer is drawn on the slices only"))?
+            .clone();
         let grids = overlay.grids().clone();
         let dims = grid_dims(&grids.primary_level_dims, OVERLAY_3D_MAX_VOXELS);
         let state = Arc::new(Mutex::new(State::Resampling));
@@ -229,7 +232,9 @@ impl Overlay3d {
 
     /// Whether this grid is `overlay`'s (the same store).
     pub fn is_for(&self, overlay: &Overlay) -> bool {
-        Arc::ptr_eq(&self.source, overlay.source())
+        overlay
+            .source()
+            .is_some_and(|s| Arc::ptr_eq(&self.source, s))
     }
 
     pub fn resampled(&self) -> Option<Arc<Resampled>> {

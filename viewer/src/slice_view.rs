@@ -1,7 +1,9 @@
 //! One slice view (axial, coronal or sagittal): the slice read at the level matching its
 //! pixels, window-levelled into a texture, the crosshair, orientation labels and the W/L line.
 //! Left click/drag moves the linked crosshair, right drag windows, the wheel pages, Ctrl+wheel
-//! zooms about the pointer, middle drag pans, a double-click resets zoom and pan.
+//! zooms about the pointer, middle drag pans, a double-click resets zoom and pan. With the
+//! segment brush or eraser chosen (segmentation.rs), the left button paints instead, and the
+//! brush is drawn as a circle of its size under the pointer.
 
 use std::sync::Arc;
 
@@ -16,6 +18,7 @@ use super::measurements::{distance_mm, roi_stats, Shape, Tool};
 use super::orientation::SliceView;
 use super::overlay::{Overlay, OverlayKind, OverlayStyle};
 use super::scene::{voxel_index, Scene, VolumeData, Window};
+use super::segmentation::{plane_for_view, Segmentation};
 use super::slices::{level_for_pixels, SliceImage, SliceRequest};
 use super::widgets::{view_title, wheel_lines, ViewResponse};
 
@@ -216,6 +219,80 @@ impl SliceViewer {
         }
     }
 
+    /// Left button with the brush or eraser: a press starts a stroke at the press position, a
+    /// drag sweeps it on to each new pointer position, the release ends it (one edit); a click
+    /// paints one disc. With fill or grow, a click is the seed.
+    fn brush_input(
+        &self,
+        ui: &egui::Ui,
+        response: &egui::Response,
+        image_rect: Rect,
+        data: &VolumeData,
+        scene: &Scene,
+        seg: &mut Segmentation,
+    ) {
+        let frame = data.frame(self.view);
+        let geometry = &data.info.geometry;
+        let to_lps = |p: Pos2| {
+            let index = self.index_at(p, image_rect, data, scene);
+            geometry.patient_from_index(glam::DVec3::from(index))
+        };
+        let labels = seg.layer.geometry();
+        let plane = |centre| {
+            plane_for_view(
+                frame.normal_axis,
+                frame.across_axis,
+                frame.down_axis,
+                geometry,
+                &labels,
+                centre,
+            )
+        };
+        if !seg.tool.drags() {
+            // Fill and grow: a click is the seed.
+            if response.clicked_by(egui::PointerButton::Primary) {
+                if let Some(pos) = response
+                    .interact_pointer_pos()
+                    .filter(|p| image_rect.contains(*p))
+                {
+                    let p = to_lps(pos);
+                    let ctx = ui.ctx().clone();
+                    seg.click_at(plane(p), p, Arc::new(move || ctx.request_repaint()));
+                }
+            }
+            return;
+        }
+        let stroke_to = |seg: &mut Segmentation, pos: Pos2| {
+            let p = to_lps(pos);
+            seg.stroke_to(plane(p), p);
+        };
+        if response.drag_started_by(egui::PointerButton::Primary) {
+            if let Some(origin) = ui
+                .input(|i| i.pointer.press_origin())
+                .filter(|p| image_rect.contains(*p))
+            {
+                stroke_to(seg, origin);
+            }
+        }
+        if response.dragged_by(egui::PointerButton::Primary) && seg.stroke_in_progress() {
+            if let Some(pos) = response.interact_pointer_pos() {
+                stroke_to(seg, pos);
+            }
+        }
+        if response.drag_stopped_by(egui::PointerButton::Primary) {
+            seg.end_stroke();
+        }
+        if response.clicked_by(egui::PointerButton::Primary) {
+            if let Some(pos) = response
+                .interact_pointer_pos()
+                .filter(|p| image_rect.contains(*p))
+            {
+                stroke_to(seg, pos);
+                seg.end_stroke();
+            }
+        }
+    }
+
     /// Draws the measurements lying on the slice shown (and the one being drawn).
     fn paint_measurements(
         &self,
@@ -413,6 +490,7 @@ impl SliceViewer {
         data: &VolumeData,
         scene: &mut Scene,
         overlay: Option<&Overlay>,
+        mut segmentation: Option<&mut Segmentation>,
     ) -> ViewResponse {
         let view = self.view;
         let frame = data.frame(view);
@@ -446,7 +524,10 @@ impl SliceViewer {
         let image_rect = self.zoom_pan.image_rect(inner, frame.extent_mm(geometry));
 
         let tool = scene.measurements.tool;
-        if tool != Tool::Navigate {
+        let painting = segmentation.as_ref().is_some_and(|s| s.tool.paints());
+        if let Some(seg) = segmentation.as_deref_mut().filter(|_| painting) {
+            self.brush_input(ui, &response, image_rect, data, scene, seg);
+        } else if tool != Tool::Navigate {
             self.measure_input(ui, &response, image_rect, data, scene);
         } else if let Some(pos) = response.interact_pointer_pos().filter(|_| !double_clicked) {
             if (response.clicked() || response.dragged_by(egui::PointerButton::Primary))
@@ -552,6 +633,14 @@ impl SliceViewer {
             ),
         );
         paint_crosshair(&painter, image_rect, centre);
+        if let Some(seg) = segmentation.as_deref().filter(|s| s.tool.drags()) {
+            if let Some(pos) = response.hover_pos().filter(|p| image_rect.contains(*p)) {
+                // The image keeps the patient's proportions: one scale for both directions.
+                let (across_mm, _) = frame.extent_mm(geometry);
+                let radius = (seg.diameter_mm / 2.0 / across_mm) as f32 * image_rect.width();
+                painter.circle_stroke(pos, radius, Stroke::new(1.0, Color32::WHITE));
+            }
+        }
         self.paint_measurements(&painter, image_rect, data, scene);
         paint_orientation_labels(&painter, rect, frame.labels);
         let n = frame.normal_axis;

@@ -1,5 +1,5 @@
 //! The side panels, each a type owning its state with a `ui()`: transfer function, slices,
-//! frames (4-D cine), measurements, overlay, rendering,
+//! frames (4-D cine), measurements, overlay, segment (segmentation), rendering,
 //! performance, screenshot, volume information. [`Panels::ui`] stacks them in the side bar.
 
 pub mod frames;
@@ -9,6 +9,7 @@ pub mod overlay;
 pub mod performance;
 pub mod rendering;
 pub mod screenshot;
+pub mod segment;
 pub mod slices;
 pub mod transfer_function;
 
@@ -26,6 +27,9 @@ pub struct Panels {
     pub performance: performance::PerformancePanel,
     pub screenshot: screenshot::ScreenshotPanel,
     pub overlay: overlay::OverlayPanel,
+    pub segment: segment::SegmentPanel,
+    /// What the Segment section asked for this frame (the app carries it out).
+    pub segment_request: Option<segment::SegmentRequest>,
 }
 
 /// What the side panels work on.
@@ -40,6 +44,9 @@ pub struct PanelContext<'a> {
     pub frames: &'a mut Option<super::frames::FramePlayer>,
     /// Where an overlay scan is imported to.
     pub import_folder: &'a std::path::Path,
+    /// The editable label layer, if one is open.
+    pub segmentation: &'a mut Option<super::segmentation::Segmentation>,
+    pub segment_error: Option<&'a str>,
 }
 
 impl Panels {
@@ -53,6 +60,8 @@ impl Panels {
             overlay,
             frames,
             import_folder,
+            segmentation,
+            segment_error,
         } = cx;
         if let Some(player) = frames.as_mut() {
             egui::CollapsingHeader::new("Frames")
@@ -74,6 +83,20 @@ impl Panels {
             .default_open(overlay.is_some())
             .show(ui, |ui| {
                 self.overlay.ui(ui, overlay, import_folder);
+            });
+        egui::CollapsingHeader::new("Segment")
+            .default_open(segmentation.is_some())
+            .show(ui, |ui| {
+                let folder = segment::save_folder(
+                    segmentation.as_ref(),
+                    import_folder.parent().unwrap_or(import_folder),
+                );
+                if let Some(r) =
+                    self.segment
+                        .ui(ui, segmentation, overlay.as_ref(), segment_error, &folder)
+                {
+                    self.segment_request = Some(r);
+                }
             });
         egui::CollapsingHeader::new("Measurements")
             .default_open(true)

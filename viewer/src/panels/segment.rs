@@ -1,0 +1,423 @@
+//! The Segment section: start a segmentation (new on the primary's grid, or the open label
+//! overlay made editable), the tools as one compact row (brush, eraser, slice fill, 3D grow;
+//! size in mm, an optional value range), the segment list (active segment, colour, name,
+//! shown, locked, remove), the operations on the active segment (fill between slices, islands,
+//! margin, union / subtract / intersect), statistics with Copy as CSV, and Save As.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use egui::{Color32, RichText};
+use strata_segment::tools::morphology::{Islands, LogicalOp};
+use strata_segment::Label;
+
+use crate::file_chooser::{ChooserKind, Chosen, FileChooser};
+use crate::overlay::{Overlay, OverlayKind};
+use crate::segmentation::{Operation, SaveFormat, SegmentTool, Segmentation};
+
+/// What the section asks the app to do (it needs the volume's store and the journal's place).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SegmentRequest {
+    /// An empty segmentation on the primary's grid.
+    New,
+    /// The label overlay's file as an editable layer.
+    EditOverlay,
+    /// Stop editing (the journal stays until the next segmentation replaces it).
+    Close,
+}
+
+/// The section's own settings and the Save As chooser while it is open.
+pub struct SegmentPanel {
+    pub format: SaveFormat,
+    pub min_island_voxels: u64,
+    pub margin_mm: f64,
+    /// The other segment of union / subtract / intersect.
+    pub other: Label,
+    chooser: Option<(FileChooser, SaveFormat)>,
+}
+
+impl Default for SegmentPanel {
+    fn default() -> Self {
+        SegmentPanel {
+            format: SaveFormat::Nifti,
+            min_island_voxels: 100,
+            margin_mm: 2.0,
+            other: 0,
+            chooser: None,
+        }
+    }
+}
+
+impl SegmentPanel {
+    pub fn ui(
+        &mut self,
+        ui: &mut egui::Ui,
+        segmentation: &mut Option<Segmentation>,
+        overlay: Option<&Overlay>,
+        error: Option<&str>,
+        save_folder: &std::path::Path,
+    ) -> Option<SegmentRequest> {
+        let mut request = None;
+        let Some(seg) = segmentation.as_mut() else {
+            ui.horizontal(|ui| {
+                if ui
+                    .button("New segmentation")
+                    .on_hover_text("An empty label layer on this volume's grid")
+                    .clicked()
+                {
+                    request = Some(SegmentRequest::New);
+                }
+                let editable = overlay.is_some_and(|o| o.kind == OverlayKind::Labels);
+                if ui
+                    .add_enabled(editable, egui::Button::new("Edit overlay"))
+                    .on_hover_text("Edit the open label overlay, on its own grid")
+                    .on_disabled_hover_text("Open a label map or DICOM SEG as the overlay first")
+                    .clicked()
+                {
+                    request = Some(SegmentRequest::EditOverlay);
+                }
+            });
+            if let Some(e) = error {
+                ui.colored_label(Color32::LIGHT_RED, e);
+            }
+            return request;
+        };
+        tools(ui, seg);
+        segment_list(ui, seg);
+        self.operations(ui, seg);
+        statistics(ui, seg);
+        self.save(ui, seg, save_folder);
+        ui.horizontal(|ui| {
+            if ui
+                .button("Close")
+                .on_hover_text("Stop editing this segmentation")
+                .clicked()
+            {
+                request = Some(SegmentRequest::Close);
+            }
+            if let Some(path) = seg.journal_file() {
+                ui.label(RichText::new("Every edit is journaled").small())
+                    .on_hover_text(path.display().to_string());
+            }
+        });
+        if let Some(n) = &seg.notice {
+            ui.label(n);
+        }
+        if let Some(e) = seg.error.as_deref().or(error) {
+            ui.colored_label(Color32::LIGHT_RED, e);
+        }
+        request
+    }
+
+    fn operations(&mut self, ui: &mut egui::Ui, seg: &mut Segmentation) {
+        let enabled = !seg.busy() && seg.active != 0;
+        ui.add_enabled_ui(enabled, |ui| {
+            ui.horizontal_wrapped(|ui| {
+                if ui
+                    .button("Between slices")
+                    .on_hover_text(
+                        "Interpolate the active segment into the slices between the ones drawn, \
+                         along the last stroke's view",
+                    )
+                    .clicked()
+                {
+                    seg.operate(Operation::FillBetween(seg.last_plane));
+                }
+                if ui
+                    .button("Keep largest")
+                    .on_hover_text("Keep only the largest connected island")
+                    .clicked()
+                {
+                    seg.operate(Operation::Islands(Islands::KeepLargest));
+                }
+                if ui.button("Remove islands <").clicked() {
+                    seg.operate(Operation::Islands(Islands::RemoveSmallerThan(
+                        self.min_island_voxels,
+                    )));
+                }
+                ui.add(
+                    egui::DragValue::new(&mut self.min_island_voxels)
+                        .range(1..=u64::MAX)
+                        .suffix(" vx"),
+                );
+            });
+            ui.horizontal(|ui| {
+                if ui
+                    .button("Margin")
+                    .on_hover_text("Grow (> 0) or shrink (< 0) the active segment by this many mm")
+                    .clicked()
+                {
+                    seg.operate(Operation::Margin(self.margin_mm));
+                }
+                ui.add(
+                    egui::DragValue::new(&mut self.margin_mm)
+                        .range(-200.0..=200.0)
+                        .speed(0.1)
+                        .suffix(" mm"),
+                );
+            });
+            ui.horizontal(|ui| {
+                let segments = seg.segments();
+                let name = |v: Label| {
+                    segments
+                        .get(v)
+                        .map_or_else(|| "—".to_string(), |s| s.name.clone())
+                };
+                egui::ComboBox::from_id_salt("segment operand")
+                    .selected_text(name(self.other))
+                    .width(90.0)
+                    .show_ui(ui, |ui| {
+                        for s in segments.iter().filter(|s| s.value != seg.active) {
+                            ui.selectable_value(&mut self.other, s.value, &s.name);
+                        }
+                    });
+                for (op, label) in [
+                    (LogicalOp::Union, "Union"),
+                    (LogicalOp::Subtract, "Subtract"),
+                    (LogicalOp::Intersect, "Intersect"),
+                ] {
+                    if ui
+                        .add_enabled(self.other != 0, egui::Button::new(label))
+                        .on_hover_text("The active segment with the chosen one")
+                        .clicked()
+                    {
+                        seg.operate(Operation::Combine(op, self.other));
+                    }
+                }
+            });
+        });
+    }
+
+    fn save(&mut self, ui: &mut egui::Ui, seg: &mut Segmentation, folder: &std::path::Path) {
+        ui.horizontal(|ui| {
+            egui::ComboBox::from_id_salt("segment save format")
+                .selected_text(self.format.label())
+                .show_ui(ui, |ui| {
+                    for f in SaveFormat::ALL {
+                        ui.selectable_value(&mut self.format, f, f.label());
+                    }
+                });
+            let busy = self.chooser.is_some() || seg.saving();
+            if ui
+                .add_enabled(!busy, egui::Button::new("Save as…"))
+                .on_hover_text(
+                    "Write the segmentation where other tools read it; an earlier file is \
+                     replaced only once the new one is complete",
+                )
+                .clicked()
+            {
+                let chooser = FileChooser::start(
+                    ui.ctx(),
+                    ChooserKind::SaveFile,
+                    "Save segmentation as",
+                    folder,
+                    Some(self.format.default_name()),
+                );
+                self.chooser = Some((chooser, self.format));
+            }
+            if seg.saving() {
+                ui.spinner();
+            }
+        });
+        if let Some((chooser, format)) = self.chooser.as_mut() {
+            match chooser.poll(ui.ctx()) {
+                Some(Chosen::Path(path)) => {
+                    let (ctx, format) = (ui.ctx().clone(), *format);
+                    seg.start_save(path, format, Arc::new(move || ctx.request_repaint()));
+                    self.chooser = None;
+                }
+                Some(Chosen::Nothing) => self.chooser = None,
+                None => {}
+            }
+        }
+        match &seg.saved {
+            Some(Ok(path)) => {
+                ui.label(RichText::new(format!("Saved {}", short(path))).small())
+                    .on_hover_text(path.display().to_string());
+            }
+            Some(Err(e)) => {
+                ui.colored_label(Color32::LIGHT_RED, e);
+            }
+            None => {}
+        }
+    }
+}
+
+fn short(path: &std::path::Path) -> String {
+    path.file_name().map_or_else(
+        || path.display().to_string(),
+        |n| n.to_string_lossy().into_owned(),
+    )
+}
+
+/// The tool row, its size and value range, and the grow's settings and progress.
+fn tools(ui: &mut egui::Ui, seg: &mut Segmentation) {
+    ui.horizontal(|ui| {
+        ui.selectable_value(&mut seg.tool, SegmentTool::None, "Off")
+            .on_hover_text("The left button moves the crosshair");
+        ui.selectable_value(&mut seg.tool, SegmentTool::Brush, "Brush")
+            .on_hover_text("Paint the active segment: drag on a slice");
+        ui.selectable_value(&mut seg.tool, SegmentTool::Eraser, "Eraser")
+            .on_hover_text("Clear any unlocked segment: drag on a slice");
+        ui.selectable_value(&mut seg.tool, SegmentTool::Fill, "Fill")
+            .on_hover_text("Fill the closed region around a click, in that slice");
+        ui.selectable_value(&mut seg.tool, SegmentTool::Grow, "Grow")
+            .on_hover_text("Grow the active segment in 3D from a clicked seed");
+        ui.add(
+            egui::DragValue::new(&mut seg.diameter_mm)
+                .range(0.1..=500.0)
+                .speed(0.2)
+                .suffix(" mm"),
+        )
+        .on_hover_text("Brush diameter");
+    });
+    ui.horizontal(|ui| {
+        let growing_by_sigma = seg.tool == SegmentTool::Grow && seg.grow.mean_sigma;
+        if seg.tool == SegmentTool::Grow {
+            ui.label("Values");
+        } else {
+            ui.checkbox(&mut seg.limit_to_range, "Only values")
+                .on_hover_text(
+                    "Paint, erase or fill only where the volume's value lies in the range",
+                );
+        }
+        let enabled = (seg.limit_to_range || seg.tool == SegmentTool::Grow) && !growing_by_sigma;
+        ui.add_enabled(enabled, egui::DragValue::new(&mut seg.range.0).speed(1.0));
+        ui.label("to");
+        ui.add_enabled(enabled, egui::DragValue::new(&mut seg.range.1).speed(1.0));
+    });
+    if seg.tool == SegmentTool::Grow {
+        ui.horizontal(|ui| {
+            ui.checkbox(&mut seg.grow.mean_sigma, "mean ± k·σ")
+                .on_hover_text("The range from the 3×3×3 voxels around the seed");
+            ui.add_enabled(
+                seg.grow.mean_sigma,
+                egui::DragValue::new(&mut seg.grow.k)
+                    .range(0.0..=10.0)
+                    .speed(0.05),
+            );
+            ui.label("cap");
+            ui.add(
+                egui::DragValue::new(&mut seg.grow.max_voxels)
+                    .range(1..=u64::MAX)
+                    .speed(10_000.0)
+                    .suffix(" vx"),
+            )
+            .on_hover_text("The grow stops here, keeping what it took");
+        });
+    }
+    if let Some((done, cap)) = seg.grow_progress() {
+        ui.horizontal(|ui| {
+            ui.add(
+                egui::ProgressBar::new((done as f32 / cap.max(1) as f32).min(1.0))
+                    .text(format!("{done} voxels"))
+                    .desired_width(160.0),
+            );
+            if ui.button("Cancel").clicked() {
+                seg.cancel_grow();
+            }
+        });
+    }
+}
+
+/// The segments: active one, colour, name, shown, locked, remove; and Add segment.
+fn segment_list(ui: &mut egui::Ui, seg: &mut Segmentation) {
+    let mut table = seg.segments();
+    let before = table.clone();
+    let mut active = seg.active;
+    let mut remove = None;
+    let values: Vec<Label> = table.iter().map(|s| s.value).collect();
+    for value in values {
+        let Some(s) = table.get_mut(value) else {
+            continue;
+        };
+        ui.horizontal(|ui| {
+            ui.radio_value(&mut active, s.value, "")
+                .on_hover_text("The segment the tools paint");
+            ui.color_edit_button_srgb(&mut s.rgb);
+            ui.add(egui::TextEdit::singleline(&mut s.name).desired_width(110.0));
+            ui.checkbox(&mut s.visible, "Shown");
+            ui.checkbox(&mut s.locked, "Locked")
+                .on_hover_text("No tool paints over or erases a locked segment");
+            if ui
+                .small_button("×")
+                .on_hover_text("Remove the segment and clear its voxels (undoable)")
+                .clicked()
+            {
+                remove = Some(s.value);
+            }
+        });
+    }
+    seg.active = active;
+    if table != before {
+        seg.with_segments(|t| *t = table);
+    }
+    if let Some(value) = remove {
+        seg.remove_segment(value);
+    }
+    if ui.button("Add segment").clicked() {
+        seg.add_segment();
+    }
+}
+
+/// The statistics table (computed on request, in the background) and Copy as CSV.
+fn statistics(ui: &mut egui::Ui, seg: &mut Segmentation) {
+    ui.horizontal(|ui| {
+        let running = seg.statistics_running();
+        if ui
+            .add_enabled(!running, egui::Button::new("Statistics"))
+            .on_hover_text("Voxels, volume and the volume's values in each segment")
+            .clicked()
+        {
+            let ctx = ui.ctx().clone();
+            seg.start_statistics(Arc::new(move || ctx.request_repaint()));
+        }
+        if running {
+            ui.spinner();
+        }
+        if let Some(Ok(stats)) = &seg.stats {
+            if ui.button("Copy as CSV").clicked() {
+                ui.ctx().copy_text(strata_segment::stats::to_csv(stats));
+            }
+        }
+    });
+    match &seg.stats {
+        Some(Ok(stats)) => {
+            let unit = if stats.unit.is_empty() {
+                String::new()
+            } else {
+                format!(" ({})", stats.unit)
+            };
+            let value = |v: Option<f64>| v.map_or_else(|| "–".to_string(), |v| format!("{v:.1}"));
+            egui::Grid::new("segment statistics")
+                .striped(true)
+                .show(ui, |ui| {
+                    ui.label("Segment");
+                    ui.label("Voxels");
+                    ui.label("mL");
+                    ui.label(format!("Mean{unit}"));
+                    ui.label("SD");
+                    ui.end_row();
+                    for s in &stats.segments {
+                        ui.label(&s.name);
+                        ui.label(s.voxels.to_string());
+                        ui.label(format!("{:.2}", s.volume_ml));
+                        ui.label(value(s.mean));
+                        ui.label(value(s.sd));
+                        ui.end_row();
+                    }
+                });
+        }
+        Some(Err(e)) => {
+            ui.colored_label(Color32::LIGHT_RED, e);
+        }
+        None => {}
+    }
+}
+
+/// Where Save As starts: the folder of the label file the layer came from, else `fallback`.
+pub fn save_folder(seg: Option<&Segmentation>, fallback: &std::path::Path) -> PathBuf {
+    seg.and_then(|s| s.base_file.as_ref())
+        .and_then(|f| f.parent())
+        .map_or_else(|| fallback.to_path_buf(), |p| p.to_path_buf())
+}

@@ -1,0 +1,1024 @@
+//! The editable label layer of a viewer session (issue 52): a strata-segment [`LabelLayer`]
+//! shown through the overlay (overlay.rs samples it directly, so a stroke shows on the next
+//! sampled slice), the brush and eraser of the slice views, and the journal of completed edits.
+//!
+//! A stroke is applied as it is drawn, one small edit per pointer event (each the swept disc
+//! between the last two pointer positions), and becomes one edit when the button is released:
+//! that edit is one undo step in the viewer's history (history.rs) and one journal record.
+//! Undo and redo are journaled too (as the edit reversed, or again), so replaying the journal
+//! gives the layer as the user left it.
+//!
+//! The journal lives beside the autosaved session (`segmentation.journal`), with a small
+//! `segmentation.journal.json` naming the primary store and the label file the layer started
+//! from; the next start on the same primary offers to recover it (app.rs).
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, RwLock, RwLockReadGuard, RwLockWriteGuard};
+
+use glam::DVec3;
+use strata_render::{ValueMapping, VolumeGeometry};
+use strata_segment::history::merge_edits;
+use strata_segment::intensity::{Intensity, ValueRange};
+use strata_segment::journal::{Journal, Recovery};
+use strata_segment::stats::{segment_statistics, Statistics};
+use strata_segment::tools::brush::{self, Brush, BrushAction, BrushShape, EraseTarget, SlicePlane};
+use strata_segment::tools::grow::{grow_from_seed, GrowCriterion};
+use strata_segment::tools::morphology::{
+    combine, margin, remove_islands, Islands, LogicalOp, Operand,
+};
+use strata_segment::tools::Outcome;
+use strata_segment::{
+    BrickKey, Edit, Label, LabelGrid, LabelLayer, SegmentError, SegmentTable, LABEL_BRICK,
+};
+use strata_source::VolumeSource;
+use strata_storage::{BrickId, BRICK_APRON, BRICK_PAYLOAD};
+
+/// A label layer shared between the UI (which edits it) and the overlay's reader thread (which
+/// samples it); `revision` counts changes so the reader knows a slice it sampled is stale.
+pub struct SharedLayer {
+    layer: RwLock<LabelLayer>,
+    revision: AtomicU64,
+}
+
+impl SharedLayer {
+    pub fn new(layer: LabelLayer) -> Self {
+        SharedLayer {
+            layer: RwLock::new(layer),
+            revision: AtomicU64::new(0),
+        }
+    }
+
+    pub fn read(&self) -> RwLockReadGuard<'_, LabelLayer> {
+        self.layer.read().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// The layer for a change; the revision moves on when the guard is taken, so a reader that
+    /// sampled before it sees its slice as stale.
+    fn write(&self) -> RwLockWriteGuard<'_, LabelLayer> {
+        let guard = self.layer.write().unwrap_or_else(|e| e.into_inner());
+        self.revision.fetch_add(1, Ordering::AcqRel);
+        guard
+    }
+
+    pub fn revision(&self) -> u64 {
+        self.revision.load(Ordering::Acquire)
+    }
+
+    pub fn geometry(&self) -> VolumeGeometry {
+        self.read().grid().geometry().clone()
+    }
+}
+
+/// The tool the left button uses on a slice view.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SegmentTool {
+    /// The left button moves the crosshair (or measures).
+    None,
+    Brush,
+    Eraser,
+    /// A click fills the closed region around it in the slice.
+    Fill,
+    /// A click grows the active segment in 3D from that seed (in the background).
+    Grow,
+}
+
+impl SegmentTool {
+    /// Whether the left button is the tool's (not the crosshair's).
+    pub fn paints(self) -> bool {
+        self != SegmentTool::None
+    }
+
+    /// Whether the tool is dragged (brush, eraser) rather than clicked.
+    pub fn drags(self) -> bool {
+        matches!(self, SegmentTool::Brush | SegmentTool::Eraser)
+    }
+}
+
+/// Most voxels one slice fill takes (a 4096² slice); beyond it the fill stops, keeping what it
+/// took.
+pub const FILL_MAX_VOXELS: u64 = 1 << 24;
+
+/// Region growing's settings: the panel's value range, or mean ± k·σ around the seed.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct GrowSettings {
+    pub mean_sigma: bool,
+    pub k: f64,
+    /// The grow stops at this many voxels, keeping what it took (one undoable step).
+    pub max_voxels: u64,
+}
+
+/// A region growing running on its own thread, on a clone of the layer.
+struct GrowJob {
+    thread: std::thread::JoinHandle<Result<(Outcome, ValueRange), SegmentError>>,
+    progress: Arc<AtomicU64>,
+    cancel: Arc<AtomicBool>,
+}
+
+/// The one-click operations of the panel, on the active segment.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Operation {
+    /// Interpolate the slices between drawn ones along the plane's normal.
+    FillBetween(SlicePlane),
+    Islands(Islands),
+    /// Grow (> 0) or shrink (< 0) by this many mm.
+    Margin(f64),
+    /// The active segment combined with another.
+    Combine(LogicalOp, Label),
+}
+
+/// The file formats Save As writes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SaveFormat {
+    Nifti,
+    DicomSeg,
+    /// `labels/segmentation` inside the chosen OME-Zarr image folder.
+    OmeZarr,
+}
+
+impl SaveFormat {
+    pub const ALL: [SaveFormat; 3] = [SaveFormat::Nifti, SaveFormat::DicomSeg, SaveFormat::OmeZarr];
+
+    pub fn label(self) -> &'static str {
+        match self {
+            SaveFormat::Nifti => "NIfTI label map",
+            SaveFormat::DicomSeg => "DICOM SEG",
+            SaveFormat::OmeZarr => "OME-Zarr labels",
+        }
+    }
+
+    pub fn default_name(self) -> &'static str {
+        match self {
+            SaveFormat::Nifti => "segmentation.nii.gz",
+            SaveFormat::DicomSeg => "segmentation.dcm",
+            SaveFormat::OmeZarr => "image.zarr",
+        }
+    }
+}
+
+/// Writes `layer` to `path` as `format`; the file replaces an earlier one only once complete.
+pub fn save_layer(
+    layer: &LabelLayer,
+    path: &Path,
+    format: SaveFormat,
+) -> Result<PathBuf, SegmentError> {
+    use strata_segment::io;
+    match format {
+        SaveFormat::Nifti => io::write_nifti(layer, path).map(|()| path.to_path_buf()),
+        SaveFormat::DicomSeg => {
+            io::write_dicom_seg(layer, path, &io::SegOptions::default()).map(|_| path.to_path_buf())
+        }
+        SaveFormat::OmeZarr => io::write_omezarr_labels(layer, path, "segmentation"),
+    }
+}
+
+/// A stroke being drawn: its plane, the pointer positions so far (LPS mm) and the small edits
+/// already applied.
+struct StrokeInProgress {
+    plane: SlicePlane,
+    action: BrushAction,
+    positions: Vec<DVec3>,
+    edits: Vec<Edit>,
+}
+
+/// Where the journal and its note live: beside the autosaved session of `data_folder`
+/// (`last-session.json`, session_restore.rs), i.e. beside the data folder.
+pub fn journal_path(data_folder: &Path) -> PathBuf {
+    data_folder
+        .parent()
+        .unwrap_or(data_folder)
+        .join("segmentation.journal")
+}
+
+/// The note beside a journal: what its edits apply to.
+pub fn note_path(journal: &Path) -> PathBuf {
+    let mut name = journal.as_os_str().to_owned();
+    name.push(".json");
+    PathBuf::from(name)
+}
+
+/// What the journal's edits apply to.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct JournalNote {
+    /// The primary store the layer was drawn over.
+    pub primary: PathBuf,
+    /// The label file the layer started from; `None` for a new, empty segmentation.
+    pub base: Option<PathBuf>,
+}
+
+/// A journal left by an earlier session with edits in it, offered for recovery.
+pub struct PendingRecovery {
+    pub journal: PathBuf,
+    pub note: JournalNote,
+    pub recovery: Recovery,
+}
+
+impl PendingRecovery {
+    /// The journal beside the session of `data_folder`, if it holds edits made over `primary`.
+    /// A journal that cannot be read at all is reported, not offered.
+    pub fn find(data_folder: &Path, primary: &Path) -> Result<Option<Self>, String> {
+        let journal = journal_path(data_folder);
+        if !journal.exists() {
+            return Ok(None);
+        }
+        let note_file = note_path(&journal);
+        let note: JournalNote = match std::fs::read(&note_file) {
+            Ok(bytes) => serde_json::from_slice(&bytes)
+                .map_err(|e| format!("{}: not a journal note: {e}", note_file.display()))?,
+            Err(e) => return Err(format!("{}: {e}", note_file.display())),
+        };
+        if note.primary != primary {
+            return Ok(None);
+        }
+        let recovery = strata_segment::journal::recover(&journal).map_err(|e| e.to_string())?;
+        if recovery.edits.is_empty() {
+            return Ok(None);
+        }
+        Ok(Some(PendingRecovery {
+            journal,
+            note,
+            recovery,
+        }))
+    }
+
+    /// Rebuilds the layer: the base (empty on the primary's grid, or the label file), then
+    /// every recovered edit in order.
+    pub fn layer(&self, primary: &VolumeGeometry) -> Result<LabelLayer, SegmentError> {
+        let mut layer = match &self.note.base {
+            Some(file) => strata_segment::io::load_label_file(file)?,
+            None => LabelLayer::new_empty(primary.clone())?,
+        };
+        if layer.grid().geometry() != &self.recovery.geometry {
+            return Err(SegmentError::Format {
+                path: self.journal.clone(),
+                message: "the journal was written for another label grid than its base now has"
+                    .into(),
+            });
+        }
+        self.recovery.replay_onto(&mut layer);
+        Ok(layer)
+    }
+
+    /// Removes the journal and its note (the user discarded the edits).
+    pub fn discard(&self) -> std::io::Result<()> {
+        std::fs::remove_file(&self.journal)?;
+        match std::fs::remove_file(note_path(&self.journal)) {
+            Err(e) if e.kind() != std::io::ErrorKind::NotFound => Err(e),
+            _ => Ok(()),
+        }
+    }
+}
+
+/// The primary's physical values on the label grid, when that grid is the primary's own (a new
+/// segmentation): a label brick is exactly the store's level-0 brick core.
+pub struct PrimaryIntensity {
+    store: Arc<dyn VolumeSource>,
+    mapping: ValueMapping,
+}
+
+impl Intensity for PrimaryIntensity {
+    fn value(&self, grid: &LabelGrid, voxel: [u32; 3]) -> Result<f32, SegmentError> {
+        let (key, at) = grid.brick_of(voxel);
+        let mut out = vec![0.0; strata_segment::LABEL_BRICK_VOXELS];
+        self.read_brick(grid, key, &mut out)?;
+        Ok(out[at])
+    }
+
+    fn read_brick(
+        &self,
+        grid: &LabelGrid,
+        key: BrickKey,
+        out: &mut [f32],
+    ) -> Result<(), SegmentError> {
+        let stored =
+            self.store
+                .read_brick(BrickId::new(0, key.0))
+                .map_err(|e| SegmentError::BaseRead {
+                    brick: key.0,
+                    message: format!("primary volume: {e}"),
+                })?;
+        let b = LABEL_BRICK as usize;
+        let edge = BRICK_PAYLOAD as usize;
+        let apron = BRICK_APRON as usize;
+        let origin = grid.brick_origin(key);
+        let dims = grid.dims();
+        for lk in 0..b {
+            for lj in 0..b {
+                for li in 0..b {
+                    let voxel = [origin[0] as usize + li, origin[1] as usize + lj];
+                    let k = origin[2] as usize + lk;
+                    let inside = voxel[0] < dims[0] as usize
+                        && voxel[1] < dims[1] as usize
+                        && k < dims[2] as usize;
+                    out[li + b * (lj + b * lk)] = if inside {
+                        let s = stored[((lk + apron) * edge + lj + apron) * edge + li + apron];
+                        self.mapping.physical(s as f64) as f32
+                    } else {
+                        f32::NAN
+                    };
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Distinguishes layers, so an undo step of a layer since removed is never applied to another.
+static NEXT_LAYER_ID: AtomicU64 = AtomicU64::new(1);
+
+/// The editable label layer of a session and its tools' settings.
+pub struct Segmentation {
+    pub id: u64,
+    pub layer: Arc<SharedLayer>,
+    /// The label file it started from (`None`: a new segmentation).
+    pub base_file: Option<PathBuf>,
+    journal: Option<Journal>,
+    /// The segment table as last journaled (a change is journaled once the gesture ends).
+    journaled_segments: SegmentTable,
+    /// The primary's values, for a brush limited to a value range (only on the primary's grid).
+    intensity: Option<Arc<dyn Intensity>>,
+    pub tool: SegmentTool,
+    pub diameter_mm: f64,
+    /// Paint only where the primary's value lies in the range, when enabled.
+    pub limit_to_range: bool,
+    pub range: (f64, f64),
+    /// The segment the brush paints.
+    pub active: Label,
+    stroke: Option<StrokeInProgress>,
+    /// The pointer positions (LPS mm) of the last completed stroke, as applied (tests, status).
+    pub last_stroke: Vec<DVec3>,
+    /// The last tool or journal error, shown in the panel until the next success.
+    pub error: Option<String>,
+    /// Completed edits not yet in the viewer's history (app.rs moves them there each frame).
+    completed: Vec<Edit>,
+    /// The statistics being computed on their own thread.
+    stats_job: Option<std::thread::JoinHandle<Result<Statistics, SegmentError>>>,
+    /// The last statistics computed (or why they could not be).
+    pub stats: Option<Result<Statistics, String>>,
+    pub grow: GrowSettings,
+    grow_job: Option<GrowJob>,
+    /// What the last tool said that is not an error (a grow stopped at its cap, cancelled).
+    pub notice: Option<String>,
+    /// A save running on its own thread, and the last save's file or error.
+    save_job: Option<std::thread::JoinHandle<Result<PathBuf, SegmentError>>>,
+    pub saved: Option<Result<PathBuf, String>>,
+    /// The plane of the last stroke (fill between slices interpolates along its normal).
+    pub last_plane: SlicePlane,
+}
+
+impl Segmentation {
+    /// A layer ready for editing, journaling to `journal` (a new journal: any earlier one there
+    /// is replaced, its edits having been recovered or discarded).
+    pub fn start(
+        layer: LabelLayer,
+        base_file: Option<PathBuf>,
+        primary: (&Path, &VolumeGeometry, &Arc<dyn VolumeSource>, ValueMapping),
+        journal: Option<&Path>,
+        fresh_journal: bool,
+    ) -> Self {
+        let (primary_path, primary_geometry, store, mapping) = primary;
+        let geometry = layer.grid().geometry().clone();
+        let intensity: Option<Arc<dyn Intensity>> = (geometry == *primary_geometry).then(|| {
+            Arc::new(PrimaryIntensity {
+                store: store.clone(),
+                mapping,
+            }) as Arc<dyn Intensity>
+        });
+        let mut error = None;
+        let journal = journal.and_then(|path| {
+            let opened = open_journal(
+                path,
+                &geometry,
+                &JournalNote {
+                    primary: primary_path.to_path_buf(),
+                    base: base_file.clone(),
+                },
+                fresh_journal,
+            );
+            opened.map_err(|e| error = Some(e)).ok()
+        });
+        let segments = layer.segments().clone();
+        let active = segments.iter().next().map_or(0, |s| s.value);
+        let mut seg = Segmentation {
+            id: NEXT_LAYER_ID.fetch_add(1, Ordering::Relaxed),
+            layer: Arc::new(SharedLayer::new(layer)),
+            base_file,
+            journal,
+            journaled_segments: SegmentTable::new(),
+            intensity,
+            tool: SegmentTool::None,
+            diameter_mm: 10.0,
+            limit_to_range: false,
+            range: (300.0, 3000.0),
+            active,
+            stroke: None,
+            last_stroke: Vec::new(),
+            error,
+            completed: Vec::new(),
+            stats_job: None,
+            stats: None,
+            grow: GrowSettings {
+                mean_sigma: false,
+                k: 2.0,
+                max_voxels: 50_000_000,
+            },
+            grow_job: None,
+            notice: None,
+            save_job: None,
+            saved: None,
+            last_plane: SlicePlane::Axial,
+        };
+        seg.journal_segments_if_changed();
+        seg
+    }
+
+    pub fn segments(&self) -> SegmentTable {
+        self.layer.read().segments().clone()
+    }
+
+    /// Changes the segment table (panel edits); journaled by [`Self::journal_segments_if_changed`].
+    pub fn with_segments<T>(&self, f: impl FnOnce(&mut SegmentTable) -> T) -> T {
+        f(self.layer.write().segments_mut())
+    }
+
+    /// Adds a segment named after its value and makes it the active one.
+    pub fn add_segment(&mut self) {
+        let added = self.with_segments(|t| {
+            let name = format!("Segment {}", t.len() + 1);
+            t.add(name)
+        });
+        match added {
+            Ok(value) => self.active = value,
+            Err(e) => self.error = Some(e.to_string()),
+        }
+    }
+
+    /// Removes a segment: its voxels become background (one edit, undoable; the undo brings
+    /// the voxels back, not the name) and its entry leaves the table.
+    pub fn remove_segment(&mut self, value: Label) {
+        let result = {
+            let mut layer = self.layer.write();
+            let [bx, by, bz] = layer.grid().bricks();
+            let mut holding = Vec::new();
+            let mut failed = None;
+            'scan: for k in 0..bz {
+                for j in 0..by {
+                    for i in 0..bx {
+                        let key = BrickKey([i, j, k]);
+                        if layer.brick_is_empty(key) {
+                            continue;
+                        }
+                        match layer.brick(key) {
+                            Ok(b) if b.contains(&value) => holding.push(key),
+                            Ok(_) => {}
+                            Err(e) => {
+                                failed = Some(e);
+                                break 'scan;
+                            }
+                        }
+                    }
+                }
+            }
+            match failed {
+                Some(e) => Err(e),
+                None => layer
+                    .edit("Remove segment", |w| {
+                        for key in holding {
+                            for v in w.brick_mut(key)?.iter_mut() {
+                                if *v == value {
+                                    *v = 0;
+                                }
+                            }
+                        }
+                        Ok(())
+                    })
+                    .inspect(|_| {
+                        layer.segments_mut().remove(value);
+                    }),
+            }
+        };
+        match result {
+            Ok(edit) => {
+                if let Some(edit) = edit {
+                    self.journal(&edit);
+                    self.completed.push(edit);
+                }
+                if self.active == value {
+                    self.active = self.segments().iter().next().map_or(0, |s| s.value);
+                }
+            }
+            Err(e) => self.error = Some(e.to_string()),
+        }
+    }
+
+    /// Journals the segment table when it differs from the last journaled one.
+    pub fn journal_segments_if_changed(&mut self) {
+        let now = self.segments();
+        if now == self.journaled_segments {
+            return;
+        }
+        if let Some(j) = self.journal.as_mut() {
+            if let Err(e) = j.append_segments(&now) {
+                self.error = Some(format!("journal: {e} (edits are kept in memory)"));
+            }
+        }
+        self.journaled_segments = now;
+    }
+
+    pub fn journal_file(&self) -> Option<&Path> {
+        self.journal.as_ref().map(|j| j.path())
+    }
+
+    /// The brush as the panel sets it, as a disc in `plane`.
+    pub fn brush(&self, plane: SlicePlane) -> Result<Brush, SegmentError> {
+        let value_range = if self.limit_to_range {
+            Some(ValueRange::new(self.range.0, self.range.1)?)
+        } else {
+            None
+        };
+        Ok(Brush {
+            shape: BrushShape::Disc(plane),
+            diameter_mm: self.diameter_mm,
+            value_range,
+        })
+    }
+
+    /// The pointer is down (or moved while down) at `position_lps` on `plane`: the stroke
+    /// starts there or is swept on to it, shown at once.
+    pub fn stroke_to(&mut self, plane: SlicePlane, position_lps: DVec3) {
+        if self.busy() {
+            return;
+        }
+        let stroke = self.stroke.get_or_insert_with(|| StrokeInProgress {
+            plane,
+            action: match self.tool {
+                SegmentTool::Eraser => BrushAction::Erase(EraseTarget::AnyUnlocked),
+                _ => BrushAction::Paint(self.active),
+            },
+            positions: Vec::new(),
+            edits: Vec::new(),
+        });
+        let from = stroke.positions.last().copied();
+        if from == Some(position_lps) {
+            return;
+        }
+        stroke.positions.push(position_lps);
+        let (plane, action) = (stroke.plane, stroke.action);
+        // The disc swept from the last position to this one (the first: a disc there).
+        let segment: Vec<DVec3> = from.into_iter().chain([position_lps]).collect();
+        let brush = match self.brush_for(plane) {
+            Ok(b) => b,
+            Err(e) => {
+                self.error = Some(e.to_string());
+                return;
+            }
+        };
+        let result = {
+            let mut layer = self.layer.write();
+            brush::stroke(
+                &mut layer,
+                &brush,
+                action,
+                &segment,
+                self.intensity.as_deref(),
+            )
+        };
+        match result {
+            Ok(edit) => {
+                if let (Some(edit), Some(s)) = (edit, self.stroke.as_mut()) {
+                    s.edits.push(edit);
+                }
+                self.error = None;
+            }
+            Err(e) => self.error = Some(e.to_string()),
+        }
+    }
+
+    fn brush_for(&self, plane: SlicePlane) -> Result<Brush, SegmentError> {
+        if self.limit_to_range && self.intensity.is_none() {
+            return Err(SegmentError::BadParameter(
+                "a value range needs the labels on the primary's own grid".into(),
+            ));
+        }
+        self.brush(plane)
+    }
+
+    /// The button was released: the stroke becomes one edit, journaled, and waits for the
+    /// history ([`Self::take_completed`]).
+    pub fn end_stroke(&mut self) {
+        let Some(stroke) = self.stroke.take() else {
+            return;
+        };
+        let name = match stroke.action {
+            BrushAction::Paint(_) => "Brush",
+            BrushAction::Erase(_) => "Eraser",
+        };
+        self.last_stroke = stroke.positions;
+        self.last_plane = stroke.plane;
+        if let Some(edit) = merge_edits(name, stroke.edits) {
+            self.journal(&edit);
+            self.completed.push(edit);
+        }
+    }
+
+    /// The edits completed since the last call, for the history.
+    pub fn take_completed(&mut self) -> Vec<Edit> {
+        std::mem::take(&mut self.completed)
+    }
+
+    pub fn stroke_in_progress(&self) -> bool {
+        self.stroke.is_some()
+    }
+
+    fn journal(&mut self, edit: &Edit) {
+        self.journal_segments_if_changed();
+        if let Some(j) = self.journal.as_mut() {
+            if let Err(e) = j.append(edit) {
+                self.error = Some(format!("journal: {e} (edits are kept in memory)"));
+            }
+        }
+    }
+
+    /// Undo: the layer as before `edit`, journaled as the edit reversed.
+    pub fn revert(&mut self, edit: &Edit) {
+        self.layer.write().revert(edit);
+        let reversed = Edit {
+            name: format!("Undo {}", edit.name),
+            changes: edit
+                .changes
+                .iter()
+                .map(|c| strata_segment::BrickChange {
+                    key: c.key,
+                    before: c.after.clone(),
+                    after: c.before.clone(),
+                })
+                .collect(),
+        };
+        self.journal(&reversed);
+    }
+
+    /// Redo: `edit` again, journaled again.
+    pub fn reapply(&mut self, edit: &Edit) {
+        self.layer.write().apply(edit);
+        self.journal(edit);
+    }
+
+    /// A grow is running (the layer's other tools wait for it: its edit is made on a clone).
+    pub fn busy(&self) -> bool {
+        self.grow_job.is_some()
+    }
+
+    /// A completed tool edit (already on the layer): journaled and handed to the history.
+    fn finish(&mut self, edit: Option<Edit>) {
+        if let Some(edit) = edit {
+            self.journal(&edit);
+            self.completed.push(edit);
+        }
+    }
+
+    /// The label-grid voxel nearest to `position_lps`, if it lies in the grid.
+    fn voxel_at(&self, position_lps: DVec3) -> Option<[u32; 3]> {
+        let layer = self.layer.read();
+        let index = layer.grid().index_from_patient(position_lps).round();
+        let v = [index.x, index.y, index.z].map(|c| c as i64);
+        layer.grid().contains(v).then(|| v.map(|c| c as u32))
+    }
+
+    /// A click with the fill or grow tool at `position_lps` on `plane`.
+    pub fn click_at(
+        &mut self,
+        plane: SlicePlane,
+        position_lps: DVec3,
+        repaint: super::sync::Repaint,
+    ) {
+        if self.busy() {
+            return;
+        }
+        let Some(seed) = self.voxel_at(position_lps) else {
+            self.error = Some("the click is outside the label grid".into());
+            return;
+        };
+        match self.tool {
+            SegmentTool::Fill => {
+                let range = match self.value_range() {
+                    Ok(r) => r,
+                    Err(e) => {
+                        self.error = Some(e.to_string());
+                        return;
+                    }
+                };
+                let intensity = self.intensity.clone();
+                let result = strata_segment::tools::fill::fill_in_slice(
+                    &mut self.layer.write(),
+                    &plane,
+                    seed,
+                    self.active,
+                    range,
+                    intensity.as_deref(),
+                    FILL_MAX_VOXELS,
+                );
+                self.take_outcome(result);
+            }
+            SegmentTool::Grow => self.start_grow(seed, repaint),
+            _ => {}
+        }
+    }
+
+    fn value_range(&self) -> Result<Option<ValueRange>, SegmentError> {
+        if !self.limit_to_range {
+            return Ok(None);
+        }
+        if self.intensity.is_none() {
+            return Err(SegmentError::BadParameter(
+                "a value range needs the labels on the primary's own grid".into(),
+            ));
+        }
+        ValueRange::new(self.range.0, self.range.1).map(Some)
+    }
+
+    fn take_outcome(&mut self, result: Result<Outcome, SegmentError>) {
+        match result {
+            Ok(outcome) => {
+                self.error = None;
+                self.notice = outcome.stopped_at_cap.then(|| {
+                    format!(
+                        "stopped at {} voxels, the cap; what it took is kept",
+                        outcome.voxels
+                    )
+                });
+                self.finish(outcome.edit);
+            }
+            Err(e) => self.error = Some(e.to_string()),
+        }
+    }
+
+    /// Grows the active segment from `seed` on a named thread, on a clone of the layer; the
+    /// edit is applied when it ends ([`Self::poll_grow`]).
+    pub fn start_grow(&mut self, seed: [u32; 3], repaint: super::sync::Repaint) {
+        let Some(intensity) = self.intensity.clone() else {
+            self.error = Some("region growing needs the labels on the primary's own grid".into());
+            return;
+        };
+        let criterion = if self.grow.mean_sigma {
+            GrowCriterion::MeanSigma { k: self.grow.k }
+        } else {
+            match ValueRange::new(self.range.0, self.range.1) {
+                Ok(r) => GrowCriterion::Range(r),
+                Err(e) => {
+                    self.error = Some(e.to_string());
+                    return;
+                }
+            }
+        };
+        let mut copy = self.layer.read().clone();
+        let (label, max_voxels) = (self.active, self.grow.max_voxels);
+        let progress = Arc::new(AtomicU64::new(0));
+        let cancel = Arc::new(AtomicBool::new(false));
+        let (thread_progress, thread_cancel) = (progress.clone(), cancel.clone());
+        let spawned = std::thread::Builder::new()
+            .name("strata-segment-grow".into())
+            .spawn(move || {
+                let mut last_wake = 0u64;
+                let result = grow_from_seed(
+                    &mut copy,
+                    intensity.as_ref(),
+                    seed,
+                    label,
+                    criterion,
+                    max_voxels,
+                    &mut |n| {
+                        thread_progress.store(n, Ordering::Relaxed);
+                        // The progress bar moves every million voxels, not every voxel.
+                        if n >= last_wake + 1_000_000 {
+                            last_wake = n;
+                            repaint();
+                        }
+                    },
+                    Some(thread_cancel.as_ref()),
+                );
+                repaint();
+                result
+            });
+        match spawned {
+            Ok(thread) => {
+                self.notice = None;
+                self.grow_job = Some(GrowJob {
+                    thread,
+                    progress,
+                    cancel,
+                })
+            }
+            Err(e) => self.error = Some(format!("could not start growing: {e}")),
+        }
+    }
+
+    /// Voxels the running grow has taken so far, and its cap.
+    pub fn grow_progress(&self) -> Option<(u64, u64)> {
+        self.grow_job
+            .as_ref()
+            .map(|j| (j.progress.load(Ordering::Relaxed), self.grow.max_voxels))
+    }
+
+    pub fn cancel_grow(&self) {
+        if let Some(j) = &self.grow_job {
+            j.cancel.store(true, Ordering::Relaxed);
+        }
+    }
+
+    /// Takes a finished grow in: its edit goes onto the layer, the journal and the history.
+    pub fn poll_grow(&mut self) {
+        if !self
+            .grow_job
+            .as_ref()
+            .is_some_and(|j| j.thread.is_finished())
+        {
+            return;
+        }
+        let Some(job) = self.grow_job.take() else {
+            return;
+        };
+        match job.thread.join() {
+            Ok(Ok((outcome, _range))) => {
+                if let Some(edit) = &outcome.edit {
+                    self.layer.write().apply(edit);
+                }
+                self.take_outcome(Ok(outcome));
+            }
+            Ok(Err(SegmentError::Cancelled)) => {
+                self.notice = Some("growing cancelled; nothing changed".into());
+            }
+            Ok(Err(e)) => self.error = Some(e.to_string()),
+            Err(_) => self.error = Some("the growing thread failed".into()),
+        }
+    }
+
+    /// One of the panel's operations on the active segment, as one edit.
+    pub fn operate(&mut self, operation: Operation) {
+        if self.busy() {
+            return;
+        }
+        let label = self.active;
+        let result = {
+            let mut layer = self.layer.write();
+            match operation {
+                Operation::FillBetween(plane) => {
+                    strata_segment::tools::interpolate::fill_between_slices(
+                        &mut layer, label, &plane,
+                    )
+                }
+                Operation::Islands(which) => remove_islands(&mut layer, label, which).map(|r| r.0),
+                Operation::Margin(mm) => margin(&mut layer, label, mm),
+                Operation::Combine(op, other) => {
+                    combine(&mut layer, label, op, Operand::Segment(other))
+                }
+            }
+        };
+        match result {
+            Ok(edit) => {
+                self.error = None;
+                self.notice = edit.is_none().then(|| "nothing changed".to_string());
+                self.finish(edit);
+            }
+            Err(e) => self.error = Some(e.to_string()),
+        }
+    }
+
+    /// Saves a copy of the layer as it is now to `path` on a named thread.
+    pub fn start_save(&mut self, path: PathBuf, format: SaveFormat, repaint: super::sync::Repaint) {
+        if self.save_job.is_some() {
+            return;
+        }
+        let copy = self.layer.read().clone();
+        let spawned = std::thread::Builder::new()
+            .name("strata-segment-save".into())
+            .spawn(move || {
+                let result = save_layer(&copy, &path, format);
+                repaint();
+                result
+            });
+        match spawned {
+            Ok(handle) => self.save_job = Some(handle),
+            Err(e) => self.saved = Some(Err(format!("could not start saving: {e}"))),
+        }
+    }
+
+    pub fn saving(&self) -> bool {
+        self.save_job.is_some()
+    }
+
+    pub fn poll_save(&mut self) {
+        if !self.save_job.as_ref().is_some_and(|h| h.is_finished()) {
+            return;
+        }
+        if let Some(handle) = self.save_job.take() {
+            self.saved = Some(match handle.join() {
+                Ok(result) => result.map_err(|e| e.to_string()),
+                Err(_) => Err("the saving thread failed".into()),
+            });
+        }
+    }
+
+    /// Starts computing every segment's statistics (voxels, mL, the primary's values under
+    /// it) on a named thread; `repaint` wakes the UI when they are ready.
+    pub fn start_statistics(&mut self, repaint: super::sync::Repaint) {
+        if self.stats_job.is_some() {
+            return;
+        }
+        let layer = self.layer.clone();
+        let intensity = self.intensity.clone();
+        let spawned = std::thread::Builder::new()
+            .name("strata-segment-stats".into())
+            .spawn(move || {
+                let result =
+                    segment_statistics(&layer.read(), intensity.as_deref(), None, &mut |_, _| {});
+                repaint();
+                result
+            });
+        match spawned {
+            Ok(handle) => self.stats_job = Some(handle),
+            Err(e) => self.stats = Some(Err(format!("could not start: {e}"))),
+        }
+    }
+
+    pub fn statistics_running(&self) -> bool {
+        self.stats_job.is_some()
+    }
+
+    /// Takes finished statistics in.
+    pub fn poll_statistics(&mut self) {
+        if !self.stats_job.as_ref().is_some_and(|h| h.is_finished()) {
+            return;
+        }
+        if let Some(handle) = self.stats_job.take() {
+            self.stats = Some(match handle.join() {
+                Ok(result) => result.map_err(|e| e.to_string()),
+                Err(_) => Err("the statistics thread failed".into()),
+            });
+        }
+    }
+
+    /// The voxels a brush of the current size covers at `position_lps` in `plane` (the cursor
+    /// outline the slice view could draw; tests compare strokes with it).
+    pub fn footprint(&self, plane: SlicePlane, position_lps: DVec3) -> Vec<[u32; 3]> {
+        let layer = self.layer.read();
+        self.brush(plane)
+            .and_then(|b| brush::footprint(layer.grid(), &b, position_lps, &plane))
+            .unwrap_or_default()
+    }
+}
+
+/// Opens (or, `fresh`, re-creates) the journal at `path` and writes its note.
+fn open_journal(
+    path: &Path,
+    geometry: &VolumeGeometry,
+    note: &JournalNote,
+    fresh: bool,
+) -> Result<Journal, String> {
+    if let Some(dir) = path.parent() {
+        std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+    }
+    if fresh {
+        if let Err(e) = std::fs::remove_file(path) {
+            if e.kind() != std::io::ErrorKind::NotFound {
+                return Err(format!("{}: {e}", path.display()));
+            }
+        }
+    }
+    let note_file = note_path(path);
+    let bytes = serde_json::to_vec_pretty(note).map_err(|e| e.to_string())?;
+    strata_segment::io::atomic::write_file_atomically(&note_file, |out| {
+        out.write_all(&bytes).map_err(|e| SegmentError::Io {
+            path: note_file.clone(),
+            source: e,
+        })
+    })
+    .map_err(|e| format!("journal note: {e}"))?;
+    let (journal, _) = Journal::open_or_create(path, geometry).map_err(|e| e.to_string())?;
+    Ok(journal)
+}
+
+/// The brush plane of a slice view: the label grid's index plane with the same normal when the
+/// labels lie on the primary's grid, else the view's plane through `centre_lps` (oblique to
+/// the labels' own grid).
+pub fn plane_for_view(
+    normal_axis: usize,
+    across_axis: usize,
+    down_axis: usize,
+    primary: &VolumeGeometry,
+    labels: &VolumeGeometry,
+    centre_lps: DVec3,
+) -> SlicePlane {
+    if primary == labels {
+        return match normal_axis {
+            0 => SlicePlane::Sagittal,
+            1 => SlicePlane::Coronal,
+            _ => SlicePlane::Axial,
+        };
+    }
+    SlicePlane::Oblique {
+        centre_lps,
+        u: DVec3::from(primary.direction[across_axis]).normalize_or_zero(),
+        v: DVec3::from(primary.direction[down_axis]).normalize_or_zero(),
+    }
+}
