@@ -59,6 +59,7 @@ fn workspace_closure(dir: &str) -> BTreeSet<String> {
         ("strata-service", "service"),
         ("strata-omezarr", "omezarr"),
         ("strata-loader", "loader"),
+        ("strata-headless", "headless"),
         ("strata-render", "render"),
         ("strata-viewer-ui", "viewer-ui"),
         ("strata-web", "web"),
@@ -158,6 +159,26 @@ fn the_app_the_viewer_and_the_benchmarks_stay_apart() {
             "the viewer library reaches neither the browser crate, the command line nor the \
              benchmarks",
         ),
+        (
+            "headless",
+            &[
+                "strata-viewer",
+                "strata-viewer-ui",
+                "strata-app",
+                "strata-web",
+            ][..],
+            "the headless frame (`strata render`, `strata.render`) needs no window and no egui",
+        ),
+        (
+            "python",
+            &[
+                "strata-viewer",
+                "strata-viewer-ui",
+                "strata-app",
+                "strata-web",
+            ][..],
+            "the Python wheel links the headless frame, never the viewer (egui, winit)",
+        ),
     ] {
         let closure = workspace_closure(dir);
         let found: Vec<_> = forbidden.iter().filter(|f| closure.contains(**f)).collect();
@@ -173,6 +194,15 @@ fn the_app_the_viewer_and_the_benchmarks_stay_apart() {
         &["plotters"],
         "plots are for the benchmarks (strata-bench), not the shipping binary",
     );
+    for dir in ["headless", "python"] {
+        let direct = normal_dependencies(&repo_root().join(dir).join("Cargo.toml"));
+        assert_none_of(
+            dir,
+            &direct,
+            &["eframe", "egui", "winit"],
+            "a headless frame opens no window",
+        );
+    }
 }
 
 /// Lines of Rust code (comments dropped) in `dir` that name a command-line module (`cmd_…`).

@@ -24,28 +24,19 @@ pub fn budget_mib(text: &str) -> Result<u64, String> {
     Ok(mib)
 }
 
-/// Step lengths, in finest voxels, that a render accepts: finer than 1/64 voxel only costs
-/// time; coarser than 64 voxels steps over whole bricks.
-pub const STEP_RANGE: std::ops::RangeInclusive<f64> = (1.0 / 64.0)..=64.0;
+/// Step lengths, in finest voxels, that a render accepts (strata-headless's, which checks
+/// `strata render`'s and `strata.render`'s options).
+pub use strata_headless::STEP_RANGE;
 
-/// A finite number within `range`, or an error naming the flag.
+/// A finite number within `range`, or an error naming the flag (the same words as the
+/// headless frame's checks).
 pub fn check_range(flag: &str, value: f64, range: std::ops::RangeInclusive<f64>) -> Result<()> {
-    if !value.is_finite() || !range.contains(&value) {
-        bail!(
-            "--{flag} must be a number between {} and {}, got {value}",
-            range.start(),
-            range.end()
-        );
-    }
-    Ok(())
+    Ok(strata_headless::check_range(flag, value, range)?)
 }
 
 /// A finite number, or an error naming the flag.
 pub fn check_finite(flag: &str, value: f64) -> Result<()> {
-    if !value.is_finite() {
-        bail!("--{flag} must be a finite number, got {value}");
-    }
-    Ok(())
+    Ok(strata_headless::check_finite(flag, value)?)
 }
 
 /// An output image path: not a folder, and a PNG (the only format written).

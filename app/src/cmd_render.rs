@@ -1,29 +1,19 @@
 //! `strata render`: one headless frame of a store, on the GPU or with the f64 CPU reference.
+//!
+//! The frame itself is strata-headless's (the Python package's `strata.render` calls the same
+//! code): this module turns the flags into its [`RenderOptions`], opens the store or URL,
+//! writes the PNG, and renders the orbit movie.
 
 use std::path::PathBuf;
 use std::time::Instant;
 
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result};
 use clap::{Args, ValueEnum};
-use strata_loader::store_volume::{
-    check_cut_fits, classify_empty, page_table_for_cut, slots_needed, GpuCut,
-};
-use strata_loader::{ResidentBricks, StreamingConfig, StreamingVolume};
-use strata_render::adaptive::{
-    block_oracle_with, render_adaptive_reference, AdaptiveConfig, AdaptiveOptics, AdaptivePass,
-    OracleTarget,
-};
-use strata_render::progressive::render_still;
-use strata_render::reference::{render_reference, ReferenceOptions, ReferenceScene};
-use strata_render::{
-    Camera, GpuContext, GpuPageTable, KeyLight, LightDirection, Occlusion, Projection, RenderMode,
-    RenderSettings, Scattering, Scene, SegmentIntegralTable, Shading, ShadowMode, Shadows,
-    Traversal,
-};
-use strata_storage::BrickId;
+use strata_headless::{Mode, RenderOptions, ShadowsOption};
+use strata_loader::StreamingVolume;
+use strata_render::{GpuContext, RenderSettings, Traversal};
 use strata_viewer::export::{
-    choose_transfer_function, encode_mp4, orbit_azimuth, orbit_frame_name, parse_size, write_png,
-    MAX_ORBIT_FRAMES,
+    encode_mp4, orbit_azimuth, orbit_frame_name, parse_size, write_png, MAX_ORBIT_FRAMES,
 };
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -187,10 +177,6 @@ pub struct RenderArgs {
     pub progressive: Option<u32>,
 }
 
-/// The largest --occlusion radius: 16 rays of radius / step samples per shaded sample, so a
-/// radius of 100 mm is already thousands of samples each at a 1 mm step, and no longer local.
-pub const MAX_OCCLUSION_MM: f64 = 100.0;
-
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 pub enum ShadowsArg {
     Off,
@@ -198,37 +184,68 @@ pub enum ShadowsArg {
     Cache,
 }
 
-/// "X,Y,Z" as a non-zero finite vector.
-pub fn parse_light_dir(text: &str) -> Result<[f64; 3]> {
-    let parts: Vec<&str> = text.split(',').map(str::trim).collect();
-    let bad = || anyhow::anyhow!("--light-dir {text:?}: expected three numbers X,Y,Z");
-    let [x, y, z] = parts[..] else {
-        return Err(bad());
-    };
-    let v = [x, y, z].map(|p| p.parse::<f64>());
-    let [Ok(x), Ok(y), Ok(z)] = v else {
-        return Err(bad());
-    };
-    anyhow::ensure!(
-        [x, y, z].iter().all(|c| c.is_finite()) && (x * x + y * y + z * z) > 1e-24,
-        "--light-dir {text:?}: the direction must be finite and non-zero"
-    );
-    Ok([x, y, z])
+/// The still frame's options of the flags (the orbit's and the output's are this module's).
+fn options_of(args: &RenderArgs) -> Result<RenderOptions> {
+    let (width, height) = parse_size(&args.size)?;
+    Ok(RenderOptions {
+        width,
+        height,
+        azimuth: args.azimuth,
+        elevation: args.elevation,
+        zoom: args.zoom,
+        mode: match args.mode {
+            ModeArg::Dvr => Mode::Dvr,
+            ModeArg::Mip => Mode::Mip,
+            ModeArg::Iso => Mode::Iso,
+            ModeArg::Adaptive => Mode::Adaptive,
+            ModeArg::AdaptiveMip => Mode::AdaptiveMip,
+        },
+        tf: args.tf.clone(),
+        step: args.step,
+        level: args.level,
+        up_front: args.up_front,
+        max_frames: args.max_frames.max(1),
+        quality: args.quality,
+        reference: args.reference,
+        shading: args.shading,
+        iso: args.iso,
+        orthographic: args.orthographic,
+        jitter: !args.no_jitter,
+        smooth: !args.no_smooth,
+        exact_trilinear: args.exact_trilinear,
+        oracle_epsilon: args.oracle_epsilon,
+        traversal: args.traversal.map(TraversalArg::traversal),
+        gpu_mib: args.gpu_mib,
+        shadows: match args.shadows {
+            ShadowsArg::Off => ShadowsOption::Off,
+            ShadowsArg::Exact => ShadowsOption::Exact,
+            ShadowsArg::Cache => ShadowsOption::Cache,
+        },
+        light_dir: args
+            .light_dir
+            .as_deref()
+            .map(strata_headless::parse_light_dir)
+            .transpose()?,
+        shadow_step: args.shadow_step,
+        light_cache_res: args.light_cache_res,
+        occlusion: args.occlusion,
+        scattering: args.scattering,
+        scattering_blend: args.scattering_blend,
+        progressive: args.progressive,
+    })
 }
 
-/// The most frames --progressive averages: past 4096 the jitter noise is 1/64 of one frame's,
-/// far under an 8-bit step; more is a typo.
-pub const MAX_PROGRESSIVE_FRAMES: u32 = 4096;
-
-/// Refuses values that would render a black image or nothing at all.
-fn check_args(args: &RenderArgs) -> Result<()> {
-    use crate::cli_checks::{check_finite, check_png_output, check_range, STEP_RANGE};
-    check_finite("azimuth", args.azimuth)?;
-    check_finite("elevation", args.elevation)?;
-    check_range("zoom", args.zoom, 0.01..=1000.0)?;
-    check_range("step", args.step, STEP_RANGE)?;
-    check_range("quality", args.quality, 0.01..=1000.0)?;
-    check_finite("iso", args.iso)?;
+/// Refuses values that would render a black image or nothing at all: the frame's options
+/// (strata-headless checks them), then the orbit's and the output's.
+fn check_args(args: &RenderArgs) -> Result<RenderOptions> {
+    use crate::cli_checks::check_png_output;
+    let options = options_of(args)?;
+    options.validate()?;
+    anyhow::ensure!(
+        args.progressive.is_none() || args.orbit.is_none(),
+        "--progressive averages jittered frames of the GPU raycaster: it does not combine \
+         with --orbit"
+    );
     match args.orbit {
         Some(n) => {
             anyhow::ensure!(
@@ -241,475 +258,45 @@ fn check_args(args: &RenderArgs) -> Result<()> {
                 args.out.display()
             );
             anyhow::ensure!(
-                !args.up_front
-                    && !args.reference
-                    && !matches!(args.mode, ModeArg::Adaptive | ModeArg::AdaptiveMip),
-                "--orbit streams the store: it does not combine with --up-front, --reference or \
-                 --mode adaptive"
+                !options.renders_fixed_cut(),
+                "--orbit streams the store: it does not combine with --up-front, --reference, \
+                 --mode adaptive or --progressive"
             );
         }
         None => check_png_output("out", &args.out)?,
     }
-    if args.traversal == Some(TraversalArg::Octree) {
-        anyhow::ensure!(
-            !args.reference && !matches!(args.mode, ModeArg::Adaptive | ModeArg::AdaptiveMip),
-            "--traversal octree is the GPU raycaster's: it does not apply to --reference or \
-             --mode adaptive"
-        );
-    }
-    if args.shadows != ShadowsArg::Off {
-        check_range("shadow-step", args.shadow_step, 0.05..=1000.0)?;
-        if args.shadows == ShadowsArg::Cache {
-            check_range(
-                "light-cache-res",
-                args.light_cache_res,
-                strata_render::light_cache::MIN_RES..=strata_render::light_cache::MAX_RES,
-            )?;
-        }
-        anyhow::ensure!(
-            !matches!(args.mode, ModeArg::Mip | ModeArg::AdaptiveMip),
-            "--shadows is DVR and isosurface lighting: not for MIP"
-        );
-        // The adaptive pass traces exact shadow rays per lit segment; the light cache is the
-        // raycaster's (adaptive/gpu.rs).
-        anyhow::ensure!(
-            !(matches!(args.mode, ModeArg::Adaptive) && args.shadows == ShadowsArg::Cache),
-            "--mode adaptive takes --shadows exact, not cache"
-        );
-    }
-    if let Some(radius) = args.occlusion {
-        check_range("occlusion", radius, 0.0..=MAX_OCCLUSION_MM)?;
-        check_range("shadow-step", args.shadow_step, 0.05..=1000.0)?;
-    }
-    if let Some(g) = args.scattering {
-        let m = strata_render::settings::SCATTERING_MAX_ABS_G;
-        check_range("scattering", g, -m..=m)?;
-        check_range("scattering-blend", args.scattering_blend, 0.0..=1.0)?;
-    }
-    for (flag, on) in [
-        ("--occlusion", args.occlusion.is_some()),
-        ("--scattering", args.scattering.is_some()),
-    ] {
-        anyhow::ensure!(
-            !on || !matches!(args.mode, ModeArg::Mip | ModeArg::AdaptiveMip),
-            "{flag} is DVR and isosurface lighting: it does not apply to MIP"
-        );
-    }
-    if let Some(n) = args.progressive {
-        anyhow::ensure!(
-            (1..=MAX_PROGRESSIVE_FRAMES).contains(&n),
-            "--progressive {n}: the number of frames must be 1..={MAX_PROGRESSIVE_FRAMES}"
-        );
-        anyhow::ensure!(
-            !args.reference
-                && args.orbit.is_none()
-                && !args.no_jitter
-                && !matches!(args.mode, ModeArg::Adaptive | ModeArg::AdaptiveMip),
-            "--progressive averages jittered frames of the GPU raycaster: it does not combine \
-             with --reference (already the converged image), --orbit, --no-jitter or --mode \
-             adaptive"
-        );
-    }
-    if let Some(text) = &args.light_dir {
-        parse_light_dir(text)?;
-    }
-    parse_size(&args.size)?;
-    Ok(())
+    Ok(options)
 }
 
 pub fn run(args: RenderArgs) -> Result<()> {
-    check_args(&args)?;
-    let adaptive = matches!(args.mode, ModeArg::Adaptive | ModeArg::AdaptiveMip);
-    if adaptive {
-        anyhow::ensure!(
-            args.oracle_epsilon.is_finite() && args.oracle_epsilon >= 0.0,
-            "--oracle-epsilon must be a non-negative number, got {}",
-            args.oracle_epsilon
-        );
-        if !args.up_front && !args.reference {
-            eprintln!("--mode adaptive renders a fixed cut: loading --level up front");
-        }
-    } else if args.progressive.is_some() && !args.up_front {
-        // A still view of a cut that changes while it streams would restart the mean.
-        eprintln!("--progressive renders a fixed cut: loading --level up front");
-    } else if !args.up_front && !args.reference {
-        return run_streaming(&args);
-    }
-    let (width, height) = parse_size(&args.size)?;
-    let store = strata_viewer::volume_location::open_source(
-        &args.store,
-        args.token_file.as_deref(),
-        strata_storage::store::DEFAULT_READ_CACHE_BYTES,
-    )?;
-    let store = store.as_ref();
-    let header = store.header().clone();
-    let geometry = header.geometry.clone();
-    let mapping = header.value_mapping.mapping;
-    let tf = choose_transfer_function(args.tf.as_deref(), &header.modality)?;
-    let physical_range = (
-        mapping.physical(header.stored_range[0] as f64),
-        mapping.physical(header.stored_range[1] as f64),
-    );
-    let tf_table = tf.table(
-        physical_range.0.min(physical_range.1),
-        physical_range.0.max(physical_range.1),
-    );
-    let mut table = page_table_for_cut(store, &geometry, |_| args.level);
-    let settings = settings_of(&args)?;
-    if matches!(settings.mode, RenderMode::Dvr) {
-        classify_empty(store, &mut table, mapping, &tf_table);
-    }
-    let camera = camera_of(&args, &geometry);
-    let budget = args.gpu_mib.map(|m| m << 20);
-    // The GPU paths' device, made before the bricks are read: a level over the budget (or the
-    // device) is refused before reading it.
-    let gpu = if args.reference {
-        None
+    let options = check_args(&args)?;
+    let mut report = |note: String| eprintln!("{note}");
+    let sled_cache_bytes = if options.renders_fixed_cut() {
+        strata_storage::store::DEFAULT_READ_CACHE_BYTES
     } else {
+        options.streaming_config().sled_cache_bytes
+    };
+    if let Some(frames) = args.orbit {
+        let started = Instant::now();
         let ctx = GpuContext::headless()?;
         eprintln!("GPU: {}", ctx.adapter_name());
-        check_cut_fits(
-            &ctx,
-            slots_needed(&table),
-            budget,
-            &format!("level {} of {}", args.level, args.store),
+        let store = strata_viewer::volume_location::open_source(
+            &args.store,
+            args.token_file.as_deref(),
+            sled_cache_bytes,
         )?;
-        Some(ctx)
-    };
-    let t_load = Instant::now();
-    let bricks = ResidentBricks::load(store, &table)?;
-    eprintln!(
-        "loaded {} bricks of level {} in {:.2} s",
-        bricks.len(),
-        args.level,
-        t_load.elapsed().as_secs_f64()
-    );
-
-    let t = Instant::now();
-    // The per-block oracle (the render mode's): a distance per 2³ block of every brick,
-    // bounding the lit colour's change where the settings light the samples.
-    let oracle = || {
-        block_oracle_with(
-            &table,
-            &bricks,
-            mapping,
-            &tf,
-            args.oracle_epsilon,
-            AdaptiveConfig::default().l_max,
-            settings.quality,
-            OracleTarget::for_settings(&settings),
-        )
-    };
-    let rgba = if adaptive && args.reference && !settings.effective_key_light() {
-        // The f64 transcription of the same frame (its oracle, its pre-integration table).
-        let scene = ReferenceScene {
-            source: &bricks,
-            page_table: &table,
-            geometry: &geometry,
-            mapping,
-            transfer_function: &tf,
-            tf_range: (tf_table.lo, tf_table.hi),
-        };
-        let integral = SegmentIntegralTable::build(
-            &tf,
-            tf_table.lo,
-            tf_table.hi,
-            geometry.finest_spacing_mm(),
-        );
-        render_adaptive_reference(
-            &scene,
-            &camera,
-            &settings,
-            &AdaptiveConfig::default(),
-            &oracle(),
-            AdaptiveOptics::Table(&integral),
-        )?
-        .rgba
-    } else if adaptive && !args.reference {
-        let ctx = gpu.context("GPU context missing")?;
-        let cut = GpuCut::upload_within(
-            &ctx,
-            &bricks,
-            &table,
-            geometry.page_dims(),
-            &tf_table,
-            budget,
-        )?;
-        let mut pass = AdaptivePass::new(&ctx, &cut.cache);
-        pass.set_oracle(&ctx, &oracle());
-        let scene = Scene {
-            cache: &cut.cache,
-            page_table: &cut.page_table,
-            transfer_function: &cut.transfer_function,
-            geometry: &geometry,
-            mapping,
-            camera: &camera,
-            settings: &settings,
-        };
-        let frame = pass.render_blocking(&ctx, &scene, &AdaptiveConfig::default())?;
-        eprintln!(
-            "adaptive: {} sampling operations per level {:?} (+{} apron), {} synthesis operations",
-            frame.total_samples(),
-            frame.samples_per_level,
-            frame.total_apron_samples(),
-            frame.total_syntheses()
-        );
-        if frame.shadow_rays > 0 {
-            eprintln!("adaptive: {} shadow rays", frame.shadow_rays);
-        }
-        frame.rgba
-    } else if args.reference {
-        let scene = ReferenceScene {
-            source: &bricks,
-            page_table: &table,
-            geometry: &geometry,
-            mapping,
-            transfer_function: &tf,
-            tf_range: (tf_table.lo, tf_table.hi),
-        };
-        render_reference(&scene, &camera, &settings, ReferenceOptions::default())?.rgba
-    } else {
-        let ctx = gpu.context("GPU context missing")?;
-        let mut cut = GpuCut::upload_within(
-            &ctx,
-            &bricks,
-            &table,
-            geometry.page_dims(),
-            &tf_table,
-            budget,
-        )?;
-        match args.traversal.unwrap_or(TraversalArg::Flat) {
-            TraversalArg::Flat => {
-                let frame = cut.render_blocking(&ctx, &geometry, mapping, &camera, &settings)?;
-                match args.progressive {
-                    None => frame.rgba,
-                    // The frame above also uploaded the MIP value bounds the scene needs.
-                    Some(frames) => {
-                        let scene = Scene {
-                            cache: &cut.cache,
-                            page_table: &cut.page_table,
-                            transfer_function: &cut.transfer_function,
-                            geometry: &geometry,
-                            mapping,
-                            camera: &camera,
-                            settings: &settings,
-                        };
-                        render_still(&ctx, &mut cut.raycaster, &scene, frames)?
-                    }
-                }
-            }
-            TraversalArg::Octree => {
-                // The same cut and cache, indexed by its octree instead of the flat table.
-                let index = GpuPageTable::with_traversal(
-                    &ctx.device,
-                    geometry.page_dims(),
-                    &cut.cache,
-                    Traversal::Octree,
-                )?;
-                index.update(&ctx.queue, &table)?;
-                let bounds = table.value_max_physical(mapping, |level, node| {
-                    store
-                        .node(BrickId::new(level, node))
-                        .map(|n| (n.min, n.max))
-                });
-                index.update_value_max(&ctx.queue, &bounds)?;
-                eprintln!(
-                    "octree index: {} leaves, {} bytes on the GPU (flat table: {} bytes)",
-                    index.visibility_entries(),
-                    index.gpu_index_bytes(),
-                    cut.page_table.gpu_index_bytes()
-                );
-                let scene = Scene {
-                    cache: &cut.cache,
-                    page_table: &index,
-                    transfer_function: &cut.transfer_function,
-                    geometry: &geometry,
-                    mapping,
-                    camera: &camera,
-                    settings: &settings,
-                };
-                match args.progressive {
-                    None => {
-                        cut.raycaster
-                            .render_blocking(&ctx, &scene)
-                            .context("--traversal octree")?
-                            .rgba
-                    }
-                    Some(frames) => render_still(&ctx, &mut cut.raycaster, &scene, frames)
-                        .context("--traversal octree")?,
-                }
-            }
-        }
-    };
-    eprintln!(
-        "rendered {}x{} in {:.2} s ({})",
-        width,
-        height,
-        t.elapsed().as_secs_f64(),
-        if args.reference {
-            "CPU reference".to_string()
-        } else if let Some(n) = args.progressive {
-            format!("GPU, mean of {n} jittered frames")
-        } else {
-            "GPU".to_string()
-        }
-    );
-    write_png(&args.out, width, height, &rgba)?;
-    println!("wrote {}", args.out.display());
-    Ok(())
-}
-
-/// The orbit camera the arguments ask for.
-fn camera_of(args: &RenderArgs, geometry: &strata_render::VolumeGeometry) -> Camera {
-    let projection = if args.orthographic {
-        Projection::Orthographic {
-            height_mm: geometry.bounding_radius_mm() * 2.0 / args.zoom.max(1e-3),
-        }
-    } else {
-        Projection::Perspective { fov_y_deg: 30.0 }
-    };
-    Camera::orbit(
-        geometry,
-        args.azimuth,
-        args.elevation,
-        args.zoom,
-        projection,
-    )
-}
-
-fn settings_of(args: &RenderArgs) -> Result<RenderSettings> {
-    let (width, height) = parse_size(&args.size)?;
-    Ok(RenderSettings {
-        width,
-        height,
-        mode: match args.mode {
-            ModeArg::Dvr | ModeArg::Adaptive => RenderMode::Dvr,
-            ModeArg::Mip | ModeArg::AdaptiveMip => RenderMode::Mip,
-            ModeArg::Iso => RenderMode::Isosurface,
-        },
-        quality: args.step,
-        jitter: !args.no_jitter,
-        shading: (args.shading
-            || args.shadows != ShadowsArg::Off
-            || args.occlusion.is_some()
-            || args.scattering.is_some()
-            || matches!(args.mode, ModeArg::Iso))
-        .then(Shading::default),
-        smooth_transitions: !args.no_smooth,
-        iso_value: args.iso,
-        exact_trilinear: args.exact_trilinear,
-        light: KeyLight {
-            direction: match &args.light_dir {
-                Some(text) => LightDirection::Camera(parse_light_dir(text)?),
-                // The cache holds one light direction; the headlight's is each ray's own.
-                // Along the view axis it is the headlight of an orthographic view.
-                None if args.shadows == ShadowsArg::Cache => {
-                    LightDirection::Camera([0.0, 0.0, 1.0])
-                }
-                None => LightDirection::Headlight,
-            },
-            ..KeyLight::default()
-        },
-        shadows: Shadows {
-            mode: match args.shadows {
-                ShadowsArg::Off => ShadowMode::Off,
-                ShadowsArg::Exact => ShadowMode::Exact,
-                ShadowsArg::Cache => ShadowMode::Cache,
-            },
-            step: args.shadow_step,
-            cache_res: args.light_cache_res,
-        },
-        occlusion: args.occlusion.map(|radius_mm| Occlusion { radius_mm }),
-        scattering: args.scattering.map(|g| Scattering {
-            g,
-            blend: args.scattering_blend,
-        }),
-        ..RenderSettings::default()
-    })
-}
-
-/// The default: stream the store, frame after frame, until the image converges (or
-/// --max-frames), and write the last frame.
-fn run_streaming(args: &RenderArgs) -> Result<()> {
-    let settings = settings_of(args)?;
-    let started = Instant::now();
-    let ctx = GpuContext::headless()?;
-    eprintln!("GPU: {}", ctx.adapter_name());
-    let defaults = StreamingConfig::default();
-    let config = StreamingConfig {
-        max_voxel_pixels: args.quality,
-        traversal: args.traversal.map(TraversalArg::traversal),
-        gpu_budget_bytes: args.gpu_mib.map_or(defaults.gpu_budget_bytes, |m| m << 20),
-        ..defaults
-    };
-    anyhow::ensure!(
-        args.quality.is_finite() && args.quality > 0.0,
-        "--quality must be positive, got {}",
-        args.quality
-    );
+        let mut volume =
+            strata_headless::open_streaming(&ctx, store, &args.store, &options, &mut report)?;
+        eprintln!("opened in {:.2} s", started.elapsed().as_secs_f64());
+        return write_orbit(&args, &options, &ctx, &mut volume, frames);
+    }
     let store = strata_viewer::volume_location::open_source(
         &args.store,
         args.token_file.as_deref(),
-        config.sled_cache_bytes,
+        sled_cache_bytes,
     )?;
-    let tf = choose_transfer_function(args.tf.as_deref(), &store.header().modality)?;
-    let mut volume = StreamingVolume::new(&ctx, store, &tf, config)
-        .with_context(|| format!("cannot stream store {}", args.store))?;
-    let opened = Instant::now();
-    if let Some(note) = volume.traversal_note() {
-        eprintln!("{note}");
-    }
-    let geometry = volume.geometry().clone();
-    if let Some(frames) = args.orbit {
-        return write_orbit(args, &ctx, &mut volume, &settings, frames);
-    }
-    let camera = camera_of(args, &geometry);
-    let (frame, history) =
-        volume.render_until_converged(&ctx, &camera, &settings, args.max_frames.max(1))?;
-    for failure in volume.take_failures() {
-        eprintln!(
-            "warning: {}; its parent is shown there instead",
-            failure.message
-        );
-    }
-    let Some(last) = history.last() else {
-        bail!("no frame was rendered")
-    };
-    if let Some(lost) = history.iter().find(|s| s.source_status.is_retrying()) {
-        eprintln!(
-            "warning: connection to the source was lost during the render ({:?}); requests were retried",
-            lost.source_status
-        );
-    }
-    if last.retried_total > 0 || last.cancelled_in_flight_total > 0 {
-        eprintln!(
-            "remote: {} requests retried ({} records damaged in transit), {} stale requests cancelled in flight, at most {} in flight",
-            last.retried_total,
-            last.checksum_failures_total,
-            last.cancelled_in_flight_total,
-            last.max_in_flight
-        );
-    }
-    eprintln!(
-        "{} traversal: {} index bytes on the GPU",
-        volume.traversal().name(),
-        volume.gpu_index_bytes()
-    );
-    eprintln!(
-        "{} after {} frames in {:.2} s (open {:.2} s): {} bricks on the GPU per level {:?}, {:.1} MB read",
-        if last.converged {
-            last.convergence_status()
-        } else {
-            "not converged (raise --max-frames)".into()
-        },
-        history.len(),
-        opened.elapsed().as_secs_f64(),
-        (opened - started).as_secs_f64(),
-        last.gpu_slots_used,
-        last.gpu_resident_per_level,
-        last.stored_bytes_read_total as f64 / 1e6
-    );
-    write_png(&args.out, settings.width, settings.height, &frame.rgba)?;
+    let frame = strata_headless::render(store, &args.store, &options, &mut report)?;
+    write_png(&args.out, frame.width, frame.height, &frame.rgba)?;
     println!("wrote {}", args.out.display());
     Ok(())
 }
@@ -718,27 +305,25 @@ fn run_streaming(args: &RenderArgs) -> Result<()> {
 /// stay resident from frame to frame), then ffmpeg when it is there.
 fn write_orbit(
     args: &RenderArgs,
+    options: &RenderOptions,
     ctx: &GpuContext,
     volume: &mut StreamingVolume,
-    settings: &RenderSettings,
     frames: u32,
 ) -> Result<()> {
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating the orbit folder {}", args.out.display()))?;
     let geometry = volume.geometry().clone();
+    let settings: RenderSettings = options.settings();
     let started = Instant::now();
     let mut not_converged = 0;
     for i in 0..frames {
-        let azimuth = orbit_azimuth(args.azimuth, i, frames);
-        let camera = camera_of(
-            &RenderArgs {
-                azimuth,
-                ..args.clone()
-            },
-            &geometry,
-        );
+        let camera = RenderOptions {
+            azimuth: orbit_azimuth(args.azimuth, i, frames),
+            ..options.clone()
+        }
+        .camera(&geometry);
         let (frame, history) =
-            volume.render_until_converged(ctx, &camera, settings, args.max_frames.max(1))?;
+            volume.render_until_converged(ctx, &camera, &settings, options.max_frames)?;
         if !history.last().is_some_and(|s| s.converged) {
             not_converged += 1;
         }
@@ -771,6 +356,7 @@ fn write_orbit(
 mod tests {
     use super::*;
     use clap::Parser;
+    use strata_render::{Occlusion, Scattering};
 
     #[derive(Parser)]
     struct Cli {
@@ -786,7 +372,7 @@ mod tests {
 
     fn error(extra: &[&str]) -> String {
         match check_args(&args(extra)) {
-            Ok(()) => panic!("{extra:?} accepted"),
+            Ok(_) => panic!("{extra:?} accepted"),
             Err(e) => format!("{e:#}"),
         }
     }
@@ -802,7 +388,7 @@ mod tests {
             "0.2",
         ]);
         assert!(check_args(&a).is_ok());
-        let s = settings_of(&a).unwrap();
+        let s = options_of(&a).unwrap().settings();
         assert_eq!(s.occlusion, Some(Occlusion { radius_mm: 3.5 }));
         assert_eq!(
             s.scattering,
@@ -813,7 +399,7 @@ mod tests {
         );
         assert!(s.shading.is_some(), "the effects turn shading on");
         assert!(s.validate().is_ok());
-        let plain = settings_of(&args(&[])).unwrap();
+        let plain = options_of(&args(&[])).unwrap().settings();
         assert!(plain.occlusion.is_none() && plain.scattering.is_none());
     }
 
@@ -875,7 +461,7 @@ mod tests {
             "0.3",
         ]);
         check_args(&a).unwrap();
-        let s = settings_of(&a).unwrap();
+        let s = options_of(&a).unwrap().settings();
         assert!(s.effective_shadows() && s.effective_key_light());
         assert!(
             error(&["--mode", "adaptive", "--up-front", "--shadows", "cache"])

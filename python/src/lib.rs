@@ -19,6 +19,7 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, Weak};
 use std::time::Duration;
 
+mod render;
 mod serve;
 mod streamed;
 
@@ -808,6 +809,7 @@ fn _strata(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("SourceError", py.get_type::<SourceError>())?;
     m.add("RemoteError", py.get_type::<RemoteError>())?;
     m.add("TokenError", py.get_type::<TokenError>())?;
+    m.add("RenderError", py.get_type::<render::RenderError>())?;
     m.add_class::<NativeStore>()?;
     m.add_function(wrap_pyfunction!(open_store, m)?)?;
     m.add_function(wrap_pyfunction!(import_file, m)?)?;
@@ -815,6 +817,7 @@ fn _strata(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(export_omezarr, m)?)?;
     m.add_class::<serve::NativeServer>()?;
     m.add_function(wrap_pyfunction!(serve::serve, m)?)?;
+    m.add_function(wrap_pyfunction!(render::render, m)?)?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     Ok(())
 }

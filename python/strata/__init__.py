@@ -6,6 +6,7 @@
 >>> vol.shape, vol.spacing, vol.dtype              # (z, y, x), mm, the physical dtype
 >>> block = vol.level(0)[100:164, 200:300, :]      # numpy, read brick by brick
 >>> vol.affine                                     # index (i, j, k, 1) → LPS mm
+>>> image = strata.render(vol, azimuth=30, size=256)  # (256, 256, 4) RGBA, as `strata render`
 
 Errors are :class:`StrataError` subclasses carrying the Rust library's message; bad indices
 raise ``IndexError``, bad arguments ``ValueError``.
@@ -14,10 +15,12 @@ raise ``IndexError``, bad arguments ``ValueError``.
 from __future__ import annotations
 
 from ._import import export_omezarr, from_numpy, import_file
+from ._render import render
 from ._serve import Server, serve
 from ._strata import (
     DamagedStoreError,
     RemoteError,
+    RenderError,
     SourceError,
     StoreError,
     StoreInUseError,
@@ -34,6 +37,7 @@ __all__ = [
     "DamagedStoreError",
     "Level",
     "RemoteError",
+    "RenderError",
     "Server",
     "SourceError",
     "StoreError",
@@ -50,5 +54,6 @@ __all__ = [
     "from_numpy",
     "import_file",
     "open",
+    "render",
     "serve",
 ]

@@ -13,6 +13,7 @@ class StoreInUseError(StoreError): ...
 class SourceError(StrataError): ...
 class RemoteError(StrataError): ...
 class TokenError(RemoteError): ...
+class RenderError(StrataError): ...
 
 class NativeStore:
     @property
@@ -71,3 +72,38 @@ def serve(
     web_viewer: str | None = None,
     frame_ancestors: str | None = None,
 ) -> NativeServer: ...
+
+def render(
+    store: NativeStore,
+    *,
+    width: int,
+    height: int,
+    azimuth: float,
+    elevation: float,
+    zoom: float,
+    mode: str,
+    tf: str | None,
+    step: float,
+    level: int,
+    up_front: bool,
+    max_frames: int,
+    quality: float,
+    reference: bool,
+    shading: bool,
+    iso: float,
+    orthographic: bool,
+    jitter: bool,
+    smooth: bool,
+    exact_trilinear: bool,
+    oracle_epsilon: float,
+    traversal: str | None,
+    gpu_mib: int | None,
+    shadows: str,
+    light_dir: list[float] | None,
+    shadow_step: float,
+    light_cache_res: float,
+    occlusion: float | None,
+    scattering: float | None,
+    scattering_blend: float,
+    progressive: int | None,
+) -> tuple[int, int, bytearray, list[str]]: ...

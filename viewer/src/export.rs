@@ -22,28 +22,10 @@ pub fn parse_size(text: &str) -> Result<(u32, u32)> {
     Ok((w, h))
 }
 
-/// The transfer function the user named, or a sensible default for the modality.
+/// The transfer function the user named, or a sensible default for the modality
+/// (strata-headless's choice, which `strata render` and `strata.render` make too).
 pub fn choose_transfer_function(name: Option<&str>, modality: &str) -> Result<TransferFunction> {
-    let name = name.unwrap_or(if modality.eq_ignore_ascii_case("CT") {
-        "ct-bone"
-    } else {
-        "mr-default"
-    });
-    if let Some(tf) = TransferFunction::preset(name) {
-        return Ok(tf);
-    }
-    let path = Path::new(name);
-    if path.exists() {
-        return TransferFunction::load(path)
-            .with_context(|| format!("reading transfer function {}", path.display()));
-    }
-    let looks_like_a_file = name.to_ascii_lowercase().ends_with(".json")
-        || name.contains(std::path::MAIN_SEPARATOR)
-        || name.contains('/');
-    if looks_like_a_file {
-        bail!("transfer function file {} does not exist", path.display());
-    }
-    bail!("unknown transfer function '{name}': use ct-bone, ct-soft-tissue, ct-lung, ct-vessels, mr-default or a JSON file")
+    Ok(strata_headless::choose_transfer_function(name, modality)?)
 }
 
 /// Azimuth of frame `i` of `frames`, evenly around the full turn from `start`.
