@@ -1,5 +1,5 @@
-//! Checks of command-line values that clap's types cannot express: finite angles, bounded steps
-//! and budgets, output paths that can be written. A bad value is refused with the flag's name
+//! Checks of command-line values that clap's types cannot express: bounded budgets, output paths
+//! that can be written (the render flags' ranges are strata-headless's, shared with Python). A bad value is refused with the flag's name
 //! and its allowed range, before any work starts, never rendered into a black image.
 
 use std::path::Path;
@@ -22,21 +22,6 @@ pub fn budget_mib(text: &str) -> Result<u64, String> {
         ));
     }
     Ok(mib)
-}
-
-/// Step lengths, in finest voxels, that a render accepts (strata-headless's, which checks
-/// `strata render`'s and `strata.render`'s options).
-pub use strata_headless::STEP_RANGE;
-
-/// A finite number within `range`, or an error naming the flag (the same words as the
-/// headless frame's checks).
-pub fn check_range(flag: &str, value: f64, range: std::ops::RangeInclusive<f64>) -> Result<()> {
-    Ok(strata_headless::check_range(flag, value, range)?)
-}
-
-/// A finite number, or an error naming the flag.
-pub fn check_finite(flag: &str, value: f64) -> Result<()> {
-    Ok(strata_headless::check_finite(flag, value)?)
 }
 
 /// An output image path: not a folder, and a PNG (the only format written).
@@ -75,6 +60,9 @@ mod tests {
 
     #[test]
     fn non_finite_and_out_of_range_values_name_the_flag() {
+        // The render flags are checked by strata-headless (for `strata render` and strata.render
+        // alike); the words must still name the CLI's flags.
+        use strata_headless::{check_finite, check_range, STEP_RANGE};
         let e = check_finite("azimuth", f64::NAN).unwrap_err().to_string();
         assert!(e.contains("--azimuth") && e.contains("NaN"), "{e}");
         let e = check_range("step", 1e9, STEP_RANGE)

@@ -737,12 +737,12 @@ fn sigkill_at_any_moment_of_a_compaction_never_leaves_a_complete_looking_damaged
 }
 
 /// Issue 48: a format-3 store in a folder made read-only (every file 0444, every folder 0555)
-/// is rendered, verified, described and listed, and no file under it changes: the same files
+/// is rendered, verified, described, listed and served, and no file under it changes: the same files
 /// with the same size, modification time and bytes (the lock file included). Root ignores the
 /// permissions, so the unchanged files are what shows that nothing wrote.
 #[cfg(unix)]
 #[test]
-fn a_v3_store_in_a_read_only_folder_renders_verifies_and_lists_without_changing_a_file() {
+fn a_v3_store_in_a_read_only_folder_renders_verifies_lists_and_serves_without_changing_a_file() {
     use std::os::unix::fs::PermissionsExt;
     let dir = tempfile::tempdir().unwrap();
     let store = dir.path().join("ro.strata");
@@ -799,7 +799,19 @@ fn a_v3_store_in_a_read_only_folder_renders_verifies_and_lists_without_changing_
     .into_iter()
     .map(|(what, args)| (what, run_limited(strata(&args), what)))
     .collect();
+    // Served from the read-only folder, and read beside the server by a local render: the
+    // served image equals the local one.
+    let (local, served) = (dir.path().join("local.png"), dir.path().join("served.png"));
+    {
+        let server = crate::remote::Served::start(&store, &[]);
+        crate::remote::render(s(&store), &local, &[]);
+        crate::remote::render(&server.url, &served, &[]);
+    }
     set_read_only(false);
+    assert!(
+        crate::remote::png_pixels(&local) == crate::remote::png_pixels(&served),
+        "the store served from a read-only folder renders unlike the local one"
+    );
     for (what, r) in &runs {
         assert_eq!(r.code, Some(0), "{what}: {}", r.text);
     }

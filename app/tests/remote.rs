@@ -32,13 +32,13 @@ fn stderr(o: &Output) -> String {
 }
 
 /// `strata serve`, killed when dropped.
-struct Served {
+pub(crate) struct Served {
     child: Child,
-    url: String,
+    pub(crate) url: String,
 }
 
 impl Served {
-    fn start(store: &Path, extra: &[&str]) -> Served {
+    pub(crate) fn start(store: &Path, extra: &[&str]) -> Served {
         let mut child = Command::new(env!("CARGO_BIN_EXE_strata"))
             .arg("serve")
             .arg(store)
@@ -108,7 +108,7 @@ fn phantom(dir: &Path, size: u64) -> PathBuf {
     path
 }
 
-fn png_pixels(path: &Path) -> Vec<u8> {
+pub(crate) fn png_pixels(path: &Path) -> Vec<u8> {
     image::open(path)
         .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
         .to_rgb8()
@@ -116,7 +116,7 @@ fn png_pixels(path: &Path) -> Vec<u8> {
 }
 
 /// `strata render` of `location` into `out`; returns stderr.
-fn render(location: &str, out: &Path, extra: &[&str]) -> String {
+pub(crate) fn render(location: &str, out: &Path, extra: &[&str]) -> String {
     let out_text = out.to_str().unwrap();
     // Exact trilinear: the image must not depend on the order bricks arrive in (and so on
     // which cache slot each lands in), which a server changes from run to run.

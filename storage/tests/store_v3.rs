@@ -875,3 +875,76 @@ fn imported_max_stored(store: &Path) -> u16 {
     let root = BrickId::new((s.layout().level_count() - 1) as u8, [0, 0, 0]);
     s.node(root).unwrap().max
 }
+
+/// The "every reader test's scan imports to v3 and renders bit for bit as from v2": each
+/// real scan of the reader tests (shared/data, skipped with a message when absent) imported as
+/// format 3 and as format 2 gives the same skeleton, every brick record equal and every brick
+/// decoding to the same voxels (so every renderer draws the same image from either); and the
+/// format-2 store upgraded equals the fresh format-3 import record for record.
+#[test]
+fn every_shared_scan_imports_to_v3_as_to_v2_and_upgrades_record_for_record() {
+    use strata_storage::import::import_source_as_format;
+    use strata_storage::readers::{open_source, ReadOptions};
+    let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/niivue");
+    if !data.is_dir() {
+        eprintln!(
+            "SKIP: real test data not found at {} (see shared/data/SOURCES.md)",
+            data.display()
+        );
+        return;
+    }
+    let scans = [
+        "FLAIR.nrrd",
+        "chris_t1.nii.gz",
+        "mha.mha",
+        "enh.dcm",
+        "dicom-mr-3slices",
+        "nifti_space/AIL.nii.gz",
+        "nifti_space/IRP.nii.gz",
+    ];
+    let dir = tempfile::tempdir().unwrap();
+    for (n, name) in scans.iter().enumerate() {
+        let path = data.join(name);
+        if !path.exists() {
+            eprintln!("SKIP {name}: not in {}", data.display());
+            continue;
+        }
+        let open = || open_source(&path, &ReadOptions::default()).unwrap();
+        let v3 = dir.path().join(format!("{n}-v3.strata"));
+        let v2 = dir.path().join(format!("{n}-v2.strata"));
+        import_source_as_format(open(), &v3, &ImportOptions::default(), 3).unwrap();
+        import_source_as_format(open(), &v2, &ImportOptions::default(), 2).unwrap();
+        {
+            let a = Store::open(&v3).unwrap();
+            let b = Store::open(&v2).unwrap();
+            assert_eq!((a.format_version(), b.format_version()), (3, 2), "{name}");
+            assert_eq!(a.skeleton(), b.skeleton(), "{name}");
+            assert_eq!(a.histogram(), b.histogram(), "{name}");
+            for id in all_ids(&a) {
+                assert_eq!(
+                    a.read_brick_record(id).unwrap(),
+                    b.read_brick_record(id).unwrap(),
+                    "{name} {id:?}"
+                );
+                assert_eq!(
+                    a.read_brick(id).unwrap(),
+                    b.read_brick(id).unwrap(),
+                    "{name} {id:?}"
+                );
+            }
+        }
+        let report = strata_storage::store::upgrade_store(&v2).unwrap();
+        assert!(report.problems.is_empty(), "{name}: {:?}", report.problems);
+        let upgraded = Store::open(&v2).unwrap();
+        let fresh = Store::open(&v3).unwrap();
+        assert_eq!(upgraded.format_version(), 3, "{name}");
+        assert_eq!(upgraded.skeleton(), fresh.skeleton(), "{name}");
+        for id in all_ids(&fresh) {
+            assert_eq!(
+                upgraded.read_brick_record(id).unwrap(),
+                fresh.read_brick_record(id).unwrap(),
+                "{name} {id:?}: upgraded against fresh"
+            );
+        }
+    }
+}

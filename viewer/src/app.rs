@@ -786,8 +786,6 @@ impl StrataApp {
             self.panels.overlay.poll(ui.ctx(), &v.data, &mut v.overlay);
             // The 3D grid follows the overlay: started for a new one, dropped with it.
             match &v.overlay {
-                // An edited layer is drawn on the slices only.
-                Some(o) if o.layer().is_some() => v.overlay_3d = None,
                 Some(o) if !v.overlay_3d.as_ref().is_some_and(|g| g.is_for(o)) => {
                     let ctx = ui.ctx().clone();
                     v.overlay_3d = Overlay3d::start(o, Arc::new(move || ctx.request_repaint()))

@@ -56,7 +56,7 @@ impl SharedLayer {
 
     /// The layer for a change; the revision moves on when the guard is taken, so a reader that
     /// sampled before it sees its slice as stale.
-    fn write(&self) -> RwLockWriteGuard<'_, LabelLayer> {
+    pub(crate) fn write(&self) -> RwLockWriteGuard<'_, LabelLayer> {
         let guard = self.layer.write().unwrap_or_else(|e| e.into_inner());
         self.revision.fetch_add(1, Ordering::AcqRel);
         guard
