@@ -44,10 +44,17 @@ fn web_viewer() -> WebViewerAssets {
     WebViewerAssets::from_dir(&dist).unwrap_or_else(|e| panic!("{e}"))
 }
 
+/// One Chromium at a time: each renders WebGPU on SwiftShader, on the CPU, and several at once
+/// on CI's two cores starved each other past their deadlines (the notebook widget's test timed
+/// out beside seven others; alone it takes a minute). Held from a browser's start to its end.
+static ONE_BROWSER_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
 struct Browser {
     child: Child,
     log: PathBuf,
     _profile: tempfile::TempDir,
+    // Dropped after the child is killed (fields drop after `Drop::drop`).
+    _turn: std::sync::MutexGuard<'static, ()>,
 }
 
 impl Drop for Browser {
@@ -61,6 +68,10 @@ impl Browser {
     /// Headless Chromium on `url`, WebGPU on SwiftShader (the flags the research note found
     /// to give an adapter and a visible canvas), no network beyond loopback.
     fn open(url: &str, scratch: &Path) -> Browser {
+        // A test that failed with the lock held poisons it; the next browser may still run.
+        let turn = ONE_BROWSER_AT_A_TIME
+            .lock()
+            .unwrap_or_else(|poisoned| poisoned.into_inner());
         let profile = tempfile::tempdir().expect("browser profile folder");
         let log = scratch.join("chromium.log");
         let log_file = std::fs::File::create(&log).expect("browser log file");
@@ -94,6 +105,7 @@ impl Browser {
             child,
             log,
             _profile: profile,
+            _turn: turn,
         }
     }
 
