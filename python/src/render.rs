@@ -1,9 +1,13 @@
 //! `strata.render`: one headless frame of an open volume, through strata-headless, the code
 //! `strata render` runs, so the two return the same frame for the same options.
 //!
-//! The render runs with the GIL released and inside `no_panic`; a bad option is a
+//! The render runs on its own thread with the GIL released (Ctrl-C returns at once) and a panic
+//! there is reported as `no_panic` does; a bad option is a
 //! `ValueError`, no usable GPU adapter (or any failed render) a `RenderError`, a store that
 //! cannot be read the store's own exception.
+
+use std::sync::mpsc::RecvTimeoutError;
+use std::time::Duration;
 
 use pyo3::create_exception;
 use pyo3::exceptions::PyValueError;
@@ -120,15 +124,46 @@ pub(crate) fn render<'py>(
     let opened = store.get()?;
     let source = opened.source();
     let name = store.location.clone();
-    let (frame, notes) = py.allow_threads(|| {
-        no_panic("rendering", || {
-            let mut notes = Vec::new();
-            let frame = strata_headless::render(source, &name, &options, &mut |note: String| {
-                notes.push(note)
-            })
-            .map_err(bad)?;
-            Ok((frame, notes))
+    // The frame is drawn on a thread of its own while this one waits with the GIL released and
+    // looks for Ctrl-C every 50 ms: a pending KeyboardInterrupt returns at once. The GPU work
+    // cannot be stopped part-way, so a frame in progress finishes on its thread and is dropped.
+    let (sender, receiver) = std::sync::mpsc::channel();
+    std::thread::Builder::new()
+        .name("strata-py-render".into())
+        .spawn(move || {
+            let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                let mut notes = Vec::new();
+                strata_headless::render(source, &name, &options, &mut |note: String| {
+                    notes.push(note)
+                })
+                .map(|frame| (frame, notes))
+            }));
+            // The caller may have gone (Ctrl-C): then nobody wants the frame.
+            let _ = sender.send(outcome);
         })
+        .map_err(|e| StrataError::new_err(format!("cannot start the render thread: {e}")))?;
+    // The receiver goes into each wait and comes back (it is Send, not Sync).
+    let mut receiver = receiver;
+    let outcome =
+        loop {
+            let wait = Duration::from_millis(50);
+            let (got, back) = py.allow_threads(move || {
+                let got = receiver.recv_timeout(wait);
+                (got, receiver)
+            });
+            receiver = back;
+            match got {
+                Ok(outcome) => break outcome,
+                Err(RecvTimeoutError::Timeout) => py.check_signals()?,
+                Err(RecvTimeoutError::Disconnected) => return Err(StrataError::new_err(
+                    "the render thread ended without a frame (a bug in Strata: please report it)",
+                )),
+            }
+        };
+    // A panic on the render thread is reported as every other (a StrataError naming the bug).
+    let (frame, notes) = no_panic("rendering", || match outcome {
+        Ok(result) => result.map_err(bad),
+        Err(payload) => std::panic::resume_unwind(payload),
     })?;
     let rgba = PyByteArray::new(py, &frame.rgba);
     Ok((frame.width, frame.height, rgba, notes))

@@ -207,3 +207,32 @@ def test_a_closed_volume_raises_store_error(tmp_path: pathlib.Path) -> None:
     vol.close()
     with pytest.raises(strata.StoreError, match="closed"):
         strata.render(vol, size=32)
+
+
+def render_threads() -> int:
+    """Threads of this process named by strata.render's worker (Linux names are cut to 15)."""
+    names = [p.read_text().strip() for p in pathlib.Path("/proc/self/task").glob("*/comm")]
+    return sum(1 for n in names if n == "strata-py-rende")
+
+
+def test_ctrl_c_interrupts_a_render(ct_store: strata.Volume) -> None:
+    """A pending Ctrl-C (KeyboardInterrupt) ends `strata.render` while its frame is still being
+    drawn: a timer interrupts the main thread during renders of the f64 reference (seconds
+    each), and when the exception arrives the render's own thread is still running (an
+    interrupt seen only after the call returned would find none). A few tries, since the
+    timer may fire between two calls."""
+    import _thread
+    import threading
+
+    for _ in range(3):
+        timer = threading.Timer(0.3, _thread.interrupt_main)
+        timer.start()
+        try:
+            for _ in range(100):
+                strata.render(ct_store, size=256, reference=True, step=0.25)
+        except KeyboardInterrupt:
+            if render_threads() > 0:
+                return
+        finally:
+            timer.cancel()
+    pytest.fail("Ctrl-C never ended a render while its frame was being drawn")
