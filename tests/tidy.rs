@@ -840,3 +840,109 @@ source = "registry+https://github.com/rust-lang/crates.io-index"
         Vec::<Vec<String>>::new()
     );
 }
+
+/// Lines of a manifest that turn a test-only feature on outside `[dev-dependencies]` and
+/// outside that feature's own definition: a release build would then carry the hooks.
+fn test_features_outside_dev_dependencies(manifest: &str) -> Vec<String> {
+    const TEST_ONLY: [&str; 2] = ["test-hooks", "test-probe"];
+    let mut table = String::new();
+    let mut found = Vec::new();
+    for line in manifest.lines() {
+        let trimmed = line.trim();
+        if trimmed.starts_with('[') {
+            table = trimmed.trim_matches(|c| c == '[' || c == ']').to_string();
+            continue;
+        }
+        if trimmed.starts_with('#') || !TEST_ONLY.iter().any(|f| trimmed.contains(f)) {
+            continue;
+        }
+        let dev = table == "dev-dependencies" || table.ends_with(".dev-dependencies");
+        let own_definition =
+            table == "features" && TEST_ONLY.iter().any(|f| trimmed == format!("{f} = []"));
+        if !dev && !own_definition {
+            found.push(format!("[{table}] {trimmed}"));
+        }
+    }
+    found
+}
+
+/// `pub fn …_for_tests` items of a source file that are compiled into every build (no
+/// `cfg` naming the tests or the test hooks among the attributes above them).
+fn ungated_test_functions(source: &str) -> Vec<String> {
+    let lines: Vec<&str> = source.lines().collect();
+    let mut found = Vec::new();
+    for (i, line) in lines.iter().enumerate() {
+        let trimmed = line.trim();
+        let Some(rest) = trimmed.strip_prefix("pub fn ") else {
+            continue;
+        };
+        let name = rest.split(['(', '<']).next().unwrap_or("");
+        if !name.ends_with("_for_tests") {
+            continue;
+        }
+        let gated = lines[..i]
+            .iter()
+            .rev()
+            .map(|l| l.trim())
+            .take_while(|l| l.starts_with("#[") || l.starts_with("///"))
+            .any(|l| l.starts_with("#[cfg(") && l.contains("test"));
+        if !gated {
+            found.push(format!("line {}: {name}", i + 1));
+        }
+    }
+    found
+}
+
+#[test]
+fn test_hooks_are_compiled_only_into_test_builds() {
+    let root = repo_root();
+    let mut problems = Vec::new();
+    for entry in fs::read_dir(&root).expect("the workspace folder") {
+        let dir = entry.expect("a workspace entry").path();
+        let manifest = dir.join("Cargo.toml");
+        let name = dir.file_name().and_then(|n| n.to_str()).unwrap_or("");
+        if !manifest.is_file() || name == "vendor" {
+            continue;
+        }
+        let text = fs::read_to_string(&manifest).expect("a manifest");
+        for line in test_features_outside_dev_dependencies(&text) {
+            problems.push(format!("{}: {line}", manifest.display()));
+        }
+        let mut files = Vec::new();
+        rust_files(&dir.join("src"), &mut files);
+        for file in files {
+            let source = fs::read_to_string(&file).expect("a source file");
+            for item in ungated_test_functions(&source) {
+                problems.push(format!("{}: {item}", file.display()));
+            }
+        }
+    }
+    assert!(
+        problems.is_empty(),
+        "test hooks reach release builds (gate them with #[cfg(any(test, feature = \"test-hooks\"))] \
+         and enable the feature only under [dev-dependencies]):\n{}",
+        problems.join("\n")
+    );
+}
+
+#[test]
+fn the_test_hook_checks_can_fail() {
+    let manifest = "[features]\ntest-hooks = []\nweb = [\"strata-service/test-hooks\"]\n\n\
+                    [dependencies]\nstrata-storage = { path = \"../storage\", features = [\"test-hooks\"] }\n\n\
+                    [dev-dependencies]\nstrata-service = { path = \"../service\", features = [\"test-hooks\"] }\n";
+    assert_eq!(
+        test_features_outside_dev_dependencies(manifest),
+        vec![
+            "[features] web = [\"strata-service/test-hooks\"]".to_string(),
+            "[dependencies] strata-storage = { path = \"../storage\", features = [\"test-hooks\"] }"
+                .to_string()
+        ]
+    );
+    let source =
+        "/// Gated.\n#[cfg(any(test, feature = \"test-hooks\"))]\npub fn a_for_tests() {}\n\n\
+                  /// Not gated.\n#[doc(hidden)]\npub fn b_for_tests(x: u8) {}\npub fn c() {}\n";
+    assert_eq!(
+        ungated_test_functions(source),
+        vec!["line 7: b_for_tests".to_string()]
+    );
+}

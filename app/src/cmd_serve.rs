@@ -8,7 +8,6 @@ use std::time::Duration;
 use anyhow::{Context, Result};
 use clap::Args;
 use strata_service::server::{find_stores, generate_token, start, ServeOptions};
-use strata_storage::BrickId;
 
 #[derive(Args)]
 pub struct ServeArgs {
@@ -64,15 +63,6 @@ pub struct ServeArgs {
     /// loopback.
     #[arg(long, default_value_t = 0, hide = true)]
     pub added_delay_ms: u64,
-    /// Test hook: corrupt the first answer for this brick (LEVEL/Z/Y/X) after verifying it.
-    #[arg(long, hide = true)]
-    pub test_corrupt_brick: Option<String>,
-    /// Test hook: how many answers for --test-corrupt-brick to corrupt.
-    #[arg(long, hide = true, default_value_t = 1)]
-    pub test_corrupt_times: u32,
-    /// Test hook: accept brick requests below the root and never answer them.
-    #[arg(long, hide = true)]
-    pub test_stall_below_root: bool,
 }
 
 pub fn run(args: ServeArgs) -> Result<()> {
@@ -92,12 +82,6 @@ pub fn run(args: ServeArgs) -> Result<()> {
         }
         (None, false) => None,
     };
-    let corrupt_answers = args
-        .test_corrupt_brick
-        .as_deref()
-        .map(parse_brick)
-        .transpose()?
-        .map(|id| (id, args.test_corrupt_times));
     anyhow::ensure!(
         args.header_timeout.is_finite() && args.header_timeout > 0.0,
         "--header-timeout must be positive"
@@ -107,7 +91,7 @@ pub fn run(args: ServeArgs) -> Result<()> {
         "--evict-idle-after must be between 0 and 3600 seconds (got {})",
         args.evict_idle_after
     );
-    let options = ServeOptions {
+    let mut options = ServeOptions {
         bind: args
             .bind
             .unwrap_or_else(|| SocketAddr::from(([127, 0, 0, 1], 0))),
@@ -119,8 +103,6 @@ pub fn run(args: ServeArgs) -> Result<()> {
         max_concurrent_requests: args.max_requests,
         header_read_timeout: Duration::from_secs_f64(args.header_timeout),
         added_delay: Duration::from_millis(args.added_delay_ms),
-        corrupt_answers,
-        stall_below_root: args.test_stall_below_root,
         tls: match (args.tls_cert, args.tls_key) {
             (Some(cert), Some(key)) => Some(strata_service::server::TlsFiles { cert, key }),
             _ => None,
@@ -130,6 +112,8 @@ pub fn run(args: ServeArgs) -> Result<()> {
         access_log: args.access_log,
         ..ServeOptions::default()
     };
+    // Failure injection for the tests' servers; a no-op in builds without the hooks.
+    strata_service::test_hooks::apply_from_env(&mut options)?;
     let stores = find_stores(&args.stores)?;
     let server = start(stores, options).context("strata serve")?;
     println!("serving on {}", server.base_url());
@@ -150,18 +134,6 @@ pub fn run(args: ServeArgs) -> Result<()> {
     std::io::stdout().flush()?;
     server.wait();
     Ok(())
-}
-
-fn parse_brick(text: &str) -> Result<BrickId> {
-    let parts: Vec<u32> = text
-        .split('/')
-        .map(|p| p.parse::<u32>())
-        .collect::<Result<_, _>>()
-        .with_context(|| format!("brick must be LEVEL/Z/Y/X, not '{text}'"))?;
-    let [level, z, y, x] = parts[..] else {
-        anyhow::bail!("brick must be LEVEL/Z/Y/X, not '{text}'");
-    };
-    Ok(BrickId::new(u8::try_from(level)?, [x, y, z]))
 }
 
 /// The browser viewer's files, embedded by the `web` feature (issue 39).

@@ -39,10 +39,17 @@ pub(crate) struct Served {
 
 impl Served {
     pub(crate) fn start(store: &Path, extra: &[&str]) -> Served {
+        Self::start_with_hooks(store, extra, &[])
+    }
+
+    /// With the server's test hooks (`strata_service::test_hooks`: environment variables, so
+    /// the command line has no test flags; the binary these tests run is built with them).
+    pub(crate) fn start_with_hooks(store: &Path, extra: &[&str], hooks: &[(&str, &str)]) -> Served {
         let mut child = Command::new(env!("CARGO_BIN_EXE_strata"))
             .arg("serve")
             .arg(store)
             .args(extra)
+            .envs(hooks.iter().copied())
             .stdout(Stdio::piped())
             .stderr(Stdio::null())
             .spawn()
@@ -245,7 +252,11 @@ fn a_brick_corrupted_in_transit_is_fetched_again_and_the_image_stays_exact() {
     render(store.to_str().unwrap(), &local, &[]);
     // The root is read at open; corrupt a brick the streamed view needs (level 0, a corner
     // that the phantom's body covers, so it is not empty under the transfer function).
-    let served = Served::start(&store, &["--test-corrupt-brick", "1/0/0/0"]);
+    let served = Served::start_with_hooks(
+        &store,
+        &[],
+        &[(strata_service::test_hooks::CORRUPT_BRICK_VAR, "1/0/0/0")],
+    );
     let remote = dir.path().join("remote.png");
     let log = render(&served.url, &remote, &[]);
     assert!(
@@ -266,7 +277,11 @@ fn a_brick_corrupted_in_transit_is_fetched_again_and_the_image_stays_exact() {
 fn frames_go_on_while_every_brick_request_is_stalled() {
     let dir = tempfile::tempdir().unwrap();
     let path = phantom(dir.path(), 96);
-    let served = Served::start(&path, &["--test-stall-below-root"]);
+    let served = Served::start_with_hooks(
+        &path,
+        &[],
+        &[(strata_service::test_hooks::STALL_BELOW_ROOT_VAR, "1")],
+    );
     let ctx = gpu();
     let remote: Arc<dyn VolumeSource> =
         Arc::new(RemoteSource::open(&served.url, RemoteOptions::default()).unwrap());

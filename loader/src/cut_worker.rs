@@ -513,10 +513,12 @@ impl Gate {
 }
 
 /// Holds the selection thread until dropped (`StreamingVolume::hold_selection_for_tests`).
+#[cfg(any(test, feature = "test-hooks"))]
 pub struct SelectionHold {
     gate: Arc<Gate>,
 }
 
+#[cfg(any(test, feature = "test-hooks"))]
 impl Drop for SelectionHold {
     fn drop(&mut self) {
         self.gate.set(false);
@@ -568,6 +570,7 @@ impl CutWorker {
     }
 
     /// Holds the thread before its next job until the guard is dropped (tests).
+    #[cfg(any(test, feature = "test-hooks"))]
     pub fn hold(&self) -> SelectionHold {
         self.gate.set(true);
         SelectionHold {

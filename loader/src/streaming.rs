@@ -902,14 +902,14 @@ impl StreamingVolume {
     /// Holds the selection thread before its next job until the guard is dropped: frames go
     /// on with the current cut meanwhile (with [`SelectionTiming::Background`]; an
     /// `EachFrame` frame would wait for the guard). For tests.
-    #[doc(hidden)]
+    #[cfg(any(test, feature = "test-hooks"))]
     pub fn hold_selection_for_tests(&self) -> crate::cut_worker::SelectionHold {
         self.selector.hold()
     }
 
     /// Re-reads every brick the page table samples from `store` and uploads it into its slot
     /// again (for tests: separates wrong cache contents from a wrong cut).
-    #[doc(hidden)]
+    #[cfg(any(test, feature = "test-hooks"))]
     pub fn reupload_for_tests(
         &self,
         ctx: &GpuContext,

@@ -7,6 +7,7 @@ pub mod client;
 mod connections;
 mod observe;
 pub mod server;
+pub mod test_hooks;
 pub mod web_viewer;
 /// The wire format lives in strata-source, where the browser's client (strata-web) reads it too.
 pub use strata_source::wire;

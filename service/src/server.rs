@@ -91,9 +91,11 @@ pub struct ServeOptions {
     pub tls: Option<TlsFiles>,
     /// Test hook: flip one byte of this brick's next N answers after the server verified them
     /// (corruption in transit).
+    #[cfg(feature = "test-hooks")]
     pub corrupt_answers: Option<(BrickId, u32)>,
     /// Test hook: never answer a brick request below the root (it ends in the request
     /// timeout): a server that accepts and then stalls, for the no-frame-waits test.
+    #[cfg(feature = "test-hooks")]
     pub stall_below_root: bool,
     /// The browser viewer's page, served at `/` (web_viewer.rs); None: `/` says how to build it.
     pub web_viewer: Option<Arc<WebViewerAssets>>,
@@ -128,7 +130,9 @@ impl Default for ServeOptions {
             request_timeout: Duration::from_secs(30),
             max_streams_per_connection: 256,
             added_delay: Duration::ZERO,
+            #[cfg(feature = "test-hooks")]
             corrupt_answers: None,
+            #[cfg(feature = "test-hooks")]
             stall_below_root: false,
             tls: None,
             web_viewer: None,
@@ -201,7 +205,9 @@ struct AppState {
     counters: Arc<ServerCounters>,
     requests: Arc<Semaphore>,
     added_delay: Duration,
+    #[cfg(feature = "test-hooks")]
     corrupt_answers: std::sync::Mutex<Option<(BrickId, u32)>>,
+    #[cfg(feature = "test-hooks")]
     stall_below_root: bool,
     observer: Arc<Observer>,
     connections: Arc<Connections>,
@@ -491,7 +497,9 @@ pub fn start(
         counters: counters.clone(),
         requests: Arc::new(Semaphore::new(options.max_concurrent_requests.max(1))),
         added_delay: options.added_delay,
+        #[cfg(feature = "test-hooks")]
         corrupt_answers: std::sync::Mutex::new(options.corrupt_answers),
+        #[cfg(feature = "test-hooks")]
         stall_below_root: options.stall_below_root,
         observer: Arc::new(observer),
         connections,
@@ -1137,6 +1145,7 @@ async fn brick(
     if !state.added_delay.is_zero() {
         tokio::time::sleep(state.added_delay).await;
     }
+    #[cfg(feature = "test-hooks")]
     if state.stall_below_root && usize::from(id.level) + 1 < store.store.layout().level_count() {
         std::future::pending::<()>().await;
     }
@@ -1198,7 +1207,9 @@ async fn brick(
             .body(Body::empty())
             .unwrap_or_else(|_| StatusCode::INTERNAL_SERVER_ERROR.into_response());
     }
+    #[cfg_attr(not(feature = "test-hooks"), allow(unused_mut))]
     let mut body = record;
+    #[cfg(feature = "test-hooks")]
     {
         let mut corrupt = state
             .corrupt_answers

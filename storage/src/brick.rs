@@ -615,7 +615,7 @@ impl std::fmt::Display for BrickDecodeError {
 
 /// A record of `kind` with `body` and the right checksum, whatever the body holds: lets the
 /// malformed-input tests hand the decoders bodies that pass the checksum but lie.
-#[doc(hidden)]
+#[cfg(any(test, feature = "test-hooks"))]
 pub fn seal_record_for_tests(id: BrickId, kind: u8, body: &[u8]) -> Vec<u8> {
     let mut out = vec![kind];
     out.extend_from_slice(&checksum(kind, &brick_key(id), body).to_le_bytes());

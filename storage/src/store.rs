@@ -936,13 +936,13 @@ impl Store {
     }
 
     /// Overwrites one byte of a stored brick record. Only for tests of corruption handling.
-    #[doc(hidden)]
+    #[cfg(any(test, feature = "test-hooks"))]
     pub fn corrupt_brick_for_tests(path: &Path, id: BrickId, byte: usize) -> Result<()> {
         Self::corrupt_frame_brick_for_tests(path, 0, id, byte)
     }
 
     /// [`Store::corrupt_brick_for_tests`] in frame `frame` of a 4-D store.
-    #[doc(hidden)]
+    #[cfg(any(test, feature = "test-hooks"))]
     pub fn corrupt_frame_brick_for_tests(
         path: &Path,
         frame: u32,
