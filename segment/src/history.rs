@@ -13,7 +13,7 @@ use std::sync::Arc;
 use rustc_hash::FxHashMap;
 
 use crate::grid::{BrickKey, LABEL_BRICK_VOXELS};
-use crate::layer::{BrickChange, Edit, LabelLayer};
+use crate::layer::{BrickChange, Edit, LabelLayer, TableChange};
 use crate::Label;
 
 /// Bytes an edit's brick images take (before and after).
@@ -28,11 +28,22 @@ pub fn edit_bytes(edit: &Edit) -> usize {
 }
 
 /// Successive edits (in the order they were applied) as one: each brick's image before the first
-/// and after the last; bricks that ended as they began are left out (`None` when all did). This
+/// and after the last (the segment table's too); bricks that ended as they began are left out
+/// (`None` when all did and the table did not change). This
 /// is how a stroke shown as it is drawn, one edit per pointer event, becomes one undo step.
 pub fn merge_edits(name: &str, edits: impl IntoIterator<Item = Edit>) -> Option<Edit> {
     let mut merged: FxHashMap<BrickKey, BrickChange> = FxHashMap::default();
+    let mut table: Option<TableChange> = None;
     for edit in edits {
+        if let Some(change) = edit.table {
+            table = Some(match table {
+                Some(first) => TableChange {
+                    before: first.before,
+                    after: change.after,
+                },
+                None => change,
+            });
+        }
         for change in edit.changes {
             merged
                 .entry(change.key)
@@ -44,13 +55,14 @@ pub fn merge_edits(name: &str, edits: impl IntoIterator<Item = Edit>) -> Option<
         .into_values()
         .filter(|c| c.before[..] != c.after[..])
         .collect();
-    if changes.is_empty() {
+    if changes.is_empty() && table.is_none() {
         return None;
     }
     changes.sort_by_key(|c| c.key);
     Some(Edit {
         name: name.to_owned(),
         changes,
+        table,
     })
 }
 
@@ -223,6 +235,7 @@ mod tests {
         let e = paint(&mut l, 2, 2);
         let inverse = Edit {
             name: "inverse".into(),
+            table: None,
             changes: e
                 .changes
                 .iter()

@@ -544,7 +544,11 @@ fn decode_edit(payload: &[u8]) -> Result<Edit, String> {
             c.0.len()
         ));
     }
-    Ok(Edit { name, changes })
+    Ok(Edit {
+        name,
+        changes,
+        table: None,
+    })
 }
 
 #[cfg(test)]

@@ -109,6 +109,26 @@ pub struct Edit {
     /// What the user did, for the history list ("Brush", "Grow from seed", ...).
     pub name: String,
     pub changes: Vec<BrickChange>,
+    /// The segment table before and after, when the edit changed it (removing a segment: the
+    /// undo brings back its name and colour with its voxels).
+    pub table: Option<TableChange>,
+}
+
+/// A segment table change carried by an [`Edit`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct TableChange {
+    pub before: SegmentTable,
+    pub after: SegmentTable,
+}
+
+impl TableChange {
+    /// The change undone.
+    pub fn reversed(&self) -> TableChange {
+        TableChange {
+            before: self.after.clone(),
+            after: self.before.clone(),
+        }
+    }
 }
 
 /// Read access to a whole label grid, as exports and statistics need it.
@@ -246,7 +266,49 @@ impl LabelLayer {
         Ok(Some(Edit {
             name: name.to_owned(),
             changes,
+            table: None,
         }))
+    }
+
+    /// Removes segment `value`: its voxels become background and its entry leaves the table,
+    /// as one edit, so the undo brings back the voxels, the name and the colour. Only the
+    /// bricks that hold the value are copied.
+    pub fn remove_segment(&mut self, value: Label) -> Result<Edit, SegmentError> {
+        let [bx, by, bz] = self.grid.bricks();
+        let mut holding = Vec::new();
+        for k in 0..bz {
+            for j in 0..by {
+                for i in 0..bx {
+                    let key = BrickKey([i, j, k]);
+                    if !self.brick_is_empty(key) && self.brick(key)?.contains(&value) {
+                        holding.push(key);
+                    }
+                }
+            }
+        }
+        let before = self.segments.clone();
+        let voxels = self.edit("Remove segment", |w| {
+            for key in holding {
+                for v in w.brick_mut(key)?.iter_mut() {
+                    if *v == value {
+                        *v = 0;
+                    }
+                }
+            }
+            Ok(())
+        })?;
+        self.segments.remove(value);
+        // An edit even when no voxel held the value: the entry's removal is a step of its own.
+        let mut edit = voxels.unwrap_or_else(|| Edit {
+            name: "Remove segment".into(),
+            changes: Vec::new(),
+            table: None,
+        });
+        edit.table = Some(TableChange {
+            before,
+            after: self.segments.clone(),
+        });
+        Ok(edit)
     }
 
     /// Puts every brick of `edit` back as it was before (undo).
@@ -254,12 +316,18 @@ impl LabelLayer {
         for c in &edit.changes {
             self.edited.insert(c.key, c.before.clone());
         }
+        if let Some(table) = &edit.table {
+            self.segments = table.before.clone();
+        }
     }
 
     /// Applies `edit` again (redo, or replaying the journal).
     pub fn apply(&mut self, edit: &Edit) {
         for c in &edit.changes {
             self.edited.insert(c.key, c.after.clone());
+        }
+        if let Some(table) = &edit.table {
+            self.segments = table.after.clone();
         }
     }
 }
@@ -405,6 +473,44 @@ mod tests {
         l.apply(&edit);
         assert_eq!(l.get([99, 69, 39]).unwrap(), 7);
         assert!(l.get([100, 0, 0]).is_err());
+    }
+
+    #[test]
+    fn removing_a_segment_is_one_edit_whose_undo_restores_voxels_name_and_colour() {
+        let mut l = layer([70, 40, 40]);
+        let liver = l.segments_mut().add("liver").unwrap();
+        let kidney = l.segments_mut().add("kidney").unwrap();
+        l.segments_mut().get_mut(liver).unwrap().rgb = [1, 2, 3];
+        l.edit("paint", |w| {
+            w.set([3, 3, 3], liver)?;
+            w.set([68, 39, 39], liver)?;
+            w.set([4, 3, 3], kidney)
+        })
+        .unwrap();
+        let table_before = l.segments().clone();
+        let edit = l.remove_segment(liver).unwrap();
+        assert_eq!(edit.changes.len(), 2, "only the two bricks that held it");
+        assert_eq!(l.get([3, 3, 3]).unwrap(), 0);
+        assert_eq!(l.get([68, 39, 39]).unwrap(), 0);
+        assert_eq!(l.get([4, 3, 3]).unwrap(), kidney);
+        assert!(l.segments().get(liver).is_none());
+        l.revert(&edit);
+        assert_eq!(l.segments(), &table_before, "name and colour back");
+        assert_eq!(l.get([3, 3, 3]).unwrap(), liver);
+        assert_eq!(l.get([68, 39, 39]).unwrap(), liver);
+        l.apply(&edit);
+        assert!(l.segments().get(liver).is_none());
+        assert_eq!(l.get([3, 3, 3]).unwrap(), 0);
+        // A segment no voxel holds still leaves (and comes back) as a step of its own.
+        let empty = l.segments_mut().add("empty").unwrap();
+        let step = l.remove_segment(empty).unwrap();
+        assert!(step.changes.is_empty());
+        assert!(l.segments().get(empty).is_none());
+        l.revert(&step);
+        assert_eq!(
+            l.segments().get(empty).map(|s| s.name.as_str()),
+            Some("empty")
+        );
     }
 
     #[test]

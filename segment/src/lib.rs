@@ -27,8 +27,9 @@ pub use error::SegmentError;
 pub use grid::{BrickKey, LabelGrid, LABEL_BRICK, LABEL_BRICK_VOXELS};
 pub use layer::{
     BrickChange, DenseLabels, Edit, EditWriter, EmptyBase, LabelBase, LabelLayer, LabelRead,
+    TableChange,
 };
-pub use segments::{Code, Segment, SegmentCategory, SegmentTable};
+pub use segments::{label_colour, Code, Segment, SegmentCategory, SegmentTable};
 
 /// A label value: 0 is background, every other value one segment.
 pub type Label = u16;

@@ -27,20 +27,6 @@ pub struct SegmentTable {
     segments: Vec<Segment>,
 }
 
-/// Distinct colours for new segments (cycled); the user can change each.
-const PALETTE: [[u8; 3]; 10] = [
-    [230, 80, 70],
-    [80, 180, 90],
-    [70, 130, 230],
-    [240, 200, 60],
-    [180, 90, 210],
-    [60, 200, 200],
-    [240, 140, 50],
-    [160, 200, 60],
-    [230, 110, 170],
-    [150, 120, 90],
-];
-
 impl SegmentTable {
     pub fn new() -> Self {
         SegmentTable::default()
@@ -93,7 +79,7 @@ impl SegmentTable {
             }
             value += 1;
         }
-        let rgb = PALETTE[(usize::from(value) - 1) % PALETTE.len()];
+        let rgb = label_colour(i64::from(value));
         self.insert(Segment {
             value,
             name: name.into(),
@@ -130,9 +116,28 @@ impl SegmentTable {
     }
 }
 
-/// A distinct, stable colour for a label a file gives no colour (golden-ratio hue steps).
-pub fn generated_colour(value: Label) -> [u8; 3] {
-    let hue = (f64::from(value) * 0.618_033_988_749_895).fract() * 6.0;
+/// A label's colour where a file or the user gives none, the one scheme of every view and
+/// export: a fixed table for the first labels (distinct, saturated, as segmentation tools use),
+/// then hues spaced by the golden angle so neighbouring numbers differ.
+pub fn label_colour(label: i64) -> [u8; 3] {
+    const TABLE: [[u8; 3]; 12] = [
+        [230, 25, 75],
+        [60, 180, 75],
+        [255, 225, 25],
+        [0, 130, 200],
+        [245, 130, 48],
+        [145, 30, 180],
+        [70, 240, 240],
+        [240, 50, 230],
+        [210, 245, 60],
+        [250, 190, 212],
+        [0, 128, 128],
+        [170, 110, 40],
+    ];
+    if (1..=TABLE.len() as i64).contains(&label) {
+        return TABLE[(label - 1) as usize];
+    }
+    let hue = (label as f64 * 137.507_764).rem_euclid(360.0) / 60.0;
     let x = 1.0 - (hue % 2.0 - 1.0).abs();
     let (r, g, b) = match hue as u32 {
         0 => (1.0, x, 0.0),
@@ -142,7 +147,7 @@ pub fn generated_colour(value: Label) -> [u8; 3] {
         4 => (x, 0.0, 1.0),
         _ => (1.0, 0.0, x),
     };
-    [r, g, b].map(|c: f64| (60.0 + 180.0 * c).round() as u8)
+    [r, g, b].map(|c: f64| (40.0 + 215.0 * c).round() as u8)
 }
 
 #[cfg(test)]

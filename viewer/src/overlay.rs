@@ -20,6 +20,7 @@ use std::sync::{Arc, Condvar, Mutex};
 
 use glam::DVec3;
 use strata_render::{ValueMapping, VolumeGeometry};
+use strata_segment::label_colour;
 use strata_source::VolumeSource;
 use strata_storage::{BrickId, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
 
@@ -84,39 +85,6 @@ pub fn label_table_of(labels: &[strata_storage::LabelInfo]) -> BTreeMap<i64, Lab
             )
         })
         .collect()
-}
-
-/// A label's colour: a fixed table for the first labels (distinct, saturated, as segmentation
-/// tools use), then hues spaced by the golden angle so neighbouring numbers differ.
-pub fn label_colour(label: i64) -> [u8; 3] {
-    const TABLE: [[u8; 3]; 12] = [
-        [230, 25, 75],
-        [60, 180, 75],
-        [255, 225, 25],
-        [0, 130, 200],
-        [245, 130, 48],
-        [145, 30, 180],
-        [70, 240, 240],
-        [240, 50, 230],
-        [210, 245, 60],
-        [250, 190, 212],
-        [0, 128, 128],
-        [170, 110, 40],
-    ];
-    if (1..=TABLE.len() as i64).contains(&label) {
-        return TABLE[(label - 1) as usize];
-    }
-    let hue = (label as f64 * 137.507_764).rem_euclid(360.0) / 60.0;
-    let x = 1.0 - (hue % 2.0 - 1.0).abs();
-    let (r, g, b) = match hue as u32 {
-        0 => (1.0, x, 0.0),
-        1 => (x, 1.0, 0.0),
-        2 => (0.0, 1.0, x),
-        3 => (0.0, x, 1.0),
-        4 => (x, 0.0, 1.0),
-        _ => (1.0, 0.0, x),
-    };
-    [r, g, b].map(|c: f64| (40.0 + 215.0 * c).round() as u8)
 }
 
 /// Overlay values for one primary slice image: one per pixel of that image, in its order

@@ -14,11 +14,11 @@ use std::sync::{Arc, Mutex};
 use glam::DVec3;
 use strata_render::overlay::OVERLAY_OUTSIDE;
 use strata_render::{OverlayKind as GridKind, OverlayLut, OverlayVolume};
-use strata_segment::{BrickKey, LabelLayer, LABEL_BRICK};
+use strata_segment::{label_colour, BrickKey, LabelLayer, LABEL_BRICK};
 use strata_source::VolumeSource;
 
 use super::overlay::{
-    label_colour, trilinear, Overlay, OverlayBrickCache, OverlayGrids, OverlayKind, OverlayStyle,
+    trilinear, Overlay, OverlayBrickCache, OverlayGrids, OverlayKind, OverlayStyle,
     OVERLAY_CACHE_BYTES,
 };
 use super::segmentation::SharedLayer;

@@ -30,7 +30,8 @@ use strata_segment::tools::morphology::{
 };
 use strata_segment::tools::Outcome;
 use strata_segment::{
-    BrickKey, Edit, Label, LabelGrid, LabelLayer, SegmentError, SegmentTable, LABEL_BRICK,
+    BrickKey, Edit, Label, LabelGrid, LabelLayer, SegmentError, SegmentTable, TableChange,
+    LABEL_BRICK,
 };
 use strata_source::VolumeSource;
 use strata_storage::{BrickId, BRICK_APRON, BRICK_PAYLOAD};
@@ -336,6 +337,12 @@ pub struct Segmentation {
     journal: Option<Journal>,
     /// The segment table as last journaled (a change is journaled once the gesture ends).
     journaled_segments: SegmentTable,
+    /// The primary store (the journal's note names it).
+    primary_path: PathBuf,
+    /// Records written to the journal so far, and how many there were when the running save
+    /// copied the layer: a save that holds every journaled record restarts the journal.
+    journaled_records: u64,
+    records_at_save: u64,
     /// The primary's values, for a brush limited to a value range (only on the primary's grid).
     intensity: Option<Arc<dyn Intensity>>,
     pub tool: SegmentTool,
@@ -406,6 +413,9 @@ impl Segmentation {
             base_file,
             journal,
             journaled_segments: SegmentTable::new(),
+            primary_path: primary_path.to_path_buf(),
+            journaled_records: 0,
+            records_at_save: 0,
             intensity,
             tool: SegmentTool::None,
             diameter_mm: 10.0,
@@ -454,56 +464,14 @@ impl Segmentation {
         }
     }
 
-    /// Removes a segment: its voxels become background (one edit, undoable; the undo brings
-    /// the voxels back, not the name) and its entry leaves the table.
+    /// Removes a segment: its voxels become background and its entry leaves the table, as one
+    /// edit (the undo brings back the voxels, the name and the colour).
     pub fn remove_segment(&mut self, value: Label) {
-        let result = {
-            let mut layer = self.layer.write();
-            let [bx, by, bz] = layer.grid().bricks();
-            let mut holding = Vec::new();
-            let mut failed = None;
-            'scan: for k in 0..bz {
-                for j in 0..by {
-                    for i in 0..bx {
-                        let key = BrickKey([i, j, k]);
-                        if layer.brick_is_empty(key) {
-                            continue;
-                        }
-                        match layer.brick(key) {
-                            Ok(b) if b.contains(&value) => holding.push(key),
-                            Ok(_) => {}
-                            Err(e) => {
-                                failed = Some(e);
-                                break 'scan;
-                            }
-                        }
-                    }
-                }
-            }
-            match failed {
-                Some(e) => Err(e),
-                None => layer
-                    .edit("Remove segment", |w| {
-                        for key in holding {
-                            for v in w.brick_mut(key)?.iter_mut() {
-                                if *v == value {
-                                    *v = 0;
-                                }
-                            }
-                        }
-                        Ok(())
-                    })
-                    .inspect(|_| {
-                        layer.segments_mut().remove(value);
-                    }),
-            }
-        };
+        let result = self.layer.write().remove_segment(value);
         match result {
             Ok(edit) => {
-                if let Some(edit) = edit {
-                    self.journal(&edit);
-                    self.completed.push(edit);
-                }
+                self.journal(&edit);
+                self.completed.push(edit);
                 if self.active == value {
                     self.active = self.segments().iter().next().map_or(0, |s| s.value);
                 }
@@ -519,6 +487,7 @@ impl Segmentation {
             return;
         }
         if let Some(j) = self.journal.as_mut() {
+            self.journaled_records += 1;
             if let Err(e) = j.append_segments(&now) {
                 self.error = Some(format!("journal: {e} (edits are kept in memory)"));
             }
@@ -634,6 +603,7 @@ impl Segmentation {
     fn journal(&mut self, edit: &Edit) {
         self.journal_segments_if_changed();
         if let Some(j) = self.journal.as_mut() {
+            self.journaled_records += 1;
             if let Err(e) = j.append(edit) {
                 self.error = Some(format!("journal: {e} (edits are kept in memory)"));
             }
@@ -654,6 +624,7 @@ impl Segmentation {
                     after: c.before.clone(),
                 })
                 .collect(),
+            table: edit.table.as_ref().map(TableChange::reversed),
         };
         self.journal(&reversed);
     }
@@ -890,6 +861,7 @@ impl Segmentation {
             return;
         }
         let copy = self.layer.read().clone();
+        self.records_at_save = self.journaled_records;
         let spawned = std::thread::Builder::new()
             .name("strata-segment-save".into())
             .spawn(move || {
@@ -912,10 +884,44 @@ impl Segmentation {
             return;
         }
         if let Some(handle) = self.save_job.take() {
-            self.saved = Some(match handle.join() {
+            let saved = match handle.join() {
                 Ok(result) => result.map_err(|e| e.to_string()),
                 Err(_) => Err("the saving thread failed".into()),
-            });
+            };
+            if let Ok(file) = &saved {
+                if self.journaled_records == self.records_at_save {
+                    self.restart_journal_on(file);
+                }
+            }
+            self.saved = Some(saved);
+        }
+    }
+
+    /// The saved file holds every journaled edit: the journal starts again with that file as
+    /// its base, so a crash after a save offers only the edits made since (not the saved ones
+    /// again, replayed over a base that lacks them). An edit made while the save ran keeps the
+    /// old journal, which still replays onto the old base.
+    fn restart_journal_on(&mut self, file: &Path) {
+        let Some(path) = self.journal.take().map(|j| j.path().to_path_buf()) else {
+            return;
+        };
+        let geometry = self.layer.read().grid().geometry().clone();
+        let note = JournalNote {
+            primary: self.primary_path.clone(),
+            base: Some(file.to_path_buf()),
+        };
+        match open_journal(&path, &geometry, &note, true) {
+            Ok(journal) => {
+                self.journal = Some(journal);
+                self.base_file = Some(file.to_path_buf());
+                self.journaled_records = 0;
+                self.records_at_save = 0;
+                // The new journal starts with the table (names and colours a label file may
+                // not keep).
+                self.journaled_segments = SegmentTable::new();
+                self.journal_segments_if_changed();
+            }
+            Err(e) => self.error = Some(format!("journal: {e} (edits are kept in memory)")),
         }
     }
 

@@ -1137,7 +1137,8 @@ fn a_lost_gpu_device_is_rebuilt_with_a_smaller_cache_and_the_session_carries_on(
 #[test]
 fn a_label_map_overlay_colours_the_right_pixels_and_a_hidden_label_clears_them() {
     use super::overlay::tests::{label_of, write_nrrd, LABEL_DIMS, LABEL_ORIGIN, LABEL_SPACING};
-    use super::overlay::{label_colour, OverlayKind};
+    use super::overlay::OverlayKind;
+    use strata_segment::label_colour;
     let dir = tempfile::tempdir().expect("temp dir");
     let store = phantom_store(dir.path());
     let labels = dir.path().join("labels.nrrd");
@@ -1654,8 +1655,8 @@ fn the_frame_slider_moves_the_readout_to_the_next_frames_value() {
 /// colour-table change: the same uploaded grid) takes it out again.
 #[test]
 fn a_label_map_colours_the_3d_pixels_over_it_and_hiding_the_label_removes_it() {
-    use super::overlay::label_colour;
     use super::overlay::tests::write_nrrd;
+    use strata_segment::label_colour;
     let dir = tempfile::tempdir().expect("temp dir");
     let store = phantom_store(dir.path());
     let geometry = Phantom::cube(48).geometry();
@@ -3051,6 +3052,24 @@ fn brush_and_eraser_drags_paint_exactly_the_cpu_models_voxels_and_undo_restores_
         }
     }
     assert_eq!(from_file, painted, "the saved file holds other voxels");
+    // The saved file holds every edit: the crash journal starts again on it, so a restart
+    // offers nothing already saved.
+    let journal = app(&h)
+        .volume
+        .as_ref()
+        .and_then(|v| v.segmentation.as_ref())
+        .and_then(|s| s.journal_file().map(Path::to_path_buf))
+        .expect("a journal");
+    let after_save = strata_segment::journal::recover(&journal).expect("the journal reads");
+    assert!(
+        after_save.edits.is_empty(),
+        "saved edits left in the journal"
+    );
+    let note: super::segmentation::JournalNote = serde_json::from_slice(
+        &std::fs::read(super::segmentation::note_path(&journal)).expect("the note"),
+    )
+    .expect("a note");
+    assert_eq!(note.base.as_deref(), Some(saved.as_path()));
 
     // Grow in 3D from a clicked seed, into a second segment, within ±80 HU of the seed's value:
     // the same as the segment crate's grow over the phantom's own values from the same layer.

@@ -316,7 +316,7 @@ pub fn write_dicom_seg(
         .map(|&n| {
             let s = labels.segments().get(n);
             let name = s.map_or_else(|| format!("segment {n}"), |s| s.name.clone());
-            let rgb = s.map_or_else(|| crate::segments::generated_colour(n), |s| s.rgb);
+            let rgb = s.map_or_else(|| crate::segments::label_colour(i64::from(n)), |s| s.rgb);
             let category = s.and_then(|s| s.category.clone()).unwrap_or_else(tissue);
             Obj::from_element_iter([
                 us(tags::SEGMENT_NUMBER, &[n]),

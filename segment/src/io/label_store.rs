@@ -247,7 +247,7 @@ pub fn load_label_store(path: &Path) -> Result<LabelLayer, SegmentError> {
             name: label.name.clone(),
             rgb: label
                 .rgb
-                .unwrap_or_else(|| crate::segments::generated_colour(value)),
+                .unwrap_or_else(|| crate::segments::label_colour(i64::from(value))),
             visible: true,
             locked: false,
             category: label.category.clone(),
@@ -287,7 +287,7 @@ pub fn load_label_store(path: &Path) -> Result<LabelLayer, SegmentError> {
                 layer.segments_mut().insert(Segment {
                     value,
                     name: format!("segment {value}"),
-                    rgb: crate::segments::generated_colour(value),
+                    rgb: crate::segments::label_colour(i64::from(value)),
                     visible: true,
                     locked: false,
                     category: None,

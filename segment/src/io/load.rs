@@ -149,7 +149,7 @@ pub fn load_label_file(path: &Path) -> Result<LabelLayer, SegmentError> {
             name: named.map_or_else(|| format!("segment {value}"), |l| l.name.clone()),
             rgb: named
                 .and_then(|l| l.rgb)
-                .unwrap_or_else(|| crate::segments::generated_colour(value)),
+                .unwrap_or_else(|| crate::segments::label_colour(i64::from(value))),
             visible: true,
             locked: false,
             category: named.and_then(|l| l.category.clone()),

@@ -438,7 +438,7 @@ pub fn load_omezarr_labels(label_dir: &Path) -> Result<crate::LabelLayer, Segmen
                 let ch = |n: usize| a.get(n)?.as_u64().and_then(|v| u8::try_from(v).ok());
                 Some([ch(0)?, ch(1)?, ch(2)?])
             })
-            .unwrap_or_else(|| crate::segments::generated_colour(value));
+            .unwrap_or_else(|| crate::segments::label_colour(i64::from(value)));
         segments.insert(crate::Segment {
             value,
             name: p["name"]

@@ -10,8 +10,9 @@ use egui::{Color32, RichText};
 
 use crate::colour_maps::ColourMap;
 use crate::jobs::{PrepareJob, VolumeToOpen};
-use crate::overlay::{label_colour, Overlay, OverlayKind};
+use crate::overlay::{Overlay, OverlayKind};
 use crate::scene::VolumeData;
+use strata_segment::label_colour;
 
 /// The panel's own state: what the user typed and the overlay being prepared.
 pub struct OverlayPanel {
