@@ -156,8 +156,11 @@ use super::AdaptiveConfig;
 use crate::cache::BrickCache;
 use crate::device::GpuContext;
 use crate::error::RenderError;
+use crate::frame_targets::{
+    read_buffer_blocking, readback_buffer, FrameTargets, PixelBuffers, VisibilityTarget,
+};
 use crate::gpu_preintegration::GpuPreintegration;
-use crate::raycast::{build_params, map_blocking, Params, Raycaster, Scene};
+use crate::raycast::{build_params, Params, Raycaster, Scene};
 use crate::settings::RenderMode;
 use crate::shaders;
 
@@ -243,19 +246,6 @@ impl AdaptiveFrame {
     }
 }
 
-struct Targets {
-    width: u32,
-    height: u32,
-    color: wgpu::Texture,
-    color_view: wgpu::TextureView,
-    rgba: wgpu::Buffer,
-    depth: wgpu::Buffer,
-    color_readback: wgpu::Buffer,
-    rgba_readback: wgpu::Buffer,
-    depth_readback: wgpu::Buffer,
-    padded_row_bytes: u32,
-}
-
 pub struct AdaptivePass {
     layout: wgpu::BindGroupLayout,
     pipeline_layout: wgpu::PipelineLayout,
@@ -271,10 +261,10 @@ pub struct AdaptivePass {
     /// Stands in for shadows.wgsl's light cache, which shade_key_light names (so the layout
     /// must have it) but only cache-mode pipelines read.
     light_cache_stand_in: wgpu::Buffer,
-    visibility: Option<(usize, wgpu::Buffer, wgpu::Buffer)>,
+    visibility: Option<VisibilityTarget>,
     counters: wgpu::Buffer,
     counters_readback: wgpu::Buffer,
-    targets: Option<Targets>,
+    targets: Option<FrameTargets>,
     last_slice: u32,
 }
 
@@ -364,7 +354,7 @@ impl AdaptivePass {
                     visibility: wgpu::ShaderStages::COMPUTE,
                     ty: wgpu::BindingType::StorageTexture {
                         access: wgpu::StorageTextureAccess::WriteOnly,
-                        format: wgpu::TextureFormat::Rgba8Unorm,
+                        format: crate::frame_targets::COLOR_FORMAT,
                         view_dimension: wgpu::TextureViewDimension::D2,
                     },
                     count: None,
@@ -432,10 +422,10 @@ impl AdaptivePass {
                     | wgpu::BufferUsages::COPY_SRC
                     | wgpu::BufferUsages::COPY_DST,
             ),
-            counters_readback: buffer(
+            counters_readback: readback_buffer(
+                device,
                 "adaptive counters readback",
                 (COUNTERS * 4) as u64,
-                wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
             ),
             targets: None,
             layout,
@@ -468,63 +458,7 @@ impl AdaptivePass {
 
     /// The RGBA8 colour target, for display (valid after the first frame).
     pub fn output_view(&self) -> Option<&wgpu::TextureView> {
-        self.targets.as_ref().map(|t| &t.color_view)
-    }
-
-    fn ensure_targets(&mut self, device: &wgpu::Device, width: u32, height: u32) {
-        if self
-            .targets
-            .as_ref()
-            .is_some_and(|t| t.width == width && t.height == height)
-        {
-            return;
-        }
-        let color = device.create_texture(&wgpu::TextureDescriptor {
-            label: Some("adaptive colour"),
-            size: wgpu::Extent3d {
-                width,
-                height,
-                depth_or_array_layers: 1,
-            },
-            mip_level_count: 1,
-            sample_count: 1,
-            dimension: wgpu::TextureDimension::D2,
-            format: wgpu::TextureFormat::Rgba8Unorm,
-            usage: wgpu::TextureUsages::STORAGE_BINDING
-                | wgpu::TextureUsages::TEXTURE_BINDING
-                | wgpu::TextureUsages::COPY_SRC,
-            view_formats: &[],
-        });
-        let color_view = color.create_view(&wgpu::TextureViewDescriptor::default());
-        let pixels = width as u64 * height as u64;
-        let buffer = |label: &str, size: u64, usage| {
-            device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
-                size,
-                usage,
-                mapped_at_creation: false,
-            })
-        };
-        let storage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC;
-        let read = wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST;
-        let padded_row_bytes = (width * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT)
-            * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
-        self.targets = Some(Targets {
-            width,
-            height,
-            color,
-            color_view,
-            rgba: buffer("adaptive rgba f32", pixels * 16, storage),
-            depth: buffer("adaptive depth", pixels * 4, storage),
-            color_readback: buffer(
-                "adaptive colour readback",
-                padded_row_bytes as u64 * height as u64,
-                read,
-            ),
-            rgba_readback: buffer("adaptive rgba readback", pixels * 16, read),
-            depth_readback: buffer("adaptive depth readback", pixels * 4, read),
-            padded_row_bytes,
-        });
+        self.targets.as_ref().map(FrameTargets::color_view)
     }
 
     fn pipeline(&mut self, device: &wgpu::Device, key: AdaptiveKey) -> &wgpu::ComputePipeline {
@@ -648,31 +582,19 @@ impl AdaptivePass {
             scene.transfer_function,
             scene.geometry.finest_spacing_mm(),
         );
-        self.ensure_targets(device, settings.width, settings.height);
-        if self.visibility.as_ref().is_none_or(|v| v.0 != entries) {
-            let size = (entries.max(1) * 4) as u64;
-            let make = |label: &str, usage| {
-                device.create_buffer(&wgpu::BufferDescriptor {
-                    label: Some(label),
-                    size,
-                    usage,
-                    mapped_at_creation: false,
-                })
-            };
-            self.visibility = Some((
-                entries,
-                make(
-                    "adaptive visibility",
-                    wgpu::BufferUsages::STORAGE
-                        | wgpu::BufferUsages::COPY_SRC
-                        | wgpu::BufferUsages::COPY_DST,
-                ),
-                make(
-                    "adaptive visibility readback",
-                    wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-                ),
-            ));
-        }
+        FrameTargets::ensure(
+            &mut self.targets,
+            device,
+            "adaptive",
+            settings.width,
+            settings.height,
+            PixelBuffers {
+                depth: true,
+                rgba_f32: true,
+            },
+        );
+        // No staging ring: the adaptive pass's visibility is read only with its frame.
+        VisibilityTarget::ensure(&mut self.visibility, device, "adaptive", entries, 0);
         ctx.queue
             .write_buffer(&self.params, 0, bytemuck::bytes_of(&build_params(scene)));
         let params = AdaptiveParams {
@@ -701,6 +623,7 @@ impl AdaptivePass {
         ) else {
             return Err(RenderError::Readback("adaptive targets missing".into()));
         };
+        let (rgba_f32, depth) = (targets.rgba_f32()?, targets.depth()?);
         let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("adaptive"),
             layout: &self.layout,
@@ -734,19 +657,19 @@ impl AdaptivePass {
                 },
                 wgpu::BindGroupEntry {
                     binding: 15,
-                    resource: wgpu::BindingResource::TextureView(&targets.color_view),
+                    resource: wgpu::BindingResource::TextureView(targets.color_view()),
                 },
                 wgpu::BindGroupEntry {
                     binding: 20,
-                    resource: targets.rgba.as_entire_binding(),
+                    resource: rgba_f32.as_entire_binding(),
                 },
                 wgpu::BindGroupEntry {
                     binding: 21,
-                    resource: targets.depth.as_entire_binding(),
+                    resource: depth.as_entire_binding(),
                 },
                 wgpu::BindGroupEntry {
                     binding: 22,
-                    resource: vis.1.as_entire_binding(),
+                    resource: vis.buffer().as_entire_binding(),
                 },
                 wgpu::BindGroupEntry {
                     binding: 23,
@@ -758,7 +681,7 @@ impl AdaptivePass {
         let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
             label: Some("adaptive"),
         });
-        encoder.clear_buffer(&vis.1, 0, None);
+        encoder.clear_buffer(vis.buffer(), 0, None);
         encoder.clear_buffer(&self.counters, 0, None);
         {
             let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
@@ -813,31 +736,8 @@ impl AdaptivePass {
         let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
             label: Some("adaptive readback"),
         });
-        encoder.copy_texture_to_buffer(
-            wgpu::TexelCopyTextureInfo {
-                texture: &t.color,
-                mip_level: 0,
-                origin: wgpu::Origin3d::ZERO,
-                aspect: wgpu::TextureAspect::All,
-            },
-            wgpu::TexelCopyBufferInfo {
-                buffer: &t.color_readback,
-                layout: wgpu::TexelCopyBufferLayout {
-                    offset: 0,
-                    bytes_per_row: Some(t.padded_row_bytes),
-                    rows_per_image: Some(t.height),
-                },
-            },
-            wgpu::Extent3d {
-                width: t.width,
-                height: t.height,
-                depth_or_array_layers: 1,
-            },
-        );
-        let pixels = t.width as u64 * t.height as u64;
-        encoder.copy_buffer_to_buffer(&t.rgba, 0, &t.rgba_readback, 0, pixels * 16);
-        encoder.copy_buffer_to_buffer(&t.depth, 0, &t.depth_readback, 0, pixels * 4);
-        encoder.copy_buffer_to_buffer(&vis.1, 0, &vis.2, 0, (vis.0.max(1) * 4) as u64);
+        t.encode_readback(&mut encoder);
+        vis.encode_readback(&mut encoder);
         encoder.copy_buffer_to_buffer(
             &self.counters,
             0,
@@ -846,43 +746,18 @@ impl AdaptivePass {
             (COUNTERS * 4) as u64,
         );
         ctx.queue.submit(Some(encoder.finish()));
-        let buffers = [
-            &t.color_readback,
-            &t.rgba_readback,
-            &t.depth_readback,
-            &vis.2,
-            &self.counters_readback,
-        ];
-        for b in buffers {
-            map_blocking(device, b)?;
-        }
-        let read = |b: &wgpu::Buffer| -> Result<Vec<u8>, RenderError> {
-            let v = b
-                .get_mapped_range(..)
-                .map_err(|e| RenderError::Readback(e.to_string()))?
-                .to_vec();
-            b.unmap();
-            Ok(v)
-        };
-        let padded = read(&t.color_readback)?;
-        let row = (t.width * 4) as usize;
-        let mut rgba = Vec::with_capacity(row * t.height as usize);
-        for y in 0..t.height as usize {
-            let start = y * t.padded_row_bytes as usize;
-            rgba.extend_from_slice(&padded[start..start + row]);
-        }
-        let rgba_f32: Vec<[f32; 4]> = bytemuck::pod_collect_to_vec(&read(&t.rgba_readback)?);
-        let depth: Vec<f32> = bytemuck::pod_collect_to_vec(&read(&t.depth_readback)?);
-        let mut visibility: Vec<u32> = bytemuck::pod_collect_to_vec(&read(&vis.2)?);
-        visibility.truncate(vis.0);
-        let c: Vec<u32> = bytemuck::pod_collect_to_vec(&read(&self.counters_readback)?);
+        let pixels = t.read_mapped(device)?;
+        let mut visibility = vis.read_mapped(device)?;
+        visibility.truncate(vis.entries());
+        let c: Vec<u32> =
+            bytemuck::pod_collect_to_vec(&read_buffer_blocking(device, &self.counters_readback)?);
         let level = |base: usize| [0, 1, 2, 3].map(|l| c[base + l] as u64);
         Ok(AdaptiveFrame {
-            width: t.width,
-            height: t.height,
-            rgba,
-            rgba_f32,
-            depth,
+            width: t.width(),
+            height: t.height(),
+            rgba: pixels.rgba,
+            rgba_f32: pixels.rgba_f32,
+            depth: pixels.depth,
             visibility,
             samples_per_level: level(0),
             syntheses_per_level: level(4),
