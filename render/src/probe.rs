@@ -21,7 +21,10 @@ const PROBE_WORKGROUP_SIZE: u32 = 64;
 fn probe_source() -> (&'static str, &'static [String]) {
     static SOURCE: OnceLock<(String, Vec<String>)> = OnceLock::new();
     let (source, declared) = SOURCE.get_or_init(|| {
-        let prelude = format!("const PROBE_WORKGROUP_SIZE: u32 = {PROBE_WORKGROUP_SIZE}u;\n");
+        let prelude = shaders::constants_wgsl(&[(
+            "PROBE_WORKGROUP_SIZE",
+            shaders::PreludeValue::U32(PROBE_WORKGROUP_SIZE),
+        )]);
         let source = shaders::compose_with_field(&[
             ("probe prelude", &prelude),
             shaders::FLAT_NEIGHBOUR,
