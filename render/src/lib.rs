@@ -37,8 +37,10 @@
 //! GPU side
 //!   shaders             → layout, overlay, shadows, ambient_occlusion
 //!                                     (composed WGSL, generated constants prelude, naga)
-//!   pipelines           → settings     (PipelineKey, bind-group layout, cache, compiler)
 //!   readback_ring                      (staging ring read 1-2 frames late)
+//!   frame_targets       → readback_ring, device, error
+//!                          (every pass's colour, depth, visibility targets and their readback)
+//!   pipelines           → settings, frame_targets (PipelineKey, bind-group layout, cache, compiler)
 //!   dirty_spans                        (changed spans of a buffer, written alone)
 //!   gpu_timing          → readback_ring
 //!   gpu_octree          → octree_cut, sparse_page_table, page_table, layout, error
@@ -49,15 +51,15 @@
 //!   gpu_overlay         → overlay, error                        (overlay grid + LUT textures)
 //!   gpu_preintegration  → gpu_transfer_function, segment_integral, transfer_function
 //!   raycast             → shaders, pipelines, gpu_page_table, gpu_transfer_function, gpu_overlay, overlay,
-//!                         gpu_preintegration, gpu_timing, readback_ring, cache, camera,
+//!                         gpu_preintegration, gpu_timing, frame_targets, cache, camera,
 //!                         device, layout, settings, error       (the pass)
-//!   probe               → raycast, shaders, device, error       (feature test-probe)
-//!   octree_probe        → gpu_octree, octree_cut, shaders, raycast, device, error
+//!   probe               → raycast, shaders, frame_targets, device, error       (feature test-probe)
+//!   octree_probe        → gpu_octree, octree_cut, shaders, frame_targets, device, error
 //!                                                               (feature test-probe)
 //!   offscreen           → raycast, gpu_page_table, gpu_transfer_function, bricked_volume,
 //!                         cache, page_table, camera, device, settings, transfer_function, error
 //!   time_critical       → gpu_timing, settings
-//!   progressive         → raycast, camera, device, settings, error
+//!   progressive         → raycast, frame_targets, camera, device, settings, error
 //!                                          (running mean of a still view's jittered frames)
 //! adaptive (adaptive sampling in 3D, its own pass beside the raycaster)
 //!   adaptive::transcription                 (Figs. 3, 5, 6 in f64)
@@ -65,7 +67,7 @@
 //!   adaptive::oracle    → page_table, layout, transfer_function, settings (distance per entry)
 //!   adaptive::scene     → transcription, frame, oracle, field, reference, preintegration,
 //!                         segment_integral, smooth_transitions, settings   (CPU twin)
-//!   adaptive::gpu       → frame, oracle, shaders, raycast, gpu_preintegration, cache,
+//!   adaptive::gpu       → frame, oracle, shaders, raycast, frame_targets, gpu_preintegration, cache,
 //!                         device, settings, error                  (the tiled pass)
 //! ```
 //!
@@ -84,6 +86,7 @@ pub mod device;
 pub mod dirty_spans;
 pub mod error;
 pub mod field;
+pub(crate) mod frame_targets;
 pub mod gpu_octree;
 pub(crate) mod gpu_overlay;
 pub mod gpu_page_table;

@@ -6,9 +6,9 @@
 
 use crate::device::GpuContext;
 use crate::error::RenderError;
+use crate::frame_targets::{read_buffer_blocking, readback_buffer};
 use crate::gpu_octree::encode_node_buffer;
 use crate::octree_cut::{LeafVisit, OctreeCut};
-use crate::raycast::map_blocking;
 use crate::shaders;
 
 const WALK_WGSL: &str = include_str!("shaders/octree_walk.wgsl");
@@ -91,12 +91,7 @@ pub fn walk_on_gpu(
         usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
         mapped_at_creation: false,
     });
-    let readback = device.create_buffer(&wgpu::BufferDescriptor {
-        label: Some("walk readback"),
-        size: bytes,
-        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-        mapped_at_creation: false,
-    });
+    let readback = readback_buffer(device, "walk readback", bytes);
     let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
         label: Some("octree walk"),
         layout: &pipeline.get_bind_group_layout(0),
@@ -133,14 +128,7 @@ pub fn walk_on_gpu(
     }
     encoder.copy_buffer_to_buffer(&out, 0, &readback, 0, bytes);
     ctx.queue.submit([encoder.finish()]);
-    map_blocking(device, &readback)?;
-    let words: Vec<u32> = {
-        let view = readback
-            .get_mapped_range(..)
-            .map_err(|e| RenderError::Readback(e.to_string()))?;
-        bytemuck::cast_slice::<u8, u32>(&view).to_vec()
-    };
-    readback.unmap();
+    let words: Vec<u32> = bytemuck::pod_collect_to_vec(&read_buffer_blocking(device, &readback)?);
     Ok((0..rays.len())
         .map(|r| {
             let base = r * stride as usize;

@@ -92,7 +92,7 @@ fn bind_group_layout(device: &wgpu::Device, filterable: bool) -> wgpu::BindGroup
                 5,
                 BindingType::StorageTexture {
                     access: wgpu::StorageTextureAccess::WriteOnly,
-                    format: wgpu::TextureFormat::Rgba8Unorm,
+                    format: crate::frame_targets::COLOR_FORMAT,
                     view_dimension: TextureViewDimension::D2,
                 },
             ),

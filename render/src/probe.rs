@@ -8,7 +8,8 @@ use std::sync::OnceLock;
 
 use crate::device::GpuContext;
 use crate::error::RenderError;
-use crate::raycast::{build_params, map_blocking, Raycaster, Scene};
+use crate::frame_targets::{read_buffer_blocking, readback_buffer};
+use crate::raycast::{build_params, Raycaster, Scene};
 use crate::shaders;
 
 const PROBE_WGSL: &str = include_str!("shaders/probe.wgsl");
@@ -20,7 +21,10 @@ const PROBE_WORKGROUP_SIZE: u32 = 64;
 fn probe_source() -> (&'static str, &'static [String]) {
     static SOURCE: OnceLock<(String, Vec<String>)> = OnceLock::new();
     let (source, declared) = SOURCE.get_or_init(|| {
-        let prelude = format!("const PROBE_WORKGROUP_SIZE: u32 = {PROBE_WORKGROUP_SIZE}u;\n");
+        let prelude = shaders::constants_wgsl(&[(
+            "PROBE_WORKGROUP_SIZE",
+            shaders::PreludeValue::U32(PROBE_WORKGROUP_SIZE),
+        )]);
         let source = shaders::compose_with_field(&[
             ("probe prelude", &prelude),
             shaders::FLAT_NEIGHBOUR,
@@ -141,12 +145,7 @@ impl Raycaster {
             usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
             mapped_at_creation: false,
         });
-        let readback = device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("probe readback"),
-            size: bytes,
-            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
+        let readback = readback_buffer(device, "probe readback", bytes);
         let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("field probe"),
             layout: &layout,
@@ -183,15 +182,9 @@ impl Raycaster {
         }
         encoder.copy_buffer_to_buffer(&values, 0, &readback, 0, bytes);
         ctx.queue.submit([encoder.finish()]);
-        map_blocking(device, &readback)?;
-        let out = {
-            let view = readback
-                .get_mapped_range(..)
-                .map_err(|e| RenderError::Readback(e.to_string()))?;
-            bytemuck::cast_slice::<u8, f32>(&view).to_vec()
-        };
-        readback.unmap();
-        Ok(out)
+        Ok(bytemuck::pod_collect_to_vec(&read_buffer_blocking(
+            device, &readback,
+        )?))
     }
 }
 

@@ -30,8 +30,9 @@
 //! restarts the count at 1.
 
 use crate::camera::Camera;
-use crate::device::{map_blocking, GpuContext};
+use crate::device::GpuContext;
 use crate::error::RenderError;
+use crate::frame_targets::{FrameTargets, PixelBuffers, COLOR_FORMAT};
 use crate::raycast::{Raycaster, Scene};
 use crate::settings::RenderSettings;
 
@@ -115,20 +116,13 @@ pub fn render_still(
     Ok(mean)
 }
 
-struct Targets {
-    width: u32,
-    height: u32,
-    mean: wgpu::Buffer,
-    mean_texture: wgpu::Texture,
-    mean_view: wgpu::TextureView,
-}
-
 /// The running mean of a still view's frames, on the GPU.
 pub struct Accumulator {
     pipeline: wgpu::ComputePipeline,
     layout: wgpu::BindGroupLayout,
     params: wgpu::Buffer,
-    targets: Option<Targets>,
+    /// The mean: f32 in `rgba_f32`, quantised for display in the colour texture.
+    targets: Option<FrameTargets>,
     key: Option<ViewKey>,
     frames: u32,
 }
@@ -177,7 +171,7 @@ impl Accumulator {
                     3,
                     wgpu::BindingType::StorageTexture {
                         access: wgpu::StorageTextureAccess::WriteOnly,
-                        format: wgpu::TextureFormat::Rgba8Unorm,
+                        format: COLOR_FORMAT,
                         view_dimension: wgpu::TextureViewDimension::D2,
                     },
                 ),
@@ -231,11 +225,11 @@ impl Accumulator {
     /// The running mean as a viewer displays it (premultiplied, like the raycaster's output);
     /// None before the first frame.
     pub fn mean_texture(&self) -> Option<&wgpu::Texture> {
-        self.targets.as_ref().map(|t| &t.mean_texture)
+        self.targets.as_ref().map(FrameTargets::color)
     }
 
     pub fn mean_view(&self) -> Option<&wgpu::TextureView> {
-        self.targets.as_ref().map(|t| &t.mean_view)
+        self.targets.as_ref().map(FrameTargets::color_view)
     }
 
     /// Folds `frame` (the raycaster's Rgba8Unorm output, e.g.
@@ -248,7 +242,7 @@ impl Accumulator {
         key: &ViewKey,
         frame: &wgpu::Texture,
     ) -> Result<u32, RenderError> {
-        if frame.format() != wgpu::TextureFormat::Rgba8Unorm
+        if frame.format() != COLOR_FORMAT
             || !frame.usage().contains(wgpu::TextureUsages::TEXTURE_BINDING)
         {
             return Err(RenderError::InvalidSettings(format!(
@@ -286,11 +280,11 @@ impl Accumulator {
                 },
                 wgpu::BindGroupEntry {
                     binding: 2,
-                    resource: t.mean.as_entire_binding(),
+                    resource: t.rgba_f32()?.as_entire_binding(),
                 },
                 wgpu::BindGroupEntry {
                     binding: 3,
-                    resource: wgpu::BindingResource::TextureView(&t.mean_view),
+                    resource: wgpu::BindingResource::TextureView(t.color_view()),
                 },
             ],
         });
@@ -315,134 +309,50 @@ impl Accumulator {
     }
 
     fn ensure_targets(&mut self, device: &wgpu::Device, width: u32, height: u32) {
-        if self
-            .targets
-            .as_ref()
-            .is_some_and(|t| t.width == width && t.height == height)
-        {
-            return;
-        }
-        // A new size is a new view: the old mean cannot continue.
-        self.frames = 0;
-        let mean = device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("progressive mean"),
-            size: width as u64 * height as u64 * 16,
-            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
-            mapped_at_creation: false,
-        });
-        let mean_texture = device.create_texture(&wgpu::TextureDescriptor {
-            label: Some("progressive mean"),
-            size: wgpu::Extent3d {
-                width,
-                height,
-                depth_or_array_layers: 1,
-            },
-            mip_level_count: 1,
-            sample_count: 1,
-            dimension: wgpu::TextureDimension::D2,
-            format: wgpu::TextureFormat::Rgba8Unorm,
-            usage: wgpu::TextureUsages::STORAGE_BINDING
-                | wgpu::TextureUsages::TEXTURE_BINDING
-                | wgpu::TextureUsages::COPY_SRC,
-            view_formats: &[],
-        });
-        let mean_view = mean_texture.create_view(&wgpu::TextureViewDescriptor::default());
-        self.targets = Some(Targets {
+        let pixel_buffers = PixelBuffers {
+            depth: false,
+            rgba_f32: true,
+        };
+        if FrameTargets::ensure(
+            &mut self.targets,
+            device,
+            "progressive mean",
             width,
             height,
-            mean,
-            mean_texture,
-            mean_view,
-        });
+            pixel_buffers,
+        ) {
+            // A new size is a new view: the old mean cannot continue.
+            self.frames = 0;
+        }
     }
 
     /// The mean in f32 (premultiplied RGBA in [0, 1], row-major), read back and waited for:
     /// for tests and the CLI, never per frame.
     pub fn read_mean_f32_blocking(&self, ctx: &GpuContext) -> Result<Vec<[f32; 4]>, RenderError> {
-        let t = self.filled_targets()?;
-        let size = t.width as u64 * t.height as u64 * 16;
-        let staging = ctx.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("progressive mean readback"),
-            size,
-            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
-        let mut encoder = ctx
-            .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                label: Some("progressive readback"),
-            });
-        encoder.copy_buffer_to_buffer(&t.mean, 0, &staging, 0, size);
-        ctx.queue.submit(Some(encoder.finish()));
-        map_blocking(&ctx.device, &staging)?;
-        let floats: Vec<f32> = {
-            let view = staging
-                .get_mapped_range(..)
-                .map_err(|e| RenderError::Readback(e.to_string()))?;
-            bytemuck::pod_collect_to_vec(&view)
-        };
-        staging.unmap();
-        Ok(floats
-            .chunks_exact(4)
-            .map(|c| [c[0], c[1], c[2], c[3]])
-            .collect())
+        Ok(self.read_blocking(ctx)?.rgba_f32)
     }
 
     /// The displayed mean (the Rgba8Unorm texture), read back and waited for.
     pub fn read_mean_blocking(&self, ctx: &GpuContext) -> Result<Vec<u8>, RenderError> {
+        Ok(self.read_blocking(ctx)?.rgba)
+    }
+
+    fn read_blocking(
+        &self,
+        ctx: &GpuContext,
+    ) -> Result<crate::frame_targets::TargetPixels, RenderError> {
         let t = self.filled_targets()?;
-        let row = t.width * 4;
-        let padded_row =
-            row.div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT) * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
-        let staging = ctx.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("progressive mean texture readback"),
-            size: padded_row as u64 * t.height as u64,
-            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
         let mut encoder = ctx
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("progressive readback"),
             });
-        encoder.copy_texture_to_buffer(
-            wgpu::TexelCopyTextureInfo {
-                texture: &t.mean_texture,
-                mip_level: 0,
-                origin: wgpu::Origin3d::ZERO,
-                aspect: wgpu::TextureAspect::All,
-            },
-            wgpu::TexelCopyBufferInfo {
-                buffer: &staging,
-                layout: wgpu::TexelCopyBufferLayout {
-                    offset: 0,
-                    bytes_per_row: Some(padded_row),
-                    rows_per_image: Some(t.height),
-                },
-            },
-            wgpu::Extent3d {
-                width: t.width,
-                height: t.height,
-                depth_or_array_layers: 1,
-            },
-        );
+        t.encode_readback(&mut encoder);
         ctx.queue.submit(Some(encoder.finish()));
-        map_blocking(&ctx.device, &staging)?;
-        let mut rgba = Vec::with_capacity(row as usize * t.height as usize);
-        {
-            let view = staging
-                .get_mapped_range(..)
-                .map_err(|e| RenderError::Readback(e.to_string()))?;
-            for y in 0..t.height as usize {
-                let start = y * padded_row as usize;
-                rgba.extend_from_slice(&view[start..start + row as usize]);
-            }
-        }
-        staging.unmap();
-        Ok(rgba)
+        t.read_mapped(&ctx.device)
     }
 
-    fn filled_targets(&self) -> Result<&Targets, RenderError> {
+    fn filled_targets(&self) -> Result<&FrameTargets, RenderError> {
         match self.targets.as_ref() {
             Some(t) if self.frames > 0 => Ok(t),
             _ => Err(RenderError::Readback(

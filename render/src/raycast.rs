@@ -13,6 +13,9 @@ use crate::cache::BrickCache;
 use crate::camera::Camera;
 use crate::device::GpuContext;
 use crate::error::RenderError;
+use crate::frame_targets::{
+    read_buffer_blocking, readback_buffer, FrameTargets, PixelBuffers, VisibilityTarget,
+};
 use crate::gpu_octree::{LeafVisibility, OctreeLeaves, Traversal};
 use crate::gpu_overlay::GpuOverlay;
 use crate::gpu_preintegration::GpuPreintegration;
@@ -21,7 +24,6 @@ use crate::layout::WORKGROUP_SIZE;
 use crate::light_cache::{self, GpuLightCache, LightCacheKey, SWEEP_WORKGROUP};
 use crate::overlay::{OverlayLut, OverlayVolume};
 use crate::pipelines::Pipelines;
-use crate::readback_ring::ReadbackRing;
 use crate::settings::{RenderMode, RenderSettings};
 use crate::shaders;
 use strata_types::{ValueMapping, VolumeGeometry};
@@ -115,27 +117,6 @@ pub(crate) struct Params {
     cinematic: [f32; 4],
 }
 
-struct Targets {
-    width: u32,
-    height: u32,
-    color: wgpu::Texture,
-    color_view: wgpu::TextureView,
-    depth: wgpu::Buffer,
-    color_readback: wgpu::Buffer,
-    depth_readback: wgpu::Buffer,
-    padded_row_bytes: u32,
-}
-
-struct VisibilityBuffers {
-    /// Words the buffers hold (a power of two: a cut that changes its leaf count keeps them).
-    capacity: usize,
-    /// Words the last frame wrote: page cells (flat) or leaves (octree).
-    entries: usize,
-    buffer: wgpu::Buffer,
-    blocking_readback: wgpu::Buffer,
-    ring: ReadbackRing,
-}
-
 pub struct Raycaster {
     /// The compiled effect combinations, their layout and shader module.
     pipelines: Pipelines,
@@ -144,8 +125,8 @@ pub struct Raycaster {
     pub(crate) filterable: bool,
     counter: wgpu::Buffer,
     counter_readback: wgpu::Buffer,
-    targets: Option<Targets>,
-    visibility: Option<VisibilityBuffers>,
+    targets: Option<FrameTargets>,
+    visibility: Option<VisibilityTarget>,
     frame_number: u64,
     /// Page cells of the last frame's volume (the length of a per-page visibility list).
     page_count: usize,
@@ -169,9 +150,6 @@ pub struct Raycaster {
     /// The light cache of cache-mode shadows (light_cache.rs), a stand-in until one is built.
     light_cache: GpuLightCache,
 }
-
-// Lives in device.rs so modules below the raycaster (the light cache) can read back too.
-pub(crate) use crate::device::map_blocking;
 
 impl Raycaster {
     pub fn new(ctx: &GpuContext, cache: &BrickCache) -> Self {
@@ -227,12 +205,7 @@ impl Raycaster {
                 | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
-        let counter_readback = device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("sample counter readback"),
-            size: 16,
-            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
+        let counter_readback = readback_buffer(device, "sample counter readback", 16);
         Raycaster {
             pipelines,
             params,
@@ -320,94 +293,6 @@ impl Raycaster {
         self.last_key
     }
 
-    fn ensure_targets(&mut self, device: &wgpu::Device, width: u32, height: u32) {
-        if self
-            .targets
-            .as_ref()
-            .is_some_and(|t| t.width == width && t.height == height)
-        {
-            return;
-        }
-        let color = device.create_texture(&wgpu::TextureDescriptor {
-            label: Some("raycast colour"),
-            size: wgpu::Extent3d {
-                width,
-                height,
-                depth_or_array_layers: 1,
-            },
-            mip_level_count: 1,
-            sample_count: 1,
-            dimension: wgpu::TextureDimension::D2,
-            format: wgpu::TextureFormat::Rgba8Unorm,
-            usage: wgpu::TextureUsages::STORAGE_BINDING
-                | wgpu::TextureUsages::TEXTURE_BINDING
-                | wgpu::TextureUsages::COPY_SRC,
-            view_formats: &[],
-        });
-        let color_view = color.create_view(&wgpu::TextureViewDescriptor::default());
-        let pixels = width as u64 * height as u64;
-        let depth = device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("raycast depth"),
-            size: pixels * 4,
-            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
-            mapped_at_creation: false,
-        });
-        let padded_row_bytes = (width * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT)
-            * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
-        let color_readback = device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("raycast colour readback"),
-            size: padded_row_bytes as u64 * height as u64,
-            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
-        let depth_readback = device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("raycast depth readback"),
-            size: pixels * 4,
-            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
-        self.targets = Some(Targets {
-            width,
-            height,
-            color,
-            color_view,
-            depth,
-            color_readback,
-            depth_readback,
-            padded_row_bytes,
-        });
-    }
-
-    fn ensure_visibility(&mut self, device: &wgpu::Device, entries: usize) {
-        if let Some(v) = self.visibility.as_mut().filter(|v| v.capacity >= entries) {
-            v.entries = entries;
-            return;
-        }
-        let capacity = entries.max(1).next_power_of_two();
-        let size = (capacity * 4) as u64;
-        let make = |label: &str, usage| {
-            device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
-                size,
-                usage,
-                mapped_at_creation: false,
-            })
-        };
-        let read = wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST;
-        self.visibility = Some(VisibilityBuffers {
-            capacity,
-            entries,
-            buffer: make(
-                "visibility",
-                wgpu::BufferUsages::STORAGE
-                    | wgpu::BufferUsages::COPY_SRC
-                    | wgpu::BufferUsages::COPY_DST,
-            ),
-            blocking_readback: make("visibility readback", read),
-            ring: ReadbackRing::new(device, "visibility staging", VISIBILITY_RING, size),
-        });
-    }
-
     /// Frame `frame_number`'s visibility words as the per-page-cell list the loader speaks
     /// (per-leaf words expanded through that frame's leaves).
     fn visibility_per_page(
@@ -437,11 +322,11 @@ impl Raycaster {
 
     /// The colour target, for display by the app (valid after the first `render`).
     pub fn output_view(&self) -> Option<&wgpu::TextureView> {
-        self.targets.as_ref().map(|t| &t.color_view)
+        self.targets.as_ref().map(FrameTargets::color_view)
     }
 
     pub fn output_texture(&self) -> Option<&wgpu::Texture> {
-        self.targets.as_ref().map(|t| &t.color)
+        self.targets.as_ref().map(FrameTargets::color)
     }
 
     /// Number of distinct pipelines compiled so far (one per used effect combination).
@@ -607,8 +492,24 @@ impl Raycaster {
         if key.preintegrated {
             self.ensure_preintegration(ctx, scene);
         }
-        self.ensure_targets(device, settings.width, settings.height);
-        self.ensure_visibility(device, scene.page_table.visibility_entries());
+        FrameTargets::ensure(
+            &mut self.targets,
+            device,
+            "raycast",
+            settings.width,
+            settings.height,
+            PixelBuffers {
+                depth: true,
+                rgba_f32: false,
+            },
+        );
+        VisibilityTarget::ensure(
+            &mut self.visibility,
+            device,
+            "raycast",
+            scene.page_table.visibility_entries(),
+            VISIBILITY_RING,
+        );
         self.page_count = page_dims.iter().map(|&d| d as usize).product();
         let leaves = scene.page_table.octree_leaves();
         let (bounds_buffer, octree_nodes, transitions) = scene.page_table.traversal_buffers()?;
@@ -656,6 +557,7 @@ impl Raycaster {
         ) else {
             return Err(RenderError::Readback("render targets missing".into()));
         };
+        let depth = targets.depth()?;
         let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("raycast"),
             layout: &self.pipelines.layout,
@@ -668,15 +570,15 @@ impl Raycaster {
                     },
                     wgpu::BindGroupEntry {
                         binding: 5,
-                        resource: wgpu::BindingResource::TextureView(&targets.color_view),
+                        resource: wgpu::BindingResource::TextureView(targets.color_view()),
                     },
                     wgpu::BindGroupEntry {
                         binding: 6,
-                        resource: targets.depth.as_entire_binding(),
+                        resource: depth.as_entire_binding(),
                     },
                     wgpu::BindGroupEntry {
                         binding: 7,
-                        resource: vis.buffer.as_entire_binding(),
+                        resource: vis.buffer().as_entire_binding(),
                     },
                     wgpu::BindGroupEntry {
                         binding: 8,
@@ -718,7 +620,7 @@ impl Raycaster {
         let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
             label: Some("raycast"),
         });
-        encoder.clear_buffer(&vis.buffer, 0, None);
+        encoder.clear_buffer(vis.buffer(), 0, None);
         encoder.clear_buffer(&self.counter, 0, None);
         if let Some(n) = build_light_cache {
             // Its own pass, before the frame's: the frame reads what it writes. One dispatch
@@ -792,20 +694,14 @@ impl Raycaster {
         if let Some(timestamps) = self.timestamps.as_mut() {
             timestamps.encode_resolve(&mut encoder, self.frame_number);
         }
-        // A busy ring (loader not reading) just drops this frame's visibility.
-        let size = (vis.entries.max(1) * 4) as u64;
-        let queued = vis.ring.free_slot();
-        if let Some(slot) = queued {
-            vis.ring
-                .encode_copy(&mut encoder, slot, &vis.buffer, 0, size, self.frame_number);
-        }
+        let queued = vis.encode_ring_copy(&mut encoder, self.frame_number);
         self.last_submit_at = Some(web_time::Instant::now());
         let index = ctx.queue.submit(Some(encoder.finish()));
         if let Some(timestamps) = self.timestamps.as_mut() {
             timestamps.after_submit();
         }
         if let Some(slot) = queued {
-            vis.ring.map_after_submit(slot);
+            vis.map_after_submit(slot);
         }
         Ok(index)
     }
@@ -816,7 +712,7 @@ impl Raycaster {
         let _ = ctx.device.poll(wgpu::PollType::Poll);
         let vis = self.visibility.as_mut()?;
         let mut newest: Option<(u64, Vec<u32>)> = None;
-        vis.ring.drain(|frame_number, view| {
+        vis.drain_ring(|frame_number, view| {
             if newest.as_ref().is_none_or(|n| n.0 < frame_number) {
                 newest = Some((frame_number, bytemuck::cast_slice(view).to_vec()));
             }
@@ -840,80 +736,25 @@ impl Raycaster {
         let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
             label: Some("readback"),
         });
-        encoder.copy_texture_to_buffer(
-            wgpu::TexelCopyTextureInfo {
-                texture: &t.color,
-                mip_level: 0,
-                origin: wgpu::Origin3d::ZERO,
-                aspect: wgpu::TextureAspect::All,
-            },
-            wgpu::TexelCopyBufferInfo {
-                buffer: &t.color_readback,
-                layout: wgpu::TexelCopyBufferLayout {
-                    offset: 0,
-                    bytes_per_row: Some(t.padded_row_bytes),
-                    rows_per_image: Some(t.height),
-                },
-            },
-            wgpu::Extent3d {
-                width: t.width,
-                height: t.height,
-                depth_or_array_layers: 1,
-            },
-        );
-        encoder.copy_buffer_to_buffer(
-            &t.depth,
-            0,
-            &t.depth_readback,
-            0,
-            t.width as u64 * t.height as u64 * 4,
-        );
-        encoder.copy_buffer_to_buffer(
-            &vis.buffer,
-            0,
-            &vis.blocking_readback,
-            0,
-            (vis.entries.max(1) * 4) as u64,
-        );
+        t.encode_readback(&mut encoder);
+        vis.encode_readback(&mut encoder);
         encoder.copy_buffer_to_buffer(&self.counter, 0, &self.counter_readback, 0, 16);
         ctx.queue.submit(Some(encoder.finish()));
-        for b in [
-            &t.color_readback,
-            &t.depth_readback,
-            &vis.blocking_readback,
-            &self.counter_readback,
-        ] {
-            map_blocking(device, b)?;
-        }
-        let read = |b: &wgpu::Buffer| -> Result<Vec<u8>, RenderError> {
-            let v = b
-                .get_mapped_range(..)
-                .map_err(|e| RenderError::Readback(e.to_string()))?
-                .to_vec();
-            b.unmap();
-            Ok(v)
-        };
-        let padded = read(&t.color_readback)?;
-        let row = (t.width * 4) as usize;
-        let mut rgba = Vec::with_capacity(row * t.height as usize);
-        for y in 0..t.height as usize {
-            let start = y * t.padded_row_bytes as usize;
-            rgba.extend_from_slice(&padded[start..start + row]);
-        }
-        let depth: Vec<f32> = bytemuck::pod_collect_to_vec(&read(&t.depth_readback)?);
-        let words: Vec<u32> = bytemuck::pod_collect_to_vec(&read(&vis.blocking_readback)?);
+        let pixels = t.read_mapped(device)?;
+        let words = vis.read_mapped(device)?;
         let (visibility, leaf_visibility) =
             self.visibility_per_page(self.frame_number, &words, self.page_count);
-        let counter: Vec<u32> = bytemuck::pod_collect_to_vec(&read(&self.counter_readback)?);
+        let counter: Vec<u32> =
+            bytemuck::pod_collect_to_vec(&read_buffer_blocking(device, &self.counter_readback)?);
         let counted = self.last_key.is_some_and(|k| k.count_samples);
         let wide = |lo: usize| counter[lo] as u64 + ((counter[lo + 1] as u64) << 32);
         let samples = counted.then(|| wide(0));
         let page_reads = counted.then(|| wide(2));
         Ok(FrameReadback {
-            width: t.width,
-            height: t.height,
-            rgba,
-            depth,
+            width: t.width(),
+            height: t.height(),
+            rgba: pixels.rgba,
+            depth: pixels.depth,
             visibility,
             leaf_visibility,
             samples,

@@ -149,21 +149,123 @@
 
 use std::collections::HashMap;
 
-use super::block_oracle::BLOCKS_PER_SLOT;
+use super::block_oracle::{BLOCK, BLOCKS_PER_AXIS, BLOCKS_PER_SLOT};
 use super::frame::SliceFrame;
 use super::oracle::OracleKind;
-use super::AdaptiveConfig;
+use super::{AdaptiveConfig, MAX_L_MAX, TILE_SIZES};
 use crate::cache::BrickCache;
 use crate::device::GpuContext;
 use crate::error::RenderError;
+use crate::frame_targets::{
+    read_buffer_blocking, readback_buffer, FrameTargets, PixelBuffers, VisibilityTarget,
+};
 use crate::gpu_preintegration::GpuPreintegration;
-use crate::raycast::{build_params, map_blocking, Params, Raycaster, Scene};
+use crate::raycast::{build_params, Params, Raycaster, Scene};
 use crate::settings::RenderMode;
 use crate::shaders;
 
-/// Counter words: samples per level 0..3, syntheses per level 4..7, segments 8, apron samples
-/// per level 9..12, slices marched 13, shadow rays 14, invocations cut short 15.
-const COUNTERS: usize = 16;
+// The constants adaptive.wgsl shares with this file, generated into its source
+// ([`shader_constants`]) so neither side copies the other's numbers.
+
+/// Invocations along each axis of the workgroup that owns a tile.
+pub(crate) const THREADS_PER_AXIS: u32 = 8;
+/// Invocations per workgroup.
+pub(crate) const THREADS: u32 = THREADS_PER_AXIS * THREADS_PER_AXIS;
+/// The largest supported tile edge: workgroup memory is sized for it.
+const MAX_TILE: u32 = TILE_SIZES[TILE_SIZES.len() - 1];
+/// Level-0 pixels an invocation owns at the largest tile (each owns TILE²/THREADS).
+pub(crate) const MAX_OWNED: u32 = MAX_TILE * MAX_TILE / THREADS;
+/// Workgroup-memory pixels of pyramid levels 1..=MAX_L_MAX at the largest tile, each level
+/// with its one-pixel apron on every side (adaptive.wgsl `extent`).
+pub(crate) const PYRAMID_CAP: u32 = pyramid_pixels(MAX_TILE, MAX_L_MAX);
+
+/// Pixels of levels 1..=`levels` of a `tile`-edge tile, apron included.
+const fn pyramid_pixels(tile: u32, levels: u32) -> u32 {
+    let mut pixels = 0;
+    let mut level = 1;
+    while level <= levels {
+        let edge = (tile >> level) + 2;
+        pixels += edge * edge;
+        level += 1;
+    }
+    pixels
+}
+
+/// The pass's own bindings; 0-11 and 16 are the field's and the key light's (raycast.rs
+/// `field_entries`, shadows.wgsl), shared with the raycaster.
+pub(crate) const BINDING_ADAPTIVE_PARAMS: u32 = 12;
+pub(crate) const BINDING_ORACLE: u32 = 14;
+pub(crate) const BINDING_OUT_COLOR: u32 = 15;
+pub(crate) const BINDING_OUT_RGBA: u32 = 20;
+pub(crate) const BINDING_OUT_DEPTH: u32 = 21;
+pub(crate) const BINDING_VISIBILITY: u32 = 22;
+pub(crate) const BINDING_COUNTERS: u32 = 23;
+
+/// Counter words: per level (0..=MAX_L_MAX) from the first three slots, single words after.
+pub(crate) const COUNTER_SAMPLES: u32 = 0;
+pub(crate) const COUNTER_SYNTHESES: u32 = 4;
+pub(crate) const COUNTER_SEGMENTS: u32 = 8;
+pub(crate) const COUNTER_APRON_SAMPLES: u32 = 9;
+/// Slices the tiles marched.
+pub(crate) const COUNTER_TILE_SLICES: u32 = 13;
+pub(crate) const COUNTER_SHADOW_RAYS: u32 = 14;
+/// Invocations whose slice loop the device cut short.
+pub(crate) const COUNTER_CUT_SHORT: u32 = 15;
+pub(crate) const COUNTERS: u32 = 16;
+// The per-level runs (levels 0..=MAX_L_MAX) do not overlap the words after them, and every
+// slot is inside the buffer: checked when the crate compiles.
+const _: () = assert!(
+    COUNTER_SAMPLES + MAX_L_MAX < COUNTER_SYNTHESES
+        && COUNTER_SYNTHESES + MAX_L_MAX < COUNTER_SEGMENTS
+        && COUNTER_SEGMENTS < COUNTER_APRON_SAMPLES
+        && COUNTER_APRON_SAMPLES + MAX_L_MAX < COUNTER_TILE_SLICES
+        && COUNTER_TILE_SLICES < COUNTER_SHADOW_RAYS
+        && COUNTER_SHADOW_RAYS < COUNTER_CUT_SHORT
+        && COUNTER_CUT_SHORT < COUNTERS
+);
+
+/// Everything adaptive.wgsl shares with Rust beyond the common prelude, by its name in both.
+pub(crate) fn shader_constants() -> [shaders::SharedConstant; 21] {
+    use shaders::PreludeValue::{F32, U32};
+    [
+        ("THREADS_PER_AXIS", U32(THREADS_PER_AXIS)),
+        ("THREADS", U32(THREADS)),
+        ("MAX_OWNED", U32(MAX_OWNED)),
+        ("PYRAMID_CAP", U32(PYRAMID_CAP)),
+        ("BINDING_ADAPTIVE_PARAMS", U32(BINDING_ADAPTIVE_PARAMS)),
+        ("BINDING_ORACLE", U32(BINDING_ORACLE)),
+        ("BINDING_OUT_COLOR", U32(BINDING_OUT_COLOR)),
+        ("BINDING_OUT_RGBA", U32(BINDING_OUT_RGBA)),
+        ("BINDING_OUT_DEPTH", U32(BINDING_OUT_DEPTH)),
+        ("BINDING_VISIBILITY", U32(BINDING_VISIBILITY)),
+        ("BINDING_COUNTERS", U32(BINDING_COUNTERS)),
+        ("COUNTER_SAMPLES", U32(COUNTER_SAMPLES)),
+        ("COUNTER_SYNTHESES", U32(COUNTER_SYNTHESES)),
+        ("COUNTER_SEGMENTS", U32(COUNTER_SEGMENTS)),
+        ("COUNTER_APRON_SAMPLES", U32(COUNTER_APRON_SAMPLES)),
+        ("COUNTER_TILE_SLICES", U32(COUNTER_TILE_SLICES)),
+        ("COUNTER_SHADOW_RAYS", U32(COUNTER_SHADOW_RAYS)),
+        ("COUNTER_CUT_SHORT", U32(COUNTER_CUT_SHORT)),
+        ("COUNTERS", U32(COUNTERS)),
+        // The per-block oracle table (block_oracle.rs).
+        ("ORACLE_BLOCK", F32(BLOCK as f64)),
+        ("ORACLE_BLOCKS_PER_AXIS", U32(BLOCKS_PER_AXIS)),
+    ]
+}
+
+/// The composed adaptive shader: prelude, field files, the pass's generated constants,
+/// pre-integration, the pass.
+pub fn adaptive_source() -> &'static str {
+    static SOURCE: std::sync::OnceLock<String> = std::sync::OnceLock::new();
+    SOURCE.get_or_init(|| {
+        let constants = shaders::constants_wgsl(&shader_constants());
+        let files: Vec<(&str, &str)> =
+            std::iter::once(("adaptive constants (generated)", constants.as_str()))
+                .chain(shaders::ADAPTIVE_FILES)
+                .collect();
+        shaders::compose_with_field(&files)
+    })
+}
 
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
@@ -243,19 +345,6 @@ impl AdaptiveFrame {
     }
 }
 
-struct Targets {
-    width: u32,
-    height: u32,
-    color: wgpu::Texture,
-    color_view: wgpu::TextureView,
-    rgba: wgpu::Buffer,
-    depth: wgpu::Buffer,
-    color_readback: wgpu::Buffer,
-    rgba_readback: wgpu::Buffer,
-    depth_readback: wgpu::Buffer,
-    padded_row_bytes: u32,
-}
-
 pub struct AdaptivePass {
     layout: wgpu::BindGroupLayout,
     pipeline_layout: wgpu::PipelineLayout,
@@ -271,10 +360,10 @@ pub struct AdaptivePass {
     /// Stands in for shadows.wgsl's light cache, which shade_key_light names (so the layout
     /// must have it) but only cache-mode pipelines read.
     light_cache_stand_in: wgpu::Buffer,
-    visibility: Option<(usize, wgpu::Buffer, wgpu::Buffer)>,
+    visibility: Option<VisibilityTarget>,
     counters: wgpu::Buffer,
     counters_readback: wgpu::Buffer,
-    targets: Option<Targets>,
+    targets: Option<FrameTargets>,
     last_slice: u32,
 }
 
@@ -357,22 +446,22 @@ impl AdaptivePass {
                     wgpu::TextureViewDimension::D2,
                 ),
                 storage_entry(11, true),
-                uniform_entry(12),
-                storage_entry(14, true),
+                uniform_entry(BINDING_ADAPTIVE_PARAMS),
+                storage_entry(BINDING_ORACLE, true),
                 wgpu::BindGroupLayoutEntry {
-                    binding: 15,
+                    binding: BINDING_OUT_COLOR,
                     visibility: wgpu::ShaderStages::COMPUTE,
                     ty: wgpu::BindingType::StorageTexture {
                         access: wgpu::StorageTextureAccess::WriteOnly,
-                        format: wgpu::TextureFormat::Rgba8Unorm,
+                        format: crate::frame_targets::COLOR_FORMAT,
                         view_dimension: wgpu::TextureViewDimension::D2,
                     },
                     count: None,
                 },
-                storage_entry(20, false),
-                storage_entry(21, false),
-                storage_entry(22, false),
-                storage_entry(23, false),
+                storage_entry(BINDING_OUT_RGBA, false),
+                storage_entry(BINDING_OUT_DEPTH, false),
+                storage_entry(BINDING_VISIBILITY, false),
+                storage_entry(BINDING_COUNTERS, false),
             ],
         });
         let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
@@ -382,7 +471,7 @@ impl AdaptivePass {
         });
         let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some("adaptive.wgsl"),
-            source: wgpu::ShaderSource::Wgsl(shaders::adaptive_source().into()),
+            source: wgpu::ShaderSource::Wgsl(adaptive_source().into()),
         });
         let buffer = |label: &str, size: u64, usage| {
             device.create_buffer(&wgpu::BufferDescriptor {
@@ -427,15 +516,15 @@ impl AdaptivePass {
             visibility: None,
             counters: buffer(
                 "adaptive counters",
-                (COUNTERS * 4) as u64,
+                COUNTERS as u64 * 4,
                 wgpu::BufferUsages::STORAGE
                     | wgpu::BufferUsages::COPY_SRC
                     | wgpu::BufferUsages::COPY_DST,
             ),
-            counters_readback: buffer(
+            counters_readback: readback_buffer(
+                device,
                 "adaptive counters readback",
-                (COUNTERS * 4) as u64,
-                wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                COUNTERS as u64 * 4,
             ),
             targets: None,
             layout,
@@ -468,63 +557,7 @@ impl AdaptivePass {
 
     /// The RGBA8 colour target, for display (valid after the first frame).
     pub fn output_view(&self) -> Option<&wgpu::TextureView> {
-        self.targets.as_ref().map(|t| &t.color_view)
-    }
-
-    fn ensure_targets(&mut self, device: &wgpu::Device, width: u32, height: u32) {
-        if self
-            .targets
-            .as_ref()
-            .is_some_and(|t| t.width == width && t.height == height)
-        {
-            return;
-        }
-        let color = device.create_texture(&wgpu::TextureDescriptor {
-            label: Some("adaptive colour"),
-            size: wgpu::Extent3d {
-                width,
-                height,
-                depth_or_array_layers: 1,
-            },
-            mip_level_count: 1,
-            sample_count: 1,
-            dimension: wgpu::TextureDimension::D2,
-            format: wgpu::TextureFormat::Rgba8Unorm,
-            usage: wgpu::TextureUsages::STORAGE_BINDING
-                | wgpu::TextureUsages::TEXTURE_BINDING
-                | wgpu::TextureUsages::COPY_SRC,
-            view_formats: &[],
-        });
-        let color_view = color.create_view(&wgpu::TextureViewDescriptor::default());
-        let pixels = width as u64 * height as u64;
-        let buffer = |label: &str, size: u64, usage| {
-            device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
-                size,
-                usage,
-                mapped_at_creation: false,
-            })
-        };
-        let storage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC;
-        let read = wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST;
-        let padded_row_bytes = (width * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT)
-            * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
-        self.targets = Some(Targets {
-            width,
-            height,
-            color,
-            color_view,
-            rgba: buffer("adaptive rgba f32", pixels * 16, storage),
-            depth: buffer("adaptive depth", pixels * 4, storage),
-            color_readback: buffer(
-                "adaptive colour readback",
-                padded_row_bytes as u64 * height as u64,
-                read,
-            ),
-            rgba_readback: buffer("adaptive rgba readback", pixels * 16, read),
-            depth_readback: buffer("adaptive depth readback", pixels * 4, read),
-            padded_row_bytes,
-        });
+        self.targets.as_ref().map(FrameTargets::color_view)
     }
 
     fn pipeline(&mut self, device: &wgpu::Device, key: AdaptiveKey) -> &wgpu::ComputePipeline {
@@ -648,31 +681,19 @@ impl AdaptivePass {
             scene.transfer_function,
             scene.geometry.finest_spacing_mm(),
         );
-        self.ensure_targets(device, settings.width, settings.height);
-        if self.visibility.as_ref().is_none_or(|v| v.0 != entries) {
-            let size = (entries.max(1) * 4) as u64;
-            let make = |label: &str, usage| {
-                device.create_buffer(&wgpu::BufferDescriptor {
-                    label: Some(label),
-                    size,
-                    usage,
-                    mapped_at_creation: false,
-                })
-            };
-            self.visibility = Some((
-                entries,
-                make(
-                    "adaptive visibility",
-                    wgpu::BufferUsages::STORAGE
-                        | wgpu::BufferUsages::COPY_SRC
-                        | wgpu::BufferUsages::COPY_DST,
-                ),
-                make(
-                    "adaptive visibility readback",
-                    wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-                ),
-            ));
-        }
+        FrameTargets::ensure(
+            &mut self.targets,
+            device,
+            "adaptive",
+            settings.width,
+            settings.height,
+            PixelBuffers {
+                depth: true,
+                rgba_f32: true,
+            },
+        );
+        // No staging ring: the adaptive pass's visibility is read only with its frame.
+        VisibilityTarget::ensure(&mut self.visibility, device, "adaptive", entries, 0);
         ctx.queue
             .write_buffer(&self.params, 0, bytemuck::bytes_of(&build_params(scene)));
         let params = AdaptiveParams {
@@ -701,6 +722,7 @@ impl AdaptivePass {
         ) else {
             return Err(RenderError::Readback("adaptive targets missing".into()));
         };
+        let (rgba_f32, depth) = (targets.rgba_f32()?, targets.depth()?);
         let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("adaptive"),
             layout: &self.layout,
@@ -725,31 +747,31 @@ impl AdaptivePass {
                     resource: wgpu::BindingResource::TextureView(self.preintegration.view(true)),
                 },
                 wgpu::BindGroupEntry {
-                    binding: 12,
+                    binding: BINDING_ADAPTIVE_PARAMS,
                     resource: self.adaptive_params.as_entire_binding(),
                 },
                 wgpu::BindGroupEntry {
-                    binding: 14,
+                    binding: BINDING_ORACLE,
                     resource: self.oracle.as_entire_binding(),
                 },
                 wgpu::BindGroupEntry {
-                    binding: 15,
-                    resource: wgpu::BindingResource::TextureView(&targets.color_view),
+                    binding: BINDING_OUT_COLOR,
+                    resource: wgpu::BindingResource::TextureView(targets.color_view()),
                 },
                 wgpu::BindGroupEntry {
-                    binding: 20,
-                    resource: targets.rgba.as_entire_binding(),
+                    binding: BINDING_OUT_RGBA,
+                    resource: rgba_f32.as_entire_binding(),
                 },
                 wgpu::BindGroupEntry {
-                    binding: 21,
-                    resource: targets.depth.as_entire_binding(),
+                    binding: BINDING_OUT_DEPTH,
+                    resource: depth.as_entire_binding(),
                 },
                 wgpu::BindGroupEntry {
-                    binding: 22,
-                    resource: vis.1.as_entire_binding(),
+                    binding: BINDING_VISIBILITY,
+                    resource: vis.buffer().as_entire_binding(),
                 },
                 wgpu::BindGroupEntry {
-                    binding: 23,
+                    binding: BINDING_COUNTERS,
                     resource: self.counters.as_entire_binding(),
                 },
             ])
@@ -758,7 +780,7 @@ impl AdaptivePass {
         let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
             label: Some("adaptive"),
         });
-        encoder.clear_buffer(&vis.1, 0, None);
+        encoder.clear_buffer(vis.buffer(), 0, None);
         encoder.clear_buffer(&self.counters, 0, None);
         {
             let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
@@ -813,85 +835,85 @@ impl AdaptivePass {
         let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
             label: Some("adaptive readback"),
         });
-        encoder.copy_texture_to_buffer(
-            wgpu::TexelCopyTextureInfo {
-                texture: &t.color,
-                mip_level: 0,
-                origin: wgpu::Origin3d::ZERO,
-                aspect: wgpu::TextureAspect::All,
-            },
-            wgpu::TexelCopyBufferInfo {
-                buffer: &t.color_readback,
-                layout: wgpu::TexelCopyBufferLayout {
-                    offset: 0,
-                    bytes_per_row: Some(t.padded_row_bytes),
-                    rows_per_image: Some(t.height),
-                },
-            },
-            wgpu::Extent3d {
-                width: t.width,
-                height: t.height,
-                depth_or_array_layers: 1,
-            },
-        );
-        let pixels = t.width as u64 * t.height as u64;
-        encoder.copy_buffer_to_buffer(&t.rgba, 0, &t.rgba_readback, 0, pixels * 16);
-        encoder.copy_buffer_to_buffer(&t.depth, 0, &t.depth_readback, 0, pixels * 4);
-        encoder.copy_buffer_to_buffer(&vis.1, 0, &vis.2, 0, (vis.0.max(1) * 4) as u64);
+        t.encode_readback(&mut encoder);
+        vis.encode_readback(&mut encoder);
         encoder.copy_buffer_to_buffer(
             &self.counters,
             0,
             &self.counters_readback,
             0,
-            (COUNTERS * 4) as u64,
+            COUNTERS as u64 * 4,
         );
         ctx.queue.submit(Some(encoder.finish()));
-        let buffers = [
-            &t.color_readback,
-            &t.rgba_readback,
-            &t.depth_readback,
-            &vis.2,
-            &self.counters_readback,
-        ];
-        for b in buffers {
-            map_blocking(device, b)?;
-        }
-        let read = |b: &wgpu::Buffer| -> Result<Vec<u8>, RenderError> {
-            let v = b
-                .get_mapped_range(..)
-                .map_err(|e| RenderError::Readback(e.to_string()))?
-                .to_vec();
-            b.unmap();
-            Ok(v)
-        };
-        let padded = read(&t.color_readback)?;
-        let row = (t.width * 4) as usize;
-        let mut rgba = Vec::with_capacity(row * t.height as usize);
-        for y in 0..t.height as usize {
-            let start = y * t.padded_row_bytes as usize;
-            rgba.extend_from_slice(&padded[start..start + row]);
-        }
-        let rgba_f32: Vec<[f32; 4]> = bytemuck::pod_collect_to_vec(&read(&t.rgba_readback)?);
-        let depth: Vec<f32> = bytemuck::pod_collect_to_vec(&read(&t.depth_readback)?);
-        let mut visibility: Vec<u32> = bytemuck::pod_collect_to_vec(&read(&vis.2)?);
-        visibility.truncate(vis.0);
-        let c: Vec<u32> = bytemuck::pod_collect_to_vec(&read(&self.counters_readback)?);
-        let level = |base: usize| [0, 1, 2, 3].map(|l| c[base + l] as u64);
+        let pixels = t.read_mapped(device)?;
+        let mut visibility = vis.read_mapped(device)?;
+        visibility.truncate(vis.entries());
+        let c: Vec<u32> =
+            bytemuck::pod_collect_to_vec(&read_buffer_blocking(device, &self.counters_readback)?);
+        let word = |slot: u32| c[slot as usize] as u64;
+        let level = |base: u32| [0, 1, 2, 3].map(|l| word(base + l));
         Ok(AdaptiveFrame {
-            width: t.width,
-            height: t.height,
-            rgba,
-            rgba_f32,
-            depth,
+            width: t.width(),
+            height: t.height(),
+            rgba: pixels.rgba,
+            rgba_f32: pixels.rgba_f32,
+            depth: pixels.depth,
             visibility,
-            samples_per_level: level(0),
-            syntheses_per_level: level(4),
-            apron_samples_per_level: level(9),
-            segments: c[8] as u64,
-            shadow_rays: c[14] as u64,
+            samples_per_level: level(COUNTER_SAMPLES),
+            syntheses_per_level: level(COUNTER_SYNTHESES),
+            apron_samples_per_level: level(COUNTER_APRON_SAMPLES),
+            segments: word(COUNTER_SEGMENTS),
+            shadow_rays: word(COUNTER_SHADOW_RAYS),
             last_slice: self.last_slice,
-            tile_slices: c[13] as u64,
-            cut_short_invocations: c[15] as u64,
+            tile_slices: word(COUNTER_TILE_SLICES),
+            cut_short_invocations: word(COUNTER_CUT_SHORT),
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn shader_validates_and_its_generated_constants_have_the_rust_values() {
+        let module = shaders::parse_and_validate(adaptive_source());
+        shaders::assert_constants_have_rust_values(&module, &shader_constants());
+        let overrides = shaders::declared_overrides(adaptive_source()).unwrap();
+        for name in [
+            "TILE",
+            "L_MAX",
+            "ORACLE",
+            "MANUAL_TRILINEAR",
+            "SMOOTH_TRANSITIONS",
+            "KEY_LIGHT",
+            "SHADOWS",
+            "OCCLUSION",
+            "SCATTERING",
+        ] {
+            assert!(overrides.iter().any(|o| o == name), "{name}");
+        }
+        // The pass, and shadows.wgsl's light-cache build, which the adaptive pass never
+        // creates a pipeline for (it has no cache-mode shadows).
+        let mut entry_points: Vec<&str> = module
+            .entry_points
+            .iter()
+            .map(|e| e.name.as_str())
+            .collect();
+        entry_points.sort_unstable();
+        assert_eq!(entry_points, ["build_light_cache", "main"]);
+    }
+
+    #[test]
+    fn workgroup_memory_and_owned_pixels_fit_every_supported_tile() {
+        for tile in TILE_SIZES {
+            assert!(
+                pyramid_pixels(tile, MAX_L_MAX) <= PYRAMID_CAP,
+                "tile {tile}"
+            );
+            assert!(tile * tile / THREADS <= MAX_OWNED, "tile {tile}");
+            // Each invocation owns the same number of pixels.
+            assert_eq!(tile * tile % THREADS, 0, "tile {tile}");
+        }
     }
 }

@@ -49,10 +49,9 @@ override SHADED: bool = false;
 override CLIP_PLANE: bool = false;
 override SKIP_EMPTY: bool = true;
 
-const THREADS: u32 = 64u;
-const MAX_OWNED: u32 = 16u;      // 32² / 64
-// Levels 1..3 with apron at TILE 32: 18² + 10² + 6².
-const PYRAMID_CAP: u32 = 460u;
+// THREADS (8×8), MAX_OWNED (level-0 pixels an invocation owns at the largest tile),
+// PYRAMID_CAP (levels 1..3 with apron at the largest tile), the bindings below and the
+// counters' slots are generated from adaptive/gpu.rs.
 
 struct AdaptiveParams {
     frame: vec4<f32>,      // t_front (mm), slice spacing (mm), default value, constant distance
@@ -77,18 +76,18 @@ fn adaptive_block(slot_base: vec3<f32>, coord: vec3<f32>) -> u32 {
     return slot_linear * (n * n * n) + b.x + n * (b.y + n * b.z);
 }
 
-@group(0) @binding(12) var<uniform> A: AdaptiveParams;
-@group(0) @binding(14) var<storage, read> oracle_distance: array<f32>;
-@group(0) @binding(15) var out_color: texture_storage_2d<rgba8unorm, write>;
+@group(0) @binding(BINDING_ADAPTIVE_PARAMS) var<uniform> A: AdaptiveParams;
+@group(0) @binding(BINDING_ORACLE) var<storage, read> oracle_distance: array<f32>;
+@group(0) @binding(BINDING_OUT_COLOR) var out_color: texture_storage_2d<rgba8unorm, write>;
 // 16 is shadows.wgsl's light cache (bound, never read: the pass has no cache-mode shadows).
-@group(0) @binding(20) var<storage, read_write> out_rgba: array<vec4<f32>>;
-@group(0) @binding(21) var<storage, read_write> out_depth: array<f32>;
-@group(0) @binding(22) var<storage, read_write> visibility: array<u32>;
-// 0..3 samples per level (owned pixels), 4..7 syntheses per level (owned), 8 segments,
-// 9..12 apron samples per level (the tiling's overhead), 13 slices the tiles marched,
-// 14 shadow rays traced (KEY_LIGHT with SHADOWS: one per lit level-0 segment), 15 invocations
-// whose slice loop the device cut short (see the end of main).
-@group(0) @binding(23) var<storage, read_write> counters: array<atomic<u32>, 16>;
+@group(0) @binding(BINDING_OUT_RGBA) var<storage, read_write> out_rgba: array<vec4<f32>>;
+@group(0) @binding(BINDING_OUT_DEPTH) var<storage, read_write> out_depth: array<f32>;
+@group(0) @binding(BINDING_VISIBILITY) var<storage, read_write> visibility: array<u32>;
+// Samples per level (owned pixels), syntheses per level (owned), segments, apron samples per
+// level (the tiling's overhead), slices the tiles marched, shadow rays traced (KEY_LIGHT with
+// SHADOWS: one per lit level-0 segment), invocations whose slice loop the device cut short
+// (see the end of main): slots COUNTER_* (adaptive/gpu.rs).
+@group(0) @binding(BINDING_COUNTERS) var<storage, read_write> counters: array<atomic<u32>, COUNTERS>;
 
 var<workgroup> pyramid_s: array<f32, PYRAMID_CAP>;
 var<workgroup> tile_vote: atomic<u32>;
@@ -475,7 +474,7 @@ fn least_distance_level(
     return k;
 }
 
-@compute @workgroup_size(8, 8, 1)
+@compute @workgroup_size(THREADS_PER_AXIS, THREADS_PER_AXIS, 1)
 fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
     let tile_x = wid.x * TILE;
     let tile_y = wid.y * TILE;
@@ -777,14 +776,14 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
         i = next;
     }
     if lid == 0u {
-        atomicAdd(&counters[13], marched);
+        atomicAdd(&counters[COUNTER_TILE_SLICES], marched);
     }
     // The march ends past the last slice or by the tile's early-termination decision; an
     // invocation that left it anywhere else was cut short by the device: llvmpipe (lavapipe)
     // ends every loop of an invocation once all its loops together have iterated 65535
     // times (gallivm LP_MAX_TGSI_LOOP_ITERATIONS), which exact shadow rays reach at 256³.
     if !stopped_by_tile && i <= last_slice {
-        atomicAdd(&counters[15], 1u);
+        atomicAdd(&counters[COUNTER_CUT_SHORT], 1u);
     }
     for (var j = 0u; j < owned; j++) {
         let idx = lid + j * THREADS;
@@ -811,19 +810,19 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
     }
     for (var l = 0u; l < 4u; l++) {
         if n_samples[l] > 0u {
-            atomicAdd(&counters[l], n_samples[l]);
+            atomicAdd(&counters[COUNTER_SAMPLES + l], n_samples[l]);
         }
         if n_synth[l] > 0u {
-            atomicAdd(&counters[4u + l], n_synth[l]);
+            atomicAdd(&counters[COUNTER_SYNTHESES + l], n_synth[l]);
         }
         if n_apron[l] > 0u {
-            atomicAdd(&counters[9u + l], n_apron[l]);
+            atomicAdd(&counters[COUNTER_APRON_SAMPLES + l], n_apron[l]);
         }
     }
     if n_segments > 0u {
-        atomicAdd(&counters[8], n_segments);
+        atomicAdd(&counters[COUNTER_SEGMENTS], n_segments);
     }
     if n_shadow_rays > 0u {
-        atomicAdd(&counters[14], n_shadow_rays);
+        atomicAdd(&counters[COUNTER_SHADOW_RAYS], n_shadow_rays);
     }
 }
