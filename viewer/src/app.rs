@@ -1598,6 +1598,7 @@ impl StrataApp {
                     max_pixels,
                     overlay_3d.clone(),
                     oblique_plane,
+                    v.segmentation.as_mut(),
                 ),
                 ViewSlot::Oblique => {
                     let camera = v.view_3d.orbit.camera(&v.data.info.geometry);

@@ -91,6 +91,14 @@ impl SegmentTool {
         self != SegmentTool::None
     }
 
+    /// The tool as the 3D view offers it: fill works within a slice, so it has no 3D form.
+    pub fn filter_3d(self) -> SegmentTool {
+        match self {
+            SegmentTool::Fill => SegmentTool::None,
+            tool => tool,
+        }
+    }
+
     /// Whether the tool is dragged (brush, eraser) rather than clicked.
     pub fn drags(self) -> bool {
         matches!(self, SegmentTool::Brush | SegmentTool::Eraser)
@@ -177,7 +185,8 @@ pub fn save_layer(
 /// A stroke being drawn: its plane, the pointer positions so far (LPS mm) and the small edits
 /// already applied.
 struct StrokeInProgress {
-    plane: SlicePlane,
+    /// A disc in a view's plane (the slice views) or a ball (the 3D view).
+    shape: BrushShape,
     action: BrushAction,
     positions: Vec<DVec3>,
     edits: Vec<Edit>,
@@ -501,13 +510,18 @@ impl Segmentation {
 
     /// The brush as the panel sets it, as a disc in `plane`.
     pub fn brush(&self, plane: SlicePlane) -> Result<Brush, SegmentError> {
+        self.brush_shaped(BrushShape::Disc(plane))
+    }
+
+    /// The brush with the current size and range, as `shape`.
+    pub fn brush_shaped(&self, shape: BrushShape) -> Result<Brush, SegmentError> {
         let value_range = if self.limit_to_range {
             Some(ValueRange::new(self.range.0, self.range.1)?)
         } else {
             None
         };
         Ok(Brush {
-            shape: BrushShape::Disc(plane),
+            shape,
             diameter_mm: self.diameter_mm,
             value_range,
         })
@@ -516,11 +530,21 @@ impl Segmentation {
     /// The pointer is down (or moved while down) at `position_lps` on `plane`: the stroke
     /// starts there or is swept on to it, shown at once.
     pub fn stroke_to(&mut self, plane: SlicePlane, position_lps: DVec3) {
+        self.stroke_shaped(BrushShape::Disc(plane), position_lps);
+    }
+
+    /// The 3D view's brush: a ball of the brush's diameter at `position_lps` (the surface point
+    /// picked under the pointer), swept on from the last one while the button is down.
+    pub fn sphere_stroke_to(&mut self, position_lps: DVec3) {
+        self.stroke_shaped(BrushShape::Sphere, position_lps);
+    }
+
+    fn stroke_shaped(&mut self, shape: BrushShape, position_lps: DVec3) {
         if self.busy() {
             return;
         }
         let stroke = self.stroke.get_or_insert_with(|| StrokeInProgress {
-            plane,
+            shape,
             action: match self.tool {
                 SegmentTool::Eraser => BrushAction::Erase(EraseTarget::AnyUnlocked),
                 _ => BrushAction::Paint(self.active),
@@ -533,10 +557,10 @@ impl Segmentation {
             return;
         }
         stroke.positions.push(position_lps);
-        let (plane, action) = (stroke.plane, stroke.action);
+        let (shape, action) = (stroke.shape, stroke.action);
         // The disc swept from the last position to this one (the first: a disc there).
         let segment: Vec<DVec3> = from.into_iter().chain([position_lps]).collect();
-        let brush = match self.brush_for(plane) {
+        let brush = match self.brush_for(shape) {
             Ok(b) => b,
             Err(e) => {
                 self.error = Some(e.to_string());
@@ -564,13 +588,13 @@ impl Segmentation {
         }
     }
 
-    fn brush_for(&self, plane: SlicePlane) -> Result<Brush, SegmentError> {
+    fn brush_for(&self, shape: BrushShape) -> Result<Brush, SegmentError> {
         if self.limit_to_range && self.intensity.is_none() {
             return Err(SegmentError::BadParameter(
                 "a value range needs the labels on the primary's own grid".into(),
             ));
         }
-        self.brush(plane)
+        self.brush_shaped(shape)
     }
 
     /// The button was released: the stroke becomes one edit, journaled, and waits for the
@@ -584,7 +608,10 @@ impl Segmentation {
             BrushAction::Erase(_) => "Eraser",
         };
         self.last_stroke = stroke.positions;
-        self.last_plane = stroke.plane;
+        if let BrushShape::Disc(plane) = stroke.shape {
+            // Fill between slices interpolates along the last disc's plane; a ball has none.
+            self.last_plane = plane;
+        }
         if let Some(edit) = merge_edits(name, stroke.edits) {
             self.journal(&edit);
             self.completed.push(edit);

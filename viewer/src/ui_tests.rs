@@ -2963,6 +2963,79 @@ fn brush_eraser_and_undo_on(
 }
 
 #[test]
+fn in_3d_the_brush_paints_the_ball_around_the_picked_surface_point_and_undo_removes_it() {
+    use strata_segment::tools::brush::BrushShape;
+    let dir = tempfile::tempdir().expect("temp dir");
+    let store = phantom_store(dir.path());
+    let mut options = ViewerOptions::new(VolumeToOpen::Path(store));
+    options.import_folder = dir.path().join("imported");
+    options.initial_view = Some(super::view3d::StandardView::Anterior);
+    let preferences = Preferences {
+        layout: Layout::TwoByTwo,
+        show_side_panel: true,
+        ..Preferences::default()
+    };
+    let mut h = harness_sized(options, preferences, Vec2::new(1100.0, 1000.0));
+    step_until(&mut h, "the volume open", |a| a.volume.is_some());
+    // 30 mm on the phantom's 8.3 mm voxels: a ball about 3.6 voxels across.
+    new_segmentation(&mut h, 30.0);
+    wait_for_settled_frame(&mut h, "a converged frame with the segmentation open", 0);
+    let rect = app(&h).view_rect(ViewSlot::ThreeD).expect("3D view");
+    let at = rect.center() + Vec2::new(4.0, 2.0);
+    // The point the frame on screen shows under the pointer (the pick itself is checked
+    // against a CPU ray march by the crosshair test).
+    let centre_lps = {
+        let v = app(&h).volume.as_ref().expect("volume");
+        let index = v
+            .view_3d
+            .pick(at, rect, &v.data)
+            .expect("the pixel's ray meets the phantom");
+        v.data
+            .info
+            .geometry
+            .patient_from_index(glam::DVec3::from(index))
+    };
+    let cursor_before = app(&h).volume.as_ref().expect("volume").scene.cursor;
+    click(&mut h, at, PointerButton::Primary);
+    h.step();
+    let painted: Vec<[u32; 3]> = labelled_voxels(app(&h))
+        .into_iter()
+        .map(|(v, _)| v)
+        .collect();
+    let model = {
+        let seg = app(&h)
+            .volume
+            .as_ref()
+            .and_then(|v| v.segmentation.as_ref())
+            .expect("segmentation");
+        let brush = seg.brush_shaped(BrushShape::Sphere).expect("brush");
+        let layer = seg.layer.read();
+        strata_segment::tools::brush::stroke_voxels(layer.grid(), &brush, &[centre_lps])
+            .expect("model")
+    };
+    assert!(
+        model.len() > 8,
+        "the model ball holds {} voxels",
+        model.len()
+    );
+    assert_eq!(
+        painted, model,
+        "the 3D brush painted other voxels than the ball"
+    );
+    assert_eq!(
+        app(&h).volume.as_ref().expect("volume").scene.cursor,
+        cursor_before,
+        "a click with the brush paints; it does not move the crosshair"
+    );
+    h.key_press_modifiers(Modifiers::COMMAND, egui::Key::Z);
+    h.step();
+    assert!(
+        labelled_voxels(app(&h)).is_empty(),
+        "one undo removes the whole ball"
+    );
+}
+
+#[test]
 fn brush_and_eraser_drags_paint_exactly_the_cpu_models_voxels_and_undo_restores_them() {
     let dir = tempfile::tempdir().expect("temp dir");
     let store = phantom_store(dir.path());

@@ -19,6 +19,7 @@ use super::orientation::SliceView;
 use super::overlay_3d::OverlayIn3d;
 use super::preferences::Preferences;
 use super::scene::{Scene, VolumeData};
+use super::segmentation::{SegmentTool, Segmentation};
 use super::slice_view::slice_colour;
 use super::volume_session::{RenderRequest, RenderedFrame};
 use super::widgets::{view_title, wheel_lines, ViewResponse, NOT_FOR_DIAGNOSIS, WARNING_COLOUR};
@@ -351,6 +352,84 @@ impl View3d {
         Some([0, 1, 2].map(|a| index[a].clamp(0.0, g.dims[a] as f64 - 1.0)))
     }
 
+    /// The segment tools in 3D: the brush and eraser sweep a ball of the brush's diameter
+    /// through the surface points picked along a drag (a click: one ball), one undo step per
+    /// stroke; the grow tool seeds at the picked point. A ray that meets nothing edits nothing.
+    fn segment_input(
+        &self,
+        ui: &egui::Ui,
+        response: &egui::Response,
+        rect: Rect,
+        data: &VolumeData,
+        seg: &mut Segmentation,
+    ) {
+        let g = &data.info.geometry;
+        let picked = |pos: Pos2| {
+            self.pick(pos, rect, data)
+                .map(|index| g.patient_from_index(DVec3::from(index)))
+        };
+        let primary = egui::PointerButton::Primary;
+        if seg.tool == SegmentTool::Grow {
+            if response.clicked_by(primary) {
+                if let Some(p) = response.interact_pointer_pos().and_then(picked) {
+                    let ctx = ui.ctx().clone();
+                    // The grow is 3D: the plane is not used.
+                    seg.click_at(
+                        strata_segment::tools::brush::SlicePlane::Axial,
+                        p,
+                        std::sync::Arc::new(move || ctx.request_repaint()),
+                    );
+                }
+            }
+            return;
+        }
+        if response.drag_started_by(primary) {
+            if let Some(p) = ui.input(|i| i.pointer.press_origin()).and_then(picked) {
+                seg.sphere_stroke_to(p);
+            }
+        }
+        if response.dragged_by(primary) {
+            if let Some(p) = response.interact_pointer_pos().and_then(picked) {
+                seg.sphere_stroke_to(p);
+            }
+        }
+        if response.drag_stopped_by(primary) {
+            seg.end_stroke();
+        }
+        if response.clicked_by(primary) {
+            if let Some(p) = response.interact_pointer_pos().and_then(picked) {
+                seg.sphere_stroke_to(p);
+                seg.end_stroke();
+            }
+        }
+    }
+
+    /// The brush's ball as the cursor: a circle of its projected size around the pointer where
+    /// the pointer picks a surface point.
+    fn paint_ball_cursor(
+        &self,
+        painter: &egui::Painter,
+        pos: Pos2,
+        rect: Rect,
+        data: &VolumeData,
+        diameter_mm: f64,
+    ) {
+        let (Some(index), Some(frame)) = (self.pick(pos, rect, data), self.shown.as_ref()) else {
+            return;
+        };
+        let g = &data.info.geometry;
+        let camera = frame.request.camera;
+        let centre = DVec3::from(index);
+        let edge_lps = g.patient_from_index(centre) + camera.basis().right * (diameter_mm / 2.0);
+        let (Some(a), Some(b)) = (
+            project_to_view(&camera, rect, g, centre),
+            project_to_view(&camera, rect, g, g.index_from_patient(edge_lps)),
+        ) else {
+            return;
+        };
+        painter.circle_stroke(pos, a.distance(b), Stroke::new(1.5, Color32::YELLOW));
+    }
+
     /// The camera to draw the overlays (slice outlines, measurements, crop box, orientation
     /// marker) with: the shown frame's, which may lag `live` (the orbit's now) while the render
     /// thread catches up; `live` before any frame.
@@ -373,13 +452,23 @@ impl View3d {
         max_pixels: u32,
         overlay: Option<OverlayIn3d>,
         oblique: Option<ObliquePlane>,
+        segmentation: Option<&mut Segmentation>,
     ) -> ViewResponse {
         let painter = ui.painter_at(rect);
         painter.rect_filled(rect, 0.0, Color32::BLACK);
         let response = ui.interact(rect, ui.scope_id().with("3d view"), Sense::click_and_drag());
         let (shift, pointer_delta) = ui.input(|i| (i.modifiers.shift, i.pointer.delta()));
+        // With the brush, eraser or grow chosen the left button edits labels here (shift-drag
+        // still pans, the other buttons and the wheel still orbit, window and zoom).
+        let segment_tool = segmentation
+            .as_ref()
+            .map_or(SegmentTool::None, |s| s.tool)
+            .filter_3d();
         let mut moved = false;
-        if response.dragged_by(egui::PointerButton::Primary) && !shift {
+        if response.dragged_by(egui::PointerButton::Primary)
+            && !shift
+            && segment_tool == SegmentTool::None
+        {
             self.orbit.orbit_by(pointer_delta, rect.size());
             moved = true;
         }
@@ -599,9 +688,17 @@ impl View3d {
             egui::FontId::proportional(11.0),
             WARNING_COLOUR,
         );
+        if let Some(seg) = segmentation.filter(|_| segment_tool != SegmentTool::None) {
+            if !shift {
+                self.segment_input(ui, &response, rect, data, seg);
+            }
+            if let Some(pos) = response.hover_pos() {
+                self.paint_ball_cursor(&painter, pos, rect, data, seg.diameter_mm);
+            }
+        }
         // A click (no drag) moves the linked crosshair to what is seen there, or adds a ruler
         // or angle point there with a measuring tool.
-        if response.clicked() {
+        if response.clicked() && segment_tool == SegmentTool::None {
             if let Some(index) = response
                 .interact_pointer_pos()
                 .and_then(|p| self.pick(p, rect, data))
