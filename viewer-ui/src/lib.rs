@@ -11,6 +11,8 @@
 //!   controller (strata_render::time_critical) is driven by.
 //! - [`slice_canvas`]: what a slice view draws around its image (zoom and pan, screen ↔ image
 //!   mapping, crosshair, orientation labels, the flipped image mesh, the colour-map choice).
+//! - [`render_driver`]: the render driver both viewers call: what is applied to the streaming
+//!   volume now, and a new render request as a typed difference of actions (issue 47).
 //! - [`widgets`]: small widgets the panels need (the slow spinner).
 //! - [`view_state`], [`compact_tf`]: the shareable link's format (`#store=…&az=…`, an edited
 //!   transfer function as `tf=`), which both viewers read and write (issue 39; here since issue
@@ -19,6 +21,7 @@
 pub mod compact_tf;
 pub mod performance;
 pub mod presets;
+pub mod render_driver;
 pub mod slice_canvas;
 pub mod target_fps;
 pub mod tf_editor;

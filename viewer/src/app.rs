@@ -516,7 +516,7 @@ impl StrataApp {
 
     #[cfg(test)]
     /// The 3D request the UI sent last (tests wait for the frame that answers it).
-    pub fn volume_request(&self) -> Option<super::volume_session::RenderRequest> {
+    pub fn volume_request(&self) -> Option<strata_viewer_ui::render_driver::RenderRequest> {
         self.volume
             .as_ref()
             .and_then(|v| v.data.session.current_request())

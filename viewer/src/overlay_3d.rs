@@ -16,6 +16,7 @@ use strata_render::overlay::OVERLAY_OUTSIDE;
 use strata_render::{OverlayKind as GridKind, OverlayLut, OverlayVolume};
 use strata_segment::{label_colour, BrickKey, LabelLayer, LABEL_BRICK};
 use strata_source::VolumeSource;
+use strata_viewer_ui::render_driver::OverlayIn3d;
 
 use super::overlay::{
     trilinear, Overlay, OverlayBrickCache, OverlayGrids, OverlayKind, OverlayStyle,
@@ -35,31 +36,6 @@ pub struct Resampled {
     pub volume: Arc<OverlayVolume>,
     /// Labels: table index `i ≥ 1` is label `labels[i - 1]` (0 is background).
     pub labels: Vec<i64>,
-}
-
-/// What the 3D view draws of the overlay this frame (part of the render request). Equal when
-/// the same grid (by identity: it is large) has the same colour table.
-#[derive(Clone)]
-pub struct OverlayIn3d {
-    pub volume: Arc<OverlayVolume>,
-    pub lut: OverlayLut,
-}
-
-/// Not the grid's values (millions): requests are debug-printed in logs and test failures.
-impl std::fmt::Debug for OverlayIn3d {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("OverlayIn3d")
-            .field("dims", &self.volume.dims)
-            .field("kind", &self.volume.kind)
-            .field("lut_entries", &self.lut.entries.len())
-            .finish()
-    }
-}
-
-impl PartialEq for OverlayIn3d {
-    fn eq(&self, other: &Self) -> bool {
-        Arc::ptr_eq(&self.volume, &other.volume) && self.lut == other.lut
-    }
 }
 
 /// The grid's dims: the primary's level dims at the finest level that fits `max_voxels` (the

@@ -12,16 +12,16 @@ use egui::{Color32, Pos2, Rect, Sense, Stroke, TextureHandle, TextureOptions, Ve
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
 use strata_render::{Camera, Projection, RenderMode, RenderSettings, VolumeGeometry};
+use strata_viewer_ui::render_driver::{OverlayIn3d, RenderRequest};
 
 use super::measurements::{Shape, Tool};
 use super::oblique::{ObliquePlane, OBLIQUE_COLOUR};
 use super::orientation::SliceView;
-use super::overlay_3d::OverlayIn3d;
 use super::preferences::Preferences;
 use super::scene::{Scene, VolumeData};
 use super::segmentation::{SegmentTool, Segmentation};
 use super::slice_view::slice_colour;
-use super::volume_session::{RenderRequest, RenderedFrame};
+use super::volume_session::RenderedFrame;
 use super::widgets::{view_title, wheel_lines, ViewResponse, NOT_FOR_DIAGNOSIS, WARNING_COLOUR};
 
 /// Zoom factor per wheel click in the 3D view.

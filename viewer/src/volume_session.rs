@@ -3,6 +3,14 @@
 //! raycaster, fetch workers), takes the newest [`RenderRequest`] from the UI and publishes
 //! finished frames as RGBA for the UI to show.
 //!
+//! Each turn of its loop (`RenderWorker::turn`) is one of: a queued export frame
+//! (`export_frame`), a progressive pass (`progressive_pass`), the adaptive pass
+//! (`adaptive_pass`), the idle wait, or a live frame: the request applied through the render
+//! driver both viewers share (strata_viewer_ui::render_driver: a typed difference, each change
+//! one action: a new streaming volume for another traversal, the transfer function or the
+//! overlay uploaded), drawn (`live_frame`) and published (`publish_live`). A GPU failure drops
+//! the device's state (`OnDevice`) whole and `run` starts again (recovery).
+//!
 //! Why a device of its own rather than eframe's: on one queue a raycast that takes 200 ms
 //! (lavapipe, or a big volume on a real GPU, which does not preempt compute) holds every UI
 //! frame behind it. On its own device and thread the UI keeps its frame rate while the volume
@@ -28,12 +36,14 @@ use std::time::{Duration, Instant};
 use strata_loader::{FrameStats, SelectionTiming, StreamingConfig, StreamingVolume};
 use strata_render::progressive::{jittered_frame, Accumulator, ViewKey};
 use strata_render::target_rate::{AtRest, TargetRateDriver};
+use strata_render::time_critical::FrameQuality;
 use strata_render::{
-    Camera, GpuContext, LightDirection, RenderMode, RenderSettings, ShadowMode, TimeCriticalConfig,
-    TransferFunction, Traversal, ValueMapping, VolumeGeometry,
+    Camera, FrameReadback, GpuContext, LightDirection, RenderMode, RenderSettings, ShadowMode,
+    TimeCriticalConfig, TransferFunction, Traversal, ValueMapping, VolumeGeometry,
 };
 use strata_source::VolumeSource;
 use strata_storage::StoreHeader;
+use strata_viewer_ui::render_driver::{RenderChange, RenderDriver, RenderRequest};
 
 use super::adaptive_view::{AdaptiveFacts, AdaptiveView, Step, StillView};
 use super::exports::{ExportOutcome, ExportProgress};
@@ -41,7 +51,6 @@ use super::gpu_recovery::{
     recovery_line, smaller_budget, DeviceWatch, GpuFailureKind, InjectedFault, StepError,
     MAX_FAILURES_WITHOUT_A_FRAME,
 };
-use super::overlay_3d::OverlayIn3d;
 use super::sync::lock_ignoring_poison;
 
 /// GPU memory for the brick cache.
@@ -58,38 +67,14 @@ pub const DEFAULT_GPU_BUDGET_BYTES: u64 = 384 << 20;
 /// by `the_quality_floor_keeps_the_phantoms_structures` below.
 pub const VIEWER_MAX_LOD_FACTOR: f64 = 2.0;
 
-/// What the UI wants to see; the render thread always works on the newest one.
-#[derive(Clone, Debug, PartialEq)]
-pub struct RenderRequest {
-    pub camera: Camera,
-    pub settings: RenderSettings,
-    pub transfer_function: TransferFunction,
-    /// Some(fps): the time-critical controller sets the sampling rate; None: `settings.quality`.
-    pub target_fps: Option<f64>,
-    /// The user is dragging: interactive quality; when it stops, still frames refine.
-    pub interacting: bool,
-    /// The overlay drawn in 3D (overlay_3d.rs), if any.
-    pub overlay: Option<OverlayIn3d>,
-    /// The raycaster's traversal; None: the loader's choice (flat where it fits). A change
-    /// restarts the streaming volume on the same device.
-    pub traversal: Option<Traversal>,
-    /// Some(ε): once the view is still and the cut converged, the final frame is drawn by the
-    /// adaptive pass with the block oracle's ε (adaptive_view.rs); DVR and MIP only.
-    pub adaptive_epsilon: Option<f64>,
-    /// How many jittered frames a still, converged view with shadows, occlusion or
-    /// scattering accumulates into its running mean (progressive refinement); 0: off.
-    pub progressive_frames: u32,
-}
-
-impl RenderRequest {
-    fn still_view(&self) -> StillView<'_> {
-        StillView {
-            epsilon: self.adaptive_epsilon,
-            mode: self.settings.mode,
-            camera: &self.camera,
-            transfer_function: &self.transfer_function,
-            overlay: self.overlay.is_some(),
-        }
+/// The adaptive pass's view of `request` (adaptive_view.rs).
+fn still_view(request: &RenderRequest) -> StillView<'_> {
+    StillView {
+        epsilon: request.adaptive_epsilon,
+        mode: request.settings.mode,
+        camera: &request.camera,
+        transfer_function: &request.transfer_function,
+        overlay: request.overlay.is_some(),
     }
 }
 
@@ -534,6 +519,16 @@ impl RenderWorker {
     /// One device's life: create it, watch it, render requests until stopped (Ok) or until a
     /// step fails; every step's outcome goes through the watch's classification.
     fn run_on_a_new_device(&mut self, gpu_budget_bytes: u64) -> Result<(), StepError> {
+        let mut device = self.start_device(gpu_budget_bytes)?;
+        while !self.shared.stop.load(Ordering::Acquire) {
+            self.turn(&mut device)?;
+        }
+        Ok(())
+    }
+
+    /// A new device, its watch, and the streaming volume on it with the newest request's
+    /// transfer function and traversal.
+    fn start_device(&mut self, gpu_budget_bytes: u64) -> Result<OnDevice, StepError> {
         let ctx = GpuContext::headless().map_err(anyhow::Error::from)?;
         let watch = DeviceWatch::install(&ctx.device);
         let adapter = ctx.adapter_name();
@@ -557,463 +552,526 @@ impl RenderWorker {
             .map(|r| r.transfer_function.clone())
             .or_else(|| TransferFunction::preset("ct-bone"))
             .ok_or_else(|| anyhow::anyhow!("no transfer function"))?;
-        let mut current_traversal = lock_ignoring_poison(&self.shared.request)
+        let traversal = lock_ignoring_poison(&self.shared.request)
             .as_ref()
             .and_then(|r| r.traversal);
-        let mut volume = watch.classify(self.open_volume(
-            &ctx,
-            gpu_budget_bytes,
-            &initial_tf,
-            current_traversal,
-        ))?;
-        let gpu_timestamps = ctx.supports_timestamps();
-        let mut current_tf = initial_tf;
+        let volume =
+            watch.classify(self.open_volume(&ctx, gpu_budget_bytes, &initial_tf, traversal))?;
         self.set_status(|s| s.loading = None);
+        Ok(OnDevice {
+            gpu_timestamps: ctx.supports_timestamps(),
+            ctx,
+            watch,
+            gpu_budget_bytes,
+            volume,
+            driver: RenderDriver::new(initial_tf, traversal),
+            converged: false,
+            frame_ms_history: Vec::new(),
+            failures: Vec::new(),
+            adaptive: AdaptiveView::new(),
+            awaiting_adaptive: None,
+            progressive: None,
+            accumulator: None,
+            rest: RestGovernor::default(),
+            after_shot: false,
+        })
+    }
 
-        let mut last_rendered: Option<RenderRequest> = None;
-        // The overlay on this device's raycaster (a new device starts without one).
-        let mut current_overlay: Option<OverlayIn3d> = None;
-        let mut converged = false;
-        let mut frame_ms_history: Vec<(Instant, f64)> = Vec::new();
-        let mut failures: Vec<String> = Vec::new();
-        let mut adaptive = AdaptiveView::new();
-        // The raycaster's final frame of `last_rendered`, held back (published as not final)
-        // while the adaptive pass prepares to draw over the same cut.
-        let mut awaiting_adaptive: Option<AwaitingAdaptive> = None;
-        // Progressive refinement of `last_rendered` once it is final, and the running mean on
-        // this device (its pipeline is built on first use).
-        let mut progressive: Option<ProgressiveRun> = None;
-        let mut accumulator: Option<Accumulator> = None;
-        let mut rest = RestGovernor::default();
-        // The next live frame follows an export's frame: its cut is the export's, so its time
-        // says nothing about the live view's cost and the controller does not learn from it
-        // (a movie's frames dragged the live view to 0.12 samples/voxel, issue 36).
-        let mut after_shot = false;
-        loop {
-            if self.shared.stop.load(Ordering::Acquire) {
+    /// One turn of the render loop: an injected fault, then one queued export frame, then at
+    /// most one frame of the newest request (a progressive pass, the adaptive pass, or the
+    /// raycaster), or a wait.
+    fn turn(&mut self, device: &mut OnDevice) -> Result<(), StepError> {
+        if let Some(fault) = lock_ignoring_poison(&self.shared.fault).take() {
+            fault.apply(&device.ctx.device, &device.watch);
+        }
+        let screenshot = lock_ignoring_poison(&self.shared.screenshot).pop_front();
+        if let Some(shot) = screenshot {
+            if self.export_frame(device, &shot) == ExportTurn::Cancelled {
                 return Ok(());
             }
-            if let Some(fault) = lock_ignoring_poison(&self.shared.fault).take() {
-                fault.apply(&ctx.device, &watch);
+        }
+        let request = lock_ignoring_poison(&self.shared.request).clone();
+        let Some(request) = request else {
+            device.watch.classify(Ok(()))?;
+            self.wait(Duration::from_millis(50));
+            return Ok(());
+        };
+        let new_request = device.driver.is_new(&request);
+        if new_request {
+            // Held for another request: the next raycaster frames answer this one.
+            device.awaiting_adaptive = None;
+            // A change starts again at 1 (after the new request's own final frame).
+            device.progressive = None;
+        }
+        if device
+            .progressive
+            .as_ref()
+            .is_some_and(|r| r.accumulated < r.total)
+        {
+            return self.progressive_pass(device);
+        }
+        if let Some(waiting) = device.awaiting_adaptive.take() {
+            return self.adaptive_pass(device, &request, waiting);
+        }
+        let still_refining = self.rate.refining(request.target_fps, request.interacting);
+        if !(new_request || !device.converged || still_refining) {
+            // Idle: poll, so a device lost meanwhile is noticed (and rebuilt) now.
+            let _ = device.ctx.device.poll(wgpu::PollType::Poll);
+            device.watch.classify(Ok(()))?;
+            // Only a change wakes the UI: setting it every 100 ms repainted the window at
+            // 10 Hz at rest (issue 36).
+            if lock_ignoring_poison(&self.shared.status).refining {
+                self.set_status(|s| s.refining = false);
             }
-            let screenshot = lock_ignoring_poison(&self.shared.screenshot).pop_front();
-            if let Some(job) = screenshot
-                .as_ref()
-                .and_then(|s| s.job.clone())
-                .filter(|j| j.is_cancelled())
-            {
-                // Cancelled before this frame: none of its frames is rendered.
-                self.end_export(&job, None);
-                continue;
+            self.wait(Duration::from_millis(100));
+            return Ok(());
+        }
+        self.apply_request(device, &request)?;
+        self.live_frame(device, request)
+    }
+
+    /// One frame of a queued export (screenshot or movie frame), written, and its job told.
+    /// Cancelled: the frame is not written, the rest of the job is dropped.
+    fn export_frame(&mut self, device: &mut OnDevice, shot: &ScreenshotRequest) -> ExportTurn {
+        if let Some(job) = shot.job.as_ref().filter(|j| j.is_cancelled()) {
+            // Cancelled before this frame: none of its frames is rendered.
+            self.end_export(job, None);
+            return ExportTurn::Cancelled;
+        }
+        if let Some(job) = &shot.job {
+            let line = format!(
+                "{}: frame {} of {}; the live view is redrawn between its frames",
+                job.title,
+                job.done() + 1,
+                job.total()
+            );
+            self.set_status(|s| s.exporting = Some(line));
+        }
+        let result = match device.driver.drawn_request().cloned() {
+            Some(request) => self.screenshot(
+                &device.ctx,
+                &mut device.volume,
+                &mut device.adaptive,
+                &request,
+                shot,
+            ),
+            None => Err(anyhow::anyhow!("nothing rendered yet")),
+        };
+        // The shot changed the cut and the raycaster's size: render the view again (its
+        // uploads stay), and its time says nothing of the live view's (below).
+        device.driver.forget_drawn();
+        device.awaiting_adaptive = None;
+        device.after_shot = true;
+        if let Some(job) = shot.job.as_ref().filter(|j| j.is_cancelled()) {
+            // Cancelled during this frame: whatever it wrote goes with the rest.
+            self.end_export(job, Some(&shot.path));
+            return ExportTurn::Cancelled;
+        }
+        let result = match (result, &shot.then_encode) {
+            (Ok(()), Some(folder)) => match crate::export::encode_mp4(folder) {
+                Ok(Some(movie)) => Ok(movie),
+                Ok(None) => Ok(folder.clone()),
+                Err(e) => Err(e.context(format!(
+                    "the frames are in {}, the MP4 failed",
+                    folder.display()
+                ))),
+            },
+            (Ok(()), None) => Ok(shot.path.clone()),
+            (Err(e), _) => Err(e),
+        };
+        self.export_written(shot, result);
+        ExportTurn::Written
+    }
+
+    /// Tells an export frame's job and the status what became of it.
+    fn export_written(&self, shot: &ScreenshotRequest, result: anyhow::Result<PathBuf>) {
+        if result.is_err() {
+            // One failed frame ends the movie: the rest would fail the same way.
+            lock_ignoring_poison(&self.shared.screenshot).clear();
+        }
+        if let Some(job) = &shot.job {
+            match &result {
+                Ok(place) => {
+                    job.frame_written(shot.path.clone());
+                    if job.done() >= job.total() {
+                        job.finish(ExportOutcome::Written(place.clone()));
+                    }
+                }
+                Err(e) => job.finish(ExportOutcome::Failed(format!("{e:#}"))),
             }
-            if let Some(shot) = screenshot {
-                if let Some(job) = &shot.job {
-                    let line = format!(
-                        "{}: frame {} of {}; the live view is redrawn between its frames",
-                        job.title,
-                        job.done() + 1,
-                        job.total()
-                    );
-                    self.set_status(|s| s.exporting = Some(line));
-                }
-                let result = match last_rendered.clone() {
-                    Some(request) => {
-                        self.screenshot(&ctx, &mut volume, &mut adaptive, &request, &shot)
-                    }
-                    None => Err(anyhow::anyhow!("nothing rendered yet")),
-                };
-                if let Some(job) = shot.job.as_ref().filter(|j| j.is_cancelled()) {
-                    // Cancelled during this frame: whatever it wrote goes with the rest.
-                    self.end_export(job, Some(&shot.path));
-                    last_rendered = None;
-                    awaiting_adaptive = None;
-                    after_shot = true;
-                    continue;
-                }
-                let result = match (result, &shot.then_encode) {
-                    (Ok(()), Some(folder)) => match crate::export::encode_mp4(folder) {
-                        Ok(Some(movie)) => Ok(movie),
-                        Ok(None) => Ok(folder.clone()),
-                        Err(e) => Err(e.context(format!(
-                            "the frames are in {}, the MP4 failed",
-                            folder.display()
-                        ))),
-                    },
-                    (Ok(()), None) => Ok(shot.path.clone()),
-                    (Err(e), _) => Err(e),
-                };
-                if result.is_err() {
-                    // One failed frame ends the movie: the rest would fail the same way.
-                    lock_ignoring_poison(&self.shared.screenshot).clear();
-                }
-                if let Some(job) = &shot.job {
-                    match &result {
-                        Ok(place) => {
-                            job.frame_written(shot.path.clone());
-                            if job.done() >= job.total() {
-                                job.finish(ExportOutcome::Written(place.clone()));
-                            }
-                        }
-                        Err(e) => job.finish(ExportOutcome::Failed(format!("{e:#}"))),
-                    }
-                }
-                let queue_empty = lock_ignoring_poison(&self.shared.screenshot).is_empty();
+        }
+        let queue_empty = lock_ignoring_poison(&self.shared.screenshot).is_empty();
+        self.set_status(|s| {
+            s.screenshots_written += result.is_ok() as u64;
+            s.last_screenshot = Some(result.map_err(|e| format!("{e:#}")));
+            if queue_empty {
+                s.exporting = None;
+            }
+        });
+    }
+
+    /// Publishes `frame` as the newest, numbered after the last.
+    fn publish(&mut self, frame: RenderedFrame) {
+        self.serial += 1;
+        *lock_ignoring_poison(&self.shared.frame) = Some(RenderedFrame {
+            serial: self.serial,
+            ..frame
+        });
+    }
+
+    /// One jittered frame of the progressive run, accumulated and its running mean published.
+    /// One per turn of the loop: a new request is seen before the next one, so interaction
+    /// never waits on accumulation.
+    fn progressive_pass(&mut self, device: &mut OnDevice) -> Result<(), StepError> {
+        let OnDevice {
+            ctx,
+            watch,
+            volume,
+            progressive,
+            accumulator,
+            ..
+        } = &mut *device;
+        let Some(run) = progressive.as_mut() else {
+            return Ok(());
+        };
+        let settings = jittered_frame(&run.settings, run.seed);
+        run.seed += 1;
+        let stats = watch.classify(
+            volume
+                .frame(ctx, &run.request.camera, &settings)
+                .map_err(Into::into),
+        )?;
+        if stats.uploads > 0 || stats.page_table_rewritten {
+            // Another cut: what was averaged so far shows other bricks.
+            run.generation += 1;
+        }
+        if !drawn_jittered(volume) {
+            // The jittered variant still compiles in the background and this frame was its
+            // stand-in, the un-jittered picture: averaging stand-ins gave back the single frame
+            // (seconds of them on lavapipe). Not counted; the next turn tries again, after a
+            // pause a new request cuts short.
+            self.wait(Duration::from_millis(20));
+            return Ok(());
+        }
+        let key = ViewKey::new(&run.request.camera, &run.settings).with_generation(run.generation);
+        let accumulator = accumulator.get_or_insert_with(|| Accumulator::new(ctx));
+        let Some(output) = volume.raycaster_mut().output_texture() else {
+            return Err(StepError::Other(anyhow::anyhow!(
+                "the raycaster has no output to accumulate"
+            )));
+        };
+        let accumulated = watch.classify(
+            accumulator
+                .accumulate(ctx, &key, output)
+                .map_err(Into::into),
+        )?;
+        let mean = watch.classify(accumulator.read_mean_blocking(ctx).map_err(Into::into))?;
+        run.accumulated = accumulated;
+        let (total, finished) = (run.total, accumulated >= run.total);
+        self.set_status(|s| {
+            s.frames_rendered += 1;
+            s.progressive = Some((accumulated, total));
+            s.refining = !finished;
+        });
+        self.publish(RenderedFrame {
+            width: settings.width,
+            height: settings.height,
+            rgba: Arc::new(mean),
+            depth: run.depth.clone(),
+            serial: 0,
+            request: run.request.clone(),
+            converged: finished,
+            adaptive: None,
+            drawn_mode: run.drawn_mode,
+        });
+        (self.repaint)();
+        Ok(())
+    }
+
+    /// The adaptive pass over the raycaster's final frame `waiting`: still building (wait),
+    /// drawn (published as final), or failed (the raycaster's frame is final, with the reason).
+    fn adaptive_pass(
+        &mut self,
+        device: &mut OnDevice,
+        request: &RenderRequest,
+        waiting: AwaitingAdaptive,
+    ) -> Result<(), StepError> {
+        let view = still_view(request);
+        let step = device.adaptive.step(
+            &device.ctx,
+            &device.volume,
+            &view,
+            &waiting.settings,
+            waiting.raycaster_samples,
+        );
+        let fallback = match step {
+            Step::Building => {
                 self.set_status(|s| {
-                    s.screenshots_written += result.is_ok() as u64;
-                    s.last_screenshot = Some(result.map_err(|e| format!("{e:#}")));
-                    if queue_empty {
-                        s.exporting = None;
-                    }
+                    s.adaptive = Some("adaptive: building oracle…".into());
+                    s.refining = true;
                 });
-                // The screenshot changed the cut and the raycaster's size: render the view again.
-                last_rendered = None;
-                awaiting_adaptive = None;
-                after_shot = true;
+                let _ = device.ctx.device.poll(wgpu::PollType::Poll);
+                device.watch.classify(Ok(()))?;
+                device.awaiting_adaptive = Some(waiting);
+                self.wait(Duration::from_millis(30));
+                return Ok(());
             }
-            let request = lock_ignoring_poison(&self.shared.request).clone();
-            let Some(request) = request else {
-                watch.classify(Ok(()))?;
-                self.wait(Duration::from_millis(50));
-                continue;
-            };
-            let new_request = last_rendered.as_ref() != Some(&request);
-            if new_request {
-                // Held for another request: the next raycaster frames answer this one.
-                awaiting_adaptive = None;
-                // A change starts again at 1 (after the new request's own final frame).
-                progressive = None;
-            }
-            if let Some(run) = progressive.as_mut().filter(|r| r.accumulated < r.total) {
-                // One jittered frame of the same view per turn of the loop: a new request is
-                // seen before the next one, so interaction never waits on accumulation.
-                let settings = jittered_frame(&run.settings, run.seed);
-                run.seed += 1;
-                let stats = watch.classify(
-                    volume
-                        .frame(&ctx, &run.request.camera, &settings)
-                        .map_err(Into::into),
-                )?;
-                if stats.uploads > 0 || stats.page_table_rewritten {
-                    // Another cut: what was averaged so far shows other bricks.
-                    run.generation += 1;
-                }
-                if !drawn_jittered(&mut volume) {
-                    // The jittered variant still compiles in the background and this frame
-                    // was its stand-in, the un-jittered picture: averaging stand-ins gave back
-                    // the single frame (seconds of them on lavapipe). Not counted; the next
-                    // turn tries again, after a pause a new request cuts short.
-                    self.wait(Duration::from_millis(20));
-                    continue;
-                }
-                let key = ViewKey::new(&run.request.camera, &run.settings)
-                    .with_generation(run.generation);
-                let accumulator = accumulator.get_or_insert_with(|| Accumulator::new(&ctx));
-                let Some(output) = volume.raycaster_mut().output_texture() else {
-                    return Err(StepError::Other(anyhow::anyhow!(
-                        "the raycaster has no output to accumulate"
-                    )));
-                };
-                let accumulated = watch.classify(
-                    accumulator
-                        .accumulate(&ctx, &key, output)
-                        .map_err(Into::into),
-                )?;
-                let mean =
-                    watch.classify(accumulator.read_mean_blocking(&ctx).map_err(Into::into))?;
-                run.accumulated = accumulated;
-                let (total, finished) = (run.total, accumulated >= run.total);
+            Step::Drawn(drawn) => {
+                let (frame, facts) = *drawn;
+                // The status first: whoever sees the frame then sees its line.
                 self.set_status(|s| {
                     s.frames_rendered += 1;
-                    s.progressive = Some((accumulated, total));
-                    s.refining = !finished;
-                });
-                self.serial += 1;
-                *lock_ignoring_poison(&self.shared.frame) = Some(RenderedFrame {
-                    width: settings.width,
-                    height: settings.height,
-                    rgba: Arc::new(mean),
-                    depth: run.depth.clone(),
-                    serial: self.serial,
-                    request: run.request.clone(),
-                    converged: finished,
-                    adaptive: None,
-                    drawn_mode: run.drawn_mode,
-                });
-                (self.repaint)();
-                continue;
-            }
-            if let Some(waiting) = awaiting_adaptive.take() {
-                let view = request.still_view();
-                let step = adaptive.step(
-                    &ctx,
-                    &volume,
-                    &view,
-                    &waiting.settings,
-                    waiting.raycaster_samples,
-                );
-                let fallback = match step {
-                    Step::Building => {
-                        self.set_status(|s| {
-                            s.adaptive = Some("adaptive: building oracle…".into());
-                            s.refining = true;
-                        });
-                        let _ = ctx.device.poll(wgpu::PollType::Poll);
-                        watch.classify(Ok(()))?;
-                        awaiting_adaptive = Some(waiting);
-                        self.wait(Duration::from_millis(30));
-                        continue;
-                    }
-                    Step::Drawn(drawn) => {
-                        let (frame, facts) = *drawn;
-                        // The status first: whoever sees the frame then sees its line.
-                        self.set_status(|s| {
-                            s.frames_rendered += 1;
-                            s.adaptive = Some(facts.status_line());
-                            s.refining = false;
-                        });
-                        self.serial += 1;
-                        *lock_ignoring_poison(&self.shared.frame) = Some(RenderedFrame {
-                            width: frame.width,
-                            height: frame.height,
-                            rgba: Arc::new(frame.rgba),
-                            depth: Arc::new(frame.depth),
-                            serial: self.serial,
-                            request: request.clone(),
-                            converged: true,
-                            adaptive: Some(Arc::new(facts)),
-                            drawn_mode: request.settings.mode,
-                        });
-                        (self.repaint)();
-                        continue;
-                    }
-                    Step::Failed(reason) => reason,
-                    Step::RenderError(e) => match watch.classify::<()>(Err(e)) {
-                        Err(StepError::Gpu(failure)) => return Err(StepError::Gpu(failure)),
-                        Err(StepError::Other(e)) => {
-                            let reason = format!("{e:#}; the raycaster draws instead");
-                            if let Some(key) = adaptive.key(&volume, &view, &waiting.settings) {
-                                adaptive.note_failure(key, reason.clone());
-                            }
-                            reason
-                        }
-                        Ok(()) => "the adaptive pass failed".into(),
-                    },
-                };
-                // The raycaster's frame is the final one after all.
-                tracing::warn!("{fallback}");
-                self.set_status(|s| {
-                    s.adaptive = Some(fallback);
+                    s.adaptive = Some(facts.status_line());
                     s.refining = false;
                 });
-                self.serial += 1;
-                *lock_ignoring_poison(&self.shared.frame) = Some(RenderedFrame {
-                    serial: self.serial,
+                self.publish(RenderedFrame {
+                    width: frame.width,
+                    height: frame.height,
+                    rgba: Arc::new(frame.rgba),
+                    depth: Arc::new(frame.depth),
+                    serial: 0,
+                    request: request.clone(),
                     converged: true,
-                    ..waiting.frame
+                    adaptive: Some(Arc::new(facts)),
+                    drawn_mode: request.settings.mode,
                 });
                 (self.repaint)();
-                continue;
+                return Ok(());
             }
-            let still_refining = self.rate.refining(request.target_fps, request.interacting);
-            if !(new_request || !converged || still_refining) {
-                // Idle: poll, so a device lost meanwhile is noticed (and rebuilt) now.
-                let _ = ctx.device.poll(wgpu::PollType::Poll);
-                watch.classify(Ok(()))?;
-                // Only a change wakes the UI: setting it every 100 ms repainted the window at
-                // 10 Hz at rest (issue 36).
-                if lock_ignoring_poison(&self.shared.status).refining {
-                    self.set_status(|s| s.refining = false);
-                }
-                self.wait(Duration::from_millis(100));
-                continue;
-            }
-            if request.traversal != current_traversal {
-                // The traversal is the index's layout: a new streaming volume (the bricks are
-                // read again; the view keeps its last frame meanwhile).
-                self.set_status(|s| s.loading = Some("switching the traversal".into()));
-                current_traversal = request.traversal;
-                volume = watch.classify(self.open_volume(
-                    &ctx,
-                    gpu_budget_bytes,
-                    &request.transfer_function,
-                    current_traversal,
-                ))?;
-                current_tf = request.transfer_function.clone();
-                current_overlay = None;
-                converged = false;
-                adaptive.new_volume();
-                self.set_status(|s| s.loading = None);
-            }
-            if request.transfer_function != current_tf {
-                watch.classify(
-                    volume
-                        .set_transfer_function(&ctx, &request.transfer_function)
-                        .map_err(Into::into),
-                )?;
-                current_tf = request.transfer_function.clone();
-            }
-            if request.overlay != current_overlay {
-                let dims = self.store.header().geometry.dims;
-                let raycaster = volume.raycaster_mut();
-                let result = match (&request.overlay, &current_overlay) {
-                    // A style change: the colour table only.
-                    (Some(new), Some(old)) if Arc::ptr_eq(&new.volume, &old.volume) => {
-                        raycaster.set_overlay_lut(&ctx, &new.lut)
+            Step::Failed(reason) => reason,
+            Step::RenderError(e) => match device.watch.classify::<()>(Err(e)) {
+                Err(StepError::Gpu(failure)) => return Err(StepError::Gpu(failure)),
+                Err(StepError::Other(e)) => {
+                    let reason = format!("{e:#}; the raycaster draws instead");
+                    let key = device
+                        .adaptive
+                        .key(&device.volume, &view, &waiting.settings);
+                    if let Some(key) = key {
+                        device.adaptive.note_failure(key, reason.clone());
                     }
-                    (Some(new), _) => raycaster.set_overlay(&ctx, &new.volume, &new.lut, dims),
-                    (None, _) => {
-                        raycaster.clear_overlay();
-                        Ok(())
-                    }
-                };
-                watch.classify(result.map_err(anyhow::Error::from))?;
-                current_overlay = request.overlay.clone();
-            }
-            let mut settings = request.settings.clone();
-            // Three regimes: dragging holds the target rate (sampling rate and lod from the
-            // controller); still but streaming renders at the interactive rate with the full
-            // quality cut, so bricks arrive fast; still and complete refines the sampling rate.
-            // The loader's quality factor is 1 whenever the user is not dragging: lowering it
-            // during still refinement would swap in coarser bricks (popping).
-            let streaming_still = !request.interacting && !converged;
-            let quality = self.rate.plan(
-                request.target_fps,
-                request.interacting,
-                streaming_still,
-                &mut settings,
-            );
-            if quality.is_some() && request.interacting {
-                interactive_lighting(&mut settings);
-            }
-            volume.set_max_voxel_pixels(TargetRateDriver::lod_factor(quality, request.interacting));
-            settings.frame_index = self.serial as u32;
-            // With adaptive sampling on, the raycaster counts its samples (one atomic per ray),
-            // so the status line can compare the two passes on the same view.
-            settings.count_samples |= request.adaptive_epsilon.is_some();
-            let started = Instant::now();
-            let stats = watch.classify(
-                volume
-                    .frame(&ctx, &request.camera, &settings)
-                    .map_err(Into::into),
-            )?;
-            if let Some(q) = quality {
-                self.rate.submitted(volume.last_frame_number(), q);
-            }
-            let frame = watch.classify(volume.read_frame_blocking(&ctx).map_err(Into::into))?;
-            let frame_ms = started.elapsed().as_secs_f64() * 1e3;
-            // The controller learns from the raycast pass's GPU time (timestamps, read a frame
-            // or two late), not from request-to-pixels time, which includes loader work and the
-            // readback: measuring those is what makes other viewers' adaptive modes misbehave.
-            // Still-refinement frames are ignored by the controller (q.interactive false).
-            let gpu_timings = volume.take_frame_timings(&ctx);
-            let learn = !std::mem::take(&mut after_shot);
-            if let Some(q) = quality.filter(|_| learn) {
-                // No timestamp queries on this device: submit-to-pixels is all there is.
-                self.rate
-                    .learn(q, gpu_timings, gpu_timestamps, Some(frame_ms));
-            }
-            frame_ms_history.push((Instant::now(), frame_ms));
-            if frame_ms_history.len() > 240 {
-                frame_ms_history.drain(..frame_ms_history.len() - 240);
-            }
-            // The same request, nothing uploaded and the same page table as the frame before:
-            // the cut did not change (the sampling rate may still, see below).
-            let unchanged = new_request_is_same(&last_rendered, &request)
-                && stats.uploads == 0
-                && !stats.page_table_rewritten;
-            let pace = rest.after_frame(unchanged, stats.pending);
-            // A frame drawn with a stand-in pipeline (the mode's own still compiling) is not the
-            // frame asked for: keep rendering until the right pipeline draws, or a DVR image
-            // stays up under a "MIP" title. A cut the loader does not call converged but that
-            // changed nothing for several frames with no read pending is final too: drawing it
-            // again showed the same image and kept a core busy at rest (issue 36). Counted as
-            // converged, the still refinement of the sampling rate follows, then the idle wait.
-            let settled = pace == Pace::Rest && !stats.converged;
-            converged = (stats.converged || settled) && !volume.compiling_in_background();
-            let refining =
-                !converged || self.rate.refining(request.target_fps, request.interacting);
-            let view = request.still_view();
-            // A build for another cut, TF, ε or spacing than this frame's is stale.
-            adaptive.supersede(adaptive.key(&volume, &view, &settings).as_ref());
-            // Progressive refinement replaces the adaptive pass's final frame where both apply:
-            // the adaptive pass draws one un-jittered frame at the controller's still rate, so
-            // the shadow and occlusion rays' wood-grain it shows is what the mean averages out.
-            let progressive_next = !refining
-                && !request.interacting
-                && request.progressive_frames > 0
-                && jitter_refines(&settings);
-            let adaptive_next =
-                !refining && !request.interacting && view.wanted() && !progressive_next;
-            self.serial += 1;
-            let published = RenderedFrame {
-                width: frame.width,
-                height: frame.height,
-                rgba: Arc::new(frame.rgba),
-                depth: Arc::new(frame.depth),
-                serial: self.serial,
-                request: request.clone(),
-                converged: !refining && !adaptive_next && !progressive_next,
-                adaptive: None,
-                drawn_mode: volume
-                    .raycaster_mut()
-                    .last_pipeline_key()
-                    .map_or(settings.mode, |k| k.mode),
-            };
-            progressive = progressive_next.then(|| ProgressiveRun {
-                request: request.clone(),
-                settings: RenderSettings {
-                    count_samples: false,
-                    ..settings.clone()
-                },
-                depth: published.depth.clone(),
-                drawn_mode: published.drawn_mode,
-                generation: 0,
-                seed: 0,
-                accumulated: 0,
-                total: request.progressive_frames,
-            });
-            if adaptive_next {
-                awaiting_adaptive = Some(AwaitingAdaptive {
-                    frame: published.clone(),
-                    settings: settings.clone(),
-                    raycaster_samples: frame.samples,
-                });
-            }
-            *lock_ignoring_poison(&self.shared.frame) = Some(published);
-            let adaptive_line = view.not_applicable().map(str::to_string);
-            for failure in volume.take_failures() {
-                failures.push(format!("brick {:?}: {}", failure.id, failure.message));
-            }
-            let history = frame_ms_history.clone();
-            let error = failures
-                .last()
-                .map(|f| format!("{} bricks failed to read; last: {f}", failures.len()));
-            self.set_status(|s| {
-                s.frames_rendered += 1;
-                s.settled_unconverged = settled;
-                s.volume_frame_ms = history;
-                s.refining = refining || progressive_next;
-                s.progressive = progressive_next.then_some((0, request.progressive_frames));
-                s.sampling_rate =
-                    quality.map_or(1.0 / request.settings.quality, |q| q.sampling_rate);
-                s.lod_factor = quality.map_or(1.0, |q| q.lod_factor);
-                s.finest_resident_level = stats
-                    .gpu_resident_per_level
-                    .iter()
-                    .position(|&n| n > 0)
-                    .map(|l| l as u8);
-                s.loader = Some(stats);
-                s.adaptive = adaptive_line;
-                if error.is_some() {
-                    s.error = error;
+                    reason
                 }
+                Ok(()) => "the adaptive pass failed".into(),
+            },
+        };
+        // The raycaster's frame is the final one after all.
+        tracing::warn!("{fallback}");
+        self.set_status(|s| {
+            s.adaptive = Some(fallback);
+            s.refining = false;
+        });
+        self.publish(RenderedFrame {
+            converged: true,
+            ..waiting.frame
+        });
+        (self.repaint)();
+        Ok(())
+    }
+
+    /// Brings the volume to `request` through the render driver: a new streaming volume for
+    /// another traversal (the bricks are read again; the view keeps its last frame meanwhile),
+    /// the transfer function and the overlay uploaded.
+    fn apply_request(
+        &mut self,
+        device: &mut OnDevice,
+        request: &RenderRequest,
+    ) -> Result<(), StepError> {
+        let OnDevice {
+            ctx,
+            watch,
+            volume,
+            driver,
+            gpu_budget_bytes,
+            ..
+        } = &mut *device;
+        let (ctx, budget): (&GpuContext, u64) = (ctx, *gpu_budget_bytes);
+        let applied = driver.apply(ctx, volume, request, |tf, traversal| {
+            self.set_status(|s| s.loading = Some("switching the traversal".into()));
+            self.open_volume(ctx, budget, tf, traversal)
+        });
+        let changes = watch.classify(applied)?;
+        if changes.contains(&RenderChange::Traversal) {
+            device.converged = false;
+            device.adaptive.new_volume();
+            self.set_status(|s| s.loading = None);
+        }
+        Ok(())
+    }
+
+    /// The raycaster's frame of `request` at the controller's rate, published, and what
+    /// follows it planned: the rest governor's pace, then the adaptive pass or a progressive
+    /// run once the view is final.
+    fn live_frame(
+        &mut self,
+        device: &mut OnDevice,
+        request: RenderRequest,
+    ) -> Result<(), StepError> {
+        let mut settings = request.settings.clone();
+        // Three regimes: dragging holds the target rate (sampling rate and lod from the
+        // controller); still but streaming renders at the interactive rate with the full
+        // quality cut, so bricks arrive fast; still and complete refines the sampling rate.
+        // The loader's quality factor is 1 whenever the user is not dragging: lowering it
+        // during still refinement would swap in coarser bricks (popping).
+        let streaming_still = !request.interacting && !device.converged;
+        let quality = self.rate.plan(
+            request.target_fps,
+            request.interacting,
+            streaming_still,
+            &mut settings,
+        );
+        if quality.is_some() && request.interacting {
+            interactive_lighting(&mut settings);
+        }
+        let volume = &mut device.volume;
+        volume.set_max_voxel_pixels(TargetRateDriver::lod_factor(quality, request.interacting));
+        settings.frame_index = self.serial as u32;
+        // With adaptive sampling on, the raycaster counts its samples (one atomic per ray),
+        // so the status line can compare the two passes on the same view.
+        settings.count_samples |= request.adaptive_epsilon.is_some();
+        let started = Instant::now();
+        let stats = device.watch.classify(
+            volume
+                .frame(&device.ctx, &request.camera, &settings)
+                .map_err(Into::into),
+        )?;
+        if let Some(q) = quality {
+            self.rate.submitted(volume.last_frame_number(), q);
+        }
+        let frame = device
+            .watch
+            .classify(volume.read_frame_blocking(&device.ctx).map_err(Into::into))?;
+        let frame_ms = started.elapsed().as_secs_f64() * 1e3;
+        // The controller learns from the raycast pass's GPU time (timestamps, read a frame
+        // or two late), not from request-to-pixels time, which includes loader work and the
+        // readback: measuring those is what makes other viewers' adaptive modes misbehave.
+        // Still-refinement frames are ignored by the controller (q.interactive false).
+        let gpu_timings = volume.take_frame_timings(&device.ctx);
+        let learn = !std::mem::take(&mut device.after_shot);
+        if let Some(q) = quality.filter(|_| learn) {
+            // No timestamp queries on this device: submit-to-pixels is all there is.
+            self.rate
+                .learn(q, gpu_timings, device.gpu_timestamps, Some(frame_ms));
+        }
+        let history = &mut device.frame_ms_history;
+        history.push((Instant::now(), frame_ms));
+        if history.len() > 240 {
+            history.drain(..history.len() - 240);
+        }
+        let drawn = LiveFrame {
+            frame,
+            stats,
+            settings,
+            quality,
+        };
+        self.publish_live(device, request, drawn);
+        Ok(())
+    }
+
+    /// Publishes the raycaster's frame of `request` with its status, and plans what follows.
+    fn publish_live(&mut self, device: &mut OnDevice, request: RenderRequest, drawn: LiveFrame) {
+        let LiveFrame {
+            frame,
+            stats,
+            settings,
+            quality,
+        } = drawn;
+        // The same request, nothing uploaded and the same page table as the frame before:
+        // the cut did not change (the sampling rate may still, see below).
+        let unchanged =
+            !device.driver.is_new(&request) && stats.uploads == 0 && !stats.page_table_rewritten;
+        let pace = device.rest.after_frame(unchanged, stats.pending);
+        // A frame drawn with a stand-in pipeline (the mode's own still compiling) is not the
+        // frame asked for: keep rendering until the right pipeline draws, or a DVR image
+        // stays up under a "MIP" title. A cut the loader does not call converged but that
+        // changed nothing for several frames with no read pending is final too: drawing it
+        // again showed the same image and kept a core busy at rest (issue 36). Counted as
+        // converged, the still refinement of the sampling rate follows, then the idle wait.
+        let settled = pace == Pace::Rest && !stats.converged;
+        let volume = &mut device.volume;
+        device.converged = (stats.converged || settled) && !volume.compiling_in_background();
+        let refining =
+            !device.converged || self.rate.refining(request.target_fps, request.interacting);
+        let view = still_view(&request);
+        // A build for another cut, TF, ε or spacing than this frame's is stale.
+        let current_key = device.adaptive.key(volume, &view, &settings);
+        device.adaptive.supersede(current_key.as_ref());
+        // Progressive refinement replaces the adaptive pass's final frame where both apply:
+        // the adaptive pass draws one un-jittered frame at the controller's still rate, so
+        // the shadow and occlusion rays' wood-grain it shows is what the mean averages out.
+        let progressive_next = !refining
+            && !request.interacting
+            && request.progressive_frames > 0
+            && jitter_refines(&settings);
+        let adaptive_next = !refining && !request.interacting && view.wanted() && !progressive_next;
+        let published = RenderedFrame {
+            width: frame.width,
+            height: frame.height,
+            rgba: Arc::new(frame.rgba),
+            depth: Arc::new(frame.depth),
+            serial: self.serial + 1,
+            request: request.clone(),
+            converged: !refining && !adaptive_next && !progressive_next,
+            adaptive: None,
+            drawn_mode: volume
+                .raycaster_mut()
+                .last_pipeline_key()
+                .map_or(settings.mode, |k| k.mode),
+        };
+        device.progressive = progressive_next.then(|| ProgressiveRun {
+            request: request.clone(),
+            settings: RenderSettings {
+                count_samples: false,
+                ..settings.clone()
+            },
+            depth: published.depth.clone(),
+            drawn_mode: published.drawn_mode,
+            generation: 0,
+            seed: 0,
+            accumulated: 0,
+            total: request.progressive_frames,
+        });
+        if adaptive_next {
+            device.awaiting_adaptive = Some(AwaitingAdaptive {
+                frame: published.clone(),
+                settings: settings.clone(),
+                raycaster_samples: frame.samples,
             });
-            last_rendered = Some(request);
-            if let (Pace::After(delay), false) = (pace, converged) {
-                // Waiting on reads: nothing new to show, so do not burn the cores on the same
-                // image (a new request still wakes this at once).
-                self.wait(delay);
+        }
+        self.publish(published);
+        let adaptive_line = view.not_applicable().map(str::to_string);
+        for failure in volume.take_failures() {
+            let line = format!("brick {:?}: {}", failure.id, failure.message);
+            device.failures.push(line);
+        }
+        let history = device.frame_ms_history.clone();
+        let failures = &device.failures;
+        let error = failures
+            .last()
+            .map(|f| format!("{} bricks failed to read; last: {f}", failures.len()));
+        self.set_status(|s| {
+            s.frames_rendered += 1;
+            s.settled_unconverged = settled;
+            s.volume_frame_ms = history;
+            s.refining = refining || progressive_next;
+            s.progressive = progressive_next.then_some((0, request.progressive_frames));
+            s.sampling_rate = quality.map_or(1.0 / request.settings.quality, |q| q.sampling_rate);
+            s.lod_factor = quality.map_or(1.0, |q| q.lod_factor);
+            s.finest_resident_level = stats
+                .gpu_resident_per_level
+                .iter()
+                .position(|&n| n > 0)
+                .map(|l| l as u8);
+            s.loader = Some(stats);
+            s.adaptive = adaptive_line;
+            if error.is_some() {
+                s.error = error;
             }
+        });
+        device.driver.drawn(&request);
+        if let (Pace::After(delay), false) = (pace, device.converged) {
+            // Waiting on reads: nothing new to show, so do not burn the cores on the same
+            // image (a new request still wakes this at once).
+            self.wait(delay);
         }
     }
 
@@ -1096,7 +1154,7 @@ impl RenderWorker {
         }
         let view = StillView {
             camera: &camera,
-            ..request.still_view()
+            ..still_view(request)
         };
         if view.wanted() {
             // The still view in adaptive mode is the adaptive pass's, in the file too. The
@@ -1131,6 +1189,53 @@ impl RenderWorker {
         crate::export::write_png(&shot.path, frame.width, frame.height, &frame.rgba)?;
         Ok(())
     }
+}
+
+/// What lives on one device: its context and watch, the streaming volume with the render
+/// driver's record of what is applied to it, and the passes drawn over its frames. A GPU
+/// failure drops it whole (gpu_recovery.rs).
+struct OnDevice {
+    ctx: GpuContext,
+    watch: DeviceWatch,
+    gpu_budget_bytes: u64,
+    gpu_timestamps: bool,
+    volume: StreamingVolume,
+    driver: RenderDriver,
+    /// The last live frame was final for its cut (the loader converged, or the rest governor
+    /// settled it) with the mode's own pipeline.
+    converged: bool,
+    frame_ms_history: Vec<(Instant, f64)>,
+    failures: Vec<String>,
+    adaptive: AdaptiveView,
+    /// The raycaster's final frame of the last drawn request, held back (published as not
+    /// final) while the adaptive pass prepares to draw over the same cut.
+    awaiting_adaptive: Option<AwaitingAdaptive>,
+    /// Progressive refinement of the last drawn request once it is final, and the running
+    /// mean on this device (its pipeline is built on first use).
+    progressive: Option<ProgressiveRun>,
+    accumulator: Option<Accumulator>,
+    rest: RestGovernor,
+    /// The next live frame follows an export's frame: its cut is the export's, so its time
+    /// says nothing about the live view's cost and the controller does not learn from it
+    /// (a movie's frames dragged the live view to 0.12 samples/voxel, issue 36).
+    after_shot: bool,
+}
+
+/// What became of a queued export frame.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum ExportTurn {
+    /// Written (or failed, which the job says): the live view is drawn in the same turn.
+    Written,
+    /// Its job was cancelled: the turn ends.
+    Cancelled,
+}
+
+/// A live frame as the raycaster drew it, before it is published.
+struct LiveFrame {
+    frame: FrameReadback,
+    stats: FrameStats,
+    settings: RenderSettings,
+    quality: Option<FrameQuality>,
 }
 
 /// Whether the volume's last frame was drawn by a jittered pipeline (not a background
@@ -1325,10 +1430,6 @@ impl RestGovernor {
         let doubled = Duration::from_millis(30) * (1u32 << (self.unchanged_frames - 1).min(4));
         Pace::After(doubled.min(Self::MAX_PAUSE))
     }
-}
-
-fn new_request_is_same(last: &Option<RenderRequest>, request: &RenderRequest) -> bool {
-    last.as_ref() == Some(request)
 }
 
 /// The lighting of a frame drawn while the user drags (issue 37): the controller holds the

@@ -12,9 +12,11 @@ use std::sync::atomic::{AtomicU8, Ordering};
 use std::sync::{Arc, Mutex};
 
 use eframe::egui_wgpu;
-use strata_loader::{FrameStats, LoaderWork, SelectionTiming, StreamingConfig, StreamingVolume};
+use strata_loader::{
+    FrameStats, LoaderError, LoaderWork, SelectionTiming, StreamingConfig, StreamingVolume,
+};
 use strata_render::{
-    BrickedVolume, CacheConfig, GpuContext, OffscreenRenderer, RenderMode, TransferFunction,
+    BrickedVolume, CacheConfig, Camera, GpuContext, OffscreenRenderer, RenderMode, TransferFunction,
 };
 use wasm_bindgen::prelude::*;
 use wasm_bindgen::JsCast;
@@ -30,6 +32,7 @@ use crate::volume_menu;
 use strata_source::wire::StoreList;
 use strata_source::VolumeSource;
 use strata_viewer_ui::presets;
+use strata_viewer_ui::render_driver::{RenderChange, RenderDriver, RenderRequest};
 
 /// The largest image edge drawn when the canvas decides (device pixels): a 4K canvas is drawn
 /// at this size and scaled, so one frame stays bounded on a software adapter.
@@ -133,6 +136,9 @@ struct Capture {
 /// A served store streamed by the loader, inline on the page's thread.
 struct Streamed {
     volume: StreamingVolume,
+    /// What is applied to `volume` and which request its last frame answered (the render
+    /// driver both viewers share, strata_viewer_ui::render_driver).
+    driver: RenderDriver,
     /// The last frame's loader statistics (converged, bricks read, status).
     last: Option<FrameStats>,
     /// The three slice views beside the 3D view (slice_views.rs).
@@ -157,8 +163,9 @@ struct WebViewer {
     /// The sample's three slice views (slice_views.rs), made with it.
     sample_slices: Option<SliceViews>,
     renderer: Option<OffscreenRenderer>,
-    /// The transfer function the renderer draws with (`SidePanel::tf_key`).
-    renderer_preset: String,
+    /// The sample renderer's applied transfer function and last drawn request (the render
+    /// driver's typed difference, as the streamed volume's).
+    sample_driver: Option<RenderDriver>,
     /// The transfer-function editor and the Performance panel (side_panel.rs).
     side: SidePanel,
     texture: Option<egui::TextureId>,
@@ -251,7 +258,7 @@ impl WebViewer {
             volume: None,
             sample_slices: None,
             renderer: None,
-            renderer_preset: String::new(),
+            sample_driver: None,
             side,
             texture: None,
             drawn: None,
@@ -295,46 +302,18 @@ impl WebViewer {
                 budget_bytes: 256 << 20,
                 ..CacheConfig::default()
             };
-            let renderer = OffscreenRenderer::new(
-                &self.gpu,
-                volume,
-                &self.side.transfer_function(&self.view),
-                0,
-                config,
-            )
-            .map_err(|e| e.to_string())?;
+            let transfer_function = self.side.transfer_function(&self.view);
+            let renderer = OffscreenRenderer::new(&self.gpu, volume, &transfer_function, 0, config)
+                .map_err(|e| e.to_string())?;
             self.renderer = Some(renderer);
-            self.renderer_preset = self.side.tf_key(&self.view);
-        }
-        let tf_key = self.side.tf_key(&self.view);
-        if self.renderer_preset != tf_key {
-            if let Some(renderer) = self.renderer.as_mut() {
-                renderer
-                    .set_transfer_function(
-                        &self.gpu,
-                        volume,
-                        &self.side.transfer_function(&self.view),
-                    )
-                    .map_err(|e| e.to_string())?;
-            }
-            self.renderer_preset = tf_key;
-            self.drawn = None;
+            self.sample_driver = Some(RenderDriver::new(transfer_function, None));
         }
         Ok(true)
     }
 
     /// Opens the fragment's store (asynchronously) and starts the loader on it once open.
     fn ensure_stream(&mut self, ctx: &egui::Context, name: &str) -> Result<bool, String> {
-        if let Some(streamed) = self.streamed.as_mut() {
-            let tf_key = self.side.tf_key(&self.view);
-            if self.renderer_preset != tf_key {
-                streamed
-                    .volume
-                    .set_transfer_function(&self.gpu, &self.side.transfer_function(&self.view))
-                    .map_err(|e| e.to_string())?;
-                self.renderer_preset = tf_key;
-                self.drawn = None;
-            }
+        if self.streamed.is_some() {
             return Ok(true);
         }
         let Some(opening) = self.opening.clone() else {
@@ -381,40 +360,52 @@ impl WebViewer {
             work: LoaderWork::Inline,
             ..StreamingConfig::default()
         };
-        let volume = StreamingVolume::new(
-            &self.gpu,
-            store,
-            &self.side.transfer_function(&self.view),
-            config,
-        )
-        .map_err(|e| e.to_string())?;
+        let transfer_function = self.side.transfer_function(&self.view);
+        let volume = StreamingVolume::new(&self.gpu, store, &transfer_function, config)
+            .map_err(|e| e.to_string())?;
         self.streamed = Some(Streamed {
             volume,
+            // The page streams with the loader's choice of traversal.
+            driver: RenderDriver::new(transfer_function, None),
             last: None,
             slices,
         });
-        self.renderer_preset = self.side.tf_key(&self.view);
         Ok(true)
     }
 
     /// A loader frame while the view changed or the cut has not converged; then idle.
     fn draw_streamed(&mut self, ctx: &egui::Context, size: [u32; 2]) -> Result<(), String> {
         let wanted = (self.view.of_3d_view(), size);
+        let Some(geometry) = self.streamed.as_ref().map(|s| s.volume.geometry().clone()) else {
+            return Ok(());
+        };
+        let request = self.render_request(self.view.camera(&geometry), size);
         let Some(streamed) = self.streamed.as_mut() else {
             return Ok(());
         };
+        // The driver uploads what changed (the transfer function); the page keeps the loader's
+        // traversal, so the volume is never opened again here.
+        streamed
+            .driver
+            .apply(&self.gpu, &mut streamed.volume, &request, |_, _| {
+                Err(LoaderError::Unsupported(
+                    "the page streams with the loader's traversal".into(),
+                ))
+            })
+            .map_err(|e| e.to_string())?;
         let converged = streamed.last.as_ref().is_some_and(|s| s.converged);
         let now = self.page_started.elapsed().as_secs_f64();
-        let target_fps = self.side.target_fps();
+        let target_fps = request.target_fps;
         if self.drawn.as_ref() == Some(&wanted)
+            && !streamed.driver.is_new(&request)
             && converged
             && !self.motion.full_quality_due(now, target_fps)
         {
             self.motion.skipped();
             return Ok(());
         }
-        let camera = self.view.camera(streamed.volume.geometry());
-        let mut settings = self.view.settings(size[0], size[1]);
+        let camera = request.camera;
+        let mut settings = request.settings.clone();
         let (quality, lod_factor) = self.motion.plan(now, target_fps, &mut settings);
         streamed.volume.set_max_voxel_pixels(lod_factor);
         let stats = streamed
@@ -437,23 +428,63 @@ impl WebViewer {
             .output_view()
             .ok_or("the raycaster drew no image")?;
         show_texture(&self.render_state, &self.gpu, view, &mut self.texture);
+        streamed.driver.drawn(&request);
         self.drawn = Some(wanted);
         Ok(())
     }
 
+    /// What the page asks of the 3D view now, as the desktop's render thread is asked: the
+    /// view's camera and settings, the side panel's function and target rate.
+    fn render_request(&mut self, camera: Camera, size: [u32; 2]) -> RenderRequest {
+        RenderRequest {
+            camera,
+            settings: self.view.settings(size[0], size[1]),
+            transfer_function: self.side.transfer_function(&self.view),
+            target_fps: self.side.target_fps(),
+            // The page's own controller (view_motion.rs) paces the drag.
+            interacting: false,
+            overlay: None,
+            traversal: None,
+            adaptive_epsilon: None,
+            progressive_frames: 0,
+        }
+    }
+
     fn draw_if_changed(&mut self, size: [u32; 2]) -> Result<(), String> {
         let wanted = (self.view.of_3d_view(), size);
+        let Some(geometry) = self.volume.as_ref().map(|v| v.geometry.clone()) else {
+            return Ok(());
+        };
+        let request = self.render_request(self.view.camera(&geometry), size);
+        let (Some(volume), Some(renderer), Some(driver)) = (
+            self.volume.as_ref(),
+            self.renderer.as_mut(),
+            self.sample_driver.as_mut(),
+        ) else {
+            return Ok(());
+        };
+        // The sample is an OffscreenRenderer, not a streaming volume: of the driver's changes
+        // only the transfer function has an upload here.
+        if driver
+            .changes(&request)
+            .contains(&RenderChange::TransferFunction)
+        {
+            renderer
+                .set_transfer_function(&self.gpu, volume, &request.transfer_function)
+                .map_err(|e| e.to_string())?;
+            driver.transfer_function_applied(&request.transfer_function);
+        }
         let now = self.page_started.elapsed().as_secs_f64();
-        let target_fps = self.side.target_fps();
-        if self.drawn.as_ref() == Some(&wanted) && !self.motion.full_quality_due(now, target_fps) {
+        let target_fps = request.target_fps;
+        if self.drawn.as_ref() == Some(&wanted)
+            && !driver.is_new(&request)
+            && !self.motion.full_quality_due(now, target_fps)
+        {
             self.motion.skipped();
             return Ok(());
         }
-        let (Some(volume), Some(renderer)) = (self.volume.as_ref(), self.renderer.as_mut()) else {
-            return Ok(());
-        };
-        let camera = self.view.camera(&volume.geometry);
-        let mut settings = self.view.settings(size[0], size[1]);
+        let camera = request.camera;
+        let mut settings = request.settings.clone();
         // The sample is drawn whole: no level of detail to coarsen, the step only.
         let (quality, _) = self.motion.plan(now, target_fps, &mut settings);
         renderer
@@ -471,6 +502,7 @@ impl WebViewer {
             .output_view()
             .ok_or("the raycaster drew no image")?;
         show_texture(&self.render_state, &self.gpu, view, &mut self.texture);
+        driver.drawn(&request);
         self.drawn = Some(wanted);
         Ok(())
     }
@@ -950,8 +982,8 @@ impl eframe::App for WebViewer {
                     frames_submitted: self.frames_submitted,
                 };
                 self.side.ui(ui, &self.view, figures);
-                // The address carries an edited function (`tf=`); the renderer follows the
-                // panel's tf_key, so this adds no redraw of its own.
+                // The address carries an edited function (`tf=`); the render driver uploads the
+                // panel's function when it differs, so this adds no redraw of its own.
                 let edited = self.side.edited_function();
                 let differs = match (self.view.tf.as_ref(), edited) {
                     (Some(a), Some(b)) => a.opacity != b.opacity || a.color != b.color,

@@ -3,8 +3,8 @@
 //! cannot do (import, local stores, saving a function to a file) is not offered here.
 //!
 //! The panel owns the function the view draws with: the view's preset until the editor changes
-//! it; choosing another preset starts again from that preset. [`SidePanel::tf_key`] names the
-//! function (preset and edit count), so the page uploads it to the renderer only when it changed.
+//! it; choosing another preset starts again from that preset. The page's render driver
+//! (strata_viewer_ui::render_driver) uploads it to the renderer only when it changed.
 //! The address (view_state.rs) keeps the preset and, once edited, the function itself (`tf=`,
 //! [`SidePanel::edited_function`]); a link with `tf=` opens with that function, as edited.
 
@@ -138,12 +138,6 @@ impl SidePanel {
         let preset = self.preset_function(&self.preset);
         let tf = &self.transfer_function;
         (self.edits > 0 && (tf.opacity != preset.opacity || tf.color != preset.color)).then_some(tf)
-    }
-
-    /// Names the function the view draws with: it changes when the function does.
-    pub fn tf_key(&mut self, view: &ViewState) -> String {
-        self.follow_preset(view);
-        format!("{}#{}", self.preset, self.edits)
     }
 
     /// The editor's histogram: a served store's own (from its open document).
