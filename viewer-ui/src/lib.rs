@@ -12,6 +12,8 @@
 //! - [`slice_canvas`]: what a slice view draws around its image (zoom and pan, screen ↔ image
 //!   mapping, crosshair, orientation labels, the flipped image mesh, the colour-map choice).
 //! - [`widgets`]: small widgets the panels need (the slow spinner).
+//! - [`window_presets`]: the slice window/level presets (CT's windows, the scan's own, Auto)
+//!   and the window a scan opens with.
 //! - [`view_state`], [`compact_tf`]: the shareable link's format (`#store=…&az=…`, an edited
 //!   transfer function as `tf=`), which both viewers read and write (issue 39; here since issue
 //!   47, so that the desktop needs nothing of the browser crate).
@@ -24,3 +26,4 @@ pub mod target_fps;
 pub mod tf_editor;
 pub mod view_state;
 pub mod widgets;
+pub mod window_presets;

@@ -618,11 +618,8 @@ impl StrataApp {
             self.preferences.preset = strata_viewer_ui::presets::initial_preset(&scan).into();
         }
         let transfer_function = preset_for(&self.preferences.preset, &info);
-        let window = super::scene::initial_window(
-            header
-                .windows
-                .first()
-                .map(|w| Window::new(w.center, w.width.max(1e-6))),
+        let window = strata_viewer_ui::window_presets::initial_window(
+            strata_viewer_ui::window_presets::header_window(&header.windows),
             is_ct,
             store.histogram(),
         );
