@@ -11,6 +11,7 @@
 //!   controller (strata_render::time_critical) is driven by.
 //! - [`slice_canvas`]: what a slice view draws around its image (zoom and pan, screen ↔ image
 //!   mapping, crosshair, orientation labels, the flipped image mesh, the colour-map choice).
+//! - [`layouts`]: where the views go in the 2×2 and the 3D-over-slices layouts.
 //! - [`widgets`]: small widgets the panels need (the slow spinner).
 //! - [`window_presets`]: the slice window/level presets (CT's windows, the scan's own, Auto)
 //!   and the window a scan opens with.
@@ -19,6 +20,7 @@
 //!   47, so that the desktop needs nothing of the browser crate).
 
 pub mod compact_tf;
+pub mod layouts;
 pub mod performance;
 pub mod presets;
 pub mod slice_canvas;

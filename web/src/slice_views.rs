@@ -38,11 +38,13 @@ use strata_source::{BrickFetcher, FetchOptions, VolumeSource};
 use strata_storage::histogram::Histogram;
 use strata_storage::source::WindowPreset as ScanWindow;
 use strata_storage::{BrickId, OctreeLayout};
+use strata_viewer_ui::layouts;
 use strata_viewer_ui::presets::looks_like_ct;
 use strata_viewer_ui::slice_canvas::{
     colour_map_combo, fraction_at, inner_rect, paint_crosshair, paint_orientation_labels,
     paint_readout_line, screen_at, slice_mesh, ZoomPan,
 };
+use strata_viewer_ui::view_state::Layout;
 use strata_viewer_ui::window_presets::{header_window, initial_window, preset_buttons};
 
 /// Decoded bricks the page keeps for its slices (bytes): a brick row of every view at the
@@ -121,21 +123,22 @@ pub fn slice_colour(view: SliceView) -> Color32 {
     }
 }
 
-/// The desktop's four-up layout: axial | 3D over sagittal | coronal. Returns the 3D view's
-/// rectangle and the slice views' (axial, coronal, sagittal).
-pub fn two_by_two(area: Rect) -> (Rect, [Rect; 3]) {
-    let gap = 2.0;
-    let (w, h) = ((area.width() - gap) / 2.0, (area.height() - gap) / 2.0);
-    let cell = |c: f32, r: f32| {
-        Rect::from_min_size(
-            Pos2::new(area.left() + c * (w + gap), area.top() + r * (h + gap)),
-            Vec2::new(w, h),
-        )
-    };
-    (
-        cell(1.0, 0.0),
-        [cell(0.0, 0.0), cell(1.0, 1.0), cell(0.0, 1.0)],
-    )
+/// The 3D view's rectangle and the slice views' (axial, coronal, sagittal) in a layout that
+/// shows slices, placed as the desktop places them (strata-viewer-ui's layouts): the 2×2
+/// (axial | 3D over sagittal | coronal), or the 3D view over axial, coronal, sagittal.
+/// `None` for the 3D view alone.
+pub fn slice_layout(layout: Layout, area: Rect) -> Option<(Rect, [Rect; 3])> {
+    match layout {
+        Layout::Single => None,
+        Layout::FourUp => {
+            let [axial, three_d, sagittal, coronal] = layouts::two_by_two_cells(area);
+            Some((three_d, [axial, coronal, sagittal]))
+        }
+        Layout::ThreeDOverSlices => {
+            let (three_d, row) = layouts::three_d_over_row(area, SliceView::ALL.len());
+            Some((three_d, [row[0], row[1], row[2]]))
+        }
+    }
 }
 
 /// Wheel movement this frame in lines (up positive), whatever unit the browser reports.

@@ -532,14 +532,7 @@ fn the_page_slices_a_served_store_as_the_desktops_assembler_does() {
     // desktop's blocking reads, the page's request (the start crosshair, the level whose grid
     // the posted image has).
     use strata_source::VolumeSource;
-    let store = strata_service::client::RemoteSource::open(
-        &server.store_url("ct"),
-        strata_service::client::RemoteOptions {
-            token: Some(TOKEN.into()),
-            ..Default::default()
-        },
-    )
-    .expect("the desktop's client opens the store");
+    let store = desktop_client(&server, "ct");
     let header = store.header();
     let preset = header
         .windows
@@ -562,6 +555,28 @@ fn the_page_slices_a_served_store_as_the_desktops_assembler_does() {
 /// volume's centre, CT's abdomen window 40/400 HU for a volume in HU, grey).
 #[test]
 fn the_page_slices_its_built_in_sample_as_the_desktops_assembler_does() {
+    assert_sample_slices_as_the_desktops(
+        "sample slice views",
+        "#mode=mip&preset=ct-soft-tissue&volume=40&size=64x64&capture=1",
+    );
+}
+
+/// The 3D view over its slices (`layout=conventional`, the desktop's "3D + 1×3", placed by
+/// strata-viewer-ui's layouts as the desktop places them): the page shows its slice views in
+/// that layout too, and its axial view (a third of the width, under the 3D view) equals the
+/// desktop's assembler and window/level byte for byte. A page without the layout refuses the
+/// link or shows no slices, and posts no slice image.
+#[test]
+fn the_page_shows_the_3d_view_over_its_slices_as_the_desktop_does() {
+    assert_sample_slices_as_the_desktops(
+        "3D over slices",
+        "#mode=mip&preset=ct-soft-tissue&volume=40&size=64x64&capture=1&layout=conventional",
+    );
+}
+
+/// Opens the page's built-in sample at `fragment` and checks its posted axial slice against
+/// the desktop's assembler on the same sample made natively.
+fn assert_sample_slices_as_the_desktops(what: &str, fragment: &str) {
     use strata_render::BrickSource;
     use strata_slices::Window;
     use strata_storage::OctreeLayout;
@@ -572,7 +587,6 @@ fn the_page_slices_its_built_in_sample_as_the_desktops_assembler_does() {
         .write_store(&store, &ImportOptions::default())
         .expect("writing a tiny store");
     let (server, frames) = serve_capturing(&store);
-    let fragment = "#mode=mip&preset=ct-soft-tissue&volume=40&size=64x64&capture=1";
     let (slice, console) = capture_slice(&server, fragment, scratch.path(), &frames);
 
     let view = Fragment::parse(fragment).expect("fragment").view;
@@ -590,7 +604,7 @@ fn the_page_slices_its_built_in_sample_as_the_desktops_assembler_does() {
                 .to_vec()
         },
     );
-    assert_same_slice("sample slice views", level, &slice, &desktop, &console);
+    assert_same_slice(what, level, &slice, &desktop, &console);
 }
 
 /// A scan that names no window and is not a CT (an MR's non-negative values, no unit, no
@@ -617,14 +631,7 @@ fn the_page_opens_a_scan_at_the_window_the_desktop_opens_it_with() {
     let fragment = "#store=mr&mode=mip&preset=mr-default&size=64x64&capture=1";
     let (slice, console) = capture_slice(&server, fragment, scratch.path(), &frames);
 
-    let store = strata_service::client::RemoteSource::open(
-        &server.store_url("mr"),
-        strata_service::client::RemoteOptions {
-            token: Some(TOKEN.into()),
-            ..Default::default()
-        },
-    )
-    .expect("the desktop's client opens the store");
+    let store = desktop_client(&server, "mr");
     let header = store.header();
     let mapping = header.value_mapping.mapping;
     let (a, b) = (
@@ -777,6 +784,22 @@ fn capture_slice(
     let slice = wait("slice image");
     let console = browser.console();
     (slice, console)
+}
+
+/// The desktop's client on the store `name` the server serves (with the test token): the
+/// desktop's blocking reads of the same bricks the page fetched.
+fn desktop_client(
+    server: &strata_service::server::RunningServer,
+    name: &str,
+) -> strata_service::client::RemoteSource {
+    strata_service::client::RemoteSource::open(
+        &server.store_url(name),
+        strata_service::client::RemoteOptions {
+            token: Some(TOKEN.into()),
+            ..Default::default()
+        },
+    )
+    .expect("the desktop's client opens the store")
 }
 
 /// The octree level whose grid the posted slice image has.
