@@ -13,12 +13,16 @@
 //!   mapping, crosshair, orientation labels, the flipped image mesh, the colour-map choice).
 //! - [`render_driver`]: the render driver both viewers call: what is applied to the streaming
 //!   volume now, and a new render request as a typed difference of actions (issue 47).
+//! - [`layouts`]: where the views go in the 2×2 and the 3D-over-slices layouts.
 //! - [`widgets`]: small widgets the panels need (the slow spinner).
+//! - [`window_presets`]: the slice window/level presets (CT's windows, the scan's own, Auto)
+//!   and the window a scan opens with.
 //! - [`view_state`], [`compact_tf`]: the shareable link's format (`#store=…&az=…`, an edited
 //!   transfer function as `tf=`), which both viewers read and write (issue 39; here since issue
 //!   47, so that the desktop needs nothing of the browser crate).
 
 pub mod compact_tf;
+pub mod layouts;
 pub mod performance;
 pub mod presets;
 pub mod render_driver;
@@ -27,3 +31,4 @@ pub mod target_fps;
 pub mod tf_editor;
 pub mod view_state;
 pub mod widgets;
+pub mod window_presets;

@@ -49,6 +49,9 @@ pub enum Layout {
     /// The 2×2: the 3D view and the axial, coronal and sagittal slices, of a served store or
     /// of the built-in sample alike.
     FourUp,
+    /// The 3D view over a row of the three slices (Slicer's "conventional", `strata view
+    /// --layout conventional`): `layout=conventional`.
+    ThreeDOverSlices,
 }
 
 /// What the view shows and from where.
@@ -280,7 +283,8 @@ impl Fragment {
                     view.layout = match value {
                         "single" => Layout::Single,
                         "four-up" => Layout::FourUp,
-                        _ => return Err(bad(key, value, "single or four-up")),
+                        "conventional" => Layout::ThreeDOverSlices,
+                        _ => return Err(bad(key, value, "single, four-up or conventional")),
                     }
                 }
                 "proj" => {
@@ -395,8 +399,10 @@ impl ViewState {
         if self.orthographic {
             parts.push("proj=ortho".into());
         }
-        if self.layout == Layout::Single {
-            parts.push("layout=single".into());
+        match self.layout {
+            Layout::Single => parts.push("layout=single".into()),
+            Layout::ThreeDOverSlices => parts.push("layout=conventional".into()),
+            Layout::FourUp => {}
         }
         if let Some([x, y, z]) = self.cursor {
             parts.push(format!("cursor={},{},{}", round3(x), round3(y), round3(z)));
@@ -545,6 +551,19 @@ mod tests {
         let written = served.to_fragment();
         assert!(written.starts_with("#store=head-ct.v2&"), "{written}");
         assert_eq!(Fragment::parse(&written).expect("parses").view, served);
+        // Every layout survives too (the default, four-up, is left out of the link).
+        for layout in [Layout::Single, Layout::FourUp, Layout::ThreeDOverSlices] {
+            let laid_out = ViewState {
+                layout,
+                ..served.clone()
+            };
+            let written = laid_out.to_fragment();
+            assert_eq!(
+                Fragment::parse(&written).expect("parses").view.layout,
+                layout,
+                "{written}"
+            );
+        }
     }
 
     #[test]

@@ -7,7 +7,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use egui::{Color32, Key, Pos2, Rect, RichText, Sense, Vec2};
+use egui::{Color32, Key, Rect, RichText, Sense, Vec2};
 use strata_render::{CropBox, RenderMode, TransferFunction};
 
 use super::dialogs::{HelpWindow, OpenDialog};
@@ -29,6 +29,7 @@ use super::slices::SliceReader;
 use super::view3d::{OrbitCamera, StandardView, View3d};
 use super::volume_session::{ScreenshotRequest, VolumeSession, DEFAULT_GPU_BUDGET_BYTES};
 use super::widgets::{elide_middle, NOT_FOR_DIAGNOSIS, WARNING_COLOUR};
+use strata_viewer_ui::layouts;
 use strata_viewer_ui::tf_editor::TfEditorState;
 
 /// How the viewer was started (command line, tests).
@@ -618,11 +619,8 @@ impl StrataApp {
             self.preferences.preset = strata_viewer_ui::presets::initial_preset(&scan).into();
         }
         let transfer_function = preset_for(&self.preferences.preset, &info);
-        let window = super::scene::initial_window(
-            header
-                .windows
-                .first()
-                .map(|w| Window::new(w.center, w.width.max(1e-6))),
+        let window = strata_viewer_ui::window_presets::initial_window(
+            strata_viewer_ui::window_presets::header_window(&header.windows),
             is_ct,
             store.histogram(),
         );
@@ -1522,53 +1520,35 @@ impl StrataApp {
 
     fn views(&mut self, ui: &mut egui::Ui) {
         let area = ui.available_rect_before_wrap();
-        let gap = 2.0;
         let focused = self.preferences.focused;
         let show_oblique = self.preferences.show_oblique;
         let slots: Vec<(ViewSlot, Rect)> = match self.preferences.layout {
             Layout::Single => vec![(focused, area)],
             Layout::ThreeDOverSlices => {
-                let split = area.top() + area.height() * 0.62;
-                let top = Rect::from_min_max(area.min, Pos2::new(area.right(), split - gap));
                 let mut row: Vec<ViewSlot> = SliceView::ALL.map(ViewSlot::Slice).to_vec();
                 if show_oblique {
                     row.push(ViewSlot::Oblique);
                 }
-                let columns = row.len() as f32;
-                let w = (area.width() - (columns - 1.0) * gap) / columns;
+                let (top, cells) = layouts::three_d_over_row(area, row.len());
                 let mut slots = vec![(ViewSlot::ThreeD, top)];
-                for (i, slot) in row.into_iter().enumerate() {
-                    let left = area.left() + i as f32 * (w + gap);
-                    slots.push((
-                        slot,
-                        Rect::from_min_max(
-                            Pos2::new(left, split),
-                            Pos2::new(left + w, area.bottom()),
-                        ),
-                    ));
-                }
+                slots.extend(row.into_iter().zip(cells));
                 slots
             }
             Layout::TwoByTwo => {
-                let (w, h) = ((area.width() - gap) / 2.0, (area.height() - gap) / 2.0);
-                let cell = |c: f32, r: f32| {
-                    Rect::from_min_size(
-                        Pos2::new(area.left() + c * (w + gap), area.top() + r * (h + gap)),
-                        Vec2::new(w, h),
-                    )
-                };
+                let [top_left, top_right, bottom_left, bottom_right] =
+                    layouts::two_by_two_cells(area);
                 vec![
-                    (ViewSlot::Slice(SliceView::Axial), cell(0.0, 0.0)),
-                    (ViewSlot::ThreeD, cell(1.0, 0.0)),
+                    (ViewSlot::Slice(SliceView::Axial), top_left),
+                    (ViewSlot::ThreeD, top_right),
                     (
                         if show_oblique {
                             ViewSlot::Oblique
                         } else {
                             ViewSlot::Slice(SliceView::Sagittal)
                         },
-                        cell(0.0, 1.0),
+                        bottom_left,
                     ),
-                    (ViewSlot::Slice(SliceView::Coronal), cell(1.0, 1.0)),
+                    (ViewSlot::Slice(SliceView::Coronal), bottom_right),
                 ]
             }
         };

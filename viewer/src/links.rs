@@ -133,7 +133,8 @@ pub fn link_for(store_url: &str, view: &DesktopView) -> Option<String> {
         iso_value: view.iso_value,
         layout: match view.layout {
             Layout::Single => LinkLayout::Single,
-            Layout::ThreeDOverSlices | Layout::TwoByTwo => LinkLayout::FourUp,
+            Layout::ThreeDOverSlices => LinkLayout::ThreeDOverSlices,
+            Layout::TwoByTwo => LinkLayout::FourUp,
         },
         cursor: view.cursor,
         window: view.window,
@@ -160,6 +161,7 @@ pub fn desktop_view(view: &ViewState) -> DesktopView {
         layout: match view.layout {
             LinkLayout::Single => Layout::Single,
             LinkLayout::FourUp => Layout::TwoByTwo,
+            LinkLayout::ThreeDOverSlices => Layout::ThreeDOverSlices,
         },
         cursor: view.cursor,
         window: view.window,

@@ -25,9 +25,9 @@ use crate::embed_bridge::{embed_origin, EmbedBridge};
 use crate::page_timing::{PageTiming, BENCH_DEG_PER_FRAME};
 use crate::served_store::{list_stores, ServedStore, DECODES_PER_FRAME, MAX_ON_THE_WIRE};
 use crate::side_panel::{SidePanel, VolumeFigures};
-use crate::slice_views::{two_by_two, SliceViews};
+use crate::slice_views::{slice_layout, SliceViews};
 use crate::view_motion::{ViewMotion, MOTION_HOLD_S};
-use crate::view_state::{Fragment, ViewState};
+use crate::view_state::{Fragment, Layout, ViewState};
 use crate::volume_menu;
 use strata_source::wire::StoreList;
 use strata_source::VolumeSource;
@@ -541,6 +541,24 @@ impl WebViewer {
             ui.separator();
             self.volume_choice(ui);
             ui.separator();
+            // The desktop's layouts and their labels.
+            for (layout, label, hover) in [
+                (Layout::Single, "1×1", "The 3D view alone"),
+                (
+                    Layout::ThreeDOverSlices,
+                    "3D + 1×3",
+                    "3D over axial, coronal, sagittal",
+                ),
+                (
+                    Layout::FourUp,
+                    "2×2",
+                    "Four-up: axial, 3D / sagittal, coronal",
+                ),
+            ] {
+                ui.selectable_value(&mut self.view.layout, layout, label)
+                    .on_hover_text(hover);
+            }
+            ui.separator();
             for (mode, label) in [
                 (RenderMode::Dvr, "DVR"),
                 (RenderMode::Mip, "MIP"),
@@ -772,12 +790,12 @@ impl WebViewer {
             CAPTURE_SENT => {
                 // Then, once, the axial slice view's image (slice_views.rs), where it is shown
                 // (a served store's or the sample's).
-                let four_up = self.view.layout == crate::view_state::Layout::FourUp;
+                let slices_shown = self.view.layout != Layout::Single;
                 let slices = match self.streamed.as_mut() {
                     Some(streamed) => Some(&mut streamed.slices),
                     None => self.sample_slices.as_mut(),
                 };
-                if let Some(slices) = slices.filter(|_| four_up) {
+                if let Some(slices) = slices.filter(|_| slices_shown) {
                     if let Some((rgba, w, h)) = slices.take_capture() {
                         let token = self.token.clone();
                         wasm_bindgen_futures::spawn_local(async move {
@@ -1023,16 +1041,13 @@ impl eframe::App for WebViewer {
                         return;
                     }
                 }
-                // The desktop's 2×2 of the 3D view and three slice views (a store's or the
-                // sample's).
+                // The desktop's layouts of the 3D view and three slice views (a store's or
+                // the sample's): the 2×2, or the 3D view over the slices.
                 let area = ui.available_rect_before_wrap();
-                let four_up = self.view.layout == crate::view_state::Layout::FourUp;
                 let has_slices = self.streamed.is_some() || self.sample_slices.is_some();
-                let (rect, slice_rects) = if has_slices && four_up {
-                    let (rect, slices) = two_by_two(area);
-                    (rect, Some(slices))
-                } else {
-                    (area, None)
+                let (rect, slice_rects) = match slice_layout(self.view.layout, area) {
+                    Some((rect, slices)) if has_slices => (rect, Some(slices)),
+                    _ => (area, None),
                 };
                 let response = ui.allocate_rect(rect, egui::Sense::drag());
                 if response.dragged() {

@@ -12,7 +12,7 @@ use std::collections::VecDeque;
 
 use strata_loader::FrameStats;
 use strata_render::phantom::ct_phantom_hu;
-use strata_render::{FrameTiming, TransferFunction};
+use strata_render::{FrameTiming, TransferFunction, VolumeGeometry};
 use strata_storage::histogram::{Histogram, StoredValueCounts};
 use strata_viewer_ui::performance::{self, FrameClock, PerformanceFigures};
 use strata_viewer_ui::presets::{self, ScanValues};
@@ -148,7 +148,7 @@ impl SidePanel {
 
     /// The editor's histogram for the sample volume made in the page.
     pub fn set_sample_histogram(&mut self, view: &ViewState) {
-        let histogram = sample_histogram(view);
+        let histogram = sample_histogram(&view.geometry());
         // The sample is the CT phantom, in HU.
         self.set_scan(ScanValues {
             modality: "CT".into(),
@@ -262,8 +262,7 @@ impl SidePanel {
 
 /// The sample volume's histogram: the CT phantom's formula (render::phantom) sampled on a
 /// coarser grid over the same box, in the sample's stored values (HU + 1024).
-pub fn sample_histogram(view: &ViewState) -> Histogram {
-    let geometry = view.geometry();
+pub fn sample_histogram(geometry: &VolumeGeometry) -> Histogram {
     let centre = geometry.centre_patient();
     let extent = [0, 1, 2].map(|a| geometry.dims[a] as f64 * geometry.spacing_mm[a]);
     let radius = 0.5 * extent.iter().cloned().fold(f64::INFINITY, f64::min);
@@ -275,8 +274,10 @@ pub fn sample_histogram(view: &ViewState) -> Histogram {
         for y in 0..n {
             row.clear();
             for x in 0..n {
-                let index =
-                    [x, y, z].map(|i| (i as f64 + 0.5) / n as f64 * view.volume_edge as f64);
+                let at = [x, y, z];
+                let index: [f64; 3] = std::array::from_fn(|axis| {
+                    (at[axis] as f64 + 0.5) / n as f64 * geometry.dims[axis] as f64
+                });
                 let hu = ct_phantom_hu(geometry.patient_from_index(index), centre, radius, edge_mm);
                 row.push((hu + 1024.0).round().clamp(0.0, 4095.0) as u16);
             }

@@ -17,7 +17,9 @@
 //! touchpads) windows: sideways widens, up raises the level; Ctrl+wheel (or a pinch) zooms
 //! about the pointer, middle drag pans, a double-click resets zoom and pan (the desktop's
 //! gestures, from strata-viewer-ui's slice_canvas, as is the drawing around the image). The
-//! colour-map choice sits at the axial view's top right. The line under each view reads
+//! colour-map choice sits at the axial view's top right, the window/level presets (the
+//! desktop's, strata-viewer-ui's window_presets) beside it; a scan opens at the window the
+//! desktop opens it with (`initial_window`). The line under each view reads
 //! W/L, the slice's level when coarser than 0, and the stored value under the pointer in
 //! physical units.
 //!
@@ -33,11 +35,17 @@ use strata_slices::{
     SliceImage, SliceRequest, SliceView, VoxelLookup, Window,
 };
 use strata_source::{BrickFetcher, FetchOptions, VolumeSource};
+use strata_storage::histogram::Histogram;
+use strata_storage::source::WindowPreset as ScanWindow;
 use strata_storage::{BrickId, OctreeLayout};
+use strata_viewer_ui::layouts;
+use strata_viewer_ui::presets::looks_like_ct;
 use strata_viewer_ui::slice_canvas::{
     colour_map_combo, fraction_at, inner_rect, paint_crosshair, paint_orientation_labels,
     paint_readout_line, screen_at, slice_mesh, ZoomPan,
 };
+use strata_viewer_ui::view_state::Layout;
+use strata_viewer_ui::window_presets::{header_window, initial_window, preset_buttons};
 
 /// Decoded bricks the page keeps for its slices (bytes): a brick row of every view at the
 /// level the views need, and more for paging, well inside the page's memory.
@@ -55,6 +63,15 @@ enum Bricks {
     Served(Box<dyn BrickFetcher>),
     /// The page's sample, bricked in memory as the stores are (shared with the 3D view).
     Sample(Rc<BrickedVolume>),
+}
+
+/// What a scan tells the window presets (strata-viewer-ui's window_presets, the desktop's).
+struct ScanWindows {
+    modality: String,
+    /// The scan's own windows (DICOM's), first the one it opens with.
+    own: Vec<ScanWindow>,
+    /// Its histogram, for Auto (1st to 99th percentile) and MR's opening window.
+    histogram: Histogram,
 }
 
 /// A slice on screen: the image, its texture, and the window and map it was coloured with.
@@ -77,6 +94,10 @@ pub struct SliceViews {
     /// The linked crosshair, level-0 continuous index.
     pub cursor: [f64; 3],
     pub window: Window,
+    /// Whether the scan is a CT (CT's named windows are offered).
+    is_ct: bool,
+    /// What the window presets offer besides CT's: the scan's own windows, Auto's histogram.
+    windows: ScanWindows,
     pub colour_map: ColourMap,
     /// Each view's zoom and pan.
     zoom_pan: [ZoomPan; 3],
@@ -102,21 +123,22 @@ pub fn slice_colour(view: SliceView) -> Color32 {
     }
 }
 
-/// The desktop's four-up layout: axial | 3D over sagittal | coronal. Returns the 3D view's
-/// rectangle and the slice views' (axial, coronal, sagittal).
-pub fn two_by_two(area: Rect) -> (Rect, [Rect; 3]) {
-    let gap = 2.0;
-    let (w, h) = ((area.width() - gap) / 2.0, (area.height() - gap) / 2.0);
-    let cell = |c: f32, r: f32| {
-        Rect::from_min_size(
-            Pos2::new(area.left() + c * (w + gap), area.top() + r * (h + gap)),
-            Vec2::new(w, h),
-        )
-    };
-    (
-        cell(1.0, 0.0),
-        [cell(0.0, 0.0), cell(1.0, 1.0), cell(0.0, 1.0)],
-    )
+/// The 3D view's rectangle and the slice views' (axial, coronal, sagittal) in a layout that
+/// shows slices, placed as the desktop places them (strata-viewer-ui's layouts): the 2×2
+/// (axial | 3D over sagittal | coronal), or the 3D view over axial, coronal, sagittal.
+/// `None` for the 3D view alone.
+pub fn slice_layout(layout: Layout, area: Rect) -> Option<(Rect, [Rect; 3])> {
+    match layout {
+        Layout::Single => None,
+        Layout::FourUp => {
+            let [axial, three_d, sagittal, coronal] = layouts::two_by_two_cells(area);
+            Some((three_d, [axial, coronal, sagittal]))
+        }
+        Layout::ThreeDOverSlices => {
+            let (three_d, row) = layouts::three_d_over_row(area, SliceView::ALL.len());
+            Some((three_d, [row[0], row[1], row[2]]))
+        }
+    }
 }
 
 /// Wheel movement this frame in lines (up positive), whatever unit the browser reports.
@@ -154,13 +176,13 @@ impl SliceViews {
             Bricks::Served(fetcher),
             header.geometry.clone(),
             header.layout.clone(),
-            header.value_mapping.mapping,
+            (header.value_mapping.mapping, stored),
             header.value_mapping.unit.clone(),
-            stored,
-            header
-                .windows
-                .first()
-                .map(|w| Window::new(w.center, w.width)),
+            ScanWindows {
+                modality: header.modality.clone(),
+                own: header.windows.clone(),
+                histogram: store.histogram().clone(),
+            },
         ))
     }
 
@@ -169,14 +191,19 @@ impl SliceViews {
         let geometry = volume.geometry.clone();
         let layout = OctreeLayout::new(geometry.dims);
         let (mapping, stored) = (volume.mapping, volume.stored_range);
+        // The sample is the CT phantom: CT's windows, none of its own.
+        let windows = ScanWindows {
+            modality: "CT".into(),
+            own: Vec::new(),
+            histogram: crate::side_panel::sample_histogram(&geometry),
+        };
         SliceViews::with_bricks(
             Bricks::Sample(volume),
             geometry,
             layout,
-            mapping,
+            (mapping, stored),
             "HU".into(),
-            stored,
-            None,
+            windows,
         )
     }
 
@@ -184,20 +211,16 @@ impl SliceViews {
         bricks: Bricks,
         geometry: VolumeGeometry,
         layout: OctreeLayout,
-        mapping: ValueMapping,
+        (mapping, stored_range): (ValueMapping, (u16, u16)),
         unit: String,
-        stored_range: (u16, u16),
-        header_window: Option<Window>,
+        windows: ScanWindows,
     ) -> SliceViews {
         let a = mapping.physical(stored_range.0 as f64);
         let b = mapping.physical(stored_range.1 as f64);
         let physical_range = (a.min(b), a.max(b));
-        // The header's window (DICOM's), else CT's abdomen window for HU, else the full range.
-        let window = match header_window {
-            Some(w) => w,
-            None if unit.eq_ignore_ascii_case("HU") => Window::new(40.0, 400.0),
-            None => Window::new((a + b) / 2.0, (b - a).abs().max(1.0)),
-        };
+        // The window the desktop opens the same scan with (one rule, shared).
+        let is_ct = looks_like_ct(&windows.modality, &unit, physical_range);
+        let window = initial_window(header_window(&windows.own), is_ct, &windows.histogram);
         let frames = SliceView::ALL.map(|v| SliceFrame::for_view(v, &geometry));
         let cursor = geometry
             .dims
@@ -212,6 +235,8 @@ impl SliceViews {
             physical_range,
             cursor,
             window,
+            is_ct,
+            windows,
             colour_map: ColourMap::Grey,
             zoom_pan: [ZoomPan::default(); 3],
             cursor_before_click: None,
@@ -361,6 +386,25 @@ impl SliceViews {
         );
         ui.scope_builder(egui::UiBuilder::new().max_rect(picker), |ui| {
             colour_map_combo(ui, &mut self.colour_map)
+        });
+        // The window/level presets beside it: the desktop's Slices panel's buttons.
+        let presets = picker.translate(Vec2::new(-picker.width() - 4.0, 0.0));
+        ui.scope_builder(egui::UiBuilder::new().max_rect(presets), |ui| {
+            egui::ComboBox::from_id_salt("slice window presets")
+                .selected_text("W/L")
+                .width(presets.width())
+                .show_ui(ui, |ui| {
+                    ui.set_min_width(240.0);
+                    preset_buttons(
+                        ui,
+                        self.is_ct,
+                        &self.windows.own,
+                        &self.windows.histogram,
+                        &mut self.window,
+                    );
+                })
+                .response
+                .on_hover_text("Window/level presets")
         });
         // Textures follow the window (dragged this frame) and the colour map, every view.
         for view in SliceView::ALL {

@@ -532,14 +532,7 @@ fn the_page_slices_a_served_store_as_the_desktops_assembler_does() {
     // desktop's blocking reads, the page's request (the start crosshair, the level whose grid
     // the posted image has).
     use strata_source::VolumeSource;
-    let store = strata_service::client::RemoteSource::open(
-        &server.store_url("ct"),
-        strata_service::client::RemoteOptions {
-            token: Some(TOKEN.into()),
-            ..Default::default()
-        },
-    )
-    .expect("the desktop's client opens the store");
+    let store = desktop_client(&server, "ct");
     let header = store.header();
     let preset = header
         .windows
@@ -562,6 +555,28 @@ fn the_page_slices_a_served_store_as_the_desktops_assembler_does() {
 /// volume's centre, CT's abdomen window 40/400 HU for a volume in HU, grey).
 #[test]
 fn the_page_slices_its_built_in_sample_as_the_desktops_assembler_does() {
+    assert_sample_slices_as_the_desktops(
+        "sample slice views",
+        "#mode=mip&preset=ct-soft-tissue&volume=40&size=64x64&capture=1",
+    );
+}
+
+/// The 3D view over its slices (`layout=conventional`, the desktop's "3D + 1×3", placed by
+/// strata-viewer-ui's layouts as the desktop places them): the page shows its slice views in
+/// that layout too, and its axial view (a third of the width, under the 3D view) equals the
+/// desktop's assembler and window/level byte for byte. A page without the layout refuses the
+/// link or shows no slices, and posts no slice image.
+#[test]
+fn the_page_shows_the_3d_view_over_its_slices_as_the_desktop_does() {
+    assert_sample_slices_as_the_desktops(
+        "3D over slices",
+        "#mode=mip&preset=ct-soft-tissue&volume=40&size=64x64&capture=1&layout=conventional",
+    );
+}
+
+/// Opens the page's built-in sample at `fragment` and checks its posted axial slice against
+/// the desktop's assembler on the same sample made natively.
+fn assert_sample_slices_as_the_desktops(what: &str, fragment: &str) {
     use strata_render::BrickSource;
     use strata_slices::Window;
     use strata_storage::OctreeLayout;
@@ -572,7 +587,6 @@ fn the_page_slices_its_built_in_sample_as_the_desktops_assembler_does() {
         .write_store(&store, &ImportOptions::default())
         .expect("writing a tiny store");
     let (server, frames) = serve_capturing(&store);
-    let fragment = "#mode=mip&preset=ct-soft-tissue&volume=40&size=64x64&capture=1";
     let (slice, console) = capture_slice(&server, fragment, scratch.path(), &frames);
 
     let view = Fragment::parse(fragment).expect("fragment").view;
@@ -590,7 +604,101 @@ fn the_page_slices_its_built_in_sample_as_the_desktops_assembler_does() {
                 .to_vec()
         },
     );
-    assert_same_slice("sample slice views", level, &slice, &desktop, &console);
+    assert_same_slice(what, level, &slice, &desktop, &console);
+}
+
+/// A scan that names no window and is not a CT (an MR's non-negative values, no unit, no
+/// modality) opens in the page at the window the desktop opens it with: strata-viewer-ui's
+/// `initial_window`, one rule for both (here the 1st to 99th percentile of the store's
+/// histogram). The page's axial image equals, byte for byte, the desktop's assembler and
+/// window/level at that window; the page's old rule (the full stored range) gives a window
+/// over twice as wide, which colours the slice visibly differently, so the comparison fails
+/// for it.
+#[test]
+fn the_page_opens_a_scan_at_the_window_the_desktop_opens_it_with() {
+    use strata_source::VolumeSource;
+    use strata_viewer_ui::presets::looks_like_ct;
+    use strata_viewer_ui::window_presets::{header_window, initial_window};
+    let scratch = tempfile::tempdir().expect("scratch folder");
+    let nrrd = scratch.path().join("mr.nrrd");
+    write_mr_like_nrrd(&nrrd, 64);
+    let path = scratch.path().join("mr.strata");
+    let opened = strata_storage::readers::open_source(&nrrd, &Default::default())
+        .expect("the NRRD reader opens the MR-like scan");
+    strata_storage::import::import_source(opened, &path, &ImportOptions::default())
+        .expect("importing the MR-like scan");
+    let (server, frames) = serve_capturing(&path);
+    let fragment = "#store=mr&mode=mip&preset=mr-default&size=64x64&capture=1";
+    let (slice, console) = capture_slice(&server, fragment, scratch.path(), &frames);
+
+    let store = desktop_client(&server, "mr");
+    let header = store.header();
+    let mapping = header.value_mapping.mapping;
+    let (a, b) = (
+        mapping.physical(header.stored_range[0] as f64),
+        mapping.physical(header.stored_range[1] as f64),
+    );
+    let physical_range = (a.min(b), a.max(b));
+    let is_ct = looks_like_ct(&header.modality, &header.value_mapping.unit, physical_range);
+    assert!(
+        header.windows.is_empty() && !is_ct,
+        "the scan must name no window and not look like a CT: {:?}, modality {:?}, unit {:?}, \
+         range {physical_range:?}",
+        header.windows,
+        header.modality,
+        header.value_mapping.unit
+    );
+    let window = initial_window(header_window(&header.windows), is_ct, store.histogram());
+    let full_range = physical_range.1 - physical_range.0;
+    println!("MR-like scan: the desktop opens it at {window:?}; its range is {physical_range:?}");
+    assert!(
+        window.width < 0.5 * full_range,
+        "the percentile window {window:?} is not narrower than the full range {physical_range:?}: \
+         the test could not tell the two rules apart"
+    );
+    let (level, desktop) = desktop_axial_slice(
+        &header.layout,
+        &header.geometry,
+        window,
+        mapping,
+        (&slice, &console),
+        |id| store.read_brick(id).expect("brick"),
+    );
+    assert_same_slice("MR-like slice views", level, &slice, &desktop, &console);
+}
+
+/// An MR-like scan as NRRD (uint16, no unit, no window, no modality): air at 0, a sphere whose
+/// values rise along x (300-800), and a few bright voxels (4000, well under 1 % of the volume)
+/// that stretch the stored range far past the tissue's, as flow or fat artefacts do.
+fn write_mr_like_nrrd(path: &Path, edge: usize) {
+    let mut bytes = format!(
+        "NRRD0004\ntype: uint16\ndimension: 3\nspace: left-posterior-superior\n\
+         sizes: {edge} {edge} {edge}\nspace directions: (1,0,0) (0,1,0) (0,0,1)\n\
+         kinds: domain domain domain\nendian: little\nencoding: raw\n\
+         space origin: (0,0,0)\n\n"
+    )
+    .into_bytes();
+    let centre = (edge as f64 - 1.0) / 2.0;
+    let radius = edge as f64 * 0.4;
+    for k in 0..edge {
+        for j in 0..edge {
+            for i in 0..edge {
+                let r = ((i as f64 - centre).powi(2)
+                    + (j as f64 - centre).powi(2)
+                    + (k as f64 - centre).powi(2))
+                .sqrt();
+                let value: u16 = if j == 0 && k == 0 && i < edge / 2 {
+                    4000
+                } else if r <= radius {
+                    300 + (500 * i / edge) as u16
+                } else {
+                    0
+                };
+                bytes.extend_from_slice(&value.to_le_bytes());
+            }
+        }
+    }
+    std::fs::write(path, bytes).expect("writing the NRRD");
 }
 
 /// The desktop's path to the page's posted axial slice: the level whose grid the posted image
@@ -676,6 +784,22 @@ fn capture_slice(
     let slice = wait("slice image");
     let console = browser.console();
     (slice, console)
+}
+
+/// The desktop's client on the store `name` the server serves (with the test token): the
+/// desktop's blocking reads of the same bricks the page fetched.
+fn desktop_client(
+    server: &strata_service::server::RunningServer,
+    name: &str,
+) -> strata_service::client::RemoteSource {
+    strata_service::client::RemoteSource::open(
+        &server.store_url(name),
+        strata_service::client::RemoteOptions {
+            token: Some(TOKEN.into()),
+            ..Default::default()
+        },
+    )
+    .expect("the desktop's client opens the store")
 }
 
 /// The octree level whose grid the posted slice image has.

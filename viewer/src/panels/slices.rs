@@ -1,45 +1,17 @@
-//! The slices panel: window/level presets (CT's named windows, MR's auto percentile, the
-//! scan's own), window and level values, and the colour map.
+//! The slices panel: window/level presets (strata-viewer-ui's window_presets, shared with the
+//! browser: CT's named windows, MR's auto percentile, the scan's own), window and level values,
+//! and the colour map.
 
-use crate::scene::{quantile_window, Scene, VolumeData, Window, CT_WINDOWS};
+use crate::scene::{Scene, VolumeData};
 
 pub fn ui(ui: &mut egui::Ui, data: &VolumeData, scene: &mut Scene) {
-    let is_ct = data.unit() == "HU";
-    ui.horizontal_wrapped(|ui| {
-        if is_ct {
-            for preset in CT_WINDOWS {
-                if ui
-                    .selectable_label(scene.window == preset.window, preset.name)
-                    .on_hover_text(format!(
-                        "W {:.0} / L {:.0} HU",
-                        preset.window.width, preset.window.centre
-                    ))
-                    .clicked()
-                {
-                    scene.window = preset.window;
-                }
-            }
-        }
-        // The scan's own windows (DICOM window presets), then the histogram's.
-        for w in &data.info.header.windows {
-            let window = Window::new(w.center, w.width.max(1e-6));
-            if !CT_WINDOWS.iter().any(|p| p.window == window)
-                && ui
-                    .selectable_label(scene.window == window, format!("{} (scan)", w.name))
-                    .clicked()
-            {
-                scene.window = window;
-            }
-        }
-        let auto = quantile_window(&data.histogram, 0.01, 0.99);
-        if ui
-            .selectable_label(scene.window == auto, "Auto")
-            .on_hover_text("1st to 99th percentile of the scan's values (MR, anything unscaled)")
-            .clicked()
-        {
-            scene.window = auto;
-        }
-    });
+    strata_viewer_ui::window_presets::preset_buttons(
+        ui,
+        data.unit() == "HU",
+        &data.info.header.windows,
+        &data.histogram,
+        &mut scene.window,
+    );
     let unit = data.unit();
     ui.horizontal(|ui| {
         let (lo, hi) = data.info.physical_range;
