@@ -146,7 +146,7 @@ fn chris_t1_renders_like_the_reference() {
 #[test]
 fn chris_t1_adaptive_frames_are_close_to_the_full_rate_reference() {
     use strata_loader::store_volume::{load_uniform_cut, GpuCut};
-    use strata_render::adaptive::{block_oracle, AdaptiveConfig, AdaptivePass, OracleKind};
+    use strata_render::passes::adaptive::{block_oracle, AdaptiveConfig, AdaptivePass, OracleKind};
     use strata_render::reference::{render_reference, ReferenceOptions, ReferenceScene};
     let Some(data) = shared_data("chris_t1_adaptive_frames_are_close_to_the_full_rate_reference")
     else {

@@ -6,6 +6,9 @@
 //!   shared types crate stays small.
 //! - Module graphs: no module cycle inside any crate (a module and its own ancestors excepted:
 //!   a parent declares its children and a child may use what its parent defines).
+//! - render's folders: a module uses only its own layer and lower ones (`RENDER_LAYERS`, the
+//!   graph render/src/lib.rs draws), and no .wgsl file declares by hand a constant Rust also
+//!   defines (the shader's shared constants are generated).
 //! - Build tools: Rust and a C/C++ compiler are enough to build; nothing in `Cargo.lock` needs
 //!   cmake or nasm (read from the lock file: `cargo tree` would need the network for all
 //!   targets).
@@ -527,6 +530,208 @@ fn the_cycle_finder_finds_cycles_and_reads_grouped_imports() {
     assert_eq!(find_cycle(&graph).map(|c| c.len()), Some(4));
     graph.insert("c".to_string(), BTreeSet::new());
     assert_eq!(find_cycle(&graph), None);
+}
+
+/// render/src's folders, lowest layer first, as render/src/lib.rs draws its graph: the shared
+/// error, the model and CPU twins, GPU resources, the f64 reference, the passes, the
+/// controllers, the test data. A module may use its own layer and the ones before it.
+const RENDER_LAYERS: [&str; 7] = [
+    "error",
+    "model",
+    "gpu",
+    "reference",
+    "passes",
+    "control",
+    "testdata",
+];
+
+/// Position of `module`'s top folder in `layers` (None for the crate root).
+fn layer_of(module: &str, layers: &[&str]) -> Option<usize> {
+    let top = module.split("::").next().unwrap_or("");
+    layers.iter().position(|layer| *layer == top)
+}
+
+/// Every `module → used` edge of `graph` that goes to a higher layer, and every module (the
+/// root excepted) outside all layers.
+fn layering_violations(graph: &BTreeMap<String, BTreeSet<String>>, layers: &[&str]) -> Vec<String> {
+    let mut found = Vec::new();
+    for (module, uses) in graph {
+        if module.is_empty() {
+            continue;
+        }
+        let Some(from) = layer_of(module, layers) else {
+            found.push(format!("{module} is in no layer"));
+            continue;
+        };
+        for used in uses {
+            if layer_of(used, layers).is_some_and(|to| to > from) {
+                found.push(format!(
+                    "{module} ({}) uses {used} ({})",
+                    layers[from],
+                    layers[layer_of(used, layers).unwrap_or(from)]
+                ));
+            }
+        }
+    }
+    found
+}
+
+#[test]
+fn render_folders_follow_the_layered_graph() {
+    let found = layering_violations(&module_graph("render"), &RENDER_LAYERS);
+    assert!(
+        found.is_empty(),
+        "render modules against the layers {RENDER_LAYERS:?} (render/src/lib.rs): {found:#?}; \
+         move what a lower layer needs down, or the module up"
+    );
+}
+
+#[test]
+fn the_layering_check_can_fail() {
+    let graph = |edges: &[(&str, &str)]| {
+        let mut graph: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
+        for (from, to) in edges {
+            graph
+                .entry(from.to_string())
+                .or_default()
+                .insert(to.to_string());
+            graph.entry(to.to_string()).or_default();
+        }
+        graph
+    };
+    let layers = ["model", "gpu", "passes"];
+    assert!(layering_violations(
+        &graph(&[
+            ("passes::raycast", "gpu::shaders"),
+            ("gpu::shaders", "model::layout")
+        ]),
+        &layers
+    )
+    .is_empty());
+    let found = layering_violations(
+        &graph(&[("gpu::shaders", "passes::adaptive::gpu")]),
+        &layers,
+    );
+    assert_eq!(found.len(), 1, "{found:?}");
+    assert!(
+        found[0].starts_with("gpu::shaders (gpu) uses passes::adaptive::gpu"),
+        "{found:?}"
+    );
+    let found = layering_violations(&graph(&[("stray", "model::layout")]), &layers);
+    assert_eq!(found, ["stray is in no layer"]);
+}
+
+/// Names of the `const` items of Rust source (any visibility; `const fn` is no item).
+fn rust_const_names(text: &str) -> BTreeSet<String> {
+    let mut names = BTreeSet::new();
+    for line in text.lines() {
+        let mut rest = line.trim_start();
+        for visibility in ["pub(crate) ", "pub(super) ", "pub "] {
+            rest = rest.strip_prefix(visibility).unwrap_or(rest);
+        }
+        if let Some(item) = rest.strip_prefix("const ") {
+            let name: String = item
+                .chars()
+                .take_while(|c| c.is_ascii_alphanumeric() || *c == '_')
+                .collect();
+            if !name.is_empty() && name != "fn" {
+                names.insert(name);
+            }
+        }
+    }
+    names
+}
+
+/// The WGSL `const` declarations in `wgsl` (file name, text) whose name is also a Rust
+/// constant: copies by hand of what the generated prelude should declare.
+fn hand_copied_constants(wgsl: &[(String, String)], rust_consts: &BTreeSet<String>) -> Vec<String> {
+    let mut found = Vec::new();
+    for (file, text) in wgsl {
+        for (i, line) in text.lines().enumerate() {
+            let code = line.split("//").next().unwrap_or("");
+            let Some(declaration) = code.trim_start().strip_prefix("const ") else {
+                continue;
+            };
+            let name: String = declaration
+                .chars()
+                .take_while(|c| c.is_ascii_alphanumeric() || *c == '_')
+                .collect();
+            if rust_consts.contains(&name) {
+                found.push(format!("{file}:{}: {name}", i + 1));
+            }
+        }
+    }
+    found
+}
+
+/// Every file under `dir` whose name ends with `extension`, recursively.
+fn files_with_extension(dir: &Path, extension: &str, out: &mut Vec<PathBuf>) {
+    let Ok(entries) = fs::read_dir(dir) else {
+        return;
+    };
+    for entry in entries.flatten() {
+        let path = entry.path();
+        if path.is_dir() {
+            files_with_extension(&path, extension, out);
+        } else if path.extension().is_some_and(|e| e == extension) {
+            out.push(path);
+        }
+    }
+}
+
+/// ARCHITECTURE.md's invariant: a constant the shader shares with Rust is generated from the
+/// Rust one (render's `shaders::prelude_constants`, a pass's own list such as the adaptive
+/// pass's `shader_constants`), never declared again in a .wgsl file.
+#[test]
+fn no_wgsl_constant_shared_with_rust_is_written_by_hand() {
+    let src = repo_root().join("render/src");
+    let mut rust = Vec::new();
+    rust_files(&src, &mut rust);
+    let rust_consts: BTreeSet<String> = rust
+        .iter()
+        .flat_map(|f| {
+            rust_const_names(
+                &fs::read_to_string(f).unwrap_or_else(|e| panic!("{}: {e}", f.display())),
+            )
+        })
+        .collect();
+    let mut wgsl_files = Vec::new();
+    files_with_extension(&src, "wgsl", &mut wgsl_files);
+    assert!(!wgsl_files.is_empty(), "no .wgsl under {}", src.display());
+    let wgsl: Vec<(String, String)> = wgsl_files
+        .iter()
+        .map(|f| {
+            let text = fs::read_to_string(f).unwrap_or_else(|e| panic!("{}: {e}", f.display()));
+            (f.display().to_string(), text)
+        })
+        .collect();
+    let found = hand_copied_constants(&wgsl, &rust_consts);
+    assert!(
+        found.is_empty(),
+        "WGSL constants that copy a Rust constant by hand: {found:#?}; add them to the generated \
+         prelude (render's shaders::prelude_constants, or the pass's own list) and delete the \
+         WGSL declaration"
+    );
+}
+
+#[test]
+fn the_hand_copied_constant_check_can_fail() {
+    let rust = rust_const_names(
+        "pub(crate) const PYRAMID_CAP: u32 = 460;\nconst fn pyramid() {}\n    pub const COUNTERS: u32 = 16;\n",
+    );
+    assert_eq!(
+        rust,
+        BTreeSet::from(["PYRAMID_CAP".to_string(), "COUNTERS".to_string()])
+    );
+    let wgsl = vec![(
+        "adaptive.wgsl".to_string(),
+        "// const COUNTERS in a comment is fine\nconst LOCAL_ONLY: f32 = 1.0;\nconst PYRAMID_CAP: u32 = 460u;\n"
+            .to_string(),
+    )];
+    assert_eq!(
+        hand_copied_constants(&wgsl, &rust),
+        ["adaptive.wgsl:3: PYRAMID_CAP"]
+    );
 }
 
 /// The `path = "…"` of every `[[test]]` a manifest declares.

@@ -30,7 +30,7 @@ pub enum ModeArg {
     AdaptiveMip,
 }
 
-/// How the GPU raycaster finds the bricks along a ray (render/src/gpu_octree.rs).
+/// How the GPU raycaster finds the bricks along a ray (render/src/gpu/gpu_octree.rs).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 pub enum TraversalArg {
     /// The flat page table: one entry per finest brick position (the default).
@@ -135,8 +135,8 @@ pub struct RenderArgs {
     #[arg(long)]
     pub gpu_mib: Option<u64>,
     /// Volumetric shadows from the key light: `exact` traces a shadow ray per shaded sample
-    /// (render/src/shadows.rs); `cache` reads one lookup per shaded sample from a
-    /// light-transmittance volume built on the GPU (render/src/light_cache.rs; needs a
+    /// (render/src/model/shadows.rs); `cache` reads one lookup per shaded sample from a
+    /// light-transmittance volume built on the GPU (render/src/gpu/light_cache.rs; needs a
     /// directional light, so without --light-dir it lights along the view axis: 0,0,1). Turns
     /// shading on. The f64 reference (--reference) renders the same model.
     #[arg(long, value_enum, default_value_t = ShadowsArg::Off)]
@@ -152,13 +152,13 @@ pub struct RenderArgs {
     /// build and blurrier).
     #[arg(long, default_value_t = 2.0)]
     pub light_cache_res: f64,
-    /// Ambient occlusion over this radius in mm (render/src/ambient_occlusion.rs): 16 short
+    /// Ambient occlusion over this radius in mm (render/src/model/ambient_occlusion.rs): 16 short
     /// rays of local extinction per shaded sample, at --shadow-step, scale the ambient term.
     /// Turns shading on. The f64 reference (--reference) renders the same model.
     #[arg(long, value_name = "MM", allow_hyphen_values = true)]
     pub occlusion: Option<f64>,
     /// Single scattering of the key light with a Henyey-Greenstein phase of asymmetry G
-    /// (render/src/scattering.rs; -0.99..0.99, > 0 forward: back-lit tissue glows), blended
+    /// (render/src/model/scattering.rs; -0.99..0.99, > 0 forward: back-lit tissue glows), blended
     /// with the surface BRDF by gradient magnitude (--scattering-blend). Turns shading on. The
     /// f64 reference (--reference) renders the same model.
     #[arg(long, value_name = "G", allow_hyphen_values = true)]
@@ -169,7 +169,7 @@ pub struct RenderArgs {
     pub scattering_blend: f64,
     /// Progressive refinement of the still view: render N frames with different ray-start
     /// jitter (frame_index 0..N) and write their mean, accumulated on the GPU
-    /// (render/src/progressive.rs). The jitter's wood-grain averages out as 1/√N towards the
+    /// (render/src/passes/progressive.rs). The jitter's wood-grain averages out as 1/√N towards the
     /// same model's fine-step image (--reference renders that in f64); 16-64 frames remove
     /// most of it. Renders a fixed cut (--level, loaded up front); GPU raycaster only (not
     /// --reference, --mode adaptive, --orbit or --no-jitter).

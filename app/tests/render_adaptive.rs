@@ -1,6 +1,6 @@
 //! `strata render --mode adaptive|adaptive-mip`: the real binary renders a phantom store's
 //! fixed cut with the adaptive pass on the GPU (lavapipe) and with `--reference`, its f64 CPU
-//! transcription (render/src/adaptive/transcription.rs), and the two PNGs agree (DVR, MIP and
+//! transcription (render/src/passes/adaptive/transcription.rs), and the two PNGs agree (DVR, MIP and
 //! shaded DVR); the command reports the pass's sampling operations.
 
 use crate::common;

@@ -1,5 +1,5 @@
 //! `strata render --progressive N`: the mean of N jittered frames of a still view
-//! (render/src/progressive.rs), closer to the f64 reference of the same model than one frame.
+//! (render/src/passes/progressive.rs), closer to the f64 reference of the same model than one frame.
 //! 64² on lavapipe, a 40³ phantom.
 
 use std::path::Path;

@@ -1,5 +1,5 @@
 //! `strata render --traversal flat|octree`: the real binary renders a phantom store's fixed cut
-//! through the flat page table and through the cut's octree (render/src/gpu_octree.rs), and
+//! through the flat page table and through the cut's octree (render/src/gpu/gpu_octree.rs), and
 //! the PNGs are identical (render/tests/octree_traversal.rs shows why: same samples, same
 //! words); streamed, both converge to the same PNG.
 

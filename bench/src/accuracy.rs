@@ -35,8 +35,8 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 use strata_loader::store_volume::{classify_empty, load_uniform_cut, page_table_for_cut, GpuCut};
 use strata_loader::ResidentBricks;
-use strata_render::adaptive::{block_oracle, AdaptiveConfig, AdaptivePass};
-use strata_render::progressive::render_still;
+use strata_render::passes::adaptive::{block_oracle, AdaptiveConfig, AdaptivePass};
+use strata_render::passes::progressive::render_still;
 use strata_render::{
     compare_rgba8, Camera, GpuContext, KeyLight, LightDirection, Occlusion, PageTable, RenderMode,
     RenderSettings, Scattering, Shading, ShadowMode, Shadows,

@@ -33,7 +33,7 @@ use anyhow::{bail, Context, Result};
 use strata_loader::store_volume::{
     classify_empty, load_uniform_cut, page_table_for_cut, GpuCut, ResidentBricks,
 };
-use strata_render::adaptive::{
+use strata_render::passes::adaptive::{
     block_oracle, block_oracle_with, oracle_for_cut, AdaptiveConfig, AdaptivePass, OracleKind,
     OracleTarget,
 };

@@ -9,8 +9,8 @@ use std::path::Path;
 use anyhow::{Context, Result};
 use glam::{DMat3, DVec3};
 use strata_loader::ResidentBricks;
+use strata_render::model::smooth_transitions::{transition_masks, transition_node_fraction};
 use strata_render::reference::{render_reference, ReferenceOptions, ReferenceScene};
-use strata_render::smooth_transitions::{transition_masks, transition_node_fraction};
 use strata_render::{
     Camera, PageEntry, PageTable, Projection, RenderSettings, TransferFunction,
     TransferFunctionTable, ValueMapping, VolumeGeometry,

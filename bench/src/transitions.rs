@@ -25,7 +25,7 @@ use anyhow::{bail, Context, Result};
 use glam::DVec3;
 use strata_loader::store_volume::{classify_empty, load_uniform_cut, page_table_for_cut, GpuCut};
 use strata_loader::ResidentBricks;
-use strata_render::smooth_transitions::{transition_masks, transition_node_fraction};
+use strata_render::model::smooth_transitions::{transition_masks, transition_node_fraction};
 use strata_render::{
     compare_rgba8, GpuContext, ImageComparison, PageTable, RenderMode, RenderSettings, Scene,
     Shading,
@@ -429,8 +429,14 @@ fn max_level_face_jump(
     let masks = smooth.then(|| transition_masks(table));
     let dims = v.geometry.dims;
     let value = |p: DVec3| {
-        strata_render::smooth_transitions::sample_field(bricks, table, masks.as_deref(), dims, p)
-            .map(|s| v.mapping.physical(s.value))
+        strata_render::model::smooth_transitions::sample_field(
+            bricks,
+            table,
+            masks.as_deref(),
+            dims,
+            p,
+        )
+        .map(|s| v.mapping.physical(s.value))
     };
     let mut worst = 0.0f64;
     for_each_level_face(table, |page, axis| {

@@ -20,11 +20,11 @@ use strata_loader::store_volume::{
     check_cut_fits, classify_empty, page_table_for_cut, slots_needed, GpuCut,
 };
 use strata_loader::{LoaderError, ResidentBricks, StreamingConfig, StreamingVolume};
-use strata_render::adaptive::{
+use strata_render::passes::adaptive::{
     block_oracle_with, render_adaptive_reference, AdaptiveConfig, AdaptiveOptics, AdaptivePass,
     OracleTarget,
 };
-use strata_render::progressive::render_still;
+use strata_render::passes::progressive::render_still;
 use strata_render::reference::{render_reference, ReferenceOptions, ReferenceScene};
 use strata_render::{
     Camera, GpuContext, GpuPageTable, KeyLight, LightDirection, Occlusion, Projection, RenderError,
@@ -397,7 +397,8 @@ impl RenderOptions {
                 check_range(
                     "light-cache-res",
                     self.light_cache_res,
-                    strata_render::light_cache::MIN_RES..=strata_render::light_cache::MAX_RES,
+                    strata_render::gpu::light_cache::MIN_RES
+                        ..=strata_render::gpu::light_cache::MAX_RES,
                 )?;
             }
             ensure(!self.mode.is_mip(), || {
@@ -415,7 +416,7 @@ impl RenderOptions {
             check_range("shadow-step", self.shadow_step, 0.05..=1000.0)?;
         }
         if let Some(g) = self.scattering {
-            let m = strata_render::settings::SCATTERING_MAX_ABS_G;
+            let m = strata_render::model::settings::SCATTERING_MAX_ABS_G;
             check_range("scattering", g, -m..=m)?;
             check_range("scattering-blend", self.scattering_blend, 0.0..=1.0)?;
         }

@@ -21,8 +21,8 @@ use std::thread::JoinHandle;
 use crossbeam_channel::{Receiver, Sender};
 // Keys are brick ids, not attacker-chosen: a fast hash.
 use rustc_hash::{FxHashMap as HashMap, FxHashSet as HashSet};
-use strata_render::gpu_octree::leaf_value_max;
-use strata_render::octree_cut::CutLeaf as TableLeaf;
+use strata_render::gpu::gpu_octree::leaf_value_max;
+use strata_render::model::octree_cut::CutLeaf as TableLeaf;
 use strata_render::{
     Camera, IndexTable, PageEntry, PageLookup, PageTable, PageTableLayout, PreparedPageTable,
     RenderMode, RenderSettings, SparsePageTable, Traversal, ValueMapping,

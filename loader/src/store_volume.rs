@@ -164,8 +164,8 @@ pub fn check_cut_fits(
         }
     }
     let max_dim = ctx.device.limits().max_texture_dimension_3d;
-    let per_axis = (max_dim / strata_render::layout::BRICK_PAYLOAD)
-        .min(strata_render::layout::MAX_SLOTS_PER_AXIS) as u64;
+    let per_axis = (max_dim / strata_render::model::layout::BRICK_PAYLOAD)
+        .min(strata_render::model::layout::MAX_SLOTS_PER_AXIS) as u64;
     let slots = per_axis.pow(3);
     if bricks as u64 > slots {
         return Err(LoaderError::CutOverDeviceLimit {

@@ -279,7 +279,7 @@ impl StreamingVolume {
         let tf_table = Arc::new(tf_table_for(tf, mapping, header.stored_range));
         let cpu = CpuBrickCache::new(config.cpu_cache_budget()?);
         // The texture grows with the slots in use: the first frame does not wait for a
-        // budget-sized texture to be zeroed (render/src/cache.rs).
+        // budget-sized texture to be zeroed (render/src/gpu/cache.rs).
         let mut cache = BrickCache::new(
             &ctx.device,
             CacheConfig {

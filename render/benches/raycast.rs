@@ -20,8 +20,11 @@
 //! and PSNR against the f64 CPU reference at a smaller image size.
 
 use std::time::Instant;
-use strata_render::progressive::jittered_frame;
+use strata_render::gpu::light_cache;
+use strata_render::passes::progressive::jittered_frame;
+use strata_render::reference::metrics;
 use strata_render::reference::{render_reference, ReferenceOptions, ReferenceScene};
+use strata_render::testdata::phantom;
 use strata_render::*;
 
 fn env_u32(name: &str, default: u32) -> u32 {

@@ -16,6 +16,8 @@
 //! and samples per pixel (debug counters), ms/frame (median of interleaved rounds).
 
 use std::time::Instant;
+use strata_render::model::octree_cut;
+use strata_render::testdata::phantom;
 use strata_render::*;
 
 fn env_u32(name: &str, default: u32) -> u32 {

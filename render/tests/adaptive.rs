@@ -7,18 +7,19 @@
 use crate::common;
 
 use common::*;
-use strata_render::adaptive::oracle::pcg;
-use strata_render::adaptive::scene::AdaptiveOptics;
-use strata_render::adaptive::transcription::{
+use strata_render::model::transfer_function::TABLE_ENTRIES;
+use strata_render::passes::adaptive::oracle::pcg;
+use strata_render::passes::adaptive::scene::AdaptiveOptics;
+use strata_render::passes::adaptive::transcription::{
     level0_coordinate, AdaptiveProbe, SegmentOptics, Transcription,
 };
-use strata_render::adaptive::{
+use strata_render::passes::adaptive::{
     block_oracle, block_oracle_with, oracle_for_cut, project_volume, render_adaptive_reference,
     slice_sample, AdaptiveConfig, AdaptiveFrame, AdaptivePass, AdaptiveReference, OracleKind,
     OracleTarget, SliceFrame,
 };
 use strata_render::reference::ReferenceScene;
-use strata_render::transfer_function::TABLE_ENTRIES;
+use strata_render::testdata::phantom;
 use strata_render::*;
 
 fn reference_scene(f: &Fixture) -> ReferenceScene<'_, BrickedVolume> {

@@ -1,11 +1,12 @@
-//! Ambient occlusion (render/src/ambient_occlusion.rs) and single scattering
-//! (render/src/scattering.rs): the GPU against the f64 reference of the same model, and hard
+//! Ambient occlusion (render/src/model/ambient_occlusion.rs) and single scattering
+//! (render/src/model/scattering.rs): the GPU against the f64 reference of the same model, and hard
 //! cases whose answer is known without either. Images are 64² on lavapipe, volumes 32³-40³:
 //! every shaded reference sample traces 16 occlusion rays and a shadow ray at a quarter of the
 //! GPU's step (ambient_occlusion.rs, "Cost"), so the references take seconds on two cores.
 use crate::common;
 use common::*;
 use strata_render::reference::ReferenceImage;
+use strata_render::testdata::phantom;
 use strata_render::*;
 
 const SIZE: u32 = 64;

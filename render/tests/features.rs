@@ -2,6 +2,8 @@
 use crate::common;
 use common::*;
 use glam::{DMat3, DVec3};
+use strata_render::model::smooth_transitions;
+use strata_render::testdata::phantom;
 use strata_render::*;
 
 const SIZE: u32 = 128;

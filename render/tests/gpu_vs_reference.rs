@@ -10,6 +10,7 @@
 //!   PSNR bounds the mean; this bounds gross garbage.
 use crate::common;
 use common::*;
+use strata_render::testdata::phantom;
 use strata_render::*;
 
 const SIZE: u32 = 128;

@@ -5,6 +5,7 @@
 //! same images, which match the f64 reference.
 use crate::common;
 use common::*;
+use strata_render::testdata::phantom;
 use strata_render::*;
 
 const SIZE: u32 = 128;

@@ -6,9 +6,10 @@
 //! queries), within the f64 reference's bounds.
 use crate::common;
 use common::*;
-use strata_render::octree_cut::test_cuts::{cuts, rays, Rng};
-use strata_render::octree_cut::{LeafVisit, OctreeCut};
-use strata_render::octree_probe::walk_on_gpu;
+use strata_render::model::octree_cut::test_cuts::{cuts, rays, Rng};
+use strata_render::model::octree_cut::{LeafVisit, OctreeCut};
+use strata_render::passes::octree_probe::walk_on_gpu;
+use strata_render::testdata::phantom;
 use strata_render::*;
 
 const SIZE: u32 = 128;

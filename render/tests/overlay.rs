@@ -11,6 +11,7 @@ use crate::common;
 use common::*;
 use glam::DVec3;
 use strata_render::reference::{render_reference_with_overlay, ReferenceImage, ReferenceOptions};
+use strata_render::testdata::phantom;
 use strata_render::*;
 
 const SIZE: u32 = 128;

@@ -1,10 +1,11 @@
-//! Progressive refinement (render/src/progressive.rs): the running mean of jittered frames of a
+//! Progressive refinement (render/src/passes/progressive.rs): the running mean of jittered frames of a
 //! still view converges to the same model's fine-step reference, restarts on a new view, and
 //! never produces NaN/Inf. 64² on lavapipe, volumes 32³-40³.
 use crate::common;
 use common::*;
-use strata_render::progressive::{jittered_frame, Accumulator, ViewKey};
+use strata_render::passes::progressive::{jittered_frame, Accumulator, ViewKey};
 use strata_render::reference::ReferenceImage;
+use strata_render::testdata::phantom;
 use strata_render::*;
 
 const SIZE: u32 = 64;

@@ -1,4 +1,4 @@
-//! Volumetric shadows from the key light, exact mode (render/src/shadows.rs): the GPU against
+//! Volumetric shadows from the key light, exact mode (render/src/model/shadows.rs): the GPU against
 //! the f64 reference of the same model, and hard cases whose answer is known without either.
 //! Images are 64² on lavapipe: every shaded sample traces a shadow ray, on the GPU and (at a
 //! quarter of the shadow step) in the reference, whose cost grows with the image times the
@@ -6,6 +6,7 @@
 use crate::common;
 use common::*;
 use strata_render::reference::ReferenceImage;
+use strata_render::testdata::phantom;
 use strata_render::*;
 
 const SIZE: u32 = 64;
@@ -453,7 +454,7 @@ fn light_enters_through_the_clip_plane() {
     assert!(r.psnr_db >= 45.0, "{r:?}");
 }
 
-/// Cache-mode shadows (render/src/light_cache.rs): the light-transmittance cache swept on the
+/// Cache-mode shadows (render/src/gpu/light_cache.rs): the light-transmittance cache swept on the
 /// GPU against the f64 reference of the same model (the cache's texels themselves, then
 /// images), against exact shadows, the hard cases, and when it is (not) rebuilt.
 mod cache {

@@ -4,6 +4,7 @@
 //! the in-slot coordinate alone (field.wgsl `fetch`), and two such runs must agree bit for bit.
 use crate::common;
 use common::*;
+use strata_render::testdata::phantom;
 use strata_render::*;
 
 const SIZE: u32 = 128;

@@ -11,7 +11,7 @@
 //! Bounded: at most [`MAX_TF_STOPS`] stops per list and [`MAX_TF_CHARS`] characters, checked
 //! before the value is split, so a mangled or hostile link costs no more than that to reject.
 
-use strata_render::transfer_function::{ColorStop, OpacityStop};
+use strata_render::model::transfer_function::{ColorStop, OpacityStop};
 use strata_render::TransferFunction;
 
 /// Most stops per list (opacity, colour) a link may carry: far more than a hand-edited

@@ -8,7 +8,7 @@
 //! - [`performance`]: [`performance::FrameClock`] (UI frame-time history and the frame log) and
 //!   the Performance panel's figures, drawn from [`performance::PerformanceFigures`].
 //! - [`target_fps`]: the target frame-rate control (checkbox + slider) the time-critical
-//!   controller (strata_render::time_critical) is driven by.
+//!   controller (strata_render::control::time_critical) is driven by.
 //! - [`slice_canvas`]: what a slice view draws around its image (zoom and pan, screen ↔ image
 //!   mapping, crosshair, orientation labels, the flipped image mesh, the colour-map choice).
 //! - [`render_driver`]: the render driver both viewers call: what is applied to the streaming

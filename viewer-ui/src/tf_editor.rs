@@ -5,7 +5,7 @@
 //! `TransferFunction` at once; the caller's next render carries it.
 
 use egui::{Color32, Pos2, Rect, Sense, Stroke, Vec2};
-use strata_render::transfer_function::{ColorStop, OpacityStop};
+use strata_render::model::transfer_function::{ColorStop, OpacityStop};
 use strata_render::TransferFunction;
 use strata_storage::histogram::Histogram;
 

@@ -11,7 +11,7 @@
 //! bearer token (`token=`) is read once and never written back: fragments are shared, tokens
 //! must not be.
 
-use strata_render::phantom::ct_phantom;
+use strata_render::testdata::phantom::ct_phantom;
 use strata_render::{
     BrickedVolume, Camera, Projection, RenderError, RenderMode, RenderSettings, Shading,
     TransferFunction, VolumeGeometry,

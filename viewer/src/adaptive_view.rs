@@ -1,4 +1,4 @@
-//! The still view's final frame by adaptive sampling (render's `strata_render::adaptive`, the
+//! The still view's final frame by adaptive sampling (render's `strata_render::passes::adaptive`, the
 //! adaptive-sampling paper): while the camera moves or the cut refines, the raycaster draws
 //! under the time-critical controller as always; once the view is still and the streaming cut
 //! has converged, this draws the last frame with the adaptive pass over the same resident cut
@@ -24,7 +24,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 use strata_loader::{CutPayloads, StreamingVolume};
-use strata_render::adaptive::{
+use strata_render::passes::adaptive::{
     block_oracle_with, AdaptiveConfig, AdaptiveFrame, AdaptivePass, OracleTarget,
 };
 use strata_render::{

@@ -245,7 +245,7 @@ fn trilinear(
     p: DVec3,
 ) -> anyhow::Result<f64> {
     let mut sum = 0.0;
-    for (index, weight) in strata_render::field::trilinear_corners(p.to_array(), dims) {
+    for (index, weight) in strata_render::model::field::trilinear_corners(p.to_array(), dims) {
         if weight > 0.0 {
             sum += weight * cache.voxel(store, level, index)? as f64;
         }

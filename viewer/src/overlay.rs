@@ -655,7 +655,7 @@ pub fn trilinear(
     physical: impl Fn(u16) -> f64,
 ) -> anyhow::Result<f64> {
     let mut sum = 0.0;
-    for (index, weight) in strata_render::field::trilinear_corners(p.to_array(), dims) {
+    for (index, weight) in strata_render::model::field::trilinear_corners(p.to_array(), dims) {
         if weight > 0.0 {
             sum += weight * physical(cache.voxel(store, index)?);
         }

@@ -12,7 +12,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 
 use glam::DVec3;
-use strata_render::overlay::OVERLAY_OUTSIDE;
+use strata_render::model::overlay::OVERLAY_OUTSIDE;
 use strata_render::{OverlayKind as GridKind, OverlayLut, OverlayVolume};
 use strata_segment::{label_colour, BrickKey, LabelLayer, LABEL_BRICK};
 use strata_source::VolumeSource;

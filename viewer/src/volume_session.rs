@@ -34,9 +34,9 @@ use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 
 use strata_loader::{FrameStats, SelectionTiming, StreamingConfig, StreamingVolume};
-use strata_render::progressive::{jittered_frame, Accumulator, ViewKey};
-use strata_render::target_rate::{AtRest, TargetRateDriver};
-use strata_render::time_critical::FrameQuality;
+use strata_render::control::target_rate::{AtRest, TargetRateDriver};
+use strata_render::control::time_critical::FrameQuality;
+use strata_render::passes::progressive::{jittered_frame, Accumulator, ViewKey};
 use strata_render::{
     Camera, FrameReadback, GpuContext, LightDirection, RenderMode, RenderSettings, ShadowMode,
     TimeCriticalConfig, TransferFunction, Traversal, ValueMapping, VolumeGeometry,
@@ -401,7 +401,7 @@ struct RenderWorker {
     repaint: Repaint,
     gpu_budget_bytes: u64,
     /// The time-critical controller as the target-frame-rate control drives it (shared with
-    /// the browser page: strata_render::target_rate).
+    /// the browser page: strata_render::control::target_rate).
     rate: TargetRateDriver,
     serial: u64,
 }
@@ -1361,7 +1361,7 @@ struct AwaitingAdaptive {
     raycaster_samples: Option<u64>,
 }
 
-/// Progressive refinement of a still view (issue 37, item 3; render/src/progressive.rs): once
+/// Progressive refinement of a still view (issue 37, item 3; render/src/passes/progressive.rs): once
 /// a view's final frame is drawn (cut converged, still refinement done) and its settings have
 /// an effect that jitter refines, the render thread draws `total` jittered frames of the same
 /// request, frame n with jitter seed n as `strata render --progressive` does, and publishes
@@ -1879,7 +1879,7 @@ mod tests {
         store: &strata_storage::Store,
         facts: &AdaptiveFacts,
         request: &RenderRequest,
-    ) -> strata_render::adaptive::AdaptiveFrame {
+    ) -> strata_render::passes::adaptive::AdaptiveFrame {
         let header = VolumeSource::header(store).clone();
         let geometry = header.geometry.clone();
         let mapping = header.value_mapping.mapping;
@@ -1909,7 +1909,7 @@ mod tests {
         );
         let transfer_function =
             strata_render::GpuTransferFunction::new(&ctx.device, &ctx.queue, &tf_table);
-        let mut pass = strata_render::adaptive::AdaptivePass::new(&ctx, &cache);
+        let mut pass = strata_render::passes::adaptive::AdaptivePass::new(&ctx, &cache);
         pass.set_oracle(&ctx, &facts.oracle.distances);
         let scene = strata_render::Scene {
             cache: &cache,
@@ -1923,7 +1923,7 @@ mod tests {
         pass.render_blocking(
             &ctx,
             &scene,
-            &strata_render::adaptive::AdaptiveConfig::default(),
+            &strata_render::passes::adaptive::AdaptiveConfig::default(),
         )
         .expect("direct adaptive render")
     }
@@ -2492,7 +2492,7 @@ mod tests {
         );
         let mut raycaster = strata_render::Raycaster::new(&ctx, volume.brick_cache());
         let scene = volume.scene(&request.camera, &request.settings);
-        strata_render::progressive::render_still(&ctx, &mut raycaster, &scene, frames)
+        strata_render::passes::progressive::render_still(&ctx, &mut raycaster, &scene, frames)
             .expect("render_still")
     }
 

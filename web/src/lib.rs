@@ -8,7 +8,7 @@
 //! - [`compact_tf`]: an edited transfer function's stops as a link's `tf=` value, exact and
 //!   bounded.
 //! - [`view_motion`]: the 3D view in motion: the target-fps control's controller
-//!   (strata_render::target_rate, the desktop's) while the view moves, full quality at rest.
+//!   (strata_render::control::target_rate, the desktop's) while the view moves, full quality at rest.
 //! - [`volume_menu`]: the Volume menu's entries (the sample, then the server's stores from
 //!   `GET /v1/stores`) and what a choice does to the view; platform independent, tested natively
 //!   against a real server's list.

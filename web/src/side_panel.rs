@@ -11,7 +11,7 @@
 use std::collections::VecDeque;
 
 use strata_loader::FrameStats;
-use strata_render::phantom::ct_phantom_hu;
+use strata_render::testdata::phantom::ct_phantom_hu;
 use strata_render::{FrameTiming, TransferFunction, VolumeGeometry};
 use strata_storage::histogram::{Histogram, StoredValueCounts};
 use strata_viewer_ui::performance::{self, FrameClock, PerformanceFigures};

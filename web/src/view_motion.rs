@@ -1,13 +1,13 @@
 //! The page's 3D view in motion (issue 39, "the target-fps control"): while the user orbits or
-//! zooms, the time-critical controller (strata_render::target_rate, the desktop's driver)
+//! zooms, the time-critical controller (strata_render::control::target_rate, the desktop's driver)
 //! holds the side panel's target rate; once the view rests, one frame at the view's own full
 //! quality replaces the last reduced one.
 //!
 //! Platform independent and clock-free (the page passes its seconds), so the policy is tested
 //! natively at a GPU's cadence with synthetic frame times.
 
-use strata_render::target_rate::{AtRest, TargetRateDriver};
-use strata_render::time_critical::{FrameQuality, TimeCriticalConfig};
+use strata_render::control::target_rate::{AtRest, TargetRateDriver};
+use strata_render::control::time_critical::{FrameQuality, TimeCriticalConfig};
 use strata_render::{FrameTiming, RenderSettings};
 
 /// How long after the last drag or wheel event the view still counts as moving (seconds):

@@ -2,9 +2,11 @@
 //! "render on GPU and CPU, compare" in one call.
 #![allow(dead_code)]
 
+use strata_render::reference::metrics;
 use strata_render::reference::{
     render_reference, ReferenceImage, ReferenceOptions, ReferenceScene,
 };
+use strata_render::testdata::phantom;
 use strata_render::*;
 
 /// A test that needs an adapter and finds none fails with the install hint; never skips.
