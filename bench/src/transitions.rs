@@ -429,14 +429,8 @@ fn max_level_face_jump(
     let masks = smooth.then(|| transition_masks(table));
     let dims = v.geometry.dims;
     let value = |p: DVec3| {
-        strata_render::model::smooth_transitions::sample_field(
-            bricks,
-            table,
-            masks.as_deref(),
-            dims,
-            p,
-        )
-        .map(|s| v.mapping.physical(s.value))
+        strata_render::model::field::sample_field(bricks, table, masks.as_deref(), dims, p)
+            .map(|s| v.mapping.physical(s.value))
     };
     let mut worst = 0.0f64;
     for_each_level_face(table, |page, axis| {

@@ -87,10 +87,8 @@
 //!   phantom             → bricked_volume, transfer_function, error
 //! ```
 //!
-//! Older paths stay valid through re-exports that add no dependency of their own except one:
-//! `smooth_transitions` re-exports the blend and `sample_field` from `field` (which does not
-//! use `smooth_transitions`), so `smooth_transitions::sample_field` still resolves. Tests add
-//! `pipelines` → `shaders`.
+//! Each item is imported from the module that defines it (no re-exports keep old paths alive).
+//! Tests add `pipelines` → `shaders`.
 
 pub mod control;
 pub mod error;

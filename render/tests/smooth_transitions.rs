@@ -4,7 +4,8 @@
 use crate::common;
 use common::*;
 use glam::DVec3;
-use strata_render::model::smooth_transitions::{sample_field, transition_masks};
+use strata_render::model::field::sample_field;
+use strata_render::model::smooth_transitions::transition_masks;
 use strata_render::testdata::phantom;
 use strata_render::*;
 

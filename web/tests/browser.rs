@@ -505,10 +505,17 @@ fn a_stalled_server_leaves_the_page_drawing() {
         requests > bricks + 1,
         "the page asked for no brick below the root ({requests} requests)"
     );
+    // Relative to the frame's own size: on a loaded machine the page's rate control draws the
+    // unconverged frames smaller (24x24 of the asked 96x96 was seen), which is not the failure
+    // this test is about.
     let lit = frame.rgba.chunks(4).filter(|p| p[3] > 0).count();
+    let pixels = (frame.width * frame.height) as usize;
     assert!(
-        lit > 96 * 96 / 10,
-        "the page's frame is nearly empty while its server stalls ({lit} pixels); console:\n{console}"
+        lit > pixels / 10,
+        "the page's {}x{} frame is nearly empty while its server stalls ({lit} pixels lit); \
+         console:\n{console}",
+        frame.width,
+        frame.height
     );
 }
 

@@ -13,9 +13,7 @@ use crate::model::page_table::{PageEntry, PageTable};
 use crate::model::transfer_function::TransferFunctionTable;
 use strata_types::{ValueMapping, VolumeGeometry};
 
-/// Defined in layout.rs (the seam every CPU-side reader uses); kept here so existing paths
-/// resolve.
-pub use crate::model::layout::BrickSource;
+use crate::model::layout::BrickSource;
 
 pub use strata_types::{level_count, level_dims};
 

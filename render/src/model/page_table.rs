@@ -16,11 +16,9 @@ use crate::model::layout::{neighbour_bit, neighbour_offsets};
 /// An octree node: (level, node coordinates within the level).
 type NodeKey = (u8, [u32; 3]);
 
-/// The page word's bits and the slot limits (moved to layout.rs; kept here so existing paths
-/// resolve).
-pub use crate::model::layout::{
+use crate::model::layout::{
     FLAG_EMPTY, FLAG_NOT_RESIDENT, FLAG_TRANSITION, FLAG_WHOLE_NODE, LEVEL_MASK, LEVEL_SHIFT,
-    MAX_SLOTS, MAX_SLOTS_PER_AXIS, SLOT_AXIS_BITS, SLOT_AXIS_MASK,
+    SLOT_AXIS_BITS, SLOT_AXIS_MASK,
 };
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -47,12 +47,8 @@
 
 use crate::model::page_table::PageTable;
 
-/// The blend itself is part of the field (field.rs); kept here so existing paths resolve.
-pub use crate::model::field::{band_weight, distance_to_neighbour, sample_field, FieldSample};
-/// The mask's bit layout (layout.rs: the shader reads the same bits).
-pub use crate::model::layout::{neighbour_bit, neighbour_offset, neighbour_offsets};
-/// The coarser-neighbour query is topology (page_table.rs); kept here so existing paths resolve.
-pub use crate::model::page_table::coarser_neighbours;
+use crate::model::layout::{neighbour_bit, neighbour_offsets};
+use crate::model::page_table::coarser_neighbours;
 
 /// Per page entry, the 26-neighbour mask of the node covering it: bit set where the region
 /// adjacent to the node across that face, edge or corner contains a resident page of a coarser
@@ -132,6 +128,7 @@ pub fn transition_node_fraction(table: &PageTable, masks: &[u32]) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::model::layout::neighbour_offset;
     use crate::model::page_table::PageEntry;
 
     #[test]

@@ -28,11 +28,9 @@ use crate::model::overlay::{OverlayLut, OverlayVolume};
 use crate::model::settings::{RenderMode, RenderSettings};
 use strata_types::{ValueMapping, VolumeGeometry};
 
-/// The GPU resources a [`Scene`] points at (own modules; kept here so existing paths resolve).
-pub use crate::gpu::gpu_page_table::GpuPageTable;
-pub use crate::gpu::gpu_transfer_function::GpuTransferFunction;
-/// The effects of one pipeline (pipelines.rs; kept here so existing paths resolve).
-pub use crate::gpu::pipelines::PipelineKey;
+use crate::gpu::gpu_page_table::GpuPageTable;
+use crate::gpu::gpu_transfer_function::GpuTransferFunction;
+use crate::gpu::pipelines::PipelineKey;
 
 /// Visibility staging ring: the loader reads a frame one or two frames late without stalling.
 const VISIBILITY_RING: usize = 3;

@@ -51,11 +51,6 @@ pub struct ReferenceImage {
     pub depth: Vec<f32>,
 }
 
-/// The field's pieces live in field.rs; kept here so existing paths resolve.
-pub use crate::model::field::{gradient_index, locate, locate_in_page, trilinear, FieldLocation};
-/// The shading thresholds (defined once in layout.rs, shared with the shader's prelude).
-pub use crate::model::layout::{SHADING_FLAT_BELOW, SHADING_LIT_ABOVE};
-
 /// [t_start, t_end] of the ray inside the (cropped) volume box and the clip plane's half space.
 pub fn ray_interval(
     geometry: &VolumeGeometry,
