@@ -9,10 +9,10 @@
 //! written back into a copied link (links are shared, tokens must not be), logged, or saved.
 
 use strata_render::{RenderMode, TransferFunction};
+use strata_viewer_ui::orbit::OrbitCamera;
 use strata_viewer_ui::view_state::{Fragment, Layout as LinkLayout, ViewState};
 
 use super::preferences::Layout;
-use super::view3d::OrbitCamera;
 
 /// A link's store and view.
 #[derive(Clone, Debug, PartialEq)]
