@@ -16,6 +16,42 @@ pub const FOV_Y_DEG: f64 = 30.0;
 
 /// Zoom factor per wheel click in the 3D view.
 pub const ZOOM_PER_WHEEL_LINE: f64 = 1.1;
+/// The zoom's range: from a fifth of the framed volume to twenty times it (the wheel, the
+/// page's zoom slider and its embedding parent's requests stop there).
+pub const MIN_ZOOM: f64 = 0.2;
+pub const MAX_ZOOM: f64 = 20.0;
+
+/// What the pointer did to a 3D view this frame, read alike by both viewers
+/// ([`OrbitInput::read`]) and applied by [`OrbitCamera::follow`].
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct OrbitInput {
+    /// A primary-button drag without Shift, in points: orbits.
+    pub orbit_drag: Option<Vec2>,
+    /// A middle-button drag, or Shift with the primary button, in points: pans.
+    pub pan_drag: Option<Vec2>,
+    /// Wheel clicks over the view (positive: away from the user, zoom in).
+    pub wheel_lines: f64,
+}
+
+impl OrbitInput {
+    /// This frame's pointer on the view's `response` (a rect sensing drags). `orbit_allowed`
+    /// false leaves the primary drag to another tool (the desktop's label brushes; Shift-drag
+    /// still pans).
+    pub fn read(ui: &egui::Ui, response: &egui::Response, orbit_allowed: bool) -> Self {
+        let (shift, pointer_delta) = ui.input(|i| (i.modifiers.shift, i.pointer.delta()));
+        let primary = response.dragged_by(egui::PointerButton::Primary);
+        let middle = response.dragged_by(egui::PointerButton::Middle);
+        OrbitInput {
+            orbit_drag: (primary && !shift && orbit_allowed).then_some(pointer_delta),
+            pan_drag: (middle || (primary && shift)).then_some(pointer_delta),
+            wheel_lines: if response.hovered() {
+                crate::widgets::wheel_lines(ui)
+            } else {
+                0.0
+            },
+        }
+    }
+}
 
 /// Where the 3D view looks from: the state a drag, the wheel and the standard views change,
 /// and what a shared link's `az`, `el`, `zoom`, `pan` and `proj` say.
@@ -160,7 +196,23 @@ impl OrbitCamera {
     /// Wheel: `lines` clicks (positive = away from the user = zoom in), 10 % per click, as
     /// Slicer's 3D view (egui's smoothed scroll in points made 3 clicks zoom ~4×).
     pub fn zoom_by_lines(&mut self, lines: f64) {
-        self.zoom = (self.zoom * ZOOM_PER_WHEEL_LINE.powf(lines)).clamp(0.2, 20.0);
+        self.zoom = (self.zoom * ZOOM_PER_WHEEL_LINE.powf(lines)).clamp(MIN_ZOOM, MAX_ZOOM);
+    }
+
+    /// Applies one frame's pointer `input` on a view `size` points large: orbit, then pan,
+    /// then zoom. True when the view moved (the caller then draws the moving frames at the
+    /// target rate).
+    pub fn follow(&mut self, input: OrbitInput, size: Vec2) -> bool {
+        if let Some(delta) = input.orbit_drag {
+            self.orbit_by(delta, size);
+        }
+        if let Some(delta) = input.pan_drag {
+            self.pan_by(delta, size);
+        }
+        if input.wheel_lines != 0.0 {
+            self.zoom_by_lines(input.wheel_lines);
+        }
+        input.orbit_drag.is_some() || input.pan_drag.is_some() || input.wheel_lines != 0.0
     }
 }
 

@@ -125,11 +125,7 @@ pub fn link_for(store_url: &str, view: &DesktopView) -> Option<String> {
         mode: view.mode,
         preset: view.preset.clone(),
         tf: view.tf.clone(),
-        azimuth_deg: view.orbit.azimuth_deg,
-        elevation_deg: view.orbit.elevation_deg,
-        zoom: view.orbit.zoom,
-        pan: view.orbit.pan,
-        orthographic: view.orbit.orthographic,
+        orbit: view.orbit,
         iso_value: view.iso_value,
         layout: match view.layout {
             Layout::Single => LinkLayout::Single,
@@ -146,13 +142,7 @@ pub fn link_for(store_url: &str, view: &DesktopView) -> Option<String> {
 /// The desktop view a link's view describes.
 pub fn desktop_view(view: &ViewState) -> DesktopView {
     DesktopView {
-        orbit: OrbitCamera {
-            azimuth_deg: view.azimuth_deg,
-            elevation_deg: view.elevation_deg,
-            zoom: view.zoom,
-            pan: view.pan,
-            orthographic: view.orthographic,
-        },
+        orbit: view.orbit,
         mode: view.mode,
         preset: view.preset.clone(),
         tf: view.tf.clone(),

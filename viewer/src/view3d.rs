@@ -12,7 +12,7 @@ use std::time::{Duration, Instant};
 use egui::{Color32, Pos2, Rect, Sense, Stroke, TextureHandle, TextureOptions, Vec2};
 use glam::DVec3;
 use strata_render::{Camera, RenderMode, RenderSettings, VolumeGeometry};
-use strata_viewer_ui::orbit::OrbitCamera;
+use strata_viewer_ui::orbit::{OrbitCamera, OrbitInput};
 use strata_viewer_ui::render_driver::{OverlayIn3d, RenderRequest};
 
 use super::measurements::{Shape, Tool};
@@ -23,7 +23,7 @@ use super::scene::{Scene, VolumeData};
 use super::segmentation::{SegmentTool, Segmentation};
 use super::slice_view::slice_colour;
 use super::volume_session::RenderedFrame;
-use super::widgets::{view_title, wheel_lines, ViewResponse, NOT_FOR_DIAGNOSIS, WARNING_COLOUR};
+use super::widgets::{view_title, ViewResponse, NOT_FOR_DIAGNOSIS, WARNING_COLOUR};
 
 /// Draws axes showing where L, P, S point (lines from the centre; R/A/I labels at the far
 /// ends) in the corner of the 3D view, like Slicer's orientation marker.
@@ -320,20 +320,9 @@ impl View3d {
             .as_ref()
             .map_or(SegmentTool::None, |s| s.tool)
             .filter_3d();
-        let mut moved = false;
-        if response.dragged_by(egui::PointerButton::Primary)
-            && !shift
-            && segment_tool == SegmentTool::None
-        {
-            self.orbit.orbit_by(pointer_delta, rect.size());
-            moved = true;
-        }
-        if response.dragged_by(egui::PointerButton::Middle)
-            || (response.dragged_by(egui::PointerButton::Primary) && shift)
-        {
-            self.orbit.pan_by(pointer_delta, rect.size());
-            moved = true;
-        }
+        // Orbit, pan and zoom as the page's 3D view does (strata_viewer_ui::orbit).
+        let orbit_input = OrbitInput::read(ui, &response, segment_tool == SegmentTool::None);
+        let mut moved = self.orbit.follow(orbit_input, rect.size());
         if response.dragged_by(egui::PointerButton::Secondary) {
             let (lo, hi) = data.info.physical_range;
             let shift_value = pointer_delta.x as f64 / rect.width().max(1.0) as f64 * (hi - lo);
@@ -344,13 +333,6 @@ impl View3d {
                 scale,
             );
             moved = true;
-        }
-        if response.hovered() {
-            let lines = wheel_lines(ui);
-            if lines != 0.0 {
-                self.orbit.zoom_by_lines(lines);
-                moved = true;
-            }
         }
         if response.double_clicked() {
             self.reset(prefs.orthographic);
