@@ -20,7 +20,8 @@ use super::overlay::{Overlay, OverlayKind, OverlayStyle};
 use super::scene::{voxel_index, Scene, VolumeData, Window};
 use super::segmentation::{plane_for_view, Segmentation};
 use super::slices::{level_for_pixels, SliceImage, SliceRequest};
-use super::widgets::{view_title, wheel_lines, ViewResponse};
+use super::widgets::{view_title, ViewResponse};
+use strata_viewer_ui::widgets::wheel_lines;
 
 /// A slice texture and what it was made from (so it is rebuilt only when one of them changes).
 struct SliceTexture {
