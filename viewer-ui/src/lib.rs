@@ -11,7 +11,6 @@
 //!   controller (strata_render::control::time_critical) is driven by.
 //! - [`slice_canvas`]: what a slice view draws around its image (zoom and pan, screen ↔ image
 //!   mapping, crosshair, orientation labels, the flipped image mesh, the colour-map choice).
-//! - [`orbit`]: the 3D view's orbit camera and the six standard views, one for both viewers.
 //! - [`render_driver`]: the render driver both viewers call: what is applied to the streaming
 //!   volume now, and a new render request as a typed difference of actions (issue 47).
 //! - [`layouts`]: where the views go in the 2×2 and the 3D-over-slices layouts.
@@ -24,7 +23,6 @@
 
 pub mod compact_tf;
 pub mod layouts;
-pub mod orbit;
 pub mod performance;
 pub mod presets;
 pub mod render_driver;

@@ -13,11 +13,9 @@
 
 use strata_render::testdata::phantom::ct_phantom;
 use strata_render::{
-    BrickedVolume, Camera, RenderError, RenderMode, RenderSettings, Shading, TransferFunction,
-    VolumeGeometry,
+    BrickedVolume, Camera, Projection, RenderError, RenderMode, RenderSettings, Shading,
+    TransferFunction, VolumeGeometry,
 };
-
-use crate::orbit::OrbitCamera;
 
 /// Edge of the built-in sample volume when the fragment names none (voxels).
 pub const DEFAULT_VOLUME_EDGE: u32 = 128;
@@ -30,6 +28,8 @@ pub const MAX_IMAGE_EDGE: u32 = 4096;
 pub const UNCONVERGED_CAPTURE_FRAMES: u64 = 12;
 /// Most frames a `bench=` fragment may orbit (each is a full frame on a software adapter).
 pub const MAX_BENCH_FRAMES: u32 = 1000;
+/// The orbit camera's field of view, as `strata render`'s perspective default.
+pub const FOV_Y_DEG: f64 = 30.0;
 
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum FragmentError {
@@ -63,10 +63,16 @@ pub struct ViewState {
     /// The function as edited from that preset (`tf=`, compact_tf.rs); None: the preset as
     /// it is. Named "PRESET (edited)", as the desktop names an edited function.
     pub tf: Option<TransferFunction>,
-    /// The 3D view's orbit camera, the desktop's own type: `az`, `el` and `zoom` as `strata
-    /// render --azimuth --elevation --zoom`, `pan` (right, up, in units of the volume's
-    /// bounding radius) and `proj`.
-    pub orbit: OrbitCamera,
+    /// Orbit angles in degrees and zoom (1 frames the volume's bounding sphere), as
+    /// `strata render --azimuth --elevation --zoom`.
+    pub azimuth_deg: f64,
+    pub elevation_deg: f64,
+    pub zoom: f64,
+    /// The target moved in the view plane (right, up) in units of the volume's bounding
+    /// radius, as the desktop viewer pans ([`Camera::orbit_panned`]).
+    pub pan: [f64; 2],
+    /// Parallel projection (the desktop's "orthographic" switch) instead of perspective.
+    pub orthographic: bool,
     pub layout: Layout,
     /// The slice views' linked crosshair (level-0 continuous voxel index); None: the volume's
     /// centre. Applied when a served store opens, clamped to its dimensions.
@@ -101,7 +107,11 @@ impl Default for ViewState {
             mode: RenderMode::Dvr,
             preset: "ct-bone".into(),
             tf: None,
-            orbit: OrbitCamera::default(),
+            azimuth_deg: 30.0,
+            elevation_deg: 15.0,
+            zoom: 1.0,
+            pan: [0.0, 0.0],
+            orthographic: false,
             layout: Layout::FourUp,
             cursor: None,
             window: None,
@@ -235,15 +245,15 @@ impl Fragment {
                     })?;
                     view.tf = Some(tf);
                 }
-                "az" => view.orbit.azimuth_deg = finite(key, value, -3600.0..=3600.0)?,
-                "el" => view.orbit.elevation_deg = finite(key, value, -90.0..=90.0)?,
-                "zoom" => view.orbit.zoom = finite(key, value, 0.05..=100.0)?,
+                "az" => view.azimuth_deg = finite(key, value, -3600.0..=3600.0)?,
+                "el" => view.elevation_deg = finite(key, value, -90.0..=90.0)?,
+                "zoom" => view.zoom = finite(key, value, 0.05..=100.0)?,
                 "iso" => view.iso_value = finite(key, value, -1.0e6..=1.0e6)?,
                 "pan" => {
                     let (x, y) = value
                         .split_once(',')
                         .ok_or_else(|| bad(key, value, "two numbers X,Y"))?;
-                    view.orbit.pan = [
+                    view.pan = [
                         finite(key, x, -100.0..=100.0)?,
                         finite(key, y, -100.0..=100.0)?,
                     ];
@@ -278,7 +288,7 @@ impl Fragment {
                     }
                 }
                 "proj" => {
-                    view.orbit.orthographic = match value {
+                    view.orthographic = match value {
                         "persp" => false,
                         "ortho" => true,
                         _ => return Err(bad(key, value, "persp or ortho")),
@@ -375,18 +385,18 @@ impl ViewState {
             parts.push(format!("tf={text}"));
         }
         parts.extend([
-            format!("az={}", round3(self.orbit.azimuth_deg)),
-            format!("el={}", round3(self.orbit.elevation_deg)),
-            format!("zoom={}", round3(self.orbit.zoom)),
+            format!("az={}", round3(self.azimuth_deg)),
+            format!("el={}", round3(self.elevation_deg)),
+            format!("zoom={}", round3(self.zoom)),
         ]);
-        if self.orbit.pan != [0.0, 0.0] {
+        if self.pan != [0.0, 0.0] {
             parts.push(format!(
                 "pan={},{}",
-                round3(self.orbit.pan[0]),
-                round3(self.orbit.pan[1])
+                round3(self.pan[0]),
+                round3(self.pan[1])
             ));
         }
-        if self.orbit.orthographic {
+        if self.orthographic {
             parts.push("proj=ortho".into());
         }
         match self.layout {
@@ -432,10 +442,25 @@ impl ViewState {
         ct_phantom(self.geometry(), None, None)
     }
 
-    /// The orbit's camera ([`OrbitCamera::camera`], the desktop's: a link opens the same
-    /// picture in both).
+    /// The orbit camera, as `strata render --azimuth --elevation --zoom` and the desktop
+    /// viewer build it (the same function: a link opens the same picture in both).
     pub fn camera(&self, geometry: &VolumeGeometry) -> Camera {
-        self.orbit.camera(geometry)
+        let projection = if self.orthographic {
+            // orbit_panned sizes the height from the zoom.
+            Projection::Orthographic { height_mm: 1.0 }
+        } else {
+            Projection::Perspective {
+                fov_y_deg: FOV_Y_DEG,
+            }
+        };
+        Camera::orbit_panned(
+            geometry,
+            self.azimuth_deg,
+            self.elevation_deg,
+            self.zoom,
+            self.pan,
+            projection,
+        )
     }
 
     /// The view's transfer function: the edited one if the link carries it, else its preset's
@@ -493,148 +518,17 @@ mod tests {
         assert!(short.contains("`volume`"), "{short}");
     }
 
-    /// A link shared before the page held the desktop's orbit camera (issue 47 item 5) opens
-    /// the same view: the same numbers, the same camera as the formula the page used then
-    /// (`Camera::orbit_panned` with a 30° perspective, or orthographic sized by the zoom), and
-    /// it is written back as it was.
-    #[test]
-    fn links_shared_before_the_shared_orbit_camera_open_the_same_view() {
-        use strata_render::Projection;
-        let geometry = VolumeGeometry::axis_aligned([96, 80, 64], [0.8, 0.8, 1.5]);
-        for (link, projection) in [
-            (
-                "#store=ct&mode=dvr&preset=ct-bone&az=35&el=20&zoom=1.4&pan=0.125,-0.5&proj=ortho",
-                Projection::Orthographic { height_mm: 1.0 },
-            ),
-            (
-                "#mode=iso&preset=ct-bone&iso=200&az=120&el=-25&zoom=1.5&volume=48",
-                Projection::Perspective { fov_y_deg: 30.0 },
-            ),
-        ] {
-            let view = Fragment::parse(link).expect("an old link parses").view;
-            let (azimuth_deg, elevation_deg, zoom, pan) = if link.contains("pan=") {
-                (35.0, 20.0, 1.4, [0.125, -0.5])
-            } else {
-                (120.0, -25.0, 1.5, [0.0, 0.0])
-            };
-            assert_eq!(
-                view.orbit,
-                OrbitCamera {
-                    azimuth_deg,
-                    elevation_deg,
-                    zoom,
-                    pan,
-                    orthographic: link.contains("proj=ortho"),
-                },
-                "{link}"
-            );
-            assert_eq!(
-                view.camera(&geometry),
-                Camera::orbit_panned(&geometry, azimuth_deg, elevation_deg, zoom, pan, projection),
-                "{link}"
-            );
-            let written = view.to_fragment();
-            let orbit_keys: Vec<&str> = link
-                .trim_start_matches('#')
-                .split('&')
-                .filter(|pair| {
-                    ["az=", "el=", "zoom=", "pan=", "proj="]
-                        .iter()
-                        .any(|k| pair.starts_with(k))
-                })
-                .collect();
-            for pair in orbit_keys {
-                assert!(written.contains(pair), "{pair} not in {written}");
-            }
-        }
-    }
-
-    /// The page and the desktop hold the same orbit camera: from the same link and the same
-    /// pointer input (orbit drags, a pan, wheel clicks) they show the same camera, and the
-    /// link of the moved view reopens it (to the link's three decimals).
-    #[test]
-    fn the_page_and_the_desktop_orbit_alike_from_the_same_link() {
-        use crate::orbit::OrbitInput;
-        use egui::Vec2;
-        let geometry = VolumeGeometry::axis_aligned([96, 80, 64], [0.8, 0.8, 1.5]);
-        let link = "#store=ct&mode=dvr&preset=ct-bone&az=35&el=20&zoom=1.4&pan=0.125,-0.5";
-        let mut page = Fragment::parse(link).expect("parses").view;
-        // The desktop's link reader (viewer/src/links.rs) takes the link's orbit as it is.
-        let mut desktop = Fragment::parse(link).expect("parses").view.orbit;
-        let size = Vec2::new(480.0, 360.0);
-        let inputs = [
-            OrbitInput {
-                orbit_drag: Some(Vec2::new(12.0, -7.5)),
-                ..OrbitInput::default()
-            },
-            OrbitInput {
-                orbit_drag: Some(Vec2::new(-3.0, 40.0)),
-                ..OrbitInput::default()
-            },
-            OrbitInput {
-                pan_drag: Some(Vec2::new(25.0, 10.0)),
-                ..OrbitInput::default()
-            },
-            OrbitInput {
-                wheel_lines: 3.0,
-                ..OrbitInput::default()
-            },
-            OrbitInput {
-                orbit_drag: Some(Vec2::new(500.0, 900.0)),
-                ..OrbitInput::default()
-            },
-        ];
-        let start = page.camera(&geometry);
-        for input in inputs {
-            assert!(page.orbit.follow(input, size), "{input:?} moves the view");
-            // The desktop's 3D view before it read OrbitInput: one call per gesture.
-            if let Some(delta) = input.orbit_drag {
-                desktop.orbit_by(delta, size);
-            }
-            if let Some(delta) = input.pan_drag {
-                desktop.pan_by(delta, size);
-            }
-            if input.wheel_lines != 0.0 {
-                desktop.zoom_by_lines(input.wheel_lines);
-            }
-            assert_eq!(
-                page.camera(&geometry),
-                desktop.camera(&geometry),
-                "{input:?}"
-            );
-        }
-        assert_ne!(page.camera(&geometry), start, "the input moved the camera");
-        assert_eq!(
-            page.orbit.elevation_deg, 90.0,
-            "the last drag stops at the pole"
-        );
-        assert!(
-            !page.orbit.follow(OrbitInput::default(), size),
-            "no input, no move"
-        );
-        let reopened = Fragment::parse(&page.to_fragment())
-            .expect("parses")
-            .view
-            .orbit;
-        assert!((reopened.azimuth_deg - desktop.azimuth_deg).abs() <= 5e-4);
-        assert!((reopened.zoom - desktop.zoom).abs() <= 5e-4);
-        assert!((reopened.pan[0] - desktop.pan[0]).abs() <= 5e-4);
-        assert!((reopened.pan[1] - desktop.pan[1]).abs() <= 5e-4);
-    }
-
     #[test]
     fn a_view_survives_its_fragment() {
         let view = ViewState {
             mode: RenderMode::Isosurface,
             preset: "ct-soft-tissue".into(),
             tf: None,
-            orbit: OrbitCamera {
-                azimuth_deg: -42.5,
-                elevation_deg: 12.25,
-                zoom: 1.75,
-                pan: [0.125, -0.5],
-                orthographic: true,
-            },
+            azimuth_deg: -42.5,
+            elevation_deg: 12.25,
+            zoom: 1.75,
+            pan: [0.125, -0.5],
+            orthographic: true,
             layout: Layout::Single,
             cursor: Some([10.5, 20.0, 3.25]),
             window: Some([40.0, 400.0]),

@@ -29,21 +29,3 @@ pub fn slow_spinner(ui: &mut egui::Ui) -> egui::Response {
     }
     response
 }
-
-/// Wheel movement this frame in lines (up positive), whatever unit the platform reports it in.
-pub fn wheel_lines(ui: &egui::Ui) -> f64 {
-    ui.input(|i| {
-        i.events
-            .iter()
-            .map(|e| match e {
-                egui::Event::MouseWheel { unit, delta, .. } => match unit {
-                    // egui-winit reports a wheel click as 40 points on most platforms.
-                    egui::MouseWheelUnit::Point => delta.y as f64 / 40.0,
-                    egui::MouseWheelUnit::Line => delta.y as f64,
-                    egui::MouseWheelUnit::Page => delta.y as f64 * 10.0,
-                },
-                _ => 0.0,
-            })
-            .sum::<f64>()
-    })
-}

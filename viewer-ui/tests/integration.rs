@@ -2,7 +2,6 @@
 //! read what the widgets did to their inputs and the accessibility tree's labels). One binary
 //! for all of them, as the other crates do: each test file is a module.
 
-mod orbit_input;
 mod performance;
 mod slice_canvas;
 mod target_fps;

@@ -9,10 +9,10 @@
 //! written back into a copied link (links are shared, tokens must not be), logged, or saved.
 
 use strata_render::{RenderMode, TransferFunction};
-use strata_viewer_ui::orbit::OrbitCamera;
 use strata_viewer_ui::view_state::{Fragment, Layout as LinkLayout, ViewState};
 
 use super::preferences::Layout;
+use super::view3d::OrbitCamera;
 
 /// A link's store and view.
 #[derive(Clone, Debug, PartialEq)]
@@ -125,7 +125,11 @@ pub fn link_for(store_url: &str, view: &DesktopView) -> Option<String> {
         mode: view.mode,
         preset: view.preset.clone(),
         tf: view.tf.clone(),
-        orbit: view.orbit,
+        azimuth_deg: view.orbit.azimuth_deg,
+        elevation_deg: view.orbit.elevation_deg,
+        zoom: view.orbit.zoom,
+        pan: view.orbit.pan,
+        orthographic: view.orbit.orthographic,
         iso_value: view.iso_value,
         layout: match view.layout {
             Layout::Single => LinkLayout::Single,
@@ -143,7 +147,13 @@ pub fn link_for(store_url: &str, view: &DesktopView) -> Option<String> {
 /// The desktop view a link's view describes.
 pub fn desktop_view(view: &ViewState) -> DesktopView {
     DesktopView {
-        orbit: view.orbit,
+        orbit: OrbitCamera {
+            azimuth_deg: view.azimuth_deg,
+            elevation_deg: view.elevation_deg,
+            zoom: view.zoom,
+            pan: view.pan,
+            orthographic: view.orthographic,
+        },
         mode: view.mode,
         preset: view.preset.clone(),
         tf: view.tf.clone(),

@@ -13,8 +13,7 @@ use super::oblique::{
 };
 use super::scene::{Scene, VolumeData, Window};
 use super::slice_view::drag_window;
-use super::widgets::{view_title, ViewResponse};
-use strata_viewer_ui::widgets::wheel_lines;
+use super::widgets::{view_title, wheel_lines, ViewResponse};
 
 /// Radians the plane turns per point dragged.
 pub const TURN_PER_POINT: f64 = 0.01;

@@ -27,7 +27,6 @@ use std::time::{Duration, Instant};
 
 use serde::{Deserialize, Serialize};
 use strata_render::{CropBox, TransferFunction};
-use strata_viewer_ui::orbit::OrbitCamera;
 
 use glam::DVec3;
 
@@ -36,6 +35,7 @@ use super::oblique::ObliquePlane;
 use super::preferences::Preferences;
 use super::scene::{ClipSettings, Scene, Window};
 use super::sync::lock_ignoring_poison;
+use super::view3d::OrbitCamera;
 
 /// The child's exit code after its UI device was lost (EX_TEMPFAIL: "try again").
 pub const UI_DEVICE_LOST_EXIT: i32 = 75;

@@ -20,8 +20,7 @@ use super::overlay::{Overlay, OverlayKind, OverlayStyle};
 use super::scene::{voxel_index, Scene, VolumeData, Window};
 use super::segmentation::{plane_for_view, Segmentation};
 use super::slices::{level_for_pixels, SliceImage, SliceRequest};
-use super::widgets::{view_title, ViewResponse};
-use strata_viewer_ui::widgets::wheel_lines;
+use super::widgets::{view_title, wheel_lines, ViewResponse};
 
 /// A slice texture and what it was made from (so it is rebuilt only when one of them changes).
 struct SliceTexture {

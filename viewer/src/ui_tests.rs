@@ -576,7 +576,7 @@ fn a_click_in_the_3d_view_picks_the_bone_surface_it_shows() {
     let store = phantom_store(dir.path());
     let mut options = ViewerOptions::new(VolumeToOpen::Path(store.clone()));
     options.import_folder = dir.path().join("imported");
-    options.initial_view = Some(strata_viewer_ui::orbit::StandardView::Anterior);
+    options.initial_view = Some(super::view3d::StandardView::Anterior);
     let preferences = Preferences {
         layout: Layout::TwoByTwo,
         show_side_panel: false,
@@ -1004,7 +1004,7 @@ fn the_crop_box_is_drawn_in_3d_and_dragging_its_superior_handle_lowers_the_top()
     let store = phantom_store(dir.path());
     let mut options = ViewerOptions::new(VolumeToOpen::Path(store.clone()));
     options.import_folder = dir.path().join("imported");
-    options.initial_view = Some(strata_viewer_ui::orbit::StandardView::Anterior);
+    options.initial_view = Some(super::view3d::StandardView::Anterior);
     let preferences = Preferences {
         layout: Layout::TwoByTwo,
         show_side_panel: false,
@@ -1813,7 +1813,7 @@ fn a_label_map_colours_the_3d_pixels_over_it_and_hiding_the_label_removes_it() {
 fn a_restarted_viewer_opens_its_volume_with_the_saved_session() {
     use super::scene::{ClipSettings, Scene, Window};
     use super::session_restore::SavedSession;
-    use strata_viewer_ui::orbit::OrbitCamera;
+    use super::view3d::OrbitCamera;
     let dir = tempfile::tempdir().expect("tempdir");
     let store = dir.path().join("phantom.strata");
     Phantom::cube(32)
@@ -2536,9 +2536,9 @@ fn the_cinematic_presets_set_the_tf_and_lighting_the_3d_view_renders_with() {
 #[test]
 fn a_viewer_link_opens_its_store_and_view_and_copy_link_gives_it_back_without_the_token() {
     use super::links;
+    use super::view3d::OrbitCamera;
     use strata_render::RenderMode;
     use strata_service::server::{name_for_store, start, ServeOptions};
-    use strata_viewer_ui::orbit::OrbitCamera;
 
     let dir = tempfile::tempdir().expect("temp dir");
     let store = phantom_store(dir.path());
@@ -2969,7 +2969,7 @@ fn in_3d_the_brush_paints_the_ball_around_the_picked_surface_point_and_undo_remo
     let store = phantom_store(dir.path());
     let mut options = ViewerOptions::new(VolumeToOpen::Path(store));
     options.import_folder = dir.path().join("imported");
-    options.initial_view = Some(strata_viewer_ui::orbit::StandardView::Anterior);
+    options.initial_view = Some(super::view3d::StandardView::Anterior);
     let preferences = Preferences {
         layout: Layout::TwoByTwo,
         show_side_panel: true,

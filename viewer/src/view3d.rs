@@ -1,7 +1,6 @@
-//! The 3D view: its mouse handling (orbit: left drag; pan: middle or shift+left; zoom: wheel;
-//! TF shift/widen: right drag) on its orbit camera (strata_viewer_ui::orbit, the page's too),
-//! the render request it sends, the frame it shows, the slice-plane outlines and the
-//! orientation marker.
+//! The 3D view: its camera and mouse handling (orbit: left drag; pan: middle or shift+left;
+//! zoom: wheel; TF shift/widen: right drag), the six standard views, the render request it
+//! sends, the frame it shows, the slice-plane outlines and the orientation marker.
 //!
 //! Picking, outlines, measurements, the crop box and the orientation marker are drawn with the
 //! shown frame's camera (`View3d::overlay_camera`), not the live orbit's: the frame on screen may
@@ -11,8 +10,8 @@ use std::time::{Duration, Instant};
 
 use egui::{Color32, Pos2, Rect, Sense, Stroke, TextureHandle, TextureOptions, Vec2};
 use glam::DVec3;
-use strata_render::{Camera, RenderMode, RenderSettings, VolumeGeometry};
-use strata_viewer_ui::orbit::{OrbitCamera, OrbitInput};
+use serde::{Deserialize, Serialize};
+use strata_render::{Camera, Projection, RenderMode, RenderSettings, VolumeGeometry};
 use strata_viewer_ui::render_driver::{OverlayIn3d, RenderRequest};
 
 use super::measurements::{Shape, Tool};
@@ -23,7 +22,152 @@ use super::scene::{Scene, VolumeData};
 use super::segmentation::{SegmentTool, Segmentation};
 use super::slice_view::slice_colour;
 use super::volume_session::RenderedFrame;
-use super::widgets::{view_title, ViewResponse, NOT_FOR_DIAGNOSIS, WARNING_COLOUR};
+use super::widgets::{view_title, wheel_lines, ViewResponse, NOT_FOR_DIAGNOSIS, WARNING_COLOUR};
+
+/// Zoom factor per wheel click in the 3D view.
+pub const ZOOM_PER_WHEEL_LINE: f64 = 1.1;
+
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct OrbitCamera {
+    /// Degrees about the patient's superior axis; 0 looks at the patient's face (anterior view).
+    pub azimuth_deg: f64,
+    /// Degrees towards superior, within ±90.
+    pub elevation_deg: f64,
+    /// 1 frames the whole volume.
+    pub zoom: f64,
+    /// Target offset in the view plane, in units of the volume's bounding radius.
+    pub pan: [f64; 2],
+    pub orthographic: bool,
+}
+
+impl Default for OrbitCamera {
+    fn default() -> Self {
+        OrbitCamera {
+            azimuth_deg: 30.0,
+            elevation_deg: 15.0,
+            zoom: 1.0,
+            pan: [0.0, 0.0],
+            orthographic: false,
+        }
+    }
+}
+
+/// The six standard views, named for where the viewer stands.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum StandardView {
+    Anterior,
+    Posterior,
+    Left,
+    Right,
+    Superior,
+    Inferior,
+}
+
+impl StandardView {
+    pub const ALL: [StandardView; 6] = [
+        StandardView::Anterior,
+        StandardView::Posterior,
+        StandardView::Left,
+        StandardView::Right,
+        StandardView::Superior,
+        StandardView::Inferior,
+    ];
+
+    pub fn letter(self) -> &'static str {
+        match self {
+            StandardView::Anterior => "A",
+            StandardView::Posterior => "P",
+            StandardView::Left => "L",
+            StandardView::Right => "R",
+            StandardView::Superior => "S",
+            StandardView::Inferior => "I",
+        }
+    }
+
+    pub fn key(self) -> egui::Key {
+        match self {
+            StandardView::Anterior => egui::Key::A,
+            StandardView::Posterior => egui::Key::P,
+            StandardView::Left => egui::Key::L,
+            StandardView::Right => egui::Key::R,
+            StandardView::Superior => egui::Key::S,
+            StandardView::Inferior => egui::Key::I,
+        }
+    }
+
+    pub fn description(self) -> &'static str {
+        match self {
+            StandardView::Anterior => "from the front (anterior)",
+            StandardView::Posterior => "from behind (posterior)",
+            StandardView::Left => "from the patient's left",
+            StandardView::Right => "from the patient's right",
+            StandardView::Superior => "from above (superior)",
+            StandardView::Inferior => "from below (inferior)",
+        }
+    }
+}
+
+impl OrbitCamera {
+    pub fn standard(view: StandardView, orthographic: bool) -> Self {
+        // Azimuth 90° puts the eye at +x (LPS left): the patient's left side faces us.
+        let (azimuth_deg, elevation_deg) = match view {
+            StandardView::Anterior => (0.0, 0.0),
+            StandardView::Posterior => (180.0, 0.0),
+            StandardView::Left => (90.0, 0.0),
+            StandardView::Right => (-90.0, 0.0),
+            StandardView::Superior => (0.0, 90.0),
+            StandardView::Inferior => (0.0, -90.0),
+        };
+        OrbitCamera {
+            azimuth_deg,
+            elevation_deg,
+            zoom: 1.0,
+            pan: [0.0, 0.0],
+            orthographic,
+        }
+    }
+
+    /// The camera this orbit shows: [`Camera::orbit_panned`], the one definition a shared
+    /// link's view (strata_viewer_ui::view_state) also uses.
+    pub fn camera(&self, geometry: &VolumeGeometry) -> Camera {
+        let projection = if self.orthographic {
+            // orbit_panned sizes the height from the zoom.
+            Projection::Orthographic { height_mm: 1.0 }
+        } else {
+            Projection::Perspective { fov_y_deg: 30.0 }
+        };
+        Camera::orbit_panned(
+            geometry,
+            self.azimuth_deg,
+            self.elevation_deg,
+            self.zoom,
+            self.pan,
+            projection,
+        )
+    }
+
+    /// Orbit by a drag of `delta` points in a view `size` points tall.
+    pub fn orbit_by(&mut self, delta: Vec2, size: Vec2) {
+        let degrees_per_point = 180.0 / size.y.max(100.0) as f64;
+        self.azimuth_deg =
+            (self.azimuth_deg - delta.x as f64 * degrees_per_point).rem_euclid(360.0);
+        self.elevation_deg =
+            (self.elevation_deg + delta.y as f64 * degrees_per_point).clamp(-90.0, 90.0);
+    }
+
+    pub fn pan_by(&mut self, delta: Vec2, size: Vec2) {
+        // A drag across the full view height moves the scene by one bounding diameter at zoom 1.
+        let per_point = 2.0 / size.y.max(1.0) as f64 / self.zoom;
+        self.pan[0] -= delta.x as f64 * per_point;
+        self.pan[1] += delta.y as f64 * per_point;
+    }
+
+    /// Wheel: `lines` clicks (positive = away from the user = zoom in), 10 % per click, as
+    /// Slicer's 3D view (egui's smoothed scroll in points made 3 clicks zoom ~4×).
+    pub fn zoom_by_lines(&mut self, lines: f64) {
+        self.zoom = (self.zoom * ZOOM_PER_WHEEL_LINE.powf(lines)).clamp(0.2, 20.0);
+    }
+}
 
 /// Draws axes showing where L, P, S point (lines from the centre; R/A/I labels at the far
 /// ends) in the corner of the 3D view, like Slicer's orientation marker.
@@ -320,9 +464,20 @@ impl View3d {
             .as_ref()
             .map_or(SegmentTool::None, |s| s.tool)
             .filter_3d();
-        // Orbit, pan and zoom as the page's 3D view does (strata_viewer_ui::orbit).
-        let orbit_input = OrbitInput::read(ui, &response, segment_tool == SegmentTool::None);
-        let mut moved = self.orbit.follow(orbit_input, rect.size());
+        let mut moved = false;
+        if response.dragged_by(egui::PointerButton::Primary)
+            && !shift
+            && segment_tool == SegmentTool::None
+        {
+            self.orbit.orbit_by(pointer_delta, rect.size());
+            moved = true;
+        }
+        if response.dragged_by(egui::PointerButton::Middle)
+            || (response.dragged_by(egui::PointerButton::Primary) && shift)
+        {
+            self.orbit.pan_by(pointer_delta, rect.size());
+            moved = true;
+        }
         if response.dragged_by(egui::PointerButton::Secondary) {
             let (lo, hi) = data.info.physical_range;
             let shift_value = pointer_delta.x as f64 / rect.width().max(1.0) as f64 * (hi - lo);
@@ -333,6 +488,13 @@ impl View3d {
                 scale,
             );
             moved = true;
+        }
+        if response.hovered() {
+            let lines = wheel_lines(ui);
+            if lines != 0.0 {
+                self.orbit.zoom_by_lines(lines);
+                moved = true;
+            }
         }
         if response.double_clicked() {
             self.reset(prefs.orthographic);
@@ -1007,5 +1169,76 @@ mod tests {
         let outside =
             ObliquePlane::axial(g.patient_from_index(DVec3::new(10.0, 12.0, 40.0)), 200.0);
         assert!(oblique_outline(&outside, &g, lo, hi).is_empty());
+    }
+
+    fn geometry() -> VolumeGeometry {
+        VolumeGeometry::axis_aligned([64, 64, 64], [1.0, 1.0, 1.0])
+    }
+
+    #[test]
+    fn standard_views_look_from_the_named_side() {
+        let g = geometry();
+        let centre = g.centre_patient();
+        let from = |v: StandardView| {
+            (DVec3::from(OrbitCamera::standard(v, false).camera(&g).eye) - centre)
+                .try_normalize()
+                .expect("the eye is away from the centre")
+        };
+        assert!(
+            from(StandardView::Anterior).dot(-DVec3::Y) > 0.99,
+            "anterior is -y in LPS"
+        );
+        assert!(from(StandardView::Posterior).dot(DVec3::Y) > 0.99);
+        assert!(
+            from(StandardView::Left).dot(DVec3::X) > 0.99,
+            "patient left is +x in LPS"
+        );
+        assert!(from(StandardView::Right).dot(-DVec3::X) > 0.99);
+        assert!(
+            from(StandardView::Superior).dot(DVec3::Z) > 0.99,
+            "superior is +z in LPS"
+        );
+        assert!(from(StandardView::Inferior).dot(-DVec3::Z) > 0.99);
+    }
+
+    #[test]
+    fn superior_is_up_on_screen_and_the_patients_left_on_the_right_in_an_anterior_view() {
+        let g = geometry();
+        let basis = OrbitCamera::standard(StandardView::Anterior, false)
+            .camera(&g)
+            .basis();
+        assert!(basis.up.dot(DVec3::Z) > 0.99, "superior at the top");
+        // Facing the patient, their left (+x) is on the viewer's right.
+        assert!(basis.right.dot(DVec3::X) > 0.99);
+        let basis = OrbitCamera::standard(StandardView::Superior, false)
+            .camera(&g)
+            .basis();
+        assert!(
+            basis.up.dot(-DVec3::Y) > 0.99,
+            "anterior at the top when looking down"
+        );
+    }
+
+    #[test]
+    fn three_wheel_clicks_zoom_a_third_not_four_times() {
+        let mut orbit = OrbitCamera::default();
+        for _ in 0..3 {
+            orbit.zoom_by_lines(1.0);
+        }
+        assert!((orbit.zoom - 1.331).abs() < 1e-9, "zoom {}", orbit.zoom);
+        orbit.zoom_by_lines(-3.0);
+        assert!((orbit.zoom - 1.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn pan_moves_eye_and_target_together() {
+        let g = geometry();
+        let mut orbit = OrbitCamera::default();
+        let before = orbit.camera(&g);
+        orbit.pan_by(Vec2::new(30.0, 0.0), Vec2::new(300.0, 300.0));
+        let after = orbit.camera(&g);
+        let eye_shift = DVec3::from(after.eye) - DVec3::from(before.eye);
+        let target_shift = DVec3::from(after.target) - DVec3::from(before.target);
+        assert!((eye_shift - target_shift).length() < 1e-9 && eye_shift.length() > 1.0);
     }
 }

@@ -70,6 +70,24 @@ pub struct ViewResponse {
     pub hover: Option<[f64; 3]>,
 }
 
+/// Wheel movement this frame in lines (up positive), whatever unit the platform reports it in.
+pub fn wheel_lines(ui: &egui::Ui) -> f64 {
+    ui.input(|i| {
+        i.events
+            .iter()
+            .map(|e| match e {
+                egui::Event::MouseWheel { unit, delta, .. } => match unit {
+                    // egui-winit reports a wheel click as 40 points on most platforms.
+                    egui::MouseWheelUnit::Point => delta.y as f64 / 40.0,
+                    egui::MouseWheelUnit::Line => delta.y as f64,
+                    egui::MouseWheelUnit::Page => delta.y as f64 * 10.0,
+                },
+                _ => 0.0,
+            })
+            .sum::<f64>()
+    })
+}
+
 /// Paints a view's title; returns true when it was double-clicked (focus toggle).
 pub fn view_title(ui: &mut egui::Ui, rect: Rect, id: &str, title: &str, colour: Color32) -> bool {
     let galley_rect = Rect::from_min_size(

@@ -31,13 +31,14 @@ use crate::view_state::{Fragment, Layout, ViewState};
 use crate::volume_menu;
 use strata_source::wire::StoreList;
 use strata_source::VolumeSource;
-use strata_viewer_ui::orbit::{OrbitCamera, OrbitInput, StandardView, MAX_ZOOM, MIN_ZOOM};
 use strata_viewer_ui::presets;
 use strata_viewer_ui::render_driver::{RenderChange, RenderDriver, RenderRequest};
 
 /// The largest image edge drawn when the canvas decides (device pixels): a 4K canvas is drawn
 /// at this size and scaled, so one frame stays bounded on a software adapter.
 const MAX_CANVAS_IMAGE_EDGE: f32 = 2048.0;
+/// Degrees of orbit per logical pixel dragged.
+const ORBIT_DEG_PER_POINT: f64 = 0.4;
 
 /// Called by the wasm-bindgen glue when the module loads.
 #[wasm_bindgen(start)]
@@ -599,20 +600,10 @@ impl WebViewer {
                 ui.add(egui::Slider::new(&mut self.view.iso_value, range).text(label));
             }
             ui.add(
-                egui::Slider::new(&mut self.view.orbit.zoom, MIN_ZOOM..=MAX_ZOOM)
+                egui::Slider::new(&mut self.view.zoom, 0.25..=8.0)
                     .logarithmic(true)
                     .text("zoom"),
             );
-            // The desktop's six standard views, kept in the current projection.
-            for view in StandardView::ALL {
-                if ui
-                    .small_button(view.letter())
-                    .on_hover_text(format!("View {}", view.description()))
-                    .clicked()
-                {
-                    self.view.orbit = OrbitCamera::standard(view, self.view.orbit.orthographic);
-                }
-            }
         });
     }
 
@@ -651,8 +642,8 @@ impl WebViewer {
             };
             ui.horizontal(|ui| {
                 ui.label(format!(
-                    "Store {name} · {detail} · 3D: drag to orbit, middle (or Shift+) drag to pan, \
-                     scroll to zoom; slices: click moves the crosshair, scroll pages, Ctrl+scroll zooms, middle drag pans, \
+                    "Store {name} · {detail} · 3D: drag to orbit, scroll to zoom; slices: click \
+                     moves the crosshair, scroll pages, Ctrl+scroll zooms, middle drag pans, \
                      right drag (or Shift+drag) windows; the address holds the view · not for \
                      diagnostic use"
                 ));
@@ -662,7 +653,7 @@ impl WebViewer {
         ui.horizontal(|ui| {
             ui.label(format!(
                 "Sample volume {}³ (CT phantom made in the page) · frames drawn {} · 3D: drag to \
-                 orbit, middle (or Shift+) drag to pan, scroll to zoom; slices: click moves the crosshair, scroll pages, \
+                 orbit, scroll to zoom; slices: click moves the crosshair, scroll pages, \
                  Ctrl+scroll zooms, middle drag pans, right drag (or Shift+drag) windows; the \
                  address holds this view · not for diagnostic use",
                 self.view.volume_edge, self.frames_submitted
@@ -1058,14 +1049,26 @@ impl eframe::App for WebViewer {
                     Some((rect, slices)) if has_slices => (rect, Some(slices)),
                     _ => (area, None),
                 };
-                // The desktop's orbit camera and its pointer reading (strata_viewer_ui::orbit):
-                // left drag orbits, middle or Shift+left drag pans, the wheel zooms.
                 let response = ui.allocate_rect(rect, egui::Sense::drag());
-                let orbit_input = OrbitInput::read(ui, &response, true);
-                let moved = self.view.orbit.follow(orbit_input, rect.size());
+                if response.dragged() {
+                    let delta = response.drag_delta();
+                    self.view.azimuth_deg -= delta.x as f64 * ORBIT_DEG_PER_POINT;
+                    self.view.elevation_deg = (self.view.elevation_deg
+                        + delta.y as f64 * ORBIT_DEG_PER_POINT)
+                        .clamp(-89.0, 89.0);
+                }
                 if self.timing.orbiting() {
-                    self.view.orbit.azimuth_deg += BENCH_DEG_PER_FRAME;
+                    self.view.azimuth_deg += BENCH_DEG_PER_FRAME;
                     ctx.request_repaint();
+                }
+                let mut moved = response.dragged();
+                if response.hovered() {
+                    let scroll = ui.input(|i| i.smooth_scroll_delta.y);
+                    if scroll != 0.0 {
+                        self.view.zoom =
+                            (self.view.zoom * (scroll as f64 * 0.002).exp()).clamp(0.25, 8.0);
+                        moved = true;
+                    }
                 }
                 // Orbit and zoom move the view: the target-fps control's rate until it rests,
                 // then one full-quality frame (a repaint is asked for that moment).

@@ -22,7 +22,6 @@ use std::cell::RefCell;
 use std::rc::Rc;
 
 use strata_render::TransferFunction;
-use strata_viewer_ui::orbit::{MAX_ZOOM, MIN_ZOOM};
 use wasm_bindgen::prelude::*;
 use wasm_bindgen::JsCast;
 
@@ -43,9 +42,9 @@ struct ReportedView {
 impl ReportedView {
     fn of(view: &ViewState) -> Self {
         ReportedView {
-            azimuth: view.orbit.azimuth_deg,
-            elevation: view.orbit.elevation_deg,
-            zoom: view.orbit.zoom,
+            azimuth: view.azimuth_deg,
+            elevation: view.elevation_deg,
+            zoom: view.zoom,
             preset: view.preset.clone(),
         }
     }
@@ -276,15 +275,15 @@ fn apply_view(view: &mut ViewState, update: &JsValue) -> Result<(), String> {
         None => return Err("view `preset` must be a name".into()),
     };
     if let Some(azimuth) = azimuth {
-        view.orbit.azimuth_deg = azimuth;
+        view.azimuth_deg = azimuth;
     }
-    // The orbit camera's own limits (strata_viewer_ui::orbit): the report then tells the
+    // The page's own limits (the orbit's and the zoom slider's): the report then tells the
     // parent the value it got.
     if let Some(elevation) = elevation {
-        view.orbit.elevation_deg = elevation.clamp(-90.0, 90.0);
+        view.elevation_deg = elevation.clamp(-89.0, 89.0);
     }
     if let Some(zoom) = zoom {
-        view.orbit.zoom = zoom.clamp(MIN_ZOOM, MAX_ZOOM);
+        view.zoom = zoom.clamp(0.25, 8.0);
     }
     if let Some(preset) = preset {
         if view.preset != preset {

@@ -1007,7 +1007,7 @@ fn benchmark_the_browser_against_the_desktop_on_one_served_store() {
     let mut moving = sample_view.clone();
     let mut desktop_frames = Vec::new();
     for _ in 0..=orbit_frames {
-        moving.orbit.azimuth_deg += 2.0;
+        moving.azimuth_deg += 2.0;
         let camera = moving.camera(&sample.geometry);
         let started = Instant::now();
         renderer
