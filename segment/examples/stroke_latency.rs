@@ -4,8 +4,9 @@
 //! - `paint`: the UI thread's work (`Segmentation::stroke_to`: the disc swept from the last
 //!   position, the bricks it reaches copied and written);
 //! - `slice`: the overlay reader's work, the edited slice read back (512², the labels on the
-//!   primary's grid, as the slice view samples them);
-//! and per stroke the merge of its events into one undo step (`end_stroke`, at release).
+//!   primary's grid, as the slice view samples them).
+//!
+//! And per stroke, the merge of its events into one undo step (`end_stroke`, at release).
 //!
 //! `cargo run --release -p strata-segment --example stroke_latency [-- STROKES EVENTS]`
 //! (default 10 strokes of 200 events). One thread: wall time is its CPU time on an idle machine.
