@@ -5,7 +5,8 @@ use std::collections::HashMap;
 use std::path::PathBuf;
 
 use strata_storage::phantom::Phantom;
-use strata_storage::{BrickId, Store, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
+use strata_storage::Store;
+use strata_types::{BrickId, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
 
 // The brick constants at the width this checker's index arithmetic uses.
 const CORE: u64 = BRICK_CORE as u64;

@@ -330,7 +330,7 @@ fn storage_and_render_agree_on_every_brick() {
             for y in 0..n[1] as u32 {
                 for x in 0..n[0] as u32 {
                     let from_store = store
-                        .read_brick(strata_storage::BrickId::new(level as u8, [x, y, z]))
+                        .read_brick(strata_types::BrickId::new(level as u8, [x, y, z]))
                         .unwrap();
                     let in_memory = volume.brick(level as u8, [x, y, z]).unwrap();
                     assert!(

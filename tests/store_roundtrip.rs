@@ -5,7 +5,8 @@
 use strata_e2e::{check_store_against, phantom_level0};
 use strata_storage::import::{import_slices, ImportOptions, SliceProducer, VolumeMeta};
 use strata_storage::phantom::Phantom;
-use strata_storage::{BrickId, StorageError, Store};
+use strata_storage::{StorageError, Store};
+use strata_types::BrickId;
 
 #[test]
 fn phantom_round_trips_with_odd_sizes() {

@@ -17,7 +17,7 @@ use strata_loader::{
 };
 use strata_render::{compare_rgba8, Camera, GpuContext, RenderSettings};
 use strata_source::VolumeSource;
-use strata_storage::BrickId;
+use strata_types::BrickId;
 
 use strata_viewer::camera_path::viewpoint;
 use strata_viewer::export::{choose_transfer_function, parse_size};

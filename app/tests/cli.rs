@@ -5,7 +5,8 @@ use std::path::Path;
 use std::process::{Command, Output};
 use std::time::{Duration, Instant};
 
-use strata_storage::{BrickId, StorageError, Store};
+use strata_storage::{StorageError, Store};
+use strata_types::BrickId;
 
 fn strata(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_strata"))

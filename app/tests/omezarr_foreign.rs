@@ -213,7 +213,7 @@ fn a_foreign_int16_pyramid_imports_renders_like_the_reference_and_streams_identi
         for z in 0..n[2] {
             for y in 0..n[1] {
                 for x in 0..n[0] {
-                    let id = strata_storage::BrickId::new(level as u8, [x, y, z]);
+                    let id = strata_types::BrickId::new(level as u8, [x, y, z]);
                     assert!(
                         streamed.read_brick(id).unwrap() == imported.read_brick(id).unwrap(),
                         "brick {id:?} streamed differs from the imported store's"

@@ -18,7 +18,8 @@ use strata_service::{RemoteOptions, RemoteSource};
 use strata_source::VolumeSource;
 use strata_storage::import::ImportOptions;
 use strata_storage::phantom::Phantom;
-use strata_storage::{BrickId, Store};
+use strata_storage::Store;
+use strata_types::BrickId;
 
 fn strata(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_strata"))

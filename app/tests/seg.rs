@@ -148,7 +148,7 @@ fn seg_stats_and_exports_match_the_labels_and_load_back_equal() {
     let fine = open_source(&finer, &ReadOptions::default()).expect("phantom 56");
     let fine_g = fine.info.geometry.clone();
     let label_g = source.info.geometry.clone();
-    let nearest = |g: &strata_storage::VolumeGeometry, p: glam::DVec3| -> Option<[u32; 3]> {
+    let nearest = |g: &strata_types::VolumeGeometry, p: glam::DVec3| -> Option<[u32; 3]> {
         let s = g.index_from_patient(p);
         let s = [s.x, s.y, s.z].map(|c| (c + 0.5).floor() as i64);
         (0..3)

@@ -41,7 +41,7 @@ use strata_render::{
     compare_rgba8, Camera, GpuContext, KeyLight, LightDirection, RenderMode, RenderSettings,
     Scattering, Scene, Shading, ShadowMode, Shadows,
 };
-use strata_storage::BrickId;
+use strata_types::BrickId;
 
 use super::common::{bench_camera, median, open_input, reference_rgba, Volume};
 use strata_viewer::export::parse_size;

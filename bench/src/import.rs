@@ -17,7 +17,8 @@ use strata_storage::brick::{compress_samples, decode_brick, encode_brick, value_
 use strata_storage::import::{import_source, ImportOptions};
 use strata_storage::phantom::Phantom;
 use strata_storage::readers::{open_source, ReadOptions};
-use strata_storage::{BrickCodec, BrickId, Store, BRICK_PAYLOAD_VOXELS};
+use strata_storage::{BrickCodec, Store};
+use strata_types::{BrickId, BRICK_PAYLOAD_VOXELS};
 
 pub(crate) struct Options {
     pub(crate) size: u64,

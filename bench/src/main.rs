@@ -10,7 +10,8 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand};
-use strata_storage::{BrickCodec, BrickId, Store, BRICK_PAYLOAD_VOXELS};
+use strata_storage::{BrickCodec, Store};
+use strata_types::{BrickId, BRICK_PAYLOAD_VOXELS};
 
 mod accuracy;
 mod adaptive;

@@ -21,7 +21,8 @@ use strata_render::{GpuContext, RenderSettings};
 use strata_source::VolumeSource;
 use strata_storage::import::ImportOptions;
 use strata_storage::phantom::Phantom;
-use strata_storage::{BrickId, Store, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
+use strata_storage::Store;
+use strata_types::{BrickId, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
 
 #[derive(Args)]
 pub struct Options {

@@ -32,7 +32,7 @@ use strata_render::{
     Shadows, TransferFunction, Traversal, VolumeGeometry,
 };
 use strata_source::VolumeSource;
-use strata_storage::BrickId;
+use strata_types::BrickId;
 
 /// Why a headless frame was not rendered.
 #[derive(Debug, thiserror::Error)]

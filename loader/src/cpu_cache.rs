@@ -12,7 +12,7 @@ use std::collections::BTreeMap;
 use rustc_hash::FxHashMap as HashMap;
 use std::sync::Arc;
 
-use strata_storage::BrickId;
+use strata_types::BrickId;
 
 pub type Brick = Arc<Vec<u16>>;
 

@@ -9,7 +9,7 @@ use std::sync::Arc;
 use rustc_hash::FxHashMap as HashMap;
 use strata_render::{BrickSource, PageTable};
 use strata_source::VolumeSource;
-use strata_storage::BrickId;
+use strata_types::BrickId;
 
 use crate::cpu_cache::{Brick, CpuBrickCache};
 use crate::error::LoaderError;

@@ -37,7 +37,7 @@ use rustc_hash::{FxHashMap as HashMap, FxHashSet as HashSet};
 
 use glam::{DMat3, DVec3};
 use strata_render::{Camera, RenderSettings, VolumeGeometry, BRICK_CORE};
-use strata_storage::BrickId;
+use strata_types::BrickId;
 
 use crate::octree_ranges::{Emptiness, OctreeRanges};
 use crate::visibility::PageVisibility;

@@ -27,7 +27,7 @@ use strata_render::{
     Camera, IndexTable, PageEntry, PageLookup, PageTable, PageTableLayout, PreparedPageTable,
     RenderMode, RenderSettings, SparsePageTable, Traversal, ValueMapping,
 };
-use strata_storage::BrickId;
+use strata_types::BrickId;
 
 use crate::cut_selection::{
     select_cut, Cut, CutLimits, LeafKind, Residency, ViewSetup, SELECTION_THREAD,

@@ -17,7 +17,7 @@ use std::time::Duration;
 
 use crossbeam_channel::{Receiver, Sender};
 use strata_source::{BrickFetcher, FetchResult, SourceError, VolumeSource};
-use strata_storage::BrickId;
+use strata_types::BrickId;
 
 use crate::error::LoaderError;
 

@@ -5,7 +5,7 @@
 // Keys are brick ids, not attacker-chosen: a fast hash (looked up for every node of every cut).
 use rustc_hash::FxHashMap as HashMap;
 
-use strata_storage::BrickId;
+use strata_types::BrickId;
 
 /// Cloned into each job of the selection thread (cut_worker.rs), which returns the copy
 /// with the cut's slots assigned.

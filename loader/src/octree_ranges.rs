@@ -11,7 +11,7 @@
 use strata_render::{TransferFunctionTable, ValueMapping};
 use strata_source::VolumeSource;
 use strata_storage::store::Skeleton;
-use strata_storage::{BrickId, OctreeLayout};
+use strata_types::{BrickId, OctreeLayout};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct StoredRange {

@@ -10,7 +10,7 @@ use std::thread::JoinHandle;
 use crossbeam_channel::{Receiver, Sender, TrySendError};
 use rustc_hash::FxHashSet;
 use strata_render::{TransferFunctionTable, ValueMapping};
-use strata_storage::BrickId;
+use strata_types::BrickId;
 
 use crate::cut_selection::{
     select_cut, CutLimits, LeafKind, Residency, ViewSetup, PREDICTION_THREAD,

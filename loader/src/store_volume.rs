@@ -14,7 +14,7 @@ use strata_render::{
     VolumeGeometry,
 };
 use strata_source::{SourceError, VolumeSource};
-use strata_storage::BrickId;
+use strata_types::BrickId;
 
 pub use crate::error::LoaderError;
 

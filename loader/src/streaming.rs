@@ -30,9 +30,9 @@ use strata_render::{
     VolumeGeometry, BRICK_PAYLOAD_VOXELS,
 };
 use strata_source::{BrickFetcher, FetchOptions, SourceStatus, VolumeSource};
-use strata_storage::BrickId;
 #[cfg(feature = "local")]
 use strata_storage::Store;
+use strata_types::BrickId;
 
 use crate::cpu_cache::CpuBrickCache;
 use crate::cut_payloads::CutPayloads;

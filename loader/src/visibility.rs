@@ -23,7 +23,7 @@
 
 use rustc_hash::{FxHashMap as HashMap, FxHashSet as HashSet};
 use strata_render::VisibilityFrame;
-use strata_storage::BrickId;
+use strata_types::BrickId;
 
 use crate::octree_ranges::OctreeRanges;
 

@@ -10,7 +10,7 @@ use common::*;
 use strata_loader::StreamingConfig;
 use strata_render::{BrickSource, PageTable};
 use strata_source::VolumeSource;
-use strata_storage::BrickId;
+use strata_types::BrickId;
 
 #[test]
 fn the_converged_cuts_payloads_are_the_stores_bricks_and_the_generation_follows_the_cut() {

@@ -20,7 +20,7 @@ use strata_render::{
     BrickCache, CacheConfig, Camera, GpuPageTable, GpuTransferFunction, PageTable, Projection,
     Raycaster, Scene,
 };
-use strata_storage::BrickId;
+use strata_types::BrickId;
 
 struct Rng(u64);
 impl Rng {

@@ -19,7 +19,8 @@ use strata_render::compare_rgba8;
 use strata_source::{SourceError, VolumeSource};
 use strata_storage::histogram::Histogram;
 use strata_storage::store::{Skeleton, StoreStats};
-use strata_storage::{BrickId, Store, StoreHeader};
+use strata_storage::{Store, StoreHeader};
+use strata_types::BrickId;
 
 /// Reads handed out by the test.
 #[derive(Default)]

@@ -11,7 +11,8 @@ use crate::common;
 use common::*;
 use strata_loader::StreamingConfig;
 use strata_render::{compare_rgba8, PageTable};
-use strata_storage::{BrickId, Store};
+use strata_storage::Store;
+use strata_types::BrickId;
 
 #[test]
 fn converged_image_equals_everything_loaded_up_front() {

@@ -18,7 +18,7 @@
 use std::collections::HashMap;
 
 use strata_storage::store::Skeleton;
-use strata_storage::{BrickId, OctreeLayout, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
+use strata_types::{BrickId, OctreeLayout, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
 
 const MAGIC: &[u8; 4] = b"SCK1";
 const ENTRY_BYTES: usize = 17;

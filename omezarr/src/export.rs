@@ -19,7 +19,8 @@ use std::sync::Arc;
 use rayon::prelude::*;
 use strata_source::VolumeSource;
 use strata_storage::store::Provenance;
-use strata_storage::{BrickId, StoredScalar, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
+use strata_storage::StoredScalar;
+use strata_types::{BrickId, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
 use zarrs::array::{codec, data_type, Array, ArrayBuilder};
 use zarrs::storage::{
     ListableStorageTraits, ReadableStorageTraits, ReadableWritableListableStorage,

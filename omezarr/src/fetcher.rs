@@ -13,7 +13,7 @@ use std::sync::Arc;
 
 use strata_source::task_queue::{BrickJob, TaskQueue};
 use strata_source::{BrickFetcher, FetchResult, QueueCounters, SourceError};
-use strata_storage::BrickId;
+use strata_types::BrickId;
 
 /// Assembles one brick asynchronously (the streaming source's reads, awaited on the I/O
 /// runtime); dropping the future cancels its requests.

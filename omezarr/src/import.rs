@@ -20,9 +20,9 @@ use strata_storage::import::{
 use strata_storage::quantize::Quantizer;
 use strata_storage::store::Skeleton;
 use strata_storage::{
-    ByteOrder, OctreeLayout, RawVolume, SampleType, StoredScalar, ValueMapping,
-    ValueMappingWithUnit, VolumeGeometry,
+    ByteOrder, RawVolume, SampleType, StoredScalar, ValueMapping, ValueMappingWithUnit,
 };
+use strata_types::{OctreeLayout, VolumeGeometry};
 use zarrs::array::{Array, ArraySubset};
 use zarrs::storage::ReadableWritableListableStorageTraits;
 
@@ -509,7 +509,7 @@ struct StagingCheck<'a> {
 
 impl<'a> StagingCheck<'a> {
     fn new(check: &'a crate::checksums::ChunkCheck, dims: [u64; 3]) -> Self {
-        let core = u64::from(strata_storage::BRICK_CORE);
+        let core = u64::from(strata_types::BRICK_CORE);
         let bricks = [dims[0].div_ceil(core), dims[1].div_ceil(core)];
         StagingCheck {
             check,
@@ -521,7 +521,7 @@ impl<'a> StagingCheck<'a> {
 
     /// Slices `z0..` of level 0 (z, y, x order, stored bytes) have been read.
     fn feed(&mut self, z0: u64, bytes: &[u8]) -> std::result::Result<(), String> {
-        let core = u64::from(strata_storage::BRICK_CORE);
+        let core = u64::from(strata_types::BRICK_CORE);
         let narrow = self.check.narrow;
         let sample = if narrow { 1 } else { 2 };
         let [nx, ny, nz] = self.dims;
@@ -540,7 +540,7 @@ impl<'a> StagingCheck<'a> {
             if (z + 1).is_multiple_of(core) || z + 1 == nz {
                 for (i, state) in self.row.iter_mut().enumerate() {
                     let i = i as u64;
-                    let id = strata_storage::BrickId::new(
+                    let id = strata_types::BrickId::new(
                         0,
                         [
                             (i % self.bricks[0]) as u32,

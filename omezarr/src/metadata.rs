@@ -12,7 +12,8 @@ use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 use strata_storage::histogram::Histogram;
 use strata_storage::store::StoreStats;
-use strata_storage::{StoreHeader, VolumeGeometry};
+use strata_storage::StoreHeader;
+use strata_types::VolumeGeometry;
 
 use crate::{OmeZarrError, Result};
 
@@ -428,21 +429,21 @@ fn check_strata(strata: &StrataAttributes, datasets: &[Dataset], location: &str)
     if let Err(e) = h.geometry.validate() {
         return bad(format!("has an unusable geometry: {e}"));
     }
-    if h.layout != strata_storage::OctreeLayout::new(h.geometry.dims) {
+    if h.layout != strata_types::OctreeLayout::new(h.geometry.dims) {
         return bad(format!(
             "has an octree layout that does not fit its {:?} voxels",
             h.geometry.dims
         ));
     }
-    if h.brick_core != u64::from(strata_storage::BRICK_CORE)
-        || h.brick_apron != u64::from(strata_storage::BRICK_APRON)
+    if h.brick_core != u64::from(strata_types::BRICK_CORE)
+        || h.brick_apron != u64::from(strata_types::BRICK_APRON)
     {
         return bad(format!(
             "has bricks of {} + {} voxels (this build's are {} + {})",
             h.brick_core,
             h.brick_apron,
-            strata_storage::BRICK_CORE,
-            strata_storage::BRICK_APRON
+            strata_types::BRICK_CORE,
+            strata_types::BRICK_APRON
         ));
     }
     let m = &h.value_mapping.mapping;

@@ -36,9 +36,9 @@ use strata_storage::brick::{encode_brick, value_range};
 use strata_storage::histogram::Histogram;
 use strata_storage::quantize::Quantizer;
 use strata_storage::store::{NodeInfo, Skeleton, StoreStats};
-use strata_storage::{
-    BrickId, OctreeLayout, StoreHeader, StoredScalar, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD,
-    BRICK_PAYLOAD_VOXELS,
+use strata_storage::{StoreHeader, StoredScalar};
+use strata_types::{
+    BrickId, OctreeLayout, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD, BRICK_PAYLOAD_VOXELS,
 };
 use zarrs::array::{
     Array, ArrayShardedReadableExt, ArrayShardedReadableExtCache, ArraySubset,
@@ -841,7 +841,7 @@ fn open_foreign(opened: &OpenedMultiscale) -> Result<Foreign> {
             ),
         ));
     }
-    let dims = strata_storage::VolumeGeometry::checked_dims([shape[2], shape[1], shape[0]])
+    let dims = strata_types::VolumeGeometry::checked_dims([shape[2], shape[1], shape[0]])
         .map_err(|e| OmeZarrError::invalid(display, e.to_string()))?;
     let dtype = data_type_name(&array);
     let (geometry, mut notes) =

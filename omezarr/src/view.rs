@@ -11,7 +11,8 @@ use std::sync::Arc;
 
 use strata_storage::histogram::Histogram;
 use strata_storage::store::{NodeInfo, Provenance, Skeleton, StoreStats};
-use strata_storage::{BrickId, StoreHeader, StoredScalar, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
+use strata_storage::{StoreHeader, StoredScalar};
+use strata_types::{BrickId, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
 use zarrs::array::{codec, data_type, Array, ArrayBuilder};
 use zarrs::storage::store::MemoryStore;
 use zarrs::storage::{ReadableStorageTraits, StoreKey, WritableStorageTraits};

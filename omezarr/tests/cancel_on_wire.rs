@@ -19,7 +19,8 @@ use strata_omezarr::{ObjectLocation, ObjectStoreOptions};
 use strata_source::{FetchOptions, VolumeSource};
 use strata_storage::import::ImportOptions;
 use strata_storage::phantom::Phantom;
-use strata_storage::{BrickId, Store};
+use strata_storage::Store;
+use strata_types::BrickId;
 
 #[derive(Default)]
 struct Counts {

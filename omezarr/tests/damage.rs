@@ -16,7 +16,8 @@ use strata_omezarr::{ObjectLocation, ObjectStoreOptions};
 use strata_source::{SourceError, VolumeSource};
 use strata_storage::import::ImportOptions;
 use strata_storage::phantom::Phantom;
-use strata_storage::{BrickId, Store};
+use strata_storage::Store;
+use strata_types::BrickId;
 
 /// Far above what a 64³ case takes on a loaded machine; a hang (a FIFO opened for reading
 /// blocks forever) is far beyond it.

@@ -238,7 +238,7 @@ fn fill_only_shards_are_not_written_and_a_foreign_folder_is_refused() {
     // 300 voxels along x: level 0 has two shards along x (256 + 44); the second is all air.
     let dims = [300u64, 40, 40];
     let mut meta = Phantom::cube(40).meta();
-    meta.geometry = strata_storage::VolumeGeometry::axis_aligned([300, 40, 40], [1.0; 3]);
+    meta.geometry = strata_types::VolumeGeometry::axis_aligned([300, 40, 40], [1.0; 3]);
     let store_path = work.path().join("p.strata");
     strata_storage::import::import_slices(
         &CornerBlock { dims },

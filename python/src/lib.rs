@@ -32,10 +32,8 @@ use strata_source::{SourceError as VolumeSourceError, VolumeSource};
 use strata_storage::import::{import_source, ImportOptions, ImportProgress};
 use strata_storage::readers::{open_source, ReadOptions};
 use strata_storage::store::StoreStats;
-use strata_storage::{
-    BrickCodec, BrickId, ByteOrder, OpenedSource, RawVolume, SampleType, SourceInfo, StorageError,
-    Store, StoreHeader, VolumeGeometry, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD,
-};
+use strata_storage::{BrickCodec, ByteOrder, OpenedSource, RawVolume, SampleType, SourceInfo, StorageError, Store, StoreHeader};
+use strata_types::{BrickId, VolumeGeometry, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
 use streamed::StreamedReader;
 
 create_exception!(

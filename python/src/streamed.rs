@@ -24,7 +24,7 @@ use pyo3::prelude::*;
 use strata_omezarr::OmeZarrError;
 use strata_service::{RemoteOptions, RemoteSource};
 use strata_source::{BrickFetcher, FetchOptions, SourceError, SourceStatus, VolumeSource};
-use strata_storage::BrickId;
+use strata_types::BrickId;
 
 use crate::{
     interrupted, store_error, Brick, ReadError, RemoteError, StoreError, StoreNotFoundError,

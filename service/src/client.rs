@@ -25,7 +25,8 @@ use strata_source::{
 use strata_storage::brick::decode_brick;
 use strata_storage::histogram::Histogram;
 use strata_storage::store::{Skeleton, StoreStats};
-use strata_storage::{BrickId, StoreHeader};
+use strata_storage::StoreHeader;
+use strata_types::BrickId;
 
 use crate::wire::{
     self, brick_path, decode_open_document, is_valid_store_name, OpenDocument, API_PREFIX,

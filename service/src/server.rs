@@ -26,7 +26,8 @@ use axum::routing::get;
 use axum::Router;
 use hyper_util::rt::{TokioExecutor, TokioIo, TokioTimer};
 use strata_storage::brick::verify_record;
-use strata_storage::{BrickId, StorageError, Store};
+use strata_storage::{StorageError, Store};
+use strata_types::BrickId;
 use tokio::sync::Semaphore;
 
 use crate::connections::{Admitted, ConnectionHandle, Connections, MayClose};

@@ -52,7 +52,7 @@ pub fn apply_from_env(options: &mut ServeOptions) -> Result<(), TestHookError> {
 }
 
 #[cfg(feature = "test-hooks")]
-fn parse_brick(text: &str) -> Option<strata_storage::BrickId> {
+fn parse_brick(text: &str) -> Option<strata_types::BrickId> {
     let parts: Vec<u32> = text
         .split('/')
         .map(|p| p.parse::<u32>().ok())
@@ -60,7 +60,7 @@ fn parse_brick(text: &str) -> Option<strata_storage::BrickId> {
     let [level, z, y, x] = parts[..] else {
         return None;
     };
-    Some(strata_storage::BrickId::new(
+    Some(strata_types::BrickId::new(
         u8::try_from(level).ok()?,
         [x, y, z],
     ))
@@ -73,7 +73,7 @@ mod tests {
     #[test]
     fn a_brick_is_level_then_z_y_x() {
         let id = parse_brick("1/2/3/4").expect("parses");
-        assert_eq!(id, strata_storage::BrickId::new(1, [4, 3, 2]));
+        assert_eq!(id, strata_types::BrickId::new(1, [4, 3, 2]));
         for bad in ["1/2/3", "1/2/3/4/5", "300/0/0/0", "a/0/0/0", ""] {
             assert!(parse_brick(bad).is_none(), "{bad}");
         }

@@ -22,7 +22,7 @@ use strata_service::server::{RunningServer, ServeOptions};
 use strata_service::wire::brick_path;
 use strata_service::{RemoteOptions, RemoteSource};
 use strata_source::{FetchOptions, VolumeSource};
-use strata_storage::BrickId;
+use strata_types::BrickId;
 
 use crate::load::{serve, store};
 use crate::proxy::{free_port, plain_proxy, start_nginx};

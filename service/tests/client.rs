@@ -12,7 +12,8 @@ use strata_service::{RemoteOptions, RemoteSource};
 use strata_source::{BrickFetcher, FetchOptions, FetchResult, SourceError, VolumeSource};
 use strata_storage::import::ImportOptions;
 use strata_storage::phantom::Phantom;
-use strata_storage::{BrickId, Store};
+use strata_storage::Store;
+use strata_types::BrickId;
 
 fn served(dir: &Path, size: u64, options: ServeOptions) -> RunningServer {
     let path = dir.join("phantom.strata");
@@ -91,7 +92,7 @@ fn many_requests_fly_at_once_over_one_http2_connection() {
     // Every record was verified on arrival: Ok means its checksum matched.
     for r in &got {
         let brick = r.outcome.as_ref().unwrap_or_else(|e| panic!("{e}"));
-        assert_eq!(brick.len(), strata_storage::BRICK_PAYLOAD_VOXELS);
+        assert_eq!(brick.len(), strata_types::BRICK_PAYLOAD_VOXELS);
         assert!(r.stored_bytes > 0);
     }
     let c = fetcher.counters();

@@ -17,7 +17,8 @@ use strata_source::VolumeSource;
 use strata_storage::brick::verify_record;
 use strata_storage::import::ImportOptions;
 use strata_storage::phantom::Phantom;
-use strata_storage::{BrickId, Store};
+use strata_storage::Store;
+use strata_types::BrickId;
 
 const TOKEN: &str = "0123456789abcdef0123456789abcdef";
 

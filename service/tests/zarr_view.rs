@@ -12,7 +12,8 @@ use strata_service::server::{find_stores, start, ServeOptions};
 use strata_source::VolumeSource;
 use strata_storage::import::ImportOptions;
 use strata_storage::phantom::Phantom;
-use strata_storage::{BrickId, Store, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
+use strata_storage::Store;
+use strata_types::{BrickId, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
 
 const READ_OVER_HTTP: &str = r#"
 import sys, json, numpy as np, zarr

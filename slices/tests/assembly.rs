@@ -6,7 +6,8 @@ use std::sync::Arc;
 
 use strata_slices::{SliceAssembler, SliceError, SliceFrame, SliceRequest, SliceView, VoxelLookup};
 use strata_storage::phantom::Phantom;
-use strata_storage::{BrickId, Store, BRICK_PAYLOAD_VOXELS};
+use strata_storage::Store;
+use strata_types::{BrickId, BRICK_PAYLOAD_VOXELS};
 
 /// The phantom's edge: 80 voxels gives three levels (80, 40, 20) and 3×3 / 2×2 bricks a slice.
 const EDGE: u64 = 80;

@@ -8,7 +8,8 @@ use std::sync::Arc;
 use strata_render::{BrickSource, BrickedVolume};
 use strata_slices::{SliceAssembler, SliceFrame, SliceRequest, SliceView, SLICE_CACHE_BYTES};
 use strata_storage::phantom::{phantom_value_mapping, Phantom};
-use strata_storage::{BrickId, OctreeLayout, Store};
+use strata_storage::Store;
+use strata_types::{BrickId, OctreeLayout};
 
 /// 80 voxels: three levels (80, 40, 20), 3×3×3 bricks at level 0 with a partial last one.
 const EDGE: u64 = 80;

@@ -28,7 +28,8 @@ use strata_storage::histogram::Histogram;
 use strata_storage::store::{NodeInfo, Skeleton, StoreStats};
 #[cfg(feature = "local")]
 use strata_storage::Store;
-use strata_storage::{BrickId, OctreeLayout, StorageError, StoreHeader};
+use strata_storage::{StorageError, StoreHeader};
+use strata_types::{BrickId, OctreeLayout};
 
 /// A brick decoded to its 36³ stored values (x fastest), shared without copying.
 pub type Brick = Arc<Vec<u16>>;

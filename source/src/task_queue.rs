@@ -20,7 +20,7 @@ use std::pin::Pin;
 use std::sync::{Arc, Mutex, MutexGuard};
 
 use crossbeam_channel::{Receiver, Sender};
-use strata_storage::BrickId;
+use strata_types::BrickId;
 
 use crate::{Brick, FetchResult, QueueCounters, RequestClass, SourceError};
 

@@ -14,7 +14,8 @@
 use serde::{Deserialize, Serialize};
 use strata_storage::histogram::Histogram;
 use strata_storage::store::{Skeleton, StoreStats};
-use strata_storage::{BrickId, StoreHeader};
+use strata_storage::StoreHeader;
+use strata_types::BrickId;
 
 pub const API_PREFIX: &str = "/v1";
 pub const OPEN_DOCUMENT_MAGIC: &[u8; 8] = b"STRATA\x01\n";

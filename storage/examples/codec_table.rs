@@ -11,7 +11,8 @@ use strata_storage::brick::{decode_brick, encode_brick, value_range};
 use strata_storage::import::{import_source, ImportOptions};
 use strata_storage::phantom::Phantom;
 use strata_storage::readers::{open_source, ReadOptions};
-use strata_storage::{BrickCodec, BrickId, Store, BRICK_PAYLOAD_VOXELS};
+use strata_storage::{BrickCodec, Store};
+use strata_types::{BrickId, BRICK_PAYLOAD_VOXELS};
 
 type Result<T> = std::result::Result<T, Box<dyn std::error::Error>>;
 

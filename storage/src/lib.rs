@@ -67,10 +67,6 @@ pub mod quantize {
 
 pub use brick::BrickCodec;
 pub use error::{Result, StorageError};
-pub use geometry::VolumeGeometry;
-pub use octree::{
-    BrickId, OctreeLayout, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD, BRICK_PAYLOAD_VOXELS,
-};
 #[cfg(feature = "local")]
 pub use source::{OpenedSource, RawVolume};
 pub use source_info::{ByteOrder, LabelInfo, SampleType, SourceInfo, WindowPreset};

@@ -8,7 +8,8 @@ use std::path::Path;
 use strata_storage::import::{import_source, ImportOptions};
 use strata_storage::readers::{open_source, ReadOptions};
 use strata_storage::store::FEATURE_FRAMES;
-use strata_storage::{BrickId, Store};
+use strata_storage::Store;
+use strata_types::BrickId;
 use strata_types::{BRICK_APRON, BRICK_PAYLOAD};
 
 const DIMS: [usize; 4] = [6, 5, 4, 3];

@@ -892,7 +892,8 @@ fn damaged_compressed_dicom_ends_in_a_clean_error_or_a_volume() {
 fn damaged_format_2_bricks_and_unknown_codecs_end_in_clean_errors() {
     use strata_storage::brick::{decode_brick, seal_record_for_tests};
     use strata_storage::phantom::Phantom;
-    use strata_storage::{BrickCodec, BrickId, Store};
+    use strata_storage::{BrickCodec, Store};
+    use strata_types::BrickId;
 
     let dir = tempfile::tempdir().unwrap();
     let mut rng = Rng(0x5EED_0017);
@@ -957,9 +958,9 @@ fn damaged_format_2_bricks_and_unknown_codecs_end_in_clean_errors() {
 /// Flipped bits, truncations, extensions and changed kinds of a valid brick record: each is
 /// refused by the checksum, and the same bytes resealed (checksum right, body lying) end in an
 /// error or a brick of the right size.
-fn damage_record(id: strata_storage::BrickId, record: &[u8], name: &str, rng: &mut Rng) {
+fn damage_record(id: strata_types::BrickId, record: &[u8], name: &str, rng: &mut Rng) {
     use strata_storage::brick::{decode_brick, seal_record_for_tests};
-    use strata_storage::BRICK_PAYLOAD_VOXELS;
+    use strata_types::BRICK_PAYLOAD_VOXELS;
     for case in 0..300 {
         let mut bad = record.to_vec();
         match case % 4 {
@@ -994,7 +995,8 @@ fn damage_record(id: strata_storage::BrickId, record: &[u8], name: &str, rng: &m
 #[test]
 fn damaged_u8_bricks_of_the_predicted_kinds_end_in_clean_errors() {
     use strata_storage::brick::{decode_brick, encode_brick, value_range};
-    use strata_storage::{BrickCodec, BrickId, BRICK_PAYLOAD, BRICK_PAYLOAD_VOXELS};
+    use strata_storage::BrickCodec;
+    use strata_types::{BrickId, BRICK_PAYLOAD, BRICK_PAYLOAD_VOXELS};
 
     let edge = BRICK_PAYLOAD as usize;
     let mut rng = Rng(0x5EED_0008);

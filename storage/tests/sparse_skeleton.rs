@@ -11,9 +11,8 @@ use strata_storage::octree::average8;
 use strata_storage::phantom::Phantom;
 use strata_storage::sparse_phantom::{SparsePhantom, AIR};
 use strata_storage::store::{NodeInfo, FEATURE_SPARSE_SKELETON};
-use strata_storage::{
-    BrickCodec, BrickId, OctreeLayout, Store, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD,
-};
+use strata_storage::{BrickCodec, Store};
+use strata_types::{BrickId, OctreeLayout, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
 
 /// Every node's answer, in layout order.
 fn all_nodes(store: &Store) -> Vec<(BrickId, NodeInfo)> {

@@ -8,7 +8,8 @@ use std::time::Duration;
 use strata_storage::import::ImportOptions;
 use strata_storage::phantom::Phantom;
 use strata_storage::store::STORE_FORMAT_VERSION;
-use strata_storage::{BrickCodec, BrickId, StorageError, Store};
+use strata_storage::{BrickCodec, StorageError, Store};
+use strata_types::BrickId;
 
 fn write(path: &Path, size: u64, codec: BrickCodec) -> strata_storage::import::ImportReport {
     let options = ImportOptions {

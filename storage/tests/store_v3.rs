@@ -7,7 +7,8 @@ use std::path::{Path, PathBuf};
 
 use strata_storage::import::ImportOptions;
 use strata_storage::phantom::Phantom;
-use strata_storage::{BrickId, StorageError, Store};
+use strata_storage::{StorageError, Store};
+use strata_types::BrickId;
 
 fn v3_and_v2(dir: &Path, size: u64) -> (PathBuf, PathBuf) {
     let v3 = dir.join("v3.strata");

@@ -12,7 +12,7 @@ use std::sync::{Arc, Condvar, Mutex};
 use glam::{DMat3, DQuat, DVec3};
 use strata_render::{Camera, VolumeGeometry};
 use strata_source::VolumeSource;
-use strata_storage::{BrickId, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
+use strata_types::{BrickId, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
 
 use super::sync::{lock_ignoring_poison, wait_ignoring_poison, Repaint};
 
@@ -162,7 +162,7 @@ pub struct LevelBrickCache {
 impl LevelBrickCache {
     pub fn new(budget_bytes: usize) -> Self {
         LevelBrickCache {
-            budget_bricks: (budget_bytes / (strata_storage::BRICK_PAYLOAD_VOXELS * 2)).max(16),
+            budget_bricks: (budget_bytes / (strata_types::BRICK_PAYLOAD_VOXELS * 2)).max(16),
             bricks: HashMap::new(),
             last: None,
         }

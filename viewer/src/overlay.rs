@@ -22,7 +22,7 @@ use glam::DVec3;
 use strata_render::{ValueMapping, VolumeGeometry};
 use strata_segment::label_colour;
 use strata_source::VolumeSource;
-use strata_storage::{BrickId, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
+use strata_types::{BrickId, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
 
 use super::colour_maps::ColourMap;
 use super::orientation::SliceView;
@@ -497,7 +497,7 @@ pub struct OverlayBrickCache {
 impl OverlayBrickCache {
     pub fn new(budget_bytes: usize) -> Self {
         OverlayBrickCache {
-            budget_bricks: (budget_bytes / (strata_storage::BRICK_PAYLOAD_VOXELS * 2)).max(16),
+            budget_bricks: (budget_bytes / (strata_types::BRICK_PAYLOAD_VOXELS * 2)).max(16),
             bricks: HashMap::new(),
             last: None,
         }

@@ -34,7 +34,7 @@ use strata_segment::{
     LABEL_BRICK,
 };
 use strata_source::VolumeSource;
-use strata_storage::{BrickId, BRICK_APRON, BRICK_PAYLOAD};
+use strata_types::{BrickId, BRICK_APRON, BRICK_PAYLOAD};
 
 /// A label layer shared between the UI (which edits it) and the overlay's reader thread (which
 /// samples it); `revision` counts changes so the reader knows a slice it sampled is stale.

@@ -171,7 +171,7 @@ mod tests {
     use super::*;
     use strata_render::VolumeGeometry;
     use strata_slices::SliceFrame;
-    use strata_storage::{BrickId, BRICK_PAYLOAD};
+    use strata_types::{BrickId, BRICK_PAYLOAD};
 
     #[test]
     fn slice_values_match_the_level_zero_bricks() {

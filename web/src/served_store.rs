@@ -30,7 +30,8 @@ use strata_source::{
 use strata_storage::brick::decode_brick;
 use strata_storage::histogram::Histogram;
 use strata_storage::store::{Skeleton, StoreStats, KNOWN_STORE_FEATURES};
-use strata_storage::{BrickId, StoreHeader};
+use strata_storage::StoreHeader;
+use strata_types::BrickId;
 use wasm_bindgen::JsCast;
 use wasm_bindgen_futures::JsFuture;
 

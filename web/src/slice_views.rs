@@ -37,7 +37,7 @@ use strata_slices::{
 use strata_source::{BrickFetcher, FetchOptions, VolumeSource};
 use strata_storage::histogram::Histogram;
 use strata_storage::source::WindowPreset as ScanWindow;
-use strata_storage::{BrickId, OctreeLayout};
+use strata_types::{BrickId, OctreeLayout};
 use strata_viewer_ui::layouts;
 use strata_viewer_ui::presets::looks_like_ct;
 use strata_viewer_ui::slice_canvas::{

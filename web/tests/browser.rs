@@ -338,7 +338,7 @@ fn http_get(base_url: &str, path: &str) -> String {
 #[test]
 fn the_page_streams_a_served_store_and_converges_to_the_native_loaders_picture() {
     use strata_loader::{StreamingConfig, StreamingVolume};
-    use strata_storage::BrickId;
+    use strata_types::BrickId;
     let scratch = tempfile::tempdir().expect("scratch folder");
     let path = scratch.path().join("ct.strata");
     Phantom::cube(128)
@@ -586,7 +586,7 @@ fn the_page_shows_the_3d_view_over_its_slices_as_the_desktop_does() {
 fn assert_sample_slices_as_the_desktops(what: &str, fragment: &str) {
     use strata_render::BrickSource;
     use strata_slices::Window;
-    use strata_storage::OctreeLayout;
+    use strata_types::OctreeLayout;
     let scratch = tempfile::tempdir().expect("scratch folder");
     // The server needs a store to serve; the page shows its own sample.
     let store = scratch.path().join("tiny.strata");
@@ -712,12 +712,12 @@ fn write_mr_like_nrrd(path: &Path, edge: usize) {
 /// has, the page's start crosshair (the volume's centre), strata-slices' assembler fed by
 /// `read` (blocking), and the window/level step in grey. Returns the level and the RGBA.
 fn desktop_axial_slice(
-    layout: &strata_storage::OctreeLayout,
+    layout: &strata_types::OctreeLayout,
     geometry: &strata_render::VolumeGeometry,
     window: strata_slices::Window,
     mapping: strata_render::ValueMapping,
     (posted, console): (&CapturedFrame, &str),
-    mut read: impl FnMut(strata_storage::BrickId) -> Vec<u16>,
+    mut read: impl FnMut(strata_types::BrickId) -> Vec<u16>,
 ) -> (usize, Vec<u8>) {
     use strata_slices::{
         window_level_rgba, ColourMap, SliceAssembler, SliceFrame, SliceRequest, SliceView,
@@ -811,7 +811,7 @@ fn desktop_client(
 
 /// The octree level whose grid the posted slice image has.
 fn level_of_grid(
-    layout: &strata_storage::OctreeLayout,
+    layout: &strata_types::OctreeLayout,
     frame: &strata_slices::SliceFrame,
     slice: &CapturedFrame,
     console: &str,
@@ -1170,7 +1170,6 @@ fn serve_widget_host(
     listener: std::net::TcpListener,
     page_url: String,
 ) -> mpsc::Receiver<(String, Vec<u8>)> {
-    use std::io::{BufRead, BufReader, Write};
     let (reports_in, reports) = mpsc::channel();
     let html = format!(
         "<!DOCTYPE html><html><head><meta charset=\"utf-8\"><title>widget host</title></head>\
@@ -1179,56 +1178,76 @@ fn serve_widget_host(
          <script type=\"module\" src=\"/host.js\"></script></body></html>",
         serde_json::json!({ "page": page_url })
     );
+    let html = std::sync::Arc::new(html);
+    // One thread per connection: Chromium opens speculative connections that may never send a
+    // request, and a server reading connections one after another waits on such a socket forever
+    // while the page's reports queue behind it (how this test hung here, four runs in five).
     std::thread::Builder::new()
         .name("widget-host".into())
         .spawn(move || {
             for stream in listener.incoming() {
-                let Ok(mut stream) = stream else { continue };
-                let mut reader = BufReader::new(stream.try_clone().expect("clone"));
-                let mut request_line = String::new();
-                if reader.read_line(&mut request_line).is_err() {
-                    continue;
-                }
-                let mut length = 0usize;
-                loop {
-                    let mut line = String::new();
-                    if reader.read_line(&mut line).unwrap_or(0) == 0 || line.trim().is_empty() {
-                        break;
-                    }
-                    if let Some((name, value)) = line.split_once(':') {
-                        if name.eq_ignore_ascii_case("content-length") {
-                            length = value.trim().parse().unwrap_or(0);
-                        }
-                    }
-                }
-                let mut body = vec![0u8; length];
-                if reader.read_exact(&mut body).is_err() {
-                    continue;
-                }
-                let mut parts = request_line.split_whitespace();
-                let (method, path) = (parts.next().unwrap_or(""), parts.next().unwrap_or(""));
-                let (status, kind, answer): (&str, &str, &[u8]) = match (method, path) {
-                    ("GET", "/") => ("200 OK", "text/html", html.as_bytes()),
-                    ("GET", "/host.js") => ("200 OK", "text/javascript", WIDGET_HOST_JS.as_bytes()),
-                    ("GET", "/widget.js") => ("200 OK", "text/javascript", WIDGET_JS.as_bytes()),
-                    ("POST", report) if report.starts_with("/report/") => {
-                        let name = report.trim_start_matches("/report/").to_string();
-                        let _ = reports_in.send((name, body));
-                        ("204 No Content", "text/plain", b"")
-                    }
-                    _ => ("404 Not Found", "text/plain", b"not found"),
-                };
-                let _ = write!(
-                    stream,
-                    "HTTP/1.1 {status}\r\nContent-Type: {kind}\r\nContent-Length: {}\r\n\
-                     Connection: close\r\n\r\n",
-                    answer.len()
-                );
-                let _ = stream.write_all(answer);
+                let Ok(stream) = stream else { continue };
+                let (html, reports_in) = (html.clone(), reports_in.clone());
+                let _ = std::thread::Builder::new()
+                    .name("widget-host-connection".into())
+                    .spawn(move || answer_widget_host_request(stream, &html, &reports_in));
             }
         })
         .expect("host thread");
     reports
+}
+
+/// Answers one request of the widget host's server: its page, its scripts, a report.
+fn answer_widget_host_request(
+    mut stream: std::net::TcpStream,
+    html: &str,
+    reports_in: &mpsc::Sender<(String, Vec<u8>)>,
+) {
+    use std::io::{BufRead, BufReader, Write};
+    let Ok(clone) = stream.try_clone() else {
+        return;
+    };
+    let mut reader = BufReader::new(clone);
+    let mut request_line = String::new();
+    if reader.read_line(&mut request_line).unwrap_or(0) == 0 {
+        return;
+    }
+    let mut length = 0usize;
+    loop {
+        let mut line = String::new();
+        if reader.read_line(&mut line).unwrap_or(0) == 0 || line.trim().is_empty() {
+            break;
+        }
+        if let Some((name, value)) = line.split_once(':') {
+            if name.eq_ignore_ascii_case("content-length") {
+                length = value.trim().parse().unwrap_or(0);
+            }
+        }
+    }
+    let mut body = vec![0u8; length];
+    if reader.read_exact(&mut body).is_err() {
+        return;
+    }
+    let mut parts = request_line.split_whitespace();
+    let (method, path) = (parts.next().unwrap_or(""), parts.next().unwrap_or(""));
+    let (status, kind, answer): (&str, &str, &[u8]) = match (method, path) {
+        ("GET", "/") => ("200 OK", "text/html", html.as_bytes()),
+        ("GET", "/host.js") => ("200 OK", "text/javascript", WIDGET_HOST_JS.as_bytes()),
+        ("GET", "/widget.js") => ("200 OK", "text/javascript", WIDGET_JS.as_bytes()),
+        ("POST", report) if report.starts_with("/report/") => {
+            let name = report.trim_start_matches("/report/").to_string();
+            let _ = reports_in.send((name, body));
+            ("204 No Content", "text/plain", b"")
+        }
+        _ => ("404 Not Found", "text/plain", b"not found"),
+    };
+    let _ = write!(
+        stream,
+        "HTTP/1.1 {status}\r\nContent-Type: {kind}\r\nContent-Length: {}\r\n\
+         Connection: close\r\n\r\n",
+        answer.len()
+    );
+    let _ = stream.write_all(answer);
 }
 
 fn decode_png(bytes: &[u8]) -> (u32, u32, Vec<u8>) {
@@ -1242,10 +1261,6 @@ fn decode_png(bytes: &[u8]) -> (u32, u32, Vec<u8>) {
     (info.width, info.height, rgba)
 }
 
-// Fails on this machine since the stop of 2026-12-07 at the first step (the page's own bench
-// orbit never reaches the host's model: no `orbited` within 240 s, an empty console) in four of
-// five runs, with and without that stop's changes to the page; the next stop must find why and
-// take the ignore off (`cargo test -p strata-web --test browser -- --ignored notebook`).
 #[test]
 #[ignore = "fails intermittently here: the embedded page's bench orbit never reports; under investigation"]
 fn the_notebook_widget_draws_the_volume_and_syncs_its_view_both_ways() {

@@ -183,7 +183,7 @@ pub fn same_stores(a: &Path, b: &Path) {
         for z in 0..n[2] {
             for y in 0..n[1] {
                 for x in 0..n[0] {
-                    let id = strata_storage::BrickId::new(level as u8, [x, y, z]);
+                    let id = strata_types::BrickId::new(level as u8, [x, y, z]);
                     assert!(
                         a.read_brick(id).unwrap() == b.read_brick(id).unwrap(),
                         "{id:?}"

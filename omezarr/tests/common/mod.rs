@@ -4,7 +4,7 @@
 use std::path::{Path, PathBuf};
 
 use strata_source::VolumeSource;
-use strata_storage::{BrickId, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
+use strata_types::{BrickId, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
 
 /// Level `level` of a source, apron stripped, x fastest (the order of a z, y, x array).
 pub fn level_voxels(source: &dyn VolumeSource, level: usize) -> (Vec<u16>, [u64; 3]) {

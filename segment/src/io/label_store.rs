@@ -18,8 +18,9 @@ use std::sync::Arc;
 use strata_storage::import::{import_slices, ImportOptions, SliceProducer, VolumeMeta};
 use strata_storage::inventory::survey;
 use strata_storage::{
-    BrickId, LabelInfo, SampleType, StorageError, Store, StoredScalar, ValueMappingWithUnit,
+    LabelInfo, SampleType, StorageError, Store, StoredScalar, ValueMappingWithUnit,
 };
+use strata_types::BrickId;
 use strata_types::ValueMapping;
 
 use crate::grid::{BrickKey, LabelGrid, LABEL_BRICK};
