@@ -22,6 +22,7 @@
 //!   47, so that the desktop needs nothing of the browser crate).
 
 pub mod compact_tf;
+pub mod crop_clip;
 pub mod layouts;
 pub mod performance;
 pub mod presets;

@@ -13,9 +13,11 @@
 
 use strata_render::testdata::phantom::ct_phantom;
 use strata_render::{
-    BrickedVolume, Camera, Projection, RenderError, RenderMode, RenderSettings, Shading,
+    BrickedVolume, Camera, CropBox, Projection, RenderError, RenderMode, RenderSettings, Shading,
     TransferFunction, VolumeGeometry,
 };
+
+use crate::crop_clip::{ClipSettings, CLIP_AXIS_NAMES, MIN_CROP_EXTENT};
 
 /// Edge of the built-in sample volume when the fragment names none (voxels).
 pub const DEFAULT_VOLUME_EDGE: u32 = 128;
@@ -82,6 +84,14 @@ pub struct ViewState {
     pub window: Option<[f64; 2]>,
     /// Isosurface value in the volume's physical unit (HU for the CT sample).
     pub iso_value: f64,
+    /// The crop box (`crop=I0,J0,K0,I1,J1,K1`, fractions of each index axis).
+    pub crop: CropBox,
+    /// The clip plane (`clip=AXIS,FRACTION` with AXIS lr, ap or si, `,flip` to keep the other
+    /// side); absent: no clip.
+    pub clip: ClipSettings,
+    /// Shaded DVR and isosurfaces (the desktop's "Shading" switch); `shade=off` draws them
+    /// unshaded. MIP is never shaded.
+    pub shading: bool,
     /// Edge of the built-in sample volume (voxels).
     pub volume_edge: u32,
     /// A store of the server that served the page, streamed; None: the built-in sample.
@@ -116,6 +126,9 @@ impl Default for ViewState {
             cursor: None,
             window: None,
             iso_value: 300.0,
+            crop: CropBox::default(),
+            clip: ClipSettings::default(),
+            shading: true,
             volume_edge: DEFAULT_VOLUME_EDGE,
             store: None,
             image_size: None,
@@ -249,6 +262,15 @@ impl Fragment {
                 "el" => view.elevation_deg = finite(key, value, -90.0..=90.0)?,
                 "zoom" => view.zoom = finite(key, value, 0.05..=100.0)?,
                 "iso" => view.iso_value = finite(key, value, -1.0e6..=1.0e6)?,
+                "crop" => view.crop = crop_of(key, value)?,
+                "clip" => view.clip = clip_of(key, value)?,
+                "shade" => {
+                    view.shading = match value {
+                        "on" => true,
+                        "off" => false,
+                        _ => return Err(bad(key, value, "on or off")),
+                    }
+                }
                 "pan" => {
                     let (x, y) = value
                         .split_once(',')
@@ -413,6 +435,19 @@ impl ViewState {
         if self.mode == RenderMode::Isosurface {
             parts.push(format!("iso={}", round3(self.iso_value)));
         }
+        if self.crop != CropBox::default() {
+            let [i0, j0, k0] = self.crop.min.map(|v| round3(f64::from(v)));
+            let [i1, j1, k1] = self.crop.max.map(|v| round3(f64::from(v)));
+            parts.push(format!("crop={i0},{j0},{k0},{i1},{j1},{k1}"));
+        }
+        if self.clip.enabled {
+            let axis = CLIP_AXIS_NAMES[self.clip.axis.min(2)];
+            let flip = if self.clip.flip { ",flip" } else { "" };
+            parts.push(format!("clip={axis},{}{flip}", round3(self.clip.fraction)));
+        }
+        if !self.shading {
+            parts.push("shade=off".into());
+        }
         if self.store.is_none() && self.volume_edge != DEFAULT_VOLUME_EDGE {
             parts.push(format!("volume={}", self.volume_edge));
         }
@@ -475,15 +510,18 @@ impl ViewState {
             .unwrap_or_else(|| TransferFunction::new("ramp", &[(0.0, 0.0), (1.0, 1.0)], &[]))
     }
 
-    /// Render settings for a `width` × `height` image: the raycaster's defaults with the
-    /// view's mode, shaded for DVR and isosurfaces as the desktop viewer shows them.
-    pub fn settings(&self, width: u32, height: u32) -> RenderSettings {
+    /// Render settings for a `width` × `height` image of a volume on `geometry`: the
+    /// raycaster's defaults with the view's mode, crop box and clip plane, shaded for DVR and
+    /// isosurfaces as the desktop viewer shows them unless the view turns shading off.
+    pub fn settings(&self, geometry: &VolumeGeometry, width: u32, height: u32) -> RenderSettings {
         RenderSettings {
             width,
             height,
             mode: self.mode,
             iso_value: self.iso_value,
-            shading: (self.mode != RenderMode::Mip).then(Shading::default),
+            shading: (self.shading && self.mode != RenderMode::Mip).then(Shading::default),
+            crop: self.crop,
+            clip_plane: self.clip.plane_if_enabled(geometry),
             ..RenderSettings::default()
         }
     }
@@ -492,6 +530,51 @@ impl ViewState {
 /// The name of a function edited from `preset` (the desktop's naming, scene.rs).
 pub fn edited_name(preset: &str) -> String {
     format!("{preset} (edited)")
+}
+
+/// `crop=I0,J0,K0,I1,J1,K1`: six fractions, each axis's `from` below its `to` by at least
+/// [`MIN_CROP_EXTENT`] (what the controls allow).
+fn crop_of(key: &str, value: &str) -> Result<CropBox, FragmentError> {
+    let expected = "six fractions I0,J0,K0,I1,J1,K1 from 0 to 1, each from below its to";
+    let parts: Vec<&str> = value.split(',').collect();
+    if parts.len() != 6 {
+        return Err(bad(key, value, expected));
+    }
+    let mut f = [0.0f32; 6];
+    for (slot, part) in f.iter_mut().zip(&parts) {
+        // The crop box is f32 (the shader's); a link's three decimals are kept to within its
+        // rounding.
+        *slot = finite(key, part, 0.0..=1.0)? as f32;
+    }
+    let crop = CropBox {
+        min: [f[0], f[1], f[2]],
+        max: [f[3], f[4], f[5]],
+    };
+    if (0..3).any(|a| crop.max[a] - crop.min[a] < MIN_CROP_EXTENT - 1e-6) {
+        return Err(bad(key, value, expected));
+    }
+    Ok(crop)
+}
+
+/// `clip=AXIS,FRACTION[,flip]`.
+fn clip_of(key: &str, value: &str) -> Result<ClipSettings, FragmentError> {
+    let expected = "AXIS,FRACTION[,flip] with AXIS lr, ap or si and FRACTION from 0 to 1";
+    let parts: Vec<&str> = value.split(',').collect();
+    let (axis, fraction, flip) = match parts[..] {
+        [axis, fraction] => (axis, fraction, false),
+        [axis, fraction, "flip"] => (axis, fraction, true),
+        _ => return Err(bad(key, value, expected)),
+    };
+    let axis = CLIP_AXIS_NAMES
+        .iter()
+        .position(|name| *name == axis)
+        .ok_or_else(|| bad(key, value, expected))?;
+    Ok(ClipSettings {
+        enabled: true,
+        axis,
+        flip,
+        fraction: finite(key, fraction, 0.0..=1.0)?,
+    })
 }
 
 /// Three decimals: enough for a view, short enough for a link.
@@ -533,6 +616,17 @@ mod tests {
             cursor: Some([10.5, 20.0, 3.25]),
             window: Some([40.0, 400.0]),
             iso_value: 250.0,
+            crop: CropBox {
+                min: [0.125, 0.0, 0.25],
+                max: [1.0, 0.5, 0.875],
+            },
+            clip: ClipSettings {
+                enabled: true,
+                axis: 2,
+                flip: true,
+                fraction: 0.375,
+            },
+            shading: false,
             volume_edge: 64,
             store: None,
             image_size: Some([160, 120]),
@@ -681,11 +775,57 @@ mod tests {
     #[test]
     fn settings_follow_the_mode() {
         let mut view = ViewState::default();
-        assert!(view.settings(8, 8).shading.is_some());
+        let geometry = view.geometry();
+        assert!(view.settings(&geometry, 8, 8).shading.is_some());
         view.mode = RenderMode::Mip;
-        let s = view.settings(64, 32);
+        let s = view.settings(&geometry, 64, 32);
         assert!(s.shading.is_none());
         assert_eq!((s.width, s.height, s.mode), (64, 32, RenderMode::Mip));
         assert!(s.validate().is_ok());
+    }
+
+    #[test]
+    fn crop_clip_and_shading_reach_the_settings() {
+        let view = Fragment::parse("#mode=dvr&crop=0,0.25,0,1,1,0.5&clip=lr,0.75,flip&shade=off")
+            .expect("parses")
+            .view;
+        let geometry = VolumeGeometry::axis_aligned([40, 50, 60], [1.0, 2.0, 0.5]);
+        let s = view.settings(&geometry, 32, 32);
+        assert_eq!(s.crop.min, [0.0, 0.25, 0.0]);
+        assert_eq!(s.crop.max, [1.0, 1.0, 0.5]);
+        assert_eq!(s.clip_plane, Some(view.clip.plane(&geometry)));
+        assert_eq!(s.clip_plane.map(|p| p.normal), Some([-1.0, 0.0, 0.0]));
+        assert!(s.shading.is_none(), "shade=off");
+        assert!(s.validate().is_ok());
+        // Without the keys: the whole volume, no plane, shaded.
+        let plain = ViewState::default().settings(&geometry, 32, 32);
+        assert_eq!(plain.crop, CropBox::default());
+        assert_eq!(plain.clip_plane, None);
+        assert!(plain.shading.is_some());
+        let written = ViewState::default().to_fragment();
+        for key in ["crop=", "clip=", "shade="] {
+            assert!(!written.contains(key), "{written}");
+        }
+    }
+
+    #[test]
+    fn a_bad_crop_clip_or_shade_names_its_key() {
+        for (key, value) in [
+            ("crop", "0,0,0,1,1"),
+            ("crop", "0,0,0,1,1,1.5"),
+            ("crop", "0.5,0,0,0.5,1,1"),
+            ("crop", "0.6,0,0,0.4,1,1"),
+            ("clip", "up,0.5"),
+            ("clip", "ap"),
+            ("clip", "ap,2"),
+            ("clip", "ap,0.5,flop"),
+            ("shade", "maybe"),
+        ] {
+            let e = Fragment::parse(&format!("#{key}={value}")).expect_err(value);
+            assert!(
+                e.to_string().contains(&format!("`{key}`")),
+                "{key}={value}: {e}"
+            );
+        }
     }
 }

@@ -21,7 +21,7 @@ use super::overlay::Overlay;
 use super::overlay_3d::Overlay3d;
 use super::panels::{FrameClock, PanelContext, Panels};
 pub use super::preferences::{Layout, Preferences, ViewSlot};
-use super::scene::{preset_for, start_cursor, ClipSettings, Readout, Scene, VolumeData, Window};
+use super::scene::{preset_for, start_cursor, Readout, Scene, VolumeData, Window};
 use super::screenshots::{ScreenshotJob, ShotTarget};
 use super::segmentation::{journal_path, PendingRecovery, Segmentation};
 use super::slice_view::SliceViewer;
@@ -29,6 +29,7 @@ use super::slices::SliceReader;
 use super::view3d::{OrbitCamera, StandardView, View3d};
 use super::volume_session::{ScreenshotRequest, VolumeSession, DEFAULT_GPU_BUDGET_BYTES};
 use super::widgets::{elide_middle, NOT_FOR_DIAGNOSIS, WARNING_COLOUR};
+use strata_viewer_ui::crop_clip::ClipSettings;
 use strata_viewer_ui::layouts;
 use strata_viewer_ui::tf_editor::TfEditorState;
 
@@ -476,6 +477,11 @@ impl StrataApp {
             self.preferences.preset = view.preset.clone();
             self.preferences.mode = view.mode;
             self.preferences.layout = view.layout;
+            if !view.shading {
+                // As the rendering panel's switch does: effects are part of shading.
+                self.preferences.light.effects_off();
+            }
+            self.preferences.shading = view.shading;
         }
         self.pending_link_view = link_view;
         match PrepareJob::start(
@@ -662,6 +668,8 @@ impl StrataApp {
         if let Some(view) = self.pending_link_view.take() {
             orbit = view.orbit;
             scene.iso_value = view.iso_value;
+            scene.crop = view.crop;
+            scene.clip = view.clip;
             if let Some(tf) = view.tf {
                 // Edited from the link's preset (tf_source): the panel shows it as edited.
                 scene.transfer_function = tf;
@@ -736,6 +744,9 @@ impl StrataApp {
                 layout: self.preferences.layout,
                 cursor: Some(v.scene.cursor),
                 window: Some([v.scene.window.centre, v.scene.window.width]),
+                crop: v.scene.crop,
+                clip: v.scene.clip,
+                shading: self.preferences.shading,
             },
         )
     }

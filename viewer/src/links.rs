@@ -8,7 +8,8 @@
 //! A link's `token=` is used for that one connection and kept in memory only: it is never
 //! written back into a copied link (links are shared, tokens must not be), logged, or saved.
 
-use strata_render::{RenderMode, TransferFunction};
+use strata_render::{CropBox, RenderMode, TransferFunction};
+use strata_viewer_ui::crop_clip::ClipSettings;
 use strata_viewer_ui::view_state::{Fragment, Layout as LinkLayout, ViewState};
 
 use super::preferences::Layout;
@@ -41,6 +42,11 @@ pub struct DesktopView {
     /// None where a link leaves them to the store.
     pub cursor: Option<[f64; 3]>,
     pub window: Option<[f64; 2]>,
+    /// The cut: crop box and clip plane, as the rendering panel sets them.
+    pub crop: CropBox,
+    pub clip: ClipSettings,
+    /// The rendering panel's "Shading" switch.
+    pub shading: bool,
 }
 
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -138,6 +144,9 @@ pub fn link_for(store_url: &str, view: &DesktopView) -> Option<String> {
         },
         cursor: view.cursor,
         window: view.window,
+        crop: view.crop,
+        clip: view.clip,
+        shading: view.shading,
         store: Some(name.to_string()),
         ..ViewState::default()
     };
@@ -165,6 +174,9 @@ pub fn desktop_view(view: &ViewState) -> DesktopView {
         },
         cursor: view.cursor,
         window: view.window,
+        crop: view.crop,
+        clip: view.clip,
+        shading: view.shading,
     }
 }
 
@@ -189,6 +201,17 @@ mod tests {
             layout: Layout::Single,
             cursor: Some([12.0, 30.5, 7.0]),
             window: Some([-600.0, 1500.0]),
+            crop: CropBox {
+                min: [0.25, 0.0, 0.125],
+                max: [0.75, 1.0, 1.0],
+            },
+            clip: ClipSettings {
+                enabled: true,
+                axis: 0,
+                flip: false,
+                fraction: 0.625,
+            },
+            shading: false,
         }
     }
 

@@ -3,9 +3,9 @@
 //! transfer function, iso value, crop and clip). Views and panels own their own state; they
 //! read [`VolumeData`] and change [`Scene`].
 
-use serde::{Deserialize, Serialize};
-use strata_render::{ClipPlane, CropBox, TransferFunction};
+use strata_render::{CropBox, TransferFunction};
 use strata_storage::histogram::Histogram;
+use strata_viewer_ui::crop_clip::ClipSettings;
 
 use super::colour_maps::ColourMap;
 use super::measurements::Measurements;
@@ -15,28 +15,6 @@ use super::volume_session::{VolumeInfo, VolumeSession};
 
 /// A slice window in physical units (strata-slices', shared with the browser viewer).
 pub use strata_slices::Window;
-
-/// The clip plane as the user sets it: an LPS axis, which side is cut, and where.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct ClipSettings {
-    pub enabled: bool,
-    /// LPS axis of the plane's normal: 0 L–R, 1 A–P, 2 S–I.
-    pub axis: usize,
-    pub flip: bool,
-    /// Position as a fraction of the volume's extent along the normal.
-    pub fraction: f64,
-}
-
-impl Default for ClipSettings {
-    fn default() -> Self {
-        ClipSettings {
-            enabled: false,
-            axis: 1,
-            flip: false,
-            fraction: 0.5,
-        }
-    }
-}
 
 /// What the views read and never change: the render session, the slice reader and facts of
 /// the store.
@@ -186,42 +164,6 @@ impl VolumeData {
             value,
             unit: self.unit(),
             integer_values: ScanValues::of(&self.info.header).integer_values,
-        }
-    }
-
-    /// The clip plane in patient space for the user's clip settings.
-    pub fn clip_plane(&self, clip: &ClipSettings) -> ClipPlane {
-        let g = &self.info.geometry;
-        let mut normal = [0.0; 3];
-        normal[clip.axis] = if clip.flip { -1.0 } else { 1.0 };
-        let n = glam::DVec3::from(normal);
-        // Offset from the fraction of the volume's extent along the plane's normal.
-        let corners = (0..8).map(|c| {
-            let idx = glam::DVec3::new(
-                if c & 1 == 0 {
-                    -0.5
-                } else {
-                    g.dims[0] as f64 - 0.5
-                },
-                if c & 2 == 0 {
-                    -0.5
-                } else {
-                    g.dims[1] as f64 - 0.5
-                },
-                if c & 4 == 0 {
-                    -0.5
-                } else {
-                    g.dims[2] as f64 - 0.5
-                },
-            );
-            g.patient_from_index(idx).dot(n)
-        });
-        let (lo, hi) = corners.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), x| {
-            (a.min(x), b.max(x))
-        });
-        ClipPlane {
-            normal,
-            offset_mm: lo + (hi - lo) * clip.fraction,
         }
     }
 

@@ -1811,9 +1811,10 @@ fn a_label_map_colours_the_3d_pixels_over_it_and_hiding_the_label_removes_it() {
 /// there reaching back into `viewer::app` made a module cycle.)
 #[test]
 fn a_restarted_viewer_opens_its_volume_with_the_saved_session() {
-    use super::scene::{ClipSettings, Scene, Window};
+    use super::scene::{Scene, Window};
     use super::session_restore::SavedSession;
     use super::view3d::OrbitCamera;
+    use strata_viewer_ui::crop_clip::ClipSettings;
     let dir = tempfile::tempdir().expect("tempdir");
     let store = dir.path().join("phantom.strata");
     Phantom::cube(32)

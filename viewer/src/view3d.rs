@@ -528,7 +528,7 @@ impl View3d {
         let height = ((rect.height() * scale).round() as u32).max(16);
         self.requested_size = [width, height];
         let camera = self.orbit.camera(&data.info.geometry);
-        let clip_plane = scene.clip.enabled.then(|| data.clip_plane(&scene.clip));
+        let clip_plane = scene.clip.plane_if_enabled(&data.info.geometry);
         let mut settings = RenderSettings {
             width,
             height,

@@ -16,7 +16,8 @@ use strata_loader::{
     FrameStats, LoaderError, LoaderWork, SelectionTiming, StreamingConfig, StreamingVolume,
 };
 use strata_render::{
-    BrickedVolume, CacheConfig, Camera, GpuContext, OffscreenRenderer, RenderMode, TransferFunction,
+    BrickedVolume, CacheConfig, GpuContext, OffscreenRenderer, RenderMode, TransferFunction,
+    VolumeGeometry,
 };
 use wasm_bindgen::prelude::*;
 use wasm_bindgen::JsCast;
@@ -379,7 +380,7 @@ impl WebViewer {
         let Some(geometry) = self.streamed.as_ref().map(|s| s.volume.geometry().clone()) else {
             return Ok(());
         };
-        let request = self.render_request(self.view.camera(&geometry), size);
+        let request = self.render_request(&geometry, size);
         let Some(streamed) = self.streamed.as_mut() else {
             return Ok(());
         };
@@ -435,10 +436,10 @@ impl WebViewer {
 
     /// What the page asks of the 3D view now, as the desktop's render thread is asked: the
     /// view's camera and settings, the side panel's function and target rate.
-    fn render_request(&mut self, camera: Camera, size: [u32; 2]) -> RenderRequest {
+    fn render_request(&mut self, geometry: &VolumeGeometry, size: [u32; 2]) -> RenderRequest {
         RenderRequest {
-            camera,
-            settings: self.view.settings(size[0], size[1]),
+            camera: self.view.camera(geometry),
+            settings: self.view.settings(geometry, size[0], size[1]),
             transfer_function: self.side.transfer_function(&self.view),
             target_fps: self.side.target_fps(),
             // The page's own controller (view_motion.rs) paces the drag.
@@ -455,7 +456,7 @@ impl WebViewer {
         let Some(geometry) = self.volume.as_ref().map(|v| v.geometry.clone()) else {
             return Ok(());
         };
-        let request = self.render_request(self.view.camera(&geometry), size);
+        let request = self.render_request(&geometry, size);
         let (Some(volume), Some(renderer), Some(driver)) = (
             self.volume.as_ref(),
             self.renderer.as_mut(),
@@ -999,7 +1000,7 @@ impl eframe::App for WebViewer {
                     lod_factor: self.motion.shown().1,
                     frames_submitted: self.frames_submitted,
                 };
-                self.side.ui(ui, &self.view, figures);
+                self.side.ui(ui, &mut self.view, figures);
                 // The address carries an edited function (`tf=`); the render driver uploads the
                 // panel's function when it differs, so this adds no redraw of its own.
                 let edited = self.side.edited_function();

@@ -12,8 +12,9 @@ use std::collections::VecDeque;
 
 use strata_loader::FrameStats;
 use strata_render::testdata::phantom::ct_phantom_hu;
-use strata_render::{FrameTiming, TransferFunction, VolumeGeometry};
+use strata_render::{FrameTiming, RenderMode, TransferFunction, VolumeGeometry};
 use strata_storage::histogram::{Histogram, StoredValueCounts};
+use strata_viewer_ui::crop_clip;
 use strata_viewer_ui::performance::{self, FrameClock, PerformanceFigures};
 use strata_viewer_ui::presets::{self, ScanValues};
 use strata_viewer_ui::target_fps::target_fps_control;
@@ -177,12 +178,24 @@ impl SidePanel {
             .record(seconds, ui_started, frames_submitted, false);
     }
 
-    pub fn ui(&mut self, ui: &mut egui::Ui, view: &ViewState, figures: VolumeFigures<'_>) {
+    /// The panel; its cut and shading controls change `view` (the address follows it).
+    pub fn ui(&mut self, ui: &mut egui::Ui, view: &mut ViewState, figures: VolumeFigures<'_>) {
         self.follow_preset(view);
         egui::ScrollArea::vertical().show(ui, |ui| {
             egui::CollapsingHeader::new("Transfer function")
                 .default_open(true)
                 .show(ui, |ui| self.transfer_function_ui(ui));
+            egui::CollapsingHeader::new("Crop, clip, shading and projection")
+                .default_open(false)
+                .show(ui, |ui| {
+                    // The desktop's rendering panel draws the same controls (crop_clip.rs).
+                    ui.add_enabled(
+                        view.mode != RenderMode::Mip,
+                        egui::Checkbox::new(&mut view.shading, "Shading (DVR, isosurface)"),
+                    );
+                    ui.checkbox(&mut view.orthographic, "Orthographic projection");
+                    crop_clip::controls(ui, &mut view.crop, &mut view.clip);
+                });
             egui::CollapsingHeader::new("Performance")
                 .default_open(true)
                 .show(ui, |ui| self.performance_ui(ui, figures));

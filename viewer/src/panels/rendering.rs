@@ -1,7 +1,7 @@
 //! The rendering panel: mode, iso value, shading and light, smooth transitions, traversal,
 //! adaptive sampling, slice planes in 3D, projection, crop box and clip plane.
 
-use strata_render::{CropBox, RenderMode, ShadowMode};
+use strata_render::{RenderMode, ShadowMode};
 
 use crate::adaptive_view::{format_epsilon, EPSILON_RANGE};
 use crate::preferences::{
@@ -76,41 +76,7 @@ pub fn ui(
         &mut prefs.show_crop_box,
         "Show the crop box in 3D (drag its face handles)",
     );
-    ui.label("Crop box (fraction of each index axis)");
-    for (axis, name) in ["i", "j", "k"].iter().enumerate() {
-        ui.horizontal(|ui| {
-            ui.label(*name);
-            let mut min = scene.crop.min[axis];
-            let mut max = scene.crop.max[axis];
-            ui.add(egui::DragValue::new(&mut min).speed(0.005).range(0.0..=1.0))
-                .accessible_name(format!("Crop {name} from"));
-            ui.add(egui::DragValue::new(&mut max).speed(0.005).range(0.0..=1.0))
-                .accessible_name(format!("Crop {name} to"));
-            scene.crop.min[axis] = min.min(max - 0.01).max(0.0);
-            scene.crop.max[axis] = max.max(min + 0.01).min(1.0);
-        });
-    }
-    let clip = &mut scene.clip;
-    ui.horizontal(|ui| {
-        ui.checkbox(&mut clip.enabled, "Clip plane");
-        egui::ComboBox::from_id_salt("clip axis")
-            .selected_text(["L–R", "A–P", "S–I"][clip.axis])
-            .show_ui(ui, |ui| {
-                ui.selectable_value(&mut clip.axis, 0, "L–R (sagittal)");
-                ui.selectable_value(&mut clip.axis, 1, "A–P (coronal)");
-                ui.selectable_value(&mut clip.axis, 2, "S–I (axial)");
-            })
-            .response
-            .accessible_name("Clip plane axis");
-        ui.checkbox(&mut clip.flip, "flip");
-    });
-    if clip.enabled {
-        ui.add(egui::Slider::new(&mut clip.fraction, 0.0..=1.0).text("position"));
-    }
-    if ui.button("Reset crop and clip").clicked() {
-        scene.crop = CropBox::default();
-        scene.clip.enabled = false;
-    }
+    strata_viewer_ui::crop_clip::controls(ui, &mut scene.crop, &mut scene.clip);
     tf_replaced
 }
 
