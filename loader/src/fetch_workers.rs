@@ -1,27 +1,32 @@
 //! Asynchronous brick fetching (octree paper §4: "all data access requests are performed
 //! asynchronously by a separate thread, and refinement continues only if data is immediately
-//! available"). Named worker threads take the most urgent request, read it from the store
-//! (checksum-verified, decompressed by its codec) and send it back over a bounded crossbeam channel; the
-//! frame loop moves it into the CPU cache.
+//! available") for a source without an asynchronous path of its own (the local store).
+//! Named worker threads take the most urgent request, read it from the source
+//! (checksum-verified, decompressed by its codec) and send it back over a bounded crossbeam
+//! channel; the frame loop moves it into the CPU cache. [`InlineReads`] is the same without
+//! threads: a few reads per frame on the frame thread.
 //!
-//! The queue holds at most `capacity` requests. Each frame the loader replaces its contents
-//! with what the current view wants: requests the new view no longer names are dropped as
-//! stale (so a fast-moving camera cannot pile up work), demand always sorts before prefetch,
-//! and requests already being read are not queued twice.
+//! Which request is read next is the shared policy of
+//! [`WishList`](strata_source::wish_list::WishList): replaced every frame (stale requests
+//! dropped, so a fast-moving camera cannot pile up work; at most `capacity` queued), demand
+//! before prefetch, and requests already being read are not queued twice. A read cannot be
+//! stopped, so nothing started here is cancelled.
+//!
+//! A record is read once: a decoding failure is worded by the source from the record already
+//! read (`VolumeSource::decode_brick_record`: a store names its file and the brick), checked
+//! by `a_damaged_brick_is_read_once_and_its_error_names_the_store_and_the_brick`.
 
-use std::collections::{HashMap, HashSet};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::thread::JoinHandle;
 use std::time::Duration;
 
 use crossbeam_channel::{Receiver, Sender};
-use strata_source::{BrickFetcher, FetchResult, SourceError, VolumeSource};
+use strata_source::wish_list::{Started, WishList};
+use strata_source::{BrickFetcher, FetchResult, QueueCounters, SourceError, VolumeSource};
 use strata_types::BrickId;
 
 use crate::error::LoaderError;
-
-pub use strata_source::{QueueCounters, RequestClass};
 
 /// A source that sleeps before every brick read: slow disks and network storage in tests.
 pub struct SlowReader<R> {
@@ -53,19 +58,19 @@ impl<R: VolumeSource> VolumeSource for SlowReader<R> {
         std::thread::sleep(self.delay);
         self.inner.read_brick(id)
     }
+    fn decode_brick_record(&self, id: BrickId, record: &[u8]) -> Result<Vec<u16>, SourceError> {
+        self.inner.decode_brick_record(id, record)
+    }
 }
 
 struct QueueState {
-    queued: HashMap<BrickId, (RequestClass, f64)>,
-    in_flight: HashSet<BrickId>,
-    counters: QueueCounters,
+    wishes: WishList,
     shutdown: bool,
 }
 
 struct Shared {
     state: Mutex<QueueState>,
     wake: Condvar,
-    capacity: usize,
     busy_workers: AtomicU64,
 }
 
@@ -81,6 +86,7 @@ pub struct FetchWorkers {
     shared: Arc<Shared>,
     results: Receiver<FetchResult>,
     threads: Vec<JoinHandle<()>>,
+    capacity: usize,
 }
 
 impl FetchWorkers {
@@ -93,15 +99,14 @@ impl FetchWorkers {
         in_transit: usize,
     ) -> Result<Self, LoaderError> {
         let workers = workers.max(1);
+        let wishes = WishList::new(capacity);
+        let capacity = wishes.capacity();
         let shared = Arc::new(Shared {
             state: Mutex::new(QueueState {
-                queued: HashMap::new(),
-                in_flight: HashSet::new(),
-                counters: QueueCounters::default(),
+                wishes,
                 shutdown: false,
             }),
             wake: Condvar::new(),
-            capacity: capacity.max(1),
             busy_workers: AtomicU64::new(0),
         });
         let (tx, rx) = crossbeam_channel::bounded(in_transit.max(1));
@@ -120,22 +125,22 @@ impl FetchWorkers {
             shared,
             results: rx,
             threads,
+            capacity,
         })
     }
 
     /// Replaces the queue with this frame's wishes (demand first, then prefetch, each in
     /// priority order; ids must already exclude what is cached). Returns how many were queued.
     pub fn set_requests(&self, demand: &[(BrickId, f64)], prefetch: &[(BrickId, f64)]) -> usize {
-        let n = replace_requests(
-            &mut self.shared.lock(),
-            self.shared.capacity,
-            demand,
-            prefetch,
-        );
-        if n > 0 {
+        let queued = {
+            let mut state = self.shared.lock();
+            state.wishes.replace(demand, prefetch);
+            state.wishes.queued()
+        };
+        if queued > 0 {
             self.shared.wake.notify_all();
         }
-        n
+        queued
     }
 
     /// Results ready now; never blocks.
@@ -145,27 +150,27 @@ impl FetchWorkers {
 
     /// The frame loop has stored a result: the id is no longer in flight.
     pub fn complete(&self, id: BrickId) {
-        self.shared.lock().in_flight.remove(&id);
+        self.shared.lock().wishes.complete(id);
     }
 
     pub fn queued(&self) -> usize {
-        self.shared.lock().queued.len()
+        self.shared.lock().wishes.queued()
     }
 
     pub fn in_flight(&self) -> usize {
-        self.shared.lock().in_flight.len()
+        self.shared.lock().wishes.in_flight()
     }
 
     pub fn is_in_flight(&self, id: BrickId) -> bool {
-        self.shared.lock().in_flight.contains(&id)
+        self.shared.lock().wishes.is_in_flight(id)
     }
 
     pub fn capacity(&self) -> usize {
-        self.shared.capacity
+        self.capacity
     }
 
     pub fn counters(&self) -> QueueCounters {
-        self.shared.lock().counters
+        self.shared.lock().wishes.counters()
     }
 
     /// Workers currently inside a read.
@@ -192,98 +197,37 @@ impl Drop for FetchWorkers {
 
 fn worker_loop(shared: &Shared, reader: &dyn VolumeSource, results: &Sender<FetchResult>) {
     loop {
-        let (id, class) = {
+        let started = {
             let mut state = shared.lock();
             loop {
                 if state.shutdown {
                     return;
                 }
-                if let Some(next) = take_most_urgent(&mut state) {
+                if let Some(next) = state.wishes.take_most_urgent() {
                     break next;
                 }
                 state = shared.wake.wait(state).unwrap_or_else(|p| p.into_inner());
             }
         };
         shared.busy_workers.fetch_add(1, Ordering::Relaxed);
-        let result = read_request(reader, id, class);
+        let result = read_request(reader, started);
         shared.busy_workers.fetch_sub(1, Ordering::Relaxed);
+        // Delivered before it is sent, so that the frame loop's `complete` finds it so.
+        shared.lock().wishes.deliver(started.id, started.ticket);
         if results.send(result).is_err() {
             return;
         }
     }
 }
 
-/// Replaces the queue with this frame's wishes (see [`FetchWorkers::set_requests`]), counting
-/// the stale and overflowing ones. Returns how many are queued.
-fn replace_requests(
-    state: &mut QueueState,
-    capacity: usize,
-    demand: &[(BrickId, f64)],
-    prefetch: &[(BrickId, f64)],
-) -> usize {
-    let mut wanted: HashMap<BrickId, (RequestClass, f64)> = HashMap::new();
-    let candidates = demand
-        .iter()
-        .map(|&(id, p)| (id, RequestClass::Demand, p))
-        .chain(
-            prefetch
-                .iter()
-                .map(|&(id, p)| (id, RequestClass::Prefetch, p)),
-        );
-    let mut overflow = 0;
-    for (id, class, priority) in candidates {
-        if state.in_flight.contains(&id) || wanted.contains_key(&id) {
-            continue;
-        }
-        if wanted.len() >= capacity {
-            overflow += 1;
-            continue;
-        }
-        wanted.insert(id, (class, priority));
-    }
-    let stale = state
-        .queued
-        .keys()
-        .filter(|id| !wanted.contains_key(id))
-        .count() as u64;
-    state.counters.stale_dropped += stale;
-    state.counters.overflow_dropped += overflow;
-    state.queued = wanted;
-    state.queued.len()
-}
-
-/// Moves the most urgent queued request (demand before prefetch, then by priority) to the
-/// in-flight set and counts it.
-fn take_most_urgent(state: &mut QueueState) -> Option<(BrickId, RequestClass)> {
-    let (id, class) = state
-        .queued
-        .iter()
-        .max_by(|a, b| {
-            (a.1 .0, a.1 .1)
-                .partial_cmp(&(b.1 .0, b.1 .1))
-                .unwrap_or(std::cmp::Ordering::Equal)
-        })
-        .map(|(&id, &(class, _))| (id, class))?;
-    state.queued.remove(&id);
-    state.in_flight.insert(id);
-    state.counters.max_in_flight = state
-        .counters
-        .max_in_flight
-        .max(state.in_flight.len() as u64);
-    match class {
-        RequestClass::Demand => state.counters.demand_started += 1,
-        RequestClass::Prefetch => state.counters.prefetch_started += 1,
-    }
-    Some((id, class))
-}
-
-/// Reads one request: record and decode separately (same checks as `read_brick`) to count
-/// the bytes read.
-fn read_request(reader: &dyn VolumeSource, id: BrickId, class: RequestClass) -> FetchResult {
+/// Reads one request: record and decode separately (same checks and wording as
+/// `read_brick`) to count the bytes read.
+fn read_request(reader: &dyn VolumeSource, started: Started) -> FetchResult {
+    let Started { id, class, .. } = started;
     let mut stored_bytes = 0;
     let outcome = reader.read_brick_record(id).and_then(|record| {
         stored_bytes = record.len() as u64;
-        decode_record(reader, id, &record)
+        reader.decode_brick_record(id, &record).map(Arc::new)
     });
     FetchResult {
         id,
@@ -299,73 +243,60 @@ fn read_request(reader: &dyn VolumeSource, id: BrickId, class: RequestClass) -> 
 /// asynchronous path where no thread can be started.
 pub struct InlineReads {
     reader: Arc<dyn VolumeSource>,
-    state: Mutex<QueueState>,
+    wishes: Mutex<WishList>,
     capacity: usize,
     reads_per_call: usize,
 }
 
 impl InlineReads {
     pub fn new(reader: Arc<dyn VolumeSource>, reads_per_call: usize, capacity: usize) -> Self {
+        let wishes = WishList::new(capacity);
         InlineReads {
             reader,
-            state: Mutex::new(QueueState {
-                queued: HashMap::new(),
-                in_flight: HashSet::new(),
-                counters: QueueCounters::default(),
-                shutdown: false,
-            }),
-            capacity: capacity.max(1),
+            capacity: wishes.capacity(),
+            wishes: Mutex::new(wishes),
             reads_per_call: reads_per_call.max(1),
         }
     }
 
-    fn lock(&self) -> MutexGuard<'_, QueueState> {
-        self.state.lock().unwrap_or_else(|p| p.into_inner())
+    /// Poisoned only by a panic mid-update, which leaves a valid set of requests.
+    fn lock(&self) -> MutexGuard<'_, WishList> {
+        self.wishes.lock().unwrap_or_else(|p| p.into_inner())
     }
 }
 
 impl BrickFetcher for InlineReads {
     fn set_requests(&self, demand: &[(BrickId, f64)], prefetch: &[(BrickId, f64)]) -> usize {
-        replace_requests(&mut self.lock(), self.capacity, demand, prefetch)
+        let mut wishes = self.lock();
+        wishes.replace(demand, prefetch);
+        wishes.queued()
     }
     fn try_results(&self) -> Vec<FetchResult> {
         let mut results = Vec::new();
         while results.len() < self.reads_per_call {
             // Not held across the read: the source may take a while.
-            let Some((id, class)) = take_most_urgent(&mut self.lock()) else {
+            let Some(started) = self.lock().take_most_urgent() else {
                 break;
             };
-            results.push(read_request(self.reader.as_ref(), id, class));
+            results.push(read_request(self.reader.as_ref(), started));
+            self.lock().deliver(started.id, started.ticket);
         }
         results
     }
     fn complete(&self, id: BrickId) {
-        self.lock().in_flight.remove(&id);
+        self.lock().complete(id);
     }
     fn queued(&self) -> usize {
-        self.lock().queued.len()
+        self.lock().queued()
     }
     fn in_flight(&self) -> usize {
-        self.lock().in_flight.len()
+        self.lock().in_flight()
     }
     fn capacity(&self) -> usize {
         self.capacity
     }
     fn counters(&self) -> QueueCounters {
-        self.lock().counters
-    }
-}
-
-/// Decodes a record the way the source's own `read_brick` does (its error wording).
-fn decode_record(
-    reader: &dyn VolumeSource,
-    id: BrickId,
-    record: &[u8],
-) -> Result<strata_source::Brick, SourceError> {
-    match strata_storage::brick::decode_brick(id, record) {
-        Ok(voxels) => Ok(Arc::new(voxels)),
-        // Let the source word the error (a store names its file and the brick).
-        Err(_) => reader.read_brick(id).map(Arc::new),
+        self.lock().counters()
     }
 }
 
@@ -473,6 +404,70 @@ mod tests {
         assert!(got.contains(&BrickId::new(1, [0, 0, 0])));
         let read = reader.log.lock().unwrap().clone();
         assert!(read.len() <= 3, "stale requests were read anyway: {read:?}");
+    }
+
+    /// A store whose reads are counted: records read, and decodings worded by the store.
+    struct ReadCounting {
+        records_read: std::sync::atomic::AtomicUsize,
+        store: strata_storage::Store,
+    }
+    impl VolumeSource for ReadCounting {
+        fn location(&self) -> String {
+            self.store.location()
+        }
+        fn header(&self) -> &strata_storage::StoreHeader {
+            self.store.header()
+        }
+        fn skeleton(&self) -> &strata_storage::store::Skeleton {
+            self.store.skeleton()
+        }
+        fn histogram(&self) -> &strata_storage::histogram::Histogram {
+            self.store.histogram()
+        }
+        fn stats(&self) -> &strata_storage::store::StoreStats {
+            self.store.stats()
+        }
+        fn read_brick_record(&self, id: BrickId) -> Result<Vec<u8>, SourceError> {
+            self.records_read.fetch_add(1, Ordering::Relaxed);
+            VolumeSource::read_brick_record(&self.store, id)
+        }
+        fn decode_brick_record(&self, id: BrickId, record: &[u8]) -> Result<Vec<u16>, SourceError> {
+            self.store.decode_brick_record(id, record)
+        }
+    }
+
+    #[test]
+    fn a_damaged_brick_is_read_once_and_its_error_names_the_store_and_the_brick() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("damaged.strata");
+        strata_storage::phantom::Phantom::cube(40)
+            .write_store(&path, &strata_storage::import::ImportOptions::default())
+            .unwrap();
+        let root = BrickId::new(1, [0, 0, 0]);
+        strata_storage::Store::corrupt_brick_for_tests(&path, root, 20).unwrap();
+        let reader = Arc::new(ReadCounting {
+            records_read: std::sync::atomic::AtomicUsize::new(0),
+            store: strata_storage::Store::open(&path).unwrap(),
+        });
+        let inline = InlineReads::new(reader.clone(), 4, 8);
+        inline.set_requests(&[(root, 1.0)], &[]);
+        let results = inline.try_results();
+        assert_eq!(results.len(), 1);
+        let error = match &results[0].outcome {
+            Err(e) => e.to_string(),
+            Ok(_) => panic!("a brick damaged on disk decoded"),
+        };
+        for named in ["damaged.strata", "pack-", "brick level 1 at [0, 0, 0]"] {
+            assert!(error.contains(named), "{named:?} missing from: {error}");
+        }
+        assert_eq!(
+            reader.records_read.load(Ordering::Relaxed),
+            1,
+            "the record was read again to word the error"
+        );
+        assert!(results[0].stored_bytes > 0);
+        inline.complete(root);
+        assert_eq!(inline.in_flight(), 0);
     }
 
     #[test]

@@ -1157,7 +1157,7 @@ impl VolumeSource for OmeZarrSource {
             let assembler = assembler.clone();
             Box::pin(async move { assembler.assemble(id).await })
         });
-        Some(Ok(Box::new(crate::fetcher::ZarrFetcher::start(
+        Some(Ok(Box::new(crate::fetcher::start_fetcher(
             runtime,
             assemble,
             self.assembler.bytes_per_sample(),

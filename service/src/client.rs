@@ -3,9 +3,10 @@
 //! Opening fetches the open document (header, histogram, stats, skeleton) in one request.
 //! Bricks are fetched asynchronously on a small tokio runtime of the source's own, many at a
 //! time over one HTTP/2 connection (h2c; `http1` uses a small pool of HTTP/1.1 connections
-//! instead): [`RemoteFetcher`] keeps the loader's priority order (demand before prefetch, then
-//! the loader's priority: coarse before fine, centre of the view first), aborts requests on the
-//! wire that two successive views no longer name (the HTTP/2 stream is reset), retries (see
+//! instead). The loader's fetcher is the shared [`TaskQueue`], which keeps the loader's
+//! priority order (demand before prefetch, then the loader's priority: coarse before fine,
+//! centre of the view first) and aborts requests on the wire that two successive views no
+//! longer name (the HTTP/2 stream is reset); each request ([`fetch_one`]) retries (see
 //! [`Retrying`]: a request cut on an open connection at once, refusals and 503/429 with
 //! exponential backoff honouring `Retry-After`; reporting "connection lost, retrying" or
 //! "server busy, retrying" meanwhile), and verifies every record's checksum on arrival,
@@ -18,9 +19,11 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
-use strata_source::task_queue::{BrickJob, BrickJobOutcome, TaskQueue};
+use strata_source::task_queue::{
+    BrickJobFuture, BrickJobOutcome, BrickJobs, TaskQueue, TaskRuntime,
+};
 use strata_source::{
-    BrickFetcher, FetchOptions, FetchResult, QueueCounters, SourceError, SourceStatus, VolumeSource,
+    BrickFetcher, FetchOptions, QueueCounters, SourceError, SourceStatus, VolumeSource,
 };
 use strata_storage::brick::decode_brick;
 use strata_storage::histogram::Histogram;
@@ -498,9 +501,13 @@ impl VolumeSource for RemoteSource {
             .max_in_flight
             .min(options.max_in_transit.max(1))
             .max(1);
-        Some(Ok(Box::new(RemoteFetcher::start(
-            self.runtime.clone(),
-            self.conn.clone(),
+        let jobs = Arc::new(RemoteJobs {
+            conn: self.conn.clone(),
+            counters: Arc::default(),
+        });
+        Some(Ok(Box::new(TaskQueue::start(
+            TaskRuntime::Shared(self.runtime.clone()),
+            jobs,
             options.max_queued.max(1),
             max_in_flight,
         ))))
@@ -517,36 +524,23 @@ struct RetryCounters {
     checksum_failures: AtomicU64,
 }
 
-/// The asynchronous request queue of a [`RemoteSource`]: the shared [`TaskQueue`] (priorities,
-/// capacity, cancellation on the wire), each request a [`fetch_one`] with its retries.
-pub struct RemoteFetcher {
-    /// Declared first so that it drops (aborting its tasks) before the runtime can.
-    queue: TaskQueue,
-    counters: Arc<RetryCounters>,
+/// A [`RemoteSource`]'s requests, run by the shared [`TaskQueue`] (priorities, capacity,
+/// cancellation on the wire): each a [`fetch_one`] with its retries, counted here.
+struct RemoteJobs {
     conn: Arc<Connection>,
-    /// Held (never used) so that the runtime outlives the queue's tasks.
-    _runtime: Arc<tokio::runtime::Runtime>,
+    counters: Arc<RetryCounters>,
 }
 
-impl RemoteFetcher {
-    fn start(
-        runtime: Arc<tokio::runtime::Runtime>,
-        conn: Arc<Connection>,
-        capacity: usize,
-        max_in_flight: usize,
-    ) -> Self {
-        let counters = Arc::new(RetryCounters::default());
-        let job: BrickJob = {
-            let (conn, counters) = (conn.clone(), counters.clone());
-            Arc::new(move |id| Box::pin(fetch_one(conn.clone(), counters.clone(), id)))
-        };
-        let queue = TaskQueue::start(runtime.handle(), job, capacity, max_in_flight);
-        RemoteFetcher {
-            queue,
-            counters,
-            conn,
-            _runtime: runtime,
-        }
+impl BrickJobs for RemoteJobs {
+    fn fetch(&self, id: BrickId) -> BrickJobFuture {
+        Box::pin(fetch_one(self.conn.clone(), self.counters.clone(), id))
+    }
+    fn add_counters(&self, counters: &mut QueueCounters) {
+        counters.retried = self.counters.retried.load(Ordering::Relaxed);
+        counters.checksum_failures = self.counters.checksum_failures.load(Ordering::Relaxed);
+    }
+    fn status(&self) -> SourceStatus {
+        self.conn.status()
     }
 }
 
@@ -592,36 +586,6 @@ async fn fetch_one(
                 })
             }
         }
-    }
-}
-
-impl BrickFetcher for RemoteFetcher {
-    fn set_requests(&self, demand: &[(BrickId, f64)], prefetch: &[(BrickId, f64)]) -> usize {
-        self.queue.set_requests(demand, prefetch)
-    }
-    fn try_results(&self) -> Vec<FetchResult> {
-        self.queue.try_results()
-    }
-    fn complete(&self, id: BrickId) {
-        self.queue.complete(id)
-    }
-    fn queued(&self) -> usize {
-        self.queue.queued()
-    }
-    fn in_flight(&self) -> usize {
-        self.queue.in_flight()
-    }
-    fn capacity(&self) -> usize {
-        self.queue.capacity()
-    }
-    fn counters(&self) -> QueueCounters {
-        let mut c = self.queue.counters();
-        c.retried = self.counters.retried.load(Ordering::Relaxed);
-        c.checksum_failures = self.counters.checksum_failures.load(Ordering::Relaxed);
-        c
-    }
-    fn status(&self) -> SourceStatus {
-        self.conn.status()
     }
 }
 

@@ -7,10 +7,12 @@
 //!
 //! Brick requests are asynchronous: [`VolumeSource::start_fetching`] returns a
 //! [`BrickFetcher`], a priority queue the loader rewrites every frame (demand before prefetch,
-//! then by priority) and polls without waiting. A source without its own asynchronous path
-//! (the local store) gets the loader's reader threads instead. The sources whose requests are
-//! tokio tasks (the data service's client, the OME-Zarr reader) share one queue for that,
-//! `task_queue::TaskQueue`.
+//! then by priority) and polls without waiting. Its policy is written once, in
+//! [`wish_list::WishList`] (pure: no threads, no async), and every executor runs it: the
+//! loader's reader threads and inline reads for a source without its own asynchronous path
+//! (the local store), `task_queue::TaskQueue` (itself a [`BrickFetcher`]) for the sources whose
+//! requests are tokio tasks (the data service's client, the OME-Zarr reader), and the browser
+//! viewer's `fetch()` queue.
 //!
 //! The default feature `local` brings the local store (strata-storage's `local`), the tokio
 //! task queue and [`verify_source`]'s threads. Without it the crate builds for
@@ -20,6 +22,7 @@
 #[cfg(feature = "local")]
 pub mod task_queue;
 pub mod wire;
+pub mod wish_list;
 
 use std::sync::Arc;
 
@@ -189,7 +192,14 @@ pub trait VolumeSource: Send + Sync {
     /// Reads, verifies (checksum) and decompresses one brick.
     fn read_brick(&self, id: BrickId) -> Result<Vec<u16>, SourceError> {
         let record = self.read_brick_record(id)?;
-        decode_brick(id, &record).map_err(|e| SourceError::damaged(&self.location(), id, e))
+        self.decode_brick_record(id, &record)
+    }
+    /// Verifies and decompresses `record`, read as brick `id` by
+    /// [`VolumeSource::read_brick_record`], with this source's error wording (a store names
+    /// its file and the brick): a reader that kept the record words a failure without a
+    /// second read.
+    fn decode_brick_record(&self, id: BrickId, record: &[u8]) -> Result<Vec<u16>, SourceError> {
+        decode_brick(id, record).map_err(|e| SourceError::damaged(&self.location(), id, e))
     }
 }
 
@@ -217,6 +227,9 @@ impl VolumeSource for Store {
     /// The store's own reader keeps its error wording (file name, level, coordinates).
     fn read_brick(&self, id: BrickId) -> Result<Vec<u16>, SourceError> {
         Ok(Store::read_brick(self, id)?)
+    }
+    fn decode_brick_record(&self, id: BrickId, record: &[u8]) -> Result<Vec<u16>, SourceError> {
+        Ok(self.decode_frame_brick_record(0, id, record)?)
     }
     fn node(&self, id: BrickId) -> Option<NodeInfo> {
         Store::node(self, id)
@@ -265,6 +278,11 @@ impl VolumeSource for StoreFrame {
     fn read_brick(&self, id: BrickId) -> Result<Vec<u16>, SourceError> {
         Ok(self.store.read_frame_brick(self.frame, id)?)
     }
+    fn decode_brick_record(&self, id: BrickId, record: &[u8]) -> Result<Vec<u16>, SourceError> {
+        Ok(self
+            .store
+            .decode_frame_brick_record(self.frame, id, record)?)
+    }
     fn frame_count(&self) -> u32 {
         self.store.frame_count()
     }
@@ -306,6 +324,9 @@ impl<S: VolumeSource + ?Sized> VolumeSource for Arc<S> {
     }
     fn read_brick(&self, id: BrickId) -> Result<Vec<u16>, SourceError> {
         (**self).read_brick(id)
+    }
+    fn decode_brick_record(&self, id: BrickId, record: &[u8]) -> Result<Vec<u16>, SourceError> {
+        (**self).decode_brick_record(id, record)
     }
     fn frame_count(&self) -> u32 {
         (**self).frame_count()

@@ -1,18 +1,18 @@
-//! The request queue of the asynchronous brick sources (the data service's `RemoteFetcher`,
-//! the OME-Zarr source's object-store reader): every started request is one tokio task that
-//! produces one brick, and the queue decides which request starts next and which one is no
-//! longer wanted.
-//!
-//! The rules, shared by both sources so that they behave alike under the loader:
-//! - `set_requests` replaces the queued wish list (demand before prefetch, then by priority;
-//!   at most `capacity` entries, the rest counted as overflow and asked again next frame);
+//! The request queue of the asynchronous brick sources (the data service's client, the
+//! OME-Zarr source's object-store reader): every started request is one tokio task that
+//! produces one brick. Which request starts next and which one is no longer wanted is the
+//! [`WishList`]'s policy (demand before prefetch, then by priority; at most `capacity`
+//! queued; a started request that neither this view nor the previous one names is
+//! cancelled); this module runs it on tokio:
 //! - at most `max_in_flight` requests run at once;
-//! - a request on the wire that neither this view nor the previous one names is aborted: its
-//!   task is dropped at its next await, which drops the client's pending request and so
-//!   closes (or resets) its connection mid-transfer instead of letting stale bytes arrive. The
-//!   one view of grace keeps a request that flickers at the edge of the wish list from being
-//!   cancelled and asked for again;
+//! - a cancelled request's task is aborted: it is dropped at its next await, which drops the
+//!   client's pending request and so closes (or resets) its connection mid-transfer instead of
+//!   letting stale bytes arrive;
 //! - a delivered request holds its slot until the loader calls `complete`.
+//!
+//! [`TaskQueue`] is the sources' [`BrickFetcher`] itself: a source hands the loader
+//! `Box::new(TaskQueue::start(...))` with its [`BrickJobs`] (how to fetch one brick, what the
+//! jobs count, how the source is doing).
 
 use std::collections::HashMap;
 use std::future::Future;
@@ -22,40 +22,72 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use crossbeam_channel::{Receiver, Sender};
 use strata_types::BrickId;
 
-use crate::{Brick, FetchResult, QueueCounters, RequestClass, SourceError};
+use crate::wish_list::{Started, WishList};
+use crate::{Brick, BrickFetcher, FetchResult, QueueCounters, SourceError, SourceStatus};
 
 /// What a started request produces: the brick's voxels and the bytes it cost as stored (what
 /// crossed the disk or the network for it).
 pub type BrickJobOutcome = Result<(Brick, u64), SourceError>;
 
-/// Makes the future that fetches one brick; dropping the future cancels its requests.
-pub type BrickJob =
-    Arc<dyn Fn(BrickId) -> Pin<Box<dyn Future<Output = BrickJobOutcome> + Send>> + Send + Sync>;
+/// The future that fetches one brick; dropping it cancels its requests.
+pub type BrickJobFuture = Pin<Box<dyn Future<Output = BrickJobOutcome> + Send>>;
 
-struct InFlight {
-    /// `set_requests` call that last named it.
-    named_at: u64,
-    /// The result is in the channel; only `complete` ends it now.
-    delivered: bool,
-    abort: Option<tokio::task::AbortHandle>,
+/// What a source brings to a [`TaskQueue`]: how to fetch one brick, and what only its jobs
+/// know. A closure `Fn(BrickId) -> BrickJobFuture` is one, with nothing to add.
+pub trait BrickJobs: Send + Sync + 'static {
+    /// Starts fetching brick `id`.
+    fn fetch(&self, id: BrickId) -> BrickJobFuture;
+    /// Adds what the jobs count themselves (retries, checksum failures) to the queue's counters.
+    fn add_counters(&self, _counters: &mut QueueCounters) {}
+    /// How the source is doing ("retrying", for the status line).
+    fn status(&self) -> SourceStatus {
+        SourceStatus::Available
+    }
+}
+
+impl<F> BrickJobs for F
+where
+    F: Fn(BrickId) -> BrickJobFuture + Send + Sync + 'static,
+{
+    fn fetch(&self, id: BrickId) -> BrickJobFuture {
+        self(id)
+    }
+}
+
+/// The runtime a queue's tasks run on.
+pub enum TaskRuntime {
+    /// One that lives as long as the process (the OME-Zarr source's I/O runtime).
+    Static(&'static tokio::runtime::Runtime),
+    /// One the queue holds so that it outlives the queue's tasks. Held by the queue, never by
+    /// a task: tokio refuses to drop a runtime inside one of its own tasks.
+    Shared(Arc<tokio::runtime::Runtime>),
+}
+
+impl TaskRuntime {
+    fn handle(&self) -> &tokio::runtime::Handle {
+        match self {
+            TaskRuntime::Static(runtime) => runtime.handle(),
+            TaskRuntime::Shared(runtime) => runtime.handle(),
+        }
+    }
 }
 
 struct QueueState {
-    queued: HashMap<BrickId, (RequestClass, f64)>,
-    in_flight: HashMap<BrickId, InFlight>,
-    counters: QueueCounters,
-    calls: u64,
+    wishes: WishList,
+    /// The tasks of the started requests not yet delivered, to abort when cancelled.
+    running: HashMap<BrickId, tokio::task::AbortHandle>,
 }
 
 struct Shared {
     state: Mutex<QueueState>,
     wake: tokio::sync::Notify,
     results: Sender<FetchResult>,
-    capacity: usize,
     max_in_flight: usize,
 }
 
 impl Shared {
+    /// A poisoned lock means a task panicked mid-update; the wish list is still a valid set of
+    /// requests, so carry on rather than cascade the panic into the frame loop.
     fn lock(&self) -> MutexGuard<'_, QueueState> {
         self.state.lock().unwrap_or_else(|p| p.into_inner())
     }
@@ -66,187 +98,132 @@ pub struct TaskQueue {
     shared: Arc<Shared>,
     results: Receiver<FetchResult>,
     dispatcher: tokio::task::AbortHandle,
+    jobs: Arc<dyn BrickJobs>,
+    capacity: usize,
+    /// Declared last: dropped after `drop` has aborted the tasks.
+    _runtime: TaskRuntime,
 }
 
 impl TaskQueue {
-    /// Starts the dispatcher on `runtime`; `job` fetches one brick.
+    /// Starts the dispatcher on `runtime`; `jobs` fetches one brick per request. At most
+    /// `capacity` requests are queued and `max_in_flight` started at once.
     pub fn start(
-        runtime: &tokio::runtime::Handle,
-        job: BrickJob,
+        runtime: TaskRuntime,
+        jobs: Arc<dyn BrickJobs>,
         capacity: usize,
         max_in_flight: usize,
     ) -> Self {
         // Unbounded in type, bounded in fact: at most `max_in_flight` requests exist between
         // dispatch and `complete`, and each sends one result.
         let (tx, rx) = crossbeam_channel::unbounded();
+        let wishes = WishList::new(capacity);
+        let capacity = wishes.capacity();
         let shared = Arc::new(Shared {
             state: Mutex::new(QueueState {
-                queued: HashMap::new(),
-                in_flight: HashMap::new(),
-                counters: QueueCounters::default(),
-                calls: 0,
+                wishes,
+                running: HashMap::new(),
             }),
             wake: tokio::sync::Notify::new(),
             results: tx,
-            capacity,
-            max_in_flight,
+            max_in_flight: max_in_flight.max(1),
         });
-        let dispatcher = runtime.spawn(dispatch(job, shared.clone())).abort_handle();
+        let dispatcher = runtime
+            .handle()
+            .spawn(dispatch(jobs.clone(), shared.clone()))
+            .abort_handle();
         TaskQueue {
             shared,
             results: rx,
             dispatcher,
+            jobs,
+            capacity,
+            _runtime: runtime,
         }
     }
+}
 
-    /// Replaces the wish list; returns how many requests are queued now.
-    pub fn set_requests(&self, demand: &[(BrickId, f64)], prefetch: &[(BrickId, f64)]) -> usize {
+impl BrickFetcher for TaskQueue {
+    fn set_requests(&self, demand: &[(BrickId, f64)], prefetch: &[(BrickId, f64)]) -> usize {
         let mut state = self.shared.lock();
-        state.calls += 1;
-        let call = state.calls;
-        let mut wanted: HashMap<BrickId, (RequestClass, f64)> = HashMap::new();
-        let mut overflow = 0;
-        let candidates = demand
-            .iter()
-            .map(|&(id, p)| (id, RequestClass::Demand, p))
-            .chain(
-                prefetch
-                    .iter()
-                    .map(|&(id, p)| (id, RequestClass::Prefetch, p)),
-            );
-        for (id, class, priority) in candidates {
-            if let Some(f) = state.in_flight.get_mut(&id) {
-                f.named_at = call;
-                continue;
-            }
-            if wanted.contains_key(&id) {
-                continue;
-            }
-            if wanted.len() >= self.shared.capacity {
-                overflow += 1;
-                continue;
-            }
-            wanted.insert(id, (class, priority));
-        }
-        let stale = state
-            .queued
-            .keys()
-            .filter(|id| !wanted.contains_key(id))
-            .count() as u64;
-        state.counters.stale_dropped += stale;
-        state.counters.overflow_dropped += overflow;
-        state.queued = wanted;
-        // On the wire but named by neither this view nor the previous one: abort, freeing the
+        state.wishes.replace(demand, prefetch);
+        // Started but named by neither this view nor the previous one: abort, freeing the
         // slot (and the connection) for what the view wants now.
-        let cancel: Vec<BrickId> = state
-            .in_flight
-            .iter()
-            .filter(|(_, f)| !f.delivered && f.named_at + 1 < call)
-            .map(|(&id, _)| id)
-            .collect();
-        for id in &cancel {
-            if let Some(f) = state.in_flight.remove(id) {
-                if let Some(abort) = f.abort {
-                    abort.abort();
-                }
+        for (id, _) in state.wishes.cancel_unwanted() {
+            if let Some(task) = state.running.remove(&id) {
+                task.abort();
             }
         }
-        state.counters.cancelled_in_flight += cancel.len() as u64;
-        let n = state.queued.len();
+        let queued = state.wishes.queued();
         drop(state);
         self.shared.wake.notify_one();
-        n
+        queued
     }
 
-    pub fn try_results(&self) -> Vec<FetchResult> {
+    fn try_results(&self) -> Vec<FetchResult> {
         self.results.try_iter().collect()
     }
 
-    /// The loader has taken the delivered brick `id`: its slot is free.
-    pub fn complete(&self, id: BrickId) {
-        let removed = {
-            let mut state = self.shared.lock();
-            match state.in_flight.get(&id) {
-                Some(f) if f.delivered => state.in_flight.remove(&id).is_some(),
-                _ => false,
-            }
-        };
-        if removed {
+    fn complete(&self, id: BrickId) {
+        if self.shared.lock().wishes.complete(id) {
+            // A slot is free.
             self.shared.wake.notify_one();
         }
     }
 
-    pub fn queued(&self) -> usize {
-        self.shared.lock().queued.len()
+    fn queued(&self) -> usize {
+        self.shared.lock().wishes.queued()
     }
 
-    pub fn in_flight(&self) -> usize {
-        self.shared.lock().in_flight.len()
+    fn in_flight(&self) -> usize {
+        self.shared.lock().wishes.in_flight()
     }
 
-    pub fn capacity(&self) -> usize {
-        self.shared.capacity
+    fn capacity(&self) -> usize {
+        self.capacity
     }
 
-    pub fn counters(&self) -> QueueCounters {
-        self.shared.lock().counters
+    fn counters(&self) -> QueueCounters {
+        let mut counters = self.shared.lock().wishes.counters();
+        self.jobs.add_counters(&mut counters);
+        counters
+    }
+
+    fn status(&self) -> SourceStatus {
+        self.jobs.status()
     }
 }
 
 /// Starts the most urgent queued requests while fewer than `max_in_flight` are out.
-async fn dispatch(job: BrickJob, shared: Arc<Shared>) {
+async fn dispatch(jobs: Arc<dyn BrickJobs>, shared: Arc<Shared>) {
     loop {
         {
             let mut state = shared.lock();
-            while state.in_flight.len() < shared.max_in_flight {
-                let best = state
-                    .queued
-                    .iter()
-                    .max_by(|a, b| {
-                        (a.1 .0, a.1 .1)
-                            .partial_cmp(&(b.1 .0, b.1 .1))
-                            .unwrap_or(std::cmp::Ordering::Equal)
-                    })
-                    .map(|(&id, &(class, _))| (id, class));
-                let Some((id, class)) = best else { break };
-                state.queued.remove(&id);
-                match class {
-                    RequestClass::Demand => state.counters.demand_started += 1,
-                    RequestClass::Prefetch => state.counters.prefetch_started += 1,
-                }
-                let task = tokio::spawn(run_one(job.clone(), shared.clone(), id, class));
-                let named_at = state.calls;
-                state.in_flight.insert(
-                    id,
-                    InFlight {
-                        named_at,
-                        delivered: false,
-                        abort: Some(task.abort_handle()),
-                    },
-                );
-                let n = state.in_flight.len() as u64;
-                state.counters.max_in_flight = state.counters.max_in_flight.max(n);
+            while state.wishes.in_flight() < shared.max_in_flight {
+                let Some(started) = state.wishes.take_most_urgent() else {
+                    break;
+                };
+                let task = tokio::spawn(run_one(jobs.clone(), shared.clone(), started));
+                state.running.insert(started.id, task.abort_handle());
             }
         }
         shared.wake.notified().await;
     }
 }
 
-async fn run_one(job: BrickJob, shared: Arc<Shared>, id: BrickId, class: RequestClass) {
-    let outcome = job(id).await;
+async fn run_one(jobs: Arc<dyn BrickJobs>, shared: Arc<Shared>, started: Started) {
+    let outcome = jobs.fetch(started.id).await;
     let mut state = shared.lock();
-    let Some(entry) = state.in_flight.get_mut(&id) else {
+    if !state.wishes.deliver(started.id, started.ticket) {
         return; // cancelled meanwhile
-    };
-    entry.delivered = true;
-    entry.abort = None;
+    }
+    state.running.remove(&started.id);
     let (outcome, stored_bytes) = match outcome {
         Ok((brick, bytes)) => (Ok(brick), bytes),
         Err(e) => (Err(e), 0),
     };
     let _ = shared.results.send(FetchResult {
-        id,
-        class,
+        id: started.id,
+        class: started.class,
         outcome,
         stored_bytes,
     });
@@ -256,10 +233,84 @@ impl Drop for TaskQueue {
     fn drop(&mut self) {
         self.dispatcher.abort();
         let mut state = self.shared.lock();
-        for (_, f) in state.in_flight.drain() {
-            if let Some(abort) = f.abort {
-                abort.abort();
-            }
+        for (_, task) in state.running.drain() {
+            task.abort();
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::time::{Duration, Instant};
+
+    fn brick(x: u32) -> BrickId {
+        BrickId::new(0, [x, 0, 0])
+    }
+
+    fn runtime() -> Arc<tokio::runtime::Runtime> {
+        Arc::new(
+            tokio::runtime::Builder::new_multi_thread()
+                .worker_threads(2)
+                .thread_name("strata-test-io")
+                .enable_all()
+                .build()
+                .unwrap(),
+        )
+    }
+
+    /// Polls until `count` results arrived (or a bound that only catches hangs).
+    fn collect(queue: &TaskQueue, count: usize) -> Vec<FetchResult> {
+        let deadline = Instant::now() + Duration::from_secs(20);
+        let mut results = Vec::new();
+        while results.len() < count && Instant::now() < deadline {
+            results.extend(queue.try_results());
+            std::thread::sleep(Duration::from_millis(2));
+        }
+        results
+    }
+
+    #[test]
+    fn a_task_queue_is_a_fetcher_that_starts_demand_first_and_aborts_what_two_views_leave_out() {
+        // Brick 0 never finishes (until aborted); the others answer with their x coordinate.
+        let started = Arc::new(Mutex::new(Vec::new()));
+        let jobs: Arc<dyn BrickJobs> = {
+            let started = started.clone();
+            Arc::new(move |id: BrickId| -> BrickJobFuture {
+                started.lock().unwrap().push(id);
+                Box::pin(async move {
+                    if id == brick(0) {
+                        std::future::pending::<()>().await;
+                    }
+                    Ok((Arc::new(vec![id.coords[0] as u16]), 1))
+                })
+            })
+        };
+        let queue = TaskQueue::start(TaskRuntime::Shared(runtime()), jobs, 8, 1);
+        let fetcher: &dyn BrickFetcher = &queue;
+        fetcher.set_requests(&[(brick(0), 1.0)], &[]);
+        let deadline = Instant::now() + Duration::from_secs(20);
+        while fetcher.in_flight() == 0 && Instant::now() < deadline {
+            std::thread::sleep(Duration::from_millis(2));
+        }
+        assert_eq!(fetcher.in_flight(), 1);
+        // The one slot is taken: the rest waits, and brick 0 has one view of grace.
+        fetcher.set_requests(&[(brick(1), 1.0)], &[(brick(2), 9.0)]);
+        assert_eq!((fetcher.queued(), fetcher.in_flight()), (2, 1));
+        assert_eq!(fetcher.counters().cancelled_in_flight, 0);
+        fetcher.set_requests(&[(brick(1), 1.0)], &[(brick(2), 9.0)]);
+        assert_eq!(fetcher.counters().cancelled_in_flight, 1);
+        let first = collect(&queue, 1);
+        assert_eq!(first.len(), 1);
+        assert_eq!(first[0].id, brick(1), "demand before a higher prefetch");
+        assert_eq!(first[0].outcome.as_ref().unwrap()[0], 1);
+        fetcher.complete(brick(1));
+        let second = collect(&queue, 1);
+        assert_eq!(second.iter().map(|r| r.id).collect::<Vec<_>>(), [brick(2)]);
+        fetcher.complete(brick(2));
+        assert_eq!(fetcher.in_flight(), 0);
+        let counters = fetcher.counters();
+        assert_eq!((counters.demand_started, counters.prefetch_started), (2, 1));
+        assert_eq!(*started.lock().unwrap(), [brick(0), brick(1), brick(2)]);
     }
 }

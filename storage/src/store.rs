@@ -405,7 +405,19 @@ impl Store {
     /// [`Store::read_brick`] of frame `frame`.
     pub fn read_frame_brick(&self, frame: u32, id: BrickId) -> Result<Vec<u16>> {
         let record = self.record(frame, id)?;
-        decode_brick(id, &record).map_err(|e| self.brick_error(frame, id, e))
+        self.decode_frame_brick_record(frame, id, &record)
+    }
+
+    /// Verifies and decodes `record`, read earlier as brick `id` of frame `frame`, with this
+    /// store's error wording (the store, the pack, the brick): a reader that kept the record
+    /// (to count its bytes) words a failure without reading it again.
+    pub fn decode_frame_brick_record(
+        &self,
+        frame: u32,
+        id: BrickId,
+        record: &[u8],
+    ) -> Result<Vec<u16>> {
+        decode_brick(id, record).map_err(|e| self.brick_error(frame, id, e))
     }
 
     /// Reads, verifies and decompresses one brick: 36³ stored values, x fastest. In format 3

@@ -5,10 +5,12 @@
 //! - Opening reads the open document (header, histogram, stats, skeleton), refuses a store
 //!   this build cannot read, and fetches the root brick, which the loader reads synchronously
 //!   before its first frame; every other brick comes through [`ServedBricks`].
-//! - [`ServedBricks`] is the loader's [`BrickFetcher`]: a priority queue rewritten every
-//!   frame, at most [`MAX_ON_THE_WIRE`] requests at once (HTTP/1.1 gives a page about six
+//! - [`ServedBricks`] is the loader's [`BrickFetcher`]: the shared request policy
+//!   ([`WishList`]: rewritten every frame, demand before prefetch, then by priority) run on
+//!   `fetch()`, at most [`MAX_ON_THE_WIRE`] requests at once (HTTP/1.1 gives a page about six
 //!   connections per host; more would queue inside the browser, where priorities cannot
-//!   reach them), requests the view no longer wants aborted with their `AbortController`.
+//!   reach them); requests on the wire that two successive views no longer name are aborted
+//!   with their `AbortController`.
 //! - Records are decoded (and their xxh3 checksums verified) on the frame thread, at most
 //!   [`DECODES_PER_FRAME`] per frame; a record that fails is fetched once more, then reported
 //!   damaged. Connection failures and 429/503 are retried with backoff (at least the server's
@@ -23,6 +25,7 @@ use std::rc::Rc;
 use std::sync::Arc;
 
 use strata_source::wire::{brick_path, decode_open_document, retry_after, StoreList, API_PREFIX};
+use strata_source::wish_list::{Started, WishList};
 use strata_source::{
     BrickFetcher, FetchOptions, FetchResult, QueueCounters, RequestClass, SourceError,
     SourceStatus, VolumeSource,
@@ -238,8 +241,17 @@ impl VolumeSource for ServedStore {
             name: self.name.clone(),
             generation: self.generation.clone(),
             token: self.token.clone(),
-            capacity: options.max_queued.max(1),
-            state: RefCell::new(FetchState::default()),
+            state: RefCell::new(FetchState {
+                wishes: WishList::new(options.max_queued),
+                on_the_wire: HashMap::new(),
+                arrived: VecDeque::new(),
+                refetched: HashSet::new(),
+                retried: 0,
+                checksum_failures: 0,
+                failing: None,
+                failures_in_a_row: 0,
+                quiet_until: 0.0,
+            }),
         });
         Some(Ok(Box::new(ServedBricks(shared))))
     }
@@ -252,16 +264,23 @@ struct Arrival {
     body: Result<Vec<u8>, SourceError>,
 }
 
-#[derive(Default)]
+/// A request on the wire, and how to stop it.
+struct OnTheWire {
+    started: Started,
+    controller: web_sys::AbortController,
+}
+
 struct FetchState {
-    queued: HashMap<BrickId, (RequestClass, f64)>,
-    on_the_wire: HashMap<BrickId, (RequestClass, f64, web_sys::AbortController)>,
+    /// Queued and started requests (started: on the wire, arrived, or handed to the loader
+    /// and not yet completed).
+    wishes: WishList,
+    on_the_wire: HashMap<BrickId, OnTheWire>,
     arrived: VecDeque<Arrival>,
-    /// On the wire, arrived, or handed to the loader and not yet completed.
-    in_flight: HashSet<BrickId>,
     /// Records that failed their checksum once (fetched again once).
     refetched: HashSet<BrickId>,
-    counters: QueueCounters,
+    /// Requests sent again (after a transient failure or a damaged record), for the counters.
+    retried: u64,
+    checksum_failures: u64,
     /// Since when requests fail to reach the server (ms, `Date.now()`), and the last reason.
     failing: Option<(f64, String)>,
     failures_in_a_row: u32,
@@ -274,7 +293,6 @@ struct Shared {
     name: String,
     generation: String,
     token: Option<String>,
-    capacity: usize,
     state: RefCell<FetchState>,
 }
 
@@ -293,67 +311,53 @@ impl Shared {
     fn pump(self: &Rc<Self>) {
         let now = js_sys::Date::now();
         loop {
-            let (id, class, priority, controller, reload) = {
+            let (started, controller, reload) = {
                 let mut state = self.state.borrow_mut();
-                if state.on_the_wire.len() >= MAX_ON_THE_WIRE || now < state.quiet_until {
+                if state.on_the_wire.len() >= MAX_ON_THE_WIRE
+                    || now < state.quiet_until
+                    || state.wishes.queued() == 0
+                {
                     return;
                 }
-                let Some((id, (class, priority))) = state
-                    .queued
-                    .iter()
-                    .max_by(|a, b| {
-                        (a.1 .0, a.1 .1)
-                            .partial_cmp(&(b.1 .0, b.1 .1))
-                            .unwrap_or(std::cmp::Ordering::Equal)
-                    })
-                    .map(|(&id, &v)| (id, v))
-                else {
-                    return;
-                };
                 let Ok(controller) = web_sys::AbortController::new() else {
                     return;
                 };
-                state.queued.remove(&id);
-                state.in_flight.insert(id);
-                state
-                    .on_the_wire
-                    .insert(id, (class, priority, controller.clone()));
-                let on_wire = state.in_flight.len() as u64;
-                state.counters.max_in_flight = state.counters.max_in_flight.max(on_wire);
-                match class {
-                    RequestClass::Demand => state.counters.demand_started += 1,
-                    RequestClass::Prefetch => state.counters.prefetch_started += 1,
-                }
-                (
-                    id,
-                    class,
-                    priority,
-                    controller,
-                    state.refetched.contains(&id),
-                )
+                let Some(started) = state.wishes.take_most_urgent() else {
+                    return;
+                };
+                let on_the_wire = OnTheWire {
+                    started,
+                    controller: controller.clone(),
+                };
+                state.on_the_wire.insert(started.id, on_the_wire);
+                (started, controller, state.refetched.contains(&started.id))
             };
             let shared = self.clone();
-            let path = brick_path(&self.name, &self.generation, id);
+            let path = brick_path(&self.name, &self.generation, started.id);
             wasm_bindgen_futures::spawn_local(async move {
                 let signal = controller.signal();
                 let outcome =
                     fetch_bytes(&path, shared.token.as_deref(), Some(&signal), reload).await;
-                shared.arrive(id, class, priority, outcome);
+                shared.arrive(started, outcome);
             });
         }
     }
 
-    fn arrive(
-        self: &Rc<Self>,
-        id: BrickId,
-        class: RequestClass,
-        priority: f64,
-        outcome: Result<Vec<u8>, FetchFailure>,
-    ) {
+    fn arrive(self: &Rc<Self>, started: Started, outcome: Result<Vec<u8>, FetchFailure>) {
+        let Started {
+            id,
+            class,
+            priority,
+            ticket,
+        } = started;
         let mut state = self.state.borrow_mut();
-        // Aborted meanwhile (the view moved on): already accounted for.
-        if state.on_the_wire.remove(&id).is_none() {
-            return;
+        // Aborted meanwhile (the view moved on), perhaps started again since: already
+        // accounted for.
+        match state.on_the_wire.get(&id) {
+            Some(wire) if wire.started.ticket == ticket => {
+                state.on_the_wire.remove(&id);
+            }
+            _ => return,
         }
         let body = match outcome {
             Ok(body) => {
@@ -362,7 +366,7 @@ impl Shared {
                 Ok(body)
             }
             Err(FetchFailure::Aborted) => {
-                state.in_flight.remove(&id);
+                state.wishes.withdraw(id, ticket);
                 return;
             }
             Err(FetchFailure::Transient(message, after)) => {
@@ -375,9 +379,8 @@ impl Shared {
                 state.failures_in_a_row += 1;
                 state.quiet_until = now + backoff;
                 state.failing.get_or_insert((now, String::new())).1 = message;
-                state.counters.retried += 1;
-                state.in_flight.remove(&id);
-                state.queued.entry(id).or_insert((class, priority));
+                state.retried += 1;
+                state.wishes.requeue(id, class, priority);
                 return;
             }
             Err(FetchFailure::Refused(message)) => Err(SourceError::Refused {
@@ -385,6 +388,7 @@ impl Shared {
                 message: format!("brick level {} at {:?}: {message}", id.level, id.coords),
             }),
         };
+        state.wishes.deliver(id, ticket);
         state.arrived.push_back(Arrival { id, class, body });
     }
 }
@@ -394,60 +398,16 @@ impl BrickFetcher for ServedBricks {
         let shared = &self.0;
         {
             let mut state = shared.state.borrow_mut();
-            let mut wanted: HashMap<BrickId, (RequestClass, f64)> = HashMap::new();
-            let mut overflow = 0;
-            let candidates = demand
-                .iter()
-                .map(|&(id, p)| (id, RequestClass::Demand, p))
-                .chain(
-                    prefetch
-                        .iter()
-                        .map(|&(id, p)| (id, RequestClass::Prefetch, p)),
-                );
-            for (id, class, priority) in candidates {
-                if wanted.contains_key(&id) {
-                    continue;
-                }
-                if state.on_the_wire.contains_key(&id) {
-                    // Still wanted: keep it on the wire (with its new rank).
-                    wanted.insert(id, (class, priority));
-                    continue;
-                }
-                if state.in_flight.contains(&id) {
-                    continue;
-                }
-                if wanted.len() >= shared.capacity {
-                    overflow += 1;
-                    continue;
-                }
-                wanted.insert(id, (class, priority));
-            }
-            // Requests on the wire the view no longer names are aborted.
-            let unwanted: Vec<BrickId> = state
-                .on_the_wire
-                .keys()
-                .filter(|id| !wanted.contains_key(id))
-                .copied()
-                .collect();
-            for id in unwanted {
-                if let Some((_, _, controller)) = state.on_the_wire.remove(&id) {
-                    controller.abort();
-                    state.in_flight.remove(&id);
-                    state.counters.cancelled_in_flight += 1;
+            state.wishes.replace(demand, prefetch);
+            // On the wire but named by neither this view nor the previous one: aborted.
+            for (id, _) in state.wishes.cancel_unwanted() {
+                if let Some(wire) = state.on_the_wire.remove(&id) {
+                    wire.controller.abort();
                 }
             }
-            wanted.retain(|id, _| !state.on_the_wire.contains_key(id));
-            let stale = state
-                .queued
-                .keys()
-                .filter(|id| !wanted.contains_key(id))
-                .count() as u64;
-            state.counters.stale_dropped += stale;
-            state.counters.overflow_dropped += overflow;
-            state.queued = wanted;
         }
         shared.pump();
-        shared.state.borrow().queued.len()
+        shared.state.borrow().wishes.queued()
     }
 
     fn try_results(&self) -> Vec<FetchResult> {
@@ -467,13 +427,12 @@ impl BrickFetcher for ServedBricks {
                     Ok(voxels) => Ok(Arc::new(voxels)),
                     Err(e) => {
                         let mut state = shared.state.borrow_mut();
-                        state.counters.checksum_failures += 1;
+                        state.checksum_failures += 1;
                         if state.refetched.insert(id) {
                             // Damaged on the way (or by a proxy): fetched once more, first,
                             // from the server (the HTTP cache holds the damaged copy).
-                            state.counters.retried += 1;
-                            state.in_flight.remove(&id);
-                            state.queued.insert(id, (RequestClass::Demand, f64::MAX));
+                            state.retried += 1;
+                            state.wishes.requeue(id, RequestClass::Demand, f64::MAX);
                             refetch = true;
                             continue;
                         }
@@ -495,24 +454,27 @@ impl BrickFetcher for ServedBricks {
     }
 
     fn complete(&self, id: BrickId) {
-        let mut state = self.0.state.borrow_mut();
-        state.in_flight.remove(&id);
+        self.0.state.borrow_mut().wishes.complete(id);
     }
 
     fn queued(&self) -> usize {
-        self.0.state.borrow().queued.len()
+        self.0.state.borrow().wishes.queued()
     }
 
     fn in_flight(&self) -> usize {
-        self.0.state.borrow().in_flight.len()
+        self.0.state.borrow().wishes.in_flight()
     }
 
     fn capacity(&self) -> usize {
-        self.0.capacity
+        self.0.state.borrow().wishes.capacity()
     }
 
     fn counters(&self) -> QueueCounters {
-        self.0.state.borrow().counters
+        let state = self.0.state.borrow();
+        let mut counters = state.wishes.counters();
+        counters.retried = state.retried;
+        counters.checksum_failures = state.checksum_failures;
+        counters
     }
 
     fn status(&self) -> SourceStatus {
@@ -530,8 +492,8 @@ impl Drop for ServedBricks {
     fn drop(&mut self) {
         // Nothing left to take the answers: stop the transfers.
         let mut state = self.0.state.borrow_mut();
-        for (_, (_, _, controller)) in state.on_the_wire.drain() {
-            controller.abort();
+        for (_, wire) in state.on_the_wire.drain() {
+            wire.controller.abort();
         }
     }
 }
