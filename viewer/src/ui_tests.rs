@@ -2846,21 +2846,35 @@ pub(crate) fn new_segmentation(h: &mut Harness<'static, Option<StrataApp>>, diam
     h.step();
 }
 
-/// Chooses a segment tool as the tool row does (the drags and clicks on the slices that follow
-/// are the pointer events under test).
+/// Chooses a segment tool with one click on its button in the Segment section's tool row, and
+/// checks the click chose it.
 pub(crate) fn set_segment_tool(
     h: &mut Harness<'static, Option<StrataApp>>,
     tool: super::segmentation::SegmentTool,
 ) {
-    if let Some(seg) = h
-        .state_mut()
-        .as_mut()
-        .and_then(|a| a.volume.as_mut())
-        .and_then(|v| v.segmentation.as_mut())
-    {
-        seg.tool = tool;
+    use super::segmentation::SegmentTool;
+    let label = match tool {
+        SegmentTool::None => "Off",
+        SegmentTool::Brush => "Brush",
+        SegmentTool::Eraser => "Eraser",
+        SegmentTool::Fill => "Fill",
+        SegmentTool::Grow => "Grow",
+    };
+    // The row is drawn from the frame after the segmentation opens.
+    for _ in 0..10 {
+        if h.query_by_label(label).is_some() {
+            break;
+        }
+        h.step();
     }
+    h.get_by_label(label).click();
     h.step();
+    let chosen = app(h)
+        .volume
+        .as_ref()
+        .and_then(|v| v.segmentation.as_ref())
+        .map(|s| s.tool);
+    assert_eq!(chosen, Some(tool), "one click on {label:?}");
 }
 
 /// Drags the brush and then the eraser across `view`, checking each against the CPU model

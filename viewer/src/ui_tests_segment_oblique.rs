@@ -1,8 +1,8 @@
-//! Segmentation on the oblique view, through real pointer
+//! Segmentation on the oblique view and the Segment section's tool row, through real pointer
 //! events (egui_kittest on wgpu, lavapipe in CI; issue 52): the label overlay drawn over a
 //! tilted plane equals the nearest-label model of that plane sampled in f64, the brush and the
 //! eraser dragged across a tilted plane change exactly the voxels the segment crate's model of
-//! the stroke gives.
+//! the stroke gives, and one click on a tool's button chooses that tool.
 //!
 //! Label comparisons are exact, except at pixels whose centre lies within 1e-6 (in voxels) of
 //! a boundary between two label voxels, where f64 rounding may pick either neighbour.
@@ -377,5 +377,52 @@ fn on_a_tilted_oblique_view_the_brush_and_eraser_change_the_models_voxels_and_un
     assert!(
         labelled_voxels(app(&h)).is_empty(),
         "one undo removes the whole stroke"
+    );
+}
+
+/// One click on each button of the Segment section's tool row chooses that tool, starting on
+/// the frame after the segmentation opens, where the row first appears; opening it leaves the
+/// views where they were (the side panel keeps its width: its rows wrap instead).
+#[test]
+fn one_click_on_a_tool_button_chooses_that_tool() {
+    use super::app::ViewSlot;
+    let dir = tempfile::tempdir().expect("temp dir");
+    let store = phantom_store(dir.path());
+    let options = options_with_oblique(store, dir.path());
+    let mut h = harness_sized(
+        options,
+        oblique_preferences(true),
+        Vec2::new(1100.0, 1000.0),
+    );
+    step_until(&mut h, "the volume open", |a| a.volume.is_some());
+    h.get_by_label("Segment").click();
+    h.step();
+    let view_before = app(&h).view_rect(ViewSlot::ThreeD).expect("3D view");
+    h.get_by_label("New segmentation").click();
+    step_until(&mut h, "the new segmentation", |a| {
+        a.volume.as_ref().is_some_and(|v| v.segmentation.is_some())
+    });
+    h.step();
+    for (label, chosen) in [
+        ("Brush", SegmentTool::Brush),
+        ("Eraser", SegmentTool::Eraser),
+        ("Fill", SegmentTool::Fill),
+        ("Grow", SegmentTool::Grow),
+        ("Brush", SegmentTool::Brush),
+        ("Off", SegmentTool::None),
+    ] {
+        h.get_by_label(label).click();
+        h.step();
+        let tool = app(&h)
+            .volume
+            .as_ref()
+            .and_then(|v| v.segmentation.as_ref())
+            .map(|s| s.tool);
+        assert_eq!(tool, Some(chosen), "one click on {label:?}");
+    }
+    assert_eq!(
+        app(&h).view_rect(ViewSlot::ThreeD),
+        Some(view_before),
+        "opening the segmentation moved the views (the side panel widened)"
     );
 }
