@@ -238,7 +238,8 @@ fn the_oblique_view_draws_the_nearest_label_of_each_pixel_centre_on_the_labels_o
 /// The brush and the eraser dragged across the oblique view turned 0.5 and 0.35 rad off axial
 /// paint and clear exactly the voxels of the segment crate's model of each stroke (a disc in
 /// the plane swept along the pointer's patient positions), positions and not only counts; the
-/// oblique view's overlay shows the painted layer; each stroke is one undo step.
+/// oblique view's overlay shows the painted layer; each stroke is one undo step; a locked
+/// segment is left alone.
 #[test]
 fn on_a_tilted_oblique_view_the_brush_and_eraser_change_the_models_voxels_and_undo_restores() {
     use strata_segment::tools::brush::stroke_voxels;
@@ -377,6 +378,46 @@ fn on_a_tilted_oblique_view_the_brush_and_eraser_change_the_models_voxels_and_un
     assert!(
         labelled_voxels(app(&h)).is_empty(),
         "one undo removes the whole stroke"
+    );
+
+    // Locks hold on the oblique view as on the slices: with segment 1 back (redo) and locked,
+    // the brush with a new segment 2 takes the model's voxels of its stroke except segment 1's.
+    h.get_by_label("Redo").click();
+    h.step();
+    assert_eq!(labelled_voxels(app(&h)), painted, "redo of the stroke");
+    if let Some(seg) = h
+        .state_mut()
+        .as_mut()
+        .and_then(|a| a.volume.as_mut())
+        .and_then(|v| v.segmentation.as_mut())
+    {
+        seg.with_segments(|t| {
+            if let Some(s) = t.get_mut(1) {
+                s.locked = true;
+            }
+        });
+        seg.add_segment();
+        assert_eq!(seg.active, 2, "the new segment is the one the brush paints");
+    }
+    h.step();
+    set_segment_tool(&mut h, SegmentTool::Brush);
+    let crossing = stroke(&mut h, Vec2::new(-5.0, -45.0), Vec2::new(0.0, 50.0));
+    let mut expected: Vec<([u32; 3], u16)> = painted.clone();
+    expected.extend(
+        crossing
+            .iter()
+            .filter(|v| !painted_set.contains(*v))
+            .map(|&v| (v, 2)),
+    );
+    expected.sort_by_key(|(v, _)| [v[2], v[1], v[0]]);
+    assert!(
+        crossing.iter().any(|v| painted_set.contains(v)),
+        "the second stroke crosses the locked one"
+    );
+    assert_eq!(
+        labelled_voxels(app(&h)),
+        expected,
+        "the brush painted over the locked segment or missed the model's voxels"
     );
 }
 
