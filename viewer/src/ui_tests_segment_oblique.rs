@@ -7,6 +7,8 @@
 //! Label comparisons are exact, except at pixels whose centre lies within 1e-6 (in voxels) of
 //! a boundary between two label voxels, where f64 rounding may pick either neighbour.
 
+use std::collections::BTreeMap;
+
 use egui::Vec2;
 use glam::DVec3;
 
@@ -239,7 +241,7 @@ fn the_oblique_view_draws_the_nearest_label_of_each_pixel_centre_on_the_labels_o
 /// paint and clear exactly the voxels of the segment crate's model of each stroke (a disc in
 /// the plane swept along the pointer's patient positions), positions and not only counts; the
 /// oblique view's overlay shows the painted layer; each stroke is one undo step; a locked
-/// segment is left alone.
+/// segment and the value range are respected.
 #[test]
 fn on_a_tilted_oblique_view_the_brush_and_eraser_change_the_models_voxels_and_undo_restores() {
     use strata_segment::tools::brush::stroke_voxels;
@@ -418,6 +420,45 @@ fn on_a_tilted_oblique_view_the_brush_and_eraser_change_the_models_voxels_and_un
         labelled_voxels(app(&h)),
         expected,
         "the brush painted over the locked segment or missed the model's voxels"
+    );
+
+    // The value range holds too: a brush limited to soft tissue (-200..200 HU) with a new
+    // segment 3 takes the model's voxels of its stroke whose phantom value is in the range,
+    // except the locked segment's, and nothing else.
+    let before: BTreeMap<[u32; 3], u16> = labelled_voxels(app(&h)).into_iter().collect();
+    if let Some(seg) = h
+        .state_mut()
+        .as_mut()
+        .and_then(|a| a.volume.as_mut())
+        .and_then(|v| v.segmentation.as_mut())
+    {
+        seg.add_segment();
+        seg.limit_to_range = true;
+        seg.range = (-200.0, 200.0);
+    }
+    h.step();
+    let ranged = stroke(&mut h, Vec2::new(-90.0, 70.0), Vec2::new(80.0, -60.0));
+    let phantom = strata_storage::phantom::Phantom::cube(48);
+    let in_range = |v: &[u32; 3]| {
+        let hu = f64::from(phantom.hu(v[0].into(), v[1].into(), v[2].into()));
+        (-200.0..=200.0).contains(&hu)
+    };
+    let inside = ranged.iter().filter(|v| in_range(v)).count();
+    assert!(
+        inside > 0 && inside < ranged.len(),
+        "the stroke crosses the range's edge ({inside} of {})",
+        ranged.len()
+    );
+    let mut expected = before.clone();
+    for v in &ranged {
+        if in_range(v) && before.get(v) != Some(&1) {
+            expected.insert(*v, 3);
+        }
+    }
+    let after: BTreeMap<[u32; 3], u16> = labelled_voxels(app(&h)).into_iter().collect();
+    assert_eq!(
+        after, expected,
+        "the brush left its value range, painted a locked voxel or missed the model's voxels"
     );
 }
 
