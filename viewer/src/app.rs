@@ -15,7 +15,7 @@ use super::history::History;
 use super::jobs::{PrepareJob, VolumeToOpen};
 use super::links::{self, DesktopView};
 use super::measurements::Measurements;
-use super::oblique_view::{AlignTarget, ObliqueViewer};
+use super::oblique_view::{ObliqueContext, ObliqueViewer};
 use super::orientation::{SliceFrame, SliceView};
 use super::overlay::Overlay;
 use super::overlay_3d::Overlay3d;
@@ -1598,7 +1598,11 @@ impl StrataApp {
                         *rect,
                         &v.data,
                         &mut v.scene,
-                        AlignTarget { camera: &camera },
+                        ObliqueContext {
+                            camera: &camera,
+                            overlay: v.overlay.as_ref(),
+                            segmentation: v.segmentation.as_mut(),
+                        },
                     )
                 }
                 ViewSlot::Slice(view) => v.slice_views[view.index()].ui(

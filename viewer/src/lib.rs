@@ -61,6 +61,8 @@ pub mod widgets;
 
 #[cfg(test)]
 mod ui_tests;
+#[cfg(test)]
+mod ui_tests_segment_oblique;
 
 /// The real PACS fixture (Orthanc on loopback) of the integration tests, shared by path so that
 /// the viewer's tests use the same one (pacs_dialog.rs, ui_tests.rs).

@@ -4,6 +4,8 @@
 //! use). The plane is an orthonormal pair of screen directions in patient space (LPS mm);
 //! dragging turns it about its own axes, and "Align to 3D" takes the 3D camera's.
 //! Resampling runs on a named thread (`strata-oblique-reader`) through a bounded brick cache.
+//! The brush paints a disc in the same plane ([`ObliquePlane::brush_plane`]), and the label
+//! overlay is sampled at the same pixel centres (overlay.rs).
 
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -11,6 +13,7 @@ use std::sync::{Arc, Condvar, Mutex};
 
 use glam::{DMat3, DQuat, DVec3};
 use strata_render::{Camera, VolumeGeometry};
+use strata_segment::tools::brush::SlicePlane;
 use strata_source::VolumeSource;
 use strata_types::{BrickId, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
 
@@ -91,6 +94,17 @@ impl ObliquePlane {
         self.centre
             + self.right * ((u - 0.5) * self.extent_mm)
             + self.down * ((w - 0.5) * self.extent_mm)
+    }
+
+    /// The plane as the brush's disc lies in it: through the centre, spanned by screen right
+    /// and down (LPS, orthonormal), so a disc of the brush's size in mm is a circle on screen
+    /// whatever the label grid's spacing or orientation.
+    pub fn brush_plane(&self) -> SlicePlane {
+        SlicePlane::Oblique {
+            centre_lps: self.centre,
+            u: self.right,
+            v: self.down,
+        }
     }
 
     /// Orientation letters at the left, right, top and bottom edges: the patient direction

@@ -3,6 +3,13 @@
 //! horizontal), a click moves the crosshair, right drag windows, the wheel pages along the
 //! plane's normal; "Axial" resets the plane, "Align to 3D" takes the 3D camera's orientation.
 //! Orientation letters follow the plane.
+//!
+//! The label overlay (an imported label map or the editable layer) is drawn over the image,
+//! sampled by the overlay's thread at the image's own pixel centres (nearest label, on the
+//! labels' own grid) and coloured with the slice views' colours, opacity and visibility. With
+//! the brush or eraser chosen, the left button paints a disc in the plane instead of turning
+//! it (the slice views' gesture, slice_view.rs), and the brush is drawn as its circle; fill and
+//! grow take a click as their seed.
 
 use egui::{Color32, Pos2, Rect, Sense, Stroke, TextureHandle, TextureOptions, Vec2};
 use glam::DVec3;
@@ -11,8 +18,10 @@ use super::colour_maps::ColourMap;
 use super::oblique::{
     default_extent_mm, level_for_pixel_mm, ObliqueImage, ObliquePlane, ObliqueRequest,
 };
+use super::overlay::{Overlay, OverlayKind, OverlayStyle};
 use super::scene::{Scene, VolumeData, Window};
-use super::slice_view::drag_window;
+use super::segmentation::Segmentation;
+use super::slice_view::{drag_window, segment_pointer_input};
 use super::widgets::{view_title, wheel_lines, ViewResponse};
 
 /// Radians the plane turns per point dragged.
@@ -28,15 +37,28 @@ struct ObliqueTexture {
     colour_map: ColourMap,
 }
 
-/// What the 3D view's camera looks along, for "Align to 3D" (the shell passes it in).
-pub struct AlignTarget<'a> {
+/// The overlay's texture over the oblique image and what it was coloured from.
+struct ObliqueOverlayTexture {
+    texture: TextureHandle,
+    /// The oblique image's request the overlay was sampled for.
+    request: ObliqueRequest,
+    values: std::sync::Arc<Vec<f32>>,
+    style: OverlayStyle,
+}
+
+/// What the shell passes in besides the volume: the 3D view's camera (for "Align to 3D"),
+/// the overlay to draw and the segmentation the tools edit.
+pub struct ObliqueContext<'a> {
     pub camera: &'a strata_render::Camera,
+    pub overlay: Option<&'a Overlay>,
+    pub segmentation: Option<&'a mut Segmentation>,
 }
 
 pub struct ObliqueViewer {
     /// The plane's orientation (its centre follows the crosshair every frame).
     pub plane: Option<ObliquePlane>,
     texture: Option<ObliqueTexture>,
+    overlay_texture: Option<ObliqueOverlayTexture>,
     wheel_lines: f64,
     /// Where the image was drawn last frame (tests).
     pub image_rect: Option<Rect>,
@@ -47,6 +69,7 @@ impl Default for ObliqueViewer {
         ObliqueViewer {
             plane: None,
             texture: None,
+            overlay_texture: None,
             wheel_lines: 0.0,
             image_rect: None,
         }
@@ -78,14 +101,28 @@ impl ObliqueViewer {
         self.texture.as_ref().map(|t| &t.image)
     }
 
+    /// The overlay values coloured into the texture drawn now, with the oblique image's
+    /// request they were sampled for (tests compare them with a CPU model of that plane).
+    #[cfg(test)]
+    pub fn shown_overlay(&self) -> Option<(ObliqueRequest, std::sync::Arc<Vec<f32>>)> {
+        self.overlay_texture
+            .as_ref()
+            .map(|t| (t.request, t.values.clone()))
+    }
+
     pub fn ui(
         &mut self,
         ui: &mut egui::Ui,
         rect: Rect,
         data: &VolumeData,
         scene: &mut Scene,
-        align: AlignTarget<'_>,
+        context: ObliqueContext<'_>,
     ) -> ViewResponse {
+        let ObliqueContext {
+            camera,
+            overlay,
+            mut segmentation,
+        } = context;
         let geometry = &data.info.geometry;
         let painter = ui.painter_at(rect);
         painter.rect_filled(rect, 0.0, Color32::BLACK);
@@ -104,7 +141,12 @@ impl ObliqueViewer {
         let image_rect = Rect::from_center_size(inner.center(), Vec2::splat(side));
         let response = ui.interact(rect, ui.scope_id().with("oblique"), Sense::click_and_drag());
         let mut plane = self.current_plane(data, scene);
-        if response.dragged_by(egui::PointerButton::Primary) {
+        let painting = segmentation.as_ref().is_some_and(|s| s.tool.paints());
+        if let Some(seg) = segmentation.as_deref_mut().filter(|_| painting) {
+            let brush_plane = plane.brush_plane();
+            let to_lps = |pos: Pos2| pixel_patient(&plane, image_rect, pos);
+            segment_pointer_input(ui, &response, image_rect, seg, &to_lps, &|_| brush_plane);
+        } else if response.dragged_by(egui::PointerButton::Primary) {
             let delta = ui.input(|i| i.pointer.delta());
             if delta != Vec2::ZERO {
                 plane = plane.rotated(
@@ -198,6 +240,17 @@ impl ObliqueViewer {
                 Rect::from_min_max(Pos2::ZERO, Pos2::new(1.0, 1.0)),
                 Color32::WHITE,
             );
+            let request = t.image.request;
+            if let Some(o) = overlay {
+                self.paint_overlay(ui, &painter, o, request, image_rect);
+            }
+        }
+        if let Some(seg) = segmentation.as_deref().filter(|s| s.tool.drags()) {
+            if let Some(pos) = response.hover_pos().filter(|p| image_rect.contains(*p)) {
+                // The square image spans the plane's extent across and down.
+                let radius = (seg.diameter_mm / 2.0 / plane.extent_mm) as f32 * image_rect.width();
+                painter.circle_stroke(pos, radius, Stroke::new(1.0, Color32::WHITE));
+            }
         }
         // The crosshair is the plane's centre.
         let c = image_rect.center();
@@ -218,11 +271,7 @@ impl ObliqueViewer {
                     .on_hover_text("Turn the plane to face the 3D view's camera")
                     .clicked()
                 {
-                    self.plane = Some(ObliquePlane::facing(
-                        align.camera,
-                        plane.centre,
-                        plane.extent_mm,
-                    ));
+                    self.plane = Some(ObliquePlane::facing(camera, plane.centre, plane.extent_mm));
                 }
                 if ui
                     .small_button("Axial")
@@ -260,13 +309,74 @@ impl ObliqueViewer {
     }
 }
 
-/// The level-0 continuous index under screen position `pos`.
-fn index_at(plane: &ObliquePlane, image_rect: Rect, pos: Pos2, data: &VolumeData) -> DVec3 {
+impl ObliqueViewer {
+    /// The overlay over the image of `request`: asked for on the overlay's thread at exactly
+    /// that image's pixels, coloured here (again only when the values or the style change)
+    /// and drawn over the image. Labels use nearest filtering: a linear filter would blend two
+    /// labels' colours into a third at every boundary.
+    fn paint_overlay(
+        &mut self,
+        ui: &egui::Ui,
+        painter: &egui::Painter,
+        overlay: &Overlay,
+        request: ObliqueRequest,
+        image_rect: Rect,
+    ) {
+        overlay.request_oblique(request.plane, request.width, request.height);
+        let Some(sampled) = overlay.latest_oblique().filter(|s| {
+            s.plane == request.plane && s.width == request.width && s.height == request.height
+        }) else {
+            return;
+        };
+        let filter = match overlay.kind {
+            OverlayKind::Labels => TextureOptions::NEAREST,
+            OverlayKind::Continuous => TextureOptions::LINEAR,
+        };
+        let stale = self.overlay_texture.as_ref().is_none_or(|t| {
+            !std::sync::Arc::ptr_eq(&t.values, &sampled.values) || t.style != overlay.style
+        });
+        if stale {
+            let colours = overlay.colourise_values(&sampled.values, sampled.width, sampled.height);
+            match &mut self.overlay_texture {
+                Some(t) => {
+                    t.texture.set(colours, filter);
+                    t.request = request;
+                    t.values = sampled.values.clone();
+                    t.style = overlay.style.clone();
+                }
+                None => {
+                    self.overlay_texture = Some(ObliqueOverlayTexture {
+                        texture: ui.ctx().load_texture("oblique overlay", colours, filter),
+                        request,
+                        values: sampled.values.clone(),
+                        style: overlay.style.clone(),
+                    })
+                }
+            }
+        }
+        if let Some(t) = &self.overlay_texture {
+            painter.image(
+                t.texture.id(),
+                image_rect,
+                Rect::from_min_max(Pos2::ZERO, Pos2::new(1.0, 1.0)),
+                Color32::WHITE,
+            );
+        }
+    }
+}
+
+/// The patient position (LPS mm) under screen position `pos` of the image of `plane`.
+pub fn pixel_patient(plane: &ObliquePlane, image_rect: Rect, pos: Pos2) -> DVec3 {
     let u = ((pos.x - image_rect.left()) / image_rect.width()) as f64;
     let w = ((pos.y - image_rect.top()) / image_rect.height()) as f64;
+    plane.patient_at(u, w)
+}
+
+/// The level-0 continuous index under screen position `pos`.
+fn index_at(plane: &ObliquePlane, image_rect: Rect, pos: Pos2, data: &VolumeData) -> DVec3 {
     data.info
         .geometry
-        .index_from_patient(plane.patient_at(u, w))
+        .index_from_patient(pixel_patient(plane, image_rect, pos))
 }
 
 fn window_level(

@@ -11,6 +11,11 @@
 //! at boundaries (the mean of 1 and 3 is 2), so they are not used for labels at all. A
 //! continuous overlay is sampled trilinearly from level 0.
 //!
+//! The oblique view's plane is sampled the same way (nearest label, trilinear continuous), at
+//! the centres of the oblique image's pixels: each centre's patient position straight into the
+//! overlay's index space in f64, so labels land where a voxel-exact CPU model puts them
+//! (`tests::an_oblique_plane_takes_the_nearest_label_of_each_pixel_centre`).
+//!
 //! Sampling runs on a named thread (`strata-overlay-reader`) per overlay, with its own bounded
 //! brick cache; the UI colours the sampled values (cheap) whenever the style changes.
 
@@ -25,6 +30,7 @@ use strata_source::VolumeSource;
 use strata_types::{BrickId, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
 
 use super::colour_maps::ColourMap;
+use super::oblique::ObliquePlane;
 use super::orientation::SliceView;
 use super::segmentation::SharedLayer;
 use super::slices::SliceRequest;
@@ -108,6 +114,50 @@ struct OverlayRequest {
     revision: u64,
 }
 
+/// The overlay over the oblique view's image: one value per pixel of the `width`×`height`
+/// image of `plane` (row 0 at the top), as [`OverlaySlice`] holds them.
+#[derive(Clone, Debug)]
+pub struct ObliqueOverlay {
+    pub plane: ObliquePlane,
+    pub width: usize,
+    pub height: usize,
+    /// The source's revision it was sampled at.
+    pub revision: u64,
+    pub values: Arc<Vec<f32>>,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct ObliqueOverlayRequest {
+    plane: ObliquePlane,
+    width: usize,
+    height: usize,
+    revision: u64,
+}
+
+/// What the reader thread has still to sample: the newest request of each slice view and of
+/// the oblique view.
+#[derive(Default)]
+struct Pending {
+    slices: [Option<OverlayRequest>; 3],
+    oblique: Option<ObliqueOverlayRequest>,
+}
+
+/// One sampling job taken from [`Pending`].
+enum Job {
+    Slice(OverlayRequest),
+    Oblique(ObliqueOverlayRequest),
+}
+
+impl Pending {
+    fn take(&mut self) -> Option<Job> {
+        self.slices
+            .iter_mut()
+            .find_map(|p| p.take())
+            .map(Job::Slice)
+            .or_else(|| self.oblique.take().map(Job::Oblique))
+    }
+}
+
 /// What the sampler needs to know about both volumes.
 #[derive(Clone, Debug)]
 pub struct OverlayGrids {
@@ -120,8 +170,9 @@ pub struct OverlayGrids {
 }
 
 struct Shared {
-    pending: Mutex<[Option<OverlayRequest>; 3]>,
+    pending: Mutex<Pending>,
     results: Mutex<[Option<OverlaySlice>; 3]>,
+    oblique: Mutex<Option<ObliqueOverlay>>,
     labels_seen: Mutex<BTreeSet<i64>>,
     error: Mutex<Option<String>>,
     wake: Condvar,
@@ -238,8 +289,9 @@ impl Overlay {
     ) -> anyhow::Result<Self> {
         let kind = grids.kind;
         let shared = Arc::new(Shared {
-            pending: Mutex::new([None; 3]),
+            pending: Mutex::new(Pending::default()),
             results: Mutex::new([None, None, None]),
+            oblique: Mutex::new(None),
             labels_seen: Mutex::new(BTreeSet::new()),
             error: Mutex::new(None),
             wake: Condvar::new(),
@@ -259,46 +311,66 @@ impl Overlay {
                             if thread_shared.stop.load(Ordering::Acquire) {
                                 return;
                             }
-                            if let Some(r) = pending.iter_mut().find_map(|p| p.take()) {
-                                break r;
+                            if let Some(job) = pending.take() {
+                                break job;
                             }
                             pending = wait_ignoring_poison(&thread_shared.wake, pending);
                         }
                     };
-                    let sampled = match &thread_source {
-                        OverlaySource::Store(store) => sample_slice(
-                            store.as_ref(),
+                    // Read before the layer: an edit after this makes the sample stale.
+                    let revision = thread_source.revision();
+                    let sampled = match next {
+                        Job::Slice(next) => sample_source(
+                            &thread_source,
                             &mut cache,
                             &thread_grids,
-                            next.slice,
+                            &slice_pixels(&thread_grids, next.slice),
                             next.width,
                             next.height,
-                        ),
-                        OverlaySource::Layer(layer) => {
-                            // Read before the layer: an edit after this makes the slice stale.
-                            let revision = layer.revision();
-                            sample_layer_slice(
-                                &layer.read(),
-                                &thread_grids,
-                                next.slice,
-                                next.width,
-                                next.height,
-                            )
-                            .map(|s| OverlaySlice { revision, ..s })
-                        }
+                        )
+                        .map(|values| {
+                            let values = Arc::new(values);
+                            let slice = OverlaySlice {
+                                request: next.slice,
+                                revision,
+                                width: next.width,
+                                height: next.height,
+                                values: values.clone(),
+                            };
+                            lock_ignoring_poison(&thread_shared.results)[next.slice.view.index()] =
+                                Some(slice);
+                            values
+                        }),
+                        Job::Oblique(next) => sample_source(
+                            &thread_source,
+                            &mut cache,
+                            &thread_grids,
+                            &oblique_pixels(&thread_grids, &next.plane, next.width, next.height),
+                            next.width,
+                            next.height,
+                        )
+                        .map(|values| {
+                            let values = Arc::new(values);
+                            *lock_ignoring_poison(&thread_shared.oblique) = Some(ObliqueOverlay {
+                                plane: next.plane,
+                                width: next.width,
+                                height: next.height,
+                                revision,
+                                values: values.clone(),
+                            });
+                            values
+                        }),
                     };
                     match sampled {
-                        Ok(slice) => {
+                        Ok(values) => {
                             if kind == OverlayKind::Labels {
                                 let mut seen = lock_ignoring_poison(&thread_shared.labels_seen);
-                                for &v in slice.values.iter() {
+                                for &v in values.iter() {
                                     if v.is_finite() && v != 0.0 {
                                         seen.insert(v as i64);
                                     }
                                 }
                             }
-                            lock_ignoring_poison(&thread_shared.results)[next.slice.view.index()] =
-                                Some(slice);
                             *lock_ignoring_poison(&thread_shared.error) = None;
                         }
                         Err(e) => {
@@ -396,14 +468,43 @@ impl Overlay {
             return;
         }
         let mut pending = lock_ignoring_poison(&self.shared.pending);
-        if pending[slice.view.index()] != Some(request) {
-            pending[slice.view.index()] = Some(request);
+        if pending.slices[slice.view.index()] != Some(request) {
+            pending.slices[slice.view.index()] = Some(request);
             self.shared.wake.notify_all();
         }
     }
 
     pub fn latest(&self, view: SliceView) -> Option<OverlaySlice> {
         lock_ignoring_poison(&self.shared.results)[view.index()].clone()
+    }
+
+    /// Asks for the overlay over the oblique view's `width`×`height` image of `plane`.
+    pub fn request_oblique(&self, plane: ObliquePlane, width: usize, height: usize) {
+        let request = ObliqueOverlayRequest {
+            plane,
+            width,
+            height,
+            revision: self.source.revision(),
+        };
+        let latest = self.latest_oblique();
+        if latest.is_some_and(|l| {
+            l.plane == plane
+                && l.width == width
+                && l.height == height
+                && l.revision == request.revision
+        }) {
+            return;
+        }
+        let mut pending = lock_ignoring_poison(&self.shared.pending);
+        if pending.oblique != Some(request) {
+            pending.oblique = Some(request);
+            self.shared.wake.notify_all();
+        }
+    }
+
+    /// The newest overlay sampled over the oblique view's image.
+    pub fn latest_oblique(&self) -> Option<ObliqueOverlay> {
+        lock_ignoring_poison(&self.shared.oblique).clone()
     }
 
     /// A label's name from the store header ("kidney"), if it has one.
@@ -427,15 +528,24 @@ impl Overlay {
 
     /// The overlay image for `slice`, premultiplied RGBA in its pixel order.
     pub fn colourise(&self, slice: &OverlaySlice) -> egui::ColorImage {
-        let pixels = slice
-            .values
+        self.colourise_values(&slice.values, slice.width, slice.height)
+    }
+
+    /// The overlay image of `width`×`height` sampled `values` (row by row), premultiplied RGBA.
+    pub fn colourise_values(
+        &self,
+        values: &[f32],
+        width: usize,
+        height: usize,
+    ) -> egui::ColorImage {
+        let pixels = values
             .iter()
             .map(|&v| {
                 let [r, g, b, a] = self.colour_of(v);
                 egui::Color32::from_rgba_premultiplied(r, g, b, a)
             })
             .collect();
-        egui::ColorImage::new([slice.width, slice.height], pixels)
+        egui::ColorImage::new([width, height], pixels)
     }
 }
 
@@ -564,8 +674,81 @@ pub fn sample_slice(
     width: usize,
     height: usize,
 ) -> anyhow::Result<OverlaySlice> {
+    let values = sample_store(
+        store,
+        cache,
+        grids,
+        &slice_pixels(grids, request),
+        width,
+        height,
+    )?;
+    Ok(OverlaySlice {
+        request,
+        revision: 0,
+        width,
+        height,
+        values: Arc::new(values),
+    })
+}
+
+/// The overlay's continuous index at the centre of pixel (`x`, `y`) of the primary's slice
+/// image for `request`.
+fn slice_pixels(grids: &OverlayGrids, request: SliceRequest) -> impl Fn(usize, usize) -> DVec3 {
+    let overlay_from_primary =
+        grids.overlay.index_from_patient_linear() * grids.primary.patient_from_index_linear();
+    let offset = grids.overlay.index_from_patient(grids.primary.origin());
+    let level_dims = grids.primary_level_dims.clone();
+    move |x, y| offset + overlay_from_primary * primary_index_of_pixel(&request, &level_dims, x, y)
+}
+
+/// The overlay's continuous index at the centre of pixel (`x`, `y`) of the oblique view's
+/// `width`×`height` image of `plane` (oblique.rs's pixel centres).
+fn oblique_pixels(
+    grids: &OverlayGrids,
+    plane: &ObliquePlane,
+    width: usize,
+    height: usize,
+) -> impl Fn(usize, usize) -> DVec3 {
+    let (plane, overlay) = (*plane, grids.overlay.clone());
+    move |x, y| {
+        overlay.index_from_patient(plane.patient_at(
+            (x as f64 + 0.5) / width as f64,
+            (y as f64 + 0.5) / height as f64,
+        ))
+    }
+}
+
+/// Samples the overlay's store or layer at the pixels `index_of_pixel` places in its grid.
+fn sample_source(
+    source: &OverlaySource,
+    cache: &mut OverlayBrickCache,
+    grids: &OverlayGrids,
+    index_of_pixel: &dyn Fn(usize, usize) -> DVec3,
+    width: usize,
+    height: usize,
+) -> anyhow::Result<Vec<f32>> {
+    match source {
+        OverlaySource::Store(store) => {
+            sample_store(store.as_ref(), cache, grids, index_of_pixel, width, height)
+        }
+        OverlaySource::Layer(layer) => {
+            sample_layer(&layer.read(), grids, index_of_pixel, width, height)
+        }
+    }
+}
+
+/// The overlay at every pixel: labels the nearest level-0 voxel's, rounded to a whole label;
+/// continuous values trilinear between level-0 voxel centres (clamped at the edges).
+fn sample_store(
+    store: &dyn VolumeSource,
+    cache: &mut OverlayBrickCache,
+    grids: &OverlayGrids,
+    index_of_pixel: &dyn Fn(usize, usize) -> DVec3,
+    width: usize,
+    height: usize,
+) -> anyhow::Result<Vec<f32>> {
     let dims = grids.overlay.dims;
-    sample_with(grids, request, width, height, |p| {
+    sample_with(dims, index_of_pixel, width, height, |p| {
         Ok(match grids.kind {
             OverlayKind::Labels => {
                 let index = [0, 1, 2]
@@ -589,9 +772,28 @@ pub fn sample_layer_slice(
     width: usize,
     height: usize,
 ) -> anyhow::Result<OverlaySlice> {
+    let values = sample_layer(layer, grids, &slice_pixels(grids, request), width, height)?;
+    Ok(OverlaySlice {
+        request,
+        revision: 0,
+        width,
+        height,
+        values: Arc::new(values),
+    })
+}
+
+/// An editable label layer's nearest label at every pixel, each label brick read once per run
+/// of pixels in it.
+fn sample_layer(
+    layer: &strata_segment::LabelLayer,
+    grids: &OverlayGrids,
+    index_of_pixel: &dyn Fn(usize, usize) -> DVec3,
+    width: usize,
+    height: usize,
+) -> anyhow::Result<Vec<f32>> {
     let dims = grids.overlay.dims;
     let mut last: Option<(strata_segment::BrickKey, Option<Arc<[u16]>>)> = None;
-    sample_with(grids, request, width, height, |p| {
+    sample_with(dims, index_of_pixel, width, height, |p| {
         let index =
             [0, 1, 2].map(|a| (p[a].round().max(0.0) as u32).min(dims[a].saturating_sub(1)));
         let (key, at) = layer.grid().brick_of(index);
@@ -610,39 +812,28 @@ pub fn sample_layer_slice(
     })
 }
 
-/// Calls `value_at` with the overlay's continuous index at every pixel of the primary slice
-/// image that lies inside the overlay's grid; NaN elsewhere.
+/// Calls `value_at` with the overlay's continuous index at every pixel that lies inside the
+/// overlay's grid (of `dims` voxels); NaN elsewhere.
 fn sample_with(
-    grids: &OverlayGrids,
-    request: SliceRequest,
+    dims: [u32; 3],
+    index_of_pixel: &dyn Fn(usize, usize) -> DVec3,
     width: usize,
     height: usize,
     mut value_at: impl FnMut(DVec3) -> anyhow::Result<f64>,
-) -> anyhow::Result<OverlaySlice> {
-    let overlay_from_primary =
-        grids.overlay.index_from_patient_linear() * grids.primary.patient_from_index_linear();
-    let offset = grids.overlay.index_from_patient(grids.primary.origin());
-    let dims = grids.overlay.dims;
+) -> anyhow::Result<Vec<f32>> {
     let inside =
         |p: DVec3| (0..3).all(|a| p[a] >= -0.5 && p[a] < dims[a] as f64 - 0.5 && p[a].is_finite());
     let mut values = vec![f32::NAN; width * height];
     for y in 0..height {
         for x in 0..width {
-            let primary = primary_index_of_pixel(&request, &grids.primary_level_dims, x, y);
-            let p = offset + overlay_from_primary * primary;
+            let p = index_of_pixel(x, y);
             if !inside(p) {
                 continue;
             }
             values[y * width + x] = value_at(p)? as f32;
         }
     }
-    Ok(OverlaySlice {
-        request,
-        revision: 0,
-        width,
-        height,
-        values: Arc::new(values),
-    })
+    Ok(values)
 }
 
 /// The overlay's physical value at its continuous index `p`, trilinear between level-0 voxel
@@ -934,5 +1125,81 @@ pub(crate) mod tests {
             }
         }
         assert!(compared > 500, "only {compared} pixels compared");
+    }
+
+    /// Over a plane tilted 0.5 and 0.3 rad off axial, the oblique sampling of a label map
+    /// gives each pixel the label of the label voxel nearest to its centre, computed here in
+    /// f64 from the NRRD header and the label function (exact; only pixels whose centre lies
+    /// within 1e-6 voxels of a boundary between two voxels are left out, where rounding may
+    /// pick either), NaN outside the label grid: from the imported store and from the same
+    /// file loaded as an editable layer alike.
+    #[test]
+    fn an_oblique_plane_takes_the_nearest_label_of_each_pixel_centre() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let primary = primary(dir.path());
+        let nrrd = dir.path().join("labels.nrrd");
+        write_nrrd(
+            &nrrd,
+            LABEL_DIMS,
+            LABEL_SPACING,
+            LABEL_ORIGIN,
+            false,
+            label_of,
+        );
+        let store = import(&nrrd, &dir.path().join("labels.strata"));
+        let grids = grids(primary.as_ref(), store.as_ref(), OverlayKind::Labels);
+        let layer = strata_segment::io::load_label_file(&nrrd).expect("the NRRD as a layer");
+        assert_eq!(layer.grid().geometry(), &grids.overlay, "one grid for both");
+        let origin = DVec3::from(LABEL_ORIGIN);
+        let centre = origin + DVec3::new(17.3, 21.6, 19.2) * LABEL_SPACING;
+        let plane = ObliquePlane::axial(centre, 520.0).rotated(0.5, 0.3);
+        let (w, h) = (96, 80);
+        let model = |x: usize, y: usize| {
+            let across = (x as f64 + 0.5) / w as f64 - 0.5;
+            let down = (y as f64 + 0.5) / h as f64 - 0.5;
+            let p = plane.centre + plane.right * (across * 520.0) + plane.down * (down * 520.0);
+            let o = (p - origin) / LABEL_SPACING;
+            if (0..3).any(|a| o[a] < -0.5 || o[a] >= LABEL_DIMS[a] as f64 - 0.5) {
+                return Some(f64::NAN);
+            }
+            if (0..3).any(|a| ((o[a] - o[a].floor()) - 0.5).abs() < 1e-6) {
+                return None;
+            }
+            let n = o.round();
+            Some(label_of(n.x as u32, n.y as u32, n.z as u32))
+        };
+        let sources = [
+            ("store", OverlaySource::Store(store.clone())),
+            (
+                "layer",
+                OverlaySource::Layer(Arc::new(SharedLayer::new(layer))),
+            ),
+        ];
+        for (name, source) in sources {
+            let mut cache = OverlayBrickCache::new(8 << 20);
+            let pixels = oblique_pixels(&grids, &plane, w, h);
+            let values =
+                sample_source(&source, &mut cache, &grids, &pixels, w, h).expect("sampling");
+            let (mut compared, mut outside, mut labels) = (0, 0, BTreeSet::new());
+            for y in 0..h {
+                for x in 0..w {
+                    let Some(expected) = model(x, y) else {
+                        continue;
+                    };
+                    let got = values[y * w + x];
+                    if expected.is_nan() {
+                        assert!(got.is_nan(), "{name}: pixel ({x},{y}) outside has {got}");
+                        outside += 1;
+                        continue;
+                    }
+                    assert_eq!(got as f64, expected, "{name}: pixel ({x},{y})");
+                    labels.insert(expected as i64);
+                    compared += 1;
+                }
+            }
+            assert!(compared > 3000, "{name}: only {compared} pixels compared");
+            assert!(outside > 100, "{name}: the plane leaves the grid");
+            assert_eq!(labels.len(), 5, "{name}: every label is crossed");
+        }
     }
 }

@@ -217,6 +217,33 @@ pub struct JournalNote {
     pub base: Option<PathBuf>,
 }
 
+/// Why the segmentation journal or its note could not be opened, read or written. The
+/// messages name the file and the problem.
+#[derive(Debug, thiserror::Error)]
+pub enum JournalError {
+    /// The note beside a journal is not the JSON this viewer writes.
+    #[error("{}: not a journal note: {source}", path.display())]
+    BadNote {
+        path: PathBuf,
+        source: serde_json::Error,
+    },
+    /// A file or folder of the journal could not be read, created or removed.
+    #[error("{}: {source}", path.display())]
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    /// The note could not be encoded (it holds only paths, so this is not expected).
+    #[error("{0}")]
+    EncodeNote(serde_json::Error),
+    /// The note could not be written.
+    #[error("journal note: {0}")]
+    WriteNote(SegmentError),
+    /// The journal itself could not be opened or recovered (strata-segment says why).
+    #[error("{0}")]
+    Journal(SegmentError),
+}
+
 /// A journal left by an earlier session with edits in it, offered for recovery.
 pub struct PendingRecovery {
     pub journal: PathBuf,
@@ -227,21 +254,30 @@ pub struct PendingRecovery {
 impl PendingRecovery {
     /// The journal beside the session of `data_folder`, if it holds edits made over `primary`.
     /// A journal that cannot be read at all is reported, not offered.
-    pub fn find(data_folder: &Path, primary: &Path) -> Result<Option<Self>, String> {
+    pub fn find(data_folder: &Path, primary: &Path) -> Result<Option<Self>, JournalError> {
         let journal = journal_path(data_folder);
         if !journal.exists() {
             return Ok(None);
         }
         let note_file = note_path(&journal);
         let note: JournalNote = match std::fs::read(&note_file) {
-            Ok(bytes) => serde_json::from_slice(&bytes)
-                .map_err(|e| format!("{}: not a journal note: {e}", note_file.display()))?,
-            Err(e) => return Err(format!("{}: {e}", note_file.display())),
+            Ok(bytes) => {
+                serde_json::from_slice(&bytes).map_err(|source| JournalError::BadNote {
+                    path: note_file.clone(),
+                    source,
+                })?
+            }
+            Err(source) => {
+                return Err(JournalError::Io {
+                    path: note_file,
+                    source,
+                })
+            }
         };
         if note.primary != primary {
             return Ok(None);
         }
-        let recovery = strata_segment::journal::recover(&journal).map_err(|e| e.to_string())?;
+        let recovery = strata_segment::journal::recover(&journal).map_err(JournalError::Journal)?;
         if recovery.edits.is_empty() {
             return Ok(None);
         }
@@ -412,7 +448,7 @@ impl Segmentation {
                 },
                 fresh_journal,
             );
-            opened.map_err(|e| error = Some(e)).ok()
+            opened.map_err(|e| error = Some(e.to_string())).ok()
         });
         let segments = layer.segments().clone();
         let active = segments.iter().next().map_or(0, |s| s.value);
@@ -1007,27 +1043,33 @@ fn open_journal(
     geometry: &VolumeGeometry,
     note: &JournalNote,
     fresh: bool,
-) -> Result<Journal, String> {
+) -> Result<Journal, JournalError> {
     if let Some(dir) = path.parent() {
-        std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+        std::fs::create_dir_all(dir).map_err(|source| JournalError::Io {
+            path: dir.to_path_buf(),
+            source,
+        })?;
     }
     if fresh {
-        if let Err(e) = std::fs::remove_file(path) {
-            if e.kind() != std::io::ErrorKind::NotFound {
-                return Err(format!("{}: {e}", path.display()));
+        if let Err(source) = std::fs::remove_file(path) {
+            if source.kind() != std::io::ErrorKind::NotFound {
+                return Err(JournalError::Io {
+                    path: path.to_path_buf(),
+                    source,
+                });
             }
         }
     }
     let note_file = note_path(path);
-    let bytes = serde_json::to_vec_pretty(note).map_err(|e| e.to_string())?;
+    let bytes = serde_json::to_vec_pretty(note).map_err(JournalError::EncodeNote)?;
     strata_segment::io::atomic::write_file_atomically(&note_file, |out| {
         out.write_all(&bytes).map_err(|e| SegmentError::Io {
             path: note_file.clone(),
             source: e,
         })
     })
-    .map_err(|e| format!("journal note: {e}"))?;
-    let (journal, _) = Journal::open_or_create(path, geometry).map_err(|e| e.to_string())?;
+    .map_err(JournalError::WriteNote)?;
+    let (journal, _) = Journal::open_or_create(path, geometry).map_err(JournalError::Journal)?;
     Ok(journal)
 }
 
@@ -1053,5 +1095,50 @@ pub fn plane_for_view(
         centre_lps,
         u: DVec3::from(primary.direction[across_axis]).normalize_or_zero(),
         v: DVec3::from(primary.direction[down_axis]).normalize_or_zero(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A journal whose note is missing or damaged is reported (never offered, never a panic),
+    /// the message naming the note and the problem; without a journal nothing is offered.
+    #[test]
+    fn a_journal_whose_note_is_missing_or_not_json_is_reported_naming_the_note() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let data_folder = dir.path().join("imported");
+        let primary = dir.path().join("primary.strata");
+        let journal = journal_path(&data_folder);
+        let note = note_path(&journal);
+        assert!(matches!(
+            PendingRecovery::find(&data_folder, &primary),
+            Ok(None)
+        ));
+        std::fs::write(&journal, b"not a journal").expect("writing the journal");
+        let missing = PendingRecovery::find(&data_folder, &primary)
+            .err()
+            .expect("a journal without its note is an error");
+        assert!(matches!(missing, JournalError::Io { .. }), "{missing:?}");
+        assert!(
+            missing
+                .to_string()
+                .starts_with(&format!("{}: ", note.display())),
+            "{missing}"
+        );
+        std::fs::write(&note, b"{ not json").expect("writing the note");
+        let damaged = PendingRecovery::find(&data_folder, &primary)
+            .err()
+            .expect("a damaged note is an error");
+        assert!(
+            matches!(damaged, JournalError::BadNote { .. }),
+            "{damaged:?}"
+        );
+        assert!(
+            damaged
+                .to_string()
+                .starts_with(&format!("{}: not a journal note: ", note.display())),
+            "{damaged}"
+        );
     }
 }

@@ -8,6 +8,8 @@
 use std::sync::Arc;
 
 use egui::{Color32, Pos2, Rect, Sense, Stroke, TextureHandle, TextureOptions, Vec2};
+use glam::DVec3;
+use strata_segment::tools::brush::SlicePlane;
 use strata_viewer_ui::slice_canvas::{
     fraction_at, inner_rect, paint_crosshair, paint_orientation_labels, paint_readout_line,
     screen_at, slice_mesh, ZoomPan,
@@ -219,9 +221,7 @@ impl SliceViewer {
         }
     }
 
-    /// Left button with the brush or eraser: a press starts a stroke at the press position, a
-    /// drag sweeps it on to each new pointer position, the release ends it (one edit); a click
-    /// paints one disc. With fill or grow, a click is the seed.
+    /// Left button with a segment tool ([`segment_pointer_input`]) on this slice.
     fn brush_input(
         &self,
         ui: &egui::Ui,
@@ -235,7 +235,7 @@ impl SliceViewer {
         let geometry = &data.info.geometry;
         let to_lps = |p: Pos2| {
             let index = self.index_at(p, image_rect, data, scene);
-            geometry.patient_from_index(glam::DVec3::from(index))
+            geometry.patient_from_index(DVec3::from(index))
         };
         let labels = seg.layer.geometry();
         let plane = |centre| {
@@ -248,49 +248,7 @@ impl SliceViewer {
                 centre,
             )
         };
-        if !seg.tool.drags() {
-            // Fill and grow: a click is the seed.
-            if response.clicked_by(egui::PointerButton::Primary) {
-                if let Some(pos) = response
-                    .interact_pointer_pos()
-                    .filter(|p| image_rect.contains(*p))
-                {
-                    let p = to_lps(pos);
-                    let ctx = ui.ctx().clone();
-                    seg.click_at(plane(p), p, Arc::new(move || ctx.request_repaint()));
-                }
-            }
-            return;
-        }
-        let stroke_to = |seg: &mut Segmentation, pos: Pos2| {
-            let p = to_lps(pos);
-            seg.stroke_to(plane(p), p);
-        };
-        if response.drag_started_by(egui::PointerButton::Primary) {
-            if let Some(origin) = ui
-                .input(|i| i.pointer.press_origin())
-                .filter(|p| image_rect.contains(*p))
-            {
-                stroke_to(seg, origin);
-            }
-        }
-        if response.dragged_by(egui::PointerButton::Primary) && seg.stroke_in_progress() {
-            if let Some(pos) = response.interact_pointer_pos() {
-                stroke_to(seg, pos);
-            }
-        }
-        if response.drag_stopped_by(egui::PointerButton::Primary) {
-            seg.end_stroke();
-        }
-        if response.clicked_by(egui::PointerButton::Primary) {
-            if let Some(pos) = response
-                .interact_pointer_pos()
-                .filter(|p| image_rect.contains(*p))
-            {
-                stroke_to(seg, pos);
-                seg.end_stroke();
-            }
-        }
+        segment_pointer_input(ui, response, image_rect, seg, &to_lps, &plane);
     }
 
     /// Draws the measurements lying on the slice shown (and the one being drawn).
@@ -667,6 +625,65 @@ impl SliceViewer {
             toggle_focus: toggled,
             focused,
             hover,
+        }
+    }
+}
+
+/// Left button with the brush or eraser over an image drawn in `image_rect`: a press starts a
+/// stroke at the press position, a drag sweeps it on to each new pointer position, the release
+/// ends it (one edit); a click paints one disc. With fill or grow, a click is the seed.
+/// `to_lps` takes a screen point to patient space, `plane` gives the brush's plane through a
+/// patient point; the slice views and the oblique view share this, so a stroke is the same
+/// gesture in every view.
+pub(crate) fn segment_pointer_input(
+    ui: &egui::Ui,
+    response: &egui::Response,
+    image_rect: Rect,
+    seg: &mut Segmentation,
+    to_lps: &dyn Fn(Pos2) -> DVec3,
+    plane: &dyn Fn(DVec3) -> SlicePlane,
+) {
+    if !seg.tool.drags() {
+        // Fill and grow: a click is the seed.
+        if response.clicked_by(egui::PointerButton::Primary) {
+            if let Some(pos) = response
+                .interact_pointer_pos()
+                .filter(|p| image_rect.contains(*p))
+            {
+                let p = to_lps(pos);
+                let ctx = ui.ctx().clone();
+                seg.click_at(plane(p), p, Arc::new(move || ctx.request_repaint()));
+            }
+        }
+        return;
+    }
+    let stroke_to = |seg: &mut Segmentation, pos: Pos2| {
+        let p = to_lps(pos);
+        seg.stroke_to(plane(p), p);
+    };
+    if response.drag_started_by(egui::PointerButton::Primary) {
+        if let Some(origin) = ui
+            .input(|i| i.pointer.press_origin())
+            .filter(|p| image_rect.contains(*p))
+        {
+            stroke_to(seg, origin);
+        }
+    }
+    if response.dragged_by(egui::PointerButton::Primary) && seg.stroke_in_progress() {
+        if let Some(pos) = response.interact_pointer_pos() {
+            stroke_to(seg, pos);
+        }
+    }
+    if response.drag_stopped_by(egui::PointerButton::Primary) {
+        seg.end_stroke();
+    }
+    if response.clicked_by(egui::PointerButton::Primary) {
+        if let Some(pos) = response
+            .interact_pointer_pos()
+            .filter(|p| image_rect.contains(*p))
+        {
+            stroke_to(seg, pos);
+            seg.end_stroke();
         }
     }
 }

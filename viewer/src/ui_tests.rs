@@ -19,9 +19,9 @@ use super::orientation::SliceView;
 use super::volume_session::RenderedFrame;
 
 /// Generous: lavapipe on two shared cores compiles the raycast pipeline in seconds.
-const WAIT: Duration = Duration::from_secs(180);
+pub(crate) const WAIT: Duration = Duration::from_secs(180);
 
-fn phantom_store(dir: &Path) -> std::path::PathBuf {
+pub(crate) fn phantom_store(dir: &Path) -> std::path::PathBuf {
     let path = dir.join("phantom.strata");
     Phantom::cube(48)
         .write_store(&path, &Default::default())
@@ -48,7 +48,7 @@ fn harness_with(
 }
 
 /// A harness with a window of `size` points (taller where a test needs lower side panels).
-fn harness_sized(
+pub(crate) fn harness_sized(
     mut options: ViewerOptions,
     preferences: Preferences,
     size: Vec2,
@@ -73,14 +73,14 @@ fn harness_sized(
     )
 }
 
-fn app<'h>(h: &'h Harness<'static, Option<StrataApp>>) -> &'h StrataApp {
+pub(crate) fn app<'h>(h: &'h Harness<'static, Option<StrataApp>>) -> &'h StrataApp {
     h.state()
         .as_ref()
         .expect("the app is created on the first step")
 }
 
 /// Steps the UI until `found` gives a value and returns it, failing with `what` after [`WAIT`].
-fn step_until_some<T>(
+pub(crate) fn step_until_some<T>(
     h: &mut Harness<'static, Option<StrataApp>>,
     what: &str,
     found: impl Fn(&StrataApp) -> Option<T>,
@@ -103,7 +103,7 @@ fn step_until_some<T>(
 }
 
 /// Steps the UI until `done` holds, failing with `what` after [`WAIT`].
-fn step_until(
+pub(crate) fn step_until(
     h: &mut Harness<'static, Option<StrataApp>>,
     what: &str,
     done: impl Fn(&StrataApp) -> bool,
@@ -149,7 +149,7 @@ fn mean_abs_difference(a: &[u8], b: &[u8]) -> f64 {
         / a.len().max(1) as f64
 }
 
-fn region_pixels(image: &image::RgbaImage, rect: egui::Rect) -> Vec<u8> {
+pub(crate) fn region_pixels(image: &image::RgbaImage, rect: egui::Rect) -> Vec<u8> {
     let mut out = Vec::new();
     for y in rect.top().max(0.0) as u32..(rect.bottom() as u32).min(image.height()) {
         for x in rect.left().max(0.0) as u32..(rect.right() as u32).min(image.width()) {
@@ -477,7 +477,11 @@ fn a_file_that_cannot_be_opened_shows_its_error_once() {
     assert_eq!(shown, 1, "the error {error:?} is shown {shown} times");
 }
 
-fn click(h: &mut Harness<'static, Option<StrataApp>>, at: egui::Pos2, button: PointerButton) {
+pub(crate) fn click(
+    h: &mut Harness<'static, Option<StrataApp>>,
+    at: egui::Pos2,
+    button: PointerButton,
+) {
     h.event(Event::PointerMoved(at));
     h.event(Event::PointerButton {
         pos: at,
@@ -733,7 +737,7 @@ fn a_window_preset_and_the_inverted_colour_map_reach_the_screen() {
 }
 
 /// Left-drags from `from` to `to` in steps, as a user would.
-fn drag(h: &mut Harness<'static, Option<StrataApp>>, from: egui::Pos2, to: egui::Pos2) {
+pub(crate) fn drag(h: &mut Harness<'static, Option<StrataApp>>, from: egui::Pos2, to: egui::Pos2) {
     h.event(Event::PointerMoved(from));
     h.event(Event::PointerButton {
         pos: from,
@@ -2726,7 +2730,7 @@ fn open_from_pacs_finds_a_study_and_shows_its_series_in_the_viewer() {
 
 /// Every labelled voxel of the session's segmentation with its label, sorted by k, j, i (the
 /// order the segment crate's `stroke_voxels` gives).
-fn labelled_voxels(app: &StrataApp) -> Vec<([u32; 3], u16)> {
+pub(crate) fn labelled_voxels(app: &StrataApp) -> Vec<([u32; 3], u16)> {
     let seg = app
         .volume
         .as_ref()
@@ -2821,7 +2825,7 @@ fn last_stroke_model(
 }
 
 /// Opens the Segment section and starts a new segmentation with the brush of `diameter_mm`.
-fn new_segmentation(h: &mut Harness<'static, Option<StrataApp>>, diameter_mm: f64) {
+pub(crate) fn new_segmentation(h: &mut Harness<'static, Option<StrataApp>>, diameter_mm: f64) {
     h.get_by_label("Segment").click();
     h.step();
     h.get_by_label("New segmentation").click();
@@ -2843,21 +2847,35 @@ fn new_segmentation(h: &mut Harness<'static, Option<StrataApp>>, diameter_mm: f6
     h.step();
 }
 
-/// Chooses a segment tool as the tool row does (the drags and clicks on the slices that follow
-/// are the pointer events under test).
-fn set_segment_tool(
+/// Chooses a segment tool with one click on its button in the Segment section's tool row, and
+/// checks the click chose it.
+pub(crate) fn set_segment_tool(
     h: &mut Harness<'static, Option<StrataApp>>,
     tool: super::segmentation::SegmentTool,
 ) {
-    if let Some(seg) = h
-        .state_mut()
-        .as_mut()
-        .and_then(|a| a.volume.as_mut())
-        .and_then(|v| v.segmentation.as_mut())
-    {
-        seg.tool = tool;
+    use super::segmentation::SegmentTool;
+    let label = match tool {
+        SegmentTool::None => "Off",
+        SegmentTool::Brush => "Brush",
+        SegmentTool::Eraser => "Eraser",
+        SegmentTool::Fill => "Fill",
+        SegmentTool::Grow => "Grow",
+    };
+    // The row is drawn from the frame after the segmentation opens.
+    for _ in 0..10 {
+        if h.query_by_label(label).is_some() {
+            break;
+        }
+        h.step();
     }
+    h.get_by_label(label).click();
     h.step();
+    let chosen = app(h)
+        .volume
+        .as_ref()
+        .and_then(|v| v.segmentation.as_ref())
+        .map(|s| s.tool);
+    assert_eq!(chosen, Some(tool), "one click on {label:?}");
 }
 
 /// Drags the brush and then the eraser across `view`, checking each against the CPU model

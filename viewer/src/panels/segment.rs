@@ -3,6 +3,12 @@
 //! size in mm, an optional value range), the segment list (active segment, colour, name,
 //! shown, locked, remove), the operations on the active segment (fill between slices, islands,
 //! margin, union / subtract / intersect), statistics with Copy as CSV, and Save As.
+//!
+//! Every row wraps inside the panel's width rather than widening the panel: a row wider than
+//! the panel made the right-hand panel grow by 44 points on the frame after the segmentation
+//! opened, moving every widget left under a pointer that had not moved (a click aimed at
+//! "Brush" landed on "Eraser") and shrinking the views, as issue 36 saw for labels
+//! (`ui_tests_segment_oblique::one_click_on_a_tool_button_chooses_that_tool`).
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -59,7 +65,7 @@ impl SegmentPanel {
     ) -> Option<SegmentRequest> {
         let mut request = None;
         let Some(seg) = segmentation.as_mut() else {
-            ui.horizontal(|ui| {
+            ui.horizontal_wrapped(|ui| {
                 if ui
                     .button("New segmentation")
                     .on_hover_text("An empty label layer on this volume's grid")
@@ -87,7 +93,7 @@ impl SegmentPanel {
         self.operations(ui, seg);
         statistics(ui, seg);
         self.save(ui, seg, save_folder);
-        ui.horizontal(|ui| {
+        ui.horizontal_wrapped(|ui| {
             if ui
                 .button("Close")
                 .on_hover_text("Stop editing this segmentation")
@@ -141,7 +147,7 @@ impl SegmentPanel {
                         .suffix(" vx"),
                 );
             });
-            ui.horizontal(|ui| {
+            ui.horizontal_wrapped(|ui| {
                 if ui
                     .button("Margin")
                     .on_hover_text("Grow (> 0) or shrink (< 0) the active segment by this many mm")
@@ -156,7 +162,7 @@ impl SegmentPanel {
                         .suffix(" mm"),
                 );
             });
-            ui.horizontal(|ui| {
+            ui.horizontal_wrapped(|ui| {
                 let segments = seg.segments();
                 let name = |v: Label| {
                     segments
@@ -189,7 +195,7 @@ impl SegmentPanel {
     }
 
     fn save(&mut self, ui: &mut egui::Ui, seg: &mut Segmentation, folder: &std::path::Path) {
-        ui.horizontal(|ui| {
+        ui.horizontal_wrapped(|ui| {
             egui::ComboBox::from_id_salt("segment save format")
                 .selected_text(self.format.label())
                 .show_ui(ui, |ui| {
@@ -252,7 +258,7 @@ fn short(path: &std::path::Path) -> String {
 
 /// The tool row, its size and value range, and the grow's settings and progress.
 fn tools(ui: &mut egui::Ui, seg: &mut Segmentation) {
-    ui.horizontal(|ui| {
+    ui.horizontal_wrapped(|ui| {
         ui.selectable_value(&mut seg.tool, SegmentTool::None, "Off")
             .on_hover_text("The left button moves the crosshair");
         ui.selectable_value(&mut seg.tool, SegmentTool::Brush, "Brush")
@@ -271,7 +277,7 @@ fn tools(ui: &mut egui::Ui, seg: &mut Segmentation) {
         )
         .on_hover_text("Brush diameter");
     });
-    ui.horizontal(|ui| {
+    ui.horizontal_wrapped(|ui| {
         let growing_by_sigma = seg.tool == SegmentTool::Grow && seg.grow.mean_sigma;
         if seg.tool == SegmentTool::Grow {
             ui.label("Values");
@@ -287,7 +293,7 @@ fn tools(ui: &mut egui::Ui, seg: &mut Segmentation) {
         ui.add_enabled(enabled, egui::DragValue::new(&mut seg.range.1).speed(1.0));
     });
     if seg.tool == SegmentTool::Grow {
-        ui.horizontal(|ui| {
+        ui.horizontal_wrapped(|ui| {
             ui.checkbox(&mut seg.grow.mean_sigma, "mean ± k·σ")
                 .on_hover_text("The range from the 3×3×3 voxels around the seed");
             ui.add_enabled(
@@ -331,7 +337,7 @@ fn segment_list(ui: &mut egui::Ui, seg: &mut Segmentation) {
         let Some(s) = table.get_mut(value) else {
             continue;
         };
-        ui.horizontal(|ui| {
+        ui.horizontal_wrapped(|ui| {
             ui.radio_value(&mut active, s.value, "")
                 .on_hover_text("The segment the tools paint");
             ui.color_edit_button_srgb(&mut s.rgb);
@@ -362,7 +368,7 @@ fn segment_list(ui: &mut egui::Ui, seg: &mut Segmentation) {
 
 /// The statistics table (computed on request, in the background) and Copy as CSV.
 fn statistics(ui: &mut egui::Ui, seg: &mut Segmentation) {
-    ui.horizontal(|ui| {
+    ui.horizontal_wrapped(|ui| {
         let running = seg.statistics_running();
         if ui
             .add_enabled(!running, egui::Button::new("Statistics"))
