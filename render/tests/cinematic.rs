@@ -62,13 +62,7 @@ fn from_above() -> Camera {
 }
 
 fn oblique(f: &Fixture, azimuth: f64, elevation: f64) -> Camera {
-    Camera::orbit(
-        &f.volume.geometry,
-        azimuth,
-        elevation,
-        1.5,
-        Projection::Perspective { fov_y_deg: 35.0 },
-    )
+    orbit(&f.volume.geometry, azimuth, elevation, 1.5, 35.0)
 }
 
 /// Shaded DVR lit by `light`, shadows off, no effect yet.

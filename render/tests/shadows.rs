@@ -251,13 +251,7 @@ fn shadowed_phantom_matches_reference() {
     let ctx = gpu();
     let f = Fixture::ct(32);
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let cam = Camera::orbit(
-        &f.volume.geometry,
-        35.0,
-        25.0,
-        1.5,
-        Projection::Perspective { fov_y_deg: 35.0 },
-    );
+    let cam = orbit(&f.volume.geometry, 35.0, 25.0, 1.5, 35.0);
     let s = shadowed(LightDirection::Camera([0.6, 0.7, 0.4]), 1.0);
     let gpu_frame = g.render(&ctx, &f, &cam, &s);
     let reference = timed_reference("phantom", &f, &cam, &s);
@@ -281,13 +275,7 @@ fn shadowed_headlight_matches_reference() {
     let ctx = gpu();
     let f = Fixture::ct(32);
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let cam = Camera::orbit(
-        &f.volume.geometry,
-        -20.0,
-        10.0,
-        1.5,
-        Projection::Perspective { fov_y_deg: 35.0 },
-    );
+    let cam = orbit(&f.volume.geometry, -20.0, 10.0, 1.5, 35.0);
     let s = shadowed(LightDirection::Headlight, 1.0);
     assert!(g.key(&f, &cam, &s).key_light);
     let gpu_frame = g.render(&ctx, &f, &cam, &s);
@@ -496,13 +484,7 @@ mod cache {
     }
 
     fn phantom_view(f: &Fixture) -> Camera {
-        Camera::orbit(
-            &f.volume.geometry,
-            35.0,
-            25.0,
-            1.5,
-            Projection::Perspective { fov_y_deg: 35.0 },
-        )
+        orbit(&f.volume.geometry, 35.0, 25.0, 1.5, 35.0)
     }
 
     /// The GPU's texels against the f64 reference's sweep (the cache's own error, before the
