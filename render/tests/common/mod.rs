@@ -331,3 +331,30 @@ pub fn timing_assertions_enabled() -> bool {
     }
     enabled
 }
+
+/// Air (raw 0, −1024 HU) everywhere but where `solid` says: raw 2024 (1000 HU), on an `n`³
+/// grid of 1 mm voxels: the hard cases of the lighting tests (shadows.rs, cinematic.rs).
+pub fn binary_volume(n: u32, solid: impl Fn(u32, u32, u32) -> bool + Sync) -> BrickedVolume {
+    let geometry = VolumeGeometry::axis_aligned([n; 3], [1.0; 3]);
+    BrickedVolume::from_fn(geometry, phantom::CT_MAPPING, move |x, y, z| {
+        if solid(x, y, z) {
+            2024
+        } else {
+            0
+        }
+    })
+    .unwrap()
+}
+
+/// The one colour of [`opaque_tf`].
+pub const OPAQUE_COLOUR: [f64; 3] = [1.0, 0.9, 0.8];
+
+/// Opaque above 100 HU (α = 1 per voxel: the shadows of a voxel-thick layer are complete),
+/// transparent below −100 HU, one colour, so a pixel's colour is that colour times its lighting.
+pub fn opaque_tf() -> TransferFunction {
+    TransferFunction::new(
+        "opaque",
+        &[(-1024.0, 0.0), (-100.0, 0.0), (100.0, 1.0), (1000.0, 1.0)],
+        &[(-1024.0, OPAQUE_COLOUR), (1000.0, OPAQUE_COLOUR)],
+    )
+}
