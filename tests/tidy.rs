@@ -9,6 +9,8 @@
 //! - render's folders: a module uses only its own layer and lower ones (`RENDER_LAYERS`, the
 //!   graph render/src/lib.rs draws), and no .wgsl file declares by hand a constant Rust also
 //!   defines (the shader's shared constants are generated).
+//! - Errors: no function of a library crate returns `Result<_, String>` outside test code
+//!   (`STRING_ERRORS_ALLOWED` names the few left, each with its reason).
 //! - Build tools: Rust and a C/C++ compiler are enough to build; nothing in `Cargo.lock` needs
 //!   cmake or nasm (read from the lock file: `cargo tree` would need the network for all
 //!   targets).
@@ -1150,4 +1152,243 @@ fn the_test_hook_checks_can_fail() {
         ungated_test_functions(source),
         vec!["line 7: b_for_tests".to_string()]
     );
+}
+
+/// Functions of library crates that still return `Result<_, String>`, by file and name, each
+/// with why it may (issue 54 item 4 converted the rest to typed errors).
+const STRING_ERRORS_ALLOWED: &[(&str, &str, &str)] = &[
+    (
+        "service/src/client.rs",
+        "parse_store_url",
+        "owned by another change this session",
+    ),
+    (
+        "viewer/src/segmentation.rs",
+        "find",
+        "owned by another change this session",
+    ),
+    (
+        "viewer/src/segmentation.rs",
+        "open_journal",
+        "owned by another change this session",
+    ),
+    (
+        "web/src/served_store.rs",
+        "list_stores",
+        "owned by another change this session",
+    ),
+    (
+        "source/src/wire.rs",
+        "decode_open_document",
+        "its callers in service/src/client.rs and web/src/served_store.rs put the message in \
+         SourceError::Refused's String and are owned by another change this session",
+    ),
+    (
+        "source/src/wire.rs",
+        "check_store_format",
+        "its error travels through decode_open_document (above) and service/src/client.rs's \
+         tests, owned by another change this session",
+    ),
+    (
+        "web/src/volume_menu.rs",
+        "parse_store_list",
+        "web/src/served_store.rs returns it as list_stores' error, owned by another change \
+         this session",
+    ),
+];
+
+/// `fn` items of a source file, outside test code, whose return type is `Result<_, String>`
+/// (also spelled `std::result::Result`), as `(line, name)`. Test code is a `#[cfg(…test…)]`
+/// item (a `mod tests { … }` or a gated function), skipped by brace depth; `Option<Result<_,
+/// String>>` is a shown outcome, not a function's error, and is not reported.
+fn functions_returning_string_errors(source: &str) -> Vec<(usize, String)> {
+    let lines: Vec<&str> = source.lines().collect();
+    let mut found = Vec::new();
+    let mut i = 0;
+    while i < lines.len() {
+        let trimmed = lines[i].trim();
+        if trimmed.starts_with("#[cfg(")
+            && trimmed.contains("test")
+            && !trimmed.contains("not(test")
+        {
+            // Skip the gated item: up to its first `{` and then to the matching `}` (or to
+            // a `;` that ends it first, e.g. `mod ui_tests;`).
+            let mut depth = 0i64;
+            let mut opened = false;
+            i += 1;
+            while i < lines.len() {
+                let code = lines[i].split("//").next().unwrap_or("");
+                for c in code.chars() {
+                    match c {
+                        '{' => {
+                            depth += 1;
+                            opened = true;
+                        }
+                        '}' => depth -= 1,
+                        _ => {}
+                    }
+                }
+                let ends_unopened = !opened && code.trim_end().ends_with(';');
+                i += 1;
+                if ends_unopened || (opened && depth <= 0) {
+                    break;
+                }
+            }
+            continue;
+        }
+        let is_fn = trimmed.starts_with("fn ")
+            || (trimmed.contains(" fn ") && !trimmed.starts_with("//") && !trimmed.contains('|'));
+        if !is_fn {
+            i += 1;
+            continue;
+        }
+        // The signature: from `fn` to the `{` or `;` that ends it.
+        let start = i;
+        let mut signature = String::new();
+        while i < lines.len() {
+            let code = lines[i].split("//").next().unwrap_or("");
+            signature.push_str(code);
+            signature.push(' ');
+            i += 1;
+            if code.contains('{') || code.trim_end().ends_with(';') {
+                break;
+            }
+        }
+        if let Some(name) = string_error_function(&signature) {
+            found.push((start + 1, name));
+        }
+    }
+    found
+}
+
+/// The function's name when `signature` (`… fn name<…>(…) -> Ret {`) returns `Result<_, String>`.
+fn string_error_function(signature: &str) -> Option<String> {
+    // `->` inside generics or parameters (`F: Fn() -> T`) must not count as a closing `>`.
+    let text = signature.replace("->", "→");
+    let after_fn = &text[text.find("fn ")? + 3..];
+    let name: String = after_fn
+        .chars()
+        .take_while(|c| c.is_alphanumeric() || *c == '_')
+        .collect();
+    let mut rest = after_fn[name.len()..].trim_start();
+    if rest.starts_with('<') {
+        rest = &rest[balanced_end(rest, '<', '>')?..];
+    }
+    let rest = rest.trim_start();
+    if !rest.starts_with('(') {
+        return None;
+    }
+    let rest = rest[balanced_end(rest, '(', ')')?..].trim_start();
+    let returned = rest.strip_prefix('→')?;
+    let returned = returned
+        .split(['{', ';'])
+        .next()
+        .unwrap_or("")
+        .split(" where ")
+        .next()
+        .unwrap_or("");
+    let returned: String = returned.chars().filter(|c| !c.is_whitespace()).collect();
+    let inner = ["Result<", "std::result::Result<", "core::result::Result<"]
+        .iter()
+        .find_map(|prefix| returned.strip_prefix(prefix))?
+        .strip_suffix('>')?
+        .trim_end_matches(',');
+    let mut depth = 0i32;
+    let mut last_argument_start = 0;
+    for (at, c) in inner.char_indices() {
+        match c {
+            '<' | '(' | '[' => depth += 1,
+            '>' | ')' | ']' => depth -= 1,
+            ',' if depth == 0 => last_argument_start = at + 1,
+            _ => {}
+        }
+    }
+    let error = &inner[last_argument_start..];
+    (last_argument_start > 0 && (error == "String" || error == "std::string::String"))
+        .then_some(name)
+}
+
+/// Byte offset just past the bracket that closes the one `text` starts with.
+fn balanced_end(text: &str, open: char, close: char) -> Option<usize> {
+    let mut depth = 0;
+    for (at, c) in text.char_indices() {
+        if c == open {
+            depth += 1;
+        } else if c == close {
+            depth -= 1;
+            if depth == 0 {
+                return Some(at + c.len_utf8());
+            }
+        }
+    }
+    None
+}
+
+#[test]
+fn library_functions_return_typed_errors_not_strings() {
+    let root = repo_root();
+    let mut found = Vec::new();
+    let mut seen_allowed = BTreeSet::new();
+    for entry in fs::read_dir(&root).expect("the workspace folder") {
+        let dir = entry.expect("a workspace entry").path();
+        // A library crate: a `src/lib.rs` and no binary of its own (app and bench use anyhow).
+        if !dir.join("src/lib.rs").is_file() || dir.join("src/main.rs").is_file() {
+            continue;
+        }
+        let mut files = Vec::new();
+        rust_files(&dir.join("src"), &mut files);
+        for file in files {
+            let relative = file
+                .strip_prefix(&root)
+                .expect("file under the workspace")
+                .to_string_lossy()
+                .replace('\\', "/");
+            let source = fs::read_to_string(&file).expect("a source file");
+            for (line, name) in functions_returning_string_errors(&source) {
+                let allowed = STRING_ERRORS_ALLOWED
+                    .iter()
+                    .any(|(path, function, _)| *path == relative && *function == name);
+                if allowed {
+                    seen_allowed.insert((relative.clone(), name));
+                } else {
+                    found.push(format!("{relative}:{line}: fn {name}"));
+                }
+            }
+        }
+    }
+    assert!(
+        found.is_empty(),
+        "library functions returning Result<_, String> (give them a thiserror enum whose Display \
+         keeps the wording, CODE_STYLE.md \"Errors\"):\n{}",
+        found.join("\n")
+    );
+    // An entry converted by its owner is only reported, so that its change and this list can
+    // land in either order; remove it from STRING_ERRORS_ALLOWED.
+    for (path, function, _) in STRING_ERRORS_ALLOWED {
+        if !seen_allowed.contains(&(path.to_string(), function.to_string())) {
+            println!("STRING_ERRORS_ALLOWED lists {path} fn {function}, which no longer returns Result<_, String>");
+        }
+    }
+}
+
+#[test]
+fn the_string_error_check_can_fail() {
+    let source = "pub fn plain(x: u8) -> Result<u8, String> {\n    Ok(x)\n}\n\
+                  fn typed(x: u8) -> Result<u8, ParseError> {\n    Ok(x)\n}\n\
+                  pub(crate) async fn spread<F: Fn(u8) -> Result<u8, String>>(\n    f: F,\n) \
+                  -> std::result::Result<\n    Vec<u8>,\n    String,\n> {\n    todo()\n}\n\
+                  fn takes(f: impl Fn() -> Result<(), String>) -> bool {\n    true\n}\n\
+                  fn outcome() -> Option<Result<u8, String>> {\n    None\n}\n\
+                  fn pair() -> Result<(String, String), std::io::Error> {\n    todo()\n}\n\
+                  #[cfg(test)]\nmod tests {\n    fn helper() -> Result<(), String> {\n        \
+                  Ok(())\n    }\n}\n\
+                  #[cfg(any(test, feature = \"test-hooks\"))]\npub fn hook() -> Result<(), String> {\n    \
+                  Ok(())\n}\n\
+                  #[cfg(test)]\nmod ui_tests;\n\
+                  impl Reader {\n    fn take(&mut self) -> Result<&[u8], String> {\n        todo()\n    }\n}\n";
+    let names: Vec<String> = functions_returning_string_errors(source)
+        .into_iter()
+        .map(|(line, name)| format!("{line} {name}"))
+        .collect();
+    assert_eq!(names, ["1 plain", "7 spread", "37 take"]);
 }

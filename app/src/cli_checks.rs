@@ -11,15 +11,12 @@ use anyhow::{bail, Result};
 pub const MAX_BUDGET_MIB: u64 = 16 << 20;
 
 /// clap value parser for a budget in MiB: 1 ..= [`MAX_BUDGET_MIB`].
-pub fn budget_mib(text: &str) -> Result<u64, String> {
-    let mib: u64 = text
-        .trim()
-        .parse()
-        .map_err(|_| format!("'{text}' is not a whole number of MiB"))?;
+pub fn budget_mib(text: &str) -> Result<u64> {
+    let Ok(mib) = text.trim().parse::<u64>() else {
+        bail!("'{text}' is not a whole number of MiB");
+    };
     if !(1..=MAX_BUDGET_MIB).contains(&mib) {
-        return Err(format!(
-            "{mib} MiB is outside 1..={MAX_BUDGET_MIB} MiB (16 TiB)"
-        ));
+        bail!("{mib} MiB is outside 1..={MAX_BUDGET_MIB} MiB (16 TiB)");
     }
     Ok(mib)
 }
@@ -51,11 +48,14 @@ mod tests {
 
     #[test]
     fn budgets_are_bounded_and_named() {
-        assert_eq!(budget_mib("512"), Ok(512));
+        assert_eq!(budget_mib("512").unwrap(), 512);
         assert!(budget_mib("0").is_err());
-        let e = budget_mib("17592186044416").unwrap_err();
+        let e = budget_mib("17592186044416").unwrap_err().to_string();
         assert!(e.contains("16 TiB"), "{e}");
-        assert!(budget_mib("lots").unwrap_err().contains("'lots'"));
+        assert!(budget_mib("lots")
+            .unwrap_err()
+            .to_string()
+            .contains("'lots'"));
     }
 
     #[test]

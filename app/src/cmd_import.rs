@@ -68,10 +68,10 @@ pub struct ImportArgs {
 }
 
 /// `--codec`: the codecs a new store may use (lz4 alone is format 1's, not offered).
-fn parse_codec(name: &str) -> std::result::Result<BrickCodec, String> {
+fn parse_codec(name: &str) -> Result<BrickCodec> {
     match BrickCodec::parse(name) {
         Some(c @ (BrickCodec::Fast | BrickCodec::Dense)) => Ok(c),
-        _ => Err(format!("'{name}' is not a codec: use fast or dense")),
+        _ => bail!("'{name}' is not a codec: use fast or dense"),
     }
 }
 

@@ -224,10 +224,10 @@ enum BenchCommand {
 }
 
 /// `--codec` of the import benchmark: fast or dense.
-fn parse_codec(name: &str) -> std::result::Result<BrickCodec, String> {
+fn parse_codec(name: &str) -> Result<BrickCodec> {
     match BrickCodec::parse(name) {
         Some(c @ (BrickCodec::Fast | BrickCodec::Dense)) => Ok(c),
-        _ => Err(format!("'{name}' is not a codec: use fast or dense")),
+        _ => anyhow::bail!("'{name}' is not a codec: use fast or dense"),
     }
 }
 

@@ -176,6 +176,16 @@ pub struct BrickFailure {
     pub message: String,
 }
 
+/// A page-table entry whose slot does not hold the node it names (found by
+/// [`StreamingVolume::check_slot_map`]).
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("the table names {node:?} in slot {table_slot}, slot map says {slot_map:?}")]
+pub struct SlotMapMismatch {
+    pub node: BrickId,
+    pub table_slot: u32,
+    pub slot_map: Option<u32>,
+}
+
 pub struct StreamingVolume {
     config: StreamingConfig,
     geometry: VolumeGeometry,
@@ -875,14 +885,15 @@ impl StreamingVolume {
 
     /// Checks that every sampled page entry points at a slot holding the node it names
     /// (for tests: a broken slot map shows up as wrong voxels, not as an error).
-    pub fn check_slot_map(&self) -> Result<(), String> {
+    pub fn check_slot_map(&self) -> Result<(), SlotMapMismatch> {
         for (level, coords, slot) in self.page_table.resident_nodes() {
             let node = BrickId::new(level, coords);
             if self.slots.slot_of(node) != Some(slot) {
-                return Err(format!(
-                    "the table names {node:?} in slot {slot}, slot map says {:?}",
-                    self.slots.slot_of(node)
-                ));
+                return Err(SlotMapMismatch {
+                    node,
+                    table_slot: slot,
+                    slot_map: self.slots.slot_of(node),
+                });
             }
         }
         Ok(())

@@ -134,82 +134,154 @@ pub struct ChunkCheck {
     pub fill: u16,
 }
 
+/// Why a checksums object was refused; each message reads after "the bricks' checksums".
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum ChecksumsDecodeError {
+    #[error("is truncated")]
+    Truncated,
+    #[error("fails its checksum")]
+    Checksum,
+    #[error("is not a checksums object")]
+    NotChecksums,
+    #[error("says {count} entries in {bytes} bytes")]
+    EntryCount { count: u64, bytes: usize },
+    #[error("names brick level {level} at {coords:?}, outside the octree")]
+    OutsideOctree { level: u8, coords: [u32; 3] },
+}
+
 /// Reads the checksums object; the error says what is wrong with it.
-pub fn decode(bytes: &[u8], layout: &OctreeLayout) -> Result<HashMap<BrickId, u32>, String> {
-    let body_len = bytes.len().checked_sub(4).ok_or("is truncated")?;
+pub fn decode(
+    bytes: &[u8],
+    layout: &OctreeLayout,
+) -> Result<HashMap<BrickId, u32>, ChecksumsDecodeError> {
+    let body_len = bytes
+        .len()
+        .checked_sub(4)
+        .ok_or(ChecksumsDecodeError::Truncated)?;
     let (body, sum) = bytes.split_at(body_len);
-    if crc32c::crc32c(body) != u32::from_le_bytes(sum.try_into().map_err(|_| "is truncated")?) {
-        return Err("fails its checksum".into());
+    let sum = sum
+        .try_into()
+        .map_err(|_| ChecksumsDecodeError::Truncated)?;
+    if crc32c::crc32c(body) != u32::from_le_bytes(sum) {
+        return Err(ChecksumsDecodeError::Checksum);
     }
     if body.len() < 12 || &body[..4] != MAGIC {
-        return Err("is not a checksums object".into());
+        return Err(ChecksumsDecodeError::NotChecksums);
     }
-    let count = u64::from_le_bytes(body[4..12].try_into().map_err(|_| "is truncated")?);
+    let count = u64::from_le_bytes(
+        body[4..12]
+            .try_into()
+            .map_err(|_| ChecksumsDecodeError::Truncated)?,
+    );
     let entries = &body[12..];
     // The count must match the bytes: nothing is allocated from the header alone.
     if count != (entries.len() / ENTRY_BYTES) as u64 || entries.len() % ENTRY_BYTES != 0 {
-        return Err(format!("says {count} entries in {} bytes", entries.len()));
+        return Err(ChecksumsDecodeError::EntryCount {
+            count,
+            bytes: entries.len(),
+        });
     }
     let mut map = HashMap::with_capacity(count as usize);
     for e in entries.chunks_exact(ENTRY_BYTES) {
         let word = |i: usize| u32::from_le_bytes([e[i], e[i + 1], e[i + 2], e[i + 3]]);
         let id = BrickId::new(e[0], [word(1), word(5), word(9)]);
         if !layout.contains(id) {
-            return Err(format!(
-                "names brick level {} at {:?}, outside the octree",
-                id.level, id.coords
-            ));
+            return Err(ChecksumsDecodeError::OutsideOctree {
+                level: id.level,
+                coords: id.coords,
+            });
         }
         map.insert(id, word(13));
     }
     Ok(map)
 }
 
+/// How a brick's core, as read, differs from what the export wrote; each message reads after
+/// the brick's name.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum ChunkCheckError {
+    #[error("lies outside the export's skeleton")]
+    OutsideSkeleton,
+    /// The chunk reads as the fill value throughout: deleted, or its key or index changed.
+    #[error("is missing (its chunk reads as the fill value {fill}) where the export's skeleton says it {says}: the export is damaged (a shard or chunk deleted, or its index or key encoding changed)")]
+    Missing { fill: u16, says: SkeletonSays },
+    #[error("holds values {min}..={max} where the export's skeleton says it holds {value} throughout: the export is damaged")]
+    NotConstant { min: u16, max: u16, value: u16 },
+    #[error("holds values {min}..={max} outside the export skeleton's {node_min}..={node_max}: the export is damaged")]
+    OutOfRange {
+        min: u16,
+        max: u16,
+        node_min: u16,
+        node_max: u16,
+    },
+    #[error("has no checksum in the export although its values vary: the export's checksums are damaged")]
+    NoChecksum,
+    #[error("fails its checksum (its data or its shard index is damaged)")]
+    Checksum,
+}
+
+/// What the export's skeleton says a missing brick held.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SkeletonSays {
+    Constant(u16),
+    Range(u16, u16),
+}
+
+impl std::fmt::Display for SkeletonSays {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            SkeletonSays::Constant(value) => write!(f, "holds the value {value} throughout"),
+            SkeletonSays::Range(min, max) => write!(f, "holds values {min}..={max}"),
+        }
+    }
+}
+
 impl ChunkCheck {
     /// Whether brick `id`'s core, as read, is what the export wrote; the error says how not.
-    pub fn check(&self, id: BrickId, digest: CoreDigest) -> Result<(), String> {
+    pub fn check(&self, id: BrickId, digest: CoreDigest) -> Result<(), ChunkCheckError> {
         let Some(node) = self.skeleton.node(id) else {
-            return Err("lies outside the export's skeleton".into());
+            return Err(ChunkCheckError::OutsideSkeleton);
         };
         let all_fill = digest.min == self.fill && digest.max == self.fill;
-        let missing = |says: String| {
-            format!(
-                "is missing (its chunk reads as the fill value {}) where the export's skeleton says it {says}: the export is damaged (a shard or chunk deleted, or its index or key encoding changed)",
-                self.fill
-            )
+        let missing = |says| ChunkCheckError::Missing {
+            fill: self.fill,
+            says,
         };
         if node.min == node.max {
             if digest.min != node.min || digest.max != node.min {
                 return Err(if all_fill {
-                    missing(format!("holds the value {} throughout", node.min))
+                    missing(SkeletonSays::Constant(node.min))
                 } else {
-                    format!(
-                        "holds values {}..={} where the export's skeleton says it holds {} throughout: the export is damaged",
-                        digest.min, digest.max, node.min
-                    )
+                    ChunkCheckError::NotConstant {
+                        min: digest.min,
+                        max: digest.max,
+                        value: node.min,
+                    }
                 });
             }
             return Ok(());
         }
         if digest.min < node.min || digest.max > node.max {
             return Err(if all_fill {
-                missing(format!("holds values {}..={}", node.min, node.max))
+                missing(SkeletonSays::Range(node.min, node.max))
             } else {
-                format!(
-                    "holds values {}..={} outside the export skeleton's {}..={}: the export is damaged",
-                    digest.min, digest.max, node.min, node.max
-                )
+                ChunkCheckError::OutOfRange {
+                    min: digest.min,
+                    max: digest.max,
+                    node_min: node.min,
+                    node_max: node.max,
+                }
             });
         }
         let Some(checksums) = &self.checksums else {
             return Ok(());
         };
         match checksums.get(&id) {
-            None => Err("has no checksum in the export although its values vary: the export's checksums are damaged".into()),
+            None => Err(ChunkCheckError::NoChecksum),
             Some(&crc) if crc != digest.crc => Err(if all_fill {
-                missing(format!("holds values {}..={}", node.min, node.max))
+                missing(SkeletonSays::Range(node.min, node.max))
             } else {
-                "fails its checksum (its data or its shard index is damaged)".into()
+                ChunkCheckError::Checksum
             }),
             Some(_) => Ok(()),
         }
@@ -233,15 +305,24 @@ mod tests {
         assert_eq!(map[&BrickId::new(0, [1, 0, 1])], 7);
         let mut flipped = bytes.clone();
         flipped[14] ^= 1;
-        assert!(decode(&flipped, &layout).unwrap_err().contains("checksum"));
+        assert!(decode(&flipped, &layout)
+            .unwrap_err()
+            .to_string()
+            .contains("checksum"));
         assert!(decode(&bytes[..3], &layout).is_err());
         // A count that the bytes do not hold (checksum recomputed) is refused, not allocated.
         let mut lying = bytes[..bytes.len() - 4].to_vec();
         lying[4..12].copy_from_slice(&u64::MAX.to_le_bytes());
         let sum = crc32c::crc32c(&lying);
         lying.extend_from_slice(&sum.to_le_bytes());
-        assert!(decode(&lying, &layout).unwrap_err().contains("entries"));
+        assert!(decode(&lying, &layout)
+            .unwrap_err()
+            .to_string()
+            .contains("entries"));
         let outside = encode(&[(BrickId::new(0, [2, 0, 0]), 1)]);
-        assert!(decode(&outside, &layout).unwrap_err().contains("outside"));
+        assert!(decode(&outside, &layout)
+            .unwrap_err()
+            .to_string()
+            .contains("outside"));
     }
 }

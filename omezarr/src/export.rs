@@ -271,7 +271,7 @@ fn create_level_array(
     shard_zyx: [u64; 3],
     narrow: bool,
     fill: u16,
-) -> std::result::Result<Array<dyn ReadableWritableListableStorageTraits>, String> {
+) -> std::result::Result<Array<dyn ReadableWritableListableStorageTraits>, LevelArrayError> {
     let mut builder = if narrow {
         ArrayBuilder::new(
             shape_zyx.to_vec(),
@@ -291,11 +291,18 @@ fn create_level_array(
         .subchunk_shape(vec![INNER_CHUNK; 3])
         .bytes_to_bytes_codecs(vec![Arc::new(codec::ZstdCodec::new(ZSTD_LEVEL, false))])
         .dimension_names(Some(["z", "y", "x"]));
-    let array = builder
-        .build(storage.clone(), &format!("/{level}"))
-        .map_err(|e| e.to_string())?;
-    array.store_metadata().map_err(|e| e.to_string())?;
+    let array = builder.build(storage.clone(), &format!("/{level}"))?;
+    array.store_metadata()?;
     Ok(array)
+}
+
+/// Why a level's array could not be created; the caller names the export and the level.
+#[derive(Debug, thiserror::Error)]
+enum LevelArrayError {
+    #[error(transparent)]
+    Create(#[from] zarrs::array::ArrayCreateError),
+    #[error(transparent)]
+    Metadata(#[from] zarrs::storage::StorageError),
 }
 
 /// Cuts one shard out of the level's bricks and stores it. Returns whether it was written.

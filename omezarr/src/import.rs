@@ -507,6 +507,20 @@ struct StagingCheck<'a> {
     row: Vec<crate::checksums::DigestState>,
 }
 
+/// A level-0 brick of a staged import that differs from what the export wrote.
+#[derive(Debug, thiserror::Error)]
+#[error(
+    "level 0 brick {:?} (chunk z {} y {} x {}) {problem}",
+    .id.coords,
+    .id.coords[2],
+    .id.coords[1],
+    .id.coords[0]
+)]
+struct StagedBrickError {
+    id: strata_types::BrickId,
+    problem: crate::checksums::ChunkCheckError,
+}
+
 impl<'a> StagingCheck<'a> {
     fn new(check: &'a crate::checksums::ChunkCheck, dims: [u64; 3]) -> Self {
         let core = u64::from(strata_types::BRICK_CORE);
@@ -520,7 +534,7 @@ impl<'a> StagingCheck<'a> {
     }
 
     /// Slices `z0..` of level 0 (z, y, x order, stored bytes) have been read.
-    fn feed(&mut self, z0: u64, bytes: &[u8]) -> std::result::Result<(), String> {
+    fn feed(&mut self, z0: u64, bytes: &[u8]) -> std::result::Result<(), StagedBrickError> {
         let core = u64::from(strata_types::BRICK_CORE);
         let narrow = self.check.narrow;
         let sample = if narrow { 1 } else { 2 };
@@ -549,12 +563,9 @@ impl<'a> StagingCheck<'a> {
                         ],
                     );
                     let digest = std::mem::take(state).finish();
-                    self.check.check(id, digest).map_err(|e| {
-                        format!(
-                            "level 0 brick {:?} (chunk z {} y {} x {}) {e}",
-                            id.coords, id.coords[2], id.coords[1], id.coords[0]
-                        )
-                    })?;
+                    self.check
+                        .check(id, digest)
+                        .map_err(|problem| StagedBrickError { id, problem })?;
                 }
             }
         }
@@ -638,7 +649,7 @@ pub fn import_zarr(
             if let Some(check) = &mut staging_check {
                 check
                     .feed(z, &bytes)
-                    .map_err(|e| OmeZarrError::invalid(&display, e))?;
+                    .map_err(|e| OmeZarrError::invalid(&display, e.to_string()))?;
             }
             out.write_all(&bytes)
                 .map_err(|e| OmeZarrError::access(staging_dir.display(), e))?;

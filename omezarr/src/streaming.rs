@@ -285,13 +285,11 @@ impl Assembler {
     fn checked(&self, id: BrickId, payload: Vec<u16>) -> Result<Vec<u16>, SourceError> {
         if let Some(check) = &self.check {
             let digest = crate::checksums::core_digest(&payload, id, &self.layout, check.narrow);
-            check
-                .check(id, digest)
-                .map_err(|message| SourceError::Damaged {
-                    location: self.display.clone(),
-                    id,
-                    message,
-                })?;
+            check.check(id, digest).map_err(|e| SourceError::Damaged {
+                location: self.display.clone(),
+                id,
+                message: e.to_string(),
+            })?;
             self.verified
                 .lock()
                 .unwrap_or_else(|p| p.into_inner())

@@ -17,8 +17,7 @@ use crate::{ObjectLocation, OmeZarrError, Result};
 const IO_THREADS: usize = 2;
 
 pub(crate) fn runtime() -> Result<&'static tokio::runtime::Runtime> {
-    static RUNTIME: OnceLock<std::result::Result<tokio::runtime::Runtime, String>> =
-        OnceLock::new();
+    static RUNTIME: OnceLock<std::io::Result<tokio::runtime::Runtime>> = OnceLock::new();
     RUNTIME
         .get_or_init(|| {
             // https:// and TLS S3 endpoints: rustls on ring (an error means another part of
@@ -29,7 +28,6 @@ pub(crate) fn runtime() -> Result<&'static tokio::runtime::Runtime> {
                 .thread_name("strata-omezarr-io")
                 .enable_all()
                 .build()
-                .map_err(|e| e.to_string())
         })
         .as_ref()
         .map_err(|e| OmeZarrError::access("the object-store runtime", e))

@@ -334,13 +334,16 @@ pub struct StowReport {
     pub requests: usize,
 }
 
+/// A string refused as a DICOM UID; it holds at most the first 80 characters of it, so a
+/// hostile answer cannot make the message unbounded.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("'{0}' is not a DICOM UID (digits and dots, at most 64)")]
+pub struct NotAUid(String);
+
 /// UIDs go into URL paths and file names: digits and dots only, as DICOM defines them.
-pub fn check_uid(uid: &str) -> Result<(), String> {
+pub fn check_uid(uid: &str) -> Result<(), NotAUid> {
     if uid.is_empty() || uid.len() > 64 || !uid.bytes().all(|b| b.is_ascii_digit() || b == b'.') {
-        return Err(format!(
-            "'{}' is not a DICOM UID (digits and dots, at most 64)",
-            uid.chars().take(80).collect::<String>()
-        ));
+        return Err(NotAUid(uid.chars().take(80).collect()));
     }
     Ok(())
 }
@@ -464,12 +467,12 @@ fn is_dicom_part10(head: &[u8]) -> bool {
 
 /// The SOP Instance and Series Instance UIDs of the DICOM file at `path` (its header read up to
 /// the pixel data), or why it cannot be read.
-fn instance_identity(path: &Path) -> Result<(Option<String>, Option<String>), String> {
+fn instance_identity(path: &Path) -> Result<(Option<String>, Option<String>), UnreadablePart> {
     use dicom_dictionary_std::tags;
     let file = dicom_object::OpenFileOptions::new()
         .read_until(tags::PIXEL_DATA)
         .open_file(path)
-        .map_err(|e| format!("the part is not a readable DICOM file: {e}"))?;
+        .map_err(UnreadablePart)?;
     let text = |tag| {
         file.element(tag)
             .ok()
@@ -481,6 +484,11 @@ fn instance_identity(path: &Path) -> Result<(Option<String>, Option<String>), St
         text(tags::SERIES_INSTANCE_UID),
     ))
 }
+
+/// A retrieved part that does not open as a DICOM file.
+#[derive(Debug, thiserror::Error)]
+#[error("the part is not a readable DICOM file: {0}")]
+struct UnreadablePart(dicom_object::ReadError);
 
 /// Why a part that names series `series` is not of series `series_uid`, or `None` when it is.
 fn series_mismatch(series: Option<&str>, series_uid: &str) -> Option<String> {
@@ -497,7 +505,7 @@ fn series_mismatch(series: Option<&str>, series_uid: &str) -> Option<String> {
 fn identity_mismatch(path: &Path, series_uid: &str, sop_uid: &str) -> Option<String> {
     let (sop, series) = match instance_identity(path) {
         Ok(identity) => identity,
-        Err(problem) => return Some(problem),
+        Err(problem) => return Some(problem.to_string()),
     };
     if sop.as_deref() != Some(sop_uid) {
         return Some(format!(
@@ -895,7 +903,7 @@ impl Inner {
     fn check_uid(&self, uid: &str) -> Result<(), PacsError> {
         check_uid(uid).map_err(|problem| PacsError::Config {
             server: self.server(),
-            problem,
+            problem: problem.to_string(),
         })
     }
 
@@ -1249,7 +1257,8 @@ impl Inner {
                             "a part is not a DICOM file (no DICM preamble)".into(),
                         ));
                     }
-                    let (sop, series) = instance_identity(&partial).map_err(SinkError::Invalid)?;
+                    let (sop, series) = instance_identity(&partial)
+                        .map_err(|e| SinkError::Invalid(e.to_string()))?;
                     if let Some(problem) = series_mismatch(series.as_deref(), series_uid) {
                         return Err(SinkError::Invalid(problem));
                     }

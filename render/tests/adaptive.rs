@@ -85,6 +85,90 @@ fn render_gpu_complete(
     frame
 }
 
+/// The adaptive boundary's setup, written once: the fixture on a GPU (scene with the default
+/// cache) and the pre-integration table the transcription integrates with. The pass stays
+/// with the test (`AdaptiveRig::new` hands it out) so a test can set its oracle between frames.
+struct AdaptiveRig {
+    ctx: GpuContext,
+    f: Fixture,
+    g: GpuScene,
+    integral: SegmentIntegralTable,
+}
+
+impl AdaptiveRig {
+    fn new(f: Fixture) -> (Self, AdaptivePass) {
+        let ctx = gpu();
+        let g = GpuScene::new(&ctx, &f, CacheConfig::default());
+        let pass = AdaptivePass::new(&ctx, &g.cache);
+        let integral = integral_table(&f);
+        (
+            AdaptiveRig {
+                ctx,
+                f,
+                g,
+                integral,
+            },
+            pass,
+        )
+    }
+
+    /// One complete GPU frame of the pass ([`render_gpu_complete`]).
+    fn frame(
+        &self,
+        pass: &mut AdaptivePass,
+        camera: &Camera,
+        s: &RenderSettings,
+        config: &AdaptiveConfig,
+    ) -> AdaptiveFrame {
+        render_gpu_complete(&self.ctx, &self.g, pass, &self.f, camera, s, config)
+    }
+
+    /// The same frame in the f64 transcription, with the GPU's pre-integration table.
+    fn transcription(
+        &self,
+        camera: &Camera,
+        s: &RenderSettings,
+        config: &AdaptiveConfig,
+    ) -> AdaptiveReference {
+        render_adaptive_reference(
+            &reference_scene(&self.f),
+            camera,
+            s,
+            config,
+            &[],
+            AdaptiveOptics::Table(&self.integral),
+        )
+        .unwrap()
+    }
+}
+
+/// A 32×32×64 field rising 8 a slice along z from 100, plus `across(x, y)`, under a TF that
+/// turns opaque between 200 and 300: opaque long before the back face.
+fn ramp_along_z(across: impl Fn(u32, u32) -> u16 + Sync) -> Fixture {
+    let geometry = VolumeGeometry::axis_aligned([32, 32, 64], [1.0; 3]);
+    let volume = BrickedVolume::from_fn(geometry, ValueMapping::default(), |x, y, z| {
+        100 + 8 * z as u16 + across(x, y)
+    })
+    .unwrap();
+    let tf = TransferFunction::new(
+        "ramp",
+        &[(0.0, 0.0), (200.0, 0.0), (300.0, 0.9), (1000.0, 0.9)],
+        &[(0.0, [0.9, 0.6, 0.3])],
+    );
+    let table = volume.page_table_uniform(0);
+    Fixture::new(volume, table, tf)
+}
+
+/// A view down the z axis of [`ramp_along_z`]'s field, through its centre.
+fn looking_along_z(projection: Projection) -> Camera {
+    Camera::look_at(
+        [15.5, 15.5, -40.0],
+        [15.5, 15.5, 100.0],
+        [0.0, -1.0, 0.0],
+        projection,
+    )
+}
+
 fn settings(width: u32, height: u32, quality: f64) -> RenderSettings {
     RenderSettings {
         width,
@@ -125,13 +209,7 @@ fn max_abs_difference(gpu: &[[f32; 4]], cpu: &[[f64; 4]]) -> f64 {
 
 /// The orbit view both hash-oracle comparisons use.
 fn orbit_30_20(f: &Fixture) -> Camera {
-    Camera::orbit(
-        &f.volume.geometry,
-        30.0,
-        20.0,
-        1.0,
-        Projection::Perspective { fov_y_deg: 30.0 },
-    )
+    orbit(&f.volume.geometry, 30.0, 20.0, 1.0, 30.0)
 }
 
 /// One frame on the GPU and in the transcription with the hash oracle `seed` at `tile`:
@@ -182,17 +260,20 @@ fn gpu_against_transcription(
 
 #[test]
 fn tiled_gpu_pass_equals_the_transcription_for_random_integer_oracles() {
-    let ctx = gpu();
     let f = Fixture::ct(64);
-    let g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let mut pass = AdaptivePass::new(&ctx, &g.cache);
-    let camera = orbit_30_20(&f);
+    let (rig, mut pass) = AdaptiveRig::new(f);
+    let AdaptiveRig {
+        ctx,
+        f,
+        g,
+        integral: table,
+    } = &rig;
+    let camera = orbit_30_20(f);
     // 100 × 60 pads to 104 × 64 (l_max 3); tiles of 32 then overhang the padded image.
     let s = settings(100, 60, 1.0);
-    let table = integral_table(&f);
     for (tile, seed) in [(8, 1), (16, 2), (32, 3)] {
         let (frame, cpu, diff) =
-            gpu_against_transcription(&ctx, &g, &mut pass, &f, &camera, &s, (tile, seed), &table);
+            gpu_against_transcription(ctx, g, &mut pass, f, &camera, &s, (tile, seed), table);
         // The tiling's redundant work exists (and is what 8² tiles pay most for).
         assert!(frame.total_apron_samples() > 0);
         let covered = cpu.rgba_f64.iter().filter(|c| c[3] > 0.01).count();
@@ -244,10 +325,11 @@ fn slice_aligned_march(
 
 #[test]
 fn distance_one_is_a_plain_slice_aligned_march() {
-    let ctx = gpu();
     let f = Fixture::ct(64);
-    let g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let mut pass = AdaptivePass::new(&ctx, &g.cache);
+    let (rig, mut pass) = AdaptiveRig::new(f);
+    let AdaptiveRig {
+        f, integral: table, ..
+    } = &rig;
     let camera = Camera::orbit(
         &f.volume.geometry,
         -40.0,
@@ -261,23 +343,14 @@ fn distance_one_is_a_plain_slice_aligned_march() {
         early_termination: None,
         ..settings(64, 48, 1.0)
     };
-    let table = integral_table(&f);
-    let march = slice_aligned_march(&f, &camera, &s, &table);
+    let march = slice_aligned_march(f, &camera, &s, table);
     let config = AdaptiveConfig {
         l_max: 3,
         tile: 16,
         oracle: OracleKind::Constant(1.0),
         ..AdaptiveConfig::default()
     };
-    let cpu = render_adaptive_reference(
-        &reference_scene(&f),
-        &camera,
-        &s,
-        &config,
-        &[],
-        AdaptiveOptics::Table(&table),
-    )
-    .unwrap();
+    let cpu = rig.transcription(&camera, &s, &config);
     // The transcription with d ≡ 1 is that march up to f64 rounding.
     let cpu_diff = march
         .iter()
@@ -291,7 +364,7 @@ fn distance_one_is_a_plain_slice_aligned_march() {
         covered as u32 > s.width * s.height / 20,
         "image nearly empty"
     );
-    let frame = render_gpu_complete(&ctx, &g, &mut pass, &f, &camera, &s, &config);
+    let frame = rig.frame(&mut pass, &camera, &s, &config);
     let diff = max_abs_difference(&frame.rgba_f32, &march);
     eprintln!(
         "d ≡ 1: max |GPU − march| {diff:.2e}, samples {:?}",
@@ -314,51 +387,22 @@ fn the_coarsest_distance_loses_nothing_on_a_field_varying_only_along_the_view() 
     // one slice do (exact lengths, constant colour). The front face value is the default
     // value, and the band is opaque long before the back face, where the jump to the default
     // value would make the last segment's length matter.
-    let geometry = VolumeGeometry::axis_aligned([32, 32, 64], [1.0; 3]);
-    let volume = BrickedVolume::from_fn(geometry, ValueMapping::default(), |_, _, z| {
-        100 + 8 * z as u16
-    })
-    .unwrap();
-    let tf = TransferFunction::new(
-        "ramp",
-        &[(0.0, 0.0), (200.0, 0.0), (300.0, 0.9), (1000.0, 0.9)],
-        &[(0.0, [0.9, 0.6, 0.3])],
-    );
-    let table = volume.page_table_uniform(0);
-    let f = Fixture::new(volume, table, tf);
-    let camera = Camera::look_at(
-        [15.5, 15.5, -40.0],
-        [15.5, 15.5, 100.0],
-        [0.0, -1.0, 0.0],
-        Projection::Orthographic { height_mm: 20.0 },
-    );
+    let f = ramp_along_z(|_, _| 0);
+    let camera = looking_along_z(Projection::Orthographic { height_mm: 20.0 });
     // Where full and coarse frames stop early differs by up to one 8-slice vote: compare
     // complete integrals.
     let s = RenderSettings {
         early_termination: None,
         ..settings(64, 64, 0.5)
     };
-    let ctx = gpu();
-    let g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let mut pass = AdaptivePass::new(&ctx, &g.cache);
+    let (rig, mut pass) = AdaptiveRig::new(f);
     let config = |d: f32| AdaptiveConfig {
         l_max: 3,
         tile: 16,
         oracle: OracleKind::Constant(d),
         ..AdaptiveConfig::default()
     };
-    let integral = integral_table(&f);
-    let cpu = |d: f32| {
-        render_adaptive_reference(
-            &reference_scene(&f),
-            &camera,
-            &s,
-            &config(d),
-            &[],
-            AdaptiveOptics::Table(&integral),
-        )
-        .unwrap()
-    };
+    let cpu = |d: f32| rig.transcription(&camera, &s, &config(d));
     let (full, coarse) = (cpu(1.0), cpu(8.0));
     assert!(full.rgba_f64.iter().all(|c| c[3] > 0.99));
     let cpu_diff = max_abs_difference(
@@ -376,8 +420,8 @@ fn the_coarsest_distance_loses_nothing_on_a_field_varying_only_along_the_view() 
         coarse.transcription.total_samples(),
         full.transcription.total_samples()
     );
-    let gpu_full = render_gpu_complete(&ctx, &g, &mut pass, &f, &camera, &s, &config(1.0));
-    let gpu_coarse = render_gpu_complete(&ctx, &g, &mut pass, &f, &camera, &s, &config(8.0));
+    let gpu_full = rig.frame(&mut pass, &camera, &s, &config(1.0));
+    let gpu_coarse = rig.frame(&mut pass, &camera, &s, &config(8.0));
     let diff = max_abs_difference(&gpu_coarse.rgba_f32, &full.rgba_f64);
     let diff_full = max_abs_difference(&gpu_full.rgba_f32, &full.rgba_f64);
     eprintln!(
@@ -394,17 +438,10 @@ fn the_coarsest_distance_loses_nothing_on_a_field_varying_only_along_the_view() 
 
 #[test]
 fn the_oracle_frame_is_close_to_the_full_rate_reference_with_far_fewer_samples() {
-    let ctx = gpu();
     let f = Fixture::ct(96);
-    let g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let mut pass = AdaptivePass::new(&ctx, &g.cache);
-    let camera = Camera::orbit(
-        &f.volume.geometry,
-        30.0,
-        20.0,
-        1.0,
-        Projection::Perspective { fov_y_deg: 30.0 },
-    );
+    let (rig, mut pass) = AdaptiveRig::new(f);
+    let AdaptiveRig { ctx, f, .. } = &rig;
+    let camera = orbit(&f.volume.geometry, 30.0, 20.0, 1.0, 30.0);
     let s = settings(128, 128, 0.5);
     let epsilon: f64 = std::env::var("STRATA_TEST_EPSILON")
         .ok()
@@ -419,7 +456,7 @@ fn the_oracle_frame_is_close_to_the_full_rate_reference_with_far_fewer_samples()
         3,
         s.quality,
     );
-    pass.set_oracle(&ctx, &distances);
+    pass.set_oracle(ctx, &distances);
     let oracle = AdaptiveConfig {
         l_max: 3,
         tile: 16,
@@ -430,15 +467,12 @@ fn the_oracle_frame_is_close_to_the_full_rate_reference_with_far_fewer_samples()
         oracle: OracleKind::Constant(1.0),
         ..oracle
     };
-    let adaptive = render_gpu_complete(&ctx, &g, &mut pass, &f, &camera, &s, &oracle);
-    let full_rate = render_gpu_complete(&ctx, &g, &mut pass, &f, &camera, &s, &full);
+    let adaptive = rig.frame(&mut pass, &camera, &s, &oracle);
+    let full_rate = rig.frame(&mut pass, &camera, &s, &full);
     // Marching each tile only over the slices its rays meet the box in changes nothing but
     // the work: the skipped samples are the transparent default, bit for bit the same image.
-    let every_slice = render_gpu_complete(
-        &ctx,
-        &g,
+    let every_slice = rig.frame(
         &mut pass,
-        &f,
         &camera,
         &s,
         &AdaptiveConfig {
@@ -553,13 +587,7 @@ fn preintegration_beats_classic_sampling_on_narrow_bands_at_coarse_steps() {
     )
     .unwrap();
     let f = Fixture::new(volume, table, tf);
-    let camera = Camera::orbit(
-        &f.volume.geometry,
-        30.0,
-        20.0,
-        1.0,
-        Projection::Perspective { fov_y_deg: 30.0 },
-    );
+    let camera = orbit(&f.volume.geometry, 30.0, 20.0, 1.0, 30.0);
     let integral = integral_table(&f);
     for step in [1.0, 2.0] {
         let s = RenderSettings {
@@ -643,13 +671,7 @@ fn raycaster_preintegration_beats_classic_sampling_on_narrow_bands_with_noise() 
     let f = Fixture::new(volume, table, tf);
     let ctx = gpu();
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let camera = Camera::orbit(
-        &f.volume.geometry,
-        30.0,
-        20.0,
-        1.0,
-        Projection::Perspective { fov_y_deg: 30.0 },
-    );
+    let camera = orbit(&f.volume.geometry, 30.0, 20.0, 1.0, 30.0);
     let base = settings(128, 128, 0.5);
     let reference = f.reference(&camera, &base, 8.0);
     for step in [1.0, 2.0] {
@@ -673,28 +695,9 @@ fn raycaster_preintegration_beats_classic_sampling_on_narrow_bands_with_noise() 
 /// opaque field. The random integer oracle keeps every level busy.
 #[test]
 fn early_termination_is_decided_by_the_tile_as_in_the_transcription() {
-    let geometry = VolumeGeometry::axis_aligned([32, 32, 64], [1.0; 3]);
-    let volume = BrickedVolume::from_fn(geometry, ValueMapping::default(), |x, y, z| {
-        100 + 8 * z as u16 + (x as u16 ^ y as u16)
-    })
-    .unwrap();
-    let tf = TransferFunction::new(
-        "ramp",
-        &[(0.0, 0.0), (200.0, 0.0), (300.0, 0.9), (1000.0, 0.9)],
-        &[(0.0, [0.9, 0.6, 0.3])],
-    );
-    let table = volume.page_table_uniform(0);
-    let f = Fixture::new(volume, table, tf);
-    let camera = Camera::look_at(
-        [15.5, 15.5, -40.0],
-        [15.5, 15.5, 100.0],
-        [0.0, -1.0, 0.0],
-        Projection::Perspective { fov_y_deg: 30.0 },
-    );
-    let ctx = gpu();
-    let g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let mut pass = AdaptivePass::new(&ctx, &g.cache);
-    let integral = integral_table(&f);
+    let f = ramp_along_z(|x, y| x as u16 ^ y as u16);
+    let camera = looking_along_z(Projection::Perspective { fov_y_deg: 30.0 });
+    let (rig, mut pass) = AdaptiveRig::new(f);
     let config = AdaptiveConfig {
         l_max: 3,
         tile: 16,
@@ -707,16 +710,8 @@ fn early_termination_is_decided_by_the_tile_as_in_the_transcription() {
             early_termination,
             ..settings(48, 48, 0.5)
         };
-        let frame = render_gpu_complete(&ctx, &g, &mut pass, &f, &camera, &s, &config);
-        let cpu = render_adaptive_reference(
-            &reference_scene(&f),
-            &camera,
-            &s,
-            &config,
-            &[],
-            AdaptiveOptics::Table(&integral),
-        )
-        .unwrap();
+        let frame = rig.frame(&mut pass, &camera, &s, &config);
+        let cpu = rig.transcription(&camera, &s, &config);
         let t = &cpu.transcription;
         assert_eq!(frame.samples_per_level.to_vec(), t.samples_per_level);
         assert_eq!(frame.syntheses_per_level.to_vec(), t.syntheses_per_level);
@@ -736,17 +731,12 @@ fn early_termination_is_decided_by_the_tile_as_in_the_transcription() {
 /// reference with far fewer samples than the per-node oracle needs.
 #[test]
 fn the_block_oracle_is_finer_than_the_node_oracle_and_read_alike_on_gpu_and_cpu() {
-    let ctx = gpu();
     let f = Fixture::ct(96);
-    let g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let mut pass = AdaptivePass::new(&ctx, &g.cache);
-    let camera = Camera::orbit(
-        &f.volume.geometry,
-        30.0,
-        20.0,
-        1.0,
-        Projection::Perspective { fov_y_deg: 30.0 },
-    );
+    let (rig, mut pass) = AdaptiveRig::new(f);
+    let AdaptiveRig {
+        ctx, f, integral, ..
+    } = &rig;
+    let camera = orbit(&f.volume.geometry, 30.0, 20.0, 1.0, 30.0);
     let s = settings(128, 128, 0.5);
     let config = AdaptiveConfig {
         l_max: 3,
@@ -766,12 +756,11 @@ fn the_block_oracle_is_finer_than_the_node_oracle_and_read_alike_on_gpu_and_cpu(
         )
     };
     let reference = f.reference(&camera, &s, 8.0);
-    let integral = integral_table(&f);
     let mut samples = Vec::new();
     for epsilon in [0.002, 0.02] {
         let table = blocks(epsilon);
-        pass.set_oracle(&ctx, &table);
-        let frame = render_gpu_complete(&ctx, &g, &mut pass, &f, &camera, &s, &config);
+        pass.set_oracle(ctx, &table);
+        let frame = rig.frame(&mut pass, &camera, &s, &config);
         let c = compare_rgba8(&frame.rgba, &reference.rgba).unwrap();
         eprintln!(
             "block oracle ε {epsilon}: {} samples {:?} (+{} apron), PSNR {:.1} dB",
@@ -787,12 +776,12 @@ fn the_block_oracle_is_finer_than_the_node_oracle_and_read_alike_on_gpu_and_cpu(
             // distance then steers later samples: counts agree to 1 %, the image to well
             // within an 8-bit step on average (measured: identical counts and image).
             let cpu = render_adaptive_reference(
-                &reference_scene(&f),
+                &reference_scene(f),
                 &camera,
                 &s,
                 &config,
                 &table,
-                AdaptiveOptics::Table(&integral),
+                AdaptiveOptics::Table(integral),
             )
             .unwrap();
             let (gs, cs) = (
@@ -822,12 +811,9 @@ fn the_block_oracle_is_finer_than_the_node_oracle_and_read_alike_on_gpu_and_cpu(
         3,
         s.quality,
     );
-    pass.set_oracle(&ctx, &nodes);
-    let per_node = render_gpu_complete(
-        &ctx,
-        &g,
+    pass.set_oracle(ctx, &nodes);
+    let per_node = rig.frame(
         &mut pass,
-        &f,
         &camera,
         &s,
         &AdaptiveConfig {
@@ -848,27 +834,22 @@ fn the_block_oracle_is_finer_than_the_node_oracle_and_read_alike_on_gpu_and_cpu(
 /// with the block oracle the frame stays close to the raycaster's f64 MIP reference.
 #[test]
 fn adaptive_mip_keeps_the_transcriptions_maxima_and_is_close_to_the_reference() {
-    let ctx = gpu();
     let f = Fixture::ct(64);
-    let g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let mut pass = AdaptivePass::new(&ctx, &g.cache);
-    let camera = orbit_30_20(&f);
-    let integral = integral_table(&f);
+    let (rig, mut pass) = AdaptiveRig::new(f);
+    let AdaptiveRig {
+        ctx,
+        f,
+        g,
+        integral,
+    } = &rig;
+    let camera = orbit_30_20(f);
     let s = RenderSettings {
         mode: RenderMode::Mip,
         ..settings(100, 60, 1.0)
     };
     for (tile, seed) in [(8, 4), (16, 5), (32, 6)] {
-        let (_, cpu, diff) = gpu_against_transcription(
-            &ctx,
-            &g,
-            &mut pass,
-            &f,
-            &camera,
-            &s,
-            (tile, seed),
-            &integral,
-        );
+        let (_, cpu, diff) =
+            gpu_against_transcription(ctx, g, &mut pass, f, &camera, &s, (tile, seed), integral);
         assert!(cpu.transcription.maxima.iter().any(|m| m.0.is_finite()));
         // The same maximum coloured through the same table: f32 against f64 in the value
         // (a few 1e-5 physical units) and in the table lookup, far below one 8-bit step.
@@ -902,13 +883,10 @@ fn adaptive_mip_keeps_the_transcriptions_maxima_and_is_close_to_the_reference() 
         3,
         s.quality,
     );
-    pass.set_oracle(&ctx, &table);
-    let frame = render_gpu_complete(&ctx, &g, &mut pass, &f, &camera, &s, &config);
-    let full_rate = render_gpu_complete(
-        &ctx,
-        &g,
+    pass.set_oracle(ctx, &table);
+    let frame = rig.frame(&mut pass, &camera, &s, &config);
+    let full_rate = rig.frame(
         &mut pass,
-        &f,
         &camera,
         &s,
         &AdaptiveConfig {
@@ -937,11 +915,10 @@ fn adaptive_mip_keeps_the_transcriptions_maxima_and_is_close_to_the_reference() 
 /// with fewer passes through the slice loop.
 #[test]
 fn skipping_idle_slices_changes_nothing_but_the_slices_marched() {
-    let ctx = gpu();
     let f = Fixture::ct(64);
-    let g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let mut pass = AdaptivePass::new(&ctx, &g.cache);
-    let camera = orbit_30_20(&f);
+    let (rig, mut pass) = AdaptiveRig::new(f);
+    let AdaptiveRig { ctx, f, g, .. } = &rig;
+    let camera = orbit_30_20(f);
     let (width, height) = (72, 56);
     let tiles = |tile: u64| (width as u64).div_ceil(tile) * (height as u64).div_ceil(tile);
     let same = |a: &AdaptiveFrame, b: &AdaptiveFrame, what: &str| {
@@ -960,12 +937,12 @@ fn skipping_idle_slices_changes_nothing_but_the_slices_marched() {
         assert_eq!(a.segments, b.segments, "{what}: segments");
     };
     let both = |pass: &mut AdaptivePass, s: &RenderSettings, config: AdaptiveConfig| {
-        let skipping = render_gpu_complete(&ctx, &g, pass, &f, &camera, s, &config);
+        let skipping = render_gpu_complete(ctx, g, pass, f, &camera, s, &config);
         let every = render_gpu_complete(
-            &ctx,
-            &g,
+            ctx,
+            g,
             pass,
-            &f,
+            f,
             &camera,
             s,
             &AdaptiveConfig {
@@ -1024,7 +1001,7 @@ fn skipping_idle_slices_changes_nothing_but_the_slices_marched() {
         3,
         s.quality,
     );
-    pass.set_oracle(&ctx, &table);
+    pass.set_oracle(ctx, &table);
     let block = AdaptiveConfig {
         l_max: 3,
         tile: 16,
@@ -1062,29 +1039,32 @@ fn skipping_idle_slices_changes_nothing_but_the_slices_marched() {
 /// stays close to the shaded f64 reference.
 #[test]
 fn shaded_segments_are_lit_alike_on_gpu_and_cpu_and_close_to_the_shaded_reference() {
-    let ctx = gpu();
     let f = Fixture::ct(64);
-    let g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let mut pass = AdaptivePass::new(&ctx, &g.cache);
-    let camera = orbit_30_20(&f);
+    let (rig, mut pass) = AdaptiveRig::new(f);
+    let AdaptiveRig {
+        ctx,
+        f,
+        g,
+        integral: table,
+    } = &rig;
+    let camera = orbit_30_20(f);
     let unshaded = settings(96, 80, 0.5);
     let s = RenderSettings {
         shading: Some(Shading::default()),
         ..unshaded.clone()
     };
-    let table = integral_table(&f);
     for (tile, seed) in [(8, 4), (16, 5), (32, 6)] {
         let (frame, cpu, diff) =
-            gpu_against_transcription(&ctx, &g, &mut pass, &f, &camera, &s, (tile, seed), &table);
+            gpu_against_transcription(ctx, g, &mut pass, f, &camera, &s, (tile, seed), table);
         let (plain, _, _) = gpu_against_transcription(
-            &ctx,
-            &g,
+            ctx,
+            g,
             &mut pass,
-            &f,
+            f,
             &camera,
             &unshaded,
             (tile, seed),
-            &table,
+            table,
         );
         let lit_differently = frame
             .rgba_f32
@@ -1115,15 +1095,15 @@ fn shaded_segments_are_lit_alike_on_gpu_and_cpu_and_close_to_the_shaded_referenc
         3,
         s.quality,
     );
-    pass.set_oracle(&ctx, &oracle);
+    pass.set_oracle(ctx, &oracle);
     let config = AdaptiveConfig {
         oracle: OracleKind::PerBlock,
         ..AdaptiveConfig::default()
     };
-    let frame = render_gpu_complete(&ctx, &g, &mut pass, &f, &camera, &s, &config);
+    let frame = rig.frame(&mut pass, &camera, &s, &config);
     let reference = f.reference(&camera, &s, 8.0);
     let c = compare_rgba8(&frame.rgba, &reference.rgba).unwrap();
-    let plain = render_gpu_complete(&ctx, &g, &mut pass, &f, &camera, &unshaded, &config);
+    let plain = rig.frame(&mut pass, &camera, &unshaded, &config);
     let c_plain = compare_rgba8(&plain.rgba, &f.reference(&camera, &unshaded, 8.0).rgba).unwrap();
     // What the bound must tell apart: the unlit frame against the lit reference.
     let c_unlit = compare_rgba8(&plain.rgba, &reference.rgba).unwrap();
@@ -1160,13 +1140,7 @@ fn key_light_shadows_are_close_to_the_reference_with_fewer_shadow_rays() {
     let f = Fixture::ct(40);
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
     let mut pass = AdaptivePass::new(&ctx, &g.cache);
-    let camera = Camera::orbit(
-        &f.volume.geometry,
-        35.0,
-        25.0,
-        1.5,
-        Projection::Perspective { fov_y_deg: 35.0 },
-    );
+    let camera = orbit(&f.volume.geometry, 35.0, 25.0, 1.5, 35.0);
     let s = RenderSettings {
         count_samples: true,
         ..key_lit_with_exact_shadows(settings(64, 64, 0.5))
@@ -1321,13 +1295,7 @@ fn lit_distance_one_reports_a_march_the_device_cut_short() {
     let f = Fixture::ct(n);
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
     let mut pass = AdaptivePass::new(&ctx, &g.cache);
-    let camera = Camera::orbit(
-        &f.volume.geometry,
-        30.0,
-        20.0,
-        1.0,
-        Projection::Perspective { fov_y_deg: 30.0 },
-    );
+    let camera = orbit(&f.volume.geometry, 30.0, 20.0, 1.0, 30.0);
     let s = RenderSettings {
         scattering: Some(Scattering { g: 0.5, blend: 0.5 }),
         early_termination: None,

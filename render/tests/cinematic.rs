@@ -6,7 +6,6 @@
 use crate::common;
 use common::*;
 use strata_render::reference::ReferenceImage;
-use strata_render::testdata::phantom;
 use strata_render::*;
 
 const SIZE: u32 = 64;
@@ -14,29 +13,6 @@ const SIZE: u32 = 64;
 /// sample costs 16 occlusion rays, and the main ray's midpoint error at ¼ of the GPU's step is
 /// already 1/16 of the GPU's own (second order), well under the bounds below.
 const REFINE: f64 = 4.0;
-
-/// Air (raw 0, −1024 HU) everywhere but where `solid` says: raw 2024 (1000 HU).
-fn binary_volume(n: u32, solid: impl Fn(u32, u32, u32) -> bool + Sync) -> BrickedVolume {
-    let geometry = VolumeGeometry::axis_aligned([n; 3], [1.0; 3]);
-    BrickedVolume::from_fn(geometry, phantom::CT_MAPPING, move |x, y, z| {
-        if solid(x, y, z) {
-            2024
-        } else {
-            0
-        }
-    })
-    .unwrap()
-}
-
-/// Opaque above 100 HU, transparent below −100 HU, one colour (as in shadows.rs).
-const COLOUR: [f64; 3] = [1.0, 0.9, 0.8];
-fn opaque_tf() -> TransferFunction {
-    TransferFunction::new(
-        "opaque",
-        &[(-1024.0, 0.0), (-100.0, 0.0), (100.0, 1.0), (1000.0, 1.0)],
-        &[(-1024.0, COLOUR), (1000.0, COLOUR)],
-    )
-}
 
 fn binary_fixture(n: u32, solid: impl Fn(u32, u32, u32) -> bool + Sync) -> Fixture {
     let volume = binary_volume(n, solid);
@@ -62,13 +38,7 @@ fn from_above() -> Camera {
 }
 
 fn oblique(f: &Fixture, azimuth: f64, elevation: f64) -> Camera {
-    Camera::orbit(
-        &f.volume.geometry,
-        azimuth,
-        elevation,
-        1.5,
-        Projection::Perspective { fov_y_deg: 35.0 },
-    )
+    orbit(&f.volume.geometry, azimuth, elevation, 1.5, 35.0)
 }
 
 /// Shaded DVR lit by `light`, shadows off, no effect yet.
@@ -302,13 +272,13 @@ fn opaque_slab_leaves_the_scattering_floor_at_the_ambient_term() {
                 assert!(a > 0.98, "floor pixel ({px}, {py}) not opaque: {pixel:?}");
                 for c in 0..3 {
                     let got = pixel[c] as f64 / 255.0;
-                    let expected = ambient * COLOUR[c] * a;
+                    let expected = ambient * OPAQUE_COLOUR[c] * a;
                     assert!(
                         (got - expected).abs() <= 2.0 / 255.0,
                         "shadowed ({px}, {py}) channel {c}: {got} vs ambient {expected}"
                     );
                     assert!(
-                        (r[c] - ambient * COLOUR[c] * r[3]).abs() < 1e-6,
+                        (r[c] - ambient * OPAQUE_COLOUR[c] * r[3]).abs() < 1e-6,
                         "reference shadowed ({px}, {py}): {r:?}"
                     );
                 }

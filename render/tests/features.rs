@@ -8,6 +8,8 @@ use strata_render::*;
 
 const SIZE: u32 = 128;
 const REFINE: f64 = 8.0;
+/// The bounds of gpu_vs_reference.rs (its module doc gives the reasons).
+const BOUNDS: Bounds = Bounds::REFERENCE;
 
 fn dvr_tf_fixture(volume: BrickedVolume, table: PageTable) -> Fixture {
     Fixture::new(volume, table, test_tf())
@@ -37,7 +39,6 @@ fn phantom_on(geometry: VolumeGeometry, centre: DVec3, r: f64, edge: f64) -> Bri
 
 #[test]
 fn anisotropic_oblique_geometry_matches_reference_and_patient_space() {
-    let ctx = gpu();
     let geometry = oblique_geometry();
     let centre = geometry.centre_patient();
     // Edge 2.5 mm: wider than the coarsest spacing so both samplings represent the same object.
@@ -54,16 +55,8 @@ fn anisotropic_oblique_geometry_matches_reference_and_patient_space() {
         shading: Some(Shading::default()),
         ..compare_settings(RenderMode::Dvr, SIZE)
     };
-    let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let oblique = g.render(&ctx, &f, &cam, &s);
     // Same tolerance reasoning as gpu_vs_reference.rs.
-    assert_close(
-        "aniso-oblique",
-        &oblique,
-        &f.reference(&cam, &s, REFINE),
-        40.0,
-        24,
-    );
+    let oblique = check_against_reference("aniso-oblique", &f, &cam, &s, BOUNDS).gpu;
 
     // Independently built: the same patient-space object on an isotropic, axis-aligned 1 mm
     // grid. If direction/spacing/origin were mishandled anywhere, the object would move, tilt
@@ -95,13 +88,7 @@ fn mixed_levels_checkerboard_matches_reference() {
     assert_eq!(levels.into_iter().collect::<Vec<_>>(), vec![0, 1, 2]);
     let f = dvr_tf_fixture(volume, table);
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let cam = Camera::orbit(
-        &f.volume.geometry,
-        40.0,
-        30.0,
-        1.5,
-        Projection::Perspective { fov_y_deg: 35.0 },
-    );
+    let cam = orbit(&f.volume.geometry, 40.0, 30.0, 1.5, 35.0);
     // Same 40 dB bar: the GPU steps 2^L times longer in level-L nodes (octree paper §5), but a
     // level-L field is 2^L times smoother, so the relative discretisation error is unchanged.
     // MIP max error 32: MIP keeps the largest sample, and with 2-voxel steps in level-2 nodes
@@ -115,13 +102,7 @@ fn mixed_levels_checkerboard_matches_reference() {
             shading: Some(Shading::default()),
             ..compare_settings(mode, SIZE)
         };
-        assert_close(
-            name,
-            &g.render(&ctx, &f, &cam, &s),
-            &f.reference(&cam, &s, REFINE),
-            40.0,
-            max_abs,
-        );
+        g.check_against_reference(&ctx, &f, name, &cam, &s, Bounds { max_abs, ..BOUNDS });
     }
 }
 
@@ -144,13 +125,7 @@ fn empty_skipping_and_early_termination_keep_the_image_and_save_samples() {
     let empty = f.page_table.entries.iter().filter(|e| e.empty).count();
     assert!(empty > 10, "phantom should leave empty pages, got {empty}");
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let cam = Camera::orbit(
-        &f.volume.geometry,
-        25.0,
-        15.0,
-        1.4,
-        Projection::Perspective { fov_y_deg: 35.0 },
-    );
+    let cam = orbit(&f.volume.geometry, 25.0, 15.0, 1.4, 35.0);
     let plain = RenderSettings {
         skip_empty: false,
         early_termination: None,
@@ -224,13 +199,7 @@ fn mip_skips_pages_that_cannot_beat_the_running_maximum() {
     // later pages (soft tissue, air) are bounded below its maximum.
     let f = Fixture::ct(96);
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let cam = Camera::orbit(
-        &f.volume.geometry,
-        35.0,
-        20.0,
-        1.2,
-        Projection::Perspective { fov_y_deg: 35.0 },
-    );
+    let cam = orbit(&f.volume.geometry, 35.0, 20.0, 1.2, 35.0);
     let plain = RenderSettings {
         skip_empty: false,
         ..compare_settings(RenderMode::Mip, SIZE)
@@ -295,13 +264,7 @@ fn preintegration_catches_a_narrow_band_that_samples_miss() {
         Fixture::new(volume, table, band)
     };
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let cam = Camera::orbit(
-        &f.volume.geometry,
-        30.0,
-        20.0,
-        1.0,
-        Projection::Perspective { fov_y_deg: 30.0 },
-    );
+    let cam = orbit(&f.volume.geometry, 30.0, 20.0, 1.0, 30.0);
     let classic = RenderSettings {
         quality: 1.0,
         ..compare_settings(RenderMode::Dvr, SIZE)
@@ -341,13 +304,7 @@ fn pipelines_hold_only_the_effects_a_scene_uses_and_are_reused() {
         skip_empty: false,
         ..RenderSettings::default()
     };
-    let cam = Camera::orbit(
-        &f.volume.geometry,
-        10.0,
-        10.0,
-        1.0,
-        Projection::Perspective { fov_y_deg: 30.0 },
-    );
+    let cam = orbit(&f.volume.geometry, 10.0, 10.0, 1.0, 30.0);
     let key = g.key(&f, &cam, &plain_dvr);
     assert_eq!(key.mode, RenderMode::Dvr);
     assert!(
@@ -422,13 +379,7 @@ fn a_new_effect_compiles_in_the_background_while_the_previous_pipeline_draws() {
     let f = Fixture::ct(48);
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
     g.raycaster.compile_in_background = true;
-    let cam = Camera::orbit(
-        &f.volume.geometry,
-        20.0,
-        10.0,
-        1.0,
-        Projection::Perspective { fov_y_deg: 30.0 },
-    );
+    let cam = orbit(&f.volume.geometry, 20.0, 10.0, 1.0, 30.0);
     let unshaded = RenderSettings {
         jitter: false,
         ..compare_settings(RenderMode::Dvr, 48)
@@ -492,13 +443,7 @@ fn opacity_correction_makes_image_independent_of_step() {
     let ctx = gpu();
     let f = small_object_fixture();
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let cam = Camera::orbit(
-        &f.volume.geometry,
-        -30.0,
-        20.0,
-        1.4,
-        Projection::Perspective { fov_y_deg: 35.0 },
-    );
+    let cam = orbit(&f.volume.geometry, -30.0, 20.0, 1.4, 35.0);
     let half = compare_settings(RenderMode::Dvr, SIZE);
     let a = g.render(
         &ctx,
@@ -539,13 +484,7 @@ fn constant_volume_with_shading_has_no_nan_and_matches_reference() {
     // The TF table spans the volume's range, which is a single value: must not divide by zero.
     let f = dvr_tf_fixture(volume, table);
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let cam = Camera::orbit(
-        &f.volume.geometry,
-        30.0,
-        30.0,
-        1.2,
-        Projection::Perspective { fov_y_deg: 40.0 },
-    );
+    let cam = orbit(&f.volume.geometry, 30.0, 30.0, 1.2, 40.0);
     for (name, mode) in [
         ("const-dvr", RenderMode::Dvr),
         ("const-iso", RenderMode::Isosurface),
@@ -555,23 +494,22 @@ fn constant_volume_with_shading_has_no_nan_and_matches_reference() {
             iso_value: 250.0,
             ..compare_settings(mode, 96)
         };
-        let frame = g.render(&ctx, &f, &cam, &s);
         // The isosurface of a constant block is its hard box face: silhouette rays that clip
         // a corner shorter than half a GPU step hit only in the reference, so as in the
         // oblique isosurface test bound the number of differing pixels, not their size.
         // That also caps PSNR (a few dozen full-scale silhouette pixels alone give ~28 dB).
-        let (min_psnr, max_abs) = if mode == RenderMode::Isosurface {
-            (25.0, 255)
+        let bounds = if mode == RenderMode::Isosurface {
+            Bounds {
+                min_psnr_db: 25.0,
+                max_abs: 255,
+                ..BOUNDS
+            }
         } else {
-            (40.0, 24)
+            BOUNDS
         };
-        let c = assert_close(
-            name,
-            &frame,
-            &f.reference(&cam, &s, REFINE),
-            min_psnr,
-            max_abs,
-        );
+        let c = g
+            .check_against_reference(&ctx, &f, name, &cam, &s, bounds)
+            .comparison;
         if mode == RenderMode::Isosurface {
             assert!(c.pixels_off_by_more_than_one * 100 <= 96 * 96, "{c:?}");
         }
@@ -635,13 +573,7 @@ fn visibility_marks_only_contributing_pages_and_arrives_without_blocking() {
     let ctx = gpu();
     let f = small_object_fixture();
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let cam = Camera::orbit(
-        &f.volume.geometry,
-        10.0,
-        10.0,
-        1.4,
-        Projection::Perspective { fov_y_deg: 35.0 },
-    );
+    let cam = orbit(&f.volume.geometry, 10.0, 10.0, 1.4, 35.0);
     let s = RenderSettings {
         jitter: true,
         ..compare_settings(RenderMode::Dvr, SIZE)
@@ -684,13 +616,7 @@ fn jitter_changes_samples_but_not_the_picture() {
     let ctx = gpu();
     let f = Fixture::ct(64);
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let cam = Camera::orbit(
-        &f.volume.geometry,
-        60.0,
-        10.0,
-        1.5,
-        Projection::Perspective { fov_y_deg: 35.0 },
-    );
+    let cam = orbit(&f.volume.geometry, 60.0, 10.0, 1.5, 35.0);
     let s = compare_settings(RenderMode::Dvr, SIZE);
     let plain = g.render(&ctx, &f, &cam, &s);
     let j0 = g.render(
@@ -954,13 +880,7 @@ fn adopted_device_renders_like_headless() {
         Projection::Orthographic { height_mm: 0.0 },
     );
     let s = compare_settings(RenderMode::Dvr, 96);
-    assert_close(
-        "adopted-ortho-orbit",
-        &g.render(&adopted, &f, &cam, &s),
-        &f.reference(&cam, &s, REFINE),
-        40.0,
-        24,
-    );
+    g.check_against_reference(&adopted, &f, "adopted-ortho-orbit", &cam, &s, BOUNDS);
 }
 
 #[test]
@@ -990,13 +910,7 @@ fn orbit_camera_shows_the_patient_upright_from_the_front() {
     // LPS: +x patient left, +y posterior, +z superior.
     let g = VolumeGeometry::axis_aligned([40, 50, 60], [1.0, 1.0, 2.0]);
     let c = g.centre_patient();
-    let front = Camera::orbit(
-        &g,
-        0.0,
-        0.0,
-        1.0,
-        Projection::Perspective { fov_y_deg: 30.0 },
-    );
+    let front = orbit(&g, 0.0, 0.0, 1.0, 30.0);
     let basis = front.basis();
     assert!(front.eye[1] < c.y, "azimuth 0 looks from anterior (-y)");
     assert!(
@@ -1010,21 +924,9 @@ fn orbit_camera_shows_the_patient_upright_from_the_front() {
         "patient left on screen right: {:?}",
         basis.right
     );
-    let above = Camera::orbit(
-        &g,
-        0.0,
-        30.0,
-        1.0,
-        Projection::Perspective { fov_y_deg: 30.0 },
-    );
+    let above = orbit(&g, 0.0, 30.0, 1.0, 30.0);
     assert!(above.eye[2] > c.z, "positive elevation looks from above");
-    let side = Camera::orbit(
-        &g,
-        90.0,
-        0.0,
-        1.0,
-        Projection::Perspective { fov_y_deg: 30.0 },
-    );
+    let side = orbit(&g, 90.0, 0.0, 1.0, 30.0);
     assert!(
         side.eye[0] > c.x,
         "azimuth 90 looks from the patient's left"
@@ -1036,13 +938,7 @@ fn partial_page_table_writes_equal_full_writes() {
     let ctx = gpu();
     let f = Fixture::ct(64);
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let cam = Camera::orbit(
-        &f.volume.geometry,
-        40.0,
-        20.0,
-        1.5,
-        Projection::Perspective { fov_y_deg: 35.0 },
-    );
+    let cam = orbit(&f.volume.geometry, 40.0, 20.0, 1.5, 35.0);
     let s = compare_settings(RenderMode::Dvr, 64);
     let full = g.render(&ctx, &f, &cam, &s);
     // Mark everything not resident, then restore entry by entry: same picture as before.
@@ -1079,13 +975,7 @@ fn a_changed_cut_writes_only_its_changed_spans() {
     let ctx = gpu();
     let f = Fixture::ct(128);
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let cam = Camera::orbit(
-        &f.volume.geometry,
-        40.0,
-        20.0,
-        1.5,
-        Projection::Perspective { fov_y_deg: 35.0 },
-    );
+    let cam = orbit(&f.volume.geometry, 40.0, 20.0, 1.5, 35.0);
     let s = compare_settings(RenderMode::Dvr, 64);
     let original = g.render(&ctx, &f, &cam, &s);
     let entries = f.page_table.entries.len() as u64;
@@ -1170,13 +1060,7 @@ fn offscreen_renderer_handles_iso_classification() {
     .unwrap();
     let tf = test_tf();
     let mut r = OffscreenRenderer::new(&ctx, &volume, &tf, 0, CacheConfig::default()).unwrap();
-    let cam = Camera::orbit(
-        &volume.geometry,
-        20.0,
-        20.0,
-        1.5,
-        Projection::Perspective { fov_y_deg: 35.0 },
-    );
+    let cam = orbit(&volume.geometry, 20.0, 20.0, 1.5, 35.0);
     // Iso value below the TF's first visible value: TF-empty pages hold this surface, so the
     // renderer must reclassify or the surface would vanish.
     let s = RenderSettings {

@@ -16,51 +16,33 @@ use strata_render::*;
 const SIZE: u32 = 128;
 const REFINE: f64 = 8.0;
 const MIN_PSNR: f64 = 40.0;
-const MAX_ABS: u8 = 24;
+/// The bounds of the module doc.
+const BOUNDS: Bounds = Bounds {
+    refine: REFINE,
+    min_psnr_db: MIN_PSNR,
+    max_abs: 24,
+};
 
-fn orbit(f: &Fixture, az: f64, el: f64) -> Camera {
-    Camera::orbit(
-        &f.volume.geometry,
-        az,
-        el,
-        1.5,
-        Projection::Perspective { fov_y_deg: 35.0 },
-    )
+fn orbit_ct(f: &Fixture, az: f64, el: f64) -> Camera {
+    orbit(&f.volume.geometry, az, el, 1.5, 35.0)
 }
 
 #[test]
 fn dvr_axis_aligned_matches_reference() {
-    let ctx = gpu();
     let f = Fixture::ct(96);
-    let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let cam = orbit(&f, 0.0, 0.0);
     let s = compare_settings(RenderMode::Dvr, SIZE);
-    assert_close(
-        "dvr-axis",
-        &g.render(&ctx, &f, &cam, &s),
-        &f.reference(&cam, &s, REFINE),
-        MIN_PSNR,
-        MAX_ABS,
-    );
+    check_against_reference("dvr-axis", &f, &orbit_ct(&f, 0.0, 0.0), &s, BOUNDS);
 }
 
 #[test]
 fn dvr_oblique_shaded_matches_reference() {
-    let ctx = gpu();
     let f = Fixture::ct(96);
-    let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let cam = orbit(&f, 35.0, 25.0);
     let s = RenderSettings {
         shading: Some(Shading::default()),
         ..compare_settings(RenderMode::Dvr, SIZE)
     };
-    assert_close(
-        "dvr-oblique-shaded",
-        &g.render(&ctx, &f, &cam, &s),
-        &f.reference(&cam, &s, REFINE),
-        MIN_PSNR,
-        MAX_ABS,
-    );
+    let cam = orbit_ct(&f, 35.0, 25.0);
+    check_against_reference("dvr-oblique-shaded", &f, &cam, &s, BOUNDS);
 }
 
 /// The DVR pick depth (where accumulated opacity reaches DEPTH_OPACITY) agrees with the
@@ -73,7 +55,7 @@ fn dvr_pick_depth_is_where_opacity_reaches_the_threshold_as_in_the_reference() {
     let ctx = gpu();
     let f = Fixture::ct(96);
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let cam = orbit(&f, 35.0, 25.0);
+    let cam = orbit_ct(&f, 35.0, 25.0);
     let s = compare_settings(RenderMode::Dvr, SIZE);
     let gpu_frame = g.render(&ctx, &f, &cam, &s);
     let reference = f.reference(&cam, &s, REFINE);
@@ -111,26 +93,14 @@ fn dvr_pick_depth_is_where_opacity_reaches_the_threshold_as_in_the_reference() {
 
 #[test]
 fn mip_oblique_matches_reference() {
-    let ctx = gpu();
     let f = Fixture::ct(96);
-    let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let cam = orbit(&f, -50.0, 15.0);
     let s = compare_settings(RenderMode::Mip, SIZE);
-    assert_close(
-        "mip-oblique",
-        &g.render(&ctx, &f, &cam, &s),
-        &f.reference(&cam, &s, REFINE),
-        MIN_PSNR,
-        MAX_ABS,
-    );
+    check_against_reference("mip-oblique", &f, &orbit_ct(&f, -50.0, 15.0), &s, BOUNDS);
 }
 
 #[test]
 fn isosurface_oblique_matches_reference() {
-    let ctx = gpu();
     let f = Fixture::ct(96);
-    let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let cam = orbit(&f, 120.0, -20.0);
     let s = RenderSettings {
         iso_value: 400.0,
         ..compare_settings(RenderMode::Isosurface, SIZE)
@@ -138,9 +108,21 @@ fn isosurface_oblique_matches_reference() {
     // Isosurface pixels are opaque and shaded, so a silhouette pixel the two renderers
     // classify differently is off by the full surface colour: bound the count instead of
     // the max, and keep PSNR at the common 40 dB bar.
-    let gpu_frame = g.render(&ctx, &f, &cam, &s);
-    let reference = f.reference(&cam, &s, REFINE);
-    let c = assert_close("iso-oblique", &gpu_frame, &reference, MIN_PSNR, 255);
+    let silhouettes_may_differ = Bounds {
+        max_abs: 255,
+        ..BOUNDS
+    };
+    let Checked {
+        gpu: gpu_frame,
+        reference,
+        comparison: c,
+    } = check_against_reference(
+        "iso-oblique",
+        &f,
+        &orbit_ct(&f, 120.0, -20.0),
+        &s,
+        silhouettes_may_differ,
+    );
     assert!(
         c.pixels_off_by_more_than_one * 100 <= (SIZE * SIZE) as usize,
         "more than 1% of pixels off: {c:?}"
@@ -157,9 +139,7 @@ fn isosurface_oblique_matches_reference() {
 
 #[test]
 fn orthographic_rays_parallel_to_axes_graze_brick_boundary() {
-    let ctx = gpu();
     let f = Fixture::ct(96);
-    let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
     // Looking exactly along +x (rays parallel to the i axis) with 96 mm in 96 pixel rows: every
     // row of rays runs exactly on a voxel-centre plane, and rows 31/32 straddle the brick face
     // at index 31.5 (pixel centre 31.5 lands exactly on it). Grazing rays must not flicker
@@ -172,20 +152,12 @@ fn orthographic_rays_parallel_to_axes_graze_brick_boundary() {
         Projection::Orthographic { height_mm: 96.0 },
     );
     let s = compare_settings(RenderMode::Dvr, 96);
-    assert_close(
-        "ortho-axis-grazing",
-        &g.render(&ctx, &f, &cam, &s),
-        &f.reference(&cam, &s, REFINE),
-        MIN_PSNR,
-        MAX_ABS,
-    );
+    check_against_reference("ortho-axis-grazing", &f, &cam, &s, BOUNDS);
 }
 
 #[test]
 fn camera_inside_volume_matches_reference() {
-    let ctx = gpu();
     let f = Fixture::ct(96);
-    let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
     let c = f.volume.geometry.centre_patient();
     let cam = Camera::look_at(
         [c.x + 5.0, c.y - 3.0, c.z + 2.0],
@@ -194,21 +166,13 @@ fn camera_inside_volume_matches_reference() {
         Projection::Perspective { fov_y_deg: 70.0 },
     );
     let s = compare_settings(RenderMode::Dvr, SIZE);
-    assert_close(
-        "inside",
-        &g.render(&ctx, &f, &cam, &s),
-        &f.reference(&cam, &s, REFINE),
-        MIN_PSNR,
-        MAX_ABS,
-    );
+    check_against_reference("inside", &f, &cam, &s, BOUNDS);
 }
 
 #[test]
 fn crop_box_and_clip_plane_match_reference() {
-    let ctx = gpu();
     let f = Fixture::ct(96);
-    let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let cam = orbit(&f, 30.0, 20.0);
+    let cam = orbit_ct(&f, 30.0, 20.0);
     let c = f.volume.geometry.centre_patient();
     let n = glam::DVec3::new(1.0, 0.3, -0.2).normalize_or_zero();
     let s = RenderSettings {
@@ -223,13 +187,7 @@ fn crop_box_and_clip_plane_match_reference() {
         shading: Some(Shading::default()),
         ..compare_settings(RenderMode::Dvr, SIZE)
     };
-    assert_close(
-        "clipped",
-        &g.render(&ctx, &f, &cam, &s),
-        &f.reference(&cam, &s, REFINE),
-        MIN_PSNR,
-        MAX_ABS,
-    );
+    check_against_reference("clipped", &f, &cam, &s, BOUNDS);
 }
 
 #[test]
@@ -245,15 +203,9 @@ fn r32float_fallback_cache_matches_reference() {
         },
     );
     assert_eq!(g.cache.format, CacheFormat::R32Float);
-    let cam = orbit(&f, 20.0, 10.0);
+    let cam = orbit_ct(&f, 20.0, 10.0);
     let s = compare_settings(RenderMode::Dvr, SIZE);
-    assert_close(
-        "fallback-r32f",
-        &g.render(&ctx, &f, &cam, &s),
-        &f.reference(&cam, &s, REFINE),
-        MIN_PSNR,
-        MAX_ABS,
-    );
+    g.check_against_reference(&ctx, &f, "fallback-r32f", &cam, &s, BOUNDS);
 }
 
 #[test]
@@ -284,16 +236,10 @@ fn r8unorm_cache_for_8bit_data_matches_reference() {
         },
     );
     assert_eq!(g.cache.format, CacheFormat::R8Unorm);
-    let cam = orbit(&f, 30.0, 20.0);
+    let cam = orbit_ct(&f, 30.0, 20.0);
     for mode in [RenderMode::Dvr, RenderMode::Mip] {
         let s = compare_settings(mode, SIZE);
-        assert_close(
-            &format!("r8-{mode:?}"),
-            &g.render(&ctx, &f, &cam, &s),
-            &f.reference(&cam, &s, REFINE),
-            MIN_PSNR,
-            MAX_ABS,
-        );
+        g.check_against_reference(&ctx, &f, &format!("r8-{mode:?}"), &cam, &s, BOUNDS);
     }
     // Values that do not fit are refused, not truncated.
     assert!(g

@@ -57,16 +57,7 @@ fn cameras(f: &Fixture) -> Vec<(&'static str, Camera)> {
     let g = &f.volume.geometry;
     let centre = g.centre_patient();
     vec![
-        (
-            "oblique",
-            Camera::orbit(
-                g,
-                35.0,
-                25.0,
-                1.5,
-                Projection::Perspective { fov_y_deg: 35.0 },
-            ),
-        ),
+        ("oblique", orbit(g, 35.0, 25.0, 1.5, 35.0)),
         (
             // Orthographic rays along an index axis, on the page faces' planes where they
             // graze the cells' boundaries.
@@ -170,13 +161,7 @@ fn node_extent_exit_matches_the_reference_on_the_mixed_cut() {
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
     // Closer than the first test's view, so the isosurface covers enough pixels to prove
     // something.
-    let cam = Camera::orbit(
-        &f.volume.geometry,
-        35.0,
-        25.0,
-        2.5,
-        Projection::Perspective { fov_y_deg: 35.0 },
-    );
+    let cam = orbit(&f.volume.geometry, 35.0, 25.0, 2.5, 35.0);
     // Same bars as gpu_vs_reference.rs and smooth_transitions.rs: lavapipe's sampler uses
     // 8-bit trilinear weights, which the 40 dB / 24 max bar absorbs; isosurface silhouettes
     // are opaque, so the max is free there and the count of such pixels bounded.

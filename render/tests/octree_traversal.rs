@@ -119,16 +119,7 @@ fn cameras(f: &Fixture) -> Vec<(&'static str, Camera)> {
     let g = &f.volume.geometry;
     let centre = g.centre_patient();
     vec![
-        (
-            "oblique",
-            Camera::orbit(
-                g,
-                35.0,
-                25.0,
-                1.5,
-                Projection::Perspective { fov_y_deg: 35.0 },
-            ),
-        ),
+        ("oblique", orbit(g, 35.0, 25.0, 1.5, 35.0)),
         (
             // Orthographic rays along an index axis, on the page faces' planes.
             "axis",
@@ -264,13 +255,7 @@ fn octree_traversal_matches_the_reference() {
         let g = GpuScene::new(&ctx, &f, CacheConfig::default());
         let octree = octree_index(&ctx, &f, &g.cache);
         let mut raycaster = Raycaster::new(&ctx, &g.cache);
-        let cam = Camera::orbit(
-            &f.volume.geometry,
-            35.0,
-            25.0,
-            2.5,
-            Projection::Perspective { fov_y_deg: 35.0 },
-        );
+        let cam = orbit(&f.volume.geometry, 35.0, 25.0, 2.5, 35.0);
         // The bars of gpu_vs_reference.rs and node_extent.rs: lavapipe's sampler uses 8-bit
         // trilinear weights, which 40 dB / max 24 absorbs; isosurface silhouettes are opaque,
         // so the max is free there and the count of such pixels bounded (1 %). Without smooth
@@ -340,13 +325,7 @@ fn smooth_octree_traversal_matches_the_reference() {
         let octree = octree_index(&ctx, &f, &g.cache);
         assert!(octree.transition_fraction() > 0.0, "{cut_name}");
         let mut raycaster = Raycaster::new(&ctx, &g.cache);
-        let cam = Camera::orbit(
-            &f.volume.geometry,
-            35.0,
-            25.0,
-            2.5,
-            Projection::Perspective { fov_y_deg: 35.0 },
-        );
+        let cam = orbit(&f.volume.geometry, 35.0, 25.0, 2.5, 35.0);
         // The bars of the flat table's smooth-transition test (smooth_transitions.rs,
         // gpu_matches_reference_on_mixed_cuts_with_smoothing): 40 dB / max 24 (lavapipe's 8-bit
         // trilinear weights; the blend adds one f32 lerp); isosurface pixels are opaque, so

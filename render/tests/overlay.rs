@@ -21,14 +21,8 @@ const MAX_ABS: u8 = 24;
 const RED: [f32; 4] = [1.0, 0.0, 0.0, 1.0];
 const GREEN: [f32; 4] = [0.0, 1.0, 0.0, 1.0];
 
-fn orbit(f: &Fixture, az: f64, el: f64) -> Camera {
-    Camera::orbit(
-        &f.volume.geometry,
-        az,
-        el,
-        1.5,
-        Projection::Perspective { fov_y_deg: 35.0 },
-    )
+fn orbit_ct(f: &Fixture, az: f64, el: f64) -> Camera {
+    orbit(&f.volume.geometry, az, el, 1.5, 35.0)
 }
 
 /// A label grid of `dims` over the primary: `label(i, j, k)` per grid voxel.
@@ -120,7 +114,7 @@ fn a_label_map_in_dvr_matches_the_reference_and_hiding_a_label_removes_it() {
         ("overlay-dvr", 30.0, 20.0, None),
         ("overlay-dvr-shaded", -50.0, 35.0, Some(Shading::default())),
     ] {
-        let cam = orbit(&f, az, el);
+        let cam = orbit_ct(&f, az, el);
         let s = RenderSettings {
             shading,
             ..compare_settings(RenderMode::Dvr, SIZE)
@@ -139,7 +133,7 @@ fn a_label_map_in_dvr_matches_the_reference_and_hiding_a_label_removes_it() {
     // Hiding label 2 is a colour-table change only; the GPU follows the reference again.
     let hidden = label_lut(0.7, true);
     g.raycaster.set_overlay_lut(&ctx, &hidden).unwrap();
-    let cam = orbit(&f, 30.0, 20.0);
+    let cam = orbit_ct(&f, 30.0, 20.0);
     let s = compare_settings(RenderMode::Dvr, SIZE);
     let frame = g.render(&ctx, &f, &cam, &s);
     assert_close(
@@ -199,7 +193,7 @@ fn a_label_inside_tissue_the_tf_makes_transparent_is_drawn() {
         "the label box lies in pages rays skip"
     );
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let cam = orbit(&f, 20.0, 10.0);
+    let cam = orbit_ct(&f, 20.0, 10.0);
     let s = compare_settings(RenderMode::Dvr, SIZE);
     let before = g.render(&ctx, &f, &cam, &s);
     let overlay = label_box();
@@ -301,7 +295,7 @@ fn mip_takes_the_first_shown_overlay_colour_and_the_isosurface_the_colour_at_the
     g.raycaster
         .set_overlay(&ctx, &overlay, &lut, f.volume.geometry.dims)
         .unwrap();
-    let cam = orbit(&f, 35.0, 25.0);
+    let cam = orbit_ct(&f, 35.0, 25.0);
     let mip = compare_settings(RenderMode::Mip, SIZE);
     let frame = g.render(&ctx, &f, &cam, &mip);
     let r = reference(&f, Some((&overlay, &lut)), &cam, &mip);
@@ -356,7 +350,7 @@ fn without_an_overlay_the_overlay_code_is_not_compiled_in() {
         "the override was replaced"
     );
     let mut never_had_it = Raycaster::with_shader_source(&ctx, &g.cache, &variant);
-    let cam = orbit(&f, 30.0, 20.0);
+    let cam = orbit_ct(&f, 30.0, 20.0);
     for mode in [RenderMode::Dvr, RenderMode::Mip, RenderMode::Isosurface] {
         let s = RenderSettings {
             iso_value: 300.0,

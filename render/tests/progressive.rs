@@ -11,13 +11,7 @@ use strata_render::*;
 const SIZE: u32 = 64;
 
 fn oblique(f: &Fixture) -> Camera {
-    Camera::orbit(
-        &f.volume.geometry,
-        35.0,
-        25.0,
-        1.5,
-        Projection::Perspective { fov_y_deg: 35.0 },
-    )
+    orbit(&f.volume.geometry, 35.0, 25.0, 1.5, 35.0)
 }
 
 /// Shaded DVR at a coarse step (2 voxels): one jittered frame shows the step's error as noise
@@ -201,13 +195,7 @@ fn a_changed_view_restarts_the_mean() {
     assert_eq!(acc.frames(), 5);
 
     // The camera moves.
-    let moved = Camera::orbit(
-        &f.volume.geometry,
-        40.0,
-        25.0,
-        1.5,
-        Projection::Perspective { fov_y_deg: 35.0 },
-    );
+    let moved = orbit(&f.volume.geometry, 40.0, 25.0, 1.5, 35.0);
     let frame = add_frame(&ctx, &mut g, &f, &moved, &s, &mut acc, 5);
     assert_eq!(acc.frames(), 1);
     assert_eq!(acc.read_mean_blocking(&ctx).unwrap(), frame.rgba);

@@ -6,36 +6,11 @@
 use crate::common;
 use common::*;
 use strata_render::reference::ReferenceImage;
-use strata_render::testdata::phantom;
 use strata_render::*;
 
 const SIZE: u32 = 64;
 /// The primary reference step is the GPU's / 8, as in gpu_vs_reference.rs.
 const REFINE: f64 = 8.0;
-
-/// Air (raw 0, −1024 HU) everywhere but where `solid` says: raw 2024 (1000 HU).
-fn binary_volume(n: u32, solid: impl Fn(u32, u32, u32) -> bool + Sync) -> BrickedVolume {
-    let geometry = VolumeGeometry::axis_aligned([n; 3], [1.0; 3]);
-    BrickedVolume::from_fn(geometry, phantom::CT_MAPPING, move |x, y, z| {
-        if solid(x, y, z) {
-            2024
-        } else {
-            0
-        }
-    })
-    .unwrap()
-}
-
-/// Opaque above 100 HU (α = 1 per voxel: the shadows of a voxel-thick layer are complete),
-/// transparent below −100 HU, one colour, so a pixel's colour is that colour times its lighting.
-const COLOUR: [f64; 3] = [1.0, 0.9, 0.8];
-fn opaque_tf() -> TransferFunction {
-    TransferFunction::new(
-        "opaque",
-        &[(-1024.0, 0.0), (-100.0, 0.0), (100.0, 1.0), (1000.0, 1.0)],
-        &[(-1024.0, COLOUR), (1000.0, COLOUR)],
-    )
-}
 
 /// A 40³ scene: a floor (z 4..8) over the whole volume and an opaque slab (x, y 14..26, z 24..30)
 /// above it. Seen from above (orthographic, looking down −z), lit from +x+z, the slab's shadow
@@ -145,13 +120,13 @@ fn opaque_slab_leaves_the_shadowed_floor_at_the_ambient_term() {
                 let a = pixel[3] as f64 / 255.0;
                 assert!(a > 0.98, "floor pixel ({px}, {py}) not opaque: {pixel:?}");
                 for c in 0..3 {
-                    let expected = ambient * COLOUR[c] * a;
+                    let expected = ambient * OPAQUE_COLOUR[c] * a;
                     let got = pixel[c] as f64 / 255.0;
                     assert!(
                         (got - expected).abs() <= 2.0 / 255.0,
                         "shadowed ({px}, {py}) channel {c}: {got} vs ambient {expected}"
                     );
-                    let expected_ref = ambient * COLOUR[c] * reference_pixel[3];
+                    let expected_ref = ambient * OPAQUE_COLOUR[c] * reference_pixel[3];
                     assert!(
                         (reference_pixel[c] - expected_ref).abs() < 1e-6,
                         "reference shadowed ({px}, {py}): {reference_pixel:?}"
@@ -251,13 +226,7 @@ fn shadowed_phantom_matches_reference() {
     let ctx = gpu();
     let f = Fixture::ct(32);
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let cam = Camera::orbit(
-        &f.volume.geometry,
-        35.0,
-        25.0,
-        1.5,
-        Projection::Perspective { fov_y_deg: 35.0 },
-    );
+    let cam = orbit(&f.volume.geometry, 35.0, 25.0, 1.5, 35.0);
     let s = shadowed(LightDirection::Camera([0.6, 0.7, 0.4]), 1.0);
     let gpu_frame = g.render(&ctx, &f, &cam, &s);
     let reference = timed_reference("phantom", &f, &cam, &s);
@@ -281,13 +250,7 @@ fn shadowed_headlight_matches_reference() {
     let ctx = gpu();
     let f = Fixture::ct(32);
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let cam = Camera::orbit(
-        &f.volume.geometry,
-        -20.0,
-        10.0,
-        1.5,
-        Projection::Perspective { fov_y_deg: 35.0 },
-    );
+    let cam = orbit(&f.volume.geometry, -20.0, 10.0, 1.5, 35.0);
     let s = shadowed(LightDirection::Headlight, 1.0);
     assert!(g.key(&f, &cam, &s).key_light);
     let gpu_frame = g.render(&ctx, &f, &cam, &s);
@@ -368,7 +331,7 @@ fn isosurface_in_the_slabs_shadow_keeps_the_ambient_term() {
             let (x, y) = floor_point(&cam, px, py);
             if (1.0..=7.0).contains(&x) && (16.0..=24.0).contains(&y) {
                 let i = ((py * SIZE + px) * 4) as usize;
-                for (c, colour) in COLOUR.iter().enumerate() {
+                for (c, colour) in OPAQUE_COLOUR.iter().enumerate() {
                     let got = frame.rgba[i + c] as f64 / 255.0;
                     assert!(
                         (got - ambient * colour).abs() <= 2.0 / 255.0,
@@ -496,13 +459,7 @@ mod cache {
     }
 
     fn phantom_view(f: &Fixture) -> Camera {
-        Camera::orbit(
-            &f.volume.geometry,
-            35.0,
-            25.0,
-            1.5,
-            Projection::Perspective { fov_y_deg: 35.0 },
-        )
+        orbit(&f.volume.geometry, 35.0, 25.0, 1.5, 35.0)
     }
 
     /// The GPU's texels against the f64 reference's sweep (the cache's own error, before the
@@ -616,7 +573,7 @@ mod cache {
                     let a = pixel[3] as f64 / 255.0;
                     for c in 0..3 {
                         let got = pixel[c] as f64 / 255.0;
-                        worst = worst.max((got - ambient * COLOUR[c] * a).abs());
+                        worst = worst.max((got - ambient * OPAQUE_COLOUR[c] * a).abs());
                     }
                     in_shadow.push(pixel[0]);
                 }

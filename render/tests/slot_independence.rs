@@ -40,13 +40,7 @@ fn images_do_not_depend_on_cache_slots_with_exact_trilinear() {
     let second = Fixture::new(phantom_128(), moved, test_tf());
     let mut first_scene = GpuScene::new(&ctx, &first, CacheConfig::default());
     let mut second_scene = GpuScene::new(&ctx, &second, CacheConfig::default());
-    let cam = Camera::orbit(
-        &first.volume.geometry,
-        35.0,
-        25.0,
-        1.5,
-        Projection::Perspective { fov_y_deg: 35.0 },
-    );
+    let cam = orbit(&first.volume.geometry, 35.0, 25.0, 1.5, 35.0);
     let cases = [
         ("dvr", RenderMode::Dvr, None),
         ("dvr-shaded", RenderMode::Dvr, Some(Shading::default())),

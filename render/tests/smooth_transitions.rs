@@ -141,13 +141,7 @@ fn gpu_probe_matches_cpu_field_and_is_continuous() {
     let table = volume.page_table_with_levels(checker_levels);
     let f = Fixture::new(volume, table, test_tf());
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let cam = Camera::orbit(
-        &f.volume.geometry,
-        30.0,
-        20.0,
-        1.0,
-        Projection::Perspective { fov_y_deg: 35.0 },
-    );
+    let cam = orbit(&f.volume.geometry, 30.0, 20.0, 1.0, 35.0);
     // ε = 1e-3 voxels: f32 positions near index 100 resolve ~1e-5; over 2ε the field moves by
     // at most 2e-3 · (steepest slope, a few hundred HU per voxel here).
     let lines = crossings(&f.page_table, 16, 1e-3);
@@ -224,13 +218,7 @@ fn pipeline_without_coarser_neighbours_has_no_transition_code() {
     let uniform = volume.page_table_uniform(0);
     let f = Fixture::new(volume, uniform, test_tf());
     let g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let cam = Camera::orbit(
-        &f.volume.geometry,
-        0.0,
-        0.0,
-        1.0,
-        Projection::Perspective { fov_y_deg: 35.0 },
-    );
+    let cam = orbit(&f.volume.geometry, 0.0, 0.0, 1.0, 35.0);
     let settings = compare_settings(RenderMode::Dvr, 32);
     assert!(settings.smooth_transitions, "smoothing is on by default");
     let scene = Scene {
@@ -269,13 +257,7 @@ fn gpu_matches_reference_on_mixed_cuts_with_smoothing() {
     let table = volume.page_table_with_levels(checker_levels);
     let f = Fixture::new(volume, table, test_tf());
     let mut g = GpuScene::new(&ctx, &f, CacheConfig::default());
-    let cam = Camera::orbit(
-        &f.volume.geometry,
-        35.0,
-        25.0,
-        1.5,
-        Projection::Perspective { fov_y_deg: 35.0 },
-    );
+    let cam = orbit(&f.volume.geometry, 35.0, 25.0, 1.5, 35.0);
     // Same bars as the single-level comparisons (gpu_vs_reference.rs): the blend adds one
     // f32 lerp, far below the sampler's 8-bit weight error the 40 dB bar already absorbs.
     // Isosurface pixels are opaque, so a silhouette pixel classified differently is off by

@@ -27,13 +27,7 @@ fn exclusive() -> std::sync::MutexGuard<'static, ()> {
 }
 
 fn orbit_camera(f: &Fixture, azimuth_deg: f64) -> Camera {
-    Camera::orbit(
-        &f.volume.geometry,
-        azimuth_deg,
-        20.0,
-        1.0,
-        Projection::Perspective { fov_y_deg: 30.0 },
-    )
+    orbit(&f.volume.geometry, azimuth_deg, 20.0, 1.0, 30.0)
 }
 
 fn settings() -> RenderSettings {

@@ -382,11 +382,11 @@ pub fn recover(path: &Path) -> Result<Recovery, SegmentError> {
             KIND_EDIT => decode_edit(&payload).map(|e| recovery.edits.push(e)),
             KIND_SEGMENTS => serde_json::from_slice::<SegmentTable>(&payload)
                 .map(|s| recovery.segments = Some(s))
-                .map_err(|e| format!("segment table unreadable: {e}")),
-            other => Err(format!("unknown record kind {other}")),
+                .map_err(RecordError::SegmentTable),
+            other => Err(RecordError::UnknownKind(other)),
         };
         if let Err(p) = decoded {
-            recovery.dropped = Some(dropped(file_len - at, at, seq, &p));
+            recovery.dropped = Some(dropped(file_len - at, at, seq, &p.to_string()));
             break;
         }
         at += RECORD_HEADER_BYTES as u64 + u64::from(len);
@@ -471,46 +471,71 @@ fn truncated_name(name: &str) -> &str {
     &name[..end]
 }
 
+/// Why a record's payload was refused on recovery (the record and all after it are dropped).
+#[derive(Debug, thiserror::Error)]
+enum RecordError {
+    #[error("edit record cut short: {needed} bytes needed, {left} left")]
+    CutShort { needed: usize, left: usize },
+    #[error("edit name is not UTF-8")]
+    NameNotUtf8,
+    #[error("edit record claims {bricks} bricks in {bytes} bytes")]
+    BrickCount { bricks: usize, bytes: usize },
+    #[error("zstd decoder unavailable: {0}")]
+    DecoderUnavailable(std::io::Error),
+    #[error("brick {key:?} does not decompress: {source}")]
+    Decompress {
+        key: [u32; 3],
+        source: std::io::Error,
+    },
+    #[error("brick {key:?} decompresses to {got} bytes, not {expected}", expected = BRICK_PAIR_BYTES)]
+    DecompressedSize { key: [u32; 3], got: usize },
+    #[error("edit record has {0} stray bytes after its bricks")]
+    StrayBytes(usize),
+    #[error("segment table unreadable: {0}")]
+    SegmentTable(serde_json::Error),
+    #[error("unknown record kind {0}")]
+    UnknownKind(u16),
+}
+
 /// Reads fields off the front of a payload, failing on a short one.
 struct Cursor<'a>(&'a [u8]);
 
 impl<'a> Cursor<'a> {
-    fn take(&mut self, n: usize) -> Result<&'a [u8], String> {
+    fn take(&mut self, n: usize) -> Result<&'a [u8], RecordError> {
         if self.0.len() < n {
-            return Err(format!(
-                "edit record cut short: {n} bytes needed, {} left",
-                self.0.len()
-            ));
+            return Err(RecordError::CutShort {
+                needed: n,
+                left: self.0.len(),
+            });
         }
         let (head, tail) = self.0.split_at(n);
         self.0 = tail;
         Ok(head)
     }
 
-    fn u32(&mut self) -> Result<u32, String> {
+    fn u32(&mut self) -> Result<u32, RecordError> {
         Ok(u32::from_le_bytes(
             self.take(4)?.try_into().expect("4 bytes"),
         ))
     }
 }
 
-fn decode_edit(payload: &[u8]) -> Result<Edit, String> {
+fn decode_edit(payload: &[u8]) -> Result<Edit, RecordError> {
     let mut c = Cursor(payload);
     let name_len = u16::from_le_bytes(c.take(2)?.try_into().expect("2 bytes")) as usize;
     let name = std::str::from_utf8(c.take(name_len)?)
-        .map_err(|_| "edit name is not UTF-8".to_string())?
+        .map_err(|_| RecordError::NameNotUtf8)?
         .to_owned();
     let n = c.u32()? as usize;
     // Each change takes ≥ 16 bytes of payload: the count cannot ask for more than that.
     if n > c.0.len() / 16 {
-        return Err(format!(
-            "edit record claims {n} bricks in {} bytes",
-            c.0.len()
-        ));
+        return Err(RecordError::BrickCount {
+            bricks: n,
+            bytes: c.0.len(),
+        });
     }
     let mut changes = Vec::with_capacity(n);
-    let mut decoder =
-        zstd::bulk::Decompressor::new().map_err(|e| format!("zstd decoder unavailable: {e}"))?;
+    let mut decoder = zstd::bulk::Decompressor::new().map_err(RecordError::DecoderUnavailable)?;
     let mut raw = vec![0u8; BRICK_PAIR_BYTES];
     for _ in 0..n {
         let key = BrickKey([c.u32()?, c.u32()?, c.u32()?]);
@@ -518,12 +543,9 @@ fn decode_edit(payload: &[u8]) -> Result<Edit, String> {
         let frame = c.take(frame_len)?;
         let got = decoder
             .decompress_to_buffer(frame, &mut raw)
-            .map_err(|e| format!("brick {:?} does not decompress: {e}", key.0))?;
+            .map_err(|source| RecordError::Decompress { key: key.0, source })?;
         if got != BRICK_PAIR_BYTES {
-            return Err(format!(
-                "brick {:?} decompresses to {got} bytes, not {BRICK_PAIR_BYTES}",
-                key.0
-            ));
+            return Err(RecordError::DecompressedSize { key: key.0, got });
         }
         let labels = |bytes: &[u8]| -> Arc<[Label]> {
             bytes
@@ -539,10 +561,7 @@ fn decode_edit(payload: &[u8]) -> Result<Edit, String> {
         });
     }
     if !c.0.is_empty() {
-        return Err(format!(
-            "edit record has {} stray bytes after its bricks",
-            c.0.len()
-        ));
+        return Err(RecordError::StrayBytes(c.0.len()));
     }
     Ok(Edit {
         name,

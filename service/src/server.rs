@@ -436,7 +436,8 @@ pub fn start(
         ));
     }
     if let Some(sources) = &options.frame_ancestors {
-        crate::web_viewer::check_frame_ancestors(sources).map_err(ServeError::Config)?;
+        crate::web_viewer::check_frame_ancestors(sources)
+            .map_err(|e| ServeError::Config(e.to_string()))?;
     }
     if stores.is_empty() {
         return Err(ServeError::Config("no store to serve".into()));

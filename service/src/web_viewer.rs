@@ -54,17 +54,24 @@ object-src 'none'; base-uri 'none'; form-action 'none'";
 const MAX_FRAME_ANCESTORS: usize = 16;
 const MAX_FRAME_ANCESTOR_LEN: usize = 256;
 
+/// Why a `frame_ancestors` option was refused.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum FrameAncestorsError {
+    #[error("frame_ancestors must list 1 to {max} sources, not {0}", max = MAX_FRAME_ANCESTORS)]
+    Count(usize),
+    /// The refused source, escaped so that it cannot break the message's line.
+    #[error("frame_ancestors source '{0}' is not a scheme and host (such as http://localhost:*) or 'self'")]
+    Source(String),
+}
+
 /// Checks the sources of a `frame-ancestors` option: space-separated CSP host sources
 /// (`http://localhost:*`, `https://*.example.org`, `vscode-webview:`) or `'self'`. Anything
 /// else is refused, so the option can add neither a directive (`;`, `,`) nor a header line
 /// nor a keyword such as `*` that would let any site frame the page.
-pub fn check_frame_ancestors(sources: &str) -> Result<(), String> {
+pub fn check_frame_ancestors(sources: &str) -> Result<(), FrameAncestorsError> {
     let listed: Vec<&str> = sources.split_ascii_whitespace().collect();
     if listed.is_empty() || listed.len() > MAX_FRAME_ANCESTORS {
-        return Err(format!(
-            "frame_ancestors must list 1 to {MAX_FRAME_ANCESTORS} sources, not {}",
-            listed.len()
-        ));
+        return Err(FrameAncestorsError::Count(listed.len()));
     }
     for source in listed {
         if source == "'self'" {
@@ -78,10 +85,8 @@ pub fn check_frame_ancestors(sources: &str) -> Result<(), String> {
                     .all(|b| b.is_ascii_alphanumeric() || b"+-.".contains(&b))
         });
         if source.len() > MAX_FRAME_ANCESTOR_LEN || !scheme_ok || !source.bytes().all(allowed) {
-            return Err(format!(
-                "frame_ancestors source '{}' is not a scheme and host (such as \
-                 http://localhost:*) or 'self'",
-                source.escape_debug()
+            return Err(FrameAncestorsError::Source(
+                source.escape_debug().to_string(),
             ));
         }
     }
@@ -462,7 +467,7 @@ mod tests {
             ":8888",
         ] {
             let e = check_frame_ancestors(bad).expect_err(bad);
-            assert!(e.contains("frame_ancestors"), "{e}");
+            assert!(e.to_string().contains("frame_ancestors"), "{e}");
             let (csp, deny) = answered(Some(bad));
             assert!(csp.ends_with("; frame-ancestors 'none'"), "{bad}: {csp}");
             assert!(deny.is_some(), "{bad}");

@@ -505,13 +505,18 @@ impl Skeleton {
 
     /// Reads either encoding for `layout`; the error says what is wrong (checksum, framing,
     /// a count beyond the layout, a broken invariant).
-    pub fn decode(bytes: &[u8], layout: &OctreeLayout) -> Result<Skeleton, String> {
+    pub fn decode(bytes: &[u8], layout: &OctreeLayout) -> Result<Skeleton, SkeletonDecodeError> {
         let (body, sum) = bytes
-            .split_at_checked(bytes.len().checked_sub(8).ok_or("truncated")?)
-            .ok_or("truncated")?;
-        let sum = u64::from_le_bytes(sum.try_into().map_err(|_| "truncated")?);
+            .split_at_checked(
+                bytes
+                    .len()
+                    .checked_sub(8)
+                    .ok_or(SkeletonDecodeError::Truncated)?,
+            )
+            .ok_or(SkeletonDecodeError::Truncated)?;
+        let sum = u64::from_le_bytes(sum.try_into().map_err(|_| SkeletonDecodeError::Truncated)?);
         if xxh3_64(body) != sum {
-            return Err("fails its checksum".into());
+            return Err(SkeletonDecodeError::Checksum);
         }
         let mut reader = Reader { body, pos: 0 };
         let sparse = body.starts_with(SPARSE_MAGIC);
@@ -520,10 +525,10 @@ impl Skeleton {
         }
         let level_count = u32::from_le_bytes(reader.array()?) as usize;
         if level_count != layout.level_count() {
-            return Err(format!(
-                "has {level_count} levels, the layout {}",
-                layout.level_count()
-            ));
+            return Err(SkeletonDecodeError::LevelCount {
+                stored: level_count,
+                layout: layout.level_count(),
+            });
         }
         let skeleton = if sparse {
             Self::decode_sparse(&mut reader, layout)?
@@ -531,27 +536,31 @@ impl Skeleton {
             Self::decode_dense(&mut reader, layout)?
         };
         if reader.pos != body.len() {
-            return Err("has bytes after its last level".into());
+            return Err(SkeletonDecodeError::TrailingBytes);
         }
         Ok(skeleton)
     }
 
-    fn decode_dense(reader: &mut Reader, layout: &OctreeLayout) -> Result<Skeleton, String> {
+    fn decode_dense(
+        reader: &mut Reader,
+        layout: &OctreeLayout,
+    ) -> Result<Skeleton, SkeletonDecodeError> {
         let mut levels = Vec::with_capacity(layout.level_count());
         for level in 0..layout.level_count() {
             let n = u64::from_le_bytes(reader.array()?);
             if n != layout.brick_count_in_level(level) {
-                return Err(format!(
-                    "level {level} has {n} nodes, the layout {}",
-                    layout.brick_count_in_level(level)
-                ));
+                return Err(SkeletonDecodeError::NodeCount {
+                    level,
+                    stored: n,
+                    layout: layout.brick_count_in_level(level),
+                });
             }
             // take() checks the bytes are there before anything is allocated.
             let raw = reader.take(
                 usize::try_from(n)
-                    .map_err(|_| "too large")?
+                    .map_err(|_| SkeletonDecodeError::TooLarge)?
                     .checked_mul(5)
-                    .ok_or("too large")?,
+                    .ok_or(SkeletonDecodeError::TooLarge)?,
             )?;
             levels.push(
                 raw.chunks_exact(5)
@@ -566,7 +575,10 @@ impl Skeleton {
         Ok(Self::from_dense(layout, &levels))
     }
 
-    fn decode_sparse(reader: &mut Reader, layout: &OctreeLayout) -> Result<Skeleton, String> {
+    fn decode_sparse(
+        reader: &mut Reader,
+        layout: &OctreeLayout,
+    ) -> Result<Skeleton, SkeletonDecodeError> {
         let mut levels = Vec::with_capacity(layout.level_count());
         for level in 0..layout.level_count() {
             let bricks = layout.bricks_in_level(level);
@@ -575,9 +587,11 @@ impl Skeleton {
             // A record takes at least 4 bytes (gap, flags, min), so the bytes bound the count.
             let remaining = (reader.body.len() - reader.pos) as u64;
             if count > total || count > remaining / 4 {
-                return Err(format!(
-                    "level {level} claims {count} stored nodes (the layout has {total})"
-                ));
+                return Err(SkeletonDecodeError::StoredNodeCount {
+                    level,
+                    claimed: count,
+                    layout: total,
+                });
             }
             let mut indices = Vec::with_capacity(count as usize);
             let mut nodes = Vec::with_capacity(count as usize);
@@ -586,7 +600,7 @@ impl Skeleton {
                 let i = next
                     .checked_add(reader.varint()?)
                     .filter(|&i| i < total)
-                    .ok_or_else(|| format!("level {level} has a node index past the layout"))?;
+                    .ok_or(SkeletonDecodeError::IndexPastLayout { level })?;
                 next = i + 1;
                 let flags = reader.array::<1>()?[0];
                 let min = u16::from_le_bytes(reader.array()?);
@@ -608,12 +622,12 @@ impl Skeleton {
     /// The invariant of the module doc: the root level whole, every stored node's parent
     /// stored, and each stored node above level 0 with all of its children or none (then
     /// constant).
-    fn check_structure(&self) -> Result<(), String> {
+    fn check_structure(&self) -> Result<(), SkeletonDecodeError> {
         let Some(top) = self.levels.last() else {
-            return Err("has no levels".into());
+            return Err(SkeletonDecodeError::NoLevels);
         };
         if top.stored() as u64 != top.total() {
-            return Err("its root level is incomplete".into());
+            return Err(SkeletonDecodeError::IncompleteRoot);
         }
         for level in 1..self.levels.len() {
             let (finer, coarser) = (&self.levels[level - 1], &self.levels[level]);
@@ -623,26 +637,72 @@ impl Skeleton {
                 let parent = coarser
                     .index(finer.coords(i).map(|c| c / 2))
                     .and_then(|pi| coarser.position(pi))
-                    .ok_or_else(|| format!("a level-{} node has no stored parent", level - 1))?;
+                    .ok_or(SkeletonDecodeError::Orphan { level: level - 1 })?;
                 counts[parent] += 1;
             }
             for (p, &count) in counts.iter().enumerate() {
                 let (i, info) = coarser.stored_at(p);
                 let all = children(coarser.coords(i), finer.bricks).count();
                 if count == 0 && !info.is_constant() {
-                    return Err(format!(
-                        "a varying level-{level} node has no stored children"
-                    ));
+                    return Err(SkeletonDecodeError::VaryingWithoutChildren { level });
                 }
                 if count != 0 && usize::from(count) != all {
-                    return Err(format!(
-                        "a level-{level} node has {count} of its {all} children stored"
-                    ));
+                    return Err(SkeletonDecodeError::SomeChildren {
+                        level,
+                        stored: count,
+                        all,
+                    });
                 }
             }
         }
         Ok(())
     }
+}
+
+/// Why stored skeleton bytes were refused. Each message reads after "its octree skeleton"
+/// (the callers prefix the store and frame), so the wording is the predicate alone.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum SkeletonDecodeError {
+    #[error("truncated")]
+    Truncated,
+    #[error("fails its checksum")]
+    Checksum,
+    #[error("has {stored} levels, the layout {layout}")]
+    LevelCount { stored: usize, layout: usize },
+    #[error("has bytes after its last level")]
+    TrailingBytes,
+    #[error("level {level} has {stored} nodes, the layout {layout}")]
+    NodeCount {
+        level: usize,
+        stored: u64,
+        layout: u64,
+    },
+    #[error("too large")]
+    TooLarge,
+    #[error("level {level} claims {claimed} stored nodes (the layout has {layout})")]
+    StoredNodeCount {
+        level: usize,
+        claimed: u64,
+        layout: u64,
+    },
+    #[error("level {level} has a node index past the layout")]
+    IndexPastLayout { level: usize },
+    #[error("has an overlong index gap")]
+    OverlongIndexGap,
+    #[error("has no levels")]
+    NoLevels,
+    #[error("its root level is incomplete")]
+    IncompleteRoot,
+    #[error("a level-{level} node has no stored parent")]
+    Orphan { level: usize },
+    #[error("a varying level-{level} node has no stored children")]
+    VaryingWithoutChildren { level: usize },
+    #[error("a level-{level} node has {stored} of its {all} children stored")]
+    SomeChildren {
+        level: usize,
+        stored: u8,
+        all: usize,
+    },
 }
 
 fn write_varint(out: &mut Vec<u8>, mut v: u64) {
@@ -659,18 +719,24 @@ struct Reader<'a> {
 }
 
 impl<'a> Reader<'a> {
-    fn take(&mut self, n: usize) -> Result<&'a [u8], String> {
-        let end = self.pos.checked_add(n).ok_or("truncated")?;
-        let s = self.body.get(self.pos..end).ok_or("truncated")?;
+    fn take(&mut self, n: usize) -> Result<&'a [u8], SkeletonDecodeError> {
+        let end = self
+            .pos
+            .checked_add(n)
+            .ok_or(SkeletonDecodeError::Truncated)?;
+        let s = self
+            .body
+            .get(self.pos..end)
+            .ok_or(SkeletonDecodeError::Truncated)?;
         self.pos = end;
         Ok(s)
     }
-    fn array<const N: usize>(&mut self) -> Result<[u8; N], String> {
+    fn array<const N: usize>(&mut self) -> Result<[u8; N], SkeletonDecodeError> {
         self.take(N)?
             .try_into()
-            .map_err(|_| "truncated".to_string())
+            .map_err(|_| SkeletonDecodeError::Truncated)
     }
-    fn varint(&mut self) -> Result<u64, String> {
+    fn varint(&mut self) -> Result<u64, SkeletonDecodeError> {
         let mut v = 0u64;
         for shift in (0..64).step_by(7) {
             let b = self.array::<1>()?[0];
@@ -679,7 +745,7 @@ impl<'a> Reader<'a> {
                 return Ok(v);
             }
         }
-        Err("has an overlong index gap".into())
+        Err(SkeletonDecodeError::OverlongIndexGap)
     }
 }
 
@@ -825,9 +891,10 @@ mod tests {
         let n = bytes.len() - 8;
         let sum = xxh3_64(&bytes[..n]);
         bytes[n..].copy_from_slice(&sum.to_le_bytes());
-        assert!(Skeleton::decode(&bytes, &layout)
-            .unwrap_err()
-            .contains("claims"));
+        assert!(matches!(
+            Skeleton::decode(&bytes, &layout),
+            Err(SkeletonDecodeError::StoredNodeCount { level: 0, .. })
+        ));
         // A flipped byte fails the checksum; another layout is refused.
         let mut flipped = s.encode();
         flipped[10] ^= 1;
@@ -862,6 +929,6 @@ mod tests {
             panic!("level 0 should be sparse");
         }
         let err = Skeleton::decode(&broken.encode(), &layout).unwrap_err();
-        assert!(err.contains("children stored"), "{err}");
+        assert!(err.to_string().contains("children stored"), "{err}");
     }
 }

@@ -7,8 +7,8 @@
 //! Without them these tests FAIL with the install command, as CI installs them (.ci/run).
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
+use crate::common;
 use strata_storage::import::{import_source, ImportOptions};
 use strata_storage::readers::{open_source, ReadOptions};
 use strata_storage::{OpenedSource, SampleType, Store};
@@ -18,19 +18,7 @@ const INSTALL: &str = "pip install pydicom pydicom-data pylibjpeg pylibjpeg-libj
 /// Runs a python snippet and returns its stdout; fails the test with the install hint when
 /// python or pydicom is missing.
 fn python(code: &str) -> String {
-    let out = Command::new("python3")
-        .arg("-c")
-        .arg(code)
-        .output()
-        .unwrap_or_else(|e| {
-            panic!("python3 not runnable ({e}); needed for reference data: {INSTALL}")
-        });
-    assert!(
-        out.status.success(),
-        "python3 failed (missing modules? {INSTALL}):\n{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8_lossy(&out.stdout).trim().to_string()
+    common::python(code, INSTALL)
 }
 
 /// The path of one of pydicom's test files (its own or pydicom-data's).
@@ -78,13 +66,7 @@ fn open(p: &Path) -> OpenedSource {
 /// Stored samples, i fastest (the physical values divided back by slope/intercept would hide
 /// nothing here: these files have slope 1, intercept 0 unless a test says otherwise).
 fn all_values(src: &OpenedSource) -> Vec<f64> {
-    let mut out = Vec::new();
-    let mut slice = Vec::new();
-    for k in 0..src.data.dims[2] {
-        src.data.read_slice_f64(k, &mut slice);
-        out.extend_from_slice(&slice);
-    }
-    out
+    common::all_values(src)
 }
 
 /// Imports into a store and returns the description `strata info` prints.
@@ -259,7 +241,7 @@ fn rt_dose_frames_are_spaced_by_grid_frame_offsets_and_scaled_to_dose() {
 fn synthetic_dose(path: &Path, offsets: Option<&str>, between: Option<&str>, pixel_spacing: &str) {
     use dicom_core::{DataElement, PrimitiveValue, VR};
     use dicom_dictionary_std::{tags, uids};
-    use dicom_object::{FileMetaTableBuilder, InMemDicomObject};
+    use dicom_object::InMemDicomObject;
     let mut obj = InMemDicomObject::new_empty();
     let mut put = |tag, vr, v: PrimitiveValue| obj.put(DataElement::new(tag, vr, v));
     put(tags::SOP_CLASS_UID, VR::UI, uids::RT_DOSE_STORAGE.into());
@@ -282,33 +264,16 @@ fn synthetic_dose(path: &Path, offsets: Option<&str>, between: Option<&str>, pix
     put(tags::NUMBER_OF_FRAMES, VR::IS, "3".into());
     put(tags::DOSE_GRID_SCALING, VR::DS, "0.001".into());
     put(tags::DOSE_UNITS, VR::CS, "GY".into());
-    put(tags::ROWS, VR::US, PrimitiveValue::from(2u16));
-    put(tags::COLUMNS, VR::US, PrimitiveValue::from(2u16));
-    put(tags::SAMPLES_PER_PIXEL, VR::US, PrimitiveValue::from(1u16));
-    put(
-        tags::PHOTOMETRIC_INTERPRETATION,
-        VR::CS,
-        "MONOCHROME2".into(),
-    );
-    put(tags::BITS_ALLOCATED, VR::US, PrimitiveValue::from(16u16));
-    put(tags::BITS_STORED, VR::US, PrimitiveValue::from(16u16));
-    put(tags::HIGH_BIT, VR::US, PrimitiveValue::from(15u16));
-    put(
-        tags::PIXEL_REPRESENTATION,
-        VR::US,
-        PrimitiveValue::from(0u16),
-    );
+    common::put_grey_pixel_module(&mut put, [2, 2], 16, false);
     let px: Vec<u16> = (0..12).map(|i| i * 1000).collect();
     put(tags::PIXEL_DATA, VR::OW, PrimitiveValue::U16(px.into()));
-    obj.with_meta(
-        FileMetaTableBuilder::new()
-            .transfer_syntax(uids::EXPLICIT_VR_LITTLE_ENDIAN)
-            .media_storage_sop_class_uid(uids::RT_DOSE_STORAGE)
-            .media_storage_sop_instance_uid("1.2.3.9"),
-    )
-    .unwrap()
-    .write_to_file(path)
-    .unwrap();
+    common::write_part10(
+        obj,
+        uids::EXPLICIT_VR_LITTLE_ENDIAN,
+        uids::RT_DOSE_STORAGE,
+        "1.2.3.9",
+        path,
+    );
 }
 
 #[test]
@@ -377,7 +342,7 @@ fn rt_dose_spacing_comes_from_the_file_or_is_said_to_be_assumed() {
 fn synthetic_cr(path: &Path, pixel_spacing: Option<&str>, imager: Option<&str>) {
     use dicom_core::{DataElement, PrimitiveValue, VR};
     use dicom_dictionary_std::{tags, uids};
-    use dicom_object::{FileMetaTableBuilder, InMemDicomObject};
+    use dicom_object::InMemDicomObject;
     let mut obj = InMemDicomObject::new_empty();
     let mut put = |tag, vr, v: PrimitiveValue| obj.put(DataElement::new(tag, vr, v));
     put(
@@ -394,33 +359,16 @@ fn synthetic_cr(path: &Path, pixel_spacing: Option<&str>, imager: Option<&str>) 
     if let Some(s) = imager {
         put(tags::IMAGER_PIXEL_SPACING, VR::DS, s.into());
     }
-    put(tags::ROWS, VR::US, PrimitiveValue::from(2u16));
-    put(tags::COLUMNS, VR::US, PrimitiveValue::from(3u16));
-    put(tags::SAMPLES_PER_PIXEL, VR::US, PrimitiveValue::from(1u16));
-    put(
-        tags::PHOTOMETRIC_INTERPRETATION,
-        VR::CS,
-        "MONOCHROME2".into(),
-    );
-    put(tags::BITS_ALLOCATED, VR::US, PrimitiveValue::from(16u16));
-    put(tags::BITS_STORED, VR::US, PrimitiveValue::from(12u16));
-    put(tags::HIGH_BIT, VR::US, PrimitiveValue::from(11u16));
-    put(
-        tags::PIXEL_REPRESENTATION,
-        VR::US,
-        PrimitiveValue::from(0u16),
-    );
+    common::put_grey_pixel_module(&mut put, [2, 3], 12, false);
     let px: Vec<u16> = (0..6).map(|i| i * 100).collect();
     put(tags::PIXEL_DATA, VR::OW, PrimitiveValue::U16(px.into()));
-    obj.with_meta(
-        FileMetaTableBuilder::new()
-            .transfer_syntax(uids::EXPLICIT_VR_LITTLE_ENDIAN)
-            .media_storage_sop_class_uid(uids::COMPUTED_RADIOGRAPHY_IMAGE_STORAGE)
-            .media_storage_sop_instance_uid("1.2.3.7"),
-    )
-    .unwrap()
-    .write_to_file(path)
-    .unwrap();
+    common::write_part10(
+        obj,
+        uids::EXPLICIT_VR_LITTLE_ENDIAN,
+        uids::COMPUTED_RADIOGRAPHY_IMAGE_STORAGE,
+        "1.2.3.7",
+        path,
+    );
 }
 
 #[test]

@@ -5,6 +5,7 @@
 
 use std::path::Path;
 
+use crate::common;
 use strata_storage::import::{import_source, ImportOptions};
 use strata_storage::readers::{open_source, ReadOptions};
 use strata_storage::store::FEATURE_FRAMES;
@@ -141,7 +142,7 @@ fn a_4d_nifti_imports_every_volume_as_a_frame() {
 fn write_phase_slice(path: &Path, z: f64, phase: usize, tag: dicom_core::Tag) {
     use dicom_core::{DataElement, PrimitiveValue, VR};
     use dicom_dictionary_std::{tags, uids};
-    use dicom_object::{FileMetaTableBuilder, InMemDicomObject};
+    use dicom_object::InMemDicomObject;
     let sop_uid = format!("1.2.3.{}.{}", phase + 1, (z * 10.0) as i64 + 100);
     let mut obj = InMemDicomObject::new_empty();
     let mut put = |tag, vr, v: PrimitiveValue| obj.put(DataElement::new(tag, vr, v));
@@ -160,22 +161,7 @@ fn write_phase_slice(path: &Path, z: f64, phase: usize, tag: dicom_core::Tag) {
         "1\\0\\0\\0\\1\\0".into(),
     );
     put(tags::PIXEL_SPACING, VR::DS, "0.5\\0.25".into());
-    put(tags::ROWS, VR::US, PrimitiveValue::from(2u16));
-    put(tags::COLUMNS, VR::US, PrimitiveValue::from(3u16));
-    put(tags::SAMPLES_PER_PIXEL, VR::US, PrimitiveValue::from(1u16));
-    put(
-        tags::PHOTOMETRIC_INTERPRETATION,
-        VR::CS,
-        "MONOCHROME2".into(),
-    );
-    put(tags::BITS_ALLOCATED, VR::US, PrimitiveValue::from(16u16));
-    put(tags::BITS_STORED, VR::US, PrimitiveValue::from(16u16));
-    put(tags::HIGH_BIT, VR::US, PrimitiveValue::from(15u16));
-    put(
-        tags::PIXEL_REPRESENTATION,
-        VR::US,
-        PrimitiveValue::from(0u16),
-    );
+    common::put_grey_pixel_module(&mut put, [2, 3], 16, false);
     // Trigger times in ms; identifiers and acquisition numbers count from 1.
     let phase_value = if tag == tags::TRIGGER_TIME {
         format!("{}", 40.5 * phase as f64)
@@ -192,15 +178,13 @@ fn write_phase_slice(path: &Path, z: f64, phase: usize, tag: dicom_core::Tag) {
         .map(|i| 1000 * phase as u16 + 10 * z as u16 + i)
         .collect();
     put(tags::PIXEL_DATA, VR::OW, PrimitiveValue::U16(px.into()));
-    obj.with_meta(
-        FileMetaTableBuilder::new()
-            .transfer_syntax(uids::EXPLICIT_VR_LITTLE_ENDIAN)
-            .media_storage_sop_class_uid(uids::MR_IMAGE_STORAGE)
-            .media_storage_sop_instance_uid(sop_uid),
-    )
-    .unwrap()
-    .write_to_file(path)
-    .unwrap();
+    common::write_part10(
+        obj,
+        uids::EXPLICIT_VR_LITTLE_ENDIAN,
+        uids::MR_IMAGE_STORAGE,
+        &sop_uid,
+        path,
+    );
 }
 
 /// A multi-phase DICOM series (two slices at each of three positions, told apart by
@@ -264,19 +248,7 @@ fn a_multi_phase_dicom_series_imports_each_phase_as_a_frame() {
 
 /// Every brick of every level of `store`'s octree.
 fn all_ids(store: &Store) -> Vec<BrickId> {
-    let layout = store.layout().clone();
-    let mut out = Vec::new();
-    for level in 0..layout.level_count() {
-        let n = layout.bricks_in_level(level);
-        for z in 0..n[2] {
-            for y in 0..n[1] {
-                for x in 0..n[0] {
-                    out.push(BrickId::new(level as u8, [x, y, z]));
-                }
-            }
-        }
-    }
-    out
+    common::all_brick_ids(store)
 }
 
 /// Every frame of `a` holds the same records and skeleton as the same frame of `b`.

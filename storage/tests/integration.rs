@@ -2,6 +2,7 @@
 //! (issue 34). Each module is one former test file; a new file in tests/ must be added
 //! here (or as a [[test]] of its own in Cargo.toml): tests/tidy.rs checks that none is left out.
 
+mod common;
 mod dicom_pacs;
 mod dicom_seg;
 mod frames;

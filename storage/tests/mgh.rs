@@ -5,37 +5,19 @@
 
 use std::io::Write;
 use std::path::Path;
-use std::process::Command;
 
+use crate::common;
 use strata_storage::readers::{open_source, ReadOptions};
 use strata_storage::{OpenedSource, SampleType};
 
 const INSTALL: &str = "pip install nibabel numpy (CI: .ci/run)";
 
 fn python(code: &str) -> String {
-    let out = Command::new("python3")
-        .arg("-c")
-        .arg(code)
-        .output()
-        .unwrap_or_else(|e| {
-            panic!("python3 not runnable ({e}); needed for reference data: {INSTALL}")
-        });
-    assert!(
-        out.status.success(),
-        "python3 failed (missing modules? {INSTALL}):\n{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8_lossy(&out.stdout).trim().to_string()
+    common::python(code, INSTALL)
 }
 
 fn all_values(src: &OpenedSource) -> Vec<f64> {
-    let mut out = Vec::new();
-    let mut slice = Vec::new();
-    for k in 0..src.data.dims[2] {
-        src.data.read_slice_f64(k, &mut slice);
-        out.extend_from_slice(&slice);
-    }
-    out
+    common::all_values(src)
 }
 
 /// Writes `name` with nibabel (dims, numpy dtype, a rotation about an oblique axis plus one

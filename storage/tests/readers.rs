@@ -4,6 +4,7 @@
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
+use crate::common;
 use strata_storage::readers::{open_source, RawSpec, ReadOptions};
 use strata_storage::{ByteOrder, OpenedSource, SampleType};
 
@@ -37,13 +38,7 @@ fn err_of(p: &Path, options: &ReadOptions) -> String {
 
 /// Every voxel value of the volume, i fastest.
 fn all_values(src: &OpenedSource) -> Vec<f64> {
-    let mut out = Vec::new();
-    let mut slice = Vec::new();
-    for k in 0..src.data.dims[2] {
-        src.data.read_slice_f64(k, &mut slice);
-        out.extend_from_slice(&slice);
-    }
-    out
+    common::all_values(src)
 }
 
 #[test]
@@ -640,7 +635,7 @@ fn write_dicom_at(
     let z = pos[2];
     use dicom_core::{DataElement, PrimitiveValue, VR};
     use dicom_dictionary_std::{tags, uids};
-    use dicom_object::{FileMetaTableBuilder, InMemDicomObject};
+    use dicom_object::InMemDicomObject;
     let sop_uid = format!("1.2.3.{}", (z * 10.0) as i64 + 100);
     let mut obj = InMemDicomObject::new_empty();
     let mut put = |tag, vr, v: PrimitiveValue| obj.put(DataElement::new(tag, vr, v));
@@ -662,22 +657,7 @@ fn write_dicom_at(
             "1\\0\\0\\0\\1\\0".into(),
         );
         put(tags::PIXEL_SPACING, VR::DS, "0.5\\0.25".into());
-        put(tags::ROWS, VR::US, PrimitiveValue::from(2u16));
-        put(tags::COLUMNS, VR::US, PrimitiveValue::from(3u16));
-        put(tags::SAMPLES_PER_PIXEL, VR::US, PrimitiveValue::from(1u16));
-        put(
-            tags::PHOTOMETRIC_INTERPRETATION,
-            VR::CS,
-            "MONOCHROME2".into(),
-        );
-        put(tags::BITS_ALLOCATED, VR::US, PrimitiveValue::from(16u16));
-        put(tags::BITS_STORED, VR::US, PrimitiveValue::from(12u16));
-        put(tags::HIGH_BIT, VR::US, PrimitiveValue::from(11u16));
-        put(
-            tags::PIXEL_REPRESENTATION,
-            VR::US,
-            PrimitiveValue::from(1u16),
-        );
+        common::put_grey_pixel_module(&mut put, [2, 3], 12, true);
         put(tags::RESCALE_SLOPE, VR::DS, format!("{slope}").into());
         put(tags::RESCALE_INTERCEPT, VR::DS, "-10".into());
         put(tags::WINDOW_CENTER, VR::DS, "40\\400".into());
@@ -688,15 +668,13 @@ fn write_dicom_at(
             .collect();
         put(tags::PIXEL_DATA, VR::OW, PrimitiveValue::U16(px.into()));
     }
-    let file = obj
-        .with_meta(
-            FileMetaTableBuilder::new()
-                .transfer_syntax(uids::EXPLICIT_VR_LITTLE_ENDIAN)
-                .media_storage_sop_class_uid(uids::MR_IMAGE_STORAGE)
-                .media_storage_sop_instance_uid(sop_uid),
-        )
-        .unwrap();
-    file.write_to_file(path).unwrap();
+    common::write_part10(
+        obj,
+        uids::EXPLICIT_VR_LITTLE_ENDIAN,
+        uids::MR_IMAGE_STORAGE,
+        &sop_uid,
+        path,
+    );
 }
 
 #[test]
@@ -927,7 +905,7 @@ fn synthetic_dicom_rle_lossless() {
     use dicom_core::value::PixelFragmentSequence;
     use dicom_core::{DataElement, PrimitiveValue, VR};
     use dicom_dictionary_std::{tags, uids};
-    use dicom_object::{FileMetaTableBuilder, InMemDicomObject};
+    use dicom_object::InMemDicomObject;
     let t = tempfile::tempdir().unwrap();
     let values: [u16; 6] = [0, 1, 300, 65535, 4096, 7];
     // RLE: one segment per byte plane, most significant first; each a literal run of 6 bytes.
@@ -946,37 +924,20 @@ fn synthetic_dicom_rle_lossless() {
     put(tags::SOP_INSTANCE_UID, VR::UI, "1.2.3.4".into());
     put(tags::MODALITY, VR::CS, "CT".into());
     put(tags::SERIES_INSTANCE_UID, VR::UI, "1.2.3".into());
-    put(tags::ROWS, VR::US, PrimitiveValue::from(2u16));
-    put(tags::COLUMNS, VR::US, PrimitiveValue::from(3u16));
-    put(tags::SAMPLES_PER_PIXEL, VR::US, PrimitiveValue::from(1u16));
-    put(
-        tags::PHOTOMETRIC_INTERPRETATION,
-        VR::CS,
-        "MONOCHROME2".into(),
-    );
-    put(tags::BITS_ALLOCATED, VR::US, PrimitiveValue::from(16u16));
-    put(tags::BITS_STORED, VR::US, PrimitiveValue::from(16u16));
-    put(tags::HIGH_BIT, VR::US, PrimitiveValue::from(15u16));
-    put(
-        tags::PIXEL_REPRESENTATION,
-        VR::US,
-        PrimitiveValue::from(0u16),
-    );
+    common::put_grey_pixel_module(&mut put, [2, 3], 16, false);
     obj.put(DataElement::new(
         tags::PIXEL_DATA,
         VR::OB,
         PixelFragmentSequence::new(Vec::<u32>::new(), vec![frag]),
     ));
-    let file = obj
-        .with_meta(
-            FileMetaTableBuilder::new()
-                .transfer_syntax(uids::RLE_LOSSLESS)
-                .media_storage_sop_class_uid(uids::CT_IMAGE_STORAGE)
-                .media_storage_sop_instance_uid("1.2.3.4"),
-        )
-        .unwrap();
     let p = t.path().join("rle.dcm");
-    file.write_to_file(&p).unwrap();
+    common::write_part10(
+        obj,
+        uids::RLE_LOSSLESS,
+        uids::CT_IMAGE_STORAGE,
+        "1.2.3.4",
+        &p,
+    );
     let s = open(&p);
     assert_eq!(s.info.sample_type, SampleType::U16);
     assert_eq!(
@@ -999,16 +960,8 @@ fn edited_dicom(
     let mut obj = dicom_object::open_file(&base).unwrap().into_inner();
     std::fs::remove_file(&base).unwrap();
     edit(&mut obj);
-    let file = obj
-        .with_meta(
-            dicom_object::FileMetaTableBuilder::new()
-                .transfer_syntax(ts)
-                .media_storage_sop_class_uid(uids::MR_IMAGE_STORAGE)
-                .media_storage_sop_instance_uid("1.2.3.100"),
-        )
-        .unwrap();
     let p = dir.join(format!("{name}.dcm"));
-    file.write_to_file(&p).unwrap();
+    common::write_part10(obj, ts, uids::MR_IMAGE_STORAGE, "1.2.3.100", &p);
     p
 }
 

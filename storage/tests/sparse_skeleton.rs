@@ -6,6 +6,7 @@ use std::collections::HashMap;
 use std::path::Path;
 use std::time::Duration;
 
+use crate::common;
 use strata_storage::import::ImportOptions;
 use strata_storage::octree::average8;
 use strata_storage::phantom::Phantom;
@@ -16,20 +17,10 @@ use strata_types::{BrickId, OctreeLayout, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD
 
 /// Every node's answer, in layout order.
 fn all_nodes(store: &Store) -> Vec<(BrickId, NodeInfo)> {
-    let layout = store.layout().clone();
-    let mut out = Vec::new();
-    for level in 0..layout.level_count() {
-        let n = layout.bricks_in_level(level);
-        for z in 0..n[2] {
-            for y in 0..n[1] {
-                for x in 0..n[0] {
-                    let id = BrickId::new(level as u8, [x, y, z]);
-                    out.push((id, store.node(id).unwrap()));
-                }
-            }
-        }
-    }
-    out
+    common::all_brick_ids(store)
+        .into_iter()
+        .map(|id| (id, store.node(id).unwrap()))
+        .collect()
 }
 
 /// Rewrites a closed store's metadata as a build before the sparse skeleton wrote it: the

@@ -5,6 +5,7 @@
 use std::path::Path;
 use std::time::Duration;
 
+use crate::common;
 use strata_storage::import::ImportOptions;
 use strata_storage::phantom::Phantom;
 use strata_storage::store::STORE_FORMAT_VERSION;
@@ -32,20 +33,10 @@ fn write_v2(path: &Path, size: u64, codec: BrickCodec) {
 
 /// Every brick of every level of `store`.
 fn all_bricks(store: &Store) -> Vec<(BrickId, Vec<u16>)> {
-    let layout = store.layout().clone();
-    let mut out = Vec::new();
-    for level in 0..layout.level_count() {
-        let n = layout.bricks_in_level(level);
-        for z in 0..n[2] {
-            for y in 0..n[1] {
-                for x in 0..n[0] {
-                    let id = BrickId::new(level as u8, [x, y, z]);
-                    out.push((id, store.read_brick(id).unwrap()));
-                }
-            }
-        }
-    }
-    out
+    common::all_brick_ids(store)
+        .into_iter()
+        .map(|id| (id, store.read_brick(id).unwrap()))
+        .collect()
 }
 
 /// Decodes every brick record of `store` through C zstd (the native decoder) and through ruzstd

@@ -5,6 +5,7 @@
 
 use std::path::{Path, PathBuf};
 
+use crate::common;
 use strata_storage::import::ImportOptions;
 use strata_storage::phantom::Phantom;
 use strata_storage::{StorageError, Store};
@@ -22,19 +23,7 @@ fn v3_and_v2(dir: &Path, size: u64) -> (PathBuf, PathBuf) {
 }
 
 fn all_ids(store: &Store) -> Vec<BrickId> {
-    let layout = store.layout().clone();
-    let mut out = Vec::new();
-    for level in 0..layout.level_count() {
-        let n = layout.bricks_in_level(level);
-        for z in 0..n[2] {
-            for y in 0..n[1] {
-                for x in 0..n[0] {
-                    out.push(BrickId::new(level as u8, [x, y, z]));
-                }
-            }
-        }
-    }
-    out
+    common::all_brick_ids(store)
 }
 
 /// Every file under `dir` with its size, mtime and content.

@@ -155,10 +155,25 @@ pub enum Step {
     RenderError(anyhow::Error),
 }
 
+/// Why the adaptive refinement of a still view cannot go on; the status line shows it.
+#[derive(Debug, thiserror::Error)]
+enum AdaptiveError {
+    #[error("the adaptive oracle could not read a brick: {0}")]
+    ReadBrick(strata_loader::LoaderError),
+    /// The oracle's thread ended without a result; its panic message.
+    #[error("the adaptive oracle thread failed: {0}")]
+    ThreadPanicked(String),
+    #[error("the adaptive oracle thread could not start: {0}")]
+    ThreadStart(std::io::Error),
+    /// The validation error or panic message of the pass's creation.
+    #[error("the adaptive pass could not be created: {0}")]
+    PassCreation(String),
+}
+
 struct Pending {
     key: OracleKey,
     cancel: Arc<AtomicBool>,
-    result: crossbeam_channel::Receiver<Result<Option<BuiltOracle>, String>>,
+    result: crossbeam_channel::Receiver<Result<Option<BuiltOracle>, AdaptiveError>>,
     thread: Option<std::thread::JoinHandle<()>>,
 }
 
@@ -297,7 +312,7 @@ impl AdaptiveView {
             );
         }
         if let Err(reason) = self.ensure_pass(ctx, volume) {
-            return Step::Failed(reason);
+            return Step::Failed(reason.to_string());
         }
         if self.applied.as_ref().is_none_or(|a| a.key != key) {
             match self.poll_or_start(volume, &key) {
@@ -309,6 +324,7 @@ impl AdaptiveView {
                 }
                 Ok(None) => return Step::Building,
                 Err(reason) => {
+                    let reason = reason.to_string();
                     self.failed = Some((key, reason.clone()));
                     return Step::Failed(reason);
                 }
@@ -348,7 +364,7 @@ impl AdaptiveView {
         &mut self,
         volume: &StreamingVolume,
         key: &OracleKey,
-    ) -> Result<Option<Arc<BuiltOracle>>, String> {
+    ) -> Result<Option<Arc<BuiltOracle>>, AdaptiveError> {
         self.supersede(Some(key));
         let Some(pending) = self.pending.as_mut() else {
             self.pending = Some(start_build(
@@ -385,14 +401,18 @@ impl AdaptiveView {
                     })
                     .unwrap_or_else(|| "no result".into());
                 self.pending = None;
-                Err(format!("the adaptive oracle thread failed: {message}"))
+                Err(AdaptiveError::ThreadPanicked(message))
             }
         }
     }
 
-    fn ensure_pass(&mut self, ctx: &GpuContext, volume: &StreamingVolume) -> Result<(), String> {
-        if let Some(e) = &self.pass_error {
-            return Err(e.clone());
+    fn ensure_pass(
+        &mut self,
+        ctx: &GpuContext,
+        volume: &StreamingVolume,
+    ) -> Result<(), AdaptiveError> {
+        if let Some(reason) = &self.pass_error {
+            return Err(AdaptiveError::PassCreation(reason.clone()));
         }
         if self.pass.is_some() {
             return Ok(());
@@ -410,17 +430,14 @@ impl AdaptiveView {
                 Ok(())
             }
             (Ok(_), Some(error)) => {
-                let e = format!("the adaptive pass could not be created: {error}");
-                self.pass_error = Some(e.clone());
-                Err(e)
+                let reason = error.to_string();
+                self.pass_error = Some(reason.clone());
+                Err(AdaptiveError::PassCreation(reason))
             }
             (Err(panic), _) => {
-                let e = format!(
-                    "the adaptive pass could not be created: {}",
-                    panic_message(panic.as_ref())
-                );
-                self.pass_error = Some(e.clone());
-                Err(e)
+                let reason = panic_message(panic.as_ref());
+                self.pass_error = Some(reason.clone());
+                Err(AdaptiveError::PassCreation(reason))
             }
         }
     }
@@ -431,7 +448,7 @@ fn start_build(
     mut payloads: CutPayloads,
     mapping: ValueMapping,
     key: OracleKey,
-) -> Result<Pending, String> {
+) -> Result<Pending, AdaptiveError> {
     let cancel = Arc::new(AtomicBool::new(false));
     let (send, result) = crossbeam_channel::bounded(1);
     let thread_cancel = cancel.clone();
@@ -441,7 +458,7 @@ fn start_build(
         .spawn(move || {
             let cancelled = || thread_cancel.load(Ordering::Acquire);
             let outcome = match payloads.read_missing(cancelled) {
-                Err(e) => Err(format!("the adaptive oracle could not read a brick: {e}")),
+                Err(e) => Err(AdaptiveError::ReadBrick(e)),
                 Ok(false) => Ok(None),
                 Ok(true) => {
                     inject_test_fault(thread_key.epsilon);
@@ -465,7 +482,7 @@ fn start_build(
             // The receiver is gone when the build was superseded: nothing to tell.
             let _ = send.send(outcome);
         })
-        .map_err(|e| format!("the adaptive oracle thread could not start: {e}"))?;
+        .map_err(AdaptiveError::ThreadStart)?;
     Ok(Pending {
         key,
         cancel,

@@ -578,7 +578,7 @@ impl StrataApp {
                 }
                 Err(e) => Some(format!("{e:#}")),
             },
-            Err(e) => Some(e),
+            Err(e) => Some(crate::error_report::describe(&e)),
         };
         if let Some(e) = failed {
             // Also on the terminal: `strata view bad.nii` must not fail silently there.
@@ -1163,7 +1163,7 @@ impl StrataApp {
             if let Err(e) = &outcome {
                 eprintln!("strata: screenshot failed: {e}");
             }
-            self.saved_screenshot = Some(outcome);
+            self.saved_screenshot = Some(outcome.map_err(|e| e.to_string()));
             self.screenshot = None;
             self.toast = None;
         }

@@ -55,8 +55,9 @@ pub fn store_path_for_pacs_series(base_url: &str, series_uid: &str, folder: &Pat
     folder.join(format!("pacs-{key:016x}.strata"))
 }
 
-/// The prepared store, or why it could not be prepared; None while the job runs.
-type PrepareOutcome = Arc<Mutex<Option<Result<Arc<dyn strata_source::VolumeSource>, String>>>>;
+/// The prepared store, or why it could not be prepared (with its chain of causes, which
+/// `error_report::describe` words for the user); None while the job runs.
+type PrepareOutcome = Arc<Mutex<Option<anyhow::Result<Arc<dyn strata_source::VolumeSource>>>>>;
 
 pub struct PrepareJob {
     pub title: String,
@@ -181,8 +182,7 @@ impl PrepareJob {
                     &progress,
                     &set_stage,
                     &cancel,
-                )
-                .map_err(|e| crate::error_report::describe(&e));
+                );
                 *lock_ignoring_poison(&result) = Some(outcome);
                 repaint();
             })?;
@@ -202,7 +202,7 @@ impl PrepareJob {
         self.cancel.store(true, Ordering::Release);
     }
 
-    pub fn take_result(&self) -> Option<Result<Arc<dyn strata_source::VolumeSource>, String>> {
+    pub fn take_result(&self) -> Option<anyhow::Result<Arc<dyn strata_source::VolumeSource>>> {
         lock_ignoring_poison(&self.result).take()
     }
 }
@@ -432,7 +432,7 @@ mod remote_tests {
     use super::*;
     use std::time::{Duration, Instant};
 
-    fn wait_for(job: &PrepareJob) -> Result<Arc<dyn strata_source::VolumeSource>, String> {
+    fn wait_for(job: &PrepareJob) -> anyhow::Result<Arc<dyn strata_source::VolumeSource>> {
         let deadline = Instant::now() + Duration::from_secs(120);
         loop {
             if let Some(r) = job.take_result() {
@@ -486,7 +486,7 @@ mod remote_tests {
         ] {
             let job = PrepareJob::start(source.clone(), None, dir.path().into(), repaint.clone())
                 .unwrap();
-            let opened = wait_for(&job).unwrap_or_else(|e| panic!("{source:?}: {e}"));
+            let opened = wait_for(&job).unwrap_or_else(|e| panic!("{source:?}: {e:#}"));
             assert_eq!(opened.header().geometry.dims, [40, 40, 40]);
             assert_eq!(opened.location(), expected, "{source:?}");
         }

@@ -37,17 +37,28 @@ fn field(text: &str) -> Option<String> {
     Some(text.trim().to_string()).filter(|t| !t.is_empty())
 }
 
-fn check_date(which: &str, text: &str) -> Result<(), String> {
+/// A search form's date that is not DICOM's YYYYMMDD; `which` is "from" or "to".
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("the {which} date must be YYYYMMDD, not '{text}'")]
+pub struct BadDate {
+    which: &'static str,
+    text: String,
+}
+
+fn check_date(which: &'static str, text: &str) -> Result<(), BadDate> {
     if text.is_empty() || (text.len() == 8 && text.bytes().all(|b| b.is_ascii_digit())) {
         Ok(())
     } else {
-        Err(format!("the {which} date must be YYYYMMDD, not '{text}'"))
+        Err(BadDate {
+            which,
+            text: text.to_string(),
+        })
     }
 }
 
 impl SearchForm {
     /// The QIDO query the form asks for, or what is wrong with it.
-    pub fn query(&self) -> Result<StudyQuery, String> {
+    pub fn query(&self) -> Result<StudyQuery, BadDate> {
         let (from, to) = (self.date_from.trim(), self.date_to.trim());
         check_date("from", from)?;
         check_date("to", to)?;
@@ -160,7 +171,7 @@ impl PacsModel {
         let query = match self.form.query() {
             Ok(q) => q,
             Err(e) => {
-                self.error = Some(e);
+                self.error = Some(e.to_string());
                 return;
             }
         };
@@ -275,7 +286,8 @@ impl PacsModel {
                         return;
                     }
                     let thumbnail = match &client {
-                        Ok(client) => super::pacs_thumbnail::fetch(client, &study_uid, &uid),
+                        Ok(client) => super::pacs_thumbnail::fetch(client, &study_uid, &uid)
+                            .map_err(|e| e.to_string()),
                         Err(e) => Err(e.clone()),
                     };
                     lock_ignoring_poison(&slot).insert(uid, thumbnail);
@@ -627,7 +639,7 @@ mod tests {
             Some("20240101-20241231")
         );
         form.date_to = "2024-12-31".into();
-        assert!(form.query().unwrap_err().contains("YYYYMMDD"));
+        assert!(form.query().unwrap_err().to_string().contains("YYYYMMDD"));
     }
 
     #[test]
@@ -687,7 +699,7 @@ mod tests {
             let start = Instant::now();
             loop {
                 if let Some(r) = job.take_result() {
-                    return r.unwrap_or_else(|e| panic!("opening from the PACS failed: {e}"));
+                    return r.unwrap_or_else(|e| panic!("opening from the PACS failed: {e:#}"));
                 }
                 assert!(start.elapsed() < WAIT, "the PACS job did not finish");
                 std::thread::sleep(Duration::from_millis(20));

@@ -19,24 +19,34 @@ pub struct Thumbnail {
     pub instance_uid: String,
 }
 
+/// Why a series has no thumbnail; the PACS's errors name the server, the reader's the file.
+#[derive(Debug, thiserror::Error)]
+pub enum ThumbnailError {
+    #[error(transparent)]
+    Pacs(#[from] strata_pacs::PacsError),
+    #[error("the series holds no instance")]
+    NoInstance,
+    #[error("cannot make a temporary folder for a thumbnail: {0}")]
+    TempFolder(std::io::Error),
+    #[error(transparent)]
+    Read(#[from] strata_storage::StorageError),
+}
+
 /// The thumbnail of a series (its middle instance, its middle frame); errors name the server.
 pub fn fetch(
     client: &strata_pacs::Client,
     study_uid: &str,
     series_uid: &str,
-) -> Result<Thumbnail, String> {
+) -> Result<Thumbnail, ThumbnailError> {
     let uid = client
-        .middle_instance(study_uid, series_uid)
-        .map_err(|e| e.to_string())?
-        .ok_or_else(|| "the series holds no instance".to_string())?;
+        .middle_instance(study_uid, series_uid)?
+        .ok_or(ThumbnailError::NoInstance)?;
     let dir = tempfile::Builder::new()
         .prefix("strata-thumbnail")
         .tempdir()
-        .map_err(|e| format!("cannot make a temporary folder for a thumbnail: {e}"))?;
-    let path = client
-        .retrieve_instance(study_uid, series_uid, &uid, dir.path())
-        .map_err(|e| e.to_string())?;
-    let opened = open_source(&path, &ReadOptions::default()).map_err(|e| e.to_string())?;
+        .map_err(ThumbnailError::TempFolder)?;
+    let path = client.retrieve_instance(study_uid, series_uid, &uid, dir.path())?;
+    let opened = open_source(&path, &ReadOptions::default())?;
     let [columns, rows, frames] = opened.data.dims;
     let mut values = Vec::new();
     opened.data.read_slice_f64(frames / 2, &mut values);

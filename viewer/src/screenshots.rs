@@ -41,7 +41,26 @@ pub struct ScreenshotJob {
     pub path: PathBuf,
     stage: Stage,
     captured: Arc<Mutex<Option<Arc<ColorImage>>>>,
-    written: Arc<Mutex<Option<Result<PathBuf, String>>>>,
+    written: Arc<Mutex<Option<Result<PathBuf, ScreenshotError>>>>,
+}
+
+/// Why a screenshot was not written.
+#[derive(Debug, thiserror::Error)]
+pub enum ScreenshotError {
+    #[error("the view to capture is no longer shown")]
+    ViewGone,
+    #[error("cannot start the writer thread: {0}")]
+    WriterThread(std::io::Error),
+    #[error("cannot create the folder {}: {source}", .dir.display())]
+    CreateFolder {
+        dir: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("cannot write {}: {source}", .path.display())]
+    Write {
+        path: PathBuf,
+        source: image::ImageError,
+    },
 }
 
 /// Longest wait for a converged 3D frame before capturing what is there.
@@ -82,7 +101,7 @@ impl ScreenshotJob {
         ctx: &egui::Context,
         frame_ready: bool,
         rect: Option<Rect>,
-    ) -> Option<Result<PathBuf, String>> {
+    ) -> Option<Result<PathBuf, ScreenshotError>> {
         match self.stage.clone() {
             Stage::Rendering { since } => {
                 if frame_ready || since.elapsed() > RENDER_WAIT {
@@ -102,7 +121,7 @@ impl ScreenshotJob {
             Stage::Capturing => {
                 let image = lock_ignoring_poison(&self.captured).take()?;
                 let Some(rect) = rect else {
-                    return Some(Err("the view to capture is no longer shown".into()));
+                    return Some(Err(ScreenshotError::ViewGone));
                 };
                 let crop = crop(&image, rect, ctx.pixels_per_point());
                 let path = self.path.clone();
@@ -116,7 +135,7 @@ impl ScreenshotJob {
                         repaint.request_repaint();
                     });
                 if let Err(e) = spawned {
-                    return Some(Err(format!("cannot start the writer thread: {e}")));
+                    return Some(Err(ScreenshotError::WriterThread(e)));
                 }
                 self.stage = Stage::Writing;
                 None
@@ -140,10 +159,12 @@ pub fn crop(image: &ColorImage, rect: Rect, pixels_per_point: f32) -> ColorImage
     ColorImage::new([x1 - x0, y1 - y0], pixels)
 }
 
-fn write(path: &std::path::Path, image: &ColorImage) -> Result<(), String> {
+fn write(path: &std::path::Path, image: &ColorImage) -> Result<(), ScreenshotError> {
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir)
-            .map_err(|e| format!("cannot create the folder {}: {e}", dir.display()))?;
+        std::fs::create_dir_all(dir).map_err(|source| ScreenshotError::CreateFolder {
+            dir: dir.to_path_buf(),
+            source,
+        })?;
     }
     let [w, h] = image.size;
     let mut rgb = Vec::with_capacity(w * h * 3);
@@ -158,7 +179,10 @@ fn write(path: &std::path::Path, image: &ColorImage) -> Result<(), String> {
         h as u32,
         image::ExtendedColorType::Rgb8,
     )
-    .map_err(|e| format!("cannot write {}: {e}", path.display()))
+    .map_err(|source| ScreenshotError::Write {
+        path: path.to_path_buf(),
+        source,
+    })
 }
 
 #[cfg(test)]

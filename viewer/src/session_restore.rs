@@ -184,20 +184,41 @@ impl SavedSession {
         std::fs::rename(&partial, path)
     }
 
-    pub fn read(path: &Path) -> Result<Self, String> {
-        let text = std::fs::read_to_string(path)
-            .map_err(|e| format!("cannot read the saved session {}: {e}", path.display()))?;
-        let saved: SavedSession = serde_json::from_str(&text)
-            .map_err(|e| format!("the saved session {} is damaged: {e}", path.display()))?;
+    pub fn read(path: &Path) -> Result<Self, SavedSessionError> {
+        let text = std::fs::read_to_string(path).map_err(|source| SavedSessionError::Read {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let saved: SavedSession =
+            serde_json::from_str(&text).map_err(|source| SavedSessionError::Damaged {
+                path: path.to_path_buf(),
+                source,
+            })?;
         if saved.version != FORMAT_VERSION {
-            return Err(format!(
-                "the saved session {} has format {}, this viewer reads {FORMAT_VERSION}",
-                path.display(),
-                saved.version
-            ));
+            return Err(SavedSessionError::Version {
+                path: path.to_path_buf(),
+                version: saved.version,
+            });
         }
         Ok(saved)
     }
+}
+
+/// Why a saved session was not restored (the viewer then starts without it).
+#[derive(Debug, thiserror::Error)]
+pub enum SavedSessionError {
+    #[error("cannot read the saved session {}: {source}", .path.display())]
+    Read {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("the saved session {} is damaged: {source}", .path.display())]
+    Damaged {
+        path: PathBuf,
+        source: serde_json::Error,
+    },
+    #[error("the saved session {} has format {version}, this viewer reads {reads}", .path.display(), reads = FORMAT_VERSION)]
+    Version { path: PathBuf, version: u32 },
 }
 
 /// Writes the session when it changed, at most every [`AUTOSAVE_EVERY`].
@@ -591,7 +612,7 @@ mod tests {
         let dir = tempfile::tempdir().expect("tempdir");
         let path = dir.path().join("last-session.json");
         std::fs::write(&path, "{\"version\": 1, \"location\": ").expect("write");
-        let e = SavedSession::read(&path).expect_err("damaged");
+        let e = SavedSession::read(&path).expect_err("damaged").to_string();
         assert!(
             e.contains("damaged") && e.contains("last-session.json"),
             "{e}"
@@ -605,7 +626,7 @@ mod tests {
         let mut json: serde_json::Value = serde_json::from_str(&saved.to_json()).expect("json");
         json["version"] = 99.into();
         std::fs::write(&path, json.to_string()).expect("write");
-        let e = SavedSession::read(&path).expect_err("version");
+        let e = SavedSession::read(&path).expect_err("version").to_string();
         assert!(e.contains("format 99"), "{e}");
     }
 

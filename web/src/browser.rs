@@ -45,8 +45,8 @@ const ORBIT_DEG_PER_POINT: f64 = 0.4;
 #[wasm_bindgen(start)]
 pub fn start() {
     wasm_bindgen_futures::spawn_local(async {
-        if let Err(message) = run().await {
-            show_message("The viewer could not start", &message);
+        if let Err(problem) = run().await {
+            show_message("The viewer could not start", &problem.to_string());
         }
     });
 }
@@ -67,16 +67,52 @@ fn show_message(title: &str, detail: &str) {
     web_sys::console::error_1(&format!("strata: {title}: {detail}").into());
 }
 
-async fn run() -> Result<(), String> {
-    let window = web_sys::window().ok_or("no window object")?;
-    let document = window.document().ok_or("no document")?;
+/// Why the page stopped: shown in place of the view (or of the canvas, when it cannot start).
+#[derive(Debug, thiserror::Error)]
+enum PageError {
+    /// A part of the page or of its result that is not there.
+    #[error("{0}")]
+    Missing(&'static str),
+    #[error(transparent)]
+    Link(#[from] crate::view_state::FragmentError),
+    /// A JavaScript exception, as its debug text (a `JsValue` is neither `Send` nor an error).
+    #[error("{0}")]
+    Js(String),
+    #[error(transparent)]
+    Render(#[from] strata_render::RenderError),
+    #[error(transparent)]
+    Loader(#[from] LoaderError),
+    #[error(transparent)]
+    Source(#[from] strata_source::SourceError),
+    #[error(transparent)]
+    SliceViews(#[from] crate::slice_views::SliceViewsError),
+    /// wgpu's reason a mapped buffer could not be read.
+    #[error("{0}")]
+    Readback(String),
+    #[error(transparent)]
+    Png(#[from] png::EncodingError),
+    #[error("the screenshot's buffer could not be mapped")]
+    ScreenshotBuffer,
+    #[error("the server answered {0}")]
+    ServerAnswered(u16),
+}
+
+impl PageError {
+    fn js(value: JsValue) -> Self {
+        PageError::Js(format!("{value:?}"))
+    }
+}
+
+async fn run() -> Result<(), PageError> {
+    let window = web_sys::window().ok_or(PageError::Missing("no window object"))?;
+    let document = window.document().ok_or(PageError::Missing("no document"))?;
     let canvas = document
         .get_element_by_id("strata-canvas")
-        .ok_or("the page has no #strata-canvas")?
+        .ok_or(PageError::Missing("the page has no #strata-canvas"))?
         .dyn_into::<web_sys::HtmlCanvasElement>()
-        .map_err(|_| "#strata-canvas is not a canvas")?;
+        .map_err(|_| PageError::Missing("#strata-canvas is not a canvas"))?;
     let hash = window.location().hash().unwrap_or_default();
-    let fragment = Fragment::parse(&hash).map_err(|e| e.to_string())?;
+    let fragment = Fragment::parse(&hash)?;
     // Read before the address is rewritten below (the view's own keys only).
     let embed = embed_origin(&hash);
     if fragment.token.is_some() {
@@ -117,7 +153,7 @@ async fn run() -> Result<(), String> {
             }),
         )
         .await
-        .map_err(|e| format!("{e:?}"))
+        .map_err(PageError::js)
 }
 
 /// Where the test capture stands (an atomic because the map callback must be `Send` on the
@@ -147,7 +183,7 @@ struct Streamed {
 }
 
 /// The store being opened: filled by the open's future, taken by the next frame.
-type Opening = Rc<RefCell<Option<Result<ServedStore, String>>>>;
+type Opening = Rc<RefCell<Option<Result<ServedStore, strata_source::SourceError>>>>;
 
 /// The server's store list, filled by its request's future.
 type Stores = Rc<RefCell<Option<Result<StoreList, String>>>>;
@@ -280,14 +316,14 @@ impl WebViewer {
     }
 
     /// Makes the volume and the renderer on the second frame (the first shows the notice).
-    fn ensure_renderer(&mut self, ctx: &egui::Context) -> Result<bool, String> {
+    fn ensure_renderer(&mut self, ctx: &egui::Context) -> Result<bool, PageError> {
         if self.volume.is_none() {
             self.waited_frames += 1;
             if self.waited_frames < 2 {
                 ctx.request_repaint();
                 return Ok(false);
             }
-            let volume = Rc::new(self.view.sample_volume().map_err(|e| e.to_string())?);
+            let volume = Rc::new(self.view.sample_volume()?);
             let mut slices = SliceViews::for_sample(volume.clone());
             slices.set_from_link(self.view.cursor, self.view.window);
             self.sample_slices = Some(slices);
@@ -304,8 +340,8 @@ impl WebViewer {
                 ..CacheConfig::default()
             };
             let transfer_function = self.side.transfer_function(&self.view);
-            let renderer = OffscreenRenderer::new(&self.gpu, volume, &transfer_function, 0, config)
-                .map_err(|e| e.to_string())?;
+            let renderer =
+                OffscreenRenderer::new(&self.gpu, volume, &transfer_function, 0, config)?;
             self.renderer = Some(renderer);
             self.sample_driver = Some(RenderDriver::new(transfer_function, None));
         }
@@ -313,7 +349,7 @@ impl WebViewer {
     }
 
     /// Opens the fragment's store (asynchronously) and starts the loader on it once open.
-    fn ensure_stream(&mut self, ctx: &egui::Context, name: &str) -> Result<bool, String> {
+    fn ensure_stream(&mut self, ctx: &egui::Context, name: &str) -> Result<bool, PageError> {
         if self.streamed.is_some() {
             return Ok(true);
         }
@@ -322,9 +358,7 @@ impl WebViewer {
             let filled = slot.clone();
             let (name, token, repaint) = (name.to_string(), self.token.clone(), ctx.clone());
             wasm_bindgen_futures::spawn_local(async move {
-                let opened = ServedStore::open(&name, token)
-                    .await
-                    .map_err(|e| e.to_string());
+                let opened = ServedStore::open(&name, token).await;
                 *filled.borrow_mut() = Some(opened);
                 repaint.request_repaint();
             });
@@ -362,8 +396,7 @@ impl WebViewer {
             ..StreamingConfig::default()
         };
         let transfer_function = self.side.transfer_function(&self.view);
-        let volume = StreamingVolume::new(&self.gpu, store, &transfer_function, config)
-            .map_err(|e| e.to_string())?;
+        let volume = StreamingVolume::new(&self.gpu, store, &transfer_function, config)?;
         self.streamed = Some(Streamed {
             volume,
             // The page streams with the loader's choice of traversal.
@@ -375,7 +408,7 @@ impl WebViewer {
     }
 
     /// A loader frame while the view changed or the cut has not converged; then idle.
-    fn draw_streamed(&mut self, ctx: &egui::Context, size: [u32; 2]) -> Result<(), String> {
+    fn draw_streamed(&mut self, ctx: &egui::Context, size: [u32; 2]) -> Result<(), PageError> {
         let wanted = (self.view.of_3d_view(), size);
         let Some(geometry) = self.streamed.as_ref().map(|s| s.volume.geometry().clone()) else {
             return Ok(());
@@ -392,8 +425,7 @@ impl WebViewer {
                 Err(LoaderError::Unsupported(
                     "the page streams with the loader's traversal".into(),
                 ))
-            })
-            .map_err(|e| e.to_string())?;
+            })?;
         let converged = streamed.last.as_ref().is_some_and(|s| s.converged);
         let now = self.page_started.elapsed().as_secs_f64();
         let target_fps = request.target_fps;
@@ -409,10 +441,7 @@ impl WebViewer {
         let mut settings = request.settings.clone();
         let (quality, lod_factor) = self.motion.plan(now, target_fps, &mut settings);
         streamed.volume.set_max_voxel_pixels(lod_factor);
-        let stats = streamed
-            .volume
-            .frame(&self.gpu, &camera, &settings)
-            .map_err(|e| e.to_string())?;
+        let stats = streamed.volume.frame(&self.gpu, &camera, &settings)?;
         if !stats.converged {
             ctx.request_repaint();
         }
@@ -427,7 +456,7 @@ impl WebViewer {
             .volume
             .raycaster_mut()
             .output_view()
-            .ok_or("the raycaster drew no image")?;
+            .ok_or(PageError::Missing("the raycaster drew no image"))?;
         show_texture(&self.render_state, &self.gpu, view, &mut self.texture);
         streamed.driver.drawn(&request);
         self.drawn = Some(wanted);
@@ -451,7 +480,7 @@ impl WebViewer {
         }
     }
 
-    fn draw_if_changed(&mut self, size: [u32; 2]) -> Result<(), String> {
+    fn draw_if_changed(&mut self, size: [u32; 2]) -> Result<(), PageError> {
         let wanted = (self.view.of_3d_view(), size);
         let Some(geometry) = self.volume.as_ref().map(|v| v.geometry.clone()) else {
             return Ok(());
@@ -470,9 +499,7 @@ impl WebViewer {
             .changes(&request)
             .contains(&RenderChange::TransferFunction)
         {
-            renderer
-                .set_transfer_function(&self.gpu, volume, &request.transfer_function)
-                .map_err(|e| e.to_string())?;
+            renderer.set_transfer_function(&self.gpu, volume, &request.transfer_function)?;
             driver.transfer_function_applied(&request.transfer_function);
         }
         let now = self.page_started.elapsed().as_secs_f64();
@@ -488,9 +515,7 @@ impl WebViewer {
         let mut settings = request.settings.clone();
         // The sample is drawn whole: no level of detail to coarsen, the step only.
         let (quality, _) = self.motion.plan(now, target_fps, &mut settings);
-        renderer
-            .submit(&self.gpu, volume, &camera, &settings)
-            .map_err(|e| e.to_string())?;
+        renderer.submit(&self.gpu, volume, &camera, &settings)?;
         // The sample is drawn whole in one frame.
         self.timing.submitted(true);
         let timings = renderer.raycaster.try_take_frame_timings(&self.gpu);
@@ -501,7 +526,7 @@ impl WebViewer {
         let view = renderer
             .raycaster
             .output_view()
-            .ok_or("the raycaster drew no image")?;
+            .ok_or(PageError::Missing("the raycaster drew no image"))?;
         show_texture(&self.render_state, &self.gpu, view, &mut self.texture);
         driver.drawn(&request);
         self.drawn = Some(wanted);
@@ -724,10 +749,13 @@ impl WebViewer {
         let png = if state == CAPTURE_MAPPED {
             read_back(&capture).and_then(|rgba| encode_png(&rgba, capture.size))
         } else {
-            Err("the screenshot's buffer could not be mapped".to_string())
+            Err(PageError::ScreenshotBuffer)
         };
         for id in ids {
-            bridge.answer_screenshot(&id, png.clone());
+            bridge.answer_screenshot(
+                &id,
+                png.as_ref().map(Vec::clone).map_err(ToString::to_string),
+            );
         }
     }
 
@@ -781,7 +809,7 @@ impl WebViewer {
                 let metrics = self.timing.metrics();
                 wasm_bindgen_futures::spawn_local(async move {
                     if let Err(e) = post_frame(&rgba, w, h, &metrics, token.as_deref()).await {
-                        show_message("The test capture could not be sent", &e);
+                        show_message("The test capture could not be sent", &e.to_string());
                     }
                 });
             }
@@ -801,7 +829,7 @@ impl WebViewer {
                         let token = self.token.clone();
                         wasm_bindgen_futures::spawn_local(async move {
                             if let Err(e) = post_frame(&rgba, w, h, &[], token.as_deref()).await {
-                                show_message("The slice capture could not be sent", &e);
+                                show_message("The slice capture could not be sent", &e.to_string());
                             }
                         });
                     } else if !slices.captured() {
@@ -877,7 +905,7 @@ fn start_readback(
 }
 
 /// The mapped capture's RGBA8 rows without their padding; unmaps the buffer.
-fn read_back(capture: &Capture) -> Result<Vec<u8>, String> {
+fn read_back(capture: &Capture) -> Result<Vec<u8>, PageError> {
     let [w, h] = capture.size;
     let mut rgba = Vec::with_capacity((w * h * 4) as usize);
     {
@@ -885,7 +913,7 @@ fn read_back(capture: &Capture) -> Result<Vec<u8>, String> {
             .buffer
             .slice(..)
             .get_mapped_range()
-            .map_err(|e| e.to_string())?;
+            .map_err(|e| PageError::Readback(e.to_string()))?;
         for row in 0..h as usize {
             let start = row * capture.padded_row as usize;
             rgba.extend_from_slice(&mapped[start..start + (w * 4) as usize]);
@@ -896,7 +924,7 @@ fn read_back(capture: &Capture) -> Result<Vec<u8>, String> {
 }
 
 /// An RGBA8 image as PNG (the embedded page's screenshots).
-fn encode_png(rgba: &[u8], [width, height]: [u32; 2]) -> Result<Vec<u8>, String> {
+fn encode_png(rgba: &[u8], [width, height]: [u32; 2]) -> Result<Vec<u8>, PageError> {
     let mut png = Vec::new();
     let mut encoder = png::Encoder::new(&mut png, width, height);
     encoder.set_color(png::ColorType::Rgba);
@@ -904,9 +932,9 @@ fn encode_png(rgba: &[u8], [width, height]: [u32; 2]) -> Result<Vec<u8>, String>
     // One filter for every row: the widget's numpy decoder (widget.py) undoes Up for a whole
     // row at once, where Paeth (which the adaptive default picks) needs a loop per pixel.
     encoder.set_filter(png::Filter::Up);
-    let mut writer = encoder.write_header().map_err(|e| e.to_string())?;
-    writer.write_image_data(rgba).map_err(|e| e.to_string())?;
-    writer.finish().map_err(|e| e.to_string())?;
+    let mut writer = encoder.write_header()?;
+    writer.write_image_data(rgba)?;
+    writer.finish()?;
     Ok(png)
 }
 
@@ -942,15 +970,15 @@ async fn post_frame(
     height: u32,
     metrics: &[(&str, f64)],
     token: Option<&str>,
-) -> Result<(), String> {
-    let window = web_sys::window().ok_or("no window")?;
+) -> Result<(), PageError> {
+    let window = web_sys::window().ok_or(PageError::Missing("no window"))?;
     let init = web_sys::RequestInit::new();
     init.set_method("POST");
     if let Some(token) = token {
-        let headers = web_sys::Headers::new().map_err(|e| format!("{e:?}"))?;
+        let headers = web_sys::Headers::new().map_err(PageError::js)?;
         headers
             .set("Authorization", &format!("Bearer {token}"))
-            .map_err(|e| format!("{e:?}"))?;
+            .map_err(PageError::js)?;
         init.set_headers(&headers);
     }
     let body = js_sys::Uint8Array::from(rgba);
@@ -959,14 +987,13 @@ async fn post_frame(
     for (name, value) in metrics {
         url.push_str(&format!("&{name}={value:.3}"));
     }
-    let request =
-        web_sys::Request::new_with_str_and_init(&url, &init).map_err(|e| format!("{e:?}"))?;
+    let request = web_sys::Request::new_with_str_and_init(&url, &init).map_err(PageError::js)?;
     let answer = wasm_bindgen_futures::JsFuture::from(window.fetch_with_request(&request))
         .await
-        .map_err(|e| format!("{e:?}"))?;
-    let response: web_sys::Response = answer.dyn_into().map_err(|e| format!("{e:?}"))?;
+        .map_err(PageError::js)?;
+    let response: web_sys::Response = answer.dyn_into().map_err(PageError::js)?;
     if !response.ok() {
-        return Err(format!("the server answered {}", response.status()));
+        return Err(PageError::ServerAnswered(response.status()));
     }
     Ok(())
 }
@@ -1038,7 +1065,7 @@ impl eframe::App for WebViewer {
                         return;
                     }
                     Err(e) => {
-                        self.error = Some(e);
+                        self.error = Some(e.to_string());
                         return;
                     }
                 }
@@ -1092,7 +1119,7 @@ impl eframe::App for WebViewer {
                     self.draw_if_changed(size)
                 };
                 if let Err(e) = drawn {
-                    self.error = Some(e);
+                    self.error = Some(e.to_string());
                     return;
                 }
                 if let Some(texture) = self.texture {

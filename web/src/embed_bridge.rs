@@ -81,18 +81,41 @@ pub fn embed_origin(hash: &str) -> Option<String> {
         .filter(|origin| !origin.is_empty() && origin != "null" && origin != "*")
 }
 
+/// Why the bridge to the parent page could not be set up.
+#[derive(Debug, thiserror::Error)]
+pub enum BridgeError {
+    #[error("no window")]
+    NoWindow,
+    #[error("the page has no parent window")]
+    NoParent,
+    /// A JavaScript exception, as its debug text.
+    #[error("{0}")]
+    Js(String),
+}
+
+/// Why the parent's view update was refused (it is answered with a `strata:error`).
+#[derive(Debug, thiserror::Error)]
+enum ViewUpdateError {
+    #[error("view `{0}` must be a finite number")]
+    NotANumber(&'static str),
+    #[error("view `preset` '{0}' is not one of {presets}", presets = TransferFunction::PRESETS.join(", "))]
+    UnknownPreset(String),
+    #[error("view `preset` must be a name")]
+    PresetNotAName,
+}
+
 fn field(object: &JsValue, name: &str) -> JsValue {
     js_sys::Reflect::get(object, &JsValue::from_str(name)).unwrap_or(JsValue::UNDEFINED)
 }
 
 impl EmbedBridge {
     /// Listens to the parent at `origin`; a message wakes the UI (`ctx`).
-    pub fn new(origin: String, ctx: egui::Context) -> Result<Self, String> {
-        let window = web_sys::window().ok_or("no window")?;
+    pub fn new(origin: String, ctx: egui::Context) -> Result<Self, BridgeError> {
+        let window = web_sys::window().ok_or(BridgeError::NoWindow)?;
         let parent = window
             .parent()
-            .map_err(|e| format!("{e:?}"))?
-            .ok_or("the page has no parent window")?;
+            .map_err(|e| BridgeError::Js(format!("{e:?}")))?
+            .ok_or(BridgeError::NoParent)?;
         let inbox: Rc<RefCell<Vec<Request>>> = Rc::default();
         let (queue, expected) = (inbox.clone(), origin.clone());
         let listener = Closure::<dyn FnMut(web_sys::MessageEvent)>::new(
@@ -118,7 +141,7 @@ impl EmbedBridge {
         );
         window
             .add_event_listener_with_callback("message", listener.as_ref().unchecked_ref())
-            .map_err(|e| format!("{e:?}"))?;
+            .map_err(|e| BridgeError::Js(format!("{e:?}")))?;
         Ok(EmbedBridge {
             origin,
             inbox,
@@ -137,7 +160,8 @@ impl EmbedBridge {
         for request in requests {
             match request {
                 Request::SetView(update) => {
-                    if let Err(message) = apply_view(view, &update) {
+                    if let Err(problem) = apply_view(view, &update) {
+                        let message = problem.to_string();
                         self.post(&[("type", "strata:error".into()), ("message", message.into())]);
                     }
                 }
@@ -248,15 +272,15 @@ fn object(fields: &[(&str, JsValue)]) -> JsValue {
 }
 
 /// Sets what `update` names on `view`, all or nothing, within the page's own bounds.
-fn apply_view(view: &mut ViewState, update: &JsValue) -> Result<(), String> {
-    let number = |name: &str| -> Result<Option<f64>, String> {
+fn apply_view(view: &mut ViewState, update: &JsValue) -> Result<(), ViewUpdateError> {
+    let number = |name: &'static str| -> Result<Option<f64>, ViewUpdateError> {
         let value = field(update, name);
         if value.is_undefined() || value.is_null() {
             return Ok(None);
         }
         match value.as_f64().filter(|v| v.is_finite()) {
             Some(v) => Ok(Some(v)),
-            None => Err(format!("view `{name}` must be a finite number")),
+            None => Err(ViewUpdateError::NotANumber(name)),
         }
     };
     let azimuth = number("azimuth")?;
@@ -265,14 +289,9 @@ fn apply_view(view: &mut ViewState, update: &JsValue) -> Result<(), String> {
     let preset = field(update, "preset");
     let preset = match preset.as_string() {
         Some(name) if TransferFunction::PRESETS.contains(&name.as_str()) => Some(name),
-        Some(name) => {
-            return Err(format!(
-                "view `preset` '{name}' is not one of {}",
-                TransferFunction::PRESETS.join(", ")
-            ))
-        }
+        Some(name) => return Err(ViewUpdateError::UnknownPreset(name)),
         None if preset.is_undefined() || preset.is_null() => None,
-        None => return Err("view `preset` must be a name".into()),
+        None => return Err(ViewUpdateError::PresetNotAName),
     };
     if let Some(azimuth) = azimuth {
         view.azimuth_deg = azimuth;

@@ -158,17 +158,26 @@ fn wheel_lines(ui: &egui::Ui) -> f64 {
     })
 }
 
+/// Why a served store's slice views could not start.
+#[derive(Debug, thiserror::Error)]
+pub enum SliceViewsError {
+    #[error(transparent)]
+    Fetcher(strata_source::SourceError),
+    #[error("the store has no asynchronous brick path")]
+    NoAsynchronousPath,
+}
+
 impl SliceViews {
     /// Slice views of `store`, fetching through its asynchronous path.
-    pub fn new(store: &dyn VolumeSource) -> Result<SliceViews, String> {
+    pub fn new(store: &dyn VolumeSource) -> Result<SliceViews, SliceViewsError> {
         let fetcher = match store.start_fetching(FetchOptions {
             max_queued: SLICE_REQUESTS + 1,
             max_in_transit: SLICE_REQUESTS + 1,
             threads: 1,
         }) {
             Some(Ok(fetcher)) => fetcher,
-            Some(Err(e)) => return Err(e.to_string()),
-            None => return Err("the store has no asynchronous brick path".into()),
+            Some(Err(e)) => return Err(SliceViewsError::Fetcher(e)),
+            None => return Err(SliceViewsError::NoAsynchronousPath),
         };
         let header = store.header();
         let stored = (header.stored_range[0], header.stored_range[1]);

@@ -11,11 +11,9 @@ use crate::model::layout::{
 };
 use crate::model::page_table::{PageEntry, PageTable};
 use crate::model::transfer_function::TransferFunctionTable;
-use strata_types::{ValueMapping, VolumeGeometry};
+use strata_types::{level_count, ValueMapping, VolumeGeometry};
 
 use crate::model::layout::BrickSource;
-
-pub use strata_types::{level_count, level_dims};
 
 struct Level {
     dims: [u32; 3],

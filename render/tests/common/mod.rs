@@ -1,5 +1,6 @@
 //! Shared fixtures: a GPU (or a failing test with the install hint), a CT phantom, and
-//! "render on GPU and CPU, compare" in one call.
+//! "render on GPU and CPU, compare" in one call: [`check_against_reference`] (a fresh scene)
+//! or [`GpuScene::check_against_reference`] (a scene the test keeps), within [`Bounds`].
 #![allow(dead_code)]
 
 use strata_render::reference::metrics;
@@ -170,6 +171,94 @@ impl GpuScene {
         assert_clean(&frame);
         frame
     }
+
+    /// One GPU-vs-reference check on this scene: `settings` rendered from `camera`, the f64
+    /// reference of `f` integrated `bounds.refine` times finer, compared by [`assert_close`]
+    /// within `bounds`. Both images and the comparison come back for a test's further checks.
+    pub fn check_against_reference(
+        &mut self,
+        ctx: &GpuContext,
+        f: &Fixture,
+        name: &str,
+        camera: &Camera,
+        settings: &RenderSettings,
+        bounds: Bounds,
+    ) -> Checked {
+        let gpu = self.render(ctx, f, camera, settings);
+        let reference = f.reference(camera, settings, bounds.refine);
+        let comparison = assert_close(name, &gpu, &reference, bounds.min_psnr_db, bounds.max_abs);
+        Checked {
+            gpu,
+            reference,
+            comparison,
+        }
+    }
+}
+
+/// What an image comparison must meet: the reference's step refinement against the GPU's
+/// step, the least PSNR and the largest per-channel error (each test file says why its own).
+#[derive(Clone, Copy, Debug)]
+pub struct Bounds {
+    pub refine: f64,
+    pub min_psnr_db: f64,
+    pub max_abs: u8,
+}
+
+impl Bounds {
+    /// The house bar (TESTING.md, gpu_vs_reference.rs's doc): a reference 8 times finer,
+    /// PSNR ≥ 40 dB, max abs ≤ 24/255.
+    pub const REFERENCE: Bounds = Bounds {
+        refine: 8.0,
+        min_psnr_db: 40.0,
+        max_abs: 24,
+    };
+}
+
+/// A passed GPU-vs-reference check: both images and how they compare.
+pub struct Checked {
+    pub gpu: FrameReadback,
+    pub reference: ReferenceImage,
+    pub comparison: ImageComparison,
+}
+
+/// The GPU-vs-reference boundary in one call: a GPU, `f` uploaded to a fresh scene with the
+/// default cache, and [`GpuScene::check_against_reference`].
+pub fn check_against_reference(
+    name: &str,
+    f: &Fixture,
+    camera: &Camera,
+    settings: &RenderSettings,
+    bounds: Bounds,
+) -> Checked {
+    let ctx = gpu();
+    let mut scene = GpuScene::new(&ctx, f, CacheConfig::default());
+    scene.check_against_reference(&ctx, f, name, camera, settings, bounds)
+}
+
+/// A perspective orbit around `geometry`'s centre (`Camera::orbit`), the view most tests take.
+pub fn orbit(
+    geometry: &VolumeGeometry,
+    azimuth_deg: f64,
+    elevation_deg: f64,
+    distance: f64,
+    fov_y_deg: f64,
+) -> Camera {
+    Camera::orbit(
+        geometry,
+        azimuth_deg,
+        elevation_deg,
+        distance,
+        Projection::Perspective { fov_y_deg },
+    )
+}
+
+/// Two renderings that may differ only by rounding: compared, reported under `name`, and no
+/// channel of any pixel further apart than `max_abs`.
+pub fn assert_images_within(name: &str, a: &[u8], b: &[u8], max_abs: u8) -> ImageComparison {
+    let c = compare_rgba8(a, b).unwrap();
+    eprintln!("{name}: {c:?}");
+    assert!(c.max_abs_error <= max_abs, "{name}: {c:?}");
+    c
 }
 
 /// Settings for image comparisons: jitter off (the reference has none and noise would eat the
@@ -241,4 +330,31 @@ pub fn timing_assertions_enabled() -> bool {
         eprintln!("timing assertions skipped (set STRATA_TIMING_TESTS=1 to run them)");
     }
     enabled
+}
+
+/// Air (raw 0, −1024 HU) everywhere but where `solid` says: raw 2024 (1000 HU), on an `n`³
+/// grid of 1 mm voxels: the hard cases of the lighting tests (shadows.rs, cinematic.rs).
+pub fn binary_volume(n: u32, solid: impl Fn(u32, u32, u32) -> bool + Sync) -> BrickedVolume {
+    let geometry = VolumeGeometry::axis_aligned([n; 3], [1.0; 3]);
+    BrickedVolume::from_fn(geometry, phantom::CT_MAPPING, move |x, y, z| {
+        if solid(x, y, z) {
+            2024
+        } else {
+            0
+        }
+    })
+    .unwrap()
+}
+
+/// The one colour of [`opaque_tf`].
+pub const OPAQUE_COLOUR: [f64; 3] = [1.0, 0.9, 0.8];
+
+/// Opaque above 100 HU (α = 1 per voxel: the shadows of a voxel-thick layer are complete),
+/// transparent below −100 HU, one colour, so a pixel's colour is that colour times its lighting.
+pub fn opaque_tf() -> TransferFunction {
+    TransferFunction::new(
+        "opaque",
+        &[(-1024.0, 0.0), (-100.0, 0.0), (100.0, 1.0), (1000.0, 1.0)],
+        &[(-1024.0, OPAQUE_COLOUR), (1000.0, OPAQUE_COLOUR)],
+    )
 }

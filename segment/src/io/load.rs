@@ -24,7 +24,7 @@ pub struct MappedLabels {
 }
 
 impl MappedLabels {
-    fn row(&self, k: u32, j: u32, i0: u32, out: &mut [Label]) -> Result<(), String> {
+    fn row(&self, k: u32, j: u32, i0: u32, out: &mut [Label]) -> Result<(), NotALabel> {
         let data = &self.source.data;
         let size = data.sample_type.size_bytes();
         let nx = data.dims[0] as usize;
@@ -32,16 +32,21 @@ impl MappedLabels {
         let start = (j as usize * nx + i0 as usize) * size;
         let bytes = &slice[start..start + out.len() * size];
         for (n, (o, b)) in out.iter_mut().zip(bytes.chunks_exact(size)).enumerate() {
-            *o = label_of(b, data.sample_type, data.byte_order).ok_or_else(|| {
-                format!(
-                    "voxel ({}, {j}, {k}) holds {}, not a label (0..=65535)",
-                    i0 as usize + n,
-                    value_text(b, data.sample_type, data.byte_order)
-                )
+            *o = label_of(b, data.sample_type, data.byte_order).ok_or_else(|| NotALabel {
+                voxel: [i0 as usize + n, j as usize, k as usize],
+                value: value_text(b, data.sample_type, data.byte_order),
             })?;
         }
         Ok(())
     }
+}
+
+/// A voxel of a label file whose value is no label; `value` is the sample as the file holds it.
+#[derive(Debug, thiserror::Error)]
+#[error("voxel ({}, {}, {}) holds {value}, not a label (0..=65535)", .voxel[0], .voxel[1], .voxel[2])]
+struct NotALabel {
+    voxel: [usize; 3],
+    value: String,
 }
 
 impl LabelBase for MappedLabels {
@@ -123,9 +128,9 @@ pub fn load_label_file(path: &Path) -> Result<LabelLayer, SegmentError> {
         for j in 0..ny {
             mapped
                 .row(k, j, 0, &mut row)
-                .map_err(|message| SegmentError::Format {
+                .map_err(|problem| SegmentError::Format {
                     path: path.to_path_buf(),
-                    message,
+                    message: problem.to_string(),
                 })?;
             for &v in &row {
                 present[usize::from(v)] = true;

@@ -41,10 +41,10 @@ impl Decompressor {
         unsafe { tj::tj3Get(self.0, param as c_int) }
     }
 
-    fn set(&self, param: tj::TJPARAM, value: c_int) -> std::result::Result<(), String> {
+    fn set(&self, param: tj::TJPARAM, value: c_int) -> std::result::Result<(), JpegError> {
         // SAFETY: the handle is live; tj3Set validates the parameter and value itself.
         if unsafe { tj::tj3Set(self.0, param as c_int, value) } != 0 {
-            return Err(format!("configuring the JPEG decoder: {}", self.message()));
+            return Err(JpegError::Configure(self.message()));
         }
         Ok(())
     }
@@ -60,6 +60,41 @@ impl Decompressor {
             } else {
                 CStr::from_ptr(s).to_string_lossy().into_owned()
             }
+        }
+    }
+}
+
+/// Why one decode of a frame failed; the caller prefixes the file and frame.
+#[derive(Debug, thiserror::Error)]
+enum JpegError {
+    #[error("cannot start the JPEG decoder (libjpeg-turbo)")]
+    Start,
+    #[error("configuring the JPEG decoder: {0}")]
+    Configure(String),
+    #[error("bad JPEG header: {0}")]
+    Header(String),
+    #[error("the JPEG image is {width}x{height}, but the DICOM header says {cols}x{rows}")]
+    Size {
+        width: c_int,
+        height: c_int,
+        cols: u32,
+        rows: u32,
+    },
+    #[error("JPEG sample precision {0} (9 to 12 expected here)")]
+    Precision(c_int),
+    /// libjpeg-turbo's own message for the failed decode (or the warning that stopped it).
+    #[error("{0}")]
+    Decode(String),
+}
+
+impl JpegError {
+    /// Whether libjpeg stopped on the one warning that a repaired scan header avoids.
+    fn is_not_sequential_warning(&self) -> bool {
+        match self {
+            JpegError::Header(message) | JpegError::Decode(message) => {
+                message.contains(NOT_SEQUENTIAL)
+            }
+            _ => false,
         }
     }
 }
@@ -86,7 +121,7 @@ pub(crate) fn decode_12bit_frame(
     let what = format!("JPEG Extended (12-bit) frame {frame}");
     match decode_once(jpeg, cols, rows) {
         Ok(samples) => Ok((samples, None)),
-        Err(e) if e.contains(NOT_SEQUENTIAL) => match repair_sequential_scans(jpeg) {
+        Err(e) if e.is_not_sequential_warning() => match repair_sequential_scans(jpeg) {
             Some(repaired) => decode_once(&repaired, cols, rows)
                 .map(|samples| {
                     (
@@ -149,8 +184,8 @@ fn repair_sequential_scans(jpeg: &[u8]) -> Option<Vec<u8>> {
 }
 
 /// One decode with every warning fatal; the error is libjpeg-turbo's message.
-fn decode_once(jpeg: &[u8], cols: u32, rows: u32) -> std::result::Result<Vec<u16>, String> {
-    let d = Decompressor::new().ok_or("cannot start the JPEG decoder (libjpeg-turbo)")?;
+fn decode_once(jpeg: &[u8], cols: u32, rows: u32) -> std::result::Result<Vec<u16>, JpegError> {
+    let d = Decompressor::new().ok_or(JpegError::Start)?;
     d.set(tj::TJPARAM_TJPARAM_STOPONWARNING, 1)?;
     d.set(tj::TJPARAM_TJPARAM_SCANLIMIT, MAX_SCANS)?;
     d.set(tj::TJPARAM_TJPARAM_MAXMEMORY, MAX_DECODER_MEMORY_MIB)?;
@@ -163,20 +198,21 @@ fn decode_once(jpeg: &[u8], cols: u32, rows: u32) -> std::result::Result<Vec<u16
     // SAFETY: the pointer and length describe `jpeg`, which outlives the call; TurboJPEG only
     // reads from it.
     if unsafe { tj::tj3DecompressHeader(d.0, jpeg.as_ptr(), jpeg.len() as _) } != 0 {
-        return Err(format!("bad JPEG header: {}", d.message()));
+        return Err(JpegError::Header(d.message()));
     }
     let width = d.get(tj::TJPARAM_TJPARAM_JPEGWIDTH);
     let height = d.get(tj::TJPARAM_TJPARAM_JPEGHEIGHT);
     let precision = d.get(tj::TJPARAM_TJPARAM_PRECISION);
     if (width, height) != (cols as c_int, rows as c_int) {
-        return Err(format!(
-            "the JPEG image is {width}x{height}, but the DICOM header says {cols}x{rows}"
-        ));
+        return Err(JpegError::Size {
+            width,
+            height,
+            cols,
+            rows,
+        });
     }
     if !(9..=12).contains(&precision) {
-        return Err(format!(
-            "JPEG sample precision {precision} (9 to 12 expected here)"
-        ));
+        return Err(JpegError::Precision(precision));
     }
     let mut samples = vec![0i16; pixels as usize];
     // SAFETY: `samples` holds width·height greyscale samples (checked equal to cols·rows above),
@@ -193,7 +229,7 @@ fn decode_once(jpeg: &[u8], cols: u32, rows: u32) -> std::result::Result<Vec<u16
         )
     };
     if rc != 0 {
-        return Err(d.message());
+        return Err(JpegError::Decode(d.message()));
     }
     Ok(samples.into_iter().map(|s| s as u16).collect())
 }

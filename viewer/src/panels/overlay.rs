@@ -63,16 +63,17 @@ impl OverlayPanel {
         let source = source.display().to_string();
         self.job = None;
         let repaint_ctx = ctx.clone();
-        let started = result.and_then(|store| {
-            Overlay::start(
+        let started = match result {
+            Ok(store) => Overlay::start(
                 store,
                 kind,
                 data.info.geometry.clone(),
                 data.info.header.layout.level_dims.clone(),
                 Arc::new(move || repaint_ctx.request_repaint()),
             )
-            .map_err(|e| format!("{e:#}"))
-        });
+            .map_err(|e| format!("{e:#}")),
+            Err(e) => Err(crate::error_report::describe(&e)),
+        };
         match started {
             Ok(mut o) => {
                 // "labels.nii.gz", not "labels.nii.gz-9998ee….strata" (issue 36).
