@@ -460,7 +460,7 @@ fn render_and_wait(
     camera: &Camera,
     settings: &RenderSettings,
 ) -> Result<()> {
-    let scene = strata_render::Scene {
+    let scene = strata_render::FrameInputs {
         cache: &cut.gpu.cache,
         page_table: &cut.gpu.page_table,
         transfer_function: &cut.gpu.transfer_function,
@@ -556,7 +556,7 @@ pub fn run(options: Options) -> Result<()> {
         let c = if let Some(n) = k.progressive {
             // `strata render --progressive n`: the mean of n jittered frames on the GPU; the
             // time is the whole run (n frames, the accumulation and the mean's readback).
-            let scene = strata_render::Scene {
+            let scene = strata_render::FrameInputs {
                 cache: &cut.gpu.cache,
                 page_table: &cut.gpu.page_table,
                 transfer_function: &cut.gpu.transfer_function,
@@ -658,7 +658,7 @@ pub fn run(options: Options) -> Result<()> {
                         settings.quality,
                     ),
                 );
-                let scene = strata_render::Scene {
+                let scene = strata_render::FrameInputs {
                     cache: &cut.gpu.cache,
                     page_table: &cut.gpu.page_table,
                     transfer_function: &cut.gpu.transfer_function,

@@ -38,8 +38,8 @@ use strata_render::passes::adaptive::{
     OracleTarget,
 };
 use strata_render::{
-    compare_rgba8, Camera, GpuContext, KeyLight, LightDirection, RenderMode, RenderSettings,
-    Scattering, Scene, Shading, ShadowMode, Shadows,
+    compare_rgba8, Camera, FrameInputs, GpuContext, KeyLight, LightDirection, RenderMode,
+    RenderSettings, Scattering, Shading, ShadowMode, Shadows,
 };
 use strata_types::BrickId;
 
@@ -545,7 +545,7 @@ fn raycaster_row(
     let mut times = Vec::new();
     for _ in 0..frames {
         // Field by field: the raycaster below is borrowed mutably beside these.
-        let scene = Scene {
+        let scene = FrameInputs {
             cache: &cut.cache,
             page_table: &cut.page_table,
             transfer_function: &cut.transfer_function,
@@ -576,7 +576,7 @@ fn raycaster_row(
 fn adaptive_row(
     ctx: &GpuContext,
     pass: &mut AdaptivePass,
-    scene: &Scene,
+    scene: &FrameInputs,
     config: &AdaptiveConfig,
     reference: &[u8],
     frames: usize,

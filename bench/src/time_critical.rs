@@ -19,8 +19,8 @@ use strata_loader::store_volume::{
     check_cut_fits, classify_empty, page_table_for_cut, slots_needed, GpuCut, ResidentBricks,
 };
 use strata_render::{
-    Camera, ControllerConfig, FrameQuality, GpuContext, Projection, RenderSettings, Scene, Shading,
-    TimeCriticalConfig, TimeCriticalController, TransferFunctionTable, ValueMapping,
+    Camera, ControllerConfig, FrameInputs, FrameQuality, GpuContext, Projection, RenderSettings,
+    Shading, TimeCriticalConfig, TimeCriticalController, TransferFunctionTable, ValueMapping,
     VolumeGeometry,
 };
 use strata_storage::Store;
@@ -270,7 +270,7 @@ pub fn run(options: Options) -> Result<()> {
             quality.apply_to(&mut settings);
             let level = cuts.level_for(quality.lod_factor);
             let cut = cuts.get(&ctx, level)?;
-            let scene = Scene {
+            let scene = FrameInputs {
                 cache: &cut.cache,
                 page_table: &cut.page_table,
                 transfer_function: &cut.transfer_function,

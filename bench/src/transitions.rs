@@ -27,7 +27,7 @@ use strata_loader::store_volume::{classify_empty, load_uniform_cut, page_table_f
 use strata_loader::ResidentBricks;
 use strata_render::model::smooth_transitions::{transition_masks, transition_node_fraction};
 use strata_render::{
-    compare_rgba8, GpuContext, ImageComparison, PageTable, RenderMode, RenderSettings, Scene,
+    compare_rgba8, FrameInputs, GpuContext, ImageComparison, PageTable, RenderMode, RenderSettings,
     Shading,
 };
 
@@ -315,7 +315,7 @@ fn time_frames(
     for round in 0..=frames {
         for (k, &variant) in VARIANTS.iter().enumerate() {
             let settings = settings_of(variant);
-            let scene = Scene {
+            let scene = FrameInputs {
                 cache: &cut.cache,
                 page_table: &cut.page_table,
                 transfer_function: &cut.transfer_function,

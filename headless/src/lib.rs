@@ -27,8 +27,8 @@ use strata_render::passes::adaptive::{
 use strata_render::passes::progressive::render_still;
 use strata_render::reference::{render_reference, ReferenceOptions, ReferenceScene};
 use strata_render::{
-    Camera, GpuContext, GpuPageTable, KeyLight, LightDirection, Occlusion, Projection, RenderError,
-    RenderMode, RenderSettings, Scattering, Scene, SegmentIntegralTable, Shading, ShadowMode,
+    Camera, FrameInputs, GpuContext, GpuPageTable, KeyLight, LightDirection, Occlusion, Projection,
+    RenderError, RenderMode, RenderSettings, Scattering, SegmentIntegralTable, Shading, ShadowMode,
     Shadows, TransferFunction, Traversal, VolumeGeometry,
 };
 use strata_source::VolumeSource;
@@ -778,7 +778,7 @@ fn render_fixed_cut(
             )?;
             let mut pass = AdaptivePass::new(&ctx, &cut.cache);
             pass.set_oracle(&ctx, &oracle());
-            let scene = Scene {
+            let scene = FrameInputs {
                 cache: &cut.cache,
                 page_table: &cut.page_table,
                 transfer_function: &cut.transfer_function,
@@ -817,7 +817,7 @@ fn render_fixed_cut(
                         None => frame.rgba,
                         // The frame above also uploaded the MIP value bounds the scene needs.
                         Some(frames) => {
-                            let scene = Scene {
+                            let scene = FrameInputs {
                                 cache: &cut.cache,
                                 page_table: &cut.page_table,
                                 transfer_function: &cut.transfer_function,
@@ -851,7 +851,7 @@ fn render_fixed_cut(
                         index.gpu_index_bytes(),
                         cut.page_table.gpu_index_bytes()
                     ));
-                    let scene = Scene {
+                    let scene = FrameInputs {
                         cache: &cut.cache,
                         page_table: &index,
                         transfer_function: &cut.transfer_function,

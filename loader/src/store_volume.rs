@@ -292,7 +292,7 @@ impl GpuCut {
             self.page_table.update_value_max(&ctx.queue, &bounds)?;
             self.bounds_for = Some(mapping);
         }
-        let scene = strata_render::Scene {
+        let scene = strata_render::FrameInputs {
             cache: &self.cache,
             page_table: &self.page_table,
             transfer_function: &self.transfer_function,
@@ -312,8 +312,8 @@ impl GpuCut {
         mapping: ValueMapping,
         camera: &'a strata_render::Camera,
         settings: &'a strata_render::RenderSettings,
-    ) -> strata_render::Scene<'a> {
-        strata_render::Scene {
+    ) -> strata_render::FrameInputs<'a> {
+        strata_render::FrameInputs {
             cache: &self.cache,
             page_table: &self.page_table,
             transfer_function: &self.transfer_function,

@@ -24,10 +24,10 @@ use std::sync::Arc;
 use web_time::Instant;
 
 use strata_render::{
-    BrickCache, CacheConfig, Camera, FrameReadback, GpuContext, GpuPageTable, GpuTransferFunction,
-    IndexTable, PageEntry, PageTable, PreparedPageTable, Raycaster, RenderMode, RenderSettings,
-    Scene, SparsePageTable, TransferFunction, TransferFunctionTable, Traversal, ValueMapping,
-    VolumeGeometry, BRICK_PAYLOAD_VOXELS,
+    BrickCache, CacheConfig, Camera, FrameInputs, FrameReadback, GpuContext, GpuPageTable,
+    GpuTransferFunction, IndexTable, PageEntry, PageTable, PreparedPageTable, Raycaster,
+    RenderMode, RenderSettings, SparsePageTable, TransferFunction, TransferFunctionTable,
+    Traversal, ValueMapping, VolumeGeometry, BRICK_PAYLOAD_VOXELS,
 };
 use strata_source::{BrickFetcher, FetchOptions, SourceStatus, VolumeSource};
 #[cfg(feature = "local")]
@@ -503,8 +503,12 @@ impl StreamingVolume {
 
     /// The cut's GPU resources as a scene of `camera` and `settings`, for a pass other than
     /// the raycaster over the same bricks (the adaptive pass).
-    pub fn scene<'a>(&'a self, camera: &'a Camera, settings: &'a RenderSettings) -> Scene<'a> {
-        Scene {
+    pub fn scene<'a>(
+        &'a self,
+        camera: &'a Camera,
+        settings: &'a RenderSettings,
+    ) -> FrameInputs<'a> {
+        FrameInputs {
             cache: &self.cache,
             page_table: &self.gpu_page_table,
             transfer_function: &self.transfer_function,
@@ -587,7 +591,7 @@ impl StreamingVolume {
         let loader_cpu_seconds = started_cpu
             .zip(crate::thread_cpu::thread_cpu_seconds())
             .map_or(f64::NAN, |(a, b)| b - a);
-        let scene = Scene {
+        let scene = FrameInputs {
             cache: &self.cache,
             page_table: &self.gpu_page_table,
             transfer_function: &self.transfer_function,

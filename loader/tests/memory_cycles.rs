@@ -17,8 +17,8 @@ use strata_loader::fetch_workers::FetchWorkers;
 use strata_loader::octree_ranges::OctreeRanges;
 use strata_loader::StreamingConfig;
 use strata_render::{
-    BrickCache, CacheConfig, Camera, GpuPageTable, GpuTransferFunction, PageTable, Projection,
-    Raycaster, Scene,
+    BrickCache, CacheConfig, Camera, FrameInputs, GpuPageTable, GpuTransferFunction, PageTable,
+    Projection, Raycaster,
 };
 use strata_types::BrickId;
 
@@ -239,7 +239,7 @@ fn memory_over_create_drop_cycles() {
                     let slot = (frame as u32) % cache.slot_count();
                     cache.upload_brick(&ctx.queue, slot, &brick).unwrap();
                     let cam = camera(&geometry, &mut rng);
-                    let scene = Scene {
+                    let scene = FrameInputs {
                         cache: &cache,
                         page_table: &gpu_table,
                         transfer_function: &tf,
@@ -276,7 +276,7 @@ fn memory_over_create_drop_cycles() {
                 let mut raycaster = Raycaster::new(&ctx, &cache);
                 let settings = settings(128);
                 let cam = camera(&geometry, &mut rng);
-                let scene = Scene {
+                let scene = FrameInputs {
                     cache: &cache,
                     page_table: &gpu_table,
                     transfer_function: &tf,

@@ -167,8 +167,8 @@ struct Drawn<'a> {
 }
 
 impl Drawn<'_> {
-    fn scene<'s>(&'s self, camera: &'s Camera, settings: &'s RenderSettings) -> Scene<'s> {
-        Scene {
+    fn scene<'s>(&'s self, camera: &'s Camera, settings: &'s RenderSettings) -> FrameInputs<'s> {
+        FrameInputs {
             cache: self.cache,
             page_table: self.page_table,
             transfer_function: self.transfer_function,

@@ -76,8 +76,8 @@ fn scene_of<'a>(
     volume: &'a BrickedVolume,
     camera: &'a Camera,
     settings: &'a RenderSettings,
-) -> Scene<'a> {
-    Scene {
+) -> FrameInputs<'a> {
+    FrameInputs {
         cache: &cut.cache,
         page_table: &cut.table,
         transfer_function,
@@ -348,8 +348,8 @@ fn octree_vs_flat(
             volume: &'a BrickedVolume,
             camera: &'a Camera,
             s: &'a RenderSettings,
-        ) -> Scene<'a> {
-            Scene {
+        ) -> FrameInputs<'a> {
+            FrameInputs {
                 page_table: index,
                 ..scene_of(cut, gpu_tf, volume, camera, s)
             }

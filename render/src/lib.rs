@@ -129,7 +129,7 @@ pub use model::transfer_function::{TransferFunction, TransferFunctionTable};
 pub use passes::offscreen::OffscreenRenderer;
 pub use passes::progressive::{Accumulator, ViewKey};
 pub use passes::raycast::{
-    FrameReadback, Raycaster, Scene, VisibilityFrame, PER_PAGE_VISIBILITY_CELLS,
+    FrameInputs, FrameReadback, Raycaster, VisibilityFrame, PER_PAGE_VISIBILITY_CELLS,
 };
 pub use reference::metrics::{compare_rgba8, ImageComparison};
 pub use reference::{

@@ -53,7 +53,7 @@ fn render_gpu(
     settings: &RenderSettings,
     config: &AdaptiveConfig,
 ) -> AdaptiveFrame {
-    let scene = Scene {
+    let scene = FrameInputs {
         cache: &g.cache,
         page_table: &g.page_table,
         transfer_function: &g.tf,

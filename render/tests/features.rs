@@ -586,7 +586,7 @@ fn visibility_marks_only_contributing_pages_and_arrives_without_blocking() {
         assert!(*v == 0 || !e.empty, "an empty page was marked visible");
     }
     // Non-blocking path: a few frames later the ring hands back a frame's visibility.
-    let scene = Scene {
+    let scene = FrameInputs {
         cache: &g.cache,
         page_table: &g.page_table,
         transfer_function: &g.tf,

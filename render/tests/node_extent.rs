@@ -110,7 +110,7 @@ fn node_extent_exit_reads_fewer_entries_and_keeps_every_image() {
             };
             assert!(s.smooth_transitions && s.skip_empty);
             let after = g.render(&ctx, &f, &cam, &s);
-            let scene = Scene {
+            let scene = FrameInputs {
                 cache: &g.cache,
                 page_table: &g.page_table,
                 transfer_function: &g.tf,
@@ -209,7 +209,7 @@ fn lean_mip_march_makes_the_general_marchs_images() {
                 ..compare_settings(RenderMode::Mip, SIZE)
             };
             let lean = g.render(&ctx, &f, &cam, &s);
-            let scene = Scene {
+            let scene = FrameInputs {
                 cache: &g.cache,
                 page_table: &g.page_table,
                 transfer_function: &g.tf,

@@ -184,7 +184,7 @@ fn octree_traversal_makes_the_flat_tables_images() {
                     ..compare_settings(mode, SIZE)
                 };
                 let flat = g.render(&ctx, &f, &cam, &s);
-                let scene = Scene {
+                let scene = FrameInputs {
                     cache: &g.cache,
                     page_table: &octree,
                     transfer_function: &g.tf,
@@ -198,7 +198,7 @@ fn octree_traversal_makes_the_flat_tables_images() {
                 // Both cuts have coarser neighbours: the transition code is compiled in, for
                 // the flat table and the octree alike.
                 assert_eq!(key.smooth_transitions, smooth);
-                let flat_key = g.raycaster.key_for_scene(&Scene {
+                let flat_key = g.raycaster.key_for_scene(&FrameInputs {
                     page_table: &g.page_table,
                     ..scene
                 });
@@ -274,7 +274,7 @@ fn octree_traversal_matches_the_reference() {
                 smooth_transitions: false,
                 ..compare_settings(mode, SIZE)
             };
-            let scene = Scene {
+            let scene = FrameInputs {
                 cache: &g.cache,
                 page_table: &octree,
                 transfer_function: &g.tf,
@@ -287,7 +287,7 @@ fn octree_traversal_matches_the_reference() {
             let flat = raycaster
                 .render_blocking(
                     &ctx,
-                    &Scene {
+                    &FrameInputs {
                         page_table: &g.page_table,
                         ..scene
                     },
@@ -343,7 +343,7 @@ fn smooth_octree_traversal_matches_the_reference() {
                 ..compare_settings(mode, SIZE)
             };
             assert!(s.smooth_transitions);
-            let scene = Scene {
+            let scene = FrameInputs {
                 cache: &g.cache,
                 page_table: &octree,
                 transfer_function: &g.tf,
@@ -384,7 +384,7 @@ fn smooth_octree_traversal_matches_the_reference() {
             let hard = raycaster
                 .render_blocking(
                     &ctx,
-                    &Scene {
+                    &FrameInputs {
                         settings: &RenderSettings {
                             smooth_transitions: false,
                             ..s.clone()

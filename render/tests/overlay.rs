@@ -358,7 +358,7 @@ fn without_an_overlay_the_overlay_code_is_not_compiled_in() {
         };
         assert!(!g.key(&f, &cam, &s).overlay);
         let today = g.render(&ctx, &f, &cam, &s);
-        let scene = Scene {
+        let scene = FrameInputs {
             cache: &g.cache,
             page_table: &g.page_table,
             transfer_function: &g.tf,

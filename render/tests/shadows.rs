@@ -751,7 +751,7 @@ mod cache {
             assert!(reference.rgba.iter().all(|&v| v == 0));
         }
         let headlight = cached(LightDirection::Headlight, 2.0);
-        let scene = Scene {
+        let scene = FrameInputs {
             cache: &g.cache,
             page_table: &g.page_table,
             transfer_function: &g.tf,

@@ -158,7 +158,7 @@ fn gpu_probe_matches_cpu_field_and_is_continuous() {
             exact_trilinear: true,
             ..compare_settings(RenderMode::Dvr, 16)
         };
-        let scene = Scene {
+        let scene = FrameInputs {
             cache: &g.cache,
             page_table: &g.page_table,
             transfer_function: &g.tf,
@@ -221,7 +221,7 @@ fn pipeline_without_coarser_neighbours_has_no_transition_code() {
     let cam = orbit(&f.volume.geometry, 0.0, 0.0, 1.0, 35.0);
     let settings = compare_settings(RenderMode::Dvr, 32);
     assert!(settings.smooth_transitions, "smoothing is on by default");
-    let scene = Scene {
+    let scene = FrameInputs {
         cache: &g.cache,
         page_table: &g.page_table,
         transfer_function: &g.tf,
@@ -243,7 +243,7 @@ fn pipeline_without_coarser_neighbours_has_no_transition_code() {
     // 7 fine octants of 8 level-0 nodes each; those next to the block: all but the far octant's.
     let fraction = g.page_table.transition_fraction();
     assert!(fraction > 0.0 && fraction < 1.0, "{fraction}");
-    let scene = Scene {
+    let scene = FrameInputs {
         page_table: &g.page_table,
         ..scene
     };

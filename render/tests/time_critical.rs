@@ -54,7 +54,7 @@ fn render_measured(
         tf,
         raycaster,
     } = g;
-    let scene = Scene {
+    let scene = FrameInputs {
         cache,
         page_table,
         transfer_function: tf,
@@ -80,7 +80,7 @@ fn render(
         tf,
         raycaster,
     } = g;
-    let scene = Scene {
+    let scene = FrameInputs {
         cache,
         page_table,
         transfer_function: tf,

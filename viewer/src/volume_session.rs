@@ -1911,7 +1911,7 @@ mod tests {
             strata_render::GpuTransferFunction::new(&ctx.device, &ctx.queue, &tf_table);
         let mut pass = strata_render::passes::adaptive::AdaptivePass::new(&ctx, &cache);
         pass.set_oracle(&ctx, &facts.oracle.distances);
-        let scene = strata_render::Scene {
+        let scene = strata_render::FrameInputs {
             cache: &cache,
             page_table: &page_table,
             transfer_function: &transfer_function,

@@ -11,7 +11,7 @@ use crate::model::camera::Camera;
 use crate::model::page_table::PageTable;
 use crate::model::settings::{RenderMode, RenderSettings};
 use crate::model::transfer_function::TransferFunction;
-use crate::passes::raycast::{FrameReadback, Raycaster, Scene};
+use crate::passes::raycast::{FrameInputs, FrameReadback, Raycaster};
 
 pub struct OffscreenRenderer {
     pub cache: BrickCache,
@@ -138,7 +138,7 @@ impl OffscreenRenderer {
             self.gpu_page_table.update(&ctx.queue, &self.page_table)?;
             self.classified_for_iso = want_iso;
         }
-        let scene = Scene {
+        let scene = FrameInputs {
             cache: &self.cache,
             page_table: &self.gpu_page_table,
             transfer_function: &self.transfer_function,

@@ -10,7 +10,7 @@ use crate::error::RenderError;
 use crate::gpu::device::GpuContext;
 use crate::gpu::frame_targets::{read_buffer_blocking, readback_buffer};
 use crate::gpu::shaders;
-use crate::passes::raycast::{build_params, Raycaster, Scene};
+use crate::passes::raycast::{build_params, FrameInputs, Raycaster};
 
 const PROBE_WGSL: &str = include_str!("../shaders/probe.wgsl");
 /// The probe's workgroup width (one invocation per point).
@@ -44,7 +44,7 @@ impl Raycaster {
     pub fn probe_field(
         &mut self,
         ctx: &GpuContext,
-        scene: &Scene,
+        scene: &FrameInputs,
         points: &[[f32; 3]],
     ) -> Result<Vec<f32>, RenderError> {
         if points.is_empty() {

@@ -34,7 +34,7 @@ use crate::gpu::device::GpuContext;
 use crate::gpu::frame_targets::{FrameTargets, PixelBuffers, COLOR_FORMAT};
 use crate::model::camera::Camera;
 use crate::model::settings::RenderSettings;
-use crate::passes::raycast::{Raycaster, Scene};
+use crate::passes::raycast::{FrameInputs, Raycaster};
 
 const WGSL: &str = include_str!("../shaders/progressive.wgsl");
 const WORKGROUP: u32 = 8;
@@ -89,7 +89,7 @@ const FRAMES_IN_FLIGHT: u32 = 8;
 pub fn render_still(
     ctx: &GpuContext,
     raycaster: &mut Raycaster,
-    scene: &Scene,
+    scene: &FrameInputs,
     frames: u32,
 ) -> Result<Vec<u8>, RenderError> {
     let key = ViewKey::new(scene.camera, scene.settings);
@@ -98,7 +98,7 @@ pub fn render_still(
         let settings = jittered_frame(scene.settings, n);
         raycaster.render(
             ctx,
-            &Scene {
+            &FrameInputs {
                 settings: &settings,
                 ..*scene
             },

@@ -1,7 +1,7 @@
 //! The raycast pass: one compute dispatch of the composed raycast shader (shaders.rs;
 //! entry point and ray loop in shaders/raycast.wgsl) writing an RGBA8 storage texture, a
 //! pick-depth buffer (layout.rs `DEPTH_OPACITY`), the per-page visibility buffer and an optional sample counter.
-//! [`Raycaster`] holds the pass: parameters ([`Scene`] → `Params`), bind group, dispatch, and
+//! [`Raycaster`] holds the pass: parameters ([`FrameInputs`] → `Params`), bind group, dispatch, and
 //! the readbacks (blocking for tests and the CLI; visibility and timings through the readback
 //! ring, 1-2 frames late). Pipelines per effect combination are pipelines.rs; the GPU
 //! resources a scene points at are gpu_page_table.rs, gpu_transfer_function.rs and
@@ -36,7 +36,7 @@ use crate::gpu::pipelines::PipelineKey;
 const VISIBILITY_RING: usize = 3;
 
 /// Everything one frame needs.
-pub struct Scene<'a> {
+pub struct FrameInputs<'a> {
     pub cache: &'a BrickCache,
     pub page_table: &'a GpuPageTable,
     pub transfer_function: &'a GpuTransferFunction,
@@ -398,7 +398,7 @@ impl Raycaster {
     pub(crate) fn field_entries<'a>(
         params: &'a wgpu::Buffer,
         sampler: &'a wgpu::Sampler,
-        scene: &'a Scene,
+        scene: &'a FrameInputs,
         transitions: &'a wgpu::Buffer,
     ) -> [wgpu::BindGroupEntry<'a>; 5] {
         [
@@ -427,7 +427,7 @@ impl Raycaster {
 
     /// The effects a frame of `scene` compiles in: [`Raycaster::key_for`] its settings, with
     /// the transition code left out when no node of the cut has a coarser neighbour.
-    pub fn key_for_scene(&self, scene: &Scene) -> PipelineKey {
+    pub fn key_for_scene(&self, scene: &FrameInputs) -> PipelineKey {
         let mut key = self.key_for(scene.settings);
         key.smooth_transitions &= scene.page_table.transition_fraction() > 0.0;
         key.octree = scene.page_table.traversal() == Traversal::Octree;
@@ -436,7 +436,7 @@ impl Raycaster {
 
     /// Builds the pre-integration table for this scene's TF unless the last one still fits
     /// (gpu_preintegration.rs; it holds for every step).
-    fn ensure_preintegration(&mut self, ctx: &GpuContext, scene: &Scene) {
+    fn ensure_preintegration(&mut self, ctx: &GpuContext, scene: &FrameInputs) {
         let unit_mm = scene.geometry.finest_spacing_mm();
         self.preintegration
             .ensure(&ctx.device, &ctx.queue, scene.transfer_function, unit_mm);
@@ -447,7 +447,7 @@ impl Raycaster {
     pub fn render(
         &mut self,
         ctx: &GpuContext,
-        scene: &Scene,
+        scene: &FrameInputs,
     ) -> Result<wgpu::SubmissionIndex, RenderError> {
         // An earlier step's uncaptured GPU error ends the loop here, not in a panic.
         ctx.check_uncaptured()?;
@@ -764,7 +764,7 @@ impl Raycaster {
     pub fn render_blocking(
         &mut self,
         ctx: &GpuContext,
-        scene: &Scene,
+        scene: &FrameInputs,
     ) -> Result<FrameReadback, RenderError> {
         self.render(ctx, scene)?;
         self.read_frame_blocking(ctx)
@@ -792,7 +792,7 @@ impl Raycaster {
     pub fn render_measured(
         &mut self,
         ctx: &GpuContext,
-        scene: &Scene,
+        scene: &FrameInputs,
     ) -> Result<wgpu::SubmissionIndex, RenderError> {
         if self.timestamps.is_some() {
             return self.render(ctx, scene);
@@ -829,7 +829,11 @@ impl Raycaster {
     }
 
     /// Submits and waits for a frame without reading it back (benchmarks).
-    pub fn render_and_wait(&mut self, ctx: &GpuContext, scene: &Scene) -> Result<(), RenderError> {
+    pub fn render_and_wait(
+        &mut self,
+        ctx: &GpuContext,
+        scene: &FrameInputs,
+    ) -> Result<(), RenderError> {
         let index = self.render(ctx, scene)?;
         ctx.device
             .poll(wgpu::PollType::Wait {
@@ -849,7 +853,7 @@ fn v4(v: DVec3, w: f64) -> [f32; 4] {
 
 /// Everything is converted from f64 here, once per frame, so the shader works in index space
 /// with well-conditioned f32 values.
-pub(crate) fn build_params(scene: &Scene) -> Params {
+pub(crate) fn build_params(scene: &FrameInputs) -> Params {
     let g = scene.geometry;
     let s = scene.settings;
     let a = g.index_from_patient_linear();

@@ -140,7 +140,7 @@ impl GpuScene {
     /// The pipeline key a frame of this scene with `settings` uses (the cut decides whether
     /// transition code is in).
     pub fn key(&self, f: &Fixture, camera: &Camera, settings: &RenderSettings) -> PipelineKey {
-        self.raycaster.key_for_scene(&Scene {
+        self.raycaster.key_for_scene(&FrameInputs {
             cache: &self.cache,
             page_table: &self.page_table,
             transfer_function: &self.tf,
@@ -158,7 +158,7 @@ impl GpuScene {
         camera: &Camera,
         settings: &RenderSettings,
     ) -> FrameReadback {
-        let scene = Scene {
+        let scene = FrameInputs {
             cache: &self.cache,
             page_table: &self.page_table,
             transfer_function: &self.tf,

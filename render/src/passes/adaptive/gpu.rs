@@ -162,7 +162,7 @@ use crate::gpu::frame_targets::{
 use crate::gpu::gpu_preintegration::GpuPreintegration;
 use crate::gpu::shaders;
 use crate::model::settings::RenderMode;
-use crate::passes::raycast::{build_params, Params, Raycaster, Scene};
+use crate::passes::raycast::{build_params, FrameInputs, Params, Raycaster};
 
 // The constants adaptive.wgsl shares with this file, generated into its source
 // ([`shader_constants`]) so neither side copies the other's numbers.
@@ -607,7 +607,7 @@ impl AdaptivePass {
     pub fn render(
         &mut self,
         ctx: &GpuContext,
-        scene: &Scene,
+        scene: &FrameInputs,
         config: &AdaptiveConfig,
     ) -> Result<wgpu::SubmissionIndex, RenderError> {
         let settings = scene.settings;
@@ -802,7 +802,7 @@ impl AdaptivePass {
     pub fn render_and_wait(
         &mut self,
         ctx: &GpuContext,
-        scene: &Scene,
+        scene: &FrameInputs,
         config: &AdaptiveConfig,
     ) -> Result<(), RenderError> {
         let index = self.render(ctx, scene, config)?;
@@ -819,7 +819,7 @@ impl AdaptivePass {
     pub fn render_blocking(
         &mut self,
         ctx: &GpuContext,
-        scene: &Scene,
+        scene: &FrameInputs,
         config: &AdaptiveConfig,
     ) -> Result<AdaptiveFrame, RenderError> {
         self.render(ctx, scene, config)?;
