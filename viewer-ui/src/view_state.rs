@@ -13,11 +13,15 @@
 
 use strata_render::testdata::phantom::ct_phantom;
 use strata_render::{
-    BrickedVolume, Camera, CropBox, Projection, RenderError, RenderMode, RenderSettings, Shading,
-    TransferFunction, VolumeGeometry,
+    BrickedVolume, Camera, CropBox, Projection, RenderError, RenderMode, RenderSettings,
+    ShadowMode, TransferFunction, VolumeGeometry,
 };
 
 use crate::crop_clip::{ClipSettings, CLIP_AXIS_NAMES, MIN_CROP_EXTENT};
+use crate::lighting::{
+    render_lighting, LightPrefs, LitView, AZIMUTH_RANGE, ELEVATION_RANGE, OCCLUSION_RADIUS_RANGE,
+    SCATTERING_G_RANGE,
+};
 
 /// Edge of the built-in sample volume when the fragment names none (voxels).
 pub const DEFAULT_VOLUME_EDGE: u32 = 128;
@@ -92,6 +96,11 @@ pub struct ViewState {
     /// Shaded DVR and isosurfaces (the desktop's "Shading" switch); `shade=off` draws them
     /// unshaded. MIP is never shaded.
     pub shading: bool,
+    /// The key light and its effects, named as `strata render` names them: `light=AZ,EL` a
+    /// directional light at these camera-relative degrees (absent: the headlight),
+    /// `shadows=exact|cache`, `occlusion=MM` (radius), `scattering=G` (asymmetry); the rest
+    /// (intensity, ambient, steps, blend) at the defaults.
+    pub light: LightPrefs,
     /// Edge of the built-in sample volume (voxels).
     pub volume_edge: u32,
     /// A store of the server that served the page, streamed; None: the built-in sample.
@@ -129,6 +138,7 @@ impl Default for ViewState {
             crop: CropBox::default(),
             clip: ClipSettings::default(),
             shading: true,
+            light: LightPrefs::default(),
             volume_edge: DEFAULT_VOLUME_EDGE,
             store: None,
             image_size: None,
@@ -270,6 +280,30 @@ impl Fragment {
                         "off" => false,
                         _ => return Err(bad(key, value, "on or off")),
                     }
+                }
+                "light" => {
+                    let (az, el) = value
+                        .split_once(',')
+                        .ok_or_else(|| bad(key, value, "AZ,EL in degrees"))?;
+                    view.light.headlight = false;
+                    view.light.azimuth_deg = finite(key, az, AZIMUTH_RANGE)?;
+                    view.light.elevation_deg = finite(key, el, ELEVATION_RANGE)?;
+                }
+                "shadows" => {
+                    view.light.shadows = match value {
+                        "off" => ShadowMode::Off,
+                        "exact" => ShadowMode::Exact,
+                        "cache" => ShadowMode::Cache,
+                        _ => return Err(bad(key, value, "off, exact or cache")),
+                    }
+                }
+                "occlusion" => {
+                    view.light.occlusion = true;
+                    view.light.occlusion_radius_mm = finite(key, value, OCCLUSION_RADIUS_RANGE)?;
+                }
+                "scattering" => {
+                    view.light.scattering = true;
+                    view.light.scattering_g = finite(key, value, SCATTERING_G_RANGE)?;
                 }
                 "pan" => {
                     let (x, y) = value
@@ -448,6 +482,22 @@ impl ViewState {
         if !self.shading {
             parts.push("shade=off".into());
         }
+        let light = &self.light;
+        if !light.headlight {
+            let (az, el) = (round3(light.azimuth_deg), round3(light.elevation_deg));
+            parts.push(format!("light={az},{el}"));
+        }
+        match light.shadows {
+            ShadowMode::Off => {}
+            ShadowMode::Exact => parts.push("shadows=exact".into()),
+            ShadowMode::Cache => parts.push("shadows=cache".into()),
+        }
+        if light.occlusion {
+            parts.push(format!("occlusion={}", round3(light.occlusion_radius_mm)));
+        }
+        if light.scattering {
+            parts.push(format!("scattering={}", round3(light.scattering_g)));
+        }
         if self.store.is_none() && self.volume_edge != DEFAULT_VOLUME_EDGE {
             parts.push(format!("volume={}", self.volume_edge));
         }
@@ -511,19 +561,29 @@ impl ViewState {
     }
 
     /// Render settings for a `width` × `height` image of a volume on `geometry`: the
-    /// raycaster's defaults with the view's mode, crop box and clip plane, shaded for DVR and
-    /// isosurfaces as the desktop viewer shows them unless the view turns shading off.
+    /// raycaster's defaults with the view's mode, crop box and clip plane, lit by the view's
+    /// light through the desktop's own function ([`render_lighting`]): shaded for DVR and
+    /// isosurfaces unless the view turns shading off, never for MIP.
     pub fn settings(&self, geometry: &VolumeGeometry, width: u32, height: u32) -> RenderSettings {
-        RenderSettings {
+        let mut settings = RenderSettings {
             width,
             height,
             mode: self.mode,
             iso_value: self.iso_value,
-            shading: (self.shading && self.mode != RenderMode::Mip).then(Shading::default),
             crop: self.crop,
             clip_plane: self.clip.plane_if_enabled(geometry),
             ..RenderSettings::default()
-        }
+        };
+        let lit = LitView {
+            mode: self.mode,
+            // MIP is never lit; the desktop's switch is ignored by render there, a link's
+            // settings say so.
+            shading: self.shading && self.mode != RenderMode::Mip,
+            // The page runs no adaptive pass (the desktop refuses effects where it does).
+            adaptive_sampling: false,
+        };
+        render_lighting(&self.light, lit).apply_to(&mut settings);
+        settings
     }
 }
 
@@ -627,6 +687,17 @@ mod tests {
                 fraction: 0.375,
             },
             shading: false,
+            light: LightPrefs {
+                headlight: false,
+                azimuth_deg: -45.5,
+                elevation_deg: 30.25,
+                shadows: ShadowMode::Cache,
+                occlusion: true,
+                occlusion_radius_mm: 6.5,
+                scattering: true,
+                scattering_g: -0.25,
+                ..LightPrefs::default()
+            },
             volume_edge: 64,
             store: None,
             image_size: Some([160, 120]),
@@ -809,6 +880,58 @@ mod tests {
     }
 
     #[test]
+    fn the_light_reaches_the_settings_as_the_desktop_lights_it() {
+        let view = Fragment::parse("#mode=dvr&shade=off&light=30,-20&shadows=exact&occlusion=3")
+            .expect("parses")
+            .view;
+        let geometry = view.geometry();
+        let s = view.settings(&geometry, 32, 32);
+        let desktop = render_lighting(
+            &view.light,
+            LitView {
+                mode: RenderMode::Dvr,
+                shading: false,
+                adaptive_sampling: false,
+            },
+        );
+        assert_eq!(s.light, desktop.light);
+        assert_eq!(
+            s.light.direction,
+            strata_render::LightDirection::Camera(view.light.camera_direction())
+        );
+        assert_eq!(s.shadows.mode, ShadowMode::Exact);
+        assert_eq!(s.occlusion.map(|o| o.radius_mm), Some(3.0));
+        assert_eq!(s.scattering, None);
+        assert!(
+            s.shading.is_some(),
+            "effects turn shading on, as on the desktop"
+        );
+        assert!(s.validate().is_ok());
+        // Cache shadows with the headlight are drawn exact, as the desktop draws them.
+        let cached = Fragment::parse("#shadows=cache").expect("parses").view;
+        assert_eq!(
+            cached.settings(&geometry, 8, 8).shadows.mode,
+            ShadowMode::Exact
+        );
+        // MIP is never lit, whatever the link asks.
+        let mip = Fragment::parse("#mode=mip&shadows=exact&scattering=0.5")
+            .expect("parses")
+            .view
+            .settings(&geometry, 8, 8);
+        assert_eq!((mip.shading, mip.shadows.mode), (None, ShadowMode::Off));
+        // The default light writes nothing and draws render's default light.
+        let plain = ViewState::default();
+        assert_eq!(
+            plain.settings(&geometry, 8, 8).light,
+            strata_render::KeyLight::default()
+        );
+        let written = plain.to_fragment();
+        for key in ["light=", "shadows=", "occlusion=", "scattering="] {
+            assert!(!written.contains(key), "{written}");
+        }
+    }
+
+    #[test]
     fn a_bad_crop_clip_or_shade_names_its_key() {
         for (key, value) in [
             ("crop", "0,0,0,1,1"),
@@ -820,6 +943,13 @@ mod tests {
             ("clip", "ap,2"),
             ("clip", "ap,0.5,flop"),
             ("shade", "maybe"),
+            ("light", "30"),
+            ("light", "30,95"),
+            ("light", "abc,10"),
+            ("shadows", "soft"),
+            ("occlusion", "0.5"),
+            ("occlusion", "mm"),
+            ("scattering", "1.5"),
         ] {
             let e = Fragment::parse(&format!("#{key}={value}")).expect_err(value);
             assert!(

@@ -477,10 +477,9 @@ impl StrataApp {
             self.preferences.preset = view.preset.clone();
             self.preferences.mode = view.mode;
             self.preferences.layout = view.layout;
-            if !view.shading {
-                // As the rendering panel's switch does: effects are part of shading.
-                self.preferences.light.effects_off();
-            }
+            // The link's light whole (what it does not carry at the defaults): the picture the
+            // link names, as the browser draws it (an effect in it turns shading on there too).
+            self.preferences.light = view.light;
             self.preferences.shading = view.shading;
         }
         self.pending_link_view = link_view;
@@ -747,6 +746,7 @@ impl StrataApp {
                 crop: v.scene.crop,
                 clip: v.scene.clip,
                 shading: self.preferences.shading,
+                light: self.preferences.light,
             },
         )
     }

@@ -10,6 +10,7 @@
 
 use strata_render::{CropBox, RenderMode, TransferFunction};
 use strata_viewer_ui::crop_clip::ClipSettings;
+use strata_viewer_ui::lighting::LightPrefs;
 use strata_viewer_ui::view_state::{Fragment, Layout as LinkLayout, ViewState};
 
 use super::preferences::Layout;
@@ -47,6 +48,10 @@ pub struct DesktopView {
     pub clip: ClipSettings,
     /// The rendering panel's "Shading" switch.
     pub shading: bool,
+    /// The rendering panel's light. A link carries its direction, shadows, occlusion radius
+    /// and scattering asymmetry (view_state.rs); a light opened from a link has the rest
+    /// (intensity, ambient, steps, blend) at the defaults, as the browser draws it.
+    pub light: LightPrefs,
 }
 
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -147,6 +152,7 @@ pub fn link_for(store_url: &str, view: &DesktopView) -> Option<String> {
         crop: view.crop,
         clip: view.clip,
         shading: view.shading,
+        light: view.light,
         store: Some(name.to_string()),
         ..ViewState::default()
     };
@@ -177,13 +183,14 @@ pub fn desktop_view(view: &ViewState) -> DesktopView {
         crop: view.crop,
         clip: view.clip,
         shading: view.shading,
+        light: view.light,
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use strata_render::VolumeGeometry;
+    use strata_render::{ShadowMode, VolumeGeometry};
 
     fn desktop() -> DesktopView {
         DesktopView {
@@ -212,6 +219,15 @@ mod tests {
                 fraction: 0.625,
             },
             shading: false,
+            light: LightPrefs {
+                headlight: false,
+                azimuth_deg: 62.5,
+                elevation_deg: -15.125,
+                shadows: ShadowMode::Exact,
+                occlusion: true,
+                occlusion_radius_mm: 7.5,
+                ..LightPrefs::default()
+            },
         }
     }
 
@@ -263,6 +279,48 @@ mod tests {
         let view = parse_link(&link).expect("parses").view;
         assert_eq!(view.camera(&geometry), perspective.orbit.camera(&geometry));
         assert_eq!(link_for("/data/stores/head", &desktop()), None);
+    }
+
+    #[test]
+    fn a_links_light_is_the_desktops_light_and_the_headlight_writes_nothing() {
+        let store_url = "http://127.0.0.1:8080/v1/stores/head-ct";
+        let link = link_for(store_url, &desktop()).expect("link");
+        for key in ["light=62.5,-15.125", "shadows=exact", "occlusion=7.5"] {
+            assert!(link.contains(key), "{key} in {link}");
+        }
+        assert!(!link.contains("scattering="), "{link}");
+        // The same lighting: the link's settings are the desktop's preferences' settings.
+        let opened = parse_link(&link).expect("parses").view;
+        let geometry = VolumeGeometry::axis_aligned([32, 32, 32], [1.0, 1.0, 1.0]);
+        let prefs = crate::preferences::Preferences {
+            mode: RenderMode::Dvr,
+            shading: false,
+            light: desktop().light,
+            ..Default::default()
+        };
+        let from_link = ViewState {
+            mode: RenderMode::Dvr,
+            ..opened
+        }
+        .settings(&geometry, 16, 16);
+        let mut from_desktop = strata_render::RenderSettings::default();
+        crate::preferences::render_lighting(&prefs).apply_to(&mut from_desktop);
+        assert_eq!(from_link.light, from_desktop.light);
+        assert_eq!(from_link.shadows, from_desktop.shadows);
+        assert_eq!(from_link.occlusion, from_desktop.occlusion);
+        assert_eq!(from_link.shading, from_desktop.shading);
+        let headlit = DesktopView {
+            light: LightPrefs::default(),
+            ..desktop()
+        };
+        let link = link_for(store_url, &headlit).expect("link");
+        for key in ["light=", "shadows=", "occlusion=", "scattering="] {
+            assert!(!link.contains(key), "{key} in {link}");
+        }
+        assert_eq!(
+            desktop_view(&parse_link(&link).expect("parses").view),
+            headlit
+        );
     }
 
     #[test]

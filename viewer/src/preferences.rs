@@ -2,16 +2,14 @@
 //! and interaction settings, the screenshot folder, measurements per store.
 //!
 //! Every field is `#[serde(default)]`, so older files load, and values from a damaged file are
-//! clamped. `render_lighting` is the one place the 3D view's `RenderSettings` lighting is built from
-//! `LightPrefs` (effects turn shading on; none for MIP or the adaptive pass; cache shadows never
-//! with the headlight).
+//! clamped. `render_lighting` builds the 3D view's `RenderSettings` lighting from `LightPrefs` by
+//! the function the browser uses too (viewer-ui's lighting.rs: effects turn shading on; none for
+//! MIP or the adaptive pass; cache shadows never with the headlight).
 
 use std::path::PathBuf;
 
 use serde::{Deserialize, Serialize};
-use strata_render::{
-    KeyLight, LightDirection, Occlusion, RenderMode, Scattering, Shading, ShadowMode, Shadows,
-};
+use strata_render::{RenderMode, ShadowMode};
 
 use super::measurements::Measurement;
 use super::orientation::SliceView;
@@ -164,223 +162,34 @@ impl Default for Preferences {
     }
 }
 
-/// The viewer's light controls (issue 37). The direction is kept as angles, not as render's
-/// [`LightDirection`], so choosing the headlight and back keeps the direction the user set.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
-pub struct LightPrefs {
-    /// Light at the eye (today's look); false: the directional key light of the angles below.
-    pub headlight: bool,
-    /// Camera-relative, degrees: 0 is along the view axis, positive to the right.
-    pub azimuth_deg: f64,
-    /// Camera-relative, degrees: positive is above.
-    pub elevation_deg: f64,
-    /// The key light's direct (diffuse and specular) term.
-    pub intensity: f32,
-    /// [`Shading::ambient`]: what shadows never darken.
-    pub ambient: f32,
-    pub shadows: ShadowMode,
-    /// Shadow-ray step in finest voxels.
-    pub shadow_step: f64,
-    /// Ambient occlusion on (the radius is kept while it is off, as the direction is).
-    pub occlusion: bool,
-    /// Length of the occlusion rays, mm.
-    pub occlusion_radius_mm: f64,
-    /// Single scattering of the key light on.
-    pub scattering: bool,
-    /// Henyey-Greenstein asymmetry: > 0 forward (back-lit tissue glows).
-    pub scattering_g: f64,
-    /// Exposure Render's gradient factor: 0 volume-like everywhere, 1 surface-like at edges.
-    pub scattering_blend: f64,
-}
+// The light model is shared with the browser's side panel (viewer-ui's lighting.rs); these
+// names stay here so the desktop's modules keep one place for their preferences.
+pub use strata_viewer_ui::lighting::{
+    LightPrefs, Lighting, LitView, AZIMUTH_RANGE, ELEVATION_RANGE, OCCLUSION_RADIUS_RANGE,
+    SCATTERING_G_RANGE, SHADOW_STEP_RANGE,
+};
 
-impl Default for LightPrefs {
-    /// The headlight at render's defaults: the image Strata has always drawn.
-    fn default() -> Self {
-        let key = KeyLight::default();
-        let shadows = Shadows::default();
-        LightPrefs {
-            headlight: true,
-            azimuth_deg: -30.0,
-            elevation_deg: 30.0,
-            intensity: key.intensity,
-            ambient: Shading::default().ambient,
-            shadows: shadows.mode,
-            shadow_step: shadows.step,
-            occlusion: false,
-            occlusion_radius_mm: 4.0,
-            scattering: false,
-            scattering_g: 0.4,
-            scattering_blend: 0.5,
-        }
-    }
-}
-
-/// Degrees the direction angles span (the sliders and the gizmo square).
-pub const AZIMUTH_RANGE: std::ops::RangeInclusive<f64> = -180.0..=180.0;
-pub const ELEVATION_RANGE: std::ops::RangeInclusive<f64> = -90.0..=90.0;
-/// Shadow-step range in finest voxels: the CLI's lower bound (render refuses smaller steps);
-/// above a few voxels shadows only blur.
-pub const SHADOW_STEP_RANGE: std::ops::RangeInclusive<f64> = 0.05..=8.0;
-/// Occlusion radius in mm: below 1 mm it darkens little more than a voxel's own matter; the
-/// rays' cost grows with the radius (render takes up to `strata render`'s 100 mm), and beyond
-/// ~20 mm occlusion is no longer local shape but a second shadow.
-pub const OCCLUSION_RADIUS_RANGE: std::ops::RangeInclusive<f64> = 1.0..=20.0;
-/// Scattering asymmetry offered: past ±0.9 the phase is a narrow spike that only shows when
-/// looking into the light.
-pub const SCATTERING_G_RANGE: std::ops::RangeInclusive<f64> = -0.9..=0.9;
-
-impl LightPrefs {
-    /// The direction towards the light in camera axes (x right, y up, z towards the viewer),
-    /// as `--light-dir` takes it.
-    pub fn camera_direction(&self) -> [f64; 3] {
-        let (az, el) = (
-            self.azimuth_deg.to_radians(),
-            self.elevation_deg.to_radians(),
-        );
-        [el.cos() * az.sin(), el.sin(), el.cos() * az.cos()]
-    }
-
-    pub fn key_light(&self) -> KeyLight {
-        KeyLight {
-            direction: if self.headlight {
-                LightDirection::Headlight
-            } else {
-                LightDirection::Camera(self.camera_direction())
-            },
-            // A damaged or hand-edited file must not make every frame invalid.
-            intensity: if self.intensity.is_finite() {
-                self.intensity.max(0.0)
-            } else {
-                KeyLight::default().intensity
-            },
-        }
-    }
-
-    /// Whether any effect that needs the lit path is on (shadows, occlusion, scattering).
-    pub fn any_effect(&self) -> bool {
-        self.shadows != ShadowMode::Off || self.occlusion || self.scattering
-    }
-
-    /// Turns shadows, occlusion and scattering off (shading was turned off: each of them
-    /// would keep the view shaded otherwise, so the checkbox would not do what it says).
-    pub fn effects_off(&mut self) {
-        self.shadows = ShadowMode::Off;
-        self.occlusion = false;
-        self.scattering = false;
-    }
-
-    pub fn shading(&self) -> Shading {
-        Shading {
-            ambient: if self.ambient.is_finite() {
-                self.ambient.clamp(0.0, 1.0)
-            } else {
-                Shading::default().ambient
-            },
-            ..Shading::default()
+impl Preferences {
+    /// What besides the light decides how the 3D view is lit.
+    pub fn lit_view(&self) -> LitView {
+        LitView {
+            mode: self.mode,
+            shading: self.shading,
+            adaptive_sampling: self.adaptive_sampling,
         }
     }
 }
 
 /// Why shadows, occlusion and scattering cannot be drawn in these preferences, or None where
-/// they can: the CLI refuses them for MIP (never lit), and the adaptive pass draws none of them.
+/// they can (the shared rule: [`strata_viewer_ui::lighting::effects_refused`]).
 pub fn effects_refused(prefs: &Preferences) -> Option<&'static str> {
-    if prefs.mode == RenderMode::Mip {
-        Some("Shadows, occlusion and scattering light DVR and isosurfaces: MIP is never lit.")
-    } else if prefs.adaptive_sampling && prefs.mode != RenderMode::Isosurface {
-        Some(
-            "The adaptive pass draws no shadows, occlusion or scattering: turn adaptive \
-             sampling off to draw them.",
-        )
-    } else {
-        None
-    }
+    strata_viewer_ui::lighting::effects_refused(prefs.lit_view())
 }
 
-/// The lighting part of the 3D view's render settings (issue 37).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Lighting {
-    pub shading: Option<Shading>,
-    pub light: KeyLight,
-    pub shadows: Shadows,
-    pub occlusion: Option<Occlusion>,
-    pub scattering: Option<Scattering>,
-}
-
-impl Lighting {
-    pub fn apply_to(&self, settings: &mut strata_render::RenderSettings) {
-        settings.shading = self.shading;
-        settings.light = self.light;
-        settings.shadows = self.shadows;
-        settings.occlusion = self.occlusion;
-        settings.scattering = self.scattering;
-    }
-}
-
-/// A finite value clamped to `range`, else `fallback` (a damaged or hand-edited file must not
-/// make every frame invalid).
-fn sane(v: f64, range: std::ops::RangeInclusive<f64>, fallback: f64) -> f64 {
-    if v.is_finite() {
-        v.clamp(*range.start(), *range.end())
-    } else {
-        fallback
-    }
-}
-
-/// The 3D view's lighting from the preferences: shading, key light, shadows, occlusion and
-/// scattering. Each effect turns shading on (as `strata render` does); isosurfaces are always
-/// shaded, with the panel's ambient term. Where [`effects_refused`], none is drawn (the
-/// choices are kept for the modes that draw them).
+/// The 3D view's lighting from the preferences, by the function the browser's links use too
+/// ([`strata_viewer_ui::lighting::render_lighting`]).
 pub fn render_lighting(prefs: &Preferences) -> Lighting {
-    let light = &prefs.light;
-    let allowed = effects_refused(prefs).is_none();
-    let key_light = light.key_light();
-    let defaults = LightPrefs::default();
-    let shadows = Shadows {
-        mode: match light.shadows {
-            _ if !allowed => ShadowMode::Off,
-            // The cache holds one direction and the headlight's is each ray's own (render
-            // refuses it); the panel makes the light directional when the cache is chosen, so
-            // only a hand-edited file gets here: exact shadows are the same picture.
-            ShadowMode::Cache if key_light.direction == LightDirection::Headlight => {
-                ShadowMode::Exact
-            }
-            mode => mode,
-        },
-        step: if light.shadow_step.is_finite() {
-            light.shadow_step.clamp(*SHADOW_STEP_RANGE.start(), 1000.0)
-        } else {
-            Shadows::default().step
-        },
-        ..Shadows::default()
-    };
-    let occlusion = (allowed && light.occlusion).then(|| Occlusion {
-        radius_mm: sane(
-            light.occlusion_radius_mm,
-            OCCLUSION_RADIUS_RANGE,
-            defaults.occlusion_radius_mm,
-        ),
-    });
-    let scattering = (allowed && light.scattering).then(|| Scattering {
-        g: sane(
-            light.scattering_g,
-            SCATTERING_G_RANGE,
-            defaults.scattering_g,
-        ),
-        blend: sane(light.scattering_blend, 0.0..=1.0, defaults.scattering_blend),
-    });
-    let shaded = prefs.shading
-        || shadows.mode != ShadowMode::Off
-        || occlusion.is_some()
-        || scattering.is_some()
-        || prefs.mode == RenderMode::Isosurface;
-    Lighting {
-        shading: shaded.then(|| light.shading()),
-        light: key_light,
-        shadows,
-        occlusion,
-        scattering,
-    }
+    strata_viewer_ui::lighting::render_lighting(&prefs.light, prefs.lit_view())
 }
 
 /// A one-click cinematic look (issue 37): a transfer-function preset and the lighting that

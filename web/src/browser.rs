@@ -476,6 +476,8 @@ impl WebViewer {
             overlay: None,
             traversal: None,
             adaptive_epsilon: None,
+            // The page accumulates no jittered frames yet: each frame is drawn whole and
+            // exact (the light panel offers exact shadows, which need no accumulation).
             progressive_frames: 0,
         }
     }

@@ -15,6 +15,7 @@ use strata_render::testdata::phantom::ct_phantom_hu;
 use strata_render::{FrameTiming, RenderMode, TransferFunction, VolumeGeometry};
 use strata_storage::histogram::{Histogram, StoredValueCounts};
 use strata_viewer_ui::crop_clip;
+use strata_viewer_ui::lighting::{self, LightOffer, LitView};
 use strata_viewer_ui::performance::{self, FrameClock, PerformanceFigures};
 use strata_viewer_ui::presets::{self, ScanValues};
 use strata_viewer_ui::target_fps::target_fps_control;
@@ -196,6 +197,9 @@ impl SidePanel {
                     ui.checkbox(&mut view.orthographic, "Orthographic projection");
                     crop_clip::controls(ui, &mut view.crop, &mut view.clip);
                 });
+            egui::CollapsingHeader::new("Light and shadows")
+                .default_open(false)
+                .show(ui, |ui| light_ui(ui, view));
             egui::CollapsingHeader::new("Performance")
                 .default_open(true)
                 .show(ui, |ui| self.performance_ui(ui, figures));
@@ -298,4 +302,26 @@ pub fn sample_histogram(geometry: &VolumeGeometry) -> Histogram {
         }
     }
     Histogram::from_stored(&counts, 1.0, -1024.0)
+}
+
+/// Why the page offers only the key light's direction and exact shadows of the desktop's light
+/// controls (shown on the others).
+pub const PAGE_LIGHT_LIMIT: &str = "Not in the browser yet: the page draws no progressive \
+     refinement (occlusion, scattering and the light cache's soft edges are refined over \
+     jittered frames on the desktop), and its address carries the light's direction and \
+     shadows only.";
+
+/// The desktop's light controls (viewer-ui's lighting.rs) on the view the address carries.
+fn light_ui(ui: &mut egui::Ui, view: &mut ViewState) {
+    let lit = LitView {
+        mode: view.mode,
+        shading: view.shading,
+        // The page runs no adaptive pass.
+        adaptive_sampling: false,
+    };
+    let offer = LightOffer {
+        effects_refused: lighting::effects_refused(lit),
+        direction_and_exact_shadows_only: Some(PAGE_LIGHT_LIMIT),
+    };
+    lighting::light_controls(ui, &mut view.light, &mut view.shading, offer);
 }

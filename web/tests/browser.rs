@@ -168,6 +168,8 @@ fn the_served_page_draws_the_view_its_link_names_as_the_native_renderer_does() {
         format!("#mode=dvr&preset=ct-bone&tf={tf}&az=35&el=20&zoom=1.3&volume=48&size=128x128&capture=1&layout=single"),
         // The cut, the shading switch and the projection, as the side panel sets them.
         "#mode=dvr&preset=ct-bone&az=35&el=20&zoom=1.3&volume=48&size=128x128&capture=1&layout=single&crop=0.1,0,0,0.9,1,1&clip=ap,0.3&shade=off&proj=ortho".into(),
+        // A directional key light with exact shadows, as the shared light panel sets them.
+        "#mode=dvr&preset=ct-bone&az=35&el=20&zoom=1.3&volume=48&size=128x128&capture=1&layout=single&light=-70,50&shadows=exact".into(),
     ] {
         let fragment = fragment.as_str();
         let url = format!("{}/{fragment}&token={TOKEN}", server.base_url());
@@ -240,6 +242,25 @@ fn the_served_page_draws_the_view_its_link_names_as_the_native_renderer_does() {
                 .expect("native frame");
             let apart = compare_rgba8(&frame.rgba, &whole_frame.rgba).expect("same size");
             println!("{fragment}: browser vs the uncut, shaded native frame: {apart:?}");
+            assert!(apart.psnr_db < 30.0, "{fragment}: {apart:?}");
+        }
+        if !view.light.headlight {
+            // The link's light, not the headlight, made the picture: the same view lit by
+            // the default light is far from the browser's.
+            let headlit = ViewState {
+                light: Default::default(),
+                ..view.clone()
+            };
+            let headlit_frame = renderer
+                .render(
+                    &gpu,
+                    &volume,
+                    &camera,
+                    &headlit.settings(&volume.geometry, width, height),
+                )
+                .expect("native frame");
+            let apart = compare_rgba8(&frame.rgba, &headlit_frame.rgba).expect("same size");
+            println!("{fragment}: browser vs the headlit native frame: {apart:?}");
             assert!(apart.psnr_db < 30.0, "{fragment}: {apart:?}");
         }
         if view.tf.is_some() {

@@ -1,13 +1,12 @@
 //! The rendering panel: mode, iso value, shading and light, smooth transitions, traversal,
 //! adaptive sampling, slice planes in 3D, projection, crop box and clip plane.
 
-use strata_render::{RenderMode, ShadowMode};
+use strata_render::RenderMode;
 
 use crate::adaptive_view::{format_epsilon, EPSILON_RANGE};
-use crate::preferences::{
-    effects_refused, CinematicPreset, LightPrefs, Preferences, TraversalChoice, AZIMUTH_RANGE,
-    ELEVATION_RANGE, OCCLUSION_RADIUS_RANGE, SCATTERING_G_RANGE, SHADOW_STEP_RANGE,
-};
+use strata_viewer_ui::lighting::{light_controls, LightOffer};
+
+use crate::preferences::{effects_refused, CinematicPreset, Preferences, TraversalChoice};
 use crate::scene::preset_for;
 use crate::scene::{Scene, VolumeData};
 use crate::view3d::View3d;
@@ -181,234 +180,30 @@ fn adaptive_sampling(ui: &mut egui::Ui, prefs: &mut Preferences) {
 /// Accessible name of the progressive refinement slider.
 pub const PROGRESSIVE_LABEL: &str = "Progressive frames";
 
-/// Accessible names of the light controls (the UI tests find them by these).
-pub const HEADLIGHT_LABEL: &str = "Headlight";
-pub const DIRECTIONAL_LABEL: &str = "Directional";
-pub const AZIMUTH_LABEL: &str = "Light azimuth";
-pub const ELEVATION_LABEL: &str = "Light elevation";
-pub const INTENSITY_LABEL: &str = "Light intensity";
-pub const AMBIENT_LABEL: &str = "Ambient";
-pub const GIZMO_LABEL: &str = "Light direction gizmo";
-pub const NO_SHADOWS_LABEL: &str = "No shadows";
-pub const EXACT_SHADOWS_LABEL: &str = "Exact shadows";
-pub const CACHE_SHADOWS_LABEL: &str = "Cached shadows";
-pub const OCCLUSION_LABEL: &str = "Ambient occlusion";
-pub const OCCLUSION_RADIUS_LABEL: &str = "Occlusion radius";
-pub const SCATTERING_LABEL: &str = "Scattering";
-pub const SCATTERING_G_LABEL: &str = "Scattering g";
-pub const SCATTERING_BLEND_LABEL: &str = "Scattering blend";
-pub const SHADOW_STEP_LABEL: &str = "Shadow step";
-/// Side of the direction gizmo, points: small enough never to widen the panel (issue 36).
-const GIZMO_SIDE: f32 = 64.0;
+// The light controls are the browser's too (viewer-ui's lighting.rs); their labels are named
+// here as well, where the UI tests look for the rendering panel's.
+pub use strata_viewer_ui::lighting::{
+    gizmo_angles, gizmo_point, AMBIENT_LABEL, AZIMUTH_LABEL, CACHE_SHADOWS_LABEL,
+    DIRECTIONAL_LABEL, ELEVATION_LABEL, EXACT_SHADOWS_LABEL, GIZMO_LABEL, HEADLIGHT_LABEL,
+    INTENSITY_LABEL, NO_SHADOWS_LABEL, OCCLUSION_LABEL, OCCLUSION_RADIUS_LABEL,
+    SCATTERING_BLEND_LABEL, SCATTERING_G_LABEL, SCATTERING_LABEL, SHADOW_STEP_LABEL,
+};
 
-/// The key light (headlight or a camera-relative direction), its intensity, the ambient term
-/// and shadows (issue 37; the same settings as `strata render --light-dir --shadows`).
+/// The key light, its effects and the shading switch they turn on: the shared controls, with
+/// everything offered (the desktop draws them all, refined progressively).
 fn light(ui: &mut egui::Ui, prefs: &mut Preferences) {
-    ui.horizontal(|ui| {
-        ui.label("Key light");
-        ui.radio_value(&mut prefs.light.headlight, true, HEADLIGHT_LABEL)
-            .on_hover_text("The light at the eye, as Strata has always lit.");
-        ui.radio_value(&mut prefs.light.headlight, false, DIRECTIONAL_LABEL)
-            .on_hover_text(
-                "A directional light placed relative to the camera: it turns with the view.",
-            );
-    });
-    let light = &mut prefs.light;
-    if !light.headlight {
-        ui.horizontal(|ui| {
-            direction_gizmo(ui, light);
-            ui.vertical(|ui| {
-                ui.add(
-                    egui::Slider::new(&mut light.azimuth_deg, AZIMUTH_RANGE)
-                        .suffix("°")
-                        .text("az."),
-                )
-                .on_hover_text("Left (−) or right (+) of the view axis.")
-                .accessible_name(AZIMUTH_LABEL);
-                ui.add(
-                    egui::Slider::new(&mut light.elevation_deg, ELEVATION_RANGE)
-                        .suffix("°")
-                        .text("el."),
-                )
-                .on_hover_text("Below (−) or above (+) the view axis.")
-                .accessible_name(ELEVATION_LABEL);
-            });
-        });
-    }
-    ui.add(egui::Slider::new(&mut light.intensity, 0.0..=2.0).text("intensity"))
-        .on_hover_text("The key light's diffuse and specular term.")
-        .accessible_name(INTENSITY_LABEL);
-    ui.add(egui::Slider::new(&mut light.ambient, 0.0..=1.0).text("ambient"))
-        .on_hover_text("Light from everywhere: what shadows never darken.")
-        .accessible_name(AMBIENT_LABEL);
-
-    let refused = effects_refused(prefs);
-    ui.add_enabled_ui(refused.is_none(), |ui| {
-        let why = refused.unwrap_or_default();
-        let before = prefs.light;
-        ui.horizontal_wrapped(|ui| {
-            ui.label("Shadows");
-            ui.radio_value(&mut prefs.light.shadows, ShadowMode::Off, NO_SHADOWS_LABEL)
-                .on_disabled_hover_text(why);
-            ui.radio_value(
-                &mut prefs.light.shadows,
-                ShadowMode::Exact,
-                EXACT_SHADOWS_LABEL,
-            )
-            .on_hover_text(
-                "A shadow ray towards the key light from every shaded sample: exact, and \
-                 slower by the shadow ray's length. Turns shading on.",
-            )
-            .on_disabled_hover_text(why);
-            ui.radio_value(
-                &mut prefs.light.shadows,
-                ShadowMode::Cache,
-                CACHE_SHADOWS_LABEL,
-            )
-            .on_hover_text(
-                "One lookup per shaded sample in a coarse grid of the light reaching each \
-                 point, rebuilt when the light, transfer function or loaded bricks change: \
-                 fast, with softer edges. Needs a directional light (chosen if the headlight \
-                 is on). Turns shading on.",
-            )
-            .on_disabled_hover_text(why);
-        });
-        if prefs.light.shadows == ShadowMode::Cache && before.shadows != ShadowMode::Cache {
-            // The cache holds one light direction; the headlight's is each ray's own.
-            prefs.light.headlight = false;
-        }
-        if prefs.light.shadows != ShadowMode::Off {
-            ui.add(
-                egui::Slider::new(&mut prefs.light.shadow_step, SHADOW_STEP_RANGE)
-                    .logarithmic(true)
-                    .text("shadow step (voxels)"),
-            )
-            .on_hover_text(
-                "The shadow ray's step in finest voxels: smaller is more exact and slower.",
-            )
-            .accessible_name(SHADOW_STEP_LABEL);
-        }
-        ui.checkbox(&mut prefs.light.occlusion, OCCLUSION_LABEL)
-            .on_hover_text(
-                "Darken the ambient light where nearby matter hides a sample (creases, \
-                 cavities): short rays around each shaded sample. Turns shading on.",
-            )
-            .on_disabled_hover_text(why);
-        if prefs.light.occlusion {
-            ui.add(
-                egui::Slider::new(&mut prefs.light.occlusion_radius_mm, OCCLUSION_RADIUS_RANGE)
-                    .suffix(" mm")
-                    .text("radius"),
-            )
-            .on_hover_text(
-                "How far the occlusion rays look: larger darkens broader folds and is slower.",
-            )
-            .accessible_name(OCCLUSION_RADIUS_LABEL);
-        }
-        ui.checkbox(&mut prefs.light.scattering, SCATTERING_LABEL)
-            .on_hover_text(
-                "Light scattered once inside tissue (Henyey-Greenstein phase), blended with \
-                 the surface reflection where edges are strong. Turns shading on.",
-            )
-            .on_disabled_hover_text(why);
-        if prefs.light.scattering {
-            ui.add(egui::Slider::new(&mut prefs.light.scattering_g, SCATTERING_G_RANGE).text("g"))
-                .on_hover_text(
-                    "Asymmetry: > 0 scatters forward (tissue lit from behind glows), 0 evenly, \
-                     < 0 back towards the light.",
-                )
-                .accessible_name(SCATTERING_G_LABEL);
-            ui.add(egui::Slider::new(&mut prefs.light.scattering_blend, 0.0..=1.0).text("blend"))
-                .on_hover_text(
-                    "0: volume-like scattering everywhere; 1: surface-like reflection wherever \
-                 the gradient is strong (bone), scattering in the smooth interior.",
-                )
-                .accessible_name(SCATTERING_BLEND_LABEL);
-        }
-        if prefs.light.any_effect() && !before.any_effect() {
-            // As `strata render` does: each effect needs the lit path.
-            prefs.shading = true;
-        }
-    });
-}
-
-/// The gizmo square's point for a direction: azimuth across, elevation up (the same angles as
-/// the sliders, so the two always agree); the centre is the view axis.
-pub fn gizmo_point(rect: egui::Rect, light: &LightPrefs) -> egui::Pos2 {
-    let u =
-        (light.azimuth_deg - AZIMUTH_RANGE.start()) / (AZIMUTH_RANGE.end() - AZIMUTH_RANGE.start());
-    let v = (ELEVATION_RANGE.end() - light.elevation_deg)
-        / (ELEVATION_RANGE.end() - ELEVATION_RANGE.start());
-    rect.lerp_inside(egui::vec2(
-        u.clamp(0.0, 1.0) as f32,
-        v.clamp(0.0, 1.0) as f32,
-    ))
-}
-
-/// The direction at a point of the gizmo square (inverse of [`gizmo_point`], clamped to it).
-pub fn gizmo_angles(rect: egui::Rect, at: egui::Pos2) -> (f64, f64) {
-    let u = ((at.x - rect.left()) / rect.width()).clamp(0.0, 1.0) as f64;
-    let v = ((at.y - rect.top()) / rect.height()).clamp(0.0, 1.0) as f64;
-    let azimuth = AZIMUTH_RANGE.start() + u * (AZIMUTH_RANGE.end() - AZIMUTH_RANGE.start());
-    let elevation = ELEVATION_RANGE.end() - v * (ELEVATION_RANGE.end() - ELEVATION_RANGE.start());
-    (azimuth, elevation)
-}
-
-/// A small square to drag the light's direction in: a click or drag puts the light there.
-fn direction_gizmo(ui: &mut egui::Ui, light: &mut LightPrefs) {
-    let (rect, response) =
-        ui.allocate_exact_size(egui::Vec2::splat(GIZMO_SIDE), egui::Sense::click_and_drag());
-    if let Some(at) = response.interact_pointer_pos() {
-        (light.azimuth_deg, light.elevation_deg) = gizmo_angles(rect, at);
-    }
-    let visuals = ui.style().interact(&response);
-    let painter = ui.painter_at(rect);
-    painter.rect_filled(rect, 2.0, ui.visuals().extreme_bg_color);
-    let faint = egui::Stroke::new(1.0, ui.visuals().weak_text_color());
-    painter.line_segment([rect.center_top(), rect.center_bottom()], faint);
-    painter.line_segment([rect.left_center(), rect.right_center()], faint);
-    painter.circle_filled(gizmo_point(rect, light), 4.0, visuals.fg_stroke.color);
-    response
-        .on_hover_text(
-            "Drag to place the light: the centre is the view axis, left and right turn it \
-             to ±180°, up and down to ±90°.",
-        )
-        .accessible_name(GIZMO_LABEL);
+    let offer = LightOffer {
+        effects_refused: effects_refused(prefs),
+        direction_and_exact_shadows_only: None,
+    };
+    light_controls(ui, &mut prefs.light, &mut prefs.shading, offer);
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::preferences::render_lighting;
-    use strata_render::LightDirection;
-
-    #[test]
-    fn the_gizmo_and_the_sliders_name_the_same_direction() {
-        let rect = egui::Rect::from_min_size(egui::pos2(10.0, 20.0), egui::Vec2::splat(64.0));
-        // The centre is the view axis: light from behind the camera, along z.
-        let (az, el) = gizmo_angles(rect, rect.center());
-        assert!(az.abs() < 1e-9 && el.abs() < 1e-9, "{az} {el}");
-        let light = LightPrefs {
-            azimuth_deg: 45.0,
-            elevation_deg: -30.0,
-            ..LightPrefs::default()
-        };
-        let (az, el) = gizmo_angles(rect, gizmo_point(rect, &light));
-        assert!(
-            (az - 45.0).abs() < 1e-3 && (el + 30.0).abs() < 1e-3,
-            "{az} {el}"
-        );
-        // Up in the square is up in the view; outside it clamps to the ranges.
-        let (_, el) = gizmo_angles(rect, rect.center_top() - egui::vec2(0.0, 50.0));
-        assert_eq!(el, 90.0);
-        let along = LightPrefs {
-            azimuth_deg: 0.0,
-            elevation_deg: 0.0,
-            ..LightPrefs::default()
-        }
-        .camera_direction();
-        assert_eq!(along, [0.0, 0.0, 1.0]);
-    }
+    use crate::preferences::{render_lighting, LightPrefs};
+    use strata_render::{LightDirection, ShadowMode};
 
     #[test]
     fn effects_are_refused_for_mip_and_the_adaptive_pass_and_turn_shading_on() {
