@@ -10,7 +10,7 @@
 //!   graph render/src/lib.rs draws), and no .wgsl file declares by hand a constant Rust also
 //!   defines (the shader's shared constants are generated).
 //! - Errors: no function of a library crate returns `Result<_, String>` outside test code
-//!   (`STRING_ERRORS_ALLOWED` names the few left, each with its reason).
+//!   (`STRING_ERRORS_ALLOWED` is empty; an entry naming no such function fails).
 //! - Build tools: Rust and a C/C++ compiler are enough to build; nothing in `Cargo.lock` needs
 //!   cmake or nasm (read from the lock file: `cargo tree` would need the network for all
 //!   targets).
@@ -1154,48 +1154,10 @@ fn the_test_hook_checks_can_fail() {
     );
 }
 
-/// Functions of library crates that still return `Result<_, String>`, by file and name, each
-/// with why it may (issue 54 item 4 converted the rest to typed errors).
-const STRING_ERRORS_ALLOWED: &[(&str, &str, &str)] = &[
-    (
-        "service/src/client.rs",
-        "parse_store_url",
-        "owned by another change this session",
-    ),
-    (
-        "viewer/src/segmentation.rs",
-        "find",
-        "owned by another change this session",
-    ),
-    (
-        "viewer/src/segmentation.rs",
-        "open_journal",
-        "owned by another change this session",
-    ),
-    (
-        "web/src/served_store.rs",
-        "list_stores",
-        "owned by another change this session",
-    ),
-    (
-        "source/src/wire.rs",
-        "decode_open_document",
-        "its callers in service/src/client.rs and web/src/served_store.rs put the message in \
-         SourceError::Refused's String and are owned by another change this session",
-    ),
-    (
-        "source/src/wire.rs",
-        "check_store_format",
-        "its error travels through decode_open_document (above) and service/src/client.rs's \
-         tests, owned by another change this session",
-    ),
-    (
-        "web/src/volume_menu.rs",
-        "parse_store_list",
-        "web/src/served_store.rs returns it as list_stores' error, owned by another change \
-         this session",
-    ),
-];
+/// Functions of library crates that may still return `Result<_, String>`, by file and name, each
+/// with why it may. Empty since issue 54 item 4 converted the last ones to typed errors; an
+/// entry that no longer names such a function fails the check, so the list cannot rot.
+const STRING_ERRORS_ALLOWED: &[(&str, &str, &str)] = &[];
 
 /// `fn` items of a source file, outside test code, whose return type is `Result<_, String>`
 /// (also spelled `std::result::Result`), as `(line, name)`. Test code is a `#[cfg(…test…)]`
@@ -1362,13 +1324,19 @@ fn library_functions_return_typed_errors_not_strings() {
          keeps the wording, CODE_STYLE.md \"Errors\"):\n{}",
         found.join("\n")
     );
-    // An entry converted by its owner is only reported, so that its change and this list can
-    // land in either order; remove it from STRING_ERRORS_ALLOWED.
-    for (path, function, _) in STRING_ERRORS_ALLOWED {
-        if !seen_allowed.contains(&(path.to_string(), function.to_string())) {
-            println!("STRING_ERRORS_ALLOWED lists {path} fn {function}, which no longer returns Result<_, String>");
-        }
-    }
+    let stale: Vec<String> = STRING_ERRORS_ALLOWED
+        .iter()
+        .filter(|(path, function, _)| {
+            !seen_allowed.contains(&(path.to_string(), function.to_string()))
+        })
+        .map(|(path, function, _)| format!("{path} fn {function}"))
+        .collect();
+    assert!(
+        stale.is_empty(),
+        "STRING_ERRORS_ALLOWED lists functions that no longer return Result<_, String> \
+         (remove them from the list):\n{}",
+        stale.join("\n")
+    );
 }
 
 #[test]
