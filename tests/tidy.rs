@@ -813,6 +813,92 @@ fn every_test_file_is_compiled() {
     );
 }
 
+/// Unit-test folders a crate compiles from `tests/` by path (`#[path = "../tests/ui/mod.rs"]`
+/// in `src/lib.rs`: the viewer's UI tests, which need private access but stay out of `src/`),
+/// and the `.rs` files in them that their `mod.rs` does not declare.
+fn uncompiled_path_test_files(crate_dir: &Path) -> Vec<String> {
+    let Ok(lib) = fs::read_to_string(crate_dir.join("src/lib.rs")) else {
+        return Vec::new();
+    };
+    let mut missing = Vec::new();
+    for line in lib.lines() {
+        let Some(root) = line
+            .trim()
+            .strip_prefix("#[path = \"../tests/")
+            .and_then(|rest| rest.strip_suffix("/mod.rs\"]"))
+        else {
+            continue;
+        };
+        let folder = crate_dir.join("tests").join(root);
+        let declared = declared_modules(&folder.join("mod.rs"));
+        let Ok(entries) = fs::read_dir(&folder) else {
+            missing.push(format!(
+                "{} (the folder src/lib.rs names)",
+                folder.display()
+            ));
+            continue;
+        };
+        for entry in entries.flatten() {
+            let name = entry.file_name().to_string_lossy().into_owned();
+            let module = name.strip_suffix(".rs").unwrap_or("");
+            if !module.is_empty() && module != "mod" && !declared.contains(module) {
+                missing.push(format!("{}", folder.join(&name).display()));
+            }
+        }
+    }
+    missing
+}
+
+#[test]
+fn every_unit_test_file_under_tests_is_compiled() {
+    let root = repo_root();
+    let missing: Vec<String> = CRATE_DIRS
+        .iter()
+        .flat_map(|dir| uncompiled_path_test_files(&root.join(dir)))
+        .collect();
+    assert!(
+        missing.is_empty(),
+        "unit-test files under a crate's tests/ that no `mod` declares: {missing:?}; add \
+         `mod <file>;` to that folder's mod.rs"
+    );
+    // The viewer's UI tests live there, none under src/ (issue 54 item 6).
+    let viewer_src = root.join("viewer/src");
+    let mut files = Vec::new();
+    rust_files(&viewer_src, &mut files);
+    let in_src: Vec<_> = files
+        .iter()
+        .filter(|f| {
+            f.file_name()
+                .is_some_and(|n| n.to_string_lossy().starts_with("ui_tests"))
+        })
+        .collect();
+    assert!(
+        in_src.is_empty(),
+        "UI tests under viewer/src: {in_src:?}; they belong in viewer/tests/ui/"
+    );
+}
+
+#[test]
+fn the_path_test_file_check_can_fail() {
+    let dir = tempfile::tempdir().unwrap();
+    let ui = dir.path().join("tests/ui");
+    fs::create_dir_all(&ui).unwrap();
+    fs::create_dir(dir.path().join("src")).unwrap();
+    fs::write(
+        dir.path().join("src/lib.rs"),
+        "#[cfg(test)]\n#[path = \"../tests/ui/mod.rs\"]\nmod ui_tests;\n",
+    )
+    .unwrap();
+    fs::write(ui.join("mod.rs"), "mod harness;\nmod views;\n").unwrap();
+    fs::write(ui.join("harness.rs"), "").unwrap();
+    fs::write(ui.join("views.rs"), "").unwrap();
+    assert!(uncompiled_path_test_files(dir.path()).is_empty());
+    fs::write(ui.join("forgotten.rs"), "").unwrap();
+    let missing = uncompiled_path_test_files(dir.path());
+    assert_eq!(missing.len(), 1, "{missing:?}");
+    assert!(missing[0].ends_with("forgotten.rs"), "{missing:?}");
+}
+
 #[test]
 fn the_test_file_check_can_fail() {
     let dir = tempfile::tempdir().unwrap();
