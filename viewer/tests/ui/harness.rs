@@ -30,6 +30,24 @@ pub(crate) fn harness(store: &Path, side_panel: bool) -> Harness<'static, Option
     harness_with(options_for(store, folder), two_by_two(side_panel))
 }
 
+/// The commonest start in one call: the phantom's store in a temp folder, the viewer on it in
+/// the 2×2 layout, stepped until its first settled 3D frame (`what` names it in a timeout).
+/// The caller keeps the folder alive for the test's length.
+pub(crate) fn open_phantom_settled(
+    side_panel: bool,
+    what: &str,
+) -> (
+    tempfile::TempDir,
+    Harness<'static, Option<StrataApp>>,
+    RenderedFrame,
+) {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let store = phantom_store(dir.path());
+    let mut h = harness(&store, side_panel);
+    let first = wait_for_settled_frame(&mut h, what, 0);
+    (dir, h, first)
+}
+
 /// Options that open `volume` and import into `folder`/imported (the test's temp folder, never
 /// the user's), for a test that changes some before [`harness_with`] or [`harness_sized`].
 pub(crate) fn options_for(volume: &Path, folder: &Path) -> ViewerOptions {

@@ -42,13 +42,9 @@ fn screen_patch(image: &image::RgbaImage, at: egui::Pos2, channel: usize) -> f64
 
 #[test]
 fn the_phantom_opens_and_the_3d_view_is_not_blank_then_a_preset_changes_it() {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let store = phantom_store(dir.path());
-    let mut h = harness(&store, true);
-    let bone = wait_for_settled_frame(
-        &mut h,
+    let (_dir, mut h, bone) = open_phantom_settled(
+        true,
         "the phantom streamed in (converged frame for the current request)",
-        0,
     );
     assert_eq!(
         bone.request.transfer_function.name, "ct-bone",
@@ -749,10 +745,7 @@ fn toolbar_items_do_not_overlap_at_1024_points() {
 #[test]
 fn after_a_mode_switch_the_3d_view_paints_only_the_new_modes_frames() {
     use strata_render::RenderMode;
-    let dir = tempfile::tempdir().expect("temp dir");
-    let store = phantom_store(dir.path());
-    let mut h = harness(&store, false);
-    wait_for_settled_frame(&mut h, "a converged DVR frame", 0);
+    let (_dir, mut h, _) = open_phantom_settled(false, "a converged DVR frame");
     h.step();
     assert_eq!(app(&h).painted_3d_mode(), Some(RenderMode::Dvr));
     h.state_mut()
@@ -799,10 +792,7 @@ fn after_a_mode_switch_the_3d_view_paints_only_the_new_modes_frames() {
 /// use its camera; once the turned frame arrives, the outlines follow it.
 #[test]
 fn the_outlines_of_a_frame_are_drawn_with_that_frames_camera() {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let store = phantom_store(dir.path());
-    let mut h = harness(&store, false);
-    wait_for_settled_frame(&mut h, "the phantom", 0);
+    let (_dir, mut h, _) = open_phantom_settled(false, "the phantom");
     h.step();
     let cameras = |h: &Harness<'static, Option<StrataApp>>| {
         let v = app(h).volume.as_ref().expect("open volume");
