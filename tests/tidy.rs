@@ -10,7 +10,7 @@
 //!   graph render/src/lib.rs draws), and no .wgsl file declares by hand a constant Rust also
 //!   defines (the shader's shared constants are generated).
 //! - Errors: no function of a library crate returns `Result<_, String>` outside test code
-//!   (`STRING_ERRORS_ALLOWED` names the few left, each with its reason).
+//!   (`STRING_ERRORS_ALLOWED` is empty; an entry naming no such function fails).
 //! - Build tools: Rust and a C/C++ compiler are enough to build; nothing in `Cargo.lock` needs
 //!   cmake or nasm (read from the lock file: `cargo tree` would need the network for all
 //!   targets).
@@ -813,6 +813,92 @@ fn every_test_file_is_compiled() {
     );
 }
 
+/// Unit-test folders a crate compiles from `tests/` by path (`#[path = "../tests/ui/mod.rs"]`
+/// in `src/lib.rs`: the viewer's UI tests, which need private access but stay out of `src/`),
+/// and the `.rs` files in them that their `mod.rs` does not declare.
+fn uncompiled_path_test_files(crate_dir: &Path) -> Vec<String> {
+    let Ok(lib) = fs::read_to_string(crate_dir.join("src/lib.rs")) else {
+        return Vec::new();
+    };
+    let mut missing = Vec::new();
+    for line in lib.lines() {
+        let Some(root) = line
+            .trim()
+            .strip_prefix("#[path = \"../tests/")
+            .and_then(|rest| rest.strip_suffix("/mod.rs\"]"))
+        else {
+            continue;
+        };
+        let folder = crate_dir.join("tests").join(root);
+        let declared = declared_modules(&folder.join("mod.rs"));
+        let Ok(entries) = fs::read_dir(&folder) else {
+            missing.push(format!(
+                "{} (the folder src/lib.rs names)",
+                folder.display()
+            ));
+            continue;
+        };
+        for entry in entries.flatten() {
+            let name = entry.file_name().to_string_lossy().into_owned();
+            let module = name.strip_suffix(".rs").unwrap_or("");
+            if !module.is_empty() && module != "mod" && !declared.contains(module) {
+                missing.push(format!("{}", folder.join(&name).display()));
+            }
+        }
+    }
+    missing
+}
+
+#[test]
+fn every_unit_test_file_under_tests_is_compiled() {
+    let root = repo_root();
+    let missing: Vec<String> = CRATE_DIRS
+        .iter()
+        .flat_map(|dir| uncompiled_path_test_files(&root.join(dir)))
+        .collect();
+    assert!(
+        missing.is_empty(),
+        "unit-test files under a crate's tests/ that no `mod` declares: {missing:?}; add \
+         `mod <file>;` to that folder's mod.rs"
+    );
+    // The viewer's UI tests live there, none under src/ (issue 54 item 6).
+    let viewer_src = root.join("viewer/src");
+    let mut files = Vec::new();
+    rust_files(&viewer_src, &mut files);
+    let in_src: Vec<_> = files
+        .iter()
+        .filter(|f| {
+            f.file_name()
+                .is_some_and(|n| n.to_string_lossy().starts_with("ui_tests"))
+        })
+        .collect();
+    assert!(
+        in_src.is_empty(),
+        "UI tests under viewer/src: {in_src:?}; they belong in viewer/tests/ui/"
+    );
+}
+
+#[test]
+fn the_path_test_file_check_can_fail() {
+    let dir = tempfile::tempdir().unwrap();
+    let ui = dir.path().join("tests/ui");
+    fs::create_dir_all(&ui).unwrap();
+    fs::create_dir(dir.path().join("src")).unwrap();
+    fs::write(
+        dir.path().join("src/lib.rs"),
+        "#[cfg(test)]\n#[path = \"../tests/ui/mod.rs\"]\nmod ui_tests;\n",
+    )
+    .unwrap();
+    fs::write(ui.join("mod.rs"), "mod harness;\nmod views;\n").unwrap();
+    fs::write(ui.join("harness.rs"), "").unwrap();
+    fs::write(ui.join("views.rs"), "").unwrap();
+    assert!(uncompiled_path_test_files(dir.path()).is_empty());
+    fs::write(ui.join("forgotten.rs"), "").unwrap();
+    let missing = uncompiled_path_test_files(dir.path());
+    assert_eq!(missing.len(), 1, "{missing:?}");
+    assert!(missing[0].ends_with("forgotten.rs"), "{missing:?}");
+}
+
 #[test]
 fn the_test_file_check_can_fail() {
     let dir = tempfile::tempdir().unwrap();
@@ -1154,48 +1240,10 @@ fn the_test_hook_checks_can_fail() {
     );
 }
 
-/// Functions of library crates that still return `Result<_, String>`, by file and name, each
-/// with why it may (issue 54 item 4 converted the rest to typed errors).
-const STRING_ERRORS_ALLOWED: &[(&str, &str, &str)] = &[
-    (
-        "service/src/client.rs",
-        "parse_store_url",
-        "owned by another change this session",
-    ),
-    (
-        "viewer/src/segmentation.rs",
-        "find",
-        "owned by another change this session",
-    ),
-    (
-        "viewer/src/segmentation.rs",
-        "open_journal",
-        "owned by another change this session",
-    ),
-    (
-        "web/src/served_store.rs",
-        "list_stores",
-        "owned by another change this session",
-    ),
-    (
-        "source/src/wire.rs",
-        "decode_open_document",
-        "its callers in service/src/client.rs and web/src/served_store.rs put the message in \
-         SourceError::Refused's String and are owned by another change this session",
-    ),
-    (
-        "source/src/wire.rs",
-        "check_store_format",
-        "its error travels through decode_open_document (above) and service/src/client.rs's \
-         tests, owned by another change this session",
-    ),
-    (
-        "web/src/volume_menu.rs",
-        "parse_store_list",
-        "web/src/served_store.rs returns it as list_stores' error, owned by another change \
-         this session",
-    ),
-];
+/// Functions of library crates that may still return `Result<_, String>`, by file and name, each
+/// with why it may. Empty since issue 54 item 4 converted the last ones to typed errors; an
+/// entry that no longer names such a function fails the check, so the list cannot rot.
+const STRING_ERRORS_ALLOWED: &[(&str, &str, &str)] = &[];
 
 /// `fn` items of a source file, outside test code, whose return type is `Result<_, String>`
 /// (also spelled `std::result::Result`), as `(line, name)`. Test code is a `#[cfg(…test…)]`
@@ -1362,13 +1410,19 @@ fn library_functions_return_typed_errors_not_strings() {
          keeps the wording, CODE_STYLE.md \"Errors\"):\n{}",
         found.join("\n")
     );
-    // An entry converted by its owner is only reported, so that its change and this list can
-    // land in either order; remove it from STRING_ERRORS_ALLOWED.
-    for (path, function, _) in STRING_ERRORS_ALLOWED {
-        if !seen_allowed.contains(&(path.to_string(), function.to_string())) {
-            println!("STRING_ERRORS_ALLOWED lists {path} fn {function}, which no longer returns Result<_, String>");
-        }
-    }
+    let stale: Vec<String> = STRING_ERRORS_ALLOWED
+        .iter()
+        .filter(|(path, function, _)| {
+            !seen_allowed.contains(&(path.to_string(), function.to_string()))
+        })
+        .map(|(path, function, _)| format!("{path} fn {function}"))
+        .collect();
+    assert!(
+        stale.is_empty(),
+        "STRING_ERRORS_ALLOWED lists functions that no longer return Result<_, String> \
+         (remove them from the list):\n{}",
+        stale.join("\n")
+    );
 }
 
 #[test]

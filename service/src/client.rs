@@ -69,26 +69,32 @@ impl Default for RemoteOptions {
     }
 }
 
+/// A store URL that is not `http://HOST:PORT/v1/stores/NAME`.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum StoreUrlError {
+    #[error("{0}: not an http:// or https:// URL")]
+    NotHttp(String),
+    #[error("{0}: expected http://HOST:PORT{API_PREFIX}/stores/NAME")]
+    NotAStorePath(String),
+}
+
 /// `http://host:port/v1/stores/NAME` split into the server's base and the store's name.
-pub fn parse_store_url(url: &str) -> Result<(String, String), String> {
+pub fn parse_store_url(url: &str) -> Result<(String, String), StoreUrlError> {
     let (scheme, rest) = if let Some(rest) = url.strip_prefix("http://") {
         ("http", rest)
     } else if let Some(rest) = url.strip_prefix("https://") {
         ("https", rest)
     } else {
-        return Err(format!("{url}: not an http:// or https:// URL"));
+        return Err(StoreUrlError::NotHttp(url.to_string()));
     };
-    let (authority, path) = rest
-        .split_once('/')
-        .ok_or_else(|| format!("{url}: expected http://HOST:PORT{API_PREFIX}/stores/NAME"))?;
+    let not_a_store_path = || StoreUrlError::NotAStorePath(url.to_string());
+    let (authority, path) = rest.split_once('/').ok_or_else(not_a_store_path)?;
     let name = path
         .trim_end_matches('/')
         .strip_prefix("v1/stores/")
-        .ok_or_else(|| format!("{url}: expected http://HOST:PORT{API_PREFIX}/stores/NAME"))?;
+        .ok_or_else(not_a_store_path)?;
     if authority.is_empty() || !is_valid_store_name(name) {
-        return Err(format!(
-            "{url}: expected http://HOST:PORT{API_PREFIX}/stores/NAME"
-        ));
+        return Err(not_a_store_path());
     }
     Ok((format!("{scheme}://{authority}"), name.to_string()))
 }
@@ -313,10 +319,7 @@ impl RemoteSource {
             location: url.to_string(),
             message,
         };
-        let (base, name) = parse_store_url(url).map_err(|m| SourceError::Refused {
-            location: url.to_string(),
-            message: m,
-        })?;
+        let (base, name) = parse_store_url(url).map_err(|e| refused(e.to_string()))?;
         let runtime = tokio::runtime::Builder::new_multi_thread()
             .worker_threads(2)
             .thread_name("strata-remote-io")
@@ -410,7 +413,7 @@ impl RemoteSource {
         .map_err(refused)?;
         let (doc, skeleton) =
             decode_open_document(&bytes, strata_storage::store::KNOWN_STORE_FEATURES)
-                .map_err(refused)?;
+                .map_err(|e| refused(e.to_string()))?;
         conn.generation = doc.generation.clone();
         Ok(RemoteSource {
             runtime: Arc::new(runtime),
@@ -610,14 +613,14 @@ mod tests {
         assert_eq!(check_store_format(&header, known), Ok(()));
         // What a newer server sends of a store whose bricks this build cannot decode.
         header.required_features.push("quantum-bricks".into());
-        let refusal = check_store_format(&header, known).unwrap_err();
+        let refusal = check_store_format(&header, known).unwrap_err().to_string();
         assert!(refusal.contains("'quantum-bricks'"), "{refusal}");
         assert!(refusal.contains("update this client"), "{refusal}");
         // Every feature this build knows is accepted.
         header.required_features = known.iter().map(|f| f.to_string()).collect();
         assert_eq!(check_store_format(&header, known), Ok(()));
         header.format_version = strata_storage::store::STORE_FORMAT_VERSION + 1;
-        let refusal = check_store_format(&header, known).unwrap_err();
+        let refusal = check_store_format(&header, known).unwrap_err().to_string();
         assert!(refusal.contains("format version"), "{refusal}");
     }
 

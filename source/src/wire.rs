@@ -65,28 +65,61 @@ pub fn encode_open_document(
     Ok(out)
 }
 
+/// Why an open document was not read; the wording names the part that failed.
+#[derive(Debug, thiserror::Error)]
+pub enum OpenDocumentError {
+    #[error("not a Strata open document (wrong magic)")]
+    WrongMagic,
+    #[error("open document truncated")]
+    Truncated,
+    #[error("open document's JSON part claims {0} bytes")]
+    JsonLength(u64),
+    #[error("open document: {0}")]
+    Json(#[from] serde_json::Error),
+    #[error(transparent)]
+    Format(#[from] StoreFormatError),
+    #[error("octree skeleton {0}")]
+    Skeleton(#[from] strata_storage::skeleton::SkeletonDecodeError),
+}
+
+/// A served store this build cannot read as a whole (see [`check_store_format`]).
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum StoreFormatError {
+    #[error(
+        "the server's store has format version {version}, and this client reads versions \
+         {oldest} to {newest}: update this client"
+    )]
+    Version {
+        version: u32,
+        oldest: u32,
+        newest: u32,
+    },
+    #[error("the store needs '{0}', a store feature of a newer Strata: update this client")]
+    Feature(String),
+}
+
 /// Decodes [`encode_open_document`]'s bytes, refusing a store this build cannot read
 /// ([`check_store_format`] with `known_features`) before it decodes the skeleton.
 pub fn decode_open_document(
     bytes: &[u8],
     known_features: &[&str],
-) -> Result<(OpenDocument, Skeleton), String> {
+) -> Result<(OpenDocument, Skeleton), OpenDocumentError> {
     let rest = bytes
         .strip_prefix(OPEN_DOCUMENT_MAGIC.as_slice())
-        .ok_or("not a Strata open document (wrong magic)")?;
-    let (len, rest) = rest.split_at_checked(8).ok_or("open document truncated")?;
-    let len = u64::from_le_bytes(len.try_into().map_err(|_| "open document truncated")?);
+        .ok_or(OpenDocumentError::WrongMagic)?;
+    let (len, rest) = rest
+        .split_at_checked(8)
+        .ok_or(OpenDocumentError::Truncated)?;
+    let len = u64::from_le_bytes(len.try_into().map_err(|_| OpenDocumentError::Truncated)?);
     if len > MAX_OPEN_JSON_BYTES || len > rest.len() as u64 {
-        return Err(format!("open document's JSON part claims {len} bytes"));
+        return Err(OpenDocumentError::JsonLength(len));
     }
     let (json, skeleton) = rest.split_at(len as usize);
-    let doc: OpenDocument =
-        serde_json::from_slice(json).map_err(|e| format!("open document: {e}"))?;
+    let doc: OpenDocument = serde_json::from_slice(json)?;
     // Before the skeleton: a newer store's skeleton may be one this build cannot decode, and
     // the feature or version names the reason where the decode error would not.
     check_store_format(&doc.header, known_features)?;
-    let skeleton = Skeleton::decode(skeleton, &doc.header.layout)
-        .map_err(|e| format!("octree skeleton {e}"))?;
+    let skeleton = Skeleton::decode(skeleton, &doc.header.layout)?;
     Ok((doc, skeleton))
 }
 
@@ -94,23 +127,25 @@ pub fn decode_open_document(
 /// fetched: a newer format version, or a store feature (a brick kind, 4-D frames) of a newer
 /// Strata. Without it an older client would fail brick by brick, or misread a header field it
 /// does not know.
-pub fn check_store_format(header: &StoreHeader, known_features: &[&str]) -> Result<(), String> {
+pub fn check_store_format(
+    header: &StoreHeader,
+    known_features: &[&str],
+) -> Result<(), StoreFormatError> {
     use strata_storage::store::{OLDEST_READABLE_FORMAT_VERSION, STORE_FORMAT_VERSION};
     let version = header.format_version;
     if !(OLDEST_READABLE_FORMAT_VERSION..=STORE_FORMAT_VERSION).contains(&version) {
-        return Err(format!(
-            "the server's store has format version {version}, and this client reads versions \
-             {OLDEST_READABLE_FORMAT_VERSION} to {STORE_FORMAT_VERSION}: update this client"
-        ));
+        return Err(StoreFormatError::Version {
+            version,
+            oldest: OLDEST_READABLE_FORMAT_VERSION,
+            newest: STORE_FORMAT_VERSION,
+        });
     }
     match header
         .required_features
         .iter()
         .find(|feature| !known_features.contains(&feature.as_str()))
     {
-        Some(feature) => Err(format!(
-            "the store needs '{feature}', a store feature of a newer Strata: update this client"
-        )),
+        Some(feature) => Err(StoreFormatError::Feature(feature.clone())),
         None => Ok(()),
     }
 }
@@ -187,12 +222,16 @@ mod tests {
         };
         // A newer encoding behind a feature this build does not know: the feature is named.
         doc.header.required_features.push("skeleton-v9".into());
-        let refusal = decode_open_document(&with_unreadable_skeleton(&doc), known).unwrap_err();
+        let refusal = decode_open_document(&with_unreadable_skeleton(&doc), known)
+            .unwrap_err()
+            .to_string();
         assert!(refusal.contains("'skeleton-v9'"), "{refusal}");
         assert!(refusal.contains("update this client"), "{refusal}");
         // Known features: the same bytes are then reported as the skeleton's.
         doc.header.required_features.pop();
-        let error = decode_open_document(&with_unreadable_skeleton(&doc), known).unwrap_err();
+        let error = decode_open_document(&with_unreadable_skeleton(&doc), known)
+            .unwrap_err()
+            .to_string();
         assert!(error.contains("skeleton"), "{error}");
     }
 

@@ -59,13 +59,13 @@ pub mod volume_location;
 pub mod volume_session;
 pub mod widgets;
 
+/// The UI tests (egui_kittest): kept under tests/ui/, compiled here for private access.
 #[cfg(test)]
+#[path = "../tests/ui/mod.rs"]
 mod ui_tests;
-#[cfg(test)]
-mod ui_tests_segment_oblique;
 
 /// The real PACS fixture (Orthanc on loopback) of the integration tests, shared by path so that
-/// the viewer's tests use the same one (pacs_dialog.rs, ui_tests.rs).
+/// the viewer's tests use the same one (pacs_dialog.rs, tests/ui/opening.rs).
 #[cfg(test)]
 #[path = "../../app/tests/common/orthanc.rs"]
 #[allow(dead_code)]

@@ -186,7 +186,7 @@ struct Streamed {
 type Opening = Rc<RefCell<Option<Result<ServedStore, strata_source::SourceError>>>>;
 
 /// The server's store list, filled by its request's future.
-type Stores = Rc<RefCell<Option<Result<StoreList, String>>>>;
+type Stores = Rc<RefCell<Option<Result<StoreList, crate::served_store::ListStoresError>>>>;
 
 struct WebViewer {
     render_state: egui_wgpu::RenderState,

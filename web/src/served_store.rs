@@ -144,15 +144,29 @@ async fn fetch_bytes(
     }
 }
 
+/// Why the page has no store list: the request failed, or its answer was not a list.
+#[derive(Debug, thiserror::Error)]
+pub enum ListStoresError {
+    #[error("aborted")]
+    Aborted,
+    /// The browser's or the server's wording of the failed request.
+    #[error("{0}")]
+    Request(String),
+    #[error(transparent)]
+    NotAList(#[from] crate::volume_menu::StoreListError),
+}
+
 /// The server's stores (`GET /v1/stores`), for the page's store list.
-pub async fn list_stores(token: Option<&str>) -> Result<StoreList, String> {
+pub async fn list_stores(token: Option<&str>) -> Result<StoreList, ListStoresError> {
     let bytes = fetch_bytes(&format!("{API_PREFIX}/stores"), token, None, false)
         .await
         .map_err(|failure| match failure {
-            FetchFailure::Aborted => "aborted".to_string(),
-            FetchFailure::Transient(message, _) | FetchFailure::Refused(message) => message,
+            FetchFailure::Aborted => ListStoresError::Aborted,
+            FetchFailure::Transient(message, _) | FetchFailure::Refused(message) => {
+                ListStoresError::Request(message)
+            }
         })?;
-    crate::volume_menu::parse_store_list(&bytes)
+    Ok(crate::volume_menu::parse_store_list(&bytes)?)
 }
 
 impl ServedStore {
@@ -177,10 +191,10 @@ impl ServedStore {
             .await
             .map_err(|f| failed(f, "opening the store"))?;
         let (document, skeleton) =
-            decode_open_document(&bytes, KNOWN_STORE_FEATURES).map_err(|message| {
+            decode_open_document(&bytes, KNOWN_STORE_FEATURES).map_err(|e| {
                 SourceError::Refused {
                     location: location.clone(),
-                    message,
+                    message: e.to_string(),
                 }
             })?;
         let root_level = (skeleton.level_count().max(1) - 1) as u8;

@@ -18,9 +18,14 @@ pub struct MenuEntry {
     pub label: String,
 }
 
+/// A `GET /v1/stores` answer that is not a store list.
+#[derive(Debug, thiserror::Error)]
+#[error("the server's store list: {0}")]
+pub struct StoreListError(#[from] serde_json::Error);
+
 /// The server's answer to `GET /v1/stores`, as the page reads it.
-pub fn parse_store_list(body: &[u8]) -> Result<StoreList, String> {
-    serde_json::from_slice(body).map_err(|e| format!("the server's store list: {e}"))
+pub fn parse_store_list(body: &[u8]) -> Result<StoreList, StoreListError> {
+    Ok(serde_json::from_slice(body)?)
 }
 
 /// The menu's entries: the sample first, then the server's stores in the server's order.

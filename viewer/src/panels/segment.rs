@@ -8,7 +8,7 @@
 //! the panel made the right-hand panel grow by 44 points on the frame after the segmentation
 //! opened, moving every widget left under a pointer that had not moved (a click aimed at
 //! "Brush" landed on "Eraser") and shrinking the views, as issue 36 saw for labels
-//! (`ui_tests_segment_oblique::one_click_on_a_tool_button_chooses_that_tool`).
+//! (`ui_tests::segment_oblique::one_click_on_a_tool_button_chooses_that_tool`).
 
 use std::path::PathBuf;
 use std::sync::Arc;

@@ -12,16 +12,16 @@ use std::collections::BTreeMap;
 use egui::Vec2;
 use glam::DVec3;
 
-use super::app::{Layout, Preferences, StrataApp, ViewerOptions};
-use super::jobs::VolumeToOpen;
-use super::oblique::{default_extent_mm, ObliquePlane, ObliqueRequest};
-use super::oblique_view::pixel_patient;
-use super::overlay::tests::{label_of, write_nrrd, LABEL_DIMS, LABEL_ORIGIN, LABEL_SPACING};
-use super::segmentation::SegmentTool;
-use super::ui_tests::{
+use super::harness::{
     app, drag, harness_sized, labelled_voxels, new_segmentation, phantom_store, set_segment_tool,
     step_until, step_until_some,
 };
+use crate::app::{Layout, Preferences, StrataApp, ViewerOptions};
+use crate::jobs::VolumeToOpen;
+use crate::oblique::{default_extent_mm, ObliquePlane, ObliqueRequest};
+use crate::oblique_view::pixel_patient;
+use crate::overlay::tests::{label_of, write_nrrd, LABEL_DIMS, LABEL_ORIGIN, LABEL_SPACING};
+use crate::segmentation::SegmentTool;
 use egui_kittest::kittest::Queryable;
 use egui_kittest::Harness;
 
@@ -467,7 +467,7 @@ fn on_a_tilted_oblique_view_the_brush_and_eraser_change_the_models_voxels_and_un
 /// views where they were (the side panel keeps its width: its rows wrap instead).
 #[test]
 fn one_click_on_a_tool_button_chooses_that_tool() {
-    use super::app::ViewSlot;
+    use crate::app::ViewSlot;
     let dir = tempfile::tempdir().expect("temp dir");
     let store = phantom_store(dir.path());
     let options = options_with_oblique(store, dir.path());
