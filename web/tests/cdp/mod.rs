@@ -49,9 +49,10 @@ fn pipe() -> (OwnedFd, OwnedFd) {
 }
 
 impl Cdp {
-    /// Headless Chromium on `url` (the flags of browser.rs's `Browser`: WebGPU on
-    /// SwiftShader), driven over the pipe, attached to its page.
-    pub fn open(url: &str, scratch: &Path) -> Cdp {
+    /// Headless Chromium on `url` in a window of `window` CSS pixels (the flags of
+    /// browser.rs's `Browser`: WebGPU on SwiftShader), driven over the pipe, attached to its
+    /// page.
+    pub fn open(url: &str, scratch: &Path, window: [u32; 2]) -> Cdp {
         use std::os::fd::AsRawFd;
         let turn = crate::ONE_BROWSER_AT_A_TIME
             .lock()
@@ -80,11 +81,11 @@ impl Cdp {
                 "--use-vulkan=swiftshader",
                 "--use-angle=swiftshader",
                 "--enable-logging=stderr",
-                "--window-size=480,400",
                 "--force-device-scale-factor=1",
                 "--remote-debugging-pipe",
             ])
             .arg(format!("--user-data-dir={}", profile.path().display()))
+            .arg(format!("--window-size={},{}", window[0], window[1]))
             .arg(url)
             .stdin(Stdio::null())
             .stdout(Stdio::null())
@@ -240,8 +241,9 @@ impl Cdp {
                 return value;
             }
             if Instant::now() > until {
+                let hash = self.evaluate("location.hash");
                 panic!(
-                    "waited {deadline:?} for {what}; the page's console:\n{}",
+                    "waited {deadline:?} for {what}; the page's link: {hash}; its console:\n{}",
                     self.console()
                 );
             }
