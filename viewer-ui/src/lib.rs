@@ -15,6 +15,8 @@
 //!   volume now, and a new render request as a typed difference of actions (issue 47).
 //! - [`lighting`]: the light model (key light, shadows, occlusion, scattering), the one function
 //!   that makes render settings of it, and its controls with the direction gizmo.
+//! - [`orbit`]: the 3D view's drag-to-orbit mapping and the six standard views (A/P/L/R/S/I),
+//!   so a drag or key turns both viewers' views alike.
 //! - [`layouts`]: where the views go in the 2×2 and the 3D-over-slices layouts.
 //! - [`widgets`]: small widgets the panels need (the slow spinner).
 //! - [`window_presets`]: the slice window/level presets (CT's windows, the scan's own, Auto)
@@ -27,6 +29,7 @@ pub mod compact_tf;
 pub mod crop_clip;
 pub mod layouts;
 pub mod lighting;
+pub mod orbit;
 pub mod performance;
 pub mod presets;
 pub mod render_driver;

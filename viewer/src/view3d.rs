@@ -52,72 +52,11 @@ impl Default for OrbitCamera {
     }
 }
 
-/// The six standard views, named for where the viewer stands.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum StandardView {
-    Anterior,
-    Posterior,
-    Left,
-    Right,
-    Superior,
-    Inferior,
-}
-
-impl StandardView {
-    pub const ALL: [StandardView; 6] = [
-        StandardView::Anterior,
-        StandardView::Posterior,
-        StandardView::Left,
-        StandardView::Right,
-        StandardView::Superior,
-        StandardView::Inferior,
-    ];
-
-    pub fn letter(self) -> &'static str {
-        match self {
-            StandardView::Anterior => "A",
-            StandardView::Posterior => "P",
-            StandardView::Left => "L",
-            StandardView::Right => "R",
-            StandardView::Superior => "S",
-            StandardView::Inferior => "I",
-        }
-    }
-
-    pub fn key(self) -> egui::Key {
-        match self {
-            StandardView::Anterior => egui::Key::A,
-            StandardView::Posterior => egui::Key::P,
-            StandardView::Left => egui::Key::L,
-            StandardView::Right => egui::Key::R,
-            StandardView::Superior => egui::Key::S,
-            StandardView::Inferior => egui::Key::I,
-        }
-    }
-
-    pub fn description(self) -> &'static str {
-        match self {
-            StandardView::Anterior => "from the front (anterior)",
-            StandardView::Posterior => "from behind (posterior)",
-            StandardView::Left => "from the patient's left",
-            StandardView::Right => "from the patient's right",
-            StandardView::Superior => "from above (superior)",
-            StandardView::Inferior => "from below (inferior)",
-        }
-    }
-}
+pub use strata_viewer_ui::orbit::StandardView;
 
 impl OrbitCamera {
     pub fn standard(view: StandardView, orthographic: bool) -> Self {
-        // Azimuth 90° puts the eye at +x (LPS left): the patient's left side faces us.
-        let (azimuth_deg, elevation_deg) = match view {
-            StandardView::Anterior => (0.0, 0.0),
-            StandardView::Posterior => (180.0, 0.0),
-            StandardView::Left => (90.0, 0.0),
-            StandardView::Right => (-90.0, 0.0),
-            StandardView::Superior => (0.0, 90.0),
-            StandardView::Inferior => (0.0, -90.0),
-        };
+        let (azimuth_deg, elevation_deg) = view.angles_deg();
         OrbitCamera {
             azimuth_deg,
             elevation_deg,
@@ -148,11 +87,12 @@ impl OrbitCamera {
 
     /// Orbit by a drag of `delta` points in a view `size` points tall.
     pub fn orbit_by(&mut self, delta: Vec2, size: Vec2) {
-        let degrees_per_point = 180.0 / size.y.max(100.0) as f64;
-        self.azimuth_deg =
-            (self.azimuth_deg - delta.x as f64 * degrees_per_point).rem_euclid(360.0);
-        self.elevation_deg =
-            (self.elevation_deg + delta.y as f64 * degrees_per_point).clamp(-90.0, 90.0);
+        (self.azimuth_deg, self.elevation_deg) = strata_viewer_ui::orbit::orbit_by_drag(
+            self.azimuth_deg,
+            self.elevation_deg,
+            [delta.x as f64, delta.y as f64],
+            size.y as f64,
+        );
     }
 
     pub fn pan_by(&mut self, delta: Vec2, size: Vec2) {

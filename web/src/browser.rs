@@ -32,14 +32,13 @@ use crate::view_state::{Fragment, Layout, ViewState};
 use crate::volume_menu;
 use strata_source::wire::StoreList;
 use strata_source::VolumeSource;
+use strata_viewer_ui::orbit;
 use strata_viewer_ui::presets;
 use strata_viewer_ui::render_driver::{RenderChange, RenderDriver, RenderRequest};
 
 /// The largest image edge drawn when the canvas decides (device pixels): a 4K canvas is drawn
 /// at this size and scaled, so one frame stays bounded on a software adapter.
 const MAX_CANVAS_IMAGE_EDGE: f32 = 2048.0;
-/// Degrees of orbit per logical pixel dragged.
-const ORBIT_DEG_PER_POINT: f64 = 0.4;
 
 /// Called by the wasm-bindgen glue when the module loads.
 #[wasm_bindgen(start)]
@@ -1080,18 +1079,32 @@ impl eframe::App for WebViewer {
                     _ => (area, None),
                 };
                 let response = ui.allocate_rect(rect, egui::Sense::drag());
+                // The desktop's drag mapping (strata-viewer-ui's orbit): the same drag turns
+                // both viewers' views by the same angles.
                 if response.dragged() {
                     let delta = response.drag_delta();
-                    self.view.azimuth_deg -= delta.x as f64 * ORBIT_DEG_PER_POINT;
-                    self.view.elevation_deg = (self.view.elevation_deg
-                        + delta.y as f64 * ORBIT_DEG_PER_POINT)
-                        .clamp(-89.0, 89.0);
+                    (self.view.azimuth_deg, self.view.elevation_deg) = orbit::orbit_by_drag(
+                        self.view.azimuth_deg,
+                        self.view.elevation_deg,
+                        [delta.x as f64, delta.y as f64],
+                        rect.height() as f64,
+                    );
                 }
+                // The desktop's standard-view keys (A/P/L/R/S/I), unless a text field (the
+                // store path, a number) takes the keys.
+                let mut keyed = false;
+                if !ctx.egui_wants_keyboard_input() {
+                    if let Some(standard) = ctx.input(orbit::StandardView::pressed) {
+                        (self.view.azimuth_deg, self.view.elevation_deg) = standard.angles_deg();
+                        keyed = true;
+                    }
+                }
+                publish_view_rects(rect, slice_rects);
                 if self.timing.orbiting() {
                     self.view.azimuth_deg += BENCH_DEG_PER_FRAME;
                     ctx.request_repaint();
                 }
-                let mut moved = response.dragged();
+                let mut moved = response.dragged() || keyed;
                 if response.hovered() {
                     let scroll = ui.input(|i| i.smooth_scroll_delta.y);
                     if scroll != 0.0 {
@@ -1159,5 +1172,31 @@ impl eframe::App for WebViewer {
         self.capture_step(&ctx);
         self.bridge_step(&ctx);
         self.side.record_frame(ui_started, self.frames_submitted);
+    }
+}
+
+/// Writes where the views are on the canvas (CSS pixels, `x,y,w,h`) into the canvas's
+/// `data-views` attribute: the browser tests click and drag there (web/tests/browser/input.rs)
+/// and compute what the desktop's mappings give for those points. Written only on change.
+fn publish_view_rects(three_d: egui::Rect, slices: Option<[egui::Rect; 3]>) {
+    let rect_text = |r: egui::Rect| format!("{},{},{},{}", r.min.x, r.min.y, r.width(), r.height());
+    let mut text = format!("3d:{}", rect_text(three_d));
+    if let Some([axial, coronal, sagittal]) = slices {
+        for (name, r) in [
+            ("axial", axial),
+            ("coronal", coronal),
+            ("sagittal", sagittal),
+        ] {
+            text.push_str(&format!(";{name}:{}", rect_text(r)));
+        }
+    }
+    let Some(canvas) = web_sys::window()
+        .and_then(|w| w.document())
+        .and_then(|d| d.get_element_by_id("strata-canvas"))
+    else {
+        return;
+    };
+    if canvas.get_attribute("data-views").as_deref() != Some(text.as_str()) {
+        let _ = canvas.set_attribute("data-views", &text);
     }
 }

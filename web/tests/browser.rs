@@ -23,6 +23,10 @@ use strata_web::view_state::{Fragment, ViewState};
 /// hang, it does not time anything.
 const PAGE_DEADLINE: Duration = Duration::from_secs(240);
 
+/// The page under clicks, drags and keys over the DevTools protocol (issue 47).
+#[path = "browser/input.rs"]
+mod input;
+
 const TOKEN: &str = "0123456789abcdef0123456789abcdef";
 
 fn chromium() -> PathBuf {
