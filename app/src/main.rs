@@ -200,7 +200,7 @@ fn view(args: ViewArgs) -> Result<()> {
     options.initial_view = match args.view.as_deref() {
         None => None,
         Some(letter) => Some(
-            strata_viewer::view3d::StandardView::ALL
+            strata_viewer_ui::orbit::StandardView::ALL
                 .into_iter()
                 .find(|v| v.letter().eq_ignore_ascii_case(letter))
                 .ok_or_else(|| {

@@ -26,11 +26,12 @@ use super::screenshots::{ScreenshotJob, ShotTarget};
 use super::segmentation::{journal_path, PendingRecovery, Segmentation};
 use super::slice_view::SliceViewer;
 use super::slices::SliceReader;
-use super::view3d::{OrbitCamera, StandardView, View3d};
+use super::view3d::{OrbitCamera, View3d};
 use super::volume_session::{ScreenshotRequest, VolumeSession, DEFAULT_GPU_BUDGET_BYTES};
 use super::widgets::{elide_middle, NOT_FOR_DIAGNOSIS, WARNING_COLOUR};
 use strata_viewer_ui::crop_clip::ClipSettings;
 use strata_viewer_ui::layouts;
+use strata_viewer_ui::orbit::StandardView;
 use strata_viewer_ui::tf_editor::TfEditorState;
 
 /// How the viewer was started (command line, tests).

@@ -162,12 +162,8 @@ impl Default for Preferences {
     }
 }
 
-// The light model is shared with the browser's side panel (viewer-ui's lighting.rs); these
-// names stay here so the desktop's modules keep one place for their preferences.
-pub use strata_viewer_ui::lighting::{
-    LightPrefs, Lighting, LitView, AZIMUTH_RANGE, ELEVATION_RANGE, OCCLUSION_RADIUS_RANGE,
-    SCATTERING_G_RANGE, SHADOW_STEP_RANGE,
-};
+// The light model is shared with the browser's side panel (viewer-ui's lighting.rs).
+use strata_viewer_ui::lighting::{LightPrefs, Lighting, LitView};
 
 impl Preferences {
     /// What besides the light decides how the 3D view is lit.

@@ -522,8 +522,9 @@ mod tests {
 
     #[test]
     fn the_light_comes_back_with_the_session_and_an_older_session_has_the_headlight() {
-        use super::super::preferences::{render_lighting, LightPrefs};
+        use super::super::preferences::render_lighting;
         use strata_render::{LightDirection, ShadowMode};
+        use strata_viewer_ui::lighting::LightPrefs;
 
         let dir = tempfile::tempdir().expect("tempdir");
         let location = dir.path().join("ct.strata");

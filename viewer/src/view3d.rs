@@ -52,7 +52,7 @@ impl Default for OrbitCamera {
     }
 }
 
-pub use strata_viewer_ui::orbit::StandardView;
+use strata_viewer_ui::orbit::StandardView;
 
 impl OrbitCamera {
     pub fn standard(view: StandardView, orthographic: bool) -> Self {

@@ -180,15 +180,6 @@ fn adaptive_sampling(ui: &mut egui::Ui, prefs: &mut Preferences) {
 /// Accessible name of the progressive refinement slider.
 pub const PROGRESSIVE_LABEL: &str = "Progressive frames";
 
-// The light controls are the browser's too (viewer-ui's lighting.rs); their labels are named
-// here as well, where the UI tests look for the rendering panel's.
-pub use strata_viewer_ui::lighting::{
-    gizmo_angles, gizmo_point, AMBIENT_LABEL, AZIMUTH_LABEL, CACHE_SHADOWS_LABEL,
-    DIRECTIONAL_LABEL, ELEVATION_LABEL, EXACT_SHADOWS_LABEL, GIZMO_LABEL, HEADLIGHT_LABEL,
-    INTENSITY_LABEL, NO_SHADOWS_LABEL, OCCLUSION_LABEL, OCCLUSION_RADIUS_LABEL,
-    SCATTERING_BLEND_LABEL, SCATTERING_G_LABEL, SCATTERING_LABEL, SHADOW_STEP_LABEL,
-};
-
 /// The key light, its effects and the shading switch they turn on: the shared controls, with
 /// everything offered (the desktop draws them all, refined progressively).
 fn light(ui: &mut egui::Ui, prefs: &mut Preferences) {
@@ -202,8 +193,9 @@ fn light(ui: &mut egui::Ui, prefs: &mut Preferences) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::preferences::{render_lighting, LightPrefs};
+    use crate::preferences::render_lighting;
     use strata_render::{LightDirection, ShadowMode};
+    use strata_viewer_ui::lighting::LightPrefs;
 
     #[test]
     fn effects_are_refused_for_mip_and_the_adaptive_pass_and_turn_shading_on() {

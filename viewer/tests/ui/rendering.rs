@@ -206,13 +206,13 @@ fn the_adaptive_sampling_checkbox_and_epsilon_slider_reach_the_frame_and_persist
 /// the side panel keeps its width).
 #[test]
 fn the_light_controls_reach_the_3d_views_settings_without_widening_the_panel() {
-    use crate::panels::rendering::{
-        AMBIENT_LABEL, AZIMUTH_LABEL, DIRECTIONAL_LABEL, ELEVATION_LABEL, EXACT_SHADOWS_LABEL,
-        INTENSITY_LABEL, SHADOW_STEP_LABEL,
-    };
     use egui::accesskit::Role;
     use egui_kittest::kittest::NodeT;
     use strata_render::{LightDirection, RenderSettings, ShadowMode};
+    use strata_viewer_ui::lighting::{
+        AMBIENT_LABEL, AZIMUTH_LABEL, DIRECTIONAL_LABEL, ELEVATION_LABEL, EXACT_SHADOWS_LABEL,
+        INTENSITY_LABEL, SHADOW_STEP_LABEL,
+    };
 
     let dir = tempfile::tempdir().expect("tempdir");
     let store = phantom_store(dir.path());
@@ -316,10 +316,10 @@ fn the_light_controls_reach_the_3d_views_settings_without_widening_the_panel() {
 /// raycaster draws that frame.
 #[test]
 fn the_cinematic_presets_set_the_tf_and_lighting_the_3d_view_renders_with() {
-    use crate::panels::rendering::{CACHE_SHADOWS_LABEL, OCCLUSION_LABEL, SCATTERING_LABEL};
     use crate::preferences::CinematicPreset;
     use egui_kittest::kittest::NodeT;
     use strata_render::{LightDirection, RenderMode, RenderSettings, ShadowMode, TransferFunction};
+    use strata_viewer_ui::lighting::{CACHE_SHADOWS_LABEL, OCCLUSION_LABEL, SCATTERING_LABEL};
 
     let dir = tempfile::tempdir().expect("tempdir");
     let store = phantom_store(dir.path());

@@ -163,7 +163,7 @@ fn in_3d_the_brush_paints_the_ball_around_the_picked_surface_point_and_undo_remo
     let dir = tempfile::tempdir().expect("temp dir");
     let store = phantom_store(dir.path());
     let mut options = options_for(&store, dir.path());
-    options.initial_view = Some(crate::view3d::StandardView::Anterior);
+    options.initial_view = Some(strata_viewer_ui::orbit::StandardView::Anterior);
     let preferences = two_by_two(true);
     let mut h = harness_sized(options, preferences, Vec2::new(1100.0, 1000.0));
     step_until(&mut h, "the volume open", |a| a.volume.is_some());

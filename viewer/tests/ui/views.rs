@@ -244,7 +244,7 @@ fn a_click_in_the_3d_view_picks_the_bone_surface_it_shows() {
     let dir = tempfile::tempdir().expect("temp dir");
     let store = phantom_store(dir.path());
     let mut options = options_for(&store, dir.path());
-    options.initial_view = Some(crate::view3d::StandardView::Anterior);
+    options.initial_view = Some(strata_viewer_ui::orbit::StandardView::Anterior);
     let preferences = Preferences {
         layout: Layout::TwoByTwo,
         show_side_panel: false,
@@ -392,7 +392,7 @@ fn the_crop_box_is_drawn_in_3d_and_dragging_its_superior_handle_lowers_the_top()
     let dir = tempfile::tempdir().expect("temp dir");
     let store = phantom_store(dir.path());
     let mut options = options_for(&store, dir.path());
-    options.initial_view = Some(crate::view3d::StandardView::Anterior);
+    options.initial_view = Some(strata_viewer_ui::orbit::StandardView::Anterior);
     let preferences = Preferences {
         layout: Layout::TwoByTwo,
         show_side_panel: false,
