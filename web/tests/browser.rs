@@ -26,6 +26,9 @@ const PAGE_DEADLINE: Duration = Duration::from_secs(240);
 /// The page under clicks, drags and keys over the DevTools protocol (issue 47).
 #[path = "browser/input.rs"]
 mod input;
+/// Rulers, angles and ROIs drawn in the page against the desktop's functions (issue 47).
+#[path = "browser/measure.rs"]
+mod measure;
 
 const TOKEN: &str = "0123456789abcdef0123456789abcdef";
 
