@@ -268,14 +268,33 @@ fn near(a: [f64; 3], b: [f64; 3]) -> bool {
     (0..3).all(|i| (a[i] - b[i]).abs() <= POINT_TOLERANCE)
 }
 
-/// A ruler dragged across the page's axial view measures what the desktop's `distance_mm`
-/// gives between the voxels the shared slice mapping gives for the drag's two screen points.
+/// One page (one Chromium and one pipeline compilation: the browser tests share two cores)
+/// draws on its axial view, with real pointer events, in turn:
+/// - a ruler, dragged: it measures what the desktop's `distance_mm` gives between the voxels
+///   the shared slice mapping gives for the drag's two screen points;
+/// - an angle, by three clicks (the second the vertex): the desktop's `angle_deg` of the three
+///   voxels under them;
+/// - a box ROI, dragged: the statistics `roi_stats` gives natively over the assembler's image
+///   of the same slice of the same sample (the same voxel count, minimum and maximum; mean, SD
+///   and area to the last bits);
+///
+/// and the page's link then carries all three.
 #[test]
-fn a_ruler_dragged_on_the_pages_axial_view_measures_the_desktops_millimetres() {
+fn a_ruler_an_angle_and_a_box_roi_drawn_in_the_page_measure_what_the_desktops_functions_give() {
     let scratch = tempfile::tempdir().expect("scratch folder");
     let (mut page, _server) = open_page(FRAGMENT, scratch.path(), WINDOW);
     let axial = Axial::of_page(&mut page, FRAGMENT);
-    choose_tool(&mut page, "Ruler");
+    a_dragged_ruler_measures_the_desktops_millimetres(&mut page, &axial);
+    three_clicks_make_the_desktops_angle(&mut page, &axial);
+    a_dragged_box_has_the_desktops_statistics(&mut page, &axial);
+    wait_for_link(&mut page, "the link to carry the three measurements", |v| {
+        v.measurements.len() == 3
+    });
+}
+
+/// The first measurement: a ruler (see the test above).
+fn a_dragged_ruler_measures_the_desktops_millimetres(page: &mut Cdp, axial: &Axial) {
+    choose_tool(page, "Ruler");
     let (from, to) = (axial.at(0.2, 0.3), axial.at(0.75, 0.65));
     page.drag(
         [from.x as f64, from.y as f64],
@@ -288,7 +307,7 @@ fn a_ruler_dragged_on_the_pages_axial_view_measures_the_desktops_millimetres() {
         expected > 10.0,
         "the drag must span the slice: {expected} mm"
     );
-    let published = wait_for_measurements(&mut page, "the page's ruler", |m| !m.is_empty());
+    let published = wait_for_measurements(page, "the page's ruler", |m| !m.is_empty());
     let ruler = &published[0];
     assert_eq!(
         (published.len(), ruler.kind.as_str()),
@@ -307,20 +326,11 @@ fn a_ruler_dragged_on_the_pages_axial_view_measures_the_desktops_millimetres() {
         ruler.figures[0]
     );
     assert_eq!(ruler.text, format!("Ruler {expected:.1} mm"));
-    // The link carries it.
-    wait_for_link(&mut page, "the link to carry the ruler", |v| {
-        v.measurements.len() == 1
-    });
 }
 
-/// Three clicks with the angle tool (the second the vertex) make the angle the desktop's
-/// `angle_deg` gives for the three voxels under them.
-#[test]
-fn an_angle_clicked_on_the_pages_axial_view_is_the_desktops_angle() {
-    let scratch = tempfile::tempdir().expect("scratch folder");
-    let (mut page, _server) = open_page(FRAGMENT, scratch.path(), WINDOW);
-    let axial = Axial::of_page(&mut page, FRAGMENT);
-    choose_tool(&mut page, "Angle");
+/// The second: an angle by three clicks, after the ruler.
+fn three_clicks_make_the_desktops_angle(page: &mut Cdp, axial: &Axial) {
+    choose_tool(page, "Angle");
     let clicks = [axial.at(0.8, 0.3), axial.at(0.3, 0.5), axial.at(0.7, 0.85)];
     for (placed, at) in clicks.iter().enumerate() {
         // Each click places a point (the third completes the angle): one that is not taken
@@ -328,10 +338,10 @@ fn an_angle_clicked_on_the_pages_axial_view_is_the_desktops_angle() {
         let measured = |page: &mut Cdp| {
             page.evaluate("document.getElementById('strata-canvas')?.dataset.measurements ?? ''")
                 .as_str()
-                .is_some_and(|m| !m.is_empty())
+                .is_some_and(|m| parse_published(m).len() == 2)
         };
         click_until(
-            &mut page,
+            page,
             (at.x as f64, at.y as f64),
             &format!("the angle's point {}", placed + 1),
             |page| match placed {
@@ -342,11 +352,11 @@ fn an_angle_clicked_on_the_pages_axial_view_is_the_desktops_angle() {
     }
     let [a, vertex, b] = clicks.map(|at| axial.index_at(at));
     let expected = angle_deg(&axial.geometry, a, vertex, b);
-    let published = wait_for_measurements(&mut page, "the page's angle", |m| !m.is_empty());
-    let angle = &published[0];
+    let published = wait_for_measurements(page, "the page's angle", |m| m.len() == 2);
+    let angle = &published[1];
     assert_eq!(
         (published.len(), angle.kind.as_str()),
-        (1, "angle"),
+        (2, "angle"),
         "{published:?}"
     );
     assert!(
@@ -363,25 +373,19 @@ fn an_angle_clicked_on_the_pages_axial_view_is_the_desktops_angle() {
     assert_eq!(angle.text, format!("Angle {expected:.1}°"));
 }
 
-/// A box ROI dragged on the page's axial view has the statistics `roi_stats` gives natively
-/// over the assembler's image of the same slice of the same sample: the same voxel count,
-/// minimum and maximum, and mean, SD and area to the last bits.
-#[test]
-fn a_box_roi_on_the_pages_axial_view_has_the_desktops_statistics() {
-    let scratch = tempfile::tempdir().expect("scratch folder");
-    let (mut page, _server) = open_page(FRAGMENT, scratch.path(), WINDOW);
-    let axial = Axial::of_page(&mut page, FRAGMENT);
-    choose_tool(&mut page, "Box ROI");
+/// The third: a box ROI, after the ruler and the angle.
+fn a_dragged_box_has_the_desktops_statistics(page: &mut Cdp, axial: &Axial) {
+    choose_tool(page, "Box ROI");
     let (from, to) = (axial.at(0.25, 0.3), axial.at(0.6, 0.7));
     page.drag(
         [from.x as f64, from.y as f64],
         [to.x as f64, to.y as f64],
         4,
     );
-    let published = wait_for_measurements(&mut page, "the page's box with statistics", |m| {
-        m.first().is_some_and(|r| !r.figures.is_empty())
+    let published = wait_for_measurements(page, "the page's box with statistics", |m| {
+        m.get(2).is_some_and(|r| !r.figures.is_empty())
     });
-    let region = &published[0];
+    let region = &published[2];
     assert_eq!(region.kind, "box-axial", "{published:?}");
     assert!(
         near(region.points[0], axial.index_at(from)) && near(region.points[1], axial.index_at(to)),
