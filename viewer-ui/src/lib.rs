@@ -17,6 +17,7 @@
 //!   that makes render settings of it, and its controls with the direction gizmo.
 //! - [`orbit`]: the 3D view's drag-to-orbit mapping and the six standard views (A/P/L/R/S/I),
 //!   so a drag or key turns both viewers' views alike.
+//! - [`picking`]: the volume position a click in the 3D view sees, from the frame's pick depth.
 //! - [`layouts`]: where the views go in the 2×2 and the 3D-over-slices layouts.
 //! - [`widgets`]: small widgets the panels need (the slow spinner).
 //! - [`window_presets`]: the slice window/level presets (CT's windows, the scan's own, Auto)
@@ -31,6 +32,7 @@ pub mod layouts;
 pub mod lighting;
 pub mod orbit;
 pub mod performance;
+pub mod picking;
 pub mod presets;
 pub mod render_driver;
 pub mod slice_canvas;

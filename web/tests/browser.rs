@@ -26,6 +26,9 @@ const PAGE_DEADLINE: Duration = Duration::from_secs(240);
 /// The page under clicks, drags and keys over the DevTools protocol (issue 47).
 #[path = "browser/input.rs"]
 mod input;
+/// A click in the page's 3D view picks what the desktop picks (issue 47).
+#[path = "browser/picking.rs"]
+mod picking;
 
 const TOKEN: &str = "0123456789abcdef0123456789abcdef";
 
