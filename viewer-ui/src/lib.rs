@@ -18,6 +18,8 @@
 //! - [`orbit`]: the 3D view's drag-to-orbit mapping and the six standard views (A/P/L/R/S/I),
 //!   so a drag or key turns both viewers' views alike.
 //! - [`picking`]: the volume position a click in the 3D view sees, from the frame's pick depth.
+//! - [`measurements`]: rulers, angles and box/ellipse ROIs: the model, ROI statistics, a
+//!   slice view's gestures and drawing, the list panel and the link's `m=` value.
 //! - [`layouts`]: where the views go in the 2×2 and the 3D-over-slices layouts.
 //! - [`widgets`]: small widgets the panels need (the slow spinner).
 //! - [`window_presets`]: the slice window/level presets (CT's windows, the scan's own, Auto)
@@ -30,6 +32,7 @@ pub mod compact_tf;
 pub mod crop_clip;
 pub mod layouts;
 pub mod lighting;
+pub mod measurements;
 pub mod orbit;
 pub mod performance;
 pub mod picking;

@@ -9,8 +9,8 @@ use strata_segment::Edit;
 
 use super::segmentation::Segmentation;
 
-use super::measurements::Measurement;
 use super::scene::{Scene, Window};
+use strata_viewer_ui::measurements::Measurement;
 
 /// Steps kept; older ones are dropped.
 const MAX_STEPS: usize = 200;

@@ -1097,6 +1097,14 @@ impl eframe::App for WebViewer {
             .resizable(true)
             .default_size(300.0)
             .show(ui, |ui| {
+                // The measurements' tools and list first, always in sight (measure.rs).
+                let slices = match self.streamed.as_mut() {
+                    Some(streamed) => Some(&mut streamed.slices),
+                    None => self.sample_slices.as_mut(),
+                };
+                if let Some(slices) = slices {
+                    crate::measure::side_panel_section(ui, &mut self.view, slices);
+                }
                 let figures = VolumeFigures {
                     loader: self.streamed.as_ref().and_then(|s| s.last.as_ref()),
                     step_factor: self.motion.shown().0,
@@ -1258,10 +1266,13 @@ impl eframe::App for WebViewer {
                     if let Some(index) = picked {
                         slices.cursor = index;
                     }
+                    crate::measure::before_slice_views(&self.view, slices);
                     slices.ui(ui, rects);
                     // The address follows the crosshair and window, so a link shares them.
                     self.view.cursor = Some(slices.cursor);
                     self.view.window = Some([slices.window.centre, slices.window.width]);
+                    // And the measurements (measure.rs).
+                    crate::measure::after_slice_views(&mut self.view, slices);
                 }
                 // Not while a drag goes on (the view, a slice, the editor's points): one
                 // history entry rewrite when it ends, not one per frame.

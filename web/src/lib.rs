@@ -26,6 +26,9 @@
 //! - `slice_views` (wasm32 only): a streamed store's three linked slice views (axial, coronal,
 //!   sagittal) beside the 3D view, sliced by strata-slices' assembler (the desktop's) from
 //!   bricks fetched asynchronously through the served store, window/level by right drag.
+//! - `measure` (wasm32 only): the desktop's rulers, angles and ROIs in the page
+//!   (strata-viewer-ui's measurements): the side panel's tools and list, the list kept in the
+//!   view (the link's `m=`), and what the page publishes of them for its tests.
 //! - `side_panel` (wasm32 only): the side panel, the desktop's transfer-function editor and
 //!   Performance panel from strata-viewer-ui, on the page's 3D view.
 //!
@@ -42,6 +45,8 @@ pub mod volume_menu;
 mod browser;
 #[cfg(target_arch = "wasm32")]
 mod embed_bridge;
+#[cfg(target_arch = "wasm32")]
+mod measure;
 #[cfg(target_arch = "wasm32")]
 mod page_timing;
 #[cfg(target_arch = "wasm32")]

@@ -29,6 +29,9 @@ mod input;
 /// A click in the page's 3D view picks what the desktop picks (issue 47).
 #[path = "browser/picking.rs"]
 mod picking;
+/// Rulers, angles and ROIs drawn in the page against the desktop's functions (issue 47).
+#[path = "browser/measure.rs"]
+mod measure;
 
 const TOKEN: &str = "0123456789abcdef0123456789abcdef";
 

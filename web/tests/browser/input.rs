@@ -5,7 +5,7 @@
 //! (strata-viewer-ui's slice_canvas and strata_slices).
 
 #[path = "../cdp/mod.rs"]
-mod cdp;
+pub(crate) mod cdp;
 
 use cdp::Cdp;
 use egui::{pos2, Rect};
