@@ -24,6 +24,7 @@ use wasm_bindgen::JsCast;
 
 use crate::embed_bridge::{embed_origin, EmbedBridge};
 use crate::page_timing::{PageTiming, BENCH_DEG_PER_FRAME};
+use crate::page_tools::{self, PageTools};
 use crate::served_store::{list_stores, ServedStore, DECODES_PER_FRAME, MAX_ON_THE_WIRE};
 use crate::side_panel::{SidePanel, VolumeFigures};
 use crate::slice_views::{slice_layout, SliceViews};
@@ -35,6 +36,7 @@ use strata_source::VolumeSource;
 use strata_viewer_ui::orbit;
 use strata_viewer_ui::presets;
 use strata_viewer_ui::render_driver::{RenderChange, RenderDriver, RenderRequest};
+use strata_viewer_ui::triad;
 
 /// The largest image edge drawn when the canvas decides (device pixels): a 4K canvas is drawn
 /// at this size and scaled, so one frame stays bounded on a software adapter.
@@ -229,6 +231,10 @@ struct WebViewer {
     bridge: Option<EmbedBridge>,
     /// A screenshot the bridge was asked for, being read back, and the requests it answers.
     screenshot: Option<(Capture, Vec<JsValue>)>,
+    /// Undo and redo, the shared keys and help, the screenshot download (page_tools.rs).
+    tools: PageTools,
+    /// The 3D frame being read back for a screenshot download (F12, Screenshot).
+    download: Option<Capture>,
 }
 
 impl WebViewer {
@@ -311,6 +317,8 @@ impl WebViewer {
             preset_named: fragment.preset_named,
             bridge,
             screenshot: None,
+            tools: PageTools::default(),
+            download: None,
         })
     }
 
@@ -325,6 +333,7 @@ impl WebViewer {
             let volume = Rc::new(self.view.sample_volume()?);
             let mut slices = SliceViews::for_sample(volume.clone());
             slices.set_from_link(self.view.cursor, self.view.window);
+            slices.colour_map = self.view.colour_map;
             self.sample_slices = Some(slices);
             self.volume = Some(volume);
             self.side.set_sample_histogram(&self.view);
@@ -382,6 +391,7 @@ impl WebViewer {
         let mut slices = SliceViews::new(store.as_ref())?;
         // The link's crosshair and window, if it names them.
         slices.set_from_link(self.view.cursor, self.view.window);
+        slices.colour_map = self.view.colour_map;
         let config = StreamingConfig {
             // The page shares the GPU and memory with the rest of the browser.
             gpu_budget_bytes: 256 << 20,
@@ -534,6 +544,80 @@ impl WebViewer {
         Ok(())
     }
 
+    /// The geometry of the volume shown (a served store's or the sample's), once open.
+    fn shown_geometry(&self) -> Option<VolumeGeometry> {
+        match &self.streamed {
+            Some(streamed) => Some(streamed.volume.geometry().clone()),
+            None => self.volume.as_ref().map(|v| v.geometry.clone()),
+        }
+    }
+
+    /// Undo and redo (page_tools.rs): the view's edits put back, the side panel's function
+    /// and the slices' window following them.
+    fn history_step(&mut self, ctx: &egui::Context) {
+        let gesture = ctx.input(|i| i.pointer.any_down());
+        let Some(restored) = self
+            .tools
+            .step_history(&self.view, self.drawn.is_some(), gesture)
+        else {
+            return;
+        };
+        self.view = restored;
+        self.side.restore(&self.view);
+        let slices = match self.streamed.as_mut() {
+            Some(streamed) => Some(&mut streamed.slices),
+            None => self.sample_slices.as_mut(),
+        };
+        if let Some(slices) = slices {
+            slices.set_from_link(None, self.view.window);
+        }
+        ctx.request_repaint();
+    }
+
+    /// F12 or Screenshot: reads the 3D view's frame back at the size it was drawn and hands
+    /// it to the browser as a PNG download.
+    fn download_step(&mut self, ctx: &egui::Context) {
+        if self.tools.take_screenshot_request() && self.download.is_none() {
+            let texture = match self.streamed.as_mut() {
+                Some(streamed) => streamed.volume.raycaster_mut().output_texture(),
+                None => self
+                    .renderer
+                    .as_ref()
+                    .and_then(|r| r.raycaster.output_texture()),
+            };
+            match (texture, self.drawn.as_ref()) {
+                (Some(texture), Some((_, size))) => {
+                    self.download = Some(start_readback(&self.gpu, texture, *size, ctx));
+                }
+                _ => self
+                    .tools
+                    .download_failed("no 3D frame is drawn yet to download".into()),
+            }
+        }
+        let state = match &self.download {
+            Some(capture) => capture.state.load(Ordering::Acquire),
+            None => return,
+        };
+        if state != CAPTURE_MAPPED && state != CAPTURE_FAILED {
+            ctx.request_repaint();
+            return;
+        }
+        let Some(capture) = self.download.take() else {
+            return;
+        };
+        let png = if state == CAPTURE_MAPPED {
+            read_back(&capture).and_then(|rgba| encode_png(&rgba, capture.size))
+        } else {
+            Err(PageError::ScreenshotBuffer)
+        };
+        match png {
+            Ok(png) => self.tools.download(&png, &page_tools::screenshot_name()),
+            Err(e) => self
+                .tools
+                .download_failed(format!("the screenshot could not be made: {e}")),
+        }
+    }
+
     /// The volume shown: the page's sample, or one of the server's stores (each entry is the
     /// link `#store=NAME`: choosing it streams that store, and the address then shares it).
     fn volume_choice(&mut self, ui: &mut egui::Ui) {
@@ -556,6 +640,7 @@ impl WebViewer {
                 }
             });
         if volume_menu::choose(&mut self.view, chosen) {
+            self.tools.forget_history();
             self.streamed = None;
             self.opening = None;
             self.drawn = None;
@@ -631,6 +716,8 @@ impl WebViewer {
                     .logarithmic(true)
                     .text("zoom"),
             );
+            ui.separator();
+            self.tools.toolbar(ui);
         });
     }
 
@@ -671,8 +758,8 @@ impl WebViewer {
                 ui.label(format!(
                     "Store {name} · {detail} · 3D: drag to orbit, scroll to zoom; slices: click \
                      moves the crosshair, scroll pages, Ctrl+scroll zooms, middle drag pans, \
-                     right drag (or Shift+drag) windows; the address holds the view · not for \
-                     diagnostic use"
+                     right drag (or Shift+drag) windows; F1 lists the keys; the address holds the \
+                     view · not for diagnostic use"
                 ));
             });
             return;
@@ -681,8 +768,8 @@ impl WebViewer {
             ui.label(format!(
                 "Sample volume {}³ (CT phantom made in the page) · frames drawn {} · 3D: drag to \
                  orbit, scroll to zoom; slices: click moves the crosshair, scroll pages, \
-                 Ctrl+scroll zooms, middle drag pans, right drag (or Shift+drag) windows; the \
-                 address holds this view · not for diagnostic use",
+                 Ctrl+scroll zooms, middle drag pans, right drag (or Shift+drag) windows; F1 \
+                 lists the keys; the address holds this view · not for diagnostic use",
                 self.view.volume_edge, self.frames_submitted
             ));
         });
@@ -1098,6 +1185,8 @@ impl eframe::App for WebViewer {
                         (self.view.azimuth_deg, self.view.elevation_deg) = standard.angles_deg();
                         keyed = true;
                     }
+                    // The rest of the shared keys the page has (page_tools.rs).
+                    keyed |= self.tools.keys(&ctx, &mut self.view);
                 }
                 publish_view_rects(rect, slice_rects);
                 if self.timing.orbiting() {
@@ -1153,6 +1242,10 @@ impl eframe::App for WebViewer {
                         egui::Rect::from_min_max(egui::pos2(0.0, 0.0), egui::pos2(1.0, 1.0)),
                         egui::Color32::WHITE,
                     );
+                    // The desktop's orientation triad, turned with the view's camera.
+                    if let Some(geometry) = self.shown_geometry() {
+                        triad::paint_triad(ui.painter(), rect, &self.view.camera(&geometry));
+                    }
                 }
                 let slices = match self.streamed.as_mut() {
                     Some(streamed) => Some(&mut streamed.slices),
@@ -1163,12 +1256,16 @@ impl eframe::App for WebViewer {
                     // The address follows the crosshair and window, so a link shares them.
                     self.view.cursor = Some(slices.cursor);
                     self.view.window = Some([slices.window.centre, slices.window.width]);
+                    self.view.colour_map = slices.colour_map;
                 }
                 // Not while a drag goes on (the view, a slice, the editor's points): one
                 // history entry rewrite when it ends, not one per frame.
                 let pointer_down = ctx.input(|i| i.pointer.any_down());
                 self.write_fragment(response.dragged() || pointer_down);
             });
+        self.history_step(&ctx);
+        self.download_step(&ctx);
+        self.tools.help(&ctx);
         self.capture_step(&ctx);
         self.bridge_step(&ctx);
         self.side.record_frame(ui_started, self.frames_submitted);

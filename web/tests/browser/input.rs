@@ -5,7 +5,7 @@
 //! (strata-viewer-ui's slice_canvas and strata_slices).
 
 #[path = "../cdp/mod.rs"]
-mod cdp;
+pub(crate) mod cdp;
 
 use cdp::Cdp;
 use egui::{pos2, Rect};
@@ -23,16 +23,30 @@ const LINK_TOLERANCE: f64 = 1e-3;
 
 /// The page at `fragment` on a served tiny store (the page shows its own sample), ready for
 /// input: its views placed (the canvas's `data-views`).
-fn open_page(
+pub(crate) fn open_page(
     fragment: &str,
     scratch: &std::path::Path,
     window: [u32; 2],
 ) -> (Cdp, strata_service::server::RunningServer) {
+    let (page, server, _frames) = open_page_capturing(fragment, scratch, window);
+    (page, server)
+}
+
+/// [`open_page`], and what the page posts to the server's test sink (`capture=1`).
+pub(crate) fn open_page_capturing(
+    fragment: &str,
+    scratch: &std::path::Path,
+    window: [u32; 2],
+) -> (
+    Cdp,
+    strata_service::server::RunningServer,
+    std::sync::mpsc::Receiver<strata_service::CapturedFrame>,
+) {
     let store = scratch.join("tiny.strata");
     Phantom::cube(32)
         .write_store(&store, &ImportOptions::default())
         .expect("writing a tiny store");
-    let (server, _frames) = serve_capturing(&store);
+    let (server, frames) = serve_capturing(&store);
     let url = format!("{}/{fragment}&token={TOKEN}", server.base_url());
     let mut page = Cdp::open(&url, scratch, window);
     let views = |page: &mut Cdp| {
@@ -51,11 +65,11 @@ fn open_page(
             (views(page) == before).then_some(())
         },
     );
-    (page, server)
+    (page, server, frames)
 }
 
 /// The view rectangle named `name` in page CSS pixels (the canvas's offset added).
-fn view_rect(page: &mut Cdp, name: &str) -> Rect {
+pub(crate) fn view_rect(page: &mut Cdp, name: &str) -> Rect {
     let text = page.evaluate(
         "(() => { const c = document.getElementById('strata-canvas'); const r = c.getBoundingClientRect(); \
          return [r.left, r.top, c.dataset.views]; })()",
@@ -79,7 +93,11 @@ fn view_rect(page: &mut Cdp, name: &str) -> Rect {
 }
 
 /// Waits for the page's link to satisfy `done` and returns its view.
-fn wait_for_link(page: &mut Cdp, what: &str, done: impl Fn(&ViewState) -> bool) -> ViewState {
+pub(crate) fn wait_for_link(
+    page: &mut Cdp,
+    what: &str,
+    done: impl Fn(&ViewState) -> bool,
+) -> ViewState {
     page.wait_for(what, PAGE_DEADLINE, |page| {
         let hash = page.evaluate("location.hash");
         let view = Fragment::parse(hash.as_str()?).ok()?.view;
@@ -87,7 +105,7 @@ fn wait_for_link(page: &mut Cdp, what: &str, done: impl Fn(&ViewState) -> bool) 
     })
 }
 
-fn close(a: f64, b: f64) -> bool {
+pub(crate) fn close(a: f64, b: f64) -> bool {
     (a - b).abs() <= LINK_TOLERANCE
 }
 
