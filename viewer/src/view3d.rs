@@ -110,49 +110,6 @@ impl OrbitCamera {
     }
 }
 
-/// Draws axes showing where L, P, S point (lines from the centre; R/A/I labels at the far
-/// ends) in the corner of the 3D view, like Slicer's orientation marker.
-pub fn paint_orientation_marker(painter: &egui::Painter, view_rect: Rect, camera: &Camera) {
-    let basis = camera.basis();
-    let radius = (view_rect.width().min(view_rect.height()) * 0.08).clamp(22.0, 48.0);
-    let centre = Pos2::new(
-        view_rect.left() + radius + 14.0,
-        view_rect.bottom() - radius - 14.0,
-    );
-    painter.circle_filled(centre, radius + 10.0, Color32::from_black_alpha(120));
-    let axes = [
-        (DVec3::X, "L", "R", Color32::from_rgb(230, 80, 80)),
-        (DVec3::Y, "P", "A", Color32::from_rgb(90, 200, 90)),
-        (DVec3::Z, "S", "I", Color32::from_rgb(90, 140, 240)),
-    ];
-    // Far axes first so near ones draw on top.
-    let mut order: Vec<_> = axes.iter().collect();
-    order.sort_by(|a, b| b.0.dot(basis.forward).total_cmp(&a.0.dot(basis.forward)));
-    for (axis, positive, negative, colour) in order {
-        let screen = Vec2::new(axis.dot(basis.right) as f32, -axis.dot(basis.up) as f32) * radius;
-        painter.line_segment(
-            [centre - screen, centre + screen],
-            Stroke::new(2.0, colour.gamma_multiply(0.5)),
-        );
-        painter.line_segment([centre, centre + screen], Stroke::new(3.0, *colour));
-        let font = egui::FontId::proportional(12.0);
-        painter.text(
-            centre + screen * 1.22,
-            egui::Align2::CENTER_CENTER,
-            *positive,
-            font.clone(),
-            *colour,
-        );
-        painter.text(
-            centre - screen * 1.22,
-            egui::Align2::CENTER_CENTER,
-            *negative,
-            font,
-            colour.gamma_multiply(0.7),
-        );
-    }
-}
-
 /// The texture showing the newest volume frame and the frame's serial (re-uploaded only when
 /// a newer frame arrives).
 struct FrameTexture {
@@ -564,7 +521,8 @@ impl View3d {
         if prefs.show_crop_box && crop_box_ui(ui, &painter, rect, &camera, data, scene) {
             self.interacting_until = Some(Instant::now() + Duration::from_millis(150));
         }
-        paint_orientation_marker(&painter, rect, &camera);
+        // The triad both viewers draw (strata_viewer_ui::triad).
+        strata_viewer_ui::triad::paint_triad(&painter, rect, &camera);
         let status = data.session.status();
         let toggled = view_title(
             ui,
