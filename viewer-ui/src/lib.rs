@@ -17,6 +17,8 @@
 //!   that makes render settings of it, and its controls with the direction gizmo.
 //! - [`orbit`]: the 3D view's drag-to-orbit mapping and the six standard views (A/P/L/R/S/I),
 //!   so a drag or key turns both viewers' views alike.
+//! - [`segment_panel`]: the Segment section's tool row, segment list and label opacity, and the
+//!   colour a label is drawn with (issue 52 item 7: the desktop's panel and the page's).
 //! - [`layouts`]: where the views go in the 2×2 and the 3D-over-slices layouts.
 //! - [`widgets`]: small widgets the panels need (the slow spinner).
 //! - [`window_presets`]: the slice window/level presets (CT's windows, the scan's own, Auto)
@@ -33,6 +35,7 @@ pub mod orbit;
 pub mod performance;
 pub mod presets;
 pub mod render_driver;
+pub mod segment_panel;
 pub mod slice_canvas;
 pub mod target_fps;
 pub mod tf_editor;
