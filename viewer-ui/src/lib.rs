@@ -20,6 +20,8 @@
 //! - [`picking`]: the volume position a click in the 3D view sees, from the frame's pick depth.
 //! - [`measurements`]: rulers, angles and box/ellipse ROIs: the model, ROI statistics, a
 //!   slice view's gestures and drawing, the list panel and the link's `m=` value.
+//! - [`segment_panel`]: the Segment section's tool row, segment list and label opacity, and the
+//!   colour a label is drawn with (issue 52 item 7: the desktop's panel and the page's).
 //! - [`layouts`]: where the views go in the 2×2 and the 3D-over-slices layouts.
 //! - [`history`]: undo and redo (a drag one step, redo cleared by a new step, a cap on
 //!   depth) of the desktop's scene snapshots and the page's link state without its navigation.
@@ -45,6 +47,7 @@ pub mod picking;
 pub mod presets;
 pub mod render_driver;
 pub mod shortcuts;
+pub mod segment_panel;
 pub mod slice_canvas;
 pub mod target_fps;
 pub mod tf_editor;
