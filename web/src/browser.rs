@@ -24,8 +24,8 @@ use wasm_bindgen::JsCast;
 
 use crate::embed_bridge::{embed_origin, EmbedBridge};
 use crate::page_timing::{PageTiming, BENCH_DEG_PER_FRAME};
-use crate::picking::PendingPick;
 use crate::page_tools::{self, PageTools};
+use crate::picking::PendingPick;
 use crate::served_store::{list_stores, ServedStore, DECODES_PER_FRAME, MAX_ON_THE_WIRE};
 use crate::side_panel::{SidePanel, VolumeFigures};
 use crate::slice_views::{slice_layout, SliceViews};
@@ -610,6 +610,9 @@ impl WebViewer {
                 self.error = Some(e.to_string());
                 None
             }
+        }
+    }
+
     /// The geometry of the volume shown (a served store's or the sample's), once open.
     fn shown_geometry(&self) -> Option<VolumeGeometry> {
         match &self.streamed {
