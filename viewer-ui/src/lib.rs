@@ -17,9 +17,17 @@
 //!   that makes render settings of it, and its controls with the direction gizmo.
 //! - [`orbit`]: the 3D view's drag-to-orbit mapping and the six standard views (A/P/L/R/S/I),
 //!   so a drag or key turns both viewers' views alike.
+//! - [`picking`]: the volume position a click in the 3D view sees, from the frame's pick depth.
 //! - [`measurements`]: rulers, angles and box/ellipse ROIs: the model, ROI statistics, a
 //!   slice view's gestures and drawing, the list panel and the link's `m=` value.
+//! - [`segment_panel`]: the Segment section's tool row, segment list and label opacity, and the
+//!   colour a label is drawn with (issue 52 item 7: the desktop's panel and the page's).
 //! - [`layouts`]: where the views go in the 2×2 and the 3D-over-slices layouts.
+//! - [`history`]: undo and redo (a drag one step, redo cleared by a new step, a cap on
+//!   depth) of the desktop's scene snapshots and the page's link state without its navigation.
+//! - [`shortcuts`]: the keyboard and mouse table (which the page has), the F1 help window and
+//!   the key tests both viewers' key handling asks.
+//! - [`triad`]: the orientation triad in the 3D view's corner, its geometry and painter.
 //! - [`widgets`]: small widgets the panels need (the slow spinner).
 //! - [`window_presets`]: the slice window/level presets (CT's windows, the scan's own, Auto)
 //!   and the window a scan opens with.
@@ -29,16 +37,21 @@
 
 pub mod compact_tf;
 pub mod crop_clip;
+pub mod history;
 pub mod layouts;
 pub mod lighting;
 pub mod measurements;
 pub mod orbit;
 pub mod performance;
+pub mod picking;
 pub mod presets;
 pub mod render_driver;
+pub mod segment_panel;
+pub mod shortcuts;
 pub mod slice_canvas;
 pub mod target_fps;
 pub mod tf_editor;
+pub mod triad;
 pub mod view_state;
 pub mod widgets;
 pub mod window_presets;

@@ -17,6 +17,8 @@ use strata_render::{
     ShadowMode, TransferFunction, VolumeGeometry,
 };
 
+use strata_slices::ColourMap;
+
 use crate::crop_clip::{ClipSettings, CLIP_AXIS_NAMES, MIN_CROP_EXTENT};
 use crate::lighting::{
     render_lighting, LightPrefs, LitView, AZIMUTH_RANGE, ELEVATION_RANGE, OCCLUSION_RADIUS_RANGE,
@@ -87,6 +89,8 @@ pub struct ViewState {
     /// The slice views' window (centre, width) in the volume's physical unit; None: the
     /// store's own first window.
     pub window: Option<[f64; 2]>,
+    /// The slice views' colour map (`cmap=hot`; absent: grey).
+    pub colour_map: ColourMap,
     /// Isosurface value in the volume's physical unit (HU for the CT sample).
     pub iso_value: f64,
     /// The crop box (`crop=I0,J0,K0,I1,J1,K1`, fractions of each index axis).
@@ -139,6 +143,7 @@ impl Default for ViewState {
             layout: Layout::FourUp,
             cursor: None,
             window: None,
+            colour_map: ColourMap::Grey,
             iso_value: 300.0,
             crop: CropBox::default(),
             clip: ClipSettings::default(),
@@ -345,6 +350,16 @@ impl Fragment {
                         finite(key, width, 1.0e-6..=1.0e9)?,
                     ]);
                 }
+                "cmap" => {
+                    view.colour_map = ColourMap::ALL
+                        .into_iter()
+                        .find(|map| colour_map_name(*map) == value)
+                        .ok_or_else(|| {
+                            let names: Vec<_> =
+                                ColourMap::ALL.into_iter().map(colour_map_name).collect();
+                            bad(key, value, format!("one of {}", names.join(", ")))
+                        })?;
+                }
                 "layout" => {
                     view.layout = match value {
                         "single" => Layout::Single,
@@ -476,6 +491,9 @@ impl ViewState {
         if let Some([centre, width]) = self.window {
             parts.push(format!("window={},{}", round3(centre), round3(width)));
         }
+        if self.colour_map != ColourMap::Grey {
+            parts.push(format!("cmap={}", colour_map_name(self.colour_map)));
+        }
         if self.mode == RenderMode::Isosurface {
             parts.push(format!("iso={}", round3(self.iso_value)));
         }
@@ -521,13 +539,14 @@ impl ViewState {
     }
 
     /// What the 3D view shows: this view without the slice views' crosshair, window and
-    /// measurements, so that paging a slice, windowing it or measuring does not redraw the
-    /// volume.
+    /// colour map and measurements, so that paging a slice, windowing it, colouring it or
+    /// measuring does not redraw the volume.
     pub fn of_3d_view(&self) -> ViewState {
         ViewState {
             cursor: None,
             window: None,
             measurements: Vec::new(),
+            colour_map: ColourMap::Grey,
             ..self.clone()
         }
     }
@@ -599,6 +618,17 @@ impl ViewState {
         };
         render_lighting(&self.light, lit).apply_to(&mut settings);
         settings
+    }
+}
+
+/// A colour map's name in a link (`cmap=`): its label in lower case ("hot", "viridis").
+pub fn colour_map_name(map: ColourMap) -> &'static str {
+    match map {
+        ColourMap::Grey => "grey",
+        ColourMap::Inverted => "inverted",
+        ColourMap::Hot => "hot",
+        ColourMap::Turbo => "turbo",
+        ColourMap::Viridis => "viridis",
     }
 }
 
@@ -690,6 +720,7 @@ mod tests {
             layout: Layout::Single,
             cursor: Some([10.5, 20.0, 3.25]),
             window: Some([40.0, 400.0]),
+            colour_map: ColourMap::Viridis,
             iso_value: 250.0,
             crop: CropBox {
                 min: [0.125, 0.0, 0.25],
@@ -790,6 +821,9 @@ mod tests {
         assert!(e.to_string().contains("`window`"), "{e}");
         let e = Fragment::parse("#layout=quad").expect_err("unknown layout");
         assert!(e.to_string().contains("`layout`"), "{e}");
+        let e = Fragment::parse("#cmap=rainbow").expect_err("unknown colour map");
+        assert!(e.to_string().contains("`cmap`"), "{e}");
+        assert!(e.to_string().contains("hot"), "{e}");
         let ok = Fragment::parse("#colour=hot&mode=dvr").expect("unknown key ignored");
         assert_eq!(ok.view, ViewState::default());
         assert_eq!(
@@ -887,11 +921,12 @@ mod tests {
         assert!(s.validate().is_ok());
         // Without the keys: the whole volume, no plane, shaded.
         let plain = ViewState::default().settings(&geometry, 32, 32);
+        assert_eq!(ViewState::default().colour_map, ColourMap::Grey);
         assert_eq!(plain.crop, CropBox::default());
         assert_eq!(plain.clip_plane, None);
         assert!(plain.shading.is_some());
         let written = ViewState::default().to_fragment();
-        for key in ["crop=", "clip=", "shade="] {
+        for key in ["crop=", "clip=", "shade=", "cmap="] {
             assert!(!written.contains(key), "{written}");
         }
     }

@@ -32,6 +32,7 @@ use strata_viewer_ui::crop_clip::ClipSettings;
 use strata_viewer_ui::layouts;
 use strata_viewer_ui::measurements::Measurements;
 use strata_viewer_ui::orbit::StandardView;
+use strata_viewer_ui::shortcuts;
 use strata_viewer_ui::tf_editor::TfEditorState;
 
 /// How the viewer was started (command line, tests).
@@ -668,6 +669,7 @@ impl StrataApp {
         if let Some(view) = self.pending_link_view.take() {
             orbit = view.orbit;
             scene.iso_value = view.iso_value;
+            scene.colour_map = view.colour_map;
             scene.crop = view.crop;
             scene.clip = view.clip;
             if let Some(tf) = view.tf {
@@ -749,6 +751,7 @@ impl StrataApp {
                 layout: self.preferences.layout,
                 cursor: Some(v.scene.cursor),
                 window: Some([v.scene.window.centre, v.scene.window.width]),
+                colour_map: v.scene.colour_map,
                 crop: v.scene.crop,
                 clip: v.scene.clip,
                 shading: self.preferences.shading,
@@ -953,43 +956,28 @@ impl StrataApp {
         if ctx.egui_wants_keyboard_input() {
             return;
         }
-        let pressed =
-            |k: Key| ctx.input(|i| i.key_pressed(k) && !i.modifiers.ctrl && !i.modifiers.command);
-        if pressed(Key::F1) || pressed(Key::H) || ctx.input(|i| i.key_pressed(Key::Questionmark)) {
+        // The keys both viewers share (strata_viewer_ui::shortcuts: the help's table).
+        let pressed = |k: Key| ctx.input(|i| shortcuts::plain_key(i, k));
+        if ctx.input(shortcuts::help_pressed) {
             self.help.open = !self.help.open;
         }
         if ctx.input(|i| i.key_pressed(Key::O) && i.modifiers.command) {
             self.open_dialog.open = true;
         }
-        if pressed(Key::Num1) {
-            self.preferences.layout = Layout::Single;
-        }
-        if pressed(Key::Num2) {
-            self.preferences.layout = Layout::ThreeDOverSlices;
-        }
-        if pressed(Key::Num3) {
-            self.preferences.layout = Layout::TwoByTwo;
+        if let Some(layout) = ctx.input(shortcuts::layout_pressed) {
+            self.preferences.layout =
+                [Layout::Single, Layout::ThreeDOverSlices, Layout::TwoByTwo][layout];
         }
         if pressed(Key::T) {
             self.preferences.target_fps_enabled = !self.preferences.target_fps_enabled;
         }
-        if pressed(Key::M) {
-            self.preferences.mode = match self.preferences.mode {
-                RenderMode::Dvr => RenderMode::Mip,
-                RenderMode::Mip => RenderMode::Isosurface,
-                RenderMode::Isosurface => RenderMode::Dvr,
-            };
+        if ctx.input(shortcuts::mode_cycle_pressed) {
+            self.preferences.mode = shortcuts::next_mode(self.preferences.mode);
         }
-        if pressed(Key::F12) {
+        if ctx.input(shortcuts::screenshot_pressed) {
             self.take_screenshot(ShotTarget::View(self.preferences.focused));
         }
-        let (undo, redo) = ctx.input(|i| {
-            let command = i.modifiers.command || i.modifiers.ctrl;
-            (
-                command && !i.modifiers.shift && i.key_pressed(Key::Z),
-                command && (i.modifiers.shift && i.key_pressed(Key::Z) || i.key_pressed(Key::Y)),
-            )
-        });
+        let (undo, redo) = ctx.input(shortcuts::undo_redo_pressed);
         if let Some(v) = self.volume.as_mut() {
             if undo {
                 v.history.undo(&mut v.scene, v.segmentation.as_mut());
@@ -1005,7 +993,7 @@ impl StrataApp {
                     v.view_3d.orbit = OrbitCamera::standard(view, orthographic);
                 }
             }
-            if pressed(Key::Home) || pressed(Key::Num0) {
+            if ctx.input(shortcuts::reset_view_pressed) {
                 v.view_3d.reset(orthographic);
             }
             // Arrow keys / page keys page the focused (or axial) slice.

@@ -4,6 +4,7 @@
 use std::path::PathBuf;
 
 use egui::{Color32, RichText};
+use strata_viewer_ui::shortcuts;
 
 use super::file_chooser::{ChooserKind, Chosen, FileChooser};
 use super::jobs::{PrepareJob, VolumeToOpen};
@@ -145,41 +146,10 @@ pub struct HelpWindow {
 }
 
 impl HelpWindow {
+    /// The help both viewers draw from one table (strata_viewer_ui::shortcuts), all of it.
     pub fn ui(&mut self, ctx: &egui::Context) {
-        let mut open = self.open;
-        egui::Window::new("Keyboard and mouse").open(&mut open).resizable(false).show(ctx, |ui| {
-            egui::Grid::new("help").num_columns(2).striped(true).show(ui, |ui| {
-                for (keys, what) in [
-                    ("Left drag (3D)", "orbit"),
-                    ("Middle / Shift+left drag (3D)", "pan"),
-                    ("Wheel (3D)", "zoom"),
-                    ("Right drag (3D)", "shift (sideways) / widen (up-down) the transfer function"),
-                    ("Double-click (3D)", "reset view"),
-                    ("A P L R S I", "standard views: anterior, posterior, left, right, superior, inferior"),
-                    ("Home, 0", "reset view"),
-                    ("Left click / drag (slice)", "move the linked crosshair"),
-                    ("Wheel, Up/Down, PgUp/PgDn (slice)", "page slices"),
-                    ("Right drag (slice)", "window (sideways) / level (up-down)"),
-                    ("Ctrl+wheel, middle drag (slice)", "zoom, pan; double-click resets"),
-                    ("Double-click view title", "focus the view (1×1)"),
-                    ("1 2 3", "layouts 1×1, 3D + 1×3, 2×2"),
-                    ("M", "cycle DVR / MIP / isosurface"),
-                    ("T", "target frame rate on/off"),
-                    ("F12", "screenshot of the 3D view"),
-                    ("Ctrl+Z, Ctrl+Shift+Z / Ctrl+Y", "undo, redo (TF, window, crop, measurements)"),
-                    ("Click (3D)", "move the crosshair to what is seen there (pick)"),
-                    ("Ruler / Angle / ROI tools", "measure on slices (drag, clicks) and in 3D (clicks)"),
-                    ("Ctrl+O", "open or import"),
-                    ("F1, H", "this help"),
-                ] {
-                    ui.strong(keys);
-                    ui.label(what);
-                    ui.end_row();
-                }
-            });
-            ui.add_space(6.0);
-            ui.label(RichText::new(format!("{NOT_FOR_DIAGNOSIS}: research and education only.")).color(WARNING_COLOUR));
-        });
-        self.open = open;
+        let footer = RichText::new(format!("{NOT_FOR_DIAGNOSIS}: research and education only."))
+            .color(WARNING_COLOUR);
+        shortcuts::help_window(ctx, &mut self.open, shortcuts::Viewer::Desktop, footer);
     }
 }

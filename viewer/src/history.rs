@@ -2,18 +2,17 @@
 //! function, the slice window, the crop box and the measurements. A change becomes one step
 //! when its gesture ends (no button held), so a drag is undone as a whole, not per frame.
 //! Label edits (a brush stroke, segmentation.rs) are steps of their own in the same list: the
-//! edit's brick images, reverted or applied again on the layer they were made on.
+//! edit's brick images, reverted or applied again on the layer they were made on. The rules
+//! (and the page's undo) are strata_viewer_ui::history's.
 
 use strata_render::{CropBox, TransferFunction};
 use strata_segment::Edit;
+use strata_viewer_ui::history::{History as SharedHistory, Stepped};
 
 use super::segmentation::Segmentation;
 
 use super::scene::{Scene, Window};
 use strata_viewer_ui::measurements::Measurement;
-
-/// Steps kept; older ones are dropped.
-const MAX_STEPS: usize = 200;
 
 #[derive(Clone, Debug, PartialEq)]
 struct Snapshot {
@@ -45,26 +44,23 @@ impl Snapshot {
     }
 }
 
-/// One undo step: the scene before it, or a label edit of the layer `layer_id`.
+/// A label edit of the layer `layer_id`: an undo step the layer reverts itself.
 #[derive(Clone, Debug)]
-enum Step {
-    Scene(Snapshot),
-    Labels { layer_id: u64, edit: Edit },
+struct LabelStep {
+    layer_id: u64,
+    edit: Edit,
 }
 
+/// The shared history (strata_viewer_ui::history: a drag one step, redo cleared by a new
+/// step, a cap on depth) of the scene's snapshots and the label edits.
 pub struct History {
-    undo: Vec<Step>,
-    redo: Vec<Step>,
-    /// The state the last step ended in.
-    committed: Snapshot,
+    steps: SharedHistory<Snapshot, LabelStep>,
 }
 
 impl History {
     pub fn new(scene: &Scene) -> Self {
         History {
-            undo: Vec::new(),
-            redo: Vec::new(),
-            committed: Snapshot::of(scene),
+            steps: SharedHistory::new(Snapshot::of(scene)),
         }
     }
 
@@ -74,80 +70,63 @@ impl History {
         if gesture_in_progress {
             return;
         }
-        let now = Snapshot::of(scene);
-        if now != self.committed {
-            let before = std::mem::replace(&mut self.committed, now);
-            self.push(Step::Scene(before));
-        }
-    }
-
-    fn push(&mut self, step: Step) {
-        self.undo.push(step);
-        if self.undo.len() > MAX_STEPS {
-            self.undo.remove(0);
-        }
-        self.redo.clear();
+        self.steps.observe(&Snapshot::of(scene), false);
     }
 
     /// A completed label edit (already applied to the layer) becomes one undo step.
     pub fn push_label_edit(&mut self, segmentation: &Segmentation, edit: Edit) {
-        self.push(Step::Labels {
+        self.steps.push_edit(LabelStep {
             layer_id: segmentation.id,
             edit,
         });
     }
 
     pub fn can_undo(&self) -> bool {
-        !self.undo.is_empty()
+        self.steps.can_undo()
     }
 
     pub fn can_redo(&self) -> bool {
-        !self.redo.is_empty()
+        self.steps.can_redo()
     }
 
     /// Restores the state before the last step; false if there is none. A label step of a
     /// layer no longer open is dropped (there is nothing left to undo it on).
     pub fn undo(&mut self, scene: &mut Scene, mut labels: Option<&mut Segmentation>) -> bool {
-        self.observe(scene, false);
-        while let Some(step) = self.undo.pop() {
-            match step {
-                Step::Scene(previous) => {
-                    let current = std::mem::replace(&mut self.committed, previous);
-                    self.redo.push(Step::Scene(current));
-                    self.committed.apply(scene);
-                    return true;
+        let stepped = self.steps.undo(&Snapshot::of(scene), |step| {
+            match labels.as_deref_mut().filter(|s| s.id == step.layer_id) {
+                Some(seg) => {
+                    seg.revert(&step.edit);
+                    true
                 }
-                Step::Labels { layer_id, edit } => {
-                    if let Some(seg) = labels.as_deref_mut().filter(|s| s.id == layer_id) {
-                        seg.revert(&edit);
-                        self.redo.push(Step::Labels { layer_id, edit });
-                        return true;
-                    }
-                }
+                None => false,
             }
-        }
-        false
+        });
+        Self::restore(stepped, scene)
     }
 
     /// Re-applies the last undone step; false if there is none.
     pub fn redo(&mut self, scene: &mut Scene, mut labels: Option<&mut Segmentation>) -> bool {
-        while let Some(step) = self.redo.pop() {
-            match step {
-                Step::Scene(next) => {
-                    let current = std::mem::replace(&mut self.committed, next);
-                    self.undo.push(Step::Scene(current));
-                    self.committed.apply(scene);
-                    return true;
-                }
-                Step::Labels { layer_id, edit } => {
-                    if let Some(seg) = labels.as_deref_mut().filter(|s| s.id == layer_id) {
-                        seg.reapply(&edit);
-                        self.undo.push(Step::Labels { layer_id, edit });
-                        return true;
+        let stepped =
+            self.steps.redo(
+                |step| match labels.as_deref_mut().filter(|s| s.id == step.layer_id) {
+                    Some(seg) => {
+                        seg.reapply(&step.edit);
+                        true
                     }
-                }
+                    None => false,
+                },
+            );
+        Self::restore(stepped, scene)
+    }
+
+    fn restore(stepped: Stepped<Snapshot>, scene: &mut Scene) -> bool {
+        match stepped {
+            Stepped::Nothing => false,
+            Stepped::State(snapshot) => {
+                snapshot.apply(scene);
+                true
             }
+            Stepped::Edit => true,
         }
-        false
     }
 }

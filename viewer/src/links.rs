@@ -9,6 +9,7 @@
 //! written back into a copied link (links are shared, tokens must not be), logged, or saved.
 
 use strata_render::{CropBox, RenderMode, TransferFunction};
+use strata_slices::ColourMap;
 use strata_viewer_ui::crop_clip::ClipSettings;
 use strata_viewer_ui::lighting::LightPrefs;
 use strata_viewer_ui::measurements::Measurement;
@@ -44,6 +45,8 @@ pub struct DesktopView {
     /// None where a link leaves them to the store.
     pub cursor: Option<[f64; 3]>,
     pub window: Option<[f64; 2]>,
+    /// The slices' colour map (`cmap=`).
+    pub colour_map: ColourMap,
     /// The cut: crop box and clip plane, as the rendering panel sets them.
     pub crop: CropBox,
     pub clip: ClipSettings,
@@ -153,6 +156,7 @@ pub fn link_for(store_url: &str, view: &DesktopView) -> Option<String> {
         },
         cursor: view.cursor,
         window: view.window,
+        colour_map: view.colour_map,
         crop: view.crop,
         clip: view.clip,
         shading: view.shading,
@@ -185,6 +189,7 @@ pub fn desktop_view(view: &ViewState) -> DesktopView {
         },
         cursor: view.cursor,
         window: view.window,
+        colour_map: view.colour_map,
         crop: view.crop,
         clip: view.clip,
         shading: view.shading,
@@ -216,6 +221,7 @@ mod tests {
             layout: Layout::Single,
             cursor: Some([12.0, 30.5, 7.0]),
             window: Some([-600.0, 1500.0]),
+            colour_map: ColourMap::Hot,
             crop: CropBox {
                 min: [0.25, 0.0, 0.125],
                 max: [0.75, 1.0, 1.0],
@@ -324,6 +330,7 @@ mod tests {
         assert_eq!(opened.token, None);
         let back = desktop_view(&opened.view);
         assert_eq!(back, desktop());
+        assert!(link.contains("&cmap=hot"), "{link}");
         // The same picture: the browser's camera of the link equals the desktop's.
         let geometry = VolumeGeometry::axis_aligned([96, 80, 64], [0.8, 0.8, 1.5]);
         assert_eq!(

@@ -12,6 +12,7 @@ use egui::{Color32, Pos2, Rect, Sense, Stroke, TextureHandle, TextureOptions, Ve
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
 use strata_render::{Camera, Projection, RenderMode, RenderSettings, VolumeGeometry};
+use strata_viewer_ui::picking;
 use strata_viewer_ui::render_driver::{OverlayIn3d, RenderRequest};
 
 use super::oblique::{ObliquePlane, OBLIQUE_COLOUR};
@@ -106,49 +107,6 @@ impl OrbitCamera {
     /// Slicer's 3D view (egui's smoothed scroll in points made 3 clicks zoom ~4×).
     pub fn zoom_by_lines(&mut self, lines: f64) {
         self.zoom = (self.zoom * ZOOM_PER_WHEEL_LINE.powf(lines)).clamp(0.2, 20.0);
-    }
-}
-
-/// Draws axes showing where L, P, S point (lines from the centre; R/A/I labels at the far
-/// ends) in the corner of the 3D view, like Slicer's orientation marker.
-pub fn paint_orientation_marker(painter: &egui::Painter, view_rect: Rect, camera: &Camera) {
-    let basis = camera.basis();
-    let radius = (view_rect.width().min(view_rect.height()) * 0.08).clamp(22.0, 48.0);
-    let centre = Pos2::new(
-        view_rect.left() + radius + 14.0,
-        view_rect.bottom() - radius - 14.0,
-    );
-    painter.circle_filled(centre, radius + 10.0, Color32::from_black_alpha(120));
-    let axes = [
-        (DVec3::X, "L", "R", Color32::from_rgb(230, 80, 80)),
-        (DVec3::Y, "P", "A", Color32::from_rgb(90, 200, 90)),
-        (DVec3::Z, "S", "I", Color32::from_rgb(90, 140, 240)),
-    ];
-    // Far axes first so near ones draw on top.
-    let mut order: Vec<_> = axes.iter().collect();
-    order.sort_by(|a, b| b.0.dot(basis.forward).total_cmp(&a.0.dot(basis.forward)));
-    for (axis, positive, negative, colour) in order {
-        let screen = Vec2::new(axis.dot(basis.right) as f32, -axis.dot(basis.up) as f32) * radius;
-        painter.line_segment(
-            [centre - screen, centre + screen],
-            Stroke::new(2.0, colour.gamma_multiply(0.5)),
-        );
-        painter.line_segment([centre, centre + screen], Stroke::new(3.0, *colour));
-        let font = egui::FontId::proportional(12.0);
-        painter.text(
-            centre + screen * 1.22,
-            egui::Align2::CENTER_CENTER,
-            *positive,
-            font.clone(),
-            *colour,
-        );
-        painter.text(
-            centre - screen * 1.22,
-            egui::Align2::CENTER_CENTER,
-            *negative,
-            font,
-            colour.gamma_multiply(0.7),
-        );
     }
 }
 
@@ -271,25 +229,22 @@ impl View3d {
     /// click picks what is shown even while a newer frame renders.
     pub fn pick(&self, pos: Pos2, rect: Rect, data: &VolumeData) -> Option<[f64; 3]> {
         let frame = self.shown.as_ref()?;
-        let fx = (pos.x - rect.left()) / rect.width().max(1.0);
-        let fy = (pos.y - rect.top()) / rect.height().max(1.0);
-        if !(0.0..1.0).contains(&fx) || !(0.0..1.0).contains(&fy) {
-            return None;
-        }
-        let px = ((fx * frame.width as f32) as u32).min(frame.width.saturating_sub(1));
-        let py = ((fy * frame.height as f32) as u32).min(frame.height.saturating_sub(1));
-        let t = *frame.depth.get((py * frame.width + px) as usize)?;
-        if !t.is_finite() {
-            return None;
-        }
-        let (origin, dir) = frame
-            .request
-            .camera
-            .basis()
-            .ray(px, py, frame.width, frame.height);
-        let g = &data.info.geometry;
-        let index = g.index_from_patient(origin + dir * t as f64);
-        Some([0, 1, 2].map(|a| index[a].clamp(0.0, g.dims[a] as f64 - 1.0)))
+        let size = [frame.width, frame.height];
+        let pixel = picking::frame_pixel(
+            (pos.x - rect.left()) / rect.width().max(1.0),
+            (pos.y - rect.top()) / rect.height().max(1.0),
+            size,
+        )?;
+        let depth_mm = *frame
+            .depth
+            .get((pixel[1] * frame.width + pixel[0]) as usize)?;
+        picking::picked_index(
+            &frame.request.camera,
+            &data.info.geometry,
+            pixel,
+            size,
+            depth_mm,
+        )
     }
 
     /// The segment tools in 3D: the brush and eraser sweep a ball of the brush's diameter
@@ -566,7 +521,8 @@ impl View3d {
         if prefs.show_crop_box && crop_box_ui(ui, &painter, rect, &camera, data, scene) {
             self.interacting_until = Some(Instant::now() + Duration::from_millis(150));
         }
-        paint_orientation_marker(&painter, rect, &camera);
+        // The triad both viewers draw (strata_viewer_ui::triad).
+        strata_viewer_ui::triad::paint_triad(&painter, rect, &camera);
         let status = data.session.status();
         let toggled = view_title(
             ui,

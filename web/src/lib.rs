@@ -18,6 +18,10 @@
 //!   as PNG), listening only to the parent's origin the link names (`embed=`).
 //! - `page_timing` (wasm32 only): time to first and converged image and the bench's frame
 //!   times (`bench=N`), posted with the test capture (issue 39's benchmark).
+//! - `picking` (wasm32 only): a click in the 3D view moves the crosshair to what is seen there,
+//!   from one pixel of the frame's pick depth copied back without waiting.
+//! - `page_tools` (wasm32 only): undo and redo (the shared history of the link's edits), the
+//!   shared keyboard shortcuts and F1 help, the 3D view's screenshot as a PNG download.
 //! - `served_store` (wasm32 only): `strata serve`'s client on `fetch()`, the volume source the
 //!   streaming loader reads a served store through (`#store=NAME`), with the loader's work
 //!   inline on the page's one thread (strata_loader::LoaderWork::Inline).
@@ -47,6 +51,10 @@ mod embed_bridge;
 mod measure;
 #[cfg(target_arch = "wasm32")]
 mod page_timing;
+#[cfg(target_arch = "wasm32")]
+mod page_tools;
+#[cfg(target_arch = "wasm32")]
+mod picking;
 #[cfg(target_arch = "wasm32")]
 mod served_store;
 #[cfg(target_arch = "wasm32")]

@@ -116,6 +116,18 @@ impl SidePanel {
         }
     }
 
+    /// An undo or redo put `view` back: its preset and its function (as edited, or the
+    /// preset's).
+    pub fn restore(&mut self, view: &ViewState) {
+        self.preset = view.preset.clone();
+        self.transfer_function = match &view.tf {
+            Some(tf) => tf.clone(),
+            None => self.preset_function(&view.preset),
+        };
+        self.edits = u64::from(view.tf.is_some());
+        self.editor = TfEditorState::default();
+    }
+
     /// The scan's values, once known.
     pub fn scan(&self) -> Option<&ScanValues> {
         self.scan.as_ref()

@@ -646,6 +646,11 @@ impl SliceViews {
                 Ok(VoxelLookup::Needs(_)) => "…".to_string(),
                 Err(e) => e.to_string(),
             };
+            crate::page_tools::publish_readout(
+                &view.name().to_lowercase(),
+                index,
+                value.trim_end(),
+            );
             info.push_str(&format!(
                 " · ({}, {}, {}) {}",
                 index[0],

@@ -29,6 +29,14 @@ mod input;
 /// Rulers, angles and ROIs drawn in the page against the desktop's functions (issue 47).
 #[path = "browser/measure.rs"]
 mod measure;
+/// A click in the page's 3D view picks what the desktop picks (issue 47).
+#[path = "browser/picking.rs"]
+mod picking;
+
+/// The page's undo and redo, help, screenshot download, triad, colour maps and readout
+/// under real keys and pointer moves (issue 47).
+#[path = "browser/keys.rs"]
+mod keys;
 
 const TOKEN: &str = "0123456789abcdef0123456789abcdef";
 
@@ -767,12 +775,23 @@ fn desktop_axial_slice(
     geometry: &strata_render::VolumeGeometry,
     window: strata_slices::Window,
     mapping: strata_render::ValueMapping,
+    posted: (&CapturedFrame, &str),
+    read: impl FnMut(strata_types::BrickId) -> Vec<u16>,
+) -> (usize, Vec<u8>) {
+    let grey = strata_slices::ColourMap::Grey;
+    desktop_axial_slice_coloured(layout, geometry, (window, grey), mapping, posted, read)
+}
+
+/// [`desktop_axial_slice`] through the colour map named with the window.
+fn desktop_axial_slice_coloured(
+    layout: &strata_types::OctreeLayout,
+    geometry: &strata_render::VolumeGeometry,
+    (window, colour_map): (strata_slices::Window, strata_slices::ColourMap),
+    mapping: strata_render::ValueMapping,
     (posted, console): (&CapturedFrame, &str),
     mut read: impl FnMut(strata_types::BrickId) -> Vec<u16>,
 ) -> (usize, Vec<u8>) {
-    use strata_slices::{
-        window_level_rgba, ColourMap, SliceAssembler, SliceFrame, SliceRequest, SliceView,
-    };
+    use strata_slices::{window_level_rgba, SliceAssembler, SliceFrame, SliceRequest, SliceView};
     let frame = SliceFrame::for_view(SliceView::Axial, geometry);
     let level = level_of_grid(layout, &frame, posted, console);
     let cursor = geometry
@@ -788,7 +807,7 @@ fn desktop_axial_slice(
     let image = assembler
         .assemble_with(request, |id| Ok::<_, strata_slices::SliceError>(read(id)))
         .expect("the desktop's slice");
-    let rgba = window_level_rgba(&image.values, window, ColourMap::Grey, mapping);
+    let rgba = window_level_rgba(&image.values, window, colour_map, mapping);
     (level, rgba)
 }
 

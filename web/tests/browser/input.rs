@@ -28,11 +28,25 @@ pub(crate) fn open_page(
     scratch: &std::path::Path,
     window: [u32; 2],
 ) -> (Cdp, strata_service::server::RunningServer) {
+    let (page, server, _frames) = open_page_capturing(fragment, scratch, window);
+    (page, server)
+}
+
+/// [`open_page`], and what the page posts to the server's test sink (`capture=1`).
+pub(crate) fn open_page_capturing(
+    fragment: &str,
+    scratch: &std::path::Path,
+    window: [u32; 2],
+) -> (
+    Cdp,
+    strata_service::server::RunningServer,
+    std::sync::mpsc::Receiver<strata_service::CapturedFrame>,
+) {
     let store = scratch.join("tiny.strata");
     Phantom::cube(32)
         .write_store(&store, &ImportOptions::default())
         .expect("writing a tiny store");
-    let (server, _frames) = serve_capturing(&store);
+    let (server, frames) = serve_capturing(&store);
     let url = format!("{}/{fragment}&token={TOKEN}", server.base_url());
     let mut page = Cdp::open(&url, scratch, window);
     let views = |page: &mut Cdp| {
@@ -51,7 +65,7 @@ pub(crate) fn open_page(
             (views(page) == before).then_some(())
         },
     );
-    (page, server)
+    (page, server, frames)
 }
 
 /// The view rectangle named `name` in page CSS pixels (the canvas's offset added).
@@ -91,7 +105,7 @@ pub(crate) fn wait_for_link(
     })
 }
 
-fn close(a: f64, b: f64) -> bool {
+pub(crate) fn close(a: f64, b: f64) -> bool {
     (a - b).abs() <= LINK_TOLERANCE
 }
 

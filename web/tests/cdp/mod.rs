@@ -174,7 +174,8 @@ impl Cdp {
             .join("\n")
     }
 
-    fn browser_command(&mut self, method: &str, params: Value) -> Value {
+    /// A command to the browser itself (not the page: `Browser.setDownloadBehavior`).
+    pub fn browser_command(&mut self, method: &str, params: Value) -> Value {
         self.send(method, params, None)
     }
 
