@@ -6,7 +6,7 @@
 //! [`Offer`] (why one is not offered, or how it was fitted). Also the scan's value
 //! formatting ([`ScanValues::format_value`]): its unit, and integers where the data are.
 
-use strata_render::TransferFunction;
+use strata_render::{TransferFunction, ValueMapping};
 use strata_storage::StoreHeader;
 
 /// What about a scan decides its presets and how its values print.
@@ -33,7 +33,7 @@ impl ScanValues {
             modality: header.modality.clone(),
             unit: header.value_mapping.unit.trim().to_string(),
             physical_range: (a.min(b), a.max(b)),
-            integer_values: is_integer(mapping.slope) && is_integer(mapping.intercept),
+            integer_values: integer_values(&mapping),
         }
     }
 
@@ -69,6 +69,28 @@ impl ScanValues {
             unit => format!("{number} {unit}"),
         }
     }
+}
+
+/// Whether every physical value under `mapping` is an integer (integer stored values under an
+/// integer slope and intercept, e.g. 8-bit data or CT in HU).
+pub fn integer_values(mapping: &ValueMapping) -> bool {
+    is_integer(mapping.slope) && is_integer(mapping.intercept)
+}
+
+/// A value under the pointer as both viewers' readouts print it, with its unit when known: an
+/// integer for integer data ("76", "-1000 HU"), HU without decimals, one decimal from 100 up,
+/// else at most four ("0.25 mm²/s").
+pub fn readout_value(value: f64, unit: &str, integer_values: bool) -> String {
+    let text = if integer_values {
+        format!("{} {unit}", format_number(value, true))
+    } else if unit == "HU" {
+        format!("{value:.0} HU")
+    } else if value.abs() >= 100.0 {
+        format!("{value:.1} {unit}")
+    } else {
+        format!("{} {unit}", format_number(value, false))
+    };
+    text.trim_end().to_string()
 }
 
 fn is_integer(x: f64) -> bool {

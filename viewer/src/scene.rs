@@ -100,11 +100,8 @@ impl Readout {
         };
         let [x, y, z] = self.patient_mm;
         let value = match self.value {
-            // Issue 47: 8-bit data read "76.0000".
-            Some(v) if self.integer_values => format!("{} {}", format_number(v, true), self.unit),
-            Some(v) if self.unit == "HU" => format!("{v:.0} HU"),
-            Some(v) if v.abs() >= 100.0 => format!("{v:.1} {}", self.unit),
-            Some(v) => format!("{} {}", format_number(v, false), self.unit),
+            // Issue 47: 8-bit data read "76.0000". The page's slice readout prints the same.
+            Some(v) => readout_value(v, &self.unit, self.integer_values),
             None => "…".into(),
         };
         format!(
@@ -192,7 +189,7 @@ pub fn start_cursor(dims: [u32; 3]) -> [f64; 3] {
 }
 
 pub use strata_viewer_ui::presets::looks_like_ct;
-use strata_viewer_ui::presets::{format_number, ScanValues};
+use strata_viewer_ui::presets::{readout_value, ScanValues};
 
 /// The named presets in the transfer-function panel: (preset name, button label).
 pub const PRESETS: [(&str, &str); 5] = [

@@ -42,7 +42,7 @@ use strata_viewer_ui::layouts;
 use strata_viewer_ui::measurements::{
     paint_on_slice, slice_input, Measurements, SliceContext, Tool,
 };
-use strata_viewer_ui::presets::looks_like_ct;
+use strata_viewer_ui::presets::{integer_values, looks_like_ct, readout_value};
 use strata_viewer_ui::slice_canvas::{
     colour_map_combo, fraction_at, inner_rect, paint_crosshair, paint_orientation_labels,
     paint_readout_line, screen_at, slice_mesh, ZoomPan,
@@ -640,9 +640,12 @@ impl SliceViews {
             index[frame.down_axis] = (d.round().max(0.0) as u32).min(dims[frame.down_axis] - 1);
             self.hovered = Some(index);
             let value = match self.assembler.voxel(index) {
-                Ok(VoxelLookup::Value(stored)) => {
-                    format!("{:.0} {}", self.mapping.physical(stored as f64), self.unit)
-                }
+                // The desktop's readout of a value (strata_viewer_ui::presets).
+                Ok(VoxelLookup::Value(stored)) => readout_value(
+                    self.mapping.physical(stored as f64),
+                    &self.unit,
+                    integer_values(&self.mapping),
+                ),
                 Ok(VoxelLookup::Needs(_)) => "…".to_string(),
                 Err(e) => e.to_string(),
             };

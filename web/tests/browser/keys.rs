@@ -14,7 +14,7 @@ use strata_slices::{ColourMap, SliceFrame, SliceView, Window};
 use strata_types::{OctreeLayout, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
 use strata_viewer_ui::history::edits_of;
 use strata_viewer_ui::orbit::StandardView;
-use strata_viewer_ui::presets::ScanValues;
+use strata_viewer_ui::presets::{integer_values, readout_value};
 use strata_viewer_ui::slice_canvas::{fraction_at, inner_rect, ZoomPan};
 use strata_viewer_ui::triad::{triad, Triad};
 use strata_web::view_state::Fragment;
@@ -406,20 +406,10 @@ fn the_link_colours_the_slices_as_the_desktop_and_the_readout_reads_its_voxel() 
     let edge = BRICK_PAYLOAD as usize;
     let stored = volume.brick(0, node).expect("level-0 brick")[(z * edge + y) * edge + x];
     let physical = volume.mapping.physical(f64::from(stored));
-    // The sample is the CT phantom in HU, integer-valued: the desktop's readout of its voxel.
-    let scan = ScanValues {
-        modality: "CT".into(),
-        unit: "HU".into(),
-        physical_range: volume.physical_range(),
-        integer_values: true,
-    };
-    let expected = format!(
-        "axial:{},{},{}:{}",
-        index[0],
-        index[1],
-        index[2],
-        scan.format_value(physical)
-    );
+    // The sample is the CT phantom in HU: the desktop's readout of its voxel (scene.rs's
+    // Readout prints its value with the same function).
+    let value = readout_value(physical, "HU", integer_values(&volume.mapping));
+    let expected = format!("axial:{},{},{}:{value}", index[0], index[1], index[2]);
     page.mouse_move(at.x as f64, at.y as f64, false);
     let readout = page.wait_for("the readout under the pointer", PAGE_DEADLINE, |page| {
         page.mouse_move(at.x as f64, at.y as f64, false);
