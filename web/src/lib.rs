@@ -24,6 +24,9 @@
 //! - `slice_views` (wasm32 only): a streamed store's three linked slice views (axial, coronal,
 //!   sagittal) beside the 3D view, sliced by strata-slices' assembler (the desktop's) from
 //!   bricks fetched asynchronously through the served store, window/level by right drag.
+//! - `oblique_view` (wasm32 only): the oblique view in the desktop's place for it, strata-slices'
+//!   plane, drag and resampling (the desktop's) over bricks fetched as the slice views fetch
+//!   theirs; shown while the link names it (`oblique=`).
 //! - `side_panel` (wasm32 only): the side panel, the desktop's transfer-function editor and
 //!   Performance panel from strata-viewer-ui, on the page's 3D view.
 //!
@@ -40,6 +43,8 @@ pub mod volume_menu;
 mod browser;
 #[cfg(target_arch = "wasm32")]
 mod embed_bridge;
+#[cfg(target_arch = "wasm32")]
+mod oblique_view;
 #[cfg(target_arch = "wasm32")]
 mod page_timing;
 #[cfg(target_arch = "wasm32")]

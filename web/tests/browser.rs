@@ -27,6 +27,10 @@ const PAGE_DEADLINE: Duration = Duration::from_secs(240);
 #[path = "browser/input.rs"]
 mod input;
 
+/// The page's oblique view against the desktop's shared resampling and drag (issue 47).
+#[path = "browser/oblique.rs"]
+mod oblique;
+
 const TOKEN: &str = "0123456789abcdef0123456789abcdef";
 
 fn chromium() -> PathBuf {

@@ -5,7 +5,7 @@
 //! (strata-viewer-ui's slice_canvas and strata_slices).
 
 #[path = "../cdp/mod.rs"]
-mod cdp;
+pub(crate) mod cdp;
 
 use cdp::Cdp;
 use egui::{pos2, Rect};
@@ -55,7 +55,7 @@ fn open_page(
 }
 
 /// The view rectangle named `name` in page CSS pixels (the canvas's offset added).
-fn view_rect(page: &mut Cdp, name: &str) -> Rect {
+pub(crate) fn view_rect(page: &mut Cdp, name: &str) -> Rect {
     let text = page.evaluate(
         "(() => { const c = document.getElementById('strata-canvas'); const r = c.getBoundingClientRect(); \
          return [r.left, r.top, c.dataset.views]; })()",
@@ -79,7 +79,11 @@ fn view_rect(page: &mut Cdp, name: &str) -> Rect {
 }
 
 /// Waits for the page's link to satisfy `done` and returns its view.
-fn wait_for_link(page: &mut Cdp, what: &str, done: impl Fn(&ViewState) -> bool) -> ViewState {
+pub(crate) fn wait_for_link(
+    page: &mut Cdp,
+    what: &str,
+    done: impl Fn(&ViewState) -> bool,
+) -> ViewState {
     page.wait_for(what, PAGE_DEADLINE, |page| {
         let hash = page.evaluate("location.hash");
         let view = Fragment::parse(hash.as_str()?).ok()?.view;
