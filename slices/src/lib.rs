@@ -8,11 +8,15 @@
 //! - [`assembler`]: slice images at the octree level matching the view's pixels, assembled
 //!   from decoded bricks as they arrive (poll-based: it lists what it still needs), over a
 //!   bounded LRU of decoded bricks.
+//! - [`oblique`]: the oblique reformat both viewers draw: the plane, its drag and link angles,
+//!   the image a view asks for, and its trilinear resampling from level bricks, which may say
+//!   "not resident yet" (the page's fetches).
 //! - [`window_level`], [`colour_maps`]: stored values → window → colour map → RGBA8, and the
 //!   window-dragging gesture.
 
 pub mod assembler;
 pub mod colour_maps;
+pub mod oblique;
 pub mod orientation;
 pub mod window_level;
 

@@ -9,6 +9,7 @@ pub mod brick;
 pub mod coded_concept;
 pub mod geometry;
 pub mod octree;
+pub mod trilinear;
 pub mod value_mapping;
 
 pub use brick::{BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD, BRICK_PAYLOAD_VOXELS};
@@ -18,4 +19,5 @@ pub use geometry::{
     MAX_TOTAL_VOXELS, MIN_SPACING_MM,
 };
 pub use octree::{level_count, level_dims, BrickId, OctreeLayout};
+pub use trilinear::trilinear_corners;
 pub use value_mapping::ValueMapping;

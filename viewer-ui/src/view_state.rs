@@ -91,6 +91,10 @@ pub struct ViewState {
     pub window: Option<[f64; 2]>,
     /// The slice views' colour map (`cmap=hot`; absent: grey).
     pub colour_map: ColourMap,
+    /// The oblique view, shown (in the sagittal's place in the 2×2, a fourth slice under the
+    /// 3D view) and turned `[yaw, pitch, roll]` degrees off axial (`oblique=YAW,PITCH[,ROLL]`,
+    /// strata_slices' `ObliquePlane::from_orientation_deg`); None: not shown.
+    pub oblique: Option<[f64; 3]>,
     /// Isosurface value in the volume's physical unit (HU for the CT sample).
     pub iso_value: f64,
     /// The crop box (`crop=I0,J0,K0,I1,J1,K1`, fractions of each index axis).
@@ -144,6 +148,7 @@ impl Default for ViewState {
             cursor: None,
             window: None,
             colour_map: ColourMap::Grey,
+            oblique: None,
             iso_value: 300.0,
             crop: CropBox::default(),
             clip: ClipSettings::default(),
@@ -341,6 +346,19 @@ impl Fragment {
                         finite(key, z, range)?,
                     ]);
                 }
+                "oblique" => {
+                    let parts: Vec<&str> = value.split(',').collect();
+                    let (yaw, pitch, roll) = match parts[..] {
+                        [yaw, pitch] => (yaw, pitch, "0"),
+                        [yaw, pitch, roll] => (yaw, pitch, roll),
+                        _ => return Err(bad(key, value, "YAW,PITCH[,ROLL] in degrees")),
+                    };
+                    view.oblique = Some([
+                        finite(key, yaw, -180.0..=180.0)?,
+                        finite(key, pitch, -90.0..=90.0)?,
+                        finite(key, roll, -180.0..=180.0)?,
+                    ]);
+                }
                 "window" => {
                     let (centre, width) = value
                         .split_once(',')
@@ -494,6 +512,13 @@ impl ViewState {
         if self.colour_map != ColourMap::Grey {
             parts.push(format!("cmap={}", colour_map_name(self.colour_map)));
         }
+        if let Some([yaw, pitch, roll]) = self.oblique.map(|angles| angles.map(round3)) {
+            if roll == 0.0 {
+                parts.push(format!("oblique={yaw},{pitch}"));
+            } else {
+                parts.push(format!("oblique={yaw},{pitch},{roll}"));
+            }
+        }
         if self.mode == RenderMode::Isosurface {
             parts.push(format!("iso={}", round3(self.iso_value)));
         }
@@ -547,6 +572,7 @@ impl ViewState {
             window: None,
             measurements: Vec::new(),
             colour_map: ColourMap::Grey,
+            oblique: None,
             ..self.clone()
         }
     }
@@ -721,6 +747,7 @@ mod tests {
             cursor: Some([10.5, 20.0, 3.25]),
             window: Some([40.0, 400.0]),
             colour_map: ColourMap::Viridis,
+            oblique: Some([30.5, -12.25, 7.125]),
             iso_value: 250.0,
             crop: CropBox {
                 min: [0.125, 0.0, 0.25],
@@ -983,6 +1010,46 @@ mod tests {
         }
     }
 
+    /// The oblique view is in a link only while shown (`oblique=` absent: not shown), its
+    /// angles rounded as the link rounds, the roll written only when there is one.
+    #[test]
+    fn the_oblique_view_is_in_the_link_only_while_shown() {
+        let plain = ViewState::default();
+        assert!(
+            !plain.to_fragment().contains("oblique"),
+            "{}",
+            plain.to_fragment()
+        );
+        assert_eq!(
+            Fragment::parse("#mode=mip").expect("parses").view.oblique,
+            None
+        );
+        let axial = ViewState {
+            oblique: Some([0.0, 0.0, 0.0]),
+            ..ViewState::default()
+        };
+        let written = axial.to_fragment();
+        assert!(written.split('&').any(|p| p == "oblique=0,0"), "{written}");
+        assert_eq!(Fragment::parse(&written).expect("parses").view, axial);
+        let tilted = Fragment::parse("#oblique=30,-20.5").expect("two angles");
+        assert_eq!(tilted.view.oblique, Some([30.0, -20.5, 0.0]));
+        let rolled = ViewState {
+            oblique: Some([-170.12345, 89.9996, 12.0004]),
+            ..ViewState::default()
+        };
+        let written = rolled.to_fragment();
+        assert!(
+            written.split('&').any(|p| p == "oblique=-170.123,90,12"),
+            "{written}"
+        );
+        assert_eq!(
+            Fragment::parse(&written).expect("parses").view.oblique,
+            Some([-170.123, 90.0, 12.0])
+        );
+        // Turning the oblique view does not redraw the 3D view.
+        assert_eq!(rolled.of_3d_view(), plain.of_3d_view());
+    }
+
     #[test]
     fn a_bad_crop_clip_or_shade_names_its_key() {
         for (key, value) in [
@@ -1002,6 +1069,11 @@ mod tests {
             ("occlusion", "0.5"),
             ("occlusion", "mm"),
             ("scattering", "1.5"),
+            ("oblique", "30"),
+            ("oblique", "30,95"),
+            ("oblique", "30,10,0,5"),
+            ("oblique", "north,10"),
+            ("oblique", "200,0,0"),
         ] {
             let e = Fragment::parse(&format!("#{key}={value}")).expect_err(value);
             assert!(

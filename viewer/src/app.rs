@@ -28,6 +28,7 @@ use super::slices::SliceReader;
 use super::view3d::{OrbitCamera, View3d};
 use super::volume_session::{ScreenshotRequest, VolumeSession, DEFAULT_GPU_BUDGET_BYTES};
 use super::widgets::{elide_middle, NOT_FOR_DIAGNOSIS, WARNING_COLOUR};
+use strata_slices::oblique::{default_extent_mm, ObliquePlane};
 use strata_viewer_ui::crop_clip::ClipSettings;
 use strata_viewer_ui::layouts;
 use strata_viewer_ui::measurements::Measurements;
@@ -483,6 +484,7 @@ impl StrataApp {
             // link names, as the browser draws it (an effect in it turns shading on there too).
             self.preferences.light = view.light;
             self.preferences.shading = view.shading;
+            self.preferences.show_oblique = view.oblique.is_some();
         }
         self.pending_link_view = link_view;
         match PrepareJob::start(
@@ -666,8 +668,17 @@ impl StrataApp {
         };
         let mut scene = scene;
         let mut orbit = orbit;
+        let mut oblique_plane = None;
         if let Some(view) = self.pending_link_view.take() {
             orbit = view.orbit;
+            // The link's oblique angles (its centre follows the crosshair).
+            oblique_plane = view.oblique.map(|angles| {
+                ObliquePlane::from_orientation_deg(
+                    glam::DVec3::ZERO,
+                    default_extent_mm(&info.geometry),
+                    angles,
+                )
+            });
             scene.iso_value = view.iso_value;
             scene.colour_map = view.colour_map;
             scene.crop = view.crop;
@@ -691,7 +702,6 @@ impl StrataApp {
                 scene.measurements = Measurements::with_items(view.measurements);
             }
         }
-        let mut oblique_plane = None;
         if let Some(saved) = self.pending_restore.take() {
             if saved.apply(&location, &mut scene, &mut orbit) {
                 saved.apply_view(&mut self.preferences.preset, &mut oblique_plane);
@@ -757,6 +767,11 @@ impl StrataApp {
                 shading: self.preferences.shading,
                 light: self.preferences.light,
                 measurements: v.scene.measurements.items.clone(),
+                oblique: self.preferences.show_oblique.then(|| {
+                    v.oblique_view
+                        .current_plane(&v.data, &v.scene)
+                        .orientation_deg()
+                }),
             },
         )
     }

@@ -52,6 +52,9 @@ pub struct DesktopView {
     pub clip: ClipSettings,
     /// The rendering panel's "Shading" switch.
     pub shading: bool,
+    /// The oblique view, shown and turned `[yaw, pitch, roll]` degrees off axial (the link's
+    /// `oblique=`, strata_slices' `ObliquePlane::orientation_deg`); None: not shown.
+    pub oblique: Option<[f64; 3]>,
     /// The rendering panel's light. A link carries its direction, shadows, occlusion radius
     /// and scattering asymmetry (view_state.rs); a light opened from a link has the rest
     /// (intensity, ambient, steps, blend) at the defaults, as the browser draws it.
@@ -162,6 +165,7 @@ pub fn link_for(store_url: &str, view: &DesktopView) -> Option<String> {
         shading: view.shading,
         light: view.light,
         measurements: view.measurements.clone(),
+        oblique: view.oblique,
         store: Some(name.to_string()),
         ..ViewState::default()
     };
@@ -195,6 +199,7 @@ pub fn desktop_view(view: &ViewState) -> DesktopView {
         shading: view.shading,
         light: view.light,
         measurements: view.measurements.clone(),
+        oblique: view.oblique,
     }
 }
 
@@ -262,6 +267,7 @@ mod tests {
                     },
                 },
             ],
+            oblique: Some([25.5, -10.25, 3.125]),
         }
     }
 
@@ -406,6 +412,46 @@ mod tests {
         assert_eq!(desktop_view(&opened.view), edited);
         let plain = link_for(store_url, &desktop()).expect("link");
         assert!(!plain.contains("tf="), "{plain}");
+    }
+
+    /// The oblique view travels with a link while shown: its angles turn back into the plane
+    /// the desktop showed (strata_slices' orientation angles), and a link without it opens
+    /// without it.
+    #[test]
+    fn the_oblique_view_travels_with_the_link_while_shown() {
+        use glam::DVec3;
+        use strata_slices::oblique::ObliquePlane;
+        let store_url = "http://127.0.0.1:8080/v1/stores/head-ct";
+        let shown = ObliquePlane::axial(DVec3::ZERO, 300.0).turned_by_drag(40.0, -25.0);
+        let view = DesktopView {
+            oblique: Some(shown.orientation_deg()),
+            ..desktop()
+        };
+        let link = link_for(store_url, &view).expect("link");
+        assert!(link.contains("&oblique="), "{link}");
+        let angles = desktop_view(&parse_link(&link).expect("parses").view)
+            .oblique
+            .expect("the oblique view is shown");
+        let opened = ObliquePlane::from_orientation_deg(DVec3::ZERO, 300.0, angles);
+        // The link's three decimals of a degree: 1e-3° is 1.7e-5 rad.
+        assert!(
+            (opened.right - shown.right).length() < 1e-4,
+            "{opened:?} {shown:?}"
+        );
+        assert!(
+            (opened.down - shown.down).length() < 1e-4,
+            "{opened:?} {shown:?}"
+        );
+        let hidden = DesktopView {
+            oblique: None,
+            ..desktop()
+        };
+        let link = link_for(store_url, &hidden).expect("link");
+        assert!(!link.contains("oblique"), "{link}");
+        assert_eq!(
+            desktop_view(&parse_link(&link).expect("parses").view).oblique,
+            None
+        );
     }
 
     #[test]

@@ -14,21 +14,17 @@
 use egui::{Color32, Pos2, Rect, Sense, Stroke, TextureHandle, TextureOptions, Vec2};
 use glam::DVec3;
 
-use super::colour_maps::ColourMap;
-use super::oblique::{
-    default_extent_mm, level_for_pixel_mm, ObliqueImage, ObliquePlane, ObliqueRequest,
+use strata_slices::oblique::{
+    default_extent_mm, oblique_rgba, ObliqueImage, ObliquePlane, ObliqueRequest,
 };
+
+use super::colour_maps::ColourMap;
+use super::oblique::{brush_plane, plane_facing};
 use super::overlay::{Overlay, OverlayKind, OverlayStyle};
 use super::scene::{Scene, VolumeData, Window};
 use super::segmentation::Segmentation;
 use super::slice_view::{drag_window, segment_pointer_input};
 use super::widgets::{view_title, wheel_lines, ViewResponse};
-
-/// Radians the plane turns per point dragged.
-pub const TURN_PER_POINT: f64 = 0.01;
-
-/// The most pixels the CPU resamples across (the view is upscaled beyond).
-pub const MAX_OBLIQUE_PIXELS: usize = 384;
 
 struct ObliqueTexture {
     texture: TextureHandle,
@@ -143,16 +139,14 @@ impl ObliqueViewer {
         let mut plane = self.current_plane(data, scene);
         let painting = segmentation.as_ref().is_some_and(|s| s.tool.paints());
         if let Some(seg) = segmentation.as_deref_mut().filter(|_| painting) {
-            let brush_plane = plane.brush_plane();
+            let brush_plane = brush_plane(&plane);
             let to_lps = |pos: Pos2| pixel_patient(&plane, image_rect, pos);
             segment_pointer_input(ui, &response, image_rect, seg, &to_lps, &|_| brush_plane);
         } else if response.dragged_by(egui::PointerButton::Primary) {
             let delta = ui.input(|i| i.pointer.delta());
             if delta != Vec2::ZERO {
-                plane = plane.rotated(
-                    delta.x as f64 * TURN_PER_POINT,
-                    -delta.y as f64 * TURN_PER_POINT,
-                );
+                // The page turns its plane by the same mapping (strata_slices::oblique).
+                plane = plane.turned_by_drag(delta.x as f64, delta.y as f64);
                 self.plane = Some(plane);
             }
         } else if response.clicked() {
@@ -190,18 +184,12 @@ impl ObliqueViewer {
         }
 
         let ppp = ui.ctx().pixels_per_point();
-        let pixels = ((side * ppp) as usize).clamp(16, MAX_OBLIQUE_PIXELS);
-        let level = level_for_pixel_mm(
-            plane.extent_mm / pixels as f64,
-            geometry.finest_spacing_mm(),
+        let request = ObliqueRequest::for_view(
+            plane,
+            (side * ppp) as f64,
+            geometry,
             data.info.header.layout.level_count(),
         );
-        let request = ObliqueRequest {
-            plane,
-            width: pixels,
-            height: pixels,
-            level,
-        };
         data.oblique.request(request);
         if let Some(image) = data.oblique.latest() {
             let stale = self.texture.as_ref().is_none_or(|t| {
@@ -271,7 +259,7 @@ impl ObliqueViewer {
                     .on_hover_text("Turn the plane to face the 3D view's camera")
                     .clicked()
                 {
-                    self.plane = Some(ObliquePlane::facing(camera, plane.centre, plane.extent_mm));
+                    self.plane = Some(plane_facing(camera, plane.centre, plane.extent_mm));
                 }
                 if ui
                     .small_button("Axial")
@@ -385,21 +373,7 @@ fn window_level(
     colour_map: ColourMap,
     data: &VolumeData,
 ) -> egui::ColorImage {
-    let lo = window.low();
-    let scale = 255.0 / window.width.max(1e-9);
-    let table = colour_map.table();
-    let mapping = data.info.mapping;
-    let pixels = image
-        .values
-        .iter()
-        .map(|&s| {
-            if !s.is_finite() {
-                return Color32::BLACK;
-            }
-            let g = ((mapping.physical(s as f64) - lo) * scale).clamp(0.0, 255.0) as usize;
-            let [r, g, b] = table[g];
-            Color32::from_rgb(r, g, b)
-        })
-        .collect();
-    egui::ColorImage::new([image.request.width, image.request.height], pixels)
+    // The page colours its oblique image with the same step.
+    let rgba = oblique_rgba(&image.values, window, colour_map, data.info.mapping);
+    egui::ColorImage::from_rgba_unmultiplied([image.request.width, image.request.height], &rgba)
 }

@@ -30,11 +30,11 @@ use strata_source::VolumeSource;
 use strata_types::{BrickId, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
 
 use super::colour_maps::ColourMap;
-use super::oblique::ObliquePlane;
 use super::orientation::SliceView;
 use super::segmentation::SharedLayer;
 use super::slices::SliceRequest;
 use super::sync::{lock_ignoring_poison, wait_ignoring_poison, Repaint};
+use strata_slices::oblique::ObliquePlane;
 
 /// Decompressed overlay bricks kept (bytes).
 pub const OVERLAY_CACHE_BYTES: usize = 96 << 20;
@@ -846,7 +846,7 @@ pub fn trilinear(
     physical: impl Fn(u16) -> f64,
 ) -> anyhow::Result<f64> {
     let mut sum = 0.0;
-    for (index, weight) in strata_render::model::field::trilinear_corners(p.to_array(), dims) {
+    for (index, weight) in strata_types::trilinear_corners(p.to_array(), dims) {
         if weight > 0.0 {
             sum += weight * physical(cache.voxel(store, index)?);
         }

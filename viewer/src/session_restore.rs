@@ -30,11 +30,11 @@ use strata_render::{CropBox, TransferFunction};
 
 use glam::DVec3;
 
-use super::oblique::ObliquePlane;
 use super::preferences::Preferences;
 use super::scene::{Scene, Window};
 use super::sync::lock_ignoring_poison;
 use super::view3d::OrbitCamera;
+use strata_slices::oblique::ObliquePlane;
 use strata_viewer_ui::crop_clip::ClipSettings;
 use strata_viewer_ui::measurements::{Measurement, Measurements};
 

@@ -15,7 +15,7 @@ use strata_render::{Camera, Projection, RenderMode, RenderSettings, VolumeGeomet
 use strata_viewer_ui::picking;
 use strata_viewer_ui::render_driver::{OverlayIn3d, RenderRequest};
 
-use super::oblique::{ObliquePlane, OBLIQUE_COLOUR};
+use super::oblique::OBLIQUE_COLOUR;
 use super::orientation::SliceView;
 use super::preferences::Preferences;
 use super::scene::{Scene, VolumeData};
@@ -23,6 +23,7 @@ use super::segmentation::{SegmentTool, Segmentation};
 use super::slice_view::slice_colour;
 use super::volume_session::RenderedFrame;
 use super::widgets::{view_title, wheel_lines, ViewResponse, NOT_FOR_DIAGNOSIS, WARNING_COLOUR};
+use strata_slices::oblique::ObliquePlane;
 use strata_viewer_ui::measurements::{Shape, Tool};
 
 /// Zoom factor per wheel click in the 3D view.

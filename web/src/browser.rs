@@ -23,12 +23,13 @@ use wasm_bindgen::prelude::*;
 use wasm_bindgen::JsCast;
 
 use crate::embed_bridge::{embed_origin, EmbedBridge};
+use crate::oblique_view::{oblique_toggle, place_views, ObliqueView};
 use crate::page_timing::{PageTiming, BENCH_DEG_PER_FRAME};
 use crate::page_tools::{self, PageTools};
 use crate::picking::PendingPick;
 use crate::served_store::{list_stores, ServedStore, DECODES_PER_FRAME, MAX_ON_THE_WIRE};
 use crate::side_panel::{SidePanel, VolumeFigures};
-use crate::slice_views::{slice_layout, SliceViews};
+use crate::slice_views::SliceViews;
 use crate::view_motion::{ViewMotion, MOTION_HOLD_S};
 use crate::view_state::{Fragment, Layout, ViewState};
 use crate::volume_menu;
@@ -93,6 +94,8 @@ enum PageError {
     Source(#[from] strata_source::SourceError),
     #[error(transparent)]
     SliceViews(#[from] crate::slice_views::SliceViewsError),
+    #[error(transparent)]
+    ObliqueView(#[from] crate::oblique_view::ObliqueViewError),
     /// wgpu's reason a mapped buffer could not be read.
     #[error("{0}")]
     Readback(String),
@@ -169,6 +172,9 @@ const CAPTURE_MAPPING: u8 = 1;
 const CAPTURE_MAPPED: u8 = 2;
 const CAPTURE_FAILED: u8 = 3;
 const CAPTURE_SENT: u8 = 4;
+/// The frame's post is under way: the slice image waits for it, so the server's sink gets
+/// the frame first (two posts in flight at once arrived in either order).
+const CAPTURE_POSTING: u8 = 5;
 
 struct Capture {
     buffer: wgpu::Buffer,
@@ -187,6 +193,8 @@ struct Streamed {
     last: Option<FrameStats>,
     /// The three slice views beside the 3D view (slice_views.rs).
     slices: SliceViews,
+    /// The oblique view, shown while the link names it (oblique_view.rs).
+    oblique: ObliqueView,
 }
 
 /// The store being opened: filled by the open's future, taken by the next frame.
@@ -206,6 +214,8 @@ struct WebViewer {
     volume: Option<Rc<BrickedVolume>>,
     /// The sample's three slice views (slice_views.rs), made with it.
     sample_slices: Option<SliceViews>,
+    /// The sample's oblique view (oblique_view.rs), made with it.
+    sample_oblique: Option<ObliqueView>,
     renderer: Option<OffscreenRenderer>,
     /// The sample renderer's applied transfer function and last drawn request (the render
     /// driver's typed difference, as the streamed volume's).
@@ -309,6 +319,7 @@ impl WebViewer {
             view: fragment.view,
             volume: None,
             sample_slices: None,
+            sample_oblique: None,
             renderer: None,
             sample_driver: None,
             side,
@@ -347,6 +358,8 @@ impl WebViewer {
             slices.set_from_link(self.view.cursor, self.view.window);
             slices.colour_map = self.view.colour_map;
             self.sample_slices = Some(slices);
+            let angles = self.view.oblique.unwrap_or_default();
+            self.sample_oblique = Some(ObliqueView::for_sample(volume.clone(), angles));
             self.volume = Some(volume);
             self.side.set_sample_histogram(&self.view);
         }
@@ -404,6 +417,7 @@ impl WebViewer {
         // The link's crosshair and window, if it names them.
         slices.set_from_link(self.view.cursor, self.view.window);
         slices.colour_map = self.view.colour_map;
+        let oblique = ObliqueView::new(store.as_ref(), self.view.oblique.unwrap_or_default())?;
         let config = StreamingConfig {
             // The page shares the GPU and memory with the rest of the browser.
             gpu_budget_bytes: 256 << 20,
@@ -424,6 +438,7 @@ impl WebViewer {
             driver: RenderDriver::new(transfer_function, None),
             last: None,
             slices,
+            oblique,
         });
         Ok(true)
     }
@@ -739,6 +754,7 @@ impl WebViewer {
                 ui.selectable_value(&mut self.view.layout, layout, label)
                     .on_hover_text(hover);
             }
+            oblique_toggle(ui, &mut self.view);
             ui.separator();
             for (mode, label) in [
                 (RenderMode::Dvr, "DVR"),
@@ -961,13 +977,16 @@ impl WebViewer {
                         return;
                     }
                 };
-                capture.state.store(CAPTURE_SENT, Ordering::Release);
+                capture.state.store(CAPTURE_POSTING, Ordering::Release);
+                let (state, repaint) = (capture.state.clone(), ctx.clone());
                 let token = self.token.clone();
                 let metrics = self.timing.metrics();
                 wasm_bindgen_futures::spawn_local(async move {
                     if let Err(e) = post_frame(&rgba, w, h, &metrics, token.as_deref()).await {
                         show_message("The test capture could not be sent", &e.to_string());
                     }
+                    state.store(CAPTURE_SENT, Ordering::Release);
+                    repaint.request_repaint();
                 });
             }
             CAPTURE_FAILED => {
@@ -1238,9 +1257,10 @@ impl eframe::App for WebViewer {
                 // the sample's): the 2×2, or the 3D view over the slices.
                 let area = ui.available_rect_before_wrap();
                 let has_slices = self.streamed.is_some() || self.sample_slices.is_some();
-                let (rect, slice_rects) = match slice_layout(self.view.layout, area) {
-                    Some((rect, slices)) if has_slices => (rect, Some(slices)),
-                    _ => (area, None),
+                let placed = place_views(self.view.layout, self.view.oblique.is_some(), area);
+                let (rect, slice_rects, oblique_rect) = match placed {
+                    Some((rect, slices, oblique)) if has_slices => (rect, Some(slices), oblique),
+                    _ => (area, None, None),
                 };
                 let response = ui.allocate_rect(rect, egui::Sense::click_and_drag());
                 // The desktop's drag mapping (strata-viewer-ui's orbit): the same drag turns
@@ -1265,7 +1285,7 @@ impl eframe::App for WebViewer {
                     // The rest of the shared keys the page has (page_tools.rs).
                     keyed |= self.tools.keys(&ctx, &mut self.view);
                 }
-                publish_view_rects(rect, slice_rects);
+                publish_view_rects(rect, slice_rects, oblique_rect);
                 if self.timing.orbiting() {
                     self.view.azimuth_deg += BENCH_DEG_PER_FRAME;
                     ctx.request_repaint();
@@ -1341,9 +1361,9 @@ impl eframe::App for WebViewer {
                     }
                 }
                 let picked = self.take_pick();
-                let slices = match self.streamed.as_mut() {
-                    Some(streamed) => Some(&mut streamed.slices),
-                    None => self.sample_slices.as_mut(),
+                let (slices, oblique) = match self.streamed.as_mut() {
+                    Some(streamed) => (Some(&mut streamed.slices), Some(&mut streamed.oblique)),
+                    None => (self.sample_slices.as_mut(), self.sample_oblique.as_mut()),
                 };
                 if let Some(index) = picked {
                     // The link names it even where no slice view shows it (the single layout).
@@ -1355,6 +1375,35 @@ impl eframe::App for WebViewer {
                     }
                     crate::measure::before_slice_views(&self.view, slices);
                     slices.ui(ui, rects);
+                    if let (Some(rect), Some(oblique), Some(angles)) =
+                        (oblique_rect, oblique, self.view.oblique.as_mut())
+                    {
+                        oblique.ui(ui, rect, slices, angles);
+                        // Test hook (`capture=1`): each complete image once the pointer is up.
+                        let pointer_down = ctx.input(|i| i.pointer.any_down());
+                        let capture = match self.view.capture {
+                            true => oblique.take_capture(pointer_down),
+                            false => None,
+                        };
+                        if let Some(shot) = capture {
+                            let token = self.token.clone();
+                            wasm_bindgen_futures::spawn_local(async move {
+                                let posted = post_frame(
+                                    &shot.rgba,
+                                    shot.width,
+                                    shot.height,
+                                    &shot.metrics,
+                                    token.as_deref(),
+                                );
+                                if let Err(e) = posted.await {
+                                    show_message(
+                                        "The oblique capture could not be sent",
+                                        &e.to_string(),
+                                    );
+                                }
+                            });
+                        }
+                    }
                     // The address follows the crosshair and window, so a link shares them.
                     self.view.cursor = Some(slices.cursor);
                     self.view.window = Some([slices.window.centre, slices.window.width]);
@@ -1390,7 +1439,11 @@ fn publish_pick(text: &str) {
 /// Writes where the views are on the canvas (CSS pixels, `x,y,w,h`) into the canvas's
 /// `data-views` attribute: the browser tests click and drag there (web/tests/browser/input.rs)
 /// and compute what the desktop's mappings give for those points. Written only on change.
-fn publish_view_rects(three_d: egui::Rect, slices: Option<[egui::Rect; 3]>) {
+fn publish_view_rects(
+    three_d: egui::Rect,
+    slices: Option<[Option<egui::Rect>; 3]>,
+    oblique: Option<egui::Rect>,
+) {
     let rect_text = |r: egui::Rect| format!("{},{},{},{}", r.min.x, r.min.y, r.width(), r.height());
     let mut text = format!("3d:{}", rect_text(three_d));
     if let Some([axial, coronal, sagittal]) = slices {
@@ -1398,8 +1451,11 @@ fn publish_view_rects(three_d: egui::Rect, slices: Option<[egui::Rect; 3]>) {
             ("axial", axial),
             ("coronal", coronal),
             ("sagittal", sagittal),
+            ("oblique", oblique),
         ] {
-            text.push_str(&format!(";{name}:{}", rect_text(r)));
+            if let Some(r) = r {
+                text.push_str(&format!(";{name}:{}", rect_text(r)));
+            }
         }
     }
     let Some(canvas) = web_sys::window()

@@ -31,6 +31,9 @@
 //! - `measure` (wasm32 only): the desktop's rulers, angles and ROIs in the page
 //!   (strata-viewer-ui's measurements): the side panel's tools and list, the list kept in the
 //!   view (the link's `m=`), and what the page publishes of them for its tests.
+//! - `oblique_view` (wasm32 only): the oblique view in the desktop's place for it, strata-slices'
+//!   plane, drag and resampling (the desktop's) over bricks fetched as the slice views fetch
+//!   theirs; shown while the link names it (`oblique=`).
 //! - `side_panel` (wasm32 only): the side panel, the desktop's transfer-function editor and
 //!   Performance panel from strata-viewer-ui, on the page's 3D view.
 //!
@@ -49,6 +52,8 @@ mod browser;
 mod embed_bridge;
 #[cfg(target_arch = "wasm32")]
 mod measure;
+#[cfg(target_arch = "wasm32")]
+mod oblique_view;
 #[cfg(target_arch = "wasm32")]
 mod page_timing;
 #[cfg(target_arch = "wasm32")]

@@ -108,6 +108,8 @@ pub struct SliceViews {
     /// click is such a click) puts it back, so it resets the zoom only (as on the desktop).
     cursor_before_click: Option<[f64; 3]>,
     shown: [Option<Shown>; 3],
+    /// The views drawn this frame (the oblique view may take the sagittal's place).
+    drawn: [bool; 3],
     requested: [Option<SliceRequest>; 3],
     /// Wheel movement not yet paged, per view (fractions of a line).
     wheel_lines: [f64; 3],
@@ -255,6 +257,7 @@ impl SliceViews {
             zoom_pan: [ZoomPan::default(); 3],
             cursor_before_click: None,
             shown: [None, None, None],
+            drawn: [true; 3],
             requested: [None, None, None],
             wheel_lines: [0.0; 3],
             hovered: None,
@@ -287,12 +290,15 @@ impl SliceViews {
     /// width and height; given once. The browser test compares it with the desktop's
     /// assembler and window/level on the same store.
     pub fn take_capture(&mut self) -> Option<(Vec<u8>, u32, u32)> {
-        let complete = SliceView::ALL.iter().all(|v| {
-            self.assembler.pending(*v).is_none()
-                && self.shown[v.index()]
-                    .as_ref()
-                    .is_some_and(|s| Some(s.image.request) == self.requested[v.index()])
-        });
+        let complete = SliceView::ALL
+            .iter()
+            .filter(|v| self.drawn[v.index()])
+            .all(|v| {
+                self.assembler.pending(*v).is_none()
+                    && self.shown[v.index()]
+                        .as_ref()
+                        .is_some_and(|s| Some(s.image.request) == self.requested[v.index()])
+            });
         if self.captured || !complete {
             return None;
         }
@@ -375,8 +381,9 @@ impl SliceViews {
         }
     }
 
-    /// The three views in their rectangles (axial, coronal, sagittal).
-    pub fn ui(&mut self, ui: &mut egui::Ui, rects: [Rect; 3]) {
+    /// The views in their rectangles (axial, coronal, sagittal; None: not shown, its place
+    /// the oblique view's).
+    pub fn ui(&mut self, ui: &mut egui::Ui, rects: [Option<Rect>; 3]) {
         let ctx = ui.ctx().clone();
         self.pump(&ctx);
         self.hovered = None;
@@ -384,7 +391,14 @@ impl SliceViews {
             if let Some(image) = self.assembler.take_finished(view) {
                 self.show(&ctx, image);
             }
-            self.view_ui(ui, view, rects[view.index()]);
+            self.drawn[view.index()] = rects[view.index()].is_some();
+            match rects[view.index()] {
+                Some(rect) => self.view_ui(ui, view, rect),
+                None => {
+                    self.assembler.cancel(view);
+                    self.requested[view.index()] = None;
+                }
+            }
         }
         // A slice started this frame, or a readout waiting for its brick: the next frame must
         // come (fetch answers wake nothing) to ask for and take the bricks.
@@ -399,7 +413,9 @@ impl SliceViews {
             ctx.request_repaint();
         }
         // The colour map, at the axial view's top right.
-        let axial = rects[SliceView::Axial.index()];
+        let Some(axial) = rects[SliceView::Axial.index()] else {
+            return;
+        };
         let picker = Rect::from_min_size(
             Pos2::new(axial.right() - 104.0, axial.top() + 2.0),
             Vec2::new(100.0, 20.0),

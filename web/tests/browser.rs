@@ -38,6 +38,10 @@ mod picking;
 #[path = "browser/keys.rs"]
 mod keys;
 
+/// The page's oblique view against the desktop's shared resampling and drag (issue 47).
+#[path = "browser/oblique.rs"]
+mod oblique;
+
 const TOKEN: &str = "0123456789abcdef0123456789abcdef";
 
 fn chromium() -> PathBuf {

@@ -77,26 +77,6 @@ pub fn locate_in_page<'b, S: BrickSource>(
     })
 }
 
-/// The eight corners and weights of trilinear interpolation at index `p` in a grid of `dims`
-/// voxels (`p` clamped into the grid; corners past the last voxel repeat it). Corner bit `a`
-/// set means the upper neighbour along axis `a`. Shared by every f64 trilinear lookup that is
-/// not over a brick payload (overlays, oblique slices), so all agree at the grid's edges.
-pub fn trilinear_corners(p: [f64; 3], dims: [u32; 3]) -> [([u32; 3], f64); 8] {
-    let q = [0, 1, 2].map(|a| p[a].clamp(0.0, dims[a].max(1) as f64 - 1.0));
-    let base = q.map(f64::floor);
-    std::array::from_fn(|corner| {
-        let mut weight = 1.0;
-        let mut index = [0u32; 3];
-        for a in 0..3 {
-            let up = (corner >> a) & 1 == 1;
-            let f = q[a] - base[a];
-            weight *= if up { f } else { 1.0 - f };
-            index[a] = (base[a] as u32 + up as u32).min(dims[a].max(1) - 1);
-        }
-        (index, weight)
-    })
-}
-
 /// Trilinear over a 36³ payload in stored units.
 pub fn trilinear(brick: &[u16], local: DVec3) -> f64 {
     let max = (BRICK_PAYLOAD - 1) as f64;

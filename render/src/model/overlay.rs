@@ -107,7 +107,7 @@ impl OverlayVolume {
             }
             OverlayKind::Continuous => {
                 let q = [0, 1, 2].map(|a| g[a] - 0.5);
-                crate::model::field::trilinear_corners(q, self.dims)
+                strata_types::trilinear_corners(q, self.dims)
                     .into_iter()
                     .map(|(index, weight)| weight * self.at(index))
                     .sum()

@@ -19,12 +19,13 @@ use super::harness::{
 };
 use crate::app::{Layout, Preferences, StrataApp, ViewerOptions};
 use crate::jobs::VolumeToOpen;
-use crate::oblique::{default_extent_mm, ObliquePlane, ObliqueRequest};
+use crate::oblique::brush_plane;
 use crate::oblique_view::pixel_patient;
 use crate::overlay::tests::{label_of, write_nrrd, LABEL_DIMS, LABEL_ORIGIN, LABEL_SPACING};
 use crate::segmentation::SegmentTool;
 use egui_kittest::kittest::Queryable;
 use egui_kittest::Harness;
+use strata_slices::oblique::{default_extent_mm, ObliquePlane, ObliqueRequest};
 
 /// Within this of a voxel boundary (in voxels) a pixel's nearest voxel is a tie.
 const TIE_VOXELS: f64 = 1e-6;
@@ -294,7 +295,7 @@ fn on_a_tilted_oblique_view_the_brush_and_eraser_change_the_models_voxels_and_un
                 && positions[positions.len() - 1].distance(to_lps) < 1e-6,
             "stroke {positions:?} vs pointer {from_lps} → {to_lps}"
         );
-        let brush = seg.brush(request.plane.brush_plane()).expect("brush");
+        let brush = seg.brush(brush_plane(&request.plane)).expect("brush");
         let layer = seg.layer.read();
         stroke_voxels(layer.grid(), &brush, positions).expect("model")
     };
@@ -541,7 +542,7 @@ fn on_a_tilted_oblique_view_fill_takes_the_inside_of_a_brushed_square() {
         .collect();
 
     // The model, over every voxel of the grid in f64.
-    let SlicePlane::Oblique { centre_lps, u, v } = request.plane.brush_plane() else {
+    let SlicePlane::Oblique { centre_lps, u, v } = brush_plane(&request.plane) else {
         panic!("the oblique view's brush plane is oblique");
     };
     let geometry = app(&h)

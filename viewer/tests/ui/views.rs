@@ -448,7 +448,7 @@ fn the_crop_box_is_drawn_in_3d_and_dragging_its_superior_handle_lowers_the_top()
 #[test]
 fn the_oblique_view_resamples_its_plane_turns_with_a_drag_and_aligns_to_the_3d_camera() {
     use crate::oblique::{resample, LevelBrickCache};
-    use crate::oblique_view::TURN_PER_POINT;
+    use strata_slices::oblique::TURN_PER_POINT;
     let dir = tempfile::tempdir().expect("temp dir");
     let store = phantom_store(dir.path());
     let options = options_for(&store, dir.path());
