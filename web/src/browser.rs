@@ -1022,6 +1022,16 @@ impl eframe::App for WebViewer {
             .resizable(true)
             .default_size(300.0)
             .show(ui, |ui| {
+                // The Segment section on the slice views' volume (segment_editor.rs).
+                let slices = match self.streamed.as_mut() {
+                    Some(streamed) => Some(&mut streamed.slices),
+                    None => self.sample_slices.as_mut(),
+                };
+                if let Some(slices) = slices {
+                    egui::CollapsingHeader::new("Segmentation")
+                        .default_open(true)
+                        .show(ui, |ui| crate::segment_editor::section(ui, slices));
+                }
                 let figures = VolumeFigures {
                     loader: self.streamed.as_ref().and_then(|s| s.last.as_ref()),
                     step_factor: self.motion.shown().0,

@@ -24,6 +24,9 @@
 //! - `slice_views` (wasm32 only): a streamed store's three linked slice views (axial, coronal,
 //!   sagittal) beside the 3D view, sliced by strata-slices' assembler (the desktop's) from
 //!   bricks fetched asynchronously through the served store, window/level by right drag.
+//! - `segment_editor` (wasm32 only): segmentation editing on the slice views (issue 52 item
+//!   7): strata-segment's label layer, brush, eraser, fill and history, the shared Segment
+//!   section (strata-viewer-ui's segment_panel), labels over the slices, Download as NIfTI.
 //! - `side_panel` (wasm32 only): the side panel, the desktop's transfer-function editor and
 //!   Performance panel from strata-viewer-ui, on the page's 3D view.
 //!
@@ -42,6 +45,8 @@ mod browser;
 mod embed_bridge;
 #[cfg(target_arch = "wasm32")]
 mod page_timing;
+#[cfg(target_arch = "wasm32")]
+mod segment_editor;
 #[cfg(target_arch = "wasm32")]
 mod served_store;
 #[cfg(target_arch = "wasm32")]

@@ -113,6 +113,8 @@ pub struct SliceViews {
     error: Option<String>,
     /// The test capture of the axial view was handed out (`capture=1`).
     captured: bool,
+    /// The label layer being edited on this volume (segment_editor.rs), if one was started.
+    pub segmentation: Option<crate::segment_editor::PageSegmentation>,
 }
 
 pub fn slice_colour(view: SliceView) -> Color32 {
@@ -255,6 +257,7 @@ impl SliceViews {
             hovered: None,
             error: None,
             captured: false,
+            segmentation: None,
         }
     }
 
@@ -290,6 +293,11 @@ impl SliceViews {
         let image = &shown.image;
         let rgba = window_level_rgba(&image.values, shown.window, self.colour_map, self.mapping);
         Some((rgba, image.width as u32, image.height as u32))
+    }
+
+    /// The volume's grid (a new segmentation's).
+    pub fn geometry(&self) -> &VolumeGeometry {
+        &self.geometry
     }
 
     pub fn captured(&self) -> bool {
@@ -504,6 +512,21 @@ impl SliceViews {
                 delta.y as f64,
                 self.physical_range,
             );
+        } else if self.segmentation.as_ref().is_some_and(|s| s.paints()) {
+            // A segment tool has the left button (segment_editor.rs); the crosshair stays.
+            let (geometry, cursor) = (&self.geometry, self.cursor);
+            let to_lps = |p: Pos2| {
+                let (u, v) = fraction_at(image_rect, p);
+                let (a, d) = frame.index_at(dims, u, v);
+                let mut index = cursor;
+                index[frame.across_axis] = a;
+                index[frame.down_axis] = d;
+                geometry.patient_from_index(glam::DVec3::from(index))
+            };
+            if let Some(seg) = self.segmentation.as_mut() {
+                let plane = crate::segment_editor::plane_of(frame);
+                seg.pointer(ui, &response, image_rect, &to_lps, plane);
+            }
         } else if let Some(pos) = response.interact_pointer_pos().filter(|_| !double_clicked) {
             if (response.clicked() || response.dragged_by(egui::PointerButton::Primary))
                 && image_rect.contains(pos)
@@ -555,6 +578,9 @@ impl SliceViews {
                 shown.image.inside_fraction,
                 frame,
             )));
+        }
+        if let Some(seg) = self.segmentation.as_mut() {
+            seg.paint_labels(ui.ctx(), &painter, view, frame, image_rect, self.cursor[n]);
         }
 
         // The crosshair and the orientation labels.
