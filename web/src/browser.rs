@@ -1197,13 +1197,17 @@ impl eframe::App for WebViewer {
             .resizable(true)
             .default_size(300.0)
             .show(ui, |ui| {
-                // The measurements' tools and list first, always in sight (measure.rs).
+                // The measurements' tools and list first, always in sight (measure.rs), then
+                // the Segment section on the slice views' volume (segment_editor.rs).
                 let slices = match self.streamed.as_mut() {
                     Some(streamed) => Some(&mut streamed.slices),
                     None => self.sample_slices.as_mut(),
                 };
                 if let Some(slices) = slices {
                     crate::measure::side_panel_section(ui, &mut self.view, slices);
+                    egui::CollapsingHeader::new("Segmentation")
+                        .default_open(true)
+                        .show(ui, |ui| crate::segment_editor::section(ui, slices));
                 }
                 let figures = VolumeFigures {
                     loader: self.streamed.as_ref().and_then(|s| s.last.as_ref()),

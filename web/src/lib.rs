@@ -34,6 +34,9 @@
 //! - `oblique_view` (wasm32 only): the oblique view in the desktop's place for it, strata-slices'
 //!   plane, drag and resampling (the desktop's) over bricks fetched as the slice views fetch
 //!   theirs; shown while the link names it (`oblique=`).
+//! - `segment_editor` (wasm32 only): segmentation editing on the slice views (issue 52 item
+//!   7): strata-segment's label layer, brush, eraser, fill and history, the shared Segment
+//!   section (strata-viewer-ui's segment_panel), labels over the slices, Download as NIfTI.
 //! - `side_panel` (wasm32 only): the side panel, the desktop's transfer-function editor and
 //!   Performance panel from strata-viewer-ui, on the page's 3D view.
 //!
@@ -60,6 +63,8 @@ mod page_timing;
 mod page_tools;
 #[cfg(target_arch = "wasm32")]
 mod picking;
+#[cfg(target_arch = "wasm32")]
+mod segment_editor;
 #[cfg(target_arch = "wasm32")]
 mod served_store;
 #[cfg(target_arch = "wasm32")]

@@ -120,6 +120,8 @@ pub struct SliceViews {
     captured: bool,
     /// The rulers, angles and regions, the tool and the one being drawn (measure.rs).
     measurements: Measurements,
+    /// The label layer being edited on this volume (segment_editor.rs), if one was started.
+    pub segmentation: Option<crate::segment_editor::PageSegmentation>,
 }
 
 pub fn slice_colour(view: SliceView) -> Color32 {
@@ -264,6 +266,7 @@ impl SliceViews {
             error: None,
             captured: false,
             measurements: Measurements::default(),
+            segmentation: None,
         }
     }
 
@@ -307,6 +310,11 @@ impl SliceViews {
         let image = &shown.image;
         let rgba = window_level_rgba(&image.values, shown.window, self.colour_map, self.mapping);
         Some((rgba, image.width as u32, image.height as u32))
+    }
+
+    /// The volume's grid (a new segmentation's).
+    pub fn geometry(&self) -> &VolumeGeometry {
+        &self.geometry
     }
 
     pub fn captured(&self) -> bool {
@@ -549,6 +557,21 @@ impl SliceViews {
                 &mut self.measurements,
                 shown,
             );
+        } else if self.segmentation.as_ref().is_some_and(|s| s.paints()) {
+            // A segment tool has the left button (segment_editor.rs); the crosshair stays.
+            let (geometry, cursor) = (&self.geometry, self.cursor);
+            let to_lps = |p: Pos2| {
+                let (u, v) = fraction_at(image_rect, p);
+                let (a, d) = frame.index_at(dims, u, v);
+                let mut index = cursor;
+                index[frame.across_axis] = a;
+                index[frame.down_axis] = d;
+                geometry.patient_from_index(glam::DVec3::from(index))
+            };
+            if let Some(seg) = self.segmentation.as_mut() {
+                let plane = crate::segment_editor::plane_of(frame);
+                seg.pointer(ui, &response, image_rect, &to_lps, plane);
+            }
         } else if let Some(pos) = response.interact_pointer_pos().filter(|_| !double_clicked) {
             if (response.clicked() || response.dragged_by(egui::PointerButton::Primary))
                 && image_rect.contains(pos)
@@ -600,6 +623,9 @@ impl SliceViews {
                 shown.image.inside_fraction,
                 frame,
             )));
+        }
+        if let Some(seg) = self.segmentation.as_mut() {
+            seg.paint_labels(ui.ctx(), &painter, view, frame, image_rect, self.cursor[n]);
         }
 
         // The crosshair and the orientation labels.

@@ -1,0 +1,584 @@
+//! Segmentation editing in the page (issue 52 item 7, wasm32 only): the desktop's editing
+//! core, shared as code. "New segmentation" makes a strata-segment [`LabelLayer`] on the open
+//! volume's grid, in memory; the Segment section is strata-viewer-ui's segment_panel (the
+//! desktop's tool row and segment list) with Undo, Redo and Download; the brush, eraser and
+//! slice fill of the three slice views are strata-segment's (`tools::brush`, `tools::fill`), a
+//! stroke applied as it is drawn (one small edit per pointer event, each the disc swept from
+//! the last pointer position, as the desktop's `Segmentation::stroke_to`) and merged into one
+//! undo step when the button is released (`history::merge_edits` into a `History`). The labels
+//! are drawn over each slice in their segment's colour at the panel's opacity, nearest voxel
+//! (labels are never interpolated).
+//!
+//! Download writes the layer as the NIfTI-1 label map `strata seg export --format nifti`
+//! writes (strata-segment's `nifti_map`, the primary's grid and affine) into a Blob, and an
+//! anchor with `download=` saves it.
+//!
+//! Ctrl+Z is not bound here: the page's own view history owns that key; Undo and Redo are the
+//! section's buttons.
+//!
+//! For the browser tests (web/tests/browser/segment.rs) the canvas carries
+//! `data-segmentation` (`segments=N;painted=V;checksum=H;undo=U;redo=R;stroke=0|1`, or `none`)
+//! and `data-segment-buttons` (`name:x,y,w,h;…` in CSS pixels: new, brush, eraser, fill, undo,
+//! redo, download), each written only when it changes.
+
+use egui::{Color32, Pos2, Rect, TextureHandle, TextureOptions};
+use glam::DVec3;
+use strata_render::VolumeGeometry;
+use strata_segment::history::{merge_edits, History};
+use strata_segment::nifti_map::label_map_gz_bytes;
+use strata_segment::tools::brush::{self, Brush, BrushAction, BrushShape, EraseTarget, SlicePlane};
+use strata_segment::tools::fill::fill_in_slice;
+use strata_segment::{Edit, Label, LabelLayer, SegmentError, LABEL_BRICK};
+use strata_slices::{SliceFrame, SliceView};
+use strata_viewer_ui::segment_panel::{
+    self, SegmentListChange, SegmentTool, DEFAULT_BRUSH_DIAMETER_MM, DEFAULT_LABEL_OPACITY,
+};
+use strata_viewer_ui::slice_canvas::slice_mesh;
+use wasm_bindgen::{JsCast, JsValue};
+
+use crate::slice_views::SliceViews;
+
+/// Brick images the undo list keeps (before and after, 64 KiB each): about 2000 bricks, well
+/// inside a page's memory; the oldest steps go first beyond it.
+pub const HISTORY_BYTES: usize = 256 << 20;
+/// Most voxels one slice fill takes (a 4096² slice), as on the desktop.
+pub const FILL_MAX_VOXELS: u64 = 1 << 24;
+/// The file name Download offers.
+pub const DOWNLOAD_NAME: &str = "segmentation.nii.gz";
+
+/// A stroke being drawn: its plane, action, pointer positions (LPS mm) and the small edits
+/// already applied.
+struct Stroke {
+    plane: SlicePlane,
+    action: BrushAction,
+    positions: Vec<DVec3>,
+    edits: Vec<Edit>,
+}
+
+/// A view's label image on screen and what it was made from (layer revision, slice, opacity).
+struct LabelImage {
+    texture: TextureHandle,
+    made_from: (u64, i64, u32),
+}
+
+/// The page's editable label layer and its tools' settings.
+pub struct PageSegmentation {
+    layer: LabelLayer,
+    history: History,
+    tool: SegmentTool,
+    diameter_mm: f64,
+    active: Label,
+    opacity: f32,
+    stroke: Option<Stroke>,
+    /// Counts changes to the layer (strokes, undo, redo, segment table), so label images and
+    /// the published figures are remade only when it moves.
+    revision: u64,
+    images: [Option<LabelImage>; 3],
+    /// The last tool or download error, shown until the next success.
+    error: Option<String>,
+    /// The object URL of the last download, revoked at the next one (revoking it at once may
+    /// cancel a download the browser has not started reading).
+    download_url: Option<String>,
+    /// The labelled voxels and checksum last counted, and the revision they are of.
+    painted_at: Option<(u64, (u64, u64))>,
+}
+
+impl PageSegmentation {
+    /// An empty segmentation on the primary's grid with one segment, the active one (as the
+    /// desktop's New segmentation).
+    pub fn new(primary: &VolumeGeometry) -> Result<Self, SegmentError> {
+        let mut layer = LabelLayer::new_empty(primary.clone())?;
+        let active = layer.segments_mut().add("Segment 1")?;
+        Ok(PageSegmentation {
+            layer,
+            history: History::new(HISTORY_BYTES),
+            tool: SegmentTool::None,
+            diameter_mm: DEFAULT_BRUSH_DIAMETER_MM,
+            active,
+            opacity: DEFAULT_LABEL_OPACITY,
+            stroke: None,
+            revision: 0,
+            images: [None, None, None],
+            error: None,
+            download_url: None,
+            painted_at: None,
+        })
+    }
+
+    /// Whether the left button on a slice is the tool's (not the crosshair's).
+    pub fn paints(&self) -> bool {
+        self.tool.paints()
+    }
+
+    /// The left button on a slice view with a tool chosen: the desktop's gesture
+    /// (viewer/src/slice_view.rs `segment_pointer_input`): a drag is one stroke from the
+    /// press, a click a one-point stroke or a fill's seed. `to_lps` maps a screen point to
+    /// patient space through the view's slice mapping.
+    pub fn pointer(
+        &mut self,
+        ui: &egui::Ui,
+        response: &egui::Response,
+        image_rect: Rect,
+        to_lps: &dyn Fn(Pos2) -> DVec3,
+        plane: SlicePlane,
+    ) {
+        let primary = egui::PointerButton::Primary;
+        if !self.tool.drags() {
+            if response.clicked_by(primary) {
+                if let Some(pos) = response
+                    .interact_pointer_pos()
+                    .filter(|p| image_rect.contains(*p))
+                {
+                    self.fill_at(plane, to_lps(pos));
+                }
+            }
+            return;
+        }
+        if response.drag_started_by(primary) {
+            if let Some(origin) = ui
+                .input(|i| i.pointer.press_origin())
+                .filter(|p| image_rect.contains(*p))
+            {
+                self.stroke_to(plane, to_lps(origin));
+            }
+        }
+        if response.dragged_by(primary) && self.stroke.is_some() {
+            if let Some(pos) = response.interact_pointer_pos() {
+                self.stroke_to(plane, to_lps(pos));
+            }
+        }
+        if response.drag_stopped_by(primary) {
+            // The release's own position ends the stroke (a move and the release may arrive
+            // in one frame).
+            if let Some(pos) = response.interact_pointer_pos() {
+                if self.stroke.is_some() {
+                    self.stroke_to(plane, to_lps(pos));
+                }
+            }
+            self.end_stroke();
+        }
+        if response.clicked_by(primary) {
+            if let Some(pos) = response
+                .interact_pointer_pos()
+                .filter(|p| image_rect.contains(*p))
+            {
+                self.stroke_to(plane, to_lps(pos));
+                self.end_stroke();
+            }
+        }
+    }
+
+    /// The stroke starts at `position_lps` or is swept on to it, applied at once.
+    fn stroke_to(&mut self, plane: SlicePlane, position_lps: DVec3) {
+        let action = match self.tool {
+            SegmentTool::Eraser => BrushAction::Erase(EraseTarget::AnyUnlocked),
+            _ => BrushAction::Paint(self.active),
+        };
+        let stroke = self.stroke.get_or_insert_with(|| Stroke {
+            plane,
+            action,
+            positions: Vec::new(),
+            edits: Vec::new(),
+        });
+        let from = stroke.positions.last().copied();
+        if from == Some(position_lps) {
+            return;
+        }
+        stroke.positions.push(position_lps);
+        let brush = Brush {
+            shape: BrushShape::Disc(stroke.plane),
+            diameter_mm: self.diameter_mm,
+            value_range: None,
+        };
+        // The disc swept from the last position to this one (the first: a disc there).
+        let segment: Vec<DVec3> = from.into_iter().chain([position_lps]).collect();
+        match brush::stroke(&mut self.layer, &brush, stroke.action, &segment, None) {
+            Ok(edit) => {
+                if let Some(edit) = edit {
+                    stroke.edits.push(edit);
+                    self.revision += 1;
+                }
+                self.error = None;
+            }
+            Err(e) => self.error = Some(e.to_string()),
+        }
+    }
+
+    /// The button was released: the stroke's edits become one undo step.
+    fn end_stroke(&mut self) {
+        let Some(stroke) = self.stroke.take() else {
+            return;
+        };
+        let name = match stroke.action {
+            BrushAction::Paint(_) => "Brush",
+            BrushAction::Erase(_) => "Eraser",
+        };
+        if let Some(edit) = merge_edits(name, stroke.edits) {
+            self.history.push(edit);
+        }
+    }
+
+    /// A fill click: the closed region around the voxel under it, in the view's slice.
+    fn fill_at(&mut self, plane: SlicePlane, position_lps: DVec3) {
+        let grid = self.layer.grid();
+        let index = grid.index_from_patient(position_lps).round();
+        let voxel = [index.x, index.y, index.z].map(|c| c as i64);
+        if !grid.contains(voxel) {
+            self.error = Some("the click is outside the label grid".into());
+            return;
+        }
+        let seed = voxel.map(|c| c as u32);
+        let filled = fill_in_slice(
+            &mut self.layer,
+            &plane,
+            seed,
+            self.active,
+            None,
+            None,
+            FILL_MAX_VOXELS,
+        );
+        match filled {
+            Ok(outcome) => {
+                self.error = None;
+                if let Some(edit) = outcome.edit {
+                    self.history.push(edit);
+                    self.revision += 1;
+                }
+            }
+            Err(e) => self.error = Some(e.to_string()),
+        }
+    }
+
+    fn undo(&mut self) {
+        if self.history.undo(&mut self.layer).is_some() {
+            self.revision += 1;
+        }
+    }
+
+    fn redo(&mut self) {
+        if self.history.redo(&mut self.layer).is_some() {
+            self.revision += 1;
+        }
+    }
+
+    /// Draws the labels of `view`'s slice at `position` (continuous index along its normal)
+    /// over the slice image in `image_rect`, remade only when the layer, slice or opacity
+    /// changed.
+    pub fn paint_labels(
+        &mut self,
+        ctx: &egui::Context,
+        painter: &egui::Painter,
+        view: SliceView,
+        frame: SliceFrame,
+        image_rect: Rect,
+        position: f64,
+    ) {
+        if self.layer.edited_brick_count() == 0 {
+            return;
+        }
+        let dims = self.layer.grid().dims();
+        let n = frame.normal_axis;
+        let slice = (position.round() as i64).clamp(0, i64::from(dims[n]) - 1);
+        let made_from = (self.revision, slice, self.opacity.to_bits());
+        let current = self.images[view.index()]
+            .as_ref()
+            .is_some_and(|i| i.made_from == made_from);
+        if !current {
+            let (width, height) = (
+                dims[frame.across_axis] as usize,
+                dims[frame.down_axis] as usize,
+            );
+            let rgba = self.label_slice_rgba(frame, slice as u32);
+            let image = egui::ColorImage::from_rgba_unmultiplied([width, height], &rgba);
+            match self.images[view.index()].as_mut() {
+                Some(shown) => {
+                    shown.texture.set(image, TextureOptions::NEAREST);
+                    shown.made_from = made_from;
+                }
+                None => {
+                    self.images[view.index()] = Some(LabelImage {
+                        texture: ctx.load_texture(
+                            format!("labels {}", view.name()),
+                            image,
+                            TextureOptions::NEAREST,
+                        ),
+                        made_from,
+                    });
+                }
+            }
+        }
+        if let Some(shown) = &self.images[view.index()] {
+            // Level 0, one texel a voxel: the whole image, flipped as the slice is.
+            painter.add(egui::Shape::mesh(slice_mesh(
+                shown.texture.id(),
+                image_rect,
+                (1.0, 1.0),
+                frame,
+            )));
+        }
+    }
+
+    /// The labels of one slice as unmultiplied RGBA, across axis fastest (index order, flips
+    /// applied by the mesh).
+    fn label_slice_rgba(&self, frame: SliceFrame, slice: u32) -> Vec<u8> {
+        let dims = self.layer.grid().dims();
+        let (width, height) = (dims[frame.across_axis], dims[frame.down_axis]);
+        let segments = self.layer.segments();
+        let mut rgba = Vec::with_capacity(width as usize * height as usize * 4);
+        let mut index = [0u32; 3];
+        index[frame.normal_axis] = slice;
+        for d in 0..height {
+            index[frame.down_axis] = d;
+            for a in 0..width {
+                index[frame.across_axis] = a;
+                let label = self.layer.get(index).unwrap_or(0);
+                rgba.extend(segment_panel::label_rgba(segments, label, self.opacity));
+            }
+        }
+        rgba
+    }
+
+    /// Labelled voxels and an order-independent checksum of their positions and labels.
+    fn painted(&self) -> (u64, u64) {
+        let grid = self.layer.grid();
+        let dims = grid.dims();
+        let b = LABEL_BRICK as usize;
+        let (mut count, mut checksum) = (0u64, 0u64);
+        for (key, voxels) in self.layer.edited_bricks() {
+            let origin = grid.brick_origin(key);
+            for (at, &label) in voxels.iter().enumerate() {
+                if label == 0 {
+                    continue;
+                }
+                let v = [
+                    origin[0] + (at % b) as u32,
+                    origin[1] + (at / b % b) as u32,
+                    origin[2] + (at / (b * b)) as u32,
+                ];
+                if (0..3).any(|a| v[a] >= dims[a]) {
+                    continue;
+                }
+                count += 1;
+                let word = u64::from(v[0])
+                    | u64::from(v[1]) << 16
+                    | u64::from(v[2]) << 32
+                    | u64::from(label) << 48;
+                checksum = checksum.wrapping_add(splitmix64(word));
+            }
+        }
+        (count, checksum)
+    }
+
+    /// The figures `data-segmentation` carries (the voxel count and checksum recomputed only
+    /// when the layer changed).
+    fn figures(&mut self) -> String {
+        let (painted, checksum) = match self.painted_at {
+            Some((revision, painted)) if revision == self.revision => painted,
+            _ => {
+                let painted = self.painted();
+                self.painted_at = Some((self.revision, painted));
+                painted
+            }
+        };
+        format!(
+            "segments={};painted={painted};checksum={checksum:016x};undo={};redo={};stroke={}",
+            self.layer.segments().len(),
+            u8::from(self.history.can_undo()),
+            u8::from(self.history.can_redo()),
+            u8::from(self.stroke.is_some()),
+        )
+    }
+
+    /// Saves the layer as a `.nii.gz` label map through the browser's download.
+    fn download(&mut self) {
+        let saved = label_map_gz_bytes(&self.layer, DOWNLOAD_NAME)
+            .map_err(|e| e.to_string())
+            .and_then(|bytes| {
+                save_bytes(&bytes, DOWNLOAD_NAME, self.download_url.take())
+                    .map_err(|e| format!("download: {e:?}"))
+            });
+        match saved {
+            Ok(url) => {
+                self.download_url = Some(url);
+                self.error = None;
+            }
+            Err(e) => self.error = Some(e),
+        }
+    }
+}
+
+/// A 64-bit mix (splitmix64's finaliser), so the checksum's sum is not fooled by voxels
+/// trading places.
+fn splitmix64(mut x: u64) -> u64 {
+    x = x.wrapping_add(0x9e37_79b9_7f4a_7c15);
+    x = (x ^ (x >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    x = (x ^ (x >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    x ^ (x >> 31)
+}
+
+/// Hands `bytes` to the browser as a download named `name` (a Blob, an object URL, an anchor
+/// with `download=` clicked); revokes `previous`, the last download's URL. Returns the URL.
+fn save_bytes(bytes: &[u8], name: &str, previous: Option<String>) -> Result<String, JsValue> {
+    if let Some(url) = previous {
+        web_sys::Url::revoke_object_url(&url)?;
+    }
+    let parts = js_sys::Array::of1(&js_sys::Uint8Array::from(bytes));
+    let options = web_sys::BlobPropertyBag::new();
+    options.set_type("application/gzip");
+    let blob = web_sys::Blob::new_with_u8_array_sequence_and_options(&parts, &options)?;
+    let url = web_sys::Url::create_object_url_with_blob(&blob)?;
+    let document = web_sys::window()
+        .and_then(|w| w.document())
+        .ok_or_else(|| JsValue::from_str("no document"))?;
+    let anchor: web_sys::HtmlAnchorElement = document.create_element("a")?.dyn_into()?;
+    anchor.set_href(&url);
+    anchor.set_download(name);
+    anchor.click();
+    Ok(url)
+}
+
+/// The Segment section of the page's side panel, on the slice views' volume: New
+/// segmentation, then the shared tool row, opacity and segment list, Undo, Redo, Download and
+/// Close.
+pub fn section(ui: &mut egui::Ui, slices: &mut SliceViews) {
+    let mut buttons: Vec<(&'static str, Rect)> = Vec::new();
+    let geometry = slices.geometry().clone();
+    let seg_slot = &mut slices.segmentation;
+    let Some(seg) = seg_slot.as_mut() else {
+        let new = ui
+            .button("New segmentation")
+            .on_hover_text("An empty label layer on this volume's grid, in the page's memory");
+        buttons.push(("new", new.rect));
+        if new.clicked() {
+            match PageSegmentation::new(&geometry) {
+                Ok(seg) => *seg_slot = Some(seg),
+                Err(e) => {
+                    ui.colored_label(Color32::LIGHT_RED, e.to_string());
+                }
+            }
+        }
+        publish("data-segment-buttons", &button_text(&buttons));
+        publish("data-segmentation", "none");
+        return;
+    };
+    for (tool, rect) in segment_panel::tool_row(ui, &mut seg.tool, &mut seg.diameter_mm, false) {
+        let name = match tool {
+            SegmentTool::None => "off",
+            SegmentTool::Brush => "brush",
+            SegmentTool::Eraser => "eraser",
+            SegmentTool::Fill => "fill",
+            SegmentTool::Grow => "grow",
+        };
+        buttons.push((name, rect));
+    }
+    if segment_panel::opacity_row(ui, &mut seg.opacity).changed() {
+        ui.ctx().request_repaint();
+    }
+    let mut table = seg.layer.segments().clone();
+    let before = table.clone();
+    let change = segment_panel::segment_list(ui, &mut table, &mut seg.active);
+    if table != before {
+        *seg.layer.segments_mut() = table;
+        seg.revision += 1;
+    }
+    match change {
+        Some(SegmentListChange::Add) => {
+            let count = seg.layer.segments().len();
+            match seg
+                .layer
+                .segments_mut()
+                .add(format!("Segment {}", count + 1))
+            {
+                Ok(value) => {
+                    seg.active = value;
+                    seg.revision += 1;
+                }
+                Err(e) => seg.error = Some(e.to_string()),
+            }
+        }
+        Some(SegmentListChange::Remove(value)) => match seg.layer.remove_segment(value) {
+            Ok(edit) => {
+                seg.history.push(edit);
+                seg.revision += 1;
+                if seg.active == value {
+                    seg.active = seg.layer.segments().iter().next().map_or(0, |s| s.value);
+                }
+            }
+            Err(e) => seg.error = Some(e.to_string()),
+        },
+        None => {}
+    }
+    let mut close = false;
+    ui.horizontal_wrapped(|ui| {
+        let undo = ui.add_enabled(seg.history.can_undo(), egui::Button::new("Undo"));
+        let redo = ui.add_enabled(seg.history.can_redo(), egui::Button::new("Redo"));
+        let download = ui
+            .button("Download")
+            .on_hover_text(format!("Save as a NIfTI label map ({DOWNLOAD_NAME})"));
+        buttons.extend([
+            ("undo", undo.rect),
+            ("redo", redo.rect),
+            ("download", download.rect),
+        ]);
+        if undo.clicked() {
+            seg.undo();
+        }
+        if redo.clicked() {
+            seg.redo();
+        }
+        if download.clicked() {
+            seg.download();
+        }
+        close = ui
+            .button("Close")
+            .on_hover_text("Stop editing (the labels are discarded: download them first)")
+            .clicked();
+    });
+    if let Some(e) = &seg.error {
+        ui.colored_label(Color32::LIGHT_RED, e);
+    }
+    publish("data-segment-buttons", &button_text(&buttons));
+    publish("data-segmentation", &seg.figures());
+    if close {
+        *seg_slot = None;
+    }
+}
+
+fn button_text(buttons: &[(&str, Rect)]) -> String {
+    buttons
+        .iter()
+        .map(|(name, r)| {
+            format!(
+                "{name}:{},{},{},{}",
+                r.min.x,
+                r.min.y,
+                r.width(),
+                r.height()
+            )
+        })
+        .collect::<Vec<_>>()
+        .join(";")
+}
+
+/// Writes `value` into the canvas's attribute `name` when it differs.
+fn publish(name: &str, value: &str) {
+    let Some(canvas) = web_sys::window()
+        .and_then(|w| w.document())
+        .and_then(|d| d.get_element_by_id("strata-canvas"))
+    else {
+        return;
+    };
+    if canvas.get_attribute(name).as_deref() != Some(value) {
+        let _ = canvas.set_attribute(name, value);
+    }
+}
+
+/// The brush plane of a slice view: the labels lie on the primary's grid, so the index plane
+/// with the view's normal (the desktop's `plane_for_view` on the primary's own grid).
+pub fn plane_of(frame: SliceFrame) -> SlicePlane {
+    match frame.normal_axis {
+        0 => SlicePlane::Sagittal,
+        1 => SlicePlane::Coronal,
+        _ => SlicePlane::Axial,
+    }
+}
