@@ -27,6 +27,10 @@ const PAGE_DEADLINE: Duration = Duration::from_secs(240);
 #[path = "browser/input.rs"]
 mod input;
 
+/// Segmentation editing in the page: brush, eraser, undo and the NIfTI download (issue 52).
+#[path = "browser/segment.rs"]
+mod segment;
+
 const TOKEN: &str = "0123456789abcdef0123456789abcdef";
 
 fn chromium() -> PathBuf {

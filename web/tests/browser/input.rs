@@ -5,7 +5,7 @@
 //! (strata-viewer-ui's slice_canvas and strata_slices).
 
 #[path = "../cdp/mod.rs"]
-mod cdp;
+pub(crate) mod cdp;
 
 use cdp::Cdp;
 use egui::{pos2, Rect};
@@ -23,7 +23,7 @@ const LINK_TOLERANCE: f64 = 1e-3;
 
 /// The page at `fragment` on a served tiny store (the page shows its own sample), ready for
 /// input: its views placed (the canvas's `data-views`).
-fn open_page(
+pub(crate) fn open_page(
     fragment: &str,
     scratch: &std::path::Path,
     window: [u32; 2],
@@ -55,7 +55,7 @@ fn open_page(
 }
 
 /// The view rectangle named `name` in page CSS pixels (the canvas's offset added).
-fn view_rect(page: &mut Cdp, name: &str) -> Rect {
+pub(crate) fn view_rect(page: &mut Cdp, name: &str) -> Rect {
     let text = page.evaluate(
         "(() => { const c = document.getElementById('strata-canvas'); const r = c.getBoundingClientRect(); \
          return [r.left, r.top, c.dataset.views]; })()",
