@@ -17,7 +17,8 @@
 //! section's buttons.
 //!
 //! For the browser tests (web/tests/browser/segment.rs) the canvas carries
-//! `data-segmentation` (`segments=N;painted=V;checksum=H;undo=U;redo=R;stroke=0|1`, or `none`)
+//! `data-segmentation` (`segments=N;painted=V;checksum=H;undo=U;redo=R;stroke=0|1`, then
+//! `;error=…` while the panel shows one; or `none`)
 //! and `data-segment-buttons` (`name:x,y,w,h;…` in CSS pixels: new, brush, eraser, fill, undo,
 //! redo, download), each written only when it changes.
 
@@ -380,13 +381,18 @@ impl PageSegmentation {
                 painted
             }
         };
-        format!(
+        let mut text = format!(
             "segments={};painted={painted};checksum={checksum:016x};undo={};redo={};stroke={}",
             self.layer.segments().len(),
             u8::from(self.history.can_undo()),
             u8::from(self.history.can_redo()),
             u8::from(self.stroke.is_some()),
-        )
+        );
+        // Last, as it may hold any character: what the panel shows in red.
+        if let Some(error) = &self.error {
+            text.push_str(&format!(";error={error}"));
+        }
+        text
     }
 
     /// Saves the layer as a `.nii.gz` label map through the browser's download.

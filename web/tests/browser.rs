@@ -42,6 +42,10 @@ mod keys;
 #[path = "browser/oblique.rs"]
 mod oblique;
 
+/// Segmentation editing in the page: brush, eraser, undo and the NIfTI download (issue 52).
+#[path = "browser/segment.rs"]
+mod segment;
+
 const TOKEN: &str = "0123456789abcdef0123456789abcdef";
 
 fn chromium() -> PathBuf {
