@@ -224,7 +224,8 @@ fn a_restarted_viewer_opens_its_volume_with_the_saved_session() {
 
 /// Issue 39, shareable views: the browser viewer's link to a served store opens that store in
 /// the desktop viewer with the link's view (camera, mode, preset), the server's token taken
-/// from the link; "Copy link" gives the view back as a link without the token.
+/// from the link; "Copy link" gives the view back as a link without the token. The link's
+/// oblique view (issue 47, `oblique=`) is shown at its angles and copied back.
 #[test]
 fn a_viewer_link_opens_its_store_and_view_and_copy_link_gives_it_back_without_the_token() {
     use crate::links;
@@ -252,7 +253,7 @@ fn a_viewer_link_opens_its_store_and_view_and_copy_link_gives_it_back_without_th
     let tf_text =
         strata_viewer_ui::compact_tf::encode(&edited_tf).expect("within the link's bounds");
     let link = format!(
-        "{}/#store={name}&mode=mip&preset=ct-soft-tissue&tf={tf_text}&az=-60&el=25&zoom=1.5&pan=0.1,-0.05&layout=single&cursor=5,40,12.5&window=300,1200&token={token}",
+        "{}/#store={name}&mode=mip&preset=ct-soft-tissue&tf={tf_text}&az=-60&el=25&zoom=1.5&pan=0.1,-0.05&layout=single&cursor=5,40,12.5&window=300,1200&oblique=30,-20.5&token={token}",
         server.base_url()
     );
     let mut options = ViewerOptions::new(VolumeToOpen::Url {
@@ -305,6 +306,18 @@ fn a_viewer_link_opens_its_store_and_view_and_copy_link_gives_it_back_without_th
             server.store_url(&name),
             "streamed from the link's server"
         );
+        assert!(a.preferences.show_oblique, "the link's oblique view");
+        let geometry = &v.data.info.geometry;
+        let linked = strata_slices::oblique::ObliquePlane::from_orientation_deg(
+            glam::DVec3::ZERO,
+            strata_slices::oblique::default_extent_mm(geometry),
+            [30.0, -20.5, 0.0],
+        );
+        assert_eq!(
+            v.oblique_view.plane,
+            Some(linked),
+            "the link's oblique plane"
+        );
         a.share_link().expect("a served store has a link")
     };
     assert!(!copied.contains(token), "{copied}");
@@ -314,6 +327,14 @@ fn a_viewer_link_opens_its_store_and_view_and_copy_link_gives_it_back_without_th
     assert_eq!(reopened.view.mode, RenderMode::Mip);
     assert_eq!(reopened.view.cursor, Some([5.0, 40.0, 12.5]));
     assert_eq!(reopened.view.window, Some([300.0, 1200.0]));
+    let oblique = reopened
+        .view
+        .oblique
+        .expect("the copy shows the oblique view");
+    assert!(
+        (oblique[0] - 30.0).abs() < 1e-9 && (oblique[1] + 20.5).abs() < 1e-9 && oblique[2] == 0.0,
+        "{oblique:?}"
+    );
     assert_eq!(reopened.view.preset, "ct-soft-tissue");
     let carried = reopened
         .view
