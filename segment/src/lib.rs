@@ -17,6 +17,7 @@ pub mod io;
 #[cfg(feature = "local")]
 pub mod journal;
 pub mod layer;
+pub mod nifti_map;
 pub mod pyramid;
 pub mod resample;
 pub mod segments;

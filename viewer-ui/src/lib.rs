@@ -17,6 +17,11 @@
 //!   that makes render settings of it, and its controls with the direction gizmo.
 //! - [`orbit`]: the 3D view's drag-to-orbit mapping and the six standard views (A/P/L/R/S/I),
 //!   so a drag or key turns both viewers' views alike.
+//! - [`picking`]: the volume position a click in the 3D view sees, from the frame's pick depth.
+//! - [`measurements`]: rulers, angles and box/ellipse ROIs: the model, ROI statistics, a
+//!   slice view's gestures and drawing, the list panel and the link's `m=` value.
+//! - [`segment_panel`]: the Segment section's tool row, segment list and label opacity, and the
+//!   colour a label is drawn with (issue 52 item 7: the desktop's panel and the page's).
 //! - [`layouts`]: where the views go in the 2×2 and the 3D-over-slices layouts.
 //! - [`history`]: undo and redo (a drag one step, redo cleared by a new step, a cap on
 //!   depth) of the desktop's scene snapshots and the page's link state without its navigation.
@@ -35,10 +40,13 @@ pub mod crop_clip;
 pub mod history;
 pub mod layouts;
 pub mod lighting;
+pub mod measurements;
 pub mod orbit;
 pub mod performance;
+pub mod picking;
 pub mod presets;
 pub mod render_driver;
+pub mod segment_panel;
 pub mod shortcuts;
 pub mod slice_canvas;
 pub mod target_fps;

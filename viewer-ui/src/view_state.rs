@@ -24,6 +24,7 @@ use crate::lighting::{
     render_lighting, LightPrefs, LitView, AZIMUTH_RANGE, ELEVATION_RANGE, OCCLUSION_RADIUS_RANGE,
     SCATTERING_G_RANGE,
 };
+use crate::measurements::{self, Measurement};
 
 /// Edge of the built-in sample volume when the fragment names none (voxels).
 pub const DEFAULT_VOLUME_EDGE: u32 = 128;
@@ -105,6 +106,10 @@ pub struct ViewState {
     /// `shadows=exact|cache`, `occlusion=MM` (radius), `scattering=G` (asymmetry); the rest
     /// (intensity, ambient, steps, blend) at the defaults.
     pub light: LightPrefs,
+    /// The measurements on the slices (`m=`, strata-viewer-ui's measurements: rulers, angles,
+    /// regions with their points' level-0 indices at two decimals; a region's statistics are
+    /// computed again by the viewer that opens the link). Empty: no `m=`.
+    pub measurements: Vec<Measurement>,
     /// Edge of the built-in sample volume (voxels).
     pub volume_edge: u32,
     /// A store of the server that served the page, streamed; None: the built-in sample.
@@ -144,6 +149,7 @@ impl Default for ViewState {
             clip: ClipSettings::default(),
             shading: true,
             light: LightPrefs::default(),
+            measurements: Vec::new(),
             volume_edge: DEFAULT_VOLUME_EDGE,
             store: None,
             image_size: None,
@@ -278,6 +284,10 @@ impl Fragment {
                 "zoom" => view.zoom = finite(key, value, 0.05..=100.0)?,
                 "iso" => view.iso_value = finite(key, value, -1.0e6..=1.0e6)?,
                 "crop" => view.crop = crop_of(key, value)?,
+                "m" => {
+                    view.measurements = measurements::from_link_text(value)
+                        .map_err(|e| bad(key, value, e.to_string()))?
+                }
                 "clip" => view.clip = clip_of(key, value)?,
                 "shade" => {
                     view.shading = match value {
@@ -516,6 +526,9 @@ impl ViewState {
         if light.scattering {
             parts.push(format!("scattering={}", round3(light.scattering_g)));
         }
+        if let Some(text) = measurements::to_link_text(&self.measurements) {
+            parts.push(format!("m={text}"));
+        }
         if self.store.is_none() && self.volume_edge != DEFAULT_VOLUME_EDGE {
             parts.push(format!("volume={}", self.volume_edge));
         }
@@ -526,11 +539,13 @@ impl ViewState {
     }
 
     /// What the 3D view shows: this view without the slice views' crosshair, window and
-    /// colour map, so that paging a slice or windowing it does not redraw the volume.
+    /// colour map and measurements, so that paging a slice, windowing it, colouring it or
+    /// measuring does not redraw the volume.
     pub fn of_3d_view(&self) -> ViewState {
         ViewState {
             cursor: None,
             window: None,
+            measurements: Vec::new(),
             colour_map: ColourMap::Grey,
             ..self.clone()
         }
@@ -729,6 +744,8 @@ mod tests {
                 scattering_g: -0.25,
                 ..LightPrefs::default()
             },
+            measurements: measurements::from_link_text("r:1.25,2,3,4,5.5,3;ea:1,2,3,4,5,3")
+                .expect("measurements"),
             volume_edge: 64,
             store: None,
             image_size: Some([160, 120]),
@@ -990,6 +1007,32 @@ mod tests {
             assert!(
                 e.to_string().contains(&format!("`{key}`")),
                 "{key}={value}: {e}"
+            );
+        }
+    }
+
+    /// `m=` carries the slices' measurements: written only when there are some, read back
+    /// exactly at its two decimals (the measurements module's format), and a bad value names
+    /// the key and the measurement at fault.
+    #[test]
+    fn measurements_travel_in_m_and_a_bad_one_names_its_key() {
+        let plain = ViewState::default().to_fragment();
+        assert!(!plain.contains("&m="), "{plain}");
+        let text = "r:10.5,20.25,3,40,20.25,3;a:1,0,2,0,0,2,0,1,2;bc:5,9,5,12,9,18";
+        let view = Fragment::parse(&format!("#mode=mip&m={text}"))
+            .expect("a link with measurements")
+            .view;
+        assert_eq!(view.measurements.len(), 3);
+        let written = view.to_fragment();
+        assert!(written.contains(&format!("&m={text}")), "{written}");
+        assert_eq!(Fragment::parse(&written).expect("parses").view, view);
+        assert!(view.of_3d_view().measurements.is_empty());
+        for value in ["r:1,2", "q:1,2,3,4,5,6", "r:1,2,3,4,5,x"] {
+            let e = Fragment::parse(&format!("#m={value}")).expect_err(value);
+            let message = e.to_string();
+            assert!(
+                message.contains("`m`") && message.contains("measurement 0"),
+                "{message}"
             );
         }
     }

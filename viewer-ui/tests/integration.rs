@@ -3,6 +3,7 @@
 //! for all of them, as the other crates do: each test file is a module.
 
 mod performance;
+mod segment_panel;
 mod slice_canvas;
 mod target_fps;
 mod tf_editor;

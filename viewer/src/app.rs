@@ -14,7 +14,6 @@ use super::dialogs::{HelpWindow, OpenDialog};
 use super::history::History;
 use super::jobs::{PrepareJob, VolumeToOpen};
 use super::links::{self, DesktopView};
-use super::measurements::Measurements;
 use super::oblique_view::{ObliqueContext, ObliqueViewer};
 use super::orientation::{SliceFrame, SliceView};
 use super::overlay::Overlay;
@@ -31,6 +30,7 @@ use super::volume_session::{ScreenshotRequest, VolumeSession, DEFAULT_GPU_BUDGET
 use super::widgets::{elide_middle, NOT_FOR_DIAGNOSIS, WARNING_COLOUR};
 use strata_viewer_ui::crop_clip::ClipSettings;
 use strata_viewer_ui::layouts;
+use strata_viewer_ui::measurements::Measurements;
 use strata_viewer_ui::orbit::StandardView;
 use strata_viewer_ui::shortcuts;
 use strata_viewer_ui::tf_editor::TfEditorState;
@@ -685,6 +685,11 @@ impl StrataApp {
             if let Some([centre, width]) = view.window {
                 scene.window = Window::new(centre, width);
             }
+            // A link's measurements replace the ones remembered for the store: the link shows
+            // what its sender measured.
+            if !view.measurements.is_empty() {
+                scene.measurements = Measurements::with_items(view.measurements);
+            }
         }
         let mut oblique_plane = None;
         if let Some(saved) = self.pending_restore.take() {
@@ -751,6 +756,7 @@ impl StrataApp {
                 clip: v.scene.clip,
                 shading: self.preferences.shading,
                 light: self.preferences.light,
+                measurements: v.scene.measurements.items.clone(),
             },
         )
     }

@@ -11,8 +11,8 @@ use strata_viewer_ui::history::{History as SharedHistory, Stepped};
 
 use super::segmentation::Segmentation;
 
-use super::measurements::Measurement;
 use super::scene::{Scene, Window};
+use strata_viewer_ui::measurements::Measurement;
 
 #[derive(Clone, Debug, PartialEq)]
 struct Snapshot {

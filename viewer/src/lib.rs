@@ -35,7 +35,6 @@ pub mod gpu_recovery;
 pub mod history;
 pub mod jobs;
 pub mod links;
-pub mod measurements;
 pub mod oblique;
 pub mod oblique_view;
 pub use strata_slices::orientation;

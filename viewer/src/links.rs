@@ -12,6 +12,7 @@ use strata_render::{CropBox, RenderMode, TransferFunction};
 use strata_slices::ColourMap;
 use strata_viewer_ui::crop_clip::ClipSettings;
 use strata_viewer_ui::lighting::LightPrefs;
+use strata_viewer_ui::measurements::Measurement;
 use strata_viewer_ui::view_state::{Fragment, Layout as LinkLayout, ViewState};
 
 use super::preferences::Layout;
@@ -55,6 +56,9 @@ pub struct DesktopView {
     /// and scattering asymmetry (view_state.rs); a light opened from a link has the rest
     /// (intensity, ambient, steps, blend) at the defaults, as the browser draws it.
     pub light: LightPrefs,
+    /// The slices' measurements (the link's `m=`): points at two decimals; a region's
+    /// statistics are computed again from the slice when it is shown.
+    pub measurements: Vec<Measurement>,
 }
 
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -157,6 +161,7 @@ pub fn link_for(store_url: &str, view: &DesktopView) -> Option<String> {
         clip: view.clip,
         shading: view.shading,
         light: view.light,
+        measurements: view.measurements.clone(),
         store: Some(name.to_string()),
         ..ViewState::default()
     };
@@ -189,6 +194,7 @@ pub fn desktop_view(view: &ViewState) -> DesktopView {
         clip: view.clip,
         shading: view.shading,
         light: view.light,
+        measurements: view.measurements.clone(),
     }
 }
 
@@ -196,6 +202,8 @@ pub fn desktop_view(view: &ViewState) -> DesktopView {
 mod tests {
     use super::*;
     use strata_render::{ShadowMode, VolumeGeometry};
+    use strata_slices::SliceView;
+    use strata_viewer_ui::measurements::{RoiStats, Shape};
 
     fn desktop() -> DesktopView {
         DesktopView {
@@ -234,7 +242,58 @@ mod tests {
                 occlusion_radius_mm: 7.5,
                 ..LightPrefs::default()
             },
+            // As read from a link: ids in order, regions without statistics yet.
+            measurements: vec![
+                Measurement {
+                    id: 0,
+                    shape: Shape::Distance {
+                        a: [3.25, 4.0, 7.0],
+                        b: [20.5, 31.75, 7.0],
+                    },
+                },
+                Measurement {
+                    id: 1,
+                    shape: Shape::Roi {
+                        view: SliceView::Axial,
+                        ellipse: true,
+                        a: [10.0, 12.0, 7.0],
+                        b: [18.0, 20.5, 7.0],
+                        stats: None,
+                    },
+                },
+            ],
         }
+    }
+
+    /// The desktop's measurements travel in its link (`m=`) and come back as they went, a
+    /// region's statistics left for the opening viewer to compute from its slice.
+    #[test]
+    fn a_links_measurements_are_the_desktops_and_statistics_are_not_written() {
+        let store_url = "http://127.0.0.1:8080/v1/stores/head-ct";
+        let mut view = desktop();
+        if let Shape::Roi { stats, .. } = &mut view.measurements[1].shape {
+            *stats = Some(RoiStats {
+                mean: 40.0,
+                sd: 2.0,
+                min: 35.0,
+                max: 45.0,
+                voxels: 60,
+                area_mm2: 50.0,
+                level: 0,
+            });
+        }
+        let link = link_for(store_url, &view).expect("link");
+        assert!(
+            link.contains("&m=r:3.25,4,7,20.5,31.75,7;ea:10,12,7,18,20.5,7"),
+            "{link}"
+        );
+        let opened = desktop_view(&parse_link(&link).expect("parses").view);
+        assert_eq!(opened.measurements, desktop().measurements);
+        let none = DesktopView {
+            measurements: Vec::new(),
+            ..desktop()
+        };
+        assert!(!link_for(store_url, &none).expect("link").contains("&m="));
     }
 
     #[test]

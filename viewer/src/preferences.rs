@@ -11,8 +11,8 @@ use std::path::PathBuf;
 use serde::{Deserialize, Serialize};
 use strata_render::{RenderMode, ShadowMode};
 
-use super::measurements::Measurement;
 use super::orientation::SliceView;
+use strata_viewer_ui::measurements::Measurement;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub enum Layout {

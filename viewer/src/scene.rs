@@ -8,10 +8,10 @@ use strata_storage::histogram::Histogram;
 use strata_viewer_ui::crop_clip::ClipSettings;
 
 use super::colour_maps::ColourMap;
-use super::measurements::Measurements;
 use super::orientation::{SliceFrame, SliceView};
 use super::slices::SliceReader;
 use super::volume_session::{VolumeInfo, VolumeSession};
+use strata_viewer_ui::measurements::Measurements;
 
 /// A slice window in physical units (strata-slices', shared with the browser viewer).
 pub use strata_slices::Window;

@@ -72,38 +72,9 @@ impl SharedLayer {
     }
 }
 
-/// The tool the left button uses on a slice view.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum SegmentTool {
-    /// The left button moves the crosshair (or measures).
-    None,
-    Brush,
-    Eraser,
-    /// A click fills the closed region around it in the slice.
-    Fill,
-    /// A click grows the active segment in 3D from that seed (in the background).
-    Grow,
-}
-
-impl SegmentTool {
-    /// Whether the left button is the tool's (not the crosshair's).
-    pub fn paints(self) -> bool {
-        self != SegmentTool::None
-    }
-
-    /// The tool as the 3D view offers it: fill works within a slice, so it has no 3D form.
-    pub fn filter_3d(self) -> SegmentTool {
-        match self {
-            SegmentTool::Fill => SegmentTool::None,
-            tool => tool,
-        }
-    }
-
-    /// Whether the tool is dragged (brush, eraser) rather than clicked.
-    pub fn drags(self) -> bool {
-        matches!(self, SegmentTool::Brush | SegmentTool::Eraser)
-    }
-}
+/// The tool the left button uses on a slice view: the Segment section's, shared with the
+/// browser page (strata-viewer-ui's segment_panel).
+pub use strata_viewer_ui::segment_panel::SegmentTool;
 
 /// Most voxels one slice fill takes (a 4096² slice); beyond it the fill stops, keeping what it
 /// took.
@@ -463,7 +434,7 @@ impl Segmentation {
             records_at_save: 0,
             intensity,
             tool: SegmentTool::None,
-            diameter_mm: 10.0,
+            diameter_mm: strata_viewer_ui::segment_panel::DEFAULT_BRUSH_DIAMETER_MM,
             limit_to_range: false,
             range: (300.0, 3000.0),
             active,

@@ -30,13 +30,13 @@ use strata_render::{CropBox, TransferFunction};
 
 use glam::DVec3;
 
-use super::measurements::{Measurement, Measurements};
 use super::oblique::ObliquePlane;
 use super::preferences::Preferences;
 use super::scene::{Scene, Window};
 use super::sync::lock_ignoring_poison;
 use super::view3d::OrbitCamera;
 use strata_viewer_ui::crop_clip::ClipSettings;
+use strata_viewer_ui::measurements::{Measurement, Measurements};
 
 /// The child's exit code after its UI device was lost (EX_TEMPFAIL: "try again").
 pub const UI_DEVICE_LOST_EXIT: i32 = 75;

@@ -16,13 +16,13 @@ use strata_viewer_ui::slice_canvas::{
 };
 
 use super::colour_maps::ColourMap;
-use super::measurements::{distance_mm, roi_stats, Shape, Tool};
 use super::orientation::SliceView;
 use super::overlay::{Overlay, OverlayKind, OverlayStyle};
 use super::scene::{voxel_index, Scene, VolumeData, Window};
 use super::segmentation::{plane_for_view, Segmentation};
 use super::slices::{level_for_pixels, SliceImage, SliceRequest};
 use super::widgets::{view_title, wheel_lines, ViewResponse};
+use strata_viewer_ui::measurements::{paint_on_slice, slice_input, SliceContext, Tool};
 
 /// A slice texture and what it was made from (so it is rebuilt only when one of them changes).
 struct SliceTexture {
@@ -134,90 +134,14 @@ impl SliceViewer {
         ))
     }
 
-    /// The point of `pos` on this slice, if it lies on the image.
-    fn point_at(
-        &self,
-        pos: Pos2,
-        image_rect: Rect,
-        data: &VolumeData,
-        scene: &Scene,
-    ) -> Option<[f64; 3]> {
-        image_rect
-            .contains(pos)
-            .then(|| self.index_at(pos, image_rect, data, scene))
-    }
-
-    /// Left button with a measuring tool: drag a ruler or a region, click angle points.
-    fn measure_input(
-        &mut self,
-        ui: &egui::Ui,
-        response: &egui::Response,
-        image_rect: Rect,
-        data: &VolumeData,
-        scene: &mut Scene,
-    ) {
-        let tool = scene.measurements.tool;
-        match tool {
-            Tool::Angle => {
-                if response.clicked() {
-                    if let Some(p) = response
-                        .interact_pointer_pos()
-                        .and_then(|p| self.point_at(p, image_rect, data, scene))
-                    {
-                        scene.measurements.click(p);
-                    }
-                }
-            }
-            Tool::Distance | Tool::BoxRoi | Tool::EllipseRoi => {
-                if response.dragged_by(egui::PointerButton::Primary) {
-                    let start = ui.input(|i| i.pointer.press_origin());
-                    let now = response.interact_pointer_pos();
-                    if let (Some(a), Some(b)) = (
-                        start.and_then(|p| self.point_at(p, image_rect, data, scene)),
-                        now.map(|p| self.index_at(p, image_rect, data, scene)),
-                    ) {
-                        scene.measurements.draft.points = vec![a, b];
-                    }
-                }
-                if response.drag_stopped() {
-                    let points = std::mem::take(&mut scene.measurements.draft.points);
-                    if let [a, b] = points[..] {
-                        let shape = match tool {
-                            Tool::Distance => Shape::Distance { a, b },
-                            _ => {
-                                let ellipse = tool == Tool::EllipseRoi;
-                                let stats = data
-                                    .slices
-                                    .latest(self.view)
-                                    .filter(|i| {
-                                        i.request.position == a[data.frame(self.view).normal_axis]
-                                    })
-                                    .and_then(|image| {
-                                        roi_stats(
-                                            &image,
-                                            &data.info.geometry,
-                                            data.info.mapping,
-                                            ellipse,
-                                            a,
-                                            b,
-                                        )
-                                    });
-                                Shape::Roi {
-                                    view: self.view,
-                                    ellipse,
-                                    a,
-                                    b,
-                                    stats,
-                                }
-                            }
-                        };
-                        if distance_mm(&data.info.geometry, a, b) > 0.0 {
-                            scene.measurements.add(shape);
-                        }
-                    }
-                }
-            }
-            Tool::Navigate => {}
+    /// What strata-viewer-ui's measurement gestures and drawing need of this view.
+    fn measure_context<'a>(&self, data: &'a VolumeData, scene: &Scene) -> SliceContext<'a> {
+        SliceContext {
+            view: self.view,
+            frame: data.frame(self.view),
+            geometry: &data.info.geometry,
+            mapping: data.info.mapping,
+            cursor: scene.cursor,
         }
     }
 
@@ -249,114 +173,6 @@ impl SliceViewer {
             )
         };
         segment_pointer_input(ui, response, image_rect, seg, &to_lps, &plane);
-    }
-
-    /// Draws the measurements lying on the slice shown (and the one being drawn).
-    fn paint_measurements(
-        &self,
-        painter: &egui::Painter,
-        image_rect: Rect,
-        data: &VolumeData,
-        scene: &Scene,
-    ) {
-        let frame = data.frame(self.view);
-        let n = frame.normal_axis;
-        let here = voxel_index(scene.cursor)[n];
-        let on_slice = |p: &[f64; 3]| voxel_index(*p)[n] == here;
-        let screen = |p: [f64; 3]| {
-            screen_at(
-                image_rect,
-                frame.fraction_of(
-                    data.info.geometry.dims,
-                    p[frame.across_axis],
-                    p[frame.down_axis],
-                ),
-            )
-        };
-        let colour = Color32::from_rgb(255, 230, 80);
-        let stroke = Stroke::new(1.5, colour);
-        let unit = data.unit();
-        let font = egui::FontId::proportional(12.0);
-        let draw = |shape: &Shape, label: Option<String>| {
-            let anchor = match shape {
-                Shape::Distance { a, b } => {
-                    painter.line_segment([screen(*a), screen(*b)], stroke);
-                    screen(*b)
-                }
-                Shape::Angle { a, vertex, b } => {
-                    painter.line_segment([screen(*a), screen(*vertex)], stroke);
-                    painter.line_segment([screen(*vertex), screen(*b)], stroke);
-                    screen(*vertex)
-                }
-                Shape::Roi { ellipse, a, b, .. } => {
-                    let r = Rect::from_two_pos(screen(*a), screen(*b));
-                    if *ellipse {
-                        let points: Vec<Pos2> = (0..48)
-                            .map(|i| {
-                                let t = i as f32 / 48.0 * std::f32::consts::TAU;
-                                r.center()
-                                    + Vec2::new(
-                                        t.cos() * r.width() * 0.5,
-                                        t.sin() * r.height() * 0.5,
-                                    )
-                            })
-                            .collect();
-                        painter.add(egui::Shape::closed_line(points, stroke));
-                    } else {
-                        painter.rect_stroke(r, 0.0, stroke, egui::StrokeKind::Middle);
-                    }
-                    r.right_top()
-                }
-            };
-            if let Some(label) = label {
-                // Kept inside the view (issue 47: labels were cut at its edge).
-                let galley = painter.layout_no_wrap(label, font.clone(), colour);
-                let wanted = egui::Align2::LEFT_BOTTOM
-                    .anchor_size(anchor + Vec2::new(4.0, -4.0), galley.size());
-                let placed = strata_viewer_ui::slice_canvas::keep_inside(
-                    wanted,
-                    painter.clip_rect().shrink(2.0),
-                );
-                painter.galley(placed.min, galley, colour);
-            }
-        };
-        for m in &scene.measurements.items {
-            let visible = match &m.shape {
-                Shape::Roi { view, a, .. } => *view == self.view && on_slice(a),
-                _ => m.points().iter().all(on_slice),
-            };
-            if visible {
-                draw(&m.shape, Some(m.describe(&data.info.geometry, &unit)));
-            }
-        }
-        let draft = &scene.measurements.draft.points;
-        if draft.iter().all(on_slice) {
-            match (scene.measurements.tool, &draft[..]) {
-                (Tool::Distance, [a, b]) => draw(
-                    &Shape::Distance { a: *a, b: *b },
-                    Some(format!(
-                        "{:.1} mm",
-                        distance_mm(&data.info.geometry, *a, *b)
-                    )),
-                ),
-                (Tool::BoxRoi | Tool::EllipseRoi, [a, b]) => draw(
-                    &Shape::Roi {
-                        view: self.view,
-                        ellipse: scene.measurements.tool == Tool::EllipseRoi,
-                        a: *a,
-                        b: *b,
-                        stats: None,
-                    },
-                    None,
-                ),
-                (Tool::Angle, [a, vertex]) => draw(&Shape::Distance { a: *a, b: *vertex }, None),
-                _ => {
-                    for p in draft {
-                        painter.circle_filled(screen(*p), 3.0, colour);
-                    }
-                }
-            }
-        }
     }
 
     /// The overlay over the slice `image`: asked for on the overlay's thread for exactly this
@@ -486,7 +302,16 @@ impl SliceViewer {
         if let Some(seg) = segmentation.as_deref_mut().filter(|_| painting) {
             self.brush_input(ui, &response, image_rect, data, scene, seg);
         } else if tool != Tool::Navigate {
-            self.measure_input(ui, &response, image_rect, data, scene);
+            let context = self.measure_context(data, scene);
+            let shown = data.slices.latest(self.view);
+            slice_input(
+                ui,
+                &response,
+                image_rect,
+                &context,
+                &mut scene.measurements,
+                shown.as_ref(),
+            );
         } else if let Some(pos) = response.interact_pointer_pos().filter(|_| !double_clicked) {
             if (response.clicked() || response.dragged_by(egui::PointerButton::Primary))
                 && image_rect.contains(pos)
@@ -599,7 +424,24 @@ impl SliceViewer {
                 painter.circle_stroke(pos, radius, Stroke::new(1.0, Color32::WHITE));
             }
         }
-        self.paint_measurements(&painter, image_rect, data, scene);
+        // Regions opened from a link (or drawn before their slice came) get their statistics
+        // from the slice once it is shown.
+        if let Some(image) = data.slices.latest(view) {
+            scene.measurements.fill_missing_stats(
+                view,
+                &image,
+                &data.info.geometry,
+                data.info.mapping,
+            );
+        }
+        let context = self.measure_context(data, scene);
+        paint_on_slice(
+            &painter,
+            image_rect,
+            &context,
+            &scene.measurements,
+            &data.unit(),
+        );
         paint_orientation_labels(&painter, rect, frame.labels);
         let n = frame.normal_axis;
         let slice_number = voxel_index(scene.cursor)[n] + 1;

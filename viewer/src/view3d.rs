@@ -12,9 +12,9 @@ use egui::{Color32, Pos2, Rect, Sense, Stroke, TextureHandle, TextureOptions, Ve
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
 use strata_render::{Camera, Projection, RenderMode, RenderSettings, VolumeGeometry};
+use strata_viewer_ui::picking;
 use strata_viewer_ui::render_driver::{OverlayIn3d, RenderRequest};
 
-use super::measurements::{Shape, Tool};
 use super::oblique::{ObliquePlane, OBLIQUE_COLOUR};
 use super::orientation::SliceView;
 use super::preferences::Preferences;
@@ -23,6 +23,7 @@ use super::segmentation::{SegmentTool, Segmentation};
 use super::slice_view::slice_colour;
 use super::volume_session::RenderedFrame;
 use super::widgets::{view_title, wheel_lines, ViewResponse, NOT_FOR_DIAGNOSIS, WARNING_COLOUR};
+use strata_viewer_ui::measurements::{Shape, Tool};
 
 /// Zoom factor per wheel click in the 3D view.
 pub const ZOOM_PER_WHEEL_LINE: f64 = 1.1;
@@ -228,25 +229,22 @@ impl View3d {
     /// click picks what is shown even while a newer frame renders.
     pub fn pick(&self, pos: Pos2, rect: Rect, data: &VolumeData) -> Option<[f64; 3]> {
         let frame = self.shown.as_ref()?;
-        let fx = (pos.x - rect.left()) / rect.width().max(1.0);
-        let fy = (pos.y - rect.top()) / rect.height().max(1.0);
-        if !(0.0..1.0).contains(&fx) || !(0.0..1.0).contains(&fy) {
-            return None;
-        }
-        let px = ((fx * frame.width as f32) as u32).min(frame.width.saturating_sub(1));
-        let py = ((fy * frame.height as f32) as u32).min(frame.height.saturating_sub(1));
-        let t = *frame.depth.get((py * frame.width + px) as usize)?;
-        if !t.is_finite() {
-            return None;
-        }
-        let (origin, dir) = frame
-            .request
-            .camera
-            .basis()
-            .ray(px, py, frame.width, frame.height);
-        let g = &data.info.geometry;
-        let index = g.index_from_patient(origin + dir * t as f64);
-        Some([0, 1, 2].map(|a| index[a].clamp(0.0, g.dims[a] as f64 - 1.0)))
+        let size = [frame.width, frame.height];
+        let pixel = picking::frame_pixel(
+            (pos.x - rect.left()) / rect.width().max(1.0),
+            (pos.y - rect.top()) / rect.height().max(1.0),
+            size,
+        )?;
+        let depth_mm = *frame
+            .depth
+            .get((pixel[1] * frame.width + pixel[0]) as usize)?;
+        picking::picked_index(
+            &frame.request.camera,
+            &data.info.geometry,
+            pixel,
+            size,
+            depth_mm,
+        )
     }
 
     /// The segment tools in 3D: the brush and eraser sweep a ball of the brush's diameter

@@ -25,6 +25,7 @@ use wasm_bindgen::JsCast;
 use crate::embed_bridge::{embed_origin, EmbedBridge};
 use crate::page_timing::{PageTiming, BENCH_DEG_PER_FRAME};
 use crate::page_tools::{self, PageTools};
+use crate::picking::PendingPick;
 use crate::served_store::{list_stores, ServedStore, DECODES_PER_FRAME, MAX_ON_THE_WIRE};
 use crate::side_panel::{SidePanel, VolumeFigures};
 use crate::slice_views::{slice_layout, SliceViews};
@@ -34,6 +35,7 @@ use crate::volume_menu;
 use strata_source::wire::StoreList;
 use strata_source::VolumeSource;
 use strata_viewer_ui::orbit;
+use strata_viewer_ui::picking::frame_pixel;
 use strata_viewer_ui::presets;
 use strata_viewer_ui::render_driver::{RenderChange, RenderDriver, RenderRequest};
 use strata_viewer_ui::triad;
@@ -41,6 +43,10 @@ use strata_viewer_ui::triad;
 /// The largest image edge drawn when the canvas decides (device pixels): a 4K canvas is drawn
 /// at this size and scaled, so one frame stays bounded on a software adapter.
 const MAX_CANVAS_IMAGE_EDGE: f32 = 2048.0;
+
+/// A press in the 3D view that egui calls a drag (held past its click time) is still a click
+/// while the pointer moved less than this (points) before the release.
+const HELD_CLICK_TRAVEL: f32 = 2.0;
 
 /// Called by the wasm-bindgen glue when the module loads.
 #[wasm_bindgen(start)]
@@ -231,6 +237,10 @@ struct WebViewer {
     bridge: Option<EmbedBridge>,
     /// A screenshot the bridge was asked for, being read back, and the requests it answers.
     screenshot: Option<(Capture, Vec<JsValue>)>,
+    /// A click in the 3D view whose pick depth is on its way back (picking.rs).
+    pick: Option<PendingPick>,
+    /// How far the pointer has moved in the 3D view's current drag (points).
+    drag_travel: f32,
     /// Undo and redo, the shared keys and help, the screenshot download (page_tools.rs).
     tools: PageTools,
     /// The 3D frame being read back for a screenshot download (F12, Screenshot).
@@ -317,6 +327,8 @@ impl WebViewer {
             preset_named: fragment.preset_named,
             bridge,
             screenshot: None,
+            pick: None,
+            drag_travel: 0.0,
             tools: PageTools::default(),
             download: None,
         })
@@ -542,6 +554,63 @@ impl WebViewer {
         driver.drawn(&request);
         self.drawn = Some(wanted);
         Ok(())
+    }
+
+    /// Starts reading back the pick depth under `pos` of the 3D image drawn in `image_rect`,
+    /// from the frame on screen (the camera it was drawn with is the view's: a click does not
+    /// move the view). Off the image, or before a frame, nothing happens.
+    fn start_pick(&mut self, ctx: &egui::Context, pos: egui::Pos2, image_rect: egui::Rect) {
+        let Some(geometry) = self.shown_geometry() else {
+            return;
+        };
+        let camera = self.view.camera(&geometry);
+        let raycaster = match (self.streamed.as_mut(), self.renderer.as_ref()) {
+            (Some(streamed), _) => &*streamed.volume.raycaster_mut(),
+            (None, Some(renderer)) => &renderer.raycaster,
+            (None, None) => return,
+        };
+        let Some((depth, size)) = raycaster.pick_depth_buffer() else {
+            publish_pick("no frame drawn yet to pick from");
+            return;
+        };
+        let Some(pixel) = frame_pixel(
+            (pos.x - image_rect.left()) / image_rect.width().max(1.0),
+            (pos.y - image_rect.top()) / image_rect.height().max(1.0),
+            size,
+        ) else {
+            publish_pick("the click is off the 3D image");
+            return;
+        };
+        self.pick = Some(PendingPick::start(
+            &self.gpu, depth, size, pixel, camera, ctx,
+        ));
+        publish_pick(&format!(
+            "reading pixel {},{} of {}x{}",
+            pixel[0], pixel[1], size[0], size[1]
+        ));
+    }
+
+    /// The position a finished pick saw (`None` while it is on its way, or where its ray met
+    /// nothing); a failed readback is the page's error.
+    fn take_pick(&mut self) -> Option<[f64; 3]> {
+        let geometry = self.shown_geometry()?;
+        let result = self.pick.as_ref()?.poll(&geometry)?;
+        self.pick = None;
+        match result {
+            Ok(Some(index)) => {
+                publish_pick(&format!("picked {},{},{}", index[0], index[1], index[2]));
+                Some(index)
+            }
+            Ok(None) => {
+                publish_pick("nothing under the click");
+                None
+            }
+            Err(e) => {
+                publish_pick(&e.to_string());
+                self.error = Some(e.to_string());
+                None
+            }
+        }
     }
 
     /// The geometry of the volume shown (a served store's or the sample's), once open.
@@ -1109,6 +1178,14 @@ impl eframe::App for WebViewer {
             .resizable(true)
             .default_size(300.0)
             .show(ui, |ui| {
+                // The measurements' tools and list first, always in sight (measure.rs).
+                let slices = match self.streamed.as_mut() {
+                    Some(streamed) => Some(&mut streamed.slices),
+                    None => self.sample_slices.as_mut(),
+                };
+                if let Some(slices) = slices {
+                    crate::measure::side_panel_section(ui, &mut self.view, slices);
+                }
                 let figures = VolumeFigures {
                     loader: self.streamed.as_ref().and_then(|s| s.last.as_ref()),
                     step_factor: self.motion.shown().0,
@@ -1165,7 +1242,7 @@ impl eframe::App for WebViewer {
                     Some((rect, slices)) if has_slices => (rect, Some(slices)),
                     _ => (area, None),
                 };
-                let response = ui.allocate_rect(rect, egui::Sense::drag());
+                let response = ui.allocate_rect(rect, egui::Sense::click_and_drag());
                 // The desktop's drag mapping (strata-viewer-ui's orbit): the same drag turns
                 // both viewers' views by the same angles.
                 if response.dragged() {
@@ -1226,16 +1303,16 @@ impl eframe::App for WebViewer {
                     self.error = Some(e.to_string());
                     return;
                 }
+                // Fit the image in the panel, keeping its aspect (a fixed `size=` may differ).
+                let aspect = size[0] as f32 / size[1] as f32;
+                let mut shown = rect.size();
+                if shown.x / shown.y > aspect {
+                    shown.x = shown.y * aspect;
+                } else {
+                    shown.y = shown.x / aspect;
+                }
+                let image_rect = egui::Rect::from_center_size(rect.center(), shown);
                 if let Some(texture) = self.texture {
-                    // Fit the image in the panel, keeping its aspect (a fixed `size=` may differ).
-                    let aspect = size[0] as f32 / size[1] as f32;
-                    let mut shown = rect.size();
-                    if shown.x / shown.y > aspect {
-                        shown.x = shown.y * aspect;
-                    } else {
-                        shown.y = shown.x / aspect;
-                    }
-                    let image_rect = egui::Rect::from_center_size(rect.center(), shown);
                     ui.painter().image(
                         texture,
                         image_rect,
@@ -1247,15 +1324,42 @@ impl eframe::App for WebViewer {
                         triad::paint_triad(ui.painter(), rect, &self.view.camera(&geometry));
                     }
                 }
+                // A click (no drag) moves the crosshair to what is seen there, as the desktop's.
+                // A press held past egui's click time (a slow frame between press and release,
+                // as on a loaded software adapter) counts too while the pointer stayed put.
+                if response.drag_started() {
+                    self.drag_travel = 0.0;
+                }
+                if response.dragged() {
+                    self.drag_travel += response.drag_delta().length();
+                }
+                let held_click = response.drag_stopped_by(egui::PointerButton::Primary)
+                    && self.drag_travel < HELD_CLICK_TRAVEL;
+                if response.clicked() || held_click {
+                    if let Some(pos) = response.interact_pointer_pos() {
+                        self.start_pick(&ctx, pos, image_rect);
+                    }
+                }
+                let picked = self.take_pick();
                 let slices = match self.streamed.as_mut() {
                     Some(streamed) => Some(&mut streamed.slices),
                     None => self.sample_slices.as_mut(),
                 };
+                if let Some(index) = picked {
+                    // The link names it even where no slice view shows it (the single layout).
+                    self.view.cursor = Some(index);
+                }
                 if let (Some(rects), Some(slices)) = (slice_rects, slices) {
+                    if let Some(index) = picked {
+                        slices.cursor = index;
+                    }
+                    crate::measure::before_slice_views(&self.view, slices);
                     slices.ui(ui, rects);
                     // The address follows the crosshair and window, so a link shares them.
                     self.view.cursor = Some(slices.cursor);
                     self.view.window = Some([slices.window.centre, slices.window.width]);
+                    // And the measurements (measure.rs).
+                    crate::measure::after_slice_views(&mut self.view, slices);
                     self.view.colour_map = slices.colour_map;
                 }
                 // Not while a drag goes on (the view, a slice, the editor's points): one
@@ -1269,6 +1373,17 @@ impl eframe::App for WebViewer {
         self.capture_step(&ctx);
         self.bridge_step(&ctx);
         self.side.record_frame(ui_started, self.frames_submitted);
+    }
+}
+
+/// Writes the last click's pick in the 3D view into the canvas's `data-pick` attribute (what
+/// it read, or why it found nothing): the picking test says it when the crosshair stays.
+fn publish_pick(text: &str) {
+    if let Some(canvas) = web_sys::window()
+        .and_then(|w| w.document())
+        .and_then(|d| d.get_element_by_id("strata-canvas"))
+    {
+        let _ = canvas.set_attribute("data-pick", text);
     }
 }
 

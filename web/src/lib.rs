@@ -18,6 +18,8 @@
 //!   as PNG), listening only to the parent's origin the link names (`embed=`).
 //! - `page_timing` (wasm32 only): time to first and converged image and the bench's frame
 //!   times (`bench=N`), posted with the test capture (issue 39's benchmark).
+//! - `picking` (wasm32 only): a click in the 3D view moves the crosshair to what is seen there,
+//!   from one pixel of the frame's pick depth copied back without waiting.
 //! - `page_tools` (wasm32 only): undo and redo (the shared history of the link's edits), the
 //!   shared keyboard shortcuts and F1 help, the 3D view's screenshot as a PNG download.
 //! - `served_store` (wasm32 only): `strata serve`'s client on `fetch()`, the volume source the
@@ -26,6 +28,9 @@
 //! - `slice_views` (wasm32 only): a streamed store's three linked slice views (axial, coronal,
 //!   sagittal) beside the 3D view, sliced by strata-slices' assembler (the desktop's) from
 //!   bricks fetched asynchronously through the served store, window/level by right drag.
+//! - `measure` (wasm32 only): the desktop's rulers, angles and ROIs in the page
+//!   (strata-viewer-ui's measurements): the side panel's tools and list, the list kept in the
+//!   view (the link's `m=`), and what the page publishes of them for its tests.
 //! - `side_panel` (wasm32 only): the side panel, the desktop's transfer-function editor and
 //!   Performance panel from strata-viewer-ui, on the page's 3D view.
 //!
@@ -43,9 +48,13 @@ mod browser;
 #[cfg(target_arch = "wasm32")]
 mod embed_bridge;
 #[cfg(target_arch = "wasm32")]
+mod measure;
+#[cfg(target_arch = "wasm32")]
 mod page_timing;
 #[cfg(target_arch = "wasm32")]
 mod page_tools;
+#[cfg(target_arch = "wasm32")]
+mod picking;
 #[cfg(target_arch = "wasm32")]
 mod served_store;
 #[cfg(target_arch = "wasm32")]

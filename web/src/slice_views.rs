@@ -39,6 +39,9 @@ use strata_storage::histogram::Histogram;
 use strata_storage::source::WindowPreset as ScanWindow;
 use strata_types::{BrickId, OctreeLayout};
 use strata_viewer_ui::layouts;
+use strata_viewer_ui::measurements::{
+    paint_on_slice, slice_input, Measurements, SliceContext, Tool,
+};
 use strata_viewer_ui::presets::{integer_values, looks_like_ct, readout_value};
 use strata_viewer_ui::slice_canvas::{
     colour_map_combo, fraction_at, inner_rect, paint_crosshair, paint_orientation_labels,
@@ -113,6 +116,8 @@ pub struct SliceViews {
     error: Option<String>,
     /// The test capture of the axial view was handed out (`capture=1`).
     captured: bool,
+    /// The rulers, angles and regions, the tool and the one being drawn (measure.rs).
+    measurements: Measurements,
 }
 
 pub fn slice_colour(view: SliceView) -> Color32 {
@@ -255,7 +260,13 @@ impl SliceViews {
             hovered: None,
             error: None,
             captured: false,
+            measurements: Measurements::default(),
         }
+    }
+
+    /// The measurements with what their list describes them by (measure.rs).
+    pub fn measurement_parts(&mut self) -> (&mut Measurements, &VolumeGeometry, &str) {
+        (&mut self.measurements, &self.geometry, &self.unit)
     }
 
     /// A link's crosshair (clamped into the volume) and window (None: keep the store's).
@@ -496,6 +507,13 @@ impl SliceViews {
             self.zoom_pan[view.index()].image_rect(inner, frame.extent_mm(&self.geometry));
         let windowing = response.dragged_by(egui::PointerButton::Secondary)
             || response.dragged_by(egui::PointerButton::Primary) && ui.input(|i| i.modifiers.shift);
+        let measuring = SliceContext {
+            view,
+            frame,
+            geometry: &self.geometry,
+            mapping: self.mapping,
+            cursor: self.cursor,
+        };
         if windowing {
             let delta = ui.input(|i| i.pointer.delta());
             self.window = drag_window(
@@ -503,6 +521,17 @@ impl SliceViews {
                 delta.x as f64,
                 delta.y as f64,
                 self.physical_range,
+            );
+        } else if self.measurements.tool != Tool::Navigate {
+            // A measuring tool takes the left button, as on the desktop (measure.rs).
+            let shown = self.shown[view.index()].as_ref().map(|s| &s.image);
+            slice_input(
+                ui,
+                &response,
+                image_rect,
+                &measuring,
+                &mut self.measurements,
+                shown,
             );
         } else if let Some(pos) = response.interact_pointer_pos().filter(|_| !double_clicked) {
             if (response.clicked() || response.dragged_by(egui::PointerButton::Primary))
@@ -567,6 +596,22 @@ impl SliceViews {
             ),
         );
         paint_crosshair(&painter, image_rect, centre);
+        if let Some(shown) = &self.shown[view.index()] {
+            // Regions opened from a link get their statistics once their slice is shown.
+            self.measurements
+                .fill_missing_stats(view, &shown.image, &self.geometry, self.mapping);
+        }
+        let on_screen = SliceContext {
+            cursor: self.cursor,
+            ..measuring
+        };
+        paint_on_slice(
+            &painter,
+            image_rect,
+            &on_screen,
+            &self.measurements,
+            &self.unit,
+        );
         paint_orientation_labels(&painter, rect, frame.labels);
         let slice_number = self.cursor[n].round() as i64 + 1;
         painter.text(

@@ -26,6 +26,12 @@ const PAGE_DEADLINE: Duration = Duration::from_secs(240);
 /// The page under clicks, drags and keys over the DevTools protocol (issue 47).
 #[path = "browser/input.rs"]
 mod input;
+/// Rulers, angles and ROIs drawn in the page against the desktop's functions (issue 47).
+#[path = "browser/measure.rs"]
+mod measure;
+/// A click in the page's 3D view picks what the desktop picks (issue 47).
+#[path = "browser/picking.rs"]
+mod picking;
 
 /// The page's undo and redo, help, screenshot download, triad, colour maps and readout
 /// under real keys and pointer moves (issue 47).

@@ -725,6 +725,15 @@ impl Raycaster {
         })
     }
 
+    /// The last frame's pick-depth buffer (one f32 per pixel, row 0 at the top, as
+    /// [`FrameReadback::depth`]) and that frame's size: for a caller that copies a pixel back
+    /// without waiting (the browser page's picking in 3D). `None` before the first frame.
+    pub fn pick_depth_buffer(&self) -> Option<(&wgpu::Buffer, [u32; 2])> {
+        let targets = self.targets.as_ref()?;
+        let depth = targets.depth().ok()?;
+        Some((depth, [targets.width(), targets.height()]))
+    }
+
     /// Copies the last rendered frame back and waits for it. For tests and the CLI.
     pub fn read_frame_blocking(&mut self, ctx: &GpuContext) -> Result<FrameReadback, RenderError> {
         let (Some(t), Some(vis)) = (self.targets.as_ref(), self.visibility.as_ref()) else {

@@ -83,9 +83,9 @@ pub enum EraseTarget {
     AnyUnlocked,
 }
 
-/// A plane resolved against a grid and a stroke.
+/// A plane resolved against a grid and a stroke (also the oblique fill's slab: fill_oblique.rs).
 #[derive(Clone, Copy, Debug)]
-enum Resolved {
+pub(crate) enum Resolved {
     /// Index axis of the normal and the slice along it (may lie outside the grid).
     AxisSlice {
         axis: usize,
@@ -100,7 +100,7 @@ enum Resolved {
 }
 
 impl Resolved {
-    fn of(
+    pub(crate) fn of(
         grid: &LabelGrid,
         plane: Option<&SlicePlane>,
         first: DVec3,
@@ -160,7 +160,7 @@ impl Resolved {
     }
 
     /// Whether a voxel (index and centre) lies in the plane.
-    fn holds(&self, voxel: [u32; 3], centre_mm: DVec3) -> bool {
+    pub(crate) fn holds(&self, voxel: [u32; 3], centre_mm: DVec3) -> bool {
         match *self {
             Resolved::AxisSlice { axis, slice } => i64::from(voxel[axis]) == slice,
             Resolved::Oblique {

@@ -1,6 +1,6 @@
 //! Fill a closed region in a slice: from a clicked voxel, the 4-connected voxels of the slice
 //! that hold the same label as it (so other labels bound the region) and, optionally, whose
-//! primary value is in a range.
+//! primary value is in a range. Oblique slices: fill_oblique.rs.
 
 use crate::intensity::{Intensity, ValueRange};
 use crate::layer::LabelLayer;
@@ -26,9 +26,15 @@ pub fn fill_in_slice(
         SlicePlane::Coronal => &[0, 2],
         SlicePlane::Sagittal => &[1, 2],
         SlicePlane::Oblique { .. } => {
-            return Err(SegmentError::BadParameter(
-                "fill works in axial, coronal and sagittal slices, not oblique ones".into(),
-            ))
+            return crate::tools::fill_oblique::fill_in_oblique_slice(
+                layer,
+                plane,
+                seed,
+                label,
+                value_range,
+                intensity,
+                max_voxels,
+            )
         }
     };
     let region_label = layer.get(seed)?;

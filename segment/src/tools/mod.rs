@@ -5,6 +5,7 @@
 pub mod brush;
 mod distance;
 pub mod fill;
+mod fill_oblique;
 mod flood;
 pub mod grow;
 pub mod interpolate;

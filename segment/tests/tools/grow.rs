@@ -3,14 +3,15 @@
 
 use std::sync::atomic::AtomicBool;
 
+use glam::DVec3;
 use strata_segment::intensity::{DenseIntensity, ValueRange};
-use strata_segment::tools::brush::SlicePlane;
+use strata_segment::tools::brush::{stroke, Brush, BrushAction, BrushShape, SlicePlane};
 use strata_segment::tools::fill::fill_in_slice;
 use strata_segment::tools::grow::{grow_from_seed, grow_range, GrowCriterion};
 use strata_segment::{LabelLayer, SegmentError};
 use strata_types::VolumeGeometry;
 
-use super::common::{all_labels, python, scratch, voxels_of};
+use super::common::{all_labels, python, rotated_anisotropic, scratch, voxels_of};
 
 /// A smooth field with many bright blobs, some touching: a thresholded volume with several
 /// components and winding shapes (a deterministic hash, no RNG crate).
@@ -286,18 +287,118 @@ fn a_slice_fill_takes_the_inside_of_a_ring_and_nothing_in_other_slices() {
         0,
         "nothing outside the sagittal slice"
     );
-    assert!(fill_in_slice(
+    // An oblique plane whose directions are not orthonormal is refused, naming them.
+    let bad = fill_in_slice(
         &mut layer,
         &SlicePlane::Oblique {
-            centre_lps: glam::DVec3::ZERO,
-            u: glam::DVec3::X,
-            v: glam::DVec3::Y
+            centre_lps: DVec3::ZERO,
+            u: DVec3::X,
+            v: DVec3::X,
         },
         [1, 1, 1],
         a,
         None,
         None,
-        10
+        10,
+    );
+    assert!(
+        matches!(&bad, Err(SegmentError::BadParameter(m)) if m.contains("orthonormal")),
+        "{bad:?}"
+    );
+}
+
+/// The oblique plane of the test below: tilted against every index axis of the rotated grid.
+fn tilted_plane(g: &VolumeGeometry) -> (SlicePlane, DVec3, DVec3, DVec3) {
+    let centre = g.patient_from_index(DVec3::new(21.3, 19.6, 11.2));
+    let u = DVec3::new(0.8, 0.6, 0.0);
+    let v = DVec3::new(-0.36, 0.48, 0.8);
+    (
+        SlicePlane::Oblique {
+            centre_lps: centre,
+            u,
+            v,
+        },
+        centre,
+        u,
+        v,
     )
-    .is_err());
+}
+
+#[test]
+fn an_oblique_fill_takes_the_inside_of_a_ring_brushed_in_that_plane_and_nothing_off_it() {
+    // A ring drawn with the brush in a tilted plane of a rotated, anisotropic grid, then a fill
+    // clicked at its centre. The model, voxel by voxel: the voxels whose centre lies in the
+    // plane's slab (as brush.rs defines it: -h/2 ≤ n·(x − c) < h/2, h the largest spacing along
+    // n), that the ring left unpainted, and whose centre projected into the plane lies within
+    // the ring's radius. The ring's band (4 mm) is wider than any step between neighbouring
+    // columns (at most √(0.9² + 1.6²) ≈ 1.84 mm), so nothing leaks, and the 48-gon's sagitta
+    // (0.02 mm) is far below the band's half width, so "inside the circle" is "inside the ring".
+    let g = rotated_anisotropic([44, 40, 24]);
+    let (plane, centre, u, v) = tilted_plane(&g);
+    let mut layer = LabelLayer::new_empty(g.clone()).unwrap();
+    let ring = layer.segments_mut().add("ring").unwrap();
+    let inside = layer.segments_mut().add("inside").unwrap();
+    let radius_mm = 9.0;
+    let circle: Vec<DVec3> = (0..=48)
+        .map(|n| {
+            let t = std::f64::consts::TAU * f64::from(n) / 48.0;
+            centre + (u * t.cos() + v * t.sin()) * radius_mm
+        })
+        .collect();
+    let brush = Brush {
+        shape: BrushShape::Disc(plane),
+        diameter_mm: 4.0,
+        value_range: None,
+    };
+    stroke(&mut layer, &brush, BrushAction::Paint(ring), &circle, None).unwrap();
+    let painted = voxels_of(&layer, ring);
+    let painted_set: std::collections::BTreeSet<[u32; 3]> = painted.iter().copied().collect();
+    let seed = g.index_from_patient(centre).round();
+    let seed = [seed.x as u32, seed.y as u32, seed.z as u32];
+    let out = fill_in_slice(&mut layer, &plane, seed, inside, None, None, u64::MAX).unwrap();
+
+    let normal = u.cross(v);
+    let half = (0..3)
+        .map(|a| g.spacing_mm[a] * normal.dot(DVec3::from(g.direction[a])).abs())
+        .fold(0.0, f64::max)
+        / 2.0;
+    let [nx, ny, nz] = g.dims;
+    let mut want = Vec::new();
+    let mut outside = Vec::new();
+    for k in 0..nz {
+        for j in 0..ny {
+            for i in 0..nx {
+                let x = g.patient_from_index(DVec3::new(f64::from(i), f64::from(j), f64::from(k)));
+                let off = normal.dot(x - centre);
+                let in_plane = (x - normal * off - centre).length();
+                if (-half..half).contains(&off)
+                    && in_plane < radius_mm
+                    && !painted_set.contains(&[i, j, k])
+                {
+                    want.push([i, j, k]);
+                }
+                if (-half..half).contains(&off) && in_plane > radius_mm + 3.0 {
+                    outside.push([i, j, k]);
+                }
+            }
+        }
+    }
+    assert!(
+        want.len() > 100,
+        "the model's inside is too small to test: {}",
+        want.len()
+    );
+    assert_eq!(voxels_of(&layer, inside), want);
+    assert_eq!(out.voxels, want.len() as u64);
+    assert!(!out.stopped_at_cap);
+    assert_eq!(voxels_of(&layer, ring), painted, "the ring is kept");
+
+    // Clicked outside the ring, the fill takes the rest of the slice but never the inside; a
+    // cap stops it early, keeping a region connected to the seed, and says so.
+    let mut capped = layer.clone();
+    let out = fill_in_slice(&mut capped, &plane, outside[0], ring, None, None, 50).unwrap();
+    assert_eq!(out.voxels, 50);
+    assert!(out.stopped_at_cap);
+    assert_eq!(voxels_of(&capped, inside), want);
+    assert_eq!(voxels_of(&capped, ring).len(), painted.len() + 50);
 }

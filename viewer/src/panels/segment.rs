@@ -4,6 +4,10 @@
 //! shown, locked, remove), the operations on the active segment (fill between slices, islands,
 //! margin, union / subtract / intersect), statistics with Copy as CSV, and Save As.
 //!
+//! The tool row and the segment list are strata-viewer-ui's segment_panel, which the browser
+//! page draws too; the value range, grow settings, operations, statistics and Save As are the
+//! desktop's own (they need the primary's values, threads or files).
+//!
 //! Every row wraps inside the panel's width rather than widening the panel: a row wider than
 //! the panel made the right-hand panel grow by 44 points on the frame after the segmentation
 //! opened, moving every widget left under a pointer that had not moved (a click aimed at
@@ -16,6 +20,7 @@ use std::sync::Arc;
 use egui::{Color32, RichText};
 use strata_segment::tools::morphology::{Islands, LogicalOp};
 use strata_segment::Label;
+use strata_viewer_ui::segment_panel::{self, SegmentListChange};
 
 use crate::file_chooser::{ChooserKind, Chosen, FileChooser};
 use crate::overlay::{Overlay, OverlayKind};
@@ -258,25 +263,7 @@ fn short(path: &std::path::Path) -> String {
 
 /// The tool row, its size and value range, and the grow's settings and progress.
 fn tools(ui: &mut egui::Ui, seg: &mut Segmentation) {
-    ui.horizontal_wrapped(|ui| {
-        ui.selectable_value(&mut seg.tool, SegmentTool::None, "Off")
-            .on_hover_text("The left button moves the crosshair");
-        ui.selectable_value(&mut seg.tool, SegmentTool::Brush, "Brush")
-            .on_hover_text("Paint the active segment: drag on a slice");
-        ui.selectable_value(&mut seg.tool, SegmentTool::Eraser, "Eraser")
-            .on_hover_text("Clear any unlocked segment: drag on a slice");
-        ui.selectable_value(&mut seg.tool, SegmentTool::Fill, "Fill")
-            .on_hover_text("Fill the closed region around a click, in that slice");
-        ui.selectable_value(&mut seg.tool, SegmentTool::Grow, "Grow")
-            .on_hover_text("Grow the active segment in 3D from a clicked seed");
-        ui.add(
-            egui::DragValue::new(&mut seg.diameter_mm)
-                .range(0.1..=500.0)
-                .speed(0.2)
-                .suffix(" mm"),
-        )
-        .on_hover_text("Brush diameter");
-    });
+    segment_panel::tool_row(ui, &mut seg.tool, &mut seg.diameter_mm, true);
     ui.horizontal_wrapped(|ui| {
         let growing_by_sigma = seg.tool == SegmentTool::Grow && seg.grow.mean_sigma;
         if seg.tool == SegmentTool::Grow {
@@ -331,38 +318,15 @@ fn segment_list(ui: &mut egui::Ui, seg: &mut Segmentation) {
     let mut table = seg.segments();
     let before = table.clone();
     let mut active = seg.active;
-    let mut remove = None;
-    let values: Vec<Label> = table.iter().map(|s| s.value).collect();
-    for value in values {
-        let Some(s) = table.get_mut(value) else {
-            continue;
-        };
-        ui.horizontal_wrapped(|ui| {
-            ui.radio_value(&mut active, s.value, "")
-                .on_hover_text("The segment the tools paint");
-            ui.color_edit_button_srgb(&mut s.rgb);
-            ui.add(egui::TextEdit::singleline(&mut s.name).desired_width(110.0));
-            ui.checkbox(&mut s.visible, "Shown");
-            ui.checkbox(&mut s.locked, "Locked")
-                .on_hover_text("No tool paints over or erases a locked segment");
-            if ui
-                .small_button("×")
-                .on_hover_text("Remove the segment and clear its voxels (undoable)")
-                .clicked()
-            {
-                remove = Some(s.value);
-            }
-        });
-    }
+    let change = segment_panel::segment_list(ui, &mut table, &mut active);
     seg.active = active;
     if table != before {
         seg.with_segments(|t| *t = table);
     }
-    if let Some(value) = remove {
-        seg.remove_segment(value);
-    }
-    if ui.button("Add segment").clicked() {
-        seg.add_segment();
+    match change {
+        Some(SegmentListChange::Remove(value)) => seg.remove_segment(value),
+        Some(SegmentListChange::Add) => seg.add_segment(),
+        None => {}
     }
 }
 

@@ -230,7 +230,7 @@ pub(crate) fn drag(h: &mut Harness<'static, Option<StrataApp>>, from: egui::Pos2
 
 pub(crate) fn set_tool(
     h: &mut Harness<'static, Option<StrataApp>>,
-    tool: crate::measurements::Tool,
+    tool: strata_viewer_ui::measurements::Tool,
 ) {
     h.state_mut()
         .as_mut()

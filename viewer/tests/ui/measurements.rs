@@ -4,7 +4,7 @@ use super::harness::*;
 
 #[test]
 fn a_ruler_reads_the_millimetres_and_a_box_roi_the_phantoms_statistics_and_undo_removes_them() {
-    use crate::measurements::{Shape, Tool};
+    use strata_viewer_ui::measurements::{Shape, Tool};
     let dir = tempfile::tempdir().expect("temp dir");
     let store = phantom_store(dir.path());
     let mut h = harness(&store, false);
@@ -29,7 +29,7 @@ fn a_ruler_reads_the_millimetres_and_a_box_roi_the_phantoms_statistics_and_undo_
             panic!("not a ruler: {:?}", items[0]);
         };
         (
-            crate::measurements::distance_mm(&v.data.info.geometry, a, b),
+            strata_viewer_ui::measurements::distance_mm(&v.data.info.geometry, a, b),
             items[0].describe(&v.data.info.geometry, "HU"),
         )
     };
@@ -121,7 +121,7 @@ fn a_ruler_reads_the_millimetres_and_a_box_roi_the_phantoms_statistics_and_undo_
 /// views keep their rects), and the first transfer-function edit does not move the plot.
 #[test]
 fn a_long_roi_line_and_the_first_tf_edit_move_nothing() {
-    use crate::measurements::{RoiStats, Shape};
+    use strata_viewer_ui::measurements::{RoiStats, Shape};
 
     let dir = tempfile::tempdir().expect("temp dir");
     let store = phantom_store(dir.path());
@@ -201,4 +201,77 @@ fn a_long_roi_line_and_the_first_tf_edit_move_nothing() {
         .plot_rect
         .expect("plot drawn");
     assert_eq!(plot_before, plot_after, "the first TF edit moved the plot");
+}
+
+/// A link with measurements (`m=`, as the page writes it) opens with them on the desktop: the
+/// ruler reads the millimetres between its points, the box gets the phantom's statistics from
+/// its slice once the full-resolution slice is shown (the link carries no statistics), and
+/// the desktop's "Copy link" gives them back as the link wrote them.
+#[test]
+fn a_link_with_measurements_opens_with_them_and_copy_link_carries_them() {
+    use strata_service::server::{name_for_store, start, ServeOptions};
+    use strata_viewer_ui::measurements::{distance_mm, Shape};
+
+    let dir = tempfile::tempdir().expect("temp dir");
+    let store = phantom_store(dir.path());
+    let name = name_for_store(&store);
+    let server = start(vec![(name.clone(), store.clone())], ServeOptions::default())
+        .expect("serving the phantom");
+    let measurements = "r:10,10,20,30,25,20;ba:14,16,20,21,26,20";
+    let link = format!(
+        "{}/#store={name}&mode=mip&cursor=24,24,20&m={measurements}",
+        server.base_url()
+    );
+    let mut options = ViewerOptions::new(VolumeToOpen::Url {
+        url: link,
+        token_file: None,
+        token: None,
+    });
+    options.import_folder = dir.path().join("imported");
+    let mut h = harness_with(options, two_by_two(false));
+    let stats = step_until_some(&mut h, "the link's box measured at full resolution", |a| {
+        let items = &a.volume.as_ref()?.scene.measurements.items;
+        match items.get(1).map(|m| &m.shape) {
+            Some(Shape::Roi {
+                stats: Some(stats), ..
+            }) if stats.level == 0 => Some(*stats),
+            _ => None,
+        }
+    });
+    let phantom = Phantom::cube(48);
+    let spacing = phantom.geometry().spacing_mm[0];
+    let (ruler, copied) = {
+        let a = app(&h);
+        let v = a.volume.as_ref().expect("volume");
+        let items = &v.scene.measurements.items;
+        assert_eq!(items.len(), 2, "{items:?}");
+        let Shape::Distance { a: from, b: to } = items[0].shape else {
+            panic!("not a ruler: {:?}", items[0]);
+        };
+        (
+            distance_mm(&v.data.info.geometry, from, to),
+            a.share_link().expect("a served store has a link"),
+        )
+    };
+    // 20 voxels across and 15 down: 25 voxels.
+    assert!((ruler - 25.0 * spacing).abs() < 1e-9, "ruler {ruler} mm");
+    // The phantom's HU at the voxel centres inside the box (corners on centres, inclusive).
+    let values: Vec<f64> = (16..=26)
+        .flat_map(|j| (14..=21).map(move |i| (i, j)))
+        .map(|(i, j)| phantom.hu(i, j, 20) as f64)
+        .collect();
+    let n = values.len() as f64;
+    let mean = values.iter().sum::<f64>() / n;
+    let sd = (values.iter().map(|v| (v - mean) * (v - mean)).sum::<f64>() / n).sqrt();
+    assert_eq!(stats.voxels, values.len() as u64, "{stats:?}");
+    // Two summation orders (one pass of sums and squares, against mean then deviations).
+    let close = |a: f64, b: f64| (a - b).abs() <= 1e-6 * (1.0 + b.abs());
+    assert!(
+        close(stats.mean, mean) && close(stats.sd, sd),
+        "{stats:?} vs mean {mean} sd {sd}"
+    );
+    assert!(
+        copied.contains(&format!("&m={measurements}")),
+        "the copied link {copied}"
+    );
 }

@@ -90,7 +90,7 @@ fn a_file_that_cannot_be_opened_shows_its_error_once() {
 #[test]
 fn a_lost_gpu_device_is_rebuilt_with_a_smaller_cache_and_the_session_carries_on() {
     use crate::gpu_recovery::InjectedFault;
-    use crate::measurements::Tool;
+    use strata_viewer_ui::measurements::Tool;
     let (_dir, mut h, first) = open_phantom_settled(true, "the phantom");
     h.get_by_label("Soft tissue").click();
     step_until(&mut h, "the axial slice on screen", |a| {

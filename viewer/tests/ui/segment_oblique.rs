@@ -2,7 +2,8 @@
 //! events (egui_kittest on wgpu, lavapipe in CI; issue 52): the label overlay drawn over a
 //! tilted plane equals the nearest-label model of that plane sampled in f64, the brush and the
 //! eraser dragged across a tilted plane change exactly the voxels the segment crate's model of
-//! the stroke gives, and one click on a tool's button chooses that tool.
+//! the stroke gives, a fill inside a brushed square takes exactly its inside, and one click on a
+//! tool's button chooses that tool.
 //!
 //! Label comparisons are exact, except at pixels whose centre lies within 1e-6 (in voxels) of
 //! a boundary between two label voxels, where f64 rounding may pick either neighbour.
@@ -13,8 +14,8 @@ use egui::Vec2;
 use glam::DVec3;
 
 use super::harness::{
-    app, drag, harness_sized, labelled_voxels, new_segmentation, phantom_store, set_segment_tool,
-    step_until, step_until_some,
+    app, click, drag, harness_sized, labelled_voxels, new_segmentation, phantom_store,
+    set_segment_tool, step_until, step_until_some,
 };
 use crate::app::{Layout, Preferences, StrataApp, ViewerOptions};
 use crate::jobs::VolumeToOpen;
@@ -460,6 +461,155 @@ fn on_a_tilted_oblique_view_the_brush_and_eraser_change_the_models_voxels_and_un
         after, expected,
         "the brush left its value range, painted a locked voxel or missed the model's voxels"
     );
+}
+
+/// Fill on the oblique view turned 0.5 and 0.35 rad off axial: four brush strokes close a
+/// square in the plane, then one click with Fill (and a new segment) inside it takes exactly
+/// the voxels of the plane's slab (the brush's: `-h/2 ≤ n·(x − c) < h/2`, h the largest voxel
+/// step along n) whose centre, projected into the plane, lies inside the square and that the
+/// strokes left unpainted: positions, not counts. The strokes' band (30 mm) is wider than any
+/// step between neighbouring voxels of the slab (√2 · 8.3 mm), so the fill cannot leak through
+/// it; the fill is one undo step.
+#[test]
+fn on_a_tilted_oblique_view_fill_takes_the_inside_of_a_brushed_square() {
+    use strata_segment::tools::brush::SlicePlane;
+    let dir = tempfile::tempdir().expect("temp dir");
+    let store = phantom_store(dir.path());
+    let options = options_with_oblique(store, dir.path());
+    let mut h = harness_sized(
+        options,
+        oblique_preferences(true),
+        Vec2::new(1100.0, 1000.0),
+    );
+    step_until(&mut h, "the oblique image", |a| {
+        a.volume
+            .as_ref()
+            .is_some_and(|v| v.oblique_view.shown().is_some())
+    });
+    new_segmentation(&mut h, 30.0);
+    let request = tilt_oblique(&mut h, 0.5, 0.35);
+    let rect = app(&h)
+        .volume
+        .as_ref()
+        .and_then(|v| v.oblique_view.image_rect)
+        .expect("oblique image on screen");
+    // The square's corners (screen offsets from the image's centre), each side drawn past its
+    // corners so that the strokes overlap there.
+    let half_side = 75.0;
+    let corners = [
+        Vec2::new(-half_side, -half_side),
+        Vec2::new(half_side, -half_side),
+        Vec2::new(half_side, half_side),
+        Vec2::new(-half_side, half_side),
+    ];
+    for n in 0..4 {
+        let (a, b) = (corners[n], corners[(n + 1) % 4]);
+        let past = (b - a).normalized() * 25.0;
+        drag(&mut h, rect.center() + a - past, rect.center() + b + past);
+    }
+    let painted: std::collections::BTreeSet<[u32; 3]> = labelled_voxels(app(&h))
+        .into_iter()
+        .map(|(v, _)| v)
+        .collect();
+    assert!(
+        painted.len() > 40,
+        "the square's strokes cover {} voxels",
+        painted.len()
+    );
+
+    if let Some(seg) = h
+        .state_mut()
+        .as_mut()
+        .and_then(|a| a.volume.as_mut())
+        .and_then(|v| v.segmentation.as_mut())
+    {
+        seg.add_segment();
+        assert_eq!(seg.active, 2, "the fill paints the new segment");
+    }
+    set_segment_tool(&mut h, SegmentTool::Fill);
+    click(&mut h, rect.center(), egui::PointerButton::Primary);
+    let seg = app(&h)
+        .volume
+        .as_ref()
+        .and_then(|v| v.segmentation.as_ref())
+        .expect("segmentation");
+    assert_eq!(seg.error, None, "the fill reported an error");
+    let filled: Vec<[u32; 3]> = labelled_voxels(app(&h))
+        .into_iter()
+        .filter(|&(_, l)| l == 2)
+        .map(|(v, _)| v)
+        .collect();
+
+    // The model, over every voxel of the grid in f64.
+    let SlicePlane::Oblique { centre_lps, u, v } = request.plane.brush_plane() else {
+        panic!("the oblique view's brush plane is oblique");
+    };
+    let geometry = app(&h)
+        .volume
+        .as_ref()
+        .expect("volume")
+        .data
+        .info
+        .geometry
+        .clone();
+    let normal = u.cross(v);
+    let half = (0..3)
+        .map(|a| geometry.spacing_mm[a] * normal.dot(DVec3::from(geometry.direction[a])).abs())
+        .fold(0.0, f64::max)
+        / 2.0;
+    let in_plane = |x: DVec3| ((x - centre_lps).dot(u), (x - centre_lps).dot(v));
+    let (a0, b0) = in_plane(pixel_patient(
+        &request.plane,
+        rect,
+        rect.center() + corners[0],
+    ));
+    let (a1, b1) = in_plane(pixel_patient(
+        &request.plane,
+        rect,
+        rect.center() + corners[2],
+    ));
+    let [nx, ny, nz] = geometry.dims;
+    let mut want = Vec::new();
+    for k in 0..nz {
+        for j in 0..ny {
+            for i in 0..nx {
+                let x = geometry.patient_from_index(DVec3::new(
+                    f64::from(i),
+                    f64::from(j),
+                    f64::from(k),
+                ));
+                let off = normal.dot(x - centre_lps);
+                let (a, b) = in_plane(x);
+                if (-half..half).contains(&off)
+                    && a0.min(a1) < a
+                    && a < a0.max(a1)
+                    && b0.min(b1) < b
+                    && b < b0.max(b1)
+                    && !painted.contains(&[i, j, k])
+                {
+                    want.push([i, j, k]);
+                }
+            }
+        }
+    }
+    want.sort_by_key(|v| [v[2], v[1], v[0]]);
+    assert!(
+        want.len() > 20,
+        "the model's inside is too small to test: {}",
+        want.len()
+    );
+    assert_eq!(
+        filled, want,
+        "the fill took other voxels than the model's inside"
+    );
+
+    h.get_by_label("Undo").click();
+    h.step();
+    let after_undo: std::collections::BTreeSet<[u32; 3]> = labelled_voxels(app(&h))
+        .into_iter()
+        .map(|(v, _)| v)
+        .collect();
+    assert_eq!(after_undo, painted, "one undo removes the whole fill");
 }
 
 /// One click on each button of the Segment section's tool row chooses that tool, starting on

@@ -1,0 +1,175 @@
+//! The Segment section's platform-independent part (issue 52 item 7), drawn by the desktop's
+//! Segment panel (viewer/src/panels/segment.rs) and the browser page's (web/src/segment_editor.rs):
+//! the tool row (off, brush, eraser, slice fill, and 3D grow where the viewer offers it; the
+//! brush diameter in mm), the segment list (active segment, colour, name, shown, locked,
+//! remove; Add segment), the labels' opacity, and the colour a label is drawn with.
+//!
+//! It edits plain data: the tool and size, the active label and a strata-segment
+//! [`SegmentTable`] the caller copied out of its layer, and says what the caller must do to the
+//! layer itself ([`SegmentListChange`]: adding and removing are edits, undoable on each side).
+//!
+//! Every row wraps inside the panel's width rather than widening it: a row wider than the
+//! panel made the desktop's right-hand panel grow on the frame after the segmentation opened,
+//! moving every widget under a pointer that had not moved
+//! (`ui_tests::segment_oblique::one_click_on_a_tool_button_chooses_that_tool`).
+
+use egui::Rect;
+use strata_segment::{Label, SegmentTable};
+
+/// The brush diameter both viewers start with (mm).
+pub const DEFAULT_BRUSH_DIAMETER_MM: f64 = 10.0;
+/// The labels' opacity over the slices both viewers start with (the desktop overlay's).
+pub const DEFAULT_LABEL_OPACITY: f32 = 0.5;
+
+/// The tool the left button uses on a slice view.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SegmentTool {
+    /// The left button moves the crosshair (or measures).
+    None,
+    Brush,
+    Eraser,
+    /// A click fills the closed region around it in the slice.
+    Fill,
+    /// A click grows the active segment in 3D from that seed (in the background; the desktop).
+    Grow,
+}
+
+impl SegmentTool {
+    /// Whether the left button is the tool's (not the crosshair's).
+    pub fn paints(self) -> bool {
+        self != SegmentTool::None
+    }
+
+    /// The tool as the 3D view offers it: fill works within a slice, so it has no 3D form.
+    pub fn filter_3d(self) -> SegmentTool {
+        match self {
+            SegmentTool::Fill => SegmentTool::None,
+            tool => tool,
+        }
+    }
+
+    /// Whether the tool is dragged (brush, eraser) rather than clicked.
+    pub fn drags(self) -> bool {
+        matches!(self, SegmentTool::Brush | SegmentTool::Eraser)
+    }
+}
+
+/// The tool buttons and the brush diameter, on one wrapping row; `offer_grow` adds the 3D grow
+/// (the desktop: it runs on a thread of its own). Returns each tool button's rectangle (the
+/// page publishes them for its browser tests).
+pub fn tool_row(
+    ui: &mut egui::Ui,
+    tool: &mut SegmentTool,
+    diameter_mm: &mut f64,
+    offer_grow: bool,
+) -> Vec<(SegmentTool, Rect)> {
+    let mut buttons = Vec::new();
+    ui.horizontal_wrapped(|ui| {
+        let mut offered = vec![
+            (
+                SegmentTool::None,
+                "Off",
+                "The left button moves the crosshair",
+            ),
+            (
+                SegmentTool::Brush,
+                "Brush",
+                "Paint the active segment: drag on a slice",
+            ),
+            (
+                SegmentTool::Eraser,
+                "Eraser",
+                "Clear any unlocked segment: drag on a slice",
+            ),
+            (
+                SegmentTool::Fill,
+                "Fill",
+                "Fill the closed region around a click, in that slice",
+            ),
+        ];
+        if offer_grow {
+            offered.push((
+                SegmentTool::Grow,
+                "Grow",
+                "Grow the active segment in 3D from a clicked seed",
+            ));
+        }
+        for (value, label, hover) in offered {
+            let response = ui.selectable_value(tool, value, label).on_hover_text(hover);
+            buttons.push((value, response.rect));
+        }
+        ui.add(
+            egui::DragValue::new(diameter_mm)
+                .range(0.1..=500.0)
+                .speed(0.2)
+                .suffix(" mm"),
+        )
+        .on_hover_text("Brush diameter");
+    });
+    buttons
+}
+
+/// What the segment list asks the caller to do to its layer.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SegmentListChange {
+    /// Add a segment (and make it the active one).
+    Add,
+    /// Remove this segment and clear its voxels (one undoable edit).
+    Remove(Label),
+}
+
+/// The segments, one wrapping row each: active (radio), colour, name, shown, locked, remove;
+/// then Add segment. Names, colours and the two flags are edited in `table` in place; adding
+/// and removing are returned for the caller's layer to do.
+pub fn segment_list(
+    ui: &mut egui::Ui,
+    table: &mut SegmentTable,
+    active: &mut Label,
+) -> Option<SegmentListChange> {
+    let mut change = None;
+    let values: Vec<Label> = table.iter().map(|s| s.value).collect();
+    for value in values {
+        let Some(s) = table.get_mut(value) else {
+            continue;
+        };
+        ui.horizontal_wrapped(|ui| {
+            ui.radio_value(active, s.value, "")
+                .on_hover_text("The segment the tools paint");
+            ui.color_edit_button_srgb(&mut s.rgb);
+            // The hover text names the field for screen readers and tests too.
+            ui.add(egui::TextEdit::singleline(&mut s.name).desired_width(110.0))
+                .on_hover_text("The segment's name");
+            ui.checkbox(&mut s.visible, "Shown");
+            ui.checkbox(&mut s.locked, "Locked")
+                .on_hover_text("No tool paints over or erases a locked segment");
+            if ui
+                .small_button("×")
+                .on_hover_text("Remove the segment and clear its voxels (undoable)")
+                .clicked()
+            {
+                change = Some(SegmentListChange::Remove(s.value));
+            }
+        });
+    }
+    if ui.button("Add segment").clicked() {
+        change = Some(SegmentListChange::Add);
+    }
+    change
+}
+
+/// The labels' opacity over the slices.
+pub fn opacity_row(ui: &mut egui::Ui, opacity: &mut f32) -> egui::Response {
+    ui.add(egui::Slider::new(opacity, 0.0..=1.0).text("Opacity"))
+}
+
+/// The colour `label` is drawn with over a slice, unmultiplied RGBA: its segment's colour at
+/// `opacity`; clear for background, a hidden segment, or a value no segment has.
+pub fn label_rgba(table: &SegmentTable, label: Label, opacity: f32) -> [u8; 4] {
+    match table.get(label) {
+        Some(s) if label != 0 && s.visible => {
+            let [r, g, b] = s.rgb;
+            [r, g, b, (opacity.clamp(0.0, 1.0) * 255.0).round() as u8]
+        }
+        _ => [0; 4],
+    }
+}

@@ -1,0 +1,137 @@
+//! The page's measurements (wasm32 only; issue 47): the desktop's rulers, angles and box and
+//! ellipse ROIs, from strata-viewer-ui's measurements (the model, the slice views' gestures and
+//! drawing, the statistics and the list panel are the desktop's code, not a copy). Here: the
+//! side panel's section (the tool row and the list), keeping the list in the view's
+//! [`ViewState::measurements`] (so the address carries it as `m=` and the page's undo, which
+//! snapshots the view, undoes it), and what the page publishes for its tests:
+//! - `data-measurements` on the canvas: one line per measurement,
+//!   `ID|KIND|I,J,K;I,J,K[;I,J,K]|FIGURES|TEXT` with KIND `ruler`, `angle`, `box-VIEW` or
+//!   `ellipse-VIEW`, the points' level-0 indices, FIGURES the millimetres, the degrees, or
+//!   `voxels,mean,sd,min,max,area_mm2,level` (empty before a region's slice came), all written
+//!   so that they read back exactly, and TEXT the line the list shows;
+//! - `data-measure-tools`: each tool button's rectangle (`LABEL:x,y,w,h;…`, CSS pixels of the
+//!   canvas), where the browser tests click to choose a tool;
+//! - `data-measure-tool`: the tool chosen and the points placed of the one being drawn
+//!   (`LABEL,N`), so a test knows that its click was taken (a click held too long by a busy
+//!   machine is no click to egui) before it clicks on.
+//!
+//! web/tests/browser/measure.rs checks the page's figures against the desktop's functions.
+
+use strata_render::VolumeGeometry;
+use strata_viewer_ui::measurements::{angle_deg, distance_mm, panel, Measurement, Shape};
+
+use crate::slice_views::SliceViews;
+use crate::view_state::ViewState;
+
+/// The side panel's "Measurements" section for the slice views on screen: the list follows
+/// the view (a link opened, an undo), the panel edits it, and the view takes it back.
+pub fn side_panel_section(ui: &mut egui::Ui, view: &mut ViewState, slices: &mut SliceViews) {
+    egui::CollapsingHeader::new("Measurements")
+        .default_open(true)
+        .show(ui, |ui| {
+            let (measurements, geometry, unit) = slices.measurement_parts();
+            measurements.follow(&view.measurements);
+            let tool_rects = panel(ui, measurements, geometry, unit);
+            if view.measurements != measurements.items {
+                view.measurements = measurements.items.clone();
+            }
+            let text: Vec<String> = tool_rects
+                .iter()
+                .map(|(tool, r)| {
+                    format!(
+                        "{}:{},{},{},{}",
+                        tool.label(),
+                        r.min.x,
+                        r.min.y,
+                        r.width(),
+                        r.height()
+                    )
+                })
+                .collect();
+            set_canvas_attribute("data-measure-tools", &text.join(";"));
+        });
+}
+
+/// Before the slice views draw: their list follows the view (a link opened this frame).
+pub fn before_slice_views(view: &ViewState, slices: &mut SliceViews) {
+    slices.measurement_parts().0.follow(&view.measurements);
+}
+
+/// After the slice views drew (and took gestures): the view takes their list, and the page
+/// publishes it.
+pub fn after_slice_views(view: &mut ViewState, slices: &mut SliceViews) {
+    let (measurements, geometry, unit) = slices.measurement_parts();
+    if view.measurements != measurements.items {
+        view.measurements = measurements.items.clone();
+    }
+    let lines: Vec<String> = measurements
+        .items
+        .iter()
+        .map(|m| published_line(m, geometry, unit))
+        .collect();
+    set_canvas_attribute("data-measurements", &lines.join("\n"));
+    let state = format!(
+        "{},{}",
+        measurements.tool.label(),
+        measurements.draft.points.len()
+    );
+    set_canvas_attribute("data-measure-tool", &state);
+}
+
+/// One measurement as `data-measurements` lists it (see the module's doc).
+fn published_line(m: &Measurement, geometry: &VolumeGeometry, unit: &str) -> String {
+    let (kind, figures) = match &m.shape {
+        Shape::Distance { a, b } => (
+            "ruler".to_string(),
+            format!("{}", distance_mm(geometry, *a, *b)),
+        ),
+        Shape::Angle { a, vertex, b } => (
+            "angle".to_string(),
+            format!("{}", angle_deg(geometry, *a, *vertex, *b)),
+        ),
+        Shape::Roi {
+            view,
+            ellipse,
+            stats,
+            ..
+        } => (
+            format!(
+                "{}-{}",
+                if *ellipse { "ellipse" } else { "box" },
+                view.name().to_lowercase()
+            ),
+            stats
+                .map(|s| {
+                    format!(
+                        "{},{},{},{},{},{},{}",
+                        s.voxels, s.mean, s.sd, s.min, s.max, s.area_mm2, s.level
+                    )
+                })
+                .unwrap_or_default(),
+        ),
+    };
+    let points: Vec<String> = m
+        .points()
+        .iter()
+        .map(|[i, j, k]| format!("{i},{j},{k}"))
+        .collect();
+    format!(
+        "{}|{kind}|{}|{figures}|{}",
+        m.id,
+        points.join(";"),
+        m.describe(geometry, unit)
+    )
+}
+
+/// Sets an attribute of the page's canvas when it changed.
+fn set_canvas_attribute(name: &str, text: &str) {
+    let Some(canvas) = web_sys::window()
+        .and_then(|w| w.document())
+        .and_then(|d| d.get_element_by_id("strata-canvas"))
+    else {
+        return;
+    };
+    if canvas.get_attribute(name).as_deref() != Some(text) {
+        let _ = canvas.set_attribute(name, text);
+    }
+}
