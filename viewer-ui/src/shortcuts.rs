@@ -67,14 +67,15 @@ pub const SHORTCUTS: &[Shortcut] = &[
         "Ctrl+Z, Ctrl+Shift+Z / Ctrl+Y",
         "undo, redo (TF, window, crop, measurements)",
     ),
-    desktop(
+    both(
         "Click (3D)",
         "move the crosshair to what is seen there (pick)",
     ),
-    desktop(
+    both(
         "Ruler / Angle / ROI tools",
-        "measure on slices (drag, clicks) and in 3D (clicks)",
+        "measure on slices (drag, clicks)",
     ),
+    desktop("Ruler / Angle tools (3D)", "measure in 3D (clicks)"),
     desktop("Ctrl+O", "open or import"),
     both("F1, H, ?", "this help"),
 ];
@@ -231,6 +232,7 @@ mod tests {
             assert!(page.iter().any(|s| s.keys == keys), "{keys}");
         }
         assert!(!page.iter().any(|s| s.keys == "Ctrl+O"));
+        assert!(!page.iter().any(|s| s.keys == "Ruler / Angle tools (3D)"));
         let mut mode = strata_render::RenderMode::Dvr;
         for _ in 0..3 {
             mode = next_mode(mode);

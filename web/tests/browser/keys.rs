@@ -138,11 +138,17 @@ fn ctrl_z_undoes_a_window_drag_ctrl_shift_z_redoes_it_and_f1_shows_the_help() {
     });
 }
 
-/// The page as the screenshot shows it: RGBA8 rows of the viewport, with its width.
-fn page_screenshot(page: &mut Cdp) -> (u32, Vec<u8>) {
+/// The page as the screenshot shows it: RGBA8 rows of the viewport, with its width. The PNG
+/// is kept as `$TMPDIR/strata-browser-tests/NAME.png` for a failure's reader.
+fn page_screenshot(page: &mut Cdp, name: &str) -> (u32, Vec<u8>) {
     let shot = page.command("Page.captureScreenshot", json!({ "format": "png" }));
     let data = shot["data"].as_str().expect("screenshot data");
-    let mut reader = png::Decoder::new(std::io::Cursor::new(base64_decode(data)))
+    let png = base64_decode(data);
+    let kept = std::env::temp_dir().join("strata-browser-tests");
+    if std::fs::create_dir_all(&kept).is_ok() {
+        let _ = std::fs::write(kept.join(format!("{name}.png")), &png);
+    }
+    let mut reader = png::Decoder::new(std::io::Cursor::new(png))
         .read_info()
         .expect("the screenshot is a PNG");
     let mut pixels = vec![0; reader.output_buffer_size().expect("size")];
@@ -295,7 +301,6 @@ fn f12_downloads_the_drawn_frame_and_the_triad_turns_with_the_standard_views() {
     );
 
     let geometry = Fragment::parse(fragment).expect("fragment").view.geometry();
-    let rect = view_rect(&mut page, "3d");
     let mut anterior_l = None;
     for (key, code, standard) in [
         ("a", "KeyA", StandardView::Anterior),
@@ -312,10 +317,24 @@ fn f12_downloads_the_drawn_frame_and_the_triad_turns_with_the_standard_views() {
         let view = wait_for_link(&mut page, &format!("the {standard:?} view"), |v| {
             close(v.azimuth_deg, az) && close(v.elevation_deg, el)
         });
-        page.next_frames();
+        // The view's place as the screenshot shows it: the same before and after it (a
+        // headless window may still settle its size while the page starts).
+        let (rect, (width, shot)) = page.wait_for(
+            "the 3D view to stay put over a screenshot",
+            PAGE_DEADLINE,
+            |page| {
+                page.next_frames();
+                let before = view_rect(page, "3d");
+                let shot = page_screenshot(page, &format!("triad-{standard:?}"));
+                (view_rect(page, "3d") == before).then_some((before, shot))
+            },
+        );
         let shown = triad(rect, &view.camera(&geometry));
-        let (width, shot) = page_screenshot(&mut page);
-        assert_triad_drawn(&format!("{standard:?} view"), width, &shot, &shown);
+        let what = format!(
+            "{standard:?} view (3D view at {rect:?}, the page's views: {:?})",
+            canvas_data(&mut page, "views")
+        );
+        assert_triad_drawn(&what, width, &shot, &shown);
         let l_axis = shown.axes.iter().find(|a| a.positive == "L").expect("L");
         match anterior_l {
             None => anterior_l = Some((shown.centre + l_axis.tip * 0.6, l_axis.colour)),
