@@ -2,11 +2,15 @@
 //! Segment panel (viewer/src/panels/segment.rs) and the browser page's (web/src/segment_editor.rs):
 //! the tool row (off, brush, eraser, slice fill, and 3D grow where the viewer offers it; the
 //! brush diameter in mm), the segment list (active segment, colour, name, shown, locked,
-//! remove; Add segment), the labels' opacity, and the colour a label is drawn with.
+//! remove; Add segment), the operations on the active segment (fill between slices, islands,
+//! margin, union / subtract / intersect with another segment), the labels' opacity, and the
+//! colour a label is drawn with.
 //!
-//! It edits plain data: the tool and size, the active label and a strata-segment
-//! [`SegmentTable`] the caller copied out of its layer, and says what the caller must do to the
-//! layer itself ([`SegmentListChange`]: adding and removing are edits, undoable on each side).
+//! It edits plain data: the tool and size, the active label, the operations' settings and a
+//! strata-segment [`SegmentTable`] the caller copied out of its layer, and says what the caller
+//! must do to the layer itself ([`SegmentListChange`]: adding and removing are edits, undoable
+//! on each side; [`SegmentOperation`]: each operation is one edit, run by the caller with
+//! strata-segment's `tools::{interpolate, morphology}`, none needing the primary's values).
 //!
 //! Every row wraps inside the panel's width rather than widening it: a row wider than the
 //! panel made the desktop's right-hand panel grow on the frame after the segmentation opened,
@@ -14,6 +18,7 @@
 //! (`ui_tests::segment_oblique::one_click_on_a_tool_button_chooses_that_tool`).
 
 use egui::Rect;
+use strata_segment::tools::morphology::{Islands, LogicalOp};
 use strata_segment::{Label, SegmentTable};
 
 /// The brush diameter both viewers start with (mm).
@@ -155,6 +160,153 @@ pub fn segment_list(
         change = Some(SegmentListChange::Add);
     }
     change
+}
+
+/// An operation on the active segment, chosen in [`operations`]; the caller runs it on its
+/// layer as one undo step.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum SegmentOperation {
+    /// Interpolate the slices between the drawn ones, along the caller's last stroke's plane
+    /// (the caller knows it; the panel does not).
+    FillBetween,
+    Islands(Islands),
+    /// Grow (> 0) or shrink (< 0) by this many mm.
+    Margin(f64),
+    /// The active segment combined with this other one.
+    Combine(LogicalOp, Label),
+}
+
+/// The operations' own inputs, kept by the caller between frames.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct OperationSettings {
+    /// Remove islands smaller than this many voxels.
+    pub min_island_voxels: u64,
+    pub margin_mm: f64,
+    /// The other segment of union / subtract / intersect as chosen (0: none yet).
+    pub other: Label,
+}
+
+impl Default for OperationSettings {
+    fn default() -> Self {
+        OperationSettings {
+            min_island_voxels: 100,
+            margin_mm: 2.0,
+            other: 0,
+        }
+    }
+}
+
+impl OperationSettings {
+    /// The other segment a logical operation may use now: the one chosen, while it is still a
+    /// segment of `table` and not the `active` one. A choice goes stale when that segment is
+    /// removed or made active, and combining a segment with itself or a missing one is refused
+    /// by strata-segment, so the buttons are disabled instead.
+    pub fn operand(&self, table: &SegmentTable, active: Label) -> Option<Label> {
+        (self.other != 0 && self.other != active && table.get(self.other).is_some())
+            .then_some(self.other)
+    }
+}
+
+/// What [`operations`] drew: the operation asked for this frame, and each button's name and
+/// rectangle (`between`, `largest`, `islands`, `margin`, `union`, `subtract`, `intersect`; the
+/// page publishes them for its browser tests).
+pub struct OperationsResponse {
+    pub chosen: Option<SegmentOperation>,
+    pub buttons: Vec<(&'static str, Rect)>,
+}
+
+/// The operations on the active segment, in three wrapping rows: Between slices, Keep largest,
+/// Remove islands < N; Margin with its mm; the other segment's choice and union / subtract /
+/// intersect. `enabled` is false while the caller cannot edit (no active segment, a grow
+/// running).
+pub fn operations(
+    ui: &mut egui::Ui,
+    settings: &mut OperationSettings,
+    table: &SegmentTable,
+    active: Label,
+    enabled: bool,
+) -> OperationsResponse {
+    let mut chosen = None;
+    let mut buttons = Vec::new();
+    ui.add_enabled_ui(enabled && active != 0, |ui| {
+        ui.horizontal_wrapped(|ui| {
+            let between = ui.button("Between slices").on_hover_text(
+                "Interpolate the active segment into the slices between the ones drawn, along \
+                 the last stroke's view",
+            );
+            if between.clicked() {
+                chosen = Some(SegmentOperation::FillBetween);
+            }
+            let largest = ui
+                .button("Keep largest")
+                .on_hover_text("Keep only the largest connected island");
+            if largest.clicked() {
+                chosen = Some(SegmentOperation::Islands(Islands::KeepLargest));
+            }
+            let islands = ui
+                .button("Remove islands <")
+                .on_hover_text("Remove the islands with fewer voxels than this");
+            if islands.clicked() {
+                chosen = Some(SegmentOperation::Islands(Islands::RemoveSmallerThan(
+                    settings.min_island_voxels,
+                )));
+            }
+            ui.add(
+                egui::DragValue::new(&mut settings.min_island_voxels)
+                    .range(1..=u64::MAX)
+                    .suffix(" vx"),
+            );
+            buttons.extend([
+                ("between", between.rect),
+                ("largest", largest.rect),
+                ("islands", islands.rect),
+            ]);
+        });
+        ui.horizontal_wrapped(|ui| {
+            let margin = ui
+                .button("Margin")
+                .on_hover_text("Grow (> 0) or shrink (< 0) the active segment by this many mm");
+            if margin.clicked() {
+                chosen = Some(SegmentOperation::Margin(settings.margin_mm));
+            }
+            ui.add(
+                egui::DragValue::new(&mut settings.margin_mm)
+                    .range(-200.0..=200.0)
+                    .speed(0.1)
+                    .suffix(" mm"),
+            );
+            buttons.push(("margin", margin.rect));
+        });
+        ui.horizontal_wrapped(|ui| {
+            let operand = settings.operand(table, active);
+            let name = operand
+                .and_then(|v| table.get(v))
+                .map_or_else(|| "—".to_string(), |s| s.name.clone());
+            // Labelled: the label is its accessible name too (screen readers, kittest).
+            egui::ComboBox::new("segment operand", "other segment")
+                .selected_text(name)
+                .width(90.0)
+                .show_ui(ui, |ui| {
+                    for s in table.iter().filter(|s| s.value != active) {
+                        ui.selectable_value(&mut settings.other, s.value, &s.name);
+                    }
+                });
+            for (op, label, name) in [
+                (LogicalOp::Union, "Union", "union"),
+                (LogicalOp::Subtract, "Subtract", "subtract"),
+                (LogicalOp::Intersect, "Intersect", "intersect"),
+            ] {
+                let button = ui
+                    .add_enabled(operand.is_some(), egui::Button::new(label))
+                    .on_hover_text("The active segment with the chosen one");
+                if let (true, Some(other)) = (button.clicked(), operand) {
+                    chosen = Some(SegmentOperation::Combine(op, other));
+                }
+                buttons.push((name, button.rect));
+            }
+        });
+    });
+    OperationsResponse { chosen, buttons }
 }
 
 /// The labels' opacity over the slices.

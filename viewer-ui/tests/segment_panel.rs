@@ -1,9 +1,11 @@
 use egui::accesskit::Role;
 use egui_kittest::kittest::Queryable;
 use egui_kittest::Harness;
+use strata_segment::tools::morphology::{Islands, LogicalOp};
 use strata_segment::{Label, SegmentTable};
 use strata_viewer_ui::segment_panel::{
-    label_rgba, segment_list, tool_row, SegmentListChange, SegmentTool, DEFAULT_BRUSH_DIAMETER_MM,
+    label_rgba, operations, segment_list, tool_row, OperationSettings, SegmentListChange,
+    SegmentOperation, SegmentTool, DEFAULT_BRUSH_DIAMETER_MM,
 };
 
 struct Panel {
@@ -106,4 +108,116 @@ fn a_label_is_its_segments_colour_at_the_opacity_and_hidden_ones_are_clear() {
     assert_eq!(label_rgba(&table, 7, 0.5), [0; 4]);
     table.get_mut(liver).expect("segment").visible = false;
     assert_eq!(label_rgba(&table, liver, 0.5), [0; 4]);
+}
+
+struct Operations {
+    settings: OperationSettings,
+    table: SegmentTable,
+    active: Label,
+    enabled: bool,
+    chosen: Vec<SegmentOperation>,
+    buttons: Vec<&'static str>,
+}
+
+fn operations_panel() -> Harness<'static, Operations> {
+    let mut table = SegmentTable::new();
+    table.add("Liver").expect("first segment");
+    table.add("Tumour").expect("second segment");
+    let mut harness = Harness::new_ui_state(
+        |ui, p: &mut Operations| {
+            let response = operations(ui, &mut p.settings, &p.table, p.active, p.enabled);
+            p.chosen.extend(response.chosen);
+            p.buttons = response.buttons.iter().map(|(name, _)| *name).collect();
+        },
+        Operations {
+            settings: OperationSettings::default(),
+            table,
+            active: 1,
+            enabled: true,
+            chosen: Vec::new(),
+            buttons: Vec::new(),
+        },
+    );
+    harness.run();
+    harness
+}
+
+/// Each button asks for its operation with the settings' N and margin; the logical operations
+/// wait for another segment that still exists and is not the active one; a disabled section
+/// asks for nothing.
+#[test]
+fn the_operations_return_their_choice_and_combine_only_with_another_live_segment() {
+    let mut h = operations_panel();
+    assert_eq!(
+        h.state().buttons,
+        [
+            "between",
+            "largest",
+            "islands",
+            "margin",
+            "union",
+            "subtract",
+            "intersect"
+        ]
+    );
+    for label in [
+        "Between slices",
+        "Keep largest",
+        "Remove islands <",
+        "Margin",
+    ] {
+        h.get_by_label(label).click();
+        h.run();
+    }
+    // No other segment chosen yet: Union is disabled.
+    h.get_by_label("Union").click();
+    h.run();
+    assert_eq!(
+        h.state().chosen,
+        [
+            SegmentOperation::FillBetween,
+            SegmentOperation::Islands(Islands::KeepLargest),
+            SegmentOperation::Islands(Islands::RemoveSmallerThan(100)),
+            SegmentOperation::Margin(2.0),
+        ]
+    );
+    h.state_mut().chosen.clear();
+    h.state_mut().settings.other = 2;
+    h.run();
+    h.get_by_label("Subtract").click();
+    h.run();
+    assert_eq!(
+        h.state().chosen,
+        [SegmentOperation::Combine(LogicalOp::Subtract, 2)]
+    );
+    // The chosen segment became the active one: combining it with itself is not offered.
+    h.state_mut().chosen.clear();
+    h.state_mut().active = 2;
+    h.run();
+    h.get_by_label("Union").click();
+    h.run();
+    assert!(h.state().chosen.is_empty(), "{:?}", h.state().chosen);
+    // Disabled (a grow or a stroke running): nothing is asked for.
+    h.state_mut().enabled = false;
+    h.run();
+    h.get_by_label("Keep largest").click();
+    h.run();
+    assert!(h.state().chosen.is_empty(), "{:?}", h.state().chosen);
+}
+
+/// The other segment counts only while it is in the table and is not the active one.
+#[test]
+fn a_removed_or_active_operand_is_no_operand() {
+    let mut table = SegmentTable::new();
+    let liver = table.add("Liver").expect("segment");
+    let tumour = table.add("Tumour").expect("segment");
+    let settings = OperationSettings {
+        other: tumour,
+        ..OperationSettings::default()
+    };
+    assert_eq!(settings.operand(&table, liver), Some(tumour));
+    assert_eq!(settings.operand(&table, tumour), None);
+    assert!(table.remove(tumour).is_some());
+    assert_eq!(settings.operand(&table, liver), None);
+    assert_eq!(OperationSettings::default().operand(&table, liver), None);
 }

@@ -9,6 +9,12 @@
 //! are drawn over each slice in their segment's colour at the panel's opacity, nearest voxel
 //! (labels are never interpolated).
 //!
+//! The section's operations (fill between slices along the last stroke's plane, islands,
+//! margin, union / subtract / intersect) are segment_panel's rows, run on the layer with the
+//! desktop's strata-segment functions (`tools::interpolate`, `tools::morphology`) as one undo
+//! step each, on the page's one thread: they read only the labels, and their work is bounded by
+//! the bricks the page's strokes edited.
+//!
 //! Download writes the layer as the NIfTI-1 label map `strata seg export --format nifti`
 //! writes (strata-segment's `nifti_map`, the primary's grid and affine) into a Blob, and an
 //! anchor with `download=` saves it.
@@ -19,8 +25,9 @@
 //! For the browser tests (web/tests/browser/segment.rs) the canvas carries
 //! `data-segmentation` (`segments=N;painted=V;checksum=H;undo=U;redo=R;stroke=0|1`, then
 //! `;error=…` while the panel shows one; or `none`)
-//! and `data-segment-buttons` (`name:x,y,w,h;…` in CSS pixels: new, brush, eraser, fill, undo,
-//! redo, download), each written only when it changes.
+//! and `data-segment-buttons` (`name:x,y,w,h;…` in CSS pixels: new, brush, eraser, fill, the
+//! operations' buttons named by `segment_panel::operations`, undo, redo, download), each
+//! written only when it changes.
 
 use egui::{Color32, Pos2, Rect, TextureHandle, TextureOptions};
 use glam::DVec3;
@@ -29,10 +36,13 @@ use strata_segment::history::{merge_edits, History};
 use strata_segment::nifti_map::label_map_gz_bytes;
 use strata_segment::tools::brush::{self, Brush, BrushAction, BrushShape, EraseTarget, SlicePlane};
 use strata_segment::tools::fill::fill_in_slice;
+use strata_segment::tools::interpolate::fill_between_slices;
+use strata_segment::tools::morphology::{combine, margin, remove_islands, Operand};
 use strata_segment::{Edit, Label, LabelLayer, SegmentError, LABEL_BRICK};
 use strata_slices::{SliceFrame, SliceView};
 use strata_viewer_ui::segment_panel::{
-    self, SegmentListChange, SegmentTool, DEFAULT_BRUSH_DIAMETER_MM, DEFAULT_LABEL_OPACITY,
+    self, OperationSettings, SegmentListChange, SegmentOperation, SegmentTool,
+    DEFAULT_BRUSH_DIAMETER_MM, DEFAULT_LABEL_OPACITY,
 };
 use strata_viewer_ui::slice_canvas::slice_mesh;
 use wasm_bindgen::{JsCast, JsValue};
@@ -70,6 +80,10 @@ pub struct PageSegmentation {
     diameter_mm: f64,
     active: Label,
     opacity: f32,
+    operations: OperationSettings,
+    /// The plane of the last stroke: fill between slices interpolates along its normal, as on
+    /// the desktop.
+    last_plane: SlicePlane,
     stroke: Option<Stroke>,
     /// Counts changes to the layer (strokes, undo, redo, segment table), so label images and
     /// the published figures are remade only when it moves.
@@ -97,6 +111,8 @@ impl PageSegmentation {
             diameter_mm: DEFAULT_BRUSH_DIAMETER_MM,
             active,
             opacity: DEFAULT_LABEL_OPACITY,
+            operations: OperationSettings::default(),
+            last_plane: SlicePlane::Axial,
             stroke: None,
             revision: 0,
             images: [None, None, None],
@@ -214,8 +230,34 @@ impl PageSegmentation {
             BrushAction::Paint(_) => "Brush",
             BrushAction::Erase(_) => "Eraser",
         };
+        self.last_plane = stroke.plane;
         if let Some(edit) = merge_edits(name, stroke.edits) {
             self.history.push(edit);
+        }
+    }
+
+    /// One of the section's operations on the active segment, as one undo step (the
+    /// desktop's `Segmentation::operate`).
+    fn operate(&mut self, operation: SegmentOperation) {
+        let label = self.active;
+        let layer = &mut self.layer;
+        let result = match operation {
+            SegmentOperation::FillBetween => fill_between_slices(layer, label, &self.last_plane),
+            SegmentOperation::Islands(which) => remove_islands(layer, label, which).map(|r| r.0),
+            SegmentOperation::Margin(mm) => margin(layer, label, mm),
+            SegmentOperation::Combine(op, other) => {
+                combine(layer, label, op, Operand::Segment(other))
+            }
+        };
+        match result {
+            Ok(edit) => {
+                self.error = None;
+                if let Some(edit) = edit {
+                    self.history.push(edit);
+                    self.revision += 1;
+                }
+            }
+            Err(e) => self.error = Some(e.to_string()),
         }
     }
 
@@ -444,8 +486,8 @@ fn save_bytes(bytes: &[u8], name: &str, previous: Option<String>) -> Result<Stri
 }
 
 /// The Segment section of the page's side panel, on the slice views' volume: New
-/// segmentation, then the shared tool row, opacity and segment list, Undo, Redo, Download and
-/// Close.
+/// segmentation, then the shared tool row, opacity, segment list and operations, Undo, Redo,
+/// Download and Close.
 pub fn section(ui: &mut egui::Ui, slices: &mut SliceViews) {
     let mut buttons: Vec<(&'static str, Rect)> = Vec::new();
     let geometry = slices.geometry().clone();
@@ -513,6 +555,18 @@ pub fn section(ui: &mut egui::Ui, slices: &mut SliceViews) {
             Err(e) => seg.error = Some(e.to_string()),
         },
         None => {}
+    }
+    let table = seg.layer.segments().clone();
+    let operations = segment_panel::operations(
+        ui,
+        &mut seg.operations,
+        &table,
+        seg.active,
+        seg.stroke.is_none(),
+    );
+    buttons.extend(operations.buttons);
+    if let Some(operation) = operations.chosen {
+        seg.operate(operation);
     }
     let mut close = false;
     ui.horizontal_wrapped(|ui| {

@@ -4,9 +4,9 @@
 //! shown, locked, remove), the operations on the active segment (fill between slices, islands,
 //! margin, union / subtract / intersect), statistics with Copy as CSV, and Save As.
 //!
-//! The tool row and the segment list are strata-viewer-ui's segment_panel, which the browser
-//! page draws too; the value range, grow settings, operations, statistics and Save As are the
-//! desktop's own (they need the primary's values, threads or files).
+//! The tool row, the segment list and the operations are strata-viewer-ui's segment_panel,
+//! which the browser page draws too; the value range, grow settings, statistics and Save As
+//! are the desktop's own (they need the primary's values, threads or files).
 //!
 //! Every row wraps inside the panel's width rather than widening the panel: a row wider than
 //! the panel made the right-hand panel grow by 44 points on the frame after the segmentation
@@ -18,9 +18,9 @@ use std::path::PathBuf;
 use std::sync::Arc;
 
 use egui::{Color32, RichText};
-use strata_segment::tools::morphology::{Islands, LogicalOp};
-use strata_segment::Label;
-use strata_viewer_ui::segment_panel::{self, SegmentListChange};
+use strata_viewer_ui::segment_panel::{
+    self, OperationSettings, SegmentListChange, SegmentOperation,
+};
 
 use crate::file_chooser::{ChooserKind, Chosen, FileChooser};
 use crate::overlay::{Overlay, OverlayKind};
@@ -40,10 +40,8 @@ pub enum SegmentRequest {
 /// The section's own settings and the Save As chooser while it is open.
 pub struct SegmentPanel {
     pub format: SaveFormat,
-    pub min_island_voxels: u64,
-    pub margin_mm: f64,
-    /// The other segment of union / subtract / intersect.
-    pub other: Label,
+    /// Islands' N, the margin and the other segment (the shared operations rows').
+    pub operations: OperationSettings,
     chooser: Option<(FileChooser, SaveFormat)>,
 }
 
@@ -51,9 +49,7 @@ impl Default for SegmentPanel {
     fn default() -> Self {
         SegmentPanel {
             format: SaveFormat::Nifti,
-            min_island_voxels: 100,
-            margin_mm: 2.0,
-            other: 0,
+            operations: OperationSettings::default(),
             chooser: None,
         }
     }
@@ -120,83 +116,20 @@ impl SegmentPanel {
         request
     }
 
+    /// The shared operations rows; the chosen one runs on the layer as one edit (Between
+    /// slices along the last stroke's plane).
     fn operations(&mut self, ui: &mut egui::Ui, seg: &mut Segmentation) {
-        let enabled = !seg.busy() && seg.active != 0;
-        ui.add_enabled_ui(enabled, |ui| {
-            ui.horizontal_wrapped(|ui| {
-                if ui
-                    .button("Between slices")
-                    .on_hover_text(
-                        "Interpolate the active segment into the slices between the ones drawn, \
-                         along the last stroke's view",
-                    )
-                    .clicked()
-                {
-                    seg.operate(Operation::FillBetween(seg.last_plane));
-                }
-                if ui
-                    .button("Keep largest")
-                    .on_hover_text("Keep only the largest connected island")
-                    .clicked()
-                {
-                    seg.operate(Operation::Islands(Islands::KeepLargest));
-                }
-                if ui.button("Remove islands <").clicked() {
-                    seg.operate(Operation::Islands(Islands::RemoveSmallerThan(
-                        self.min_island_voxels,
-                    )));
-                }
-                ui.add(
-                    egui::DragValue::new(&mut self.min_island_voxels)
-                        .range(1..=u64::MAX)
-                        .suffix(" vx"),
-                );
+        let segments = seg.segments();
+        let response =
+            segment_panel::operations(ui, &mut self.operations, &segments, seg.active, !seg.busy());
+        if let Some(chosen) = response.chosen {
+            seg.operate(match chosen {
+                SegmentOperation::FillBetween => Operation::FillBetween(seg.last_plane),
+                SegmentOperation::Islands(which) => Operation::Islands(which),
+                SegmentOperation::Margin(mm) => Operation::Margin(mm),
+                SegmentOperation::Combine(op, other) => Operation::Combine(op, other),
             });
-            ui.horizontal_wrapped(|ui| {
-                if ui
-                    .button("Margin")
-                    .on_hover_text("Grow (> 0) or shrink (< 0) the active segment by this many mm")
-                    .clicked()
-                {
-                    seg.operate(Operation::Margin(self.margin_mm));
-                }
-                ui.add(
-                    egui::DragValue::new(&mut self.margin_mm)
-                        .range(-200.0..=200.0)
-                        .speed(0.1)
-                        .suffix(" mm"),
-                );
-            });
-            ui.horizontal_wrapped(|ui| {
-                let segments = seg.segments();
-                let name = |v: Label| {
-                    segments
-                        .get(v)
-                        .map_or_else(|| "—".to_string(), |s| s.name.clone())
-                };
-                egui::ComboBox::from_id_salt("segment operand")
-                    .selected_text(name(self.other))
-                    .width(90.0)
-                    .show_ui(ui, |ui| {
-                        for s in segments.iter().filter(|s| s.value != seg.active) {
-                            ui.selectable_value(&mut self.other, s.value, &s.name);
-                        }
-                    });
-                for (op, label) in [
-                    (LogicalOp::Union, "Union"),
-                    (LogicalOp::Subtract, "Subtract"),
-                    (LogicalOp::Intersect, "Intersect"),
-                ] {
-                    if ui
-                        .add_enabled(self.other != 0, egui::Button::new(label))
-                        .on_hover_text("The active segment with the chosen one")
-                        .clicked()
-                    {
-                        seg.operate(Operation::Combine(op, self.other));
-                    }
-                }
-            });
-        });
+        }
     }
 
     fn save(&mut self, ui: &mut egui::Ui, seg: &mut Segmentation, folder: &std::path::Path) {

@@ -5,6 +5,9 @@
 //! (`tools::brush::stroke_voxels`) gives for the drag's screen points mapped through the shared
 //! slice mapping (strata-viewer-ui's slice_canvas, strata_slices' frame), on the primary's grid
 //! and affine; an eraser stroke then removes exactly its voxels, and Undo brings them back.
+//! Keep largest, clicked in the page after two separate strokes, downloads exactly what
+//! strata-segment's `remove_islands` leaves of the same strokes painted natively, as one undo
+//! step.
 
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
@@ -12,8 +15,11 @@ use std::path::{Path, PathBuf};
 use egui::{pos2, Pos2, Rect};
 use glam::DVec3;
 use serde_json::json;
-use strata_segment::tools::brush::{stroke_voxels, Brush, BrushShape, SlicePlane};
-use strata_segment::LabelGrid;
+use strata_segment::tools::brush::{
+    self, stroke_voxels, Brush, BrushAction, BrushShape, SlicePlane,
+};
+use strata_segment::tools::morphology::{remove_islands, Islands};
+use strata_segment::{LabelGrid, LabelLayer};
 use strata_slices::{SliceFrame, SliceView};
 use strata_types::VolumeGeometry;
 use strata_viewer_ui::segment_panel::DEFAULT_BRUSH_DIAMETER_MM;
@@ -160,6 +166,23 @@ fn download(page: &mut Cdp, folder: &Path, name: &str) -> PathBuf {
     file
 }
 
+/// Every labelled voxel of `layer`, with its label.
+fn layer_voxels(layer: &LabelLayer) -> BTreeSet<([u32; 3], u16)> {
+    let mut out = BTreeSet::new();
+    let [nx, ny, nz] = layer.grid().dims();
+    for k in 0..nz {
+        for j in 0..ny {
+            for i in 0..nx {
+                let label = layer.get([i, j, k]).expect("a voxel of the grid");
+                if label != 0 {
+                    out.insert(([i, j, k], label));
+                }
+            }
+        }
+    }
+    out
+}
+
 /// The labelled voxels of a downloaded label map (read by strata-segment's reader), after
 /// checking that its grid is the primary's.
 fn labelled_voxels(file: &Path, primary: &VolumeGeometry) -> BTreeSet<([u32; 3], u16)> {
@@ -178,113 +201,149 @@ fn labelled_voxels(file: &Path, primary: &VolumeGeometry) -> BTreeSet<([u32; 3],
             file.display()
         );
     }
-    let mut out = BTreeSet::new();
-    let [nx, ny, nz] = g.dims;
-    for k in 0..nz {
-        for j in 0..ny {
-            for i in 0..nx {
-                let label = layer.get([i, j, k]).expect("a voxel of the grid");
-                if label != 0 {
-                    out.insert(([i, j, k], label));
-                }
-            }
+    layer_voxels(&layer)
+}
+
+/// The brush both viewers start with, on the axial plane.
+const AXIAL_BRUSH: Brush = Brush {
+    shape: BrushShape::Disc(SlicePlane::Axial),
+    diameter_mm: DEFAULT_BRUSH_DIAMETER_MM,
+    value_range: None,
+};
+
+/// The page with a new segmentation and the brush chosen, and the desktop's mapping of a
+/// screen point on its axial view.
+struct AxialPainting {
+    page: Cdp,
+    _server: strata_service::server::RunningServer,
+    geometry: VolumeGeometry,
+    grid: LabelGrid,
+    frame: SliceFrame,
+    /// The axial image on screen (page CSS pixels).
+    image: Rect,
+}
+
+impl AxialPainting {
+    fn open(scratch: &Path) -> Self {
+        let fragment = "#mode=mip&preset=ct-soft-tissue&volume=40&size=64x64&layout=conventional";
+        let (mut page, server) = open_page(fragment, scratch, [1200, 800]);
+        let geometry = Fragment::parse(fragment)
+            .expect("fragment")
+            .view
+            .sample_volume()
+            .expect("sample volume")
+            .geometry;
+        let grid = LabelGrid::new(geometry.clone()).expect("label grid");
+        click_button(&mut page, "new");
+        wait_for_figures(&mut page, "a new segmentation", |t| {
+            figure(t, "segments").as_deref() == Some("1")
+        });
+        click_button(&mut page, "brush");
+        // The desktop's mapping of a screen point on the axial view: the view's inner
+        // rectangle, the image fitted at zoom 1. The section grew by its rows: the views are
+        // read once they stay put over two frames.
+        let axial = page.wait_for(
+            "the axial view to stay put after the section opened",
+            PAGE_DEADLINE,
+            |page| {
+                let before = view_rect(page, "axial");
+                page.next_frames();
+                (view_rect(page, "axial") == before).then_some(before)
+            },
+        );
+        let frame = SliceFrame::for_view(SliceView::Axial, &geometry);
+        let image = ZoomPan::default().image_rect(inner_rect(axial), frame.extent_mm(&geometry));
+        assert!(
+            image.width() > 60.0,
+            "the axial image {image:?} is too small to aim in"
+        );
+        AxialPainting {
+            page,
+            _server: server,
+            geometry,
+            grid,
+            frame,
+            image,
         }
     }
-    out
+
+    /// The fraction across the image, the frame's index at the crosshair's slice (the centre,
+    /// where the page starts it; a tool's drag does not move it), in patient space.
+    fn to_lps(&self, p: Pos2) -> DVec3 {
+        let dims = self.geometry.dims;
+        let (u, v) = fraction_at(self.image, p);
+        let (a, d) = self.frame.index_at(dims, u, v);
+        let mut index = dims.map(|n| ((n as f64 - 1.0) * 0.5).floor().max(0.0));
+        index[self.frame.across_axis] = a;
+        index[self.frame.down_axis] = d;
+        self.geometry.patient_from_index(DVec3::from(index))
+    }
+
+    fn positions(&self, points: &[Pos2]) -> Vec<DVec3> {
+        points.iter().map(|&p| self.to_lps(p)).collect()
+    }
+
+    /// The voxels the desktop's brush model paints for a drag through `points`.
+    fn model(&self, points: &[Pos2]) -> BTreeSet<[u32; 3]> {
+        stroke_voxels(&self.grid, &AXIAL_BRUSH, &self.positions(points))
+            .expect("the brush model")
+            .into_iter()
+            .collect()
+    }
+
+    /// The whole pixel at fractions `(fx, fy)` of the image.
+    fn at(&self, fx: f32, fy: f32) -> Pos2 {
+        pos2(
+            self.image.left() + self.image.width() * fx,
+            self.image.top() + self.image.height() * fy,
+        )
+        .round()
+    }
+
+    /// A horizontal drag from `(fx0, fy)` to `(fx1, fy)` in `steps` whole-pixel steps
+    /// (collinear: whichever of its points a frame sees, the swept discs are the same).
+    fn horizontal(&self, fx0: f32, fx1: f32, fy: f32, steps: usize) -> Vec<Pos2> {
+        let (start, end) = (self.at(fx0, fy), self.at(fx1, fy));
+        (0..=steps)
+            .map(|s| {
+                pos2(
+                    start.x + (end.x - start.x) * s as f32 / steps as f32,
+                    start.y,
+                )
+                .round()
+            })
+            .collect()
+    }
 }
 
 #[test]
 fn a_brush_stroke_downloads_as_the_desktops_brush_paints_it_and_eraser_and_undo_follow() {
     let scratch = tempfile::tempdir().expect("scratch folder");
-    let fragment = "#mode=mip&preset=ct-soft-tissue&volume=40&size=64x64&layout=conventional";
-    let (mut page, _server) = open_page(fragment, scratch.path(), [1200, 800]);
     let downloads = scratch.path();
-    let geometry = Fragment::parse(fragment)
-        .expect("fragment")
-        .view
-        .sample_volume()
-        .expect("sample volume")
-        .geometry;
-    let grid = LabelGrid::new(geometry.clone()).expect("label grid");
-    let dims = geometry.dims;
-
-    click_button(&mut page, "new");
-    wait_for_figures(&mut page, "a new segmentation", |t| {
-        figure(t, "segments").as_deref() == Some("1")
-    });
-    click_button(&mut page, "brush");
-
-    // The desktop's mapping of a screen point on the axial view: the view's inner rectangle,
-    // the image fitted at zoom 1, the fraction across it, the frame's index at the crosshair's
-    // slice (the centre, where the page starts it; a tool's drag does not move it).
-    // The section grew by its rows: the views are read once they stay put over two frames.
-    let axial = page.wait_for(
-        "the axial view to stay put after the section opened",
-        PAGE_DEADLINE,
-        |page| {
-            let before = view_rect(page, "axial");
-            page.next_frames();
-            (view_rect(page, "axial") == before).then_some(before)
-        },
-    );
-    let frame = SliceFrame::for_view(SliceView::Axial, &geometry);
-    let image = ZoomPan::default().image_rect(inner_rect(axial), frame.extent_mm(&geometry));
-    assert!(
-        image.width() > 60.0,
-        "the axial image {image:?} is too small to aim in"
-    );
-    let cursor = dims.map(|n| ((n as f64 - 1.0) * 0.5).floor().max(0.0));
-    let to_lps = |p: Pos2| {
-        let (u, v) = fraction_at(image, p);
-        let (a, d) = frame.index_at(dims, u, v);
-        let mut index = cursor;
-        index[frame.across_axis] = a;
-        index[frame.down_axis] = d;
-        geometry.patient_from_index(DVec3::from(index))
-    };
-    let brush = Brush {
-        shape: BrushShape::Disc(SlicePlane::Axial),
-        diameter_mm: DEFAULT_BRUSH_DIAMETER_MM,
-        value_range: None,
-    };
-    let model = |points: &[Pos2]| -> BTreeSet<[u32; 3]> {
-        let positions: Vec<DVec3> = points.iter().map(|&p| to_lps(p)).collect();
-        stroke_voxels(&grid, &brush, &positions)
-            .expect("the brush model")
-            .into_iter()
-            .collect()
-    };
-    // A horizontal drag (whole pixels, collinear: whichever of its points a frame sees, the
-    // swept discs are the same) across the image's upper half.
-    let at = |fx: f32, fy: f32| {
-        pos2(
-            image.left() + image.width() * fx,
-            image.top() + image.height() * fy,
-        )
-        .round()
-    };
-    let (start, end) = (at(0.25, 0.4), at(0.75, 0.4));
-    let stroke: Vec<Pos2> = (0..=4)
-        .map(|s| pos2(start.x + (end.x - start.x) * s as f32 / 4.0, start.y).round())
-        .collect();
-    drag_through(&mut page, &stroke);
-    let brushed = model(&stroke);
+    let mut painting = AxialPainting::open(scratch.path());
+    let stroke = painting.horizontal(0.25, 0.75, 0.4, 4);
+    drag_through(&mut painting.page, &stroke);
+    let brushed = painting.model(&stroke);
     assert!(
         brushed.len() > 50,
         "the stroke paints {} voxels",
         brushed.len()
     );
-    let figures = wait_for_figures(&mut page, "the stroke to end as one undo step", |t| {
-        figure(t, "stroke").as_deref() == Some("0") && figure(t, "undo").as_deref() == Some("1")
-    });
+    let figures = wait_for_figures(
+        &mut painting.page,
+        "the stroke to end as one undo step",
+        |t| {
+            figure(t, "stroke").as_deref() == Some("0") && figure(t, "undo").as_deref() == Some("1")
+        },
+    );
     assert_eq!(
         figure(&figures, "painted"),
         Some(brushed.len().to_string()),
         "{figures}"
     );
-    let file = download(&mut page, downloads, "brushed.nii.gz");
+    let file = download(&mut painting.page, downloads, "brushed.nii.gz");
     let expected: BTreeSet<([u32; 3], u16)> = brushed.iter().map(|&v| (v, 1)).collect();
-    let got = labelled_voxels(&file, &geometry);
+    let got = labelled_voxels(&file, &painting.geometry);
     assert!(
         got == expected,
         "the download holds {} labelled voxels, the desktop's brush {}: {} only in the page, \
@@ -296,12 +355,17 @@ fn a_brush_stroke_downloads_as_the_desktops_brush_paints_it_and_eraser_and_undo_
     );
 
     // The eraser across the painted band, downwards through its middle.
-    click_button(&mut page, "eraser");
+    click_button(&mut painting.page, "eraser");
     let erase: Vec<Pos2> = (0..=3)
-        .map(|s| pos2(at(0.5, 0.0).x, at(0.5, 0.3).y + 10.0 * s as f32))
+        .map(|s| {
+            pos2(
+                painting.at(0.5, 0.0).x,
+                painting.at(0.5, 0.3).y + 10.0 * s as f32,
+            )
+        })
         .collect();
-    drag_through(&mut page, &erase);
-    let erased = model(&erase);
+    drag_through(&mut painting.page, &erase);
+    let erased = painting.model(&erase);
     let left: BTreeSet<([u32; 3], u16)> = brushed.difference(&erased).map(|&v| (v, 1)).collect();
     assert!(
         left.len() < expected.len() && !left.is_empty(),
@@ -309,24 +373,107 @@ fn a_brush_stroke_downloads_as_the_desktops_brush_paints_it_and_eraser_and_undo_
         left.len(),
         expected.len()
     );
-    wait_for_figures(&mut page, "the eraser stroke to end", |t| {
+    wait_for_figures(&mut painting.page, "the eraser stroke to end", |t| {
         figure(t, "painted") == Some(left.len().to_string())
             && figure(t, "stroke").as_deref() == Some("0")
     });
-    let file = download(&mut page, downloads, "erased.nii.gz");
+    let file = download(&mut painting.page, downloads, "erased.nii.gz");
     assert_eq!(
-        labelled_voxels(&file, &geometry),
+        labelled_voxels(&file, &painting.geometry),
         left,
         "the eraser removes exactly its voxels"
     );
 
-    click_button(&mut page, "undo");
-    wait_for_figures(&mut page, "Undo to bring the erased voxels back", |t| {
-        figure(t, "redo").as_deref() == Some("1")
-    });
-    let file = download(&mut page, downloads, "undone.nii.gz");
+    click_button(&mut painting.page, "undo");
+    wait_for_figures(
+        &mut painting.page,
+        "Undo to bring the erased voxels back",
+        |t| figure(t, "redo").as_deref() == Some("1"),
+    );
+    let file = download(&mut painting.page, downloads, "undone.nii.gz");
     assert!(
-        labelled_voxels(&file, &geometry) == expected,
+        labelled_voxels(&file, &painting.geometry) == expected,
         "after Undo the download is the brush stroke again"
+    );
+}
+
+#[test]
+fn keep_largest_in_the_page_leaves_what_strata_segments_islands_leave() {
+    let scratch = tempfile::tempdir().expect("scratch folder");
+    let mut painting = AxialPainting::open(scratch.path());
+    // Two strokes far enough apart (a third of the image, the brush a tenth of it) that they
+    // are separate islands, the first much the larger.
+    let long = painting.horizontal(0.2, 0.8, 0.3, 4);
+    let short = painting.horizontal(0.45, 0.55, 0.75, 2);
+    drag_through(&mut painting.page, &long);
+    wait_for_figures(&mut painting.page, "the first stroke to end", |t| {
+        figure(t, "stroke").as_deref() == Some("0") && figure(t, "undo").as_deref() == Some("1")
+    });
+    drag_through(&mut painting.page, &short);
+    let model: BTreeSet<([u32; 3], u16)> = painting
+        .model(&long)
+        .union(&painting.model(&short))
+        .map(|&v| (v, 1))
+        .collect();
+    wait_for_figures(&mut painting.page, "the second stroke to end", |t| {
+        figure(t, "painted") == Some(model.len().to_string())
+            && figure(t, "stroke").as_deref() == Some("0")
+    });
+
+    // The same strokes painted natively, then strata-segment's Keep largest.
+    let mut layer = LabelLayer::new_empty(painting.geometry.clone()).expect("native layer");
+    let label = layer.segments_mut().add("Segment 1").expect("segment");
+    for points in [&long, &short] {
+        brush::stroke(
+            &mut layer,
+            &AXIAL_BRUSH,
+            BrushAction::Paint(label),
+            &painting.positions(points),
+            None,
+        )
+        .expect("the native stroke");
+    }
+    assert_eq!(
+        layer_voxels(&layer),
+        model,
+        "the native strokes are the model's"
+    );
+    let (_, removed) =
+        remove_islands(&mut layer, label, Islands::KeepLargest).expect("native Keep largest");
+    let kept = layer_voxels(&layer);
+    assert!(
+        removed == 1 && !kept.is_empty() && kept.len() < model.len(),
+        "the strokes must be two islands, one removed: {removed} removed, {} of {} voxels kept",
+        kept.len(),
+        model.len()
+    );
+
+    click_button(&mut painting.page, "largest");
+    wait_for_figures(
+        &mut painting.page,
+        "Keep largest to remove the small island",
+        |t| figure(t, "painted") == Some(kept.len().to_string()),
+    );
+    let file = download(&mut painting.page, scratch.path(), "largest.nii.gz");
+    let got = labelled_voxels(&file, &painting.geometry);
+    assert!(
+        got == kept,
+        "the download holds {} labelled voxels, strata-segment's Keep largest {}: {} only in \
+         the page, {} only in the native layer",
+        got.len(),
+        kept.len(),
+        got.difference(&kept).count(),
+        kept.difference(&got).count()
+    );
+
+    // One undo step brings the small island back.
+    click_button(&mut painting.page, "undo");
+    wait_for_figures(
+        &mut painting.page,
+        "Undo to bring the small island back",
+        |t| {
+            figure(t, "painted") == Some(model.len().to_string())
+                && figure(t, "redo").as_deref() == Some("1")
+        },
     );
 }
