@@ -1432,12 +1432,7 @@ impl eframe::App for WebViewer {
 /// Writes the last click's pick in the 3D view into the canvas's `data-pick` attribute (what
 /// it read, or why it found nothing): the picking test says it when the crosshair stays.
 fn publish_pick(text: &str) {
-    if let Some(canvas) = web_sys::window()
-        .and_then(|w| w.document())
-        .and_then(|d| d.get_element_by_id("strata-canvas"))
-    {
-        let _ = canvas.set_attribute("data-pick", text);
-    }
+    crate::canvas_attributes::set("data-pick", text);
 }
 
 /// Writes where the views are on the canvas (CSS pixels, `x,y,w,h`) into the canvas's
@@ -1462,13 +1457,5 @@ fn publish_view_rects(
             }
         }
     }
-    let Some(canvas) = web_sys::window()
-        .and_then(|w| w.document())
-        .and_then(|d| d.get_element_by_id("strata-canvas"))
-    else {
-        return;
-    };
-    if canvas.get_attribute("data-views").as_deref() != Some(text.as_str()) {
-        let _ = canvas.set_attribute("data-views", &text);
-    }
+    crate::canvas_attributes::set("data-views", &text);
 }

@@ -13,6 +13,7 @@
 //!   `GET /v1/stores`) and what a choice does to the view; platform independent, tested natively
 //!   against a real server's list.
 //! - `browser` (wasm32 only): the page's entry point, the viewer app, the frame capture.
+//! - `canvas_attributes` (wasm32 only): the canvas attributes the browser tests read.
 //! - `embed_bridge` (wasm32 only): the page in a notebook (issue 50): a postMessage bridge
 //!   to the Jupyter widget `strata.Viewer` that embeds it (view state both ways, screenshots
 //!   as PNG), listening only to the parent's origin the link names (`embed=`).
@@ -51,6 +52,8 @@ pub mod volume_menu;
 
 #[cfg(target_arch = "wasm32")]
 mod browser;
+#[cfg(target_arch = "wasm32")]
+mod canvas_attributes;
 #[cfg(target_arch = "wasm32")]
 mod embed_bridge;
 #[cfg(target_arch = "wasm32")]

@@ -48,7 +48,7 @@ pub fn side_panel_section(ui: &mut egui::Ui, view: &mut ViewState, slices: &mut 
                     )
                 })
                 .collect();
-            set_canvas_attribute("data-measure-tools", &text.join(";"));
+            crate::canvas_attributes::set("data-measure-tools", &text.join(";"));
         });
 }
 
@@ -69,13 +69,13 @@ pub fn after_slice_views(view: &mut ViewState, slices: &mut SliceViews) {
         .iter()
         .map(|m| published_line(m, geometry, unit))
         .collect();
-    set_canvas_attribute("data-measurements", &lines.join("\n"));
+    crate::canvas_attributes::set("data-measurements", &lines.join("\n"));
     let state = format!(
         "{},{}",
         measurements.tool.label(),
         measurements.draft.points.len()
     );
-    set_canvas_attribute("data-measure-tool", &state);
+    crate::canvas_attributes::set("data-measure-tool", &state);
 }
 
 /// One measurement as `data-measurements` lists it (see the module's doc).
@@ -121,17 +121,4 @@ fn published_line(m: &Measurement, geometry: &VolumeGeometry, unit: &str) -> Str
         points.join(";"),
         m.describe(geometry, unit)
     )
-}
-
-/// Sets an attribute of the page's canvas when it changed.
-fn set_canvas_attribute(name: &str, text: &str) {
-    let Some(canvas) = web_sys::window()
-        .and_then(|w| w.document())
-        .and_then(|d| d.get_element_by_id("strata-canvas"))
-    else {
-        return;
-    };
-    if canvas.get_attribute(name).as_deref() != Some(text) {
-        let _ = canvas.set_attribute(name, text);
-    }
 }

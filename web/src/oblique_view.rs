@@ -157,23 +157,6 @@ pub fn oblique_layout(layout: Layout, area: Rect) -> Option<(Rect, [Option<Rect>
     }
 }
 
-/// Wheel movement this frame in lines (up positive), whatever unit the browser reports.
-fn wheel_lines(ui: &egui::Ui) -> f64 {
-    ui.input(|i| {
-        i.events
-            .iter()
-            .map(|e| match e {
-                egui::Event::MouseWheel { unit, delta, .. } => match unit {
-                    egui::MouseWheelUnit::Point => delta.y as f64 / 40.0,
-                    egui::MouseWheelUnit::Line => delta.y as f64,
-                    egui::MouseWheelUnit::Page => delta.y as f64 * 10.0,
-                },
-                _ => 0.0,
-            })
-            .sum::<f64>()
-    })
-}
-
 impl ObliqueView {
     /// The oblique view of `store`, fetching through its asynchronous path, turned
     /// `angles_deg` off axial.
@@ -479,7 +462,7 @@ impl ObliqueView {
             }
         }
         if response.hovered() {
-            self.wheel_lines += wheel_lines(ui);
+            self.wheel_lines += crate::slice_views::wheel_lines(ui);
             let step = self.wheel_lines.trunc();
             if step != 0.0 {
                 self.wheel_lines -= step;

@@ -171,7 +171,7 @@ impl PageTools {
         let footer = egui::RichText::new("Not for diagnostic use: research and education only.")
             .color(egui::Color32::from_rgb(255, 170, 60));
         shortcuts::help_window(ctx, &mut self.help_open, Viewer::Page, footer);
-        set_canvas_data("windows", if self.help_open { "help" } else { "" });
+        crate::canvas_attributes::set("data-windows", if self.help_open { "help" } else { "" });
     }
 
     /// Downloads `png` as `name` (a Blob behind an anchor with `download=`).
@@ -219,19 +219,5 @@ fn download_blob(bytes: &[u8], name: &str) -> Result<String, JsValue> {
 /// Publishes the slice readout under the pointer (`VIEW:I,J,K:VALUE`) for the browser tests.
 pub fn publish_readout(view: &str, index: [u32; 3], value: &str) {
     let [i, j, k] = index;
-    set_canvas_data("readout", &format!("{view}:{i},{j},{k}:{value}"));
-}
-
-/// Sets the canvas's `data-NAME` attribute to `value`, only when it changes.
-fn set_canvas_data(name: &str, value: &str) {
-    let Some(canvas) = web_sys::window()
-        .and_then(|w| w.document())
-        .and_then(|d| d.get_element_by_id("strata-canvas"))
-    else {
-        return;
-    };
-    let attribute = format!("data-{name}");
-    if canvas.get_attribute(&attribute).as_deref() != Some(value) {
-        let _ = canvas.set_attribute(&attribute, value);
-    }
+    crate::canvas_attributes::set("data-readout", &format!("{view}:{i},{j},{k}:{value}"));
 }

@@ -505,8 +505,8 @@ pub fn section(ui: &mut egui::Ui, slices: &mut SliceViews) {
                 }
             }
         }
-        publish("data-segment-buttons", &button_text(&buttons));
-        publish("data-segmentation", "none");
+        crate::canvas_attributes::set("data-segment-buttons", &button_text(&buttons));
+        crate::canvas_attributes::set("data-segmentation", "none");
         return;
     };
     for (tool, rect) in segment_panel::tool_row(ui, &mut seg.tool, &mut seg.diameter_mm, false) {
@@ -597,8 +597,8 @@ pub fn section(ui: &mut egui::Ui, slices: &mut SliceViews) {
     if let Some(e) = &seg.error {
         ui.colored_label(Color32::LIGHT_RED, e);
     }
-    publish("data-segment-buttons", &button_text(&buttons));
-    publish("data-segmentation", &seg.figures());
+    crate::canvas_attributes::set("data-segment-buttons", &button_text(&buttons));
+    crate::canvas_attributes::set("data-segmentation", &seg.figures());
     if close {
         *seg_slot = None;
     }
@@ -618,19 +618,6 @@ fn button_text(buttons: &[(&str, Rect)]) -> String {
         })
         .collect::<Vec<_>>()
         .join(";")
-}
-
-/// Writes `value` into the canvas's attribute `name` when it differs.
-fn publish(name: &str, value: &str) {
-    let Some(canvas) = web_sys::window()
-        .and_then(|w| w.document())
-        .and_then(|d| d.get_element_by_id("strata-canvas"))
-    else {
-        return;
-    };
-    if canvas.get_attribute(name).as_deref() != Some(value) {
-        let _ = canvas.set_attribute(name, value);
-    }
 }
 
 /// The brush plane of a slice view: the labels lie on the primary's grid, so the index plane

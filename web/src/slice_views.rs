@@ -151,7 +151,7 @@ pub fn slice_layout(layout: Layout, area: Rect) -> Option<(Rect, [Rect; 3])> {
 }
 
 /// Wheel movement this frame in lines (up positive), whatever unit the browser reports.
-fn wheel_lines(ui: &egui::Ui) -> f64 {
+pub(crate) fn wheel_lines(ui: &egui::Ui) -> f64 {
     ui.input(|i| {
         i.events
             .iter()
