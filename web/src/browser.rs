@@ -1291,8 +1291,15 @@ impl eframe::App for WebViewer {
                 }
                 publish_view_rects(rect, slice_rects, oblique_rect);
                 if self.timing.orbiting() {
-                    self.view.azimuth_deg += BENCH_DEG_PER_FRAME;
-                    ctx.request_repaint();
+                    // In a notebook the orbit waits for the model to lead (embed_bridge.rs):
+                    // its first answer would otherwise put an orbit made before it back.
+                    let now = self.page_started.elapsed().as_secs_f64();
+                    if self.bridge.as_ref().is_none_or(|b| b.model_has_led(now)) {
+                        self.view.azimuth_deg += BENCH_DEG_PER_FRAME;
+                        ctx.request_repaint();
+                    } else {
+                        ctx.request_repaint_after(std::time::Duration::from_millis(250));
+                    }
                 }
                 let mut moved = response.dragged() || keyed;
                 if response.hovered() {

@@ -30,6 +30,11 @@ use crate::view_state::ViewState;
 /// How long the view must stay still before the page reports it (seconds).
 pub const VIEW_REPORT_REST_S: f64 = 0.15;
 
+/// How long after the page's first report the notebook's answer may take (seconds): the widget
+/// answers that report with the model's view when the two differ (the model leads), and a view
+/// the page changed before the answer came would be put back by it.
+pub const MODEL_LEAD_WAIT_S: f64 = 2.0;
+
 /// The view the parent sees: the widget's traits.
 #[derive(Clone, Debug, PartialEq)]
 struct ReportedView {
@@ -68,6 +73,10 @@ pub struct EmbedBridge {
     seen: Option<(ReportedView, f64)>,
     /// Screenshot requests waiting for a frame (their ids, as the parent sent them).
     screenshots: Vec<JsValue>,
+    /// When the page first reported its view (page clock, seconds).
+    first_report_at: Option<f64>,
+    /// Whether the parent has set a view.
+    view_applied: bool,
 }
 
 /// `embed=ORIGIN` of a link's fragment (percent-decoded), if any.
@@ -149,6 +158,8 @@ impl EmbedBridge {
             reported: None,
             seen: None,
             screenshots: Vec::new(),
+            first_report_at: None,
+            view_applied: false,
         })
     }
 
@@ -160,6 +171,7 @@ impl EmbedBridge {
         for request in requests {
             match request {
                 Request::SetView(update) => {
+                    self.view_applied = true;
                     if let Err(problem) = apply_view(view, &update) {
                         let message = problem.to_string();
                         self.post(&[("type", "strata:error".into()), ("message", message.into())]);
@@ -210,9 +222,21 @@ impl EmbedBridge {
             let _ = js_sys::Reflect::set(&object, &name.into(), &value);
         }
         self.post(&[("type", "strata:view".into()), ("view", object.into())]);
+        self.first_report_at.get_or_insert(now);
         self.reported = Some(current);
         self.seen = None;
         None
+    }
+
+    /// Whether the notebook has led: its answer to the page's first report (the model's view,
+    /// which wins over what the page did meanwhile) came, or [`MODEL_LEAD_WAIT_S`] passed
+    /// after that report without one (the views were equal). Until then a change the page
+    /// makes of its own (the `bench=` orbit) could be put back.
+    pub fn model_has_led(&self, now: f64) -> bool {
+        self.view_applied
+            || self
+                .first_report_at
+                .is_some_and(|at| now - at >= MODEL_LEAD_WAIT_S)
     }
 
     /// Answers screenshot `id` with `png` (or the reason there is none).
