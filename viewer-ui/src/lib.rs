@@ -17,6 +17,9 @@
 //!   that makes render settings of it, and its controls with the direction gizmo.
 //! - [`orbit`]: the 3D view's drag-to-orbit mapping and the six standard views (A/P/L/R/S/I),
 //!   so a drag or key turns both viewers' views alike.
+//! - [`overlay`]: a label or continuous overlay over the slices: the mapping of a slice pixel
+//!   into the overlay's grid, nearest-label and trilinear sampling of its level-0 bricks (which
+//!   may not be resident yet), the colouring, its controls and its link keys (issue 47).
 //! - [`picking`]: the volume position a click in the 3D view sees, from the frame's pick depth.
 //! - [`measurements`]: rulers, angles and box/ellipse ROIs: the model, ROI statistics, a
 //!   slice view's gestures and drawing, the list panel and the link's `m=` value.
@@ -42,6 +45,7 @@ pub mod layouts;
 pub mod lighting;
 pub mod measurements;
 pub mod orbit;
+pub mod overlay;
 pub mod performance;
 pub mod picking;
 pub mod presets;

@@ -118,6 +118,8 @@ pub struct ViewState {
     pub volume_edge: u32,
     /// A store of the server that served the page, streamed; None: the built-in sample.
     pub store: Option<String>,
+    /// A second served store drawn over the slices (`overlay=`, crate::overlay).
+    pub overlay: crate::overlay::OverlayLink,
     /// A fixed image size (width, height) instead of the canvas's: links that must give the
     /// same pixels anywhere (screenshots, tests).
     pub image_size: Option<[u32; 2]>,
@@ -157,6 +159,7 @@ impl Default for ViewState {
             measurements: Vec::new(),
             volume_edge: DEFAULT_VOLUME_EDGE,
             store: None,
+            overlay: Default::default(),
             image_size: None,
             capture: false,
             capture_unconverged: false,
@@ -436,6 +439,10 @@ impl Fragment {
                     }
                     view.store = Some(value.to_string());
                 }
+                key if crate::overlay::OverlayLink::KEYS.contains(&key) => view
+                    .overlay
+                    .parse_key(key, value)
+                    .map_err(|e| bad(key, value, e.expected))?,
                 "capture" => {
                     view.capture = value == "1" || value == "unconverged";
                     view.capture_unconverged = value == "unconverged";
@@ -474,6 +481,7 @@ impl ViewState {
         if let Some(store) = &self.store {
             parts.push(format!("store={store}"));
         }
+        parts.extend(self.overlay.link_parts());
         parts.extend([
             format!("mode={}", mode_name(self.mode)),
             format!("preset={}", self.preset),
@@ -733,6 +741,20 @@ mod tests {
     }
 
     #[test]
+    fn a_bad_overlay_value_names_its_key() {
+        for (key, value) in [
+            ("overlay", "../etc"),
+            ("overlay_kind", "pet"),
+            ("overlay_opacity", "2"),
+            ("overlay_hidden", "1,x"),
+        ] {
+            let e = Fragment::parse(&format!("#overlay=labels&{key}={value}"))
+                .expect_err("a bad overlay value");
+            assert!(e.to_string().contains(&format!("`{key}`")), "{key}: {e}");
+        }
+    }
+
+    #[test]
     fn a_view_survives_its_fragment() {
         let view = ViewState {
             mode: RenderMode::Isosurface,
@@ -775,6 +797,12 @@ mod tests {
                 .expect("measurements"),
             volume_edge: 64,
             store: None,
+            overlay: crate::overlay::OverlayLink {
+                name: Some("labels".into()),
+                kind: Some(crate::overlay::OverlayKind::Continuous),
+                opacity: 0.75,
+                hidden_labels: [1, 3].into_iter().collect(),
+            },
             image_size: Some([160, 120]),
             capture: false,
             capture_unconverged: false,

@@ -17,7 +17,10 @@
 //! (`tests::an_oblique_plane_takes_the_nearest_label_of_each_pixel_centre`).
 //!
 //! Sampling runs on a named thread (`strata-overlay-reader`) per overlay, with its own bounded
-//! brick cache; the UI colours the sampled values (cheap) whenever the style changes.
+//! brick cache; the UI colours the sampled values (cheap) whenever the style changes. The model
+//! (kind, style, grids), the pixel mapping, the sampling and the colouring are strata-viewer-ui's
+//! `overlay`, which the page's overlay (web/src/overlay_view.rs) runs on fetched bricks; this
+//! module is the desktop's half: the thread, its blocking reads and the editable label layer.
 
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -25,73 +28,22 @@ use std::sync::{Arc, Condvar, Mutex};
 
 use glam::DVec3;
 use strata_render::{ValueMapping, VolumeGeometry};
-use strata_segment::label_colour;
 use strata_source::VolumeSource;
 use strata_types::{BrickId, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
 
-use super::colour_maps::ColourMap;
 use super::orientation::SliceView;
 use super::segmentation::SharedLayer;
 use super::slices::SliceRequest;
 use super::sync::{lock_ignoring_poison, wait_ignoring_poison, Repaint};
-use strata_slices::oblique::ObliquePlane;
+use strata_slices::oblique::{LevelBricks, ObliquePlane};
+// The overlay's model, sampling and colouring, shared with the page (issue 47 item 3).
+pub use strata_viewer_ui::overlay::{
+    colour_of, label_table_of, oblique_pixels, primary_index_of_pixel, sample_with, slice_pixels,
+    LabelEntry, OverlayGrids, OverlayKind, OverlayStyle, Sampled,
+};
 
 /// Decompressed overlay bricks kept (bytes).
 pub const OVERLAY_CACHE_BYTES: usize = 96 << 20;
-
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum OverlayKind {
-    /// Integer labels, 0 = background.
-    Labels,
-    /// Physical values with a colour map.
-    Continuous,
-}
-
-/// How the overlay is drawn (the overlay panel edits it).
-#[derive(Clone, Debug, PartialEq)]
-pub struct OverlayStyle {
-    pub visible: bool,
-    /// Drawn in the 3D view too (overlay_3d.rs), not only on the slices.
-    pub show_in_3d: bool,
-    /// 0..1, multiplied into every overlay pixel.
-    pub opacity: f32,
-    /// Labels hidden by the user.
-    pub hidden_labels: BTreeSet<i64>,
-    /// Names and colours the label store's header gives (a DICOM SEG's segments); labels not
-    /// in it take [`label_colour`].
-    pub label_table: BTreeMap<i64, LabelEntry>,
-    pub colour_map: ColourMap,
-    /// Continuous: values in `range` run through the colour map; below `threshold` nothing is
-    /// drawn (the base shows through).
-    pub range: (f64, f64),
-    pub threshold: f64,
-}
-
-/// A named label with its colour (from the store header's labels).
-#[derive(Clone, Debug, PartialEq)]
-pub struct LabelEntry {
-    pub name: String,
-    pub colour: [u8; 3],
-}
-
-/// The label table of a store header: each label's name and its recommended colour, or the
-/// default table's where the source recommends none.
-pub fn label_table_of(labels: &[strata_storage::LabelInfo]) -> BTreeMap<i64, LabelEntry> {
-    labels
-        .iter()
-        .map(|l| {
-            let value = i64::from(l.value);
-            let colour = l.rgb.unwrap_or_else(|| label_colour(value));
-            (
-                value,
-                LabelEntry {
-                    name: l.name.clone(),
-                    colour,
-                },
-            )
-        })
-        .collect()
-}
 
 /// Overlay values for one primary slice image: one per pixel of that image, in its order
 /// (`across` fastest). Labels as whole numbers, continuous values in physical units; NaN where
@@ -156,17 +108,6 @@ impl Pending {
             .map(Job::Slice)
             .or_else(|| self.oblique.take().map(Job::Oblique))
     }
-}
-
-/// What the sampler needs to know about both volumes.
-#[derive(Clone, Debug)]
-pub struct OverlayGrids {
-    pub primary: VolumeGeometry,
-    /// The primary store's level dims (the slice image's grid at each level).
-    pub primary_level_dims: Vec<[u32; 3]>,
-    pub overlay: VolumeGeometry,
-    pub overlay_mapping: ValueMapping,
-    pub kind: OverlayKind,
 }
 
 struct Shared {
@@ -380,17 +321,7 @@ impl Overlay {
                     repaint();
                 }
             })?;
-        let style = OverlayStyle {
-            visible: true,
-            show_in_3d: true,
-            opacity: 0.5,
-            hidden_labels: BTreeSet::new(),
-            label_table,
-            colour_map: ColourMap::Hot,
-            range: physical_range,
-            // Continuous: the lower fifth of the range stays transparent at first.
-            threshold: physical_range.0 + 0.2 * (physical_range.1 - physical_range.0),
-        };
+        let style = OverlayStyle::opening(label_table, physical_range);
         Ok(Overlay {
             name,
             kind,
@@ -538,14 +469,7 @@ impl Overlay {
         width: usize,
         height: usize,
     ) -> egui::ColorImage {
-        let pixels = values
-            .iter()
-            .map(|&v| {
-                let [r, g, b, a] = self.colour_of(v);
-                egui::Color32::from_rgba_premultiplied(r, g, b, a)
-            })
-            .collect();
-        egui::ColorImage::new([width, height], pixels)
+        strata_viewer_ui::overlay::colour_image(self.kind, &self.style, values, width, height)
     }
 }
 
@@ -557,43 +481,6 @@ impl Drop for Overlay {
             let _ = t.join();
         }
     }
-}
-
-/// Premultiplied RGBA for one sampled value under `style`.
-pub fn colour_of(kind: OverlayKind, style: &OverlayStyle, value: f32) -> [u8; 4] {
-    if !style.visible || !value.is_finite() {
-        return [0; 4];
-    }
-    let (rgb, alpha) = match kind {
-        OverlayKind::Labels => {
-            let label = value as i64;
-            if label == 0 || style.hidden_labels.contains(&label) {
-                return [0; 4];
-            }
-            let colour = style
-                .label_table
-                .get(&label)
-                .map_or_else(|| label_colour(label), |e| e.colour);
-            (colour, style.opacity)
-        }
-        OverlayKind::Continuous => {
-            let v = value as f64;
-            if v < style.threshold {
-                return [0; 4];
-            }
-            let (lo, hi) = style.range;
-            let t = if hi > lo { (v - lo) / (hi - lo) } else { 1.0 };
-            (style.colour_map.rgb(t), style.opacity)
-        }
-    };
-    let a = alpha.clamp(0.0, 1.0);
-    let premultiply = |c: u8| (c as f32 * a).round() as u8;
-    [
-        premultiply(rgb[0]),
-        premultiply(rgb[1]),
-        premultiply(rgb[2]),
-        (255.0 * a).round() as u8,
-    ]
 }
 
 /// Level-0 bricks of the overlay, bounded; the last brick used is kept at hand because
@@ -613,24 +500,33 @@ impl OverlayBrickCache {
         }
     }
 
+    /// Level-0 brick `id`, read when not cached.
+    pub fn brick(
+        &mut self,
+        store: &dyn VolumeSource,
+        id: BrickId,
+    ) -> anyhow::Result<Arc<Vec<u16>>> {
+        Ok(match self.bricks.get(&id) {
+            Some(b) => b.clone(),
+            None => {
+                if self.bricks.len() >= self.budget_bricks {
+                    // Whole-cache reset: simple, bounded, and a slice refills it.
+                    self.bricks.clear();
+                }
+                let b = Arc::new(store.read_brick(id)?);
+                self.bricks.insert(id, b.clone());
+                b
+            }
+        })
+    }
+
     /// The stored value of level-0 voxel `index` (inside the volume).
     pub fn voxel(&mut self, store: &dyn VolumeSource, index: [u32; 3]) -> anyhow::Result<u16> {
         let id = BrickId::new(0, index.map(|i| i / BRICK_CORE));
         let brick = match &self.last {
             Some((last_id, brick)) if *last_id == id => brick.clone(),
             _ => {
-                let brick = match self.bricks.get(&id) {
-                    Some(b) => b.clone(),
-                    None => {
-                        if self.bricks.len() >= self.budget_bricks {
-                            // Whole-cache reset: simple, bounded, and a slice refills it.
-                            self.bricks.clear();
-                        }
-                        let b = Arc::new(store.read_brick(id)?);
-                        self.bricks.insert(id, b.clone());
-                        b
-                    }
-                };
+                let brick = self.brick(store, id)?;
                 self.last = Some((id, brick.clone()));
                 brick
             }
@@ -639,29 +535,6 @@ impl OverlayBrickCache {
         let edge = BRICK_PAYLOAD as usize;
         Ok(brick[(local[2] * edge + local[1]) * edge + local[0]])
     }
-}
-
-/// The level-0 continuous index (of the primary) at the centre of pixel (`x`, `y`) of the
-/// primary's slice image for `request`: the same grid strata-slices' assembler fills.
-pub fn primary_index_of_pixel(
-    request: &SliceRequest,
-    level_dims: &[[u32; 3]],
-    x: usize,
-    y: usize,
-) -> DVec3 {
-    let level = (request.level as usize).min(level_dims.len().saturating_sub(1));
-    let dims = level_dims[level];
-    let scale = (1u64 << level) as f64;
-    let frame = request.frame;
-    let slice = ((request.position + 0.5) / scale - 0.5)
-        .round()
-        .clamp(0.0, dims[frame.normal_axis] as f64 - 1.0);
-    let centre = |i: f64| (i + 0.5) * scale - 0.5;
-    let mut index = [0.0; 3];
-    index[frame.normal_axis] = centre(slice);
-    index[frame.across_axis] = centre(x as f64);
-    index[frame.down_axis] = centre(y as f64);
-    DVec3::from(index)
 }
 
 /// Samples the overlay over one primary slice image. Labels: nearest level-0 voxel, rounded to
@@ -691,33 +564,6 @@ pub fn sample_slice(
     })
 }
 
-/// The overlay's continuous index at the centre of pixel (`x`, `y`) of the primary's slice
-/// image for `request`.
-fn slice_pixels(grids: &OverlayGrids, request: SliceRequest) -> impl Fn(usize, usize) -> DVec3 {
-    let overlay_from_primary =
-        grids.overlay.index_from_patient_linear() * grids.primary.patient_from_index_linear();
-    let offset = grids.overlay.index_from_patient(grids.primary.origin());
-    let level_dims = grids.primary_level_dims.clone();
-    move |x, y| offset + overlay_from_primary * primary_index_of_pixel(&request, &level_dims, x, y)
-}
-
-/// The overlay's continuous index at the centre of pixel (`x`, `y`) of the oblique view's
-/// `width`×`height` image of `plane` (oblique.rs's pixel centres).
-fn oblique_pixels(
-    grids: &OverlayGrids,
-    plane: &ObliquePlane,
-    width: usize,
-    height: usize,
-) -> impl Fn(usize, usize) -> DVec3 {
-    let (plane, overlay) = (*plane, grids.overlay.clone());
-    move |x, y| {
-        overlay.index_from_patient(plane.patient_at(
-            (x as f64 + 0.5) / width as f64,
-            (y as f64 + 0.5) / height as f64,
-        ))
-    }
-}
-
 /// Samples the overlay's store or layer at the pixels `index_of_pixel` places in its grid.
 fn sample_source(
     source: &OverlaySource,
@@ -737,8 +583,8 @@ fn sample_source(
     }
 }
 
-/// The overlay at every pixel: labels the nearest level-0 voxel's, rounded to a whole label;
-/// continuous values trilinear between level-0 voxel centres (clamped at the edges).
+/// The overlay at every pixel through the shared sampler (strata-viewer-ui's overlay: labels
+/// the nearest level-0 voxel's, continuous trilinear), every brick read here when missing.
 fn sample_store(
     store: &dyn VolumeSource,
     cache: &mut OverlayBrickCache,
@@ -747,20 +593,28 @@ fn sample_store(
     width: usize,
     height: usize,
 ) -> anyhow::Result<Vec<f32>> {
-    let dims = grids.overlay.dims;
-    sample_with(dims, index_of_pixel, width, height, |p| {
-        Ok(match grids.kind {
-            OverlayKind::Labels => {
-                let index = [0, 1, 2]
-                    .map(|a| (p[a].round().max(0.0) as u32).min(dims[a].saturating_sub(1)));
-                let stored = cache.voxel(store, index)?;
-                grids.overlay_mapping.physical(stored as f64).round()
-            }
-            OverlayKind::Continuous => trilinear(store, cache, dims, p, |s| {
-                grids.overlay_mapping.physical(s as f64)
-            })?,
-        })
-    })
+    let mut bricks = CachedStore { store, cache };
+    match strata_viewer_ui::overlay::sample(&mut bricks, grids, index_of_pixel, (width, height), 1)?
+    {
+        Sampled::Complete(values) => Ok(values),
+        // A blocking read answers every brick: nothing is ever missing here.
+        Sampled::Incomplete { missing } => {
+            anyhow::bail!("overlay bricks not read: {missing:?}")
+        }
+    }
+}
+
+/// The store's level-0 bricks through the bounded cache, read (blocking) when missing.
+struct CachedStore<'a> {
+    store: &'a dyn VolumeSource,
+    cache: &'a mut OverlayBrickCache,
+}
+
+impl LevelBricks for CachedStore<'_> {
+    type Error = anyhow::Error;
+    fn brick(&mut self, id: BrickId) -> anyhow::Result<Option<Arc<Vec<u16>>>> {
+        self.cache.brick(self.store, id).map(Some)
+    }
 }
 
 /// Samples an editable label layer over one primary slice image: the nearest voxel's label,
@@ -805,35 +659,12 @@ fn sample_layer(
             };
             last = Some((key, brick));
         }
-        Ok(last
-            .as_ref()
-            .and_then(|(_, b)| b.as_ref())
-            .map_or(0.0, |b| f64::from(b[at])))
+        Ok::<_, anyhow::Error>(Some(
+            last.as_ref()
+                .and_then(|(_, b)| b.as_ref())
+                .map_or(0.0, |b| f64::from(b[at])),
+        ))
     })
-}
-
-/// Calls `value_at` with the overlay's continuous index at every pixel that lies inside the
-/// overlay's grid (of `dims` voxels); NaN elsewhere.
-fn sample_with(
-    dims: [u32; 3],
-    index_of_pixel: &dyn Fn(usize, usize) -> DVec3,
-    width: usize,
-    height: usize,
-    mut value_at: impl FnMut(DVec3) -> anyhow::Result<f64>,
-) -> anyhow::Result<Vec<f32>> {
-    let inside =
-        |p: DVec3| (0..3).all(|a| p[a] >= -0.5 && p[a] < dims[a] as f64 - 0.5 && p[a].is_finite());
-    let mut values = vec![f32::NAN; width * height];
-    for y in 0..height {
-        for x in 0..width {
-            let p = index_of_pixel(x, y);
-            if !inside(p) {
-                continue;
-            }
-            values[y * width + x] = value_at(p)? as f32;
-        }
-    }
-    Ok(values)
 }
 
 /// The overlay's physical value at its continuous index `p`, trilinear between level-0 voxel
@@ -857,62 +688,6 @@ pub fn trilinear(
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
-
-    #[test]
-    fn label_colours_are_distinct_for_the_first_labels_and_background_is_clear() {
-        let colours: BTreeSet<[u8; 3]> = (1..=40).map(label_colour).collect();
-        assert_eq!(colours.len(), 40, "40 labels, 40 colours");
-        let style = OverlayStyle {
-            visible: true,
-            show_in_3d: true,
-            opacity: 0.5,
-            hidden_labels: [2].into_iter().collect(),
-            label_table: BTreeMap::new(),
-            colour_map: ColourMap::Hot,
-            range: (0.0, 1.0),
-            threshold: 0.5,
-        };
-        assert_eq!(colour_of(OverlayKind::Labels, &style, 0.0), [0; 4]);
-        assert_eq!(colour_of(OverlayKind::Labels, &style, f32::NAN), [0; 4]);
-        assert_eq!(
-            colour_of(OverlayKind::Labels, &style, 2.0),
-            [0; 4],
-            "hidden"
-        );
-        let [r, g, b] = label_colour(1);
-        let half = |c: u8| (c as f32 * 0.5).round() as u8;
-        assert_eq!(
-            colour_of(OverlayKind::Labels, &style, 1.0),
-            [half(r), half(g), half(b), 128]
-        );
-        // Continuous: below the threshold clear, above it the colour map at its place in the
-        // range; hiding the overlay clears everything.
-        assert_eq!(colour_of(OverlayKind::Continuous, &style, 0.4), [0; 4]);
-        let [r, g, b] = ColourMap::Hot.rgb(0.75);
-        assert_eq!(
-            colour_of(OverlayKind::Continuous, &style, 0.75),
-            [half(r), half(g), half(b), 128]
-        );
-        // A header's label table (a DICOM SEG's recommended colours) wins over the default.
-        let named = OverlayStyle {
-            label_table: label_table_of(&[strata_storage::LabelInfo {
-                value: 1,
-                name: "liver".into(),
-                rgb: Some([200, 100, 50]),
-                category: None,
-            }]),
-            ..style.clone()
-        };
-        assert_eq!(
-            colour_of(OverlayKind::Labels, &named, 1.0),
-            [100, 50, 25, 128]
-        );
-        let hidden = OverlayStyle {
-            visible: false,
-            ..style
-        };
-        assert_eq!(colour_of(OverlayKind::Labels, &hidden, 1.0), [0; 4]);
-    }
 
     use crate::orientation::SliceFrame;
     use std::path::Path;

@@ -8,11 +8,9 @@ use std::sync::Arc;
 
 use egui::{Color32, RichText};
 
-use crate::colour_maps::ColourMap;
 use crate::jobs::{PrepareJob, VolumeToOpen};
 use crate::overlay::{Overlay, OverlayKind};
 use crate::scene::VolumeData;
-use strata_segment::label_colour;
 
 /// The panel's own state: what the user typed and the overlay being prepared.
 pub struct OverlayPanel {
@@ -135,70 +133,12 @@ impl OverlayPanel {
                     .on_hover_text(&o.name);
                 remove = ui.small_button("Remove").clicked();
             });
-            ui.add(egui::Slider::new(&mut o.style.opacity, 0.0..=1.0).text("Opacity"));
             if let Some(e) = o.error() {
                 ui.colored_label(Color32::LIGHT_RED, e);
             }
-            match o.kind {
-                OverlayKind::Labels => {
-                    ui.label(
-                        RichText::new(
-                            "Labels from the finest level, nearest voxel (never averaged)",
-                        )
-                        .small(),
-                    );
-                    // The store's named labels (a DICOM SEG's segments) and any other label
-                    // met in the slices shown.
-                    let mut labels = o.labels_seen();
-                    labels.extend(o.style.label_table.keys().copied());
-                    if labels.is_empty() {
-                        ui.label("No label in the slices shown yet.");
-                    }
-                    ui.horizontal_wrapped(|ui| {
-                        for label in labels {
-                            let [r, g, b] = o
-                                .style
-                                .label_table
-                                .get(&label)
-                                .map_or_else(|| label_colour(label), |e| e.colour);
-                            let text = match o.label_name(label) {
-                                Some(name) => format!("{label} {name}"),
-                                None => format!("{label}"),
-                            };
-                            let mut shown = !o.style.hidden_labels.contains(&label);
-                            let (swatch, _) = ui
-                                .allocate_exact_size(egui::vec2(12.0, 12.0), egui::Sense::hover());
-                            ui.painter()
-                                .rect_filled(swatch, 2.0, Color32::from_rgb(r, g, b));
-                            if ui.checkbox(&mut shown, text).changed() {
-                                if shown {
-                                    o.style.hidden_labels.remove(&label);
-                                } else {
-                                    o.style.hidden_labels.insert(label);
-                                }
-                            }
-                        }
-                    });
-                }
-                OverlayKind::Continuous => {
-                    egui::ComboBox::from_label("Colour map")
-                        .selected_text(o.style.colour_map.label())
-                        .show_ui(ui, |ui| {
-                            for map in ColourMap::ALL {
-                                ui.selectable_value(&mut o.style.colour_map, map, map.label());
-                            }
-                        });
-                    let (lo, hi) = o.physical_range;
-                    let span = lo..=hi.max(lo + 1e-9);
-                    ui.add(
-                        egui::Slider::new(&mut o.style.threshold, span.clone()).text("Threshold"),
-                    );
-                    ui.add(
-                        egui::Slider::new(&mut o.style.range.0, span.clone()).text("Range from"),
-                    );
-                    ui.add(egui::Slider::new(&mut o.style.range.1, span).text("Range to"));
-                }
-            }
+            // The controls the page's Overlay section draws too (strata-viewer-ui's overlay).
+            let (kind, range, seen) = (o.kind, o.physical_range, o.labels_seen());
+            strata_viewer_ui::overlay::style_controls(ui, kind, &mut o.style, range, &seen);
         }
         if remove {
             *overlay = None;
