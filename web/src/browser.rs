@@ -1208,6 +1208,11 @@ impl eframe::App for WebViewer {
                     egui::CollapsingHeader::new("Segmentation")
                         .default_open(true)
                         .show(ui, |ui| crate::segment_editor::section(ui, slices));
+                    egui::CollapsingHeader::new("Overlay")
+                        .default_open(self.view.overlay.name.is_some())
+                        .show(ui, |ui| {
+                            crate::overlay_view::section(ui, &mut self.view, slices, &self.stores)
+                        });
                 }
                 let figures = VolumeFigures {
                     loader: self.streamed.as_ref().and_then(|s| s.last.as_ref()),
@@ -1385,6 +1390,8 @@ impl eframe::App for WebViewer {
                         slices.cursor = index;
                     }
                     crate::measure::before_slice_views(&self.view, slices);
+                    let token = self.token.as_deref();
+                    crate::overlay_view::follow_link(&self.view.overlay, slices, token, &ctx);
                     slices.ui(ui, rects);
                     if let (Some(rect), Some(oblique), Some(angles)) =
                         (oblique_rect, oblique, self.view.oblique.as_mut())

@@ -35,6 +35,9 @@
 //! - `oblique_view` (wasm32 only): the oblique view in the desktop's place for it, strata-slices'
 //!   plane, drag and resampling (the desktop's) over bricks fetched as the slice views fetch
 //!   theirs; shown while the link names it (`oblique=`).
+//! - `overlay_view` (wasm32 only): a second served store over the slice views (`overlay=`),
+//!   label map or continuous, strata-viewer-ui's overlay sampling and colouring (the
+//!   desktop's) on level-0 bricks fetched as the slice views fetch theirs; the Overlay section.
 //! - `segment_editor` (wasm32 only): segmentation editing on the slice views (issue 52 item
 //!   7): strata-segment's label layer, brush, eraser, fill and history, the shared Segment
 //!   section (strata-viewer-ui's segment_panel), labels over the slices, Download as NIfTI.
@@ -60,6 +63,8 @@ mod embed_bridge;
 mod measure;
 #[cfg(target_arch = "wasm32")]
 mod oblique_view;
+#[cfg(target_arch = "wasm32")]
+mod overlay_view;
 #[cfg(target_arch = "wasm32")]
 mod page_timing;
 #[cfg(target_arch = "wasm32")]

@@ -122,6 +122,8 @@ pub struct SliceViews {
     measurements: Measurements,
     /// The label layer being edited on this volume (segment_editor.rs), if one was started.
     pub segmentation: Option<crate::segment_editor::PageSegmentation>,
+    /// A second served store drawn over the slices (overlay_view.rs), as the link names it.
+    pub overlay: crate::overlay_view::OverlaySlot,
 }
 
 pub fn slice_colour(view: SliceView) -> Color32 {
@@ -267,6 +269,7 @@ impl SliceViews {
             captured: false,
             measurements: Measurements::default(),
             segmentation: None,
+            overlay: Default::default(),
         }
     }
 
@@ -306,9 +309,14 @@ impl SliceViews {
             return None;
         }
         let shown = self.shown[SliceView::Axial.index()].as_ref()?;
-        self.captured = true;
         let image = &shown.image;
-        let rgba = window_level_rgba(&image.values, shown.window, self.colour_map, self.mapping);
+        let mut rgba =
+            window_level_rgba(&image.values, shown.window, self.colour_map, self.mapping);
+        // With the overlay over it, once sampled (overlay_view.rs).
+        if !self.overlay.composite(image, &mut rgba) {
+            return None;
+        }
+        self.captured = true;
         Some((rgba, image.width as u32, image.height as u32))
     }
 
@@ -394,6 +402,7 @@ impl SliceViews {
     pub fn ui(&mut self, ui: &mut egui::Ui, rects: [Option<Rect>; 3]) {
         let ctx = ui.ctx().clone();
         self.pump(&ctx);
+        self.overlay.pump(&ctx);
         self.hovered = None;
         for view in SliceView::ALL {
             if let Some(image) = self.assembler.take_finished(view) {
@@ -623,6 +632,10 @@ impl SliceViews {
                 shown.image.inside_fraction,
                 frame,
             )));
+        }
+        if let Some(shown) = &self.shown[view.index()] {
+            self.overlay
+                .paint(ui.ctx(), &painter, &shown.image, image_rect);
         }
         if let Some(seg) = self.segmentation.as_mut() {
             seg.paint_labels(ui.ctx(), &painter, view, frame, image_rect, self.cursor[n]);

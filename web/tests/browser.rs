@@ -46,6 +46,10 @@ mod oblique;
 #[path = "browser/segment.rs"]
 mod segment;
 
+/// A second served store over the page's slices against the desktop's overlay code (issue 47).
+#[path = "browser/overlay.rs"]
+mod overlay;
+
 const TOKEN: &str = "0123456789abcdef0123456789abcdef";
 
 fn chromium() -> PathBuf {
