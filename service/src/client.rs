@@ -32,8 +32,8 @@ use strata_storage::StoreHeader;
 use strata_types::BrickId;
 
 use crate::wire::{
-    self, brick_path, decode_open_document, is_valid_store_name, OpenDocument, API_PREFIX,
-    MAX_RETRY_AFTER,
+    self, decode_open_document, frame_brick_path, frame_document_path, is_valid_store_name,
+    OpenDocument, API_PREFIX, MAX_RETRY_AFTER,
 };
 
 /// How to reach a server.
@@ -105,6 +105,8 @@ struct Connection {
     base: String,
     name: String,
     generation: String,
+    /// The frame of a 4-D store whose bricks this connection fetches (0 for a 3-D store).
+    frame: u32,
     http: reqwest::Client,
     auth: Option<String>,
     /// When requests started failing to reach the server, and why; `None` while they succeed.
@@ -142,8 +144,27 @@ impl Connection {
         format!(
             "{}{}",
             self.base,
-            brick_path(&self.name, &self.generation, id)
+            frame_brick_path(&self.name, &self.generation, self.frame, id)
         )
+    }
+    /// The same server and store, fetching frame `frame`'s bricks (its own reachability).
+    fn for_frame(&self, frame: u32) -> Connection {
+        Connection {
+            location: match frame {
+                0 => format!("{}{API_PREFIX}/stores/{}", self.base, self.name),
+                _ => format!(
+                    "{}{API_PREFIX}/stores/{} (frame {frame})",
+                    self.base, self.name
+                ),
+            },
+            base: self.base.clone(),
+            name: self.name.clone(),
+            generation: self.generation.clone(),
+            frame,
+            http: self.http.clone(),
+            auth: self.auth.clone(),
+            lost: Mutex::new(None),
+        }
     }
     fn get(&self, url: &str) -> reqwest::RequestBuilder {
         let request = self.http.get(url);
@@ -359,58 +380,15 @@ impl RemoteSource {
             base: base.clone(),
             name: name.clone(),
             generation: String::new(),
+            frame: 0,
             http,
             auth,
             lost: Mutex::new(None),
         };
         let open_url = format!("{base}{API_PREFIX}/stores/{name}");
-        let bytes = {
-            let c = &conn;
-            let mut retrying = Retrying::new(Some(options.give_up_after));
-            runtime.block_on(async {
-                loop {
-                    let (last, again) = match c.get(&open_url).send().await {
-                        Ok(r) if r.status().is_success() => match r.bytes().await {
-                            Ok(b) => return Ok(b.to_vec()),
-                            Err(e) => (describe(&e), again_after_error(&e)),
-                        },
-                        Ok(r) if r.status() == reqwest::StatusCode::UNAUTHORIZED => {
-                            return Err(if c.auth.is_some() {
-                                "the server refused the token (401): check --token-file".to_string()
-                            } else {
-                                "the server requires a token (401): pass --token-file".to_string()
-                            })
-                        }
-                        Ok(r) if r.status() == reqwest::StatusCode::NOT_FOUND => {
-                            return Err(format!("the server has no store named '{name}'"))
-                        }
-                        Ok(r)
-                            if r.status() == reqwest::StatusCode::SERVICE_UNAVAILABLE
-                                || r.status() == reqwest::StatusCode::TOO_MANY_REQUESTS =>
-                        {
-                            let after = retry_after(r.headers());
-                            (format!("server busy ({})", r.status()), Again::Busy(after))
-                        }
-                        Ok(r) if r.status().is_server_error() => (
-                            format!("server answered {}", r.status()),
-                            Again::Unreachable,
-                        ),
-                        Ok(r) => return Err(format!("server answered {}", r.status())),
-                        Err(e) => (describe(&e), again_after_error(&e)),
-                    };
-                    match retrying.next(again) {
-                        Some(wait) => tokio::time::sleep(wait).await,
-                        None => {
-                            return Err(format!(
-                                "cannot reach the server: {}",
-                                retrying.gave_up(&last)
-                            ))
-                        }
-                    }
-                }
-            })
-        }
-        .map_err(refused)?;
+        let bytes = runtime
+            .block_on(get_document(&conn, &open_url, options.give_up_after))
+            .map_err(|e| refused(e.to_string()))?;
         let (doc, skeleton) =
             decode_open_document(&bytes, strata_storage::store::KNOWN_STORE_FEATURES)
                 .map_err(|e| refused(e.to_string()))?;
@@ -430,6 +408,119 @@ impl RemoteSource {
     }
     pub fn generation(&self) -> &str {
         &self.doc.generation
+    }
+
+    /// Frame `frame` (≥ 1) of this 4-D store: its open document (one request, blocking, with
+    /// the open's retry bound), then a source on the same runtime fetching that frame's bricks.
+    fn open_frame(&self, frame: u32) -> Result<RemoteSource, SourceError> {
+        let conn = self.conn.for_frame(frame);
+        let url = format!(
+            "{}{}",
+            conn.base,
+            frame_document_path(&conn.name, &conn.generation, frame)
+        );
+        let refused = |message: String| SourceError::Refused {
+            location: conn.location.clone(),
+            message,
+        };
+        let bytes = self
+            .runtime
+            .block_on(get_document(&conn, &url, self.options.give_up_after))
+            .map_err(|e| refused(e.to_string()))?;
+        let (doc, skeleton) =
+            decode_open_document(&bytes, strata_storage::store::KNOWN_STORE_FEATURES)
+                .map_err(|e| refused(e.to_string()))?;
+        if doc.generation != conn.generation {
+            return Err(refused(format!(
+                "frame {frame} belongs to generation {}, not {} (the store was re-imported): open it again",
+                doc.generation, conn.generation
+            )));
+        }
+        Ok(RemoteSource {
+            runtime: self.runtime.clone(),
+            conn: Arc::new(conn),
+            doc,
+            skeleton,
+            options: self.options.clone(),
+        })
+    }
+}
+
+/// Why an open document (the store's or a frame's) was not had; the wording is the message.
+#[derive(Debug, thiserror::Error)]
+enum DocumentRefused {
+    #[error("the server refused the token (401): check --token-file")]
+    TokenRefused,
+    #[error("the server requires a token (401): pass --token-file")]
+    TokenRequired,
+    #[error("the server has no store named '{0}'")]
+    NoStore(String),
+    /// The server's own words (which frame, how many there are).
+    #[error("the server has no frame {frame} of '{name}': {text}")]
+    NoFrame {
+        frame: u32,
+        name: String,
+        text: String,
+    },
+    #[error("server answered {0}")]
+    Status(reqwest::StatusCode),
+    /// The retry bound, the attempts and the last reason.
+    #[error("cannot reach the server: {0}")]
+    Unreachable(String),
+}
+
+/// GETs an open document (the store's or a frame's), retrying within `give_up_after`.
+async fn get_document(
+    c: &Connection,
+    open_url: &str,
+    give_up_after: Duration,
+) -> Result<Vec<u8>, DocumentRefused> {
+    let name = &c.name;
+    let mut retrying = Retrying::new(Some(give_up_after));
+    loop {
+        let (last, again) = match c.get(open_url).send().await {
+            Ok(r) if r.status().is_success() => match r.bytes().await {
+                Ok(b) => return Ok(b.to_vec()),
+                Err(e) => (describe(&e), again_after_error(&e)),
+            },
+            Ok(r) if r.status() == reqwest::StatusCode::UNAUTHORIZED => {
+                return Err(if c.auth.is_some() {
+                    DocumentRefused::TokenRefused
+                } else {
+                    DocumentRefused::TokenRequired
+                })
+            }
+            Ok(r) if r.status() == reqwest::StatusCode::NOT_FOUND => {
+                let text = r.text().await.unwrap_or_default();
+                let text = text.trim().chars().take(300).collect::<String>();
+                return Err(if c.frame == 0 {
+                    DocumentRefused::NoStore(name.clone())
+                } else {
+                    DocumentRefused::NoFrame {
+                        frame: c.frame,
+                        name: name.clone(),
+                        text,
+                    }
+                });
+            }
+            Ok(r)
+                if r.status() == reqwest::StatusCode::SERVICE_UNAVAILABLE
+                    || r.status() == reqwest::StatusCode::TOO_MANY_REQUESTS =>
+            {
+                let after = retry_after(r.headers());
+                (format!("server busy ({})", r.status()), Again::Busy(after))
+            }
+            Ok(r) if r.status().is_server_error() => (
+                format!("server answered {}", r.status()),
+                Again::Unreachable,
+            ),
+            Ok(r) => return Err(DocumentRefused::Status(r.status())),
+            Err(e) => (describe(&e), again_after_error(&e)),
+        };
+        match retrying.next(again) {
+            Some(wait) => tokio::time::sleep(wait).await,
+            None => return Err(DocumentRefused::Unreachable(retrying.gave_up(&last))),
+        }
     }
 }
 
@@ -517,6 +608,26 @@ impl VolumeSource for RemoteSource {
     }
     fn status(&self) -> SourceStatus {
         self.conn.status()
+    }
+    fn frame_count(&self) -> u32 {
+        self.doc.header.frames.max(1)
+    }
+    /// Frame 0 is the store as opened; a later frame fetches its open document (one small
+    /// request) when asked, which the viewer does for the frame ahead of the one shown.
+    fn frame_source(self: Arc<Self>, frame: u32) -> Option<Arc<dyn VolumeSource>> {
+        if frame == self.conn.frame {
+            return Some(self);
+        }
+        if frame >= self.frame_count() {
+            return None;
+        }
+        match self.open_frame(frame) {
+            Ok(source) => Some(Arc::new(source)),
+            Err(e) => {
+                tracing::warn!("{e}");
+                None
+            }
+        }
     }
 }
 

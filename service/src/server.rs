@@ -194,6 +194,9 @@ struct ServedStore {
     generation: String,
     store: Store,
     open_document: axum::body::Bytes,
+    /// The open document's JSON part, kept to build a later frame's document on request (a
+    /// frame's skeleton is encoded when asked for: a long series would hold every one).
+    document: OpenDocument,
     listing: StoreListing,
     /// The store as a read-only OME-Zarr 0.5 image (`/v1/stores/{name}/zarr/...`).
     zarr_view: strata_omezarr::view::ZarrView,
@@ -341,6 +344,7 @@ fn open_served(
         generation,
         store,
         open_document: open_document.into(),
+        document: doc,
         listing,
         zarr_view,
     })
@@ -576,6 +580,14 @@ fn router(state: Arc<AppState>, options: &ServeOptions) -> Router {
         .route(
             "/v1/stores/{name}/g/{generation}/bricks/{level}/{z}/{y}/{x}",
             get(brick),
+        )
+        .route(
+            "/v1/stores/{name}/g/{generation}/f/{frame}",
+            get(open_frame),
+        )
+        .route(
+            "/v1/stores/{name}/g/{generation}/f/{frame}/bricks/{level}/{z}/{y}/{x}",
+            get(frame_brick),
         )
         .route("/v1/stores/{name}/zarr/{*key}", get(zarr_key))
         // Inside the guard: off loopback only with the token.
@@ -1116,22 +1128,141 @@ fn if_none_match(headers: &HeaderMap, etag: &str) -> bool {
 }
 
 type BrickPath = (String, String, String, String, String, String);
+type FrameBrickPath = (String, String, String, String, String, String, String);
+
+/// Why a store, generation or frame in a URL is not served: the status and the text a client
+/// gets (small, so the lookups' results stay small; made a response where it is sent).
+struct NotServed(StatusCode, String);
+
+impl IntoResponse for NotServed {
+    fn into_response(self) -> Response {
+        (self.0, self.1).into_response()
+    }
+}
+
+/// The served store `name` at `generation`, or the 404 a client gets.
+fn served_generation(
+    state: &AppState,
+    name: &str,
+    generation: &str,
+) -> Result<Arc<ServedStore>, NotServed> {
+    let Some(store) = state.stores.get(name).cloned() else {
+        return Err(NotServed(StatusCode::NOT_FOUND, "not found\n".into()));
+    };
+    if generation != store.generation {
+        return Err(NotServed(
+            StatusCode::NOT_FOUND,
+            "this generation of the store is not served (it was re-imported): open the store again\n"
+                .into(),
+        ));
+    }
+    Ok(store)
+}
+
+/// Frame `frame` (as written in the URL) of `store`, or the 400/404 naming it.
+fn served_frame(store: &ServedStore, frame: &str) -> Result<u32, NotServed> {
+    let Ok(frame) = frame.parse::<u32>() else {
+        return Err(NotServed(
+            StatusCode::BAD_REQUEST,
+            format!("bad frame number '{frame}'\n"),
+        ));
+    };
+    let count = store.store.frame_count();
+    if frame >= count {
+        return Err(NotServed(
+            StatusCode::NOT_FOUND,
+            format!(
+                "frame {frame} is past the last frame of store '{}' ({count} frames, numbered from 0)\n",
+                store.name
+            ),
+        ));
+    }
+    Ok(frame)
+}
+
+/// Frame `frame`'s open document: the store's, with that frame's skeleton. Its URL carries the
+/// generation, so it is immutable (cached as bricks are).
+async fn open_frame(
+    State(state): State<Arc<AppState>>,
+    UrlPath((name, generation, frame)): UrlPath<(String, String, String)>,
+    headers: HeaderMap,
+) -> Response {
+    let store = match served_generation(&state, &name, &generation) {
+        Ok(store) => store,
+        Err(refused) => return refused.into_response(),
+    };
+    let frame = match served_frame(&store, &frame) {
+        Ok(frame) => frame,
+        Err(refused) => return refused.into_response(),
+    };
+    let etag = format!("\"{}-f{frame}-open\"", store.generation);
+    if if_none_match(&headers, &etag) {
+        state.counters.not_modified.fetch_add(1, Ordering::Relaxed);
+        return (StatusCode::NOT_MODIFIED, [(header::ETAG, etag)]).into_response();
+    }
+    let Some(skeleton) = store.store.frame_skeleton(frame) else {
+        return not_found().await;
+    };
+    let document = match encode_open_document(&store.document, skeleton) {
+        Ok(document) => document,
+        Err(e) => {
+            return (
+                StatusCode::INTERNAL_SERVER_ERROR,
+                format!("cannot encode frame {frame} of '{name}': {e}\n"),
+            )
+                .into_response()
+        }
+    };
+    state
+        .counters
+        .bytes
+        .fetch_add(document.len() as u64, Ordering::Relaxed);
+    let mut builder = Response::builder()
+        .header(header::CONTENT_TYPE, OPEN_DOCUMENT_TYPE)
+        .header(header::ETAG, etag);
+    builder = builder.header(header::CACHE_CONTROL, state.cache_control.clone());
+    builder
+        .body(Body::from(document))
+        .unwrap_or_else(|_| StatusCode::INTERNAL_SERVER_ERROR.into_response())
+}
 
 async fn brick(
     State(state): State<Arc<AppState>>,
     UrlPath((name, generation, level, z, y, x)): UrlPath<BrickPath>,
     headers: HeaderMap,
 ) -> Response {
-    let Some(store) = state.stores.get(&name).cloned() else {
-        return not_found().await;
+    let store = match served_generation(&state, &name, &generation) {
+        Ok(store) => store,
+        Err(refused) => return refused.into_response(),
     };
-    if generation != store.generation {
-        return (
-            StatusCode::NOT_FOUND,
-            "this generation of the store is not served (it was re-imported): open the store again\n",
-        )
-            .into_response();
-    }
+    brick_of_frame(state, store, 0, [level, z, y, x], headers).await
+}
+
+/// A brick of any frame (frame 0 too: the same record as [`brick`]'s route).
+async fn frame_brick(
+    State(state): State<Arc<AppState>>,
+    UrlPath((name, generation, frame, level, z, y, x)): UrlPath<FrameBrickPath>,
+    headers: HeaderMap,
+) -> Response {
+    let store = match served_generation(&state, &name, &generation) {
+        Ok(store) => store,
+        Err(refused) => return refused.into_response(),
+    };
+    let frame = match served_frame(&store, &frame) {
+        Ok(frame) => frame,
+        Err(refused) => return refused.into_response(),
+    };
+    brick_of_frame(state, store, frame, [level, z, y, x], headers).await
+}
+
+/// One brick record of frame `frame` as stored, with the guard's limits, ETag, 304 and ranges.
+async fn brick_of_frame(
+    state: Arc<AppState>,
+    store: Arc<ServedStore>,
+    frame: u32,
+    [level, z, y, x]: [String; 4],
+    headers: HeaderMap,
+) -> Response {
     let id = match (
         level.parse::<u8>(),
         z.parse::<u32>(),
@@ -1154,31 +1285,37 @@ async fn brick(
     let reader = store.clone();
     // A format-3 record is a share of its pack's map, sent without a copy (the map lives as
     // long as the body); other stores' records are read out.
-    let record =
-        match tokio::task::spawn_blocking(move || match reader.store.brick_record_mapped(id) {
+    let record = match tokio::task::spawn_blocking(move || match frame {
+        0 => match reader.store.brick_record_mapped(id) {
             Some(mapped) => Ok(bytes::Bytes::from_owner(mapped)),
             None => reader.store.read_brick_record(id).map(bytes::Bytes::from),
-        })
-        .await
-        {
-            Ok(Ok(record)) => record,
-            Ok(Err(e)) => {
-                tracing::error!("strata serve: {e}");
-                return (StatusCode::INTERNAL_SERVER_ERROR, format!("{e}\n")).into_response();
-            }
-            Err(e) => {
-                return (
-                    StatusCode::INTERNAL_SERVER_ERROR,
-                    format!("read failed: {e}\n"),
-                )
-                    .into_response()
-            }
-        };
+        },
+        // Later frames' records are read out (the store maps frame 0's for the server).
+        _ => reader
+            .store
+            .read_frame_brick_record(frame, id)
+            .map(bytes::Bytes::from),
+    })
+    .await
+    {
+        Ok(Ok(record)) => record,
+        Ok(Err(e)) => {
+            tracing::error!("strata serve: {e}");
+            return (StatusCode::INTERNAL_SERVER_ERROR, format!("{e}\n")).into_response();
+        }
+        Err(e) => {
+            return (
+                StatusCode::INTERNAL_SERVER_ERROR,
+                format!("read failed: {e}\n"),
+            )
+                .into_response()
+        }
+    };
     let checksum = match verify_record(id, &record) {
         Ok(c) => c,
         Err(e) => {
             let message = format!(
-                "{}: brick level {} at {:?} fails its check on the server: {e}",
+                "{}: brick level {} at {:?} of frame {frame} fails its check on the server: {e}",
                 store.path.display(),
                 id.level,
                 id.coords

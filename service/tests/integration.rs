@@ -4,6 +4,7 @@
 
 mod capacity;
 mod client;
+mod frames;
 mod load;
 mod proxy;
 mod server;

@@ -7,6 +7,12 @@
 //! - `GET /v1/stores/{name}/g/{generation}/bricks/{level}/{z}/{y}/{x}`: one brick record as
 //!   stored (kind, xxh3 checksum over key and body, compressed body), never decoded on the server.
 //!   The generation makes the URL immutable: a re-import gets new URLs.
+//! - `GET /v1/stores/{name}/g/{generation}/f/{frame}`: frame `frame` of a 4-D store as an open
+//!   document ([`frame_document_path`]): the same JSON (its header's `frames` is the count),
+//!   that frame's skeleton.
+//! - `GET /v1/stores/{name}/g/{generation}/f/{frame}/bricks/{level}/{z}/{y}/{x}`: one brick of
+//!   frame `frame` ([`frame_brick_path`]); frame 0's bricks keep the path above, so clients
+//!   that know no frames still work.
 //!
 //! A later OME-Zarr view of the same stores sits beside these, under
 //! `/v1/stores/{name}/zarr/...`.
@@ -155,6 +161,27 @@ pub fn brick_path(name: &str, generation: &str, id: BrickId) -> String {
     format!(
         "{API_PREFIX}/stores/{name}/g/{generation}/bricks/{}/{}/{}/{}",
         id.level, id.coords[2], id.coords[1], id.coords[0]
+    )
+}
+
+/// Path of frame `frame`'s open document: the store's document with that frame's skeleton.
+pub fn frame_document_path(name: &str, generation: &str, frame: u32) -> String {
+    format!("{API_PREFIX}/stores/{name}/g/{generation}/f/{frame}")
+}
+
+/// Path of one brick of frame `frame`; frame 0's is [`brick_path`] (the route older servers
+/// and clients know).
+pub fn frame_brick_path(name: &str, generation: &str, frame: u32, id: BrickId) -> String {
+    if frame == 0 {
+        return brick_path(name, generation, id);
+    }
+    format!(
+        "{}/bricks/{}/{}/{}/{}",
+        frame_document_path(name, generation, frame),
+        id.level,
+        id.coords[2],
+        id.coords[1],
+        id.coords[0]
     )
 }
 

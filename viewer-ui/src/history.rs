@@ -149,7 +149,7 @@ impl<S: Clone + PartialEq, E> History<S, E> {
 }
 
 /// `edits` with the navigation of `navigation`: which way the camera looks, the crosshair,
-/// the layout, the mode and the slices' colour map (the desktop's history leaves its camera,
+/// a 4-D store's frame, the layout, the mode and the slices' colour map (the desktop's history leaves its camera,
 /// crosshair and display choices alone too), and what names the volume and the page's hooks. Everything else in a
 /// [`ViewState`] is an edit: the transfer function and preset, the window, the crop box and
 /// clip plane, shading and light, the iso value, and any field added later unless it is
@@ -164,6 +164,8 @@ fn with_navigation_of(edits: ViewState, navigation: &ViewState) -> ViewState {
         orthographic: navigation.orthographic,
         layout: navigation.layout,
         cursor: navigation.cursor,
+        // The 4-D frame shown is navigation (cine would make a step of every frame).
+        frame: navigation.frame,
         colour_map: navigation.colour_map,
         volume_edge: navigation.volume_edge,
         store: navigation.store.clone(),

@@ -26,6 +26,7 @@
 //! - [`segment_panel`]: the Segment section's tool row, segment list and label opacity, and the
 //!   colour a label is drawn with (issue 52 item 7: the desktop's panel and the page's).
 //! - [`layouts`]: where the views go in the 2×2 and the 3D-over-slices layouts.
+//! - [`frames`]: a 4-D volume's frame choice, the cine clock and the Frames panel.
 //! - [`history`]: undo and redo (a drag one step, redo cleared by a new step, a cap on
 //!   depth) of the desktop's scene snapshots and the page's link state without its navigation.
 //! - [`shortcuts`]: the keyboard and mouse table (which the page has), the F1 help window and
@@ -40,6 +41,7 @@
 
 pub mod compact_tf;
 pub mod crop_clip;
+pub mod frames;
 pub mod history;
 pub mod layouts;
 pub mod lighting;

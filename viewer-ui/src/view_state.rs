@@ -37,6 +37,9 @@ pub const MAX_IMAGE_EDGE: u32 = 4096;
 pub const UNCONVERGED_CAPTURE_FRAMES: u64 = 12;
 /// Most frames a `bench=` fragment may orbit (each is a full frame on a software adapter).
 pub const MAX_BENCH_FRAMES: u32 = 1000;
+/// The largest `frame=` a link may name (a store's frame count is bounded as an axis is); a
+/// frame past the opened store's last is refused there.
+pub const MAX_LINK_FRAME: u32 = 1 << 20;
 /// The orbit camera's field of view, as `strata render`'s perspective default.
 pub const FOV_Y_DEG: f64 = 30.0;
 
@@ -95,6 +98,10 @@ pub struct ViewState {
     /// 3D view) and turned `[yaw, pitch, roll]` degrees off axial (`oblique=YAW,PITCH[,ROLL]`,
     /// strata_slices' `ObliquePlane::from_orientation_deg`); None: not shown.
     pub oblique: Option<[f64; 3]>,
+    /// The frame of a 4-D store every view shows (`frame=N`, numbered from 0; absent: 0).
+    /// A frame past the store's last is refused by the viewer that opens it, which knows
+    /// the count.
+    pub frame: u32,
     /// Isosurface value in the volume's physical unit (HU for the CT sample).
     pub iso_value: f64,
     /// The crop box (`crop=I0,J0,K0,I1,J1,K1`, fractions of each index axis).
@@ -151,6 +158,7 @@ impl Default for ViewState {
             window: None,
             colour_map: ColourMap::Grey,
             oblique: None,
+            frame: 0,
             iso_value: 300.0,
             crop: CropBox::default(),
             clip: ClipSettings::default(),
@@ -349,6 +357,15 @@ impl Fragment {
                         finite(key, z, range)?,
                     ]);
                 }
+                "frame" => {
+                    view.frame = value
+                        .parse::<u32>()
+                        .ok()
+                        .filter(|&frame| frame <= MAX_LINK_FRAME)
+                        .ok_or_else(|| {
+                            bad(key, value, "a frame number from 0 (frames numbered from 0)")
+                        })?
+                }
                 "oblique" => {
                     let parts: Vec<&str> = value.split(',').collect();
                     let (yaw, pitch, roll) = match parts[..] {
@@ -526,6 +543,9 @@ impl ViewState {
             } else {
                 parts.push(format!("oblique={yaw},{pitch},{roll}"));
             }
+        }
+        if self.frame != 0 {
+            parts.push(format!("frame={}", self.frame));
         }
         if self.mode == RenderMode::Isosurface {
             parts.push(format!("iso={}", round3(self.iso_value)));
@@ -770,6 +790,7 @@ mod tests {
             window: Some([40.0, 400.0]),
             colour_map: ColourMap::Viridis,
             oblique: Some([30.5, -12.25, 7.125]),
+            frame: 3,
             iso_value: 250.0,
             crop: CropBox {
                 min: [0.125, 0.0, 0.25],
@@ -1102,6 +1123,10 @@ mod tests {
             ("oblique", "30,10,0,5"),
             ("oblique", "north,10"),
             ("oblique", "200,0,0"),
+            ("frame", "-1"),
+            ("frame", "two"),
+            ("frame", "1.5"),
+            ("frame", "99999999999"),
         ] {
             let e = Fragment::parse(&format!("#{key}={value}")).expect_err(value);
             assert!(
@@ -1109,6 +1134,25 @@ mod tests {
                 "{key}={value}: {e}"
             );
         }
+    }
+
+    /// A 4-D store's frame is in the link only past frame 0, read back as written.
+    #[test]
+    fn the_frame_is_in_the_link_only_past_frame_0() {
+        let plain = ViewState::default().to_fragment();
+        assert!(!plain.contains("frame"), "{plain}");
+        let view = ViewState {
+            frame: 2,
+            ..ViewState::default()
+        };
+        let written = view.to_fragment();
+        assert!(written.split('&').any(|p| p == "frame=2"), "{written}");
+        assert_eq!(Fragment::parse(&written).expect("parses").view.frame, 2);
+        assert_eq!(
+            Fragment::parse("#frame=0").expect("parses").view.frame,
+            0,
+            "frame=0 is the default, accepted"
+        );
     }
 
     /// `m=` carries the slices' measurements: written only when there are some, read back

@@ -610,7 +610,7 @@ impl StrataApp {
         )?;
         let slices = SliceReader::start(store.clone(), repaint.clone())?;
         let oblique = super::oblique::ObliqueReader::start(store.clone(), repaint.clone())?;
-        let frame_player = super::frames::FramePlayer::for_source(
+        let mut frame_player = super::frames::FramePlayer::for_source(
             store.clone(),
             self.options.gpu_budget_bytes,
             repaint,
@@ -681,6 +681,10 @@ impl StrataApp {
             });
             scene.iso_value = view.iso_value;
             scene.colour_map = view.colour_map;
+            // The link's frame is shown from the first UI frame (the player swaps readers).
+            if let Some(player) = frame_player.as_mut().filter(|_| view.frame > 0) {
+                player.playback.requested = Some(view.frame);
+            }
             scene.crop = view.crop;
             scene.clip = view.clip;
             if let Some(tf) = view.tf {
@@ -772,6 +776,7 @@ impl StrataApp {
                         .current_plane(&v.data, &v.scene)
                         .orientation_deg()
                 }),
+                frame: v.frames.as_ref().map_or(0, |p| p.playback.current),
             },
         )
     }

@@ -7,11 +7,14 @@
 //! and are sent the same render and slice requests as the shown ones, so its bricks stream in
 //! and its images are ready before cine reaches it: a second streaming volume, on its own
 //! render thread and GPU budget, that is dropped or swapped in when the frame changes.
+//! Which frame is wanted (the slider, a link, the cine clock) is strata-viewer-ui's
+//! [`FramePlayback`], which the page shares.
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use strata_source::VolumeSource;
+use strata_viewer_ui::frames::FramePlayback;
 
 use super::oblique::ObliqueReader;
 use super::orientation::SliceView;
@@ -19,9 +22,6 @@ use super::scene::VolumeData;
 use super::slices::SliceReader;
 use super::sync::Repaint;
 use super::volume_session::VolumeSession;
-
-/// Cine frame rates offered (frames per second).
-pub const FPS_RANGE: std::ops::RangeInclusive<f64> = 1.0..=30.0;
 
 /// The readers of one frame.
 pub struct FrameReaders {
@@ -51,52 +51,21 @@ impl FrameReaders {
     }
 }
 
-/// The frame state of an open 4-D volume (the Frames panel edits it).
+/// The frame state of an open 4-D volume: the shared playback (the Frames panel edits it)
+/// and the readers of the frame ahead.
 pub struct FramePlayer {
     source: Arc<dyn VolumeSource>,
-    pub count: u32,
-    /// The frame every view shows.
-    pub current: u32,
-    /// What the slider or a test asked for; applied at the start of the next UI frame.
-    pub requested: Option<u32>,
-    pub playing: bool,
-    pub fps: f64,
-    shown_at: Instant,
+    pub playback: FramePlayback,
+    /// The playback clock's zero (it counts seconds from here).
+    clock_zero: Instant,
     ahead: Option<FrameReaders>,
     gpu_budget_bytes: u64,
     repaint: Repaint,
-    pub error: Option<String>,
     /// The slice requests last passed to the frame ahead (each is passed once).
     mirrored: [Option<super::slices::SliceRequest>; 3],
-    /// Seconds between the last cine steps shown (newest last, at most 8), for the rate line.
-    step_seconds: Vec<f64>,
-}
-
-/// What the Frames panel says about the cine rate: None while it holds the asked rate (within
-/// 20 %) or before 3 steps are timed; otherwise the rate it reaches, so a slow cine says so
-/// (issue 36: 5 frames/s asked, about 1 shown, nothing said).
-pub fn cine_rate_line(asked_fps: f64, step_seconds: &[f64]) -> Option<String> {
-    if step_seconds.len() < 3 {
-        return None;
-    }
-    let mean = step_seconds.iter().sum::<f64>() / step_seconds.len() as f64;
-    let reached = 1.0 / mean.max(1e-6);
-    (reached < 0.8 * asked_fps).then(|| {
-        format!(
-            "playing at {reached:.1} frames/s: cannot hold {asked_fps:.0} (each frame is read as it plays)"
-        )
-    })
 }
 
 impl FramePlayer {
-    /// The Frames panel's line when the cine cannot hold its rate ([`cine_rate_line`]).
-    pub fn rate_line(&self) -> Option<String> {
-        if !self.playing {
-            return None;
-        }
-        cine_rate_line(self.fps, &self.step_seconds)
-    }
-
     /// A player for `source` when it has more than one frame; frame 0 is shown (by the readers
     /// the viewer opened on the source itself) and frame 1 is opened ahead.
     pub fn for_source(
@@ -108,31 +77,26 @@ impl FramePlayer {
         if count < 2 {
             return None;
         }
+        let clock_zero = Instant::now();
         let mut player = FramePlayer {
             source,
-            count,
-            current: 0,
-            requested: None,
-            playing: false,
-            fps: 5.0,
-            shown_at: Instant::now(),
+            playback: FramePlayback::new(count, 0.0),
+            clock_zero,
             ahead: None,
             gpu_budget_bytes,
             repaint,
-            error: None,
             mirrored: [None; 3],
-            step_seconds: Vec::new(),
         };
         player.open_ahead();
         Some(player)
     }
 
-    fn next_frame(&self) -> u32 {
-        (self.current + 1) % self.count
+    fn now_s(&self) -> f64 {
+        self.clock_zero.elapsed().as_secs_f64()
     }
 
     fn open_ahead(&mut self) {
-        let next = self.next_frame();
+        let next = self.playback.next_frame();
         if self.ahead.as_ref().is_some_and(|a| a.frame == next) {
             return;
         }
@@ -140,7 +104,7 @@ impl FramePlayer {
         self.mirrored = [None; 3];
         match FrameReaders::start(&self.source, next, self.gpu_budget_bytes, &self.repaint) {
             Ok(readers) => self.ahead = Some(readers),
-            Err(e) => self.error = Some(format!("frame {next}: {e:#}")),
+            Err(e) => self.playback.error = Some(format!("frame {next}: {e:#}")),
         }
     }
 
@@ -154,28 +118,21 @@ impl FramePlayer {
     /// readers in `data`), then passes the shown frame's requests on to the frame ahead.
     /// Returns true when the shown frame changed (the views then drop their cached requests).
     pub fn tick(&mut self, ctx: &egui::Context, data: &mut VolumeData) -> bool {
-        let mut wanted = self.requested.take();
-        if self.playing {
-            let step =
-                Duration::from_secs_f64(1.0 / self.fps.clamp(*FPS_RANGE.start(), *FPS_RANGE.end()));
-            let elapsed = self.shown_at.elapsed();
-            if wanted.is_none() && elapsed >= step {
-                wanted = Some(self.next_frame());
-            }
-            ctx.request_repaint_after(step.saturating_sub(elapsed));
+        let (wanted, repaint_in_s) = self.playback.wanted(self.now_s());
+        if let Some(seconds) = repaint_in_s {
+            ctx.request_repaint_after(Duration::from_secs_f64(seconds));
         }
         let changed = match wanted {
-            Some(frame) if frame != self.current && frame < self.count => {
-                self.show(frame, data);
-                true
-            }
-            _ => false,
+            Some(frame) => self.show(frame, data),
+            None => false,
         };
         self.mirror_requests(data);
         changed
     }
 
-    fn show(&mut self, frame: u32, data: &mut VolumeData) {
+    /// Swaps `data`'s readers for frame `frame`'s (the ahead ones when they are that frame's);
+    /// true when it is shown.
+    fn show(&mut self, frame: u32, data: &mut VolumeData) -> bool {
         let readers = match self.ahead.take() {
             Some(a) if a.frame == frame => Ok(a),
             other => {
@@ -189,22 +146,14 @@ impl FramePlayer {
                 data.session = r.session;
                 data.slices = r.slices;
                 data.oblique = r.oblique;
-                self.current = frame;
-                if self.playing {
-                    self.step_seconds
-                        .push(self.shown_at.elapsed().as_secs_f64());
-                    let excess = self.step_seconds.len().saturating_sub(8);
-                    self.step_seconds.drain(..excess);
-                } else {
-                    self.step_seconds.clear();
-                }
-                self.shown_at = Instant::now();
-                self.error = None;
+                let now_s = self.now_s();
+                self.playback.shown(frame, now_s);
                 self.open_ahead();
+                true
             }
             Err(e) => {
-                self.playing = false;
-                self.error = Some(format!("frame {frame}: {e:#}"));
+                self.playback.failed(frame, &format!("{e:#}"));
+                false
             }
         }
     }
@@ -225,23 +174,5 @@ impl FramePlayer {
                 }
             }
         }
-    }
-}
-
-#[cfg(test)]
-mod rate_tests {
-    use super::cine_rate_line;
-
-    #[test]
-    fn a_cine_that_cannot_hold_its_rate_says_what_it_reaches() {
-        // 5 frames/s asked, a step every second: said, with the rate reached.
-        let line = cine_rate_line(5.0, &[1.0, 1.0, 1.0]).expect("a slow cine says so");
-        assert!(
-            line.contains("1.0 frames/s") && line.contains("cannot hold 5"),
-            "{line}"
-        );
-        // Within 20 % of the rate, or too few steps to tell: nothing.
-        assert_eq!(cine_rate_line(5.0, &[0.22, 0.21, 0.2]), None);
-        assert_eq!(cine_rate_line(5.0, &[1.0, 1.0]), None);
     }
 }

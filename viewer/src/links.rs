@@ -55,6 +55,8 @@ pub struct DesktopView {
     /// The oblique view, shown and turned `[yaw, pitch, roll]` degrees off axial (the link's
     /// `oblique=`, strata_slices' `ObliquePlane::orientation_deg`); None: not shown.
     pub oblique: Option<[f64; 3]>,
+    /// The frame of a 4-D volume every view shows (the link's `frame=`; 0 for a 3-D one).
+    pub frame: u32,
     /// The rendering panel's light. A link carries its direction, shadows, occlusion radius
     /// and scattering asymmetry (view_state.rs); a light opened from a link has the rest
     /// (intensity, ambient, steps, blend) at the defaults, as the browser draws it.
@@ -166,6 +168,7 @@ pub fn link_for(store_url: &str, view: &DesktopView) -> Option<String> {
         light: view.light,
         measurements: view.measurements.clone(),
         oblique: view.oblique,
+        frame: view.frame,
         store: Some(name.to_string()),
         ..ViewState::default()
     };
@@ -200,6 +203,7 @@ pub fn desktop_view(view: &ViewState) -> DesktopView {
         light: view.light,
         measurements: view.measurements.clone(),
         oblique: view.oblique,
+        frame: view.frame,
     }
 }
 
@@ -268,6 +272,7 @@ mod tests {
                 },
             ],
             oblique: Some([25.5, -10.25, 3.125]),
+            frame: 2,
         }
     }
 

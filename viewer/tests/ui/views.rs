@@ -601,7 +601,7 @@ fn the_frame_slider_moves_the_readout_to_the_next_frames_value() {
         .as_ref()
         .and_then(|v| v.frames.as_ref())
         .expect("frames");
-    assert_eq!(player.current, 1);
+    assert_eq!(player.playback.current, 1);
     assert_eq!(player.ahead_frame(), Some(2), "frame 2 is opened ahead");
     step_until(&mut h, "a 3D frame of frame 1", |a| {
         a.volume
