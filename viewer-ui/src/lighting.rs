@@ -2,7 +2,8 @@
 //! (issue 37; shared since issue 47): the light the user sets ([`LightPrefs`]: headlight or a
 //! camera-relative key light, intensity, ambient, shadows, occlusion, scattering), when its
 //! effects cannot be drawn ([`effects_refused`]), the one function that turns it into render
-//! settings ([`render_lighting`]), and its controls ([`light_controls`] with the direction gizmo).
+//! settings ([`render_lighting`]), its controls ([`light_controls`] with the direction gizmo),
+//! and the one-click cinematic looks ([`CinematicPreset`], [`cinematic_buttons`]).
 //!
 //! Platform-independent: plain values in, egui out; the desktop persists [`LightPrefs`] in its
 //! preferences, the browser carries it in the link (view_state.rs).
@@ -78,6 +79,12 @@ pub const OCCLUSION_RADIUS_RANGE: std::ops::RangeInclusive<f64> = 1.0..=20.0;
 /// Scattering asymmetry offered: past ±0.9 the phase is a narrow spike that only shows when
 /// looking into the light.
 pub const SCATTERING_G_RANGE: std::ops::RangeInclusive<f64> = -0.9..=0.9;
+/// Scattering blend: Exposure Render's gradient factor, a fraction.
+pub const SCATTERING_BLEND_RANGE: std::ops::RangeInclusive<f64> = 0.0..=1.0;
+/// The key light's intensity offered: 2 already washes bone out at render's default ambient.
+pub const INTENSITY_RANGE: std::ops::RangeInclusive<f64> = 0.0..=2.0;
+/// The ambient term, a fraction of the TF colour.
+pub const AMBIENT_RANGE: std::ops::RangeInclusive<f64> = 0.0..=1.0;
 
 impl LightPrefs {
     /// The direction towards the light in camera axes (x right, y up, z towards the viewer),
@@ -224,7 +231,11 @@ pub fn render_lighting(light: &LightPrefs, view: LitView) -> Lighting {
             SCATTERING_G_RANGE,
             defaults.scattering_g,
         ),
-        blend: sane(light.scattering_blend, 0.0..=1.0, defaults.scattering_blend),
+        blend: sane(
+            light.scattering_blend,
+            SCATTERING_BLEND_RANGE,
+            defaults.scattering_blend,
+        ),
     });
     let shaded = view.shading
         || shadows.mode != ShadowMode::Off
@@ -266,17 +277,13 @@ pub struct LightOffer {
     /// [`effects_refused`] for the view: shadows, occlusion and scattering are shown disabled
     /// with this reason.
     pub effects_refused: Option<&'static str>,
-    /// Where the viewer cannot draw everything the panel sets, why: only the key light's
-    /// direction and exact shadows are offered (the browser: its address carries those, and
-    /// it runs no progressive refinement, which occlusion, scattering and the light cache's
-    /// soft edges are drawn with on the desktop). None: everything (the desktop).
-    pub direction_and_exact_shadows_only: Option<&'static str>,
 }
 
 /// The key light (headlight or a camera-relative direction), its intensity, the ambient term,
 /// shadows, occlusion and scattering (issue 37; the same settings as `strata render
 /// --light-dir --shadows --occlusion --scattering`). `shading` is the view's "Shading" switch:
-/// an effect turned on turns it on, as `strata render` does.
+/// an effect turned on turns it on, as `strata render` does. Both viewers offer all of it:
+/// each refines shadows, occlusion and scattering progressively while the view is still.
 pub fn light_controls(
     ui: &mut egui::Ui,
     light: &mut LightPrefs,
@@ -313,16 +320,17 @@ pub fn light_controls(
             });
         });
     }
-    let full = offer.direction_and_exact_shadows_only.is_none();
-    let limited = offer.direction_and_exact_shadows_only.unwrap_or_default();
-    if full {
-        ui.add(egui::Slider::new(&mut light.intensity, 0.0..=2.0).text("intensity"))
-            .on_hover_text("The key light's diffuse and specular term.")
-            .accessible_name(INTENSITY_LABEL);
-        ui.add(egui::Slider::new(&mut light.ambient, 0.0..=1.0).text("ambient"))
-            .on_hover_text("Light from everywhere: what shadows never darken.")
-            .accessible_name(AMBIENT_LABEL);
-    }
+    let (lo, hi) = (
+        *INTENSITY_RANGE.start() as f32,
+        *INTENSITY_RANGE.end() as f32,
+    );
+    ui.add(egui::Slider::new(&mut light.intensity, lo..=hi).text("intensity"))
+        .on_hover_text("The key light's diffuse and specular term.")
+        .accessible_name(INTENSITY_LABEL);
+    let (lo, hi) = (*AMBIENT_RANGE.start() as f32, *AMBIENT_RANGE.end() as f32);
+    ui.add(egui::Slider::new(&mut light.ambient, lo..=hi).text("ambient"))
+        .on_hover_text("Light from everywhere: what shadows never darken.")
+        .accessible_name(AMBIENT_LABEL);
     ui.add_enabled_ui(offer.effects_refused.is_none(), |ui| {
         let why = offer.effects_refused.unwrap_or_default();
         let before = *light;
@@ -336,22 +344,20 @@ pub fn light_controls(
                      slower by the shadow ray's length. Turns shading on.",
                 )
                 .on_disabled_hover_text(why);
-            ui.add_enabled_ui(full, |ui| {
-                ui.radio_value(&mut light.shadows, ShadowMode::Cache, CACHE_SHADOWS_LABEL)
-                    .on_hover_text(
-                        "One lookup per shaded sample in a coarse grid of the light reaching \
-                         each point, rebuilt when the light, transfer function or loaded \
-                         bricks change: fast, with softer edges. Needs a directional light \
-                         (chosen if the headlight is on). Turns shading on.",
-                    )
-                    .on_disabled_hover_text(if full { why } else { limited });
-            });
+            ui.radio_value(&mut light.shadows, ShadowMode::Cache, CACHE_SHADOWS_LABEL)
+                .on_hover_text(
+                    "One lookup per shaded sample in a coarse grid of the light reaching each \
+                     point, rebuilt when the light, transfer function or loaded bricks \
+                     change: fast, with softer edges. Needs a directional light (chosen if \
+                     the headlight is on). Turns shading on.",
+                )
+                .on_disabled_hover_text(why);
         });
         if light.shadows == ShadowMode::Cache && before.shadows != ShadowMode::Cache {
             // The cache holds one light direction; the headlight's is each ray's own.
             light.headlight = false;
         }
-        if full && light.shadows != ShadowMode::Off {
+        if light.shadows != ShadowMode::Off {
             ui.add(
                 egui::Slider::new(&mut light.shadow_step, SHADOW_STEP_RANGE)
                     .logarithmic(true)
@@ -362,9 +368,7 @@ pub fn light_controls(
             )
             .accessible_name(SHADOW_STEP_LABEL);
         }
-        ui.add_enabled_ui(full, |ui| {
-            occlusion_and_scattering(ui, light, if full { why } else { limited })
-        });
+        occlusion_and_scattering(ui, light, why);
         if light.any_effect() && !before.any_effect() {
             // As `strata render` does: each effect needs the lit path.
             *shading = true;
@@ -404,13 +408,124 @@ fn occlusion_and_scattering(ui: &mut egui::Ui, light: &mut LightPrefs, why: &str
                  < 0 back towards the light.",
             )
             .accessible_name(SCATTERING_G_LABEL);
-        ui.add(egui::Slider::new(&mut light.scattering_blend, 0.0..=1.0).text("blend"))
-            .on_hover_text(
-                "0: volume-like scattering everywhere; 1: surface-like reflection wherever \
+        ui.add(
+            egui::Slider::new(&mut light.scattering_blend, SCATTERING_BLEND_RANGE).text("blend"),
+        )
+        .on_hover_text(
+            "0: volume-like scattering everywhere; 1: surface-like reflection wherever \
                  the gradient is strong (bone), scattering in the smooth interior.",
-            )
-            .accessible_name(SCATTERING_BLEND_LABEL);
+        )
+        .accessible_name(SCATTERING_BLEND_LABEL);
     }
+}
+
+/// A one-click cinematic look (issue 37): a transfer-function preset and the lighting that
+/// suits it. The headlight stays the viewers' default; these are opt-in. Shared by the desktop's
+/// rendering panel and the page's side panel ([`cinematic_buttons`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CinematicPreset {
+    /// The button's label (the UI tests find it by this).
+    pub label: &'static str,
+    /// The transfer-function preset it sets (`TransferFunction::preset`).
+    pub tf_preset: &'static str,
+    /// Occlusion radius, mm.
+    pub occlusion_radius_mm: f64,
+    pub scattering_g: f64,
+    pub scattering_blend: f64,
+}
+
+impl CinematicPreset {
+    pub const ALL: [CinematicPreset; 2] = [
+        // Bone is a surface: mostly the BRDF at its strong edges (high blend), mild forward
+        // scattering, and a short occlusion radius that darkens foramina and joint gaps
+        // without greying the cortex.
+        CinematicPreset {
+            label: "Cinematic bone",
+            tf_preset: "ct-bone",
+            occlusion_radius_mm: 4.0,
+            scattering_g: 0.3,
+            scattering_blend: 0.8,
+        },
+        // Soft tissue is translucent with weak gradients: mostly the phase (low blend), more
+        // forward scattering so back-lit tissue glows, and a wider radius for the broad
+        // folds between organs.
+        CinematicPreset {
+            label: "Cinematic soft tissue",
+            tf_preset: "ct-soft-tissue",
+            occlusion_radius_mm: 6.0,
+            scattering_g: 0.5,
+            scattering_blend: 0.3,
+        },
+    ];
+
+    /// The preset's lighting: a key light from the upper left of the view (the painter's
+    /// convention, which reads as relief rather than as craters), shadows from the light cache
+    /// (one fetch per sample, affordable while moving), occlusion and scattering on; the
+    /// intensity and ambient at render's defaults.
+    pub fn light(&self) -> LightPrefs {
+        LightPrefs {
+            headlight: false,
+            azimuth_deg: -45.0,
+            elevation_deg: 45.0,
+            shadows: ShadowMode::Cache,
+            occlusion: true,
+            occlusion_radius_mm: self.occlusion_radius_mm,
+            scattering: true,
+            scattering_g: self.scattering_g,
+            scattering_blend: self.scattering_blend,
+            ..LightPrefs::default()
+        }
+    }
+
+    /// Sets the preset's lighting on a view: its light, shading on, and DVR where the mode
+    /// could not show it (MIP is never lit). The caller sets the transfer function (and, on
+    /// the desktop, turns the adaptive pass off: it draws none of these effects).
+    pub fn light_view(&self, light: &mut LightPrefs, shading: &mut bool, mode: &mut RenderMode) {
+        *light = self.light();
+        *shading = true;
+        if *mode == RenderMode::Mip {
+            *mode = RenderMode::Dvr;
+        }
+    }
+}
+
+/// The cinematic preset buttons, each selected where `is_current` says so and disabled, with
+/// the reason, where its transfer function does not fit the scan (issue 47: a CT preset on an
+/// MR painted a solid red cube that never converged). Returns the preset clicked.
+pub fn cinematic_buttons(
+    ui: &mut egui::Ui,
+    scan: &crate::presets::ScanValues,
+    is_current: impl Fn(&CinematicPreset) -> bool,
+) -> Option<CinematicPreset> {
+    let mut clicked = None;
+    ui.horizontal_wrapped(|ui| {
+        for preset in CinematicPreset::ALL {
+            let offer = crate::presets::offer(preset.tf_preset, scan);
+            let mut response = ui.add_enabled(
+                offer.is_offered(),
+                egui::Button::selectable(is_current(&preset), preset.label),
+            );
+            if let (false, Some(reason)) = (offer.is_offered(), offer.reason()) {
+                response = response.on_disabled_hover_text(reason);
+            }
+            if response
+                .on_hover_text(format!(
+                    "The {} transfer function lit by a key light from the upper left, with \
+                     shadows from the light cache, ambient occlusion over {} mm and \
+                     scattering (g {}, blend {}). Draws DVR (MIP is never lit) with the \
+                     raycaster (adaptive sampling off), refined while the view is still.",
+                    preset.tf_preset,
+                    preset.occlusion_radius_mm,
+                    preset.scattering_g,
+                    preset.scattering_blend,
+                ))
+                .clicked()
+            {
+                clicked = Some(preset);
+            }
+        }
+    });
+    clicked
 }
 
 /// The gizmo square's point for a direction: azimuth across, elevation up (the same angles as
@@ -487,6 +602,32 @@ mod tests {
         }
         .camera_direction();
         assert_eq!(along, [0.0, 0.0, 1.0]);
+    }
+
+    #[test]
+    fn a_cinematic_preset_lights_a_mip_view_as_dvr_with_every_effect() {
+        for preset in CinematicPreset::ALL {
+            let (mut light, mut shading, mut mode) =
+                (LightPrefs::default(), false, RenderMode::Mip);
+            preset.light_view(&mut light, &mut shading, &mut mode);
+            assert_eq!(
+                (light, shading, mode),
+                (preset.light(), true, RenderMode::Dvr)
+            );
+            let lit = render_lighting(
+                &light,
+                LitView {
+                    mode,
+                    shading,
+                    adaptive_sampling: false,
+                },
+            );
+            assert_eq!(lit.shadows.mode, ShadowMode::Cache, "{}", preset.label);
+            assert!(lit.occlusion.is_some() && lit.scattering.is_some());
+            let mut iso = RenderMode::Isosurface;
+            preset.light_view(&mut light, &mut shading, &mut iso);
+            assert_eq!(iso, RenderMode::Isosurface, "a lit mode stays");
+        }
     }
 
     #[test]

@@ -21,14 +21,57 @@
 //! (budgets, background or inline work) is the platform's, passed in as a function. The passes
 //! a platform composes after the raycast (the desktop's adaptive pass with its oracle thread,
 //! progressive refinement) stay with it; the driver says when they must start again
-//! ([`RenderChange::StillPasses`] and every other change).
+//! ([`RenderChange::StillPasses`] and every other change), and holds the rules both share:
+//! which views refine progressively ([`jitter_refines`]), how many frames by default, and how
+//! many refinement frames may be queued ([`frames_in_flight`]).
 
 use std::sync::Arc;
+use std::time::Duration;
 
 use strata_loader::{LoaderError, StreamingVolume};
 use strata_render::{
-    Camera, GpuContext, OverlayLut, OverlayVolume, RenderSettings, TransferFunction, Traversal,
+    Camera, GpuContext, OverlayLut, OverlayVolume, RenderSettings, ShadowMode, TransferFunction,
+    Traversal,
 };
+
+/// Progressive frames a still view accumulates by default, in both viewers: the jitter's noise
+/// falls as 1/√N, so 64 frames leave 1/8 of one frame's (render/tests/progressive.rs measures
+/// the slope).
+pub const DEFAULT_PROGRESSIVE_FRAMES: u32 = 64;
+
+/// Whether a still view of `settings` is refined progressively: with shadows, occlusion or
+/// scattering (the light's effects, issue 37). The jitter moves the shadow and occlusion rays'
+/// sample positions as well as the main ray's, and those secondary rays, sampled more coarsely
+/// than the main ray, are where a still frame's wood-grain is most visible. Plain DVR is left
+/// to the controller's still refinement of the sampling rate (and the adaptive pass): it was
+/// not measured whether its main-ray wood-grain is worth 64 more frames at rest.
+pub fn jitter_refines(settings: &RenderSettings) -> bool {
+    settings.shadows.mode != ShadowMode::Off
+        || settings.occlusion.is_some()
+        || settings.scattering.is_some()
+}
+
+/// Most refinement frames queued before a viewer waits for the GPU (the desktop's export) or
+/// submits no more (the page, whose frame loop never waits).
+pub const MOST_FRAMES_IN_FLIGHT: u32 = 8;
+/// A frame slower than this is waited for on its own: Cancel must not wait behind a queue of
+/// slow frames (lavapipe draws a 2× cinematic frame in seconds), and the live view's next
+/// frame waits behind whatever refinement left queued.
+pub const SLOW_FRAME: Duration = Duration::from_millis(100);
+/// Frames faster than this are queued more deeply (a real GPU's: 1-5 ms).
+pub const FAST_FRAME: Duration = Duration::from_millis(20);
+
+/// How many refinement frames may be queued before waiting, from how long the last ones took:
+/// one while they are slow, doubling up to [`MOST_FRAMES_IN_FLIGHT`] while they are fast.
+pub fn frames_in_flight(current: u32, per_frame: Duration) -> u32 {
+    if per_frame > SLOW_FRAME {
+        1
+    } else if per_frame < FAST_FRAME {
+        (current.max(1) * 2).min(MOST_FRAMES_IN_FLIGHT)
+    } else {
+        current.max(1)
+    }
+}
 
 /// What the 3D view draws of the overlay (part of the render request). Equal when the same
 /// grid (by identity: it is large) has the same colour table.
@@ -469,6 +512,37 @@ mod tests {
         assert_eq!(driver.changes(&regridded), vec![RenderChange::OverlayGrid]);
         driver.drawn(&base);
         assert_eq!(driver.changes(&base), vec![RenderChange::OverlayCleared]);
+    }
+
+    #[test]
+    fn slow_refinement_frames_are_sent_one_at_a_time_and_fast_ones_queue_deeper() {
+        let slow = SLOW_FRAME + Duration::from_millis(1);
+        let fast = FAST_FRAME / 2;
+        let between = (SLOW_FRAME + FAST_FRAME) / 2;
+        assert_eq!(frames_in_flight(MOST_FRAMES_IN_FLIGHT, slow), 1);
+        assert_eq!(frames_in_flight(1, fast), 2);
+        assert_eq!(frames_in_flight(4, between), 4);
+        let mut depth = 1;
+        for _ in 0..10 {
+            depth = frames_in_flight(depth, fast);
+        }
+        assert_eq!(depth, MOST_FRAMES_IN_FLIGHT, "bounded however fast");
+        // None in flight is never the answer: the run would stop.
+        assert_eq!(frames_in_flight(0, between), 1);
+    }
+
+    #[test]
+    fn only_the_lights_effects_are_refined_by_jitter() {
+        let mut settings = RenderSettings::default();
+        assert!(!jitter_refines(&settings), "plain DVR");
+        settings.shadows.mode = ShadowMode::Cache;
+        assert!(jitter_refines(&settings));
+        settings.shadows.mode = ShadowMode::Off;
+        settings.occlusion = Some(strata_render::Occlusion { radius_mm: 4.0 });
+        assert!(jitter_refines(&settings));
+        settings.occlusion = None;
+        settings.scattering = Some(strata_render::Scattering { g: 0.3, blend: 0.5 });
+        assert!(jitter_refines(&settings));
     }
 
     #[test]

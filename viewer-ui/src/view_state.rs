@@ -21,8 +21,8 @@ use strata_slices::ColourMap;
 
 use crate::crop_clip::{ClipSettings, CLIP_AXIS_NAMES, MIN_CROP_EXTENT};
 use crate::lighting::{
-    render_lighting, LightPrefs, LitView, AZIMUTH_RANGE, ELEVATION_RANGE, OCCLUSION_RADIUS_RANGE,
-    SCATTERING_G_RANGE,
+    render_lighting, LightPrefs, LitView, AMBIENT_RANGE, AZIMUTH_RANGE, ELEVATION_RANGE,
+    INTENSITY_RANGE, OCCLUSION_RADIUS_RANGE, SCATTERING_BLEND_RANGE, SCATTERING_G_RANGE,
 };
 use crate::measurements::{self, Measurement};
 
@@ -114,8 +114,9 @@ pub struct ViewState {
     pub shading: bool,
     /// The key light and its effects, named as `strata render` names them: `light=AZ,EL` a
     /// directional light at these camera-relative degrees (absent: the headlight),
-    /// `shadows=exact|cache`, `occlusion=MM` (radius), `scattering=G` (asymmetry); the rest
-    /// (intensity, ambient, steps, blend) at the defaults.
+    /// `shadows=exact|cache`, `occlusion=MM` (radius), `scattering=G[,BLEND]` (asymmetry, blend),
+    /// `intensity=I` (the key light's direct term), `ambient=A` (what shadows never darken),
+    /// each absent at its default; the shadow step at its default.
     pub light: LightPrefs,
     /// The measurements on the slices (`m=`, strata-viewer-ui's measurements: rulers, angles,
     /// regions with their points' level-0 indices at two decimals; a region's statistics are
@@ -333,9 +334,19 @@ impl Fragment {
                     view.light.occlusion_radius_mm = finite(key, value, OCCLUSION_RADIUS_RANGE)?;
                 }
                 "scattering" => {
+                    // `G` or `G,BLEND` (the blend a cinematic preset sets).
+                    let (g, blend) = match value.split_once(',') {
+                        Some((g, blend)) => (g, Some(blend)),
+                        None => (value, None),
+                    };
                     view.light.scattering = true;
-                    view.light.scattering_g = finite(key, value, SCATTERING_G_RANGE)?;
+                    view.light.scattering_g = finite(key, g, SCATTERING_G_RANGE)?;
+                    if let Some(blend) = blend {
+                        view.light.scattering_blend = finite(key, blend, SCATTERING_BLEND_RANGE)?;
+                    }
                 }
+                "intensity" => view.light.intensity = finite(key, value, INTENSITY_RANGE)? as f32,
+                "ambient" => view.light.ambient = finite(key, value, AMBIENT_RANGE)? as f32,
                 "pan" => {
                     let (x, y) = value
                         .split_once(',')
@@ -576,8 +587,20 @@ impl ViewState {
         if light.occlusion {
             parts.push(format!("occlusion={}", round3(light.occlusion_radius_mm)));
         }
+        let defaults = LightPrefs::default();
         if light.scattering {
-            parts.push(format!("scattering={}", round3(light.scattering_g)));
+            let g = round3(light.scattering_g);
+            parts.push(if light.scattering_blend == defaults.scattering_blend {
+                format!("scattering={g}")
+            } else {
+                format!("scattering={g},{}", round3(light.scattering_blend))
+            });
+        }
+        if light.intensity != defaults.intensity {
+            parts.push(format!("intensity={}", round3(f64::from(light.intensity))));
+        }
+        if light.ambient != defaults.ambient {
+            parts.push(format!("ambient={}", round3(f64::from(light.ambient))));
         }
         if let Some(text) = measurements::to_link_text(&self.measurements) {
             parts.push(format!("m={text}"));
@@ -812,6 +835,9 @@ mod tests {
                 occlusion_radius_mm: 6.5,
                 scattering: true,
                 scattering_g: -0.25,
+                scattering_blend: 0.75,
+                intensity: 1.375,
+                ambient: 0.25,
                 ..LightPrefs::default()
             },
             measurements: measurements::from_link_text("r:1.25,2,3,4,5.5,3;ea:1,2,3,4,5,3")
@@ -1054,9 +1080,29 @@ mod tests {
             strata_render::KeyLight::default()
         );
         let written = plain.to_fragment();
-        for key in ["light=", "shadows=", "occlusion=", "scattering="] {
+        for key in [
+            "light=",
+            "shadows=",
+            "occlusion=",
+            "scattering=",
+            "intensity=",
+            "ambient=",
+        ] {
             assert!(!written.contains(key), "{written}");
         }
+        // Intensity and ambient reach the settings as the desktop's light gives them.
+        let lit = Fragment::parse("#intensity=1.5&ambient=0.05")
+            .expect("parses")
+            .view;
+        assert_eq!((lit.light.intensity, lit.light.ambient), (1.5, 0.05));
+        let s = lit.settings(&geometry, 8, 8);
+        assert_eq!(s.light.intensity, 1.5);
+        assert_eq!(s.shading.map(|shading| shading.ambient), Some(0.05));
+        let written = lit.to_fragment();
+        assert!(
+            written.contains("&intensity=1.5") && written.contains("&ambient=0.05"),
+            "{written}"
+        );
     }
 
     /// The oblique view is in a link only while shown (`oblique=` absent: not shown), its
@@ -1118,6 +1164,11 @@ mod tests {
             ("occlusion", "0.5"),
             ("occlusion", "mm"),
             ("scattering", "1.5"),
+            ("scattering", "0.5,2"),
+            ("scattering", "0.5,"),
+            ("intensity", "-1"),
+            ("intensity", "bright"),
+            ("ambient", "1.5"),
             ("oblique", "30"),
             ("oblique", "30,95"),
             ("oblique", "30,10,0,5"),

@@ -9,7 +9,7 @@
 use std::path::PathBuf;
 
 use serde::{Deserialize, Serialize};
-use strata_render::{RenderMode, ShadowMode};
+use strata_render::RenderMode;
 
 use super::orientation::SliceView;
 use strata_viewer_ui::measurements::Measurement;
@@ -80,9 +80,8 @@ impl TraversalChoice {
     }
 }
 
-/// Progressive frames by default: the jitter's noise falls as 1/√N, so 64 frames leave 1/8 of
-/// one frame's (render/tests/progressive.rs measures the slope).
-pub const DEFAULT_PROGRESSIVE_FRAMES: u32 = 64;
+/// Progressive frames by default, the page's too (strata-viewer-ui's render driver says why).
+pub use strata_viewer_ui::render_driver::DEFAULT_PROGRESSIVE_FRAMES;
 /// The most the Rendering panel offers (as `strata render --progressive`'s bound is far above).
 pub const MAX_PROGRESSIVE_FRAMES: u32 = 256;
 
@@ -188,85 +187,29 @@ pub fn render_lighting(prefs: &Preferences) -> Lighting {
     strata_viewer_ui::lighting::render_lighting(&prefs.light, prefs.lit_view())
 }
 
-/// A one-click cinematic look (issue 37): a transfer-function preset and the lighting that
-/// suits it. The headlight stays the viewer's default; these are opt-in.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct CinematicPreset {
-    /// The button's label (the UI tests find it by this).
-    pub label: &'static str,
-    /// The transfer-function preset it sets (`TransferFunction::preset`).
-    pub tf_preset: &'static str,
-    /// Occlusion radius, mm.
-    pub occlusion_radius_mm: f64,
-    pub scattering_g: f64,
-    pub scattering_blend: f64,
-}
+/// The cinematic presets are shared with the page (strata-viewer-ui's lighting.rs).
+pub use strata_viewer_ui::lighting::CinematicPreset;
 
-impl CinematicPreset {
-    pub const ALL: [CinematicPreset; 2] = [
-        // Bone is a surface: mostly the BRDF at its strong edges (high blend), mild forward
-        // scattering, and a short occlusion radius that darkens foramina and joint gaps
-        // without greying the cortex.
-        CinematicPreset {
-            label: "Cinematic bone",
-            tf_preset: "ct-bone",
-            occlusion_radius_mm: 4.0,
-            scattering_g: 0.3,
-            scattering_blend: 0.8,
-        },
-        // Soft tissue is translucent with weak gradients: mostly the phase (low blend), more
-        // forward scattering so back-lit tissue glows, and a wider radius for the broad
-        // folds between organs.
-        CinematicPreset {
-            label: "Cinematic soft tissue",
-            tf_preset: "ct-soft-tissue",
-            occlusion_radius_mm: 6.0,
-            scattering_g: 0.5,
-            scattering_blend: 0.3,
-        },
-    ];
-
-    /// The preset's lighting: a key light from the upper left of the view (the painter's
-    /// convention, which reads as relief rather than as craters), shadows from the light cache
-    /// (one fetch per sample, affordable while moving), occlusion and scattering on; the
-    /// intensity and ambient at render's defaults.
-    pub fn light(&self) -> LightPrefs {
-        LightPrefs {
-            headlight: false,
-            azimuth_deg: -45.0,
-            elevation_deg: 45.0,
-            shadows: ShadowMode::Cache,
-            occlusion: true,
-            occlusion_radius_mm: self.occlusion_radius_mm,
-            scattering: true,
-            scattering_g: self.scattering_g,
-            scattering_blend: self.scattering_blend,
-            ..LightPrefs::default()
-        }
-    }
-
-    /// Sets the preset's lighting in the preferences (the caller sets the transfer function,
-    /// which lives in the scene): shading on, and DVR where the mode could not show it (MIP)
-    /// or the adaptive pass would draw the still frame without it.
-    pub fn apply_to(&self, prefs: &mut Preferences) {
-        prefs.light = self.light();
-        prefs.shading = true;
-        prefs.preset = self.tf_preset.into();
-        if prefs.mode == RenderMode::Mip {
-            prefs.mode = RenderMode::Dvr;
-        }
-        prefs.adaptive_sampling = false;
+impl Preferences {
+    /// Sets a cinematic preset's lighting in the preferences (the caller sets the transfer
+    /// function, which lives in the scene): shading on, DVR where the mode could not show it
+    /// (MIP), and the adaptive pass off, which would draw the still frame without it.
+    pub fn apply_cinematic(&mut self, preset: &CinematicPreset) {
+        preset.light_view(&mut self.light, &mut self.shading, &mut self.mode);
+        self.preset = preset.tf_preset.into();
+        self.adaptive_sampling = false;
     }
 
     /// Whether the preferences are this preset's (its button shows selected).
-    pub fn is_current(&self, prefs: &Preferences) -> bool {
-        prefs.preset == self.tf_preset && prefs.light == self.light()
+    pub fn is_cinematic(&self, preset: &CinematicPreset) -> bool {
+        self.preset == preset.tf_preset && self.light == preset.light()
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use strata_render::ShadowMode;
 
     /// Preferences persisted by a viewer with the first light controls (no occlusion or
     /// scattering fields) load, keep what they had, and draw no new effect.

@@ -43,7 +43,9 @@ use strata_render::{
 };
 use strata_source::VolumeSource;
 use strata_storage::StoreHeader;
-use strata_viewer_ui::render_driver::{RenderChange, RenderDriver, RenderRequest};
+use strata_viewer_ui::render_driver::{
+    frames_in_flight, jitter_refines, RenderChange, RenderDriver, RenderRequest,
+};
 
 use super::adaptive_view::{AdaptiveFacts, AdaptiveView, Step, StillView};
 use super::exports::{ExportOutcome, ExportProgress};
@@ -1247,33 +1249,12 @@ fn drawn_jittered(volume: &mut StreamingVolume) -> bool {
         .is_some_and(|key| key.jitter)
 }
 
-/// Most shot frames queued before [`progressive_mean`] waits for the GPU.
-const MOST_FRAMES_IN_FLIGHT: u32 = 8;
-/// A frame slower than this is waited for on its own: Cancel must not wait behind a queue of
-/// slow frames (lavapipe draws a 2× cinematic frame in seconds), and the live view's next
-/// frame waits behind whatever the export left queued.
-const SLOW_FRAME: Duration = Duration::from_millis(100);
-/// Frames faster than this are queued more deeply (a real GPU's: 1-5 ms).
-const FAST_FRAME: Duration = Duration::from_millis(20);
-
 /// What a progressive shot reports and obeys: Cancel, checked before every pass and while
 /// a pipeline compiles, and its progress as (passes done, passes, stage).
 struct ProgressiveExport<'a> {
     request: &'a RenderRequest,
     cancelled: &'a dyn Fn() -> bool,
     report: &'a dyn Fn(u32, u32, &str),
-}
-
-/// How many frames may be queued before waiting, from how long the last ones took: one
-/// while they are slow, doubling up to [`MOST_FRAMES_IN_FLIGHT`] while they are fast.
-fn frames_in_flight(current: u32, per_frame: Duration) -> u32 {
-    if per_frame > SLOW_FRAME {
-        1
-    } else if per_frame < FAST_FRAME {
-        (current * 2).min(MOST_FRAMES_IN_FLIGHT)
-    } else {
-        current
-    }
 }
 
 /// The mean of `request.progressive_frames` jittered frames of `camera` over the volume's
@@ -1378,18 +1359,6 @@ struct ProgressiveRun {
     seed: u32,
     accumulated: u32,
     total: u32,
-}
-
-/// Whether a still view of `settings` is refined progressively: with shadows, occlusion or
-/// scattering (the light's effects, issue 37). The jitter moves the shadow and occlusion rays'
-/// sample positions as well as the main ray's, and those secondary rays, sampled more coarsely
-/// than the main ray, are where a still frame's wood-grain is most visible. Plain DVR is left
-/// to the controller's still refinement of the sampling rate (and the adaptive pass): it was
-/// not measured here whether its main-ray wood-grain is worth 64 more frames at rest.
-fn jitter_refines(settings: &RenderSettings) -> bool {
-    settings.shadows.mode != ShadowMode::Off
-        || settings.occlusion.is_some()
-        || settings.scattering.is_some()
 }
 
 /// When the render thread draws the same request again: at once while frames change something,

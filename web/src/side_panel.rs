@@ -202,20 +202,53 @@ impl SidePanel {
                 .default_open(false)
                 .show(ui, |ui| {
                     // The desktop's rendering panel draws the same controls (crop_clip.rs).
-                    ui.add_enabled(
+                    let shading = ui.add_enabled(
                         view.mode != RenderMode::Mip,
                         egui::Checkbox::new(&mut view.shading, "Shading (DVR, isosurface)"),
                     );
+                    if shading.changed() && !view.shading {
+                        // As the desktop's: each effect would keep the view shaded otherwise.
+                        view.light.effects_off();
+                    }
                     ui.checkbox(&mut view.orthographic, "Orthographic projection");
                     crop_clip::controls(ui, &mut view.crop, &mut view.clip);
                 });
             egui::CollapsingHeader::new("Light and shadows")
                 .default_open(false)
-                .show(ui, |ui| light_ui(ui, view));
+                .show(ui, |ui| self.light_ui(ui, view));
             egui::CollapsingHeader::new("Performance")
                 .default_open(true)
                 .show(ui, |ui| self.performance_ui(ui, figures));
         });
+    }
+
+    /// The desktop's cinematic presets and light controls (viewer-ui's lighting.rs) on the
+    /// view the address carries; the page refines their effects while the view is still
+    /// (refine.rs), as the desktop does.
+    fn light_ui(&mut self, ui: &mut egui::Ui, view: &mut ViewState) {
+        let unedited = self.edits == 0;
+        let clicked = self.scan.as_ref().and_then(|scan| {
+            lighting::cinematic_buttons(ui, scan, |preset| {
+                unedited && view.preset == preset.tf_preset && view.light == preset.light()
+            })
+        });
+        if let Some(preset) = clicked {
+            preset.light_view(&mut view.light, &mut view.shading, &mut view.mode);
+            view.preset = preset.tf_preset.into();
+            view.tf = None;
+            // The preset's function as it is, fitted to the scan, not an edit of the last one.
+            self.restore(view);
+        }
+        let lit = LitView {
+            mode: view.mode,
+            shading: view.shading,
+            // The page runs no adaptive pass.
+            adaptive_sampling: false,
+        };
+        let offer = LightOffer {
+            effects_refused: lighting::effects_refused(lit),
+        };
+        lighting::light_controls(ui, &mut view.light, &mut view.shading, offer);
     }
 
     fn transfer_function_ui(&mut self, ui: &mut egui::Ui) {
@@ -314,26 +347,4 @@ pub fn sample_histogram(geometry: &VolumeGeometry) -> Histogram {
         }
     }
     Histogram::from_stored(&counts, 1.0, -1024.0)
-}
-
-/// Why the page offers only the key light's direction and exact shadows of the desktop's light
-/// controls (shown on the others).
-pub const PAGE_LIGHT_LIMIT: &str = "Not in the browser yet: the page draws no progressive \
-     refinement (occlusion, scattering and the light cache's soft edges are refined over \
-     jittered frames on the desktop), and its address carries the light's direction and \
-     shadows only.";
-
-/// The desktop's light controls (viewer-ui's lighting.rs) on the view the address carries.
-fn light_ui(ui: &mut egui::Ui, view: &mut ViewState) {
-    let lit = LitView {
-        mode: view.mode,
-        shading: view.shading,
-        // The page runs no adaptive pass.
-        adaptive_sampling: false,
-    };
-    let offer = LightOffer {
-        effects_refused: lighting::effects_refused(lit),
-        direction_and_exact_shadows_only: Some(PAGE_LIGHT_LIMIT),
-    };
-    lighting::light_controls(ui, &mut view.light, &mut view.shading, offer);
 }

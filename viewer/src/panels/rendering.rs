@@ -4,7 +4,7 @@
 use strata_render::RenderMode;
 
 use crate::adaptive_view::{format_epsilon, EPSILON_RANGE};
-use strata_viewer_ui::lighting::{light_controls, LightOffer};
+use strata_viewer_ui::lighting::{cinematic_buttons, light_controls, LightOffer};
 
 use crate::preferences::{effects_refused, CinematicPreset, Preferences, TraversalChoice};
 use crate::scene::preset_for;
@@ -79,49 +79,23 @@ pub fn ui(
     tf_replaced
 }
 
-/// The cinematic presets: one click sets the transfer function and the lighting that suits it
-/// (issue 37). True when one was applied.
+/// The cinematic presets (the shared buttons, strata-viewer-ui's lighting.rs): one click sets
+/// the transfer function and the lighting that suits it (issue 37). True when one was applied.
 fn cinematic_presets(
     ui: &mut egui::Ui,
     prefs: &mut Preferences,
     data: &VolumeData,
     scene: &mut Scene,
 ) -> bool {
-    let mut applied = false;
-    ui.horizontal_wrapped(|ui| {
-        let scan = strata_viewer_ui::presets::ScanValues::of(&data.info.header);
-        for preset in CinematicPreset::ALL {
-            let current = preset.is_current(prefs) && !scene.tf_edited();
-            // A cinematic preset on a CT function is not offered for an MR (issue 47: a solid
-            // red cube that never converged); it says why.
-            let offer = strata_viewer_ui::presets::offer(preset.tf_preset, &scan);
-            let mut response = ui.add_enabled(
-                offer.is_offered(),
-                egui::Button::selectable(current, preset.label),
-            );
-            if let (false, Some(reason)) = (offer.is_offered(), offer.reason()) {
-                response = response.on_disabled_hover_text(reason);
-            }
-            if response
-                .on_hover_text(format!(
-                    "The {} transfer function lit by a key light from the upper left, with \
-                     shadows from the light cache, ambient occlusion over {} mm and \
-                     scattering (g {}, blend {}). Draws DVR (MIP is never lit) with the \
-                     raycaster (adaptive sampling off).",
-                    preset.tf_preset,
-                    preset.occlusion_radius_mm,
-                    preset.scattering_g,
-                    preset.scattering_blend,
-                ))
-                .clicked()
-            {
-                preset.apply_to(prefs);
-                scene.set_transfer_function(preset_for(preset.tf_preset, &data.info));
-                applied = true;
-            }
-        }
-    });
-    applied
+    let scan = strata_viewer_ui::presets::ScanValues::of(&data.info.header);
+    let edited = scene.tf_edited();
+    let current = |preset: &CinematicPreset| prefs.is_cinematic(preset) && !edited;
+    let Some(preset) = cinematic_buttons(ui, &scan, current) else {
+        return false;
+    };
+    prefs.apply_cinematic(&preset);
+    scene.set_transfer_function(preset_for(preset.tf_preset, &data.info));
+    true
 }
 
 /// The checkbox label (the UI tests find it by this text).
@@ -180,12 +154,10 @@ fn adaptive_sampling(ui: &mut egui::Ui, prefs: &mut Preferences) {
 /// Accessible name of the progressive refinement slider.
 pub const PROGRESSIVE_LABEL: &str = "Progressive frames";
 
-/// The key light, its effects and the shading switch they turn on: the shared controls, with
-/// everything offered (the desktop draws them all, refined progressively).
+/// The key light, its effects and the shading switch they turn on: the shared controls.
 fn light(ui: &mut egui::Ui, prefs: &mut Preferences) {
     let offer = LightOffer {
         effects_refused: effects_refused(prefs),
-        direction_and_exact_shadows_only: None,
     };
     light_controls(ui, &mut prefs.light, &mut prefs.shading, offer);
 }
@@ -275,8 +247,8 @@ mod tests {
                     shading: false,
                     ..Preferences::default()
                 };
-                preset.apply_to(&mut prefs);
-                assert!(preset.is_current(&prefs));
+                prefs.apply_cinematic(&preset);
+                assert!(prefs.is_cinematic(&preset));
                 assert_eq!(
                     prefs.mode,
                     if mode == RenderMode::Mip {
