@@ -46,6 +46,10 @@ mod oblique;
 #[path = "browser/segment.rs"]
 mod segment;
 
+/// A served 4-D store's frames and cine in the page against the desktop's client (issue 47).
+#[path = "browser/frames.rs"]
+mod frames;
+
 const TOKEN: &str = "0123456789abcdef0123456789abcdef";
 
 fn chromium() -> PathBuf {
