@@ -195,6 +195,8 @@ struct Streamed {
     slices: SliceViews,
     /// The oblique view, shown while the link names it (oblique_view.rs).
     oblique: ObliqueView,
+    /// A 4-D store's frames: the one shown, the panel, cine (frames.rs).
+    frames: Option<crate::frames::PageFrames>,
 }
 
 /// The store being opened: filled by the open's future, taken by the next frame.
@@ -418,20 +420,10 @@ impl WebViewer {
         slices.set_from_link(self.view.cursor, self.view.window);
         slices.colour_map = self.view.colour_map;
         let oblique = ObliqueView::new(store.as_ref(), self.view.oblique.unwrap_or_default())?;
-        let config = StreamingConfig {
-            // The page shares the GPU and memory with the rest of the browser.
-            gpu_budget_bytes: 256 << 20,
-            cpu_budget_bytes: 384 << 20,
-            sled_cache_bytes: 0,
-            fetch_threads: 1,
-            bricks_in_transit: MAX_ON_THE_WIRE + DECODES_PER_FRAME,
-            // A frame never waits for its selection (the page must stay responsive).
-            selection: SelectionTiming::Background,
-            work: LoaderWork::Inline,
-            ..StreamingConfig::default()
-        };
+        let now_s = self.page_started.elapsed().as_secs_f64();
+        let frames = crate::frames::PageFrames::for_store(&store, now_s);
         let transfer_function = self.side.transfer_function(&self.view);
-        let volume = StreamingVolume::new(&self.gpu, store, &transfer_function, config)?;
+        let volume = StreamingVolume::new(&self.gpu, store, &transfer_function, page_streaming())?;
         self.streamed = Some(Streamed {
             volume,
             // The page streams with the loader's choice of traversal.
@@ -439,8 +431,52 @@ impl WebViewer {
             last: None,
             slices,
             oblique,
+            frames,
         });
         Ok(true)
+    }
+
+    /// A 4-D store: once the frame the link, the slider or cine asks for is open (frames.rs),
+    /// the 3D view streams it (a new streaming volume: the old one's GPU memory goes first)
+    /// and the slice and oblique views read its bricks.
+    fn show_wanted_frame(&mut self, ctx: &egui::Context) -> Result<(), PageError> {
+        let now_s = self.page_started.elapsed().as_secs_f64();
+        let Some(frames) = self.streamed.as_mut().and_then(|s| s.frames.as_mut()) else {
+            return Ok(());
+        };
+        let Some((frame, store)) = frames.tick(ctx, &mut self.view.frame, now_s) else {
+            return Ok(());
+        };
+        let Some(Streamed {
+            volume,
+            mut slices,
+            mut oblique,
+            frames,
+            ..
+        }) = self.streamed.take()
+        else {
+            return Ok(());
+        };
+        drop(volume);
+        slices.show_frame(store.as_ref())?;
+        oblique.show_frame(store.as_ref())?;
+        let transfer_function = self.side.transfer_function(&self.view);
+        let volume = StreamingVolume::new(&self.gpu, store, &transfer_function, page_streaming())?;
+        let mut frames = frames;
+        if let Some(frames) = frames.as_mut() {
+            frames.shown(frame, now_s, &mut self.view.frame);
+        }
+        self.streamed = Some(Streamed {
+            volume,
+            driver: RenderDriver::new(transfer_function, None),
+            last: None,
+            slices,
+            oblique,
+            frames,
+        });
+        self.drawn = None;
+        ctx.request_repaint();
+        Ok(())
     }
 
     /// A loader frame while the view changed or the cut has not converged; then idle.
@@ -996,6 +1032,13 @@ impl WebViewer {
                 // Then, once, the axial slice view's image (slice_views.rs), where it is shown
                 // (a served store's or the sample's).
                 let slices_shown = self.view.layout != Layout::Single;
+                // A 4-D store's slice capture says which frame it shows (frames.rs).
+                let metrics: Vec<(&str, f64)> = self
+                    .streamed
+                    .as_ref()
+                    .and_then(|s| s.frames.as_ref())
+                    .map(|f| vec![("frame", f.playback.current as f64)])
+                    .unwrap_or_default();
                 let slices = match self.streamed.as_mut() {
                     Some(streamed) => Some(&mut streamed.slices),
                     None => self.sample_slices.as_mut(),
@@ -1004,7 +1047,9 @@ impl WebViewer {
                     if let Some((rgba, w, h)) = slices.take_capture() {
                         let token = self.token.clone();
                         wasm_bindgen_futures::spawn_local(async move {
-                            if let Err(e) = post_frame(&rgba, w, h, &[], token.as_deref()).await {
+                            if let Err(e) =
+                                post_frame(&rgba, w, h, &metrics, token.as_deref()).await
+                            {
                                 show_message("The slice capture could not be sent", &e.to_string());
                             }
                         });
@@ -1139,6 +1184,22 @@ fn show_texture(
     }
 }
 
+/// How the page streams a served store (each frame of a 4-D one alike).
+fn page_streaming() -> StreamingConfig {
+    StreamingConfig {
+        // The page shares the GPU and memory with the rest of the browser.
+        gpu_budget_bytes: 256 << 20,
+        cpu_budget_bytes: 384 << 20,
+        sled_cache_bytes: 0,
+        fetch_threads: 1,
+        bricks_in_transit: MAX_ON_THE_WIRE + DECODES_PER_FRAME,
+        // A frame never waits for its selection (the page must stay responsive).
+        selection: SelectionTiming::Background,
+        work: LoaderWork::Inline,
+        ..StreamingConfig::default()
+    }
+}
+
 /// Posts a captured frame to `strata serve`'s test sink (same origin).
 async fn post_frame(
     rgba: &[u8],
@@ -1197,6 +1258,10 @@ impl eframe::App for WebViewer {
             .resizable(true)
             .default_size(300.0)
             .show(ui, |ui| {
+                // A 4-D store's frames first (frames.rs).
+                if let Some(frames) = self.streamed.as_mut().and_then(|s| s.frames.as_mut()) {
+                    frames.panel(ui);
+                }
                 // The measurements' tools and list first, always in sight (measure.rs), then
                 // the Segment section on the slice views' volume (segment_editor.rs).
                 let slices = match self.streamed.as_mut() {
@@ -1261,6 +1326,10 @@ impl eframe::App for WebViewer {
                         self.error = Some(e.to_string());
                         return;
                     }
+                }
+                if let Err(e) = self.show_wanted_frame(&ctx) {
+                    self.error = Some(e.to_string());
+                    return;
                 }
                 // The desktop's layouts of the 3D view and three slice views (a store's or
                 // the sample's): the 2×2, or the 3D view over the slices.

@@ -29,6 +29,8 @@
 //! - `slice_views` (wasm32 only): a streamed store's three linked slice views (axial, coronal,
 //!   sagittal) beside the 3D view, sliced by strata-slices' assembler (the desktop's) from
 //!   bricks fetched asynchronously through the served store, window/level by right drag.
+//! - `frames` (wasm32 only): a served 4-D store's frames: the shared Frames panel and cine
+//!   clock, each frame's store opened without waiting, the views swapped to it (`frame=N`).
 //! - `measure` (wasm32 only): the desktop's rulers, angles and ROIs in the page
 //!   (strata-viewer-ui's measurements): the side panel's tools and list, the list kept in the
 //!   view (the link's `m=`), and what the page publishes of them for its tests.
@@ -59,6 +61,8 @@ mod browser;
 mod canvas_attributes;
 #[cfg(target_arch = "wasm32")]
 mod embed_bridge;
+#[cfg(target_arch = "wasm32")]
+mod frames;
 #[cfg(target_arch = "wasm32")]
 mod measure;
 #[cfg(target_arch = "wasm32")]

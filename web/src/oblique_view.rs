@@ -230,6 +230,26 @@ impl ObliqueView {
         }
     }
 
+    /// Another frame of the 4-D store (frames.rs): its bricks from now on (the cached ones are
+    /// the old frame's); the image on screen stays until the new frame's arrives.
+    pub fn show_frame(&mut self, store: &dyn VolumeSource) -> Result<(), ObliqueViewError> {
+        let fetcher = match store.start_fetching(FetchOptions {
+            max_queued: OBLIQUE_REQUESTS + 1,
+            max_in_transit: OBLIQUE_REQUESTS + 1,
+            threads: 1,
+        }) {
+            Some(Ok(fetcher)) => fetcher,
+            Some(Err(e)) => return Err(ObliqueViewError::Fetcher(e)),
+            None => return Err(ObliqueViewError::NoAsynchronousPath),
+        };
+        self.bricks = Bricks::Served(fetcher);
+        self.cache = BrickLru::new(OBLIQUE_CACHE_BYTES);
+        self.wanted = None;
+        self.retry = false;
+        self.missing.clear();
+        Ok(())
+    }
+
     /// Takes the bricks that arrived; a brick in makes the wanted image worth another try.
     fn take_arrivals(&mut self) {
         let Bricks::Served(fetcher) = &mut self.bricks else {

@@ -16,6 +16,10 @@
 //!   damaged. Connection failures and 429/503 are retried with backoff (at least the server's
 //!   `Retry-After`, capped as the desktop's client caps it), and the status says so
 //!   ("retrying") as the desktop's remote source does.
+//! - A 4-D store's later frames: [`ServedStore::open_frame`] reads that frame's open document
+//!   (its skeleton) and root brick, asynchronously, giving a store of its own whose bricks come
+//!   from the frame's routes (`strata_source::wire::frame_brick_path`); web/src/frames.rs
+//!   swaps the views to it.
 //! - The token travels as `Authorization`, never in a URL. The browser's HTTP cache is left to
 //!   work (brick URLs carry the store's generation and are immutable): no `If-None-Match` here.
 
@@ -24,7 +28,9 @@ use std::collections::{HashMap, HashSet, VecDeque};
 use std::rc::Rc;
 use std::sync::Arc;
 
-use strata_source::wire::{brick_path, decode_open_document, retry_after, StoreList, API_PREFIX};
+use strata_source::wire::{
+    decode_open_document, frame_brick_path, frame_document_path, retry_after, StoreList, API_PREFIX,
+};
 use strata_source::wish_list::{Started, WishList};
 use strata_source::{
     BrickFetcher, FetchOptions, FetchResult, QueueCounters, RequestClass, SourceError,
@@ -51,6 +57,8 @@ pub struct ServedStore {
     location: String,
     name: String,
     generation: String,
+    /// Which frame of a 4-D store this is (0 for a 3-D store).
+    frame: u32,
     token: Option<String>,
     header: StoreHeader,
     skeleton: Skeleton,
@@ -173,48 +181,91 @@ impl ServedStore {
     /// Opens the store `name` of the server that served the page.
     pub async fn open(name: &str, token: Option<String>) -> Result<ServedStore, SourceError> {
         let location = format!("{API_PREFIX}/stores/{name}");
-        let failed = |failure: FetchFailure, what: &str| match failure {
-            FetchFailure::Refused(message) => SourceError::Refused {
-                location: location.clone(),
-                message: format!("{what}: {message}"),
-            },
-            FetchFailure::Transient(message, _) => SourceError::Unavailable {
-                location: location.clone(),
-                message: format!("{what}: {message}"),
-            },
-            FetchFailure::Aborted => SourceError::Unavailable {
-                location: location.clone(),
-                message: format!("{what}: aborted"),
-            },
-        };
-        let bytes = fetch_bytes(&location, token.as_deref(), None, false)
-            .await
-            .map_err(|f| failed(f, "opening the store"))?;
-        let (document, skeleton) =
-            decode_open_document(&bytes, KNOWN_STORE_FEATURES).map_err(|e| {
-                SourceError::Refused {
-                    location: location.clone(),
-                    message: e.to_string(),
-                }
-            })?;
-        let root_level = (skeleton.level_count().max(1) - 1) as u8;
-        let root = BrickId::new(root_level, [0, 0, 0]);
-        let path = brick_path(name, &document.generation, root);
-        let record = fetch_bytes(&path, token.as_deref(), None, false)
-            .await
-            .map_err(|f| failed(f, "reading the root brick"))?;
-        Ok(ServedStore {
-            location,
-            name: name.to_string(),
-            generation: document.generation,
-            token,
-            header: document.header,
-            skeleton,
-            histogram: document.histogram,
-            stats: document.stats,
-            root: (root, record),
-        })
+        open_at(location.clone(), location, name, 0, token).await
     }
+
+    /// Frame `frame` of this 4-D store: that frame's open document (its skeleton) and root
+    /// brick, fetched without blocking, as a store of its own.
+    pub async fn open_frame(&self, frame: u32) -> Result<ServedStore, SourceError> {
+        if frame >= self.frame_count() {
+            return Err(SourceError::Refused {
+                location: self.location.clone(),
+                message: format!(
+                    "there is no frame {frame}: the store has {} frames (numbered from 0)",
+                    self.frame_count()
+                ),
+            });
+        }
+        let name = &self.name;
+        let base = format!("{API_PREFIX}/stores/{name}");
+        let location = match frame {
+            0 => base.clone(),
+            _ => format!("{base} (frame {frame})"),
+        };
+        let document = match frame {
+            0 => base,
+            _ => frame_document_path(name, &self.generation, frame),
+        };
+        let opened = open_at(location, document, name, frame, self.token.clone()).await?;
+        if opened.generation != self.generation {
+            return Err(SourceError::Refused {
+                location: opened.location,
+                message: "the store was imported again meanwhile: reload the page".into(),
+            });
+        }
+        Ok(opened)
+    }
+}
+
+/// Reads the open document at `document` (the store's, or a frame's) and frame `frame`'s root
+/// brick.
+async fn open_at(
+    location: String,
+    document: String,
+    name: &str,
+    frame: u32,
+    token: Option<String>,
+) -> Result<ServedStore, SourceError> {
+    let failed = |failure: FetchFailure, what: &str| match failure {
+        FetchFailure::Refused(message) => SourceError::Refused {
+            location: location.clone(),
+            message: format!("{what}: {message}"),
+        },
+        FetchFailure::Transient(message, _) => SourceError::Unavailable {
+            location: location.clone(),
+            message: format!("{what}: {message}"),
+        },
+        FetchFailure::Aborted => SourceError::Unavailable {
+            location: location.clone(),
+            message: format!("{what}: aborted"),
+        },
+    };
+    let bytes = fetch_bytes(&document, token.as_deref(), None, false)
+        .await
+        .map_err(|f| failed(f, "opening the store"))?;
+    let (document, skeleton) =
+        decode_open_document(&bytes, KNOWN_STORE_FEATURES).map_err(|e| SourceError::Refused {
+            location: location.clone(),
+            message: e.to_string(),
+        })?;
+    let root_level = (skeleton.level_count().max(1) - 1) as u8;
+    let root = BrickId::new(root_level, [0, 0, 0]);
+    let path = frame_brick_path(name, &document.generation, frame, root);
+    let record = fetch_bytes(&path, token.as_deref(), None, false)
+        .await
+        .map_err(|f| failed(f, "reading the root brick"))?;
+    Ok(ServedStore {
+        location,
+        name: name.to_string(),
+        generation: document.generation,
+        frame,
+        token,
+        header: document.header,
+        skeleton,
+        histogram: document.histogram,
+        stats: document.stats,
+        root: (root, record),
+    })
 }
 
 impl VolumeSource for ServedStore {
@@ -254,6 +305,7 @@ impl VolumeSource for ServedStore {
             location: self.location.clone(),
             name: self.name.clone(),
             generation: self.generation.clone(),
+            frame: self.frame,
             token: self.token.clone(),
             state: RefCell::new(FetchState {
                 wishes: WishList::new(options.max_queued),
@@ -268,6 +320,14 @@ impl VolumeSource for ServedStore {
             }),
         });
         Some(Ok(Box::new(ServedBricks(shared))))
+    }
+    fn frame_count(&self) -> u32 {
+        self.header.frames.max(1)
+    }
+    /// Only this store's own frame: the page's thread cannot wait for another frame's
+    /// document, so the page opens one with [`ServedStore::open_frame`] (web/src/frames.rs).
+    fn frame_source(self: Arc<Self>, frame: u32) -> Option<Arc<dyn VolumeSource>> {
+        (frame == self.frame).then_some(self as Arc<dyn VolumeSource>)
     }
 }
 
@@ -306,6 +366,7 @@ struct Shared {
     location: String,
     name: String,
     generation: String,
+    frame: u32,
     token: Option<String>,
     state: RefCell<FetchState>,
 }
@@ -347,7 +408,7 @@ impl Shared {
                 (started, controller, state.refetched.contains(&started.id))
             };
             let shared = self.clone();
-            let path = brick_path(&self.name, &self.generation, started.id);
+            let path = frame_brick_path(&self.name, &self.generation, self.frame, started.id);
             wasm_bindgen_futures::spawn_local(async move {
                 let signal = controller.signal();
                 let outcome =

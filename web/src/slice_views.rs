@@ -118,6 +118,9 @@ pub struct SliceViews {
     error: Option<String>,
     /// The test capture of the axial view was handed out (`capture=1`).
     captured: bool,
+    /// Each view's image is of the 4-D store's frame shown before (frames.rs): it stays on
+    /// screen until the new frame's arrives, and is not captured.
+    stale_frame: [bool; 3],
     /// The rulers, angles and regions, the tool and the one being drawn (measure.rs).
     measurements: Measurements,
     /// The label layer being edited on this volume (segment_editor.rs), if one was started.
@@ -267,6 +270,7 @@ impl SliceViews {
             hovered: None,
             error: None,
             captured: false,
+            stale_frame: [false; 3],
             measurements: Measurements::default(),
             segmentation: None,
             overlay: Default::default(),
@@ -301,6 +305,7 @@ impl SliceViews {
             .filter(|v| self.drawn[v.index()])
             .all(|v| {
                 self.assembler.pending(*v).is_none()
+                    && !self.stale_frame[v.index()]
                     && self.shown[v.index()]
                         .as_ref()
                         .is_some_and(|s| Some(s.image.request) == self.requested[v.index()])
@@ -483,10 +488,33 @@ impl SliceViews {
         }
     }
 
+    /// Another frame of the 4-D store (frames.rs): its bricks from now on (a new fetcher and
+    /// assembler: the cached bricks are the old frame's), the same crosshair, window and zoom;
+    /// the images on screen stay until the new frame's arrive, and the test capture is taken
+    /// again of the new frame.
+    pub fn show_frame(&mut self, store: &dyn VolumeSource) -> Result<(), SliceViewsError> {
+        let fetcher = match store.start_fetching(FetchOptions {
+            max_queued: SLICE_REQUESTS + 1,
+            max_in_transit: SLICE_REQUESTS + 1,
+            threads: 1,
+        }) {
+            Some(Ok(fetcher)) => fetcher,
+            Some(Err(e)) => return Err(SliceViewsError::Fetcher(e)),
+            None => return Err(SliceViewsError::NoAsynchronousPath),
+        };
+        self.bricks = Bricks::Served(fetcher);
+        self.assembler = SliceAssembler::new(store.header().layout.clone(), SLICE_CACHE_BYTES);
+        self.requested = [None, None, None];
+        self.stale_frame = [true; 3];
+        self.captured = false;
+        Ok(())
+    }
+
     fn show(&mut self, ctx: &egui::Context, image: SliceImage) {
         let rgba = window_level_rgba(&image.values, self.window, self.colour_map, self.mapping);
         let colours = egui::ColorImage::from_rgba_unmultiplied([image.width, image.height], &rgba);
         let view = image.request.view;
+        self.stale_frame[view.index()] = false;
         match self.shown[view.index()].as_mut() {
             Some(shown) => {
                 shown.texture.set(colours, TextureOptions::LINEAR);

@@ -49,6 +49,9 @@ mod segment;
 /// A second served store over the page's slices against the desktop's overlay code (issue 47).
 #[path = "browser/overlay.rs"]
 mod overlay;
+/// A served 4-D store's frames and cine in the page against the desktop's client (issue 47).
+#[path = "browser/frames.rs"]
+mod frames;
 
 const TOKEN: &str = "0123456789abcdef0123456789abcdef";
 

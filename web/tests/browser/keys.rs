@@ -140,7 +140,7 @@ fn ctrl_z_undoes_a_window_drag_ctrl_shift_z_redoes_it_and_f1_shows_the_help() {
 
 /// The page as the screenshot shows it: RGBA8 rows of the viewport, with its width. The PNG
 /// is kept as `$TMPDIR/strata-browser-tests/NAME.png` for a failure's reader.
-fn page_screenshot(page: &mut Cdp, name: &str) -> (u32, Vec<u8>) {
+pub(crate) fn page_screenshot(page: &mut Cdp, name: &str) -> (u32, Vec<u8>) {
     let shot = page.command("Page.captureScreenshot", json!({ "format": "png" }));
     let data = shot["data"].as_str().expect("screenshot data");
     let png = base64_decode(data);
