@@ -2,7 +2,8 @@
 //!
 //! One thread: eframe's web runner calls [`WebViewer::ui`] from requestAnimationFrame, and
 //! nothing here blocks (the browser's event loop resolves every GPU promise). A frame is
-//! submitted only when the view or the image size changed, so a still page does no GPU work.
+//! submitted only when the view or the image size changed, or while a still view refines
+//! (refine.rs: one pass per animation frame, then rest), so a still page does no GPU work.
 //! The raycaster draws into its own Rgba8Unorm texture, which egui samples directly
 //! (`register_native_texture`): no readback, no copy.
 
@@ -27,6 +28,7 @@ use crate::oblique_view::{oblique_toggle, place_views, ObliqueView};
 use crate::page_timing::{PageTiming, BENCH_DEG_PER_FRAME};
 use crate::page_tools::{self, PageTools};
 use crate::picking::PendingPick;
+use crate::refine::Refinement;
 use crate::served_store::{list_stores, ServedStore, DECODES_PER_FRAME, MAX_ON_THE_WIRE};
 use crate::side_panel::{SidePanel, VolumeFigures};
 use crate::slice_views::SliceViews;
@@ -38,7 +40,9 @@ use strata_source::VolumeSource;
 use strata_viewer_ui::orbit;
 use strata_viewer_ui::picking::frame_pixel;
 use strata_viewer_ui::presets;
-use strata_viewer_ui::render_driver::{RenderChange, RenderDriver, RenderRequest};
+use strata_viewer_ui::render_driver::{
+    RenderChange, RenderDriver, RenderRequest, DEFAULT_PROGRESSIVE_FRAMES,
+};
 use strata_viewer_ui::triad;
 
 /// The largest image edge drawn when the canvas decides (device pixels): a 4K canvas is drawn
@@ -255,6 +259,8 @@ struct WebViewer {
     tools: PageTools,
     /// The 3D frame being read back for a screenshot download (F12, Screenshot).
     download: Option<Capture>,
+    /// Progressive refinement of the still 3D view (refine.rs).
+    refine: Refinement,
 }
 
 impl WebViewer {
@@ -342,6 +348,7 @@ impl WebViewer {
             drag_travel: 0.0,
             tools: PageTools::default(),
             download: None,
+            refine: Refinement::new(),
         })
     }
 
@@ -470,9 +477,23 @@ impl WebViewer {
             && converged
             && !self.motion.full_quality_due(now, target_fps)
         {
+            // Still and final: a refinement pass where its effects want one (refine.rs).
+            if let Some((camera, settings)) = self.refine.next_pass() {
+                let stats = streamed.volume.frame(&self.gpu, &camera, &settings)?;
+                let cut_changed = stats.uploads > 0 || stats.page_table_rewritten;
+                let raycaster = streamed.volume.raycaster_mut();
+                if let Some(mean) = self.refine.accumulate(&self.gpu, raycaster, cut_changed)? {
+                    show_texture(&self.render_state, &self.gpu, mean, &mut self.texture);
+                }
+                self.frames_submitted += 1;
+            }
+            if self.refine.wants_pass() {
+                ctx.request_repaint();
+            }
             self.motion.skipped();
             return Ok(());
         }
+        self.refine.restart();
         let camera = request.camera;
         let mut settings = request.settings.clone();
         let (quality, lod_factor) = self.motion.plan(now, target_fps, &mut settings);
@@ -482,6 +503,7 @@ impl WebViewer {
             ctx.request_repaint();
         }
         self.timing.submitted(stats.converged);
+        let final_frame = stats.converged && quality.is_none();
         streamed.last = Some(stats);
         let timings = streamed.volume.take_frame_timings(&self.gpu);
         self.side.gpu_timings(timings.clone());
@@ -496,6 +518,13 @@ impl WebViewer {
         show_texture(&self.render_state, &self.gpu, view, &mut self.texture);
         streamed.driver.drawn(&request);
         self.drawn = Some(wanted);
+        let total = request.progressive_frames;
+        if self
+            .refine
+            .start_if_final(&camera, &settings, final_frame, total)
+        {
+            ctx.request_repaint();
+        }
         Ok(())
     }
 
@@ -512,13 +541,13 @@ impl WebViewer {
             overlay: None,
             traversal: None,
             adaptive_epsilon: None,
-            // The page accumulates no jittered frames yet: each frame is drawn whole and
-            // exact (the light panel offers exact shadows, which need no accumulation).
-            progressive_frames: 0,
+            // A still view with shadows, occlusion or scattering averages this many jittered
+            // frames, as the desktop's does by default (refine.rs).
+            progressive_frames: DEFAULT_PROGRESSIVE_FRAMES,
         }
     }
 
-    fn draw_if_changed(&mut self, size: [u32; 2]) -> Result<(), PageError> {
+    fn draw_if_changed(&mut self, ctx: &egui::Context, size: [u32; 2]) -> Result<(), PageError> {
         let wanted = (self.view.of_3d_view(), size);
         let Some(geometry) = self.volume.as_ref().map(|v| v.geometry.clone()) else {
             return Ok(());
@@ -546,9 +575,25 @@ impl WebViewer {
             && !driver.is_new(&request)
             && !self.motion.full_quality_due(now, target_fps)
         {
+            // Still: a refinement pass where its effects want one (refine.rs).
+            if let Some((camera, settings)) = self.refine.next_pass() {
+                renderer.submit(&self.gpu, volume, &camera, &settings)?;
+                // The sample is whole on the GPU: its cut never changes.
+                if let Some(mean) = self
+                    .refine
+                    .accumulate(&self.gpu, &renderer.raycaster, false)?
+                {
+                    show_texture(&self.render_state, &self.gpu, mean, &mut self.texture);
+                }
+                self.frames_submitted += 1;
+            }
+            if self.refine.wants_pass() {
+                ctx.request_repaint();
+            }
             self.motion.skipped();
             return Ok(());
         }
+        self.refine.restart();
         let camera = request.camera;
         let mut settings = request.settings.clone();
         // The sample is drawn whole: no level of detail to coarsen, the step only.
@@ -568,6 +613,13 @@ impl WebViewer {
         show_texture(&self.render_state, &self.gpu, view, &mut self.texture);
         driver.drawn(&request);
         self.drawn = Some(wanted);
+        let total = request.progressive_frames;
+        if self
+            .refine
+            .start_if_final(&camera, &settings, quality.is_none(), total)
+        {
+            ctx.request_repaint();
+        }
         Ok(())
     }
 
@@ -662,6 +714,7 @@ impl WebViewer {
     /// it to the browser as a PNG download.
     fn download_step(&mut self, ctx: &egui::Context) {
         if self.tools.take_screenshot_request() && self.download.is_none() {
+            // The refined mean where it is on screen (refine.rs).
             let texture = match self.streamed.as_mut() {
                 Some(streamed) => streamed.volume.raycaster_mut().output_texture(),
                 None => self
@@ -669,6 +722,7 @@ impl WebViewer {
                     .as_ref()
                     .and_then(|r| r.raycaster.output_texture()),
             };
+            let texture = self.refine.shown_texture().or(texture);
             match (texture, self.drawn.as_ref()) {
                 (Some(texture), Some((_, size))) => {
                     self.download = Some(start_readback(&self.gpu, texture, *size, ctx));
@@ -885,6 +939,7 @@ impl WebViewer {
             ctx.request_repaint_after(std::time::Duration::from_secs_f64(wait_s));
         }
         if self.screenshot.is_none() && bridge.screenshots_wanted() {
+            // The refined mean where it is on screen (refine.rs).
             let texture = match self.streamed.as_mut() {
                 Some(streamed) => streamed.volume.raycaster_mut().output_texture(),
                 None => self
@@ -892,6 +947,7 @@ impl WebViewer {
                     .as_ref()
                     .and_then(|r| r.raycaster.output_texture()),
             };
+            let texture = self.refine.shown_texture().or(texture);
             match (texture, self.drawn.as_ref()) {
                 (Some(texture), Some((_, size))) => {
                     let readback = start_readback(&self.gpu, texture, *size, ctx);
@@ -946,18 +1002,21 @@ impl WebViewer {
             // or, with `capture=unconverged`, once frames went on for a while without it.
             let capture_unconverged = self.view.capture_unconverged
                 && self.frames_submitted >= crate::view_state::UNCONVERGED_CAPTURE_FRAMES;
+            // A still view that refines is captured once its mean is complete (refine.rs).
+            let (settled, refined) = (self.refine.settled(), self.refine.refined_texture());
             let texture = match self.streamed.as_mut() {
                 Some(streamed)
                     if capture_unconverged
-                        || streamed.last.as_ref().is_some_and(|s| s.converged) =>
+                        || (settled && streamed.last.as_ref().is_some_and(|s| s.converged)) =>
                 {
-                    streamed.volume.raycaster_mut().output_texture()
+                    refined.or(streamed.volume.raycaster_mut().output_texture())
                 }
                 Some(_) => None,
-                None => self
+                None if settled => refined.or(self
                     .renderer
                     .as_ref()
-                    .and_then(|r| r.raycaster.output_texture()),
+                    .and_then(|r| r.raycaster.output_texture())),
+                None => None,
             };
             let Some(texture) = texture else {
                 return;
@@ -1328,8 +1387,9 @@ impl eframe::App for WebViewer {
                 let drawn = if self.view.store.is_some() {
                     self.draw_streamed(&ctx, size)
                 } else {
-                    self.draw_if_changed(size)
+                    self.draw_if_changed(&ctx, size)
                 };
+                self.refine.publish();
                 if let Err(e) = drawn {
                     self.error = Some(e.to_string());
                     return;

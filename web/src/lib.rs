@@ -23,6 +23,8 @@
 //!   from one pixel of the frame's pick depth copied back without waiting.
 //! - `page_tools` (wasm32 only): undo and redo (the shared history of the link's edits), the
 //!   shared keyboard shortcuts and F1 help, the 3D view's screenshot as a PNG download.
+//! - `refine` (wasm32 only): progressive refinement of the still 3D view (shadows, occlusion,
+//!   scattering averaged over jittered frames, as the desktop does), at the page's frame loop.
 //! - `served_store` (wasm32 only): `strata serve`'s client on `fetch()`, the volume source the
 //!   streaming loader reads a served store through (`#store=NAME`), with the loader's work
 //!   inline on the page's one thread (strata_loader::LoaderWork::Inline).
@@ -66,6 +68,8 @@ mod page_timing;
 mod page_tools;
 #[cfg(target_arch = "wasm32")]
 mod picking;
+#[cfg(target_arch = "wasm32")]
+mod refine;
 #[cfg(target_arch = "wasm32")]
 mod segment_editor;
 #[cfg(target_arch = "wasm32")]
