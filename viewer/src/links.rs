@@ -55,9 +55,9 @@ pub struct DesktopView {
     /// The oblique view, shown and turned `[yaw, pitch, roll]` degrees off axial (the link's
     /// `oblique=`, strata_slices' `ObliquePlane::orientation_deg`); None: not shown.
     pub oblique: Option<[f64; 3]>,
-    /// The rendering panel's light. A link carries its direction, shadows, occlusion radius
-    /// and scattering asymmetry (view_state.rs); a light opened from a link has the rest
-    /// (intensity, ambient, steps, blend) at the defaults, as the browser draws it.
+    /// The rendering panel's light. A link carries its direction, shadows, occlusion radius,
+    /// scattering asymmetry and blend, intensity and ambient (view_state.rs); a light opened
+    /// from a link has the shadow step at its default, as the browser draws it.
     pub light: LightPrefs,
     /// The slices' measurements (the link's `m=`): points at two decimals; a region's
     /// statistics are computed again from the slice when it is shown.
