@@ -17,6 +17,8 @@
 //!   that makes render settings of it, and its controls with the direction gizmo.
 //! - [`orbit`]: the 3D view's drag-to-orbit mapping and the six standard views (A/P/L/R/S/I),
 //!   so a drag or key turns both viewers' views alike.
+//! - [`orbit_movie`]: the orbit movie's frame counts and each frame's azimuth, so the desktop's
+//!   PNG frames and MP4 and the page's animated PNG turn through the same angles.
 //! - [`picking`]: the volume position a click in the 3D view sees, from the frame's pick depth.
 //! - [`measurements`]: rulers, angles and box/ellipse ROIs: the model, ROI statistics, a
 //!   slice view's gestures and drawing, the list panel and the link's `m=` value.
@@ -42,6 +44,7 @@ pub mod layouts;
 pub mod lighting;
 pub mod measurements;
 pub mod orbit;
+pub mod orbit_movie;
 pub mod performance;
 pub mod picking;
 pub mod presets;
