@@ -25,6 +25,7 @@ use wasm_bindgen::JsCast;
 
 use crate::embed_bridge::{embed_origin, EmbedBridge};
 use crate::oblique_view::{oblique_toggle, place_views, ObliqueView};
+use crate::orbit_movie::OrbitMovie;
 use crate::page_timing::{PageTiming, BENCH_DEG_PER_FRAME};
 use crate::page_tools::{self, PageTools};
 use crate::picking::PendingPick;
@@ -261,6 +262,9 @@ struct WebViewer {
     download: Option<Capture>,
     /// Progressive refinement of the still 3D view (refine.rs).
     refine: Refinement,
+    /// The orbit movie being made (orbit_movie.rs) and its frame being read back.
+    movie: OrbitMovie,
+    movie_frame: Option<Capture>,
 }
 
 impl WebViewer {
@@ -349,6 +353,8 @@ impl WebViewer {
             tools: PageTools::default(),
             download: None,
             refine: Refinement::new(),
+            movie: OrbitMovie::default(),
+            movie_frame: None,
         })
     }
 
@@ -754,6 +760,77 @@ impl WebViewer {
                 .tools
                 .download_failed(format!("the screenshot could not be made: {e}")),
         }
+    }
+
+    /// The orbit movie (orbit_movie.rs): once the frame on screen is the movie's frame and
+    /// final as the test capture's is (its cut converged, its refinement complete), reads it
+    /// back and takes it; after the last, downloads the animated PNG and puts the view back.
+    fn movie_step(&mut self, ctx: &egui::Context) {
+        self.movie.publish();
+        if !self.movie.is_making() {
+            return;
+        }
+        ctx.request_repaint();
+        if self.movie_frame.is_none() {
+            let Some((drawn, size)) = self.drawn.clone() else {
+                return;
+            };
+            if drawn != self.view.of_3d_view() {
+                return;
+            }
+            let (settled, refined) = (self.refine.settled(), self.refine.refined_texture());
+            let texture = match self.streamed.as_mut() {
+                Some(streamed)
+                    if settled && streamed.last.as_ref().is_some_and(|s| s.converged) =>
+                {
+                    refined.or(streamed.volume.raycaster_mut().output_texture())
+                }
+                Some(_) => None,
+                None if settled => refined.or(self
+                    .renderer
+                    .as_ref()
+                    .and_then(|r| r.raycaster.output_texture())),
+                None => None,
+            };
+            if let Some(texture) = texture {
+                self.movie_frame = Some(start_readback(&self.gpu, texture, size, ctx));
+            }
+            return;
+        }
+        let state = match &self.movie_frame {
+            Some(capture) => capture.state.load(Ordering::Acquire),
+            None => return,
+        };
+        if state != CAPTURE_MAPPED && state != CAPTURE_FAILED {
+            return;
+        }
+        let Some(capture) = self.movie_frame.take() else {
+            return;
+        };
+        let rgba = if state == CAPTURE_MAPPED {
+            read_back(&capture)
+        } else {
+            Err(PageError::ScreenshotBuffer)
+        };
+        let added = rgba.map_err(|e| e.to_string()).and_then(|rgba| {
+            self.movie
+                .add_frame(rgba, capture.size)
+                .map_err(|e| e.to_string())
+        });
+        match added {
+            Ok(Some(finished)) => {
+                self.view.azimuth_deg = finished.start_azimuth;
+                self.tools
+                    .download(&finished.apng, &crate::orbit_movie::movie_name());
+            }
+            Ok(None) => {}
+            Err(problem) => {
+                if let Some(start) = self.movie.fail(&problem) {
+                    self.view.azimuth_deg = start;
+                }
+            }
+        }
+        self.movie.publish();
     }
 
     /// The volume shown: the page's sample, or one of the server's stores (each entry is the
@@ -1268,6 +1345,13 @@ impl eframe::App for WebViewer {
                         .default_open(true)
                         .show(ui, |ui| crate::segment_editor::section(ui, slices));
                 }
+                // The orbit movie's controls (orbit_movie.rs), above the panel's scroll area.
+                if self.movie.section(ui) {
+                    self.movie_frame = None;
+                    if let Some(start) = self.movie.cancel() {
+                        self.view.azimuth_deg = start;
+                    }
+                }
                 let figures = VolumeFigures {
                     loader: self.streamed.as_ref().and_then(|s| s.last.as_ref()),
                     step_factor: self.motion.shown().0,
@@ -1289,6 +1373,11 @@ impl eframe::App for WebViewer {
                     });
                 }
             });
+        // The orbit movie turns the view to the frame it takes next (orbit_movie.rs).
+        self.movie.begin(self.view.azimuth_deg);
+        if let Some(azimuth) = self.movie.azimuth() {
+            self.view.azimuth_deg = azimuth;
+        }
         egui::CentralPanel::default()
             .frame(egui::Frame::NONE.fill(egui::Color32::BLACK))
             .show(ui, |ui| {
@@ -1489,6 +1578,7 @@ impl eframe::App for WebViewer {
             });
         self.history_step(&ctx);
         self.download_step(&ctx);
+        self.movie_step(&ctx);
         self.tools.help(&ctx);
         self.capture_step(&ctx);
         self.bridge_step(&ctx);

@@ -12,6 +12,9 @@
 //! - [`volume_menu`]: the Volume menu's entries (the sample, then the server's stores from
 //!   `GET /v1/stores`) and what a choice does to the view; platform independent, tested natively
 //!   against a real server's list.
+//! - [`orbit_movie`]: the orbit movie as one animated PNG download (strata-viewer-ui's shared
+//!   orbit path, each frame the page's final still view); the model and encoder platform
+//!   independent, the side panel's section the browser's.
 //! - `browser` (wasm32 only): the page's entry point, the viewer app, the frame capture.
 //! - `canvas_attributes` (wasm32 only): the canvas attributes the browser tests read.
 //! - `embed_bridge` (wasm32 only): the page in a notebook (issue 50): a postMessage bridge
@@ -49,6 +52,7 @@
 // The link format lives in strata-viewer-ui, shared with the desktop viewer (issue 47); the
 // paths stay `strata_web::view_state`, `strata_web::compact_tf`.
 pub use strata_viewer_ui::{compact_tf, view_state};
+pub mod orbit_movie;
 pub mod view_motion;
 pub mod volume_menu;
 
