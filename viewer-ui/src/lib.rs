@@ -20,6 +20,8 @@
 //! - [`overlay`]: a label or continuous overlay over the slices: the mapping of a slice pixel
 //!   into the overlay's grid, nearest-label and trilinear sampling of its level-0 bricks (which
 //!   may not be resident yet), the colouring, its controls and its link keys (issue 47).
+//! - [`orbit_movie`]: the orbit movie's frame counts and each frame's azimuth, so the desktop's
+//!   PNG frames and MP4 and the page's animated PNG turn through the same angles.
 //! - [`picking`]: the volume position a click in the 3D view sees, from the frame's pick depth.
 //! - [`measurements`]: rulers, angles and box/ellipse ROIs: the model, ROI statistics, a
 //!   slice view's gestures and drawing, the list panel and the link's `m=` value.
@@ -47,6 +49,7 @@ pub mod layouts;
 pub mod lighting;
 pub mod measurements;
 pub mod orbit;
+pub mod orbit_movie;
 pub mod overlay;
 pub mod performance;
 pub mod picking;

@@ -1100,7 +1100,7 @@ impl StrataApp {
     /// strata-orbit-<time> folder beside the screenshots.
     pub fn take_orbit_movie_into(&mut self, frames: u32, folder: Option<PathBuf>) {
         let Some(v) = &self.volume else { return };
-        let frames = frames.clamp(2, crate::export::MAX_ORBIT_FRAMES);
+        let frames = strata_viewer_ui::orbit_movie::orbit_frame_count(frames);
         let Some(rect) = v
             .view_rects
             .iter()

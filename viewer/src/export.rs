@@ -6,9 +6,10 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
 use strata_render::TransferFunction;
+use strata_viewer_ui::orbit_movie::ORBIT_FRAMES_PER_SECOND;
 
-/// The most frames an orbit movie may have: 10 per degree, 150 s at 24 frames per second.
-pub const MAX_ORBIT_FRAMES: u32 = 3600;
+// The orbit's path is shared with the page's movie (strata-viewer-ui's orbit_movie).
+pub use strata_viewer_ui::orbit_movie::{orbit_azimuth, MAX_ORBIT_FRAMES};
 
 /// `WxH` (e.g. 512x512) as a width and height, each 1..=8192.
 pub fn parse_size(text: &str) -> Result<(u32, u32)> {
@@ -28,11 +29,6 @@ pub fn choose_transfer_function(name: Option<&str>, modality: &str) -> Result<Tr
     Ok(strata_headless::choose_transfer_function(name, modality)?)
 }
 
-/// Azimuth of frame `i` of `frames`, evenly around the full turn from `start`.
-pub fn orbit_azimuth(start: f64, i: u32, frames: u32) -> f64 {
-    start + 360.0 * i as f64 / frames.max(1) as f64
-}
-
 pub fn orbit_frame_name(i: u32) -> String {
     format!("frame-{i:04}.png")
 }
@@ -49,7 +45,9 @@ pub fn encode_mp4(folder: &Path) -> Result<Option<PathBuf>> {
     }
     let movie = folder.join("orbit.mp4");
     let output = std::process::Command::new("ffmpeg")
-        .args(["-y", "-loglevel", "error", "-framerate", "24", "-i"])
+        .args(["-y", "-loglevel", "error", "-framerate"])
+        .arg(ORBIT_FRAMES_PER_SECOND.to_string())
+        .arg("-i")
         .arg(folder.join("frame-%04d.png"))
         // Even dimensions and yuv420p: what every player accepts.
         .args([

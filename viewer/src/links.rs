@@ -57,9 +57,9 @@ pub struct DesktopView {
     pub oblique: Option<[f64; 3]>,
     /// The frame of a 4-D volume every view shows (the link's `frame=`; 0 for a 3-D one).
     pub frame: u32,
-    /// The rendering panel's light. A link carries its direction, shadows, occlusion radius
-    /// and scattering asymmetry (view_state.rs); a light opened from a link has the rest
-    /// (intensity, ambient, steps, blend) at the defaults, as the browser draws it.
+    /// The rendering panel's light. A link carries its direction, shadows, occlusion radius,
+    /// scattering asymmetry and blend, intensity and ambient (view_state.rs); a light opened
+    /// from a link has the shadow step at its default, as the browser draws it.
     pub light: LightPrefs,
     /// The slices' measurements (the link's `m=`): points at two decimals; a region's
     /// statistics are computed again from the slice when it is shown.

@@ -2,7 +2,8 @@
 //!
 //! One thread: eframe's web runner calls [`WebViewer::ui`] from requestAnimationFrame, and
 //! nothing here blocks (the browser's event loop resolves every GPU promise). A frame is
-//! submitted only when the view or the image size changed, so a still page does no GPU work.
+//! submitted only when the view or the image size changed, or while a still view refines
+//! (refine.rs: one pass per animation frame, then rest), so a still page does no GPU work.
 //! The raycaster draws into its own Rgba8Unorm texture, which egui samples directly
 //! (`register_native_texture`): no readback, no copy.
 
@@ -24,9 +25,11 @@ use wasm_bindgen::JsCast;
 
 use crate::embed_bridge::{embed_origin, EmbedBridge};
 use crate::oblique_view::{oblique_toggle, place_views, ObliqueView};
+use crate::orbit_movie::OrbitMovie;
 use crate::page_timing::{PageTiming, BENCH_DEG_PER_FRAME};
 use crate::page_tools::{self, PageTools};
 use crate::picking::PendingPick;
+use crate::refine::Refinement;
 use crate::served_store::{list_stores, ServedStore, DECODES_PER_FRAME, MAX_ON_THE_WIRE};
 use crate::side_panel::{SidePanel, VolumeFigures};
 use crate::slice_views::SliceViews;
@@ -38,7 +41,9 @@ use strata_source::VolumeSource;
 use strata_viewer_ui::orbit;
 use strata_viewer_ui::picking::frame_pixel;
 use strata_viewer_ui::presets;
-use strata_viewer_ui::render_driver::{RenderChange, RenderDriver, RenderRequest};
+use strata_viewer_ui::render_driver::{
+    RenderChange, RenderDriver, RenderRequest, DEFAULT_PROGRESSIVE_FRAMES,
+};
 use strata_viewer_ui::triad;
 
 /// The largest image edge drawn when the canvas decides (device pixels): a 4K canvas is drawn
@@ -257,6 +262,11 @@ struct WebViewer {
     tools: PageTools,
     /// The 3D frame being read back for a screenshot download (F12, Screenshot).
     download: Option<Capture>,
+    /// Progressive refinement of the still 3D view (refine.rs).
+    refine: Refinement,
+    /// The orbit movie being made (orbit_movie.rs) and its frame being read back.
+    movie: OrbitMovie,
+    movie_frame: Option<Capture>,
 }
 
 impl WebViewer {
@@ -344,6 +354,9 @@ impl WebViewer {
             drag_travel: 0.0,
             tools: PageTools::default(),
             download: None,
+            refine: Refinement::new(),
+            movie: OrbitMovie::default(),
+            movie_frame: None,
         })
     }
 
@@ -506,9 +519,23 @@ impl WebViewer {
             && converged
             && !self.motion.full_quality_due(now, target_fps)
         {
+            // Still and final: a refinement pass where its effects want one (refine.rs).
+            if let Some((camera, settings)) = self.refine.next_pass() {
+                let stats = streamed.volume.frame(&self.gpu, &camera, &settings)?;
+                let cut_changed = stats.uploads > 0 || stats.page_table_rewritten;
+                let raycaster = streamed.volume.raycaster_mut();
+                if let Some(mean) = self.refine.accumulate(&self.gpu, raycaster, cut_changed)? {
+                    show_texture(&self.render_state, &self.gpu, mean, &mut self.texture);
+                }
+                self.frames_submitted += 1;
+            }
+            if self.refine.wants_pass() {
+                ctx.request_repaint();
+            }
             self.motion.skipped();
             return Ok(());
         }
+        self.refine.restart();
         let camera = request.camera;
         let mut settings = request.settings.clone();
         let (quality, lod_factor) = self.motion.plan(now, target_fps, &mut settings);
@@ -518,6 +545,7 @@ impl WebViewer {
             ctx.request_repaint();
         }
         self.timing.submitted(stats.converged);
+        let final_frame = stats.converged && quality.is_none();
         streamed.last = Some(stats);
         let timings = streamed.volume.take_frame_timings(&self.gpu);
         self.side.gpu_timings(timings.clone());
@@ -532,6 +560,13 @@ impl WebViewer {
         show_texture(&self.render_state, &self.gpu, view, &mut self.texture);
         streamed.driver.drawn(&request);
         self.drawn = Some(wanted);
+        let total = request.progressive_frames;
+        if self
+            .refine
+            .start_if_final(&camera, &settings, final_frame, total)
+        {
+            ctx.request_repaint();
+        }
         Ok(())
     }
 
@@ -548,13 +583,13 @@ impl WebViewer {
             overlay: None,
             traversal: None,
             adaptive_epsilon: None,
-            // The page accumulates no jittered frames yet: each frame is drawn whole and
-            // exact (the light panel offers exact shadows, which need no accumulation).
-            progressive_frames: 0,
+            // A still view with shadows, occlusion or scattering averages this many jittered
+            // frames, as the desktop's does by default (refine.rs).
+            progressive_frames: DEFAULT_PROGRESSIVE_FRAMES,
         }
     }
 
-    fn draw_if_changed(&mut self, size: [u32; 2]) -> Result<(), PageError> {
+    fn draw_if_changed(&mut self, ctx: &egui::Context, size: [u32; 2]) -> Result<(), PageError> {
         let wanted = (self.view.of_3d_view(), size);
         let Some(geometry) = self.volume.as_ref().map(|v| v.geometry.clone()) else {
             return Ok(());
@@ -582,9 +617,25 @@ impl WebViewer {
             && !driver.is_new(&request)
             && !self.motion.full_quality_due(now, target_fps)
         {
+            // Still: a refinement pass where its effects want one (refine.rs).
+            if let Some((camera, settings)) = self.refine.next_pass() {
+                renderer.submit(&self.gpu, volume, &camera, &settings)?;
+                // The sample is whole on the GPU: its cut never changes.
+                if let Some(mean) = self
+                    .refine
+                    .accumulate(&self.gpu, &renderer.raycaster, false)?
+                {
+                    show_texture(&self.render_state, &self.gpu, mean, &mut self.texture);
+                }
+                self.frames_submitted += 1;
+            }
+            if self.refine.wants_pass() {
+                ctx.request_repaint();
+            }
             self.motion.skipped();
             return Ok(());
         }
+        self.refine.restart();
         let camera = request.camera;
         let mut settings = request.settings.clone();
         // The sample is drawn whole: no level of detail to coarsen, the step only.
@@ -604,6 +655,13 @@ impl WebViewer {
         show_texture(&self.render_state, &self.gpu, view, &mut self.texture);
         driver.drawn(&request);
         self.drawn = Some(wanted);
+        let total = request.progressive_frames;
+        if self
+            .refine
+            .start_if_final(&camera, &settings, quality.is_none(), total)
+        {
+            ctx.request_repaint();
+        }
         Ok(())
     }
 
@@ -698,6 +756,7 @@ impl WebViewer {
     /// it to the browser as a PNG download.
     fn download_step(&mut self, ctx: &egui::Context) {
         if self.tools.take_screenshot_request() && self.download.is_none() {
+            // The refined mean where it is on screen (refine.rs).
             let texture = match self.streamed.as_mut() {
                 Some(streamed) => streamed.volume.raycaster_mut().output_texture(),
                 None => self
@@ -705,6 +764,7 @@ impl WebViewer {
                     .as_ref()
                     .and_then(|r| r.raycaster.output_texture()),
             };
+            let texture = self.refine.shown_texture().or(texture);
             match (texture, self.drawn.as_ref()) {
                 (Some(texture), Some((_, size))) => {
                     self.download = Some(start_readback(&self.gpu, texture, *size, ctx));
@@ -736,6 +796,77 @@ impl WebViewer {
                 .tools
                 .download_failed(format!("the screenshot could not be made: {e}")),
         }
+    }
+
+    /// The orbit movie (orbit_movie.rs): once the frame on screen is the movie's frame and
+    /// final as the test capture's is (its cut converged, its refinement complete), reads it
+    /// back and takes it; after the last, downloads the animated PNG and puts the view back.
+    fn movie_step(&mut self, ctx: &egui::Context) {
+        self.movie.publish();
+        if !self.movie.is_making() {
+            return;
+        }
+        ctx.request_repaint();
+        if self.movie_frame.is_none() {
+            let Some((drawn, size)) = self.drawn.clone() else {
+                return;
+            };
+            if drawn != self.view.of_3d_view() {
+                return;
+            }
+            let (settled, refined) = (self.refine.settled(), self.refine.refined_texture());
+            let texture = match self.streamed.as_mut() {
+                Some(streamed)
+                    if settled && streamed.last.as_ref().is_some_and(|s| s.converged) =>
+                {
+                    refined.or(streamed.volume.raycaster_mut().output_texture())
+                }
+                Some(_) => None,
+                None if settled => refined.or(self
+                    .renderer
+                    .as_ref()
+                    .and_then(|r| r.raycaster.output_texture())),
+                None => None,
+            };
+            if let Some(texture) = texture {
+                self.movie_frame = Some(start_readback(&self.gpu, texture, size, ctx));
+            }
+            return;
+        }
+        let state = match &self.movie_frame {
+            Some(capture) => capture.state.load(Ordering::Acquire),
+            None => return,
+        };
+        if state != CAPTURE_MAPPED && state != CAPTURE_FAILED {
+            return;
+        }
+        let Some(capture) = self.movie_frame.take() else {
+            return;
+        };
+        let rgba = if state == CAPTURE_MAPPED {
+            read_back(&capture)
+        } else {
+            Err(PageError::ScreenshotBuffer)
+        };
+        let added = rgba.map_err(|e| e.to_string()).and_then(|rgba| {
+            self.movie
+                .add_frame(rgba, capture.size)
+                .map_err(|e| e.to_string())
+        });
+        match added {
+            Ok(Some(finished)) => {
+                self.view.azimuth_deg = finished.start_azimuth;
+                self.tools
+                    .download(&finished.apng, &crate::orbit_movie::movie_name());
+            }
+            Ok(None) => {}
+            Err(problem) => {
+                if let Some(start) = self.movie.fail(&problem) {
+                    self.view.azimuth_deg = start;
+                }
+            }
+        }
+        self.movie.publish();
     }
 
     /// The volume shown: the page's sample, or one of the server's stores (each entry is the
@@ -921,6 +1052,7 @@ impl WebViewer {
             ctx.request_repaint_after(std::time::Duration::from_secs_f64(wait_s));
         }
         if self.screenshot.is_none() && bridge.screenshots_wanted() {
+            // The refined mean where it is on screen (refine.rs).
             let texture = match self.streamed.as_mut() {
                 Some(streamed) => streamed.volume.raycaster_mut().output_texture(),
                 None => self
@@ -928,6 +1060,7 @@ impl WebViewer {
                     .as_ref()
                     .and_then(|r| r.raycaster.output_texture()),
             };
+            let texture = self.refine.shown_texture().or(texture);
             match (texture, self.drawn.as_ref()) {
                 (Some(texture), Some((_, size))) => {
                     let readback = start_readback(&self.gpu, texture, *size, ctx);
@@ -982,18 +1115,21 @@ impl WebViewer {
             // or, with `capture=unconverged`, once frames went on for a while without it.
             let capture_unconverged = self.view.capture_unconverged
                 && self.frames_submitted >= crate::view_state::UNCONVERGED_CAPTURE_FRAMES;
+            // A still view that refines is captured once its mean is complete (refine.rs).
+            let (settled, refined) = (self.refine.settled(), self.refine.refined_texture());
             let texture = match self.streamed.as_mut() {
                 Some(streamed)
                     if capture_unconverged
-                        || streamed.last.as_ref().is_some_and(|s| s.converged) =>
+                        || (settled && streamed.last.as_ref().is_some_and(|s| s.converged)) =>
                 {
-                    streamed.volume.raycaster_mut().output_texture()
+                    refined.or(streamed.volume.raycaster_mut().output_texture())
                 }
                 Some(_) => None,
-                None => self
+                None if settled => refined.or(self
                     .renderer
                     .as_ref()
-                    .and_then(|r| r.raycaster.output_texture()),
+                    .and_then(|r| r.raycaster.output_texture())),
+                None => None,
             };
             let Some(texture) = texture else {
                 return;
@@ -1279,6 +1415,13 @@ impl eframe::App for WebViewer {
                             crate::overlay_view::section(ui, &mut self.view, slices, &self.stores)
                         });
                 }
+                // The orbit movie's controls (orbit_movie.rs), above the panel's scroll area.
+                if self.movie.section(ui) {
+                    self.movie_frame = None;
+                    if let Some(start) = self.movie.cancel() {
+                        self.view.azimuth_deg = start;
+                    }
+                }
                 let figures = VolumeFigures {
                     loader: self.streamed.as_ref().and_then(|s| s.last.as_ref()),
                     step_factor: self.motion.shown().0,
@@ -1300,6 +1443,11 @@ impl eframe::App for WebViewer {
                     });
                 }
             });
+        // The orbit movie turns the view to the frame it takes next (orbit_movie.rs).
+        self.movie.begin(self.view.azimuth_deg);
+        if let Some(azimuth) = self.movie.azimuth() {
+            self.view.azimuth_deg = azimuth;
+        }
         egui::CentralPanel::default()
             .frame(egui::Frame::NONE.fill(egui::Color32::BLACK))
             .show(ui, |ui| {
@@ -1402,8 +1550,9 @@ impl eframe::App for WebViewer {
                 let drawn = if self.view.store.is_some() {
                     self.draw_streamed(&ctx, size)
                 } else {
-                    self.draw_if_changed(size)
+                    self.draw_if_changed(&ctx, size)
                 };
+                self.refine.publish();
                 if let Err(e) = drawn {
                     self.error = Some(e.to_string());
                     return;
@@ -1505,6 +1654,7 @@ impl eframe::App for WebViewer {
             });
         self.history_step(&ctx);
         self.download_step(&ctx);
+        self.movie_step(&ctx);
         self.tools.help(&ctx);
         self.capture_step(&ctx);
         self.bridge_step(&ctx);

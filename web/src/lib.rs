@@ -12,6 +12,9 @@
 //! - [`volume_menu`]: the Volume menu's entries (the sample, then the server's stores from
 //!   `GET /v1/stores`) and what a choice does to the view; platform independent, tested natively
 //!   against a real server's list.
+//! - [`orbit_movie`]: the orbit movie as one animated PNG download (strata-viewer-ui's shared
+//!   orbit path, each frame the page's final still view); the model and encoder platform
+//!   independent, the side panel's section the browser's.
 //! - `browser` (wasm32 only): the page's entry point, the viewer app, the frame capture.
 //! - `canvas_attributes` (wasm32 only): the canvas attributes the browser tests read.
 //! - `embed_bridge` (wasm32 only): the page in a notebook (issue 50): a postMessage bridge
@@ -23,6 +26,8 @@
 //!   from one pixel of the frame's pick depth copied back without waiting.
 //! - `page_tools` (wasm32 only): undo and redo (the shared history of the link's edits), the
 //!   shared keyboard shortcuts and F1 help, the 3D view's screenshot as a PNG download.
+//! - `refine` (wasm32 only): progressive refinement of the still 3D view (shadows, occlusion,
+//!   scattering averaged over jittered frames, as the desktop does), at the page's frame loop.
 //! - `served_store` (wasm32 only): `strata serve`'s client on `fetch()`, the volume source the
 //!   streaming loader reads a served store through (`#store=NAME`), with the loader's work
 //!   inline on the page's one thread (strata_loader::LoaderWork::Inline).
@@ -52,6 +57,7 @@
 // The link format lives in strata-viewer-ui, shared with the desktop viewer (issue 47); the
 // paths stay `strata_web::view_state`, `strata_web::compact_tf`.
 pub use strata_viewer_ui::{compact_tf, view_state};
+pub mod orbit_movie;
 pub mod view_motion;
 pub mod volume_menu;
 
@@ -75,6 +81,8 @@ mod page_timing;
 mod page_tools;
 #[cfg(target_arch = "wasm32")]
 mod picking;
+#[cfg(target_arch = "wasm32")]
+mod refine;
 #[cfg(target_arch = "wasm32")]
 mod segment_editor;
 #[cfg(target_arch = "wasm32")]

@@ -46,12 +46,15 @@ mod oblique;
 #[path = "browser/segment.rs"]
 mod segment;
 
-/// A second served store over the page's slices against the desktop's overlay code (issue 47).
-#[path = "browser/overlay.rs"]
-mod overlay;
 /// A served 4-D store's frames and cine in the page against the desktop's client (issue 47).
 #[path = "browser/frames.rs"]
 mod frames;
+/// A second served store over the page's slices against the desktop's overlay code (issue 47).
+#[path = "browser/overlay.rs"]
+mod overlay;
+/// Progressive refinement of the page's still 3D view against the native mean (issue 47).
+#[path = "browser/refine.rs"]
+mod refine;
 
 const TOKEN: &str = "0123456789abcdef0123456789abcdef";
 
@@ -246,7 +249,11 @@ fn the_served_page_draws_the_view_its_link_names_as_the_native_renderer_does() {
             lit > (width * height / 10) as usize,
             "{fragment}: the browser's frame is nearly empty ({lit} pixels with coverage); its console:\n{console}"
         );
-        let comparison = compare_rgba8(&frame.rgba, &native.rgba).expect("same size");
+        // A view with shadows refines in the page (refine.rs): the picture is the mean of the
+        // desktop's jittered frames, drawn natively the same way.
+        let native_rgba = refine::native_refined(&gpu, &mut renderer, &volume, &camera, &settings)
+            .unwrap_or_else(|| native.rgba.clone());
+        let comparison = compare_rgba8(&frame.rgba, &native_rgba).expect("same size");
         println!("{fragment}: browser (SwiftShader) vs native (lavapipe): {comparison:?}");
         // Same WGSL, same inputs, both IEEE f32 on LLVM-compiled CPU drivers: measured
         // identical here (SwiftShader vs lavapipe, 2026-12-05). Drivers may still differ in how

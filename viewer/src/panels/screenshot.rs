@@ -5,6 +5,7 @@ use std::path::PathBuf;
 
 use crate::file_chooser::{ChooserKind, Chosen, FileChooser};
 use crate::preferences::Preferences;
+use strata_viewer_ui::orbit_movie::{DEFAULT_ORBIT_FRAMES, OFFERED_ORBIT_FRAMES};
 
 pub struct ScreenshotPanel {
     /// The folder chooser while it is open.
@@ -20,7 +21,7 @@ impl Default for ScreenshotPanel {
     fn default() -> Self {
         ScreenshotPanel {
             dialog: None,
-            orbit_frames: 36,
+            orbit_frames: DEFAULT_ORBIT_FRAMES,
             movie_dialog: None,
             orbit_requested: None,
         }
@@ -73,7 +74,7 @@ impl ScreenshotPanel {
             }
         });
         ui.horizontal(|ui| {
-            ui.add(egui::Slider::new(&mut self.orbit_frames, 4..=360).text("frames"));
+            ui.add(egui::Slider::new(&mut self.orbit_frames, OFFERED_ORBIT_FRAMES).text("frames"));
             if ui
                 .add_enabled(
                     self.movie_dialog.is_none(),
