@@ -46,6 +46,10 @@ mod oblique;
 #[path = "browser/segment.rs"]
 mod segment;
 
+/// Region growing and statistics in the page, on a served store's fetched bricks (issue 52).
+#[path = "browser/segment_values.rs"]
+mod segment_values;
+
 const TOKEN: &str = "0123456789abcdef0123456789abcdef";
 
 fn chromium() -> PathBuf {
