@@ -125,6 +125,50 @@ impl Intensity for DenseIntensity {
     }
 }
 
+/// Fills `out` (`LABEL_BRICK_VOXELS`, i fastest) with label brick `key`'s physical values from
+/// the primary's level-0 brick payload at the same coordinates (`BRICK_PAYLOAD`³ stored values,
+/// apron included), when the label grid is the primary's own grid: a label brick is then exactly
+/// a level-0 brick's core. Voxels outside the grid are NaN. One conversion for every reader of
+/// a store's bricks (the page's resident bricks, a store read natively), so both give the same
+/// values.
+pub fn label_brick_from_level0(
+    grid: &LabelGrid,
+    key: BrickKey,
+    payload: &[u16],
+    physical: &dyn Fn(u16) -> f64,
+    out: &mut [f32],
+) -> Result<(), SegmentError> {
+    let edge = strata_types::BRICK_PAYLOAD as usize;
+    let apron = strata_types::BRICK_APRON as usize;
+    if payload.len() != strata_types::BRICK_PAYLOAD_VOXELS || out.len() != LABEL_BRICK_VOXELS {
+        return Err(SegmentError::BaseRead {
+            brick: key.0,
+            message: format!(
+                "primary brick of {} values (expected {}) read into {} (expected {})",
+                payload.len(),
+                strata_types::BRICK_PAYLOAD_VOXELS,
+                out.len(),
+                LABEL_BRICK_VOXELS
+            ),
+        });
+    }
+    out.fill(f32::NAN);
+    let b = LABEL_BRICK as usize;
+    let origin = grid.brick_origin(key);
+    let dims = grid.dims();
+    let extent = [0, 1, 2].map(|a| dims[a].saturating_sub(origin[a]).min(LABEL_BRICK) as usize);
+    for lk in 0..extent[2] {
+        for lj in 0..extent[1] {
+            let from = ((lk + apron) * edge + lj + apron) * edge + apron;
+            let to = b * (lj + b * lk);
+            for li in 0..extent[0] {
+                out[to + li] = physical(payload[from + li]) as f32;
+            }
+        }
+    }
+    Ok(())
+}
+
 /// Bricks of an [`Intensity`] read once and kept for one operation, so a tool that asks voxel
 /// by voxel reads each brick once. Memory grows with the bricks the operation reaches (128 KiB
 /// each), which its own bounds (brush size, voxel cap) already limit.
@@ -213,6 +257,41 @@ mod tests {
         }
         assert!(DenseIntensity::new(dims, vec![0.0; 3], "").is_err());
         assert!(dense.value(&grid, [40, 0, 0]).is_err());
+    }
+
+    #[test]
+    fn a_level0_payload_gives_its_core_in_physical_values_and_nan_outside_the_grid() {
+        let dims = [40, 33, 35];
+        let grid = LabelGrid::new(VolumeGeometry::axis_aligned(dims, [1.0; 3])).unwrap();
+        let edge = strata_types::BRICK_PAYLOAD as usize;
+        let apron = strata_types::BRICK_APRON as usize;
+        // Each stored value names its payload position, so a shifted read shows.
+        let payload: Vec<u16> = (0..strata_types::BRICK_PAYLOAD_VOXELS)
+            .map(|n| n as u16)
+            .collect();
+        let mut out = vec![0.0; LABEL_BRICK_VOXELS];
+        let physical = |s: u16| f64::from(s) * 0.5 - 1024.0;
+        label_brick_from_level0(&grid, BrickKey([1, 0, 1]), &payload, &physical, &mut out).unwrap();
+        let b = LABEL_BRICK as usize;
+        for (li, lj, lk) in [(0usize, 0usize, 0usize), (7, 32 - 1, 2), (5, 4, 3)] {
+            let got = out[li + b * (lj + b * lk)];
+            // Brick [1, 0, 1] starts at i = 32, k = 32: 8 voxels along i, 33 along j, 3 along k.
+            if li < 8 && lj < 33 && lk < 3 {
+                let stored = payload[((lk + apron) * edge + lj + apron) * edge + li + apron];
+                assert_eq!(got, physical(stored) as f32, "({li},{lj},{lk})");
+            } else {
+                assert!(got.is_nan(), "({li},{lj},{lk}) is outside the grid");
+            }
+        }
+        assert!(out[8].is_nan() && out[b * b * 3].is_nan());
+        assert!(label_brick_from_level0(
+            &grid,
+            BrickKey([0; 3]),
+            &payload[1..],
+            &physical,
+            &mut out
+        )
+        .is_err());
     }
 
     #[test]

@@ -3,8 +3,10 @@
 //! the tool row (off, brush, eraser, slice fill, and 3D grow where the viewer offers it; the
 //! brush diameter in mm), the segment list (active segment, colour, name, shown, locked,
 //! remove; Add segment), the operations on the active segment (fill between slices, islands,
-//! margin, union / subtract / intersect with another segment), the labels' opacity, and the
-//! colour a label is drawn with.
+//! margin, union / subtract / intersect with another segment), the labels' opacity, the
+//! colour a label is drawn with, and the rows of the tools that read the primary's values
+//! ([`value_rows`]: the value range, region growing's settings; [`progress_row`]: a running
+//! grow's progress and Cancel; [`statistics_rows`]: the statistics table and Copy as CSV).
 //!
 //! It edits plain data: the tool and size, the active label, the operations' settings and a
 //! strata-segment [`SegmentTable`] the caller copied out of its layer, and says what the caller
@@ -18,6 +20,7 @@
 //! (`ui_tests::segment_oblique::one_click_on_a_tool_button_chooses_that_tool`).
 
 use egui::Rect;
+use strata_segment::stats::Statistics;
 use strata_segment::tools::morphology::{Islands, LogicalOp};
 use strata_segment::{Label, SegmentTable};
 
@@ -35,7 +38,8 @@ pub enum SegmentTool {
     Eraser,
     /// A click fills the closed region around it in the slice.
     Fill,
-    /// A click grows the active segment in 3D from that seed (in the background; the desktop).
+    /// A click grows the active segment in 3D from that seed (the desktop on a thread, the page
+    /// over the bricks it fetches).
     Grow,
 }
 
@@ -60,7 +64,7 @@ impl SegmentTool {
 }
 
 /// The tool buttons and the brush diameter, on one wrapping row; `offer_grow` adds the 3D grow
-/// (the desktop: it runs on a thread of its own). Returns each tool button's rectangle (the
+/// (both viewers offer it). Returns each tool button's rectangle (the
 /// page publishes them for its browser tests).
 pub fn tool_row(
     ui: &mut egui::Ui,
@@ -307,6 +311,205 @@ pub fn operations(
         });
     });
     OperationsResponse { chosen, buttons }
+}
+
+/// The value settings of the tools that read the primary, kept by the caller between frames:
+/// the brush's, eraser's and fill's optional value range, and region growing's range or
+/// mean ± k·σ and voxel cap.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ValueSettings {
+    /// Paint, erase or fill only where the primary's value lies in `range`.
+    pub limit_to_range: bool,
+    /// Inclusive, in the primary's physical unit; also the grow's range unless by σ.
+    pub range: (f64, f64),
+    /// The grow takes mean ± k·σ of the seed's 3×3×3 neighbourhood instead of `range`.
+    pub grow_by_sigma: bool,
+    pub k: f64,
+    /// The grow stops at this many voxels, keeping what it took (one undoable step).
+    pub max_voxels: u64,
+}
+
+impl Default for ValueSettings {
+    /// Bone (HU ≥ 300), off; the grow by range, k = 2, capped at 50 M voxels: the desktop's
+    /// defaults.
+    fn default() -> Self {
+        ValueSettings {
+            limit_to_range: false,
+            range: (300.0, 3000.0),
+            grow_by_sigma: false,
+            k: 2.0,
+            max_voxels: 50_000_000,
+        }
+    }
+}
+
+/// The value range row (Only values, lo to hi) and, with the grow tool, its row (mean ± k·σ,
+/// k, cap). Returns the rectangles of the checkboxes (`only-values`, `sigma`; the page
+/// publishes them for its browser tests).
+pub fn value_rows(
+    ui: &mut egui::Ui,
+    tool: SegmentTool,
+    settings: &mut ValueSettings,
+) -> Vec<(&'static str, Rect)> {
+    let mut rects = Vec::new();
+    ui.horizontal_wrapped(|ui| {
+        let growing_by_sigma = tool == SegmentTool::Grow && settings.grow_by_sigma;
+        if tool == SegmentTool::Grow {
+            ui.label("Values");
+        } else {
+            let only = ui
+                .checkbox(&mut settings.limit_to_range, "Only values")
+                .on_hover_text(
+                    "Paint, erase or fill only where the volume's value lies in the range",
+                );
+            rects.push(("only-values", only.rect));
+        }
+        let enabled = (settings.limit_to_range || tool == SegmentTool::Grow) && !growing_by_sigma;
+        ui.add_enabled(
+            enabled,
+            egui::DragValue::new(&mut settings.range.0).speed(1.0),
+        );
+        ui.label("to");
+        ui.add_enabled(
+            enabled,
+            egui::DragValue::new(&mut settings.range.1).speed(1.0),
+        );
+    });
+    if tool == SegmentTool::Grow {
+        ui.horizontal_wrapped(|ui| {
+            let sigma = ui
+                .checkbox(&mut settings.grow_by_sigma, "mean ± k·σ")
+                .on_hover_text("The range from the 3×3×3 voxels around the seed");
+            rects.push(("sigma", sigma.rect));
+            ui.add_enabled(
+                settings.grow_by_sigma,
+                egui::DragValue::new(&mut settings.k)
+                    .range(0.0..=10.0)
+                    .speed(0.05),
+            );
+            ui.label("cap");
+            ui.add(
+                egui::DragValue::new(&mut settings.max_voxels)
+                    .range(1..=u64::MAX)
+                    .speed(10_000.0)
+                    .suffix(" vx"),
+            )
+            .on_hover_text("The grow stops here, keeping what it took");
+        });
+    }
+    rects
+}
+
+/// A running job's progress bar (`fraction` of the way, `text` on it) and its Cancel button.
+/// Returns whether Cancel was clicked, and the button's rectangle.
+pub fn progress_row(ui: &mut egui::Ui, fraction: f32, text: &str) -> (bool, Rect) {
+    ui.horizontal(|ui| {
+        ui.add(
+            egui::ProgressBar::new(fraction.clamp(0.0, 1.0))
+                .text(text)
+                .desired_width(160.0),
+        );
+        let cancel = ui.button("Cancel");
+        (cancel.clicked(), cancel.rect)
+    })
+    .inner
+}
+
+/// What [`statistics_rows`] asks of the caller, and its buttons' rectangles (`statistics`,
+/// `copy-csv`).
+pub struct StatisticsResponse {
+    /// Compute the statistics now.
+    pub compute: bool,
+    /// Copy the table as CSV.
+    pub copy_csv: bool,
+    pub buttons: Vec<(&'static str, Rect)>,
+}
+
+/// The Statistics button (disabled while `running`), Copy as CSV once there is a table, and the
+/// table: per segment its voxels, mL, mean, SD, min, max and median in the primary's unit, and
+/// its bounding box in LPS mm; or why there is none.
+pub fn statistics_rows(
+    ui: &mut egui::Ui,
+    running: bool,
+    stats: Option<&Result<Statistics, String>>,
+) -> StatisticsResponse {
+    let mut response = StatisticsResponse {
+        compute: false,
+        copy_csv: false,
+        buttons: Vec::new(),
+    };
+    ui.horizontal_wrapped(|ui| {
+        let compute = ui
+            .add_enabled(!running, egui::Button::new("Statistics"))
+            .on_hover_text("Voxels, volume and the volume's values in each segment");
+        response.compute = compute.clicked();
+        response.buttons.push(("statistics", compute.rect));
+        if running {
+            ui.spinner();
+        }
+        if let Some(Ok(_)) = stats {
+            let copy = ui.button("Copy as CSV");
+            response.copy_csv = copy.clicked();
+            response.buttons.push(("copy-csv", copy.rect));
+        }
+    });
+    match stats {
+        Some(Ok(stats)) => {
+            let unit = if stats.unit.is_empty() {
+                String::new()
+            } else {
+                format!(" ({})", stats.unit)
+            };
+            let value = |v: Option<f64>| v.map_or_else(|| "–".to_string(), |v| format!("{v:.1}"));
+            let mm = |v: Option<([f64; 3], [f64; 3])>| {
+                v.map_or_else(
+                    || "–".to_string(),
+                    |(lo, hi)| {
+                        format!(
+                            "{:.1}…{:.1}, {:.1}…{:.1}, {:.1}…{:.1}",
+                            lo[0], hi[0], lo[1], hi[1], lo[2], hi[2]
+                        )
+                    },
+                )
+            };
+            // Scrolled sideways rather than widening the panel (see the module's note).
+            egui::ScrollArea::horizontal().show(ui, |ui| {
+                egui::Grid::new("segment statistics")
+                    .striped(true)
+                    .show(ui, |ui| {
+                        for heading in [
+                            "Segment".to_string(),
+                            "Voxels".to_string(),
+                            "mL".to_string(),
+                            format!("Mean{unit}"),
+                            "SD".to_string(),
+                            "Min".to_string(),
+                            "Max".to_string(),
+                            "Median".to_string(),
+                            "L, P, S (mm)".to_string(),
+                        ] {
+                            ui.label(heading);
+                        }
+                        ui.end_row();
+                        for s in &stats.segments {
+                            ui.label(&s.name);
+                            ui.label(s.voxels.to_string());
+                            ui.label(format!("{:.2}", s.volume_ml));
+                            for v in [s.mean, s.sd, s.min, s.max, s.median] {
+                                ui.label(value(v));
+                            }
+                            ui.label(mm(s.lps_box_mm));
+                            ui.end_row();
+                        }
+                    });
+            });
+        }
+        Some(Err(e)) => {
+            ui.colored_label(egui::Color32::LIGHT_RED, e);
+        }
+        None => {}
+    }
+    response
 }
 
 /// The labels' opacity over the slices.

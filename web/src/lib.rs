@@ -48,6 +48,12 @@
 //! - `segment_editor` (wasm32 only): segmentation editing on the slice views (issue 52 item
 //!   7): strata-segment's label layer, brush, eraser, fill and history, the shared Segment
 //!   section (strata-viewer-ui's segment_panel), labels over the slices, Download as NIfTI.
+//! - [`primary_values`]: the primary's level-0 values for the segmentation tools that read
+//!   them, out of core: a bounded cache of resident bricks, strata-segment's `Intensity` over
+//!   them, naming the bricks not resident yet; `primary_values_page` (wasm32 only) fetches
+//!   them through the served store (or copies the sample's).
+//! - `segment_values` (wasm32 only): region growing from a clicked seed and the statistics
+//!   per segment in the page, run over the resident bricks and again as missing ones arrive.
 //! - `side_panel` (wasm32 only): the side panel, the desktop's transfer-function editor and
 //!   Performance panel from strata-viewer-ui, on the page's 3D view.
 //!
@@ -81,10 +87,15 @@ mod page_timing;
 mod page_tools;
 #[cfg(target_arch = "wasm32")]
 mod picking;
+pub mod primary_values;
+#[cfg(target_arch = "wasm32")]
+mod primary_values_page;
 #[cfg(target_arch = "wasm32")]
 mod refine;
 #[cfg(target_arch = "wasm32")]
 mod segment_editor;
+#[cfg(target_arch = "wasm32")]
+mod segment_values;
 #[cfg(target_arch = "wasm32")]
 mod served_store;
 #[cfg(target_arch = "wasm32")]

@@ -15,6 +15,12 @@
 //! step each, on the page's one thread: they read only the labels, and their work is bounded by
 //! the bricks the page's strokes edited.
 //!
+//! The tools that read the primary's values (region growing from a clicked seed, the
+//! statistics, the brush and eraser limited to a value range) are segment_values.rs's, over the
+//! level-0 bricks the page fetches for them (primary_values.rs); a stroke limited to a range
+//! is queued piece by piece and applied as the bricks under each piece arrive, its release
+//! waiting for the last.
+//!
 //! Download writes the layer as the NIfTI-1 label map `strata seg export --format nifti`
 //! writes (strata-segment's `nifti_map`, the primary's grid and affine) into a Blob, and an
 //! anchor with `download=` saves it.
@@ -64,6 +70,11 @@ struct Stroke {
     action: BrushAction,
     positions: Vec<DVec3>,
     edits: Vec<Edit>,
+    /// Pieces of a stroke limited to a value range waiting for the primary's bricks under
+    /// them, applied in order as they arrive (segment_values.rs `apply_queued_strokes`).
+    queued: Vec<(Brush, Vec<DVec3>)>,
+    /// The button was released while pieces were queued: the stroke ends once they are in.
+    released: bool,
 }
 
 /// A view's label image on screen and what it was made from (layer revision, slice, opacity).
@@ -96,6 +107,9 @@ pub struct PageSegmentation {
     download_url: Option<String>,
     /// The labelled voxels and checksum last counted, and the revision they are of.
     painted_at: Option<(u64, (u64, u64))>,
+    /// Region growing, statistics and the value range: the tools that read the primary
+    /// (segment_values.rs).
+    values: crate::segment_values::SegmentValues,
 }
 
 impl PageSegmentation {
@@ -119,6 +133,7 @@ impl PageSegmentation {
             error: None,
             download_url: None,
             painted_at: None,
+            values: Default::default(),
         })
     }
 
@@ -191,11 +206,20 @@ impl PageSegmentation {
             SegmentTool::Eraser => BrushAction::Erase(EraseTarget::AnyUnlocked),
             _ => BrushAction::Paint(self.active),
         };
+        let value_range = match self.values.brush_range() {
+            Ok(range) => range,
+            Err(e) => {
+                self.error = Some(e.to_string());
+                return;
+            }
+        };
         let stroke = self.stroke.get_or_insert_with(|| Stroke {
             plane,
             action,
             positions: Vec::new(),
             edits: Vec::new(),
+            queued: Vec::new(),
+            released: false,
         });
         let from = stroke.positions.last().copied();
         if from == Some(position_lps) {
@@ -205,10 +229,15 @@ impl PageSegmentation {
         let brush = Brush {
             shape: BrushShape::Disc(stroke.plane),
             diameter_mm: self.diameter_mm,
-            value_range: None,
+            value_range,
         };
         // The disc swept from the last position to this one (the first: a disc there).
         let segment: Vec<DVec3> = from.into_iter().chain([position_lps]).collect();
+        if value_range.is_some() {
+            // Applied once the primary's values under it are resident (segment_values.rs).
+            stroke.queued.push((brush, segment));
+            return;
+        }
         match brush::stroke(&mut self.layer, &brush, stroke.action, &segment, None) {
             Ok(edit) => {
                 if let Some(edit) = edit {
@@ -223,6 +252,10 @@ impl PageSegmentation {
 
     /// The button was released: the stroke's edits become one undo step.
     fn end_stroke(&mut self) {
+        if let Some(stroke) = self.stroke.as_mut().filter(|s| !s.queued.is_empty()) {
+            stroke.released = true;
+            return;
+        }
         let Some(stroke) = self.stroke.take() else {
             return;
         };
@@ -271,6 +304,14 @@ impl PageSegmentation {
             return;
         }
         let seed = voxel.map(|c| c as u32);
+        if self.tool == SegmentTool::Grow {
+            self.error = self
+                .values
+                .start_grow(seed, self.active)
+                .err()
+                .map(|e| e.to_string());
+            return;
+        }
         let filled = fill_in_slice(
             &mut self.layer,
             &plane,
@@ -492,6 +533,7 @@ pub fn section(ui: &mut egui::Ui, slices: &mut SliceViews) {
     let mut buttons: Vec<(&'static str, Rect)> = Vec::new();
     let geometry = slices.geometry().clone();
     let seg_slot = &mut slices.segmentation;
+    let primary_values = &mut slices.primary_values;
     let Some(seg) = seg_slot.as_mut() else {
         let new = ui
             .button("New segmentation")
@@ -509,7 +551,7 @@ pub fn section(ui: &mut egui::Ui, slices: &mut SliceViews) {
         crate::canvas_attributes::set("data-segmentation", "none");
         return;
     };
-    for (tool, rect) in segment_panel::tool_row(ui, &mut seg.tool, &mut seg.diameter_mm, false) {
+    for (tool, rect) in segment_panel::tool_row(ui, &mut seg.tool, &mut seg.diameter_mm, true) {
         let name = match tool {
             SegmentTool::None => "off",
             SegmentTool::Brush => "brush",
@@ -519,6 +561,23 @@ pub fn section(ui: &mut egui::Ui, slices: &mut SliceViews) {
         };
         buttons.push((name, rect));
     }
+    let values = crate::segment_values::rows(
+        ui,
+        &mut seg.values,
+        seg.tool,
+        &mut seg.layer,
+        primary_values.as_mut().ok(),
+        &mut buttons,
+    );
+    if let Some(edit) = values.edit {
+        seg.history.push(edit);
+        seg.revision += 1;
+        seg.error = None;
+    }
+    if let Some(e) = values.error {
+        seg.error = Some(e);
+    }
+    apply_queued_strokes(seg, primary_values, ui.ctx());
     if segment_panel::opacity_row(ui, &mut seg.opacity).changed() {
         ui.ctx().request_repaint();
     }
@@ -601,6 +660,45 @@ pub fn section(ui: &mut egui::Ui, slices: &mut SliceViews) {
     crate::canvas_attributes::set("data-segmentation", &seg.figures());
     if close {
         *seg_slot = None;
+    }
+}
+
+/// Applies the queued pieces of a stroke limited to a value range whose bricks arrived, and
+/// ends a released stroke once none is left.
+fn apply_queued_strokes(
+    seg: &mut PageSegmentation,
+    primary_values: &mut Result<crate::primary_values_page::PagePrimaryValues, String>,
+    ctx: &egui::Context,
+) {
+    let Some(stroke) = seg.stroke.as_mut().filter(|s| !s.queued.is_empty()) else {
+        return;
+    };
+    let (edits, error) = match primary_values {
+        Ok(primary) => crate::segment_values::apply_queued_strokes(
+            &mut seg.layer,
+            stroke.action,
+            &mut stroke.queued,
+            primary,
+        ),
+        Err(e) => {
+            stroke.queued.clear();
+            (Vec::new(), Some(e.clone()))
+        }
+    };
+    if !edits.is_empty() {
+        stroke.edits.extend(edits);
+        seg.revision += 1;
+    }
+    if error.is_some() {
+        seg.error = error;
+    }
+    if stroke.queued.is_empty() {
+        if stroke.released {
+            seg.end_stroke();
+        }
+    } else {
+        // Bricks are on their way and wake nothing: poll until they are in.
+        ctx.request_repaint();
     }
 }
 

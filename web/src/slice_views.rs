@@ -127,6 +127,9 @@ pub struct SliceViews {
     pub segmentation: Option<crate::segment_editor::PageSegmentation>,
     /// A second served store drawn over the slices (overlay_view.rs), as the link names it.
     pub overlay: crate::overlay_view::OverlaySlot,
+    /// The volume's level-0 values for the segmentation tools that read them
+    /// (primary_values_page.rs), or why the page has none.
+    pub primary_values: Result<crate::primary_values_page::PagePrimaryValues, String>,
 }
 
 pub fn slice_colour(view: SliceView) -> Color32 {
@@ -195,6 +198,8 @@ impl SliceViews {
         };
         let header = store.header();
         let stored = (header.stored_range[0], header.stored_range[1]);
+        let primary_values =
+            crate::primary_values_page::PagePrimaryValues::served(store).map_err(|e| e.to_string());
         Ok(SliceViews::with_bricks(
             Bricks::Served(fetcher),
             header.geometry.clone(),
@@ -206,6 +211,7 @@ impl SliceViews {
                 own: header.windows.clone(),
                 histogram: store.histogram().clone(),
             },
+            primary_values,
         ))
     }
 
@@ -220,6 +226,9 @@ impl SliceViews {
             own: Vec::new(),
             histogram: crate::side_panel::sample_histogram(&geometry),
         };
+        let primary_values = Ok(crate::primary_values_page::PagePrimaryValues::sample(
+            volume.clone(),
+        ));
         SliceViews::with_bricks(
             Bricks::Sample(volume),
             geometry,
@@ -227,6 +236,7 @@ impl SliceViews {
             (mapping, stored),
             "HU".into(),
             windows,
+            primary_values,
         )
     }
 
@@ -237,6 +247,7 @@ impl SliceViews {
         (mapping, stored_range): (ValueMapping, (u16, u16)),
         unit: String,
         windows: ScanWindows,
+        primary_values: Result<crate::primary_values_page::PagePrimaryValues, String>,
     ) -> SliceViews {
         let a = mapping.physical(stored_range.0 as f64);
         let b = mapping.physical(stored_range.1 as f64);
@@ -274,6 +285,7 @@ impl SliceViews {
             measurements: Measurements::default(),
             segmentation: None,
             overlay: Default::default(),
+            primary_values,
         }
     }
 

@@ -55,6 +55,9 @@ mod overlay;
 /// Progressive refinement of the page's still 3D view against the native mean (issue 47).
 #[path = "browser/refine.rs"]
 mod refine;
+/// Region growing and statistics in the page, on a served store's fetched bricks (issue 52).
+#[path = "browser/segment_values.rs"]
+mod segment_values;
 
 const TOKEN: &str = "0123456789abcdef0123456789abcdef";
 

@@ -2,12 +2,18 @@
 //! range, given or taken as mean ± k·σ of the seed's 3×3×3 neighbourhood. Locked segments are
 //! neither painted nor crossed. A voxel cap bounds the work: at the cap the grow stops, keeps
 //! what it has as one edit and says so.
+//!
+//! [`plan_grow`] works the region out without writing it and [`GrowPlan::apply`] writes it:
+//! the desktop does both at once ([`grow_from_seed`]); the browser page, whose primary values
+//! arrive brick by brick, drops a plan that met a brick not yet resident and plans again once
+//! it is (web/src/segment_values.rs, tested against this grow in
+//! web/tests/browser/segment_values.rs).
 
 use std::sync::atomic::AtomicBool;
 
 use crate::intensity::{Intensity, IntensityBricks, ValueRange};
 use crate::layer::LabelLayer;
-use crate::tools::flood::{flood, Flood};
+use crate::tools::flood::{flood, Flood, FloodRegion};
 use crate::tools::{check_tool_label, Outcome};
 use crate::{Label, SegmentError};
 
@@ -70,11 +76,49 @@ pub fn grow_range(
     ValueRange::new(mean - k * sd, mean + k * sd)
 }
 
-/// Grows `label` from `seed` as one edit. `progress(voxels)` is called as it goes; setting
-/// `cancel` ends it with [`SegmentError::Cancelled`] and the layer unchanged.
+/// A grow worked out on a layer and not yet written: the region and the range it took.
+/// Splitting the work from the write lets a caller whose primary values are not all at hand
+/// (the browser page, reading bricks as they arrive) discard a grow that met a missing brick
+/// and run it again once the brick is in, without ever touching the layer or its history.
+pub struct GrowPlan {
+    region: FloodRegion,
+    range: ValueRange,
+    label: Label,
+}
+
+impl GrowPlan {
+    /// The value range the region was grown in.
+    pub fn range(&self) -> ValueRange {
+        self.range
+    }
+
+    /// Voxels in the region.
+    pub fn voxels(&self) -> u64 {
+        self.region.voxels
+    }
+
+    /// Whether the cap stopped the grow with more to take.
+    pub fn stopped_at_cap(&self) -> bool {
+        self.region.stopped_at_cap
+    }
+
+    /// Writes the region as one edit into `layer`, the layer it was planned on (unchanged
+    /// since).
+    pub fn apply(self, layer: &mut LabelLayer) -> Result<Outcome, SegmentError> {
+        let edit = layer.edit("Grow from seed", |w| self.region.write(w, self.label))?;
+        Ok(Outcome {
+            edit,
+            voxels: self.region.voxels,
+            stopped_at_cap: self.region.stopped_at_cap,
+        })
+    }
+}
+
+/// Works out the grow of `label` from `seed` on `layer` without writing it. `progress(voxels)`
+/// is called as it goes; setting `cancel` ends it with [`SegmentError::Cancelled`].
 #[allow(clippy::too_many_arguments)] // each is one of the tool's own settings
-pub fn grow_from_seed(
-    layer: &mut LabelLayer,
+pub fn plan_grow(
+    layer: &LabelLayer,
     intensity: &dyn Intensity,
     seed: [u32; 3],
     label: Label,
@@ -82,7 +126,7 @@ pub fn grow_from_seed(
     max_voxels: u64,
     progress: &mut dyn FnMut(u64),
     cancel: Option<&AtomicBool>,
-) -> Result<(Outcome, ValueRange), SegmentError> {
+) -> Result<GrowPlan, SegmentError> {
     check_tool_label(layer, label)?;
     layer.get(seed)?;
     let range = grow_range(layer, intensity, seed, criterion)?;
@@ -102,13 +146,29 @@ pub fn grow_from_seed(
         |l, v| range.contains(v) && !segments.is_locked(l),
         progress,
     )?;
-    let edit = layer.edit("Grow from seed", |w| region.write(w, label))?;
-    Ok((
-        Outcome {
-            edit,
-            voxels: region.voxels,
-            stopped_at_cap: region.stopped_at_cap,
-        },
+    Ok(GrowPlan {
+        region,
         range,
-    ))
+        label,
+    })
+}
+
+/// Grows `label` from `seed` as one edit. `progress(voxels)` is called as it goes; setting
+/// `cancel` ends it with [`SegmentError::Cancelled`] and the layer unchanged.
+#[allow(clippy::too_many_arguments)] // each is one of the tool's own settings
+pub fn grow_from_seed(
+    layer: &mut LabelLayer,
+    intensity: &dyn Intensity,
+    seed: [u32; 3],
+    label: Label,
+    criterion: GrowCriterion,
+    max_voxels: u64,
+    progress: &mut dyn FnMut(u64),
+    cancel: Option<&AtomicBool>,
+) -> Result<(Outcome, ValueRange), SegmentError> {
+    let plan = plan_grow(
+        layer, intensity, seed, label, criterion, max_voxels, progress, cancel,
+    )?;
+    let range = plan.range();
+    Ok((plan.apply(layer)?, range))
 }

@@ -72,7 +72,7 @@ fn button_rect(page: &mut Cdp, name: &str) -> Rect {
 /// press and the release go out back to back: egui takes a press held longer than its click
 /// time (0.8 s) as the start of a drag, and SwiftShader's frames are slow enough that one
 /// frame between them would exceed it.
-fn click_button(page: &mut Cdp, name: &str) {
+pub(crate) fn click_button(page: &mut Cdp, name: &str) {
     let rect = page.wait_for(
         &format!("the {name} button to stay put"),
         PAGE_DEADLINE,
@@ -95,7 +95,7 @@ fn click_button(page: &mut Cdp, name: &str) {
 }
 
 /// The page's `data-segmentation` once `done` accepts it.
-fn wait_for_figures(page: &mut Cdp, what: &str, done: impl Fn(&str) -> bool) -> String {
+pub(crate) fn wait_for_figures(page: &mut Cdp, what: &str, done: impl Fn(&str) -> bool) -> String {
     page.wait_for(what, PAGE_DEADLINE, |page| {
         let text =
             page.evaluate("document.getElementById('strata-canvas')?.dataset.segmentation ?? ''");
@@ -104,7 +104,7 @@ fn wait_for_figures(page: &mut Cdp, what: &str, done: impl Fn(&str) -> bool) -> 
     })
 }
 
-fn figure(text: &str, key: &str) -> Option<String> {
+pub(crate) fn figure(text: &str, key: &str) -> Option<String> {
     text.split(';')
         .find_map(|entry| entry.strip_prefix(&format!("{key}=")))
         .map(str::to_owned)
@@ -112,7 +112,7 @@ fn figure(text: &str, key: &str) -> Option<String> {
 
 /// A drag with the left button through `points`, one egui frame per event, as a user's hand
 /// moves slower than the page draws.
-fn drag_through(page: &mut Cdp, points: &[Pos2]) {
+pub(crate) fn drag_through(page: &mut Cdp, points: &[Pos2]) {
     let first = points[0];
     page.mouse_move(first.x as f64, first.y as f64, false);
     page.mouse_press(first.x as f64, first.y as f64);
@@ -131,7 +131,7 @@ fn drag_through(page: &mut Cdp, points: &[Pos2]) {
 /// `URL.createObjectURL` is watched before the click): headless Chromium here does not write
 /// an anchor's download into a `Browser.setDownloadBehavior` folder (the page made the Blob,
 /// no file arrived in 120 s), so the test reads what the page gave the download instead.
-fn download(page: &mut Cdp, folder: &Path, name: &str) -> PathBuf {
+pub(crate) fn download(page: &mut Cdp, folder: &Path, name: &str) -> PathBuf {
     page.evaluate(
         "(() => { if (!window.__downloads) { window.__downloads = []; \
          const original = URL.createObjectURL; \
@@ -167,7 +167,7 @@ fn download(page: &mut Cdp, folder: &Path, name: &str) -> PathBuf {
 }
 
 /// Every labelled voxel of `layer`, with its label.
-fn layer_voxels(layer: &LabelLayer) -> BTreeSet<([u32; 3], u16)> {
+pub(crate) fn layer_voxels(layer: &LabelLayer) -> BTreeSet<([u32; 3], u16)> {
     let mut out = BTreeSet::new();
     let [nx, ny, nz] = layer.grid().dims();
     for k in 0..nz {
@@ -185,7 +185,7 @@ fn layer_voxels(layer: &LabelLayer) -> BTreeSet<([u32; 3], u16)> {
 
 /// The labelled voxels of a downloaded label map (read by strata-segment's reader), after
 /// checking that its grid is the primary's.
-fn labelled_voxels(file: &Path, primary: &VolumeGeometry) -> BTreeSet<([u32; 3], u16)> {
+pub(crate) fn labelled_voxels(file: &Path, primary: &VolumeGeometry) -> BTreeSet<([u32; 3], u16)> {
     let layer = strata_segment::io::load_label_file(file)
         .unwrap_or_else(|e| panic!("reading the page's download {}: {e}", file.display()));
     let g = layer.grid().geometry();
@@ -205,7 +205,7 @@ fn labelled_voxels(file: &Path, primary: &VolumeGeometry) -> BTreeSet<([u32; 3],
 }
 
 /// The brush both viewers start with, on the axial plane.
-const AXIAL_BRUSH: Brush = Brush {
+pub(crate) const AXIAL_BRUSH: Brush = Brush {
     shape: BrushShape::Disc(SlicePlane::Axial),
     diameter_mm: DEFAULT_BRUSH_DIAMETER_MM,
     value_range: None,
@@ -213,32 +213,43 @@ const AXIAL_BRUSH: Brush = Brush {
 
 /// The page with a new segmentation and the brush chosen, and the desktop's mapping of a
 /// screen point on its axial view.
-struct AxialPainting {
-    page: Cdp,
+pub(crate) struct AxialPainting {
+    pub(crate) page: Cdp,
     _server: strata_service::server::RunningServer,
-    geometry: VolumeGeometry,
-    grid: LabelGrid,
-    frame: SliceFrame,
+    pub(crate) geometry: VolumeGeometry,
+    pub(crate) grid: LabelGrid,
+    pub(crate) frame: SliceFrame,
     /// The axial image on screen (page CSS pixels).
-    image: Rect,
+    pub(crate) image: Rect,
 }
 
 impl AxialPainting {
     fn open(scratch: &Path) -> Self {
         let fragment = "#mode=mip&preset=ct-soft-tissue&volume=40&size=64x64&layout=conventional";
-        let (mut page, server) = open_page(fragment, scratch, [1200, 800]);
+        let (page, server) = open_page(fragment, scratch, [1200, 800]);
         let geometry = Fragment::parse(fragment)
             .expect("fragment")
             .view
             .sample_volume()
             .expect("sample volume")
             .geometry;
+        AxialPainting::on_page(page, server, geometry, "brush")
+    }
+
+    /// A new segmentation on the open page of a volume on `geometry`, the section's `tool`
+    /// chosen.
+    pub(crate) fn on_page(
+        mut page: Cdp,
+        server: strata_service::server::RunningServer,
+        geometry: VolumeGeometry,
+        tool: &str,
+    ) -> Self {
         let grid = LabelGrid::new(geometry.clone()).expect("label grid");
         click_button(&mut page, "new");
         wait_for_figures(&mut page, "a new segmentation", |t| {
             figure(t, "segments").as_deref() == Some("1")
         });
-        click_button(&mut page, "brush");
+        click_button(&mut page, tool);
         // The desktop's mapping of a screen point on the axial view: the view's inner
         // rectangle, the image fitted at zoom 1. The section grew by its rows: the views are
         // read once they stay put over two frames.
@@ -269,7 +280,7 @@ impl AxialPainting {
 
     /// The fraction across the image, the frame's index at the crosshair's slice (the centre,
     /// where the page starts it; a tool's drag does not move it), in patient space.
-    fn to_lps(&self, p: Pos2) -> DVec3 {
+    pub(crate) fn to_lps(&self, p: Pos2) -> DVec3 {
         let dims = self.geometry.dims;
         let (u, v) = fraction_at(self.image, p);
         let (a, d) = self.frame.index_at(dims, u, v);
@@ -279,7 +290,7 @@ impl AxialPainting {
         self.geometry.patient_from_index(DVec3::from(index))
     }
 
-    fn positions(&self, points: &[Pos2]) -> Vec<DVec3> {
+    pub(crate) fn positions(&self, points: &[Pos2]) -> Vec<DVec3> {
         points.iter().map(|&p| self.to_lps(p)).collect()
     }
 
