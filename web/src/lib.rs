@@ -38,6 +38,8 @@
 //! - `segment_editor` (wasm32 only): segmentation editing on the slice views (issue 52 item
 //!   7): strata-segment's label layer, brush, eraser, fill and history, the shared Segment
 //!   section (strata-viewer-ui's segment_panel), labels over the slices, Download as NIfTI.
+//! - `segment_downloads` (wasm32 only): the segmentation as a DICOM SEG and as zipped OME-Zarr
+//!   labels, strata-segment's writers in memory, as browser downloads.
 //! - `side_panel` (wasm32 only): the side panel, the desktop's transfer-function editor and
 //!   Performance panel from strata-viewer-ui, on the page's 3D view.
 //!
@@ -66,6 +68,8 @@ mod page_timing;
 mod page_tools;
 #[cfg(target_arch = "wasm32")]
 mod picking;
+#[cfg(target_arch = "wasm32")]
+mod segment_downloads;
 #[cfg(target_arch = "wasm32")]
 mod segment_editor;
 #[cfg(target_arch = "wasm32")]
