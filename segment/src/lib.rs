@@ -12,7 +12,6 @@ pub mod error;
 pub mod grid;
 pub mod history;
 pub mod intensity;
-#[cfg(feature = "local")]
 pub mod io;
 #[cfg(feature = "local")]
 pub mod journal;

@@ -473,3 +473,163 @@ fn a_strata_label_store_loads_back_equal_reads_bricks_lazily_and_replaces_only_a
     };
     assert!(err.contains("ct.strata") && err.contains("mapped"), "{err}");
 }
+
+/// The zip's entries read back by zarr-python through its ZipStore (the page's OME-Zarr
+/// download is read where it lands, unzipped or not).
+const ZIPSTORE_CHECK: &str = r#"
+import sys, json
+import numpy as np
+import zarr
+path, raw, expected = sys.argv[1], sys.argv[2], json.load(open(sys.argv[3]))
+nx, ny, nz = expected["dims"]
+want = np.fromfile(raw, "<u2").reshape((nz, ny, nx))
+store = zarr.storage.ZipStore(path, mode="r")
+labels = zarr.open_group(store=store, path="labels", mode="r")
+assert list(labels.attrs["ome"]["labels"]) == ["segmentation"], dict(labels.attrs)
+arr = zarr.open_array(store=store, path="labels/segmentation/0", mode="r")
+got = arr[...]
+assert arr.dtype == np.uint16 and got.shape == want.shape, (arr.dtype, got.shape)
+assert np.array_equal(got, want), int((got != want).sum())
+print("OK")
+"#;
+
+/// The entries of a zip of stored entries (APPNOTE 6.3, no Zip64, no archive comment), by name,
+/// read from its central directory and each local header, their CRC-32 checked.
+fn stored_zip_entries(bytes: &[u8]) -> std::collections::BTreeMap<String, Vec<u8>> {
+    let u16_at = |at: usize| u16::from_le_bytes([bytes[at], bytes[at + 1]]) as usize;
+    let u32_at =
+        |at: usize| u32::from_le_bytes([bytes[at], bytes[at + 1], bytes[at + 2], bytes[at + 3]]);
+    let end = bytes.len() - 22;
+    assert_eq!(
+        u32_at(end),
+        0x0605_4b50,
+        "the end of central directory record"
+    );
+    let (count, mut at) = (u16_at(end + 10), u32_at(end + 16) as usize);
+    let mut entries = std::collections::BTreeMap::new();
+    for _ in 0..count {
+        assert_eq!(
+            u32_at(at),
+            0x0201_4b50,
+            "a central directory header at {at}"
+        );
+        assert_eq!(u16_at(at + 10), 0, "stored");
+        let (crc, size) = (u32_at(at + 16), u32_at(at + 20) as usize);
+        assert_eq!(size, u32_at(at + 24) as usize);
+        let name_len = u16_at(at + 28);
+        let skip = name_len + u16_at(at + 30) + u16_at(at + 32);
+        let name = String::from_utf8(bytes[at + 46..at + 46 + name_len].to_vec()).expect("utf-8");
+        let local = u32_at(at + 42) as usize;
+        assert_eq!(u32_at(local), 0x0403_4b50, "{name}: its local header");
+        let data = local + 30 + u16_at(local + 26) + u16_at(local + 28);
+        let content = bytes[data..data + size].to_vec();
+        let mut check = flate2::Crc::new();
+        check.update(&content);
+        assert_eq!(check.sum(), crc, "{name}: CRC-32");
+        entries.insert(name, content);
+        at += 46 + skip;
+    }
+    entries
+}
+
+/// Every file under `root`, by its `/`-separated path relative to it.
+fn files_under(root: &std::path::Path) -> std::collections::BTreeMap<String, Vec<u8>> {
+    let mut out = std::collections::BTreeMap::new();
+    let mut stack = vec![root.to_path_buf()];
+    while let Some(dir) = stack.pop() {
+        for entry in std::fs::read_dir(&dir).expect("read_dir") {
+            let path = entry.expect("entry").path();
+            if path.is_dir() {
+                stack.push(path);
+            } else {
+                let relative = path
+                    .strip_prefix(root)
+                    .expect("under root")
+                    .components()
+                    .map(|c| c.as_os_str().to_string_lossy().into_owned())
+                    .collect::<Vec<_>>()
+                    .join("/");
+                out.insert(relative, std::fs::read(&path).expect("read"));
+            }
+        }
+    }
+    out
+}
+
+#[test]
+fn the_in_memory_seg_and_zipped_omezarr_are_the_files_the_exports_write() {
+    use strata_segment::io::{
+        dicom_seg_bytes, load_omezarr_labels, omezarr_labels_zip, write_omezarr_labels, SegStamp,
+    };
+    // zarr-python's ZipStore reads the zip through Python's zipfile (which checks CRCs).
+    let python = python_with(&["zarr", "numpy"], "'zarr>=3' numpy");
+    let dir = tempfile::tempdir().expect("tempdir");
+    // Wider than one 256-voxel tile: edge chunks and skipped background chunks both occur.
+    let g = oblique_geometry([300, 40, 37]);
+    let layer = sample_layer(g.clone());
+    let voxels = all_voxels(&layer);
+
+    // The zip holds exactly the files `strata seg export --format ome-zarr` writes into a new
+    // image folder, byte for byte, at its root.
+    let zip_bytes = omezarr_labels_zip(&layer, std::path::Path::new("labels.zip"), "segmentation")
+        .expect("zip in memory");
+    let image = dir.path().join("ct.zarr");
+    write_omezarr_labels(&layer, &image, "segmentation").expect("write labels");
+    let folder = files_under(&image);
+    let zipped = stored_zip_entries(&zip_bytes);
+    assert_eq!(
+        zipped.keys().collect::<Vec<_>>(),
+        folder.keys().collect::<Vec<_>>(),
+        "the zip's entries are the folder's files"
+    );
+    assert!(
+        zipped.len() > 5
+            && zipped
+                .keys()
+                .any(|k| k.starts_with("labels/segmentation/0/c/"))
+    );
+    for (name, bytes) in &folder {
+        assert!(
+            zipped[name] == *bytes,
+            "{name} differs between the zip and the folder"
+        );
+    }
+    // Unzipped where it lands, it loads back equal.
+    let unzipped = dir.path().join("unzipped.zarr");
+    for (name, bytes) in &zipped {
+        let path = unzipped.join(name);
+        std::fs::create_dir_all(path.parent().expect("parent")).expect("mkdir");
+        std::fs::write(&path, bytes).expect("write entry");
+    }
+    let back = load_omezarr_labels(&unzipped.join("labels/segmentation")).expect("load back");
+    assert!(all_voxels(&back) == voxels, "voxels differ after the zip");
+    assert_eq!(back.segments(), layer.segments());
+    let zip_path = dir.path().join("labels.ome.zarr.zip");
+    std::fs::write(&zip_path, &zip_bytes).expect("write zip");
+    let raw = dir.path().join("expected.raw");
+    write_raw(&raw, &voxels);
+    let expected = dir.path().join("expected.json");
+    std::fs::write(&expected, serde_json::json!({"dims": g.dims}).to_string()).expect("json");
+    run_python(&python, ZIPSTORE_CHECK, &[&zip_path, &raw, &expected]);
+
+    // The SEG's bytes in memory load back as the file does.
+    let stamp = SegStamp {
+        unix_nanos: 1_780_000_000_000_000_000,
+        unique: 7,
+    };
+    let (bytes, summary) = dicom_seg_bytes(
+        &layer,
+        std::path::Path::new("labels.dcm"),
+        &SegOptions::default(),
+        &stamp,
+    )
+    .expect("SEG in memory");
+    assert_eq!(summary.segments, layer.segments().len());
+    let path = dir.path().join("labels.dcm");
+    std::fs::write(&path, &bytes).expect("write SEG");
+    let back = load_label_file(&path).expect("load SEG back");
+    assert!(all_voxels(&back) == voxels, "voxels differ after the SEG");
+    for s in layer.segments().iter() {
+        assert_eq!(back.segments().get(s.value).map(|b| &b.name), Some(&s.name));
+    }
+}

@@ -734,10 +734,21 @@ impl WebViewer {
     /// and the slices' window following them.
     fn history_step(&mut self, ctx: &egui::Context) {
         let gesture = ctx.input(|i| i.pointer.any_down());
-        let Some(restored) = self
-            .tools
-            .step_history(&self.view, self.drawn.is_some(), gesture)
+        // The segmentation's edits are steps in the same history (segment_editor.rs).
+        let segmentation = match self.streamed.as_mut() {
+            Some(streamed) => streamed.slices.segmentation.as_mut(),
+            None => self
+                .sample_slices
+                .as_mut()
+                .and_then(|s| s.segmentation.as_mut()),
+        };
+        let Some(restored) =
+            self.tools
+                .step_history(&self.view, self.drawn.is_some(), gesture, segmentation)
         else {
+            if self.tools.take_edit_stepped() {
+                ctx.request_repaint();
+            }
             return;
         };
         self.view = restored;

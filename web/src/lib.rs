@@ -54,6 +54,8 @@
 //!   them through the served store (or copies the sample's).
 //! - `segment_values` (wasm32 only): region growing from a clicked seed and the statistics
 //!   per segment in the page, run over the resident bricks and again as missing ones arrive.
+//! - `segment_downloads` (wasm32 only): the segmentation as a DICOM SEG and as zipped OME-Zarr
+//!   labels, strata-segment's writers in memory, as browser downloads.
 //! - `side_panel` (wasm32 only): the side panel, the desktop's transfer-function editor and
 //!   Performance panel from strata-viewer-ui, on the page's 3D view.
 //!
@@ -92,6 +94,8 @@ pub mod primary_values;
 mod primary_values_page;
 #[cfg(target_arch = "wasm32")]
 mod refine;
+#[cfg(target_arch = "wasm32")]
+mod segment_downloads;
 #[cfg(target_arch = "wasm32")]
 mod segment_editor;
 #[cfg(target_arch = "wasm32")]

@@ -18,7 +18,9 @@
 //! Input, as the desktop's oblique view: left drag turns the plane (sideways about the screen's
 //! vertical, up/down about its horizontal, `TURN_PER_POINT` a point), a click moves the
 //! linked crosshair, right drag (or Shift + left drag) windows, the wheel pages along the
-//! plane's normal, one finest voxel spacing a line.
+//! plane's normal, one finest voxel spacing a line. With a segment tool chosen the left button
+//! is the tool's (brush and eraser a disc in the plane, fill the closed region in it: the
+//! page's segmentation, segment_editor.rs), and the labels are drawn over the image.
 //!
 //! Test hook (`capture=1`): each complete image at the view's level, once the pointer is up,
 //! is handed to the page to post (RGBA as drawn, with its level and window), so
@@ -30,6 +32,7 @@ use std::sync::Arc;
 use egui::{Color32, Pos2, Rect, Sense, Stroke, TextureHandle, TextureOptions, Vec2};
 use glam::DVec3;
 use strata_render::{BrickSource, BrickedVolume, ValueMapping, VolumeGeometry};
+use strata_segment::tools::brush::SlicePlane;
 use strata_slices::oblique::{
     default_extent_mm, oblique_rgba, resample, LevelBricks, ObliqueImage, ObliquePlane,
     ObliqueRequest, Resampled,
@@ -42,6 +45,17 @@ use strata_viewer_ui::slice_canvas::{fraction_at, paint_orientation_labels, pain
 use strata_viewer_ui::view_state::{Layout, ViewState};
 
 use crate::slice_views::{slice_layout, SliceViews};
+
+/// The plane as the brush's disc lies in it: through the centre, spanned by screen right and
+/// down (orthonormal, LPS), so a disc of the brush's size in mm is a circle on screen (the
+/// desktop's `oblique::brush_plane`).
+pub fn brush_plane(plane: &ObliquePlane) -> SlicePlane {
+    SlicePlane::Oblique {
+        centre_lps: plane.centre,
+        u: plane.right,
+        v: plane.down,
+    }
+}
 
 /// Decoded bricks the page keeps for its oblique view (bytes): a tilted plane at the view's
 /// level crosses a few bricks per row of its image.
@@ -461,6 +475,17 @@ impl ObliqueView {
         if windowing {
             let delta = ui.input(|i| i.pointer.delta());
             *window = drag_window(*window, delta.x as f64, delta.y as f64, self.physical_range);
+        } else if slices.segmentation.as_ref().is_some_and(|s| s.paints()) {
+            // A segment tool has the left button, as on the desktop's oblique view: the brush
+            // and eraser a disc in the plane, fill the region in it (segment_editor.rs).
+            let plane = self.plane;
+            let to_lps = |p: Pos2| {
+                let (u, w) = fraction_at(image_rect, p);
+                plane.patient_at(u, w)
+            };
+            if let Some(seg) = slices.segmentation.as_mut() {
+                seg.pointer(ui, &response, image_rect, &to_lps, brush_plane(&plane));
+            }
         } else if response.dragged_by(egui::PointerButton::Primary) {
             let delta = ui.input(|i| i.pointer.delta());
             if delta != Vec2::ZERO {
@@ -530,6 +555,14 @@ impl ObliqueView {
                 Rect::from_min_max(Pos2::ZERO, Pos2::new(1.0, 1.0)),
                 Color32::WHITE,
             );
+        }
+        if let Some(seg) = slices.segmentation.as_mut() {
+            // The labels at the oblique image's own pixels (its request's, before one shows).
+            let pixels = self
+                .shown
+                .as_ref()
+                .map_or(request.width, |s| s.image.request.width);
+            seg.paint_oblique_labels(&ctx, &painter, &self.plane, image_rect, pixels);
         }
         // The crosshair is the plane's centre.
         let c = image_rect.center();

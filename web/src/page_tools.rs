@@ -2,7 +2,8 @@
 //! only; issue 47), each the desktop's through strata-viewer-ui:
 //! - undo and redo keep the link's [`ViewState`] without its navigation
 //!   (strata_viewer_ui::history: the desktop's rules, a drag one step), so whatever the link
-//!   learns to hold later is undone too; Ctrl+Z, Ctrl+Shift+Z and Ctrl+Y, and the toolbar's
+//!   learns to hold later is undone too, and the segmentation's edits in the order made
+//!   (segment_editor.rs); Ctrl+Z, Ctrl+Shift+Z and Ctrl+Y, and the toolbar's
 //!   Undo and Redo, disabled when there is nothing to undo or redo;
 //! - the keys are the shared table's (strata_viewer_ui::shortcuts), handled only while no text
 //!   field has focus, and the help (F1, H, ?) lists only what the page has;
@@ -17,6 +18,7 @@ use strata_viewer_ui::history::{edits_of, restore_edits, History, Stepped};
 use strata_viewer_ui::shortcuts::{self, Viewer};
 use wasm_bindgen::{JsCast, JsValue};
 
+use crate::segment_editor::{PageSegmentation, SegmentStep};
 use crate::view_state::{Layout, ViewState};
 
 /// What the toolbar or the keys asked for this frame, done after the views drew.
@@ -30,8 +32,9 @@ struct Asked {
 /// The page's history, help window and the requests of its keys and toolbar.
 #[derive(Default)]
 pub struct PageTools {
-    /// Made on the first frame the view is drawn (what the page opened with is no step).
-    history: Option<History<ViewState>>,
+    /// Made on the first frame the view is drawn (what the page opened with is no step); the
+    /// segmentation's edits are steps in it too (segment_editor.rs).
+    history: Option<History<ViewState, SegmentStep>>,
     help_open: bool,
     asked: Asked,
     /// The object URL of the last download, revoked when the next is made (revoking it at
@@ -39,6 +42,8 @@ pub struct PageTools {
     last_download_url: Option<String>,
     /// The last download's problem, shown in the toolbar.
     download_error: Option<String>,
+    /// An undo or redo of a segmentation edit was done this frame.
+    edit_stepped: bool,
 }
 
 impl PageTools {
@@ -81,7 +86,7 @@ impl PageTools {
             .map_or((false, false), |h| (h.can_undo(), h.can_redo()));
         if ui
             .add_enabled(can_undo, egui::Button::new("Undo"))
-            .on_hover_text("Undo the last TF, window, crop or light change (Ctrl+Z)")
+            .on_hover_text("Undo the last TF, window, crop, light or segmentation change (Ctrl+Z)")
             .clicked()
         {
             self.asked.undo = true;
@@ -115,12 +120,20 @@ impl PageTools {
     /// Once a frame after the views: an asked undo or redo gives the view to show (its
     /// navigation as it is); otherwise a change with no gesture in progress becomes a step.
     /// `drawn`: the page shows its volume (before, the volume's own choices are no steps).
+    /// The segmentation's edits since the last frame become steps, and its section's Undo and
+    /// Redo are these.
     pub fn step_history(
         &mut self,
         view: &ViewState,
         drawn: bool,
         gesture: bool,
+        mut segmentation: Option<&mut PageSegmentation>,
     ) -> Option<ViewState> {
+        if let Some(seg) = segmentation.as_deref_mut() {
+            let (undo, redo) = seg.take_asked();
+            self.asked.undo |= undo;
+            self.asked.redo |= redo;
+        }
         let (undo, redo) = (self.asked.undo, self.asked.redo);
         (self.asked.undo, self.asked.redo) = (false, false);
         if !drawn {
@@ -142,18 +155,46 @@ impl PageTools {
         {
             history.rebase(now.clone());
         }
+        if let Some(seg) = segmentation.as_deref_mut() {
+            for step in seg.take_new_steps() {
+                // A view change made before the edit is a step before it.
+                history.observe(&now, gesture);
+                history.push_edit(step);
+            }
+        }
         let stepped = if undo {
-            history.undo(&now, |_| false)
+            history.undo(&now, |step| {
+                segmentation
+                    .as_deref_mut()
+                    .is_some_and(|seg| seg.undo_step(step))
+            })
         } else if redo {
-            history.redo(|_| false)
+            history.redo(|step| {
+                segmentation
+                    .as_deref_mut()
+                    .is_some_and(|seg| seg.redo_step(step))
+            })
         } else {
             history.observe(&now, gesture);
             Stepped::Nothing
         };
+        if let Some(seg) = segmentation {
+            seg.set_page_history(history.can_undo(), history.can_redo());
+        }
         match stepped {
             Stepped::State(snapshot) => Some(restore_edits(view, &snapshot)),
-            Stepped::Nothing | Stepped::Edit => None,
+            Stepped::Edit => {
+                // The labels changed after the panel drew this frame: draw another.
+                self.edit_stepped = true;
+                None
+            }
+            Stepped::Nothing => None,
         }
+    }
+
+    /// True once after an undo or redo of a segmentation edit (the frame must be drawn again).
+    pub fn take_edit_stepped(&mut self) -> bool {
+        std::mem::take(&mut self.edit_stepped)
     }
 
     /// Another volume: its history starts again.

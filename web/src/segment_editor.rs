@@ -23,16 +23,20 @@
 //!
 //! Download writes the layer as the NIfTI-1 label map `strata seg export --format nifti`
 //! writes (strata-segment's `nifti_map`, the primary's grid and affine) into a Blob, and an
-//! anchor with `download=` saves it.
+//! anchor with `download=` saves it; Download SEG and Download OME-Zarr save the DICOM SEG
+//! and the zipped OME-Zarr labels (segment_downloads.rs).
 //!
-//! Ctrl+Z is not bound here: the page's own view history owns that key; Undo and Redo are the
-//! section's buttons.
+//! Every completed edit is one step in the page's one history (page_tools.rs, [`SegmentStep`]),
+//! in the order made among the view's edits: Ctrl+Z, Ctrl+Shift+Z, Ctrl+Y, the toolbar's and
+//! the section's Undo and Redo all walk it, as the desktop's `history.undo(&mut scene,
+//! segmentation)`.
 //!
 //! For the browser tests (web/tests/browser/segment.rs) the canvas carries
 //! `data-segmentation` (`segments=N;painted=V;checksum=H;undo=U;redo=R;stroke=0|1`, then
 //! `;error=…` while the panel shows one; or `none`)
 //! and `data-segment-buttons` (`name:x,y,w,h;…` in CSS pixels: new, brush, eraser, fill, the
-//! operations' buttons named by `segment_panel::operations`, undo, redo, download), each
+//! operations' buttons named by `segment_panel::operations`, undo, redo, download,
+//! download-seg, download-zarr), each
 //! written only when it changes.
 
 use egui::{Color32, Pos2, Rect, TextureHandle, TextureOptions};
@@ -45,6 +49,7 @@ use strata_segment::tools::fill::fill_in_slice;
 use strata_segment::tools::interpolate::fill_between_slices;
 use strata_segment::tools::morphology::{combine, margin, remove_islands, Operand};
 use strata_segment::{Edit, Label, LabelLayer, SegmentError, LABEL_BRICK};
+use strata_slices::oblique::ObliquePlane;
 use strata_slices::{SliceFrame, SliceView};
 use strata_viewer_ui::segment_panel::{
     self, OperationSettings, SegmentListChange, SegmentOperation, SegmentTool,
@@ -53,6 +58,7 @@ use strata_viewer_ui::segment_panel::{
 use strata_viewer_ui::slice_canvas::slice_mesh;
 use wasm_bindgen::{JsCast, JsValue};
 
+use crate::segment_downloads::{self, SegmentDownload};
 use crate::slice_views::SliceViews;
 
 /// Brick images the undo list keeps (before and after, 64 KiB each): about 2000 bricks, well
@@ -83,6 +89,13 @@ struct LabelImage {
     made_from: (u64, i64, u32),
 }
 
+/// The labels on the oblique plane: the texture and the layer revision, plane, pixels and
+/// opacity it was made from.
+struct ObliqueLabelImage {
+    texture: TextureHandle,
+    made_from: (u64, ObliquePlane, usize, u32),
+}
+
 /// The page's editable label layer and its tools' settings.
 pub struct PageSegmentation {
     layer: LabelLayer,
@@ -100,6 +113,8 @@ pub struct PageSegmentation {
     /// the published figures are remade only when it moves.
     revision: u64,
     images: [Option<LabelImage>; 3],
+    /// The labels on the oblique view's plane (oblique_view.rs) and what they were made from.
+    oblique_image: Option<ObliqueLabelImage>,
     /// The last tool or download error, shown until the next success.
     error: Option<String>,
     /// The object URL of the last download, revoked at the next one (revoking it at once may
@@ -110,6 +125,30 @@ pub struct PageSegmentation {
     /// Region growing, statistics and the value range: the tools that read the primary
     /// (segment_values.rs).
     values: crate::segment_values::SegmentValues,
+    /// This layer's place in the page's one history (page_tools.rs, [`SegmentStep`]).
+    page_history: PageHistoryLink,
+}
+
+/// A segmentation edit's place among the view's edits in the page's one history (page_tools.rs,
+/// strata-viewer-ui's history, as the desktop's `History::push_label_edit`): the edit itself
+/// stays in the layer's own history, whose memory is capped by bytes ([`HISTORY_BYTES`]); the
+/// step names the layer, so a step of a closed layer is dropped when reached.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct SegmentStep {
+    layer: u64,
+}
+
+/// What the page's history and the layer tell each other once a frame.
+#[derive(Debug, Default)]
+struct PageHistoryLink {
+    /// Distinguishes this layer's steps from a closed one's.
+    layer: u64,
+    /// Edits pushed onto the layer's history since the page's history took them.
+    new_steps: usize,
+    /// The section's Undo or Redo, done by the page's history (as Ctrl+Z, Ctrl+Y).
+    asked: (bool, bool),
+    /// Whether the page's history can undo, redo (the section's buttons).
+    page_can: (bool, bool),
 }
 
 impl PageSegmentation {
@@ -130,10 +169,19 @@ impl PageSegmentation {
             stroke: None,
             revision: 0,
             images: [None, None, None],
+            oblique_image: None,
             error: None,
             download_url: None,
             painted_at: None,
             values: Default::default(),
+            page_history: PageHistoryLink {
+                layer: {
+                    static LAYERS: std::sync::atomic::AtomicU64 =
+                        std::sync::atomic::AtomicU64::new(0);
+                    LAYERS.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
+                },
+                ..PageHistoryLink::default()
+            },
         })
     }
 
@@ -265,7 +313,7 @@ impl PageSegmentation {
         };
         self.last_plane = stroke.plane;
         if let Some(edit) = merge_edits(name, stroke.edits) {
-            self.history.push(edit);
+            self.push_step(edit);
         }
     }
 
@@ -286,7 +334,7 @@ impl PageSegmentation {
             Ok(edit) => {
                 self.error = None;
                 if let Some(edit) = edit {
-                    self.history.push(edit);
+                    self.push_step(edit);
                     self.revision += 1;
                 }
             }
@@ -325,7 +373,7 @@ impl PageSegmentation {
             Ok(outcome) => {
                 self.error = None;
                 if let Some(edit) = outcome.edit {
-                    self.history.push(edit);
+                    self.push_step(edit);
                     self.revision += 1;
                 }
             }
@@ -333,16 +381,55 @@ impl PageSegmentation {
         }
     }
 
-    fn undo(&mut self) {
-        if self.history.undo(&mut self.layer).is_some() {
-            self.revision += 1;
+    /// A completed edit (already on the layer) becomes an undo step: in the layer's history,
+    /// and in the page's at its next frame.
+    fn push_step(&mut self, edit: Edit) {
+        // An edit too big for the layer's history empties it: no step to undo.
+        if self.history.push(edit) {
+            self.page_history.new_steps += 1;
         }
     }
 
-    fn redo(&mut self) {
-        if self.history.redo(&mut self.layer).is_some() {
+    /// The page's history takes the steps made since it last looked, in the order made.
+    pub fn take_new_steps(&mut self) -> Vec<SegmentStep> {
+        let n = std::mem::take(&mut self.page_history.new_steps);
+        vec![
+            SegmentStep {
+                layer: self.page_history.layer
+            };
+            n
+        ]
+    }
+
+    /// The section's Undo, Redo clicked since the last frame (the page's history does them).
+    pub fn take_asked(&mut self) -> (bool, bool) {
+        std::mem::take(&mut self.page_history.asked)
+    }
+
+    /// What the page's history can do now, for the section's buttons.
+    pub fn set_page_history(&mut self, can_undo: bool, can_redo: bool) {
+        self.page_history.page_can = (can_undo, can_redo);
+    }
+
+    /// The page's history undoes `step`: false if it is another layer's or the layer's history
+    /// no longer holds it (dropped for memory), so the page's history goes on to the one before.
+    pub fn undo_step(&mut self, step: &SegmentStep) -> bool {
+        let undone =
+            step.layer == self.page_history.layer && self.history.undo(&mut self.layer).is_some();
+        if undone {
             self.revision += 1;
         }
+        undone
+    }
+
+    /// The page's history redoes `step` (false as for [`Self::undo_step`]).
+    pub fn redo_step(&mut self, step: &SegmentStep) -> bool {
+        let redone =
+            step.layer == self.page_history.layer && self.history.redo(&mut self.layer).is_some();
+        if redone {
+            self.revision += 1;
+        }
+        redone
     }
 
     /// Draws the labels of `view`'s slice at `position` (continuous index along its normal)
@@ -399,6 +486,70 @@ impl PageSegmentation {
                 (1.0, 1.0),
                 frame,
             )));
+        }
+    }
+
+    /// Draws the labels on the oblique view's `plane` over its image in `image_rect`: nearest
+    /// voxel at the centre of each of `pixels` × `pixels` (the oblique image's own pixels, as
+    /// the desktop samples its overlay there), remade only when the layer, plane, pixels or
+    /// opacity changed.
+    pub fn paint_oblique_labels(
+        &mut self,
+        ctx: &egui::Context,
+        painter: &egui::Painter,
+        plane: &ObliquePlane,
+        image_rect: Rect,
+        pixels: usize,
+    ) {
+        if self.layer.edited_brick_count() == 0 || pixels == 0 {
+            return;
+        }
+        let made_from = (self.revision, *plane, pixels, self.opacity.to_bits());
+        if self
+            .oblique_image
+            .as_ref()
+            .is_none_or(|shown| shown.made_from != made_from)
+        {
+            let grid = self.layer.grid();
+            let segments = self.layer.segments();
+            let mut rgba = Vec::with_capacity(pixels * pixels * 4);
+            for y in 0..pixels {
+                for x in 0..pixels {
+                    let at = plane.patient_at(
+                        (x as f64 + 0.5) / pixels as f64,
+                        (y as f64 + 0.5) / pixels as f64,
+                    );
+                    let index = grid.index_from_patient(at).round();
+                    let voxel = [index.x, index.y, index.z].map(|c| c as i64);
+                    let label = if grid.contains(voxel) {
+                        self.layer.get(voxel.map(|c| c as u32)).unwrap_or(0)
+                    } else {
+                        0
+                    };
+                    rgba.extend(segment_panel::label_rgba(segments, label, self.opacity));
+                }
+            }
+            let image = egui::ColorImage::from_rgba_unmultiplied([pixels, pixels], &rgba);
+            match self.oblique_image.as_mut() {
+                Some(shown) => {
+                    shown.texture.set(image, TextureOptions::NEAREST);
+                    shown.made_from = made_from;
+                }
+                None => {
+                    self.oblique_image = Some(ObliqueLabelImage {
+                        texture: ctx.load_texture("labels oblique", image, TextureOptions::NEAREST),
+                        made_from,
+                    });
+                }
+            }
+        }
+        if let Some(shown) = &self.oblique_image {
+            painter.image(
+                shown.texture.id(),
+                image_rect,
+                Rect::from_min_max(Pos2::ZERO, Pos2::new(1.0, 1.0)),
+                Color32::WHITE,
+            );
         }
     }
 
@@ -492,6 +643,19 @@ impl PageSegmentation {
                 self.error = None;
             }
             Err(e) => self.error = Some(e),
+        }
+    }
+}
+
+impl PageSegmentation {
+    /// Saves the layer as a DICOM SEG or zipped OME-Zarr labels (segment_downloads.rs).
+    fn download_as(&mut self, what: SegmentDownload) {
+        match segment_downloads::download(what, &self.layer, self.download_url.take()) {
+            Ok(url) => {
+                self.download_url = Some(url);
+                self.error = None;
+            }
+            Err(e) => self.error = Some(e.to_string()),
         }
     }
 }
@@ -605,7 +769,7 @@ pub fn section(ui: &mut egui::Ui, slices: &mut SliceViews) {
         }
         Some(SegmentListChange::Remove(value)) => match seg.layer.remove_segment(value) {
             Ok(edit) => {
-                seg.history.push(edit);
+                seg.push_step(edit);
                 seg.revision += 1;
                 if seg.active == value {
                     seg.active = seg.layer.segments().iter().next().map_or(0, |s| s.value);
@@ -629,8 +793,10 @@ pub fn section(ui: &mut egui::Ui, slices: &mut SliceViews) {
     }
     let mut close = false;
     ui.horizontal_wrapped(|ui| {
-        let undo = ui.add_enabled(seg.history.can_undo(), egui::Button::new("Undo"));
-        let redo = ui.add_enabled(seg.history.can_redo(), egui::Button::new("Redo"));
+        // The page's Undo and Redo (Ctrl+Z, Ctrl+Y): segment edits and view edits in one order.
+        let (can_undo, can_redo) = seg.page_history.page_can;
+        let undo = ui.add_enabled(can_undo, egui::Button::new("Undo"));
+        let redo = ui.add_enabled(can_redo, egui::Button::new("Redo"));
         let download = ui
             .button("Download")
             .on_hover_text(format!("Save as a NIfTI label map ({DOWNLOAD_NAME})"));
@@ -639,11 +805,22 @@ pub fn section(ui: &mut egui::Ui, slices: &mut SliceViews) {
             ("redo", redo.rect),
             ("download", download.rect),
         ]);
+        let mut download_as = None;
+        for what in SegmentDownload::ALL {
+            let button = ui.button(what.label()).on_hover_text(what.hover());
+            buttons.push((what.button_name(), button.rect));
+            if button.clicked() {
+                download_as = Some(what);
+            }
+        }
+        if let Some(what) = download_as {
+            seg.download_as(what);
+        }
         if undo.clicked() {
-            seg.undo();
+            seg.page_history.asked.0 = true;
         }
         if redo.clicked() {
-            seg.redo();
+            seg.page_history.asked.1 = true;
         }
         if download.clicked() {
             seg.download();

@@ -25,21 +25,49 @@
 //! frames are held in memory until written (1/16 of a u16 label volume per segment that
 //! occurs), the labels themselves are read one slice at a time. Checked against highdicom,
 //! pydicom and Strata's own SEG reader in `segment/tests/peers.rs`.
+//!
+//! The object is built in memory ([`dicom_seg_bytes`]: the browser page's download, wasm32,
+//! where dicom-rs builds without its C codecs, none of which a BINARY SEG needs); only
+//! [`write_dicom_seg`] touches a file (`local`). The clock and the entropy its new UIDs come
+//! from are the caller's ([`SegStamp`]): wasm32 has no system clock or process id in `std`.
 
-use std::io::Write;
 use std::path::Path;
 
 use dicom_core::value::{DataSetSequence, PrimitiveValue};
 use dicom_core::{DataElement, Tag, VR};
 use dicom_dictionary_std::{tags, uids};
 use dicom_object::meta::FileMetaTableBuilder;
-use dicom_object::InMemDicomObject;
+use dicom_object::{FileDicomObject, InMemDicomObject};
 use strata_types::VolumeGeometry;
 
+#[cfg(feature = "local")]
 use crate::io::atomic::write_file_atomically;
 use crate::{Code, Label, LabelRead, SegmentCategory, SegmentError, MAX_SEGMENTS};
 
 type Obj = InMemDicomObject;
+
+/// When a SEG is made (its dates and times) and the entropy its new UIDs are drawn from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct SegStamp {
+    /// UTC time, nanoseconds since 1970.
+    pub unix_nanos: u128,
+    /// Distinguishes makers at the same instant: the process id on the desktop, a random
+    /// number in the page.
+    pub unique: u64,
+}
+
+impl SegStamp {
+    /// Now, by the system clock, and this process.
+    #[cfg(feature = "local")]
+    pub fn now() -> Self {
+        SegStamp {
+            unix_nanos: std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0, |d| d.as_nanos()),
+            unique: u64::from(std::process::id()),
+        }
+    }
+}
 
 /// PixelData's length is a 32-bit even number; 0xFFFF_FFFF means "undefined".
 const MAX_PIXEL_DATA_BYTES: u64 = 0xFFFF_FFFE;
@@ -98,15 +126,18 @@ pub fn tissue() -> SegmentCategory {
 
 /// A new UID under the UUID-derived root 2.25 (PS3.5 B.2): a 128-bit number from the clock,
 /// the process and a counter, hashed.
+#[cfg(feature = "local")]
 pub fn new_uid() -> String {
+    new_uid_at(&SegStamp::now())
+}
+
+/// A new UID under 2.25 from `stamp` and a counter (distinct UIDs from one stamp), hashed.
+pub fn new_uid_at(stamp: &SegStamp) -> String {
     use std::sync::atomic::{AtomicU64, Ordering};
     static COUNTER: AtomicU64 = AtomicU64::new(0);
-    let nanos = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| d.as_nanos());
     let mut seed = Vec::with_capacity(32);
-    seed.extend_from_slice(&nanos.to_le_bytes());
-    seed.extend_from_slice(&std::process::id().to_le_bytes());
+    seed.extend_from_slice(&stamp.unix_nanos.to_le_bytes());
+    seed.extend_from_slice(&stamp.unique.to_le_bytes());
     seed.extend_from_slice(&COUNTER.fetch_add(1, Ordering::Relaxed).to_le_bytes());
     format!("2.25.{}", xxhash_rust::xxh3::xxh3_128(&seed))
 }
@@ -206,11 +237,52 @@ struct Frame {
 }
 
 /// Writes `labels` as a BINARY DICOM SEG at `path` (replaced only once complete).
+#[cfg(feature = "local")]
 pub fn write_dicom_seg(
     labels: &dyn LabelRead,
     path: &Path,
     options: &SegOptions,
 ) -> Result<SegSummary, SegmentError> {
+    use std::io::Write;
+    let (file, summary) = dicom_seg_object(labels, path, options, &SegStamp::now())?;
+    write_file_atomically(path, |out| {
+        file.write_all(&mut *out).map_err(|e| SegmentError::Io {
+            path: path.to_path_buf(),
+            source: std::io::Error::other(e.to_string()),
+        })?;
+        out.flush().map_err(|e| SegmentError::Io {
+            path: path.to_path_buf(),
+            source: e,
+        })
+    })?;
+    Ok(summary)
+}
+
+/// The bytes of the file [`write_dicom_seg`] writes, in memory (the page's download); `name`
+/// is what errors call it.
+pub fn dicom_seg_bytes(
+    labels: &dyn LabelRead,
+    name: &Path,
+    options: &SegOptions,
+    stamp: &SegStamp,
+) -> Result<(Vec<u8>, SegSummary), SegmentError> {
+    let (file, summary) = dicom_seg_object(labels, name, options, stamp)?;
+    let mut bytes = Vec::new();
+    file.write_all(&mut bytes)
+        .map_err(|e| SegmentError::Format {
+            path: name.to_path_buf(),
+            message: format!("DICOM encoding: {e}"),
+        })?;
+    Ok((bytes, summary))
+}
+
+/// The SEG of `labels` as a DICOM file object (meta and data set); `path` is what errors name.
+pub fn dicom_seg_object(
+    labels: &dyn LabelRead,
+    path: &Path,
+    options: &SegOptions,
+    stamp: &SegStamp,
+) -> Result<(FileDicomObject<Obj>, SegSummary), SegmentError> {
     let g = labels.geometry().clone();
     let limit = |what: &str, limit: u64, requested: u64| SegmentError::FormatLimit {
         path: path.to_path_buf(),
@@ -338,7 +410,7 @@ pub fn write_dicom_seg(
         })
         .collect();
 
-    let obj = build_dataset(&g, options, segment_items, &frames, bits)?;
+    let obj = build_dataset(&g, options, stamp, segment_items, &frames, bits)?;
     let sop_instance_uid = obj
         .element(tags::SOP_INSTANCE_UID)
         .ok()
@@ -351,36 +423,29 @@ pub fn write_dicom_seg(
             path: path.to_path_buf(),
             message: format!("DICOM file meta: {e}"),
         })?;
-    write_file_atomically(path, |out| {
-        file.write_all(&mut *out).map_err(|e| SegmentError::Io {
-            path: path.to_path_buf(),
-            source: std::io::Error::other(e.to_string()),
-        })?;
-        out.flush().map_err(|e| SegmentError::Io {
-            path: path.to_path_buf(),
-            source: e,
-        })
-    })?;
-    Ok(SegSummary {
-        segments: numbers.len(),
-        frames: frames.len(),
-        sop_instance_uid,
-    })
+    Ok((
+        file,
+        SegSummary {
+            segments: numbers.len(),
+            frames: frames.len(),
+            sop_instance_uid,
+        },
+    ))
 }
 
 fn build_dataset(
     g: &VolumeGeometry,
     options: &SegOptions,
+    stamp: &SegStamp,
     segment_items: Vec<Obj>,
     frames: &[Frame],
     pixel_data: Vec<u8>,
 ) -> Result<Obj, SegmentError> {
     let [nx, ny, _] = g.dims;
-    let now = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| d.as_secs());
+    let now = u64::try_from(stamp.unix_nanos / 1_000_000_000).unwrap_or(u64::MAX);
     let (date, time) = civil_date_time(now);
     let src = options.source.as_ref();
+    let new_uid = || new_uid_at(stamp);
     let study_uid = src.map_or_else(new_uid, |s| s.study_instance_uid.clone());
     let frame_of_reference = src.map_or_else(new_uid, |s| s.frame_of_reference_uid.clone());
     let sop_uid = new_uid();

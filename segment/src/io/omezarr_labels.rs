@@ -15,18 +15,34 @@
 //! image is written under a temporary name beside its final one and renamed into place (the
 //! previous one, if any, is removed only after), then `labels/zarr.json` is replaced atomically.
 //! Checked with ome-zarr-models (validation) and zarr-python (voxels) in `segment/tests/peers.rs`.
+//!
+//! [`omezarr_labels_zip`] writes the same files into one zip in memory (the browser page's
+//! download: a folder cannot be one): the image's Zarr hierarchy at the zip's root (`zarr.json`,
+//! `labels/zarr.json`, `labels/NAME/…`), entries stored (the chunks are zstd already;
+//! [`super::stored_zip`]), as
+//! zarr-python's `ZipStore` and the NGFF zipped-OME-Zarr proposal read it. Its chunks are
+//! compressed by C zstd where `local` builds it, else by ruzstd's pure-Rust encoder (wasm32): a
+//! zstd frame either way, so the JSON is byte for byte the folder's and the chunks decode to the
+//! same voxels.
 
-use std::path::{Path, PathBuf};
+#[cfg(feature = "local")]
+use std::io::Write;
+use std::path::Path;
+#[cfg(feature = "local")]
+use std::path::PathBuf;
 
 use serde_json::{json, Value};
 
+#[cfg(feature = "local")]
 use crate::io::atomic::{sync_dir_of, write_file_atomically};
+use crate::io::stored_zip::StoredZip;
 use crate::{Label, LabelRead, SegmentError};
 
 const TILE: u32 = 256;
 const MAX_SLAB_BYTES: u64 = 64 << 20;
 const MAX_SLAB_SLICES: u32 = 32;
 
+#[cfg(feature = "local")]
 fn io_error(path: &Path) -> impl Fn(std::io::Error) -> SegmentError + '_ {
     move |e| SegmentError::Io {
         path: path.to_path_buf(),
@@ -34,17 +50,72 @@ fn io_error(path: &Path) -> impl Fn(std::io::Error) -> SegmentError + '_ {
     }
 }
 
-fn write_json(path: &Path, value: &Value) -> Result<(), SegmentError> {
-    let text = serde_json::to_vec_pretty(value).map_err(|e| SegmentError::Format {
+fn json_bytes(path: &Path, value: &Value) -> Result<Vec<u8>, SegmentError> {
+    serde_json::to_vec_pretty(value).map_err(|e| SegmentError::Format {
         path: path.to_path_buf(),
         message: format!("JSON: {e}"),
-    })?;
-    write_file_atomically(path, |out| {
-        std::io::Write::write_all(out, &text).map_err(io_error(path))
     })
 }
 
-/// The label image's name must be one path component (it becomes a folder under `labels/`).
+#[cfg(feature = "local")]
+fn write_json(path: &Path, value: &Value) -> Result<(), SegmentError> {
+    let text = json_bytes(path, value)?;
+    write_file_atomically(path, |out| out.write_all(&text).map_err(io_error(path)))
+}
+
+/// The image group written where there is none: a bare Zarr v3 group.
+fn bare_image_group() -> Value {
+    json!({"zarr_format": 3, "node_type": "group", "attributes": {}})
+}
+
+/// `labels/zarr.json`: the label images listed.
+fn labels_group(names: &[String]) -> Value {
+    json!({
+        "zarr_format": 3,
+        "node_type": "group",
+        "attributes": {"ome": {"version": "0.5", "labels": names}},
+    })
+}
+
+/// Where a label image's files go: a folder on disk or a zip in memory. `relative` is a
+/// `/`-separated path under the label image.
+trait LabelImageSink {
+    fn put(&mut self, relative: &str, bytes: &[u8]) -> Result<(), SegmentError>;
+}
+
+/// Files under a folder (the label image's temporary folder: it is renamed into place whole,
+/// so its files need no atomic replace of their own).
+#[cfg(feature = "local")]
+struct FolderSink {
+    root: PathBuf,
+}
+
+#[cfg(feature = "local")]
+impl LabelImageSink for FolderSink {
+    fn put(&mut self, relative: &str, bytes: &[u8]) -> Result<(), SegmentError> {
+        let path = relative
+            .split('/')
+            .fold(self.root.clone(), |path, part| path.join(part));
+        if let Some(parent) = path.parent() {
+            std::fs::create_dir_all(parent).map_err(io_error(parent))?;
+        }
+        std::fs::write(&path, bytes).map_err(io_error(&path))
+    }
+}
+
+/// Stored entries of a zip in memory, each under `prefix`.
+struct ZipSink {
+    zip: StoredZip,
+    prefix: String,
+}
+
+impl LabelImageSink for ZipSink {
+    fn put(&mut self, relative: &str, bytes: &[u8]) -> Result<(), SegmentError> {
+        self.zip.add(&format!("{}{relative}", self.prefix), bytes)
+    }
+}
+
+/// The label name must be one path component (it becomes a folder under `labels/`).
 fn check_name(image: &Path, name: &str) -> Result<(), SegmentError> {
     let ok = !name.is_empty()
         && name != "."
@@ -65,6 +136,7 @@ fn check_name(image: &Path, name: &str) -> Result<(), SegmentError> {
 
 /// Writes `labels` as `image/labels/name/`; `image` is created as a bare Zarr group if absent.
 /// Returns the label image's folder.
+#[cfg(feature = "local")]
 pub fn write_omezarr_labels(
     labels: &dyn LabelRead,
     image: &Path,
@@ -75,17 +147,17 @@ pub fn write_omezarr_labels(
     std::fs::create_dir_all(&labels_dir).map_err(io_error(&labels_dir))?;
     let image_json = image.join("zarr.json");
     if !image_json.exists() {
-        write_json(
-            &image_json,
-            &json!({"zarr_format": 3, "node_type": "group", "attributes": {}}),
-        )?;
+        write_json(&image_json, &bare_image_group())?;
     }
     let final_dir = labels_dir.join(name);
     let temp_dir = labels_dir.join(format!(".{name}.partial-{}", std::process::id()));
     if temp_dir.exists() {
         std::fs::remove_dir_all(&temp_dir).map_err(io_error(&temp_dir))?;
     }
-    let result = write_label_image(labels, &temp_dir, name);
+    let mut sink = FolderSink {
+        root: temp_dir.clone(),
+    };
+    let result = write_label_image(labels, &mut sink, &temp_dir, name);
     if let Err(e) = result {
         let _ = std::fs::remove_dir_all(&temp_dir);
         return Err(e);
@@ -124,22 +196,59 @@ pub fn write_omezarr_labels(
     if !names.iter().any(|n| n == name) {
         names.push(name.to_owned());
     }
-    write_json(
-        &group_json,
-        &json!({
-            "zarr_format": 3,
-            "node_type": "group",
-            "attributes": {"ome": {"version": "0.5", "labels": names}},
-        }),
-    )?;
+    write_json(&group_json, &labels_group(&names))?;
     Ok(final_dir)
 }
 
-fn write_label_image(labels: &dyn LabelRead, dir: &Path, name: &str) -> Result<(), SegmentError> {
+/// The files [`write_omezarr_labels`] writes into an image folder that had none, as one zip in
+/// memory with that folder's hierarchy at its root (see the module doc); `zip_name` is what
+/// errors call it.
+pub fn omezarr_labels_zip(
+    labels: &dyn LabelRead,
+    zip_name: &Path,
+    name: &str,
+) -> Result<Vec<u8>, SegmentError> {
+    check_name(zip_name, name)?;
+    let mut sink = ZipSink {
+        zip: StoredZip::new(zip_name),
+        prefix: String::new(),
+    };
+    sink.put("zarr.json", &json_bytes(zip_name, &bare_image_group())?)?;
+    sink.put(
+        "labels/zarr.json",
+        &json_bytes(zip_name, &labels_group(&[name.to_owned()]))?,
+    )?;
+    sink.prefix = format!("labels/{name}/");
+    write_label_image(labels, &mut sink, zip_name, name)?;
+    sink.zip.finish()
+}
+
+/// One chunk as a zstd frame at level 1: C zstd where it is built (`local`), else ruzstd's
+/// encoder at its level-1 equivalent.
+fn compress_chunk(chunk: &[u8], path: &Path) -> Result<Vec<u8>, SegmentError> {
+    #[cfg(feature = "local")]
+    {
+        zstd::bulk::compress(chunk, 1).map_err(io_error(path))
+    }
+    #[cfg(not(feature = "local"))]
+    {
+        let _ = path;
+        Ok(ruzstd::encoding::compress_to_vec(
+            chunk,
+            ruzstd::encoding::CompressionLevel::Fastest,
+        ))
+    }
+}
+
+/// The label image's group, array metadata and chunks into `sink`; `dir` is what errors name.
+fn write_label_image(
+    labels: &dyn LabelRead,
+    sink: &mut dyn LabelImageSink,
+    dir: &Path,
+    name: &str,
+) -> Result<(), SegmentError> {
     let g = labels.geometry();
     let [nx, ny, nz] = g.dims;
-    let array_dir = dir.join("0");
-    std::fs::create_dir_all(&array_dir).map_err(io_error(&array_dir))?;
 
     let t0 = g
         .direction
@@ -167,63 +276,59 @@ fn write_label_image(labels: &dyn LabelRead, dir: &Path, name: &str) -> Result<(
             p
         })
         .collect();
-    write_json(
-        &dir.join("zarr.json"),
-        &json!({
-            "zarr_format": 3,
-            "node_type": "group",
-            "attributes": {
-                "ome": {
-                    "version": "0.5",
-                    "image-label": {
-                        "colors": colors,
-                        "properties": properties,
-                        "source": {"image": "../../"},
-                    },
-                    "multiscales": [{
-                        "name": name,
-                        "axes": [
-                            {"name": "z", "type": "space", "unit": "millimeter"},
-                            {"name": "y", "type": "space", "unit": "millimeter"},
-                            {"name": "x", "type": "space", "unit": "millimeter"},
-                        ],
-                        "datasets": [{
-                            "path": "0",
-                            "coordinateTransformations": [
-                                {"type": "scale", "scale": scale},
-                                {"type": "translation", "translation": translation},
-                            ],
-                        }],
-                    }],
+    let group = json!({
+        "zarr_format": 3,
+        "node_type": "group",
+        "attributes": {
+            "ome": {
+                "version": "0.5",
+                "image-label": {
+                    "colors": colors,
+                    "properties": properties,
+                    "source": {"image": "../../"},
                 },
-                "strata": {"geometry": g},
+                "multiscales": [{
+                    "name": name,
+                    "axes": [
+                        {"name": "z", "type": "space", "unit": "millimeter"},
+                        {"name": "y", "type": "space", "unit": "millimeter"},
+                        {"name": "x", "type": "space", "unit": "millimeter"},
+                    ],
+                    "datasets": [{
+                        "path": "0",
+                        "coordinateTransformations": [
+                            {"type": "scale", "scale": scale},
+                            {"type": "translation", "translation": translation},
+                        ],
+                    }],
+                }],
             },
-        }),
-    )?;
+            "strata": {"geometry": g},
+        },
+    });
+    sink.put("zarr.json", &json_bytes(dir, &group)?)?;
 
     let plane = u64::from(nx) * u64::from(ny);
     let slab = ((MAX_SLAB_BYTES / (plane * 2).max(1)) as u32)
         .clamp(1, MAX_SLAB_SLICES)
         .min(nz);
     let (tile_y, tile_x) = (TILE.min(ny), TILE.min(nx));
-    write_json(
-        &array_dir.join("zarr.json"),
-        &json!({
-            "zarr_format": 3,
-            "node_type": "array",
-            "shape": [nz, ny, nx],
-            "data_type": "uint16",
-            "chunk_grid": {"name": "regular", "configuration": {"chunk_shape": [slab, tile_y, tile_x]}},
-            "chunk_key_encoding": {"name": "default", "configuration": {"separator": "/"}},
-            "fill_value": 0,
-            "codecs": [
-                {"name": "bytes", "configuration": {"endian": "little"}},
-                {"name": "zstd", "configuration": {"level": 1, "checksum": false}},
-            ],
-            "dimension_names": ["z", "y", "x"],
-            "attributes": {},
-        }),
-    )?;
+    let array = json!({
+        "zarr_format": 3,
+        "node_type": "array",
+        "shape": [nz, ny, nx],
+        "data_type": "uint16",
+        "chunk_grid": {"name": "regular", "configuration": {"chunk_shape": [slab, tile_y, tile_x]}},
+        "chunk_key_encoding": {"name": "default", "configuration": {"separator": "/"}},
+        "fill_value": 0,
+        "codecs": [
+            {"name": "bytes", "configuration": {"endian": "little"}},
+            {"name": "zstd", "configuration": {"level": 1, "checksum": false}},
+        ],
+        "dimension_names": ["z", "y", "x"],
+        "attributes": {},
+    });
+    sink.put("0/zarr.json", &json_bytes(dir, &array)?)?;
 
     let plane = plane as usize;
     let mut slices: Vec<Label> = vec![0; plane * slab as usize];
@@ -256,15 +361,9 @@ fn write_label_image(labels: &dyn LabelRead, dir: &Path, name: &str) -> Result<(
                 if !any {
                     continue;
                 }
-                let path = array_dir
-                    .join("c")
-                    .join(cz.to_string())
-                    .join(cy.to_string())
-                    .join(cx.to_string());
-                let parent = path.parent().expect("chunk path has a parent");
-                std::fs::create_dir_all(parent).map_err(io_error(parent))?;
-                let compressed = zstd::bulk::compress(&chunk, 1).map_err(io_error(&path))?;
-                std::fs::write(&path, compressed).map_err(io_error(&path))?;
+                let key = format!("0/c/{cz}/{cy}/{cx}");
+                let compressed = compress_chunk(&chunk, &dir.join(&key))?;
+                sink.put(&key, &compressed)?;
             }
         }
     }
@@ -272,8 +371,10 @@ fn write_label_image(labels: &dyn LabelRead, dir: &Path, name: &str) -> Result<(
 }
 
 /// The most voxels [`load_omezarr_labels`] holds in memory (u16: 1 GiB).
+#[cfg(feature = "local")]
 pub const MAX_LOADED_VOXELS: u64 = 512 << 20;
 
+#[cfg(feature = "local")]
 fn read_json(path: &Path) -> Result<Value, SegmentError> {
     let bytes = std::fs::read(path).map_err(io_error(path))?;
     serde_json::from_slice(&bytes).map_err(|e| SegmentError::Format {
@@ -287,6 +388,7 @@ fn read_json(path: &Path) -> Result<Value, SegmentError> {
 /// and segments (names, colours, visibility, locks, categories). Reads the `bytes` + `zstd`
 /// codec chain this module writes; other codecs (blosc, sharding) are refused by name. Held in
 /// memory as [`crate::DenseLabels`], up to [`MAX_LOADED_VOXELS`].
+#[cfg(feature = "local")]
 pub fn load_omezarr_labels(label_dir: &Path) -> Result<crate::LabelLayer, SegmentError> {
     let bad = |path: &Path, message: String| SegmentError::Format {
         path: path.to_path_buf(),

@@ -24,12 +24,12 @@ use crate::input::{close, open_page, open_page_capturing, view_rect, wait_for_li
 use crate::PAGE_DEADLINE;
 
 /// DevTools' modifier bits (Input.dispatchKeyEvent).
-const CTRL: u32 = 2;
+pub(crate) const CTRL: u32 = 2;
 const SHIFT: u32 = 8;
 
 /// Presses and releases a key with `modifiers`: `key` as KeyboardEvent.key, `code` as its
 /// code, `virtual_code` as its Windows virtual key code (F1 is 112, F12 123, Z 90).
-fn key_with(page: &mut Cdp, key: &str, code: &str, virtual_code: u32, modifiers: u32) {
+pub(crate) fn key_with(page: &mut Cdp, key: &str, code: &str, virtual_code: u32, modifiers: u32) {
     for kind in ["keyDown", "keyUp"] {
         let mut event = json!({
             "type": kind, "key": key, "code": code, "modifiers": modifiers,
@@ -52,7 +52,7 @@ fn focus_canvas(page: &mut Cdp) {
 }
 
 /// A right-button drag (the slices' windowing) from `from` by `by` CSS pixels.
-fn right_drag(page: &mut Cdp, from: egui::Pos2, by: [f64; 2]) {
+pub(crate) fn right_drag(page: &mut Cdp, from: egui::Pos2, by: [f64; 2]) {
     let mouse = |page: &mut Cdp, kind: &str, x: f64, y: f64, buttons: u32| {
         page.command(
             "Input.dispatchMouseEvent",

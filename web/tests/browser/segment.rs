@@ -7,7 +7,8 @@
 //! and affine; an eraser stroke then removes exactly its voxels, and Undo brings them back.
 //! Keep largest, clicked in the page after two separate strokes, downloads exactly what
 //! strata-segment's `remove_islands` leaves of the same strokes painted natively, as one undo
-//! step.
+//! step. After a stroke, Download SEG read back by strata-segment's SEG reader and Download
+//! OME-Zarr unzipped and opened by its OME-Zarr labels reader equal the NIfTI download.
 
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
@@ -20,6 +21,7 @@ use strata_segment::tools::brush::{
 };
 use strata_segment::tools::morphology::{remove_islands, Islands};
 use strata_segment::{LabelGrid, LabelLayer};
+use strata_slices::oblique::{default_extent_mm, ObliquePlane};
 use strata_slices::{SliceFrame, SliceView};
 use strata_types::VolumeGeometry;
 use strata_viewer_ui::segment_panel::DEFAULT_BRUSH_DIAMETER_MM;
@@ -27,7 +29,8 @@ use strata_viewer_ui::slice_canvas::{fraction_at, inner_rect, ZoomPan};
 use strata_web::view_state::Fragment;
 
 use crate::input::cdp::Cdp;
-use crate::input::{open_page, view_rect};
+use crate::input::{close, open_page, view_rect, wait_for_link};
+use crate::keys::{key_with, right_drag, CTRL};
 use crate::PAGE_DEADLINE;
 
 /// The header stores the affine as f32: the placement agrees to f32's precision.
@@ -132,24 +135,36 @@ pub(crate) fn drag_through(page: &mut Cdp, points: &[Pos2]) {
 /// an anchor's download into a `Browser.setDownloadBehavior` folder (the page made the Blob,
 /// no file arrived in 120 s), so the test reads what the page gave the download instead.
 pub(crate) fn download(page: &mut Cdp, folder: &Path, name: &str) -> PathBuf {
+    download_as(page, folder, name, "download", "application/gzip")
+}
+
+/// Clicks the Segment section's `button` and returns the download it makes (a Blob of type
+/// `mime`), written to `folder` as `name`; see [`download`].
+fn download_as(page: &mut Cdp, folder: &Path, name: &str, button: &str, mime: &str) -> PathBuf {
     page.evaluate(
         "(() => { if (!window.__downloads) { window.__downloads = []; \
          const original = URL.createObjectURL; \
-         URL.createObjectURL = (b) => { if (b.type === 'application/gzip') window.__downloads.push(b); \
+         URL.createObjectURL = (b) => { if (b.type && b.type.startsWith('application/')) window.__downloads.push(b); \
          return original.call(URL, b); }; } return true; })()",
     );
     let before = page
         .evaluate("window.__downloads.length")
         .as_u64()
         .unwrap_or(0);
-    click_button(page, "download");
+    click_button(page, button);
     let bytes: Vec<u8> = page.wait_for("the page's download", PAGE_DEADLINE, |page| {
         let js = format!(
             "(async () => {{ const b = window.__downloads[{before}]; if (!b) return null; \
-             return Array.from(new Uint8Array(await b.arrayBuffer())); }})()"
+             return [b.type, Array.from(new Uint8Array(await b.arrayBuffer()))]; }})()"
         );
         let value = page.evaluate(&js);
-        let numbers = value.as_array()?;
+        let pair = value.as_array()?;
+        assert_eq!(
+            pair.first().and_then(|t| t.as_str()),
+            Some(mime),
+            "the {button} button's download type"
+        );
+        let numbers = pair.get(1)?.as_array()?;
         Some(
             numbers
                 .iter()
@@ -188,6 +203,12 @@ pub(crate) fn layer_voxels(layer: &LabelLayer) -> BTreeSet<([u32; 3], u16)> {
 pub(crate) fn labelled_voxels(file: &Path, primary: &VolumeGeometry) -> BTreeSet<([u32; 3], u16)> {
     let layer = strata_segment::io::load_label_file(file)
         .unwrap_or_else(|e| panic!("reading the page's download {}: {e}", file.display()));
+    assert_on_grid(&layer, primary, file);
+    layer_voxels(&layer)
+}
+
+/// Asserts that `layer`, read from `file`, lies on the primary's grid (dims, affine).
+fn assert_on_grid(layer: &LabelLayer, primary: &VolumeGeometry, file: &Path) {
     let g = layer.grid().geometry();
     assert_eq!(g.dims, primary.dims, "{}: dims", file.display());
     for a in 0..3 {
@@ -201,7 +222,6 @@ pub(crate) fn labelled_voxels(file: &Path, primary: &VolumeGeometry) -> BTreeSet
             file.display()
         );
     }
-    layer_voxels(&layer)
 }
 
 /// The brush both viewers start with, on the axial plane.
@@ -486,5 +506,327 @@ fn keep_largest_in_the_page_leaves_what_strata_segments_islands_leave() {
             figure(t, "painted") == Some(model.len().to_string())
                 && figure(t, "redo").as_deref() == Some("1")
         },
+    );
+}
+
+/// Unzips the page's OME-Zarr download into `folder` (every entry under the zip's root, as
+/// `unzip` would: read from the zip's central directory and each entry's local header, as
+/// APPNOTE 6.3 lays them out, stored entries only) and returns the label image's folder,
+/// `labels/segmentation`.
+fn unzip_label_image(zip_file: &Path, folder: &Path) -> PathBuf {
+    let bytes = std::fs::read(zip_file).expect("reading the zip");
+    let u16_at = |at: usize| usize::from(u16::from_le_bytes([bytes[at], bytes[at + 1]]));
+    let u32_at = |at: usize| {
+        u32::from_le_bytes([bytes[at], bytes[at + 1], bytes[at + 2], bytes[at + 3]]) as usize
+    };
+    let end = bytes.len() - 22;
+    assert_eq!(u32_at(end), 0x0605_4b50, "the zip's end record");
+    let (count, mut at) = (u16_at(end + 10), u32_at(end + 16));
+    for _ in 0..count {
+        assert_eq!(
+            u32_at(at),
+            0x0201_4b50,
+            "a central directory header at {at}"
+        );
+        assert_eq!(u16_at(at + 10), 0, "a stored entry");
+        let size = u32_at(at + 20);
+        let name_len = u16_at(at + 28);
+        let name = std::str::from_utf8(&bytes[at + 46..at + 46 + name_len]).expect("a UTF-8 name");
+        assert!(
+            !name.starts_with('/') && !name.split('/').any(|p| p == ".."),
+            "{name}: a relative path"
+        );
+        let local = u32_at(at + 42);
+        assert_eq!(u32_at(local), 0x0403_4b50, "{name}: its local header");
+        let data = local + 30 + u16_at(local + 26) + u16_at(local + 28);
+        let path = folder.join(name);
+        std::fs::create_dir_all(path.parent().expect("a parent")).expect("unzip: folder");
+        std::fs::write(&path, &bytes[data..data + size]).expect("unzip: file");
+        at += 46 + name_len + u16_at(at + 30) + u16_at(at + 32);
+    }
+    assert!(
+        folder.join("zarr.json").is_file() && folder.join("labels/zarr.json").is_file(),
+        "the zip's root is the image group with its labels group"
+    );
+    folder.join("labels/segmentation")
+}
+
+#[test]
+fn a_brush_stroke_downloads_as_dicom_seg_and_zipped_omezarr_equal_to_the_nifti() {
+    let scratch = tempfile::tempdir().expect("scratch folder");
+    let mut painting = AxialPainting::open(scratch.path());
+    let stroke = painting.horizontal(0.25, 0.75, 0.4, 4);
+    drag_through(&mut painting.page, &stroke);
+    wait_for_figures(
+        &mut painting.page,
+        "the stroke to end as one undo step",
+        |t| {
+            figure(t, "stroke").as_deref() == Some("0") && figure(t, "undo").as_deref() == Some("1")
+        },
+    );
+    let nifti = download(&mut painting.page, scratch.path(), "brushed.nii.gz");
+    let expected = labelled_voxels(&nifti, &painting.geometry);
+    let brushed: BTreeSet<([u32; 3], u16)> = painting
+        .model(&stroke)
+        .into_iter()
+        .map(|v| (v, 1))
+        .collect();
+    assert!(
+        expected == brushed && expected.len() > 50,
+        "the NIfTI download is the brush model's {} voxels (holds {})",
+        brushed.len(),
+        expected.len()
+    );
+    // The page's segment table: New segmentation's one segment, as strata-segment adds it.
+    let mut table_layer = LabelLayer::new_empty(painting.geometry.clone()).expect("layer");
+    table_layer
+        .segments_mut()
+        .add("Segment 1")
+        .expect("a segment");
+    let table = table_layer.segments().clone();
+
+    // DICOM SEG, read by strata-segment's SEG reader: the same voxels on the same grid, the
+    // segment's name, its colour through CIELab to within one step.
+    let seg = download_as(
+        &mut painting.page,
+        scratch.path(),
+        "brushed.dcm",
+        "download-seg",
+        "application/dicom",
+    );
+    assert_eq!(
+        labelled_voxels(&seg, &painting.geometry),
+        expected,
+        "the SEG download's voxels are the NIfTI download's"
+    );
+    let seg_layer = strata_segment::io::load_label_file(&seg).expect("the SEG loads");
+    for s in table.iter() {
+        let back = seg_layer
+            .segments()
+            .get(s.value)
+            .unwrap_or_else(|| panic!("segment {} in the SEG", s.value));
+        assert_eq!(back.name, s.name);
+        assert!(
+            (0..3).all(|c| (i32::from(back.rgb[c]) - i32::from(s.rgb[c])).abs() <= 1),
+            "the SEG's colour {:?}, the segment's {:?}",
+            back.rgb,
+            s.rgb
+        );
+    }
+
+    // OME-Zarr labels as a zip, unzipped natively and opened by the OME-Zarr labels reader:
+    // the same voxels and grid, the segment table exactly.
+    let zip_file = download_as(
+        &mut painting.page,
+        scratch.path(),
+        "brushed.ome.zarr.zip",
+        "download-zarr",
+        "application/zip",
+    );
+    let label_dir = unzip_label_image(&zip_file, &scratch.path().join("unzipped.zarr"));
+    let zarr_layer = strata_segment::io::load_omezarr_labels(&label_dir)
+        .unwrap_or_else(|e| panic!("opening {}: {e}", label_dir.display()));
+    assert_on_grid(&zarr_layer, &painting.geometry, &label_dir);
+    assert_eq!(
+        layer_voxels(&zarr_layer),
+        expected,
+        "the OME-Zarr download's voxels are the NIfTI download's"
+    );
+    assert_eq!(zarr_layer.segments(), &table);
+}
+
+/// One history for the page (issue 52 item 7): a window drag (the right button on the axial
+/// view), then a brush stroke; Ctrl+Z undoes the stroke (the labels go, the window stays),
+/// Ctrl+Z again the window; Ctrl+Y redoes the window, Ctrl+Y again the stroke, its voxels as
+/// they were (count and checksum).
+#[test]
+fn ctrl_z_undoes_a_stroke_then_the_window_drag_before_it_and_ctrl_y_redoes_them_in_order() {
+    let scratch = tempfile::tempdir().expect("scratch folder");
+    let mut painting = AxialPainting::open(scratch.path());
+    let stroke = painting.horizontal(0.25, 0.75, 0.4, 4);
+    let brushed = painting.model(&stroke).len();
+    let page = &mut painting.page;
+    let before = wait_for_link(page, "the link to carry the slices' window", |v| {
+        v.window.is_some()
+    });
+    let same_window = |a: Option<[f64; 2]>, b: Option<[f64; 2]>| match (a, b) {
+        (Some(a), Some(b)) => close(a[0], b[0]) && close(a[1], b[1]),
+        _ => false,
+    };
+    page.evaluate("document.getElementById('strata-canvas').focus()");
+    let axial = view_rect(page, "axial");
+    right_drag(page, axial.center().round(), [60.0, 0.0]);
+    let edited = wait_for_link(page, "the link to show the dragged window", |v| {
+        v.window
+            .is_some_and(|w| !close(w[1], before.window.expect("window")[1]))
+    });
+    drag_through(page, &stroke);
+    let painted = wait_for_figures(page, "the stroke to end as one undo step", |t| {
+        figure(t, "stroke").as_deref() == Some("0") && figure(t, "undo").as_deref() == Some("1")
+    });
+    assert_eq!(
+        figure(&painted, "painted"),
+        Some(brushed.to_string()),
+        "{painted}"
+    );
+    let checksum = figure(&painted, "checksum");
+
+    key_with(page, "z", "KeyZ", 90, CTRL);
+    wait_for_figures(page, "Ctrl+Z to undo the stroke", |t| {
+        figure(t, "painted").as_deref() == Some("0") && figure(t, "redo").as_deref() == Some("1")
+    });
+    wait_for_link(
+        page,
+        "the window to stay dragged after the first Ctrl+Z",
+        |v| same_window(v.window, edited.window),
+    );
+
+    key_with(page, "z", "KeyZ", 90, CTRL);
+    wait_for_link(page, "a second Ctrl+Z to put the window back", |v| {
+        same_window(v.window, before.window)
+    });
+    let figures = wait_for_figures(page, "the labels after the second Ctrl+Z", |_| true);
+    assert_eq!(
+        figure(&figures, "painted").as_deref(),
+        Some("0"),
+        "{figures}"
+    );
+
+    key_with(page, "y", "KeyY", 89, CTRL);
+    wait_for_link(page, "Ctrl+Y to drag the window again", |v| {
+        same_window(v.window, edited.window)
+    });
+    let figures = wait_for_figures(page, "the labels after the first Ctrl+Y", |_| true);
+    assert_eq!(
+        figure(&figures, "painted").as_deref(),
+        Some("0"),
+        "the first Ctrl+Y redoes the window, not the stroke: {figures}"
+    );
+
+    key_with(page, "y", "KeyY", 89, CTRL);
+    wait_for_figures(page, "a second Ctrl+Y to paint the stroke again", |t| {
+        figure(t, "painted") == Some(brushed.to_string()) && figure(t, "checksum") == checksum
+    });
+    wait_for_link(page, "the window to stay dragged", |v| {
+        same_window(v.window, edited.window)
+    });
+}
+
+/// A brush stroke on the page's oblique view (the left button with the brush chosen paints
+/// instead of turning the plane): the NIfTI download holds exactly the voxels the desktop's
+/// oblique brush model gives (`stroke_voxels` with a disc in the plane spanned by the view's
+/// screen right and down, the desktop's `oblique::brush_plane`) for the drag's points mapped
+/// through the shared plane (strata_slices::oblique: `patient_at` of the fraction across the
+/// view's square image).
+#[test]
+fn a_brush_stroke_on_the_oblique_view_downloads_as_the_desktops_oblique_brush_paints_it() {
+    let scratch = tempfile::tempdir().expect("scratch folder");
+    let angles = [30.0, -20.0, 0.0];
+    let fragment = "#mode=mip&preset=ct-soft-tissue&volume=40&size=64x64&layout=conventional\
+                    &oblique=30,-20";
+    let (mut page, _server) = open_page(fragment, scratch.path(), [1200, 800]);
+    let geometry = Fragment::parse(fragment)
+        .expect("fragment")
+        .view
+        .sample_volume()
+        .expect("sample volume")
+        .geometry;
+    let grid = LabelGrid::new(geometry.clone()).expect("label grid");
+    click_button(&mut page, "new");
+    wait_for_figures(&mut page, "a new segmentation", |t| {
+        figure(t, "segments").as_deref() == Some("1")
+    });
+    click_button(&mut page, "brush");
+    let rect = page.wait_for(
+        "the oblique view to stay put after the section opened",
+        PAGE_DEADLINE,
+        |page| {
+            let before = view_rect(page, "oblique");
+            page.next_frames();
+            (view_rect(page, "oblique") == before).then_some(before)
+        },
+    );
+    // The page's square image in the view (oblique_view.rs, the desktop's margins).
+    let inner = Rect::from_min_max(
+        rect.min + egui::vec2(18.0, 38.0),
+        rect.max - egui::vec2(18.0, 36.0),
+    );
+    let image = Rect::from_center_size(
+        inner.center(),
+        egui::Vec2::splat(inner.width().min(inner.height()).max(1.0)),
+    );
+    assert!(
+        image.width() > 60.0,
+        "the oblique image {image:?} is too small to aim in"
+    );
+    // The plane through the crosshair, where the page starts it (the volume's centre voxel).
+    let cursor = geometry
+        .dims
+        .map(|n| ((n as f64 - 1.0) * 0.5).floor().max(0.0));
+    let plane = ObliquePlane::from_orientation_deg(
+        geometry.patient_from_index(DVec3::from(cursor)),
+        default_extent_mm(&geometry),
+        angles,
+    );
+    let at = |fx: f32, fy: f32| {
+        pos2(
+            image.left() + image.width() * fx,
+            image.top() + image.height() * fy,
+        )
+        .round()
+    };
+    let (start, end) = (at(0.3, 0.45), at(0.7, 0.45));
+    let stroke: Vec<Pos2> = (0..=4)
+        .map(|s| pos2(start.x + (end.x - start.x) * s as f32 / 4.0, start.y).round())
+        .collect();
+    let positions: Vec<DVec3> = stroke
+        .iter()
+        .map(|&p| {
+            let (u, w) = fraction_at(image, p);
+            plane.patient_at(u, w)
+        })
+        .collect();
+    let brush = Brush {
+        shape: BrushShape::Disc(SlicePlane::Oblique {
+            centre_lps: plane.centre,
+            u: plane.right,
+            v: plane.down,
+        }),
+        diameter_mm: DEFAULT_BRUSH_DIAMETER_MM,
+        value_range: None,
+    };
+    let model: BTreeSet<([u32; 3], u16)> = stroke_voxels(&grid, &brush, &positions)
+        .expect("the oblique brush model")
+        .into_iter()
+        .map(|v| (v, 1))
+        .collect();
+    assert!(model.len() > 50, "the stroke paints {} voxels", model.len());
+
+    drag_through(&mut page, &stroke);
+    let figures = wait_for_figures(
+        &mut page,
+        "the oblique stroke to end as one undo step",
+        |t| {
+            figure(t, "stroke").as_deref() == Some("0") && figure(t, "undo").as_deref() == Some("1")
+        },
+    );
+    let view = wait_for_link(&mut page, "the link's oblique angles", |v| {
+        v.oblique.is_some()
+    });
+    let turned = view.oblique.expect("oblique");
+    assert!(
+        (0..3).all(|a| (turned[a] - angles[a]).abs() < 1e-6),
+        "the stroke turned the plane to {turned:?}"
+    );
+    let file = download(&mut page, scratch.path(), "oblique.nii.gz");
+    let got = labelled_voxels(&file, &geometry);
+    assert!(
+        got == model,
+        "the download holds {} labelled voxels, the desktop's oblique brush {} ({figures}): {} \
+         only in the page, {} only in the model",
+        got.len(),
+        model.len(),
+        got.difference(&model).count(),
+        model.difference(&got).count()
     );
 }
