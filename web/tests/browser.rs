@@ -50,6 +50,10 @@ mod segment;
 #[path = "browser/refine.rs"]
 mod refine;
 
+/// The orbit movie downloaded as an animated PNG, against the native frames (issue 47).
+#[path = "browser/movie.rs"]
+mod movie;
+
 const TOKEN: &str = "0123456789abcdef0123456789abcdef";
 
 fn chromium() -> PathBuf {
