@@ -2,7 +2,8 @@
 //! movie, clicked with the fewest frames its slider offers, downloads one animated PNG
 //! (`strata-orbit-MILLIS.png`) whose frames are the native renderer's frames of the link's
 //! view at strata-viewer-ui's shared `orbit_azimuth`s, at the shared rate, looping; then the
-//! view is back where the movie started.
+//! view is back where the movie started. Cancel ends a movie without a download and puts the
+//! view back.
 
 use std::path::Path;
 use std::time::{Duration, Instant};
@@ -185,6 +186,34 @@ fn the_orbit_movie_downloads_the_native_frames_at_the_shared_azimuths_as_one_ani
     wait_for_link(&mut page, "the view back at the movie's start", |v| {
         close(v.azimuth_deg, view.azimuth_deg)
     });
+
+    // Cancel: a movie of many frames (a click near the right end of the slider's rail, egui's
+    // default 100 points wide), cancelled as soon as it shows its progress, ends without a
+    // download and puts the view back.
+    let slider = control(&mut page, "frames");
+    click(&mut page, pos2(slider.left() + 95.0, slider.center().y));
+    let start = control(&mut page, "start");
+    click(&mut page, start.center());
+    let cancel = control(&mut page, "cancel");
+    let making = movie_state(&mut page).expect("the movie's state");
+    let total: u32 = making
+        .split(';')
+        .find_map(|part| part.strip_prefix("frames="))
+        .and_then(|frames| frames.split_once('/')?.1.parse().ok())
+        .unwrap_or_else(|| panic!("no frame count in {making}"));
+    assert!(making.ends_with("state=making") && total >= 100, "{making}");
+    click(&mut page, cancel.center());
+    let cancelled = page.wait_for("the movie to be cancelled", PAGE_DEADLINE, |page| {
+        movie_state(page).filter(|s| s.ends_with("state=cancelled"))
+    });
+    println!("movie: {cancelled}");
+    wait_for_link(&mut page, "the view back after Cancel", |v| {
+        close(v.azimuth_deg, view.azimuth_deg)
+    });
+    let downloaded = std::fs::read_dir(downloads.path())
+        .expect("download folder")
+        .count();
+    assert_eq!(downloaded, 1, "a cancelled movie downloads nothing");
     let console = page.console();
     drop(page);
 
