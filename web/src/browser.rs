@@ -1409,7 +1409,15 @@ impl eframe::App for WebViewer {
                 if let Some(frames) = self.streamed.as_mut().and_then(|s| s.frames.as_mut()) {
                     frames.panel(ui);
                 }
-                // The measurements' tools and list first, always in sight (measure.rs), then
+                // The orbit movie's controls (orbit_movie.rs): one row on top, in sight whatever
+                // the sections below take.
+                if self.movie.section(ui) {
+                    self.movie_frame = None;
+                    if let Some(start) = self.movie.cancel() {
+                        self.view.azimuth_deg = start;
+                    }
+                }
+                // The measurements' tools and list next, always in sight (measure.rs), then
                 // the Segment section on the slice views' volume (segment_editor.rs).
                 let slices = match self.streamed.as_mut() {
                     Some(streamed) => Some(&mut streamed.slices),
@@ -1425,13 +1433,6 @@ impl eframe::App for WebViewer {
                         .show(ui, |ui| {
                             crate::overlay_view::section(ui, &mut self.view, slices, &self.stores)
                         });
-                }
-                // The orbit movie's controls (orbit_movie.rs), above the panel's scroll area.
-                if self.movie.section(ui) {
-                    self.movie_frame = None;
-                    if let Some(start) = self.movie.cancel() {
-                        self.view.azimuth_deg = start;
-                    }
                 }
                 let figures = VolumeFigures {
                     loader: self.streamed.as_ref().and_then(|s| s.last.as_ref()),

@@ -230,14 +230,15 @@ impl OrbitMovie {
             .default_open(true)
             .show(ui, |ui| match self.progress() {
                 Some((taken, total)) => {
+                    // Cancel first: the bar takes the rest of the row.
                     ui.horizontal(|ui| {
+                        let button = ui.button("Cancel");
+                        placed.push(("cancel", button.rect));
+                        cancel = button.clicked();
                         ui.add(
                             egui::ProgressBar::new(taken as f32 / total.max(1) as f32)
                                 .text(format!("orbit movie: frame {taken} of {total}")),
                         );
-                        let button = ui.button("Cancel");
-                        placed.push(("cancel", button.rect));
-                        cancel = button.clicked();
                     });
                 }
                 None => {

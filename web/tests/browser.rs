@@ -59,6 +59,10 @@ mod refine;
 #[path = "browser/segment_values.rs"]
 mod segment_values;
 
+/// The orbit movie downloaded as an animated PNG, against the native frames (issue 47).
+#[path = "browser/movie.rs"]
+mod movie;
+
 const TOKEN: &str = "0123456789abcdef0123456789abcdef";
 
 fn chromium() -> PathBuf {
