@@ -31,10 +31,9 @@ use strata_segment::tools::morphology::{
 use strata_segment::tools::Outcome;
 use strata_segment::{
     BrickKey, Edit, Label, LabelGrid, LabelLayer, SegmentError, SegmentTable, TableChange,
-    LABEL_BRICK,
 };
 use strata_source::VolumeSource;
-use strata_types::{BrickId, BRICK_APRON, BRICK_PAYLOAD};
+use strata_types::BrickId;
 
 /// A label layer shared between the UI (which edits it) and the overlay's reader thread (which
 /// samples it); `revision` counts changes so the reader knows a slice it sampled is stale.
@@ -75,19 +74,11 @@ impl SharedLayer {
 /// The tool the left button uses on a slice view: the Segment section's, shared with the
 /// browser page (strata-viewer-ui's segment_panel).
 pub use strata_viewer_ui::segment_panel::SegmentTool;
+use strata_viewer_ui::segment_panel::ValueSettings;
 
 /// Most voxels one slice fill takes (a 4096² slice); beyond it the fill stops, keeping what it
 /// took.
 pub const FILL_MAX_VOXELS: u64 = 1 << 24;
-
-/// Region growing's settings: the panel's value range, or mean ± k·σ around the seed.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct GrowSettings {
-    pub mean_sigma: bool,
-    pub k: f64,
-    /// The grow stops at this many voxels, keeping what it took (one undoable step).
-    pub max_voxels: u64,
-}
 
 /// A region growing running on its own thread, on a clone of the layer.
 struct GrowJob {
@@ -315,29 +306,14 @@ impl Intensity for PrimaryIntensity {
                     brick: key.0,
                     message: format!("primary volume: {e}"),
                 })?;
-        let b = LABEL_BRICK as usize;
-        let edge = BRICK_PAYLOAD as usize;
-        let apron = BRICK_APRON as usize;
-        let origin = grid.brick_origin(key);
-        let dims = grid.dims();
-        for lk in 0..b {
-            for lj in 0..b {
-                for li in 0..b {
-                    let voxel = [origin[0] as usize + li, origin[1] as usize + lj];
-                    let k = origin[2] as usize + lk;
-                    let inside = voxel[0] < dims[0] as usize
-                        && voxel[1] < dims[1] as usize
-                        && k < dims[2] as usize;
-                    out[li + b * (lj + b * lk)] = if inside {
-                        let s = stored[((lk + apron) * edge + lj + apron) * edge + li + apron];
-                        self.mapping.physical(s as f64) as f32
-                    } else {
-                        f32::NAN
-                    };
-                }
-            }
-        }
-        Ok(())
+        let mapping = self.mapping;
+        strata_segment::intensity::label_brick_from_level0(
+            grid,
+            key,
+            &stored,
+            &|s| mapping.physical(f64::from(s)),
+            out,
+        )
     }
 }
 
@@ -363,9 +339,9 @@ pub struct Segmentation {
     intensity: Option<Arc<dyn Intensity>>,
     pub tool: SegmentTool,
     pub diameter_mm: f64,
-    /// Paint only where the primary's value lies in the range, when enabled.
-    pub limit_to_range: bool,
-    pub range: (f64, f64),
+    /// The value range (paint only where the primary's value lies in it, when enabled) and
+    /// region growing's settings: the shared panel's (strata-viewer-ui's segment_panel).
+    pub values: ValueSettings,
     /// The segment the brush paints.
     pub active: Label,
     stroke: Option<StrokeInProgress>,
@@ -379,7 +355,6 @@ pub struct Segmentation {
     stats_job: Option<std::thread::JoinHandle<Result<Statistics, SegmentError>>>,
     /// The last statistics computed (or why they could not be).
     pub stats: Option<Result<Statistics, String>>,
-    pub grow: GrowSettings,
     grow_job: Option<GrowJob>,
     /// What the last tool said that is not an error (a grow stopped at its cap, cancelled).
     pub notice: Option<String>,
@@ -435,8 +410,7 @@ impl Segmentation {
             intensity,
             tool: SegmentTool::None,
             diameter_mm: strata_viewer_ui::segment_panel::DEFAULT_BRUSH_DIAMETER_MM,
-            limit_to_range: false,
-            range: (300.0, 3000.0),
+            values: ValueSettings::default(),
             active,
             stroke: None,
             last_stroke: Vec::new(),
@@ -444,11 +418,6 @@ impl Segmentation {
             completed: Vec::new(),
             stats_job: None,
             stats: None,
-            grow: GrowSettings {
-                mean_sigma: false,
-                k: 2.0,
-                max_voxels: 50_000_000,
-            },
             grow_job: None,
             notice: None,
             save_job: None,
@@ -522,8 +491,8 @@ impl Segmentation {
 
     /// The brush with the current size and range, as `shape`.
     pub fn brush_shaped(&self, shape: BrushShape) -> Result<Brush, SegmentError> {
-        let value_range = if self.limit_to_range {
-            Some(ValueRange::new(self.range.0, self.range.1)?)
+        let value_range = if self.values.limit_to_range {
+            Some(ValueRange::new(self.values.range.0, self.values.range.1)?)
         } else {
             None
         };
@@ -596,7 +565,7 @@ impl Segmentation {
     }
 
     fn brush_for(&self, shape: BrushShape) -> Result<Brush, SegmentError> {
-        if self.limit_to_range && self.intensity.is_none() {
+        if self.values.limit_to_range && self.intensity.is_none() {
             return Err(SegmentError::BadParameter(
                 "a value range needs the labels on the primary's own grid".into(),
             ));
@@ -731,7 +700,7 @@ impl Segmentation {
     }
 
     fn value_range(&self) -> Result<Option<ValueRange>, SegmentError> {
-        if !self.limit_to_range {
+        if !self.values.limit_to_range {
             return Ok(None);
         }
         if self.intensity.is_none() {
@@ -739,7 +708,7 @@ impl Segmentation {
                 "a value range needs the labels on the primary's own grid".into(),
             ));
         }
-        ValueRange::new(self.range.0, self.range.1).map(Some)
+        ValueRange::new(self.values.range.0, self.values.range.1).map(Some)
     }
 
     fn take_outcome(&mut self, result: Result<Outcome, SegmentError>) {
@@ -765,10 +734,10 @@ impl Segmentation {
             self.error = Some("region growing needs the labels on the primary's own grid".into());
             return;
         };
-        let criterion = if self.grow.mean_sigma {
-            GrowCriterion::MeanSigma { k: self.grow.k }
+        let criterion = if self.values.grow_by_sigma {
+            GrowCriterion::MeanSigma { k: self.values.k }
         } else {
-            match ValueRange::new(self.range.0, self.range.1) {
+            match ValueRange::new(self.values.range.0, self.values.range.1) {
                 Ok(r) => GrowCriterion::Range(r),
                 Err(e) => {
                     self.error = Some(e.to_string());
@@ -777,7 +746,7 @@ impl Segmentation {
             }
         };
         let mut copy = self.layer.read().clone();
-        let (label, max_voxels) = (self.active, self.grow.max_voxels);
+        let (label, max_voxels) = (self.active, self.values.max_voxels);
         let progress = Arc::new(AtomicU64::new(0));
         let cancel = Arc::new(AtomicBool::new(false));
         let (thread_progress, thread_cancel) = (progress.clone(), cancel.clone());
@@ -822,7 +791,7 @@ impl Segmentation {
     pub fn grow_progress(&self) -> Option<(u64, u64)> {
         self.grow_job
             .as_ref()
-            .map(|j| (j.progress.load(Ordering::Relaxed), self.grow.max_voxels))
+            .map(|j| (j.progress.load(Ordering::Relaxed), self.values.max_voxels))
     }
 
     pub fn cancel_grow(&self) {

@@ -734,7 +734,7 @@ pub fn section(ui: &mut egui::Ui, slices: &mut SliceViews) {
         &mut buttons,
     );
     if let Some(edit) = values.edit {
-        seg.history.push(edit);
+        seg.push_step(edit);
         seg.revision += 1;
         seg.error = None;
     }

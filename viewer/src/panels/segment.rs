@@ -4,9 +4,10 @@
 //! shown, locked, remove), the operations on the active segment (fill between slices, islands,
 //! margin, union / subtract / intersect), statistics with Copy as CSV, and Save As.
 //!
-//! The tool row, the segment list and the operations are strata-viewer-ui's segment_panel,
-//! which the browser page draws too; the value range, grow settings, statistics and Save As
-//! are the desktop's own (they need the primary's values, threads or files).
+//! The tool row, the value range and grow settings, the grow's progress and Cancel, the
+//! segment list, the operations and the statistics table are strata-viewer-ui's
+//! segment_panel, which the browser page draws too; the desktop runs the grow and the
+//! statistics on threads of their own, and Save As is its own (files).
 //!
 //! Every row wraps inside the panel's width rather than widening the panel: a row wider than
 //! the panel made the right-hand panel grow by 44 points on the frame after the segmentation
@@ -24,7 +25,7 @@ use strata_viewer_ui::segment_panel::{
 
 use crate::file_chooser::{ChooserKind, Chosen, FileChooser};
 use crate::overlay::{Overlay, OverlayKind};
-use crate::segmentation::{Operation, SaveFormat, SegmentTool, Segmentation};
+use crate::segmentation::{Operation, SaveFormat, Segmentation};
 
 /// What the section asks the app to do (it needs the volume's store and the journal's place).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -194,55 +195,17 @@ fn short(path: &std::path::Path) -> String {
     )
 }
 
-/// The tool row, its size and value range, and the grow's settings and progress.
+/// The tool row, its size and value range, and the grow's settings and progress (the shared
+/// panel's rows, as the page draws them).
 fn tools(ui: &mut egui::Ui, seg: &mut Segmentation) {
     segment_panel::tool_row(ui, &mut seg.tool, &mut seg.diameter_mm, true);
-    ui.horizontal_wrapped(|ui| {
-        let growing_by_sigma = seg.tool == SegmentTool::Grow && seg.grow.mean_sigma;
-        if seg.tool == SegmentTool::Grow {
-            ui.label("Values");
-        } else {
-            ui.checkbox(&mut seg.limit_to_range, "Only values")
-                .on_hover_text(
-                    "Paint, erase or fill only where the volume's value lies in the range",
-                );
-        }
-        let enabled = (seg.limit_to_range || seg.tool == SegmentTool::Grow) && !growing_by_sigma;
-        ui.add_enabled(enabled, egui::DragValue::new(&mut seg.range.0).speed(1.0));
-        ui.label("to");
-        ui.add_enabled(enabled, egui::DragValue::new(&mut seg.range.1).speed(1.0));
-    });
-    if seg.tool == SegmentTool::Grow {
-        ui.horizontal_wrapped(|ui| {
-            ui.checkbox(&mut seg.grow.mean_sigma, "mean ± k·σ")
-                .on_hover_text("The range from the 3×3×3 voxels around the seed");
-            ui.add_enabled(
-                seg.grow.mean_sigma,
-                egui::DragValue::new(&mut seg.grow.k)
-                    .range(0.0..=10.0)
-                    .speed(0.05),
-            );
-            ui.label("cap");
-            ui.add(
-                egui::DragValue::new(&mut seg.grow.max_voxels)
-                    .range(1..=u64::MAX)
-                    .speed(10_000.0)
-                    .suffix(" vx"),
-            )
-            .on_hover_text("The grow stops here, keeping what it took");
-        });
-    }
+    segment_panel::value_rows(ui, seg.tool, &mut seg.values);
     if let Some((done, cap)) = seg.grow_progress() {
-        ui.horizontal(|ui| {
-            ui.add(
-                egui::ProgressBar::new((done as f32 / cap.max(1) as f32).min(1.0))
-                    .text(format!("{done} voxels"))
-                    .desired_width(160.0),
-            );
-            if ui.button("Cancel").clicked() {
-                seg.cancel_grow();
-            }
-        });
+        let fraction = (done as f64 / cap.max(1) as f64) as f32;
+        let (cancel, _) = segment_panel::progress_row(ui, fraction, &format!("{done} voxels"));
+        if cancel {
+            seg.cancel_grow();
+        }
     }
 }
 
@@ -263,58 +226,18 @@ fn segment_list(ui: &mut egui::Ui, seg: &mut Segmentation) {
     }
 }
 
-/// The statistics table (computed on request, in the background) and Copy as CSV.
+/// The statistics table (computed on request, in the background) and Copy as CSV: the shared
+/// panel's rows.
 fn statistics(ui: &mut egui::Ui, seg: &mut Segmentation) {
-    ui.horizontal_wrapped(|ui| {
-        let running = seg.statistics_running();
-        if ui
-            .add_enabled(!running, egui::Button::new("Statistics"))
-            .on_hover_text("Voxels, volume and the volume's values in each segment")
-            .clicked()
-        {
-            let ctx = ui.ctx().clone();
-            seg.start_statistics(Arc::new(move || ctx.request_repaint()));
-        }
-        if running {
-            ui.spinner();
-        }
+    let asked = segment_panel::statistics_rows(ui, seg.statistics_running(), seg.stats.as_ref());
+    if asked.compute {
+        let ctx = ui.ctx().clone();
+        seg.start_statistics(Arc::new(move || ctx.request_repaint()));
+    }
+    if asked.copy_csv {
         if let Some(Ok(stats)) = &seg.stats {
-            if ui.button("Copy as CSV").clicked() {
-                ui.ctx().copy_text(strata_segment::stats::to_csv(stats));
-            }
+            ui.ctx().copy_text(strata_segment::stats::to_csv(stats));
         }
-    });
-    match &seg.stats {
-        Some(Ok(stats)) => {
-            let unit = if stats.unit.is_empty() {
-                String::new()
-            } else {
-                format!(" ({})", stats.unit)
-            };
-            let value = |v: Option<f64>| v.map_or_else(|| "–".to_string(), |v| format!("{v:.1}"));
-            egui::Grid::new("segment statistics")
-                .striped(true)
-                .show(ui, |ui| {
-                    ui.label("Segment");
-                    ui.label("Voxels");
-                    ui.label("mL");
-                    ui.label(format!("Mean{unit}"));
-                    ui.label("SD");
-                    ui.end_row();
-                    for s in &stats.segments {
-                        ui.label(&s.name);
-                        ui.label(s.voxels.to_string());
-                        ui.label(format!("{:.2}", s.volume_ml));
-                        ui.label(value(s.mean));
-                        ui.label(value(s.sd));
-                        ui.end_row();
-                    }
-                });
-        }
-        Some(Err(e)) => {
-            ui.colored_label(Color32::LIGHT_RED, e);
-        }
-        None => {}
     }
 }
 

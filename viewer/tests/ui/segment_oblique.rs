@@ -435,8 +435,8 @@ fn on_a_tilted_oblique_view_the_brush_and_eraser_change_the_models_voxels_and_un
         .and_then(|v| v.segmentation.as_mut())
     {
         seg.add_segment();
-        seg.limit_to_range = true;
-        seg.range = (-200.0, 200.0);
+        seg.values.limit_to_range = true;
+        seg.values.range = (-200.0, 200.0);
     }
     h.step();
     let ranged = stroke(&mut h, Vec2::new(-90.0, 70.0), Vec2::new(80.0, -60.0));

@@ -350,7 +350,7 @@ fn brush_and_eraser_drags_paint_exactly_the_cpu_models_voxels_and_undo_restores_
             .as_mut()
             .and_then(|v| v.segmentation.as_mut())
             .expect("segmentation");
-        seg.range = range;
+        seg.values.range = range;
         assert_eq!(seg.active, 2, "the added segment is the active one");
         seg.layer.read().clone()
     };
@@ -698,8 +698,8 @@ fn the_brush_leaves_locked_segments_and_values_outside_its_range_and_a_capped_gr
     // A brush limited to soft tissue (-200..200 HU) paints only the voxels whose value is in it.
     with_seg(&mut h, |seg| {
         seg.add_segment();
-        seg.limit_to_range = true;
-        seg.range = (-200.0, 200.0);
+        seg.values.limit_to_range = true;
+        seg.values.range = (-200.0, 200.0);
     });
     let k = first[0][2];
     let (from, from_lps) = view_point(&h, SliceView::Axial, 1.0, 24.0);
@@ -735,8 +735,8 @@ fn the_brush_leaves_locked_segments_and_values_outside_its_range_and_a_capped_gr
     // A grow capped at 300 voxels stops there, says so, and is one undo step.
     with_seg(&mut h, |seg| {
         seg.add_segment();
-        seg.limit_to_range = false;
-        seg.grow.max_voxels = 300;
+        seg.values.limit_to_range = false;
+        seg.values.max_voxels = 300;
         seg.tool = crate::segmentation::SegmentTool::Grow;
     });
     let before = labelled_voxels(app(&h));
