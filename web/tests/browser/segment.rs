@@ -181,14 +181,20 @@ fn download_as(page: &mut Cdp, folder: &Path, name: &str, button: &str, mime: &s
     file
 }
 
-/// Every labelled voxel of `layer`, with its label.
+/// Every labelled voxel of `layer`, with its label. Each brick is read once: a layer loaded
+/// from a file decodes a brick on every `get`, which made this loop take minutes on a 96³ grid.
 pub(crate) fn layer_voxels(layer: &LabelLayer) -> BTreeSet<([u32; 3], u16)> {
     let mut out = BTreeSet::new();
+    let mut bricks = std::collections::HashMap::new();
     let [nx, ny, nz] = layer.grid().dims();
     for k in 0..nz {
         for j in 0..ny {
             for i in 0..nx {
-                let label = layer.get([i, j, k]).expect("a voxel of the grid");
+                let (key, at) = layer.grid().brick_of([i, j, k]);
+                let brick = bricks
+                    .entry(key)
+                    .or_insert_with(|| layer.brick(key).expect("a brick of the grid"));
+                let label = brick[at];
                 if label != 0 {
                     out.insert(([i, j, k], label));
                 }
