@@ -44,6 +44,7 @@ fn button_rect(page: &mut Cdp, name: &str) -> Rect {
         |page| {
             let v = page.evaluate(
                 "(() => { const c = document.getElementById('strata-canvas'); \
+                 if (!c) return [null, null, '']; \
                  const r = c.getBoundingClientRect(); \
                  return [r.left, r.top, c.dataset.segmentButtons ?? ''] })()",
             );
