@@ -7,10 +7,11 @@
 //!   before its first frame; every other brick comes through [`ServedBricks`].
 //! - [`ServedBricks`] is the loader's [`BrickFetcher`]: the shared request policy
 //!   ([`WishList`]: rewritten every frame, demand before prefetch, then by priority) run on
-//!   `fetch()`, at most [`MAX_ON_THE_WIRE`] requests at once (HTTP/1.1 gives a page about six
+//!   `fetch()`, at most [`MAX_ON_THE_WIRE`] requests at once (HTTP/1.1 gives a page six
 //!   connections per host; more would queue inside the browser, where priorities cannot
-//!   reach them); requests on the wire that two successive views no longer name are aborted
-//!   with their `AbortController`.
+//!   reach them, and one stays free so that a server slow on bricks cannot hold up the
+//!   page's other requests: documents, overlays, another frame, downloads); requests on the
+//!   wire that two successive views no longer name are aborted with their `AbortController`.
 //! - Records are decoded (and their xxh3 checksums verified) on the frame thread, at most
 //!   [`DECODES_PER_FRAME`] per frame; a record that fails is fetched once more, then reported
 //!   damaged. Connection failures and 429/503 are retried with backoff (at least the server's
@@ -44,8 +45,10 @@ use strata_types::BrickId;
 use wasm_bindgen::JsCast;
 use wasm_bindgen_futures::JsFuture;
 
-/// Requests on the wire at once (see the module's note on HTTP/1.1).
-pub const MAX_ON_THE_WIRE: usize = 6;
+/// Brick requests on the wire at once: one fewer than a browser's six HTTP/1.1 connections
+/// per host, so the page's other requests always find one (see the module's note). With all
+/// six taken by stalled bricks, the test hook's frame post waited behind them forever.
+pub const MAX_ON_THE_WIRE: usize = 5;
 /// Records decoded per frame at most: each is ~0.1-1 ms of the page's one thread.
 pub const DECODES_PER_FRAME: usize = 24;
 /// Backoff after a failed request: doubles from the first to the last.
