@@ -20,6 +20,9 @@
 //! - [`overlay`]: a label or continuous overlay over the slices: the mapping of a slice pixel
 //!   into the overlay's grid, nearest-label and trilinear sampling of its level-0 bricks (which
 //!   may not be resident yet), the colouring, its controls and its link keys (issue 47).
+//! - [`overlay_3d`]: the overlay or the editable label layer resampled onto the 3D view's
+//!   bounded grid (slice by slice over bricks that may not be resident yet, or edit by edit)
+//!   and its colour table (issues 47 and 52).
 //! - [`orbit_movie`]: the orbit movie's frame counts and each frame's azimuth, so the desktop's
 //!   PNG frames and MP4 and the page's animated PNG turn through the same angles.
 //! - [`picking`]: the volume position a click in the 3D view sees, from the frame's pick depth.
@@ -51,6 +54,7 @@ pub mod measurements;
 pub mod orbit;
 pub mod orbit_movie;
 pub mod overlay;
+pub mod overlay_3d;
 pub mod performance;
 pub mod picking;
 pub mod presets;

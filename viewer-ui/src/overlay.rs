@@ -143,6 +143,30 @@ pub fn label_table_of(labels: &[LabelInfo]) -> BTreeMap<i64, LabelEntry> {
         .collect()
 }
 
+/// An editable layer's segments as an overlay's label table (each segment's name and colour)
+/// and its hidden labels (the segments not shown): both viewers draw the segmentation's labels
+/// as a label overlay with these, on the slices and in 3D.
+pub fn segment_labels(
+    segments: &strata_segment::SegmentTable,
+) -> (BTreeMap<i64, LabelEntry>, BTreeSet<i64>) {
+    let table = segments
+        .iter()
+        .map(|s| {
+            let entry = LabelEntry {
+                name: s.name.clone(),
+                colour: s.rgb,
+            };
+            (i64::from(s.value), entry)
+        })
+        .collect();
+    let hidden = segments
+        .iter()
+        .filter(|s| !s.visible)
+        .map(|s| i64::from(s.value))
+        .collect();
+    (table, hidden)
+}
+
 /// Premultiplied RGBA for one sampled value under `style`.
 pub fn colour_of(kind: OverlayKind, style: &OverlayStyle, value: f32) -> [u8; 4] {
     if !style.visible || !value.is_finite() {

@@ -29,7 +29,7 @@ use std::sync::{Arc, Condvar, Mutex};
 use glam::DVec3;
 use strata_render::{ValueMapping, VolumeGeometry};
 use strata_source::VolumeSource;
-use strata_types::{BrickId, BRICK_APRON, BRICK_CORE, BRICK_PAYLOAD};
+use strata_types::BrickId;
 
 use super::orientation::SliceView;
 use super::segmentation::SharedLayer;
@@ -353,23 +353,7 @@ impl Overlay {
     /// Takes the segments' names, colours and visibility into the style (the segment list
     /// edits them).
     pub fn follow_segments(&mut self, segments: &strata_segment::SegmentTable) {
-        let table: BTreeMap<i64, LabelEntry> = segments
-            .iter()
-            .map(|s| {
-                (
-                    i64::from(s.value),
-                    LabelEntry {
-                        name: s.name.clone(),
-                        colour: s.rgb,
-                    },
-                )
-            })
-            .collect();
-        let hidden: BTreeSet<i64> = segments
-            .iter()
-            .filter(|s| !s.visible)
-            .map(|s| i64::from(s.value))
-            .collect();
+        let (table, hidden) = strata_viewer_ui::overlay::segment_labels(segments);
         if table != self.style.label_table {
             self.style.label_table = table;
         }
@@ -483,12 +467,11 @@ impl Drop for Overlay {
     }
 }
 
-/// Level-0 bricks of the overlay, bounded; the last brick used is kept at hand because
-/// neighbouring pixels almost always fall into it.
+/// Level-0 bricks of the overlay, bounded (the shared sampler keeps the last brick used at
+/// hand itself).
 pub struct OverlayBrickCache {
     budget_bricks: usize,
     bricks: HashMap<BrickId, Arc<Vec<u16>>>,
-    last: Option<(BrickId, Arc<Vec<u16>>)>,
 }
 
 impl OverlayBrickCache {
@@ -496,7 +479,6 @@ impl OverlayBrickCache {
         OverlayBrickCache {
             budget_bricks: (budget_bytes / (strata_types::BRICK_PAYLOAD_VOXELS * 2)).max(16),
             bricks: HashMap::new(),
-            last: None,
         }
     }
 
@@ -518,22 +500,6 @@ impl OverlayBrickCache {
                 b
             }
         })
-    }
-
-    /// The stored value of level-0 voxel `index` (inside the volume).
-    pub fn voxel(&mut self, store: &dyn VolumeSource, index: [u32; 3]) -> anyhow::Result<u16> {
-        let id = BrickId::new(0, index.map(|i| i / BRICK_CORE));
-        let brick = match &self.last {
-            Some((last_id, brick)) if *last_id == id => brick.clone(),
-            _ => {
-                let brick = self.brick(store, id)?;
-                self.last = Some((id, brick.clone()));
-                brick
-            }
-        };
-        let local = index.map(|i| (i % BRICK_CORE + BRICK_APRON) as usize);
-        let edge = BRICK_PAYLOAD as usize;
-        Ok(brick[(local[2] * edge + local[1]) * edge + local[0]])
     }
 }
 
@@ -605,9 +571,9 @@ fn sample_store(
 }
 
 /// The store's level-0 bricks through the bounded cache, read (blocking) when missing.
-struct CachedStore<'a> {
-    store: &'a dyn VolumeSource,
-    cache: &'a mut OverlayBrickCache,
+pub(crate) struct CachedStore<'a> {
+    pub(crate) store: &'a dyn VolumeSource,
+    pub(crate) cache: &'a mut OverlayBrickCache,
 }
 
 impl LevelBricks for CachedStore<'_> {
@@ -665,24 +631,6 @@ fn sample_layer(
                 .map_or(0.0, |b| f64::from(b[at])),
         ))
     })
-}
-
-/// The overlay's physical value at its continuous index `p`, trilinear between level-0 voxel
-/// centres, clamped at the edges.
-pub fn trilinear(
-    store: &dyn VolumeSource,
-    cache: &mut OverlayBrickCache,
-    dims: [u32; 3],
-    p: DVec3,
-    physical: impl Fn(u16) -> f64,
-) -> anyhow::Result<f64> {
-    let mut sum = 0.0;
-    for (index, weight) in strata_types::trilinear_corners(p.to_array(), dims) {
-        if weight > 0.0 {
-            sum += weight * physical(cache.voxel(store, index)?);
-        }
-    }
-    Ok(sum)
 }
 
 #[cfg(test)]

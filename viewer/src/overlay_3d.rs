@@ -1,363 +1,49 @@
-//! The overlay in the 3D view: the overlay volume resampled once, on a named background thread
-//! (`strata-overlay-3d`), onto a bounded dense grid over the primary's index box (the primary's
-//! own grid at the finest level whose voxel count fits [`OVERLAY_3D_MAX_VOXELS`]), which the
-//! render thread uploads for the raycaster (strata-render's overlay.rs states how the grid is
-//! sampled and blended). Labels are read nearest from the overlay store's level 0 as on the
-//! slices and stored as indices into a colour table, so a style change (opacity, hidden labels,
-//! colour map, range, threshold) is a new table only ([`lut_for`]): nothing is read again and
-//! no grid is uploaded again.
+//! The overlay in the 3D view on the desktop: the overlay volume resampled once, on a named
+//! background thread (`strata-overlay-3d`), onto a bounded dense grid over the primary's index
+//! box (the primary's own grid at the finest level whose voxel count fits
+//! [`OVERLAY_3D_MAX_VOXELS`]), which the render thread uploads for the raycaster
+//! (strata-render's overlay.rs states how the grid is sampled and blended). The resampling,
+//! the editable layer's grid and the colour table are strata-viewer-ui's `overlay_3d`, which
+//! the page runs too (web/src/overlay_view.rs, a few grid slices per animation frame); this
+//! module is the desktop's half: the thread, its blocking reads, and following the layer's
+//! revisions.
 
-use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 
-use glam::DVec3;
-use strata_render::model::overlay::OVERLAY_OUTSIDE;
-use strata_render::{OverlayKind as GridKind, OverlayLut, OverlayVolume};
-use strata_segment::{label_colour, BrickKey, LabelLayer, LABEL_BRICK};
 use strata_source::VolumeSource;
+use strata_viewer_ui::overlay_3d::{
+    grid_dims, lut_for, GridProgress, GridResampler, LayerGrid, Resampled, OVERLAY_3D_MAX_VOXELS,
+};
 use strata_viewer_ui::render_driver::OverlayIn3d;
 
-use super::overlay::{
-    trilinear, Overlay, OverlayBrickCache, OverlayGrids, OverlayKind, OverlayStyle,
-    OVERLAY_CACHE_BYTES,
-};
+use super::overlay::{CachedStore, Overlay, OverlayBrickCache, OverlayGrids, OVERLAY_CACHE_BYTES};
 use super::segmentation::SharedLayer;
 use super::sync::{lock_ignoring_poison, Repaint};
 
-/// At most this many grid voxels (256³: 64 MiB of f32 on the GPU).
-pub const OVERLAY_3D_MAX_VOXELS: u64 = 256 * 256 * 256;
-
-/// Colour-map entries of a continuous overlay's table.
-pub const CONTINUOUS_LUT_ENTRIES: usize = 256;
-
-/// The overlay on the 3D grid, with the label each colour-table index stands for.
-pub struct Resampled {
-    pub volume: Arc<OverlayVolume>,
-    /// Labels: table index `i ≥ 1` is label `labels[i - 1]` (0 is background).
-    pub labels: Vec<i64>,
-}
-
-/// The grid's dims: the primary's level dims at the finest level that fits `max_voxels` (the
-/// coarsest level if none does).
-pub fn grid_dims(level_dims: &[[u32; 3]], max_voxels: u64) -> [u32; 3] {
-    let voxels = |d: &[u32; 3]| d.iter().map(|&v| v as u64).product::<u64>();
-    level_dims
-        .iter()
-        .find(|&d| voxels(d) <= max_voxels)
-        .or(level_dims.last())
-        .copied()
-        .unwrap_or([1; 3])
-}
-
-/// Resamples the overlay onto a `dims` grid over the primary's index box: grid voxel `i`'s
-/// centre is primary index `(i + ½)·primary/dims − ½` per axis (strata-render overlay.rs),
-/// taken to patient space and into the overlay's index space. Labels: nearest level-0 voxel;
-/// continuous: trilinear (as the slices). Outside the overlay: background / OVERLAY_OUTSIDE.
+/// Resamples the overlay onto a `dims` grid over the primary's index box (strata-viewer-ui's
+/// `GridResampler`, fed by blocking reads), one grid slice at a time so that `stop` ends it.
 pub fn resample(
     store: &dyn VolumeSource,
     cache: &mut OverlayBrickCache,
     grids: &OverlayGrids,
     dims: [u32; 3],
     stop: &AtomicBool,
-) -> anyhow::Result<Resampled> {
-    let overlay_from_primary =
-        grids.overlay.index_from_patient_linear() * grids.primary.patient_from_index_linear();
-    let offset = grids.overlay.index_from_patient(grids.primary.origin());
-    let odims = grids.overlay.dims;
-    let scale = DVec3::from([0, 1, 2].map(|a| grids.primary.dims[a] as f64 / dims[a] as f64));
-    let inside =
-        |p: DVec3| (0..3).all(|a| p[a] >= -0.5 && p[a] < odims[a] as f64 - 0.5 && p[a].is_finite());
-    let mut values = Vec::with_capacity(dims.iter().map(|&d| d as usize).product());
-    let mut labels: Vec<i64> = Vec::new();
-    for z in 0..dims[2] {
+) -> anyhow::Result<Arc<Resampled>> {
+    let mut resampler = GridResampler::new(grids.clone(), dims);
+    let mut bricks = CachedStore { store, cache };
+    loop {
         if stop.load(Ordering::Acquire) {
             anyhow::bail!("stopped");
         }
-        for y in 0..dims[1] {
-            for x in 0..dims[0] {
-                let centre = (DVec3::new(x as f64, y as f64, z as f64) + 0.5) * scale - 0.5;
-                let p = offset + overlay_from_primary * centre;
-                let value = match grids.kind {
-                    OverlayKind::Labels if inside(p) => {
-                        let index = [0, 1, 2].map(|a| {
-                            (p[a].round().max(0.0) as u32).min(odims[a].saturating_sub(1))
-                        });
-                        let stored = cache.voxel(store, index)?;
-                        let label = grids.overlay_mapping.physical(stored as f64).round() as i64;
-                        if label == 0 {
-                            0.0
-                        } else {
-                            let slot = match labels.iter().position(|&l| l == label) {
-                                Some(i) => i,
-                                None => {
-                                    labels.push(label);
-                                    labels.len() - 1
-                                }
-                            };
-                            (slot + 1) as f32
-                        }
-                    }
-                    OverlayKind::Labels => 0.0,
-                    OverlayKind::Continuous if inside(p) => {
-                        trilinear(store, cache, odims, p, |s| {
-                            grids.overlay_mapping.physical(s as f64)
-                        })? as f32
-                    }
-                    OverlayKind::Continuous => OVERLAY_OUTSIDE,
-                };
-                values.push(value);
+        // One slice a step (a budget of one voxel): reads block, nothing is ever missing.
+        match resampler.step(&mut bricks, 1, 1)? {
+            GridProgress::Complete(resampled) => return Ok(resampled),
+            GridProgress::Incomplete { missing, .. } if !missing.is_empty() => {
+                anyhow::bail!("blocking reads left bricks missing: {missing:?}")
             }
+            GridProgress::Incomplete { .. } => {}
         }
-    }
-    let kind = match grids.kind {
-        OverlayKind::Labels => GridKind::Labels,
-        OverlayKind::Continuous => GridKind::Continuous,
-    };
-    Ok(Resampled {
-        volume: Arc::new(OverlayVolume::new(dims, kind, values)?),
-        labels,
-    })
-}
-
-/// The colour table for `style`: per label its colour at the overlay's opacity (0 when hidden),
-/// or the colour map over the range; the same colours the slices draw (overlay.rs colour_of).
-pub fn lut_for(kind: OverlayKind, style: &OverlayStyle, labels: &[i64]) -> OverlayLut {
-    let opacity = if style.visible {
-        style.opacity.clamp(0.0, 1.0)
-    } else {
-        0.0
-    };
-    let straight = |rgb: [u8; 3]| rgb.map(|c| c as f32 / 255.0);
-    let with_alpha = |c: [f32; 3], a: f32| [c[0], c[1], c[2], a];
-    let entries = match kind {
-        OverlayKind::Labels => std::iter::once([0.0; 4])
-            .chain(labels.iter().map(|&label| {
-                let colour = style
-                    .label_table
-                    .get(&label)
-                    .map_or_else(|| label_colour(label), |e| e.colour);
-                let a = if style.hidden_labels.contains(&label) {
-                    0.0
-                } else {
-                    opacity
-                };
-                with_alpha(straight(colour), a)
-            }))
-            .collect(),
-        OverlayKind::Continuous => (0..CONTINUOUS_LUT_ENTRIES)
-            .map(|i| {
-                let t = i as f64 / (CONTINUOUS_LUT_ENTRIES - 1) as f64;
-                with_alpha(straight(style.colour_map.rgb(t)), opacity)
-            })
-            .collect(),
-    };
-    OverlayLut {
-        entries,
-        lo: style.range.0,
-        hi: style.range.1,
-        threshold: style.threshold,
-    }
-}
-
-/// The 3D grid of an editable label layer, kept up to date edit by edit: each grid voxel takes
-/// the label of the layer voxel nearest its centre (as [`resample`] does for a store), and after
-/// a change only the grid voxels whose nearest layer voxel lies in a changed brick are sampled
-/// again. Changed bricks are found by identity: every edit, undo and redo puts a new `Arc`
-/// image in the layer's edited bricks.
-struct LayerGrid {
-    dims: [u32; 3],
-    values: Vec<f32>,
-    /// Colour-table slot `i` (from 1) is label `labels[i - 1]`.
-    labels: Vec<i64>,
-    /// The edited bricks' images at the last update, by address.
-    seen: HashMap<BrickKey, usize>,
-    sampled_once: bool,
-}
-
-impl LayerGrid {
-    fn new(dims: [u32; 3]) -> Self {
-        LayerGrid {
-            dims,
-            values: vec![0.0; dims.iter().map(|&d| d as usize).product()],
-            labels: Vec::new(),
-            seen: HashMap::new(),
-            sampled_once: false,
-        }
-    }
-
-    /// Samples what changed since the last call (everything the first time); whether anything
-    /// was sampled.
-    fn update(&mut self, layer: &LabelLayer, grids: &OverlayGrids) -> anyhow::Result<bool> {
-        let now: HashMap<BrickKey, usize> = layer
-            .edited_bricks()
-            .map(|(key, image)| (key, Arc::as_ptr(image) as *const u16 as usize))
-            .collect();
-        let mapping = GridMapping::new(grids, self.dims);
-        if !self.sampled_once {
-            self.sampled_once = true;
-            self.seen = now;
-            let all = ([0; 3], self.dims.map(|d| d.saturating_sub(1)));
-            self.sample_box(layer, &mapping, all, None)?;
-            return Ok(true);
-        }
-        let mut changed: Vec<BrickKey> = now
-            .iter()
-            .filter(|(key, address)| self.seen.get(key) != Some(address))
-            .map(|(key, _)| *key)
-            .collect();
-        changed.extend(self.seen.keys().filter(|k| !now.contains_key(k)).copied());
-        self.seen = now;
-        if changed.is_empty() {
-            return Ok(false);
-        }
-        for key in changed {
-            if let Some(grid_box) = mapping.grid_box_of_brick(key) {
-                self.sample_box(layer, &mapping, grid_box, Some(key))?;
-            }
-        }
-        Ok(true)
-    }
-
-    /// Samples the grid voxels of `grid_box` (first and last, inclusive); with `only`, just
-    /// those whose nearest layer voxel is in that brick (the others belong to its neighbours).
-    fn sample_box(
-        &mut self,
-        layer: &LabelLayer,
-        mapping: &GridMapping,
-        (lo, hi): ([u32; 3], [u32; 3]),
-        only: Option<BrickKey>,
-    ) -> anyhow::Result<()> {
-        let mut last: Option<(BrickKey, Option<Arc<[u16]>>)> = None;
-        for z in lo[2]..=hi[2] {
-            for y in lo[1]..=hi[1] {
-                for x in lo[0]..=hi[0] {
-                    let Some(index) = mapping.nearest_overlay_voxel([x, y, z]) else {
-                        if only.is_none() {
-                            self.set([x, y, z], 0);
-                        }
-                        continue;
-                    };
-                    let (key, at) = layer.grid().brick_of(index);
-                    if only.is_some_and(|o| o != key) {
-                        continue;
-                    }
-                    if last.as_ref().is_none_or(|(k, _)| *k != key) {
-                        let image = if layer.brick_is_empty(key) {
-                            None
-                        } else {
-                            Some(layer.brick(key)?)
-                        };
-                        last = Some((key, image));
-                    }
-                    let label = last
-                        .as_ref()
-                        .and_then(|(_, b)| b.as_ref())
-                        .map_or(0, |b| b[at]);
-                    self.set([x, y, z], i64::from(label));
-                }
-            }
-        }
-        Ok(())
-    }
-
-    fn set(&mut self, voxel: [u32; 3], label: i64) {
-        let slot = if label == 0 {
-            0
-        } else {
-            match self.labels.iter().position(|&l| l == label) {
-                Some(i) => i + 1,
-                None => {
-                    self.labels.push(label);
-                    self.labels.len()
-                }
-            }
-        };
-        let [nx, ny, _] = self.dims.map(|d| d as usize);
-        let [x, y, z] = voxel.map(|v| v as usize);
-        self.values[x + nx * (y + ny * z)] = slot as f32;
-    }
-
-    fn resampled(&self) -> anyhow::Result<Resampled> {
-        Ok(Resampled {
-            volume: Arc::new(OverlayVolume::new(
-                self.dims,
-                GridKind::Labels,
-                self.values.clone(),
-            )?),
-            labels: self.labels.clone(),
-        })
-    }
-}
-
-/// Grid voxel centres to overlay (layer) indices and back, as [`resample`] maps them.
-struct GridMapping {
-    overlay_from_primary: glam::DMat3,
-    offset: DVec3,
-    scale: DVec3,
-    overlay_dims: [u32; 3],
-    grid_dims: [u32; 3],
-}
-
-impl GridMapping {
-    fn new(grids: &OverlayGrids, grid_dims: [u32; 3]) -> Self {
-        GridMapping {
-            overlay_from_primary: grids.overlay.index_from_patient_linear()
-                * grids.primary.patient_from_index_linear(),
-            offset: grids.overlay.index_from_patient(grids.primary.origin()),
-            scale: DVec3::from(
-                [0, 1, 2].map(|a| grids.primary.dims[a] as f64 / grid_dims[a] as f64),
-            ),
-            overlay_dims: grids.overlay.dims,
-            grid_dims,
-        }
-    }
-
-    /// The overlay voxel nearest grid voxel `g`'s centre, or `None` outside the overlay (the
-    /// same rounding as [`resample`]).
-    fn nearest_overlay_voxel(&self, g: [u32; 3]) -> Option<[u32; 3]> {
-        let centre = (DVec3::from(g.map(f64::from)) + 0.5) * self.scale - 0.5;
-        let p = self.offset + self.overlay_from_primary * centre;
-        let odims = self.overlay_dims;
-        let inside =
-            (0..3).all(|a| p[a] >= -0.5 && p[a] < odims[a] as f64 - 0.5 && p[a].is_finite());
-        inside.then(|| {
-            [0, 1, 2].map(|a| (p[a].round().max(0.0) as u32).min(odims[a].saturating_sub(1)))
-        })
-    }
-
-    /// The grid voxels that can have their nearest overlay voxel in brick `key` (its box grown
-    /// by a voxel, mapped into the grid), or `None` when none can.
-    fn grid_box_of_brick(&self, key: BrickKey) -> Option<([u32; 3], [u32; 3])> {
-        let primary_from_overlay = self.overlay_from_primary.inverse();
-        if !primary_from_overlay.is_finite() {
-            return None;
-        }
-        let lo = key.0.map(|b| f64::from(b * LABEL_BRICK) - 1.0);
-        let hi = key.0.map(|b| f64::from((b + 1) * LABEL_BRICK) + 1.0);
-        let mut g_lo = DVec3::splat(f64::INFINITY);
-        let mut g_hi = DVec3::splat(f64::NEG_INFINITY);
-        for corner in 0..8 {
-            let p = DVec3::new(
-                if corner & 1 == 0 { lo[0] } else { hi[0] },
-                if corner & 2 == 0 { lo[1] } else { hi[1] },
-                if corner & 4 == 0 { lo[2] } else { hi[2] },
-            );
-            let centre = primary_from_overlay * (p - self.offset);
-            let g = (centre + 0.5) / self.scale - 0.5;
-            g_lo = g_lo.min(g);
-            g_hi = g_hi.max(g);
-        }
-        let first = [g_lo.x, g_lo.y, g_lo.z].map(|v| v.floor().max(0.0));
-        let last = [0, 1, 2].map(|a| {
-            [g_hi.x, g_hi.y, g_hi.z][a]
-                .ceil()
-                .min(f64::from(self.grid_dims[a]) - 1.0)
-        });
-        if (0..3).any(|a| last[a] < first[a] || !first[a].is_finite()) {
-            return None;
-        }
-        Some((first.map(|v| v as u32), last.map(|v| v as u32)))
     }
 }
 
@@ -397,9 +83,9 @@ impl Overlay3d {
         let state = Arc::new(Mutex::new(State::Resampling));
         let stop = Arc::new(AtomicBool::new(false));
         let (thread_state, thread_stop) = (state.clone(), stop.clone());
-        let finish = move |result: anyhow::Result<Resampled>| {
+        let finish = move |result: anyhow::Result<Arc<Resampled>>| {
             *lock_ignoring_poison(&thread_state) = match result {
-                Ok(r) => State::Done(Arc::new(r)),
+                Ok(r) => State::Done(r),
                 Err(e) => {
                     eprintln!("strata: overlay in 3D: {e:#}");
                     State::Failed
@@ -423,9 +109,11 @@ impl Overlay3d {
                             let updated = grid.update(&thread_layer.read(), &grids);
                             match updated {
                                 Ok(false) => {}
-                                Ok(true) => finish(grid.resampled()),
+                                Ok(true) => {
+                                    finish(grid.resampled().map(Arc::new).map_err(Into::into))
+                                }
                                 Err(e) => {
-                                    finish(Err(e));
+                                    finish(Err(e.into()));
                                     return;
                                 }
                             }
@@ -506,6 +194,9 @@ mod tests {
     use crate::overlay::tests::{
         import, label_of, write_nrrd, LABEL_DIMS, LABEL_ORIGIN, LABEL_SPACING,
     };
+    use crate::overlay::{OverlayKind, OverlayStyle};
+    use glam::DVec3;
+    use strata_segment::LabelLayer;
     use strata_storage::phantom::Phantom;
 
     /// Every grid voxel carries the label of the overlay voxel nearest to its centre's patient

@@ -42,7 +42,7 @@ use strata_viewer_ui::orbit;
 use strata_viewer_ui::picking::frame_pixel;
 use strata_viewer_ui::presets;
 use strata_viewer_ui::render_driver::{
-    RenderChange, RenderDriver, RenderRequest, DEFAULT_PROGRESSIVE_FRAMES,
+    OverlayIn3d, RenderChange, RenderDriver, RenderRequest, DEFAULT_PROGRESSIVE_FRAMES,
 };
 use strata_viewer_ui::triad;
 
@@ -580,7 +580,9 @@ impl WebViewer {
             target_fps: self.side.target_fps(),
             // The page's own controller (view_motion.rs) paces the drag.
             interacting: false,
-            overlay: None,
+            // The labels being edited, else the served overlay's 3D grid once resampled; the
+            // sample's 3D view has neither.
+            overlay: self.streamed.as_mut().and_then(Streamed::overlay_in_3d),
             traversal: None,
             adaptive_epsilon: None,
             // A still view with shadows, occlusion or scattering averages this many jittered
@@ -1128,7 +1130,10 @@ impl WebViewer {
                 && self.frames_submitted >= crate::view_state::UNCONVERGED_CAPTURE_FRAMES;
             // A still view that refines is captured once its mean is complete (refine.rs).
             let (settled, refined) = (self.refine.settled(), self.refine.refined_texture());
+            // The link's overlay is in the frame first (its grid resampled and drawn).
+            let overlay_ready = self.streamed.as_mut().is_none_or(overlay_drawn_in_3d);
             let texture = match self.streamed.as_mut() {
+                Some(_) if !overlay_ready => None,
                 Some(streamed)
                     if capture_unconverged
                         || (settled && streamed.last.as_ref().is_some_and(|s| s.converged)) =>
@@ -1208,6 +1213,32 @@ impl WebViewer {
             _ => ctx.request_repaint(),
         }
     }
+}
+
+impl Streamed {
+    /// What the 3D view draws over the volume: the segmentation's labels once painted (the
+    /// layer being edited, segment_editor.rs), else the served overlay's grid once resampled
+    /// (overlay_view.rs). The raycaster draws one overlay, as the desktop's, whose segmentation
+    /// is its overlay.
+    fn overlay_in_3d(&mut self) -> Option<OverlayIn3d> {
+        let labels = self
+            .slices
+            .segmentation
+            .as_mut()
+            .and_then(|s| s.request_3d());
+        labels.or_else(|| self.slices.overlay.request_3d())
+    }
+}
+
+/// Whether the last frame drawn shows the overlay as the link has it: no overlay named, or
+/// its 3D grid resampled and in the request the frame answered.
+fn overlay_drawn_in_3d(streamed: &mut Streamed) -> bool {
+    if streamed.slices.overlay.pending_3d() {
+        return false;
+    }
+    let wanted = streamed.overlay_in_3d();
+    let drawn = streamed.driver.drawn_request().map(|r| &r.overlay);
+    drawn.is_some_and(|d| *d == wanted)
 }
 
 /// Copies `texture` (the frame on screen, `size`) to a buffer and maps it; the capture's
@@ -1607,13 +1638,20 @@ impl eframe::App for WebViewer {
                     }
                 }
                 let picked = self.take_pick();
-                let (slices, oblique) = match self.streamed.as_mut() {
+                let (mut slices, oblique) = match self.streamed.as_mut() {
                     Some(streamed) => (Some(&mut streamed.slices), Some(&mut streamed.oblique)),
                     None => (self.sample_slices.as_mut(), self.sample_oblique.as_mut()),
                 };
                 if let Some(index) = picked {
                     // The link names it even where no slice view shows it (the single layout).
                     self.view.cursor = Some(index);
+                }
+                if let (None, Some(slices)) = (slice_rects, slices.as_deref_mut()) {
+                    // The 3D view alone: the link's overlay still opens and its 3D grid still
+                    // fills (the slice views' frame pumps it otherwise).
+                    let token = self.token.as_deref();
+                    crate::overlay_view::follow_link(&self.view.overlay, slices, token, &ctx);
+                    slices.overlay.pump(&ctx);
                 }
                 if let (Some(rects), Some(slices)) = (slice_rects, slices) {
                     if let Some(index) = picked {
@@ -1630,7 +1668,7 @@ impl eframe::App for WebViewer {
                         // Test hook (`capture=1`): each complete image once the pointer is up.
                         let pointer_down = ctx.input(|i| i.pointer.any_down());
                         let capture = match self.view.capture {
-                            true => oblique.take_capture(pointer_down),
+                            true => oblique.take_capture(pointer_down, &slices.overlay),
                             false => None,
                         };
                         if let Some(shot) = capture {

@@ -22,9 +22,15 @@
 //! is the tool's (brush and eraser a disc in the plane, fill the closed region in it: the
 //! page's segmentation, segment_editor.rs), and the labels are drawn over the image.
 //!
+//! A served overlay (overlay_view.rs, `overlay=`) is drawn over the image as the desktop's
+//! oblique view draws its overlay: sampled at the image's own pixel centres by the shared
+//! `strata_viewer_ui::overlay` and composited over it.
+//!
 //! Test hook (`capture=1`): each complete image at the view's level, once the pointer is up,
-//! is handed to the page to post (RGBA as drawn, with its level and window), so
-//! `web/tests/browser/oblique.rs` compares it with the desktop's resampling of the same plane.
+//! is handed to the page to post (RGBA as drawn, with its level and window, and the overlay
+//! over it once sampled), so `web/tests/browser/oblique.rs` compares it with the desktop's
+//! resampling of the same plane and `web/tests/browser/overlay.rs` with the desktop's
+//! compositing.
 
 use std::rc::Rc;
 use std::sync::Arc;
@@ -44,6 +50,7 @@ use strata_viewer_ui::layouts;
 use strata_viewer_ui::slice_canvas::{fraction_at, paint_orientation_labels, paint_readout_line};
 use strata_viewer_ui::view_state::{Layout, ViewState};
 
+use crate::overlay_view::OverlaySlot;
 use crate::slice_views::{slice_layout, SliceViews};
 
 /// The plane as the brush's disc lies in it: through the centre, spanned by screen right and
@@ -398,21 +405,29 @@ impl ObliqueView {
     }
 
     /// Test hook (`capture=1`): the image on screen once it is the wanted one (complete at the
-    /// view's level) and the pointer is up, each such image once: its RGBA as coloured, width,
-    /// height, and its level, plane angles and window as the capture's metrics.
-    pub fn take_capture(&mut self, pointer_down: bool) -> Option<ObliqueCapture> {
+    /// view's level) and the pointer is up, each such image once: its RGBA as coloured with
+    /// `overlay` over it (once sampled: until then nothing is taken), width, height, and its
+    /// level, plane angles and window as the capture's metrics.
+    pub fn take_capture(
+        &mut self,
+        pointer_down: bool,
+        overlay: &OverlaySlot,
+    ) -> Option<ObliqueCapture> {
         let shown = self.shown.as_ref()?;
         let request = shown.image.request;
         if pointer_down || Some(request) != self.wanted || self.captured == Some(request) {
             return None;
         }
-        self.captured = Some(request);
-        let rgba = oblique_rgba(
+        let mut rgba = oblique_rgba(
             &shown.image.values,
             shown.window,
             shown.colour_map,
             self.mapping,
         );
+        if !overlay.composite_oblique(&request, &mut rgba) {
+            return None;
+        }
+        self.captured = Some(request);
         let [yaw, pitch, roll] = request.plane.orientation_deg();
         let metrics = vec![
             ("oblique_level", f64::from(request.level)),
@@ -555,6 +570,12 @@ impl ObliqueView {
                 Rect::from_min_max(Pos2::ZERO, Pos2::new(1.0, 1.0)),
                 Color32::WHITE,
             );
+            // The served overlay over the image on screen, sampled at its own pixel centres
+            // (overlay_view.rs), as the desktop's oblique view draws its overlay.
+            let shown_request = shown.image.request;
+            slices
+                .overlay
+                .paint_oblique(&ctx, &painter, &shown_request, image_rect);
         }
         if let Some(seg) = slices.segmentation.as_mut() {
             // The labels at the oblique image's own pixels (its request's, before one shows).

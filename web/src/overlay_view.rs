@@ -1,5 +1,5 @@
 //! The page's overlay (issue 47 item 3, wasm32 only): a second store of the same server drawn
-//! over the three slice views, as a label map or a continuous overlay, with the desktop's
+//! over the three slice views and the oblique view, as a label map or a continuous overlay, with the desktop's
 //! sampling and colouring (strata-viewer-ui's overlay: nearest label or trilinear from level 0,
 //! on any grid). The link names it (`overlay=NAME`, its kind, opacity and hidden labels); the
 //! side panel's Overlay section lists the server's other stores and edits the link.
@@ -13,8 +13,23 @@
 //! style changes, and drawn with the slice's own mesh (labels with nearest filtering: a linear
 //! filter would blend two labels' colours into a third at every boundary).
 //!
+//! The 3D view's overlay (issue 47): the desktop's grid (strata-viewer-ui's `overlay_3d`, the
+//! nearest level-0 label or trilinear value at each grid voxel's centre over the primary's
+//! index box) resampled here without blocking: each frame's pump samples at most
+//! [`GRID_VOXELS_PER_FRAME`] voxels (whole grid z-slices) from the resident bricks, a slice
+//! that meets a missing brick is tried again once more have arrived, and the missing bricks are
+//! asked for after the slice views' own. Complete, the grid goes into the page's render request
+//! ([`OverlaySlot::request_3d`]) and the shared render driver uploads it; a style change
+//! afterwards is a new colour table only, as on the desktop. The grid is bounded by
+//! [`PAGE_OVERLAY_3D_MAX_VOXELS`], an eighth of the desktop's.
+//!
+//! The oblique view's overlay is sampled as the desktop's (viewer/src/oblique_view.rs): at the
+//! centres of the oblique image's own pixels (strata-viewer-ui's `oblique_pixels`), for the
+//! image on screen, and drawn over it.
+//!
 //! For the browser tests (web/tests/browser/overlay.rs) the slice capture (`capture=1`) waits
-//! for the axial view's overlay and composites it over the slice ([`OverlaySlot::composite`]).
+//! for the axial view's overlay and composites it over the slice ([`OverlaySlot::composite`]),
+//! and the oblique capture for the oblique view's ([`OverlaySlot::composite_oblique`]).
 
 use std::cell::RefCell;
 use std::collections::BTreeSet;
@@ -22,15 +37,19 @@ use std::rc::Rc;
 use std::sync::Arc;
 
 use egui::{Rect, TextureHandle, TextureOptions};
-use strata_slices::oblique::LevelBricks;
+use strata_slices::oblique::{LevelBricks, ObliqueRequest};
 use strata_slices::{BrickLru, SliceError, SliceImage, SliceRequest, SliceView};
 use strata_source::wire::StoreList;
 use strata_source::{BrickFetcher, FetchOptions, SourceError, VolumeSource};
 use strata_types::{BrickId, OctreeLayout, VolumeGeometry};
 use strata_viewer_ui::overlay::{
-    colour_image, composite_over, kind_of_store, label_table_of, sample, slice_pixels,
-    style_controls, OverlayGrids, OverlayKind, OverlayLink, OverlayStyle, Sampled,
+    colour_image, composite_over, kind_of_store, label_table_of, oblique_pixels, sample,
+    slice_pixels, style_controls, OverlayGrids, OverlayKind, OverlayLink, OverlayStyle, Sampled,
 };
+use strata_viewer_ui::overlay_3d::{
+    grid_dims, lut_for, GridProgress, GridResampler, Resampled, PAGE_OVERLAY_3D_MAX_VOXELS,
+};
+use strata_viewer_ui::render_driver::OverlayIn3d;
 use strata_viewer_ui::slice_canvas::slice_mesh;
 use strata_viewer_ui::view_state::ViewState;
 
@@ -44,6 +63,10 @@ pub const OVERLAY_REQUESTS: usize = 4;
 pub const OVERLAY_CACHE_BYTES: usize = 48 << 20;
 /// Missing bricks one sampling lists before it stops (bounds a frame's work while bricks come).
 pub const MISSING_PER_SAMPLING: usize = 2 * OVERLAY_REQUESTS;
+/// Grid voxels the page samples for the 3D grid in one frame: two z-slices of a 128² grid, so
+/// a frame's share stays a few milliseconds (one matrix product and one brick lookup a voxel;
+/// not measured on a slow device).
+pub const GRID_VOXELS_PER_FRAME: u64 = 2 * 128 * 128;
 
 /// The store being opened as the overlay: filled by the open's future.
 type Opening = Rc<RefCell<Option<Result<ServedStore, SourceError>>>>;
@@ -95,6 +118,65 @@ impl OverlaySlot {
     ) {
         if let OverlaySlot::Open(overlay) = self {
             overlay.paint(ctx, painter, image, image_rect);
+        }
+    }
+
+    /// What the 3D view draws of the overlay now (the render request's): None while its grid
+    /// is being resampled, without an overlay, or when it is hidden or not shown in 3D.
+    pub fn request_3d(&self) -> Option<OverlayIn3d> {
+        let OverlaySlot::Open(overlay) = self else {
+            return None;
+        };
+        let style = &overlay.style;
+        if !style.visible || !style.show_in_3d {
+            return None;
+        }
+        let grid = overlay.grid_done.as_ref()?;
+        Some(OverlayIn3d {
+            volume: grid.volume.clone(),
+            lut: lut_for(overlay.kind, style, &grid.labels),
+        })
+    }
+
+    /// Whether the 3D view is still to show the overlay the link names: it is opening, or its
+    /// 3D grid is being resampled (the test capture waits for it).
+    pub fn pending_3d(&self) -> bool {
+        match self {
+            OverlaySlot::Closed | OverlaySlot::Failed { .. } => false,
+            OverlaySlot::Opening { .. } => true,
+            OverlaySlot::Open(overlay) => {
+                overlay.grid_done.is_none() && overlay.error.is_none() && overlay.style.visible
+            }
+        }
+    }
+
+    /// The overlay over the oblique view's image of `request`, drawn in `image_rect` (nothing
+    /// until it is sampled).
+    pub fn paint_oblique(
+        &mut self,
+        ctx: &egui::Context,
+        painter: &egui::Painter,
+        request: &ObliqueRequest,
+        image_rect: Rect,
+    ) {
+        if let OverlaySlot::Open(overlay) = self {
+            overlay.paint_oblique(ctx, painter, request, image_rect);
+        }
+    }
+
+    /// Test hook (`capture=1`): the overlay over the captured oblique image of `request` (its
+    /// `rgba`), as [`OverlaySlot::composite`] does for a slice.
+    pub fn composite_oblique(&self, request: &ObliqueRequest, rgba: &mut [u8]) -> bool {
+        match self {
+            OverlaySlot::Closed | OverlaySlot::Failed { .. } => true,
+            OverlaySlot::Opening { .. } => false,
+            OverlaySlot::Open(overlay) => {
+                let Some(values) = overlay.oblique_values_for(request) else {
+                    return false;
+                };
+                composite_over(rgba, overlay.kind, &overlay.style, values);
+                true
+            }
         }
     }
 
@@ -247,9 +329,16 @@ pub fn section(
     }
 }
 
-/// One view's overlay: the slice it is sampled for, its values once complete, its texture.
+/// What one view's overlay is sampled for: a slice view's image or the oblique view's.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum SampledFor {
+    Slice(SliceRequest),
+    Oblique(ObliqueRequest),
+}
+
+/// One view's overlay: the image it is sampled for, its values once complete, its texture.
 struct ViewOverlay {
-    request: SliceRequest,
+    target: SampledFor,
     size: (usize, usize),
     values: Option<Arc<Vec<f32>>>,
     /// The texture and the values and style it was coloured from.
@@ -270,9 +359,14 @@ pub struct PageOverlay {
     /// Bricks the views found missing this frame (asked for at the next pump).
     wanted: Vec<BrickId>,
     views: [Option<ViewOverlay>; 3],
+    /// The oblique view's.
+    oblique: Option<ViewOverlay>,
     /// Labels met in the sampled slices (the section lists them).
     labels_seen: BTreeSet<i64>,
     error: Option<String>,
+    /// The 3D view's grid being resampled, a few slices a frame; then the grid.
+    grid_3d: GridResampler,
+    grid_done: Option<Arc<Resampled>>,
 }
 
 /// The resident bricks as strata-slices' level bricks: `None` while a brick is not fetched.
@@ -321,25 +415,33 @@ impl PageOverlay {
             None => kind_of_store(named_labels, &mapping, physical_range),
         };
         let primary_level_dims = OctreeLayout::new(primary.dims).level_dims;
+        let grids = OverlayGrids {
+            primary,
+            primary_level_dims,
+            overlay: header.geometry.clone(),
+            overlay_mapping: mapping,
+            kind,
+        };
+        let grid_3d = GridResampler::new(
+            grids.clone(),
+            grid_dims(&grids.primary_level_dims, PAGE_OVERLAY_3D_MAX_VOXELS),
+        );
         Ok(PageOverlay {
             name,
             kind_asked,
             kind,
             style: OverlayStyle::opening(label_table_of(&header.labels), physical_range),
             physical_range,
-            grids: OverlayGrids {
-                primary,
-                primary_level_dims,
-                overlay: header.geometry.clone(),
-                overlay_mapping: mapping,
-                kind,
-            },
+            grids,
             fetcher,
             bricks: BrickLru::new(OVERLAY_CACHE_BYTES),
             wanted: Vec::new(),
             views: [None, None, None],
+            oblique: None,
             labels_seen: BTreeSet::new(),
             error: None,
+            grid_3d,
+            grid_done: None,
         })
     }
 
@@ -351,6 +453,7 @@ impl PageOverlay {
             }
             self.fetcher.complete(result.id);
         }
+        self.step_grid_3d(ctx);
         let demand: Vec<(BrickId, f64)> = self
             .wanted
             .iter()
@@ -366,10 +469,49 @@ impl PageOverlay {
         self.wanted.clear();
     }
 
+    /// A frame's share of the 3D grid ([`GRID_VOXELS_PER_FRAME`]) from the resident bricks; the
+    /// bricks it lacks are asked for after the slice views' (they are what is being looked at).
+    fn step_grid_3d(&mut self, ctx: &egui::Context) {
+        if self.grid_done.is_some() || self.error.is_some() || !self.style.visible {
+            return;
+        }
+        let stepped = self.grid_3d.step(
+            &mut Resident(&mut self.bricks),
+            GRID_VOXELS_PER_FRAME,
+            MISSING_PER_SAMPLING,
+        );
+        match stepped {
+            Ok(GridProgress::Complete(grid)) => {
+                if self.kind == OverlayKind::Labels {
+                    self.labels_seen.extend(grid.labels.iter().copied());
+                }
+                self.grid_done = Some(grid);
+                ctx.request_repaint();
+            }
+            Ok(GridProgress::Incomplete { missing, .. }) => {
+                for id in missing {
+                    if !self.wanted.contains(&id) {
+                        self.wanted.push(id);
+                    }
+                }
+                ctx.request_repaint();
+            }
+            Err(e) => self.error = Some(format!("the overlay in 3D: {e}")),
+        }
+    }
+
     /// The sampled values over `image`, once complete.
     fn values_for(&self, image: &SliceImage) -> Option<&[f32]> {
         let shown = self.views[image.request.view.index()].as_ref()?;
-        (shown.request == image.request && shown.size == (image.width, image.height))
+        (shown.target == SampledFor::Slice(image.request)
+            && shown.size == (image.width, image.height))
+            .then_some(shown.values.as_deref()?.as_slice())
+    }
+
+    /// The sampled values over the oblique image of `request`, once complete.
+    fn oblique_values_for(&self, request: &ObliqueRequest) -> Option<&[f32]> {
+        let shown = self.oblique.as_ref()?;
+        (shown.target == SampledFor::Oblique(*request))
             .then_some(shown.values.as_deref()?.as_slice())
     }
 
@@ -381,32 +523,83 @@ impl PageOverlay {
         image_rect: Rect,
     ) {
         let view: SliceView = image.request.view;
-        let size = (image.width, image.height);
-        let slot = &mut self.views[view.index()];
+        let target = SampledFor::Slice(image.request);
+        let mut slot = self.views[view.index()].take();
+        let texture = self.sampled_texture(ctx, &mut slot, target, (image.width, image.height));
+        if let Some(texture) = texture {
+            painter.add(egui::Shape::mesh(slice_mesh(
+                texture,
+                image_rect,
+                image.inside_fraction,
+                image.request.frame,
+            )));
+        }
+        self.views[view.index()] = slot;
+    }
+
+    /// The oblique view's overlay over its image of `request` in `image_rect`, sampled at that
+    /// image's pixel centres as the desktop's oblique view has it sampled.
+    fn paint_oblique(
+        &mut self,
+        ctx: &egui::Context,
+        painter: &egui::Painter,
+        request: &ObliqueRequest,
+        image_rect: Rect,
+    ) {
+        let target = SampledFor::Oblique(*request);
+        let mut slot = self.oblique.take();
+        let size = (request.width, request.height);
+        if let Some(texture) = self.sampled_texture(ctx, &mut slot, target, size) {
+            painter.image(
+                texture,
+                image_rect,
+                Rect::from_min_max(egui::Pos2::ZERO, egui::Pos2::new(1.0, 1.0)),
+                egui::Color32::WHITE,
+            );
+        }
+        self.oblique = slot;
+    }
+
+    /// Samples `slot` for `target` (`size` pixels) from the resident bricks until complete
+    /// (listing the missing ones for the next pump), and colours it into its texture, again
+    /// only when the values or the style change. The texture to draw, once there is one.
+    fn sampled_texture(
+        &mut self,
+        ctx: &egui::Context,
+        slot: &mut Option<ViewOverlay>,
+        target: SampledFor,
+        size: (usize, usize),
+    ) -> Option<egui::TextureId> {
         let current = slot
             .as_ref()
-            .is_some_and(|s| s.request == image.request && s.size == size);
+            .is_some_and(|s| s.target == target && s.size == size);
         if !current {
             let texture = slot.take().and_then(|s| s.texture);
             *slot = Some(ViewOverlay {
-                request: image.request,
+                target,
                 size,
                 values: None,
                 texture,
             });
         }
-        let Some(shown) = slot.as_mut() else {
-            return;
-        };
+        let shown = slot.as_mut()?;
         if shown.values.is_none() {
-            let pixels = slice_pixels(&self.grids, image.request);
-            let sampled = sample(
-                &mut Resident(&mut self.bricks),
-                &self.grids,
-                &pixels,
-                size,
-                MISSING_PER_SAMPLING,
-            );
+            let sampled = match target {
+                SampledFor::Slice(request) => sample(
+                    &mut Resident(&mut self.bricks),
+                    &self.grids,
+                    &slice_pixels(&self.grids, request),
+                    size,
+                    MISSING_PER_SAMPLING,
+                ),
+                SampledFor::Oblique(request) => sample(
+                    &mut Resident(&mut self.bricks),
+                    &self.grids,
+                    &oblique_pixels(&self.grids, &request.plane, size.0, size.1),
+                    size,
+                    MISSING_PER_SAMPLING,
+                ),
+            };
             match sampled {
                 Ok(Sampled::Complete(values)) => {
                     if self.kind == OverlayKind::Labels {
@@ -426,9 +619,7 @@ impl PageOverlay {
                 Err(e) => self.error = Some(e.to_string()),
             }
         }
-        let Some(values) = shown.values.clone() else {
-            return;
-        };
+        let values = shown.values.clone()?;
         let filter = match self.kind {
             OverlayKind::Labels => TextureOptions::NEAREST,
             OverlayKind::Continuous => TextureOptions::LINEAR,
@@ -446,19 +637,15 @@ impl PageOverlay {
                     *style = self.style.clone();
                 }
                 None => {
-                    let texture =
-                        ctx.load_texture(format!("overlay {}", view.name()), colours, filter);
+                    let name = match target {
+                        SampledFor::Slice(request) => format!("overlay {}", request.view.name()),
+                        SampledFor::Oblique(_) => "overlay oblique".to_string(),
+                    };
+                    let texture = ctx.load_texture(name, colours, filter);
                     shown.texture = Some((texture, values.clone(), self.style.clone()));
                 }
             }
         }
-        if let Some((texture, _, _)) = &shown.texture {
-            painter.add(egui::Shape::mesh(slice_mesh(
-                texture.id(),
-                image_rect,
-                image.inside_fraction,
-                image.request.frame,
-            )));
-        }
+        shown.texture.as_ref().map(|(texture, _, _)| texture.id())
     }
 }

@@ -31,6 +31,12 @@
 //! the section's Undo and Redo all walk it, as the desktop's `history.undo(&mut scene,
 //! segmentation)`.
 //!
+//! The labels show in the 3D view too, as the desktop's segmentation does (its layer is its
+//! overlay): strata-viewer-ui's `LayerGrid` of the layer at the page's 3D grid bound, which
+//! samples again only the grid voxels an edit's bricks reach (a new layer is all background,
+//! so nothing is sampled whole), carried by the render request with the segments' colours,
+//! visibility and the panel's opacity as its colour table ([`PageSegmentation::request_3d`]).
+//!
 //! For the browser tests (web/tests/browser/segment.rs) the canvas carries
 //! `data-segmentation` (`segments=N;painted=V;checksum=H;undo=U;redo=R;stroke=0|1`, then
 //! `;error=…` while the panel shows one; or `none`)
@@ -51,6 +57,11 @@ use strata_segment::tools::morphology::{combine, margin, remove_islands, Operand
 use strata_segment::{Edit, Label, LabelLayer, SegmentError, LABEL_BRICK};
 use strata_slices::oblique::ObliquePlane;
 use strata_slices::{SliceFrame, SliceView};
+use strata_viewer_ui::overlay::{segment_labels, OverlayGrids, OverlayKind, OverlayStyle};
+use strata_viewer_ui::overlay_3d::{
+    grid_dims, lut_for, LayerGrid, Resampled, PAGE_OVERLAY_3D_MAX_VOXELS,
+};
+use strata_viewer_ui::render_driver::OverlayIn3d;
 use strata_viewer_ui::segment_panel::{
     self, OperationSettings, SegmentListChange, SegmentOperation, SegmentTool,
     DEFAULT_BRUSH_DIAMETER_MM, DEFAULT_LABEL_OPACITY,
@@ -96,6 +107,15 @@ struct ObliqueLabelImage {
     made_from: (u64, ObliquePlane, usize, u32),
 }
 
+/// The labels in the 3D view: the layer's grid over the primary's index box, updated where the
+/// edits since the layer revision it last saw reach, and the grid as last made.
+struct Labels3d {
+    grids: OverlayGrids,
+    grid: LayerGrid,
+    revision: Option<u64>,
+    resampled: Option<std::sync::Arc<Resampled>>,
+}
+
 /// The page's editable label layer and its tools' settings.
 pub struct PageSegmentation {
     layer: LabelLayer,
@@ -127,6 +147,8 @@ pub struct PageSegmentation {
     values: crate::segment_values::SegmentValues,
     /// This layer's place in the page's one history (page_tools.rs, [`SegmentStep`]).
     page_history: PageHistoryLink,
+    /// The labels in the 3D view.
+    labels_3d: Labels3d,
 }
 
 /// A segmentation edit's place among the view's edits in the page's one history (page_tools.rs,
@@ -157,7 +179,22 @@ impl PageSegmentation {
     pub fn new(primary: &VolumeGeometry) -> Result<Self, SegmentError> {
         let mut layer = LabelLayer::new_empty(primary.clone())?;
         let active = layer.segments_mut().add("Segment 1")?;
+        let grids = OverlayGrids {
+            primary: primary.clone(),
+            primary_level_dims: strata_types::OctreeLayout::new(primary.dims).level_dims,
+            overlay: layer.grid().geometry().clone(),
+            overlay_mapping: Default::default(),
+            kind: OverlayKind::Labels,
+        };
+        let dims = grid_dims(&grids.primary_level_dims, PAGE_OVERLAY_3D_MAX_VOXELS);
+        let labels_3d = Labels3d {
+            grids,
+            grid: LayerGrid::for_empty_layer(dims),
+            revision: None,
+            resampled: None,
+        };
         Ok(PageSegmentation {
+            labels_3d,
             layer,
             history: History::new(HISTORY_BYTES),
             tool: SegmentTool::None,
@@ -182,6 +219,45 @@ impl PageSegmentation {
                 },
                 ..PageHistoryLink::default()
             },
+        })
+    }
+
+    /// What the 3D view draws of the labels (the render request's): the layer's grid, updated
+    /// where the edits since the last call reach, coloured as the slices draw the segments
+    /// (colour, shown, the panel's opacity); None until something is painted.
+    pub fn request_3d(&mut self) -> Option<OverlayIn3d> {
+        if self.layer.edited_brick_count() == 0 {
+            return None;
+        }
+        let labels = &mut self.labels_3d;
+        if labels.revision != Some(self.revision) {
+            labels.revision = Some(self.revision);
+            let updated = labels
+                .grid
+                .update(&self.layer, &labels.grids)
+                .and_then(|changed| match changed || labels.resampled.is_none() {
+                    true => labels
+                        .grid
+                        .resampled()
+                        .map(|r| Some(std::sync::Arc::new(r))),
+                    false => Ok(None),
+                });
+            match updated {
+                Ok(Some(resampled)) => labels.resampled = Some(resampled),
+                Ok(None) => {}
+                Err(e) => self.error = Some(format!("the labels in 3D: {e}")),
+            }
+        }
+        let resampled = self.labels_3d.resampled.as_ref()?;
+        let (label_table, hidden_labels) = segment_labels(self.layer.segments());
+        let style = OverlayStyle {
+            opacity: self.opacity,
+            hidden_labels,
+            ..OverlayStyle::opening(label_table, (0.0, 1.0))
+        };
+        Some(OverlayIn3d {
+            volume: resampled.volume.clone(),
+            lut: lut_for(OverlayKind::Labels, &style, &resampled.labels),
         })
     }
 

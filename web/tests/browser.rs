@@ -52,6 +52,9 @@ mod frames;
 /// A second served store over the page's slices against the desktop's overlay code (issue 47).
 #[path = "browser/overlay.rs"]
 mod overlay;
+/// The served overlay in the page's 3D view against the native raycaster's (issue 47).
+#[path = "browser/overlay_3d.rs"]
+mod overlay_3d;
 /// Progressive refinement of the page's still 3D view against the native mean (issue 47).
 #[path = "browser/refine.rs"]
 mod refine;

@@ -49,7 +49,7 @@ impl LevelBricks for ClientBricks<'_> {
 /// The next oblique image the page posts of the plane at `angles` (degrees; the capture's
 /// metrics carry three decimals); its 3D frame, slice image and images of other planes are
 /// passed over.
-fn next_oblique_capture(
+pub(crate) fn next_oblique_capture(
     frames: &mpsc::Receiver<CapturedFrame>,
     page: &Cdp,
     angles: [f64; 3],
@@ -76,7 +76,7 @@ fn next_oblique_capture(
 
 /// The desktop's image of `plane` at the posted image's size and level, coloured with the
 /// link's window: strata-slices' resampling and window/level step.
-fn desktop_image(
+pub(crate) fn desktop_image(
     client: &strata_service::client::RemoteSource,
     plane: ObliquePlane,
     posted: &CapturedFrame,
@@ -112,7 +112,7 @@ fn desktop_image(
 
 /// The page's posted image against the desktop's, within [`MAX_DIFFERING_SHARE`], and
 /// showing something (the plane crosses the phantom).
-fn assert_same_image(what: &str, posted: &CapturedFrame, desktop: &[u8], console: &str) {
+pub(crate) fn assert_same_image(what: &str, posted: &CapturedFrame, desktop: &[u8], console: &str) {
     assert_eq!(posted.rgba.len(), desktop.len(), "{what}: image sizes");
     let differing = posted
         .rgba

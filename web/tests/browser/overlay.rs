@@ -1,13 +1,15 @@
-//! The page's overlay (issue 47 item 3): a second served store drawn over the slices, opened
-//! from the link (`overlay=NAME`), against the desktop's overlay code (strata-viewer-ui's
-//! overlay, which the desktop's reader thread runs) on the same stores.
+//! The page's overlay (issue 47 item 3): a second served store drawn over the slices and the
+//! oblique view, opened from the link (`overlay=NAME`), against the desktop's overlay code
+//! (strata-viewer-ui's overlay, which the desktop's reader thread runs) on the same stores.
 //!
 //! The page's slice capture (`capture=1`) waits for the axial view's overlay and composites it
 //! over the slice with the shared compositing (premultiplied "over", what the painters do); the
 //! test computes the same slice natively (the desktop's assembler and window/level, then the
 //! shared sampler on the overlay's level-0 bricks read by the desktop's client, the shared
 //! colouring and compositing) and asks for the images to be equal byte for byte: the page and
-//! the desktop run one f64 program on the same bricks, so no tolerance is needed.
+//! the desktop run one f64 program on the same bricks, so no tolerance is needed. The oblique
+//! view's capture is compared the same way with the oblique test's tolerance (its plane's axes
+//! come from sines and cosines, which wasm32's libm and the native one may round apart).
 
 use std::path::Path;
 use std::sync::{mpsc, Arc};
@@ -15,17 +17,19 @@ use std::sync::{mpsc, Arc};
 use strata_render::VolumeGeometry;
 use strata_service::server::{find_stores, start};
 use strata_service::{CapturedFrame, FrameSink, ServeOptions};
-use strata_slices::oblique::LevelBricks;
+use strata_slices::oblique::{default_extent_mm, LevelBricks, ObliquePlane};
 use strata_slices::{SliceError, SliceFrame, SliceRequest, SliceView, Window};
 use strata_source::VolumeSource;
 use strata_storage::import::ImportOptions;
 use strata_storage::phantom::Phantom;
 use strata_types::BrickId;
 use strata_viewer_ui::overlay::{
-    composite_over, kind_of_store, label_table_of, sample, slice_pixels, OverlayGrids, OverlayKind,
-    OverlayLink, OverlayStyle, Sampled,
+    composite_over, kind_of_store, label_table_of, oblique_pixels, sample, slice_pixels,
+    OverlayGrids, OverlayKind, OverlayLink, OverlayStyle, Sampled,
 };
 
+use super::input::cdp::Cdp;
+use super::oblique::{assert_same_image, desktop_image, next_oblique_capture};
 use super::{
     assert_same_slice, capture_slice, desktop_axial_slice, desktop_client, web_viewer, TOKEN,
 };
@@ -118,7 +122,7 @@ fn serve_stores(
 }
 
 /// The desktop's blocking reads as level bricks (always resident).
-struct Blocking<'a>(&'a dyn VolumeSource);
+pub(crate) struct Blocking<'a>(pub(crate) &'a dyn VolumeSource);
 
 impl LevelBricks for Blocking<'_> {
     type Error = SliceError;
@@ -297,5 +301,130 @@ fn a_continuous_overlay_from_a_served_store_draws_as_the_desktops() {
     assert!(
         changed > 0.25,
         "the overlay covers the slice: {changed:.2} of it"
+    );
+}
+
+/// The desktop's view of a served overlay store over a served primary: both grids, the kind
+/// the store opens as and the style it opens with, the link's `extra` keys applied.
+pub(crate) fn desktop_overlay(
+    primary: &strata_service::client::RemoteSource,
+    overlay: &strata_service::client::RemoteSource,
+    extra: &str,
+) -> (OverlayGrids, OverlayStyle) {
+    let header = primary.header();
+    let overlay_header = overlay.header();
+    let mapping = overlay_header.value_mapping.mapping;
+    let (a, b) = (
+        mapping.physical(overlay_header.stored_range[0] as f64),
+        mapping.physical(overlay_header.stored_range[1] as f64),
+    );
+    let physical_range = (a.min(b), a.max(b));
+    let kind = kind_of_store(!overlay_header.labels.is_empty(), &mapping, physical_range);
+    let grids = OverlayGrids {
+        primary: header.geometry.clone(),
+        primary_level_dims: header.layout.level_dims.clone(),
+        overlay: overlay_header.geometry.clone(),
+        overlay_mapping: mapping,
+        kind,
+    };
+    let mut style = OverlayStyle::opening(label_table_of(&overlay_header.labels), physical_range);
+    let mut link = OverlayLink::default();
+    for part in extra.split('&').filter(|p| !p.is_empty()) {
+        let (key, value) = part.split_once('=').expect("key=value");
+        link.parse_key(key, value).expect("the test's own link");
+    }
+    link.apply_to(&mut style);
+    (grids, style)
+}
+
+/// Serves a 64³ CT phantom and a label map on another grid (as above) and returns the
+/// scratch folder (the stores'), the server (the primary as `ct`, the labels as `over`) and
+/// its captures.
+pub(crate) fn serve_phantom_with_labels() -> (
+    tempfile::TempDir,
+    strata_service::server::RunningServer,
+    mpsc::Receiver<CapturedFrame>,
+) {
+    let scratch = tempfile::tempdir().expect("scratch folder");
+    let primary_path = scratch.path().join("ct.strata");
+    Phantom::cube(64)
+        .write_store(&primary_path, &ImportOptions::default())
+        .expect("writing the primary");
+    let primary_geometry = strata_storage::Store::open(&primary_path)
+        .expect("opening the primary")
+        .header()
+        .geometry
+        .clone();
+    let nrrd = scratch.path().join("overlay.nrrd");
+    write_overlay_nrrd(&nrrd, &primary_geometry, false, label_of);
+    let overlay_path = scratch.path().join("over.strata");
+    import(&nrrd, &overlay_path);
+    let (server, frames) = serve_stores(&[primary_path, overlay_path]);
+    (scratch, server, frames)
+}
+
+/// The label map over the page's oblique view (`oblique=30,-20` in the 2×2's sagittal place):
+/// the image it posts equals the desktop's oblique image of that plane with the desktop's
+/// overlay composited over it (the shared sampler at the oblique image's pixel centres, the
+/// shared colouring and "over"), within the oblique test's share of last-bit pixels; and the
+/// overlay changes much of the image, so a page that drew no overlay would fail.
+#[test]
+fn a_label_overlay_over_the_pages_oblique_view_draws_as_the_desktops_compositing() {
+    let (scratch, server, frames) = serve_phantom_with_labels();
+    let extra = "&overlay_opacity=0.70&overlay_hidden=2";
+    let (angles, cursor, window) = ([30.0, -20.0, 0.0], [30.5, 33.25, 31.0], [40.0, 400.0]);
+    let fragment = format!(
+        "#store=ct&overlay=over{extra}&mode=mip&preset=ct-soft-tissue&size=64x64&capture=1\
+         &oblique={},{}&cursor={},{},{}&window={},{}",
+        angles[0], angles[1], cursor[0], cursor[1], cursor[2], window[0], window[1]
+    );
+    let url = format!("{}/{fragment}&token={TOKEN}", server.base_url());
+    let page = Cdp::open(&url, scratch.path(), [1000, 800]);
+    let posted = next_oblique_capture(&frames, &page, angles);
+    let console = page.console();
+
+    let primary = desktop_client(&server, "ct");
+    let overlay = desktop_client(&server, "over");
+    let geometry = primary.header().geometry.clone();
+    let plane = ObliquePlane::from_orientation_deg(
+        geometry.patient_from_index(glam::DVec3::from(cursor)),
+        default_extent_mm(&geometry),
+        angles,
+    );
+    let window = Window::new(window[0], window[1]);
+    let base = desktop_image(&primary, plane, &posted, window);
+    let (grids, style) = desktop_overlay(&primary, &overlay, extra);
+    assert_eq!(grids.kind, OverlayKind::Labels);
+    let size = (posted.width as usize, posted.height as usize);
+    let Sampled::Complete(values) = sample(
+        &mut Blocking(&overlay),
+        &grids,
+        &oblique_pixels(&grids, &plane, size.0, size.1),
+        size,
+        1,
+    )
+    .expect("the desktop's sampling") else {
+        panic!("blocking reads leave nothing missing");
+    };
+    let mut desktop = base.clone();
+    composite_over(&mut desktop, grids.kind, &style, &values);
+    let changed = base
+        .chunks(4)
+        .zip(desktop.chunks(4))
+        .filter(|(a, b)| a != b)
+        .count();
+    let pixels = size.0 * size.1;
+    println!("oblique overlay: the labels change {changed} of {pixels} pixels");
+    // The oblique image's square is wider than the volume (its default extent), so the labels
+    // cover a smaller share of it than of an axial slice: 17 % measured.
+    assert!(
+        changed as f64 > 0.1 * pixels as f64,
+        "the labels cover the oblique image: {changed} of {pixels} pixels"
+    );
+    assert_same_image(
+        "the oblique view with the overlay",
+        &posted,
+        &desktop,
+        &console,
     );
 }
