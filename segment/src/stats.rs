@@ -93,34 +93,89 @@ pub fn segment_statistics(
     cancel: Option<&AtomicBool>,
     progress: &mut dyn FnMut(u64, u64),
 ) -> Result<Statistics, SegmentError> {
-    let grid = layer.grid();
-    let dims = grid.dims();
-    let [bx, by, bz] = grid.bricks();
-    let total = u64::from(bx) * u64::from(by) * u64::from(bz);
-    let b = LABEL_BRICK as usize;
-    let linear = grid.geometry().patient_from_index_linear();
-    let origin = grid.geometry().origin();
-    let mut acc: FxHashMap<Label, Accumulator> = FxHashMap::default();
-    let mut kept_values = 0usize;
-    let mut values = vec![f32::NAN; LABEL_BRICK_VOXELS];
-    let mut done = 0u64;
-    for k in 0..bz {
-        for j in 0..by {
-            if cancel.is_some_and(|c| c.load(Ordering::Relaxed)) {
+    let mut pass = StatisticsPass::new(layer);
+    while !pass.step(layer, intensity, None, cancel, progress)? {}
+    Ok(pass.finish(layer, intensity.map_or("", |i| i.unit())))
+}
+
+/// [`segment_statistics`] in bounded steps, for a caller with one thread (the browser page,
+/// which reads a few bricks each animation frame and draws between them): [`Self::step`] reads
+/// at most a given number of labelled bricks, in the same order (k, then j, then i) as the
+/// pass in one go, so the sums, and so the figures, are exactly [`segment_statistics`]'s
+/// (which is this, stepped to the end; checked in segment/tests/tools/stats.rs). Between steps
+/// the layer and the values must stay as they were.
+pub struct StatisticsPass {
+    acc: FxHashMap<Label, Accumulator>,
+    kept_values: usize,
+    values: Vec<f32>,
+    /// The next brick, as a linear index (i fastest), and the bricks in all.
+    next: u64,
+    total: u64,
+}
+
+impl StatisticsPass {
+    pub fn new(layer: &LabelLayer) -> Self {
+        let [bx, by, bz] = layer.grid().bricks();
+        StatisticsPass {
+            acc: FxHashMap::default(),
+            kept_values: 0,
+            values: vec![f32::NAN; LABEL_BRICK_VOXELS],
+            next: 0,
+            total: u64::from(bx) * u64::from(by) * u64::from(bz),
+        }
+    }
+
+    /// Bricks visited so far and in all.
+    pub fn bricks_done(&self) -> (u64, u64) {
+        (self.next, self.total)
+    }
+
+    /// Reads on through at most `max_labelled` bricks that hold labels (all with `None`; empty
+    /// bricks are skipped without counting); returns whether every brick is read.
+    /// `progress(done, total)` is called after each row of bricks; `cancel` ends it with
+    /// [`SegmentError::Cancelled`] at a row's start.
+    pub fn step(
+        &mut self,
+        layer: &LabelLayer,
+        intensity: Option<&dyn Intensity>,
+        max_labelled: Option<usize>,
+        cancel: Option<&AtomicBool>,
+        progress: &mut dyn FnMut(u64, u64),
+    ) -> Result<bool, SegmentError> {
+        let grid = layer.grid();
+        let dims = grid.dims();
+        let [bx, by, _] = grid.bricks();
+        let row_bricks = u64::from(bx);
+        let b = LABEL_BRICK as usize;
+        let linear = grid.geometry().patient_from_index_linear();
+        let origin = grid.geometry().origin();
+        let mut labelled = 0usize;
+        while self.next < self.total {
+            if self.next.is_multiple_of(row_bricks)
+                && cancel.is_some_and(|c| c.load(Ordering::Relaxed))
+            {
                 return Err(SegmentError::Cancelled);
             }
-            for i in 0..bx {
-                done += 1;
-                let key = BrickKey([i, j, k]);
-                if layer.brick_is_empty(key) {
-                    continue;
+            let n = self.next;
+            let (i, j, k) = (
+                (n % row_bricks) as u32,
+                (n / row_bricks % u64::from(by)) as u32,
+                (n / (row_bricks * u64::from(by))) as u32,
+            );
+            let key = BrickKey([i, j, k]);
+            let labels = if layer.brick_is_empty(key) {
+                None
+            } else {
+                Some(layer.brick(key)?).filter(|labels| labels.iter().any(|&l| l != 0))
+            };
+            if let Some(labels) = labels {
+                if max_labelled.is_some_and(|max| labelled >= max) {
+                    return Ok(false);
                 }
-                let labels = layer.brick(key)?;
-                if labels.iter().all(|&l| l == 0) {
-                    continue;
-                }
+                labelled += 1;
+                let values = &mut self.values;
                 if let Some(intensity) = intensity {
-                    intensity.read_brick(grid, key, &mut values)?;
+                    intensity.read_brick(grid, key, values)?;
                 }
                 let o = grid.brick_origin(key);
                 let extent = [0, 1, 2].map(|a| (dims[a] - o[a]).min(LABEL_BRICK) as usize);
@@ -132,7 +187,7 @@ pub fn segment_statistics(
                             if label == 0 {
                                 continue;
                             }
-                            let a = acc.entry(label).or_default();
+                            let a = self.acc.entry(label).or_default();
                             let voxel = [o[0] + li as u32, o[1] + lj as u32, o[2] + lk as u32];
                             a.voxels += 1;
                             for (x, &at_x) in voxel.iter().enumerate() {
@@ -158,10 +213,10 @@ pub fn segment_statistics(
                             a.m2 += delta * (v - a.mean);
                             a.min = a.min.min(v);
                             a.max = a.max.max(v);
-                            if kept_values < MEDIAN_MAX_VALUES {
+                            if self.kept_values < MEDIAN_MAX_VALUES {
                                 if let Some(kept) = a.kept.as_mut() {
                                     kept.push(value);
-                                    kept_values += 1;
+                                    self.kept_values += 1;
                                 }
                             } else {
                                 a.kept = None;
@@ -170,58 +225,68 @@ pub fn segment_statistics(
                     }
                 }
             }
-            progress(done, total);
+            self.next += 1;
+            if self.next.is_multiple_of(row_bricks) {
+                progress(self.next, self.total);
+            }
+        }
+        Ok(true)
+    }
+
+    /// The table, once every brick is read (of the bricks read so far before), its values in
+    /// `unit` (the intensity's; "" without one).
+    pub fn finish(mut self, layer: &LabelLayer, unit: &str) -> Statistics {
+        let grid = layer.grid();
+        let voxel_ml = grid.voxel_volume_ml();
+        let mut labels: Vec<Label> = layer.segments().iter().map(|s| s.value).collect();
+        labels.extend(self.acc.keys().copied());
+        labels.sort_unstable();
+        labels.dedup();
+        let segments = labels
+            .into_iter()
+            .map(|label| {
+                let name = layer
+                    .segments()
+                    .get(label)
+                    .map(|s| s.name.clone())
+                    .unwrap_or_default();
+                let a = self.acc.remove(&label).unwrap_or_default();
+                let has_values = a.values > 0;
+                let median = a.kept.filter(|_| has_values).map(|mut kept| {
+                    let n = kept.len();
+                    let (_, &mut upper, _) = kept.select_nth_unstable_by(n / 2, f32::total_cmp);
+                    if n % 2 == 1 {
+                        f64::from(upper)
+                    } else {
+                        // The largest of the lower half, which select_nth left before n / 2.
+                        let lower = kept[..n / 2]
+                            .iter()
+                            .copied()
+                            .fold(f32::NEG_INFINITY, f32::max);
+                        (f64::from(lower) + f64::from(upper)) / 2.0
+                    }
+                });
+                let present = a.voxels > 0;
+                SegmentStatistics {
+                    label,
+                    name,
+                    voxels: a.voxels,
+                    volume_ml: a.voxels as f64 * voxel_ml,
+                    mean: has_values.then_some(a.mean),
+                    sd: has_values.then(|| (a.m2 / a.values as f64).sqrt()),
+                    min: has_values.then_some(a.min),
+                    max: has_values.then_some(a.max),
+                    median,
+                    index_box: present.then_some((a.index_lo, a.index_hi)),
+                    lps_box_mm: present.then_some((a.lps_lo, a.lps_hi)),
+                }
+            })
+            .collect();
+        Statistics {
+            unit: unit.to_owned(),
+            segments,
         }
     }
-    let voxel_ml = grid.voxel_volume_ml();
-    let mut labels: Vec<Label> = layer.segments().iter().map(|s| s.value).collect();
-    labels.extend(acc.keys().copied());
-    labels.sort_unstable();
-    labels.dedup();
-    let segments = labels
-        .into_iter()
-        .map(|label| {
-            let name = layer
-                .segments()
-                .get(label)
-                .map(|s| s.name.clone())
-                .unwrap_or_default();
-            let a = acc.remove(&label).unwrap_or_default();
-            let has_values = a.values > 0;
-            let median = a.kept.filter(|_| has_values).map(|mut kept| {
-                let n = kept.len();
-                let (_, &mut upper, _) = kept.select_nth_unstable_by(n / 2, f32::total_cmp);
-                if n % 2 == 1 {
-                    f64::from(upper)
-                } else {
-                    // The largest of the lower half, which select_nth left before n / 2.
-                    let lower = kept[..n / 2]
-                        .iter()
-                        .copied()
-                        .fold(f32::NEG_INFINITY, f32::max);
-                    (f64::from(lower) + f64::from(upper)) / 2.0
-                }
-            });
-            let present = a.voxels > 0;
-            SegmentStatistics {
-                label,
-                name,
-                voxels: a.voxels,
-                volume_ml: a.voxels as f64 * voxel_ml,
-                mean: has_values.then_some(a.mean),
-                sd: has_values.then(|| (a.m2 / a.values as f64).sqrt()),
-                min: has_values.then_some(a.min),
-                max: has_values.then_some(a.max),
-                median,
-                index_box: present.then_some((a.index_lo, a.index_hi)),
-                lps_box_mm: present.then_some((a.lps_lo, a.lps_hi)),
-            }
-        })
-        .collect();
-    Ok(Statistics {
-        unit: intensity.map(|i| i.unit().to_owned()).unwrap_or_default(),
-        segments,
-    })
 }
 
 /// A CSV field: quoted when it must be, and a leading `= + - @` defused so that a spreadsheet

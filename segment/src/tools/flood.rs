@@ -191,181 +191,279 @@ pub(crate) fn flood<F: Fn(Label, f32) -> bool>(
     accept: F,
     progress: &mut dyn FnMut(u64),
 ) -> Result<FloodRegion, SegmentError> {
-    let grid = flood.layer.grid();
-    if !grid.contains(seed.map(i64::from)) {
-        return Err(SegmentError::OutOfBounds {
-            voxel: seed.map(i64::from),
-            dims: grid.dims(),
-        });
-    }
-    if needs_values && flood.intensity.is_none() {
-        return Err(SegmentError::BadParameter(
-            "this tool reads the primary volume, and none was given".into(),
-        ));
-    }
-    let mut state = State {
-        flood,
-        accept: &accept,
-        grid,
-        needs_labels,
-        needs_values,
-        bricks: Vec::new(),
-        index: FxHashMap::default(),
-    };
-    let b = LABEL_BRICK as usize;
-    let along = [0, 1, 2].map(|a| flood.axes.contains(&a));
-    let mut queue: VecDeque<usize> = VecDeque::new();
-    let mut voxels = 0u64;
-    let mut stopped_at_cap = false;
+    let mut work = FloodWork::start(flood, seed, needs_labels, needs_values, &accept)?;
+    work.step(flood, &accept, None, progress)?;
+    Ok(work.into_region())
+}
 
-    let (key, at) = grid.brick_of(seed);
-    let seed_brick = state.brick(key)?;
-    state.bricks[seed_brick]
-        .incoming
-        .push(((at / b) as u16, 1u32 << (at % b)));
-    state.bricks[seed_brick].queued = true;
-    queue.push_back(seed_brick);
-    let mut reported = 0u64;
-    'flood: while let Some(here) = queue.pop_front() {
-        state.bricks[here].queued = false;
-        let key = state.bricks[here].key;
-        // Offers from outside, then the rows that grew, until this brick is quiet.
-        loop {
-            if voxels >= reported + PROGRESS_EVERY_VOXELS {
-                reported = voxels;
-                progress(voxels);
-                if flood.cancel.is_some_and(|c| c.load(Ordering::Relaxed)) {
-                    return Err(SegmentError::Cancelled);
-                }
+/// A flood under way, resumable: [`Self::step`] drains at most a given number of bricks from
+/// its queue and returns, so a caller with one thread (the browser page) spreads a grow over
+/// frames. Stepped to the end it is exactly [`flood`] (which is this, in one step): the queue,
+/// the per-brick bits and the order are the same whatever the steps. Between steps the layer
+/// must stay as it was (a brick's labels are read when the flood first reaches it), and each
+/// step must be given the same inputs and `accept`.
+pub(crate) struct FloodWork {
+    bricks: Vec<FloodBrick>,
+    index: FxHashMap<BrickKey, usize>,
+    queue: VecDeque<usize>,
+    needs_labels: bool,
+    needs_values: bool,
+    voxels: u64,
+    reported: u64,
+    stopped_at_cap: bool,
+    finished: bool,
+}
+
+impl FloodWork {
+    /// Checks the inputs and offers the seed; no voxel is taken yet.
+    pub fn start<F: Fn(Label, f32) -> bool>(
+        flood: &Flood<'_>,
+        seed: [u32; 3],
+        needs_labels: bool,
+        needs_values: bool,
+        accept: &F,
+    ) -> Result<Self, SegmentError> {
+        let grid = flood.layer.grid();
+        if !grid.contains(seed.map(i64::from)) {
+            return Err(SegmentError::OutOfBounds {
+                voxel: seed.map(i64::from),
+                dims: grid.dims(),
+            });
+        }
+        if needs_values && flood.intensity.is_none() {
+            return Err(SegmentError::BadParameter(
+                "this tool reads the primary volume, and none was given".into(),
+            ));
+        }
+        let mut state = State {
+            flood,
+            accept,
+            grid,
+            needs_labels,
+            needs_values,
+            bricks: Vec::new(),
+            index: FxHashMap::default(),
+        };
+        let b = LABEL_BRICK as usize;
+        let (key, at) = grid.brick_of(seed);
+        let seed_brick = state.brick(key)?;
+        state.bricks[seed_brick]
+            .incoming
+            .push(((at / b) as u16, 1u32 << (at % b)));
+        state.bricks[seed_brick].queued = true;
+        Ok(FloodWork {
+            bricks: state.bricks,
+            index: state.index,
+            queue: VecDeque::from([seed_brick]),
+            needs_labels,
+            needs_values,
+            voxels: 0,
+            reported: 0,
+            stopped_at_cap: false,
+            finished: false,
+        })
+    }
+
+    /// Voxels taken so far.
+    pub fn voxels(&self) -> u64 {
+        self.voxels
+    }
+
+    pub fn finished(&self) -> bool {
+        self.finished
+    }
+
+    /// Drains at most `max_bricks` bricks from the queue (all with `None`); returns whether
+    /// the flood is finished. `progress(voxels)` is called every [`PROGRESS_EVERY_VOXELS`] and
+    /// at the end.
+    pub fn step<F: Fn(Label, f32) -> bool>(
+        &mut self,
+        flood: &Flood<'_>,
+        accept: &F,
+        max_bricks: Option<usize>,
+        progress: &mut dyn FnMut(u64),
+    ) -> Result<bool, SegmentError> {
+        if self.finished {
+            return Ok(true);
+        }
+        let mut state = State {
+            flood,
+            accept,
+            grid: flood.layer.grid(),
+            needs_labels: self.needs_labels,
+            needs_values: self.needs_values,
+            bricks: std::mem::take(&mut self.bricks),
+            index: std::mem::take(&mut self.index),
+        };
+        let drained = self.drain(&mut state, max_bricks, progress);
+        self.bricks = state.bricks;
+        self.index = state.index;
+        self.finished = drained?;
+        if self.finished {
+            progress(self.voxels);
+        }
+        Ok(self.finished)
+    }
+
+    /// The region taken (the flood finished, or what it took so far).
+    pub fn into_region(self) -> FloodRegion {
+        FloodRegion {
+            bricks: self.bricks,
+            voxels: self.voxels,
+            stopped_at_cap: self.stopped_at_cap,
+        }
+    }
+
+    fn drain<F: Fn(Label, f32) -> bool>(
+        &mut self,
+        state: &mut State<'_, F>,
+        max_bricks: Option<usize>,
+        progress: &mut dyn FnMut(u64),
+    ) -> Result<bool, SegmentError> {
+        let flood = state.flood;
+        let grid = state.grid;
+        let b = LABEL_BRICK as usize;
+        let along = [0, 1, 2].map(|a| flood.axes.contains(&a));
+        let queue = &mut self.queue;
+        let mut voxels = self.voxels;
+        let mut stopped_at_cap = self.stopped_at_cap;
+        let mut reported = self.reported;
+        let mut drained = 0usize;
+        let finished = 'flood: loop {
+            if max_bricks.is_some_and(|max| drained >= max) {
+                break 'flood false;
             }
-            let fb = &mut state.bricks[here];
-            let (row, bits) = if let Some(offer) = fb.incoming.pop() {
-                offer
-            } else if let Some(row) = fb.pending.pop() {
-                // Pass the row's voxels on to the rows beside it along j and k.
-                let taken = row_bits(&fb.accepted, usize::from(row));
-                let (lj, lk) = (usize::from(row) % b, usize::from(row) / b);
-                for (axis, local) in [(1usize, lj), (2, lk)] {
-                    if !along[axis] {
-                        continue;
+            let Some(here) = queue.pop_front() else {
+                break 'flood true;
+            };
+            drained += 1;
+            state.bricks[here].queued = false;
+            let key = state.bricks[here].key;
+            // Offers from outside, then the rows that grew, until this brick is quiet.
+            loop {
+                if voxels >= reported + PROGRESS_EVERY_VOXELS {
+                    reported = voxels;
+                    progress(voxels);
+                    if flood.cancel.is_some_and(|c| c.load(Ordering::Relaxed)) {
+                        self.voxels = voxels;
+                        return Err(SegmentError::Cancelled);
                     }
-                    let step = if axis == 1 { 1 } else { b };
-                    for up in [false, true] {
-                        let inside = if up { local + 1 < b } else { local > 0 };
-                        if inside {
-                            let next = if up {
-                                row as usize + step
+                }
+                let fb = &mut state.bricks[here];
+                let (row, bits) = if let Some(offer) = fb.incoming.pop() {
+                    offer
+                } else if let Some(row) = fb.pending.pop() {
+                    // Pass the row's voxels on to the rows beside it along j and k.
+                    let taken = row_bits(&fb.accepted, usize::from(row));
+                    let (lj, lk) = (usize::from(row) % b, usize::from(row) / b);
+                    for (axis, local) in [(1usize, lj), (2, lk)] {
+                        if !along[axis] {
+                            continue;
+                        }
+                        let step = if axis == 1 { 1 } else { b };
+                        for up in [false, true] {
+                            let inside = if up { local + 1 < b } else { local > 0 };
+                            if inside {
+                                let next = if up {
+                                    row as usize + step
+                                } else {
+                                    row as usize - step
+                                };
+                                state.bricks[here].incoming.push((next as u16, taken));
+                                continue;
+                            }
+                            let mut next_key = key.0;
+                            if up {
+                                next_key[axis] += 1;
+                            } else if next_key[axis] == 0 {
+                                continue;
                             } else {
-                                row as usize - step
+                                next_key[axis] -= 1;
+                            }
+                            let next_key = BrickKey(next_key);
+                            if !grid.contains(grid.brick_origin(next_key).map(i64::from)) {
+                                continue;
+                            }
+                            let next = if up {
+                                row as usize - (b - 1) * step
+                            } else {
+                                row as usize + (b - 1) * step
                             };
-                            state.bricks[here].incoming.push((next as u16, taken));
+                            let there = state.brick(next_key)?;
+                            offer(&mut state.bricks[there], queue, there, next as u16, taken);
+                        }
+                    }
+                    continue;
+                } else {
+                    break;
+                };
+                // Take the offered voxels that are admitted and new, and the runs along i they
+                // belong to (only up to the cap, keeping what is taken connected).
+                let row = usize::from(row);
+                let admitted = row_bits(&fb.eligible, row);
+                let old = row_bits(&fb.accepted, row);
+                let mut taken = bits & admitted & !old;
+                if taken == 0 {
+                    continue;
+                }
+                let room = flood.max_voxels - voxels;
+                if u64::from(taken.count_ones()) > room {
+                    taken = lowest_bits(taken, room as u32);
+                    stopped_at_cap = true;
+                } else if along[0] {
+                    loop {
+                        let grown = (taken | (taken << 1) | (taken >> 1)) & admitted & !old;
+                        let added = grown & !taken;
+                        if added == 0 {
+                            break;
+                        }
+                        let left = room - u64::from(taken.count_ones());
+                        if u64::from(added.count_ones()) > left {
+                            // Each added voxel touches the taken ones: any of them keeps it connected.
+                            taken |= lowest_bits(added, left as u32);
+                            stopped_at_cap = true;
+                            break;
+                        }
+                        taken = grown;
+                    }
+                }
+                if taken == 0 {
+                    break 'flood true;
+                }
+                or_row(&mut fb.accepted, row, taken);
+                voxels += u64::from(taken.count_ones());
+                fb.pending.push(row as u16);
+                if along[0] {
+                    // Runs that reach the brick's faces along i go on in the bricks beside it.
+                    for (bit, up) in [(0u32, false), (31, true)] {
+                        if taken & (1 << bit) == 0 {
                             continue;
                         }
                         let mut next_key = key.0;
                         if up {
-                            next_key[axis] += 1;
-                        } else if next_key[axis] == 0 {
+                            next_key[0] += 1;
+                        } else if next_key[0] == 0 {
                             continue;
                         } else {
-                            next_key[axis] -= 1;
+                            next_key[0] -= 1;
                         }
                         let next_key = BrickKey(next_key);
                         if !grid.contains(grid.brick_origin(next_key).map(i64::from)) {
                             continue;
                         }
-                        let next = if up {
-                            row as usize - (b - 1) * step
-                        } else {
-                            row as usize + (b - 1) * step
-                        };
                         let there = state.brick(next_key)?;
-                        offer(
-                            &mut state.bricks[there],
-                            &mut queue,
-                            there,
-                            next as u16,
-                            taken,
-                        );
+                        let bits = if up { 1 } else { 1 << 31 };
+                        offer(&mut state.bricks[there], queue, there, row as u16, bits);
                     }
                 }
-                continue;
-            } else {
-                break;
-            };
-            // Take the offered voxels that are admitted and new, and the runs along i they
-            // belong to (only up to the cap, keeping what is taken connected).
-            let row = usize::from(row);
-            let admitted = row_bits(&fb.eligible, row);
-            let old = row_bits(&fb.accepted, row);
-            let mut taken = bits & admitted & !old;
-            if taken == 0 {
-                continue;
-            }
-            let room = flood.max_voxels - voxels;
-            if u64::from(taken.count_ones()) > room {
-                taken = lowest_bits(taken, room as u32);
-                stopped_at_cap = true;
-            } else if along[0] {
-                loop {
-                    let grown = (taken | (taken << 1) | (taken >> 1)) & admitted & !old;
-                    let added = grown & !taken;
-                    if added == 0 {
-                        break;
-                    }
-                    let left = room - u64::from(taken.count_ones());
-                    if u64::from(added.count_ones()) > left {
-                        // Each added voxel touches the taken ones: any of them keeps it connected.
-                        taken |= lowest_bits(added, left as u32);
-                        stopped_at_cap = true;
-                        break;
-                    }
-                    taken = grown;
+                if stopped_at_cap {
+                    break 'flood true;
                 }
             }
-            if taken == 0 {
-                break 'flood;
-            }
-            or_row(&mut fb.accepted, row, taken);
-            voxels += u64::from(taken.count_ones());
-            fb.pending.push(row as u16);
-            if along[0] {
-                // Runs that reach the brick's faces along i go on in the bricks beside it.
-                for (bit, up) in [(0u32, false), (31, true)] {
-                    if taken & (1 << bit) == 0 {
-                        continue;
-                    }
-                    let mut next_key = key.0;
-                    if up {
-                        next_key[0] += 1;
-                    } else if next_key[0] == 0 {
-                        continue;
-                    } else {
-                        next_key[0] -= 1;
-                    }
-                    let next_key = BrickKey(next_key);
-                    if !grid.contains(grid.brick_origin(next_key).map(i64::from)) {
-                        continue;
-                    }
-                    let there = state.brick(next_key)?;
-                    let bits = if up { 1 } else { 1 << 31 };
-                    offer(
-                        &mut state.bricks[there],
-                        &mut queue,
-                        there,
-                        row as u16,
-                        bits,
-                    );
-                }
-            }
-            if stopped_at_cap {
-                break 'flood;
-            }
-        }
+        };
+        self.voxels = voxels;
+        self.stopped_at_cap = stopped_at_cap;
+        self.reported = reported;
+        Ok(finished)
     }
-    progress(voxels);
-    Ok(FloodRegion {
-        bricks: state.bricks,
-        voxels,
-        stopped_at_cap,
-    })
 }

@@ -13,7 +13,7 @@ use std::sync::atomic::AtomicBool;
 
 use crate::intensity::{Intensity, IntensityBricks, ValueRange};
 use crate::layer::LabelLayer;
-use crate::tools::flood::{flood, Flood, FloodRegion};
+use crate::tools::flood::{Flood, FloodRegion, FloodWork};
 use crate::tools::{check_tool_label, Outcome};
 use crate::{Label, SegmentError};
 
@@ -127,30 +127,96 @@ pub fn plan_grow(
     progress: &mut dyn FnMut(u64),
     cancel: Option<&AtomicBool>,
 ) -> Result<GrowPlan, SegmentError> {
-    check_tool_label(layer, label)?;
-    layer.get(seed)?;
-    let range = grow_range(layer, intensity, seed, criterion)?;
-    let segments = layer.segments();
-    let any_locked = segments.iter().any(|s| s.locked);
-    let region = flood(
-        &Flood {
+    let mut planner = GrowPlanner::start(layer, intensity, seed, label, criterion, max_voxels)?;
+    planner.step(layer, intensity, None, progress, cancel)?;
+    Ok(planner.into_plan())
+}
+
+/// [`plan_grow`] in bounded steps, for a caller with one thread (the browser page, which runs
+/// a few bricks of the grow each animation frame and draws between them): [`Self::step`]
+/// drains at most a given number of bricks. Stepped to the end it gives exactly
+/// [`plan_grow`]'s plan (which is this, in one step; checked below with one brick a step).
+/// Between steps `layer` must stay as it was (the page plans on a copy) and `intensity` give
+/// the same values.
+pub struct GrowPlanner {
+    work: FloodWork,
+    range: ValueRange,
+    label: Label,
+    max_voxels: u64,
+}
+
+impl GrowPlanner {
+    /// The range at the seed (read from `intensity`) and the flood's start; nothing grown yet.
+    pub fn start(
+        layer: &LabelLayer,
+        intensity: &dyn Intensity,
+        seed: [u32; 3],
+        label: Label,
+        criterion: GrowCriterion,
+        max_voxels: u64,
+    ) -> Result<Self, SegmentError> {
+        check_tool_label(layer, label)?;
+        layer.get(seed)?;
+        let range = grow_range(layer, intensity, seed, criterion)?;
+        let segments = layer.segments();
+        let any_locked = segments.iter().any(|s| s.locked);
+        let flood = Flood {
             layer,
             intensity: Some(intensity),
             axes: &[0, 1, 2],
             max_voxels,
+            cancel: None,
+        };
+        let accept = |l: Label, v: f32| range.contains(v) && !segments.is_locked(l);
+        let work = FloodWork::start(&flood, seed, any_locked, true, &accept)?;
+        Ok(GrowPlanner {
+            work,
+            range,
+            label,
+            max_voxels,
+        })
+    }
+
+    /// Grows on through at most `max_bricks` bricks (all with `None`); returns whether the
+    /// grow is finished. `progress(voxels)` and `cancel` as for [`plan_grow`].
+    pub fn step(
+        &mut self,
+        layer: &LabelLayer,
+        intensity: &dyn Intensity,
+        max_bricks: Option<usize>,
+        progress: &mut dyn FnMut(u64),
+        cancel: Option<&AtomicBool>,
+    ) -> Result<bool, SegmentError> {
+        let segments = layer.segments();
+        let range = self.range;
+        let flood = Flood {
+            layer,
+            intensity: Some(intensity),
+            axes: &[0, 1, 2],
+            max_voxels: self.max_voxels,
             cancel,
-        },
-        seed,
-        any_locked,
-        true,
-        |l, v| range.contains(v) && !segments.is_locked(l),
-        progress,
-    )?;
-    Ok(GrowPlan {
-        region,
-        range,
-        label,
-    })
+        };
+        let accept = |l: Label, v: f32| range.contains(v) && !segments.is_locked(l);
+        self.work.step(&flood, &accept, max_bricks, progress)
+    }
+
+    /// Voxels grown so far.
+    pub fn voxels(&self) -> u64 {
+        self.work.voxels()
+    }
+
+    pub fn finished(&self) -> bool {
+        self.work.finished()
+    }
+
+    /// The plan (of what was grown so far, if not finished).
+    pub fn into_plan(self) -> GrowPlan {
+        GrowPlan {
+            region: self.work.into_region(),
+            range: self.range,
+            label: self.label,
+        }
+    }
 }
 
 /// Grows `label` from `seed` as one edit. `progress(voxels)` is called as it goes; setting

@@ -402,3 +402,67 @@ fn an_oblique_fill_takes_the_inside_of_a_ring_brushed_in_that_plane_and_nothing_
     assert_eq!(voxels_of(&capped, inside), want);
     assert_eq!(voxels_of(&capped, ring).len(), painted.len() + 50);
 }
+
+/// The page's grow, one brick a step (`GrowPlanner`, issue 52 item 4): it takes many steps and
+/// ends in exactly the plan `plan_grow` makes in one, for a range and for mean ± k·σ, and under
+/// a cap; a step that stops early leaves a partial plan that is not the whole.
+#[test]
+fn a_grow_planned_one_brick_a_step_equals_the_grow_planned_at_once() {
+    use strata_segment::tools::grow::{plan_grow, GrowPlanner};
+    let dims = [72u32, 64, 56];
+    let values = blobs(dims);
+    let intensity = DenseIntensity::new(dims, values.clone(), "HU").unwrap();
+    let geometry = VolumeGeometry::axis_aligned(dims, [0.8, 0.7, 1.1]);
+    let seed = (0..values.len())
+        .find(|&n| values[n] >= 250.0 && n % 7 == 3 && n > values.len() / 3)
+        .expect("a bright voxel");
+    let [nx, ny, _] = dims;
+    let seed: [u32; 3] = [
+        seed as u32 % nx,
+        (seed as u32 / nx) % ny,
+        seed as u32 / (nx * ny),
+    ];
+    // Half the volume's values: a region through all twelve bricks, each met many times.
+    let wide = GrowCriterion::Range(ValueRange::new(0.0, 100000.0).unwrap());
+    for (criterion, cap, min_steps) in [
+        (wide, u64::MAX, 11),
+        (GrowCriterion::MeanSigma { k: 2.0 }, u64::MAX, 0),
+        (wide, 5000, 0),
+    ] {
+        let mut at_once = LabelLayer::new_empty(geometry.clone()).unwrap();
+        let label = at_once.segments_mut().add("a").unwrap();
+        let mut stepped = at_once.clone();
+        let plan = plan_grow(
+            &at_once,
+            &intensity,
+            seed,
+            label,
+            criterion,
+            cap,
+            &mut |_| {},
+            None,
+        )
+        .unwrap();
+        let voxels = plan.voxels();
+        plan.apply(&mut at_once).unwrap();
+
+        let mut planner =
+            GrowPlanner::start(&stepped, &intensity, seed, label, criterion, cap).unwrap();
+        let mut steps = 0;
+        while !planner
+            .step(&stepped, &intensity, Some(1), &mut |_| {}, None)
+            .unwrap()
+        {
+            steps += 1;
+            assert!(planner.voxels() <= voxels);
+        }
+        assert!(steps >= min_steps, "{criterion:?}: only {steps} steps");
+        assert_eq!(planner.voxels(), voxels, "{criterion:?}");
+        planner.into_plan().apply(&mut stepped).unwrap();
+        assert_eq!(
+            all_labels(&stepped),
+            all_labels(&at_once),
+            "{criterion:?} cap {cap}"
+        );
+    }
+}

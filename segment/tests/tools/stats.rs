@@ -118,3 +118,55 @@ print(json.dumps(out))
     assert_eq!(csv.lines().count(), 5);
     assert!(csv.lines().nth(1).unwrap().starts_with("1,liver,"));
 }
+
+/// The page's statistics, one labelled brick a step (`StatisticsPass`, issue 52 item 4): many
+/// steps, and exactly the table of the pass in one go (every figure bit for bit: the same sums
+/// in the same order).
+#[test]
+fn statistics_read_one_brick_a_step_equal_the_statistics_in_one_pass() {
+    use strata_segment::stats::StatisticsPass;
+    let dims = [70u32, 60, 40];
+    let mut layer = LabelLayer::new_empty(rotated_anisotropic(dims)).unwrap();
+    for name in ["a", "b"] {
+        layer.segments_mut().add(name).unwrap();
+    }
+    layer
+        .edit("setup", |w| {
+            for k in 0..dims[2] {
+                for j in 0..dims[1] {
+                    for i in 0..dims[0] {
+                        let label = match (i * 31 + j * 17 + k * 7) % 13 {
+                            0 => 1,
+                            1 if i > 35 => 2,
+                            _ => continue,
+                        };
+                        w.set([i, j, k], label)?;
+                    }
+                }
+            }
+            Ok(())
+        })
+        .unwrap();
+    let n = dims.iter().product::<u32>() as usize;
+    let values: Vec<f32> = (0..n)
+        .map(|x| 800.0 * (x as f32 * 0.003).sin() - 100.0)
+        .collect();
+    let intensity = DenseIntensity::new(dims, values, "HU").unwrap();
+    let at_once = segment_statistics(&layer, Some(&intensity), None, &mut |_, _| {}).unwrap();
+    let mut pass = StatisticsPass::new(&layer);
+    let mut steps = 0;
+    while !pass
+        .step(&layer, Some(&intensity), Some(1), None, &mut |_, _| {})
+        .unwrap()
+    {
+        steps += 1;
+    }
+    assert!(
+        steps >= 7,
+        "only {steps} steps over {:?} bricks",
+        layer.grid().bricks()
+    );
+    let stepped = pass.finish(&layer, "HU");
+    assert_eq!(stepped, at_once);
+    assert!(at_once.segments.iter().all(|s| s.voxels > 0));
+}
