@@ -83,7 +83,8 @@ pub fn block_oracle<S: BrickSource>(
 /// module doc). Slots no resident entry uses get 2^l_max. `mapping` turns stored values into
 /// the TF's physical units; `quality` is the slice spacing in finest voxels; `target` what the
 /// distance bounds the change of (the opacity, or with lighting on the lit colour:
-/// oracle.rs `tf_variation`).
+/// oracle.rs `tf_variation`). The same table, a bounded number of slots at a time:
+/// block_oracle_build.rs.
 #[allow(clippy::too_many_arguments)]
 pub fn block_oracle_with<S: BrickSource>(
     table: &PageTable,
@@ -95,15 +96,38 @@ pub fn block_oracle_with<S: BrickSource>(
     quality: f64,
     target: OracleTarget,
 ) -> Vec<f32> {
-    let coarsest = (1u32 << l_max) as f64;
-    let epsilon = if epsilon.is_finite() {
-        epsilon.max(0.0)
-    } else {
-        0.0
-    };
-    let quality = quality.max(1e-6);
-    let n = BLOCKS_PER_AXIS as i64;
-    // The node of every used slot.
+    let rule = DistanceRule::new(mapping, epsilon, l_max, quality, target);
+    let node_of_slot = nodes_of_slots(table);
+    let mut own = vec![rule.coarsest; node_of_slot.len() * BLOCKS_PER_SLOT];
+    for (slot, node) in node_of_slot.iter().enumerate() {
+        let Some((level, node)) = *node else { continue };
+        if let Some(brick) = source.brick(level, node) {
+            rule.own_distances(tf, level, brick, slot_blocks_mut(&mut own, slot));
+        }
+    }
+    let mut out = own.clone();
+    for (slot, node) in node_of_slot.iter().enumerate() {
+        let Some((level, node)) = *node else { continue };
+        rule.dilate(
+            table,
+            &own,
+            slot,
+            level,
+            node,
+            slot_blocks_mut(&mut out, slot),
+        );
+    }
+    out.into_iter().map(|d| d as f32).collect()
+}
+
+/// The blocks of `slot` in a per-slot table.
+pub(crate) fn slot_blocks_mut(table: &mut [f64], slot: usize) -> &mut [f64] {
+    &mut table[slot * BLOCKS_PER_SLOT..(slot + 1) * BLOCKS_PER_SLOT]
+}
+
+/// The node of every slot the table uses (its first resident entry's), by slot; the table's
+/// length is one past the highest used slot.
+pub(crate) fn nodes_of_slots(table: &PageTable) -> Vec<Option<(u8, [u32; 3])>> {
     let slots = table
         .entries
         .iter()
@@ -118,18 +142,56 @@ pub fn block_oracle_with<S: BrickSource>(
             node_of_slot[e.slot_in_cache as usize].get_or_insert((e.level, node));
         }
     }
-    // Own distances.
-    let payload = crate::model::layout::BRICK_PAYLOAD as usize;
-    let mut own = vec![coarsest; slots * BLOCKS_PER_SLOT];
-    for (slot, node) in node_of_slot.iter().enumerate() {
-        let Some((level, node)) = *node else { continue };
-        let Some(brick) = source.brick(level, node) else {
-            continue;
-        };
+    node_of_slot
+}
+
+/// The knobs of one oracle, sanitised: what turns a block's values into its distance.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct DistanceRule {
+    pub(crate) mapping: strata_types::ValueMapping,
+    pub(crate) epsilon: f64,
+    /// 2^l_max: the longest skip, and the distance of a transparent block.
+    pub(crate) coarsest: f64,
+    pub(crate) quality: f64,
+    pub(crate) target: OracleTarget,
+}
+
+impl DistanceRule {
+    pub(crate) fn new(
+        mapping: strata_types::ValueMapping,
+        epsilon: f64,
+        l_max: u32,
+        quality: f64,
+        target: OracleTarget,
+    ) -> Self {
+        DistanceRule {
+            mapping,
+            epsilon: if epsilon.is_finite() {
+                epsilon.max(0.0)
+            } else {
+                0.0
+            },
+            coarsest: (1u32 << l_max) as f64,
+            quality: quality.max(1e-6),
+            target,
+        }
+    }
+
+    /// The own (undilated) distances of the blocks of a level-`level` node's payload `brick`
+    /// into `blocks` (one slot's run of the table).
+    pub(crate) fn own_distances(
+        &self,
+        tf: &TransferFunction,
+        level: u8,
+        brick: &[u16],
+        blocks: &mut [f64],
+    ) {
+        let payload = crate::model::layout::BRICK_PAYLOAD as usize;
+        let n = BLOCKS_PER_AXIS as i64;
         let scale = (1u64 << level.min(30)) as f64;
-        let finest = scale.clamp(1.0, coarsest);
+        let finest = scale.clamp(1.0, self.coarsest);
         let extent_voxels = BLOCK as f64 * scale;
-        let extent_slices = extent_voxels / quality;
+        let extent_slices = extent_voxels / self.quality;
         for bz in 0..n {
             for by in 0..n {
                 for bx in 0..n {
@@ -146,36 +208,49 @@ pub fn block_oracle_with<S: BrickSource>(
                             }
                         }
                     }
-                    let (a, b) = (mapping.physical(lo as f64), mapping.physical(hi as f64));
-                    let k = slot * BLOCKS_PER_SLOT + (bx + n * (by + n * bz)) as usize;
-                    own[k] = match tf_variation(tf, a.min(b), a.max(b), target, extent_voxels) {
-                        None => coarsest,
-                        Some(variation) => {
-                            let gradient = variation / extent_slices;
-                            let mut d = coarsest;
-                            while d > finest && d * gradient > epsilon {
-                                d *= 0.5;
+                    let (a, b) = (
+                        self.mapping.physical(lo as f64),
+                        self.mapping.physical(hi as f64),
+                    );
+                    let k = (bx + n * (by + n * bz)) as usize;
+                    blocks[k] =
+                        match tf_variation(tf, a.min(b), a.max(b), self.target, extent_voxels) {
+                            None => self.coarsest,
+                            Some(variation) => {
+                                let gradient = variation / extent_slices;
+                                let mut d = self.coarsest;
+                                while d > finest && d * gradient > self.epsilon {
+                                    d *= 0.5;
+                                }
+                                d.max(finest)
                             }
-                            d.max(finest)
-                        }
-                    };
+                        };
                 }
             }
         }
     }
-    // Dilation.
-    let dims_cells = table.page_dims;
-    let mut out = own.clone();
-    for (slot, node) in node_of_slot.iter().enumerate() {
-        let Some((level, node)) = *node else { continue };
+
+    /// The dilated distances of `slot`'s blocks (the level-`level` node `node`) into `blocks`,
+    /// from the whole table's own distances `own`.
+    pub(crate) fn dilate(
+        &self,
+        table: &PageTable,
+        own: &[f64],
+        slot: usize,
+        level: u8,
+        node: [u32; 3],
+        blocks: &mut [f64],
+    ) {
+        let coarsest = self.coarsest;
+        let n = BLOCKS_PER_AXIS as i64;
         let scale = (1u64 << level.min(30)) as f64;
         // Blocks within the longest skip.
-        let reach = ((coarsest * quality / (BLOCK as f64 * scale)).ceil() as i64).max(1);
+        let reach = ((coarsest * self.quality / (BLOCK as f64 * scale)).ceil() as i64).max(1);
         for bz in 0..n {
             for by in 0..n {
                 for bx in 0..n {
-                    let k = slot * BLOCKS_PER_SLOT + (bx + n * (by + n * bz)) as usize;
-                    let mut d = own[k];
+                    let local = (bx + n * (by + n * bz)) as usize;
+                    let mut d = own[slot * BLOCKS_PER_SLOT + local];
                     for oz in -reach..=reach {
                         for oy in -reach..=reach {
                             for ox in -reach..=reach {
@@ -184,7 +259,7 @@ pub fn block_oracle_with<S: BrickSource>(
                                     continue;
                                 }
                                 // Gap between the blocks, in slices.
-                                let gap = (ring - 1) as f64 * BLOCK as f64 * scale / quality;
+                                let gap = (ring - 1) as f64 * BLOCK as f64 * scale / self.quality;
                                 let gap_d = if ring <= 1 {
                                     0.0
                                 } else {
@@ -198,7 +273,7 @@ pub fn block_oracle_with<S: BrickSource>(
                                     own[slot * BLOCKS_PER_SLOT
                                         + (b[0] + n * (b[1] + n * b[2])) as usize]
                                 } else {
-                                    match neighbour_block(table, dims_cells, level, node, b) {
+                                    match neighbour_block(table, table.page_dims, level, node, b) {
                                         Some(j) => own.get(j).copied().unwrap_or(coarsest),
                                         None => continue,
                                     }
@@ -207,12 +282,11 @@ pub fn block_oracle_with<S: BrickSource>(
                             }
                         }
                     }
-                    out[k] = d;
+                    blocks[local] = d;
                 }
             }
         }
     }
-    out.into_iter().map(|d| d as f32).collect()
 }
 
 /// The table index of the block holding the centre of block `b` (node-block coordinates of

@@ -148,6 +148,8 @@
 //! lavapipe's cut, not the pass. Only bone ε 0.02 is reported clean.
 
 use std::collections::HashMap;
+use std::sync::atomic::{AtomicU8, Ordering};
+use std::sync::Arc;
 
 use super::block_oracle::{BLOCK, BLOCKS_PER_AXIS, BLOCKS_PER_SLOT};
 use super::frame::SliceFrame;
@@ -342,6 +344,81 @@ impl AdaptiveFrame {
 
     pub fn total_syntheses(&self) -> u64 {
         self.syntheses_per_level.iter().sum()
+    }
+}
+
+/// An adaptive frame's counters (what [`AdaptiveFrame`] carries besides its pixels), as
+/// [`AdaptivePass::read_counts_async`] brings them back without the pixels.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct AdaptiveCounts {
+    pub samples_per_level: [u64; 4],
+    pub syntheses_per_level: [u64; 4],
+    pub apron_samples_per_level: [u64; 4],
+    pub segments: u64,
+    pub shadow_rays: u64,
+    pub tile_slices: u64,
+    pub cut_short_invocations: u64,
+}
+
+impl AdaptiveCounts {
+    /// The counters buffer's words.
+    fn of_words(words: &[u32]) -> Result<Self, RenderError> {
+        if words.len() < COUNTERS as usize {
+            return Err(RenderError::Readback(format!(
+                "the adaptive counters came back as {} words, not {COUNTERS}",
+                words.len()
+            )));
+        }
+        let word = |slot: u32| words[slot as usize] as u64;
+        let level = |base: u32| [0, 1, 2, 3].map(|l| word(base + l));
+        Ok(AdaptiveCounts {
+            samples_per_level: level(COUNTER_SAMPLES),
+            syntheses_per_level: level(COUNTER_SYNTHESES),
+            apron_samples_per_level: level(COUNTER_APRON_SAMPLES),
+            segments: word(COUNTER_SEGMENTS),
+            shadow_rays: word(COUNTER_SHADOW_RAYS),
+            tile_slices: word(COUNTER_TILE_SLICES),
+            cut_short_invocations: word(COUNTER_CUT_SHORT),
+        })
+    }
+
+    pub fn total_samples(&self) -> u64 {
+        self.samples_per_level.iter().sum()
+    }
+}
+
+/// [`CountsReadback`]'s states.
+const COUNTS_MAPPING: u8 = 0;
+const COUNTS_MAPPED: u8 = 1;
+const COUNTS_FAILED: u8 = 2;
+
+/// An adaptive frame's counters on their way back without a wait (the browser page, whose one
+/// thread must not block: the browser's event loop maps the buffer, as the page's captures
+/// and picks are mapped).
+pub struct CountsReadback {
+    buffer: wgpu::Buffer,
+    state: Arc<AtomicU8>,
+}
+
+impl CountsReadback {
+    /// None while the buffer is mapping; then the counts (the buffer unmapped) or why not.
+    pub fn take(&self) -> Option<Result<AdaptiveCounts, RenderError>> {
+        match self.state.load(Ordering::Acquire) {
+            COUNTS_MAPPING => None,
+            COUNTS_MAPPED => {
+                let words: Result<Vec<u32>, RenderError> = self
+                    .buffer
+                    .slice(..)
+                    .get_mapped_range()
+                    .map(|bytes| bytemuck::pod_collect_to_vec(&bytes))
+                    .map_err(|e| RenderError::Readback(e.to_string()));
+                self.buffer.unmap();
+                Some(words.and_then(|w| AdaptiveCounts::of_words(&w)))
+            }
+            _ => Some(Err(RenderError::Readback(
+                "the adaptive counters' buffer could not be mapped".into(),
+            ))),
+        }
     }
 }
 
@@ -558,6 +635,11 @@ impl AdaptivePass {
     /// The RGBA8 colour target, for display (valid after the first frame).
     pub fn output_view(&self) -> Option<&wgpu::TextureView> {
         self.targets.as_ref().map(FrameTargets::color_view)
+    }
+
+    /// The RGBA8 colour target itself (the page copies it for a capture or a screenshot).
+    pub fn output_texture(&self) -> Option<&wgpu::Texture> {
+        self.targets.as_ref().map(FrameTargets::color)
     }
 
     fn pipeline(&mut self, device: &wgpu::Device, key: AdaptiveKey) -> &wgpu::ComputePipeline {
@@ -850,8 +932,7 @@ impl AdaptivePass {
         visibility.truncate(vis.entries());
         let c: Vec<u32> =
             bytemuck::pod_collect_to_vec(&read_buffer_blocking(device, &self.counters_readback)?);
-        let word = |slot: u32| c[slot as usize] as u64;
-        let level = |base: u32| [0, 1, 2, 3].map(|l| word(base + l));
+        let counts = AdaptiveCounts::of_words(&c)?;
         Ok(AdaptiveFrame {
             width: t.width(),
             height: t.height(),
@@ -859,15 +940,51 @@ impl AdaptivePass {
             rgba_f32: pixels.rgba_f32,
             depth: pixels.depth,
             visibility,
-            samples_per_level: level(COUNTER_SAMPLES),
-            syntheses_per_level: level(COUNTER_SYNTHESES),
-            apron_samples_per_level: level(COUNTER_APRON_SAMPLES),
-            segments: word(COUNTER_SEGMENTS),
-            shadow_rays: word(COUNTER_SHADOW_RAYS),
+            samples_per_level: counts.samples_per_level,
+            syntheses_per_level: counts.syntheses_per_level,
+            apron_samples_per_level: counts.apron_samples_per_level,
+            segments: counts.segments,
+            shadow_rays: counts.shadow_rays,
             last_slice: self.last_slice,
-            tile_slices: word(COUNTER_TILE_SLICES),
-            cut_short_invocations: word(COUNTER_CUT_SHORT),
+            tile_slices: counts.tile_slices,
+            cut_short_invocations: counts.cut_short_invocations,
         })
+    }
+
+    /// Copies the last submitted frame's counters to a buffer of their own and maps it
+    /// without waiting; `on_mapped` runs once the mapping finished (the page asks for a
+    /// repaint there). The frame itself is shown from [`AdaptivePass::output_view`], with no
+    /// readback at all.
+    pub fn read_counts_async(
+        &self,
+        ctx: &GpuContext,
+        on_mapped: impl FnOnce() + wgpu::WasmNotSend + 'static,
+    ) -> CountsReadback {
+        let bytes = COUNTERS as u64 * 4;
+        let buffer = readback_buffer(&ctx.device, "adaptive counters (async)", bytes);
+        let mut encoder = ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("adaptive counters (async)"),
+            });
+        encoder.copy_buffer_to_buffer(&self.counters, 0, &buffer, 0, bytes);
+        ctx.queue.submit(Some(encoder.finish()));
+        let state = Arc::new(AtomicU8::new(COUNTS_MAPPING));
+        let done = state.clone();
+        buffer
+            .slice(..)
+            .map_async(wgpu::MapMode::Read, move |result| {
+                done.store(
+                    if result.is_ok() {
+                        COUNTS_MAPPED
+                    } else {
+                        COUNTS_FAILED
+                    },
+                    Ordering::Release,
+                );
+                on_mapped();
+            });
+        CountsReadback { buffer, state }
     }
 }
 

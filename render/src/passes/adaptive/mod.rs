@@ -12,11 +12,14 @@
 //!   colour's change, not only the opacity's ([`OracleTarget`]).
 //! - [`block_oracle`]: the finer oracle, a distance per 2³ block of every resident node (the
 //!   paper's distance to the nearest voxel with |∇α| > ε), indexed by slot and in-slot block.
+//! - [`block_oracle_build`]: the same table a bounded number of slots at a time (the browser
+//!   page builds it across animation frames on its one thread).
 //! - [`scene`]: the transcription over a real volume (the field of field.rs, the length-free
 //!   pre-integration of segment_integral.rs): the CPU twin of the GPU pass.
 //! - [`gpu`]: the tiled compute pass (shaders/adaptive.wgsl).
 
 pub mod block_oracle;
+pub mod block_oracle_build;
 pub mod frame;
 pub mod gpu;
 pub mod oracle;
@@ -24,8 +27,9 @@ pub mod scene;
 pub mod transcription;
 
 pub use block_oracle::{block_oracle, block_oracle_with};
+pub use block_oracle_build::BlockOracleBuild;
 pub use frame::SliceFrame;
-pub use gpu::{AdaptiveFrame, AdaptivePass};
+pub use gpu::{AdaptiveCounts, AdaptiveFrame, AdaptivePass, CountsReadback};
 pub use oracle::{oracle_distances, oracle_for_cut, oracle_for_cut_with, OracleKind, OracleTarget};
 pub use scene::{render_adaptive_reference, slice_sample, AdaptiveOptics, AdaptiveReference};
 pub use transcription::{
