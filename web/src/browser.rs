@@ -1607,13 +1607,31 @@ impl eframe::App for WebViewer {
                     }
                 }
                 let picked = self.take_pick();
-                let (slices, oblique) = match self.streamed.as_mut() {
+                let camera_3d = self.shown_geometry().map(|g| self.view.camera(&g));
+                let (mut slices, oblique) = match self.streamed.as_mut() {
                     Some(streamed) => (Some(&mut streamed.slices), Some(&mut streamed.oblique)),
                     None => (self.sample_slices.as_mut(), self.sample_oblique.as_mut()),
                 };
                 if let Some(index) = picked {
                     // The link names it even where no slice view shows it (the single layout).
                     self.view.cursor = Some(index);
+                }
+                // With the ruler or angle tool the picked position is a measurement's point
+                // (measure.rs), as the desktop's 3D click places it; else it moves the crosshair.
+                let picked = match (picked, slices.as_deref_mut()) {
+                    (Some(index), Some(s)) => {
+                        (!crate::measure::picked_in_3d(&mut self.view, s, index)).then_some(index)
+                    }
+                    (picked, _) => picked,
+                };
+                if let (Some(s), Some(camera)) = (slices.as_deref_mut(), camera_3d) {
+                    crate::measure::paint_in_3d_view(
+                        ui.painter(),
+                        image_rect,
+                        &camera,
+                        &self.view,
+                        s,
+                    );
                 }
                 if let (Some(rects), Some(slices)) = (slice_rects, slices) {
                     if let Some(index) = picked {
