@@ -512,6 +512,10 @@ impl WebViewer {
                 ))
             })?;
         let converged = streamed.last.as_ref().is_some_and(|s| s.converged);
+        // A 4-D store: the next frame fetches what this one converged on (frames.rs).
+        if let (true, Some(frames)) = (converged, streamed.frames.as_ref()) {
+            frames.stream_ahead(streamed.volume.working_set(), ctx);
+        }
         let now = self.page_started.elapsed().as_secs_f64();
         let target_fps = request.target_fps;
         if self.drawn.as_ref() == Some(&wanted)
@@ -1612,10 +1616,6 @@ impl eframe::App for WebViewer {
                     Some(streamed) => (Some(&mut streamed.slices), Some(&mut streamed.oblique)),
                     None => (self.sample_slices.as_mut(), self.sample_oblique.as_mut()),
                 };
-                if let Some(index) = picked {
-                    // The link names it even where no slice view shows it (the single layout).
-                    self.view.cursor = Some(index);
-                }
                 // With the ruler or angle tool the picked position is a measurement's point
                 // (measure.rs), as the desktop's 3D click places it; else it moves the crosshair.
                 let picked = match (picked, slices.as_deref_mut()) {
@@ -1632,6 +1632,10 @@ impl eframe::App for WebViewer {
                         &self.view,
                         s,
                     );
+                }
+                if let Some(index) = picked {
+                    // The link names it even where no slice view shows it (the single layout).
+                    self.view.cursor = Some(index);
                 }
                 if let (Some(rects), Some(slices)) = (slice_rects, slices) {
                     if let Some(index) = picked {
