@@ -9,16 +9,19 @@
 //! viewers slice with), a slice view's gestures ([`slice_input`]: drag a ruler or a region,
 //! click the three points of an angle) and drawing ([`paint_on_slice`]), the list panel
 //! ([`panel`]), and the link's `m=` value ([`to_link_text`], [`from_link_text`]), so a link
-//! opens with its measurements in either viewer. The desktop's 3D picking stays in the desktop.
+//! opens with its measurements in either viewer. Rulers and angles placed by clicks in the 3D
+//! view (each click's point is what [`crate::picking`] picks there, fed to
+//! [`Measurements::click`]) are drawn over it by [`paint_in_3d`], in both viewers.
 //! Tests: the unit tests below; the page's gestures against these functions in
 //! web/tests/browser/measure.rs; the desktop's in viewer/tests/ui/measurements.rs.
 
 use egui::{Color32, Pos2, Rect, Stroke, Vec2};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
-use strata_render::{ValueMapping, VolumeGeometry};
+use strata_render::{Camera, ValueMapping, VolumeGeometry};
 use strata_slices::{SliceFrame, SliceImage, SliceView};
 
+use crate::picking::project_to_view;
 use crate::slice_canvas::{fraction_at, keep_inside, screen_at};
 
 /// The tool the left mouse button uses in the views.
@@ -586,6 +589,41 @@ pub fn paint_on_slice(
                 }
             }
         }
+    }
+}
+
+/// Rulers and angles (and the points of one being drawn) over a 3D view whose frame, drawn
+/// with `camera`, fills `rect`; regions belong to their slice and are not drawn here.
+pub fn paint_in_3d(
+    painter: &egui::Painter,
+    rect: Rect,
+    camera: &Camera,
+    geometry: &VolumeGeometry,
+    unit: &str,
+    measurements: &Measurements,
+) {
+    let project = |p: [f64; 3]| project_to_view(camera, rect, geometry, DVec3::from(p));
+    let colour = Color32::from_rgb(255, 230, 80);
+    let stroke = Stroke::new(1.5, colour);
+    for m in &measurements.items {
+        let points: Option<Vec<Pos2>> = match &m.shape {
+            Shape::Roi { .. } => None,
+            _ => m.points().into_iter().map(project).collect(),
+        };
+        let Some(points) = points else { continue };
+        painter.add(egui::Shape::line(points.clone(), stroke));
+        if let Some(last) = points.last() {
+            painter.text(
+                *last + Vec2::new(4.0, -4.0),
+                egui::Align2::LEFT_BOTTOM,
+                m.describe(geometry, unit),
+                egui::FontId::proportional(12.0),
+                colour,
+            );
+        }
+    }
+    for p in measurements.draft.points.iter().filter_map(|p| project(*p)) {
+        painter.circle_filled(p, 3.0, colour);
     }
 }
 

@@ -18,7 +18,10 @@
 //!   slice ([`composite_over`], what the viewers' painters do when they draw one over the other).
 //! - The link ([`OverlayLink`]): `overlay=NAME` (a store of the same server, the page),
 //!   `overlay_kind=labels|continuous` (absent: the store decides, [`kind_of_store`]),
-//!   `overlay_opacity=F` and `overlay_hidden=L1,L2` (the hidden labels); defaults not written.
+//!   `overlay_opacity=F` and `overlay_hidden=L1,L2` (the hidden labels), and a continuous
+//!   overlay's `overlay_cmap=NAME` (as `cmap=` names maps), `overlay_range=LO,HI` and
+//!   `overlay_threshold=T` (physical values, written so they read back exactly; absent: the
+//!   opening style's, [`OverlayStyle::opening`]); defaults not written.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::sync::Arc;
@@ -440,7 +443,8 @@ pub struct OverlayLinkError {
 }
 
 /// The overlay a link names and how it is drawn (`overlay=`, `overlay_kind=`,
-/// `overlay_opacity=`, `overlay_hidden=`).
+/// `overlay_opacity=`, `overlay_hidden=`, `overlay_cmap=`, `overlay_range=`,
+/// `overlay_threshold=`).
 #[derive(Clone, Debug, PartialEq)]
 pub struct OverlayLink {
     /// A store of the server that served the page; None: no overlay.
@@ -449,6 +453,11 @@ pub struct OverlayLink {
     pub kind: Option<OverlayKind>,
     pub opacity: f32,
     pub hidden_labels: BTreeSet<i64>,
+    /// A continuous overlay's colour map, range and threshold; None: the opening style's
+    /// (which depends on the store's range, so the link cannot say it by itself).
+    pub colour_map: Option<ColourMap>,
+    pub range: Option<(f64, f64)>,
+    pub threshold: Option<f64>,
 }
 
 impl Default for OverlayLink {
@@ -458,17 +467,33 @@ impl Default for OverlayLink {
             kind: None,
             opacity: DEFAULT_OPACITY,
             hidden_labels: BTreeSet::new(),
+            colour_map: None,
+            range: None,
+            threshold: None,
         }
     }
 }
 
+/// A colour map's name in a link: its label in lower case, as view_state's `cmap=` writes it
+/// (view_state reads these keys through this module, so this module cannot call it).
+fn colour_map_link_name(map: ColourMap) -> String {
+    map.label().to_lowercase()
+}
+
+/// Largest magnitude of a link's overlay value: physical values (HU, SUV, a statistic) are far
+/// inside it; bounds what a hostile link can make the sliders span.
+pub const MAX_LINK_OVERLAY_VALUE: f64 = 1.0e9;
+
 impl OverlayLink {
     /// The link's keys this reads (view_state hands them here).
-    pub const KEYS: [&'static str; 4] = [
+    pub const KEYS: [&'static str; 7] = [
         "overlay",
         "overlay_kind",
         "overlay_opacity",
         "overlay_hidden",
+        "overlay_cmap",
+        "overlay_range",
+        "overlay_threshold",
     ];
 
     /// Reads one of [`OverlayLink::KEYS`]; a bad value says what the key must hold.
@@ -511,6 +536,32 @@ impl OverlayLink {
                     }
                 }
             }
+            "overlay_cmap" => {
+                let map = ColourMap::ALL
+                    .into_iter()
+                    .find(|map| colour_map_link_name(*map) == value);
+                let names: Vec<String> = ColourMap::ALL
+                    .into_iter()
+                    .map(colour_map_link_name)
+                    .collect();
+                self.colour_map =
+                    Some(map.ok_or_else(|| bad(&format!("one of {}", names.join(", "))))?);
+            }
+            "overlay_range" => {
+                let expected =
+                    format!("two numbers LO,HI within ±{MAX_LINK_OVERLAY_VALUE}, LO below HI");
+                let range = value
+                    .split_once(',')
+                    .and_then(|(lo, hi)| Some((link_value(lo)?, link_value(hi)?)))
+                    .filter(|(lo, hi)| lo < hi);
+                self.range = Some(range.ok_or_else(|| bad(&expected))?);
+            }
+            "overlay_threshold" => {
+                self.threshold =
+                    Some(link_value(value).ok_or_else(|| {
+                        bad(&format!("a number within ±{MAX_LINK_OVERLAY_VALUE}"))
+                    })?);
+            }
             _ => {}
         }
         Ok(())
@@ -532,16 +583,58 @@ impl OverlayLink {
             let hidden: Vec<String> = self.hidden_labels.iter().map(i64::to_string).collect();
             parts.push(format!("overlay_hidden={}", hidden.join(",")));
         }
+        // `{}` writes the shortest text that reads back as the same f64.
+        if let Some(map) = self.colour_map {
+            parts.push(format!("overlay_cmap={}", colour_map_link_name(map)));
+        }
+        if let Some((lo, hi)) = self.range {
+            parts.push(format!("overlay_range={lo},{hi}"));
+        }
+        if let Some(threshold) = self.threshold {
+            parts.push(format!("overlay_threshold={threshold}"));
+        }
         parts
     }
 
-    /// The link's opacity and hidden labels in `style`.
+    /// The link's opacity, hidden labels, colour map, range and threshold in `style` (those
+    /// the link leaves out stay as they are).
     pub fn apply_to(&self, style: &mut OverlayStyle) {
         style.opacity = self.opacity;
         if style.hidden_labels != self.hidden_labels {
             style.hidden_labels = self.hidden_labels.clone();
         }
+        if let Some(map) = self.colour_map {
+            style.colour_map = map;
+        }
+        if let Some(range) = self.range {
+            style.range = range;
+        }
+        if let Some(threshold) = self.threshold {
+            style.threshold = threshold;
+        }
     }
+
+    /// Takes a continuous overlay's colour map, range and threshold from `style` into the link
+    /// where `before` (the style before the panel's controls ran) differs from it: an edit.
+    pub fn follow_style_edit(&mut self, before: &OverlayStyle, style: &OverlayStyle) {
+        if before.colour_map != style.colour_map {
+            self.colour_map = Some(style.colour_map);
+        }
+        if before.range != style.range {
+            self.range = Some(style.range);
+        }
+        if before.threshold != style.threshold {
+            self.threshold = Some(style.threshold);
+        }
+    }
+}
+
+/// A link's overlay value: a finite number within ±[`MAX_LINK_OVERLAY_VALUE`].
+fn link_value(text: &str) -> Option<f64> {
+    text.trim()
+        .parse::<f64>()
+        .ok()
+        .filter(|v| v.is_finite() && v.abs() <= MAX_LINK_OVERLAY_VALUE)
 }
 
 /// The overlay's style controls both viewers' panels draw (the desktop's Overlay panel and the
@@ -798,6 +891,11 @@ mod tests {
         link.parse_key("overlay_opacity", "0.75").expect("opacity");
         link.parse_key("overlay_hidden", "3,1").expect("hidden");
         link.parse_key("overlay_kind", "continuous").expect("kind");
+        link.parse_key("overlay_cmap", "viridis")
+            .expect("colour map");
+        link.parse_key("overlay_range", "-12.5,0.1").expect("range");
+        link.parse_key("overlay_threshold", "-3.0000000001")
+            .expect("threshold");
         let parts = link.link_parts();
         assert_eq!(
             parts,
@@ -805,9 +903,30 @@ mod tests {
                 "overlay=labels.v1",
                 "overlay_kind=continuous",
                 "overlay_opacity=0.75",
-                "overlay_hidden=1,3"
+                "overlay_hidden=1,3",
+                "overlay_cmap=viridis",
+                "overlay_range=-12.5,0.1",
+                "overlay_threshold=-3.0000000001"
             ]
         );
+        // The style follows the link, and an edit of the style goes back into it.
+        let mut style = OverlayStyle::opening(BTreeMap::new(), (0.0, 100.0));
+        link.apply_to(&mut style);
+        assert_eq!(
+            (style.colour_map, style.range, style.threshold),
+            (ColourMap::Viridis, (-12.5, 0.1), -3.0000000001)
+        );
+        let before = style.clone();
+        style.threshold = 0.05;
+        let mut edited = link.clone();
+        edited.follow_style_edit(&before, &style);
+        assert_eq!(
+            (edited.colour_map, edited.range, edited.threshold),
+            (Some(ColourMap::Viridis), Some((-12.5, 0.1)), Some(0.05))
+        );
+        let mut untouched = OverlayLink::default();
+        untouched.follow_style_edit(&before, &before);
+        assert_eq!(untouched, OverlayLink::default(), "no edit, no keys");
         let mut again = OverlayLink::default();
         for part in &parts {
             let (key, value) = part.split_once('=').expect("key=value");
@@ -819,6 +938,14 @@ mod tests {
             ("overlay_kind", "pet", "labels or continuous"),
             ("overlay_opacity", "2", "from 0 to 1"),
             ("overlay_hidden", "1,x", "whole label values"),
+            (
+                "overlay_cmap",
+                "rainbow",
+                "one of grey, inverted, hot, turbo, viridis",
+            ),
+            ("overlay_range", "5,1", "LO below HI"),
+            ("overlay_range", "1,inf", "two numbers"),
+            ("overlay_threshold", "NaN", "a number within"),
         ] {
             let e = OverlayLink::default()
                 .parse_key(key, value)

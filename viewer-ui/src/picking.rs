@@ -3,8 +3,12 @@
 //! accumulated opacity reaches render's `DEPTH_OPACITY`, MIP at the maximum, iso at the
 //! surface). Both viewers map a click through these two functions, so the same click on the
 //! same frame moves both crosshairs to the same place; how the depth gets back differs (the
-//! desktop keeps the frame's depth, the page copies one pixel back without waiting).
+//! desktop keeps the frame's depth, the page copies one pixel back without waiting). And the
+//! way back, [`project_to_view`]: where a volume position shows on the view, which both
+//! viewers draw their 3D rulers and angles with (measurements' `paint_in_3d`).
 
+use egui::{Pos2, Rect};
+use glam::DVec3;
 use strata_render::Camera;
 use strata_types::VolumeGeometry;
 
@@ -39,10 +43,36 @@ pub fn picked_index(
     Some([0, 1, 2].map(|a| index[a].clamp(0.0, (geometry.dims[a] as f64 - 1.0).max(0.0))))
 }
 
+/// The screen point of a level-0 index, projected with `camera` into a frame filling `rect`
+/// (rendered at its aspect); None behind the eye.
+pub fn project_to_view(
+    camera: &Camera,
+    rect: Rect,
+    g: &VolumeGeometry,
+    index: DVec3,
+) -> Option<Pos2> {
+    let basis = camera.basis();
+    let aspect = (rect.width() / rect.height().max(1.0)) as f64;
+    let d = g.patient_from_index(index) - basis.eye;
+    let depth = d.dot(basis.forward);
+    let (sx, sy) = if basis.orthographic {
+        (d.dot(basis.right), d.dot(basis.up))
+    } else if depth > 1e-6 {
+        (d.dot(basis.right) / depth, d.dot(basis.up) / depth)
+    } else {
+        return None;
+    };
+    let u = (sx / (aspect * basis.half_extent) + 1.0) * 0.5;
+    let w = (1.0 - sy / basis.half_extent) * 0.5;
+    Some(Pos2::new(
+        rect.left() + u as f32 * rect.width(),
+        rect.top() + w as f32 * rect.height(),
+    ))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
-    use glam::DVec3;
     use strata_render::Projection;
 
     #[test]

@@ -13,6 +13,7 @@ use glam::DVec3;
 use serde::{Deserialize, Serialize};
 use strata_render::{Camera, Projection, RenderMode, RenderSettings, VolumeGeometry};
 use strata_viewer_ui::picking;
+use strata_viewer_ui::picking::project_to_view;
 use strata_viewer_ui::render_driver::{OverlayIn3d, RenderRequest};
 
 use super::oblique::OBLIQUE_COLOUR;
@@ -24,7 +25,7 @@ use super::slice_view::slice_colour;
 use super::volume_session::RenderedFrame;
 use super::widgets::{view_title, wheel_lines, ViewResponse, NOT_FOR_DIAGNOSIS, WARNING_COLOUR};
 use strata_slices::oblique::ObliquePlane;
-use strata_viewer_ui::measurements::{Shape, Tool};
+use strata_viewer_ui::measurements::Tool;
 
 /// Zoom factor per wheel click in the 3D view.
 pub const ZOOM_PER_WHEEL_LINE: f64 = 1.1;
@@ -518,7 +519,15 @@ impl View3d {
         if prefs.show_planes_in_3d {
             paint_slice_planes(&painter, rect, &camera, data, scene, oblique.as_ref());
         }
-        paint_measurements_3d(&painter, rect, &camera, data, scene);
+        // The rulers and angles both viewers draw (strata_viewer_ui::measurements).
+        strata_viewer_ui::measurements::paint_in_3d(
+            &painter,
+            rect,
+            &camera,
+            &data.info.geometry,
+            &data.unit(),
+            &scene.measurements,
+        );
         if prefs.show_crop_box && crop_box_ui(ui, &painter, rect, &camera, data, scene) {
             self.interacting_until = Some(Instant::now() + Duration::from_millis(150));
         }
@@ -613,33 +622,6 @@ impl View3d {
             hover,
         }
     }
-}
-
-/// The screen point of a level-0 index, projected with `camera` into a frame filling `rect`
-/// (rendered at its aspect); None behind the eye.
-pub fn project_to_view(
-    camera: &Camera,
-    rect: Rect,
-    g: &VolumeGeometry,
-    index: DVec3,
-) -> Option<Pos2> {
-    let basis = camera.basis();
-    let aspect = (rect.width() / rect.height().max(1.0)) as f64;
-    let d = g.patient_from_index(index) - basis.eye;
-    let depth = d.dot(basis.forward);
-    let (sx, sy) = if basis.orthographic {
-        (d.dot(basis.right), d.dot(basis.up))
-    } else if depth > 1e-6 {
-        (d.dot(basis.right) / depth, d.dot(basis.up) / depth)
-    } else {
-        return None;
-    };
-    let u = (sx / (aspect * basis.half_extent) + 1.0) * 0.5;
-    let w = (1.0 - sy / basis.half_extent) * 0.5;
-    Some(Pos2::new(
-        rect.left() + u as f32 * rect.width(),
-        rect.top() + w as f32 * rect.height(),
-    ))
 }
 
 /// A crop-box face handle: the index axis it moves, which end, and where it is drawn.
@@ -787,47 +769,6 @@ fn crop_box_ui(
         }
     }
     dragging
-}
-
-/// Rulers and angles (and the points of one being drawn) over the 3D view.
-fn paint_measurements_3d(
-    painter: &egui::Painter,
-    rect: Rect,
-    camera: &Camera,
-    data: &VolumeData,
-    scene: &Scene,
-) {
-    let g = &data.info.geometry;
-    let project = |p: [f64; 3]| project_to_view(camera, rect, g, DVec3::from(p));
-    let colour = Color32::from_rgb(255, 230, 80);
-    let stroke = Stroke::new(1.5, colour);
-    let unit = data.unit();
-    for m in &scene.measurements.items {
-        let points: Option<Vec<Pos2>> = match &m.shape {
-            Shape::Roi { .. } => None,
-            _ => m.points().into_iter().map(project).collect(),
-        };
-        let Some(points) = points else { continue };
-        painter.add(egui::Shape::line(points.clone(), stroke));
-        if let Some(last) = points.last() {
-            painter.text(
-                *last + Vec2::new(4.0, -4.0),
-                egui::Align2::LEFT_BOTTOM,
-                m.describe(g, &unit),
-                egui::FontId::proportional(12.0),
-                colour,
-            );
-        }
-    }
-    for p in scene
-        .measurements
-        .draft
-        .points
-        .iter()
-        .filter_map(|p| project(*p))
-    {
-        painter.circle_filled(p, 3.0, colour);
-    }
 }
 
 /// Outlines where the three slice views cut the volume, projected with the 3D view's camera

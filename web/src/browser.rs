@@ -517,6 +517,10 @@ impl WebViewer {
                 ))
             })?;
         let converged = streamed.last.as_ref().is_some_and(|s| s.converged);
+        // A 4-D store: the next frame fetches what this one converged on (frames.rs).
+        if let (true, Some(frames)) = (converged, streamed.frames.as_ref()) {
+            frames.stream_ahead(streamed.volume.working_set(), ctx);
+        }
         let now = self.page_started.elapsed().as_secs_f64();
         let target_fps = request.target_fps;
         if self.drawn.as_ref() == Some(&wanted)
@@ -1699,10 +1703,28 @@ impl eframe::App for WebViewer {
                 }
                 self.segment_3d_step();
                 let picked = self.take_pick();
+                let camera_3d = self.shown_geometry().map(|g| self.view.camera(&g));
                 let (mut slices, oblique) = match self.streamed.as_mut() {
                     Some(streamed) => (Some(&mut streamed.slices), Some(&mut streamed.oblique)),
                     None => (self.sample_slices.as_mut(), self.sample_oblique.as_mut()),
                 };
+                // With the ruler or angle tool the picked position is a measurement's point
+                // (measure.rs), as the desktop's 3D click places it; else it moves the crosshair.
+                let picked = match (picked, slices.as_deref_mut()) {
+                    (Some(index), Some(s)) => {
+                        (!crate::measure::picked_in_3d(&mut self.view, s, index)).then_some(index)
+                    }
+                    (picked, _) => picked,
+                };
+                if let (Some(s), Some(camera)) = (slices.as_deref_mut(), camera_3d) {
+                    crate::measure::paint_in_3d_view(
+                        ui.painter(),
+                        image_rect,
+                        &camera,
+                        &self.view,
+                        s,
+                    );
+                }
                 if let Some(index) = picked {
                     // The link names it even where no slice view shows it (the single layout).
                     self.view.cursor = Some(index);

@@ -15,10 +15,16 @@
 //!   (`LABEL,N`), so a test knows that its click was taken (a click held too long by a busy
 //!   machine is no click to egui) before it clicks on.
 //!
+//! Rulers and angles are placed by clicks in the 3D view too ([`picked_in_3d`]: each point is
+//! the page's pick, web/src/picking.rs, the desktop's pixel, ray and depth) and drawn over it
+//! by the desktop's `paint_in_3d` ([`paint_in_3d_view`]).
+//!
 //! web/tests/browser/measure.rs checks the page's figures against the desktop's functions.
 
-use strata_render::VolumeGeometry;
-use strata_viewer_ui::measurements::{angle_deg, distance_mm, panel, Measurement, Shape};
+use strata_render::{Camera, VolumeGeometry};
+use strata_viewer_ui::measurements::{
+    angle_deg, distance_mm, paint_in_3d, panel, Measurement, Shape, Tool,
+};
 
 use crate::slice_views::SliceViews;
 use crate::view_state::ViewState;
@@ -76,6 +82,36 @@ pub fn after_slice_views(view: &mut ViewState, slices: &mut SliceViews) {
         measurements.draft.points.len()
     );
     crate::canvas_attributes::set("data-measure-tool", &state);
+}
+
+/// A position picked in the 3D view: with the ruler or the angle tool it is the next point of
+/// the measurement being drawn (the view takes the list, so the link carries it) and true;
+/// with another tool false (the click moves the crosshair).
+pub fn picked_in_3d(view: &mut ViewState, slices: &mut SliceViews, index: [f64; 3]) -> bool {
+    let (measurements, ..) = slices.measurement_parts();
+    if !matches!(measurements.tool, Tool::Distance | Tool::Angle) {
+        return false;
+    }
+    measurements.follow(&view.measurements);
+    measurements.click(index);
+    if view.measurements != measurements.items {
+        view.measurements = measurements.items.clone();
+    }
+    true
+}
+
+/// The rulers and angles (and the points placed of one being drawn) over the 3D image drawn
+/// with `camera` in `image_rect`: the desktop's drawing.
+pub fn paint_in_3d_view(
+    painter: &egui::Painter,
+    image_rect: egui::Rect,
+    camera: &Camera,
+    view: &ViewState,
+    slices: &mut SliceViews,
+) {
+    let (measurements, geometry, unit) = slices.measurement_parts();
+    measurements.follow(&view.measurements);
+    paint_in_3d(painter, image_rect, camera, geometry, unit, measurements);
 }
 
 /// One measurement as `data-measurements` lists it (see the module's doc).

@@ -251,7 +251,8 @@ pub fn follow_link(
 
 /// The side panel's Overlay section: which of the server's other stores is drawn over the
 /// slices, as labels or continuous, and its style (strata-viewer-ui's controls, the desktop's).
-/// What the link carries (store, kind, opacity, hidden labels) is written into `view`.
+/// What the link carries (store, kind, opacity, hidden labels, an edited colour map, range or
+/// threshold) is written into `view`.
 pub fn section(
     ui: &mut egui::Ui,
     view: &mut ViewState,
@@ -311,6 +312,7 @@ pub fn section(
             ui.weak(format!("{} as {}", overlay.name, overlay.kind.name()));
             ui.checkbox(&mut overlay.style.visible, "Show");
             let seen = overlay.labels_seen.clone();
+            let before = overlay.style.clone();
             style_controls(
                 ui,
                 overlay.kind,
@@ -319,6 +321,7 @@ pub fn section(
                 &seen,
             );
             view.overlay.opacity = overlay.style.opacity;
+            view.overlay.follow_style_edit(&before, &overlay.style);
             if view.overlay.hidden_labels != overlay.style.hidden_labels {
                 view.overlay.hidden_labels = overlay.style.hidden_labels.clone();
             }

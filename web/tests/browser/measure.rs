@@ -3,15 +3,20 @@
 //! a link carrying measurements. Each figure the page publishes (`data-measurements`,
 //! web/src/measure.rs) must equal what the desktop's code gives natively:
 //! strata-viewer-ui's slice mapping for the screen points, its `distance_mm`, `angle_deg`, and
-//! `roi_stats` over strata-slices' assembler's image of the same slice.
+//! `roi_stats` over strata-slices' assembler's image of the same slice. A ruler clicked in the
+//! page's 3D view measures what the desktop's picks at the same pixels give.
 
 use std::time::Duration;
 
 use egui::{pos2, Pos2, Rect};
-use strata_render::BrickSource;
+use strata_render::{BrickSource, CacheConfig, GpuContext, OffscreenRenderer};
 use strata_slices::{SliceAssembler, SliceError, SliceFrame, SliceImage, SliceRequest, SliceView};
 use strata_types::OctreeLayout;
-use strata_viewer_ui::measurements::{angle_deg, distance_mm, roi_stats, SliceContext};
+use strata_viewer_ui::measurements::{
+    angle_deg, distance_mm, from_link_text, roi_stats, to_link_text, Measurement, Shape,
+    SliceContext,
+};
+use strata_viewer_ui::picking::{frame_pixel, picked_index};
 use strata_viewer_ui::slice_canvas::{inner_rect, ZoomPan};
 use strata_web::view_state::{Fragment, ViewState};
 
@@ -104,7 +109,12 @@ fn tool_state(page: &mut Cdp) -> Option<(String, usize)> {
 /// Clicks at `at` until `taken` says the page took the click: egui counts a press and release
 /// more than 0.8 s apart as no click, and on two busy cores the frames between them can take
 /// that long. A click the page did take is never repeated.
-fn click_until(page: &mut Cdp, at: (f64, f64), what: &str, taken: impl Fn(&mut Cdp) -> bool) {
+pub(crate) fn click_until(
+    page: &mut Cdp,
+    at: (f64, f64),
+    what: &str,
+    taken: impl Fn(&mut Cdp) -> bool,
+) {
     for _attempt in 0..5 {
         page.click(at.0, at.1);
         let until = std::time::Instant::now() + Duration::from_secs(20);
@@ -425,4 +435,200 @@ fn a_link_with_measurements_opens_with_them_in_the_page() {
     let hash = page.evaluate("location.hash");
     let hash = hash.as_str().expect("the page's link");
     assert!(hash.contains(&format!("m={measurements}")), "{hash}");
+}
+
+/// The sample's iso surface in the 3D view over the slices (the picking test's view): every
+/// pixel near the image's centre sees the surface at a depth well apart from its neighbours'.
+const FRAGMENT_3D: &str =
+    "#mode=iso&preset=ct-bone&iso=200&az=120&el=-25&zoom=1.5&volume=40&size=64x64&layout=conventional";
+
+/// How far the page's 3D pick may lie from the native one, in voxels: the picking test's bound
+/// (web/tests/browser/picking.rs: SwiftShader and lavapipe run the same WGSL in f32 and may
+/// move the refined iso surface by a tiny fraction of a voxel; a pixel over moves it by far
+/// more, checked below).
+const PICK_TOLERANCE_VOXELS: f64 = 0.05;
+
+/// Where to click to hit `pixel`'s centre of a `size` frame shown in `image`, on whole CSS
+/// pixels (what mouse events carry); None where the rounded point falls in another pixel.
+fn click_point_of(image: Rect, size: [u32; 2], pixel: [u32; 2]) -> Option<Pos2> {
+    let at = pos2(
+        image.left() + (pixel[0] as f32 + 0.5) / size[0] as f32 * image.width(),
+        image.top() + (pixel[1] as f32 + 0.5) / size[1] as f32 * image.height(),
+    )
+    .round();
+    let back = frame_pixel(
+        (at.x - image.left()) / image.width(),
+        (at.y - image.top()) / image.height(),
+        size,
+    )?;
+    (back == pixel).then_some(at)
+}
+
+/// A ruler placed by two clicks in the page's 3D view (the Ruler tool chosen in the side
+/// panel, as on the desktop) has for its ends what the desktop picks at the same two pixels of
+/// the same view drawn natively (strata-viewer-ui's `picked_index` over lavapipe's pick
+/// depth), each within [`PICK_TOLERANCE_VOXELS`], and so measures the desktop's `distance_mm`
+/// within the sum of the two ends' tolerance (√3 × 0.05 voxels each, times the largest
+/// spacing). The page's link then carries it (`m=`, read by the desktop's parser, at the
+/// link's two decimals), and the desktop's link of its own ruler opens in the page with the
+/// desktop's millimetres to the last bit.
+#[test]
+fn a_ruler_clicked_in_the_pages_3d_view_measures_what_the_desktops_picks_give_and_links_carry_it() {
+    let scratch = tempfile::tempdir().expect("scratch folder");
+    let view = Fragment::parse(FRAGMENT_3D).expect("fragment").view;
+    let volume = view.sample_volume().expect("sample volume");
+    let geometry = volume.geometry.clone();
+    let size = [64u32, 64];
+
+    // The same view drawn natively (the f32 brick format the browser must use), with the
+    // pick depth of every pixel.
+    let gpu = GpuContext::headless().expect("a Vulkan adapter (lavapipe)");
+    let mut renderer = OffscreenRenderer::new(
+        &gpu,
+        &volume,
+        &view.transfer_function(),
+        0,
+        CacheConfig {
+            force_fallback_format: true,
+            ..CacheConfig::default()
+        },
+    )
+    .expect("native renderer");
+    let camera = view.camera(&geometry);
+    let settings = view.settings(&geometry, size[0], size[1]);
+    let native = renderer
+        .render(&gpu, &volume, &camera, &settings)
+        .expect("native frame");
+    let depth = |[x, y]: [u32; 2]| native.depth[(y * size[0] + x) as usize];
+    let pick = |pixel: [u32; 2]| picked_index(&camera, &geometry, pixel, size, depth(pixel));
+    // A pixel on the surface whose neighbours are on it too (a pick there does not fall off
+    // an edge), nearest to `around`.
+    let on_surface = |[x, y]: [u32; 2]| {
+        (x.saturating_sub(1)..=x + 1)
+            .all(|i| (y.saturating_sub(1)..=y + 1).all(|j| depth([i, j]).is_finite()))
+    };
+
+    let (mut page, server) = open_page(FRAGMENT_3D, scratch.path(), WINDOW);
+    let three_d = view_rect(&mut page, "3d");
+    let side = three_d.width().min(three_d.height());
+    let image = Rect::from_center_size(three_d.center(), egui::vec2(side, side));
+    let surface_click = |around: [u32; 2]| -> (Pos2, [u32; 2]) {
+        (0..12i32)
+            .flat_map(|r| {
+                (-r..=r)
+                    .flat_map(move |dx| (-r..=r).map(move |dy| (dx, dy)))
+                    .filter(move |(dx, dy)| dx.abs().max(dy.abs()) == r)
+            })
+            .map(|(dx, dy)| {
+                [
+                    (around[0] as i32 + dx).clamp(1, 62) as u32,
+                    (around[1] as i32 + dy).clamp(1, 62) as u32,
+                ]
+            })
+            .filter(|&p| on_surface(p))
+            .find_map(|p| click_point_of(image, size, p).map(|at| (at, p)))
+            .unwrap_or_else(|| panic!("no pixel of the iso surface near {around:?}"))
+    };
+    let ends = [surface_click([25, 32]), surface_click([39, 30])];
+    let [a, b] = ends.map(|(_, pixel)| pick(pixel).expect("the surface's depth"));
+    let expected = distance_mm(&geometry, a, b);
+    let largest_spacing = geometry.spacing_mm.iter().fold(0.0f64, |m, s| m.max(*s));
+    let length_tolerance_mm = 2.0 * 3f64.sqrt() * PICK_TOLERANCE_VOXELS * largest_spacing;
+    assert!(
+        expected > 20.0 * length_tolerance_mm,
+        "the two picks are only {expected} mm apart: the test could not tell a wrong pick"
+    );
+    let neighbour = pick([ends[0].1[0] + 1, ends[0].1[1]]).expect("the neighbour's depth");
+    let apart = (0..3)
+        .map(|i| (a[i] - neighbour[i]).abs())
+        .fold(0.0, f64::max);
+    assert!(
+        apart > 4.0 * PICK_TOLERANCE_VOXELS,
+        "one pixel over picks only {apart} voxels away: the test could not tell pixels apart"
+    );
+
+    choose_tool(&mut page, "Ruler");
+    let (first, second) = (ends[0].0, ends[1].0);
+    click_until(
+        &mut page,
+        (first.x as f64, first.y as f64),
+        "the ruler's first end in 3D",
+        |page| tool_state(page).is_some_and(|(_, points)| points == 1),
+    );
+    click_until(
+        &mut page,
+        (second.x as f64, second.y as f64),
+        "the ruler's second end in 3D",
+        |page| {
+            page.evaluate("document.getElementById('strata-canvas')?.dataset.measurements ?? ''")
+                .as_str()
+                .is_some_and(|m| parse_published(m).len() == 1)
+        },
+    );
+    let published = wait_for_measurements(&mut page, "the page's 3D ruler", |m| m.len() == 1);
+    let ruler = &published[0];
+    assert_eq!(ruler.kind, "ruler", "{published:?}");
+    let off = |p: [f64; 3], q: [f64; 3]| (0..3).map(|i| (p[i] - q[i]).abs()).fold(0.0, f64::max);
+    assert!(
+        off(ruler.points[0], a) <= PICK_TOLERANCE_VOXELS
+            && off(ruler.points[1], b) <= PICK_TOLERANCE_VOXELS,
+        "clicked at {first:?} and {second:?} (pixels {:?}, {:?}): the page's ruler {:?}, the \
+         desktop's picks {a:?} {b:?}",
+        ends[0].1,
+        ends[1].1,
+        ruler.points
+    );
+    println!(
+        "3D ruler: the page {} mm, the desktop {expected} mm",
+        ruler.figures[0]
+    );
+    assert!(
+        (ruler.figures[0] - expected).abs() <= length_tolerance_mm,
+        "the page's 3D ruler measures {} mm, the desktop's picks {expected} mm",
+        ruler.figures[0]
+    );
+
+    // The page's link carries it: the desktop's parser reads the page's ends at two decimals.
+    let linked = wait_for_link(&mut page, "the link to carry the 3D ruler", |v| {
+        v.measurements.len() == 1
+    });
+    let Shape::Distance {
+        a: link_a,
+        b: link_b,
+    } = linked.measurements[0].shape
+    else {
+        panic!(
+            "the link's measurement is not a ruler: {:?}",
+            linked.measurements
+        );
+    };
+    assert!(
+        off(link_a, ruler.points[0]) <= 0.005 + 1e-9
+            && off(link_b, ruler.points[1]) <= 0.005 + 1e-9,
+        "the link's ruler {link_a:?} {link_b:?}, the page's {:?}",
+        ruler.points
+    );
+    drop(page);
+    drop(server);
+
+    // And the desktop's link of its own ruler opens in the page with the desktop's length.
+    let desktop_ruler = Measurement {
+        id: 0,
+        shape: Shape::Distance { a, b },
+    };
+    let text = to_link_text(&[desktop_ruler]).expect("a ruler's link text");
+    let read = from_link_text(&text).expect("the desktop reads its own link");
+    let Shape::Distance { a: ra, b: rb } = read[0].shape else {
+        panic!("{read:?}");
+    };
+    let scratch = tempfile::tempdir().expect("a second scratch folder");
+    let (mut page, _server) = open_page(&format!("{FRAGMENT_3D}&m={text}"), scratch.path(), WINDOW);
+    let published = wait_for_measurements(&mut page, "the desktop's 3D ruler in the page", |m| {
+        m.len() == 1
+    });
+    assert_eq!(
+        (published[0].kind.as_str(), published[0].figures.as_slice()),
+        ("ruler", [distance_mm(&geometry, ra, rb)].as_slice()),
+        "{published:?}"
+    );
 }

@@ -225,8 +225,24 @@ fn assert_overlay_as_the_desktops(
         let (key, value) = part.split_once('=').expect("key=value");
         link.parse_key(key, value).expect("the test's own link");
     }
+    let opening = style.clone();
     link.apply_to(&mut style);
     composite_over(&mut desktop, kind, &style, &values);
+    if (link.colour_map, link.range, link.threshold) != (None, None, None) {
+        // The link's colour map, range and threshold must matter here, or a page that
+        // ignored them would pass.
+        let mut unstyled = base.clone();
+        composite_over(&mut unstyled, kind, &opening, &values);
+        let restyled = unstyled
+            .chunks(4)
+            .zip(desktop.chunks(4))
+            .filter(|(a, b)| a != b)
+            .count();
+        assert!(
+            restyled > size.0 * size.1 / 10,
+            "{what}: the link's style changes only {restyled} pixels of the opening style's"
+        );
+    }
     let changed = base
         .chunks(4)
         .zip(desktop.chunks(4))
@@ -426,5 +442,25 @@ fn a_label_overlay_over_the_pages_oblique_view_draws_as_the_desktops_compositing
         &posted,
         &desktop,
         &console,
+    );
+}
+
+/// A continuous overlay opened from a link that names its colour map, range and threshold
+/// (`overlay_cmap=`, `overlay_range=`, `overlay_threshold=`, read by the shared
+/// `OverlayLink`): the page's axial slice equals the desktop's compositing with that style
+/// byte for byte, and that style changes the slice against the opening one (Hot over the
+/// store's range), so a page that ignored the keys fails.
+#[test]
+fn a_continuous_overlay_link_with_its_colour_map_range_and_threshold_draws_as_the_desktops() {
+    let (kind, changed) = assert_overlay_as_the_desktops(
+        "continuous overlay, styled by its link",
+        true,
+        field,
+        "&overlay_cmap=viridis&overlay_range=50.5,250&overlay_threshold=100.25",
+    );
+    assert_eq!(kind, OverlayKind::Continuous);
+    assert!(
+        changed > 0.1,
+        "the overlay covers part of the slice: {changed:.2} of it"
     );
 }
