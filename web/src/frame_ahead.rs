@@ -152,7 +152,7 @@ mod tests {
         assert_eq!(first, [brick(0), brick(1)], "the most urgent, two at once");
         assert_eq!(
             ahead.to_ask(&wanted).1,
-            Vec::<BrickId>::new(),
+            [],
             "none while two are on the wire"
         );
         ahead.arrived(generation, brick(0), Some(vec![7; 10]));
@@ -166,7 +166,7 @@ mod tests {
         assert_eq!(ahead.to_ask(&wanted).1, [brick(3), brick(4)]);
         assert_eq!(
             ahead.to_ask(&wanted).1,
-            Vec::<BrickId>::new(),
+            [],
             "a failed brick is not asked again"
         );
         assert_eq!(ahead.take_record(brick(0)), Some(vec![7; 10]));
@@ -193,10 +193,7 @@ mod tests {
         assert_eq!(more, [brick(2)], "still under the bound: asked");
         ahead.arrived(generation, brick(2), Some(vec![0; 4]));
         assert_eq!(ahead.counts().bytes, AHEAD_BYTES);
-        assert!(
-            ahead.to_ask(&[brick(3)]).1.is_empty(),
-            "full: nothing more asked"
-        );
+        assert_eq!(ahead.to_ask(&[brick(3)]).1, [], "full: nothing more asked");
         assert!(ahead.take_record(brick(2)).is_some());
 
         let (old_generation, _) = ahead.to_ask(&[]);
