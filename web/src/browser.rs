@@ -517,10 +517,6 @@ impl WebViewer {
                 ))
             })?;
         let converged = streamed.last.as_ref().is_some_and(|s| s.converged);
-        // A 4-D store: the next frame fetches what this one converged on (frames.rs).
-        if let (true, Some(frames)) = (converged, streamed.frames.as_ref()) {
-            frames.stream_ahead(streamed.volume.working_set(), ctx);
-        }
         let now = self.page_started.elapsed().as_secs_f64();
         let target_fps = request.target_fps;
         if self.drawn.as_ref() == Some(&wanted)
@@ -1708,6 +1704,10 @@ impl eframe::App for WebViewer {
                     Some(streamed) => (Some(&mut streamed.slices), Some(&mut streamed.oblique)),
                     None => (self.sample_slices.as_mut(), self.sample_oblique.as_mut()),
                 };
+                if let Some(index) = picked {
+                    // The link names it even where no slice view shows it (the single layout).
+                    self.view.cursor = Some(index);
+                }
                 // With the ruler or angle tool the picked position is a measurement's point
                 // (measure.rs), as the desktop's 3D click places it; else it moves the crosshair.
                 let picked = match (picked, slices.as_deref_mut()) {

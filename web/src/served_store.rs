@@ -20,9 +20,7 @@
 //! - A 4-D store's later frames: [`ServedStore::open_frame`] reads that frame's open document
 //!   (its skeleton) and root brick, asynchronously, giving a store of its own whose bricks come
 //!   from the frame's routes (`strata_source::wire::frame_brick_path`); web/src/frames.rs
-//!   swaps the views to it. Before a frame is shown its bricks may be fetched ahead
-//!   ([`ServedStore::fetch_ahead`], web/src/frame_ahead.rs): its fetchers take those records
-//!   instead of asking the server.
+//!   swaps the views to it.
 //! - The token travels as `Authorization`, never in a URL. The browser's HTTP cache is left to
 //!   work (brick URLs carry the store's generation and are immutable): no `If-None-Match` here.
 
@@ -45,8 +43,6 @@ use strata_storage::store::{Skeleton, StoreStats, KNOWN_STORE_FEATURES};
 use strata_storage::StoreHeader;
 use strata_types::BrickId;
 use wasm_bindgen::JsCast;
-
-use crate::frame_ahead::AheadRecords;
 use wasm_bindgen_futures::JsFuture;
 
 /// Brick requests on the wire at once: one fewer than a browser's six HTTP/1.1 connections
@@ -72,8 +68,6 @@ pub struct ServedStore {
     histogram: Histogram,
     stats: StoreStats,
     root: (BrickId, Vec<u8>),
-    /// This frame's records fetched before it is shown, which its fetchers take first.
-    ahead: Arc<AheadRecords>,
 }
 
 /// Why a fetch gave no body.
@@ -274,36 +268,7 @@ async fn open_at(
         histogram: document.histogram,
         stats: document.stats,
         root: (root, record),
-        ahead: Arc::default(),
     })
-}
-
-impl ServedStore {
-    /// This frame's records fetched ahead (counts for the page's test attribute, clearing).
-    pub fn ahead(&self) -> &AheadRecords {
-        &self.ahead
-    }
-
-    /// Fetches the records of `wanted` (most urgent first: the shown frame's working set) of
-    /// this frame, not shown yet, without waiting: as many as [`AheadRecords::to_ask`] allows
-    /// now; called again each page frame for the rest. The root came with the store.
-    pub fn fetch_ahead(&self, wanted: &[BrickId], ctx: &egui::Context) {
-        let wanted: Vec<BrickId> = wanted
-            .iter()
-            .copied()
-            .filter(|id| *id != self.root.0)
-            .collect();
-        let (generation, ids) = self.ahead.to_ask(&wanted);
-        for id in ids {
-            let path = frame_brick_path(&self.name, &self.generation, self.frame, id);
-            let (ahead, token, repaint) = (self.ahead.clone(), self.token.clone(), ctx.clone());
-            wasm_bindgen_futures::spawn_local(async move {
-                let record = fetch_bytes(&path, token.as_deref(), None, false).await;
-                ahead.arrived(generation, id, record.ok());
-                repaint.request_repaint();
-            });
-        }
-    }
 }
 
 impl VolumeSource for ServedStore {
@@ -345,7 +310,6 @@ impl VolumeSource for ServedStore {
             generation: self.generation.clone(),
             frame: self.frame,
             token: self.token.clone(),
-            ahead: self.ahead.clone(),
             state: RefCell::new(FetchState {
                 wishes: WishList::new(options.max_queued),
                 on_the_wire: HashMap::new(),
@@ -407,8 +371,6 @@ struct Shared {
     generation: String,
     frame: u32,
     token: Option<String>,
-    /// The frame's records fetched ahead: taken instead of a request.
-    ahead: Arc<AheadRecords>,
     state: RefCell<FetchState>,
 }
 
@@ -441,21 +403,6 @@ impl Shared {
                 let Some(started) = state.wishes.take_most_urgent() else {
                     return;
                 };
-                // Fetched ahead (frame_ahead.rs): delivered without a request, unless it was
-                // damaged once (then the server's copy, past the cache).
-                let ahead = match state.refetched.contains(&started.id) {
-                    true => None,
-                    false => self.ahead.take_record(started.id),
-                };
-                if let Some(record) = ahead {
-                    state.wishes.deliver(started.id, started.ticket);
-                    state.arrived.push_back(Arrival {
-                        id: started.id,
-                        class: started.class,
-                        body: Ok(record),
-                    });
-                    continue;
-                }
                 let on_the_wire = OnTheWire {
                     started,
                     controller: controller.clone(),
