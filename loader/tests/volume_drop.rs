@@ -47,6 +47,28 @@ fn threads() -> usize {
     std::fs::read_dir("/proc/self/task").map_or(0, |d| d.count())
 }
 
+/// The process's thread count once it has stopped changing for a second (at most 10 s).
+/// Joined threads can linger in `/proc/self/task` for a moment after `join`, and sled's and
+/// lavapipe's pools start and retire their own threads on their own clocks; counting at one
+/// instant once saw a transient thread after cycle 1 and failed a correct drop (stop 63's
+/// CI). This only waits; the assertions below compare counts, never times.
+fn settled_threads() -> usize {
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(10);
+    let mut count = threads();
+    let mut stable_since = std::time::Instant::now();
+    while std::time::Instant::now() < deadline
+        && stable_since.elapsed() < std::time::Duration::from_secs(1)
+    {
+        std::thread::sleep(std::time::Duration::from_millis(20));
+        let now = threads();
+        if now != count {
+            count = now;
+            stable_since = std::time::Instant::now();
+        }
+    }
+    count
+}
+
 #[test]
 fn a_dropped_streaming_volume_frees_its_bricks_caches_and_threads() {
     let ctx = gpu();
@@ -76,7 +98,8 @@ fn a_dropped_streaming_volume_frees_its_bricks_caches_and_threads() {
         drop(volume);
         // wgpu frees a dropped resource once the GPU is done with it.
         ctx.wait_idle().unwrap();
-        after_cycle.push((LIVE_BYTES.load(Ordering::Relaxed), threads()));
+        let threads = settled_threads();
+        after_cycle.push((LIVE_BYTES.load(Ordering::Relaxed), threads));
     }
     // Cycle 0 warms up what is kept by design for the device's life (wgpu's registries,
     // its staging buffers); from then on nothing may accumulate. A volume's bricks alone are
@@ -89,9 +112,11 @@ fn a_dropped_streaming_volume_frees_its_bricks_caches_and_threads() {
             bytes - base_bytes < 256 << 10,
             "live bytes after cycle {cycle}: {bytes}, after cycle 1: {base_bytes} (all: {after_cycle:?})"
         );
-        assert_eq!(
-            threads, base_threads,
-            "threads after cycle {cycle} (all: {after_cycle:?})"
+        // Fewer threads than after cycle 1 is a pool retiring an idle thread, never a leak; a
+        // leaked volume keeps its fetch workers, cut worker and predictor (several threads).
+        assert!(
+            threads <= base_threads,
+            "threads after cycle {cycle}: {threads}, after cycle 1: {base_threads} (all: {after_cycle:?})"
         );
     }
 }

@@ -811,17 +811,18 @@ fn the_outlines_of_a_frame_are_drawn_with_that_frames_camera() {
         Some(live),
         "the settled frame is the live camera's"
     );
-    // Turn by 40°: this pass sends the request and paints the frame it has, the old one.
+    // Turn by 40°: this pass sends the request and paints the frame it has, usually the old
+    // one; the render thread may also deliver the turned frame within the pass (it did under
+    // load once). Either way the outlines must carry the painted image's camera.
     if let Some(v) = h.state_mut().as_mut().and_then(|a| a.volume.as_mut()) {
         v.view_3d.orbit.azimuth_deg += 40.0;
     }
     h.step();
     let (painted, overlays, turned) = cameras(&h);
     assert_ne!(turned, live);
-    assert_eq!(
-        painted,
-        Some(live),
-        "the turned frame came within the same pass"
+    assert!(
+        painted == Some(live) || painted == Some(turned),
+        "the painted frame is neither the old nor the turned camera's: {painted:?}"
     );
     assert_eq!(
         overlays, painted,
