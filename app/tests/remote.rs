@@ -493,7 +493,11 @@ fn two_hundred_clients_get_verified_bricks_or_clean_errors_with_bounded_memory()
         .collect();
     let ids = Arc::new(ids);
     strata_service::install_tls_provider();
-    let until = Instant::now() + Duration::from_secs(3);
+    // Each client asks until it holds BRICKS_PER_CLIENT verified bricks (a refusal is retried
+    // after a pause, at most MAX_ATTEMPTS asks): the outcome counts answers, not what a
+    // loaded machine manages in a time window (a 3 s window got 64 bricks under load once).
+    const BRICKS_PER_CLIENT: u64 = 3;
+    const MAX_ATTEMPTS: u64 = 400;
     let (ok, busy, other) = rt.block_on(async {
         let mut tasks = Vec::new();
         for client in 0..200u64 {
@@ -514,7 +518,9 @@ fn two_hundred_clients_get_verified_bricks_or_clean_errors_with_bounded_memory()
                 .unwrap();
                 let (mut ok, mut busy, mut other) = (0u64, 0u64, Vec::new());
                 let mut k = client.wrapping_mul(2654435761);
-                while Instant::now() < until {
+                let mut attempts = 0;
+                while ok < BRICKS_PER_CLIENT && attempts < MAX_ATTEMPTS {
+                    attempts += 1;
                     k = k
                         .wrapping_mul(6364136223846793005)
                         .wrapping_add(1442695040888963407);
@@ -523,6 +529,7 @@ fn two_hundred_clients_get_verified_bricks_or_clean_errors_with_bounded_memory()
                         "{base}{}",
                         strata_service::wire::brick_path("phantom", &generation, id)
                     );
+                    let refused_before = busy;
                     match http.get(&url).send().await {
                         Ok(r) if r.status() == 200 => {
                             let body = r.bytes().await.unwrap_or_default();
@@ -536,6 +543,9 @@ fn two_hundred_clients_get_verified_bricks_or_clean_errors_with_bounded_memory()
                         // Connections closed at the limit are a clean refusal too.
                         Err(e) if e.is_connect() || e.is_request() => busy += 1,
                         Err(e) => other.push(format!("{url}: {e}")),
+                    }
+                    if busy > refused_before {
+                        tokio::time::sleep(Duration::from_millis(20)).await;
                     }
                 }
                 (ok, busy, other)
@@ -555,7 +565,11 @@ fn two_hundred_clients_get_verified_bricks_or_clean_errors_with_bounded_memory()
         "unclean answers: {:?}",
         &other[..other.len().min(5)]
     );
-    assert!(ok > 200, "only {ok} verified bricks ({busy} refused)");
+    assert_eq!(
+        ok,
+        200 * BRICKS_PER_CLIENT,
+        "verified bricks after at most {MAX_ATTEMPTS} asks per client ({busy} refused)"
+    );
     let Some((_, peak)) = rss_bytes(served.pid()) else {
         println!("skipped the memory check: no /proc here");
         return;
