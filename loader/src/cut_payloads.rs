@@ -1,6 +1,7 @@
 //! The resident cut's node payloads for a CPU pass beside the raycaster (the viewer's adaptive
 //! oracle, which reads every resident node's voxels): taken on the frame thread as a snapshot
-//! of what the CPU cache still holds (reference counts only, nothing copied or read), the rest
+//! of what the CPU cache still holds and of the root, whose copy the volume keeps since it
+//! never passes through the CPU cache (reference counts only, nothing copied or read), the rest
 //! read through the volume source later, on whichever thread builds from it. The GPU slots keep
 //! no CPU copy, so a brick the CPU cache evicted since its upload must come from the source.
 
@@ -29,6 +30,7 @@ impl CutPayloads {
     pub(crate) fn snapshot(
         table: Arc<PageTable>,
         cpu: &CpuBrickCache,
+        (root, root_brick): (BrickId, &Brick),
         source: Arc<dyn VolumeSource>,
     ) -> CutPayloads {
         let mut bricks = HashMap::default();
@@ -42,7 +44,12 @@ impl CutPayloads {
                 continue;
             }
             let id = BrickId::new(e.level, node);
-            match cpu.peek(id) {
+            // The root never passes through the CPU cache (streaming.rs reads it once).
+            let held = match id == root {
+                true => Some(root_brick.clone()),
+                false => cpu.peek(id),
+            };
+            match held {
                 Some(brick) => {
                     bricks.insert((e.level, node), brick);
                 }

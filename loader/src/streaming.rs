@@ -34,7 +34,7 @@ use strata_source::{BrickFetcher, FetchOptions, SourceStatus, VolumeSource};
 use strata_storage::Store;
 use strata_types::BrickId;
 
-use crate::cpu_cache::CpuBrickCache;
+use crate::cpu_cache::{Brick, CpuBrickCache};
 use crate::cut_payloads::CutPayloads;
 use crate::cut_selection::{Cut, CutLimits, ViewSetup};
 use crate::cut_worker::{
@@ -192,6 +192,10 @@ pub struct StreamingVolume {
     mapping: ValueMapping,
     octree: Arc<OctreeRanges>,
     root: BrickId,
+    /// The root's voxels: read once at construction and uploaded straight to its pinned slot,
+    /// never through the CPU cache, so a CPU pass over the cut (cut_payloads.rs) takes them
+    /// from here rather than reading the root again.
+    root_brick: Brick,
     tf_table: Arc<TransferFunctionTable>,
     cache: BrickCache,
     gpu_page_table: GpuPageTable,
@@ -304,8 +308,10 @@ impl StreamingVolume {
         let mut slots = GpuSlots::new(cache.slot_count());
         let root_record = reader.read_brick_record(root)?;
         let root_bytes = root_record.len() as u64;
-        let root_brick = strata_storage::brick::decode_brick(root, &root_record)
-            .map_err(|e| strata_source::SourceError::damaged(&reader.location(), root, e))?;
+        let root_brick: Brick = Arc::new(
+            strata_storage::brick::decode_brick(root, &root_record)
+                .map_err(|e| strata_source::SourceError::damaged(&reader.location(), root, e))?,
+        );
         let root_slot = slots
             .allocate(root, 0, true)
             .ok_or_else(|| LoaderError::Inconsistent("no slot for the root".into()))?;
@@ -377,6 +383,7 @@ impl StreamingVolume {
             mapping,
             octree,
             root,
+            root_brick,
             tf_table,
             cache,
             gpu_page_table,
@@ -497,6 +504,7 @@ impl StreamingVolume {
         CutPayloads::snapshot(
             Arc::new(self.page_table.to_page_table()),
             &self.cpu,
+            (self.root, &self.root_brick),
             self.source.clone(),
         )
     }

@@ -4,6 +4,9 @@
 //! the histogram, the figures to show) from the caller and knows nothing of either app's state.
 //!
 //! # Modules
+//! - [`adaptive`]: adaptive sampling of the still view as both viewers decide and report it:
+//!   which views the adaptive pass draws, the oracle's key, ε's default and range, the status
+//!   line (the desktop's oracle thread and the page's per-frame build apply the same key rule).
 //! - [`tf_editor`]: the transfer-function editor (histogram, opacity points, colour stops).
 //! - [`performance`]: [`performance::FrameClock`] (UI frame-time history and the frame log) and
 //!   the Performance panel's figures, drawn from [`performance::PerformanceFigures`].
@@ -44,6 +47,7 @@
 //!   transfer function as `tf=`), which both viewers read and write (issue 39; here since issue
 //!   47, so that the desktop needs nothing of the browser crate).
 
+pub mod adaptive;
 pub mod compact_tf;
 pub mod crop_clip;
 pub mod frames;

@@ -118,6 +118,9 @@ pub struct ViewState {
     /// `intensity=I` (the key light's direct term), `ambient=A` (what shadows never darken),
     /// each absent at its default; the shadow step at its default.
     pub light: LightPrefs,
+    /// Adaptive sampling of the still view with this oracle ε (`adaptive=EPS`, the desktop's
+    /// Rendering-panel setting; crate::adaptive); None: the raycaster's frame is final.
+    pub adaptive_epsilon: Option<f64>,
     /// The measurements on the slices (`m=`, strata-viewer-ui's measurements: rulers, angles,
     /// regions with their points' level-0 indices at two decimals; a region's statistics are
     /// computed again by the viewer that opens the link). Empty: no `m=`.
@@ -173,6 +176,7 @@ impl Default for ViewState {
             capture: false,
             capture_unconverged: false,
             bench_frames: 0,
+            adaptive_epsilon: None,
         }
     }
 }
@@ -347,6 +351,10 @@ impl Fragment {
                 }
                 "intensity" => view.light.intensity = finite(key, value, INTENSITY_RANGE)? as f32,
                 "ambient" => view.light.ambient = finite(key, value, AMBIENT_RANGE)? as f32,
+                "adaptive" => {
+                    let (lo, hi) = crate::adaptive::EPSILON_RANGE;
+                    view.adaptive_epsilon = Some(finite(key, value, lo..=hi)?);
+                }
                 "pan" => {
                     let (x, y) = value
                         .split_once(',')
@@ -602,6 +610,12 @@ impl ViewState {
         if light.ambient != defaults.ambient {
             parts.push(format!("ambient={}", round3(f64::from(light.ambient))));
         }
+        if let Some(epsilon) = self.adaptive_epsilon {
+            parts.push(format!(
+                "adaptive={}",
+                crate::adaptive::format_epsilon(epsilon)
+            ));
+        }
         if let Some(text) = measurements::to_link_text(&self.measurements) {
             parts.push(format!("m={text}"));
         }
@@ -690,8 +704,9 @@ impl ViewState {
             // MIP is never lit; the desktop's switch is ignored by render there, a link's
             // settings say so.
             shading: self.shading && self.mode != RenderMode::Mip,
-            // The page runs no adaptive pass (the desktop refuses effects where it does).
-            adaptive_sampling: false,
+            // The adaptive pass draws none of the light's effects: refused as the desktop
+            // refuses them (web/src/adaptive.rs draws the still view).
+            adaptive_sampling: self.adaptive_epsilon.is_some(),
         };
         render_lighting(&self.light, lit).apply_to(&mut settings);
         settings
@@ -857,6 +872,7 @@ mod tests {
             capture: false,
             capture_unconverged: false,
             bench_frames: 0,
+            adaptive_epsilon: Some(0.0025),
         };
         let parsed = Fragment::parse(&view.to_fragment()).expect("own fragment parses");
         assert_eq!(parsed.view, view);

@@ -9,9 +9,9 @@
 //! the cut (its page table and the CPU cache's copies of its bricks; what the CPU cache no
 //! longer holds is read through the volume source on that thread), never on the render or the
 //! UI thread; the raycaster's frame stays on screen meanwhile. An oracle is valid for one
-//! [`OracleKey`] (volume, residency generation, transfer function, ε, slice spacing): a build
-//! for another key is cancelled, and no oracle is ever applied to a cut or TF it was not built
-//! from. Failures (the pass cannot be created or rendered, the oracle thread panics or cannot
+//! `OracleKey` (strata-viewer-ui's `adaptive`, shared with the page: volume, residency
+//! generation, transfer function, ε, slice spacing): a build for another key is cancelled, and
+//! no oracle is ever applied to a cut or TF it was not built from. Failures (the pass cannot be created or rendered, the oracle thread panics or cannot
 //! read a brick) fall back to the raycaster's frame with the reason said.
 //!
 //! The pass writes the pick depth (the published frame carries it, so picking works on the
@@ -25,40 +25,18 @@ use std::sync::Arc;
 
 use strata_loader::{CutPayloads, StreamingVolume};
 use strata_render::passes::adaptive::{
-    block_oracle_with, AdaptiveConfig, AdaptiveFrame, AdaptivePass, OracleTarget,
+    block_oracle_with, AdaptiveConfig, AdaptiveFrame, AdaptivePass,
 };
 use strata_render::{
     Camera, GpuContext, PageTable, RenderMode, RenderSettings, TransferFunction, Traversal,
     ValueMapping,
 };
+use strata_viewer_ui::adaptive::{self, OracleKey};
 
 use std::future::Future;
 
 /// The thread that builds oracles.
 pub const ORACLE_THREAD: &str = "strata-adaptive-oracle";
-
-/// The ε of a new viewer: the render command's default (`strata render --oracle-epsilon`).
-pub const DEFAULT_EPSILON: f64 = 0.001;
-/// The ε slider's range. Below 1e-4 nearly every block near structure samples every slice (no
-/// gain); above 0.1 thin features are stepped over.
-pub const EPSILON_RANGE: (f64, f64) = (1e-4, 0.1);
-
-/// What an oracle was built from; equal keys mean it is valid for the cut drawn now.
-#[derive(Clone, Debug, PartialEq)]
-pub struct OracleKey {
-    /// Which streaming volume (a traversal switch or a GPU recovery makes a new one whose
-    /// residency generations start again).
-    pub volume: u64,
-    /// `StreamingVolume::residency_generation`: the same bricks in the same slots.
-    pub residency: u64,
-    pub transfer_function: TransferFunction,
-    pub epsilon: f64,
-    /// Slice spacing in finest voxels (`RenderSettings::quality` of the frame).
-    pub quality: f64,
-    /// What the distances bound: the lit colour where the frame is lit (issue 37 item 4), so
-    /// turning the light on or off builds again.
-    pub target: OracleTarget,
-}
 
 /// A finished oracle: the distances the pass reads, per cache slot and 2³ block.
 pub struct BuiltOracle {
@@ -88,27 +66,8 @@ pub struct AdaptiveFacts {
 impl AdaptiveFacts {
     /// "adaptive: 0.65 M samples (2.9× fewer than the raycaster), ε 0.001".
     pub fn status_line(&self) -> String {
-        let millions = self.samples as f64 / 1e6;
-        let ratio = match self.raycaster_samples {
-            Some(r) if self.samples > 0 => {
-                format!(
-                    " ({:.1}× fewer than the raycaster)",
-                    r as f64 / self.samples as f64
-                )
-            }
-            _ => String::new(),
-        };
-        format!(
-            "adaptive: {millions:.2} M samples{ratio}, ε {}",
-            format_epsilon(self.epsilon)
-        )
+        adaptive::status_line(self.samples, self.raycaster_samples, self.epsilon)
     }
-}
-
-/// ε as the slider shows it (0.001, 0.0005, 0.02).
-pub fn format_epsilon(epsilon: f64) -> String {
-    let text = format!("{epsilon:.6}");
-    text.trim_end_matches('0').trim_end_matches('.').to_string()
 }
 
 /// The still view the adaptive frame is asked for (the session's render request, in the
@@ -127,13 +86,7 @@ impl StillView<'_> {
     /// Why this view is drawn by the raycaster alone although adaptive sampling is on.
     pub fn not_applicable(&self) -> Option<&'static str> {
         self.epsilon?;
-        if !matches!(self.mode, RenderMode::Dvr | RenderMode::Mip) {
-            return Some("adaptive sampling draws DVR and MIP; the isosurface is the raycaster's");
-        }
-        if self.overlay {
-            return Some("adaptive sampling off: the 3D overlay is drawn by the raycaster only");
-        }
-        None
+        adaptive::not_applicable(self.mode, self.overlay)
     }
 
     /// Whether the final frame of this view is the adaptive pass's.
@@ -259,14 +212,13 @@ impl AdaptiveView {
         view: &StillView,
         settings: &RenderSettings,
     ) -> Option<OracleKey> {
-        Some(OracleKey {
-            volume: self.volume,
-            residency: volume.residency_generation(),
-            transfer_function: view.transfer_function.clone(),
-            epsilon: view.epsilon?,
-            quality: settings.quality,
-            target: OracleTarget::for_settings(settings),
-        })
+        Some(OracleKey::new(
+            self.volume,
+            volume.residency_generation(),
+            view.transfer_function,
+            view.epsilon?,
+            settings,
+        ))
     }
 
     /// Cancels a build for another key than `current` (the camera, TF, ε or cut changed).
@@ -524,16 +476,7 @@ pub(crate) fn panic_message(panic: &(dyn std::any::Any + Send)) -> String {
 
 #[cfg(test)]
 pub(crate) mod tests {
-    use super::*;
-
     /// Test hook: an oracle built for this ε panics on its thread (the fallback is tested
     /// for real, not by faking a result).
     pub const PANICKING_EPSILON: f64 = 0.0123;
-
-    #[test]
-    fn epsilon_is_written_as_the_slider_shows_it() {
-        assert_eq!(format_epsilon(0.001), "0.001");
-        assert_eq!(format_epsilon(0.0005), "0.0005");
-        assert_eq!(format_epsilon(0.02), "0.02");
-    }
 }

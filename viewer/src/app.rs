@@ -485,6 +485,11 @@ impl StrataApp {
             self.preferences.light = view.light;
             self.preferences.shading = view.shading;
             self.preferences.show_oblique = view.oblique.is_some();
+            // The link's adaptive sampling (its ε kept where the link turns it off).
+            self.preferences.adaptive_sampling = view.adaptive_epsilon.is_some();
+            if let Some(epsilon) = view.adaptive_epsilon {
+                self.preferences.adaptive_epsilon = epsilon;
+            }
         }
         self.pending_link_view = link_view;
         match PrepareJob::start(
@@ -777,6 +782,10 @@ impl StrataApp {
                         .orientation_deg()
                 }),
                 frame: v.frames.as_ref().map_or(0, |p| p.playback.current),
+                adaptive_epsilon: self
+                    .preferences
+                    .adaptive_sampling
+                    .then_some(self.preferences.adaptive_epsilon),
             },
         )
     }
@@ -1732,7 +1741,10 @@ mod tests {
             old.progressive_frames,
             crate::preferences::DEFAULT_PROGRESSIVE_FRAMES
         );
-        assert_eq!(old.adaptive_epsilon, crate::adaptive_view::DEFAULT_EPSILON);
+        assert_eq!(
+            old.adaptive_epsilon,
+            strata_viewer_ui::adaptive::DEFAULT_EPSILON
+        );
         assert!(
             !old.show_identifiers,
             "identifiers stay hidden unless the user showed them"

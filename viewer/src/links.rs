@@ -64,6 +64,9 @@ pub struct DesktopView {
     /// The slices' measurements (the link's `m=`): points at two decimals; a region's
     /// statistics are computed again from the slice when it is shown.
     pub measurements: Vec<Measurement>,
+    /// Adaptive sampling of the still view with this ε (the link's `adaptive=`, the Rendering
+    /// panel's switch and slider); None: off.
+    pub adaptive_epsilon: Option<f64>,
 }
 
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -169,6 +172,7 @@ pub fn link_for(store_url: &str, view: &DesktopView) -> Option<String> {
         measurements: view.measurements.clone(),
         oblique: view.oblique,
         frame: view.frame,
+        adaptive_epsilon: view.adaptive_epsilon,
         store: Some(name.to_string()),
         ..ViewState::default()
     };
@@ -204,6 +208,7 @@ pub fn desktop_view(view: &ViewState) -> DesktopView {
         measurements: view.measurements.clone(),
         oblique: view.oblique,
         frame: view.frame,
+        adaptive_epsilon: view.adaptive_epsilon,
     }
 }
 
@@ -273,6 +278,7 @@ mod tests {
             ],
             oblique: Some([25.5, -10.25, 3.125]),
             frame: 2,
+            adaptive_epsilon: Some(0.0025),
         }
     }
 
@@ -342,6 +348,7 @@ mod tests {
         let back = desktop_view(&opened.view);
         assert_eq!(back, desktop());
         assert!(link.contains("&cmap=hot"), "{link}");
+        assert!(link.contains("&adaptive=0.0025"), "{link}");
         // The same picture: the browser's camera of the link equals the desktop's.
         let geometry = VolumeGeometry::axis_aligned([96, 80, 64], [0.8, 0.8, 1.5]);
         assert_eq!(
@@ -361,7 +368,12 @@ mod tests {
     #[test]
     fn a_links_light_is_the_desktops_light_and_the_headlight_writes_nothing() {
         let store_url = "http://127.0.0.1:8080/v1/stores/head-ct";
-        let link = link_for(store_url, &desktop()).expect("link");
+        // Adaptive sampling off: with it on, both viewers refuse the light's effects.
+        let unadaptive = DesktopView {
+            adaptive_epsilon: None,
+            ..desktop()
+        };
+        let link = link_for(store_url, &unadaptive).expect("link");
         for key in ["light=62.5,-15.125", "shadows=exact", "occlusion=7.5"] {
             assert!(link.contains(key), "{key} in {link}");
         }

@@ -142,7 +142,7 @@ impl Default for Preferences {
             smooth_transitions: true,
             traversal: TraversalChoice::Automatic,
             adaptive_sampling: false,
-            adaptive_epsilon: super::adaptive_view::DEFAULT_EPSILON,
+            adaptive_epsilon: strata_viewer_ui::adaptive::DEFAULT_EPSILON,
             progressive_frames: DEFAULT_PROGRESSIVE_FRAMES,
             orthographic: false,
             target_fps_enabled: true,

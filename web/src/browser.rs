@@ -3,7 +3,9 @@
 //! One thread: eframe's web runner calls [`WebViewer::ui`] from requestAnimationFrame, and
 //! nothing here blocks (the browser's event loop resolves every GPU promise). A frame is
 //! submitted only when the view or the image size changed, or while a still view refines
-//! (refine.rs: one pass per animation frame, then rest), so a still page does no GPU work.
+//! (refine.rs: one pass per animation frame, then rest) or is drawn by the adaptive pass
+//! (adaptive.rs: a few oracle slots per animation frame, then one frame), so a still page does
+//! no GPU work.
 //! The raycaster draws into its own Rgba8Unorm texture, which egui samples directly
 //! (`register_native_texture`): no readback, no copy.
 
@@ -23,6 +25,7 @@ use strata_render::{
 use wasm_bindgen::prelude::*;
 use wasm_bindgen::JsCast;
 
+use crate::adaptive::StillAdaptive;
 use crate::embed_bridge::{embed_origin, EmbedBridge};
 use crate::oblique_view::{oblique_toggle, place_views, ObliqueView};
 use crate::orbit_movie::OrbitMovie;
@@ -264,6 +267,8 @@ struct WebViewer {
     download: Option<Capture>,
     /// Progressive refinement of the still 3D view (refine.rs).
     refine: Refinement,
+    /// The still view drawn by the adaptive pass, its oracle built across frames (adaptive.rs).
+    adaptive: StillAdaptive,
     /// The orbit movie being made (orbit_movie.rs) and its frame being read back.
     movie: OrbitMovie,
     movie_frame: Option<Capture>,
@@ -355,6 +360,7 @@ impl WebViewer {
             tools: PageTools::default(),
             download: None,
             refine: Refinement::new(),
+            adaptive: StillAdaptive::default(),
             movie: OrbitMovie::default(),
             movie_frame: None,
         })
@@ -437,6 +443,7 @@ impl WebViewer {
         let frames = crate::frames::PageFrames::for_store(&store, now_s);
         let transfer_function = self.side.transfer_function(&self.view);
         let volume = StreamingVolume::new(&self.gpu, store, &transfer_function, page_streaming())?;
+        self.adaptive.new_volume();
         self.streamed = Some(Streamed {
             volume,
             // The page streams with the loader's choice of traversal.
@@ -475,6 +482,7 @@ impl WebViewer {
         oblique.show_frame(store.as_ref())?;
         let transfer_function = self.side.transfer_function(&self.view);
         let volume = StreamingVolume::new(&self.gpu, store, &transfer_function, page_streaming())?;
+        self.adaptive.new_volume();
         let mut frames = frames;
         if let Some(frames) = frames.as_mut() {
             frames.shown(frame, now_s, &mut self.view.frame);
@@ -529,13 +537,26 @@ impl WebViewer {
                 }
                 self.frames_submitted += 1;
             }
-            if self.refine.wants_pass() {
+            // Or the adaptive pass's frame, once its oracle is built (adaptive.rs).
+            if let Some(epsilon) = self.view.adaptive_epsilon {
+                let transfer_function = &request.transfer_function;
+                let volume = &streamed.volume;
+                if let Some(view) =
+                    self.adaptive
+                        .step(&self.gpu, volume, transfer_function, epsilon, ctx)
+                {
+                    show_texture(&self.render_state, &self.gpu, view, &mut self.texture);
+                    self.frames_submitted += 1;
+                }
+            }
+            if self.refine.wants_pass() || self.adaptive.wants_frames() {
                 ctx.request_repaint();
             }
             self.motion.skipped();
             return Ok(());
         }
         self.refine.restart();
+        self.adaptive.restart();
         let camera = request.camera;
         let mut settings = request.settings.clone();
         let (quality, lod_factor) = self.motion.plan(now, target_fps, &mut settings);
@@ -567,6 +588,14 @@ impl WebViewer {
         {
             ctx.request_repaint();
         }
+        let epsilon = self.view.adaptive_epsilon;
+        let overlay = request.overlay.is_some();
+        if self
+            .adaptive
+            .start_if_final(&camera, &settings, final_frame, epsilon, overlay)
+        {
+            ctx.request_repaint();
+        }
         Ok(())
     }
 
@@ -584,7 +613,8 @@ impl WebViewer {
             // sample's 3D view has neither.
             overlay: self.streamed.as_mut().and_then(Streamed::overlay_in_3d),
             traversal: None,
-            adaptive_epsilon: None,
+            // The still view's final frame by the adaptive pass (adaptive.rs).
+            adaptive_epsilon: self.view.adaptive_epsilon,
             // A still view with shadows, occlusion or scattering averages this many jittered
             // frames, as the desktop's does by default (refine.rs).
             progressive_frames: DEFAULT_PROGRESSIVE_FRAMES,
@@ -777,7 +807,12 @@ impl WebViewer {
                     .as_ref()
                     .and_then(|r| r.raycaster.output_texture()),
             };
-            let texture = self.refine.shown_texture().or(texture);
+            // Or the adaptive pass's frame (adaptive.rs).
+            let texture = self
+                .refine
+                .shown_texture()
+                .or(self.adaptive.shown_texture())
+                .or(texture);
             match (texture, self.drawn.as_ref()) {
                 (Some(texture), Some((_, size))) => {
                     self.download = Some(start_readback(&self.gpu, texture, *size, ctx));
@@ -1008,8 +1043,14 @@ impl WebViewer {
                         .last
                         .as_ref()
                         .map_or((0, 0), |s| (s.bricks_read_total, s.stored_bytes_read_total));
+                    let adaptive = self
+                        .adaptive
+                        .status_line()
+                        .map(|line| format!(" · {line}"))
+                        .unwrap_or_default();
                     format!(
-                        "{}×{}×{} · {loading} · {} bricks, {:.1} MB fetched · frames drawn {}",
+                        "{}×{}×{} · {loading} · {} bricks, {:.1} MB fetched · frames drawn \
+                         {}{adaptive}",
                         dims[0],
                         dims[1],
                         dims[2],
@@ -1073,7 +1114,12 @@ impl WebViewer {
                     .as_ref()
                     .and_then(|r| r.raycaster.output_texture()),
             };
-            let texture = self.refine.shown_texture().or(texture);
+            // Or the adaptive pass's frame (adaptive.rs).
+            let texture = self
+                .refine
+                .shown_texture()
+                .or(self.adaptive.shown_texture())
+                .or(texture);
             match (texture, self.drawn.as_ref()) {
                 (Some(texture), Some((_, size))) => {
                     let readback = start_readback(&self.gpu, texture, *size, ctx);
@@ -1128,8 +1174,14 @@ impl WebViewer {
             // or, with `capture=unconverged`, once frames went on for a while without it.
             let capture_unconverged = self.view.capture_unconverged
                 && self.frames_submitted >= crate::view_state::UNCONVERGED_CAPTURE_FRAMES;
-            // A still view that refines is captured once its mean is complete (refine.rs).
-            let (settled, refined) = (self.refine.settled(), self.refine.refined_texture());
+            // A still view that refines is captured once its mean is complete (refine.rs), one
+            // the adaptive pass draws once that frame is drawn or failed (adaptive.rs).
+            let (settled, refined) = (
+                self.refine.settled() && self.adaptive.settled(),
+                self.refine
+                    .refined_texture()
+                    .or(self.adaptive.shown_texture()),
+            );
             // The link's overlay is in the frame first (its grid resampled and drawn).
             let overlay_ready = self.streamed.as_mut().is_none_or(overlay_drawn_in_3d);
             let texture = match self.streamed.as_mut() {
@@ -1596,6 +1648,7 @@ impl eframe::App for WebViewer {
                     self.draw_if_changed(&ctx, size)
                 };
                 self.refine.publish();
+                self.adaptive.publish();
                 if let Err(e) = drawn {
                     self.error = Some(e.to_string());
                     return;

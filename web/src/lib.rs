@@ -15,6 +15,9 @@
 //! - [`orbit_movie`]: the orbit movie as one animated PNG download (strata-viewer-ui's shared
 //!   orbit path, each frame the page's final still view); the model and encoder platform
 //!   independent, the side panel's section the browser's.
+//! - `adaptive` (wasm32 only): the still view drawn by the adaptive pass (the desktop's
+//!   adaptive sampling), its block oracle built a few slots per animation frame from the CPU
+//!   copies of the cut's bricks, the frame shown without a readback.
 //! - `browser` (wasm32 only): the page's entry point, the viewer app, the frame capture.
 //! - `canvas_attributes` (wasm32 only): the canvas attributes the browser tests read.
 //! - `embed_bridge` (wasm32 only): the page in a notebook (issue 50): a postMessage bridge
@@ -69,6 +72,8 @@ pub mod orbit_movie;
 pub mod view_motion;
 pub mod volume_menu;
 
+#[cfg(target_arch = "wasm32")]
+mod adaptive;
 #[cfg(target_arch = "wasm32")]
 mod browser;
 #[cfg(target_arch = "wasm32")]

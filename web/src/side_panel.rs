@@ -65,6 +65,9 @@ pub struct SidePanel {
     /// time-critical controller holds the rate; at rest the view draws at full quality.
     target_fps_enabled: bool,
     target_fps: f64,
+    /// The adaptive sampling slider's ε, kept while the switch is off (the link's
+    /// `adaptive=` holds it only while on).
+    adaptive_epsilon: f64,
 }
 
 impl SidePanel {
@@ -83,6 +86,9 @@ impl SidePanel {
             gpu_ms: VecDeque::new(),
             target_fps_enabled: true,
             target_fps: DEFAULT_TARGET_FPS,
+            adaptive_epsilon: view
+                .adaptive_epsilon
+                .unwrap_or(strata_viewer_ui::adaptive::DEFAULT_EPSILON),
         }
     }
 
@@ -126,6 +132,9 @@ impl SidePanel {
         };
         self.edits = u64::from(view.tf.is_some());
         self.editor = TfEditorState::default();
+        if let Some(epsilon) = view.adaptive_epsilon {
+            self.adaptive_epsilon = epsilon;
+        }
     }
 
     /// The scan's values, once known.
@@ -218,7 +227,19 @@ impl SidePanel {
                 .show(ui, |ui| self.light_ui(ui, view));
             egui::CollapsingHeader::new("Performance")
                 .default_open(true)
-                .show(ui, |ui| self.performance_ui(ui, figures));
+                .show(ui, |ui| {
+                    // The desktop's Rendering-panel switch and ε slider; the still view of a
+                    // served store is then drawn by the adaptive pass (adaptive.rs).
+                    let mut on = view.adaptive_epsilon.is_some();
+                    strata_viewer_ui::adaptive::controls(
+                        ui,
+                        view.mode,
+                        &mut on,
+                        &mut self.adaptive_epsilon,
+                    );
+                    view.adaptive_epsilon = on.then_some(self.adaptive_epsilon);
+                    self.performance_ui(ui, figures);
+                });
         });
     }
 

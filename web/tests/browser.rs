@@ -46,6 +46,9 @@ mod oblique;
 #[path = "browser/segment.rs"]
 mod segment;
 
+/// Adaptive sampling of the page's still view against the native adaptive pass (issue 47).
+#[path = "browser/adaptive.rs"]
+mod adaptive;
 /// A served 4-D store's frames and cine in the page against the desktop's client (issue 47).
 #[path = "browser/frames.rs"]
 mod frames;

@@ -3,7 +3,7 @@
 
 use strata_render::RenderMode;
 
-use crate::adaptive_view::{format_epsilon, EPSILON_RANGE};
+use strata_viewer_ui::adaptive;
 use strata_viewer_ui::lighting::{cinematic_buttons, light_controls, LightOffer};
 
 use crate::preferences::{effects_refused, CinematicPreset, Preferences, TraversalChoice};
@@ -98,45 +98,14 @@ fn cinematic_presets(
     true
 }
 
-/// The checkbox label (the UI tests find it by this text).
-pub const ADAPTIVE_LABEL: &str = "Adaptive sampling (still view)";
-/// The ε slider's accessible name.
-pub const EPSILON_LABEL: &str = "Adaptive ε";
-
-/// Adaptive sampling of the still view and its oracle's ε (logarithmic slider).
+/// Adaptive sampling of the still view and its oracle's ε (viewer-ui's shared controls).
 fn adaptive_sampling(ui: &mut egui::Ui, prefs: &mut Preferences) {
-    let iso = prefs.mode == RenderMode::Isosurface;
-    ui.add_enabled_ui(!iso, |ui| {
-        ui.checkbox(&mut prefs.adaptive_sampling, ADAPTIVE_LABEL)
-            .on_hover_text(
-                "When the view is still and loaded, draw the final frame by adaptive sampling \
-                 (samples on view-aligned slices, skipped where the data are smooth and \
-                 synthesised from coarser ones): far fewer samples for nearly the same image. \
-                 Moving the camera draws with the raycaster as usual.",
-            )
-            .on_disabled_hover_text(
-                "Adaptive sampling draws DVR and MIP; the isosurface's hit search is the \
-                 raycaster's own.",
-            );
-        if prefs.adaptive_sampling {
-            let (lo, hi) = EPSILON_RANGE;
-            if !prefs.adaptive_epsilon.is_finite() {
-                prefs.adaptive_epsilon = crate::adaptive_view::DEFAULT_EPSILON;
-            }
-            ui.add(
-                egui::Slider::new(&mut prefs.adaptive_epsilon, lo..=hi)
-                    .logarithmic(true)
-                    .custom_formatter(|v, _| format_epsilon(v))
-                    .text("ε"),
-            )
-            .on_hover_text(
-                "The oracle's ε: the opacity change per slice a 2³ block may have before it is \
-                 sampled at every slice. Smaller is closer to the raycaster and slower; larger \
-                 skips more and may step over thin features.",
-            )
-            .accessible_name(EPSILON_LABEL);
-        }
-    });
+    adaptive::controls(
+        ui,
+        prefs.mode,
+        &mut prefs.adaptive_sampling,
+        &mut prefs.adaptive_epsilon,
+    );
     ui.add(
         egui::Slider::new(
             &mut prefs.progressive_frames,

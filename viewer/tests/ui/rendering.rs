@@ -136,8 +136,8 @@ fn undo_restores_the_transfer_function_exactly_and_redo_the_edit() {
 /// checkbox is disabled.
 #[test]
 fn the_adaptive_sampling_checkbox_and_epsilon_slider_reach_the_frame_and_persist() {
-    use crate::panels::rendering::{ADAPTIVE_LABEL, EPSILON_LABEL};
     use egui_kittest::kittest::NodeT;
+    use strata_viewer_ui::adaptive::{ADAPTIVE_LABEL, EPSILON_LABEL};
     let dir = tempfile::tempdir().expect("tempdir");
     let store = phantom_store(dir.path());
     let options = options_for(&store, dir.path());
