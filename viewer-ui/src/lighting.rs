@@ -491,13 +491,15 @@ impl CinematicPreset {
 
 /// The cinematic preset buttons, each selected where `is_current` says so and disabled, with
 /// the reason, where its transfer function does not fit the scan (issue 47: a CT preset on an
-/// MR painted a solid red cube that never converged). Returns the preset clicked.
+/// MR painted a solid red cube that never converged). Returns the preset clicked, and where
+/// each button was drawn (the page publishes them for its tests).
 pub fn cinematic_buttons(
     ui: &mut egui::Ui,
     scan: &crate::presets::ScanValues,
     is_current: impl Fn(&CinematicPreset) -> bool,
-) -> Option<CinematicPreset> {
+) -> (Option<CinematicPreset>, Vec<(CinematicPreset, egui::Rect)>) {
     let mut clicked = None;
+    let mut rects = Vec::with_capacity(CinematicPreset::ALL.len());
     ui.horizontal_wrapped(|ui| {
         for preset in CinematicPreset::ALL {
             let offer = crate::presets::offer(preset.tf_preset, scan);
@@ -508,6 +510,7 @@ pub fn cinematic_buttons(
             if let (false, Some(reason)) = (offer.is_offered(), offer.reason()) {
                 response = response.on_disabled_hover_text(reason);
             }
+            rects.push((preset, response.rect));
             if response
                 .on_hover_text(format!(
                     "The {} transfer function lit by a key light from the upper left, with \
@@ -525,7 +528,7 @@ pub fn cinematic_buttons(
             }
         }
     });
-    clicked
+    (clicked, rects)
 }
 
 /// The gizmo square's point for a direction: azimuth across, elevation up (the same angles as

@@ -520,6 +520,10 @@ impl WebViewer {
                 ))
             })?;
         let converged = streamed.last.as_ref().is_some_and(|s| s.converged);
+        // A 4-D store: the next frame fetches what this one converged on (frames.rs).
+        if let (true, Some(frames)) = (converged, streamed.frames.as_ref()) {
+            frames.stream_ahead(streamed.volume.working_set(), ctx);
+        }
         let now = self.page_started.elapsed().as_secs_f64();
         let target_fps = request.target_fps;
         if self.drawn.as_ref() == Some(&wanted)

@@ -8,13 +8,17 @@
 //! swaps the 3D view's streaming volume and the slice and oblique views' bricks for that
 //! frame's (their images stay on screen until the new frame's arrive), then reports it shown.
 //! A frame not yet open holds cine back rather than being skipped, as on the desktop. The next
-//! frame's store is opened ahead (two small requests), so cine waits only for its bricks; the
-//! bricks stream when the frame is shown (the desktop also streams them ahead, on a second
-//! render thread the page does not have).
+//! frame's store is opened ahead (two small requests), and once the shown frame's 3D view has
+//! converged, the bricks of its working set are fetched for the next frame too
+//! ([`PageFrames::stream_ahead`], web/src/frame_ahead.rs: two requests at once, at most 32 MiB
+//! of records, kept for the next frame only), so that frame's views start from them when
+//! cine (or the slider) shows it, as the desktop's frame ahead streams the shown frame's
+//! requests.
 //!
-//! The shown frame and the count are published on the canvas (`data-frame="2/3 paused"`) and
-//! the panel's controls (`data-frame-controls`) for the browser test
-//! (web/tests/browser/frames.rs).
+//! The shown frame and the count are published on the canvas (`data-frame="2/3 paused"`), the
+//! panel's controls (`data-frame-controls`) and what was fetched ahead
+//! (`data-frame-ahead="next=1 asked=5 kept=5 bytes=…; used=12"`, used: records the frames'
+//! fetchers took, over the page's life) for the browser test (web/tests/browser/frames.rs).
 
 use std::cell::RefCell;
 use std::collections::HashMap;
@@ -23,6 +27,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use strata_source::{SourceError, VolumeSource};
+use strata_types::BrickId;
 use strata_viewer_ui::frames::{FramePlayback, FramesPanelRects};
 
 use crate::served_store::ServedStore;
@@ -48,6 +53,8 @@ pub struct PageFrames {
     linked: u32,
     /// A frame ahead that could not be opened is not asked for again every page frame.
     ahead_failed: Option<u32>,
+    /// Records fetched ahead that the fetchers of frames no longer kept open took.
+    used_by_closed_frames: u64,
 }
 
 impl PageFrames {
@@ -64,6 +71,7 @@ impl PageFrames {
             target: 0,
             linked: 0,
             ahead_failed: None,
+            used_by_closed_frames: 0,
         })
     }
 
@@ -98,6 +106,7 @@ impl PageFrames {
         }
         self.take_opened();
         publish(&self.playback);
+        self.publish_ahead();
         if self.target != self.playback.current {
             if let Some(store) = self.opened.get(&self.target) {
                 return Some((self.target, store.clone()));
@@ -121,9 +130,60 @@ impl PageFrames {
         self.ahead_failed = None;
         let keep = [0, frame, self.playback.next_frame()];
         if self.opened.len() > KEPT_FRAME_STORES {
-            self.opened.retain(|f, _| keep.contains(f));
+            let mut used = 0;
+            self.opened.retain(|f, store| {
+                let kept = keep.contains(f);
+                if !kept {
+                    used += store.ahead().counts().used;
+                }
+                kept
+            });
+            self.used_by_closed_frames += used;
         }
         publish(&self.playback);
+    }
+
+    /// Once a page frame after the shown frame's 3D view has converged on `working_set`: the
+    /// next frame's store (when open) fetches those bricks ahead, and every other frame's
+    /// records are dropped (the shown frame's loader has taken what it needed of them).
+    pub fn stream_ahead(&self, working_set: &[BrickId], ctx: &egui::Context) {
+        let next = self.playback.next_frame();
+        for (frame, store) in &self.opened {
+            if *frame != next {
+                store.ahead().clear();
+            }
+        }
+        if next != self.playback.current {
+            if let Some(store) = self.opened.get(&next) {
+                store.fetch_ahead(working_set, ctx);
+            }
+        }
+        self.publish_ahead();
+    }
+
+    /// `data-frame-ahead`, every page frame: the records a shown frame's fetchers take land
+    /// while its view loads, long before that view converges (when [`Self::stream_ahead`]
+    /// runs again).
+    fn publish_ahead(&self) {
+        let next = self.playback.next_frame();
+        let ahead = self
+            .opened
+            .get(&next)
+            .map(|store| store.ahead().counts())
+            .unwrap_or_default();
+        let used = self.used_by_closed_frames
+            + self
+                .opened
+                .values()
+                .map(|store| store.ahead().counts().used)
+                .sum::<u64>();
+        crate::canvas_attributes::set(
+            "data-frame-ahead",
+            &format!(
+                "next={next} asked={} kept={} bytes={}; used={used}",
+                ahead.asked, ahead.kept, ahead.bytes
+            ),
+        );
     }
 
     /// The Frames section of the side panel (the desktop's panel, shared).

@@ -39,6 +39,9 @@
 //!   bricks fetched asynchronously through the served store, window/level by right drag.
 //! - `frames` (wasm32 only): a served 4-D store's frames: the shared Frames panel and cine
 //!   clock, each frame's store opened without waiting, the views swapped to it (`frame=N`).
+//! - [`frame_ahead`]: the next frame's bricks fetched ahead while one is shown, bounded (two
+//!   requests at once, 32 MiB of records a frame), taken by that frame's fetchers; platform
+//!   independent bookkeeping, tested natively.
 //! - `measure` (wasm32 only): the desktop's rulers, angles and ROIs in the page
 //!   (strata-viewer-ui's measurements): the side panel's tools and list, the list kept in the
 //!   view (the link's `m=`), and what the page publishes of them for its tests.
@@ -68,6 +71,7 @@
 // The link format lives in strata-viewer-ui, shared with the desktop viewer (issue 47); the
 // paths stay `strata_web::view_state`, `strata_web::compact_tf`.
 pub use strata_viewer_ui::{compact_tf, view_state};
+pub mod frame_ahead;
 pub mod orbit_movie;
 pub mod view_motion;
 pub mod volume_menu;

@@ -20,11 +20,14 @@
 //! - A 4-D store's later frames: [`ServedStore::open_frame`] reads that frame's open document
 //!   (its skeleton) and root brick, asynchronously, giving a store of its own whose bricks come
 //!   from the frame's routes (`strata_source::wire::frame_brick_path`); web/src/frames.rs
-//!   swaps the views to it.
+//!   swaps the views to it. Before a frame is shown its bricks may be fetched ahead
+//!   ([`ServedStore::fetch_ahead`], web/src/frame_ahead.rs) on connections the page's other
+//!   brick requests leave free below [`MAX_ON_THE_WIRE`] (all of them counted together):
+//!   its fetchers take those records instead of asking the server.
 //! - The token travels as `Authorization`, never in a URL. The browser's HTTP cache is left to
 //!   work (brick URLs carry the store's generation and are immutable): no `If-None-Match` here.
 
-use std::cell::RefCell;
+use std::cell::{Cell, RefCell};
 use std::collections::{HashMap, HashSet, VecDeque};
 use std::rc::Rc;
 use std::sync::Arc;
@@ -43,12 +46,38 @@ use strata_storage::store::{Skeleton, StoreStats, KNOWN_STORE_FEATURES};
 use strata_storage::StoreHeader;
 use strata_types::BrickId;
 use wasm_bindgen::JsCast;
+
+use crate::frame_ahead::AheadRecords;
 use wasm_bindgen_futures::JsFuture;
 
 /// Brick requests on the wire at once: one fewer than a browser's six HTTP/1.1 connections
 /// per host, so the page's other requests always find one (see the module's note). With all
 /// six taken by stalled bricks, the test hook's frame post waited behind them forever.
 pub const MAX_ON_THE_WIRE: usize = 5;
+thread_local! {
+    /// Brick requests the whole page has on the wire: every fetcher's and the frame ahead's
+    /// (the page has one thread). The frame ahead asks only while this is below
+    /// [`MAX_ON_THE_WIRE`].
+    static BRICKS_ON_THE_WIRE: Cell<usize> = const { Cell::new(0) };
+}
+
+/// One brick request on the wire, counted in [`BRICKS_ON_THE_WIRE`] while it lives (held
+/// across the request's await, dropped when it ends, answered, failed or aborted).
+struct WireSlot;
+
+impl WireSlot {
+    fn take() -> WireSlot {
+        BRICKS_ON_THE_WIRE.with(|n| n.set(n.get() + 1));
+        WireSlot
+    }
+}
+
+impl Drop for WireSlot {
+    fn drop(&mut self) {
+        BRICKS_ON_THE_WIRE.with(|n| n.set(n.get().saturating_sub(1)));
+    }
+}
+
 /// Records decoded per frame at most: each is ~0.1-1 ms of the page's one thread.
 pub const DECODES_PER_FRAME: usize = 24;
 /// Backoff after a failed request: doubles from the first to the last.
@@ -68,6 +97,8 @@ pub struct ServedStore {
     histogram: Histogram,
     stats: StoreStats,
     root: (BrickId, Vec<u8>),
+    /// This frame's records fetched before it is shown, which its fetchers take first.
+    ahead: Arc<AheadRecords>,
 }
 
 /// Why a fetch gave no body.
@@ -268,7 +299,40 @@ async fn open_at(
         histogram: document.histogram,
         stats: document.stats,
         root: (root, record),
+        ahead: Arc::default(),
     })
+}
+
+impl ServedStore {
+    /// This frame's records fetched ahead (counts for the page's test attribute, clearing).
+    pub fn ahead(&self) -> &AheadRecords {
+        &self.ahead
+    }
+
+    /// Fetches the records of `wanted` (most urgent first: the shown frame's working set) of
+    /// this frame, not shown yet, without waiting: as many as [`AheadRecords::to_ask`] allows
+    /// now; called again each page frame for the rest. The root came with the store.
+    pub fn fetch_ahead(&self, wanted: &[BrickId], ctx: &egui::Context) {
+        let wanted: Vec<BrickId> = wanted
+            .iter()
+            .copied()
+            .filter(|id| *id != self.root.0)
+            .collect();
+        // Only connections the shown frame's views leave free, never the page's sixth.
+        let free = MAX_ON_THE_WIRE.saturating_sub(BRICKS_ON_THE_WIRE.with(Cell::get));
+        let (generation, ids) = self.ahead.to_ask(&wanted, free);
+        for id in ids {
+            let path = frame_brick_path(&self.name, &self.generation, self.frame, id);
+            let (ahead, token, repaint) = (self.ahead.clone(), self.token.clone(), ctx.clone());
+            let slot = WireSlot::take();
+            wasm_bindgen_futures::spawn_local(async move {
+                let record = fetch_bytes(&path, token.as_deref(), None, false).await;
+                drop(slot);
+                ahead.arrived(generation, id, record.ok());
+                repaint.request_repaint();
+            });
+        }
+    }
 }
 
 impl VolumeSource for ServedStore {
@@ -310,6 +374,7 @@ impl VolumeSource for ServedStore {
             generation: self.generation.clone(),
             frame: self.frame,
             token: self.token.clone(),
+            ahead: self.ahead.clone(),
             state: RefCell::new(FetchState {
                 wishes: WishList::new(options.max_queued),
                 on_the_wire: HashMap::new(),
@@ -371,6 +436,8 @@ struct Shared {
     generation: String,
     frame: u32,
     token: Option<String>,
+    /// The frame's records fetched ahead: taken instead of a request.
+    ahead: Arc<AheadRecords>,
     state: RefCell<FetchState>,
 }
 
@@ -403,6 +470,21 @@ impl Shared {
                 let Some(started) = state.wishes.take_most_urgent() else {
                     return;
                 };
+                // Fetched ahead (frame_ahead.rs): delivered without a request, unless it was
+                // damaged once (then the server's copy, past the cache).
+                let ahead = match state.refetched.contains(&started.id) {
+                    true => None,
+                    false => self.ahead.take_record(started.id),
+                };
+                if let Some(record) = ahead {
+                    state.wishes.deliver(started.id, started.ticket);
+                    state.arrived.push_back(Arrival {
+                        id: started.id,
+                        class: started.class,
+                        body: Ok(record),
+                    });
+                    continue;
+                }
                 let on_the_wire = OnTheWire {
                     started,
                     controller: controller.clone(),
@@ -412,10 +494,12 @@ impl Shared {
             };
             let shared = self.clone();
             let path = frame_brick_path(&self.name, &self.generation, self.frame, started.id);
+            let slot = WireSlot::take();
             wasm_bindgen_futures::spawn_local(async move {
                 let signal = controller.signal();
                 let outcome =
                     fetch_bytes(&path, shared.token.as_deref(), Some(&signal), reload).await;
+                drop(slot);
                 shared.arrive(started, outcome);
             });
         }

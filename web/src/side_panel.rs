@@ -222,9 +222,18 @@ impl SidePanel {
                     ui.checkbox(&mut view.orthographic, "Orthographic projection");
                     crop_clip::controls(ui, &mut view.crop, &mut view.clip);
                 });
-            egui::CollapsingHeader::new("Light and shadows")
+            let light = egui::CollapsingHeader::new("Light and shadows")
                 .default_open(false)
                 .show(ui, |ui| self.light_ui(ui, view));
+            // For the browser tests: where to click to open the section, and (light_ui) the
+            // cinematic buttons' places while it is open.
+            crate::canvas_attributes::set(
+                "data-light-header",
+                &rect_text(light.header_response.rect),
+            );
+            if light.body_returned.is_none() {
+                crate::canvas_attributes::set("data-cinematic-buttons", "");
+            }
             egui::CollapsingHeader::new("Performance")
                 .default_open(true)
                 .show(ui, |ui| {
@@ -248,11 +257,17 @@ impl SidePanel {
     /// (refine.rs), as the desktop does.
     fn light_ui(&mut self, ui: &mut egui::Ui, view: &mut ViewState) {
         let unedited = self.edits == 0;
-        let clicked = self.scan.as_ref().and_then(|scan| {
-            lighting::cinematic_buttons(ui, scan, |preset| {
+        let (clicked, rects) = match self.scan.as_ref() {
+            Some(scan) => lighting::cinematic_buttons(ui, scan, |preset| {
                 unedited && view.preset == preset.tf_preset && view.light == preset.light()
-            })
-        });
+            }),
+            None => (None, Vec::new()),
+        };
+        let places: Vec<String> = rects
+            .iter()
+            .map(|(preset, rect)| format!("{}:{}", preset.label, rect_text(*rect)))
+            .collect();
+        crate::canvas_attributes::set("data-cinematic-buttons", &places.join(";"));
         if let Some(preset) = clicked {
             preset.light_view(&mut view.light, &mut view.shading, &mut view.mode);
             view.preset = preset.tf_preset.into();
@@ -368,4 +383,15 @@ pub fn sample_histogram(geometry: &VolumeGeometry) -> Histogram {
         }
     }
     Histogram::from_stored(&counts, 1.0, -1024.0)
+}
+
+/// A rectangle as the page publishes it for its tests: `x,y,w,h` in CSS pixels of the canvas.
+fn rect_text(rect: egui::Rect) -> String {
+    format!(
+        "{},{},{},{}",
+        rect.min.x,
+        rect.min.y,
+        rect.width(),
+        rect.height()
+    )
 }

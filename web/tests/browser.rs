@@ -65,6 +65,9 @@ mod refine;
 #[path = "browser/segment_values.rs"]
 mod segment_values;
 
+/// The side panel's cinematic preset buttons clicked, against what the desktop's set (issue 47).
+#[path = "browser/cinematic.rs"]
+mod cinematic;
 /// The orbit movie downloaded as an animated PNG, against the native frames (issue 47).
 #[path = "browser/movie.rs"]
 mod movie;

@@ -90,7 +90,7 @@ fn cinematic_presets(
     let scan = strata_viewer_ui::presets::ScanValues::of(&data.info.header);
     let edited = scene.tf_edited();
     let current = |preset: &CinematicPreset| prefs.is_cinematic(preset) && !edited;
-    let Some(preset) = cinematic_buttons(ui, &scan, current) else {
+    let (Some(preset), _) = cinematic_buttons(ui, &scan, current) else {
         return false;
     };
     prefs.apply_cinematic(&preset);

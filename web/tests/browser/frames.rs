@@ -2,7 +2,9 @@
 //! page's axial slice equals, byte for byte, the desktop's assembler on frame 2 read by the
 //! desktop's client (`RemoteSource::frame_source`) and differs from frame 0's; Play advances
 //! the shown frame (cine, driven by the page's frames: the test only waits for it); Pause, then
-//! the frame slider back to frame 0, gives frame 0's slice.
+//! the frame slider back to frame 0, gives frame 0's slice. And the next frame's bricks are
+//! fetched ahead (web/src/frame_ahead.rs): the server's access log lists frame 1's bricks
+//! while the page still shows frame 0, paused, and the frame Play then shows is the desktop's.
 
 use std::sync::mpsc;
 use std::sync::Arc;
@@ -17,8 +19,8 @@ use strata_storage::readers::{open_source, ReadOptions};
 
 use crate::input::cdp::Cdp;
 use crate::{
-    assert_same_slice, desktop_axial_slice, desktop_client, metric, serve_capturing, PAGE_DEADLINE,
-    TOKEN,
+    assert_same_slice, desktop_axial_slice, desktop_client, metric, serve_capturing, web_viewer,
+    PAGE_DEADLINE, TOKEN,
 };
 
 const DIMS: [usize; 3] = [48, 40, 24];
@@ -176,14 +178,20 @@ fn wait_for_frame(page: &mut Cdp, what: &str, done: impl Fn(&str) -> bool) -> St
     }
 }
 
+/// The 4-D NIfTI imported as the store `cine` in `scratch`.
+fn import_cine(scratch: &std::path::Path) -> std::path::PathBuf {
+    let nifti = scratch.join("cine.nii");
+    write_4d_nifti(&nifti);
+    let path = scratch.join("cine.strata");
+    let opened = open_source(&nifti, &ReadOptions::default()).expect("read the 4-D NIfTI");
+    import_source(opened, &path, &ImportOptions::default()).expect("import the 4-D NIfTI");
+    path
+}
+
 #[test]
 fn the_page_shows_a_served_4d_stores_frames_and_plays_them() {
     let scratch = tempfile::tempdir().expect("scratch folder");
-    let nifti = scratch.path().join("cine.nii");
-    write_4d_nifti(&nifti);
-    let path = scratch.path().join("cine.strata");
-    let opened = open_source(&nifti, &ReadOptions::default()).expect("read the 4-D NIfTI");
-    import_source(opened, &path, &ImportOptions::default()).expect("import the 4-D NIfTI");
+    let path = import_cine(scratch.path());
     let (server, frames) = serve_capturing(&path);
     let fragment = format!(
         "#store=cine&mode=mip&preset=ct-soft-tissue&size=64x64&capture=1&window={},{}&frame=2",
@@ -272,4 +280,155 @@ fn the_page_shows_a_served_4d_stores_frames_and_plays_them() {
         differing(&first.rgba, &of_frame_2) > pixels / 2,
         "the slider's frame 0 looks like frame 2"
     );
+}
+
+/// [`serve_capturing`] with the server's access log (one line per answered request, its path
+/// included) written to `log`.
+fn serve_logged(
+    path: &std::path::Path,
+    log: &std::path::Path,
+) -> (
+    strata_service::server::RunningServer,
+    mpsc::Receiver<CapturedFrame>,
+) {
+    let (frames_in, frames) = mpsc::channel::<CapturedFrame>();
+    let frames_in = std::sync::Mutex::new(frames_in);
+    let server = strata_service::server::start(
+        strata_service::server::find_stores(&[path.to_path_buf()]).expect("store found"),
+        strata_service::ServeOptions {
+            web_viewer: Some(Arc::new(web_viewer())),
+            test_frame_sink: Some(strata_service::FrameSink(Arc::new(move |frame| {
+                if let Ok(sender) = frames_in.lock() {
+                    let _ = sender.send(frame);
+                }
+            }))),
+            token: Some(TOKEN.into()),
+            access_log: Some(log.to_path_buf()),
+            ..strata_service::ServeOptions::default()
+        },
+    )
+    .expect("server starts");
+    (server, frames)
+}
+
+/// The bricks of frame `frame` below the root level (`root_level`) the server answered, as its
+/// access log lists them (`…/f/FRAME/bricks/LEVEL/Z/Y/X`). The root brick comes with the
+/// frame's store when it is opened, ahead or not: not counted.
+fn answered_bricks_of_frame(log: &std::path::Path, frame: u32, root_level: usize) -> Vec<String> {
+    let marker = format!("/f/{frame}/bricks/");
+    std::fs::read_to_string(log)
+        .unwrap_or_default()
+        .lines()
+        .filter_map(|line| {
+            let path = line.split(' ').nth(3)?;
+            let status = line.split(' ').nth(4)?;
+            let rest = path.split_once(&marker)?.1;
+            let level: usize = rest.split('/').next()?.parse().ok()?;
+            (status == "200" && level < root_level).then(|| path.to_owned())
+        })
+        .collect()
+}
+
+/// The page's `data-frame-ahead`: records its frames' fetchers took from what was fetched
+/// ahead, over the page's life (`…; used=N`).
+fn records_used_ahead(page: &mut Cdp) -> Option<u64> {
+    let text =
+        page.evaluate("document.getElementById('strata-canvas')?.dataset.frameAhead ?? null");
+    text.as_str()?.split("used=").nth(1)?.trim().parse().ok()
+}
+
+/// The page opened at frame 0 of a served 4-D store, paused: once its 3D view has converged,
+/// frame 1's bricks below the root are requested (the server's access log answers them) while
+/// the page still shows frame 0 (`data-frame` says "0/3 paused" before and after): streamed
+/// ahead. Without it, nothing asks for a frame's bricks before it is shown. Play then moves
+/// cine on; paused again, the frame shown is, byte for byte, the desktop's slice of that frame
+/// (its client's `frame_source`), and the frames shown took records fetched ahead instead of
+/// asking the server.
+#[test]
+fn the_next_frames_bricks_are_requested_before_it_is_shown_and_play_shows_the_desktops_frame() {
+    let scratch = tempfile::tempdir().expect("scratch folder");
+    let path = import_cine(scratch.path());
+    let log = scratch.path().join("access.log");
+    let (server, frames) = serve_logged(&path, &log);
+    let fragment = format!(
+        "#store=cine&mode=mip&preset=ct-soft-tissue&size=96x96&capture=1&window={},{}",
+        WINDOW[0], WINDOW[1]
+    );
+    let url = format!("{}/{fragment}&token={TOKEN}", server.base_url());
+    let mut page = Cdp::open(&url, scratch.path(), [1100, 800]);
+    let client = Arc::new(desktop_client(&server, "cine"));
+    let header = client.header().clone();
+    let root_level = header.layout.level_count() - 1;
+    assert!(
+        root_level > 0,
+        "a store of one level has no bricks but its root"
+    );
+
+    // Frame 0 shown; frame 1 is not, and nothing but its fetching ahead asks for its bricks.
+    next_slice_of_frame(&frames, &page, 0);
+    let ahead = page.wait_for(
+        "frame 1's bricks to be requested while frame 0 is shown",
+        PAGE_DEADLINE,
+        |page| {
+            assert_eq!(
+                shown_frame(page).as_deref(),
+                Some("0/3 paused"),
+                "the page left frame 0 by itself"
+            );
+            let answered = answered_bricks_of_frame(&log, 1, root_level);
+            (!answered.is_empty()).then_some(answered)
+        },
+    );
+    assert_eq!(
+        shown_frame(&mut page).as_deref(),
+        Some("0/3 paused"),
+        "frame 1's bricks were answered while frame 0 was shown"
+    );
+    println!(
+        "frames: {} of frame 1's bricks requested ahead while frame 0 was shown: {ahead:?}",
+        ahead.len()
+    );
+
+    // Play: cine moves on (frame 1 first); pause again and compare the frame shown.
+    let play = settled_control(&mut page, "play");
+    click_at(&mut page, play.center());
+    wait_for_frame(&mut page, "cine to move off frame 0", |text| {
+        text.ends_with("playing") && !text.starts_with("0/")
+    });
+    click_at(&mut page, play.center());
+    let paused = wait_for_frame(&mut page, "cine to pause", |text| text.ends_with("paused"));
+    let shown: u32 = paused
+        .split('/')
+        .next()
+        .and_then(|f| f.parse().ok())
+        .unwrap_or_else(|| panic!("data-frame {paused:?}"));
+    let posted = next_slice_of_frame(&frames, &page, shown);
+    let console = page.console();
+    let source = client
+        .clone()
+        .frame_source(shown)
+        .unwrap_or_else(|| panic!("the desktop's client opens frame {shown}"));
+    let (level, desktop) = desktop_axial_slice(
+        &header.layout,
+        &header.geometry,
+        Window::new(WINDOW[0], WINDOW[1]),
+        header.value_mapping.mapping,
+        (&posted, &console),
+        |id| source.read_brick(id).expect("brick"),
+    );
+    assert_same_slice(
+        &format!("frame {shown} after Play"),
+        level,
+        &posted,
+        &desktop,
+        &console,
+    );
+    // Waited for, not read once: the count the page published last may be from before the
+    // shown frame's fetchers took the records (it read 0 there, last session's failure).
+    let used = page.wait_for(
+        &format!("the frames cine showed ({paused}) to take records fetched ahead"),
+        PAGE_DEADLINE,
+        |page| records_used_ahead(page).filter(|used| *used > 0),
+    );
+    println!("frames: the frames cine showed took {used} records fetched ahead");
 }

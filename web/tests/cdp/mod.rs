@@ -306,6 +306,21 @@ impl Cdp {
         self.mouse_release(x, y);
     }
 
+    /// A left click at (x, y) whose press and release go out back to back, after a move
+    /// there: egui takes a press held longer than its click time (0.8 s) as a drag's start,
+    /// and on SwiftShader the frames [`Cdp::click`] waits between them can exceed it (a large
+    /// window's frames on two busy cores do).
+    pub fn quick_click(&mut self, x: f64, y: f64) {
+        self.mouse_move(x, y, false);
+        for (kind, buttons) in [("mousePressed", 1), ("mouseReleased", 0)] {
+            self.command(
+                "Input.dispatchMouseEvent",
+                json!({ "type": kind, "x": x, "y": y, "button": "left", "buttons": buttons, "clickCount": 1 }),
+            );
+        }
+        self.next_frames();
+    }
+
     /// Presses and releases one key: `key` as KeyboardEvent.key ("a"), `code` as
     /// KeyboardEvent.code ("KeyA"); the virtual key code is a letter's or digit's.
     pub fn key(&mut self, key: &str, code: &str) {
