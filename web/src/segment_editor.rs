@@ -498,6 +498,14 @@ impl PageSegmentation {
         undone
     }
 
+    /// The page's history can redo nothing (a view edit after an undo cleared its redo): the
+    /// layer's undone edits can no longer be reached, so they go too and the two agree.
+    pub fn forget_redo(&mut self) {
+        if self.history.can_redo() {
+            self.history.clear_redo();
+        }
+    }
+
     /// The page's history redoes `step` (false as for [`Self::undo_step`]).
     pub fn redo_step(&mut self, step: &SegmentStep) -> bool {
         let redone =
