@@ -436,6 +436,23 @@ impl PageSegmentation {
                 .map(|e| e.to_string());
             return;
         }
+        // Limited to the brush's value range, as on the desktop: the fill reads the primary's
+        // values, so it runs over the next frames as their bricks arrive (segment_values.rs).
+        let range = match self.values.brush_range() {
+            Ok(range) => range,
+            Err(e) => {
+                self.error = Some(e.to_string());
+                return;
+            }
+        };
+        if let Some(range) = range {
+            self.error = self
+                .values
+                .start_fill(plane, seed, self.active, range, FILL_MAX_VOXELS)
+                .err()
+                .map(|e| e.to_string());
+            return;
+        }
         let filled = fill_in_slice(
             &mut self.layer,
             &plane,

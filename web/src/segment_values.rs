@@ -14,17 +14,21 @@
 //! resident ([`crate::primary_values::PRIMARY_VALUES_CACHE_BYTES`]); between runs the page
 //! draws, shows progress (voxels taken, bricks still fetching), and Cancel drops the job with
 //! the layer unchanged. A finished grow is one undo step; one stopped at its cap says so and
-//! keeps what it took, as on the desktop.
+//! keeps what it took, as on the desktop. A slice fill limited to the brush's value range is
+//! a job too: it fills a copy of the layer (the bricks shared) each run and its edit reaches
+//! the layer only from a run that read every value it needed, so the page's fill honours the
+//! range exactly as the desktop's (`fill_in_slice` with the range) does.
 //!
 //! For the browser tests (web/tests/browser/segment_values.rs) the canvas carries
-//! `data-segment-values` (`job=none|grow|statistics;runs=N`, after a grow
+//! `data-segment-values` (`job=none|grow|statistics|fill;runs=N`, after a grow
 //! `;seed=I,J,K;grown_after_runs=N`, then `;notice=…`) and, once computed,
 //! `data-segment-stats` (the statistics as strata-segment's CSV, numbers in full).
 
 use glam::DVec3;
 use strata_segment::intensity::ValueRange;
 use strata_segment::stats::{segment_statistics, to_csv, Statistics};
-use strata_segment::tools::brush::{self, stroke_voxels, Brush, BrushAction};
+use strata_segment::tools::brush::{self, stroke_voxels, Brush, BrushAction, SlicePlane};
+use strata_segment::tools::fill::fill_in_slice;
 use strata_segment::tools::grow::{plan_grow, GrowCriterion};
 use strata_segment::{Edit, Label, LabelLayer, SegmentError};
 use strata_viewer_ui::segment_panel::{self, SegmentTool, ValueSettings};
@@ -34,7 +38,7 @@ use crate::primary_values_page::{PagePrimaryValues, RunVerdict};
 /// Why a value tool did not start.
 #[derive(Debug, thiserror::Error)]
 pub enum ValueToolError {
-    #[error("a grow or the statistics are still running: wait for them or Cancel")]
+    #[error("a grow, the statistics or a fill are still running: wait for them or Cancel")]
     Busy,
     #[error(transparent)]
     Settings(#[from] SegmentError),
@@ -54,12 +58,21 @@ enum Job {
     Statistics {
         runs: u32,
     },
+    /// A slice fill limited to the brush's value range (the desktop's fill with the range).
+    Fill {
+        plane: SlicePlane,
+        seed: [u32; 3],
+        label: Label,
+        range: ValueRange,
+        max_voxels: u64,
+        runs: u32,
+    },
 }
 
 impl Job {
     fn runs(&self) -> u32 {
         match self {
-            Job::Grow { runs, .. } | Job::Statistics { runs } => *runs,
+            Job::Grow { runs, .. } | Job::Statistics { runs } | Job::Fill { runs, .. } => *runs,
         }
     }
 }
@@ -119,6 +132,31 @@ impl SegmentValues {
             criterion,
             max_voxels: s.max_voxels,
             voxels: 0,
+            runs: 0,
+        });
+        Ok(())
+    }
+
+    /// A fill click with the brush's value range: fills the region around `seed` in `plane`'s
+    /// slice with `label` where the primary's value is in `range` (over the next frames).
+    pub fn start_fill(
+        &mut self,
+        plane: SlicePlane,
+        seed: [u32; 3],
+        label: Label,
+        range: ValueRange,
+        max_voxels: u64,
+    ) -> Result<(), ValueToolError> {
+        if self.busy() {
+            return Err(ValueToolError::Busy);
+        }
+        self.notice = None;
+        self.job = Some(Job::Fill {
+            plane,
+            seed,
+            label,
+            range,
+            max_voxels,
             runs: 0,
         });
         Ok(())
@@ -190,6 +228,57 @@ impl SegmentValues {
                     }
                 }
             }
+            Job::Fill {
+                plane,
+                seed,
+                label,
+                range,
+                max_voxels,
+                runs,
+            } => {
+                *runs += 1;
+                // A run over missing bricks fills too little (their values read as NaN, out of
+                // any range): it fills a copy (bricks shared, copied on write), dropped unless
+                // the run read every value it needed.
+                let mut trial = layer.clone();
+                let filled = fill_in_slice(
+                    &mut trial,
+                    plane,
+                    *seed,
+                    *label,
+                    Some(*range),
+                    Some(&intensity),
+                    *max_voxels,
+                );
+                let read = intensity.read();
+                match primary.finish_run(read) {
+                    Ok(RunVerdict::Waiting { missing }) => self.missing = missing,
+                    Ok(RunVerdict::Complete) => {
+                        self.job = None;
+                        match filled {
+                            Ok(filled) => {
+                                if filled.stopped_at_cap {
+                                    // The desktop's words.
+                                    self.notice = Some(format!(
+                                        "stopped at {} voxels, the cap; what it took is kept",
+                                        filled.voxels
+                                    ));
+                                }
+                                if let Some(edit) = &filled.edit {
+                                    // The copy was taken this frame: the layer is as it was.
+                                    layer.apply(edit);
+                                }
+                                outcome.edit = filled.edit;
+                            }
+                            Err(e) => outcome.error = Some(e.to_string()),
+                        }
+                    }
+                    Err(e) => {
+                        self.job = None;
+                        outcome.error = Some(e.to_string());
+                    }
+                }
+            }
             Job::Statistics { runs } => {
                 *runs += 1;
                 let stats = segment_statistics(layer, Some(&intensity), None, &mut |_, _| {});
@@ -221,6 +310,7 @@ impl SegmentValues {
             self.notice = Some(match job {
                 Job::Grow { .. } => "growing cancelled; nothing changed".into(),
                 Job::Statistics { .. } => "statistics cancelled".into(),
+                Job::Fill { .. } => "fill cancelled; nothing changed".into(),
             });
         }
     }
@@ -235,7 +325,9 @@ impl SegmentValues {
                 (*voxels as f64 / (*max_voxels).max(1) as f64) as f32,
                 format!("{voxels} voxels, fetching {fetching} bricks"),
             )),
-            Job::Statistics { .. } => Some((0.0, format!("fetching {fetching} bricks"))),
+            Job::Statistics { .. } | Job::Fill { .. } => {
+                Some((0.0, format!("fetching {fetching} bricks")))
+            }
         }
     }
 
@@ -245,6 +337,7 @@ impl SegmentValues {
             None => "none",
             Some(Job::Grow { .. }) => "grow",
             Some(Job::Statistics { .. }) => "statistics",
+            Some(Job::Fill { .. }) => "fill",
         };
         let runs = self.job.as_ref().map_or(0, Job::runs);
         let mut text = format!("job={job};runs={runs}");
