@@ -326,6 +326,11 @@ impl PageSegmentation {
 
     /// The stroke starts at `position_lps` or is swept on to it, applied at once.
     fn stroke_to(&mut self, plane: SlicePlane, position_lps: DVec3) {
+        if self.values.busy() {
+            // A grow, the statistics or a ranged fill are running (segment_values.rs): the
+            // tools wait, as on the desktop.
+            return;
+        }
         let action = match self.tool {
             SegmentTool::Eraser => BrushAction::Erase(EraseTarget::AnyUnlocked),
             _ => BrushAction::Paint(self.active),
@@ -420,6 +425,10 @@ impl PageSegmentation {
 
     /// A fill click: the closed region around the voxel under it, in the view's slice.
     fn fill_at(&mut self, plane: SlicePlane, position_lps: DVec3) {
+        if self.values.busy() && self.tool != SegmentTool::Grow {
+            // As the brush: the fill waits for the running job (a grow click says it is busy).
+            return;
+        }
         let grid = self.layer.grid();
         let index = grid.index_from_patient(position_lps).round();
         let voxel = [index.x, index.y, index.z].map(|c| c as i64);
