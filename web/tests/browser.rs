@@ -45,6 +45,9 @@ mod oblique;
 /// Segmentation editing in the page: brush, eraser, undo and the NIfTI download (issue 52).
 #[path = "browser/segment.rs"]
 mod segment;
+/// The brush in the page's 3D view against the desktop's sphere stroke (issue 52).
+#[path = "browser/segment_3d.rs"]
+mod segment_3d;
 
 /// A served 4-D store's frames and cine in the page against the desktop's client (issue 47).
 #[path = "browser/frames.rs"]
