@@ -126,6 +126,14 @@ impl History {
         self.undo.back().map(|e| e.name.as_str())
     }
 
+    /// Drops every undone edit (nothing can be redone): for a caller whose own history can no
+    /// longer reach them, as a new step of another kind (the page's view edits) clears its redo.
+    pub fn clear_redo(&mut self) {
+        for e in self.redo.drain(..) {
+            self.bytes -= edit_bytes(&e);
+        }
+    }
+
     pub fn can_undo(&self) -> bool {
         !self.undo.is_empty()
     }
@@ -183,6 +191,25 @@ mod tests {
         })
         .unwrap()
         .unwrap()
+    }
+
+    #[test]
+    fn clear_redo_drops_the_undone_edits_and_their_bytes_and_keeps_the_undo_list() {
+        let mut l = layer();
+        let mut h = History::new(usize::MAX);
+        h.push(paint(&mut l, 0, 1));
+        let one = h.bytes();
+        h.push(paint(&mut l, 10, 2));
+        let painted = images(&l);
+        h.undo(&mut l);
+        assert!(h.can_redo());
+        h.clear_redo();
+        assert!(!h.can_redo() && h.can_undo());
+        assert_eq!(h.bytes(), one);
+        assert!(h.redo(&mut l).is_none());
+        assert_ne!(images(&l), painted, "the cleared redo must not come back");
+        assert_eq!(h.undo(&mut l), Some("paint"));
+        assert!(!h.can_undo());
     }
 
     #[test]

@@ -33,6 +33,7 @@ use crate::page_timing::{PageTiming, BENCH_DEG_PER_FRAME};
 use crate::page_tools::{self, PageTools};
 use crate::picking::PendingPick;
 use crate::refine::Refinement;
+use crate::segment_3d::Segment3d;
 use crate::served_store::{list_stores, ServedStore, DECODES_PER_FRAME, MAX_ON_THE_WIRE};
 use crate::side_panel::{SidePanel, VolumeFigures};
 use crate::slice_views::SliceViews;
@@ -47,6 +48,7 @@ use strata_viewer_ui::presets;
 use strata_viewer_ui::render_driver::{
     OverlayIn3d, RenderChange, RenderDriver, RenderRequest, DEFAULT_PROGRESSIVE_FRAMES,
 };
+use strata_viewer_ui::segment_panel::SegmentTool;
 use strata_viewer_ui::triad;
 
 /// The largest image edge drawn when the canvas decides (device pixels): a 4K canvas is drawn
@@ -259,6 +261,8 @@ struct WebViewer {
     screenshot: Option<(Capture, Vec<JsValue>)>,
     /// A click in the 3D view whose pick depth is on its way back (picking.rs).
     pick: Option<PendingPick>,
+    /// The segment tools' gesture in the 3D view and its picks on their way (segment_3d.rs).
+    segment_3d: Segment3d,
     /// How far the pointer has moved in the 3D view's current drag (points).
     drag_travel: f32,
     /// Undo and redo, the shared keys and help, the screenshot download (page_tools.rs).
@@ -356,6 +360,7 @@ impl WebViewer {
             bridge,
             screenshot: None,
             pick: None,
+            segment_3d: Segment3d::default(),
             drag_travel: 0.0,
             tools: PageTools::default(),
             download: None,
@@ -702,37 +707,49 @@ impl WebViewer {
     }
 
     /// Starts reading back the pick depth under `pos` of the 3D image drawn in `image_rect`,
-    /// from the frame on screen (the camera it was drawn with is the view's: a click does not
-    /// move the view). Off the image, or before a frame, nothing happens.
+    /// from the frame on screen, for the crosshair. Off the image, or before a frame, nothing
+    /// happens.
     fn start_pick(&mut self, ctx: &egui::Context, pos: egui::Pos2, image_rect: egui::Rect) {
-        let Some(geometry) = self.shown_geometry() else {
-            return;
-        };
+        match self.pick_at(ctx, pos, image_rect) {
+            Ok((pick, pixel, size)) => {
+                self.pick = Some(pick);
+                publish_pick(&format!(
+                    "reading pixel {},{} of {}x{}",
+                    pixel[0], pixel[1], size[0], size[1]
+                ));
+            }
+            Err(why) => publish_pick(why),
+        }
+    }
+
+    /// A pick of the depth under `pos` of the 3D image drawn in `image_rect`, from the frame
+    /// on screen (the camera it was drawn with is the view's: a click or a segment tool's drag
+    /// does not move the view), with its frame pixel and the frame's size; why not, else.
+    /// The crosshair's click and the 3D segment tools (segment_3d.rs) both pick through it.
+    fn pick_at(
+        &mut self,
+        ctx: &egui::Context,
+        pos: egui::Pos2,
+        image_rect: egui::Rect,
+    ) -> Result<(PendingPick, [u32; 2], [u32; 2]), &'static str> {
+        let geometry = self.shown_geometry().ok_or("no volume open to pick in")?;
         let camera = self.view.camera(&geometry);
         let raycaster = match (self.streamed.as_mut(), self.renderer.as_ref()) {
             (Some(streamed), _) => &*streamed.volume.raycaster_mut(),
             (None, Some(renderer)) => &renderer.raycaster,
-            (None, None) => return,
+            (None, None) => return Err("no frame drawn yet to pick from"),
         };
-        let Some((depth, size)) = raycaster.pick_depth_buffer() else {
-            publish_pick("no frame drawn yet to pick from");
-            return;
-        };
-        let Some(pixel) = frame_pixel(
+        let (depth, size) = raycaster
+            .pick_depth_buffer()
+            .ok_or("no frame drawn yet to pick from")?;
+        let pixel = frame_pixel(
             (pos.x - image_rect.left()) / image_rect.width().max(1.0),
             (pos.y - image_rect.top()) / image_rect.height().max(1.0),
             size,
-        ) else {
-            publish_pick("the click is off the 3D image");
-            return;
-        };
-        self.pick = Some(PendingPick::start(
-            &self.gpu, depth, size, pixel, camera, ctx,
-        ));
-        publish_pick(&format!(
-            "reading pixel {},{} of {}x{}",
-            pixel[0], pixel[1], size[0], size[1]
-        ));
+        )
+        .ok_or("the click is off the 3D image")?;
+        let pick = PendingPick::start(&self.gpu, depth, size, pixel, camera, ctx);
+        Ok((pick, pixel, size))
     }
 
     /// The position a finished pick saw (`None` while it is on its way, or where its ray met
@@ -755,6 +772,34 @@ impl WebViewer {
                 self.error = Some(e.to_string());
                 None
             }
+        }
+    }
+
+    /// The segmentation's tool as the 3D view offers it (`None` without a segmentation).
+    fn segment_tool_3d(&self) -> SegmentTool {
+        let slices = match &self.streamed {
+            Some(streamed) => Some(&streamed.slices),
+            None => self.sample_slices.as_ref(),
+        };
+        slices
+            .and_then(|s| s.segmentation.as_ref())
+            .map_or(SegmentTool::None, |seg| seg.tool_3d())
+    }
+
+    /// The 3D segment tools' picks that are in go onto the segmentation (segment_3d.rs).
+    fn segment_3d_step(&mut self) {
+        let Some(geometry) = self.shown_geometry() else {
+            return;
+        };
+        let segmentation = match self.streamed.as_mut() {
+            Some(streamed) => streamed.slices.segmentation.as_mut(),
+            None => self
+                .sample_slices
+                .as_mut()
+                .and_then(|s| s.segmentation.as_mut()),
+        };
+        if let Some(e) = self.segment_3d.apply(&geometry, segmentation) {
+            self.error = Some(e.to_string());
         }
     }
 
@@ -1588,9 +1633,15 @@ impl eframe::App for WebViewer {
                     _ => (area, None, None),
                 };
                 let response = ui.allocate_rect(rect, egui::Sense::click_and_drag());
+                // With a brush, eraser or grow chosen the left button edits labels in the 3D
+                // view (segment_3d.rs), as on the desktop; the other buttons still orbit.
+                let segment_tool = self.segment_tool_3d();
+                let segment_left = Segment3d::takes_left_button(segment_tool, ui);
                 // The desktop's drag mapping (strata-viewer-ui's orbit): the same drag turns
                 // both viewers' views by the same angles.
-                if response.dragged() {
+                let orbiting = response.dragged()
+                    && !(segment_left && response.dragged_by(egui::PointerButton::Primary));
+                if orbiting {
                     let delta = response.drag_delta();
                     (self.view.azimuth_deg, self.view.elevation_deg) = orbit::orbit_by_drag(
                         self.view.azimuth_deg,
@@ -1622,7 +1673,7 @@ impl eframe::App for WebViewer {
                         ctx.request_repaint_after(std::time::Duration::from_millis(250));
                     }
                 }
-                let mut moved = response.dragged() || keyed;
+                let mut moved = orbiting || keyed;
                 if response.hovered() {
                     let scroll = ui.input(|i| i.smooth_scroll_delta.y);
                     if scroll != 0.0 {
@@ -1689,11 +1740,21 @@ impl eframe::App for WebViewer {
                 }
                 let held_click = response.drag_stopped_by(egui::PointerButton::Primary)
                     && self.drag_travel < HELD_CLICK_TRAVEL;
-                if response.clicked() || held_click {
+                if (response.clicked() || held_click) && !segment_left {
                     if let Some(pos) = response.interact_pointer_pos() {
                         self.start_pick(&ctx, pos, image_rect);
                     }
                 }
+                if segment_left {
+                    let mut segment_3d = std::mem::take(&mut self.segment_3d);
+                    segment_3d.input(ui, &response, segment_tool, |pos| {
+                        self.pick_at(&ctx, pos, image_rect)
+                            .ok()
+                            .map(|(pick, _, _)| pick)
+                    });
+                    self.segment_3d = segment_3d;
+                }
+                self.segment_3d_step();
                 let picked = self.take_pick();
                 let camera_3d = self.shown_geometry().map(|g| self.view.camera(&g));
                 let (mut slices, oblique) = match self.streamed.as_mut() {

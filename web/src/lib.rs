@@ -58,6 +58,9 @@
 //!   them, out of core: a bounded cache of resident bricks, strata-segment's `Intensity` over
 //!   them, naming the bricks not resident yet; `primary_values_page` (wasm32 only) fetches
 //!   them through the served store (or copies the sample's).
+//! - `segment_3d` (wasm32 only): the segment tools in the 3D view (the desktop's gesture): a
+//!   brush or eraser stroke of balls at the surface points picked along a drag, a grow seeded
+//!   at a picked point, through picking.rs's asynchronous picks taken in order.
 //! - `segment_values` (wasm32 only): region growing from a clicked seed and the statistics
 //!   per segment in the page, run over the resident bricks and again as missing ones arrive.
 //! - `segment_downloads` (wasm32 only): the segmentation as a DICOM SEG and as zipped OME-Zarr
@@ -103,6 +106,8 @@ pub mod primary_values;
 mod primary_values_page;
 #[cfg(target_arch = "wasm32")]
 mod refine;
+#[cfg(target_arch = "wasm32")]
+mod segment_3d;
 #[cfg(target_arch = "wasm32")]
 mod segment_downloads;
 #[cfg(target_arch = "wasm32")]

@@ -179,6 +179,10 @@ impl PageTools {
             Stepped::Nothing
         };
         if let Some(seg) = segmentation {
+            if !history.can_redo() {
+                // Every page step of the layer's redo is gone (a new step clears them all).
+                seg.forget_redo();
+            }
             seg.set_page_history(history.can_undo(), history.can_redo());
         }
         match stepped {

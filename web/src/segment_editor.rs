@@ -80,10 +80,10 @@ pub const FILL_MAX_VOXELS: u64 = 1 << 24;
 /// The file name Download offers.
 pub const DOWNLOAD_NAME: &str = "segmentation.nii.gz";
 
-/// A stroke being drawn: its plane, action, pointer positions (LPS mm) and the small edits
-/// already applied.
+/// A stroke being drawn: its shape (a slice view's disc, the 3D view's ball), action, pointer
+/// positions (LPS mm) and the small edits already applied.
 struct Stroke {
-    plane: SlicePlane,
+    shape: BrushShape,
     action: BrushAction,
     positions: Vec<DVec3>,
     edits: Vec<Edit>,
@@ -326,6 +326,36 @@ impl PageSegmentation {
 
     /// The stroke starts at `position_lps` or is swept on to it, applied at once.
     fn stroke_to(&mut self, plane: SlicePlane, position_lps: DVec3) {
+        self.stroke_shaped(BrushShape::Disc(plane), position_lps);
+    }
+
+    /// The tool as the 3D view offers it (fill works within a slice: no 3D form), as on the
+    /// desktop.
+    pub fn tool_3d(&self) -> SegmentTool {
+        self.tool.filter_3d()
+    }
+
+    /// The 3D view's brush (segment_3d.rs): a ball of the brush's diameter at `position_lps`,
+    /// the surface point picked under the pointer, swept on from the last one while the
+    /// button is down (the desktop's `Segmentation::sphere_stroke_to`).
+    pub fn sphere_stroke_to(&mut self, position_lps: DVec3) {
+        self.stroke_shaped(BrushShape::Sphere, position_lps);
+    }
+
+    /// A grow seeded in the 3D view at the picked `position_lps` (the grow is 3D: the plane
+    /// is not used), as the desktop's 3D view seeds it.
+    pub fn grow_at(&mut self, position_lps: DVec3) {
+        if self.tool == SegmentTool::Grow {
+            self.fill_at(SlicePlane::Axial, position_lps);
+        }
+    }
+
+    fn stroke_shaped(&mut self, shape: BrushShape, position_lps: DVec3) {
+        if self.values.busy() {
+            // A grow, the statistics or a ranged fill are running (segment_values.rs): the
+            // tools wait, as on the desktop.
+            return;
+        }
         let action = match self.tool {
             SegmentTool::Eraser => BrushAction::Erase(EraseTarget::AnyUnlocked),
             _ => BrushAction::Paint(self.active),
@@ -338,7 +368,7 @@ impl PageSegmentation {
             }
         };
         let stroke = self.stroke.get_or_insert_with(|| Stroke {
-            plane,
+            shape,
             action,
             positions: Vec::new(),
             edits: Vec::new(),
@@ -351,11 +381,11 @@ impl PageSegmentation {
         }
         stroke.positions.push(position_lps);
         let brush = Brush {
-            shape: BrushShape::Disc(stroke.plane),
+            shape: stroke.shape,
             diameter_mm: self.diameter_mm,
             value_range,
         };
-        // The disc swept from the last position to this one (the first: a disc there).
+        // The disc or ball swept from the last position to this one (the first: one there).
         let segment: Vec<DVec3> = from.into_iter().chain([position_lps]).collect();
         if value_range.is_some() {
             // Applied once the primary's values under it are resident (segment_values.rs).
@@ -375,7 +405,7 @@ impl PageSegmentation {
     }
 
     /// The button was released: the stroke's edits become one undo step.
-    fn end_stroke(&mut self) {
+    pub fn end_stroke(&mut self) {
         if let Some(stroke) = self.stroke.as_mut().filter(|s| !s.queued.is_empty()) {
             stroke.released = true;
             return;
@@ -387,7 +417,10 @@ impl PageSegmentation {
             BrushAction::Paint(_) => "Brush",
             BrushAction::Erase(_) => "Eraser",
         };
-        self.last_plane = stroke.plane;
+        if let BrushShape::Disc(plane) = stroke.shape {
+            // Fill between slices interpolates along the last disc's plane; a ball has none.
+            self.last_plane = plane;
+        }
         if let Some(edit) = merge_edits(name, stroke.edits) {
             self.push_step(edit);
         }
@@ -420,6 +453,10 @@ impl PageSegmentation {
 
     /// A fill click: the closed region around the voxel under it, in the view's slice.
     fn fill_at(&mut self, plane: SlicePlane, position_lps: DVec3) {
+        if self.values.busy() && self.tool != SegmentTool::Grow {
+            // As the brush: the fill waits for the running job (a grow click says it is busy).
+            return;
+        }
         let grid = self.layer.grid();
         let index = grid.index_from_patient(position_lps).round();
         let voxel = [index.x, index.y, index.z].map(|c| c as i64);
@@ -432,6 +469,23 @@ impl PageSegmentation {
             self.error = self
                 .values
                 .start_grow(seed, self.active)
+                .err()
+                .map(|e| e.to_string());
+            return;
+        }
+        // Limited to the brush's value range, as on the desktop: the fill reads the primary's
+        // values, so it runs over the next frames as their bricks arrive (segment_values.rs).
+        let range = match self.values.brush_range() {
+            Ok(range) => range,
+            Err(e) => {
+                self.error = Some(e.to_string());
+                return;
+            }
+        };
+        if let Some(range) = range {
+            self.error = self
+                .values
+                .start_fill(plane, seed, self.active, range, FILL_MAX_VOXELS)
                 .err()
                 .map(|e| e.to_string());
             return;
@@ -496,6 +550,14 @@ impl PageSegmentation {
             self.revision += 1;
         }
         undone
+    }
+
+    /// The page's history can redo nothing (a view edit after an undo cleared its redo): the
+    /// layer's undone edits can no longer be reached, so they go too and the two agree.
+    pub fn forget_redo(&mut self) {
+        if self.history.can_redo() {
+            self.history.clear_redo();
+        }
     }
 
     /// The page's history redoes `step` (false as for [`Self::undo_step`]).

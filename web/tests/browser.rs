@@ -45,6 +45,9 @@ mod oblique;
 /// Segmentation editing in the page: brush, eraser, undo and the NIfTI download (issue 52).
 #[path = "browser/segment.rs"]
 mod segment;
+/// The brush in the page's 3D view against the desktop's sphere stroke (issue 52).
+#[path = "browser/segment_3d.rs"]
+mod segment_3d;
 
 /// Adaptive sampling of the page's still view against the native adaptive pass (issue 47).
 #[path = "browser/adaptive.rs"]

@@ -837,3 +837,52 @@ fn a_brush_stroke_on_the_oblique_view_downloads_as_the_desktops_oblique_brush_pa
         model.difference(&got).count()
     );
 }
+
+/// A stroke, Ctrl+Z, then a window drag (a view edit): the page's history can no longer redo
+/// the stroke (a new step clears redo), and the layer's own history must agree: it keeps no
+/// redo (`redo=0`, not an entry nothing can reach), and Ctrl+Y paints nothing back.
+#[test]
+fn a_view_edit_after_a_segment_undo_leaves_the_layer_no_redo_the_page_cannot_reach() {
+    let scratch = tempfile::tempdir().expect("scratch folder");
+    let mut painting = AxialPainting::open(scratch.path());
+    let stroke = painting.horizontal(0.25, 0.75, 0.4, 4);
+    let page = &mut painting.page;
+    let before = wait_for_link(page, "the link to carry the slices' window", |v| {
+        v.window.is_some()
+    });
+    page.evaluate("document.getElementById('strata-canvas').focus()");
+    drag_through(page, &stroke);
+    wait_for_figures(page, "the stroke to end as one undo step", |t| {
+        figure(t, "stroke").as_deref() == Some("0") && figure(t, "undo").as_deref() == Some("1")
+    });
+    key_with(page, "z", "KeyZ", 90, CTRL);
+    wait_for_figures(page, "Ctrl+Z to undo the stroke", |t| {
+        figure(t, "painted").as_deref() == Some("0") && figure(t, "redo").as_deref() == Some("1")
+    });
+    let axial = view_rect(page, "axial");
+    right_drag(page, axial.center().round(), [60.0, 0.0]);
+    wait_for_link(page, "the link to show the dragged window", |v| {
+        v.window
+            .is_some_and(|w| !close(w[1], before.window.expect("window")[1]))
+    });
+    let figures = wait_for_figures(page, "the layer to drop the unreachable redo", |t| {
+        figure(t, "redo").as_deref() == Some("0")
+    });
+    assert_eq!(
+        figure(&figures, "undo").as_deref(),
+        Some("0"),
+        "the undone stroke is not an undo step either: {figures}"
+    );
+    key_with(page, "y", "KeyY", 89, CTRL);
+    page.next_frames();
+    page.next_frames();
+    let figures = wait_for_figures(page, "the labels after Ctrl+Y", |_| true);
+    assert_eq!(
+        (
+            figure(&figures, "painted").as_deref(),
+            figure(&figures, "redo").as_deref()
+        ),
+        (Some("0"), Some("0")),
+        "Ctrl+Y after the view edit must redo nothing: {figures}"
+    );
+}
