@@ -106,9 +106,11 @@ fn tool_state(page: &mut Cdp) -> Option<(String, usize)> {
     Some((label.to_owned(), points.parse().ok()?))
 }
 
-/// Clicks at `at` until `taken` says the page took the click: egui counts a press and release
-/// more than 0.8 s apart as no click, and on two busy cores the frames between them can take
-/// that long. A click the page did take is never repeated.
+/// Clicks at `at` until `taken` says the page took the click. Press and release go out back
+/// to back (`Cdp::quick_click`): egui counts a press and release more than 0.8 s apart as no
+/// click, and on two busy cores the frames `Cdp::click` waits between them took that long five
+/// times running (this stop's browser run beside a CI rehearsal). A click the page did take is
+/// never repeated.
 pub(crate) fn click_until(
     page: &mut Cdp,
     at: (f64, f64),
@@ -116,7 +118,7 @@ pub(crate) fn click_until(
     taken: impl Fn(&mut Cdp) -> bool,
 ) {
     for _attempt in 0..5 {
-        page.click(at.0, at.1);
+        page.quick_click(at.0, at.1);
         let until = std::time::Instant::now() + Duration::from_secs(20);
         while std::time::Instant::now() < until {
             if taken(page) {
